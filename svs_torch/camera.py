@@ -1,0 +1,80 @@
+"""The Surveyor SVS stereo camera model.
+
+Two SRV-1 Blackfin boards with OmniVision OV9655 sensors and 3.6 mm lenses on a fixed horizontal rig.
+Constants are nominal: from the paper (baseline 10.75 cm) and from Surveyor's firmware range formula
+(``../shared/SVS_PROTOCOL.md`` §5: 3.6 mm lens, 4.17 mm sensor width, 107 mm baseline). A real rig should be
+calibrated; these values are what the paper's depth equations (5)–(8) use without calibration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .checks import InputError
+
+__all__ = ["SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size"]
+
+#: The frame sizes the SVS firmware can grab, keyed by the size code in its ``##IMJ`` header
+#: (SVS_PROTOCOL.md §3): ``'3'`` 160×120, ``'5'`` 320×240 (power-on default), ``'7'`` 640×480, ``'9'`` 1280×1024.
+SVS_RESOLUTIONS: dict[str, tuple[int, int]] = {
+    "3": (160, 120),
+    "5": (320, 240),
+    "7": (640, 480),
+    "9": (1280, 1024),
+}
+
+
+@dataclass(frozen=True)
+class SVSCamera:
+    """Nominal optics of one SVS rig.
+
+    Attributes:
+        baseline_m: distance between the optical centres, metres. Paper: 10.75 cm (4.25 in); Surveyor's
+            firmware range formula uses 107 mm.
+        lens_focal_mm: lens focal length, millimetres (3.6 mm stock lens, 90° field of view).
+        sensor_width_mm: active sensor width, millimetres (firmware range formula).
+    """
+
+    baseline_m: float = 0.1075  # paper, Sec. 3.1; the firmware uses 0.107
+    lens_focal_mm: float = 3.6  # SVS_PROTOCOL.md §5
+    sensor_width_mm: float = 4.17  # SVS_PROTOCOL.md §5
+
+    def focal_px(self, width_px: int) -> float:
+        """Focal length in pixels for an image ``width_px`` wide: f_mm / sensor_width_mm · width.
+
+        About 138 px at 160×120, 276 px at 320×240, 553 px at 640×480, 1105 px at 1280×1024.
+        """
+        if width_px <= 0:
+            raise InputError(f"width_px: expected a positive width, got {width_px}")
+        return self.lens_focal_mm / self.sensor_width_mm * width_px
+
+    def principal_point_px(self, width_px: int, height_px: int) -> tuple[float, float]:
+        """Nominal principal point (image centre in pixel-centre coordinates, x = column)."""
+        return (width_px - 1) / 2.0, (height_px - 1) / 2.0
+
+    def depth_m(self, disparity_px: float, width_px: int) -> float:
+        """Depth of one disparity, the paper's R = f·B/d (Eq. (7)–(8)); ``inf`` for d <= 0."""
+        if disparity_px <= 0:
+            return float("inf")
+        return self.focal_px(width_px) * self.baseline_m / disparity_px
+
+    def disparity_px(self, depth_m: float, width_px: int) -> float:
+        """Disparity of a point at ``depth_m``: d = f·B/Z."""
+        if depth_m <= 0:
+            raise InputError(f"depth_m: expected a positive depth, got {depth_m}")
+        return self.focal_px(width_px) * self.baseline_m / depth_m
+
+
+#: The rig of the paper, with its stock 3.6 mm lenses.
+SVS_CAMERA = SVSCamera()
+
+
+def parse_size(text: str, name: str = "size") -> tuple[int, int]:
+    """Parse ``"320x240"`` into ``(width, height)``; raises :class:`InputError` naming ``name`` otherwise."""
+    parts = text.lower().replace("×", "x").split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise InputError(f"{name}: expected WIDTHxHEIGHT such as 320x240, got {text!r}")
+    width, height = (int(p) for p in parts)
+    if width <= 0 or height <= 0:
+        raise InputError(f"{name}: expected a positive width and height, got {text!r}")
+    return width, height

@@ -1,0 +1,89 @@
+"""Input checks for public entry points.
+
+Every check raises :class:`InputError` (a ``ValueError``) whose message names the argument and what was
+expected, e.g. ``left: expected (B, 1, H, W), got (4, 3, 240, 320)``. Checks run once at the public entry of
+a stage; the tensor maths inside trusts its inputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+__all__ = [
+    "InputError",
+    "check_shape",
+    "check_dtype",
+    "check_image",
+    "check_same_shape",
+]
+
+
+class InputError(ValueError):
+    """A public function was given an argument of the wrong shape, dtype, range or format."""
+
+
+def _format_spec(spec: Sequence[str | int]) -> str:
+    return "(" + ", ".join(str(s) for s in spec) + ")"
+
+
+def check_shape(tensor: torch.Tensor, name: str, spec: Sequence[str | int]) -> dict[str, int]:
+    """Check ``tensor`` against a shape spec such as ``["B", 1, "H", "W"]``.
+
+    Letters bind to sizes (the same letter must bind to the same size everywhere in the spec); integers must
+    match exactly. Returns the bindings, so callers can check sizes across arguments.
+
+    Example:
+        >>> check_shape(torch.zeros(2, 1, 4, 5), "left", ["B", 1, "H", "W"])
+        {'B': 2, 'H': 4, 'W': 5}
+    """
+    if not isinstance(tensor, torch.Tensor):
+        raise InputError(f"{name}: expected a torch.Tensor of shape {_format_spec(spec)}, "
+                         f"got {type(tensor).__name__}")
+    shape = tuple(tensor.shape)
+    bindings: dict[str, int] = {}
+    ok = len(shape) == len(spec)
+    if ok:
+        for size, want in zip(shape, spec):
+            if isinstance(want, int):
+                ok = ok and size == want
+            elif want in bindings:
+                ok = ok and bindings[want] == size
+            else:
+                bindings[want] = size
+    if not ok:
+        raise InputError(f"{name}: expected {_format_spec(spec)}, got {_format_spec(shape)}")
+    return bindings
+
+
+def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
+    """Check the dtype family: ``"float"``, ``"bool"``, ``"int"`` (any integer), or several joined by ``|``."""
+    allowed = kinds.split("|")
+    dtype = tensor.dtype
+    family = ("bool" if dtype == torch.bool else
+              "float" if dtype.is_floating_point else
+              "int" if not dtype.is_complex else "complex")
+    if family not in allowed:
+        raise InputError(f"{name}: expected a {' or '.join(allowed)} tensor, got {dtype}")
+
+
+def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> dict[str, int]:
+    """Check a grayscale image batch: float ``(B, 1, H, W)`` with values in [0, 1] and no NaN.
+
+    The range check costs one reduction and one host sync; it runs once per public call.
+    """
+    bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
+    check_dtype(tensor, name, "float")
+    if check_range and tensor.numel() > 0:
+        lo, hi = torch.aminmax(tensor.detach())
+        if not (bool(lo >= 0.0) and bool(hi <= 1.0)):
+            raise InputError(f"{name}: expected values in [0, 1], got min {float(lo):.4g}, max {float(hi):.4g}")
+    return bindings
+
+
+def check_same_shape(a: torch.Tensor, name_a: str, b: torch.Tensor, name_b: str) -> None:
+    """Check that two tensors have the same shape (e.g. a left and a right image)."""
+    if a.shape != b.shape:
+        raise InputError(f"{name_b}: expected the shape of {name_a} {_format_spec(tuple(a.shape))}, "
+                         f"got {_format_spec(tuple(b.shape))}")

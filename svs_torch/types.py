@@ -1,0 +1,245 @@
+"""Containers passed between pipeline stages.
+
+Shape letters: B pairs (or images), H and W pixels, L region slots, N kept regions.
+All containers are frozen dataclasses of tensors with a leading batch dimension B; a pair's row never
+depends on another pair's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from dataclasses import dataclass
+
+import torch
+
+from .checks import InputError, check_dtype, check_image, check_same_shape, check_shape
+
+__all__ = [
+    "StereoBatch",
+    "RegionProperties",
+    "Segmentation",
+    "StereoSegmentation",
+    "SegmentationStatus",
+]
+
+
+@dataclass(frozen=True)
+class StereoBatch:
+    """A batch of rectified (or nearly rectified) grayscale stereo pairs.
+
+    Attributes:
+        left: left images ``(B, 1, H, W)``, float in [0, 1].
+        right: right images ``(B, 1, H, W)``, float in [0, 1].
+        focal_px: focal length in pixels along x ``(B,)``.
+        baseline_m: stereo baseline in metres ``(B,)``.
+        doffs_px: x-difference of the principal points, ``cx_right − cx_left``, in pixels ``(B,)`` (Middlebury
+            ``doffs``); depth is ``Z = f·B / (d + doffs)``. Zero for an ideal parallel rig such as the SVS.
+        calibrated: ``(B,)`` bool; True where focal, baseline and doffs are the data's measured calibration, so
+            depth from disparity is meaningful. False where they are nominal guesses (e.g. the SVS defaults for
+            plain image files, or a dataset that ships no calibration).
+        image_hw: ``(B, 2)`` int64, each pair's own (height, width) before padding; padding is at the bottom
+            and right, so pixel coordinates of the pair are unchanged.
+        disparity_px: optional ground-truth disparity of the left view ``(B, 1, H, W)``: a left pixel x maps to
+            the right pixel x − d.
+        disparity_valid: ``(B, 1, H, W)`` bool, where ``disparity_px`` is known; required with it.
+        names: one name per pair (scene or file name), for reports.
+    """
+
+    left: torch.Tensor
+    right: torch.Tensor
+    focal_px: torch.Tensor
+    baseline_m: torch.Tensor
+    doffs_px: torch.Tensor
+    calibrated: torch.Tensor
+    image_hw: torch.Tensor
+    disparity_px: torch.Tensor | None = None
+    disparity_valid: torch.Tensor | None = None
+    names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        dims = check_image(self.left, "left")
+        check_image(self.right, "right")
+        check_same_shape(self.left, "left", self.right, "right")
+        b = dims["B"]
+        for name in ("focal_px", "baseline_m", "doffs_px"):
+            value = getattr(self, name)
+            check_shape(value, name, [b])
+            check_dtype(value, name, "float")
+        check_shape(self.calibrated, "calibrated", [b])
+        check_dtype(self.calibrated, "calibrated", "bool")
+        check_shape(self.image_hw, "image_hw", [b, 2])
+        check_dtype(self.image_hw, "image_hw", "int")
+        if (self.disparity_px is None) != (self.disparity_valid is None):
+            raise InputError("disparity_valid: expected it together with disparity_px (both or neither)")
+        if self.disparity_px is not None:
+            check_same_shape(self.left, "left", self.disparity_px, "disparity_px")
+            check_dtype(self.disparity_px, "disparity_px", "float")
+            check_same_shape(self.left, "left", self.disparity_valid, "disparity_valid")
+            check_dtype(self.disparity_valid, "disparity_valid", "bool")
+        if self.names and len(self.names) != b:
+            raise InputError(f"names: expected {b} names, one per pair, got {len(self.names)}")
+
+    @classmethod
+    def from_images(
+        cls,
+        left: torch.Tensor,
+        right: torch.Tensor,
+        focal_px: float | torch.Tensor,
+        baseline_m: float | torch.Tensor,
+        doffs_px: float | torch.Tensor = 0.0,
+        calibrated: bool | torch.Tensor = False,
+        disparity_px: torch.Tensor | None = None,
+        disparity_valid: torch.Tensor | None = None,
+        names: tuple[str, ...] = (),
+    ) -> StereoBatch:
+        """Build a batch from image tensors, broadcasting scalar calibration to every pair."""
+        check_image(left, "left", check_range=False)
+        b, _, h, w = left.shape
+
+        def per_pair(value: float | bool | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+            return torch.as_tensor(value, dtype=dtype, device=left.device).expand(b).clone()
+
+        float_dtype = left.dtype
+        return cls(
+            left=left,
+            right=right,
+            focal_px=per_pair(focal_px, float_dtype),
+            baseline_m=per_pair(baseline_m, float_dtype),
+            doffs_px=per_pair(doffs_px, float_dtype),
+            calibrated=per_pair(calibrated, torch.bool),
+            image_hw=torch.tensor([[h, w]], dtype=torch.int64, device=left.device).expand(b, 2).clone(),
+            disparity_px=disparity_px,
+            disparity_valid=disparity_valid,
+            names=names,
+        )
+
+    @property
+    def batch_size(self) -> int:
+        return self.left.shape[0]
+
+    @property
+    def size_hw(self) -> tuple[int, int]:
+        """(H, W) of the padded batch tensors."""
+        return self.left.shape[-2], self.left.shape[-1]
+
+    def ground_truth_depth_m(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ground-truth depth ``Z = f·B / (d + doffs)`` in metres of the left view.
+
+        Returns:
+            depth ``(B, 1, H, W)`` (zero where invalid) and its validity mask ``(B, 1, H, W)``: valid where the
+            disparity is known, ``d + doffs > 0`` and the pair is ``calibrated``. Never divides by zero.
+        """
+        if self.disparity_px is None:
+            raise InputError("disparity_px: this batch has no ground truth")
+        denom = self.disparity_px + self.doffs_px.view(-1, 1, 1, 1)
+        valid = self.disparity_valid & (denom > 0) & self.calibrated.view(-1, 1, 1, 1)
+        safe = torch.where(valid, denom, torch.ones_like(denom))
+        scale = (self.focal_px * self.baseline_m).view(-1, 1, 1, 1)
+        return torch.where(valid, scale / safe, torch.zeros_like(denom)), valid
+
+    def select(self, index: torch.Tensor | list[int] | slice) -> StereoBatch:
+        """The pairs at ``index`` (a slice, a list of ints or an int64/bool tensor) as a new batch."""
+        if isinstance(index, slice):
+            keep = list(range(self.batch_size))[index]
+        elif isinstance(index, torch.Tensor) and index.dtype == torch.bool:
+            keep = index.nonzero().flatten().tolist()
+        else:
+            keep = [int(i) for i in index]
+        idx = torch.tensor(keep, dtype=torch.int64, device=self.left.device)
+        fields = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, torch.Tensor):
+                fields[field.name] = value.index_select(0, idx)
+            elif field.name == "names":
+                fields[field.name] = tuple(value[i] for i in keep) if value else ()
+            else:
+                fields[field.name] = value
+        return StereoBatch(**fields)
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> StereoBatch:
+        """Move to ``device``; cast the floating-point fields (images, calibration, disparity) to ``dtype``."""
+        fields = {}
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, torch.Tensor):
+                value = value.to(device=device, dtype=dtype if value.dtype.is_floating_point else None)
+            fields[field.name] = value
+        return StereoBatch(**fields)
+
+
+class SegmentationStatus(enum.IntEnum):
+    """Per-image (and per-pair) outcome of the segmentation stage; stored as int64 in tensors."""
+
+    OK = 0
+    #: The image has a single gray level: Otsu has no split (OpenCV then thresholds at 0).
+    UNIFORM_IMAGE = 1
+    #: No foreground pixel survives threshold and opening: no obstacle region.
+    NO_FOREGROUND = 2
+    #: Every pixel is foreground: the segmentation cannot separate an obstacle from the background.
+    FULL_FOREGROUND = 3
+
+
+@dataclass(frozen=True)
+class RegionProperties:
+    """Properties of labelled regions, padded to L slots; slot ``l`` holds label ``l + 1``.
+
+    Attributes:
+        area_px: pixel count ``(B, L)`` int64 (MATLAB ``regionprops`` ``Area``; OpenCV ``CC_STAT_AREA``).
+        bbox_xyxy: ``(B, L, 4)`` int64 ``x0, y0, x1, y1`` with x1, y1 exclusive (x = column).
+        centroid_xy: ``(B, L, 2)`` float, mean pixel position (x, y) in pixel-centre coordinates.
+        valid: ``(B, L)`` bool, slots that hold a region of that image.
+    """
+
+    area_px: torch.Tensor
+    bbox_xyxy: torch.Tensor
+    centroid_xy: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """What the segmentation stage (paper Sec. 3.2, steps 1–6) produces for a batch of B images.
+
+    Attributes:
+        threshold: Otsu threshold ``(B,)`` on the [0, 1] scale; a pixel is foreground where ``image > threshold``.
+        threshold_level: the same threshold as a 0–255 gray level ``(B,)`` int64 (OpenCV's return value).
+        binary: thresholded image ``(B, 1, H, W)`` bool.
+        opened: binary image after erosion then dilation ``(B, 1, H, W)`` bool.
+        labels: connected-component labels of ``opened`` ``(B, 1, H, W)`` int64, 0 = background, 1..n
+            contiguous in raster order of each region's first pixel.
+        num_regions: n per image ``(B,)`` int64.
+        regions: properties of every region (:class:`RegionProperties`, L = max n over the batch).
+        kept_labels: labels of the kept regions, largest area first ``(B, N)`` int64, −1 where an image has
+            fewer than N regions.
+        kept_mask: union of the kept regions ``(B, 1, H, W)`` bool.
+        masked: the grayscale image where ``kept_mask`` holds, 0 elsewhere ``(B, 1, H, W)``.
+        status: :class:`SegmentationStatus` per image ``(B,)`` int64.
+    """
+
+    threshold: torch.Tensor
+    threshold_level: torch.Tensor
+    binary: torch.Tensor
+    opened: torch.Tensor
+    labels: torch.Tensor
+    num_regions: torch.Tensor
+    regions: RegionProperties
+    kept_labels: torch.Tensor
+    kept_mask: torch.Tensor
+    masked: torch.Tensor
+    status: torch.Tensor
+
+
+@dataclass(frozen=True)
+class StereoSegmentation:
+    """Segmentation of both images of a stereo batch.
+
+    Attributes:
+        left, right: :class:`Segmentation` of the left and right images.
+        status: per-pair status ``(B,)`` int64: the left image's status where it is not OK, else the right's.
+    """
+
+    left: Segmentation
+    right: Segmentation
+    status: torch.Tensor
