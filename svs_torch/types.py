@@ -170,15 +170,17 @@ class StereoBatch:
 
 
 class SegmentationStatus(enum.IntEnum):
-    """Per-image (and per-pair) outcome of the segmentation stage; stored as int64 in tensors."""
+    """Per-image (and per-pair) outcome of the segmentation stage; stored as int64 in tensors.
+
+    A full-foreground mask needs every pixel above Otsu's threshold, which only a one-level image gives
+    (the opening never adds foreground): that case is ``UNIFORM_IMAGE``.
+    """
 
     OK = 0
     #: The image has a single gray level: Otsu has no split (OpenCV then thresholds at 0).
     UNIFORM_IMAGE = 1
     #: No foreground pixel survives threshold and opening: no obstacle region.
     NO_FOREGROUND = 2
-    #: Every pixel is foreground: the segmentation cannot separate an obstacle from the background.
-    FULL_FOREGROUND = 3
 
 
 @dataclass(frozen=True)

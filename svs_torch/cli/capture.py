@@ -1,0 +1,181 @@
+"""``svs-depth capture``: grab stereo pairs from an SVS (or the built-in emulator) into a folder.
+
+Output, in ``--out``:
+
+* ``pair000000_left.jpg`` / ``pair000000_right.jpg`` …: each board's JPEG bytes exactly as received (colour,
+  4:2:2, no re-encoding); each file is written under a temporary name and renamed, so none is ever half-written;
+* ``index.jsonl``: one JSON object per pair, appended and flushed only after both of its images are in place, so
+  after an error or Ctrl-C it lists exactly the complete pairs. Fields: ``index``, ``left``/``right`` (file
+  names), ``width``, ``height``, ``left_bytes``/``right_bytes``, per camera ``*_request_monotonic_s``,
+  ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, and ``time_between_frames_s``
+  (right arrival − left arrival, seconds).
+
+Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..camera import parse_size
+from ..capture.link import CaptureError, LinkConfig
+from ..capture.protocol import size_code_for
+from ..capture.stereo import Frame, StereoPair, SVSStereoCamera
+from ..checks import InputError
+
+__all__ = ["add_parser", "run"]
+
+PROG = "svs-depth capture"
+INDEX_NAME = "index.jsonl"
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register the ``capture`` subcommand on an argparse subparsers object (sets ``func=run``)."""
+    parser = subparsers.add_parser(
+        "capture", help="grab stereo pairs from an SVS camera into a folder",
+        description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus "
+                    "an index.jsonl of timestamps. --emulator tries it without a device.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--left", metavar="URL",
+                        help="left/master board: socket://HOST:10001 or a serial device such as /dev/ttyUSB0")
+    parser.add_argument("--right", metavar="URL",
+                        help="right/slave board: socket://HOST:10002 or a serial device such as /dev/ttyUSB1")
+    parser.add_argument("--size", default="320x240", help="frame size: 160x120, 320x240, 640x480 or 1280x1024")
+    parser.add_argument("--count", type=int, default=10, help="number of pairs to grab")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (must not hold an index.jsonl)")
+    parser.add_argument("--quality", type=int, default=None, metavar="1-8",
+                        help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
+    parser.add_argument("--baud", type=int, default=LinkConfig.baudrate, help="UART speed for serial devices")
+    parser.add_argument("--emulator", action="store_true",
+                        help="start an in-process emulator on free loopback ports and capture from it")
+    parser.set_defaults(func=run)
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"{PROG}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    return code
+
+
+def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
+    size = parse_size(args.size, "--size")
+    try:
+        size_code_for(size)
+    except InputError:
+        raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
+    if args.count < 1:
+        raise InputError(f"--count: expected a positive number of pairs, got {args.count}")
+    if args.quality is not None and not 1 <= args.quality <= 8:
+        raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
+    if args.emulator and (args.left or args.right):
+        raise InputError("--left/--right: not used with --emulator (it picks its own loopback ports)")
+    if not args.emulator and not (args.left and args.right):
+        raise InputError("--left and --right: both board URLs are needed (or --emulator)")
+    out = Path(args.out)
+    if (out / INDEX_NAME).exists():
+        raise InputError(f"--out: {out / INDEX_NAME} already exists; choose a new folder")
+    return size, out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``capture``; returns the exit code (errors are one line on stderr)."""
+    try:
+        size, out = _check_args(args)
+    except InputError as err:
+        return _fail(str(err), 2)
+    done = 0
+    try:
+        with contextlib.ExitStack() as stack:
+            left, right = _urls(args, size, stack)
+            config = LinkConfig(baudrate=args.baud)
+            camera = stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
+            out.mkdir(parents=True, exist_ok=True)
+            index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
+            progress = stack.enter_context(_Progress(args.count))
+            for _ in range(args.count):
+                record = _save_pair(out, camera.grab_pair())
+                index.write(json.dumps(record) + "\n")
+                index.flush()
+                done += 1
+                progress.update()
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted after {done} pairs (index.jsonl lists them)", file=sys.stderr)
+        return 130
+    except (CaptureError, OSError, InputError) as err:
+        return _fail(f"{err} ({done} of {args.count} pairs saved in {out})", 1)
+    print(f"{PROG}: saved {done} pairs to {out}", file=sys.stderr)
+    return 0
+
+
+def _urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:
+    """The board URLs: from the arguments, or from an in-process emulator started on free loopback ports."""
+    if not args.emulator:
+        return args.left, args.right
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+
+    source = SyntheticSource()
+    server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source))
+    source.prepare(size, timeout_s=30.0, complete=False)  # the first rendered keyframe, not the stand-in
+    print(f"{PROG}: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)
+    return server.urls["left"], server.urls["right"]
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as handle:
+        handle.write(data)
+    os.replace(tmp, path)
+
+
+def _save_pair(out: Path, pair: StereoPair) -> dict[str, Any]:
+    """Write both JPEGs; the pair's index record."""
+    record: dict[str, Any] = {"index": pair.index}
+    for name, frame in (("left", pair.left), ("right", pair.right)):
+        file_name = f"pair{pair.index:06d}_{name}.jpg"
+        _write_atomic(out / file_name, frame.jpeg)
+        record[name] = file_name
+    record["width"], record["height"] = pair.left.size_wh
+    for name, frame in (("left", pair.left), ("right", pair.right)):
+        record.update(_frame_fields(name, frame))
+    record["time_between_frames_s"] = pair.time_between_frames_s
+    return record
+
+
+def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
+    return {f"{name}_bytes": len(frame.jpeg), f"{name}_request_monotonic_s": frame.request_monotonic_s,
+            f"{name}_arrival_monotonic_s": frame.arrival_monotonic_s,
+            f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}
+
+
+class _Progress:
+    """Progress on stderr: tqdm when installed, else a counter rewritten in place."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.count = total, 0
+        try:
+            from tqdm import tqdm
+            self._bar = tqdm(total=total, unit="pair", file=sys.stderr, desc="capture")
+        except ImportError:
+            self._bar = None
+
+    def update(self) -> None:
+        self.count += 1
+        if self._bar is not None:
+            self._bar.update(1)
+        else:
+            print(f"\rcapture: {self.count}/{self.total} pairs", end="", file=sys.stderr, flush=True)
+
+    def __enter__(self) -> _Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        elif self.count:
+            print(file=sys.stderr)

@@ -1,0 +1,114 @@
+"""Figures for the command line, drawn with OpenCV (no plotting dependency): panels of images and masks.
+
+Figures are for people; nothing here feeds back into the pipeline.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .checks import InputError
+from .types import Segmentation
+
+__all__ = [
+    "PALETTE_BGR", "compose_grid", "gray_to_bgr", "segmentation_panels", "titled_panel", "write_image_atomic",
+]
+
+#: Colours of kept objects, largest first (BGR).
+PALETTE_BGR = [(0, 165, 255), (255, 128, 0), (0, 200, 0), (200, 0, 200), (0, 220, 220), (128, 0, 255)]
+
+
+def gray_to_bgr(gray: torch.Tensor) -> np.ndarray:
+    """``(H, W)`` float in [0, 1] → uint8 BGR image."""
+    u8 = (gray.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    return cv2.cvtColor(u8, cv2.COLOR_GRAY2BGR)
+
+
+def titled_panel(panel: np.ndarray, title: str) -> np.ndarray:
+    """Put a title strip above a panel."""
+    strip = np.full((22, panel.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, title, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([strip, panel])
+
+
+def _objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:
+    """The grayscale image dimmed outside the kept objects, each object tinted, boxed and numbered."""
+    gray = image[index, 0]
+    panel = gray_to_bgr(gray * 0.35)
+    base = gray_to_bgr(gray)
+    labels = seg.labels[index, 0].cpu().numpy()
+    for rank, label in enumerate(seg.kept_labels[index].tolist()):
+        if label < 0:
+            continue
+        colour = np.array(PALETTE_BGR[rank % len(PALETTE_BGR)], np.float32)
+        region = labels == label
+        panel[region] = (0.6 * base[region] + 0.4 * colour).astype(np.uint8)
+        x0, y0, x1, y1 = seg.regions.bbox_xyxy[index, label - 1].tolist()
+        area = int(seg.regions.area_px[index, label - 1])
+        cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
+        cv2.putText(panel, f"#{rank + 1} {area}px", (x0 + 2, max(y0 + 12, 12)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4, tuple(int(c) for c in colour), 1, cv2.LINE_AA)
+    return panel
+
+
+def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side: str) -> list[np.ndarray]:
+    """Three titled panels of one image: the input, the opened binary mask, the kept objects."""
+    threshold = int(seg.threshold_level[index])
+    mask = seg.opened[index, 0].to(image.dtype)
+    num_kept = int((seg.kept_labels[index] >= 0).sum())
+    return [
+        titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
+        titled_panel(gray_to_bgr(mask), f"{side} binary (Otsu {threshold}) + opening"),
+        titled_panel(_objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
+    ]
+
+
+def compose_grid(columns: list[list[np.ndarray]], gap: int = 6) -> np.ndarray:
+    """Stack panels: each inner list is a column, top to bottom; columns side by side, white gaps."""
+    height = max(sum(p.shape[0] for p in col) + gap * (len(col) - 1) for col in columns)
+    stacked = []
+    for col in columns:
+        width = max(p.shape[1] for p in col)
+        parts = []
+        for i, p in enumerate(col):
+            padded = np.full((p.shape[0], width, 3), 255, np.uint8)
+            padded[:, :p.shape[1]] = p
+            parts.append(padded)
+            if i < len(col) - 1:
+                parts.append(np.full((gap, width, 3), 255, np.uint8))
+        block = np.vstack(parts)
+        block = np.vstack([block, np.full((height - block.shape[0], width, 3), 255, np.uint8)])
+        stacked.append(block)
+        stacked.append(np.full((height, gap, 3), 255, np.uint8))
+    return np.hstack(stacked[:-1])
+
+
+def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write ``image`` to ``path`` all at once: encode to a temporary file beside it, then rename.
+
+    Raises :class:`InputError` naming the path if its folder is missing or the extension is not an image format.
+    """
+    target = Path(path)
+    if not target.parent.exists():
+        raise InputError(f"out: folder {str(target.parent)!r} does not exist")
+    suffix = target.suffix.lower()
+    if suffix not in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"):
+        raise InputError(f"out: expected a .png, .jpg, .bmp or .tif file name, got {str(target)!r}")
+    ok, encoded = cv2.imencode(suffix, image)
+    if not ok:
+        raise InputError(f"out: OpenCV could not encode a {suffix} image")
+    handle, temporary = tempfile.mkstemp(suffix=suffix, dir=target.parent)
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(encoded.tobytes())
+        os.replace(temporary, target)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return target

@@ -1,0 +1,122 @@
+"""The svs-depth command line: help, segment (text, JSON, figure), demo, and one clear line on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from real_images import PAIRS
+from svs_torch.cli import main
+
+TEDDY = PAIRS[0]
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_help_teaches_every_command():
+    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "--help"], capture_output=True, text=True,
+                            check=True)
+    for word in ("demo", "segment", "examples:", "10.75 cm"):
+        assert word in result.stdout
+    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "segment", "--help"], capture_output=True,
+                            text=True, check=True)
+    for word in ("--kernel-size", "--keep", "--connectivity", "--json", "--out", "exclusive"):
+        assert word in result.stdout
+
+
+def test_segment_json_equals_opencv(data_dir, capsys):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "segment", left, right, "--json", "--kernel-size", "3", "--keep", "3")
+    assert code == 0 and err == ""
+    report = json.loads(out)
+    # The loader converts colour with cv2.cvtColor (IMREAD_GRAYSCALE's codec conversion rounds differently).
+    gray = cv2.cvtColor(cv2.imread(left, cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY)
+    level, binary = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    kernel = np.ones((3, 3), np.uint8)
+    _, _, stats, centroids = cv2.connectedComponentsWithStats(cv2.dilate(cv2.erode(binary, kernel), kernel))
+    assert report["left"]["threshold"] == int(level)
+    objects = report["left"]["objects"]
+    assert [o["area_px"] for o in objects] == sorted(stats[1:, 4], reverse=True)[:3]
+    best = 1 + int(np.argmax(stats[1:, 4]))
+    x, y, w, h, _ = stats[best]
+    assert objects[0]["bbox_xyxy"] == [x, y, x + w, y + h]
+    np.testing.assert_allclose(objects[0]["centroid_xy"], centroids[best], atol=1e-3)
+    assert report["config"]["kernel_size"] == 3 and report["image_size_wh"] == [gray.shape[1], gray.shape[0]]
+
+
+def test_segment_text_and_figure(data_dir, capsys, tmp_path):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure = tmp_path / "seg.png"
+    code, out, _ = run_cli(capsys, "segment", left, right, "--out", str(figure))
+    assert code == 0 and "left: Otsu threshold" in out and "#1 label" in out
+    image = cv2.imread(str(figure))
+    assert image is not None and image.shape[0] > 3 * 375 and image.shape[1] > 2 * 450
+    assert list(tmp_path.iterdir()) == [figure]  # no temporary file left behind
+
+
+def write_image(path, channels: int) -> str:
+    image = np.random.default_rng(0).integers(0, 256, (20, 30, channels), dtype=np.uint8)
+    cv2.imwrite(str(path), image if channels > 1 else image[..., 0])
+    return str(path)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing", "left: file not found"),
+    ("not-an-image", "left: not a readable image file"),
+    ("sizes", "right: expected the size of left 30x20"),
+    ("channels", "right: expected 1 (gray) or 3 (BGR) channels, got 4"),
+    ("out-folder", "out: folder"),
+])
+def test_bad_input_gives_one_clear_line_and_writes_nothing(tmp_path, capsys, case, message):
+    left = write_image(tmp_path / "left.png", 3)
+    right = write_image(tmp_path / "right.png", 1)
+    out = tmp_path / "fig.png"
+    if case == "missing":
+        left = str(tmp_path / "nope.png")
+    elif case == "not-an-image":
+        (tmp_path / "text.png").write_text("not an image")
+        left = str(tmp_path / "text.png")
+    elif case == "sizes":
+        cv2.imwrite(right, np.zeros((21, 30), np.uint8))
+    elif case == "channels":
+        right = write_image(tmp_path / "rgba.png", 4)
+    elif case == "out-folder":
+        out = tmp_path / "missing-folder" / "fig.png"
+    before = set(tmp_path.rglob("*"))
+    code, stdout, err = run_cli(capsys, "segment", left, right, "--out", str(out))
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1 and message in err and err.startswith("svs-depth segment: error: ")
+    assert set(tmp_path.rglob("*")) == before
+
+
+def test_usage_errors_exit_non_zero(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["segment", "a.png", "b.png", "--connectivity", "6"])
+    assert exit_info.value.code == 2
+    assert main([]) == 2
+
+
+def test_demo_segments_the_synthetic_obstacles(capsys, tmp_path):
+    figure = tmp_path / "demo.png"
+    code, out, _ = run_cli(capsys, "demo", "--out", str(figure), "--json", "--seed", "3")
+    assert code == 0 and figure.is_file()
+    report = json.loads(out)
+    assert len(report["truth"]) == 2 and all(1.0 <= t["depth_m"] <= 2.0 for t in report["truth"])
+    found = report["left"]["objects"]
+    # The two kept regions are the two obstacles, found almost exactly, at their true depths.
+    assert sorted(o["true_object"] for o in found) == [1, 2]
+    truth = {t["object"]: t["depth_m"] for t in report["truth"]}
+    for obj in found:
+        assert obj["iou"] > 0.9
+        assert obj["median_true_depth_m"] == pytest.approx(truth[obj["true_object"]], abs=0.01)
+    code, out, _ = run_cli(capsys, "demo", "--out", str(figure))
+    assert code == 0 and "true obstacle 1" in out and "left #1 covers true obstacle" in out

@@ -1,0 +1,89 @@
+"""The differentiable segmentation: gradients reach the image and the threshold, and T -> 0 gives the hard stage."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.morphology import dilate, erode, open_binary, structuring_element
+from svs_torch.segmentation import SegmentationConfig, segment_images
+from svs_torch.soft_segmentation import soft_dilate, soft_erode, soft_open, soft_segment_images, soft_threshold
+
+
+def blobs(batch: int, size: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+    noise = torch.rand(batch, 1, size, size, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+    smooth = torch.nn.functional.avg_pool2d(noise, 3, 1, 1)
+    # Inside [0.05, 0.95], so gradcheck's perturbations stay within the valid [0, 1] range.
+    return 0.05 + 0.9 * (smooth - smooth.amin()) / (smooth.amax() - smooth.amin())
+
+
+def test_gradcheck_threshold_and_opening_reach_image_and_threshold():
+    image = blobs(2, 7, 0).requires_grad_()
+    threshold = torch.tensor([0.45, 0.55], dtype=torch.float64, requires_grad=True)
+    element = structuring_element("cross", 3)
+
+    def forward(image, threshold):
+        return soft_open(soft_threshold(image, threshold, 0.1), element, 0.1)
+
+    assert torch.autograd.gradcheck(forward, (image, threshold))
+    assert torch.autograd.gradgradcheck(forward, (image, threshold))
+
+
+@pytest.mark.parametrize("op", [soft_dilate, soft_erode])
+def test_gradcheck_morphology_with_asymmetric_element(op):
+    x = blobs(1, 6, 1).requires_grad_()
+    element = torch.tensor([[True, False], [True, True]])
+    assert torch.autograd.gradcheck(lambda x: op(x, element, 0.07), (x,))
+
+
+def test_gradcheck_soft_segmentation_through_kept_regions():
+    image = blobs(2, 16, 2)
+    image[:, :, 4:12, 4:12] += 0.5  # a bright square that the hard stage keeps
+    image = (0.95 * image / image.amax()).requires_grad_()
+    threshold = torch.tensor([0.5, 0.5], dtype=torch.float64, requires_grad=True)
+    config = SegmentationConfig(kernel_size=3)
+
+    def forward(image, threshold):
+        return soft_segment_images(image, threshold, config, 0.1, 0.1).masked
+
+    assert torch.autograd.gradcheck(forward, (image, threshold))
+    result = soft_segment_images(image, threshold, config, 0.1, 0.1)
+    result.masked.sum().backward()
+    assert image.grad.abs().sum() > 0 and threshold.grad.abs().sum() > 0
+    assert torch.all(result.soft_mask[~result.hard.kept_mask] == 0)
+
+
+def test_small_temperature_gives_the_hard_stage():
+    mask = torch.rand(3, 1, 24, 24, generator=torch.Generator().manual_seed(3)) > 0.45
+    for shape, size in (("square", 3), ("cross", 5), ("ellipse", 5)):
+        element = structuring_element(shape, size)
+        x = mask.to(torch.float64)
+        assert torch.equal(soft_dilate(x, element, 0.003) > 0.5, dilate(mask, element))
+        assert torch.equal(soft_erode(x, element, 0.003) > 0.5, erode(mask, element))
+        assert torch.equal(soft_open(x, element, 0.003) > 0.5, open_binary(mask, element))
+
+
+def test_soft_segmentation_tends_to_hard_segmentation():
+    image = blobs(2, 32, 4, torch.float32)
+    hard = segment_images(image)
+    soft = soft_segment_images(image, threshold_temperature=1e-4, morphology_temperature=2e-3)
+    assert torch.equal(soft.soft_mask > 0.5, hard.kept_mask)
+
+
+def test_constant_windows_are_unchanged():
+    x = torch.full((1, 1, 5, 5), 0.3, dtype=torch.float64)
+    element = structuring_element("square", 3)
+    torch.testing.assert_close(soft_open(x, element, 0.05), x)
+
+
+def test_errors_name_the_argument():
+    image = torch.rand(2, 1, 8, 8)
+    with pytest.raises(InputError, match=r"threshold: expected \(2\), got \(3\)"):
+        soft_threshold(image, torch.zeros(3), 0.1)
+    with pytest.raises(InputError, match="temperature: expected a positive temperature, got 0"):
+        soft_threshold(image, torch.zeros(2), 0)
+    with pytest.raises(InputError, match="element: expected at least one True offset"):
+        soft_dilate(image, torch.zeros(3, 3, dtype=torch.bool))
+    with pytest.raises(InputError, match="x: expected a float tensor"):
+        soft_erode(image > 0.5, structuring_element("square", 3))

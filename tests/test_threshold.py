@@ -1,0 +1,75 @@
+"""Otsu threshold: equal to OpenCV's THRESH_OTSU on real and random uint8 images."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from real_images import PAIRS, read_gray
+from svs_torch import InputError
+from svs_torch.threshold import gray_histogram, gray_levels, otsu_threshold, threshold_binary
+
+
+def as_tensor(images: list[np.ndarray], dtype=torch.float32) -> torch.Tensor:
+    return torch.from_numpy(np.stack(images)).to(dtype).div(255).unsqueeze(1)
+
+
+@pytest.mark.parametrize("size_wh", [None, (320, 240)], ids=["native", "320x240"])
+def test_equals_opencv_on_real_images(data_dir, size_wh):
+    images = [read_gray(data_dir, path, size_wh) for pair in PAIRS for path in pair]
+    for image in images:  # native sizes differ: one image per call
+        threshold, level = otsu_threshold(as_tensor([image]))
+        expected, binary = cv2.threshold(image, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        assert int(level) == int(expected)  # value generated with OpenCV
+        assert torch.equal(threshold_binary(as_tensor([image]), level)[0, 0], torch.from_numpy(binary > 0))
+        assert float(threshold) == pytest.approx(expected / 255)
+
+
+def test_batched_equals_per_image(data_dir):
+    images = [read_gray(data_dir, path, (320, 240)) for pair in PAIRS for path in pair]
+    _, batched = otsu_threshold(as_tensor(images))
+    single = torch.cat([otsu_threshold(as_tensor([image]))[1] for image in images])
+    assert torch.equal(batched, single)
+    assert batched.dtype == torch.int64
+
+
+def test_equals_opencv_on_few_level_images():
+    # Few gray levels make exact ties and empty-bin plateaus: the first maximum must win, as in OpenCV.
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        h, w = rng.integers(1, 30, 2)
+        palette = rng.integers(0, 256, size=rng.integers(1, 6))
+        image = palette[rng.integers(0, len(palette), size=(h, w))].astype(np.uint8)
+        expected, _ = cv2.threshold(image, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        assert int(otsu_threshold(as_tensor([image]))[1]) == int(expected)
+
+
+@pytest.mark.parametrize("value", [0, 128, 255])
+def test_uniform_image_gets_level_zero_like_opencv(value):
+    image = np.full((12, 9), value, np.uint8)
+    expected, binary = cv2.threshold(image, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    threshold, level = otsu_threshold(as_tensor([image]))
+    assert int(level) == int(expected) == 0
+    assert torch.equal(threshold_binary(as_tensor([image]), level)[0, 0], torch.from_numpy(binary > 0))
+
+
+def test_dtype_follows_input(dtype):
+    threshold, level = otsu_threshold(torch.rand(2, 1, 8, 8, dtype=dtype))
+    assert threshold.dtype == dtype and level.dtype == torch.int64 and threshold.shape == (2,)
+
+
+def test_histogram_counts_every_pixel():
+    levels = gray_levels(torch.rand(3, 1, 5, 7))
+    histogram = gray_histogram(levels)
+    assert histogram.shape == (3, 256) and torch.equal(histogram.sum(1), torch.full((3,), 35))
+
+
+def test_errors_name_the_argument():
+    with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\), got \(2, 3, 4, 4\)"):
+        otsu_threshold(torch.rand(2, 3, 4, 4))
+    with pytest.raises(InputError, match=r"image: expected values in \[0, 1\]"):
+        otsu_threshold(torch.full((1, 1, 4, 4), 2.0))
+    with pytest.raises(InputError, match="image: expected a float tensor"):
+        otsu_threshold(torch.zeros(1, 1, 4, 4, dtype=torch.uint8))

@@ -1,0 +1,90 @@
+"""Stage containers, input checks and the SVS camera model."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
+from svs_torch.camera import parse_size
+from svs_torch.checks import check_shape
+
+
+@pytest.mark.parametrize("width, expected", [(160, 138), (320, 276), (640, 553), (1280, 1105)])
+def test_svs_focal_in_pixels_matches_the_protocol_table(width, expected):
+    # SVS_PROTOCOL.md §5: f_px ≈ 3.60 / 4.17 × width.
+    assert round(SVS_CAMERA.focal_px(width)) == expected
+
+
+def test_depth_and_disparity_are_inverse_and_paper_baseline():
+    assert SVS_CAMERA.baseline_m == pytest.approx(0.1075)  # paper; the firmware says 0.107
+    d = SVS_CAMERA.disparity_px(1.5, 320)
+    assert d == pytest.approx(276.26 * 0.1075 / 1.5, rel=1e-3)
+    assert SVS_CAMERA.depth_m(d, 320) == pytest.approx(1.5)
+    assert SVS_CAMERA.depth_m(0.0, 320) == float("inf")
+    assert SVSCamera(baseline_m=0.107).depth_m(d, 320) < 1.5
+
+
+def test_parse_size():
+    assert parse_size("320x240") == (320, 240) and parse_size("640X480") == (640, 480)
+    with pytest.raises(InputError, match="size: expected WIDTHxHEIGHT such as 320x240, got '320'"):
+        parse_size("320")
+    with pytest.raises(InputError, match="expected a positive width and height"):
+        parse_size("0x240")
+
+
+def test_check_shape_binds_letters_and_names_the_argument():
+    assert check_shape(torch.zeros(2, 3, 3), "x", ["B", "N", "N"]) == {"B": 2, "N": 3}
+    with pytest.raises(InputError, match=r"points1: expected \(B, K, 2\), got \(4, 10, 3\)"):
+        check_shape(torch.zeros(4, 10, 3), "points1", ["B", "K", 2])
+    with pytest.raises(InputError, match=r"x: expected \(B, N, N\), got \(2, 3, 4\)"):
+        check_shape(torch.zeros(2, 3, 4), "x", ["B", "N", "N"])
+    with pytest.raises(InputError, match="x: expected a torch.Tensor"):
+        check_shape([1, 2], "x", ["N"])
+
+
+def make_batch(b=3, h=4, w=5, **kwargs) -> StereoBatch:
+    return StereoBatch.from_images(torch.rand(b, 1, h, w), torch.rand(b, 1, h, w), 276.0, 0.1075, **kwargs)
+
+
+def test_stereo_batch_from_images_broadcasts_calibration():
+    batch = make_batch()
+    assert batch.focal_px.shape == (3,) and batch.image_hw.tolist() == [[4, 5]] * 3
+    assert batch.calibrated.dtype == torch.bool and not batch.calibrated.any()
+    assert batch.batch_size == 3 and batch.size_hw == (4, 5)
+
+
+def test_stereo_batch_checks_its_fields():
+    with pytest.raises(InputError, match=r"right: expected the shape of left \(2, 1, 4, 5\), got \(2, 1, 4, 6\)"):
+        StereoBatch.from_images(torch.rand(2, 1, 4, 5), torch.rand(2, 1, 4, 6), 276.0, 0.1)
+    with pytest.raises(InputError, match=r"left: expected \(B, 1, H, W\), got \(2, 3, 4, 5\)"):
+        StereoBatch.from_images(torch.rand(2, 3, 4, 5), torch.rand(2, 3, 4, 5), 276.0, 0.1)
+    with pytest.raises(InputError, match=r"right: expected values in \[0, 1\]"):
+        StereoBatch.from_images(torch.rand(1, 1, 4, 5), torch.rand(1, 1, 4, 5) + 1, 276.0, 0.1)
+    with pytest.raises(InputError, match="disparity_valid: expected it together with disparity_px"):
+        make_batch(disparity_px=torch.zeros(3, 1, 4, 5))
+    with pytest.raises(InputError, match="names: expected 3 names, one per pair, got 1"):
+        make_batch(names=("a",))
+
+
+def test_ground_truth_depth_masks_unknown_and_non_positive_disparity():
+    disparity = torch.tensor([[[[10.0, 0.0, -5.0, 20.0]]]])
+    valid = torch.tensor([[[[True, True, True, False]]]])
+    batch = StereoBatch.from_images(torch.rand(1, 1, 1, 4), torch.rand(1, 1, 1, 4), 100.0, 0.5, doffs_px=2.0,
+                                    calibrated=True, disparity_px=disparity, disparity_valid=valid)
+    depth, ok = batch.ground_truth_depth_m()
+    assert ok.tolist() == [[[[True, True, False, False]]]]
+    torch.testing.assert_close(depth[ok], torch.tensor([50.0 / 12.0, 25.0]))
+    uncalibrated = StereoBatch.from_images(batch.left, batch.right, 100.0, 0.5, disparity_px=disparity,
+                                           disparity_valid=valid)
+    assert not uncalibrated.ground_truth_depth_m()[1].any()
+
+
+def test_select_and_to():
+    batch = make_batch(names=("a", "b", "c"))
+    sub = batch.select([2, 0])
+    assert sub.names == ("c", "a") and torch.equal(sub.left, batch.left[[2, 0]])
+    assert batch.select(slice(1, None)).names == ("b", "c")
+    assert batch.select(torch.tensor([False, True, False])).names == ("b",)
+    double = batch.to(dtype=torch.float64)
+    assert double.left.dtype == torch.float64 and double.image_hw.dtype == torch.int64
