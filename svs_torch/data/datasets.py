@@ -1,0 +1,259 @@
+"""Loaders for the real stereo data sets of ``../shared/data`` (formats and scales: ``MANIFEST.md`` §2–4).
+
+Each loader returns a :class:`~svs_torch.types.StereoBatch` with B = 1: gray left and right images
+``(1, 1, H, W)`` in [0, 1], the ground-truth disparity of the LEFT view ``(1, 1, H, W)`` in pixels (0 where
+unknown) with its mask ``disparity_valid``, the calibration where the data set gives one, and one name such as
+``"eval3/Teddy"`` (the loader's prefix keeps names unique across data sets that share a scene).
+Convention for all: a left pixel x sees the right pixel x − d (verified photometrically, MANIFEST §3).
+
+``calibrated`` is True only where focal, baseline and doffs come from the data (MiddEval3 ``calib.txt``, and the
+scenes whose values follow from it); elsewhere the values are nominal and depth is not meaningful.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..camera import SVS_CAMERA
+from ..checks import InputError
+from ..types import StereoBatch
+from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
+
+__all__ = [
+    "load_middlebury_eval3",
+    "load_middlebury_2005_2006",
+    "load_middlebury_2003",
+    "load_middlebury_2001",
+    "load_kitti",
+    "load_opencv_aloe",
+    "load_image_pair",
+    "load_stereo_pair",
+    "list_shared_pairs",
+]
+
+# Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
+# (MANIFEST §1–2); third-size images divide focal and dmin by 3.
+_MIDDLEBURY_2005_FOCAL_FULL_PX = 3740.0
+_MIDDLEBURY_2005_BASELINE_M = 0.160
+# Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
+# ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
+_MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
+# MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same images and
+# scale as the 2003 quarter-size Teddy (its GT agrees with disp0GT.pfm to a median difference of 0 px).
+_TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0}
+# KITTI rectified-camera values inferred from the image width (MANIFEST §4; not verified per frame):
+# width → (focal px, baseline m). 1242: P_rect_02 of 2011_09_26, B = (44.857 + 339.524) / 721.538.
+_KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
+
+
+def _check_dir(path: str | Path, name: str) -> Path:
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(f"{name}: expected a folder, got {'a file' if path.exists() else 'no such path'}: {path}")
+    return path
+
+
+def _make_batch(
+    left: torch.Tensor,
+    right: torch.Tensor,
+    name: str,
+    focal_px: float,
+    baseline_m: float,
+    doffs_px: float = 0.0,
+    calibrated: bool = False,
+    disparity: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+) -> StereoBatch:
+    """One-pair batch from ``(1, 1, H, W)`` images and an optional ``(H, W)`` disparity and mask."""
+    h, w = left.shape[-2:]
+    if right.shape != left.shape:
+        rh, rw = right.shape[-2:]
+        raise InputError(f"right: expected the size of left {w}x{h} (WxH), got {rw}x{rh} [{name}]")
+    disparity_t = valid_t = None
+    if disparity is not None:
+        if disparity.shape != (h, w):
+            raise InputError(f"disparity: expected the size of left {w}x{h} (WxH), got "
+                             f"{disparity.shape[1]}x{disparity.shape[0]} [{name}]")
+        disparity_t = torch.from_numpy(np.ascontiguousarray(disparity)).to(left.dtype)[None, None]
+        valid_t = torch.from_numpy(np.ascontiguousarray(valid))[None, None]
+    return StereoBatch.from_images(left, right, focal_px, baseline_m, doffs_px, calibrated,
+                                   disparity_px=disparity_t, disparity_valid=valid_t, names=(name,))
+
+
+def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
+
+
+def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``disp0GT.pfm``, ``calib.txt``), e.g. trainingQ/Teddy.
+
+    focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. GT valid where the PFM is finite.
+    """
+    scene_dir = _check_dir(scene_dir, "scene_dir")
+    calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
+    left, right = _read_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
+    gt = read_pfm(scene_dir / "disp0GT.pfm", "disparity")
+    valid = np.isfinite(gt)
+    return _make_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]),
+                       baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]),
+                       calibrated=True, disparity=np.where(valid, gt, 0.0), valid=valid)
+
+
+def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2005/2006 third-size scene (``view1.png`` left, ``view5.png`` right, ``disp1.png`` = 3·d).
+
+    Nominal focal 3740 / 3 px and baseline 0.160 m for every scene. ``doffs`` = dmin / 3 is known only for Art
+    (dmin 200 → 66.667 px), so only Art is calibrated; the others get doffs 0 and calibrated False.
+    """
+    scene_dir = _check_dir(scene_dir, "scene_dir")
+    left, right = _read_pair(scene_dir / "view1.png", scene_dir / "view5.png", dtype)
+    disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", 3.0, "disparity")
+    dmin_full = _MIDDLEBURY_2005_DMIN_FULL_PX.get(scene_dir.name)
+    return _make_batch(left, right, f"2005_2006/{scene_dir.name}", focal_px=_MIDDLEBURY_2005_FOCAL_FULL_PX / 3.0,
+                       baseline_m=_MIDDLEBURY_2005_BASELINE_M,
+                       doffs_px=0.0 if dmin_full is None else dmin_full / 3.0,
+                       calibrated=dmin_full is not None, disparity=disparity, valid=valid)
+
+
+def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
+
+    No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
+    baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same images at the same 450×375
+    scale (the GT maps agree, median difference 0 px), so the values hold here; note they are Middlebury's own
+    round, nominal numbers, as trusted as eval3/Teddy's and no more. Other scenes (Cones) get the SVS nominal
+    focal and baseline and calibrated False.
+    """
+    scene_dir = _check_dir(scene_dir, "scene_dir")
+    left, right = _read_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
+    disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity")
+    if scene_dir.name == "Teddy":
+        camera = dict(_TEDDY_2003_QUARTER, calibrated=True)
+    else:
+        camera = {"focal_px": SVS_CAMERA.focal_px(left.shape[-1]), "baseline_m": SVS_CAMERA.baseline_m}
+    return _make_batch(left, right, f"2003/{scene_dir.name}", disparity=disparity, valid=valid, **camera)
+
+
+def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2001 scene: Tsukuba (``imL/imR.png``, ``truedisp.pgm`` = 16·d) or Venus (``im2/im6.ppm``,
+    ``disp2.pgm`` = 8·d); 0 = unknown. No calibration: SVS nominal focal and baseline, calibrated False."""
+    scene_dir = _check_dir(scene_dir, "scene_dir")
+    if (scene_dir / "truedisp.pgm").is_file():
+        left, right = _read_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
+        disparity, valid = read_scaled_disparity(scene_dir / "truedisp.pgm", 16.0, "disparity")
+    else:
+        left, right = _read_pair(scene_dir / "im2.ppm", scene_dir / "im6.ppm", dtype)
+        disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
+    return _make_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
+                       baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
+
+
+def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """KITTI stereo 2012 (``colored_0/1``, ``disp_occ``) or 2015 (``image_2/3``, ``disp_occ_0``) training frame.
+
+    GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid). No calib files are shipped: focal and
+    baseline are the nominal values for the image width (MANIFEST §4; nearest listed width otherwise),
+    calibrated False — use KITTI for disparity-level evaluation only.
+    """
+    root = _check_dir(root, "root")
+    if (root / "colored_0").is_dir():
+        folders, prefix = ("colored_0", "colored_1", "disp_occ"), "kitti2012"
+    elif (root / "image_2").is_dir():
+        folders, prefix = ("image_2", "image_3", "disp_occ_0"), "kitti2015"
+    else:
+        raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
+    left, right = _read_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
+    disparity, valid = read_scaled_disparity(root / folders[2] / f"{frame}.png", 256.0, "disparity")
+    width = left.shape[-1]
+    focal_px, baseline_m = _KITTI_NOMINAL[min(_KITTI_NOMINAL, key=lambda w: abs(w - width))]
+    return _make_batch(left, right, f"{prefix}/{frame}", focal_px=focal_px, baseline_m=baseline_m,
+                       disparity=disparity, valid=valid)
+
+
+def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """OpenCV sample Aloe (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png`` = d, 0 = unknown), full size 1282×1110.
+
+    Middlebury 2006 nominal full-size focal 3740 px and baseline 0.160 m; dmin unknown → calibrated False.
+    """
+    directory = _check_dir(directory, "directory")
+    left, right = _read_pair(directory / "aloeL.jpg", directory / "aloeR.jpg", dtype)
+    disparity, valid = read_scaled_disparity(directory / "aloeGT.png", 1.0, "disparity")
+    return _make_batch(left, right, "opencv/aloe", focal_px=_MIDDLEBURY_2005_FOCAL_FULL_PX,
+                       baseline_m=_MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
+
+
+def load_image_pair(
+    left_path: str | Path,
+    right_path: str | Path,
+    focal_px: float | None = None,
+    baseline_m: float | None = None,
+    doffs_px: float = 0.0,
+    dtype: torch.dtype = torch.float32,
+) -> StereoBatch:
+    """Two plain image files (8/16-bit, gray or BGR), no ground truth.
+
+    Focal and baseline default to the SVS camera model (``SVS_CAMERA.focal_px(width)``,
+    ``SVS_CAMERA.baseline_m``); calibrated is True only when both ``focal_px`` and ``baseline_m`` are given.
+
+    Raises:
+        InputError: for an unreadable file (naming ``left`` or ``right``), non-positive focal or baseline, or
+            left and right of different sizes (naming ``right`` and both sizes).
+    """
+    left, right = _read_pair(Path(left_path), Path(right_path), dtype)
+    for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
+        if value is not None and not value > 0:
+            raise InputError(f"{name}: expected a positive value, got {value}")
+    calibrated = focal_px is not None and baseline_m is not None
+    width = left.shape[-1]
+    return _make_batch(left, right, Path(left_path).stem,
+                       focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
+                       baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
+                       doffs_px=float(doffs_px), calibrated=calibrated)
+
+
+def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Load one pair, detecting the format from a folder's contents.
+
+    ``path`` is a scene folder (MiddEval3, 2005/2006, 2003, 2001), the OpenCV samples folder (Aloe), a KITTI
+    training folder (frame 000000_10) or a KITTI left image ``colored_0/<frame>.png`` / ``image_2/<frame>.png``
+    (the entries of :func:`list_shared_pairs`).
+    """
+    path = Path(path)
+    if path.is_file() and path.parent.name in ("colored_0", "image_2"):
+        return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
+    path = _check_dir(path, "path")
+    names = {entry.name for entry in path.iterdir()}
+    if {"calib.txt", "im0.png"} <= names:
+        return load_middlebury_eval3(path, dtype)
+    if {"view1.png", "disp1.png"} <= names:
+        return load_middlebury_2005_2006(path, dtype)
+    if {"imL.png", "disp2.png"} <= names:
+        return load_middlebury_2003(path, dtype)
+    if "truedisp.pgm" in names or "disp2.pgm" in names:
+        return load_middlebury_2001(path, dtype)
+    if "aloeL.jpg" in names:
+        return load_opencv_aloe(path, dtype)
+    if "colored_0" in names or "image_2" in names:
+        return load_kitti(path, dtype=dtype)
+    raise InputError(f"path: no known stereo layout (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in {path}")
+
+
+def list_shared_pairs(data_dir: str | Path) -> list[Path]:
+    """Every pair with ground truth in the shared data folder, as paths for :func:`load_stereo_pair`.
+
+    45 pairs when the folder is complete (MANIFEST §1): 10 eval3_Q, 26 2005/2006, 2 2003, 2 2001, 4 KITTI left
+    images and the OpenCV samples folder (Aloe). Sorted within each data set; missing data sets are skipped.
+    """
+    data_dir = _check_dir(data_dir, "data_dir")
+    pairs: list[Path] = []
+    for folder, marker in (("middlebury_eval3_Q", "calib.txt"), ("middlebury_2005_2006_third", "view1.png"),
+                           ("middlebury_2003_quarter", "imL.png"), ("middlebury_2001", "*disp*.pgm")):
+        pairs += sorted(d for d in (data_dir / folder).glob("*") if d.is_dir() and any(d.glob(marker)))
+    for left_dir in ("kitti/stereo2012_training/colored_0", "kitti/stereo2015_training/image_2"):
+        pairs += sorted((data_dir / left_dir).glob("*.png"))
+    if (data_dir / "opencv_samples" / "aloeL.jpg").is_file():
+        pairs.append(data_dir / "opencv_samples")
+    return pairs

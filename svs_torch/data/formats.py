@@ -1,0 +1,164 @@
+"""Low-level readers for the file formats of the stereo data sets (``../shared/data/MANIFEST.md`` §2).
+
+Every reader raises :class:`~svs_torch.checks.InputError` with one line that names the argument and the problem
+(missing file, unreadable file, wrong channel count, unsupported dtype). Images are read with OpenCV so that the
+gray levels equal OpenCV's own (the segmentation stage compares its Otsu threshold with ``cv2.threshold``).
+Nothing here is differentiable: these are file readers.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..checks import InputError
+
+__all__ = [
+    "read_pfm",
+    "read_middlebury_calib",
+    "read_gray_image",
+    "read_scaled_disparity",
+]
+
+# Full-scale value of each supported integer image dtype: a pixel becomes value / full scale in [0, 1].
+_FULL_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+
+
+def _check_file(path: str | Path, name: str) -> Path:
+    """``path`` as a :class:`Path`; raises :class:`InputError` naming ``name`` when it is not an existing file."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{name}: file not found: {path}")
+    if not path.is_file():
+        raise InputError(f"{name}: expected a file, got a directory or special file: {path}")
+    return path
+
+
+def _imread(path: str | Path, name: str) -> np.ndarray:
+    """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`."""
+    path = _check_file(path, name)
+    # cv2.imread returns None (it does not raise) for a file it cannot decode, e.g. text renamed .png.
+    array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise InputError(f"{name}: not a readable image file (OpenCV could not decode it): {path}")
+    return array
+
+
+def read_pfm(path: str | Path, name: str = "path") -> np.ndarray:
+    """Read a PFM file (Middlebury ``disp0GT.pfm``) as float32.
+
+    Header ``Pf`` (1 channel) or ``PF`` (3 channels), then ``W H``, then a scale whose sign gives the byte order
+    (negative = little endian). Rows are stored bottom-to-top, so the result is flipped to top-to-bottom.
+    Unknown disparities are ``+inf`` in Middlebury files and are kept as such (test with ``np.isfinite``).
+
+    Returns:
+        ``(H, W)`` float32 for ``Pf``, ``(H, W, 3)`` for ``PF``.
+    """
+    path = _check_file(path, name)
+    with path.open("rb") as handle:
+        # The header is three text lines; read it line by line so the binary payload after it stays intact.
+        header = handle.readline().strip()
+        if header not in (b"Pf", b"PF"):
+            raise InputError(f"{name}: not a PFM file (expected header 'Pf' or 'PF', got {header[:8]!r}): {path}")
+        dims = handle.readline().split()
+        scale_line = handle.readline().strip()
+        try:
+            width, height = int(dims[0]), int(dims[1])
+            scale = float(scale_line)
+        except (IndexError, ValueError):
+            raise InputError(f"{name}: malformed PFM header (size {dims!r}, scale {scale_line!r}): {path}") from None
+        payload = handle.read()
+    channels = 1 if header == b"Pf" else 3
+    count = width * height * channels
+    if len(payload) < 4 * count:
+        raise InputError(f"{name}: truncated PFM: expected {4 * count} bytes of data, got {len(payload)}: {path}")
+    dtype = np.dtype("<f4") if scale < 0 else np.dtype(">f4")
+    data = np.frombuffer(payload, dtype=dtype, count=count)
+    shape = (height, width) if channels == 1 else (height, width, 3)
+    return np.ascontiguousarray(np.flipud(data.reshape(shape))).astype(np.float32, copy=False)
+
+
+# "key = value" with any whitespace around either side; a value is a bracketed matrix or one token.
+_CALIB_ENTRY = re.compile(r"(\w+)\s*=\s*(\[[^\]]*\]|[^\s\[\]]+)")
+
+
+def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, float | np.ndarray]:
+    """Read a Middlebury 2014 / MiddEval3 ``calib.txt``.
+
+    Tolerant of the odd whitespace of the shared copies (``" doffs= 53.271 "``, leading spaces). Matrices
+    ``cam0=[f 0 cx0; 0 f cy; 0 0 1]`` become ``(3, 3)`` float64 arrays; other values become floats.
+
+    Returns:
+        A dict with at least ``cam0``, ``cam1`` (pixels), ``doffs`` (pixels, ``cx1 − cx0``) and ``baseline``
+        (millimetres), plus whatever else the file holds (``width``, ``height``, ``ndisp``, ``vmin``, ...).
+    """
+    path = _check_file(path, name)
+    text = path.read_text(encoding="ascii", errors="replace")
+    calib: dict[str, float | np.ndarray] = {}
+    for key, raw in _CALIB_ENTRY.findall(text):
+        try:
+            if raw.startswith("["):
+                rows = [row.split() for row in raw.strip("[]").split(";")]
+                calib[key] = np.array(rows, dtype=np.float64)
+            else:
+                calib[key] = float(raw)
+        except ValueError:
+            raise InputError(f"{name}: cannot parse calib entry {key}={raw!r}: {path}") from None
+    for key in ("cam0", "cam1", "doffs", "baseline"):
+        if key not in calib:
+            raise InputError(f"{name}: calib file lacks '{key}': {path}")
+    for key in ("cam0", "cam1"):
+        if np.shape(calib[key]) != (3, 3):
+            raise InputError(f"{name}: expected {key} as a 3x3 matrix, got shape {np.shape(calib[key])}: {path}")
+    return calib
+
+
+def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Read an 8- or 16-bit gray or BGR image as a gray tensor ``(1, 1, H, W)`` in [0, 1].
+
+    Color images are converted with ``cv2.cvtColor(BGR2GRAY)``, so the gray levels equal OpenCV's own
+    conversion (0.299 R + 0.587 G + 0.114 B, rounded to the input's integer type). uint8 values are divided
+    by 255 and uint16 by 65535; a uint8 image round-trips exactly: ``round(tensor * 255)`` gives it back.
+
+    Raises:
+        InputError: naming ``name``, for a missing file, a file OpenCV cannot decode, a channel count other
+            than 1 or 3, or a dtype other than uint8 / uint16.
+    """
+    array = _imread(path, name)
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels not in (1, 3):
+        raise InputError(f"{name}: expected 1 (gray) or 3 (BGR) channels, got {channels}: {path}")
+    if array.dtype not in _FULL_SCALE:
+        raise InputError(f"{name}: expected a uint8 or uint16 image, got {array.dtype}: {path}")
+    if channels == 3:
+        array = cv2.cvtColor(array, cv2.COLOR_BGR2GRAY)
+    elif array.ndim == 3:
+        array = array[:, :, 0]
+    full_scale = _FULL_SCALE[array.dtype]
+    # Divide in float64 then cast: k / 255 rounded once to float32 lies within half an ulp of the exact value,
+    # so multiplying by 255 and rounding recovers k exactly.
+    gray = torch.from_numpy(array.astype(np.float64) / full_scale).to(dtype)
+    return gray[None, None]  # (1, 1, H, W)
+
+
+def read_scaled_disparity(path: str | Path, scale: float, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
+    """Read an integer disparity map stored as ``value = disparity · scale`` with 0 = unknown.
+
+    Middlebury 2005/2006 third size (scale 3), 2003 quarter (4), 2001 Venus (8) and Tsukuba (16), KITTI
+    (uint16, 256), OpenCV ``aloeGT.png`` (1).
+
+    Returns:
+        disparity ``(H, W)`` float32 in pixels (0 where unknown) and validity ``(H, W)`` bool.
+    """
+    array = _imread(path, name)
+    if array.ndim != 2:
+        raise InputError(f"{name}: expected a 1-channel disparity image, got {array.shape[2]} channels: {path}")
+    if array.dtype not in _FULL_SCALE:
+        raise InputError(f"{name}: expected a uint8 or uint16 disparity image, got {array.dtype}: {path}")
+    valid = array > 0
+    disparity = np.where(valid, array.astype(np.float32) / np.float32(scale), np.float32(0.0))
+    return disparity.astype(np.float32), valid

@@ -1,0 +1,462 @@
+"""Synthetic stereo scenes with exact ground truth: textured box fronts in front of a textured wall.
+
+The rig is the SVS model of paper Sec. 3.1: an ideal rectified parallel pair, left optical centre at X = 0,
+right at X = +baseline, pinhole focal ``f = camera.focal_px(W)``, principal point at the image centre, world
+axes x right, y down, z forward. A point at depth Z seen at left column x is at right column ``x − f·B/Z`` on
+the same row. Obstacles are fronto-parallel rectangles (the fronts of boxes; the paper's obstacles are 1–2 m away) in front of a
+background plane. Each camera is ray cast on its own with a z-buffer, so occlusions are exact in both views.
+
+Texture lives on the surfaces in world coordinates, so a surface point has the same intensity in both views:
+``L(x) ≈ R(x − d)`` up to sampling. Obstacles are bright, the wall dark, with no overlap of the two intensity
+ranges, so Otsu's threshold (Sec. 3.2) separates them; the speckle and blob texture gives SURF its features.
+
+Nothing here is differentiable: the z-buffer and the slot lookup are hard selections, and the outputs are
+ground-truth data, not a model. Every random draw goes through the ``generator`` argument.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from ..camera import SVS_CAMERA, SVSCamera
+from ..checks import InputError, check_dtype, check_shape
+from ..types import StereoBatch
+
+__all__ = ["SyntheticScenes", "render_obstacle_scenes", "random_obstacle_scenes"]
+
+# Each surface carries a periodic noise tile of G × G texels spanning a square of side max(width, height)
+# (the background: its visible extent), so the texture is fixed to the surface and wraps seamlessly.
+_TILE_TEXELS = 256
+# Texture scales as gaussian sigmas in OUTPUT pixels at the surface's depth: a fine speckle that the
+# smallest SURF scale (sigma 1.2) responds to, and coarser blobs. Fixing them in pixels keeps every surface
+# equally rich in features at any depth and resolution; they are still world-fixed, since both views see a
+# surface at the same depth.
+_TEXTURE_SIGMA_PX = (1.2, 4.0)
+_TEXTURE_GAIN = 1.5  # tanh gain on the unit-variance noise: sharpens blob edges into corners
+# Intensity = mean + amplitude · tanh(...): obstacles in [0.52, 0.92], wall in [0.10, 0.40]. The gap between
+# the two ranges is what makes Otsu's two classes separable, with room for some sensor noise.
+_OBJECT_MEAN = (0.66, 0.78)
+_OBJECT_AMPLITUDE = 0.14
+_BACKGROUND_MEAN = (0.20, 0.30)
+_BACKGROUND_AMPLITUDE = 0.10
+# random_obstacle_scenes layout, as fractions of the image size: a border kept free of obstacles and a gap
+# between neighbouring obstacles' sectors, so the obstacles stay separate regions in both views.
+_BORDER_FRACTION = 0.03
+_GAP_FRACTION = 0.02
+_MIN_SECTOR_WIDTH_M = 0.1  # narrowest obstacle random_obstacle_scenes accepts to fit into a sector
+
+
+@dataclass(frozen=True)
+class SyntheticScenes:
+    """A batch of rendered stereo scenes and their exact ground truth (K object slots per scene).
+
+    Attributes:
+        batch: the pairs: left/right ``(B, 1, H, W)`` in [0, 1]; ``disparity_px`` ``(B, 1, H, W)`` of the left
+            view with ``disparity_valid`` all True; ``focal_px = camera.focal_px(W)``, ``baseline_m``,
+            ``doffs_px = 0``, ``calibrated`` True, names ``"synthetic-<i>"``.
+        depth_m: left-view depth in metres ``(B, 1, H, W)``, at the left pixel centres.
+        object_ids: ``(B, 1, H, W)`` int64, 0 for the background, k for object slot k (1-based) at that pixel.
+        object_depth_m: ``(B, K)`` depth of each object's front, metres; 0 in padding slots.
+        object_valid: ``(B, K)`` bool, False in padding slots (a valid object may still be fully hidden).
+        object_bbox_xyxy: ``(B, K, 4)`` int64 ``x0, y0, x1, y1`` (x1, y1 exclusive) of each object's visible
+            left-image pixels; zeros where none is visible.
+        object_center_xy_m: ``(B, K, 2)`` centre (X, Y) in metres in the left camera frame; 0 in padding slots.
+        object_size_m: ``(B, K, 2)`` width, height in metres; 0 in padding slots.
+    """
+
+    batch: StereoBatch
+    depth_m: torch.Tensor
+    object_ids: torch.Tensor
+    object_depth_m: torch.Tensor
+    object_valid: torch.Tensor
+    object_bbox_xyxy: torch.Tensor
+    object_center_xy_m: torch.Tensor | None = None
+    object_size_m: torch.Tensor | None = None
+
+
+class _Scene(NamedTuple):
+    """Geometry shared by the ray casts of one render call (all tensors in the render dtype)."""
+
+    focal_px: float
+    principal_xy: tuple[float, float]
+    depth_m: torch.Tensor  # (B, K), padding slots made harmless (depth 1, never hit)
+    center_xy_m: torch.Tensor  # (B, K, 2)
+    size_m: torch.Tensor  # (B, K, 2)
+    valid: torch.Tensor  # (B, K) bool
+    background_depth_m: float
+
+
+def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
+               scene: _Scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest surface along the ray of each pixel of a camera at ``(camera_x_m, 0, 0)`` looking down +Z.
+
+    Args:
+        x_px: pixel columns (sub-pixel allowed), broadcastable to ``(B, 1, h, w)``.
+        y_px: pixel rows, broadcastable to ``(B, 1, h, w)``.
+        camera_x_m: the optical centre's X in metres (0 for the left camera, the baseline for the right).
+        scene: the object and background geometry.
+
+    Returns:
+        depth ``(B, 1, h, w)`` in metres of the nearest surface (exactly an object's depth or the background's)
+        and its slot ``(B, 1, h, w)`` int64, 0 for the background, k for object slot k. Edges are open
+        (a ray exactly on an edge misses); equal depths overlapping resolve to the lower slot.
+    """
+    b, k = scene.depth_m.shape
+    cx, cy = scene.principal_xy
+    depth = scene.depth_m.view(b, k, 1, 1)
+    # Where each ray meets object k's plane Z = Z_k, in world metres. Rectangles are axis-aligned, so the
+    # column test and the row test are separate: (B, K, h|1, w) and (B, K, h, w|1).
+    hit_x = camera_x_m + depth * ((x_px - cx) / scene.focal_px)
+    hit_y = depth * ((y_px - cy) / scene.focal_px)
+    center = scene.center_xy_m.view(b, k, 1, 1, 2)
+    half = scene.size_m.view(b, k, 1, 1, 2) / 2
+    inside_x = ((hit_x - center[..., 0]).abs() < half[..., 0]) & scene.valid.view(b, k, 1, 1)
+    inside_y = (hit_y - center[..., 1]).abs() < half[..., 1]
+    shape = (b, 1, *torch.broadcast_shapes(x_px.shape, y_px.shape)[-2:])  # (B, 1, h, w), also for K = 0
+    nearest = torch.full(shape, scene.background_depth_m, dtype=depth.dtype, device=depth.device)
+    slot = torch.zeros(shape, dtype=torch.int64, device=depth.device)
+    # A z-buffer over the K slots (K is small; a running minimum is faster and lighter than an argmin over
+    # a (B, K + 1, h, w) stack). Strict "<": on equal depths the lower slot wins.
+    for i in range(k):
+        closer = inside_x[:, i:i + 1] & inside_y[:, i:i + 1] & (depth[:, i:i + 1] < nearest)
+        nearest = torch.where(closer, depth[:, i:i + 1], nearest)
+        slot = torch.where(closer, i + 1, slot)
+    return nearest, slot
+
+
+def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
+                generator: torch.Generator) -> torch.Tensor:
+    """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
+    surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
+    square each tile spans."""
+    b, s = tile_depth_m.shape
+    g = _TILE_TEXELS
+    dtype, device = tile_depth_m.dtype, tile_depth_m.device
+    noise = torch.randn(b, s, 2, g, g, generator=generator, dtype=dtype, device=device)
+    level = torch.rand(b, s, generator=generator, dtype=dtype, device=device)
+    sigma_px = torch.tensor(_TEXTURE_SIGMA_PX, dtype=dtype, device=device)
+    texel_m = tile_side_m / g
+    # Sigma in texels; capped at G/4 so the lowest frequency survives and the normalisation below is sound.
+    sigma = (sigma_px * (tile_depth_m / focal_px).unsqueeze(-1) / texel_m.unsqueeze(-1)).clamp(max=g / 4)
+    freq_y = torch.fft.fftfreq(g, dtype=dtype, device=device).view(g, 1)
+    freq_x = torch.fft.rfftfreq(g, dtype=dtype, device=device).view(1, g // 2 + 1)
+    # Gaussian blur as a product in frequency: batched over surfaces with a different sigma each.
+    response = torch.exp(-2 * math.pi ** 2 * sigma.view(b, s, 2, 1, 1) ** 2 * (freq_y ** 2 + freq_x ** 2))
+    field = torch.fft.irfft2(torch.fft.rfft2(noise) * response, s=(g, g))
+    field = field - field.mean(dim=(-2, -1), keepdim=True)
+    field = field / field.std(dim=(-2, -1), keepdim=True)
+    texture = torch.tanh(_TEXTURE_GAIN * field.sum(dim=2) / math.sqrt(2))  # (B, S, G, G) in (-1, 1)
+    is_object = torch.arange(s, device=device).view(1, s) > 0
+    low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
+    high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
+    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE, _BACKGROUND_AMPLITUDE)
+    mean = low + (high - low) * level  # (B, S)
+    return mean.view(b, s, 1, 1) + amplitude.view(1, s, 1, 1) * texture
+
+
+def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int],
+                   generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Texture tiles ``(B, K + 1, G, G)`` of the wall (slot 0) and the objects, their centres ``(B, K + 1, 2)``
+    and sides ``(B, K + 1)`` in metres. An object's tile spans max(width, height) around its centre; the wall's
+    spans what either camera sees of it (the left view's extent plus the baseline).
+    """
+    b = scene.depth_m.shape[0]
+    options = {"dtype": scene.depth_m.dtype, "device": scene.depth_m.device}
+    wall_side = scene.background_depth_m * max(size_wh) / scene.focal_px + baseline_m
+    wall_center = torch.tensor([baseline_m / 2, 0.0], **options).expand(b, 1, 2)
+    tile_center = torch.cat([wall_center, scene.center_xy_m], dim=1)
+    tile_side = torch.cat([torch.full((b, 1), wall_side, **options), scene.size_m.amax(dim=-1)], dim=1)
+    tile_depth = torch.cat([torch.full((b, 1), scene.background_depth_m, **options), scene.depth_m], dim=1)
+    return _make_tiles(tile_depth, tile_side, scene.focal_px, generator), tile_center, tile_side
+
+
+def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor,
+           camera_x_m: float, scene: _Scene, tiles: torch.Tensor, tile_center_xy_m: torch.Tensor,
+           tile_side_m: torch.Tensor) -> torch.Tensor:
+    """Intensity ``(B, 1, h, w)`` of the surfaces hit (``depth``, ``slot`` from :func:`_cast_rays`).
+
+    The world hit point is mapped into its surface's tile (``tiles`` ``(B, S, G, G)``, centres
+    ``(B, S, 2)``, sides ``(B, S)``) and sampled bilinearly with wrap-around; one gather per corner, so
+    only the visible surface is sampled.
+    """
+    b, s, g, _ = tiles.shape
+    cx, cy = scene.principal_xy
+    row = g + 1
+    # Per-slot affine map from (depth · ray direction) to texel-centre coordinates (texel i covers [i, i + 1)
+    # of the tile scaled to G): u = Z·(x − cx)/f · G/side + ((camera_x − centre_x)·G/side + G/2 − 1/2).
+    # Gathering these (B, S) tables per pixel costs fewer full-image passes than mapping world points.
+    scale = g / tile_side_m
+    offset = (torch.tensor([camera_x_m, 0.0], dtype=scale.dtype, device=scale.device) - tile_center_xy_m)
+    offset = offset * scale.unsqueeze(-1) + (g / 2 - 0.5)  # (B, S, 2)
+    first = (torch.arange(b * s, device=slot.device).view(b, s) * (row * row))  # flat index of each tile
+    flat_slot = slot.flatten(1)
+
+    def per_pixel(table: torch.Tensor) -> torch.Tensor:
+        return table.gather(1, flat_slot).view_as(slot)
+
+    scale = per_pixel(scale)
+    # Wrapped into [0, G): the tiles are periodic, so surfaces larger than their tile stay seamless.
+    u = torch.addcmul(per_pixel(offset[..., 0]), depth * ((x_px - cx) / scene.focal_px), scale).remainder(g)
+    v = torch.addcmul(per_pixel(offset[..., 1]), depth * ((y_px - cy) / scene.focal_px), scale).remainder(g)
+    # Rounding can give exactly G; the clamp keeps the corner inside. The tiles get a wrapped extra row and
+    # column so the +1 neighbours need no integer modulo (which is slow on CPU).
+    u0, v0 = u.floor().clamp(max=g - 1), v.floor().clamp(max=g - 1)
+    fu, fv = u - u0, v - v0
+    padded = torch.cat([tiles, tiles[..., :1, :]], dim=-2)
+    padded = torch.cat([padded, padded[..., :1]], dim=-1).reshape(-1)  # (B·S·(G+1)²,)
+    corner = per_pixel(first) + (v0 * row + u0).long()  # exact: below 2^24 even in float32
+    # The other corners via shifted views of the flat tiles rather than three more index tensors.
+    top = torch.lerp(padded.take(corner), padded[1:].take(corner), fu)
+    bottom = torch.lerp(padded[row:].take(corner), padded[row + 1:].take(corner), fu)
+    return torch.lerp(top, bottom, fv)
+
+
+def _render_view(camera_x_m: float, scene: _Scene, size_wh: tuple[int, int], supersample: int,
+                 tiles: torch.Tensor, tile_center_xy_m: torch.Tensor, tile_side_m: torch.Tensor) -> torch.Tensor:
+    """One camera's image ``(B, 1, H, W)``: shade an s× finer grid, then average each s × s block."""
+    width, height = size_wh
+    dtype, device = scene.depth_m.dtype, scene.depth_m.device
+    # Sub-pixel sample centres of output pixel i: (j + 0.5) / s − 0.5 for the s samples j inside it.
+    x_px = ((torch.arange(width * supersample, dtype=dtype, device=device) + 0.5) / supersample - 0.5)
+    y_px = ((torch.arange(height * supersample, dtype=dtype, device=device) + 0.5) / supersample - 0.5)
+    x_px, y_px = x_px.view(1, 1, 1, -1), y_px.view(1, 1, -1, 1)
+    depth, slot = _cast_rays(x_px, y_px, camera_x_m, scene)
+    image = _shade(depth, slot, x_px, y_px, camera_x_m, scene, tiles, tile_center_xy_m, tile_side_m)
+    return F.avg_pool2d(image, supersample) if supersample > 1 else image
+
+
+def _visible_bboxes(object_ids: torch.Tensor, num_objects: int) -> torch.Tensor:
+    """``(B, K, 4)`` int64 ``x0, y0, x1, y1`` (exclusive ends) of labels 1..K in ``object_ids``; 0 if absent."""
+    b, _, h, w = object_ids.shape
+    labels = torch.arange(1, num_objects + 1, device=object_ids.device).view(1, num_objects, 1, 1)
+    mask = object_ids == labels  # (B, K, H, W)
+
+    def span(present: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        index = torch.arange(n, device=present.device)
+        first = torch.where(present, index, n).amin(dim=-1)
+        last = torch.where(present, index, -1).amax(dim=-1) + 1
+        seen = present.any(dim=-1)
+        return torch.where(seen, first, 0), torch.where(seen, last, 0)
+
+    x0, x1 = span(mask.any(dim=2), w)
+    y0, y1 = span(mask.any(dim=3), h)
+    return torch.stack([x0, y0, x1, y1], dim=-1)
+
+
+def _resolve_generator(generator: torch.Generator | None, device: torch.device) -> torch.Generator:
+    """The caller's generator, or a fresh one with a nondeterministic seed: the global RNG is never used."""
+    if generator is not None:
+        return generator
+    fresh = torch.Generator(device=device)
+    fresh.seed()
+    return fresh
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise InputError(message)
+
+
+def _check_size_wh(size_wh: tuple[int, int]) -> None:
+    _require(len(size_wh) == 2 and all(isinstance(n, int) and n > 0 for n in size_wh),
+             f"size_wh: expected a positive (width, height) in pixels, got {size_wh!r}")
+
+
+def _check_render_args(object_depth_m: torch.Tensor, object_center_xy_m: torch.Tensor,
+                       object_size_m: torch.Tensor, object_valid: torch.Tensor | None,
+                       size_wh: tuple[int, int], background_depth_m: float, supersample: int,
+                       noise_std: float) -> torch.Tensor:
+    """Validate :func:`render_obstacle_scenes`'s arguments; returns ``object_valid`` ``(B, K)`` bool."""
+    dims = check_shape(object_depth_m, "object_depth_m", ["B", "K"])
+    check_dtype(object_depth_m, "object_depth_m", "float")
+    for name, value in (("object_center_xy_m", object_center_xy_m), ("object_size_m", object_size_m)):
+        check_shape(value, name, [dims["B"], dims["K"], 2])
+        check_dtype(value, name, "float")
+    if object_valid is None:
+        object_valid = torch.ones_like(object_depth_m, dtype=torch.bool)
+    check_shape(object_valid, "object_valid", [dims["B"], dims["K"]])
+    check_dtype(object_valid, "object_valid", "bool")
+    _check_size_wh(size_wh)
+    _require(math.isfinite(background_depth_m) and background_depth_m > 0,
+             f"background_depth_m: expected a positive finite depth, got {background_depth_m}")
+    _require(isinstance(supersample, int) and supersample >= 1,
+             f"supersample: expected an integer >= 1, got {supersample!r}")
+    _require(math.isfinite(noise_std) and noise_std >= 0, f"noise_std: expected a finite value >= 0, got {noise_std}")
+    # One host sync per check, once per call at the public entry (checks.py's convention).
+    depth, size = object_depth_m[object_valid], object_size_m[object_valid]
+    _require(bool(torch.isfinite(depth).all() & (depth > 0).all()),
+             "object_depth_m: expected positive finite depths in the valid slots")
+    _require(not bool((depth >= background_depth_m).any()),
+             f"object_depth_m: expected depths below background_depth_m={background_depth_m}")
+    _require(bool(torch.isfinite(size).all() & (size > 0).all()),
+             "object_size_m: expected positive finite widths and heights in the valid slots")
+    _require(bool(torch.isfinite(object_center_xy_m[object_valid]).all()),
+             "object_center_xy_m: expected finite centres in the valid slots")
+    return object_valid
+
+
+def render_obstacle_scenes(
+    object_depth_m: torch.Tensor,
+    object_center_xy_m: torch.Tensor,
+    object_size_m: torch.Tensor,
+    object_valid: torch.Tensor | None = None,
+    *,
+    size_wh: tuple[int, int] = (320, 240),
+    camera: SVSCamera = SVS_CAMERA,
+    background_depth_m: float = 4.0,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    supersample: int = 2,
+    noise_std: float = 0.0,
+) -> SyntheticScenes:
+    """Render B stereo pairs of K bright textured rectangles in front of a dark textured wall.
+
+    Args:
+        object_depth_m: ``(B, K)`` depth of each rectangle, metres, below ``background_depth_m``.
+        object_center_xy_m: ``(B, K, 2)`` centre (X right, Y down) in metres in the left camera frame.
+        object_size_m: ``(B, K, 2)`` width and height, metres.
+        object_valid: ``(B, K)`` bool, False for padding slots (not rendered); default all valid.
+        size_wh: output (width, height) in pixels.
+        camera: the rig (focal length in pixels, baseline).
+        background_depth_m: depth of the wall, metres.
+        generator: source of the textures and the noise; None draws a fresh nondeterministic seed.
+        dtype: floating dtype of the outputs (the geometry is computed in it too).
+        supersample: s; images are shaded on an s× finer grid and area-averaged (antialiasing). The ground
+            truth is taken at the output pixel centres.
+        noise_std: standard deviation of additive gaussian sensor noise on [0, 1] intensities.
+
+    Returns:
+        :class:`SyntheticScenes` on ``object_depth_m``'s device. Not differentiable (see module docstring).
+    """
+    object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
+                                      tuple(size_wh), background_depth_m, supersample, noise_std)
+    width, height = size_wh
+    device = object_depth_m.device
+    generator = _resolve_generator(generator, device)
+    valid = object_valid.to(device)
+    # Padding slots get harmless geometry (never hit, but their tiles are still drawn, keeping draws fixed).
+    depth = torch.where(valid, object_depth_m.to(dtype), 1.0)
+    center = torch.where(valid.unsqueeze(-1), object_center_xy_m.to(device, dtype), 0.0)
+    size = torch.where(valid.unsqueeze(-1), object_size_m.to(device, dtype), 1.0)
+    scene = _Scene(camera.focal_px(width), camera.principal_point_px(width, height), depth, center, size, valid,
+                   float(background_depth_m))
+    tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator)
+    views = [_render_view(camera_x, scene, (width, height), supersample, *tiles)
+             for camera_x in (0.0, camera.baseline_m)]
+    if noise_std > 0:
+        views = [view + noise_std * torch.randn(view.shape, generator=generator, dtype=dtype, device=device)
+                 for view in views]
+    left, right = (view.clamp(0.0, 1.0) for view in views)
+    return _with_ground_truth(scene, left, right, camera.baseline_m)
+
+
+def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
+                       baseline_m: float) -> SyntheticScenes:
+    """Package rendered ``left``/``right`` ``(B, 1, H, W)`` with ground truth at the left pixel centres."""
+    (b, _, height, width), options = left.shape, {"dtype": left.dtype, "device": left.device}
+    x_px = torch.arange(width, **options).view(1, 1, 1, -1)
+    y_px = torch.arange(height, **options).view(1, 1, -1, 1)
+    depth_m, object_ids = _cast_rays(x_px, y_px, 0.0, scene)
+    focal_px = torch.full((b,), scene.focal_px, **options)
+    baseline = torch.full((b,), baseline_m, **options)
+    disparity = (focal_px * baseline).view(b, 1, 1, 1) / depth_m
+    batch = StereoBatch.from_images(left, right, focal_px, baseline, 0.0, True, disparity,
+                                    torch.ones_like(disparity, dtype=torch.bool),
+                                    names=tuple(f"synthetic-{i}" for i in range(b)))
+    valid, zero = scene.valid, torch.zeros((), **options)
+    return SyntheticScenes(batch=batch, depth_m=depth_m, object_ids=object_ids,
+                           object_depth_m=torch.where(valid, scene.depth_m, zero), object_valid=valid,
+                           object_bbox_xyxy=_visible_bboxes(object_ids, valid.shape[1]),
+                           object_center_xy_m=torch.where(valid.unsqueeze(-1), scene.center_xy_m, zero),
+                           object_size_m=torch.where(valid.unsqueeze(-1), scene.size_m, zero))
+
+
+def _check_random_args(batch_size: int, num_objects: int, size_wh: tuple[int, int],
+                       depth_range_m: tuple[float, float], background_depth_m: float, camera: SVSCamera) -> None:
+    """Validate :func:`random_obstacle_scenes`'s own arguments (the renderer checks the rest)."""
+    _require(isinstance(batch_size, int) and batch_size >= 1,
+             f"batch_size: expected an integer >= 1, got {batch_size!r}")
+    _require(isinstance(num_objects, int) and num_objects >= 0,
+             f"num_objects: expected an integer >= 0, got {num_objects!r}")
+    _check_size_wh(size_wh)
+    _require(len(depth_range_m) == 2 and all(math.isfinite(z) for z in depth_range_m),
+             f"depth_range_m: expected (near, far) in metres, got {depth_range_m!r}")
+    near, far = depth_range_m
+    _require(0 < near <= far, f"depth_range_m: expected 0 < near <= far, got {depth_range_m!r}")
+    _require(far < background_depth_m,
+             f"depth_range_m: expected far < background_depth_m={background_depth_m}, got {depth_range_m!r}")
+    # The narrowest sector room is at the near depth, where the disparity is largest (_place_obstacles).
+    focal = camera.focal_px(size_wh[0])
+    sector = size_wh[0] * (1 - 2 * _BORDER_FRACTION) / max(num_objects, 1)
+    room_m = (sector - _GAP_FRACTION * size_wh[0] - focal * camera.baseline_m / near) * near / focal
+    if num_objects > 0 and room_m < _MIN_SECTOR_WIDTH_M:
+        raise InputError(f"num_objects: {num_objects} obstacles do not fit side by side in both views at "
+                         f"{near} m (room for {room_m:.3g} m each, need {_MIN_SECTOR_WIDTH_M} m)")
+
+
+def _place_obstacles(batch_size: int, num_objects: int, size_wh: tuple[int, int],
+                     depth_range_m: tuple[float, float], camera: SVSCamera, generator: torch.Generator,
+                     dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random depths ``(B, K)``, centres ``(B, K, 2)`` and sizes ``(B, K, 2)`` in metres, one obstacle per sector.
+
+    The usable width of the left image is cut into K equal sectors, left to right; obstacle k lies inside
+    sector k in BOTH views (its right-view image is its left one shifted by the disparity), so obstacles
+    never overlap and are fully in view. Widths are drawn in [0.3, 0.6] m and heights in [0.4, 1.0] m, then
+    capped to what fits the sector and the image height at the drawn depth.
+    """
+    width, height = size_wh
+    focal = camera.focal_px(width)
+    cx, cy = camera.principal_point_px(width, height)
+    near, far = depth_range_m
+    u = torch.rand(batch_size, num_objects, 5, generator=generator, dtype=dtype)
+    depth = near + (far - near) * u[..., 0]
+    border_x, gap = _BORDER_FRACTION * width, _GAP_FRACTION * width
+    sector = (width - 2 * border_x) / max(num_objects, 1)  # K = 0: no sectors, nothing drawn
+    sector_start = -0.5 + border_x + sector * torch.arange(num_objects, dtype=dtype)  # (K,) pixel edge
+    disparity = focal * camera.baseline_m / depth
+    room_x = sector - gap - disparity  # (B, K) pixels the left view can use so both views fit the sector
+    size_x = torch.minimum(0.3 + 0.3 * u[..., 1], room_x * depth / focal)
+    start_x = sector_start + gap / 2 + disparity + (room_x - focal * size_x / depth) * u[..., 3]
+    room_y = height * (1 - 2 * _BORDER_FRACTION)
+    size_y = torch.minimum(0.4 + 0.6 * u[..., 2], room_y * depth / focal)
+    start_y = -0.5 + _BORDER_FRACTION * height + (room_y - focal * size_y / depth) * u[..., 4]
+    center_x = (start_x + focal * size_x / depth / 2 - cx) * depth / focal
+    center_y = (start_y + focal * size_y / depth / 2 - cy) * depth / focal
+    return depth, torch.stack([center_x, center_y], dim=-1), torch.stack([size_x, size_y], dim=-1)
+
+
+def random_obstacle_scenes(
+    batch_size: int,
+    num_objects: int = 2,
+    *,
+    size_wh: tuple[int, int] = (320, 240),
+    depth_range_m: tuple[float, float] = (1.0, 2.0),
+    camera: SVSCamera = SVS_CAMERA,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    **render_kwargs,
+) -> SyntheticScenes:
+    """B random scenes of K obstacles side by side (left to right) at depths uniform in ``depth_range_m``.
+
+    Obstacles 1–2 m away by default, as in the paper; widths 0.3–0.6 m and heights 0.4–1.0 m (box-sized;
+    capped so each obstacle fits its sector of the view, see :func:`_place_obstacles`). ``render_kwargs`` go to
+    :func:`render_obstacle_scenes` (``background_depth_m``, ``supersample``, ``noise_std``). The same
+    generator state gives identical scenes. Not differentiable.
+
+    Raises:
+        InputError: naming ``batch_size``, ``num_objects`` (too many to fit side by side at ``near``),
+            ``size_wh`` or ``depth_range_m`` (not ``0 < near <= far < background_depth_m``).
+    """
+    size_wh = tuple(size_wh)
+    background_depth_m = render_kwargs.get("background_depth_m", 4.0)
+    _check_random_args(batch_size, num_objects, size_wh, tuple(depth_range_m), background_depth_m, camera)
+    generator = _resolve_generator(generator, torch.device("cpu"))
+    depth, center, size = _place_obstacles(batch_size, num_objects, size_wh, tuple(depth_range_m), camera,
+                                           generator, dtype)
+    return render_obstacle_scenes(depth, center, size, size_wh=size_wh, camera=camera, generator=generator,
+                                  dtype=dtype, **render_kwargs)

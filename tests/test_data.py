@@ -1,0 +1,332 @@
+"""Tests of svs_torch.data: file readers, the real-data loaders and resampling.
+
+Values come from ``../shared/data/MANIFEST.md`` §3 (an independent check by the data's curator) and from OpenCV.
+Every shared pair is loaded once per module (``shared_pairs``) to keep the file fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from svs_torch import SVS_CAMERA, InputError, StereoBatch
+from svs_torch.data import (
+    collate_stereo_batches,
+    list_shared_pairs,
+    load_image_pair,
+    load_kitti,
+    load_middlebury_2001,
+    load_middlebury_2003,
+    load_middlebury_eval3,
+    load_stereo_pair,
+    read_gray_image,
+    read_middlebury_calib,
+    read_pfm,
+    resize_stereo_batch,
+)
+
+# MANIFEST.md §3 table: name → (width, height, valid fraction, min d, max d) in pixels. Our names replace the
+# MANIFEST's folder prefixes: eval3_Q/ → eval3/, 2005_2006_third/ → 2005_2006/, 2003_quarter/ → 2003/,
+# kitti/stereo2012_training/disp_occ/<frame>.png → kitti2012/<frame>, opencv_samples/aloe → opencv/aloe.
+MANIFEST_TABLE = {
+    "eval3/ArtL": (347, 277, 0.998, 19.25, 55.50),
+    "eval3/Jadeplant": (659, 497, 0.986, 9.73, 143.71),
+    "eval3/Motorcycle": (741, 497, 0.979, 9.18, 62.88),
+    "eval3/MotorcycleE": (741, 497, 0.979, 9.18, 62.88),
+    "eval3/Piano": (707, 481, 0.946, 10.13, 51.44),
+    "eval3/PianoL": (707, 481, 0.946, 10.13, 51.44),
+    "eval3/Pipes": (735, 485, 0.965, 8.05, 67.28),
+    "eval3/Playroom": (699, 476, 0.946, 9.76, 73.58),
+    "eval3/Shelves": (738, 497, 0.897, 14.01, 50.45),
+    "eval3/Teddy": (450, 375, 0.977, 15.00, 52.75),
+    "2005_2006/Aloe": (427, 370, 0.971, 14.33, 70.33),
+    "2005_2006/Art": (463, 370, 0.999, 24.33, 74.67),
+    "2005_2006/Baby1": (413, 370, 0.998, 8.33, 45.33),
+    "2005_2006/Baby2": (413, 370, 0.979, 13.33, 51.67),
+    "2005_2006/Baby3": (437, 370, 0.938, 15.67, 51.00),
+    "2005_2006/Books": (463, 370, 0.997, 21.67, 73.67),
+    "2005_2006/Bowling1": (417, 370, 0.979, 3.33, 76.67),
+    "2005_2006/Bowling2": (443, 370, 0.950, 13.33, 66.00),
+    "2005_2006/Cloth1": (417, 370, 1.000, 13.00, 57.33),
+    "2005_2006/Cloth2": (433, 370, 0.994, 14.00, 76.00),
+    "2005_2006/Cloth3": (417, 370, 0.993, 15.00, 55.33),
+    "2005_2006/Cloth4": (433, 370, 0.994, 15.67, 67.00),
+    "2005_2006/Dolls": (463, 370, 0.996, 3.00, 73.67),
+    "2005_2006/Flowerpots": (437, 370, 0.856, 1.00, 60.33),
+    "2005_2006/Lampshade1": (433, 370, 0.970, 14.00, 64.67),
+    "2005_2006/Lampshade2": (433, 370, 0.979, 8.67, 65.33),
+    "2005_2006/Laundry": (447, 370, 0.998, 11.67, 77.33),
+    "2005_2006/Midd1": (465, 370, 0.931, 5.00, 69.00),
+    "2005_2006/Midd2": (455, 370, 0.920, 3.67, 61.67),
+    "2005_2006/Moebius": (463, 370, 0.995, 21.33, 72.67),
+    "2005_2006/Monopoly": (443, 370, 0.993, 0.67, 53.33),
+    "2005_2006/Reindeer": (447, 370, 0.995, 3.67, 67.00),
+    "2005_2006/Rocks1": (425, 370, 0.956, 19.33, 56.67),
+    "2005_2006/Rocks2": (425, 370, 0.956, 23.33, 56.00),
+    "2005_2006/Wood1": (457, 370, 0.992, 21.67, 71.67),
+    "2005_2006/Wood2": (435, 370, 0.982, 14.33, 72.33),
+    "2003/Cones": (450, 375, 0.968, 5.50, 55.00),
+    "2003/Teddy": (450, 375, 0.980, 12.50, 52.75),
+    "2001/Tsukuba": (384, 288, 0.793, 5.00, 14.00),
+    "2001/Venus": (434, 383, 1.000, 3.00, 19.75),
+    "kitti2012/000000_10": (1226, 370, 0.358, 4.40, 69.82),
+    "kitti2012/000001_10": (1226, 370, 0.242, 4.24, 124.07),
+    "kitti2015/000000_10": (1242, 375, 0.191, 4.62, 64.09),
+    "kitti2015/000001_10": (1242, 375, 0.230, 4.70, 78.48),
+    "opencv/aloe": (1282, 1110, 0.965, 43.00, 211.00),
+}
+
+# MANIFEST.md §3, Z_mm column: depth range of the MiddEval3 GT, Z = baseline·f / (d + doffs), in millimetres.
+EVAL3_DEPTH_MM = {
+    "ArtL": (1418, 2160), "Jadeplant": (2010, 3288), "Motorcycle": (2017, 4597), "MotorcycleE": (2017, 4597),
+    "Piano": (1534, 3063), "PianoL": (1534, 3063), "Pipes": (2708, 8566), "Playroom": (2402, 4330),
+    "Shelves": (2430, 3869), "Teddy": (1146, 1791),
+}
+
+# Bound on photoerr(d) / photoerr(0). The right images of ArtL, MotorcycleE and PianoL have changed lighting
+# or exposure (MANIFEST §3); Monopoly's right image is about 8 gray levels darker overall (MANIFEST photoerr
+# 8 vs 15). For those the warp must still beat d = 0, but by less.
+PHOTO_RATIO_DEFAULT = 0.5
+PHOTO_RATIO = {"eval3/ArtL": 0.9, "eval3/MotorcycleE": 0.9, "eval3/PianoL": 0.9, "2005_2006/Monopoly": 0.6}
+NAMES = sorted(MANIFEST_TABLE)
+
+
+@pytest.fixture(scope="module")
+def shared_pairs(data_dir: Path) -> dict[str, StereoBatch]:
+    """Every shared pair, loaded once, keyed by its name."""
+    batches = [load_stereo_pair(path) for path in list_shared_pairs(data_dir)]
+    return {batch.names[0]: batch for batch in batches}
+
+
+@pytest.fixture(scope="module")
+def resized_pairs(shared_pairs: dict[str, StereoBatch]) -> dict[str, StereoBatch]:
+    """Every shared pair at the SVS default size 320×240."""
+    return {name: resize_stereo_batch(batch, (320, 240)) for name, batch in shared_pairs.items()}
+
+
+def photometric_error(batch: StereoBatch, disparity_scale: float = 1.0) -> float:
+    """Median |L(x) − R(x − s·d)| in gray levels over valid GT whose match lies inside the right image."""
+    left, right = batch.left, batch.right
+    _, _, h, w = left.shape
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=left.dtype), torch.arange(w, dtype=left.dtype), indexing="ij")
+    x_right = xs - disparity_scale * batch.disparity_px[:, 0]  # (1, H, W)
+    inside = batch.disparity_valid[:, 0] & (x_right >= 0) & (x_right <= w - 1)
+    # align_corners=True: normalized −1 / +1 are the centres of the first / last pixels.
+    grid = torch.stack([2 * x_right / (w - 1) - 1, (2 * ys / (h - 1) - 1).expand_as(x_right)], dim=-1)
+    warped = F.grid_sample(right, grid, mode="bilinear", align_corners=True)
+    return float((left - warped).abs()[:, 0][inside].median()) * 255
+
+
+def test_list_shared_pairs_finds_the_45_manifest_pairs(shared_pairs: dict[str, StereoBatch]) -> None:
+    assert sorted(shared_pairs) == NAMES
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_pair_matches_manifest(shared_pairs: dict[str, StereoBatch], name: str) -> None:
+    width, height, valid_fraction, d_min, d_max = MANIFEST_TABLE[name]
+    batch = shared_pairs[name]
+    assert batch.left.shape == batch.right.shape == batch.disparity_px.shape == (1, 1, height, width)
+    assert batch.left.dtype == batch.disparity_px.dtype == torch.float32
+    assert batch.image_hw.tolist() == [[height, width]]
+    assert batch.names == (name,)
+    valid = batch.disparity_valid
+    assert float(valid.float().mean()) == pytest.approx(valid_fraction, abs=0.01)
+    known = batch.disparity_px[valid]
+    assert float(known.min()) == pytest.approx(d_min, abs=0.5)
+    assert float(known.max()) == pytest.approx(d_max, abs=0.5)
+    assert bool((batch.disparity_px[~valid] == 0).all())
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_photometric_consistency(shared_pairs: dict, resized_pairs: dict, name: str) -> None:
+    """The GT warp explains the right image far better than no shift, before and after resizing to 320×240
+    (the latter proves that resizing scales the disparities)."""
+    bound = PHOTO_RATIO.get(name, PHOTO_RATIO_DEFAULT)
+    for batch in (shared_pairs[name], resized_pairs[name]):
+        error = photometric_error(batch)
+        assert error / photometric_error(batch, disparity_scale=0.0) <= bound
+    # The decoded scale (/3, /4, /8, /16, /256, 1) beats 20 % smaller or larger disparities (MANIFEST §3).
+    batch = shared_pairs[name]
+    error = photometric_error(batch)
+    margin = 1.0 if name in PHOTO_RATIO else 1.1
+    assert error * margin < min(photometric_error(batch, 0.8), photometric_error(batch, 1.25))
+
+
+@pytest.mark.parametrize("scene", sorted(EVAL3_DEPTH_MM))
+def test_eval3_depth_matches_manifest(shared_pairs: dict, resized_pairs: dict, scene: str) -> None:
+    z_min_mm, z_max_mm = EVAL3_DEPTH_MM[scene]
+    full = shared_pairs[f"eval3/{scene}"]
+    assert bool(full.calibrated.all())
+    depth, valid = full.ground_truth_depth_m()
+    assert torch.equal(valid, full.disparity_valid)
+    assert float(depth[valid].min()) * 1000 == pytest.approx(z_min_mm, rel=2e-3)
+    assert float(depth[valid].max()) * 1000 == pytest.approx(z_max_mm, rel=2e-3)
+    # Resizing scales d, f and doffs together, so the depth of every kept GT sample is unchanged.
+    small_depth, small_valid = resized_pairs[f"eval3/{scene}"].ground_truth_depth_m()
+    assert z_min_mm * 0.998 <= float(small_depth[small_valid].min()) * 1000
+    assert float(small_depth[small_valid].max()) * 1000 <= z_max_mm * 1.002
+
+
+def test_calibration_per_dataset(shared_pairs: dict[str, StereoBatch]) -> None:
+    art = shared_pairs["2005_2006/Art"]  # dmin 200 → doffs 66.67 px; MANIFEST §1: Art 1.41–2.19 m
+    assert float(art.focal_px) == pytest.approx(3740 / 3) and float(art.doffs_px) == pytest.approx(200 / 3)
+    depth, valid = art.ground_truth_depth_m()
+    assert (float(depth[valid].min()), float(depth[valid].max())) == pytest.approx((1.41, 2.19), abs=0.01)
+    teddy = shared_pairs["2003/Teddy"]  # MiddEval3 Teddy's calib, same images and scale
+    assert bool(teddy.calibrated) and float(teddy.focal_px) == 1500 and float(teddy.doffs_px) == 52
+    for name in ("2005_2006/Aloe", "2003/Cones", "2001/Tsukuba", "kitti2012/000000_10", "opencv/aloe"):
+        assert not bool(shared_pairs[name].calibrated)
+        assert not bool(shared_pairs[name].ground_truth_depth_m()[1].any())
+    assert float(shared_pairs["kitti2015/000000_10"].focal_px) == pytest.approx(721.5377)
+    assert float(shared_pairs["2001/Venus"].focal_px) == pytest.approx(SVS_CAMERA.focal_px(434))
+
+
+def test_resize_scales_focal_doffs_and_disparity(shared_pairs: dict[str, StereoBatch]) -> None:
+    batch = shared_pairs["eval3/Motorcycle"]  # 741×497 → 320×240: the aspect ratio changes
+    small = resize_stereo_batch(batch, (320, 240))
+    sx = 320 / 741
+    assert small.left.shape == small.disparity_px.shape == (1, 1, 240, 320)
+    assert small.image_hw.tolist() == [[240, 320]]
+    assert float(small.focal_px) == pytest.approx(float(batch.focal_px) * sx)
+    assert float(small.doffs_px) == pytest.approx(float(batch.doffs_px) * sx)
+    assert torch.equal(small.baseline_m, batch.baseline_m) and small.names == batch.names
+    assert 0.0 <= float(small.left.min()) and float(small.left.max()) <= 1.0
+    # Nearest sampling: every resized GT value is an original GT value times sx, never a blend of two.
+    original = torch.unique(batch.disparity_px[batch.disparity_valid] * sx)
+    resized = small.disparity_px[small.disparity_valid]
+    index = torch.searchsorted(original, resized).clamp(max=original.numel() - 1)
+    nearest = torch.minimum((original[index] - resized).abs(), (original[(index - 1).clamp(min=0)] - resized).abs())
+    assert float(nearest.max()) < 1e-4
+
+
+def test_collate_pad_keeps_sizes_and_masks_padding(shared_pairs: dict, data_dir: Path) -> None:
+    no_gt = load_image_pair(data_dir / "middlebury_2001/Tsukuba/imL.png", data_dir / "middlebury_2001/Tsukuba/imR.png")
+    parts = [shared_pairs["2001/Tsukuba"], shared_pairs["2001/Venus"], no_gt, shared_pairs["2003/Teddy"]]
+    batch = collate_stereo_batches(parts, mode="pad")
+    assert batch.left.shape == batch.disparity_px.shape == (4, 1, 383, 450)
+    assert batch.image_hw.tolist() == [[288, 384], [383, 434], [288, 384], [375, 450]]
+    assert batch.names == ("2001/Tsukuba", "2001/Venus", "imL", "2003/Teddy")
+    for i, part in enumerate(parts):
+        h, w = part.size_hw
+        assert torch.equal(batch.left[i, :, :h, :w], part.left[0])
+        assert float(batch.left[i, :, h:].abs().sum() + batch.left[i, :, :, w:].abs().sum()) == 0
+        assert not bool(batch.disparity_valid[i, :, h:].any() or batch.disparity_valid[i, :, :, w:].any())
+    assert not bool(batch.disparity_valid[2].any())  # the pair without GT
+    assert torch.equal(batch.disparity_px[0, :, :288, :384], parts[0].disparity_px[0])
+
+
+def test_collate_resize_and_resize_of_padded_batch(shared_pairs: dict[str, StereoBatch]) -> None:
+    parts = [shared_pairs["2001/Tsukuba"], shared_pairs["2001/Venus"]]
+    batch = collate_stereo_batches(parts)  # default size: the first pair's 384×288
+    assert batch.left.shape == (2, 1, 288, 384) and batch.image_hw.tolist() == [[288, 384]] * 2
+    assert float(batch.focal_px[1]) == pytest.approx(float(parts[1].focal_px) * 384 / 434)
+    assert batch.names == ("2001/Tsukuba", "2001/Venus")
+    small = collate_stereo_batches(parts, mode="resize", size_wh=(160, 120))
+    assert small.left.shape == (2, 1, 120, 160)
+    # Resizing a padded batch resizes each pair from its own region: batched equals per pair.
+    padded = collate_stereo_batches(parts, mode="pad")
+    from_padded = resize_stereo_batch(padded, (160, 120))
+    for name in ("left", "right", "focal_px", "doffs_px", "disparity_px", "disparity_valid"):
+        assert torch.equal(getattr(from_padded, name), getattr(small, name)), name
+    with pytest.raises(InputError, match="mode: expected 'resize' or 'pad'"):
+        collate_stereo_batches(parts, mode="crop")
+    with pytest.raises(InputError, match="size_wh: expected at least the largest pair"):
+        collate_stereo_batches(parts, mode="pad", size_wh=(400, 400))
+
+
+def test_loaders_follow_dtype_and_detect_layouts(data_dir: Path) -> None:
+    teddy = load_middlebury_eval3(data_dir / "middlebury_eval3_Q/Teddy", dtype=torch.float64)
+    assert teddy.left.dtype == teddy.disparity_px.dtype == teddy.focal_px.dtype == torch.float64
+    kitti = load_stereo_pair(data_dir / "kitti/stereo2015_training")  # a root folder: the default frame
+    assert kitti.names == ("kitti2015/000000_10",)
+    assert load_kitti(data_dir / "kitti/stereo2012_training", "000001_10").names == ("kitti2012/000001_10",)
+    assert load_middlebury_2003(data_dir / "middlebury_2003_quarter/Cones").names == ("2003/Cones",)
+    with pytest.raises(InputError, match="path: no known stereo layout"):
+        load_stereo_pair(data_dir / "kitti")
+    with pytest.raises(InputError, match="scene_dir: expected a folder"):
+        load_middlebury_2001(data_dir / "no_such_scene")
+
+
+def test_load_image_pair_calibration(data_dir: Path) -> None:
+    left, right = data_dir / "middlebury_2001/Venus/im2.ppm", data_dir / "middlebury_2001/Venus/im6.ppm"
+    nominal = load_image_pair(left, right)
+    assert nominal.disparity_px is None and not bool(nominal.calibrated)
+    assert float(nominal.focal_px) == pytest.approx(SVS_CAMERA.focal_px(434))
+    assert float(nominal.baseline_m) == pytest.approx(SVS_CAMERA.baseline_m)
+    given = load_image_pair(left, right, focal_px=500.0, baseline_m=0.1, doffs_px=3.0)
+    assert bool(given.calibrated) and float(given.doffs_px) == 3.0
+
+
+def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> None:
+    with pytest.raises(InputError, match="left: file not found"):
+        read_gray_image(tmp_path / "missing.png", "left")
+    text = tmp_path / "notes.png"
+    text.write_text("not an image\n")
+    with pytest.raises(InputError, match="right: not a readable image file"):
+        read_gray_image(text, "right")
+    rgba = tmp_path / "rgba.png"
+    cv2.imwrite(str(rgba), np.zeros((4, 5, 4), np.uint8))
+    with pytest.raises(InputError, match=r"left: expected 1 \(gray\) or 3 \(BGR\) channels, got 4"):
+        read_gray_image(rgba, "left")
+    tiff = tmp_path / "float.tiff"
+    cv2.imwrite(str(tiff), np.zeros((4, 5), np.float32))
+    with pytest.raises(InputError, match="image: expected a uint8 or uint16 image, got float32"):
+        read_gray_image(tiff, "image")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((10, 12), np.uint8))
+    with pytest.raises(InputError, match=r"right: expected the size of left 384x288 \(WxH\), got 12x10"):
+        load_image_pair(data_dir / "middlebury_2001/Tsukuba/imL.png", small)
+    with pytest.raises(InputError, match="right: file not found"):
+        load_image_pair(data_dir / "middlebury_2001/Tsukuba/imL.png", tmp_path / "missing.png")
+    with pytest.raises(InputError, match="size_wh: expected a positive width and height"):
+        resize_stereo_batch(load_image_pair(small, small), (0, 10))
+
+
+def test_gray_images_round_trip_and_equal_opencv(tmp_path: Path, data_dir: Path) -> None:
+    levels = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    cv2.imwrite(str(tmp_path / "levels.png"), levels)
+    for dtype in (torch.float32, torch.float64):
+        gray = read_gray_image(tmp_path / "levels.png", dtype=dtype)
+        assert gray.shape == (1, 1, 16, 16) and gray.dtype == dtype
+        assert np.array_equal((gray[0, 0] * 255).round().to(torch.uint8).numpy(), levels)
+    deep = (np.arange(64, dtype=np.uint16) * 1000).reshape(8, 8)
+    cv2.imwrite(str(tmp_path / "deep.png"), deep)
+    gray16 = read_gray_image(tmp_path / "deep.png")
+    assert np.array_equal((gray16[0, 0].double() * 65535).round().numpy().astype(np.uint16), deep)
+    # A color file: the gray levels are OpenCV's own BGR→gray conversion, exactly.
+    path = data_dir / "middlebury_eval3_Q/Teddy/im0.png"
+    expected = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2GRAY)
+    gray = read_gray_image(path)
+    assert np.array_equal((gray[0, 0] * 255).round().to(torch.uint8).numpy(), expected)
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_read_pfm_flips_rows_and_keeps_inf(tmp_path: Path, little_endian: bool) -> None:
+    image = np.array([[1.5, np.inf, 3.0], [4.0, 5.0, -6.25]], dtype=np.float32)  # (H, W) top row first
+    order = "<" if little_endian else ">"
+    header = f"Pf\n3 2\n{-1.0 if little_endian else 1.0}\n".encode()
+    path = tmp_path / "disp.pfm"
+    path.write_bytes(header + np.flipud(image).astype(order + "f4").tobytes())  # stored bottom row first
+    decoded = read_pfm(path)
+    assert decoded.dtype == np.float32 and np.array_equal(decoded, image)
+    path.write_bytes(b"P6\n3 2\n255\n")
+    with pytest.raises(InputError, match="disparity: not a PFM file"):
+        read_pfm(path, "disparity")
+
+
+def test_read_middlebury_calib_tolerates_odd_whitespace(tmp_path: Path, data_dir: Path) -> None:
+    path = tmp_path / "calib.txt"
+    path.write_text("  cam0=[ 10 0 4 ;0 10 3; 0 0 1 ] \n cam1 =[10 0 6; 0 10 3; 0 0 1]\n"
+                    " doffs= 53.271 \nbaseline= 80\n")
+    calib = read_middlebury_calib(path)
+    assert calib["cam1"][0, 2] == 6 and calib["doffs"] == 53.271 and calib["baseline"] == 80
+    motorcycle = read_middlebury_calib(data_dir / "middlebury_eval3_Q/Motorcycle/calib.txt")
+    assert motorcycle["cam0"][0, 0] == 999.421 and motorcycle["doffs"] == 32.778 and motorcycle["width"] == 741
+    path.write_text("cam0=[1 0 0; 0 1 0; 0 0 1]\n")
+    with pytest.raises(InputError, match="calib file lacks 'cam1'"):
+        read_middlebury_calib(path)
