@@ -18,7 +18,7 @@ import torch
 from .checks import InputError, check_image
 from .components import connected_components_with_stats
 from .morphology import open_binary, structuring_element
-from .threshold import otsu_threshold, threshold_binary
+from .threshold import gray_histogram, gray_levels, otsu_threshold_level, threshold_binary
 from .types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions"]
@@ -107,16 +107,18 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
         Not differentiable (``masked`` carries the image's gradient inside the kept mask only).
     """
     check_image(image, "image")
-    threshold, level = otsu_threshold(image)
-    binary = threshold_binary(image, level)
+    levels = gray_levels(image)
+    histogram = gray_histogram(levels)
+    level = otsu_threshold_level(histogram)
+    threshold = level.to(image.dtype) / 255
+    binary = threshold_binary(levels, level)
     if config.foreground == "dark":
         binary = ~binary
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
     opened = open_binary(binary, element)
     labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
-    flat = image.detach().flatten(1)
-    uniform = flat.amax(dim=1) == flat.amin(dim=1)
+    uniform = (histogram > 0).sum(dim=1) == 1  # one gray level: Otsu has no split
     return Segmentation(
         threshold=threshold,
         threshold_level=level,

@@ -3,8 +3,9 @@
 The rig is the SVS model of paper Sec. 3.1: an ideal rectified parallel pair, left optical centre at X = 0,
 right at X = +baseline, pinhole focal ``f = camera.focal_px(W)``, principal point at the image centre, world
 axes x right, y down, z forward. A point at depth Z seen at left column x is at right column ``x − f·B/Z`` on
-the same row. Obstacles are fronto-parallel rectangles (the fronts of boxes; the paper's obstacles are 1–2 m away) in front of a
-background plane. Each camera is ray cast on its own with a z-buffer, so occlusions are exact in both views.
+the same row. Obstacles are fronto-parallel rectangles (box fronts; the paper's obstacles are 1–2 m away)
+in front of a background plane. Each camera is ray cast on its own with a z-buffer: occlusions are exact
+in both views.
 
 Texture lives on the surfaces in world coordinates, so a surface point has the same intensity in both views:
 ``L(x) ≈ R(x − d)`` up to sampling. Obstacles are bright, the wall dark, with no overlap of the two intensity

@@ -1,0 +1,138 @@
+"""Benchmark: segmentation stage (paper Sec. 3.2) and connected components, svs_torch vs OpenCV vs kornia.
+
+Real pairs from the shared data, resampled to 320×240 (the SVS default size). Every timing is the median of
+several runs in this process, with the spread (min–max) and the thread count recorded; rivals run on the same
+images in the same run. Prints a table and writes JSON with the run's metadata.
+
+    python experiments/bench_segmentation.py [--threads 2] [--repeats 7] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import kornia
+import numpy as np
+import torch
+
+import svs_torch
+from svs_torch.components import connected_components_with_stats
+from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
+from svs_torch.segmentation import SegmentationConfig, segment_stereo
+
+SIZE_WH = (320, 240)
+
+
+def timed(fn, repeats: int) -> dict:
+    """Median and spread of ``repeats`` runs of ``fn`` (one warm-up run first), in milliseconds."""
+    fn()
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        runs.append((time.perf_counter() - start) * 1e3)
+    return {"median_ms": statistics.median(runs), "min_ms": min(runs), "max_ms": max(runs)}
+
+
+def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``count`` real pairs at 320×240 (repeating the shared set if needed): left, right ``(count, 1, H, W)``."""
+    paths = [p for p in list_shared_pairs(data_dir) if "middlebury" in str(p)]
+    batches = [resize_stereo_batch(load_stereo_pair(p), SIZE_WH) for p in paths[:count]]
+    left = torch.cat([b.left for b in batches])
+    right = torch.cat([b.right for b in batches])
+    repeat = -(-count // left.shape[0])
+    return left.repeat(repeat, 1, 1, 1)[:count], right.repeat(repeat, 1, 1, 1)[:count]
+
+
+def opencv_segment(gray: np.ndarray, kernel: np.ndarray, num_keep: int) -> np.ndarray:
+    """The same stage in OpenCV: Otsu, erode, dilate, components with stats, keep the largest, mask."""
+    _, binary = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    opened = cv2.dilate(cv2.erode(binary, kernel), kernel)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+    keep = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")[:num_keep]
+    return np.where(np.isin(labels, keep), gray, 0)
+
+
+def to_u8(images: torch.Tensor) -> list[np.ndarray]:
+    return list((images[:, 0] * 255).round().to(torch.uint8).numpy())
+
+
+def bench(left: torch.Tensor, right: torch.Tensor, repeats: int) -> dict:
+    config = SegmentationConfig()
+    kernel = np.ones((config.kernel_size, config.kernel_size), np.uint8)
+    results: dict[str, dict] = {}
+    for b in (1, 32):
+        batch = svs_torch.StereoBatch.from_images(left[:b], right[:b], 276.0, 0.1075)
+        grays = to_u8(torch.cat([left[:b], right[:b]]))
+        results[f"segment_pairs_svs_torch_B{b}"] = timed(lambda: segment_stereo(batch, config), repeats)
+        results[f"segment_pairs_opencv_loop_B{b}"] = timed(
+            lambda: [opencv_segment(g, kernel, config.num_keep) for g in grays], repeats)
+        seg = segment_stereo(batch, config)
+        masks = torch.cat([seg.left.opened, seg.right.opened])
+        masks_u8 = [m.astype(np.uint8) for m in masks[:, 0].numpy()]
+        results[f"components_images_svs_torch_B{b}"] = timed(lambda: connected_components_with_stats(masks), repeats)
+        results[f"components_images_opencv_loop_B{b}"] = timed(
+            lambda: [cv2.connectedComponentsWithStats(m, connectivity=8) for m in masks_u8], repeats)
+        if b == 1:
+            float_masks = masks.to(torch.float32)
+            results["components_images_kornia_unionfind_B1"] = timed(
+                lambda: kornia.contrib.connected_components_union_find(float_masks), max(3, repeats // 2))
+            results["components_images_kornia_maxpool100_B1"] = timed(
+                lambda: kornia.contrib.connected_components(float_masks, num_iterations=100), 3)
+    return results
+
+
+def metadata(threads: int) -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
+            "numpy": np.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
+            "threads": threads, "size_wh": list(SIZE_WH)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed runs per measurement (median reported)")
+    parser.add_argument("--json", metavar="FILE", help="also write the results and metadata as JSON")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    left, right = load_pairs(Path(args.data), 32)
+    results = bench(left, right, args.repeats)
+    print(f"threads {args.threads}, {SIZE_WH[0]}x{SIZE_WH[1]}, median of {args.repeats} runs (min-max)")
+    for b in (1, 32):
+        ours = results[f"segment_pairs_svs_torch_B{b}"]["median_ms"] / b
+        theirs = results[f"segment_pairs_opencv_loop_B{b}"]["median_ms"] / b
+        print(f"segmentation  B={b:2d}: svs_torch {ours:7.3f} ms/pair   OpenCV loop {theirs:7.3f} ms/pair   "
+              f"ratio svs_torch/OpenCV {ours / theirs:5.2f}")
+    for b in (1, 32):
+        images = 2 * b
+        ours = results[f"components_images_svs_torch_B{b}"]["median_ms"] / images
+        theirs = results[f"components_images_opencv_loop_B{b}"]["median_ms"] / images
+        print(f"components    B={b:2d}: svs_torch {ours:7.3f} ms/image  OpenCV loop {theirs:7.3f} ms/image  "
+              f"ratio svs_torch/OpenCV {ours / theirs:5.2f}")
+    for name in ("unionfind", "maxpool100"):
+        kornia_ms = results[f"components_images_kornia_{name}_B1"]["median_ms"] / 2
+        ours = results["components_images_svs_torch_B1"]["median_ms"] / 2
+        print(f"components    B= 1: kornia {name:10s} {kornia_ms:8.3f} ms/image  ratio kornia/svs_torch "
+              f"{kornia_ms / ours:6.1f}")
+    report = {"metadata": metadata(args.threads), "results": results}
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

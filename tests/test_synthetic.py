@@ -1,0 +1,283 @@
+"""Tests for synthetic stereo scenes: shapes, determinism, exact geometry, photometric consistency, Otsu.
+
+The geometric references here are written independently of the renderer (closed-form projections of the
+rectangles and an explicit occlusion test along the right camera's ray); Otsu's threshold is OpenCV's.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from svs_torch import SVS_CAMERA, InputError, StereoBatch
+from svs_torch.data.synthetic import (
+    SyntheticScenes,
+    _cast_rays,
+    _Scene,
+    random_obstacle_scenes,
+    render_obstacle_scenes,
+)
+
+SMALL = (160, 120)
+
+
+def seeded(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def scene_tensors(scenes: SyntheticScenes) -> dict[str, torch.Tensor]:
+    """Every tensor of a result, by name, for equality checks."""
+    batch = scenes.batch
+    return {
+        "left": batch.left, "right": batch.right, "disparity": batch.disparity_px, "depth": scenes.depth_m,
+        "ids": scenes.object_ids, "object_depth": scenes.object_depth_m, "bbox": scenes.object_bbox_xyxy,
+        "center": scenes.object_center_xy_m, "size": scenes.object_size_m,
+    }
+
+
+def pixel_world_points(scenes: SyntheticScenes) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World X, Y, Z ``(B, 1, H, W)`` of the surface seen at each left pixel centre."""
+    _, _, h, w = scenes.depth_m.shape
+    f = scenes.batch.focal_px.view(-1, 1, 1, 1)
+    x = torch.arange(w, dtype=f.dtype).view(1, 1, 1, w)
+    y = torch.arange(h, dtype=f.dtype).view(1, 1, h, 1)
+    z = scenes.depth_m
+    return z * (x - (w - 1) / 2) / f, z * (y - (h - 1) / 2) / f, z
+
+
+def occluded_in_right(scenes: SyntheticScenes) -> tuple[torch.Tensor, torch.Tensor]:
+    """Independent occlusion test: is the left pixel's surface point hidden from the right camera?
+
+    The right ray from (B, 0, 0) to the point P meets the plane Z = Z_j at X = B + (P_x − B)·Z_j/P_z,
+    Y = P_y·Z_j/P_z; P is hidden if a nearer valid rectangle contains that point. Returns the mask
+    ``(B, 1, H, W)`` and the nearest occluder's 1-based id (0 if none).
+    """
+    px, py, pz = pixel_world_points(scenes)
+    baseline = scenes.batch.baseline_m.view(-1, 1, 1, 1)
+    occluder = torch.zeros_like(scenes.object_ids)
+    nearest = pz.clone()
+    for j in range(scenes.object_depth_m.shape[1]):
+        zj = scenes.object_depth_m[:, j].view(-1, 1, 1, 1)
+        cx, cy = (scenes.object_center_xy_m[:, j, i].view(-1, 1, 1, 1) for i in range(2))
+        w, h = (scenes.object_size_m[:, j, i].view(-1, 1, 1, 1) for i in range(2))
+        xj = baseline + (px - baseline) * zj / pz
+        yj = py * zj / pz
+        hit = ((xj - cx).abs() < w / 2) & ((yj - cy).abs() < h / 2) & scenes.object_valid[:, j].view(-1, 1, 1, 1)
+        hit = hit & (zj < nearest)
+        nearest = torch.where(hit, zj, nearest)
+        occluder = torch.where(hit, j + 1, occluder)
+    return occluder > 0, occluder
+
+
+def sample_right_at(scenes: SyntheticScenes, disparity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """R(x − d) sampled bilinearly with grid_sample, and where x − d is inside the right image."""
+    right = scenes.batch.right
+    b, _, h, w = right.shape
+    x = torch.arange(w, dtype=right.dtype).view(1, 1, 1, w) - disparity
+    y = torch.arange(h, dtype=right.dtype).view(1, 1, h, 1).expand_as(x)
+    grid = torch.stack([2 * x / (w - 1) - 1, 2 * y / (h - 1) - 1], dim=-1).squeeze(1)  # (B, H, W, 2)
+    sampled = F.grid_sample(right, grid, mode="bilinear", align_corners=True)
+    return sampled, (x >= 0) & (x <= w - 1)
+
+
+@pytest.fixture(scope="module")
+def scenes64() -> SyntheticScenes:
+    return random_obstacle_scenes(4, size_wh=(320, 240), generator=seeded(7), dtype=torch.float64)
+
+
+@pytest.mark.parametrize("batch_size", [1, 4])
+def test_shapes_and_dtypes(batch_size: int, dtype: torch.dtype) -> None:
+    scenes = random_obstacle_scenes(batch_size, 2, size_wh=SMALL, generator=seeded(0), dtype=dtype)
+    batch = scenes.batch
+    assert isinstance(batch, StereoBatch)
+    for image in (batch.left, batch.right, batch.disparity_px, scenes.depth_m):
+        assert image.shape == (batch_size, 1, 120, 160) and image.dtype == dtype
+    assert batch.left.min() >= 0 and batch.left.max() <= 1 and batch.right.min() >= 0 and batch.right.max() <= 1
+    assert batch.disparity_valid.dtype == torch.bool and bool(batch.disparity_valid.all())
+    assert scenes.object_ids.shape == (batch_size, 1, 120, 160) and scenes.object_ids.dtype == torch.int64
+    assert scenes.object_depth_m.shape == (batch_size, 2) and scenes.object_depth_m.dtype == dtype
+    assert scenes.object_valid.shape == (batch_size, 2) and scenes.object_valid.dtype == torch.bool
+    assert scenes.object_bbox_xyxy.shape == (batch_size, 2, 4) and scenes.object_bbox_xyxy.dtype == torch.int64
+    assert torch.equal(batch.focal_px, torch.full((batch_size,), SVS_CAMERA.focal_px(160), dtype=dtype))
+    assert torch.equal(batch.baseline_m, torch.full((batch_size,), SVS_CAMERA.baseline_m, dtype=dtype))
+    assert bool((batch.doffs_px == 0).all()) and bool(batch.calibrated.all())
+    assert batch.image_hw.tolist() == [[120, 160]] * batch_size
+    assert batch.names == tuple(f"synthetic-{i}" for i in range(batch_size))
+    assert bool(((scenes.object_depth_m >= 1.0) & (scenes.object_depth_m <= 2.0)).all())
+
+
+def test_no_objects_is_all_background() -> None:
+    scenes = random_obstacle_scenes(2, 0, size_wh=SMALL, generator=seeded(0), background_depth_m=3.0)
+    assert scenes.object_depth_m.shape == (2, 0) and scenes.object_bbox_xyxy.shape == (2, 0, 4)
+    assert bool((scenes.object_ids == 0).all()) and bool((scenes.depth_m == 3.0).all())
+
+
+def test_same_seed_same_scenes_and_global_rng_untouched() -> None:
+    state = torch.get_rng_state()
+    first = scene_tensors(random_obstacle_scenes(3, size_wh=SMALL, generator=seeded(5), noise_std=0.01))
+    second = scene_tensors(random_obstacle_scenes(3, size_wh=SMALL, generator=seeded(5), noise_std=0.01))
+    other = scene_tensors(random_obstacle_scenes(3, size_wh=SMALL, generator=seeded(6), noise_std=0.01))
+    random_obstacle_scenes(1, size_wh=SMALL)  # generator=None draws its own seed, not the global RNG
+    assert torch.equal(torch.get_rng_state(), state)
+    for name in first:
+        assert torch.equal(first[name], second[name]), name
+    assert not torch.equal(first["left"], other["left"]) and not torch.equal(first["depth"], other["depth"])
+
+
+def test_disparity_is_focal_times_baseline_over_depth(dtype: torch.dtype) -> None:
+    scenes = random_obstacle_scenes(2, size_wh=SMALL, generator=seeded(1), dtype=dtype)
+    batch = scenes.batch
+    expected = (batch.focal_px * batch.baseline_m).view(-1, 1, 1, 1) / scenes.depth_m
+    assert torch.equal(batch.disparity_px, expected)
+    depth, valid = batch.ground_truth_depth_m()
+    assert bool(valid.all())
+    torch.testing.assert_close(depth, scenes.depth_m)
+
+
+def test_object_ids_agree_with_depths(scenes64: SyntheticScenes) -> None:
+    depth, ids = scenes64.depth_m, scenes64.object_ids
+    assert bool((depth[ids == 0] == 4.0).all())
+    for b in range(ids.shape[0]):
+        for k in range(scenes64.object_depth_m.shape[1]):
+            mask = ids[b] == k + 1
+            assert mask.sum() > 100  # random obstacles are side by side, each fully in view
+            assert bool((depth[b][mask] == scenes64.object_depth_m[b, k]).all())
+
+
+def test_bboxes_agree_with_object_ids(scenes64: SyntheticScenes) -> None:
+    ids = scenes64.object_ids
+    for b in range(ids.shape[0]):
+        for k in range(scenes64.object_depth_m.shape[1]):
+            rows, cols = (ids[b, 0] == k + 1).nonzero(as_tuple=True)
+            expected = [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+            assert scenes64.object_bbox_xyxy[b, k].tolist() == [int(v) for v in expected]
+
+
+def test_explicit_scene_projection_and_occlusion() -> None:
+    """A far box half hidden by a near one; boxes' pixel spans from the pinhole projection in closed form."""
+    w, h = 320, 240
+    f = SVS_CAMERA.focal_px(w)
+    depth = torch.tensor([[1.8, 1.2, 1.5]], dtype=torch.float64)
+    center = torch.tensor([[[0.0, 0.0], [-0.2, 0.05], [0.3, 0.0]]], dtype=torch.float64)
+    size = torch.tensor([[[0.6, 0.5], [0.3, 0.3], [0.2, 0.2]]], dtype=torch.float64)
+    valid = torch.tensor([[True, True, False]])  # slot 3 is padding: never drawn
+    scenes = render_obstacle_scenes(depth, center, size, valid, size_wh=(w, h), generator=seeded(0),
+                                    dtype=torch.float64)
+
+    def span(c: float, half: float, z: float, centre_px: float) -> tuple[int, int]:
+        # Pixel i is inside where |z·(i − centre_px)/f − c| < half: i in the open interval below.
+        low, high = centre_px + f * (c - half) / z, centre_px + f * (c + half) / z
+        return int(np.floor(low)) + 1, int(np.ceil(high))
+
+    x0, x1 = span(-0.2, 0.15, 1.2, (w - 1) / 2)
+    y0, y1 = span(0.05, 0.15, 1.2, (h - 1) / 2)
+    assert scenes.object_bbox_xyxy[0, 1].tolist() == [x0, y0, x1, y1]
+    assert bool((scenes.object_ids[0, 0, y0:y1, x0:x1] == 2).all())  # the near box wins the z-buffer
+    far_x0, far_x1 = span(0.0, 0.3, 1.8, (w - 1) / 2)
+    far_y0, far_y1 = span(0.0, 0.25, 1.8, (h - 1) / 2)
+    assert scenes.object_bbox_xyxy[0, 0].tolist() == [far_x0, far_y0, far_x1, far_y1]
+    assert int((scenes.object_ids == 1).sum()) < (far_x1 - far_x0) * (far_y1 - far_y0)  # partly hidden
+    assert scenes.object_bbox_xyxy[0, 2].tolist() == [0, 0, 0, 0] and int((scenes.object_ids == 3).sum()) == 0
+    assert scenes.object_valid.tolist() == [[True, True, False]] and float(scenes.object_depth_m[0, 2]) == 0.0
+
+
+def test_batched_geometry_equals_per_scene(scenes64: SyntheticScenes) -> None:
+    """Ground truth of one scene does not depend on the others in the batch (textures differ: own draws)."""
+    for b in range(scenes64.depth_m.shape[0]):
+        alone = render_obstacle_scenes(scenes64.object_depth_m[b:b + 1], scenes64.object_center_xy_m[b:b + 1],
+                                       scenes64.object_size_m[b:b + 1], size_wh=(320, 240), generator=seeded(0),
+                                       dtype=torch.float64, supersample=1)
+        assert torch.equal(alone.depth_m[0], scenes64.depth_m[b])
+        assert torch.equal(alone.object_ids[0], scenes64.object_ids[b])
+        assert torch.equal(alone.object_bbox_xyxy[0], scenes64.object_bbox_xyxy[b])
+
+
+def test_right_view_shows_the_same_object_unless_occluded(scenes64: SyntheticScenes) -> None:
+    batch = scenes64.batch
+    w, h = 320, 240
+    scene = _Scene(float(batch.focal_px[0]), SVS_CAMERA.principal_point_px(w, h), scenes64.object_depth_m,
+                   scenes64.object_center_xy_m, scenes64.object_size_m, scenes64.object_valid, 4.0)
+    x_right = torch.arange(w, dtype=torch.float64).view(1, 1, 1, w) - batch.disparity_px
+    y = torch.arange(h, dtype=torch.float64).view(1, 1, h, 1)
+    right_depth, right_ids = _cast_rays(x_right, y, SVS_CAMERA.baseline_m, scene)
+    occluded, occluder = occluded_in_right(scenes64)
+    assert bool(occluded.any())  # the background behind each box is partly hidden from the right camera
+    assert torch.equal(right_ids[~occluded], scenes64.object_ids[~occluded])
+    assert torch.equal(right_depth[~occluded], scenes64.depth_m[~occluded])
+    assert torch.equal(right_ids[occluded], occluder[occluded])
+
+
+def test_photometric_consistency(scenes64: SyntheticScenes) -> None:
+    """Texture is fixed to the surfaces: L(x) ≈ R(x − d) wherever the right camera sees the same point."""
+    left = scenes64.batch.left
+    occluded, _ = occluded_in_right(scenes64)
+    warped, inside = sample_right_at(scenes64, scenes64.batch.disparity_px)
+    keep = inside & ~occluded
+    error = (left - warped).abs()[keep].median()
+    unwarped, _ = sample_right_at(scenes64, torch.zeros_like(left))
+    baseline_error = (left - unwarped).abs()[keep].median()
+    assert error < 0.02
+    assert baseline_error > 5 * error
+
+
+def test_intensity_classes_and_otsu_separability() -> None:
+    """OpenCV's Otsu threshold on the 8-bit left and right images recovers the obstacles (IoU > 0.9)."""
+    scenes = random_obstacle_scenes(6, size_wh=(320, 240), generator=seeded(3), noise_std=0.01)
+    ids = scenes.object_ids
+    left = scenes.batch.left
+    assert 0.65 <= float(left[ids > 0].mean()) <= 0.8 and 0.2 <= float(left[ids == 0].mean()) <= 0.3
+    images = (scenes.batch.left * 255).round().to(torch.uint8).numpy()
+    for b in range(images.shape[0]):
+        _, binary = cv2.threshold(images[b, 0], 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        truth = ids[b, 0].numpy() > 0
+        found = binary > 0
+        iou = (found & truth).sum() / (found | truth).sum()
+        assert iou > 0.9, (b, iou)
+
+
+def test_supersample_one_and_noise_keep_ground_truth() -> None:
+    clean = random_obstacle_scenes(2, size_wh=SMALL, generator=seeded(4), supersample=1)
+    noisy = random_obstacle_scenes(2, size_wh=SMALL, generator=seeded(4), supersample=1, noise_std=0.05)
+    assert torch.equal(clean.depth_m, noisy.depth_m) and torch.equal(clean.object_ids, noisy.object_ids)
+    assert not torch.equal(clean.batch.left, noisy.batch.left)
+    assert noisy.batch.left.min() >= 0 and noisy.batch.left.max() <= 1
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"batch_size": 0}, "batch_size: expected an integer >= 1"),
+        ({"num_objects": -1}, "num_objects: expected an integer >= 0"),
+        ({"num_objects": 12}, "num_objects: 12 obstacles do not fit"),
+        ({"depth_range_m": (0.0, 2.0)}, r"depth_range_m: expected 0 < near <= far"),
+        ({"depth_range_m": (2.0, 1.0)}, r"depth_range_m: expected 0 < near <= far"),
+        ({"depth_range_m": (1.0, 5.0)}, r"depth_range_m: expected far < background_depth_m=4.0"),
+        ({"size_wh": (0, 120)}, r"size_wh: expected a positive \(width, height\)"),
+        ({"supersample": 0}, "supersample: expected an integer >= 1"),
+        ({"noise_std": -0.1}, "noise_std: expected a finite value >= 0"),
+    ],
+)
+def test_random_scene_errors(kwargs: dict, message: str) -> None:
+    args = {"batch_size": 2, "size_wh": SMALL, "generator": seeded(0)} | kwargs
+    with pytest.raises(InputError, match=message):
+        random_obstacle_scenes(**args)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("depth", torch.tensor([[1.0, 4.5]]), "object_depth_m: expected depths below background_depth_m=4.0"),
+        ("depth", torch.tensor([[1.0, -1.0]]), "object_depth_m: expected positive finite depths"),
+        ("size", torch.tensor([[[0.5, 0.5], [0.0, 0.5]]]), "object_size_m: expected positive finite"),
+        ("center", torch.zeros(1, 2, 3), r"object_center_xy_m: expected \(1, 2, 2\), got \(1, 2, 3\)"),
+        ("valid", torch.ones(1, 2), "object_valid: expected a bool tensor"),
+    ],
+)
+def test_render_errors(field: str, value: torch.Tensor, message: str) -> None:
+    args = {"depth": torch.tensor([[1.0, 1.5]]), "center": torch.zeros(1, 2, 2),
+            "size": torch.full((1, 2, 2), 0.5), "valid": None} | {field: value}
+    with pytest.raises(InputError, match=message):
+        render_obstacle_scenes(args["depth"], args["center"], args["size"], args["valid"], size_wh=SMALL)
