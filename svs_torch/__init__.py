@@ -8,6 +8,10 @@ matrix by RANSAC, and range the obstacles from disparity. Every stage runs on a 
 from .camera import SVS_CAMERA, SVS_RESOLUTIONS, SVSCamera
 from .checks import InputError
 from .types import (
+    FundamentalResult,
+    FundamentalStatus,
+    Keypoints,
+    Matches,
     RegionProperties,
     Segmentation,
     SegmentationStatus,
@@ -18,7 +22,11 @@ from .types import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "FundamentalResult",
+    "FundamentalStatus",
     "InputError",
+    "Keypoints",
+    "Matches",
     "RegionProperties",
     "SVSCamera",
     "SVS_CAMERA",

@@ -1,6 +1,7 @@
 """Containers passed between pipeline stages.
 
-Shape letters: B pairs (or images), H and W pixels, L region slots, N kept regions.
+Shape letters: B pairs (or images), H and W pixels, L region slots, N kept regions, K keypoints,
+D descriptor length, M hypotheses.
 All containers are frozen dataclasses of tensors with a leading batch dimension B; a pair's row never
 depends on another pair's.
 """
@@ -16,6 +17,10 @@ import torch
 from .checks import InputError, check_dtype, check_image, check_same_shape, check_shape
 
 __all__ = [
+    "FundamentalResult",
+    "FundamentalStatus",
+    "Keypoints",
+    "Matches",
     "StereoBatch",
     "RegionProperties",
     "Segmentation",
@@ -245,3 +250,75 @@ class StereoSegmentation:
     left: Segmentation
     right: Segmentation
     status: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """A fixed number K of keypoints per image, padded; the strongest first.
+
+    Attributes:
+        xy: ``(B, K, 2)`` float, sub-pixel position (x = column, y = row) in pixel-centre coordinates.
+        scale: ``(B, K)`` float, SURF scale s (the Gaussian σ the box filters approximate: 1.2 · size / 9).
+        score: ``(B, K)`` float, detector response (det of the Hessian, on the [0, 1] intensity scale).
+        laplacian_sign: ``(B, K)`` int64, sign of the Hessian's trace (+1 dark blob on bright, −1 bright
+            blob on dark; 0 in padding); matching only compares keypoints of the same sign.
+        orientation: ``(B, K)`` float, radians; 0 for upright (U-SURF) keypoints.
+        valid: ``(B, K)`` bool; padding rows are zero and False.
+    """
+
+    xy: torch.Tensor
+    scale: torch.Tensor
+    score: torch.Tensor
+    laplacian_sign: torch.Tensor
+    orientation: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Left-to-right descriptor matches.
+
+    Attributes:
+        idx: ``(B, K)`` int64, index into the right keypoints for each left keypoint, −1 for no match.
+        cost: ``(B, K)`` float, the match's descriptor distance (SAD), ``inf`` where ``idx`` is −1.
+    """
+
+    idx: torch.Tensor
+    cost: torch.Tensor
+
+    @property
+    def valid(self) -> torch.Tensor:
+        """``(B, K)`` bool, left keypoints that have a match."""
+        return self.idx >= 0
+
+
+class FundamentalStatus(enum.IntEnum):
+    """Per-pair outcome of the fundamental-matrix stage; stored as int64 in tensors."""
+
+    OK = 0
+    #: Fewer than 7 valid correspondences: no minimal sample exists.
+    TOO_FEW_MATCHES = 1
+    #: Every hypothesis was degenerate (collinear or repeated points, no real root of the cubic).
+    DEGENERATE = 2
+    #: A model was found, but it has fewer inliers than the minimum the caller asked for.
+    TOO_FEW_INLIERS = 3
+
+
+@dataclass(frozen=True)
+class FundamentalResult:
+    """The robust fundamental matrix of each pair.
+
+    Attributes:
+        F: ``(B, 3, 3)``, maps a left point to its right epipolar line: ``x_rightᵀ F x_left = 0`` (pixels);
+            rank 2, unit Frobenius norm; zeros where ``status`` is not OK.
+        inliers: ``(B, K)`` bool over the input correspondences.
+        num_inliers: ``(B,)`` int64.
+        status: :class:`FundamentalStatus` per pair ``(B,)`` int64.
+        iterations: ``(B,)`` int64, hypotheses drawn for each pair before it stopped.
+    """
+
+    F: torch.Tensor
+    inliers: torch.Tensor
+    num_inliers: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
