@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import demo, segment
+from . import capture, demo, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, segment):
+    for module in (demo, segment, capture):
         module.add_parser(subparsers)
     return parser
 

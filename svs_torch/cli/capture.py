@@ -21,18 +21,20 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..camera import parse_size
-from ..capture.link import CaptureError, LinkConfig
-from ..capture.protocol import size_code_for
-from ..capture.stereo import Frame, StereoPair, SVSStereoCamera
 from ..checks import InputError
+
+if TYPE_CHECKING:
+    from ..capture.stereo import Frame, StereoPair
 
 __all__ = ["add_parser", "run"]
 
 PROG = "svs-depth capture"
 INDEX_NAME = "index.jsonl"
+DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
+DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
 
 def add_parser(subparsers: Any) -> None:
@@ -51,7 +53,9 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (must not hold an index.jsonl)")
     parser.add_argument("--quality", type=int, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
-    parser.add_argument("--baud", type=int, default=LinkConfig.baudrate, help="UART speed for serial devices")
+    parser.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="UART speed for serial devices")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
+                        help="seconds to wait for a reply (a frame's header) before re-sending, at most twice")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
     parser.set_defaults(func=run)
@@ -63,6 +67,8 @@ def _fail(message: str, code: int) -> int:
 
 
 def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
+    from ..capture.protocol import size_code_for
+
     size = parse_size(args.size, "--size")
     try:
         size_code_for(size)
@@ -70,6 +76,8 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
         raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
     if args.count < 1:
         raise InputError(f"--count: expected a positive number of pairs, got {args.count}")
+    if not args.timeout > 0:
+        raise InputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
     if args.emulator and (args.left or args.right):
@@ -84,6 +92,9 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``capture``; returns the exit code (errors are one line on stderr)."""
+    from ..capture.link import CaptureError, LinkConfig
+    from ..capture.stereo import SVSStereoCamera
+
     try:
         size, out = _check_args(args)
     except InputError as err:
@@ -92,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with contextlib.ExitStack() as stack:
             left, right = _urls(args, size, stack)
-            config = LinkConfig(baudrate=args.baud)
+            config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
             camera = stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
             out.mkdir(parents=True, exist_ok=True)
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
@@ -128,9 +139,13 @@ def _urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.Exi
 
 def _write_atomic(path: Path, data: bytes) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        handle.write(data)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _save_pair(out: Path, pair: StereoPair) -> dict[str, Any]:

@@ -1,0 +1,105 @@
+"""Stereo pairs per second through the capture driver against the emulator over loopback TCP.
+
+The emulator runs in its own process (as the device would), started as ``python -m hw.emulator --json`` on free
+ports; the driver (:class:`svs_torch.capture.SVSStereoCamera`, default link settings) grabs, checks and decodes
+pairs. Reported per size: the median and spread of ``--runs`` runs of ``--pairs`` pairs each, the mean JPEG size,
+and for context the bound a real 2,304,000-baud UART would put on the rate (one frame per board per
+``jpeg_bytes / 230,400`` s, both boards in parallel). JSON on stdout.
+
+Run: ``python experiments/bench_capture.py [--sizes 320x240,640x480] [--runs 5] [--pairs 50] [--frames torch]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import serial
+import torch
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from svs_torch.camera import parse_size  # noqa: E402
+from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
+
+
+def start_emulator(frames: str, sizes: list[str]) -> tuple[subprocess.Popen, dict[str, str]]:
+    """Start the emulator process; wait for its JSON line with the URLs (after any keyframe preparation)."""
+    cmd = [sys.executable, "-m", "hw.emulator", "--left-port", "0", "--right-port", "0", "--json"]
+    cmd += ["--simple-frames"] if frames == "simple" else ["--prepare", ",".join(sizes)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    if not line:
+        proc.kill()
+        raise RuntimeError(f"emulator did not start: {' '.join(cmd)}")
+    return proc, json.loads(line)["urls"]
+
+
+def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:
+    width, height = parse_size(size, "--sizes")
+    rates, jpeg_bytes, gaps = [], [], []
+    with SVSStereoCamera(urls["left"], urls["right"], (width, height), config=LinkConfig()) as cam:
+        cam.grab_pairs(5)  # warm-up: connections, caches
+        for _ in range(runs):
+            start = time.perf_counter()
+            grabbed = cam.grab_pairs(pairs)
+            rates.append(pairs / (time.perf_counter() - start))
+            jpeg_bytes += [len(f.jpeg) for p in grabbed for f in (p.left, p.right)]
+            gaps += [abs(p.time_between_frames_s) * 1e3 for p in grabbed]
+        retries = sum(link.stats.retries for link in cam.links.values())
+    mean_bytes = statistics.fmean(jpeg_bytes)
+    return {
+        "size": size, "pairs_per_run": pairs, "runs": runs,
+        "pairs_per_s_median": round(statistics.median(rates), 1),
+        "pairs_per_s_min": round(min(rates), 1), "pairs_per_s_max": round(max(rates), 1),
+        "pairs_per_s_all": [round(r, 1) for r in rates],
+        "mean_jpeg_bytes": round(mean_bytes), "retries": retries,
+        "time_between_frames_ms_median": round(statistics.median(gaps), 3),
+        "uart_2304000_bound_pairs_per_s": round(LinkConfig().bytes_per_s / mean_bytes, 1),
+    }
+
+
+def metadata(args: argparse.Namespace) -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
+    return {"commit": commit, "python": platform.python_version(), "torch": torch.__version__,
+            "opencv": cv2.__version__, "pyserial": serial.__version__, "torch_threads": torch.get_num_threads(),
+            "cpu_count": os.cpu_count(), "frames": args.frames, "link": "loopback TCP, emulator in its own process",
+            "config": vars(args)}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", default="320x240,640x480")
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--pairs", type=int, default=50)
+    parser.add_argument("--frames", choices=("torch", "simple"), default="torch",
+                        help="emulator frames: svs_torch's synthetic renderer (keyframes prepared first) or the "
+                             "fast stand-in")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads in this process")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    sizes = args.sizes.split(",")
+    proc, urls = start_emulator(args.frames, sizes)
+    try:
+        results = [bench_size(urls, size, args.runs, args.pairs) for size in sizes]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    print(json.dumps({"metadata": metadata(args), "results": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

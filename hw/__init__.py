@@ -1,0 +1,1 @@
+"""Device side of svs_torch: the SVS emulator and hardware notes."""

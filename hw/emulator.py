@@ -1,0 +1,335 @@
+"""SVS stereo camera emulator: two emulated SRV-1 boards served over TCP (and optionally pseudo-terminals).
+
+Like the SVS's WiFi module, each board is a raw TCP server: left/master on ``--left-port`` (10001), right/slave
+on ``--right-port`` (10002). One client per port at a time; a new connection replaces the old one. The
+master's power-up banner goes to its first connection. With ``--pty`` each board is also served on a
+pseudo-terminal whose device path is printed (open it as a serial port at any baud rate).
+
+Run: ``python -m hw.emulator [--pty] [--images DIR] [fault options]``; Ctrl-C stops it. From Python, use
+:class:`EmulatorServer` (ports 0 pick free ports; faults can be changed while it runs). The board logic is in
+:mod:`hw.emulator_state`, the frame sources in :mod:`hw.frames`; this module only moves bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+import tty
+
+from svs_torch.camera import parse_size
+
+from .emulator_state import CameraState, Faults, Reply
+from .frames import FrameSource, ImageFolderSource, SyntheticSource
+
+__all__ = ["EmulatorServer", "main"]
+
+_POLL_S = 0.05  # how often the I/O threads look at the stop flag, seconds
+
+
+class _BoardPort(threading.Thread):
+    """The I/O of one board: a TCP listener with at most one client, and optionally a pty."""
+
+    def __init__(self, state: CameraState, host: str, port: int, use_pty: bool, banner: bool,
+                 send_timeout_s: float, stop: threading.Event) -> None:
+        super().__init__(name=f"svs-emulator-{state.camera}", daemon=True)
+        self.state = state
+        self.send_timeout_s = send_timeout_s
+        self.stop_event = stop
+        self.listener = socket.create_server((host, port))
+        self.listener.setblocking(False)
+        self.port = self.listener.getsockname()[1]
+        self.client: socket.socket | None = None
+        self.pending_banner = state.banner() if banner else b""
+        self.drop_requested = threading.Event()
+        self.pty_master: int | None = None
+        self.pty_slave: int | None = None
+        self.pty_path: str | None = None
+        if use_pty:
+            # The emulator keeps the slave end open, so the master never sees EIO when the driver closes it.
+            self.pty_master, self.pty_slave = os.openpty()
+            tty.setraw(self.pty_slave)
+            os.set_blocking(self.pty_master, False)
+            self.pty_path = os.ttyname(self.pty_slave)
+
+    def run(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                self._serve_once()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Close the client, the listener and the pty (idempotent)."""
+        self._close_client()
+        self.listener.close()
+        for fd in (self.pty_master, self.pty_slave):
+            if fd is not None:
+                os.close(fd)
+        self.pty_master = self.pty_slave = None
+
+    def _serve_once(self) -> None:
+        if self.drop_requested.is_set():
+            self.drop_requested.clear()
+            self._close_client()
+        readable = [self.listener] + [s for s in (self.client, self.pty_master) if s is not None]
+        ready, _, _ = select.select(readable, [], [], _POLL_S)
+        if self.listener in ready:
+            self._accept()
+        if self.client is not None and self.client in ready:
+            try:
+                data = self.client.recv(4096)
+            except OSError:
+                data = b""
+            if not data:
+                self._close_client()
+            else:
+                self._handle(data, self.client)
+        if self.pty_master is not None and self.pty_master in ready:
+            try:
+                data = os.read(self.pty_master, 4096)
+            except OSError:  # EIO: no process holds the slave end (cannot happen while we hold it)
+                time.sleep(_POLL_S)
+                return
+            self._handle(data, self.pty_master)
+
+    def _accept(self) -> None:
+        try:
+            conn, _ = self.listener.accept()
+        except BlockingIOError:
+            return
+        self._close_client()
+        conn.setblocking(True)
+        conn.settimeout(self.send_timeout_s)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.client = conn
+        if self.pending_banner:
+            banner, self.pending_banner = self.pending_banner, b""
+            self._write(conn, banner)
+
+    def _close_client(self) -> None:
+        client, self.client = self.client, None
+        if client is not None:
+            try:
+                client.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            client.close()
+
+    def _handle(self, data: bytes, out: socket.socket | int) -> None:
+        reply = self.state.feed(data, time.monotonic())
+        if reply is None:
+            return
+        last_write_s = self._send_reply(reply, out)
+        if last_write_s is not None:
+            # The hold-off runs from when the last bytes were handed to the kernel, not from when this thread
+            # next runs: a client may see the reply (and answer it) before this thread is scheduled again.
+            self.state.reply_sent(last_write_s)
+        if reply.drop_after and last_write_s is not None and out is self.client:
+            self._close_client()
+
+    def _send_reply(self, reply: Reply, out: socket.socket | int) -> float | None:
+        """Send a reply as planned; the clock reading just before its last write, or None if it was cut off."""
+        if reply.delay_s > 0 and self.stop_event.wait(reply.delay_s):
+            return None
+        step = max(1, reply.chunk_bytes if reply.chunk_bytes > 0 else len(reply.data))
+        last_write_s = time.monotonic()
+        for start in range(0, len(reply.data), step):
+            if start and reply.chunk_delay_s > 0 and self.stop_event.wait(reply.chunk_delay_s):
+                return None
+            last_write_s = time.monotonic()
+            if not self._write(out, reply.data[start:start + step]):
+                return None
+        return last_write_s
+
+    def _write(self, out: socket.socket | int, data: bytes) -> bool:
+        """Send all of ``data``; False (and the client closed) if it cannot within ``send_timeout_s``."""
+        if isinstance(out, socket.socket):
+            try:
+                out.sendall(data)
+                return True
+            except OSError:
+                if out is self.client:
+                    self._close_client()
+                return False
+        deadline = time.monotonic() + self.send_timeout_s
+        view = memoryview(data)
+        while view:
+            _, writable, _ = select.select([], [out], [], max(0.0, deadline - time.monotonic()))
+            if not writable:
+                return False
+            try:
+                view = view[os.write(out, view):]
+            except BlockingIOError:
+                continue
+        return True
+
+
+class EmulatorServer:
+    """Two emulated boards (left = master, right = slave) served over TCP on ``host``, optionally on ptys too.
+
+    Args:
+        host: address to listen on.
+        left_port, right_port: TCP ports; 0 picks free ones (see :attr:`urls`).
+        source: frame source shared by both boards; default :class:`~hw.frames.SyntheticSource`.
+        use_pty: also serve each board on a pseudo-terminal (see :attr:`pty_paths`).
+        faults: initial faults per camera name.
+        holdoff_s: input is discarded for this long after each reply, seconds (§2).
+        banner: send the master's power-up banner to its first connection.
+        send_timeout_s: give up sending to a client that does not read for this long, seconds.
+    """
+
+    def __init__(self, host: str = "127.0.0.1", left_port: int = 10001, right_port: int = 10002, *,
+                 source: FrameSource | None = None, use_pty: bool = False,
+                 faults: dict[str, Faults] | None = None, holdoff_s: float = 0.001, banner: bool = True,
+                 send_timeout_s: float = 2.0) -> None:
+        self.source = source if source is not None else SyntheticSource()
+        start = time.monotonic()
+        faults = faults or {}
+        self.cameras = {name: CameraState(name, role, self.source, holdoff_s=holdoff_s, start_s=start,
+                                          faults=faults.get(name))
+                        for name, role in (("left", "master"), ("right", "slave"))}
+        self._stop = threading.Event()
+        self._ports: dict[str, _BoardPort] = {}
+        try:
+            for (name, state), port in zip(self.cameras.items(), (left_port, right_port)):
+                self._ports[name] = _BoardPort(state, host, port, use_pty, banner, send_timeout_s, self._stop)
+        except OSError:
+            for board in self._ports.values():
+                board.close()
+            raise
+        self.host = host
+        self._started = False
+
+    @property
+    def urls(self) -> dict[str, str]:
+        """``socket://`` URL of each camera, keyed ``"left"`` and ``"right"``."""
+        return {name: f"socket://{self.host}:{port.port}" for name, port in self._ports.items()}
+
+    @property
+    def pty_paths(self) -> dict[str, str]:
+        """Pseudo-terminal device of each camera (empty without ``use_pty``)."""
+        return {name: port.pty_path for name, port in self._ports.items() if port.pty_path}
+
+    def start(self) -> EmulatorServer:
+        if not self._started:
+            for port in self._ports.values():
+                port.start()
+            self._started = True
+        return self
+
+    def stop(self) -> None:
+        """Stop serving and close every socket and pty (within about a send timeout)."""
+        self._stop.set()
+        for port in self._ports.values():
+            if port.is_alive():
+                port.join(timeout=5.0)
+            elif not self._started:
+                port.close()
+        close = getattr(self.source, "close", None)
+        if close is not None:
+            close()
+
+    def set_faults(self, camera: str, **changes: object) -> None:
+        """Change the faults of ``camera`` (``"left"``/``"right"``/``"both"``) while running; see :class:`Faults`."""
+        for name in (("left", "right") if camera == "both" else (camera,)):
+            self._camera(name).set_faults(**changes)
+
+    def drop_connection(self, camera: str) -> None:
+        """Close the current TCP client of ``camera`` now (as a WiFi drop would)."""
+        self._camera(camera)
+        self._ports[camera].drop_requested.set()
+
+    def _camera(self, name: str) -> CameraState:
+        if name not in self.cameras:
+            raise ValueError(f"camera: expected 'left', 'right' (or 'both'), got {name!r}")
+        return self.cameras[name]
+
+    def __enter__(self) -> EmulatorServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m hw.emulator", description=__doc__.split("\n\n")[0])
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s)")
+    p.add_argument("--left-port", type=int, default=10001, help="left/master TCP port, 0 = free (default %(default)s)")
+    p.add_argument("--right-port", type=int, default=10002, help="right/slave TCP port, 0 = free (default %(default)s)")
+    p.add_argument("--pty", action="store_true", help="also serve each board on a pseudo-terminal")
+    p.add_argument("--images", metavar="DIR", help="left/right image folder (default: synthetic obstacles)")
+    p.add_argument("--image-step", type=float, default=1.0, help="seconds per image pair (default %(default)s)")
+    p.add_argument("--simple-frames", action="store_true", help="fast stand-in renderer instead of svs_torch's")
+    p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
+                   help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
+    p.add_argument("--holdoff-ms", type=float, default=1.0, help="input discarded after a reply, ms")
+    p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
+    f = p.add_argument_group("faults (replies to I)")
+    f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
+    f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
+    f.add_argument("--garbage", type=int, default=0, metavar="N", help="stray bytes before the next N frames")
+    f.add_argument("--truncate", type=int, default=0, metavar="N", help="cut the next N frames in half")
+    f.add_argument("--wrong-length", type=int, default=0, metavar="N", help="misannounce the next N lengths")
+    f.add_argument("--wrong-length-delta", type=int, default=64, metavar="BYTES")
+    f.add_argument("--drip-chunk", type=int, default=0, metavar="BYTES", help="send replies in chunks of BYTES")
+    f.add_argument("--drip-delay", type=float, default=0.0, metavar="S", help="pause between chunks, seconds")
+    f.add_argument("--drop-after", type=int, default=None, metavar="N", help="drop the TCP link after N frames")
+    f.add_argument("--grab-delay", type=float, default=0.0, metavar="S", help="grab + encode time, seconds")
+    return p.parse_args(argv)
+
+
+def _faults_from_args(args: argparse.Namespace) -> Faults:
+    return Faults(silent_grabs=args.silent, garbage_frames=args.garbage, truncated_frames=args.truncate,
+                  wrong_length_frames=args.wrong_length, wrong_length_delta=args.wrong_length_delta,
+                  drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
+                  drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the emulator until Ctrl-C or SIGTERM; returns the exit code."""
+    args = _parse_args(argv)
+    try:
+        source = (ImageFolderSource(args.images, step_s=args.image_step) if args.images
+                  else SyntheticSource(renderer="simple" if args.simple_frames else "torch"))
+        prepare = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
+        faults = _faults_from_args(args)
+        chosen = ("left", "right") if args.fault_camera == "both" else (args.fault_camera,)
+        server = EmulatorServer(args.host, args.left_port, args.right_port, source=source, use_pty=args.pty,
+                                faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000)
+    except (OSError, ValueError) as err:
+        print(f"hw.emulator: error: {err}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        if isinstance(source, SyntheticSource):
+            for size in prepare:
+                source.prepare(size, timeout_s=600.0)
+    except KeyboardInterrupt:
+        server.stop()
+        return 130
+    with server:
+        if args.json:
+            print(json.dumps({"urls": server.urls, "pty": server.pty_paths}), flush=True)
+        else:
+            for name, role in (("left", "master"), ("right", "slave")):
+                pty = f"   pty {server.pty_paths[name]}" if name in server.pty_paths else ""
+                print(f"{name:5s} ({role}): {server.urls[name]}{pty}", flush=True)
+            print("Ctrl-C stops the emulator.", flush=True)
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

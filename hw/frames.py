@@ -1,0 +1,290 @@
+"""Frame sources for the SVS emulator: synthetic obstacles at known depths, or a folder of stereo images.
+
+A frame source is a callable ``source(camera, width, height, time_s) -> (H, W) uint8 grayscale`` where
+``camera`` is ``"left"`` or ``"right"`` and ``time_s`` the emulator's clock in seconds. Sources are shared by
+both emulated boards (which run in different threads), so they are thread-safe, and they never block a reply
+for long: the synthetic source renders in a background thread and serves a cheap stand-in until it is done.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from svs_torch.camera import SVS_CAMERA, SVSCamera
+
+__all__ = ["FrameSource", "ObstacleTrack", "SyntheticSource", "ImageFolderSource", "render_simple_pair"]
+
+FrameSource = Callable[[str, int, int, float], np.ndarray]
+
+_IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
+
+
+class ObstacleTrack:
+    """Obstacles whose depths oscillate over a common period, sampled at ``num_keyframes`` keyframes.
+
+    Obstacle k sits at ``center_xy_m[k]`` (X right, Y down, metres, left camera frame), is ``size_m[k]`` wide
+    and high (metres), and its depth follows ``mid + amp · sin(2π (cycles_k · t / period_s) + phase_k)`` with
+    ``mid ± amp = depth_range_m``, so every track is periodic in ``period_s``.
+    """
+
+    def __init__(self, depth_range_m: tuple[float, float] = (0.8, 3.0), period_s: float = 12.0,
+                 num_keyframes: int = 24) -> None:
+        self.center_xy_m = np.array([[-0.25, 0.0], [0.3, 0.05]])
+        self.size_m = np.array([[0.30, 0.50], [0.25, 0.35]])
+        self.cycles = np.array([1.0, 2.0])  # oscillations per period, one per obstacle
+        self.phase = np.array([0.0, 2.0])  # radians
+        self.depth_range_m = depth_range_m
+        self.period_s = period_s
+        self.num_keyframes = num_keyframes
+
+    def keyframe(self, time_s: float) -> int:
+        """Index of the keyframe shown at ``time_s`` (keyframes are ``period_s / num_keyframes`` apart)."""
+        return int(math.floor(time_s / self.period_s * self.num_keyframes)) % self.num_keyframes
+
+    def depths_m(self, keyframe: int) -> np.ndarray:
+        """Depth of each obstacle at a keyframe, metres, shape (K,)."""
+        lo, hi = self.depth_range_m
+        angle = 2 * math.pi * self.cycles * keyframe / self.num_keyframes + self.phase
+        return (lo + hi) / 2 + (hi - lo) / 2 * np.sin(angle)
+
+
+def render_simple_pair(depths_m: np.ndarray, center_xy_m: np.ndarray, size_m: np.ndarray, size_wh: tuple[int, int],
+                       camera: SVSCamera = SVS_CAMERA, background_depth_m: float = 4.0,
+                       seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A fast stand-in renderer: bright textured rectangles over a dark textured wall, each shifted by its disparity.
+
+    Textures are fixed per image (not per surface), so ``L(x) ≈ R(x − d)`` holds inside each rectangle and on the
+    wall away from the rectangles. Returns left and right ``(H, W)`` uint8.
+    """
+    width, height = size_wh
+    focal = camera.focal_px(width)
+    rng = np.random.default_rng(seed)
+    wall_shift = int(round(focal * camera.baseline_m / background_depth_m))
+    wall = cv2.resize(rng.uniform(25, 100, (height // 4 + 1, (width + wall_shift) // 4 + 1)),
+                      (width + wall_shift, height), interpolation=cv2.INTER_NEAREST)
+    left = wall[:, wall_shift:].copy()
+    right = wall[:, :width].copy()
+    cx, cy = camera.principal_point_px(width, height)
+    for k in np.argsort(-depths_m):  # far to near: nearer rectangles paint over farther ones
+        z = float(depths_m[k])
+        w_px, h_px = (max(2, int(round(focal * s / z))) for s in size_m[k])
+        x0 = int(round(cx + focal * center_xy_m[k, 0] / z - w_px / 2))
+        y0 = int(round(cy + focal * center_xy_m[k, 1] / z - h_px / 2))
+        texture = cv2.resize(rng.uniform(135, 235, (max(1, h_px // 6), max(1, w_px // 6))), (w_px, h_px),
+                             interpolation=cv2.INTER_NEAREST)
+        disparity = int(round(focal * camera.baseline_m / z))
+        for image, x_start in ((left, x0), (right, x0 - disparity)):
+            _paste(image, texture, x_start, y0)
+    return left.astype(np.uint8), right.astype(np.uint8)
+
+
+def _paste(image: np.ndarray, patch: np.ndarray, x0: int, y0: int) -> None:
+    height, width = image.shape
+    xa, ya = max(0, x0), max(0, y0)
+    xb, yb = min(width, x0 + patch.shape[1]), min(height, y0 + patch.shape[0])
+    if xa < xb and ya < yb:
+        image[ya:yb, xa:xb] = patch[ya - y0:yb - y0, xa - x0:xb - x0]
+
+
+def _render_torch_pair(track: ObstacleTrack, keyframe: int, size_wh: tuple[int, int], camera: SVSCamera,
+                       seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One keyframe through ``svs_torch.data.synthetic.render_obstacle_scenes``; left, right (H, W) uint8."""
+    import torch
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    depths = torch.tensor(track.depths_m(keyframe), dtype=torch.float32).unsqueeze(0)  # (1, K)
+    scenes = render_obstacle_scenes(depths, torch.tensor(track.center_xy_m, dtype=torch.float32).unsqueeze(0),
+                                    torch.tensor(track.size_m, dtype=torch.float32).unsqueeze(0),
+                                    size_wh=size_wh, camera=camera, generator=torch.Generator().manual_seed(seed))
+
+    def to_u8(image: torch.Tensor) -> np.ndarray:
+        return (image[0, 0] * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
+
+    return to_u8(scenes.batch.left), to_u8(scenes.batch.right)
+
+
+class SyntheticSource:
+    """Moving obstacles at known depths (:class:`ObstacleTrack`), as a thread-safe frame source.
+
+    With ``renderer="torch"`` (default) keyframes come from ``render_obstacle_scenes``, rendered once per size in
+    a background thread (a few tenths of a second each on a CPU); until a size's keyframe is ready the source
+    serves the nearest ready keyframe, else :func:`render_simple_pair`. ``renderer="simple"`` uses only the
+    fast renderer. If ``svs_torch.data.synthetic`` cannot be imported the source falls back to ``"simple"``.
+    """
+
+    def __init__(self, track: ObstacleTrack | None = None, renderer: str = "torch", camera: SVSCamera = SVS_CAMERA,
+                 seed: int = 0) -> None:
+        if renderer not in ("torch", "simple"):
+            raise ValueError(f"renderer: expected 'torch' or 'simple', got {renderer!r}")
+        if renderer == "torch":
+            try:
+                import svs_torch.data.synthetic  # noqa: F401  (checked here so a missing module falls back)
+            except ImportError:
+                renderer = "simple"
+        self.track = track or ObstacleTrack()
+        self.renderer = renderer
+        self.camera = camera
+        self.seed = seed
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._torch: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._simple: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._wanted: list[tuple[int, int]] = []
+        self._recent: dict[tuple[int, int], int] = {}  # last keyframe asked for, per size
+        self._closed = False
+        self._thread: threading.Thread | None = None
+
+    def depths_m(self, time_s: float) -> np.ndarray:
+        """Obstacle depths (K,) in metres of the frame served at ``time_s``."""
+        return self.track.depths_m(self.track.keyframe(time_s))
+
+    def __call__(self, camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+        keyframe = self.track.keyframe(time_s)
+        pair = self._torch_pair((width, height), keyframe) if self.renderer == "torch" else None
+        if pair is None:
+            pair = self._simple_pair((width, height), keyframe)
+        return pair[0] if camera == "left" else pair[1]
+
+    def prepare(self, size_wh: tuple[int, int], timeout_s: float = 60.0, *, complete: bool = True) -> bool:
+        """Block until every keyframe (``complete``) or one keyframe at ``size_wh`` is rendered; False on timeout.
+
+        Until every keyframe is rendered, a frame may show the nearest rendered keyframe instead of the current
+        one, so :meth:`depths_m` is exact only after ``prepare(size_wh)``.
+        """
+        if self.renderer != "torch":
+            return True
+        size_wh = tuple(size_wh)
+
+        def done() -> bool:
+            if complete:
+                return self._complete(size_wh)
+            return any(key[:2] == size_wh for key in self._torch)
+
+        with self._wake:
+            self._want(size_wh)
+            return self._wake.wait_for(done, timeout=timeout_s)
+
+    def close(self) -> None:
+        """Stop the background renderer (it finishes the keyframe in hand)."""
+        with self._wake:
+            self._closed = True
+            self._wake.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _complete(self, size_wh: tuple[int, int]) -> bool:
+        return all((*size_wh, i) in self._torch for i in range(self.track.num_keyframes))
+
+    def _want(self, size_wh: tuple[int, int]) -> None:
+        """Queue a size for background rendering (lock held)."""
+        if size_wh not in self._wanted and not self._complete(size_wh):
+            self._wanted.append(size_wh)
+            self._wake.notify_all()
+        if self._thread is None and not self._closed:
+            self._thread = threading.Thread(target=self._render_loop, name="svs-emulator-render", daemon=True)
+            self._thread.start()
+
+    def _torch_pair(self, size_wh: tuple[int, int], keyframe: int) -> tuple[np.ndarray, np.ndarray] | None:
+        with self._lock:
+            self._want(size_wh)
+            self._recent[size_wh] = keyframe
+            num = self.track.num_keyframes
+            for offset in range(num):  # nearest ready keyframe, looking back in time first
+                for index in ((keyframe - offset) % num, (keyframe + offset) % num):
+                    pair = self._torch.get((*size_wh, index))
+                    if pair is not None:
+                        return pair
+        return None
+
+    def _simple_pair(self, size_wh: tuple[int, int], keyframe: int) -> tuple[np.ndarray, np.ndarray]:
+        key = (*size_wh, keyframe)
+        with self._lock:
+            pair = self._simple.get(key)
+        if pair is None:
+            track = self.track
+            pair = render_simple_pair(track.depths_m(keyframe), track.center_xy_m, track.size_m, size_wh,
+                                      self.camera, seed=self.seed)
+            with self._lock:
+                self._simple[key] = pair
+        return pair
+
+    def _render_loop(self) -> None:
+        while True:
+            with self._wake:
+                self._wake.wait_for(lambda: self._closed or bool(self._wanted))
+                if self._closed:
+                    return
+                size_wh = self._wanted[0]
+                num = self.track.num_keyframes
+                missing = [i for i in range(num) if (*size_wh, i) not in self._torch]
+                if not missing:
+                    self._wanted.pop(0)
+                    self._wake.notify_all()
+                    continue
+                # The keyframe shown now first, then the ones coming next: the source catches up with the clock.
+                now = self._recent.get(size_wh, 0)
+                keyframe = min(missing, key=lambda i: (i - now) % num)
+            pair = _render_torch_pair(self.track, keyframe, size_wh, self.camera, self.seed)
+            with self._wake:
+                self._torch[(*size_wh, keyframe)] = pair
+                self._wake.notify_all()
+
+
+class ImageFolderSource:
+    """Stereo pairs from a folder, resized to the requested size, advancing one pair every ``step_s`` seconds.
+
+    Layouts: ``DIR/left/*`` with ``DIR/right/*`` (paired in sorted order), or files in ``DIR`` whose names contain
+    ``left`` with a partner where ``left`` is replaced by ``right`` (``left01.jpg`` / ``right01.jpg``).
+    """
+
+    def __init__(self, folder: str | Path, step_s: float = 1.0) -> None:
+        folder = Path(folder)
+        self.pairs = _find_pairs(folder)
+        if not self.pairs:
+            raise ValueError(f"images: no left/right image pairs found in {folder} (expected left/ and right/ "
+                             "subfolders, or files named like left01.png / right01.png)")
+        self.step_s = step_s
+        self._lock = threading.Lock()
+        self._cache: dict[tuple[int, int, int, str], np.ndarray] = {}
+
+    def __call__(self, camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+        index = int(math.floor(time_s / self.step_s)) % len(self.pairs)
+        key = (index, width, height, camera)
+        with self._lock:
+            image = self._cache.get(key)
+        if image is None:
+            path = self.pairs[index][0 if camera == "left" else 1]
+            raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if raw is None:
+                raise ValueError(f"images: cannot read {path}")
+            image = cv2.resize(raw, (width, height), interpolation=cv2.INTER_AREA)
+            with self._lock:
+                self._cache[key] = image
+        return image
+
+
+def _find_pairs(folder: Path) -> list[tuple[Path, Path]]:
+    def images(directory: Path) -> list[Path]:
+        return sorted(p for p in directory.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
+
+    if (folder / "left").is_dir() and (folder / "right").is_dir():
+        lefts, rights = images(folder / "left"), images(folder / "right")
+        if len(lefts) != len(rights):
+            raise ValueError(f"images: {folder}/left has {len(lefts)} images but {folder}/right has {len(rights)}")
+        return list(zip(lefts, rights))
+    pairs = []
+    for path in images(folder) if folder.is_dir() else []:
+        if "left" in path.name.lower():
+            at = path.name.lower().index("left")
+            word = path.name[at:at + 4]
+            swapped = "RIGHT" if word == "LEFT" else "Right" if word == "Left" else "right"
+            partner = path.with_name(path.name[:at] + swapped + path.name[at + 4:])
+            if partner.exists():
+                pairs.append((path, partner))
+    return pairs

@@ -1,0 +1,32 @@
+"""Capture from the Surveyor SVS stereo camera: the SRV-1 byte protocol, one board's link, the stereo pair.
+
+``protocol`` is pure (bytes in, values out); ``link`` speaks it over pyserial (UART or ``socket://``);
+``stereo`` grabs timestamped pairs and turns them into :class:`~svs_torch.types.StereoBatch`; ``guide`` holds the
+reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter).
+"""
+
+from .guide import FpsMeter, LiveGuide, Speaker, WarningPolicy
+from .link import CameraLink, CaptureError, LinkConfig, LinkStats, RawFrame
+from .protocol import FrameParser, ProtocolError, VersionInfo
+from .stereo import Frame, PairBatch, StereoPair, SVSStereoCamera, decode_frame, to_stereo_batch
+
+__all__ = [
+    "CameraLink",
+    "CaptureError",
+    "FpsMeter",
+    "Frame",
+    "FrameParser",
+    "LinkConfig",
+    "LinkStats",
+    "LiveGuide",
+    "PairBatch",
+    "ProtocolError",
+    "RawFrame",
+    "SVSStereoCamera",
+    "Speaker",
+    "StereoPair",
+    "VersionInfo",
+    "WarningPolicy",
+    "decode_frame",
+    "to_stereo_batch",
+]

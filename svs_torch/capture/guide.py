@@ -1,0 +1,191 @@
+"""Reusable pieces of a live guide loop: when to warn, how to say it, and how fast the loop runs.
+
+The warning rule follows the paper's use case (a walker warned of obstacles 1–2 m ahead): a distance inside
+the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
+obstacle) silence. A message is not repeated more often than every ``repeat_s`` seconds unless the distance
+moved to another class. A more urgent class is taken at once; a less urgent one only when the distance is past
+the edge by ``hysteresis_m``, so a distance hovering on an edge does not flap (and no warning is delayed). Nothing here
+needs a camera: the loop feeds distances in metres and clock readings in seconds.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import shutil
+import subprocess
+import sys
+import time
+from typing import TextIO
+
+from ..checks import InputError
+
+__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "CLEAR", "WARN", "STOP"]
+
+CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
+_SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
+
+
+class WarningPolicy:
+    """Decide, distance by distance, whether to speak a warning.
+
+    Args:
+        near_m: lower edge of the warning band, metres (below it: urgent ``stop`` warnings).
+        far_m: upper edge of the warning band, metres (beyond it: silence).
+        repeat_s: least time between two messages of the same class, seconds.
+        hysteresis_m: to move to a less urgent class a distance must pass the edge by this much, metres.
+        warn_below_band: also warn (urgently) below ``near_m``; if False such distances are silent.
+    """
+
+    def __init__(self, near_m: float = 1.0, far_m: float = 2.0, repeat_s: float = 3.0, hysteresis_m: float = 0.1,
+                 warn_below_band: bool = True) -> None:
+        if not 0 <= near_m < far_m:
+            raise InputError(f"near_m, far_m: expected 0 <= near_m < far_m, got {near_m}, {far_m}")
+        if repeat_s < 0 or hysteresis_m < 0:
+            raise InputError(f"repeat_s, hysteresis_m: expected non-negative values, got {repeat_s}, {hysteresis_m}")
+        self.near_m, self.far_m = near_m, far_m
+        self.repeat_s, self.hysteresis_m = repeat_s, hysteresis_m
+        self.warn_below_band = warn_below_band
+        self.current = CLEAR  # class of the last distance
+        self._last_spoken_s = -math.inf
+
+    def classify(self, distance_m: float | None) -> str:
+        """Class of a distance without hysteresis: ``stop`` (below the band), ``warn`` (in it) or ``clear``."""
+        if distance_m is None or not math.isfinite(distance_m) or distance_m > self.far_m:
+            return CLEAR
+        if distance_m < self.near_m:
+            return STOP if self.warn_below_band else CLEAR
+        return WARN
+
+    def update(self, distance_m: float | None, now_s: float) -> str | None:
+        """Take the nearest obstacle distance (metres, None = none) at ``now_s``; the message to say, or None."""
+        new = self.classify(distance_m)
+        if _SEVERITY[new] < _SEVERITY[self.current] and distance_m is not None and math.isfinite(distance_m):
+            # Escalate at once, relax only once the distance is past the edge by the hysteresis margin.
+            relaxed = self.classify(distance_m - self.hysteresis_m)
+            new = relaxed if _SEVERITY[relaxed] < _SEVERITY[self.current] else self.current
+        changed, self.current = new != self.current, new
+        if new == CLEAR:
+            return None
+        if not changed and now_s - self._last_spoken_s < self.repeat_s:
+            return None
+        self._last_spoken_s = now_s
+        return self.message(new, distance_m)
+
+    @staticmethod
+    def message(distance_class: str, distance_m: float) -> str:
+        """The words for a class and distance, e.g. ``Obstacle ahead, 1.5 metres``."""
+        if distance_class == STOP:
+            return f"Stop. Obstacle at {distance_m:.1f} metres"
+        return f"Obstacle ahead, {distance_m:.1f} metres"
+
+
+class Speaker:
+    """Say messages with ``espeak-ng`` when it is installed, and print them as text.
+
+    Args:
+        executable: the speech program; ``"auto"`` finds ``espeak-ng`` with :func:`shutil.which`; None: text only.
+        words_per_minute: speech rate passed as ``-s``.
+        stream: where messages are printed (None: nowhere).
+
+    Speech runs in a child process so the loop never waits for it; a newer message interrupts an older one still
+    being spoken (the newest warning matters most).
+    """
+
+    def __init__(self, executable: str | None = "auto", *, words_per_minute: int = 170,
+                 stream: TextIO | None = sys.stderr) -> None:
+        self.executable = shutil.which("espeak-ng") if executable == "auto" else executable
+        self.words_per_minute = words_per_minute
+        self.stream = stream
+        self._process: subprocess.Popen | None = None
+
+    @property
+    def speaks(self) -> bool:
+        """True when messages are spoken, not only printed."""
+        return self.executable is not None
+
+    def say(self, text: str) -> None:
+        """Print ``text`` and, if a speech program is available, speak it (interrupting the previous message)."""
+        if self.stream is not None:
+            print(text, file=self.stream, flush=True)
+        if self.executable is None:
+            return
+        self._stop_previous()
+        try:
+            self._process = subprocess.Popen([self.executable, "-s", str(self.words_per_minute), text],
+                                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                             stderr=subprocess.DEVNULL)
+        except OSError as err:
+            if self.stream is not None:
+                print(f"speech disabled: cannot run {self.executable}: {err}", file=self.stream, flush=True)
+            self.executable = None
+
+    def _stop_previous(self) -> None:
+        if self._process is not None and self._process.poll() is None:
+            self._process.terminate()
+            try:
+                self._process.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+        self._process = None
+
+    def close(self) -> None:
+        """Let the last message finish (at most 5 s), then stop it."""
+        if self._process is not None:
+            try:
+                self._process.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self._stop_previous()
+            self._process = None
+
+
+class FpsMeter:
+    """Frames per second over the last ``window_s`` seconds of ticks."""
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        if window_s <= 0:
+            raise InputError(f"window_s: expected a positive window in seconds, got {window_s}")
+        self.window_s = window_s
+        self._ticks: collections.deque[float] = collections.deque()
+
+    def tick(self, now_s: float | None = None) -> float:
+        """Record one frame at ``now_s`` (default ``time.monotonic()``); the current rate in frames/s."""
+        now_s = time.monotonic() if now_s is None else now_s
+        self._ticks.append(now_s)
+        while self._ticks and self._ticks[0] < now_s - self.window_s:
+            self._ticks.popleft()
+        return self.fps
+
+    @property
+    def fps(self) -> float:
+        """Frames/s: ticks in the window minus one over the time they span; 0 with fewer than two ticks."""
+        if len(self._ticks) < 2 or self._ticks[-1] <= self._ticks[0]:
+            return 0.0
+        return (len(self._ticks) - 1) / (self._ticks[-1] - self._ticks[0])
+
+
+class LiveGuide:
+    """One step of a guide loop: count the frame, decide on a warning, say it.
+
+    ``update(nearest_m)`` is called once per processed pair with the nearest obstacle distance in metres (None when
+    nothing was found); it returns the message said, or None.
+    """
+
+    def __init__(self, policy: WarningPolicy | None = None, speaker: Speaker | None = None,
+                 meter: FpsMeter | None = None) -> None:
+        self.policy = policy or WarningPolicy()
+        self.speaker = speaker or Speaker()
+        self.meter = meter or FpsMeter()
+
+    def update(self, nearest_m: float | None, now_s: float | None = None) -> str | None:
+        now_s = time.monotonic() if now_s is None else now_s
+        self.meter.tick(now_s)
+        message = self.policy.update(nearest_m, now_s)
+        if message is not None:
+            self.speaker.say(message)
+        return message
+
+    def status(self, nearest_m: float | None) -> str:
+        """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn``."""
+        distance = "none" if nearest_m is None else f"{nearest_m:.1f} m"
+        return f"{self.meter.fps:5.1f} fps  nearest {distance}  {self.policy.current}"

@@ -1,0 +1,416 @@
+"""One SRV-1 camera link over pyserial: a UART (``/dev/ttyUSB0``) or the WiFi bridge (``socket://HOST:10001``).
+
+The link sends one command and reads its whole reply before the next (``SVS_PROTOCOL.md`` §2: input that
+arrives while a command is handled is discarded, so never pipeline). Every wait has a deadline:
+
+* a command's reply must arrive within ``reply_timeout_s`` of sending it;
+* a frame's JPEG must arrive within ``transfer_margin_s + transfer_slack · length / link_bytes_per_s`` of its
+  header, the length being the one the header announces (bounded by :func:`~.protocol.max_jpeg_length`);
+* a silent or broken reply is retried ``max_retries`` times (§3: ``I`` sometimes returns nothing), after
+  discarding input until the link has been quiet for ``drain_quiet_s`` (at most ``drain_max_s``);
+* a dropped link is reopened up to ``max_reconnects`` times per command, and the size and quality are re-sent.
+
+pyserial's ``read(n)`` returns short on timeout without raising, so reads use a short fixed timeout
+(``poll_s``) in a loop that checks the deadline: a deadline is overshot by at most ``poll_s``. Opening a
+``socket://`` link may take up to pyserial's fixed 5 s connect timeout, and closing one sleeps 0.3 s in pyserial.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import serial
+
+from ..camera import SVS_RESOLUTIONS
+from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
+                       VERSION_PREFIX, BadFrame, FrameHeader, FrameParser, ParsedFrame, VersionInfo, describe_bytes,
+                       find_line, find_token, max_jpeg_length, parse_battery_reply, parse_quality_reply,
+                       parse_uptime_reply, parse_version_line, quality_command, size_acks, size_command)
+
+__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "CameraLink"]
+
+Matcher = Callable[[bytes], "tuple[bytes, int] | None"]
+
+
+class CaptureError(RuntimeError):
+    """A camera link failed; the message names the camera, its URL, and what was expected vs received."""
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Settings of one camera link (times in seconds); the defaults suit a real SVS."""
+
+    baudrate: int = 2_304_000  # UART baud, 8N1 (§1; a 115,200 build exists); ignored by socket://
+    rtscts: bool = True  # UART hardware flow control (§1)
+    # Throughput for transfer timeouts, bytes/s; None = baudrate / 10 (8N1 sends 10 bits a byte). Right for
+    # socket:// too: the board's UART is the bottleneck behind the WiFi module.
+    link_bytes_per_s: float | None = None
+    reply_timeout_s: float = 1.0  # command sent → short reply complete, or frame header in (grab + encode)
+    transfer_margin_s: float = 0.5  # added to a frame's nominal transfer time
+    transfer_slack: float = 1.5  # factor on a frame's nominal transfer time
+    max_retries: int = 2  # extra attempts after a silent or broken reply (§3: I sometimes returns nothing)
+    max_reconnects: int = 2  # reopenings of a dropped link per command
+    reconnect_delay_s: float = 0.2  # pause before each reopening
+    command_gap_s: float = 0.002  # pause after a reply before the next command (§2: input discarded just after)
+    drain_quiet_s: float = 0.05  # resync: discard input until nothing arrived for this long...
+    drain_max_s: float = 0.5  # ...or for at most this long
+    poll_s: float = 0.02  # pyserial read timeout; deadlines are honoured to within it
+    write_timeout_s: float = 1.0  # pyserial write timeout (a UART stalled by RTS/CTS)
+
+    @property
+    def bytes_per_s(self) -> float:
+        """Throughput used for transfer timeouts, bytes/s."""
+        return self.link_bytes_per_s if self.link_bytes_per_s else self.baudrate / 10.0
+
+    def transfer_timeout_s(self, length: int) -> float:
+        """Seconds allowed for ``length`` JPEG bytes after their header."""
+        return self.transfer_margin_s + self.transfer_slack * length / self.bytes_per_s
+
+    def frame_attempt_timeout_s(self, size_code: str) -> float:
+        """Worst-case seconds of one ``I`` attempt at a size code (largest plausible JPEG, then a drain)."""
+        width, height = SVS_RESOLUTIONS[size_code]
+        return (self.command_gap_s + self.reply_timeout_s + self.transfer_timeout_s(max_jpeg_length(width, height))
+                + self.drain_max_s + 2 * self.poll_s)
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link since it was created."""
+
+    frames: int = 0  # good frames returned
+    retries: int = 0  # commands re-sent after a silent or broken reply
+    reconnects: int = 0  # links reopened after a drop
+    stray_bytes: int = 0  # bytes skipped or drained that belonged to no expected reply
+    failures: list[str] = field(default_factory=list)  # the last few failure descriptions, newest last
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One frame as received: the header, the JPEG bytes exactly as the board sent them, and when they came."""
+
+    header: FrameHeader  # size code, width, height, JPEG length
+    jpeg: bytes
+    request_monotonic_s: float  # time.monotonic() when the I that produced this frame was sent
+    arrival_monotonic_s: float  # time.monotonic() when the frame's last byte was read
+    arrival_wall_s: float  # time.time() at the same moment (Unix seconds)
+    attempts: int  # I commands sent for this frame (1 = no retry)
+    skipped_bytes: int  # stray bytes skipped before the header
+
+
+class _Dropped(Exception):
+    """Internal: the link broke (EOF, reset, device gone); carries the original error text."""
+
+
+@dataclass
+class _Attempt:
+    """Internal: why one frame attempt failed."""
+
+    reason: str
+    wrong_size: bool = False
+
+
+class CameraLink:
+    """A link to one SRV-1 board; see the module docstring for the timeout rules.
+
+    Args:
+        url: ``/dev/ttyUSB0``-style device path or ``socket://HOST:PORT`` (10001 left/master, 10002 right/slave).
+        name: the camera's name in messages, ``"left"`` or ``"right"``.
+        config: timeouts, retries and UART settings.
+    """
+
+    def __init__(self, url: str = "/dev/ttyUSB0", name: str = "left", config: LinkConfig | None = None) -> None:
+        self.url = url
+        self.name = name
+        self.config = config or LinkConfig()
+        self.stats = LinkStats()
+        self.size_code: str | None = None  # size set on the board; frames of another size are rejected
+        self.quality: int | None = None  # JPEG quality digit set on the board, if any
+        self._serial: serial.SerialBase | None = None
+        self._last_reply_s = 0.0
+        self._request_s = 0.0
+        self._pending_drop: str | None = None
+
+    @property
+    def where(self) -> str:
+        """``left camera (socket://...)``: how messages name this link."""
+        return f"{self.name} camera ({self.url})"
+
+    def open(self) -> None:
+        """Open the link and discard anything already waiting (the master's power-up banner, §2)."""
+        cfg = self.config
+        try:
+            self._serial = serial.serial_for_url(
+                self.url, baudrate=cfg.baudrate, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
+                stopbits=serial.STOPBITS_ONE, rtscts=cfg.rtscts, timeout=cfg.poll_s,
+                write_timeout=cfg.write_timeout_s)
+        except (serial.SerialException, ValueError, OSError) as err:
+            raise CaptureError(f"{self.where}: could not open the link: {err}") from err
+        self._pending_drop = None
+        try:
+            self.drain()
+        except _Dropped as err:
+            self.close()
+            raise CaptureError(f"{self.where}: the link closed right after opening: {err}") from err
+
+    def close(self) -> None:
+        """Close the link (pyserial's socket close sleeps 0.3 s); safe to call twice."""
+        link, self._serial = self._serial, None
+        if link is not None:
+            try:
+                link.close()
+            except (serial.SerialException, OSError):
+                pass
+
+    def drain(self) -> int:
+        """Discard input until the link is quiet for ``drain_quiet_s`` (at most ``drain_max_s``); bytes dropped."""
+        cfg = self.config
+        start = last = time.monotonic()
+        dropped = 0
+        while True:
+            data = self._read(4096)
+            now = time.monotonic()
+            if data:
+                dropped += len(data)
+                last = now
+            if now - last >= cfg.drain_quiet_s or now - start >= cfg.drain_max_s:
+                break
+        self.stats.stray_bytes += dropped
+        return dropped
+
+    # ----------------------------------------------------------------------------------------- short commands
+
+    def command(self, command: bytes, match: Matcher, expected: str, *, allow_reconnect: bool = True) -> bytes:
+        """Send ``command``, read until ``match`` finds its reply (stray bytes before it are skipped); retried.
+
+        Raises:
+            CaptureError: no matching reply after ``max_retries + 1`` attempts or ``max_reconnects`` reopenings.
+        """
+        attempts, reconnects, attempt = self.config.max_retries + 1, 0, 0
+        received = b""
+        while attempt < attempts:
+            try:
+                self._require_open()
+                self._send(command)
+                reply, received = self._read_reply(match)
+            except _Dropped as err:
+                if not allow_reconnect or reconnects >= self.config.max_reconnects:
+                    raise CaptureError(f"{self.where}: link dropped while sending {command!r} (expected {expected}): "
+                                       f"{err}") from None
+                reconnects += 1
+                self._reconnect(str(err))
+                continue
+            attempt += 1
+            if reply is not None:
+                return reply
+            self._note_failure(f"sent {command!r}, expected {expected}, got {describe_bytes(received)}")
+            if attempt < attempts:
+                self.stats.retries += 1
+                self._drain_quietly()
+        raise CaptureError(f"{self.where}: sent {command!r} {attempts} times, expected {expected} within "
+                           f"{self.config.reply_timeout_s:g} s each, last got {describe_bytes(received)}")
+
+    def command_ack(self, command: bytes, acks: tuple[bytes, ...], **kwargs: bool) -> bytes:
+        """Send a command whose reply is one of the two-byte ``acks`` (e.g. ``b"b"`` → ``#b``)."""
+        expected = " or ".join(repr(a) for a in acks)
+        return self.command(command, lambda buf: find_token(buf, acks), expected, **kwargs)
+
+    def command_line(self, command: bytes, prefix: bytes, **kwargs: bool) -> bytes:
+        """Send a command whose reply is one ``\\r\\n``-terminated line starting with ``prefix``; the line."""
+        expected = f"a line starting {prefix!r}"
+        return self.command(command, lambda buf: find_line(buf, prefix), expected, **kwargs)
+
+    def set_size(self, size_code: str, *, allow_reconnect: bool = True) -> None:
+        """Select a frame size by its code (``'5'`` = 320×240) and remember it for checking frames."""
+        self.command_ack(size_command(size_code), size_acks(size_code), allow_reconnect=allow_reconnect)
+        self.size_code = size_code
+
+    def set_quality(self, quality: int, *, allow_reconnect: bool = True) -> None:
+        """Set the JPEG quality digit, 1 (best) … 8 (worst); checks the board's ``##quality`` echo."""
+        line = self.command_line(quality_command(quality), QUALITY_PREFIX, allow_reconnect=allow_reconnect)
+        echoed = parse_quality_reply(line)
+        if echoed != quality:
+            raise CaptureError(f"{self.where}: sent quality {quality}, the board replied {line!r}")
+        self.quality = quality
+
+    def identify(self) -> VersionInfo:
+        """Send ``V``; the version line and the board's role (``master`` = left, ``slave`` = right)."""
+        return parse_version_line(self.command_line(CMD_VERSION, VERSION_PREFIX))
+
+    def uptime_ms(self) -> int:
+        """Send ``t``; milliseconds since the board powered up."""
+        return parse_uptime_reply(self.command_line(CMD_UPTIME, UPTIME_PREFIX))
+
+    def battery_ok(self) -> bool:
+        """Send ``D``; False when the board reports a low battery."""
+        return parse_battery_reply(self.command_line(CMD_BATTERY, BATTERY_PREFIX))
+
+    # ---------------------------------------------------------------------------------------------- frames
+
+    def request_frame(self) -> None:
+        """Send ``I`` without reading; a write on a dropped link is remembered and handled by :meth:`read_frame`."""
+        try:
+            self._require_open()
+            self._send(CMD_GRAB)
+        except _Dropped as err:
+            self._pending_drop = str(err)
+
+    def read_frame(self) -> RawFrame:
+        """Read the frame asked for by :meth:`request_frame`, re-sending ``I`` after a silent or broken reply.
+
+        Raises:
+            CaptureError: no valid frame after ``max_retries + 1`` attempts (each bounded by
+                :meth:`LinkConfig.frame_attempt_timeout_s`) or ``max_reconnects`` reopenings.
+        """
+        attempts, attempt, reconnects = self.config.max_retries + 1, 0, 0
+        start = time.monotonic()
+        while True:
+            try:
+                if self._pending_drop is not None:
+                    raise _Dropped(self._pending_drop)
+                outcome = self._read_frame_once(attempt + 1)
+            except _Dropped as err:
+                self._pending_drop = None
+                if reconnects >= self.config.max_reconnects:
+                    raise CaptureError(f"{self.where}: link dropped while waiting for a frame and "
+                                       f"{reconnects} reconnects did not help: {err}") from None
+                reconnects += 1
+                self._reconnect(str(err))
+                self.request_frame()
+                continue
+            attempt += 1
+            if isinstance(outcome, RawFrame):
+                self.stats.frames += 1
+                return outcome
+            self._note_failure(outcome.reason)
+            if attempt >= attempts:
+                raise CaptureError(f"{self.where}: no valid frame after {attempts} attempts of {CMD_GRAB!r} in "
+                                   f"{time.monotonic() - start:.2f} s; last attempt: {outcome.reason}")
+            self.stats.retries += 1
+            self._drain_quietly()
+            if outcome.wrong_size and self.size_code is not None:
+                self.set_size(self.size_code)
+            self.request_frame()
+
+    def grab(self) -> RawFrame:
+        """Send ``I`` and read its frame (with retries and reconnects)."""
+        self.request_frame()
+        return self.read_frame()
+
+    def _read_frame_once(self, attempt: int) -> RawFrame | _Attempt:
+        cfg = self.config
+        parser = FrameParser()
+        deadline = self._request_s + cfg.reply_timeout_s
+        received = bytearray()
+        while time.monotonic() < deadline:
+            had_header = parser.header is not None
+            data = self._read(parser.bytes_needed)
+            if not data:
+                continue
+            received += data[:64 - len(received)] if len(received) < 64 else b""
+            for event in parser.feed(data):
+                return self._finish_frame(event, attempt)
+            if parser.header is not None and not had_header:
+                deadline = time.monotonic() + cfg.transfer_timeout_s(parser.header.length)
+        self.stats.stray_bytes += parser.skipped_bytes
+        return _Attempt(self._timeout_reason(parser, bytes(received)))
+
+    def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int) -> RawFrame | _Attempt:
+        now, wall = time.monotonic(), time.time()
+        self._last_reply_s = now
+        self.stats.stray_bytes += event.skipped_bytes
+        header = event.header
+        if isinstance(event, BadFrame):
+            return _Attempt(f"frame of {header.length} bytes at {header.width}x{header.height}: {event.reason}")
+        if self.size_code is not None and header.size_code != self.size_code:
+            want = SVS_RESOLUTIONS[self.size_code]
+            return _Attempt(f"expected size code {self.size_code!r} ({want[0]}x{want[1]}), got "
+                            f"{header.size_code!r} ({header.width}x{header.height})", wrong_size=True)
+        return RawFrame(header=header, jpeg=event.jpeg, request_monotonic_s=self._request_s,
+                        arrival_monotonic_s=now, arrival_wall_s=wall, attempts=attempt,
+                        skipped_bytes=event.skipped_bytes)
+
+    def _timeout_reason(self, parser: FrameParser, received: bytes) -> str:
+        cfg = self.config
+        if parser.header is not None:
+            h = parser.header
+            return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within "
+                    f"{cfg.transfer_timeout_s(h.length):.2f} s of its header, got {parser.buffered}")
+        size = f" of {'x'.join(map(str, SVS_RESOLUTIONS[self.size_code]))}" if self.size_code else ""
+        reason = (f"sent {CMD_GRAB!r}, expected a '##IMJ' frame{size} within {cfg.reply_timeout_s:g} s, "
+                  f"got {describe_bytes(received)}")
+        if parser.last_rejection:
+            reason += f" (rejected: {parser.last_rejection})"
+        return reason
+
+    # ----------------------------------------------------------------------------------------- low level
+
+    def _require_open(self) -> None:
+        if self._serial is None:
+            raise _Dropped("the link is not open")
+
+    def _send(self, command: bytes) -> None:
+        wait = self._last_reply_s + self.config.command_gap_s - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        try:
+            self._serial.write(command)
+        except (serial.SerialException, OSError) as err:
+            raise _Dropped(f"write: {err}") from None
+        self._request_s = time.monotonic()
+
+    def _read(self, count: int | None) -> bytes:
+        """Read up to ``count`` bytes (None: what is waiting, at least 1) within ``poll_s``."""
+        if self._serial is None:
+            raise _Dropped("the link is not open")
+        try:
+            if count is None:
+                count = max(1, self._serial.in_waiting)
+            return self._serial.read(count)
+        except (serial.SerialException, OSError) as err:
+            raise _Dropped(f"read: {err}") from None
+
+    def _read_reply(self, match: Matcher) -> tuple[bytes | None, bytes]:
+        """Read until ``match`` finds the reply or ``reply_timeout_s`` passes; (reply or None, bytes read)."""
+        deadline = self._request_s + self.config.reply_timeout_s
+        buffer = bytearray()
+        while time.monotonic() < deadline:
+            data = self._read(None)
+            if not data:
+                continue
+            buffer += data
+            found = match(bytes(buffer))
+            if found is not None:
+                reply, end = found
+                self.stats.stray_bytes += end - len(reply)
+                self._last_reply_s = time.monotonic()
+                return reply, bytes(buffer)
+        return None, bytes(buffer)
+
+    def _drain_quietly(self) -> None:
+        try:
+            self.drain()
+        except _Dropped as err:
+            self._pending_drop = str(err)
+
+    def _reconnect(self, reason: str) -> None:
+        """Reopen the link and restore the size and quality; raises CaptureError if it cannot."""
+        self.stats.reconnects += 1
+        self._note_failure(f"link dropped: {reason}")
+        self.close()
+        for attempt in range(self.config.max_reconnects + 1):
+            time.sleep(self.config.reconnect_delay_s)
+            try:
+                self.open()
+                break
+            except CaptureError:
+                if attempt == self.config.max_reconnects:
+                    raise
+        if self.size_code is not None:
+            self.set_size(self.size_code, allow_reconnect=False)
+        if self.quality is not None:
+            self.set_quality(self.quality, allow_reconnect=False)
+
+    def _note_failure(self, reason: str) -> None:
+        self.stats.failures = (self.stats.failures + [reason])[-8:]

@@ -1,0 +1,303 @@
+"""The SVS stereo camera: two SRV-1 links (left = master, right = slave), grabbed as approximately simultaneous pairs.
+
+The two boards are not hardware-synchronised (``SVS_PROTOCOL.md`` §1): :meth:`SVSStereoCamera.grab_pair` sends
+``I`` on both links back to back, reads both replies concurrently, and timestamps each frame when its last byte
+arrives; :attr:`StereoPair.time_between_frames_s` says how far apart the two frames came.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import TypeVar
+
+import cv2
+import numpy as np
+import torch
+
+from ..camera import SVS_CAMERA, SVSCamera
+from ..checks import InputError
+from ..types import StereoBatch
+from .link import CameraLink, CaptureError, LinkConfig, RawFrame
+from .protocol import VersionInfo, size_code_for
+
+__all__ = ["Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]
+
+T = TypeVar("T")
+_CONNECT_TIMEOUT_S = 5.0  # pyserial's fixed socket:// connect timeout
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One decoded frame of one camera.
+
+    Attributes:
+        camera: ``"left"`` or ``"right"``.
+        image: grayscale ``(H, W)`` uint8, decoded from ``jpeg``.
+        jpeg: the JPEG bytes exactly as the board sent them (colour, 4:2:2).
+        request_monotonic_s: ``time.monotonic()`` when the ``I`` for this frame was sent, seconds.
+        arrival_monotonic_s: ``time.monotonic()`` when its last byte arrived, seconds.
+        arrival_wall_s: ``time.time()`` at arrival (Unix seconds).
+        attempts: ``I`` commands it took (1 = no retry).
+    """
+
+    camera: str
+    image: np.ndarray
+    jpeg: bytes
+    request_monotonic_s: float
+    arrival_monotonic_s: float
+    arrival_wall_s: float
+    attempts: int
+
+    @property
+    def size_wh(self) -> tuple[int, int]:
+        return self.image.shape[1], self.image.shape[0]
+
+
+@dataclass(frozen=True)
+class StereoPair:
+    """A left and a right frame grabbed together.
+
+    Attributes:
+        index: sequence number of the pair since the camera was opened.
+        left, right: the frames.
+        time_between_frames_s: ``right.arrival_monotonic_s − left.arrival_monotonic_s``, seconds (signed).
+    """
+
+    index: int
+    left: Frame
+    right: Frame
+    time_between_frames_s: float
+
+
+@dataclass(frozen=True)
+class PairBatch:
+    """One item of :meth:`SVSStereoCamera.stream_batches`: the batch, its pairs, and how many pairs were skipped."""
+
+    batch: StereoBatch
+    pairs: tuple[StereoPair, ...]
+    num_dropped: int
+
+
+def decode_frame(raw: RawFrame, camera: str, where: str) -> Frame:
+    """Decode a received JPEG to grayscale; raises :class:`CaptureError` naming ``where`` if it does not decode."""
+    image = cv2.imdecode(np.frombuffer(raw.jpeg, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    want = (raw.header.height, raw.header.width)
+    if image is None or image.shape != want:
+        got = "nothing" if image is None else f"{image.shape[1]}x{image.shape[0]}"
+        raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, decoded {got} "
+                           f"from {len(raw.jpeg)} bytes")
+    return Frame(camera=camera, image=image, jpeg=raw.jpeg, request_monotonic_s=raw.request_monotonic_s,
+                 arrival_monotonic_s=raw.arrival_monotonic_s, arrival_wall_s=raw.arrival_wall_s,
+                 attempts=raw.attempts)
+
+
+def to_stereo_batch(pairs: list[StereoPair] | tuple[StereoPair, ...], *, dtype: torch.dtype = torch.float32,
+                    device: torch.device | str | None = None, camera: SVSCamera = SVS_CAMERA) -> StereoBatch:
+    """Stack pairs into a :class:`StereoBatch`: grayscale in [0, 1] ``(B, 1, H, W)``, nominal SVS calibration.
+
+    ``focal_px = camera.focal_px(W)``, ``baseline_m = camera.baseline_m``, ``calibrated`` False (nominal values),
+    names ``pair<index>``. All pairs must have one size.
+    """
+    if not pairs:
+        raise InputError("pairs: expected at least one stereo pair, got none")
+    sizes = {frame.size_wh for pair in pairs for frame in (pair.left, pair.right)}
+    if len(sizes) != 1:
+        raise InputError(f"pairs: expected one frame size, got {sorted(sizes)}")
+    width = sizes.pop()[0]
+
+    def stack(frames: list[Frame]) -> torch.Tensor:
+        images = torch.from_numpy(np.stack([f.image for f in frames]))[:, None]  # (B, 1, H, W) uint8
+        return images.to(device=device, dtype=dtype) / 255.0
+
+    return StereoBatch.from_images(stack([p.left for p in pairs]), stack([p.right for p in pairs]),
+                                   focal_px=camera.focal_px(width), baseline_m=camera.baseline_m,
+                                   calibrated=False, names=tuple(f"pair{p.index}" for p in pairs))
+
+
+class SVSStereoCamera:
+    """Both SVS boards: open, identify (``V``), set size, grab pairs; a context manager that closes the links.
+
+    Args:
+        left_url, right_url: pyserial URLs of the left (master, TCP 10001) and right (slave, TCP 10002) boards,
+            e.g. ``socket://192.168.0.15:10001`` or ``/dev/ttyUSB0``.
+        size_wh: frame size (width, height) in pixels: 160x120, 320x240, 640x480 or 1280x1024.
+        quality: JPEG quality digit 1 (best) … 8 (worst); None leaves the board's setting (default 4).
+        flip: True sends ``y`` (camera mounted upside down), False ``Y``, None nothing.
+        config: timeouts and UART settings of both links.
+        strict_roles: raise instead of warn when the left board is not the master or the right not the slave.
+
+    Raises:
+        InputError: a bad ``size_wh`` or ``quality``.
+        CaptureError: a link cannot be opened or does not answer; the message names the camera and URL.
+    """
+
+    def __init__(self, left_url: str, right_url: str, size_wh: tuple[int, int] = (320, 240), *,
+                 quality: int | None = None, flip: bool | None = None, config: LinkConfig | None = None,
+                 strict_roles: bool = False) -> None:
+        self._size_code = size_code_for(tuple(size_wh))
+        if quality is not None and (not isinstance(quality, int) or not 1 <= quality <= 8):
+            raise InputError(f"quality: expected an integer 1 (best) to 8 (worst) or None, got {quality!r}")
+        self.links = {"left": CameraLink(left_url, "left", config), "right": CameraLink(right_url, "right", config)}
+        self.size_wh = tuple(size_wh)
+        self.versions: dict[str, VersionInfo] = {}
+        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="svs-capture")
+        self._next_index = 0
+        try:
+            self._both(lambda link: self._setup(link, quality, flip))
+            self._check_roles(strict_roles)
+        except BaseException:
+            self.close()
+            raise
+
+    def _setup(self, link: CameraLink, quality: int | None, flip: bool | None) -> None:
+        link.open()
+        self.versions[link.name] = link.identify()
+        link.set_size(self._size_code)
+        if quality is not None:
+            link.set_quality(quality)
+        if flip is not None:
+            link.command_ack(b"y" if flip else b"Y", (b"#y",) if flip else (b"#Y",))
+
+    def _check_roles(self, strict: bool) -> None:
+        roles = {name: self.versions[name].role for name in ("left", "right")}
+        if roles == {"left": "master", "right": "slave"}:
+            return
+        message = (f"left/right: expected the left board ({self.links['left'].url}) to be the stereo master and the "
+                   f"right ({self.links['right'].url}) the slave, got left {roles['left']}, right {roles['right']}; "
+                   "check the URLs (port 10001 is the master) and cover one lens to confirm")
+        if strict:
+            raise CaptureError(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+    @property
+    def config(self) -> LinkConfig:
+        return self.links["left"].config
+
+    def pair_timeout_s(self) -> float:
+        """Worst-case seconds of :meth:`grab_pair` when every retry and reconnect is used (pessimistic bound)."""
+        cfg = self.config
+        frame = (cfg.max_retries + 1) * cfg.frame_attempt_timeout_s(self._size_code)
+        reconnect = cfg.max_reconnects * (cfg.max_reconnects + 1) * (cfg.reconnect_delay_s + _CONNECT_TIMEOUT_S
+                                                                      + cfg.drain_max_s + cfg.reply_timeout_s)
+        return frame + reconnect
+
+    def set_size(self, size_wh: tuple[int, int]) -> None:
+        """Change the frame size on both boards."""
+        code = size_code_for(tuple(size_wh))
+        self._both(lambda link: link.set_size(code))
+        self._size_code, self.size_wh = code, tuple(size_wh)
+
+    def grab_pair(self) -> StereoPair:
+        """Send ``I`` to both boards back to back, read both frames concurrently, decode them to grayscale.
+
+        Raises:
+            CaptureError: a camera gave no valid frame within its retries (the message names it).
+        """
+        self.links["left"].request_frame()
+        self.links["right"].request_frame()
+        left, right = self._both(lambda link: decode_frame(link.read_frame(), link.name, link.where))
+        pair = StereoPair(index=self._next_index, left=left, right=right,
+                          time_between_frames_s=right.arrival_monotonic_s - left.arrival_monotonic_s)
+        self._next_index += 1
+        return pair
+
+    def grab_pairs(self, count: int) -> list[StereoPair]:
+        """``count`` pairs, one after the other."""
+        return [self.grab_pair() for _ in range(count)]
+
+    def stream_batches(self, batch_size: int, *, num_batches: int | None = None, dtype: torch.dtype = torch.float32,
+                       device: torch.device | str | None = None) -> Iterator[PairBatch]:
+        """Grab pairs continuously in a background thread; yield each time ``batch_size`` new pairs arrived.
+
+        Each item holds the ``batch_size`` most recent pairs; pairs that arrived while the consumer was busy and
+        are no longer among them are counted in ``num_dropped``. Stops after ``num_batches`` (None: never) or when
+        the generator is closed; a capture error in the background is raised here. Do not call
+        :meth:`grab_pair` while streaming.
+        """
+        if not isinstance(batch_size, int) or batch_size < 1:
+            raise InputError(f"batch_size: expected a positive integer, got {batch_size!r}")
+        state = _Stream(batch_size)
+        thread = threading.Thread(target=self._stream_loop, args=(state,), name="svs-stream", daemon=True)
+        thread.start()
+        try:
+            produced = 0
+            while num_batches is None or produced < num_batches:
+                pairs, dropped = state.take(timeout_s=batch_size * self.pair_timeout_s())
+                yield PairBatch(to_stereo_batch(pairs, dtype=dtype, device=device), pairs, dropped)
+                produced += 1
+        finally:
+            state.stop.set()
+            thread.join(timeout=self.pair_timeout_s())
+
+    def _stream_loop(self, state: _Stream) -> None:
+        try:
+            while not state.stop.is_set():
+                state.put(self.grab_pair())
+        except Exception as err:  # handed to the consumer, which raises it
+            state.fail(err)
+
+    def close(self) -> None:
+        """Close both links (concurrently: pyserial's socket close sleeps 0.3 s each); safe to call twice."""
+        pool = self._pool
+        if pool is None:
+            return
+        list(pool.map(lambda link: link.close(), self.links.values()))
+        pool.shutdown(wait=True)
+        self._pool = None
+
+    def _both(self, work: Callable[[CameraLink], T]) -> tuple[T, T]:
+        """Run ``work`` on the left and right links concurrently; re-raise a failure after both finished."""
+        if self._pool is None:
+            raise CaptureError("SVSStereoCamera: the camera is closed")
+        futures = [self._pool.submit(work, self.links[name]) for name in ("left", "right")]
+        errors = [f.exception() for f in futures]
+        failed = [e for e in errors if e is not None]
+        if len(failed) == 2 and all(isinstance(e, CaptureError) for e in failed):
+            raise CaptureError(f"{failed[0]}; and {failed[1]}") from failed[0]
+        if failed:
+            raise failed[0]
+        return futures[0].result(), futures[1].result()
+
+    def __enter__(self) -> SVSStereoCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Stream:
+    """Shared state of :meth:`SVSStereoCamera.stream_batches`: a ring of the latest pairs and a new-pair count."""
+
+    def __init__(self, batch_size: int) -> None:
+        self.ring: collections.deque[StereoPair] = collections.deque(maxlen=batch_size)
+        self.batch_size = batch_size
+        self.new = 0
+        self.error: BaseException | None = None
+        self.stop = threading.Event()
+        self.cond = threading.Condition()
+
+    def put(self, pair: StereoPair) -> None:
+        with self.cond:
+            self.ring.append(pair)
+            self.new += 1
+            self.cond.notify_all()
+
+    def fail(self, err: BaseException) -> None:
+        with self.cond:
+            self.error = err
+            self.cond.notify_all()
+
+    def take(self, timeout_s: float) -> tuple[tuple[StereoPair, ...], int]:
+        with self.cond:
+            ready = self.cond.wait_for(lambda: self.error is not None or self.new >= self.batch_size, timeout_s)
+            if self.error is not None:
+                raise self.error
+            if not ready:
+                raise CaptureError(f"stream_batches: no {self.batch_size} new pairs within {timeout_s:.1f} s")
+            dropped, self.new = self.new - self.batch_size, 0
+            return tuple(self.ring), dropped

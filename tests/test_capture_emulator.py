@@ -1,0 +1,372 @@
+"""The capture driver against the SVS emulator (loopback TCP on free ports, and pseudo-terminals).
+
+The emulator's board logic is tested on its own first (pure: bytes in, reply out), then the driver is run
+against it, fault by fault: each injected fault must either be recovered from or end in a CaptureError that
+names the camera and URL, within the bound the link states. Real-device tests are marked ``hardware``.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from hw.emulator import EmulatorServer
+from hw.emulator_state import CameraState, Faults, version_line
+from hw.frames import ImageFolderSource, ObstacleTrack, SyntheticSource
+from svs_torch.camera import SVS_CAMERA
+from svs_torch.capture import CaptureError, LinkConfig, SVSStereoCamera, to_stereo_batch
+from svs_torch.capture.protocol import FrameParser, ParsedFrame
+from svs_torch.checks import InputError
+
+# Short timeouts keep the whole file fast; loopback delivers a frame in well under a millisecond.
+FAST = LinkConfig(reply_timeout_s=0.25, transfer_margin_s=0.1, reconnect_delay_s=0.05, drain_quiet_s=0.02,
+                  drain_max_s=0.2, poll_s=0.01)
+
+
+_TEXTURES: dict[tuple[int, int], np.ndarray] = {}
+
+
+def flat_source(camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+    """A cheap deterministic frame: seeded noise (JPEGs of realistic size, ~20 KB at 320x240), left brighter."""
+    if (width, height) not in _TEXTURES:
+        _TEXTURES[(width, height)] = np.random.default_rng(width).integers(0, 200, (height, width), dtype=np.uint8)
+    return _TEXTURES[(width, height)] + np.uint8(40 if camera == "left" else 0)
+
+
+def attempt_bound_s(config: LinkConfig = FAST, code: str = "5") -> float:
+    """The link's stated worst case for one frame (all retries), plus scheduling slack on a shared machine."""
+    return (config.max_retries + 1) * config.frame_attempt_timeout_s(code) + 0.5
+
+
+@pytest.fixture
+def emulator():
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server:
+        yield server
+
+
+@pytest.fixture
+def camera(emulator):
+    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], config=FAST) as cam:
+        yield cam
+
+
+# ------------------------------------------------------------------------------------- board logic (pure)
+
+def make_board(role: str = "master", **kwargs) -> CameraState:
+    return CameraState("left" if role == "master" else "right", role, flat_source, **kwargs)
+
+
+def test_board_banner_only_on_master():
+    assert make_board("master").banner().startswith(version_line("master"))
+    assert make_board("slave").banner() == b""
+
+
+def test_board_commands():
+    board, now = make_board("slave", holdoff_s=0.0), 0.0
+    expected = {b"V": version_line("slave"), b"a": b"#a", b"b": b"#b", b"c": b"#c", b"d": b"#d", b"A": b"#d",
+                b"y": b"#y", b"Y": b"#Y", b"o": b"#o", b"O": b"#O", b"q7": b"##quality - 7\r\n",
+                b"q9": b"#?", b"x": b"#?", b"D": b"##D - battery voltage okay\r\n"}
+    for command, reply in expected.items():
+        now += 1.0
+        assert board.feed(command, now).data == reply, command
+    assert board.feed(b"t", 20.5).data == b"##time - millisecs:  20500\r\n"
+    assert board.size_code == "9" and board.quality == 7
+
+
+@pytest.mark.parametrize("command, code, size", [(b"a", "3", (160, 120)), (b"b", "5", (320, 240)),
+                                                 (b"c", "7", (640, 480)), (b"A", "9", (1280, 1024))])
+def test_board_frame_at_current_size(command, code, size):
+    board = make_board()
+    board.feed(command, 0.0)
+    (event,) = FrameParser().feed(board.feed(b"I", 1.0).data)
+    assert isinstance(event, ParsedFrame) and event.header.size_code == code
+    assert (event.header.width, event.header.height) == size
+
+
+def test_board_discards_input_while_busy():
+    board = make_board(holdoff_s=0.01)
+    assert board.feed(b"VV", 0.0).data == version_line("master")  # the second V arrived while busy
+    board.reply_sent(1.0)
+    assert board.feed(b"V", 1.005) is None  # within the hold-off after the reply
+    assert board.feed(b"V", 1.02).data == version_line("master")
+    assert board.discarded_bytes == 2
+    board.feed(b"q", 2.0)  # a parameter byte is part of its command, even in another chunk
+    assert board.feed(b"2", 2.0).data == b"##quality - 2\r\n"
+
+
+def test_board_faults_count_down():
+    board = make_board(faults=Faults(silent_grabs=1, garbage_frames=1, truncated_frames=1))
+    assert board.feed(b"I", 0.0) is None
+    data = board.feed(b"I", 1.0).data
+    assert data.startswith(Faults().garbage)
+    assert FrameParser().feed(data) == []  # truncated: the header announces more than was sent
+    (event,) = FrameParser().feed(board.feed(b"I", 2.0).data)
+    assert isinstance(event, ParsedFrame) and event.skipped_bytes == 0
+
+
+def test_synthetic_source_depths_oscillate_in_range():
+    track = ObstacleTrack()
+    depths = np.stack([track.depths_m(i) for i in range(track.num_keyframes)])
+    assert depths.min() >= 0.8 - 1e-9 and depths.max() <= 3.0 + 1e-9
+    assert depths.max() - depths.min() > 2.0
+    source = SyntheticSource(renderer="simple")
+    left, right = source("left", 320, 240, 0.0), source("right", 320, 240, 0.0)
+    assert left.shape == (240, 320) and left.dtype == np.uint8 and not np.array_equal(left, right)
+
+
+def test_image_folder_source(tmp_path):
+    for name, value in (("left01.png", 50), ("right01.png", 150)):
+        import cv2
+        cv2.imwrite(str(tmp_path / name), np.full((48, 64), value, np.uint8))
+    source = ImageFolderSource(tmp_path)
+    assert source("left", 32, 24, 0.0).shape == (24, 32)
+    assert source("right", 32, 24, 5.0)[0, 0] == 150
+    with pytest.raises(ValueError, match="no left/right image pairs"):
+        ImageFolderSource(tmp_path / "left01.png")
+
+
+# ------------------------------------------------------------------------------------------- normal use
+
+def test_capture_pairs_over_tcp(camera):
+    assert camera.versions["left"].role == "master" and camera.versions["right"].role == "slave"
+    pairs = camera.grab_pairs(3)
+    for pair in pairs:
+        assert pair.left.image.shape == (240, 320) and pair.right.image.shape == (240, 320)
+        assert pair.left.jpeg[:2] == b"\xff\xd8" and pair.left.attempts == 1
+        for frame in (pair.left, pair.right):
+            assert frame.request_monotonic_s <= frame.arrival_monotonic_s
+        assert pair.time_between_frames_s == pair.right.arrival_monotonic_s - pair.left.arrival_monotonic_s
+        assert abs(pair.time_between_frames_s) < 0.2
+    assert [p.index for p in pairs] == [0, 1, 2]
+    assert pairs[0].left.image.mean() > pairs[0].right.image.mean()  # the source's left is brighter
+
+
+def test_to_stereo_batch(camera):
+    batch = to_stereo_batch(camera.grab_pairs(2), dtype=torch.float64)
+    assert batch.left.shape == (2, 1, 240, 320) and batch.left.dtype == torch.float64
+    assert 0.0 <= float(batch.left.min()) and float(batch.right.max()) <= 1.0
+    assert torch.allclose(batch.focal_px, torch.full((2,), SVS_CAMERA.focal_px(320), dtype=torch.float64))
+    assert torch.allclose(batch.baseline_m, torch.full((2,), SVS_CAMERA.baseline_m, dtype=torch.float64))
+    assert not batch.calibrated.any() and batch.names == ("pair0", "pair1")
+    with pytest.raises(InputError, match="pairs: expected at least one"):
+        to_stereo_batch([])
+
+
+def test_resolution_changes(camera):
+    for size in ((640, 480), (160, 120), (1280, 1024), (320, 240)):
+        camera.set_size(size)
+        pair = camera.grab_pair()
+        assert pair.left.size_wh == size and pair.right.size_wh == size
+    with pytest.raises(InputError, match="size_wh"):
+        camera.set_size((100, 100))
+
+
+def test_quality_changes_jpeg_size(emulator):
+    sizes = {}
+    for quality in (1, 8):
+        with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], quality=quality, config=FAST) as cam:
+            sizes[quality] = len(cam.grab_pair().left.jpeg)
+    assert sizes[1] > sizes[8]
+    with pytest.raises(InputError, match="quality"):
+        SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], quality=9, config=FAST)
+
+
+def test_stream_batches(camera):
+    items = list(camera.stream_batches(3, num_batches=2))
+    assert len(items) == 2
+    for item in items:
+        assert item.batch.left.shape == (3, 1, 240, 320) and item.num_dropped >= 0
+        assert [p.index for p in item.pairs] == sorted(p.index for p in item.pairs)
+    assert items[1].pairs[0].index > items[0].pairs[-1].index
+
+
+def test_banner_is_drained():
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, banner=True) as server:
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST) as cam:
+            assert cam.versions["left"].role == "master"
+            assert cam.grab_pair().left.attempts == 1
+
+
+def test_swapped_urls_warn_or_raise(emulator):
+    with pytest.warns(RuntimeWarning, match="expected the left board .* to be the stereo master"):
+        SVSStereoCamera(emulator.urls["right"], emulator.urls["left"], config=FAST).close()
+    with pytest.raises(CaptureError, match="cover one lens"):
+        SVSStereoCamera(emulator.urls["right"], emulator.urls["left"], config=FAST, strict_roles=True)
+
+
+def test_unreachable_url_names_camera():
+    with socket.socket() as probe:  # a free port that nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        url = f"socket://127.0.0.1:{probe.getsockname()[1]}"
+    with pytest.raises(CaptureError, match=r"left camera \(socket://127\.0\.0\.1:\d+\): could not open"):
+        SVSStereoCamera(url, url, config=FAST)
+
+
+def test_capture_over_pty():
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True) as server:
+        paths = server.pty_paths
+        assert set(paths) == {"left", "right"} and all(p.startswith("/dev/") for p in paths.values())
+        with SVSStereoCamera(paths["left"], paths["right"], (640, 480), config=FAST) as cam:
+            assert cam.versions["right"].role == "slave"
+            assert cam.grab_pair().left.size_wh == (640, 480)
+            server.set_faults("right", silent_grabs=1, garbage_frames=1)
+            pair = cam.grab_pair()
+            assert pair.right.attempts == 2 and pair.left.attempts == 1
+
+
+# ------------------------------------------------------------------------------------------------ faults
+
+@pytest.mark.parametrize("faults, attempts", [
+    ({"silent_grabs": 2}, 3),
+    ({"garbage_frames": 1}, 1),
+    ({"truncated_frames": 1}, 2),
+    ({"wrong_length_frames": 1, "wrong_length_delta": 100}, 2),
+    ({"wrong_length_frames": 1, "wrong_length_delta": -100}, 2),
+    ({"drip_chunk_bytes": 2000, "drip_delay_s": 0.005}, 1),
+], ids=["silent", "garbage", "truncated", "length-too-long", "length-too-short", "slow-drip"])
+def test_fault_recovers(emulator, camera, faults, attempts):
+    camera.grab_pair()
+    emulator.set_faults("left", **faults)
+    start = time.monotonic()
+    pair = camera.grab_pair()
+    assert time.monotonic() - start < attempt_bound_s()
+    assert pair.left.attempts == attempts and pair.right.attempts == 1
+    assert pair.left.image.shape == (240, 320)
+    emulator.set_faults("left", drip_chunk_bytes=0)
+    assert camera.grab_pair().left.attempts == 1  # and the link is clean afterwards
+
+
+@pytest.mark.parametrize("faults, message", [
+    ({"silent_grabs": 10}, r"expected a '##IMJ' frame of 320x240 within 0.25 s, got 0 bytes"),
+    ({"truncated_frames": 10}, r"expected \d+ JPEG bytes of a 320x240 frame within"),
+    ({"wrong_length_frames": 10, "wrong_length_delta": -100}, "expected it to end FF D9"),
+    ({"drip_chunk_bytes": 500, "drip_delay_s": 0.03}, r"no valid frame after 3 attempts"),
+], ids=["silent", "truncated", "wrong-length", "too-slow-drip"])
+def test_persistent_fault_fails_clearly_in_time(emulator, camera, faults, message):
+    emulator.set_faults("right", **faults)
+    start = time.monotonic()
+    with pytest.raises(CaptureError, match=message) as info:
+        camera.grab_pair()
+    assert time.monotonic() - start < attempt_bound_s()
+    assert f"right camera ({emulator.urls['right']})" in str(info.value)
+    assert "no valid frame after 3 attempts of b'I'" in str(info.value)
+
+
+def test_wrong_size_frame_is_fixed(emulator, camera):
+    emulator.cameras["left"].size_code = "7"  # the board changed size behind the driver's back
+    pair = camera.grab_pair()
+    assert pair.left.size_wh == (320, 240) and pair.left.attempts == 2
+    assert "expected size code '5' (320x240), got '7' (640x480)" in camera.links["left"].stats.failures[-1]
+
+
+def test_dropped_link_reconnects(emulator, camera):
+    emulator.set_faults("left", drop_after_frames=1)
+    camera.grab_pair()  # the link drops right after this frame
+    start = time.monotonic()
+    pair = camera.grab_pair()
+    assert time.monotonic() - start < 2.0
+    assert camera.links["left"].stats.reconnects == 1 and pair.left.size_wh == (320, 240)
+    emulator.drop_connection("right")
+    time.sleep(0.1)
+    camera.set_size((640, 480))  # a command (not a grab) on a dropped link reconnects too
+    assert camera.grab_pair().right.size_wh == (640, 480)
+    assert camera.links["right"].stats.reconnects == 1
+
+
+def test_link_gone_for_good_fails_clearly(emulator, camera):
+    camera.grab_pair()
+    emulator.stop()
+    start = time.monotonic()
+    with pytest.raises(CaptureError, match=r"(left|right) camera \(socket://127\.0\.0\.1:\d+\)"):
+        camera.grab_pair()
+    assert time.monotonic() - start < 3.0
+
+
+# ---------------------------------------------------------------------------------------------- hardware
+
+@pytest.mark.hardware
+@pytest.mark.skipif(not (os.environ.get("SVS_LEFT_URL") and os.environ.get("SVS_RIGHT_URL")),
+                    reason="set SVS_LEFT_URL and SVS_RIGHT_URL to the device links to run hardware tests")
+def test_real_camera_pair():
+    with SVSStereoCamera(os.environ["SVS_LEFT_URL"], os.environ["SVS_RIGHT_URL"]) as cam:
+        assert {v.role for v in cam.versions.values()} <= {"master", "slave", "unknown"}
+        pair = cam.grab_pair()
+        assert pair.left.size_wh == (320, 240) and pair.right.size_wh == (320, 240)
+        assert abs(pair.time_between_frames_s) < 1.0
+
+
+# ------------------------------------------------------------------------------------------- capture CLI
+
+def run_capture(*argv: str) -> int:
+    import argparse
+
+    from svs_torch.cli.capture import add_parser
+
+    parser = argparse.ArgumentParser(prog="svs-depth")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["capture", *argv])
+    return args.func(args)
+
+
+def test_cli_capture_with_builtin_emulator(tmp_path, capsys):
+    import cv2
+    import json
+
+    assert run_capture("--emulator", "--count", "3", "--size", "160x120", "--out", str(tmp_path / "run")) == 0
+    lines = (tmp_path / "run" / "index.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in lines]
+    assert [r["index"] for r in records] == [0, 1, 2]
+    for record in records:
+        assert (record["width"], record["height"]) == (160, 120)
+        image = cv2.imread(str(tmp_path / "run" / record["left"]), cv2.IMREAD_GRAYSCALE)
+        assert image.shape == (120, 160) and record["left_bytes"] == (tmp_path / "run" / record["left"]).stat().st_size
+        assert record["time_between_frames_s"] == pytest.approx(
+            record["right_arrival_monotonic_s"] - record["left_arrival_monotonic_s"])
+    assert "saved 3 pairs" in capsys.readouterr().err
+    assert run_capture("--emulator", "--count", "1", "--out", str(tmp_path / "run")) == 2  # index exists
+
+
+def test_cli_capture_error_keeps_only_complete_pairs(tmp_path, capsys):
+    calls = []
+
+    def failing_later(camera, width, height, time_s):
+        calls.append(camera)
+        if calls.count("right") == 2:  # after the second right frame the right board goes silent
+            server.cameras["right"].faults.silent_grabs = 1000
+        return flat_source(camera, width, height, time_s)
+
+    with EmulatorServer(left_port=0, right_port=0, source=failing_later) as server:
+        start = time.monotonic()
+        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "5",
+                           "--timeout", "0.2", "--out", str(tmp_path / "run"))
+        assert time.monotonic() - start < 5.0
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 1
+    assert err.startswith("svs-depth capture: error: right camera (socket://127.0.0.1:")
+    assert "(2 of 5 pairs saved in" in err
+    assert len((tmp_path / "run" / "index.jsonl").read_text().splitlines()) == 2
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [
+        "index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg", "pair000001_left.jpg", "pair000001_right.jpg"]
+
+
+def test_cli_defaults_match_link_defaults():
+    from svs_torch.cli import capture
+
+    assert (capture.DEFAULT_BAUD, capture.DEFAULT_TIMEOUT_S) == (LinkConfig().baudrate, LinkConfig().reply_timeout_s)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--count", "0", "--emulator"], "--count: expected a positive number"),
+    (["--size", "100x100", "--emulator"], "--size: expected 160x120"),
+    (["--left", "socket://x:1", "--emulator"], "--left/--right: not used with --emulator"),
+    (["--left", "socket://x:1"], "--left and --right: both board URLs are needed"),
+])
+def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
+    assert run_capture(*argv, "--out", str(tmp_path / "x")) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

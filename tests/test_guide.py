@@ -1,0 +1,123 @@
+"""The live-guide pieces with fake distances and a fake clock: warning policy, speech output, fps meter."""
+
+from __future__ import annotations
+
+import io
+import stat
+import sys
+
+import pytest
+
+from svs_torch.capture.guide import CLEAR, STOP, WARN, FpsMeter, LiveGuide, Speaker, WarningPolicy
+from svs_torch.checks import InputError
+
+
+def run_policy(policy: WarningPolicy, samples: list[tuple[float, float | None]]) -> list[str | None]:
+    return [policy.update(distance, now) for now, distance in samples]
+
+
+@pytest.mark.parametrize("distance, expected", [
+    (None, CLEAR), (float("inf"), CLEAR), (float("nan"), CLEAR), (2.5, CLEAR), (2.0, WARN), (1.5, WARN),
+    (1.0, WARN), (0.99, STOP), (0.0, STOP),
+])
+def test_classify_default_band(distance, expected):
+    assert WarningPolicy().classify(distance) == expected
+
+
+def test_warns_in_band_and_rate_limits_repeats():
+    said = run_policy(WarningPolicy(repeat_s=3.0), [(0.0, 1.5), (1.0, 1.4), (2.9, 1.3), (3.1, 1.3), (4.0, 1.2)])
+    assert said == ["Obstacle ahead, 1.5 metres", None, None, "Obstacle ahead, 1.3 metres", None]
+
+
+def test_class_change_speaks_at_once():
+    said = run_policy(WarningPolicy(repeat_s=10.0), [(0.0, 1.5), (0.5, 0.8), (0.6, 0.7), (1.0, 3.0), (1.2, 1.8)])
+    assert said == ["Obstacle ahead, 1.5 metres", "Stop. Obstacle at 0.8 metres", None, None,
+                    "Obstacle ahead, 1.8 metres"]
+
+
+def test_silent_beyond_band_and_without_obstacle():
+    assert run_policy(WarningPolicy(), [(0.0, 5.0), (1.0, None), (2.0, 2.3)]) == [None, None, None]
+
+
+def test_hysteresis_stops_flapping_on_band_edge():
+    samples = [(0.1 * i, 1.97 if i % 2 else 2.04) for i in range(10)]
+    policy = WarningPolicy(repeat_s=100.0, hysteresis_m=0.1)
+    said = run_policy(policy, samples)
+    assert said[0] is None and said[1] == "Obstacle ahead, 2.0 metres"
+    assert said[2:] == [None] * 8 and policy.current == WARN
+    assert run_policy(policy, [(2.0, 2.2)]) == [None] and policy.current == CLEAR  # well past the edge
+    flappy = run_policy(WarningPolicy(repeat_s=100.0, hysteresis_m=0.0), samples)
+    assert sum(m is not None for m in flappy) == 5
+
+
+def test_no_warning_below_band_when_disabled():
+    policy = WarningPolicy(warn_below_band=False)
+    assert run_policy(policy, [(0.0, 0.5)]) == [None]
+    assert policy.classify(0.5) == CLEAR
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"near_m": 2.0, "far_m": 1.0}, "near_m, far_m: expected 0 <= near_m < far_m, got 2.0, 1.0"),
+    ({"repeat_s": -1.0}, "repeat_s, hysteresis_m: expected non-negative"),
+])
+def test_policy_rejects_bad_settings(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        WarningPolicy(**kwargs)
+
+
+def test_speaker_text_only():
+    stream = io.StringIO()
+    speaker = Speaker(None, stream=stream)
+    assert not speaker.speaks
+    speaker.say("Obstacle ahead, 1.5 metres")
+    assert stream.getvalue() == "Obstacle ahead, 1.5 metres\n"
+
+
+def test_speaker_runs_the_speech_program(tmp_path):
+    record = tmp_path / "spoken.txt"
+    fake = tmp_path / "fake-espeak"
+    fake.write_text(f"#!{sys.executable}\nimport sys\nopen({str(record)!r}, 'a').write(' '.join(sys.argv[1:]) + '\\n')\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    speaker = Speaker(str(fake), words_per_minute=150, stream=None)
+    assert speaker.speaks
+    speaker.say("Stop. Obstacle at 0.8 metres")
+    speaker.close()
+    assert record.read_text() == "-s 150 Stop. Obstacle at 0.8 metres\n"
+
+
+def test_speaker_falls_back_to_text_when_program_fails(tmp_path):
+    stream = io.StringIO()
+    speaker = Speaker(str(tmp_path / "missing-espeak"), stream=stream)
+    speaker.say("hello")
+    assert not speaker.speaks
+    assert "speech disabled" in stream.getvalue() and stream.getvalue().startswith("hello\n")
+
+
+def test_speaker_auto_finds_espeak(monkeypatch):
+    monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/espeak-ng" if name == "espeak-ng" else None)
+    assert Speaker().executable == "/usr/bin/espeak-ng"
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    assert not Speaker().speaks
+
+
+def test_fps_meter():
+    meter = FpsMeter(window_s=1.0)
+    assert meter.tick(0.0) == 0.0
+    for i in range(1, 11):
+        rate = meter.tick(i * 0.1)
+    assert rate == pytest.approx(10.0)
+    assert meter.tick(5.0) == 0.0  # the old ticks left the window
+    with pytest.raises(InputError, match="window_s"):
+        FpsMeter(window_s=0.0)
+
+
+def test_live_guide_with_fake_distances():
+    stream = io.StringIO()
+    guide = LiveGuide(WarningPolicy(repeat_s=2.0), Speaker(None, stream=stream), FpsMeter(window_s=5.0))
+    distances = [3.0, 2.5, 1.9, 1.8, 1.7, 1.2, 0.9, 0.9, None, 1.5]
+    said = [guide.update(d, now_s=0.25 * i) for i, d in enumerate(distances)]
+    assert said == [None, None, "Obstacle ahead, 1.9 metres", None, None, None, "Stop. Obstacle at 0.9 metres",
+                    None, None, "Obstacle ahead, 1.5 metres"]
+    assert stream.getvalue().splitlines() == [m for m in said if m]
+    assert guide.meter.fps == pytest.approx(4.0)
+    assert guide.status(1.5) == "  4.0 fps  nearest 1.5 m  warn"
