@@ -25,7 +25,7 @@ import math
 import torch
 
 from .checks import InputError, check_image, check_shape
-from .integral import integral_image, sample_box_means
+from .integral import PaddedIntegral, padded_integral_image, sample_box_means, sample_cell_means
 from .types import Keypoints
 
 __all__ = ["describe_surf", "surf_orientation"]
@@ -46,19 +46,32 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     check_shape(keypoints.valid, "keypoints.valid", [b, k])
 
 
-def _patch_means(integral: torch.Tensor, keypoints: Keypoints) -> torch.Tensor:
+def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) -> PaddedIntegral:
+    """Integral image with a replicate border wide enough for samples ``reach · s`` from every keypoint."""
+    largest = float(keypoints.scale.detach().max()) if keypoints.scale.numel() else 0.0
+    return padded_integral_image(image, math.ceil(largest * reach) + 2)
+
+
+def _patch_means(integral: PaddedIntegral, keypoints: Keypoints) -> torch.Tensor:
     """``(B, K, 21, 21)`` means of s × s cells on the keypoint's (rotated) grid, cell (i, j) centred at
     ``xy + s · R(θ) · (j − 10, i − 10)``."""
     b, k = keypoints.scale.shape
-    dtype = integral.dtype
-    offsets = torch.arange(_PATCH + 1, dtype=dtype, device=integral.device) - _PATCH / 2  # −10 … 10
+    dtype = integral.table.dtype
+    device = integral.table.device
+    scale = keypoints.scale.to(dtype).clamp(min=1e-3)[..., None]  # (B, K, 1)
+    x, y = keypoints.xy[..., 0:1].to(dtype), keypoints.xy[..., 1:2].to(dtype)
+    if not bool((keypoints.orientation != 0).any()):
+        # Upright: the cells tile an axis-aligned lattice and share their corners.
+        edges = torch.arange(_PATCH + 2, dtype=dtype, device=device) - (_PATCH + 1) / 2  # −10.5 … 10.5
+        return sample_cell_means(integral, x + scale * edges, y + scale * edges)
+    offsets = torch.arange(_PATCH + 1, dtype=dtype, device=device) - _PATCH / 2  # −10 … 10
     v, u = torch.meshgrid(offsets, offsets, indexing="ij")  # rows, columns
-    scale = keypoints.scale.to(dtype).clamp(min=1e-3)[..., None, None]
+    scale, x, y = scale[..., None], x[..., None], y[..., None]
     cos = torch.cos(keypoints.orientation.to(dtype))[..., None, None]
     sin = torch.sin(keypoints.orientation.to(dtype))[..., None, None]
-    x = keypoints.xy[..., 0, None, None].to(dtype) + scale * (cos * u - sin * v)
-    y = keypoints.xy[..., 1, None, None].to(dtype) + scale * (sin * u + cos * v)
-    centres = torch.stack([x, y], dim=-1).view(b, -1, 2)
+    cx = x + scale * (cos * u - sin * v)
+    cy = y + scale * (sin * u + cos * v)
+    centres = torch.stack([cx, cy], dim=-1).view(b, -1, 2)
     half = (scale / 2).expand(b, k, _PATCH + 1, _PATCH + 1).reshape(b, -1)
     return sample_box_means(integral, centres, half).view(b, k, _PATCH + 1, _PATCH + 1)
 
@@ -83,8 +96,8 @@ def describe_surf(image: torch.Tensor, keypoints: Keypoints, extended: bool = Fa
         respect to ``image``.
     """
     _check_keypoints(image, keypoints)
-    integral = integral_image(image, subtract_mean=True)
-    patch = _patch_means(integral, keypoints)  # (B, K, 21, 21)
+    # Cells reach 10.5·s from the keypoint along each axis, 10.5·√2·s when rotated.
+    patch = _patch_means(_padded_integral(image, keypoints, 10.5 * math.sqrt(2)), keypoints)  # (B, K, 21, 21)
     # 2 × 2-cell Haar wavelets (size 2s) centred between cells, OpenCV's layout.
     dx = (patch[..., :-1, 1:] - patch[..., :-1, :-1] + patch[..., 1:, 1:] - patch[..., 1:, :-1]) / 2
     dy = (patch[..., 1:, :-1] - patch[..., :-1, :-1] + patch[..., 1:, 1:] - patch[..., :-1, 1:]) / 2
@@ -117,17 +130,18 @@ def surf_orientation(image: torch.Tensor, keypoints: Keypoints) -> torch.Tensor:
     (an argmax over windows).
     """
     _check_keypoints(image, keypoints)
-    integral = integral_image(image.detach(), subtract_mean=True)
+    integral = _padded_integral(image.detach(), keypoints, 9.0)  # samples within 6s, Haar boxes 2s more
     b, k = keypoints.scale.shape
     r = _ORIENTATION_RADIUS
-    grid = torch.arange(-r, r + 1, dtype=integral.dtype, device=integral.device)
+    grid = torch.arange(-r, r + 1, dtype=integral.table.dtype, device=integral.table.device)
     v, u = torch.meshgrid(grid, grid, indexing="ij")
     inside = (u**2 + v**2) < r * r  # 109 samples
     u, v = u[inside], v[inside]
     weight = torch.exp(-(u**2 + v**2) / (2 * _SIGMA_ORIENTATION**2))
-    s = keypoints.scale.to(integral.dtype).clamp(min=1e-3).unsqueeze(-1)  # (B, K, 1)
-    x = keypoints.xy[..., 0:1].to(integral.dtype) + s * u
-    y = keypoints.xy[..., 1:2].to(integral.dtype) + s * v
+    dtype = integral.table.dtype
+    s = keypoints.scale.to(dtype).clamp(min=1e-3).unsqueeze(-1)  # (B, K, 1)
+    x = keypoints.xy[..., 0:1].to(dtype) + s * u
+    y = keypoints.xy[..., 1:2].to(dtype) + s * v
 
     def half_means(dx_sign: float, dy_sign: float, half_w, half_h) -> torch.Tensor:
         centres = torch.stack([x + dx_sign * s, y + dy_sign * s], dim=-1).view(b, -1, 2)

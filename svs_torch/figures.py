@@ -17,7 +17,8 @@ from .checks import InputError
 from .types import Segmentation
 
 __all__ = [
-    "PALETTE_BGR", "compose_grid", "gray_to_bgr", "segmentation_panels", "titled_panel", "write_image_atomic",
+    "PALETTE_BGR", "compose_grid", "gray_to_bgr", "matches_figure", "segmentation_panels", "titled_panel",
+    "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -112,3 +113,33 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> Path:
         Path(temporary).unlink(missing_ok=True)
         raise
     return target
+
+
+def matches_figure(left: torch.Tensor, right: torch.Tensor, keypoints, pairs: list[list[int]],
+                   inlier: list[bool] | None = None) -> np.ndarray:
+    """Left and right images side by side, keypoints as circles (radius 2.5 × scale), matches as lines.
+
+    Args:
+        left, right: ``(H, W)`` float images in [0, 1].
+        keypoints: :class:`~svs_torch.types.Keypoints` of a 2-image batch: row 0 left, row 1 right.
+        pairs: ``[[i_left, i_right], ...]`` keypoint rows.
+        inlier: optional flag per pair: inliers green, outliers red; otherwise every match is yellow.
+    """
+    h, w = left.shape
+    gap = 8
+    canvas = np.full((h, 2 * w + gap, 3), 255, np.uint8)
+    canvas[:, :w] = gray_to_bgr(left)
+    canvas[:, w + gap:] = gray_to_bgr(right)
+    for side, offset in ((0, 0), (1, w + gap)):
+        valid = keypoints.valid[side]
+        for (x, y), s in zip(keypoints.xy[side][valid].tolist(), keypoints.scale[side][valid].tolist()):
+            cv2.circle(canvas, (int(round(x)) + offset, int(round(y))), max(2, int(round(2.5 * s))),
+                       (255, 160, 0), 1, cv2.LINE_AA)
+    for n, (i, j) in enumerate(pairs):
+        colour = (0, 220, 220) if inlier is None else ((0, 190, 0) if inlier[n] else (0, 0, 230))
+        x0, y0 = keypoints.xy[0, i].tolist()
+        x1, y1 = keypoints.xy[1, j].tolist()
+        cv2.line(canvas, (int(round(x0)), int(round(y0))), (int(round(x1)) + w + gap, int(round(y1))), colour, 1,
+                 cv2.LINE_AA)
+    return titled_panel(canvas, f"{int(keypoints.valid[0].sum())} + {int(keypoints.valid[1].sum())} keypoints, "
+                                f"{len(pairs)} matches")

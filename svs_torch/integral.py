@@ -3,21 +3,26 @@
 ``integral_image(x)[..., r, c]`` is the sum of ``x[..., :r, :c]``: one extra zero row and column, so a box
 ``[r0, r1) × [c0, c1)`` sums to ``I[r1, c1] − I[r0, c1] − I[r1, c0] + I[r0, c0]`` in four reads, whatever its size.
 
-Two ways of reading boxes:
+Ways of reading boxes:
 - :func:`grid_box_sums`: one box shape at every point of a regular grid, by four strided slices (no gather);
-- :func:`sample_box_means`: boxes at arbitrary real-valued centres and sizes, by bilinear reads of the
-  integral image (exact area integrals of the pixel-constant image along each axis, smooth in position and
-  size, and differentiable with respect to the image).
+- :func:`sample_box_means` and :func:`sample_cell_means`: boxes at real-valued centres and sizes, by
+  bilinear reads of a :class:`PaddedIntegral` (exact area integrals of the pixel-constant image, smooth in
+  position and size, and differentiable with respect to the image).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
 from .checks import check_image
 
-__all__ = ["integral_image", "pad_integral", "grid_box_sums", "sample_box_means"]
+__all__ = [
+    "PaddedIntegral", "integral_image", "pad_integral", "grid_box_sums", "padded_integral_image", "sample_box_means",
+    "sample_cell_means",
+]
 
 
 def integral_image(image: torch.Tensor, subtract_mean: bool = False) -> torch.Tensor:
@@ -67,46 +72,84 @@ def grid_box_sums(
     return corner(r1, c1) - corner(r0, c1) - corner(r1, c0) + corner(r0, c0)
 
 
-def _bilinear_read(integral: torch.Tensor, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Integral image ``(B, 1, H + 1, W + 1)`` read at real indices ``y, x`` ``(B, P)`` (clamped to the image)."""
-    b, _, h1, w1 = integral.shape
-    y = y.clamp(0, h1 - 1)
-    x = x.clamp(0, w1 - 1)
-    # grid_sample with align_corners=True maps −1 and 1 to the first and last index.
-    grid = torch.stack([2 * x / max(w1 - 1, 1) - 1, 2 * y / max(h1 - 1, 1) - 1], dim=-1)  # (B, P, 2)
-    out = F.grid_sample(integral, grid.view(b, -1, 1, 2).to(integral.dtype), mode="bilinear", align_corners=True)
-    return out.view(b, -1)
+@dataclass(frozen=True)
+class PaddedIntegral:
+    """Integral image of an image extended by ``pad`` pixels of replicate border on every side.
+
+    Attributes:
+        table: ``(B, 1, H + 2·pad + 1, W + 2·pad + 1)``.
+        pad: the border width, pixels. The continuous image coordinate u (pixel j spans [j − 0.5, j + 0.5])
+            sits at table index u + 0.5 + pad.
+    """
+
+    table: torch.Tensor
+    pad: int
+
+
+def padded_integral_image(image: torch.Tensor, pad: int, subtract_mean: bool = True) -> PaddedIntegral:
+    """:class:`PaddedIntegral` of ``(B, 1, H, W)`` images: boxes reaching past the border read the edge pixels
+    (replicate border, as OpenCV's ``getRectSubPix``). Linear in the image, so differentiable."""
+    check_image(image, "image", check_range=False)
+    if subtract_mean:
+        image = image - image.mean(dim=(-2, -1), keepdim=True)
+    if pad > 0:
+        image = F.pad(image, (pad, pad, pad, pad), mode="replicate")
+    return PaddedIntegral(F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0)), pad)
+
+
+def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Integral read at continuous image coordinates ``x, y`` (same shape ``(B, …)``), clamped to the table.
+
+    Bilinear interpolation of an integral image is the exact area integral of the pixel-constant image."""
+    table = integral.table
+    b, _, h1, w1 = table.shape
+    shape = x.shape
+    # grid_sample with align_corners=True maps −1 and 1 to the first and last table index.
+    gx = ((x + 0.5 + integral.pad).clamp(0, w1 - 1) * (2 / max(w1 - 1, 1)) - 1).reshape(b, -1, 1)
+    gy = ((y + 0.5 + integral.pad).clamp(0, h1 - 1) * (2 / max(h1 - 1, 1)) - 1).reshape(b, -1, 1)
+    grid = torch.cat([gx, gy], dim=-1).unsqueeze(2).to(table.dtype)  # (B, P, 1, 2)
+    return F.grid_sample(table, grid, mode="bilinear", align_corners=True).view(shape)
 
 
 def sample_box_means(
-    integral: torch.Tensor, center_xy: torch.Tensor, half_size: torch.Tensor, half_height: torch.Tensor | None = None
+    integral: PaddedIntegral, center_xy: torch.Tensor, half_width: torch.Tensor, half_height: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Mean intensity of axis-aligned boxes at real-valued centres, from an integral image.
+    """Mean intensity of axis-aligned boxes at real-valued centres.
 
     Args:
-        integral: ``(B, 1, H + 1, W + 1)`` from :func:`integral_image`.
-        center_xy: ``(B, P, 2)`` box centres, pixel-centre coordinates (pixel j spans [j − 0.5, j + 0.5]).
-        half_size: ``(B, P)`` half the box width, pixels (> 0).
-        half_height: ``(B, P)`` half the box height; default ``half_size`` (a square box).
+        integral: :class:`PaddedIntegral`; boxes should stay within its border.
+        center_xy: ``(B, P, 2)`` box centres, pixel-centre coordinates.
+        half_width: ``(B, P)`` half the box width, pixels (> 0).
+        half_height: ``(B, P)`` half the box height; default ``half_width`` (a square box).
 
     Returns:
-        ``(B, P)`` the mean over the part of each box inside the image; a box wholly beyond an edge reads the
-        edge pixels (replicate border). Differentiable with respect to the image (and the centres).
+        ``(B, P)``. Differentiable with respect to the image (and the centres).
     """
-    h, w = integral.shape[-2] - 1, integral.shape[-1] - 1
-    half_height = half_size if half_height is None else half_height
-    # Integral index of the continuous coordinate u is u + 0.5. Clip the box to the image, but keep at least
-    # the edge pixel: a box beyond the border reads the edge row / column (replicate border), and the mean of
-    # a partly-outside box is the mean of its inside part.
-    x0, x1 = _clip_span(center_xy[..., 0] - half_size + 0.5, center_xy[..., 0] + half_size + 0.5, w)
-    y0, y1 = _clip_span(center_xy[..., 1] - half_height + 0.5, center_xy[..., 1] + half_height + 0.5, h)
-    ys = torch.cat([y1, y0, y1, y0], dim=1)
-    xs = torch.cat([x1, x1, x0, x0], dim=1)
-    a, b_, c, d = _bilinear_read(integral, ys, xs).chunk(4, dim=1)
-    return (a - b_ - c + d) / ((x1 - x0) * (y1 - y0))
+    half_height = half_width if half_height is None else half_height
+    x0, x1 = center_xy[..., 0] - half_width, center_xy[..., 0] + half_width
+    y0, y1 = center_xy[..., 1] - half_height, center_xy[..., 1] + half_height
+    corners = _bilinear_read(integral, torch.stack([x1, x1, x0, x0], -1), torch.stack([y1, y0, y1, y0], -1))
+    a, b, c, d = corners.unbind(-1)
+    return (a - b - c + d) / ((x1 - x0) * (y1 - y0))
 
 
-def _clip_span(lo: torch.Tensor, hi: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Clip [lo, hi] (integral coordinates) to [0, size], keeping at least the edge pixel [size − 1, size] or
-    [0, 1] when the span lies wholly outside."""
-    return lo.clamp(0, size).clamp(max=size - 1), hi.clamp(0, size).clamp(min=1)
+def sample_cell_means(integral: PaddedIntegral, x_edges: torch.Tensor, y_edges: torch.Tensor) -> torch.Tensor:
+    """Means of the cells of axis-aligned lattices: cell (m, n) spans [x_n, x_{n+1}] × [y_m, y_{m+1}].
+
+    Args:
+        integral: :class:`PaddedIntegral`.
+        x_edges: ``(B, K, N + 1)`` increasing cell boundaries along x, pixel-centre coordinates.
+        y_edges: ``(B, K, M + 1)`` along y.
+
+    Returns:
+        ``(B, K, M, N)``. Neighbouring cells share corners, so a 21 × 21 lattice costs 22² reads instead of
+        4 · 21². Differentiable with respect to the image.
+    """
+    b, k, n1 = x_edges.shape
+    m1 = y_edges.shape[-1]
+    x = x_edges.unsqueeze(-2).expand(b, k, m1, n1)
+    y = y_edges.unsqueeze(-1).expand(b, k, m1, n1)
+    table = _bilinear_read(integral, x, y)  # (B, K, M + 1, N + 1)
+    sums = table[..., 1:, 1:] - table[..., :-1, 1:] - table[..., 1:, :-1] + table[..., :-1, :-1]
+    area = (x_edges[..., 1:] - x_edges[..., :-1]).unsqueeze(-2) * (y_edges[..., 1:] - y_edges[..., :-1]).unsqueeze(-1)
+    return sums / area

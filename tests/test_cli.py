@@ -120,3 +120,29 @@ def test_demo_segments_the_synthetic_obstacles(capsys, tmp_path):
         assert obj["median_true_depth_m"] == pytest.approx(truth[obj["true_object"]], abs=0.01)
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure))
     assert code == 0 and "true obstacle 1" in out and "left #1 covers true obstacle" in out
+
+
+def test_features_json_in_input_pixels_and_plot(data_dir, capsys, tmp_path):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure = tmp_path / "matches.png"
+    code, out, err = run_cli(capsys, "features", left, right, "--size", "320x240", "--json", "--plot", str(figure))
+    assert code == 0 and err == "" and figure.is_file()
+    report = json.loads(out)
+    assert set(report) >= {"left", "right", "matches"}
+    assert len(report["left"]) > 20 and len(report["matches"]) > 10
+    width, height = 450, 375  # Teddy's input size: coordinates come back in input pixels
+    for point in report["left"] + report["right"]:
+        assert -0.5 <= point["xy"][0] <= width - 0.5 and -0.5 <= point["xy"][1] <= height - 0.5
+        assert point["scale"] > 0 and point["score"] > 0
+    # Matches on a rectified pair lie on (nearly) the same row, at positive disparity.
+    rows = [abs(report["left"][i]["xy"][1] - report["right"][j]["xy"][1]) for i, j in report["matches"]]
+    disparities = [report["left"][i]["xy"][0] - report["right"][j]["xy"][0] for i, j in report["matches"]]
+    assert np.median(rows) < 1.5 and np.median(disparities) > 5
+    code, out, _ = run_cli(capsys, "features", left, right, "--no-segment", "--max-keypoints", "50", "--json")
+    assert code == 0 and len(json.loads(out)["left"]) <= 50
+
+
+def test_features_bad_size_is_one_line(data_dir, capsys):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "features", left, right, "--size", "320by240")
+    assert code == 2 and out == "" and "size: expected WIDTHxHEIGHT" in err and err.count("\n") == 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import capture, demo, segment
+from . import capture, demo, features, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -27,6 +27,7 @@ examples:
   svs-depth segment left.png right.png    segment a stereo pair, print the obstacles found
   svs-depth segment L.png R.png --json    the same as JSON, for scripts
   svs-depth segment L.png R.png --out seg.png --kernel-size 7 --keep 3
+  svs-depth features L.png R.png --size 320x240 --plot matches.png    SURF keypoints and SAD matches
   svs-depth capture --emulator --count 5 --out pairs/    grab pairs from a built-in SVS emulator
 
 Real data: any left/right image files work (gray or color; 8 or 16 bit). Without calibration the SVS
@@ -47,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, segment, capture):
+    for module in (demo, segment, features, capture):
         module.add_parser(subparsers)
     return parser
 

@@ -1,0 +1,70 @@
+"""Benchmark: SURF detect + describe per stereo pair at 320×240, svs_torch vs OpenCV SIFT and ORB, same run.
+
+svs_torch runs on whole batches (B = 1 and B = 32 pairs, i.e. 2B images), eager and compiled, with MATLAB's
+defaults and with the upsampled variant; OpenCV detects and describes one image at a time. Median of several
+runs, min-max spread, thread count recorded; JSON with metadata.
+
+    python experiments/bench_features.py [--threads 2] [--repeats 5] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from svs_torch.detector import SurfConfig
+from svs_torch.features import extract_surf_features
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_segmentation import load_pairs, metadata, timed  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--max-keypoints", type=int, default=512)
+    parser.add_argument("--json", metavar="FILE")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    left, right = load_pairs(Path(args.data), 32)
+    images = torch.cat([left, right])  # pairs 0..31 left, then their right images
+    grays = list((images[:, 0] * 255).round().to(torch.uint8).numpy())
+    sift = cv2.SIFT_create(nfeatures=args.max_keypoints)
+    orb = cv2.ORB_create(nfeatures=args.max_keypoints)
+    results: dict[str, dict] = {}
+    for name, detector in (("opencv_sift", sift), ("opencv_orb", orb)):
+        results[name] = timed(lambda: [detector.detectAndCompute(g, None) for g in grays], args.repeats)
+        results[name]["ms_per_pair"] = results[name]["median_ms"] / 32
+    variants = {
+        "surf_matlab": SurfConfig(max_keypoints=args.max_keypoints),
+        "surf_x2_thr300": SurfConfig(max_keypoints=args.max_keypoints, metric_threshold=300.0, upsample=True),
+    }
+    for label, config in variants.items():
+        for compiled in (False, True):
+            cfg = SurfConfig(**{**config.__dict__, "compiled": compiled})
+            for b in (1, 32):
+                batch = torch.cat([left[:b], right[:b]])
+                key = f"{label}{'_compiled' if compiled else ''}_B{b}"
+                results[key] = timed(lambda: extract_surf_features(batch, cfg), args.repeats)
+                results[key]["ms_per_pair"] = results[key]["median_ms"] / b
+    sift_ms = results["opencv_sift"]["ms_per_pair"]
+    print(f"threads {args.threads}, 320x240, detect + describe, median of {args.repeats} runs, ms per pair "
+          f"(two images)")
+    for key, value in results.items():
+        print(f"  {key:34s} {value['ms_per_pair']:8.2f} ms/pair   x SIFT {value['ms_per_pair'] / sift_ms:5.2f}   "
+              f"(run min {value['min_ms']:.1f}, max {value['max_ms']:.1f} ms)")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"metadata": metadata(args.threads), "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

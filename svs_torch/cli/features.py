@@ -1,0 +1,135 @@
+"""``svs-depth features``: SURF keypoints of a stereo pair and their SAD + ratio-test matches (Sec. 3.3 (1)–(2))."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from .segment import add_segmentation_options, config_from_args
+
+HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
+
+DESCRIPTION = """\
+Detect SURF keypoints (box-filter Hessian, upright 64-D descriptors) on both images of a pair, by default on
+the segmented obstacle images as the paper does (Sec. 3.3 (1)), and match them by SAD with MATLAB's ratio
+test (MaxRatio 0.6) and SURF's Laplacian-sign check (Sec. 3.3 (2)).
+
+Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first.
+"""
+
+EPILOG = """\
+examples:
+  svs-depth features left.png right.png
+  svs-depth features left.png right.png --size 320x240 --plot matches.png
+  svs-depth features left.png right.png --no-segment --max-keypoints 300 --json
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "features", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("left", help="left image file")
+    parser.add_argument("right", help="right image file, the same size as the left")
+    add_pair_options(parser)
+    parser.add_argument("--no-segment", action="store_true",
+                        help="detect on the whole images instead of the segmented obstacles")
+    add_segmentation_options(parser)
+    add_feature_options(parser)
+    parser.add_argument("--plot", metavar="FIG.png", help="write a figure of the keypoints and matches")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    parser.set_defaults(func=run)
+
+
+def add_pair_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--size", metavar="WxH",
+                        help="resample the pair to this size first (e.g. 320x240, the SVS default)")
+
+
+def add_feature_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--max-keypoints", type=int, default=512, metavar="K",
+                        help="strongest keypoints kept per image (default: 512)")
+    parser.add_argument("--metric-threshold", type=float, default=1000.0, metavar="T",
+                        help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold, default 1000)")
+    parser.add_argument("--upsample", action="store_true",
+                        help="detect on the image enlarged twice, as SIFT does: more and better-placed "
+                             "keypoints on small frames, about 4x slower detection")
+    parser.add_argument("--max-ratio", type=float, default=0.6, metavar="R",
+                        help="ratio test of the matching (MATLAB MaxRatio, default 0.6)")
+
+
+def load_pair(args: argparse.Namespace):
+    """The pair of ``args.left``/``args.right``, resampled to ``--size`` if given; and the x, y factors that
+    map working pixels back to input pixels."""
+    from ..camera import parse_size
+    from ..data import load_image_pair, resize_stereo_batch
+
+    batch = load_image_pair(args.left, args.right)
+    height, width = batch.size_hw
+    if not args.size:
+        return batch, (1.0, 1.0)
+    new_w, new_h = parse_size(args.size, "size")
+    return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
+
+
+def to_input_pixels(xy, factors: tuple[float, float]) -> list[float]:
+    """Working pixel-centre coordinates → input-image pixel-centre coordinates."""
+    fx, fy = factors
+    return [round((float(xy[0]) + 0.5) * fx - 0.5, 3), round((float(xy[1]) + 0.5) * fy - 0.5, 3)]
+
+
+def surf_config_from_args(args: argparse.Namespace):
+    from ..detector import SurfConfig
+
+    return SurfConfig(max_keypoints=args.max_keypoints, metric_threshold=args.metric_threshold,
+                      upsample=args.upsample)
+
+
+def keypoint_list(keypoints, index: int, factors: tuple[float, float]) -> list[dict]:
+    valid = keypoints.valid[index]
+    scale_factor = (factors[0] + factors[1]) / 2
+    return [{"xy": to_input_pixels(xy, factors), "scale": round(float(s) * scale_factor, 3), "score": float(r)}
+            for xy, s, r in zip(keypoints.xy[index][valid], keypoints.scale[index][valid],
+                                keypoints.score[index][valid])]
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..features import extract_surf_features
+    from ..figures import matches_figure, write_image_atomic
+    from ..matching import match_sad
+    from ..segmentation import segment_stereo
+
+    batch, factors = load_pair(args)
+    config = surf_config_from_args(args)
+    started = time.perf_counter()
+    left_image, right_image = batch.left, batch.right
+    if not args.no_segment:
+        seg = segment_stereo(batch, config_from_args(args))
+        left_image, right_image = seg.left.masked, seg.right.masked
+    both = extract_surf_features(torch.cat([left_image, right_image]), config)
+    kp, desc = both.keypoints, both.descriptors
+    matches = match_sad(desc[:1], desc[1:], kp.valid[:1], kp.valid[1:], max_ratio=args.max_ratio,
+                        laplacian_left=kp.laplacian_sign[:1], laplacian_right=kp.laplacian_sign[1:])
+    elapsed = time.perf_counter() - started
+    pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
+    if args.plot:
+        write_image_atomic(args.plot, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs))
+    left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
+    if args.json:
+        print(json.dumps({"left": left, "right": right, "matches": pairs, "segmented": not args.no_segment,
+                          "time_s": round(elapsed, 6)}))
+        return 0
+    print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "
+          f"({'segmented obstacles' if not args.no_segment else 'whole images'}), {elapsed * 1e3:.0f} ms")
+    for i, j in pairs[:10]:
+        print(f"  left ({left[i]['xy'][0]:.1f}, {left[i]['xy'][1]:.1f}) s {left[i]['scale']:.2f} -> "
+              f"right ({right[j]['xy'][0]:.1f}, {right[j]['xy'][1]:.1f}), disparity "
+              f"{left[i]['xy'][0] - right[j]['xy'][0]:.1f} px")
+    if len(pairs) > 10:
+        print(f"  … {len(pairs) - 10} more (--json for all)")
+    if args.plot:
+        print(f"figure written to {args.plot}")
+    return 0
