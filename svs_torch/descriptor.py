@@ -21,6 +21,7 @@ gradient); padding rows give zero descriptors.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -47,12 +48,19 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
 
 
 def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) -> PaddedIntegral:
-    """Integral image with a replicate border wide enough for samples ``reach · s`` from every keypoint."""
-    largest = float(keypoints.scale.detach().max()) if keypoints.scale.numel() else 0.0
-    return padded_integral_image(image, math.ceil(largest * reach) + 2)
+    """Integral image with a replicate border just wide enough for samples ``reach · s`` around every valid
+    keypoint (most keypoints lie well inside: the border is usually far narrower than ``reach · s_max``)."""
+    h, w = image.shape[-2:]
+    valid = keypoints.valid
+    if not bool(valid.any()):
+        return padded_integral_image(image, 1)
+    radius = keypoints.scale.detach()[valid] * reach
+    x, y = keypoints.xy.detach()[valid].unbind(-1)
+    beyond = torch.stack([radius - x, x + radius - (w - 1), radius - y, y + radius - (h - 1)]).amax()
+    return padded_integral_image(image, max(0, math.ceil(float(beyond))) + 2)
 
 
-def _patch_means(integral: PaddedIntegral, keypoints: Keypoints) -> torch.Tensor:
+def _patch_means(integral: PaddedIntegral, keypoints: Keypoints, upright: bool) -> torch.Tensor:
     """``(B, K, 21, 21)`` means of s × s cells on the keypoint's (rotated) grid, cell (i, j) centred at
     ``xy + s · R(θ) · (j − 10, i − 10)``."""
     b, k = keypoints.scale.shape
@@ -60,7 +68,7 @@ def _patch_means(integral: PaddedIntegral, keypoints: Keypoints) -> torch.Tensor
     device = integral.table.device
     scale = keypoints.scale.to(dtype).clamp(min=1e-3)[..., None]  # (B, K, 1)
     x, y = keypoints.xy[..., 0:1].to(dtype), keypoints.xy[..., 1:2].to(dtype)
-    if not bool((keypoints.orientation != 0).any()):
+    if upright:
         # Upright: the cells tile an axis-aligned lattice and share their corners.
         edges = torch.arange(_PATCH + 2, dtype=dtype, device=device) - (_PATCH + 1) / 2  # −10.5 … 10.5
         return sample_cell_means(integral, x + scale * edges, y + scale * edges)
@@ -83,27 +91,14 @@ def _gaussian(size: int, sigma: float, dtype, device) -> torch.Tensor:
     return g[:, None] * g[None, :]
 
 
-def describe_surf(image: torch.Tensor, keypoints: Keypoints, extended: bool = False) -> torch.Tensor:
-    """SURF descriptors of all keypoints of a batch.
-
-    Args:
-        image: ``(B, 1, H, W)`` float images (e.g. the masked obstacle images).
-        keypoints: :class:`~svs_torch.types.Keypoints` with K rows (orientation 0 = upright, U-SURF).
-        extended: 128-long descriptors instead of 64.
-
-    Returns:
-        ``(B, K, D)`` unit-length descriptors (D = 64 or 128), zero rows for padding. Differentiable with
-        respect to ``image``.
-    """
-    _check_keypoints(image, keypoints)
-    # Cells reach 10.5·s from the keypoint along each axis, 10.5·√2·s when rotated.
-    patch = _patch_means(_padded_integral(image, keypoints, 10.5 * math.sqrt(2)), keypoints)  # (B, K, 21, 21)
+def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: bool) -> torch.Tensor:
+    """``(B, K, 21, 21)`` cell means → ``(B, K, D)`` unit descriptors (zero where not ``valid``)."""
+    b, k = valid.shape
     # 2 × 2-cell Haar wavelets (size 2s) centred between cells, OpenCV's layout.
     dx = (patch[..., :-1, 1:] - patch[..., :-1, :-1] + patch[..., 1:, 1:] - patch[..., 1:, :-1]) / 2
     dy = (patch[..., 1:, :-1] - patch[..., :-1, :-1] + patch[..., 1:, 1:] - patch[..., :-1, 1:]) / 2
     weight = _gaussian(_PATCH, _SIGMA_DESCRIPTOR, patch.dtype, patch.device)
     dx, dy = dx * weight, dy * weight  # (B, K, 20, 20)
-    b, k = keypoints.scale.shape
 
     def blocks(t: torch.Tensor) -> torch.Tensor:
         """Sum over each 5 × 5 sub-region: (B, K, 20, 20) -> (B, K, 4, 4)."""
@@ -117,9 +112,56 @@ def describe_surf(image: torch.Tensor, keypoints: Keypoints, extended: bool = Fa
         parts = [dx, dy, dx.abs(), dy.abs()]
     descriptor = torch.stack([blocks(p) for p in parts], dim=-1).view(b, k, -1)  # sub-region-major layout
     norm = descriptor.norm(dim=-1, keepdim=True)
-    usable = keypoints.valid.unsqueeze(-1) & (norm > 0)
+    usable = valid.unsqueeze(-1) & (norm > 0)
     unit = descriptor / torch.where(usable, norm, torch.ones_like(norm))
-    return torch.where(usable, unit, torch.zeros_like(unit)).to(image.dtype)
+    return torch.where(usable, unit, torch.zeros_like(unit))
+
+
+_COMPILED: dict[str, Callable] = {}
+
+
+def _descriptor_function(compiled: bool) -> Callable:
+    if not compiled:
+        return _descriptor_from_patch
+    if "descriptor" not in _COMPILED:
+        _COMPILED["descriptor"] = torch.compile(_descriptor_from_patch, dynamic=True)
+    return _COMPILED["descriptor"]
+
+
+def describe_surf(
+    image: torch.Tensor, keypoints: Keypoints, extended: bool = False, compiled: bool = False
+) -> torch.Tensor:
+    """SURF descriptors of all keypoints of a batch.
+
+    Args:
+        image: ``(B, 1, H, W)`` float images (e.g. the masked obstacle images).
+        keypoints: :class:`~svs_torch.types.Keypoints` with K rows (orientation 0 = upright, U-SURF).
+        extended: 128-long descriptors instead of 64.
+        compiled: run the patch-to-descriptor arithmetic through ``torch.compile`` (same values).
+
+    Returns:
+        ``(B, K, D)`` unit-length descriptors (D = 64 or 128), zero rows for padding. Differentiable with
+        respect to ``image``.
+    """
+    _check_keypoints(image, keypoints)
+    b, k = keypoints.valid.shape
+    # Work on the rows up to the last valid one of any image: detectors pad at the end, often by half.
+    rows = torch.arange(1, k + 1, device=keypoints.valid.device)
+    used = int((keypoints.valid * rows).amax()) if k else 0
+    head = _take_rows(keypoints, used)
+    # Cells reach 10.5·s from the keypoint along each axis, 10.5·√2·s when rotated.
+    upright = not bool((head.orientation != 0).any())
+    integral = _padded_integral(image, head, 10.5 if upright else 10.5 * math.sqrt(2))
+    patch = _patch_means(integral, head, upright)  # (B, used, 21, 21)
+    descriptor = _descriptor_function(compiled)(patch, head.valid, extended).to(image.dtype)
+    return torch.cat([descriptor, descriptor.new_zeros(b, k - used, descriptor.shape[-1])], dim=1)
+
+
+def _take_rows(keypoints: Keypoints, count: int) -> Keypoints:
+    """The first ``count`` rows of every image's keypoints."""
+    return Keypoints(keypoints.xy[:, :count], keypoints.scale[:, :count], keypoints.score[:, :count],
+                     keypoints.laplacian_sign[:, :count], keypoints.orientation[:, :count],
+                     keypoints.valid[:, :count])
 
 
 def surf_orientation(image: torch.Tensor, keypoints: Keypoints) -> torch.Tensor:

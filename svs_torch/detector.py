@@ -6,6 +6,7 @@ its options and defaults are mirrored by :class:`SurfConfig`. The maths is in :m
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -78,30 +79,39 @@ def _candidates(octaves: list[HessianOctave], threshold: float, mask: torch.Tens
 
 
 def _octave_tables(octaves: list[HessianOctave], device) -> dict[str, torch.Tensor]:
-    """Per-octave constants indexed by octave id: offsets and strides of the interior candidate block and of
-    the full response block, grid step, first filter size and size increment."""
+    """Per-octave constants indexed by octave id: offset and strides of the interior candidate block, strides
+    of the full response maps, grid step, first filter size and size increment."""
     columns: dict[str, list[int]] = {name: [] for name in (
-        "offset", "inner_nx", "inner_plane", "full_offset", "nx", "plane", "step", "size0", "size_inc")}
-    inner_total = full_total = 0
+        "offset", "inner_nx", "inner_plane", "nx", "plane", "step", "size0", "size_inc")}
+    inner_total = 0
     for octave in octaves:
         s, ny, nx = octave.det.shape[1:]
         for name, value in (("offset", inner_total), ("inner_nx", nx - 2), ("inner_plane", (ny - 2) * (nx - 2)),
-                            ("full_offset", full_total), ("nx", nx), ("plane", ny * nx), ("step", octave.step),
+                            ("nx", nx), ("plane", ny * nx), ("step", octave.step),
                             ("size0", octave.sizes[0]), ("size_inc", octave.sizes[1] - octave.sizes[0])):
             columns[name].append(value)
         inner_total += (s - 2) * (ny - 2) * (nx - 2)
-        full_total += s * ny * nx
     return {name: torch.tensor(values, device=device) for name, values in columns.items()}
 
 
-def _refine(flat_det: torch.Tensor, index: torch.Tensor, nx: torch.Tensor, plane: torch.Tensor):
-    """Quadratic fit of det around each maximum (Brown & Lowe): offset (x, y, s) in grid steps, peak value."""
-    last = flat_det.shape[1] - 1
+def _octave_reader(maps: list[torch.Tensor], octave_id: torch.Tensor, index: torch.Tensor, nx: torch.Tensor,
+                   plane: torch.Tensor) -> Callable[..., torch.Tensor]:
+    """``at(dx, dy, ds)``: each keypoint's value in its own octave's map ``(B, S, ny, nx)``, offset by whole grid
+    steps; small per-octave gathers instead of concatenating every map of the batch."""
+    flats = [m.flatten(1) for m in maps]
 
     def at(dx: int = 0, dy: int = 0, ds: int = 0) -> torch.Tensor:
-        neighbour = (index + dx + dy * nx + ds * plane).clamp(0, last)
-        return torch.gather(flat_det, 1, neighbour).to(torch.float64)
+        neighbour = index + dx + dy * nx + ds * plane
+        value = torch.gather(flats[0], 1, neighbour.clamp(0, flats[0].shape[1] - 1))
+        for o, flat in enumerate(flats[1:], start=1):
+            value = torch.where(octave_id == o, torch.gather(flat, 1, neighbour.clamp(0, flat.shape[1] - 1)), value)
+        return value.to(torch.float64)
 
+    return at
+
+
+def _refine(at: Callable[..., torch.Tensor]):
+    """Quadratic fit of det around each maximum (Brown & Lowe): offset (x, y, s) in grid steps, peak value."""
     centre = at()
     gradient = torch.stack([(at(1) - at(-1)) / 2, (at(0, 1) - at(0, -1)) / 2, (at(0, 0, 1) - at(0, 0, -1)) / 2], -1)
     dxx = at(1) + at(-1) - 2 * centre
@@ -158,16 +168,14 @@ def detect_surf_keypoints(
     col = local % inner_nx + 1
     nx, plane = tables["nx"][octave_id], tables["plane"][octave_id]
     found = torch.isfinite(top_score)
-    flat_det = torch.cat([o.det.flatten(1) for o in octaves], dim=1)
-    full_index = tables["full_offset"][octave_id] + level * plane + row * nx + col
-    offset, peak, solved = _refine(flat_det, full_index, nx, plane)
+    position = level * plane + row * nx + col  # flat index within the octave's (S, ny, nx) maps
+    offset, peak, solved = _refine(_octave_reader([o.det for o in octaves], octave_id, position, nx, plane))
     valid = found & solved & (offset.abs() <= config.max_offset).all(-1)
     step = tables["step"][octave_id].to(torch.float64)
     xy = torch.stack([(col + offset[..., 0]) * step, (row + offset[..., 1]) * step], dim=-1)
     xy = (xy + 0.5) / factor - 0.5  # pixel centres of the enlarged image back to the input's
     size = (tables["size0"][octave_id] + (level + offset[..., 2]) * tables["size_inc"][octave_id]) / factor
-    flat_trace = torch.cat([o.trace.flatten(1) for o in octaves], dim=1)
-    trace = torch.gather(flat_trace, 1, full_index)
+    trace = _octave_reader([o.trace for o in octaves], octave_id, position, nx, plane)()
     sign = torch.where(trace >= 0, 1, -1).to(torch.int64)
     return _pack(valid, xy, 1.2 * size / 9.0, peak, sign, image.dtype, config.max_keypoints)
 

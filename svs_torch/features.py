@@ -44,4 +44,4 @@ def extract_surf_features(
     keypoints = detect_surf_keypoints(image, config, mask)
     if not config.upright:
         keypoints = with_orientation(keypoints, surf_orientation(image, keypoints))
-    return SurfFeatures(keypoints, describe_surf(image, keypoints, config.extended))
+    return SurfFeatures(keypoints, describe_surf(image, keypoints, config.extended, config.compiled))

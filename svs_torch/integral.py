@@ -4,7 +4,8 @@
 ``[r0, r1) × [c0, c1)`` sums to ``I[r1, c1] − I[r0, c1] − I[r1, c0] + I[r0, c0]`` in four reads, whatever its size.
 
 Ways of reading boxes:
-- :func:`grid_box_sums`: one box shape at every point of a regular grid, by four strided slices (no gather);
+- :func:`grid_box_sums`: one box shape at every point of a regular grid, by four slices of the integral's
+  sub-lattices (no gather);
 - :func:`sample_box_means` and :func:`sample_cell_means`: boxes at real-valued centres and sizes, by
   bilinear reads of a :class:`PaddedIntegral` (exact area integrals of the pixel-constant image, smooth in
   position and size, and differentiable with respect to the image).
@@ -20,8 +21,8 @@ import torch.nn.functional as F
 from .checks import check_image
 
 __all__ = [
-    "PaddedIntegral", "integral_image", "pad_integral", "grid_box_sums", "padded_integral_image", "sample_box_means",
-    "sample_cell_means",
+    "PaddedIntegral", "grid_box_sums", "integral_image", "integral_phases", "pad_integral", "padded_integral_image",
+    "sample_box_means", "sample_cell_means",
 ]
 
 
@@ -48,25 +49,39 @@ def pad_integral(integral: torch.Tensor, pad: int) -> torch.Tensor:
     return F.pad(integral, (pad, pad, pad, pad), mode="replicate")
 
 
+def integral_phases(padded: torch.Tensor, step: int) -> list[torch.Tensor]:
+    """Split a padded integral into its ``step²`` sub-lattices ``padded[..., a::step, b::step]``, contiguous.
+
+    Reading a box at every point of a grid with spacing ``step`` then takes unit-stride slices of one phase per
+    corner: on CPU an order of magnitude faster than strided reads, for one extra pass over the table.
+    """
+    if step == 1:
+        return [padded]
+    return [padded[..., a::step, b::step].contiguous() for a in range(step) for b in range(step)]
+
+
 def grid_box_sums(
-    padded: torch.Tensor, pad: int, rows: tuple[int, int], cols: tuple[int, int], step: int, size_hw: tuple[int, int]
+    phases: list[torch.Tensor], step: int, pad: int, rows: tuple[int, int], cols: tuple[int, int],
+    size_hw: tuple[int, int],
 ) -> torch.Tensor:
     """Sum of the box ``[y + rows[0], y + rows[1]) × [x + cols[0], x + cols[1])`` at every grid point.
 
     Args:
-        padded: :func:`pad_integral` output ``(B, C, H + 1 + 2·pad, W + 1 + 2·pad)``.
-        pad: the padding used; offsets must stay within it.
-        rows, cols: box extent relative to the grid point, in pixels, end exclusive.
+        phases: :func:`integral_phases` of a :func:`pad_integral` output ``(B, C, H + 1 + 2·pad, W + 1 + 2·pad)``.
         step: grid spacing in pixels; the grid is ``y = 0, step, 2·step, …`` (likewise x).
+        pad: the padding of the integral; box offsets must stay within it.
+        rows, cols: box extent relative to the grid point, in pixels, end exclusive.
         size_hw: (ny, nx) grid points.
 
     Returns:
-        ``(B, C, ny, nx)``. Four strided slices, no gather.
+        ``(B, C, ny, nx)``. Four unit-stride slices, no gather.
     """
     ny, nx = size_hw
 
     def corner(r: int, c: int) -> torch.Tensor:
-        return padded[..., pad + r::step, pad + c::step][..., :ny, :nx]
+        phase = phases[(pad + r) % step * step + (pad + c) % step]
+        top, left = (pad + r) // step, (pad + c) // step
+        return phase[..., top:top + ny, left:left + nx]
 
     (r0, r1), (c0, c1) = rows, cols
     return corner(r1, c1) - corner(r0, c1) - corner(r1, c0) + corner(r0, c0)
