@@ -212,8 +212,9 @@ class Segmentation:
     Attributes:
         threshold: Otsu threshold ``(B,)`` on the [0, 1] scale; a pixel is foreground where ``image > threshold``.
         threshold_level: the same threshold as a 0–255 gray level ``(B,)`` int64 (OpenCV's return value).
-        binary: thresholded image ``(B, 1, H, W)`` bool.
-        opened: binary image after erosion then dilation ``(B, 1, H, W)`` bool.
+        binary: thresholded image ``(B, 1, H, W)`` bool (the Canny edge map for the Canny method).
+        opened: binary image after erosion then dilation ``(B, 1, H, W)`` bool (edges after dilation then
+            erosion for the Canny method).
         labels: connected-component labels of ``opened`` ``(B, 1, H, W)`` int64, 0 = background, 1..n
             contiguous in raster order of each region's first pixel.
         num_regions: n per image ``(B,)`` int64.
