@@ -1,0 +1,221 @@
+"""SAD matching vs a naive loop, OpenCV's brute-force matcher (random and real SIFT descriptors), and gates."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import svs_torch.matching as matching
+from svs_torch import InputError, Matches
+from svs_torch.matching import gather_matched_points, match_sad, max_sad_distance
+
+
+def random_sets(generator: torch.Generator, b: int = 3, k: int = 40, k2: int = 50, d: int = 16,
+                dtype: torch.dtype = torch.float64):
+    """Unit-L2 descriptors with padding; right set = noisy shuffled copies of the left plus distractors."""
+    left = torch.randn(b, k, d, generator=generator, dtype=dtype)
+    right = torch.randn(b, k2, d, generator=generator, dtype=dtype)
+    right[:, :k] = left + 0.1 * torch.randn(b, k, d, generator=generator, dtype=dtype)
+    right = right[:, torch.randperm(k2, generator=generator)]
+    left, right = left / left.norm(dim=-1, keepdim=True), right / right.norm(dim=-1, keepdim=True)
+    valid_left = torch.rand(b, k, generator=generator) < 0.85
+    valid_right = torch.rand(b, k2, generator=generator) < 0.85
+    return left, right, valid_left, valid_right
+
+
+def naive_match(left, right, valid_left, valid_right, max_ratio, max_cost=None, mutual=False, allowed=None):
+    """Reference: explicit loops over pairs and keypoints, NumPy float64."""
+    b, k, _ = left.shape
+    idx = np.full((b, k), -1)
+    cost = np.full((b, k), np.inf)
+    for p in range(b):
+        table = np.abs(left[p].numpy()[:, None, :].astype(np.float64) - right[p].numpy()[None].astype(np.float64))
+        table = table.sum(-1)
+        mask = valid_left[p].numpy()[:, None] & valid_right[p].numpy()[None]
+        if allowed is not None:
+            mask &= allowed[p]
+        table[~mask] = np.inf
+        for i in range(k):
+            order = np.argsort(table[i], kind="stable")
+            d1 = table[i, order[0]] if len(order) else np.inf
+            d2 = table[i, order[1]] if len(order) > 1 else np.inf
+            ok = np.isfinite(d1) and d1 <= max_ratio * d2 and d2 > 0
+            ok = ok and (max_cost is None or d1 <= max_cost)
+            ok = ok and (not mutual or np.argmin(table[:, order[0]]) == i)
+            if ok:
+                idx[p, i], cost[p, i] = order[0], d1
+    return idx, cost
+
+
+@pytest.mark.parametrize("mutual", [False, True])
+@pytest.mark.parametrize("max_ratio", [0.6, 0.9, 1.0])
+def test_matches_equal_naive_loop(max_ratio, mutual, dtype, generator):
+    left, right, valid_left, valid_right = random_sets(generator, dtype=dtype)
+    matches = match_sad(left, right, valid_left, valid_right, max_ratio=max_ratio, mutual=mutual)
+    idx, cost = naive_match(left, right, valid_left, valid_right, max_ratio, mutual=mutual)
+    assert matches.idx.dtype == torch.int64 and matches.cost.dtype == dtype
+    assert np.array_equal(matches.idx.numpy(), idx)
+    np.testing.assert_allclose(matches.cost.numpy(), cost, rtol=1e-5)
+    assert not matches.valid[~valid_left].any()
+    assert (matches.idx >= 0).sum() > 20  # the test is not vacuous
+
+
+def test_match_threshold_uses_matlab_percent(generator):
+    left, right, valid_left, valid_right = random_sets(generator, d=64)
+    assert max_sad_distance(64) == 16.0  # 2·√D for unit-L2 descriptors
+    for percent in (5.0, 10.0, 20.0):
+        matches = match_sad(left, right, valid_left, valid_right, match_threshold=percent)
+        idx, _ = naive_match(left, right, valid_left, valid_right, 0.6, max_cost=percent / 100 * 16.0)
+        assert np.array_equal(matches.idx.numpy(), idx)
+    # No unit-norm descriptor pair is farther apart than 2√D.
+    assert torch.cdist(left, right, p=1).max() <= max_sad_distance(64)
+
+
+def test_ratio_test_single_candidate_and_ties():
+    left = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [0.5, 0.5]]])
+    right = torch.tensor([[[1.0, 0.1], [0.0, 1.0], [0.0, 1.0]]])
+    valid = torch.ones(1, 3, dtype=torch.bool)
+    # SAD of keypoint 2 to the right set: 0.9, 1.0, 1.0 → ratio 0.9.
+    matches = match_sad(left, right, valid, valid, max_ratio=1.0)
+    # Keypoint 1 has two identical candidates at distance 0: ambiguous, so rejected even at ratio 1.
+    assert matches.idx.tolist() == [[0, -1, 0]]
+    assert match_sad(left, right, valid, valid, max_ratio=0.89).idx.tolist() == [[0, -1, -1]]
+    # A lone candidate passes the ratio test.
+    only_one = torch.tensor([[True, False, False]])
+    assert match_sad(left, right, valid, only_one).idx.tolist() == [[0, 0, 0]]
+
+
+def test_padding_never_matches_even_when_identical(generator):
+    left, right, valid_left, valid_right = random_sets(generator, b=1)
+    valid_right[:] = True
+    right[0, 0] = left[0, 0]  # an exact copy, but in a padding row
+    valid_right[0, 0] = False
+    valid_left[0, 0] = True
+    matches = match_sad(left, right, valid_left, valid_right, max_ratio=1.0)
+    assert (matches.idx != 0).all()
+    padded = match_sad(left, right, torch.zeros_like(valid_left), valid_right)
+    assert (padded.idx == -1).all() and torch.isinf(padded.cost).all()
+
+
+def test_laplacian_and_band_gates_equal_masked_reference(generator):
+    left, right, valid_left, valid_right = random_sets(generator)
+    sign_left = torch.where(torch.rand(3, 40, generator=generator) < 0.5, 1, -1)
+    sign_right = torch.where(torch.rand(3, 50, generator=generator) < 0.5, 1, -1)
+    xy_left = 100 * torch.rand(3, 40, 2, generator=generator, dtype=torch.float64)
+    xy_right = 100 * torch.rand(3, 50, 2, generator=generator, dtype=torch.float64)
+    allowed = (sign_left[..., None] == sign_right[:, None]).numpy()
+    allowed &= ((xy_left[..., 1, None] - xy_right[:, None, :, 1]).abs() <= 20.0).numpy()
+    matches = match_sad(left, right, valid_left, valid_right, laplacian_left=sign_left, laplacian_right=sign_right,
+                        xy_left=xy_left, xy_right=xy_right, epipolar_band_px=20.0, max_ratio=0.8)
+    idx, _ = naive_match(left, right, valid_left, valid_right, 0.8, allowed=allowed)
+    assert np.array_equal(matches.idx.numpy(), idx)
+    matched = matches.idx >= 0
+    partner = matches.idx.clamp(min=0)
+    assert (sign_right.gather(1, partner)[matched] == sign_left[matched]).all()
+    y_right = xy_right[..., 1].gather(1, partner)
+    assert ((xy_left[..., 1] - y_right).abs()[matched] <= 20.0).all()
+
+
+def test_grouping_over_pairs_changes_nothing(generator, monkeypatch):
+    left, right, valid_left, valid_right = random_sets(generator, b=5)
+    whole = match_sad(left, right, valid_left, valid_right, mutual=True)
+    monkeypatch.setattr(matching, "_MAX_ENTRIES_PER_GROUP", 1)  # one pair per group
+    grouped = match_sad(left, right, valid_left, valid_right, mutual=True)
+    assert torch.equal(whole.idx, grouped.idx) and torch.equal(whole.cost, grouped.cost)
+    single = match_sad(left[2:3], right[2:3], valid_left[2:3], valid_right[2:3], mutual=True)
+    assert torch.equal(single.idx[0], whole.idx[2])
+
+
+@pytest.mark.parametrize("k, k2", [(0, 5), (5, 0), (0, 0), (5, 1)])
+def test_empty_and_tiny_sets(k, k2):
+    left, right = torch.rand(2, k, 8), torch.rand(2, k2, 8)
+    matches = match_sad(left, right, torch.ones(2, k, dtype=torch.bool), torch.ones(2, k2, dtype=torch.bool))
+    assert matches.idx.shape == (2, k) and matches.cost.shape == (2, k)
+    if k2 == 1:
+        assert (matches.idx == 0).all()  # a single candidate always passes the ratio test
+    else:
+        assert (matches.idx == -1).all()
+
+
+def test_equals_opencv_bruteforce_ratio_test(generator):
+    """cv2.BFMatcher(NORM_L1).knnMatch(k=2) with the ratio test gives the same matches (generated with OpenCV)."""
+    left, right, _, _ = random_sets(generator, b=2, k=200, k2=300, d=64, dtype=torch.float32)
+    valid_left, valid_right = torch.ones(2, 200, dtype=torch.bool), torch.ones(2, 300, dtype=torch.bool)
+    matches = match_sad(left, right, valid_left, valid_right, max_ratio=0.7)
+    matcher = cv2.BFMatcher(cv2.NORM_L1)
+    for p in range(2):
+        expected = np.full(200, -1)
+        for first, second in matcher.knnMatch(left[p].numpy(), right[p].numpy(), k=2):
+            if first.distance <= 0.7 * second.distance:
+                expected[first.queryIdx] = first.trainIdx
+        assert np.array_equal(matches.idx[p].numpy(), expected)
+
+
+def _sift(data_dir, name: str):
+    image = cv2.imread(str(data_dir / "opencv_samples" / name), cv2.IMREAD_GRAYSCALE)
+    keypoints, descriptors = cv2.SIFT_create(nfeatures=400).detectAndCompute(image, None)
+    xy = torch.tensor([kp.pt for kp in keypoints], dtype=torch.float32)
+    return xy, torch.from_numpy(descriptors)
+
+
+def test_real_sift_matches_equal_opencv_and_gather_points(data_dir):
+    """Real SIFT descriptors of the OpenCV chessboard pair 01: same matches as OpenCV's matcher."""
+    xy_left, desc_left = _sift(data_dir, "left01.jpg")
+    xy_right, desc_right = _sift(data_dir, "right01.jpg")
+    k, k2 = len(xy_left), len(xy_right)
+    matches = match_sad(desc_left[None], desc_right[None], torch.ones(1, k, dtype=torch.bool),
+                        torch.ones(1, k2, dtype=torch.bool))
+    expected = np.full(k, -1)
+    for first, second in cv2.BFMatcher(cv2.NORM_L1).knnMatch(desc_left.numpy(), desc_right.numpy(), k=2):
+        if first.distance <= 0.6 * second.distance:
+            expected[first.queryIdx] = first.trainIdx
+    # SIFT descriptors hold small integers, so float32 SAD sums are exact and the matches agree exactly.
+    assert np.array_equal(matches.idx[0].numpy(), expected) and (expected >= 0).sum() > 30
+    points = gather_matched_points(xy_left[None], xy_right[None], matches)
+    matched = matches.valid[0]
+    assert torch.equal(points.valid, matches.valid)
+    torch.testing.assert_close(points.right[0][matched], xy_right[matches.idx[0][matched]])
+    torch.testing.assert_close(points.left[0][matched], xy_left[matched])
+    assert (points.left[0][~matched] == 0).all() and (points.right[0][~matched] == 0).all()
+
+
+def test_cost_is_differentiable_wrt_descriptors(generator):
+    left, right, _, _ = random_sets(generator, b=1, k=4, k2=5, d=3)
+    valid_left, valid_right = torch.ones(1, 4, dtype=torch.bool), torch.ones(1, 5, dtype=torch.bool)
+    left.requires_grad_()
+    right.requires_grad_()
+
+    def matched_cost(a, b):
+        cost = match_sad(a, b, valid_left, valid_right, max_ratio=1.0).cost
+        return torch.where(cost.isfinite(), cost, 0.0)
+
+    assert torch.autograd.gradcheck(matched_cost, (left, right))
+
+
+def test_gather_with_empty_right_set():
+    matches = Matches(idx=torch.full((1, 3), -1), cost=torch.full((1, 3), math.inf))
+    points = gather_matched_points(torch.rand(1, 3, 2), torch.rand(1, 0, 2), matches)
+    assert points.right.shape == (1, 3, 2) and not points.valid.any()
+
+
+def test_errors_name_the_argument():
+    desc, valid = torch.rand(2, 5, 8), torch.ones(2, 5, dtype=torch.bool)
+    with pytest.raises(InputError, match=r"desc_right: expected \(2, K2, 8\), got \(2, 5, 7\)"):
+        match_sad(desc, torch.rand(2, 5, 7), valid, valid)
+    with pytest.raises(InputError, match="valid_left: expected a bool tensor, got torch.float32"):
+        match_sad(desc, desc, valid.float(), valid)
+    with pytest.raises(InputError, match=r"max_ratio: expected a value in \(0, 1\], got 1.5"):
+        match_sad(desc, desc, valid, valid, max_ratio=1.5)
+    with pytest.raises(InputError, match="match_threshold: expected a percent"):
+        match_sad(desc, desc, valid, valid, match_threshold=0.0)
+    with pytest.raises(InputError, match="laplacian_right: expected it together with laplacian_left"):
+        match_sad(desc, desc, valid, valid, laplacian_left=torch.ones(2, 5, dtype=torch.int64))
+    with pytest.raises(InputError, match="xy_left: expected xy_left and xy_right with epipolar_band_px"):
+        match_sad(desc, desc, valid, valid, epipolar_band_px=2.0)
+    with pytest.raises(InputError, match=r"xy_right: expected \(2, 5, 2\), got \(2, 4, 2\)"):
+        match_sad(desc, desc, valid, valid, xy_left=torch.rand(2, 5, 2), xy_right=torch.rand(2, 4, 2),
+                  epipolar_band_px=2.0)
