@@ -1,0 +1,252 @@
+"""Depth stage: the paper's Eq. (5)–(9) on hand-made numbers, masking, robust statistics, per-object depth and
+the nearest obstacle, against synthetic scenes with exact ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.depth import (DepthConfig, ObstacleSide, PointDepths, accuracy_percent, estimate_depth, estimate_range,
+                             masked_quantile, nearest_obstacle, object_depths, point_depths, rectified_disparity)
+
+F64 = torch.float64
+
+
+def test_paper_range_equations_by_hand(dtype):
+    """Eq. (5)–(8): d_max = 40, d_min = 10 → R_min = f·B/40, R_max = f·B/10 (f = 500 px, B = 0.1 m)."""
+    disparity = torch.tensor([[10.0, 20.0, 40.0, 99.0], [25.0, 0.0, 0.0, 0.0]], dtype=dtype)
+    valid = torch.tensor([[True, True, True, False], [True, False, False, False]])
+    result = estimate_range(disparity, valid, 500.0, 0.1)
+    assert result.d_max_px.dtype == dtype
+    assert result.d_max_px.tolist() == [40.0, 25.0] and result.d_min_px.tolist() == [10.0, 25.0]
+    assert torch.allclose(result.r_min_m, torch.tensor([1.25, 2.0], dtype=dtype))
+    assert torch.allclose(result.r_max_m, torch.tensor([5.0, 2.0], dtype=dtype))
+    assert result.num_disparities.tolist() == [3, 1] and result.valid.tolist() == [True, True]
+    # Middlebury's doffs adds to every disparity: Z = f·B / (d + doffs); per-pair calibration as (B,) tensors.
+    shifted = estimate_range(disparity, valid, torch.tensor([500.0, 1000.0], dtype=dtype),
+                             torch.tensor([0.1, 0.2], dtype=dtype), doffs_px=10.0)
+    assert torch.allclose(shifted.r_min_m, torch.tensor([50 / 50, 200 / 35], dtype=dtype))
+    assert torch.allclose(shifted.r_max_m, torch.tensor([50 / 20, 200 / 35], dtype=dtype))
+
+
+def test_non_positive_disparities_are_masked_not_divided():
+    disparity = torch.tensor([[-3.0, 0.0, 8.0], [-1.0, 0.0, -7.0], [-5.0, 0.0, 2.0]], dtype=F64)
+    valid = torch.ones(3, 3, dtype=torch.bool)
+    depths = point_depths(disparity, valid, 400.0, 0.1, doffs_px=torch.tensor([0.0, 0.0, 6.0], dtype=F64))
+    assert depths.valid.tolist() == [[False, False, True], [False, False, False], [True, True, True]]
+    assert torch.isfinite(depths.depth_m).all() and (depths.depth_m[~depths.valid] == 0).all()
+    assert torch.allclose(depths.depth_m[2], 40.0 / torch.tensor([1.0, 6.0, 8.0], dtype=F64))
+    result = estimate_range(disparity, valid, 400.0, 0.1)
+    assert result.valid.tolist() == [True, False, True] and result.num_disparities.tolist() == [1, 0, 1]
+    assert result.d_min_px.tolist() == [8.0, 0.0, 2.0] and result.r_max_m[1] == 0 and result.r_min_m[1] == 0
+    assert torch.isfinite(result.r_min_m).all() and torch.isfinite(result.r_max_m).all()
+
+
+def test_robust_percentiles_ignore_a_same_row_outlier(generator):
+    """One wrong match on the right row (REFERENCE.md pitfall) sets the paper's d_max; the 10th/90th
+    percentiles stay near the true range."""
+    disparity = 20 + 2 * torch.rand(1, 60, generator=generator, dtype=F64)
+    disparity[0, 7] = 129.0
+    valid = torch.ones(1, 60, dtype=torch.bool)
+    paper = estimate_range(disparity, valid, 276.0, 0.1075)
+    robust = estimate_range(disparity, valid, 276.0, 0.1075, percentiles=(10, 90))
+    assert paper.d_max_px.item() == 129.0
+    assert 20 < robust.d_max_px.item() < 22 and 20 < robust.d_min_px.item() < 22
+    expected = np.percentile(disparity[0].numpy(), [10, 90])
+    assert np.allclose([robust.d_min_px.item(), robust.d_max_px.item()], expected)
+
+
+def test_masked_quantile_matches_numpy_per_row(generator):
+    values = torch.randn(5, 3, 17, generator=generator, dtype=F64)
+    valid = torch.rand(5, 3, 17, generator=generator) > 0.4
+    valid[0, 0] = False
+    valid[0, 1] = False
+    valid[0, 1, 3] = True
+    q = [0.0, 0.1, 0.5, 0.9, 1.0]
+    result = masked_quantile(values, valid, q)
+    assert result.values.shape == (5, 3, 5) and result.valid.shape == (5, 3)
+    for index in np.ndindex(5, 3):
+        row = values[index][valid[index]].numpy()
+        if row.size == 0:
+            assert not result.valid[index] and (result.values[index] == 0).all()
+        else:
+            assert np.allclose(result.values[index].numpy(), np.quantile(row, q))
+    assert masked_quantile(values[..., :0], valid[..., :0], q).values.shape == (5, 3, 5)
+    with pytest.raises(InputError, match="q: expected quantiles in"):
+        masked_quantile(values, valid, [1.5])
+
+
+def test_accuracy_equation_9():
+    real = torch.tensor([2.0, 2.0, 1.0, 0.0, 4.0], dtype=F64)
+    estimated = torch.tensor([1.9, 2.1, 1.0, 1.0, float("inf")], dtype=F64)
+    accuracy = accuracy_percent(real, estimated)
+    assert torch.allclose(accuracy.percent[:3], torch.tensor([95.0, 95.0, 100.0], dtype=F64))
+    assert accuracy.valid.tolist() == [True, True, True, False, False] and (accuracy.percent[3:] == 0).all()
+
+
+def test_rectified_disparity_applies_homographies():
+    left = torch.tensor([[[100.0, 50.0], [200.0, 80.0], [300.0, 10.0]]], dtype=F64)
+    right = left - torch.tensor([12.0, 0.0], dtype=F64)
+    valid = torch.tensor([[True, True, False]])
+    plain = rectified_disparity(left, right, valid)
+    assert plain.disparity_px.tolist() == [[12.0, 12.0, 0.0]] and plain.row_error_px.abs().max() == 0
+    shift = torch.tensor([[[1.0, 0, 3.0], [0, 1, -2.0], [0, 0, 1]]], dtype=F64)
+    shifted = rectified_disparity(left, right, valid, H_left=shift, H_right=torch.eye(3, dtype=F64)[None])
+    assert shifted.disparity_px.tolist() == [[15.0, 15.0, 0.0]] and shifted.row_error_px.tolist() == [[-2, -2, 0]]
+    behind = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [-0.008, 0, 1]]], dtype=F64)  # w ≤ 0 from x = 125 on
+    masked = rectified_disparity(left, right, torch.ones(1, 3, dtype=torch.bool), H_right=behind)
+    assert masked.valid.tolist() == [[True, False, False]]
+
+
+def _two_region_labels() -> torch.Tensor:
+    """A 30×60 left label image: label 3 in columns 2–15 (left third), label 7 in columns 44–57 (right third)."""
+    labels = torch.zeros(1, 1, 30, 60, dtype=torch.int64)
+    labels[..., 5:25, 2:16] = 3
+    labels[..., 5:25, 44:58] = 7
+    return labels
+
+
+def test_object_depths_by_hand():
+    labels = _two_region_labels()
+    region_labels = torch.tensor([[7, 3, -1]])  # slots in the segmentation's order, padded
+    points = torch.tensor([[[5.0, 10.0], [8.2, 20.4], [10.0, 6.0], [50.0, 10.0], [52.0, 24.0],
+                            [30.0, 15.0], [-4.0, 10.0], [12.0, 12.0]]], dtype=F64)
+    depth = torch.tensor([[1.0, 2.0, 3.0, 1.5, 1.7, 0.5, 0.4, 9.0]], dtype=F64)
+    valid = torch.tensor([[True, True, True, True, True, True, True, False]])
+    objects = object_depths(labels, region_labels, points, PointDepths(depth, valid), percentiles=(0, 100))
+    assert objects.label.tolist() == [[7, 3, -1]]
+    assert objects.num_inliers.tolist() == [[2, 3, 0]] and objects.valid.tolist() == [[True, True, False]]
+    assert objects.area_px.tolist() == [[280, 280, 0]]
+    assert torch.allclose(objects.centroid_x_px, torch.tensor([[50.5, 8.5, 0.0]], dtype=F64))
+    assert objects.side.tolist() == [[ObstacleSide.RIGHT, ObstacleSide.LEFT, ObstacleSide.NONE]]
+    assert torch.allclose(objects.depth_median_m, torch.tensor([[1.6, 2.0, 0.0]], dtype=F64))
+    assert objects.depth_low_m.tolist() == [[1.5, 1.0, 0.0]] and objects.depth_high_m.tolist() == [[1.7, 3.0, 0.0]]
+    assert objects.point_slot.tolist() == [[1, 1, 1, 0, 0, -1, -1, -1]]
+    nearest = nearest_obstacle(objects)
+    assert nearest.slot.tolist() == [0] and nearest.depth_m.tolist() == [1.6]
+    assert nearest.side.tolist() == [ObstacleSide.RIGHT] and nearest.valid.tolist() == [True]
+    # A minimum inlier count drops the right object; then the left one is the nearest.
+    strict = object_depths(labels, region_labels, points, PointDepths(depth, valid), min_inliers=3)
+    assert strict.valid.tolist() == [[False, True, False]]
+    assert nearest_obstacle(strict).side.tolist() == [ObstacleSide.LEFT]
+
+
+def test_centre_side_and_no_obstacle():
+    labels = torch.zeros(2, 1, 30, 60, dtype=torch.int64)
+    labels[0, :, 10:20, 25:35] = 1
+    region_labels = torch.tensor([[1], [1]])
+    points = torch.tensor([[[30.0, 15.0]], [[30.0, 15.0]]], dtype=F64)
+    depths = PointDepths(torch.tensor([[2.0], [2.0]], dtype=F64), torch.ones(2, 1, dtype=torch.bool))
+    objects = object_depths(labels, region_labels, points, depths)
+    assert objects.side.tolist() == [[ObstacleSide.CENTRE], [ObstacleSide.NONE]]
+    nearest = nearest_obstacle(objects)
+    assert nearest.valid.tolist() == [True, False] and nearest.slot.tolist() == [0, -1]
+    assert nearest.side.tolist() == [ObstacleSide.CENTRE, ObstacleSide.NONE] and nearest.depth_m.tolist() == [2, 0]
+
+
+def _sample_object_points(scenes, num_points: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+    """Exact correspondences on the obstacles: left pixel centres drawn on object pixels, right = x − d."""
+    ids = scenes.object_ids.flatten(1)
+    index = torch.multinomial((ids > 0).double(), num_points, replacement=True, generator=generator)  # (B, K)
+    width = scenes.object_ids.shape[-1]
+    left = torch.stack([index % width, index // width], -1).to(F64)
+    disparity = scenes.batch.disparity_px.flatten(1).double().gather(1, index)
+    right = left - torch.stack([disparity, torch.zeros_like(disparity)], -1)
+    return left, right
+
+
+def test_object_depths_on_synthetic_scenes(generator):
+    scenes = random_obstacle_scenes(3, 2, size_wh=(320, 240), generator=generator)
+    batch = scenes.batch
+    left, right = _sample_object_points(scenes, 200, generator)
+    inliers = torch.ones(left.shape[:2], dtype=torch.bool)
+    region_labels = torch.tensor([[1, 2]]).expand(3, 2)
+    result = estimate_depth(left, right, inliers, batch.focal_px.double(), batch.baseline_m.double(),
+                            batch.doffs_px.double(), labels=scenes.object_ids, region_labels=region_labels,
+                            image_hw=batch.image_hw, config=DepthConfig(percentiles=(10, 90)))
+    truth = scenes.object_depth_m.double()
+    assert result.objects.valid.all()
+    assert ((result.objects.depth_median_m - truth).abs() / truth).max() < 0.01
+    # The pair's range spans the two obstacles (only obstacle points were sampled).
+    assert torch.allclose(result.range.r_min_m, truth.amin(1), rtol=0.01)
+    assert torch.allclose(result.range.r_max_m, truth.amax(1), rtol=0.01)
+    nearest = truth.argmin(1)
+    assert torch.equal(result.nearest.slot, nearest)
+    centre_x = scenes.object_bbox_xyxy[..., [0, 2]].double().mean(-1).gather(1, nearest.unsqueeze(1)).squeeze(1)
+    expected_side = (centre_x >= 320 / 3).long() + (centre_x >= 2 * 320 / 3).long()
+    assert torch.equal(result.nearest.side, expected_side)
+    assert torch.allclose(result.nearest.depth_m, truth.amin(1), rtol=0.01)
+
+
+def test_batched_equals_per_pair_and_padding_is_ignored(generator):
+    scenes = random_obstacle_scenes(3, 2, size_wh=(160, 120), generator=generator)
+    left, right = _sample_object_points(scenes, 40, generator)
+    inliers = torch.rand(left.shape[:2], generator=generator) > 0.2
+    region_labels = torch.tensor([[2, 1, -1]]).expand(3, 3)
+    args = dict(focal_px=scenes.batch.focal_px.double(), baseline_m=scenes.batch.baseline_m.double())
+    batched = estimate_depth(left, right, inliers, labels=scenes.object_ids, region_labels=region_labels, **args)
+    for i in range(3):
+        single = estimate_depth(left[i:i + 1], right[i:i + 1], inliers[i:i + 1], labels=scenes.object_ids[i:i + 1],
+                                region_labels=region_labels[i:i + 1], focal_px=args["focal_px"][i:i + 1],
+                                baseline_m=args["baseline_m"][i:i + 1])
+        assert torch.allclose(single.objects.depth_median_m[0], batched.objects.depth_median_m[i])
+        assert torch.equal(single.range.r_min_m[0], batched.range.r_min_m[i])
+        assert torch.equal(single.nearest.slot[0], batched.nearest.slot[i])
+    garbage = torch.rand(3, 9, 2, generator=generator, dtype=F64) * 100
+    padded = estimate_depth(torch.cat([left, garbage], 1), torch.cat([right, garbage - 50], 1),
+                            torch.cat([inliers, torch.zeros(3, 9, dtype=torch.bool)], 1),
+                            labels=scenes.object_ids, region_labels=region_labels, **args)
+    for field in ("depth_median_m", "depth_low_m", "depth_high_m", "num_inliers"):
+        assert torch.equal(getattr(padded.objects, field), getattr(batched.objects, field))
+    assert torch.equal(padded.range.r_max_m, batched.range.r_max_m)
+    assert (padded.objects.point_slot[:, 40:] == -1).all()
+
+
+def test_gradients():
+    disparity = torch.tensor([[10.0, 14.0, 23.0, 31.0, 40.0]], dtype=F64, requires_grad=True)
+    valid = torch.tensor([[True, True, True, False, True]])
+
+    def ranges(disparity: torch.Tensor, focal: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        result = estimate_range(disparity, valid, focal, 0.1, percentiles=(20, 70))
+        return result.r_min_m, result.r_max_m
+
+    focal = torch.tensor([500.0], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(ranges, (disparity, focal))
+    assert torch.autograd.gradcheck(lambda d: point_depths(d, valid, 500.0, 0.1, 2.0).depth_m, (disparity,))
+
+
+def test_empty_sets():
+    """K = 0 correspondences and N = 0 region slots give invalid results, not errors."""
+    labels = _two_region_labels()
+    empty_points = torch.zeros(1, 0, 2, dtype=F64)
+    result = estimate_depth(empty_points, empty_points, torch.zeros(1, 0, dtype=torch.bool), 500.0, 0.1,
+                            labels=labels, region_labels=torch.tensor([[3, 7]]))
+    assert result.range.valid.tolist() == [False] and result.objects.num_inliers.tolist() == [[0, 0]]
+    assert result.objects.area_px.tolist() == [[280, 280]] and result.nearest.valid.tolist() == [False]
+    points = torch.tensor([[[5.0, 10.0]]], dtype=F64)
+    no_slots = estimate_depth(points, points - torch.tensor([4.0, 0.0], dtype=F64), torch.ones(1, 1, dtype=torch.bool),
+                              500.0, 0.1, labels=labels, region_labels=torch.zeros(1, 0, dtype=torch.int64))
+    assert no_slots.objects.valid.shape == (1, 0) and no_slots.objects.point_slot.tolist() == [[-1]]
+    assert no_slots.nearest.slot.tolist() == [-1] and no_slots.nearest.side.tolist() == [ObstacleSide.NONE]
+    assert no_slots.range.r_min_m.tolist() == [12.5]
+
+
+def test_input_errors():
+    points = torch.zeros(2, 5, 2)
+    with pytest.raises(InputError, match=r"points_right: expected \(B, K, 2\), got \(2, 5, 3\)"):
+        rectified_disparity(points, torch.zeros(2, 5, 3), torch.ones(2, 5, dtype=torch.bool))
+    with pytest.raises(InputError, match="valid: expected a bool tensor"):
+        point_depths(torch.zeros(2, 5), torch.ones(2, 5), 500.0, 0.1)
+    with pytest.raises(InputError, match=r"focal_px: expected a scalar or \(2,\)"):
+        point_depths(torch.zeros(2, 5), torch.ones(2, 5, dtype=torch.bool), torch.ones(3), 0.1)
+    with pytest.raises(InputError, match="region_labels: expected it together with labels"):
+        estimate_depth(points, points, torch.ones(2, 5, dtype=torch.bool), 500.0, 0.1,
+                       labels=torch.zeros(2, 1, 4, 4, dtype=torch.int64))
+    with pytest.raises(InputError, match=r"percentiles: expected \(low, high\) with 0 <= low <= high <= 100"):
+        estimate_range(torch.zeros(2, 5), torch.ones(2, 5, dtype=torch.bool), 500.0, 0.1, percentiles=(90, 10))
+    with pytest.raises(InputError, match=r"labels: expected \(B, 1, H, W\)"):
+        object_depths(torch.zeros(2, 4, 4, dtype=torch.int64), torch.ones(2, 1, dtype=torch.int64), points,
+                      PointDepths(torch.zeros(2, 5), torch.ones(2, 5, dtype=torch.bool)))
