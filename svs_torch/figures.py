@@ -17,8 +17,8 @@ from .checks import InputError
 from .types import Segmentation
 
 __all__ = [
-    "PALETTE_BGR", "compose_grid", "gray_to_bgr", "matches_figure", "segmentation_panels", "titled_panel",
-    "write_image_atomic",
+    "PALETTE_BGR", "compose_grid", "estimate_figure", "gray_to_bgr", "labels_image", "matches_figure",
+    "segmentation_panels", "titled_panel", "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -143,3 +143,47 @@ def matches_figure(left: torch.Tensor, right: torch.Tensor, keypoints, pairs: li
                  cv2.LINE_AA)
     return titled_panel(canvas, f"{int(keypoints.valid[0].sum())} + {int(keypoints.valid[1].sum())} keypoints, "
                                 f"{len(pairs)} matches")
+
+
+def labels_image(seg: Segmentation, index: int, factors: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """uint8 label image of the kept regions of image ``index``: 0 background, 1..N largest first, resized
+    (nearest) by ``factors`` (x, y) back to the input image's pixel grid."""
+    labels = seg.labels[index, 0]
+    out = torch.zeros_like(labels, dtype=torch.uint8)
+    for rank, label in enumerate(seg.kept_labels[index].tolist(), start=1):
+        if label > 0:
+            out[labels == label] = rank
+    image = out.cpu().numpy()
+    h, w = image.shape
+    size = (int(round(w * factors[0])), int(round(h * factors[1])))
+    if size != (w, h):
+        image = cv2.resize(image, size, interpolation=cv2.INTER_NEAREST)
+    return image
+
+
+def estimate_figure(batch, result, index: int) -> np.ndarray:
+    """The pipeline on one pair: kept objects with their depths, and the matches (inliers green, outliers red)."""
+    seg = result.segmentation
+    objects = result.depth.objects
+    left_panel = _objects_panel(batch.left, seg.left, index)
+    for slot, label in enumerate(seg.left.kept_labels[index].tolist()):
+        if label < 0 or not bool(objects.valid[index, slot]):
+            continue
+        cx, cy = seg.left.regions.centroid_xy[index, label - 1].tolist()
+        text = f"{float(objects.depth_median_m[index, slot]):.2f} m"
+        cv2.putText(left_panel, text, (int(cx) - 20, int(cy)), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2,
+                    cv2.LINE_AA)
+        cv2.putText(left_panel, text, (int(cx) - 20, int(cy)), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+    kp_left, kp_right = result.features_left.keypoints, result.features_right.keypoints
+    both = type(kp_left)(*(torch.stack([getattr(kp_left, f)[index], getattr(kp_right, f)[index]])
+                           for f in ("xy", "scale", "score", "laplacian_sign", "orientation", "valid")))
+    idx = result.matches.idx[index].tolist()
+    pairs = [[i, j] for i, j in enumerate(idx) if j >= 0]
+    inlier = [bool(result.fundamental.inliers[index, i]) for i, _ in pairs]
+    matches = matches_figure(seg.left.masked[index, 0], seg.right.masked[index, 0], both, pairs, inlier)
+    nearest = result.depth.nearest
+    title = "no obstacle ranged"
+    if bool(nearest.valid[index]):
+        title = f"nearest obstacle {float(nearest.depth_m[index]):.2f} m"
+    return compose_grid([[titled_panel(left_panel, f"left: kept objects, median depth; {title}")], [matches]])

@@ -105,21 +105,24 @@ def test_usage_errors_exit_non_zero(capsys):
     assert main([]) == 2
 
 
-def test_demo_segments_the_synthetic_obstacles(capsys, tmp_path):
+def test_demo_ranges_the_synthetic_obstacles(capsys, tmp_path):
     figure = tmp_path / "demo.png"
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure), "--json", "--seed", "3")
     assert code == 0 and figure.is_file()
     report = json.loads(out)
+    assert report["status"] == "OK"
     assert len(report["truth"]) == 2 and all(1.0 <= t["depth_m"] <= 2.0 for t in report["truth"])
-    found = report["left"]["objects"]
-    # The two kept regions are the two obstacles, found almost exactly, at their true depths.
+    found = report["objects"]
+    # The two kept regions are the two obstacles, found almost exactly, and ranged within 2 % of the truth.
     assert sorted(o["true_object"] for o in found) == [1, 2]
     truth = {t["object"]: t["depth_m"] for t in report["truth"]}
     for obj in found:
         assert obj["iou"] > 0.9
         assert obj["median_true_depth_m"] == pytest.approx(truth[obj["true_object"]], abs=0.01)
+        assert obj["depth_m"] == pytest.approx(obj["median_true_depth_m"], rel=0.02)
+    assert report["nearest_m"] == pytest.approx(min(truth.values()), rel=0.02)
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure))
-    assert code == 0 and "true obstacle 1" in out and "left #1 covers true obstacle" in out
+    assert code == 0 and "true obstacle 1" in out and "estimated" in out and "nearest obstacle" in out
 
 
 def test_features_json_in_input_pixels_and_plot(data_dir, capsys, tmp_path):

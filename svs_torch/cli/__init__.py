@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import capture, demo, features, segment
+from . import capture, demo, estimate, features, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -23,7 +23,8 @@ matrix by RANSAC, and range the obstacles from disparity (R = f·B/d).
 
 EPILOG = """\
 examples:
-  svs-depth demo                          render a synthetic SVS scene and segment it (no camera needed)
+  svs-depth demo                          render a synthetic SVS scene, range its obstacles (no camera needed)
+  svs-depth estimate left.png right.png   distance to the obstacles of a stereo pair
   svs-depth segment left.png right.png    segment a stereo pair, print the obstacles found
   svs-depth segment L.png R.png --json    the same as JSON, for scripts
   svs-depth segment L.png R.png --out seg.png --kernel-size 7 --keep 3
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, segment, features, capture):
+    for module in (demo, estimate, segment, features, capture):
         module.add_parser(subparsers)
     return parser
 

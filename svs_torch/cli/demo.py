@@ -10,9 +10,9 @@ HELP = "render a synthetic SVS scene, run the pipeline on it, compare with the t
 
 DESCRIPTION = """\
 Render a synthetic scene as the SVS would see it (3.6 mm lenses, 10.75 cm baseline): textured obstacles at
-1-2 m in front of a wall, left and right views with exact ground-truth depth. Then run the pipeline that
-exists so far (segmentation, Sec. 3.2) on both views, print what it found next to the truth, and write a
-figure of every step.
+1-2 m in front of a wall, left and right views with exact ground-truth depth. Then run the whole pipeline
+(segmentation, SURF, SAD matching, RANSAC, rectification, depth) on the pair, print the true and the
+estimated depth of every obstacle, and write a figure of every step.
 """
 
 
@@ -58,54 +58,48 @@ def run(args: argparse.Namespace) -> int:
 
     from ..camera import parse_size
     from ..data.synthetic import random_obstacle_scenes
-    from ..figures import compose_grid, gray_to_bgr, segmentation_panels, titled_panel, write_image_atomic
-    from ..segmentation import segment_stereo
-    from .segment import format_report, image_report
+    from ..figures import compose_grid, estimate_figure, gray_to_bgr, segmentation_panels, titled_panel
+    from ..figures import write_image_atomic
+    from ..pipeline import estimate_obstacle_depth
+    from .estimate import format_report, pair_report
 
     width, height = parse_size(args.size)
     generator = torch.Generator().manual_seed(args.seed)
     scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
     batch = scenes.batch
     started = time.perf_counter()
-    seg = segment_stereo(batch)
+    result = estimate_obstacle_depth(batch)
     elapsed = time.perf_counter() - started
-
+    report = pair_report(result, 0, (1.0, 1.0), elapsed)
     truth = [
         {"object": k + 1, "depth_m": round(float(scenes.object_depth_m[0, k]), 3),
          "bbox_xyxy": [int(v) for v in scenes.object_bbox_xyxy[0, k].tolist()]}
         for k in range(scenes.object_depth_m.shape[1]) if bool(scenes.object_valid[0, k])
     ]
-    left, right = image_report(seg.left, 0), image_report(seg.right, 0)
-    matches = _truth_of_objects(scenes, seg.left)
-    for obj, match in zip(left["objects"], matches):
+    for obj, match in zip(report["objects"], _truth_of_objects(scenes, result.segmentation.left)):
         obj.update({k: v for k, v in match.items() if k != "label"})
 
     disparity = batch.disparity_px[0, 0]
-    scale = float(disparity.max()) or 1.0
-    gt_panel = (disparity / scale).clamp(0, 1).view(1, 1, height, width)
-
+    gt_panel = (disparity / (float(disparity.max()) or 1.0)).clamp(0, 1)
+    seg = result.segmentation
     figure = compose_grid([
-        segmentation_panels(batch.left, seg.left, 0, "left"),
-        segmentation_panels(batch.right, seg.right, 0, "right"),
-        [titled_panel(gray_to_bgr(gt_panel[0, 0]), "true disparity (bright = near)")],
+        segmentation_panels(batch.left, seg.left, 0, "left") + [titled_panel(gray_to_bgr(gt_panel), "true disparity")],
+        [estimate_figure(batch, result, 0)],
     ])
     write_image_atomic(args.out, figure)
-
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}
     if args.json:
-        print(json.dumps({"seed": args.seed, "camera": camera, "truth": truth, "left": left, "right": right,
-                          "time_s": round(elapsed, 6), "figure": args.out}))
+        print(json.dumps({"seed": args.seed, "camera": camera, "truth": truth, **report, "figure": args.out}))
         return 0
     print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
           f"baseline {camera['baseline_m'] * 100:.2f} cm")
     for obj in truth:
         print(f"  true obstacle {obj['object']}: {obj['depth_m']:.2f} m, box {obj['bbox_xyxy']}")
-    for line in format_report("left", left) + format_report("right", right):
-        print(line)
-    for rank, obj in enumerate(left["objects"], start=1):
-        print(f"  left #{rank} covers true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}), "
-              f"true depth there {obj['median_true_depth_m']:.2f} m")
-    print(f"segmented both views in {elapsed * 1e3:.1f} ms; figure written to {args.out}")
-    print("(features, matching, RANSAC and ranging arrive with the next pipeline stages)")
+    print("\n".join(format_report(report)))
+    for obj in report["objects"]:
+        estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
+        print(f"  object {obj['label']} is true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}): "
+              f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
+    print(f"figure written to {args.out}")
     return 0

@@ -1,0 +1,216 @@
+"""``svs-depth estimate``: the distance to the obstacles of a stereo pair (or of many pairs, in batches)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from .features import add_feature_options, add_pair_options
+from .segment import add_segmentation_options, config_from_args
+
+HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
+
+DESCRIPTION = """\
+Run the whole pipeline on a stereo pair: segment the obstacles (Otsu, opening, the largest regions), SURF
+features, SAD matching, fundamental matrix by RANSAC, rectification, and range the obstacles from the
+disparity of the inliers: R_min = f*B/d_max and R_max = f*B/d_min (paper Eq. (5)-(8)), and the median depth of
+each kept object, the nearest one and its side (left / centre / right).
+
+Without calibration options the SVS camera model is assumed: 3.6 mm lens on a 4.17 mm sensor (focal 276 px at
+320x240, scaled with the image width) and a 10.75 cm baseline. Give --focal-px for the INPUT image size.
+"""
+
+EPILOG = """\
+examples:
+  svs-depth estimate left.png right.png
+  svs-depth estimate left.png right.png --size 320x240 --plot out.png --masks-out labels.png
+  svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
+  svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "estimate", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("left", nargs="?", help="left image file")
+    parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
+    parser.add_argument("--pairs", metavar="LIST.txt", help="run many pairs: a file with one 'LEFT RIGHT' per line")
+    parser.add_argument("--batch-size", type=int, default=16, help="pairs per batch with --pairs (default: 16)")
+    parser.add_argument("--focal-px", type=float, help="focal length of the input images, pixels")
+    parser.add_argument("--baseline-m", type=float, help="stereo baseline, metres (default: SVS 0.1075)")
+    parser.add_argument("--doffs-px", type=float, default=0.0, help="principal-point offset cx_right - cx_left")
+    add_pair_options(parser)
+    add_segmentation_options(parser)
+    parser.add_argument("--canny", action="store_true", help="segment with Canny edges (the paper's comparison)")
+    add_feature_options(parser)
+    parser.add_argument("--seed", type=int, default=0, help="RANSAC seed (default: 0)")
+    parser.add_argument("--plot", metavar="FIG.png", help="figure: segmentation, matches (inliers/outliers), depths")
+    parser.add_argument("--masks-out", metavar="LABELS.png",
+                        help="kept objects of the left image as a uint8 label PNG (0 background, 1..N)")
+    parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines)")
+    parser.set_defaults(func=run)
+
+
+def pipeline_config_from_args(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from ..pipeline import PipelineConfig
+    from .features import surf_config_from_args
+
+    segmentation = config_from_args(args)
+    if args.canny:
+        segmentation = replace(segmentation, method="canny")
+    return PipelineConfig(segmentation=segmentation, surf=surf_config_from_args(args), max_ratio=args.max_ratio,
+                          seed=args.seed)
+
+
+def _read_pair_list(path: str) -> list[tuple[str, str]]:
+    from ..checks import InputError
+
+    list_path = Path(path)
+    if not list_path.is_file():
+        raise InputError(f"pairs: file not found: {path}")
+    pairs = []
+    for number, line in enumerate(list_path.read_text().splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise InputError(f"pairs: line {number} of {path}: expected 'LEFT RIGHT', got {line!r}")
+        base = list_path.parent
+        pairs.append(tuple(str(p if Path(p).is_absolute() else base / p) for p in parts))
+    if not pairs:
+        raise InputError(f"pairs: no pair listed in {path}")
+    return pairs
+
+
+def _load(left: str, right: str, args: argparse.Namespace):
+    """One pair with the calibration options, resampled to --size; and the working→input pixel factors."""
+    from ..camera import parse_size
+    from ..data import load_image_pair, resize_stereo_batch
+
+    batch = load_image_pair(left, right, focal_px=args.focal_px, baseline_m=args.baseline_m, doffs_px=args.doffs_px)
+    if not args.size:
+        return batch, (1.0, 1.0)
+    height, width = batch.size_hw
+    new_w, new_h = parse_size(args.size, "size")
+    return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
+
+
+def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
+    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
+    from ..depth import ObstacleSide
+    from ..pipeline import PipelineStatus
+
+    rng, objects = result.depth.range, result.depth.objects
+    regions = result.segmentation.left.regions
+    fx, fy = factors
+
+    def number(value, valid) -> float | None:
+        return round(float(value), 4) if bool(valid) else None
+
+    report_objects = []
+    for slot, label in enumerate(result.segmentation.left.kept_labels[index].tolist()):
+        if label < 0:
+            continue
+        x0, y0, x1, y1 = regions.bbox_xyxy[index, label - 1].tolist()
+        report_objects.append({
+            "label": slot + 1,
+            "area_px": int(round(int(regions.area_px[index, label - 1]) * fx * fy)),
+            "bbox_xyxy": [int(round(x0 * fx)), int(round(y0 * fy)), int(round(x1 * fx)), int(round(y1 * fy))],
+            "depth_m": number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
+            "depth_p10_m": number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
+            "depth_p90_m": number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
+            "num_inliers": int(objects.num_inliers[index, slot]),
+            "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
+        })
+    nearest = result.depth.nearest
+    return {
+        "status": PipelineStatus(int(result.status[index])).name,
+        "r_min_m": number(rng.r_min_m[index], rng.valid[index]),
+        "r_max_m": number(rng.r_max_m[index], rng.valid[index]),
+        "d_min_px": number(rng.d_min_px[index], rng.valid[index]),
+        "d_max_px": number(rng.d_max_px[index], rng.valid[index]),
+        "nearest_m": number(nearest.depth_m[index], nearest.valid[index]),
+        "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
+        "objects": report_objects,
+        "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
+        "num_matches": int(result.num_matches[index]),
+        "num_inliers": int(result.num_inliers[index]),
+        "rectified": bool(result.rectified[index]),
+        "time_s": round(elapsed_s, 6),
+    }
+
+
+def format_report(report: dict) -> list[str]:
+    lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
+             f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
+    if report["r_min_m"] is not None:
+        lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
+                     f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px)")
+    for obj in report["objects"]:
+        depth = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
+        lines.append(f"  object {obj['label']}: {depth} ({obj['num_inliers']} inliers), {obj['side']}, "
+                     f"{obj['area_px']} px, box {obj['bbox_xyxy']}")
+    if report["nearest_m"] is not None:
+        lines.append(f"  nearest obstacle: {report['nearest_m']:.2f} m, {report['nearest_side']}")
+    return lines
+
+
+def _write_outputs(args, batch, result, factors) -> None:
+    from ..figures import estimate_figure, labels_image, write_image_atomic
+
+    if args.plot:
+        write_image_atomic(args.plot, estimate_figure(batch, result, 0))
+    if args.masks_out:
+        write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors))
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..checks import InputError
+    from ..pipeline import estimate_obstacle_depth
+
+    config = pipeline_config_from_args(args)
+    if args.pairs:
+        if args.left or args.right or args.plot or args.masks_out:
+            raise InputError("pairs: give either LEFT RIGHT or --pairs (--plot and --masks-out need one pair)")
+        return _run_many(args, config)
+    if not (args.left and args.right):
+        raise InputError("left, right: expected two image files (or --pairs LIST.txt)")
+    batch, factors = _load(args.left, args.right, args)
+    started = time.perf_counter()
+    result = estimate_obstacle_depth(batch, config)
+    report = pair_report(result, 0, factors, time.perf_counter() - started)
+    _write_outputs(args, batch, result, factors)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print("\n".join(format_report(report)))
+    return 0
+
+
+def _run_many(args: argparse.Namespace, config) -> int:
+    from ..data import collate_stereo_batches
+    from ..pipeline import estimate_obstacle_depth
+
+    pairs = _read_pair_list(args.pairs)
+    done = 0
+    for start in range(0, len(pairs), max(1, args.batch_size)):
+        chunk = pairs[start:start + args.batch_size]
+        loaded = [_load(left, right, args) for left, right in chunk]
+        # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
+        batch = collate_stereo_batches([b for b, _ in loaded], mode="pad")
+        started = time.perf_counter()
+        result = estimate_obstacle_depth(batch, config)
+        per_pair = (time.perf_counter() - started) / len(chunk)
+        for i, ((left, right), (_, factors)) in enumerate(zip(chunk, loaded)):
+            report = {"left": left, "right": right, **pair_report(result, i, factors, per_pair)}
+            print(json.dumps(report) if args.json else "\n".join([f"{left} {right}"] + format_report(report)))
+        done += len(chunk)
+        print(f"\r{done}/{len(pairs)} pairs", end="" if done < len(pairs) else "\n", file=sys.stderr, flush=True)
+    return 0
