@@ -9,6 +9,11 @@ runs, min-max spread, thread count recorded; JSON with metadata.
 
 from __future__ import annotations
 
+import os
+
+# Idle OpenMP threads that spin while another process holds the cores slow torch 10-30x on a shared machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import argparse
 import json
 import sys

@@ -9,6 +9,11 @@ images in the same run. Prints a table and writes JSON with the run's metadata.
 
 from __future__ import annotations
 
+import os
+
+# Idle OpenMP threads that spin while another process holds the cores slow torch 10-30x on a shared machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import argparse
 import json
 import platform
@@ -98,7 +103,8 @@ def metadata(threads: int) -> dict:
         commit = "unknown"
     return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
             "numpy": np.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
-            "threads": threads, "size_wh": list(SIZE_WH)}
+            "threads": threads, "size_wh": list(SIZE_WH), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "load_average": os.getloadavg()}
 
 
 def main() -> None:

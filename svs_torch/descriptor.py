@@ -60,26 +60,18 @@ def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) ->
     return padded_integral_image(image, max(0, math.ceil(float(beyond))) + 2)
 
 
-def _patch_means(integral: PaddedIntegral, keypoints: Keypoints, upright: bool) -> torch.Tensor:
-    """``(B, K, 21, 21)`` means of s × s cells on the keypoint's (rotated) grid, cell (i, j) centred at
-    ``xy + s · R(θ) · (j − 10, i − 10)``."""
+def _rotated_patch_means(integral: PaddedIntegral, keypoints: Keypoints) -> torch.Tensor:
+    """``(B, K, 21, 21)`` means of s × s cells on the keypoint's rotated grid, cell (i, j) centred at
+    ``xy + s · R(θ) · (j − 10, i − 10)`` (axis-aligned boxes at the rotated centres, as Bay et al.)."""
     b, k = keypoints.scale.shape
     dtype = integral.table.dtype
-    device = integral.table.device
-    scale = keypoints.scale.to(dtype).clamp(min=1e-3)[..., None]  # (B, K, 1)
-    x, y = keypoints.xy[..., 0:1].to(dtype), keypoints.xy[..., 1:2].to(dtype)
-    if upright:
-        # Upright: the cells tile an axis-aligned lattice and share their corners.
-        edges = torch.arange(_PATCH + 2, dtype=dtype, device=device) - (_PATCH + 1) / 2  # −10.5 … 10.5
-        return sample_cell_means(integral, x + scale * edges, y + scale * edges)
-    offsets = torch.arange(_PATCH + 1, dtype=dtype, device=device) - _PATCH / 2  # −10 … 10
+    offsets = torch.arange(_PATCH + 1, dtype=dtype, device=integral.table.device) - _PATCH / 2  # −10 … 10
     v, u = torch.meshgrid(offsets, offsets, indexing="ij")  # rows, columns
-    scale, x, y = scale[..., None], x[..., None], y[..., None]
+    scale = keypoints.scale.to(dtype).clamp(min=1e-3)[..., None, None]
+    x, y = keypoints.xy[..., 0, None, None].to(dtype), keypoints.xy[..., 1, None, None].to(dtype)
     cos = torch.cos(keypoints.orientation.to(dtype))[..., None, None]
     sin = torch.sin(keypoints.orientation.to(dtype))[..., None, None]
-    cx = x + scale * (cos * u - sin * v)
-    cy = y + scale * (sin * u + cos * v)
-    centres = torch.stack([cx, cy], dim=-1).view(b, -1, 2)
+    centres = torch.stack([x + scale * (cos * u - sin * v), y + scale * (sin * u + cos * v)], dim=-1).view(b, -1, 2)
     half = (scale / 2).expand(b, k, _PATCH + 1, _PATCH + 1).reshape(b, -1)
     return sample_box_means(integral, centres, half).view(b, k, _PATCH + 1, _PATCH + 1)
 
@@ -145,16 +137,34 @@ def describe_surf(
     """
     _check_keypoints(image, keypoints)
     b, k = keypoints.valid.shape
+    if not bool((keypoints.orientation != 0).any()):
+        return _describe_upright(image, keypoints, extended, compiled)
     # Work on the rows up to the last valid one of any image: detectors pad at the end, often by half.
     rows = torch.arange(1, k + 1, device=keypoints.valid.device)
     used = int((keypoints.valid * rows).amax()) if k else 0
     head = _take_rows(keypoints, used)
-    # Cells reach 10.5·s from the keypoint along each axis, 10.5·√2·s when rotated.
-    upright = not bool((head.orientation != 0).any())
-    integral = _padded_integral(image, head, 10.5 if upright else 10.5 * math.sqrt(2))
-    patch = _patch_means(integral, head, upright)  # (B, used, 21, 21)
+    integral = _padded_integral(image, head, 10.5 * math.sqrt(2))  # rotated cells reach 10.5·√2·s
+    patch = _rotated_patch_means(integral, head)  # (B, used, 21, 21)
     descriptor = _descriptor_function(compiled)(patch, head.valid, extended).to(image.dtype)
     return torch.cat([descriptor, descriptor.new_zeros(b, k - used, descriptor.shape[-1])], dim=1)
+
+
+def _describe_upright(image: torch.Tensor, keypoints: Keypoints, extended: bool, compiled: bool) -> torch.Tensor:
+    """U-SURF on the valid keypoints only, gathered from all images into one ragged set (images differ in
+    how many keypoints they have; padding rows are never sampled)."""
+    b, k = keypoints.valid.shape
+    image_index, row = keypoints.valid.nonzero(as_tuple=True)
+    integral = _padded_integral(image, keypoints, 10.5)  # cells reach 10.5·s along each axis
+    dtype = integral.table.dtype
+    scale = keypoints.scale[image_index, row].to(dtype).clamp(min=1e-3).unsqueeze(-1)  # (P, 1)
+    xy = keypoints.xy[image_index, row].to(dtype)
+    edges = torch.arange(_PATCH + 2, dtype=dtype, device=image.device) - (_PATCH + 1) / 2  # −10.5 … 10.5
+    patch = sample_cell_means(integral, image_index, xy[:, 0:1] + scale * edges, xy[:, 1:2] + scale * edges)
+    flat = _descriptor_function(compiled)(patch.unsqueeze(0), torch.ones_like(row, dtype=torch.bool)[None],
+                                          extended)[0]
+    out = flat.new_zeros(b, k, flat.shape[-1])
+    out[image_index, row] = flat
+    return out.to(image.dtype)
 
 
 def _take_rows(keypoints: Keypoints, count: int) -> Keypoints:

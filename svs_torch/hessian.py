@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .integral import grid_box_sums, integral_image, integral_phases, pad_integral
+from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
 __all__ = ["HessianOctave", "filter_sizes", "hessian_octaves"]
 
@@ -56,40 +56,53 @@ class HessianOctave:
     step: int
 
 
-def _level_det_trace(phases: list[torch.Tensor], step: int, pad: int, size: int, ny: int, nx: int):
-    """det(H) (Bay Eq. (4)) and trace Dxx + Dyy of one filter size at every grid point ``(B, 1, ny, nx)``.
+def _level_corners(phases: list[torch.Tensor], step: int, pad: int, size: int,
+                   grid_hw: tuple[int, int]) -> list[torch.Tensor]:
+    """The 32 integral-image views (4 corners × 8 boxes) of one filter size at every grid point.
 
-    Boxes are relative to the centre pixel; when compiled, the 32 integral reads fuse into one pass.
+    Boxes are relative to the centre pixel: Dxx is the whole (2l − 1) × 3l band and its middle lobe (weights
+    +1 and −3 give the +1, −2, +1 lobes), Dyy the same transposed, Dxy four l × l boxes around a one-pixel gap.
     """
-    grid_hw = (ny, nx)
     lobe = size // 3
     half = size // 2  # the filter spans centre − half … centre + half
     long_rows = (-(lobe - 1), lobe)  # 2l − 1 pixels, centred
     outer = (-half, half + 1)  # all three lobes
     centre = (-(lobe // 2), lobe // 2 + 1)  # the middle lobe
-    area_xx = (2 * lobe - 1) * lobe
-    # Dxx: whole (2l − 1) × 3l band minus three times its middle lobe = +1, −2, +1 lobes.
-    dxx = (grid_box_sums(phases, step, pad, long_rows, outer, grid_hw)
-           - 3 * grid_box_sums(phases, step, pad, long_rows, centre, grid_hw)) / area_xx
-    dyy = (grid_box_sums(phases, step, pad, outer, long_rows, grid_hw)
-           - 3 * grid_box_sums(phases, step, pad, centre, long_rows, grid_hw)) / area_xx
     before, after = (-lobe, 0), (1, lobe + 1)  # l pixels on each side of a one-pixel gap
-    dxy = (grid_box_sums(phases, step, pad, before, before, grid_hw)
-           - grid_box_sums(phases, step, pad, before, after, grid_hw)
-           - grid_box_sums(phases, step, pad, after, before, grid_hw)
-           + grid_box_sums(phases, step, pad, after, after, grid_hw)) / (lobe * lobe)
+    boxes = [(long_rows, outer), (long_rows, centre), (outer, long_rows), (centre, long_rows),
+             (before, before), (before, after), (after, before), (after, after)]
+    return [view for rows, cols in boxes for view in grid_box_corners(phases, step, pad, rows, cols, grid_hw)]
+
+
+def _det_trace(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_dxy_area: float):
+    """det(H) = Dxx·Dyy − (0.9·Dxy)² (Bay Eq. (4)) and the trace Dxx + Dyy from the 32 corner views; each box
+    normalised by its own area."""
+    box = [corners[4 * i] - corners[4 * i + 1] - corners[4 * i + 2] + corners[4 * i + 3] for i in range(8)]
+    dxx = (box[0] - 3 * box[1]) * inverse_lobe_area
+    dyy = (box[2] - 3 * box[3]) * inverse_lobe_area
+    dxy = (box[4] - box[5] - box[6] + box[7]) * inverse_dxy_area
     return dxx * dyy - (DXY_WEIGHT * dxy) ** 2, dxx + dyy
+
+
+def _level_into(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_dxy_area: float,
+                det_out: torch.Tensor, trace_out: torch.Tensor) -> None:
+    """:func:`_det_trace` written into slices of the octave's stacked maps: when compiled, one fused pass over
+    the corner views that writes the level in place (no separate stacking copy)."""
+    det, trace = _det_trace(corners, inverse_lobe_area, inverse_dxy_area)
+    det_out.copy_(det)
+    trace_out.copy_(trace)
 
 
 _COMPILED: dict[str, Callable] = {}
 
 
 def _level_function(compiled: bool) -> Callable:
-    """The per-level kernel, eager or through ``torch.compile`` (one dynamic-shape graph for every level)."""
+    """The per-level arithmetic, eager or through ``torch.compile`` (one dynamic-shape graph for every level and
+    octave: the slicing happens outside, so filter sizes and offsets never reach the graph)."""
     if not compiled:
-        return _level_det_trace
+        return _level_into
     if "level" not in _COMPILED:
-        _COMPILED["level"] = torch.compile(_level_det_trace, dynamic=True)
+        _COMPILED["level"] = torch.compile(_level_into, dynamic=True)
     return _COMPILED["level"]
 
 
@@ -135,15 +148,16 @@ def hessian_octaves(
         grid_hw = ((h + step - 1) // step, (w + step - 1) // step)
         phases = integral_phases(padded, step)
         sizes = filter_sizes(octave, num_scale_levels)
-        dets, traces, inside = [], [], []
-        for size in sizes:
-            det, trace = level(phases, step, pad, size, *grid_hw)
-            dets.append(det)
-            traces.append(trace)
-            inside.append(_inside(size, step, grid_hw, (h, w), image.device))
+        det = image.new_empty(image.shape[0], len(sizes), *grid_hw)
+        trace = torch.empty_like(det)
+        for i, size in enumerate(sizes):
+            lobe = size // 3
+            level(_level_corners(phases, step, pad, size, grid_hw), 1.0 / ((2 * lobe - 1) * lobe), 1.0 / lobe**2,
+                  det[:, i:i + 1], trace[:, i:i + 1])
+        inside = [_inside(size, step, grid_hw, (h, w), image.device) for size in sizes]
         octaves.append(HessianOctave(
-            det=torch.cat(dets, dim=1),
-            trace=torch.cat(traces, dim=1),
+            det=det,
+            trace=trace,
             inside=torch.stack(inside),
             sizes=tuple(sizes),
             step=step,

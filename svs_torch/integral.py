@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from .checks import check_image
 
 __all__ = [
-    "PaddedIntegral", "grid_box_sums", "integral_image", "integral_phases", "pad_integral", "padded_integral_image",
+    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "integral_image", "integral_phases", "pad_integral", "padded_integral_image",
     "sample_box_means", "sample_cell_means",
 ]
 
@@ -60,6 +60,23 @@ def integral_phases(padded: torch.Tensor, step: int) -> list[torch.Tensor]:
     return [padded[..., a::step, b::step].contiguous() for a in range(step) for b in range(step)]
 
 
+def grid_box_corners(
+    phases: list[torch.Tensor], step: int, pad: int, rows: tuple[int, int], cols: tuple[int, int],
+    size_hw: tuple[int, int],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The four corner views of :func:`grid_box_sums` (bottom-right, top-right, bottom-left, top-left); the
+    box sum is ``a − b − c + d``. Views only: nothing is read yet."""
+    ny, nx = size_hw
+
+    def corner(r: int, c: int) -> torch.Tensor:
+        phase = phases[(pad + r) % step * step + (pad + c) % step]
+        top, left = (pad + r) // step, (pad + c) // step
+        return phase[..., top:top + ny, left:left + nx]
+
+    (r0, r1), (c0, c1) = rows, cols
+    return corner(r1, c1), corner(r0, c1), corner(r1, c0), corner(r0, c0)
+
+
 def grid_box_sums(
     phases: list[torch.Tensor], step: int, pad: int, rows: tuple[int, int], cols: tuple[int, int],
     size_hw: tuple[int, int],
@@ -76,15 +93,8 @@ def grid_box_sums(
     Returns:
         ``(B, C, ny, nx)``. Four unit-stride slices, no gather.
     """
-    ny, nx = size_hw
-
-    def corner(r: int, c: int) -> torch.Tensor:
-        phase = phases[(pad + r) % step * step + (pad + c) % step]
-        top, left = (pad + r) // step, (pad + c) // step
-        return phase[..., top:top + ny, left:left + nx]
-
-    (r0, r1), (c0, c1) = rows, cols
-    return corner(r1, c1) - corner(r0, c1) - corner(r1, c0) + corner(r0, c0)
+    a, b, c, d = grid_box_corners(phases, step, pad, rows, cols, size_hw)
+    return a - b - c + d
 
 
 @dataclass(frozen=True)
@@ -148,23 +158,38 @@ def sample_box_means(
     return (a - b - c + d) / ((x1 - x0) * (y1 - y0))
 
 
-def sample_cell_means(integral: PaddedIntegral, x_edges: torch.Tensor, y_edges: torch.Tensor) -> torch.Tensor:
-    """Means of the cells of axis-aligned lattices: cell (m, n) spans [x_n, x_{n+1}] × [y_m, y_{m+1}].
+def _normalised_grid(integral: PaddedIntegral, coordinate: torch.Tensor, size: int) -> torch.Tensor:
+    """Continuous image coordinates → grid_sample coordinates (align_corners=True) of a table axis of ``size``."""
+    return (coordinate + 0.5 + integral.pad).clamp(0, size - 1) * (2 / max(size - 1, 1)) - 1
+
+
+def sample_cell_means(integral: PaddedIntegral, image_index: torch.Tensor, x_edges: torch.Tensor,
+                             y_edges: torch.Tensor) -> torch.Tensor:
+    """Means of the cells of a ragged set of P axis-aligned lattices, each on its own image of the batch: cell
+    (m, n) of lattice p spans [x_n, x_{n+1}] × [y_m, y_{m+1}] of image ``image_index[p]``.
 
     Args:
-        integral: :class:`PaddedIntegral`.
-        x_edges: ``(B, K, N + 1)`` increasing cell boundaries along x, pixel-centre coordinates.
-        y_edges: ``(B, K, M + 1)`` along y.
+        integral: :class:`PaddedIntegral` of B images.
+        image_index: ``(P,)`` int64, the image of each lattice.
+        x_edges: ``(P, N + 1)``; y_edges: ``(P, M + 1)``, pixel-centre coordinates of that image.
 
     Returns:
-        ``(B, K, M, N)``. Neighbouring cells share corners, so a 21 × 21 lattice costs 22² reads instead of
-        4 · 21². Differentiable with respect to the image.
+        ``(P, M, N)``. Neighbouring cells share corners (a 21 × 21 lattice costs 22² reads, not 4 · 21²); the B
+        tables are read as one tall table (a free view of the contiguous batch), so no padding keypoint is
+        ever sampled. Differentiable with respect to the image.
     """
-    b, k, n1 = x_edges.shape
+    table = integral.table.contiguous()
+    b, _, height, width = table.shape
+    tall = table.view(1, 1, b * height, width)
+    # Clamp within the lattice's own image, then shift to its block of the tall table.
+    rows = (y_edges + 0.5 + integral.pad).clamp(0, height - 1) + (image_index * height).unsqueeze(-1).to(y_edges.dtype)
+    p, n1 = x_edges.shape
     m1 = y_edges.shape[-1]
-    x = x_edges.unsqueeze(-2).expand(b, k, m1, n1)
-    y = y_edges.unsqueeze(-1).expand(b, k, m1, n1)
-    table = _bilinear_read(integral, x, y)  # (B, K, M + 1, N + 1)
-    sums = table[..., 1:, 1:] - table[..., :-1, 1:] - table[..., 1:, :-1] + table[..., :-1, :-1]
-    area = (x_edges[..., 1:] - x_edges[..., :-1]).unsqueeze(-2) * (y_edges[..., 1:] - y_edges[..., :-1]).unsqueeze(-1)
-    return sums / area
+    grid = table.new_empty(1, p, m1, n1, 2)
+    grid[..., 0] = _normalised_grid(integral, x_edges, width).unsqueeze(-2)
+    grid[..., 1] = (rows * (2 / max(b * height - 1, 1)) - 1).unsqueeze(-1)
+    read = F.grid_sample(tall, grid.view(1, -1, 1, 2), mode="bilinear", align_corners=True).view(p, m1, n1)
+    sums = read[..., 1:, 1:] - read[..., :-1, 1:] - read[..., 1:, :-1] + read[..., :-1, :-1]
+    inverse_area = 1 / ((x_edges[..., 1:] - x_edges[..., :-1]).unsqueeze(-2) *
+                        (y_edges[..., 1:] - y_edges[..., :-1]).unsqueeze(-1))
+    return sums * inverse_area

@@ -14,6 +14,7 @@ from typing import Literal
 
 import torch
 
+from .checks import InputError
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
@@ -51,7 +52,8 @@ class PipelineConfig:
         surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults.
         features_on: ``"masked"`` detects and describes on the masked obstacle images (the paper);
             ``"mask"`` detects only inside the kept regions but on the unmasked images, so the artificial edge
-            between an obstacle and the blacked-out background makes no keypoints.
+            between an obstacle and the blacked-out background makes no keypoints; ``"image"`` uses the whole
+            images (no segmentation gate).
         max_ratio: SAD ratio test (MATLAB ``matchFeatures`` MaxRatio 0.6), Sec. 3.3 (2).
         mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
         laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
@@ -72,7 +74,7 @@ class PipelineConfig:
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     surf: SurfConfig = field(default_factory=SurfConfig)
-    features_on: Literal["masked", "mask"] = "masked"  # Sec. 3.3 (1): SURF on the masked images
+    features_on: Literal["masked", "mask", "image"] = "masked"  # Sec. 3.3 (1): SURF on the masked images
     max_ratio: float = 0.6  # MATLAB matchFeatures MaxRatio
     mutual: bool = False  # MATLAB matchFeatures Unique = false
     laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3
@@ -85,6 +87,14 @@ class PipelineConfig:
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.features_on not in ("masked", "mask", "image"):
+            raise InputError(f"features_on: expected 'masked', 'mask' or 'image', got {self.features_on!r}")
+        if self.rectify not in ("auto", "required", "off"):
+            raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
+        if not 0 < self.max_ratio <= 1:
+            raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
 
 
 @dataclass(frozen=True)
@@ -127,6 +137,8 @@ def _features(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfi
     b = batch.batch_size
     if config.features_on == "masked":
         images, mask = torch.cat([seg.left.masked, seg.right.masked]), None
+    elif config.features_on == "image":
+        images, mask = torch.cat([batch.left, batch.right]), None
     else:
         images = torch.cat([batch.left, batch.right])
         mask = torch.cat([seg.left.kept_mask, seg.right.kept_mask])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import capture, demo, estimate, features, segment
+from . import capture, demo, estimate, features, fundamental, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -17,8 +17,8 @@ DESCRIPTION = """\
 Range obstacles 1–2 m ahead with a Surveyor SVS stereo camera, batched in PyTorch.
 
 The pipeline of the paper, stage by stage: segment the obstacles (Otsu threshold, erosion + dilation, the
-largest connected regions), find SURF features on the masked images, match them, estimate the fundamental
-matrix by RANSAC, and range the obstacles from disparity (R = f·B/d).
+largest connected regions), find SURF features on the masked images, match them by SAD, estimate the
+fundamental matrix by RANSAC, rectify, and range the obstacles from disparity (R = f·B/d).
 """
 
 EPILOG = """\
@@ -29,6 +29,7 @@ examples:
   svs-depth segment L.png R.png --json    the same as JSON, for scripts
   svs-depth segment L.png R.png --out seg.png --kernel-size 7 --keep 3
   svs-depth features L.png R.png --size 320x240 --plot matches.png    SURF keypoints and SAD matches
+  svs-depth fundamental L.png R.png --json                           F by batched 7-point RANSAC
   svs-depth capture --emulator --count 5 --out pairs/    grab pairs from a built-in SVS emulator
 
 Real data: any left/right image files work (gray or color; 8 or 16 bit). Without calibration the SVS
@@ -49,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, estimate, segment, features, capture):
+    for module in (demo, estimate, segment, features, fundamental, capture):
         module.add_parser(subparsers)
     return parser
 
