@@ -48,7 +48,7 @@ CONFIGS = {
     "canny (paper defaults)": PipelineConfig(segmentation=SegmentationConfig(method="canny")),
     "proposed, svs_torch tuned": PipelineConfig(
         surf=SurfConfig(metric_threshold=300.0, upsample=True), features_on="mask", mutual=True,
-        epipolar_band_px=2.0, depth=DepthConfig(percentiles=(10.0, 90.0))),
+        epipolar_band_px=2.0, depth=DepthConfig(percentiles=(10.0, 90.0), min_object_inliers=5)),
 }
 
 

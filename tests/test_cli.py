@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -149,3 +150,73 @@ def test_features_bad_size_is_one_line(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, err = run_cli(capsys, "features", left, right, "--size", "320by240")
     assert code == 2 and out == "" and "size: expected WIDTHxHEIGHT" in err and err.count("\n") == 1
+
+
+def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path):
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    left, right = str(scene / "im0.png"), str(scene / "im1.png")
+    masks, figure = tmp_path / "labels.png", tmp_path / "estimate.png"
+    code, out, err = run_cli(capsys, "estimate", left, right, "--focal-px", "1500", "--baseline-m", "0.08",
+                             "--doffs-px", "52", "--size", "320x267", "--json", "--masks-out", str(masks),
+                             "--plot", str(figure))
+    assert code == 0 and err == ""
+    report = json.loads(out)
+    for key in ("status", "r_min_m", "r_max_m", "d_min_px", "d_max_px", "objects", "num_keypoints", "num_matches",
+                "num_inliers", "time_s", "nearest_m", "nearest_side"):
+        assert key in report
+    assert report["status"] == "OK" and 1.0 < report["r_min_m"] <= report["r_max_m"] < 3.0  # GT: 1.15-1.79 m
+    assert report["objects"] and {"label", "area_px", "bbox_xyxy", "depth_m", "num_inliers"} <= set(report["objects"][0])
+    labels = cv2.imread(str(masks), cv2.IMREAD_UNCHANGED)
+    assert labels.dtype == np.uint8 and labels.shape == (375, 450)  # the input image's pixel grid
+    assert set(np.unique(labels)) <= {0, 1, 2} and (labels == 1).sum() > 0
+    x0, y0, x1, y1 = report["objects"][0]["bbox_xyxy"]
+    ys, xs = np.nonzero(labels == 1)
+    assert abs(xs.min() - x0) <= 2 and abs(ys.min() - y0) <= 2 and abs(xs.max() + 1 - x1) <= 2
+    assert cv2.imread(str(figure)) is not None
+
+
+def test_estimate_many_pairs_in_batches(data_dir, capsys, tmp_path):
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL", "Piano")]
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("# left right\n" + "".join(f"{s / 'im0.png'} {s / 'im1.png'}\n" for s in scenes))
+    code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--size", "320x240",
+                             "--json")
+    assert code == 0 and "3/3 pairs" in err
+    lines = [json.loads(line) for line in out.strip().splitlines()]
+    assert [Path(line["left"]).parent.name for line in lines] == ["Teddy", "ArtL", "Piano"]
+    assert all(line["status"] in ("OK", "NO_POSITIVE_DISPARITY", "RANSAC_FAILED") for line in lines)
+    listing.write_text("only-one-path.png\n")
+    code, _, err = run_cli(capsys, "estimate", "--pairs", str(listing))
+    assert code == 2 and "pairs: line 1" in err
+
+
+def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--size", "320x240", "--json",
+                           "--seed", "1")
+    assert code == 0
+    report = json.loads(out)
+    assert report["status"] == "OK" and report["num_inliers"] >= 20 and len(report["inliers"]) == report["num_inliers"]
+    F = np.array(report["F"])
+    assert np.isclose(np.linalg.norm(F), 1.0)
+    points = np.array(report["inliers"])
+    xl = np.c_[points[:, :2], np.ones(len(points))]
+    xr = np.c_[points[:, 2:], np.ones(len(points))]
+    lines = xl @ F.T  # epipolar lines in the right image, input pixels
+    distance = np.abs((xr * lines).sum(1)) / np.linalg.norm(lines[:, :2], axis=1)
+    assert np.median(distance) < 1.5  # inliers in input pixels (320/450 resampling: threshold 1 px there)
+    code, again, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--size", "320x240", "--json",
+                             "--seed", "1")
+    assert json.loads(again)["F"] == report["F"]
+
+
+def test_guide_runs_live_against_the_emulator(capsys):
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "4", "--no-speech", "--far-m", "5.0")
+    assert code == 0 and "fps" in err and "guide stopped after 4 pairs" in err
+    # The emulator's obstacles sit within 0.8-3 m: with a 1-5 m band the guide speaks (as text) at least once.
+    assert "Obstacle" in out or "obstacle" in out
+
+
+def test_guide_needs_boards_or_the_emulator(capsys):
+    code, _, err = run_cli(capsys, "guide")
+    assert code == 2 and "--emulator" in err

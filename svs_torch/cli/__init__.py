@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import capture, demo, estimate, features, fundamental, segment
+from . import capture, demo, estimate, features, fundamental, guide, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -31,6 +31,7 @@ examples:
   svs-depth features L.png R.png --size 320x240 --plot matches.png    SURF keypoints and SAD matches
   svs-depth fundamental L.png R.png --json                           F by batched 7-point RANSAC
   svs-depth capture --emulator --count 5 --out pairs/    grab pairs from a built-in SVS emulator
+  svs-depth guide --emulator              live warnings when an obstacle is 1-2 m ahead
 
 Real data: any left/right image files work (gray or color; 8 or 16 bit). Without calibration the SVS
 model is assumed: 3.6 mm lens, 4.17 mm sensor, 10.75 cm baseline (focal 276 px at 320x240).
@@ -50,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, estimate, segment, features, fundamental, capture):
+    for module in (demo, estimate, segment, features, fundamental, capture, guide):
         module.add_parser(subparsers)
     return parser
 

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     done = 0
     try:
         with contextlib.ExitStack() as stack:
-            left, right = _urls(args, size, stack)
+            left, right = board_urls(args, size, stack)
             config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
             camera = stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
             out.mkdir(parents=True, exist_ok=True)
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:
+def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:
     """The board URLs: from the arguments, or from an in-process emulator started on free loopback ports."""
     if not args.emulator:
         return args.left, args.right
@@ -133,7 +133,7 @@ def _urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.Exi
     source = SyntheticSource()
     server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source))
     source.prepare(size, timeout_s=30.0, complete=False)  # the first rendered keyframe, not the stand-in
-    print(f"{PROG}: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)
+    print(f"svs-depth: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)
     return server.urls["left"], server.urls["right"]
 
 

@@ -1,0 +1,81 @@
+"""Benchmark: the whole pipeline per pair at 320×240, svs_torch batched vs the OpenCV pipeline of REFERENCE.md
+(Otsu + morphology + components + SIFT + brute-force ratio matching + findFundamentalMat) in a loop, same run,
+same real pairs. Median of several runs, thread count and OMP policy recorded, JSON with metadata.
+
+    python experiments/bench_pipeline.py [--threads 2] [--repeats 5] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP threads on a shared CPU, see bench_ransac.py
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from svs_torch import StereoBatch
+from svs_torch.detector import SurfConfig
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_segmentation import load_pairs, metadata, opencv_segment, timed  # noqa: E402
+
+
+def opencv_pipeline(left: np.ndarray, right: np.ndarray, kernel: np.ndarray, sift, matcher) -> int:
+    masked = [opencv_segment(g, kernel, 2) for g in (left, right)]
+    (kl, dl), (kr, dr) = (sift.detectAndCompute(m, None) for m in masked)
+    if dl is None or dr is None or len(kr) < 2:
+        return 0
+    good = [m[0] for m in matcher.knnMatch(dl, dr, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    if len(good) < 8:
+        return 0
+    pl = np.float32([kl[m.queryIdx].pt for m in good])
+    pr = np.float32([kr[m.trainIdx].pt for m in good])
+    _, mask = cv2.findFundamentalMat(pl, pr, cv2.FM_RANSAC, 1.0, 0.99)
+    return 0 if mask is None else int(mask.sum())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--json", metavar="FILE")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    left, right = load_pairs(Path(args.data), 32)
+    lefts = list((left[:, 0] * 255).round().to(torch.uint8).numpy())
+    rights = list((right[:, 0] * 255).round().to(torch.uint8).numpy())
+    kernel = np.ones((5, 5), np.uint8)
+    sift, matcher = cv2.SIFT_create(), cv2.BFMatcher(cv2.NORM_L2)
+    results = {"opencv_loop": timed(lambda: [opencv_pipeline(a, b, kernel, sift, matcher)
+                                             for a, b in zip(lefts, rights)], args.repeats)}
+    results["opencv_loop"]["ms_per_pair"] = results["opencv_loop"]["median_ms"] / 32
+    configs = {"svs_torch": PipelineConfig(),
+               "svs_torch_compiled": replace(PipelineConfig(), surf=SurfConfig(compiled=True))}
+    for name, config in configs.items():
+        for b in (1, 32):
+            batch = StereoBatch.from_images(left[:b], right[:b], 276.0, 0.1075)
+            key = f"{name}_B{b}"
+            results[key] = timed(lambda: estimate_obstacle_depth(batch, config), args.repeats)
+            results[key]["ms_per_pair"] = results[key]["median_ms"] / b
+    base = results["opencv_loop"]["ms_per_pair"]
+    print(f"threads {args.threads}, 320x240 real pairs, whole pipeline, median of {args.repeats} runs")
+    for key, value in results.items():
+        print(f"  {key:26s} {value['ms_per_pair']:8.2f} ms/pair  {1e3 / value['ms_per_pair']:7.1f} pairs/s  "
+              f"x OpenCV pairs/s {base / value['ms_per_pair']:5.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"metadata": metadata(args.threads), "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
