@@ -13,15 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import cv2
 import serial
 import torch
 
@@ -30,6 +27,8 @@ sys.path.insert(0, str(REPO))
 
 from svs_torch.camera import parse_size  # noqa: E402
 from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
+
+from run_metadata import run_metadata  # noqa: E402
 
 
 def start_emulator(frames: str, sizes: list[str]) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -68,17 +67,6 @@ def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:
     }
 
 
-def metadata(args: argparse.Namespace) -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    except OSError:
-        commit = ""
-    return {"commit": commit, "python": platform.python_version(), "torch": torch.__version__,
-            "opencv": cv2.__version__, "pyserial": serial.__version__, "torch_threads": torch.get_num_threads(),
-            "cpu_count": os.cpu_count(), "frames": args.frames, "link": "loopback TCP, emulator in its own process",
-            "config": vars(args)}
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x240,640x480")
@@ -97,7 +85,10 @@ def main() -> int:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
-    print(json.dumps({"metadata": metadata(args), "results": results}, indent=1))
+    print(json.dumps({"metadata": run_metadata(torch.get_num_threads(), pyserial=serial.__version__,
+                                               frames=args.frames, config=vars(args),
+                                               link="loopback TCP, emulator in its own process"),
+                      "results": results}, indent=1))
     return 0
 
 

@@ -20,14 +20,14 @@ import sys
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 
 from svs_torch.detector import SurfConfig
 from svs_torch.features import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_segmentation import load_pairs, metadata, timed  # noqa: E402
+from run_metadata import run_metadata  # noqa: E402
+from bench_segmentation import load_pairs, timed  # noqa: E402
 
 
 def main() -> None:
@@ -68,7 +68,8 @@ def main() -> None:
         print(f"  {key:34s} {value['ms_per_pair']:8.2f} ms/pair   x SIFT {value['ms_per_pair'] / sift_ms:5.2f}   "
               f"(run min {value['min_ms']:.1f}, max {value['max_ms']:.1f} ms)")
     if args.json:
-        Path(args.json).write_text(json.dumps({"metadata": metadata(args.threads), "results": results}, indent=2))
+        report = {"metadata": run_metadata(args.threads), "results": results}
+        Path(args.json).write_text(json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

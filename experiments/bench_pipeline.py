@@ -26,7 +26,8 @@ from svs_torch.detector import SurfConfig
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_segmentation import load_pairs, metadata, opencv_segment, timed  # noqa: E402
+from run_metadata import run_metadata  # noqa: E402
+from bench_segmentation import load_pairs, opencv_segment, timed  # noqa: E402
 
 
 def opencv_pipeline(left: np.ndarray, right: np.ndarray, kernel: np.ndarray, sift, matcher) -> int:
@@ -74,7 +75,8 @@ def main() -> None:
         print(f"  {key:26s} {value['ms_per_pair']:8.2f} ms/pair  {1e3 / value['ms_per_pair']:7.1f} pairs/s  "
               f"x OpenCV pairs/s {base / value['ms_per_pair']:5.2f}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"metadata": metadata(args.threads), "results": results}, indent=2))
+        report = {"metadata": run_metadata(args.threads), "results": results}
+        Path(args.json).write_text(json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

@@ -28,10 +28,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch and OpenCV l
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -41,6 +38,8 @@ import torch  # noqa: E402
 
 from svs_torch.epipolar import sampson_distance  # noqa: E402
 from svs_torch.ransac import estimate_fundamental_ransac  # noqa: E402
+
+from run_metadata import run_metadata  # noqa: E402
 
 SIZE_WH = (640, 480)
 THRESHOLD_PX = 1.0
@@ -153,20 +152,6 @@ def bench_scenario(data: dict, confidence: float, repeats: int, seed: int) -> di
     return results
 
 
-def metadata(args: argparse.Namespace) -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {"commit": commit, "torch": torch.__version__, "opencv": cv2.__version__, "numpy": np.__version__,
-            "python": sys.version.split()[0], "machine": platform.machine(), "cpus": os.cpu_count(),
-            "threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-            "load_average_at_start": os.getloadavg(), "seed": args.seed, "pairs": args.pairs,
-            "matches": args.matches, "noise_px": args.noise_px, "threshold_px": THRESHOLD_PX,
-            "max_iterations": MAX_ITERATIONS, "repeats": args.repeats, "scenarios": SCENARIOS}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pairs", type=int, default=64)
@@ -179,7 +164,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    report = {"metadata": metadata(args), "results": {}}
+    report = {"metadata": run_metadata(args.threads, seed=args.seed, pairs=args.pairs, matches=args.matches,
+                                       noise_px=args.noise_px, threshold_px=THRESHOLD_PX,
+                                       max_iterations=MAX_ITERATIONS, repeats=args.repeats, scenarios=SCENARIOS),
+              "results": {}}
     print(f"{args.pairs} pairs x {args.matches} matches, threads {args.threads}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load {os.getloadavg()[0]:.2f}; "
           f"median of {args.repeats} runs (min-max)")

@@ -16,10 +16,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse
 import json
-import platform
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -32,6 +29,8 @@ import svs_torch
 from svs_torch.components import connected_components_with_stats
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
+
+from run_metadata import run_metadata
 
 SIZE_WH = (320, 240)
 
@@ -95,18 +94,6 @@ def bench(left: torch.Tensor, right: torch.Tensor, repeats: int) -> dict:
     return results
 
 
-def metadata(threads: int) -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
-            "numpy": np.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
-            "threads": threads, "size_wh": list(SIZE_WH), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-            "load_average": os.getloadavg()}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -135,7 +122,7 @@ def main() -> None:
         ours = results["components_images_svs_torch_B1"]["median_ms"] / 2
         print(f"components    B= 1: kornia {name:10s} {kornia_ms:8.3f} ms/image  ratio kornia/svs_torch "
               f"{kornia_ms / ours:6.1f}")
-    report = {"metadata": metadata(args.threads), "results": results}
+    report = {"metadata": run_metadata(args.threads, size_wh=list(SIZE_WH)), "results": results}
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))
 

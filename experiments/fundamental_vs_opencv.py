@@ -32,15 +32,12 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spin
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
-import kornia  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
@@ -49,6 +46,8 @@ from svs_torch.epipolar import sampson_distance  # noqa: E402
 from svs_torch.matching import MatchedPoints, gather_matched_points, match_sad  # noqa: E402
 from svs_torch.ransac import estimate_fundamental_ransac  # noqa: E402
 from svs_torch.types import FundamentalStatus  # noqa: E402
+
+from run_metadata import run_metadata  # noqa: E402
 
 BOARD = (9, 6)
 THRESHOLD_PX = 1.0
@@ -327,21 +326,6 @@ def run_middlebury(data_dir: Path, features: str, size_wh: tuple[int, int], max_
     return report
 
 
-def metadata(args: argparse.Namespace) -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
-            "numpy": np.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
-            "threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-            "load_average_at_start": os.getloadavg(), "seed": args.seed, "features": args.features,
-            "max_keypoints": args.max_keypoints,
-            "threshold_px": THRESHOLD_PX, "confidence": CONFIDENCE, "max_iterations": MAX_ITERATIONS,
-            "max_ratio": MAX_RATIO}
-
-
 def print_tables(chessboard: dict, middlebury: dict) -> None:
     print(f"\n(a) chessboards: {len(chessboard['pairs'])} pairs x {len(chessboard['seeds'])} seeds, Sampson distance "
           f"of the 54 GT corners under F (px); no board found: {chessboard['no_board_found'] or 'none'}")
@@ -384,7 +368,11 @@ def main() -> None:
     middlebury = run_middlebury(data_dir, args.features, size_wh, args.max_keypoints, args.seed)
     print_tables(chessboard, middlebury)
     if args.json:
-        report = {"metadata": metadata(args), "chessboard": chessboard, "middlebury": middlebury}
+        report = {"metadata": run_metadata(args.threads, seed=args.seed, features=args.features,
+                                           max_keypoints=args.max_keypoints, threshold_px=THRESHOLD_PX,
+                                           confidence=CONFIDENCE, max_iterations=MAX_ITERATIONS,
+                                           max_ratio=MAX_RATIO),
+                  "chessboard": chessboard, "middlebury": middlebury}
         Path(args.json).write_text(json.dumps(report, indent=2))
 
 

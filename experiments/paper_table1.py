@@ -26,7 +26,6 @@ import json
 import statistics
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -40,7 +39,7 @@ from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_segmentation import metadata  # noqa: E402
+from run_metadata import run_metadata  # noqa: E402
 
 #: Named configurations (hloc style): the paper's defaults, its Canny row, and svs_torch's tuned setting.
 CONFIGS = {
@@ -205,7 +204,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = run(scenes, args.sizes.split(","))
     text = "## Summary\n\n" + summary(rows) + "\n\n## Per scene\n\n" + markdown(rows) + "\n"
     print(text)
-    report = {"metadata": {**metadata(args.threads), "scenes": [str(p) for p in scenes], "sizes": args.sizes,
+    report = {"metadata": {**run_metadata(args.threads), "scenes": [str(p) for p in scenes], "sizes": args.sizes,
                            "configs": {k: repr(v) for k, v in CONFIGS.items()}}, "rows": rows}
     if args.markdown:
         Path(args.markdown).write_text(text)

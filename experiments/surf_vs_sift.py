@@ -29,7 +29,7 @@ from svs_torch.detector import SurfConfig
 from svs_torch.features import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_segmentation import metadata  # noqa: E402  (shared run metadata)
+from run_metadata import run_metadata  # noqa: E402
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5
@@ -130,7 +130,7 @@ def main() -> None:
         "SURF x2 thr 300, SAD": (lambda im: surf_features(im, tuned), "sad"),
         "OpenCV SIFT, L2": (lambda im: sift_features(im, args.max_keypoints), "l2"),
     }
-    report = {"metadata": {**metadata(2), "max_keypoints": args.max_keypoints,
+    report = {"metadata": {**run_metadata(2), "max_keypoints": args.max_keypoints,
                            "metric_threshold": args.metric_threshold}, "results": {}}
     print("mean over pairs; precision = share of ratio-test matches within 1 px of GT disparity")
     for resolution in ("320x240", "native"):

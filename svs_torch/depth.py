@@ -329,7 +329,7 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
     """
     check_shape(labels, "labels", ["B", 1, "H", "W"])
     check_dtype(labels, "labels", "int")
-    dims = check_shape(region_labels, "region_labels", [labels.shape[0], "N"])
+    check_shape(region_labels, "region_labels", [labels.shape[0], "N"])
     check_dtype(region_labels, "region_labels", "int")
     check_shape(points_left, "points_left", [labels.shape[0], "K", 2])
     _check_values(depths.depth_m, "depths.depth_m", depths.valid, "depths.valid")

@@ -21,11 +21,11 @@ gradient); padding rows give zero descriptors.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import torch
 
 from .checks import InputError, check_image, check_shape
+from .compiling import maybe_compiled
 from .integral import PaddedIntegral, padded_integral_image, sample_box_means, sample_cell_means
 from .types import Keypoints
 
@@ -109,17 +109,6 @@ def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: b
     return torch.where(usable, unit, torch.zeros_like(unit))
 
 
-_COMPILED: dict[str, Callable] = {}
-
-
-def _descriptor_function(compiled: bool) -> Callable:
-    if not compiled:
-        return _descriptor_from_patch
-    if "descriptor" not in _COMPILED:
-        _COMPILED["descriptor"] = torch.compile(_descriptor_from_patch, dynamic=True)
-    return _COMPILED["descriptor"]
-
-
 def describe_surf(
     image: torch.Tensor, keypoints: Keypoints, extended: bool = False, compiled: bool = False
 ) -> torch.Tensor:
@@ -145,7 +134,7 @@ def describe_surf(
     head = _take_rows(keypoints, used)
     integral = _padded_integral(image, head, 10.5 * math.sqrt(2))  # rotated cells reach 10.5·√2·s
     patch = _rotated_patch_means(integral, head)  # (B, used, 21, 21)
-    descriptor = _descriptor_function(compiled)(patch, head.valid, extended).to(image.dtype)
+    descriptor = maybe_compiled(_descriptor_from_patch, compiled)(patch, head.valid, extended).to(image.dtype)
     return torch.cat([descriptor, descriptor.new_zeros(b, k - used, descriptor.shape[-1])], dim=1)
 
 
@@ -160,8 +149,8 @@ def _describe_upright(image: torch.Tensor, keypoints: Keypoints, extended: bool,
     xy = keypoints.xy[image_index, row].to(dtype)
     edges = torch.arange(_PATCH + 2, dtype=dtype, device=image.device) - (_PATCH + 1) / 2  # −10.5 … 10.5
     patch = sample_cell_means(integral, image_index, xy[:, 0:1] + scale * edges, xy[:, 1:2] + scale * edges)
-    flat = _descriptor_function(compiled)(patch.unsqueeze(0), torch.ones_like(row, dtype=torch.bool)[None],
-                                          extended)[0]
+    everywhere = torch.ones_like(row, dtype=torch.bool)[None]
+    flat = maybe_compiled(_descriptor_from_patch, compiled)(patch.unsqueeze(0), everywhere, extended)[0]
     out = flat.new_zeros(b, k, flat.shape[-1])
     out[image_index, row] = flat
     return out.to(image.dtype)

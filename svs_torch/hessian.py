@@ -17,12 +17,11 @@ top-k) is not.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
+from .compiling import maybe_compiled
 from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
 __all__ = ["HessianOctave", "filter_sizes", "hessian_octaves"]
@@ -93,19 +92,6 @@ def _level_into(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_d
     trace_out.copy_(trace)
 
 
-_COMPILED: dict[str, Callable] = {}
-
-
-def _level_function(compiled: bool) -> Callable:
-    """The per-level arithmetic, eager or through ``torch.compile`` (one dynamic-shape graph for every level and
-    octave: the slicing happens outside, so filter sizes and offsets never reach the graph)."""
-    if not compiled:
-        return _level_into
-    if "level" not in _COMPILED:
-        _COMPILED["level"] = torch.compile(_level_into, dynamic=True)
-    return _COMPILED["level"]
-
-
 def _inside(size: int, step: int, grid_hw: tuple[int, int], image_hw: tuple[int, int], device) -> torch.Tensor:
     """``(ny, nx)`` bool: the whole filter of this size fits in the image at the grid point."""
     half = size // 2
@@ -141,7 +127,9 @@ def hessian_octaves(
     largest = filter_sizes(num_octaves - 1, num_scale_levels)[-1]
     pad = largest // 2 + 2
     padded = pad_integral(integral, pad)
-    level = _level_function(compiled)
+    # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
+    # offsets never reach the graph.
+    level = maybe_compiled(_level_into, compiled)
     octaves = []
     for octave in range(num_octaves):
         step = 1 << octave
@@ -180,14 +168,6 @@ def _interior_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float)
     return torch.where(keep, centre, torch.full_like(centre, float("-inf")))
 
 
-def _maxima_function(compiled: bool) -> Callable:
-    if not compiled:
-        return _interior_maxima
-    if "maxima" not in _COMPILED:
-        _COMPILED["maxima"] = torch.compile(_interior_maxima, dynamic=True)
-    return _COMPILED["maxima"]
-
-
 def local_maxima_scores(
     octave: HessianOctave, threshold: float, mask: torch.Tensor | None = None, compiled: bool = False
 ) -> torch.Tensor:
@@ -204,4 +184,4 @@ def local_maxima_scores(
     if mask is not None:
         ny, nx = octave.det.shape[-2:]
         support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
-    return _maxima_function(compiled)(octave.det, support, threshold)
+    return maybe_compiled(_interior_maxima, compiled)(octave.det, support, threshold)

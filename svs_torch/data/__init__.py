@@ -1,3 +1,5 @@
+"""Real stereo data sets of the shared folder, SVS resampling and collation, and synthetic SVS scenes."""
+
 from .synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
 from .datasets import (
@@ -12,3 +14,10 @@ from .datasets import (
     load_stereo_pair,
 )
 from .resample import collate_stereo_batches, resize_stereo_batch
+
+__all__ = [
+    "SyntheticScenes", "collate_stereo_batches", "list_shared_pairs", "load_image_pair", "load_kitti",
+    "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006", "load_middlebury_eval3",
+    "load_opencv_aloe", "load_stereo_pair", "random_obstacle_scenes", "read_gray_image", "read_middlebury_calib",
+    "read_pfm", "read_scaled_disparity", "render_obstacle_scenes", "resize_stereo_batch",
+]

@@ -1,0 +1,28 @@
+"""What every experiment records beside its numbers: code version, library versions, machine and threads."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+
+def run_metadata(threads: int, **extra) -> dict:
+    """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count, thread count, OpenMP wait
+    policy and load average at the time of the call, plus the experiment's own ``extra`` settings."""
+    import cv2
+    import kornia
+    import numpy
+    import torch
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
+            "numpy": numpy.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
+            "cpus": os.cpu_count(), "threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "load_average": os.getloadavg(), **extra}
