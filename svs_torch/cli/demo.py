@@ -82,10 +82,9 @@ def run(args: argparse.Namespace) -> int:
     disparity = batch.disparity_px[0, 0]
     gt_panel = (disparity / (float(disparity.max()) or 1.0)).clamp(0, 1)
     seg = result.segmentation
-    figure = compose_grid([
-        segmentation_panels(batch.left, seg.left, 0, "left") + [titled_panel(gray_to_bgr(gt_panel), "true disparity")],
-        [estimate_figure(batch, result, 0)],
-    ])
+    image_panel, binary_panel, _ = segmentation_panels(batch.left, seg.left, 0, "left")
+    top = compose_grid([[image_panel], [binary_panel], [titled_panel(gray_to_bgr(gt_panel), "true disparity")]])
+    figure = compose_grid([[top, estimate_figure(batch, result, 0)]])
     write_image_atomic(args.out, figure)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}
