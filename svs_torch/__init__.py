@@ -7,6 +7,12 @@ matrix by RANSAC, and range the obstacles from disparity. Every stage runs on a 
 
 from .camera import SVS_CAMERA, SVS_RESOLUTIONS, SVSCamera
 from .checks import InputError
+from .detector import SurfConfig
+from .features import SurfFeatures, extract_surf_features
+from .matching import match_sad
+from .pipeline import PipelineConfig, PipelineResult, PipelineStatus, estimate_obstacle_depth
+from .ransac import estimate_fundamental_ransac
+from .segmentation import SegmentationConfig, segment_images, segment_stereo
 from .types import (
     FundamentalResult,
     FundamentalStatus,
@@ -22,6 +28,18 @@ from .types import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "PipelineConfig",
+    "PipelineResult",
+    "PipelineStatus",
+    "SegmentationConfig",
+    "SurfConfig",
+    "SurfFeatures",
+    "estimate_fundamental_ransac",
+    "estimate_obstacle_depth",
+    "extract_surf_features",
+    "match_sad",
+    "segment_images",
+    "segment_stereo",
     "FundamentalResult",
     "FundamentalStatus",
     "InputError",
