@@ -92,8 +92,7 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``capture``; returns the exit code (errors are one line on stderr)."""
-    from ..capture.link import CaptureError, LinkConfig
-    from ..capture.stereo import SVSStereoCamera
+    from ..capture.link import CaptureError
 
     try:
         size, out = _check_args(args)
@@ -102,9 +101,7 @@ def run(args: argparse.Namespace) -> int:
     done = 0
     try:
         with contextlib.ExitStack() as stack:
-            left, right = board_urls(args, size, stack)
-            config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
-            camera = stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
+            camera = open_stereo_camera(args, size, stack)
             out.mkdir(parents=True, exist_ok=True)
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
             progress = stack.enter_context(_Progress(args.count))
@@ -121,6 +118,16 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{err} ({done} of {args.count} pairs saved in {out})", 1)
     print(f"{PROG}: saved {done} pairs to {out}", file=sys.stderr)
     return 0
+
+
+def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack):
+    """The stereo camera of ``--left``/``--right`` (or ``--emulator``), with the link options, closed by ``stack``."""
+    from ..capture.link import LinkConfig
+    from ..capture.stereo import SVSStereoCamera
+
+    left, right = board_urls(args, size, stack)
+    config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
+    return stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
 
 
 def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:

@@ -48,12 +48,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..camera import parse_size
     from ..capture.guide import LiveGuide, Speaker, WarningPolicy
-    from ..capture.link import CaptureError, LinkConfig
-    from ..capture.stereo import SVSStereoCamera
+    from ..capture.link import CaptureError
     from ..checks import InputError
     from ..depth import ObstacleSide
     from ..pipeline import estimate_obstacle_depth
-    from .capture import board_urls
+    from .capture import open_stereo_camera
 
     size = parse_size(args.size, "size")
     if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
@@ -65,9 +64,7 @@ def run(args: argparse.Namespace) -> int:
     processed = 0
     try:
         with contextlib.ExitStack() as stack:
-            left, right = board_urls(args, size, stack)
-            config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
-            camera = stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
+            camera = open_stereo_camera(args, size, stack)
             for item in camera.stream_batches(1, num_batches=args.count or None):
                 result = estimate_obstacle_depth(item.batch)
                 nearest = result.depth.nearest
