@@ -47,8 +47,7 @@ def main() -> None:
     orb = cv2.ORB_create(nfeatures=args.max_keypoints)
     results: dict[str, dict] = {}
     for name, detector in (("opencv_sift", sift), ("opencv_orb", orb)):
-        results[name] = timed(lambda: [detector.detectAndCompute(g, None) for g in grays], args.repeats)
-        results[name]["ms_per_pair"] = results[name]["median_ms"] / 32
+        results[name] = timed(lambda: [detector.detectAndCompute(g, None) for g in grays], args.repeats, pairs=32)
     variants = {
         "surf_matlab": SurfConfig(max_keypoints=args.max_keypoints),
         "surf_x2_thr300": SurfConfig(max_keypoints=args.max_keypoints, metric_threshold=300.0, upsample=True),
@@ -59,8 +58,7 @@ def main() -> None:
             for b in (1, 32):
                 batch = torch.cat([left[:b], right[:b]])
                 key = f"{label}{'_compiled' if compiled else ''}_B{b}"
-                results[key] = timed(lambda: extract_surf_features(batch, cfg), args.repeats)
-                results[key]["ms_per_pair"] = results[key]["median_ms"] / b
+                results[key] = timed(lambda: extract_surf_features(batch, cfg), args.repeats, pairs=b)
     sift_ms = results["opencv_sift"]["ms_per_pair"]
     print(f"threads {args.threads}, 320x240, detect + describe, median of {args.repeats} runs, ms per pair "
           f"(two images)")

@@ -59,16 +59,14 @@ def main() -> None:
     kernel = np.ones((5, 5), np.uint8)
     sift, matcher = cv2.SIFT_create(), cv2.BFMatcher(cv2.NORM_L2)
     results = {"opencv_loop": timed(lambda: [opencv_pipeline(a, b, kernel, sift, matcher)
-                                             for a, b in zip(lefts, rights)], args.repeats)}
-    results["opencv_loop"]["ms_per_pair"] = results["opencv_loop"]["median_ms"] / 32
+                                             for a, b in zip(lefts, rights)], args.repeats, pairs=32)}
     configs = {"svs_torch": PipelineConfig(),
                "svs_torch_compiled": replace(PipelineConfig(), surf=SurfConfig(compiled=True))}
     for name, config in configs.items():
         for b in (1, 32):
             batch = StereoBatch.from_images(left[:b], right[:b], 276.0, 0.1075)
             key = f"{name}_B{b}"
-            results[key] = timed(lambda: estimate_obstacle_depth(batch, config), args.repeats)
-            results[key]["ms_per_pair"] = results[key]["median_ms"] / b
+            results[key] = timed(lambda: estimate_obstacle_depth(batch, config), args.repeats, pairs=b)
     base = results["opencv_loop"]["ms_per_pair"]
     print(f"threads {args.threads}, 320x240 real pairs, whole pipeline, median of {args.repeats} runs")
     for key, value in results.items():

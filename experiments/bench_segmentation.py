@@ -35,15 +35,17 @@ from run_metadata import run_metadata
 SIZE_WH = (320, 240)
 
 
-def timed(fn, repeats: int) -> dict:
-    """Median and spread of ``repeats`` runs of ``fn`` (one warm-up run first), in milliseconds."""
+def timed(fn, repeats: int, pairs: int = 1) -> dict:
+    """Median and spread of ``repeats`` runs of ``fn`` (one warm-up run first), in milliseconds; with the
+    median per pair when ``fn`` handles ``pairs`` pairs."""
     fn()
     runs = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
         runs.append((time.perf_counter() - start) * 1e3)
-    return {"median_ms": statistics.median(runs), "min_ms": min(runs), "max_ms": max(runs)}
+    median = statistics.median(runs)
+    return {"median_ms": median, "min_ms": min(runs), "max_ms": max(runs), "ms_per_pair": median / pairs}
 
 
 def load_pairs(data_dir: Path, count: int) -> tuple[torch.Tensor, torch.Tensor]:
