@@ -115,6 +115,14 @@ def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: tor
     return torch.where(keep, idx, -1), torch.where(keep, best, math.inf)
 
 
+def _used_rows(valid: torch.Tensor) -> int:
+    """1 + the last valid row index over the batch (0 when nothing is valid)."""
+    if valid.shape[1] == 0:
+        return 0
+    rows = torch.arange(1, valid.shape[1] + 1, device=valid.device)
+    return int((valid * rows).amax())
+
+
 def match_sad(
     desc_left: torch.Tensor,
     desc_right: torch.Tensor,
@@ -165,7 +173,21 @@ def match_sad(
     max_cost = None if match_threshold is None else match_threshold / 100.0 * max_sad_distance(dims["D"])
     idx = torch.full((b, k), -1, dtype=torch.int64, device=desc_left.device)
     cost = torch.full((b, k), math.inf, dtype=desc_left.dtype, device=desc_left.device)
-    if k == 0 or k2 == 0:
+    # Padding never matches and is never a candidate: search only up to the last valid row of any pair (a
+    # detector pads at the end, often by more than half), then pad the result back to K.
+    used, used2 = _used_rows(valid_left), _used_rows(valid_right)
+    if used == 0 or used2 == 0:
+        return Matches(idx=idx, cost=cost)
+    if (used, used2) != (k, k2):
+        def head(value: torch.Tensor | None, count: int) -> torch.Tensor | None:
+            return None if value is None else value[:, :count]
+
+        matches = match_sad(head(desc_left, used), head(desc_right, used2), head(valid_left, used),
+                            head(valid_right, used2), max_ratio=max_ratio, match_threshold=match_threshold,
+                            mutual=mutual, laplacian_left=head(laplacian_left, used),
+                            laplacian_right=head(laplacian_right, used2), xy_left=head(xy_left, used),
+                            xy_right=head(xy_right, used2), epipolar_band_px=epipolar_band_px)
+        idx[:, :used], cost[:, :used] = matches.idx, matches.cost
         return Matches(idx=idx, cost=cost)
     group = max(1, _MAX_ENTRIES_PER_GROUP // (k * k2))
     idx_parts, cost_parts = [], []
