@@ -61,6 +61,9 @@ class PipelineConfig:
         ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3).
         ransac_confidence: stop when an all-inlier 7-point sample was drawn with this probability.
         ransac_max_iterations: 7-point samples per pair at most.
+        ransac_scoring: ``"ransac"`` keeps the model with the most inliers (the paper's rule), ``"msac"`` the
+            lowest truncated Sampson cost (more accurate on the same samples; the default), ``"lmeds"`` the least
+            median (MATLAB's default method).
         rectify: ``"required"`` rectifies from F before measuring disparity and fails the pair when that is
             degenerate (the paper, Sec. 3.4); ``"auto"`` ranges the raw points when the inliers already lie on
             the same rows (median |y_left − y_right| ≤ ``row_tolerance_px``: a mechanically parallel rig like
@@ -82,6 +85,7 @@ class PipelineConfig:
     ransac_threshold_px: float = 1.0  # pixels, Sampson distance
     ransac_confidence: float = 0.99  # MATLAB / OpenCV default
     ransac_max_iterations: int = 1024  # 7-point samples per pair
+    ransac_scoring: Literal["ransac", "msac", "lmeds"] = "msac"  # Sec. 3.3 (3) keeps the most inliers
     rectify: Literal["auto", "required", "off"] = "auto"  # Sec. 3.4, uncalibrated rectification
     row_tolerance_px: float = 1.0
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
@@ -223,7 +227,8 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64)
     fundamental = estimate_fundamental_ransac(
         points.left, points.right, points.valid, threshold_px=config.ransac_threshold_px,
-        confidence=config.ransac_confidence, max_iterations=config.ransac_max_iterations, pair_seeds=seeds)
+        confidence=config.ransac_confidence, max_iterations=config.ransac_max_iterations,
+        scoring=config.ransac_scoring, pair_seeds=seeds)
     lap("ransac")
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)

@@ -85,6 +85,10 @@ def test_paper_range_mode_and_rectification_modes(scenes):
     # A perfectly parallel rig: "auto" keeps the raw rows, so it equals "off".
     torch.testing.assert_close(paper.depth.objects.depth_median_m, off.depth.objects.depth_median_m)
     assert required.status.shape == (2,)
+    most_inliers = estimate_obstacle_depth(sub, replace(PipelineConfig(), ransac_scoring="ransac"))
+    assert most_inliers.status.tolist() == paper.status.tolist()
+    torch.testing.assert_close(most_inliers.depth.objects.depth_median_m, paper.depth.objects.depth_median_m,
+                               rtol=0.02, atol=0)
     robust = estimate_obstacle_depth(sub, replace(PipelineConfig(), depth=DepthConfig(percentiles=(10.0, 90.0))))
     assert torch.all(robust.depth.range.r_min_m >= rng.r_min_m - 1e-6)
 
