@@ -102,7 +102,8 @@ def _descriptor_from_patch(patch: torch.Tensor, valid: torch.Tensor, extended: b
                  dy * neg_dx, dy.abs() * neg_dx, dy * ~neg_dx, dy.abs() * ~neg_dx]
     else:
         parts = [dx, dy, dx.abs(), dy.abs()]
-    descriptor = torch.stack([blocks(p) for p in parts], dim=-1).view(b, k, -1)  # sub-region-major layout
+    # Sub-region-major layout; the length is spelled out so that no keypoint at all (k = 0) still has a shape.
+    descriptor = torch.stack([blocks(p) for p in parts], dim=-1).view(b, k, 16 * len(parts))
     norm = descriptor.norm(dim=-1, keepdim=True)
     usable = valid.unsqueeze(-1) & (norm > 0)
     unit = descriptor / torch.where(usable, norm, torch.ones_like(norm))

@@ -71,6 +71,13 @@ def test_bad_pairs_get_a_status_and_never_fail_the_batch(scenes):
     assert status[3] != PipelineStatus.OK or len(matched_truth(scenes, result, 3)) < 2
 
 
+def test_a_batch_of_only_blank_pairs_gets_statuses(scenes):
+    blank = torch.zeros(2, 1, 60, 80)
+    result = estimate_obstacle_depth(StereoBatch.from_images(blank, blank.clone(), 276.0, 0.1075))
+    assert result.status.tolist() == [PipelineStatus.NO_OBJECTS] * 2
+    assert not result.depth.range.valid.any() and not result.depth.nearest.valid.any()
+
+
 def test_paper_range_mode_and_rectification_modes(scenes):
     sub = scenes.batch.select([0, 1])
     paper = estimate_obstacle_depth(sub)

@@ -279,6 +279,10 @@ def test_mask_restricts_keypoints_and_blank_images_give_none():
     assert kp.valid[0].any() and torch.all(kp.xy[0][kp.valid[0]][:, 0] <= 40.0 + 1.0)
     assert not kp.valid[1].any()
     assert detect_surf_keypoints(image, SurfConfig(max_keypoints=0)).xy.shape == (2, 0, 2)
+    blank = extract_surf_features(torch.full((2, 1, 80, 80), 0.3))  # no keypoint in the whole batch
+    assert not blank.keypoints.valid.any() and blank.descriptors.shape == (2, 512, 64)
+    assert extract_surf_features(torch.full((1, 1, 80, 80), 0.3), SurfConfig(extended=True)).descriptors.shape == \
+        (1, 512, 128)
 
 
 def test_gradients_reach_the_image():
