@@ -41,6 +41,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from svs_torch.camera import parse_size  # noqa: E402
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch  # noqa: E402
 from svs_torch.epipolar import sampson_distance  # noqa: E402
 from svs_torch.matching import MatchedPoints, gather_matched_points, match_sad  # noqa: E402
@@ -361,7 +362,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    size_wh = tuple(int(v) for v in args.size.lower().split("x"))
+    size_wh = parse_size(args.size, "size")
     data_dir = Path(args.data)
     chessboard = run_chessboards(data_dir, args.features, args.max_keypoints,
                                  list(range(args.seed, args.seed + args.chessboard_seeds)))

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from .features import add_feature_options, add_pair_options
+from .features import add_feature_options, add_pair_options, load_pair
 from .segment import add_segmentation_options, config_from_args
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -87,19 +87,6 @@ def _read_pair_list(path: str) -> list[tuple[str, str]]:
     if not pairs:
         raise InputError(f"pairs: no pair listed in {path}")
     return pairs
-
-
-def _load(left: str, right: str, args: argparse.Namespace):
-    """One pair with the calibration options, resampled to --size; and the working→input pixel factors."""
-    from ..camera import parse_size
-    from ..data import load_image_pair, resize_stereo_batch
-
-    batch = load_image_pair(left, right, focal_px=args.focal_px, baseline_m=args.baseline_m, doffs_px=args.doffs_px)
-    if not args.size:
-        return batch, (1.0, 1.0)
-    height, width = batch.size_hw
-    new_w, new_h = parse_size(args.size, "size")
-    return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
 
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
@@ -182,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_many(args, config)
     if not (args.left and args.right):
         raise InputError("left, right: expected two image files (or --pairs LIST.txt)")
-    batch, factors = _load(args.left, args.right, args)
+    batch, factors = load_pair(args.left, args.right, args)
     started = time.perf_counter()
     result = estimate_obstacle_depth(batch, config)
     report = pair_report(result, 0, factors, time.perf_counter() - started)
@@ -202,7 +189,7 @@ def _run_many(args: argparse.Namespace, config) -> int:
     done = 0
     for start in range(0, len(pairs), max(1, args.batch_size)):
         chunk = pairs[start:start + args.batch_size]
-        loaded = [_load(left, right, args) for left, right in chunk]
+        loaded = [load_pair(left, right, args) for left, right in chunk]
         # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
         batch = collate_stereo_batches([b for b, _ in loaded], mode="pad")
         started = time.perf_counter()

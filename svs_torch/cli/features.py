@@ -59,13 +59,15 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                         help="ratio test of the matching (MATLAB MaxRatio, default 0.6)")
 
 
-def load_pair(args: argparse.Namespace):
-    """The pair of ``args.left``/``args.right``, resampled to ``--size`` if given; and the x, y factors that
-    map working pixels back to input pixels."""
+def load_pair(left: str, right: str, args: argparse.Namespace):
+    """The pair ``left``/``right`` with the calibration options ``args`` carries (``focal_px``, ``baseline_m``,
+    ``doffs_px``; SVS defaults otherwise), resampled to ``--size`` if given; and the x, y factors that map
+    working pixels back to input pixels."""
     from ..camera import parse_size
     from ..data import load_image_pair, resize_stereo_batch
 
-    batch = load_image_pair(args.left, args.right)
+    batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
+                            baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     height, width = batch.size_hw
     if not args.size:
         return batch, (1.0, 1.0)
@@ -102,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     from ..matching import match_sad
     from ..segmentation import segment_stereo
 
-    batch, factors = load_pair(args)
+    batch, factors = load_pair(args.left, args.right, args)
     config = surf_config_from_args(args)
     started = time.perf_counter()
     left_image, right_image = batch.left, batch.right

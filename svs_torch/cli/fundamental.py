@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from ..types import FundamentalStatus
     from .features import surf_config_from_args
 
-    batch, factors = load_pair(args)
+    batch, factors = load_pair(args.left, args.right, args)
     config = PipelineConfig(segmentation=config_from_args(args), surf=surf_config_from_args(args),
                             features_on="image" if args.no_segment else "masked", max_ratio=args.max_ratio,
                             ransac_threshold_px=args.threshold_px, seed=args.seed)
