@@ -15,12 +15,16 @@ from typing import Literal
 import torch
 
 from .checks import InputError
-from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile
+from .dense import (DenseConfig, DenseDisparity, coarse_search_range, dense_disparity_over_regions,
+                    disparity_search_range)
+from .dense_depth import dense_object_depths, range_from_objects
+from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
 from .matching import gather_matched_points, match_sad
 from .ransac import estimate_fundamental_ransac
-from .rectification import Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated
+from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
+                             warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -40,6 +44,7 @@ class PipelineStatus(enum.IntEnum):
     RANSAC_FAILED = 4  # every sample degenerate, or too few inliers
     DEGENERATE_RECTIFICATION = 5  # epipole in the image, singular F, or a wildly distorting homography
     NO_POSITIVE_DISPARITY = 6  # no inlier with d + doffs > 0: nothing to range
+    NO_DENSE_DEPTH = 7  # dense rule: no kept object has enough valid dense disparities (flat, occluded)
 
 
 @dataclass(frozen=True)
@@ -71,8 +76,13 @@ class PipelineConfig:
             rectify, and rectifies otherwise; ``"off"`` always measures x_left − x_right on the raw points.
         row_tolerance_px: see ``rectify="auto"``, pixels.
         rectification: :class:`~svs_torch.rectification.RectificationConfig`.
-        depth: :class:`~svs_torch.depth.DepthConfig` (paper min/max or robust percentiles).
+        depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
+            ``"paper"``: min/max over the inliers, or robust percentiles).
+        dense: :class:`~svs_torch.dense.DenseConfig`, the dense SAD stage of the ``"dense"`` rule.
         seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
+
+    ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
+    (Table 1's "proposed" row).
     """
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
@@ -90,6 +100,7 @@ class PipelineConfig:
     row_tolerance_px: float = 1.0
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -99,6 +110,12 @@ class PipelineConfig:
             raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
         if not 0 < self.max_ratio <= 1:
             raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
+
+    @classmethod
+    def paper(cls) -> PipelineConfig:
+        """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
+        defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
+        return cls(depth=DepthConfig(rule="paper"))
 
 
 @dataclass(frozen=True)
@@ -114,8 +131,11 @@ class PipelineResult:
         rectification: :class:`~svs_torch.rectification.Rectification` computed from F (its homographies are
             the identity where its status is not OK).
         rectified: ``(B,)`` bool, pairs whose disparities were measured after rectification.
-        depth: :class:`~svs_torch.depth.DepthResult`: the pair's R_min / R_max (Eq. (5)–(8)), per-object
-            depths of the kept left regions, the nearest obstacle.
+        depth: :class:`~svs_torch.depth.DepthResult`: the pair's R_min / R_max, per-object depths of the kept
+            left regions and the nearest obstacle, by ``config.depth.rule`` (``range_rule``).
+        dense: :class:`~svs_torch.dense.DenseDisparity` of the left view (in rectified pixels where
+            ``rectified``), None under the ``"paper"`` rule.
+        range_rule: ``"dense"`` or ``"paper"``: the rule that produced ``depth``.
         num_keypoints: ``(B, 2)`` int64, valid keypoints left and right.
         num_matches, num_inliers: ``(B,)`` int64.
         timings_s: wall time of each stage for the whole batch, seconds.
@@ -130,6 +150,8 @@ class PipelineResult:
     rectification: Rectification
     rectified: torch.Tensor
     depth: DepthResult
+    dense: DenseDisparity | None
+    range_rule: str
     num_keypoints: torch.Tensor
     num_matches: torch.Tensor
     num_inliers: torch.Tensor
@@ -166,19 +188,27 @@ def _match(left: SurfFeatures, right: SurfFeatures, config: PipelineConfig) -> M
 
 
 def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: FundamentalResult,
-            rectification: Rectification, depth: DepthResult, rectify: str) -> torch.Tensor:
-    """First failing stage per pair (checked from the last stage back, so earlier stages win)."""
+            rectification: Rectification, depth: DepthResult, rectify: str, dense_rule: bool) -> torch.Tensor:
+    """First failing stage per pair (checked from the last stage back, so earlier stages win).
+
+    Under the dense rule the sparse stages only bound nothing and rectify where needed: a pair whose features,
+    matches or RANSAC failed is still ranged on its raw rows (as ``rectify="auto"`` does for an aligned rig),
+    unless rectification is ``"required"``."""
     status = torch.full_like(fundamental.status, PipelineStatus.OK)
+    sparse_fatal = not dense_rule or rectify == "required"
     checks = [
-        (~depth.range.valid, PipelineStatus.NO_POSITIVE_DISPARITY),
+        (~depth.range.valid, PipelineStatus.NO_DENSE_DEPTH if dense_rule else PipelineStatus.NO_POSITIVE_DISPARITY),
         ((rectification.status != RectificationStatus.OK) & (rectify == "required"),
          PipelineStatus.DEGENERATE_RECTIFICATION),
-        ((fundamental.status != FundamentalStatus.OK), PipelineStatus.RANSAC_FAILED),
-        (fundamental.status == FundamentalStatus.TOO_FEW_MATCHES, PipelineStatus.TOO_FEW_MATCHES),
-        ((num_keypoints < MIN_CORRESPONDENCES).any(dim=1), PipelineStatus.TOO_FEW_KEYPOINTS),
-        ((seg.left.kept_labels[:, 0] < 0) | (seg.right.kept_labels[:, 0] < 0) | (seg.status != SegmentationStatus.OK),
-         PipelineStatus.NO_OBJECTS),
     ]
+    if sparse_fatal:
+        checks += [
+            ((fundamental.status != FundamentalStatus.OK), PipelineStatus.RANSAC_FAILED),
+            (fundamental.status == FundamentalStatus.TOO_FEW_MATCHES, PipelineStatus.TOO_FEW_MATCHES),
+            ((num_keypoints < MIN_CORRESPONDENCES).any(dim=1), PipelineStatus.TOO_FEW_KEYPOINTS),
+        ]
+    checks.append(((seg.left.kept_labels[:, 0] < 0) | (seg.right.kept_labels[:, 0] < 0)
+                   | (seg.status != SegmentationStatus.OK), PipelineStatus.NO_OBJECTS))
     for failed, code in checks:
         status = torch.where(failed, torch.full_like(status, code), status)
     return status
@@ -195,6 +225,33 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
     row_offset = (points_left[..., 1] - points_right[..., 1]).abs()
     median = masked_quantile(row_offset, inliers, [0.5]).values[:, 0]
     return usable & (median > config.row_tolerance_px)
+
+
+def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, rectified: torch.Tensor,
+                 H_left: torch.Tensor, H_right: torch.Tensor, config: PipelineConfig
+                 ) -> tuple[DepthResult, DenseDisparity]:
+    """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
+    rectified: images and labels warped by the same homographies), searched over the sparse inliers' range."""
+    left, right, labels = batch.left, batch.right, seg.left.labels
+    if bool(rectified.any()):
+        pick = rectified.view(-1, 1, 1, 1)
+        left = torch.where(pick, warp_rectified(left, H_left), left)
+        right = torch.where(pick, warp_rectified(right, H_right), right)
+        # Labels by nearest neighbour: warp each label as an exact small integer in float64.
+        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64)).round().long()
+        labels = torch.where(pick, warped, labels)
+    mask = (labels.unsqueeze(-1) == seg.left.kept_labels.view(batch.batch_size, 1, 1, 1, -1)).any(-1) & (labels > 0)
+    if config.dense.range_source == "coarse":
+        search = coarse_search_range(left, right, mask, batch.image_hw, config.dense)
+    else:
+        inliers = sparse.disparities
+        search = disparity_search_range(inliers.disparity_px, inliers.valid, batch.image_hw[:, 1], config.dense)
+    dense = dense_disparity_over_regions(left, right, mask, search, config.dense, batch.image_hw)
+    objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
+                                  config.depth.object_percentiles, config.depth.min_object_pixels,
+                                  config.dense.fill_invalid, config.depth.min_object_valid_fraction)
+    depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
+    return DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects)), dense
 
 
 def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig()) -> PipelineResult:
@@ -241,10 +298,15 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         H_left=torch.where(pick, rectification.H_left, identity),
         H_right=torch.where(pick, rectification.H_right, identity),
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
+    dense = None
+    if config.depth.rule == "dense":
+        depth, dense = _dense_depth(batch, seg, depth, rectified, torch.where(pick, rectification.H_left, identity),
+                                    torch.where(pick, rectification.H_right, identity), config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
-        status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify),
+        status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None),
         segmentation=seg, features_left=left, features_right=right, matches=matches, fundamental=fundamental,
-        rectification=rectification, rectified=rectified, depth=depth, num_keypoints=num_keypoints,
+        rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
+        num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings)

@@ -6,7 +6,7 @@ import argparse
 import json
 import time
 
-from .segment import add_segmentation_options, config_from_args
+from .segment import add_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
 
@@ -48,15 +48,38 @@ def add_pair_options(parser: argparse.ArgumentParser) -> None:
 
 
 def add_feature_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--max-keypoints", type=int, default=512, metavar="K",
-                        help="strongest keypoints kept per image (default: 512)")
-    parser.add_argument("--metric-threshold", type=float, default=1000.0, metavar="T",
-                        help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold, default 1000)")
-    parser.add_argument("--upsample", action="store_true",
+    """The preset and the feature/matching options; each option left out keeps the preset's value."""
+    parser.add_argument("--preset", choices=("default", "paper"), default="default",
+                        help="'default': svs_torch's best measured settings (dense depth over the obstacles); "
+                             "'paper': the paper exactly, MATLAB's defaults and R = f*B/d over the RANSAC "
+                             "inliers (Eq. 5-8)")
+    parser.add_argument("--max-keypoints", type=int, metavar="K",
+                        help="strongest keypoints kept per image (preset: 512)")
+    parser.add_argument("--metric-threshold", type=float, metavar="T",
+                        help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold; paper 1000)")
+    parser.add_argument("--upsample", action=argparse.BooleanOptionalAction,
                         help="detect on the image enlarged twice, as SIFT does: more and better-placed "
                              "keypoints on small frames, about 4x slower detection")
-    parser.add_argument("--max-ratio", type=float, default=0.6, metavar="R",
-                        help="ratio test of the matching (MATLAB MaxRatio, default 0.6)")
+    parser.add_argument("--max-ratio", type=float, metavar="R",
+                        help="ratio test of the matching (MATLAB MaxRatio; paper 0.6)")
+
+
+def preset_config(args: argparse.Namespace):
+    """The :class:`~svs_torch.pipeline.PipelineConfig` of ``--preset`` with the feature, matching and
+    segmentation options the user gave."""
+    from dataclasses import replace
+
+    from ..pipeline import PipelineConfig
+    from .segment import config_from_args
+
+    base = PipelineConfig.paper() if getattr(args, "preset", "default") == "paper" else PipelineConfig()
+    surf_changes = {name: value for name, value in (("max_keypoints", args.max_keypoints),
+                                                    ("metric_threshold", args.metric_threshold),
+                                                    ("upsample", args.upsample)) if value is not None}
+    changes = {"surf": replace(base.surf, **surf_changes), "segmentation": config_from_args(args, base.segmentation)}
+    if args.max_ratio is not None:
+        changes["max_ratio"] = args.max_ratio
+    return replace(base, **changes)
 
 
 def load_pair(left: str, right: str, args: argparse.Namespace):
@@ -81,13 +104,6 @@ def to_input_pixels(xy, factors: tuple[float, float]) -> list[float]:
     return [round((float(xy[0]) + 0.5) * fx - 0.5, 3), round((float(xy[1]) + 0.5) * fy - 0.5, 3)]
 
 
-def surf_config_from_args(args: argparse.Namespace):
-    from ..detector import SurfConfig
-
-    return SurfConfig(max_keypoints=args.max_keypoints, metric_threshold=args.metric_threshold,
-                      upsample=args.upsample)
-
-
 def keypoint_list(keypoints, index: int, factors: tuple[float, float]) -> list[dict]:
     valid = keypoints.valid[index]
     scale_factor = (factors[0] + factors[1]) / 2
@@ -105,16 +121,19 @@ def run(args: argparse.Namespace) -> int:
     from ..segmentation import segment_stereo
 
     batch, factors = load_pair(args.left, args.right, args)
-    config = surf_config_from_args(args)
+    config = preset_config(args)
     started = time.perf_counter()
     left_image, right_image = batch.left, batch.right
     if not args.no_segment:
-        seg = segment_stereo(batch, config_from_args(args))
+        seg = segment_stereo(batch, config.segmentation)
         left_image, right_image = seg.left.masked, seg.right.masked
-    both = extract_surf_features(torch.cat([left_image, right_image]), config)
+    both = extract_surf_features(torch.cat([left_image, right_image]), config.surf)
     kp, desc = both.keypoints, both.descriptors
-    matches = match_sad(desc[:1], desc[1:], kp.valid[:1], kp.valid[1:], max_ratio=args.max_ratio,
-                        laplacian_left=kp.laplacian_sign[:1], laplacian_right=kp.laplacian_sign[1:])
+    gate = config.laplacian_gate
+    matches = match_sad(desc[:1], desc[1:], kp.valid[:1], kp.valid[1:], max_ratio=config.max_ratio,
+                        mutual=config.mutual, laplacian_left=kp.laplacian_sign[:1] if gate else None,
+                        laplacian_right=kp.laplacian_sign[1:] if gate else None, xy_left=kp.xy[:1],
+                        xy_right=kp.xy[1:], epipolar_band_px=config.epipolar_band_px)
     elapsed = time.perf_counter() - started
     pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
     if args.plot:

@@ -7,7 +7,7 @@ import json
 import time
 
 from .features import add_feature_options, add_pair_options, load_pair, to_input_pixels
-from .segment import add_segmentation_options, config_from_args
+from .segment import add_segmentation_options
 
 HELP = "fundamental matrix of a stereo pair from SURF matches by RANSAC"
 
@@ -35,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-segment", action="store_true", help="match features of the whole images")
     add_segmentation_options(parser)
     add_feature_options(parser)
-    parser.add_argument("--threshold-px", type=float, default=1.0, help="RANSAC Sampson-distance threshold, px")
+    parser.add_argument("--threshold-px", type=float, help="RANSAC Sampson-distance threshold, px (preset: 1)")
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed: the same seed gives the same F")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
@@ -55,14 +55,19 @@ def to_input_fundamental(fundamental, factors: tuple[float, float]) -> list[list
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline import PipelineConfig, estimate_obstacle_depth
+    from dataclasses import replace
+
+    from ..depth import DepthConfig
+    from ..pipeline import estimate_obstacle_depth
     from ..types import FundamentalStatus
-    from .features import surf_config_from_args
+    from .features import preset_config
 
     batch, factors = load_pair(args.left, args.right, args)
-    config = PipelineConfig(segmentation=config_from_args(args), surf=surf_config_from_args(args),
-                            features_on="image" if args.no_segment else "masked", max_ratio=args.max_ratio,
-                            ransac_threshold_px=args.threshold_px, seed=args.seed)
+    base = preset_config(args)
+    # F needs no depth: the paper's sparse rule skips the dense stage.
+    config = replace(base, features_on="image" if args.no_segment else base.features_on, seed=args.seed,
+                     ransac_threshold_px=args.threshold_px or base.ransac_threshold_px,
+                     depth=DepthConfig(rule="paper"))
     started = time.perf_counter()
     result = estimate_obstacle_depth(batch, config)
     elapsed = time.perf_counter() - started

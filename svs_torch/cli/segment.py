@@ -50,12 +50,14 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                         help="obstacles are darker than the background: keep pixels at or below the threshold")
 
 
-def config_from_args(args: argparse.Namespace):
+def config_from_args(args: argparse.Namespace, base=None):
+    """The segmentation options over ``base`` (a ``SegmentationConfig``; default the class defaults)."""
+    from dataclasses import replace
+
     from ..segmentation import SegmentationConfig
 
-    return SegmentationConfig(
-        kernel_size=args.kernel_size, num_keep=args.keep, connectivity=args.connectivity,
-        foreground="dark" if args.dark_objects else "bright")
+    return replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
+                   connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
 
 
 def image_report(seg, index: int) -> dict:

@@ -1,0 +1,502 @@
+"""Dense SAD block matching over the obstacles, batched over B pairs (the depth stage's measurement, Sec. 3.4).
+
+The paper ranges a pair from the extreme disparities of its sparse RANSAC inliers (Eq. (5)–(8)); one wrong
+inlier then decides R_min or R_max, and a few dozen keypoints estimate an object's median poorly
+(``../shared/REFERENCE.md``, "Pitfalls"). This stage measures a disparity at every pixel of the kept regions
+instead, the way OpenCV's ``StereoBM`` does (Konolige 1997):
+
+1. **Pre-filter** both images: the x-Sobel response clipped to ``±prefilter_cap`` (``StereoBM``'s default
+   ``PREFILTER_XSOBEL``), which removes the exposure offset between the two cameras; or raw intensities.
+2. **Cost**: for each disparity d of a per-pair range ``[d_lo, d_lo + D)``, the sum of absolute differences
+   over a square window, ``C(x, y, d) = Σ_window |L(x, y) − R(x − d, y)|`` — box sums by separable pooling.
+3. **Winner takes all**, then rejections (each marks the pixel invalid, never guesses): the window's mean
+   |pre-filtered left| below ``texture_threshold`` (flat), the best cost not ``uniqueness_ratio`` below every
+   cost farther than 1 px from it (ambiguous), a winner on the inner edge of the range (the true minimum may lie
+   outside), and a left–right check: the right view's own winner at ``x − d`` must agree within
+   ``lr_max_diff_px`` (occlusions, mismatches).
+4. **Sub-pixel** by the equiangular (V) fit through the costs at d − 1, d, d + 1 — SAD costs are V-shaped near
+   their minimum, where a parabola biases towards integers (Shimizu & Okutomi 2001).
+
+Work is done only where it is needed: each pair's crop is the bounding box of its kept regions plus
+``margin_px`` (one shared crop size for the batch, each pair at its own offset), and the disparity range comes
+from the sparse inliers' disparities with a margin (:func:`disparity_search_range`), so the cost volume is
+``B × D × crop`` rather than ``B × D_max × H × W``.
+
+The hard path (WTA, rejections) is not differentiable. :func:`soft_block_match` is: a soft-argmin over the same
+cost volume with a temperature, whose gradients reach both images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from .checks import InputError, check_dtype, check_image, check_shape
+
+__all__ = [
+    "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
+    "dense_disparity_over_regions", "disparity_search_range", "prefilter_xsobel", "region_crop_boxes", "soft_block_match",
+]
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Options of the dense stage; defaults measured in ``experiments/paper_table1.py`` on the shared
+    Middlebury scenes (the tuned-vs-held-out split is in that script's docstring).
+
+    Attributes:
+        window_size: side of the square SAD window, pixels, odd (``StereoBM`` blockSize).
+        prefilter: ``"xsobel"`` (``StereoBM``'s default) or ``"none"`` (raw intensities).
+        prefilter_cap: clip of the x-Sobel response, [0, 1] intensity units (``StereoBM`` preFilterCap 31 on
+            0–255 images).
+        texture_threshold: least mean |clipped x-Sobel of the left image| over the window, [0, 1] units;
+            flatter windows are invalid (``StereoBM`` textureThreshold, there a sum over the window).
+        uniqueness_ratio: every cost more than 1 px from the best must exceed ``(1 + ratio)`` times the best
+            (``StereoBM`` uniquenessRatio, there in percent); 0 turns the check off.
+        lr_max_diff_px: largest left–right disagreement, pixels (``StereoBM`` disp12MaxDiff); None: no check.
+        margin_px: context around the kept regions' bounding box, pixels.
+        range_source: ``"coarse"``: the range comes from a coarse dense pass over the whole fallback range
+            (:func:`coarse_search_range`); ``"inliers"``: from the sparse RANSAC inliers' disparities.
+        coarse_width_px: the coarse pass reduces the images to about this width.
+        range_margin_px, range_margin_fraction: the search range is the samples' disparities widened by
+            ``max(range_margin_px, range_margin_fraction · span)`` on each side.
+        range_percentiles: the sample percentiles that bound the range before the margin (robust to a few
+            wrong samples; (0, 100) is their min and max).
+        max_num_disparities: most disparities searched per pair (the range is clipped around its centre).
+        fallback_max_disparity_fraction: the widest disparity searched, as a fraction of the width: the
+            coarse pass's range, and the range of a pair with too few samples.
+        min_range_inliers: fewest sparse inliers to bound the range from them.
+        min_range_pixels: fewest valid coarse pixels to bound the range from them.
+        fill_invalid: per-object statistics fill invalid pixels from their row neighbours first
+            (:func:`fill_invalid_rows`), so an object's median is over its whole region.
+    """
+
+    window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
+    prefilter: Literal["xsobel", "none"] = "xsobel"  # StereoBM PREFILTER_XSOBEL
+    prefilter_cap: float = 31 / 255  # StereoBM preFilterCap 31
+    texture_threshold: float = 2 / 255
+    uniqueness_ratio: float = 0.10
+    lr_max_diff_px: float | None = 1.0
+    margin_px: int = 8
+    range_source: Literal["coarse", "inliers"] = "coarse"
+    coarse_width_px: int = 160
+    range_margin_px: float = 2.0
+    range_margin_fraction: float = 0.25
+    range_percentiles: tuple[float, float] = (1.0, 99.0)
+    max_num_disparities: int = 128
+    fallback_max_disparity_fraction: float = 0.25
+    min_range_inliers: int = 7
+    min_range_pixels: int = 20
+    fill_invalid: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
+            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if self.range_source not in ("coarse", "inliers"):
+            raise InputError(f"range_source: expected 'coarse' or 'inliers', got {self.range_source!r}")
+        if not isinstance(self.coarse_width_px, int) or self.coarse_width_px < 8:
+            raise InputError(f"coarse_width_px: expected an int >= 8, got {self.coarse_width_px!r}")
+        if self.prefilter not in ("xsobel", "none"):
+            raise InputError(f"prefilter: expected 'xsobel' or 'none', got {self.prefilter!r}")
+        if not 0 <= self.uniqueness_ratio < 10:
+            raise InputError(f"uniqueness_ratio: expected a value in [0, 10), got {self.uniqueness_ratio!r}")
+        if self.lr_max_diff_px is not None and not self.lr_max_diff_px >= 0:
+            raise InputError(f"lr_max_diff_px: expected None or a value >= 0, got {self.lr_max_diff_px!r}")
+        if not isinstance(self.max_num_disparities, int) or self.max_num_disparities < 2:
+            raise InputError(f"max_num_disparities: expected an int >= 2, got {self.max_num_disparities!r}")
+        low, high = self.range_percentiles
+        if not 0 <= low <= high <= 100:
+            raise InputError(f"range_percentiles: expected 0 <= low <= high <= 100, got {self.range_percentiles}")
+        for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
+        if not isinstance(self.margin_px, int) or self.margin_px < 0:
+            raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
+
+
+class DisparityRange(NamedTuple):
+    """Per-pair search range: ``min_disparity_px`` ``(B,)`` int64 and the shared count ``num_disparities``."""
+
+    min_disparity_px: torch.Tensor
+    num_disparities: int
+
+
+@dataclass(frozen=True)
+class DenseDisparity:
+    """Dense disparity of the left view, ``x_right = x_left − d``.
+
+    Attributes:
+        disparity_px: ``(B, 1, H, W)`` sub-pixel disparity, 0 where not valid.
+        valid: ``(B, 1, H, W)`` bool: inside the searched crop and every rejection passed.
+        min_disparity_px: ``(B,)`` int64, the range searched: ``[min, min + num_disparities)``.
+        num_disparities: the shared count D.
+        crop_xywh: ``(B, 4)`` int64, the searched box of each pair (x0, y0, width, height), pixels.
+    """
+
+    disparity_px: torch.Tensor
+    valid: torch.Tensor
+    min_disparity_px: torch.Tensor
+    num_disparities: int
+    crop_xywh: torch.Tensor
+
+
+def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
+    """``StereoBM``'s x-Sobel pre-filter: ``clip(Sobel_x(image), −cap, cap)`` on ``(B, 1, H, W)``, replicate
+    border. Differentiable w.r.t. the image (zero gradient where clipped)."""
+    kernel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=image.dtype,
+                          device=image.device).view(1, 1, 3, 3)
+    response = F.conv2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), kernel)
+    return response.clamp(-cap, cap)
+
+
+def _prefilter(image: torch.Tensor, config: DenseConfig) -> torch.Tensor:
+    return prefilter_xsobel(image, config.prefilter_cap) if config.prefilter == "xsobel" else image
+
+
+def _box_sum(volume: torch.Tensor, size: int) -> torch.Tensor:
+    """Sums over ``size × size`` windows of the last two dims, no padding (valid part only), separably: two 1-D
+    pools were twice as fast as one 2-D pool here (``../shared/REFERENCE.md``)."""
+    lead = volume.shape[:-2]
+    flat = volume.reshape(-1, 1, *volume.shape[-2:])
+    summed = F.avg_pool2d(F.avg_pool2d(flat, (size, 1), stride=1), (1, size), stride=1) * (size * size)
+    return summed.reshape(*lead, *summed.shape[-2:])
+
+
+def _gather_crop(image: torch.Tensor, y0: torch.Tensor, x0: torch.Tensor, height: int,
+                 width: int) -> torch.Tensor:
+    """``(B, C, height, width)`` crops of ``image`` at per-pair offsets (B,), indices clamped to the image
+    (replicate border)."""
+    b, c, h, w = image.shape
+    rows = (y0.view(b, 1) + torch.arange(height, device=image.device)).clamp(0, h - 1)  # (B, h')
+    cols = (x0.view(b, 1) + torch.arange(width, device=image.device)).clamp(0, w - 1)  # (B, w')
+    flat = image.reshape(b, c, h * w)
+    index = (rows.view(b, 1, height, 1) * w + cols.view(b, 1, 1, width)).expand(b, c, height, width)
+    return flat.gather(2, index.reshape(b, c, -1)).reshape(b, c, height, width)
+
+
+def crop_box(image: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """``(B, C, height, width)`` crops of ``image`` ``(B, C, H, W)`` (any dtype) with top-left corners ``x0``,
+    ``y0`` ``(B,)`` int64; indices outside the image are clamped (replicate border). Differentiable w.r.t. the
+    image."""
+    return _gather_crop(image, y0, x0, height, width)
+
+
+def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
+                 width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
+                 config: DenseConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """SAD costs ``(B, D, height, width)`` of the left pixels of the box at (x0, y0), disparity ``min + d``,
+    and ``(B, D, 1, width)`` bool: the right pixel ``x − min − d`` lies inside the pair's own width."""
+    radius = config.window_size // 2
+    hl, wl = height + 2 * radius, width + 2 * radius
+    left_crop = _gather_crop(left, y0 - radius, x0 - radius, hl, wl)
+    # The right crop reaches num_disparities − 1 columns further left; slice k of it is disparity D − 1 − k.
+    right_x0 = x0 - radius - min_disparity - (num_disparities - 1)
+    right_crop = _gather_crop(right, y0 - radius, right_x0, hl, wl + num_disparities - 1)
+    windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
+    volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2)  # (B, D, hl, wl)
+    costs = _box_sum(volume, config.window_size)
+    disparities = min_disparity.view(-1, 1) + torch.arange(num_disparities, device=left.device)  # (B, D)
+    right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)
+    inside = (right_x >= 0) & (right_x < image_w.view(-1, 1, 1))
+    return costs, inside.unsqueeze(2)
+
+
+def _equiangular_offset(before: torch.Tensor, best: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """Sub-pixel offset in [−0.5, 0.5] of a V-shaped minimum through three costs (Shimizu & Okutomi 2001)."""
+    rise = 2 * (torch.maximum(before, after) - best)
+    safe = torch.where(rise > 0, rise, torch.ones_like(rise))
+    return torch.where(rise > 0, (before - after) / safe, torch.zeros_like(rise)).clamp(-0.5, 0.5)
+
+
+def _winner(costs: torch.Tensor, usable: torch.Tensor, config: DenseConfig,
+            lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """WTA over D of ``costs`` ``(B, D, h, w)``: integer index ``(B, h, w)``, sub-pixel offset, and the
+    uniqueness / range-edge verdict."""
+    num_disparities = costs.shape[1]
+    masked = torch.where(usable, costs, torch.full_like(costs, torch.inf))
+    best_cost, best = masked.min(dim=1)  # (B, h, w)
+    index = torch.arange(num_disparities, device=costs.device).view(1, -1, 1, 1)
+    near = (index - best.unsqueeze(1)).abs() <= 1
+    before = masked.gather(1, (best - 1).clamp_min(0).unsqueeze(1)).squeeze(1)
+    after = masked.gather(1, (best + 1).clamp_max(num_disparities - 1).unsqueeze(1)).squeeze(1)
+    interior = (best > 0) & (best < num_disparities - 1) & torch.isfinite(before) & torch.isfinite(after)
+    offset = torch.where(interior, _equiangular_offset(before, best_cost, after), torch.zeros_like(best_cost))
+    ok = torch.isfinite(best_cost) & (best < num_disparities - 1)
+    ok &= (best > 0) | lower_is_limit.view(-1, 1, 1)  # a winner on the range's inner edge is unreliable
+    if config.uniqueness_ratio > 0:
+        rival = torch.where(near, torch.full_like(masked, torch.inf), masked).min(dim=1).values
+        ok &= rival > (1 + config.uniqueness_ratio) * best_cost
+    return best, offset, ok
+
+
+def _right_winner(costs: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
+    """The right view's WTA index from the left volume: ``C_R(x_r, d) = C_L(x_r + d, d)`` — a shear of the
+    volume. ``(B, h, w)`` int64, indexed by the left column ``x_r + d_lo - x0`` shifted so that left pixel x
+    with index k reads it at ``x − k``; −1 where no candidate."""
+    b, num_disparities, h, w = costs.shape
+    masked = torch.where(usable, costs, torch.full_like(costs, torch.inf))
+    # Right pixel at column j (in left-crop columns, i.e. x_r + d_lo − x0 = j) sees left column j + k at index k.
+    padded = F.pad(masked, (0, num_disparities - 1), value=torch.inf)  # (B, D, h, w + D − 1)
+    sheared = padded.unfold(-1, w, 1)  # (B, D, h, D, w): [.., k, .., s, j] = padded[.., k, .., s + j]
+    diagonal = sheared.diagonal(dim1=1, dim2=3)  # (B, h, w, D): [.., j, k] = masked[k, j + k]
+    best_cost, best = diagonal.min(dim=-1)
+    return torch.where(torch.isfinite(best_cost), best, torch.full_like(best, -1))
+
+
+def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_diff: float) -> torch.Tensor:
+    """Left pixel j with index k is consistent when the right winner at left-crop column j − k is within
+    ``max_diff`` of k (``StereoBM`` disp12MaxDiff on integer disparities)."""
+    w = best.shape[-1]
+    column = torch.arange(w, device=best.device) - best  # (B, h, w)
+    inside = column >= 0
+    seen = right_best.gather(-1, column.clamp_min(0))
+    return inside & (seen >= 0) & ((seen - best).abs() <= max_diff)
+
+
+def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
+               width: int, search: DisparityRange, image_hw: torch.Tensor, config: DenseConfig,
+               lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Disparity ``(B, height, width)`` and validity of the box at (x0, y0) of the images. The volume spans
+    D − 1 extra columns on each side so the right view's winner (left–right check) sees every candidate."""
+    sobel = prefilter_xsobel(left, config.prefilter_cap)
+    if config.prefilter == "xsobel":
+        left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
+    num_disparities = search.num_disparities
+    extra = num_disparities - 1 if config.lr_max_diff_px is not None else 0
+    costs, inside = _cost_volume(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
+                                 num_disparities, image_hw[:, 1], config)
+    best, offset, ok = _winner(costs, inside, config, lower_is_limit)
+    if config.lr_max_diff_px is not None:
+        ok &= _left_right_consistent(best, _right_winner(costs, inside), config.lr_max_diff_px)
+    if config.texture_threshold > 0:
+        radius = config.window_size // 2
+        texture = _gather_crop(sobel.abs(), y0 - radius, x0 - extra - radius, height + 2 * radius,
+                               width + 2 * extra + 2 * radius)
+        ok &= _box_sum(texture, config.window_size).squeeze(1) >= config.texture_threshold * config.window_size ** 2
+    disparity = search.min_disparity_px.view(-1, 1, 1).to(offset.dtype) + best.to(offset.dtype) + offset
+    core = slice(extra, extra + width)
+    disparity, ok = disparity[..., core], ok[..., core]
+    rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
+    cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
+    ok &= (rows >= 0) & (rows < image_hw[:, :1, None]) & (cols >= 0) & (cols < image_hw[:, 1:, None])
+    return torch.where(ok, disparity, torch.zeros_like(disparity)), ok
+
+
+def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fill each invalid pixel of ``(..., W)`` rows from the nearest valid pixels to its left and right: their
+    mean where they agree within 1 px (a textureless patch inside one surface), otherwise the smaller
+    disparity (an occlusion is background: Hirschmüller 2008, Sec. 3.5); one side only where the other has
+    none. Returns the filled disparity and where a fill was possible (``valid`` or a valid pixel in the row)."""
+    width = disparity.shape[-1]
+    index = torch.arange(width, device=disparity.device).expand_as(disparity)
+    left_index = torch.where(valid, index, -1).cummax(dim=-1).values
+    right_index = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)
+    has_left, has_right = left_index >= 0, right_index < width
+    from_left = disparity.gather(-1, left_index.clamp(0, width - 1))
+    from_right = disparity.gather(-1, right_index.clamp(0, width - 1))
+    agree = (from_left - from_right).abs() <= 1
+    both = torch.where(agree, (from_left + from_right) / 2, torch.minimum(from_left, from_right))
+    filled = torch.where(has_left & has_right, both, torch.where(has_left, from_left, from_right))
+    reachable = valid | has_left | has_right
+    return torch.where(valid, disparity, torch.where(reachable, filled, torch.zeros_like(filled))), reachable
+
+
+def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:
+    dims = check_image(left, "left", check_range=False)
+    check_image(right, "right", check_range=False)
+    if left.shape != right.shape:
+        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    return dims["B"]
+
+
+def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, b: int,
+                 device: torch.device) -> torch.Tensor:
+    if not isinstance(num_disparities, int) or num_disparities < 1:
+        raise InputError(f"num_disparities: expected a positive int, got {num_disparities!r}")
+    minimum = torch.as_tensor(min_disparity_px, device=device)
+    if minimum.dim() == 0:
+        minimum = minimum.expand(b)
+    check_shape(minimum, "min_disparity_px", [b])
+    check_dtype(minimum, "min_disparity_px", "int")
+    return minimum.long()
+
+
+def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
+                    num_disparities: int, config: DenseConfig = DenseConfig(),
+                    image_hw: torch.Tensor | None = None) -> DenseDisparity:
+    """Dense SAD block matching of whole images ``(B, 1, H, W)`` over the disparities
+    ``[min_disparity_px, min_disparity_px + num_disparities)`` (an int or ``(B,)`` int64 per pair).
+
+    Pixels whose right match ``x − d`` leaves the image for every candidate, and the rejections of the module
+    docstring, are invalid. ``image_hw`` ``(B, 2)`` gives each pair's size before padding (default: all of it).
+    Not differentiable (winner takes all); see :func:`soft_block_match`.
+    """
+    b = _check_pair(left, right)
+    minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
+    h, w = left.shape[-2:]
+    if image_hw is None:
+        image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
+    search = DisparityRange(minimum, num_disparities)
+    disparity, ok = _match_box(left, right, zeros, zeros, h, w, search,
+                               image_hw, config, lower_is_limit=minimum <= 0)
+    box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
+    return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone())
+
+
+def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
+                     num_disparities: int, temperature: float, config: DenseConfig = DenseConfig()) -> torch.Tensor:
+    """Differentiable dense disparity ``(B, 1, H, W)``: the soft-argmin ``Σ_d d · softmax(−C(d) / T)`` over the
+    SAD cost volume of :func:`block_match_sad` (costs as window means, so ``temperature`` is in intensity units
+    of the pre-filtered images). As ``temperature → 0`` it tends to the winner-takes-all disparity (without the
+    rejections and sub-pixel fit). Candidates whose right pixel leaves the image get no weight; a pixel with none
+    at all gets ``min_disparity_px``.
+
+    Gradients flow to both images (through the pre-filter, the absolute differences and the softmax) and are
+    defined wherever no difference is exactly zero.
+    """
+    b = _check_pair(left, right)
+    minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
+    if not temperature > 0:
+        raise InputError(f"temperature: expected a positive number, got {temperature!r}")
+    h, w = left.shape[-2:]
+    zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
+    costs, inside = _cost_volume(_prefilter(left, config), _prefilter(right, config), zeros, zeros, h, w, minimum,
+                                 num_disparities, torch.full((b,), w, device=left.device), config)
+    costs = costs / config.window_size ** 2
+    logits = torch.where(inside, -costs / temperature, torch.full_like(costs, -torch.inf))
+    any_inside = inside.any(dim=1)  # (B, 1, w)
+    logits = torch.where(any_inside.unsqueeze(1), logits, torch.zeros_like(logits))
+    weights = torch.softmax(logits, dim=1)
+    values = (minimum.view(-1, 1) + torch.arange(num_disparities, device=left.device)).to(costs.dtype)
+    expected = (weights * values.view(b, -1, 1, 1)).sum(dim=1, keepdim=True)
+    return torch.where(any_inside.unsqueeze(1), expected, values[:, :1].view(b, 1, 1, 1).expand_as(expected))
+
+
+def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """One shared box size for the batch that holds each pair's ``mask`` ``(B, 1, H, W)`` bounding box plus
+    ``margin_px``: per-pair offsets ``x0, y0`` ``(B,)`` and the size ``height, width``. A pair with an empty mask
+    gets a box at the origin (its pixels are then marked invalid by the caller)."""
+    b, _, h, w = mask.shape
+    if image_hw is None:
+        image_hw = torch.tensor([[h, w]], device=mask.device).expand(b, 2)
+    rows, cols = mask.any(dim=-1).squeeze(1), mask.any(dim=-2).squeeze(1)  # (B, H), (B, W)
+
+    def span(present: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        index = torch.arange(size, device=mask.device)
+        first = torch.where(present, index, size).min(dim=1).values
+        last = torch.where(present, index, -1).max(dim=1).values
+        return first, last
+
+    y_first, y_last = span(rows, h)
+    x_first, x_last = span(cols, w)
+    some = y_last >= 0
+    y0 = torch.where(some, (y_first - margin_px).clamp_min(0), 0)
+    x0 = torch.where(some, (x_first - margin_px).clamp_min(0), 0)
+    y1 = torch.where(some, torch.minimum(y_last + margin_px + 1, image_hw[:, 0]), 1)
+    x1 = torch.where(some, torch.minimum(x_last + margin_px + 1, image_hw[:, 1]), 1)
+    height, width = int((y1 - y0).max()), int((x1 - x0).max())  # one host sync: the crop size
+    # Keep every box inside the padded frame: shift it back where the shared size would overhang.
+    y0 = torch.minimum(y0, torch.full_like(y0, h - height)).clamp_min(0)
+    x0 = torch.minimum(x0, torch.full_like(x0, w - width)).clamp_min(0)
+    return x0, y0, height, width
+
+
+def _nearest_rank(ordered: torch.Tensor, count: torch.Tensor, q: float) -> torch.Tensor:
+    """Nearest-rank quantile ``q`` of the first ``count`` entries of each sorted row of ``ordered`` ``(B, P)``."""
+    if ordered.shape[1] == 0:
+        return torch.zeros(ordered.shape[0], dtype=ordered.dtype, device=ordered.device)
+    rank = ((count - 1).clamp_min(0).to(ordered.dtype) * q).round().long()
+    return ordered.gather(1, rank.unsqueeze(1)).squeeze(1)
+
+
+def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, image_w: torch.Tensor,
+                           config: DenseConfig = DenseConfig(), extra_margin_px: float = 0.0,
+                           min_count: int | None = None) -> DisparityRange:
+    """Per-pair search range from sample disparities ``(B, P)`` (``valid`` ``(B, P)``: coarse dense pixels of
+    the kept regions, or sparse inliers): their ``range_percentiles`` widened by
+    ``max(range_margin_px, range_margin_fraction · span) + extra_margin_px`` on each side, clipped at 0 and to
+    ``max_num_disparities`` around the centre. Pairs with fewer than ``min_count`` (default
+    ``min_range_inliers``) samples search ``[0, fallback_max_disparity_fraction · width)``. D is the batch's
+    widest range: every pair searches D disparities from its own minimum."""
+    check_shape(disparity_px, "disparity_px", ["B", "P"])
+    check_shape(valid, "valid", list(disparity_px.shape))
+    check_dtype(valid, "valid", "bool")
+    values = disparity_px.detach().to(torch.float64)
+    count = valid.sum(dim=1)
+    ordered = torch.where(valid, values, torch.full_like(values, torch.inf)).sort(dim=1).values
+    low = _nearest_rank(ordered, count, config.range_percentiles[0] / 100)
+    high = _nearest_rank(ordered, count, config.range_percentiles[1] / 100)
+    margin = torch.clamp_min((high - low) * config.range_margin_fraction, config.range_margin_px) + extra_margin_px
+    enough = count >= (config.min_range_inliers if min_count is None else min_count)
+    fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
+    low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
+    high = torch.where(enough, (high + margin).ceil(), fallback_high.floor())
+    high = torch.maximum(high, low + 1)
+    span = (high - low + 1).clamp_max(config.max_num_disparities)
+    centre = (low + high) / 2
+    low = torch.where(high - low + 1 > span, (centre - span / 2).floor().clamp_min(0), low)
+    num_disparities = int(span.max()) if span.numel() else 2
+    return DisparityRange(low.long(), max(num_disparities, 2))
+
+
+def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
+                        config: DenseConfig = DenseConfig()) -> DisparityRange:
+    """The search range of each pair from a coarse pass: the images reduced ``f`` times (``f ≈ W /
+    coarse_width_px``, box average), matched over the whole fallback range ``[0, fraction · W / f)`` inside
+    the reduced kept regions, and the range of what survives the rejections, scaled back by ``f`` with an
+    ``f``-pixel allowance for the coarse grid. This needs no sparse inlier (a pair whose features failed still
+    gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search."""
+    b, _, h, w = left.shape
+    factor = max(1, round(w / config.coarse_width_px))
+    small_hw = torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1)
+    if factor > 1:
+        left, right = F.avg_pool2d(left, factor), F.avg_pool2d(right, factor)
+        mask = F.max_pool2d(mask.to(left.dtype), factor) > 0
+    full = disparity_search_range(left.new_zeros(b, 0), mask.new_zeros(b, 0), small_hw[:, 1], config)
+    coarse = dense_disparity_over_regions(left, right, mask, full, config, small_hw)
+    samples = (coarse.disparity_px * factor).flatten(1)
+    inside = (coarse.valid & mask).flatten(1)
+    return disparity_search_range(samples, inside, image_hw[:, 1], config, extra_margin_px=factor,
+                                  min_count=config.min_range_pixels)
+
+
+def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
+                                 search: DisparityRange, config: DenseConfig = DenseConfig(),
+                                 image_hw: torch.Tensor | None = None) -> DenseDisparity:
+    """Dense SAD disparity of the left view, computed only in the box around each pair's ``mask``
+    ``(B, 1, H, W)`` bool (the kept regions) and only over ``search``; elsewhere invalid.
+
+    Args:
+        left, right: ``(B, 1, H, W)`` images (rectified, or a rig whose rows already agree).
+        mask: where depth is wanted (``Segmentation.kept_mask`` of the left view).
+        search: :class:`DisparityRange`, e.g. from :func:`disparity_search_range`.
+        image_hw: ``(B, 2)`` each pair's size before padding.
+
+    Returns:
+        :class:`DenseDisparity`. Not differentiable (see :func:`soft_block_match`).
+    """
+    b = _check_pair(left, right)
+    check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
+    check_dtype(mask, "mask", "bool")
+    minimum = _check_range(search.min_disparity_px, search.num_disparities, b, left.device)
+    h, w = left.shape[-2:]
+    if image_hw is None:
+        image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    x0, y0, height, width = region_crop_boxes(mask, config.margin_px, image_hw)
+    search = DisparityRange(minimum, search.num_disparities)
+    disparity, ok = _match_box(left, right, x0, y0, height, width, search,
+                               image_hw, config, lower_is_limit=minimum <= 0)
+    ok &= mask.flatten(1).any(dim=1).view(-1, 1, 1)
+    full = torch.zeros(b, h * w, dtype=disparity.dtype, device=left.device)
+    full_ok = torch.zeros(b, h * w, dtype=torch.bool, device=left.device)
+    index = ((y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)) * w
+             + x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)).reshape(b, -1)
+    full.scatter_(1, index, disparity.reshape(b, -1))
+    full_ok.scatter_(1, index, ok.reshape(b, -1))
+    box = torch.stack([x0, y0, torch.full_like(x0, width), torch.full_like(x0, height)], dim=1)
+    return DenseDisparity(full.view(b, 1, h, w), full_ok.view(b, 1, h, w), minimum, search.num_disparities, box)

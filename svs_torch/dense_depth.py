@@ -1,0 +1,120 @@
+"""Obstacle depth from the dense disparity over each kept region (the product's range rule; Sec. 3.4 in spirit).
+
+The paper's Eq. (5)–(8) take R_min / R_max as the extremes over the sparse inliers. Here each kept object's
+distance is the median of ``Z = f·B / (d + doffs)`` over the valid dense disparities of its region
+(:mod:`svs_torch.dense`), with a low and a high percentile and the count of valid pixels; R_min / R_max are the
+nearest and the farthest kept object, and the nearest obstacle's low percentile is its nearest visible surface.
+The same definition is used for the ground truth (``svs_torch`` experiments: the median GT depth over the kept
+region), so the two are directly comparable by Eq. (9).
+
+Only the pixels inside each pair's searched box are read (``DenseDisparity.crop_xywh``): the rest is invalid.
+Differentiable w.r.t. ``disparity_px``, focal length and baseline where valid (median and percentiles pass
+gradients to the order statistics they interpolate); masks and counts are not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from .checks import InputError, check_dtype, check_shape
+from .dense import DenseDisparity, crop_box, fill_invalid_rows
+from .depth import ObjectDepths, RangeEstimate, masked_quantile
+
+__all__ = ["dense_object_depths", "range_from_objects"]
+
+
+def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str) -> torch.Tensor:
+    value = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    if value.dim() == 0:
+        value = value.expand(b)
+    check_shape(value, name, [b])
+    return value
+
+
+def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
+                        focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
+                        doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
+                        min_valid_px: int = 20, fill_invalid: bool = True,
+                        min_valid_fraction: float = 0.0) -> ObjectDepths:
+    """Per-object depth from dense disparity.
+
+    Args:
+        dense: :class:`~svs_torch.dense.DenseDisparity` of the left view ``(B, 1, H, W)``.
+        labels: ``(B, 1, H, W)`` int64 left label image in the same pixels as ``dense`` (warped with the left
+            homography when the pair was rectified).
+        objects: the slots to fill (:func:`~svs_torch.depth.object_depths` over the sparse inliers gives their
+            labels, areas, sides and inlier counts; those are kept).
+        focal_px, baseline_m, doffs_px: scalars or ``(B,)``.
+        percentiles: low and high percentiles in [0, 100] besides the median.
+        min_valid_px: fewest valid dense pixels for an object's depth to count.
+        min_valid_fraction: least share of the region's pixels with a valid dense disparity for its depth to
+            count: views that do not show the same scene (a swapped or frozen camera) leave most pixels
+            inconsistent, and such an object is not ranged rather than ranged wrong.
+        fill_invalid: give the region's invalid pixels the disparity of their row neighbours
+            (:func:`~svs_torch.dense.fill_invalid_rows`) before taking the statistics, so that the median is
+            over the whole region, as the truth is, and not only over its well-textured part.
+
+    Returns:
+        ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels
+        and ``num_valid_px`` ``(B, N)`` int64 set.
+    """
+    disparity = dense.disparity_px
+    check_shape(labels, "labels", list(disparity.shape))
+    check_dtype(labels, "labels", "int")
+    b = disparity.shape[0]
+    low, high = (float(p) for p in percentiles)
+    if not 0 <= low <= high <= 100:
+        raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
+    x0, y0, width, height = dense.crop_xywh.unbind(1)
+    size_w, size_h = int(width.max()) if b else 0, int(height.max()) if b else 0
+    crop_d = crop_box(disparity, x0, y0, size_h, size_w).flatten(1)  # (B, P)
+    crop_ok = crop_box(dense.valid, x0, y0, size_h, size_w).flatten(1)
+    crop_labels = crop_box(labels.long(), x0, y0, size_h, size_w).flatten(1)
+    measured = crop_ok
+    if fill_invalid:
+        filled, reachable = fill_invalid_rows(crop_d.view(b, size_h, size_w), crop_ok.view(b, size_h, size_w))
+        crop_d, crop_ok = filled.flatten(1), reachable.flatten(1)
+    focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
+    baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
+    doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
+    denominator = crop_d + doffs
+    crop_ok = crop_ok & (denominator > 0)
+    depth = torch.where(crop_ok, focal * baseline / torch.where(crop_ok, denominator, torch.ones_like(denominator)),
+                        torch.zeros_like(denominator))  # (B, P)
+    slots = objects.label  # (B, N), −1 padding
+    member = (crop_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1) & crop_ok.unsqueeze(1)
+    stats = masked_quantile(depth.unsqueeze(1).expand_as(member), member, [0.5, low / 100, high / 100]).values
+    count = (member & measured.unsqueeze(1)).sum(dim=-1)
+    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= min_valid_fraction * objects.area_px)
+    stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
+    median, depth_low, depth_high = stats.unbind(-1)
+    return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
+                               valid=valid, num_valid_px=count)
+
+
+def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
+                       doffs_px: torch.Tensor | float = 0.0) -> RangeEstimate:
+    """R_min / R_max as the nearest / farthest valid object's median depth ``(B,)``; d_max / d_min their
+    disparities ``f·B / R − doffs``; ``num_disparities`` the valid dense pixels (or inliers) that entered."""
+    median = objects.depth_median_m
+    b = median.shape[0]
+    valid = objects.valid
+    present = valid.any(dim=1)
+    nearest = torch.where(valid, median, torch.full_like(median, torch.inf)).amin(dim=1) if median.shape[1] else \
+        median.new_zeros(b)
+    farthest = torch.where(valid, median, torch.full_like(median, -torch.inf)).amax(dim=1) if median.shape[1] else \
+        median.new_zeros(b)
+    r_min = torch.where(present, nearest, torch.zeros_like(nearest))
+    r_max = torch.where(present, farthest, torch.zeros_like(farthest))
+    scale = _per_pair(focal_px, b, median, "focal_px") * _per_pair(baseline_m, b, median, "baseline_m")
+    doffs = _per_pair(doffs_px, b, median, "doffs_px")
+
+    def disparity(depth: torch.Tensor) -> torch.Tensor:
+        return torch.where(present, scale / torch.where(present, depth, torch.ones_like(depth)) - doffs,
+                           torch.zeros_like(depth))
+
+    counts = objects.num_valid_px if objects.num_valid_px is not None else objects.num_inliers
+    used = torch.where(valid, counts, torch.zeros_like(counts)).sum(dim=1)
+    return RangeEstimate(disparity(r_max), disparity(r_min), r_min, r_max, used, present)

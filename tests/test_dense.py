@@ -1,0 +1,257 @@
+"""Dense SAD block matching: a float64 per-pixel loop reference, OpenCV's StereoBM, real ground truth, the
+region crop, batching, the soft-argmin variant (gradcheck) and bad input."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
+from svs_torch.dense import (DenseConfig, DisparityRange, block_match_sad, coarse_search_range,
+                             dense_disparity_over_regions, disparity_search_range, fill_invalid_rows,
+                             prefilter_xsobel, soft_block_match)
+from svs_torch.segmentation import segment_stereo
+
+F64 = torch.float64
+
+
+def reference_block_match(left: np.ndarray, right: np.ndarray, min_d: int, num_d: int,
+                          config: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel loops over one (H, W) float64 pair, written from the module docstring."""
+    h, w = left.shape
+    cap, r = config.prefilter_cap, config.window_size // 2
+
+    def sobel(image):
+        p = np.pad(image, 1, mode="edge")
+        out = np.zeros_like(image)
+        for y in range(h):
+            for x in range(w):
+                win = p[y:y + 3, x:x + 3]
+                out[y, x] = (win[:, 2] - win[:, 0]) @ np.array([1.0, 2.0, 1.0])
+        return np.clip(out, -cap, cap)
+
+    sob_l, sob_r = sobel(left), sobel(right)
+    fl, fr = (sob_l, sob_r) if config.prefilter == "xsobel" else (left, right)
+
+    def pixel(image, y, x):
+        return image[min(max(y, 0), h - 1), min(max(x, 0), w - 1)]
+
+    def cost(y, x, d):
+        if not 0 <= x - d < w:
+            return np.inf
+        return sum(abs(pixel(fl, y + dy, x + dx) - pixel(fr, y + dy, x + dx - d))
+                   for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+
+    costs = np.array([[[cost(y, x, min_d + k) for k in range(num_d)] for x in range(w)] for y in range(h)])
+    best = costs.argmin(-1)
+    disparity, valid = np.zeros((h, w)), np.zeros((h, w), bool)
+    for y in range(h):
+        for x in range(w):
+            c, k = costs[y, x], best[y, x]
+            ok = np.isfinite(c[k]) and k < num_d - 1 and (k > 0 or min_d <= 0)
+            if config.uniqueness_ratio > 0:
+                rivals = [c[j] for j in range(num_d) if abs(j - k) > 1]
+                ok &= all(v > (1 + config.uniqueness_ratio) * c[k] for v in rivals)
+            if config.lr_max_diff_px is not None:  # the right view's winner at x_r = x − d
+                xr = x - (min_d + k)
+                right_costs = [costs[y, xr + min_d + j, j] if 0 <= xr + min_d + j < w else np.inf
+                               for j in range(num_d)]
+                ok &= 0 <= xr and abs(int(np.argmin(right_costs)) - k) <= config.lr_max_diff_px
+            if config.texture_threshold > 0:
+                texture = sum(abs(pixel(sob_l, y + dy, x + dx)) for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+                ok &= texture >= config.texture_threshold * config.window_size ** 2
+            offset = 0.0
+            if 0 < k < num_d - 1 and np.isfinite(c[k - 1]) and np.isfinite(c[k + 1]):
+                rise = 2 * (max(c[k - 1], c[k + 1]) - c[k])
+                offset = float(np.clip((c[k - 1] - c[k + 1]) / rise, -0.5, 0.5)) if rise > 0 else 0.0
+            valid[y, x] = ok
+            disparity[y, x] = min_d + k + offset if ok else 0.0
+    return disparity, valid
+
+
+@pytest.mark.parametrize("config", [
+    DenseConfig(window_size=3),
+    DenseConfig(window_size=5, prefilter="none", uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0),
+    DenseConfig(window_size=3, uniqueness_ratio=0.3, lr_max_diff_px=0.0, texture_threshold=0.05),
+], ids=["default-rules", "raw-no-rules", "strict"])
+def test_batched_equals_float64_loop_reference(config, generator):
+    base = torch.rand(2, 1, 9, 18, generator=generator, dtype=F64)
+    shifted = torch.roll(base, shifts=-3, dims=-1)  # the right view: x_r = x − 3
+    right = (0.9 * shifted + 0.1 * torch.rand(2, 1, 9, 18, generator=generator, dtype=F64)).clamp(0, 1)
+    minimum = torch.tensor([1, 0])
+    result = block_match_sad(base, right, minimum, 6, config)
+    for i in range(2):
+        disparity, valid = reference_block_match(base[i, 0].numpy(), right[i, 0].numpy(), int(minimum[i]), 6, config)
+        assert result.valid[i, 0].numpy().tolist() == valid.tolist()
+        np.testing.assert_allclose(result.disparity_px[i, 0].numpy(), disparity, atol=1e-9)
+    assert result.valid.any()
+
+
+@pytest.fixture(scope="module")
+def teddy(data_dir):
+    return resize_stereo_batch(load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy"), (320, 267))
+
+
+def test_agrees_with_opencv_stereobm(teddy):
+    """Same inputs, window 9, 32 disparities, every rejection off on both sides: OpenCV's integer SAD and
+    fixed-point sub-pixel (1/16 px) differ from ours only in rounding."""
+    left = (teddy.left[0, 0] * 255).round().to(torch.uint8).numpy()
+    right = (teddy.right[0, 0] * 255).round().to(torch.uint8).numpy()
+    matcher = cv2.StereoBM_create(numDisparities=32, blockSize=9)
+    for setter, value in (("setUniquenessRatio", 0), ("setTextureThreshold", 0), ("setSpeckleWindowSize", 0),
+                          ("setDisp12MaxDiff", -1)):
+        getattr(matcher, setter)(value)
+    theirs = matcher.compute(left, right).astype(np.float32) / 16
+    config = DenseConfig(window_size=9, uniqueness_ratio=0.0, texture_threshold=0.0, lr_max_diff_px=None)
+    as_float = [torch.from_numpy(image).float()[None, None] / 255 for image in (left, right)]
+    ours = block_match_sad(*as_float, 0, 32, config)
+    both = ours.valid[0, 0].numpy() & (theirs >= 0)
+    assert both.mean() > 0.8
+    within = np.abs(ours.disparity_px[0, 0].numpy() - theirs)[both] <= 1
+    assert within.mean() >= 0.95  # measured 0.997
+
+
+def test_default_rules_against_ground_truth(teddy):
+    """With the default rejections most surviving pixels are right, and more are right than without them."""
+    seg = segment_stereo(teddy)
+    search = DisparityRange(torch.tensor([0]), 64)
+    gt, known = teddy.disparity_px, teddy.disparity_valid & seg.left.kept_mask
+
+    def bad1(config):
+        dense = dense_disparity_over_regions(teddy.left, teddy.right, seg.left.kept_mask, search, config)
+        used = dense.valid & known
+        return float(((dense.disparity_px - gt).abs()[used] > 1).float().mean()), float(used.sum() / known.sum())
+
+    strict, kept = bad1(DenseConfig())
+    loose, _ = bad1(DenseConfig(uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0))
+    assert strict < 0.12 and strict < loose and kept > 0.6  # measured 0.07 / 0.17, 77 % kept
+
+
+def test_region_crop_equals_the_whole_frame_inside_the_box(teddy):
+    seg = segment_stereo(teddy)
+    mask = seg.left.kept_mask.clone()
+    mask[..., :, :100] = False  # a box that does not start at the image border
+    search = DisparityRange(torch.tensor([5]), 30)
+    config = DenseConfig()
+    cropped = dense_disparity_over_regions(teddy.left, teddy.right, mask, search, config)
+    whole = block_match_sad(teddy.left, teddy.right, search.min_disparity_px, 30, config)
+    x0, y0, width, height = cropped.crop_xywh[0].tolist()
+    assert x0 >= 100 - config.margin_px and width < 320 - 90
+    inside = (slice(None), slice(None), slice(y0, y0 + height), slice(x0, x0 + width))
+    assert torch.equal(cropped.valid[inside], whole.valid[inside])
+    torch.testing.assert_close(cropped.disparity_px[inside], whole.disparity_px[inside])
+    outside = torch.ones_like(cropped.valid)
+    outside[inside] = False
+    assert not cropped.valid[outside].any()
+
+
+def test_batched_equals_per_pair_with_padding(teddy, generator):
+    noise = resize_stereo_batch(teddy, (320, 267))
+    other = torch.rand(1, 1, 267, 320, generator=generator)
+    left, right = torch.cat([teddy.left, other]), torch.cat([teddy.right, other.roll(-4, -1)])
+    mask = torch.ones_like(left, dtype=torch.bool)
+    mask[1, :, 200:] = False
+    hw = torch.tensor([[267, 320], [200, 300]])
+    search = DisparityRange(torch.tensor([3, 0]), 24)
+    both = dense_disparity_over_regions(left, right, mask, search, DenseConfig(), hw)
+    for i in range(2):
+        single = dense_disparity_over_regions(left[i:i + 1], right[i:i + 1], mask[i:i + 1],
+                                              DisparityRange(search.min_disparity_px[i:i + 1], 24), DenseConfig(),
+                                              hw[i:i + 1])
+        x0, y0, w, h = single.crop_xywh[0].tolist()
+        box = (slice(y0, y0 + h), slice(x0, x0 + w))
+        assert torch.equal(single.valid[0, 0][box], both.valid[i, 0][box])
+        torch.testing.assert_close(single.disparity_px[0, 0][box], both.disparity_px[i, 0][box])
+    assert not both.valid[1, :, 200:].any() and not both.valid[1, :, :, 300:].any()
+    assert noise.batch_size == 1
+
+
+def test_coarse_range_covers_the_truth(teddy):
+    seg = segment_stereo(teddy)
+    search = coarse_search_range(teddy.left, teddy.right, seg.left.kept_mask, teddy.image_hw)
+    known = teddy.disparity_px[teddy.disparity_valid & seg.left.kept_mask]
+    low, high = torch.quantile(known, torch.tensor([0.02, 0.98])).tolist()
+    first = int(search.min_disparity_px[0])
+    assert first <= low and first + search.num_disparities - 1 >= high
+    assert search.num_disparities <= 48  # far narrower than the 80-disparity fallback at 320 px
+
+
+def test_search_range_from_samples():
+    values = torch.tensor([[10.0, 12.0, 20.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    valid = torch.tensor([[True, True, True, False], [False] * 4])
+    config = DenseConfig(range_percentiles=(0.0, 100.0), range_margin_px=2.0, range_margin_fraction=0.1,
+                         min_range_inliers=3)
+    search = disparity_search_range(values, valid, torch.tensor([320, 320]), config)
+    assert search.min_disparity_px.tolist() == [8, 0]  # 10 − 2; the second pair falls back to [0, 80)
+    assert search.num_disparities == 81
+
+
+def test_fill_invalid_rows():
+    disparity = torch.tensor([[5.0, 0.0, 5.5, 0.0, 0.0, 9.0, 0.0]])
+    valid = torch.tensor([[True, False, True, False, False, True, False]])
+    filled, reachable = fill_invalid_rows(disparity, valid)
+    # 5 and 5.5 agree (mean); 5.5 and 9 disagree (the background, the smaller); the end has one side only.
+    assert filled.tolist() == [[5.0, 5.25, 5.5, 5.5, 5.5, 9.0, 9.0]] and reachable.all()
+    empty, none = fill_invalid_rows(torch.zeros(1, 3), torch.zeros(1, 3, dtype=torch.bool))
+    assert not none.any() and not empty.any()
+
+
+def test_soft_block_match_gradcheck_and_low_temperature_limit(generator):
+    left = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)
+    right = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)
+    config = DenseConfig(window_size=3, prefilter="none")
+    assert torch.autograd.gradcheck(lambda a, b: soft_block_match(a, b, 0, 4, 0.05, config), (left, right))
+    sobel = DenseConfig(window_size=3)
+    assert torch.autograd.gradcheck(lambda a, b: soft_block_match(a, b, 1, 3, 0.1, sobel), (left, right))
+    cold = soft_block_match(left.detach(), right.detach(), 0, 4, 1e-6, replace(config, lr_max_diff_px=None))
+    hard = block_match_sad(left.detach(), right.detach(), 0, 4, replace(
+        config, uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0))
+    integer = (hard.disparity_px - hard.disparity_px.round()).abs() < 1e-12  # no sub-pixel shift applied
+    assert integer.any()
+    torch.testing.assert_close(cold[hard.valid & integer], hard.disparity_px[hard.valid & integer])
+
+
+def test_soft_block_match_gradients_reach_both_images(generator):
+    left = torch.rand(2, 1, 8, 12, generator=generator, requires_grad=True)
+    right = torch.rand(2, 1, 8, 12, generator=generator, requires_grad=True)
+    soft_block_match(left, right, torch.tensor([0, 2]), 5, 0.1).sum().backward()
+    assert left.grad.abs().sum() > 0 and right.grad.abs().sum() > 0
+
+
+def test_prefilter_matches_opencv_sobel(teddy):
+    image = teddy.left[:, :, :40, :60].double()
+    ours = prefilter_xsobel(image, 1e9)[0, 0].numpy()
+    theirs = cv2.Sobel(image[0, 0].numpy(), cv2.CV_64F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    np.testing.assert_allclose(ours, theirs, atol=1e-12)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"window_size": 4}, "window_size: expected an odd positive int"),
+    ({"prefilter": "census"}, "prefilter: expected 'xsobel' or 'none'"),
+    ({"range_source": "gt"}, "range_source: expected 'coarse' or 'inliers'"),
+    ({"lr_max_diff_px": -1.0}, "lr_max_diff_px: expected None or a value >= 0"),
+    ({"range_percentiles": (50.0, 10.0)}, "range_percentiles: expected 0 <= low <= high <= 100"),
+])
+def test_config_errors(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        DenseConfig(**kwargs)
+
+
+def test_argument_errors():
+    image = torch.rand(1, 1, 8, 8)
+    with pytest.raises(InputError, match=r"right: expected the shape of left"):
+        block_match_sad(image, torch.rand(1, 1, 8, 9), 0, 4)
+    with pytest.raises(InputError, match="num_disparities: expected a positive int"):
+        block_match_sad(image, image, 0, 0)
+    with pytest.raises(InputError, match=r"min_disparity_px: expected \(1\)"):
+        block_match_sad(image, image, torch.tensor([0, 1]), 4)
+    with pytest.raises(InputError, match="temperature: expected a positive number"):
+        soft_block_match(image, image, 0, 4, 0.0)
+    with pytest.raises(InputError, match=r"mask: expected \(1, 1, 8, 8\)"):
+        dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 9, dtype=torch.bool),
+                                     DisparityRange(torch.tensor([0]), 4))
