@@ -38,7 +38,7 @@ from .checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
     "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
-    "dense_disparity_over_regions", "disparity_search_range", "prefilter_xsobel", "region_crop_boxes", "soft_block_match",
+    "dense_disparity_over_regions", "disparity_search_range", "estimate_dense_disparity", "prefilter_xsobel", "region_crop_boxes", "soft_block_match",
 ]
 
 
@@ -57,10 +57,13 @@ class DenseConfig:
         uniqueness_ratio: every cost more than 1 px from the best must exceed ``(1 + ratio)`` times the best
             (``StereoBM`` uniquenessRatio, there in percent); 0 turns the check off.
         lr_max_diff_px: largest left–right disagreement, pixels (``StereoBM`` disp12MaxDiff); None: no check.
-        margin_px: context around the kept regions' bounding box, pixels.
+        working_width_px: the stage matches images reduced by an integer factor ``f ≈ W / working_width_px``
+            (box average) and scales the disparities back by ``f``: the cost volume shrinks ``f³`` times, and
+            on the shared scenes a 9-pixel window at this width ranged objects better than at native size.
+        margin_px: context around the kept regions' bounding box, working pixels.
         range_source: ``"coarse"``: the range comes from a coarse dense pass over the whole fallback range
             (:func:`coarse_search_range`); ``"inliers"``: from the sparse RANSAC inliers' disparities.
-        coarse_width_px: the coarse pass reduces the images to about this width.
+        coarse_width_px: the coarse pass reduces the working images to about this width.
         range_margin_px, range_margin_fraction: the search range is the samples' disparities widened by
             ``max(range_margin_px, range_margin_fraction · span)`` on each side.
         range_percentiles: the sample percentiles that bound the range before the margin (robust to a few
@@ -80,6 +83,7 @@ class DenseConfig:
     texture_threshold: float = 2 / 255
     uniqueness_ratio: float = 0.10
     lr_max_diff_px: float | None = 1.0
+    working_width_px: int = 320
     margin_px: int = 8
     range_source: Literal["coarse", "inliers"] = "coarse"
     coarse_width_px: int = 160
@@ -97,6 +101,8 @@ class DenseConfig:
             raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
         if self.range_source not in ("coarse", "inliers"):
             raise InputError(f"range_source: expected 'coarse' or 'inliers', got {self.range_source!r}")
+        if not isinstance(self.working_width_px, int) or self.working_width_px < 8:
+            raise InputError(f"working_width_px: expected an int >= 8, got {self.working_width_px!r}")
         if not isinstance(self.coarse_width_px, int) or self.coarse_width_px < 8:
             raise InputError(f"coarse_width_px: expected an int >= 8, got {self.coarse_width_px!r}")
         if self.prefilter not in ("xsobel", "none"):
@@ -118,10 +124,14 @@ class DenseConfig:
 
 
 class DisparityRange(NamedTuple):
-    """Per-pair search range: ``min_disparity_px`` ``(B,)`` int64 and the shared count ``num_disparities``."""
+    """Per-pair search range ``[min_disparity_px, min_disparity_px + pair_num_disparities)``: ``(B,)`` int64
+    each; ``num_disparities`` is the batch's largest count, the depth of the shared cost volume (a pair's
+    disparities past its own count get no cost, so its result does not depend on its batch). Without
+    ``pair_num_disparities`` every pair searches ``num_disparities``."""
 
     min_disparity_px: torch.Tensor
     num_disparities: int
+    pair_num_disparities: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -131,9 +141,11 @@ class DenseDisparity:
     Attributes:
         disparity_px: ``(B, 1, H, W)`` sub-pixel disparity, 0 where not valid.
         valid: ``(B, 1, H, W)`` bool: inside the searched crop and every rejection passed.
-        min_disparity_px: ``(B,)`` int64, the range searched: ``[min, min + num_disparities)``.
-        num_disparities: the shared count D.
-        crop_xywh: ``(B, 4)`` int64, the searched box of each pair (x0, y0, width, height), pixels.
+        min_disparity_px: ``(B,)`` int64, the range searched: ``[min, min + pair_num_disparities)``.
+        num_disparities: the batch's largest count D (the depth of the shared cost volume).
+        crop_xywh: ``(B, 4)`` int64, the searched box of each pair (x0, y0, width, height), pixels; every
+            valid pixel lies inside it.
+        pair_num_disparities: ``(B,)`` int64, each pair's own count.
     """
 
     disparity_px: torch.Tensor
@@ -141,6 +153,7 @@ class DenseDisparity:
     min_disparity_px: torch.Tensor
     num_disparities: int
     crop_xywh: torch.Tensor
+    pair_num_disparities: torch.Tensor
 
 
 def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
@@ -157,12 +170,20 @@ def _prefilter(image: torch.Tensor, config: DenseConfig) -> torch.Tensor:
 
 
 def _box_sum(volume: torch.Tensor, size: int) -> torch.Tensor:
-    """Sums over ``size × size`` windows of the last two dims, no padding (valid part only), separably: two 1-D
-    pools were twice as fast as one 2-D pool here (``../shared/REFERENCE.md``)."""
-    lead = volume.shape[:-2]
-    flat = volume.reshape(-1, 1, *volume.shape[-2:])
-    summed = F.avg_pool2d(F.avg_pool2d(flat, (size, 1), stride=1), (1, size), stride=1) * (size * size)
-    return summed.reshape(*lead, *summed.shape[-2:])
+    """Sums over ``size × size`` windows of the last two dims, no padding (valid part only), separably, as
+    running sums of shifted slices: on this CPU 2.7× faster than ``avg_pool2d`` with (k, 1) and (1, k)
+    kernels, whose vertical pass is not vectorised, and as fast as cumulative sums without their round-off.
+    Out of place when gradients are recorded."""
+    height, width = volume.shape[-2] - size + 1, volume.shape[-1] - size + 1
+    rows = volume[..., 0:height, :].clone()
+    for offset in range(1, size):
+        rows = rows + volume[..., offset:offset + height, :] if rows.requires_grad else \
+            rows.add_(volume[..., offset:offset + height, :])
+    summed = rows[..., 0:width].clone()
+    for offset in range(1, size):
+        summed = summed + rows[..., offset:offset + width] if summed.requires_grad else \
+            summed.add_(rows[..., offset:offset + width])
+    return summed
 
 
 def _gather_crop(image: torch.Tensor, y0: torch.Tensor, x0: torch.Tensor, height: int,
@@ -195,8 +216,15 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     # The right crop reaches num_disparities − 1 columns further left; slice k of it is disparity D − 1 − k.
     right_x0 = x0 - radius - min_disparity - (num_disparities - 1)
     right_crop = _gather_crop(right, y0 - radius, right_x0, hl, wl + num_disparities - 1)
-    windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
-    volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2)  # (B, D, hl, wl)
+    if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):  # the soft path: no in-place ops
+        windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
+        volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2).contiguous()
+    else:  # (B, D, hl, wl) built disparity by disparity: contiguous writes, no transposed copy
+        volume = left_crop.new_empty(left_crop.shape[0], num_disparities, hl, wl)
+        for d in range(num_disparities):
+            start = num_disparities - 1 - d
+            torch.sub(left_crop[:, 0], right_crop[:, 0, :, start:start + wl], out=volume[:, d])
+        volume.abs_()
     costs = _box_sum(volume, config.window_size)
     disparities = min_disparity.view(-1, 1) + torch.arange(num_disparities, device=left.device)  # (B, D)
     right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)
@@ -211,39 +239,43 @@ def _equiangular_offset(before: torch.Tensor, best: torch.Tensor, after: torch.T
     return torch.where(rise > 0, (before - after) / safe, torch.zeros_like(rise)).clamp(-0.5, 0.5)
 
 
-def _winner(costs: torch.Tensor, usable: torch.Tensor, config: DenseConfig,
-            lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """WTA over D of ``costs`` ``(B, D, h, w)``: integer index ``(B, h, w)``, sub-pixel offset, and the
-    uniqueness / range-edge verdict."""
+def _winner(costs: torch.Tensor, config: DenseConfig, lower_is_limit: torch.Tensor,
+            counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """WTA over D of ``costs`` ``(B, D, h, w)`` (+inf where the right pixel leaves the image): integer index
+    ``(B, h, w)``, sub-pixel offset, and the uniqueness / range-edge verdict. ``costs`` is read, and restored
+    after the uniqueness check writes into it."""
     num_disparities = costs.shape[1]
-    masked = torch.where(usable, costs, torch.full_like(costs, torch.inf))
-    best_cost, best = masked.min(dim=1)  # (B, h, w)
-    index = torch.arange(num_disparities, device=costs.device).view(1, -1, 1, 1)
-    near = (index - best.unsqueeze(1)).abs() <= 1
-    before = masked.gather(1, (best - 1).clamp_min(0).unsqueeze(1)).squeeze(1)
-    after = masked.gather(1, (best + 1).clamp_max(num_disparities - 1).unsqueeze(1)).squeeze(1)
+    best_cost, best = costs.min(dim=1)  # (B, h, w)
+    neighbours = (best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
+    neighbours = neighbours.clamp(0, num_disparities - 1)  # (B, 3, h, w)
+    near = costs.gather(1, neighbours)
+    before, after = near[:, 0], near[:, 2]
     interior = (best > 0) & (best < num_disparities - 1) & torch.isfinite(before) & torch.isfinite(after)
     offset = torch.where(interior, _equiangular_offset(before, best_cost, after), torch.zeros_like(best_cost))
-    ok = torch.isfinite(best_cost) & (best < num_disparities - 1)
+    ok = torch.isfinite(best_cost) & (best < counts.view(-1, 1, 1) - 1)
     ok &= (best > 0) | lower_is_limit.view(-1, 1, 1)  # a winner on the range's inner edge is unreliable
-    if config.uniqueness_ratio > 0:
-        rival = torch.where(near, torch.full_like(masked, torch.inf), masked).min(dim=1).values
+    if config.uniqueness_ratio > 0:  # the best cost farther than 1 px from the winner, without copying
+        costs.scatter_(1, neighbours, torch.inf)
+        rival = costs.min(dim=1).values
+        costs.scatter_(1, neighbours, near)
         ok &= rival > (1 + config.uniqueness_ratio) * best_cost
     return best, offset, ok
 
 
-def _right_winner(costs: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
-    """The right view's WTA index from the left volume: ``C_R(x_r, d) = C_L(x_r + d, d)`` — a shear of the
-    volume. ``(B, h, w)`` int64, indexed by the left column ``x_r + d_lo - x0`` shifted so that left pixel x
-    with index k reads it at ``x − k``; −1 where no candidate."""
-    b, num_disparities, h, w = costs.shape
-    masked = torch.where(usable, costs, torch.full_like(costs, torch.inf))
-    # Right pixel at column j (in left-crop columns, i.e. x_r + d_lo − x0 = j) sees left column j + k at index k.
-    padded = F.pad(masked, (0, num_disparities - 1), value=torch.inf)  # (B, D, h, w + D − 1)
-    sheared = padded.unfold(-1, w, 1)  # (B, D, h, D, w): [.., k, .., s, j] = padded[.., k, .., s + j]
-    diagonal = sheared.diagonal(dim1=1, dim2=3)  # (B, h, w, D): [.., j, k] = masked[k, j + k]
-    best_cost, best = diagonal.min(dim=-1)
-    return torch.where(torch.isfinite(best_cost), best, torch.full_like(best, -1))
+def _right_winner(costs: torch.Tensor) -> torch.Tensor:
+    """The right view's WTA index from the left volume, ``C_R(x_r, d) = C_L(x_r + d, d)`` (a shear), as a
+    running minimum over d: ``(B, h, w)`` int64 indexed by the left-crop column ``j = x_r + d_lo − x0``; −1
+    where every candidate is +inf. Ties keep the smaller d, as ``argmin`` does."""
+    width = costs.shape[-1]
+    best_cost = costs[:, 0].clone()
+    best = torch.zeros(best_cost.shape, dtype=torch.int64, device=costs.device)
+    for k in range(1, costs.shape[1]):
+        candidate = costs[:, k, :, k:]  # column j + k of disparity k
+        current = best_cost[..., :width - k]
+        better = candidate < current
+        torch.minimum(current, candidate, out=current)
+        best[..., :width - k].masked_fill_(better, k)
+    return best.masked_fill_(~torch.isfinite(best_cost), -1)
 
 
 def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_diff: float) -> torch.Tensor:
@@ -268,9 +300,14 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     extra = num_disparities - 1 if config.lr_max_diff_px is not None else 0
     costs, inside = _cost_volume(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
                                  num_disparities, image_hw[:, 1], config)
-    best, offset, ok = _winner(costs, inside, config, lower_is_limit)
+    counts = search.pair_num_disparities
+    if counts is None:
+        counts = torch.full_like(search.min_disparity_px, num_disparities)
+    own = torch.arange(num_disparities, device=left.device).view(1, -1, 1, 1) < counts.view(-1, 1, 1, 1)
+    costs.masked_fill_(~(inside & own), torch.inf)
+    best, offset, ok = _winner(costs, config, lower_is_limit, counts)
     if config.lr_max_diff_px is not None:
-        ok &= _left_right_consistent(best, _right_winner(costs, inside), config.lr_max_diff_px)
+        ok &= _left_right_consistent(best, _right_winner(costs), config.lr_max_diff_px)
     if config.texture_threshold > 0:
         radius = config.window_size // 2
         texture = _gather_crop(sobel.abs(), y0 - radius, x0 - extra - radius, height + 2 * radius,
@@ -344,7 +381,8 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
     disparity, ok = _match_box(left, right, zeros, zeros, h, w, search,
                                image_hw, config, lower_is_limit=minimum <= 0)
     box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
-    return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone())
+    return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone(),
+                          torch.full_like(minimum, num_disparities))
 
 
 def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
@@ -377,10 +415,12 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
 
 
 def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor | None = None
-                      ) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+                      ) -> tuple[torch.Tensor, torch.Tensor, int, int, torch.Tensor]:
     """One shared box size for the batch that holds each pair's ``mask`` ``(B, 1, H, W)`` bounding box plus
-    ``margin_px``: per-pair offsets ``x0, y0`` ``(B,)`` and the size ``height, width``. A pair with an empty mask
-    gets a box at the origin (its pixels are then marked invalid by the caller)."""
+    ``margin_px``: per-pair offsets ``x0, y0`` ``(B,)`` and the size ``height, width``; and each pair's own box
+    ``(B, 4)`` as x0, y0, width, height (results outside it are discarded, so that a pair's result does not
+    depend on its batch). A pair with an empty mask gets a 1-pixel box at the origin (the caller marks it
+    invalid)."""
     b, _, h, w = mask.shape
     if image_hw is None:
         image_hw = torch.tensor([[h, w]], device=mask.device).expand(b, 2)
@@ -399,11 +439,12 @@ def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor
     x0 = torch.where(some, (x_first - margin_px).clamp_min(0), 0)
     y1 = torch.where(some, torch.minimum(y_last + margin_px + 1, image_hw[:, 0]), 1)
     x1 = torch.where(some, torch.minimum(x_last + margin_px + 1, image_hw[:, 1]), 1)
+    own = torch.stack([x0, y0, x1 - x0, y1 - y0], dim=1)
     height, width = int((y1 - y0).max()), int((x1 - x0).max())  # one host sync: the crop size
     # Keep every box inside the padded frame: shift it back where the shared size would overhang.
     y0 = torch.minimum(y0, torch.full_like(y0, h - height)).clamp_min(0)
     x0 = torch.minimum(x0, torch.full_like(x0, w - width)).clamp_min(0)
-    return x0, y0, height, width
+    return x0, y0, height, width, own
 
 
 def _nearest_rank(ordered: torch.Tensor, count: torch.Tensor, q: float) -> torch.Tensor:
@@ -440,8 +481,9 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     span = (high - low + 1).clamp_max(config.max_num_disparities)
     centre = (low + high) / 2
     low = torch.where(high - low + 1 > span, (centre - span / 2).floor().clamp_min(0), low)
+    span = span.clamp_min(2).long()
     num_disparities = int(span.max()) if span.numel() else 2
-    return DisparityRange(low.long(), max(num_disparities, 2))
+    return DisparityRange(low.long(), num_disparities, span)
 
 
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
@@ -487,16 +529,76 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     h, w = left.shape[-2:]
     if image_hw is None:
         image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
-    x0, y0, height, width = region_crop_boxes(mask, config.margin_px, image_hw)
-    search = DisparityRange(minimum, search.num_disparities)
+    x0, y0, height, width, own = region_crop_boxes(mask, config.margin_px, image_hw)
+    search = DisparityRange(minimum, search.num_disparities, search.pair_num_disparities)
     disparity, ok = _match_box(left, right, x0, y0, height, width, search,
                                image_hw, config, lower_is_limit=minimum <= 0)
     ok &= mask.flatten(1).any(dim=1).view(-1, 1, 1)
+    rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
+    cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
+    own_x0, own_y0, own_w, own_h = (v.view(-1, 1, 1) for v in own.unbind(1))
+    ok &= (rows >= own_y0) & (rows < own_y0 + own_h) & (cols >= own_x0) & (cols < own_x0 + own_w)
+    disparity = torch.where(ok, disparity, torch.zeros_like(disparity))
     full = torch.zeros(b, h * w, dtype=disparity.dtype, device=left.device)
     full_ok = torch.zeros(b, h * w, dtype=torch.bool, device=left.device)
     index = ((y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)) * w
              + x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)).reshape(b, -1)
     full.scatter_(1, index, disparity.reshape(b, -1))
     full_ok.scatter_(1, index, ok.reshape(b, -1))
-    box = torch.stack([x0, y0, torch.full_like(x0, width), torch.full_like(x0, height)], dim=1)
-    return DenseDisparity(full.view(b, 1, h, w), full_ok.view(b, 1, h, w), minimum, search.num_disparities, box)
+    counts = search.pair_num_disparities
+    counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
+    return DenseDisparity(full.view(b, 1, h, w), full_ok.view(b, 1, h, w), minimum, search.num_disparities, own,
+                          counts)
+
+
+def _reduce(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
+            factor: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Images box-averaged ``factor`` times, the mask by any-pooling, each pair's size floored."""
+    if factor == 1:
+        return left, right, mask, image_hw
+    return (F.avg_pool2d(left, factor), F.avg_pool2d(right, factor), F.max_pool2d(mask.to(left.dtype), factor) > 0,
+            torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1))
+
+
+def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> DenseDisparity:
+    """A reduced-resolution result on the full ``height × width`` grid: each working pixel covers a
+    ``factor × factor`` block, disparities scaled by ``factor``; rows and columns past the reduced grid are
+    invalid."""
+    if factor == 1:
+        return dense
+
+    def grow(value: torch.Tensor) -> torch.Tensor:
+        grown = value.repeat_interleave(factor, dim=-2).repeat_interleave(factor, dim=-1)
+        grown = grown[..., :height, :width]
+        return F.pad(grown, (0, width - grown.shape[-1], 0, height - grown.shape[-2]))
+
+    return DenseDisparity(grow(dense.disparity_px * factor), grow(dense.valid), dense.min_disparity_px * factor,
+                          dense.num_disparities * factor, dense.crop_xywh * factor,
+                          dense.pair_num_disparities * factor)
+
+
+def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
+                             config: DenseConfig = DenseConfig(), image_hw: torch.Tensor | None = None,
+                             inlier_disparity_px: torch.Tensor | None = None,
+                             inlier_valid: torch.Tensor | None = None) -> DenseDisparity:
+    """The dense stage of the pipeline: reduce to ``working_width_px``, find each pair's search range (a coarse
+    pass, or the sparse inliers' disparities ``(B, K)`` with ``inlier_valid``), match over the kept regions
+    ``mask`` ``(B, 1, H, W)``, and return the disparity on the input grid (in input pixels).
+
+    ``min_disparity_px``, ``num_disparities`` and ``crop_xywh`` of the result are in input pixels too (the
+    working range times the factor). Not differentiable (see :func:`soft_block_match`).
+    """
+    b = _check_pair(left, right)
+    check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
+    check_dtype(mask, "mask", "bool")
+    height, width = left.shape[-2:]
+    if image_hw is None:
+        image_hw = torch.tensor([[height, width]], device=left.device).expand(b, 2)
+    factor = max(1, round(width / config.working_width_px))
+    small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
+    if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:
+        search = coarse_search_range(small_left, small_right, small_mask, small_hw, config)
+    else:
+        search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
+    dense = dense_disparity_over_regions(small_left, small_right, small_mask, search, config, small_hw)
+    return _enlarge(dense, factor, height, width)

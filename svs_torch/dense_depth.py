@@ -37,7 +37,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                         focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
                         doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
                         min_valid_px: int = 20, fill_invalid: bool = True,
-                        min_valid_fraction: float = 0.0) -> ObjectDepths:
+                        min_valid_fraction: float | torch.Tensor = 0.0) -> ObjectDepths:
     """Per-object depth from dense disparity.
 
     Args:
@@ -50,8 +50,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         percentiles: low and high percentiles in [0, 100] besides the median.
         min_valid_px: fewest valid dense pixels for an object's depth to count.
         min_valid_fraction: least share of the region's pixels with a valid dense disparity for its depth to
-            count: views that do not show the same scene (a swapped or frozen camera) leave most pixels
-            inconsistent, and such an object is not ranged rather than ranged wrong.
+            count, a scalar or ``(B,)``: views that do not show the same scene (a swapped or frozen camera) leave
+            most pixels inconsistent, and such an object is not ranged rather than ranged wrong.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
             (:func:`~svs_torch.dense.fill_invalid_rows`) before taking the statistics, so that the median is
             over the whole region, as the truth is, and not only over its well-textured part.
@@ -72,6 +72,11 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     crop_d = crop_box(disparity, x0, y0, size_h, size_w).flatten(1)  # (B, P)
     crop_ok = crop_box(dense.valid, x0, y0, size_h, size_w).flatten(1)
     crop_labels = crop_box(labels.long(), x0, y0, size_h, size_w).flatten(1)
+    # Positions past a pair's own box repeat its border pixels (clamped reads): they must not count.
+    inside = ((torch.arange(size_h, device=disparity.device).view(1, -1, 1) < height.view(-1, 1, 1))
+              & (torch.arange(size_w, device=disparity.device).view(1, 1, -1) < width.view(-1, 1, 1)))
+    crop_ok = crop_ok & inside.flatten(1)
+    crop_labels = torch.where(inside.flatten(1), crop_labels, torch.zeros_like(crop_labels))
     measured = crop_ok
     if fill_invalid:
         filled, reachable = fill_invalid_rows(crop_d.view(b, size_h, size_w), crop_ok.view(b, size_h, size_w))
@@ -87,7 +92,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     member = (crop_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1) & crop_ok.unsqueeze(1)
     stats = masked_quantile(depth.unsqueeze(1).expand_as(member), member, [0.5, low / 100, high / 100]).values
     count = (member & measured.unsqueeze(1)).sum(dim=-1)
-    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= min_valid_fraction * objects.area_px)
+    fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
+    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
     stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
     median, depth_low, depth_high = stats.unbind(-1)
     return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,

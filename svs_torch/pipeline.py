@@ -15,8 +15,7 @@ from typing import Literal
 import torch
 
 from .checks import InputError
-from .dense import (DenseConfig, DenseDisparity, coarse_search_range, dense_disparity_over_regions,
-                    disparity_search_range)
+from .dense import DenseConfig, DenseDisparity, estimate_dense_disparity
 from .dense_depth import dense_object_depths, range_from_objects
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
 from .detector import SurfConfig
@@ -227,8 +226,8 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
     return usable & (median > config.row_tolerance_px)
 
 
-def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, rectified: torch.Tensor,
-                 H_left: torch.Tensor, H_right: torch.Tensor, config: PipelineConfig
+def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
+                 rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor, config: PipelineConfig
                  ) -> tuple[DepthResult, DenseDisparity]:
     """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
     rectified: images and labels warped by the same homographies), searched over the sparse inliers' range."""
@@ -241,15 +240,14 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
         warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64)).round().long()
         labels = torch.where(pick, warped, labels)
     mask = (labels.unsqueeze(-1) == seg.left.kept_labels.view(batch.batch_size, 1, 1, 1, -1)).any(-1) & (labels > 0)
-    if config.dense.range_source == "coarse":
-        search = coarse_search_range(left, right, mask, batch.image_hw, config.dense)
-    else:
-        inliers = sparse.disparities
-        search = disparity_search_range(inliers.disparity_px, inliers.valid, batch.image_hw[:, 1], config.dense)
-    dense = dense_disparity_over_regions(left, right, mask, search, config.dense, batch.image_hw)
+    verified = fundamental_ok.to(batch.left.dtype)
+    fraction = (verified * config.depth.min_object_valid_fraction
+                + (1 - verified) * config.depth.min_object_valid_fraction_unverified)
+    dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
+                                     sparse.disparities.disparity_px, sparse.disparities.valid)
     objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
                                   config.depth.object_percentiles, config.depth.min_object_pixels,
-                                  config.dense.fill_invalid, config.depth.min_object_valid_fraction)
+                                  config.dense.fill_invalid, fraction)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     return DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects)), dense
 
@@ -300,7 +298,8 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
     dense = None
     if config.depth.rule == "dense":
-        depth, dense = _dense_depth(batch, seg, depth, rectified, torch.where(pick, rectification.H_left, identity),
+        depth, dense = _dense_depth(batch, seg, depth, fundamental.status == FundamentalStatus.OK, rectified,
+                                    torch.where(pick, rectification.H_left, identity),
                                     torch.where(pick, rectification.H_right, identity), config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)

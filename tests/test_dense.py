@@ -150,25 +150,27 @@ def test_region_crop_equals_the_whole_frame_inside_the_box(teddy):
     assert not cropped.valid[outside].any()
 
 
-def test_batched_equals_per_pair_with_padding(teddy, generator):
-    noise = resize_stereo_batch(teddy, (320, 267))
+def test_batched_equals_per_pair_with_padding_and_own_ranges(teddy, generator):
+    """A pair's result does not depend on its batch: not on the shared crop size, nor on the batch's widest
+    disparity range, nor on the padding of a smaller pair."""
     other = torch.rand(1, 1, 267, 320, generator=generator)
     left, right = torch.cat([teddy.left, other]), torch.cat([teddy.right, other.roll(-4, -1)])
-    mask = torch.ones_like(left, dtype=torch.bool)
-    mask[1, :, 200:] = False
+    mask = torch.zeros_like(left, dtype=torch.bool)
+    mask[0, :, 100:200, 40:300] = True
+    mask[1, :, 20:120, 10:90] = True
     hw = torch.tensor([[267, 320], [200, 300]])
-    search = DisparityRange(torch.tensor([3, 0]), 24)
+    search = DisparityRange(torch.tensor([3, 0]), 40, torch.tensor([40, 12]))
     both = dense_disparity_over_regions(left, right, mask, search, DenseConfig(), hw)
     for i in range(2):
-        single = dense_disparity_over_regions(left[i:i + 1], right[i:i + 1], mask[i:i + 1],
-                                              DisparityRange(search.min_disparity_px[i:i + 1], 24), DenseConfig(),
+        own = DisparityRange(search.min_disparity_px[i:i + 1], int(search.pair_num_disparities[i]),
+                             search.pair_num_disparities[i:i + 1])
+        single = dense_disparity_over_regions(left[i:i + 1], right[i:i + 1], mask[i:i + 1], own, DenseConfig(),
                                               hw[i:i + 1])
-        x0, y0, w, h = single.crop_xywh[0].tolist()
-        box = (slice(y0, y0 + h), slice(x0, x0 + w))
-        assert torch.equal(single.valid[0, 0][box], both.valid[i, 0][box])
-        torch.testing.assert_close(single.disparity_px[0, 0][box], both.disparity_px[i, 0][box])
+        assert torch.equal(single.valid[0], both.valid[i]) and single.valid.any()
+        torch.testing.assert_close(single.disparity_px[0], both.disparity_px[i])
+        assert torch.equal(single.crop_xywh[0], both.crop_xywh[i])
     assert not both.valid[1, :, 200:].any() and not both.valid[1, :, :, 300:].any()
-    assert noise.batch_size == 1
+    assert float(both.disparity_px[1][both.valid[1]].max()) <= 11  # its own 12 disparities, not the batch's 40
 
 
 def test_coarse_range_covers_the_truth(teddy):

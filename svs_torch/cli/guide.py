@@ -11,7 +11,8 @@ HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
 DESCRIPTION = """\
 Grab pairs from the SVS continuously, run the whole pipeline on the most recent one, and warn when the
-nearest obstacle is within the distance band (default 1-2 m, the range the system was designed for): a
+nearest obstacle's nearest visible surface (the 10th depth percentile of its dense disparities) is within
+the distance band (default 1-2 m, the range the system was designed for): a
 spoken message when espeak-ng is installed, always a text line, rate-limited so it does not chatter (a
 message repeats after --repeat-s seconds unless the distance class changes). A status line shows frames
 per second, the nearest distance and its side.
@@ -68,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
             for item in camera.stream_batches(1, num_batches=args.count or None):
                 result = estimate_obstacle_depth(item.batch)
                 nearest = result.depth.nearest
-                distance = float(nearest.depth_m[0]) if bool(nearest.valid[0]) else None
+                # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
+                # a walker reaches first, not the median of an object that may recede.
+                distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
                 guide.update(distance, time.monotonic())
                 side = ObstacleSide(int(nearest.side[0])).name.lower()
                 print(f"\r{guide.status(distance)}  {side:6s}", end="", file=sys.stderr, flush=True)

@@ -1,0 +1,88 @@
+"""Benchmark: the dense stage (coarse range pass + SAD block matching over the kept regions) per pair at
+320×240, svs_torch batched vs OpenCV ``StereoBM`` and ``StereoSGBM`` over the whole frame in a loop, same run,
+same pairs: synthetic SVS scenes and real Middlebury pairs resized to 320×240. Median of several runs, the
+spread, thread count and OMP policy recorded, JSON with metadata.
+
+The OpenCV rivals search the same fallback range svs_torch's coarse pass starts from ([0, W/4) rounded up to
+16 disparities) over the whole frame; svs_torch searches only the kept regions, over the range its coarse pass
+finds.
+
+    python experiments/bench_dense.py [--threads 2] [--repeats 5] [--batch 32] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP threads on a shared CPU, see bench_ransac.py
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.dense import DenseConfig, estimate_dense_disparity
+from svs_torch.segmentation import segment_stereo
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import run_metadata  # noqa: E402
+from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
+
+CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
+
+
+def opencv_loop(lefts: list[np.ndarray], rights: list[np.ndarray], matcher) -> list[np.ndarray]:
+    return [matcher.compute(a, b) for a, b in zip(lefts, rights)]
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=os.environ.get(
+        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--json", metavar="FILE")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    synthetic = random_obstacle_scenes(args.batch, 2, generator=torch.Generator().manual_seed(0)).batch
+    real_left, real_right = load_pairs(Path(args.data), args.batch)
+    inputs = {"synthetic SVS": (synthetic.left, synthetic.right), "Middlebury": (real_left, real_right)}
+    num_disparities = 16 * int(np.ceil(0.25 * 320 / 16))
+    rivals = {"OpenCV StereoBM loop": cv2.StereoBM_create(numDisparities=num_disparities, blockSize=9),
+              "OpenCV StereoSGBM loop": cv2.StereoSGBM_create(0, num_disparities, 5, P1=200, P2=800)}
+    results: dict[str, dict] = {}
+    for data_name, (left, right) in inputs.items():
+        masks = segment_stereo(dataclasses.replace(synthetic, left=left, right=right)).left.kept_mask
+        lefts, rights = to_u8(left), to_u8(right)
+        for name, matcher in rivals.items():
+            results[f"{data_name} | {name}"] = timed(lambda: opencv_loop(lefts, rights, matcher), args.repeats,
+                                                     pairs=len(lefts))
+        for name, config in CONFIGS.items():
+            for b in sorted({1, args.batch}):
+                key = f"{data_name} | svs_torch {name} B={b}"
+                results[key] = timed(lambda: estimate_dense_disparity(left[:b], right[:b], masks[:b], config),
+                                     args.repeats, pairs=b)
+                results[key]["num_disparities"] = estimate_dense_disparity(
+                    left[:b], right[:b], masks[:b], config).num_disparities
+    print(f"threads {args.threads}, 320x240, dense stage per pair, median of {args.repeats} runs")
+    for key, value in results.items():
+        bm = results[key.split(" | ")[0] + " | OpenCV StereoBM loop"]["ms_per_pair"]
+        print(f"  {key:52s} {value['ms_per_pair']:8.2f} ms/pair (min {value['min_ms'] / (value['median_ms'] / value['ms_per_pair']):.2f})"
+              f"  x StereoBM time {value['ms_per_pair'] / bm:6.2f}")
+    report = {"metadata": run_metadata(args.threads, batch=args.batch, configs={k: repr(v) for k, v in CONFIGS.items()}),
+              "results": results}
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    return report
+
+
+if __name__ == "__main__":
+    main()
