@@ -28,6 +28,7 @@ cost volume with a temperature, whose gradients reach both images.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -121,6 +122,10 @@ class DenseConfig:
                 raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
         if not isinstance(self.margin_px, int) or self.margin_px < 0:
             raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
+
+
+#: Pairs whose disparity counts differ by less than this factor share one cost volume (:func:`_match_in_groups`).
+GROUP_RATIO = 1.5
 
 
 class DisparityRange(NamedTuple):
@@ -219,13 +224,21 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):  # the soft path: no in-place ops
         windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
         volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2).contiguous()
-    else:  # (B, D, hl, wl) built disparity by disparity: contiguous writes, no transposed copy
-        volume = left_crop.new_empty(left_crop.shape[0], num_disparities, hl, wl)
+        costs = _box_sum(volume, config.window_size)
+    else:  # disparity by disparity: each slab's differences and box sums stay in cache, writes are contiguous
+        size = config.window_size
+        costs = left_crop.new_empty(left_crop.shape[0], num_disparities, height, width)
+        slab = left_crop.new_empty(left_crop.shape[0], hl, wl)
         for d in range(num_disparities):
             start = num_disparities - 1 - d
-            torch.sub(left_crop[:, 0], right_crop[:, 0, :, start:start + wl], out=volume[:, d])
-        volume.abs_()
-    costs = _box_sum(volume, config.window_size)
+            torch.sub(left_crop[:, 0], right_crop[:, 0, :, start:start + wl], out=slab).abs_()
+            rows = slab[:, 0:height].clone()
+            for offset in range(1, size):
+                rows += slab[:, offset:offset + height]
+            target = costs[:, d]
+            target.copy_(rows[..., 0:width])
+            for offset in range(1, size):
+                target += rows[..., offset:offset + width]
     disparities = min_disparity.view(-1, 1) + torch.arange(num_disparities, device=left.device)  # (B, D)
     right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)
     inside = (right_x >= 0) & (right_x < image_w.view(-1, 1, 1))
@@ -600,5 +613,33 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         search = coarse_search_range(small_left, small_right, small_mask, small_hw, config)
     else:
         search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
-    dense = dense_disparity_over_regions(small_left, small_right, small_mask, search, config, small_hw)
+    dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
     return _enlarge(dense, factor, height, width)
+
+
+def _match_in_groups(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
+                     config: DenseConfig, image_hw: torch.Tensor) -> DenseDisparity:
+    """:func:`dense_disparity_over_regions` on groups of pairs whose disparity counts are within a factor
+    ``GROUP_RATIO`` of each other: one shared cost volume is as deep as its widest range, so a single pair
+    with a wide range would otherwise make every pair of the batch pay for it (measured: 2.5–10× per pair at
+    B = 8 on mixed Middlebury scenes). A loop over a few groups, never over pairs; results are the same as
+    one call, since a pair's result never depends on its batch."""
+    counts = search.pair_num_disparities
+    if counts is None or left.shape[0] == 1:
+        return dense_disparity_over_regions(left, right, mask, search, config, image_hw)
+    group = (counts.clamp_min(1).to(torch.float64).log() / math.log(GROUP_RATIO)).floor().long()
+    keys = group.unique()
+    if keys.numel() == 1:
+        return dense_disparity_over_regions(left, right, mask, search, config, image_hw)
+    b, _, h, w = left.shape
+    disparity = left.new_zeros(b, 1, h, w)
+    valid = torch.zeros(b, 1, h, w, dtype=torch.bool, device=left.device)
+    boxes = torch.zeros(b, 4, dtype=torch.int64, device=left.device)
+    for key in keys:
+        index = (group == key).nonzero().flatten()
+        own = counts[index]
+        part = dense_disparity_over_regions(
+            left[index], right[index], mask[index],
+            DisparityRange(search.min_disparity_px[index], int(own.max()), own), config, image_hw[index])
+        disparity[index], valid[index], boxes[index] = part.disparity_px, part.valid, part.crop_xywh
+    return DenseDisparity(disparity, valid, search.min_disparity_px, search.num_disparities, boxes, counts)

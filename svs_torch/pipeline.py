@@ -190,9 +190,10 @@ def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: F
             rectification: Rectification, depth: DepthResult, rectify: str, dense_rule: bool) -> torch.Tensor:
     """First failing stage per pair (checked from the last stage back, so earlier stages win).
 
-    Under the dense rule the sparse stages only bound nothing and rectify where needed: a pair whose features,
-    matches or RANSAC failed is still ranged on its raw rows (as ``rectify="auto"`` does for an aligned rig),
-    unless rectification is ``"required"``."""
+    Under the dense rule the sparse stages are not needed to range a pair (they rectify it where its rows do
+    not agree, and vouch that both views show one scene): a pair whose features, matches or RANSAC failed is
+    still ranged on its raw rows (as ``rectify="auto"`` does for an aligned rig), with a stricter share of
+    valid pixels, unless rectification is ``"required"``."""
     status = torch.full_like(fundamental.status, PipelineStatus.OK)
     sparse_fatal = not dense_rule or rectify == "required"
     checks = [
@@ -230,14 +231,15 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                  rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor, config: PipelineConfig
                  ) -> tuple[DepthResult, DenseDisparity]:
     """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
-    rectified: images and labels warped by the same homographies), searched over the sparse inliers' range."""
+    rectified: images and labels warped by the same homographies) over each pair's range (a coarse pass, or
+    the sparse inliers' disparities), then each object's depth statistics over its region."""
     left, right, labels = batch.left, batch.right, seg.left.labels
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
         left = torch.where(pick, warp_rectified(left, H_left), left)
         right = torch.where(pick, warp_rectified(right, H_right), right)
-        # Labels by nearest neighbour: warp each label as an exact small integer in float64.
-        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64)).round().long()
+        # Labels by nearest neighbour (never blended), as exact small integers in float64.
+        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
         labels = torch.where(pick, warped, labels)
     mask = (labels.unsqueeze(-1) == seg.left.kept_labels.view(batch.batch_size, 1, 1, 1, -1)).any(-1) & (labels > 0)
     verified = fundamental_ok.to(batch.left.dtype)

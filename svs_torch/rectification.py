@@ -149,14 +149,18 @@ def _map_points(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
     return MappedPoints(xy, valid.squeeze(-1))
 
 
-def warp_rectified(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
+def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Warp images ``(B, 1, H, W)`` by ``homographies`` ``(B, 3, 3)`` (original to rectified pixels) into the same
-    size, bilinear, zeros outside (kornia ``warp_perspective``, pixel-centre convention as OpenCV's
-    ``warpPerspective``). Differentiable w.r.t. the images and the homographies."""
+    size, zeros outside (kornia ``warp_perspective``, pixel-centre convention as OpenCV's ``warpPerspective``).
+    ``mode="nearest"`` for label images, whose values must not be blended. Differentiable w.r.t. the images and
+    the homographies (bilinear)."""
     dims = check_image(images, "images", check_range=False)
     check_shape(homographies, "homographies", [dims["B"], 3, 3])
     check_dtype(homographies, "homographies", "float")
-    return warp_perspective(images, homographies.to(images.dtype), (dims["H"], dims["W"]), align_corners=True)
+    if mode not in ("bilinear", "nearest"):
+        raise InputError(f"mode: expected 'bilinear' or 'nearest', got {mode!r}")
+    return warp_perspective(images, homographies.to(images.dtype), (dims["H"], dims["W"]), mode=mode,
+                            align_corners=True)
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
