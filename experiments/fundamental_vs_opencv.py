@@ -22,6 +22,15 @@ counted, never hidden. Prints tables and writes JSON with metadata.
 
     python experiments/fundamental_vs_opencv.py [--features sift|svs] [--size 320x240] [--threads 2]
         [--seed 0] [--chessboard-seeds 10] [--json out.json]
+
+With ``--config NAME`` (repeatable; the named presets of ``surf_vs_sift.PRESETS``: "paper", "product",
+"recommended", …) the script instead compares whole configurations: svs_torch's features, SAD matching with
+the preset's gates and refinement, and svs_torch RANSAC with the preset's threshold and scoring, against OpenCV
+SIFT matched by the brute-force ratio test with the SAME ratio and estimated by FM_RANSAC (1 px). Part (a)
+reports the median over (pair, seed) of each pair's median GT-corner Sampson distance and the share within
+2 px; part (b) the inlier precision/recall on Middlebury.
+
+    python experiments/fundamental_vs_opencv.py --config paper --config recommended [--chessboard-seeds 5]
 """
 
 from __future__ import annotations
@@ -49,6 +58,7 @@ from svs_torch.ransac import estimate_fundamental_ransac  # noqa: E402
 from svs_torch.types import FundamentalStatus  # noqa: E402
 
 from run_metadata import run_metadata  # noqa: E402
+from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
 BOARD = (9, 6)
 THRESHOLD_PX = 1.0
@@ -349,13 +359,119 @@ def print_tables(chessboard: dict, middlebury: dict) -> None:
               f"{row['recall_row_exact']:8.4f} {row['failed_pairs']:6d}")
 
 
+def _images(arrays: list[np.ndarray]) -> torch.Tensor:
+    return torch.from_numpy(np.stack(arrays)).float().div(255.0).unsqueeze(1)
+
+
+def config_points(lefts: list[np.ndarray], rights: list[np.ndarray], setup: FeatureSetup) -> MatchedPoints:
+    """svs_torch matched points of a preset: SURF, SAD + gates, optional refinement (float64)."""
+    _, points = svs_matched_points(_images(lefts), _images(rights), setup)
+    return points
+
+
+def sift_points(lefts: list[np.ndarray], rights: list[np.ndarray], max_keypoints: int, ratio: float
+                ) -> MatchedPoints:
+    """OpenCV SIFT matched by the brute-force L2 ratio test at ``ratio``."""
+    global MAX_RATIO
+    saved, MAX_RATIO = MAX_RATIO, ratio
+    try:
+        return match_opencv(sift_features(lefts, max_keypoints), sift_features(rights, max_keypoints))
+    finally:
+        MAX_RATIO = saved
+
+
+def svs_fundamental(matched: MatchedPoints, setup: FeatureSetup, seed: int):
+    """svs_torch RANSAC with the preset's threshold and scoring: F per pair (None on failure), inlier masks."""
+    result = estimate_fundamental_ransac(matched.left.double(), matched.right.double(), matched.valid,
+                                         threshold_px=setup.ransac_threshold_px, confidence=CONFIDENCE,
+                                         max_iterations=MAX_ITERATIONS, scoring=setup.ransac_scoring,
+                                         pair_seeds=torch.full((matched.valid.shape[0],), seed, dtype=torch.int64))
+    ok = result.status == FundamentalStatus.OK
+    return ([result.F[i].numpy() if ok[i] else None for i in range(len(ok))],
+            [result.inliers[i].numpy() for i in range(len(ok))])
+
+
+def fm_ransac(matched: MatchedPoints, seed: int):
+    """cv2.findFundamentalMat FM_RANSAC at 1 px; the seed shuffles the rows (see estimate_all)."""
+    models, inliers = [], []
+    for i, n in enumerate(matched.valid.sum(-1).tolist()):
+        rows = np.flatnonzero(matched.valid[i].numpy())[np.random.default_rng([seed, i]).permutation(int(n))]
+        model, mask, _ = opencv_fundamental(matched.left[i].numpy()[rows].astype(np.float32),
+                                            matched.right[i].numpy()[rows].astype(np.float32), cv2.FM_RANSAC)
+        full = np.zeros(matched.valid.shape[1], dtype=bool)
+        full[rows] = mask
+        models.append(model)
+        inliers.append(full)
+    return models, inliers
+
+
+def _candidates(setups: dict[str, FeatureSetup], max_keypoints: int):
+    """(row name, points function, estimator function) for every preset and the SIFT + FM_RANSAC baseline at each
+    distinct ratio of the presets."""
+    rows = [(f"svs_torch {name}", lambda l, r, s=setup: config_points(l, r, s),
+             lambda m, seed, s=setup: svs_fundamental(m, s, seed)) for name, setup in setups.items()]
+    for ratio in sorted({setup.max_ratio for setup in setups.values()}):
+        rows.append((f"SIFT ratio {ratio} + FM_RANSAC", lambda l, r, q=ratio: sift_points(l, r, max_keypoints, q),
+                     fm_ransac))
+    return rows
+
+
+def run_configs(data_dir: Path, setups: dict[str, FeatureSetup], size_wh: tuple[int, int], max_keypoints: int,
+                seeds: list[int]) -> dict:
+    """Whole configurations against SIFT + FM_RANSAC: (a) chessboards, (b) Middlebury (first seed)."""
+    pairs, missing = chessboard_pairs(data_dir)
+    names, lefts, rights, batches = load_middlebury(data_dir, size_wh)
+    report = {"chessboard_pairs": [p[0] for p in pairs], "no_board_found": missing, "seeds": seeds,
+              "size_wh": list(size_wh), "rows": []}
+    for name, points_of, estimate in _candidates(setups, max_keypoints):
+        matched = points_of([p[1] for p in pairs], [p[2] for p in pairs])
+        medians = np.full((len(seeds), len(pairs)), np.inf)
+        for j, seed in enumerate(seeds):
+            models, _ = estimate(matched, seed)
+            for i, (model, pair) in enumerate(zip(models, pairs)):
+                errors = gt_sampson(model, pair[3], pair[4])
+                medians[j, i] = np.inf if errors is None else float(np.median(errors))
+        middlebury = points_of(lefts, rights)
+        known, correct, row_exact = disparity_truth(middlebury, batches)
+        models, inliers = estimate(middlebury, seeds[0])
+        mask = torch.from_numpy(np.stack(inliers))
+        report["rows"].append({
+            "name": name, "chessboard_matches": float(matched.valid.sum(-1).float().mean()),
+            "chessboard_median_px": float(np.median(medians)),
+            "chessboard_share_within_2px": float((medians <= GOOD_PX).mean()),
+            "chessboard_failed_runs": int(np.isinf(medians).sum()),
+            "chessboard_per_pair_median_px": np.median(medians, axis=0).tolist(),
+            "middlebury_matches": int(middlebury.valid.sum()),
+            "middlebury_putative_precision": precision_recall(middlebury.valid, known, correct)[0],
+            "middlebury_inliers": int(mask.sum()),
+            "middlebury_inlier_precision": precision_recall(mask, known, correct)[0],
+            "middlebury_inlier_recall": precision_recall(mask, known, correct)[1],
+            "middlebury_inlier_precision_row_exact": precision_recall(mask, known, row_exact)[0],
+            "middlebury_failed_pairs": sum(m is None for m in models)})
+        row = report["rows"][-1]
+        print(f"{name:32s} board: matches {row['chessboard_matches']:6.1f} median {row['chessboard_median_px']:7.3f} px"
+              f"  <=2px {row['chessboard_share_within_2px']:.2f}  failed {row['chessboard_failed_runs']:3d} | "
+              f"Middlebury: matches {row['middlebury_matches']:5d} "
+              f"putative prec {row['middlebury_putative_precision']:.3f}"
+              f" inliers {row['middlebury_inliers']:5d} prec {row['middlebury_inlier_precision']:.3f} "
+              f"(row-exact {row['middlebury_inlier_precision_row_exact']:.3f}) recall "
+              f"{row['middlebury_inlier_recall']:.3f}", flush=True)
+        print(f"{'':32s} per-pair median over seeds: "
+              + " ".join(f"{v:.2f}" for v in row["chessboard_per_pair_median_px"]), flush=True)
+    return report
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", action="append", choices=sorted(PRESETS),
+                        help="compare these svs_torch presets with SIFT + FM_RANSAC instead of the matrix")
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
     parser.add_argument("--features", choices=sorted(FEATURE_EXTRACTORS), default="sift")
     parser.add_argument("--size", default="320x240", help="Middlebury resampling size WxH (default: SVS 320x240)")
-    parser.add_argument("--max-keypoints", type=int, default=2000, help="strongest keypoints kept per image")
-    parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
+    parser.add_argument("--max-keypoints", type=int, default=2000,
+                        help="strongest keypoints kept per image (SIFT; and SURF without --config, whose presets"
+                             " set their own)")
+    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default: 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of svs_torch and OpenCV RANSAC")
     parser.add_argument("--chessboard-seeds", type=int, default=10, help="RANSAC repeats per chessboard pair")
     parser.add_argument("--json", metavar="FILE", help="also write the results and metadata as JSON")
@@ -364,6 +480,17 @@ def main() -> None:
     cv2.setNumThreads(args.threads)
     size_wh = parse_size(args.size, "size")
     data_dir = Path(args.data)
+    if args.config:
+        setups = {name: PRESETS[name] for name in args.config}
+        print(f"chessboards: {args.chessboard_seeds} seeds; median over (pair, seed) of the median Sampson distance"
+              f" of the 54 GT corners; Middlebury at {args.size}: inlier precision |d - d_gt| <= 1 px", flush=True)
+        report = run_configs(data_dir, setups, size_wh, args.max_keypoints,
+                             list(range(args.seed, args.seed + args.chessboard_seeds)))
+        if args.json:
+            report["metadata"] = run_metadata(args.threads, seed=args.seed, max_keypoints=args.max_keypoints,
+                                              configs={n: setup_json(s) for n, s in setups.items()})
+            Path(args.json).write_text(json.dumps(report, indent=2))
+        return
     chessboard = run_chessboards(data_dir, args.features, args.max_keypoints,
                                  list(range(args.seed, args.seed + args.chessboard_seeds)))
     middlebury = run_middlebury(data_dir, args.features, size_wh, args.max_keypoints, args.seed)

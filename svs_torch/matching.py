@@ -15,11 +15,12 @@ import math
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 
-from .checks import InputError, check_dtype, check_shape
+from .checks import InputError, check_dtype, check_image, check_shape
 from .types import Matches
 
-__all__ = ["MatchedPoints", "gather_matched_points", "match_sad", "max_sad_distance"]
+__all__ = ["MatchedPoints", "gather_matched_points", "match_sad", "max_sad_distance", "refine_matches_lk"]
 
 #: Distance matrices are built for groups of pairs holding at most this many entries (float32: 64 MB), so
 #: memory stays bounded for large batches; pairs never interact, so grouping changes no result.
@@ -229,3 +230,119 @@ def gather_matched_points(xy_left: torch.Tensor, xy_right: torch.Tensor, matches
     zero = torch.zeros((), dtype=xy_left.dtype, device=xy_left.device)
     mask = valid.unsqueeze(-1)
     return MatchedPoints(left=torch.where(mask, xy_left, zero), right=torch.where(mask, right, zero), valid=valid)
+
+
+def _sample_patches(image: torch.Tensor, centres: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples ``(B, K, P)`` of ``image (B, 1, H, W)`` at ``centres (B, K, 2) + offsets (B, K, P, 2)``
+    (pixel-centre coordinates; the border pixel repeats outside), in float64."""
+    h, w = image.shape[-2:]
+    points = centres.unsqueeze(2) + offsets
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=points.dtype, device=points.device)
+    grid = (points * scale - 1).to(image.dtype)
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)[:, 0].double()
+
+
+def _centre(values: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted zero-mean patches and their weighted RMS ``(…, 1)`` (clamped away from 0)."""
+    centred = values - (values * weight).sum(-1, keepdim=True)
+    return centred, ((centred**2) * weight).sum(-1, keepdim=True).sqrt().clamp(min=1e-6)
+
+
+def refine_matches_lk(
+    left: torch.Tensor,
+    right: torch.Tensor,
+    points: MatchedPoints,
+    scale: torch.Tensor | None = None,
+    *,
+    radius_scales: float = 1.5,
+    min_radius_px: float = 3.0,
+    max_radius_px: float = 12.0,
+    iterations: int = 8,
+    max_shift_px: float = 2.0,
+    min_correlation: float = 0.0,
+) -> MatchedPoints:
+    """Sub-pixel refinement of matched points: each right point moves to where its patch best aligns with the
+    left point's patch (translational Lucas–Kanade, inverse compositional, gain and offset normalised).
+
+    A blob detector localises a keypoint only as well as its box-filter responses and sampling grid allow
+    (SURF: 0.2–0.4 px median disparity error on Middlebury, against 0.14 for SIFT). The left point (the
+    keypoint) is kept; the right point takes a fixed number of Gauss–Newton steps minimising the Gaussian-
+    weighted squared difference of the zero-mean, unit-RMS patches, as KLT refines a track. Batched over pairs
+    and matches, fixed step count: deterministic.
+
+    Args:
+        left, right: ``(B, 1, H, W)`` float images the points were found on.
+        points: :class:`MatchedPoints`: ``left``, ``right`` ``(B, K, 2)`` pixel-centre coordinates, ``valid (B, K)``.
+        scale: optional ``(B, K)`` scale of the left keypoints (SURF s); the patch radius is ``radius_scales · s``
+            clamped to [``min_radius_px``, ``max_radius_px``]. None: ``min_radius_px`` for every point.
+        radius_scales, min_radius_px, max_radius_px: the patch radius rule. Patches are sampled every pixel
+            within the radius and weighted by a Gaussian of σ = radius / 2.
+        iterations: Gauss–Newton steps (each clamped to 1 px per axis).
+        max_shift_px: a refined point farther than this from its matched position keeps the matched position.
+        min_correlation: matches whose final weighted normalised cross-correlation is below this are
+            invalidated; the default 0 drops only anti-correlated matches, −1 keeps every match.
+
+    Returns:
+        :class:`MatchedPoints`: the same left points, refined right points, ``valid`` a subset of the input's
+        (rows that became invalid are zeroed). No useful gradient (fixed-step optimisation on detached inputs).
+    """
+    dims = check_image(left, "left", check_range=False)
+    check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
+    k = check_shape(points.left, "points.left", [dims["B"], "K", 2])["K"]
+    check_shape(points.right, "points.right", [dims["B"], k, 2])
+    check_shape(points.valid, "points.valid", [dims["B"], k])
+    check_dtype(points.valid, "points.valid", "bool")
+    if scale is not None:
+        check_shape(scale, "scale", [dims["B"], k])
+    if not (iterations >= 0 and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px and radius_scales > 0):
+        raise InputError("refine_matches_lk: expected iterations >= 0, max_shift_px >= 0, radius_scales > 0 and "
+                         f"0 < min_radius_px <= max_radius_px, got {iterations}, {max_shift_px}, {radius_scales}, "
+                         f"{min_radius_px}, {max_radius_px}")
+    if k == 0 or not bool(points.valid.any()):
+        return points
+    dtype, device = torch.float64, left.device
+    left, right = left.detach(), right.detach()
+    r_max = math.ceil(max_radius_px)
+    grid = torch.arange(-r_max, r_max + 1, dtype=dtype, device=device)
+    v, u = torch.meshgrid(grid, grid, indexing="ij")
+    unit = torch.stack([u.reshape(-1), v.reshape(-1)], -1)  # (P, 2) pixel offsets
+    if scale is None:
+        radius = torch.full(points.valid.shape, float(min_radius_px), dtype=dtype, device=device)
+    else:
+        radius = (radius_scales * scale.detach().to(dtype)).clamp(min_radius_px, max_radius_px)
+    distance_sq = (unit**2).sum(-1)  # (P,)
+    radius = radius.unsqueeze(-1)
+    weight = torch.exp(-distance_sq / (2 * (radius / 2) ** 2)) * (distance_sq <= (radius + 0.5) ** 2)
+    weight = weight / weight.sum(-1, keepdim=True)  # (B, K, P)
+    offsets = unit.expand(*points.valid.shape, -1, -1)
+    xy_left, xy_right = points.left.detach().to(dtype), points.right.detach().to(dtype)
+    template, rms = _centre(_sample_patches(left, xy_left, offsets), weight)
+    template = template / rms
+    # Template gradient: central differences of the bilinear image half a pixel either side, standardised alike.
+    half = torch.eye(2, dtype=dtype, device=device) * 0.5
+    gradient = torch.stack([(_sample_patches(left, xy_left, offsets + half[i])
+                             - _sample_patches(left, xy_left, offsets - half[i])) / rms for i in range(2)], -1)
+    # The Jacobian of the standardised patch: remove the gradient's weighted mean and its component along the
+    # template (the normalisation absorbs both); without this the Gauss–Newton steps are too short.
+    gradient = gradient - (gradient * weight.unsqueeze(-1)).sum(-2, keepdim=True)
+    gradient = gradient - template.unsqueeze(-1) * (gradient * (weight * template).unsqueeze(-1)).sum(-2, keepdim=True)
+    hessian = torch.einsum("bkp,bkpi,bkpj->bkij", weight, gradient, gradient)
+    inverse, info = torch.linalg.inv_ex(hessian)
+    solvable = (info == 0) & torch.isfinite(inverse).flatten(-2).all(-1)
+    inverse = torch.where(solvable[..., None, None], inverse, torch.zeros_like(inverse))
+    shift = torch.zeros_like(xy_right)
+    for _ in range(iterations):
+        warped, warped_rms = _centre(_sample_patches(right, xy_right + shift, offsets), weight)
+        residual = warped / warped_rms - template
+        step = -torch.einsum("bkij,bkj->bki", inverse, torch.einsum("bkp,bkpi,bkp->bki", weight, gradient, residual))
+        shift = shift + step.clamp(-1.0, 1.0)
+    moved = solvable & torch.isfinite(shift).all(-1) & (shift.norm(dim=-1) <= max_shift_px)
+    refined = torch.where(moved.unsqueeze(-1), xy_right + shift, xy_right)
+    warped, warped_rms = _centre(_sample_patches(right, refined, offsets), weight)
+    correlation = (warped / warped_rms * template * weight).sum(-1)  # at the position returned
+    refined = refined.to(points.right.dtype)
+    valid = points.valid & (correlation >= min_correlation) if min_correlation > -1 else points.valid
+    zero = torch.zeros((), dtype=points.right.dtype, device=points.right.device)
+    mask = valid.unsqueeze(-1)
+    return MatchedPoints(left=torch.where(mask, points.left, zero), right=torch.where(mask, refined, zero),
+                         valid=valid)

@@ -219,3 +219,102 @@ def test_errors_name_the_argument():
     with pytest.raises(InputError, match=r"xy_right: expected \(2, 5, 2\), got \(2, 4, 2\)"):
         match_sad(desc, desc, valid, valid, xy_left=torch.rand(2, 5, 2), xy_right=torch.rand(2, 4, 2),
                   epipolar_band_px=2.0)
+
+
+# --- refine_matches_lk: sub-pixel refinement of matched points --------------------------------------------------
+
+def smooth_texture(h: int, w: int, shift_xy=(0.0, 0.0), seed: int = 0) -> torch.Tensor:
+    """``(1, 1, h, w)`` analytic texture (sum of Gaussian blobs) sampled at (x + sx, y + sy): exactly shifted
+    copies for any sub-pixel shift."""
+    rng = np.random.default_rng(seed)
+    cx, cy = rng.uniform(0, w, 120), rng.uniform(0, h, 120)
+    sigma, amp = rng.uniform(1.5, 4.0, 120), rng.uniform(-1, 1, 120)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = x + shift_xy[0], y + shift_xy[1]
+    image = sum(a * np.exp(-((x - u) ** 2 + (y - v) ** 2) / (2 * s**2)) for u, v, s, a in zip(cx, cy, sigma, amp))
+    image = (image - image.min()) / (image.max() - image.min())
+    return torch.from_numpy(image)[None, None]
+
+
+def lk_problem(shifts, perturbation: float = 0.6, k: int = 30, seed: int = 3):
+    """A batch of (left, right = left moved by −shift) pairs and matched points perturbed off the truth."""
+    rng = np.random.default_rng(seed)
+    lefts, rights, pl, pr = [], [], [], []
+    for i, shift in enumerate(shifts):
+        lefts.append(smooth_texture(80, 96, seed=i))
+        rights.append(smooth_texture(80, 96, shift_xy=shift, seed=i))  # right(x) = left(x + shift)
+        xy = np.stack([rng.uniform(16, 80, k), rng.uniform(16, 64, k)], -1)
+        pl.append(xy)
+        pr.append(xy - np.asarray(shift) + rng.uniform(-perturbation, perturbation, (k, 2)))
+    valid = torch.from_numpy(rng.uniform(size=(len(shifts), k)) < 0.8)
+    points = matching.MatchedPoints(torch.from_numpy(np.stack(pl)), torch.from_numpy(np.stack(pr)), valid)
+    return torch.cat(lefts).float(), torch.cat(rights).float(), points
+
+
+def test_refine_lk_recovers_subpixel_shift():
+    shifts = [(0.37, -0.21), (-1.6, 0.45)]
+    left, right, points = lk_problem(shifts)
+    refined = matching.refine_matches_lk(left, right, points, min_correlation=-1)
+    truth = points.left - torch.tensor(shifts, dtype=torch.float64)[:, None, :]
+    before = (points.right - truth).norm(dim=-1)[points.valid]
+    after = (refined.right - truth).norm(dim=-1)[refined.valid]
+    assert torch.equal(refined.valid, points.valid)
+    assert torch.equal(refined.left[refined.valid], points.left[points.valid])
+    assert before.median() > 0.3 and after.max() < 0.1 and after.median() < 0.04
+
+
+def test_refine_lk_agrees_with_opencv_pyrlk():
+    """An independent reference: OpenCV's LK (one pyramid level, 21 × 21 window, uint8 images) tracking the same
+    points from the left positions, 0.85 px from the truth."""
+    shifts = [(0.8, 0.3)]
+    left, right, points = lk_problem(shifts, perturbation=0.0)
+    start = matching.MatchedPoints(points.left, points.left.clone(), points.valid)
+    refined = matching.refine_matches_lk(left, right, start, min_radius_px=8.0)
+    keep = points.valid[0].numpy()
+    truth = points.right[0].numpy()[keep]
+    to_u8 = (lambda t: (t[0, 0].numpy() * 255).round().astype(np.uint8))
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+        to_u8(left), to_u8(right), points.left[0].numpy()[keep].astype(np.float32), None, winSize=(21, 21),
+        maxLevel=0, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-5))
+    ours = refined.right[0].numpy()[keep]
+    ok = status.ravel() == 1
+    assert ok.mean() > 0.9 and np.abs(ours[ok] - tracked[ok]).max() < 0.12
+    assert np.abs(ours - truth).max() < 0.06 and np.median(np.abs(tracked - truth)) < 0.03
+
+
+def test_refine_lk_batched_equals_per_item_and_gain_invariant():
+    left, right, points = lk_problem([(0.4, 0.1), (-0.7, -0.3), (1.2, 0.0)])
+    scale = torch.full(points.valid.shape, 2.0, dtype=torch.float64)
+    batched = matching.refine_matches_lk(left, right, points, scale)
+    for i in range(3):
+        one = matching.refine_matches_lk(left[i:i + 1], right[i:i + 1],
+                                         matching.MatchedPoints(*(t[i:i + 1] for t in points)), scale[i:i + 1])
+        assert torch.allclose(one.right, batched.right[i:i + 1], atol=1e-9)
+        assert torch.equal(one.valid, batched.valid[i:i + 1])
+    darker = matching.refine_matches_lk(left, 0.5 * right + 0.2, points, scale)
+    assert torch.allclose(darker.right, batched.right, atol=1e-3)
+    # Padding rows stay zero and invalid.
+    assert (batched.right[~batched.valid] == 0).all() and not (batched.valid & ~points.valid).any()
+
+
+def test_refine_lk_rejects_uncorrelated_and_leaves_far_shifts():
+    left, right, points = lk_problem([(0.3, 0.2)])
+    unrelated = smooth_texture(80, 96, seed=99).float()
+    rejected = matching.refine_matches_lk(left, unrelated, points, min_radius_px=8.0, min_correlation=0.8)
+    assert rejected.valid.sum() < 0.2 * points.valid.sum()
+    assert matching.refine_matches_lk(left, right, points, min_radius_px=8.0, min_correlation=0.8).valid.sum() \
+        == points.valid.sum()
+    # A shift beyond max_shift_px keeps the matched position.
+    far = matching.MatchedPoints(points.left, points.right + 1.5, points.valid)
+    kept = matching.refine_matches_lk(left, right, far, max_shift_px=0.5, min_correlation=-1)
+    assert torch.allclose(kept.right[kept.valid], far.right[far.valid])
+
+
+def test_refine_lk_checks_inputs():
+    left, right, points = lk_problem([(0.0, 0.0)])
+    with pytest.raises(InputError):
+        matching.refine_matches_lk(left, right[..., :-1], points)
+    with pytest.raises(InputError):
+        matching.refine_matches_lk(left, right, points, min_radius_px=0.0)
+    empty = matching.MatchedPoints(points.left, points.right, torch.zeros_like(points.valid))
+    assert matching.refine_matches_lk(left, right, empty) is empty
