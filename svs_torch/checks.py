@@ -17,6 +17,7 @@ __all__ = [
     "check_dtype",
     "check_image",
     "check_same_shape",
+    "check_finite",
 ]
 
 
@@ -76,6 +77,8 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
     check_dtype(tensor, name, "float")
     if check_range and tensor.numel() > 0:
+        if bool(torch.isnan(tensor.detach()).any()):
+            raise InputError(f"{name}: expected values in [0, 1], got NaN")
         lo, hi = torch.aminmax(tensor.detach())
         if not (bool(lo >= 0.0) and bool(hi <= 1.0)):
             raise InputError(f"{name}: expected values in [0, 1], got min {float(lo):.4g}, max {float(hi):.4g}")
@@ -87,3 +90,18 @@ def check_same_shape(a: torch.Tensor, name_a: str, b: torch.Tensor, name_b: str)
     if a.shape != b.shape:
         raise InputError(f"{name_b}: expected the shape of {name_a} {_format_spec(tuple(a.shape))}, "
                          f"got {_format_spec(tuple(b.shape))}")
+
+
+def check_finite(tensor: torch.Tensor, name: str, positive: bool = False) -> None:
+    """Check that every value is finite (no NaN, no ±inf) and, with ``positive``, greater than zero.
+
+    Raises :class:`InputError` naming the argument and the first offending value, e.g.
+    ``focal_px: expected finite positive values, got inf``.
+    """
+    values = tensor.detach()
+    bad = ~torch.isfinite(values)
+    if positive:
+        bad = bad | ~(values > 0)
+    if bool(bad.any()):
+        first = float(values[bad].flatten()[0])
+        raise InputError(f"{name}: expected finite{' positive' if positive else ''} values, got {first}")

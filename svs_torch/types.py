@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .checks import InputError, check_dtype, check_image, check_same_shape, check_shape
+from .checks import InputError, check_dtype, check_finite, check_image, check_same_shape, check_shape
 
 __all__ = [
     "FundamentalResult",
@@ -67,10 +67,15 @@ class StereoBatch:
         check_image(self.right, "right")
         check_same_shape(self.left, "left", self.right, "right")
         b = dims["B"]
+        if min(dims["H"], dims["W"]) < 1:
+            raise InputError(f"left: expected images of at least 1x1 pixels, got {dims['W']}x{dims['H']} (WxH)")
         for name in ("focal_px", "baseline_m", "doffs_px"):
             value = getattr(self, name)
             check_shape(value, name, [b])
             check_dtype(value, name, "float")
+            # Depth is f·B / (d + doffs): an infinite or NaN calibration value would turn every depth into
+            # inf / NaN, and a zero or negative focal or baseline into a meaningless or negative depth.
+            check_finite(value, name, positive=name != "doffs_px")
         check_shape(self.calibrated, "calibrated", [b])
         check_dtype(self.calibrated, "calibrated", "bool")
         check_shape(self.image_hw, "image_hw", [b, 2])

@@ -74,8 +74,8 @@ def write_image(path, channels: int) -> str:
     ("missing", "left: file not found"),
     ("not-an-image", "left: not a readable image file"),
     ("sizes", "right: expected the size of left 30x20"),
-    ("channels", "right: expected 1 (gray) or 3 (BGR) channels, got 4"),
-    ("out-folder", "out: folder"),
+    ("dtype", "right: expected a uint8 or uint16 image, got float32"),
+    ("out-folder", "--out: folder"),
 ])
 def test_bad_input_gives_one_clear_line_and_writes_nothing(tmp_path, capsys, case, message):
     left = write_image(tmp_path / "left.png", 3)
@@ -88,8 +88,9 @@ def test_bad_input_gives_one_clear_line_and_writes_nothing(tmp_path, capsys, cas
         left = str(tmp_path / "text.png")
     elif case == "sizes":
         cv2.imwrite(right, np.zeros((21, 30), np.uint8))
-    elif case == "channels":
-        right = write_image(tmp_path / "rgba.png", 4)
+    elif case == "dtype":
+        right = str(tmp_path / "float.tiff")
+        cv2.imwrite(right, np.zeros((20, 30), np.float32))
     elif case == "out-folder":
         out = tmp_path / "missing-folder" / "fig.png"
     before = set(tmp_path.rglob("*"))

@@ -269,10 +269,12 @@ def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> Non
     text.write_text("not an image\n")
     with pytest.raises(InputError, match="right: not a readable image file"):
         read_gray_image(text, "right")
-    rgba = tmp_path / "rgba.png"
-    cv2.imwrite(str(rgba), np.zeros((4, 5, 4), np.uint8))
-    with pytest.raises(InputError, match=r"left: expected 1 \(gray\) or 3 \(BGR\) channels, got 4"):
-        read_gray_image(rgba, "left")
+    rgba = tmp_path / "rgba.png"  # colour + alpha is read like colour: the alpha channel is dropped
+    bgra = np.random.default_rng(0).integers(0, 256, (4, 5, 4), dtype=np.uint8)
+    cv2.imwrite(str(rgba), bgra)
+    expected = cv2.cvtColor(bgra[..., :3], cv2.COLOR_BGR2GRAY)
+    assert torch.equal((read_gray_image(rgba, "left")[0, 0] * 255).round().to(torch.uint8),
+                       torch.from_numpy(expected))
     tiff = tmp_path / "float.tiff"
     cv2.imwrite(str(tiff), np.zeros((4, 5), np.float32))
     with pytest.raises(InputError, match="image: expected a uint8 or uint16 image, got float32"):

@@ -20,7 +20,7 @@ from typing import TextIO
 
 from ..checks import InputError
 
-__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "CLEAR", "WARN", "STOP"]
+__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "StatusLine", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
@@ -189,3 +189,44 @@ class LiveGuide:
         """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn``."""
         distance = "none" if nearest_m is None else f"{nearest_m:.1f} m"
         return f"{self.meter.fps:5.1f} fps  nearest {distance}  {self.policy.current}"
+
+
+class StatusLine:
+    """A status line rewritten in place on ``stream`` (``\\r``), with messages printed above it.
+
+    A message (a warning) gets a line of its own: the status line is wiped first, the message printed on
+    ``message_stream`` with a newline, then the status drawn again below it, so neither overwrites the other
+    when both streams reach the same terminal.
+    """
+
+    def __init__(self, stream: TextIO | None = sys.stderr) -> None:
+        self.stream = stream
+        self._shown = ""
+
+    def show(self, text: str) -> None:
+        """Replace the status line with ``text`` (padded so no tail of a longer old status is left)."""
+        if self.stream is None:
+            return
+        padding = " " * max(len(self._shown) - len(text), 0)
+        print(f"\r{text}{padding}", end="", file=self.stream, flush=True)
+        self._shown = text
+
+    def clear(self) -> None:
+        """Wipe the status line, leaving the cursor at its start."""
+        if self.stream is not None and self._shown:
+            print("\r" + " " * len(self._shown) + "\r", end="", file=self.stream, flush=True)
+
+    def message(self, text: str, message_stream: TextIO | None = None) -> None:
+        """Print ``text`` on a line of its own above the status line, then draw the status again."""
+        shown = self._shown
+        self.clear()
+        print(text, file=message_stream or self.stream, flush=True)
+        self._shown = ""
+        if shown:
+            self.show(shown)
+
+    def close(self) -> None:
+        """End the status line with a newline (the next output starts on a fresh line)."""
+        if self.stream is not None and self._shown:
+            print(file=self.stream, flush=True)
+        self._shown = ""

@@ -7,6 +7,7 @@ imports (torch, OpenCV) happen inside ``run`` so that ``svs-depth --help`` answe
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from . import capture, demo, estimate, features, fundamental, guide, segment
@@ -43,21 +44,54 @@ class CliError(Exception):
     """A user-facing failure: printed as one line, exit status 2."""
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr (exit 2), naming the option and what it
+    expected, e.g. ``svs-depth estimate: error: argument --batch-size: expected a positive integer, got '0'``."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see '{self.prog} --help')\n")
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("svs-torch")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="svs-depth",
         description=DESCRIPTION,
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in (demo, estimate, segment, features, fundamental, capture, guide):
         module.add_parser(subparsers)
     return parser
 
 
+def _silence_stdout() -> None:
+    """After a closed pipe (``svs-depth ... | head``): send further output to /dev/null so that the interpreter's
+    final flush does not raise again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``svs-depth`` console script; returns the exit status."""
+    """Entry point of the ``svs-depth`` console script; returns the exit status.
+
+    Exit status: 0 done (a pair that cannot be ranged is a status in the output, not an error); 1 a capture or
+    file error while running, or an unexpected internal error; 2 bad arguments or input (one line on stderr
+    naming the argument); 130 interrupted; 141 the reader of the output went away (e.g. ``| head``).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -65,14 +99,32 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from ..checks import InputError
 
+    prog = f"svs-depth {args.command}"
     try:
-        return int(args.func(args) or 0)
-    except (InputError, CliError, FileNotFoundError, PermissionError, IsADirectoryError) as error:
-        print(f"svs-depth {args.command}: error: {error}", file=sys.stderr)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, inside the handler, not at interpreter exit
+        return code
+    except (InputError, CliError) as error:
+        print(f"{prog}: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _silence_stdout()
+        return 141
     except KeyboardInterrupt:
-        print(f"svs-depth {args.command}: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as error:
+        print(f"{prog}: error: {error.strerror or error}" + (f": {error.filename}" if error.filename else ""),
+              file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"{prog}: error: {error.strerror or error}" + (f": {error.filename}" if error.filename else ""),
+              file=sys.stderr)
+        return 1
+    except Exception as error:  # noqa: BLE001 -- the last line of defence: one line, never a traceback
+        print(f"{prog}: internal error: {type(error).__name__}: {' '.join(str(error).split())[:300]} "
+              "(please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """``svs-depth capture``: grab stereo pairs from an SVS (or the built-in emulator) into a folder.
 
-Output, in ``--out``:
+Output, in ``--out-dir`` (alias ``--out``):
 
 * ``pair000000_left.jpg`` / ``pair000000_right.jpg`` …: each board's JPEG bytes exactly as received (colour,
   4:2:2, no re-encoding); each file is written under a temporary name and renamed, so none is ever half-written;
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..camera import parse_size
 from ..checks import InputError
+from .common import positive_float, positive_int
 
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
@@ -42,20 +43,24 @@ def add_parser(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "capture", help="grab stereo pairs from an SVS camera into a folder",
         description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus "
-                    "an index.jsonl of timestamps. --emulator tries it without a device.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "an index.jsonl of timestamps. --emulator tries it without a device. Exit status: 0 done, "
+                    "1 capture or file error, 2 bad arguments, 130 interrupted.")
     parser.add_argument("--left", metavar="URL",
                         help="left/master board: socket://HOST:10001 or a serial device such as /dev/ttyUSB0")
     parser.add_argument("--right", metavar="URL",
                         help="right/slave board: socket://HOST:10002 or a serial device such as /dev/ttyUSB1")
-    parser.add_argument("--size", default="320x240", help="frame size: 160x120, 320x240, 640x480 or 1280x1024")
-    parser.add_argument("--count", type=int, default=10, help="number of pairs to grab")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (must not hold an index.jsonl)")
+    parser.add_argument("--size", default="320x240", metavar="WxH",
+                        help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
+    parser.add_argument("--count", type=positive_int, default=10, help="number of pairs to grab (default: 10)")
+    parser.add_argument("--out-dir", "--out", dest="out", required=True, metavar="DIR",
+                        help="output folder, created if missing; it must not hold an index.jsonl (also --out)")
     parser.add_argument("--quality", type=int, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
-    parser.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="UART speed for serial devices")
-    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
-                        help="seconds to wait for a reply (a frame's header) before re-sending, at most twice")
+    parser.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD,
+                        help=f"UART speed for serial devices (default: {DEFAULT_BAUD})")
+    parser.add_argument("--timeout", type=positive_float, default=DEFAULT_TIMEOUT_S, metavar="S",
+                        help="seconds to wait for a reply (a frame's header) before re-sending, at most twice "
+                             f"(default: {DEFAULT_TIMEOUT_S:g})")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
     parser.set_defaults(func=run)
@@ -85,8 +90,10 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left and --right: both board URLs are needed (or --emulator)")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out-dir: expected a folder, got a file: {out}")
     if (out / INDEX_NAME).exists():
-        raise InputError(f"--out: {out / INDEX_NAME} already exists; choose a new folder")
+        raise InputError(f"--out-dir: {out / INDEX_NAME} already exists; choose a new folder")
     return size, out
 
 

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
+
+from .common import add_figure_option, dumps_strict, non_negative_int, too_small_reason
 
 HELP = "render a synthetic SVS scene, run the pipeline on it, compare with the truth"
 
@@ -12,18 +13,18 @@ DESCRIPTION = """\
 Render a synthetic scene as the SVS would see it (3.6 mm lenses, 10.75 cm baseline): textured obstacles at
 1-2 m in front of a wall, left and right views with exact ground-truth depth. Then run the whole pipeline
 (segmentation, SURF, SAD matching, RANSAC, rectification, depth) on the pair, print the true and the
-estimated depth of every obstacle, and write a figure of every step.
+estimated depth of every obstacle, and write a figure of every step to svs_demo.png (or --figure FILE).
+A size under 5x5 pixels gives the status TOO_SMALL and no figure.
 """
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo", help=HELP, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seed", type=int, default=7, help="scene seed; the same seed renders the same scene")
+    parser.add_argument("--seed", type=non_negative_int, default=7, help="scene seed; the same seed renders the same scene")
     parser.add_argument("--size", default="320x240", metavar="WxH", help="image size (default: 320x240)")
-    parser.add_argument("--objects", type=int, default=2, metavar="K", help="number of obstacles (default: 2)")
-    parser.add_argument("--out", default="svs_demo.png", metavar="FIG.png",
-                        help="figure file to write (default: svs_demo.png)")
+    parser.add_argument("--objects", type=non_negative_int, default=2, metavar="K", help="number of obstacles (default: 2)")
+    add_figure_option(parser, "figure file to write", "--out", default="svs_demo.png")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
@@ -63,7 +64,21 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import estimate_obstacle_depth
     from .estimate import format_report, pair_report
 
+    from ..checks import InputError
+    from ..figures import check_output_path
+    from .estimate import unranged_report
+    from .features import MAX_PIXELS
+
     width, height = parse_size(args.size)
+    if width * height > MAX_PIXELS:
+        raise InputError(f"size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
+    check_output_path(args.figure, args.figure_option)
+    reason = too_small_reason((height, width))
+    if reason:
+        report = unranged_report("TOO_SMALL", reason + "; no scene rendered, no figure written", "dense")
+        print(dumps_strict({"seed": args.seed, "truth": [], **report, "figure": None}) if args.json
+              else "\n".join(format_report(report)))
+        return 0
     generator = torch.Generator().manual_seed(args.seed)
     scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
     batch = scenes.batch
@@ -85,11 +100,11 @@ def run(args: argparse.Namespace) -> int:
     image_panel, binary_panel, _ = segmentation_panels(batch.left, seg.left, 0, "left")
     top = compose_grid([[image_panel], [binary_panel], [titled_panel(gray_to_bgr(gt_panel), "true disparity")]])
     figure = compose_grid([[top, estimate_figure(batch, result, 0)]])
-    write_image_atomic(args.out, figure)
+    write_image_atomic(args.figure, figure, args.figure_option)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}
     if args.json:
-        print(json.dumps({"seed": args.seed, "camera": camera, "truth": truth, **report, "figure": args.out}))
+        print(dumps_strict({"seed": args.seed, "camera": camera, "truth": truth, **report, "figure": args.figure}))
         return 0
     print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
           f"baseline {camera['baseline_m'] * 100:.2f} cm")
@@ -100,5 +115,5 @@ def run(args: argparse.Namespace) -> int:
         estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
         print(f"  object {obj['label']} is true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}): "
               f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
-    print(f"figure written to {args.out}")
+    print(f"figure written to {args.figure}")
     return 0

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from .common import (add_figure_option, dumps_strict, finite_float, non_negative_int, positive_float, positive_int,
+                     too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
 from .segment import add_segmentation_options
 
@@ -33,9 +34,15 @@ Without calibration options the SVS camera model is assumed: 3.6 mm lens on a 4.
 EPILOG = """\
 examples:
   svs-depth estimate left.png right.png
-  svs-depth estimate left.png right.png --size 320x240 --plot out.png --masks-out labels.png
+  svs-depth estimate left.png right.png --size 320x240 --figure out.png --masks-out labels.png
   svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
+
+status: "OK" when the obstacles were ranged; otherwise the stage that stopped (NO_OBJECTS, TOO_FEW_KEYPOINTS,
+TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
+a pair whose files cannot be read, with the reason in "reason". Numbers that do not exist are null.
+exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
+read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """
 
 
@@ -46,10 +53,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("left", nargs="?", help="left image file")
     parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
     parser.add_argument("--pairs", metavar="LIST.txt", help="run many pairs: a file with one 'LEFT RIGHT' per line")
-    parser.add_argument("--batch-size", type=int, default=16, help="pairs per batch with --pairs (default: 16)")
-    parser.add_argument("--focal-px", type=float, help="focal length of the input images, pixels")
-    parser.add_argument("--baseline-m", type=float, help="stereo baseline, metres (default: SVS 0.1075)")
-    parser.add_argument("--doffs-px", type=float, default=0.0, help="principal-point offset cx_right - cx_left")
+    parser.add_argument("--batch-size", type=positive_int, default=16,
+                        help="pairs per batch with --pairs (default: 16)")
+    parser.add_argument("--focal-px", type=positive_float,
+                        help="focal length of the input images, pixels (default: the SVS model for the width)")
+    parser.add_argument("--baseline-m", type=positive_float, help="stereo baseline, metres (default: SVS 0.1075)")
+    parser.add_argument("--doffs-px", type=finite_float, default=0.0,
+                        help="principal-point offset cx_right - cx_left, pixels (default: 0)")
     add_pair_options(parser)
     add_segmentation_options(parser)
     parser.add_argument("--canny", action="store_true", help="segment with Canny edges (the paper's comparison)")
@@ -57,10 +67,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--range", choices=("dense", "paper"), dest="range_rule",
                         help="how to range the obstacles: 'dense' (default) the median of dense disparity over "
                              "each region, 'paper' Eq. (5)-(8) over the RANSAC inliers (default of --preset paper)")
-    parser.add_argument("--seed", type=int, default=0, help="RANSAC seed (default: 0)")
-    parser.add_argument("--plot", metavar="FIG.png", help="figure: segmentation, matches (inliers/outliers), depths")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="RANSAC seed (default: 0)")
+    add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches",
+                      "--plot")
     parser.add_argument("--masks-out", metavar="LABELS.png",
-                        help="kept objects of the left image as a uint8 label PNG (0 background, 1..N)")
+                        help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
+                             "lossless: .png, .bmp or .tif")
     parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines)")
     parser.set_defaults(func=run)
 
@@ -79,25 +91,51 @@ def pipeline_config_from_args(args: argparse.Namespace):
     return config
 
 
-def _read_pair_list(path: str) -> list[tuple[str, str]]:
+def _read_pair_list(path: str) -> list[tuple[str, str | None, str | None]]:
+    """The pairs of a list file, one ``LEFT RIGHT`` per line (``#`` comments, shell quoting for paths with
+    spaces; relative paths are relative to the list). Each entry is ``(left, right, None)`` or, for a line that
+    is not a pair, ``(line, None, reason)``: it still gets its own output line."""
+    import shlex
+
     from ..checks import InputError
 
     list_path = Path(path)
     if not list_path.is_file():
-        raise InputError(f"pairs: file not found: {path}")
-    pairs = []
-    for number, line in enumerate(list_path.read_text().splitlines(), start=1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
+        raise InputError(f"pairs: expected a list file, got {'a folder' if list_path.exists() else 'no file'}: {path}")
+    try:
+        text = list_path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"pairs: expected a UTF-8 text file with one 'LEFT RIGHT' per line: {path}") from None
+    except OSError as error:
+        raise InputError(f"pairs: cannot read {path}: {error.strerror or error}") from None
+    pairs: list[tuple[str, str | None, str | None]] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        try:
+            parts = shlex.split(line, comments=True)
+        except ValueError as error:
+            parts, problem = None, str(error)
+        if parts == []:
             continue
-        parts = line.split()
-        if len(parts) != 2:
-            raise InputError(f"pairs: line {number} of {path}: expected 'LEFT RIGHT', got {line!r}")
+        if parts is None or len(parts) != 2 or "\0" in line:
+            problem = "unbalanced quotes" if parts is None else f"{len(parts)} fields"
+            pairs.append((line.strip(), None, f"pairs: line {number} of {path}: expected 'LEFT RIGHT', got "
+                                              f"{problem}: {line.strip()[:80]!r}"))
+            continue
         base = list_path.parent
-        pairs.append(tuple(str(p if Path(p).is_absolute() else base / p) for p in parts))
+        left, right = (str(p if Path(p).is_absolute() else base / p) for p in parts)
+        pairs.append((left, right, None))
     if not pairs:
         raise InputError(f"pairs: no pair listed in {path}")
     return pairs
+
+
+def unranged_report(status: str, reason: str, range_rule: str) -> dict:
+    """The report of a pair the pipeline did not run on (``TOO_SMALL``, ``BAD_INPUT``): the keys of
+    :func:`pair_report`, with null numbers, and the reason."""
+    return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
+            "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
+            "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
+            "time_s": 0.0}
 
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
@@ -149,6 +187,8 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
 
 
 def format_report(report: dict) -> list[str]:
+    if report.get("reason"):
+        return [f"status {report['status']}: {report['reason']}"]
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
              f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
     if report["r_min_m"] is not None:
@@ -172,52 +212,92 @@ def format_report(report: dict) -> list[str]:
 def _write_outputs(args, batch, result, factors) -> None:
     from ..figures import estimate_figure, labels_image, write_image_atomic
 
-    if args.plot:
-        write_image_atomic(args.plot, estimate_figure(batch, result, 0))
+    if args.figure:
+        write_image_atomic(args.figure, estimate_figure(batch, result, 0), args.figure_option)
     if args.masks_out:
-        write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors))
+        write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors), "--masks-out",
+                           lossless=True)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..checks import InputError
+    from ..figures import check_output_path
     from ..pipeline import estimate_obstacle_depth
 
     config = pipeline_config_from_args(args)
     if args.pairs:
-        if args.left or args.right or args.plot or args.masks_out:
-            raise InputError("pairs: give either LEFT RIGHT or --pairs (--plot and --masks-out need one pair)")
+        if args.left or args.right or args.figure or args.masks_out:
+            raise InputError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
         return _run_many(args, config)
     if not (args.left and args.right):
         raise InputError("left, right: expected two image files (or --pairs LIST.txt)")
+    # Check the outputs first: a bad file name fails at once, before any work, and nothing is half-written.
+    if args.figure:
+        check_output_path(args.figure, args.figure_option)
+    if args.masks_out:
+        check_output_path(args.masks_out, "--masks-out", lossless=True)
     batch, factors = load_pair(args.left, args.right, args)
-    started = time.perf_counter()
-    result = estimate_obstacle_depth(batch, config)
-    report = pair_report(result, 0, factors, time.perf_counter() - started)
-    _write_outputs(args, batch, result, factors)
-    if args.json:
-        print(json.dumps(report))
+    reason = too_small_reason(batch.size_hw)
+    if reason:
+        report = unranged_report("TOO_SMALL", reason + "; nothing to range, no file written", config.depth.rule)
     else:
-        print("\n".join(format_report(report)))
+        started = time.perf_counter()
+        result = estimate_obstacle_depth(batch, config)
+        report = pair_report(result, 0, factors, time.perf_counter() - started)
+        _write_outputs(args, batch, result, factors)
+    print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
     return 0
 
 
+def _load_entry(entry, args) -> tuple[str | None, str | None, object]:
+    """(status, reason, loaded pair) of one list entry: a pair to run has status None."""
+    from ..checks import InputError
+
+    left, right, problem = entry
+    if problem:
+        return "BAD_INPUT", problem, None
+    try:
+        loaded = load_pair(left, right, args)
+    except (InputError, OSError) as error:
+        return "BAD_INPUT", " ".join(str(error).split()), None
+    reason = too_small_reason(loaded[0].size_hw)
+    return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
+
+
 def _run_many(args: argparse.Namespace, config) -> int:
+    """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT."""
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
     pairs = _read_pair_list(args.pairs)
-    done = 0
-    for start in range(0, len(pairs), max(1, args.batch_size)):
+    done, bad = 0, []
+    for start in range(0, len(pairs), args.batch_size):
         chunk = pairs[start:start + args.batch_size]
-        loaded = [load_pair(left, right, args) for left, right in chunk]
-        # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
-        batch = collate_stereo_batches([b for b, _ in loaded], mode="pad")
-        started = time.perf_counter()
-        result = estimate_obstacle_depth(batch, config)
-        per_pair = (time.perf_counter() - started) / len(chunk)
-        for i, ((left, right), (_, factors)) in enumerate(zip(chunk, loaded)):
-            report = {"left": left, "right": right, **pair_report(result, i, factors, per_pair)}
-            print(json.dumps(report) if args.json else "\n".join([f"{left} {right}"] + format_report(report)))
+        entries = [_load_entry(entry, args) for entry in chunk]
+        runnable = [loaded for _, _, loaded in entries if loaded is not None]
+        result, per_pair = None, 0.0
+        if runnable:
+            # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
+            batch = collate_stereo_batches([b for b, _ in runnable], mode="pad")
+            started = time.perf_counter()
+            result = estimate_obstacle_depth(batch, config)
+            per_pair = (time.perf_counter() - started) / len(runnable)
+        row = 0
+        for (left, right, _), (status, reason, loaded) in zip(chunk, entries):
+            if loaded is None:
+                report = unranged_report(status, reason, config.depth.rule)
+                if status == "BAD_INPUT":
+                    bad.append(reason)
+            else:
+                report = pair_report(result, row, loaded[1], per_pair)
+                row += 1
+            report = {"left": left, "right": right, **report}
+            print(dumps_strict(report) if args.json else "\n".join([f"{left} {right or ''}".rstrip()]
+                                                                     + format_report(report)), flush=True)
         done += len(chunk)
         print(f"\r{done}/{len(pairs)} pairs", end="" if done < len(pairs) else "\n", file=sys.stderr, flush=True)
+    if bad:
+        print(f"svs-depth estimate: error: pairs: {len(bad)} of {len(pairs)} pairs are BAD_INPUT (first: {bad[0]})",
+              file=sys.stderr)
+        return 2
     return 0

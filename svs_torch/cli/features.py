@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
+from .common import (add_figure_option, dumps_strict, non_negative_float, positive_int, too_small_reason,
+                     unit_interval_float)
 from .segment import add_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
@@ -21,7 +22,7 @@ Keypoint positions and scales are in input-image pixels, also when --size resamp
 EPILOG = """\
 examples:
   svs-depth features left.png right.png
-  svs-depth features left.png right.png --size 320x240 --plot matches.png
+  svs-depth features left.png right.png --size 320x240 --figure matches.png
   svs-depth features left.png right.png --no-segment --max-keypoints 300 --json
 """
 
@@ -37,9 +38,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="detect on the whole images instead of the segmented obstacles")
     add_segmentation_options(parser)
     add_feature_options(parser)
-    parser.add_argument("--plot", metavar="FIG.png", help="write a figure of the keypoints and matches")
+    add_figure_option(parser, "write a figure of the keypoints and matches", "--plot")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
+
+
+#: The largest pair the command line works on (a 4096 x 4096 frame); larger ones are resampled with --size.
+MAX_PIXELS = 4096 * 4096
 
 
 def add_pair_options(parser: argparse.ArgumentParser) -> None:
@@ -53,14 +58,14 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                         help="'default': svs_torch's best measured settings (dense depth over the obstacles); "
                              "'paper': the paper exactly, MATLAB's defaults and R = f*B/d over the RANSAC "
                              "inliers (Eq. 5-8)")
-    parser.add_argument("--max-keypoints", type=int, metavar="K",
+    parser.add_argument("--max-keypoints", type=positive_int, metavar="K",
                         help="strongest keypoints kept per image (preset: 512)")
-    parser.add_argument("--metric-threshold", type=float, metavar="T",
+    parser.add_argument("--metric-threshold", type=non_negative_float, metavar="T",
                         help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold; paper 1000)")
     parser.add_argument("--upsample", action=argparse.BooleanOptionalAction,
                         help="detect on the image enlarged twice, as SIFT does: more and better-placed "
                              "keypoints on small frames, about 4x slower detection")
-    parser.add_argument("--max-ratio", type=float, metavar="R",
+    parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
                         help="ratio test of the matching (MATLAB MaxRatio; paper 0.6)")
 
 
@@ -89,12 +94,20 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
     from ..camera import parse_size
     from ..data import load_image_pair, resize_stereo_batch
 
+    from ..checks import InputError
+
+    new_size = parse_size(args.size, "size") if args.size else None
+    if new_size and new_size[0] * new_size[1] > MAX_PIXELS:
+        raise InputError(f"size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
     batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     height, width = batch.size_hw
-    if not args.size:
+    if new_size is None:
+        if height * width > MAX_PIXELS:
+            raise InputError(f"left: expected at most {MAX_PIXELS // 10**6} megapixels, got {width}x{height} "
+                             "(resample it with --size)")
         return batch, (1.0, 1.0)
-    new_w, new_h = parse_size(args.size, "size")
+    new_w, new_h = new_size
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
 
 
@@ -116,12 +129,22 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from ..features import extract_surf_features
-    from ..figures import matches_figure, write_image_atomic
+    from ..figures import check_output_path, matches_figure, write_image_atomic
     from ..matching import match_sad
     from ..segmentation import segment_stereo
 
+    if args.figure:
+        check_output_path(args.figure, args.figure_option)
     batch, factors = load_pair(args.left, args.right, args)
     config = preset_config(args)
+    reason = too_small_reason(batch.size_hw)
+    if reason:
+        if args.json:
+            print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
+                                "segmented": not args.no_segment, "time_s": 0.0}))
+        else:
+            print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
+        return 0
     started = time.perf_counter()
     left_image, right_image = batch.left, batch.right
     if not args.no_segment:
@@ -136,12 +159,13 @@ def run(args: argparse.Namespace) -> int:
                         xy_right=kp.xy[1:], epipolar_band_px=config.epipolar_band_px)
     elapsed = time.perf_counter() - started
     pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
-    if args.plot:
-        write_image_atomic(args.plot, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs))
+    if args.figure:
+        write_image_atomic(args.figure, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs),
+                           args.figure_option)
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
-        print(json.dumps({"left": left, "right": right, "matches": pairs, "segmented": not args.no_segment,
-                          "time_s": round(elapsed, 6)}))
+        print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs,
+                            "segmented": not args.no_segment, "time_s": round(elapsed, 6)}))
         return 0
     print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "
           f"({'segmented obstacles' if not args.no_segment else 'whole images'}), {elapsed * 1e3:.0f} ms")
@@ -151,6 +175,6 @@ def run(args: argparse.Namespace) -> int:
               f"{left[i]['xy'][0] - right[j]['xy'][0]:.1f} px")
     if len(pairs) > 10:
         print(f"  … {len(pairs) - 10} more (--json for all)")
-    if args.plot:
-        print(f"figure written to {args.plot}")
+    if args.figure:
+        print(f"figure written to {args.figure}")
     return 0

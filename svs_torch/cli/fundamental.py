@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
+from .common import dumps_strict, non_negative_int, positive_float, too_small_reason
 from .features import add_feature_options, add_pair_options, load_pair, to_input_pixels
 from .segment import add_segmentation_options
 
@@ -35,8 +35,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-segment", action="store_true", help="match features of the whole images")
     add_segmentation_options(parser)
     add_feature_options(parser)
-    parser.add_argument("--threshold-px", type=float, help="RANSAC Sampson-distance threshold, px (preset: 1)")
-    parser.add_argument("--seed", type=int, default=0, help="RANSAC seed: the same seed gives the same F")
+    parser.add_argument("--threshold-px", type=positive_float, help="RANSAC Sampson-distance threshold, px (preset: 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="RANSAC seed: the same seed gives the same F")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
@@ -63,6 +63,12 @@ def run(args: argparse.Namespace) -> int:
     from .features import preset_config
 
     batch, factors = load_pair(args.left, args.right, args)
+    reason = too_small_reason(batch.size_hw)
+    if reason:
+        report = {"status": "TOO_SMALL", "reason": reason, "F": None, "num_matches": 0, "num_inliers": 0,
+                  "iterations": 0, "inliers": [], "time_s": 0.0}
+        print(dumps_strict(report) if args.json else f"status TOO_SMALL: {reason}; no F")
+        return 0
     base = preset_config(args)
     # F needs no depth: the paper's sparse rule skips the dense stage.
     config = replace(base, features_on="image" if args.no_segment else base.features_on, seed=args.seed,
@@ -88,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         "time_s": round(elapsed, 6),
     }
     if args.json:
-        print(json.dumps(report))
+        print(dumps_strict(report))
         return 0
     print(f"status {report['status']}: {report['num_inliers']} inliers of {report['num_matches']} matches, "
           f"{report['iterations']} samples, {elapsed * 1e3:.0f} ms")

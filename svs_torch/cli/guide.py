@@ -7,6 +7,8 @@ import contextlib
 import sys
 import time
 
+from .common import non_negative_float, non_negative_int, positive_float, positive_int
+
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
 DESCRIPTION = """\
@@ -34,34 +36,51 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--left", metavar="URL", help="left (master) board: serial device or socket://HOST:10001")
     parser.add_argument("--right", metavar="URL", help="right (slave) board: serial device or socket://HOST:10002")
     parser.add_argument("--emulator", action="store_true", help="use an in-process SVS emulator on loopback")
-    parser.add_argument("--size", default="320x240", help="frame size (default: 320x240)")
-    parser.add_argument("--baud", type=int, default=2_304_000, help="UART speed for serial links")
-    parser.add_argument("--timeout", type=float, default=2.0, help="reply timeout per command, seconds")
-    parser.add_argument("--quality", type=int, help="JPEG quality 1 (best) to 8 (worst)")
-    parser.add_argument("--near-m", type=float, default=1.0, help="warning band start, metres (default 1.0)")
-    parser.add_argument("--far-m", type=float, default=2.0, help="warning band end, metres (default 2.0)")
-    parser.add_argument("--repeat-s", type=float, default=3.0, help="seconds before the same warning repeats")
+    parser.add_argument("--size", default="320x240", metavar="WxH",
+                        help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
+    parser.add_argument("--baud", type=positive_int, default=2_304_000,
+                        help="UART speed for serial links (default: 2304000)")
+    parser.add_argument("--timeout", type=positive_float, default=2.0,
+                        help="reply timeout per command, seconds (default: 2)")
+    parser.add_argument("--quality", type=int, metavar="1-8",
+                        help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")
+    parser.add_argument("--near-m", type=non_negative_float, default=1.0,
+                        help="warning band start, metres (default: 1.0)")
+    parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
+    parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
+                        help="seconds before the same warning repeats (default: 3)")
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
-    parser.add_argument("--count", type=int, default=0, help="stop after N pairs (default: run until Ctrl-C)")
+    parser.add_argument("--count", type=non_negative_int, default=0,
+                        help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.set_defaults(func=run, out=".", json=False)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..camera import parse_size
-    from ..capture.guide import LiveGuide, Speaker, WarningPolicy
+    from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
     from ..capture.link import CaptureError
     from ..checks import InputError
     from ..depth import ObstacleSide
     from ..pipeline import estimate_obstacle_depth
     from .capture import open_stereo_camera
 
+    from ..capture.protocol import size_code_for
+
     size = parse_size(args.size, "size")
+    try:
+        size_code_for(size)
+    except InputError:
+        raise InputError(f"size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
     if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
         raise InputError("left, right: give both --left and --right board URLs, or --emulator")
     if not 0 <= args.near_m < args.far_m:
         raise InputError(f"near-m, far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
+    if args.quality is not None and not 1 <= args.quality <= 8:
+        raise InputError(f"quality: expected 1 (best) to 8 (worst), got {args.quality}")
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
-    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=sys.stdout))
+    # Warnings are printed here, above the status line, not by the speaker: a warning never lands on it.
+    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=None))
+    status_line = StatusLine(sys.stderr)
     processed = 0
     try:
         with contextlib.ExitStack() as stack:
@@ -72,15 +91,22 @@ def run(args: argparse.Namespace) -> int:
                 # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
                 # a walker reaches first, not the median of an object that may recede.
                 distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-                guide.update(distance, time.monotonic())
+                message = guide.update(distance, time.monotonic())
+                if message is not None:
+                    status_line.message(message, sys.stdout)
                 side = ObstacleSide(int(nearest.side[0])).name.lower()
-                print(f"\r{guide.status(distance)}  {side:6s}", end="", file=sys.stderr, flush=True)
+                status_line.show(f"{guide.status(distance)}  {side}")
                 processed += 1
     except KeyboardInterrupt:
-        print(f"\nguide stopped after {processed} pairs", file=sys.stderr)
+        status_line.close()
+        print(f"guide stopped after {processed} pairs", file=sys.stderr)
         return 130
-    except CaptureError as error:
-        print(f"\nsvs-depth guide: error: {error}", file=sys.stderr)
+    except (CaptureError, OSError) as error:
+        status_line.close()
+        print(f"svs-depth guide: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 1
-    print(f"\nguide stopped after {processed} pairs", file=sys.stderr)
+    finally:
+        guide.speaker.close()
+    status_line.close()
+    print(f"guide stopped after {processed} pairs", file=sys.stderr)
     return 0

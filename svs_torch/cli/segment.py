@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
+
+from .common import add_figure_option, dumps_strict, positive_int
 
 HELP = "segment the obstacles of a stereo pair (Otsu, opening, largest regions)"
 
@@ -19,7 +20,7 @@ area in pixels, bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, 
 EPILOG = """\
 examples:
   svs-depth segment left.png right.png
-  svs-depth segment left.png right.png --kernel-size 7 --keep 3 --out seg.png
+  svs-depth segment left.png right.png --kernel-size 7 --keep 3 --figure seg.png
   svs-depth segment left.png right.png --json | jq '.left.objects[0].area_px'
 """
 
@@ -31,18 +32,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("left", help="left image file (gray or color, 8 or 16 bit)")
     parser.add_argument("right", help="right image file, the same size as the left")
     add_segmentation_options(parser)
-    parser.add_argument("--out", metavar="FIG.png",
-                        help="write a figure: both images, their binary masks and the kept objects")
+    add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
 
 def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     """The segmentation options shared by the commands that segment."""
-    parser.add_argument("--kernel-size", type=int, default=5, metavar="N",
+    parser.add_argument("--kernel-size", type=positive_int, default=5, metavar="N",
                         help="side of the square structuring element for erosion and dilation, pixels "
                              "(default: 5)")
-    parser.add_argument("--keep", type=int, default=2, metavar="N",
+    parser.add_argument("--keep", type=positive_int, default=2, metavar="N",
                         help="how many of the largest regions to keep (paper: 2)")
     parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
                         help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
@@ -99,22 +99,24 @@ def format_report(side: str, report: dict) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from ..data import load_image_pair
-    from ..figures import compose_grid, segmentation_panels, write_image_atomic
+    from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
     from ..segmentation import segment_stereo
 
     config = config_from_args(args)
+    if args.figure:
+        check_output_path(args.figure, args.figure_option)
     batch = load_image_pair(args.left, args.right)
     started = time.perf_counter()
     seg = segment_stereo(batch, config)
     elapsed = time.perf_counter() - started
-    if args.out:
+    if args.figure:
         figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left"),
                                segmentation_panels(batch.right, seg.right, 0, "right")])
-        write_image_atomic(args.out, figure)
+        write_image_atomic(args.figure, figure, args.figure_option)
     left, right = image_report(seg.left, 0), image_report(seg.right, 0)
     if args.json:
         height, width = batch.size_hw
-        print(json.dumps({
+        print(dumps_strict({
             "left": left, "right": right,
             "image_size_wh": [width, height],
             "config": {"kernel_size": config.kernel_size, "keep": config.num_keep,
@@ -124,5 +126,5 @@ def run(args: argparse.Namespace) -> int:
     else:
         for line in format_report("left", left) + format_report("right", right):
             print(line)
-        print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.out}" if args.out else ""))
+        print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.figure}" if args.figure else ""))
     return 0

@@ -12,6 +12,7 @@ scenes whose values follow from it); elsewhere the values are nominal and depth 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -199,13 +200,16 @@ def load_image_pair(
     ``SVS_CAMERA.baseline_m``); calibrated is True only when both ``focal_px`` and ``baseline_m`` are given.
 
     Raises:
-        InputError: for an unreadable file (naming ``left`` or ``right``), non-positive focal or baseline, or
+        InputError: for an unreadable file (naming ``left`` or ``right``), a focal or baseline that is not
+            finite and positive, a non-finite doffs, or
             left and right of different sizes (naming ``right`` and both sizes).
     """
     left, right = _read_pair(Path(left_path), Path(right_path), dtype)
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
-        if value is not None and not value > 0:
-            raise InputError(f"{name}: expected a positive value, got {value}")
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{name}: expected a finite positive value, got {value}")
+    if not math.isfinite(doffs_px):
+        raise InputError(f"doffs_px: expected a finite value, got {doffs_px}")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
     return _make_batch(left, right, Path(left_path).stem,

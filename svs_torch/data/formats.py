@@ -42,7 +42,10 @@ def _imread(path: str | Path, name: str) -> np.ndarray:
     """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`."""
     path = _check_file(path, name)
     # cv2.imread returns None (it does not raise) for a file it cannot decode, e.g. text renamed .png.
-    array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # e.g. a header announcing more pixels than OpenCV's limit
+        array = None
     if array is None:
         raise InputError(f"{name}: not a readable image file (OpenCV could not decode it): {path}")
     return array
@@ -118,7 +121,7 @@ def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, flo
 
 
 def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Read an 8- or 16-bit gray or BGR image as a gray tensor ``(1, 1, H, W)`` in [0, 1].
+    """Read an 8- or 16-bit gray or colour image (alpha ignored) as a gray tensor ``(1, 1, H, W)`` in [0, 1].
 
     Color images are converted with ``cv2.cvtColor(BGR2GRAY)``, so the gray levels equal OpenCV's own
     conversion (0.299 R + 0.587 G + 0.114 B, rounded to the input's integer type). uint8 values are divided
@@ -126,16 +129,20 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
 
     Raises:
         InputError: naming ``name``, for a missing file, a file OpenCV cannot decode, a channel count other
-            than 1 or 3, or a dtype other than uint8 / uint16.
+            than 1 to 4, or a dtype other than uint8 / uint16.
     """
     array = _imread(path, name)
     channels = 1 if array.ndim == 2 else array.shape[2]
-    if channels not in (1, 3):
-        raise InputError(f"{name}: expected 1 (gray) or 3 (BGR) channels, got {channels}: {path}")
+    if channels not in (1, 2, 3, 4):
+        raise InputError(f"{name}: expected 1 (gray), 2 (gray + alpha), 3 (BGR) or 4 (BGRA) channels, "
+                         f"got {channels}: {path}")
     if array.dtype not in _FULL_SCALE:
         raise InputError(f"{name}: expected a uint8 or uint16 image, got {array.dtype}: {path}")
-    if channels == 3:
-        array = cv2.cvtColor(array, cv2.COLOR_BGR2GRAY)
+    if array.shape[0] < 1 or array.shape[1] < 1:
+        raise InputError(f"{name}: expected an image of at least 1x1 pixels, got {array.shape[1]}x{array.shape[0]}")
+    # The alpha channel of a gray + alpha or BGRA file is dropped: the camera sees the colour, not the mask.
+    if channels in (3, 4):
+        array = cv2.cvtColor(array, cv2.COLOR_BGR2GRAY if channels == 3 else cv2.COLOR_BGRA2GRAY)
     elif array.ndim == 3:
         array = array[:, :, 0]
     full_scale = _FULL_SCALE[array.dtype]

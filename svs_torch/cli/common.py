@@ -1,0 +1,119 @@
+"""What every ``svs-depth`` command shares: option types that refuse bad values with one line, the figure option,
+the smallest pair the pipeline can range, and strict JSON output.
+
+Only the standard library is imported here, so that ``svs-depth --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+__all__ = [
+    "MIN_SIDE_PX", "add_figure_option", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int",
+    "positive_float", "positive_int", "too_small_reason", "unit_interval_float",
+]
+
+#: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
+#: 3 x 3 x 3 non-maximum suppression (smaller pairs get the status TOO_SMALL, never a crash).
+MIN_SIDE_PX = 5
+
+
+def _number(text: str, kind: type) -> Any:
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") \
+            from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (no ``nan``, ``inf``)."""
+    return _number(text, float)
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number greater than zero."""
+    value = _number(text, float)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a finite positive number, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number, zero or more."""
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def unit_interval_float(text: str) -> float:
+    """argparse type: a number in (0, 1]."""
+    value = _number(text, float)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer of at least 1."""
+    value = _number(text, int)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer of at least 0."""
+    value = _number(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
+
+
+class _FigureAction(argparse.Action):
+    """Store the figure file and the option name the user typed, so that an error names it."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.figure_option = option_string or "--figure"
+
+
+def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases: str, default: str | None = None):
+    """``--figure FIG.png`` (the one name for a figure file across commands) with the command's old names as
+    aliases (``--plot``, ``--out``), all stored in ``args.figure``."""
+    default_text = f" (default: {default})" if default else ""
+    parser.set_defaults(figure_option="--figure")
+    parser.add_argument("--figure", *aliases, dest="figure", metavar="FIG.png", default=default,
+                        action=_FigureAction,
+                        help=f"{help_text}{default_text}; .png, .jpg, .bmp or .tif"
+                             + (f" (also {', '.join(aliases)})" if aliases else ""))
+
+
+def too_small_reason(size_hw: tuple[int, int]) -> str | None:
+    """Why a pair of this (H, W) cannot be ranged, or None when it is large enough."""
+    height, width = size_hw
+    if min(height, width) < MIN_SIDE_PX:
+        return f"image {width}x{height} is smaller than {MIN_SIDE_PX}x{MIN_SIDE_PX} pixels"
+    return None
+
+
+def _finite_or_none(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite_or_none(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(item) for item in value]
+    return value
+
+
+def dumps_strict(value: Any) -> str:
+    """JSON that strict parsers accept: NaN and ±inf become ``null`` (``json.dumps`` would write ``NaN``)."""
+    return json.dumps(_finite_or_none(value), allow_nan=False)
