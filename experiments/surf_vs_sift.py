@@ -62,11 +62,11 @@ class FeatureSetup:
 
 
 def _from_pipeline(config) -> FeatureSetup:
-    refine = getattr(config, "match_refinement", None)
+    refine = config.refine_matches
     return FeatureSetup(surf=config.surf, max_ratio=config.max_ratio, mutual=config.mutual,
                         laplacian_gate=config.laplacian_gate, epipolar_band_px=config.epipolar_band_px,
-                        refine=dict(refine) if refine else None, ransac_threshold_px=config.ransac_threshold_px,
-                        ransac_scoring=config.ransac_scoring)
+                        refine=asdict(refine) if refine is not None else None,
+                        ransac_threshold_px=config.ransac_threshold_px, ransac_scoring=config.ransac_scoring)
 
 
 def _presets() -> dict[str, FeatureSetup]:
@@ -82,6 +82,20 @@ def _presets() -> dict[str, FeatureSetup]:
         "product": _from_pipeline(PipelineConfig()),
         # The best measured configuration (this issue); see the report in the issue thread.
         "recommended": recommended,
+        # The refinement's correlation gate raised: drops matches whose patches disagree after alignment.
+        "recommended-ncc50": replace(recommended, refine={**recommended.refine, "min_correlation": 0.5}),
+        "recommended-ncc70": replace(recommended, refine={**recommended.refine, "min_correlation": 0.7}),
+        # Without the x2 upsampling (a quarter of the detector's work), the same threshold, gates and refinement.
+        "noupsample-ncc70": FeatureSetup(surf=SurfConfig(metric_threshold=300.0), max_ratio=0.8,
+                                         refine={**recommended.refine, "min_correlation": 0.7}),
+        "noupsample100-ncc70": FeatureSetup(surf=SurfConfig(metric_threshold=100.0), max_ratio=0.8,
+                                            refine={**recommended.refine, "min_correlation": 0.7}),
+        "noupsample100-ncc70-r8": FeatureSetup(surf=SurfConfig(metric_threshold=100.0), max_ratio=0.8,
+                                               refine={**recommended.refine, "min_correlation": 0.7,
+                                                       "max_radius_px": 8.0}),
+        "noupsample100-ncc70-r6": FeatureSetup(surf=SurfConfig(metric_threshold=100.0), max_ratio=0.8,
+                                               refine={**recommended.refine, "min_correlation": 0.7,
+                                                       "max_radius_px": 6.0}),
         # The same with 128-D (extended) descriptors.
         "recommended-128": replace(recommended, surf=replace(recommended.surf, extended=True)),
         # The earlier tuning: x2 upsampling and MetricThreshold 300, no refinement.

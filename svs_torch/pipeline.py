@@ -20,7 +20,8 @@ from .dense_depth import dense_object_depths, range_from_objects
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
-from .matching import gather_matched_points, match_sad
+from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
+                       refine_matched_points)
 from .ransac import estimate_fundamental_ransac
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
@@ -48,20 +49,26 @@ class PipelineStatus(enum.IntEnum):
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Settings of every stage, with the paper's defaults; each nested config documents its own fields.
+    """Settings of every stage; the defaults are the best measured configuration, ``paper()`` the paper's MATLAB
+    defaults. Each nested config documents its own fields.
 
     Attributes:
         segmentation: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions; ``method="canny"`` for the
             paper's comparison row).
-        surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults.
+        surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
+            ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
+            weak ones that do not hold.
         features_on: ``"masked"`` detects and describes on the masked obstacle images (the paper);
             ``"mask"`` detects only inside the kept regions but on the unmasked images, so the artificial edge
             between an obstacle and the blacked-out background makes no keypoints; ``"image"`` uses the whole
             images (no segmentation gate).
-        max_ratio: SAD ratio test (MATLAB ``matchFeatures`` MaxRatio 0.6), Sec. 3.3 (2).
+        max_ratio: SAD ratio test, Sec. 3.3 (2): 0.8 (Lowe's); MATLAB ``matchFeatures`` MaxRatio 0.6 in ``paper()``.
         mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
         laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
         epipolar_band_px: optional |y_left − y_right| limit on candidates, pixels (a nearly rectified rig).
+        refine_matches: :class:`~svs_torch.matching.MatchRefinementConfig`: sub-pixel Lucas–Kanade refinement of
+            each matched right point on the images the features were found on, with a correlation gate; None:
+            the keypoints as detected (the paper).
         ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3).
         ransac_confidence: stop when an all-inlier 7-point sample was drawn with this probability.
         ransac_max_iterations: 7-point samples per pair at most.
@@ -78,6 +85,12 @@ class PipelineConfig:
         depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
             ``"paper"``: min/max over the inliers, or robust percentiles).
         dense: :class:`~svs_torch.dense.DenseConfig`, the dense SAD stage of the ``"dense"`` rule.
+        verify_min_inliers, verify_min_inlier_share: under the dense rule, the sparse stage vouches that both
+            views show one scene (and the dense stage accepts an object on ``depth.min_object_valid_fraction``
+            of its pixels instead of the stricter ``min_object_valid_fraction_unverified``) only when RANSAC found
+            F with at least this many inliers making at least this share of the matches: 7-point RANSAC fits
+            some F to a dozen chance matches between unrelated views (about 0.3–0.45 of them), while real
+            pairs keep 0.9 or more.
         seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
@@ -85,12 +98,15 @@ class PipelineConfig:
     """
 
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
-    surf: SurfConfig = field(default_factory=SurfConfig)
+    # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
+    # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
+    surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
     features_on: Literal["masked", "mask", "image"] = "masked"  # Sec. 3.3 (1): SURF on the masked images
-    max_ratio: float = 0.6  # MATLAB matchFeatures MaxRatio
+    max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
     laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3
     epipolar_band_px: float | None = None  # pixels; None: no band
+    refine_matches: MatchRefinementConfig | None = field(default_factory=MatchRefinementConfig)
     ransac_threshold_px: float = 1.0  # pixels, Sampson distance
     ransac_confidence: float = 0.99  # MATLAB / OpenCV default
     ransac_max_iterations: int = 1024  # 7-point samples per pair
@@ -100,6 +116,8 @@ class PipelineConfig:
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    verify_min_inliers: int = 15
+    verify_min_inlier_share: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -109,12 +127,17 @@ class PipelineConfig:
             raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
         if not 0 < self.max_ratio <= 1:
             raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
+        if not (isinstance(self.verify_min_inliers, int) and self.verify_min_inliers >= 0):
+            raise InputError(f"verify_min_inliers: expected an integer >= 0, got {self.verify_min_inliers!r}")
+        if not 0 <= self.verify_min_inlier_share <= 1:
+            raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
+                             f"{self.verify_min_inlier_share!r}")
 
     @classmethod
     def paper(cls) -> PipelineConfig:
         """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
         defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
-        return cls(depth=DepthConfig(rule="paper"))
+        return cls(surf=SurfConfig(), max_ratio=0.6, refine_matches=None, depth=DepthConfig(rule="paper"))
 
 
 @dataclass(frozen=True)
@@ -126,6 +149,8 @@ class PipelineResult:
         segmentation: the :class:`~svs_torch.types.StereoSegmentation`.
         features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.
         matches: left-to-right :class:`~svs_torch.types.Matches`.
+        points: :class:`~svs_torch.matching.MatchedPoints` ``(B, K, 2)``: the matched points F is fitted to (the
+            right points refined to sub-pixel under ``refine_matches``), rows as in ``matches``.
         fundamental: :class:`~svs_torch.types.FundamentalResult` over the matched rows (row k = left keypoint k).
         rectification: :class:`~svs_torch.rectification.Rectification` computed from F (its homographies are
             the identity where its status is not OK).
@@ -145,6 +170,7 @@ class PipelineResult:
     features_left: SurfFeatures
     features_right: SurfFeatures
     matches: Matches
+    points: MatchedPoints
     fundamental: FundamentalResult
     rectification: Rectification
     rectified: torch.Tensor
@@ -157,16 +183,21 @@ class PipelineResult:
     timings_s: dict[str, float]
 
 
-def _features(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig) -> tuple[SurfFeatures, SurfFeatures]:
-    """SURF on left and right as one batch of 2B images; split back."""
-    b = batch.batch_size
+def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
+                    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The ``(2B, 1, H, W)`` images SURF runs on (left then right) and its detection mask (or None)."""
     if config.features_on == "masked":
-        images, mask = torch.cat([seg.left.masked, seg.right.masked]), None
-    elif config.features_on == "image":
-        images, mask = torch.cat([batch.left, batch.right]), None
-    else:
-        images = torch.cat([batch.left, batch.right])
-        mask = torch.cat([seg.left.kept_mask, seg.right.kept_mask])
+        return torch.cat([seg.left.masked, seg.right.masked]), None
+    images = torch.cat([batch.left, batch.right])
+    if config.features_on == "image":
+        return images, None
+    return images, torch.cat([seg.left.kept_mask, seg.right.kept_mask])
+
+
+def _features(images: torch.Tensor, mask: torch.Tensor | None, config: PipelineConfig
+              ) -> tuple[SurfFeatures, SurfFeatures]:
+    """SURF on left and right as one batch of 2B images; split back."""
+    b = images.shape[0] // 2
     both = extract_surf_features(images, config.surf, mask)
 
     def half(sl: slice) -> SurfFeatures:
@@ -276,10 +307,14 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
 
     seg = segment_stereo(batch, config.segmentation)
     lap("segmentation")
-    left, right = _features(batch, seg, config)
+    images, detect_mask = _feature_images(batch, seg, config)
+    left, right = _features(images, detect_mask, config)
     lap("features")
     matches = _match(left, right, config)
     points = gather_matched_points(left.keypoints.xy, right.keypoints.xy, matches)
+    b = batch.batch_size
+    points, matches = refine_matched_points(images[:b], images[b:], points, matches, left.keypoints.scale,
+                                            config.refine_matches)
     lap("matching")
     seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64)
     fundamental = estimate_fundamental_ransac(
@@ -300,14 +335,18 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
     dense = None
     if config.depth.rule == "dense":
-        depth, dense = _dense_depth(batch, seg, depth, fundamental.status == FundamentalStatus.OK, rectified,
+        verified = ((fundamental.status == FundamentalStatus.OK)
+                    & (fundamental.num_inliers >= config.verify_min_inliers)
+                    & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
+        depth, dense = _dense_depth(batch, seg, depth, verified, rectified,
                                     torch.where(pick, rectification.H_left, identity),
                                     torch.where(pick, rectification.H_right, identity), config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
         status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None),
-        segmentation=seg, features_left=left, features_right=right, matches=matches, fundamental=fundamental,
+        segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
+        fundamental=fundamental,
         rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
         num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 import subprocess
 import sys
@@ -143,6 +144,17 @@ def test_features_json_in_input_pixels_and_plot(data_dir, capsys, tmp_path):
     rows = [abs(report["left"][i]["xy"][1] - report["right"][j]["xy"][1]) for i, j in report["matches"]]
     disparities = [report["left"][i]["xy"][0] - report["right"][j]["xy"][0] for i, j in report["matches"]]
     assert np.median(rows) < 1.5 and np.median(disparities) > 5
+    # The refined matched points: the left point is the keypoint, the right one moved by at most 2 px, and the
+    # refined rows agree better (the pair is rectified: the true dy is 0).
+    assert report["refined"] and len(report["matched_xy"]) == len(report["matches"])
+    for (i, j), (xl, yl, xr, yr) in zip(report["matches"], report["matched_xy"]):
+        assert [xl, yl] == report["left"][i]["xy"]
+        assert math.dist([xr, yr], report["right"][j]["xy"]) <= 2.0 * 375 / 240 + 1e-6  # 2 px, largest factor
+    refined_rows = [abs(yl - yr) for _, yl, _, yr in report["matched_xy"]]
+    assert np.mean(np.array(refined_rows) <= 0.5) > np.mean(np.array(rows) <= 0.5)
+    code, out, _ = run_cli(capsys, "features", left, right, "--no-refine", "--json")
+    plain = json.loads(out)
+    assert not plain["refined"] and len(plain["matches"]) >= len(report["matches"])
     code, out, _ = run_cli(capsys, "features", left, right, "--no-segment", "--max-keypoints", "50", "--json")
     assert code == 0 and len(json.loads(out)["left"]) <= 50
 

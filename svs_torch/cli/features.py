@@ -67,6 +67,9 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                              "keypoints on small frames, about 4x slower detection")
     parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
                         help="ratio test of the matching (MATLAB MaxRatio; paper 0.6)")
+    parser.add_argument("--refine", action=argparse.BooleanOptionalAction,
+                        help="refine each matched point to sub-pixel (Lucas-Kanade on the patches) and drop "
+                             "matches whose patches disagree (preset default: on; paper: off)")
 
 
 def preset_config(args: argparse.Namespace):
@@ -84,6 +87,11 @@ def preset_config(args: argparse.Namespace):
     changes = {"surf": replace(base.surf, **surf_changes), "segmentation": config_from_args(args, base.segmentation)}
     if args.max_ratio is not None:
         changes["max_ratio"] = args.max_ratio
+    refine = getattr(args, "refine", None)
+    if refine is not None:
+        from ..matching import MatchRefinementConfig
+
+        changes["refine_matches"] = (base.refine_matches or MatchRefinementConfig()) if refine else None
     return replace(base, **changes)
 
 
@@ -130,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..features import extract_surf_features
     from ..figures import check_output_path, matches_figure, write_image_atomic
-    from ..matching import match_sad
+    from ..matching import gather_matched_points, match_sad, refine_matched_points
     from ..segmentation import segment_stereo
 
     if args.figure:
@@ -140,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     reason = too_small_reason(batch.size_hw)
     if reason:
         if args.json:
-            print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
+            print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [], "matched_xy": [],
                                 "segmented": not args.no_segment, "time_s": 0.0}))
         else:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
@@ -157,22 +165,29 @@ def run(args: argparse.Namespace) -> int:
                         mutual=config.mutual, laplacian_left=kp.laplacian_sign[:1] if gate else None,
                         laplacian_right=kp.laplacian_sign[1:] if gate else None, xy_left=kp.xy[:1],
                         xy_right=kp.xy[1:], epipolar_band_px=config.epipolar_band_px)
+    # The matched points as the pipeline uses them: the right point refined to sub-pixel (and matches whose
+    # patches disagree dropped) unless the preset turns refinement off.
+    points = gather_matched_points(kp.xy[:1], kp.xy[1:], matches)
+    points, matches = refine_matched_points(left_image, right_image, points, matches, kp.scale[:1],
+                                            config.refine_matches)
     elapsed = time.perf_counter() - started
     pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
+    matched_xy = [to_input_pixels(points.left[0, i], factors) + to_input_pixels(points.right[0, i], factors)
+                  for i, _ in pairs]
     if args.figure:
         write_image_atomic(args.figure, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs),
                            args.figure_option)
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
-        print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs,
-                            "segmented": not args.no_segment, "time_s": round(elapsed, 6)}))
+        print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
+                            "refined": config.refine_matches is not None, "segmented": not args.no_segment,
+                            "time_s": round(elapsed, 6)}))
         return 0
     print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "
           f"({'segmented obstacles' if not args.no_segment else 'whole images'}), {elapsed * 1e3:.0f} ms")
-    for i, j in pairs[:10]:
-        print(f"  left ({left[i]['xy'][0]:.1f}, {left[i]['xy'][1]:.1f}) s {left[i]['scale']:.2f} -> "
-              f"right ({right[j]['xy'][0]:.1f}, {right[j]['xy'][1]:.1f}), disparity "
-              f"{left[i]['xy'][0] - right[j]['xy'][0]:.1f} px")
+    for (i, _), (xl, yl, xr, yr) in zip(pairs[:10], matched_xy):
+        print(f"  left ({xl:.1f}, {yl:.1f}) s {left[i]['scale']:.2f} -> right ({xr:.2f}, {yr:.2f}), disparity "
+              f"{xl - xr:.2f} px")
     if len(pairs) > 10:
         print(f"  … {len(pairs) - 10} more (--json for all)")
     if args.figure:
