@@ -470,23 +470,47 @@ def _nearest_rank(ordered: torch.Tensor, count: torch.Tensor, q: float) -> torch
 
 def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, image_w: torch.Tensor,
                            config: DenseConfig = DenseConfig(), extra_margin_px: float = 0.0,
-                           min_count: int | None = None) -> DisparityRange:
+                           min_count: int | None = None, groups: torch.Tensor | None = None) -> DisparityRange:
     """Per-pair search range from sample disparities ``(B, P)`` (``valid`` ``(B, P)``: coarse dense pixels of
     the kept regions, or sparse inliers): their ``range_percentiles`` widened by
     ``max(range_margin_px, range_margin_fraction · span) + extra_margin_px`` on each side, clipped at 0 and to
     ``max_num_disparities`` around the centre. Pairs with fewer than ``min_count`` (default
     ``min_range_inliers``) samples search ``[0, fallback_max_disparity_fraction · width)``. D is the batch's
-    widest range: every pair searches D disparities from its own minimum."""
+    widest range: every pair searches D disparities from its own minimum.
+
+    ``groups`` ``(B, G, P)`` bool (optional): subsets of the samples, e.g. one per kept object. The percentiles
+    are then taken within each group that has at least ``min_count`` samples and the pair's range is their
+    union, so a small object at a different distance is not cut away as the outer percent of the pixels of a
+    big one (measured: a 97-pixel far object of Middlebury Baby2 at 320 px was ranged at 7.5 m instead of
+    11.5 m when the percentiles pooled both objects)."""
     check_shape(disparity_px, "disparity_px", ["B", "P"])
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
     values = disparity_px.detach().to(torch.float64)
-    count = valid.sum(dim=1)
-    ordered = torch.where(valid, values, torch.full_like(values, torch.inf)).sort(dim=1).values
-    low = _nearest_rank(ordered, count, config.range_percentiles[0] / 100)
-    high = _nearest_rank(ordered, count, config.range_percentiles[1] / 100)
+    enough_count = config.min_range_inliers if min_count is None else min_count
+    if groups is None:
+        count = valid.sum(dim=1)
+        ordered = torch.where(valid, values, torch.full_like(values, torch.inf)).sort(dim=1).values
+        low = _nearest_rank(ordered, count, config.range_percentiles[0] / 100)
+        high = _nearest_rank(ordered, count, config.range_percentiles[1] / 100)
+    else:
+        check_shape(groups, "groups", [disparity_px.shape[0], "G", disparity_px.shape[1]])
+        check_dtype(groups, "groups", "bool")
+        inside = groups & valid.unsqueeze(1)  # (B, G, P)
+        group_count = inside.sum(dim=2)
+        ordered = torch.where(inside, values.unsqueeze(1), torch.full_like(values.unsqueeze(1), torch.inf)
+                              ).sort(dim=2).values
+        group_low = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
+                                  config.range_percentiles[0] / 100).view_as(group_count)
+        group_high = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
+                                   config.range_percentiles[1] / 100).view_as(group_count)
+        used = group_count >= enough_count
+        low = torch.where(used, group_low, torch.full_like(group_low, torch.inf)).amin(dim=1)
+        high = torch.where(used, group_high, torch.full_like(group_high, -torch.inf)).amax(dim=1)
+        count = torch.where(used.any(dim=1), group_count.sum(dim=1), torch.zeros_like(group_count[:, 0]))
+        low, high = torch.where(used.any(dim=1), low, 0.0), torch.where(used.any(dim=1), high, 0.0)
     margin = torch.clamp_min((high - low) * config.range_margin_fraction, config.range_margin_px) + extra_margin_px
-    enough = count >= (config.min_range_inliers if min_count is None else min_count)
+    enough = count >= enough_count
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
     high = torch.where(enough, (high + margin).ceil(), fallback_high.floor())
@@ -500,24 +524,33 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
 
 
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
-                        config: DenseConfig = DenseConfig()) -> DisparityRange:
+                        config: DenseConfig = DenseConfig(), objects: torch.Tensor | None = None
+                        ) -> DisparityRange:
     """The search range of each pair from a coarse pass: the images reduced ``f`` times (``f ≈ W /
     coarse_width_px``, box average), matched over the whole fallback range ``[0, fraction · W / f)`` inside
     the reduced kept regions, and the range of what survives the rejections, scaled back by ``f`` with an
     ``f``-pixel allowance for the coarse grid. This needs no sparse inlier (a pair whose features failed still
-    gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search."""
+    gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search.
+    ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object; the range is then the union of the
+    objects' ranges (see ``groups`` of :func:`disparity_search_range`)."""
     b, _, h, w = left.shape
     factor = max(1, round(w / config.coarse_width_px))
     small_hw = torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1)
+    if objects is not None:
+        check_shape(objects, "objects", [b, "N", h, w])
+        check_dtype(objects, "objects", "bool")
     if factor > 1:
         left, right = F.avg_pool2d(left, factor), F.avg_pool2d(right, factor)
         mask = F.max_pool2d(mask.to(left.dtype), factor) > 0
+        if objects is not None:
+            objects = F.max_pool2d(objects.to(left.dtype), factor) > 0
     full = disparity_search_range(left.new_zeros(b, 0), mask.new_zeros(b, 0), small_hw[:, 1], config)
     coarse = dense_disparity_over_regions(left, right, mask, full, config, small_hw)
     samples = (coarse.disparity_px * factor).flatten(1)
     inside = (coarse.valid & mask).flatten(1)
+    groups = None if objects is None else objects.flatten(2)
     return disparity_search_range(samples, inside, image_hw[:, 1], config, extra_margin_px=factor,
-                                  min_count=config.min_range_pixels)
+                                  min_count=config.min_range_pixels, groups=groups)
 
 
 def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
@@ -593,24 +626,33 @@ def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> Den
 def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
                              config: DenseConfig = DenseConfig(), image_hw: torch.Tensor | None = None,
                              inlier_disparity_px: torch.Tensor | None = None,
-                             inlier_valid: torch.Tensor | None = None) -> DenseDisparity:
+                             inlier_valid: torch.Tensor | None = None,
+                             objects: torch.Tensor | None = None) -> DenseDisparity:
     """The dense stage of the pipeline: reduce to ``working_width_px``, find each pair's search range (a coarse
     pass, or the sparse inliers' disparities ``(B, K)`` with ``inlier_valid``), match over the kept regions
     ``mask`` ``(B, 1, H, W)``, and return the disparity on the input grid (in input pixels).
 
     ``min_disparity_px``, ``num_disparities`` and ``crop_xywh`` of the result are in input pixels too (the
-    working range times the factor). Not differentiable (see :func:`soft_block_match`).
+    working range times the factor). ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object,
+    so the coarse range covers every object (see :func:`coarse_search_range`). Not differentiable (see
+    :func:`soft_block_match`).
     """
     b = _check_pair(left, right)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
+    if objects is not None:
+        check_shape(objects, "objects", [b, "N", *left.shape[-2:]])
+        check_dtype(objects, "objects", "bool")
     height, width = left.shape[-2:]
     if image_hw is None:
         image_hw = torch.tensor([[height, width]], device=left.device).expand(b, 2)
     factor = max(1, round(width / config.working_width_px))
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
     if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:
-        search = coarse_search_range(small_left, small_right, small_mask, small_hw, config)
+        small_objects = None
+        if objects is not None:
+            small_objects = objects if factor == 1 else F.max_pool2d(objects.to(left.dtype), factor) > 0
+        search = coarse_search_range(small_left, small_right, small_mask, small_hw, config, small_objects)
     else:
         search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
     dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)

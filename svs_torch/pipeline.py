@@ -276,8 +276,10 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     verified = fundamental_ok.to(batch.left.dtype)
     fraction = (verified * config.depth.min_object_valid_fraction
                 + (1 - verified) * config.depth.min_object_valid_fraction_unverified)
+    # One mask per kept object, so the search range covers a small object as well as a big one.
+    objects = (labels == seg.left.kept_labels.view(batch.batch_size, -1, 1, 1)) & (labels > 0)
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
-                                     sparse.disparities.disparity_px, sparse.disparities.valid)
+                                     sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
                                   config.depth.object_percentiles, config.depth.min_object_pixels,
                                   config.dense.fill_invalid, fraction)

@@ -257,3 +257,26 @@ def test_argument_errors():
     with pytest.raises(InputError, match=r"mask: expected \(1, 1, 8, 8\)"):
         dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 9, dtype=torch.bool),
                                      DisparityRange(torch.tensor([0]), 4))
+
+
+def test_search_range_per_object_keeps_a_small_far_object():
+    """Pooled percentiles cut a small object's disparities as outliers of a big one; per-object groups do not."""
+    from svs_torch.dense import disparity_search_range
+
+    big = torch.full((1, 1000), 30.0) + torch.linspace(-2, 2, 1000)
+    small = torch.full((1, 8), 8.0)
+    samples = torch.cat([big, small], dim=1)
+    valid = torch.ones_like(samples, dtype=torch.bool)
+    groups = torch.zeros(1, 2, 1008, dtype=torch.bool)
+    groups[0, 0, :1000], groups[0, 1, 1000:] = True, True
+    config = DenseConfig(range_percentiles=(1.0, 99.0))
+    pooled = disparity_search_range(samples, valid, torch.tensor([320]), config, min_count=5)
+    grouped = disparity_search_range(samples, valid, torch.tensor([320]), config, min_count=5, groups=groups)
+    assert int(pooled.min_disparity_px[0]) > 8
+    low = int(grouped.min_disparity_px[0])
+    assert low <= 8 and low + int(grouped.pair_num_disparities[0]) - 1 >= 32
+    # A group below min_count is ignored (here: the small one), as is a pair whose groups are all too small.
+    too_small = disparity_search_range(samples, valid, torch.tensor([320]), config, min_count=10, groups=groups)
+    assert int(too_small.min_disparity_px[0]) > 8
+    with pytest.raises(InputError, match="groups"):
+        disparity_search_range(samples, valid, torch.tensor([320]), config, groups=groups[:, :, :5])
