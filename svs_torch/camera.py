@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .checks import InputError
+from .errors import InputError
 
 __all__ = ["SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size"]
 

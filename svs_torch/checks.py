@@ -11,6 +11,8 @@ from collections.abc import Sequence
 
 import torch
 
+from .errors import InputError
+
 __all__ = [
     "InputError",
     "check_shape",
@@ -19,10 +21,6 @@ __all__ = [
     "check_same_shape",
     "check_finite",
 ]
-
-
-class InputError(ValueError):
-    """A public function was given an argument of the wrong shape, dtype, range or format."""
 
 
 def _format_spec(spec: Sequence[str | int]) -> str:

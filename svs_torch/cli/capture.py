@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..camera import parse_size
-from ..checks import InputError
+from ..errors import InputError
 from .common import positive_float, positive_int
 
 if TYPE_CHECKING:
