@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 
-from . import capture, demo, estimate, features, fundamental, guide, segment
+from . import bench, capture, demo, estimate, features, fundamental, guide, segment
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, estimate, segment, features, fundamental, capture, guide):
+    for module in (demo, estimate, segment, features, fundamental, capture, guide, bench):
         module.add_parser(subparsers)
     return parser
 

@@ -1,0 +1,55 @@
+"""The benchmark's pieces: the OpenCV rival loop does the stated work, the whole-process runner reports every
+rival on the same pairs, and the tables render. Speed itself is never asserted."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from svs_torch.benchmark import _work_summary, format_tables, whole_process, write_inputs
+
+
+def test_rival_loop_and_whole_process_on_the_same_pairs(tmp_path):
+    sets = write_inputs(tmp_path, 3, None, seed=2)
+    assert list(sets) == ["synthetic 320x240"] and len(sets["synthetic 320x240"]) == 3
+    listing = tmp_path / "list.txt"
+    listing.write_text("".join(f"{l} {r}\n" for l, r in sets["synthetic 320x240"]) + "missing.png also.png\n")
+    out = subprocess.run([sys.executable, "-m", "svs_torch.bench_rivals", "sift", str(listing)], capture_output=True,
+                         text=True, check=True).stdout.splitlines()
+    rows = [json.loads(line) for line in out]
+    assert [r["status"] for r in rows] == ["OK", "OK", "OK", "BAD_INPUT"]
+    # Synthetic obstacles lie 1-2 m away: StereoBM medians over the kept regions must land there.
+    assert all(0.7 < r["r_min_m"] <= r["r_max_m"] < 3.0 for r in rows[:3])
+    assert all(r["inliers"] <= r["matches"] and min(r["keypoints"]) > 0 for r in rows[:3])
+    report_rows = whole_process({"synthetic 320x240": sets["synthetic 320x240"][:2]}, tmp_path, 1, 1)
+    assert [r["rival"] for r in report_rows] == ["svs-depth estimate --pairs", "OpenCV SIFT loop", "OpenCV ORB loop"]
+    assert all(r["work_pairs"] == 2 and r["pairs_per_s"] > 0 for r in report_rows)
+    svs = report_rows[0]
+    assert svs["svs_speedup"] == 1.0 and svs["work_ok"] == 2 and 0.7 < svs["work_median_r_min_m"] < 3.0
+
+
+def test_work_summary_and_tables():
+    rows = [{"status": "OK", "num_keypoints": [10, 20], "num_matches": 8, "num_inliers": 6, "r_min_m": 1.5},
+            {"status": "NO_OBJECTS", "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "r_min_m": None}]
+    summary = _work_summary(rows)
+    assert summary == {"pairs": 2, "ok": 1, "keypoints": 7.5, "matches": 4.0, "inliers": 3.0, "median_r_min_m": 1.5}
+    report = {"whole_process": [{"inputs": "x", "rival": "y", "pairs_per_s": 1.0, "svs_speedup": 1.0,
+                                 **{f"work_{k}": v for k, v in summary.items()}}],
+              "in_process": {"stages_ms_per_pair_B32": {"features": 1.0}, "scaling": [{"B": 1, "ms_per_pair": 2.0}],
+                             "latency_ms_B1": 2.0, "kornia_ms_per_pair": 3.0},
+              "memory": [{"B": 1, "per_pair_mb": 4.0}], "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}}
+    text = format_tables(report)
+    assert "| x | y | 1.0 | 1.0 | 7.5 | 4.0 | 3.0 | 1.5 |" in text and "| 1 | 2.0 | 4.0 |" in text
+
+
+def test_bench_help_and_bad_data(capsys):
+    from svs_torch.cli import main
+
+    try:
+        main(["bench", "--help"])
+    except SystemExit as exit_:
+        assert exit_.code == 0
+    assert "OpenCV" in capsys.readouterr().out
+    assert main(["bench", "--data", "/no/such/folder"]) == 2
+    assert "--data: expected a folder" in capsys.readouterr().err
