@@ -138,17 +138,33 @@ def whole_process(sets: dict[str, list], workdir: Path, repeats: int, threads: i
 
 
 def _child_peak_memory(batch_size: int) -> dict:
-    """Peak resident memory of a child process running the default pipeline on B synthetic pairs."""
-    code = (
-        "import resource, torch, json\n"
-        "from svs_torch.data.synthetic import random_obstacle_scenes\n"
-        "from svs_torch.pipeline import estimate_obstacle_depth\n"
-        f"scenes = random_obstacle_scenes({batch_size}, 2, generator=torch.Generator().manual_seed(0))\n"
-        "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
-        "estimate_obstacle_depth(scenes.batch)\n"
-        "peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
-        "print(json.dumps({'base_mb': base / 1024, 'peak_mb': peak / 1024}))\n")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    """Peak resident memory of a child process running the default pipeline on B synthetic pairs, above the
+    child's peak once torch is imported and the input batch is loaded (written by this process, so rendering the
+    scenes does not set the peak)."""
+    import torch
+
+    from .data.synthetic import random_obstacle_scenes
+
+    scenes = random_obstacle_scenes(batch_size, 2, generator=torch.Generator().manual_seed(0))
+    with tempfile.TemporaryDirectory(prefix="svs_bench_mem_") as tmp:
+        path = Path(tmp) / "batch.pt"
+        torch.save({"left": scenes.batch.left, "right": scenes.batch.right}, path)
+        # VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve, so a child would start at its parent's
+        # peak; VmHWM belongs to the child's own address space.
+        code = (
+            "import torch, json\n"
+            "def peak_mb():\n"
+            "    for line in open('/proc/self/status'):\n"
+            "        if line.startswith('VmHWM:'):\n"
+            "            return int(line.split()[1]) / 1024\n"
+            "from svs_torch.pipeline import estimate_obstacle_depth\n"
+            "from svs_torch.types import StereoBatch\n"
+            f"images = torch.load({str(path)!r})\n"
+            "batch = StereoBatch.from_images(images['left'], images['right'], 276.26, 0.1075)\n"
+            "base = peak_mb()\n"
+            "estimate_obstacle_depth(batch)\n"
+            "print(json.dumps({'base_mb': base, 'peak_mb': peak_mb()}))\n")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     values = json.loads(done.stdout.strip().splitlines()[-1])
     return {"B": batch_size, "peak_mb": round(values["peak_mb"], 1),
             "per_pair_mb": round((values["peak_mb"] - values["base_mb"]) / batch_size, 2)}
