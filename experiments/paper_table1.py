@@ -42,7 +42,10 @@ import torch
 
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.depth import estimate_depth
-from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEstimate, accuracy_pct,  # noqa: F401
+                                  estimates_from_result, score_pair, truth_list, with_nominal_calibration)
+from svs_torch.evaluation import object_truth as object_truth_batched
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -63,8 +66,9 @@ OPENCV_BM = "OpenCV StereoBM median"
 OPENCV_SGBM = "OpenCV StereoSGBM median"
 METHODS = [*CONFIGS, OPENCV_SIFT, OPENCV_BM, OPENCV_SGBM]
 
-#: Nominal calibration of the 2005/2006 third-size scenes without one (MANIFEST §1): f = 3740 / 3 px, B = 160 mm.
-NOMINAL_FOCAL_PX, NOMINAL_BASELINE_M = 3740 / 3, 0.160
+# The nominal calibration of the scenes without one (NOMINAL_FOCAL_PX = 3740 / 3 px, NOMINAL_BASELINE_M = 0.160 m,
+# doffs 0; MANIFEST §1), the truth and the Eq. (9) scoring live in svs_torch.evaluation, so that this table and
+# ``svs-depth eval`` / ``sweep`` score alike.
 
 
 def split_scenes(data_dir: Path) -> dict[str, list[Path]]:
@@ -76,12 +80,7 @@ def split_scenes(data_dir: Path) -> dict[str, list[Path]]:
 
 def load_scene(path: Path):
     """The pair with metric (or, without a shipped calibration, nominal) depth truth."""
-    batch = load_stereo_pair(path)
-    if not bool(batch.calibrated[0]):
-        batch = dataclasses.replace(batch, focal_px=torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX * batch.size_hw[
-            1] / batch.size_hw[1]), baseline_m=torch.full_like(batch.baseline_m, NOMINAL_BASELINE_M),
-            doffs_px=torch.zeros_like(batch.doffs_px), calibrated=torch.ones_like(batch.calibrated))
-    return batch
+    return with_nominal_calibration(load_stereo_pair(path))
 
 
 def resample(batch, size: str):
@@ -93,31 +92,20 @@ def resample(batch, size: str):
 
 
 def object_truth(batch, seg) -> list[tuple[int, float]]:
-    """(slot, median GT depth over the region) of each kept left region with known depth."""
-    depth, valid = batch.ground_truth_depth_m()
-    truth = []
-    for slot, label in enumerate(seg.left.kept_labels[0].tolist()):
-        known = (seg.left.labels[0, 0] == label) & valid[0, 0] if label > 0 else None
-        if known is not None and bool(known.any()):
-            truth.append((slot, float(depth[0, 0][known].median())))
-    return truth
+    """(slot, median GT depth over the region) of each kept left region with known depth
+    (:func:`svs_torch.evaluation.object_truth`)."""
+    return truth_list(object_truth_batched(batch, seg.left), 0)
 
 
-def accuracy(real: float, estimated: float | None) -> float:
-    """Eq. (9): (1 − |real − estimated| / real) · 100; a missing estimate (or a worse than 0 %) counts 0."""
-    return 0.0 if estimated is None else max(0.0, (1 - abs(real - estimated) / real) * 100)
+#: Eq. (9), floored at 0, a missing estimate 0 % (:func:`svs_torch.evaluation.accuracy_pct`).
+accuracy = accuracy_pct
 
 
 def svs_estimate(batch, config: PipelineConfig) -> dict:
     result = estimate_obstacle_depth(batch, config)
-    rng, objects = result.depth.range, result.depth.objects
-    ok = int(result.status[0]) == PipelineStatus.OK
-    return {"status": PipelineStatus(int(result.status[0])).name,
-            "r_min_m": float(rng.r_min_m[0]) if ok and bool(rng.valid[0]) else None,
-            "r_max_m": float(rng.r_max_m[0]) if ok and bool(rng.valid[0]) else None,
-            "objects_m": [float(objects.depth_median_m[0, s]) if ok and bool(objects.valid[0, s]) else None
-                          for s in range(objects.valid.shape[1])],
-            "inliers": int(result.num_inliers[0])}
+    estimate = estimates_from_result(result)[0]
+    return {"status": estimate.status, "r_min_m": estimate.r_min_m, "r_max_m": estimate.r_max_m,
+            "objects_m": estimate.objects_m, "inliers": int(result.num_inliers[0])}
 
 
 def _gray_u8(image: torch.Tensor) -> np.ndarray:
@@ -210,13 +198,12 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
             if not truth:
                 continue
             estimate, elapsed = run_method(name, batch, seg)
-            real = [d for _, d in truth]
-            per_object = [accuracy(d, estimate["objects_m"][slot]) for slot, d in truth]
+            score = score_pair(truth, PairEstimate(estimate["status"], estimate["r_min_m"], estimate["r_max_m"],
+                                                   estimate["objects_m"]))
             rows.append({"split": split, "scene": batch.names[0], "size": size, "method": name,
-                         "real_r_min_m": min(real), "real_r_max_m": max(real), "time_s": elapsed, **estimate,
-                         "acc_r_min": accuracy(min(real), estimate["r_min_m"]),
-                         "acc_r_max": accuracy(max(real), estimate["r_max_m"]),
-                         "acc_objects": statistics.mean(per_object), "num_objects": len(truth)})
+                         "real_r_min_m": score.real_r_min_m, "real_r_max_m": score.real_r_max_m, "time_s": elapsed,
+                         **estimate, "acc_r_min": score.acc_r_min_pct, "acc_r_max": score.acc_r_max_pct,
+                         "acc_objects": score.acc_objects_pct, "num_objects": score.num_objects})
     if progress:
         print(file=sys.stderr)
     return rows

@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 
-from . import bench, capture, demo, estimate, features, fundamental, guide, segment
+from . import bench, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -33,6 +33,8 @@ examples:
   svs-depth fundamental L.png R.png --json                           F by batched 7-point RANSAC
   svs-depth capture --emulator --count 5 --out pairs/    grab pairs from a built-in SVS emulator
   svs-depth guide --emulator              live warnings when an obstacle is 1-2 m ahead
+  svs-depth eval ../shared/data/middlebury_eval3_Q --size 320x240    accuracy against ground truth
+  svs-depth sweep sweep.toml --db sweep.sqlite      a resumable parameter sweep; then: svs-depth results
 
 Real data: any left/right image files work (gray or color; 8 or 16 bit). Without calibration the SVS
 model is assumed: 3.6 mm lens, 4.17 mm sensor, 10.75 cm baseline (focal 276 px at 320x240).
@@ -70,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, estimate, segment, features, fundamental, capture, guide, bench):
+    for module in (demo, estimate, segment, features, fundamental, capture, guide, bench, evaluate, sweep,
+                   results):
         module.add_parser(subparsers)
     return parser
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 from .common import (add_figure_option, dumps_strict, finite_float, non_negative_int, positive_float, positive_int,
                      too_small_reason)
@@ -37,6 +36,9 @@ examples:
   svs-depth estimate left.png right.png --size 320x240 --figure out.png --masks-out labels.png
   svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
+  svs-depth estimate --pairs captured/index.jsonl --size 320x240
+list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGHT FOCAL_PX BASELINE_M
+[DOFFS_PX]' (that pair's own), or a scene folder (MiddEval3, Middlebury, KITTI: its own calibration).
 
 status: "OK" when the obstacles were ranged; otherwise the stage that stopped (NO_OBJECTS, TOO_FEW_KEYPOINTS,
 TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
@@ -52,7 +54,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("left", nargs="?", help="left image file")
     parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
-    parser.add_argument("--pairs", metavar="LIST.txt", help="run many pairs: a file with one 'LEFT RIGHT' per line")
+    parser.add_argument("--pairs", metavar="LIST.txt",
+                        help="run many pairs: a file with one 'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M "
+                             "[DOFFS_PX]' or scene folder per line, or capture's index.jsonl")
     parser.add_argument("--batch-size", type=positive_int, default=16,
                         help="pairs per batch with --pairs (default: 16)")
     parser.add_argument("--focal-px", type=positive_float,
@@ -91,42 +95,13 @@ def pipeline_config_from_args(args: argparse.Namespace):
     return config
 
 
-def _read_pair_list(path: str) -> list[tuple[str, str | None, str | None]]:
-    """The pairs of a list file, one ``LEFT RIGHT`` per line (``#`` comments, shell quoting for paths with
-    spaces; relative paths are relative to the list). Each entry is ``(left, right, None)`` or, for a line that
-    is not a pair, ``(line, None, reason)``: it still gets its own output line."""
-    import shlex
+def _read_pair_list(path: str):
+    """The entries of a pair list (:func:`svs_torch.data.read_pair_list`): lines ``LEFT RIGHT``, ``LEFT RIGHT
+    FOCAL_PX BASELINE_M [DOFFS_PX]`` or a scene folder, or capture's ``index.jsonl``. An entry that is not a pair
+    keeps its ``problem``: it still gets its own output line."""
+    from ..data import read_pair_list
 
-    from ..checks import InputError
-
-    list_path = Path(path)
-    if not list_path.is_file():
-        raise InputError(f"pairs: expected a list file, got {'a folder' if list_path.exists() else 'no file'}: {path}")
-    try:
-        text = list_path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"pairs: expected a UTF-8 text file with one 'LEFT RIGHT' per line: {path}") from None
-    except OSError as error:
-        raise InputError(f"pairs: cannot read {path}: {error.strerror or error}") from None
-    pairs: list[tuple[str, str | None, str | None]] = []
-    for number, line in enumerate(text.splitlines(), start=1):
-        try:
-            parts = shlex.split(line, comments=True)
-        except ValueError as error:
-            parts, problem = None, str(error)
-        if parts == []:
-            continue
-        if parts is None or len(parts) != 2 or "\0" in line:
-            problem = "unbalanced quotes" if parts is None else f"{len(parts)} fields"
-            pairs.append((line.strip(), None, f"pairs: line {number} of {path}: expected 'LEFT RIGHT', got "
-                                              f"{problem}: {line.strip()[:80]!r}"))
-            continue
-        base = list_path.parent
-        left, right = (str(p if Path(p).is_absolute() else base / p) for p in parts)
-        pairs.append((left, right, None))
-    if not pairs:
-        raise InputError(f"pairs: no pair listed in {path}")
-    return pairs
+    return read_pair_list(path, "pairs")
 
 
 def unranged_report(status: str, reason: str, range_rule: str) -> dict:
@@ -249,15 +224,28 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_entry(entry, args) -> tuple[str | None, str | None, object]:
-    """(status, reason, loaded pair) of one list entry: a pair to run has status None."""
+def _load_source(source, args: argparse.Namespace):
+    """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does."""
+    from ..camera import parse_size
+    from ..data import load_pair_source, resize_stereo_batch
+
+    batch = load_pair_source(source)
+    if not args.size:
+        return batch, (1.0, 1.0)
+    (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "size")
+    return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
+
+
+def _load_entry(source, args) -> tuple[str | None, str | None, object]:
+    """(status, reason, loaded pair) of one list entry: a pair to run has status None. Scenes and pairs listed
+    with a calibration keep their own; the others take the command's (or the SVS model)."""
     from ..checks import InputError
 
-    left, right, problem = entry
-    if problem:
-        return "BAD_INPUT", problem, None
+    if source.problem:
+        return "BAD_INPUT", source.problem, None
     try:
-        loaded = load_pair(left, right, args)
+        own = source.scene or source.focal_px is not None
+        loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)
     except (InputError, OSError) as error:
         return "BAD_INPUT", " ".join(str(error).split()), None
     reason = too_small_reason(loaded[0].size_hw)
@@ -283,7 +271,8 @@ def _run_many(args: argparse.Namespace, config) -> int:
             result = estimate_obstacle_depth(batch, config)
             per_pair = (time.perf_counter() - started) / len(runnable)
         row = 0
-        for (left, right, _), (status, reason, loaded) in zip(chunk, entries):
+        for source, (status, reason, loaded) in zip(chunk, entries):
+            left, right = source.left, source.right
             if loaded is None:
                 report = unranged_report(status, reason, config.depth.rule)
                 if status == "BAD_INPUT":

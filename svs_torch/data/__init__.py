@@ -3,6 +3,7 @@
 from .synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
 from .datasets import (
+    detect_stereo_layout,
     list_shared_pairs,
     load_image_pair,
     load_kitti,
@@ -14,9 +15,11 @@ from .datasets import (
     load_stereo_pair,
 )
 from .resample import collate_stereo_batches, resize_stereo_batch
+from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_sources
 
 __all__ = [
-    "SyntheticScenes", "collate_stereo_batches", "list_shared_pairs", "load_image_pair", "load_kitti",
+    "PairSource", "SyntheticScenes", "collate_stereo_batches", "detect_stereo_layout", "load_pair_source",
+    "read_pair_list", "read_pair_sources", "list_shared_pairs", "load_image_pair", "load_kitti",
     "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006", "load_middlebury_eval3",
     "load_opencv_aloe", "load_stereo_pair", "random_obstacle_scenes", "read_gray_image", "read_middlebury_calib",
     "read_pfm", "read_scaled_disparity", "render_obstacle_scenes", "resize_stereo_batch",

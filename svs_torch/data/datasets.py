@@ -33,6 +33,7 @@ __all__ = [
     "load_image_pair",
     "load_stereo_pair",
     "list_shared_pairs",
+    "detect_stereo_layout",
 ]
 
 # Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
@@ -229,20 +230,43 @@ def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> St
     if path.is_file() and path.parent.name in ("colored_0", "image_2"):
         return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
     path = _check_dir(path, "path")
-    names = {entry.name for entry in path.iterdir()}
-    if {"calib.txt", "im0.png"} <= names:
-        return load_middlebury_eval3(path, dtype)
-    if {"view1.png", "disp1.png"} <= names:
-        return load_middlebury_2005_2006(path, dtype)
-    if {"imL.png", "disp2.png"} <= names:
-        return load_middlebury_2003(path, dtype)
-    if "truedisp.pgm" in names or "disp2.pgm" in names:
-        return load_middlebury_2001(path, dtype)
-    if "aloeL.jpg" in names:
-        return load_opencv_aloe(path, dtype)
-    if "colored_0" in names or "image_2" in names:
+    layout = detect_stereo_layout(path)
+    if layout is None:
+        raise InputError(f"path: no known stereo layout (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in "
+                         f"{path}")
+    if layout == "kitti":
         return load_kitti(path, dtype=dtype)
-    raise InputError(f"path: no known stereo layout (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in {path}")
+    return _LOADERS[layout](path, dtype)
+
+
+def detect_stereo_layout(path: str | Path) -> str | None:
+    """The data-set layout of a scene folder, from its file names alone (nothing is read): ``"eval3"``,
+    ``"2005_2006"``, ``"2003"``, ``"2001"``, ``"aloe"``, ``"kitti"``, or None for a folder (or file) that
+    :func:`load_stereo_pair` cannot load as one pair."""
+    path = Path(path)
+    if not path.is_dir():
+        return None
+    try:
+        names = {entry.name for entry in path.iterdir()}
+    except OSError:
+        return None
+    for layout, marker in _LAYOUT_MARKERS:
+        if any(set(files) <= names for files in marker):
+            return layout
+    return None
+
+
+# Each layout's file names (any one set present marks it), in the order they are tried.
+_LAYOUT_MARKERS = (
+    ("eval3", [("calib.txt", "im0.png")]),
+    ("2005_2006", [("view1.png", "disp1.png")]),
+    ("2003", [("imL.png", "disp2.png")]),
+    ("2001", [("truedisp.pgm",), ("disp2.pgm",)]),
+    ("aloe", [("aloeL.jpg",)]),
+    ("kitti", [("colored_0",), ("image_2",)]),
+)
+_LOADERS = {"eval3": load_middlebury_eval3, "2005_2006": load_middlebury_2005_2006, "2003": load_middlebury_2003,
+            "2001": load_middlebury_2001, "aloe": load_opencv_aloe}
 
 
 def list_shared_pairs(data_dir: str | Path) -> list[Path]:

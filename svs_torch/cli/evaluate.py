@@ -1,0 +1,153 @@
+"""``svs-depth eval``: run the pipeline over many pairs and score it against their ground truth."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from .common import dumps_strict, finite_float, positive_float, positive_int
+
+HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
+
+DESCRIPTION = """\
+Run the pipeline over every pair of PATH... in batches and score it against each pair's ground truth:
+Eq. (9) accuracy of R_min, R_max and each object (an object's true distance is the median GT depth over its
+kept region; true R_min / R_max are the nearest / farthest object), the dense disparity error over the kept
+regions and the RANSAC inliers' disparity error (median, within 1 px, within 3 px), inlier precision, counts,
+status and time. A failed pair counts 0 % and is listed; nothing is hidden.
+
+PATH is a scene folder of any shared format (MiddEval3, Middlebury 2001-2006, KITTI, OpenCV aloe), a folder of
+scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M
+[DOFFS_PX]' or a scene folder per line) or svs-depth capture's index.jsonl. Every pair keeps its own
+calibration; a scene without a measured one is scored with a nominal one for truth and estimate alike (its
+accuracy is exact, its metres nominal).
+
+Configuration: --preset default|paper, or --config FILE.toml, then any --set KEY=VALUE with a dotted field of
+the pipeline configuration: segmentation.kernel_size, segmentation.num_keep, surf.metric_threshold,
+surf.max_keypoints, max_ratio, mutual, refine_matches (true/false), ransac_threshold_px, rectify,
+depth.rule (dense/paper), dense.window_size, dense.uniqueness_ratio, seed, ... (the same keys as sweep files).
+"""
+
+EPILOG = """\
+examples:
+  svs-depth eval ../shared/data/middlebury_eval3_Q --size 320x240
+  svs-depth eval ../shared/data/middlebury_eval3_Q --preset paper --json | tail -1
+  svs-depth eval scenes.txt --set segmentation.kernel_size=7 --set max_ratio=0.7 --db results.sqlite
+
+--json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
+acc_r_min_pct, acc_r_max_pct, acc_objects_pct, pairs_per_s (loading included), the mean disparity errors and
+the failures. --db adds the rows to a results store (as svs-depth sweep does; a pair already stored for the
+same configuration keeps its row), for svs-depth results.
+exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("eval", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", nargs="+", metavar="PATH", help="scene folder, folder of scenes, list, index.jsonl")
+    parser.add_argument("--size", metavar="WxH", help="resample every pair to this size first (e.g. 320x240)")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--preset", choices=("default", "paper"), default="default",
+                       help="'default': the best measured settings; 'paper': the paper's MATLAB defaults")
+    group.add_argument("--config", metavar="FILE.toml", help="a configuration file: preset = ... and dotted keys")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                        help="override one setting, e.g. segmentation.kernel_size=7 (repeatable)")
+    parser.add_argument("--batch-size", type=positive_int, default=16, help="pairs per batch (default: 16)")
+    parser.add_argument("--focal-px", type=positive_float,
+                        help="focal length of listed file pairs without one, pixels (default: the SVS model)")
+    parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
+    parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
+    parser.add_argument("--db", metavar="FILE.sqlite", help="also store every row in this results file")
+    parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
+    parser.set_defaults(func=run)
+
+
+def _number(value, digits: int = 1, scale: float = 1.0) -> str:
+    return "-" if value is None else f"{value * scale:.{digits}f}"
+
+
+def format_row(e) -> str:
+    return (f"{e.name[:28]:<28} {e.status:<17} {_number(e.r_min_m, 3):>7} {_number(e.real_r_min_m, 3):>7} "
+            f"{_number(e.acc_r_min_pct):>6} {_number(e.r_max_m, 3):>7} {_number(e.real_r_max_m, 3):>7} "
+            f"{_number(e.acc_r_max_pct):>6} {_number(e.acc_objects_pct):>6} {_number(e.dense_within_1px, 2):>6} "
+            f"{_number(e.inlier_precision, 2):>6} {e.time_s:6.3f}")
+
+
+HEADER = (f"{'pair':<28} {'status':<17} {'R_min':>7} {'real':>7} {'Acc %':>6} {'R_max':>7} {'real':>7} "
+          f"{'Acc %':>6} {'obj %':>6} {'d<=1':>6} {'prec':>6} {'time s':>6}")
+
+
+def format_summary(summary: dict) -> list[str]:
+    lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
+             f"truth; {_number(summary['pairs_per_s'], 2)} pairs/s",
+             f"mean Acc (Eq. 9): R_min {_number(summary['acc_r_min_pct'])} %, R_max "
+             f"{_number(summary['acc_r_max_pct'])} %, objects {_number(summary['acc_objects_pct'])} %",
+             f"dense disparity: median error {_number(summary['dense_error_median_px'], 2)} px, within 1 px "
+             f"{_number(summary['dense_within_1px'], 3)}, within 3 px {_number(summary['dense_within_3px'], 3)}; "
+             f"inliers: median error {_number(summary['sparse_error_median_px'], 2)} px, precision "
+             f"{_number(summary['inlier_precision'], 3)}",
+             "statuses: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items())]
+    for failure in summary["failures"]:
+        lines.append(f"  failed: {failure['name']}: {failure['status']}"
+                     + (f": {failure['reason']}" if failure["reason"] else ""))
+    return lines
+
+
+def _progress(total: int):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="pair", file=sys.stderr, desc="eval", dynamic_ncols=True, mininterval=0.5)
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from ..camera import parse_size
+    from ..data import read_pair_sources
+    from ..evaluation import EvalSetup, evaluate_pairs, summarize
+    from ..evaluation.overrides import resolve_config
+    from ..evaluation.sweep import make_sweep_config
+
+    size_wh = parse_size(args.size, "--size") if args.size else None
+    config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
+    sources = read_pair_sources(args.paths, "path")
+    store = run_id = None
+    if args.db:
+        from ..evaluation.store import ResultStore
+        from ..evaluation.sweep import code_version, environment
+
+        sweep_config = make_sweep_config(preset, overrides, size_wh)
+        store = ResultStore(args.db)
+        store.add_configs([sweep_config.record()])
+        store.add_pairs(sources)
+        run_id = store.start_run("eval", code_version(), environment("in-process", 0, None),
+                                 " ".join(sys.argv[1:]))
+    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px)
+    evaluations = []
+    if not args.json:
+        print(HEADER)
+    started = time.perf_counter()
+    try:
+        with _progress(len(sources)) as bar:
+            block = []
+            for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update):
+                evaluations.append(evaluation)
+                block.append((source.pair_id, evaluation))
+                if len(block) == args.batch_size or len(evaluations) == len(sources):
+                    if store is not None:
+                        store.write_task(sweep_config.config_id, run_id, block)
+                    block = []
+                line = (dumps_strict({"left": source.left, "right": source.right, **asdict(evaluation)})
+                        if args.json else format_row(evaluation))
+                bar.write(line, file=sys.stdout)
+    finally:
+        if store is not None:
+            store.close()
+    summary = summarize(evaluations, time.perf_counter() - started)
+    if args.json:
+        print(dumps_strict(summary), flush=True)
+    else:
+        print("\n".join(format_summary(summary)), flush=True)
+    return 0

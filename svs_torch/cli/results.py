@@ -1,0 +1,101 @@
+"""``svs-depth results``: summaries, CSV and plots of a results file written by ``sweep`` or ``eval --db``."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+
+from .common import dumps_strict, non_negative_int
+
+HELP = "summarise, export (CSV) or plot a sweep's results file"
+
+DESCRIPTION = """\
+Read a results file of svs-depth sweep (or eval --db).
+
+--summary (the default): each configuration's mean Eq. (9) accuracy of R_min, R_max and the objects (a failed
+pair counts 0 %), dense and inlier disparity quality, failures and time, best first; then the best
+configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right, status,
+r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size, the
+swept parameters (param:KEY) and every other column. --plot: mean accuracy against each swept parameter and
+per-scene bars of the best configuration.
+"""
+
+EPILOG = """\
+examples:
+  svs-depth results sweep.sqlite
+  svs-depth results sweep.sqlite --csv > rows.csv
+  svs-depth results sweep.sqlite --plot sweep.png --top 5
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("results", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("db", metavar="FILE.sqlite", help="results file of svs-depth sweep or eval --db")
+    parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
+    parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv",
+                        help="one row per (configuration, pair), to FILE.csv or standard output")
+    parser.add_argument("--plot", metavar="FIG.png", help="figure: metrics against each swept parameter, scenes")
+    parser.add_argument("--top", type=non_negative_int, default=10,
+                        help="configurations listed in the summary, best first (0: all; default: 10)")
+    parser.add_argument("--sort", default="acc_objects_pct",
+                        choices=("acc_r_min_pct", "acc_r_max_pct", "acc_objects_pct", "dense_within_1px",
+                                 "inlier_precision"), help="metric the summary ranks by (default: acc_objects_pct)")
+    parser.add_argument("--json", action="store_true", help="the summary as one JSON object")
+    parser.set_defaults(func=run)
+
+
+def _number(value, digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> None:
+    ranked = sorted(summaries, key=lambda s: -(s[args.sort] if s[args.sort] is not None else -1e9))
+    shown = ranked[:args.top] if args.top else ranked
+    print(f"{len(summaries)} configurations; ranked by {args.sort}"
+          + (f", the best {len(shown)}" if len(shown) < len(ranked) else ""))
+    print(f"{'config':<16} {'pairs':>5} {'fail':>4} {'R_min %':>7} {'R_max %':>7} {'obj %':>6} {'d<=1':>5} "
+          f"{'prec':>5} {'s/pair':>6}  label")
+    for s in shown:
+        print(f"{s['config_id']:<16} {s['pairs']:>5} {s['failed']:>4} {_number(s['acc_r_min_pct']):>7} "
+              f"{_number(s['acc_r_max_pct']):>7} {_number(s['acc_objects_pct']):>6} "
+              f"{_number(s['dense_within_1px'], 2):>5} {_number(s['inlier_precision'], 2):>5} "
+              f"{_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} ({s['preset']}, {s['size']})")
+    print("best by each metric:")
+    for key, label, s in best:
+        digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1
+        print(f"  {label:<18} {_number(s[key], digits):>7}  {s['config_id']}  {s['label']}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
+    from ..evaluation.store import ResultStore
+
+    if args.plot and not args.plot.lower().endswith((".png", ".pdf", ".svg")):
+        from ..checks import InputError
+
+        raise InputError(f"--plot: expected a .png, .pdf or .svg file, got {args.plot!r}")
+    with ResultStore(args.db, create=False) as store:
+        if args.csv:
+            header, rows = csv_table(store)
+            stream = sys.stdout if args.csv == "-" else open(args.csv, "w", newline="", encoding="utf-8")
+            try:
+                writer = csv.writer(stream)
+                writer.writerow(header)
+                writer.writerows(rows)
+            finally:
+                if stream is not sys.stdout:
+                    stream.close()
+        if args.plot:
+            plot_results(store, args.plot)
+            print(f"figure written to {args.plot}", file=sys.stderr)
+        if args.summary or args.json or not (args.csv or args.plot):
+            summaries = config_summaries(store)
+            best = best_by_metric(summaries)
+            if args.json:
+                print(dumps_strict({"configs": summaries,
+                                    "best": {key: s["config_id"] for key, _, s in best}}))
+            elif args.csv != "-":
+                _print_summary(summaries, best, args)
+    return 0

@@ -1,0 +1,97 @@
+"""``svs-depth sweep``: run a grid (or a list) of configurations over many pairs into a resumable SQLite file."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .common import dumps_strict, non_negative_int, positive_int
+
+HELP = "run a parameter sweep over many pairs into a resumable SQLite results file"
+
+DESCRIPTION = """\
+Evaluate every configuration of a sweep file on every pair it lists (the metrics of svs-depth eval) and store
+one row per (configuration, pair) in a SQLite file. The work is split into tasks of one configuration and a
+block of pairs, run by a local process pool (each worker's torch threads pinned to cores / workers) or, with
+--scheduler, a Dask cluster. Each task's rows are committed at once: kill the sweep at any moment (Ctrl-C, or
+even kill -9) and run the same command again, and it runs only what is missing.
+
+sweep file (TOML; paths relative to the file):
+  paths = ["../shared/data/middlebury_eval3_Q"]   scene folders, folders of scenes, pair lists, index.jsonl
+  size = "320x240"                                 or "native" (default)
+  preset = "default"                               or "paper"
+  batch_size = 8                                   pairs per task
+  [set]                                            fixed settings for every configuration
+  "dense.window_size" = 9
+  [grid]                                           every combination of these values
+  "segmentation.kernel_size" = [3, 5, 7]
+  "max_ratio" = [0.6, 0.8]
+  [[configs]]                                      optional: a list of configurations (x the grid)
+  preset = "paper"
+Keys are the dotted fields of the pipeline configuration, as in svs-depth eval --set. A bad file (unknown key
+or parameter, wrong value, missing path) fails before any work with one line.
+"""
+
+EPILOG = """\
+examples:
+  svs-depth sweep experiments/sweep_defaults.toml --db sweep.sqlite
+  svs-depth sweep sweep.toml --db sweep.sqlite --workers 2
+  svs-depth sweep sweep.toml --db sweep.sqlite --scheduler tcp://10.0.0.5:8786   (pip install -e ".[dask]")
+  svs-depth results sweep.sqlite --summary --plot sweep.png
+
+Dask workers: start them with one thread each and without the nanny's MALLOC_TRIM_THRESHOLD_ (about 1.5x
+slower torch), e.g.  DASK_CONFIG=experiments/dask_workers.yaml dask worker tcp://HOST:8786 --nthreads 1
+exit status: 0 done (failed pairs are rows with their status); 2 bad arguments or sweep file; 130 interrupted
+(what was committed stays; run again to resume).
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("sweep", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sweep_file", metavar="SWEEP.toml", help="the sweep file")
+    parser.add_argument("--db", required=True, metavar="FILE.sqlite", help="results file, created or resumed")
+    parser.add_argument("--workers", type=non_negative_int, metavar="N",
+                        help="local worker processes (default: one per core; 0: in this process)")
+    parser.add_argument("--threads", type=positive_int, metavar="T",
+                        help="torch threads per worker (default: cores / workers; 1 on Dask)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster at this address")
+    parser.add_argument("--json", action="store_true", help="print one JSON summary line at the end")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from ..evaluation.sweep import load_sweep, run_sweep
+
+    sweep = load_sweep(args.sweep_file)
+    bar = None
+
+    def start(total: int, done: int) -> None:
+        nonlocal bar
+        print(f"svs-depth sweep: {len(sweep.configs)} configurations x {len(sweep.sources)} pairs; "
+              f"{done} rows already in {args.db}, {total} to run", file=sys.stderr, flush=True)
+        bar = tqdm(total=total, unit="pair", file=sys.stderr, desc="sweep", dynamic_ncols=True, mininterval=0.5)
+
+    def warn(message: str) -> None:
+        (bar.write if bar is not None else print)(f"svs-depth sweep: warning: {message}", file=sys.stderr)
+
+    try:
+        outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler, threads=args.threads,
+                            on_task=lambda result: bar.update(len(result.rows)), warn=warn, on_start=start)
+    except KeyboardInterrupt:
+        print(f"svs-depth sweep: every finished task is stored in {args.db}; run the same command again to resume",
+              file=sys.stderr)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    total = len(sweep.configs) * len(sweep.sources)
+    print(f"svs-depth sweep: {outcome.rows_written} rows written by {outcome.tasks} tasks, "
+          f"{outcome.rows_already_done + outcome.rows_written} of {total} stored in {args.db}", file=sys.stderr)
+    if args.json:
+        print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "tasks": outcome.tasks,
+                            "rows_written": outcome.rows_written, "rows_stored": outcome.rows_already_done
+                            + outcome.rows_written, "rows_total": total, "run_id": outcome.run_id}))
+    return 0

@@ -1,0 +1,275 @@
+"""Lists of stereo pairs: the one reader behind ``svs-depth estimate --pairs``, ``eval`` and ``sweep``.
+
+A pair comes from one of:
+
+* a line ``LEFT RIGHT`` of a list file (two image files; the calibration of the command, or the SVS model);
+* a line ``LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]`` (the pair's own calibration, for the input image size);
+* a line naming a scene folder of any shared format (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe:
+  :func:`~svs_torch.data.load_stereo_pair` detects it; the scene's own calibration and ground truth), or a
+  folder of scene folders;
+* ``svs-depth capture``'s ``index.jsonl`` (one JSON object per pair with ``left`` and ``right`` file names, and
+  optionally ``focal_px``, ``baseline_m``, ``doffs_px``);
+* a PATH argument: a scene folder, a folder of scene folders, the shared data folder (every pair of
+  :func:`~svs_torch.data.list_shared_pairs`), a list file or an ``index.jsonl``.
+
+List files take ``#`` comments and shell quoting (paths with spaces); relative paths are relative to the list.
+Every pair keeps its own calibration. An entry that cannot be a pair (wrong field count, a bad number, a folder
+that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so that it gets its own line and
+status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole is an :class:`InputError`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from ..checks import InputError
+from ..types import StereoBatch
+from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, load_stereo_pair
+
+__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source"]
+
+#: What a list line may hold, for error messages.
+LINE_FORMS = "'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]' or a scene folder"
+_KITTI_LEFT_FOLDERS = ("colored_0", "image_2")
+
+
+@dataclass(frozen=True)
+class PairSource:
+    """One listed pair, not yet loaded.
+
+    Attributes:
+        left: the left image file; for a scene, its folder (or a KITTI left image); for a bad entry, its text.
+        right: the right image file; None for a scene or a bad entry.
+        scene: True for a scene folder, loaded by :func:`~svs_torch.data.load_stereo_pair` (own calibration, GT).
+        focal_px, baseline_m, doffs_px: the calibration listed with the pair (for its input image size); None
+            where the list gives none (a scene's own, or the caller's default).
+        problem: why the entry cannot be a pair (a one-line reason naming the list and line); None if it can.
+    """
+
+    left: str
+    right: str | None = None
+    scene: bool = False
+    focal_px: float | None = None
+    baseline_m: float | None = None
+    doffs_px: float | None = None
+    problem: str | None = None
+
+    @property
+    def pair_id(self) -> str:
+        """A stable identity for result stores: absolute paths (and the listed calibration, if any)."""
+        if self.problem is not None:
+            return f"bad:{self.problem}"
+        parts = [os.path.abspath(self.left)] + ([os.path.abspath(self.right)] if self.right else [])
+        if self.focal_px is not None:
+            parts.append(f"f={self.focal_px!r},B={self.baseline_m!r},doffs={self.doffs_px or 0.0!r}")
+        return "|".join(parts)
+
+    @property
+    def name(self) -> str:
+        """A short readable name: ``parent/name`` of the scene folder or the left file."""
+        path = Path(self.left)
+        if self.problem is not None:
+            return self.left[:60]
+        if self.scene and path.is_file():  # a KITTI left image: data set / frame
+            return f"{path.parent.parent.name}/{path.stem}"
+        return f"{path.parent.name}/{path.name}"
+
+    @property
+    def calibration(self) -> dict | None:
+        """The listed calibration as a dict, or None."""
+        if self.focal_px is None:
+            return None
+        return {"focal_px": self.focal_px, "baseline_m": self.baseline_m, "doffs_px": self.doffs_px or 0.0}
+
+
+def _bad(where: str, problem: str, text: str) -> PairSource:
+    return PairSource(left=text.strip(), problem=f"{where}: expected {LINE_FORMS}, got {problem}: "
+                                                 f"{text.strip()[:80]!r}")
+
+
+def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | tuple[float, float, float]:
+    """(focal, baseline, doffs) from the numbers of a line, or a bad entry naming the first bad one."""
+    names = ("FOCAL_PX", "BASELINE_M", "DOFFS_PX")
+    values = []
+    for name, field in zip(names, fields):
+        try:
+            value = float(field)
+        except ValueError:
+            value = math.nan
+        positive = name != "DOFFS_PX"
+        if not math.isfinite(value) or (positive and value <= 0):
+            need = "a finite positive number" if positive else "a finite number"
+            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {need}, got {field!r}")
+        values.append(value)
+    if len(values) == 2:
+        values.append(0.0)
+    return values[0], values[1], values[2]
+
+
+def _scenes_in(folder: Path) -> list[PairSource]:
+    """The scenes a folder stands for: itself, its scene sub-folders, or the shared data folder's pairs."""
+    if detect_stereo_layout(folder):
+        return [PairSource(left=str(folder), scene=True)]
+    children = sorted(child for child in folder.iterdir() if child.is_dir())
+    scenes = [PairSource(left=str(child), scene=True) for child in children if detect_stereo_layout(child)]
+    if scenes:
+        return scenes
+    return [PairSource(left=str(path), scene=True) for path in list_shared_pairs(folder)]
+
+
+def _is_kitti_left(path: Path) -> bool:
+    return path.is_file() and path.parent.name in _KITTI_LEFT_FOLDERS
+
+
+def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[PairSource]:
+    """The pair (or scenes) of one list line."""
+    paths = [str(p if Path(p).is_absolute() else base / p) for p in fields[:2]]
+    if len(fields) == 1:
+        path = Path(paths[0])
+        if path.is_dir():
+            scenes = _scenes_in(path)
+            return scenes or [PairSource(left=text.strip(), problem=f"{where}: no stereo scene in the folder "
+                                                                    f"{path}")]
+        if _is_kitti_left(path):
+            return [PairSource(left=str(path), scene=True)]
+        return [_bad(where, "1 field", text)]
+    if len(fields) in (2, 4, 5):
+        if len(fields) == 2:
+            return [PairSource(left=paths[0], right=paths[1])]
+        calibration = _calibration(fields[2:], where, text)
+        if isinstance(calibration, PairSource):
+            return [calibration]
+        focal, baseline, doffs = calibration
+        return [PairSource(left=paths[0], right=paths[1], focal_px=focal, baseline_m=baseline, doffs_px=doffs)]
+    return [_bad(where, f"{len(fields)} fields", text)]
+
+
+def _read_text(path: Path, name: str) -> str:
+    if not path.is_file():
+        raise InputError(f"{name}: expected a list file, got {'a folder' if path.exists() else 'no file'}: {path}")
+    try:
+        return path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{name}: expected a UTF-8 text file with one {LINE_FORMS} per line: {path}") from None
+    except OSError as error:
+        raise InputError(f"{name}: cannot read {path}: {error.strerror or error}") from None
+
+
+def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
+    """The pairs of ``svs-depth capture``'s ``index.jsonl`` (file names relative to its folder)."""
+    sources = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        where = f"{name}: line {number} of {path}"
+        try:
+            record = json.loads(line)
+        except ValueError:
+            record = None
+        if not (isinstance(record, dict) and isinstance(record.get("left"), str)
+                and isinstance(record.get("right"), str)):
+            sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected a JSON object with "
+                                                                      f"'left' and 'right' file names"))
+            continue
+        left, right = (str(p if Path(p).is_absolute() else path.parent / p)
+                       for p in (record["left"], record["right"]))
+        numbers = [record.get(key) for key in ("focal_px", "baseline_m", "doffs_px")]
+        if numbers[0] is None and numbers[1] is None:
+            sources.append(PairSource(left=left, right=right))
+            continue
+        calibration = _calibration([str(v) for v in numbers if v is not None], where, line)
+        if isinstance(calibration, PairSource) or None in numbers[:2]:
+            sources.append(calibration if isinstance(calibration, PairSource) else PairSource(
+                left=line.strip()[:80], problem=f"{where}: expected both focal_px and baseline_m"))
+            continue
+        sources.append(PairSource(left=left, right=right, focal_px=calibration[0], baseline_m=calibration[1],
+                                  doffs_px=calibration[2]))
+    if not sources:
+        raise InputError(f"{name}: no pair listed in {path}")
+    return sources
+
+
+def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
+    """The pairs of a list file or a capture ``index.jsonl`` (``*.jsonl``), in order (see the module docstring).
+
+    Raises:
+        InputError: (naming ``name``) for a missing, unreadable or non-UTF-8 file, or one that lists nothing.
+            A bad line is not an error: it becomes a :class:`PairSource` with ``problem`` set.
+    """
+    path = Path(path)
+    text = _read_text(path, name)
+    if path.suffix == ".jsonl":
+        return _index_sources(text, path, name)
+    sources: list[PairSource] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        where = f"{name}: line {number} of {path}"
+        try:
+            fields = shlex.split(line, comments=True)
+        except ValueError:
+            sources.append(_bad(where, "unbalanced quotes", line))
+            continue
+        if not fields:
+            continue
+        if "\0" in line:
+            sources.append(_bad(where, "a NUL character", line.replace("\0", "")))
+            continue
+        sources.extend(_line_sources(fields, path.parent, where, line))
+    if not sources:
+        raise InputError(f"{name}: no pair listed in {path}")
+    return sources
+
+
+def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[PairSource]:
+    """The pairs of PATH arguments: scene folders, folders of scene folders, the shared data folder, list files
+    and ``index.jsonl`` files, in order.
+
+    Raises:
+        InputError: naming ``name`` and the path, for a path that does not exist, a folder without any scene,
+            or an unreadable list.
+    """
+    sources: list[PairSource] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            found = _scenes_in(path)
+            if not found:
+                raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "
+                                 f"in the folder {path}")
+            sources += found
+        elif _is_kitti_left(path):
+            sources.append(PairSource(left=str(path), scene=True))
+        elif path.is_file():
+            sources += read_pair_list(path, name)
+        else:
+            raise InputError(f"{name}: no such file or folder: {path}")
+    return sources
+
+
+def load_pair_source(source: PairSource, focal_px: float | None = None, baseline_m: float | None = None,
+                     doffs_px: float = 0.0, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Load one listed pair as a B = 1 batch named ``source.name``, at its input size.
+
+    A scene keeps its own calibration and ground truth; a file pair takes its listed calibration, else
+    ``focal_px`` / ``baseline_m`` / ``doffs_px`` (None: the SVS model; see
+    :func:`~svs_torch.data.load_image_pair`).
+
+    Raises:
+        InputError: the entry's ``problem``, or why its files cannot be read.
+    """
+    if source.problem is not None:
+        raise InputError(source.problem)
+    if source.scene:
+        batch = load_stereo_pair(source.left, dtype)
+    elif source.focal_px is not None:
+        batch = load_image_pair(source.left, source.right, source.focal_px, source.baseline_m,
+                                source.doffs_px or 0.0, dtype)
+    else:
+        batch = load_image_pair(source.left, source.right, focal_px, baseline_m, doffs_px, dtype)
+    return batch if source.scene else replace(batch, names=(source.name,))

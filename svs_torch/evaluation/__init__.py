@@ -1,0 +1,26 @@
+"""Evaluation of the pipeline against ground truth, and parameter sweeps: one subpackage that imports the
+pipeline and that the pipeline never imports.
+
+* :mod:`.metrics`: per-pair truth and scores (Eq. (9) of R_min, R_max and each object; dense and sparse
+  disparity errors; inlier precision), batched over a :class:`~svs_torch.pipeline.PipelineResult`;
+* :mod:`.runner`: batched evaluation of a list of pairs, and its summary;
+* :mod:`.overrides`: presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`;
+* :mod:`.store`: the SQLite results store (schema in its docstring);
+* :mod:`.sweep`: sweep files, tasks and runs; :mod:`.executors`: the local process pool and Dask;
+* :mod:`.report`: summaries, CSV and plots of a results store.
+
+Only :mod:`.metrics` and :mod:`.runner` are imported here; the others load when named.
+"""
+
+from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, DisparityErrors, ObjectTruth, PairEstimate,
+                      PairEvaluation, PairScore, accuracy_pct, dense_disparity_errors, estimates_from_result,
+                      evaluate_result, object_truth, score_pair, sparse_disparity_errors, truth_list,
+                      with_nominal_calibration)
+from .runner import EvalSetup, evaluate_block, evaluate_pairs, summarize
+
+__all__ = [
+    "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "EvalSetup", "ObjectTruth", "PairEstimate",
+    "PairEvaluation", "PairScore", "accuracy_pct", "dense_disparity_errors", "estimates_from_result",
+    "evaluate_block", "evaluate_pairs", "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors",
+    "summarize", "truth_list", "with_nominal_calibration",
+]

@@ -1,0 +1,328 @@
+"""Scoring pipeline results against ground truth, per pair (the paper's Table 1 rules, Sec. 4, Eq. (9)).
+
+Truth: the kept regions of the left segmentation are the objects; an object's true distance is the median GT
+depth ``Z = f·B / (d + doffs)`` over its region's pixels with known disparity (the lower median, as
+``torch.median``); true R_min / R_max are the nearest / farthest object with a truth. The estimate is the
+pipeline's own (its range rule's R_min / R_max and per-object medians), taken only for a pair whose status is
+OK. Accuracy is Eq. (9), ``(1 − |real − est| / real) · 100``, floored at 0; a missing estimate (failed pair,
+object without depth) scores 0 %, so failures are counted, never hidden.
+
+Pairs without a measured calibration (``StereoBatch.calibrated`` False: most Middlebury 2005/2006 scenes,
+2003 Cones, 2001, KITTI, aloe) are scored with one nominal calibration (:func:`with_nominal_calibration`) for
+truth and estimate alike: with doffs 0 both depths scale with f·B, so Eq. (9) measures the disparity-derived
+depth consistently, whatever f·B is; their metres are nominal.
+
+Disparity errors (pixels, in the pair's working image):
+
+* dense: ``|d_dense − d_GT|`` over the kept regions where both are valid, for pairs ranged on their raw rows
+  (a rectified pair's dense map is in rectified pixels, which GT does not share: null there);
+* sparse: ``|(x_left − x_right) − d_GT(x_left)|`` over the RANSAC inliers with GT at the rounded left point;
+  ``inlier_precision`` is the share of those inliers whose right point lies within 1 px of the true one in
+  both x and y (a correct correspondence, not only a correct disparity).
+
+Medians are lower medians; shares are in [0, 1]. Nothing here is differentiable (medians of hard selections,
+status-gated estimates): these are reports, not losses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from ..pipeline import PipelineResult, PipelineStatus
+from ..types import Segmentation, StereoBatch
+
+__all__ = [
+    "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "ObjectTruth", "PairEstimate", "PairEvaluation",
+    "PairScore", "accuracy_pct", "dense_disparity_errors", "estimates_from_result", "evaluate_result",
+    "object_truth", "score_pair", "sparse_disparity_errors", "with_nominal_calibration",
+]
+
+#: Nominal calibration for pairs without a measured one: Middlebury 2005/2006 third size, f = 3740 / 3 px and
+#: B = 160 mm (MANIFEST §1), doffs 0. Any positive f·B gives the same Eq. (9) accuracy (module docstring).
+NOMINAL_FOCAL_PX, NOMINAL_BASELINE_M = 3740 / 3, 0.160
+
+
+def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
+    """``batch`` with every pair that is not ``calibrated`` given the nominal calibration (f 3740 / 3 px,
+    B 0.160 m, doffs 0) and marked calibrated, so its ground truth has a depth; calibrated pairs are unchanged.
+    Apply it at the input size, before any resampling (which scales focal and doffs)."""
+    keep = batch.calibrated
+    return dataclasses.replace(
+        batch,
+        focal_px=torch.where(keep, batch.focal_px, torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX)),
+        baseline_m=torch.where(keep, batch.baseline_m, torch.full_like(batch.baseline_m, NOMINAL_BASELINE_M)),
+        doffs_px=torch.where(keep, batch.doffs_px, torch.zeros_like(batch.doffs_px)),
+        calibrated=torch.ones_like(keep))
+
+
+def _lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
+    (0 where empty) and ``(...,)`` int64 counts."""
+    count = mask.sum(-1)
+    ordered = torch.where(mask, values, torch.full_like(values, math.inf)).sort(-1).values
+    median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
+    return torch.where(count > 0, median, torch.zeros_like(median)), count
+
+
+@dataclass(frozen=True)
+class ObjectTruth:
+    """The true distance of each kept left region. All ``(B, N)``, slot n is ``kept_labels[:, n]``.
+
+    Attributes:
+        depth_m: median GT depth over the region's pixels with known depth, metres; 0 where not ``valid``.
+        num_px: int64, those pixels.
+        valid: bool, the slot holds a region with at least one such pixel.
+    """
+
+    depth_m: torch.Tensor
+    num_px: torch.Tensor
+    valid: torch.Tensor
+
+
+def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
+    """True distances of the kept regions of ``segmentation`` (the left view of ``batch``), batched.
+
+    Raises:
+        InputError: the batch has no ground truth.
+    """
+    depth, known = batch.ground_truth_depth_m()  # (B, 1, H, W) each
+    b = batch.batch_size
+    labels = segmentation.labels.reshape(b, 1, -1)  # (B, 1, H·W)
+    kept = segmentation.kept_labels  # (B, N)
+    region = (labels == kept.unsqueeze(-1)) & (kept > 0).unsqueeze(-1) & known.reshape(b, 1, -1)  # (B, N, H·W)
+    median, count = _lower_median(depth.reshape(b, 1, -1).expand_as(region), region)
+    return ObjectTruth(depth_m=median, num_px=count, valid=count > 0)
+
+
+@dataclass(frozen=True)
+class DisparityErrors:
+    """Absolute disparity errors against GT, per pair. All ``(B,)``.
+
+    Attributes:
+        median_px: lower median of the errors, pixels (0 where not ``valid``).
+        within_1px, within_3px: share of the errors at most 1 / 3 px.
+        count: int64, the pixels or points compared.
+        precision: share of correct correspondences (sparse only: within 1 px in x and y), else None.
+        valid: bool, at least one comparison.
+    """
+
+    median_px: torch.Tensor
+    within_1px: torch.Tensor
+    within_3px: torch.Tensor
+    count: torch.Tensor
+    valid: torch.Tensor
+    precision: torch.Tensor | None = None
+
+
+def _errors(error: torch.Tensor, mask: torch.Tensor, correct: torch.Tensor | None = None) -> DisparityErrors:
+    """Statistics of ``error`` ``(B, P)`` where ``mask`` ``(B, P)`` holds."""
+    median, count = _lower_median(error, mask)
+    denominator = count.clamp(min=1).to(error.dtype)
+
+    def share(hit: torch.Tensor) -> torch.Tensor:
+        return (hit & mask).sum(-1).to(error.dtype) / denominator
+
+    return DisparityErrors(median, share(error <= 1.0), share(error <= 3.0), count, count > 0,
+                           None if correct is None else share(correct))
+
+
+def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
+    """Dense disparity error over the kept left regions (module docstring); None under the paper rule."""
+    dense = result.dense
+    if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
+        return None
+    b = batch.batch_size
+    mask = (result.segmentation.left.kept_mask & dense.valid & batch.disparity_valid
+            & ~result.rectified.view(b, 1, 1, 1))
+    error = (dense.disparity_px - batch.disparity_px).abs()
+    return _errors(error.reshape(b, -1), mask.reshape(b, -1))
+
+
+def sparse_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
+    """Disparity error and precision of the RANSAC inliers (module docstring)."""
+    if batch.disparity_px is None:
+        return None
+    b, _, height, width = batch.disparity_px.shape
+    left, right = result.points.left, result.points.right  # (B, K, 2) each
+    column = left[..., 0].round().long().clamp(0, width - 1)
+    row = left[..., 1].round().long().clamp(0, height - 1)
+    flat = row * width + column  # (B, K)
+    truth = batch.disparity_px.reshape(b, -1).gather(1, flat)
+    known = batch.disparity_valid.reshape(b, -1).gather(1, flat)
+    mask = result.fundamental.inliers & result.points.valid & known
+    error = ((left[..., 0] - right[..., 0]) - truth).abs()
+    correct = (error <= 1.0) & ((left[..., 1] - right[..., 1]).abs() <= 1.0)
+    return _errors(error, mask, correct)
+
+
+@dataclass(frozen=True)
+class PairEstimate:
+    """What the pipeline reports for one pair, in plain numbers: ``status`` name, and R_min / R_max and each
+    kept slot's median depth where the pair is OK and the value valid (None elsewhere)."""
+
+    status: str
+    r_min_m: float | None
+    r_max_m: float | None
+    objects_m: list[float | None]
+
+
+def estimates_from_result(result: PipelineResult) -> list[PairEstimate]:
+    """The :class:`PairEstimate` of every pair of a :class:`~svs_torch.pipeline.PipelineResult`."""
+    rng, objects = result.depth.range, result.depth.objects
+    rows = zip(result.status.tolist(), rng.valid.tolist(), rng.r_min_m.tolist(), rng.r_max_m.tolist(),
+               objects.depth_median_m.tolist(), objects.valid.tolist())
+    estimates = []
+    for status, range_ok, r_min, r_max, medians, valid in rows:
+        ok = status == PipelineStatus.OK
+        estimates.append(PairEstimate(PipelineStatus(status).name, r_min if ok and range_ok else None,
+                                      r_max if ok and range_ok else None,
+                                      [m if ok and v else None for m, v in zip(medians, valid)]))
+    return estimates
+
+
+def accuracy_pct(real: float, estimated: float | None) -> float:
+    """Eq. (9): ``(1 − |real − estimated| / real) · 100``; a missing estimate (or a worse than 0 %) counts 0."""
+    return 0.0 if estimated is None else max(0.0, (1 - abs(real - estimated) / real) * 100)
+
+
+@dataclass(frozen=True)
+class PairScore:
+    """Eq. (9) scores of one pair; the accuracies are None when no kept object has a truth.
+
+    Attributes:
+        real_r_min_m, real_r_max_m: nearest / farthest object's true distance.
+        acc_r_min_pct, acc_r_max_pct: Eq. (9) of the estimated R_min / R_max against them.
+        acc_objects_pct: mean Eq. (9) over the objects with a truth, each against its own slot's estimate.
+        objects: per slot with a truth: ``{"slot", "real_m", "estimated_m", "acc_pct"}``.
+    """
+
+    real_r_min_m: float | None
+    real_r_max_m: float | None
+    acc_r_min_pct: float | None
+    acc_r_max_pct: float | None
+    acc_objects_pct: float | None
+    objects: list[dict] = field(default_factory=list)
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.objects)
+
+
+def score_pair(truth: Sequence[tuple[int, float]], estimate: PairEstimate) -> PairScore:
+    """Score one pair: ``truth`` is ``[(slot, true distance m), ...]`` for the kept slots with a truth."""
+    if not truth:
+        return PairScore(None, None, None, None, None)
+    real = [depth for _, depth in truth]
+    objects = []
+    for slot, depth in truth:
+        estimated = estimate.objects_m[slot] if slot < len(estimate.objects_m) else None
+        objects.append({"slot": slot, "real_m": depth, "estimated_m": estimated,
+                        "acc_pct": accuracy_pct(depth, estimated)})
+    return PairScore(min(real), max(real), accuracy_pct(min(real), estimate.r_min_m),
+                     accuracy_pct(max(real), estimate.r_max_m),
+                     sum(o["acc_pct"] for o in objects) / len(objects), objects)
+
+
+def truth_list(truth: ObjectTruth, index: int) -> list[tuple[int, float]]:
+    """``[(slot, true distance m), ...]`` of pair ``index``, for :func:`score_pair`."""
+    return [(slot, depth) for slot, (depth, ok) in
+            enumerate(zip(truth.depth_m[index].tolist(), truth.valid[index].tolist())) if ok]
+
+
+@dataclass(frozen=True)
+class PairEvaluation:
+    """Everything measured on one pair: identity, outcome, Eq. (9) scores, disparity errors, counts, time.
+
+    ``status`` is the pipeline's (:class:`~svs_torch.pipeline.PipelineStatus` name) or, for a pair it did not
+    run on, ``BAD_INPUT`` (unreadable entry), ``TOO_SMALL`` or ``ERROR`` (an exception, in ``reason``).
+    Metric fields are None where they do not exist (no ground truth, paper rule without dense, failed pair).
+    ``objects`` lists the per-object scores (:class:`PairScore`). ``time_s`` is the pair's share of its batch's
+    pipeline time. ``calibrated``: the data's own calibration (False: scored with the nominal one).
+    """
+
+    name: str
+    status: str
+    reason: str | None = None
+    calibrated: bool | None = None
+    has_truth: bool = False
+    r_min_m: float | None = None
+    r_max_m: float | None = None
+    real_r_min_m: float | None = None
+    real_r_max_m: float | None = None
+    acc_r_min_pct: float | None = None
+    acc_r_max_pct: float | None = None
+    acc_objects_pct: float | None = None
+    num_objects: int = 0
+    dense_error_median_px: float | None = None
+    dense_within_1px: float | None = None
+    dense_within_3px: float | None = None
+    dense_num_px: int = 0
+    sparse_error_median_px: float | None = None
+    sparse_within_1px: float | None = None
+    sparse_within_3px: float | None = None
+    inlier_precision: float | None = None
+    sparse_num_points: int = 0
+    num_keypoints_left: int = 0
+    num_keypoints_right: int = 0
+    num_matches: int = 0
+    num_inliers: int = 0
+    rectified: bool = False
+    time_s: float = 0.0
+    objects: list[dict] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "OK"
+
+
+def _error_fields(errors: DisparityErrors | None, index: int, prefix: str) -> dict:
+    if errors is None or not bool(errors.valid[index]):
+        return {}
+    values = {f"{prefix}_error_median_px": float(errors.median_px[index]),
+              f"{prefix}_within_1px": float(errors.within_1px[index]),
+              f"{prefix}_within_3px": float(errors.within_3px[index])}
+    if errors.precision is not None:
+        values["inlier_precision"] = float(errors.precision[index])
+    return values
+
+
+def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 0.0,
+                    calibrated: Sequence[bool] | None = None) -> list[PairEvaluation]:
+    """Score every pair of a pipeline run on ``batch`` (with or without ground truth).
+
+    Args:
+        batch: the batch the pipeline ran on (GT resampled with it); give it the nominal calibration first
+            (:func:`with_nominal_calibration`) so pairs without a measured one have a depth truth.
+        result: :func:`~svs_torch.pipeline.estimate_obstacle_depth`'s result on it.
+        time_s: each pair's pipeline time, seconds.
+        calibrated: per pair, whether the calibration was the data's own (before the nominal one).
+    """
+    estimates = estimates_from_result(result)
+    has_gt = batch.disparity_px is not None
+    truth = object_truth(batch, result.segmentation.left) if has_gt else None
+    dense = dense_disparity_errors(batch, result)
+    sparse = sparse_disparity_errors(batch, result)
+    keypoints = result.num_keypoints.tolist()
+    counts = zip(result.num_matches.tolist(), result.num_inliers.tolist(), result.rectified.tolist())
+    evaluations = []
+    for i, (estimate, (matches, inliers, rectified)) in enumerate(zip(estimates, counts)):
+        score = score_pair(truth_list(truth, i), estimate) if truth is not None else PairScore(None, None, None,
+                                                                                                 None, None)
+        has_truth = has_gt and bool(batch.disparity_valid[i].any())
+        evaluations.append(PairEvaluation(
+            name=batch.names[i] if batch.names else str(i), status=estimate.status,
+            calibrated=None if calibrated is None else bool(calibrated[i]), has_truth=has_truth,
+            r_min_m=estimate.r_min_m, r_max_m=estimate.r_max_m, real_r_min_m=score.real_r_min_m,
+            real_r_max_m=score.real_r_max_m, acc_r_min_pct=score.acc_r_min_pct, acc_r_max_pct=score.acc_r_max_pct,
+            acc_objects_pct=score.acc_objects_pct, num_objects=score.num_objects,
+            dense_num_px=int(dense.count[i]) if dense is not None else 0,
+            sparse_num_points=int(sparse.count[i]) if sparse is not None else 0,
+            num_keypoints_left=keypoints[i][0], num_keypoints_right=keypoints[i][1], num_matches=matches,
+            num_inliers=inliers, rectified=bool(rectified), time_s=time_s, objects=score.objects,
+            **_error_fields(dense, i, "dense"), **_error_fields(sparse, i, "sparse")))
+    return evaluations

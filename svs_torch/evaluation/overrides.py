@@ -1,0 +1,311 @@
+"""Named presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`: one syntax for
+``--set KEY=VALUE``, configuration files and sweep grids.
+
+A key is the path of a field through the nested frozen dataclasses, e.g. ``segmentation.kernel_size``,
+``surf.metric_threshold``, ``max_ratio``, ``dense.window_size``, ``refine_matches.min_correlation``. Each value is
+checked against the field's declared type (bool, int, float — finite —, str, ``Literal`` choices, optional
+values, ``tuple[float, float]``) and then by the dataclass itself (its ``__post_init__``), so a bad key or value
+is an :class:`~svs_torch.checks.InputError` naming the key before any work starts. A field that holds an
+optional configuration (``refine_matches``) takes ``false`` / ``"none"`` (off) or ``true`` (its defaults), and
+setting one of its sub-fields turns it on from its defaults. New configurations are built with
+``dataclasses.replace``; the presets are never modified.
+
+Configuration file (TOML)::
+
+    preset = "paper"          # optional: "default" (PipelineConfig()) or "paper" (PipelineConfig.paper())
+    max_ratio = 0.7           # top-level keys, quoted dotted keys and tables are all dotted paths:
+    "dense.window_size" = 7
+    [segmentation]
+    kernel_size = 7
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import itertools
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from ..checks import InputError
+from ..pipeline import PipelineConfig
+
+__all__ = [
+    "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid", "flatten_table",
+    "load_config_file", "parameter_types", "parse_assignment", "preset_config", "resolve_config",
+]
+
+#: The named starting points: the product's best measured defaults and the paper exactly as published.
+PRESETS: dict[str, Callable[[], PipelineConfig]] = {"default": PipelineConfig, "paper": PipelineConfig.paper}
+
+_NONE_WORDS = ("none", "null", "off")
+_TRUE_WORDS = ("true", "yes", "on")
+_FALSE_WORDS = ("false", "no", "off")
+
+
+def preset_config(name: str, source: str = "preset") -> PipelineConfig:
+    """The configuration of a named preset (``"default"`` or ``"paper"``)."""
+    if name not in PRESETS:
+        raise InputError(f"{source}: expected one of {', '.join(map(repr, PRESETS))}, got {name!r}")
+    return PRESETS[name]()
+
+
+def _dataclass_of(hint: Any) -> type | None:
+    """The dataclass a field holds (also through ``X | None``), or None."""
+    if dataclasses.is_dataclass(hint):
+        return hint
+    for arg in typing.get_args(hint):
+        if dataclasses.is_dataclass(arg):
+            return arg
+    return None
+
+
+def _is_optional(hint: Any) -> bool:
+    return typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in typing.get_args(hint)
+
+
+def parameter_types(cls: type = PipelineConfig, prefix: str = "") -> dict[str, Any]:
+    """Every dotted key of ``cls`` (leaves and nested configurations) with its declared type."""
+    keys: dict[str, Any] = {}
+    hints = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        key, hint = prefix + field.name, hints[field.name]
+        keys[key] = hint
+        nested = _dataclass_of(hint)
+        if nested is not None:
+            keys.update(parameter_types(nested, key + "."))
+    return keys
+
+
+def _describe_type(hint: Any) -> str:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if _dataclass_of(hint) is not None:
+        return ("true or false (on with its defaults, or off)" if _is_optional(hint)
+                else "its fields as dotted keys (section.field = value)")
+    if origin is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe_type(a) for a in args)
+    if origin is tuple:
+        return f"a list of {len(args)} numbers"
+    if hint is type(None):
+        return "none"
+    return {bool: "true or false", int: "an integer", float: "a finite number", str: "a string"}.get(hint, str(hint))
+
+
+class _Mismatch(Exception):
+    """A value that does not fit a type (turned into an InputError naming the key)."""
+
+
+def _coerce(value: Any, hint: Any) -> Any:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is typing.Literal:
+        if value in args and type(value) is type(args[args.index(value)]):
+            return value
+        raise _Mismatch
+    if origin in (typing.Union, types.UnionType):
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(value, arg)
+            except _Mismatch:
+                pass
+        if type(None) in args and (value is None or (isinstance(value, str) and value.lower() in _NONE_WORDS)):
+            return None
+        raise _Mismatch
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [part.strip() for part in value.split(",")]
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise _Mismatch
+        return tuple(_coerce(item, arg) for item, arg in zip(value, args))
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in _TRUE_WORDS + _FALSE_WORDS:
+            return value.lower() in _TRUE_WORDS
+        raise _Mismatch
+    if hint is int:
+        if isinstance(value, str):
+            try:
+                value = int(value)
+            except ValueError:
+                raise _Mismatch from None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _Mismatch
+        return value
+    if hint is float:
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                raise _Mismatch from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise _Mismatch
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise _Mismatch
+        return value
+    raise _Mismatch
+
+
+def _unknown_key(key: str, source: str) -> InputError:
+    close = difflib.get_close_matches(key, list(parameter_types()), n=3, cutoff=0.6)
+    hint = f" (did you mean {', '.join(close)}?)" if close else " ('svs-depth eval --help' lists the sections)"
+    return InputError(f"{source}: unknown parameter {key!r}{hint}")
+
+
+def _set_field(config: Any, path: list[str], value: Any, hint: Any) -> Any:
+    """``config`` with the field at ``path`` replaced (nested dataclasses rebuilt with ``replace``)."""
+    name = path[0]
+    if len(path) == 1:
+        return dataclasses.replace(config, **{name: value})
+    inner = getattr(config, name)
+    if inner is None:  # an optional configuration that is off: a sub-field turns it on from its defaults
+        inner = _dataclass_of(typing.get_type_hints(type(config))[name])()
+    return dataclasses.replace(config, **{name: _set_field(inner, path[1:], value, hint)})
+
+
+def _leaf_value(config: PipelineConfig, key: str, value: Any, hint: Any) -> Any:
+    """The checked value of ``key``; an optional configuration takes true / false / none."""
+    nested = _dataclass_of(hint)
+    if nested is None:
+        return _coerce(value, hint)
+    if isinstance(value, str):
+        value = value.lower()
+        value = True if value in _TRUE_WORDS else False if value in _FALSE_WORDS + _NONE_WORDS else value
+    if value is None or value is False:
+        if not _is_optional(hint):
+            raise _Mismatch
+        return None
+    if value is True:
+        current = config
+        for name in key.split("."):
+            current = getattr(current, name) if current is not None else None
+        return current if current is not None else nested()
+    raise _Mismatch
+
+
+def apply_overrides(config: PipelineConfig, overrides: Mapping[str, Any], source: str = "set") -> PipelineConfig:
+    """``config`` with each dotted ``key: value`` of ``overrides`` applied in order.
+
+    Raises:
+        InputError: ``source: unknown parameter 'key'`` (with close matches), or ``source: key: expected
+            <type>, got <value>``, or the dataclass's own check of the new value, named by its key.
+    """
+    known = parameter_types()
+    for key, value in overrides.items():
+        if key not in known:
+            raise _unknown_key(key, source)
+        hint = known[key]
+        try:
+            checked = _leaf_value(config, key, value, hint)
+        except _Mismatch:
+            raise InputError(f"{source}: {key}: expected {_describe_type(hint)}, got {value!r}") from None
+        try:
+            config = _set_field(config, key.split("."), checked, hint)
+        except (InputError, ValueError, TypeError) as error:
+            raise InputError(f"{source}: {key} = {value!r}: {error}") from None
+    return config
+
+
+def parse_assignment(text: str, source: str = "--set") -> tuple[str, Any]:
+    """``"KEY=VALUE"`` → ``(key, value)``; VALUE is read as a TOML value where it is one (``0.7``, ``true``,
+    ``[10, 90]``, ``"text"``), else taken as a bare string (``paper``, ``none``)."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip(), raw.strip()
+    if not sep or not key or not raw:
+        raise InputError(f"{source}: expected KEY=VALUE such as segmentation.kernel_size=7, got {text!r}")
+    try:
+        value = tomllib.loads(f"value = {raw}")["value"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key, value
+
+
+def flatten_table(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A TOML table with nested tables (``[segmentation] kernel_size = 7``) as dotted keys."""
+    flat: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, Mapping):
+            flat.update(flatten_table(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def read_toml(path: str | Path, name: str) -> dict[str, Any]:
+    """A TOML file as a dict; a missing, unreadable or malformed file is one InputError that starts with
+    ``name`` (and names the file)."""
+    path = Path(path)
+    label = name if name == str(path) else f"{name}: {path}"
+    if not path.is_file():
+        raise InputError(f"{label}: expected a TOML file, got {'a folder' if path.exists() else 'no file'}")
+    try:
+        return tomllib.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise InputError(f"{label}: expected a UTF-8 TOML file") from None
+    except tomllib.TOMLDecodeError as error:
+        raise InputError(f"{label}: not valid TOML: {error}") from None
+    except OSError as error:
+        raise InputError(f"{label}: cannot read it: {error.strerror or error}") from None
+
+
+def load_config_file(path: str | Path, name: str = "--config") -> tuple[str, dict[str, Any]]:
+    """``(preset name, dotted overrides)`` of a configuration file (module docstring); not yet applied."""
+    table = read_toml(path, name)
+    preset = table.pop("preset", "default")
+    if not isinstance(preset, str):
+        raise InputError(f"{name}: {path}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
+    return preset, flatten_table(table)
+
+
+def resolve_config(preset: str = "default", config_file: str | Path | None = None,
+                   assignments: tuple[str, ...] | list[str] = ()) -> tuple[PipelineConfig, str, dict[str, Any]]:
+    """The configuration of ``--preset`` or ``--config FILE``, then each ``--set KEY=VALUE`` (later ones win).
+
+    Returns ``(config, preset name, all overrides applied)``.
+    """
+    overrides: dict[str, Any] = {}
+    if config_file is not None:
+        preset, from_file = load_config_file(config_file)
+        base = preset_config(preset, f"--config: {config_file}: preset")
+        base = apply_overrides(base, from_file, f"--config: {config_file}")
+        overrides.update(from_file)
+    else:
+        base = preset_config(preset, "--preset")
+    sets = dict(parse_assignment(text) for text in assignments)
+    config = apply_overrides(base, sets, "--set")
+    overrides.update(sets)
+    return config, preset, overrides
+
+
+def expand_grid(grid: Mapping[str, Any], source: str = "grid") -> list[dict[str, Any]]:
+    """Every combination of a grid ``{key: [values...]}``, the first key varying slowest."""
+    for key, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise InputError(f"{source}: {key}: expected a non-empty list of values, got {values!r}")
+    keys = list(grid)
+    return [dict(zip(keys, combination)) for combination in itertools.product(*(grid[k] for k in keys))]
+
+
+def describe_overrides(overrides: Mapping[str, Any]) -> str:
+    """``"segmentation.kernel_size=3 max_ratio=0.6"``; ``"(preset)"`` when nothing is overridden."""
+    return " ".join(f"{key}={value}" for key, value in overrides.items()) or "(preset)"
+
+
+def config_to_dict(config: PipelineConfig) -> dict[str, Any]:
+    """The whole configuration as JSON-ready nested dicts (tuples as lists)."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        return value
+
+    return plain(dataclasses.asdict(config))

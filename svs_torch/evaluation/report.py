@@ -1,0 +1,186 @@
+"""Reading a results store back: per-configuration summaries, the best configuration by each metric, CSV rows,
+and a figure (each metric against each swept parameter, and per-scene bars of the best configuration).
+
+Summaries use :func:`~svs_torch.evaluation.runner.summarize`, the same rules as ``svs-depth eval``: a failed
+pair with ground truth counts 0 %, failures are counted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ..checks import InputError
+from .metrics import PairEvaluation
+from .runner import summarize
+from .store import RESULT_COLUMNS, ResultStore
+
+__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "swept_parameters"]
+
+#: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
+METRICS: tuple[tuple[str, str, bool], ...] = (
+    ("acc_r_min_pct", "Acc R_min %", True),
+    ("acc_r_max_pct", "Acc R_max %", True),
+    ("acc_objects_pct", "Acc objects %", True),
+    ("dense_within_1px", "dense within 1 px", True),
+    ("inlier_precision", "inlier precision", True),
+    ("pipeline_s_per_pair", "s per pair", False),
+)
+_BOOLEAN_COLUMNS = {name for name, _ in RESULT_COLUMNS
+                    if str(next(f.type for f in dataclasses.fields(PairEvaluation) if f.name == name)).startswith(
+                        "bool")}
+
+
+def _evaluation(row: dict) -> PairEvaluation:
+    values = {name: row[name] for name, _ in RESULT_COLUMNS}
+    for name in _BOOLEAN_COLUMNS:
+        values[name] = None if values[name] is None else bool(values[name])
+    return PairEvaluation(**values)
+
+
+def config_summaries(store: ResultStore) -> list[dict]:
+    """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size`` and
+    ``overrides``), in the order the configurations were stored; configurations without rows are left out."""
+    by_config: dict[str, list[PairEvaluation]] = {}
+    for row in store.results():
+        by_config.setdefault(row["config_id"], []).append(_evaluation(row))
+    summaries = []
+    for config in store.configs():
+        rows = by_config.get(config["config_id"])
+        if rows:
+            summary = summarize(rows)
+            summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
+                             | summary)
+    return summaries
+
+
+def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
+    """``(metric key, label, best summary)`` for each metric some configuration has."""
+    best = []
+    for key, label, higher in METRICS:
+        candidates = [s for s in summaries if s.get(key) is not None]
+        if candidates:
+            pick = max(candidates, key=lambda s: s[key]) if higher else min(candidates, key=lambda s: s[key])
+            best.append((key, label, pick))
+    return best
+
+
+def swept_parameters(store: ResultStore) -> list[str]:
+    """The override keys whose value differs between the stored configurations (plus ``preset`` if it does)."""
+    configs = store.configs()
+    keys: list[str] = []
+    for config in configs:
+        keys += [key for key in config["overrides"] if key not in keys]
+    swept = [key for key in keys if len({repr(c["overrides"].get(key)) for c in configs}) > 1]
+    if len({c["preset"] for c in configs}) > 1:
+        swept.insert(0, "preset")
+    return swept
+
+
+#: The first CSV columns, in this order (``config`` is the configuration's id).
+CSV_FIRST = ("config", "left", "right", "status", "r_min_m", "r_max_m", "acc_r_min_pct", "acc_r_max_pct")
+
+
+def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
+    """Header and rows, one per (configuration, pair): :data:`CSV_FIRST`, then the configuration's ``label``,
+    ``size`` and each swept parameter's value (``param:<key>``), then every other result column."""
+    configs = {c["config_id"]: c for c in store.configs()}
+    swept = swept_parameters(store)
+    rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
+    header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest]
+    rows = []
+    for row in store.results():
+        config = configs[row["config_id"]]
+        params = [config["preset"] if key == "preset" else config["overrides"].get(key) for key in swept]
+        values = {**row, "config": row["config_id"], "objects": json.dumps(row["objects"])}
+        rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
+                    + [values[name] for name in rest])
+    return header, rows
+
+
+def _scene_bars(axis, store: ResultStore, summary: dict) -> None:
+    rows = [r for r in store.results() if r["config_id"] == summary["config_id"]]
+    names = [r["name"] for r in rows]
+    width = 0.27
+    for offset, (key, label) in enumerate((("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"),
+                                           ("acc_objects_pct", "objects"))):
+        values = [r[key] or 0.0 for r in rows]
+        axis.bar([i + (offset - 1) * width for i in range(len(rows))], values, width, label=label)
+    axis.set_xticks(range(len(rows)), names, rotation=60, ha="right", fontsize=7)
+    axis.set_ylabel("Eq. (9) accuracy, %")
+    axis.set_ylim(0, 105)
+    axis.set_title(textwrap.fill(f"per scene, best by object accuracy: {summary['label']}", 60), fontsize=8)
+    axis.legend(fontsize=7, loc="lower right")
+
+
+def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
+    def value(s: dict) -> Any:
+        return s["preset"] if key == "preset" else s["overrides"].get(key)
+
+    values = {repr(value(s)): value(s) for s in summaries}
+    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values.values())
+    levels = sorted(values, key=lambda r: (values[r], r) if numeric else (len(r), r))
+    for metric, label in (("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"), ("acc_objects_pct", "objects")):
+        means = []
+        for level in levels:
+            group = [s[metric] for s in summaries if repr(value(s)) == level and s[metric] is not None]
+            means.append(sum(group) / len(group) if group else float("nan"))
+        axis.plot(range(len(levels)), means, marker="o", label=label)
+    axis.set_xticks(range(len(levels)), [level.strip("'") for level in levels], fontsize=8)
+    axis.set_xlabel(key, fontsize=9)
+    axis.set_ylabel("mean Acc %, over the other parameters", fontsize=8)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+
+
+def plot_results(store: ResultStore, path: str | Path) -> Path:
+    """Write the figure: one panel per swept parameter (mean Eq. (9) accuracy of R_min, R_max and objects at
+    each value, averaged over the other parameters) and per-scene bars of the best configuration by object
+    accuracy. The file is written under a temporary name and renamed, never half-written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    summaries = config_summaries(store)
+    if not summaries:
+        raise InputError(f"db: {store.path} holds no results yet")
+    swept = swept_parameters(store)
+    panels = len(swept) + 1
+    columns = min(3, panels)
+    rows = -(-panels // columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 4.2 * rows), squeeze=False)
+    flat = list(axes.flat)
+    for axis, key in zip(flat, swept):
+        _parameter_axis(axis, summaries, key)
+    best = max(summaries, key=lambda s: s["acc_objects_pct"] if s["acc_objects_pct"] is not None else -1.0)
+    _scene_bars(flat[len(swept)], store, best)
+    for axis in flat[panels:]:
+        axis.set_visible(False)
+    figure.suptitle(f"{store.path.name}: {len(summaries)} configurations", fontsize=11)
+    figure.tight_layout()
+    handle, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=".tmp-", dir=path.parent if str(path.parent)
+                                         else ".")
+    os.close(handle)
+    try:
+        figure.savefig(temporary, dpi=110)
+        os.chmod(temporary, 0o666 & ~_umask())
+        os.replace(temporary, path)
+    finally:
+        plt.close(figure)
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+    return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

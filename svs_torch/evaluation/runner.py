@@ -1,0 +1,181 @@
+"""Batched evaluation of a list of pairs: load, resample, run the pipeline on blocks of pairs, score, summarise.
+
+One bad pair never stops the others: an entry that cannot be loaded is ``BAD_INPUT``, a pair under 5×5 pixels
+``TOO_SMALL``, and a block whose pipeline run raises is run again pair by pair, so only the pair that raises is
+``ERROR`` (with the exception in ``reason``). Each pair's result does not depend on its block (the pipeline
+seeds RANSAC per pair and sizes the dense stage per pair), so a block can be re-run alone with equal results.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import statistics
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from ..checks import InputError
+from ..data import collate_stereo_batches, load_pair_source, resize_stereo_batch
+from ..data.pair_list import PairSource
+from ..pipeline import PipelineConfig, estimate_obstacle_depth
+from ..types import StereoBatch
+from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
+
+__all__ = ["EvalSetup", "LoadedPair", "evaluate_block", "evaluate_pairs", "load_block", "run_loaded",
+           "summarize", "MIN_SIDE_PX"]
+
+#: Statuses of pairs the pipeline did not run on (their ``time_s`` is 0).
+UNRUN_STATUSES = ("BAD_INPUT", "TOO_SMALL", "ERROR")
+
+#: The smallest side the feature stage handles (SURF's first octave needs 5 pixels for its 3×3×3 non-maximum
+#: suppression); the command line refuses smaller pairs with the same TOO_SMALL status.
+MIN_SIDE_PX = 5
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """How every pair of an evaluation is run.
+
+    Attributes:
+        config: the pipeline configuration.
+        size_wh: resample every pair to (width, height) first; None keeps each pair's own size (pairs of
+            different sizes are then padded into one batch).
+        focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
+    """
+
+    config: PipelineConfig = PipelineConfig()
+    size_wh: tuple[int, int] | None = None
+    focal_px: float | None = None
+    baseline_m: float | None = None
+    doffs_px: float = 0.0
+
+
+@dataclass(frozen=True)
+class LoadedPair:
+    """A listed pair after loading: ``batch`` (B = 1, resampled, nominal calibration where it had none) or
+    None with the ``status`` and ``reason`` it gets instead; ``calibrated``: the data's own calibration."""
+
+    source: PairSource
+    batch: StereoBatch | None
+    status: str | None = None
+    reason: str | None = None
+    calibrated: bool = False
+
+
+def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
+    try:
+        batch = load_pair_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
+    except (InputError, OSError) as error:
+        return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
+    calibrated = bool(batch.calibrated[0])
+    batch = with_nominal_calibration(batch)
+    if setup.size_wh is not None:
+        batch = resize_stereo_batch(batch, setup.size_wh)
+    height, width = batch.size_hw
+    if min(height, width) < MIN_SIDE_PX:
+        return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
+                                                     f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels")
+    return LoadedPair(source, batch, calibrated=calibrated)
+
+
+def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPair]:
+    """Load a block of listed pairs (each failure kept as its own status)."""
+    return [_load_one(source, setup) for source in sources]
+
+
+def _unrun(pair: LoadedPair) -> PairEvaluation:
+    return PairEvaluation(name=pair.source.name, status=pair.status, reason=pair.reason)
+
+
+def _run_batch(pairs: list[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
+    batch = collate_stereo_batches([p.batch for p in pairs], mode="pad")
+    started = time.perf_counter()
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch, config)
+    per_pair = (time.perf_counter() - started) / len(pairs)
+    return evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs])
+
+
+def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
+    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order."""
+    runnable = [p for p in pairs if p.batch is not None]
+    scored: list[PairEvaluation] = []
+    if runnable:
+        try:
+            scored = _run_batch(runnable, config)
+        except Exception:  # noqa: BLE001 -- find the pair that raises: every other pair still gets its result
+            scored = []
+            for pair in runnable:
+                try:
+                    scored += _run_batch([pair], config)
+                except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
+                    scored.append(PairEvaluation(name=pair.source.name, status="ERROR",
+                                                 reason=f"{type(error).__name__}: {' '.join(str(error).split())}"))
+    ran = iter(scored)
+    return [next(ran) if p.batch is not None else _unrun(p) for p in pairs]
+
+
+def evaluate_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[PairEvaluation]:
+    """Load, run and score one block of pairs as one batch."""
+    return run_loaded(load_block(sources, setup), setup.config)
+
+
+def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: int = 16,
+                   on_block: Callable[[int], None] | None = None) -> Iterator[tuple[PairSource, PairEvaluation]]:
+    """Evaluate every listed pair in blocks of ``batch_size``, in order; the next block is decoded in a thread
+    while the pipeline runs on the current one. ``on_block(n)`` is called after each block of n pairs."""
+    blocks = [list(sources[i:i + batch_size]) for i in range(0, len(sources), batch_size)]
+    if not blocks:
+        return
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as loader:
+        pending = loader.submit(load_block, blocks[0], setup)
+        for number, block in enumerate(blocks):
+            loaded = pending.result()
+            if number + 1 < len(blocks):
+                pending = loader.submit(load_block, blocks[number + 1], setup)
+            yield from zip(block, run_loaded(loaded, setup.config))
+            if on_block is not None:
+                on_block(len(block))
+
+
+def _mean(values: list[float]) -> float | None:
+    return statistics.fmean(values) if values else None
+
+
+def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None) -> dict:
+    """One summary of an evaluation.
+
+    ``pairs`` every listed pair, ``failed`` those whose status is not OK (listed in ``failures``), ``scored``
+    those with ground truth whose accuracy counts: every pair with a truth, a failed one at 0 % (a failed pair
+    whose segmentation kept nothing has no object truth, and still counts 0 %). ``acc_*_pct`` are means over
+    the scored pairs; disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
+    ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
+    ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on.
+    """
+    failures = [e for e in evaluations if not e.ok]
+    scored = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
+
+    def acc(key: str) -> float | None:
+        return _mean([getattr(e, key) or 0.0 for e in scored])
+
+    def mean_of(key: str) -> float | None:
+        return _mean([getattr(e, key) for e in evaluations if getattr(e, key) is not None])
+
+    ran = [e for e in evaluations if e.status not in UNRUN_STATUSES]
+    pipeline_s = sum(e.time_s for e in ran)
+    seconds = wall_s if wall_s is not None else pipeline_s
+    return {
+        "pairs": len(evaluations), "failed": len(failures), "scored": len(scored),
+        "acc_r_min_pct": acc("acc_r_min_pct"), "acc_r_max_pct": acc("acc_r_max_pct"),
+        "acc_objects_pct": acc("acc_objects_pct"),
+        "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
+        "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
+        "sparse_within_1px": mean_of("sparse_within_1px"), "inlier_precision": mean_of("inlier_precision"),
+        "pipeline_s_per_pair": pipeline_s / len(ran) if ran else None,
+        "pairs_per_s": len(evaluations) / seconds if evaluations and seconds > 0 else None,
+        "statuses": {status: sum(e.status == status for e in evaluations)
+                     for status in sorted({e.status for e in evaluations})},
+        "failures": [{"name": e.name, "status": e.status, "reason": e.reason} for e in failures],
+    }

@@ -1,0 +1,198 @@
+"""The results store of ``svs-depth sweep`` and ``eval --db``: one SQLite file (standard library ``sqlite3``).
+
+Why SQLite: in WAL mode, with one transaction per task and ``INSERT OR IGNORE`` on a unique (configuration,
+pair) key, a sweep killed at any moment (even SIGKILL) keeps every committed task and nothing half-written; a
+restart runs only the missing rows and can never duplicate one. Only the parent process writes (workers return
+rows), so there is one writer at a time; readers (``svs-depth results``) never block it.
+
+Schema (``schema_version`` 1)::
+
+    meta(key TEXT PRIMARY KEY, value TEXT)            -- schema_version
+    configs(config_id TEXT PRIMARY KEY,               -- sha256 of {"config": the whole PipelineConfig, "size"}
+            label TEXT,                               -- the overrides as "key=value ..." ("(preset)" if none)
+            preset TEXT,                              -- "default" or "paper": what the overrides apply to
+            overrides TEXT,                           -- JSON {dotted key: value}
+            size TEXT,                                -- "320x240", or "native"
+            config TEXT)                              -- JSON of the whole PipelineConfig
+    pairs(pair_id TEXT PRIMARY KEY,                   -- absolute paths (+ listed calibration), or "bad:<reason>"
+          name TEXT, left TEXT, right TEXT, scene INTEGER, calibration TEXT)  -- calibration: JSON or NULL
+    runs(run_id INTEGER PRIMARY KEY AUTOINCREMENT, started_unix_s REAL, command TEXT,
+         code_version TEXT,                           -- git commit (+"-dirty") or the package version
+         environment TEXT,                            -- JSON: python, torch, numpy, opencv, platform, CPUs,
+                                                      -- executor, workers, threads per worker
+         sweep TEXT)                                  -- the sweep file's text (or the eval's arguments)
+    results(config_id TEXT NOT NULL REFERENCES configs, pair_id TEXT NOT NULL REFERENCES pairs,
+            run_id INTEGER REFERENCES runs,
+            <one column per PairEvaluation field: name, status, reason, calibrated, has_truth, r_min_m, r_max_m,
+             real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
+             dense_error_median_px, dense_within_1px, dense_within_3px, dense_num_px, sparse_error_median_px,
+             sparse_within_1px, sparse_within_3px, inlier_precision, sparse_num_points, num_keypoints_left,
+             num_keypoints_right, num_matches, num_inliers, rectified, time_s, objects (JSON list)>,
+            UNIQUE(config_id, pair_id))
+
+Units are in the column names (``_m`` metres, ``_px`` pixels, ``_pct`` percent, ``_s`` seconds; ``within_*``
+and ``inlier_precision`` are shares in [0, 1]); booleans are 0/1; a metric that does not exist is NULL.
+Everything but ``time_s`` and ``run_id`` is deterministic: a resumed sweep's rows equal an uninterrupted one's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sqlite3
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..checks import InputError
+from .metrics import PairEvaluation
+
+__all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
+
+SCHEMA_VERSION = 1
+
+_SQL_TYPES = {"str": "TEXT", "bool": "INTEGER", "int": "INTEGER", "float": "REAL", "list": "TEXT"}
+
+
+def _column_type(annotation: str) -> str:
+    base = annotation.split("|")[0].strip().split("[")[0]
+    return _SQL_TYPES[base]
+
+
+#: ``(name, SQL type)`` of the per-pair result columns, in PairEvaluation's order.
+RESULT_COLUMNS: tuple[tuple[str, str], ...] = tuple(
+    (f.name, _column_type(str(f.type))) for f in dataclasses.fields(PairEvaluation))
+
+_SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT);
+CREATE TABLE IF NOT EXISTS configs(config_id TEXT PRIMARY KEY, label TEXT, preset TEXT, overrides TEXT, size TEXT,
+                                   config TEXT);
+CREATE TABLE IF NOT EXISTS pairs(pair_id TEXT PRIMARY KEY, name TEXT, left TEXT, right TEXT, scene INTEGER,
+                                 calibration TEXT);
+CREATE TABLE IF NOT EXISTS runs(run_id INTEGER PRIMARY KEY AUTOINCREMENT, started_unix_s REAL, command TEXT,
+                                code_version TEXT, environment TEXT, sweep TEXT);
+CREATE TABLE IF NOT EXISTS results(
+    config_id TEXT NOT NULL REFERENCES configs(config_id),
+    pair_id TEXT NOT NULL REFERENCES pairs(pair_id),
+    run_id INTEGER REFERENCES runs(run_id),
+    {", ".join(f'"{name}" {kind}' for name, kind in RESULT_COLUMNS)},
+    UNIQUE(config_id, pair_id));
+"""
+
+
+def _to_sql(value: Any) -> Any:
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, (list, dict)):
+        return json.dumps(value)
+    return value
+
+
+class ResultStore:
+    """An open results store (see the module docstring); a context manager that closes it."""
+
+    def __init__(self, path: str | Path, create: bool = True) -> None:
+        self.path = Path(path)
+        if not create and not self.path.is_file():
+            raise InputError(f"db: expected a results file, got {'a folder' if self.path.exists() else 'no file'}: "
+                             f"{self.path}")
+        if create and self.path.parent and not self.path.parent.is_dir():
+            raise InputError(f"db: the folder {self.path.parent} does not exist")
+        try:
+            # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
+            self.connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
+            self.connection.execute("PRAGMA journal_mode=WAL")
+            # NORMAL in WAL mode: a committed transaction survives a crash of the process (only a power cut
+            # may lose the last ones), at a fraction of FULL's fsyncs.
+            self.connection.execute("PRAGMA synchronous=NORMAL")
+            if create:
+                self.connection.executescript(_SCHEMA)
+                self.connection.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)",
+                                        (str(SCHEMA_VERSION),))
+            version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        except sqlite3.DatabaseError as error:
+            raise InputError(f"db: {self.path} is not a results store ({error})") from None
+        if version is None or int(version[0]) != SCHEMA_VERSION:
+            raise InputError(f"db: {self.path} has schema version {version and version[0]}, expected "
+                             f"{SCHEMA_VERSION}")
+
+    def __enter__(self) -> ResultStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.connection.close()
+
+    def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> None:
+        cursor = self.connection.cursor()
+        cursor.execute("BEGIN IMMEDIATE")
+        try:
+            for sql, values in statements:
+                cursor.execute(sql, values)
+            cursor.execute("COMMIT")
+        except BaseException:
+            cursor.execute("ROLLBACK")
+            raise
+
+    def add_configs(self, configs: Iterable[dict]) -> None:
+        """Record configurations (``config_id``, ``label``, ``preset``, ``overrides``, ``size``, ``config``)."""
+        self._transaction(("INSERT OR IGNORE INTO configs VALUES (?, ?, ?, ?, ?, ?)",
+                           (c["config_id"], c["label"], c["preset"], json.dumps(c["overrides"]), c["size"],
+                            json.dumps(c["config"]))) for c in configs)
+
+    def add_pairs(self, pairs: Iterable[Any]) -> None:
+        """Record :class:`~svs_torch.data.PairSource` entries."""
+        self._transaction(("INSERT OR IGNORE INTO pairs VALUES (?, ?, ?, ?, ?, ?)",
+                           (p.pair_id, p.name, p.left, p.right, int(p.scene),
+                            json.dumps(p.calibration) if p.calibration else None)) for p in pairs)
+
+    def start_run(self, command: str, code_version: str, environment: dict, sweep: str) -> int:
+        """Record a run; returns its ``run_id``."""
+        cursor = self.connection.execute(
+            "INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) VALUES (?, ?, ?, ?, ?)",
+            (time.time(), command, code_version, json.dumps(environment), sweep))
+        return int(cursor.lastrowid)
+
+    def code_versions(self) -> list[str]:
+        return [row[0] for row in self.connection.execute("SELECT DISTINCT code_version FROM runs ORDER BY run_id")]
+
+    def done(self, config_ids: Sequence[str] | None = None) -> set[tuple[str, str]]:
+        """The (config_id, pair_id) keys already stored."""
+        rows = self.connection.execute("SELECT config_id, pair_id FROM results")
+        wanted = None if config_ids is None else set(config_ids)
+        return {(c, p) for c, p in rows if wanted is None or c in wanted}
+
+    def write_task(self, config_id: str, run_id: int, rows: Sequence[tuple[str, PairEvaluation]]) -> int:
+        """Store one task's ``(pair_id, evaluation)`` rows in one transaction; rows already present are kept as
+        they are (INSERT OR IGNORE). Returns the number of new rows."""
+        names = ["config_id", "pair_id", "run_id"] + [name for name, _ in RESULT_COLUMNS]
+        columns = ", ".join(f'"{name}"' for name in names)
+        sql = f"INSERT OR IGNORE INTO results({columns}) VALUES ({', '.join('?' * len(names))})"
+        before = self.connection.total_changes
+        self._transaction((sql, [config_id, pair_id, run_id]
+                           + [_to_sql(getattr(evaluation, name)) for name, _ in RESULT_COLUMNS])
+                          for pair_id, evaluation in rows)
+        return self.connection.total_changes - before
+
+    def configs(self) -> list[dict]:
+        """Every stored configuration, in insertion order, with its overrides decoded."""
+        cursor = self.connection.execute("SELECT config_id, label, preset, overrides, size, config FROM configs "
+                                         "ORDER BY rowid")
+        return [{"config_id": c, "label": label, "preset": preset, "overrides": json.loads(overrides), "size": size,
+                 "config": json.loads(config)} for c, label, preset, overrides, size, config in cursor]
+
+    def results(self) -> list[dict]:
+        """Every result row joined with its pair's ``left``, ``right`` and ``scene`` flag, in a fixed order."""
+        cursor = self.connection.execute(
+            "SELECT r.*, p.left AS left, p.right AS right FROM results r JOIN pairs p USING (pair_id) "
+            "ORDER BY r.config_id, r.pair_id")
+        names = [d[0] for d in cursor.description]
+        rows = []
+        for values in cursor:
+            row = dict(zip(names, values))
+            row["objects"] = json.loads(row["objects"]) if row["objects"] else []
+            rows.append(row)
+        return rows

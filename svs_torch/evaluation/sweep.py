@@ -1,0 +1,312 @@
+"""Parameter sweeps: configurations × pairs, as tasks of one configuration and a block of pairs, run by a local
+process pool or a Dask cluster, with every result in a SQLite store (:mod:`.store`).
+
+Sweep file (TOML; relative paths are relative to the file)::
+
+    paths = ["../shared/data/middlebury_eval3_Q"]   # scene folders, folders of scenes, lists, index.jsonl
+    size = "320x240"                                 # resample every pair first ("native": as loaded)
+    preset = "default"                               # or "paper": what the overrides apply to
+    batch_size = 8                                   # pairs per task (one batched pipeline run)
+    [set]                                            # fixed overrides for every configuration
+    "dense.window_size" = 9
+    [grid]                                           # every combination, the first key varying slowest
+    "segmentation.kernel_size" = [3, 5, 7]
+    "max_ratio" = [0.6, 0.8]
+    [[configs]]                                      # and/or a list of configurations (crossed with the grid)
+    preset = "paper"
+
+Everything is checked before any work starts: unknown keys and parameters, values of the wrong type, missing
+paths; the error is one line naming the file and the key.
+
+A configuration's id is a hash of the whole resolved :class:`~svs_torch.pipeline.PipelineConfig` and the size,
+so the same configuration from another sweep file reuses its rows. Tasks are fixed blocks of the pair list;
+a block whose rows are all stored is skipped, any other block runs whole (the same batch as an uninterrupted
+run; the pipeline's results do not depend on the batch anyway, and RANSAC is seeded per pair) and its rows are
+written in one transaction with ``INSERT OR IGNORE``. So a sweep killed at any moment and started again runs
+only what is missing and ends with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
+
+Executors (:mod:`.executors`): in the calling process (``workers=0``); a local process pool whose workers each
+run ``torch.set_num_threads(max(1, cores // workers))`` so that they do not oversubscribe the cores; or a Dask
+``distributed`` cluster (``scheduler="tcp://HOST:PORT"``, ``pip install -e ".[dask]"``), where each task pins
+torch to one thread. Only this process writes the store: workers return rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..camera import parse_size
+from ..checks import InputError
+from ..data.pair_list import PairSource, read_pair_sources
+from ..pipeline import PipelineConfig
+from .executors import available_cores, connect_dask, map_dask, map_process_pool
+from .metrics import PairEvaluation
+from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
+                        preset_config, read_toml)
+from .runner import EvalSetup, evaluate_block
+from .store import ResultStore
+
+__all__ = ["Sweep", "SweepConfig", "SweepOutcome", "Task", "TaskResult", "code_version", "load_sweep",
+           "make_sweep", "make_sweep_config", "plan_tasks", "run_sweep", "run_task"]
+
+SWEEP_KEYS = ("paths", "size", "preset", "batch_size", "set", "grid", "configs")
+DEFAULT_BATCH_SIZE = 8
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """One configuration of a sweep: its id, label, preset, overrides, size and resolved configuration."""
+
+    config_id: str
+    label: str
+    preset: str
+    overrides: dict[str, Any]
+    size: str
+    config: PipelineConfig
+
+    def record(self) -> dict:
+        """The row of the ``configs`` table."""
+        return {"config_id": self.config_id, "label": self.label, "preset": self.preset,
+                "overrides": self.overrides, "size": self.size, "config": config_to_dict(self.config)}
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A checked sweep: pairs (deduplicated, in order), configurations, size, pairs per task, and its text."""
+
+    sources: tuple[PairSource, ...]
+    configs: tuple[SweepConfig, ...]
+    size_wh: tuple[int, int] | None
+    batch_size: int = DEFAULT_BATCH_SIZE
+    text: str = ""
+
+
+def _size_text(size_wh: tuple[int, int] | None) -> str:
+    return "native" if size_wh is None else f"{size_wh[0]}x{size_wh[1]}"
+
+
+def make_sweep_config(preset: str, overrides: dict[str, Any], size_wh: tuple[int, int] | None,
+                      label: str | None = None, source: str = "sweep") -> SweepConfig:
+    """Resolve and check one configuration (an InputError naming ``source`` and the key if it is bad)."""
+    config = apply_overrides(preset_config(preset, f"{source}: preset"), overrides, source)
+    size = _size_text(size_wh)
+    digest = hashlib.sha256(json.dumps({"config": config_to_dict(config), "size": size}, sort_keys=True).encode())
+    return SweepConfig(digest.hexdigest()[:16], label if label is not None else describe_overrides(overrides),
+                       preset, dict(overrides), size, config)
+
+
+def _dedupe(sources: Sequence[PairSource]) -> tuple[PairSource, ...]:
+    seen: set[str] = set()
+    unique = []
+    for source in sources:
+        if source.pair_id not in seen:
+            seen.add(source.pair_id)
+            unique.append(source)
+    return tuple(unique)
+
+
+def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], size_wh: tuple[int, int] | None,
+               batch_size: int = DEFAULT_BATCH_SIZE, text: str = "") -> Sweep:
+    """A sweep from pairs and configurations made in code (the same configuration twice counts once)."""
+    unique = {c.config_id: c for c in configs}
+    return Sweep(_dedupe(sources), tuple(unique.values()), size_wh, batch_size, text)
+
+
+def _expect(condition: bool, message: str) -> None:
+    if not condition:
+        raise InputError(message)
+
+
+def load_sweep(path: str | Path) -> Sweep:
+    """Read and check a sweep file (module docstring); every error is one InputError naming the file."""
+    path = Path(path)
+    name = str(path)
+    table = read_toml(path, name)
+    for key in table:
+        _expect(key in SWEEP_KEYS, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)})")
+    paths = table.get("paths")
+    paths = [paths] if isinstance(paths, str) else paths
+    _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),
+            f"{name}: paths: expected a list of scene folders or pair lists, got {table.get('paths')!r}")
+    resolved = [p if Path(p).is_absolute() else str(path.parent / p) for p in paths]
+    size = table.get("size", "native")
+    _expect(isinstance(size, str), f"{name}: size: expected 'WxH' such as '320x240', or 'native', got {size!r}")
+    size_wh = None if size == "native" else parse_size(size, f"{name}: size")
+    batch_size = table.get("batch_size", DEFAULT_BATCH_SIZE)
+    _expect(isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1,
+            f"{name}: batch_size: expected a positive integer, got {batch_size!r}")
+    preset = table.get("preset", "default")
+    _expect(preset in PRESETS, f"{name}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
+    fixed = table.get("set", {})
+    _expect(isinstance(fixed, dict), f"{name}: set: expected a table of parameters, got {fixed!r}")
+    grid = table.get("grid", {})
+    _expect(isinstance(grid, dict), f"{name}: grid: expected a table of parameter lists, got {grid!r}")
+    entries = table.get("configs", [{}])
+    _expect(isinstance(entries, list) and entries and all(isinstance(e, dict) for e in entries),
+            f"{name}: configs: expected [[configs]] tables, got {entries!r}")
+    fixed = flatten_table(fixed)
+    make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
+    points = expand_grid(flatten_table(grid), f"{name}: grid")
+    configs = []
+    for number, entry in enumerate(entries, start=1):
+        entry = flatten_table(entry)
+        entry_preset = entry.pop("preset", preset)
+        source = f"{name}: configs[{number}]"
+        _expect(entry_preset in PRESETS, f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got "
+                                         f"{entry_preset!r}")
+        make_sweep_config(entry_preset, {**fixed, **entry}, size_wh, source=source)
+        for point in points:
+            varying = {**entry, **point}
+            label = describe_overrides(varying)
+            if entry_preset != preset:
+                label = f"preset={entry_preset} {label}"
+            configs.append(make_sweep_config(entry_preset, {**fixed, **varying}, size_wh, label, f"{name}: grid"))
+    sources = read_pair_sources(resolved, f"{name}: paths")
+    return make_sweep(sources, configs, size_wh, batch_size, path.read_text(encoding="utf-8"))
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: a configuration and a block of pairs, run as one batch.
+
+    ``threads``: torch threads in the worker (None: leave the process's setting)."""
+
+    config_id: str
+    config: PipelineConfig
+    size_wh: tuple[int, int] | None
+    sources: tuple[PairSource, ...]
+    threads: int | None = None
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """A task's ``(pair_id, evaluation)`` rows and its wall time in the worker."""
+
+    config_id: str
+    rows: list[tuple[str, PairEvaluation]] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def run_task(task: Task) -> TaskResult:
+    """Run one task (in a worker): load, run and score its block of pairs."""
+    if task.threads is not None:
+        import torch
+
+        if torch.get_num_threads() != task.threads:
+            torch.set_num_threads(task.threads)
+    started = time.perf_counter()
+    evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh))
+    return TaskResult(task.config_id, [(s.pair_id, e) for s, e in zip(task.sources, evaluations)],
+                      time.perf_counter() - started)
+
+
+def plan_tasks(sweep: Sweep, done: set[tuple[str, str]]) -> list[Task]:
+    """The tasks still to run: every block of ``batch_size`` pairs (fixed boundaries) of every configuration
+    with at least one (configuration, pair) row missing from ``done``."""
+    tasks = []
+    for config in sweep.configs:
+        for start in range(0, len(sweep.sources), sweep.batch_size):
+            block = sweep.sources[start:start + sweep.batch_size]
+            if any((config.config_id, s.pair_id) not in done for s in block):
+                tasks.append(Task(config.config_id, config.config, sweep.size_wh, block))
+    return tasks
+
+
+def code_version() -> str:
+    """``<package version>+git.<commit>[-dirty]`` where the package is a git checkout, else the version."""
+    from .. import __version__
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+    return f"{__version__}+git.{commit[:12]}{'-dirty' if dirty else ''}"
+
+
+def environment(executor: str, workers: int, threads: int | None) -> dict:
+    """What the results were computed with: versions, machine, executor."""
+    import cv2
+    import numpy
+    import torch
+
+    return {"python": platform.python_version(), "platform": platform.platform(), "machine": platform.machine(),
+            "cpus": available_cores(), "torch": torch.__version__, "numpy": numpy.__version__, "opencv": cv2.__version__,
+            "executor": executor, "workers": workers, "threads_per_worker": threads}
+
+
+@dataclass(frozen=True)
+class SweepOutcome:
+    """What a run did: tasks run, rows written, rows that were already stored, and the run's id."""
+
+    tasks: int
+    rows_written: int
+    rows_already_done: int
+    run_id: int
+
+
+def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, scheduler: str | None = None,
+              on_task: Callable[[TaskResult], None] | None = None, warn: Callable[[str], None] | None = None,
+              command: str = "sweep", threads: int | None = None,
+              on_start: Callable[[int, int], None] | None = None) -> SweepOutcome:
+    """Run the missing part of ``sweep`` into the store ``db`` (created if needed).
+
+    Args:
+        workers: local worker processes (default: one per core, at most one per task); 0 runs the tasks in
+            this process. Ignored with ``scheduler``.
+        scheduler: a Dask scheduler address: run the tasks on that cluster.
+        on_task: called with each finished task's result after its rows are committed (progress).
+        warn: receives one-line warnings (default: stderr).
+        threads: torch threads per worker (default: ``cores // workers`` locally, 1 on Dask).
+        on_start: called once with (rows to run, rows already stored) before any task runs.
+    """
+    warn = warn or (lambda message: print(f"warning: {message}", file=sys.stderr))
+    with ResultStore(db) as store:
+        store.add_configs(c.record() for c in sweep.configs)
+        store.add_pairs(sweep.sources)
+        done = store.done([c.config_id for c in sweep.configs])
+        if scheduler:
+            executor, count, threads = "dask", 0, threads or 1
+        else:
+            count = available_cores() if workers is None else workers
+            executor = "in-process" if count == 0 else "local-processes"
+        tasks = plan_tasks(sweep, done)
+        if not scheduler and count:
+            count = min(count, max(1, len(tasks)))
+            threads = threads or max(1, available_cores() // count)
+        tasks = [dataclasses.replace(task, threads=threads) for task in tasks]
+        client = connect_dask(scheduler, warn) if scheduler and tasks else None
+        version = code_version()
+        previous = [v for v in store.code_versions() if v != version]
+        if previous and tasks:
+            warn(f"{db} holds rows from other code versions ({', '.join(previous)}); this run is {version}")
+        run_id = store.start_run(command, version, environment(executor, count, threads), sweep.text)
+        if on_start is not None:
+            on_start(sum(len(t.sources) for t in tasks), len(done))
+        if not tasks:
+            return SweepOutcome(0, 0, len(done), run_id)
+        if client is not None:
+            results = map_dask(client, run_task, tasks)
+        elif count == 0:
+            results = map(run_task, tasks)
+        else:
+            results = map_process_pool(run_task, tasks, count, threads)
+        written = 0
+        for result in results:
+            written += store.write_task(result.config_id, run_id, result.rows)
+            if on_task is not None:
+                on_task(result)
+        return SweepOutcome(len(tasks), written, len(done), run_id)

@@ -1,0 +1,278 @@
+"""svs_torch.evaluation: Eq. (9) scores and disparity errors against hand-computed values and against
+experiments/paper_table1.py; configuration overrides; pair lists; the eval command."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO_ROOT
+from svs_torch.checks import InputError
+from svs_torch.cli import main
+from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, read_pair_sources
+from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors, evaluate_block,
+                                  object_truth, score_pair, sparse_disparity_errors, summarize,
+                                  with_nominal_calibration)
+from svs_torch.evaluation.overrides import apply_overrides, parse_assignment, resolve_config
+from svs_torch.matching import MatchRefinementConfig
+from svs_torch.pipeline import PipelineConfig
+from svs_torch.types import StereoBatch
+
+sys.path.insert(0, str(REPO_ROOT / "experiments"))
+import paper_table1  # noqa: E402
+
+#: True R_min / R_max printed by experiments/paper_table1.py before its scoring moved into svs_torch.evaluation
+#: (commit b75b511, width 320, default segmentation). Cones has no calibration: nominal f·B, the same for both.
+RECORDED_TRUTH = {"middlebury_eval3_Q/ArtL": (1.4997491836547852, 1.7548385858535767),
+                  "middlebury_2003_quarter/Cones": (4.050084114074707, 9.498412132263184)}
+
+
+def test_accuracy_is_equation_9_floored_at_zero():
+    assert accuracy_pct(2.0, 1.9) == pytest.approx(95.0)
+    assert accuracy_pct(2.0, 2.1) == pytest.approx(95.0)
+    assert accuracy_pct(2.0, 2.0) == 100.0
+    assert accuracy_pct(2.0, None) == 0.0  # a failed estimate counts 0 %, never hidden
+    assert accuracy_pct(1.0, 3.5) == 0.0  # worse than 0 % is 0 %
+
+
+def test_score_pair_by_hand():
+    # Truth: slot 0 at 2.0 m, slot 1 at 1.0 m; the estimate misses slot 1 and puts R_min at 1.1 m.
+    score = score_pair([(0, 2.0), (1, 1.0)], PairEstimate("OK", 1.1, 2.0, [1.9, None]))
+    assert (score.real_r_min_m, score.real_r_max_m) == (1.0, 2.0)
+    assert score.acc_r_min_pct == pytest.approx(90.0) and score.acc_r_max_pct == pytest.approx(100.0)
+    assert score.acc_objects_pct == pytest.approx((95.0 + 0.0) / 2)
+    assert [o["acc_pct"] for o in score.objects] == pytest.approx([95.0, 0.0]) and score.num_objects == 2
+    empty = score_pair([], PairEstimate("NO_OBJECTS", None, None, []))
+    assert empty.acc_r_min_pct is None and empty.num_objects == 0
+
+
+def _handmade_batch() -> tuple[StereoBatch, SimpleNamespace]:
+    """Two 4×6 pairs, f·B = 10 m·px, doffs 0; label 1 covers columns 0–2, label 2 columns 3–5."""
+    disparity = torch.tensor([[1.0, 2.0, 4.0, 5.0, 5.0, 5.0]] * 4).expand(2, 1, 4, 6).clone()
+    disparity[1] *= 2
+    valid = torch.ones_like(disparity, dtype=torch.bool)
+    valid[0, 0, :, 2] = False  # pair 0: region 1 keeps d = 1 and 2 only
+    image = torch.rand(2, 1, 4, 6, generator=torch.Generator().manual_seed(0))
+    batch = StereoBatch.from_images(image, image, 10.0, 1.0, 0.0, True, disparity, valid)
+    labels = torch.tensor([[1, 1, 1, 2, 2, 2]] * 4).expand(2, 1, 4, 6).clone()
+    # Pair 1 keeps only region 2 (slot 1 is padding, -1).
+    segmentation = SimpleNamespace(labels=labels, kept_labels=torch.tensor([[1, 2], [2, -1]]),
+                                   kept_mask=labels > 0)
+    return batch, segmentation
+
+
+def test_object_truth_is_the_lower_median_of_the_region_depth():
+    batch, segmentation = _handmade_batch()
+    truth = object_truth(batch, segmentation)
+    # Pair 0, region 1: depths 10/1 and 10/2 on 4 rows each -> 8 values, lower median 5.0 (torch.median's);
+    # region 2: d = 5 everywhere -> 2.0. Pair 1: region 2 at d = 10 -> 1.0; slot 1 empty.
+    assert torch.allclose(truth.depth_m, torch.tensor([[5.0, 2.0], [1.0, 0.0]]))
+    assert truth.num_px.tolist() == [[8, 12], [12, 0]] and truth.valid.tolist() == [[True, True], [True, False]]
+    values = np.sort(np.r_[[10.0] * 4, [5.0] * 4])
+    assert truth.depth_m[0, 0] == values[(len(values) - 1) // 2]  # numpy, independently
+    single = object_truth(batch.select([1]), SimpleNamespace(labels=segmentation.labels[1:],
+                                                             kept_labels=segmentation.kept_labels[1:]))
+    assert torch.equal(single.depth_m, truth.depth_m[1:])  # batched equals per pair
+
+
+def test_disparity_errors_by_hand():
+    batch, segmentation = _handmade_batch()
+    dense_disparity = batch.disparity_px.clone()
+    dense_disparity[0, 0, 0, :3] += torch.tensor([0.5, 2.0, 4.0])  # three wrong pixels in pair 0
+    dense = SimpleNamespace(disparity_px=dense_disparity, valid=torch.ones_like(batch.disparity_valid))
+    result = SimpleNamespace(dense=dense, rectified=torch.tensor([False, True]),
+                             segmentation=SimpleNamespace(left=segmentation))
+    errors = dense_disparity_errors(batch, result)
+    # Pair 0: 24 pixels, 20 with known GT (column 2 unknown, so the +4 px pixel does not count): errors
+    # 0.5, 2.0 and 18 zeros -> lower median 0, 19 of 20 within 1 px, all within 3 px. Pair 1 is rectified: none.
+    assert errors.count.tolist() == [20, 0] and errors.valid.tolist() == [True, False]
+    assert errors.median_px[0] == 0.0
+    assert errors.within_1px[0] == pytest.approx(19 / 20) and errors.within_3px[0] == pytest.approx(1.0)
+    # Sparse: three inliers in pair 0 at (x, y) = (1, 0), (3, 1), (4, 2) with disparity errors 0.5, 2, 4 and
+    # one of them 2 px off its row; a fourth match is no inlier.
+    left = torch.tensor([[[1.0, 0.0], [3.0, 1.0], [4.0, 2.0], [5.0, 3.0]]]).expand(2, 4, 2).clone()
+    right = left.clone()
+    right[..., 0] -= torch.tensor([2.0 + 0.5, 5.0 + 2.0, 5.0 + 4.0, 5.0])
+    right[0, 0, 1] += 2.0  # right disparity, wrong row: not a correct correspondence
+    points = SimpleNamespace(left=left, right=right, valid=torch.ones(2, 4, dtype=torch.bool))
+    inliers = torch.tensor([[True, True, True, False], [False] * 4])
+    sparse = sparse_disparity_errors(batch, SimpleNamespace(points=points,
+                                                            fundamental=SimpleNamespace(inliers=inliers)))
+    assert sparse.count.tolist() == [3, 0]
+    assert sparse.median_px[0] == pytest.approx(2.0)
+    assert sparse.within_1px[0] == pytest.approx(1 / 3) and sparse.within_3px[0] == pytest.approx(2 / 3)
+    assert sparse.precision[0] == pytest.approx(0.0)  # the one within 1 px is off its row
+
+
+def test_nominal_calibration_only_for_pairs_without_one(data_dir):
+    cones = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Cones")
+    teddy = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Teddy")
+    assert not bool(cones.calibrated[0]) and bool(teddy.calibrated[0])
+    nominal = with_nominal_calibration(cones)
+    assert nominal.focal_px.tolist() == pytest.approx([3740 / 3]) and nominal.baseline_m.tolist() == [
+        pytest.approx(0.16)] and bool(nominal.calibrated[0])
+    same = with_nominal_calibration(teddy)
+    assert torch.equal(same.focal_px, teddy.focal_px) and torch.equal(same.doffs_px, teddy.doffs_px)
+
+
+@pytest.mark.parametrize("scene", sorted(RECORDED_TRUTH))
+def test_eval_agrees_with_paper_table1(data_dir, scene):
+    """The library's scores equal Table 1's rows for the same scene, size and configuration, and its truth
+    equals the numbers paper_table1.py printed before it used the library."""
+    path = data_dir / scene
+    height, width = load_stereo_pair(path).size_hw
+    size = (320, round(height * 320 / width))  # paper_table1's "320": width 320, aspect kept
+    rows = {r["method"]: r for r in paper_table1.run({"tuned": [path]}, ["320"], progress=False)}
+    for method, config in (("svs_torch default (dense)", PipelineConfig()),
+                           ("paper (MATLAB defaults, Eq. 5-8)", PipelineConfig.paper())):
+        evaluation = evaluate_block(read_pair_sources([path]), EvalSetup(config, size))[0]
+        row = rows[method]
+        assert (evaluation.real_r_min_m, evaluation.real_r_max_m) == pytest.approx(RECORDED_TRUTH[scene], rel=1e-6)
+        assert evaluation.real_r_min_m == row["real_r_min_m"] and evaluation.r_min_m == row["r_min_m"]
+        for key, table_key in (("acc_r_min_pct", "acc_r_min"), ("acc_r_max_pct", "acc_r_max"),
+                               ("acc_objects_pct", "acc_objects")):
+            assert getattr(evaluation, key) == row[table_key], (method, key)
+        expected = max(0.0, (1 - abs(evaluation.real_r_min_m - evaluation.r_min_m) / evaluation.real_r_min_m)) * 100
+        assert evaluation.acc_r_min_pct == pytest.approx(expected)
+
+
+def test_summary_counts_failures_at_zero_percent():
+    from svs_torch.evaluation import PairEvaluation
+
+    rows = [PairEvaluation("a", "OK", has_truth=True, acc_r_min_pct=90.0, acc_r_max_pct=80.0, acc_objects_pct=85.0,
+                           time_s=0.2),
+            PairEvaluation("b", "NO_OBJECTS", has_truth=True, time_s=0.2),
+            PairEvaluation("c", "BAD_INPUT", reason="unreadable")]
+    summary = summarize(rows, wall_s=1.5)
+    assert (summary["pairs"], summary["failed"], summary["scored"]) == (3, 2, 2)
+    assert summary["acc_r_min_pct"] == pytest.approx(45.0) and summary["acc_objects_pct"] == pytest.approx(42.5)
+    assert summary["pairs_per_s"] == pytest.approx(2.0) and summary["pipeline_s_per_pair"] == pytest.approx(0.2)
+    assert [f["name"] for f in summary["failures"]] == ["b", "c"]
+
+
+# --- configuration overrides ---------------------------------------------------------------------------------
+
+def test_overrides_set_nested_fields_with_their_types():
+    base = PipelineConfig()
+    config = apply_overrides(base, dict([parse_assignment("segmentation.kernel_size=7"),
+                                         parse_assignment("max_ratio=0.7"), parse_assignment("mutual=true"),
+                                         parse_assignment("rectify=off"), parse_assignment("epipolar_band_px=none"),
+                                         parse_assignment("depth.object_percentiles=[5, 95]"),
+                                         parse_assignment("surf.metric_threshold=300")]))
+    assert config.segmentation.kernel_size == 7 and config.max_ratio == 0.7 and config.mutual is True
+    assert config.rectify == "off" and config.epipolar_band_px is None
+    assert config.depth.object_percentiles == (5.0, 95.0) and config.surf.metric_threshold == 300.0
+    assert config.segmentation.num_keep == base.segmentation.num_keep and base.segmentation.kernel_size == 5
+    assert apply_overrides(base, {"refine_matches": False}).refine_matches is None
+    paper = apply_overrides(PipelineConfig.paper(), {"refine_matches.min_correlation": 0.5})
+    assert paper.refine_matches == MatchRefinementConfig(min_correlation=0.5)  # turned on from its defaults
+    assert apply_overrides(base, {}) == base
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"segmentation.kernal_size": 7}, "unknown parameter 'segmentation.kernal_size' (did you mean "
+                                      "segmentation.kernel_size"),
+    ({"segmentation.kernel_size": "abc"}, "segmentation.kernel_size: expected an integer, got 'abc'"),
+    ({"segmentation.kernel_size": 0}, "segmentation.kernel_size = 0: kernel_size: expected a positive integer"),
+    ({"max_ratio": float("inf")}, "max_ratio: expected a finite number, got inf"),
+    ({"max_ratio": True}, "max_ratio: expected a finite number, got True"),
+    ({"rectify": "sometimes"}, "rectify: expected one of 'auto', 'required', 'off', got 'sometimes'"),
+    ({"depth.object_percentiles": [5]}, "depth.object_percentiles: expected a list of 2 numbers"),
+    ({"segmentation": 3}, "segmentation: expected its fields as dotted keys"),
+    ({"refine_matches": 3}, "refine_matches: expected true or false"),
+])
+def test_bad_overrides_name_the_key(overrides, message):
+    with pytest.raises(InputError) as error:
+        apply_overrides(PipelineConfig(), overrides, "--set")
+    assert message in str(error.value) and str(error.value).startswith("--set: ")
+
+
+def test_config_file_then_set(tmp_path):
+    path = tmp_path / "config.toml"
+    path.write_text('preset = "paper"\nmax_ratio = 0.7\n"dense.window_size" = 7\n[segmentation]\nkernel_size = 3\n')
+    config, preset, overrides = resolve_config(config_file=path, assignments=["max_ratio=0.75"])
+    assert preset == "paper" and config.depth.rule == "paper" and config.refine_matches is None
+    assert config.max_ratio == 0.75 and config.dense.window_size == 7 and config.segmentation.kernel_size == 3
+    assert overrides == {"max_ratio": 0.75, "dense.window_size": 7, "segmentation.kernel_size": 3}
+    path.write_text("[segmentation]\nkernel = 3\n")
+    with pytest.raises(InputError, match="unknown parameter 'segmentation.kernel'"):
+        resolve_config(config_file=path)
+    with pytest.raises(InputError, match="--set: expected KEY=VALUE"):
+        parse_assignment("max_ratio")
+
+
+# --- pair lists ----------------------------------------------------------------------------------------------
+
+def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"# a comment\n{teddy}\n{teddy / 'im0.png'} {teddy / 'im1.png'}\n"
+                       f"{teddy / 'im0.png'} {teddy / 'im1.png'} 1500 0.08 52\n"
+                       f"a.png b.png 1500\n{teddy / 'im0.png'} {teddy / 'im1.png'} abc 0.08\n"
+                       f"{teddy / 'im0.png'} {teddy / 'im1.png'} 1500 -1\n{data_dir / 'middlebury_2003_quarter'}\n")
+    sources = read_pair_list(listing)
+    assert [s.scene for s in sources] == [True, False, False, False, False, False, True, True]
+    problems = [s.problem for s in sources]
+    assert problems[:3] == [None] * 3 and problems[6:] == [None] * 2
+    assert "line 5" in problems[3] and "got 3 fields" in problems[3]
+    assert "line 6" in problems[4] and "FOCAL_PX: expected a finite positive number, got 'abc'" in problems[4]
+    assert "BASELINE_M: expected a finite positive number, got '-1'" in problems[5]
+    scene, plain, calibrated = (load_pair_source(s) for s in sources[:3])
+    assert scene.focal_px.tolist() == pytest.approx([1500.0]) and scene.disparity_px is not None
+    assert not bool(plain.calibrated[0]) and plain.focal_px.tolist() != pytest.approx([1500.0])  # the SVS model
+    assert calibrated.focal_px.tolist() == pytest.approx([1500.0]) and calibrated.doffs_px.tolist() == [52.0]
+    with pytest.raises(InputError, match="FOCAL_PX"):
+        load_pair_source(sources[4])
+    index = tmp_path / "index.jsonl"
+    index.write_text('{"index": 0, "left": "l.jpg", "right": "r.jpg", "width": 320}\nnot json\n')
+    entries = read_pair_list(index)
+    assert entries[0].left == str(tmp_path / "l.jpg") and entries[0].problem is None
+    assert "line 2" in entries[1].problem
+    with pytest.raises(InputError, match="no such file or folder"):
+        read_pair_sources([tmp_path / "missing"])
+    assert [s.name for s in read_pair_sources([data_dir / "middlebury_2003_quarter"])] == [
+        "middlebury_2003_quarter/Cones", "middlebury_2003_quarter/Teddy"]
+
+
+def test_estimate_pairs_reads_scenes_and_index(data_dir, tmp_path, capsys):
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy}\nmissing.png other.png\n")
+    code = main(["estimate", "--pairs", str(listing), "--size", "160x120", "--json"])
+    out, err = capsys.readouterr()
+    lines = [json.loads(line) for line in out.strip().splitlines()]
+    assert code == 2 and "1 of 2 pairs are BAD_INPUT" in err  # the bad pair has its line; the scene ran
+    assert lines[0]["status"] == "OK" and 1.2 < lines[0]["r_min_m"] < 1.6  # its own calibration, not the SVS's
+    assert lines[1]["status"] == "BAD_INPUT" and "missing.png" in lines[1]["reason"]
+
+
+# --- the eval command ----------------------------------------------------------------------------------------
+
+def test_eval_command_json_summary_and_failures(data_dir, tmp_path, capsys):
+    scenes = data_dir / "middlebury_eval3_Q"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{scenes / 'Teddy'}\n{scenes / 'ArtL'}\nnot-a-pair.png\n")
+    db = tmp_path / "eval.sqlite"
+    code = main(["eval", str(listing), "--size", "160x120", "--json", "--db", str(db), "--set", "seed=1"])
+    out, err = capsys.readouterr()
+    lines = [json.loads(line) for line in out.strip().splitlines()]
+    summary = lines[-1]
+    assert code == 0 and "eval" in err and "3/3" in err  # the progress bar on stderr
+    assert {"pairs", "failed", "acc_r_min_pct", "acc_r_max_pct", "acc_objects_pct", "pairs_per_s"} <= set(summary)
+    assert (summary["pairs"], summary["failed"], summary["scored"]) == (3, 1, 2)
+    assert summary["failures"][0]["status"] == "BAD_INPUT" and summary["pairs_per_s"] > 0
+    assert [line["status"] for line in lines[:-1]] == ["OK", "OK", "BAD_INPUT"]
+    assert all(80 < line["acc_objects_pct"] <= 100 for line in lines[:2])
+    code = main(["results", str(db), "--csv"])
+    header = capsys.readouterr().out.splitlines()[0].split(",")
+    assert code == 0 and header[:8] == ["config", "left", "right", "status", "r_min_m", "r_max_m",
+                                        "acc_r_min_pct", "acc_r_max_pct"]
+    code = main(["eval", str(listing), "--set", "segmentation.kernal_size=3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "unknown parameter 'segmentation.kernal_size'" in err[0]

@@ -1,0 +1,207 @@
+"""svs-depth sweep: bad sweep files fail before any work; a sweep killed with SIGKILL resumes to the rows of an
+uninterrupted run; Dask gives the same rows as the local process pool; svs-depth results reads them."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from svs_torch.checks import InputError
+from svs_torch.cli import main
+from svs_torch.evaluation.sweep import load_sweep, plan_tasks, run_sweep
+
+#: Four MiddEval3 scenes at 160x120, three configurations, one pair per task: 12 rows, 12 tasks.
+SCENES = ("Teddy", "ArtL", "Piano", "Motorcycle")
+SWEEP = """\
+paths = [{paths}]
+size = "160x120"
+batch_size = 1
+[grid]
+"segmentation.kernel_size" = [3, 5, 7]
+"""
+TOTAL_ROWS = 12
+#: Columns that legitimately differ between runs (wall time, which run wrote the row).
+VOLATILE = ("time_s", "run_id")
+
+
+def write_sweep(folder: Path, data_dir: Path, text: str = SWEEP) -> Path:
+    paths = ", ".join(f'"{data_dir / "middlebury_eval3_Q" / name}"' for name in SCENES)
+    path = folder / "sweep.toml"
+    path.write_text(text.format(paths=paths))
+    return path
+
+
+def stored_rows(db: Path) -> dict[tuple[str, str], dict]:
+    connection = sqlite3.connect(db)
+    connection.row_factory = sqlite3.Row
+    try:
+        rows = connection.execute("SELECT * FROM results").fetchall()
+    finally:
+        connection.close()
+    return {(r["config_id"], r["pair_id"]): {k: r[k] for k in r.keys() if k not in VOLATILE} for r in rows}
+
+
+def count_rows(db: Path) -> int:
+    if not db.exists():
+        return 0
+    connection = sqlite3.connect(db, timeout=10)
+    try:
+        return connection.execute("SELECT count(*) FROM results").fetchone()[0]
+    except sqlite3.OperationalError:  # the schema is not written yet
+        return 0
+    finally:
+        connection.close()
+
+
+@pytest.fixture(scope="module")
+def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
+    """An uninterrupted sweep with the default executor (local process pool, two workers)."""
+    folder = tmp_path_factory.mktemp("reference")
+    sweep_file = write_sweep(folder, data_dir)
+    outcome = run_sweep(load_sweep(sweep_file), folder / "reference.sqlite", workers=2, warn=pytest.fail)
+    assert (outcome.tasks, outcome.rows_written) == (TOTAL_ROWS, TOTAL_ROWS)
+    return sweep_file, folder / "reference.sqlite"
+
+
+@pytest.mark.parametrize("text, message", [
+    ('paths = ["."]\nsizes = "320x240"\n', "unknown key 'sizes'"),
+    ('paths = ["."]\n[grid]\n"segmentation.kernal_size" = [3]\n', "grid: unknown parameter 'segmentation.kernal_size'"),
+    ('paths = ["."]\n[grid]\n"segmentation.kernel_size" = [3, 0]\n',
+     "grid: segmentation.kernel_size = 0: kernel_size: expected a positive integer"),
+    ('paths = ["."]\n[grid]\n"max_ratio" = ["high"]\n', "grid: max_ratio: expected a finite number, got 'high'"),
+    ('paths = ["."]\n[grid]\n"max_ratio" = 0.6\n', "grid: max_ratio: expected a non-empty list of values"),
+    ('paths = ["."]\n[set]\n"dense.window_size" = 8\n', "set: dense.window_size = 8: window_size: expected an odd"),
+    ('paths = ["no/such/folder"]\n', "paths: no such file or folder"),
+    ('paths = ["."]\nsize = "320 by 240"\n', "size: expected WIDTHxHEIGHT"),
+    ('paths = ["."]\npreset = "fast"\n', "preset: expected one of 'default', 'paper'"),
+    ("paths = [\n", "not valid TOML"),
+])
+def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, message):
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text(text.replace('"."', f'"{data_dir / "middlebury_eval3_Q" / "Teddy"}"'))
+    with pytest.raises(InputError, match="^" + str(sweep_file).replace(".", r"\.")):
+        load_sweep(sweep_file)
+    db = tmp_path / "results.sqlite"
+    code = main(["sweep", str(sweep_file), "--db", str(db)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+    assert not db.exists()  # nothing started
+
+
+def test_plan_skips_blocks_that_are_stored(data_dir, tmp_path):
+    sweep = load_sweep(write_sweep(tmp_path, data_dir, SWEEP.replace("batch_size = 1", "batch_size = 3")))
+    assert [len(t.sources) for t in plan_tasks(sweep, set())] == [3, 1] * 3
+    first = sweep.configs[0].config_id
+    done = {(first, s.pair_id) for s in sweep.sources[:3]} | {(first, sweep.sources[3].pair_id)}
+    tasks = plan_tasks(sweep, done | {(sweep.configs[1].config_id, sweep.sources[0].pair_id)})
+    # Config 0 is complete; config 1's first block is partly stored and runs whole (the same batch as before).
+    assert [(t.config_id, len(t.sources)) for t in tasks] == [(sweep.configs[1].config_id, 3),
+                                                               (sweep.configs[1].config_id, 1),
+                                                               (sweep.configs[2].config_id, 3),
+                                                               (sweep.configs[2].config_id, 1)]
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid`` (from /proc)."""
+    children = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                children.append(int(entry.name))
+    return children
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc to find the worker processes")
+def test_sweep_killed_with_sigkill_resumes_to_the_uninterrupted_rows(reference, tmp_path):
+    sweep_file, reference_db = reference
+    db = tmp_path / "killed.sqlite"
+    command = [sys.executable, "-m", "svs_torch.cli", "sweep", str(sweep_file), "--db", str(db)]
+    process = subprocess.Popen(command + ["--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while count_rows(db) < 2 and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        workers = _children(process.pid)
+        os.kill(process.pid, signal.SIGKILL)  # the sweep itself, mid-run: no handler, no clean-up
+        process.wait()
+        before = count_rows(db)
+        assert 2 <= before < TOTAL_ROWS, f"not killed mid-run: {before} rows"
+        gone = time.monotonic() + 10
+        while any(_alive(pid) for pid in workers) and time.monotonic() < gone:
+            time.sleep(0.1)
+        assert not any(_alive(pid) for pid in workers), "a worker outlived its killed sweep"
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert sqlite3.connect(db).execute("PRAGMA integrity_check").fetchone() == ("ok",)
+    resumed = subprocess.run(command + ["--workers", "0", "--json"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    report = json.loads(resumed.stdout.strip().splitlines()[-1])
+    # Only the missing rows ran; every row is there once; the values equal the uninterrupted run's.
+    assert report["rows_written"] == TOTAL_ROWS - before and report["rows_stored"] == TOTAL_ROWS
+    assert f"{before} rows already in" in resumed.stderr
+    rows = stored_rows(db)
+    assert len(rows) == TOTAL_ROWS == count_rows(db)
+    assert rows == stored_rows(reference_db)
+    assert {r["status"] for r in rows.values()} == {"OK"}
+
+
+def test_dask_cluster_gives_the_rows_of_the_local_pool(reference, tmp_path):
+    distributed = pytest.importorskip("distributed", reason="Dask distributed is not installed: "
+                                                            "pip install -e '.[dask]' runs this test")
+    import dask
+
+    sweep_file, reference_db = reference
+    warnings: list[str] = []
+    # As experiments/dask_workers.yaml does for real workers: no MALLOC_TRIM_THRESHOLD_ from the nanny.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True,
+                                      dashboard_address=":0") as cluster:
+            assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+            db = tmp_path / "dask.sqlite"
+            outcome = run_sweep(load_sweep(sweep_file), db, scheduler=cluster.scheduler_address,
+                                warn=warnings.append)
+    assert outcome.rows_written == TOTAL_ROWS and warnings == []
+    assert stored_rows(db) == stored_rows(reference_db)
+    environment = json.loads(sqlite3.connect(db).execute("SELECT environment FROM runs").fetchone()[0])
+    assert environment["executor"] == "dask" and environment["threads_per_worker"] == 1
+
+
+def test_results_summary_csv_and_plot(reference, tmp_path, capsys):
+    _, db = reference
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert "3 configurations" in out and "best by each metric:" in out and "segmentation.kernel_size=5" in out
+    csv_path, figure = tmp_path / "rows.csv", tmp_path / "sweep.png"
+    assert main(["results", str(db), "--csv", str(csv_path), "--plot", str(figure)]) == 0
+    lines = csv_path.read_text().splitlines()
+    assert len(lines) == 1 + TOTAL_ROWS
+    assert lines[0].startswith("config,left,right,status,r_min_m,r_max_m,acc_r_min_pct,acc_r_max_pct,label,size,"
+                               "param:segmentation.kernel_size,")
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["results", str(db), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert len(summary["configs"]) == 3 and all(c["pairs"] == 4 for c in summary["configs"])
+    assert main(["results", str(tmp_path / "none.sqlite")]) == 2
+    assert "expected a results file" in capsys.readouterr().err
