@@ -238,6 +238,10 @@ def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
         read_pair_sources([tmp_path / "missing"])
     assert [s.name for s in read_pair_sources([data_dir / "middlebury_2003_quarter"])] == [
         "middlebury_2003_quarter/Cones", "middlebury_2003_quarter/Teddy"]
+    from svs_torch.data import list_shared_pairs
+
+    # The shared data folder stands for all its pairs (not only the scene folders directly inside it).
+    assert [s.left for s in read_pair_sources([data_dir])] == [str(p) for p in list_shared_pairs(data_dir)]
 
 
 def test_estimate_pairs_reads_scenes_and_index(data_dir, tmp_path, capsys):

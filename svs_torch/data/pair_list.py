@@ -118,11 +118,11 @@ def _scenes_in(folder: Path) -> list[PairSource]:
     """The scenes a folder stands for: itself, its scene sub-folders, or the shared data folder's pairs."""
     if detect_stereo_layout(folder):
         return [PairSource(left=str(folder), scene=True)]
+    shared = list_shared_pairs(folder)  # the shared data folder: its data sets' own layout
+    if shared:
+        return [PairSource(left=str(path), scene=True) for path in shared]
     children = sorted(child for child in folder.iterdir() if child.is_dir())
-    scenes = [PairSource(left=str(child), scene=True) for child in children if detect_stereo_layout(child)]
-    if scenes:
-        return scenes
-    return [PairSource(left=str(path), scene=True) for path in list_shared_pairs(folder)]
+    return [PairSource(left=str(child), scene=True) for child in children if detect_stereo_layout(child)]
 
 
 def _is_kitti_left(path: Path) -> bool:
