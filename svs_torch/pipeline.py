@@ -20,6 +20,7 @@ from .dense_depth import dense_object_depths, range_from_objects
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
+from .learned_segmentation import segment_stereo_learned
 from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
                        refine_matched_points)
 from .ransac import estimate_fundamental_ransac
@@ -54,7 +55,7 @@ class PipelineConfig:
 
     Attributes:
         segmentation: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions; ``method="canny"`` for the
-            paper's comparison row).
+            paper's comparison row; ``segmenter="learned"`` for the network of issue 13).
         surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
             ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
             weak ones that do not hold.
@@ -287,6 +288,13 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     return DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects)), dense
 
 
+def _segment(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+    """Otsu (the paper, Sec. 3.2) or the learned segmenter, by ``config.segmenter``; both give the same structure."""
+    if config.segmenter == "otsu":
+        return segment_stereo(batch, config)
+    return segment_stereo_learned(batch, config)
+
+
 def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig()) -> PipelineResult:
     """Range the obstacles of every pair of a stereo batch.
 
@@ -307,7 +315,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         timings[stage] = now - clock
         clock = now
 
-    seg = segment_stereo(batch, config.segmentation)
+    seg = _segment(batch, config.segmentation)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

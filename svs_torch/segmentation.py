@@ -40,6 +40,11 @@ class SegmentationConfig:
             below it, for dark obstacles on a bright background.
         method: ``"otsu"`` (the paper's pre-processing: Otsu threshold, erosion, dilation) or ``"canny"`` (the
             paper's comparison variant: Canny edges, dilation, erosion; :mod:`svs_torch.canny`).
+        segmenter: which segmenter the pipeline runs: ``"otsu"`` (this module, by ``method``), ``"learned"``
+            (the network shipped in ``svs_torch/weights/``, :mod:`svs_torch.learned_segmentation`) or
+            ``"learned:PATH"`` (weights written by ``experiments/train_segmentation.py``). The learned one
+            replaces the threshold (``method`` and ``foreground`` then do nothing) and keeps the opening,
+            ``connectivity`` and ``num_keep``.
     """
 
     kernel_size: int = 5  # pixels; not stated in the paper, see above
@@ -48,6 +53,7 @@ class SegmentationConfig:
     connectivity: int = 8  # Sec. 3.2 step 4, MATLAB default
     foreground: Literal["bright", "dark"] = "bright"  # Sec. 3.2 step 2, im2bw
     method: Literal["otsu", "canny"] = "otsu"  # Sec. 3.2; "canny" is the paper's comparison row
+    segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_size, int) or self.kernel_size < 1:
@@ -60,6 +66,10 @@ class SegmentationConfig:
             raise InputError(f"foreground: expected 'bright' or 'dark', got {self.foreground!r}")
         if self.method not in ("otsu", "canny"):
             raise InputError(f"method: expected 'otsu' or 'canny', got {self.method!r}")
+        if not (isinstance(self.segmenter, str) and (self.segmenter in ("otsu", "learned")
+                                                     or (self.segmenter.startswith("learned:")
+                                                         and len(self.segmenter) > len("learned:")))):
+            raise InputError(f"segmenter: expected 'otsu', 'learned' or 'learned:PATH', got {self.segmenter!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
 
 

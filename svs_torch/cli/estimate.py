@@ -9,7 +9,7 @@ import time
 from .common import (add_figure_option, dumps_strict, finite_float, non_negative_int, positive_float, positive_int,
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
-from .segment import add_segmentation_options
+from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
 
@@ -66,6 +66,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
     add_pair_options(parser)
     add_segmentation_options(parser)
+    add_segmenter_option(parser)
     parser.add_argument("--canny", action="store_true", help="segment with Canny edges (the paper's comparison)")
     add_feature_options(parser)
     parser.add_argument("--range", choices=("dense", "paper"), dest="range_rule",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 from .common import add_figure_option, dumps_strict, positive_int
@@ -50,14 +51,34 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                         help="obstacles are darker than the background: keep pixels at or below the threshold")
 
 
+def segmenter_choice(text: str) -> str:
+    """argparse type: ``otsu``, ``learned`` or ``learned:PATH`` naming an existing weights file."""
+    if text in ("otsu", "learned"):
+        return text
+    if text.startswith("learned:") and len(text) > len("learned:"):
+        if not os.path.isfile(os.path.expanduser(text[len("learned:"):])):
+            raise argparse.ArgumentTypeError(f"no weights file at {text[len('learned:'):]!r}")
+        return text
+    raise argparse.ArgumentTypeError(f"expected otsu, learned or learned:PATH, got {text!r}")
+
+
+def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
+    """``--segmenter``, for the commands that run the whole pipeline."""
+    parser.add_argument("--segmenter", type=segmenter_choice, metavar="otsu|learned|learned:PATH",
+                        help="how obstacles are found: 'otsu' (default, the paper: the brightest large regions), "
+                             "'learned' (the network shipped with svs_torch: what is near, from both views), or "
+                             "'learned:PATH' (weights written by experiments/train_segmentation.py)")
+
+
 def config_from_args(args: argparse.Namespace, base=None):
     """The segmentation options over ``base`` (a ``SegmentationConfig``; default the class defaults)."""
     from dataclasses import replace
 
     from ..segmentation import SegmentationConfig
 
-    return replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
-                   connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
+    config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
+                     connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
+    return replace(config, segmenter=args.segmenter) if getattr(args, "segmenter", None) else config
 
 
 def image_report(seg, index: int) -> dict:

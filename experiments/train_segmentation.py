@@ -1,0 +1,266 @@
+"""Train the learned obstacle segmenter (svs_torch.learned_segmentation) through the depth, on the CPU in minutes.
+
+Data, all at 160×120 (the network's working width):
+- **real**: the ``tuned`` split of experiments/paper_table1.py (MiddEval3 quarter size), **minus ArtL and Teddy**:
+  they are the 2005 Art and 2003 Teddy scenes of the held-out split under other lighting or sampling, so
+  training on them would leak the held-out scenes. Each scene gives random crops at random scales (the scene
+  resized to 160–280 px wide, a 160×120 window) and whole views (resized to 160×120);
+- **synthetic**: :func:`svs_torch.data.synthetic.random_obstacle_scenes`, 1–3 boxes 0.7–2.5 m away before a wall
+  3–6 m away (exact masks and depths).
+Augmentation, drawn once per sample from a seeded ``torch.Generator``: gamma, contrast, brightness, intensity
+inversion (nearness must not be read from brightness: the synthetic boxes are brighter than their wall), a
+right-view exposure change (as MotorcycleE / PianoL), sensor noise, a vertical flip (rows stay epipolar lines).
+
+Truth of every sample: :func:`~svs_torch.learned_segmentation.obstacle_truth` of its GT disparity. Loss: binary
+cross-entropy + Dice on the opened near mask (the segmenter keeps the two largest regions itself, as the truth
+does), plus ``--depth-weight`` × the relative error ``|Z − Z_true| / Z_true`` of the nearest obstacle's depth
+through the soft path (soft region weights over the network's own kept regions, the soft-argmin disparity:
+:func:`~svs_torch.learned_segmentation.soft_object_depths`). The disparity does not depend on the network, so
+it is computed once per sample with the features.
+
+Writes the weights with their configuration, the training settings and the scenes used (default: the shipped
+file, svs_torch/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.py`` scores them on the held-out
+split.
+
+    python experiments/train_segmentation.py [--steps 700] [--batch-size 8] [--seed 0] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spinning OpenMP threads on a shared CPU
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from svs_torch.data import load_stereo_pair, resize_stereo_batch
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.evaluation import with_nominal_calibration
+from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, obstacle_truth,
+                                            save_obstacle_net, segment_learned, soft_object_depths,
+                                            stereo_features)
+from svs_torch.types import StereoBatch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from paper_table1 import split_scenes  # noqa: E402
+from run_metadata import run_metadata  # noqa: E402
+
+#: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
+HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
+CROP_WH = (160, 120)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training settings (recorded in the weights file)."""
+
+    steps: int = 700  # about 4 minutes on 2 cores
+    batch_size: int = 8
+    learning_rate: float = 3e-3  # AdamW, cosine decay to 0
+    weight_decay: float = 1e-4
+    depth_weight: float = 0.5  # × relative depth error of the nearest obstacle, beside BCE + Dice
+    crops_per_scene: int = 40  # random-scale 160×120 crops per real scene
+    views_per_scene: int = 8  # whole views per real scene (differently augmented)
+    num_synthetic: int = 384
+    seed: int = 0
+
+
+def train_scenes(data_dir: Path) -> list[Path]:
+    """The tuned split without the scenes that duplicate held-out ones."""
+    return [path for path in split_scenes(data_dir)["tuned"] if path.name not in HELD_OUT_DUPLICATES]
+
+
+def _uniform(generator: torch.Generator, low: float, high: float) -> float:
+    return low + (high - low) * float(torch.rand((), generator=generator))
+
+
+def crop_batch(batch: StereoBatch, x0: int, y0: int, width: int, height: int) -> StereoBatch:
+    """The window ``[x0, x0 + width) × [y0, y0 + height)`` of every pair (calibration unchanged: a crop moves
+    both principal points alike)."""
+    window = (..., slice(y0, y0 + height), slice(x0, x0 + width))
+    hw = torch.tensor([[height, width]]).expand(batch.batch_size, 2).clone()
+    return dataclasses.replace(batch, left=batch.left[window], right=batch.right[window], image_hw=hw,
+                               disparity_px=batch.disparity_px[window], disparity_valid=batch.disparity_valid[window])
+
+
+def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
+    """The scene resized to a random width in 160–280 px (high enough for 120 rows), then a random 160×120 crop."""
+    height, width = batch.size_hw
+    new_width = max(round(_uniform(generator, 160, 280)), math.ceil(CROP_WH[1] * width / height))
+    new_height = round(height * new_width / width)
+    scaled = resize_stereo_batch(batch, (new_width, new_height))
+    x0 = int(torch.randint(0, new_width - CROP_WH[0] + 1, (), generator=generator))
+    y0 = int(torch.randint(0, new_height - CROP_WH[1] + 1, (), generator=generator))
+    return crop_batch(scaled, x0, y0, *CROP_WH)
+
+
+def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
+    """Photometric changes (module docstring) and a vertical flip, one draw per call (B = 1)."""
+    def photometric(image: torch.Tensor, gamma: float, gain: float, offset: float) -> torch.Tensor:
+        return (image.clamp_min(0) ** gamma * gain + offset).clamp(0, 1)
+
+    gamma = math.exp(_uniform(generator, math.log(0.5), math.log(2.0)))
+    gain, offset = _uniform(generator, 0.6, 1.2), _uniform(generator, -0.15, 0.15)
+    left = photometric(batch.left, gamma, gain, offset)
+    right = photometric(batch.right, gamma, gain, offset)
+    right = (right * _uniform(generator, 0.85, 1.15) + _uniform(generator, -0.05, 0.05)).clamp(0, 1)
+    if float(torch.rand((), generator=generator)) < 0.35:
+        left, right = 1 - left, 1 - right
+    noise = _uniform(generator, 0.0, 0.02)
+    left = (left + noise * torch.randn(left.shape, generator=generator)).clamp(0, 1)
+    right = (right + noise * torch.randn(right.shape, generator=generator)).clamp(0, 1)
+    out = dataclasses.replace(batch, left=left, right=right)
+    if float(torch.rand((), generator=generator)) < 0.5:
+        out = dataclasses.replace(out, left=out.left.flip(-2), right=out.right.flip(-2),
+                                  disparity_px=out.disparity_px.flip(-2), disparity_valid=out.disparity_valid.flip(-2))
+    return out
+
+
+def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]:
+    """``count`` synthetic pairs of 1–3 boxes 0.7–2.5 m away before a wall 3–6 m away, 160×120."""
+    pairs = []
+    for _ in range(count):
+        scene = random_obstacle_scenes(1, int(torch.randint(1, 4, (), generator=generator)), size_wh=CROP_WH,
+                                       depth_range_m=(0.7, 2.5), background_depth_m=_uniform(generator, 3.0, 6.0),
+                                       noise_std=0.01, generator=generator)
+        pairs.append(scene.batch)
+    return pairs
+
+
+def real_pairs(scenes: list[Path], config: TrainConfig, generator: torch.Generator) -> list[StereoBatch]:
+    """Random crops and whole views of the real training scenes (module docstring)."""
+    pairs = []
+    for path in scenes:
+        batch = with_nominal_calibration(load_stereo_pair(path))
+        pairs += [random_crop(batch, generator) for _ in range(config.crops_per_scene)]
+        whole = resize_stereo_batch(batch, CROP_WH)
+        pairs += [whole] * config.views_per_scene
+    return pairs
+
+
+@dataclasses.dataclass
+class Pool:
+    """Training samples stacked, with what the loss needs: features, soft disparity, truth, calibration."""
+
+    features: torch.Tensor  # (S, 6, h, w)
+    disparity: torch.Tensor  # (S, 1, h, w)
+    target: torch.Tensor  # (S, 1, h, w) float: the opened near mask
+    nearest_m: torch.Tensor  # (S,)
+    nearest_valid: torch.Tensor  # (S,) bool
+    calibration: torch.Tensor  # (S, 3): focal_px, baseline_m, doffs_px
+    images: torch.Tensor  # (S, 1, h, w) left, for the hard segmentation's status
+
+
+def build_pool(pairs: list[StereoBatch], net_config: ObstacleNetConfig, generator: torch.Generator) -> Pool:
+    rows = {name: [] for name in ("features", "disparity", "target", "nearest_m", "nearest_valid", "calibration",
+                                  "images")}
+    with torch.no_grad():
+        for pair in tqdm(pairs, desc="samples", unit="pair", file=sys.stderr, mininterval=1):
+            pair = augment(pair, generator)
+            truth = obstacle_truth(pair)
+            features, disparity = stereo_features(pair.left, pair.right, net_config)
+            rows["features"].append(features)
+            rows["disparity"].append(disparity)
+            rows["target"].append(truth.opened.float())
+            rows["nearest_m"].append(truth.nearest_m)
+            rows["nearest_valid"].append(truth.nearest_valid)
+            rows["calibration"].append(torch.stack([pair.focal_px, pair.baseline_m, pair.doffs_px], 1))
+            rows["images"].append(pair.left)
+    return Pool(**{name: torch.cat(values) for name, values in rows.items()})
+
+
+def mask_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy + soft Dice (the Dice term weighs small obstacles as much as big walls)."""
+    probability = torch.sigmoid(logits)
+    overlap = (probability * target).flatten(1).sum(1)
+    dice = 1 - (2 * overlap + 1) / (probability.flatten(1).sum(1) + target.flatten(1).sum(1) + 1)
+    return F.binary_cross_entropy_with_logits(logits, target) + dice.mean()
+
+
+def depth_loss(logits: torch.Tensor, pool: Pool, index: torch.Tensor) -> torch.Tensor:
+    """Mean relative error of the nearest obstacle's soft depth, over samples where it and the truth exist."""
+    segmentation = segment_learned(pool.images[index], logits.detach())
+    calibration = pool.calibration[index]
+    soft = soft_object_depths(logits, segmentation, pool.disparity[index], calibration[:, 0], calibration[:, 1],
+                              calibration[:, 2])
+    both = soft.nearest_valid & pool.nearest_valid[index]
+    truth = torch.where(both, pool.nearest_m[index], 1.0)
+    error = torch.where(both, (soft.nearest_m - truth).abs() / truth, 0.0)
+    return error.sum() / both.sum().clamp(min=1)
+
+
+def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Generator) -> list[dict]:
+    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
+    history = []
+    net.train()
+    bar = tqdm(range(config.steps), desc="train", unit="step", file=sys.stderr, mininterval=1)
+    for step in bar:
+        index = torch.randint(0, pool.features.shape[0], (config.batch_size,), generator=generator)
+        features, target = pool.features[index], pool.target[index]
+        # Vertical flips only: rows stay epipolar lines (a horizontal flip would need the views swapped).
+        flipped = float(torch.rand((), generator=generator)) < 0.5
+        if flipped:
+            features, target = features.flip(-2), target.flip(-2)
+        logits = net(features)
+        masks = mask_loss(logits, target)
+        depth = depth_loss(logits.flip(-2) if flipped else logits, pool, index)
+        loss = masks + config.depth_weight * depth
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        history.append({"step": step, "mask_loss": masks.item(), "depth_loss": depth.item()})
+        bar.set_postfix(mask=f"{masks.item():.3f}", depth=f"{depth.item():.3f}")
+    net.eval()
+    return history
+
+
+def main(argv: list[str] | None = None) -> Path:
+    defaults = TrainConfig()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=os.environ.get(
+        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--out", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
+    for field in dataclasses.fields(TrainConfig):
+        parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),
+                            default=getattr(defaults, field.name))
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    config = TrainConfig(**{field.name: getattr(args, field.name) for field in dataclasses.fields(TrainConfig)})
+    generator = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
+    net_config = ObstacleNetConfig()
+    scenes = train_scenes(Path(args.data))
+    started = time.perf_counter()
+    pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
+    pool = build_pool(pairs, net_config, generator)
+    net = ObstacleNet(net_config)
+    history = train(pool, net, config, generator)
+    elapsed = time.perf_counter() - started
+    split = split_scenes(Path(args.data))
+    metadata = {
+        "train": dataclasses.asdict(config), "train_time_s": round(elapsed, 1), "num_samples": len(pairs),
+        "train_scenes": [str(p.relative_to(args.data)) for p in scenes],
+        "excluded_duplicates": HELD_OUT_DUPLICATES,
+        "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
+        "final_losses": history[-1], "run": run_metadata(args.threads),
+        "num_parameters": sum(p.numel() for p in net.parameters()),
+    }
+    save_obstacle_net(args.out, net, metadata)
+    print(f"{len(pairs)} samples, {config.steps} steps, {elapsed:.0f} s; weights written to {args.out}")
+    return Path(args.out)
+
+
+if __name__ == "__main__":
+    main()
