@@ -103,11 +103,16 @@ def markdown(rows: list[dict]) -> str:
 
 
 def wins(rows: list[dict]) -> str:
-    iou = sum(r["iou_learned"] > r["iou_otsu"] for r in rows)
-    acc = sum(r["acc_learned"] > r["acc_otsu"] for r in rows)
-    worse = [r["scene"] for r in rows if r["acc_learned"] < r["acc_otsu"] - 1.0]
-    return (f"learned beats Otsu on IoU in {iou} of {len(rows)} scenes and on nearest Acc in {acc}; "
-            f"nearest Acc more than 1 point worse on: {', '.join(worse) or 'none'}")
+    """One line per size: where the learned segmenter beats Otsu, and where it is worse."""
+    lines = []
+    for size in sorted({r["size"] for r in rows}):
+        group = [r for r in rows if r["size"] == size]
+        iou = sum(r["iou_learned"] > r["iou_otsu"] for r in group)
+        acc = sum(r["acc_learned"] > r["acc_otsu"] for r in group)
+        worse = [r["scene"] for r in group if r["acc_learned"] < r["acc_otsu"] - 1.0]
+        lines.append(f"at {size}: learned beats Otsu on IoU in {iou} of {len(group)} scenes and on nearest Acc in "
+                     f"{acc}; nearest Acc more than 1 point worse on: {', '.join(worse) or 'none'}")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -312,7 +312,7 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
     ``x − d``), one batch of 2B. Not differentiable; see :func:`soft_object_depths`.
     """
     if net is None:
-        net = load_obstacle_net(config.segmenter)
+        net = _cached_obstacle_net(config.segmenter)
     b = batch.batch_size
     with torch.no_grad():
         logits = predict_obstacle_logits(net, torch.cat([batch.left, batch.right.flip(-1)]),
@@ -358,6 +358,24 @@ def load_obstacle_net(segmenter: str = "learned") -> ObstacleNet:
         reason = " ".join(str(error).split())[:200]
         raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None
     return net.float().eval()
+
+
+_NET_CACHE: dict[tuple[str, int, int], ObstacleNet] = {}
+
+
+def _cached_obstacle_net(segmenter: str) -> ObstacleNet:
+    """:func:`load_obstacle_net` once per weights file and version (a batch loop or a sweep does not re-read it
+    for every batch; a file rewritten in place, e.g. by a training run, is read again)."""
+    path = weights_path(segmenter)
+    try:
+        stat = path.stat()
+    except OSError:
+        return load_obstacle_net(segmenter)  # its one-line error
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _NET_CACHE:
+        _NET_CACHE.clear()  # one network at a time: a sweep over weights files does not pile them up
+        _NET_CACHE[key] = load_obstacle_net(segmenter)
+    return _NET_CACHE[key]
 
 
 def save_obstacle_net(path: str | Path, net: ObstacleNet, metadata: dict | None = None) -> None:

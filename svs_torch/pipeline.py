@@ -29,7 +29,7 @@ from .rectification import (Rectification, RectificationConfig, RectificationSta
 from .segmentation import SegmentationConfig, segment_stereo
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
-__all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth"]
+__all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]
 
 #: A fundamental matrix needs 7 correspondences (Sec. 3.3 (3)).
 MIN_CORRESPONDENCES = 7
@@ -288,8 +288,9 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     return DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects)), dense
 
 
-def _segment(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
-    """Otsu (the paper, Sec. 3.2) or the learned segmenter, by ``config.segmenter``; both give the same structure."""
+def segment_pair(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+    """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
+    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure."""
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
     return segment_stereo_learned(batch, config)
@@ -315,7 +316,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         timings[stage] = now - clock
         clock = now
 
-    seg = _segment(batch, config.segmentation)
+    seg = segment_pair(batch, config.segmentation)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

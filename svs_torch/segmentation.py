@@ -10,6 +10,7 @@ in :mod:`svs_torch.soft_segmentation` carries gradients to the image and the thr
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Literal
 
@@ -70,6 +71,9 @@ class SegmentationConfig:
                                                      or (self.segmenter.startswith("learned:")
                                                          and len(self.segmenter) > len("learned:")))):
             raise InputError(f"segmenter: expected 'otsu', 'learned' or 'learned:PATH', got {self.segmenter!r}")
+        if self.segmenter.startswith("learned:") and not os.path.isfile(os.path.expanduser(self.segmenter[8:])):
+            # Checked here so that a sweep or a batch run with a wrong path stops before any work starts.
+            raise InputError(f"segmenter: no weights file at {self.segmenter[8:]!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import tomllib
 
 import cv2
@@ -116,6 +117,23 @@ def test_bad_weights_are_one_line_input_errors(tmp_path, content, message):
 def test_segmenter_choice_is_checked(segmenter):
     with pytest.raises(InputError, match="segmenter"):
         SegmentationConfig(segmenter=segmenter)
+    with pytest.raises(InputError, match="no weights file"):  # before any work starts (a sweep's configuration)
+        SegmentationConfig(segmenter="learned:/no/such/weights.pt")
+
+
+def test_the_pipeline_reads_a_weights_file_once_per_version(tmp_path, scenes):
+    path = tmp_path / "net.pt"
+    save_obstacle_net(path, ObstacleNet())
+    config = SegmentationConfig(segmenter=f"learned:{path}")
+    first = segment_stereo_learned(scenes.batch, config)
+    again = segment_stereo_learned(scenes.batch, config)
+    assert torch.equal(first.left.kept_mask, again.left.kept_mask)
+    torch.manual_seed(5)
+    before = path.stat().st_mtime_ns
+    save_obstacle_net(path, ObstacleNet())  # a rewritten file is read again
+    os.utime(path, ns=(before + 10**9, before + 10**9))  # a coarse file-system clock must not hide the rewrite
+    changed = segment_stereo_learned(scenes.batch, config)
+    assert not torch.equal(changed.left.binary, first.left.binary)
 
 
 # ---------------------------------------------------------------------------------------------- hard segmenter
@@ -251,3 +269,14 @@ def test_cli_bad_segmenter_is_one_line_exit_2(tmp_path, capsys, svs_scene, value
     assert status == 2
     err = capsys.readouterr().err
     assert message in err and "segmenter" in err and err.count("\n") == 1
+
+
+def test_cli_segment_with_the_learned_segmenter(tmp_path, capsys, svs_scene):
+    left, right = _write_pair(tmp_path, svs_scene)
+    assert main(["segment", left, right, "--segmenter", "learned", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["config"]["segmenter"] == "learned" and report["left"]["status"] == "OK"
+    truth = obstacle_truth(svs_scene.batch)
+    assert abs(sum(o["area_px"] for o in report["left"]["objects"]) / truth.kept_mask.sum().item() - 1) < 0.3
+    assert main(["segment", left, right, "--segmenter", "learned"]) == 0
+    assert "learned segmenter, obstacle probability above 0.50" in capsys.readouterr().out

@@ -22,6 +22,7 @@ EPILOG = """\
 examples:
   svs-depth segment left.png right.png
   svs-depth segment left.png right.png --kernel-size 7 --keep 3 --figure seg.png
+  svs-depth segment left.png right.png --segmenter learned      # what is near, not what is bright
   svs-depth segment left.png right.png --json | jq '.left.objects[0].area_px'
 """
 
@@ -33,6 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("left", help="left image file (gray or color, 8 or 16 bit)")
     parser.add_argument("right", help="right image file, the same size as the left")
     add_segmentation_options(parser)
+    add_segmenter_option(parser)
     add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
@@ -104,10 +106,11 @@ def image_report(seg, index: int) -> dict:
     }
 
 
-def format_report(side: str, report: dict) -> list[str]:
+def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]:
     """Human-readable lines for one image's report."""
-    lines = [f"{side}: Otsu threshold {report['threshold']}/255, {report['num_regions']} regions, "
-             f"status {report['status']}"]
+    rule = (f"Otsu threshold {report['threshold']}/255" if segmenter == "otsu"
+            else f"{segmenter} segmenter, obstacle probability above {report['threshold'] / 255:.2f}")
+    lines = [f"{side}: {rule}, {report['num_regions']} regions, status {report['status']}"]
     if not report["objects"]:
         lines.append("  no object kept")
     for rank, obj in enumerate(report["objects"], start=1):
@@ -121,14 +124,14 @@ def format_report(side: str, report: dict) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from ..data import load_image_pair
     from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
-    from ..segmentation import segment_stereo
+    from ..pipeline import segment_pair
 
     config = config_from_args(args)
     if args.figure:
         check_output_path(args.figure, args.figure_option)
     batch = load_image_pair(args.left, args.right)
     started = time.perf_counter()
-    seg = segment_stereo(batch, config)
+    seg = segment_pair(batch, config)
     elapsed = time.perf_counter() - started
     if args.figure:
         figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left"),
@@ -140,12 +143,12 @@ def run(args: argparse.Namespace) -> int:
         print(dumps_strict({
             "left": left, "right": right,
             "image_size_wh": [width, height],
-            "config": {"kernel_size": config.kernel_size, "keep": config.num_keep,
+            "config": {"segmenter": config.segmenter, "kernel_size": config.kernel_size, "keep": config.num_keep,
                        "connectivity": config.connectivity, "foreground": config.foreground},
             "time_s": round(elapsed, 6),
         }))
     else:
-        for line in format_report("left", left) + format_report("right", right):
+        for line in format_report("left", left, config.segmenter) + format_report("right", right, config.segmenter):
             print(line)
         print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.figure}" if args.figure else ""))
     return 0
