@@ -72,7 +72,8 @@ SVS_CAMERA = SVSCamera()
 def parse_size(text: str, name: str = "size") -> tuple[int, int]:
     """Parse ``"320x240"`` into ``(width, height)``; raises :class:`InputError` naming ``name`` otherwise."""
     parts = text.lower().replace("×", "x").split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+    # isdecimal, not isdigit: int() refuses digits such as "²" that isdigit accepts.
+    if len(parts) != 2 or not all(p.strip().isdecimal() for p in parts):
         raise InputError(f"{name}: expected WIDTHxHEIGHT such as 320x240, got {text!r}")
     width, height = (int(p) for p in parts)
     if width <= 0 or height <= 0:

@@ -18,6 +18,7 @@ __all__ = [
     "check_shape",
     "check_dtype",
     "check_image",
+    "check_instance",
     "check_same_shape",
     "check_finite",
 ]
@@ -56,13 +57,22 @@ def check_shape(tensor: torch.Tensor, name: str, spec: Sequence[str | int]) -> d
     return bindings
 
 
+#: The floating-point dtypes the pipeline computes in. Half precision is refused: the integral image of a 64 x 64
+#: image sums past 2048, where float16 stops holding whole numbers, and CPU kernels such as cdist do not exist for it.
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
 def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
-    """Check the dtype family: ``"float"``, ``"bool"``, ``"int"`` (any integer), or several joined by ``|``."""
+    """Check the dtype family: ``"float"`` (float32 or float64), ``"bool"``, ``"int"`` (any integer), or several
+    joined by ``|``."""
     allowed = kinds.split("|")
     dtype = tensor.dtype
     family = ("bool" if dtype == torch.bool else
-              "float" if dtype.is_floating_point else
+              "float" if dtype in FLOAT_DTYPES else
+              "half" if dtype.is_floating_point else
               "int" if not dtype.is_complex else "complex")
+    if family == "half" and "float" in allowed:
+        raise InputError(f"{name}: expected a float32 or float64 tensor, got {dtype}")
     if family not in allowed:
         raise InputError(f"{name}: expected a {' or '.join(allowed)} tensor, got {dtype}")
 
@@ -81,6 +91,13 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
         if not (bool(lo >= 0.0) and bool(hi <= 1.0)):
             raise InputError(f"{name}: expected values in [0, 1], got min {float(lo):.4g}, max {float(hi):.4g}")
     return bindings
+
+
+def check_instance(value: object, name: str, kind: type) -> None:
+    """Check that ``value`` is a ``kind`` (a container or a configuration), e.g.
+    ``config: expected a PipelineConfig, got dict``."""
+    if not isinstance(value, kind):
+        raise InputError(f"{name}: expected a {kind.__name__}, got {type(value).__name__}")
 
 
 def check_same_shape(a: torch.Tensor, name_a: str, b: torch.Tensor, name_b: str) -> None:

@@ -86,8 +86,10 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
     denominator = crop_d + doffs
     crop_ok = crop_ok & (denominator > 0)
-    depth = torch.where(crop_ok, focal * baseline / torch.where(crop_ok, denominator, torch.ones_like(denominator)),
-                        torch.zeros_like(denominator))  # (B, P)
+    depth = focal * baseline / torch.where(crop_ok, denominator, torch.ones_like(denominator))
+    # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
+    crop_ok = crop_ok & torch.isfinite(depth) & (depth > 0)
+    depth = torch.where(crop_ok, depth, torch.zeros_like(denominator))  # (B, P)
     slots = objects.label  # (B, N), −1 padding
     member = (crop_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1) & crop_ok.unsqueeze(1)
     stats = masked_quantile(depth.unsqueeze(1).expand_as(member), member, [0.5, low / 100, high / 100]).values

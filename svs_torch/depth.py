@@ -248,7 +248,10 @@ def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: floa
     valid = valid & (denominator > 0)
     scale = _per_pair(focal_px, disparity_px, "focal_px") * _per_pair(baseline_m, disparity_px, "baseline_m")
     safe = torch.where(valid, denominator, torch.ones_like(denominator))
-    return PointDepths(torch.where(valid, scale / safe, torch.zeros_like(safe)), valid)
+    depth = scale / safe
+    # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
+    valid = valid & torch.isfinite(depth) & (depth > 0)
+    return PointDepths(torch.where(valid, depth, torch.zeros_like(safe)), valid)
 
 
 def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float] | torch.Tensor) -> Quantiles:

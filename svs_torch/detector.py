@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .checks import InputError, check_dtype, check_image, check_shape
+from .checks import InputError, check_dtype, check_image, check_instance, check_shape
 from .hessian import HessianOctave, hessian_octaves, local_maxima_scores
 from .types import Keypoints
 
@@ -20,6 +20,14 @@ __all__ = ["SurfConfig", "detect_surf_keypoints", "metric_threshold_01"]
 
 #: Gray levels of the uint8 scale that MATLAB's MetricThreshold refers to.
 _U8 = 255.0
+
+
+#: Limits that keep a mistyped setting from asking for gigabytes (MATLAB recommends 1-4 octaves and 3-6 levels): the
+#: largest filter, 3 + 6·2⁵·8 = 1539 px at 6 octaves of 8 levels, pads the integral image by half its size; the SAD
+#: matching compares every pair of keypoints (10⁸ at 10⁴ per image).
+MAX_OCTAVES = 6
+MAX_SCALE_LEVELS = 8
+MAX_KEYPOINTS = 10_000
 
 
 @dataclass(frozen=True)
@@ -57,12 +65,14 @@ class SurfConfig:
     def __post_init__(self) -> None:
         if not self.metric_threshold >= 0:
             raise InputError(f"metric_threshold: expected a non-negative number, got {self.metric_threshold!r}")
-        if not isinstance(self.num_octaves, int) or self.num_octaves < 1:
-            raise InputError(f"num_octaves: expected a positive integer, got {self.num_octaves!r}")
-        if not isinstance(self.num_scale_levels, int) or self.num_scale_levels < 3:
-            raise InputError(f"num_scale_levels: expected an integer >= 3, got {self.num_scale_levels!r}")
-        if not isinstance(self.max_keypoints, int) or self.max_keypoints < 0:
-            raise InputError(f"max_keypoints: expected a non-negative integer, got {self.max_keypoints!r}")
+        if not isinstance(self.num_octaves, int) or not 1 <= self.num_octaves <= MAX_OCTAVES:
+            raise InputError(f"num_octaves: expected an integer from 1 to {MAX_OCTAVES}, got {self.num_octaves!r}")
+        if not isinstance(self.num_scale_levels, int) or not 3 <= self.num_scale_levels <= MAX_SCALE_LEVELS:
+            raise InputError(f"num_scale_levels: expected an integer from 3 to {MAX_SCALE_LEVELS}, got "
+                             f"{self.num_scale_levels!r}")
+        if not isinstance(self.max_keypoints, int) or not 0 <= self.max_keypoints <= MAX_KEYPOINTS:
+            raise InputError(f"max_keypoints: expected an integer from 0 to {MAX_KEYPOINTS}, got "
+                             f"{self.max_keypoints!r}")
 
 
 def metric_threshold_01(metric_threshold: float) -> float:
@@ -145,6 +155,7 @@ def detect_surf_keypoints(
         :func:`svs_torch.hessian.hessian_octaves` gives the differentiable response maps.
     """
     check_image(image, "image")
+    check_instance(config, "config", SurfConfig)
     b = image.shape[0]
     if mask is not None:
         check_shape(mask, "mask", [b, 1, image.shape[2], image.shape[3]])

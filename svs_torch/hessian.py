@@ -178,10 +178,13 @@ def local_maxima_scores(
     neighbourhood in the image: the next larger level must fit one grid step around it. Ties with a
     neighbour count as maxima (OpenCV requires strictly larger; float responses rarely tie).
     """
+    b, levels, ny, nx = octave.det.shape
+    if min(ny, nx) < 3:
+        # A grid under 3 points (an image under 5 px at octave 2's step of 4) has no interior point: no maxima.
+        return octave.det.new_full((b, levels - 2, max(ny - 2, 0), max(nx - 2, 0)), float("-inf"))
     inside = octave.inside
     larger_fits = inside[2:, :-2, 1:-1] & inside[2:, 2:, 1:-1] & inside[2:, 1:-1, :-2] & inside[2:, 1:-1, 2:]
     support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)  # (1, S − 2, ny − 2, nx − 2)
     if mask is not None:
-        ny, nx = octave.det.shape[-2:]
         support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
     return maybe_compiled(_interior_maxima, compiled)(octave.det, support, threshold)

@@ -14,7 +14,7 @@ from typing import Literal
 
 import torch
 
-from .checks import InputError
+from .checks import InputError, check_instance
 from .dense import DenseConfig, DenseDisparity, estimate_dense_disparity
 from .dense_depth import dense_object_depths, range_from_objects
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
@@ -130,6 +130,8 @@ class PipelineConfig:
             raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
         if not (isinstance(self.verify_min_inliers, int) and self.verify_min_inliers >= 0):
             raise InputError(f"verify_min_inliers: expected an integer >= 0, got {self.verify_min_inliers!r}")
+        if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
+            raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
@@ -307,6 +309,8 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         :class:`PipelineResult`. Not differentiable end to end (segmentation labels, keypoint selection,
         matching and RANSAC are discrete); each stage's docstring says what is.
     """
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", PipelineConfig)
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 

@@ -447,14 +447,18 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
             raise InputError("pair_seeds: expected either pair_seeds or generator, not both")
         check_shape(pair_seeds, "pair_seeds", [dims["B"]])
         check_dtype(pair_seeds, "pair_seeds", "int")
-    rules = {"threshold_px": (lambda v: v > 0, "a positive number of pixels"),
+    rules = {"threshold_px": (lambda v: math.isfinite(v) and v > 0, "a finite positive number of pixels"),
              "confidence": (lambda v: 0 < v <= 1, "a probability in (0, 1]"),
              "max_iterations": (lambda v: isinstance(v, int) and v >= 1, "an int ≥ 1"),
              "chunk_size": (lambda v: isinstance(v, int) and v >= 1, "an int ≥ 1"),
              "min_inliers": (lambda v: isinstance(v, int) and v >= 0, "an int ≥ 0"),
              "scoring": (lambda v: v in SCORINGS, f"one of {', '.join(SCORINGS)}")}
     for name, (ok, expected) in rules.items():
-        if not ok(settings[name]):
+        try:
+            passed = bool(ok(settings[name]))
+        except (TypeError, ValueError, RuntimeError):  # e.g. a string or a tensor of several values
+            passed = False
+        if not passed:
             raise InputError(f"{name}: expected {expected}, got {settings[name]!r}")
     both = torch.cat([points_left, points_right], -1)
     if not bool(torch.where(valid.unsqueeze(-1), both, 0.0).isfinite().all()):
@@ -470,7 +474,8 @@ def _finish(problem: _Problem, points_left: torch.Tensor, points_right: torch.Te
     algebraic, grad_right, grad_left = _epipolar_terms(points_left.to(work), points_right.to(work), fundamental)
     distance_sq = _safe_ratio(algebraic.square(), grad_right + grad_left)
     found = best_loss.isfinite()
-    inliers = valid & found.unsqueeze(-1) & (distance_sq <= threshold_px ** 2)
+    # Squared in float64 tensors: a huge finite threshold squares to inf here instead of raising OverflowError.
+    inliers = valid & found.unsqueeze(-1) & (distance_sq <= torch.tensor(float(threshold_px), dtype=work).square())
     num_inliers = inliers.sum(-1)
     status = torch.full_like(num_inliers, FundamentalStatus.OK)
     status = torch.where(num_inliers < min_inliers, FundamentalStatus.TOO_FEW_INLIERS, status)

@@ -16,7 +16,7 @@ from typing import Literal
 
 import torch
 
-from .checks import InputError, check_image
+from .checks import InputError, check_image, check_instance
 from .components import connected_components_with_stats
 from .canny import canny_edges
 from .morphology import dilate, erode, open_binary, structuring_element
@@ -24,6 +24,13 @@ from .threshold import gray_histogram, gray_levels, otsu_threshold_level, thresh
 from .types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions"]
+
+
+#: The widest structuring element, pixels: the opening pads the image by the element and passes over it once per
+#: row and column of it, so a mistyped 99999 would need gigabytes; 255 is far beyond any obstacle's speckle.
+MAX_KERNEL_SIZE = 255
+#: The most regions kept per image: label images are uint8 (0 background, 1..255), as ``--masks-out`` writes.
+MAX_KEEP = 255
 
 
 @dataclass(frozen=True)
@@ -57,10 +64,11 @@ class SegmentationConfig:
     segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13
 
     def __post_init__(self) -> None:
-        if not isinstance(self.kernel_size, int) or self.kernel_size < 1:
-            raise InputError(f"kernel_size: expected a positive integer, got {self.kernel_size!r}")
-        if not isinstance(self.num_keep, int) or self.num_keep < 1:
-            raise InputError(f"num_keep: expected a positive integer, got {self.num_keep!r}")
+        if not isinstance(self.kernel_size, int) or not 1 <= self.kernel_size <= MAX_KERNEL_SIZE:
+            raise InputError(f"kernel_size: expected a positive integer up to {MAX_KERNEL_SIZE}, got "
+                             f"{self.kernel_size!r}")
+        if not isinstance(self.num_keep, int) or not 1 <= self.num_keep <= MAX_KEEP:
+            raise InputError(f"num_keep: expected a positive integer up to {MAX_KEEP}, got {self.num_keep!r}")
         if self.connectivity not in (4, 8):
             raise InputError(f"connectivity: expected 4 or 8, got {self.connectivity!r}")
         if self.foreground not in ("bright", "dark"):
@@ -127,6 +135,7 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
         Not differentiable (``masked`` carries the image's gradient inside the kept mask only).
     """
     check_image(image, "image")
+    check_instance(config, "config", SegmentationConfig)
     levels = gray_levels(image)
     histogram = gray_histogram(levels)
     level = otsu_threshold_level(histogram)
@@ -165,6 +174,7 @@ def segment_stereo(batch: StereoBatch, config: SegmentationConfig = Segmentation
     Returns:
         :class:`StereoSegmentation`; its pair ``status`` is the left image's where not OK, else the right's.
     """
+    check_instance(batch, "batch", StereoBatch)
     b = batch.batch_size
     both = segment_images(torch.cat([batch.left, batch.right], dim=0), config)
     left, right = _split(both, b)

@@ -107,17 +107,28 @@ class StereoBatch:
         check_image(left, "left", check_range=False)
         b, _, h, w = left.shape
 
-        def per_pair(value: float | bool | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-            return torch.as_tensor(value, dtype=dtype, device=left.device).expand(b).clone()
+        def per_pair(name: str, value: float | bool | torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+            # A number, or a tensor of one value or of one value per pair; anything else is named, not a
+            # broadcasting error from deep inside torch.
+            try:
+                tensor = (value.to(left.device) if isinstance(value, torch.Tensor)
+                          else torch.as_tensor(value, dtype=dtype, device=left.device))
+            except (TypeError, ValueError, RuntimeError):
+                raise InputError(f"{name}: expected a number or a ({b},) tensor, got {type(value).__name__}") \
+                    from None
+            if tensor.numel() not in (1, b) or tensor.dim() > 1 or tensor.dtype.is_complex:
+                raise InputError(f"{name}: expected a real number or a ({b},) tensor, got "
+                                 f"{tuple(tensor.shape)} {tensor.dtype}")
+            return tensor.to(dtype).reshape(-1).expand(b).clone()
 
         float_dtype = left.dtype
         return cls(
             left=left,
             right=right,
-            focal_px=per_pair(focal_px, float_dtype),
-            baseline_m=per_pair(baseline_m, float_dtype),
-            doffs_px=per_pair(doffs_px, float_dtype),
-            calibrated=per_pair(calibrated, torch.bool),
+            focal_px=per_pair("focal_px", focal_px, float_dtype),
+            baseline_m=per_pair("baseline_m", baseline_m, float_dtype),
+            doffs_px=per_pair("doffs_px", doffs_px, float_dtype),
+            calibrated=per_pair("calibrated", calibrated, torch.bool),
             image_hw=torch.tensor([[h, w]], dtype=torch.int64, device=left.device).expand(b, 2).clone(),
             disparity_px=disparity_px,
             disparity_valid=disparity_valid,

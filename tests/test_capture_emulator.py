@@ -363,8 +363,8 @@ def test_cli_defaults_match_link_defaults():
 @pytest.mark.parametrize("argv, message", [
     (["--count", "0", "--emulator"], "--count: expected a positive integer, got '0'"),
     (["--size", "100x100", "--emulator"], "--size: expected 160x120"),
-    (["--left", "socket://x:1", "--emulator"], "--left/--right: not used with --emulator"),
-    (["--left", "socket://x:1"], "--left and --right: both board URLs are needed"),
+    (["--left", "socket://x:1", "--emulator"], "--left, --right: not used with --emulator"),
+    (["--left", "socket://x:1"], "--left, --right: both board URLs are needed"),
 ])
 def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     from svs_torch.cli import main

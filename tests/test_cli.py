@@ -217,7 +217,7 @@ def test_estimate_many_pairs_in_batches(data_dir, capsys, tmp_path):
     listing.write_text("# left right\n" + "".join(f"{s / 'im0.png'} {s / 'im1.png'}\n" for s in scenes))
     code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--size", "320x240",
                              "--json")
-    assert code == 0 and "3/3 pairs" in err
+    assert code == 0 and err == ""  # the progress count is for a terminal only
     lines = [json.loads(line) for line in out.strip().splitlines()]
     assert [Path(line["left"]).parent.name for line in lines] == ["Teddy", "ArtL", "Piano"]
     assert all(line["status"] == "OK" and line["range_rule"] == "dense" for line in lines)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import io
+import re
 import stat
 import sys
+import warnings
 
 import pytest
 
-from svs_torch.capture.guide import CLEAR, STOP, WARN, FpsMeter, LiveGuide, Speaker, WarningPolicy
+from svs_torch.capture.guide import CLEAR, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine, WarningPolicy
 from svs_torch.checks import InputError
 
 
@@ -121,3 +123,63 @@ def test_live_guide_with_fake_distances():
     assert stream.getvalue().splitlines() == [m for m in said if m]
     assert guide.meter.fps == pytest.approx(4.0)
     assert guide.status(1.5) == "  4.0 fps  nearest 1.5 m  warn"
+
+
+def terminal_screen(text: str) -> list[str]:
+    """What a terminal shows after ``text``: ``\\r`` returns to the start of the line (later text overwrites),
+    ``\\n`` starts a new one."""
+    lines, column = [""], 0
+    for char in text:
+        if char == "\n":
+            lines.append("")
+            column = 0
+        elif char == "\r":
+            column = 0
+        else:
+            lines[-1] = lines[-1][:column] + char + lines[-1][column + 1:]
+            column += 1
+    return [line.rstrip() for line in lines if line.strip()]
+
+
+def test_warnings_get_their_own_line_and_the_status_line_is_redrawn():
+    terminal = io.StringIO()  # stdout and stderr on one terminal
+    status_line = StatusLine(terminal)
+    status_line.show(" 12.5 fps  nearest 1.4 m  warn  left")
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = status_line.show_warning
+        warnings.warn("left/right: expected the left board to be the stereo master", RuntimeWarning)
+    speaker = Speaker(None, stream=status_line.lines_above(terminal))
+    speaker.say("Obstacle ahead, 1.4 metres")
+    status_line.show(" 12.0 fps  nearest 1.3 m  warn  left")
+    status_line.close()
+    assert terminal_screen(terminal.getvalue()) == [
+        "warning: left/right: expected the left board to be the stereo master",
+        "Obstacle ahead, 1.4 metres",
+        " 12.0 fps  nearest 1.3 m  warn  left",
+    ]
+
+
+def test_guide_prints_warnings_above_its_status_line(monkeypatch):
+    """The live loop, with a library warning on every pair: each warning is a whole line of its own, and every
+    status line stays whole (before, a warning was printed onto the status line)."""
+    import svs_torch.pipeline as pipeline
+    from svs_torch.cli import main
+
+    real = pipeline.estimate_obstacle_depth
+
+    def warning_pipeline(batch, *args, **kwargs):
+        warnings.warn("a library warning while ranging", UserWarning)
+        return real(batch, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", warning_pipeline)
+    terminal = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", terminal)
+    monkeypatch.setattr(sys, "stderr", terminal)
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--far-m", "5.0"]) == 0
+    screen = terminal_screen(terminal.getvalue())
+    assert "warning: a library warning while ranging" in screen
+    status = [line for line in screen if "fps" in line]
+    assert status and all(re.fullmatch(r"\s*[\d.]+ fps  nearest (none|[\d.]+ m)  \w+  \w+", line) for line in status)
+    assert all(line.startswith(("svs-depth: emulator on", "warning: ", "Obstacle", "Stop", "guide stopped"))
+               for line in screen if "fps" not in line), screen

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -206,8 +208,12 @@ def test_errors_name_the_argument():
         estimate_fundamental_ransac(points, torch.zeros(2, 9, 2), valid)
     with pytest.raises(InputError, match="valid: expected a bool tensor, got torch.float32"):
         estimate_fundamental_ransac(points, points, valid.float())
-    with pytest.raises(InputError, match="threshold_px: expected a positive number of pixels, got 0"):
-        estimate_fundamental_ransac(points, points, valid, threshold_px=0)
+    for threshold in (0, -1.0, float("inf"), float("nan"), "1"):
+        with pytest.raises(InputError, match=f"threshold_px: expected a finite positive number of pixels, got "
+                                             f"{re.escape(repr(threshold))}"):
+            estimate_fundamental_ransac(points, points, valid, threshold_px=threshold)
+    with pytest.raises(InputError, match="points_left: expected a float32 or float64 tensor, got torch.float16"):
+        estimate_fundamental_ransac(points.half(), points.half(), valid)
     with pytest.raises(InputError, match=r"confidence: expected a probability in \(0, 1\], got 1.5"):
         estimate_fundamental_ransac(points, points, valid, confidence=1.5)
     with pytest.raises(InputError, match="scoring: expected one of ransac, msac, lmeds, got 'lts'"):
@@ -235,3 +241,14 @@ def test_polish_never_loses_a_weak_pair(seed, outlier_ratio, noise_px):
     assert torch.equal(polished.status, plain.status)
     ok = plain.status == OK
     assert (polished.num_inliers[ok] >= 0.8 * plain.num_inliers[ok]).all()
+
+
+def test_a_huge_threshold_accepts_every_row_instead_of_overflowing():
+    """Found by tests/test_hardening.py: threshold_px 1.34e154 squared overflowed Python floats (OverflowError)."""
+    generator = torch.Generator().manual_seed(0)
+    left = torch.rand(1, 12, 2, generator=generator, dtype=torch.float64) * 50
+    right = left + torch.tensor([-3.0, 0.0], dtype=torch.float64)
+    valid = torch.ones(1, 12, dtype=torch.bool)
+    result = estimate_fundamental_ransac(left, right, valid, threshold_px=1.3407807929942597e154,
+                                         pair_seeds=torch.tensor([0]))
+    assert result.status.shape == (1,) and torch.isfinite(result.F).all()

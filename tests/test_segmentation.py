@@ -125,10 +125,15 @@ def test_dark_foreground_keeps_the_dark_side():
 def test_config_sweep_with_replace_and_errors():
     config = dataclasses.replace(SegmentationConfig(), kernel_size=7)
     assert config.kernel_size == 7 and config.num_keep == 2
-    with pytest.raises(InputError, match="kernel_size: expected a positive integer, got 0"):
+    with pytest.raises(InputError, match="kernel_size: expected a positive integer up to 255, got 0"):
         SegmentationConfig(kernel_size=0)
     with pytest.raises(InputError, match="num_keep: expected a positive integer"):
         SegmentationConfig(num_keep=0)
+    # A mistyped size would ask for gigabytes; labels beyond 255 would not fit a uint8 label image.
+    with pytest.raises(InputError, match="kernel_size: expected a positive integer up to 255, got 99999"):
+        SegmentationConfig(kernel_size=99999)
+    with pytest.raises(InputError, match="num_keep: expected a positive integer up to 255, got 256"):
+        SegmentationConfig(num_keep=256)
     with pytest.raises(InputError, match="connectivity: expected 4 or 8"):
         SegmentationConfig(connectivity=6)
     with pytest.raises(InputError, match="kernel_shape|shape: expected"):

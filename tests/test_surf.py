@@ -313,8 +313,13 @@ def test_compiled_detector_gives_identical_keypoints():
 
 
 def test_errors_name_the_argument():
-    with pytest.raises(InputError, match="num_scale_levels: expected an integer >= 3, got 2"):
+    with pytest.raises(InputError, match="num_scale_levels: expected an integer from 3 to 8, got 2"):
         SurfConfig(num_scale_levels=2)
+    # Limits against a mistyped setting asking for gigabytes (tests/test_hardening.py).
+    with pytest.raises(InputError, match="num_octaves: expected an integer from 1 to 6, got 7"):
+        SurfConfig(num_octaves=7)
+    with pytest.raises(InputError, match="max_keypoints: expected an integer from 0 to 10000, got 99999999999999"):
+        SurfConfig(max_keypoints=99999999999999)
     with pytest.raises(InputError, match="metric_threshold: expected a non-negative number"):
         SurfConfig(metric_threshold=-1.0)
     with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\)"):

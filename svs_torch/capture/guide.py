@@ -20,7 +20,7 @@ from typing import TextIO
 
 from ..checks import InputError
 
-__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "StatusLine", "CLEAR", "WARN", "STOP"]
+__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
@@ -230,3 +230,30 @@ class StatusLine:
         if self.stream is not None and self._shown:
             print(file=self.stream, flush=True)
         self._shown = ""
+
+    def lines_above(self, message_stream: TextIO | None = None) -> LinesAbove:
+        """A text stream whose every line is a :meth:`message`: hand it to what prints on its own (a
+        :class:`Speaker`, ``warnings``), and its lines land above the status line instead of on it."""
+        return LinesAbove(self, message_stream)
+
+    def show_warning(self, message, category, filename, lineno, file=None, line=None) -> None:
+        """A ``warnings.showwarning``: one line, ``warning: ...``, above the status line."""
+        self.message(f"warning: {' '.join(str(message).split())}")
+
+
+class LinesAbove:
+    """Write-only text stream of :meth:`StatusLine.lines_above`: complete lines become status-line messages."""
+
+    def __init__(self, status_line: StatusLine, message_stream: TextIO | None) -> None:
+        self.status_line, self.message_stream = status_line, message_stream
+        self._pending = ""
+
+    def write(self, text: str) -> int:
+        *lines, self._pending = (self._pending + text).split("\n")
+        for line in lines:
+            self.status_line.message(line, self.message_stream)
+        return len(text)
+
+    def flush(self) -> None:
+        if self.message_stream is not None:
+            self.message_stream.flush()

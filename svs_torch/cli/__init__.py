@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 from . import bench, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 
@@ -24,14 +25,14 @@ fundamental matrix by RANSAC, rectify, and range the obstacles from disparity (R
 
 EPILOG = """\
 examples:
-  svs-depth demo                          render a synthetic SVS scene, range its obstacles (no camera needed)
+  svs-depth demo                          a synthetic SVS scene ranged (no camera needed); writes svs_demo.png
   svs-depth estimate left.png right.png   distance to the obstacles of a stereo pair
   svs-depth segment left.png right.png    segment a stereo pair, print the obstacles found
   svs-depth segment L.png R.png --json    the same as JSON, for scripts
-  svs-depth segment L.png R.png --out seg.png --kernel-size 7 --keep 3
-  svs-depth features L.png R.png --size 320x240 --plot matches.png    SURF keypoints and SAD matches
+  svs-depth segment L.png R.png --figure seg.png --kernel-size 7 --keep 3
+  svs-depth features L.png R.png --size 320x240 --figure matches.png  SURF keypoints and SAD matches
   svs-depth fundamental L.png R.png --json                           F by batched 7-point RANSAC
-  svs-depth capture --emulator --count 5 --out pairs/    grab pairs from a built-in SVS emulator
+  svs-depth capture --emulator --count 5 --out-dir pairs/    grab pairs from a built-in SVS emulator
   svs-depth guide --emulator              live warnings when an obstacle is 1-2 m ahead
   svs-depth eval ../shared/data/middlebury_eval3_Q --size 320x240    accuracy against ground truth
   svs-depth sweep sweep.toml --db sweep.sqlite      a resumable parameter sweep; then: svs-depth results
@@ -88,6 +89,19 @@ def _silence_stdout() -> None:
         pass
 
 
+def _warning_printer(prog: str):
+    """``warnings.showwarning`` for the command line: one line, ``svs-depth estimate: warning: ...``, with no
+    source file or code line (they mean nothing to a user)."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        try:
+            print(f"{prog}: warning: {' '.join(str(message).split())}", file=file or sys.stderr, flush=True)
+        except (OSError, ValueError):
+            pass
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``svs-depth`` console script; returns the exit status.
 
@@ -96,7 +110,11 @@ def main(argv: list[str] | None = None) -> int:
     naming the argument); 130 interrupted; 141 the reader of the output went away (e.g. ``| head``).
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        # Name the command in the error, as its own options' errors do ("svs-depth segment: error: ...").
+        subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+        subcommands.get(getattr(args, "command", None), parser).error(f"unrecognized arguments: {' '.join(extras)}")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -104,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
 
     prog = f"svs-depth {args.command}"
     try:
-        code = int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_printer(prog)
+            code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, inside the handler, not at interpreter exit
         return code
     except (InputError, CliError) as error:

@@ -46,42 +46,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write beside the target, then rename: an interrupted run never leaves half a file."""
-    import os
-    import tempfile
-
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(handle, "w") as stream:
-            stream.write(text)
-        os.chmod(temporary, 0o666 & ~_umask())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
-def _umask() -> int:
-    import os
-
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def run(args: argparse.Namespace) -> int:
     from ..benchmark import format_tables, run_benchmark
     from ..checks import InputError
+    from ..files import atomic_output, check_output_file, path_kind
     from .common import dumps_strict
 
     data_dir = Path(args.data) if args.data else None
-    if data_dir is not None and not data_dir.is_dir():
+    if data_dir is not None and path_kind(data_dir, "--data") != "folder":
         raise InputError(f"--data: expected a folder, got {args.data!r}")
+    if args.json:
+        check_output_file(args.json, "--json")  # before minutes of work, not after
     report = run_benchmark(args.pairs, args.repeats, args.threads, data_dir,
                            progress=lambda text: print(text, file=sys.stderr, flush=True),
                            memory=not args.no_memory)
     if args.json:
-        _write_atomic(Path(args.json), dumps_strict(report) + "\n")
+        with atomic_output(args.json, "w", encoding="utf-8") as stream:  # never half a report
+            stream.write(dumps_strict(report) + "\n")
     print(format_tables(report))
     return 0

@@ -18,13 +18,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..camera import parse_size
 from ..errors import InputError
+from ..files import display_path, path_kind, write_bytes_atomic
 from .common import positive_float, positive_int
 
 if TYPE_CHECKING:
@@ -86,14 +86,15 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
     if args.emulator and (args.left or args.right):
-        raise InputError("--left/--right: not used with --emulator (it picks its own loopback ports)")
+        raise InputError("--left, --right: not used with --emulator (it picks its own loopback ports)")
     if not args.emulator and not (args.left and args.right):
-        raise InputError("--left and --right: both board URLs are needed (or --emulator)")
+        raise InputError("--left, --right: both board URLs are needed (or --emulator)")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out-dir: expected a folder, got a file: {out}")
-    if (out / INDEX_NAME).exists():
-        raise InputError(f"--out-dir: {out / INDEX_NAME} already exists; choose a new folder")
+    kind = path_kind(out, "--out-dir")
+    if kind not in ("missing", "folder"):
+        raise InputError(f"--out-dir: expected a folder, got a {kind}: {display_path(out)}")
+    if kind == "folder" and path_kind(out / INDEX_NAME, "--out-dir") != "missing":
+        raise InputError(f"--out-dir: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
     return size, out
 
 
@@ -151,23 +152,12 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     return server.urls["left"], server.urls["right"]
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def _save_pair(out: Path, pair: StereoPair) -> dict[str, Any]:
     """Write both JPEGs; the pair's index record."""
     record: dict[str, Any] = {"index": pair.index}
     for name, frame in (("left", pair.left), ("right", pair.right)):
         file_name = f"pair{pair.index:06d}_{name}.jpg"
-        _write_atomic(out / file_name, frame.jpeg)
+        write_bytes_atomic(out / file_name, frame.jpeg)
         record[name] = file_name
     record["width"], record["height"] = pair.left.size_wh
     for name, frame in (("left", pair.left), ("right", pair.right)):

@@ -7,13 +7,15 @@ Only the standard library is imported here, so that ``svs-depth --help`` stays f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 from typing import Any
 
 __all__ = [
-    "MIN_SIDE_PX", "add_figure_option", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int",
-    "positive_float", "positive_int", "too_small_reason", "unit_interval_float",
+    "MAX_SEED", "MIN_SIDE_PX", "add_figure_option", "dumps_strict", "finite_float", "non_negative_float",
+    "non_negative_int", "options_named", "positive_float", "positive_int", "seed_int", "too_small_reason",
+    "unit_interval_float",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -77,6 +79,33 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+#: The largest seed: RANSAC seeds and torch generators are 64-bit signed integers.
+MAX_SEED = 2**63 - 1
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a seed, an integer from 0 to 2**63 - 1."""
+    value = _number(text, int)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected an integer from 0 to {MAX_SEED}, got {text!r}")
+    return value
+
+
+@contextlib.contextmanager
+def options_named(**options: str):
+    """Re-raise a library :class:`~svs_torch.errors.InputError` that names a configuration field
+    (``kernel_size: expected ...``) as naming the option the user typed (``--kernel-size: expected ...``)."""
+    from ..errors import InputError
+
+    try:
+        yield
+    except InputError as error:
+        field, colon, reason = str(error).partition(":")
+        if colon and field in options:
+            raise InputError(f"{options[field]}:{reason}") from None
+        raise
+
+
 class _FigureAction(argparse.Action):
     """Store the figure file and the option name the user typed, so that an error names it."""
 
@@ -85,14 +114,15 @@ class _FigureAction(argparse.Action):
         namespace.figure_option = option_string or "--figure"
 
 
-def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases: str, default: str | None = None):
+def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases: str, default: str | None = None,
+                      kinds: str = ".png, .jpg, .bmp or .tif"):
     """``--figure FIG.png`` (the one name for a figure file across commands) with the command's old names as
-    aliases (``--plot``, ``--out``), all stored in ``args.figure``."""
+    aliases (``--plot``, ``--out``), all stored in ``args.figure``; ``args.figure_option`` is the name typed."""
     default_text = f" (default: {default})" if default else ""
     parser.set_defaults(figure_option="--figure")
     parser.add_argument("--figure", *aliases, dest="figure", metavar="FIG.png", default=default,
                         action=_FigureAction,
-                        help=f"{help_text}{default_text}; .png, .jpg, .bmp or .tif"
+                        help=f"{help_text}{default_text}; {kinds}"
                              + (f" (also {', '.join(aliases)})" if aliases else ""))
 
 

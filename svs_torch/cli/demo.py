@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_figure_option, dumps_strict, non_negative_int, too_small_reason
+from .common import add_figure_option, dumps_strict, non_negative_int, options_named, seed_int, too_small_reason
 
 HELP = "render a synthetic SVS scene, run the pipeline on it, compare with the truth"
 
@@ -21,10 +21,12 @@ A size under 5x5 pixels gives the status TOO_SMALL and no figure.
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo", help=HELP, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seed", type=non_negative_int, default=7, help="scene seed; the same seed renders the same scene")
+    parser.add_argument("--seed", type=seed_int, default=7,
+                        help="scene seed; the same seed renders the same scene (default: 7)")
     parser.add_argument("--size", default="320x240", metavar="WxH", help="image size (default: 320x240)")
-    parser.add_argument("--objects", type=non_negative_int, default=2, metavar="K", help="number of obstacles (default: 2)")
-    add_figure_option(parser, "figure file to write", "--out", default="svs_demo.png")
+    parser.add_argument("--objects", type=non_negative_int, default=2, metavar="K",
+                        help="number of obstacles (default: 2)")
+    add_figure_option(parser, "figure file to write", "--out", "--plot", default="svs_demo.png")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
@@ -58,20 +60,17 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from ..camera import parse_size
-    from ..data.synthetic import random_obstacle_scenes
-    from ..figures import compose_grid, estimate_figure, gray_to_bgr, segmentation_panels, titled_panel
-    from ..figures import write_image_atomic
-    from ..pipeline import estimate_obstacle_depth
-    from .estimate import format_report, pair_report
-
     from ..checks import InputError
-    from ..figures import check_output_path
-    from .estimate import unranged_report
+    from ..data.synthetic import random_obstacle_scenes
+    from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
+    from ..pipeline import estimate_obstacle_depth
+    from ..plots import estimate_figure
+    from .estimate import format_report, pair_report, unranged_report
     from .features import MAX_PIXELS
 
-    width, height = parse_size(args.size)
+    width, height = parse_size(args.size, "--size")
     if width * height > MAX_PIXELS:
-        raise InputError(f"size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
+        raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
     check_output_path(args.figure, args.figure_option)
     reason = too_small_reason((height, width))
     if reason:
@@ -80,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
               else "\n".join(format_report(report)))
         return 0
     generator = torch.Generator().manual_seed(args.seed)
-    scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
+    with options_named(num_objects="--objects", size_wh="--size"):  # e.g. more obstacles than fit side by side
+        scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
     batch = scenes.batch
     started = time.perf_counter()
     result = estimate_obstacle_depth(batch)
@@ -94,12 +94,9 @@ def run(args: argparse.Namespace) -> int:
     for obj, match in zip(report["objects"], _truth_of_objects(scenes, result.segmentation.left)):
         obj.update({k: v for k, v in match.items() if k != "label"})
 
-    disparity = batch.disparity_px[0, 0]
-    gt_panel = (disparity / (float(disparity.max()) or 1.0)).clamp(0, 1)
-    seg = result.segmentation
-    image_panel, binary_panel, _ = segmentation_panels(batch.left, seg.left, 0, "left")
-    top = compose_grid([[image_panel], [binary_panel], [titled_panel(gray_to_bgr(gt_panel), "true disparity")]])
-    figure = compose_grid([[top, estimate_figure(batch, result, 0)]])
+    # The input and its mask above the pipeline figure, which shows the true depth beside the estimate.
+    image_panel, binary_panel, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
+    figure = compose_grid([[compose_grid([[image_panel], [binary_panel]]), estimate_figure(batch, result, 0)]])
     write_image_atomic(args.figure, figure, args.figure_option)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from .common import (add_figure_option, dumps_strict, finite_float, non_negative_int, positive_float, positive_int,
+from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
 from .segment import add_segmentation_options, add_segmenter_option
@@ -34,6 +34,7 @@ EPILOG = """\
 examples:
   svs-depth estimate left.png right.png
   svs-depth estimate left.png right.png --size 320x240 --figure out.png --masks-out labels.png
+  svs-depth estimate ../shared/data/middlebury_eval3_Q/Teddy --size 320x267 --figure teddy.png   (with its truth)
   svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
   svs-depth estimate --pairs captured/index.jsonl --size 320x240
@@ -52,7 +53,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "estimate", help=HELP, description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("left", nargs="?", help="left image file")
+    parser.add_argument("left", nargs="?",
+                        help="left image file, or alone a scene folder (MiddEval3, Middlebury 2001-2006, KITTI, "
+                             "OpenCV aloe: its own calibration, and its ground truth in the figure)")
     parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
     parser.add_argument("--pairs", metavar="LIST.txt",
                         help="run many pairs: a file with one 'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M "
@@ -72,9 +75,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--range", choices=("dense", "paper"), dest="range_rule",
                         help="how to range the obstacles: 'dense' (default) the median of dense disparity over "
                              "each region, 'paper' Eq. (5)-(8) over the RANSAC inliers (default of --preset paper)")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="RANSAC seed (default: 0)")
+    parser.add_argument("--seed", type=seed_int, default=0, help="RANSAC seed (default: 0)")
     add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches",
-                      "--plot")
+                      "--plot", "--out")
     parser.add_argument("--masks-out", metavar="LABELS.png",
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
                              "lossless: .png, .bmp or .tif")
@@ -186,7 +189,8 @@ def format_report(report: dict) -> list[str]:
 
 
 def _write_outputs(args, batch, result, factors) -> None:
-    from ..figures import estimate_figure, labels_image, write_image_atomic
+    from ..figures import labels_image, write_image_atomic
+    from ..plots import estimate_figure
 
     if args.figure:
         write_image_atomic(args.figure, estimate_figure(batch, result, 0), args.figure_option)
@@ -197,6 +201,7 @@ def _write_outputs(args, batch, result, factors) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..checks import InputError
+    from ..data import PairSource, detect_stereo_layout
     from ..figures import check_output_path
     from ..pipeline import estimate_obstacle_depth
 
@@ -205,14 +210,20 @@ def run(args: argparse.Namespace) -> int:
         if args.left or args.right or args.figure or args.masks_out:
             raise InputError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
         return _run_many(args, config)
-    if not (args.left and args.right):
-        raise InputError("left, right: expected two image files (or --pairs LIST.txt)")
+    scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
+    if not (args.left and args.right) and not scene:
+        raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
+    if scene and (args.focal_px or args.baseline_m or args.doffs_px):
+        raise InputError("--focal-px, --baseline-m, --doffs-px: a scene folder brings its own calibration")
     # Check the outputs first: a bad file name fails at once, before any work, and nothing is half-written.
     if args.figure:
         check_output_path(args.figure, args.figure_option)
     if args.masks_out:
         check_output_path(args.masks_out, "--masks-out", lossless=True)
-    batch, factors = load_pair(args.left, args.right, args)
+    if scene:
+        batch, factors = _load_source(PairSource(left=args.left, scene=True), args)
+    else:
+        batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)
     if reason:
         report = unranged_report("TOO_SMALL", reason + "; nothing to range, no file written", config.depth.rule)
@@ -233,7 +244,7 @@ def _load_source(source, args: argparse.Namespace):
     batch = load_pair_source(source)
     if not args.size:
         return batch, (1.0, 1.0)
-    (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "size")
+    (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "--size")
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
 
 
@@ -260,6 +271,8 @@ def _run_many(args: argparse.Namespace, config) -> int:
 
     pairs = _read_pair_list(args.pairs)
     done, bad = 0, []
+    # A progress count only for a person watching: in a log or a pipe, stderr keeps to the errors.
+    progress = sys.stderr.isatty()
     for start in range(0, len(pairs), args.batch_size):
         chunk = pairs[start:start + args.batch_size]
         entries = [_load_entry(entry, args) for entry in chunk]
@@ -285,7 +298,8 @@ def _run_many(args: argparse.Namespace, config) -> int:
             print(dumps_strict(report) if args.json else "\n".join([f"{left} {right or ''}".rstrip()]
                                                                      + format_report(report)), flush=True)
         done += len(chunk)
-        print(f"\r{done}/{len(pairs)} pairs", end="" if done < len(pairs) else "\n", file=sys.stderr, flush=True)
+        if progress:
+            print(f"\r{done}/{len(pairs)} pairs", end="" if done < len(pairs) else "\n", file=sys.stderr, flush=True)
     if bad:
         print(f"svs-depth estimate: error: pairs: {len(bad)} of {len(pairs)} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)

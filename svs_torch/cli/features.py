@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (add_figure_option, dumps_strict, non_negative_float, positive_int, too_small_reason,
-                     unit_interval_float)
+from .common import (add_figure_option, dumps_strict, non_negative_float, options_named, positive_int,
+                     too_small_reason, unit_interval_float)
 from .segment import add_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="detect on the whole images instead of the segmented obstacles")
     add_segmentation_options(parser)
     add_feature_options(parser)
-    add_figure_option(parser, "write a figure of the keypoints and matches", "--plot")
+    add_figure_option(parser, "write a figure of the keypoints and matches", "--plot", "--out")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
@@ -84,7 +84,9 @@ def preset_config(args: argparse.Namespace):
     surf_changes = {name: value for name, value in (("max_keypoints", args.max_keypoints),
                                                     ("metric_threshold", args.metric_threshold),
                                                     ("upsample", args.upsample)) if value is not None}
-    changes = {"surf": replace(base.surf, **surf_changes), "segmentation": config_from_args(args, base.segmentation)}
+    with options_named(max_keypoints="--max-keypoints", metric_threshold="--metric-threshold"):
+        surf = replace(base.surf, **surf_changes)
+    changes = {"surf": surf, "segmentation": config_from_args(args, base.segmentation)}
     if args.max_ratio is not None:
         changes["max_ratio"] = args.max_ratio
     refine = getattr(args, "refine", None)
@@ -104,9 +106,9 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
 
     from ..checks import InputError
 
-    new_size = parse_size(args.size, "size") if args.size else None
+    new_size = parse_size(args.size, "--size") if args.size else None
     if new_size and new_size[0] * new_size[1] > MAX_PIXELS:
-        raise InputError(f"size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
+        raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
     batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     height, width = batch.size_hw
@@ -137,8 +139,9 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from ..features import extract_surf_features
-    from ..figures import check_output_path, matches_figure, write_image_atomic
+    from ..figures import check_output_path, write_image_atomic
     from ..matching import gather_matched_points, match_sad, refine_matched_points
+    from ..plots import matches_figure
     from ..segmentation import segment_stereo
 
     if args.figure:
@@ -148,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
     reason = too_small_reason(batch.size_hw)
     if reason:
         if args.json:
-            print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [], "matched_xy": [],
-                                "segmented": not args.no_segment, "time_s": 0.0}))
+            print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
+                                "matched_xy": [], "segmented": not args.no_segment, "time_s": 0.0}))
         else:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
         return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import dumps_strict, non_negative_int, positive_float, too_small_reason
+from .common import dumps_strict, positive_float, seed_int, too_small_reason
 from .features import add_feature_options, add_pair_options, load_pair, to_input_pixels
 from .segment import add_segmentation_options
 
@@ -36,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_segmentation_options(parser)
     add_feature_options(parser)
     parser.add_argument("--threshold-px", type=positive_float, help="RANSAC Sampson-distance threshold, px (preset: 1)")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="RANSAC seed: the same seed gives the same F")
+    parser.add_argument("--seed", type=seed_int, default=0, help="RANSAC seed: the same seed gives the same F")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 

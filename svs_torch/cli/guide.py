@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import sys
 import time
+import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int
 
@@ -66,24 +67,28 @@ def run(args: argparse.Namespace) -> int:
 
     from ..capture.protocol import size_code_for
 
-    size = parse_size(args.size, "size")
+    size = parse_size(args.size, "--size")
     try:
         size_code_for(size)
     except InputError:
-        raise InputError(f"size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
+        raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
     if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
-        raise InputError("left, right: give both --left and --right board URLs, or --emulator")
+        raise InputError("--left, --right: give both board URLs, or --emulator")
     if not 0 <= args.near_m < args.far_m:
-        raise InputError(f"near-m, far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
+        raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
     if args.quality is not None and not 1 <= args.quality <= 8:
-        raise InputError(f"quality: expected 1 (best) to 8 (worst), got {args.quality}")
+        raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
-    # Warnings are printed here, above the status line, not by the speaker: a warning never lands on it.
-    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=None))
     status_line = StatusLine(sys.stderr)
+    # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
+    # is drawn again below: the spoken warnings (stdout), the speaker's own notices, Python warnings (a board in
+    # the wrong stereo role, a library's deprecation).
+    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=status_line.lines_above(sys.stdout)))
     processed = 0
     try:
         with contextlib.ExitStack() as stack:
+            stack.enter_context(warnings.catch_warnings())
+            warnings.showwarning = status_line.show_warning
             camera = open_stereo_camera(args, size, stack)
             for item in camera.stream_batches(1, num_batches=args.count or None):
                 result = estimate_obstacle_depth(item.batch)
@@ -91,9 +96,7 @@ def run(args: argparse.Namespace) -> int:
                 # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
                 # a walker reaches first, not the median of an object that may recede.
                 distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-                message = guide.update(distance, time.monotonic())
-                if message is not None:
-                    status_line.message(message, sys.stdout)
+                guide.update(distance, time.monotonic())
                 side = ObstacleSide(int(nearest.side[0])).name.lower()
                 status_line.show(f"{guide.status(distance)}  {side}")
                 processed += 1

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import sys
 
-from .common import dumps_strict, non_negative_int
+from .common import add_figure_option, dumps_strict, non_negative_int
 
 HELP = "summarise, export (CSV) or plot a sweep's results file"
 
@@ -17,7 +18,7 @@ Read a results file of svs-depth sweep (or eval --db).
 pair counts 0 %), dense and inlier disparity quality, failures and time, best first; then the best
 configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right, status,
 r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size, the
-swept parameters (param:KEY) and every other column. --plot: mean accuracy against each swept parameter and
+swept parameters (param:KEY) and every other column. --figure: mean accuracy against each swept parameter and
 per-scene bars of the best configuration.
 """
 
@@ -25,7 +26,7 @@ EPILOG = """\
 examples:
   svs-depth results sweep.sqlite
   svs-depth results sweep.sqlite --csv > rows.csv
-  svs-depth results sweep.sqlite --plot sweep.png --top 5
+  svs-depth results sweep.sqlite --figure sweep.png --top 5
 """
 
 
@@ -36,7 +37,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
     parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv",
                         help="one row per (configuration, pair), to FILE.csv or standard output")
-    parser.add_argument("--plot", metavar="FIG.png", help="figure: metrics against each swept parameter, scenes")
+    add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot",
+                      kinds=".png, .pdf or .svg")
     parser.add_argument("--top", type=non_negative_int, default=10,
                         help="configurations listed in the summary, best first (0: all; default: 10)")
     parser.add_argument("--sort", default="acc_objects_pct",
@@ -71,26 +73,25 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
     from ..evaluation.store import ResultStore
+    from ..files import atomic_output, check_output_file
 
-    if args.plot and not args.plot.lower().endswith((".png", ".pdf", ".svg")):
-        from ..checks import InputError
-
-        raise InputError(f"--plot: expected a .png, .pdf or .svg file, got {args.plot!r}")
+    # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
+    if args.figure:
+        check_output_file(args.figure, args.figure_option, (".png", ".pdf", ".svg"), "a .png, .pdf or .svg")
+    if args.csv and args.csv != "-":
+        check_output_file(args.csv, "--csv")
     with ResultStore(args.db, create=False) as store:
         if args.csv:
             header, rows = csv_table(store)
-            stream = sys.stdout if args.csv == "-" else open(args.csv, "w", newline="", encoding="utf-8")
-            try:
+            with (contextlib.nullcontext(sys.stdout) if args.csv == "-"
+                  else atomic_output(args.csv, "w", newline="", encoding="utf-8")) as stream:  # never half a table
                 writer = csv.writer(stream)
                 writer.writerow(header)
                 writer.writerows(rows)
-            finally:
-                if stream is not sys.stdout:
-                    stream.close()
-        if args.plot:
-            plot_results(store, args.plot)
-            print(f"figure written to {args.plot}", file=sys.stderr)
-        if args.summary or args.json or not (args.csv or args.plot):
+        if args.figure:
+            plot_results(store, args.figure)
+            print(f"figure written to {args.figure}", file=sys.stderr)
+        if args.summary or args.json or not (args.csv or args.figure):
             summaries = config_summaries(store)
             best = best_by_metric(summaries)
             if args.json:

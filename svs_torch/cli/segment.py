@@ -6,7 +6,7 @@ import argparse
 import os
 import time
 
-from .common import add_figure_option, dumps_strict, positive_int
+from .common import add_figure_option, dumps_strict, options_named, positive_int
 
 HELP = "segment the obstacles of a stereo pair (Otsu, opening, largest regions)"
 
@@ -35,7 +35,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("right", help="right image file, the same size as the left")
     add_segmentation_options(parser)
     add_segmenter_option(parser)
-    add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out")
+    add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out",
+                      "--plot")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.set_defaults(func=run)
 
@@ -78,9 +79,10 @@ def config_from_args(args: argparse.Namespace, base=None):
 
     from ..segmentation import SegmentationConfig
 
-    config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
-                     connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
-    return replace(config, segmenter=args.segmenter) if getattr(args, "segmenter", None) else config
+    with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter"):
+        config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
+                         connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
+        return replace(config, segmenter=args.segmenter) if getattr(args, "segmenter", None) else config
 
 
 def image_report(seg, index: int) -> dict:

@@ -20,6 +20,7 @@ import torch
 
 from ..camera import SVS_CAMERA
 from ..checks import InputError
+from ..files import display_path, path_kind
 from ..types import StereoBatch
 from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
 
@@ -52,10 +53,11 @@ _KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
 
 
 def _check_dir(path: str | Path, name: str) -> Path:
-    path = Path(path)
-    if not path.is_dir():
-        raise InputError(f"{name}: expected a folder, got {'a file' if path.exists() else 'no such path'}: {path}")
-    return path
+    kind = path_kind(path, name)
+    if kind != "folder":
+        raise InputError(f"{name}: expected a folder, got {'no such path' if kind == 'missing' else 'a file'}: "
+                         f"{display_path(path)}")
+    return Path(path)
 
 
 def _make_batch(
@@ -227,7 +229,7 @@ def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> St
     (the entries of :func:`list_shared_pairs`).
     """
     path = Path(path)
-    if path.is_file() and path.parent.name in ("colored_0", "image_2"):
+    if path_kind(path, "path") == "file" and path.parent.name in ("colored_0", "image_2"):
         return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
     path = _check_dir(path, "path")
     layout = detect_stereo_layout(path)
@@ -243,12 +245,9 @@ def detect_stereo_layout(path: str | Path) -> str | None:
     """The data-set layout of a scene folder, from its file names alone (nothing is read): ``"eval3"``,
     ``"2005_2006"``, ``"2003"``, ``"2001"``, ``"aloe"``, ``"kitti"``, or None for a folder (or file) that
     :func:`load_stereo_pair` cannot load as one pair."""
-    path = Path(path)
-    if not path.is_dir():
-        return None
     try:
-        names = {entry.name for entry in path.iterdir()}
-    except OSError:
+        names = {entry.name for entry in Path(path).iterdir()}
+    except (OSError, ValueError):  # not a folder, or a name no folder can have
         return None
     for layout, marker in _LAYOUT_MARKERS:
         if any(set(files) <= names for files in marker):

@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from ..checks import InputError
+from ..files import display_path, path_kind
 from ..types import StereoBatch
 from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, load_stereo_pair
 
@@ -78,7 +79,7 @@ class PairSource:
         path = Path(self.left)
         if self.problem is not None:
             return self.left[:60]
-        if self.scene and path.is_file():  # a KITTI left image: data set / frame
+        if self.scene and _kind(path) == "file":  # a KITTI left image: data set / frame
             return f"{path.parent.parent.name}/{path.stem}"
         return f"{path.parent.name}/{path.name}"
 
@@ -121,12 +122,24 @@ def _scenes_in(folder: Path) -> list[PairSource]:
     shared = list_shared_pairs(folder)  # the shared data folder: its data sets' own layout
     if shared:
         return [PairSource(left=str(path), scene=True) for path in shared]
-    children = sorted(child for child in folder.iterdir() if child.is_dir())
+    try:
+        children = sorted(child for child in folder.iterdir() if child.is_dir())
+    except OSError:  # a folder that cannot be listed holds no scene we can read
+        return []
     return [PairSource(left=str(child), scene=True) for child in children if detect_stereo_layout(child)]
 
 
+def _kind(path: Path) -> str:
+    """:func:`~svs_torch.files.path_kind`, with ``"unusable"`` for a name no file can have (a list line's problem,
+    not an error of the whole list)."""
+    try:
+        return path_kind(path, "path")
+    except InputError:
+        return "unusable"
+
+
 def _is_kitti_left(path: Path) -> bool:
-    return path.is_file() and path.parent.name in _KITTI_LEFT_FOLDERS
+    return _kind(path) == "file" and path.parent.name in _KITTI_LEFT_FOLDERS
 
 
 def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[PairSource]:
@@ -134,7 +147,7 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
     paths = [str(p if Path(p).is_absolute() else base / p) for p in fields[:2]]
     if len(fields) == 1:
         path = Path(paths[0])
-        if path.is_dir():
+        if _kind(path) == "folder":
             scenes = _scenes_in(path)
             return scenes or [PairSource(left=text.strip(), problem=f"{where}: no stereo scene in the folder "
                                                                     f"{path}")]
@@ -153,8 +166,10 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
 
 
 def _read_text(path: Path, name: str) -> str:
-    if not path.is_file():
-        raise InputError(f"{name}: expected a list file, got {'a folder' if path.exists() else 'no file'}: {path}")
+    kind = path_kind(path, name)
+    if kind != "file":
+        got = {"folder": "a folder", "missing": "no file"}.get(kind, "a special file")
+        raise InputError(f"{name}: expected a list file, got {got}: {display_path(path)}")
     try:
         return path.read_bytes().decode("utf-8")
     except UnicodeDecodeError:
@@ -237,7 +252,8 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
     """
     sources: list[PairSource] = []
     for path in map(Path, paths):
-        if path.is_dir():
+        kind = path_kind(path, name)
+        if kind == "folder":
             found = _scenes_in(path)
             if not found:
                 raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "
@@ -245,7 +261,7 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
             sources += found
         elif _is_kitti_left(path):
             sources.append(PairSource(left=str(path), scene=True))
-        elif path.is_file():
+        elif kind == "file":
             sources += read_pair_list(path, name)
         else:
             raise InputError(f"{name}: no such file or folder: {path}")

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from ..checks import InputError
+from ..files import atomic_output
 from .metrics import PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
@@ -166,21 +165,9 @@ def plot_results(store: ResultStore, path: str | Path) -> Path:
         axis.set_visible(False)
     figure.suptitle(f"{store.path.name}: {len(summaries)} configurations", fontsize=11)
     figure.tight_layout()
-    handle, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=".tmp-", dir=path.parent if str(path.parent)
-                                         else ".")
-    os.close(handle)
     try:
-        figure.savefig(temporary, dpi=110)
-        os.chmod(temporary, 0o666 & ~_umask())
-        os.replace(temporary, path)
+        with atomic_output(path) as stream:
+            figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
     finally:
         plt.close(figure)
-        if os.path.exists(temporary):
-            os.unlink(temporary)
     return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -1,0 +1,98 @@
+"""Files the package reads and writes: names checked before use, and outputs written whole.
+
+Every writer of the package (figures, label images, captured frames, sweep plots, benchmark reports, CSV tables)
+goes through :func:`atomic_output`: the data goes to a temporary file beside the target, which is renamed over it
+only when complete, so an interrupted or failed run never leaves half a file; the new file gets the permissions
+of any new file, ``0o666`` less the process umask (``tempfile.mkstemp`` would force ``0o600``).
+
+Only the standard library is imported, so that the command line can check file names before torch loads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO
+
+from .errors import InputError
+
+__all__ = ["atomic_output", "check_output_file", "display_path", "path_kind", "write_bytes_atomic"]
+
+#: The longest path shown in an error message; longer ones are cut in the middle.
+MAX_SHOWN_CHARS = 120
+
+
+def display_path(path: str | os.PathLike) -> str:
+    """``path`` for a one-line message: at most :data:`MAX_SHOWN_CHARS` characters, control characters escaped."""
+    text = str(path)
+    if len(text) > MAX_SHOWN_CHARS:
+        half = MAX_SHOWN_CHARS // 2 - 1
+        text = f"{text[:half]}…{text[-half:]}"
+    return text if text.isprintable() else repr(text)[1:-1]
+
+
+def path_kind(path: str | os.PathLike, name: str) -> str:
+    """What is at ``path``: ``"file"``, ``"folder"``, ``"other"`` (a device, a socket) or ``"missing"``.
+
+    Raises:
+        InputError: naming ``name``, for a name no file can have (a NUL character, a name longer than the file
+            system allows) or a path that cannot be looked at (no permission on a folder on the way).
+    """
+    try:
+        status = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return "missing"
+    except (OSError, ValueError) as error:
+        reason = getattr(error, "strerror", None) or str(error)
+        raise InputError(f"{name}: not a usable path ({reason}): {display_path(path)}") from None
+    if os.path.isdir(path):
+        return "folder"
+    return "file" if os.path.isfile(path) else "other"
+
+
+def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, ...] = (),
+                      kinds: str = "") -> Path:
+    """``path`` as a :class:`Path` if a file can be written there, else :class:`InputError` naming ``name``: the
+    folder must exist, the path must not be a folder, and with ``suffixes`` its ending must be one of them
+    (``kinds`` says which in the message, e.g. ``"a .png, .pdf or .svg"``). Checked before any work starts."""
+    target = Path(path)
+    if not str(path) or path_kind(target, name) == "folder":
+        raise InputError(f"{name}: expected a file name, got the folder {display_path(target)!r}")
+    if path_kind(target.parent, name) != "folder":
+        raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise InputError(f"{name}: expected {kinds or ' or '.join(suffixes)} file name, got {display_path(target)!r}")
+    return target
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> Iterator[IO]:
+    """A stream to write ``path`` whole: a temporary file beside it (same folder, so the rename is atomic),
+    renamed over ``path`` when the ``with`` block ends normally and removed when it raises.
+
+    ``mode`` is ``"wb"`` or ``"w"`` (then ``open_kwargs`` such as ``encoding``, ``newline`` go to the text
+    stream). The file is created with ``os.open(..., 0o666)``, so the umask (and a folder's default ACL) decides
+    its permissions, as for any new file.
+    """
+    if mode not in ("w", "wb"):
+        raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
+    target = Path(path)
+    temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.tmp")
+    handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(handle, mode, **open_kwargs) as stream:
+            yield stream
+        os.replace(temporary, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` whole (see :func:`atomic_output`)."""
+    with atomic_output(path) as stream:
+        stream.write(data)

@@ -1,0 +1,195 @@
+"""Figures that read well, written whole: real renders (matplotlib Agg) checked for text inside the page, white
+labels on dark boxes, legends, a depth colour bar, ground truth beside the estimate; files written through a
+temporary file with the permissions the umask gives."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import StereoBatch, estimate_obstacle_depth
+from svs_torch.cli import main
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.figures import labels_image, objects_panel, write_image_atomic
+from svs_torch.files import atomic_output, path_kind, write_bytes_atomic
+from svs_torch.errors import InputError
+from svs_torch.plots import matches_figure, pipeline_figure, render
+
+
+@contextlib.contextmanager
+def umask(mask: int):
+    old = os.umask(mask)
+    try:
+        yield
+    finally:
+        os.umask(old)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A synthetic SVS pair with exact ground truth, and the pipeline's result on it."""
+    scenes = random_obstacle_scenes(1, 2, size_wh=(96, 72), generator=torch.Generator().manual_seed(3))
+    return scenes.batch, estimate_obstacle_depth(scenes.batch)
+
+
+def drawn_texts(figure) -> list:
+    """Every text the figure draws: the title, axes titles, texts on images, legends, and the tick and axis labels
+    of the axes that show them (colour bars)."""
+    texts = [figure._suptitle] if figure._suptitle is not None else []
+    for ax in figure.axes:
+        texts += [ax.title, *ax.texts]
+        if ax.get_legend() is not None:
+            texts += ax.get_legend().get_texts()
+        if ax.axison:
+            texts += [*ax.get_xticklabels(), *ax.get_yticklabels(), ax.xaxis.label, ax.yaxis.label]
+    return [t for t in texts if t.get_visible() and t.get_text().strip()]
+
+
+def assert_every_text_inside(figure) -> None:
+    render(figure)
+    renderer = figure.canvas.get_renderer()
+    page = figure.bbox
+    for text in drawn_texts(figure):
+        box = text.get_window_extent(renderer)
+        assert (box.x0 >= page.x0 - 1 and box.y0 >= page.y0 - 1 and box.x1 <= page.x1 + 1
+                and box.y1 <= page.y1 + 1), f"clipped: {text.get_text()!r} at {box.bounds} in {page.bounds}"
+
+
+def test_pipeline_figure_shows_ground_truth_beside_the_estimate(scene):
+    batch, result = scene
+    figure = pipeline_figure(batch, result, 0)
+    titles = [ax.get_title() for ax in figure.axes]
+    assert any("dense depth estimate" in t for t in titles) and any("ground-truth depth" in t for t in titles)
+    colour_bars = [ax for ax in figure.axes if ax.get_ylabel() == "depth (m)"]
+    assert len(colour_bars) == 1  # one scale for the estimate and the truth
+    labels = [t for ax in figure.axes for t in ax.texts]
+    assert labels and all("true" in t.get_text() for t in labels)
+    # Each object's true depth is the median ground-truth depth over its region (synthetic truth, exact).
+    truth, valid = batch.ground_truth_depth_m()
+    region = result.segmentation.left.labels[0, 0] == result.segmentation.left.kept_labels[0, 0]
+    expected = float(truth[0, 0][region & valid[0, 0]].median())
+    assert f"true {expected:.2f} m" in labels[0].get_text() or f"true {expected:.2f} m" in labels[1].get_text()
+    assert "true" in figure._suptitle.get_text()  # the nearest obstacle's true depth in the title
+    assert_every_text_inside(figure)
+
+
+def test_pipeline_figure_labels_are_white_on_dark_boxes_and_lines_have_a_legend(scene):
+    batch, result = scene
+    figure = pipeline_figure(batch, result, 0)
+    for label in (t for ax in figure.axes for t in ax.texts):
+        assert label.get_color() == "white"
+        face = label.get_bbox_patch().get_facecolor()
+        assert sum(face[:3]) / 3 < 0.2 and face[3] >= 0.7
+    legend = [t.get_text() for ax in figure.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+    assert any(t.startswith("RANSAC inlier (") for t in legend) and any(t.startswith("outlier (") for t in legend)
+
+
+def test_pipeline_figure_without_ground_truth_has_no_truth_panel():
+    images = torch.rand(1, 1, 40, 56, generator=torch.Generator().manual_seed(0))
+    batch = StereoBatch.from_images(images, images.roll(-2, -1), 100.0, 0.1)
+    figure = pipeline_figure(batch, estimate_obstacle_depth(batch), 0)
+    assert not any("ground-truth" in ax.get_title() for ax in figure.axes)
+    assert "true" not in figure._suptitle.get_text()
+    assert_every_text_inside(figure)
+
+
+@pytest.mark.parametrize("size_hw", [(1, 1), (5, 5), (6, 64), (64, 6), (200, 20)])
+def test_pipeline_figure_titles_fit_at_any_aspect(size_hw):
+    images = torch.rand(1, 1, *size_hw, generator=torch.Generator().manual_seed(1))
+    batch = StereoBatch.from_images(images, images, 100.0, 0.1, names=("a-rather-long-pair-name_" * 3,))
+    figure = pipeline_figure(batch, estimate_obstacle_depth(batch), 0)
+    assert_every_text_inside(figure)
+    assert max(render(figure).shape[:2]) <= 2000  # a tall or wide pair does not make a huge page
+
+
+def test_matches_figure_has_a_legend_for_inliers_and_outliers(scene):
+    batch, result = scene
+    keypoints = result.features_left.keypoints
+    both = type(keypoints)(*(torch.cat([getattr(keypoints, f), getattr(result.features_right.keypoints, f)])
+                             for f in ("xy", "scale", "score", "laplacian_sign", "orientation", "valid")))
+    pairs = [[i, j] for i, j in enumerate(result.matches.idx[0].tolist()) if j >= 0]
+    inlier = [bool(result.fundamental.inliers[0, i]) for i, _ in pairs]
+    image = matches_figure(batch.left[0, 0], batch.right[0, 0], both, pairs, inlier)
+    assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
+    plain = matches_figure(batch.left[0, 0], batch.right[0, 0], both, pairs)
+    assert plain.shape[0] > 0 and not np.array_equal(image, plain)  # inlier colours differ from plain matches
+
+
+def test_objects_panel_labels_are_white(scene):
+    batch, result = scene
+    panel = objects_panel(batch.left, result.segmentation.left, 0)
+    near_white = (panel.min(axis=2) > 230).sum()
+    assert near_white > 10  # the white label text (the image itself is dimmed below 0.6 gray)
+
+
+def test_figure_file_is_a_png_with_the_umask_mode(scene, tmp_path):
+    batch, result = scene
+    target = tmp_path / "figure.png"
+    with umask(0o027):
+        write_image_atomic(target, render(pipeline_figure(batch, result, 0)))
+    assert stat.S_IMODE(target.stat().st_mode) == 0o640
+    decoded = cv2.imread(str(target))
+    assert decoded is not None and decoded.shape[0] > 100
+    assert [p.name for p in tmp_path.iterdir()] == ["figure.png"]  # no temporary file left
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o077, 0o002])
+def test_cli_figures_follow_the_umask(tmp_path, mask):
+    left = tmp_path / "left.png"
+    scenes = random_obstacle_scenes(1, 2, size_wh=(64, 48), generator=torch.Generator().manual_seed(4))
+    cv2.imwrite(str(left), (scenes.batch.left[0, 0] * 255).round().byte().numpy())
+    cv2.imwrite(str(tmp_path / "right.png"), (scenes.batch.right[0, 0] * 255).round().byte().numpy())
+    with umask(mask):
+        assert main(["estimate", str(left), str(tmp_path / "right.png"), "--figure", str(tmp_path / "e.png"),
+                     "--masks-out", str(tmp_path / "m.png")]) == 0
+        assert main(["segment", str(left), str(tmp_path / "right.png"), "--figure", str(tmp_path / "s.png")]) == 0
+    for name in ("e.png", "m.png", "s.png"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o666 & ~mask
+        assert cv2.imread(str(tmp_path / name)) is not None
+
+
+def test_atomic_output_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as stream:
+            stream.write(b"half")
+            raise RuntimeError("interrupted")
+    assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["out.bin"]
+    write_bytes_atomic(target, b"new")
+    assert target.read_bytes() == b"new" and [p.name for p in tmp_path.iterdir()] == ["out.bin"]
+
+
+def test_path_kind_names_unusable_paths(tmp_path):
+    assert path_kind(tmp_path, "out") == "folder" and path_kind(tmp_path / "x", "out") == "missing"
+    with pytest.raises(InputError, match=r"^out: not a usable path \(File name too long\)"):
+        path_kind(tmp_path / ("x" * 5000), "out")
+    with pytest.raises(InputError, match=r"^out: not a usable path"):
+        path_kind("a\0b", "out")
+
+
+def test_labels_image_round_trips_lossless(scene, tmp_path):
+    _, result = scene
+    labels = labels_image(result.segmentation.left, 0)
+    target = tmp_path / "labels.png"
+    write_image_atomic(target, labels, "--masks-out", lossless=True)
+    assert np.array_equal(cv2.imread(str(target), cv2.IMREAD_UNCHANGED), labels)
+    with pytest.raises(InputError, match="--masks-out: expected a lossless"):
+        write_image_atomic(tmp_path / "labels.jpg", labels, "--masks-out", lossless=True)
+
+
+def test_estimate_on_a_scene_folder_draws_its_ground_truth(data_dir, tmp_path, capsys):
+    """A scene folder alone is a pair with its own calibration and truth: the figure shows the true depth."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    figure = tmp_path / "teddy.png"
+    assert main(["estimate", str(scene), "--size", "160x134", "--figure", str(figure), "--json"]) == 0
+    assert cv2.imread(str(figure)) is not None
+    assert main(["estimate", str(scene), "--focal-px", "300"]) == 2
+    assert capsys.readouterr().err.endswith("--focal-px, --baseline-m, --doffs-px: a scene folder brings its own "
+                                            "calibration\n")
