@@ -280,3 +280,29 @@ def test_search_range_per_object_keeps_a_small_far_object():
     assert int(too_small.min_disparity_px[0]) > 8
     with pytest.raises(InputError, match="groups"):
         disparity_search_range(samples, valid, torch.tensor([320]), config, groups=groups[:, :, :5])
+
+
+def test_cost_volume_winner_found_in_cache_blocks_equals_the_volume_minimum(monkeypatch):
+    """The running winner of the blocked cost-volume loop is the volume's min over D (first index on ties),
+    whatever the block size, with costs outside the image or past a pair's own count at +inf."""
+    import svs_torch.dense as dense_module
+
+    generator = torch.Generator().manual_seed(4)
+    left = dense_module.prefilter_xsobel(torch.rand(5, 1, 30, 40, generator=generator), 31 / 255)
+    right = dense_module.prefilter_xsobel(torch.rand(5, 1, 30, 40, generator=generator), 31 / 255)
+    left[2], right[2] = 0.0, 0.0  # a flat pair: every disparity ties
+    x0, y0 = torch.tensor([-6, 0, 3, 10, 0]), torch.tensor([0, 2, 0, 5, 1])
+    minimum, counts = torch.tensor([0, 2, 0, 1, 0]), torch.tensor([12, 7, 12, 3, 12])
+    config = DenseConfig(window_size=5)
+    reference = None
+    for block_bytes in (1, 3 * 34 * 34 * 4, 1 << 30):  # one pair per block, blocks of 3, the whole batch
+        monkeypatch.setattr(dense_module, "CACHE_BLOCK_BYTES", block_bytes)
+        costs, inside, (best_cost, best) = dense_module._cost_volume(
+            left, right, x0, y0, 20, 30, minimum, 12, torch.full((5,), 40), config, counts)
+        own = torch.arange(12).view(1, -1, 1, 1) < counts.view(-1, 1, 1, 1)
+        assert torch.isinf(costs[~(inside & own).expand_as(costs)]).all()
+        volume_cost, volume_best = costs.min(dim=1)
+        assert torch.equal(best_cost, volume_cost) and torch.equal(best, volume_best)
+        if reference is None:
+            reference = costs
+        assert torch.equal(costs, reference)
