@@ -39,9 +39,45 @@ def extract_surf_features(
 
     Returns:
         :class:`SurfFeatures`. Descriptors are differentiable with respect to ``image`` for the detected
-        keypoints; the detection itself is not.
+        keypoints; the detection itself is not. A batch of more than ``BLOCK_IMAGES`` images runs in blocks of
+        that many (cache), padded to one K.
     """
+    if image.dim() == 4 and image.shape[0] > BLOCK_IMAGES:
+        # Blocks of images, each batched, then padded to one K: the integral images and box-filter responses of
+        # a block stay in cache, of a whole batch they do not (320x240, ms per image: 6.5 in blocks of 8 against
+        # 19 for 64 images at once and 28 for 128; in the pipeline on the 45 shared pairs, features 44 -> 10 ms a
+        # pair). Keypoints are those of one block; orientations and descriptors agree to the round-off of the
+        # integral image, whose border already depends on the batch (below 2e-3; depths unchanged).
+        blocks = [_extract(image[i:i + BLOCK_IMAGES], config, None if mask is None else mask[i:i + BLOCK_IMAGES])
+                  for i in range(0, image.shape[0], BLOCK_IMAGES)]
+        return _concatenate(blocks)
+    return _extract(image, config, mask)
+
+
+#: Images per block in :func:`extract_surf_features` (fastest measured on this CPU: 8 against 16 and whole).
+BLOCK_IMAGES = 8
+
+
+def _extract(image: torch.Tensor, config: SurfConfig, mask: torch.Tensor | None) -> SurfFeatures:
     keypoints = detect_surf_keypoints(image, config, mask)
     if not config.upright:
         keypoints = with_orientation(keypoints, surf_orientation(image, keypoints))
     return SurfFeatures(keypoints, describe_surf(image, keypoints, config.extended, config.compiled))
+
+
+def _concatenate(blocks: list[SurfFeatures]) -> SurfFeatures:
+    """Blocks of features joined along B, each padded with zero / False rows to the largest K."""
+    k = max(block.descriptors.shape[1] for block in blocks)
+
+    def pad(tensor: torch.Tensor) -> torch.Tensor:
+        extra = k - tensor.shape[1]
+        if extra == 0:
+            return tensor
+        return torch.cat([tensor, tensor.new_zeros((tensor.shape[0], extra, *tensor.shape[2:]))], dim=1)
+
+    fields = [[pad(getattr(block.keypoints, name)) for block in blocks] for name in KEYPOINT_FIELDS]
+    keypoints = Keypoints(*(torch.cat(parts) for parts in fields))
+    return SurfFeatures(keypoints, torch.cat([pad(block.descriptors) for block in blocks]))
+
+
+KEYPOINT_FIELDS = ("xy", "scale", "score", "laplacian_sign", "orientation", "valid")

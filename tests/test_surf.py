@@ -346,3 +346,25 @@ def test_real_pair_matches_mostly_at_the_true_disparity(data_dir):
     correct = ((lxy[:, 0] - rxy[:, 0]) - gt).abs() <= 1.0
     assert int(known.sum()) >= 40
     assert float(correct[known].float().mean()) >= 0.6  # measured 0.6–0.8 on this pair; SIFT gets ~0.75
+
+
+@pytest.mark.parametrize("upright", [True, False])
+def test_features_in_cache_blocks_equal_one_batch(monkeypatch, upright):
+    """extract_surf_features over blocks of images: the keypoints of one batch, padded to one K (zero / False
+    rows); orientations and descriptors equal up to the integral image's float32 round-off."""
+    import svs_torch.features as features_module
+    from svs_torch.data.synthetic import random_obstacle_scenes
+
+    scenes = random_obstacle_scenes(6, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(2)).batch
+    images = torch.cat([scenes.left, scenes.right, torch.full_like(scenes.left[:1], 0.5)])  # 13, one blank
+    config = SurfConfig(metric_threshold=100, upright=upright)
+    monkeypatch.setattr(features_module, "BLOCK_IMAGES", 1000)
+    whole = extract_surf_features(images, config, images > 0.2)
+    monkeypatch.setattr(features_module, "BLOCK_IMAGES", 4)
+    blocked = extract_surf_features(images, config, images > 0.2)
+    for name in ("xy", "scale", "score", "laplacian_sign", "valid"):  # the detector does not see the batch
+        assert torch.equal(getattr(blocked.keypoints, name), getattr(whole.keypoints, name)), name
+    turn = blocked.keypoints.orientation - whole.keypoints.orientation  # from the integral image, as descriptors
+    assert torch.atan2(turn.sin(), turn.cos()).abs().max() < 1e-2
+    assert not blocked.keypoints.valid[-1].any() and blocked.descriptors[-1].eq(0).all()
+    torch.testing.assert_close(blocked.descriptors, whole.descriptors, atol=5e-3, rtol=0)
