@@ -31,7 +31,7 @@ from .rectification import _map_points
 __all__ = [
     "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
     "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
-    "masked_quantile", "nearest_obstacle", "object_depths", "point_depths", "rectified_disparity",
+    "kept_region_lower_median", "masked_lower_median", "masked_quantile", "nearest_obstacle", "object_depths", "point_depths", "rectified_disparity",
 ]
 
 
@@ -252,6 +252,26 @@ def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: floa
     # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
     valid = valid & torch.isfinite(depth) & (depth > 0)
     return PointDepths(torch.where(valid, depth, torch.zeros_like(safe)), valid)
+
+
+def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
+    (0 where empty) and ``(...,)`` int64 counts. Not differentiable (ground-truth statistics)."""
+    count = mask.sum(-1)
+    ordered = torch.where(mask, values, torch.full_like(values, torch.inf)).sort(-1).values
+    median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
+    return torch.where(count > 0, median, torch.zeros_like(median)), count
+
+
+def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: torch.Tensor,
+                             kept_labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`masked_lower_median` of ``values`` ``(B, 1, H, W)`` over each kept region's pixels where ``known``
+    holds: ``(B, N)`` medians (0 where empty) and counts, slot n for region ``kept_labels[:, n]`` (−1: none) of
+    ``labels`` ``(B, 1, H, W)``. The true distance of a region (GT depth), used for the truth of evaluations."""
+    b = values.shape[0]
+    region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
+              & known.reshape(b, 1, -1))  # (B, N, H·W)
+    return masked_lower_median(values.reshape(b, 1, -1).expand_as(region), region)
 
 
 def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float] | torch.Tensor) -> Quantiles:

@@ -41,6 +41,7 @@ from torch import nn
 from .checks import InputError, check_dtype, check_image, check_shape
 from .components import connected_components_with_stats
 from .dense import DenseConfig, soft_block_match
+from .depth import kept_region_lower_median
 from .morphology import open_binary, structuring_element
 from .segmentation import SegmentationConfig, keep_largest_regions
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
@@ -95,14 +96,6 @@ def _disparity_levels(disparity: torch.Tensor, valid: torch.Tensor) -> torch.Ten
     return gray_levels(torch.where(valid, (disparity - low) * scale, 0.0))
 
 
-def _lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds, 0 where empty; counts."""
-    count = mask.sum(-1)
-    ordered = torch.where(mask, values, torch.inf).sort(-1).values
-    median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
-    return torch.where(count > 0, median, torch.zeros_like(median)), count
-
-
 def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig()) -> ObstacleTruth:
     """The truth obstacles (module docstring) with ``config``'s element, connectivity and ``num_keep``.
 
@@ -125,10 +118,7 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
     labels, _, regions = connected_components_with_stats(opened, config.connectivity)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     depth, known = batch.ground_truth_depth_m()
-    b = batch.batch_size
-    region = ((labels.view(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
-              & known.view(b, 1, -1))  # (B, N, H·W)
-    region_depth, count = _lower_median(depth.view(b, 1, -1).expand_as(region), region)
+    region_depth, count = kept_region_lower_median(depth, known, labels, kept_labels)
     region_valid = count > 0
     nearest = torch.where(region_valid, region_depth, torch.inf).amin(1)
     nearest_valid = torch.isfinite(nearest)

@@ -27,12 +27,12 @@ status-gated estimates): these are reports, not losses.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 
+from ..depth import kept_region_lower_median, masked_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
 from ..types import Segmentation, StereoBatch
 
@@ -60,15 +60,6 @@ def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
         calibrated=torch.ones_like(keep))
 
 
-def _lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
-    (0 where empty) and ``(...,)`` int64 counts."""
-    count = mask.sum(-1)
-    ordered = torch.where(mask, values, torch.full_like(values, math.inf)).sort(-1).values
-    median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
-    return torch.where(count > 0, median, torch.zeros_like(median)), count
-
-
 @dataclass(frozen=True)
 class ObjectTruth:
     """The true distance of each kept left region. All ``(B, N)``, slot n is ``kept_labels[:, n]``.
@@ -91,11 +82,7 @@ def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
         InputError: the batch has no ground truth.
     """
     depth, known = batch.ground_truth_depth_m()  # (B, 1, H, W) each
-    b = batch.batch_size
-    labels = segmentation.labels.reshape(b, 1, -1)  # (B, 1, H·W)
-    kept = segmentation.kept_labels  # (B, N)
-    region = (labels == kept.unsqueeze(-1)) & (kept > 0).unsqueeze(-1) & known.reshape(b, 1, -1)  # (B, N, H·W)
-    median, count = _lower_median(depth.reshape(b, 1, -1).expand_as(region), region)
+    median, count = kept_region_lower_median(depth, known, segmentation.labels, segmentation.kept_labels)
     return ObjectTruth(depth_m=median, num_px=count, valid=count > 0)
 
 
@@ -121,7 +108,7 @@ class DisparityErrors:
 
 def _errors(error: torch.Tensor, mask: torch.Tensor, correct: torch.Tensor | None = None) -> DisparityErrors:
     """Statistics of ``error`` ``(B, P)`` where ``mask`` ``(B, P)`` holds."""
-    median, count = _lower_median(error, mask)
+    median, count = masked_lower_median(error, mask)
     denominator = count.clamp(min=1).to(error.dtype)
 
     def share(hit: torch.Tensor) -> torch.Tensor:
