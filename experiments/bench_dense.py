@@ -31,7 +31,7 @@ from svs_torch.dense import DenseConfig, estimate_dense_disparity
 from svs_torch.segmentation import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
@@ -43,8 +43,7 @@ def opencv_loop(lefts: list[np.ndarray], rights: list[np.ndarray], matcher) -> l
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get(
-        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=32)

@@ -44,7 +44,7 @@ from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
@@ -117,8 +117,7 @@ def wins(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get(
-        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
     parser.add_argument("--splits", default="held-out", help="comma-separated: held-out, tuned")
     parser.add_argument("--sizes", default="320", help="comma-separated: a width in pixels, or native")

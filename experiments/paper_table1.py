@@ -49,7 +49,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 #: The paper's own results (its Table 1, MATLAB on SVS images): the range it reports, for comparison.
 PAPER_REFERENCE = ("Paper (MATLAB, its own SVS images): accuracy 92.5-98.9 % for R_min and R_max, 1.2 s per pair; "
@@ -241,8 +241,7 @@ def summary(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get(
-        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--sizes", default="320,native", help="comma-separated: a width in pixels, or native")
     parser.add_argument("--splits", default="tuned,held-out", help="comma-separated: tuned, held-out")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")

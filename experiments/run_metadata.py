@@ -9,6 +9,11 @@ import sys
 from pathlib import Path
 
 
+def default_data_dir() -> str:
+    """The shared data: ``$SVS_TORCH_DATA``, else ``../shared/data`` beside the repository (as the tests)."""
+    return os.environ.get("SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+
+
 def run_metadata(threads: int, **extra) -> dict:
     """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count, thread count, OpenMP wait
     policy and load average at the time of the call, plus the experiment's own ``extra`` settings."""

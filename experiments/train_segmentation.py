@@ -52,7 +52,7 @@ from svs_torch.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 #: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
 HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
@@ -228,8 +228,7 @@ def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Ge
 def main(argv: list[str] | None = None) -> Path:
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get(
-        "SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data")))
+    parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--out", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
     for field in dataclasses.fields(TrainConfig):
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -80,4 +80,4 @@ def _concatenate(blocks: list[SurfFeatures]) -> SurfFeatures:
     return SurfFeatures(keypoints, torch.cat([pad(block.descriptors) for block in blocks]))
 
 
-KEYPOINT_FIELDS = ("xy", "scale", "score", "laplacian_sign", "orientation", "valid")
+KEYPOINT_FIELDS = tuple(field.name for field in fields(Keypoints))

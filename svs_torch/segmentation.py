@@ -78,7 +78,7 @@ class SegmentationConfig:
         if not (isinstance(self.segmenter, str) and (self.segmenter in ("otsu", "learned")
                                                      or (self.segmenter.startswith("learned:")
                                                          and len(self.segmenter) > len("learned:")))):
-            raise InputError(f"segmenter: expected 'otsu', 'learned' or 'learned:PATH', got {self.segmenter!r}")
+            raise InputError(f"segmenter: expected otsu, learned or learned:PATH, got {self.segmenter!r}")
         if self.segmenter.startswith("learned:") and not os.path.isfile(os.path.expanduser(self.segmenter[8:])):
             # Checked here so that a sweep or a batch run with a wrong path stops before any work starts.
             raise InputError(f"segmenter: no weights file at {self.segmenter[8:]!r}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 from .common import add_figure_option, dumps_strict, options_named, positive_int
@@ -55,14 +54,16 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
 
 
 def segmenter_choice(text: str) -> str:
-    """argparse type: ``otsu``, ``learned`` or ``learned:PATH`` naming an existing weights file."""
-    if text in ("otsu", "learned"):
-        return text
-    if text.startswith("learned:") and len(text) > len("learned:"):
-        if not os.path.isfile(os.path.expanduser(text[len("learned:"):])):
-            raise argparse.ArgumentTypeError(f"no weights file at {text[len('learned:'):]!r}")
-        return text
-    raise argparse.ArgumentTypeError(f"expected otsu, learned or learned:PATH, got {text!r}")
+    """argparse type: ``otsu``, ``learned`` or ``learned:PATH`` naming an existing weights file, checked by
+    :class:`~svs_torch.segmentation.SegmentationConfig` itself (imported only when the option is given)."""
+    from ..errors import InputError
+    from ..segmentation import SegmentationConfig
+
+    try:
+        SegmentationConfig(segmenter=text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("segmenter: ")) from None
+    return text
 
 
 def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
