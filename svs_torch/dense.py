@@ -35,6 +35,7 @@ from typing import Literal, NamedTuple
 import torch
 import torch.nn.functional as F
 
+from . import sad_kernel
 from .checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
@@ -76,6 +77,9 @@ class DenseConfig:
         min_range_pixels: fewest valid coarse pixels to bound the range from them.
         fill_invalid: per-object statistics fill invalid pixels from their row neighbours first
             (:func:`fill_invalid_rows`), so an object's median is over its whole region.
+        kernel: how the hard path's winner-takes-all is computed: ``"auto"`` the fused C kernel of
+            :mod:`svs_torch.sad_kernel` where it can be built (bit-identical to the torch path, several times
+            faster), else torch; ``"c"`` the kernel or an error; ``"torch"`` the eager torch cost volume.
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -96,6 +100,7 @@ class DenseConfig:
     min_range_inliers: int = 7
     min_range_pixels: int = 20
     fill_invalid: bool = True
+    kernel: Literal["auto", "c", "torch"] = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
@@ -106,6 +111,8 @@ class DenseConfig:
             raise InputError(f"working_width_px: expected an int >= 8, got {self.working_width_px!r}")
         if not isinstance(self.coarse_width_px, int) or self.coarse_width_px < 8:
             raise InputError(f"coarse_width_px: expected an int >= 8, got {self.coarse_width_px!r}")
+        if self.kernel not in ("auto", "c", "torch"):
+            raise InputError(f"kernel: expected 'auto', 'c' or 'torch', got {self.kernel!r}")
         if self.prefilter not in ("xsobel", "none"):
             raise InputError(f"prefilter: expected 'xsobel' or 'none', got {self.prefilter!r}")
         if not 0 <= self.uniqueness_ratio < 10:
@@ -163,11 +170,23 @@ class DenseDisparity:
 
 def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
     """``StereoBM``'s x-Sobel pre-filter: ``clip(Sobel_x(image), −cap, cap)`` on ``(B, 1, H, W)``, replicate
-    border. Differentiable w.r.t. the image (zero gradient where clipped)."""
-    kernel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=image.dtype,
-                          device=image.device).view(1, 1, 3, 3)
-    response = F.conv2d(F.pad(image, (1, 1, 1, 1), mode="replicate"), kernel)
-    return response.clamp(-cap, cap)
+    border. Differentiable w.r.t. the image (zero gradient where clipped).
+
+    The six taps are added as shifted slices in the row-major order of the 3×3 kernel, which gives
+    ``F.conv2d``'s values bit for bit (checked in ``tests/test_dense.py``) at a tenth of its time on this
+    CPU (single-channel ``conv2d`` is not vectorised: 105 ms against 9 for 32 images of 320×240)."""
+    padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    h, w = image.shape[-2:]
+
+    def tap(row: int, col: int) -> torch.Tensor:
+        return padded[..., row:row + h, col:col + w]
+
+    response = tap(0, 2) - tap(0, 0)
+    if response.requires_grad:
+        response = response - 2 * tap(1, 0) + 2 * tap(1, 2) - tap(2, 0) + tap(2, 2)
+        return response.clamp(-cap, cap)
+    response.sub_(tap(1, 0), alpha=2).add_(tap(1, 2), alpha=2).sub_(tap(2, 0)).add_(tap(2, 2))
+    return response.clamp_(-cap, cap)
 
 
 def _prefilter(image: torch.Tensor, config: DenseConfig) -> torch.Tensor:
@@ -216,6 +235,17 @@ def crop_box(image: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: in
     return _gather_crop(image, y0, x0, height, width)
 
 
+def _crops(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int, width: int,
+           min_disparity: torch.Tensor, num_disparities: int, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The left crop ``(B, 1, height + 2r, width + 2r)`` around the box at (x0, y0) and the right crop, which
+    reaches ``num_disparities − 1`` columns further left: its columns ``[k, k + width + 2r)`` are disparity
+    ``min + D − 1 − k``."""
+    hl, wl = height + 2 * radius, width + 2 * radius
+    left_crop = _gather_crop(left, y0 - radius, x0 - radius, hl, wl)
+    right_x0 = x0 - radius - min_disparity - (num_disparities - 1)
+    return left_crop, _gather_crop(right, y0 - radius, right_x0, hl, wl + num_disparities - 1)
+
+
 def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                  width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
                  config: DenseConfig, counts: torch.Tensor | None = None
@@ -230,10 +260,7 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)
     inside = ((right_x >= 0) & (right_x < image_w.view(-1, 1, 1))).unsqueeze(2)  # (B, D, 1, width)
     hl, wl = height + 2 * radius, width + 2 * radius
-    left_crop = _gather_crop(left, y0 - radius, x0 - radius, hl, wl)
-    # The right crop reaches num_disparities − 1 columns further left; slice k of it is disparity D − 1 − k.
-    right_x0 = x0 - radius - min_disparity - (num_disparities - 1)
-    right_crop = _gather_crop(right, y0 - radius, right_x0, hl, wl + num_disparities - 1)
+    left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):  # the soft path: no in-place ops
         windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
         volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2).contiguous()
@@ -294,28 +321,49 @@ def _equiangular_offset(before: torch.Tensor, best: torch.Tensor, after: torch.T
     return torch.where(rise > 0, (before - after) / safe, torch.zeros_like(rise)).clamp(-0.5, 0.5)
 
 
-def _winner(costs: torch.Tensor, config: DenseConfig, lower_is_limit: torch.Tensor, counts: torch.Tensor,
-            minimum: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """WTA over D of ``costs`` ``(B, D, h, w)`` (+inf where the right pixel leaves the image): integer index
-    ``(B, h, w)``, sub-pixel offset, and the uniqueness / range-edge verdict. ``costs`` is read, and restored
-    after the uniqueness check writes into it. ``minimum``: the WTA ``(min cost, index)`` over D, from
-    :func:`_cost_volume`."""
+class _WinnerStats(NamedTuple):
+    """Per left pixel of the matched box, ``(B, h, w)`` each: the winner-takes-all ``best`` index over D (the
+    first on ties) and its cost, the costs at ``best ∓ 1`` (clamped to the range), the least cost farther than
+    1 px from ``best`` (``rival``, +inf if none; None when not needed) and the right view's winner
+    (``right_best``, see :func:`_right_winner`; None when not needed)."""
+
+    best_cost: torch.Tensor
+    best: torch.Tensor
+    before: torch.Tensor
+    after: torch.Tensor
+    rival: torch.Tensor | None
+    right_best: torch.Tensor | None
+
+
+def _winner_stats_torch(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], uniqueness: bool,
+                        right: bool) -> _WinnerStats:
+    """:class:`_WinnerStats` from the cost volume ``(B, D, h, w)`` (+inf where not searched) and its WTA
+    ``minimum`` (found by :func:`_cost_volume`). ``costs`` is read, and restored after the uniqueness rival
+    writes into it."""
     num_disparities = costs.shape[1]
     best_cost, best = minimum  # (B, h, w)
     neighbours = (best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
     neighbours = neighbours.clamp(0, num_disparities - 1)  # (B, 3, h, w)
     near = costs.gather(1, neighbours)
-    before, after = near[:, 0], near[:, 2]
+    rival = None
+    if uniqueness:  # the best cost farther than 1 px from the winner, without copying the volume
+        costs.scatter_(1, neighbours, torch.inf)
+        rival = costs.min(dim=1).values
+        costs.scatter_(1, neighbours, near)
+    return _WinnerStats(best_cost, best, near[:, 0], near[:, 2], rival, _right_winner(costs) if right else None)
+
+
+def _winner(stats: _WinnerStats, num_disparities: int, config: DenseConfig, lower_is_limit: torch.Tensor,
+            counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sub-pixel offset of each winner and the uniqueness / range-edge verdict, ``(B, h, w)`` each."""
+    best_cost, best, before, after = stats.best_cost, stats.best, stats.before, stats.after
     interior = (best > 0) & (best < num_disparities - 1) & torch.isfinite(before) & torch.isfinite(after)
     offset = torch.where(interior, _equiangular_offset(before, best_cost, after), torch.zeros_like(best_cost))
     ok = torch.isfinite(best_cost) & (best < counts.view(-1, 1, 1) - 1)
     ok &= (best > 0) | lower_is_limit.view(-1, 1, 1)  # a winner on the range's inner edge is unreliable
-    if config.uniqueness_ratio > 0:  # the best cost farther than 1 px from the winner, without copying
-        costs.scatter_(1, neighbours, torch.inf)
-        rival = costs.min(dim=1).values
-        costs.scatter_(1, neighbours, near)
-        ok &= rival > (1 + config.uniqueness_ratio) * best_cost
-    return best, offset, ok
+    if config.uniqueness_ratio > 0:
+        ok &= stats.rival > (1 + config.uniqueness_ratio) * best_cost
+    return offset, ok
 
 
 def _right_winner(costs: torch.Tensor) -> torch.Tensor:
@@ -344,6 +392,29 @@ def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_dif
     return inside & (seen >= 0) & ((seen - best).abs() <= max_diff)
 
 
+def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
+                  width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
+                  config: DenseConfig, counts: torch.Tensor) -> _WinnerStats:
+    """:class:`_WinnerStats` of the box at (x0, y0): from the fused C kernel (:mod:`svs_torch.sad_kernel`,
+    bit-identical, several times faster) for float32 CPU images without gradients when ``config.kernel``
+    allows and it is available, else from the torch cost volume."""
+    uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
+    if (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
+            and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad))):
+        radius = config.window_size // 2
+        left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
+        found = sad_kernel.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
+                                   min_disparity, image_w, counts)
+        if found is not None:
+            return _WinnerStats(*found)
+        if config.kernel == "c":
+            raise InputError("kernel: 'c' asks for the compiled dense kernel, which is not available here "
+                             "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
+    costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
+                                     config, counts)
+    return _winner_stats_torch(costs, minimum, uniqueness, right_check)
+
+
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                width: int, search: DisparityRange, image_hw: torch.Tensor, config: DenseConfig,
                lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -357,11 +428,12 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     counts = search.pair_num_disparities
     if counts is None:
         counts = torch.full_like(search.min_disparity_px, num_disparities)
-    costs, _, minimum = _cost_volume(left, right, x0 - extra, y0, height, width + 2 * extra,
-                                     search.min_disparity_px, num_disparities, image_hw[:, 1], config, counts)
-    best, offset, ok = _winner(costs, config, lower_is_limit, counts, minimum)
+    stats = _winner_stats(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
+                          num_disparities, image_hw[:, 1], config, counts)
+    best = stats.best
+    offset, ok = _winner(stats, num_disparities, config, lower_is_limit, counts)
     if config.lr_max_diff_px is not None:
-        ok &= _left_right_consistent(best, _right_winner(costs), config.lr_max_diff_px)
+        ok &= _left_right_consistent(best, stats.right_best, config.lr_max_diff_px)
     if config.texture_threshold > 0:
         radius = config.window_size // 2
         texture = _gather_crop(sobel.abs(), y0 - radius, x0 - extra - radius, height + 2 * radius,

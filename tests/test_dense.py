@@ -3,6 +3,7 @@ region crop, batching, the soft-argmin variant (gradcheck) and bad input."""
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 
 import cv2
@@ -10,10 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from svs_torch import InputError
+from svs_torch import InputError, sad_kernel
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.dense import (DenseConfig, DisparityRange, block_match_sad, coarse_search_range,
-                             dense_disparity_over_regions, disparity_search_range, fill_invalid_rows,
+                             dense_disparity_over_regions, disparity_search_range, estimate_dense_disparity,
+                             fill_invalid_rows,
                              prefilter_xsobel, soft_block_match)
 from svs_torch.segmentation import segment_stereo
 
@@ -238,6 +240,7 @@ def test_prefilter_matches_opencv_sobel(teddy):
     ({"range_source": "gt"}, "range_source: expected 'coarse' or 'inliers'"),
     ({"lr_max_diff_px": -1.0}, "lr_max_diff_px: expected None or a value >= 0"),
     ({"range_percentiles": (50.0, 10.0)}, "range_percentiles: expected 0 <= low <= high <= 100"),
+    ({"kernel": "gpu"}, "kernel: expected 'auto', 'c' or 'torch'"),
 ])
 def test_config_errors(kwargs, message):
     with pytest.raises(InputError, match=message):
@@ -306,3 +309,83 @@ def test_cost_volume_winner_found_in_cache_blocks_equals_the_volume_minimum(monk
         if reference is None:
             reference = costs
         assert torch.equal(costs, reference)
+
+
+needs_kernel = pytest.mark.skipif(not sad_kernel.available(), reason="no C compiler: the torch path is tested alone")
+
+
+@needs_kernel
+@pytest.mark.parametrize("config", [
+    DenseConfig(),
+    DenseConfig(window_size=3, uniqueness_ratio=0.3, lr_max_diff_px=0.0, texture_threshold=0.05),
+    DenseConfig(window_size=5, prefilter="none", uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0),
+], ids=["default", "strict", "raw-no-rules"])
+def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
+    """The fused C kernel (svs_torch.sad_kernel) makes the torch path's float32 arithmetic in the same order:
+    same disparities, same validity, bit for bit — on whole images with per-pair ranges, a flat pair (every
+    disparity ties), padding (image_hw) and a range wider than the image."""
+    base = torch.rand(4, 1, 37, 61, generator=generator)
+    right = (0.9 * torch.roll(base, shifts=-5, dims=-1) + 0.1 * torch.rand(4, 1, 37, 61, generator=generator))
+    base[2], right[2] = 0.5, 0.5
+    minimum, image_hw = torch.tensor([0, 3, 0, 1]), torch.tensor([[37, 61], [30, 50], [37, 61], [37, 61]])
+    for num_disparities in (12, 70):
+        kernel = block_match_sad(base, right, minimum, num_disparities, replace(config, kernel="c"), image_hw)
+        eager = block_match_sad(base, right, minimum, num_disparities, replace(config, kernel="torch"), image_hw)
+        assert torch.equal(kernel.disparity_px, eager.disparity_px) and torch.equal(kernel.valid, eager.valid)
+        assert kernel.valid.any()
+
+
+@needs_kernel
+def test_compiled_kernel_gives_the_pipeline_the_same_depths(teddy):
+    """Region crops, per-pair ranges, groups and the coarse pass through both paths: the same dense maps."""
+    left = teddy.left.repeat(3, 1, 1, 1)
+    right = torch.cat([teddy.right, torch.roll(teddy.right, 4, -1), teddy.right])
+    mask = segment_stereo(teddy).left.kept_mask.repeat(3, 1, 1, 1)
+    mask[1, :, :100] = False  # pairs with different regions
+    results = [estimate_dense_disparity(left, right, mask, DenseConfig(kernel=kernel))
+               for kernel in ("c", "torch")]
+    assert torch.equal(results[0].disparity_px, results[1].disparity_px)
+    assert torch.equal(results[0].valid, results[1].valid) and results[0].valid.sum() > 1000
+
+
+def test_kernel_off_or_unbuildable_falls_back_to_torch(monkeypatch, tmp_path, capsys, generator):
+    """SVS_TORCH_KERNELS=torch, or a compiler that fails: the dense stage runs its torch path (same result),
+    says why on stderr, and kernel="c" is then a clear error."""
+    left, right = torch.rand(1, 1, 20, 30, generator=generator), torch.rand(1, 1, 20, 30, generator=generator)
+    expected = block_match_sad(left, right, 0, 8, DenseConfig(kernel="torch"))
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    assert sad_kernel.load() is None
+    monkeypatch.delenv("SVS_TORCH_KERNELS")
+    monkeypatch.setattr(sad_kernel, "_TRIED", False)
+    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
+    monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", "false")  # a compiler that always fails
+    result = block_match_sad(left, right, 0, 8, DenseConfig())
+    assert "did not compile" in capsys.readouterr().err
+    assert torch.equal(result.disparity_px, expected.disparity_px) and torch.equal(result.valid, expected.valid)
+    with pytest.raises(InputError, match="kernel: 'c' asks for the compiled dense kernel"):
+        block_match_sad(left, right, 0, 8, DenseConfig(kernel="c"))
+    assert not any((tmp_path / "cache").glob("*.so"))  # nothing half-written left behind
+
+
+def test_compiled_kernel_cache_is_reused(monkeypatch, tmp_path, capsys):
+    """The first load compiles (said on stderr) into the cache directory; a later process loads it silently."""
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(sad_kernel, "_TRIED", False)
+    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
+    assert sad_kernel.load() is not None
+    assert "compiling the dense-stage kernel" in capsys.readouterr().err
+    assert len(list(tmp_path.glob("sad_wta-*.so"))) == 1
+    monkeypatch.setattr(sad_kernel, "_TRIED", False)
+    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
+    assert sad_kernel.load() is not None and capsys.readouterr().err == ""
+
+
+def test_prefilter_slices_equal_conv2d_bit_for_bit(teddy):
+    """The slice-and-add Sobel gives conv2d's float32 values exactly (same summation order)."""
+    image = teddy.left
+    kernel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]).view(1, 1, 3, 3)
+    expected = torch.nn.functional.conv2d(torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate"), kernel)
+    assert torch.equal(prefilter_xsobel(image, 31 / 255), expected.clamp(-31 / 255, 31 / 255))
