@@ -6,7 +6,10 @@ inlier then decides R_min or R_max, and a few dozen keypoints estimate an object
 instead, the way OpenCV's ``StereoBM`` does (Konolige 1997):
 
 1. **Pre-filter** both images: the x-Sobel response clipped to ``±prefilter_cap`` (``StereoBM``'s default
-   ``PREFILTER_XSOBEL``), which removes the exposure offset between the two cameras; or raw intensities.
+   ``PREFILTER_XSOBEL``), which removes the exposure offset between the two cameras; or raw intensities. The
+   hard path matches them in whole 1/255 steps, as ``StereoBM``'s 8-bit pre-filter does
+   (:func:`quantize_levels`): its costs are then exact integers, which lets the fused C kernel
+   (:mod:`svs_torch.sad_kernel`) use running sums and still equal the torch path bit for bit.
 2. **Cost**: for each disparity d of a per-pair range ``[d_lo, d_lo + D)``, the sum of absolute differences
    over a square window, ``C(x, y, d) = Σ_window |L(x, y) − R(x − d, y)|`` — box sums by separable pooling.
 3. **Winner takes all**, then rejections (each marks the pixel invalid, never guesses): the window's mean
@@ -40,7 +43,8 @@ from .checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
     "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
-    "dense_disparity_over_regions", "disparity_search_range", "estimate_dense_disparity", "prefilter_xsobel", "region_crop_boxes", "soft_block_match",
+    "dense_disparity_over_regions", "disparity_search_range", "estimate_dense_disparity", "prefilter_xsobel",
+    "quantize_levels", "region_crop_boxes", "soft_block_match",
 ]
 
 
@@ -187,6 +191,12 @@ def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
         return response.clamp(-cap, cap)
     response.sub_(tap(1, 0), alpha=2).add_(tap(1, 2), alpha=2).sub_(tap(2, 0)).add_(tap(2, 2))
     return response.clamp_(-cap, cap)
+
+
+def quantize_levels(image: torch.Tensor) -> torch.Tensor:
+    """``round(255 · image)``: values in whole 1/255 steps, as the 8-bit pre-filtered images ``StereoBM``
+    matches (the hard path; not differentiable)."""
+    return torch.round(image * 255)
 
 
 def _prefilter(image: torch.Tensor, config: DenseConfig) -> torch.Tensor:
@@ -423,6 +433,10 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     sobel = prefilter_xsobel(left, config.prefilter_cap)
     if config.prefilter == "xsobel":
         left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
+    # StereoBM's levels: the matched values in whole 1/255 intensity steps (its pre-filter is uint8). The SAD
+    # costs are then whole numbers, exact in float32 (at most K² · 255 < 2²⁴) whatever the order of the sums,
+    # so the C kernel's running sums give the torch path's costs bit for bit.
+    left, right = quantize_levels(left), quantize_levels(right)
     num_disparities = search.num_disparities
     extra = num_disparities - 1 if config.lr_max_diff_px is not None else 0
     counts = search.pair_num_disparities

@@ -5,8 +5,8 @@ Why a C kernel: eager torch pays one memory pass per elementwise op, and the den
 (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking, the
 running minimum, the uniqueness rival, the right view's winner): 35–50 ms a pair at 320×240, most of a
 pipeline run. The kernel makes each output row's costs for every disparity and consumes them while they are in
-cache, in the torch path's own arithmetic order, so its results are bit-identical to the torch path's
-(``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch.
+cache, with running window sums; its inputs are whole numbers (``StereoBM``'s 8-bit levels), so every sum is
+exact and its results are bit-identical to the torch path's (``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch.
 
 The shared library is cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
 the source, the compiler flags and the CPU, so every later process reuses it; the one compile (about a second)
@@ -31,7 +31,7 @@ import torch
 __all__ = ["available", "cache_dir", "load", "sad_wta"]
 
 SOURCE = Path(__file__).with_name("kernels") / "sad_wta.c"
-#: No -ffast-math: it would let the compiler reorder the window sums and lose bit-identity with the torch path.
+#: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-pthread"]
 #: Rows of output per task: enough to amortise the K − 1 rows each band reads first, small enough that one pair
 #: splits across threads (the B = 1 ``guide`` case).
@@ -131,8 +131,10 @@ def sad_wta(left_crop: torch.Tensor, right_crop: torch.Tensor, window_size: int,
             x0: torch.Tensor, min_disparity: torch.Tensor, image_w: torch.Tensor, counts: torch.Tensor
             ) -> tuple[torch.Tensor, ...] | None:
     """Winner-takes-all over the SAD costs of the crops, the kernel's contract (see the C source):
-    ``left_crop`` ``(B, HL, WL)`` and ``right_crop`` ``(B, HL, WL + D − 1)`` float32; per pair ``x0`` (the
-    crop's column in the image), ``min_disparity``, ``image_w``, ``counts`` ``(B,)`` int64.
+    ``left_crop`` ``(B, HL, WL)`` and ``right_crop`` ``(B, HL, WL + D − 1)`` float32 holding whole numbers in
+    [−255, 255] (:func:`svs_torch.dense.quantize_levels`: then every sum is exact and the result is the torch
+    path's bit for bit); per pair ``x0`` (the crop's column in the image), ``min_disparity``, ``image_w``,
+    ``counts`` ``(B,)`` int64.
 
     Returns ``(best_cost, best, before, after, rival, right_best)``, each ``(B, H, W)`` with ``H = HL − K + 1``,
     ``W = WL − K + 1`` (float32, or int64 for the indices), or None when the kernel is not available."""

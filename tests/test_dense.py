@@ -39,6 +39,7 @@ def reference_block_match(left: np.ndarray, right: np.ndarray, min_d: int, num_d
 
     sob_l, sob_r = sobel(left), sobel(right)
     fl, fr = (sob_l, sob_r) if config.prefilter == "xsobel" else (left, right)
+    fl, fr = np.round(fl * 255), np.round(fr * 255)  # matched in whole 1/255 steps, as StereoBM's uint8
 
     def pixel(image, y, x):
         return image[min(max(y, 0), h - 1), min(max(x, 0), w - 1)]
