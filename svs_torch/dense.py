@@ -9,7 +9,7 @@ instead, the way OpenCV's ``StereoBM`` does (Konolige 1997):
    ``PREFILTER_XSOBEL``), which removes the exposure offset between the two cameras; or raw intensities. The
    hard path matches them in whole 1/255 steps, as ``StereoBM``'s 8-bit pre-filter does
    (:func:`quantize_levels`): its costs are then exact integers, which lets the fused C kernel
-   (:mod:`svs_torch.sad_kernel`) use running sums and still equal the torch path bit for bit.
+   (:mod:`svs_torch.kernels`) use running sums and still equal the torch path bit for bit.
 2. **Cost**: for each disparity d of a per-pair range ``[d_lo, d_lo + D)``, the sum of absolute differences
    over a square window, ``C(x, y, d) = Σ_window |L(x, y) − R(x − d, y)|`` — box sums by separable pooling.
 3. **Winner takes all**, then rejections (each marks the pixel invalid, never guesses): the window's mean
@@ -38,7 +38,7 @@ from typing import Literal, NamedTuple
 import torch
 import torch.nn.functional as F
 
-from . import sad_kernel
+from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
@@ -82,7 +82,7 @@ class DenseConfig:
         fill_invalid: per-object statistics fill invalid pixels from their row neighbours first
             (:func:`fill_invalid_rows`), so an object's median is over its whole region.
         kernel: how the hard path's winner-takes-all is computed: ``"auto"`` the fused C kernel of
-            :mod:`svs_torch.sad_kernel` where it can be built (bit-identical to the torch path, several times
+            :mod:`svs_torch.kernels` where it can be built (bit-identical to the torch path, several times
             faster), else torch; ``"c"`` the kernel or an error; ``"torch"`` the eager torch cost volume.
     """
 
@@ -405,7 +405,7 @@ def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_dif
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
                   config: DenseConfig, counts: torch.Tensor) -> _WinnerStats:
-    """:class:`_WinnerStats` of the box at (x0, y0): from the fused C kernel (:mod:`svs_torch.sad_kernel`,
+    """:class:`_WinnerStats` of the box at (x0, y0): from the fused C kernel (:mod:`svs_torch.kernels`,
     bit-identical, several times faster) for float32 CPU images without gradients when ``config.kernel``
     allows and it is available, else from the torch cost volume."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
@@ -413,7 +413,7 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
             and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad))):
         radius = config.window_size // 2
         left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
-        found = sad_kernel.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
+        found = kernels.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
                                    min_disparity, image_w, counts)
         if found is not None:
             return _WinnerStats(*found)

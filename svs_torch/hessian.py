@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
+from . import kernels
 from .compiling import maybe_compiled
 from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
@@ -92,6 +93,14 @@ def _level_into(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_d
     trace_out.copy_(trace)
 
 
+def _level_into_kernel(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_dxy_area: float,
+                       det_out: torch.Tensor, trace_out: torch.Tensor) -> None:
+    """:func:`_level_into` by the fused C kernel (:mod:`svs_torch.kernels`, bit-identical, no gradients), or by
+    torch where the kernel is not available."""
+    if not kernels.hessian_level(corners, inverse_lobe_area, inverse_dxy_area, DXY_WEIGHT, det_out, trace_out):
+        _level_into(corners, inverse_lobe_area, inverse_dxy_area, det_out, trace_out)
+
+
 def _inside(size: int, step: int, grid_hw: tuple[int, int], image_hw: tuple[int, int], device) -> torch.Tensor:
     """``(ny, nx)`` bool: the whole filter of this size fits in the image at the grid point."""
     half = size // 2
@@ -113,7 +122,8 @@ def hessian_octaves(
         num_scale_levels: filter sizes per octave (MATLAB ``NumScaleLevels``, default 4; at least 3).
         compiled: run the per-level kernel through ``torch.compile`` (identical output, about 10× faster on
             CPU once compiled; the first call compiles for about 20 s, later processes reuse inductor's
-            on-disk cache).
+            on-disk cache). Without it, float32 images that need no gradient go through the fused C kernel of
+            :mod:`svs_torch.kernels` where it can be built (identical output too, no compile wait).
 
     Returns:
         One :class:`HessianOctave` per octave, in the image's dtype. Differentiable with respect to ``image``.
@@ -130,6 +140,8 @@ def hessian_octaves(
     # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
     # offsets never reach the graph.
     level = maybe_compiled(_level_into, compiled)
+    if not compiled and image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad):
+        level = _level_into_kernel  # the C kernel where it can be built: the same values in one pass
     octaves = []
     for octave in range(num_octaves):
         step = 1 << octave

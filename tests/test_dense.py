@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from svs_torch import InputError, sad_kernel
+from svs_torch import InputError, kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.dense import (DenseConfig, DisparityRange, block_match_sad, coarse_search_range,
                              dense_disparity_over_regions, disparity_search_range, estimate_dense_disparity,
@@ -312,7 +312,7 @@ def test_cost_volume_winner_found_in_cache_blocks_equals_the_volume_minimum(monk
         assert torch.equal(costs, reference)
 
 
-needs_kernel = pytest.mark.skipif(not sad_kernel.available(), reason="no C compiler: the torch path is tested alone")
+needs_kernel = pytest.mark.skipif(not kernels.available(), reason="no C compiler: the torch path is tested alone")
 
 
 @needs_kernel
@@ -322,7 +322,7 @@ needs_kernel = pytest.mark.skipif(not sad_kernel.available(), reason="no C compi
     DenseConfig(window_size=5, prefilter="none", uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0),
 ], ids=["default", "strict", "raw-no-rules"])
 def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
-    """The fused C kernel (svs_torch.sad_kernel) makes the torch path's float32 arithmetic in the same order:
+    """The fused C kernel (svs_torch.kernels) makes the torch path's float32 arithmetic in the same order:
     same disparities, same validity, bit for bit — on whole images with per-pair ranges, a flat pair (every
     disparity ties), padding (image_hw) and a range wider than the image."""
     base = torch.rand(4, 1, 37, 61, generator=generator)
@@ -355,10 +355,9 @@ def test_kernel_off_or_unbuildable_falls_back_to_torch(monkeypatch, tmp_path, ca
     left, right = torch.rand(1, 1, 20, 30, generator=generator), torch.rand(1, 1, 20, 30, generator=generator)
     expected = block_match_sad(left, right, 0, 8, DenseConfig(kernel="torch"))
     monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
-    assert sad_kernel.load() is None
+    assert kernels.load() is None
     monkeypatch.delenv("SVS_TORCH_KERNELS")
-    monkeypatch.setattr(sad_kernel, "_TRIED", False)
-    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
+    monkeypatch.setattr(kernels, "_LIBRARIES", {})
     monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("CC", "false")  # a compiler that always fails
     result = block_match_sad(left, right, 0, 8, DenseConfig())
@@ -374,14 +373,12 @@ def test_compiled_kernel_cache_is_reused(monkeypatch, tmp_path, capsys):
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler")
     monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path))
-    monkeypatch.setattr(sad_kernel, "_TRIED", False)
-    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
-    assert sad_kernel.load() is not None
-    assert "compiling the dense-stage kernel" in capsys.readouterr().err
+    monkeypatch.setattr(kernels, "_LIBRARIES", {})
+    assert kernels.load() is not None
+    assert "compiling the sad_wta kernel" in capsys.readouterr().err
     assert len(list(tmp_path.glob("sad_wta-*.so"))) == 1
-    monkeypatch.setattr(sad_kernel, "_TRIED", False)
-    monkeypatch.setattr(sad_kernel, "_LIBRARY", None)
-    assert sad_kernel.load() is not None and capsys.readouterr().err == ""
+    monkeypatch.setattr(kernels, "_LIBRARIES", {})
+    assert kernels.load() is not None and capsys.readouterr().err == ""
 
 
 def test_prefilter_slices_equal_conv2d_bit_for_bit(teddy):

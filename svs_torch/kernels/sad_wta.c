@@ -17,8 +17,8 @@
  * minima and selects do no arithmetic, so streaming over d changes no value either.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -pthread (no -ffast-math: it could treat the
- * +inf costs as impossible). Loaded through ctypes by svs_torch/sad_kernel.py, which falls back to the torch path without a
- * compiler.
+ * +inf costs as impossible). Loaded through ctypes by svs_torch/kernels/__init__.py, which falls back to the
+ * torch path without a compiler.
  */
 #include <math.h>
 #include <pthread.h>

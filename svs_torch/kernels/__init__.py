@@ -1,17 +1,21 @@
-"""The fused SAD winner-takes-all kernel of the dense stage: C source in ``svs_torch/kernels/sad_wta.c``,
-compiled once per machine with the system's C compiler and loaded through ``ctypes``.
+"""Fused C kernels for the two memory-bound hot spots, compiled once per machine with the system's C compiler
+and loaded through ``ctypes``: the dense stage's SAD winner-takes-all (``sad_wta.c``) and one level of SURF's
+box-filter Hessian (``hessian_level.c``). Each is the no-gradient path of a torch function that stays the
+reference, the fallback and the differentiable path, and each gives that torch path's values bit for bit.
 
-Why a C kernel: eager torch pays one memory pass per elementwise op, and the dense stage's cost volume
+Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's cost volume
 (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking, the
 running minimum, the uniqueness rival, the right view's winner): 35–50 ms a pair at 320×240, most of a
 pipeline run. The kernel makes each output row's costs for every disparity and consumes them while they are in
 cache, with running window sums; its inputs are whole numbers (``StereoBM``'s 8-bit levels), so every sum is
 exact and its results are bit-identical to the torch path's (``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch.
+The Hessian level reads 32 integral-image corner views and made about 40 elementwise passes in eager torch;
+the kernel does the same float32 operations in the same order per grid point, in one pass.
 
-The shared library is cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
-the source, the compiler flags and the CPU, so every later process reuses it; the one compile (about a second)
-is announced on stderr. Without a compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and
-the dense stage runs its torch path.
+The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
+the source, the compiler flags and the CPU, so every later process reuses them; each one-time compile (about a
+second) is announced on stderr. Without a compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns
+None and the callers run their torch paths.
 """
 
 from __future__ import annotations
@@ -28,17 +32,16 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "cache_dir", "load", "sad_wta"]
+__all__ = ["available", "cache_dir", "hessian_level", "load", "sad_wta"]
 
-SOURCE = Path(__file__).with_name("kernels") / "sad_wta.c"
+SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in ("sad_wta", "hessian_level")}
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-pthread"]
 #: Rows of output per task: enough to amortise the K − 1 rows each band reads first, small enough that one pair
 #: splits across threads (the B = 1 ``guide`` case).
 BAND_ROWS = 48
 
-_LIBRARY: ctypes.CDLL | None = None
-_TRIED = False
+_LIBRARIES: dict[str, ctypes.CDLL | None] = {}
 
 
 def cache_dir() -> Path:
@@ -60,35 +63,35 @@ def _cpu_signature() -> str:
     return platform.processor() or platform.machine()
 
 
-def _library_path() -> Path:
+def _library_path(name: str) -> Path:
     digest = hashlib.sha256()
-    for part in (SOURCE.read_bytes(), " ".join(FLAGS).encode(), _cpu_signature().encode(),
+    for part in (SOURCES[name].read_bytes(), " ".join(FLAGS).encode(), _cpu_signature().encode(),
                  platform.machine().encode()):
         digest.update(part)
-    return cache_dir() / f"sad_wta-{digest.hexdigest()[:16]}.so"
+    return cache_dir() / f"{name}-{digest.hexdigest()[:16]}.so"
 
 
-def _compile(target: Path) -> bool:
+def _compile(name: str, target: Path) -> bool:
     compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
     if compiler is None:
         return False
-    print(f"svs_torch: compiling the dense-stage kernel once for this machine into {target.parent} "
+    print(f"svs_torch: compiling the {name} kernel once for this machine into {target.parent} "
           "(about a second; later runs reuse it)", file=sys.stderr)
     target.parent.mkdir(parents=True, exist_ok=True)
     # Built under a temporary name and renamed: a concurrent process never loads a half-written library.
     handle, temporary = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(handle)
     try:
-        done = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", temporary, "-lm"], capture_output=True,
+        done = subprocess.run([compiler, *FLAGS, str(SOURCES[name]), "-o", temporary, "-lm"], capture_output=True,
                               timeout=120)
         if done.returncode != 0:
-            print("svs_torch: the kernel did not compile; the dense stage runs its torch path:\n"
+            print(f"svs_torch: the {name} kernel did not compile; its torch path runs instead:\n"
                   + done.stderr.decode(errors="replace")[-2000:], file=sys.stderr)
             return False
         os.replace(temporary, target)
         return True
     except (OSError, subprocess.SubprocessError) as error:
-        print(f"svs_torch: the kernel did not compile ({error}); the dense stage runs its torch path",
+        print(f"svs_torch: the {name} kernel did not compile ({error}); its torch path runs instead",
               file=sys.stderr)
         return False
     finally:
@@ -96,35 +99,41 @@ def _compile(target: Path) -> bool:
             os.unlink(temporary)
 
 
-def load() -> ctypes.CDLL | None:
-    """The compiled kernel, compiling it on first use; None when kernels are off (``SVS_TORCH_KERNELS=torch``)
-    or cannot be built or loaded (then the caller's torch path runs)."""
-    global _LIBRARY, _TRIED
+_POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+_SIGNATURES = {
+    "sad_wta": [_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 2,
+    "hessian_level": [_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 2,
+}
+
+
+def load(name: str = "sad_wta") -> ctypes.CDLL | None:
+    """The compiled kernel ``name`` (``"sad_wta"`` or ``"hessian_level"``), compiling it on first use; None
+    when kernels are off (``SVS_TORCH_KERNELS=torch``) or it cannot be built or loaded (then the caller's torch
+    path runs)."""
     if os.environ.get("SVS_TORCH_KERNELS", "").lower() == "torch":
         return None
-    if _TRIED:
-        return _LIBRARY
-    _TRIED = True
+    if name in _LIBRARIES:
+        return _LIBRARIES[name]
+    _LIBRARIES[name] = None
     try:
-        path = _library_path()
-        if not path.exists() and not _compile(path):
+        path = _library_path(name)
+        if not path.exists() and not _compile(name, path):
             return None
         library = ctypes.CDLL(str(path))
     except OSError as error:
-        print(f"svs_torch: the kernel could not be loaded ({error}); the dense stage runs its torch path",
+        print(f"svs_torch: the {name} kernel could not be loaded ({error}); its torch path runs instead",
               file=sys.stderr)
         return None
-    function = library.sad_wta
-    pointer, integer = ctypes.c_void_p, ctypes.c_int64
-    function.argtypes = [pointer, pointer] + [integer] * 5 + [pointer] * 4 + [pointer] * 6 + [integer] * 2
-    function.restype = ctypes.c_int
-    _LIBRARY = library
+    function = getattr(library, name)
+    function.argtypes = _SIGNATURES[name]
+    function.restype = ctypes.c_int if name == "sad_wta" else None
+    _LIBRARIES[name] = library
     return library
 
 
-def available() -> bool:
-    """Whether :func:`sad_wta` can run here."""
-    return load() is not None
+def available(name: str = "sad_wta") -> bool:
+    """Whether the kernel ``name`` can run here."""
+    return load(name) is not None
 
 
 def sad_wta(left_crop: torch.Tensor, right_crop: torch.Tensor, window_size: int, num_disparities: int,
@@ -155,3 +164,28 @@ def sad_wta(left_crop: torch.Tensor, right_crop: torch.Tensor, window_size: int,
     if status != 0:
         return None
     return best_cost, best, before, after, rival, right_best
+
+
+def hessian_level(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_dxy_area: float,
+                  dxy_weight: float, det_out: torch.Tensor, trace_out: torch.Tensor) -> bool:
+    """``svs_torch.hessian._level_into`` in one pass: det(H) and the trace from the 32 float32 corner views
+    ``(B, 1, ny, nx)`` (unit stride along x) into ``det_out`` / ``trace_out`` (views of the same shape, unit
+    stride along x). Returns False, writing nothing, when the kernel is not available or a view's layout does
+    not fit."""
+    library = load("hessian_level")
+    if library is None:
+        return False
+    views = [*corners, det_out, trace_out]
+    if any(v.dtype != torch.float32 or v.device.type != "cpu" or v.dim() != 4 or v.shape[1] != 1
+           or v.shape != det_out.shape or (v.shape[-1] > 1 and v.stride(-1) != 1) for v in views):
+        return False
+    b, _, ny, nx = det_out.shape
+    if trace_out.stride() != det_out.stride():
+        return False
+    pointers = (ctypes.c_void_p * 32)(*(v.data_ptr() for v in corners))
+    batch_stride = (ctypes.c_int64 * 32)(*(v.stride(0) for v in corners))
+    row_stride = (ctypes.c_int64 * 32)(*(v.stride(2) for v in corners))
+    library.hessian_level(pointers, batch_stride, row_stride, b, ny, nx, inverse_lobe_area, inverse_dxy_area,
+                          dxy_weight, det_out.data_ptr(), trace_out.data_ptr(), det_out.stride(0),
+                          det_out.stride(2))
+    return True
