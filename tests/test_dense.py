@@ -72,6 +72,8 @@ def reference_block_match(left: np.ndarray, right: np.ndarray, min_d: int, num_d
             if 0 < k < num_d - 1 and np.isfinite(c[k - 1]) and np.isfinite(c[k + 1]):
                 rise = 2 * (max(c[k - 1], c[k + 1]) - c[k])
                 offset = float(np.clip((c[k - 1] - c[k + 1]) / rise, -0.5, 0.5)) if rise > 0 else 0.0
+            if config.whole_range_in_view:  # the largest disparity searched lands inside the right image
+                ok &= x >= min_d + num_d - 1
             valid[y, x] = ok
             disparity[y, x] = min_d + k + offset if ok else 0.0
     return disparity, valid
@@ -81,7 +83,8 @@ def reference_block_match(left: np.ndarray, right: np.ndarray, min_d: int, num_d
     DenseConfig(window_size=3),
     DenseConfig(window_size=5, prefilter="none", uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0),
     DenseConfig(window_size=3, uniqueness_ratio=0.3, lr_max_diff_px=0.0, texture_threshold=0.05),
-], ids=["default-rules", "raw-no-rules", "strict"])
+    DenseConfig(window_size=3, whole_range_in_view=True),
+], ids=["default-rules", "raw-no-rules", "strict", "whole-range-in-view"])
 def test_batched_equals_float64_loop_reference(config, generator):
     base = torch.rand(2, 1, 9, 18, generator=generator, dtype=F64)
     shifted = torch.roll(base, shifts=-3, dims=-1)  # the right view: x_r = x − 3
@@ -329,6 +332,7 @@ def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
     right = (0.9 * torch.roll(base, shifts=-5, dims=-1) + 0.1 * torch.rand(4, 1, 37, 61, generator=generator))
     base[2], right[2] = 0.5, 0.5
     minimum, image_hw = torch.tensor([0, 3, 0, 1]), torch.tensor([[37, 61], [30, 50], [37, 61], [37, 61]])
+    config = replace(config, whole_range_in_view=False)  # keep the pixels a range wider than the image cuts
     for num_disparities in (12, 70):
         kernel = block_match_sad(base, right, minimum, num_disparities, replace(config, kernel="c"), image_hw)
         eager = block_match_sad(base, right, minimum, num_disparities, replace(config, kernel="torch"), image_hw)
