@@ -422,7 +422,7 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
         radius = config.window_size // 2
         left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
         found = kernels.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
-                                   min_disparity, image_w, counts)
+                                min_disparity, image_w, counts)
         if found is not None:
             return _WinnerStats(*found)
         if config.kernel == "c":

@@ -139,9 +139,9 @@ def hessian_octaves(
     padded = pad_integral(integral, pad)
     # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
     # offsets never reach the graph.
-    level = maybe_compiled(_level_into, compiled)
-    if not compiled and image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad):
-        level = _level_into_kernel  # the C kernel where it can be built: the same values in one pass
+    # Without compile, float32 images that need no gradient go to the C kernel: the same values in one pass.
+    kernel_ok = image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad)
+    level = maybe_compiled(_level_into, compiled) if compiled or not kernel_ok else _level_into_kernel
     octaves = []
     for octave in range(num_octaves):
         step = 1 << octave

@@ -37,8 +37,8 @@ __all__ = ["available", "cache_dir", "hessian_level", "load", "sad_wta"]
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in ("sad_wta", "hessian_level")}
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-pthread"]
-#: Rows of output per task: enough to amortise the K − 1 rows each band reads first, small enough that one pair
-#: splits across threads (the B = 1 ``guide`` case).
+#: Rows of output per task: enough to amortise the K rows each band sums before its window can slide, small
+#: enough that one pair splits across threads (the B = 1 ``guide`` case).
 BAND_ROWS = 48
 
 _LIBRARIES: dict[str, ctypes.CDLL | None] = {}
@@ -100,9 +100,10 @@ def _compile(name: str, target: Path) -> bool:
 
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+#: Each kernel's (argument types, return type), as declared in its C source.
 _SIGNATURES = {
-    "sad_wta": [_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 2,
-    "hessian_level": [_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 2,
+    "sad_wta": ([_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 2, ctypes.c_int),
+    "hessian_level": ([_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 2, None),
 }
 
 
@@ -125,8 +126,7 @@ def load(name: str = "sad_wta") -> ctypes.CDLL | None:
               file=sys.stderr)
         return None
     function = getattr(library, name)
-    function.argtypes = _SIGNATURES[name]
-    function.restype = ctypes.c_int if name == "sad_wta" else None
+    function.argtypes, function.restype = _SIGNATURES[name]
     _LIBRARIES[name] = library
     return library
 
@@ -154,9 +154,8 @@ def sad_wta(left_crop: torch.Tensor, right_crop: torch.Tensor, window_size: int,
     height, width = hl - window_size + 1, wl - window_size + 1
     left_crop, right_crop = left_crop.contiguous(), right_crop.contiguous()
     per_pair = [v.to(torch.int64).contiguous() for v in (x0, min_disparity, image_w, counts)]
-    floats = [left_crop.new_empty(b, height, width) for _ in range(4)]
+    best_cost, before, after, rival = (left_crop.new_empty(b, height, width) for _ in range(4))
     best, right_best = (torch.empty(b, height, width, dtype=torch.int64) for _ in range(2))
-    best_cost, before, after, rival = floats
     status = library.sad_wta(
         left_crop.data_ptr(), right_crop.data_ptr(), b, hl, wl, num_disparities, window_size,
         *(v.data_ptr() for v in per_pair), best_cost.data_ptr(), best.data_ptr(), before.data_ptr(),
