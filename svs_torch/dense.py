@@ -40,6 +40,7 @@ import torch.nn.functional as F
 
 from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
+from .ordering import sort_last
 
 __all__ = [
     "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
@@ -627,7 +628,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     enough_count = config.min_range_inliers if min_count is None else min_count
     if groups is None:
         count = valid.sum(dim=1)
-        ordered = torch.where(valid, values, torch.full_like(values, torch.inf)).sort(dim=1).values
+        ordered = sort_last(torch.where(valid, values, torch.full_like(values, torch.inf)))
         low = _nearest_rank(ordered, count, config.range_percentiles[0] / 100)
         high = _nearest_rank(ordered, count, config.range_percentiles[1] / 100)
     else:
@@ -635,8 +636,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
         check_dtype(groups, "groups", "bool")
         inside = groups & valid.unsqueeze(1)  # (B, G, P)
         group_count = inside.sum(dim=2)
-        ordered = torch.where(inside, values.unsqueeze(1), torch.full_like(values.unsqueeze(1), torch.inf)
-                              ).sort(dim=2).values
+        ordered = sort_last(torch.where(inside, values.unsqueeze(1), torch.inf))
         group_low = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
                                   config.range_percentiles[0] / 100).view_as(group_count)
         group_high = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),

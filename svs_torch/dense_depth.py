@@ -20,7 +20,7 @@ import torch
 
 from .checks import InputError, check_dtype, check_shape
 from .dense import DenseDisparity, crop_box, fill_invalid_rows
-from .depth import ObjectDepths, RangeEstimate, masked_quantile
+from .depth import ObjectDepths, RangeEstimate, labelled_quantile
 
 __all__ = ["dense_object_depths", "range_from_objects"]
 
@@ -91,9 +91,10 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     crop_ok = crop_ok & torch.isfinite(depth) & (depth > 0)
     depth = torch.where(crop_ok, depth, torch.zeros_like(denominator))  # (B, P)
     slots = objects.label  # (B, N), −1 padding
-    member = (crop_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1) & crop_ok.unsqueeze(1)
-    stats = masked_quantile(depth.unsqueeze(1).expand_as(member), member, [0.5, low / 100, high / 100]).values
-    count = (member & measured.unsqueeze(1)).sum(dim=-1)
+    stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
+                              [0.5, low / 100, high / 100]).values
+    measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
+    count = ((measured_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1)).sum(dim=-1)
     fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
     valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
     stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))

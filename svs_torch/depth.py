@@ -26,12 +26,14 @@ from typing import Literal, NamedTuple
 import torch
 
 from .checks import InputError, check_dtype, check_shape
+from .ordering import argsort_last, sort_last
 from .rectification import _map_points
 
 __all__ = [
     "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
     "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
-    "kept_region_lower_median", "masked_lower_median", "masked_quantile", "nearest_obstacle", "object_depths", "point_depths", "rectified_disparity",
+    "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile", "nearest_obstacle",
+    "object_depths", "point_depths", "rectified_disparity",
 ]
 
 
@@ -258,7 +260,7 @@ def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Not differentiable (ground-truth statistics)."""
     count = mask.sum(-1)
-    ordered = torch.where(mask, values, torch.full_like(values, torch.inf)).sort(-1).values
+    ordered = sort_last(torch.where(mask, values, torch.full_like(values, torch.inf)))
     median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
     return torch.where(count > 0, median, torch.zeros_like(median)), count
 
@@ -289,7 +291,7 @@ def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float
     shape = (*values.shape[:-1], q.numel())
     if values.shape[-1] == 0:
         return Quantiles(values.new_zeros(shape), count.squeeze(-1) > 0)
-    ordered = torch.where(valid, values, torch.full_like(values, torch.inf)).sort(dim=-1).values
+    ordered = sort_last(torch.where(valid, values, torch.full_like(values, torch.inf)))
     rank = torch.arange(values.shape[-1], device=values.device)
     ordered = torch.where(rank < count, ordered, torch.zeros_like(ordered))  # padding sorts last; zero it
     position = q * (count - 1).clamp_min(0).to(values.dtype)  # (..., Q)
@@ -297,6 +299,45 @@ def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float
     high = position.ceil().long()
     fraction = position - low.to(values.dtype)
     below, above = ordered.gather(-1, low), ordered.gather(-1, high)
+    result = below + (above - below) * fraction
+    present = count > 0
+    return Quantiles(torch.where(present, result, torch.zeros_like(result)), present.squeeze(-1))
+
+
+def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor,
+                      q: Sequence[float] | torch.Tensor) -> Quantiles:
+    """:func:`masked_quantile` of ``values`` ``(B, P)`` over each slot's entries, ``labels == slots[:, n]``, for
+    the slots ``(B, N)`` (a slot ≤ 0 and a label ≤ 0 take no entry): ``values`` ``(B, N, Q)``, ``valid``
+    ``(B, N)``. The same numbers as ``masked_quantile(values.unsqueeze(1).expand(B, N, P), labels == slots)``
+    with one sort of ``(B, P)`` instead of one of ``(B, N, P)``: each slot's order statistics are read from
+    the pair's sorted values at the places where its running count of members reaches the rank.
+    Differentiable w.r.t. ``values`` (the two neighbouring order statistics get the gradient)."""
+    check_dtype(values, "values", "float")
+    check_shape(labels, "labels", list(values.shape))
+    check_dtype(labels, "labels", "int")
+    check_shape(slots, "slots", [values.shape[0], "N"])
+    check_dtype(slots, "slots", "int")
+    q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+    if bool(((q < 0) | (q > 1)).any()):
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    b, p = values.shape
+    shape = (b, slots.shape[1], q.numel())
+    if p == 0 or slots.shape[1] == 0:
+        return Quantiles(values.new_zeros(shape), torch.zeros(shape[:2], dtype=torch.bool, device=values.device))
+    labelled = labels > 0
+    keyed = torch.where(labelled, values, torch.full_like(values, torch.inf))
+    order = argsort_last(keyed)
+    ordered = keyed.gather(1, order)
+    sorted_labels = torch.where(labelled, labels, torch.zeros_like(labels)).gather(1, order)
+    member = (sorted_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1)  # (B, N, P)
+    running = member.cumsum(dim=-1)  # members up to and including each sorted place
+    count = running[..., -1:]  # (B, N, 1)
+    position = q * (count - 1).clamp_min(0).to(values.dtype)  # (B, N, Q)
+    low, high = position.floor().long(), position.ceil().long()
+    fraction = position - low.to(values.dtype)
+    # The member of rank r sits where the running count first reaches r + 1.
+    places = torch.searchsorted(running, torch.cat([low, high], dim=-1) + 1).clamp_max(p - 1)
+    below, above = ordered.unsqueeze(1).expand(-1, shape[1], -1).gather(-1, places).chunk(2, dim=-1)
     result = below + (above - below) * fraction
     present = count > 0
     return Quantiles(torch.where(present, result, torch.zeros_like(result)), present.squeeze(-1))

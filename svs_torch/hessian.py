@@ -199,4 +199,9 @@ def local_maxima_scores(
     support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)  # (1, S − 2, ny − 2, nx − 2)
     if mask is not None:
         support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
+    # Without compile and without gradients, the C kernel: the same comparisons in one pass.
+    if not compiled and not (torch.is_grad_enabled() and octave.det.requires_grad):
+        scores = kernels.local_maxima(octave.det, support, threshold)
+        if scores is not None:
+            return scores
     return maybe_compiled(_interior_maxima, compiled)(octave.det, support, threshold)

@@ -10,7 +10,9 @@ import torch
 from svs_torch import InputError
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth import (DepthConfig, ObstacleSide, PointDepths, accuracy_percent, estimate_depth, estimate_range,
-                             masked_quantile, nearest_obstacle, object_depths, point_depths, rectified_disparity)
+                             labelled_quantile, masked_quantile, nearest_obstacle, object_depths, point_depths,
+                             rectified_disparity)
+from svs_torch.ordering import argsort_last, sort_last
 
 F64 = torch.float64
 
@@ -77,6 +79,46 @@ def test_masked_quantile_matches_numpy_per_row(generator):
     assert masked_quantile(values[..., :0], valid[..., :0], q).values.shape == (5, 3, 5)
     with pytest.raises(InputError, match="q: expected quantiles in"):
         masked_quantile(values, valid, [1.5])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_labelled_quantile_equals_masked_quantile_per_slot(generator, dtype):
+    """One sort per pair gives each slot's order statistics exactly as a masked sort per slot does: ties
+    (whole-number values), labels of no slot, padded (−1) and repeated slots, empty slots and empty rows."""
+    for trial in range(12):
+        p, n = (int(torch.randint(0, high, (1,), generator=generator)) for high in (60, 4))
+        values = torch.randint(0, 9, (3, p), generator=generator).to(dtype)
+        if trial % 2:
+            values = values + torch.rand(3, p, generator=generator, dtype=dtype)
+        labels = torch.randint(-1, 5, (3, p), generator=generator)
+        slots = torch.randint(-1, 5, (3, n), generator=generator)
+        q = [0.5, 0.1, 0.9, 0.0, 1.0]
+        result = labelled_quantile(values, labels, slots, q)
+        member = (labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1) & (labels > 0).unsqueeze(1)
+        expected = masked_quantile(values.unsqueeze(1).expand_as(member).contiguous(), member, q)
+        assert torch.equal(result.values, expected.values) and torch.equal(result.valid, expected.valid)
+
+
+def test_labelled_quantile_gradients(generator):
+    values = torch.rand(2, 15, generator=generator, dtype=F64).requires_grad_()
+    labels = torch.randint(0, 3, (2, 15), generator=generator)
+    slots = torch.tensor([[1, 2], [2, -1]])
+    assert torch.autograd.gradcheck(lambda v: labelled_quantile(v, labels, slots, [0.5, 0.1, 0.9]).values,
+                                    (values,))
+
+
+def test_numpy_sorts_equal_torch_sort(generator):
+    """The numpy-backed sorts give torch.sort's values (NaN and inf last), ints too; through gradients."""
+    values = torch.randn(4, 7, 33, generator=generator)
+    values[0, 0, :5] = float("nan")
+    values[1, 2, 3] = float("inf")
+    for tensor in (values, values.double(), torch.randint(-5, 5, (3, 40), generator=generator)):
+        ours, theirs = sort_last(tensor), tensor.sort(dim=-1).values
+        assert torch.equal(ours.isnan(), theirs.isnan()) and torch.equal(ours.nan_to_num(), theirs.nan_to_num())
+        assert torch.equal(tensor.gather(-1, argsort_last(tensor)).nan_to_num(), sort_last(tensor).nan_to_num())
+    differentiable = torch.randn(3, 9, generator=generator, dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(sort_last, (differentiable,))
+    assert torch.equal(sort_last(torch.zeros(2, 0)), torch.zeros(2, 0))
 
 
 def test_accuracy_equation_9():

@@ -60,3 +60,73 @@ def test_hessian_kernel_refuses_views_it_cannot_read():
     det, trace = torch.zeros(2, 1, 10, 12), torch.zeros(2, 1, 10, 12)
     assert not kernels.hessian_level(corners, 1.0, 1.0, 0.9, det, trace)
     assert not det.any() and not trace.any()
+
+
+@needs_kernel
+@pytest.mark.parametrize("threads", [1, 3])
+def test_hessian_kernel_same_for_any_thread_count(images, threads):
+    """The rows are split across threads; each point's arithmetic does not depend on the split."""
+    reference = hessian_octaves(images, num_octaves=2)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        split = hessian_octaves(images, num_octaves=2)
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(split, reference):
+        assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
+
+
+def _support(octave, mask=None):
+    inside = octave.inside
+    _, _, ny, nx = octave.det.shape
+    larger_fits = inside[2:, :-2, 1:-1] & inside[2:, 2:, 1:-1] & inside[2:, 1:-1, :-2] & inside[2:, 1:-1, 2:]
+    support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)
+    if mask is not None:
+        support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
+    return support
+
+
+@needs_kernel
+def test_local_maxima_kernel_equals_torch(images):
+    """The scale-space maxima from the C kernel equal ``_interior_maxima``'s on real octaves, with the shared
+    support and with a per-image mask, at two thresholds."""
+    from svs_torch.hessian import _interior_maxima
+
+    mask = torch.rand(images.shape[0], 1, *images.shape[-2:], generator=torch.Generator().manual_seed(0)) > 0.3
+    found = 0
+    for octave in hessian_octaves(images, num_octaves=3):
+        for support in (_support(octave), _support(octave, mask)):
+            for threshold in (0.0, 1000 / 255**2):
+                fused = kernels.local_maxima(octave.det, support, threshold)
+                assert torch.equal(fused, _interior_maxima(octave.det, support, threshold))
+                found += int(torch.isfinite(fused).sum())
+    assert found > 100
+
+
+@needs_kernel
+def test_local_maxima_kernel_ties_and_nan():
+    """A tie with a neighbour counts as a maximum (as ``centre == peak`` does); a NaN neighbour rejects the
+    point (torch's running maximum turns NaN); a NaN centre is never kept."""
+    from svs_torch.hessian import _interior_maxima
+
+    det = torch.zeros(1, 3, 7, 7)
+    det[0, 1, 1, 1] = det[0, 1, 1, 2] = 2.0  # a tie
+    det[0, 1, 5, 5] = 3.0
+    det[0, 2, 5, 4] = float("nan")  # beside (1, 5, 5)
+    det[0, 1, 3, 5] = float("nan")
+    support = torch.ones(1, 1, 5, 5, dtype=torch.bool)
+    fused = kernels.local_maxima(det, support, 0.5)
+    assert torch.equal(fused, _interior_maxima(det, support, 0.5))
+    assert fused[0, 0, 0, 0] == 2.0 and fused[0, 0, 0, 1] == 2.0
+    assert torch.isfinite(fused).sum() == 2  # not (5, 5) beside the NaN, not the NaN centre
+
+
+def test_local_maxima_kernel_refuses_other_inputs():
+    """float64 maps, a support of another shape or a grid without interior are left to torch (None)."""
+    if not kernels.available("local_maxima"):
+        pytest.skip("no C compiler")
+    support = torch.ones(1, 1, 3, 3, dtype=torch.bool)
+    assert kernels.local_maxima(torch.zeros(1, 3, 5, 5, dtype=torch.float64), support, 0.0) is None
+    assert kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0) is None
+    assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
