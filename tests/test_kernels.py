@@ -3,8 +3,10 @@ the fallback without a compiler, the on-disk cache. The dense-stage kernel's own
 
 from __future__ import annotations
 
-import torch
+import shutil
+
 import pytest
+import torch
 
 from svs_torch import kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
@@ -130,3 +132,41 @@ def test_local_maxima_kernel_refuses_other_inputs():
     assert kernels.local_maxima(torch.zeros(1, 3, 5, 5, dtype=torch.float64), support, 0.0) is None
     assert kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0) is None
     assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
+
+
+def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
+    """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.skip("no C compiler")
+    wrapper = tmp_path / "cc-without-openmp"
+    wrapper.write_text(f'#!/bin/sh\nfor a in "$@"; do [ "$a" = -fopenmp ] && exit 1; done\nexec {compiler} "$@"\n')
+    wrapper.chmod(0o755)
+    reference = hessian_octaves(images, num_octaves=2)
+    monkeypatch.setenv("CC", str(wrapper))
+    monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(kernels, "_LIBRARIES", {})
+    assert kernels.available("hessian_level")
+    serial = hessian_octaves(images, num_octaves=2)
+    for a, b in zip(serial, reference):
+        assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
+
+
+@needs_kernel
+@pytest.mark.parametrize("threads", [1, 3])
+def test_dense_kernel_same_for_any_thread_count(threads):
+    """Pairs and bands of rows are shared among OpenMP threads; no value depends on how."""
+    from svs_torch.dense import quantize_levels
+
+    generator = torch.Generator().manual_seed(2)
+    left = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
+    right = quantize_levels(torch.rand(3, 130, 90 + 15, generator=generator) * 0.2 - 0.1)
+    per_pair = (torch.tensor([0, 4, 9]), torch.tensor([0, 2, 5]), torch.full((3,), 120), torch.tensor([16, 9, 16]))
+    reference = kernels.sad_wta(left, right, 7, 16, *per_pair)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        split = kernels.sad_wta(left, right, 7, 16, *per_pair)
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(a, b) for a, b in zip(split, reference))

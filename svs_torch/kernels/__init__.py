@@ -41,7 +41,12 @@ __all__ = ["available", "cache_dir", "hessian_level", "load", "local_maxima", "s
 
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in ("sad_wta", "hessian_level", "local_maxima")}
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
-FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-pthread"]
+#: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
+#: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
+#: two cores with those workers, which spin for a while after every torch op: the Hessian kernel on 8 images
+#: took 42–66 ms with 2 pthreads, 30 ms with one, 22 ms with 2 OpenMP threads. A compiler without OpenMP
+#: builds the same source serially (the pragmas are ignored).
+FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fopenmp"]
 #: Rows of output per task: enough to amortise the K rows each band sums before its window can slide, small
 #: enough that one pair splits across threads (the B = 1 ``guide`` case).
 BAND_ROWS = 48
@@ -89,6 +94,10 @@ def _compile(name: str, target: Path) -> bool:
     try:
         done = subprocess.run([compiler, *FLAGS, str(SOURCES[name]), "-o", temporary, "-lm"], capture_output=True,
                               timeout=120)
+        if done.returncode != 0:  # no OpenMP here (e.g. clang without libomp): a serial build
+            serial = [flag for flag in FLAGS if flag != "-fopenmp"]
+            done = subprocess.run([compiler, *serial, str(SOURCES[name]), "-o", temporary, "-lm"],
+                                  capture_output=True, timeout=120)
         if done.returncode != 0:
             print(f"svs_torch: the {name} kernel did not compile; its torch path runs instead:\n"
                   + done.stderr.decode(errors="replace")[-2000:], file=sys.stderr)

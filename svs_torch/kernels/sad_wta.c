@@ -16,12 +16,11 @@
  * exact float32 integer (K^2 * 510 < 2^24) in any order, and the results equal the torch path's bit for bit;
  * minima and selects do no arithmetic, so streaming over d changes no value either.
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -pthread (no -ffast-math: it could treat the
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: it could treat the
  * +inf costs as impossible). Loaded through ctypes by svs_torch/kernels/__init__.py, which falls back to the
  * torch path without a compiler.
  */
 #include <math.h>
-#include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
 
@@ -33,9 +32,6 @@ typedef struct {
     float *best_cost, *before, *after, *rival;     /* (B, H, W) each, H = HL - K + 1, W = WL - K + 1 */
     int64_t *best, *right_best;                    /* (B, H, W) */
     int64_t bands, band_rows;
-    int64_t next_task;
-    pthread_mutex_t lock;
-    int failed;
 } Job;
 
 /* Per-row state of the streaming winner search over d, one entry per output column (indices kept as floats,
@@ -176,58 +172,42 @@ static void run_band(Job *job, int64_t b, int64_t y_begin, int64_t y_end, float 
     }
 }
 
-static void *worker(void *arg) {
-    Job *job = (Job *)arg;
-    const int64_t D = job->D, K = job->K, WL = job->WL, W = job->WL - job->K + 1;
-    float *vsum = malloc(sizeof(float) * (size_t)(D * WL));
-    float *rows = malloc(sizeof(float) * (size_t)(11 * W));
-    if (!vsum || !rows) {
-        pthread_mutex_lock(&job->lock);
-        job->failed = 1;
-        pthread_mutex_unlock(&job->lock);
-    } else {
-        RowState st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W, rows + 6 * W,
-                       rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};
-        const int64_t H = job->HL - K + 1, total = job->B * job->bands;
-        for (;;) {
-            pthread_mutex_lock(&job->lock);
-            int64_t task = job->next_task++;
-            pthread_mutex_unlock(&job->lock);
-            if (task >= total) break;
-            int64_t b = task / job->bands, band = task % job->bands;
-            int64_t y0 = band * job->band_rows, y1 = y0 + job->band_rows;
-            if (y1 > H) y1 = H;
-            if (y0 < y1) run_band(job, b, y0, y1, vsum, &st);
-        }
-    }
-    free(vsum);
-    free(rows);
-    return NULL;
-}
-
-/* Returns 0 on success, -1 when memory or threads could not be had (the caller then uses the torch path). */
+/* Returns 0 on success, -1 when memory could not be had (the caller then uses the torch path). Pairs and
+ * bands of rows are shared among num_threads OpenMP threads (torch's own pool: svs_torch/kernels/__init__.py). */
 int sad_wta(const float *left, const float *right, int64_t B, int64_t HL, int64_t WL, int64_t D, int64_t K,
             const int64_t *x0, const int64_t *min_d, const int64_t *image_w, const int64_t *counts,
             float *best_cost, int64_t *best, float *before, float *after, float *rival, int64_t *right_best,
             int64_t num_threads, int64_t band_rows) {
     if (B <= 0 || HL < K || WL < K || D < 1 || K < 1) return 0;
     Job job = {left, right, B, HL, WL, D, K, x0, min_d, image_w, counts, best_cost, before, after, rival,
-               best, right_best, 0, 0, 0, PTHREAD_MUTEX_INITIALIZER, 0};
-    const int64_t H = HL - K + 1;
+               best, right_best, 0, 0};
+    const int64_t H = HL - K + 1, W = WL - K + 1;
     job.band_rows = band_rows < 1 ? H : band_rows;
     job.bands = (H + job.band_rows - 1) / job.band_rows;
-    int64_t tasks = B * job.bands;
-    if (num_threads > tasks) num_threads = tasks;
-    if (num_threads < 1) num_threads = 1;
-    pthread_t threads[64];
-    if (num_threads > 64) num_threads = 64;
-    int64_t started = 0;
-    for (int64_t t = 1; t < num_threads; ++t) {
-        if (pthread_create(&threads[t], NULL, worker, &job) != 0) break;
-        started = t;
+    const int64_t tasks = B * job.bands;
+    int threads = (int)(num_threads < 1 ? 1 : (num_threads > tasks ? tasks : num_threads));
+    int failed = 0;
+    /* Tasks (pair, band of rows) are handed out one at a time: bands differ in cost (the last is shorter). */
+#pragma omp parallel num_threads(threads)
+    {
+        float *vsum = malloc(sizeof(float) * (size_t)(D * WL));
+        float *rows = malloc(sizeof(float) * (size_t)(11 * W));
+        RowState st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W, rows + 6 * W,
+                       rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};
+        if (!vsum || !rows) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t task = 0; task < tasks; ++task) {
+            if (!vsum || !rows) continue;
+            int64_t b = task / job.bands, band = task % job.bands;
+            int64_t y0 = band * job.band_rows, y1 = y0 + job.band_rows;
+            if (y1 > H) y1 = H;
+            if (y0 < y1) run_band(&job, b, y0, y1, vsum, &st);
+        }
+        free(vsum);
+        free(rows);
     }
-    worker(&job);
-    for (int64_t t = 1; t <= started; ++t) pthread_join(threads[t], NULL);
-    pthread_mutex_destroy(&job.lock);
-    return job.failed ? -1 : 0;
+    return failed ? -1 : 0;
 }
