@@ -401,11 +401,13 @@ def _right_winner(costs: torch.Tensor) -> torch.Tensor:
     return best.masked_fill_(~torch.isfinite(best_cost), -1)
 
 
-def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_diff: float) -> torch.Tensor:
+def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_diff: float,
+                           first_column: int = 0) -> torch.Tensor:
     """Left pixel j with index k is consistent when the right winner at left-crop column j − k is within
-    ``max_diff`` of k (``StereoBM`` disp12MaxDiff on integer disparities)."""
+    ``max_diff`` of k (``StereoBM`` disp12MaxDiff on integer disparities). ``best`` ``(B, h, w)`` holds the
+    crop's columns from ``first_column`` on; ``right_best`` every column of the crop."""
     w = best.shape[-1]
-    column = torch.arange(w, device=best.device) - best  # (B, h, w)
+    column = torch.arange(first_column, first_column + w, device=best.device) - best  # (B, h, w)
     inside = column >= 0
     seen = right_best.gather(-1, column.clamp_min(0))
     return inside & (seen >= 0) & ((seen - best).abs() <= max_diff)
@@ -413,17 +415,19 @@ def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_dif
 
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
-                  config: DenseConfig, counts: torch.Tensor) -> _WinnerStats:
+                  config: DenseConfig, counts: torch.Tensor, extra: int = 0) -> _WinnerStats:
     """:class:`_WinnerStats` of the box at (x0, y0): from the fused C kernel (:mod:`svs_torch.kernels`,
     bit-identical, several times faster) for float32 CPU images without gradients when ``config.kernel``
-    allows and it is available, else from the torch cost volume."""
+    allows and it is available, else from the torch cost volume. The box's first and last ``extra`` columns
+    serve only the right view's winner: the left statistics are of the columns between (``right_best`` is of
+    them all)."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
     if (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
             and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad))):
         radius = config.window_size // 2
         left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
         found = kernels.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
-                                min_disparity, image_w, counts)
+                                min_disparity, image_w, counts, (extra, width - 2 * extra))
         if found is not None:
             return _WinnerStats(*found)
         if config.kernel == "c":
@@ -431,7 +435,9 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
                              "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
-    return _winner_stats_torch(costs, minimum, uniqueness, right_check)
+    stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
+    core = slice(extra, width - extra)
+    return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best)
 
 
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
@@ -451,20 +457,18 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     counts = search.pair_num_disparities
     if counts is None:
         counts = torch.full_like(search.min_disparity_px, num_disparities)
+    # The extra columns serve only the right view's winner: every per-pixel verdict is made on the box itself.
     stats = _winner_stats(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
-                          num_disparities, image_hw[:, 1], config, counts)
+                          num_disparities, image_hw[:, 1], config, counts, extra)
     best = stats.best
     offset, ok = _winner(stats, num_disparities, config, lower_is_limit, counts)
     if config.lr_max_diff_px is not None:
-        ok &= _left_right_consistent(best, stats.right_best, config.lr_max_diff_px)
+        ok &= _left_right_consistent(best, stats.right_best, config.lr_max_diff_px, extra)
     if config.texture_threshold > 0:
         radius = config.window_size // 2
-        texture = _gather_crop(sobel.abs(), y0 - radius, x0 - extra - radius, height + 2 * radius,
-                               width + 2 * extra + 2 * radius)
+        texture = _gather_crop(sobel.abs(), y0 - radius, x0 - radius, height + 2 * radius, width + 2 * radius)
         ok &= _box_sum(texture, config.window_size).squeeze(1) >= config.texture_threshold * config.window_size ** 2
     disparity = search.min_disparity_px.view(-1, 1, 1).to(offset.dtype) + best.to(offset.dtype) + offset
-    core = slice(extra, extra + width)
-    disparity, ok = disparity[..., core], ok[..., core]
     rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
     cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
     ok &= (rows >= 0) & (rows < image_hw[:, :1, None]) & (cols >= 0) & (cols < image_hw[:, 1:, None])

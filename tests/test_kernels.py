@@ -170,3 +170,19 @@ def test_dense_kernel_same_for_any_thread_count(threads):
     finally:
         torch.set_num_threads(before)
     assert all(torch.equal(a, b) for a, b in zip(split, reference))
+
+
+@needs_kernel
+def test_dense_kernel_left_columns_are_a_slice_of_all_columns():
+    """Left-view statistics asked for a band of columns equal those columns of the full output; the right
+    view's winner is always of every column."""
+    from svs_torch.dense import quantize_levels
+
+    generator = torch.Generator().manual_seed(3)
+    left = quantize_levels(torch.rand(2, 40, 70, generator=generator) * 0.2 - 0.1)
+    right = quantize_levels(torch.rand(2, 40, 70 + 11, generator=generator) * 0.2 - 0.1)
+    per_pair = (torch.tensor([0, 5]), torch.tensor([0, 3]), torch.full((2,), 90), torch.tensor([12, 8]))
+    full = kernels.sad_wta(left, right, 5, 12, *per_pair)
+    band = kernels.sad_wta(left, right, 5, 12, *per_pair, left_columns=(11, 44))
+    assert all(torch.equal(a[..., 11:55], b) for a, b in zip(full[:5], band[:5]))
+    assert torch.equal(full[5], band[5])

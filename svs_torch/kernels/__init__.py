@@ -116,7 +116,7 @@ def _compile(name: str, target: Path) -> bool:
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
 _SIGNATURES = {
-    "sad_wta": ([_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 2, ctypes.c_int),
+    "sad_wta": ([_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 4, ctypes.c_int),
     "hessian_level": ([_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 3, None),
     "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
 }
@@ -152,29 +152,34 @@ def available(name: str = "sad_wta") -> bool:
 
 
 def sad_wta(left_crop: torch.Tensor, right_crop: torch.Tensor, window_size: int, num_disparities: int,
-            x0: torch.Tensor, min_disparity: torch.Tensor, image_w: torch.Tensor, counts: torch.Tensor
-            ) -> tuple[torch.Tensor, ...] | None:
+            x0: torch.Tensor, min_disparity: torch.Tensor, image_w: torch.Tensor, counts: torch.Tensor,
+            left_columns: tuple[int, int] | None = None) -> tuple[torch.Tensor, ...] | None:
     """Winner-takes-all over the SAD costs of the crops, the kernel's contract (see the C source):
     ``left_crop`` ``(B, HL, WL)`` and ``right_crop`` ``(B, HL, WL + D − 1)`` float32 holding whole numbers in
     [−255, 255] (:func:`svs_torch.dense.quantize_levels`: then every sum is exact and the result is the torch
     path's bit for bit); per pair ``x0`` (the crop's column in the image), ``min_disparity``, ``image_w``,
-    ``counts`` ``(B,)`` int64.
+    ``counts`` ``(B,)`` int64. ``left_columns`` ``(first, width)``: the output columns whose left-view
+    statistics are wanted (default all ``W``).
 
-    Returns ``(best_cost, best, before, after, rival, right_best)``, each ``(B, H, W)`` with ``H = HL − K + 1``,
-    ``W = WL − K + 1`` (float32, or int64 for the indices), or None when the kernel is not available."""
+    Returns ``(best_cost, best, before, after, rival, right_best)``: the first five ``(B, H, width)``, the right
+    view's winner ``(B, H, W)``, with ``H = HL − K + 1``, ``W = WL − K + 1`` (float32, or int64 for the
+    indices); None when the kernel is not available."""
     library = load()
     if library is None:
         return None
     b, hl, wl = left_crop.shape
     height, width = hl - window_size + 1, wl - window_size + 1
+    first, left_width = (0, width) if left_columns is None else left_columns
     left_crop, right_crop = left_crop.contiguous(), right_crop.contiguous()
     per_pair = [v.to(torch.int64).contiguous() for v in (x0, min_disparity, image_w, counts)]
-    best_cost, before, after, rival = (left_crop.new_empty(b, height, width) for _ in range(4))
-    best, right_best = (torch.empty(b, height, width, dtype=torch.int64) for _ in range(2))
+    best_cost, before, after, rival = (left_crop.new_empty(b, height, left_width) for _ in range(4))
+    best = torch.empty(b, height, left_width, dtype=torch.int64)
+    right_best = torch.empty(b, height, width, dtype=torch.int64)
     status = library.sad_wta(
         left_crop.data_ptr(), right_crop.data_ptr(), b, hl, wl, num_disparities, window_size,
         *(v.data_ptr() for v in per_pair), best_cost.data_ptr(), best.data_ptr(), before.data_ptr(),
-        after.data_ptr(), rival.data_ptr(), right_best.data_ptr(), torch.get_num_threads(), BAND_ROWS)
+        after.data_ptr(), rival.data_ptr(), right_best.data_ptr(), first, left_width, torch.get_num_threads(),
+        BAND_ROWS)
     if status != 0:
         return None
     return best_cost, best, before, after, rival, right_best

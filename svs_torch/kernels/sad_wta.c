@@ -9,7 +9,9 @@
  *   C = +inf where d >= count[b] or the right pixel x0 + x - (min_d + d) leaves [0, image_w)
  * then per pixel: the first minimum over d (best, best_cost), the costs at best -+ 1 (clamped to the range),
  * the least cost farther than 1 from best (rival, +inf if none), and the right view's winner
- * C_R(j, k) = C(j + k, k) (first minimum over k; -1 where it is +inf). All of it streams over d: one row of
+ * C_R(j, k) = C(j + k, k) (first minimum over k; -1 where it is +inf). The left view's statistics are made
+ * only for the columns [left_first, left_first + left_width) (the box; the columns on either side serve the
+ * right view's winner). All of it streams over d: one row of
  * costs per disparity and a dozen running values per column stay in L1, the column sums in L2.
  *
  * The inputs are whole numbers (StereoBM's 8-bit levels, svs_torch.dense.quantize_levels), so every sum is an
@@ -28,9 +30,11 @@ typedef struct {
     const float *left;   /* (B, HL, WL) */
     const float *right;  /* (B, HL, WL + D - 1) */
     int64_t B, HL, WL, D, K;
+    int64_t left_first, left_width; /* the columns whose left-view statistics are wanted */
     const int64_t *x0, *min_d, *image_w, *counts;  /* (B,) each */
-    float *best_cost, *before, *after, *rival;     /* (B, H, W) each, H = HL - K + 1, W = WL - K + 1 */
-    int64_t *best, *right_best;                    /* (B, H, W) */
+    float *best_cost, *before, *after, *rival;     /* (B, H, left_width) each, H = HL - K + 1 */
+    int64_t *best;                                 /* (B, H, left_width) */
+    int64_t *right_best;                           /* (B, H, W), W = WL - K + 1 */
     int64_t bands, band_rows;
 } Job;
 
@@ -102,6 +106,7 @@ static void run_band(Job *job, int64_t b, int64_t y_begin, int64_t y_end, float 
                      RowState *st) {
     const int64_t HL = job->HL, WL = job->WL, D = job->D, K = job->K;
     const int64_t H = HL - K + 1, W = WL - K + 1, WR = WL + D - 1;
+    const int64_t first = job->left_first, WC = job->left_width;
     const float *left = job->left + b * HL * WL;
     const float *right = job->right + b * HL * WR;
     const int64_t count = job->counts[b];
@@ -140,35 +145,38 @@ static void run_band(Job *job, int64_t b, int64_t y_begin, int64_t y_end, float 
             for (int64_t x = hi; x < W; ++x) c[x] = INFINITY;
             const float fd = (float)d;
             if (d == 0) {
-                for (int64_t x = 0; x < W; ++x) {
-                    best_cost[x] = c[x];
+                for (int64_t x = 0; x < WC; ++x) {
+                    const float cx = c[first + x];
+                    best_cost[x] = cx;
                     best[x] = 0.0f;
-                    before[x] = c[x];  /* the clamped neighbour of index 0 is index 0 */
-                    after[x] = c[x];   /* replaced at d = 1 when the range has one */
+                    before[x] = cx;  /* the clamped neighbour of index 0 is index 0 */
+                    after[x] = cx;   /* replaced at d = 1 when the range has one */
                     rival[x] = INFINITY;
                     prefix2[x] = INFINITY;
-                    prefix1[x] = c[x];
-                    previous[x] = c[x];
+                    prefix1[x] = cx;
+                    previous[x] = cx;
+                }
+                for (int64_t x = 0; x < W; ++x) {
                     right_cost[x] = c[x];
                     right_best[x] = 0.0f;
                 }
                 continue;
             }
-            step_left(W, fd, c, best_cost, best, rival, after, before, prefix1, prefix2, previous);
+            step_left(WC, fd, c + first, best_cost, best, rival, after, before, prefix1, prefix2, previous);
             step_right(W - d, fd, c + d, right_cost, right_best);
         }
-        int64_t offset = (b * H + y) * W;
+        int64_t offset = (b * H + y) * WC;
         float *out_cost = job->best_cost + offset, *out_before = job->before + offset;
         float *out_after = job->after + offset, *out_rival = job->rival + offset;
-        int64_t *out_best = job->best + offset, *out_right = job->right_best + offset;
-        for (int64_t x = 0; x < W; ++x) {
+        int64_t *out_best = job->best + offset, *out_right = job->right_best + (b * H + y) * W;
+        for (int64_t x = 0; x < WC; ++x) {
             out_cost[x] = best_cost[x];
             out_best[x] = (int64_t)best[x];
             out_before[x] = before[x];
             out_after[x] = after[x];
             out_rival[x] = rival[x];
-            out_right[x] = isfinite(right_cost[x]) ? (int64_t)right_best[x] : -1;
         }
+        for (int64_t x = 0; x < W; ++x) out_right[x] = isfinite(right_cost[x]) ? (int64_t)right_best[x] : -1;
     }
 }
 
@@ -177,11 +185,12 @@ static void run_band(Job *job, int64_t b, int64_t y_begin, int64_t y_end, float 
 int sad_wta(const float *left, const float *right, int64_t B, int64_t HL, int64_t WL, int64_t D, int64_t K,
             const int64_t *x0, const int64_t *min_d, const int64_t *image_w, const int64_t *counts,
             float *best_cost, int64_t *best, float *before, float *after, float *rival, int64_t *right_best,
-            int64_t num_threads, int64_t band_rows) {
-    if (B <= 0 || HL < K || WL < K || D < 1 || K < 1) return 0;
-    Job job = {left, right, B, HL, WL, D, K, x0, min_d, image_w, counts, best_cost, before, after, rival,
-               best, right_best, 0, 0};
+            int64_t left_first, int64_t left_width, int64_t num_threads, int64_t band_rows) {
     const int64_t H = HL - K + 1, W = WL - K + 1;
+    if (B <= 0 || HL < K || WL < K || D < 1 || K < 1) return 0;
+    if (left_first < 0 || left_width < 0 || left_first + left_width > W) return -1;
+    Job job = {left, right, B, HL, WL, D, K, left_first, left_width, x0, min_d, image_w, counts, best_cost,
+               before, after, rival, best, right_best, 0, 0};
     job.band_rows = band_rows < 1 ? H : band_rows;
     job.bands = (H + job.band_rows - 1) / job.band_rows;
     const int64_t tasks = B * job.bands;
