@@ -18,6 +18,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
 from .types import Matches
 
@@ -318,7 +319,9 @@ def refine_matches_lk(
     (SURF: 0.2–0.4 px median disparity error on Middlebury, against 0.14 for SIFT). The left point (the
     keypoint) is kept; the right point takes a fixed number of Gauss–Newton steps minimising the Gaussian-
     weighted squared difference of the zero-mean, unit-RMS patches, as KLT refines a track. Batched over pairs
-    and matches, fixed step count: deterministic.
+    and matches, fixed step count: deterministic. Float32 images on CPU go through the C kernel of
+    :mod:`svs_torch.kernels` (the same steps, one match at a time; points within about 1e-4 px of the torch
+    path, which runs without a compiler or with ``SVS_TORCH_KERNELS=torch``).
 
     Args:
         left, right: ``(B, 1, H, W)`` float images the points were found on.
@@ -373,7 +376,9 @@ def refine_matches_lk(
 def _refine_lk(left: torch.Tensor, right: torch.Tensor, points: MatchedPoints, scale: torch.Tensor | None,
                radius_scales: float, min_radius_px: float, max_radius_px: float, iterations: int,
                max_shift_px: float, min_correlation: float) -> MatchedPoints:
-    """:func:`refine_matches_lk` on rows already compacted (see there)."""
+    """:func:`refine_matches_lk` on rows already compacted (see there): by the C kernel of
+    :mod:`svs_torch.kernels` where it can be built (the same steps, one match at a time in cache: positions
+    within about 1e-4 px of the torch path), else by :func:`_refine_lk_torch`."""
     # float32: positions stay within 1e-4 px of a float64 run, at half the memory traffic.
     dtype, device = torch.float32, left.device
     left, right = left.detach().to(dtype), right.detach().to(dtype)
@@ -381,6 +386,29 @@ def _refine_lk(left: torch.Tensor, right: torch.Tensor, points: MatchedPoints, s
         radius = torch.full(points.valid.shape, float(min_radius_px), dtype=dtype, device=device)
     else:
         radius = (radius_scales * scale.detach().to(dtype)).clamp(min_radius_px, max_radius_px)
+    xy_left, xy_right = points.left.detach().to(dtype), points.right.detach().to(dtype)
+    found = kernels.lk_refine(left, right, xy_left, xy_right, radius, points.valid, iterations, max_shift_px)
+    if found is None:
+        return _refine_lk_torch(left, right, points, radius, iterations, max_shift_px, min_correlation)
+    refined, correlation = found
+    return _refined_points(points, refined, correlation, min_correlation)
+
+
+def _refined_points(points: MatchedPoints, refined: torch.Tensor, correlation: torch.Tensor,
+                    min_correlation: float) -> MatchedPoints:
+    """The refined right points in the input's dtype, and the rows whose correlation passes the gate."""
+    refined = refined.to(points.right.dtype)
+    valid = points.valid & (correlation >= min_correlation) if min_correlation > -1 else points.valid
+    zero = torch.zeros((), dtype=points.right.dtype, device=points.right.device)
+    mask = valid.unsqueeze(-1)
+    return MatchedPoints(left=torch.where(mask, points.left, zero), right=torch.where(mask, refined, zero),
+                         valid=valid)
+
+
+def _refine_lk_torch(left: torch.Tensor, right: torch.Tensor, points: MatchedPoints, radius: torch.Tensor,
+                     iterations: int, max_shift_px: float, min_correlation: float) -> MatchedPoints:
+    """The refinement in torch, batched over every row at once (the reference of the C kernel)."""
+    dtype, device = left.dtype, left.device
     # A (2n+1)² sample grid per point, every pixel up to radius n (the same samples as a dense grid, whose
     # weights beyond the radius are zero) and spaced radius / n beyond: a 12 px patch costs what a 6 px one
     # does (3.7× fewer samples than a dense 25 × 25 grid), sampled every 2 px under a Gaussian of σ = 6 px.
@@ -422,9 +450,4 @@ def _refine_lk(left: torch.Tensor, right: torch.Tensor, points: MatchedPoints, s
     refined = torch.where(moved.unsqueeze(-1), xy_right + shift, xy_right)
     warped, warped_rms = _centre(_sample_patches(right, refined, offsets), weight)
     correlation = (warped / warped_rms * template * weight).sum(-1)  # at the position returned
-    refined = refined.to(points.right.dtype)
-    valid = points.valid & (correlation >= min_correlation) if min_correlation > -1 else points.valid
-    zero = torch.zeros((), dtype=points.right.dtype, device=points.right.device)
-    mask = valid.unsqueeze(-1)
-    return MatchedPoints(left=torch.where(mask, points.left, zero), right=torch.where(mask, refined, zero),
-                         valid=valid)
+    return _refined_points(points, refined, correlation, min_correlation)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import svs_torch.matching as matching
-from svs_torch import InputError, Matches
+from svs_torch import InputError, Matches, kernels
 from svs_torch.matching import gather_matched_points, match_sad, max_sad_distance
 
 
@@ -251,7 +251,17 @@ def lk_problem(shifts, perturbation: float = 0.6, k: int = 30, seed: int = 3):
     return torch.cat(lefts).float(), torch.cat(rights).float(), points
 
 
-def test_refine_lk_recovers_subpixel_shift():
+@pytest.fixture(params=["c", "torch"])
+def lk_path(request, monkeypatch):
+    """Each refinement test runs on the C kernel and on the torch path (its reference)."""
+    if request.param == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    elif not kernels.available("lk_refine"):
+        pytest.skip("no C compiler")
+    return request.param
+
+
+def test_refine_lk_recovers_subpixel_shift(lk_path):
     shifts = [(0.37, -0.21), (-1.6, 0.45)]
     left, right, points = lk_problem(shifts)
     refined = matching.refine_matches_lk(left, right, points, min_correlation=-1)
@@ -263,7 +273,7 @@ def test_refine_lk_recovers_subpixel_shift():
     assert before.median() > 0.3 and after.max() < 0.1 and after.median() < 0.04
 
 
-def test_refine_lk_agrees_with_opencv_pyrlk():
+def test_refine_lk_agrees_with_opencv_pyrlk(lk_path):
     """An independent reference: OpenCV's LK (one pyramid level, 21 × 21 window, uint8 images) tracking the same
     points from the left positions, 0.85 px from the truth."""
     shifts = [(0.8, 0.3)]
@@ -282,7 +292,7 @@ def test_refine_lk_agrees_with_opencv_pyrlk():
     assert np.abs(ours - truth).max() < 0.06 and np.median(np.abs(tracked - truth)) < 0.03
 
 
-def test_refine_lk_batched_equals_per_item_and_gain_invariant():
+def test_refine_lk_batched_equals_per_item_and_gain_invariant(lk_path):
     left, right, points = lk_problem([(0.4, 0.1), (-0.7, -0.3), (1.2, 0.0)])
     scale = torch.full(points.valid.shape, 2.0, dtype=torch.float64)
     batched = matching.refine_matches_lk(left, right, points, scale)
@@ -297,7 +307,7 @@ def test_refine_lk_batched_equals_per_item_and_gain_invariant():
     assert (batched.right[~batched.valid] == 0).all() and not (batched.valid & ~points.valid).any()
 
 
-def test_refine_lk_rejects_uncorrelated_and_leaves_far_shifts():
+def test_refine_lk_rejects_uncorrelated_and_leaves_far_shifts(lk_path):
     left, right, points = lk_problem([(0.3, 0.2)])
     unrelated = smooth_texture(80, 96, seed=99).float()
     rejected = matching.refine_matches_lk(left, unrelated, points, min_radius_px=8.0, min_correlation=0.8)
