@@ -104,20 +104,28 @@ def _allowed(valid_left: torch.Tensor, valid_right: torch.Tensor, laplacian_left
 
 def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torch.Tensor, max_ratio: float,
                  max_cost: float | None, mutual: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest neighbour, ratio test, threshold and mutual check for a group of pairs: idx, cost ``(b, K)``."""
-    distance = torch.cdist(desc_left, desc_right, p=1)  # (b, K, K2) SAD
-    distance = torch.where(allowed, distance, math.inf)
-    nearest = torch.topk(distance, k=min(2, distance.shape[-1]), dim=-1, largest=False)  # sorted ascending
-    best, idx = nearest.values[..., 0], nearest.indices[..., 0]
-    second = nearest.values[..., 1] if distance.shape[-1] > 1 else torch.full_like(best, math.inf)
+    """Nearest neighbour, ratio test, threshold and mutual check for a group of pairs: idx, cost ``(b, K)``.
+    Without gradients, float32 descriptors on CPU take the C kernel of :mod:`svs_torch.kernels` (the same
+    search without the distance matrix; distances summed in another order, so equal to the last bits)."""
+    found = None
+    if not (torch.is_grad_enabled() and (desc_left.requires_grad or desc_right.requires_grad)):
+        found = kernels.sad_nearest(desc_left, desc_right, allowed)
+    if found is not None:
+        best, second, idx, back = found
+    else:
+        distance = torch.cdist(desc_left, desc_right, p=1)  # (b, K, K2) SAD
+        distance = torch.where(allowed, distance, math.inf)
+        nearest = torch.topk(distance, k=min(2, distance.shape[-1]), dim=-1, largest=False)  # sorted ascending
+        best, idx = nearest.values[..., 0], nearest.indices[..., 0]
+        second = nearest.values[..., 1] if distance.shape[-1] > 1 else torch.full_like(best, math.inf)
+        back = distance.argmin(dim=-2) if mutual else None  # (b, K2) best left index for each right keypoint
     # MATLAB's ratio test d1/d2 ≤ MaxRatio; d1 = d2 = 0 (two identical candidates) is ambiguous and rejected.
     keep = best.isfinite() & (best <= max_ratio * second) & (second > 0)
     if max_cost is not None:
         keep &= best <= max_cost
     if mutual:
         # MATLAB's Unique: match back from the right and keep the pairs that agree (first index on ties).
-        back = distance.argmin(dim=-2)  # (b, K2) best left index for each right keypoint
-        rows = torch.arange(distance.shape[-2], device=idx.device)
+        rows = torch.arange(desc_left.shape[-2], device=idx.device)
         keep &= back.gather(-1, idx) == rows
     return torch.where(keep, idx, -1), torch.where(keep, best, math.inf)
 

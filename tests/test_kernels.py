@@ -216,3 +216,45 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     assert (fused.valid != reference.valid).float().sum() <= 0.01 * points.valid.sum()
     error = (fused.right - reference.right)[both].abs().amax(-1)
     assert float(error.median()) < 1e-4 and float((error < 1e-3).float().mean()) > 0.99
+
+
+@pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
+@pytest.mark.parametrize("mutual", [False, True])
+def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual):
+    """SAD matching through the C kernel gives the torch path's matches (cdist, topk, argmin) on real SURF
+    descriptors, with the Laplacian gate, the ratio test and the mutual check; costs equal to float32
+    round-off."""
+    from svs_torch.matching import match_sad
+
+    features = extract_surf_features(images, config=SurfConfig(metric_threshold=100.0))
+    left, right = (features.descriptors[i:i + 1].expand(2, -1, -1).clone() for i in (0, 1))
+    left[1] = features.descriptors[2]
+    valid_left = features.keypoints.valid[[0, 2]]
+    valid_right = features.keypoints.valid[[1, 1]]
+    signs = features.keypoints.laplacian_sign
+
+    def match():
+        return match_sad(left, right, valid_left, valid_right, max_ratio=0.8, mutual=mutual,
+                         laplacian_left=signs[[0, 2]], laplacian_right=signs[[1, 1]])
+
+    fused = match()
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    reference = match()
+    assert int((reference.idx >= 0).sum()) > 50
+    assert torch.equal(fused.idx, reference.idx)
+    assert torch.allclose(fused.cost, reference.cost, rtol=1e-6, atol=0)
+
+
+@pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
+def test_sad_matching_kernel_edge_rows():
+    """No allowed candidate, a single one, two at the same distance: the same best / second / back as the
+    masked matrix gives."""
+    left = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
+    right = torch.tensor([[[0.0, 0.5], [0.0, 1.5], [5.0, 5.0]]])
+    allowed = torch.tensor([[[False, False, False], [True, False, False], [True, True, True]]])
+    best, second, index, back = kernels.sad_nearest(left, right, allowed)
+    distance = torch.where(allowed, torch.cdist(left, right, p=1), torch.inf)
+    assert torch.equal(best[0], torch.tensor([float("inf"), 1.5, 0.5]))
+    assert torch.equal(second[0], torch.tensor([float("inf"), float("inf"), 0.5]))  # a tie at 0.5
+    assert index[0, 1] == 0 and index[0, 2] == 0  # the first on ties
+    assert torch.equal(back, distance.argmin(dim=-2))

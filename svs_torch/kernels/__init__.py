@@ -1,10 +1,12 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler
 and loaded through ``ctypes``: the dense stage's SAD winner-takes-all (``sad_wta.c``), one level of SURF's
-box-filter Hessian (``hessian_level.c``) and its scale-space maxima (``local_maxima.c``), and the Lucas–Kanade
-refinement of matched points (``lk_refine.c``). Each is the no-gradient path of a torch function that stays
-the reference, the fallback and the differentiable path. The first three give that torch path's values bit
-for bit; the refinement takes the same steps with its sums in double and in its own order, so its points
-agree to about 1e-4 px (``tests/test_kernels.py``).
+box-filter Hessian (``hessian_level.c``) and its scale-space maxima (``local_maxima.c``), the SAD
+nearest-neighbour search of descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of
+matched points (``lk_refine.c``). Each is the no-gradient path of a torch function that stays the reference,
+the fallback and the differentiable path. The first three give that torch path's values bit for bit; the
+matching kernel sums each distance in its own order (on real descriptors: the same matches, the same costs);
+the refinement takes the same steps with its sums in double and in its own order, so its points agree to
+about 1e-4 px (``tests/test_kernels.py``).
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
@@ -19,7 +21,9 @@ over ``torch.get_num_threads()`` threads. The maxima took a dozen passes (three 
 mask, select) for a few hundred survivors; the kernel tests each point once, most stopping at the threshold
 (on 16 real images at 320×240, octave 0: 20 → 3 ms). The refinement sampled every patch of the batch 14
 times with ``grid_sample`` and reduced it in about 100 passes; the kernel refines one match at a time in L1
-(on the 1 900 matches of 16 real pairs: 95 → 19 ms).
+(on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole masked distance matrix and
+read it three times (topk, argmin); the kernel consumes each row of distances as it makes it (16 real pairs:
+110 → 29 ms).
 
 The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
 the source, the compiler flags and the CPU, so every later process reuses them; each one-time compile (about a
@@ -41,10 +45,11 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "cache_dir", "hessian_level", "lk_refine", "load", "local_maxima", "sad_wta"]
+__all__ = ["available", "cache_dir", "hessian_level", "lk_refine", "load", "local_maxima", "sad_nearest",
+           "sad_wta"]
 
 SOURCES = {name: Path(__file__).with_name(f"{name}.c")
-           for name in ("sad_wta", "hessian_level", "local_maxima", "lk_refine")}
+           for name in ("sad_wta", "hessian_level", "local_maxima", "lk_refine", "sad_nearest")}
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 #: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
 #: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
@@ -126,6 +131,7 @@ _SIGNATURES = {
     "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
     "lk_refine": ([_POINTER, _POINTER] + [_INT] * 4 + [_POINTER] * 4 + [_INT, _FLOAT, _POINTER, _POINTER, _INT],
                   None),
+    "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
 }
 
 
@@ -260,3 +266,27 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
                       radius.data_ptr(), active.data_ptr(), iterations, max_shift_px, refined.data_ptr(),
                       correlation.data_ptr(), torch.get_num_threads())
     return refined, correlation
+
+
+def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """Nearest neighbours by SAD (see the C source): ``desc_left`` ``(B, K, D)``, ``desc_right`` ``(B, K2, D)``
+    float32, ``allowed`` ``(B, K, K2)`` bool. Returns ``(best, second, best_index, back)``: each left row's
+    smallest and second-smallest allowed distance ``(B, K)`` (+inf if none), the index of the smallest, and
+    each right descriptor's nearest left row ``(B, K2)``; None when the kernel is not available or the inputs
+    do not fit its contract."""
+    if (desc_left.dtype != torch.float32 or desc_right.dtype != torch.float32 or allowed.dtype != torch.bool
+            or desc_left.device.type != "cpu" or desc_right.device.type != "cpu"):
+        return None
+    library = load("sad_nearest")
+    if library is None:
+        return None
+    b, k, d = desc_left.shape
+    k2 = desc_right.shape[1]
+    left, right_t, allowed = desc_left.contiguous(), desc_right.transpose(1, 2).contiguous(), allowed.contiguous()
+    best, second = torch.empty(b, k), torch.empty(b, k)
+    best_index, back = torch.empty(b, k, dtype=torch.int64), torch.empty(b, k2, dtype=torch.int64)
+    status = library.sad_nearest(left.data_ptr(), right_t.data_ptr(), allowed.data_ptr(), b, k, k2, d,
+                                 best.data_ptr(), second.data_ptr(), best_index.data_ptr(), back.data_ptr(),
+                                 torch.get_num_threads())
+    return None if status != 0 else (best, second, best_index, back)
