@@ -105,8 +105,9 @@ def _allowed(valid_left: torch.Tensor, valid_right: torch.Tensor, laplacian_left
 def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torch.Tensor, max_ratio: float,
                  max_cost: float | None, mutual: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest neighbour, ratio test, threshold and mutual check for a group of pairs: idx, cost ``(b, K)``.
-    Without gradients, float32 descriptors on CPU take the C kernel of :mod:`svs_torch.kernels` (the same
-    search without the distance matrix; distances summed in another order, so equal to the last bits)."""
+    Without gradients, float32 descriptors on CPU take the C kernel of :mod:`svs_torch.kernels`: the same
+    search without the distance matrix, each distance summed over d in order (on real descriptors the same
+    matches and costs as ``cdist``; another summation order could differ in the last bits)."""
     found = None
     if not (torch.is_grad_enabled() and (desc_left.requires_grad or desc_right.requires_grad)):
         found = kernels.sad_nearest(desc_left, desc_right, allowed)

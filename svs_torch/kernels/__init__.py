@@ -253,7 +253,8 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the
     inputs do not fit its contract."""
     tensors = (left, right, left_xy, right_xy, radius)
-    if any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors) or active.dtype != torch.bool:
+    if (any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors) or active.dtype != torch.bool
+            or left.shape[-2] * left.shape[-1] >= 2**31):  # the kernel indexes an image with 32-bit offsets
         return None
     library = load("lk_refine")
     if library is None:
