@@ -280,13 +280,15 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     inside = ((right_x >= 0) & (right_x < image_w.view(-1, 1, 1))).unsqueeze(2)  # (B, D, 1, width)
     hl, wl = height + 2 * radius, width + 2 * radius
     left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
+    # The hard path's +inf: outside the image or past the pair's own count of disparities.
+    outside = None if counts is None else ~(inside & _own(counts, num_disparities))  # (B, D, 1, width)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):  # the soft path: no in-place ops
         windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
         volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2).contiguous()
         costs = _box_sum(volume, config.window_size)
         winner = None
-        if counts is not None:
-            costs = costs.masked_fill(~(inside & _own(counts, num_disparities)), torch.inf)
+        if outside is not None:
+            costs = costs.masked_fill(outside, torch.inf)
             winner = costs.min(dim=1)
     else:  # disparity by disparity, a block of pairs at a time: each slab's differences and box sums stay in cache
         size = config.window_size
@@ -297,8 +299,7 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
         block = max(1, min(b, CACHE_BLOCK_BYTES // (hl * wl * left_crop.element_size())))
         slab = left_crop.new_empty(block, hl, wl)
         rows = left_crop.new_empty(block, height, wl)
-        if counts is not None:
-            outside = ~(inside & _own(counts, num_disparities))  # (B, D, 1, width)
+        if outside is not None:
             best_cost = left_crop.new_empty(b, height, width)
             best = torch.zeros(b, height, width, dtype=torch.int64, device=left.device)
         for b0 in range(0, b, block):
@@ -315,7 +316,7 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
                 target.copy_(rows_n[..., 0:width])
                 for offset in range(1, size):
                     target += rows_n[..., offset:offset + width]
-                if counts is None:
+                if outside is None:
                     continue
                 target.masked_fill_(outside[b0:b0 + n, d], torch.inf)
                 if d == 0:
@@ -324,7 +325,7 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
                     running = best_cost[b0:b0 + n]
                     best[b0:b0 + n].masked_fill_(target < running, d)
                     torch.minimum(running, target, out=running)
-        winner = (best_cost, best) if counts is not None else None
+        winner = (best_cost, best) if outside is not None else None
     return costs, inside, winner
 
 

@@ -75,8 +75,8 @@ def _concatenate(blocks: list[SurfFeatures]) -> SurfFeatures:
             return tensor
         return torch.cat([tensor, tensor.new_zeros((tensor.shape[0], extra, *tensor.shape[2:]))], dim=1)
 
-    fields = [[pad(getattr(block.keypoints, name)) for block in blocks] for name in KEYPOINT_FIELDS]
-    keypoints = Keypoints(*(torch.cat(parts) for parts in fields))
+    columns = [[pad(getattr(block.keypoints, name)) for block in blocks] for name in KEYPOINT_FIELDS]
+    keypoints = Keypoints(*(torch.cat(parts) for parts in columns))
     return SurfFeatures(keypoints, torch.cat([pad(block.descriptors) for block in blocks]))
 
 

@@ -34,6 +34,7 @@ None and the callers run their torch paths.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
@@ -48,8 +49,18 @@ import torch
 __all__ = ["available", "cache_dir", "hessian_level", "lk_refine", "load", "local_maxima", "sad_nearest",
            "sad_wta"]
 
-SOURCES = {name: Path(__file__).with_name(f"{name}.c")
-           for name in ("sad_wta", "hessian_level", "local_maxima", "lk_refine", "sad_nearest")}
+_POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+#: Each kernel's (argument types, return type), as declared in its C source.
+_SIGNATURES = {
+    "sad_wta": ([_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 4, ctypes.c_int),
+    "hessian_level": ([_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 3, None),
+    "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
+    "lk_refine": ([_POINTER, _POINTER] + [_INT] * 4 + [_POINTER] * 4 + [_INT, _FLOAT, _POINTER, _POINTER, _INT],
+                  None),
+    "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
+}
+#: Each kernel's C source, named after it.
+SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 #: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
 #: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
@@ -72,6 +83,7 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "svs_torch"
 
 
+@functools.cache
 def _cpu_signature() -> str:
     """The CPU's feature flags (``-march=native`` code must not run on another CPU sharing the cache)."""
     try:
@@ -123,20 +135,8 @@ def _compile(name: str, target: Path) -> bool:
             os.unlink(temporary)
 
 
-_POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
-#: Each kernel's (argument types, return type), as declared in its C source.
-_SIGNATURES = {
-    "sad_wta": ([_POINTER, _POINTER] + [_INT] * 5 + [_POINTER] * 4 + [_POINTER] * 6 + [_INT] * 4, ctypes.c_int),
-    "hessian_level": ([_POINTER] * 3 + [_INT] * 3 + [_FLOAT] * 3 + [_POINTER] * 2 + [_INT] * 3, None),
-    "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
-    "lk_refine": ([_POINTER, _POINTER] + [_INT] * 4 + [_POINTER] * 4 + [_INT, _FLOAT, _POINTER, _POINTER, _INT],
-                  None),
-    "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
-}
-
-
 def load(name: str = "sad_wta") -> ctypes.CDLL | None:
-    """The compiled kernel ``name`` (``"sad_wta"`` or ``"hessian_level"``), compiling it on first use; None
+    """The compiled kernel ``name`` (a key of :data:`SOURCES`), compiling it on first use; None
     when kernels are off (``SVS_TORCH_KERNELS=torch``) or it cannot be built or loaded (then the caller's torch
     path runs)."""
     if os.environ.get("SVS_TORCH_KERNELS", "").lower() == "torch":
