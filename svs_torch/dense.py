@@ -482,7 +482,13 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     """Fill each invalid pixel of ``(..., W)`` rows from the nearest valid pixels to its left and right: their
     mean where they agree within 1 px (a textureless patch inside one surface), otherwise the smaller
     disparity (an occlusion is background: Hirschmüller 2008, Sec. 3.5); one side only where the other has
-    none. Returns the filled disparity and where a fill was possible (``valid`` or a valid pixel in the row)."""
+    none. Returns the filled disparity and where a fill was possible (``valid`` or a valid pixel in the row).
+    Differentiable w.r.t. ``disparity``; without gradients a compiled kernel gives the same values in two
+    passes per row (:mod:`svs_torch.kernels`)."""
+    if not (disparity.requires_grad and torch.is_grad_enabled()):
+        done = kernels.fill_invalid_rows(disparity, valid)
+        if done is not None:
+            return done
     width = disparity.shape[-1]
     index = torch.arange(width, device=disparity.device).expand_as(disparity)
     left_index = torch.where(valid, index, -1).cummax(dim=-1).values

@@ -25,6 +25,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
+from . import kernels
 from .checks import InputError, check_dtype, check_shape
 from .ordering import argsort_last, sort_last
 from .rectification import _map_points
@@ -324,6 +325,12 @@ def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.T
     shape = (b, slots.shape[1], q.numel())
     if p == 0 or slots.shape[1] == 0:
         return Quantiles(values.new_zeros(shape), torch.zeros(shape[:2], dtype=torch.bool, device=values.device))
+    if not (values.requires_grad and torch.is_grad_enabled()) and not bool(values.isnan().any()):
+        # The compiled selection (svs_torch/kernels/labelled_select.c): the same order statistics, O(P) per slot.
+        selected = kernels.labelled_select(values, labels, slots, q)
+        if selected is not None:
+            count, below, above = selected
+            return _interpolate_ranks(below, above, count.unsqueeze(-1), q)
     labelled = labels > 0
     keyed = torch.where(labelled, values, torch.full_like(values, torch.inf))
     order = argsort_last(keyed)
@@ -332,12 +339,25 @@ def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.T
     member = (sorted_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1)  # (B, N, P)
     running = member.cumsum(dim=-1)  # members up to and including each sorted place
     count = running[..., -1:]  # (B, N, 1)
-    position = q * (count - 1).clamp_min(0).to(values.dtype)  # (B, N, Q)
-    low, high = position.floor().long(), position.ceil().long()
-    fraction = position - low.to(values.dtype)
+    low, high = _ranks(count, q)
     # The member of rank r sits where the running count first reaches r + 1.
     places = torch.searchsorted(running, torch.cat([low, high], dim=-1) + 1).clamp_max(p - 1)
     below, above = ordered.unsqueeze(1).expand(-1, shape[1], -1).gather(-1, places).chunk(2, dim=-1)
+    return _interpolate_ranks(below, above, count, q)
+
+
+def _ranks(count: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ranks below and above quantile ``q`` among ``count`` sorted members."""
+    position = q * (count - 1).clamp_min(0).to(q.dtype)
+    return position.floor().long(), position.ceil().long()
+
+
+def _interpolate_ranks(below: torch.Tensor, above: torch.Tensor, count: torch.Tensor,
+                       q: torch.Tensor) -> Quantiles:
+    """Linear interpolation between the order statistics ``below`` / ``above`` ``(B, N, Q)`` of quantile ``q``
+    among ``count`` ``(B, N, 1)`` members (0 where there are none)."""
+    position = q * (count - 1).clamp_min(0).to(q.dtype)
+    fraction = position - position.floor()
     result = below + (above - below) * fraction
     present = count > 0
     return Quantiles(torch.where(present, result, torch.zeros_like(result)), present.squeeze(-1))

@@ -323,7 +323,9 @@ needs_kernel = pytest.mark.skipif(not kernels.available(), reason="no C compiler
     DenseConfig(),
     DenseConfig(window_size=3, uniqueness_ratio=0.3, lr_max_diff_px=0.0, texture_threshold=0.05),
     DenseConfig(window_size=5, prefilter="none", uniqueness_ratio=0.0, lr_max_diff_px=None, texture_threshold=0.0),
-], ids=["default", "strict", "raw-no-rules"])
+    # 17² · 255 > 65535: the kernel's float costs instead of its 16-bit ones
+    DenseConfig(window_size=17, prefilter="none"),
+], ids=["default", "strict", "raw-no-rules", "raw-float-costs"])
 def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
     """The fused C kernel (svs_torch.kernels) makes the torch path's float32 arithmetic in the same order:
     same disparities, same validity, bit for bit — on whole images with per-pair ranges, a flat pair (every

@@ -258,3 +258,45 @@ def test_sad_matching_kernel_edge_rows():
     assert torch.equal(second[0], torch.tensor([float("inf"), float("inf"), 0.5]))  # a tie at 0.5
     assert index[0, 1] == 0 and index[0, 2] == 0  # the first on ties
     assert torch.equal(back, distance.argmin(dim=-2))
+
+
+@pytest.mark.skipif(not kernels.available("labelled_select"), reason="no C compiler")
+def test_labelled_select_kernel_gives_the_sorting_paths_quantiles(monkeypatch):
+    """Quickselect per object gives the order statistics the sort gives, so the same quantiles bit for bit:
+    negative values, ties, ±inf, labels of no slot, padded and repeated slots, empty slots, long rows."""
+    from svs_torch.depth import labelled_quantile
+
+    generator = torch.Generator().manual_seed(4)
+    cases = []
+    for p in (0, 1, 7, 300, 20000):
+        values = torch.randint(-9, 9, (3, p), generator=generator).float()
+        values[1] += torch.randn(p, generator=generator) * 100
+        if p > 2:
+            values[2, :2] = torch.tensor([float("inf"), -float("inf")])
+        cases.append((values, torch.randint(-1, 5, (3, p), generator=generator),
+                      torch.tensor([[1, 2, -1], [3, 3, 4], [2, 9, 1]])))
+    q = [0.5, 0.1, 0.9, 0.0, 1.0, 0.37]
+    fused = [labelled_quantile(*case, q) for case in cases]
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    for case, result in zip(cases, fused):
+        reference = labelled_quantile(*case, q)
+        assert torch.equal(result.valid, reference.valid)
+        assert torch.equal(result.values.nan_to_num(), reference.values.nan_to_num())  # inf − inf interpolates to NaN
+    assert fused[-1].valid.sum() == 7  # all but the padding slot and slot 9, which no label holds
+
+
+@pytest.mark.skipif(not kernels.available("fill_invalid_rows"), reason="no C compiler")
+def test_fill_rows_kernel_is_bit_identical_to_torch(monkeypatch):
+    """Rows with no valid pixel, one, a few and nearly all; neighbours that agree (mean) and that do not
+    (the smaller): the same fill and reachability as the torch path."""
+    from svs_torch.dense import fill_invalid_rows
+
+    generator = torch.Generator().manual_seed(5)
+    disparity = torch.rand(4, 9, 57, generator=generator) * torch.tensor([0.5, 2.0, 10.0, 40.0]).view(4, 1, 1)
+    valid = torch.rand(4, 9, 57, generator=generator) < torch.tensor([0.02, 0.2, 0.6, 0.97]).view(4, 1, 1)
+    valid[0, 0] = False
+    fused = fill_invalid_rows(disparity, valid)
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    reference = fill_invalid_rows(disparity, valid)
+    assert torch.equal(fused[0], reference[0]) and torch.equal(fused[1], reference[1])
+    assert not fused[1][0, 0].any() and fused[1][3].all()

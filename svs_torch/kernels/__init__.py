@@ -1,9 +1,10 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler
-and loaded through ``ctypes``: the dense stage's SAD winner-takes-all (``sad_wta.c``), one level of SURF's
-box-filter Hessian (``hessian_level.c``) and its scale-space maxima (``local_maxima.c``), the SAD
+and loaded through ``ctypes``: the dense stage's SAD winner-takes-all (``sad_wta.c``), its row fill of invalid
+pixels (``fill_invalid_rows.c``) and its per-object order statistics (``labelled_select.c``), one level of
+SURF's box-filter Hessian (``hessian_level.c``) and its scale-space maxima (``local_maxima.c``), the SAD
 nearest-neighbour search of descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of
 matched points (``lk_refine.c``). Each is the no-gradient path of a torch function that stays the reference,
-the fallback and the differentiable path. The first three give that torch path's values bit for bit; the
+the fallback and the differentiable path. The first five give that torch path's values bit for bit; the
 matching kernel sums each distance in its own order (on real descriptors: the same matches, the same costs);
 the refinement takes the same steps with its sums in double and in its own order, so its points agree to
 about 1e-4 px (``tests/test_kernels.py``).
@@ -46,8 +47,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "cache_dir", "hessian_level", "lk_refine", "load", "local_maxima", "sad_nearest",
-           "sad_wta"]
+__all__ = ["available", "cache_dir", "fill_invalid_rows", "hessian_level", "labelled_select", "lk_refine", "load",
+           "local_maxima", "sad_nearest", "sad_wta"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -58,6 +59,8 @@ _SIGNATURES = {
     "lk_refine": ([_POINTER, _POINTER] + [_INT] * 4 + [_POINTER] * 4 + [_INT, _FLOAT, _POINTER, _POINTER, _INT],
                   None),
     "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
+    "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
+    "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
@@ -135,6 +138,19 @@ def _compile(name: str, target: Path) -> bool:
             os.unlink(temporary)
 
 
+def _compile_once(name: str, target: Path) -> bool:
+    """:func:`_compile` under a lock file, so that processes started together (``svs-depth estimate``'s
+    workers) build a kernel once and the others wait for it instead of each compiling and announcing it."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: concurrent builds stay correct (atomic rename), only repeated
+        return _compile(name, target)
+    with open(target.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return target.exists() or _compile(name, target)
+
+
 def load(name: str = "sad_wta") -> ctypes.CDLL | None:
     """The compiled kernel ``name`` (a key of :data:`SOURCES`), compiling it on first use; None
     when kernels are off (``SVS_TORCH_KERNELS=torch``) or it cannot be built or loaded (then the caller's torch
@@ -146,7 +162,7 @@ def load(name: str = "sad_wta") -> ctypes.CDLL | None:
     _LIBRARIES[name] = None
     try:
         path = _library_path(name)
-        if not path.exists() and not _compile(name, path):
+        if not path.exists() and not _compile_once(name, path):
             return None
         library = ctypes.CDLL(str(path))
     except OSError as error:
@@ -291,3 +307,45 @@ def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torc
                                  best.data_ptr(), second.data_ptr(), best_index.data_ptr(), back.data_ptr(),
                                  torch.get_num_threads())
     return None if status != 0 else (best, second, best_index, back)
+
+
+def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The order statistics of :func:`svs_torch.depth.labelled_quantile` by selection (see the C source):
+    ``values`` ``(B, P)`` float32 without NaN, ``labels`` ``(B, P)`` and ``slots`` ``(B, N)`` int64, quantiles
+    ``q`` ``(Q,)`` float32. Returns ``(count, below, above)``: each slot's member count ``(B, N)`` and the
+    members of rank ``floor`` / ``ceil`` of ``q · (count − 1)`` ``(B, N, Q)`` (0 for an empty slot); None when
+    the kernel is not available or the inputs do not fit its contract."""
+    if (values.dtype != torch.float32 or q.dtype != torch.float32 or labels.dtype != torch.int64
+            or slots.dtype != torch.int64 or any(t.device.type != "cpu" for t in (values, labels, slots, q))):
+        return None
+    library = load("labelled_select")
+    if library is None:
+        return None
+    b, p = values.shape
+    n, k = slots.shape[1], q.numel()
+    values, labels, slots, q = (t.contiguous() for t in (values, labels, slots, q))
+    count = torch.empty(b, n, dtype=torch.int64)
+    below, above = torch.empty(b, n, k), torch.empty(b, n, k)
+    status = library.labelled_select(values.data_ptr(), labels.data_ptr(), slots.data_ptr(), q.data_ptr(), b, p, n,
+                                     k, count.data_ptr(), below.data_ptr(), above.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (count, below, above)
+
+
+def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
+    ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
+    fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
+    if (disparity.dtype != torch.float32 or valid.dtype != torch.bool or disparity.shape != valid.shape
+            or disparity.device.type != "cpu" or valid.device.type != "cpu" or disparity.dim() < 1):
+        return None
+    library = load("fill_invalid_rows")
+    if library is None:
+        return None
+    width = disparity.shape[-1]
+    rows = disparity.numel() // width if width else 0
+    disparity, valid = disparity.contiguous(), valid.contiguous()
+    filled, reachable = torch.empty_like(disparity), torch.empty_like(valid)
+    status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
+                                       reachable.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (filled, reachable)

@@ -1,0 +1,111 @@
+/* Order statistics of labelled values, for svs_torch.depth.labelled_quantile (the dense depth stage's
+ * per-object median and percentiles, the no-gradient path).
+ *
+ * The torch path sorts every pair's (B, P) values once (numpy's argsort), gathers, and finds each slot's ranks
+ * through a (B, N, P) running count: on the depth stage's 8 x 80 000 values that is several passes and an
+ * O(P log P) sort per pair. Only 2 Q order statistics per object are wanted, so here each object's members are
+ * copied out in one pass over the pair and the wanted ranks are found by quickselect, O(P) each:
+ *   count[b, n] = #{p : labels[b, p] == slots[b, n]}                     (0 where slots[b, n] <= 0)
+ *   position    = q[i] * (float)max(count - 1, 0)                         (float32, as the torch path computes it)
+ *   below[b, n, i] = the member of rank floor(position), above[...] = of rank ceil(position)
+ * Selection compares and moves values and does no arithmetic on them, so these are the torch path's order
+ * statistics exactly (the caller interpolates them with its own float32 ops). NaN is not allowed (the caller
+ * checks); +-inf are ordinary values.
+ *
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
+ * svs_torch/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+/* Puts the element of rank k of a[lo, hi) in place, smaller-or-equal ones before it, larger-or-equal after
+ * (Hoare partition around a median of three; equal values stop both scans, so runs of ties split evenly). */
+static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
+    int64_t left = lo, right = hi - 1;
+    while (right > left) {
+        int64_t middle = left + (right - left) / 2;
+        float x = a[left], y = a[middle], z = a[right];
+        float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
+        int64_t i = left, j = right;
+        while (i <= j) {
+            while (a[i] < pivot) ++i;
+            while (pivot < a[j]) --j;
+            if (i <= j) {
+                float t = a[i];
+                a[i] = a[j];
+                a[j] = t;
+                ++i;
+                --j;
+            }
+        }
+        /* Now a[left, j] <= pivot <= a[i, right] and every element between j and i equals the pivot. */
+        if (k <= j) right = j;
+        else if (k >= i) left = i;
+        else return;
+    }
+}
+
+/* Returns 0, or -1 when memory could not be had (the caller then runs the torch path). */
+int labelled_select(const float *values, const int64_t *labels, const int64_t *slots, const float *q, int64_t B,
+                    int64_t P, int64_t N, int64_t Q, int64_t *count, float *below, float *above,
+                    int64_t num_threads) {
+    int threads = (int)(num_threads < 1 ? 1 : (num_threads > B ? (B < 1 ? 1 : B) : num_threads));
+    int failed = 0;
+#pragma omp parallel num_threads(threads)
+    {
+        float *members = malloc(sizeof(float) * (size_t)(P > 0 ? P : 1));
+        int64_t *ranks = malloc(sizeof(int64_t) * (size_t)(2 * Q > 0 ? 2 * Q : 1));
+        if (!members || !ranks) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t b = 0; b < B; ++b) {
+            if (!members || !ranks) continue;
+            const float *v = values + b * P;
+            const int64_t *l = labels + b * P;
+            for (int64_t n = 0; n < N; ++n) {
+                const int64_t slot = slots[b * N + n], out = (b * N + n) * Q;
+                int64_t m = 0;
+                if (slot > 0)
+                    for (int64_t p = 0; p < P; ++p)
+                        if (l[p] == slot) members[m++] = v[p];
+                count[b * N + n] = m;
+                if (m == 0) {
+                    for (int64_t i = 0; i < Q; ++i) below[out + i] = above[out + i] = 0.0f;
+                    continue;
+                }
+                /* The wanted ranks in ascending order: each selection then works right of the one before. */
+                const float last = (float)(m - 1);
+                for (int64_t i = 0; i < Q; ++i) {
+                    const float position = q[i] * last;
+                    ranks[2 * i] = (int64_t)floorf(position);
+                    ranks[2 * i + 1] = (int64_t)ceilf(position);
+                }
+                for (int64_t i = 1; i < 2 * Q; ++i)
+                    for (int64_t j = i; j > 0 && ranks[j - 1] > ranks[j]; --j) {
+                        int64_t t = ranks[j - 1];
+                        ranks[j - 1] = ranks[j];
+                        ranks[j] = t;
+                    }
+                int64_t start = 0;
+                for (int64_t i = 0; i < 2 * Q; ++i) {
+                    int64_t k = ranks[i] < m - 1 ? ranks[i] : m - 1;
+                    if (k < start) continue; /* a repeated rank: already in place */
+                    select_rank(members, start, m, k);
+                    start = k;
+                }
+                for (int64_t i = 0; i < Q; ++i) {
+                    const float position = q[i] * last;
+                    int64_t low = (int64_t)floorf(position), high = (int64_t)ceilf(position);
+                    below[out + i] = members[low < m - 1 ? low : m - 1];
+                    above[out + i] = members[high < m - 1 ? high : m - 1];
+                }
+            }
+        }
+        free(members);
+        free(ranks);
+    }
+    return failed ? -1 : 0;
+}
