@@ -226,6 +226,33 @@ def test_estimate_many_pairs_in_batches(data_dir, capsys, tmp_path):
     assert code == 2 and "pairs: line 1" in err
 
 
+def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
+    """Worker processes (the default with more than one core) print exactly what one process prints, in list
+    order: ranged pairs, a bad line, a missing file and a blank pair (nothing to range); the same exit status and
+    error line; and a list that only a worker finds unreadable is still one error line."""
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL", "Piano")]
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.zeros((12, 16), np.uint8))
+    lines = [f"{s / 'im0.png'} {s / 'im1.png'}" for s in scenes] * 2
+    lines[1:1] = ["one-field"]
+    lines[4:4] = [f"{tmp_path / 'missing.png'} {tmp_path / 'missing.png'}", f"{blank} {blank}"]
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("\n".join(lines) + "\n")
+    runs = {}
+    for workers in ("1", "2"):
+        code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--size",
+                                 "160x120", "--json", "--workers", workers)
+        reports = [{k: v for k, v in json.loads(line).items() if k != "time_s"} for line in out.splitlines()]
+        runs[workers] = code, reports, err
+    assert runs["1"] == runs["2"]
+    code, reports, err = runs["2"]
+    assert code == 2 and err.startswith("svs-depth estimate: error: pairs: 2 of 9 pairs are BAD_INPUT")
+    assert [r["status"] for r in reports][1:6] == ["BAD_INPUT", "OK", "OK", "BAD_INPUT", "NO_OBJECTS"]
+    listing.write_bytes(b"a.png b.png\n" * 4 + b"\xff\xfe\n")
+    code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--workers", "2")
+    assert code == 2 and out == "" and len(err.splitlines()) == 1 and "pairs:" in err
+
+
 def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--size", "320x240", "--json",

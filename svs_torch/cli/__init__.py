@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    from ..checks import InputError
+    from ..errors import InputError
 
     prog = f"svs-depth {args.command}"
     try:

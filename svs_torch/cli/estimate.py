@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
+from collections.abc import Iterator
 
 from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
@@ -64,6 +66,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     # batches pad more and leave the cache).
     parser.add_argument("--batch-size", type=positive_int, default=8,
                         help="pairs per batch with --pairs (default: 8, the fastest measured)")
+    # One single-threaded worker per core: on this project's 2-core machine, 512 real pairs at 320x240 took
+    # 24.8 s in one process of 2 torch threads and 17.2 s as two processes of one thread each (torch's
+    # intra-op threads split ops too small to pay for it; separate processes also decode while computing).
+    parser.add_argument("--workers", type=positive_int, metavar="N",
+                        help="with --pairs: worker processes, each with cores / N torch threads (default: one per "
+                             "core, or per OMP_NUM_THREADS if that is fewer; 1 runs in this process). The lines "
+                             "come out in list order whatever N is, and each pair's numbers do not depend on it")
     parser.add_argument("--focal-px", type=positive_float,
                         help="focal length of the input images, pixels (default: the SVS model for the width)")
     parser.add_argument("--baseline-m", type=positive_float, help="stereo baseline, metres (default: SVS 0.1075)")
@@ -202,16 +211,18 @@ def _write_outputs(args, batch, result, factors) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..checks import InputError
+    if args.pairs:  # before any heavy import: the workers may be started without torch in this process
+        from . import CliError
+
+        if args.left or args.right or args.figure or args.masks_out:
+            raise CliError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
+        return _run_many(args)
+    from ..errors import InputError
     from ..data import PairSource, detect_stereo_layout
     from ..figures import check_output_path
     from ..pipeline import estimate_obstacle_depth
 
     config = pipeline_config_from_args(args)
-    if args.pairs:
-        if args.left or args.right or args.figure or args.masks_out:
-            raise InputError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
-        return _run_many(args, config)
     scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
     if not (args.left and args.right) and not scene:
         raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
@@ -253,7 +264,7 @@ def _load_source(source, args: argparse.Namespace):
 def _load_entry(source, args) -> tuple[str | None, str | None, object]:
     """(status, reason, loaded pair) of one list entry: a pair to run has status None. Scenes and pairs listed
     with a calibration keep their own; the others take the command's (or the SVS model)."""
-    from ..checks import InputError
+    from ..errors import InputError
 
     if source.problem:
         return "BAD_INPUT", source.problem, None
@@ -266,44 +277,141 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
     return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
 
 
-def _run_many(args: argparse.Namespace, config) -> int:
-    """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT."""
+def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
+    """One batch of list entries run through the pipeline: each entry's report (with its ``left`` and
+    ``right``) and, for a BAD_INPUT entry, the reason."""
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
-    pairs = _read_pair_list(args.pairs)
-    done, bad = 0, []
+    entries = [_load_entry(entry, args) for entry in chunk]
+    runnable = [loaded for _, _, loaded in entries if loaded is not None]
+    result, per_pair = None, 0.0
+    if runnable:
+        # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
+        batch = collate_stereo_batches([b for b, _ in runnable], mode="pad")
+        started = time.perf_counter()
+        result = estimate_obstacle_depth(batch, config)
+        per_pair = (time.perf_counter() - started) / len(runnable)
+    row, out = 0, []
+    for source, (status, reason, loaded) in zip(chunk, entries):
+        if loaded is None:
+            report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
+        else:
+            report, bad = pair_report(result, row, loaded[1], per_pair), None
+            row += 1
+        out.append(({"left": source.left, "right": source.right, **report}, bad))
+    return out
+
+
+#: The pair list of this worker process, read once (every worker reads it: the parent never imports torch).
+_WORKER_LISTS: dict[str, list] = {}
+
+
+def _worker_list(path: str) -> list:
+    if path not in _WORKER_LISTS:
+        _WORKER_LISTS[path] = _read_pair_list(path)
+    return _WORKER_LISTS[path]
+
+
+def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
+    """Worker task: the number of listed pairs, or the one-line error of a bad list or bad options (sent back
+    as text: the parent, which has not imported torch, raises it)."""
+    from ..errors import InputError
+
+    try:
+        pipeline_config_from_args(args)
+        return len(_worker_list(args.pairs)), None
+    except InputError as error:
+        return 0, str(error)
+
+
+def _worker_chunk(args: argparse.Namespace, start: int, stop: int
+                  ) -> tuple[list[tuple[dict, str | None]], list[str]]:
+    """Worker task: :func:`_estimate_chunk` of the list's entries ``[start, stop)``, and the warnings it raised
+    (the parent shows them as its own one-line warnings)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        lines = _estimate_chunk(_worker_list(args.pairs)[start:stop], args, pipeline_config_from_args(args))
+    return lines, [str(warning.message) for warning in caught]
+
+
+def _listed_lines(path: str) -> int:
+    """About how many pairs a list holds (its non-blank, non-comment lines; a scene-folder line may hold more),
+    read without torch, to choose the number of workers; 0 when it cannot be read (the real reading reports
+    why)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as lines:
+            return sum(1 for line in lines if line.strip() and not line.lstrip().startswith("#"))
+    except OSError:
+        return 0
+
+
+def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> Iterator[tuple[int, list]]:
+    """The chunks' results in list order from ``workers`` spawned processes (spawn: a fork would copy torch's
+    started thread pools), each with ``threads`` torch threads. Yields ``(number of pairs, None)`` first."""
+    import concurrent.futures
+    import multiprocessing
+    import warnings
+
+    from ..workers import start_worker
+    from . import CliError
+
+    executor = concurrent.futures.ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=start_worker,
+        initargs=(threads, ("svs_torch.pipeline",)))
+    try:
+        # One count task per worker: each starts its process now, and every worker reads the list it will need.
+        counts = [executor.submit(_worker_count, args) for _ in range(workers)]
+        total, problem = counts[0].result()
+        if problem:
+            raise CliError(problem)
+        yield total, None
+        futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total))
+                   for start in range(0, total, args.batch_size)]
+        for future in futures:
+            lines, messages = future.result()
+            for message in messages:
+                warnings.warn(message, RuntimeWarning, stacklevel=2)
+            yield 0, lines
+    finally:
+        executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_many(args: argparse.Namespace) -> int:
+    """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT.
+    With more than one worker the batches run in worker processes and this process only prints."""
+    from ..workers import thread_budget
+
+    budget = thread_budget()
+    chunks = -(-_listed_lines(args.pairs) // args.batch_size)
+    workers = max(1, min(budget if args.workers is None else args.workers, chunks))
+    if workers == 1:
+        config = pipeline_config_from_args(args)
+        pairs = _read_pair_list(args.pairs)
+        results = itertools.chain([(len(pairs), None)], (
+            (0, _estimate_chunk(pairs[start:start + args.batch_size], args, config))
+            for start in range(0, len(pairs), args.batch_size)))
+    else:
+        results = _worker_results(args, workers, max(1, budget // workers))
+    done, bad, total = 0, [], 0
     # A progress count only for a person watching: in a log or a pipe, stderr keeps to the errors.
     progress = sys.stderr.isatty()
-    for start in range(0, len(pairs), args.batch_size):
-        chunk = pairs[start:start + args.batch_size]
-        entries = [_load_entry(entry, args) for entry in chunk]
-        runnable = [loaded for _, _, loaded in entries if loaded is not None]
-        result, per_pair = None, 0.0
-        if runnable:
-            # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
-            batch = collate_stereo_batches([b for b, _ in runnable], mode="pad")
-            started = time.perf_counter()
-            result = estimate_obstacle_depth(batch, config)
-            per_pair = (time.perf_counter() - started) / len(runnable)
-        row = 0
-        for source, (status, reason, loaded) in zip(chunk, entries):
-            left, right = source.left, source.right
-            if loaded is None:
-                report = unranged_report(status, reason, config.depth.rule)
-                if status == "BAD_INPUT":
-                    bad.append(reason)
-            else:
-                report = pair_report(result, row, loaded[1], per_pair)
-                row += 1
-            report = {"left": left, "right": right, **report}
-            print(dumps_strict(report) if args.json else "\n".join([f"{left} {right or ''}".rstrip()]
-                                                                     + format_report(report)), flush=True)
-        done += len(chunk)
+    for count, lines in results:
+        if lines is None:
+            total = count
+            continue
+        for report, reason in lines:
+            if reason is not None:
+                bad.append(reason)
+            heading = f"{report['left']} {report['right'] or ''}".rstrip()
+            print(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]), flush=True)
+        done += len(lines)
         if progress:
-            print(f"\r{done}/{len(pairs)} pairs", end="" if done < len(pairs) else "\n", file=sys.stderr, flush=True)
+            print(f"\r{done}/{total} pairs", end="" if done < total else "\n", file=sys.stderr, flush=True)
     if bad:
-        print(f"svs-depth estimate: error: pairs: {len(bad)} of {len(pairs)} pairs are BAD_INPUT (first: {bad[0]})",
+        print(f"svs-depth estimate: error: pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)
         return 2
     return 0

@@ -17,36 +17,13 @@ from __future__ import annotations
 import concurrent.futures
 import multiprocessing
 import os
-import threading
-import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from ..checks import InputError
+from ..workers import available_cores, start_worker
 
 __all__ = ["available_cores", "connect_dask", "map_dask", "map_process_pool"]
-
-
-def available_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-def _watch_parent(parent: int) -> None:
-    while os.getppid() == parent:
-        time.sleep(0.5)
-    os._exit(1)  # the sweep was killed (even with SIGKILL): no orphan keeps computing or holding memory
-
-
-def _start_worker(threads: int) -> None:
-    """Worker initializer: pin torch's threads, and end the worker when its parent process is gone."""
-    import torch
-
-    torch.set_num_threads(threads)
-    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True, name="watch-parent").start()
 
 
 def map_process_pool(function: Callable[[Any], Any], items: Iterable[Any], workers: int, threads: int
@@ -54,7 +31,7 @@ def map_process_pool(function: Callable[[Any], Any], items: Iterable[Any], worke
     """``function(item)`` for every item in ``workers`` spawned processes of ``threads`` torch threads each,
     yielded as each finishes. Leaving the loop early cancels what has not started."""
     context = multiprocessing.get_context("spawn")
-    executor = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker,
+    executor = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
                                                       initargs=(threads,))
     try:
         futures = [executor.submit(function, item) for item in items]
