@@ -375,7 +375,8 @@ def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> Ite
             for message in messages:
                 warnings.warn(message, RuntimeWarning, stacklevel=2)
             yield 0, lines
-    finally:
+        executor.shutdown(wait=True)  # every task is done: the workers exit before this process does
+    finally:  # an error, Ctrl-C or a closed pipe: drop what has not started, do not wait for it
         executor.shutdown(wait=False, cancel_futures=True)
 
 
