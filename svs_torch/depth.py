@@ -295,14 +295,8 @@ def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float
     ordered = sort_last(torch.where(valid, values, torch.full_like(values, torch.inf)))
     rank = torch.arange(values.shape[-1], device=values.device)
     ordered = torch.where(rank < count, ordered, torch.zeros_like(ordered))  # padding sorts last; zero it
-    position = q * (count - 1).clamp_min(0).to(values.dtype)  # (..., Q)
-    low = position.floor().long()
-    high = position.ceil().long()
-    fraction = position - low.to(values.dtype)
-    below, above = ordered.gather(-1, low), ordered.gather(-1, high)
-    result = below + (above - below) * fraction
-    present = count > 0
-    return Quantiles(torch.where(present, result, torch.zeros_like(result)), present.squeeze(-1))
+    low, high = _ranks(count, q)  # (..., Q)
+    return _interpolate_ranks(ordered.gather(-1, low), ordered.gather(-1, high), count, q)
 
 
 def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor,
@@ -356,8 +350,8 @@ def _ranks(count: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
 def _interpolate_ranks(below: torch.Tensor, above: torch.Tensor, count: torch.Tensor,
                        q: torch.Tensor) -> Quantiles:
-    """Linear interpolation between the order statistics ``below`` / ``above`` ``(B, N, Q)`` of quantile ``q``
-    among ``count`` ``(B, N, 1)`` members (0 where there are none)."""
+    """Linear interpolation between the order statistics ``below`` / ``above`` ``(..., Q)`` of quantile ``q``
+    among ``count`` ``(..., 1)`` members (0 where there are none)."""
     position = q * (count - 1).clamp_min(0).to(q.dtype)
     fraction = position - position.floor()
     result = below + (above - below) * fraction

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import itertools
 import sys
 import time
 from collections.abc import Iterator
@@ -303,14 +302,16 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
     return out
 
 
-#: The pair list of this worker process, read once (every worker reads it: the parent never imports torch).
-_WORKER_LISTS: dict[str, list] = {}
+#: This worker process's pair list and pipeline configuration, made once per list (every worker reads the list
+#: itself: the parent never imports torch).
+_WORKER_SETUP: dict[str, tuple[list, object]] = {}
 
 
-def _worker_list(path: str) -> list:
-    if path not in _WORKER_LISTS:
-        _WORKER_LISTS[path] = _read_pair_list(path)
-    return _WORKER_LISTS[path]
+def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
+    if args.pairs not in _WORKER_SETUP:
+        config = pipeline_config_from_args(args)  # first, as in one process: a bad option is the error shown
+        _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
+    return _WORKER_SETUP[args.pairs]
 
 
 def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
@@ -319,8 +320,7 @@ def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
     from ..errors import InputError
 
     try:
-        pipeline_config_from_args(args)
-        return len(_worker_list(args.pairs)), None
+        return len(_worker_setup(args)[0]), None
     except InputError as error:
         return 0, str(error)
 
@@ -331,9 +331,10 @@ def _worker_chunk(args: argparse.Namespace, start: int, stop: int
     (the parent shows them as its own one-line warnings)."""
     import warnings
 
+    pairs, config = _worker_setup(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
-        lines = _estimate_chunk(_worker_list(args.pairs)[start:stop], args, pipeline_config_from_args(args))
+        lines = _estimate_chunk(pairs[start:stop], args, config)
     return lines, [str(warning.message) for warning in caught]
 
 
@@ -348,12 +349,11 @@ def _listed_lines(path: str) -> int:
         return 0
 
 
-def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> Iterator[tuple[int, list]]:
-    """The chunks' results in list order from ``workers`` spawned processes (spawn: a fork would copy torch's
-    started thread pools), each with ``threads`` torch threads. Yields ``(number of pairs, None)`` first."""
+def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> tuple[int, Iterator[list]]:
+    """The number of listed pairs, and the chunks' results in list order from ``workers`` spawned processes
+    (spawn: a fork would copy torch's started thread pools), each with ``threads`` torch threads."""
     import concurrent.futures
     import multiprocessing
-    import warnings
 
     from ..workers import start_worker
     from . import CliError
@@ -367,14 +367,25 @@ def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> Ite
         total, problem = counts[0].result()
         if problem:
             raise CliError(problem)
-        yield total, None
+    except BaseException:
+        executor.shutdown(wait=False, cancel_futures=True)
+        raise
+    return total, _ordered_chunks(executor, args, total)
+
+
+def _ordered_chunks(executor, args: argparse.Namespace, total: int) -> Iterator[list]:
+    """Every chunk of the list submitted to ``executor``, its lines yielded in list order; the workers'
+    warnings shown here as this process's own."""
+    import warnings
+
+    try:
         futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total))
                    for start in range(0, total, args.batch_size)]
         for future in futures:
             lines, messages = future.result()
             for message in messages:
                 warnings.warn(message, RuntimeWarning, stacklevel=2)
-            yield 0, lines
+            yield lines
         executor.shutdown(wait=True)  # every task is done: the workers exit before this process does
     finally:  # an error, Ctrl-C or a closed pipe: drop what has not started, do not wait for it
         executor.shutdown(wait=False, cancel_futures=True)
@@ -391,18 +402,15 @@ def _run_many(args: argparse.Namespace) -> int:
     if workers == 1:
         config = pipeline_config_from_args(args)
         pairs = _read_pair_list(args.pairs)
-        results = itertools.chain([(len(pairs), None)], (
-            (0, _estimate_chunk(pairs[start:start + args.batch_size], args, config))
-            for start in range(0, len(pairs), args.batch_size)))
+        total = len(pairs)
+        results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)
+                   for start in range(0, total, args.batch_size))
     else:
-        results = _worker_results(args, workers, max(1, budget // workers))
-    done, bad, total = 0, [], 0
+        total, results = _worker_results(args, workers, max(1, budget // workers))
+    done, bad = 0, []
     # A progress count only for a person watching: in a log or a pipe, stderr keeps to the errors.
     progress = sys.stderr.isatty()
-    for count, lines in results:
-        if lines is None:
-            total = count
-            continue
+    for lines in results:
         for report, reason in lines:
             if reason is not None:
                 bad.append(reason)

@@ -112,7 +112,6 @@ def _compile(name: str, target: Path) -> bool:
         return False
     print(f"svs_torch: compiling the {name} kernel once for this machine into {target.parent} "
           "(about a second; later runs reuse it)", file=sys.stderr)
-    target.parent.mkdir(parents=True, exist_ok=True)
     # Built under a temporary name and renamed: a concurrent process never loads a half-written library.
     handle, temporary = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(handle)

@@ -41,12 +41,9 @@ typedef struct {
     int64_t bands, band_rows;
 } Job;
 
-/* The streaming winner search is written once, for two cost types (COST): float, and uint16_t when every cost
- * fits it. The inputs are whole numbers, so a window's cost is at most K^2 * max|L - R|; where that is below
- * 65535 (StereoBM's x-Sobel levels: |L - R| <= 62, any K up to 32), the band runs on 16-bit samples and costs,
- * twice the lanes per vector instruction, with 65535 standing for +inf. Both give the same whole numbers, so
- * the same results; indices are kept in the cost type (exact: D < 65535), so that every select is as wide as
- * the costs and vectorises. */
+/* The streaming winner search is written once, for the two cost types of the header (COST: float, or uint16_t
+ * with 65535 standing for +inf; StereoBM's levels have |L - R| <= 62, so any K up to 32 fits). Indices are kept
+ * in the cost type (exact: D < 65535), so that every select is as wide as the costs and vectorises. */
 #define U16_INF ((uint16_t)0xFFFF)
 
 #define BOX_CASE(COST, KK)                                                                                        \
@@ -58,12 +55,18 @@ typedef struct {
         }                                                                                                         \
         return;
 
-/* Per-row state of the streaming winner search over d, one entry per output column. */
+/* Per-row state of the streaming winner search over d, one entry per output column: 11 rows of W laid out
+ * one after the other in rows. */
 #define DEFINE_ROW_STATE(COST, SUFFIX)                                                                            \
     typedef struct {                                                                                              \
         COST *cost, *best_cost, *best, *before, *after, *rival, *prefix1, *prefix2, *previous, *right_cost,       \
             *right_best;                                                                                          \
-    } RowState_##SUFFIX;
+    } RowState_##SUFFIX;                                                                                          \
+    static RowState_##SUFFIX row_state_##SUFFIX(COST *rows, int64_t W) {                                         \
+        RowState_##SUFFIX st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W,         \
+                                rows + 6 * W, rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};          \
+        return st;                                                                                                \
+    }
 
 /* One disparity of the streaming winner search (kept out of line, with restrict arguments, so that gcc
  * vectorises it: inlined into run_band it does not). The winner so far (first index on ties), the costs beside
@@ -273,14 +276,10 @@ static int to_samples16(const Job *job, int64_t b, int64_t y0, int64_t y1, int16
 static void run_task(Job *job, int64_t b, int64_t y0, int64_t y1, Buffers *buffers) {
     const int64_t W = job->WL - job->K + 1;
     if (to_samples16(job, b, y0, y1, buffers->left16, buffers->right16)) {
-        uint16_t *rows = buffers->rows;
-        RowState_u16 st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W, rows + 6 * W,
-                           rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};
+        RowState_u16 st = row_state_u16(buffers->rows, W);
         run_band_u16(job, b, y0, y1, buffers->left16, buffers->right16, y0, buffers->vsum, &st);
     } else {
-        float *rows = buffers->rows;
-        RowState_f32 st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W, rows + 6 * W,
-                           rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};
+        RowState_f32 st = row_state_f32(buffers->rows, W);
         const int64_t WR = job->WL + job->D - 1;
         run_band_f32(job, b, y0, y1, job->left + b * job->HL * job->WL, job->right + b * job->HL * WR, 0,
                      buffers->vsum, &st);
