@@ -156,6 +156,8 @@ def _child_peak_memory(batch_size: int) -> dict:
         # peak; VmHWM belongs to the child's own address space.
         code = (
             "import torch, json\n"
+            "from svs_torch.workers import keep_freed_memory\n"
+            "keep_freed_memory()  # as the command line does\n"
             "def peak_mb():\n"
             "    for line in open('/proc/self/status'):\n"
             "        if line.startswith('VmHWM:'):\n"

@@ -89,9 +89,10 @@ class DenseConfig:
             default: in ``experiments/paper_table1.py`` it fixed Laundry but dropped correctly ranged objects
             near the left border elsewhere (tuned 320 px: R_min 98.9 → 89.1 %, a pair lost; held-out native:
             98.0 / 92.4 → 97.3 / 90.1 %). The coarse range pass never applies it (it only bounds the search).
-        kernel: how the hard path's winner-takes-all is computed: ``"auto"`` the fused C kernel of
-            :mod:`svs_torch.kernels` where it can be built (bit-identical to the torch path, several times
-            faster), else torch; ``"c"`` the kernel or an error; ``"torch"`` the eager torch cost volume.
+        kernel: how the hard path is computed: ``"auto"`` the fused C kernel of :mod:`svs_torch.kernels`
+            where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and
+            range: bit-identical to the torch path, several times faster), else torch; ``"c"`` the kernel or an
+            error; ``"torch"`` the eager torch cost volume.
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -417,28 +418,52 @@ def _left_right_consistent(best: torch.Tensor, right_best: torch.Tensor, max_dif
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
                   config: DenseConfig, counts: torch.Tensor, extra: int = 0) -> _WinnerStats:
-    """:class:`_WinnerStats` of the box at (x0, y0): from the fused C kernel (:mod:`svs_torch.kernels`,
-    bit-identical, several times faster) for float32 CPU images without gradients when ``config.kernel``
-    allows and it is available, else from the torch cost volume. The box's first and last ``extra`` columns
-    serve only the right view's winner: the left statistics are of the columns between (``right_best`` is of
-    them all)."""
+    """:class:`_WinnerStats` of the box at (x0, y0) from the torch cost volume. The box's first and last
+    ``extra`` columns serve only the right view's winner: the left statistics are of the columns between
+    (``right_best`` is of them all)."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
-    if (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
-            and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad))):
-        radius = config.window_size // 2
-        left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
-        found = kernels.sad_wta(left_crop[:, 0], right_crop[:, 0], config.window_size, num_disparities, x0,
-                                min_disparity, image_w, counts, (extra, width - 2 * extra))
-        if found is not None:
-            return _WinnerStats(*found)
-        if config.kernel == "c":
-            raise InputError("kernel: 'c' asks for the compiled dense kernel, which is not available here "
-                             "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
     core = slice(extra, width - extra)
     return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best)
+
+
+def _compiled(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> bool:
+    """Whether the hard path may run the fused C kernel (:func:`_match_compiled`): float32 CPU images without
+    gradients, and ``config.kernel`` allows it."""
+    return (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
+            and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)))
+
+
+def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor, search: DisparityRange,
+                    image_hw: torch.Tensor, config: DenseConfig, lower_is_limit: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`_match_box` of each pair at its own box ``(B, 4)`` (x0, y0, width, height) and its own range, by
+    the fused C kernel of :mod:`svs_torch.kernels`, straight to the full-frame disparity and validity
+    ``(B, 1, H, W)``: the same values bit for bit (a pair's result never depends on its batch), without the
+    batch's shared box, the groups of ranges or the scatter back. None when the kernel cannot run here (then
+    the torch path does; ``kernel="c"`` makes that an error)."""
+    if not _compiled(left, right, config):
+        return None
+    sobel = prefilter_xsobel(left, config.prefilter_cap)
+    if config.prefilter == "xsobel":
+        left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
+    counts = search.pair_num_disparities
+    if counts is None:
+        counts = torch.full_like(search.min_disparity_px, search.num_disparities)
+    size = config.window_size
+    texture = sobel.abs()[:, 0] if config.texture_threshold > 0 else None
+    found = kernels.block_match(
+        quantize_levels(left)[:, 0], quantize_levels(right)[:, 0], texture, size, boxes, search.min_disparity_px,
+        counts, image_hw, lower_is_limit, config.uniqueness_ratio, config.lr_max_diff_px,
+        config.texture_threshold * size ** 2, config.whole_range_in_view)
+    if found is None:
+        if config.kernel == "c":
+            raise InputError("kernel: 'c' asks for the compiled dense kernel, which is not available here "
+                             "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
+        return None
+    return found[0].unsqueeze(1), found[1].unsqueeze(1)
 
 
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
@@ -540,9 +565,13 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
         image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
     zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
     search = DisparityRange(minimum, num_disparities)
+    box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
+    found = _match_compiled(left, right, box, search, image_hw, config, minimum <= 0)
+    if found is not None:
+        return DenseDisparity(found[0], found[1], minimum, num_disparities, box.clone(),
+                              torch.full_like(minimum, num_disparities))
     disparity, ok = _match_box(left, right, zeros, zeros, h, w, search,
                                image_hw, config, lower_is_limit=minimum <= 0)
-    box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
     return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone(),
                           torch.full_like(minimum, num_disparities))
 
@@ -726,9 +755,16 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
         image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
     x0, y0, height, width, own = region_crop_boxes(mask, config.margin_px, image_hw)
     search = DisparityRange(minimum, search.num_disparities, search.pair_num_disparities)
+    counts = search.pair_num_disparities
+    counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
+    some = mask.flatten(1).any(dim=1)
+    found = _match_compiled(left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search,
+                            image_hw, config, minimum <= 0)
+    if found is not None:
+        return DenseDisparity(found[0], found[1], minimum, search.num_disparities, own, counts)
     disparity, ok = _match_box(left, right, x0, y0, height, width, search,
                                image_hw, config, lower_is_limit=minimum <= 0)
-    ok &= mask.flatten(1).any(dim=1).view(-1, 1, 1)
+    ok &= some.view(-1, 1, 1)
     rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
     cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
     own_x0, own_y0, own_w, own_h = (v.view(-1, 1, 1) for v in own.unbind(1))
@@ -740,8 +776,6 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
              + x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)).reshape(b, -1)
     full.scatter_(1, index, disparity.reshape(b, -1))
     full_ok.scatter_(1, index, ok.reshape(b, -1))
-    counts = search.pair_num_disparities
-    counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
     return DenseDisparity(full.view(b, 1, h, w), full_ok.view(b, 1, h, w), minimum, search.num_disparities, own,
                           counts)
 
@@ -811,12 +845,14 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
 def _match_in_groups(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
                      config: DenseConfig, image_hw: torch.Tensor) -> DenseDisparity:
     """:func:`dense_disparity_over_regions` on groups of pairs whose disparity counts are within a factor
-    ``GROUP_RATIO`` of each other: one shared cost volume is as deep as its widest range, so a single pair
-    with a wide range would otherwise make every pair of the batch pay for it (measured: 2.5–10× per pair at
-    B = 8 on mixed Middlebury scenes). A loop over a few groups, never over pairs; results are the same as
-    one call, since a pair's result never depends on its batch."""
+    ``GROUP_RATIO`` of each other: the torch path's shared cost volume is as deep as its widest range, so a
+    single pair with a wide range would otherwise make every pair of the batch pay for it (measured: 2.5–10×
+    per pair at B = 8 on mixed Middlebury scenes). A loop over a few groups, never over pairs; results are the
+    same as one call, since a pair's result never depends on its batch. The compiled path needs no groups: it
+    matches each pair over its own range."""
     counts = search.pair_num_disparities
-    if counts is None or left.shape[0] == 1:
+    if counts is None or left.shape[0] == 1 or (_compiled(left, right, config) and kernels.available()):
+        # The compiled path matches each pair over its own range already.
         return dense_disparity_over_regions(left, right, mask, search, config, image_hw)
     group = (counts.clamp_min(1).to(torch.float64).log() / math.log(GROUP_RATIO)).floor().long()
     keys = group.unique()

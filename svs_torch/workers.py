@@ -1,14 +1,22 @@
-"""Worker processes without torch in the parent: the core count, the worker start-up (torch's threads pinned)
-and the watch that ends a worker whose parent is gone. Imports nothing heavy, so that the command line can
+"""Worker processes without torch in the parent: the core count, the worker start-up (torch's threads pinned,
+the allocator told to keep freed memory) and the watch that ends a worker whose parent is gone. Imports nothing heavy, so that the command line can
 start its workers before it imports torch itself (or without ever importing it)."""
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
+import sys
 import threading
 import time
 
-__all__ = ["available_cores", "start_worker", "thread_budget"]
+__all__ = ["available_cores", "keep_freed_memory", "start_worker", "thread_budget"]
+
+#: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024  # glibc's largest on 64-bit
+TRIM_THRESHOLD_BYTES = 256 * 1024 * 1024
 
 
 def available_cores() -> int:
@@ -30,6 +38,31 @@ def thread_budget() -> int:
     return max(1, min(cores, asked))
 
 
+def keep_freed_memory() -> bool:
+    """Tell glibc's allocator to keep the memory a batch frees for the next batch: blocks up to 32 MB come
+    from the heap instead of fresh ``mmap`` pages, and up to 256 MB of freed heap stays mapped.
+
+    Why: a pipeline batch allocates and frees hundreds of tensors of 0.1–10 MB. By default glibc serves each
+    from new pages (its threshold only adapts upwards as blocks are freed) and hands them back, so the kernel
+    zeroes every page again on first touch: about a fifth of a worker's time went to page faults and
+    ``munmap`` (``perf``). Interleaved on 64 real 320×240 pairs, one thread, the default configuration:
+    43.8 → 34.5 ms a pair. Setting only the trim threshold is worse than nothing (it freezes the mmap
+    threshold at 128 KB: 77 ms). The cost is memory the process keeps after a batch, at most its peak.
+
+    Called by the command line and its workers (a process that runs batches back to back), never on import:
+    a library should not retune its host's allocator. Returns whether both settings took (False off glibc)."""
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    # Both: setting either one stops glibc adapting the mmap threshold.
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) & bool(mallopt(_M_TRIM_THRESHOLD,
+                                                                                TRIM_THRESHOLD_BYTES))
+
+
 def _watch_parent(parent: int) -> None:
     while os.getppid() == parent:
         time.sleep(0.5)
@@ -37,8 +70,8 @@ def _watch_parent(parent: int) -> None:
 
 
 def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
-    """Worker initializer: pin torch's threads, import ``warm_modules`` (so that the first task does not pay
-    for them), leave Ctrl-C to the parent (which stops the pool; a worker would only print a traceback), and
+    """Worker initializer: pin torch's threads, keep freed memory (:func:`keep_freed_memory`), import
+    ``warm_modules`` (so that the first task does not pay for them), leave Ctrl-C to the parent (which stops the pool; a worker would only print a traceback), and
     end the worker when its parent process is gone."""
     import importlib
     import signal
@@ -47,6 +80,7 @@ def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
+    keep_freed_memory()
     torch.set_num_threads(threads)
     for name in warm_modules:
         importlib.import_module(name)

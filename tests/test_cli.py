@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import platform
 from pathlib import Path
 import subprocess
 import sys
@@ -251,6 +252,20 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
     listing.write_bytes(b"a.png b.png\n" * 4 + b"\xff\xfe\n")
     code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--workers", "2")
     assert code == 2 and out == "" and len(err.splitlines()) == 1 and "pairs:" in err
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_allocator_keeps_freed_memory_in_a_fresh_process():
+    """The command line's allocator settings are values glibc accepts (mallopt returns 0 for one it refuses,
+    e.g. an mmap threshold past its 32 MB ceiling), and a batch still runs under them."""
+    code = ("from svs_torch.workers import keep_freed_memory\n"
+            "assert keep_freed_memory()\n"
+            "import torch\n"
+            "from svs_torch.data.synthetic import random_obstacle_scenes\n"
+            "from svs_torch.pipeline import estimate_obstacle_depth\n"
+            "scenes = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(0))\n"
+            "assert (estimate_obstacle_depth(scenes.batch).depth.range.valid).all()\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
 def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):

@@ -152,40 +152,56 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
 
 
+def _block_match_inputs(seed: int) -> tuple:
+    """Three pairs of whole-number images with their own boxes (one empty, one past the padded size) and
+    ranges, for the dense kernel."""
+    from svs_torch.dense import quantize_levels
+
+    generator = torch.Generator().manual_seed(seed)
+    left = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
+    right = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
+    texture = torch.rand(3, 130, 90, generator=generator) * 0.1
+    boxes = torch.tensor([[0, 0, 90, 130], [10, 20, 50, 100], [0, 0, 0, 0]])
+    return (left, right, texture, 7, boxes, torch.tensor([0, 2, 5]), torch.tensor([16, 9, 16]),
+            torch.tensor([[130, 90], [120, 80], [130, 90]]), torch.tensor([True, False, True]))
+
+
 @needs_kernel
 @pytest.mark.parametrize("threads", [1, 3])
 def test_dense_kernel_same_for_any_thread_count(threads):
     """Pairs and bands of rows are shared among OpenMP threads; no value depends on how."""
-    from svs_torch.dense import quantize_levels
-
-    generator = torch.Generator().manual_seed(2)
-    left = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
-    right = quantize_levels(torch.rand(3, 130, 90 + 15, generator=generator) * 0.2 - 0.1)
-    per_pair = (torch.tensor([0, 4, 9]), torch.tensor([0, 2, 5]), torch.full((3,), 120), torch.tensor([16, 9, 16]))
-    reference = kernels.sad_wta(left, right, 7, 16, *per_pair)
+    inputs = _block_match_inputs(2)
+    rules = (0.1, 1.0, 0.2, False)
+    reference = kernels.block_match(*inputs, *rules)
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        split = kernels.sad_wta(left, right, 7, 16, *per_pair)
+        split = kernels.block_match(*inputs, *rules)
     finally:
         torch.set_num_threads(before)
     assert all(torch.equal(a, b) for a, b in zip(split, reference))
+    assert reference[1][0].any() and reference[1][1].any() and not reference[1][2].any()  # the empty box
 
 
 @needs_kernel
-def test_dense_kernel_left_columns_are_a_slice_of_all_columns():
-    """Left-view statistics asked for a band of columns equal those columns of the full output; the right
-    view's winner is always of every column."""
-    from svs_torch.dense import quantize_levels
+def test_dense_kernel_equals_the_torch_box_matcher():
+    """Each pair at its own box and range equals the torch path's shared box (dense._match_box, which the
+    kernel replaces) inside that box, and nothing is written outside it."""
+    from svs_torch import dense
 
-    generator = torch.Generator().manual_seed(3)
-    left = quantize_levels(torch.rand(2, 40, 70, generator=generator) * 0.2 - 0.1)
-    right = quantize_levels(torch.rand(2, 40, 70 + 11, generator=generator) * 0.2 - 0.1)
-    per_pair = (torch.tensor([0, 5]), torch.tensor([0, 3]), torch.full((2,), 90), torch.tensor([12, 8]))
-    full = kernels.sad_wta(left, right, 5, 12, *per_pair)
-    band = kernels.sad_wta(left, right, 5, 12, *per_pair, left_columns=(11, 44))
-    assert all(torch.equal(a[..., 11:55], b) for a, b in zip(full[:5], band[:5]))
-    assert torch.equal(full[5], band[5])
+    left, right, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(3)
+    config = dense.DenseConfig(window_size=size, prefilter="none", texture_threshold=0.0, kernel="torch")
+    search = dense.DisparityRange(minimum, 16, counts)
+    found = kernels.block_match(left, right, None, size, boxes, minimum, counts, image_hw, lower,
+                                config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False)
+    expected, ok = dense._match_box(left.unsqueeze(1) / 255, right.unsqueeze(1) / 255, boxes[:, 0], boxes[:, 1],
+                                    130, 90, search, image_hw, config, lower)
+    for b, (x0, y0, w, h) in enumerate(boxes.tolist()):
+        inside = torch.zeros(130, 90, dtype=torch.bool)
+        inside[y0:y0 + h, x0:x0 + w] = True
+        assert torch.equal(found[1][b][inside], ok[b][:h, :w].flatten()) and not found[1][b][~inside].any()
+        assert torch.equal(found[0][b][inside], expected[b][:h, :w].flatten())
+    assert found[1].sum() > 1000
 
 
 @pytest.mark.skipif(not kernels.available("lk_refine"), reason="no C compiler")

@@ -119,7 +119,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     from ..errors import InputError
+    from ..workers import keep_freed_memory
 
+    keep_freed_memory()  # the commands run batch after batch (see there why)
     prog = f"svs-depth {args.command}"
     try:
         with warnings.catch_warnings():

@@ -1,0 +1,474 @@
+/* Fused dense SAD block matching for svs_torch.dense (the hard, non-differentiable path): from the pre-filtered
+ * images to the disparity map, each pair over its own box and its own disparity range.
+ *
+ * The eager torch path (svs_torch/dense.py, _cost_volume + _winner + _right_winner + _match_box) makes about 40
+ * passes over a B x D x h x w cost volume and its verdicts, with one box size and one disparity count for the
+ * whole batch (the largest); here each pair is cropped at its own box (replicate border) and each output row's
+ * costs for every disparity are made and consumed while they sit in cache:
+ *   A(y, x, d) = |L(y, x) - R(y, x + D - 1 - d)|                       (the right crop is D - 1 columns wider)
+ *   V(y, x, d) = A(y) + ... + A(y + K - 1)                              (running: + the entering row - the leaving)
+ *   C(y, x, d) = V(x) + ... + V(x + K - 1)
+ *   C = +inf where the right pixel x0 + x - (min_d + d) leaves [0, image_w)
+ * then per pixel: the first minimum over d (best, best_cost), the costs at best -+ 1 (clamped to the range),
+ * the least cost farther than 1 from best (rival, +inf if none), and the right view's winner
+ * C_R(j, k) = C(j + k, k) (first minimum over k; -1 where it is +inf), over D - 1 extra columns on each side of
+ * the box. All of it streams over d: one row of costs per disparity and a dozen running values per column stay
+ * in L1, the column sums in L2. Each finished row then gets the torch path's rejections (range edge,
+ * uniqueness, left-right check, texture from its own window sums of |x-Sobel|) and equiangular sub-pixel fit,
+ * in the same float32 operations, and goes straight into the full-frame map.
+ *
+ * A pair's result never depends on its batch (the torch path discards what lies outside a pair's own box and
+ * range), so cropping each pair at its own size changes no value, only the work: no pair pays for the batch's
+ * largest box or range.
+ *
+ * The inputs are whole numbers (StereoBM's 8-bit levels, svs_torch.dense.quantize_levels), so every sum is an
+ * exact float32 integer (K^2 * 510 < 2^24) in any order, and the results equal the torch path's bit for bit;
+ * minima and selects do no arithmetic, so streaming over d changes no value either. Where a band's costs fit
+ * 16 bits (K^2 * max|L - R| < 65535: StereoBM's x-Sobel levels at any usual K) the same search runs on int16
+ * samples and uint16 costs, twice the lanes per instruction (8 real pairs' crops at K = 9, one thread: 70 -> 42
+ * ms), with the same whole numbers and so the same results.
+ *
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: it could treat the
+ * +inf costs as impossible). Loaded through ctypes by svs_torch/kernels/__init__.py, which falls back to the
+ * torch path without a compiler.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+/* The streaming winner search is written once, for the two cost types of the header (COST: float, or uint16_t
+ * with 65535 standing for +inf; StereoBM's levels have |L - R| <= 62, so any K up to 32 fits). Indices are kept
+ * in the cost type (exact: D < 65535), so that every select is as wide as the costs and vectorises. */
+#define U16_INF ((uint16_t)0xFFFF)
+
+#define BOX_CASE(COST, KK)                                                                                        \
+    case KK:                                                                                                      \
+        for (int64_t x = 0; x < n; ++x) {                                                                         \
+            COST sum = v[x];                                                                                      \
+            for (int64_t j = 1; j < KK; ++j) sum += v[x + j];                                                     \
+            c[x] = sum;                                                                                           \
+        }                                                                                                         \
+        return;
+
+/* Per-row state of the streaming winner search over d, one entry per output column: 11 rows of W laid out
+ * one after the other in rows. */
+#define DEFINE_ROW_STATE(COST, SUFFIX)                                                                            \
+    typedef struct {                                                                                              \
+        COST *cost, *best_cost, *best, *before, *after, *rival, *prefix1, *prefix2, *previous, *right_cost,       \
+            *right_best;                                                                                          \
+    } RowState_##SUFFIX;                                                                                          \
+    static RowState_##SUFFIX row_state_##SUFFIX(COST *rows, int64_t W) {                                         \
+        RowState_##SUFFIX st = {rows, rows + W, rows + 2 * W, rows + 3 * W, rows + 4 * W, rows + 5 * W,         \
+                                rows + 6 * W, rows + 7 * W, rows + 8 * W, rows + 9 * W, rows + 10 * W};          \
+        return st;                                                                                                \
+    }
+
+/* One disparity of the streaming winner search (kept out of line, with restrict arguments, so that gcc
+ * vectorises it: inlined into run_band it does not). The winner so far (first index on ties), the costs beside
+ * it, and the rival: the least cost more than 1 from it; a new winner at d inherits as rival the least cost of
+ * indices <= d - 2. Branch-free, every load unconditional. */
+#define DEFINE_STEPS(COST, SUFFIX)                                                                                \
+    __attribute__((noinline)) static void step_left_##SUFFIX(                                                    \
+        int64_t W, COST fd, const COST *restrict c, COST *restrict best_cost, COST *restrict best,               \
+        COST *restrict rival, COST *restrict after, COST *restrict before, COST *restrict prefix1,                \
+        COST *restrict prefix2, COST *restrict previous) {                                                        \
+        const COST next_to = (COST)(fd - 1); /* i1 + 1 == fd  <=>  i1 == fd - 1 (no overflow for any type) */    \
+        for (int64_t x = 0; x < W; ++x) {                                                                        \
+            COST cx = c[x], b1 = best_cost[x], i1 = best[x], r = rival[x], a = after[x], p1 = prefix1[x];       \
+            COST p2 = prefix2[x], bf = before[x], pv = previous[x];                                              \
+            int better = cx < b1;                                                                                \
+            int take = (i1 < next_to) & (cx < r);                                                                \
+            COST kept_rival = take ? cx : r;                                                                     \
+            COST kept_after = (i1 == next_to) ? cx : a;                                                          \
+            rival[x] = better ? p2 : kept_rival;                                                                 \
+            after[x] = better ? cx : kept_after;                                                                 \
+            before[x] = better ? pv : bf;                                                                        \
+            best[x] = better ? fd : i1;                                                                          \
+            best_cost[x] = better ? cx : b1;                                                                     \
+            prefix2[x] = p1;                                                                                     \
+            prefix1[x] = cx < p1 ? cx : p1;                                                                      \
+            previous[x] = cx;                                                                                    \
+        }                                                                                                        \
+    }                                                                                                            \
+    /* The right view's winner: C_R(j, d) = C(j + d, d), ``shifted`` = the cost row from column d. */            \
+    __attribute__((noinline)) static void step_right_##SUFFIX(int64_t n, COST fd, const COST *restrict shifted,  \
+                                                              COST *restrict right_cost,                         \
+                                                              COST *restrict right_best) {                       \
+        for (int64_t j = 0; j < n; ++j) {                                                                        \
+            COST s = shifted[j], rc = right_cost[j];                                                             \
+            int better = s < rc;                                                                                 \
+            right_cost[j] = better ? s : rc;                                                                     \
+            right_best[j] = better ? fd : right_best[j];                                                         \
+        }                                                                                                        \
+    }                                                                                                            \
+    /* c[x] = v[x] + v[x + 1] + ... + v[x + K - 1], n columns. For the usual window sizes the sum is kept in a  \
+     * register (a constant K: the j loop unrolls and x vectorises); else K passes over c. */                    \
+    __attribute__((noinline)) static void box_row_##SUFFIX(int64_t n, int64_t K, const COST *restrict v,         \
+                                                           COST *restrict c) {                                   \
+        switch (K) {                                                                                             \
+            BOX_CASE(COST, 3) BOX_CASE(COST, 5) BOX_CASE(COST, 7) BOX_CASE(COST, 9) BOX_CASE(COST, 11)          \
+            BOX_CASE(COST, 13) BOX_CASE(COST, 15) BOX_CASE(COST, 17) BOX_CASE(COST, 19) BOX_CASE(COST, 21)      \
+            default:                                                                                             \
+                for (int64_t x = 0; x < n; ++x) c[x] = v[x];                                                     \
+                for (int64_t j = 1; j < K; ++j)                                                                  \
+                    for (int64_t x = 0; x < n; ++x) c[x] += v[x + j];                                            \
+        }                                                                                                        \
+    }
+
+DEFINE_ROW_STATE(float, f32)
+DEFINE_ROW_STATE(uint16_t, u16)
+DEFINE_STEPS(float, f32)
+DEFINE_STEPS(uint16_t, u16)
+
+/* v += |l - r| over n columns. */
+__attribute__((noinline)) static void add_row_f32(int64_t n, const float *restrict l, const float *restrict r,
+                                                  float *restrict v) {
+    for (int64_t x = 0; x < n; ++x) v[x] += fabsf(l[x] - r[x]);
+}
+
+/* v += |l_in - r_in| - |l_out - r_out|: the window slides down one row. */
+__attribute__((noinline)) static void slide_row_f32(int64_t n, const float *restrict l_in,
+                                                    const float *restrict r_in, const float *restrict l_out,
+                                                    const float *restrict r_out, float *restrict v) {
+    for (int64_t x = 0; x < n; ++x) v[x] += fabsf(l_in[x] - r_in[x]) - fabsf(l_out[x] - r_out[x]);
+}
+
+/* The same on 16-bit samples in [-255, 255] (differences fit int16; sums wrap modulo 2^16 but end in range). */
+__attribute__((noinline)) static void add_row_u16(int64_t n, const int16_t *restrict l, const int16_t *restrict r,
+                                                  uint16_t *restrict v) {
+    for (int64_t x = 0; x < n; ++x) {
+        int16_t d = (int16_t)(l[x] - r[x]);
+        v[x] = (uint16_t)(v[x] + (uint16_t)(d < 0 ? -d : d));
+    }
+}
+
+__attribute__((noinline)) static void slide_row_u16(int64_t n, const int16_t *restrict l_in,
+                                                    const int16_t *restrict r_in, const int16_t *restrict l_out,
+                                                    const int16_t *restrict r_out, uint16_t *restrict v) {
+    for (int64_t x = 0; x < n; ++x) {
+        int16_t a = (int16_t)(l_in[x] - r_in[x]), b = (int16_t)(l_out[x] - r_out[x]);
+        v[x] = (uint16_t)(v[x] + (uint16_t)(a < 0 ? -a : a) - (uint16_t)(b < 0 ? -b : b));
+    }
+}
+
+static inline float cost_to_float_f32(float c) { return c; }
+static inline float cost_to_float_u16(uint16_t c) { return c == U16_INF ? INFINITY : (float)c; }
+static inline int cost_finite_f32(float c) { return isfinite(c); }
+static inline int cost_finite_u16(uint16_t c) { return c != U16_INF; }
+
+
+/* One pair's geometry. Its box holds the output pixels [x0, x0 + width) x [y0, y0 + height); the search runs
+ * over ``extra`` more columns on each side (the "wide" box, WW columns) that serve only the right view's
+ * winner. The left crop (WL = WW + K - 1 columns, K - 1 more rows than the output) starts K / 2 pixels up and
+ * left of the wide box; the right crop is D - 1 columns wider and starts min_d + D - 1 columns further left,
+ * so that its columns [D - 1 - d, D - 1 - d + WL) face the left crop at disparity min_d + d. */
+typedef struct {
+    int64_t x0, y0, width, height, min_d, D, extra, WW, WL, WR, image_h, image_w;
+    int lower_is_limit;
+} Pair;
+
+/* One output row's winner statistics: the left view's for the box columns, the right view's winner for every
+ * column of the wide box (-1 where all its candidates are +inf). */
+typedef struct {
+    float *best_cost, *before, *after, *rival;
+    int64_t *best, *right_best;
+} RowOut;
+
+/* Output row y of a band whose crop rows (K - 1 more than its output rows) sit from ``left`` / ``right`` on,
+ * row y's window starting at crop row y. ``fresh``: the band's first row, whose column sums are made from
+ * scratch; each later row slides them down by one (exact whole numbers). Then the streaming search over d. */
+#define DEFINE_RUN_ROW(COST, SAMPLE, SUFFIX, INF)                                                                 \
+    static void run_row_##SUFFIX(const Pair *p, int64_t K, int64_t y, int fresh, const SAMPLE *left,            \
+                                 const SAMPLE *right, COST *vsum, RowState_##SUFFIX *st, RowOut *out) {         \
+        const int64_t D = p->D, WL = p->WL, WR = p->WR, W = p->WW, first = p->extra, WC = p->width;             \
+        /* Disparity index d is searched at wide-box column x when lo(d) <= x < hi(d): its right pixel          \
+         * x0 - extra + x - min_d - d lies in [0, image_w). */                                                   \
+        const int64_t shift = p->min_d - (p->x0 - p->extra);                                                     \
+        COST *restrict c = st->cost;                                                                             \
+        COST *restrict best_cost = st->best_cost, *restrict best = st->best, *restrict before = st->before;     \
+        COST *restrict after = st->after, *restrict rival = st->rival, *restrict prefix1 = st->prefix1;         \
+        COST *restrict prefix2 = st->prefix2, *restrict previous = st->previous;                                 \
+        COST *restrict right_cost = st->right_cost, *restrict right_best = st->right_best;                      \
+        for (int64_t d = 0; d < D; ++d) {                                                                        \
+            COST *v = vsum + d * WL;                                                                             \
+            if (fresh) {                                                                                         \
+                for (int64_t x = 0; x < WL; ++x) v[x] = 0;                                                       \
+                for (int64_t r = y; r < y + K; ++r) add_row_##SUFFIX(WL, left + r * WL, right + r * WR + (D - 1 - d), v); \
+            } else {                                                                                             \
+                int64_t r = y + K - 1;                                                                           \
+                slide_row_##SUFFIX(WL, left + r * WL, right + r * WR + (D - 1 - d), left + (y - 1) * WL,        \
+                                   right + (y - 1) * WR + (D - 1 - d), v);                                       \
+            }                                                                                                    \
+        }                                                                                                        \
+        for (int64_t d = 0; d < D; ++d) {                                                                        \
+            box_row_##SUFFIX(W, K, vsum + d * WL, c);                                                            \
+            int64_t lo = shift + d, hi = p->image_w + shift + d;                                                 \
+            if (lo < 0) lo = 0;                                                                                  \
+            if (lo > W) lo = W;                                                                                  \
+            if (hi > W) hi = W;                                                                                  \
+            if (hi < lo) hi = lo;                                                                                \
+            for (int64_t x = 0; x < lo; ++x) c[x] = INF;                                                         \
+            for (int64_t x = hi; x < W; ++x) c[x] = INF;                                                         \
+            const COST fd = (COST)d;                                                                             \
+            if (d == 0) {                                                                                        \
+                for (int64_t x = 0; x < WC; ++x) {                                                               \
+                    const COST cx = c[first + x];                                                                \
+                    best_cost[x] = cx;                                                                           \
+                    best[x] = 0;                                                                                 \
+                    before[x] = cx; /* the clamped neighbour of index 0 is index 0 */                            \
+                    after[x] = cx;  /* replaced at d = 1 when the range has one */                               \
+                    rival[x] = INF;                                                                              \
+                    prefix2[x] = INF;                                                                            \
+                    prefix1[x] = cx;                                                                             \
+                    previous[x] = cx;                                                                            \
+                }                                                                                                \
+                for (int64_t x = 0; x < W; ++x) {                                                                \
+                    right_cost[x] = c[x];                                                                        \
+                    right_best[x] = 0;                                                                           \
+                }                                                                                                \
+                continue;                                                                                        \
+            }                                                                                                    \
+            step_left_##SUFFIX(WC, fd, c + first, best_cost, best, rival, after, before, prefix1, prefix2,       \
+                               previous);                                                                        \
+            step_right_##SUFFIX(W - d, fd, c + d, right_cost, right_best);                                       \
+        }                                                                                                        \
+        for (int64_t x = 0; x < WC; ++x) {                                                                       \
+            out->best_cost[x] = cost_to_float_##SUFFIX(best_cost[x]);                                            \
+            out->best[x] = (int64_t)best[x];                                                                     \
+            out->before[x] = cost_to_float_##SUFFIX(before[x]);                                                  \
+            out->after[x] = cost_to_float_##SUFFIX(after[x]);                                                    \
+            out->rival[x] = cost_to_float_##SUFFIX(rival[x]);                                                    \
+        }                                                                                                        \
+        for (int64_t x = 0; x < W; ++x)                                                                          \
+            out->right_best[x] = cost_finite_##SUFFIX(right_cost[x]) ? (int64_t)right_best[x] : -1;             \
+    }
+
+DEFINE_RUN_ROW(float, float, f32, INFINITY)
+DEFINE_RUN_ROW(uint16_t, int16_t, u16, U16_INF)
+
+static inline int64_t clamp_index(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
+
+/* The crop rows of output rows [y_begin, y_end) (K - 1 more), clamped to the image (replicate border). */
+static void gather_rows(const float *image, int64_t H, int64_t W, int64_t row0, int64_t col0, int64_t rows,
+                        int64_t cols, float *out) {
+    for (int64_t r = 0; r < rows; ++r) {
+        const float *source = image + clamp_index(row0 + r, H) * W;
+        float *target = out + r * cols;
+        int64_t c = 0;
+        for (; c < cols && col0 + c < 0; ++c) target[c] = source[0];
+        for (; c < cols && col0 + c < W; ++c) target[c] = source[col0 + c];
+        for (; c < cols; ++c) target[c] = source[W - 1];
+    }
+}
+
+/* Least and greatest of n values, and whether all lie in [-255, 255] (NaN does not): selects, not fminf /
+ * fmaxf, whose NaN rules keep gcc from vectorising them (they were a third of this kernel's time). */
+static int value_span(const float *restrict values, int64_t n, float *low, float *high) {
+    float lo = INFINITY, hi = -INFINITY;
+    int outside = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        const float v = values[i];
+        outside |= !(v >= -255.0f && v <= 255.0f);
+        lo = v < lo ? v : lo;
+        hi = v > hi ? v : hi;
+    }
+    *low = lo;
+    *high = hi;
+    return !outside;
+}
+
+/* The crops as 16-bit samples when every window cost fits below 65535 (K^2 * max|L - R| over them); returns 0
+ * (the float path runs) otherwise. */
+static int to_samples16(const float *left, int64_t left_size, const float *right, int64_t right_size, int64_t K,
+                        int16_t *restrict left16, int16_t *restrict right16) {
+    float lmin, lmax, rmin, rmax;
+    if (!value_span(left, left_size, &lmin, &lmax) || !value_span(right, right_size, &rmin, &rmax)) return 0;
+    const float spread = lmax - rmin > rmax - lmin ? lmax - rmin : rmax - lmin;
+    if ((double)K * (double)K * (double)spread >= 65535.0) return 0;
+    for (int64_t i = 0; i < left_size; ++i) left16[i] = (int16_t)left[i];
+    for (int64_t i = 0; i < right_size; ++i) right16[i] = (int16_t)right[i];
+    return 1;
+}
+
+/* The rejections and the sub-pixel fit of svs_torch.dense._match_box, in its float32 operations and order. */
+typedef struct {
+    float uniqueness_factor; /* 1 + uniqueness_ratio; 0: no uniqueness check */
+    float lr_max_diff;       /* < 0: no left-right check */
+    float texture_min;       /* the least window sum of |x-Sobel| (used when the texture image is given) */
+    int whole_range_in_view;
+} Rules;
+
+static void finish_row(const Pair *p, const Rules *rules, int64_t y, const RowOut *o, const float *texture_sum,
+                       float *disparity, uint8_t *valid) {
+    const int64_t row = p->y0 + y, count = p->D;
+    if (row < 0 || row >= p->image_h) return;
+    for (int64_t x = 0; x < p->width; ++x) {
+        const int64_t best = o->best[x], column = p->x0 + x;
+        const float cost = o->best_cost[x], before = o->before[x], after = o->after[x];
+        int ok = isfinite(cost) && best < count - 1 && (best > 0 || p->lower_is_limit);
+        if (rules->uniqueness_factor > 0) ok = ok && o->rival[x] > rules->uniqueness_factor * cost;
+        if (rules->lr_max_diff >= 0) {
+            const int64_t seen = o->right_best[p->extra + x - best];
+            ok = ok && seen >= 0 && (float)llabs(seen - best) <= rules->lr_max_diff;
+        }
+        if (texture_sum) ok = ok && texture_sum[x] >= rules->texture_min;
+        ok = ok && column >= 0 && column < p->image_w;
+        if (rules->whole_range_in_view) ok = ok && column >= p->min_d + count - 1;
+        if (!ok) continue;
+        float offset = 0.0f; /* the equiangular fit, where best has finite neighbours inside the range */
+        if (best > 0 && best < count - 1 && isfinite(before) && isfinite(after)) {
+            const float rise = 2.0f * (fmaxf(before, after) - cost);
+            if (rise > 0) offset = fminf(fmaxf((before - after) / rise, -0.5f), 0.5f);
+        }
+        disparity[x] = ((float)p->min_d + (float)best) + offset;
+        valid[x] = 1;
+    }
+}
+
+/* Window sums of the texture image for output row y of the band whose texture crop rows (the box's columns
+ * and K - 1 more, from K / 2 left of the box) start at ``rows``: down the rows first, then along the columns,
+ * each in order (the float sums of svs_torch.dense._box_sum), vectorised across columns. */
+static void texture_row(const float *rows, int64_t width, int64_t K, int64_t y, float *restrict column_sums,
+                        float *restrict sums) {
+    const int64_t n = width + K - 1;
+    const float *first = rows + y * n;
+    for (int64_t c = 0; c < n; ++c) column_sums[c] = first[c];
+    for (int64_t dy = 1; dy < K; ++dy) {
+        const float *restrict row = rows + (y + dy) * n;
+        for (int64_t c = 0; c < n; ++c) column_sums[c] += row[c];
+    }
+    for (int64_t x = 0; x < width; ++x) sums[x] = column_sums[x];
+    for (int64_t j = 1; j < K; ++j)
+        for (int64_t x = 0; x < width; ++x) sums[x] += column_sums[x + j];
+}
+
+typedef struct {
+    float *left, *right, *texture, *row_stats, *column_sums, *texture_sums;
+    int16_t *left16, *right16;
+    void *vsum, *rows;
+    int64_t *indices;
+} Buffers;
+
+static void run_task(const float *left, const float *right, const float *texture, int64_t H, int64_t W, int64_t K,
+                     const Pair *p, const Rules *rules, int64_t y_begin, int64_t y_end, Buffers *buf,
+                     float *disparity, uint8_t *valid) {
+    const int64_t radius = K / 2, rows = y_end - y_begin + K - 1;
+    const int64_t left_col0 = p->x0 - p->extra - radius, right_col0 = left_col0 - p->min_d - (p->D - 1);
+    gather_rows(left, H, W, p->y0 + y_begin - radius, left_col0, rows, p->WL, buf->left);
+    gather_rows(right, H, W, p->y0 + y_begin - radius, right_col0, rows, p->WR, buf->right);
+    if (texture) gather_rows(texture, H, W, p->y0 + y_begin - radius, p->x0 - radius, rows, p->width + K - 1,
+                             buf->texture);
+    const int small = to_samples16(buf->left, rows * p->WL, buf->right, rows * p->WR, K, buf->left16, buf->right16);
+    RowOut out = {buf->row_stats, buf->row_stats + p->width, buf->row_stats + 2 * p->width,
+                  buf->row_stats + 3 * p->width, buf->indices, buf->indices + p->width};
+    for (int64_t y = y_begin; y < y_end; ++y) {
+        if (small) {
+            RowState_u16 st = row_state_u16(buf->rows, p->WW);
+            run_row_u16(p, K, y - y_begin, y == y_begin, buf->left16, buf->right16, buf->vsum, &st, &out);
+        } else {
+            RowState_f32 st = row_state_f32(buf->rows, p->WW);
+            run_row_f32(p, K, y - y_begin, y == y_begin, buf->left, buf->right, buf->vsum, &st, &out);
+        }
+        const float *sums = NULL;
+        if (texture) {
+            texture_row(buf->texture, p->width, K, y - y_begin, buf->column_sums, buf->texture_sums);
+            sums = buf->texture_sums;
+        }
+        const int64_t offset = (p->y0 + y) * W + p->x0;
+        finish_row(p, rules, y, &out, sums, disparity + offset, valid + offset);
+    }
+}
+
+/* Dense SAD block matching of B pairs, each over its own box and its own disparity range, straight to the
+ * disparity map (svs_torch.dense._match_box's result, bit for bit):
+ *   left, right: (B, H, W) pre-filtered images in whole levels; texture: (B, H, W) |x-Sobel| or NULL;
+ *   boxes (B, 4): x0, y0, width, height (width or height 0: nothing); min_d, counts (B,): the range
+ *   [min_d, min_d + count); image_hw (B, 2): each pair's size before padding; lower_is_limit (B,): a winner at
+ *   index 0 is kept (the range starts at 0, so it is no range edge);
+ *   disparity (B, H, W) float32 and valid (B, H, W) uint8, zero on entry: written inside the boxes.
+ * Returns 0, or -1 when memory could not be had (then nothing is valid; the caller runs its torch path). Pairs
+ * and bands of rows are shared among num_threads OpenMP threads. */
+int block_match(const float *left, const float *right, const float *texture, int64_t B, int64_t H, int64_t W,
+                int64_t K, const int64_t *boxes, const int64_t *min_d, const int64_t *counts,
+                const int64_t *image_hw, const uint8_t *lower_is_limit, float uniqueness_factor,
+                float lr_max_diff, float texture_min, int64_t whole_range_in_view, float *disparity,
+                uint8_t *valid, int64_t num_threads, int64_t band_rows) {
+    if (B <= 0 || H <= 0 || W <= 0 || K < 1 || K % 2 == 0) return 0;
+    Pair *pairs = malloc(sizeof(Pair) * (size_t)B);
+    if (!pairs) return -1;
+    const Rules rules = {uniqueness_factor, lr_max_diff, texture_min, whole_range_in_view != 0};
+    int64_t max_height = 0, max_WL = 0, max_WR = 0, max_D = 1, max_width = 1;
+    for (int64_t b = 0; b < B; ++b) {
+        Pair *p = &pairs[b];
+        p->x0 = boxes[4 * b];
+        p->y0 = boxes[4 * b + 1];
+        p->width = boxes[4 * b + 2];
+        p->height = boxes[4 * b + 3];
+        p->min_d = min_d[b];
+        p->D = counts[b] < 1 ? 1 : counts[b];
+        p->extra = lr_max_diff >= 0 ? p->D - 1 : 0;
+        p->WW = p->width + 2 * p->extra;
+        p->WL = p->WW + K - 1;
+        p->WR = p->WL + p->D - 1;
+        p->image_h = image_hw[2 * b];
+        p->image_w = image_hw[2 * b + 1];
+        p->lower_is_limit = lower_is_limit[b] != 0;
+        if (p->width <= 0 || p->height <= 0) p->width = p->height = 0;
+        if (p->height > max_height) max_height = p->height;
+        if (p->WL > max_WL) max_WL = p->WL;
+        if (p->WR > max_WR) max_WR = p->WR;
+        if (p->D > max_D) max_D = p->D;
+        if (p->width > max_width) max_width = p->width;
+    }
+    if (band_rows < 1) band_rows = max_height < 1 ? 1 : max_height;
+    const int64_t bands = (max_height + band_rows - 1) / band_rows, tasks = B * bands;
+    const int64_t input_rows = band_rows + K - 1;
+    int threads = (int)(num_threads < 1 ? 1 : (num_threads > tasks ? tasks : num_threads));
+    if (threads < 1) threads = 1;
+    int failed = 0;
+    /* Tasks (pair, band of rows) are handed out one at a time: pairs and bands differ in cost. */
+#pragma omp parallel num_threads(threads)
+    {
+        Buffers buf = {malloc(sizeof(float) * (size_t)(input_rows * max_WL)),
+                       malloc(sizeof(float) * (size_t)(input_rows * max_WR)),
+                       malloc(sizeof(float) * (size_t)(input_rows * (max_width + K - 1))),
+                       malloc(sizeof(float) * (size_t)(4 * max_width)),
+                       malloc(sizeof(float) * (size_t)(max_width + K - 1)),
+                       malloc(sizeof(float) * (size_t)max_width),
+                       malloc(sizeof(int16_t) * (size_t)(input_rows * max_WL)),
+                       malloc(sizeof(int16_t) * (size_t)(input_rows * max_WR)),
+                       malloc(sizeof(float) * (size_t)(max_D * max_WL)),
+                       malloc(sizeof(float) * (size_t)(11 * max_WL)),
+                       malloc(sizeof(int64_t) * (size_t)(max_width + max_WL))};
+        const int ok = buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums && buf.texture_sums && buf.left16
+                       && buf.right16 && buf.vsum && buf.rows && buf.indices;
+        if (!ok) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t task = 0; task < tasks; ++task) {
+            if (!ok) continue;
+            const int64_t b = task / bands, y0 = (task % bands) * band_rows;
+            const Pair *p = &pairs[b];
+            int64_t y1 = y0 + band_rows;
+            if (y1 > p->height) y1 = p->height;
+            if (y0 >= y1) continue;
+            run_task(left + b * H * W, right + b * H * W, texture ? texture + b * H * W : NULL, H, W, K, p, &rules,
+                     y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
+        }
+        free(buf.left);
+        free(buf.right);
+        free(buf.texture);
+        free(buf.row_stats);
+        free(buf.column_sums);
+        free(buf.texture_sums);
+        free(buf.left16);
+        free(buf.right16);
+        free(buf.vsum);
+        free(buf.rows);
+        free(buf.indices);
+    }
+    free(pairs);
+    return failed ? -1 : 0;
+}
