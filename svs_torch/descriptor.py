@@ -24,6 +24,7 @@ import math
 
 import torch
 
+from . import kernels
 from .checks import InputError, check_image, check_shape
 from .compiling import maybe_compiled
 from .integral import PaddedIntegral, padded_integral_image, sample_box_means, sample_cell_means
@@ -47,17 +48,22 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     check_shape(keypoints.valid, "keypoints.valid", [b, k])
 
 
-def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) -> PaddedIntegral:
-    """Integral image with a replicate border just wide enough for samples ``reach · s`` around every valid
-    keypoint (most keypoints lie well inside: the border is usually far narrower than ``reach · s_max``)."""
+def _border_px(image: torch.Tensor, keypoints: Keypoints, reach: float) -> int:
+    """The replicate border just wide enough for samples ``reach · s`` around every valid keypoint (most
+    keypoints lie well inside: the border is usually far narrower than ``reach · s_max``)."""
     h, w = image.shape[-2:]
     valid = keypoints.valid
     if not bool(valid.any()):
-        return padded_integral_image(image, 1)
+        return 1
     radius = keypoints.scale.detach()[valid] * reach
     x, y = keypoints.xy.detach()[valid].unbind(-1)
     beyond = torch.stack([radius - x, x + radius - (w - 1), radius - y, y + radius - (h - 1)]).amax()
-    return padded_integral_image(image, max(0, math.ceil(float(beyond))) + 2)
+    return max(0, math.ceil(float(beyond))) + 2
+
+
+def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) -> PaddedIntegral:
+    """Integral image with a replicate border of :func:`_border_px`."""
+    return padded_integral_image(image, _border_px(image, keypoints, reach))
 
 
 def _rotated_patch_means(integral: PaddedIntegral, keypoints: Keypoints) -> torch.Tensor:
@@ -141,10 +147,20 @@ def describe_surf(
 
 def _describe_upright(image: torch.Tensor, keypoints: Keypoints, extended: bool, compiled: bool) -> torch.Tensor:
     """U-SURF on the valid keypoints only, gathered from all images into one ragged set (images differ in
-    how many keypoints they have; padding rows are never sampled)."""
+    how many keypoints they have; padding rows are never sampled). Without gradients, float32 on the CPU, the
+    compiled kernel (:mod:`svs_torch.kernels`) builds each image's integral and describes its keypoints one at
+    a time instead: the same arithmetic in double, so it equals this path in float64 to 1e-6 and the float32
+    path to that path's own round-off (at most 5e-4). On 64 real 320×240 pairs, one thread: 6.1 → 1.8 ms a
+    pair."""
     b, k = keypoints.valid.shape
+    pad = _border_px(image, keypoints, 10.5)  # cells reach 10.5·s along each axis
+    if image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad):
+        done = kernels.usurf_describe(image, pad, keypoints.xy.detach(), keypoints.scale.detach(), keypoints.valid,
+                                      extended)
+        if done is not None:
+            return done
+    integral = padded_integral_image(image, pad)
     image_index, row = keypoints.valid.nonzero(as_tuple=True)
-    integral = _padded_integral(image, keypoints, 10.5)  # cells reach 10.5·s along each axis
     dtype = integral.table.dtype
     scale = keypoints.scale[image_index, row].to(dtype).clamp(min=1e-3).unsqueeze(-1)  # (P, 1)
     xy = keypoints.xy[image_index, row].to(dtype)

@@ -1,13 +1,16 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler
 and loaded through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), its row fill of invalid
 pixels (``fill_invalid_rows.c``) and its per-object order statistics (``labelled_select.c``), one level of
-SURF's box-filter Hessian (``hessian_level.c``) and its scale-space maxima (``local_maxima.c``), the SAD
-nearest-neighbour search of descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of
-matched points (``lk_refine.c``). Each is the no-gradient path of a torch function that stays the reference,
-the fallback and the differentiable path. The first five give that torch path's values bit for bit; the
+SURF's box-filter Hessian (``hessian_level.c``), its scale-space maxima (``local_maxima.c``) and its upright
+descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
+(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the
+no-gradient path of a torch function that stays the reference, the fallback and the differentiable path. The
+first five give that torch path's values bit for bit; the
 matching kernel sums each distance in its own order (on real descriptors: the same matches, the same costs);
 the refinement takes the same steps with its sums in double and in its own order, so its points agree to
-about 1e-4 px (``tests/test_kernels.py``).
+about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each image's integral and describes its
+keypoints in double, equal to the float64 torch path to 1e-6 and so within the float32 one's round-off
+(``tests/test_kernels.py``).
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
@@ -51,8 +54,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_level", "labelled_select", "lk_refine", "load",
-           "local_maxima", "sad_nearest"]
+__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_level", "labelled_select",
+           "lk_refine", "load", "local_maxima", "sad_nearest", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -66,6 +69,7 @@ _SIGNATURES = {
     "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
+    "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
@@ -359,3 +363,26 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
                                        reachable.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (filled, reachable)
+
+
+def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch.Tensor, valid: torch.Tensor,
+                   extended: bool) -> torch.Tensor | None:
+    """:func:`svs_torch.descriptor._describe_upright` from the images (see the C source): ``image``
+    ``(B, 1, H, W)`` float32, read through its integral with a replicate border of ``pad`` pixels; ``xy``
+    ``(B, K, 2)``, ``scale`` ``(B, K)`` float32; ``valid`` ``(B, K)`` bool. Returns ``(B, K, 64 or 128)``
+    float32 unit descriptors, zero rows where not valid; None when the kernel is not available or the inputs
+    do not fit its contract."""
+    if (any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (image, xy, scale))
+            or valid.dtype != torch.bool or valid.device.type != "cpu" or image.dim() != 4 or image.shape[1] != 1):
+        return None
+    library = load("usurf_describe")
+    if library is None:
+        return None
+    b, _, h, w = image.shape
+    k = valid.shape[1]
+    image, xy, scale = image.contiguous(), xy.contiguous(), scale.contiguous()
+    mask = valid.to(torch.uint8).contiguous()
+    out = torch.zeros(b, k, 128 if extended else 64)
+    status = library.usurf_describe(image.data_ptr(), b, h, w, pad, xy.data_ptr(), scale.data_ptr(),
+                                    mask.data_ptr(), k, int(extended), out.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else out

@@ -1,0 +1,151 @@
+/* Upright SURF descriptors (U-SURF) straight from the image, for svs_torch.descriptor (the no-gradient path of
+ * _describe_upright; the torch path stays the reference and the differentiable path).
+ *
+ * The torch path builds a float32 padded integral image, gathers the valid keypoints, reads a 22 x 22 lattice of integral values per keypoint with
+ * grid_sample, turns it into 21 x 21 cell means, 20 x 20 Haar responses and 4 x 4 sub-region sums in about
+ * 30 passes over B x K x 400 values, and scatters the rows back. Here each image's integral is built once in
+ * double and each keypoint is described start to finish while its lattice sits in L1. The arithmetic is the
+ * torch path's (bilinear reads of the table clamped to its extent, cell means over the cell areas, 2 x 2-cell
+ * Haar differences, the sigma = 3.3 Gaussian centred between the middle samples, OpenCV's sub-region-major
+ * layout, unit length), but in double and summed in its own order, so the descriptors agree with the torch
+ * path's to its own float32 error (median 1e-5, at most a few 1e-4), not bit for bit (tests/test_kernels.py).
+ *
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+#define CELLS 21           /* cell means per side */
+#define EDGES (CELLS + 1)  /* lattice points per side */
+#define SAMPLES (CELLS - 1) /* Haar responses per side (Sec. 4.2: 20) */
+#define SIGMA 3.3
+
+/* Where a table coordinate falls: the two indices either side and the weight of the second, the coordinate
+ * clamped to [0, size - 1] (grid_sample, align_corners=True, on coordinates that never leave the table). */
+static void locate(double t, int64_t size, int64_t *first, int64_t *second, double *fraction) {
+    t = t < 0 ? 0 : (t > (double)(size - 1) ? (double)(size - 1) : t);
+    const int64_t i = (int64_t)t; /* t >= 0: truncation is the floor */
+    *first = i;
+    *second = i + (i < size - 1);
+    *fraction = t - (double)i;
+}
+
+static void describe_one(const double *table, int64_t H1, int64_t W1, int64_t pad, double x, double y, double s,
+                         int extended, const double *weight, float *out) {
+    double lattice[EDGES][EDGES], means[CELLS][CELLS], u[EDGES], v[EDGES];
+    for (int n = 0; n < EDGES; ++n) {
+        const double edge = (double)n - CELLS / 2.0; /* -10.5 ... 10.5 */
+        u[n] = x + s * edge + 0.5 + (double)pad;
+        v[n] = y + s * edge + 0.5 + (double)pad;
+    }
+    /* The lattice is upright, so its bilinear reads share their columns along a row and their rows along a
+     * column: each table row is read at the 22 columns' two indices, then the rows are blended. */
+    int64_t x0[EDGES], x1[EDGES];
+    double fx[EDGES];
+    for (int n = 0; n < EDGES; ++n) locate(u[n], W1, &x0[n], &x1[n], &fx[n]);
+    for (int m = 0; m < EDGES; ++m) {
+        int64_t y0, y1;
+        double fy;
+        locate(v[m], H1, &y0, &y1, &fy);
+        const double *top = table + y0 * W1, *bottom = table + y1 * W1;
+        for (int n = 0; n < EDGES; ++n)
+            lattice[m][n] = (1 - fy) * ((1 - fx[n]) * top[x0[n]] + fx[n] * top[x1[n]])
+                            + fy * ((1 - fx[n]) * bottom[x0[n]] + fx[n] * bottom[x1[n]]);
+    }
+    /* The cell's area from its unclamped edges, as the torch path (cells past the table's edge read less). */
+    for (int m = 0; m < CELLS; ++m)
+        for (int n = 0; n < CELLS; ++n)
+            means[m][n] = (lattice[m + 1][n + 1] - lattice[m][n + 1] - lattice[m + 1][n] + lattice[m][n])
+                          / ((u[n + 1] - u[n]) * (v[m + 1] - v[m]));
+    const int parts = extended ? 8 : 4;
+    double descriptor[128] = {0};
+    for (int i = 0; i < SAMPLES; ++i)
+        for (int j = 0; j < SAMPLES; ++j) {
+            const double w = weight[i * SAMPLES + j];
+            const double dx = w * (means[i][j + 1] - means[i][j] + means[i + 1][j + 1] - means[i + 1][j]) / 2;
+            const double dy = w * (means[i + 1][j] - means[i][j] + means[i + 1][j + 1] - means[i][j + 1]) / 2;
+            double *block = descriptor + ((i / 5) * 4 + j / 5) * parts;
+            if (!extended) {
+                block[0] += dx;
+                block[1] += dy;
+                block[2] += fabs(dx);
+                block[3] += fabs(dy);
+            } else {
+                const int a = dy < 0 ? 0 : 2, b = dx < 0 ? 4 : 6;
+                block[a] += dx;
+                block[a + 1] += fabs(dx);
+                block[b] += dy;
+                block[b + 1] += fabs(dy);
+            }
+        }
+    const int length = 16 * parts;
+    double norm = 0;
+    for (int d = 0; d < length; ++d) norm += descriptor[d] * descriptor[d];
+    norm = sqrt(norm);
+    for (int d = 0; d < length; ++d) out[d] = norm > 0 ? (float)(descriptor[d] / norm) : 0.0f;
+}
+
+/* The integral image (H + 2 pad + 1, W + 2 pad + 1) of an (H, W) image extended by ``pad`` pixels of replicate
+ * border (svs_torch.integral.padded_integral_image), in double: exact enough without removing the mean first,
+ * which the float32 torch path needs (its sums reach 10^4 over a 320 x 240 image). */
+static void padded_integral(const float *image, int64_t H, int64_t W, int64_t pad, double *table) {
+    const int64_t H1 = H + 2 * pad + 1, W1 = W + 2 * pad + 1;
+    for (int64_t c = 0; c < W1; ++c) table[c] = 0;
+    for (int64_t r = 1; r < H1; ++r) {
+        const int64_t i = r - 1 - pad;
+        const float *row = image + (i < 0 ? 0 : (i >= H ? H - 1 : i)) * W;
+        double *out = table + r * W1;
+        const double *above = out - W1;
+        double run = 0;
+        out[0] = 0;
+        for (int64_t c = 1; c < W1; ++c) {
+            const int64_t j = c - 1 - pad;
+            run += row[j < 0 ? 0 : (j >= W ? W - 1 : j)];
+            out[c] = above[c] + run;
+        }
+    }
+}
+
+/* Descriptors (B, K, 64 or 128) of the valid keypoints (valid (B, K) uint8; xy (B, K, 2), scale (B, K), both
+ * float32, pixel-centre coordinates) of the images (B, H, W), read from each image's integral with a replicate
+ * border of ``pad`` pixels; rows of invalid keypoints are left as they are (zero from the caller). Images are
+ * shared among num_threads OpenMP threads (torch's own pool), each building its table once. Returns 0, or -1
+ * when memory could not be had (the caller then runs its torch path). */
+int usurf_describe(const float *images, int64_t B, int64_t H, int64_t W, int64_t pad, const float *xy,
+                   const float *scale, const uint8_t *valid, int64_t K, int64_t extended, float *out,
+                   int64_t num_threads) {
+    double weight[SAMPLES * SAMPLES];
+    for (int i = 0; i < SAMPLES; ++i)
+        for (int j = 0; j < SAMPLES; ++j) {
+            const double ri = i - (SAMPLES - 1) / 2.0, rj = j - (SAMPLES - 1) / 2.0;
+            weight[i * SAMPLES + j] = exp(-(ri * ri) / (2 * SIGMA * SIGMA)) * exp(-(rj * rj) / (2 * SIGMA * SIGMA));
+        }
+    const int64_t length = extended ? 128 : 64, H1 = H + 2 * pad + 1, W1 = W + 2 * pad + 1;
+    int failed = 0;
+#pragma omp parallel num_threads(num_threads < 1 ? 1 : (num_threads > B ? (int)B : (int)num_threads))
+    {
+        double *table = malloc(sizeof(double) * (size_t)(H1 * W1));
+        if (!table) {
+#pragma omp atomic write
+            failed = 1;
+        }
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t b = 0; b < B; ++b) {
+            if (!table) continue;
+            int any = 0;
+            for (int64_t k = 0; k < K; ++k) any |= valid[b * K + k];
+            if (!any) continue;
+            padded_integral(images + b * H * W, H, W, pad, table);
+            for (int64_t k = 0; k < K; ++k) {
+                const int64_t p = b * K + k;
+                if (!valid[p]) continue;
+                const double s = scale[p] > 1e-3f ? (double)scale[p] : 1e-3;
+                describe_one(table, H1, W1, pad, xy[2 * p], xy[2 * p + 1], s, (int)extended, weight,
+                             out + p * length);
+            }
+        }
+        free(table);
+    }
+    return failed ? -1 : 0;
+}
