@@ -188,6 +188,11 @@ def available(name: str = "block_match") -> bool:
     return load(name) is not None
 
 
+def _on_cpu(dtype: torch.dtype, *tensors: torch.Tensor) -> bool:
+    """Whether every tensor is a CPU tensor of ``dtype``: the kernels read raw memory of one element type."""
+    return all(t.dtype == dtype and t.device.type == "cpu" for t in tensors)
+
+
 def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor | None, window_size: int,
                 boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
                 lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
@@ -203,8 +208,7 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool; None when
     the kernel is not available or the inputs do not fit its contract."""
     tensors = (left, right) if texture is None else (left, right, texture)
-    if any(t.dtype != torch.float32 or t.device.type != "cpu" or t.shape != left.shape or t.dim() != 3
-           for t in tensors):
+    if not _on_cpu(torch.float32, *tensors) or any(t.shape != left.shape or t.dim() != 3 for t in tensors):
         return None
     library = load("block_match")
     if library is None:
@@ -238,8 +242,9 @@ def hessian_level(corners: list[torch.Tensor], inverse_lobe_area: float, inverse
     if library is None:
         return False
     views = [*corners, det_out, trace_out]
-    if any(v.dtype != torch.float32 or v.device.type != "cpu" or v.dim() != 4 or v.shape[1] != 1
-           or v.shape != det_out.shape or (v.shape[-1] > 1 and v.stride(-1) != 1) for v in views):
+    if not _on_cpu(torch.float32, *views) or any(
+            v.dim() != 4 or v.shape[1] != 1 or v.shape != det_out.shape or (v.shape[-1] > 1 and v.stride(-1) != 1)
+            for v in views):
         return False
     b, _, ny, nx = det_out.shape
     if trace_out.stride() != det_out.stride():
@@ -260,7 +265,7 @@ def local_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float) -> 
     its contract (then the caller's torch path runs)."""
     b, s, ny, nx = det.shape
     inner = (s - 2, ny - 2, nx - 2)
-    if (det.dtype != torch.float32 or det.device.type != "cpu" or support.dtype != torch.bool
+    if (not (_on_cpu(torch.float32, det) and _on_cpu(torch.bool, support))
             or support.dim() != 4 or tuple(support.shape[1:]) != inner or support.shape[0] not in (1, b)
             or min(inner) < 1):
         return None
@@ -283,7 +288,7 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the
     inputs do not fit its contract."""
     tensors = (left, right, left_xy, right_xy, radius)
-    if (any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors) or active.dtype != torch.bool
+    if (not (_on_cpu(torch.float32, *tensors) and _on_cpu(torch.bool, active))
             or left.shape[-2] * left.shape[-1] >= 2**31):  # the kernel indexes an image with 32-bit offsets
         return None
     library = load("lk_refine")
@@ -306,8 +311,7 @@ def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torc
     smallest and second-smallest allowed distance ``(B, K)`` (+inf if none), the index of the smallest, and
     each right descriptor's nearest left row ``(B, K2)``; None when the kernel is not available or the inputs
     do not fit its contract."""
-    if (desc_left.dtype != torch.float32 or desc_right.dtype != torch.float32 or allowed.dtype != torch.bool
-            or desc_left.device.type != "cpu" or desc_right.device.type != "cpu"):
+    if not (_on_cpu(torch.float32, desc_left, desc_right) and _on_cpu(torch.bool, allowed)):
         return None
     library = load("sad_nearest")
     if library is None:
@@ -330,8 +334,7 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
     ``q`` ``(Q,)`` float32. Returns ``(count, below, above)``: each slot's member count ``(B, N)`` and the
     members of rank ``floor`` / ``ceil`` of ``q · (count − 1)`` ``(B, N, Q)`` (0 for an empty slot); None when
     the kernel is not available or the inputs do not fit its contract."""
-    if (values.dtype != torch.float32 or q.dtype != torch.float32 or labels.dtype != torch.int64
-            or slots.dtype != torch.int64 or any(t.device.type != "cpu" for t in (values, labels, slots, q))):
+    if not (_on_cpu(torch.float32, values, q) and _on_cpu(torch.int64, labels, slots)):
         return None
     library = load("labelled_select")
     if library is None:
@@ -350,8 +353,8 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     """:func:`svs_torch.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
     fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
-    if (disparity.dtype != torch.float32 or valid.dtype != torch.bool or disparity.shape != valid.shape
-            or disparity.device.type != "cpu" or valid.device.type != "cpu" or disparity.dim() < 1):
+    if (not (_on_cpu(torch.float32, disparity) and _on_cpu(torch.bool, valid)) or disparity.shape != valid.shape
+            or disparity.dim() < 1):
         return None
     library = load("fill_invalid_rows")
     if library is None:
@@ -372,8 +375,8 @@ def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch
     ``(B, K, 2)``, ``scale`` ``(B, K)`` float32; ``valid`` ``(B, K)`` bool. Returns ``(B, K, 64 or 128)``
     float32 unit descriptors, zero rows where not valid; None when the kernel is not available or the inputs
     do not fit its contract."""
-    if (any(t.dtype != torch.float32 or t.device.type != "cpu" for t in (image, xy, scale))
-            or valid.dtype != torch.bool or valid.device.type != "cpu" or image.dim() != 4 or image.shape[1] != 1):
+    if (not (_on_cpu(torch.float32, image, xy, scale) and _on_cpu(torch.bool, valid)) or image.dim() != 4
+            or image.shape[1] != 1):
         return None
     library = load("usurf_describe")
     if library is None:
