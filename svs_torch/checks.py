@@ -7,6 +7,7 @@ a stage; the tensor maths inside trusts its inputs.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -85,11 +86,12 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
     check_dtype(tensor, name, "float")
     if check_range and tensor.numel() > 0:
-        if bool(torch.isnan(tensor.detach()).any()):
+        # One pass: aminmax propagates NaN, so a NaN anywhere shows in the extremes.
+        lo, hi = (float(v) for v in torch.aminmax(tensor.detach()))
+        if math.isnan(lo) or math.isnan(hi):
             raise InputError(f"{name}: expected values in [0, 1], got NaN")
-        lo, hi = torch.aminmax(tensor.detach())
-        if not (bool(lo >= 0.0) and bool(hi <= 1.0)):
-            raise InputError(f"{name}: expected values in [0, 1], got min {float(lo):.4g}, max {float(hi):.4g}")
+        if not (lo >= 0.0 and hi <= 1.0):
+            raise InputError(f"{name}: expected values in [0, 1], got min {lo:.4g}, max {hi:.4g}")
     return bindings
 
 

@@ -19,7 +19,7 @@ import dataclasses
 import torch
 
 from .checks import InputError, check_dtype, check_shape
-from .dense import DenseDisparity, crop_box, fill_invalid_rows
+from .dense import DenseDisparity, crop_index, fill_invalid_rows
 from .depth import ObjectDepths, RangeEstimate, labelled_quantile
 
 __all__ = ["dense_object_depths", "range_from_objects"]
@@ -69,14 +69,14 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
     x0, y0, width, height = dense.crop_xywh.unbind(1)
     size_w, size_h = int(width.max()) if b else 0, int(height.max()) if b else 0
-    crop_d = crop_box(disparity, x0, y0, size_h, size_w).flatten(1)  # (B, P)
-    crop_ok = crop_box(dense.valid, x0, y0, size_h, size_w).flatten(1)
-    crop_labels = crop_box(labels.long(), x0, y0, size_h, size_w).flatten(1)
+    # One index for the three crops (clamped reads, as crop_box makes them).
+    index = crop_index(x0, y0, size_h, size_w, disparity.shape[-2:]).flatten(1)  # (B, P)
+    crop_d = disparity.flatten(1).gather(1, index)
     # Positions past a pair's own box repeat its border pixels (clamped reads): they must not count.
     inside = ((torch.arange(size_h, device=disparity.device).view(1, -1, 1) < height.view(-1, 1, 1))
-              & (torch.arange(size_w, device=disparity.device).view(1, 1, -1) < width.view(-1, 1, 1)))
-    crop_ok = crop_ok & inside.flatten(1)
-    crop_labels = torch.where(inside.flatten(1), crop_labels, torch.zeros_like(crop_labels))
+              & (torch.arange(size_w, device=disparity.device).view(1, 1, -1) < width.view(-1, 1, 1))).flatten(1)
+    crop_ok = dense.valid.flatten(1).gather(1, index) & inside
+    crop_labels = torch.where(inside, labels.long().flatten(1).gather(1, index), 0)
     measured = crop_ok
     if fill_invalid:
         filled, reachable = fill_invalid_rows(crop_d.view(b, size_h, size_w), crop_ok.view(b, size_h, size_w))
@@ -94,7 +94,10 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
                               [0.5, low / 100, high / 100]).values
     measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
-    count = ((measured_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1)).sum(dim=-1)
+    # One compare and count per slot (a handful of objects) instead of a (B, N, P) volume of compares.
+    count = torch.stack([(measured_labels == slots[:, n:n + 1]).sum(dim=1) for n in range(slots.shape[1])], dim=1) \
+        if slots.shape[1] else torch.zeros_like(slots)
+    count = torch.where(slots > 0, count, 0)
     fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
     valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
     stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))

@@ -105,17 +105,25 @@ def _octave_tables(octaves: list[HessianOctave], device) -> dict[str, torch.Tens
 
 
 def _octave_reader(maps: list[torch.Tensor], octave_id: torch.Tensor, index: torch.Tensor, nx: torch.Tensor,
-                   plane: torch.Tensor) -> Callable[..., torch.Tensor]:
+                   plane: torch.Tensor, radius: int = 1) -> Callable[..., torch.Tensor]:
     """``at(dx, dy, ds)``: each keypoint's value in its own octave's map ``(B, S, ny, nx)``, offset by whole grid
-    steps; small per-octave gathers instead of concatenating every map of the batch."""
+    steps up to ``radius``; small per-octave gathers instead of concatenating every map of the batch. The whole
+    neighbourhood is gathered at once (one gather per octave, not one per offset and octave)."""
     flats = [m.flatten(1) for m in maps]
+    steps = torch.arange(-radius, radius + 1, device=index.device)
+    width = 2 * radius + 1
+    # (B, K, width³) flat indices, offset ds slowest and dx fastest.
+    neighbour = (index.unsqueeze(-1) + steps.repeat(width * width)
+                 + steps.repeat_interleave(width).repeat(width) * nx.unsqueeze(-1)
+                 + steps.repeat_interleave(width * width) * plane.unsqueeze(-1)).flatten(1)
+    value = torch.gather(flats[0], 1, neighbour.clamp(0, flats[0].shape[1] - 1))
+    for o, flat in enumerate(flats[1:], start=1):
+        value = torch.where(octave_id.repeat_interleave(width ** 3, dim=1) == o,
+                            torch.gather(flat, 1, neighbour.clamp(0, flat.shape[1] - 1)), value)
+    value = value.view(*index.shape, width ** 3).to(torch.float64)
 
     def at(dx: int = 0, dy: int = 0, ds: int = 0) -> torch.Tensor:
-        neighbour = index + dx + dy * nx + ds * plane
-        value = torch.gather(flats[0], 1, neighbour.clamp(0, flats[0].shape[1] - 1))
-        for o, flat in enumerate(flats[1:], start=1):
-            value = torch.where(octave_id == o, torch.gather(flat, 1, neighbour.clamp(0, flat.shape[1] - 1)), value)
-        return value.to(torch.float64)
+        return value[..., ((ds + radius) * width + dy + radius) * width + dx + radius]
 
     return at
 
@@ -186,7 +194,7 @@ def detect_surf_keypoints(
     xy = torch.stack([(col + offset[..., 0]) * step, (row + offset[..., 1]) * step], dim=-1)
     xy = (xy + 0.5) / factor - 0.5  # pixel centres of the enlarged image back to the input's
     size = (tables["size0"][octave_id] + (level + offset[..., 2]) * tables["size_inc"][octave_id]) / factor
-    trace = _octave_reader([o.trace for o in octaves], octave_id, position, nx, plane)()
+    trace = _octave_reader([o.trace for o in octaves], octave_id, position, nx, plane, radius=0)()
     sign = torch.where(trace >= 0, 1, -1).to(torch.int64)
     return _pack(valid, xy, 1.2 * size / 9.0, peak, sign, image.dtype, config.max_keypoints)
 

@@ -17,6 +17,7 @@ top-k) is not.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -93,22 +94,20 @@ def _level_into(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_d
     trace_out.copy_(trace)
 
 
-def _level_into_kernel(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_dxy_area: float,
-                       det_out: torch.Tensor, trace_out: torch.Tensor) -> None:
-    """:func:`_level_into` by the fused C kernel (:mod:`svs_torch.kernels`, bit-identical, no gradients), or by
-    torch where the kernel is not available."""
-    if not kernels.hessian_level(corners, inverse_lobe_area, inverse_dxy_area, DXY_WEIGHT, det_out, trace_out):
-        _level_into(corners, inverse_lobe_area, inverse_dxy_area, det_out, trace_out)
-
-
-def _inside(size: int, step: int, grid_hw: tuple[int, int], image_hw: tuple[int, int], device) -> torch.Tensor:
-    """``(ny, nx)`` bool: the whole filter of this size fits in the image at the grid point."""
-    half = size // 2
+@functools.lru_cache(maxsize=64)
+def _inside_levels(sizes: tuple[int, ...], step: int, grid_hw: tuple[int, int], image_hw: tuple[int, int],
+                   device: torch.device) -> torch.Tensor:
+    """``(S, ny, nx)`` bool: the whole filter of each size fits in the image at the grid point. Cached (a
+    batch of one size asks for the same few tables every time); the callers only read it."""
     ys = torch.arange(grid_hw[0], device=device) * step
     xs = torch.arange(grid_hw[1], device=device) * step
-    fit_y = (ys >= half) & (ys <= image_hw[0] - 1 - half)
-    fit_x = (xs >= half) & (xs <= image_hw[1] - 1 - half)
-    return fit_y[:, None] & fit_x[None, :]
+    levels = []
+    for size in sizes:
+        half = size // 2
+        fit_y = (ys >= half) & (ys <= image_hw[0] - 1 - half)
+        fit_x = (xs >= half) & (xs <= image_hw[1] - 1 - half)
+        levels.append(fit_y[:, None] & fit_x[None, :])
+    return torch.stack(levels)
 
 
 def hessian_octaves(
@@ -129,8 +128,9 @@ def hessian_octaves(
         One :class:`HessianOctave` per octave, in the image's dtype. Differentiable with respect to ``image``.
         A constant added to the image changes nothing (every filter's weights sum to zero).
 
-    Coarser octaves read the integral's sub-lattices (:func:`~svs_torch.integral.integral_phases`), so every
-    read is unit-stride: on CPU strided reads cost an order of magnitude more.
+    On the torch path coarser octaves read the integral's sub-lattices
+    (:func:`~svs_torch.integral.integral_phases`), so every read is unit-stride: in eager torch strided reads
+    cost an order of magnitude more. The C kernel reads the padded table at the octave's step directly.
     """
     h, w = image.shape[-2:]
     integral = integral_image(image, subtract_mean=True)
@@ -139,26 +139,30 @@ def hessian_octaves(
     padded = pad_integral(integral, pad)
     # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
     # offsets never reach the graph.
-    # Without compile, float32 images that need no gradient go to the C kernel: the same values in one pass.
     kernel_ok = image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad)
-    level = maybe_compiled(_level_into, compiled) if compiled or not kernel_ok else _level_into_kernel
+    level = maybe_compiled(_level_into, compiled)
     octaves = []
     for octave in range(num_octaves):
         step = 1 << octave
         grid_hw = ((h + step - 1) // step, (w + step - 1) // step)
-        phases = integral_phases(padded, step)
         sizes = filter_sizes(octave, num_scale_levels)
+        lobes = [size // 3 for size in sizes]
+        inverse_lobe_area = [1.0 / ((2 * lobe - 1) * lobe) for lobe in lobes]
+        inverse_dxy_area = [1.0 / lobe**2 for lobe in lobes]
         det = image.new_empty(image.shape[0], len(sizes), *grid_hw)
         trace = torch.empty_like(det)
-        for i, size in enumerate(sizes):
-            lobe = size // 3
-            level(_level_corners(phases, step, pad, size, grid_hw), 1.0 / ((2 * lobe - 1) * lobe), 1.0 / lobe**2,
-                  det[:, i:i + 1], trace[:, i:i + 1])
-        inside = [_inside(size, step, grid_hw, (h, w), image.device) for size in sizes]
+        # Without compile, float32 images that need no gradient go to the C kernel: the same values, the whole
+        # octave in one call straight from the padded table (no sub-lattice copies, no views).
+        if not (kernel_ok and not compiled and kernels.hessian_octave(
+                padded, pad, step, sizes, inverse_lobe_area, inverse_dxy_area, DXY_WEIGHT, det, trace)):
+            phases = integral_phases(padded, step)
+            for i, size in enumerate(sizes):
+                level(_level_corners(phases, step, pad, size, grid_hw), inverse_lobe_area[i], inverse_dxy_area[i],
+                      det[:, i:i + 1], trace[:, i:i + 1])
         octaves.append(HessianOctave(
             det=det,
             trace=trace,
-            inside=torch.stack(inside),
+            inside=_inside_levels(tuple(sizes), step, grid_hw, (h, w), image.device),
             sizes=tuple(sizes),
             step=step,
         ))

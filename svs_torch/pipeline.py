@@ -275,12 +275,12 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
         # Labels by nearest neighbour (never blended), as exact small integers in float64.
         warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
         labels = torch.where(pick, warped, labels)
-    mask = (labels.unsqueeze(-1) == seg.left.kept_labels.view(batch.batch_size, 1, 1, 1, -1)).any(-1) & (labels > 0)
     verified = fundamental_ok.to(batch.left.dtype)
     fraction = (verified * config.depth.min_object_valid_fraction
                 + (1 - verified) * config.depth.min_object_valid_fraction_unverified)
     # One mask per kept object, so the search range covers a small object as well as a big one.
     objects = (labels == seg.left.kept_labels.view(batch.batch_size, -1, 1, 1)) & (labels > 0)
+    mask = objects.any(dim=1, keepdim=True)
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,

@@ -289,6 +289,52 @@ def test_search_range_per_object_keeps_a_small_far_object():
         disparity_search_range(samples, valid, torch.tensor([320]), config, groups=groups[:, :, :5])
 
 
+@pytest.mark.parametrize("grouped", [False, True])
+def test_search_range_by_selection_equals_the_sort(grouped, monkeypatch):
+    """The compiled selection of the range's nearest-rank percentiles gives the sort's range exactly, with
+    ties, many counts (ranks that round up and down, an empty group, a pair without samples) and groups."""
+    if not kernels.available("labelled_select"):
+        pytest.skip("no C compiler")
+    import svs_torch.dense as dense_module
+
+    generator = torch.Generator().manual_seed(7)
+    samples = (torch.rand(6, 700, generator=generator) * 40).round() / 4  # quarter steps: many ties
+    valid = torch.rand(6, 700, generator=generator) < torch.tensor([0.9, 0.5, 0.2, 0.05, 0.01, 0.0]).view(-1, 1)
+    groups = None
+    if grouped:
+        which = torch.randint(0, 3, (6, 700), generator=generator)
+        groups = torch.stack([which == 0, which == 1, torch.zeros_like(valid)], dim=1)  # the third empty
+    config = DenseConfig(range_percentiles=(1.0, 99.0))
+    width = torch.full((6,), 320)
+    selected = disparity_search_range(samples, valid, width, config, min_count=3, groups=groups)
+    calls = []
+    monkeypatch.setattr(dense_module, "_select_nearest_ranks",
+                        lambda *args, real=dense_module._select_nearest_ranks: calls.append(real(*args)) or calls[-1])
+    assert torch.equal(disparity_search_range(samples, valid, width, config, min_count=3, groups=groups)
+                       .min_disparity_px, selected.min_disparity_px)
+    assert calls and calls[0] is not None  # the selection did run
+    monkeypatch.setattr(dense_module, "_select_nearest_ranks", lambda *args: None)
+    sorted_ = disparity_search_range(samples, valid, width, config, min_count=3, groups=groups)
+    assert torch.equal(selected.min_disparity_px, sorted_.min_disparity_px)
+    assert torch.equal(selected.pair_num_disparities, sorted_.pair_num_disparities)
+    assert selected.num_disparities == sorted_.num_disparities
+
+
+def test_pooling_helpers_equal_torch_pooling():
+    """The strided-slice block mean and block "any" of the coarse pass give ``avg_pool2d`` / ``max_pool2d``'s
+    values bit for bit, at odd sizes and several factors."""
+    import torch.nn.functional as F
+
+    from svs_torch.dense import _any_pool, _mean_pool
+
+    generator = torch.Generator().manual_seed(3)
+    for factor in (2, 3, 4):
+        images = torch.rand(3, 1, 61, 83, generator=generator)
+        masks = torch.rand(3, 2, 61, 83, generator=generator) > 0.9
+        assert torch.equal(_mean_pool(images, factor), F.avg_pool2d(images, factor))
+        assert torch.equal(_any_pool(masks, factor), F.max_pool2d(masks.float(), factor) > 0)
+
+
 def test_cost_volume_winner_found_in_cache_blocks_equals_the_volume_minimum(monkeypatch):
     """The running winner of the blocked cost-volume loop is the volume's min over D (first index on ties),
     whatever the block size, with costs outside the image or past a pair's own count at +inf."""

@@ -13,7 +13,7 @@ from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.features import SurfConfig, extract_surf_features
 from svs_torch.hessian import hessian_octaves
 
-needs_kernel = pytest.mark.skipif(not kernels.available("hessian_level"), reason="no C compiler")
+needs_kernel = pytest.mark.skipif(not kernels.available("hessian_octave"), reason="no C compiler")
 
 
 @pytest.fixture(scope="module")
@@ -55,15 +55,20 @@ def test_hessian_gradients_and_float64_take_the_torch_path(images):
     assert image.grad is not None and image.grad.abs().sum() > 0
 
 
-def test_hessian_kernel_refuses_views_it_cannot_read():
-    """A view with a column stride other than 1 is left to torch (returns False, writes nothing)."""
-    if not kernels.available("hessian_level"):
+def test_hessian_kernel_refuses_tables_it_cannot_read():
+    """A float64 table, outputs that are not contiguous or a pad too small for the largest box are left to
+    torch (returns False, writes nothing)."""
+    if not kernels.available("hessian_octave"):
         pytest.skip("no C compiler")
-    base = torch.rand(2, 1, 10, 24)
-    corners = [base[..., ::2]] * 32
-    det, trace = torch.zeros(2, 1, 10, 12), torch.zeros(2, 1, 10, 12)
-    assert not kernels.hessian_level(corners, 1.0, 1.0, 0.9, det, trace)
+    padded = torch.rand(2, 1, 40, 44)
+    det, trace = torch.zeros(2, 3, 8, 10), torch.zeros(2, 3, 8, 10)
+    sizes, areas = [9, 15, 21], [1.0, 1.0, 1.0]
+    assert not kernels.hessian_octave(padded.double(), 12, 1, sizes, areas, areas, 0.9, det, trace)
+    assert not kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace.transpose(-1, -2)
+                                      .contiguous().transpose(-1, -2))
+    assert not kernels.hessian_octave(padded, 8, 1, sizes, areas, areas, 0.9, det, trace)  # 21 // 2 + 1 > 8
     assert not det.any() and not trace.any()
+    assert kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace) and det.any()
 
 
 @needs_kernel
@@ -148,7 +153,7 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     monkeypatch.setenv("CC", str(wrapper))
     monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
     monkeypatch.setattr(kernels, "_LIBRARIES", {})
-    assert kernels.available("hessian_level")
+    assert kernels.available("hessian_octave")
     serial = hessian_octaves(images, num_octaves=2)
     for a, b in zip(serial, reference):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)

@@ -261,33 +261,40 @@ static void gather_rows(const float *image, int64_t H, int64_t W, int64_t row0, 
     }
 }
 
-/* Least and greatest of n values, and whether all lie in [-255, 255] (NaN does not): selects, not fminf /
- * fmaxf, whose NaN rules keep gcc from vectorising them (they were a third of this kernel's time). */
-static int value_span(const float *restrict values, int64_t n, float *low, float *high) {
-    float lo = INFINITY, hi = -INFINITY;
+/* Whether all n values lie in [-255, 255] (NaN does not): compares OR-ed together, which gcc vectorises (a
+ * float min / max reduction it does not, without -ffast-math). */
+static int within_levels(const float *restrict values, int64_t n) {
     int outside = 0;
+    /* Bitwise |, not ||: a short circuit is control flow, which keeps the loop scalar. */
+    for (int64_t i = 0; i < n; ++i) outside |= !(values[i] >= -255.0f) | !(values[i] <= 255.0f);
+    return !outside;
+}
+
+/* values -> int16 samples (whole numbers in [-255, 255]: exact), with their least and greatest, in integers
+ * (vectorised). */
+static void to_int16_span(const float *restrict values, int64_t n, int16_t *restrict samples, int *low,
+                          int *high) {
+    int16_t lo = 255, hi = -255;
     for (int64_t i = 0; i < n; ++i) {
-        const float v = values[i];
-        outside |= !(v >= -255.0f && v <= 255.0f);
+        const int16_t v = (int16_t)values[i];
+        samples[i] = v;
         lo = v < lo ? v : lo;
         hi = v > hi ? v : hi;
     }
     *low = lo;
     *high = hi;
-    return !outside;
 }
 
 /* The crops as 16-bit samples when every window cost fits below 65535 (K^2 * max|L - R| over them); returns 0
  * (the float path runs) otherwise. */
 static int to_samples16(const float *left, int64_t left_size, const float *right, int64_t right_size, int64_t K,
                         int16_t *restrict left16, int16_t *restrict right16) {
-    float lmin, lmax, rmin, rmax;
-    if (!value_span(left, left_size, &lmin, &lmax) || !value_span(right, right_size, &rmin, &rmax)) return 0;
-    const float spread = lmax - rmin > rmax - lmin ? lmax - rmin : rmax - lmin;
-    if ((double)K * (double)K * (double)spread >= 65535.0) return 0;
-    for (int64_t i = 0; i < left_size; ++i) left16[i] = (int16_t)left[i];
-    for (int64_t i = 0; i < right_size; ++i) right16[i] = (int16_t)right[i];
-    return 1;
+    if (!within_levels(left, left_size) || !within_levels(right, right_size)) return 0;
+    int lmin, lmax, rmin, rmax;
+    to_int16_span(left, left_size, left16, &lmin, &lmax);
+    to_int16_span(right, right_size, right16, &rmin, &rmax);
+    const int spread = lmax - rmin > rmax - lmin ? lmax - rmin : rmax - lmin;
+    return (double)K * (double)K * (double)spread < 65535.0;
 }
 
 /* The rejections and the sub-pixel fit of svs_torch.dense._match_box, in its float32 operations and order. */
@@ -317,8 +324,12 @@ static void finish_row(const Pair *p, const Rules *rules, int64_t y, const RowOu
         if (!ok) continue;
         float offset = 0.0f; /* the equiangular fit, where best has finite neighbours inside the range */
         if (best > 0 && best < count - 1 && isfinite(before) && isfinite(after)) {
-            const float rise = 2.0f * (fmaxf(before, after) - cost);
-            if (rise > 0) offset = fminf(fmaxf((before - after) / rise, -0.5f), 0.5f);
+            /* Selects, not fmaxf / fminf calls: every value here is finite (no NaN), so they agree. */
+            const float rise = 2.0f * ((before > after ? before : after) - cost);
+            if (rise > 0) {
+                const float ratio = (before - after) / rise;
+                offset = ratio < -0.5f ? -0.5f : (ratio > 0.5f ? 0.5f : ratio);
+            }
         }
         disparity[x] = ((float)p->min_d + (float)best) + offset;
         valid[x] = 1;
