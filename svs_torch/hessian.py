@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from . import kernels
+from .checks import check_image
 from .compiling import maybe_compiled
 from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
@@ -133,13 +134,17 @@ def hessian_octaves(
     cost an order of magnitude more. The C kernel reads the padded table at the octave's step directly.
     """
     h, w = image.shape[-2:]
-    integral = integral_image(image, subtract_mean=True)
     largest = filter_sizes(num_octaves - 1, num_scale_levels)[-1]
     pad = largest // 2 + 2
-    padded = pad_integral(integral, pad)
     # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
     # offsets never reach the graph.
     kernel_ok = image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad)
+    padded = None
+    if kernel_ok and not compiled:  # the table in one pass per image, the same values (svs_torch.kernels)
+        check_image(image, "image", check_range=False)
+        padded = kernels.padded_integral(image, image.mean(dim=(-2, -1)).flatten(), pad)
+    if padded is None:
+        padded = pad_integral(integral_image(image, subtract_mean=True), pad)
     level = maybe_compiled(_level_into, compiled)
     octaves = []
     for octave in range(num_octaves):

@@ -46,6 +46,19 @@ def test_surf_features_unchanged_by_the_kernel(images, monkeypatch):
     assert float((fused.descriptors - eager.descriptors).abs().max()) < 5e-4
 
 
+@needs_kernel
+def test_padded_integral_kernel_is_bit_identical_to_torch(images):
+    """The mean-removed, padded integral table in one pass equals integral_image + pad_integral bit for bit
+    (float32 values, cumulative sums carried in double as torch's), on real images, odd sizes and a 1-pixel
+    image; other dtypes are left to torch."""
+    from svs_torch.integral import integral_image, pad_integral
+
+    for batch in (images[..., :263, :317], images[:1, :, :1, :1]):
+        table = kernels.padded_integral(batch, batch.mean(dim=(-2, -1)).flatten(), 23)
+        assert torch.equal(table, pad_integral(integral_image(batch, subtract_mean=True), 23))
+    assert kernels.padded_integral(images.double(), images.double().mean(dim=(-2, -1)).flatten(), 23) is None
+
+
 def test_hessian_gradients_and_float64_take_the_torch_path(images):
     """The kernel is the no-gradient float32 path: a float64 image, or one that needs gradients, still gets
     the differentiable torch responses."""

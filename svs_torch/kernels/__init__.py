@@ -1,11 +1,12 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler
 and loaded through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), its row fill of invalid
-pixels (``fill_invalid_rows.c``) and its per-object order statistics (``labelled_select.c``), one level of
-SURF's box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and its upright
-descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
-(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the
-no-gradient path of a torch function that stays the reference, the fallback and the differentiable path. The
-first five give that torch path's values bit for bit; the
+pixels (``fill_invalid_rows.c``) and its per-object order statistics (``labelled_select.c``, also the search
+range's percentiles), SURF's padded integral table (``padded_integral.c``), a whole octave of its box-filter
+Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and its upright descriptor
+(``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching (``sad_nearest.c``) and the
+Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of a torch function
+that stays the reference, the fallback and the differentiable path. The first six give that torch path's
+values bit for bit; the
 matching kernel sums each distance in its own order (on real descriptors: the same matches, the same costs);
 the refinement takes the same steps with its sums in double and in its own order, so its points agree to
 about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each image's integral and describes its
@@ -57,7 +58,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_octave", "labelled_select",
-           "lk_refine", "load", "local_maxima", "sad_nearest", "usurf_describe"]
+           "lk_refine", "load", "local_maxima", "padded_integral", "sad_nearest", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -72,6 +73,7 @@ _SIGNATURES = {
     "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
+    "padded_integral": ([_POINTER] * 2 + [_INT] * 4 + [_POINTER, _INT], ctypes.c_int),
     "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
@@ -263,6 +265,25 @@ def hessian_octave(padded: torch.Tensor, pad: int, step: int, sizes: list[int], 
                            ny, nx, factors[0].data_ptr(), factors[1].data_ptr(), dxy_weight, det_out.data_ptr(),
                            trace_out.data_ptr(), torch.get_num_threads())
     return True
+
+
+def padded_integral(image: torch.Tensor, means: torch.Tensor, pad: int) -> torch.Tensor | None:
+    """``pad_integral(integral_image(image − means), pad)`` of ``svs_torch.hessian`` in one pass per image (see
+    the C source), bit for bit: ``image`` ``(B, 1, H, W)`` float32, ``means`` ``(B,)`` float32 (each image's
+    own, subtracted from its pixels). Returns the table ``(B, 1, H + 1 + 2·pad, W + 1 + 2·pad)``, or None when
+    the kernel is not available or the inputs do not fit its contract."""
+    if not _on_cpu(torch.float32, image, means) or image.dim() != 4 or image.shape[1] != 1 or pad < 0 \
+            or means.shape != image.shape[:1]:
+        return None
+    library = load("padded_integral")
+    if library is None:
+        return None
+    b, _, h, w = image.shape
+    image, means = image.contiguous(), means.contiguous()
+    out = torch.empty(b, 1, h + 1 + 2 * pad, w + 1 + 2 * pad)
+    status = library.padded_integral(image.data_ptr(), means.data_ptr(), b, h, w, pad, out.data_ptr(),
+                                     torch.get_num_threads())
+    return None if status != 0 else out
 
 
 def local_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float) -> torch.Tensor | None:
