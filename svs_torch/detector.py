@@ -116,11 +116,12 @@ def _octave_reader(maps: list[torch.Tensor], octave_id: torch.Tensor, index: tor
     neighbour = (index.unsqueeze(-1) + steps.repeat(width * width)
                  + steps.repeat_interleave(width).repeat(width) * nx.unsqueeze(-1)
                  + steps.repeat_interleave(width * width) * plane.unsqueeze(-1)).flatten(1)
-    value = torch.gather(flats[0], 1, neighbour.clamp(0, flats[0].shape[1] - 1))
+    shape = (*index.shape, width ** 3)
+    value = torch.gather(flats[0], 1, neighbour.clamp(0, flats[0].shape[1] - 1)).view(shape)
     for o, flat in enumerate(flats[1:], start=1):
-        value = torch.where(octave_id.repeat_interleave(width ** 3, dim=1) == o,
-                            torch.gather(flat, 1, neighbour.clamp(0, flat.shape[1] - 1)), value)
-    value = value.view(*index.shape, width ** 3).to(torch.float64)
+        value = torch.where((octave_id == o).unsqueeze(-1),
+                            torch.gather(flat, 1, neighbour.clamp(0, flat.shape[1] - 1)).view(shape), value)
+    value = value.to(torch.float64)
 
     def at(dx: int = 0, dy: int = 0, ds: int = 0) -> torch.Tensor:
         return value[..., ((ds + radius) * width + dy + radius) * width + dx + radius]
