@@ -699,7 +699,8 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     percentiles = (config.range_percentiles[0] / 100, config.range_percentiles[1] / 100)
     if groups is None:
         selected = _select_nearest_ranks(disparity_px.detach(), valid.long(),
-                                         torch.ones(valid.shape[0], 1, dtype=torch.int64), percentiles)
+                                         torch.ones(valid.shape[0], 1, dtype=torch.int64, device=valid.device),
+                                         percentiles)
         if selected is not None:
             count, (low, high) = selected[0][:, 0], (v[:, 0] for v in selected[1])
         else:
@@ -722,7 +723,8 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
         else:
             group_count = inside.sum(dim=2)
             ordered = sort_last(torch.where(inside, values.unsqueeze(1), torch.inf))
-            group_low = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(), percentiles[0]).view_as(group_count)
+            group_low = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
+                                      percentiles[0]).view_as(group_count)
             group_high = _nearest_rank(ordered.flatten(0, 1), group_count.flatten(),
                                        percentiles[1]).view_as(group_count)
         used = group_count >= enough_count

@@ -136,8 +136,6 @@ def hessian_octaves(
     h, w = image.shape[-2:]
     largest = filter_sizes(num_octaves - 1, num_scale_levels)[-1]
     pad = largest // 2 + 2
-    # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
-    # offsets never reach the graph.
     kernel_ok = image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad)
     padded = None
     if kernel_ok and not compiled:  # the table in one pass per image, the same values (svs_torch.kernels)
@@ -145,6 +143,8 @@ def hessian_octaves(
         padded = kernels.padded_integral(image, image.mean(dim=(-2, -1)).flatten(), pad)
     if padded is None:
         padded = pad_integral(integral_image(image, subtract_mean=True), pad)
+    # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
+    # offsets never reach the graph.
     level = maybe_compiled(_level_into, compiled)
     octaves = []
     for octave in range(num_octaves):

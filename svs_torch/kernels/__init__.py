@@ -17,24 +17,24 @@ Why a C kernel for the dense stage: eager torch pays one memory pass per element
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
 the running minimum, the uniqueness rival, the right view's winner): 35–50 ms a pair at 320×240, most of a
 pipeline run. The kernel makes each output row's costs for every disparity and consumes them while they are in
-cache, with running window sums, then gives each finished row the rejections and the sub-pixel fit and writes
-it into the disparity map; each pair is matched at its own box and over its own range, where the torch path
-pads every pair to the batch's largest (on 64 real pairs at 320×240, one thread: the dense stage 9.3 → 6.5 ms
-a pair against the earlier kernel that returned winner statistics for torch to judge). Its inputs are whole
-numbers (``StereoBM``'s 8-bit levels), so every sum is exact and its results are bit-identical to the torch
-path's (``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in
-torch.
-Each Hessian level reads 32 integral-image corner views and made about 40 elementwise passes in eager torch,
-after a contiguous copy of the table per sub-lattice of the octave; the kernel makes a whole octave in one
-call, reading each grid point's corners from the padded table at the octave's step and doing the same float32
-operations in the same order, its rows split over ``torch.get_num_threads()`` threads (16 images of 320×240,
-one thread, interleaved: ``hessian_octaves`` 54–75 → 42–43 ms, the copies and views it no longer makes). The maxima took a dozen passes (three running maxima of 3, compare,
-mask, select) for a few hundred survivors; the kernel tests each point once, most stopping at the threshold
-(on 16 real images at 320×240, octave 0: 20 → 3 ms). The refinement sampled every patch of the batch 14
-times with ``grid_sample`` and reduced it in about 100 passes; the kernel refines one match at a time in L1
-(on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole masked distance matrix and
-read it three times (topk, argmin); the kernel consumes each row of distances as it makes it (16 real pairs:
-110 → 29 ms).
+cache, with running window sums, then gives each finished row the rejections and the sub-pixel fit and writes it
+into the disparity map; each pair is matched at its own box and over its own range, where the torch path pads
+every pair to the batch's largest (on 64 real pairs at 320×240, one thread: the dense stage 9.3 → 6.5 ms a pair
+against the earlier kernel that returned winner statistics for torch to judge). Its inputs are whole numbers
+(``StereoBM``'s 8-bit levels), so every sum is exact and its results are bit-identical to the torch path's
+(``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch. Each
+Hessian level reads 32 integral-image corner views and made about 40 elementwise passes in eager torch, after a
+contiguous copy of the table per sub-lattice of the octave; the kernel makes a whole octave in one call, reading
+each grid point's corners from the padded table at the octave's step and doing the same float32 operations in
+the same order, its rows split over ``torch.get_num_threads()`` threads (16 images of 320×240, one thread,
+interleaved: ``hessian_octaves`` 54–75 → 42–43 ms, the copies and views it no longer makes); the padded integral
+table it reads is made in one pass per image (5.3 → 2.1 ms for the same 16 images). The maxima took a dozen
+passes (three running maxima of 3, compare, mask, select) for a few hundred survivors; the kernel tests each
+point once, most stopping at the threshold (on 16 real images at 320×240, octave 0: 20 → 3 ms). The refinement
+sampled every patch of the batch 14 times with ``grid_sample`` and reduced it in about 100 passes; the kernel
+refines one match at a time in L1 (on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole
+masked distance matrix and read it three times (topk, argmin); the kernel consumes each row of distances as it
+makes it (16 real pairs: 110 → 29 ms).
 
 The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
 the source, the compiler flags and the CPU, so every later process reuses them; each one-time compile (about a
