@@ -172,6 +172,34 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
 
 
+def test_shared_header_is_part_of_every_cache_key(monkeypatch, tmp_path):
+    """A change to common.h (thread count, scratch allocation) names a new library for every kernel, so no
+    process loads one built from the old header."""
+    before = {name: kernels._library_path(name) for name in kernels.SOURCES}
+    header = tmp_path / "common.h"
+    header.write_bytes(kernels.COMMON_HEADER.read_bytes() + b"\n/* changed */\n")
+    monkeypatch.setattr(kernels, "COMMON_HEADER", header)
+    after = {name: kernels._library_path(name) for name in kernels.SOURCES}
+    assert all(before[name] != after[name] for name in kernels.SOURCES)
+
+
+def test_kernels_take_an_empty_batch():
+    """B = 0 reaches the kernels as an empty batch (OpenMP still gets one thread) and gives empty results."""
+    if not kernels.available("sad_nearest"):
+        pytest.skip("no C compiler")
+    best, second, index, back = kernels.sad_nearest(torch.zeros(0, 4, 64), torch.zeros(0, 5, 64),
+                                                    torch.ones(0, 4, 5, dtype=torch.bool))
+    assert best.shape == (0, 4) and back.shape == (0, 5)
+    described = kernels.usurf_describe(torch.zeros(0, 1, 20, 20), 8, torch.zeros(0, 3, 2), torch.ones(0, 3),
+                                       torch.ones(0, 3, dtype=torch.bool), False)
+    assert described.shape == (0, 3, 64)
+    table = kernels.padded_integral(torch.zeros(0, 1, 20, 20), torch.zeros(0), 8)
+    assert table.shape == (0, 1, 37, 37)
+    count, below, _ = kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
+                                              torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
+    assert count.shape == (0, 2) and below.shape == (0, 2, 1)
+
+
 def _block_match_inputs(seed: int) -> tuple:
     """Three pairs of whole-number images with their own boxes (one empty, one past the padded size) and
     ranges, for the dense kernel."""

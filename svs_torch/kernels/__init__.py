@@ -37,9 +37,9 @@ masked distance matrix and read it three times (topk, argmin); the kernel consum
 makes it (16 real pairs: 110 → 29 ms).
 
 The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
-the source, the compiler flags and the CPU, so every later process reuses them; each one-time compile (about a
-second) is announced on stderr. Without a compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns
-None and the callers run their torch paths.
+the source, the header they share (``common.h``: the thread count, the scratch allocation), the compiler flags and
+the CPU, so every later process reuses them; each one-time compile (about a second) is announced on stderr. Without
+a compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
 """
 
 from __future__ import annotations
@@ -78,6 +78,8 @@ _SIGNATURES = {
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
+#: The header the sources share (thread count, scratch allocation): part of every library's cache key.
+COMMON_HEADER = Path(__file__).with_name("common.h")
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 #: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
 #: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
@@ -114,8 +116,8 @@ def _cpu_signature() -> str:
 
 def _library_path(name: str) -> Path:
     digest = hashlib.sha256()
-    for part in (SOURCES[name].read_bytes(), " ".join(FLAGS).encode(), _cpu_signature().encode(),
-                 platform.machine().encode()):
+    for part in (SOURCES[name].read_bytes(), COMMON_HEADER.read_bytes(), " ".join(FLAGS).encode(),
+                 _cpu_signature().encode(), platform.machine().encode()):
         digest.update(part)
     return cache_dir() / f"{name}-{digest.hexdigest()[:16]}.so"
 

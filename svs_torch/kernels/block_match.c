@@ -36,6 +36,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "common.h"
+
 /* The streaming winner search is written once, for the two cost types of the header (COST: float, or uint16_t
  * with 65535 standing for +inf; StereoBM's levels have |L - R| <= 62, so any K up to 32 fits). Indices are kept
  * in the cost type (exact: D < 65535), so that every select is as wide as the costs and vectorises. */
@@ -434,25 +436,24 @@ int block_match(const float *left, const float *right, const float *texture, int
     if (band_rows < 1) band_rows = max_height < 1 ? 1 : max_height;
     const int64_t bands = (max_height + band_rows - 1) / band_rows, tasks = B * bands;
     const int64_t input_rows = band_rows + K - 1;
-    int threads = (int)(num_threads < 1 ? 1 : (num_threads > tasks ? tasks : num_threads));
-    if (threads < 1) threads = 1;
+    const int threads = thread_count(num_threads, tasks);
     int failed = 0;
     /* Tasks (pair, band of rows) are handed out one at a time: pairs and bands differ in cost. */
 #pragma omp parallel num_threads(threads)
     {
-        Buffers buf = {malloc(sizeof(float) * (size_t)(input_rows * max_WL)),
-                       malloc(sizeof(float) * (size_t)(input_rows * max_WR)),
-                       malloc(sizeof(float) * (size_t)(input_rows * (max_width + K - 1))),
-                       malloc(sizeof(float) * (size_t)(4 * max_width)),
-                       malloc(sizeof(float) * (size_t)(max_width + K - 1)),
-                       malloc(sizeof(float) * (size_t)max_width),
-                       malloc(sizeof(int16_t) * (size_t)(input_rows * max_WL)),
-                       malloc(sizeof(int16_t) * (size_t)(input_rows * max_WR)),
-                       malloc(sizeof(float) * (size_t)(max_D * max_WL)),
-                       malloc(sizeof(float) * (size_t)(11 * max_WL)),
-                       malloc(sizeof(int64_t) * (size_t)(max_width + max_WL))};
-        const int ok = buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums && buf.texture_sums && buf.left16
-                       && buf.right16 && buf.vsum && buf.rows && buf.indices;
+        Buffers buf = {scratch(input_rows * max_WL, sizeof(float)),
+                       scratch(input_rows * max_WR, sizeof(float)),
+                       scratch(input_rows * (max_width + K - 1), sizeof(float)),
+                       scratch(4 * max_width, sizeof(float)),
+                       scratch(max_width + K - 1, sizeof(float)),
+                       scratch(max_width, sizeof(float)),
+                       scratch(input_rows * max_WL, sizeof(int16_t)),
+                       scratch(input_rows * max_WR, sizeof(int16_t)),
+                       scratch(max_D * max_WL, sizeof(float)),
+                       scratch(11 * max_WL, sizeof(float)),
+                       scratch(max_width + max_WL, sizeof(int64_t))};
+        const int ok = buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums && buf.texture_sums
+                       && buf.left16 && buf.right16 && buf.vsum && buf.rows && buf.indices;
         if (!ok) {
 #pragma omp atomic write
             failed = 1;

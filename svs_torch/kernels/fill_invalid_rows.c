@@ -15,14 +15,16 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "common.h"
+
 /* Returns 0, or -1 when memory could not be had (the caller then runs the torch path). */
 int fill_invalid_rows(const float *disparity, const uint8_t *valid, int64_t rows, int64_t W, float *filled,
                       uint8_t *reachable, int64_t num_threads) {
-    int threads = (int)(num_threads < 1 ? 1 : num_threads);
+    const int threads = thread_count(num_threads, rows);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        int64_t *next = malloc(sizeof(int64_t) * (size_t)(W > 0 ? W : 1));
+        int64_t *next = scratch(W, sizeof(int64_t));
         if (!next) {
 #pragma omp atomic write
             failed = 1;

@@ -15,6 +15,8 @@
  */
 #include <stdint.h>
 
+#include "common.h"
+
 /* One output row: corner k of grid point x sits at c[k][x * STEP]. */
 #define ROW_LOOP(STEP)                                                                                            \
     for (int64_t x = 0; x < nx; ++x) {                                                                            \
@@ -41,7 +43,7 @@ void hessian_octave(const float *padded, int64_t B, int64_t PH, int64_t PW, int6
                     const float *inverse_dxy_area, float dxy_weight, float *det, float *trace,
                     int64_t num_threads) {
     const int64_t rows = B * S * ny;
-    const int threads = num_threads < 1 ? 1 : (int)num_threads;
+    const int threads = thread_count(num_threads, rows);
     /* Threads only for enough work: a parallel region costs a few microseconds. */
 #pragma omp parallel for schedule(static) num_threads(threads) if (rows * nx >= 16384)
     for (int64_t r = 0; r < rows; ++r) {

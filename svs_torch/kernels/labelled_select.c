@@ -19,6 +19,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "common.h"
+
 /* Puts the element of rank k of a[lo, hi) in place, smaller-or-equal ones before it, larger-or-equal after
  * (Hoare partition around a median of three; equal values stop both scans, so runs of ties split evenly). */
 static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
@@ -50,12 +52,12 @@ static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
 int labelled_select(const float *values, const int64_t *labels, const int64_t *slots, const float *q, int64_t B,
                     int64_t P, int64_t N, int64_t Q, int64_t *count, float *below, float *above,
                     int64_t num_threads) {
-    int threads = (int)(num_threads < 1 ? 1 : (num_threads > B ? (B < 1 ? 1 : B) : num_threads));
+    const int threads = thread_count(num_threads, B);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        float *members = malloc(sizeof(float) * (size_t)(P > 0 ? P : 1));
-        int64_t *ranks = malloc(sizeof(int64_t) * (size_t)(2 * Q > 0 ? 2 * Q : 1));
+        float *members = scratch(P, sizeof(float));
+        int64_t *ranks = scratch(2 * Q, sizeof(int64_t));
         if (!members || !ranks) {
 #pragma omp atomic write
             failed = 1;

@@ -15,6 +15,8 @@
 #include <math.h>
 #include <stdint.h>
 
+#include "common.h"
+
 #define HALF 6
 #define SIDE (2 * HALF + 1)
 #define SAMPLES (SIDE * SIDE)
@@ -59,7 +61,7 @@ static float standardise(float *values, const double *weight, int n) {
 void lk_refine(const float *left, const float *right, int64_t B, int64_t H, int64_t W, int64_t K,
                const float *left_xy, const float *right_xy, const float *radius, const uint8_t *active,
                int64_t iterations, float max_shift, float *refined, float *correlation, int64_t num_threads) {
-    const int threads = num_threads < 1 ? 1 : (int)num_threads;
+    const int threads = thread_count(num_threads, B * K);
     const int32_t h32 = (int32_t)H, w32 = (int32_t)W;
 #pragma omp parallel for schedule(dynamic, 16) num_threads(threads)
     for (int64_t row = 0; row < B * K; ++row) {

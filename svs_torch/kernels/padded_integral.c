@@ -14,6 +14,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "common.h"
+
 /* image: (B, H, W) float32 contiguous; means: (B,) float32, subtracted from every pixel; out: (B, PH, PW) with
  * PH = H + 1 + 2 pad, PW = W + 1 + 2 pad: out[pad + 1 + y][pad + 1 + x] = the sum over [0, y] x [0, x], row and
  * column pad of zeros, every border replicated outwards. Images are shared among num_threads OpenMP threads.
@@ -21,12 +23,12 @@
 int padded_integral(const float *image, const float *means, int64_t B, int64_t H, int64_t W, int64_t pad,
                     float *out, int64_t num_threads) {
     const int64_t PH = H + 1 + 2 * pad, PW = W + 1 + 2 * pad;
-    const int threads = (int)(num_threads < 1 ? 1 : (num_threads > B ? (B < 1 ? 1 : B) : num_threads));
+    const int threads = thread_count(num_threads, B);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        double *columns = malloc(sizeof(double) * (size_t)(W > 0 ? W : 1));
-        float *rounded = malloc(sizeof(float) * (size_t)(W > 0 ? W : 1));
+        double *columns = scratch(W, sizeof(double));
+        float *rounded = scratch(W, sizeof(float));
         if (!columns || !rounded) {
 #pragma omp atomic write
             failed = 1;

@@ -14,6 +14,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "common.h"
+
 /* left: (B, K, D); right_t: (B, D, K2); allowed: (B, K, K2) uint8. Writes best, second (B, K) float32 (+inf
  * when there is no allowed candidate or only one), best_index (B, K) int64 (the first on ties; 0 when none),
  * back (B, K2) int64: the left row nearest to each right descriptor among its allowed rows (the first on
@@ -21,12 +23,12 @@
 int sad_nearest(const float *left, const float *right_t, const uint8_t *allowed, int64_t B, int64_t K,
                 int64_t K2, int64_t D, float *best, float *second, int64_t *best_index, int64_t *back,
                 int64_t num_threads) {
-    const int threads = num_threads < 1 ? 1 : (int)(num_threads > B ? B : num_threads);
+    const int threads = thread_count(num_threads, B);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        float *distance = malloc(sizeof(float) * (size_t)(K2 > 0 ? K2 : 1));
-        float *column_best = malloc(sizeof(float) * (size_t)(K2 > 0 ? K2 : 1));
+        float *distance = scratch(K2, sizeof(float));
+        float *column_best = scratch(K2, sizeof(float));
         if (!distance || !column_best) {
 #pragma omp atomic write
             failed = 1;

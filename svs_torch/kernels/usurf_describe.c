@@ -16,6 +16,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "common.h"
+
 #define CELLS 21           /* cell means per side */
 #define EDGES (CELLS + 1)  /* lattice points per side */
 #define SAMPLES (CELLS - 1) /* Haar responses per side (Sec. 4.2: 20) */
@@ -123,9 +125,9 @@ int usurf_describe(const float *images, int64_t B, int64_t H, int64_t W, int64_t
         }
     const int64_t length = extended ? 128 : 64, H1 = H + 2 * pad + 1, W1 = W + 2 * pad + 1;
     int failed = 0;
-#pragma omp parallel num_threads(num_threads < 1 ? 1 : (num_threads > B ? (int)B : (int)num_threads))
+#pragma omp parallel num_threads(thread_count(num_threads, B))
     {
-        double *table = malloc(sizeof(double) * (size_t)(H1 * W1));
+        double *table = scratch(H1 * W1, sizeof(double));
         if (!table) {
 #pragma omp atomic write
             failed = 1;

@@ -1,0 +1,23 @@
+/* What every kernel of svs_torch/kernels shares: its OpenMP thread count and its scratch allocations. Each
+ * source includes it; svs_torch/kernels/__init__.py hashes it into every library's cache key, so a change here
+ * rebuilds them all. */
+#ifndef SVS_TORCH_KERNELS_COMMON_H
+#define SVS_TORCH_KERNELS_COMMON_H
+
+#include <stddef.h>
+#include <stdint.h>
+#include <stdlib.h>
+
+/* Threads for ``tasks`` independent pieces of work: the caller's count (torch.get_num_threads()), at most one
+ * per task, and at least one (OpenMP's num_threads must be positive, even for an empty batch). No kernel's
+ * result depends on it. */
+static inline int thread_count(int64_t requested, int64_t tasks) {
+    const int64_t threads = requested < tasks ? requested : tasks;
+    return threads < 1 ? 1 : (int)threads;
+}
+
+/* malloc of ``count`` elements of ``size`` bytes, never of 0 bytes: malloc(0) may return NULL, which the
+ * kernels would take for a failed allocation. */
+static inline void *scratch(int64_t count, size_t size) { return malloc(size * (size_t)(count > 0 ? count : 1)); }
+
+#endif
