@@ -5,7 +5,8 @@ SIMD networks (x86-simd-sort). Measured on this project's 2-core reference machi
 a batch of 8: ``torch.sort`` 15 ms, ``numpy.sort`` 1.0 ms, ``numpy.argsort`` 4.5 ms on the Intel Xeon it had
 until 2026-11; 13 ms against 8.7 for ``numpy.sort`` on the AMD EPYC it has since. The per-object order
 statistics of the dense depth stage (:func:`svs_torch.depth.labelled_quantile`) and the search ranges
-(:func:`svs_torch.dense.disparity_search_range`) sort that much every batch.
+(:func:`svs_torch.dense.disparity_search_range`) sort that much every batch where their compiled selection
+(:mod:`svs_torch.kernels`) cannot run: with gradients, without a C compiler, or off float32.
 
 Sorted values are the same numbers either way (only the order of equal values, and of −0 against +0, is not
 fixed). Gradients: :func:`sort_last` gathers from the input by the order it found, so they reach the input's
