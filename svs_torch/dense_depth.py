@@ -20,7 +20,8 @@ import torch
 
 from .checks import InputError, check_dtype, check_shape
 from .dense import DenseDisparity, crop_index, fill_invalid_rows
-from .depth import ObjectDepths, RangeEstimate, labelled_quantile
+from . import kernels
+from .depth import ObjectDepths, RangeEstimate, _interpolate_ranks, labelled_quantile
 
 __all__ = ["dense_object_depths", "range_from_objects"]
 
@@ -67,6 +68,40 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     low, high = (float(p) for p in percentiles)
     if not 0 <= low <= high <= 100:
         raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
+    focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
+    baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
+    doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
+    slots = objects.label  # (B, N), −1 padding
+    q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
+    fused = None
+    gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
+    if not gradients and disparity.dim() == 4 and disparity.shape[1] == 1:
+        # The compiled path (svs_torch/kernels/object_depths.c): each pair read once at its own box, the same
+        # statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128:
+        # twice the time a pair of B = 32).
+        fused = kernels.object_depths(disparity[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
+                                      slots, (focal * baseline).view(b), doffs.view(b), fill_invalid, q)
+    if fused is not None:
+        members, count, below, above = fused
+        stats = _interpolate_ranks(below, above, members.unsqueeze(-1), q).values
+    else:
+        stats, count = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid)
+    count = torch.where(slots > 0, count, 0)
+    fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
+    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
+    stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
+    median, depth_low, depth_high = stats.unbind(-1)
+    return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
+                               valid=valid, num_valid_px=count)
+
+
+def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
+                      baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`dense_object_depths`' statistics ``(B, N, 3)`` and measured counts ``(B, N)`` in torch (the
+    differentiable path): every pair cropped to the batch's largest box."""
+    disparity = dense.disparity_px
+    b = disparity.shape[0]
     x0, y0, width, height = dense.crop_xywh.unbind(1)
     size_w, size_h = int(width.max()) if b else 0, int(height.max()) if b else 0
     # One index for the three crops (clamped reads, as crop_box makes them).
@@ -81,29 +116,19 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     if fill_invalid:
         filled, reachable = fill_invalid_rows(crop_d.view(b, size_h, size_w), crop_ok.view(b, size_h, size_w))
         crop_d, crop_ok = filled.flatten(1), reachable.flatten(1)
-    focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
-    baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
-    doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
     denominator = crop_d + doffs
     crop_ok = crop_ok & (denominator > 0)
     depth = focal * baseline / torch.where(crop_ok, denominator, torch.ones_like(denominator))
     # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
     crop_ok = crop_ok & torch.isfinite(depth) & (depth > 0)
     depth = torch.where(crop_ok, depth, torch.zeros_like(denominator))  # (B, P)
-    slots = objects.label  # (B, N), −1 padding
     stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
-                              [0.5, low / 100, high / 100]).values
+                              q).values
     measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
     # One compare and count per slot (a handful of objects) instead of a (B, N, P) volume of compares.
     count = torch.stack([(measured_labels == slots[:, n:n + 1]).sum(dim=1) for n in range(slots.shape[1])], dim=1) \
         if slots.shape[1] else torch.zeros_like(slots)
-    count = torch.where(slots > 0, count, 0)
-    fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
-    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
-    stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
-    median, depth_low, depth_high = stats.unbind(-1)
-    return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
-                               valid=valid, num_valid_px=count)
+    return stats, count
 
 
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,

@@ -172,15 +172,19 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
 
 
-def test_shared_header_is_part_of_every_cache_key(monkeypatch, tmp_path):
-    """A change to common.h (thread count, scratch allocation) names a new library for every kernel, so no
-    process loads one built from the old header."""
+def test_shared_headers_are_part_of_every_cache_key(monkeypatch, tmp_path):
+    """A change to any shared header (common.h: thread count, scratch allocation; fill_row.h, select_rank.h)
+    names a new library for every kernel, so no process loads one built from the old header."""
     before = {name: kernels._library_path(name) for name in kernels.SOURCES}
-    header = tmp_path / "common.h"
-    header.write_bytes(kernels.COMMON_HEADER.read_bytes() + b"\n/* changed */\n")
-    monkeypatch.setattr(kernels, "COMMON_HEADER", header)
-    after = {name: kernels._library_path(name) for name in kernels.SOURCES}
-    assert all(before[name] != after[name] for name in kernels.SOURCES)
+    assert {header.name for header in kernels.HEADERS} >= {"common.h", "fill_row.h", "select_rank.h"}
+    for index, original in enumerate(kernels.HEADERS):
+        header = tmp_path / original.name
+        header.write_bytes(original.read_bytes() + b"\n/* changed */\n")
+        changed = (*kernels.HEADERS[:index], header, *kernels.HEADERS[index + 1:])
+        with monkeypatch.context() as patch:
+            patch.setattr(kernels, "HEADERS", changed)
+            after = {name: kernels._library_path(name) for name in kernels.SOURCES}
+        assert all(before[name] != after[name] for name in kernels.SOURCES), original.name
 
 
 def test_kernels_take_an_empty_batch():
@@ -399,3 +403,72 @@ def test_fill_rows_kernel_is_bit_identical_to_torch(monkeypatch):
     reference = fill_invalid_rows(disparity, valid)
     assert torch.equal(fused[0], reference[0]) and torch.equal(fused[1], reference[1])
     assert not fused[1][0, 0].any() and fused[1][3].all()
+
+
+def _object_depth_inputs(seed: int) -> tuple:
+    """Four pairs of dense disparities with their own boxes (inside the frame, past its left and right edges,
+    empty), label images, slots (repeated, padding, a label no pixel holds), and calibrations under which some
+    denominators are not positive and some depths overflow."""
+    from svs_torch.dense import DenseDisparity
+    from svs_torch.depth import ObjectDepths
+
+    generator = torch.Generator().manual_seed(seed)
+    b, h, w = 4, 37, 53
+    disparity = torch.rand(b, 1, h, w, generator=generator) * 40
+    valid = torch.rand(b, 1, h, w, generator=generator) < torch.tensor([0.1, 0.5, 0.9, 0.5]).view(b, 1, 1, 1)
+    disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
+    labels = torch.randint(0, 4, (b, 1, h, w), generator=generator)
+    boxes = torch.tensor([[3, 2, 40, 30], [-6, -3, 30, 45], [40, 10, 25, 20], [5, 5, 0, 0]])
+    slots = torch.tensor([[1, 2, -1], [2, 2, 3], [3, 1, 9], [1, 2, 3]])
+    n = slots.shape[1]
+    zeros = torch.zeros(b, n)
+    objects = ObjectDepths(slots, torch.full((b, n), 50), zeros, torch.zeros(b, n, dtype=torch.int64),
+                           torch.zeros(b, n, dtype=torch.int64), zeros, zeros, zeros,
+                           torch.zeros(b, n, dtype=torch.bool), torch.zeros(b, 0, dtype=torch.int64))
+    dense = DenseDisparity(disparity, valid, torch.zeros(b, dtype=torch.int64), 40, boxes, torch.full((b,), 40))
+    focal, baseline = torch.tensor([100.0, 3e38, 100.0, 100.0]), torch.tensor([0.1, 10.0, 0.1, 0.1])
+    doffs = torch.tensor([0.0, 0.0, -20.0, 0.0])  # pair 2: half its denominators are not positive
+    return dense, labels, objects, focal, baseline, doffs
+
+
+@pytest.mark.skipif(not kernels.available("object_depths"), reason="no C compiler")
+@pytest.mark.parametrize("fill", [True, False])
+@pytest.mark.parametrize("threads", [1, 3])
+def test_object_depths_kernel_is_bit_identical_to_torch(monkeypatch, fill, threads):
+    """Each pair read at its own box (clamped past the frame's edges) gives the torch path's statistics and
+    counts bit for bit: with and without the row fill, repeated and padding slots, an empty box, non-positive
+    denominators and overflowing depths, for any thread count."""
+    from svs_torch.dense_depth import dense_object_depths
+
+    inputs = _object_depth_inputs(6)
+    ran = []
+    compiled = kernels.object_depths
+    monkeypatch.setattr(kernels, "object_depths", lambda *args: ran.append(compiled(*args)) or ran[-1])
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        fused = dense_object_depths(*inputs, percentiles=(10.0, 90.0), min_valid_px=1, fill_invalid=fill)
+    finally:
+        torch.set_num_threads(previous)
+    assert len(ran) == 1 and ran[0] is not None  # the kernel, not the fallback, gave ``fused``
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    reference = dense_object_depths(*inputs, percentiles=(10.0, 90.0), min_valid_px=1, fill_invalid=fill)
+    for name in ("depth_median_m", "depth_low_m", "depth_high_m", "valid", "num_valid_px"):
+        assert torch.equal(getattr(fused, name), getattr(reference, name)), name
+    assert fused.valid[0, :2].all() and not fused.valid[0, 2] and not fused.valid[3].any()
+    assert torch.equal(fused.depth_median_m[1, 0], fused.depth_median_m[1, 1])  # a repeated slot
+    assert not fused.valid[2, 2]  # label 9: no pixel
+
+
+def test_object_depths_gradients_take_the_torch_path():
+    """With gradients wanted the statistics come from the torch path, and they reach the disparities."""
+    from svs_torch.dense_depth import dense_object_depths
+
+    dense, labels, objects, _, _, doffs = _object_depth_inputs(7)
+    focal, baseline = torch.full((4,), 100.0), torch.full((4,), 0.1)  # no overflowing depth: finite gradients
+    disparity = dense.disparity_px.clone().requires_grad_(True)
+    dense = type(dense)(disparity, *(getattr(dense, f) for f in ("valid", "min_disparity_px", "num_disparities",
+                                                                  "crop_xywh", "pair_num_disparities")))
+    result = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1)
+    result.depth_median_m[result.valid].sum().backward()
+    assert disparity.grad is not None and torch.isfinite(disparity.grad).all() and disparity.grad.abs().sum() > 0

@@ -1,17 +1,16 @@
-"""Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler
-and loaded through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), its row fill of invalid
-pixels (``fill_invalid_rows.c``) and its per-object order statistics (``labelled_select.c``, also the search
-range's percentiles), SURF's padded integral table (``padded_integral.c``), a whole octave of its box-filter
-Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and its upright descriptor
-(``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching (``sad_nearest.c``) and the
-Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of a torch function
-that stays the reference, the fallback and the differentiable path. The first six give that torch path's
-values bit for bit; the
-matching kernel sums each distance in its own order (on real descriptors: the same matches, the same costs);
-the refinement takes the same steps with its sums in double and in its own order, so its points agree to
-about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each image's integral and describes its
-keypoints in double, equal to the float64 torch path to 1e-6 and so within the float32 one's round-off
-(``tests/test_kernels.py``).
+"""Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
+through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
+(``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
+each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
+table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
+maxima (``local_maxima.c``) and its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of
+descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is
+the no-gradient path of a torch function that stays the reference, the fallback and the differentiable path. The
+first seven give that torch path's values bit for bit; the matching kernel sums each distance in its own order (on
+real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
+in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each
+image's integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the
+float32 one's round-off (``tests/test_kernels.py``).
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
@@ -34,12 +33,16 @@ point once, most stopping at the threshold (on 16 real images at 320×240, octav
 sampled every patch of the batch 14 times with ``grid_sample`` and reduced it in about 100 passes; the kernel
 refines one match at a time in L1 (on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole
 masked distance matrix and read it three times (topk, argmin); the kernel consumes each row of distances as it
-makes it (16 real pairs: 110 → 29 ms).
+makes it (16 real pairs: 110 → 29 ms). The objects' depth statistics cropped every pair to the batch's largest
+box (three gathers, the fill, the depth, a selection and a count per object over it, so that a pair of B = 128
+cost twice a pair of B = 32); the kernel reads each pair once at its own box (64 real pairs at B = 8, one thread:
+1.84 → 0.7 ms a pair).
 
-The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes
-the source, the header they share (``common.h``: the thread count, the scratch allocation), the compiler flags and
-the CPU, so every later process reuses them; each one-time compile (about a second) is announced on stderr. Without
-a compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
+The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes the
+source, the headers they share (``common.h``: the thread count, the scratch allocation; ``fill_row.h`` and
+``select_rank.h``: the row fill and the quickselect), the compiler flags and the CPU, so every later process reuses
+them; each one-time compile (about a second) is announced on stderr. Without a compiler, or with
+``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_octave", "labelled_select",
-           "lk_refine", "load", "local_maxima", "padded_integral", "sad_nearest", "usurf_describe"]
+           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -73,13 +76,16 @@ _SIGNATURES = {
     "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
+    "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
+                      + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "padded_integral": ([_POINTER] * 2 + [_INT] * 4 + [_POINTER, _INT], ctypes.c_int),
     "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
-#: The header the sources share (thread count, scratch allocation): part of every library's cache key.
-COMMON_HEADER = Path(__file__).with_name("common.h")
+#: The headers the sources share (``common.h``: thread count, scratch allocation; ``fill_row.h``, ``select_rank.h``:
+#: the row fill and the quickselect of the dense depth stage): all part of every library's cache key.
+HEADERS = tuple(sorted(Path(__file__).parent.glob("*.h")))
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 #: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
 #: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
@@ -116,7 +122,7 @@ def _cpu_signature() -> str:
 
 def _library_path(name: str) -> Path:
     digest = hashlib.sha256()
-    for part in (SOURCES[name].read_bytes(), COMMON_HEADER.read_bytes(), " ".join(FLAGS).encode(),
+    for part in (SOURCES[name].read_bytes(), *(header.read_bytes() for header in HEADERS), " ".join(FLAGS).encode(),
                  _cpu_signature().encode(), platform.machine().encode()):
         digest.update(part)
     return cache_dir() / f"{name}-{digest.hexdigest()[:16]}.so"
@@ -396,6 +402,41 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
                                        reachable.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (filled, reachable)
+
+
+def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
+                  slots: torch.Tensor, scale: torch.Tensor, doffs: torch.Tensor, fill: bool, q: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The statistics of :func:`svs_torch.dense_depth.dense_object_depths`, each pair read once at its own box
+    (see the C source): ``disparity`` ``(B, H, W)`` float32, ``valid`` ``(B, H, W)`` bool, ``labels``
+    ``(B, H, W)`` int64; ``boxes`` ``(B, 4)`` x0, y0, width, height; ``slots`` ``(B, N)`` int64; ``scale``
+    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``fill``: fill invalid pixels from their row first;
+    quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, below, above)``: each slot's member count and
+    its members that were valid before the fill ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
+    ``q · (count − 1)`` ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its
+    contract."""
+    b = disparity.shape[0] if disparity.dim() == 3 else -1
+    if (not (_on_cpu(torch.float32, disparity, scale, doffs, q) and _on_cpu(torch.bool, valid)
+             and _on_cpu(torch.int64, labels, boxes, slots))
+            or disparity.dim() != 3 or valid.shape != disparity.shape or labels.shape != disparity.shape
+            or boxes.shape != (b, 4) or slots.dim() != 2 or slots.shape[0] != b or scale.shape != (b,)
+            or doffs.shape != (b,) or q.dim() != 1):
+        return None
+    library = load("object_depths")
+    if library is None:
+        return None
+    h, w = disparity.shape[1:]
+    n, k = slots.shape[1], q.numel()
+    disparity, labels, boxes, slots, scale, doffs, q = (t.contiguous() for t in (disparity, labels, boxes, slots,
+                                                                                  scale, doffs, q))
+    valid = valid.contiguous().view(torch.uint8)
+    count, measured = torch.empty(b, n, dtype=torch.int64), torch.empty(b, n, dtype=torch.int64)
+    below, above = torch.empty(b, n, k), torch.empty(b, n, k)
+    status = library.object_depths(disparity.data_ptr(), valid.data_ptr(), labels.data_ptr(), b, h, w,
+                                   boxes.data_ptr(), slots.data_ptr(), n, scale.data_ptr(), doffs.data_ptr(),
+                                   int(fill), q.data_ptr(), k, count.data_ptr(), measured.data_ptr(),
+                                   below.data_ptr(), above.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (count, measured, below, above)
 
 
 def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch.Tensor, valid: torch.Tensor,

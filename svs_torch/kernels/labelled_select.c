@@ -20,33 +20,7 @@
 #include <stdlib.h>
 
 #include "common.h"
-
-/* Puts the element of rank k of a[lo, hi) in place, smaller-or-equal ones before it, larger-or-equal after
- * (Hoare partition around a median of three; equal values stop both scans, so runs of ties split evenly). */
-static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
-    int64_t left = lo, right = hi - 1;
-    while (right > left) {
-        int64_t middle = left + (right - left) / 2;
-        float x = a[left], y = a[middle], z = a[right];
-        float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
-        int64_t i = left, j = right;
-        while (i <= j) {
-            while (a[i] < pivot) ++i;
-            while (pivot < a[j]) --j;
-            if (i <= j) {
-                float t = a[i];
-                a[i] = a[j];
-                a[j] = t;
-                ++i;
-                --j;
-            }
-        }
-        /* Now a[left, j] <= pivot <= a[i, right] and every element between j and i equals the pivot. */
-        if (k <= j) right = j;
-        else if (k >= i) left = i;
-        else return;
-    }
-}
+#include "select_rank.h"
 
 /* Returns 0, or -1 when memory could not be had (the caller then runs the torch path). */
 int labelled_select(const float *values, const int64_t *labels, const int64_t *slots, const float *q, int64_t B,
@@ -74,36 +48,7 @@ int labelled_select(const float *values, const int64_t *labels, const int64_t *s
                     for (int64_t p = 0; p < P; ++p)
                         if (l[p] == slot) members[m++] = v[p];
                 count[b * N + n] = m;
-                if (m == 0) {
-                    for (int64_t i = 0; i < Q; ++i) below[out + i] = above[out + i] = 0.0f;
-                    continue;
-                }
-                /* The wanted ranks in ascending order: each selection then works right of the one before. */
-                const float last = (float)(m - 1);
-                for (int64_t i = 0; i < Q; ++i) {
-                    const float position = q[i] * last;
-                    ranks[2 * i] = (int64_t)floorf(position);
-                    ranks[2 * i + 1] = (int64_t)ceilf(position);
-                }
-                for (int64_t i = 1; i < 2 * Q; ++i)
-                    for (int64_t j = i; j > 0 && ranks[j - 1] > ranks[j]; --j) {
-                        int64_t t = ranks[j - 1];
-                        ranks[j - 1] = ranks[j];
-                        ranks[j] = t;
-                    }
-                int64_t start = 0;
-                for (int64_t i = 0; i < 2 * Q; ++i) {
-                    int64_t k = ranks[i] < m - 1 ? ranks[i] : m - 1;
-                    if (k < start) continue; /* a repeated rank: already in place */
-                    select_rank(members, start, m, k);
-                    start = k;
-                }
-                for (int64_t i = 0; i < Q; ++i) {
-                    const float position = q[i] * last;
-                    int64_t low = (int64_t)floorf(position), high = (int64_t)ceilf(position);
-                    below[out + i] = members[low < m - 1 ? low : m - 1];
-                    above[out + i] = members[high < m - 1 ? high : m - 1];
-                }
+                order_statistics(members, m, q, Q, ranks, below + out, above + out);
             }
         }
         free(members);
