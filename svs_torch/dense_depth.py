@@ -18,9 +18,9 @@ import dataclasses
 
 import torch
 
+from . import kernels
 from .checks import InputError, check_dtype, check_shape
 from .dense import DenseDisparity, crop_index, fill_invalid_rows
-from . import kernels
 from .depth import ObjectDepths, RangeEstimate, _interpolate_ranks, labelled_quantile
 
 __all__ = ["dense_object_depths", "range_from_objects"]
