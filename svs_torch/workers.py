@@ -73,8 +73,8 @@ def _watch_parent(parent: int) -> None:
 
 def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
     """Worker initializer: pin torch's threads, keep freed memory (:func:`keep_freed_memory`), import
-    ``warm_modules`` (so that the first task does not pay for them), leave Ctrl-C to the parent (which stops the pool; a worker would only print a traceback), and
-    end the worker when its parent process is gone."""
+    ``warm_modules`` (so that the first task does not pay for them), leave Ctrl-C to the parent (which stops
+    the pool; a worker would only print a traceback), and end the worker when its parent process is gone."""
     import importlib
     import signal
 

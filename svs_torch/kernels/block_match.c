@@ -195,7 +195,8 @@ typedef struct {
             COST *v = vsum + d * WL;                                                                             \
             if (fresh) {                                                                                         \
                 for (int64_t x = 0; x < WL; ++x) v[x] = 0;                                                       \
-                for (int64_t r = y; r < y + K; ++r) add_row_##SUFFIX(WL, left + r * WL, right + r * WR + (D - 1 - d), v); \
+                for (int64_t r = y; r < y + K; ++r)                                                             \
+                    add_row_##SUFFIX(WL, left + r * WL, right + r * WR + (D - 1 - d), v);                        \
             } else {                                                                                             \
                 int64_t r = y + K - 1;                                                                           \
                 slide_row_##SUFFIX(WL, left + r * WL, right + r * WR + (D - 1 - d), left + (y - 1) * WL,        \
@@ -452,12 +453,10 @@ int block_match(const float *left, const float *right, const float *texture, int
                        scratch(max_D * max_WL, sizeof(float)),
                        scratch(11 * max_WL, sizeof(float)),
                        scratch(max_width + max_WL, sizeof(int64_t))};
-        const int ok = buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums && buf.texture_sums
-                       && buf.left16 && buf.right16 && buf.vsum && buf.rows && buf.indices;
-        if (!ok) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        const int ok = scratch_ready(buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums
+                                         && buf.texture_sums && buf.left16 && buf.right16 && buf.vsum && buf.rows
+                                         && buf.indices,
+                                     &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t task = 0; task < tasks; ++task) {
             if (!ok) continue;

@@ -22,13 +22,10 @@ int fill_invalid_rows(const float *disparity, const uint8_t *valid, int64_t rows
 #pragma omp parallel num_threads(threads)
     {
         int64_t *next = scratch(W, sizeof(int64_t));
-        if (!next) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        const int ready = scratch_ready(next != NULL, &failed);
 #pragma omp for schedule(static)
         for (int64_t r = 0; r < rows; ++r) {
-            if (!next) continue;
+            if (!ready) continue;
             fill_row(disparity + r * W, valid + r * W, W, next, filled + r * W, reachable + r * W);
         }
         free(next);

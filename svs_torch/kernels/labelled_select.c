@@ -32,13 +32,10 @@ int labelled_select(const float *values, const int64_t *labels, const int64_t *s
     {
         float *members = scratch(P, sizeof(float));
         int64_t *ranks = scratch(2 * Q, sizeof(int64_t));
-        if (!members || !ranks) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        const int ready = scratch_ready(members && ranks, &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
-            if (!members || !ranks) continue;
+            if (!ready) continue;
             const float *v = values + b * P;
             const int64_t *l = labels + b * P;
             for (int64_t n = 0; n < N; ++n) {

@@ -83,12 +83,11 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
         float *depth = scratch(largest_area, sizeof(float)), *members = scratch(largest_area, sizeof(float));
         int8_t *slot_of = scratch(largest_area, 1);
         uint8_t *measured_of = scratch(largest_area, 1);
-        const int ready = row_d && row_filled && row_ok && row_reach && row_usable && row_label && next && ranks
-                          && start && first && depth && members && slot_of && measured_of && N < 127;
-        if (!ready) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        /* N < 127: a slot's index fits the 8 bits of slot_of (else the call fails: the torch path runs). */
+        const int ready = scratch_ready(row_d && row_filled && row_ok && row_reach && row_usable && row_label
+                                            && next && ranks && start && first && depth && members && slot_of
+                                            && measured_of && N < 127,
+                                        &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
             if (!ready) continue;

@@ -29,10 +29,7 @@ int padded_integral(const float *image, const float *means, int64_t B, int64_t H
     {
         double *columns = scratch(W, sizeof(double));
         float *rounded = scratch(W, sizeof(float));
-        if (!columns || !rounded) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        scratch_ready(columns && rounded, &failed);
 #pragma omp barrier
         if (!failed) {
 #pragma omp for schedule(static)

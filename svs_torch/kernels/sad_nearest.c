@@ -29,13 +29,10 @@ int sad_nearest(const float *left, const float *right_t, const uint8_t *allowed,
     {
         float *distance = scratch(K2, sizeof(float));
         float *column_best = scratch(K2, sizeof(float));
-        if (!distance || !column_best) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        const int ready = scratch_ready(distance && column_best, &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
-            if (!distance || !column_best) continue;
+            if (!ready) continue;
             const float *rt = right_t + b * D * K2;
             int64_t *column_index = back + b * K2;
             for (int64_t j = 0; j < K2; ++j) {

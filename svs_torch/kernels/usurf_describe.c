@@ -1,14 +1,15 @@
 /* Upright SURF descriptors (U-SURF) straight from the image, for svs_torch.descriptor (the no-gradient path of
  * _describe_upright; the torch path stays the reference and the differentiable path).
  *
- * The torch path builds a float32 padded integral image, gathers the valid keypoints, reads a 22 x 22 lattice of integral values per keypoint with
- * grid_sample, turns it into 21 x 21 cell means, 20 x 20 Haar responses and 4 x 4 sub-region sums in about
- * 30 passes over B x K x 400 values, and scatters the rows back. Here each image's integral is built once in
- * double and each keypoint is described start to finish while its lattice sits in L1. The arithmetic is the
- * torch path's (bilinear reads of the table clamped to its extent, cell means over the cell areas, 2 x 2-cell
- * Haar differences, the sigma = 3.3 Gaussian centred between the middle samples, OpenCV's sub-region-major
- * layout, unit length), but in double and summed in its own order, so the descriptors agree with the torch
- * path's to its own float32 error (median 1e-5, at most a few 1e-4), not bit for bit (tests/test_kernels.py).
+ * The torch path builds a float32 padded integral image, gathers the valid keypoints, reads a 22 x 22 lattice of
+ * integral values per keypoint with grid_sample, turns it into 21 x 21 cell means, 20 x 20 Haar responses and 4 x 4
+ * sub-region sums in about 30 passes over B x K x 400 values, and scatters the rows back. Here each image's integral
+ * is built once in double and each keypoint is described start to finish while its lattice sits in L1. The
+ * arithmetic is the torch path's (bilinear reads of the table clamped to its extent, cell means over the cell areas,
+ * 2 x 2-cell Haar differences, the sigma = 3.3 Gaussian centred between the middle samples, OpenCV's
+ * sub-region-major layout, unit length), but in double and summed in its own order, so the descriptors agree with
+ * the torch path's to its own float32 error (median 1e-5, at most a few 1e-4), not bit for bit
+ * (tests/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
  */
@@ -128,13 +129,10 @@ int usurf_describe(const float *images, int64_t B, int64_t H, int64_t W, int64_t
 #pragma omp parallel num_threads(thread_count(num_threads, B))
     {
         double *table = scratch(H1 * W1, sizeof(double));
-        if (!table) {
-#pragma omp atomic write
-            failed = 1;
-        }
+        const int ready = scratch_ready(table != NULL, &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
-            if (!table) continue;
+            if (!ready) continue;
             int any = 0;
             for (int64_t k = 0; k < K; ++k) any |= valid[b * K + k];
             if (!any) continue;
