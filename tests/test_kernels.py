@@ -256,6 +256,36 @@ def test_dense_kernel_equals_the_torch_box_matcher():
     assert found[1].sum() > 1000
 
 
+@needs_kernel
+@pytest.mark.parametrize("source", ["raw", "xsobel"])
+def test_dense_kernel_prefilters_as_the_torch_path(source):
+    """From the raw images the kernel pre-filters a crop row at a time (x-Sobel, clip, quantize_levels; the
+    texture from the left image's clipped x-Sobel): the same maps as from whole pre-filtered images, with boxes
+    at and past the frame's edges (replicate border) and a texture rule that rejects some pixels."""
+    from svs_torch.dense import prefilter_xsobel, quantize_levels
+
+    _, _, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(4)
+    generator = torch.Generator().manual_seed(5)
+    raw_left = torch.rand(3, 130, 90, generator=generator)
+    raw_left[:, 50:90] = 0.5  # a flat band for the texture rule
+    raw_right = torch.roll(raw_left, -3, dims=-1) * 0.8 + 0.2 * torch.rand(3, 130, 90, generator=generator)
+    cap = 31 / 255
+    sobel_left = prefilter_xsobel(raw_left.unsqueeze(1), cap)[:, 0]
+    sobel_right = prefilter_xsobel(raw_right.unsqueeze(1), cap)[:, 0]
+    levels = (quantize_levels(sobel_left), quantize_levels(sobel_right)) if source == "xsobel" else (
+        quantize_levels(raw_left), quantize_levels(raw_right))
+    rules = (0.1, 1.0, 2 / 255 * size ** 2, False)
+    expected = kernels.block_match(*levels, sobel_left.abs(), size, boxes, minimum, counts, image_hw, lower, *rules)
+    found = kernels.block_match(raw_left, raw_right, True, size, boxes, minimum, counts, image_hw, lower, *rules,
+                                source=source, prefilter_cap=cap)
+    untextured = kernels.block_match(*levels, None, size, boxes, minimum, counts, image_hw, lower, *rules)
+    assert torch.equal(found[0], expected[0]) and torch.equal(found[1], expected[1])
+    assert expected[1].sum() > 500 and untextured[1].sum() > expected[1].sum()  # the texture rule rejected some
+    with pytest.raises(ValueError, match="texture"):
+        kernels.block_match(raw_left, raw_right, sobel_left, size, boxes, minimum, counts, image_hw, lower, *rules,
+                            source=source, prefilter_cap=cap)
+
+
 @pytest.mark.skipif(not kernels.available("usurf_describe"), reason="no C compiler")
 def test_usurf_kernel_agrees_with_the_torch_descriptor(images, monkeypatch):
     """The C descriptor does the torch path's arithmetic in double: on real images (keypoints near the border

@@ -66,7 +66,7 @@ __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessia
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
 _SIGNATURES = {
-    "block_match": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 5 + [_FLOAT] * 3 + [_INT] + [_POINTER] * 2
+    "block_match": ([_POINTER] * 3 + [_INT, _FLOAT] + [_INT] * 5 + [_POINTER] * 5 + [_FLOAT] * 3 + [_INT] + [_POINTER] * 2
                     + [_INT] * 2, ctypes.c_int),
     "hessian_octave": ([_POINTER] + [_INT] * 5 + [_POINTER] + [_INT] * 3 + [_POINTER] * 2 + [_FLOAT]
                        + [_POINTER] * 2 + [_INT], None),
@@ -206,21 +206,35 @@ def _on_cpu(dtype: torch.dtype, *tensors: torch.Tensor) -> bool:
     return all(t.dtype == dtype and t.device.type == "cpu" for t in tensors)
 
 
-def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor | None, window_size: int,
+#: Where :func:`block_match` takes its levels from (the C source's SOURCE_ constants).
+BLOCK_MATCH_SOURCES = {"levels": 0, "raw": 1, "xsobel": 2}
+
+
+def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor | bool | None, window_size: int,
                 boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
                 lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
-                texture_min: float, whole_range_in_view: bool) -> tuple[torch.Tensor, torch.Tensor] | None:
+                texture_min: float, whole_range_in_view: bool, source: str = "levels",
+                prefilter_cap: float = 0.0) -> tuple[torch.Tensor, torch.Tensor] | None:
     """``svs_torch.dense._match_box`` of every pair at its own box and range, the kernel's contract (see the C
-    source): ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding whole numbers in [−255, 255]
-    (:func:`svs_torch.dense.quantize_levels`: then every cost is exact and the result is the torch path's bit
-    for bit); ``texture`` ``(B, H, W)`` float32 |x-Sobel| of the left image, or None (no texture rule);
+    source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
+    whole numbers in [−255, 255] (:func:`svs_torch.dense.quantize_levels`: then every cost is exact and the
+    result is the torch path's bit for bit); ``texture`` ``(B, H, W)`` float32 |x-Sobel| of the left image, or
+    None (no texture rule). With ``source="raw"`` or ``"xsobel"``: ``left``, ``right`` are the images themselves
+    and the kernel makes the levels a row at a time, ``quantize_levels`` of the image or of its
+    ``prefilter_xsobel`` at ``prefilter_cap``, the same values without whole pre-filtered images in memory, and
+    ``texture`` is True (the texture rule, on the left image's clipped x-Sobel) or False / None;
     ``boxes`` ``(B, 4)`` x0, y0, width, height; ``min_disparity``, ``counts`` ``(B,)``; ``image_hw`` ``(B, 2)``;
     ``lower_is_limit`` ``(B,)`` bool; the rules' parameters as in :class:`svs_torch.dense.DenseConfig`
     (``texture_min`` is the least window sum).
 
     Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool; None when
     the kernel is not available or the inputs do not fit its contract."""
-    tensors = (left, right) if texture is None else (left, right, texture)
+    if source not in BLOCK_MATCH_SOURCES:
+        raise ValueError(f"source: expected one of {sorted(BLOCK_MATCH_SOURCES)}, got {source!r}")
+    levels = source == "levels"
+    if (texture is True) if levels else isinstance(texture, torch.Tensor):
+        raise ValueError("texture: expected a tensor or None with source 'levels', a bool with the raw sources")
+    tensors = (left, right, texture) if isinstance(texture, torch.Tensor) else (left, right)
     if not _on_cpu(torch.float32, *tensors) or any(t.shape != left.shape or t.dim() != 3 for t in tensors):
         return None
     library = load("block_match")
@@ -228,14 +242,16 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
         return None
     b, h, w = left.shape
     left, right = left.contiguous(), right.contiguous()
-    texture = None if texture is None else texture.contiguous()
+    textured = texture is not None and texture is not False
+    texture = texture.contiguous() if isinstance(texture, torch.Tensor) else None
     per_pair = [v.to(torch.int64).contiguous() for v in (boxes, min_disparity, counts, image_hw)]
     lower = lower_is_limit.to(torch.uint8).contiguous()
     disparity = torch.zeros(b, h, w)
     valid = torch.zeros(b, h, w, dtype=torch.uint8)
     # The factors are made in double and rounded to float32, as torch does with a Python scalar.
     status = library.block_match(
-        left.data_ptr(), right.data_ptr(), None if texture is None else texture.data_ptr(), b, h, w, window_size,
+        left.data_ptr(), right.data_ptr(), None if texture is None else texture.data_ptr(),
+        BLOCK_MATCH_SOURCES[source], prefilter_cap, int(textured), b, h, w, window_size,
         *(v.data_ptr() for v in per_pair), lower.data_ptr(),
         1 + uniqueness_ratio if uniqueness_ratio > 0 else 0.0, -1.0 if lr_max_diff_px is None else lr_max_diff_px,
         texture_min, int(whole_range_in_view), disparity.data_ptr(), valid.data_ptr(), torch.get_num_threads(),

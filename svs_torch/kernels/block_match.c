@@ -1,5 +1,6 @@
-/* Fused dense SAD block matching for svs_torch.dense (the hard, non-differentiable path): from the pre-filtered
- * images to the disparity map, each pair over its own box and its own disparity range.
+/* Fused dense SAD block matching for svs_torch.dense (the hard, non-differentiable path): from the images (pre-
+ * filtered here a crop row at a time, or given as pre-filtered levels) to the disparity map, each pair over its
+ * own box and its own disparity range.
  *
  * The eager torch path (svs_torch/dense.py, _cost_volume + _winner + _right_winner + _match_box) makes about 40
  * passes over a B x D x h x w cost volume and its verdicts, with one box size and one disparity count for the
@@ -251,16 +252,48 @@ DEFINE_RUN_ROW(uint16_t, int16_t, u16, U16_INF)
 
 static inline int64_t clamp_index(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
+/* The pre-filter of svs_torch.dense._match_compiled for image row y (all W columns), so that the caller need not
+ * make whole pre-filtered images: the levels that the block matching compares (SOURCE_RAW: round(255 x);
+ * SOURCE_XSOBEL: round(255 clip(Sobel_x, -cap, cap)), svs_torch.dense.quantize_levels of prefilter_xsobel) and,
+ * when ``texture`` is given, |clip(Sobel_x, -cap, cap)| (the texture image). Replicate border as the torch path's
+ * padding; the Sobel taps in its order, (((((t02 - t00) - 2 t10) + 2 t12) - t20) + t22), each step rounded to
+ * float32 (2 t is exact, so the fused multiply-add of torch's alpha gives the same), then its clamp, then the
+ * product by 255 rounded to float32 and rounded half to even (torch.round): the same values bit for bit. */
+enum { SOURCE_LEVELS = 0, SOURCE_RAW = 1, SOURCE_XSOBEL = 2 };
+
+static void prefilter_row(const float *image, int64_t H, int64_t W, int64_t y, int source, float cap,
+                          float *restrict levels, float *restrict texture) {
+    const float *above = image + clamp_index(y - 1, H) * W, *row = image + y * W;
+    const float *below = image + clamp_index(y + 1, H) * W;
+    if (source == SOURCE_RAW)
+        for (int64_t x = 0; x < W; ++x) levels[x] = nearbyintf(row[x] * 255.0f);
+    if (source != SOURCE_XSOBEL && !texture) return;
+    for (int64_t x = 0; x < W; ++x) {
+        const int64_t a = x > 0 ? x - 1 : 0, b = x < W - 1 ? x + 1 : W - 1;
+        float s = above[b] - above[a];
+        s = s - 2.0f * row[a];
+        s = s + 2.0f * row[b];
+        s = s - below[a];
+        s = s + below[b];
+        s = s < -cap ? -cap : (s > cap ? cap : s);
+        if (source == SOURCE_XSOBEL) levels[x] = nearbyintf(s * 255.0f);
+        if (texture) texture[x] = fabsf(s);
+    }
+}
+
+/* cols values of ``row`` (W long) from column col0 on, clamped to the row (replicate border). */
+static void crop_row(const float *row, int64_t W, int64_t col0, int64_t cols, float *out) {
+    int64_t c = 0;
+    for (; c < cols && col0 + c < 0; ++c) out[c] = row[0];
+    for (; c < cols && col0 + c < W; ++c) out[c] = row[col0 + c];
+    for (; c < cols; ++c) out[c] = row[W - 1];
+}
+
 /* The crop rows of output rows [y_begin, y_end) (K - 1 more), clamped to the image (replicate border). */
 static void gather_rows(const float *image, int64_t H, int64_t W, int64_t row0, int64_t col0, int64_t rows,
                         int64_t cols, float *out) {
     for (int64_t r = 0; r < rows; ++r) {
-        const float *source = image + clamp_index(row0 + r, H) * W;
-        float *target = out + r * cols;
-        int64_t c = 0;
-        for (; c < cols && col0 + c < 0; ++c) target[c] = source[0];
-        for (; c < cols && col0 + c < W; ++c) target[c] = source[col0 + c];
-        for (; c < cols; ++c) target[c] = source[W - 1];
+        crop_row(image + clamp_index(row0 + r, H) * W, W, col0, cols, out + r * cols);
     }
 }
 
@@ -361,17 +394,39 @@ typedef struct {
     int16_t *left16, *right16;
     void *vsum, *rows;
     int64_t *indices;
+    float *row_levels, *row_texture; /* one image row pre-filtered (raw sources) */
 } Buffers;
 
-static void run_task(const float *left, const float *right, const float *texture, int64_t H, int64_t W, int64_t K,
-                     const Pair *p, const Rules *rules, int64_t y_begin, int64_t y_end, Buffers *buf,
-                     float *disparity, uint8_t *valid) {
-    const int64_t radius = K / 2, rows = y_end - y_begin + K - 1;
+/* The images of one pair and where its levels and texture come from (see block_match). */
+typedef struct {
+    const float *left, *right, *texture;
+    int source, textured;
+    float cap;
+} Views;
+
+static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const Pair *p, const Rules *rules,
+                     int64_t y_begin, int64_t y_end, Buffers *buf, float *disparity, uint8_t *valid) {
+    const int64_t radius = K / 2, rows = y_end - y_begin + K - 1, row0 = p->y0 + y_begin - radius;
     const int64_t left_col0 = p->x0 - p->extra - radius, right_col0 = left_col0 - p->min_d - (p->D - 1);
-    gather_rows(left, H, W, p->y0 + y_begin - radius, left_col0, rows, p->WL, buf->left);
-    gather_rows(right, H, W, p->y0 + y_begin - radius, right_col0, rows, p->WR, buf->right);
-    if (texture) gather_rows(texture, H, W, p->y0 + y_begin - radius, p->x0 - radius, rows, p->width + K - 1,
-                             buf->texture);
+    const int64_t texture_cols = p->width + K - 1;
+    if (views->source == SOURCE_LEVELS) {
+        gather_rows(views->left, H, W, row0, left_col0, rows, p->WL, buf->left);
+        gather_rows(views->right, H, W, row0, right_col0, rows, p->WR, buf->right);
+        if (views->textured) gather_rows(views->texture, H, W, row0, p->x0 - radius, rows, texture_cols,
+                                         buf->texture);
+    } else {
+        /* Each crop row pre-filtered from the raw image row it replicates (rows past the image edge repeat it). */
+        for (int64_t r = 0; r < rows; ++r) {
+            const int64_t y = clamp_index(row0 + r, H);
+            prefilter_row(views->left, H, W, y, views->source, views->cap, buf->row_levels,
+                          views->textured ? buf->row_texture : NULL);
+            crop_row(buf->row_levels, W, left_col0, p->WL, buf->left + r * p->WL);
+            if (views->textured) crop_row(buf->row_texture, W, p->x0 - radius, texture_cols,
+                                          buf->texture + r * texture_cols);
+            prefilter_row(views->right, H, W, y, views->source, views->cap, buf->row_levels, NULL);
+            crop_row(buf->row_levels, W, right_col0, p->WR, buf->right + r * p->WR);
+        }
+    }
     const int small = to_samples16(buf->left, rows * p->WL, buf->right, rows * p->WR, K, buf->left16, buf->right16);
     RowOut out = {buf->row_stats, buf->row_stats + p->width, buf->row_stats + 2 * p->width,
                   buf->row_stats + 3 * p->width, buf->indices, buf->indices + p->width};
@@ -384,7 +439,7 @@ static void run_task(const float *left, const float *right, const float *texture
             run_row_f32(p, K, y - y_begin, y == y_begin, buf->left, buf->right, buf->vsum, &st, &out);
         }
         const float *sums = NULL;
-        if (texture) {
+        if (views->textured) {
             texture_row(buf->texture, p->width, K, y - y_begin, buf->column_sums, buf->texture_sums);
             sums = buf->texture_sums;
         }
@@ -395,19 +450,24 @@ static void run_task(const float *left, const float *right, const float *texture
 
 /* Dense SAD block matching of B pairs, each over its own box and its own disparity range, straight to the
  * disparity map (svs_torch.dense._match_box's result, bit for bit):
- *   left, right: (B, H, W) pre-filtered images in whole levels; texture: (B, H, W) |x-Sobel| or NULL;
+ *   left, right: (B, H, W) images: with source SOURCE_LEVELS the pre-filtered images in whole levels, and
+ *   texture (B, H, W) |x-Sobel| or NULL; with SOURCE_RAW or SOURCE_XSOBEL the raw intensities, pre-filtered
+ *   here a crop row at a time (prefilter_row, x-Sobel clipped at prefilter_cap), and texture is ignored: the
+ *   texture rule then runs on the left image's clipped x-Sobel when raw_texture is set;
  *   boxes (B, 4): x0, y0, width, height (width or height 0: nothing); min_d, counts (B,): the range
  *   [min_d, min_d + count); image_hw (B, 2): each pair's size before padding; lower_is_limit (B,): a winner at
  *   index 0 is kept (the range starts at 0, so it is no range edge);
  *   disparity (B, H, W) float32 and valid (B, H, W) uint8, zero on entry: written inside the boxes.
  * Returns 0, or -1 when memory could not be had (then nothing is valid; the caller runs its torch path). Pairs
  * and bands of rows are shared among num_threads OpenMP threads. */
-int block_match(const float *left, const float *right, const float *texture, int64_t B, int64_t H, int64_t W,
+int block_match(const float *left, const float *right, const float *texture, int64_t source, float prefilter_cap,
+                int64_t raw_texture, int64_t B, int64_t H, int64_t W,
                 int64_t K, const int64_t *boxes, const int64_t *min_d, const int64_t *counts,
                 const int64_t *image_hw, const uint8_t *lower_is_limit, float uniqueness_factor,
                 float lr_max_diff, float texture_min, int64_t whole_range_in_view, float *disparity,
                 uint8_t *valid, int64_t num_threads, int64_t band_rows) {
     if (B <= 0 || H <= 0 || W <= 0 || K < 1 || K % 2 == 0) return 0;
+    if (source != SOURCE_LEVELS && source != SOURCE_RAW && source != SOURCE_XSOBEL) return -1;
     Pair *pairs = malloc(sizeof(Pair) * (size_t)B);
     if (!pairs) return -1;
     const Rules rules = {uniqueness_factor, lr_max_diff, texture_min, whole_range_in_view != 0};
@@ -452,10 +512,12 @@ int block_match(const float *left, const float *right, const float *texture, int
                        scratch(input_rows * max_WR, sizeof(int16_t)),
                        scratch(max_D * max_WL, sizeof(float)),
                        scratch(11 * max_WL, sizeof(float)),
-                       scratch(max_width + max_WL, sizeof(int64_t))};
+                       scratch(max_width + max_WL, sizeof(int64_t)),
+                       scratch(W, sizeof(float)),
+                       scratch(W, sizeof(float))};
         const int ok = scratch_ready(buf.left && buf.right && buf.texture && buf.row_stats && buf.column_sums
                                          && buf.texture_sums && buf.left16 && buf.right16 && buf.vsum && buf.rows
-                                         && buf.indices,
+                                         && buf.indices && buf.row_levels && buf.row_texture,
                                      &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t task = 0; task < tasks; ++task) {
@@ -465,8 +527,10 @@ int block_match(const float *left, const float *right, const float *texture, int
             int64_t y1 = y0 + band_rows;
             if (y1 > p->height) y1 = p->height;
             if (y0 >= y1) continue;
-            run_task(left + b * H * W, right + b * H * W, texture ? texture + b * H * W : NULL, H, W, K, p, &rules,
-                     y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
+            const Views views = {left + b * H * W, right + b * H * W, texture ? texture + b * H * W : NULL,
+                                 (int)source, source == SOURCE_LEVELS ? texture != NULL : raw_texture != 0,
+                                 prefilter_cap};
+            run_task(&views, H, W, K, p, &rules, y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
         }
         free(buf.left);
         free(buf.right);
@@ -479,6 +543,8 @@ int block_match(const float *left, const float *right, const float *texture, int
         free(buf.vsum);
         free(buf.rows);
         free(buf.indices);
+        free(buf.row_levels);
+        free(buf.row_texture);
     }
     free(pairs);
     return failed ? -1 : 0;
