@@ -3,6 +3,7 @@ the fallback without a compiler, the on-disk cache. The dense-stage kernel's own
 
 from __future__ import annotations
 
+import platform
 import shutil
 
 import pytest
@@ -170,6 +171,35 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     serial = hessian_octaves(images, num_octaves=2)
     for a, b in zip(serial, reference):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction sets")
+@pytest.mark.parametrize("march", ["x86-64", "x86-64-v3"], ids=["sse2", "avx2"])
+def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_path, generator):
+    """The 16-bit search's vector types (64 bytes: one AVX-512 register here) are split by the compiler on a
+    machine without AVX-512 (two AVX2 registers, four SSE2 ones): built for those, the kernel still equals the
+    torch path, on widths that leave a partial vector and ranges of more than one vector of columns."""
+    from svs_torch.dense import DenseConfig, block_match_sad
+
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.skip("no C compiler")
+    wrapper = tmp_path / "cc-other-march"
+    wrapper.write_text(f'#!/bin/sh\nfor a in "$@"; do shift; [ "$a" = -march=native ] && a=-march={march}; '
+                       f'set -- "$@" "$a"; done\nexec {compiler} "$@"\n')
+    wrapper.chmod(0o755)
+    base = torch.rand(3, 1, 41, 77, generator=generator)
+    right = 0.9 * torch.roll(base, shifts=-6, dims=-1) + 0.1 * torch.rand(3, 1, 41, 77, generator=generator)
+    minimum, image_hw = torch.tensor([0, 2, 1]), torch.tensor([[41, 77], [35, 70], [41, 77]])
+    expected = [block_match_sad(base, right, minimum, n, DenseConfig(kernel="torch"), image_hw) for n in (12, 45)]
+    monkeypatch.setenv("CC", str(wrapper))
+    monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(kernels, "_LIBRARIES", {})
+    assert kernels.available("block_match")
+    for n, reference in zip((12, 45), expected):
+        found = block_match_sad(base, right, minimum, n, DenseConfig(kernel="c"), image_hw)
+        assert torch.equal(found.disparity_px, reference.disparity_px) and torch.equal(found.valid, reference.valid)
+        assert found.valid.sum() > 1000
 
 
 def test_shared_headers_are_part_of_every_cache_key(monkeypatch, tmp_path):
