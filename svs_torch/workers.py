@@ -5,14 +5,17 @@ ever importing it)."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import gc
 import os
 import platform
 import sys
 import threading
 import time
+from collections.abc import Iterator
 
-__all__ = ["available_cores", "keep_freed_memory", "start_worker", "thread_budget"]
+__all__ = ["available_cores", "imports_without_collection", "keep_freed_memory", "start_worker", "thread_budget"]
 
 #: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
@@ -65,6 +68,26 @@ def keep_freed_memory() -> bool:
                                                                                 TRIM_THRESHOLD_BYTES))
 
 
+@contextlib.contextmanager
+def imports_without_collection() -> Iterator[None]:
+    """Run the imports of a command or worker with the cyclic garbage collector off, then freeze what they
+    made: they build about 250 000 objects (torch and the pipeline's modules) that live as long as the
+    process, and the collector walked them again and again while they grew and then at every full pass.
+    Measured: ``import torch, svs_torch.pipeline`` 1.69 → 1.49 s; a worker of ``svs-depth estimate --pairs``
+    spent 0.19 s in the collector, now 0.004 s (512 real 320×240 pairs, whole process: 0.93 of the time).
+
+    Only around imports: later objects are collected as usual (a long ``guide`` or ``sweep`` run never grows
+    from a switched-off collector)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()
+
+
 def _watch_parent(parent: int) -> None:
     while os.getppid() == parent:
         time.sleep(0.5)
@@ -78,12 +101,12 @@ def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
     import importlib
     import signal
 
-    import torch
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
     keep_freed_memory()
+    with imports_without_collection():
+        import torch
+
+        for name in warm_modules:
+            importlib.import_module(name)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
-    for name in warm_modules:
-        importlib.import_module(name)
     threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True, name="watch-parent").start()

@@ -268,6 +268,24 @@ def test_allocator_keeps_freed_memory_in_a_fresh_process():
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
+def test_worker_start_up_freezes_its_imports_and_keeps_collecting():
+    """A worker imports torch and the pipeline with the collector off and then freezes those objects (they live
+    as long as the worker): afterwards the collector is on again, skips them, and still frees a new cycle. A
+    collector that was off stays off."""
+    code = ("import gc, weakref\n"
+            "from svs_torch.workers import imports_without_collection, start_worker\n"
+            "start_worker(1, ('svs_torch.pipeline',))\n"
+            "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()\n"
+            "class Node: pass\n"
+            "a, b = Node(), Node(); a.other, b.other = b, a; gone = weakref.ref(a); del a, b\n"
+            "gc.collect(); assert gone() is None\n"
+            "gc.disable()\n"
+            "with imports_without_collection():\n"
+            "    import json\n"
+            "assert not gc.isenabled()\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
 def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--size", "320x240", "--json",

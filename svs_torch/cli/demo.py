@@ -57,16 +57,19 @@ def _truth_of_objects(scenes, seg) -> list[dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    from ..workers import imports_without_collection
 
-    from ..camera import parse_size
-    from ..checks import InputError
-    from ..data.synthetic import random_obstacle_scenes
-    from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
-    from ..pipeline import estimate_obstacle_depth
-    from ..plots import estimate_figure
-    from .estimate import format_report, pair_report, unranged_report
-    from .features import MAX_PIXELS
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        import torch
+
+        from ..camera import parse_size
+        from ..checks import InputError
+        from ..data.synthetic import random_obstacle_scenes
+        from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
+        from ..pipeline import estimate_obstacle_depth
+        from ..plots import estimate_figure
+        from .estimate import format_report, pair_report, unranged_report
+        from .features import MAX_PIXELS
 
     width, height = parse_size(args.size, "--size")
     if width * height > MAX_PIXELS:

@@ -216,10 +216,13 @@ def run(args: argparse.Namespace) -> int:
         if args.left or args.right or args.figure or args.masks_out:
             raise CliError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
         return _run_many(args)
-    from ..errors import InputError
-    from ..data import PairSource, detect_stereo_layout
-    from ..figures import check_output_path
-    from ..pipeline import estimate_obstacle_depth
+    from ..workers import imports_without_collection
+
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from ..errors import InputError
+        from ..data import PairSource, detect_stereo_layout
+        from ..figures import check_output_path
+        from ..pipeline import estimate_obstacle_depth
 
     config = pipeline_config_from_args(args)
     scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
@@ -394,13 +397,14 @@ def _ordered_chunks(executor, args: argparse.Namespace, total: int) -> Iterator[
 def _run_many(args: argparse.Namespace) -> int:
     """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT.
     With more than one worker the batches run in worker processes and this process only prints."""
-    from ..workers import thread_budget
+    from ..workers import imports_without_collection, thread_budget
 
     budget = thread_budget()
     chunks = -(-_listed_lines(args.pairs) // args.batch_size)
     workers = max(1, min(budget if args.workers is None else args.workers, chunks))
     if workers == 1:
-        config = pipeline_config_from_args(args)
+        with imports_without_collection():  # the pipeline's imports (see there)
+            config = pipeline_config_from_args(args)
         pairs = _read_pair_list(args.pairs)
         total = len(pairs)
         results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)

@@ -103,13 +103,16 @@ def _progress(total: int):
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
+    from ..workers import imports_without_collection
 
-    from ..camera import parse_size
-    from ..data import read_pair_sources
-    from ..evaluation import EvalSetup, evaluate_pairs, summarize
-    from ..evaluation.overrides import resolve_config
-    from ..evaluation.sweep import make_sweep_config
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from dataclasses import asdict
+
+        from ..camera import parse_size
+        from ..data import read_pair_sources
+        from ..evaluation import EvalSetup, evaluate_pairs, summarize
+        from ..evaluation.overrides import resolve_config
+        from ..evaluation.sweep import make_sweep_config
 
     size_wh = parse_size(args.size, "--size") if args.size else None
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)

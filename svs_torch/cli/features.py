@@ -136,13 +136,16 @@ def keypoint_list(keypoints, index: int, factors: tuple[float, float]) -> list[d
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    from ..workers import imports_without_collection
 
-    from ..features import extract_surf_features
-    from ..figures import check_output_path, write_image_atomic
-    from ..matching import gather_matched_points, match_sad, refine_matched_points
-    from ..plots import matches_figure
-    from ..segmentation import segment_stereo
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        import torch
+
+        from ..features import extract_surf_features
+        from ..figures import check_output_path, write_image_atomic
+        from ..matching import gather_matched_points, match_sad, refine_matched_points
+        from ..plots import matches_figure
+        from ..segmentation import segment_stereo
 
     if args.figure:
         check_output_path(args.figure, args.figure_option)

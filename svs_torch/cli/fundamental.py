@@ -55,12 +55,15 @@ def to_input_fundamental(fundamental, factors: tuple[float, float]) -> list[list
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
+    from ..workers import imports_without_collection
 
-    from ..depth import DepthConfig
-    from ..pipeline import estimate_obstacle_depth
-    from ..types import FundamentalStatus
-    from .features import preset_config
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from dataclasses import replace
+
+        from ..depth import DepthConfig
+        from ..pipeline import estimate_obstacle_depth
+        from ..types import FundamentalStatus
+        from .features import preset_config
 
     batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)

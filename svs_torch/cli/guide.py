@@ -57,15 +57,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..camera import parse_size
-    from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
-    from ..capture.link import CaptureError
-    from ..checks import InputError
-    from ..depth import ObstacleSide
-    from ..pipeline import estimate_obstacle_depth
-    from .capture import open_stereo_camera
+    from ..workers import imports_without_collection
 
-    from ..capture.protocol import size_code_for
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from ..camera import parse_size
+        from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
+        from ..capture.link import CaptureError
+        from ..checks import InputError
+        from ..depth import ObstacleSide
+        from ..pipeline import estimate_obstacle_depth
+        from .capture import open_stereo_camera
+
+        from ..capture.protocol import size_code_for
 
     size = parse_size(args.size, "--size")
     try:

@@ -125,9 +125,12 @@ def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data import load_image_pair
-    from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
-    from ..pipeline import segment_pair
+    from ..workers import imports_without_collection
+
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from ..data import load_image_pair
+        from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
+        from ..pipeline import segment_pair
 
     config = config_from_args(args)
     if args.figure:

@@ -61,9 +61,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from ..workers import imports_without_collection
 
-    from ..evaluation.sweep import load_sweep, run_sweep
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        from tqdm import tqdm
+
+        from ..evaluation.sweep import load_sweep, run_sweep
 
     sweep = load_sweep(args.sweep_file)
     bar = None
