@@ -66,8 +66,8 @@ __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessia
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
 _SIGNATURES = {
-    "block_match": ([_POINTER] * 3 + [_INT, _FLOAT] + [_INT] * 5 + [_POINTER] * 5 + [_FLOAT] * 3 + [_INT] + [_POINTER] * 2
-                    + [_INT] * 2, ctypes.c_int),
+    "block_match": ([_POINTER] * 3 + [_INT, _FLOAT] + [_INT] * 5 + [_POINTER] * 5 + [_FLOAT] * 3 + [_INT]
+                    + [_POINTER] * 2 + [_INT] * 2, ctypes.c_int),
     "hessian_octave": ([_POINTER] + [_INT] * 5 + [_POINTER] + [_INT] * 3 + [_POINTER] * 2 + [_FLOAT]
                        + [_POINTER] * 2 + [_INT], None),
     "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),

@@ -89,7 +89,7 @@ static RowState row_state(float *rows, int64_t W) {
 }
 
 /* One disparity of the streaming winner search (kept out of line, with restrict arguments, so that gcc
- * vectorises it: inlined into run_band it does not). The winner so far (first index on ties), the costs beside
+ * vectorises it: inlined into run_row_f32 it does not). The winner so far (first index on ties), the costs beside
  * it, and the rival: the least cost more than 1 from it; a new winner at d inherits as rival the least cost of
  * indices <= d - 2. Branch-free, every load unconditional. */
 __attribute__((noinline)) static void step_left_f32(int64_t W, float fd, const float *restrict c,
@@ -128,8 +128,8 @@ __attribute__((noinline)) static void step_right_f32(int64_t n, float fd, const 
 }
 
 /* The 16-bit search, blocked: LANES columns at a time go through every disparity with the winner's state in
- * vector registers (GCC / Clang vector extensions: one zmm register with AVX-512, two ymm with AVX2, scalar
- * code elsewhere), where the streaming search loads and stores every state row again at each disparity. The
+ * vector registers (GCC / Clang vector extensions: one zmm register with AVX-512, two ymm with AVX2, four
+ * xmm with SSE2), where the streaming search loads and stores every state row again at each disparity. The
  * row's costs, every disparity's, are made first into a D x ``stride`` block, which both views' winners then
  * read a vector at a time. The same selects in the same order as step_left_f32 / step_right_f32, so the same
  * winners. */
