@@ -40,6 +40,7 @@ import torch.nn.functional as F
 
 from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
+from .mask_reductions import any_along
 from .ordering import sort_last
 
 __all__ = [
@@ -623,7 +624,7 @@ def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor
     b, _, h, w = mask.shape
     if image_hw is None:
         image_hw = torch.tensor([[h, w]], device=mask.device).expand(b, 2)
-    rows, cols = mask.any(dim=-1).squeeze(1), mask.any(dim=-2).squeeze(1)  # (B, H), (B, W)
+    rows, cols = any_along(mask, dim=-1).squeeze(1), any_along(mask, dim=-2).squeeze(1)  # (B, H), (B, W)
 
     def span(present: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
         index = torch.arange(size, device=mask.device)
@@ -804,7 +805,7 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     search = DisparityRange(minimum, search.num_disparities, search.pair_num_disparities)
     counts = search.pair_num_disparities
     counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
-    some = mask.flatten(1).any(dim=1)
+    some = any_along(mask.flatten(1), dim=1)
     found = _match_compiled(left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search,
                             image_hw, config, minimum <= 0)
     if found is not None:

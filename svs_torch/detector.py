@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from . import kernels
 from .checks import InputError, check_dtype, check_image, check_instance, check_shape
 from .hessian import HessianOctave, hessian_octaves, local_maxima_scores
 from .types import Keypoints
@@ -178,7 +179,10 @@ def detect_surf_keypoints(
     octaves = hessian_octaves(source, config.num_octaves, config.num_scale_levels, config.compiled)
     scores = _candidates(octaves, metric_threshold_01(config.metric_threshold), mask, config.compiled)
     k = min(config.max_keypoints, scores.shape[1])
-    top_score, index = torch.topk(scores, k, dim=1)  # (B, k), sorted
+    # (B, k), strongest first. The kernel sorts only the finite candidates (equal scores in index order, which
+    # torch.topk leaves open): 8 images of 320×240, one thread, 2.5 → 0.75 ms.
+    top = kernels.top_candidates(scores, k)
+    top_score, index = top if top is not None else torch.topk(scores, k, dim=1)
     tables = _octave_tables(octaves, image.device)
     octave_id = (torch.searchsorted(tables["offset"], index, right=True) - 1).clamp(min=0)
     local = index - tables["offset"][octave_id]

@@ -17,10 +17,11 @@ import torch
 from .checks import InputError, check_instance
 from .dense import DenseConfig, DenseDisparity, estimate_dense_disparity
 from .dense_depth import dense_object_depths, range_from_objects
-from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle
+from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle, slot_labels
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
 from .learned_segmentation import segment_stereo_learned
+from .mask_reductions import any_along
 from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
                        refine_matched_points)
 from .ransac import estimate_fundamental_ransac
@@ -279,8 +280,8 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     fraction = (verified * config.depth.min_object_valid_fraction
                 + (1 - verified) * config.depth.min_object_valid_fraction_unverified)
     # One mask per kept object, so the search range covers a small object as well as a big one.
-    objects = (labels == seg.left.kept_labels.view(batch.batch_size, -1, 1, 1)) & (labels > 0)
-    mask = objects.any(dim=1, keepdim=True)
+    objects = labels == slot_labels(seg.left.kept_labels).view(batch.batch_size, -1, 1, 1)
+    mask = any_along(objects, dim=1, keepdim=True)
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,

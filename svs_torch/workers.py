@@ -95,13 +95,16 @@ def _watch_parent(parent: int) -> None:
 
 
 def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
-    """Worker initializer: pin torch's threads, keep freed memory (:func:`keep_freed_memory`), import
+    """Worker initializer: pin torch's (and numpy's OpenBLAS) threads, keep freed memory (:func:`keep_freed_memory`), import
     ``warm_modules`` (so that the first task does not pay for them), leave Ctrl-C to the parent (which stops
     the pool; a worker would only print a traceback), and end the worker when its parent process is gone."""
     import importlib
     import signal
 
     keep_freed_memory()
+    # numpy's OpenBLAS starts a thread per core when it is imported, and they spin for a while before they
+    # sleep: about 0.12 CPU-seconds a worker taken from the other workers (the pipeline never calls it).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", str(threads))
     with imports_without_collection():
         import torch
 

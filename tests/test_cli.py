@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 from pathlib import Path
 import subprocess
@@ -284,6 +285,24 @@ def test_worker_start_up_freezes_its_imports_and_keeps_collecting():
             "    import json\n"
             "assert not gc.isenabled()\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="counts threads in /proc")
+def test_worker_start_up_keeps_numpy_blas_to_its_threads():
+    """A one-thread worker gets no OpenBLAS threads from numpy's import (they spin and take the other workers'
+    cores), unless the user asked for a number."""
+    code = ("import os\n"
+            "from svs_torch.workers import start_worker\n"
+            "start_worker(1, ('svs_torch.pipeline',))\n"
+            "import numpy\n"
+            "assert os.environ['OPENBLAS_NUM_THREADS'] == os.environ.get('EXPECTED', '1')\n"
+            "threads = len(os.listdir('/proc/self/task'))\n"
+            # this thread and OpenBLAS's N - 1 helpers, and the watch on the parent
+            "assert threads == int(os.environ.get('EXPECTED', '1')) + 1, threads\n")
+    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300, env=env)
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300,
+                   env={**env, "OPENBLAS_NUM_THREADS": "2", "EXPECTED": "2"})
 
 
 def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):

@@ -155,6 +155,48 @@ def test_local_maxima_kernel_refuses_other_inputs():
     assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
 
 
+@pytest.mark.skipif(not kernels.available("top_candidates"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_top_candidates_kernel_gives_topk_values(generator, threads):
+    """The k strongest of mostly −inf rows: torch.topk's values, and its indices where the scores differ; equal
+    scores in index order; a row with fewer candidates than k padded with −inf at index 0."""
+    n, k = 5000, 64
+    scores = torch.full((3, n), -torch.inf)
+    many = torch.randperm(n, generator=generator)[:300]  # more candidates than k, all different
+    scores[0, many] = torch.rand(300, generator=generator)
+    few = torch.randperm(n, generator=generator)[:20]
+    scores[1, few] = torch.rand(20, generator=generator)
+    tied = torch.randperm(n, generator=generator)[:40]  # two values, 20 positions each
+    scores[2, tied] = torch.tensor([0.5, 0.25]).repeat_interleave(20)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        values, index = kernels.top_candidates(scores, k)
+    finally:
+        torch.set_num_threads(before)
+    expected_values, expected_index = torch.topk(scores, k, dim=1)
+    assert torch.equal(values, expected_values)
+    assert torch.equal(index[0], expected_index[0])
+    assert torch.equal(index[1, :20], expected_index[1, :20])
+    assert torch.equal(index[1, 20:], torch.zeros(k - 20, dtype=torch.int64))
+    assert torch.equal(index[2, :20], tied[:20].sort().values)  # the 0.5s, then the 0.25s, in index order
+    assert torch.equal(index[2, 20:40], tied[20:].sort().values)
+    assert torch.equal(scores.gather(1, index[:, :20]), values[:, :20])
+
+
+def test_top_candidates_kernel_refuses_other_inputs():
+    """A NaN (which torch.topk ranks first), float64 scores or k past the row are left to torch.topk (None)."""
+    if not kernels.available("top_candidates"):
+        pytest.skip("no C compiler")
+    scores = torch.full((2, 10), -torch.inf)
+    scores[1, 3] = float("nan")
+    assert kernels.top_candidates(scores, 4) is None
+    assert kernels.top_candidates(torch.zeros(2, 10, dtype=torch.float64), 4) is None
+    assert kernels.top_candidates(torch.zeros(2, 10), 11) is None
+    values, index = kernels.top_candidates(torch.zeros(0, 10), 4)
+    assert values.shape == index.shape == (0, 4)
+
+
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
     compiler = shutil.which("cc") or shutil.which("gcc")

@@ -3,7 +3,7 @@ through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), it
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
-maxima (``local_maxima.c``) and its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of
+maxima (``local_maxima.c``), the strongest of them (``top_candidates.c``) and its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of
 descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is
 the no-gradient path of a torch function that stays the reference, the fallback and the differentiable path. The
 first seven give that torch path's values bit for bit; the matching kernel sums each distance in its own order (on
@@ -61,7 +61,8 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_octave", "labelled_select",
-           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "usurf_describe"]
+           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "top_candidates",
+           "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -79,6 +80,7 @@ _SIGNATURES = {
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "padded_integral": ([_POINTER] * 2 + [_INT] * 4 + [_POINTER, _INT], ctypes.c_int),
+    "top_candidates": ([_POINTER] + [_INT] * 3 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
@@ -329,6 +331,24 @@ def local_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float) -> 
     library.local_maxima(det.data_ptr(), support.data_ptr(), 0 if support.shape[0] == 1 else support[0].numel(),
                          b, s, ny, nx, threshold, out.data_ptr())
     return out
+
+
+def top_candidates(scores: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``torch.topk(scores, k, dim=1)`` of the detector's candidate scores ``(B, N)`` float32, mostly −inf (see the
+    C source): the same k values, largest first; equal scores in index order; past a row's last finite score,
+    −inf at index 0. None when the kernel is not available, the inputs do not fit its contract or a row holds a
+    NaN (then the caller runs ``torch.topk``)."""
+    if not _on_cpu(torch.float32, scores) or scores.dim() != 2 or not 0 <= k <= scores.shape[1]:
+        return None
+    library = load("top_candidates")
+    if library is None:
+        return None
+    b, n = scores.shape
+    scores = scores.contiguous()
+    values, index = torch.empty(b, k), torch.empty(b, k, dtype=torch.int64)
+    status = library.top_candidates(scores.data_ptr(), b, n, k, values.data_ptr(), index.data_ptr(),
+                                    torch.get_num_threads())
+    return None if status != 0 else (values, index)
 
 
 def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
