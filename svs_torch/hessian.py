@@ -189,6 +189,22 @@ def _interior_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float)
     return torch.where(keep, centre, torch.full_like(centre, float("-inf")))
 
 
+def maxima_support(octave: HessianOctave, mask: torch.Tensor | None = None) -> torch.Tensor | None:
+    """Where a maximum of ``octave`` may stand: ``(1 or B, S − 2, ny − 2, nx − 2)`` bool over its interior points,
+    those whose whole neighbourhood is in the image (the next larger level must fit one grid step around it) and,
+    given ``mask (B, 1, H, W)``, inside it. None for a grid under 3 points (an image under 5 px at octave 2's step
+    of 4), which has no interior point."""
+    ny, nx = octave.det.shape[-2:]
+    if min(ny, nx) < 3:
+        return None
+    inside = octave.inside
+    larger_fits = inside[2:, :-2, 1:-1] & inside[2:, 2:, 1:-1] & inside[2:, 1:-1, :-2] & inside[2:, 1:-1, 2:]
+    support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)  # (1, S − 2, ny − 2, nx − 2)
+    if mask is not None:
+        support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
+    return support
+
+
 def local_maxima_scores(
     octave: HessianOctave, threshold: float, mask: torch.Tensor | None = None, compiled: bool = False
 ) -> torch.Tensor:
@@ -200,14 +216,9 @@ def local_maxima_scores(
     neighbour count as maxima (OpenCV requires strictly larger; float responses rarely tie).
     """
     b, levels, ny, nx = octave.det.shape
-    if min(ny, nx) < 3:
-        # A grid under 3 points (an image under 5 px at octave 2's step of 4) has no interior point: no maxima.
+    support = maxima_support(octave, mask)
+    if support is None:
         return octave.det.new_full((b, levels - 2, max(ny - 2, 0), max(nx - 2, 0)), float("-inf"))
-    inside = octave.inside
-    larger_fits = inside[2:, :-2, 1:-1] & inside[2:, 2:, 1:-1] & inside[2:, 1:-1, :-2] & inside[2:, 1:-1, 2:]
-    support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)  # (1, S − 2, ny − 2, nx − 2)
-    if mask is not None:
-        support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
     # Without compile and without gradients, the C kernel: the same comparisons in one pass.
     if not compiled and not (torch.is_grad_enabled() and octave.det.requires_grad):
         scores = kernels.local_maxima(octave.det, support, threshold)

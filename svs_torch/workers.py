@@ -95,9 +95,10 @@ def _watch_parent(parent: int) -> None:
 
 
 def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
-    """Worker initializer: pin torch's (and numpy's OpenBLAS) threads, keep freed memory (:func:`keep_freed_memory`), import
-    ``warm_modules`` (so that the first task does not pay for them), leave Ctrl-C to the parent (which stops
-    the pool; a worker would only print a traceback), and end the worker when its parent process is gone."""
+    """Worker initializer: pin torch's (and numpy's OpenBLAS) threads, keep freed memory
+    (:func:`keep_freed_memory`), import ``warm_modules`` (so that the first task does not pay for them), leave
+    Ctrl-C to the parent (which stops the pool; a worker would only print a traceback), and end the worker when
+    its parent process is gone."""
     import importlib
     import signal
 

@@ -12,7 +12,7 @@ import torch
 from svs_torch import kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.features import SurfConfig, extract_surf_features
-from svs_torch.hessian import hessian_octaves
+from svs_torch.hessian import _interior_maxima, hessian_octaves, maxima_support
 
 needs_kernel = pytest.mark.skipif(not kernels.available("hessian_octave"), reason="no C compiler")
 
@@ -100,26 +100,14 @@ def test_hessian_kernel_same_for_any_thread_count(images, threads):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
 
 
-def _support(octave, mask=None):
-    inside = octave.inside
-    _, _, ny, nx = octave.det.shape
-    larger_fits = inside[2:, :-2, 1:-1] & inside[2:, 2:, 1:-1] & inside[2:, 1:-1, :-2] & inside[2:, 1:-1, 2:]
-    support = (larger_fits & inside[2:, 1:-1, 1:-1]).unsqueeze(0)
-    if mask is not None:
-        support = support & mask[:, :, ::octave.step, ::octave.step][:, :, 1:ny - 1, 1:nx - 1]
-    return support
-
-
 @needs_kernel
 def test_local_maxima_kernel_equals_torch(images):
     """The scale-space maxima from the C kernel equal ``_interior_maxima``'s on real octaves, with the shared
     support and with a per-image mask, at two thresholds."""
-    from svs_torch.hessian import _interior_maxima
-
     mask = torch.rand(images.shape[0], 1, *images.shape[-2:], generator=torch.Generator().manual_seed(0)) > 0.3
     found = 0
     for octave in hessian_octaves(images, num_octaves=3):
-        for support in (_support(octave), _support(octave, mask)):
+        for support in (maxima_support(octave), maxima_support(octave, mask)):
             for threshold in (0.0, 1000 / 255**2):
                 fused = kernels.local_maxima(octave.det, support, threshold)
                 assert torch.equal(fused, _interior_maxima(octave.det, support, threshold))
@@ -155,46 +143,50 @@ def test_local_maxima_kernel_refuses_other_inputs():
     assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
 
 
-@pytest.mark.skipif(not kernels.available("top_candidates"), reason="no C compiler")
+def _dense_top(dets, supports, threshold, k):
+    """The torch path: each octave's dense map of maxima, concatenated, torch.topk."""
+    maps = [_interior_maxima(det, support, threshold).flatten(1) for det, support in zip(dets, supports)]
+    return torch.topk(torch.cat(maps, dim=1), k, dim=1)
+
+
+@pytest.mark.skipif(not kernels.available("strongest_maxima"), reason="no C compiler")
 @pytest.mark.parametrize("threads", [1, 3])
-def test_top_candidates_kernel_gives_topk_values(generator, threads):
-    """The k strongest of mostly −inf rows: torch.topk's values, and its indices where the scores differ; equal
-    scores in index order; a row with fewer candidates than k padded with −inf at index 0."""
-    n, k = 5000, 64
-    scores = torch.full((3, n), -torch.inf)
-    many = torch.randperm(n, generator=generator)[:300]  # more candidates than k, all different
-    scores[0, many] = torch.rand(300, generator=generator)
-    few = torch.randperm(n, generator=generator)[:20]
-    scores[1, few] = torch.rand(20, generator=generator)
-    tied = torch.randperm(n, generator=generator)[:40]  # two values, 20 positions each
-    scores[2, tied] = torch.tensor([0.5, 0.25]).repeat_interleave(20)
+def test_strongest_maxima_kernel_gives_the_dense_paths_topk(images, threads):
+    """On real octaves, with the shared support and a per-image mask, k under and over the number of maxima:
+    torch.topk's values and indices over the concatenated dense maps; past the last maximum, −inf at index 0."""
+    octaves = hessian_octaves(images, num_octaves=3)
+    mask = torch.rand(images.shape[0], 1, *images.shape[-2:], generator=torch.Generator().manual_seed(0)) > 0.3
+    dets = [octave.det for octave in octaves]
     before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        values, index = kernels.top_candidates(scores, k)
-    finally:
-        torch.set_num_threads(before)
-    expected_values, expected_index = torch.topk(scores, k, dim=1)
-    assert torch.equal(values, expected_values)
-    assert torch.equal(index[0], expected_index[0])
-    assert torch.equal(index[1, :20], expected_index[1, :20])
-    assert torch.equal(index[1, 20:], torch.zeros(k - 20, dtype=torch.int64))
-    assert torch.equal(index[2, :20], tied[:20].sort().values)  # the 0.5s, then the 0.25s, in index order
-    assert torch.equal(index[2, 20:40], tied[20:].sort().values)
-    assert torch.equal(scores.gather(1, index[:, :20]), values[:, :20])
+    for supports in ([maxima_support(o) for o in octaves], [maxima_support(o, mask) for o in octaves]):
+        for k in (64, 5000):
+            torch.set_num_threads(threads)
+            try:
+                values, index = kernels.strongest_maxima(dets, supports, 1000 / 255**2, k)
+            finally:
+                torch.set_num_threads(before)
+            expected_values, expected_index = _dense_top(dets, supports, 1000 / 255**2, k)
+            found = torch.isfinite(expected_values)
+            assert torch.equal(values, expected_values)
+            assert torch.equal(index, torch.where(found, expected_index, 0))
+    assert 64 < int(found.sum(dim=1).min()) < 5000
 
 
-def test_top_candidates_kernel_refuses_other_inputs():
-    """A NaN (which torch.topk ranks first), float64 scores or k past the row are left to torch.topk (None)."""
-    if not kernels.available("top_candidates"):
-        pytest.skip("no C compiler")
-    scores = torch.full((2, 10), -torch.inf)
-    scores[1, 3] = float("nan")
-    assert kernels.top_candidates(scores, 4) is None
-    assert kernels.top_candidates(torch.zeros(2, 10, dtype=torch.float64), 4) is None
-    assert kernels.top_candidates(torch.zeros(2, 10), 11) is None
-    values, index = kernels.top_candidates(torch.zeros(0, 10), 4)
-    assert values.shape == index.shape == (0, 4)
+@pytest.mark.skipif(not kernels.available("strongest_maxima"), reason="no C compiler")
+def test_strongest_maxima_kernel_ties_and_small_octaves():
+    """Equal maxima come in index order (octave by octave); an octave without interior points adds nothing to
+    the index; float64 maps or k past the interior points are left to torch (None)."""
+    dets = [torch.zeros(1, 3, 9, 9), torch.zeros(1, 3, 2, 2), torch.zeros(1, 3, 5, 5)]
+    for det, places in ((dets[0], [(1, 6, 2), (1, 2, 6), (1, 2, 2)]), (dets[2], [(1, 2, 2)])):
+        for s, y, x in places:
+            det[0, s, y, x] = 1.0
+    dets[0][0, 1, 4, 4] = 2.0
+    supports = [torch.ones(1, 1, 7, 7, dtype=torch.bool), None, torch.ones(1, 1, 3, 3, dtype=torch.bool)]
+    values, index = kernels.strongest_maxima(dets, supports, 0.5, 8)
+    assert values[0, :5].tolist() == [2.0, 1.0, 1.0, 1.0, 1.0] and torch.isinf(values[0, 5:]).all()
+    assert index[0, :5].tolist() == [3 * 7 + 3, 1 * 7 + 1, 1 * 7 + 5, 5 * 7 + 1, 49 + 1 * 3 + 1]
+    assert kernels.strongest_maxima([d.double() for d in dets], supports, 0.5, 8) is None
+    assert kernels.strongest_maxima(dets, supports, 0.5, 59) is None
 
 
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
@@ -274,6 +266,9 @@ def test_kernels_take_an_empty_batch():
     count, below, _ = kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
                                               torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
     assert count.shape == (0, 2) and below.shape == (0, 2, 1)
+    values, index = kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)], [torch.ones(1, 1, 3, 3, dtype=torch.bool)],
+                                             0.5, 4)
+    assert values.shape == index.shape == (0, 4)
 
 
 def _block_match_inputs(seed: int) -> tuple:

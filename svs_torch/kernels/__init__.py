@@ -3,10 +3,12 @@ through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), it
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
-maxima (``local_maxima.c``), the strongest of them (``top_candidates.c``) and its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of
-descriptor matching (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is
-the no-gradient path of a torch function that stays the reference, the fallback and the differentiable path. The
-first seven give that torch path's values bit for bit; the matching kernel sums each distance in its own order (on
+maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), its
+upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
+(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
+path of a torch function that stays the reference, the fallback and the differentiable path. The first seven give
+that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
+index order, which ``torch.topk`` leaves open); the matching kernel sums each distance in its own order (on
 real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
 in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each
 image's integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the
@@ -29,7 +31,10 @@ the same order, its rows split over ``torch.get_num_threads()`` threads (16 imag
 interleaved: ``hessian_octaves`` 54–75 → 42–43 ms, the copies and views it no longer makes); the padded integral
 table it reads is made in one pass per image (5.3 → 2.1 ms for the same 16 images). The maxima took a dozen
 passes (three running maxima of 3, compare, mask, select) for a few hundred survivors; the kernel tests each
-point once, most stopping at the threshold (on 16 real images at 320×240, octave 0: 20 → 3 ms). The refinement
+point once, most stopping at the threshold (on 16 real images at 320×240, octave 0: 20 → 3 ms); the detector then
+concatenated the maps (−inf at all but a few hundred of ~200 000 points an image) and partially sorted each whole
+row with ``torch.topk``, where the strongest-maxima kernel collects an image's maxima and sorts only them (the three
+octaves of 16 real images: about 19 → 12 ms). The refinement
 sampled every patch of the batch 14 times with ``grid_sample`` and reduced it in about 100 passes; the kernel
 refines one match at a time in L1 (on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole
 masked distance matrix and read it three times (topk, argmin); the kernel consumes each row of distances as it
@@ -40,7 +45,7 @@ cost twice a pair of B = 32); the kernel reads each pair once at its own box (64
 
 The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes the
 source, the headers they share (``common.h``: the thread count, the scratch allocation; ``fill_row.h`` and
-``select_rank.h``: the row fill and the quickselect), the compiler flags and the CPU, so every later process reuses
+``select_rank.h``: the row fill and the quickselect; ``maxima.h``: SURF's maximum test), the compiler flags and the CPU, so every later process reuses
 them; each one-time compile (about a second) is announced on stderr. Without a compiler, or with
 ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
 """
@@ -61,7 +66,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_octave", "labelled_select",
-           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "top_candidates",
+           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "strongest_maxima",
            "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
@@ -80,13 +85,14 @@ _SIGNATURES = {
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "padded_integral": ([_POINTER] * 2 + [_INT] * 4 + [_POINTER, _INT], ctypes.c_int),
-    "top_candidates": ([_POINTER] + [_INT] * 3 + [_POINTER] * 2 + [_INT], ctypes.c_int),
+    "strongest_maxima": ([_POINTER] * 4 + [_INT] * 2 + [_FLOAT, _INT] + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
 #: The headers the sources share (``common.h``: thread count, scratch allocation; ``fill_row.h``, ``select_rank.h``:
-#: the row fill and the quickselect of the dense depth stage): all part of every library's cache key.
+#: the row fill and the quickselect of the dense depth stage; ``maxima.h``: SURF's maximum test): all part of every
+#: library's cache key.
 HEADERS = tuple(sorted(Path(__file__).parent.glob("*.h")))
 #: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
 #: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
@@ -333,21 +339,43 @@ def local_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float) -> 
     return out
 
 
-def top_candidates(scores: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``torch.topk(scores, k, dim=1)`` of the detector's candidate scores ``(B, N)`` float32, mostly −inf (see the
-    C source): the same k values, largest first; equal scores in index order; past a row's last finite score,
-    −inf at index 0. None when the kernel is not available, the inputs do not fit its contract or a row holds a
-    NaN (then the caller runs ``torch.topk``)."""
-    if not _on_cpu(torch.float32, scores) or scores.dim() != 2 or not 0 <= k <= scores.shape[1]:
+def strongest_maxima(dets: list[torch.Tensor], supports: list[torch.Tensor | None], threshold: float, k: int
+                     ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The ``k`` strongest scale-space maxima of each image over all its octaves, in one pass (see the C source):
+    ``torch.topk`` of the concatenated, flattened :func:`local_maxima` maps of the octaves, the same k values,
+    largest first, equal values in index order; past an image's last maximum, −inf at index 0. ``dets[o]``
+    ``(B, S, ny, nx)`` float32; ``supports[o]`` ``(B or 1, S − 2, ny − 2, nx − 2)`` bool, or None for an octave
+    without interior points. None when the kernel is not available or the inputs do not fit its contract."""
+    if not dets or len(supports) != len(dets):
         return None
-    library = load("top_candidates")
+    b, total = dets[0].shape[0], 0
+    kept, pointers = [], []  # kept: the contiguous tensors, alive until the call returns
+    for det, support in zip(dets, supports):
+        if not _on_cpu(torch.float32, det) or det.dim() != 4 or det.shape[0] != b:
+            return None
+        inner = (det.shape[1] - 2, det.shape[2] - 2, det.shape[3] - 2)
+        if min(inner) < 1:  # no interior point (the kernel reads nothing of it)
+            pointers.append((det.shape[1:], 0, 0, 0))
+            continue
+        if (support is None or not _on_cpu(torch.bool, support) or support.dim() != 4
+                or tuple(support.shape[1:]) != inner or support.shape[0] not in (1, b)):
+            return None
+        det, support = det.contiguous(), support.contiguous()
+        kept += [det, support]
+        pointers.append((det.shape[1:], det.data_ptr(), support.data_ptr(),
+                         0 if support.shape[0] == 1 else support[0].numel()))
+        total += inner[0] * inner[1] * inner[2]
+    if not 0 <= k <= total:
+        return None
+    library = load("strongest_maxima")
     if library is None:
         return None
-    b, n = scores.shape
-    scores = scores.contiguous()
+    shape = torch.tensor([list(p[0]) for p in pointers], dtype=torch.int64)
+    det_ptr, support_ptr, stride = (torch.tensor([p[i] for p in pointers], dtype=torch.int64) for i in (1, 2, 3))
     values, index = torch.empty(b, k), torch.empty(b, k, dtype=torch.int64)
-    status = library.top_candidates(scores.data_ptr(), b, n, k, values.data_ptr(), index.data_ptr(),
-                                    torch.get_num_threads())
+    status = library.strongest_maxima(det_ptr.data_ptr(), support_ptr.data_ptr(), stride.data_ptr(),
+                                      shape.data_ptr(), len(pointers), b, threshold, k, values.data_ptr(),
+                                      index.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (values, index)
 
 

@@ -2,7 +2,7 @@
  *
  * hessian._interior_maxima takes three running maxima of 3 along x, y and scale (six passes over the octave's
  * maps), compares, masks and selects: about a dozen passes through memory for a few hundred maxima. Here each
- * interior point is tested at once, and most stop at the threshold test. Comparisons only, so the result is
+ * interior point is tested at once (maxima.h), and most stop at the threshold test. Comparisons only, so the result is
  * the torch path's exactly: a point keeps its det where det > threshold, support holds and no neighbour of
  * its 3 x 3 x 3 block is larger (a NaN neighbour, which makes torch's running maximum NaN, also rejects it);
  * -inf elsewhere.
@@ -11,6 +11,8 @@
  */
 #include <math.h>
 #include <stdint.h>
+
+#include "maxima.h"
 
 /* det: contiguous (B, S, ny, nx) float32; support: (B or 1, S - 2, ny - 2, nx - 2) uint8, contiguous per
  * pair, support_batch_stride 0 when one support serves every pair; out: contiguous (B, S - 2, ny - 2, nx - 2). */
@@ -23,21 +25,9 @@ void local_maxima(const float *det, const uint8_t *support, int64_t support_batc
                 const float *centre_row = det + (b * S + s) * plane + y * nx;
                 const uint8_t *keep_row = support + b * support_batch_stride + ((s - 1) * iy + (y - 1)) * ix;
                 float *out_row = out + ((b * (S - 2) + (s - 1)) * iy + (y - 1)) * ix;
-                for (int64_t x = 1; x < nx - 1; ++x) {
-                    const float c = centre_row[x];
-                    float value = -INFINITY;
-                    if (c > threshold && keep_row[x - 1]) {
-                        int is_max = 1;
-                        for (int ds = -1; ds <= 1 && is_max; ++ds)
-                            for (int dy = -1; dy <= 1 && is_max; ++dy) {
-                                const float *n = centre_row + ds * plane + dy * nx + x;
-                                /* !(n <= c) also rejects a NaN neighbour. */
-                                if (!(n[-1] <= c) || !(n[0] <= c) || !(n[1] <= c)) is_max = 0;
-                            }
-                        if (is_max) value = c;
-                    }
-                    out_row[x - 1] = value;
-                }
+                for (int64_t x = 1; x < nx - 1; ++x)
+                    out_row[x - 1] = is_octave_maximum(centre_row + x, plane, nx, threshold, keep_row[x - 1])
+                                         ? centre_row[x] : -INFINITY;
             }
         }
     }
