@@ -102,18 +102,23 @@ def _allowed(valid_left: torch.Tensor, valid_right: torch.Tensor, laplacian_left
     return allowed
 
 
-def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torch.Tensor, max_ratio: float,
+def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, gates: tuple, max_ratio: float,
                  max_cost: float | None, mutual: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest neighbour, ratio test, threshold and mutual check for a group of pairs: idx, cost ``(b, K)``.
-    Without gradients, float32 descriptors on CPU take the C kernel of :mod:`svs_torch.kernels`: the same
-    search without the distance matrix, each distance summed over d in order (on real descriptors the same
-    matches and costs as ``cdist``; another summation order could differ in the last bits)."""
+    ``gates``: :func:`_allowed`'s arguments. Without gradients, float32 descriptors on CPU take the C kernel of
+    :mod:`svs_torch.kernels`: the same search without the mask or the distance matrix, each left row against
+    the right descriptors of its Laplacian sign only, each distance summed over d in order (on real descriptors
+    the same matches and costs as ``cdist``; another summation order could differ in the last bits)."""
     found = None
     if not (torch.is_grad_enabled() and (desc_left.requires_grad or desc_right.requires_grad)):
-        found = kernels.sad_nearest(desc_left, desc_right, allowed)
+        valid_left, valid_right, sign_left, sign_right, xy_left, xy_right, band_px = gates
+        found = kernels.sad_nearest(desc_left, desc_right, valid_left, valid_right, sign_left, sign_right,
+                                    None if band_px is None else xy_left[..., 1],
+                                    None if band_px is None else xy_right[..., 1], band_px)
     if found is not None:
         best, second, idx, back = found
     else:
+        allowed = _allowed(*gates)
         distance = torch.cdist(desc_left, desc_right, p=1)  # (b, K, K2) SAD
         distance = torch.where(allowed, distance, math.inf)
         nearest = torch.topk(distance, k=min(2, distance.shape[-1]), dim=-1, largest=False)  # sorted ascending
@@ -213,10 +218,9 @@ def match_sad(
         def pick(value: torch.Tensor | None) -> torch.Tensor | None:
             return None if value is None else value[part]
 
-        allowed = _allowed(valid_left[part], valid_right[part], pick(laplacian_left), pick(laplacian_right),
-                           pick(xy_left), pick(xy_right), epipolar_band_px)
-        group_idx, group_cost = _match_group(desc_left[part], desc_right[part], allowed, max_ratio, max_cost,
-                                             mutual)
+        gates = (valid_left[part], valid_right[part], pick(laplacian_left), pick(laplacian_right), pick(xy_left),
+                 pick(xy_right), epipolar_band_px)
+        group_idx, group_cost = _match_group(desc_left[part], desc_right[part], gates, max_ratio, max_cost, mutual)
         idx_parts.append(group_idx)
         cost_parts.append(group_cost)
     return Matches(idx=torch.cat(idx_parts), cost=torch.cat(cost_parts))

@@ -256,7 +256,7 @@ def test_kernels_take_an_empty_batch():
     if not kernels.available("sad_nearest"):
         pytest.skip("no C compiler")
     best, second, index, back = kernels.sad_nearest(torch.zeros(0, 4, 64), torch.zeros(0, 5, 64),
-                                                    torch.ones(0, 4, 5, dtype=torch.bool))
+                                                    torch.ones(0, 4, dtype=torch.bool), torch.ones(0, 5, dtype=torch.bool))
     assert best.shape == (0, 4) and back.shape == (0, 5)
     described = kernels.usurf_describe(torch.zeros(0, 1, 20, 20), 8, torch.zeros(0, 3, 2), torch.ones(0, 3),
                                        torch.ones(0, 3, dtype=torch.bool), False)
@@ -420,10 +420,11 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
 
 @pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
 @pytest.mark.parametrize("mutual", [False, True])
-def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual):
+@pytest.mark.parametrize("band_px", [None, 4.0])
+def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual, band_px):
     """SAD matching through the C kernel gives the torch path's matches (cdist, topk, argmin) on real SURF
-    descriptors, with the Laplacian gate, the ratio test and the mutual check; costs equal to float32
-    round-off."""
+    descriptors, with the Laplacian gate, the epipolar band, the ratio test and the mutual check; costs equal to
+    float32 round-off."""
     from svs_torch.matching import match_sad
 
     features = extract_surf_features(images, config=SurfConfig(metric_threshold=100.0))
@@ -435,7 +436,9 @@ def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual):
 
     def match():
         return match_sad(left, right, valid_left, valid_right, max_ratio=0.8, mutual=mutual,
-                         laplacian_left=signs[[0, 2]], laplacian_right=signs[[1, 1]])
+                         laplacian_left=signs[[0, 2]], laplacian_right=signs[[1, 1]],
+                         xy_left=features.keypoints.xy[[0, 2]], xy_right=features.keypoints.xy[[1, 1]],
+                         epipolar_band_px=band_px)
 
     fused = match()
     monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
@@ -446,18 +449,35 @@ def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual):
 
 
 @pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
-def test_sad_matching_kernel_edge_rows():
-    """No allowed candidate, a single one, two at the same distance: the same best / second / back as the
-    masked matrix gives."""
-    left = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
-    right = torch.tensor([[[0.0, 0.5], [0.0, 1.5], [5.0, 5.0]]])
-    allowed = torch.tensor([[[False, False, False], [True, False, False], [True, True, True]]])
-    best, second, index, back = kernels.sad_nearest(left, right, allowed)
+@pytest.mark.parametrize("band_px", [None, 1.0])
+def test_sad_matching_kernel_edge_rows(band_px):
+    """An invalid row, rows whose sign or band leaves no candidate or a single one, two at the same distance, an
+    invalid column, the signs out of order: the same best / second / back as the masked matrix gives."""
+    from svs_torch.matching import _allowed
+
+    left = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0], [2.0, 2.0]]])
+    right = torch.tensor([[[0.0, 0.5], [3.0, 3.0], [0.0, 1.5], [5.0, 5.0], [0.0, 0.5]]])
+    valid_left = torch.tensor([[False, True, True, True, True]])
+    valid_right = torch.tensor([[True, True, True, False, True]])
+    sign_left, sign_right = torch.tensor([[1, 1, 1, -1, 7]]), torch.tensor([[1, -1, 1, 1, 1]])
+    y_left, y_right = torch.tensor([[0.0, 5.0, 0.0, 0.0, 0.0]]), torch.tensor([[0.0, 0.0, 0.5, 0.0, 9.0]])
+    xy_left, xy_right = torch.stack([y_left, y_left], -1), torch.stack([y_right, y_right], -1)
+    best, second, index, back = kernels.sad_nearest(left, right, valid_left, valid_right, sign_left, sign_right,
+                                                    y_left, y_right, band_px)
+    allowed = _allowed(valid_left, valid_right, sign_left, sign_right, xy_left, xy_right, band_px)
     distance = torch.where(allowed, torch.cdist(left, right, p=1), torch.inf)
-    assert torch.equal(best[0], torch.tensor([float("inf"), 1.5, 0.5]))
-    assert torch.equal(second[0], torch.tensor([float("inf"), float("inf"), 0.5]))  # a tie at 0.5
-    assert index[0, 1] == 0 and index[0, 2] == 0  # the first on ties
+    nearest = torch.topk(distance, 2, dim=-1, largest=False)
+    assert torch.equal(best, nearest.values[..., 0]) and torch.equal(second, nearest.values[..., 1])
+    assert torch.equal(index, torch.where(torch.isfinite(best), distance.argmin(dim=-1), 0))  # first on ties
     assert torch.equal(back, distance.argmin(dim=-2))
+    # Row 2: columns 0, 2 and 4 at 0.5 (the band drops 4): a tie, the first.
+    assert best[0, 2] == second[0, 2] == 0.5 and index[0, 2] == 0
+    if band_px is None:  # row 1: columns 0 and 4 at 1.5
+        assert best[0, 1] == second[0, 1] == 1.5 and index[0, 1] == 0
+    else:  # the band leaves row 1 nothing
+        assert torch.isinf(best[0, 1]) and int(allowed[0, 2].sum()) == 2
+    assert best[0, 3] == 5.0 and torch.isinf(second[0, 3])  # its sign's single candidate
+    assert torch.isinf(best[0, 0]) and torch.isinf(best[0, 4])  # invalid; no column of its sign
 
 
 @pytest.mark.skipif(not kernels.available("labelled_select"), reason="no C compiler")

@@ -79,7 +79,7 @@ _SIGNATURES = {
     "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
     "lk_refine": ([_POINTER, _POINTER] + [_INT] * 4 + [_POINTER] * 4 + [_INT, _FLOAT, _POINTER, _POINTER, _INT],
                   None),
-    "sad_nearest": ([_POINTER] * 3 + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
+    "sad_nearest": ([_POINTER] * 8 + [_FLOAT] + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
@@ -404,26 +404,38 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     return refined, correlation
 
 
-def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, allowed: torch.Tensor
+def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_left: torch.Tensor,
+                valid_right: torch.Tensor, sign_left: torch.Tensor | None = None,
+                sign_right: torch.Tensor | None = None, y_left: torch.Tensor | None = None,
+                y_right: torch.Tensor | None = None, band_px: float | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """Nearest neighbours by SAD (see the C source): ``desc_left`` ``(B, K, D)``, ``desc_right`` ``(B, K2, D)``
-    float32, ``allowed`` ``(B, K, K2)`` bool. Returns ``(best, second, best_index, back)``: each left row's
-    smallest and second-smallest allowed distance ``(B, K)`` (+inf if none), the index of the smallest, and
-    each right descriptor's nearest left row ``(B, K2)``; None when the kernel is not available or the inputs
-    do not fit its contract."""
-    if not (_on_cpu(torch.float32, desc_left, desc_right) and _on_cpu(torch.bool, allowed)):
+    float32; a candidate pair needs ``valid_left`` ``(B, K)`` and ``valid_right`` ``(B, K2)`` (bool), equal
+    ``sign_left`` / ``sign_right`` (int64, optional) and, given ``band_px``, ``|y_left − y_right| ≤ band_px``
+    (float32 ``(B, K)``, ``(B, K2)``), as :func:`svs_torch.matching._allowed`. Returns ``(best, second,
+    best_index, back)``: each left row's smallest and second-smallest allowed distance ``(B, K)`` (+inf if
+    none), the index of the smallest, and each right descriptor's nearest left row ``(B, K2)``; None when the
+    kernel is not available or the inputs do not fit its contract."""
+    signs = sign_left is not None
+    band = band_px is not None
+    if (not (_on_cpu(torch.float32, desc_left, desc_right) and _on_cpu(torch.bool, valid_left, valid_right))
+            or signs != (sign_right is not None) or band and (y_left is None or y_right is None)
+            or signs and not _on_cpu(torch.int64, sign_left, sign_right)
+            or band and not _on_cpu(torch.float32, y_left, y_right)):
         return None
     library = load("sad_nearest")
     if library is None:
         return None
     b, k, d = desc_left.shape
     k2 = desc_right.shape[1]
-    left, right_t, allowed = desc_left.contiguous(), desc_right.transpose(1, 2).contiguous(), allowed.contiguous()
+    inputs = [t.contiguous() if t is not None else None for t in (
+        desc_left, desc_right, valid_left, valid_right, sign_left if signs else None, sign_right if signs else None,
+        y_left if band else None, y_right if band else None)]
+    pointers = [0 if t is None else t.data_ptr() for t in inputs]
     best, second = torch.empty(b, k), torch.empty(b, k)
     best_index, back = torch.empty(b, k, dtype=torch.int64), torch.empty(b, k2, dtype=torch.int64)
-    status = library.sad_nearest(left.data_ptr(), right_t.data_ptr(), allowed.data_ptr(), b, k, k2, d,
-                                 best.data_ptr(), second.data_ptr(), best_index.data_ptr(), back.data_ptr(),
-                                 torch.get_num_threads())
+    status = library.sad_nearest(*pointers, band_px if band else 0.0, b, k, k2, d, best.data_ptr(),
+                                 second.data_ptr(), best_index.data_ptr(), back.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (best, second, best_index, back)
 
 

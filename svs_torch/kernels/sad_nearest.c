@@ -1,12 +1,15 @@
 /* Nearest and second-nearest neighbours by SAD (L1) between descriptor sets, for svs_torch.matching (the
- * no-gradient path of _match_group; the torch path, torch.cdist + topk + argmin, stays the reference).
+ * no-gradient path of _match_group; the torch path, _allowed + torch.cdist + topk + argmin, stays the reference).
  *
- * The torch path writes the whole (B, K, K2) distance matrix, masks it, and reads it three more times (the
- * two smallest per row, the argmin per column). Here each left row's distances to every right descriptor are
- * made in one pass over the descriptor dimension, vectorised across right descriptors (the right set is
- * given transposed, (B, D, K2)), and consumed at once: the row's nearest and second-nearest allowed
- * candidates, and each column's nearest left row. A distance is summed in float32 over d in order, so it can
- * differ from torch.cdist's (another summation order) in the last bits.
+ * The torch path builds the (B, K, K2) mask of allowed candidates (both valid, the same Laplacian sign, inside
+ * the epipolar band), writes the whole distance matrix, masks it, and reads it three more times (the two smallest
+ * per row, the argmin per column). Here the right descriptors of a pair that can be candidates at all (the valid
+ * ones) are put in groups of equal Laplacian sign, transposed, in index order within a group; each left row's
+ * distances to its own group only (the others are never allowed: about half the work with the sign gate) are made
+ * in one pass over the descriptor dimension, vectorised across the group, and consumed at once with the band
+ * test: the row's nearest and second-nearest allowed candidates, and each column's nearest left row. A distance is
+ * summed in float32 over d in order, so it can differ from torch.cdist's (another summation order) in the last
+ * bits. Candidates are visited in index order, so ties resolve as the torch path's (the first index).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
  */
@@ -16,43 +19,80 @@
 
 #include "common.h"
 
-/* left: (B, K, D); right_t: (B, D, K2); allowed: (B, K, K2) uint8. Writes best, second (B, K) float32 (+inf
- * when there is no allowed candidate or only one), best_index (B, K) int64 (the first on ties; 0 when none),
- * back (B, K2) int64: the left row nearest to each right descriptor among its allowed rows (the first on
- * ties; 0 when none), as torch's argmin over the masked matrix. Returns -1 when memory could not be had. */
-int sad_nearest(const float *left, const float *right_t, const uint8_t *allowed, int64_t B, int64_t K,
-                int64_t K2, int64_t D, float *best, float *second, int64_t *best_index, int64_t *back,
-                int64_t num_threads) {
+/* A valid right descriptor, ordered by its Laplacian sign, then its index. */
+typedef struct {
+    int64_t sign;
+    int64_t index;
+} column;
+
+static int by_sign_then_index(const void *a, const void *b) {
+    const column *x = a, *y = b;
+    if (x->sign != y->sign) return x->sign < y->sign ? -1 : 1;
+    return (x->index > y->index) - (x->index < y->index);
+}
+
+/* left: (B, K, D); right: (B, K2, D); valid_left (B, K), valid_right (B, K2) uint8; sign_left (B, K) and
+ * sign_right (B, K2) int64, or both NULL (no sign gate); y_left (B, K) and y_right (B, K2) float32, or both NULL
+ * (no band), else candidates need |y_left - y_right| <= band. Writes best, second (B, K) float32 (+inf when there
+ * is no allowed candidate or only one), best_index (B, K) int64 (the first on ties; 0 when none), back (B, K2)
+ * int64: the left row nearest to each right descriptor among its allowed rows (the first on ties; 0 when none),
+ * as torch's argmin over the masked matrix. Returns -1 when memory could not be had. */
+int sad_nearest(const float *left, const float *right, const uint8_t *valid_left, const uint8_t *valid_right,
+                const int64_t *sign_left, const int64_t *sign_right, const float *y_left, const float *y_right,
+                float band, int64_t B, int64_t K, int64_t K2, int64_t D, float *best, float *second,
+                int64_t *best_index, int64_t *back, int64_t num_threads) {
     const int threads = thread_count(num_threads, B);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
         float *distance = scratch(K2, sizeof(float));
         float *column_best = scratch(K2, sizeof(float));
-        const int ready = scratch_ready(distance && column_best, &failed);
+        float *grouped = scratch(D * K2, sizeof(float));  /* (D, n): the valid right descriptors, grouped */
+        column *columns = scratch(K2, sizeof(column));
+        const int ready = scratch_ready(distance && column_best && grouped && columns, &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
             if (!ready) continue;
-            const float *rt = right_t + b * D * K2;
             int64_t *column_index = back + b * K2;
+            int64_t n = 0;
             for (int64_t j = 0; j < K2; ++j) {
                 column_best[j] = INFINITY;
                 column_index[j] = 0;
+                if (valid_right[b * K2 + j]) {
+                    columns[n].sign = sign_right ? sign_right[b * K2 + j] : 0;
+                    columns[n].index = j;
+                    ++n;
+                }
+            }
+            qsort(columns, (size_t)n, sizeof(column), by_sign_then_index);
+            for (int64_t p = 0; p < n; ++p) {
+                const float *r = right + (b * K2 + columns[p].index) * D;
+                for (int64_t d = 0; d < D; ++d) grouped[d * n + p] = r[d];
             }
             for (int64_t i = 0; i < K; ++i) {
-                const float *l = left + (b * K + i) * D;
-                const uint8_t *ok = allowed + (b * K + i) * K2;
-                for (int64_t j = 0; j < K2; ++j) distance[j] = 0.0f;
-                for (int64_t d = 0; d < D; ++d) {
-                    const float value = l[d];
-                    const float *restrict column = rt + d * K2;
-                    float *restrict sum = distance;
-                    for (int64_t j = 0; j < K2; ++j) sum[j] += fabsf(value - column[j]);
-                }
                 float first = INFINITY, next = INFINITY;
                 int64_t first_index = 0;
-                for (int64_t j = 0; j < K2; ++j) {
-                    const float c = ok[j] ? distance[j] : INFINITY;
+                /* The row's group: the columns of its sign (all of them without the sign gate). */
+                int64_t start = 0, stop = valid_left[b * K + i] ? n : 0;
+                if (sign_left && stop > 0) {
+                    const int64_t sign = sign_left[b * K + i];
+                    while (start < n && columns[start].sign < sign) ++start;
+                    stop = start;
+                    while (stop < n && columns[stop].sign == sign) ++stop;
+                }
+                const int64_t width = stop - start;
+                const float *l = left + (b * K + i) * D;
+                for (int64_t p = 0; p < width; ++p) distance[p] = 0.0f;
+                for (int64_t d = 0; d < D; ++d) {
+                    const float value = l[d];
+                    const float *restrict group = grouped + d * n + start;
+                    float *restrict sum = distance;
+                    for (int64_t p = 0; p < width; ++p) sum[p] += fabsf(value - group[p]);
+                }
+                for (int64_t p = 0; p < width; ++p) {
+                    const int64_t j = columns[start + p].index;
+                    if (y_left && !(fabsf(y_left[b * K + i] - y_right[b * K2 + j]) <= band)) continue;
+                    const float c = distance[p];
                     if (c < first) {
                         next = first;
                         first = c;
@@ -72,6 +112,8 @@ int sad_nearest(const float *left, const float *right_t, const uint8_t *allowed,
         }
         free(distance);
         free(column_best);
+        free(grouped);
+        free(columns);
     }
     return failed ? -1 : 0;
 }
