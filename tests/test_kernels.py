@@ -189,6 +189,36 @@ def test_strongest_maxima_kernel_ties_and_small_octaves():
     assert kernels.strongest_maxima(dets, supports, 0.5, 59) is None
 
 
+@pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("width", [1, 7, 8, 9, 67])
+def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
+    """The runs of sparse, dense and blocky masks (rows all set, all clear, runs across the eight-pixel words and
+    up to the row's end), with and without a value that splits them: the torch path's starts and ends."""
+    from svs_torch.components import _find_runs
+
+    masks = [torch.rand(3, 5, width, generator=generator) > p for p in (0.9, 0.5, 0.05)]
+    blocky = torch.rand(3, 5, 1, generator=generator).expand(3, 5, width) > 0.5  # whole rows set or clear
+    blocky = blocky.clone()
+    blocky[0, 0, width // 2:] = False
+    masks.append(blocky)
+    before = torch.get_num_threads()
+    for mask in masks:
+        value = torch.randint(1, 3, mask.shape, generator=generator)
+        for given in (None, value):
+            assert kernels.find_runs(mask, given) is not None
+            torch.set_num_threads(threads)
+            try:
+                fused = _find_runs(mask, given)
+            finally:
+                torch.set_num_threads(before)
+            monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+            reference = _find_runs(mask, given)
+            monkeypatch.delenv("SVS_TORCH_KERNELS")
+            assert torch.equal(fused.start, reference.start) and torch.equal(fused.end, reference.end)
+    assert kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
+
+
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
     compiler = shutil.which("cc") or shutil.which("gcc")

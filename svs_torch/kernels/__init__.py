@@ -1,12 +1,13 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
-through ``ctypes``: the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
+through ``ctypes``: the runs of each mask row that the segmentation's connected components start from
+(``find_runs.c``), the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
 maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), its
 upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
-path of a torch function that stays the reference, the fallback and the differentiable path. The first seven give
+path of a torch function that stays the reference, the fallback and the differentiable path. The first eight give
 that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
 index order, which ``torch.topk`` leaves open); the matching kernel sums each distance in its own order (on
 real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
@@ -41,13 +42,14 @@ masked distance matrix and read it three times (topk, argmin); the kernel consum
 makes it (16 real pairs: 110 → 29 ms). The objects' depth statistics cropped every pair to the batch's largest
 box (three gathers, the fill, the depth, a selection and a count per object over it, so that a pair of B = 128
 cost twice a pair of B = 32); the kernel reads each pair once at its own box (64 real pairs at B = 8, one thread:
-1.84 → 0.7 ms a pair).
+1.84 → 0.7 ms a pair). The runs took about eight passes over the batch's masks and two ``nonzero``; the kernel
+reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms).
 
 The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes the
 source, the headers they share (``common.h``: the thread count, the scratch allocation; ``fill_row.h`` and
-``select_rank.h``: the row fill and the quickselect; ``maxima.h``: SURF's maximum test), the compiler flags and the CPU, so every later process reuses
-them; each one-time compile (about a second) is announced on stderr. Without a compiler, or with
-``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
+``select_rank.h``: the row fill and the quickselect; ``maxima.h``: SURF's maximum test), the compiler flags and the
+CPU, so every later process reuses them; each one-time compile (about a second) is announced on stderr. Without a
+compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
 """
 
 from __future__ import annotations
@@ -65,9 +67,9 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "hessian_octave", "labelled_select",
-           "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest", "strongest_maxima",
-           "usurf_describe"]
+__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "hessian_octave",
+           "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
+           "strongest_maxima", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -81,6 +83,7 @@ _SIGNATURES = {
                   None),
     "sad_nearest": ([_POINTER] * 8 + [_FLOAT] + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
+    "find_runs": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
@@ -478,6 +481,34 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
                                        reachable.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (filled, reachable)
+
+
+def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.components._find_runs` in two passes per row (see the C source): the flat start and end
+    (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
+    ending where ``value`` (int64, its shape) changes. None when the kernel is not available or the inputs do not
+    fit its contract."""
+    if (not _on_cpu(torch.bool, foreground) or foreground.dim() < 1
+            or value is not None and (not _on_cpu(torch.int64, value) or value.shape != foreground.shape)):
+        return None
+    library = load("find_runs")
+    if library is None:
+        return None
+    width = foreground.shape[-1]
+    rows = foreground.numel() // width if width else 0
+    foreground = foreground.contiguous()
+    value = None if value is None else value.contiguous()
+    value_ptr = 0 if value is None else value.data_ptr()
+    counts = torch.empty(rows, dtype=torch.int64)
+    threads = torch.get_num_threads()
+    library.find_runs(foreground.data_ptr(), value_ptr, rows, width, counts.data_ptr(), 0, 0, threads)
+    total = int(counts.sum())
+    first = counts.cumsum(0) - counts  # each row's first output slot
+    start, end = torch.empty(total, dtype=torch.int64), torch.empty(total, dtype=torch.int64)
+    library.find_runs(foreground.data_ptr(), value_ptr, rows, width, first.data_ptr(), start.data_ptr(),
+                      end.data_ptr(), threads)
+    return start, end
 
 
 def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
