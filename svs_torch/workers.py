@@ -10,12 +10,14 @@ import ctypes
 import gc
 import os
 import platform
+import select
 import sys
 import threading
 import time
 from collections.abc import Iterator
 
-__all__ = ["available_cores", "imports_without_collection", "keep_freed_memory", "start_worker", "thread_budget"]
+__all__ = ["available_cores", "imports_without_collection", "keep_freed_memory", "start_worker", "stop_worker_server",
+           "thread_budget", "worker_pool"]
 
 #: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
@@ -88,17 +90,71 @@ def imports_without_collection() -> Iterator[None]:
             gc.enable()
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process took the number: ours is gone
+        return False
+    return True
+
+
 def _watch_parent(parent: int) -> None:
-    while os.getppid() == parent:
-        time.sleep(0.5)
-    os._exit(1)  # the parent was killed (even with SIGKILL): no orphan keeps computing or holding memory
+    """End this worker when the process ``parent`` ends (even by SIGKILL): no orphan keeps computing or holding
+    memory. ``parent`` is the process that made the pool, not necessarily this one's direct parent (a forkserver
+    outlives it while its workers hold its 'alive' pipe). A pidfd (Linux ≥ 5.3) wakes at the parent's exit and
+    cannot be fooled by a reused process number; elsewhere the number is polled."""
+    try:
+        handle = os.pidfd_open(parent)
+    except (AttributeError, OSError):  # no pidfd here, or the parent is already gone
+        handle = None
+    if handle is not None:
+        select.select([handle], [], [])
+    else:
+        while _alive(parent):
+            time.sleep(0.5)
+    os._exit(1)
 
 
-def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
+def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()):
+    """A ``ProcessPoolExecutor`` of ``workers`` processes, each started by :func:`start_worker` with ``threads``
+    torch threads. Where the platform has the 'forkserver' start method (Linux, macOS), the workers are forked
+    from a server that imported torch and the pipeline once (:mod:`svs_torch.worker_preload`) and
+    ``warm_modules``: a worker is ready in milliseconds instead of spending 1.0–1.5 CPU-seconds importing torch
+    itself. Elsewhere they are spawned (never plainly forked: this process may have started torch's thread
+    pools). The server keeps the environment this process had when it started it, and it counts its workers'
+    CPU time: end it with :func:`stop_worker_server` once the pool has shut down."""
+    import concurrent.futures
+    import multiprocessing
+
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload(["svs_torch.worker_preload", *warm_modules])
+    else:
+        context = multiprocessing.get_context("spawn")
+    return concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
+                                                  initargs=(threads, warm_modules, os.getpid()))
+
+
+def stop_worker_server() -> None:
+    """End the forkserver of :func:`worker_pool` (if one runs) and wait for it, after the pool has shut down:
+    its workers' CPU time then counts among this process's children (as ``time`` or a benchmark measures it;
+    an unwaited server's is lost), and a later pool starts a server with the environment of that moment.
+    Python has no public call for it: without ``ForkServer._stop`` (3.8–3.13 have it) the server ends with
+    this process, as before."""
+    from multiprocessing import forkserver
+
+    stop = getattr(getattr(forkserver, "_forkserver", None), "_stop", None)
+    if stop is not None:
+        stop()
+
+
+def start_worker(threads: int, warm_modules: tuple[str, ...] = (), parent: int | None = None) -> None:
     """Worker initializer: pin torch's (and numpy's OpenBLAS) threads, keep freed memory
     (:func:`keep_freed_memory`), import ``warm_modules`` (so that the first task does not pay for them), leave
     Ctrl-C to the parent (which stops the pool; a worker would only print a traceback), and end the worker when
-    its parent process is gone."""
+    the process ``parent`` (default: its direct parent) is gone."""
     import importlib
     import signal
 
@@ -113,4 +169,5 @@ def start_worker(threads: int, warm_modules: tuple[str, ...] = ()) -> None:
             importlib.import_module(name)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
-    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True, name="watch-parent").start()
+    threading.Thread(target=_watch_parent, args=(os.getppid() if parent is None else parent,), daemon=True,
+                     name="watch-parent").start()

@@ -255,6 +255,100 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
     assert code == 2 and out == "" and len(err.splitlines()) == 1 and "pairs:" in err
 
 
+def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
+    """The parent's prefetch: the two images of each plain line (calibrated or not, relative to the list),
+    nothing for other lines; decoded while the starting thread lives, grouped by batch; a file that does not
+    decode is left to the worker (which reports it)."""
+    import argparse
+    import threading
+    import time
+
+    from svs_torch.cli.estimate import _decode_while, _listed_image_pairs
+    from svs_torch.image_files import preload_key
+
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((4, 5), 7 if name == "a.png" else 9, np.uint8))
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("a.png b.png\n# a comment\n\na.png 'b.png' 700 0.1\nsome-folder\nmissing.png a.png\n")
+    a, b, missing = (str(tmp_path / name) for name in ("a.png", "b.png", "missing.png"))
+    assert _listed_image_pairs(str(listing)) == [(a, b), (a, b), None, (missing, a)]
+    assert _listed_image_pairs(str(tmp_path / "index.jsonl")) == [] == _listed_image_pairs(str(tmp_path / "no"))
+    starting = threading.Thread(target=time.sleep, args=(30,), daemon=True)
+    starting.start()
+    decoded = _decode_while(starting, argparse.Namespace(pairs=str(listing), batch_size=2))
+    assert sorted(decoded) == [0, 1]
+    assert sorted(decoded[0]) == sorted([preload_key(a), preload_key(b)])
+    assert sorted(decoded[1]) == [preload_key(a)]  # the missing file is the worker's to report
+    assert np.array_equal(decoded[0][preload_key(b)], np.full((4, 5), 9, np.uint8))
+    finished = threading.Thread(target=lambda: None)
+    finished.start()
+    finished.join()
+    assert _decode_while(finished, argparse.Namespace(pairs=str(listing), batch_size=2)) == {}
+
+
+def test_worker_pool_forks_from_a_server_that_imported_torch():
+    """Workers come from a forkserver that imported torch and the pipeline (frozen for the collector), not from
+    this process; once it is stopped, their CPU time counts among this process's children, and the server is
+    gone."""
+    import gc
+    import resource
+
+    from svs_torch.workers import stop_worker_server, worker_pool
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    executor = worker_pool(1, 1)
+    try:
+        server = executor.submit(os.getppid).result(timeout=300)
+        frozen = executor.submit(gc.get_freeze_count).result(timeout=60)
+        executor.submit(sum, range(20_000_000)).result(timeout=120)
+    finally:
+        executor.shutdown(wait=True)
+        stop_worker_server()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert server != os.getpid() and frozen > 100_000
+    assert after.ru_utime - before.ru_utime > 0.5  # torch's import and the sum, counted once the server ended
+    with pytest.raises(ProcessLookupError):
+        os.kill(server, 0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_estimate_workers_end_when_the_command_is_killed(data_dir, tmp_path):
+    """SIGKILL to svs-depth estimate mid-run (no handler, no clean-up): its workers and their server end too."""
+    import signal
+    import time
+
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{scene / 'im0.png'} {scene / 'im1.png'}\n" * 2000)
+    command = [sys.executable, "-m", "svs_torch.cli", "estimate", "--pairs", str(listing), "--json",
+               "--workers", "2", "--batch-size", "2"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True)
+
+    def session() -> list[int]:
+        found = []
+        for entry in Path("/proc").iterdir():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            if entry.name.isdigit() and int(fields[3]) == process.pid and fields[0] != "Z":
+                found.append(int(entry.name))
+        return found
+
+    try:
+        process.stdout.readline()  # the workers are computing
+        assert len(session()) >= 3
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait(timeout=30)
+        deadline = time.monotonic() + 20
+        while session() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert session() == []
+    finally:
+        for pid in session():
+            os.kill(pid, signal.SIGKILL)
+
+
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
 def test_allocator_keeps_freed_memory_in_a_fresh_process():
     """The command line's allocator settings are values glibc accepts (mallopt returns 0 for one it refuses,

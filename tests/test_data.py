@@ -332,3 +332,24 @@ def test_read_middlebury_calib_tolerates_odd_whitespace(tmp_path: Path, data_dir
     path.write_text("cam0=[1 0 0; 0 1 0; 0 0 1]\n")
     with pytest.raises(InputError, match="calib file lacks 'cam1'"):
         read_middlebury_calib(path)
+
+
+def test_preloaded_arrays_are_not_read_again(tmp_path):
+    """An array another process decoded (``svs-depth estimate --pairs`` decodes in its parent while the workers
+    start) is returned for its file instead of reading it; without it the file is read (and a missing one
+    refused) as before."""
+    from svs_torch.image_files import PRELOADED, preload_key, read_image_array
+
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), np.arange(12, dtype=np.uint8).reshape(3, 4))
+    array = read_image_array(path, "left")
+    assert np.array_equal(array, cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    elsewhere = tmp_path / "decoded-elsewhere.png"  # no such file
+    PRELOADED[preload_key(str(elsewhere))] = array
+    try:
+        assert read_image_array(elsewhere, "left") is array
+        assert torch.equal(read_gray_image(elsewhere), read_gray_image(path))
+    finally:
+        PRELOADED.clear()
+    with pytest.raises(InputError, match="left: file not found"):
+        read_image_array(elsewhere, "left")

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
@@ -328,16 +330,23 @@ def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
         return 0, str(error)
 
 
-def _worker_chunk(args: argparse.Namespace, start: int, stop: int
+def _worker_chunk(args: argparse.Namespace, start: int, stop: int, decoded: dict | None = None
                   ) -> tuple[list[tuple[dict, str | None]], list[str]]:
     """Worker task: :func:`_estimate_chunk` of the list's entries ``[start, stop)``, and the warnings it raised
-    (the parent shows them as its own one-line warnings)."""
+    (the parent shows them as its own one-line warnings). ``decoded``: image arrays the parent decoded for
+    these entries (:data:`svs_torch.image_files.PRELOADED`), used instead of reading those files again."""
     import warnings
 
+    from ..image_files import PRELOADED
+
     pairs, config = _worker_setup(args)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("default")
-        lines = _estimate_chunk(pairs[start:stop], args, config)
+    PRELOADED.update(decoded or {})
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            lines = _estimate_chunk(pairs[start:stop], args, config)
+    finally:
+        PRELOADED.clear()
     return lines, [str(warning.message) for warning in caught]
 
 
@@ -352,37 +361,96 @@ def _listed_lines(path: str) -> int:
         return 0
 
 
-def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> tuple[int, Iterator[list]]:
-    """The number of listed pairs, and the chunks' results in list order from ``workers`` spawned processes
-    (spawn: a fork would copy torch's started thread pools), each with ``threads`` torch threads."""
-    import concurrent.futures
-    import multiprocessing
+def _listed_image_pairs(path: str) -> list[tuple[str, str] | None]:
+    """A prefetch hint read without torch: each line's two image paths for the plain lines of a pair list
+    (``LEFT RIGHT`` with or without a calibration; paths relative to the list's folder, as
+    :func:`svs_torch.data.read_pair_list` resolves them), None for any other line, nothing for an
+    ``index.jsonl`` or a list that cannot be read. Only which files to decode ahead depends on it: a line
+    that turns into several entries (a scene folder) shifts the hint, never a result."""
+    import shlex
 
-    from ..workers import start_worker
+    if path.endswith(".jsonl"):
+        return []
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return []
+    pairs: list[tuple[str, str] | None] = []
+    for line in text.splitlines():
+        try:
+            fields = shlex.split(line, comments=True)
+        except ValueError:
+            fields = [line]
+        if fields:
+            paths = [str(p if Path(p).is_absolute() else Path(path).parent / p) for p in fields[:2]]
+            pairs.append((paths[0], paths[1]) if len(fields) in (2, 4, 5) else None)
+    return pairs
+
+
+def _decode_while(starting, args: argparse.Namespace) -> dict[int, dict]:
+    """While the thread ``starting`` waits for the workers (their server imports torch, 1.0–1.5 s, on one
+    core), decode the list's first images here on the other (cv2 and numpy only): {chunk index: {file key:
+    array}}, sent with each chunk so that its worker skips those reads. A file that does not decode is left
+    to the worker, which reports it as it would."""
+    from ..errors import InputError
+    from ..image_files import preload_key, read_image_array
+
+    decoded: dict[int, dict] = {}
+    for index, pair in enumerate(_listed_image_pairs(args.pairs)):
+        if not starting.is_alive():
+            break
+        for path in pair or ():
+            try:
+                decoded.setdefault(index // args.batch_size, {})[preload_key(path)] = read_image_array(path, "pairs")
+            except (InputError, OSError):
+                pass
+    return decoded
+
+
+def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> tuple[int, Iterator[list]]:
+    """The number of listed pairs, and the chunks' results in list order from ``workers`` processes of
+    :func:`svs_torch.workers.worker_pool`, each with ``threads`` torch threads."""
+    from ..workers import worker_pool
     from . import CliError
 
-    executor = concurrent.futures.ProcessPoolExecutor(
-        workers, mp_context=multiprocessing.get_context("spawn"), initializer=start_worker,
-        initargs=(threads, ("svs_torch.pipeline",)))
+    executor = worker_pool(workers, threads, ("svs_torch.pipeline",))
+    counted: dict = {}
+
+    def start() -> None:
+        # One count task per worker: each starts its process now (which waits for the server's imports), and
+        # every worker reads the list it will need.
+        try:
+            counts = [executor.submit(_worker_count, args) for _ in range(workers)]
+            counted["count"] = counts[0].result()
+        except BaseException as error:  # raised again in the calling thread
+            counted["error"] = error
+
+    starting = threading.Thread(target=start, name="start-workers", daemon=True)
     try:
-        # One count task per worker: each starts its process now, and every worker reads the list it will need.
-        counts = [executor.submit(_worker_count, args) for _ in range(workers)]
-        total, problem = counts[0].result()
+        starting.start()
+        decoded = _decode_while(starting, args)
+        starting.join()
+        if "error" in counted:
+            raise counted["error"]
+        total, problem = counted["count"]
         if problem:
             raise CliError(problem)
     except BaseException:
         executor.shutdown(wait=False, cancel_futures=True)
         raise
-    return total, _ordered_chunks(executor, args, total)
+    return total, _ordered_chunks(executor, args, total, decoded)
 
 
-def _ordered_chunks(executor, args: argparse.Namespace, total: int) -> Iterator[list]:
+def _ordered_chunks(executor, args: argparse.Namespace, total: int, decoded: dict[int, dict]) -> Iterator[list]:
     """Every chunk of the list submitted to ``executor``, its lines yielded in list order; the workers'
     warnings shown here as this process's own."""
     import warnings
 
+    from ..workers import stop_worker_server
+
     try:
-        futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total))
+        futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total),
+                                   decoded.pop(start // args.batch_size, None))
                    for start in range(0, total, args.batch_size)]
         for future in futures:
             lines, messages = future.result()
@@ -390,6 +458,7 @@ def _ordered_chunks(executor, args: argparse.Namespace, total: int) -> Iterator[
                 warnings.warn(message, RuntimeWarning, stacklevel=2)
             yield lines
         executor.shutdown(wait=True)  # every task is done: the workers exit before this process does
+        stop_worker_server()  # and their server, waited for: their CPU time counts as this process's children's
     finally:  # an error, Ctrl-C or a closed pipe: drop what has not started, do not wait for it
         executor.shutdown(wait=False, cancel_futures=True)
 

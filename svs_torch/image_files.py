@@ -1,0 +1,154 @@
+"""Reading an image file into its array without torch: the command line's parent process decodes with it while
+its workers start, and :mod:`svs_torch.data.formats` reads every image through it.
+
+:func:`read_image_array` decodes with OpenCV from the file's bytes. :data:`PRELOADED` holds arrays another
+process decoded the same way (``svs-depth estimate --pairs`` decodes the first pairs in its parent while the
+workers' server imports torch, and sends them with each batch): a file found there is not read again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import tempfile
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .files import display_path, path_kind
+
+__all__ = ["MAX_DECODED_PIXELS", "PRELOADED", "check_file", "preload_key", "read_image_array"]
+
+#: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is taken
+#: (and removed) by the first read of that file.
+PRELOADED: dict[str, np.ndarray] = {}
+
+
+def preload_key(path: str | Path) -> str:
+    """The key of ``path`` in :data:`PRELOADED`: its absolute path, without touching the file system."""
+    return os.path.abspath(os.fspath(path))
+
+
+def check_file(path: str | Path, name: str) -> Path:
+    """``path`` as a :class:`Path`; raises :class:`InputError` naming ``name`` when it is not an existing file."""
+    kind = path_kind(path, name)
+    if kind == "missing":
+        raise InputError(f"{name}: file not found: {display_path(path)}")
+    if kind != "file":
+        raise InputError(f"{name}: expected a file, got a directory or special file: {display_path(path)}")
+    return Path(path)
+
+
+_NATIVE_STDERR_LOCK = threading.Lock()
+# OpenCV's log prefix ("[ERROR:0@2.476] global grfmt_tiff.cpp:117 ") and libtiff's tag, cut from decoder messages.
+_NATIVE_PREFIX = re.compile(r"^\[\s*\w+:\d+@[\d.]+\]\s*(global\s+\S+\s+)?(\w+\s+)?(TIFF_Error\s+)?")
+
+
+@contextlib.contextmanager
+def _native_stderr_collected(lines: list[str]):
+    """Collect into ``lines`` what C decoders (libpng, libjpeg, libtiff, OpenCV's logger) write to file
+    descriptor 2 meanwhile: a corrupt file then gives one :class:`InputError` line, not their noise.
+
+    Python's ``sys.stderr`` is untouched, but anything another thread writes to descriptor 2 in the window
+    (a decode, milliseconds) lands in ``lines`` too; a lock keeps two windows from interleaving.
+    """
+    with _NATIVE_STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no descriptor 2 (a daemon): nothing to keep quiet
+            yield
+            return
+        try:
+            with tempfile.TemporaryFile() as sink:
+                os.dup2(sink.fileno(), 2)
+                try:
+                    yield
+                finally:
+                    os.dup2(saved, 2)
+                sink.seek(0)
+                text = sink.read().decode("utf-8", "replace")
+        finally:
+            os.close(saved)
+    # OpenCV continues a message on lines starting with "> " (e.g. "> Unsupported number of channels:").
+    for line in text.splitlines():
+        if line.startswith(">") and lines:
+            lines[-1] = f"{lines[-1]} {line.lstrip('> ').strip()}".strip()
+        elif line.strip():
+            lines.append(_decoder_message(line))
+
+
+def _decoder_message(line: str) -> str:
+    """The gist of a decoder's line: no log prefix, no ``OpenCV(5.0.0) /path/file.cpp:59: error: (-2:...)``."""
+    line = _NATIVE_PREFIX.sub("", line.strip())
+    line = re.sub(r"^imdecode_\(''\):\s*", "", line)
+    line = re.sub(r"OpenCV\([^)]*\) \S+: error: \([^)]*\)\s*", "", line)
+    return re.sub(r"\s*in function '[^']*'$", "", line).strip()
+
+
+#: The most pixels an image file may declare (8192 x 8192): a 30000 x 30000 PNG of zeros is a 1 MB file that
+#: would decode into 900 MB, then be refused for its size anyway.
+MAX_DECODED_PIXELS = 1 << 26
+_JPEG_FRAME_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _declared_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header, read before decoding; None for other formats or a header
+    that does not say (OpenCV then decides)."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] != b"\xff\xd8":
+        return None
+    position = 2
+    while position + 9 <= len(data) and data[position] == 0xFF:
+        marker = data[position + 1]
+        if marker in _JPEG_FRAME_MARKERS:  # SOFn: length, precision, height, width
+            return (int.from_bytes(data[position + 7:position + 9], "big"),
+                    int.from_bytes(data[position + 5:position + 7], "big"))
+        if marker == 0xDA:  # start of scan: no frame header before it
+            return None
+        position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
+    return None
+
+
+def read_image_array(path: str | Path, name: str) -> np.ndarray:
+    """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`.
+
+    The file's bytes are read by Python and decoded from memory: any file name works, a truncated file is
+    refused (reading from a file, OpenCV would fill a truncated JPEG's missing rows with gray), and the
+    decoders' own complaints become the reason of the error instead of lines of their own on stderr. A file in
+    :data:`PRELOADED` is not read again: its array is returned as it is (callers do not write to it).
+    """
+    if PRELOADED:
+        preloaded = PRELOADED.get(preload_key(path))
+        if preloaded is not None:
+            return preloaded
+    path = check_file(path, name)
+    try:
+        data = np.frombuffer(path.read_bytes(), np.uint8)
+    except OSError as error:
+        raise InputError(f"{name}: cannot read {display_path(path)}: {error.strerror or error}") from None
+    declared = _declared_size(data[:65536].tobytes())
+    if declared is not None and declared[0] * declared[1] > MAX_DECODED_PIXELS:
+        raise InputError(f"{name}: the file declares {declared[0]}x{declared[1]} pixels, more than the "
+                         f"{MAX_DECODED_PIXELS // 2**20} megapixels read: {display_path(path)}")
+    complaints: list[str] = []
+    array = None
+    if data.size:
+        with _native_stderr_collected(complaints):
+            # imdecode returns None (it does not raise) for bytes it cannot decode, e.g. text renamed .png, and
+            # raises cv2.error for e.g. a header announcing more pixels than OpenCV's limit.
+            try:
+                array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+            except cv2.error as error:
+                complaints.append(_decoder_message(str(error).strip().splitlines()[-1]))
+    reason = f": {' '.join(complaints[0].split())[:160]}" if complaints else ""
+    if array is None:
+        kind = "an empty file" if not data.size else "not a readable image file"
+        raise InputError(f"{name}: {kind} (OpenCV could not decode it{reason}): {display_path(path)}")
+    # A file that decodes is taken as it is: what the decoders said about it (an unknown TIFF tag, a PNG colour
+    # profile) is not worth a line.
+    return array
