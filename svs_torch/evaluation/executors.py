@@ -2,9 +2,10 @@
 top-level function over picklable items and yields the results as they finish (in any order); the caller
 stores them, so only one process ever writes the results file.
 
-Local pool: ``ProcessPoolExecutor`` with ``spawn`` workers (fork after torch has started its thread pools is
-unsafe), each pinned to ``threads`` torch threads so that workers × threads does not oversubscribe the cores;
-a worker ends itself when its parent is gone (a sweep killed with SIGKILL leaves no orphan computing).
+Local pool: :func:`svs_torch.workers.worker_pool` (workers forked from a server that imported torch once, or
+spawned; never forked from this process, whose torch thread pools may have started), each pinned to ``threads``
+torch threads so that workers × threads does not oversubscribe the cores; a worker ends itself when the sweep's
+process is gone (a sweep killed with SIGKILL leaves no orphan computing).
 
 Dask (imported only here, only when asked for; ``pip install -e ".[dask]"``): ``client.map(..., pure=False)`` so
 that every call runs; the workers are checked for the pitfalls of ``../shared/REFERENCE.md`` (a nanny's
@@ -15,30 +16,29 @@ task itself).
 from __future__ import annotations
 
 import concurrent.futures
-import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from ..checks import InputError
-from ..workers import available_cores, start_worker
+from ..workers import available_cores, stop_worker_server, worker_pool
 
 __all__ = ["available_cores", "connect_dask", "map_dask", "map_process_pool"]
 
 
 def map_process_pool(function: Callable[[Any], Any], items: Iterable[Any], workers: int, threads: int
                      ) -> Iterator[Any]:
-    """``function(item)`` for every item in ``workers`` spawned processes of ``threads`` torch threads each,
-    yielded as each finishes. Leaving the loop early cancels what has not started."""
-    context = multiprocessing.get_context("spawn")
-    executor = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
-                                                      initargs=(threads,))
+    """``function(item)`` for every item in ``workers`` processes of ``threads`` torch threads each
+    (:func:`svs_torch.workers.worker_pool`), yielded as each finishes. Leaving the loop early cancels what has
+    not started."""
+    executor = worker_pool(workers, threads)
     try:
         futures = [executor.submit(function, item) for item in items]
         for future in concurrent.futures.as_completed(futures):
             yield future.result()
     finally:
         executor.shutdown(wait=True, cancel_futures=True)
+        stop_worker_server()
 
 
 def _worker_state() -> dict:
