@@ -117,7 +117,8 @@ def _watch_parent(parent: int) -> None:
     os._exit(1)
 
 
-def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()):
+def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
+                ) -> concurrent.futures.ProcessPoolExecutor:
     """A ``ProcessPoolExecutor`` of ``workers`` processes, each started by :func:`start_worker` with ``threads``
     torch threads. Where the platform has the 'forkserver' start method (Linux, macOS), the workers are forked
     from a server that imported torch and the pipeline once (:mod:`svs_torch.worker_preload`) and
@@ -125,12 +126,18 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()):
     itself. Elsewhere they are spawned (never plainly forked: this process may have started torch's thread
     pools). The server keeps the environment this process had when it started it, and it counts its workers'
     CPU time: end it with :func:`stop_worker_server` once the pool has shut down."""
-    import concurrent.futures
+    import concurrent.futures  # here, not at the top: the command line imports this module for --help too
     import multiprocessing
 
     if "forkserver" in multiprocessing.get_all_start_methods():
+        from multiprocessing import forkserver
+
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(["svs_torch.worker_preload", *warm_modules])
+        # Started here and now (its imports go on in the background): it inherits this process's descriptors as
+        # they are at this moment, before the command line's decoding redirects descriptor 2 for a few ms at a
+        # time (image_files collects decoder messages that way), which a later start could catch.
+        forkserver.ensure_running()
     else:
         context = multiprocessing.get_context("spawn")
     return concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
