@@ -848,12 +848,13 @@ def _mean_pool(images: torch.Tensor, factor: int) -> torch.Tensor:
 
 def _any_pool(mask: torch.Tensor, factor: int) -> torch.Tensor:
     """``F.max_pool2d(mask.float(), factor) > 0`` for a bool mask: whether any pixel of each block is set, by
-    OR-ing the block slices as bytes (on this CPU 20× faster than max-pooling a float copy)."""
+    OR-ing the block slices as bytes (on this CPU 20× faster than max-pooling a float copy). The OR of 0/1
+    bytes is 0 or 1, a bool's own bytes: viewed as bool, not converted (as :func:`any_along` does)."""
     first, *rest = _block_slices(mask.view(torch.uint8), factor)
     found = first
     for part in rest:
         found = found | part
-    return found.bool()
+    return found.view(torch.bool)
 
 
 def _reduce(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,

@@ -256,14 +256,14 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
 
 
 def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
-    """The parent's prefetch: the two images of each plain line (calibrated or not, relative to the list),
-    nothing for other lines; decoded while the starting thread lives, grouped by batch; a file that does not
-    decode is left to the worker (which reports it)."""
-    import argparse
+    """The list's lines as the parent reads them: the two images of each plain line (calibrated or not,
+    relative to the list), None for other lines (every line of an index.jsonl), nothing for a list it cannot
+    read; decoded while the starting thread lives, grouped by batch; a file that does not decode is left to the
+    worker (which reports it)."""
     import threading
     import time
 
-    from svs_torch.cli.estimate import _decode_while, _listed_image_pairs
+    from svs_torch.cli.estimate import _decode_while, _listed_lines
     from svs_torch.image_files import preload_key
 
     for name in ("a.png", "b.png"):
@@ -271,11 +271,14 @@ def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
     listing = tmp_path / "pairs.txt"
     listing.write_text("a.png b.png\n# a comment\n\na.png 'b.png' 700 0.1\nsome-folder\nmissing.png a.png\n")
     a, b, missing = (str(tmp_path / name) for name in ("a.png", "b.png", "missing.png"))
-    assert _listed_image_pairs(str(listing)) == [(a, b), (a, b), None, (missing, a)]
-    assert _listed_image_pairs(str(tmp_path / "index.jsonl")) == [] == _listed_image_pairs(str(tmp_path / "no"))
+    lines = _listed_lines(str(listing))
+    assert lines == [(a, b), (a, b), None, (missing, a)]
+    (tmp_path / "index.jsonl").write_text('{"left": "a.png", "right": "b.png"}\n\n{"left": "x"}\n')
+    assert _listed_lines(str(tmp_path / "index.jsonl")) == [None, None]
+    assert _listed_lines(str(tmp_path / "no")) == []
     starting = threading.Thread(target=time.sleep, args=(30,), daemon=True)
     starting.start()
-    decoded = _decode_while(starting, argparse.Namespace(pairs=str(listing), batch_size=2))
+    decoded = _decode_while(starting, lines, 2)
     assert sorted(decoded) == [0, 1]
     assert sorted(decoded[0]) == sorted([preload_key(a), preload_key(b)])
     assert sorted(decoded[1]) == [preload_key(a)]  # the missing file is the worker's to report
@@ -283,7 +286,7 @@ def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
     finished = threading.Thread(target=lambda: None)
     finished.start()
     finished.join()
-    assert _decode_while(finished, argparse.Namespace(pairs=str(listing), batch_size=2)) == {}
+    assert _decode_while(finished, lines, 2) == {}
 
 
 def test_worker_pool_forks_from_a_server_that_imported_torch():

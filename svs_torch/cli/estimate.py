@@ -350,32 +350,23 @@ def _worker_chunk(args: argparse.Namespace, start: int, stop: int, decoded: dict
     return lines, [str(warning.message) for warning in caught]
 
 
-def _listed_lines(path: str) -> int:
-    """About how many pairs a list holds (its non-blank, non-comment lines; a scene-folder line may hold more),
-    read without torch, to choose the number of workers; 0 when it cannot be read (the real reading reports
-    why)."""
-    try:
-        with open(path, encoding="utf-8", errors="replace") as lines:
-            return sum(1 for line in lines if line.strip() and not line.lstrip().startswith("#"))
-    except OSError:
-        return 0
-
-
-def _listed_image_pairs(path: str) -> list[tuple[str, str] | None]:
-    """A prefetch hint read without torch: each line's two image paths for the plain lines of a pair list
-    (``LEFT RIGHT`` with or without a calibration; paths relative to the list's folder, as
-    :func:`svs_torch.data.read_pair_list` resolves them), None for any other line, nothing for an
-    ``index.jsonl`` or a list that cannot be read. Only which files to decode ahead depends on it: a line
-    that turns into several entries (a scene folder) shifts the hint, never a result."""
+def _listed_lines(path: str) -> list[tuple[str, str] | None]:
+    """The list's lines read without torch, one item per non-blank, non-comment line: its two image paths for a
+    plain pair line (``LEFT RIGHT`` with or without a calibration; relative to the list's folder, as
+    :func:`svs_torch.data.read_pair_list` resolves them), None for any other line (an ``index.jsonl``'s all).
+    Their number is about how many pairs the list holds (a scene-folder line may hold more), to choose the
+    number of workers; the paths say which files to decode ahead. Neither decides a result: a list that cannot
+    be read gives [] (the real reading reports why), and a line that turns into several entries only shifts
+    which files are decoded ahead."""
     import shlex
 
-    if path.endswith(".jsonl"):
-        return []
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
         return []
-    pairs: list[tuple[str, str] | None] = []
+    if path.endswith(".jsonl"):
+        return [None for line in text.splitlines() if line.strip()]
+    lines: list[tuple[str, str] | None] = []
     for line in text.splitlines():
         try:
             fields = shlex.split(line, comments=True)
@@ -383,33 +374,35 @@ def _listed_image_pairs(path: str) -> list[tuple[str, str] | None]:
             fields = [line]
         if fields:
             paths = [str(p if Path(p).is_absolute() else Path(path).parent / p) for p in fields[:2]]
-            pairs.append((paths[0], paths[1]) if len(fields) in (2, 4, 5) else None)
-    return pairs
+            lines.append((paths[0], paths[1]) if len(fields) in (2, 4, 5) else None)
+    return lines
 
 
-def _decode_while(starting, args: argparse.Namespace) -> dict[int, dict]:
+def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int) -> dict[int, dict]:
     """While the thread ``starting`` waits for the workers (their server imports torch, 1.0–1.5 s, on one
-    core), decode the list's first images here on the other (cv2 and numpy only): {chunk index: {file key:
-    array}}, sent with each chunk so that its worker skips those reads. A file that does not decode is left
-    to the worker, which reports it as it would."""
+    core), decode the first images of the list's ``lines`` (:func:`_listed_lines`) here on the other (cv2 and
+    numpy only): {chunk index: {file key: array}}, sent with each chunk so that its worker skips those reads. A
+    file that does not decode is left to the worker, which reports it as it would."""
     from ..errors import InputError
     from ..image_files import preload_key, read_image_array
 
     decoded: dict[int, dict] = {}
-    for index, pair in enumerate(_listed_image_pairs(args.pairs)):
+    for index, pair in enumerate(lines):
         if not starting.is_alive():
             break
         for path in pair or ():
             try:
-                decoded.setdefault(index // args.batch_size, {})[preload_key(path)] = read_image_array(path, "pairs")
+                decoded.setdefault(index // batch_size, {})[preload_key(path)] = read_image_array(path, "pairs")
             except (InputError, OSError):
                 pass
     return decoded
 
 
-def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> tuple[int, Iterator[list]]:
+def _worker_results(args: argparse.Namespace, lines: list[tuple[str, str] | None], workers: int, threads: int
+                    ) -> tuple[int, Iterator[list]]:
     """The number of listed pairs, and the chunks' results in list order from ``workers`` processes of
-    :func:`svs_torch.workers.worker_pool`, each with ``threads`` torch threads."""
+    :func:`svs_torch.workers.worker_pool`, each with ``threads`` torch threads (``lines``: the list's lines
+    as :func:`_listed_lines` read them, for the images to decode ahead)."""
     from ..workers import worker_pool
     from . import CliError
 
@@ -428,7 +421,7 @@ def _worker_results(args: argparse.Namespace, workers: int, threads: int) -> tup
     starting = threading.Thread(target=start, name="start-workers", daemon=True)
     try:
         starting.start()
-        decoded = _decode_while(starting, args)
+        decoded = _decode_while(starting, lines, args.batch_size)
         starting.join()
         if "error" in counted:
             raise counted["error"]
@@ -469,7 +462,8 @@ def _run_many(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection, thread_budget
 
     budget = thread_budget()
-    chunks = -(-_listed_lines(args.pairs) // args.batch_size)
+    listed = _listed_lines(args.pairs)
+    chunks = -(-len(listed) // args.batch_size)
     workers = max(1, min(budget if args.workers is None else args.workers, chunks))
     if workers == 1:
         with imports_without_collection():  # the pipeline's imports (see there)
@@ -479,7 +473,7 @@ def _run_many(args: argparse.Namespace) -> int:
         results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)
                    for start in range(0, total, args.batch_size))
     else:
-        total, results = _worker_results(args, workers, max(1, budget // workers))
+        total, results = _worker_results(args, listed, workers, max(1, budget // workers))
     done, bad = 0, []
     # A progress count only for a person watching: in a log or a pipe, stderr keeps to the errors.
     progress = sys.stderr.isatty()

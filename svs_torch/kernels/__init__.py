@@ -464,6 +464,12 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
     return None if status != 0 else (count, below, above)
 
 
+def _rows(tensor: torch.Tensor) -> tuple[int, int]:
+    """A ``(..., W)`` tensor as rows for a row kernel: (number of rows, W)."""
+    width = tensor.shape[-1]
+    return (tensor.numel() // width if width else 0), width
+
+
 def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     """:func:`svs_torch.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
@@ -474,8 +480,7 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     library = load("fill_invalid_rows")
     if library is None:
         return None
-    width = disparity.shape[-1]
-    rows = disparity.numel() // width if width else 0
+    rows, width = _rows(disparity)
     disparity, valid = disparity.contiguous(), valid.contiguous()
     filled, reachable = torch.empty_like(disparity), torch.empty_like(valid)
     status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
@@ -495,8 +500,7 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
     library = load("find_runs")
     if library is None:
         return None
-    width = foreground.shape[-1]
-    rows = foreground.numel() // width if width else 0
+    rows, width = _rows(foreground)
     foreground = foreground.contiguous()
     value = None if value is None else value.contiguous()
     value_ptr = 0 if value is None else value.data_ptr()
