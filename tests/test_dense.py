@@ -16,7 +16,7 @@ from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.dense import (DenseConfig, DisparityRange, block_match_sad, coarse_search_range,
                              dense_disparity_over_regions, disparity_search_range, estimate_dense_disparity,
                              fill_invalid_rows,
-                             prefilter_xsobel, soft_block_match)
+                             prefilter_xsobel, soft_block_match, wanted_pixels)
 from svs_torch.segmentation import segment_stereo
 
 F64 = torch.float64
@@ -138,22 +138,35 @@ def test_default_rules_against_ground_truth(teddy):
     assert strict < 0.12 and strict < loose and kept > 0.6  # measured 0.07 / 0.17, 77 % kept
 
 
-def test_region_crop_equals_the_whole_frame_inside_the_box(teddy):
+@pytest.mark.parametrize("kernel", ["auto", "torch"])
+def test_region_crop_equals_the_whole_frame_where_wanted(teddy, kernel):
+    """Only the pixels near the mask along their row are computed (wanted_pixels), each with the value a
+    whole-frame match gives it; the rest of the frame and of the box stays invalid."""
     seg = segment_stereo(teddy)
     mask = seg.left.kept_mask.clone()
     mask[..., :, :100] = False  # a box that does not start at the image border
+    mask[..., 60:80, 200:] = False  # rows whose span is narrower than the box
     search = DisparityRange(torch.tensor([5]), 30)
-    config = DenseConfig()
+    config = DenseConfig(kernel=kernel)
     cropped = dense_disparity_over_regions(teddy.left, teddy.right, mask, search, config)
     whole = block_match_sad(teddy.left, teddy.right, search.min_disparity_px, 30, config)
     x0, y0, width, height = cropped.crop_xywh[0].tolist()
     assert x0 >= 100 - config.margin_px and width < 320 - 90
-    inside = (slice(None), slice(None), slice(y0, y0 + height), slice(x0, x0 + width))
-    assert torch.equal(cropped.valid[inside], whole.valid[inside])
-    torch.testing.assert_close(cropped.disparity_px[inside], whole.disparity_px[inside])
-    outside = torch.ones_like(cropped.valid)
-    outside[inside] = False
-    assert not cropped.valid[outside].any()
+    wanted = wanted_pixels(mask, config.margin_px)
+    in_box = torch.zeros_like(wanted)
+    in_box[..., y0:y0 + height, x0:x0 + width] = True
+    assert (in_box & ~wanted).sum() > 1000  # the rule leaves out part of the box
+    assert torch.equal(cropped.valid, whole.valid & wanted & in_box) and cropped.valid.sum() > 5000
+    torch.testing.assert_close(cropped.disparity_px[cropped.valid], whole.disparity_px[cropped.valid])
+    assert not cropped.disparity_px[~cropped.valid].any()
+
+
+def test_wanted_pixels_are_each_rows_mask_span_and_margin():
+    mask = torch.zeros(1, 1, 3, 12, dtype=torch.bool)
+    mask[0, 0, 0, [4, 6]] = True
+    mask[0, 0, 2, 0] = True
+    expected = torch.tensor([[0, 0, 1, 1, 1, 1, 1, 1, 1, 0, 0, 0], [0] * 12, [1, 1, 1] + [0] * 9], dtype=torch.bool)
+    assert torch.equal(wanted_pixels(mask, 2)[0, 0], expected)
 
 
 def test_batched_equals_per_pair_with_padding_and_own_ranges(teddy, generator):

@@ -75,7 +75,7 @@ _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
 _SIGNATURES = {
     "block_match": ([_POINTER] * 3 + [_INT, _FLOAT] + [_INT] * 5 + [_POINTER] * 5 + [_FLOAT] * 3 + [_INT]
-                    + [_POINTER] * 2 + [_INT] * 2, ctypes.c_int),
+                    + [_POINTER, _INT] + [_POINTER] * 2 + [_INT] * 2, ctypes.c_int),
     "hessian_octave": ([_POINTER] + [_INT] * 5 + [_POINTER] + [_INT] * 3 + [_POINTER] * 2 + [_FLOAT]
                        + [_POINTER] * 2 + [_INT], None),
     "local_maxima": ([_POINTER, _POINTER] + [_INT] * 5 + [_FLOAT, _POINTER], None),
@@ -225,7 +225,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
                 boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
                 lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
                 texture_min: float, whole_range_in_view: bool, source: str = "levels",
-                prefilter_cap: float = 0.0) -> tuple[torch.Tensor, torch.Tensor] | None:
+                prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0
+                ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """``svs_torch.dense._match_box`` of every pair at its own box and range, the kernel's contract (see the C
     source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
     whole numbers in [−255, 255] (:func:`svs_torch.dense.quantize_levels`: then every cost is exact and the
@@ -236,7 +237,9 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     ``texture`` is True (the texture rule, on the left image's clipped x-Sobel) or False / None;
     ``boxes`` ``(B, 4)`` x0, y0, width, height; ``min_disparity``, ``counts`` ``(B,)``; ``image_hw`` ``(B, 2)``;
     ``lower_is_limit`` ``(B,)`` bool; the rules' parameters as in :class:`svs_torch.dense.DenseConfig`
-    (``texture_min`` is the least window sum).
+    (``texture_min`` is the least window sum); ``mask`` ``(B, H, W)`` bool or None: where depth is wanted, then
+    only the pixels within ``mask_margin_px`` columns of their row's mask span are computed
+    (:func:`svs_torch.dense.wanted_pixels`), each with the value the whole box gives it.
 
     Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool; None when
     the kernel is not available or the inputs do not fit its contract."""
@@ -248,6 +251,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     tensors = (left, right, texture) if isinstance(texture, torch.Tensor) else (left, right)
     if not _on_cpu(torch.float32, *tensors) or any(t.shape != left.shape or t.dim() != 3 for t in tensors):
         return None
+    if mask is not None and (not _on_cpu(torch.bool, mask) or mask.shape != left.shape):
+        return None
     library = load("block_match")
     if library is None:
         return None
@@ -257,6 +262,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     texture = texture.contiguous() if isinstance(texture, torch.Tensor) else None
     per_pair = [v.to(torch.int64).contiguous() for v in (boxes, min_disparity, counts, image_hw)]
     lower = lower_is_limit.to(torch.uint8).contiguous()
+    if mask is not None:
+        mask = mask.contiguous().view(torch.uint8)  # bool is one byte of 0 or 1: read as it is
     disparity = torch.zeros(b, h, w)
     valid = torch.zeros(b, h, w, dtype=torch.uint8)
     # The factors are made in double and rounded to float32, as torch does with a Python scalar.
@@ -265,8 +272,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
         BLOCK_MATCH_SOURCES[source], prefilter_cap, int(textured), b, h, w, window_size,
         *(v.data_ptr() for v in per_pair), lower.data_ptr(),
         1 + uniqueness_ratio if uniqueness_ratio > 0 else 0.0, -1.0 if lr_max_diff_px is None else lr_max_diff_px,
-        texture_min, int(whole_range_in_view), disparity.data_ptr(), valid.data_ptr(), torch.get_num_threads(),
-        BAND_ROWS)
+        texture_min, int(whole_range_in_view), None if mask is None else mask.data_ptr(), mask_margin_px,
+        disparity.data_ptr(), valid.data_ptr(), torch.get_num_threads(), BAND_ROWS)
     if status != 0:
         return None
     return disparity, valid.bool()

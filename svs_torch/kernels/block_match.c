@@ -456,10 +456,10 @@ typedef struct {
 } Rules;
 
 static void finish_row(const Pair *p, const Rules *rules, int64_t y, const RowOut *o, const float *texture_sum,
-                       float *disparity, uint8_t *valid) {
+                       int64_t x_begin, int64_t x_end, float *disparity, uint8_t *valid) {
     const int64_t row = p->y0 + y, count = p->D;
     if (row < 0 || row >= p->image_h) return;
-    for (int64_t x = 0; x < p->width; ++x) {
+    for (int64_t x = x_begin; x < x_end; ++x) {
         const int64_t best = o->best[x], column = p->x0 + x;
         const float cost = o->best_cost[x], before = o->before[x], after = o->after[x];
         int ok = isfinite(cost) && best < count - 1 && (best > 0 || p->lower_is_limit);
@@ -517,7 +517,63 @@ typedef struct {
     const float *left, *right, *texture;
     int source, textured;
     float cap;
+    const uint8_t *mask; /* (H, W) where depth is wanted, or NULL: the whole box */
+    int64_t margin;
 } Views;
+
+/* The first and the last column of the nonzero bytes of a mask row of W; 0 when the row has none. */
+static int mask_row_span(const uint8_t *row, int64_t W, int64_t *first, int64_t *last) {
+    int64_t a = 0, z = W - 1;
+    while (a < W && !row[a]) ++a;
+    if (a == W) return 0;
+    while (!row[z]) --z;
+    *first = a;
+    *last = z;
+    return 1;
+}
+
+/* The output columns of box row y (box coordinates) that the mask asks for: those within ``margin`` of a mask
+ * pixel's column span in that image row, inside the box; an empty range where the row has no mask pixel. */
+static void wanted_columns(const Views *views, const Pair *p, int64_t W, int64_t y, int64_t *begin, int64_t *end) {
+    *begin = 0;
+    *end = p->width;
+    if (!views->mask) return;
+    const int64_t row = p->y0 + y;
+    int64_t first, last;
+    if (row < 0 || row >= p->image_h || !mask_row_span(views->mask + row * W, W, &first, &last)) {
+        *end = 0;
+        return;
+    }
+    const int64_t a = first - views->margin - p->x0, z = last + 1 + views->margin - p->x0;
+    if (a > *begin) *begin = a;
+    if (z < *end) *end = z;
+    if (*end < *begin) *end = *begin;
+}
+
+/* The pair's geometry for the band of box rows [y_begin, y_end): its box narrowed to the columns those rows want
+ * (wanted_columns). Returns 0 when they want none (the band is skipped). Each pixel's result stays the whole
+ * box's: only which pixels are computed changes. */
+static int band_pair(const Views *views, const Pair *p, int64_t W, int64_t K, int64_t y_begin, int64_t y_end,
+                     Pair *band) {
+    *band = *p;
+    if (!views->mask) return 1;
+    int64_t lo = p->width, hi = 0;
+    for (int64_t y = y_begin; y < y_end; ++y) {
+        int64_t a, z;
+        wanted_columns(views, p, W, y, &a, &z);
+        if (z > a) {
+            lo = a < lo ? a : lo;
+            hi = z > hi ? z : hi;
+        }
+    }
+    if (hi <= lo) return 0;
+    band->x0 = p->x0 + lo;
+    band->width = hi - lo;
+    band->WW = band->width + 2 * band->extra;
+    band->WL = band->WW + K - 1;
+    band->WR = band->WL + band->D - 1;
+    return 1;
+}
 
 static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const Pair *p, const Rules *rules,
                      int64_t y_begin, int64_t y_end, Buffers *buf, float *disparity, uint8_t *valid) {
@@ -558,8 +614,10 @@ static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const 
             texture_row(buf->texture, p->width, K, y - y_begin, buf->column_sums, buf->texture_sums);
             sums = buf->texture_sums;
         }
+        int64_t x_begin, x_end;
+        wanted_columns(views, p, W, y, &x_begin, &x_end);
         const int64_t offset = (p->y0 + y) * W + p->x0;
-        finish_row(p, rules, y, &out, sums, disparity + offset, valid + offset);
+        finish_row(p, rules, y, &out, sums, x_begin, x_end, disparity + offset, valid + offset);
     }
 }
 
@@ -572,6 +630,9 @@ static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const 
  *   boxes (B, 4): x0, y0, width, height (width or height 0: nothing); min_d, counts (B,): the range
  *   [min_d, min_d + count); image_hw (B, 2): each pair's size before padding; lower_is_limit (B,): a winner at
  *   index 0 is kept (the range starts at 0, so it is no range edge);
+ *   mask (B, H, W) uint8 or NULL: where depth is wanted; then only the pixels of a box row within mask_margin
+ *   columns of that image row's mask span [first, last] are written, and a band of rows is searched only over
+ *   the columns its rows want (a pixel's value is the whole box's: only the work shrinks);
  *   disparity (B, H, W) float32 and valid (B, H, W) uint8, zero on entry: written inside the boxes.
  * Returns 0, or -1 when memory could not be had (then nothing is valid; the caller runs its torch path). Pairs
  * and bands of rows are shared among num_threads OpenMP threads. */
@@ -579,8 +640,8 @@ int block_match(const float *left, const float *right, const float *texture, int
                 int64_t raw_texture, int64_t B, int64_t H, int64_t W,
                 int64_t K, const int64_t *boxes, const int64_t *min_d, const int64_t *counts,
                 const int64_t *image_hw, const uint8_t *lower_is_limit, float uniqueness_factor,
-                float lr_max_diff, float texture_min, int64_t whole_range_in_view, float *disparity,
-                uint8_t *valid, int64_t num_threads, int64_t band_rows) {
+                float lr_max_diff, float texture_min, int64_t whole_range_in_view, const uint8_t *mask,
+                int64_t mask_margin, float *disparity, uint8_t *valid, int64_t num_threads, int64_t band_rows) {
     if (B <= 0 || H <= 0 || W <= 0 || K < 1 || K % 2 == 0) return 0;
     if (source != SOURCE_LEVELS && source != SOURCE_RAW && source != SOURCE_XSOBEL) return -1;
     Pair *pairs = malloc(sizeof(Pair) * (size_t)B);
@@ -646,8 +707,10 @@ int block_match(const float *left, const float *right, const float *texture, int
             if (y0 >= y1) continue;
             const Views views = {left + b * H * W, right + b * H * W, texture ? texture + b * H * W : NULL,
                                  (int)source, source == SOURCE_LEVELS ? texture != NULL : raw_texture != 0,
-                                 prefilter_cap};
-            run_task(&views, H, W, K, p, &rules, y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
+                                 prefilter_cap, mask ? mask + b * H * W : NULL, mask_margin};
+            Pair band;
+            if (!band_pair(&views, p, W, K, y0, y1, &band)) continue;
+            run_task(&views, H, W, K, &band, &rules, y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
         }
         free(buf.left);
         free(buf.right);
