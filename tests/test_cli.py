@@ -314,6 +314,14 @@ def test_worker_pool_forks_from_a_server_that_imported_torch():
         os.kill(server, 0)
 
 
+def test_worker_preload_ends_early_only_in_the_forkserver():
+    """The forkserver skips torch's teardown when it stops; any other process that imports the preload module
+    exits as usual, with its own exit status and its output flushed."""
+    code = "import sys, svs_torch.worker_preload; print('flushed', end=''); sys.exit(3)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 3 and done.stdout == "flushed"
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_estimate_workers_end_when_the_command_is_killed(data_dir, tmp_path):
     """SIGKILL to svs-depth estimate mid-run (no handler, no clean-up): its workers and their server end too."""
