@@ -22,23 +22,47 @@
 #define SAMPLES (SIDE * SIDE)
 
 /* Bilinear samples of a (H, W) image at (cx + ox[p], cy + oy[p]), pixel-centre coordinates, the border pixel
- * repeated outside (grid_sample, align_corners=True, padding_mode="border"). One loop over the patch with
- * 32-bit indices, so that gcc makes it with vector gathers. */
+ * repeated outside (grid_sample, align_corners=True, padding_mode="border"). The offsets are a SIDE x SIDE grid
+ * (ox depends on the column of the patch only, oy on its row), so each column's taps and weight and each row's
+ * are made once (the same float operations as per sample). Where the columns' left taps are consecutive and
+ * each right tap is the next pixel (a grid spacing of 1 px inside the image: 8 patches in 10 on the shared
+ * scenes) every patch row reads two runs of the image rows and vectorises with plain loads; otherwise the taps
+ * are looked up. The same values either way. */
 static void sample_patch(const float *restrict image, int32_t H, int32_t W, float cx, float cy,
                          const float *restrict ox, const float *restrict oy, float *restrict out) {
     const float right_edge = (float)(W - 1), bottom_edge = (float)(H - 1);
-    for (int p = 0; p < SAMPLES; ++p) {
-        float x = cx + ox[p], y = cy + oy[p];
+    int32_t x0[SIDE], x1[SIDE], top[SIDE], bottom[SIDE];
+    float fx[SIDE], gx[SIDE], fy[SIDE];
+    int consecutive = 1;
+    for (int i = 0; i < SIDE; ++i) {
+        float x = cx + ox[i], y = cy + oy[i * SIDE];
         x = x > 0.0f ? x : 0.0f;
         x = x < right_edge ? x : right_edge;
         y = y > 0.0f ? y : 0.0f;
         y = y < bottom_edge ? y : bottom_edge;
-        int32_t x0 = (int32_t)x, y0 = (int32_t)y; /* x, y >= 0: truncation is the floor */
-        float fx = x - (float)x0, fy = y - (float)y0;
-        int32_t x1 = x0 + (x0 < W - 1), y1 = y0 + (y0 < H - 1);
-        int32_t top = y0 * W, bottom = y1 * W;
-        out[p] = (1.0f - fy) * ((1.0f - fx) * image[top + x0] + fx * image[top + x1])
-                 + fy * ((1.0f - fx) * image[bottom + x0] + fx * image[bottom + x1]);
+        x0[i] = (int32_t)x; /* x, y >= 0: truncation is the floor */
+        const int32_t row = (int32_t)y;
+        fx[i] = x - (float)x0[i];
+        gx[i] = 1.0f - fx[i];
+        fy[i] = y - (float)row;
+        x1[i] = x0[i] + (x0[i] < W - 1);
+        top[i] = row * W;
+        bottom[i] = (row + (row < H - 1)) * W;
+        consecutive &= (x1[i] == x0[i] + 1) & (x0[i] == x0[0] + i);
+    }
+    for (int j = 0; j < SIDE; ++j) {
+        const float *restrict above = image + top[j], *restrict below = image + bottom[j];
+        const float wy = fy[j], vy = 1.0f - wy;
+        float *restrict o = out + j * SIDE;
+        if (consecutive) {
+            const float *restrict a = above + x0[0], *restrict b = below + x0[0];
+            for (int i = 0; i < SIDE; ++i)
+                o[i] = vy * (gx[i] * a[i] + fx[i] * a[i + 1]) + wy * (gx[i] * b[i] + fx[i] * b[i + 1]);
+        } else {
+            for (int i = 0; i < SIDE; ++i)
+                o[i] = vy * (gx[i] * above[x0[i]] + fx[i] * above[x1[i]])
+                       + wy * (gx[i] * below[x0[i]] + fx[i] * below[x1[i]]);
+        }
     }
 }
 
