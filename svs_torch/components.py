@@ -100,10 +100,16 @@ def _union_find(num_runs: int, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor
     return parent
 
 
-def _label_runs(mask: torch.Tensor, connectivity: int) -> tuple[_Runs, torch.Tensor, torch.Tensor]:
-    """Runs of ``mask (B, 1, H, W)``, each run's label ``(R,)`` and ``num_labels (B,)``."""
+def _label_runs(mask: torch.Tensor, connectivity: int) -> tuple[_Runs, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Runs of ``mask (B, 1, H, W)``, each run's label ``(R,)``, ``num_labels (B,)`` and the label image
+    ``(B, 1, H, W)`` int64. The C kernel (:func:`svs_torch.kernels.label_runs`) sweeps each image's runs once
+    where the torch path below takes rounds of whole-table passes: the same labels, on 16 real 320×240 masks,
+    one thread, about 4.6 → 1.0 ms for the whole of :func:`connected_components_with_stats`."""
     b, _, h, w = mask.shape
     runs = _find_runs(mask[:, 0])
+    found = kernels.label_runs(runs.start, runs.end, b, h, w, connectivity)
+    if found is not None:
+        return runs, *found
     num_runs = runs.start.numel()
     root = _union_find(num_runs, *_touching_runs(runs, connectivity))
     run_image = runs.start // (h * w)
@@ -111,7 +117,8 @@ def _label_runs(mask: torch.Tensor, connectivity: int) -> tuple[_Runs, torch.Ten
     num_labels = torch.zeros(b, dtype=torch.int64, device=mask.device).index_add_(0, run_image, is_root.long())
     roots_before = torch.cumsum(num_labels, 0) - num_labels
     rank = torch.cumsum(is_root.long(), 0) - roots_before[run_image]  # 1-based label, valid at roots
-    return runs, rank[root], num_labels
+    run_label = rank[root]
+    return runs, run_label, num_labels, _paint(runs, run_label)
 
 
 def _paint(runs: _Runs, run_label: torch.Tensor) -> torch.Tensor:
@@ -179,15 +186,15 @@ def connected_components_with_stats(
         differ). Not differentiable.
     """
     _check_mask(mask, connectivity)
-    runs, run_label, num_labels = _label_runs(mask, connectivity)
-    return _paint(runs, run_label), num_labels, _run_properties(runs, run_label, num_labels)
+    runs, run_label, num_labels, labels = _label_runs(mask, connectivity)
+    return labels, num_labels, _run_properties(runs, run_label, num_labels)
 
 
 def label_connected_components(mask: torch.Tensor, connectivity: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """Labels ``(B, 1, H, W)`` int64 and ``num_labels (B,)`` of :func:`connected_components_with_stats`."""
     _check_mask(mask, connectivity)
-    runs, run_label, num_labels = _label_runs(mask, connectivity)
-    return _paint(runs, run_label), num_labels
+    _, _, num_labels, labels = _label_runs(mask, connectivity)
+    return labels, num_labels
 
 
 def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = None) -> RegionProperties:

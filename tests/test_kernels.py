@@ -219,6 +219,38 @@ def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
     assert kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
 
 
+@pytest.mark.skipif(not kernels.available("label_runs"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("connectivity", [4, 8])
+def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connectivity):
+    """Labels, label counts and region properties of sparse, dense, diagonal and empty masks (components that
+    touch only at a corner, that meet late through a U shape, a blank image amid others): the torch path's."""
+    from svs_torch.components import connected_components_with_stats
+
+    masks = [torch.rand(4, 1, 9, 13, generator=generator) > p for p in (0.8, 0.5, 0.2)]
+    shapes = torch.zeros(4, 1, 9, 13, dtype=torch.bool)
+    shapes[0, 0, range(9), range(9)] = True  # a diagonal: one region at 8-connectivity, nine at 4
+    shapes[1, 0, 1:8, 1] = shapes[1, 0, 1:8, 11] = shapes[1, 0, 7, 1:12] = True  # a U: its arms meet at the bottom
+    shapes[3, 0, -1, :] = True  # the last row of an image never joins the next image's first
+    masks.append(shapes)
+    before = torch.get_num_threads()
+    for mask in masks:
+        torch.set_num_threads(threads)
+        try:
+            fused = connected_components_with_stats(mask, connectivity)
+        finally:
+            torch.set_num_threads(before)
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+        reference = connected_components_with_stats(mask, connectivity)
+        monkeypatch.delenv("SVS_TORCH_KERNELS")
+        assert torch.equal(fused[0], reference[0]) and torch.equal(fused[1], reference[1])
+        for field in ("area_px", "bbox_xyxy", "centroid_xy", "valid"):
+            assert torch.equal(getattr(fused[2], field), getattr(reference[2], field))
+    assert int(connected_components_with_stats(shapes, connectivity)[1][0]) == (1 if connectivity == 8 else 9)
+    assert int(connected_components_with_stats(shapes, connectivity)[1][1]) == 1
+    assert kernels.label_runs(torch.zeros(2, dtype=torch.int32), torch.zeros(2, dtype=torch.int32), 1, 1, 2, 8) is None
+
+
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
     compiler = shutil.which("cc") or shutil.which("gcc")

@@ -1,13 +1,13 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
 through ``ctypes``: the runs of each mask row that the segmentation's connected components start from
-(``find_runs.c``), the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
+(``find_runs.c``) and their labelling (``label_runs.c``), the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
 maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), its
 upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
-path of a torch function that stays the reference, the fallback and the differentiable path. The first eight give
+path of a torch function that stays the reference, the fallback and the differentiable path. The first nine give
 that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
 index order, which ``torch.topk`` leaves open); the matching kernel sums each distance in its own order (on
 real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
@@ -68,7 +68,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "hessian_octave",
-           "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
+           "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
            "strongest_maxima", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
@@ -84,6 +84,7 @@ _SIGNATURES = {
     "sad_nearest": ([_POINTER] * 8 + [_FLOAT] + [_INT] * 4 + [_POINTER] * 4 + [_INT], ctypes.c_int),
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "find_runs": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 3 + [_INT], ctypes.c_int),
+    "label_runs": ([_POINTER] * 2 + [_INT] * 5 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
@@ -520,6 +521,28 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
     library.find_runs(foreground.data_ptr(), value_ptr, rows, width, first.data_ptr(), start.data_ptr(),
                       end.data_ptr(), threads)
     return start, end
+
+
+def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int, connectivity: int
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.components._label_runs` and ``_paint`` by one union-find sweep per image (see the C
+    source): from the runs' flat ``start`` and ``end`` ``(R,)`` int64 of a ``(batch, height, width)`` grid, each
+    run's label ``(R,)``, each image's number of labels ``(batch,)`` and the label image ``(batch, 1, height,
+    width)``, all int64. None when the kernel is not available or the inputs do not fit its contract."""
+    if (not _on_cpu(torch.int64, start, end) or start.dim() != 1 or end.shape != start.shape
+            or connectivity not in (4, 8) or min(batch, height, width) < 0):
+        return None
+    library = load("label_runs")
+    if library is None:
+        return None
+    start, end = start.contiguous(), end.contiguous()
+    run_label = torch.empty_like(start)
+    num_labels = torch.empty(batch, dtype=torch.int64)
+    labels = torch.empty(batch, 1, height, width, dtype=torch.int64)
+    status = library.label_runs(start.data_ptr(), end.data_ptr(), start.numel(), batch, height, width, connectivity,
+                                run_label.data_ptr(), num_labels.data_ptr(), labels.data_ptr(),
+                                torch.get_num_threads())
+    return None if status != 0 else (run_label, num_labels, labels)
 
 
 def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
