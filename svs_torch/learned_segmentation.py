@@ -44,7 +44,7 @@ from .dense import DenseConfig, soft_block_match
 from .depth import kept_region_lower_median
 from .morphology import open_binary, structuring_element
 from .segmentation import SegmentationConfig, keep_largest_regions
-from .threshold import gray_histogram, gray_levels, otsu_threshold_level
+from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 from .types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = [
@@ -283,7 +283,7 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
     opened = open_binary(binary, element)
     labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
-    uniform = (gray_histogram(gray_levels(image)) > 0).sum(1) == 1
+    uniform = (gray_levels_and_histogram(image)[1] > 0).sum(1) == 1
     status = torch.where(opened.flatten(1).any(1), SegmentationStatus.OK, SegmentationStatus.NO_FOREGROUND)
     status = torch.where(uniform, SegmentationStatus.UNIFORM_IMAGE, status).to(torch.int64)
     threshold = torch.full((b,), probability_threshold, dtype=image.dtype, device=image.device)

@@ -21,7 +21,7 @@ from .components import connected_components_with_stats
 from .mask_reductions import any_along
 from .canny import canny_edges
 from .morphology import dilate, erode, open_binary, structuring_element
-from .threshold import gray_histogram, gray_levels, otsu_threshold_level, threshold_binary
+from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
 from .types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions"]
@@ -137,8 +137,7 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
     """
     check_image(image, "image")
     check_instance(config, "config", SegmentationConfig)
-    levels = gray_levels(image)
-    histogram = gray_histogram(levels)
+    levels, histogram = gray_levels_and_histogram(image)
     level = otsu_threshold_level(histogram)
     threshold = level.to(image.dtype) / 255
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import torch
 
+from . import kernels
 from .checks import check_image
 
-__all__ = ["gray_levels", "gray_histogram", "otsu_threshold_level", "otsu_threshold", "threshold_binary"]
+__all__ = ["gray_levels", "gray_histogram", "gray_levels_and_histogram", "otsu_threshold_level", "otsu_threshold",
+           "threshold_binary"]
 
 NUM_LEVELS = 256
 
@@ -35,6 +37,17 @@ def gray_histogram(levels: torch.Tensor) -> torch.Tensor:
     offsets = torch.arange(b, device=levels.device, dtype=torch.int32).view(b, 1) * NUM_LEVELS
     flat = (levels.reshape(b, -1).to(torch.int32) + offsets).flatten()
     return torch.bincount(flat, minlength=b * NUM_LEVELS).view(b, NUM_LEVELS)
+
+
+def gray_levels_and_histogram(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`gray_levels` and :func:`gray_histogram` of ``(B, 1, H, W)`` images in [0, 1]: without a C compiler
+    the two torch functions; with one, a kernel that reads each image once (:func:`svs_torch.kernels.gray_levels`,
+    the same values: 16 real 320×240 images, one thread, about 2.4 → 0.4 ms). Not differentiable."""
+    found = kernels.gray_levels(image)
+    if found is not None:
+        return found
+    levels = gray_levels(image)
+    return levels, gray_histogram(levels)
 
 
 def otsu_threshold_level(histogram: torch.Tensor) -> torch.Tensor:
@@ -78,7 +91,7 @@ def otsu_threshold(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         :func:`svs_torch.soft_segmentation.soft_threshold` for a differentiable binarisation.
     """
     check_image(image, "image")
-    level = otsu_threshold_level(gray_histogram(gray_levels(image)))
+    level = otsu_threshold_level(gray_levels_and_histogram(image)[1])
     return level.to(image.dtype) / (NUM_LEVELS - 1), level
 
 

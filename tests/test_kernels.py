@@ -251,6 +251,27 @@ def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connect
     assert kernels.label_runs(torch.zeros(2, dtype=torch.int32), torch.zeros(2, dtype=torch.int32), 1, 1, 2, 8) is None
 
 
+@pytest.mark.skipif(not kernels.available("gray_levels"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_gray_levels_kernel_equals_torch(generator, threads):
+    """Levels and histograms of random images, of the levels' exact half-way points (round half to even), of
+    the range's ends and of sizes that are no multiple of the kernel's chunks: the torch path's."""
+    from svs_torch.threshold import gray_histogram, gray_levels
+
+    halves = (torch.arange(0, 255, dtype=torch.float32) + 0.5) / 255
+    images = [torch.rand(3, 1, 67, 71, generator=generator), halves.view(1, 1, 5, 51).repeat(2, 1, 1, 1),
+              torch.tensor([0.0, 1.0, 1e-9, 1 - 1e-7]).view(1, 1, 2, 2), torch.rand(2, 1, 1, 9000, generator=generator)]
+    before = torch.get_num_threads()
+    for image in images:
+        torch.set_num_threads(threads)
+        try:
+            levels, histogram = kernels.gray_levels(image)
+        finally:
+            torch.set_num_threads(before)
+        assert torch.equal(levels, gray_levels(image)) and torch.equal(histogram, gray_histogram(gray_levels(image)))
+    assert kernels.gray_levels(images[0].double()) is None
+
+
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
     compiler = shutil.which("cc") or shutil.which("gcc")

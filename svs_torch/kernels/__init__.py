@@ -1,13 +1,14 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
 through ``ctypes``: the runs of each mask row that the segmentation's connected components start from
-(``find_runs.c``) and their labelling (``label_runs.c``), the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
+(``find_runs.c``) and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``),
+the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
 maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), its
 upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
-path of a torch function that stays the reference, the fallback and the differentiable path. The first nine give
+path of a torch function that stays the reference, the fallback and the differentiable path. The first ten give
 that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
 index order, which ``torch.topk`` leaves open); the matching kernel sums each distance in its own order (on
 real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
@@ -67,8 +68,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "hessian_octave",
-           "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
+__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "gray_levels",
+           "hessian_octave", "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
            "strongest_maxima", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
@@ -85,6 +86,7 @@ _SIGNATURES = {
     "labelled_select": ([_POINTER] * 4 + [_INT] * 4 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "find_runs": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "label_runs": ([_POINTER] * 2 + [_INT] * 5 + [_POINTER] * 3 + [_INT], ctypes.c_int),
+    "gray_levels": ([_POINTER] + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
@@ -521,6 +523,25 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
     library.find_runs(foreground.data_ptr(), value_ptr, rows, width, first.data_ptr(), start.data_ptr(),
                       end.data_ptr(), threads)
     return start, end
+
+
+def gray_levels(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.threshold.gray_levels` and :func:`~svs_torch.threshold.gray_histogram` in one read of each
+    image (see the C source): ``image`` ``(B, 1, H, W)`` float32 in [0, 1] → the uint8 levels ``(B, 1, H, W)``
+    and the histograms ``(B, 256)`` int64, the torch path's values. None when the kernel is not available or
+    the input does not fit its contract."""
+    if not _on_cpu(torch.float32, image) or image.dim() != 4 or image.shape[1] != 1:
+        return None
+    library = load("gray_levels")
+    if library is None:
+        return None
+    image = image.detach().contiguous()
+    b = image.shape[0]
+    levels = torch.empty(image.shape, dtype=torch.uint8)
+    histogram = torch.empty(b, 256, dtype=torch.int64)
+    status = library.gray_levels(image.data_ptr(), b, image[0].numel() if b else 0, levels.data_ptr(),
+                                 histogram.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (levels, histogram)
 
 
 def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int, connectivity: int
