@@ -272,6 +272,25 @@ def test_gray_levels_kernel_equals_torch(generator, threads):
     assert kernels.gray_levels(images[0].double()) is None
 
 
+@pytest.mark.skipif(not kernels.available("refine_maxima"), reason="no C compiler")
+@pytest.mark.parametrize("upsample", [False, True])
+def test_refine_maxima_kernel_equals_torch(images, monkeypatch, upsample):
+    """The compiled fit of the strongest maxima gives the torch path's keypoints (positions, sizes, peaks, signs,
+    validity) on a real scene, with the detector's upsampling and a blank image amid others; the 3 × 3 solve's
+    rounding is the only difference allowed."""
+    from svs_torch.detector import SurfConfig, detect_surf_keypoints
+
+    batch = torch.cat([images, torch.zeros_like(images[:1])])
+    config = SurfConfig(upsample=upsample, max_keypoints=300)
+    fused = detect_surf_keypoints(batch, config)
+    monkeypatch.setattr(kernels, "refine_maxima", lambda *args: None)
+    reference = detect_surf_keypoints(batch, config)
+    assert torch.equal(fused.valid, reference.valid) and int(fused.valid.sum()) > 500
+    assert torch.equal(fused.laplacian_sign, reference.laplacian_sign) and not fused.valid[-1].any()
+    for field in ("xy", "scale", "score"):
+        torch.testing.assert_close(getattr(fused, field), getattr(reference, field), rtol=1e-6, atol=1e-6)
+
+
 def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
     """A compiler that refuses -fopenmp still gets the kernels, built serially, with the same values."""
     compiler = shutil.which("cc") or shutil.which("gcc")

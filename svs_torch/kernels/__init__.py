@@ -5,12 +5,13 @@ the dense stage's SAD block matching (``block_match.c``), its row fill of invali
 (``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
 each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
 table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
-maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), its
-upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
+maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), the
+quadratic fit that makes them keypoints (``refine_maxima.c``), its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
 path of a torch function that stays the reference, the fallback and the differentiable path. The first ten give
 that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
-index order, which ``torch.topk`` leaves open); the matching kernel sums each distance in its own order (on
+index order, which ``torch.topk`` leaves open); the fit solves its 3 × 3 systems by its own elimination, not
+LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each distance in its own order (on
 real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
 in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each
 image's integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the
@@ -68,9 +69,9 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "gray_levels",
-           "hessian_octave", "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral", "sad_nearest",
-           "strongest_maxima", "usurf_describe"]
+__all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "gray_levels", "hessian_octave",
+           "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral",
+           "refine_maxima", "sad_nearest", "strongest_maxima", "usurf_describe"]
 
 _POINTER, _INT, _FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
 #: Each kernel's (argument types, return type), as declared in its C source.
@@ -87,6 +88,8 @@ _SIGNATURES = {
     "find_runs": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "label_runs": ([_POINTER] * 2 + [_INT] * 5 + [_POINTER] * 3 + [_INT], ctypes.c_int),
     "gray_levels": ([_POINTER] + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
+    "refine_maxima": ([_POINTER] * 6 + [_INT] + [_POINTER] * 2 + [_INT] * 2 + [ctypes.c_double] * 2
+                      + [_POINTER] * 5 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
                       + [_POINTER] * 4 + [_INT], ctypes.c_int),
@@ -390,6 +393,45 @@ def strongest_maxima(dets: list[torch.Tensor], supports: list[torch.Tensor | Non
                                       shape.data_ptr(), len(pointers), b, threshold, k, values.data_ptr(),
                                       index.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (values, index)
+
+
+def refine_maxima(dets: list[torch.Tensor], traces: list[torch.Tensor], steps: list[int], sizes: list[list[int]],
+                  score: torch.Tensor, index: torch.Tensor, factor: float, max_offset: float
+                  ) -> tuple[torch.Tensor, ...] | None:
+    """The keypoints of :func:`svs_torch.detector.detect_surf_keypoints` from its strongest maxima, one keypoint at
+    a time (see the C source): ``dets[o]``, ``traces[o]`` ``(B, S, ny, nx)`` float32 with the octave's grid step
+    and filter sizes; ``score`` ``(B, K)`` float32 and ``index`` ``(B, K)`` int64 (:func:`strongest_maxima`);
+    ``factor`` the detector's upsampling. Returns ``valid`` ``(B, K)`` bool, ``xy`` ``(B, K, 2)``, ``size``,
+    ``peak`` ``(B, K)`` float64 and the trace's sign ``(B, K)`` int64; None when the kernel is not available or
+    the inputs do not fit its contract (an octave without an interior, for one)."""
+    if (not dets or len(traces) != len(dets) or len(steps) != len(dets) or len(sizes) != len(dets)
+            or not _on_cpu(torch.float32, score, *dets, *traces) or not _on_cpu(torch.int64, index)
+            or score.dim() != 2 or index.shape != score.shape):
+        return None
+    b, k = score.shape
+    for det, trace, levels in zip(dets, traces, sizes):
+        if det.dim() != 4 or trace.shape != det.shape or det.shape[0] != b or min(det.shape[1:]) < 3 or len(levels) < 2:
+            return None
+    library = load("refine_maxima")
+    if library is None:
+        return None
+    kept = [t.contiguous() for t in (*dets, *traces)]  # alive until the call returns
+    det_ptr = torch.tensor([t.data_ptr() for t in kept[:len(dets)]], dtype=torch.int64)
+    trace_ptr = torch.tensor([t.data_ptr() for t in kept[len(dets):]], dtype=torch.int64)
+    shape = torch.tensor([list(d.shape[1:]) for d in dets], dtype=torch.int64)
+    step = torch.tensor(steps, dtype=torch.int64)
+    size0 = torch.tensor([levels[0] for levels in sizes], dtype=torch.int64)
+    size_inc = torch.tensor([levels[1] - levels[0] for levels in sizes], dtype=torch.int64)
+    score, index = score.contiguous(), index.contiguous()
+    xy = torch.empty(b, k, 2, dtype=torch.float64)
+    size, peak = torch.empty(b, k, dtype=torch.float64), torch.empty(b, k, dtype=torch.float64)
+    sign, valid = torch.empty(b, k, dtype=torch.int64), torch.empty(b, k, dtype=torch.bool)
+    status = library.refine_maxima(det_ptr.data_ptr(), trace_ptr.data_ptr(), shape.data_ptr(), step.data_ptr(),
+                                   size0.data_ptr(), size_inc.data_ptr(), len(dets), score.data_ptr(),
+                                   index.data_ptr(), b, k, float(factor), float(max_offset), xy.data_ptr(),
+                                   size.data_ptr(), peak.data_ptr(), sign.data_ptr(), valid.data_ptr(),
+                                   torch.get_num_threads())
+    return None if status != 0 else (valid, xy, size, peak, sign)
 
 
 def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
