@@ -1,21 +1,21 @@
 """Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
-through ``ctypes``: the runs of each mask row that the segmentation's connected components start from
-(``find_runs.c``) and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``),
-the dense stage's SAD block matching (``block_match.c``), its row fill of invalid pixels
-(``fill_invalid_rows.c``), its order statistics by label (``labelled_select.c``: the search range's percentiles) and
-each object's depth statistics, every pair read once at its own box (``object_depths.c``), SURF's padded integral
-table (``padded_integral.c``), a whole octave of its box-filter Hessian (``hessian_octave.c``), its scale-space
-maxima (``local_maxima.c``) and the strongest of them over all the octaves of an image (``strongest_maxima.c``), the
-quadratic fit that makes them keypoints (``refine_maxima.c``), its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
-(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient
-path of a torch function that stays the reference, the fallback and the differentiable path. The first ten give
-that torch path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in
-index order, which ``torch.topk`` leaves open); the fit solves its 3 × 3 systems by its own elimination, not
-LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each distance in its own order (on
-real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
-in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each
-image's integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the
-float32 one's round-off (``tests/test_kernels.py``).
+through ``ctypes``: the runs of each mask row that the segmentation's connected components start from (``find_runs.c``)
+and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``), the dense stage's SAD
+block matching (``block_match.c``), its row fill of invalid pixels (``fill_invalid_rows.c``), its order statistics by
+label (``labelled_select.c``: the search range's percentiles) and each object's depth statistics, every pair read once
+at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
+box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
+all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
+its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
+(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of
+a torch function that stays the reference, the fallback and the differentiable path. The first ten give that torch
+path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in index order,
+which ``torch.topk`` leaves open); the fit solves its 3 × 3 systems by its own elimination, not LAPACK's LU (offsets to
+about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each distance in its own order
+(on real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
+in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each image's
+integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the float32 one's
+round-off (``tests/test_kernels.py``).
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,

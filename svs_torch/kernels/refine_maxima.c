@@ -53,11 +53,12 @@ static int solve3(double a[3][3], double r[3], double x[3]) {
 
 static inline int64_t clamp_cell(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
-/* Octave o (each with an interior: S, ny, nx >= 3): det[o], trace[o] contiguous (B, S, ny, nx) float32 with (S, ny, nx) = shape[3 o .. 3 o + 2], its grid
- * step, first filter size and size increment. score, index (B, K): strongest_maxima's values and indices. Writes
- * per keypoint xy (B, K, 2) and size (B, K) in input pixels (``factor``: the detector's upsampling), the fitted
- * peak (B, K), the sign of the trace (B, K) and valid (B, K): found (a finite score), solved, and every offset
- * within max_offset grid steps. Keypoints are shared among num_threads OpenMP threads. Returns 0. */
+/* Octave o (each with an interior: S, ny, nx >= 3): det[o], trace[o] contiguous (B, S, ny, nx) float32 with
+ * (S, ny, nx) = shape[3 o .. 3 o + 2], its grid step, first filter size and size increment. score, index (B, K):
+ * strongest_maxima's values and indices. Writes per keypoint xy (B, K, 2) and size (B, K) in input pixels
+ * (``factor``: the detector's upsampling), the fitted peak (B, K), the sign of the trace (B, K) and valid (B, K):
+ * found (a finite score), solved, and every offset within max_offset grid steps. Keypoints are shared among
+ * num_threads OpenMP threads. Returns 0. */
 int refine_maxima(const int64_t *det, const int64_t *trace, const int64_t *shape, const int64_t *step,
                   const int64_t *size0, const int64_t *size_inc, int64_t octaves, const float *score,
                   const int64_t *index, int64_t B, int64_t K, double factor, double max_offset, double *xy,
