@@ -180,7 +180,14 @@ class StereoBatch:
         return StereoBatch(**fields)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> StereoBatch:
-        """Move to ``device``; cast the floating-point fields (images, calibration, disparity) to ``dtype``."""
+        """Move to ``device``; cast the floating-point fields (images, calibration, disparity) to ``dtype``. A batch
+        already there is returned as it is (not copied, not validated again)."""
+        target = None if device is None else torch.device(device)
+        tensors = [value for value in (getattr(self, field.name) for field in dataclasses.fields(self))
+                   if isinstance(value, torch.Tensor)]
+        if all((target is None or value.device == target)
+               and (dtype is None or not value.dtype.is_floating_point or value.dtype == dtype) for value in tensors):
+            return self
         fields = {}
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)

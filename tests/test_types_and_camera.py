@@ -88,3 +88,6 @@ def test_select_and_to():
     assert batch.select(torch.tensor([False, True, False])).names == ("b",)
     double = batch.to(dtype=torch.float64)
     assert double.left.dtype == torch.float64 and double.image_hw.dtype == torch.int64
+    # Nothing to move or cast: the batch itself, not a validated copy (collating a list pays for that per pair).
+    assert batch.to(dtype=torch.float32) is batch and batch.to("cpu") is batch and double.to() is double
+    assert batch.to("cpu", torch.float64).left.dtype == torch.float64

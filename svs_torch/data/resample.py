@@ -98,8 +98,11 @@ def resize_stereo_batch(batch: StereoBatch, size_wh: Sequence[int]) -> StereoBat
 
 
 def _pad_to(batch: StereoBatch, height: int, width: int) -> StereoBatch:
-    """Zero-pad the tensors of ``batch`` at the bottom and right to ``height × width``; padding has no GT."""
+    """Zero-pad the tensors of ``batch`` at the bottom and right to ``height × width``; padding has no GT. A batch
+    of that size already is returned as it is."""
     h, w = batch.size_hw
+    if (h, w) == (height, width):
+        return batch
     pad = (0, width - w, 0, height - h)  # F.pad order: left, right, top, bottom of the last two dims
     disparity = valid = None
     if batch.disparity_px is not None:
