@@ -450,8 +450,9 @@ def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor
     """:func:`_match_box` of each pair at its own box ``(B, 4)`` (x0, y0, width, height) and its own range, by
     the fused C kernel of :mod:`svs_torch.kernels`, straight to the full-frame disparity and validity
     ``(B, 1, H, W)``: the same values bit for bit (a pair's result never depends on its batch), without the
-    batch's shared box, the groups of ranges or the scatter back. None when the kernel cannot run here (then
-    the torch path does; ``kernel="c"`` makes that an error)."""
+    batch's shared box, the groups of ranges or the scatter back; with ``mask`` ``(B, 1, H, W)`` only at its
+    :func:`wanted_pixels`. None when the kernel cannot run here (then the torch path does; ``kernel="c"`` makes
+    that an error)."""
     if not _compiled(left, right, config):
         return None
     counts = search.pair_num_disparities
