@@ -7,7 +7,8 @@ What is measured (all on this machine, the thread count recorded):
   (:mod:`svs_torch.bench_rivals`: decode, Otsu + opening + two largest regions, SIFT or ORB, ratio matching,
   ``findFundamentalMat`` RANSAC, ``StereoBM`` median over the kept regions). Runs are interleaved (svs, SIFT,
   ORB, svs, …) so a busy moment of the machine hits every rival alike; the median of ``repeats`` is reported.
-- **in-process**: the pipeline's stage times at B = 32, the per-pair time from B = 1 to 128, the peak resident
+- **in-process** (glibc's allocator kept to freed memory, as the command line runs): the pipeline's stage
+  times at B = 32, the per-pair time from B = 1 to 128 after a warm-up batch at each size, the peak resident
   memory per pair of the batch (a child process per B), the latency of one pair at B = 1 (what ``guide``
   pays per frame), and kornia's own composition (``SIFTFeature`` + ``match_snn`` + ``RANSAC('fundamental')``).
 - ``svs-depth --help`` start-up.
@@ -182,13 +183,16 @@ def in_process(repeats: int, threads: int) -> dict:
     from .data.synthetic import random_obstacle_scenes
     from .pipeline import PipelineConfig, estimate_obstacle_depth
 
+    from .workers import keep_freed_memory
+
     torch.set_num_threads(threads)
+    keep_freed_memory()  # glibc kept to freed memory, as the command line and its workers run
     config = PipelineConfig()
     scenes = random_obstacle_scenes(max(SCALING_BATCHES), 2, generator=torch.Generator().manual_seed(1))
-    estimate_obstacle_depth(scenes.batch.select(list(range(2))), config)  # warm-up
     scaling, stages = [], {}
     for b in SCALING_BATCHES:
         batch = scenes.batch.select(list(range(b)))
+        estimate_obstacle_depth(batch, config)  # warm-up at this size (a user's first batch pays for it once)
         runs, last = [], None
         for _ in range(repeats if b <= 32 else max(1, repeats // 2)):
             started = time.perf_counter()
