@@ -31,10 +31,13 @@ static void above_row(const float *restrict values, const uint8_t *restrict keep
     for (int64_t x = 0; x < n; ++x) flags[x] = (uint8_t)(values[x] > threshold) & keep[x];
 }
 
-/* Eight flags as one word (memcpy: any alignment). */
+/* Eight flags as one word (memcpy: any alignment), flag i in byte i counted from the least significant. */
 static inline uint64_t flag_word(const uint8_t *flags) {
     uint64_t word;
     memcpy(&word, flags, sizeof word);
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_BIG_ENDIAN__
+    word = __builtin_bswap64(word);
+#endif
     return word;
 }
 
