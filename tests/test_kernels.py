@@ -17,6 +17,25 @@ from svs_torch.hessian import _interior_maxima, hessian_octaves, maxima_support
 needs_kernel = pytest.mark.skipif(not kernels.available("hessian_octave"), reason="no C compiler")
 
 
+def _with_threads(threads: int, function, *args, **kwargs):
+    """``function(*args, **kwargs)`` with torch (and so the kernels' OpenMP loops) on ``threads`` threads."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return function(*args, **kwargs)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _torch_path(monkeypatch, function, *args):
+    """``function(*args)`` with every kernel off (``SVS_TORCH_KERNELS=torch``): the torch path's result."""
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    try:
+        return function(*args)
+    finally:
+        monkeypatch.delenv("SVS_TORCH_KERNELS")
+
+
 @pytest.fixture(scope="module")
 def images(data_dir):
     pair = resize_stereo_batch(load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy"), (320, 267))
@@ -90,12 +109,7 @@ def test_hessian_kernel_refuses_tables_it_cannot_read():
 def test_hessian_kernel_same_for_any_thread_count(images, threads):
     """The rows are split across threads; each point's arithmetic does not depend on the split."""
     reference = hessian_octaves(images, num_octaves=2)
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        split = hessian_octaves(images, num_octaves=2)
-    finally:
-        torch.set_num_threads(before)
+    split = _with_threads(threads, hessian_octaves, images, num_octaves=2)
     for a, b in zip(split, reference):
         assert torch.equal(a.det, b.det) and torch.equal(a.trace, b.trace)
 
@@ -157,14 +171,9 @@ def test_strongest_maxima_kernel_gives_the_dense_paths_topk(images, threads):
     octaves = hessian_octaves(images, num_octaves=3)
     mask = torch.rand(images.shape[0], 1, *images.shape[-2:], generator=torch.Generator().manual_seed(0)) > 0.3
     dets = [octave.det for octave in octaves]
-    before = torch.get_num_threads()
     for supports in ([maxima_support(o) for o in octaves], [maxima_support(o, mask) for o in octaves]):
         for k in (64, 5000):
-            torch.set_num_threads(threads)
-            try:
-                values, index = kernels.strongest_maxima(dets, supports, 1000 / 255**2, k)
-            finally:
-                torch.set_num_threads(before)
+            values, index = _with_threads(threads, kernels.strongest_maxima, dets, supports, 1000 / 255**2, k)
             expected_values, expected_index = _dense_top(dets, supports, 1000 / 255**2, k)
             found = torch.isfinite(expected_values)
             assert torch.equal(values, expected_values)
@@ -202,19 +211,12 @@ def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
     blocky = blocky.clone()
     blocky[0, 0, width // 2:] = False
     masks.append(blocky)
-    before = torch.get_num_threads()
     for mask in masks:
         value = torch.randint(1, 3, mask.shape, generator=generator)
         for given in (None, value):
             assert kernels.find_runs(mask, given) is not None
-            torch.set_num_threads(threads)
-            try:
-                fused = _find_runs(mask, given)
-            finally:
-                torch.set_num_threads(before)
-            monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
-            reference = _find_runs(mask, given)
-            monkeypatch.delenv("SVS_TORCH_KERNELS")
+            fused = _with_threads(threads, _find_runs, mask, given)
+            reference = _torch_path(monkeypatch, _find_runs, mask, given)
             assert torch.equal(fused.start, reference.start) and torch.equal(fused.end, reference.end)
     assert kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
 
@@ -233,16 +235,9 @@ def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connect
     shapes[1, 0, 1:8, 1] = shapes[1, 0, 1:8, 11] = shapes[1, 0, 7, 1:12] = True  # a U: its arms meet at the bottom
     shapes[3, 0, -1, :] = True  # the last row of an image never joins the next image's first
     masks.append(shapes)
-    before = torch.get_num_threads()
     for mask in masks:
-        torch.set_num_threads(threads)
-        try:
-            fused = connected_components_with_stats(mask, connectivity)
-        finally:
-            torch.set_num_threads(before)
-        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
-        reference = connected_components_with_stats(mask, connectivity)
-        monkeypatch.delenv("SVS_TORCH_KERNELS")
+        fused = _with_threads(threads, connected_components_with_stats, mask, connectivity)
+        reference = _torch_path(monkeypatch, connected_components_with_stats, mask, connectivity)
         assert torch.equal(fused[0], reference[0]) and torch.equal(fused[1], reference[1])
         for field in ("area_px", "bbox_xyxy", "centroid_xy", "valid"):
             assert torch.equal(getattr(fused[2], field), getattr(reference[2], field))
@@ -261,13 +256,8 @@ def test_gray_levels_kernel_equals_torch(generator, threads):
     halves = (torch.arange(0, 255, dtype=torch.float32) + 0.5) / 255
     images = [torch.rand(3, 1, 67, 71, generator=generator), halves.view(1, 1, 5, 51).repeat(2, 1, 1, 1),
               torch.tensor([0.0, 1.0, 1e-9, 1 - 1e-7]).view(1, 1, 2, 2), torch.rand(2, 1, 1, 9000, generator=generator)]
-    before = torch.get_num_threads()
     for image in images:
-        torch.set_num_threads(threads)
-        try:
-            levels, histogram = kernels.gray_levels(image)
-        finally:
-            torch.set_num_threads(before)
+        levels, histogram = _with_threads(threads, kernels.gray_levels, image)
         assert torch.equal(levels, gray_levels(image)) and torch.equal(histogram, gray_histogram(gray_levels(image)))
     assert kernels.gray_levels(images[0].double()) is None
 
@@ -394,12 +384,7 @@ def test_dense_kernel_same_for_any_thread_count(threads):
     inputs = _block_match_inputs(2)
     rules = (0.1, 1.0, 0.2, False)
     reference = kernels.block_match(*inputs, *rules)
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        split = kernels.block_match(*inputs, *rules)
-    finally:
-        torch.set_num_threads(before)
+    split = _with_threads(threads, kernels.block_match, *inputs, *rules)
     assert all(torch.equal(a, b) for a, b in zip(split, reference))
     assert reference[1][0].any() and reference[1][1].any() and not reference[1][2].any()  # the empty box
 
@@ -663,12 +648,8 @@ def test_object_depths_kernel_is_bit_identical_to_torch(monkeypatch, fill, threa
     ran = []
     compiled = kernels.object_depths
     monkeypatch.setattr(kernels, "object_depths", lambda *args: ran.append(compiled(*args)) or ran[-1])
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        fused = dense_object_depths(*inputs, percentiles=(10.0, 90.0), min_valid_px=1, fill_invalid=fill)
-    finally:
-        torch.set_num_threads(previous)
+    fused = _with_threads(threads, dense_object_depths, *inputs, percentiles=(10.0, 90.0), min_valid_px=1,
+                          fill_invalid=fill)
     assert len(ran) == 1 and ran[0] is not None  # the kernel, not the fallback, gave ``fused``
     monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
     reference = dense_object_depths(*inputs, percentiles=(10.0, 90.0), min_valid_px=1, fill_invalid=fill)
