@@ -38,7 +38,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                         focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
                         doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
                         min_valid_px: int = 20, fill_invalid: bool = True,
-                        min_valid_fraction: float | torch.Tensor = 0.0) -> ObjectDepths:
+                        min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0) -> ObjectDepths:
     """Per-object depth from dense disparity.
 
     Args:
@@ -53,13 +53,16 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         min_valid_fraction: least share of the region's pixels with a valid dense disparity for its depth to
             count, a scalar or ``(B,)``: views that do not show the same scene (a swapped or frozen camera) leave
             most pixels inconsistent, and such an object is not ranged rather than ranged wrong.
+        min_in_view_px: fewest valid pixels an object needs at columns ``x ≥ d_max`` of its pair, where every
+            disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``); 0: no
+            check. The statistics are still over all the object's pixels.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
             (:func:`~svs_torch.dense.fill_invalid_rows`) before taking the statistics, so that the median is
             over the whole region, as the truth is, and not only over its well-textured part.
 
     Returns:
         ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels
-        and ``num_valid_px`` ``(B, N)`` int64 set.
+        and ``num_valid_px``, ``num_in_view_px`` ``(B, N)`` int64 set.
     """
     disparity = dense.disparity_px
     check_shape(labels, "labels", list(disparity.shape))
@@ -73,6 +76,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
     slots = objects.label  # (B, N), −1 padding
     q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
+    # The first column where every disparity of the pair's range lands inside the right image (x − d_max ≥ 0).
+    in_view_from = (dense.min_disparity_px + dense.pair_num_disparities - 1).clamp_min(0).long()
     fused = None
     gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
     if not gradients and disparity.dim() == 4 and disparity.shape[1] == 1:
@@ -80,26 +85,31 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         # statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128:
         # twice the time a pair of B = 32).
         fused = kernels.object_depths(disparity[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
-                                      slots, (focal * baseline).view(b), doffs.view(b), fill_invalid, q)
+                                      slots, (focal * baseline).view(b), doffs.view(b), in_view_from, fill_invalid, q)
     if fused is not None:
-        members, count, below, above = fused
+        members, count, in_view, below, above = fused
         stats = _interpolate_ranks(below, above, members.unsqueeze(-1), q).values
     else:
-        stats, count = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid)
+        stats, count, in_view = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid,
+                                                  in_view_from)
     count = torch.where(slots > 0, count, 0)
+    in_view = torch.where(slots > 0, in_view, 0)
     fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
     valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
+    if min_in_view_px > 0:
+        valid &= in_view >= min_in_view_px
     stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
     median, depth_low, depth_high = stats.unbind(-1)
     return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
-                               valid=valid, num_valid_px=count)
+                               valid=valid, num_valid_px=count, num_in_view_px=in_view)
 
 
 def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
-                      baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`dense_object_depths`' statistics ``(B, N, 3)`` and measured counts ``(B, N)`` in torch (the
-    differentiable path): every pair cropped to the batch's largest box."""
+                      baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool,
+                      in_view_from: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`dense_object_depths`' statistics ``(B, N, 3)``, measured counts ``(B, N)`` and those of them at
+    frame columns from ``in_view_from`` ``(B,)`` on, in torch (the differentiable path): every pair cropped to
+    the batch's largest box."""
     disparity = dense.disparity_px
     b = disparity.shape[0]
     x0, y0, width, height = dense.crop_xywh.unbind(1)
@@ -125,10 +135,18 @@ def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.
     stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
                               q).values
     measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
+    # The frame column of each crop position (clamped, as the reads are): in view from in_view_from on.
+    columns = (x0.view(-1, 1) + torch.arange(size_w, device=disparity.device)).clamp(0, disparity.shape[-1] - 1)
+    in_view = (columns >= in_view_from.view(-1, 1)).view(b, 1, size_w).expand(b, size_h, size_w).flatten(1)
     # One compare and count per slot (a handful of objects) instead of a (B, N, P) volume of compares.
-    count = torch.stack([(measured_labels == slots[:, n:n + 1]).sum(dim=1) for n in range(slots.shape[1])], dim=1) \
-        if slots.shape[1] else torch.zeros_like(slots)
-    return stats, count
+    count, count_in_view = [], []
+    for n in range(slots.shape[1]):
+        member = measured_labels == slots[:, n:n + 1]
+        count.append(member.sum(dim=1))
+        count_in_view.append((member & in_view).sum(dim=1))
+    if not count:
+        return stats, torch.zeros_like(slots), torch.zeros_like(slots)
+    return stats, torch.stack(count, dim=1), torch.stack(count_in_view, dim=1)
 
 
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,

@@ -286,7 +286,7 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
                                   config.depth.object_percentiles, config.depth.min_object_pixels,
-                                  config.dense.fill_invalid, fraction)
+                                  config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     return DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects)), dense
 

@@ -653,11 +653,54 @@ def test_object_depths_kernel_is_bit_identical_to_torch(monkeypatch, fill, threa
     assert len(ran) == 1 and ran[0] is not None  # the kernel, not the fallback, gave ``fused``
     monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
     reference = dense_object_depths(*inputs, percentiles=(10.0, 90.0), min_valid_px=1, fill_invalid=fill)
-    for name in ("depth_median_m", "depth_low_m", "depth_high_m", "valid", "num_valid_px"):
+    for name in ("depth_median_m", "depth_low_m", "depth_high_m", "valid", "num_valid_px", "num_in_view_px"):
         assert torch.equal(getattr(fused, name), getattr(reference, name)), name
     assert fused.valid[0, :2].all() and not fused.valid[0, 2] and not fused.valid[3].any()
     assert torch.equal(fused.depth_median_m[1, 0], fused.depth_median_m[1, 1])  # a repeated slot
     assert not fused.valid[2, 2]  # label 9: no pixel
+
+
+@pytest.mark.parametrize("path", ["auto", "torch"])
+def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
+    """``num_in_view_px`` counts, per slot, the measured pixels (each position of the searched box, clamped to
+    the frame as ``num_valid_px`` counts them: valid, positive denominator, finite depth) at frame columns
+    ``x ≥ min_disparity_px + pair_num_disparities − 1``, as a loop over the box does, for ranges that start above
+    and below 0, one wider than the frame and an empty one; ``min_in_view_px`` drops exactly the objects with
+    fewer and changes no statistic."""
+    from dataclasses import replace
+
+    from svs_torch.dense_depth import dense_object_depths
+
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    dense, labels, objects, focal, baseline, doffs = _object_depth_inputs(8)
+    dense = replace(dense, min_disparity_px=torch.tensor([5, -3, 0, 2]),
+                    pair_num_disparities=torch.tensor([10, 4, 80, 0]))
+    result = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1)
+    b, n = objects.label.shape
+    expected = torch.zeros(b, n, dtype=torch.int64)
+    for i in range(b):
+        d_max = int(dense.min_disparity_px[i] + dense.pair_num_disparities[i]) - 1
+        x0, y0, width, height = dense.crop_xywh[i].tolist()  # each position of the box, clamped to the frame
+        for y in (min(max(y0 + j, 0), labels.shape[-2] - 1) for j in range(height)):
+            for x in (min(max(x0 + k, 0), labels.shape[-1] - 1) for k in range(width)):
+                denominator = dense.disparity_px[i, 0, y, x] + doffs[i]  # float32, as the statistics
+                if x < d_max or not dense.valid[i, 0, y, x] or denominator <= 0:
+                    continue
+                if not 0 < float(focal[i] * baseline[i] / denominator) < float("inf"):
+                    continue
+                for k in range(n):
+                    expected[i, k] += int(objects.label[i, k] > 0 and labels[i, 0, y, x] == objects.label[i, k])
+    assert torch.equal(result.num_in_view_px, expected)
+    assert (result.num_in_view_px <= result.num_valid_px).all()
+    assert torch.equal(result.num_in_view_px[2], torch.zeros(n, dtype=torch.int64))  # d_max past the frame
+    assert (result.num_in_view_px[0] > 0).any() and (result.num_in_view_px[0] < result.num_valid_px[0]).any()
+    threshold = int(expected[result.valid].max())  # only the best-seen object keeps its depth
+    checked = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1,
+                                  min_in_view_px=threshold)
+    assert torch.equal(checked.valid, result.valid & (expected >= threshold))
+    assert result.valid.sum() > checked.valid.sum() > 0
+    assert torch.equal(checked.depth_median_m[checked.valid], result.depth_median_m[checked.valid])
 
 
 def test_object_depths_gradients_take_the_torch_path():

@@ -159,3 +159,40 @@ def test_dense_rule_on_a_pair_that_needs_rectification(scenes):
         for slot, label in enumerate(seg.kept_labels[i].tolist()):
             true = float(scenes.depth_m[scene, 0][seg.labels[i, 0] == label].median())
             assert float(result.depth.objects.depth_median_m[i, slot]) == pytest.approx(true, rel=0.15)
+
+
+def test_an_object_the_right_camera_cannot_see_is_not_ranged():
+    """A bright strip 0.8 m away on the left border, 20 px wide where its disparity is 37 px, has no match
+    inside the right view: the best visible candidate ranged it at 9.9 m. By default it is not ranged (none
+    of its valid pixels lies at x ≥ the pair's largest searched disparity), the object beside it still is, and
+    the JSON-facing count says why."""
+    from svs_torch.camera import SVS_CAMERA
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    focal = SVS_CAMERA.focal_px(320)
+    centre_x = SVS_CAMERA.principal_point_px(320, 240)[0]
+    near_m, strip_px = 0.8, 20
+    strip_m = strip_px * near_m / focal
+    scenes = render_obstacle_scenes(
+        torch.tensor([[1.5, near_m]]),
+        torch.tensor([[[0.05, 0.0], [-centre_x * near_m / focal + strip_m / 2 - 0.02, 0.0]]]),
+        torch.tensor([[[0.5, 0.6], [strip_m + 0.04, 0.35]]]), generator=torch.Generator().manual_seed(3))
+    assert scenes.object_bbox_xyxy[0, 1].tolist()[::2] == [0, strip_px]
+    assert focal * SVS_CAMERA.baseline_m / near_m > strip_px + 15
+
+    def objects(min_in_view: int):
+        config = PipelineConfig(depth=DepthConfig(min_object_pixels_in_view=min_in_view))
+        result = estimate_obstacle_depth(scenes.batch, config)
+        assert result.status.tolist() == [PipelineStatus.OK]
+        return result.depth.objects
+
+    checked, unchecked = objects(20), objects(0)
+    strip = int((checked.centroid_x_px[0] < strip_px).nonzero())
+    wide = 1 - strip
+    assert int(checked.num_valid_px[0, strip]) >= 20 and int(checked.num_in_view_px[0, strip]) == 0
+    assert not checked.valid[0, strip]
+    assert bool(unchecked.valid[0, strip]) and float(unchecked.depth_median_m[0, strip]) > 2 * near_m  # ranged wrong
+    assert bool(checked.valid[0, wide]) and float(checked.depth_median_m[0, wide]) == pytest.approx(1.5, rel=0.01)
+    assert int(checked.num_in_view_px[0, wide]) == int(checked.num_valid_px[0, wide])
+    with pytest.raises(InputError, match="min_object_pixels_in_view: expected an int >= 0"):
+        DepthConfig(min_object_pixels_in_view=-1)

@@ -91,8 +91,8 @@ _SIGNATURES = {
     "refine_maxima": ([_POINTER] * 6 + [_INT] + [_POINTER] * 2 + [_INT] * 2 + [ctypes.c_double] * 2
                       + [_POINTER] * 5 + [_INT], ctypes.c_int),
     "fill_invalid_rows": ([_POINTER] * 2 + [_INT] * 2 + [_POINTER] * 2 + [_INT], ctypes.c_int),
-    "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 2 + [_INT, _POINTER, _INT]
-                      + [_POINTER] * 4 + [_INT], ctypes.c_int),
+    "object_depths": ([_POINTER] * 3 + [_INT] * 3 + [_POINTER] * 2 + [_INT] + [_POINTER] * 3 + [_INT, _POINTER, _INT]
+                      + [_POINTER] * 5 + [_INT], ctypes.c_int),
     "padded_integral": ([_POINTER] * 2 + [_INT] * 4 + [_POINTER, _INT], ctypes.c_int),
     "strongest_maxima": ([_POINTER] * 4 + [_INT] * 2 + [_FLOAT, _INT] + [_POINTER] * 2 + [_INT], ctypes.c_int),
     "usurf_describe": ([_POINTER] + [_INT] * 4 + [_POINTER] * 3 + [_INT] * 2 + [_POINTER, _INT], ctypes.c_int),
@@ -609,38 +609,42 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
 
 
 def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
-                  slots: torch.Tensor, scale: torch.Tensor, doffs: torch.Tensor, fill: bool, q: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+                  slots: torch.Tensor, scale: torch.Tensor, doffs: torch.Tensor, in_view_from: torch.Tensor,
+                  fill: bool, q: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """The statistics of :func:`svs_torch.dense_depth.dense_object_depths`, each pair read once at its own box
     (see the C source): ``disparity`` ``(B, H, W)`` float32, ``valid`` ``(B, H, W)`` bool, ``labels``
     ``(B, H, W)`` int64; ``boxes`` ``(B, 4)`` x0, y0, width, height; ``slots`` ``(B, N)`` int64; ``scale``
-    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``fill``: fill invalid pixels from their row first;
-    quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, below, above)``: each slot's member count and
-    its members that were valid before the fill ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
+    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``in_view_from`` ``(B,)`` int64, the first frame column
+    where the pair's whole disparity range lands inside the right image; ``fill``: fill invalid pixels from their
+    row first; quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, in_view, below, above)``: each
+    slot's member count, its members that were valid before the fill and those of them at columns from
+    ``in_view_from`` on ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
     ``q · (count − 1)`` ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its
     contract."""
     b = disparity.shape[0] if disparity.dim() == 3 else -1
     if (not (_on_cpu(torch.float32, disparity, scale, doffs, q) and _on_cpu(torch.bool, valid)
-             and _on_cpu(torch.int64, labels, boxes, slots))
+             and _on_cpu(torch.int64, labels, boxes, slots, in_view_from))
             or disparity.dim() != 3 or valid.shape != disparity.shape or labels.shape != disparity.shape
             or boxes.shape != (b, 4) or slots.dim() != 2 or slots.shape[0] != b or scale.shape != (b,)
-            or doffs.shape != (b,) or q.dim() != 1):
+            or doffs.shape != (b,) or in_view_from.shape != (b,) or q.dim() != 1):
         return None
     library = load("object_depths")
     if library is None:
         return None
     h, w = disparity.shape[1:]
     n, k = slots.shape[1], q.numel()
-    disparity, labels, boxes, slots, scale, doffs, q = (t.contiguous() for t in (disparity, labels, boxes, slots,
-                                                                                  scale, doffs, q))
+    disparity, labels, boxes, slots, scale, doffs, in_view_from, q = (
+        t.contiguous() for t in (disparity, labels, boxes, slots, scale, doffs, in_view_from, q))
     valid = valid.contiguous().view(torch.uint8)
-    count, measured = torch.empty(b, n, dtype=torch.int64), torch.empty(b, n, dtype=torch.int64)
+    count, measured, in_view = (torch.empty(b, n, dtype=torch.int64) for _ in range(3))
     below, above = torch.empty(b, n, k), torch.empty(b, n, k)
     status = library.object_depths(disparity.data_ptr(), valid.data_ptr(), labels.data_ptr(), b, h, w,
                                    boxes.data_ptr(), slots.data_ptr(), n, scale.data_ptr(), doffs.data_ptr(),
-                                   int(fill), q.data_ptr(), k, count.data_ptr(), measured.data_ptr(),
-                                   below.data_ptr(), above.data_ptr(), torch.get_num_threads())
-    return None if status != 0 else (count, measured, below, above)
+                                   in_view_from.data_ptr(), int(fill), q.data_ptr(), k, count.data_ptr(),
+                                   measured.data_ptr(), in_view.data_ptr(), below.data_ptr(), above.data_ptr(),
+                                   torch.get_num_threads())
+    return None if status != 0 else (count, measured, in_view, below, above)
 
 
 def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch.Tensor, valid: torch.Tensor,

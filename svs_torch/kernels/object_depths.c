@@ -11,6 +11,8 @@
  *   den = d + doffs;  ok &= den > 0;  Z = scale / den  (scale = focal * baseline, made by the caller in float32)
  *   ok &= isfinite(Z) && Z > 0
  *   members of slot n: Z where ok and label == slots[n] (> 0);  measured[n]: those that were valid before the fill
+ *   in_view[n]: those measured at a frame column >= in_view_from[b] (where the pair's whole disparity range lands
+ *   inside the right image: DepthConfig.min_object_pixels_in_view)
  * then the members grouped by slot (a counting sort) and each slot's order statistics by quickselect
  * (select_rank.h). The same float32 operations as the torch path,
  * so the same statistics bit for bit (the caller interpolates them with its own float32 ops).
@@ -56,12 +58,14 @@ __attribute__((noinline)) static void depth_row(const float *restrict values, co
 
 /* ``disparity`` (B, H, W) float32, ``valid`` (B, H, W) uint8, ``labels`` (B, H, W) int64; ``boxes`` (B, 4) x0,
  * y0, width, height; ``slots`` (B, N) int64 (<= 0: padding); ``scale``, ``doffs`` (B,) float32; ``q`` (Q,)
- * float32. Out: ``count`` (B, N) members, ``measured`` (B, N), ``below`` / ``above`` (B, N, Q). Returns 0, or -1
+ * float32; ``in_view_from`` (B,) int64, the first frame column in view. Out: ``count`` (B, N) members,
+ * ``measured`` (B, N), ``in_view`` (B, N), ``below`` / ``above`` (B, N, Q). Returns 0, or -1
  * when memory could not be had or N > 126 (a slot's index is kept in 8 bits); the caller then runs the torch path. */
 int object_depths(const float *disparity, const uint8_t *valid, const int64_t *labels, int64_t B, int64_t H,
                   int64_t W, const int64_t *boxes, const int64_t *slots, int64_t N, const float *scale,
-                  const float *doffs, int64_t fill, const float *q, int64_t Q, int64_t *count, int64_t *measured,
-                  float *below, float *above, int64_t num_threads) {
+                  const float *doffs, const int64_t *in_view_from, int64_t fill, const float *q, int64_t Q,
+                  int64_t *count, int64_t *measured, int64_t *in_view, float *below, float *above,
+                  int64_t num_threads) {
     int64_t largest_w = 0, largest_area = 0;
     for (int64_t b = 0; b < B; ++b) {
         const int64_t w = box_side(boxes[4 * b + 2]), h = box_side(boxes[4 * b + 3]);
@@ -102,9 +106,10 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
                         first[n] = e;
                         break;
                     }
-                count[b * N + n] = measured[b * N + n] = 0;
+                count[b * N + n] = measured[b * N + n] = in_view[b * N + n] = 0;
             }
             const float pair_scale = scale[b], pair_doffs = doffs[b];
+            const int64_t view_from = in_view_from[b];
             /* The box columns inside the frame, [inside_lo, inside_hi); the others repeat its border column. */
             const int64_t inside_lo = x0 < 0 ? (-x0 < w ? -x0 : w) : 0;
             const int64_t inside_hi = x0 + w > W ? (W - x0 > inside_lo ? W - x0 : inside_lo) : w;
@@ -138,14 +143,17 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
                 }
                 depth_row(values, usable, row_label, w, pair_scale, pair_doffs, pair_slots, N, depth + p,
                           row_usable, slot_of + p);
-                for (int64_t i = 0; i < w; ++i) measured_of[p + i] = row_ok[i];
+                /* bit 0: valid before the fill; bit 1: that, and at a frame column in view. */
+                for (int64_t i = 0; i < w; ++i)
+                    measured_of[p + i] = (uint8_t)(row_ok[i] * (1 + 2 * (clamp_index(x0 + i, W) >= view_from)));
                 p += w;
             }
             /* The members grouped by slot (a counting sort), then each slot's order statistics. */
             for (int64_t k = 0; k < p; ++k)
                 if (slot_of[k] >= 0) {
                     count[b * N + slot_of[k]] += 1;
-                    measured[b * N + slot_of[k]] += measured_of[k];
+                    measured[b * N + slot_of[k]] += measured_of[k] & 1;
+                    in_view[b * N + slot_of[k]] += measured_of[k] >> 1;
                 }
             start[0] = 0;
             for (int64_t n = 0; n < N; ++n) start[n + 1] = start[n] + count[b * N + n];
@@ -160,6 +168,7 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
                     const int64_t from = b * N + first[n], out = b * N + n;
                     count[out] = count[from];
                     measured[out] = measured[from];
+                    in_view[out] = in_view[from];
                     for (int64_t i = 0; i < Q; ++i) {
                         below[out * Q + i] = below[from * Q + i];
                         above[out * Q + i] = above[from * Q + i];
