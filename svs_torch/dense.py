@@ -903,6 +903,12 @@ def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> Den
                           dense.pair_num_disparities * factor)
 
 
+def working_factor(width_px: int, config: DenseConfig = DenseConfig()) -> int:
+    """The integer factor :func:`estimate_dense_disparity` reduces images ``width_px`` wide by (about
+    ``width_px / config.working_width_px``, at least 1): one working pixel is this many input pixels."""
+    return max(1, round(width_px / config.working_width_px))
+
+
 def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
                              config: DenseConfig = DenseConfig(), image_hw: torch.Tensor | None = None,
                              inlier_disparity_px: torch.Tensor | None = None,
@@ -926,7 +932,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     height, width = left.shape[-2:]
     if image_hw is None:
         image_hw = torch.tensor([[height, width]], device=left.device).expand(b, 2)
-    factor = max(1, round(width / config.working_width_px))
+    factor = working_factor(width, config)
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
     if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:
         small_objects = None

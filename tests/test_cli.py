@@ -440,3 +440,14 @@ def test_guide_runs_live_against_the_emulator(capsys):
 def test_guide_needs_boards_or_the_emulator(capsys):
     code, _, err = run_cli(capsys, "guide")
     assert code == 2 and "--emulator" in err
+
+
+def test_estimate_help_states_the_verification_defaults():
+    """The numbers ``estimate --help`` gives for the verification are the pipeline's defaults."""
+    from svs_torch.cli import estimate
+    from svs_torch.pipeline import PipelineConfig
+
+    config = PipelineConfig()
+    assert f"at least {config.verify_min_agreeing_inliers} RANSAC inliers" in estimate.EPILOG
+    assert (f"needs {config.depth.min_object_valid_fraction_unverified:.0%} of its region measured instead of "
+            f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")

@@ -452,3 +452,39 @@ def test_prefilter_slices_equal_conv2d_bit_for_bit(teddy):
     kernel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]).view(1, 1, 3, 3)
     expected = torch.nn.functional.conv2d(torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate"), kernel)
     assert torch.equal(prefilter_xsobel(image, 31 / 255), expected.clamp(-31 / 255, 31 / 255))
+
+
+def test_count_agreeing_inliers_by_hand():
+    """An inlier agrees where the dense map is valid at its (rounded, rectified) left point and within the
+    tolerance of its sparse disparity; outliers, points off the map, invalid pixels and points behind the
+    homography's line at infinity do not count."""
+    from svs_torch.dense import DenseDisparity
+    from svs_torch.dense_depth import count_agreeing_inliers
+    from svs_torch.depth import Disparities
+
+    b, h, w = 2, 6, 8
+    disparity = torch.arange(w, dtype=torch.float32).expand(b, 1, h, w).clone()  # d = column
+    valid = torch.ones(b, 1, h, w, dtype=torch.bool)
+    valid[:, :, 0, :] = False  # row 0 unmeasured
+    dense = DenseDisparity(disparity, valid, torch.zeros(b, dtype=torch.int64), 8,
+                           torch.tensor([[0, 0, w, h]] * b), torch.full((b,), 8))
+    points = torch.tensor([[[3.2, 2.0], [5.0, 3.4], [2.0, 0.0], [9.0, 1.0], [4.0, 4.0], [6.0, 5.0]]] * b)
+    sparse = torch.tensor([[3.0, 6.4, 2.0, 9.0, 4.0, 0.0]] * b)  # agree, 1.4 off, row 0, off the map, ok, far off
+    inliers = torch.tensor([[True, True, True, True, False, True]] * b)
+    disparities = Disparities(sparse, torch.zeros_like(sparse), torch.ones(b, 6, dtype=torch.bool))
+    count = count_agreeing_inliers(dense, points, disparities, inliers)
+    assert count.tolist() == [1, 1]
+    assert count_agreeing_inliers(dense, points, disparities, inliers, tolerance_px=1.5).tolist() == [2, 2]
+    assert count_agreeing_inliers(dense, points, disparities, torch.ones_like(inliers)).tolist() == [2, 2]
+    # Pair 1's dense map was measured after a shift of one column right: its points move with it.
+    shift = torch.eye(3).expand(b, 3, 3).clone()
+    shift[1, 0, 2] = 1.0
+    first = torch.zeros_like(inliers)
+    first[:, 0] = True
+    shifted = count_agreeing_inliers(dense, points, disparities, first, shift, tolerance_px=0.5)
+    assert shifted.tolist() == [1, 0]  # pair 1's (3.2, 2) → (4.2, 2) reads d = 4, 1 px from its sparse 3
+    behind = torch.eye(3).expand(b, 3, 3).clone()
+    behind[:, 2, 2] = -1.0  # every point maps behind the line at infinity
+    assert count_agreeing_inliers(dense, points, disparities, inliers, behind).tolist() == [0, 0]
+    with pytest.raises(InputError, match="inliers"):
+        count_agreeing_inliers(dense, points, disparities, inliers[:, :3])

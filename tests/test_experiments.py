@@ -29,3 +29,26 @@ def test_paper_table1_on_one_scene_per_split(data_dir, tmp_path):
     saved = json.loads(out_json.read_text())
     markdown = out_md.read_text()
     assert saved["metadata"]["threads"] == 2 and "| split | size | method |" in markdown and "92.5-98.9 %" in markdown
+
+
+def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
+    """The verification study runs end to end on a few scenes: every real and synthetic pair is verified under
+    the default rule (the pipeline's own defaults), no pair of unrelated views is, and the report lists every
+    rule."""
+    import verify_views
+
+    out_json = tmp_path / "verify.json"
+    report = verify_views.main(["--data", str(data_dir), "--limit", "3", "--synthetic", "4", "--json",
+                                str(out_json)])
+    sets = report["sets"]
+    assert json.loads(out_json.read_text())["metadata"]["limit"] == 3
+    config = verify_views.PipelineConfig()
+    default = (config.verify_min_inliers, config.verify_min_inlier_share, config.verify_min_agreeing_inliers,
+               config.depth.min_object_valid_fraction_unverified)
+    assert default in verify_views.RULES  # the defaults are one of the measured rules
+    positives = [p for name, pairs in sets.items() if name.startswith("positive/") for p in pairs]
+    negatives = [p for name, pairs in sets.items() if name.startswith("negative/") for p in pairs]
+    assert len(positives) == 3 * 2 + 4 and len(negatives) == 3 * 2 + 4
+    assert all(verify_views.verified(p, default) for p in positives)
+    assert not any(verify_views.verified(p, default) for p in negatives)
+    assert all(str(rule) in report["report"] for rule in verify_views.RULES)

@@ -196,3 +196,23 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     assert int(checked.num_in_view_px[0, wide]) == int(checked.num_valid_px[0, wide])
     with pytest.raises(InputError, match="min_object_pixels_in_view: expected an int >= 0"):
         DepthConfig(min_object_pixels_in_view=-1)
+
+
+def test_geometry_is_verified_on_real_views_and_not_on_unrelated_ones(scenes):
+    """Each pair's own views: RANSAC's inliers agree with the dense map (verified); each left view with another
+    scene's right view: RANSAC may still fit F to chance matches, but the dense map confirms almost none of
+    them, so no pair is verified and its objects need the stricter share of valid pixels."""
+    result = estimate_obstacle_depth(scenes.batch)
+    assert result.verified.all() and (result.num_agreeing_inliers >= 20).all()
+    assert (result.num_agreeing_inliers <= result.num_inliers).all()
+    mixed = StereoBatch.from_images(scenes.batch.left, scenes.batch.right.roll(1, dims=0), scenes.batch.focal_px,
+                                    scenes.batch.baseline_m)
+    unrelated = estimate_obstacle_depth(mixed)
+    assert not unrelated.verified.any() and (unrelated.num_agreeing_inliers <= 2).all()
+    ratio = unrelated.depth.objects.num_valid_px / unrelated.depth.objects.area_px.clamp_min(1)
+    ranged = unrelated.depth.objects.valid
+    assert (ratio[ranged] >= DepthConfig().min_object_valid_fraction_unverified).all()
+    paper = estimate_obstacle_depth(scenes.batch, PipelineConfig.paper())
+    assert paper.verified is None and paper.num_agreeing_inliers is None
+    with pytest.raises(InputError, match="verify_min_agreeing_inliers: expected an integer >= 0"):
+        PipelineConfig(verify_min_agreeing_inliers=-1)

@@ -49,6 +49,9 @@ list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGH
 status: "OK" when the obstacles were ranged; otherwise the stage that stopped (NO_OBJECTS, TOO_FEW_KEYPOINTS,
 TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
 a pair whose files cannot be read, with the reason in "reason". Numbers that do not exist are null.
+"verified": at least 6 RANSAC inliers have the disparity the dense map measures at their pixel, so both views
+show one scene; where not (a swapped, frozen or unplugged camera), an object needs 40 % of its region
+measured instead of 10 % ("num_agreeing_inliers"; experiments/verify_views.py).
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """
@@ -176,6 +179,9 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
         "num_matches": int(result.num_matches[index]),
         "num_inliers": int(result.num_inliers[index]),
+        "num_agreeing_inliers": (int(result.num_agreeing_inliers[index]) if result.num_agreeing_inliers is not None
+                                 else None),
+        "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
         "time_s": round(elapsed_s, 6),
     }

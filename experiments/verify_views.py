@@ -1,0 +1,185 @@
+"""When does the sparse stage vouch that both views show one scene? Real pairs against pairs of unrelated views.
+
+Under the dense rule an object is ranged on at least ``DepthConfig.min_object_valid_fraction`` (0.1) of its region
+with valid dense disparities where the pair's geometry is *verified*, and on the stricter
+``min_object_valid_fraction_unverified`` (0.3) otherwise: views that do not show the same scene (a swapped, frozen
+or misconnected camera) still leave 10–30 % of a region "consistent" by chance. RANSAC's F alone vouches badly:
+7-point RANSAC fits some F to a dozen chance matches. This script measures the candidate rules on
+
+- **positives**: every shared real pair (at 320 px wide and at native size) and 64 synthetic SVS scenes;
+- **negatives**: the left view of one scene with the right view of another (every ordered pair of distinct
+  scenes, both at 320×240; duplicates of one scene under another name, such as ArtL / Art or Piano / PianoL,
+  are not paired), and each synthetic scene's left view with the next scene's right view.
+
+For every pair it records RANSAC's status and inliers, the matches, and the inliers whose disparity the dense map
+confirms within one working pixel (:func:`svs_torch.dense_depth.count_agreeing_inliers`); each rule's verdict
+and the objects it lets through are then recomputed from the same run (the dense map does not depend on the
+rule). A rule is ``(verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers)`` of
+:class:`~svs_torch.pipeline.PipelineConfig`.
+
+Choosing the default: positives and negatives from the scenes outside ``paper_table1.py``'s held-out split
+(MiddEval3, Middlebury 2001, KITTI, the OpenCV sample, synthetic) decide; the held-out split's are reported
+beside them.
+
+    python experiments/verify_views.py [--data DIR] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from svs_torch.camera import SVS_CAMERA
+from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.evaluation import with_nominal_calibration
+from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+from svs_torch.types import StereoBatch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
+
+#: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
+#: DepthConfig.min_object_valid_fraction_unverified).
+RULES = [(15, 0.5, 0, 0.3), (10, 0.5, 0, 0.3), (0, 0.5, 6, 0.3), (0, 0.0, 6, 0.3), (15, 0.5, 6, 0.3),
+         (0, 0.5, 4, 0.3), (0, 0.5, 8, 0.3), (0, 0.5, 6, 0.4), (0, 0.5, 6, 0.5), (0, 0.5, 6, 1.0)]
+#: The same scene under two names (MiddEval3's ArtL is 2005's Art, OpenCV's sample pair is Aloe, ...): never
+#: paired as unrelated.
+SAME_SCENE = {"ArtL": "Art", "MotorcycleE": "Motorcycle", "PianoL": "Piano", "opencv_samples": "Aloe"}
+NEGATIVE_SIZE_WH = (320, 240)
+BATCH = 32
+
+
+def group(path: Path) -> str:
+    """``held-out`` for paper_table1.py's held-out split, else ``tuning``."""
+    text = str(path)
+    return "held-out" if "middlebury_2005_2006" in text or "middlebury_2003" in text else "tuning"
+
+
+def record(result, index: int) -> dict:
+    """What the rules need of one pair of a pipeline result."""
+    objects = result.depth.objects
+    # Whether the pair reached the object depths: its status then depends only on which objects are ranged.
+    status = int(result.status[index])
+    return {"ok": status in (PipelineStatus.OK, PipelineStatus.NO_DENSE_DEPTH),
+            "fundamental_ok": int(result.fundamental.status[index]) == 0,
+            "inliers": int(result.num_inliers[index]), "matches": int(result.num_matches[index]),
+            "agreeing": int(result.num_agreeing_inliers[index]),
+            "objects": [{"valid_px": int(objects.num_valid_px[index, n]),
+                         "in_view_px": int(objects.num_in_view_px[index, n]), "area_px": int(objects.area_px[index, n])}
+                        for n in range(objects.label.shape[1]) if int(objects.label[index, n]) > 0]}
+
+
+def verified(pair: dict, rule: tuple[int, float, int, float]) -> bool:
+    min_inliers, share, agreeing, _ = rule
+    return (pair["fundamental_ok"] and pair["inliers"] >= min_inliers and pair["inliers"] >= share * pair["matches"]
+            and pair["agreeing"] >= agreeing)
+
+
+def ranged_objects(pair: dict, rule: tuple[int, float, int, float], config: PipelineConfig) -> int:
+    """The objects the pipeline would range under ``rule`` (dense_object_depths' validity, recomputed)."""
+    if not pair["ok"]:
+        return 0
+    depth = config.depth
+    fraction = depth.min_object_valid_fraction if verified(pair, rule) else rule[3]
+    fraction = torch.tensor(fraction, dtype=torch.float32)  # as the pipeline compares, in float32
+    return sum(1 for o in pair["objects"]
+               if o["valid_px"] >= max(depth.min_object_pixels, 1) and o["in_view_px"] >= depth.min_object_pixels_in_view
+               and o["valid_px"] >= float(fraction * o["area_px"]))
+
+
+def run_batches(lefts: torch.Tensor, rights: torch.Tensor, config: PipelineConfig, label: str) -> list[dict]:
+    out = []
+    for start in range(0, lefts.shape[0], BATCH):
+        print(f"\r{label}: {start}/{lefts.shape[0]}        ", end="", file=sys.stderr, flush=True)
+        batch = StereoBatch.from_images(lefts[start:start + BATCH], rights[start:start + BATCH],
+                                        SVS_CAMERA.focal_px(lefts.shape[-1]), SVS_CAMERA.baseline_m)
+        result = estimate_obstacle_depth(batch, config)
+        out += [record(result, i) for i in range(batch.batch_size)]
+    print(f"\r{label}: {lefts.shape[0]} pairs        ", file=sys.stderr)
+    return out
+
+
+def collect(data_dir: Path, config: PipelineConfig, limit: int = 0, synthetic: int = 64) -> dict[str, list[dict]]:
+    """Pair records by set: ``positive/<group>``, ``negative/<group>`` and the synthetic ones (``limit``: only
+    the first shared scenes, 0 all; ``synthetic``: how many synthetic scenes)."""
+    paths = list_shared_pairs(data_dir)
+    paths = paths[:limit] if limit else paths
+    sets: dict[str, list[dict]] = {}
+    for number, path in enumerate(paths, start=1):
+        print(f"\rpositives: {number}/{len(paths)}        ", end="", file=sys.stderr, flush=True)
+        native = with_nominal_calibration(load_stereo_pair(path))
+        height, width = native.size_hw
+        for batch in (native, resize_stereo_batch(native, (320, round(height * 320 / width)))):
+            result = estimate_obstacle_depth(batch, config)
+            sets.setdefault(f"positive/{group(path)}", []).append(record(result, 0))
+    print(file=sys.stderr)
+    small = [resize_stereo_batch(load_stereo_pair(path), NEGATIVE_SIZE_WH) for path in paths]
+    names = [SAME_SCENE.get(path.name, path.name) for path in paths]
+    for kind in ("tuning", "held-out"):
+        # A negative belongs to the held-out set when either of its views comes from a held-out scene.
+        pairs = [(i, j) for i in range(len(paths)) for j in range(len(paths))
+                 if names[i] != names[j] and (kind == "held-out") == (group(paths[i]) == "held-out"
+                                                                      or group(paths[j]) == "held-out")]
+        if not pairs:
+            continue
+        lefts = torch.cat([small[i].left for i, _ in pairs])
+        rights = torch.cat([small[j].right for _, j in pairs])
+        sets[f"negative/{kind}"] = run_batches(lefts, rights, config, f"negatives ({kind})")
+    scenes = random_obstacle_scenes(synthetic, 2, generator=torch.Generator().manual_seed(2026))
+    sets["positive/synthetic"] = run_batches(scenes.batch.left, scenes.batch.right, config, "synthetic positives")
+    sets["negative/synthetic"] = run_batches(scenes.batch.left, scenes.batch.right.roll(1, dims=0), config,
+                                             "synthetic negatives")
+    return sets
+
+
+def report(sets: dict[str, list[dict]], config: PipelineConfig) -> str:
+    lines = ["| set | pairs | agreeing inliers: min / 5th pct / median / 95th pct / max |", "|---|---|---|"]
+    for name, pairs in sets.items():
+        values = sorted(p["agreeing"] for p in pairs if p["fundamental_ok"]) or [0]
+        pct = [values[min(len(values) - 1, int(q * (len(values) - 1)))] for q in (0.0, 0.05, 0.5, 0.95, 1.0)]
+        lines.append(f"| {name} | {len(pairs)} (F found: {sum(p['fundamental_ok'] for p in pairs)}) | "
+                     + " / ".join(map(str, pct)) + " |")
+    lines += ["", "| rule (min inliers, share, min agreeing, unverified fraction) | " + " | ".join(sets) + " |",
+              "|---|" + "---|" * len(sets)]
+    for rule in RULES:
+        cells = []
+        for name, pairs in sets.items():
+            v = sum(verified(p, rule) for p in pairs)
+            ranged = sum(ranged_objects(p, rule, config) for p in pairs)
+            cells.append(f"{v} verified, {ranged} objects ranged")
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--limit", type=int, default=0, help="only the first N shared scenes (0: all)")
+    parser.add_argument("--synthetic", type=int, default=64, help="synthetic scenes (each a positive and, with the "
+                        "next one's right view, a negative)")
+    parser.add_argument("--json", metavar="FILE", help="write every pair's record and the run metadata as JSON")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    config = PipelineConfig()
+    sets = collect(Path(args.data), config, args.limit, args.synthetic)
+    text = report(sets, config)
+    print(text)
+    out = {"metadata": run_metadata(args.threads, limit=args.limit, synthetic=args.synthetic), "sets": sets,
+           "report": text}
+    if args.json:
+        Path(args.json).write_text(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
