@@ -29,6 +29,15 @@ def test_paper_table1_on_one_scene_per_split(data_dir, tmp_path):
     saved = json.loads(out_json.read_text())
     markdown = out_md.read_text()
     assert saved["metadata"]["threads"] == 2 and "| split | size | method |" in markdown and "92.5-98.9 %" in markdown
+    # The dense maps against the GT over the kept regions: svs_torch's and both OpenCV block matchers'.
+    dense_methods = {"svs_torch default (dense)", paper_table1.OPENCV_BM, paper_table1.OPENCV_SGBM}
+    for row in rows:
+        assert ("disparity" in row) == (row["method"] in dense_methods)
+        if row["method"] in dense_methods:
+            stats = row["disparity"]
+            assert 0.3 < stats["density"] <= 1 and 0 <= stats["bad2"] <= stats["bad1"] <= 0.5
+            assert 0 <= stats["median_error_px"] < 1
+    assert "## Dense disparity over the kept regions" in markdown and "| bad-1 % |" in markdown
 
 
 def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
