@@ -6,7 +6,8 @@ with valid dense disparities where the pair's geometry is *verified*, and on the
 or misconnected camera) still leave 10–30 % of a region "consistent" by chance. RANSAC's F alone vouches badly:
 7-point RANSAC fits some F to a dozen chance matches. This script measures the candidate rules on
 
-- **positives**: every shared real pair (at 320 px wide and at native size) and 64 synthetic SVS scenes;
+- **positives**: every shared real pair (at native size, 320 px wide, and squeezed to the SVS's 320×240 as the
+  benchmark's real pairs are) and 64 synthetic SVS scenes;
 - **negatives**: the left view of one scene with the right view of another (every ordered pair of distinct
   scenes, both at 320×240; duplicates of one scene under another name, such as ArtL / Art or Piano / PianoL,
   are not paired), and each synthetic scene's left view with the next scene's right view.
@@ -118,7 +119,8 @@ def collect(data_dir: Path, config: PipelineConfig, limit: int = 0, synthetic: i
         print(f"\rpositives: {number}/{len(paths)}        ", end="", file=sys.stderr, flush=True)
         native = with_nominal_calibration(load_stereo_pair(path))
         height, width = native.size_hw
-        for batch in (native, resize_stereo_batch(native, (320, round(height * 320 / width)))):
+        for batch in (native, resize_stereo_batch(native, (320, round(height * 320 / width))),
+                      resize_stereo_batch(native, NEGATIVE_SIZE_WH)):
             result = estimate_obstacle_depth(batch, config)
             sets.setdefault(f"positive/{group(path)}", []).append(record(result, 0))
     print(file=sys.stderr)

@@ -57,7 +57,7 @@ def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
     assert default in verify_views.RULES  # the defaults are one of the measured rules
     positives = [p for name, pairs in sets.items() if name.startswith("positive/") for p in pairs]
     negatives = [p for name, pairs in sets.items() if name.startswith("negative/") for p in pairs]
-    assert len(positives) == 3 * 2 + 4 and len(negatives) == 3 * 2 + 4
+    assert len(positives) == 3 * 3 + 4 and len(negatives) == 3 * 2 + 4
     assert all(verify_views.verified(p, default) for p in positives)
     assert not any(verify_views.verified(p, default) for p in negatives)
     assert all(str(rule) in report["report"] for rule in verify_views.RULES)
