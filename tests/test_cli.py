@@ -208,6 +208,12 @@ def test_estimate_range_rules_and_presets(data_dir, capsys):
     assert all(obj["num_valid_px"] > 1000 for obj in dense["objects"])
     assert dense["nearest_surface_m"] <= dense["nearest_m"] == dense["r_min_m"]
     assert all(obj["num_valid_px"] is None for obj in reports["preset"]["objects"])
+    # Teddy's objects lie mostly where the right view holds every disparity; its geometry is verified.
+    assert all(1000 < obj["num_in_view_px"] <= obj["num_valid_px"] for obj in dense["objects"])
+    assert dense["verified"] is True and 6 <= dense["num_agreeing_inliers"] <= dense["num_inliers"]
+    paper = reports["preset"]
+    assert paper["verified"] is None and paper["num_agreeing_inliers"] is None
+    assert all(obj["num_in_view_px"] is None for obj in paper["objects"])
     with pytest.raises(SystemExit):
         main(["estimate", "--help"])
     assert "--range paper" in capsys.readouterr().out
