@@ -90,7 +90,7 @@ class DenseConfig:
             default: in ``experiments/paper_table1.py`` it fixed Laundry but dropped correctly ranged objects
             near the left border elsewhere (tuned 320 px: R_min 98.9 → 89.1 %, a pair lost; held-out native:
             98.0 / 92.4 → 97.3 / 90.1 %). The default guards per object instead, keeping every pixel:
-            ``DepthConfig.min_object_pixels_in_view`` leaves unranged only an object with no pixel in view. The
+            ``DepthConfig.min_object_pixels_in_view`` leaves unranged only an object with too few pixels in view. The
             coarse range pass never applies it (it only bounds the search).
         kernel: how the hard path is computed: ``"auto"`` the fused C kernel of :mod:`svs_torch.kernels`
             where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and

@@ -25,11 +25,11 @@ regions (on the rectified pair, or the raw one when its rows already agree); eac
 median depth over its region, with its 10th/90th percentiles and the count of valid pixels; R_min / R_max are
 the nearest / farthest object, and the nearest object's 10th percentile is its nearest visible surface. An
 object with fewer than 20 valid pixels where the right view holds every searched disparity (a near strip on
-the left border) gets no depth ("num_in_view_px" in the JSON). On the shared Middlebury scenes this is 98-99 % accurate
-where its settings were tuned and 92-98 % on held-out scenes (experiments/paper_table1.py). --range paper uses the
-paper's own rule instead: R_min = f*B/d_max and R_max = f*B/d_min over the RANSAC inliers (Eq. (5)-(8)), and
-each object's median inlier depth. --preset paper runs the paper exactly (MATLAB defaults, --range paper).
-The JSON says which rule produced the numbers ("range_rule").
+the left border) gets no depth ("num_in_view_px" in the JSON). On the shared Middlebury scenes this is
+98-99 % accurate where its settings were tuned and 92-98 % on held-out scenes (experiments/paper_table1.py).
+--range paper uses the paper's own rule instead: R_min = f*B/d_max and R_max = f*B/d_min over the RANSAC
+inliers (Eq. (5)-(8)), and each object's median inlier depth. --preset paper runs the paper exactly (MATLAB
+defaults, --range paper). The JSON says which rule produced the numbers ("range_rule").
 
 Without calibration options the SVS camera model is assumed: 3.6 mm lens on a 4.17 mm sensor (focal 276 px at
 320x240, scaled with the image width) and a 10.75 cm baseline. Give --focal-px for the INPUT image size.
