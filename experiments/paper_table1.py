@@ -5,7 +5,11 @@ depth over the kept regions) and three OpenCV rivals on the same segmented regio
 SIFT + brute-force ratio 0.8 + ``findFundamentalMat`` (per-object median inlier depth), and ``StereoBM`` /
 ``StereoSGBM`` (median depth of the valid disparities over each kept region).
 
-A second table holds the dense maps themselves (svs_torch's, ``StereoBM``'s, ``StereoSGBM``'s) against the
+A second table splits the accuracy between the scenes whose kept regions two views can measure (most of each
+region's pixels textured and with their true match inside the right image; :func:`region_measurability`, from
+the images and the ground truth only) and the others.
+
+A third table holds the dense maps themselves (svs_torch's, ``StereoBM``'s, ``StereoSGBM``'s) against the
 ground-truth disparity over the kept regions: the share of pixels measured, bad-1 / bad-2 (the share of those off
 by more than 1 / 2 px) and the median absolute error, mean over scenes.
 
@@ -47,8 +51,10 @@ import torch
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.depth import estimate_depth
 from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEstimate, accuracy_pct,  # noqa: F401
-                                  estimates_from_result, score_pair, truth_list, with_nominal_calibration)
+                                  disparity_map_errors, estimates_from_result, score_pair, truth_list,
+                                  with_nominal_calibration)
 from svs_torch.evaluation import object_truth as object_truth_batched
+from svs_torch.dense import working_factor
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
@@ -95,6 +101,41 @@ def resample(batch, size: str):
     return resize_stereo_batch(batch, (new_width, round(height * new_width / width)))
 
 
+#: A kept region is measurable by two views when at least this share of its pixels with a GT disparity both have
+#: their true match inside the right image (x − d_GT ≥ 0) and are textured (StereoBM's test at the product's window
+#: and working width: the window's mean |x-Sobel| at least its texture threshold). Set after seeing which held-out
+#: scenes fail every method (a strip on the left border: Laundry at 320 px, Cloth2; a textureless wall: Midd1,
+#: Midd2, Monopoly); it reads only the images and the ground truth, never an estimate.
+MEASURABLE_SHARE = 0.5
+
+
+def region_measurability(batch, seg) -> dict:
+    """Per kept region with a GT: the share of its GT pixels whose match is inside the right view and the share
+    that is textured; ``measurable``: every region has at least :data:`MEASURABLE_SHARE` of both."""
+    dense = PipelineConfig().dense
+    image = batch.left[0, 0].numpy().astype(np.float32)
+    height, width = image.shape
+    factor = working_factor(width, dense)
+    h, w = height // factor, width // factor
+    small = image[:h * factor, :w * factor].reshape(h, factor, w, factor).mean(axis=(1, 3))
+    sobel = np.clip(cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE),
+                    -dense.prefilter_cap, dense.prefilter_cap)
+    size = (dense.window_size, dense.window_size)
+    textured_small = cv2.blur(np.abs(sobel), size, borderType=cv2.BORDER_REPLICATE) >= dense.texture_threshold
+    textured = np.zeros((height, width), dtype=bool)
+    textured[:h * factor, :w * factor] = textured_small.repeat(factor, axis=0).repeat(factor, axis=1)
+    truth, known = batch.disparity_px[0, 0].numpy(), batch.disparity_valid[0, 0].numpy()
+    in_view = np.arange(width)[None, :] - truth >= 0
+    labels = seg.left.labels[0, 0].numpy()
+    regions = []
+    for label in seg.left.kept_labels[0].tolist():
+        region = (labels == label) & known if label > 0 else np.zeros_like(known)
+        if region.any():
+            regions.append({"in_view": float(in_view[region].mean()), "textured": float(textured[region].mean())})
+    measurable = all(min(r.values()) >= MEASURABLE_SHARE for r in regions)
+    return {"regions": regions, "measurable": measurable}
+
+
 def object_truth(batch, seg) -> list[tuple[int, float]]:
     """(slot, median GT depth over the region) of each kept left region with known depth
     (:func:`svs_torch.evaluation.object_truth`)."""
@@ -118,18 +159,19 @@ def svs_estimate(batch, config: PipelineConfig) -> dict:
 def disparity_errors(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> dict | None:
     """A dense map against the GT over the kept left regions' pixels with a GT disparity: ``density`` (the
     share the map measured), and over those measured, ``bad1`` / ``bad2`` (share off by more than 1 / 2 px)
-    and ``median_error_px`` (median absolute error). None without such pixels."""
-    labels = seg.left.labels[0, 0].numpy()
-    kept = [label for label in seg.left.kept_labels[0].tolist() if label > 0]
-    region = np.isin(labels, kept) & batch.disparity_valid[0, 0].numpy()
-    if not region.any():
+    and ``median_error_px`` (lower median absolute error; :func:`svs_torch.evaluation.disparity_map_errors`).
+    None without such pixels."""
+    region = seg.left.kept_mask & batch.disparity_valid
+    if not bool(region.any()):
         return None
-    measured = region & valid
-    error = np.abs(disparity[measured] - batch.disparity_px[0, 0].numpy()[measured])
-    some = error.size > 0
-    return {"density": float(measured.sum() / region.sum()),
-            "bad1": float((error > 1).mean()) if some else None, "bad2": float((error > 2).mean()) if some else None,
-            "median_error_px": float(np.median(error)) if some else None}
+    as_map = (lambda a: torch.from_numpy(np.ascontiguousarray(a)).view(1, 1, *a.shape))
+    errors = disparity_map_errors(as_map(disparity), as_map(valid), batch.disparity_px, batch.disparity_valid,
+                                  seg.left.kept_mask)
+    some = bool(errors.valid[0])
+    return {"density": int(errors.count[0]) / int(region.sum()),
+            "bad1": 1 - float(errors.within_1px[0]) if some else None,
+            "bad2": 1 - float(errors.within_2px[0]) if some else None,
+            "median_error_px": float(errors.median_px[0]) if some else None}
 
 
 def _gray_u8(image: torch.Tensor) -> np.ndarray:
@@ -220,7 +262,7 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
         if progress:
             print(f"\r[{number}/{len(jobs)}] {size} {path.name}        ", end="", file=sys.stderr, flush=True)
         batch = resample(load_scene(path), size)
-        segs = {}
+        segs, measurabilities = {}, {}
         for name in METHODS:
             seg_config = CONFIGS[name].segmentation if name in CONFIGS else default_seg
             seg = segs.setdefault(seg_config, segment_stereo(batch, seg_config))
@@ -228,12 +270,14 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
             if not truth:
                 continue
             estimate, elapsed = run_method(name, batch, seg)
+            measurability = measurabilities.setdefault(seg_config, region_measurability(batch, seg))
             score = score_pair(truth, PairEstimate(estimate["status"], estimate["r_min_m"], estimate["r_max_m"],
                                                    estimate["objects_m"]))
             rows.append({"split": split, "scene": batch.names[0], "size": size, "method": name,
                          "real_r_min_m": score.real_r_min_m, "real_r_max_m": score.real_r_max_m, "time_s": elapsed,
                          **estimate, "acc_r_min": score.acc_r_min_pct, "acc_r_max": score.acc_r_max_pct,
-                         "acc_objects": score.acc_objects_pct, "num_objects": score.num_objects})
+                         "acc_objects": score.acc_objects_pct, "num_objects": score.num_objects,
+                         "measurable": measurability["measurable"], "regions": measurability["regions"]})
     if progress:
         print(file=sys.stderr)
     return rows
@@ -266,6 +310,25 @@ def summary(rows: list[dict]) -> str:
         means = [statistics.mean(r[key] for r in group) for key in ("acc_r_min", "acc_r_max", "acc_objects")]
         lines.append(f"| {split} | {size} | {method} | {len(group)} | {failed} | {means[0]:.1f} | {means[1]:.1f} | "
                      f"{means[2]:.1f} | {statistics.mean(r['time_s'] for r in group):.3f} |")
+    return "\n".join(lines)
+
+
+def measurable_summary(rows: list[dict]) -> str:
+    """:func:`summary` over the scenes whose kept regions two views can measure (:func:`region_measurability`),
+    and over the others."""
+    lines = ["| split | size | method | measurable pairs: mean Acc R_min / R_max / objects % | other pairs: the same |",
+             "|" + "---|" * 5]
+    keys = sorted({(r["split"], r["size"], r["method"]) for r in rows},
+                  key=lambda k: (k[0] != "tuned", k[1], METHODS.index(k[2])))
+    for split, size, method in keys:
+        cells = []
+        for measurable in (True, False):
+            group = [r for r in rows if (r["split"], r["size"], r["method"]) == (split, size, method)
+                     and r["measurable"] == measurable]
+            means = [statistics.mean(r[key] for r in group) for key in ("acc_r_min", "acc_r_max", "acc_objects")] \
+                if group else []
+            cells.append(f"{len(group)}: " + " / ".join(f"{m:.1f}" for m in means) if group else "0")
+        lines.append(f"| {split} | {size} | {method} | {cells[0]} | {cells[1]} |")
     return "\n".join(lines)
 
 
@@ -309,6 +372,7 @@ def main(argv: list[str] | None = None) -> dict:
     scenes = {k: (v[:args.limit] if args.limit else v) for k, v in scenes.items() if k in wanted}
     rows = run(scenes, args.sizes.split(","))
     text = ("## Summary\n\n" + summary(rows) + "\n\n" + PAPER_REFERENCE
+            + "\n\n## Scenes whose kept regions two views can measure\n\n" + measurable_summary(rows)
             + "\n\n## Dense disparity over the kept regions against the ground truth\n\n" + disparity_summary(rows)
             + "\n\n## Per scene\n\n" + markdown(rows) + "\n")
     print(text)

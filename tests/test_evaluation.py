@@ -16,9 +16,9 @@ from conftest import REPO_ROOT
 from svs_torch.checks import InputError
 from svs_torch.cli import main
 from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, read_pair_sources
-from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors, evaluate_block,
-                                  object_truth, score_pair, sparse_disparity_errors, summarize,
-                                  with_nominal_calibration)
+from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors,
+                                  disparity_map_errors, evaluate_block, object_truth, score_pair,
+                                  sparse_disparity_errors, summarize, with_nominal_calibration)
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment, resolve_config
 from svs_torch.matching import MatchRefinementConfig
 from svs_torch.pipeline import PipelineConfig
@@ -94,6 +94,12 @@ def test_disparity_errors_by_hand():
     assert errors.count.tolist() == [20, 0] and errors.valid.tolist() == [True, False]
     assert errors.median_px[0] == 0.0
     assert errors.within_1px[0] == pytest.approx(19 / 20) and errors.within_3px[0] == pytest.approx(1.0)
+    assert errors.within_2px[0] == pytest.approx(1.0)  # the 2.0 px error is within 2 px (bad-2 counts > 2)
+    # Any map against the GT (a rival's): the same statistics from disparity_map_errors, here over pair 0 only.
+    rival = disparity_map_errors(dense_disparity, dense.valid, batch.disparity_px, batch.disparity_valid,
+                                 segmentation.kept_mask & torch.tensor([True, False]).view(2, 1, 1, 1))
+    for name in ("median_px", "within_1px", "within_2px", "within_3px", "count"):
+        assert torch.equal(getattr(rival, name), getattr(errors, name)), name
     # Sparse: three inliers in pair 0 at (x, y) = (1, 0), (3, 1), (4, 2) with disparity errors 0.5, 2, 4 and
     # one of them 2 px off its row; a fourth match is no inlier.
     left = torch.tensor([[[1.0, 0.0], [3.0, 1.0], [4.0, 2.0], [5.0, 3.0]]]).expand(2, 4, 2).clone()

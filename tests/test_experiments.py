@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
+import torch
+
 from conftest import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
@@ -38,6 +40,31 @@ def test_paper_table1_on_one_scene_per_split(data_dir, tmp_path):
             assert 0.3 < stats["density"] <= 1 and 0 <= stats["bad2"] <= stats["bad1"] <= 0.5
             assert 0 <= stats["median_error_px"] < 1
     assert "## Dense disparity over the kept regions" in markdown and "| bad-1 % |" in markdown
+    assert all(isinstance(row["measurable"], bool) and row["regions"] for row in rows)
+    assert "## Scenes whose kept regions two views can measure" in markdown
+
+
+def test_region_measurability_sees_a_strip_outside_the_right_view():
+    """A synthetic strip on the left border narrower than its disparity has none of its pixels' matches in the
+    right view: the scene is not measurable; the same scene with the object moved to the centre is."""
+    from svs_torch.camera import SVS_CAMERA
+    from svs_torch.data.synthetic import render_obstacle_scenes
+    from svs_torch.segmentation import segment_stereo
+
+    focal = SVS_CAMERA.focal_px(320)
+    centre_x = SVS_CAMERA.principal_point_px(320, 240)[0]
+    near_m, strip_m = 0.8, 20 * 0.8 / focal
+    verdicts = []
+    for strip_x_m in (-centre_x * near_m / focal + strip_m / 2 - 0.02, 0.3):
+        scenes = render_obstacle_scenes(torch.tensor([[1.5, near_m]]),
+                                        torch.tensor([[[0.05, 0.0], [strip_x_m, 0.0]]]),
+                                        torch.tensor([[[0.5, 0.6], [strip_m + 0.04, 0.35]]]),
+                                        generator=torch.Generator().manual_seed(3))
+        seg = segment_stereo(scenes.batch, paper_table1.PipelineConfig().segmentation)
+        verdicts.append(paper_table1.region_measurability(scenes.batch, seg))
+    border, centre = verdicts
+    assert not border["measurable"] and min(r["in_view"] for r in border["regions"]) < 0.05
+    assert centre["measurable"] and all(min(r.values()) > 0.9 for r in centre["regions"])
 
 
 def test_verify_views_on_a_few_scenes(data_dir, tmp_path):

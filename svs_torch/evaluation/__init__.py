@@ -13,14 +13,15 @@ Only :mod:`.metrics` and :mod:`.runner` are imported here; the others load when 
 """
 
 from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, DisparityErrors, ObjectTruth, PairEstimate,
-                      PairEvaluation, PairScore, accuracy_pct, dense_disparity_errors, estimates_from_result,
-                      evaluate_result, object_truth, score_pair, sparse_disparity_errors, truth_list,
-                      with_nominal_calibration)
+                      PairEvaluation, PairScore, accuracy_pct, dense_disparity_errors, disparity_map_errors,
+                      estimates_from_result, evaluate_result, object_truth, score_pair, sparse_disparity_errors,
+                      truth_list, with_nominal_calibration)
 from .runner import EvalSetup, evaluate_block, evaluate_pairs, summarize
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "EvalSetup", "ObjectTruth", "PairEstimate",
-    "PairEvaluation", "PairScore", "accuracy_pct", "dense_disparity_errors", "estimates_from_result",
+    "PairEvaluation", "PairScore", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors",
+    "estimates_from_result",
     "evaluate_block", "evaluate_pairs", "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors",
     "summarize", "truth_list", "with_nominal_calibration",
 ]

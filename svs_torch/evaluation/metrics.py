@@ -38,8 +38,8 @@ from ..types import Segmentation, StereoBatch
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "ObjectTruth", "PairEstimate", "PairEvaluation",
-    "PairScore", "accuracy_pct", "dense_disparity_errors", "estimates_from_result", "evaluate_result",
-    "object_truth", "score_pair", "sparse_disparity_errors", "with_nominal_calibration",
+    "PairScore", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors", "estimates_from_result",
+    "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors", "with_nominal_calibration",
 ]
 
 #: Nominal calibration for pairs without a measured one: Middlebury 2005/2006 third size, f = 3740 / 3 px and
@@ -92,7 +92,8 @@ class DisparityErrors:
 
     Attributes:
         median_px: lower median of the errors, pixels (0 where not ``valid``).
-        within_1px, within_3px: share of the errors at most 1 / 3 px.
+        within_1px, within_2px, within_3px: share of the errors at most 1 / 2 / 3 px (1 − Middlebury's bad-1
+            / bad-2 / bad-3).
         count: int64, the pixels or points compared.
         precision: share of correct correspondences (sparse only: within 1 px in x and y), else None.
         valid: bool, at least one comparison.
@@ -100,6 +101,7 @@ class DisparityErrors:
 
     median_px: torch.Tensor
     within_1px: torch.Tensor
+    within_2px: torch.Tensor
     within_3px: torch.Tensor
     count: torch.Tensor
     valid: torch.Tensor
@@ -114,8 +116,18 @@ def _errors(error: torch.Tensor, mask: torch.Tensor, correct: torch.Tensor | Non
     def share(hit: torch.Tensor) -> torch.Tensor:
         return (hit & mask).sum(-1).to(error.dtype) / denominator
 
-    return DisparityErrors(median, share(error <= 1.0), share(error <= 3.0), count, count > 0,
+    return DisparityErrors(median, share(error <= 1.0), share(error <= 2.0), share(error <= 3.0), count, count > 0,
                            None if correct is None else share(correct))
+
+
+def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Tensor,
+                         truth_valid: torch.Tensor, mask: torch.Tensor) -> DisparityErrors:
+    """Errors of any dense disparity map ``(B, 1, H, W)`` (the pipeline's, or a rival's such as ``StereoBM``'s)
+    against the GT ``truth_px`` where ``mask``, the map's ``valid`` and ``truth_valid`` all hold (bool maps of
+    the same shape)."""
+    b = disparity_px.shape[0]
+    error = (disparity_px - truth_px.to(disparity_px.dtype)).abs()
+    return _errors(error.reshape(b, -1), (mask & valid & truth_valid).reshape(b, -1))
 
 
 def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
@@ -124,10 +136,8 @@ def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> Dispar
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
     b = batch.batch_size
-    mask = (result.segmentation.left.kept_mask & dense.valid & batch.disparity_valid
-            & ~result.rectified.view(b, 1, 1, 1))
-    error = (dense.disparity_px - batch.disparity_px).abs()
-    return _errors(error.reshape(b, -1), mask.reshape(b, -1))
+    mask = result.segmentation.left.kept_mask & ~result.rectified.view(b, 1, 1, 1)
+    return disparity_map_errors(dense.disparity_px, dense.valid, batch.disparity_px, batch.disparity_valid, mask)
 
 
 def sparse_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
