@@ -11,7 +11,9 @@ the images and the ground truth only) and the others.
 
 A third table holds the dense maps themselves (svs_torch's, ``StereoBM``'s, ``StereoSGBM``'s) against the
 ground-truth disparity over the kept regions: the share of pixels measured, bad-1 / bad-2 (the share of those off
-by more than 1 / 2 px) and the median absolute error, mean over scenes.
+by more than 1 / 2 px) and the median absolute error, mean over scenes; and Eq. (9) of the distance ``guide``
+warns on, the nearest object's nearest visible surface (the 10th percentile of the nearest object's depths; truth:
+the 10th percentile of the GT depth over the object nearest by its median GT depth).
 
 Truth: the two largest regions of the left segmentation (Otsu, 5×5 opening) are the objects; an object's
 real distance is the median GT depth over its region, real R_min / R_max the nearer / farther object. Each
@@ -75,6 +77,8 @@ OPENCV_SIFT = "OpenCV SIFT+BF+findFundamentalMat"
 OPENCV_BM = "OpenCV StereoBM median"
 OPENCV_SGBM = "OpenCV StereoSGBM median"
 METHODS = [*CONFIGS, OPENCV_SIFT, OPENCV_BM, OPENCV_SGBM]
+#: The methods with a dense map (their disparity errors and nearest-surface distance are scored too).
+DENSE_METHODS = {name for name, config in CONFIGS.items() if config.depth.rule == "dense"} | {OPENCV_BM, OPENCV_SGBM}
 
 # The nominal calibration of the scenes without one (NOMINAL_FOCAL_PX = 3740 / 3 px, NOMINAL_BASELINE_M = 0.160 m,
 # doffs 0; MANIFEST §1), the truth and the Eq. (9) scoring live in svs_torch.evaluation, so that this table and
@@ -100,6 +104,9 @@ def resample(batch, size: str):
     new_width = int(size)
     return resize_stereo_batch(batch, (new_width, round(height * new_width / width)))
 
+
+#: The low percentile of the nearest object that ``guide`` warns on (``DepthConfig.object_percentiles[0]``).
+SURFACE_PERCENTILE = PipelineConfig().depth.object_percentiles[0]
 
 #: A kept region is measurable by two views when at least this share of its pixels with a GT disparity both have
 #: their true match inside the right image (x − d_GT ≥ 0) and are textured (StereoBM's test at the product's window
@@ -151,6 +158,9 @@ def svs_estimate(batch, config: PipelineConfig) -> dict:
     estimate = estimates_from_result(result)[0]
     out = {"status": estimate.status, "r_min_m": estimate.r_min_m, "r_max_m": estimate.r_max_m,
            "objects_m": estimate.objects_m, "inliers": int(result.num_inliers[0])}
+    nearest = result.depth.nearest
+    if result.range_rule == "dense" and estimate.status == "OK" and bool(nearest.valid[0]):
+        out["surface_m"] = float(nearest.surface_m[0])  # guide's warning distance
     if result.dense is not None and not bool(result.rectified[0]):  # a rectified map is not in the GT's pixels
         out["map"] = (result.dense.disparity_px[0, 0].numpy(), result.dense.valid[0, 0].numpy())
     return out
@@ -178,15 +188,32 @@ def _gray_u8(image: torch.Tensor) -> np.ndarray:
     return (image[0, 0] * 255).round().to(torch.uint8).numpy()
 
 
-def _region_medians(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> list[float | None]:
-    """Median depth of the valid disparities over each kept left region (slot order)."""
+def _region_depths(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> list[np.ndarray | None]:
+    """The depths of the valid disparities over each kept left region (slot order); None under 20 of them."""
     f, b, doffs = float(batch.focal_px[0]), float(batch.baseline_m[0]), float(batch.doffs_px[0])
     labels = seg.left.labels[0, 0].numpy()
-    medians = []
+    depths = []
     for label in seg.left.kept_labels[0].tolist():
         values = disparity[(labels == label) & valid & (disparity + doffs > 0)] if label > 0 else np.empty(0)
-        medians.append(float(np.median(f * b / (values + doffs))) if values.size >= 20 else None)
-    return medians
+        depths.append(f * b / (values + doffs) if values.size >= 20 else None)
+    return depths
+
+
+def _region_medians(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> list[float | None]:
+    """Median depth of the valid disparities over each kept left region (slot order)."""
+    return [None if z is None else float(np.median(z)) for z in _region_depths(batch, seg, disparity, valid)]
+
+
+def nearest_surface_truth(batch, seg) -> float | None:
+    """The truth of ``guide``'s warning distance: the 10th percentile of the GT depth over the kept region whose
+    median GT depth is the smallest (the nearest obstacle's nearest visible surface)."""
+    depth, known = (t[0, 0].numpy() for t in batch.ground_truth_depth_m())
+    labels = seg.left.labels[0, 0].numpy()
+    regions = [depth[(labels == label) & known] for label in seg.left.kept_labels[0].tolist() if label > 0]
+    regions = [z for z in regions if z.size]
+    if not regions:
+        return None
+    return float(np.percentile(min(regions, key=np.median), SURFACE_PERCENTILE))
 
 
 def _from_objects(objects: list[float | None], status_ok: bool) -> dict:
@@ -206,7 +233,11 @@ def opencv_dense_estimate(batch, seg, kind: str, window: int) -> dict:
         matcher = cv2.StereoSGBM_create(0, num_disparities, 5, P1=8 * 25, P2=32 * 25, disp12MaxDiff=1,
                                         uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
     disparity = matcher.compute(left, right).astype(np.float32) / 16
-    out = _from_objects(_region_medians(batch, seg, disparity, disparity > 0), True)
+    depths = _region_depths(batch, seg, disparity, disparity > 0)
+    out = _from_objects([None if z is None else float(np.median(z)) for z in depths], True)
+    known = [z for z in depths if z is not None]
+    # The same warning distance as svs_torch's: the low percentile of the nearest (by median) object.
+    out["surface_m"] = float(np.percentile(min(known, key=np.median), SURFACE_PERCENTILE)) if known else None
     out["map"] = (disparity, disparity > 0)
     return out
 
@@ -262,7 +293,7 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
         if progress:
             print(f"\r[{number}/{len(jobs)}] {size} {path.name}        ", end="", file=sys.stderr, flush=True)
         batch = resample(load_scene(path), size)
-        segs, measurabilities = {}, {}
+        segs, measurabilities, surfaces = {}, {}, {}
         for name in METHODS:
             seg_config = CONFIGS[name].segmentation if name in CONFIGS else default_seg
             seg = segs.setdefault(seg_config, segment_stereo(batch, seg_config))
@@ -273,6 +304,11 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
             measurability = measurabilities.setdefault(seg_config, region_measurability(batch, seg))
             score = score_pair(truth, PairEstimate(estimate["status"], estimate["r_min_m"], estimate["r_max_m"],
                                                    estimate["objects_m"]))
+            if name in DENSE_METHODS:
+                # guide's warning distance, for the dense methods (a pair without one scores 0 %).
+                real_surface = surfaces.setdefault(seg_config, nearest_surface_truth(batch, seg))
+                estimate = {**estimate, "real_surface_m": real_surface, "acc_surface": (
+                    None if real_surface is None else accuracy(real_surface, estimate.get("surface_m")))}
             rows.append({"split": split, "scene": batch.names[0], "size": size, "method": name,
                          "real_r_min_m": score.real_r_min_m, "real_r_max_m": score.real_r_max_m, "time_s": elapsed,
                          **estimate, "acc_r_min": score.acc_r_min_pct, "acc_r_max": score.acc_r_max_pct,
@@ -335,7 +371,8 @@ def measurable_summary(rows: list[dict]) -> str:
 def disparity_summary(rows: list[dict]) -> str:
     """The dense maps against the GT over the kept regions, mean over scenes per split, size and method
     (svs_torch's default and the OpenCV block matchers; a pair svs_torch rectified is left out)."""
-    lines = ["| split | size | method | pairs | density % | bad-1 % | bad-2 % | median error px |", "|" + "---|" * 8]
+    lines = ["| split | size | method | pairs | density % | bad-1 % | bad-2 % | median error px | nearest surface Acc % |",
+             "|" + "---|" * 9]
     keys = sorted({(r["split"], r["size"], r["method"]) for r in rows if r.get("disparity")},
                   key=lambda k: (k[0] != "tuned", k[1], METHODS.index(k[2])))
     for split, size, method in keys:
@@ -347,8 +384,11 @@ def disparity_summary(rows: list[dict]) -> str:
             values = [d[key] for d in (stats if key == "density" else measured)]
             return f"{scale * statistics.mean(values):.{1 if scale == 100 else 2}f}" if values else "—"
 
+        surface = [r["acc_surface"] for r in rows if (r["split"], r["size"], r["method"]) == (split, size, method)
+                   and r.get("acc_surface") is not None]
+        surface_text = f"{statistics.mean(surface):.1f}" if surface else "—"
         lines.append(f"| {split} | {size} | {method} | {len(stats)} | {mean('density')} | {mean('bad1')} | "
-                     f"{mean('bad2')} | {mean('median_error_px', 1.0)} |")
+                     f"{mean('bad2')} | {mean('median_error_px', 1.0)} | {surface_text} |")
     return "\n".join(lines)
 
 
@@ -373,7 +413,8 @@ def main(argv: list[str] | None = None) -> dict:
     rows = run(scenes, args.sizes.split(","))
     text = ("## Summary\n\n" + summary(rows) + "\n\n" + PAPER_REFERENCE
             + "\n\n## Scenes whose kept regions two views can measure\n\n" + measurable_summary(rows)
-            + "\n\n## Dense disparity over the kept regions against the ground truth\n\n" + disparity_summary(rows)
+            + "\n\n## The dense maps against the ground truth: disparity over the kept regions, and the nearest "
+            "surface guide warns on\n\n" + disparity_summary(rows)
             + "\n\n## Per scene\n\n" + markdown(rows) + "\n")
     print(text)
     report = {"metadata": {**run_metadata(args.threads), "scenes": {k: [str(p) for p in v] for k, v in scenes.items()},

@@ -39,7 +39,11 @@ def test_paper_table1_on_one_scene_per_split(data_dir, tmp_path):
             stats = row["disparity"]
             assert 0.3 < stats["density"] <= 1 and 0 <= stats["bad2"] <= stats["bad1"] <= 0.5
             assert 0 <= stats["median_error_px"] < 1
-    assert "## Dense disparity over the kept regions" in markdown and "| bad-1 % |" in markdown
+    assert "## The dense maps against the ground truth" in markdown and "| bad-1 % |" in markdown
+    for row in rows:  # guide's warning distance, scored for the dense methods only
+        assert ("acc_surface" in row) == (row["method"] in dense_methods)
+        if row["method"] in dense_methods:
+            assert row["real_surface_m"] <= row["real_r_max_m"] and 50 < row["acc_surface"] <= 100
     assert all(isinstance(row["measurable"], bool) and row["regions"] for row in rows)
     assert "## Scenes whose kept regions two views can measure" in markdown
 
