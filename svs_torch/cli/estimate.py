@@ -200,8 +200,11 @@ def format_report(report: dict) -> list[str]:
         depth = "no depth"
         if obj["depth_m"] is not None:
             depth = f"{obj['depth_m']:.3f} m (p10 {obj['depth_p10_m']:.3f}, p90 {obj['depth_p90_m']:.3f})"
-        support = (f"{obj['num_valid_px']} valid px ({obj['num_in_view_px']} where the right view holds every "
-                   f"searched disparity)" if obj["num_valid_px"] is not None else f"{obj['num_inliers']} inliers")
+        support = f"{obj['num_inliers']} inliers"
+        if obj["num_valid_px"] is not None:
+            support = f"{obj['num_valid_px']} valid px"
+            if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
+                support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
         lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
                      f"box {obj['bbox_xyxy']}")
     if report["nearest_m"] is not None:
