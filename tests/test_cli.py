@@ -457,3 +457,19 @@ def test_estimate_help_states_the_verification_defaults():
     assert f"at least {config.verify_min_agreeing_inliers} RANSAC inliers" in estimate.EPILOG
     assert (f"needs {config.depth.min_object_valid_fraction_unverified:.0%} of its region measured instead of "
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
+
+
+def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
+    """The text report adds the in-view count only for an object with pixels where a match may be lost."""
+    from svs_torch.cli.estimate import format_report
+
+    def obj(label: int, depth_m: float | None, valid: int, in_view: int) -> dict:
+        return {"label": label, "depth_m": depth_m, "depth_p10_m": depth_m, "depth_p90_m": depth_m,
+                "num_valid_px": valid, "num_in_view_px": in_view, "num_inliers": 3, "side": "left", "area_px": 900,
+                "bbox_xyxy": [0, 0, 30, 30]}
+
+    report = {"status": "OK", "num_keypoints": [10, 10], "num_matches": 8, "num_inliers": 7, "time_s": 0.01,
+              "r_min_m": None, "nearest_m": None, "objects": [obj(1, 1.5, 800, 800), obj(2, None, 607, 0)]}
+    first, second = format_report(report)[1:]
+    assert "800 valid px," in first and "right view" not in first
+    assert "no depth, 607 valid px (0 where the right view holds every searched disparity)" in second
