@@ -43,7 +43,7 @@ from .components import connected_components_with_stats
 from .dense import DenseConfig, soft_block_match
 from .depth import kept_region_lower_median
 from .morphology import open_binary, structuring_element
-from .segmentation import SegmentationConfig, keep_largest_regions
+from .segmentation import SegmentationConfig, _status, keep_largest_regions
 from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 from .types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -284,12 +284,11 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
     labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     uniform = (gray_levels_and_histogram(image)[1] > 0).sum(1) == 1
-    status = torch.where(opened.flatten(1).any(1), SegmentationStatus.OK, SegmentationStatus.NO_FOREGROUND)
-    status = torch.where(uniform, SegmentationStatus.UNIFORM_IMAGE, status).to(torch.int64)
     threshold = torch.full((b,), probability_threshold, dtype=image.dtype, device=image.device)
     return Segmentation(threshold=threshold, threshold_level=(threshold * 255).round().long(), binary=binary,
                         opened=opened, labels=labels, num_regions=num_regions, regions=regions,
-                        kept_labels=kept_labels, kept_mask=kept_mask, masked=image * kept_mask, status=status)
+                        kept_labels=kept_labels, kept_mask=kept_mask, masked=image * kept_mask.to(image.dtype),
+                        status=_status(uniform, opened))
 
 
 def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig(segmenter="learned"),
