@@ -137,13 +137,11 @@ class PipelineConfig:
             raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
         if not 0 < self.max_ratio <= 1:
             raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
-        if not (isinstance(self.verify_min_inliers, int) and self.verify_min_inliers >= 0):
-            raise InputError(f"verify_min_inliers: expected an integer >= 0, got {self.verify_min_inliers!r}")
+        for name in ("verify_min_inliers", "verify_min_agreeing_inliers"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
+                raise InputError(f"{name}: expected an integer >= 0, got {getattr(self, name)!r}")
         if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
             raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
-        if not (isinstance(self.verify_min_agreeing_inliers, int) and self.verify_min_agreeing_inliers >= 0):
-            raise InputError(f"verify_min_agreeing_inliers: expected an integer >= 0, got "
-                             f"{self.verify_min_agreeing_inliers!r}")
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
