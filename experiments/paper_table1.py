@@ -85,11 +85,16 @@ DENSE_METHODS = {name for name, config in CONFIGS.items() if config.depth.rule =
 # ``svs-depth eval`` / ``sweep`` score alike.
 
 
+def is_held_out(path: Path) -> bool:
+    """Whether a shared scene belongs to the held-out split (module docstring): never used for tuning."""
+    return "middlebury_2005_2006" in str(path) or "middlebury_2003" in str(path)
+
+
 def split_scenes(data_dir: Path) -> dict[str, list[Path]]:
     """The tuned and held-out scene lists (module docstring)."""
     pairs = list_shared_pairs(data_dir)
     return {"tuned": [p for p in pairs if "middlebury_eval3_Q" in str(p)],
-            "held-out": [p for p in pairs if "middlebury_2005_2006" in str(p) or "middlebury_2003" in str(p)]}
+            "held-out": [p for p in pairs if is_held_out(p)]}
 
 
 def load_scene(path: Path):
@@ -197,11 +202,6 @@ def _region_depths(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> list
         values = disparity[(labels == label) & valid & (disparity + doffs > 0)] if label > 0 else np.empty(0)
         depths.append(f * b / (values + doffs) if values.size >= 20 else None)
     return depths
-
-
-def _region_medians(batch, seg, disparity: np.ndarray, valid: np.ndarray) -> list[float | None]:
-    """Median depth of the valid disparities over each kept left region (slot order)."""
-    return [None if z is None else float(np.median(z)) for z in _region_depths(batch, seg, disparity, valid)]
 
 
 def nearest_surface_truth(batch, seg) -> float | None:

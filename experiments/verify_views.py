@@ -47,6 +47,7 @@ from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle
 from svs_torch.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from paper_table1 import is_held_out  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
@@ -62,19 +63,21 @@ BATCH = 32
 
 def group(path: Path) -> str:
     """``held-out`` for paper_table1.py's held-out split, else ``tuning``."""
-    text = str(path)
-    return "held-out" if "middlebury_2005_2006" in text or "middlebury_2003" in text else "tuning"
+    return "held-out" if is_held_out(path) else "tuning"
 
 
 def record(result, index: int) -> dict:
-    """What the rules need of one pair of a pipeline result."""
+    """What the rules need of one pair of a pipeline result, and the pipeline's own verdicts under the run's
+    configuration (``verified``, ``ranged``: its objects with a depth), which the recomputed rules must give
+    for that configuration."""
     objects = result.depth.objects
     # Whether the pair reached the object depths: its status then depends only on which objects are ranged.
     status = int(result.status[index])
     return {"ok": status in (PipelineStatus.OK, PipelineStatus.NO_DENSE_DEPTH),
             "fundamental_ok": int(result.fundamental.status[index]) == 0,
             "inliers": int(result.num_inliers[index]), "matches": int(result.num_matches[index]),
-            "agreeing": int(result.num_agreeing_inliers[index]),
+            "agreeing": int(result.num_agreeing_inliers[index]), "verified": bool(result.verified[index]),
+            "ranged": int(objects.valid[index].sum()) if status == PipelineStatus.OK else 0,
             "objects": [{"valid_px": int(objects.num_valid_px[index, n]),
                          "in_view_px": int(objects.num_in_view_px[index, n]), "area_px": int(objects.area_px[index, n])}
                         for n in range(objects.label.shape[1]) if int(objects.label[index, n]) > 0]}
