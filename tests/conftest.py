@@ -38,3 +38,19 @@ def generator() -> torch.Generator:
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
 def dtype(request) -> torch.dtype:
     return request.param
+
+
+def render_border_strip_scene(on_border: bool = True, near_m: float = 0.8, strip_px: int = 20):
+    """A synthetic 320×240 SVS pair: a wide object 1.5 m away and a strip ``near_m`` away, ``strip_px`` wide. With
+    ``on_border`` the strip's left edge is the image's (its disparity, 37 px at 0.8 m, is wider than it: none of
+    its pixels' matches is in the right view); otherwise it stands 0.3 m right of the optical axis."""
+    from svs_torch.camera import SVS_CAMERA
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    focal = SVS_CAMERA.focal_px(320)
+    strip_m = strip_px * near_m / focal
+    strip_x_m = -SVS_CAMERA.principal_point_px(320, 240)[0] * near_m / focal + strip_m / 2 - 0.02 if on_border \
+        else 0.3
+    return render_obstacle_scenes(torch.tensor([[1.5, near_m]]), torch.tensor([[[0.05, 0.0], [strip_x_m, 0.0]]]),
+                                  torch.tensor([[[0.5, 0.6], [strip_m + 0.04, 0.35]]]),
+                                  generator=torch.Generator().manual_seed(3))

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import sys
 
-import torch
-
 from conftest import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
@@ -51,19 +49,13 @@ def test_paper_table1_on_one_scene_per_split(data_dir, tmp_path):
 def test_region_measurability_sees_a_strip_outside_the_right_view():
     """A synthetic strip on the left border narrower than its disparity has none of its pixels' matches in the
     right view: the scene is not measurable; the same scene with the object moved to the centre is."""
-    from svs_torch.camera import SVS_CAMERA
-    from svs_torch.data.synthetic import render_obstacle_scenes
+    from conftest import render_border_strip_scene
+
     from svs_torch.segmentation import segment_stereo
 
-    focal = SVS_CAMERA.focal_px(320)
-    centre_x = SVS_CAMERA.principal_point_px(320, 240)[0]
-    near_m, strip_m = 0.8, 20 * 0.8 / focal
     verdicts = []
-    for strip_x_m in (-centre_x * near_m / focal + strip_m / 2 - 0.02, 0.3):
-        scenes = render_obstacle_scenes(torch.tensor([[1.5, near_m]]),
-                                        torch.tensor([[[0.05, 0.0], [strip_x_m, 0.0]]]),
-                                        torch.tensor([[[0.5, 0.6], [strip_m + 0.04, 0.35]]]),
-                                        generator=torch.Generator().manual_seed(3))
+    for on_border in (True, False):
+        scenes = render_border_strip_scene(on_border)
         seg = segment_stereo(scenes.batch, paper_table1.PipelineConfig().segmentation)
         verdicts.append(paper_table1.region_measurability(scenes.batch, seg))
     border, centre = verdicts
@@ -73,8 +65,8 @@ def test_region_measurability_sees_a_strip_outside_the_right_view():
 
 def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
     """The verification study runs end to end on a few scenes: every real and synthetic pair is verified under
-    the default rule (the pipeline's own defaults), no pair of unrelated views is, and the report lists every
-    rule."""
+    the default rule (the pipeline's own defaults), no pair of unrelated views is, the verdicts it recomputes
+    for the defaults are the pipeline's own, and the report lists every rule."""
     import verify_views
 
     out_json = tmp_path / "verify.json"
@@ -91,4 +83,8 @@ def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
     assert len(positives) == 3 * 3 + 4 and len(negatives) == 3 * 2 + 4
     assert all(verify_views.verified(p, default) for p in positives)
     assert not any(verify_views.verified(p, default) for p in negatives)
+    # The study recomputes the pipeline's verdicts for every rule: for the defaults, they are the pipeline's own.
+    for pair in positives + negatives:
+        assert verify_views.verified(pair, default) == pair["verified"]
+        assert verify_views.ranged_objects(pair, default, config) == pair["ranged"]
     assert all(str(rule) in report["report"] for rule in verify_views.RULES)

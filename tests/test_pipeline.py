@@ -168,19 +168,14 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     inside the right view: the best visible candidate ranged it at 9.9 m. By default it is not ranged (none
     of its valid pixels lies at x ≥ the pair's largest searched disparity), the object beside it still is, and
     the JSON-facing count says why."""
-    from svs_torch.camera import SVS_CAMERA
-    from svs_torch.data.synthetic import render_obstacle_scenes
+    from conftest import render_border_strip_scene
 
-    focal = SVS_CAMERA.focal_px(320)
-    centre_x = SVS_CAMERA.principal_point_px(320, 240)[0]
+    from svs_torch.camera import SVS_CAMERA
+
     near_m, strip_px = 0.8, 20
-    strip_m = strip_px * near_m / focal
-    scenes = render_obstacle_scenes(
-        torch.tensor([[1.5, near_m]]),
-        torch.tensor([[[0.05, 0.0], [-centre_x * near_m / focal + strip_m / 2 - 0.02, 0.0]]]),
-        torch.tensor([[[0.5, 0.6], [strip_m + 0.04, 0.35]]]), generator=torch.Generator().manual_seed(3))
+    scenes = render_border_strip_scene(near_m=near_m, strip_px=strip_px)
     assert scenes.object_bbox_xyxy[0, 1].tolist()[::2] == [0, strip_px]
-    assert focal * SVS_CAMERA.baseline_m / near_m > strip_px + 15
+    assert SVS_CAMERA.focal_px(320) * SVS_CAMERA.baseline_m / near_m > strip_px + 15
 
     def objects(min_in_view: int):
         config = PipelineConfig(depth=DepthConfig(min_object_pixels_in_view=min_in_view))
