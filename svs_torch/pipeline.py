@@ -28,6 +28,7 @@ from .ransac import estimate_fundamental_ransac
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
+from .size_groups import run_by_size
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]
@@ -332,9 +333,18 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     Returns:
         :class:`PipelineResult`. Not differentiable end to end (segmentation labels, keypoint selection,
         matching and RANSAC are discrete); each stage's docstring says what is.
+
+    Each pair is ranged on its own ``image_hw`` pixels only: pairs of different sizes padded into one batch run as
+    groups of one size, each cropped to its size (:mod:`svs_torch.size_groups`), so a pair's result is the same
+    whatever else shares its batch; the result's maps are padded back to the batch's size.
     """
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", PipelineConfig)
+    return run_by_size(batch, lambda group: _estimate_group(group, config))
+
+
+def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResult:
+    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors."""
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 

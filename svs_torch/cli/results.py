@@ -64,6 +64,10 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
               f"{_number(s['acc_r_max_pct']):>7} {_number(s['acc_objects_pct']):>6} "
               f"{_number(s['dense_within_1px'], 2):>5} {_number(s['inlier_precision'], 2):>5} "
               f"{_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} ({s['preset']}, {s['size']})")
+    for s in summaries:
+        if len(s["code_versions"]) > 1:
+            print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
+                  f"({', '.join(map(str, s['code_versions']))}): rerun into a new --db to compare like with like")
     print("best by each metric:")
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1

@@ -44,18 +44,23 @@ def _evaluation(row: dict) -> PairEvaluation:
 
 
 def config_summaries(store: ResultStore) -> list[dict]:
-    """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size`` and
-    ``overrides``), in the order the configurations were stored; configurations without rows are left out."""
+    """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
+    ``overrides`` and the ``code_versions`` its rows were computed by), in the order the configurations were
+    stored; configurations without rows are left out."""
     by_config: dict[str, list[PairEvaluation]] = {}
+    versions: dict[str, list[str]] = {}
     for row in store.results():
         by_config.setdefault(row["config_id"], []).append(_evaluation(row))
+        seen = versions.setdefault(row["config_id"], [])
+        if row["code_version"] not in seen:
+            seen.append(row["code_version"])
     summaries = []
     for config in store.configs():
         rows = by_config.get(config["config_id"])
         if rows:
             summary = summarize(rows)
             summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
-                             | summary)
+                             | {"code_versions": versions[config["config_id"]]} | summary)
     return summaries
 
 
@@ -88,18 +93,19 @@ CSV_FIRST = ("config", "left", "right", "status", "r_min_m", "r_max_m", "acc_r_m
 
 def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     """Header and rows, one per (configuration, pair): :data:`CSV_FIRST`, then the configuration's ``label``,
-    ``size`` and each swept parameter's value (``param:<key>``), then every other result column."""
+    ``size`` and each swept parameter's value (``param:<key>``), then every other result column, then the
+    ``code_version`` of the run that wrote the row."""
     configs = {c["config_id"]: c for c in store.configs()}
     swept = swept_parameters(store)
     rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
-    header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest]
+    header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest, "code_version"]
     rows = []
     for row in store.results():
         config = configs[row["config_id"]]
         params = [config["preset"] if key == "preset" else config["overrides"].get(key) for key in swept]
         values = {**row, "config": row["config_id"], "objects": json.dumps(row["objects"])}
         rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
-                    + [values[name] for name in rest])
+                    + [values[name] for name in rest] + [row["code_version"]])
     return header, rows
 
 

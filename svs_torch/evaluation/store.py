@@ -185,10 +185,11 @@ class ResultStore:
                  "config": json.loads(config)} for c, label, preset, overrides, size, config in cursor]
 
     def results(self) -> list[dict]:
-        """Every result row joined with its pair's ``left``, ``right`` and ``scene`` flag, in a fixed order."""
+        """Every result row joined with its pair's ``left`` and ``right`` and the ``code_version`` of the run that
+        wrote it, in a fixed order."""
         cursor = self.connection.execute(
-            "SELECT r.*, p.left AS left, p.right AS right FROM results r JOIN pairs p USING (pair_id) "
-            "ORDER BY r.config_id, r.pair_id")
+            "SELECT r.*, p.left AS left, p.right AS right, u.code_version AS code_version FROM results r "
+            "JOIN pairs p USING (pair_id) LEFT JOIN runs u USING (run_id) ORDER BY r.config_id, r.pair_id")
         names = [d[0] for d in cursor.description]
         rows = []
         for values in cursor:
