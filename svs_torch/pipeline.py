@@ -317,7 +317,13 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
 
 def segment_pair(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
     """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
-    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure."""
+    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure.
+    Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes as groups of one size,
+    :mod:`svs_torch.size_groups`): padding never enters a threshold's histogram or a region."""
+    return run_by_size(batch, lambda group: _segment_group(group, config))
+
+
+def _segment_group(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
     return segment_stereo_learned(batch, config)
@@ -354,7 +360,7 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
         timings[stage] = now - clock
         clock = now
 
-    seg = segment_pair(batch, config.segmentation)
+    seg = _segment_group(batch, config.segmentation)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

@@ -150,3 +150,19 @@ def test_crop_batch_cuts_spatial_fields_only(data_dir: Path):
     cropped = crop_batch(padded, 48, 64)
     assert torch.equal(cropped.left, pair.left) and torch.equal(cropped.disparity_px, pair.disparity_px)
     assert torch.equal(cropped.focal_px, pair.focal_px) and cropped.names == pair.names
+
+
+def test_segment_pair_ignores_padding(pool):
+    """The public segmentation entry on a padded batch: each pair's threshold and regions as alone."""
+    from svs_torch.pipeline import segment_pair
+    from svs_torch.segmentation import SegmentationConfig
+
+    pairs, _, _ = pool
+    batch = collate_stereo_batches(pairs[:3], mode="pad")
+    together = segment_pair(batch, SegmentationConfig())
+    for index, pair in enumerate(pairs[:3]):
+        alone = segment_pair(pair, SegmentationConfig())
+        h, w = pair.size_hw
+        assert torch.equal(together.left.threshold[index], alone.left.threshold[0])
+        assert torch.equal(together.left.labels[index, :, :h, :w], alone.left.labels[0])
+        assert not together.left.kept_mask[index, :, h:, :].any() and not together.left.kept_mask[index, ..., w:].any()
