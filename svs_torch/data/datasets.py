@@ -35,6 +35,7 @@ __all__ = [
     "load_stereo_pair",
     "list_shared_pairs",
     "detect_stereo_layout",
+    "scene_calibration_source",
 ]
 
 # Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
@@ -253,6 +254,27 @@ def detect_stereo_layout(path: str | Path) -> str | None:
         if any(set(files) <= names for files in marker):
             return layout
     return None
+
+
+def scene_calibration_source(path: str | Path) -> str:
+    """Where the calibration :func:`load_stereo_pair` gives the scene at ``path`` comes from, in words: the file
+    it was read from, or the nominal values assumed where the data set ships none (the loaders' own rules;
+    ``calibrated`` is False exactly where this says "assumed")."""
+    path = Path(path)
+    if path_kind(path, "path") == "file":  # a KITTI left image
+        return "KITTI nominal values for the image width assumed: no calib file shipped"
+    layout = detect_stereo_layout(path)
+    if layout == "eval3":
+        return f"{path.name}/calib.txt"
+    if layout == "2005_2006" and path.name in _MIDDLEBURY_2005_DMIN_FULL_PX:
+        return "Middlebury nominal f and B, dmin from MiddEval3 ArtL's calib.txt"
+    if layout in ("2005_2006", "aloe"):
+        return "Middlebury 2005/2006 nominal f and B assumed: no calibration shipped, dmin unknown"
+    if layout == "2003" and path.name == "Teddy":
+        return "MiddEval3 trainingQ/Teddy/calib.txt, the same images"
+    if layout == "kitti":
+        return "KITTI nominal values for the image width assumed: no calib file shipped"
+    return "the SVS model assumed: no calibration shipped"
 
 
 # Each layout's file names (any one set present marks it), in the order they are tried.

@@ -97,7 +97,8 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     for row in store.results():
         config = configs[row["config_id"]]
         params = [config["preset"] if key == "preset" else config["overrides"].get(key) for key in swept]
-        values = {**row, "config": row["config_id"], "objects": json.dumps(row["objects"])}
+        values = {**row, "config": row["config_id"], "objects": json.dumps(row["objects"]),
+                  "calibration": json.dumps(row["calibration"]) if row["calibration"] else None}
         rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
                     + [values[name] for name in rest])
     return header, rows
