@@ -13,6 +13,7 @@ scenes whose values follow from it); elsewhere the values are nominal and depth 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,7 @@ __all__ = [
     "load_stereo_pair",
     "list_shared_pairs",
     "detect_stereo_layout",
+    "pair_name",
     "scene_calibration_source",
 ]
 
@@ -216,10 +218,24 @@ def load_image_pair(
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px}")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
-    return _make_batch(left, right, Path(left_path).stem,
+    return _make_batch(left, right, pair_name(left_path),
                        focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
                        baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
                        doffs_px=float(doffs_px), calibrated=calibrated)
+
+
+# Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair
+# with such a name is named after its folder, the scene.
+_GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
+                                re.IGNORECASE)
+
+
+def pair_name(left_path: str | Path) -> str:
+    """A pair's name from its left file: the file's stem (``left01``), or its folder's name when the stem only
+    says which view it is (``Teddy/im0.png`` → ``Teddy``)."""
+    path = Path(left_path)
+    generic = _GENERIC_LEFT_NAME.fullmatch(path.stem) is not None
+    return path.resolve().parent.name or path.stem if generic else path.stem
 
 
 def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
