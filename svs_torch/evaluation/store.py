@@ -113,9 +113,19 @@ class ResultStore:
             version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.DatabaseError as error:
             raise InputError(f"db: {self.path} is not a results store ({error})") from None
+        if version is not None and int(version[0]) == 1:  # version 1 lacks only the calibration column
+            version = self._from_version_1(create)
         if version is None or int(version[0]) != SCHEMA_VERSION:
             raise InputError(f"db: {self.path} has schema version {version and version[0]}, expected "
                              f"{SCHEMA_VERSION}")
+
+    def _from_version_1(self, create: bool) -> tuple[str]:
+        """A version-1 store: opened to write, it gains the (empty) calibration column and becomes version 2;
+        opened to read, it is read as it is (its rows have no calibration)."""
+        if create:
+            self._transaction([('ALTER TABLE results ADD COLUMN "calibration" TEXT', ()),
+                               ("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))])
+        return (str(SCHEMA_VERSION),)
 
     def __enter__(self) -> ResultStore:
         return self
@@ -194,6 +204,6 @@ class ResultStore:
         for values in cursor:
             row = dict(zip(names, values))
             row["objects"] = json.loads(row["objects"]) if row["objects"] else []
-            row["calibration"] = json.loads(row["calibration"]) if row["calibration"] else None
+            row["calibration"] = json.loads(row["calibration"]) if row.get("calibration") else None
             rows.append(row)
         return rows
