@@ -38,7 +38,7 @@ examples:
   svs-depth sweep experiments/sweep_defaults.toml --db sweep.sqlite
   svs-depth sweep sweep.toml --db sweep.sqlite --workers 2
   svs-depth sweep sweep.toml --db sweep.sqlite --scheduler tcp://10.0.0.5:8786   (pip install -e ".[dask]")
-  svs-depth results sweep.sqlite --summary --plot sweep.png
+  svs-depth results sweep.sqlite --summary --figure sweep.png
 
 Dask workers: start them with one thread each and without the nanny's MALLOC_TRIM_THRESHOLD_ (about 1.5x
 slower torch), e.g.  DASK_CONFIG=experiments/dask_workers.yaml dask worker tcp://HOST:8786 --nthreads 1
