@@ -55,3 +55,16 @@ def test_eval_into_a_pipe_has_no_carriage_returns(data_dir):
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and "\r" not in done.stderr
     assert re.fullmatch(r"eval: 1/1 pairs in \d+\.\d s, \d+\.\d pairs/s", done.stderr.strip().splitlines()[-1])
+
+
+def test_progress_over_an_iterable_counts_each_item_and_shows_a_postfix():
+    clock, stream = _Clock(), io.StringIO()
+    progress = Progress(4, "train", unit="step", stream=stream, interval_s=5.0, clock=clock)
+    seen = []
+    for step in progress.over(range(4)):
+        seen.append(step)
+        clock.now += 3.0
+        progress.set_postfix(loss=f"{0.5 / (step + 1):.3f}")
+    assert seen == [0, 1, 2, 3]
+    assert stream.getvalue().splitlines() == ["train: 2/4 steps, 0.3 steps/s, ETA 6 s (loss 0.250)",
+                                              "train: 4/4 steps in 12.0 s, 0.3 steps/s"]

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable
-from typing import TextIO
+from collections.abc import Callable, Iterable, Iterator
+from typing import TextIO, TypeVar
 
 __all__ = ["Progress"]
+
+T = TypeVar("T")
 
 
 class Progress:
@@ -34,7 +36,7 @@ class Progress:
         self.total, self.desc, self.unit = total, desc, unit
         self.stream = sys.stderr if stream is None else stream
         self.interval_s, self.clock = interval_s, clock
-        self.done, self._closed = 0, False
+        self.done, self._closed, self._postfix = 0, False, ""
         self.started = self._last = clock()
         if tty is None:
             try:
@@ -63,7 +65,23 @@ class Progress:
             rate = self._rate(now - self.started)
             eta = f", ETA {(self.total - self.done) / rate:.0f} s" if rate else ""
             speed = f", {rate:.1f} {self.unit}s/s" if rate else ""
-            print(f"{self.desc}: {self.done}/{self.total} {self.unit}s{speed}{eta}", file=self.stream, flush=True)
+            postfix = f" ({self._postfix})" if self._postfix else ""
+            print(f"{self.desc}: {self.done}/{self.total} {self.unit}s{speed}{eta}{postfix}", file=self.stream,
+                  flush=True)
+
+    def over(self, iterable: Iterable[T]) -> Iterator[T]:
+        """The items of ``iterable``, each counted done when the next is asked for; the summary after the last
+        (``for item in progress.over(items)``, as ``for item in tqdm(items)``)."""
+        for item in iterable:
+            yield item
+            self.update(1)
+        self.close()
+
+    def set_postfix(self, **values: object) -> None:
+        """Numbers shown after the count (a loss, say): on the bar, or at the end of the next plain line."""
+        self._postfix = ", ".join(f"{key} {value}" for key, value in values.items())
+        if self._bar is not None:
+            self._bar.set_postfix(values, refresh=False)
 
     def write(self, line: str, file: TextIO | None = None) -> None:
         """Print a result line to ``file`` (standard output) without breaking the bar."""
