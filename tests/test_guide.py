@@ -10,7 +10,8 @@ import warnings
 
 import pytest
 
-from svs_torch.capture.guide import CLEAR, SPEECH_MISSING, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine, WarningPolicy
+from svs_torch.capture.guide import (CLEAR, SPEECH_MISSING, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine,
+                                     WarningPolicy)
 from svs_torch.checks import InputError
 
 

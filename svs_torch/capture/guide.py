@@ -20,7 +20,8 @@ from typing import TextIO
 
 from ..checks import InputError
 
-__all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "CLEAR", "WARN", "STOP"]
+__all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine",
+           "LinesAbove", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}

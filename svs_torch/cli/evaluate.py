@@ -39,8 +39,9 @@ examples:
 
 --json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
 acc_r_min_pct, acc_r_max_pct, acc_objects_pct (over the pairs with their own calibration), nominal_calibration
-(the others, apart), pairs_per_s (loading included), the mean disparity errors and the failures. --db adds the rows to a results store (as svs-depth sweep does; a pair already stored for the
-same configuration keeps its row), for svs-depth results.
+(the others, apart), pairs_per_s (loading included), the mean disparity errors and the failures. --db adds the
+rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
+row), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
 """
 
@@ -106,7 +107,8 @@ def format_calibrations(evaluations) -> list[str]:
 def format_summary(summary: dict) -> list[str]:
     lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
              f"truth; {_number(summary['pairs_per_s'], 2)} pairs/s",
-             f"mean Acc (Eq. 9) over {summary['scored']} pairs with their own calibration: R_min {_number(summary['acc_r_min_pct'])} %, R_max "
+             f"mean Acc (Eq. 9) over {summary['scored']} pairs with their own calibration: R_min "
+             f"{_number(summary['acc_r_min_pct'])} %, R_max "
              f"{_number(summary['acc_r_max_pct'])} %, objects {_number(summary['acc_objects_pct'])} %",
              f"dense disparity: median error {_number(summary['dense_error_median_px'], 2)} px, within 1 px "
              f"{_number(summary['dense_within_1px'], 3)}, within 3 px {_number(summary['dense_within_3px'], 3)}; "

@@ -18,8 +18,8 @@ Read a results file of svs-depth sweep (or eval --db).
 pair counts 0 %), dense and inlier disparity quality, failures and time, best first; then the best
 configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right, status,
 r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size, the
-swept parameters (param:KEY) and every other column; paths are shown normalised (no '..'). --figure: mean accuracy against each swept parameter and
-per-scene bars of the best configuration.
+swept parameters (param:KEY) and every other column; paths are shown normalised (no '..'). --figure: mean
+accuracy against each swept parameter and per-scene bars of the best configuration.
 """
 
 EPILOG = """\

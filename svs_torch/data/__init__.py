@@ -19,7 +19,8 @@ from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_s
 from .calibration import calibration_record, format_calibration, pair_calibration_source
 
 __all__ = [
-    "PairSource", "SyntheticScenes", "calibration_record", "collate_stereo_batches", "detect_stereo_layout", "format_calibration",
+    "PairSource", "SyntheticScenes", "calibration_record", "collate_stereo_batches", "detect_stereo_layout",
+    "format_calibration",
     "load_pair_source", "pair_calibration_source",
     "read_pair_list", "read_pair_sources", "list_shared_pairs", "load_image_pair", "load_kitti",
     "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006", "load_middlebury_eval3",

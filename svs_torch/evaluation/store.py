@@ -23,8 +23,8 @@ Schema (``schema_version`` 2: version 1 had no ``calibration`` column)::
          sweep TEXT)                                  -- the sweep file's text (or the eval's arguments)
     results(config_id TEXT NOT NULL REFERENCES configs, pair_id TEXT NOT NULL REFERENCES pairs,
             run_id INTEGER REFERENCES runs,
-            <one column per PairEvaluation field: name, status, reason, calibrated, calibration (JSON), has_truth, r_min_m, r_max_m,
-             real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
+            <one column per PairEvaluation field: name, status, reason, calibrated, calibration (JSON), has_truth,
+             r_min_m, r_max_m, real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
              dense_error_median_px, dense_within_1px, dense_within_3px, dense_num_px, sparse_error_median_px,
              sparse_within_1px, sparse_within_3px, inlier_precision, sparse_num_points, num_keypoints_left,
              num_keypoints_right, num_matches, num_inliers, rectified, time_s, objects (JSON list)>,
