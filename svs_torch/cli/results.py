@@ -18,8 +18,8 @@ Read a results file of svs-depth sweep (or eval --db).
 pair counts 0 %), dense and inlier disparity quality, failures and time, best first; then the best
 configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right, status,
 r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size, the
-swept parameters (param:KEY) and every other column. --figure: mean accuracy against each swept parameter and
-per-scene bars of the best configuration.
+swept parameters (param:KEY) and every other column; paths are shown normalised (no '..'). --figure: mean
+accuracy against each swept parameter and per-scene bars of the best configuration.
 """
 
 EPILOG = """\
@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
     parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv",
                         help="one row per (configuration, pair), to FILE.csv or standard output")
-    add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot",
+    add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",
                       kinds=".png, .pdf or .svg")
     parser.add_argument("--top", type=non_negative_int, default=10,
                         help="configurations listed in the summary, best first (0: all; default: 10)")

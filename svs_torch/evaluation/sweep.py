@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -57,7 +58,7 @@ from ..pipeline import PipelineConfig
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        preset_config, read_toml)
+                        parameter_types, preset_config, read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -145,13 +146,18 @@ def load_sweep(path: str | Path) -> Sweep:
     path = Path(path)
     name = str(path)
     table = read_toml(path, name)
-    for key in table:
-        _expect(key in SWEEP_KEYS, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)})")
+    # Other top-level keys are parameters, fixed for every configuration, as in a --config file (one format).
+    top_level = flatten_table({key: value for key, value in table.items() if key not in SWEEP_KEYS})
+    known = parameter_types()
+    for key in top_level:
+        _expect(key in known, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)}, or a parameter "
+                              f"such as segmentation.kernel_size)")
     paths = table.get("paths")
     paths = [paths] if isinstance(paths, str) else paths
     _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),
             f"{name}: paths: expected a list of scene folders or pair lists, got {table.get('paths')!r}")
-    resolved = [p if Path(p).is_absolute() else str(path.parent / p) for p in paths]
+    # Normalised ("experiments/../../shared" → "../shared"), as os.path.abspath does for the pairs' ids.
+    resolved = [p if Path(p).is_absolute() else os.path.normpath(path.parent / p) for p in paths]
     size = table.get("size", "native")
     _expect(isinstance(size, str), f"{name}: size: expected 'WxH' such as '320x240', or 'native', got {size!r}")
     size_wh = None if size == "native" else parse_size(size, f"{name}: size")
@@ -167,7 +173,7 @@ def load_sweep(path: str | Path) -> Sweep:
     entries = table.get("configs", [{}])
     _expect(isinstance(entries, list) and entries and all(isinstance(e, dict) for e in entries),
             f"{name}: configs: expected [[configs]] tables, got {entries!r}")
-    fixed = flatten_table(fixed)
+    fixed = {**top_level, **flatten_table(fixed)}
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
     points = expand_grid(flatten_table(grid), f"{name}: grid")
     configs = []
