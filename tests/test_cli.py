@@ -226,8 +226,10 @@ def test_estimate_many_pairs_in_batches(data_dir, capsys, tmp_path):
     listing.write_text("# left right\n" + "".join(f"{s / 'im0.png'} {s / 'im1.png'}\n" for s in scenes))
     code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--size", "320x240",
                              "--json")
-    # Into a pipe (not a terminal): one summary line of progress, never a carriage-return redraw.
-    assert code == 0 and re.fullmatch(r"estimate: 3/3 pairs in \d+\.\d s, \d+\.\d pairs/s\n", err)
+    # Into a pipe (not a terminal): plain lines (one every few seconds on a slow machine), then one summary line,
+    # never a carriage-return redraw.
+    assert code == 0 and re.fullmatch(r"(estimate: [0-3]/3 pairs, [^\r\n]*\n)*"
+                                      r"estimate: 3/3 pairs in \d+\.\d s, \d+\.\d pairs/s\n", err), err
     lines = [json.loads(line) for line in out.strip().splitlines()]
     assert [Path(line["left"]).parent.name for line in lines] == ["Teddy", "ArtL", "Piano"]
     assert all(line["status"] == "OK" and line["range_rule"] == "dense" for line in lines)
