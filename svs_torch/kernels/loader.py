@@ -112,20 +112,25 @@ def _cpu_signature() -> str:
     """``platform.machine()`` and the lines that name the CPU's model and instruction set, or "" where none can
     be read (then the kernels are built without ``-march=native``)."""
     try:
-        text = Path("/proc/cpuinfo").read_text(errors="replace")
+        lines = _cpu_lines(Path("/proc/cpuinfo").read_text(errors="replace"))
     except OSError:
-        text = ""
-    lines = set()
-    for line in text.splitlines():
-        key, colon, value = line.partition(":")
-        if colon and key.strip().lower() in _CPU_KEYS:
-            lines.add(f"{key.strip().lower()}: {value.strip()}")
+        lines = set()
     if not lines and sys.platform == "darwin":
         for key in ("machdep.cpu.brand_string", "machdep.cpu.features"):
             done = _run(["sysctl", "-n", key], PROBE_TIMEOUT_S, check=False)
             if done is not None and done.returncode == 0 and done.stdout.strip():
                 lines.add(f"{key}: {done.stdout.decode(errors='replace').strip()}")
     return "\n".join([platform.machine(), *sorted(lines)]) if lines else ""
+
+
+def _cpu_lines(cpuinfo: str) -> set[str]:
+    """The lines of a ``/proc/cpuinfo`` text that name the CPU's model and instruction set (:data:`_CPU_KEYS`)."""
+    lines = set()
+    for line in cpuinfo.splitlines():
+        key, colon, value = line.partition(":")
+        if colon and key.strip().lower() in _CPU_KEYS:
+            lines.add(f"{key.strip().lower()}: {value.strip()}")
+    return lines
 
 
 def build_flags() -> list[str]:
@@ -265,8 +270,9 @@ def _compile(name: str, command: list[str], flags: list[str], target: Path) -> N
         if done.returncode != 0:
             output = done.stderr.decode(errors="replace").strip().splitlines()
             first = next((line for line in output if "error" in line), output[0] if output else "")
-            raise _BuildFailed(f"the {name} kernel did not compile with {shlex.join(command)}: "
-                               f"{first or f'exit status {done.returncode}'}\n{shlex.join(argv)}\n" + "\n".join(output[:20]))
+            reason = first or f"exit status {done.returncode}"
+            raise _BuildFailed("\n".join([f"the {name} kernel did not compile with {shlex.join(command)}: {reason}",
+                                          shlex.join(argv), *output[:20]]))
         os.chmod(temporary, 0o755)  # the linker's mode follows the umask: never writable by others
         os.replace(temporary, target)
     finally:
