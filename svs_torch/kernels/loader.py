@@ -182,8 +182,9 @@ def compiler_command() -> list[str]:
 @functools.cache
 def compiler_identity(command: tuple[str, ...]) -> str:
     """What names the compiler ``command`` in the cache key: the command, its program's real path, size and
-    modification time, and its ``--version`` (asked once per process: about 3 ms). :class:`KernelsOff` when the
-    probe hangs."""
+    modification time, and its ``--version``, asked once per process at its first kernel (gcc answers a bare
+    Python in 3 ms, one with torch loaded in 10–23 ms: the cost of starting a process from it). :class:`KernelsOff`
+    when the probe hangs."""
     program = os.stat(command[0])
     done = _run([*command, "--version"], PROBE_TIMEOUT_S)
     version = done.stdout.decode(errors="replace") if done is not None and done.returncode == 0 else "(no --version)"
