@@ -331,15 +331,15 @@ def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_p
 def test_shared_headers_are_part_of_every_cache_key(monkeypatch, tmp_path):
     """A change to any shared header (common.h: thread count, scratch allocation; fill_row.h, select_rank.h)
     names a new library for every kernel, so no process loads one built from the old header."""
-    before = {name: kernels._library_path(name) for name in kernels.SOURCES}
+    before = {name: kernels.loader._library_path(name) for name in kernels.SOURCES}
     assert {header.name for header in kernels.HEADERS} >= {"common.h", "fill_row.h", "select_rank.h"}
     for index, original in enumerate(kernels.HEADERS):
         header = tmp_path / original.name
         header.write_bytes(original.read_bytes() + b"\n/* changed */\n")
         changed = (*kernels.HEADERS[:index], header, *kernels.HEADERS[index + 1:])
         with monkeypatch.context() as patch:
-            patch.setattr(kernels, "HEADERS", changed)
-            after = {name: kernels._library_path(name) for name in kernels.SOURCES}
+            patch.setattr(kernels.loader, "HEADERS", changed)
+            after = {name: kernels.loader._library_path(name) for name in kernels.SOURCES}
         assert all(before[name] != after[name] for name in kernels.SOURCES), original.name
 
 

@@ -47,27 +47,23 @@ cost twice a pair of B = 32); the kernel reads each pair once at its own box (64
 1.84 → 0.7 ms a pair). The runs took about eight passes over the batch's masks and two ``nonzero``; the kernel
 reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms).
 
-The shared libraries are cached in ``$SVS_TORCH_CACHE`` (default ``~/.cache/svs_torch``) under a name that hashes the
-source, the headers they share (``common.h``: the thread count, the scratch allocation; ``fill_row.h`` and
-``select_rank.h``: the row fill and the quickselect; ``maxima.h``: SURF's maximum test), the compiler flags and the
-CPU, so every later process reuses them; each one-time compile (about a second) is announced on stderr. Without a
-compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None and the callers run their torch paths.
+The shared libraries are built and cached by :mod:`svs_torch.kernels.loader`: in a private folder
+(``$SVS_TORCH_CACHE``, default ``~/.cache/svs_torch``; one others can write to is refused), under a name that
+hashes the source, the shared headers, the flags actually used, the compiler and the CPU; a failed build is
+remembered there. Without a working compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None
+(the first with one line on stderr) and the callers run their torch paths.
 """
 
 from __future__ import annotations
 
 import ctypes
-import functools
-import hashlib
 import os
-import platform
-import shutil
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 import torch
+
+from . import loader
+from .loader import FLAGS, HEADERS, cache_dir  # noqa: F401  (re-exported: the loader's public names)
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "gray_levels", "hessian_octave",
            "label_runs", "labelled_select", "lk_refine", "load", "local_maxima", "object_depths", "padded_integral",
@@ -99,17 +95,6 @@ _SIGNATURES = {
 }
 #: Each kernel's C source, named after it.
 SOURCES = {name: Path(__file__).with_name(f"{name}.c") for name in _SIGNATURES}
-#: The headers the sources share (``common.h``: thread count, scratch allocation; ``fill_row.h``, ``select_rank.h``:
-#: the row fill and the quickselect of the dense depth stage; ``maxima.h``: SURF's maximum test): all part of every
-#: library's cache key.
-HEADERS = tuple(sorted(Path(__file__).parent.glob("*.h")))
-#: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
-#: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
-#: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
-#: two cores with those workers, which spin for a while after every torch op: the Hessian kernel on 8 images
-#: took 42–66 ms with 2 pthreads, 30 ms with one, 22 ms with 2 OpenMP threads. A compiler without OpenMP
-#: builds the same source serially (the pragmas are ignored).
-FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fopenmp"]
 #: Rows of output per task: enough to amortise the K rows each band sums before its window can slide, small
 #: enough that one pair splits across threads (the B = 1 ``guide`` case).
 BAND_ROWS = 48
@@ -117,100 +102,19 @@ BAND_ROWS = 48
 _LIBRARIES: dict[str, ctypes.CDLL | None] = {}
 
 
-def cache_dir() -> Path:
-    """Where compiled kernels live: ``$SVS_TORCH_CACHE`` or ``~/.cache/svs_torch``."""
-    configured = os.environ.get("SVS_TORCH_CACHE")
-    if configured:
-        return Path(configured)
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "svs_torch"
-
-
-@functools.cache
-def _cpu_signature() -> str:
-    """The CPU's feature flags (``-march=native`` code must not run on another CPU sharing the cache)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _library_path(name: str) -> Path:
-    digest = hashlib.sha256()
-    for part in (SOURCES[name].read_bytes(), *(header.read_bytes() for header in HEADERS), " ".join(FLAGS).encode(),
-                 _cpu_signature().encode(), platform.machine().encode()):
-        digest.update(part)
-    return cache_dir() / f"{name}-{digest.hexdigest()[:16]}.so"
-
-
-def _compile(name: str, target: Path) -> bool:
-    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
-    if compiler is None:
-        return False
-    print(f"svs_torch: compiling the {name} kernel once for this machine into {target.parent} "
-          "(about a second; later runs reuse it)", file=sys.stderr)
-    # Built under a temporary name and renamed: a concurrent process never loads a half-written library.
-    handle, temporary = tempfile.mkstemp(suffix=".so", dir=target.parent)
-    os.close(handle)
-    try:
-        done = subprocess.run([compiler, *FLAGS, str(SOURCES[name]), "-o", temporary, "-lm"], capture_output=True,
-                              timeout=120)
-        if done.returncode != 0:  # no OpenMP here (e.g. clang without libomp): a serial build
-            serial = [flag for flag in FLAGS if flag != "-fopenmp"]
-            done = subprocess.run([compiler, *serial, str(SOURCES[name]), "-o", temporary, "-lm"],
-                                  capture_output=True, timeout=120)
-        if done.returncode != 0:
-            print(f"svs_torch: the {name} kernel did not compile; its torch path runs instead:\n"
-                  + done.stderr.decode(errors="replace")[-2000:], file=sys.stderr)
-            return False
-        os.replace(temporary, target)
-        return True
-    except (OSError, subprocess.SubprocessError) as error:
-        print(f"svs_torch: the {name} kernel did not compile ({error}); its torch path runs instead",
-              file=sys.stderr)
-        return False
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
-
-
-def _compile_once(name: str, target: Path) -> bool:
-    """:func:`_compile` under a lock file, so that processes started together (``svs-depth estimate``'s
-    workers) build a kernel once and the others wait for it instead of each compiling and announcing it."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: concurrent builds stay correct (atomic rename), only repeated
-        return _compile(name, target)
-    with open(target.with_suffix(".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        return target.exists() or _compile(name, target)
-
-
 def load(name: str = "block_match") -> ctypes.CDLL | None:
     """The compiled kernel ``name`` (a key of :data:`SOURCES`), compiling it on first use; None
     when kernels are off (``SVS_TORCH_KERNELS=torch``) or it cannot be built or loaded (then the caller's torch
-    path runs)."""
+    path runs; :func:`svs_torch.kernels.loader.open_library` says why once)."""
     if os.environ.get("SVS_TORCH_KERNELS", "").lower() == "torch":
         return None
-    if name in _LIBRARIES:
-        return _LIBRARIES[name]
-    _LIBRARIES[name] = None
-    try:
-        path = _library_path(name)
-        if not path.exists() and not _compile_once(name, path):
-            return None
-        library = ctypes.CDLL(str(path))
-    except OSError as error:
-        print(f"svs_torch: the {name} kernel could not be loaded ({error}); its torch path runs instead",
-              file=sys.stderr)
-        return None
-    function = getattr(library, name)
-    function.argtypes, function.restype = _SIGNATURES[name]
-    _LIBRARIES[name] = library
-    return library
+    if name not in _LIBRARIES:
+        library = loader.open_library(name)
+        if library is not None:
+            function = getattr(library, name)
+            function.argtypes, function.restype = _SIGNATURES[name]
+        _LIBRARIES[name] = library
+    return _LIBRARIES[name]
 
 
 def available(name: str = "block_match") -> bool:
