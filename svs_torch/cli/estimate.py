@@ -12,6 +12,7 @@ from pathlib import Path
 from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
+from .rig import add_calibration_option, calibration_fields, calibration_from_args, check_no_manual_calibration
 from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -84,6 +85,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baseline-m", type=positive_float, help="stereo baseline, metres (default: SVS 0.1075)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0,
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
+    add_calibration_option(parser, "LEFT RIGHT (and listed pairs without their own calibration)")
     add_pair_options(parser)
     add_segmentation_options(parser)
     add_segmenter_option(parser)
@@ -243,8 +245,11 @@ def run(args: argparse.Namespace) -> int:
     scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
     if not (args.left and args.right) and not scene:
         raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
-    if scene and (args.focal_px or args.baseline_m or args.doffs_px):
-        raise InputError("--focal-px, --baseline-m, --doffs-px: a scene folder brings its own calibration")
+    if scene and (args.focal_px or args.baseline_m or args.doffs_px or args.calibration):
+        raise InputError("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder brings its own "
+                         "calibration")
+    check_no_manual_calibration(args)
+    calibration_from_args(args)  # a bad file is the error, before any work
     # Check the outputs first: a bad file name fails at once, before any work, and nothing is half-written.
     if args.figure:
         check_output_path(args.figure, args.figure_option)
@@ -262,6 +267,8 @@ def run(args: argparse.Namespace) -> int:
         result = estimate_obstacle_depth(batch, config)
         report = pair_report(result, 0, factors, time.perf_counter() - started)
         _write_outputs(args, batch, result, factors)
+    if args.calibration:
+        report.update(calibration_fields(batch, args.calibration))
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
     return 0
 
@@ -315,6 +322,8 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
         else:
             report, bad = pair_report(result, row, loaded[1], per_pair), None
+            if args.calibration and not (source.scene or source.focal_px is not None):
+                report.update(calibration_fields(loaded[0], args.calibration))
             row += 1
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out
@@ -328,6 +337,8 @@ _WORKER_SETUP: dict[str, tuple[list, object]] = {}
 def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
     if args.pairs not in _WORKER_SETUP:
         config = pipeline_config_from_args(args)  # first, as in one process: a bad option is the error shown
+        check_no_manual_calibration(args)
+        calibration_from_args(args)
         _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
     return _WORKER_SETUP[args.pairs]
 
@@ -481,6 +492,8 @@ def _run_many(args: argparse.Namespace) -> int:
     if workers == 1:
         with imports_without_collection():  # the pipeline's imports (see there)
             config = pipeline_config_from_args(args)
+            check_no_manual_calibration(args)
+            calibration_from_args(args)
         pairs = _read_pair_list(args.pairs)
         total = len(pairs)
         results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)

@@ -1,0 +1,50 @@
+"""``--calibration FILE`` of estimate, eval, capture and guide: a rig calibrated by ``svs-depth calibrate``."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_calibration_option", "calibration_fields", "calibration_from_args", "check_no_manual_calibration"]
+
+
+def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
+    parser.add_argument("--calibration", metavar="RIG.json",
+                        help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
+                             "and take its focal length, baseline and doffs (scaled to their size); without it "
+                             "the paper's uncalibrated rectification runs")
+
+
+def calibration_from_args(args: argparse.Namespace):
+    """The :class:`~svs_torch.calibration.StereoCalibration` of ``--calibration``, read once per ``args`` (a
+    worker process reads its own copy), or None without the option.
+
+    Raises:
+        InputError: one line naming ``--calibration``, for a file that is not a calibration.
+    """
+    path = getattr(args, "calibration", None)
+    if not path:
+        return None
+    cached = vars(args).get("_calibration_read")
+    if cached is None or cached[0] != path:
+        from ..calibration import read_calibration
+
+        cached = (path, read_calibration(path, "--calibration"))
+        vars(args)["_calibration_read"] = cached
+    return cached[1]
+
+
+def check_no_manual_calibration(args: argparse.Namespace) -> None:
+    """``--calibration`` excludes ``--focal-px``, ``--baseline-m`` and ``--doffs-px`` (the file gives them)."""
+    from ..errors import InputError
+
+    if getattr(args, "calibration", None) and (getattr(args, "focal_px", None) or getattr(args, "baseline_m", None)
+                                                or getattr(args, "doffs_px", None)):
+        raise InputError("--calibration: the file gives focal, baseline and doffs; drop --focal-px, --baseline-m "
+                         "and --doffs-px")
+
+
+def calibration_fields(batch, path: str) -> dict:
+    """What a report says of a pair rectified by ``--calibration``: the file, and the focal length (at the
+    working size), baseline and doffs its depths used."""
+    return {"calibration": path, "focal_px": round(float(batch.focal_px[0]), 4),
+            "baseline_m": round(float(batch.baseline_m[0]), 6), "doffs_px": round(float(batch.doffs_px[0]), 4)}
