@@ -12,7 +12,7 @@ import numpy as np
 
 from .plots import PANEL_IN, _title, render
 
-__all__ = ["rectified_pair_figure", "spread_rows", "stack_images"]
+__all__ = ["pipeline_rectified_figure", "rectified_pair_figure", "spread_rows", "stack_images"]
 
 #: Line colours, one per epipolar line, on the matched points of both views alike.
 LINE_COLOURS = ["#e6194b", "#3cb44b", "#ffe119", "#4363d8", "#f58231", "#911eb4", "#42d4f4", "#f032e6",
@@ -85,3 +85,36 @@ def stack_images(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
         return out
 
     return np.vstack([padded(top), padded(bottom)])
+
+
+def pipeline_rectified_figure(batch, result, index: int, calibration_name: str | None = None) -> np.ndarray | None:
+    """Pair ``index`` of a pipeline run as rectified, with epipolar lines through its RANSAC inliers (a uint8 BGR
+    image), or None when the pair was not rectified: by the pipeline's uncalibrated rectification from F
+    (``result.rectified``, Sec. 3.4: both views warped by its homographies, the inliers mapped by them) or, with
+    ``calibration_name``, by that calibration file before the pipeline (the batch's images are the rectified
+    ones)."""
+    import torch
+
+    from .rectification import apply_homography, warp_rectified
+
+    height, width = (int(v) for v in batch.image_hw[index].tolist())
+    inliers = result.fundamental.inliers[index] & result.points.valid[index]
+    left, right = batch.left[index:index + 1], batch.right[index:index + 1]
+    points = [result.points.left[index:index + 1], result.points.right[index:index + 1]]
+    if bool(result.rectified[index]):
+        H = [result.rectification.H_left[index:index + 1], result.rectification.H_right[index:index + 1]]
+        left, right = warp_rectified(left, H[0]), warp_rectified(right, H[1])
+        mapped = [apply_homography(h, p) for h, p in zip(H, points)]
+        points = [m.xy for m in mapped]
+        inliers = inliers & mapped[0].valid[0] & mapped[1].valid[0]
+        how = "rectified from F (the paper's uncalibrated rectification, Sec. 3.4)"
+    elif calibration_name:
+        how = f"rectified by the calibration {calibration_name}"
+    else:
+        return None
+    with torch.no_grad():
+        images = [image[0, 0, :height, :width].detach().cpu().clamp(0, 1).numpy() for image in (left, right)]
+        chosen = [p[0][inliers].detach().cpu().numpy() for p in points]
+    return rectified_pair_figure(images[0], images[1], chosen[0], chosen[1],
+                                 f"{how}: each line is one row through a RANSAC inlier and its match",
+                                 point_label="RANSAC inlier")

@@ -95,7 +95,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="how to range the obstacles: 'dense' (default) the median of dense disparity over "
                              "each region, 'paper' Eq. (5)-(8) over the RANSAC inliers (default of --preset paper)")
     parser.add_argument("--seed", type=seed_int, default=0, help="RANSAC seed (default: 0)")
-    add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches",
+    add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches, and a "
+                      "rectified pair: its rectified views with epipolar lines",
                       "--plot", "--out")
     parser.add_argument("--masks-out", metavar="LABELS.png",
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
@@ -220,7 +221,13 @@ def _write_outputs(args, batch, result, factors) -> None:
     from ..plots import estimate_figure
 
     if args.figure:
-        write_image_atomic(args.figure, estimate_figure(batch, result, 0), args.figure_option)
+        from ..rectified_figure import pipeline_rectified_figure, stack_images
+
+        figure = estimate_figure(batch, result, 0)
+        # A rectified pair also shows as rectified, with epipolar lines: the user sees that rectification worked.
+        rectified = pipeline_rectified_figure(batch, result, 0, args.calibration)
+        write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),
+                           args.figure_option)
     if args.masks_out:
         write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors), "--masks-out",
                            lossless=True)
