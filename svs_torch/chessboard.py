@@ -26,7 +26,8 @@ import numpy as np
 from .calibration import StereoCalibration
 from .checks import InputError
 
-__all__ = ["BoardViews", "calibrate_stereo_rig", "find_board_corners", "rectified_corners", "MIN_PAIRS"]
+__all__ = ["BoardViews", "MIN_PAIRS", "calibrate_stereo_rig", "collect_board_views", "find_board_corners",
+           "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
 #: warns below 3; a usable calibration wants 10–20 views across the field.

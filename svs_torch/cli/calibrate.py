@@ -83,7 +83,8 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
         sources = read_pair_list(args.pairs, "--pairs")
         bad = next((s for s in sources if s.problem or s.scene or s.right is None), None)
         if bad is not None:
-            raise InputError(bad.problem or f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got {bad.left}")
+            raise InputError(bad.problem or f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
+                                            f"{bad.left}")
         return [(s.left, s.right) for s in sources]
     lefts: list[str] = []
     for pattern in args.left:

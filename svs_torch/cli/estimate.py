@@ -12,7 +12,8 @@ from pathlib import Path
 from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
-from .rig import add_calibration_option, calibration_fields, calibration_from_args, check_no_manual_calibration
+from .rig import (add_calibration_option, calibration_fields, calibration_from_args, check_no_manual_calibration,
+                  with_calibrated_rectification)
 from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -116,7 +117,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         config = replace(config, segmentation=replace(config.segmentation, method="canny"))
     if args.range_rule:
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))
-    return config
+    return with_calibrated_rectification(config, args)
 
 
 def _read_pair_list(path: str):

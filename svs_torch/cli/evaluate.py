@@ -7,7 +7,8 @@ import sys
 import time
 
 from .common import dumps_strict, finite_float, positive_float, positive_int
-from .rig import add_calibration_option, calibration_from_args, check_no_manual_calibration
+from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
+                  with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -122,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
     calibration = calibration_from_args(args)
+    if "rectify" not in overrides:
+        config = with_calibrated_rectification(config, args)
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     sources = read_pair_sources(args.paths, "path")
     store = run_id = None

@@ -9,7 +9,7 @@ import time
 import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int
-from .rig import add_calibration_option, calibration_from_args
+from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         from ..capture.link import CaptureError
         from ..checks import InputError
         from ..depth import ObstacleSide
-        from ..pipeline import estimate_obstacle_depth
+        from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .capture import open_stereo_camera
 
         from ..capture.protocol import size_code_for
@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         from ..calibration import rectify_with_calibration
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
+    config = with_calibrated_rectification(PipelineConfig(), args)
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
             camera = open_stereo_camera(args, size, stack)
             for item in camera.stream_batches(1, num_batches=args.count or None):
                 batch = item.batch if calibration is None else rectify_with_calibration(item.batch, calibration)
-                result = estimate_obstacle_depth(batch)
+                result = estimate_obstacle_depth(batch, config)
                 nearest = result.depth.nearest
                 # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
                 # a walker reaches first, not the median of an object that may recede.
