@@ -56,8 +56,13 @@ def find_board_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray 
                                                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
     if not found:
         return None
-    # An 11x11 window, as OpenCV's calibration samples: wide enough for the corner's saddle at 640x480.
-    refined = cv2.cornerSubPix(image, corners.reshape(-1, 1, 2), (11, 11), (-1, -1), _SUBPIX_CRITERIA)
+    # OpenCV's samples refine in a 23x23 window (half-size 11) at 640x480; on a smaller board image such a window
+    # takes in the next corners and pulls an edge corner off by pixels, so it is kept within a third of the
+    # nearest spacing of two corners.
+    corners = corners.reshape(-1, 1, 2)
+    spacing = float(np.linalg.norm(np.diff(corners.reshape(-1, 2), axis=0), axis=1).min())
+    half = int(np.clip(round(spacing / 3), 2, 11))
+    refined = cv2.cornerSubPix(image, corners, (half, half), (-1, -1), _SUBPIX_CRITERIA)
     return refined.reshape(-1, 2).astype(np.float32)
 
 

@@ -123,9 +123,9 @@ def run(args: argparse.Namespace) -> int:
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
     calibration = calibration_from_args(args)
+    config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     if "rectify" not in overrides:
         config = with_calibrated_rectification(config, args)
-    config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     sources = read_pair_sources(args.paths, "path")
     store = run_id = None
     if args.db:

@@ -1,0 +1,197 @@
+"""svs-depth calibrate and --calibration: OpenCV's stereo calibration of the shared chessboard pairs, the file, and
+pairs rectified with it (checked by finding the board again in the rectified images, independently of the maps)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.calibration import read_calibration, rectify_with_calibration, write_calibration
+from svs_torch.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
+from svs_torch.cli import main
+from svs_torch.data import load_image_pair, resize_stereo_batch
+from svs_torch.rectified_figure import spread_rows
+
+BOARD = (9, 6)
+SQUARE_M = 0.025  # nominal: the shared set's square size is unknown (MANIFEST: |T| = 3.34 squares)
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.fixture(scope="module")
+def samples(data_dir) -> Path:
+    return data_dir / "opencv_samples"
+
+
+@pytest.fixture(scope="module")
+def rig(samples):
+    """The shared set calibrated once (about 0.3 s): (calibration, board views)."""
+    lefts = sorted(samples.glob("left*.jpg"))
+    pairs = [(str(f), cv2.imread(str(f), 0), cv2.imread(str(f).replace("left", "right"), 0)) for f in lefts]
+    views = collect_board_views(pairs, BOARD)
+    return calibrate_stereo_rig(views, SQUARE_M, BOARD, "test"), views
+
+
+def _row_error_found_again(batch, index: int = 0) -> np.ndarray:
+    """|y_left − y_right| of the board's corners found by OpenCV in the rectified images of pair ``index``."""
+    corners = [find_board_corners((image[index, 0].numpy() * 255).round().astype(np.uint8), BOARD)
+               for image in (batch.left, batch.right)]
+    assert corners[0] is not None and corners[1] is not None
+    return np.abs(corners[0][:, 1] - corners[1][:, 1])
+
+
+def test_shared_chessboards_calibrate_with_small_errors(rig):
+    calibration, views = rig
+    assert len(views.names) == 13 and not views.skipped  # MANIFEST: all 13 pairs give 9x6 corners
+    assert max(calibration.rms_left_px, calibration.rms_right_px, calibration.rms_stereo_px) < 1.0
+    assert calibration.row_error_mean_px < 0.3
+    # MANIFEST (an independent run of OpenCV's stereo calibration): fx about 536 px, |T| about 3.34 squares.
+    assert calibration.K_left[0, 0] == pytest.approx(536, rel=0.01)
+    assert np.linalg.norm(calibration.T) == pytest.approx(3.34 * SQUARE_M, rel=0.01)
+    assert calibration.baseline_m == pytest.approx(np.linalg.norm(calibration.T), rel=1e-3)
+    assert calibration.doffs_px == pytest.approx(calibration.P2[0, 2] - calibration.P1[0, 2])
+
+
+def test_rectified_pair_has_the_board_on_the_same_rows(rig, samples):
+    calibration, _ = rig
+    raw = load_image_pair(samples / "left01.jpg", samples / "right01.jpg")
+    assert np.median(_row_error_found_again(raw)) > 5  # the raw pair's rows do not agree
+    batch = rectify_with_calibration(raw, calibration)
+    assert np.median(_row_error_found_again(batch)) < 0.3
+    assert bool(batch.calibrated[0]) and float(batch.focal_px[0]) == pytest.approx(calibration.P1[0, 0])
+    # The batched grid_sample against OpenCV's own remap of the same maps.
+    maps = cv2.initUndistortRectifyMap(calibration.K_left, calibration.dist_left, calibration.R1, calibration.P1,
+                                       calibration.image_wh, cv2.CV_32FC1)
+    reference = cv2.remap(cv2.imread(str(samples / "left01.jpg"), 0), *maps, cv2.INTER_LINEAR) / 255.0
+    assert np.abs(batch.left[0, 0].numpy() - reference).max() < 0.01
+
+
+def test_resized_pair_uses_scaled_intrinsics(rig, samples):
+    calibration, _ = rig
+    raw = resize_stereo_batch(load_image_pair(samples / "left03.jpg", samples / "right03.jpg"), (320, 240))
+    batch = rectify_with_calibration(raw, calibration)
+    assert float(batch.focal_px[0]) == pytest.approx(calibration.focal_px / 2, rel=1e-6)
+    assert float(batch.baseline_m[0]) == pytest.approx(calibration.baseline_m)
+    assert np.median(_row_error_found_again(batch)) < 0.3
+    # Unscaled maps would put the rectified board elsewhere: its corners are where the full-size ones are, halved.
+    full = rectify_with_calibration(load_image_pair(samples / "left03.jpg", samples / "right03.jpg"), calibration)
+    found = [find_board_corners((b.left[0, 0].numpy() * 255).round().astype(np.uint8), BOARD) for b in (batch, full)]
+    assert np.abs((found[0] + 0.5) * 2 - 0.5 - found[1]).max() < 0.5
+    with pytest.raises(InputError, match="--calibration: made at 640x480, the pair is 320x320"):
+        rectify_with_calibration(resize_stereo_batch(raw, (320, 320)), calibration)
+
+
+def test_file_round_trips(rig, tmp_path):
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    again = read_calibration(path)
+    for name in ("K_left", "dist_left", "K_right", "dist_right", "R", "T", "R1", "R2", "P1", "P2", "Q"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(calibration, name))
+    assert again.image_wh == (640, 480) and again.rms_stereo_px == calibration.rms_stereo_px
+    record = json.loads(path.read_text())
+    assert record["board"] == {"inner_corners": [9, 6], "square_m": SQUARE_M} and record["num_pairs"] == 13
+    assert record["baseline_m"] == pytest.approx(calibration.baseline_m) and record["created_utc"]
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda r: "not json {", "expected a JSON calibration file"),
+    (lambda r: {**r, "format": "other"}, "expected a JSON object with \"format\""),
+    (lambda r: {k: v for k, v in r.items() if k != "K_left"}, "expected 'K_left' as 3x3 finite numbers"),
+    (lambda r: {**r, "P2": [[1, 2], [3, 4]]}, "expected 'P2' as 3x4 finite numbers"),
+    (lambda r: {**r, "image_size_wh": [640]}, "expected 'image_size_wh' as \\[width, height\\]"),
+    (lambda r: {**r, "dist_left": [0, 1]}, "expected 'dist_left' as 4, 5, 8"),
+    (lambda r: {**r, "P2": [[500, 0, 320, 40], [0, 500, 240, 0], [0, 0, 1, 0]]}, "expected P1, P2 of a left-right rig"),
+])
+def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    changed = change(json.loads(path.read_text()))
+    path.write_text(changed if isinstance(changed, str) else json.dumps(changed))
+    with pytest.raises(InputError, match=f"--calibration: .*rig.json: {message}") as raised:
+        read_calibration(path)
+    assert "\n" not in str(raised.value)
+    with pytest.raises(InputError, match="no such file"):
+        read_calibration(tmp_path / "missing.json")
+
+
+def test_calibrate_command(capsys, samples, tmp_path):
+    out, figure = tmp_path / "rig.json", tmp_path / "rig.png"
+    code, stdout, _ = run_cli(capsys, "calibrate", str(samples / "left*.jpg"), "--square-m", "0.025", "--out",
+                              str(out), "--figure", str(figure))
+    assert code == 0
+    assert "reprojection RMS: left 0.177 px, right 0.181 px, stereo 0.196 px" in stdout
+    assert "rectified row error on the chessboards: mean 0.102 px, max 0.629 px" in stdout
+    assert read_calibration(out).pairs[0].endswith("left01.jpg")
+    image = cv2.imread(str(figure))
+    assert image is not None and image.shape[1] > 2 * 400
+    code, stdout, _ = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025",
+                              "--out", str(out), "--json")
+    assert code == 0 and json.loads(stdout)["num_pairs"] == 4
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--board", "9"], "--board: expected inner corners as COLSxROWS"),
+    (["--board", "7x5"], "board was found in both views of 0 of 2 pairs"),
+])
+def test_calibrate_bad_input(capsys, samples, tmp_path, argv, message):
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[12].jpg"), "--square-m", "0.025",
+                              "--out", str(tmp_path / "rig.json"), *argv)
+    assert code == 2 and message in stderr and stderr.count("\n") == 1
+    assert not (tmp_path / "rig.json").exists()
+
+
+def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    left, right, figure = str(samples / "left01.jpg"), str(samples / "right01.jpg"), tmp_path / "fig.png"
+    code, stdout, _ = run_cli(capsys, "estimate", left, right, "--calibration", str(path), "--size", "320x240",
+                              "--json", "--figure", str(figure))
+    report = json.loads(stdout)
+    assert code == 0 and report["status"] == "OK" and report["rectified"] is False  # the rig's, not F's
+    assert report["focal_px"] == pytest.approx(calibration.focal_px / 2, abs=1e-3)
+    assert report["baseline_m"] == pytest.approx(calibration.baseline_m, abs=1e-6)
+    # The board, 0.25-0.5 m away by its own corners (f·B / corner disparity), is the nearest obstacle.
+    assert 0.3 < report["nearest_m"] < 0.5
+    assert cv2.imread(str(figure)).shape[0] > 1000  # the rectified pair with epipolar lines below the pipeline's
+    code, _, stderr = run_cli(capsys, "estimate", left, right, "--calibration", str(path), "--focal-px", "500")
+    assert code == 2 and "--calibration: the file gives focal" in stderr
+    (tmp_path / "bad.json").write_text("{}")
+    code, _, stderr = run_cli(capsys, "estimate", left, right, "--calibration", str(tmp_path / "bad.json"))
+    assert code == 2 and "--calibration:" in stderr and stderr.count("\n") == 1
+    (tmp_path / "list.txt").write_text(f"{left} {right}\n")
+    code, stdout, _ = run_cli(capsys, "eval", str(tmp_path / "list.txt"), "--calibration", str(path), "--json")
+    row = json.loads(stdout.splitlines()[0])
+    assert code == 0 and row["calibrated"] is True and row["status"] == "OK"
+
+
+def test_epipolar_lines_are_spread_over_the_rows():
+    y = np.array([5.0, 100.0, 6.0, 50.0, 7.0])
+    assert spread_rows(y, 3).tolist() == [0, 4, 1]  # rows 5, 7, 100: lowest, middle, highest rank
+    assert spread_rows(y, 10).size == 5 and spread_rows(np.zeros(0), 4).size == 0
+
+
+def test_rectify_refuses_ground_truth_and_padding(rig, data_dir):
+    from svs_torch.data import load_stereo_pair
+
+    calibration, _ = rig
+    scene = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
+    with pytest.raises(InputError, match="without ground truth"):
+        rectify_with_calibration(scene, calibration)
+    padded = replace(scene, disparity_px=None, disparity_valid=None,
+                     image_hw=torch.tensor([[100, 100]]))
+    with pytest.raises(InputError, match="fill the batch"):
+        rectify_with_calibration(padded, calibration)
