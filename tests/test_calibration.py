@@ -195,3 +195,21 @@ def test_rectify_refuses_ground_truth_and_padding(rig, data_dir):
                      image_hw=torch.tensor([[100, 100]]))
     with pytest.raises(InputError, match="fill the batch"):
         rectify_with_calibration(padded, calibration)
+
+
+def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    out = tmp_path / "pairs"
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
+                           str(out), "--calibration", str(path))  # the rig's aspect ratio at a quarter of its size
+    assert code == 0 and "--calibration" in err
+    np.testing.assert_array_equal(read_calibration(out / "calibration.json").P2, calibration.P2)
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--out-dir", str(tmp_path / "other"),
+                           "--size", "1280x1024", "--calibration", str(path))
+    assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
+    # guide checks the rig against its frame size before it opens the camera (test_cli runs it live).
+    code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "1280x1024",
+                           "--calibration", str(path))
+    assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err

@@ -11,8 +11,9 @@ __all__ = ["add_calibration_option", "calibration_fields", "calibration_from_arg
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
     parser.add_argument("--calibration", metavar="RIG.json",
                         help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
-                             "and take its focal length, baseline and doffs (scaled to their size); without it "
-                             "the paper's uncalibrated rectification runs")
+                             "and take its focal length, baseline and doffs (scaled to their size; boxes and "
+                             "figures are then in rectified pixels); without it the paper's uncalibrated "
+                             "rectification runs")
 
 
 def calibration_from_args(args: argparse.Namespace):
@@ -54,9 +55,10 @@ def calibration_fields(batch, path: str) -> dict:
 def with_calibrated_rectification(config, args: argparse.Namespace):
     """``config`` with ``rectify="off"`` under ``--calibration``: the rig's rectification holds, and an F fitted
     again to a pair's matches only adds shear where they are few or nearly planar. On the shared chessboards
-    rectified by their calibration, ``"auto"`` rectified 2 of 13 pairs again from F (a planar board) and doubled
-    their nearest distance (0.31 -> 0.65 m, 0.32 -> 0.41 m); ``"off"`` kept the dense disparity at the corners
-    within 0.10-0.38 px of the calibration's (median per pair) on 11 of 12 measured pairs."""
+    rectified by their calibration (``experiments/calibrated_rectify.py``), ``"auto"`` rectified 3 of 13 pairs
+    again from an F of the planar board: one lost its depth, two moved from 0.30 to 0.62 m and from 0.32 to
+    0.50 m (the board's nearest corner: 0.22, 0.25 m); ``"off"`` kept the dense disparity at the corners within
+    0.15-0.41 px of the calibration's (median per pair) on 11 of the 12 pairs measured there."""
     from dataclasses import replace
 
     return replace(config, rectify="off") if getattr(args, "calibration", None) else config
