@@ -213,3 +213,37 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "1280x1024",
                            "--calibration", str(path))
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
+
+
+def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
+    """The rectified views and the inliers mapped by the pipeline's homographies; nothing for an unrectified pair."""
+    from types import SimpleNamespace
+
+    import svs_torch.rectified_figure as rectified_figure
+    from svs_torch.types import StereoBatch
+
+    generator = torch.Generator().manual_seed(0)
+    left = torch.rand(1, 1, 60, 80, generator=generator)
+    angle = np.deg2rad(2.0)
+    turn = torch.tensor([[np.cos(angle), -np.sin(angle), 3.0], [np.sin(angle), np.cos(angle), -2.0], [0, 0, 1]],
+                        dtype=torch.float32)
+    points_left = torch.rand(1, 6, 2, generator=generator) * 50 + 5
+    shifted = points_left - torch.tensor([4.0, 0.0])  # a disparity of 4 px, then the right view turned
+    points_right = shifted @ turn[:2, :2].T + turn[:2, 2]
+    back = torch.linalg.inv(turn).unsqueeze(0)  # H_right: the right view turned back onto the left's rows
+    result = SimpleNamespace(
+        rectified=torch.tensor([True]), fundamental=SimpleNamespace(inliers=torch.tensor([[1, 1, 1, 1, 1, 0]]).bool()),
+        points=SimpleNamespace(left=points_left, right=points_right, valid=torch.ones(1, 6, dtype=torch.bool)),
+        rectification=SimpleNamespace(H_left=torch.eye(3).unsqueeze(0), H_right=back))
+    batch = StereoBatch.from_images(left, left, 100.0, 0.1)
+    shown = {}
+    monkeypatch.setattr(rectified_figure, "rectified_pair_figure",
+                        lambda *args, **kwargs: shown.update(args=args) or np.zeros((2, 2, 3), np.uint8))
+    assert rectified_figure.pipeline_rectified_figure(batch, result, 0) is not None
+    _, _, mapped_left, mapped_right, title = shown["args"]
+    assert mapped_left.shape == (5, 2) and "rectified from F" in title
+    np.testing.assert_allclose(mapped_left[:, 1], mapped_right[:, 1], atol=1e-3)  # the same rows after H
+    unrectified = SimpleNamespace(**{**vars(result), "rectified": torch.tensor([False])})
+    assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0) is None
+    assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0, "rig.json") is not None
+    assert "by the calibration rig.json" in shown["args"][4]
