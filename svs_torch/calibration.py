@@ -228,8 +228,8 @@ def read_calibration(path: str | os.PathLike, name: str = "--calibration") -> St
         raise InputError(f"{where}: expected a calibration file, got " +
                          {"missing": "no such file", "folder": "a folder"}.get(kind, "a special file"))
     try:
-        text = open(path, "rb").read().decode("utf-8")
-        record = json.loads(text)
+        with open(path, "rb") as stream:
+            record = json.loads(stream.read().decode("utf-8"))
     except OSError as error:
         raise InputError(f"{where}: cannot read it: {error.strerror or error}") from None
     except (UnicodeDecodeError, ValueError) as error:

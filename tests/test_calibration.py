@@ -247,3 +247,16 @@ def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
     assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0) is None
     assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0, "rig.json") is not None
     assert "by the calibration rig.json" in shown["args"][4]
+
+
+def test_calibrated_pairs_are_not_rectified_again_and_match_along_rows():
+    from argparse import Namespace
+
+    from svs_torch.cli.rig import CALIBRATED_BAND_PX, with_calibrated_rectification
+    from svs_torch.pipeline import PipelineConfig
+
+    config = with_calibrated_rectification(PipelineConfig(), Namespace(calibration="rig.json"))
+    assert config.rectify == "off" and config.epipolar_band_px == CALIBRATED_BAND_PX
+    own = with_calibrated_rectification(PipelineConfig(epipolar_band_px=5.0), Namespace(calibration="rig.json"))
+    assert own.epipolar_band_px == 5.0
+    assert with_calibrated_rectification(PipelineConfig(), Namespace(calibration=None)) == PipelineConfig()

@@ -12,8 +12,8 @@ from pathlib import Path
 from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
-from .rig import (add_calibration_option, calibration_fields, calibration_from_args, check_no_manual_calibration,
-                  with_calibrated_rectification)
+from .rig import (add_calibration_option, calibration_fields, calibration_from_args, calibration_lines,
+                  check_no_manual_calibration, with_calibrated_rectification)
 from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -277,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
         _write_outputs(args, batch, result, factors)
     if args.calibration:
         report.update(calibration_fields(batch, args.calibration))
-    print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
+    print(dumps_strict(report) if args.json else "\n".join(format_report(report) + calibration_lines(report)),
+          flush=True)
     return 0
 
 
@@ -516,7 +517,8 @@ def _run_many(args: argparse.Namespace) -> int:
             if reason is not None:
                 bad.append(reason)
             heading = f"{report['left']} {report['right'] or ''}".rstrip()
-            print(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]), flush=True)
+            print(dumps_strict(report) if args.json
+                  else "\n".join([heading, *format_report(report), *calibration_lines(report)]), flush=True)
         done += len(lines)
         if progress:
             print(f"\r{done}/{total} pairs", end="" if done < total else "\n", file=sys.stderr, flush=True)

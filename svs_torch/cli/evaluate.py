@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from dataclasses import asdict
+        from dataclasses import asdict, replace
 
         from ..camera import parse_size
         from ..data import read_pair_sources
@@ -124,8 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
     calibration = calibration_from_args(args)
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
-    if "rectify" not in overrides:
-        config = with_calibrated_rectification(config, args)
+    calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
+    config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     sources = read_pair_sources(args.paths, "path")
     store = run_id = None
     if args.db:

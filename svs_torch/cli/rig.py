@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_calibration_option", "calibration_fields", "calibration_from_args", "check_no_manual_calibration",
-           "with_calibrated_rectification"]
+#: Rows of a pair rectified by a calibration agree within this many pixels (matching candidates farther apart are
+#: not considered): 3x the largest row error of the shared chessboards' corners (0.63 px), for a rig's drift.
+CALIBRATED_BAND_PX = 2.0
+
+__all__ = ["add_calibration_option", "calibration_fields", "calibration_from_args", "calibration_lines",
+           "check_no_manual_calibration", "with_calibrated_rectification"]
 
 
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
@@ -53,12 +57,31 @@ def calibration_fields(batch, path: str) -> dict:
 
 
 def with_calibrated_rectification(config, args: argparse.Namespace):
-    """``config`` with ``rectify="off"`` under ``--calibration``: the rig's rectification holds, and an F fitted
-    again to a pair's matches only adds shear where they are few or nearly planar. On the shared chessboards
-    rectified by their calibration (``experiments/calibrated_rectify.py``), ``"auto"`` rectified 3 of 13 pairs
-    again from an F of the planar board: one lost its depth, two moved from 0.30 to 0.62 m and from 0.32 to
-    0.50 m (the board's nearest corner: 0.22, 0.25 m); ``"off"`` kept the dense disparity at the corners within
-    0.15-0.41 px of the calibration's (median per pair) on 11 of the 12 pairs measured there."""
+    """``config`` for pairs rectified by ``--calibration`` (unchanged without it):
+
+    * ``rectify="off"``: the rig's rectification holds, and an F fitted again to a pair's matches only adds shear
+      where they are few or nearly planar. On the shared chessboards rectified by their calibration
+      (``experiments/calibrated_rectify.py``), ``"auto"`` rectified 3 of 13 pairs again from an F of the planar
+      board: one lost its depth, two moved from 0.30 to 0.62 m and from 0.32 to 0.50 m (the board's nearest
+      corner: 0.22, 0.25 m); ``"off"`` kept the dense disparity at the corners within 0.15-0.41 px of the
+      calibration's (median per pair) on 11 of the 12 pairs measured there.
+    * ``epipolar_band_px`` :data:`CALIBRATED_BAND_PX` unless the configuration sets one: matches only between
+      points on the same rows, which the calibration guarantees (its corners' rows agree within 0.63 px there).
+      On those pairs the RANSAC inliers' median |y_left - y_right| per pair went from up to 65 px (a periodic
+      board matched one square off; 0.13-65 px) to 0.13-0.93 px at 640x480, and the pairs whose geometry the
+      dense map verifies from 8 to 9 of 13 at 640x480 and from 4 to 9 at 320x240.
+    """
     from dataclasses import replace
 
-    return replace(config, rectify="off") if getattr(args, "calibration", None) else config
+    if not getattr(args, "calibration", None):
+        return config
+    band = CALIBRATED_BAND_PX if config.epipolar_band_px is None else config.epipolar_band_px
+    return replace(config, rectify="off", epipolar_band_px=band)
+
+
+def calibration_lines(report: dict) -> list[str]:
+    """The text report's line for a pair rectified by ``--calibration`` (none for the others)."""
+    if "calibration" not in report:
+        return []
+    return [f"  rectified by the calibration {report['calibration']}: focal {report['focal_px']:.2f} px, baseline "
+            f"{report['baseline_m']:.4f} m, doffs {report['doffs_px']:.2f} px"]
