@@ -98,9 +98,9 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
         right.append(corners[1])
         names.append(name)
     if len(names) < MIN_PAIRS:
+        hint = " (check --board: inner corners, columns x rows)" if skipped else ""
         raise InputError(f"pairs: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
-                         f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS} (check --board: inner "
-                         "corners, columns x rows)")
+                         f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS}{hint}")
     return BoardViews(left, right, names, skipped, size)
 
 

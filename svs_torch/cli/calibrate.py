@@ -78,7 +78,7 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     from ..errors import InputError
 
     if bool(args.left) == bool(args.pairs):
-        raise InputError("LEFT, --pairs: give left images (files or patterns) or --pairs LIST.txt, not both")
+        raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, not both")
     if args.pairs:
         sources = read_pair_list(args.pairs, "--pairs")
         bad = next((s for s in sources if s.problem or s.scene or s.right is None), None)
@@ -90,13 +90,13 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     for pattern in args.left:
         found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
         if not found:
-            raise InputError(f"LEFT: no file matches {pattern!r}")
+            raise InputError(f"left: no file matches {pattern!r}")
         lefts += found
     pairs = []
     for left in lefts:
         right = right_name(left)
         if right is None:
-            raise InputError(f"LEFT: {left!r} has no 'left' in its name to find its right image (use --pairs)")
+            raise InputError(f"left: {left!r} has no 'left' in its name to find its right image (use --pairs)")
         pairs.append((left, right))
     return pairs
 
@@ -163,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
         image = read_image_array(path, name)
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
-    pairs = [(left, gray(left, "LEFT"), gray(right, "right")) for left, right in paths]
+    source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
+    pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
     views = collect_board_views(pairs, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}")
     write_calibration(args.out, calibration)
