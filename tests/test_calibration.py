@@ -140,6 +140,12 @@ def test_calibrate_command(capsys, samples, tmp_path):
     code, stdout, _ = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025",
                               "--out", str(out), "--json")
     assert code == 0 and json.loads(stdout)["num_pairs"] == 4
+    listed = tmp_path / "boards.txt"
+    listed.write_text("".join(f"{samples / f'left0{n}.jpg'} {samples / f'right0{n}.jpg'}\n" for n in (5, 6, 7)))
+    code, stdout, _ = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out", str(out),
+                              "--json")
+    assert code == 0 and [Path(p).name for p in json.loads(stdout)["pairs"]] == ["left05.jpg", "left06.jpg",
+                                                                                "left07.jpg"]
 
 
 @pytest.mark.parametrize("argv, message", [
