@@ -108,7 +108,8 @@ class StereoCalibration:
             raise InputError(f"{name}: made at {self.image_wh[0]}x{self.image_wh[1]}, the pair is {width}x{height}: "
                              "expected the same aspect ratio (the same view at another resolution)")
         scale = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-        # Q maps (x, y, d, 1) to 3-D: in new pixels x = sx·x' ..., so Q' = Q · diag-inverse of the same map.
+        # Q maps an old pixel's (x, y, d, 1) to 3-D; a new pixel's (x', y', d') is first taken back to old pixels
+        # (x = (x' + 0.5) / sx − 0.5, likewise y, d = d' / sx), so Q' = Q · that map: the same 3-D points.
         to_old = np.linalg.inv(scale)
         q_map = np.eye(4)
         q_map[0, 0], q_map[0, 3] = to_old[0, 0], to_old[0, 2]

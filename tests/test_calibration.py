@@ -88,6 +88,10 @@ def test_resized_pair_uses_scaled_intrinsics(rig, samples):
     full = rectify_with_calibration(load_image_pair(samples / "left03.jpg", samples / "right03.jpg"), calibration)
     found = [find_board_corners((b.left[0, 0].numpy() * 255).round().astype(np.uint8), BOARD) for b in (batch, full)]
     assert np.abs((found[0] + 0.5) * 2 - 0.5 - found[1]).max() < 0.5
+    # Q at the new size gives the same 3-D point for the same pixel and disparity, halved.
+    half = calibration.scaled_to((320, 240))
+    old_point, new_point = calibration.Q @ [100.0, 50.0, 20.0, 1.0], half.Q @ [49.75, 24.75, 10.0, 1.0]
+    np.testing.assert_allclose(new_point[:3] / new_point[3], old_point[:3] / old_point[3], rtol=1e-9)
     with pytest.raises(InputError, match="--calibration: made at 640x480, the pair is 320x320"):
         rectify_with_calibration(resize_stereo_batch(raw, (320, 320)), calibration)
 
