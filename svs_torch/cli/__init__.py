@@ -11,7 +11,7 @@ import os
 import sys
 import warnings
 
-from . import bench, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
+from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -32,6 +32,7 @@ examples:
   svs-depth segment L.png R.png --figure seg.png --kernel-size 7 --keep 3
   svs-depth features L.png R.png --size 320x240 --figure matches.png  SURF keypoints and SAD matches
   svs-depth fundamental L.png R.png --json                           F by batched 7-point RANSAC
+  svs-depth calibrate 'calib/left*.jpg' --square-m 0.025 --out rig.json   a rig's calibration (chessboards)
   svs-depth capture --emulator --count 5 --out-dir pairs/    grab pairs from a built-in SVS emulator
   svs-depth guide --emulator              live warnings when an obstacle is 1-2 m ahead
   svs-depth eval ../shared/data/middlebury_eval3_Q --size 320x240    accuracy against ground truth
@@ -73,8 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in (demo, estimate, segment, features, fundamental, capture, guide, bench, evaluate, sweep,
-                   results):
+    for module in (demo, estimate, segment, features, fundamental, calibrate, capture, guide, bench, evaluate,
+                   sweep, results):
         module.add_parser(subparsers)
     return parser
 

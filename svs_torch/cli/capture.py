@@ -8,7 +8,9 @@ Output, in ``--out-dir`` (alias ``--out``):
   after an error or Ctrl-C it lists exactly the complete pairs. Fields: ``index``, ``left``/``right`` (file
   names), ``width``, ``height``, ``left_bytes``/``right_bytes``, per camera ``*_request_monotonic_s``,
   ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, and ``time_between_frames_s``
-  (right arrival − left arrival, seconds).
+  (right arrival − left arrival, seconds);
+* ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
+  ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them).
 
 Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted.
 """
@@ -27,6 +29,7 @@ from ..errors import InputError
 from ..files import display_path, path_kind, write_bytes_atomic
 from .common import positive_float, positive_int
 from .progress import Progress
+from .rig import add_calibration_option, calibration_from_args
 
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
@@ -35,6 +38,7 @@ __all__ = ["add_parser", "run"]
 
 PROG = "svs-depth capture"
 INDEX_NAME = "index.jsonl"
+CALIBRATION_NAME = "calibration.json"  # a copy of --calibration's file
 DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
 DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
@@ -62,6 +66,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--timeout", type=positive_float, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most twice "
                              f"(default: {DEFAULT_TIMEOUT_S:g})")
+    add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
     parser.set_defaults(func=run)
@@ -105,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         size, out = _check_args(args)
+        calibration = calibration_from_args(args)
+        if calibration is not None:
+            calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
     done = 0
@@ -112,6 +120,10 @@ def run(args: argparse.Namespace) -> int:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
             out.mkdir(parents=True, exist_ok=True)
+            if calibration is not None:  # the frames stay as received; their rig's calibration goes beside them
+                from ..calibration import write_calibration
+
+                write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
             progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):
@@ -126,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
     except (CaptureError, OSError, InputError) as err:
         return _fail(f"{err} ({done} of {args.count} pairs saved in {out})", 1)
     print(f"{PROG}: saved {done} pairs to {out}", file=sys.stderr)
+    if calibration is not None:
+        print(f"{PROG}: rectify them with: svs-depth estimate --pairs {out / INDEX_NAME} --calibration "
+              f"{out / CALIBRATION_NAME}", file=sys.stderr)
     return 0
 
 

@@ -13,6 +13,8 @@ from .common import (add_figure_option, dumps_strict, finite_float, positive_flo
                      too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
 from .progress import Progress
+from .rig import (add_calibration_option, calibration_file_source, calibration_from_args, check_no_manual_calibration,
+                  with_calibrated_rectification)
 from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -88,6 +90,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baseline-m", type=positive_float, help="stereo baseline, metres (default: SVS 0.1075)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0,
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
+    add_calibration_option(parser, "LEFT RIGHT (and listed pairs without their own calibration)")
     add_pair_options(parser)
     add_segmentation_options(parser)
     add_segmenter_option(parser)
@@ -97,7 +100,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="how to range the obstacles: 'dense' (default) the median of dense disparity over "
                              "each region, 'paper' Eq. (5)-(8) over the RANSAC inliers (default of --preset paper)")
     parser.add_argument("--seed", type=seed_int, default=0, help="RANSAC seed (default: 0)")
-    add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches",
+    add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches, and a "
+                      "rectified pair: its rectified views with epipolar lines",
                       "--plot", "--out")
     parser.add_argument("--masks-out", metavar="LABELS.png",
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
@@ -117,7 +121,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         config = replace(config, segmentation=replace(config.segmentation, method="canny"))
     if args.range_rule:
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))
-    return config
+    return with_calibrated_rectification(config, args)
 
 
 def _read_pair_list(path: str):
@@ -136,6 +140,14 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
             "time_s": 0.0, "calibration": None}
+
+
+def _calibration_source(source, args) -> str:
+    """Where pair ``source``'s calibration comes from: ``--calibration``'s file, its own data or list line, the
+    command's options, or the SVS model."""
+    from ..data import pair_calibration_source
+
+    return calibration_file_source(args, source) or pair_calibration_source(source, args.focal_px, args.baseline_m)
 
 
 def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str) -> dict:
@@ -234,7 +246,13 @@ def _write_outputs(args, batch, result, factors) -> None:
     from ..plots import estimate_figure
 
     if args.figure:
-        write_image_atomic(args.figure, estimate_figure(batch, result, 0), args.figure_option)
+        from ..rectified_figure import pipeline_rectified_figure, stack_images
+
+        figure = estimate_figure(batch, result, 0)
+        # A rectified pair also shows as rectified, with epipolar lines: the user sees that rectification worked.
+        rectified = pipeline_rectified_figure(batch, result, 0, args.calibration)
+        write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),
+                           args.figure_option)
     if args.masks_out:
         write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors), "--masks-out",
                            lossless=True)
@@ -251,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..errors import InputError
-        from ..data import PairSource, detect_stereo_layout, pair_calibration_source
+        from ..data import PairSource, detect_stereo_layout
         from ..figures import check_output_path
         from ..pipeline import estimate_obstacle_depth
 
@@ -259,8 +277,11 @@ def run(args: argparse.Namespace) -> int:
     scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
     if not (args.left and args.right) and not scene:
         raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
-    if scene and (args.focal_px or args.baseline_m or args.doffs_px):
-        raise InputError("--focal-px, --baseline-m, --doffs-px: a scene folder brings its own calibration")
+    if scene and (args.focal_px or args.baseline_m or args.doffs_px or args.calibration):
+        raise InputError("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder brings its own "
+                         "calibration")
+    check_no_manual_calibration(args)
+    calibration_from_args(args)  # a bad file is the error, before any work
     # Check the outputs first: a bad file name fails at once, before any work, and nothing is half-written.
     if args.figure:
         check_output_path(args.figure, args.figure_option)
@@ -278,8 +299,7 @@ def run(args: argparse.Namespace) -> int:
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
         report = pair_report(result, 0, factors, time.perf_counter() - started)
-        report = with_calibration(report, batch, 0, factors,
-                                  pair_calibration_source(source, args.focal_px, args.baseline_m))
+        report = with_calibration(report, batch, 0, factors, _calibration_source(source, args))
         _write_outputs(args, batch, result, factors)
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
     return 0
@@ -316,7 +336,7 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
 def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
     """One batch of list entries run through the pipeline: each entry's report (with its ``left`` and
     ``right``) and, for a BAD_INPUT entry, the reason."""
-    from ..data import collate_stereo_batches, pair_calibration_source
+    from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
     entries = [_load_entry(entry, args) for entry in chunk]
@@ -334,8 +354,7 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
         else:
             report, bad = pair_report(result, row, loaded[1], per_pair), None
-            report = with_calibration(report, batch, row, loaded[1],
-                                      pair_calibration_source(source, args.focal_px, args.baseline_m))
+            report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args))
             row += 1
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out
@@ -349,6 +368,8 @@ _WORKER_SETUP: dict[str, tuple[list, object]] = {}
 def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
     if args.pairs not in _WORKER_SETUP:
         config = pipeline_config_from_args(args)  # first, as in one process: a bad option is the error shown
+        check_no_manual_calibration(args)
+        calibration_from_args(args)
         _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
     return _WORKER_SETUP[args.pairs]
 
@@ -502,6 +523,8 @@ def _run_many(args: argparse.Namespace) -> int:
     if workers == 1:
         with imports_without_collection():  # the pipeline's imports (see there)
             config = pipeline_config_from_args(args)
+            check_no_manual_calibration(args)
+            calibration_from_args(args)
         pairs = _read_pair_list(args.pairs)
         total = len(pairs)
         results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)

@@ -8,6 +8,8 @@ import time
 
 from .common import dumps_strict, finite_float, positive_float, positive_int
 from .progress import Progress
+from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
+                  with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -63,6 +65,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
     parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
+    add_calibration_option(parser, "listed file pairs without their own calibration")
     parser.add_argument("--db", metavar="FILE.sqlite", help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
     parser.set_defaults(func=run)
@@ -134,16 +137,23 @@ def run(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from dataclasses import asdict
+        from dataclasses import asdict, replace
 
         from ..camera import parse_size
         from ..data import read_pair_sources
+        from ..errors import InputError
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
         from ..evaluation.sweep import make_sweep_config
 
     size_wh = parse_size(args.size, "--size") if args.size else None
+    check_no_manual_calibration(args)
+    if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
+        raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
+    calibration = calibration_from_args(args)
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
+    calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
+    config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     sources = read_pair_sources(args.paths, "path")
     store = run_id = None
     if args.db:
@@ -156,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
         store.add_pairs(sources)
         run_id = store.start_run("eval", code_version(), environment("in-process", 0, None),
                                  " ".join(sys.argv[1:]))
-    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px)
+    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
     evaluations = []
     if not args.json:
         print(HEADER)

@@ -102,18 +102,24 @@ def preset_config(args: argparse.Namespace):
 
 def load_pair(left: str, right: str, args: argparse.Namespace):
     """The pair ``left``/``right`` with the calibration options ``args`` carries (``focal_px``, ``baseline_m``,
-    ``doffs_px``; SVS defaults otherwise), resampled to ``--size`` if given; and the x, y factors that map
-    working pixels back to input pixels."""
+    ``doffs_px``; SVS defaults otherwise; or rectified by ``--calibration``'s rig, before any resampling),
+    resampled to ``--size`` if given; and the x, y factors that map working pixels back to input pixels."""
     from ..camera import parse_size
     from ..data import load_image_pair, resize_stereo_batch
 
     from ..checks import InputError
+    from .rig import calibration_from_args
 
     new_size = parse_size(args.size, "--size") if args.size else None
     if new_size and new_size[0] * new_size[1] > MAX_PIXELS:
         raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
     batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
+    calibration = calibration_from_args(args)
+    if calibration is not None:  # --calibration: rectified by the rig, its focal / baseline / doffs
+        from ..calibration import rectify_with_calibration
+
+        batch = rectify_with_calibration(batch, calibration)
     height, width = batch.size_hw
     if new_size is None:
         if height * width > MAX_PIXELS:

@@ -9,6 +9,7 @@ import time
 import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int
+from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
@@ -50,6 +51,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
                         help="seconds before the same warning repeats (default: 3)")
+    add_calibration_option(parser, "the frames")
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
     parser.add_argument("--count", type=non_negative_int, default=0,
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         from ..capture.link import CaptureError
         from ..checks import InputError
         from ..depth import ObstacleSide
-        from ..pipeline import estimate_obstacle_depth
+        from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .capture import open_stereo_camera
 
         from ..capture.protocol import size_code_for
@@ -81,6 +83,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
+    calibration = calibration_from_args(args)
+    if calibration is not None:
+        from ..calibration import rectify_with_calibration
+
+        calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
+    config = with_calibrated_rectification(PipelineConfig(), args)
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
@@ -94,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
             warnings.showwarning = status_line.show_warning
             camera = open_stereo_camera(args, size, stack)
             for item in camera.stream_batches(1, num_batches=args.count or None):
-                result = estimate_obstacle_depth(item.batch)
+                batch = item.batch if calibration is None else rectify_with_calibration(item.batch, calibration)
+                result = estimate_obstacle_depth(batch, config)
                 nearest = result.depth.nearest
                 # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
                 # a walker reaches first, not the median of an object that may recede.

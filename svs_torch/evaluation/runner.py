@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..calibration import StereoCalibration, rectify_with_calibration
 from ..checks import InputError
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
@@ -47,6 +48,9 @@ class EvalSetup:
         size_wh: resample every pair to (width, height) first; None keeps each pair's own size (pairs of
             different sizes are then padded into one batch, and the pipeline runs each size apart).
         focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
+        calibration: a rig's :class:`~svs_torch.calibration.StereoCalibration` for those pairs instead: they are
+            rectified with it and take its focal, baseline and doffs (scenes and pairs listed with a calibration
+            keep their own).
     """
 
     config: PipelineConfig = PipelineConfig()
@@ -54,6 +58,7 @@ class EvalSetup:
     focal_px: float | None = None
     baseline_m: float | None = None
     doffs_px: float = 0.0
+    calibration: StereoCalibration | None = None
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,11 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
         batch = load_pair_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
     except (InputError, OSError) as error:
         return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
+    if setup.calibration is not None and not source.scene and source.focal_px is None:
+        try:
+            batch = rectify_with_calibration(batch, setup.calibration)
+        except InputError as error:
+            return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
     calibrated = bool(batch.calibrated[0])
     origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
     batch = with_nominal_calibration(batch)

@@ -1,0 +1,178 @@
+"""``svs-depth calibrate``: a stereo rig's calibration file from chessboard pairs (OpenCV)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+from .common import add_figure_option, dumps_strict, positive_float
+
+HELP = "calibrate a stereo rig from chessboard pairs; writes the file for --calibration"
+
+DESCRIPTION = """\
+Calibrate a stereo rig once from pairs of images of a chessboard (both cameras see the whole board; 10-20
+pairs, the board tilted and moved over the field): OpenCV finds the inner corners, calibrates each camera,
+then the pair (R, T), and computes the rectification. The file (JSON) holds both cameras' K and distortion, R,
+T (metres), R1, R2, P1, P2, Q, the image size, the errors, the board, the date and the version; give it to
+estimate, eval, capture and guide as --calibration FILE: their pairs are then rectified with it and take their
+focal length, baseline and doffs from it, instead of the paper's uncalibrated rectification and the SVS model.
+
+Printed: the reprojection error (RMS, pixels) of each camera and of the stereo fit, and the rectified pair's
+row error on the chessboards: |y_left - y_right| of the matching corners after rectification (mean, max).
+The baseline is in the unit of --square-m: measure the printed squares.
+"""
+
+EPILOG = """\
+examples:
+  svs-depth calibrate 'calib/left*.jpg' --board 9x6 --square-m 0.025 --out rig.json --figure rig.png
+  svs-depth calibrate --pairs chessboards.txt --board 9x6 --square-m 0.025 --out rig.json --json
+  svs-depth estimate left.jpg right.jpg --calibration rig.json
+LEFT: left image files or quoted patterns (*, ?); each right image is the file of the same name with 'left'
+replaced by 'right' (also Left/Right, LEFT/RIGHT). --pairs: a list file, one 'LEFT RIGHT' per line.
+exit status: 0 written; 2 bad arguments, unreadable images, or too few pairs with the board in both views.
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("left", nargs="*", metavar="LEFT", help="left chessboard images (files or patterns)")
+    parser.add_argument("--pairs", metavar="LIST.txt", help="a list file with one 'LEFT RIGHT' per line instead")
+    parser.add_argument("--board", default="9x6", metavar="COLSxROWS",
+                        help="inner corners of the chessboard, columns x rows (default: 9x6, OpenCV's sample)")
+    parser.add_argument("--square-m", type=positive_float, required=True,
+                        help="side of one square of the board, metres (sets the unit of the baseline)")
+    parser.add_argument("--out", required=True, metavar="RIG.json", help="the calibration file to write")
+    add_figure_option(parser, "figure: the first pair rectified, side by side, with its corners and epipolar lines")
+    parser.add_argument("--json", action="store_true", help="print the calibration file's content as one JSON line")
+    parser.set_defaults(func=run)
+
+
+def parse_board(text: str) -> tuple[int, int]:
+    """``"9x6"`` → (9, 6) inner corners (columns, rows), each 2 to 100."""
+    from ..errors import InputError
+
+    match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text or "")
+    if not match or min(int(match[1]), int(match[2])) < 2 or max(int(match[1]), int(match[2])) > 100:
+        raise InputError(f"--board: expected inner corners as COLSxROWS, each 2 to 100, e.g. 9x6, got {text!r}")
+    return int(match[1]), int(match[2])
+
+
+def right_name(left: str) -> str | None:
+    """The right image's path of a left image: the last 'left' (Left, LEFT) of the file name as 'right'."""
+    from pathlib import Path
+
+    path = Path(left)
+    for old, new in (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT")):
+        at = path.name.rfind(old)
+        if at >= 0:
+            return str(path.with_name(path.name[:at] + new + path.name[at + len(old):]))
+    return None
+
+
+def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
+    """The (left, right) files named by LEFT patterns or --pairs."""
+    import glob
+
+    from ..data import read_pair_list
+    from ..errors import InputError
+
+    if bool(args.left) == bool(args.pairs):
+        raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, not both")
+    if args.pairs:
+        sources = read_pair_list(args.pairs, "--pairs")
+        bad = next((s for s in sources if s.problem or s.scene or s.right is None), None)
+        if bad is not None:
+            raise InputError(bad.problem or f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
+                                            f"{bad.left}")
+        return [(s.left, s.right) for s in sources]
+    lefts: list[str] = []
+    for pattern in args.left:
+        found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if not found:
+            raise InputError(f"left: no file matches {pattern!r}")
+        lefts += found
+    pairs = []
+    for left in lefts:
+        right = right_name(left)
+        if right is None:
+            raise InputError(f"left: {left!r} has no 'left' in its name to find its right image (use --pairs)")
+        pairs.append((left, right))
+    return pairs
+
+
+def _text(calibration, views, out: str) -> list[str]:
+    c = calibration
+    board = c.board["inner_corners"]
+    lines = [f"calibrated from {len(views.names)} of {len(views.names) + len(views.skipped)} pairs "
+             f"({board[0]}x{board[1]} board, squares {c.board['square_m']:g} m), {c.image_wh[0]}x{c.image_wh[1]}",
+             f"reprojection RMS: left {c.rms_left_px:.3f} px, right {c.rms_right_px:.3f} px, "
+             f"stereo {c.rms_stereo_px:.3f} px",
+             f"rectified row error on the chessboards: mean {c.row_error_mean_px:.3f} px, max "
+             f"{c.row_error_max_px:.3f} px ({board[0] * board[1]} corners x {len(views.names)} pairs)",
+             f"rectified: focal {c.focal_px:.2f} px, baseline {c.baseline_m:.4f} m, doffs {c.doffs_px:.2f} px"]
+    if views.skipped:
+        lines.append(f"left out (board not found in both views): {', '.join(views.skipped)}")
+    lines.append(f"wrote {out}")
+    return lines
+
+
+def _figure(path: str, option: str, calibration, views, images) -> None:
+    """The first used pair rectified with its corners and epipolar lines."""
+    from pathlib import Path
+
+    import torch
+
+    from ..calibration import rectify_with_calibration
+    from ..chessboard import rectified_corners
+    from ..figures import write_image_atomic
+    from ..rectified_figure import rectified_pair_figure
+    from ..types import StereoBatch
+
+    left, right = (torch.from_numpy(image).float().div(255).view(1, 1, *image.shape) for image in images)
+    # The batch's focal and baseline are placeholders: rectify_with_calibration sets the calibration's.
+    batch = rectify_with_calibration(StereoBatch.from_images(left, right, 1.0, 1.0), calibration)
+    corners_left, corners_right = rectified_corners(calibration, views)
+    figure = rectified_pair_figure(batch.left[0, 0].numpy(), batch.right[0, 0].numpy(), corners_left[0],
+                                   corners_right[0], f"{Path(views.names[0]).name} rectified by the calibration: "
+                                   f"RMS {calibration.rms_stereo_px:.2f} px, row error over all pairs mean "
+                                   f"{calibration.row_error_mean_px:.2f} px", point_label="corner")
+    write_image_atomic(path, figure, option)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..workers import imports_without_collection
+
+    with imports_without_collection():  # see there: the imports' objects are frozen
+        import cv2
+
+        from ..calibration import write_calibration
+        from ..chessboard import calibrate_stereo_rig, collect_board_views
+        from ..evaluation.sweep import code_version
+        from ..figures import check_output_path
+        from ..files import check_output_file
+        from ..image_files import read_image_array
+
+    board = parse_board(args.board)
+    check_output_file(args.out, "--out", (".json",), "a .json")
+    if args.figure:
+        check_output_path(args.figure, args.figure_option)
+    paths = pair_paths(args)
+
+    def gray(path: str, name: str):
+        image = read_image_array(path, name)
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+
+    source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
+    pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
+    views = collect_board_views(pairs, board)
+    calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}")
+    write_calibration(args.out, calibration)
+    if args.figure:
+        first = next(p for p in pairs if p[0] == views.names[0])
+        _figure(args.figure, args.figure_option, calibration, views, first[1:])
+    if args.json:
+        print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "out": args.out}), flush=True)
+    else:
+        print("\n".join(_text(calibration, views, args.out)), flush=True)
+    return 0

@@ -1,0 +1,82 @@
+"""``--calibration FILE`` of estimate, eval, capture and guide: a rig calibrated by ``svs-depth calibrate``."""
+
+from __future__ import annotations
+
+import argparse
+
+#: Rows of a pair rectified by a calibration agree within this many pixels (matching candidates farther apart are
+#: not considered): 3x the largest row error of the shared chessboards' corners (0.63 px), for a rig's drift.
+CALIBRATED_BAND_PX = 2.0
+
+__all__ = ["add_calibration_option", "calibration_file_source", "calibration_from_args", "check_no_manual_calibration",
+           "with_calibrated_rectification"]
+
+
+def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
+    parser.add_argument("--calibration", metavar="RIG.json",
+                        help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
+                             "and take its focal length, baseline and doffs (scaled to their size; boxes and "
+                             "figures are then in rectified pixels); without it the paper's uncalibrated "
+                             "rectification runs")
+
+
+def calibration_from_args(args: argparse.Namespace):
+    """The :class:`~svs_torch.calibration.StereoCalibration` of ``--calibration``, read once per ``args`` (a
+    worker process reads its own copy), or None without the option.
+
+    Raises:
+        InputError: one line naming ``--calibration``, for a file that is not a calibration.
+    """
+    path = getattr(args, "calibration", None)
+    if not path:
+        return None
+    cached = vars(args).get("_calibration_read")
+    if cached is None or cached[0] != path:
+        from ..calibration import read_calibration
+
+        cached = (path, read_calibration(path, "--calibration"))
+        vars(args)["_calibration_read"] = cached
+    return cached[1]
+
+
+def check_no_manual_calibration(args: argparse.Namespace) -> None:
+    """``--calibration`` excludes ``--focal-px``, ``--baseline-m`` and ``--doffs-px`` (the file gives them)."""
+    from ..errors import InputError
+
+    if getattr(args, "calibration", None) and (getattr(args, "focal_px", None) or getattr(args, "baseline_m", None)
+                                                or getattr(args, "doffs_px", None)):
+        raise InputError("--calibration: the file gives focal, baseline and doffs; drop --focal-px, --baseline-m "
+                         "and --doffs-px")
+
+
+def calibration_file_source(args: argparse.Namespace, source) -> str | None:
+    """Where a listed pair's calibration comes from when ``--calibration`` rectified it (its provenance in every
+    report: :func:`svs_torch.data.calibration_record`), or None when the option is absent or does not apply (a
+    scene folder or a list line with its own calibration)."""
+    path = getattr(args, "calibration", None)
+    if not path or source.scene or source.focal_px is not None:
+        return None
+    return f"--calibration {path} (the pair rectified by it)"
+
+
+def with_calibrated_rectification(config, args: argparse.Namespace):
+    """``config`` for pairs rectified by ``--calibration`` (unchanged without it):
+
+    * ``rectify="off"``: the rig's rectification holds, and an F fitted again to a pair's matches only adds shear
+      where they are few or nearly planar. On the shared chessboards rectified by their calibration
+      (``experiments/calibrated_rectify.py``), ``"auto"`` rectified 3 of 13 pairs again from an F of the planar
+      board: one lost its depth, two moved from 0.30 to 0.62 m and from 0.32 to 0.50 m (the board's nearest
+      corner: 0.22, 0.25 m); ``"off"`` kept the dense disparity at the corners within 0.15-0.41 px of the
+      calibration's (median per pair) on 11 of the 12 pairs measured there.
+    * ``epipolar_band_px`` :data:`CALIBRATED_BAND_PX` unless the configuration sets one: matches only between
+      points on the same rows, which the calibration guarantees (its corners' rows agree within 0.63 px there).
+      On those pairs the RANSAC inliers' median |y_left - y_right| per pair went from up to 65 px (a periodic
+      board matched one square off; 0.13-65 px) to 0.13-0.93 px at 640x480, and the pairs whose geometry the
+      dense map verifies from 8 to 9 of 13 at 640x480 and from 4 to 9 at 320x240.
+    """
+    from dataclasses import replace
+
+    if not getattr(args, "calibration", None):
+        return config
+    band = CALIBRATED_BAND_PX if config.epipolar_band_px is None else config.epipolar_band_px
+    return replace(config, rectify="off", epipolar_band_px=band)
