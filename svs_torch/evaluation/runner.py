@@ -22,6 +22,7 @@ from ..data.pair_list import PairSource
 from ..pipeline import PipelineConfig, estimate_obstacle_depth
 from ..types import StereoBatch
 from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
+from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 
 __all__ = ["EvalSetup", "LoadedPair", "evaluate_block", "evaluate_pairs", "load_block", "run_loaded",
            "summarize", "MIN_SIDE_PX"]
@@ -55,13 +56,15 @@ class EvalSetup:
 @dataclass(frozen=True)
 class LoadedPair:
     """A listed pair after loading: ``batch`` (B = 1, resampled, nominal calibration where it had none) or
-    None with the ``status`` and ``reason`` it gets instead; ``calibrated``: the data's own calibration."""
+    None with the ``status`` and ``reason`` it gets instead; ``calibrated``: the data's own calibration;
+    ``px_scale``: the input's width over the batch's (native pixels per pixel the pipeline ran at)."""
 
     source: PairSource
     batch: StereoBatch | None
     status: str | None = None
     reason: str | None = None
     calibrated: bool = False
+    px_scale: float = 1.0
 
 
 def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
@@ -71,13 +74,14 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
         return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
     calibrated = bool(batch.calibrated[0])
     batch = with_nominal_calibration(batch)
+    native_width = batch.size_hw[1]
     if setup.size_wh is not None:
         batch = resize_stereo_batch(batch, setup.size_wh)
     height, width = batch.size_hw
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
                                                      f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels")
-    return LoadedPair(source, batch, calibrated=calibrated)
+    return LoadedPair(source, batch, calibrated=calibrated, px_scale=native_width / batch.size_hw[1])
 
 
 def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPair]:
@@ -95,7 +99,7 @@ def _run_batch(pairs: list[LoadedPair], config: PipelineConfig) -> list[PairEval
     with torch.no_grad():
         result = estimate_obstacle_depth(batch, config)
     per_pair = (time.perf_counter() - started) / len(pairs)
-    return evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs])
+    return evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs], [p.px_scale for p in pairs])
 
 
 def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
@@ -152,7 +156,9 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     whose segmentation kept nothing has no object truth, and still counts 0 %). ``acc_*_pct`` are means over
     the scored pairs; disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
     ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
-    ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on.
+    ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics
+    (:data:`~svs_torch.evaluation.stereo_metrics.STEREO_FIELDS`) are means over the pairs that have them;
+    ``<scope>_pairs`` counts those pairs for each scope.
     """
     failures = [e for e in evaluations if not e.ok]
     scored = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
@@ -178,4 +184,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "statuses": {status: sum(e.status == status for e in evaluations)
                      for status in sorted({e.status for e in evaluations})},
         "failures": [{"name": e.name, "status": e.status, "reason": e.reason} for e in failures],
+        **{key: mean_of(key) for key in STEREO_FIELDS},
+        **{f"{scope}_pairs": sum(getattr(e, f"{scope}_density") is not None for e in evaluations)
+           for scope in STEREO_SCOPES},
     }
