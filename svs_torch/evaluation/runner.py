@@ -19,7 +19,7 @@ import torch
 from ..checks import InputError
 from ..data import collate_stereo_batches, load_pair_source, resize_stereo_batch
 from ..data.pair_list import PairSource
-from ..pipeline import PipelineConfig, estimate_obstacle_depth
+from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
 from ..types import StereoBatch
 from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
 from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
@@ -93,27 +93,38 @@ def _unrun(pair: LoadedPair) -> PairEvaluation:
     return PairEvaluation(name=pair.source.name, status=pair.status, reason=pair.reason)
 
 
-def _run_batch(pairs: list[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
+#: ``on_result(batch, result, seconds per pair)``: called with each pipeline run (e.g. to write its maps).
+OnResult = Callable[[StereoBatch, PipelineResult, float], None]
+
+
+def _run_batch(pairs: list[LoadedPair], config: PipelineConfig,
+               on_result: OnResult | None = None) -> list[PairEvaluation]:
     batch = collate_stereo_batches([p.batch for p in pairs], mode="pad")
     started = time.perf_counter()
     with torch.no_grad():
         result = estimate_obstacle_depth(batch, config)
     per_pair = (time.perf_counter() - started) / len(pairs)
-    return evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs], [p.px_scale for p in pairs])
+    evaluations = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs],
+                                  [p.px_scale for p in pairs])
+    if on_result is not None:
+        on_result(batch, result, per_pair)
+    return evaluations
 
 
-def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
-    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order."""
+def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
+               on_result: OnResult | None = None) -> list[PairEvaluation]:
+    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order (``on_result``:
+    see :data:`OnResult`; an exception it raises makes the pairs ``ERROR`` as the pipeline's would)."""
     runnable = [p for p in pairs if p.batch is not None]
     scored: list[PairEvaluation] = []
     if runnable:
         try:
-            scored = _run_batch(runnable, config)
+            scored = _run_batch(runnable, config, on_result)
         except Exception:  # noqa: BLE001 -- find the pair that raises: every other pair still gets its result
             scored = []
             for pair in runnable:
                 try:
-                    scored += _run_batch([pair], config)
+                    scored += _run_batch([pair], config, on_result)
                 except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
                     scored.append(PairEvaluation(name=pair.source.name, status="ERROR",
                                                  reason=f"{type(error).__name__}: {' '.join(str(error).split())}"))
@@ -127,9 +138,11 @@ def evaluate_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[Pair
 
 
 def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: int = 16,
-                   on_block: Callable[[int], None] | None = None) -> Iterator[tuple[PairSource, PairEvaluation]]:
+                   on_block: Callable[[int], None] | None = None,
+                   on_result: OnResult | None = None) -> Iterator[tuple[PairSource, PairEvaluation]]:
     """Evaluate every listed pair in blocks of ``batch_size``, in order; the next block is decoded in a thread
-    while the pipeline runs on the current one. ``on_block(n)`` is called after each block of n pairs."""
+    while the pipeline runs on the current one. ``on_block(n)`` is called after each block of n pairs;
+    ``on_result`` with each pipeline run (:data:`OnResult`)."""
     blocks = [list(sources[i:i + batch_size]) for i in range(0, len(sources), batch_size)]
     if not blocks:
         return
@@ -139,7 +152,7 @@ def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: 
             loaded = pending.result()
             if number + 1 < len(blocks):
                 pending = loader.submit(load_block, blocks[number + 1], setup)
-            yield from zip(block, run_loaded(loaded, setup.config))
+            yield from zip(block, run_loaded(loaded, setup.config, on_result))
             if on_block is not None:
                 on_block(len(block))
 
