@@ -197,3 +197,62 @@ def test_bad_input_is_named(change, message):
                  "mask": torch.ones(2, 1, 3, 4, dtype=torch.bool), "px_scale": torch.ones(2)}
     with pytest.raises(InputError, match=message):
         measure_stereo_metrics(**change(arguments))
+
+
+def test_eval_rows_store_csv_and_export_agree_with_a_reference(data_dir, tmp_path, capsys):
+    import csv
+    import io
+    import json
+
+    from svs_torch.cli import main
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    kitti = data_dir / "kitti" / "stereo2012_training" / "colored_0" / "000000_10.png"
+    db = tmp_path / "eval.sqlite"
+    code = main(["eval", str(teddy), str(kitti), "--size", "160x120", "--json", "--db", str(db),
+                 "--disparity-out", str(tmp_path / "maps")])
+    rows = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    summary, rows = rows[-1], rows[:-1]
+    assert code == 0 and [r["status"] for r in rows] == ["OK", "OK"] and not rows[0]["rectified"]
+    assert rows[0]["metric_px_scale"] == pytest.approx(450 / 160)
+    assert rows[1]["kept_nocc_density"] is None and rows[1]["kept_all_d1_pct"] is not None  # KITTI: no noc GT
+    assert summary["kept_nocc_pairs"] == 1 and summary["kept_all_pairs"] == 2
+    # The exported 160x120 map of Teddy against the native GT sampled as the loader does (nearest pixel
+    # centres), errors scaled to native pixels: the row's whole-frame metrics.
+    pfm = _read_pfm(tmp_path / "maps" / "Teddy" / "disp0SVSTorch.pfm")
+    gt = _read_pfm(teddy / "disp0GT.pfm")
+    rows_index = ((np.arange(120) + 0.5) * gt.shape[0] / 120).astype(int)
+    cols_index = ((np.arange(160) + 0.5) * gt.shape[1] / 160).astype(int)
+    small = gt[rows_index][:, cols_index]
+    known = np.isfinite(small)
+    small = np.where(known, small, 0).astype(np.float32) * np.float32(160 / 450)
+    expected = _reference(np.where(np.isfinite(pfm), pfm, 0), np.isfinite(pfm), small, known,
+                          np.ones_like(known), 450 / 160)
+    one_pixel = 100.0 / (expected["num_px"] * expected["density"])  # a float tie may flip one pixel
+    for key, value in expected.items():
+        assert rows[0][f"map_all_{key}"] == pytest.approx(value, rel=1e-4, abs=one_pixel if "pct" in key
+                                                           else 1e-4), key
+    # The store keeps every value and results --csv exports it.
+    assert main(["results", str(db), "--csv"]) == 0
+    table = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    by_name = {row["name"]: row for row in table}
+    for key in ("kept_nocc_bad2_pct", "kept_all_a90_px", "map_all_d1_pct", "map_nocc_density"):
+        assert float(by_name["eval3/Teddy"][key]) == pytest.approx(rows[0][key], rel=1e-12)
+    assert by_name["kitti2012/000000_10"]["kept_nocc_bad2_pct"] == ""
+
+
+def test_an_older_results_file_gets_the_new_columns(tmp_path):
+    import sqlite3
+
+    from svs_torch.evaluation.store import ResultStore
+
+    with ResultStore(tmp_path / "old.sqlite"):
+        pass
+    connection = sqlite3.connect(tmp_path / "old.sqlite")
+    for name in ("kept_all_d1_pct", "metric_px_scale"):  # as a file written before these columns existed
+        connection.execute(f'ALTER TABLE results DROP COLUMN "{name}"')
+    connection.commit()
+    connection.close()
+    with ResultStore(tmp_path / "old.sqlite", create=False) as store:
+        columns = {row[1] for row in store.connection.execute("PRAGMA table_info(results)")}
+    assert {"kept_all_d1_pct", "metric_px_scale"} <= columns

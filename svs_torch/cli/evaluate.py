@@ -107,7 +107,8 @@ def _stereo_lines(summary: dict) -> list[str]:
         def value(metric: str, digits: int = 1) -> str:
             return _number(summary[f"{scope}_{metric}"], digits)
 
-        lines.append(f"  {label} ({summary[f'{scope}_pairs']} pairs): density {value('density', 3)}, "
+        count = summary[f"{scope}_pairs"]
+        lines.append(f"  {label} ({count} pair{'' if count == 1 else 's'}): density {value('density', 3)}, "
                      f"bad-0.5/1/2/4 {value('bad0_5_pct')}/{value('bad1_pct')}/{value('bad2_pct')}/"
                      f"{value('bad4_pct')}, avgerr {value('avgerr_px', 2)}, rms {value('rms_px', 2)}, A50/90/95/99 "
                      f"{value('a50_px', 2)}/{value('a90_px', 2)}/{value('a95_px', 2)}/{value('a99_px', 2)}, "
