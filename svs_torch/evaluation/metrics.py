@@ -35,7 +35,7 @@ import torch
 from ..depth import kept_region_lower_median, masked_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
 from ..types import Segmentation, StereoBatch
-from .stereo_metrics import StereoMetrics, dense_map_metrics, metric_values, object_map_metrics
+from .stereo_metrics import StereoMetrics, metric_values, pair_map_metrics
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "ObjectTruth", "PairEstimate", "PairEvaluation",
@@ -371,8 +371,7 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
     sparse = sparse_disparity_errors(batch, result)
     scale = None if px_scale is None else torch.tensor(list(px_scale), dtype=batch.left.dtype,
                                                        device=batch.left.device)
-    scopes = dense_map_metrics(batch, result, scale)
-    per_object = object_map_metrics(batch, result, scale)
+    scopes, per_object = pair_map_metrics(batch, result, scale)
     keypoints = result.num_keypoints.tolist()
     counts = zip(result.num_matches.tolist(), result.num_inliers.tolist(), result.rectified.tolist())
     evaluations = []
