@@ -128,6 +128,10 @@ def test_exported_pfm_reads_back_to_the_json_depths(data_dir, tmp_path, capsys):
     calib = read_middlebury_calib(scene / "calib.txt")
     focal, baseline_m, doffs = calib["cam0"][0, 0], calib["baseline"] / 1000, calib["doffs"]
     filled, reach = _fill_rows(pfm.astype(np.float64), np.isfinite(pfm))
+    x0, y0, width, height = report["dense_box_xywh"]  # the statistics are over the searched box
+    box = np.zeros(pfm.shape, dtype=bool)
+    box[y0:y0 + height, x0:x0 + width] = True
+    reach &= box
     checked = 0
     for obj in report["objects"]:
         if obj["depth_m"] is None:

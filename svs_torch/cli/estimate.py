@@ -134,7 +134,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "time_s": 0.0}
+            "dense_box_xywh": None, "time_s": 0.0}
 
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
@@ -186,6 +186,11 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
                                  else None),
         "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
+        # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
+        # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
+        # its region's pixels inside it.
+        "dense_box_xywh": ([int(v) for v in result.dense.crop_xywh[index].tolist()] if result.dense is not None
+                           else None),
         "time_s": round(elapsed_s, 6),
     }
 

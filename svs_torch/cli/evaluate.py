@@ -47,8 +47,8 @@ examples:
 
 --json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
 acc_r_min_pct, acc_r_max_pct, acc_objects_pct, pairs_per_s (loading included), the mean disparity errors, the
-mean stereo metrics and the failures. --db adds the rows to a results store (as svs-depth sweep does; a pair already stored for the
-same configuration keeps its row), for svs-depth results.
+mean stereo metrics and the failures. --db adds the rows to a results store (as svs-depth sweep does; a pair
+already stored for the same configuration keeps its row), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
 """
 

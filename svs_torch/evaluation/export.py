@@ -16,6 +16,12 @@ rectified pair's map is in rectified pixels; it is brought back to the left imag
 of the rectified map at ``H_left · x`` (unknown where that falls outside), its values still rectified
 disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the horizontal offsets of the raw images
 differ by the rectification). Files go through the atomic writer (:mod:`svs_torch.files`).
+
+Reading a map back to the reported depths: an object's median (and percentiles) in ``estimate``'s JSON is over
+its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
+nearest known neighbours' disparity (their mean where within 1 px, else the smaller; ``DenseConfig.fill_invalid``),
+``Z = f·B / (d + doffs)``. Done so from the written PFMs of the ten MiddEval3 Q scenes, all 20 objects' medians
+agree with the JSON within its 0.1 mm rounding (tests/test_disparity_export.py does it for Teddy).
 """
 
 from __future__ import annotations

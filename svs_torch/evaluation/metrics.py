@@ -20,6 +20,10 @@ Disparity errors (pixels, in the pair's working image):
   ``inlier_precision`` is the share of those inliers whose right point lies within 1 px of the true one in
   both x and y (a correct correspondence, not only a correct disparity).
 
+The standard stereo metrics of the dense map (Middlebury's bad-t, avgerr, rms, A-quantiles and KITTI's D1, each
+with its density, errors in the data's native pixels) are :mod:`.stereo_metrics`'; :class:`PairEvaluation`
+carries them as ``<scope>_<metric>`` fields and each object's in its ``objects`` entry.
+
 Medians are lower medians; shares are in [0, 1]. Nothing here is differentiable (medians of hard selections,
 status-gated estimates): these are reports, not losses.
 """
