@@ -217,6 +217,11 @@ def test_eval_rows_store_csv_and_export_agree_with_a_reference(data_dir, tmp_pat
     assert rows[0]["metric_px_scale"] == pytest.approx(450 / 160)
     assert rows[1]["kept_nocc_density"] is None and rows[1]["kept_all_d1_pct"] is not None  # KITTI: no noc GT
     assert summary["kept_nocc_pairs"] == 1 and summary["kept_all_pairs"] == 2
+    # Each object's own metrics (all GT over its region): fewer pixels than the kept regions together.
+    objects = rows[0]["objects"]
+    assert objects and all(0 < o["num_px"] <= rows[0]["kept_all_num_px"] and o["bad2_pct"] is not None
+                           for o in objects)
+    assert sum(o["num_px"] for o in objects) <= rows[0]["kept_all_num_px"]
     # The exported 160x120 map of Teddy against the native GT sampled as the loader does (nearest pixel
     # centres), errors scaled to native pixels: the row's whole-frame metrics.
     pfm = _read_pfm(tmp_path / "maps" / "Teddy" / "disp0SVSTorch.pfm")
