@@ -106,11 +106,6 @@ def _check_inputs(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: tor
         check_shape(px_scale, "px_scale", [b])
         if not bool(torch.isfinite(px_scale).all() and (px_scale > 0).all()):
             raise InputError(f"px_scale: expected finite positive factors, got {px_scale.tolist()}")
-    # A NaN or inf where a value is declared known would poison every sum: name it instead.
-    for name, value, known, known_name in (("disparity_px", disparity_px, valid, "valid"),
-                                           ("truth_px", truth_px, truth_valid, "truth_valid")):
-        if not bool(torch.isfinite(value[known]).all()):
-            raise InputError(f"{name}: expected finite values where {known_name} holds, got NaN or inf")
     return b
 
 
@@ -137,10 +132,11 @@ def measure_stereo_metrics(disparity_px: torch.Tensor, valid: torch.Tensor, trut
 def _measure(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Tensor, truth_valid: torch.Tensor,
              masks: list[torch.Tensor | None], px_scale: torch.Tensor | None) -> list[StereoMetrics]:
     """:func:`measure_stereo_metrics` for several masks of the same maps. The pixels with both an estimate and
-    a GT value (a third of a frame at most, for the pipeline's maps) are gathered once into a flat list grouped
-    by pair, and sorted by error once within each pair; a mask's k-th smallest error is where its running count
-    of covered pixels along that order reaches k. Full-frame passes over ``(B, H·W)`` cost 30-60 ms each at
-    native MiddEval3 Q size on this project's CPU, so each mask makes only the one that counts its pixels."""
+    a GT value (a third of a frame at most, for the pipeline's maps) are gathered once, grouped by pair, and
+    their errors sorted once per pair (a ``(B, max count)`` table, +inf after each pair's own). For a mask,
+    the running count of its covered pixels along that order gives everything by lookups: its k-th smallest
+    error (where the count reaches k), its bad-t counts (the count where the errors pass t), its size. Each
+    mask makes one pass over the whole frame, to count its GT pixels."""
     b = _check_inputs(disparity_px, valid, truth_px, truth_valid, None, px_scale)
     for mask in masks:
         if mask is not None:
@@ -150,58 +146,78 @@ def _measure(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Te
     pixels = disparity_px[0, 0].numel()
     rows, columns = (truth_valid & valid).reshape(b, -1).nonzero(as_tuple=True)  # grouped by pair, in order
     flat = rows * pixels + columns  # (M,)
+    estimate = disparity_px.reshape(-1).index_select(0, flat)
+    truth = truth_px.to(dtype).reshape(-1).index_select(0, flat)
+    # A NaN or inf where a value is declared known would poison every sum: name it instead. (Values where the
+    # other map is unknown are never read.)
+    for name, value, known_name in (("disparity_px", estimate, "valid"), ("truth_px", truth, "truth_valid")):
+        if not bool(torch.isfinite(value).all()):
+            raise InputError(f"{name}: expected finite values where {known_name} holds, got NaN or inf")
     scale = (torch.ones(b, dtype=dtype, device=device) if px_scale is None else px_scale.to(dtype))[rows]
-    truth = truth_px.to(dtype).reshape(-1)[flat]
-    error = (disparity_px.reshape(-1)[flat] - truth).abs() * scale  # (M,) native pixels
-    # Per pixel, the columns every mask sums: one, a hit of each bad-t threshold, a D1 outlier, e, e² (float64:
-    # a quarter-million float32 errors lose digits a published table shows).
-    error64 = error.to(torch.float64)
+    error = (estimate - truth).abs() * scale  # (M,) native pixels
     d1_hit = (error > D1_ABSOLUTE_PX) & (error > D1_RELATIVE * truth.abs() * scale)
-    features = torch.stack([torch.ones_like(error64), *[(error > t).to(torch.float64) for t in BAD_THRESHOLDS_PX],
-                            d1_hit.to(torch.float64), error64, error64.square()], dim=1)  # (M, 8)
-    # Within each pair by error: a stable sort by pair of the order by error (rows are already grouped).
-    by_error = error.sort(stable=True).indices
-    order = by_error[rows[by_error].sort(stable=True).indices]
-    measured = _Measured(rows, flat, features, order, error[order], b)
+    counts = torch.bincount(rows, minlength=b)
+    slot = torch.arange(rows.numel(), device=device) - (counts.cumsum(0) - counts)[rows]  # place within its pair
+    width = max(int(counts.max()) if b else 0, 1)
+
+    def table(values: torch.Tensor, fill: float | bool) -> torch.Tensor:
+        out = torch.full((b, width), fill, dtype=values.dtype, device=device)
+        out[rows, slot] = values
+        return out
+
+    ordered, order = table(error, float("inf")).sort(dim=1)  # (B, width): each pair's errors ascending
+    present = table(torch.ones_like(d1_hit), False).gather(1, order)
+    # Where each bad-t threshold falls in each pair's order: the entries before it have e <= t.
+    thresholds = torch.tensor(BAD_THRESHOLDS_PX, dtype=dtype, device=device).expand(b, -1).contiguous()
+    measured = _Measured(sorted_flat=table(flat, 0).gather(1, order), sorted_present=present,
+                         sorted_d1=table(d1_hit, False).gather(1, order),
+                         sorted_error64=torch.where(present, ordered, torch.zeros_like(ordered)).to(torch.float64),
+                         ordered=ordered, below=torch.searchsorted(ordered, thresholds, right=True), batch_size=b)
     return [_one_mask(truth_valid.reshape(b, -1) if mask is None else (truth_valid & mask).reshape(b, -1),
                       measured, dtype) for mask in masks]
 
 
 @dataclass(frozen=True)
 class _Measured:
-    """The pixels with an estimate and a GT value, flat ``(M,)``: their pair, index in ``(B·H·W)``, the
-    ``(M, 8)`` columns a mask sums (see :func:`_measure`), the order by error within each pair, and the errors
-    so ordered."""
+    """The pixels with an estimate and a GT value, per pair in order of error, ``(B, width)`` (see
+    :func:`_measure`): each entry's index in ``(B·H·W)``, whether it is a pixel (not padding), whether it is a
+    D1 outlier, its error in float64 (0 in padding) and as measured (+inf in padding); ``below`` ``(B, 4)``:
+    how many entries have an error at most each bad-t threshold."""
 
-    rows: torch.Tensor
-    flat: torch.Tensor
-    features: torch.Tensor
-    order: torch.Tensor
+    sorted_flat: torch.Tensor
+    sorted_present: torch.Tensor
+    sorted_d1: torch.Tensor
+    sorted_error64: torch.Tensor
     ordered: torch.Tensor
+    below: torch.Tensor
     batch_size: int
 
 
 def _one_mask(evaluated: torch.Tensor, m: _Measured, dtype: torch.dtype) -> StereoMetrics:
-    """The metrics over the ``evaluated`` pixels ``(B, P)`` (see :func:`_measure`)."""
+    """The metrics over the ``evaluated`` pixels ``(B, P)`` (see :func:`_measure`). Every count is exact; the
+    error sums are running sums along each pair's order (sequential, padding adds zeros at the end), so a
+    pair's values are the same bit for bit whatever the other pairs of its batch."""
     b = m.batch_size
-    covered = evaluated.reshape(-1)[m.flat]  # (M,)
-    num_evaluated = evaluated.sum(1)
-    sums = torch.zeros(b, m.features.shape[1], dtype=torch.float64, device=evaluated.device)
-    sums.index_add_(0, m.rows, m.features * covered.unsqueeze(1))  # (B, 8)
-    num_covered = sums[:, 0].round().long()
+    num_evaluated = torch.count_nonzero(evaluated, dim=1)  # (a bool .sum() copies to int64 first: 6x slower)
+    in_order = evaluated.reshape(-1).index_select(0, m.sorted_flat.reshape(-1)).view_as(m.sorted_flat)
+    covered = in_order & m.sorted_present  # (B, width), in each pair's order of error
+    running = covered.cumsum(1)  # (B, width) int64
+    num_covered = running[:, -1]
+    at_most = torch.where(m.below > 0, running.gather(1, (m.below - 1).clamp(min=0)), torch.zeros_like(m.below))
+    counts = torch.cat([num_covered.view(b, 1) - at_most,
+                        torch.count_nonzero(covered & m.sorted_d1, dim=1).view(b, 1)], dim=1)  # (B, 5)
+    # Sums in float64: a quarter-million float32 errors lose digits a published table shows.
     denominator = num_covered.clamp(min=1).to(torch.float64)
-    shares = (sums[:, 1:6] * 100.0 / denominator.view(b, 1)).to(dtype)
-    avgerr = (sums[:, 6] / denominator).to(dtype)
-    rms = (sums[:, 7] / denominator).sqrt().to(dtype)
+    shares = (counts.to(torch.float64) * 100.0 / denominator.view(b, 1)).to(dtype)
+    kept = m.sorted_error64 * covered
+    avgerr = (kept.cumsum(1)[:, -1] / denominator).to(dtype)
+    rms = (kept.square().cumsum(1)[:, -1] / denominator).sqrt().to(dtype)
     # Inverse empirical CDF: the k-th smallest covered error, k = ceil(q · n) (1-based, integer arithmetic),
-    # found where the running count of covered pixels along the order first reaches (pairs before) + k.
+    # found where the pair's running count of covered pixels first reaches k.
     ranks = torch.stack([(q * num_covered + 99) // 100 for q in QUANTILES_PCT], dim=1).clamp(min=1)  # (B, 4)
-    before = (num_covered.cumsum(0) - num_covered).view(b, 1)
-    running = covered[m.order].cumsum(0)
-    last = max(m.ordered.numel() - 1, 0)
-    position = torch.searchsorted(running, before + ranks).clamp(max=last)
+    position = torch.searchsorted(running, ranks).clamp(max=m.ordered.shape[1] - 1)
     ok = num_covered > 0
-    picked = m.ordered[position] if m.ordered.numel() else torch.zeros(b, 4, dtype=dtype, device=evaluated.device)
+    picked = m.ordered.gather(1, position)
     quantiles = torch.where(ok.view(b, 1), picked, torch.zeros_like(picked))
     density = (num_covered.to(torch.float64) / num_evaluated.clamp(min=1).to(torch.float64)).to(dtype)
     return StereoMetrics(density=density, num_evaluated=num_evaluated, num_covered=num_covered,
