@@ -158,3 +158,17 @@ def test_a_rectified_map_is_brought_back_to_the_left_grid(data_dir):
     dense, valid = result.dense.disparity_px[0, 0].numpy(), result.dense.valid[0, 0].numpy()
     assert np.array_equal(back_valid[:, 3:], valid[:, :-3]) and not back_valid[:, :3].any()
     assert np.array_equal(back[:, 3:][valid[:, :-3]], dense[:, :-3][valid[:, :-3]])
+
+
+def test_disparity_out_needs_the_dense_rule_and_a_folder(data_dir, tmp_path, capsys):
+    scene = str(data_dir / "middlebury_eval3_Q" / "Teddy")
+    assert main(["eval", scene, "--preset", "paper", "--disparity-out", str(tmp_path / "m")]) == 2
+    assert "--disparity-out: expected the dense range rule" in capsys.readouterr().err
+    assert main(["estimate", scene, "--range", "paper", "--disparity-out", str(tmp_path / "m")]) == 2
+    assert "--disparity-out: expected the dense range rule" in capsys.readouterr().err
+    assert main(["estimate", scene, "--disparity-out", str(tmp_path / "no" / "m")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's own refusal, exit status 2
+        main(["estimate", scene, "--method-name", "a b", "--disparity-out", str(tmp_path)])
+    assert "--method-name: expected 1-64 letters" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()

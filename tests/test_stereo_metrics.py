@@ -261,3 +261,20 @@ def test_an_older_results_file_gets_the_new_columns(tmp_path):
     with ResultStore(tmp_path / "old.sqlite", create=False) as store:
         columns = {row[1] for row in store.connection.execute("PRAGMA table_info(results)")}
     assert {"kept_all_d1_pct", "metric_px_scale"} <= columns
+
+
+def test_a_sweep_stores_the_metrics(data_dir, tmp_path, capsys):
+    from svs_torch.cli import main
+    from svs_torch.evaluation.store import ResultStore
+
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "160x120"\n'
+                     '[grid]\n"dense.window_size" = [7, 9]\n')
+    code = main(["sweep", str(sweep), "--db", str(tmp_path / "s.sqlite"), "--workers", "0"])
+    capsys.readouterr()
+    assert code == 0
+    with ResultStore(tmp_path / "s.sqlite", create=False) as store:
+        rows = store.results()
+    assert len(rows) == 2 and all(0 < row["kept_nocc_density"] <= 1 and row["kept_nocc_bad2_pct"] is not None
+                                  and row["metric_px_scale"] == pytest.approx(450 / 160) for row in rows)
+    assert rows[0]["kept_all_avgerr_px"] != rows[1]["kept_all_avgerr_px"]  # two windows, two maps
