@@ -34,8 +34,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
+from svs_torch.cli.progress import Progress
 from svs_torch.evaluation import accuracy_pct
 from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth,
                                             segment_stereo_learned, stereo_features)
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
         paths = scenes[split][:args.limit] if args.limit else scenes[split]
         jobs = [(path, size) for size in args.sizes.split(",") for path in paths]
         rows, skipped = [], []
-        for path, size in tqdm(jobs, desc=split, unit="scene", file=sys.stderr, mininterval=1):
+        for path, size in Progress(len(jobs), split, unit="scene").over(jobs):
             row = evaluate_scene(path, size, args.weights, net)
             (rows.append(row) if row else skipped.append(path.name))
         text += [f"## {split}", "", markdown(rows), "", wins(rows),

@@ -40,8 +40,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
+from svs_torch.cli.progress import Progress
 from svs_torch.data import load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import with_nominal_calibration
@@ -164,7 +164,7 @@ def build_pool(pairs: list[StereoBatch], net_config: ObstacleNetConfig, generato
     rows = {name: [] for name in ("features", "disparity", "target", "nearest_m", "nearest_valid", "calibration",
                                   "images")}
     with torch.no_grad():
-        for pair in tqdm(pairs, desc="samples", unit="pair", file=sys.stderr, mininterval=1):
+        for pair in Progress(len(pairs), "samples").over(pairs):
             pair = augment(pair, generator)
             truth = obstacle_truth(pair)
             features, disparity = stereo_features(pair.left, pair.right, net_config)
@@ -203,8 +203,8 @@ def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Ge
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
     history = []
     net.train()
-    bar = tqdm(range(config.steps), desc="train", unit="step", file=sys.stderr, mininterval=1)
-    for step in bar:
+    bar = Progress(config.steps, "train", unit="step")
+    for step in bar.over(range(config.steps)):
         index = torch.randint(0, pool.features.shape[0], (config.batch_size,), generator=generator)
         features, target = pool.features[index], pool.target[index]
         # Vertical flips only: rows stay epipolar lines (a horizontal flip would need the views swapped).

@@ -121,6 +121,11 @@ def whole_process(sets: dict[str, list], workdir: Path, repeats: int, threads: i
                                  "--threads", str(threads)],
             "OpenCV ORB loop": [sys.executable, "-m", "svs_torch.bench_rivals", "orb", str(listing),
                                 "--threads", str(threads)],
+            # The strongest loop a user writes for throughput: one process per core, one OpenCV thread each.
+            f"OpenCV SIFT pool ({threads} proc)": [sys.executable, "-m", "svs_torch.bench_rivals", "sift",
+                                                   str(listing), "--workers", str(threads)],
+            f"OpenCV ORB pool ({threads} proc)": [sys.executable, "-m", "svs_torch.bench_rivals", "orb",
+                                                  str(listing), "--workers", str(threads)],
         }
         times: dict[str, list[float]] = {key: [] for key in commands}
         work: dict[str, dict] = {}

@@ -19,8 +19,8 @@ from .files import check_output_file, display_path, write_bytes_atomic
 from .types import Segmentation
 
 __all__ = [
-    "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "check_output_path", "compose_grid", "gray_to_bgr",
-    "labels_image", "objects_panel", "segmentation_panels", "titled_panel", "write_image_atomic",
+    "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "binary_title", "check_output_path", "compose_grid",
+    "gray_to_bgr", "labels_image", "objects_panel", "segmentation_panels", "titled_panel", "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -93,14 +93,25 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
     return panel
 
 
-def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side: str) -> list[np.ndarray]:
-    """Three titled panels of one image: the input, the opened binary mask, the kept objects."""
+def binary_title(seg: Segmentation, index: int, segmenter: str = "otsu", method: str = "otsu") -> str:
+    """What made the binary mask, for its panel: ``binary (Otsu 128) + opening``, ``binary (learned segmenter,
+    p > 0.50) + opening`` or ``Canny edges + closing`` (``segmenter`` and ``method`` as in
+    :class:`~svs_torch.segmentation.SegmentationConfig`)."""
     threshold = int(seg.threshold_level[index])
+    if segmenter != "otsu":  # "learned" or "learned:PATH": the probability threshold, stored on the 0-255 scale
+        return f"binary (learned segmenter, p > {threshold / 255:.2f}) + opening"
+    return "Canny edges + closing" if method == "canny" else f"binary (Otsu {threshold}) + opening"
+
+
+def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side: str, segmenter: str = "otsu",
+                        method: str = "otsu") -> list[np.ndarray]:
+    """Three titled panels of one image: the input, the opened binary mask (titled by what made it:
+    :func:`binary_title`), the kept objects."""
     mask = seg.opened[index, 0].to(image.dtype)
     num_kept = int((seg.kept_labels[index] >= 0).sum())
     return [
         titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
-        titled_panel(gray_to_bgr(mask), f"{side} binary (Otsu {threshold}) + opening"),
+        titled_panel(gray_to_bgr(mask), f"{side} {binary_title(seg, index, segmenter, method)}"),
         titled_panel(objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
     ]
 

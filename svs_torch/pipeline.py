@@ -28,6 +28,7 @@ from .ransac import estimate_fundamental_ransac
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
+from .size_groups import run_by_size
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]
@@ -316,7 +317,13 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
 
 def segment_pair(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
     """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
-    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure."""
+    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure.
+    Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes as groups of one size,
+    :mod:`svs_torch.size_groups`): padding never enters a threshold's histogram or a region."""
+    return run_by_size(batch, lambda group: _segment_group(group, config))
+
+
+def _segment_group(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
     return segment_stereo_learned(batch, config)
@@ -332,9 +339,18 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     Returns:
         :class:`PipelineResult`. Not differentiable end to end (segmentation labels, keypoint selection,
         matching and RANSAC are discrete); each stage's docstring says what is.
+
+    Each pair is ranged on its own ``image_hw`` pixels only: pairs of different sizes padded into one batch run as
+    groups of one size, each cropped to its size (:mod:`svs_torch.size_groups`), so a pair's result is the same
+    whatever else shares its batch; the result's maps are padded back to the batch's size.
     """
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", PipelineConfig)
+    return run_by_size(batch, lambda group: _estimate_group(group, config))
+
+
+def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResult:
+    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors."""
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -344,7 +360,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         timings[stage] = now - clock
         clock = now
 
-    seg = segment_pair(batch, config.segmentation)
+    seg = _segment_group(batch, config.segmentation)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

@@ -210,7 +210,7 @@ def test_collate_pad_keeps_sizes_and_masks_padding(shared_pairs: dict, data_dir:
     batch = collate_stereo_batches(parts, mode="pad")
     assert batch.left.shape == batch.disparity_px.shape == (4, 1, 383, 450)
     assert batch.image_hw.tolist() == [[288, 384], [383, 434], [288, 384], [375, 450]]
-    assert batch.names == ("2001/Tsukuba", "2001/Venus", "imL", "2003/Teddy")
+    assert batch.names == ("2001/Tsukuba", "2001/Venus", "Tsukuba", "2003/Teddy")
     for i, part in enumerate(parts):
         h, w = part.size_hw
         assert torch.equal(batch.left[i, :, :h, :w], part.left[0])

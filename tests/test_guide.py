@@ -10,7 +10,8 @@ import warnings
 
 import pytest
 
-from svs_torch.capture.guide import CLEAR, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine, WarningPolicy
+from svs_torch.capture.guide import (CLEAR, SPEECH_MISSING, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine,
+                                     WarningPolicy)
 from svs_torch.checks import InputError
 
 
@@ -100,6 +101,22 @@ def test_speaker_auto_finds_espeak(monkeypatch):
     assert Speaker().executable == "/usr/bin/espeak-ng"
     monkeypatch.setattr("shutil.which", lambda name: None)
     assert not Speaker().speaks
+
+
+def test_speaker_says_once_per_process_that_espeak_is_missing(monkeypatch):
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    monkeypatch.setattr("svs_torch.capture.guide._NOTICES_GIVEN", set())
+    stream = io.StringIO()
+    first = Speaker(stream=stream)
+    for _ in range(3):
+        first.say("Obstacle ahead, 1.5 metres")
+    Speaker(stream=stream).say("Stop. Obstacle at 0.8 metres")  # a second speaker: no second notice
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == SPEECH_MISSING and "apt-get install espeak-ng" in lines[0]
+    assert lines.count(SPEECH_MISSING) == 1 and len(lines) == 5
+    quiet = io.StringIO()
+    Speaker(None, stream=quiet).say("hello")  # --no-speech: text only, and no notice
+    assert quiet.getvalue() == "hello\n"
 
 
 def test_fps_meter():

@@ -258,9 +258,14 @@ def test_an_older_results_file_gets_the_new_columns(tmp_path):
         connection.execute(f'ALTER TABLE results DROP COLUMN "{name}"')
     connection.commit()
     connection.close()
-    with ResultStore(tmp_path / "old.sqlite", create=False) as store:
-        columns = {row[1] for row in store.connection.execute("PRAGMA table_info(results)")}
-    assert {"kept_all_d1_pct", "metric_px_scale"} <= columns
+    def columns() -> set[str]:
+        with ResultStore(tmp_path / "old.sqlite", create=False) as store:
+            return {row[1] for row in store.connection.execute("PRAGMA table_info(results)")}
+
+    assert "kept_all_d1_pct" not in columns()  # opened to read: left as it is
+    with ResultStore(tmp_path / "old.sqlite"):  # opened to write
+        pass
+    assert {"kept_all_d1_pct", "metric_px_scale"} <= columns()
 
 
 def test_a_sweep_stores_the_metrics(data_dir, tmp_path, capsys):

@@ -205,3 +205,55 @@ def test_results_summary_csv_and_plot(reference, tmp_path, capsys):
     assert len(summary["configs"]) == 3 and all(c["pairs"] == 4 for c in summary["configs"])
     assert main(["results", str(tmp_path / "none.sqlite")]) == 2
     assert "expected a results file" in capsys.readouterr().err
+
+
+def test_native_size_rows_do_not_depend_on_the_batch_size(data_dir, tmp_path):
+    """Scenes of four native sizes padded into one task's batch (issue 29: 99.0 % at batch_size = 1 and 86.4 % at 4
+    under the same configuration ids): the same ids and the same rows at either batch size."""
+    native = SWEEP.replace('size = "160x120"', 'size = "native"').replace("[3, 5, 7]", "[3, 5]")
+    one = run_sweep(load_sweep(write_sweep(tmp_path, data_dir, native)), tmp_path / "one.sqlite", workers=0)
+    four = run_sweep(load_sweep(write_sweep(tmp_path, data_dir, native.replace("batch_size = 1", "batch_size = 4"))),
+                     tmp_path / "four.sqlite", workers=0)
+    assert (one.rows_written, four.rows_written, four.tasks) == (8, 8, 2)
+    assert stored_rows(tmp_path / "one.sqlite") == stored_rows(tmp_path / "four.sqlite")
+
+
+def test_weights_content_is_part_of_the_configuration_id(tmp_path):
+    """A learned segmenter's weights retrained in place are another configuration, not the same id."""
+    import shutil
+
+    from svs_torch.evaluation.sweep import make_sweep_config
+    from svs_torch.learned_segmentation import SHIPPED_WEIGHTS
+
+    weights = tmp_path / "net.pt"
+    shutil.copyfile(SHIPPED_WEIGHTS, weights)
+    overrides = {"segmentation.segmenter": f"learned:{weights}"}
+    before = make_sweep_config("default", overrides, (320, 240)).config_id
+    assert make_sweep_config("default", overrides, (320, 240)).config_id == before
+    weights.write_bytes(weights.read_bytes() + b"\0")
+    assert make_sweep_config("default", overrides, (320, 240)).config_id != before
+    assert make_sweep_config("default", {}, (320, 240)).config_id != before
+
+
+def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_path, capsys):
+    import shutil
+
+    db = tmp_path / "mixed.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        connection.execute("INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) "
+                           "VALUES (0, 'sweep', '0.0.1+git.old', '{}', '')")
+        old_run = connection.execute("SELECT max(run_id) FROM runs").fetchone()[0]
+        connection.execute("UPDATE results SET run_id = ? WHERE rowid IN (SELECT rowid FROM results LIMIT 2)",
+                           (old_run,))
+    connection.close()
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert "rows come from 2 code versions" in out and "0.0.1+git.old" in out
+    csv_path = tmp_path / "rows.csv"
+    assert main(["results", str(db), "--csv", str(csv_path)]) == 0
+    header, *rows = csv_path.read_text().splitlines()
+    assert header.endswith(",code_version") and sum(r.endswith(",0.0.1+git.old") for r in rows) == 2
+    assert main(["results", str(reference[1])]) == 0
+    assert "code versions" not in capsys.readouterr().out

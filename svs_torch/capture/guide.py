@@ -20,7 +20,8 @@ from typing import TextIO
 
 from ..checks import InputError
 
-__all__ = ["WarningPolicy", "Speaker", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "CLEAR", "WARN", "STOP"]
+__all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine",
+           "LinesAbove", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
@@ -80,6 +81,24 @@ class WarningPolicy:
         return f"Obstacle ahead, {distance_m:.1f} metres"
 
 
+#: How to get the speech program, in the one notice given when it is missing.
+SPEECH_MISSING = ("speech: espeak-ng is not installed, so warnings are text only (to hear them: "
+                  "sudo apt-get install espeak-ng; --no-speech silences this notice)")
+
+#: The notices already given in this process. Deliberately process-wide: a missing program is missing for every
+#: Speaker, and the user needs to read it once, not once per warning or per guide.
+_NOTICES_GIVEN: set[str] = set()
+
+
+def notice_once(text: str, stream: TextIO | None) -> bool:
+    """Print ``text`` to ``stream`` unless this process already printed it; True if printed now."""
+    if stream is None or text in _NOTICES_GIVEN:
+        return False
+    _NOTICES_GIVEN.add(text)
+    print(text, file=stream, flush=True)
+    return True
+
+
 class Speaker:
     """Say messages with ``espeak-ng`` when it is installed, and print them as text.
 
@@ -89,7 +108,8 @@ class Speaker:
         stream: where messages are printed (None: nowhere).
 
     Speech runs in a child process so the loop never waits for it; a newer message interrupts an older one still
-    being spoken (the newest warning matters most).
+    being spoken (the newest warning matters most). With ``"auto"`` and no ``espeak-ng``, one notice
+    (:data:`SPEECH_MISSING`) says so and how to get it, once per process (:func:`notice_once`).
     """
 
     def __init__(self, executable: str | None = "auto", *, words_per_minute: int = 170,
@@ -98,6 +118,8 @@ class Speaker:
         self.words_per_minute = words_per_minute
         self.stream = stream
         self._process: subprocess.Popen | None = None
+        if executable == "auto" and self.executable is None:
+            notice_once(SPEECH_MISSING, stream)
 
     @property
     def speaks(self) -> bool:
@@ -116,8 +138,7 @@ class Speaker:
                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                              stderr=subprocess.DEVNULL)
         except OSError as err:
-            if self.stream is not None:
-                print(f"speech disabled: cannot run {self.executable}: {err}", file=self.stream, flush=True)
+            notice_once(f"speech disabled: cannot run {self.executable}: {err}", self.stream)
             self.executable = None
 
     def _stop_previous(self) -> None:

@@ -26,6 +26,7 @@ from ..camera import parse_size
 from ..errors import InputError
 from ..files import display_path, path_kind, write_bytes_atomic
 from .common import positive_float, positive_int
+from .progress import Progress
 
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
@@ -112,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             camera = open_stereo_camera(args, size, stack)
             out.mkdir(parents=True, exist_ok=True)
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
-            progress = stack.enter_context(_Progress(args.count))
+            progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):
                 record = _save_pair(out, camera.grab_pair())
                 index.write(json.dumps(record) + "\n")
@@ -170,31 +171,3 @@ def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
     return {f"{name}_bytes": len(frame.jpeg), f"{name}_request_monotonic_s": frame.request_monotonic_s,
             f"{name}_arrival_monotonic_s": frame.arrival_monotonic_s,
             f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}
-
-
-class _Progress:
-    """Progress on stderr: tqdm when installed, else a counter rewritten in place."""
-
-    def __init__(self, total: int) -> None:
-        self.total, self.count = total, 0
-        try:
-            from tqdm import tqdm
-            self._bar = tqdm(total=total, unit="pair", file=sys.stderr, desc="capture")
-        except ImportError:
-            self._bar = None
-
-    def update(self) -> None:
-        self.count += 1
-        if self._bar is not None:
-            self._bar.update(1)
-        else:
-            print(f"\rcapture: {self.count}/{self.total} pairs", end="", file=sys.stderr, flush=True)
-
-    def __enter__(self) -> _Progress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self._bar is not None:
-            self._bar.close()
-        elif self.count:
-            print(file=sys.stderr)

@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
+        import cv2
         import torch
 
         from ..camera import parse_size
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
         from ..pipeline import estimate_obstacle_depth
         from ..plots import estimate_figure
-        from .estimate import format_report, pair_report, unranged_report
+        from .estimate import format_report, pair_report, unranged_report, with_calibration
         from .features import MAX_PIXELS
 
     width, height = parse_size(args.size, "--size")
@@ -88,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     result = estimate_obstacle_depth(batch)
     elapsed = time.perf_counter() - started
-    report = pair_report(result, 0, (1.0, 1.0), elapsed)
+    report = with_calibration(pair_report(result, 0, (1.0, 1.0), elapsed), batch, 0, (1.0, 1.0),
+                              "the SVS model: the synthetic scene's own camera")
     truth = [
         {"object": k + 1, "depth_m": round(float(scenes.object_depth_m[0, k]), 3),
          "bbox_xyxy": [int(v) for v in scenes.object_bbox_xyxy[0, k].tolist()]}
@@ -97,9 +99,15 @@ def run(args: argparse.Namespace) -> int:
     for obj, match in zip(report["objects"], _truth_of_objects(scenes, result.segmentation.left)):
         obj.update({k: v for k, v in match.items() if k != "label"})
 
-    # The input and its mask above the pipeline figure, which shows the true depth beside the estimate.
-    image_panel, binary_panel, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
-    figure = compose_grid([[compose_grid([[image_panel], [binary_panel]]), estimate_figure(batch, result, 0)]])
+    # The inputs and their masks in one row above the pipeline figure (which shows the true depth beside the
+    # estimate), scaled to its width: four 320-wide panels fill it, where two left a third of the row blank.
+    left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
+    right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right")
+    pipeline = estimate_figure(batch, result, 0)
+    top = compose_grid([[left_image], [right_image], [left_binary], [right_binary]])
+    top = cv2.resize(top, (pipeline.shape[1], round(top.shape[0] * pipeline.shape[1] / top.shape[1])),
+                     interpolation=cv2.INTER_AREA if top.shape[1] > pipeline.shape[1] else cv2.INTER_CUBIC)
+    figure = compose_grid([[top, pipeline]])
     write_image_atomic(args.figure, figure, args.figure_option)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}

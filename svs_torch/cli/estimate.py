@@ -12,6 +12,7 @@ from pathlib import Path
 from .common import (add_disparity_export_options, add_figure_option, dumps_strict, finite_float, positive_float,
                      positive_int, seed_int, too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
+from .progress import Progress
 from .segment import add_segmentation_options, add_segmenter_option
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
@@ -33,6 +34,8 @@ defaults, --range paper). The JSON says which rule produced the numbers ("range_
 
 Without calibration options the SVS camera model is assumed: 3.6 mm lens on a 4.17 mm sensor (focal 276 px at
 320x240, scaled with the image width) and a 10.75 cm baseline. Give --focal-px for the INPUT image size.
+Every result names the calibration its metres use and where it came from (a scene's calib.txt, the list
+line, the options, or "the SVS model assumed"): a "calibration" line, and "calibration" in the JSON.
 """
 
 EPILOG = """\
@@ -69,7 +72,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
     parser.add_argument("--pairs", metavar="LIST.txt",
                         help="run many pairs: a file with one 'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M "
-                             "[DOFFS_PX]' or scene folder per line, or capture's index.jsonl")
+                             "[DOFFS_PX]' or scene folder per line, or capture's index.jsonl; every pair gets "
+                             "its line, and the exit status is 2 if any listed pair is BAD_INPUT")
     # 8: whole process over 96 shared pairs at 320x240, 9.3 / 9.5-9.8 / 11.0-11.6 s at 8 / 16 / 32 (larger
     # batches pad more and leave the cache).
     parser.add_argument("--batch-size", type=positive_int, default=8,
@@ -134,7 +138,15 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "dense_box_xywh": None, "time_s": 0.0}
+            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
+
+
+def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str) -> dict:
+    """``report`` with the calibration its metres use, for the INPUT image size, and where it came from
+    (:func:`svs_torch.data.calibration_record`)."""
+    from ..data import calibration_record
+
+    return {**report, "calibration": calibration_record(batch, index, source, factors[0])}
 
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
@@ -200,6 +212,10 @@ def format_report(report: dict) -> list[str]:
         return [f"status {report['status']}: {report['reason']}"]
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
              f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
+    if report.get("calibration"):
+        from ..data import format_calibration
+
+        lines.append(f"  {format_calibration(report['calibration'])}")
     if report["r_min_m"] is not None:
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "
@@ -280,7 +296,7 @@ def run(args: argparse.Namespace) -> int:
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..errors import InputError
-        from ..data import PairSource, detect_stereo_layout
+        from ..data import PairSource, detect_stereo_layout, pair_calibration_source
         from ..figures import check_output_path
         from ..pipeline import estimate_obstacle_depth
 
@@ -296,8 +312,9 @@ def run(args: argparse.Namespace) -> int:
     if args.masks_out:
         check_output_path(args.masks_out, "--masks-out", lossless=True)
     _check_disparity_out(args, config.depth.rule)
+    source = PairSource(left=args.left, right=None if scene else args.right, scene=scene)
     if scene:
-        batch, factors = _load_source(PairSource(left=args.left, scene=True), args)
+        batch, factors = _load_source(source, args)
     else:
         batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)
@@ -307,6 +324,8 @@ def run(args: argparse.Namespace) -> int:
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
         report = pair_report(result, 0, factors, time.perf_counter() - started)
+        report = with_calibration(report, batch, 0, factors,
+                                  pair_calibration_source(source, args.focal_px, args.baseline_m))
         _write_outputs(args, batch, result, factors)
         _write_disparity(args, batch, result, report["time_s"])
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
@@ -344,7 +363,7 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
 def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
     """One batch of list entries run through the pipeline: each entry's report (with its ``left`` and
     ``right``) and, for a BAD_INPUT entry, the reason."""
-    from ..data import collate_stereo_batches
+    from ..data import collate_stereo_batches, pair_calibration_source
     from ..pipeline import estimate_obstacle_depth
 
     entries = [_load_entry(entry, args) for entry in chunk]
@@ -363,6 +382,8 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
         else:
             report, bad = pair_report(result, row, loaded[1], per_pair), None
+            report = with_calibration(report, batch, row, loaded[1],
+                                      pair_calibration_source(source, args.focal_px, args.baseline_m))
             row += 1
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out
@@ -535,18 +556,16 @@ def _run_many(args: argparse.Namespace) -> int:
                    for start in range(0, total, args.batch_size))
     else:
         total, results = _worker_results(args, listed, workers, max(1, budget // workers))
-    done, bad = 0, []
-    # A progress count only for a person watching: in a log or a pipe, stderr keeps to the errors.
-    progress = sys.stderr.isatty()
-    for lines in results:
-        for report, reason in lines:
-            if reason is not None:
-                bad.append(reason)
-            heading = f"{report['left']} {report['right'] or ''}".rstrip()
-            print(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]), flush=True)
-        done += len(lines)
-        if progress:
-            print(f"\r{done}/{total} pairs", end="" if done < total else "\n", file=sys.stderr, flush=True)
+    bad = []
+    # A bar for a person watching; in a log or a pipe, a plain line every few seconds and a summary.
+    with Progress(total, "estimate") as progress:
+        for lines in results:
+            for report, reason in lines:
+                if reason is not None:
+                    bad.append(reason)
+                heading = f"{report['left']} {report['right'] or ''}".rstrip()
+                progress.write(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]))
+            progress.update(len(lines))
     if bad:
         print(f"svs-depth estimate: error: pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)

@@ -7,6 +7,7 @@ import sys
 import time
 
 from .common import add_disparity_export_options, dumps_strict, finite_float, positive_float, positive_int
+from .progress import Progress
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -30,7 +31,8 @@ PATH is a scene folder of any shared format (MiddEval3, Middlebury 2001-2006, KI
 scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M
 [DOFFS_PX]' or a scene folder per line) or svs-depth capture's index.jsonl. Every pair keeps its own
 calibration; a scene without a measured one is scored with a nominal one for truth and estimate alike (its
-accuracy is exact, its metres nominal).
+metres nominal): it is marked NOMINAL in the calib column and its accuracy reported apart from the headline
+means. Every row names its calibration and source ("calibration" in the JSON; a list after the table).
 
 Configuration: --preset default|paper, or --config FILE.toml, then any --set KEY=VALUE with a dotted field of
 the pipeline configuration: segmentation.kernel_size, segmentation.num_keep, surf.metric_threshold,
@@ -46,9 +48,11 @@ examples:
   svs-depth eval ../shared/data/middlebury_eval3_Q --disparity-out maps/   (maps/Teddy/disp0SVSTorch.pfm, ...)
 
 --json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
-acc_r_min_pct, acc_r_max_pct, acc_objects_pct, pairs_per_s (loading included), the mean disparity errors, the
-mean stereo metrics and the failures. --db adds the rows to a results store (as svs-depth sweep does; a pair
-already stored for the same configuration keeps its row), for svs-depth results.
+acc_r_min_pct, acc_r_max_pct, acc_objects_pct (over the pairs with their own calibration), nominal_calibration
+(the others, apart), pairs_per_s (loading included), the mean disparity errors, the mean stereo metrics (over
+every pair that has them: they are disparities, whatever the calibration) and the failures. --db adds the
+rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
+row), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
 """
 
@@ -86,12 +90,34 @@ def format_row(e) -> str:
             f"{_number(e.acc_r_max_pct):>6} {_number(e.acc_objects_pct):>6} {_number(e.dense_within_1px, 2):>6} "
             f"{_number(e.inlier_precision, 2):>6} {_number(e.kept_nocc_bad2_pct):>6} "
             f"{_number(e.kept_all_bad2_pct):>6} {_number(e.kept_all_avgerr_px, 2):>6} "
-            f"{_number(e.kept_all_d1_pct):>5} {_number(e.kept_all_density, 2):>5} {e.time_s:6.3f}")
+            f"{_number(e.kept_all_d1_pct):>5} {_number(e.kept_all_density, 2):>5} {e.time_s:6.3f} "
+            f"{_calibration_mark(e):<7}")
+
+
+def _calibration_mark(e) -> str:
+    """The table's calib column: ``own`` (the data's or the user's calibration), ``NOMINAL`` (none shipped:
+    scored with a nominal one, apart from the headline means) or ``-`` (not loaded)."""
+    return "-" if e.calibrated is None else "own" if e.calibrated else "NOMINAL"
+
+
+def format_calibrations(evaluations) -> list[str]:
+    """Which calibration the metres use, one line per distinct one (with the pairs that use it)."""
+    from ..data import format_calibration
+
+    groups: dict[str, list[str]] = {}
+    for e in evaluations:
+        if e.calibration is not None:
+            groups.setdefault(format_calibration(e.calibration), []).append(e.name)
+    lines = []
+    for line, names in groups.items():
+        who = names[0] if len(names) == 1 else f"{len(names)} pairs ({names[0]}, ...)"
+        lines.append(f"{who}: {line}")
+    return lines
 
 
 HEADER = (f"{'pair':<28} {'status':<17} {'R_min':>7} {'real':>7} {'Acc %':>6} {'R_max':>7} {'real':>7} "
           f"{'Acc %':>6} {'obj %':>6} {'d<=1':>6} {'prec':>6} {'bad2n':>6} {'bad2':>6} {'avgerr':>6} {'D1 %':>5} "
-          f"{'dens':>5} {'time s':>6}")
+          f"{'dens':>5} {'time s':>6} {'calib':<7}")
 
 
 def _stereo_lines(summary: dict) -> list[str]:
@@ -119,12 +145,14 @@ def _stereo_lines(summary: dict) -> list[str]:
 def format_summary(summary: dict) -> list[str]:
     lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
              f"truth; {_number(summary['pairs_per_s'], 2)} pairs/s",
-             f"mean Acc (Eq. 9): R_min {_number(summary['acc_r_min_pct'])} %, R_max "
+             f"mean Acc (Eq. 9) over {summary['scored']} pairs with their own calibration: R_min "
+             f"{_number(summary['acc_r_min_pct'])} %, R_max "
              f"{_number(summary['acc_r_max_pct'])} %, objects {_number(summary['acc_objects_pct'])} %",
              f"dense disparity: median error {_number(summary['dense_error_median_px'], 2)} px, within 1 px "
              f"{_number(summary['dense_within_1px'], 3)}, within 3 px {_number(summary['dense_within_3px'], 3)}; "
              f"inliers: median error {_number(summary['sparse_error_median_px'], 2)} px, precision "
              f"{_number(summary['inlier_precision'], 3)}",
+             *_nominal_summary(summary.get("nominal_calibration")),
              *_stereo_lines(summary),
              "statuses: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items())]
     for failure in summary["failures"]:
@@ -133,10 +161,12 @@ def format_summary(summary: dict) -> list[str]:
     return lines
 
 
-def _progress(total: int):
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="pair", file=sys.stderr, desc="eval", dynamic_ncols=True, mininterval=0.5)
+def _nominal_summary(nominal: dict | None) -> list[str]:
+    if not nominal or not nominal["scored"]:
+        return []
+    return [f"apart, {nominal['scored']} scored with a NOMINAL calibration (their data ship none; not in the means "
+            f"above): R_min {_number(nominal['acc_r_min_pct'])} %, R_max {_number(nominal['acc_r_max_pct'])} %, "
+            f"objects {_number(nominal['acc_objects_pct'])} %"]
 
 
 def disparity_export(args: argparse.Namespace, config):
@@ -190,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
         print(HEADER)
     started = time.perf_counter()
     try:
-        with _progress(len(sources)) as bar:
+        with Progress(len(sources), "eval") as bar:
             block = []
             for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
                                                      export.write if export is not None else None):
@@ -210,5 +240,5 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(dumps_strict(summary), flush=True)
     else:
-        print("\n".join(format_summary(summary)), flush=True)
+        print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
     return 0

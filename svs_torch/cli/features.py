@@ -5,16 +5,16 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (add_figure_option, dumps_strict, non_negative_float, options_named, positive_int,
-                     too_small_reason, unit_interval_float)
+from .common import (ConfigValue, add_figure_option, dumps_strict, non_negative_float, options_named,
+                     positive_int, too_small_reason, unit_interval_float, with_config_values)
 from .segment import add_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
 
 DESCRIPTION = """\
 Detect SURF keypoints (box-filter Hessian, upright 64-D descriptors) on both images of a pair, by default on
-the segmented obstacle images as the paper does (Sec. 3.3 (1)), and match them by SAD with MATLAB's ratio
-test (MaxRatio 0.6) and SURF's Laplacian-sign check (Sec. 3.3 (2)).
+the segmented obstacle images as the paper does (Sec. 3.3 (1)), and match them by SAD with a ratio test
+(--max-ratio; MATLAB's MaxRatio in --preset paper) and SURF's Laplacian-sign check (Sec. 3.3 (2)).
 
 Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first.
 """
@@ -58,15 +58,18 @@ def add_feature_options(parser: argparse.ArgumentParser) -> None:
                         help="'default': svs_torch's best measured settings (dense depth over the obstacles); "
                              "'paper': the paper exactly, MATLAB's defaults and R = f*B/d over the RANSAC "
                              "inliers (Eq. 5-8)")
-    parser.add_argument("--max-keypoints", type=positive_int, metavar="K",
-                        help="strongest keypoints kept per image (preset: 512)")
+    with_config_values(parser.add_argument("--max-keypoints", type=positive_int, metavar="K",
+                                           help="strongest keypoints kept per image (default: %(preset_value)s)"),
+                       preset_value=ConfigValue("surf.max_keypoints"))
     parser.add_argument("--metric-threshold", type=non_negative_float, metavar="T",
                         help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold; paper 1000)")
     parser.add_argument("--upsample", action=argparse.BooleanOptionalAction,
                         help="detect on the image enlarged twice, as SIFT does: more and better-placed "
                              "keypoints on small frames, about 4x slower detection")
-    parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
-                        help="ratio test of the matching (MATLAB MaxRatio; paper 0.6)")
+    with_config_values(parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
+                                           help="ratio test of the matching (default: %(preset_value)s; "
+                                                "--preset paper: %(paper_value)s, MATLAB's MaxRatio)"),
+                       preset_value=ConfigValue("max_ratio"), paper_value=ConfigValue("max_ratio", "paper"))
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction,
                         help="refine each matched point to sub-pixel (Lucas-Kanade on the patches) and drop "
                              "matches whose patches disagree (preset default: on; paper: off)")

@@ -21,8 +21,8 @@ r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id
 swept parameters (param:KEY) and every other column, among them the stereo metrics of the dense map
 (<scope>_<metric>: scope map_all, map_nocc, kept_all or kept_nocc; metric density, bad0_5_pct ... bad4_pct,
 avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px; empty where a pair has none, as in rows stored before
-they existed). --figure: mean accuracy against each swept parameter and per-scene bars of the best
-configuration.
+they existed); paths are shown normalised (no '..'). --figure: mean accuracy against each swept parameter and
+per-scene bars of the best configuration.
 """
 
 EPILOG = """\
@@ -40,7 +40,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
     parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv",
                         help="one row per (configuration, pair), to FILE.csv or standard output")
-    add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot",
+    add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",
                       kinds=".png, .pdf or .svg")
     parser.add_argument("--top", type=non_negative_int, default=10,
                         help="configurations listed in the summary, best first (0: all; default: 10)")
@@ -67,6 +67,10 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
               f"{_number(s['acc_r_max_pct']):>7} {_number(s['acc_objects_pct']):>6} "
               f"{_number(s['dense_within_1px'], 2):>5} {_number(s['inlier_precision'], 2):>5} "
               f"{_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} ({s['preset']}, {s['size']})")
+    for s in summaries:
+        if len(s["code_versions"]) > 1:
+            print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
+                  f"({', '.join(map(str, s['code_versions']))}): rerun into a new --db to compare like with like")
     print("best by each metric:")
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1

@@ -140,8 +140,9 @@ def run(args: argparse.Namespace) -> int:
     seg = segment_pair(batch, config)
     elapsed = time.perf_counter() - started
     if args.figure:
-        figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left"),
-                               segmentation_panels(batch.right, seg.right, 0, "right")])
+        figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left", config.segmenter, config.method),
+                               segmentation_panels(batch.right, seg.right, 0, "right", config.segmenter,
+                                                   config.method)])
         write_image_atomic(args.figure, figure, args.figure_option)
     left, right = image_report(seg.left, 0), image_report(seg.right, 0)
     if args.json:

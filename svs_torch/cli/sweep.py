@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from .common import dumps_strict, non_negative_int, positive_int
+from .progress import Progress
 
 HELP = "run a parameter sweep over many pairs into a resumable SQLite results file"
 
@@ -37,7 +38,7 @@ examples:
   svs-depth sweep experiments/sweep_defaults.toml --db sweep.sqlite
   svs-depth sweep sweep.toml --db sweep.sqlite --workers 2
   svs-depth sweep sweep.toml --db sweep.sqlite --scheduler tcp://10.0.0.5:8786   (pip install -e ".[dask]")
-  svs-depth results sweep.sqlite --summary --plot sweep.png
+  svs-depth results sweep.sqlite --summary --figure sweep.png
 
 Dask workers: start them with one thread each and without the nanny's MALLOC_TRIM_THRESHOLD_ (about 1.5x
 slower torch), e.g.  DASK_CONFIG=experiments/dask_workers.yaml dask worker tcp://HOST:8786 --nthreads 1
@@ -64,8 +65,6 @@ def run(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from tqdm import tqdm
-
         from ..evaluation.sweep import load_sweep, run_sweep
 
     sweep = load_sweep(args.sweep_file)
@@ -75,10 +74,13 @@ def run(args: argparse.Namespace) -> int:
         nonlocal bar
         print(f"svs-depth sweep: {len(sweep.configs)} configurations x {len(sweep.sources)} pairs; "
               f"{done} rows already in {args.db}, {total} to run", file=sys.stderr, flush=True)
-        bar = tqdm(total=total, unit="pair", file=sys.stderr, desc="sweep", dynamic_ncols=True, mininterval=0.5)
+        bar = Progress(total, "sweep")
 
     def warn(message: str) -> None:
-        (bar.write if bar is not None else print)(f"svs-depth sweep: warning: {message}", file=sys.stderr)
+        if bar is not None:
+            bar.warn(f"svs-depth sweep: warning: {message}")
+        else:
+            print(f"svs-depth sweep: warning: {message}", file=sys.stderr)
 
     try:
         outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler, threads=args.threads,

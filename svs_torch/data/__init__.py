@@ -17,9 +17,12 @@ from .datasets import (
 )
 from .resample import collate_stereo_batches, resize_stereo_batch
 from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_sources
+from .calibration import calibration_record, format_calibration, pair_calibration_source
 
 __all__ = [
-    "PairSource", "SyntheticScenes", "collate_stereo_batches", "detect_stereo_layout", "load_pair_source",
+    "PairSource", "SyntheticScenes", "calibration_record", "collate_stereo_batches", "detect_stereo_layout",
+    "format_calibration",
+    "load_pair_source", "pair_calibration_source",
     "read_pair_list", "read_pair_sources", "list_shared_pairs", "load_image_pair", "load_kitti",
     "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006", "load_middlebury_eval3",
     "load_opencv_aloe", "load_stereo_pair", "random_obstacle_scenes", "read_gray_image", "read_middlebury_calib",

@@ -13,6 +13,7 @@ scenes whose values follow from it); elsewhere the values are nominal and depth 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,8 @@ __all__ = [
     "load_stereo_pair",
     "list_shared_pairs",
     "detect_stereo_layout",
+    "pair_name",
+    "scene_calibration_source",
 ]
 
 # Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
@@ -244,10 +247,24 @@ def load_image_pair(
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px}")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
-    return _make_batch(left, right, Path(left_path).stem,
+    return _make_batch(left, right, pair_name(left_path),
                        focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
                        baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
                        doffs_px=float(doffs_px), calibrated=calibrated)
+
+
+# Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair
+# with such a name is named after its folder, the scene.
+_GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
+                                re.IGNORECASE)
+
+
+def pair_name(left_path: str | Path) -> str:
+    """A pair's name from its left file: the file's stem (``left01``), or its folder's name when the stem only
+    says which view it is (``Teddy/im0.png`` → ``Teddy``)."""
+    path = Path(left_path)
+    generic = _GENERIC_LEFT_NAME.fullmatch(path.stem) is not None
+    return path.resolve().parent.name or path.stem if generic else path.stem
 
 
 def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
@@ -282,6 +299,27 @@ def detect_stereo_layout(path: str | Path) -> str | None:
         if any(set(files) <= names for files in marker):
             return layout
     return None
+
+
+def scene_calibration_source(path: str | Path) -> str:
+    """Where the calibration :func:`load_stereo_pair` gives the scene at ``path`` comes from, in words: the file
+    it was read from, or the nominal values assumed where the data set ships none (the loaders' own rules;
+    ``calibrated`` is False exactly where this says "assumed")."""
+    path = Path(path)
+    if path_kind(path, "path") == "file":  # a KITTI left image
+        return "KITTI nominal values for the image width assumed: no calib file shipped"
+    layout = detect_stereo_layout(path)
+    if layout == "eval3":
+        return f"{path.name}/calib.txt"
+    if layout == "2005_2006" and path.name in _MIDDLEBURY_2005_DMIN_FULL_PX:
+        return "Middlebury nominal f and B, dmin from MiddEval3 ArtL's calib.txt"
+    if layout in ("2005_2006", "aloe"):
+        return "Middlebury 2005/2006 nominal f and B assumed: no calibration shipped, dmin unknown"
+    if layout == "2003" and path.name == "Teddy":
+        return "MiddEval3 trainingQ/Teddy/calib.txt, the same images"
+    if layout == "kitti":
+        return "KITTI nominal values for the image width assumed: no calib file shipped"
+    return "the SVS model assumed: no calibration shipped"
 
 
 # Each layout's file names (any one set present marks it), in the order they are tried.

@@ -53,6 +53,7 @@ class PairSource:
         focal_px, baseline_m, doffs_px: the calibration listed with the pair (for its input image size); None
             where the list gives none (a scene's own, or the caller's default).
         problem: why the entry cannot be a pair (a one-line reason naming the list and line); None if it can.
+        listed_at: ``"line N of LIST"`` for a pair whose calibration its list line gives (for reports).
     """
 
     left: str
@@ -62,6 +63,7 @@ class PairSource:
     baseline_m: float | None = None
     doffs_px: float | None = None
     problem: str | None = None
+    listed_at: str | None = None
 
     @property
     def pair_id(self) -> str:
@@ -161,7 +163,8 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
         if isinstance(calibration, PairSource):
             return [calibration]
         focal, baseline, doffs = calibration
-        return [PairSource(left=paths[0], right=paths[1], focal_px=focal, baseline_m=baseline, doffs_px=doffs)]
+        return [PairSource(left=paths[0], right=paths[1], focal_px=focal, baseline_m=baseline, doffs_px=doffs,
+                           listed_at=where.split(": ", 1)[-1])]
     return [_bad(where, f"{len(fields)} fields", text)]
 
 
@@ -206,7 +209,7 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
                 left=line.strip()[:80], problem=f"{where}: expected both focal_px and baseline_m"))
             continue
         sources.append(PairSource(left=left, right=right, focal_px=calibration[0], baseline_m=calibration[1],
-                                  doffs_px=calibration[2]))
+                                  doffs_px=calibration[2], listed_at=where.split(": ", 1)[-1]))
     if not sources:
         raise InputError(f"{name}: no pair listed in {path}")
     return sources

@@ -244,13 +244,15 @@ class PairEvaluation:
     run on, ``BAD_INPUT`` (unreadable entry), ``TOO_SMALL`` or ``ERROR`` (an exception, in ``reason``).
     Metric fields are None where they do not exist (no ground truth, paper rule without dense, failed pair).
     ``objects`` lists the per-object scores (:class:`PairScore`). ``time_s`` is the pair's share of its batch's
-    pipeline time. ``calibrated``: the data's own calibration (False: scored with the nominal one).
+    pipeline time. ``calibrated``: the data's own calibration (False: scored with the nominal one);
+    ``calibration``: the values the metres use and their source (:func:`~svs_torch.data.calibration_record`).
     """
 
     name: str
     status: str
     reason: str | None = None
     calibrated: bool | None = None
+    calibration: dict | None = None
     has_truth: bool = False
     r_min_m: float | None = None
     r_max_m: float | None = None

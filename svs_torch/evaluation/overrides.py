@@ -17,6 +17,12 @@ Configuration file (TOML)::
     "dense.window_size" = 7
     [segmentation]
     kernel_size = 7
+    [set]                     # a sweep file's fixed settings are read the same way (one format for both)
+    "dense.uniqueness_ratio" = 0.1
+
+A sweep file (:mod:`.sweep`) works as a configuration file: its ``preset`` and ``[set]`` apply, its ``paths``,
+``size`` and ``batch_size`` are named as not used, and a ``[grid]`` or ``[[configs]]`` (several configurations)
+is an error. A sweep file likewise takes top-level parameters as fixed settings.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import math
 import tomllib
 import types
 import typing
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -256,13 +263,31 @@ def read_toml(path: str | Path, name: str) -> dict[str, Any]:
         raise InputError(f"{label}: cannot read it: {error.strerror or error}") from None
 
 
+#: The keys of a sweep file that say what to run on, not how: a configuration file may carry them (one TOML
+#: format for both); a command given it as ``--config`` says it does not use them.
+SWEEP_RUN_KEYS = ("paths", "size", "batch_size")
+
+
 def load_config_file(path: str | Path, name: str = "--config") -> tuple[str, dict[str, Any]]:
     """``(preset name, dotted overrides)`` of a configuration file (module docstring); not yet applied."""
     table = read_toml(path, name)
     preset = table.pop("preset", "default")
     if not isinstance(preset, str):
         raise InputError(f"{name}: {path}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
-    return preset, flatten_table(table)
+    fixed = table.pop("set", {})  # a sweep file's fixed settings: one format for both
+    if not isinstance(fixed, Mapping):
+        raise InputError(f"{name}: {path}: set: expected a table of parameters, got {fixed!r}")
+    for key in ("grid", "configs"):
+        if key in table:
+            raise InputError(f"{name}: {path}: {key}: a sweep's {key} makes several configurations and this runs "
+                             f"one (svs-depth sweep runs them; here only preset and [set] apply)")
+    unused = [key for key in SWEEP_RUN_KEYS if key in table]
+    for key in unused:
+        del table[key]
+    if unused:  # said, not silently dropped: the command's own PATH and options decide these
+        warnings.warn(f"{name}: {path}: the sweep's {', '.join(unused)} not used (this command's PATH, --size and "
+                      f"--batch-size apply)", stacklevel=2)
+    return preset, {**flatten_table(table), **flatten_table(fixed)}
 
 
 def resolve_config(preset: str = "default", config_file: str | Path | None = None,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,7 +21,8 @@ from .metrics import PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
-__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "swept_parameters"]
+__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "results_figure",
+           "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -46,18 +48,23 @@ def _evaluation(row: dict) -> PairEvaluation:
 
 
 def config_summaries(store: ResultStore) -> list[dict]:
-    """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size`` and
-    ``overrides``), in the order the configurations were stored; configurations without rows are left out."""
+    """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
+    ``overrides`` and the ``code_versions`` its rows were computed by), in the order the configurations were
+    stored; configurations without rows are left out."""
     by_config: dict[str, list[PairEvaluation]] = {}
+    versions: dict[str, list[str]] = {}
     for row in store.results():
         by_config.setdefault(row["config_id"], []).append(_evaluation(row))
+        seen = versions.setdefault(row["config_id"], [])
+        if row["code_version"] not in seen:
+            seen.append(row["code_version"])
     summaries = []
     for config in store.configs():
         rows = by_config.get(config["config_id"])
         if rows:
             summary = summarize(rows)
             summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
-                             | summary)
+                             | {"code_versions": versions[config["config_id"]]} | summary)
     return summaries
 
 
@@ -90,34 +97,47 @@ CSV_FIRST = ("config", "left", "right", "status", "r_min_m", "r_max_m", "acc_r_m
 
 def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     """Header and rows, one per (configuration, pair): :data:`CSV_FIRST`, then the configuration's ``label``,
-    ``size`` and each swept parameter's value (``param:<key>``), then every other result column."""
+    ``size`` and each swept parameter's value (``param:<key>``), then every other result column, then the
+    ``code_version`` of the run that wrote the row."""
     configs = {c["config_id"]: c for c in store.configs()}
     swept = swept_parameters(store)
     rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
-    header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest]
+    header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest, "code_version"]
     rows = []
     for row in store.results():
         config = configs[row["config_id"]]
         params = [config["preset"] if key == "preset" else config["overrides"].get(key) for key in swept]
-        values = {**row, "config": row["config_id"], "objects": json.dumps(row["objects"])}
+        # Paths as a person would write them: a sweep file's "../../shared/data" joined to its folder reads
+        # "experiments/../../shared/..." until normalised (the same file; ids keep the absolute path).
+        paths = {key: os.path.normpath(row[key]) if row[key] else row[key] for key in ("left", "right")}
+        values = {**row, **paths, "config": row["config_id"], "objects": json.dumps(row["objects"]),
+                  "calibration": json.dumps(row["calibration"]) if row["calibration"] else None}
         rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
-                    + [values[name] for name in rest])
+                    + [values[name] for name in rest] + [row["code_version"]])
     return header, rows
 
 
 def _scene_bars(axis, store: ResultStore, summary: dict) -> None:
     rows = [r for r in store.results() if r["config_id"] == summary["config_id"]]
-    names = [r["name"] for r in rows]
+    # A scene scored with a nominal calibration (none shipped) is not in the headline means: its bars say so.
+    names = [r["name"] + (" (nominal)" if r["calibrated"] == 0 else "") for r in rows]
     width = 0.27
+    everything = []
     for offset, (key, label) in enumerate((("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"),
                                            ("acc_objects_pct", "objects"))):
         values = [r[key] or 0.0 for r in rows]
+        everything += values
         axis.bar([i + (offset - 1) * width for i in range(len(rows))], values, width, label=label)
     axis.set_xticks(range(len(rows)), names, rotation=60, ha="right", fontsize=7)
-    axis.set_ylabel("Eq. (9) accuracy, %")
-    axis.set_ylim(0, 105)
-    axis.set_title(textwrap.fill(f"per scene, best by object accuracy: {summary['label']}", 60), fontsize=8)
-    axis.legend(fontsize=7, loc="lower right")
+    # Zoomed to the data: on a 0-100 scale, 96 % and 99 % look the same. The label says the axis is cut.
+    low, high = min(everything), max(everything)
+    margin = max(0.5, 0.15 * (high - low))
+    axis.set_ylim(max(0.0, low - margin), min(100.0, high) + margin)
+    axis.set_ylabel("Eq. (9) accuracy, % (axis zoomed to the data)", fontsize=8)
+    axis.grid(axis="y", alpha=0.3)
+    axis.set_title(textwrap.fill(f"per scene, best by object accuracy: {summary['label']}", 90), fontsize=8, pad=20)
+    # Above the bars, never over them.
+    axis.legend(fontsize=7, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
 
 
 def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
@@ -141,15 +161,28 @@ def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
 
 
 def plot_results(store: ResultStore, path: str | Path) -> Path:
-    """Write the figure: one panel per swept parameter (mean Eq. (9) accuracy of R_min, R_max and objects at
-    each value, averaged over the other parameters) and per-scene bars of the best configuration by object
-    accuracy. The file is written under a temporary name and renamed, never half-written."""
+    """Write :func:`results_figure` to ``path``, under a temporary name and renamed, never half-written."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    figure = results_figure(store)
+    try:
+        with atomic_output(path) as stream:
+            figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
+    finally:
+        plt.close(figure)
+    return path
+
+
+def results_figure(store: ResultStore):
+    """The results figure (a matplotlib Figure): one panel per swept parameter (mean Eq. (9) accuracy of R_min,
+    R_max and objects at each value, averaged over the other parameters) and, filling the rest of the last row,
+    per-scene bars of the best configuration by object accuracy, zoomed to the data, its legend above them."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    path = Path(path)
     summaries = config_summaries(store)
     if not summaries:
         raise InputError(f"db: {store.path} holds no results yet")
@@ -157,19 +190,14 @@ def plot_results(store: ResultStore, path: str | Path) -> Path:
     panels = len(swept) + 1
     columns = min(3, panels)
     rows = -(-panels // columns)
-    figure, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 4.2 * rows), squeeze=False)
-    flat = list(axes.flat)
-    for axis, key in zip(flat, swept):
-        _parameter_axis(axis, summaries, key)
+    figure = plt.figure(figsize=(5.2 * columns, 4.4 * rows))
+    grid = figure.add_gridspec(rows, columns)
+    for number, key in enumerate(swept):
+        _parameter_axis(figure.add_subplot(grid[number // columns, number % columns]), summaries, key)
     best = max(summaries, key=lambda s: s["acc_objects_pct"] if s["acc_objects_pct"] is not None else -1.0)
-    _scene_bars(flat[len(swept)], store, best)
-    for axis in flat[panels:]:
-        axis.set_visible(False)
-    figure.suptitle(f"{store.path.name}: {len(summaries)} configurations", fontsize=11)
+    row, column = divmod(len(swept), columns)
+    _scene_bars(figure.add_subplot(grid[row, column:]), store, best)  # the rest of its row: no empty panels
+    count = len(summaries)
+    figure.suptitle(f"{store.path.name}: {count} configuration{'' if count == 1 else 's'}", fontsize=11)
     figure.tight_layout()
-    try:
-        with atomic_output(path) as stream:
-            figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
-    finally:
-        plt.close(figure)
-    return path
+    return figure

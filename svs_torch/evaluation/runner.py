@@ -2,13 +2,16 @@
 
 One bad pair never stops the others: an entry that cannot be loaded is ``BAD_INPUT``, a pair under 5×5 pixels
 ``TOO_SMALL``, and a block whose pipeline run raises is run again pair by pair, so only the pair that raises is
-``ERROR`` (with the exception in ``reason``). Each pair's result does not depend on its block (the pipeline
-seeds RANSAC per pair and sizes the dense stage per pair), so a block can be re-run alone with equal results.
+``ERROR`` (with the exception in ``reason``). Each pair's result does not depend on its block, bit for bit: the
+pipeline runs pairs of different sizes as groups of one size, each on its own pixels (:mod:`svs_torch.size_groups`),
+and seeds RANSAC per pair, so a block can be re-run alone, at another batch size or in another order with equal
+results (``tests/test_batch_independence.py``).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import statistics
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -17,7 +20,8 @@ from dataclasses import dataclass
 import torch
 
 from ..checks import InputError
-from ..data import collate_stereo_batches, load_pair_source, resize_stereo_batch
+from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
+                    resize_stereo_batch)
 from ..data.pair_list import PairSource
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
 from ..types import StereoBatch
@@ -42,7 +46,7 @@ class EvalSetup:
     Attributes:
         config: the pipeline configuration.
         size_wh: resample every pair to (width, height) first; None keeps each pair's own size (pairs of
-            different sizes are then padded into one batch).
+            different sizes are then padded into one batch, and the pipeline runs each size apart).
         focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
     """
 
@@ -57,13 +61,16 @@ class EvalSetup:
 class LoadedPair:
     """A listed pair after loading: ``batch`` (B = 1, resampled, nominal calibration where it had none) or
     None with the ``status`` and ``reason`` it gets instead; ``calibrated``: the data's own calibration;
-    ``px_scale``: the input's width over the batch's (native pixels per pixel the pipeline ran at)."""
+    ``calibration``: the one its metres use and where it came from (:func:`~svs_torch.data.calibration_record`,
+    at the input size); ``px_scale``: the input's width over the batch's (native pixels per pixel the pipeline
+    ran at)."""
 
     source: PairSource
     batch: StereoBatch | None
     status: str | None = None
     reason: str | None = None
     calibrated: bool = False
+    calibration: dict | None = None
     px_scale: float = 1.0
 
 
@@ -73,7 +80,11 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     except (InputError, OSError) as error:
         return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
     calibrated = bool(batch.calibrated[0])
+    origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
     batch = with_nominal_calibration(batch)
+    if not calibrated:  # the metres (truth and estimate alike) use the nominal values: say so, and why
+        origin = "nominal, for scoring only: no calibration shipped or given"
+    calibration = dict(calibration_record(batch, 0, origin), measured=calibrated)
     native_width = batch.size_hw[1]
     if setup.size_wh is not None:
         batch = resize_stereo_batch(batch, setup.size_wh)
@@ -81,7 +92,8 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
                                                      f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels")
-    return LoadedPair(source, batch, calibrated=calibrated, px_scale=native_width / batch.size_hw[1])
+    return LoadedPair(source, batch, calibrated=calibrated, calibration=calibration,
+                      px_scale=native_width / batch.size_hw[1])
 
 
 def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPair]:
@@ -104,11 +116,10 @@ def _run_batch(pairs: list[LoadedPair], config: PipelineConfig,
     with torch.no_grad():
         result = estimate_obstacle_depth(batch, config)
     per_pair = (time.perf_counter() - started) / len(pairs)
-    evaluations = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs],
-                                  [p.px_scale for p in pairs])
+    scored = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs], [p.px_scale for p in pairs])
     if on_result is not None:
         on_result(batch, result, per_pair)
-    return evaluations
+    return [dataclasses.replace(e, calibration=p.calibration) for e, p in zip(scored, pairs)]
 
 
 def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
@@ -165,19 +176,24 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     """One summary of an evaluation.
 
     ``pairs`` every listed pair, ``failed`` those whose status is not OK (listed in ``failures``), ``scored``
-    those with ground truth whose accuracy counts: every pair with a truth, a failed one at 0 % (a failed pair
-    whose segmentation kept nothing has no object truth, and still counts 0 %). ``acc_*_pct`` are means over
-    the scored pairs; disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
+    those with ground truth and their data's own calibration whose accuracy counts: every such pair, a failed
+    one at 0 % (a failed pair whose segmentation kept nothing has no object truth, and still counts 0 %).
+    ``acc_*_pct`` are means over the scored pairs; pairs scored with a nominal calibration (``calibrated``
+    False: the data ship none) are kept apart in ``nominal_calibration`` (their count, names and means);
+    disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
     ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
     ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics
     (:data:`~svs_torch.evaluation.stereo_metrics.STEREO_FIELDS`) are means over the pairs that have them;
     ``<scope>_pairs`` counts those pairs for each scope.
     """
     failures = [e for e in evaluations if not e.ok]
-    scored = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
+    with_truth = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
+    # Scenes whose data ship no calibration are scored with a nominal one: reported apart, never in the headline.
+    scored = [e for e in with_truth if e.calibrated is not False]
+    nominal = [e for e in with_truth if e.calibrated is False]
 
-    def acc(key: str) -> float | None:
-        return _mean([getattr(e, key) or 0.0 for e in scored])
+    def acc(key: str, group: Sequence[PairEvaluation] = scored) -> float | None:
+        return _mean([getattr(e, key) or 0.0 for e in group])
 
     def mean_of(key: str) -> float | None:
         return _mean([getattr(e, key) for e in evaluations if getattr(e, key) is not None])
@@ -189,6 +205,9 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "pairs": len(evaluations), "failed": len(failures), "scored": len(scored),
         "acc_r_min_pct": acc("acc_r_min_pct"), "acc_r_max_pct": acc("acc_r_max_pct"),
         "acc_objects_pct": acc("acc_objects_pct"),
+        "nominal_calibration": {"scored": len(nominal), "names": [e.name for e in nominal],
+                                **{key: acc(key, nominal) for key in ("acc_r_min_pct", "acc_r_max_pct",
+                                                                      "acc_objects_pct")}},
         "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
         "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
         "sparse_within_1px": mean_of("sparse_within_1px"), "inlier_precision": mean_of("inlier_precision"),

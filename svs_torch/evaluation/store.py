@@ -5,7 +5,7 @@ pair) key, a sweep killed at any moment (even SIGKILL) keeps every committed tas
 restart runs only the missing rows and can never duplicate one. Only the parent process writes (workers return
 rows), so there is one writer at a time; readers (``svs-depth results``) never block it.
 
-Schema (``schema_version`` 1)::
+Schema (``schema_version`` 2: version 1 had no ``calibration`` column)::
 
     meta(key TEXT PRIMARY KEY, value TEXT)            -- schema_version
     configs(config_id TEXT PRIMARY KEY,               -- sha256 of {"config": the whole PipelineConfig, "size"}
@@ -23,8 +23,8 @@ Schema (``schema_version`` 1)::
          sweep TEXT)                                  -- the sweep file's text (or the eval's arguments)
     results(config_id TEXT NOT NULL REFERENCES configs, pair_id TEXT NOT NULL REFERENCES pairs,
             run_id INTEGER REFERENCES runs,
-            <one column per PairEvaluation field: name, status, reason, calibrated, has_truth, r_min_m, r_max_m,
-             real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
+            <one column per PairEvaluation field: name, status, reason, calibrated, calibration (JSON), has_truth,
+             r_min_m, r_max_m, real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
              dense_error_median_px, dense_within_1px, dense_within_3px, dense_num_px, sparse_error_median_px,
              sparse_within_1px, sparse_within_3px, inlier_precision, sparse_num_points, num_keypoints_left,
              num_keypoints_right, num_matches, num_inliers, rectified, time_s, metric_px_scale, the stereo
@@ -33,7 +33,8 @@ Schema (``schema_version`` 1)::
              d1_pct, num_px (stereo_metrics.py), objects (JSON list)>,
             UNIQUE(config_id, pair_id))
 
-A file made before a result column existed gets it (NULL in its older rows) when opened.
+A file made before a result column existed gets it (NULL in its older rows) when opened to write; opened to
+read, it is left as it is and its rows read None there.
 
 Units are in the column names (``_m`` metres, ``_px`` pixels, ``_pct`` percent, ``_s`` seconds; ``within_*``
 and ``inlier_precision`` are shares in [0, 1]); booleans are 0/1; a metric that does not exist is NULL.
@@ -55,9 +56,9 @@ from .metrics import PairEvaluation
 
 __all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
-_SQL_TYPES = {"str": "TEXT", "bool": "INTEGER", "int": "INTEGER", "float": "REAL", "list": "TEXT"}
+_SQL_TYPES = {"str": "TEXT", "bool": "INTEGER", "int": "INTEGER", "float": "REAL", "list": "TEXT", "dict": "TEXT"}
 
 
 def _column_type(annotation: str) -> str:
@@ -118,18 +119,30 @@ class ResultStore:
             version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.DatabaseError as error:
             raise InputError(f"db: {self.path} is not a results store ({error})") from None
+        if version is not None and int(version[0]) == 1:  # version 1 lacks only the calibration column
+            version = self._from_version_1(create)
         if version is None or int(version[0]) != SCHEMA_VERSION:
             raise InputError(f"db: {self.path} has schema version {version and version[0]}, expected "
                              f"{SCHEMA_VERSION}")
-        self._add_missing_columns()
+        if create:
+            self._add_missing_columns()
 
     def _add_missing_columns(self) -> None:
         """Result columns added since the file was made (e.g. the stereo metrics) are added, NULL in the rows
-        stored before them: those rows were never measured so, and NULL is what a missing metric is."""
+        stored before them: those rows were never measured so, and NULL is what a missing metric is. (Opened to
+        read, the file is left as it is and :meth:`results` gives None for them.)"""
         present = {row[1] for row in self.connection.execute("PRAGMA table_info(results)")}
         missing = [(name, kind) for name, kind in RESULT_COLUMNS if name not in present]
         if missing:
             self._transaction((f'ALTER TABLE results ADD COLUMN "{name}" {kind}', ()) for name, kind in missing)
+
+    def _from_version_1(self, create: bool) -> tuple[str]:
+        """A version-1 store: opened to write, it gains the (empty) calibration column and becomes version 2;
+        opened to read, it is read as it is (its rows have no calibration)."""
+        if create:
+            self._transaction([('ALTER TABLE results ADD COLUMN "calibration" TEXT', ()),
+                               ("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))])
+        return (str(SCHEMA_VERSION),)
 
     def __enter__(self) -> ResultStore:
         return self
@@ -199,14 +212,18 @@ class ResultStore:
                  "config": json.loads(config)} for c, label, preset, overrides, size, config in cursor]
 
     def results(self) -> list[dict]:
-        """Every result row joined with its pair's ``left``, ``right`` and ``scene`` flag, in a fixed order."""
+        """Every result row joined with its pair's ``left`` and ``right`` and the ``code_version`` of the run that
+        wrote it, in a fixed order."""
         cursor = self.connection.execute(
-            "SELECT r.*, p.left AS left, p.right AS right FROM results r JOIN pairs p USING (pair_id) "
-            "ORDER BY r.config_id, r.pair_id")
+            "SELECT r.*, p.left AS left, p.right AS right, u.code_version AS code_version FROM results r "
+            "JOIN pairs p USING (pair_id) LEFT JOIN runs u USING (run_id) ORDER BY r.config_id, r.pair_id")
         names = [d[0] for d in cursor.description]
         rows = []
         for values in cursor:
             row = dict(zip(names, values))
             row["objects"] = json.loads(row["objects"]) if row["objects"] else []
+            row["calibration"] = json.loads(row["calibration"]) if row.get("calibration") else None
+            for name, _ in RESULT_COLUMNS:  # a column the file predates (opened to read): not measured
+                row.setdefault(name, None)
             rows.append(row)
         return rows

@@ -18,10 +18,14 @@ Sweep file (TOML; relative paths are relative to the file)::
 Everything is checked before any work starts: unknown keys and parameters, values of the wrong type, missing
 paths; the error is one line naming the file and the key.
 
-A configuration's id is a hash of the whole resolved :class:`~svs_torch.pipeline.PipelineConfig` and the size,
-so the same configuration from another sweep file reuses its rows. Tasks are fixed blocks of the pair list;
-a block whose rows are all stored is skipped, any other block runs whole (the same batch as an uninterrupted
-run; the pipeline's results do not depend on the batch anyway, and RANSAC is seeded per pair) and its rows are
+A configuration's id is a hash of everything that can change a result: the whole resolved
+:class:`~svs_torch.pipeline.PipelineConfig`, the size and, for a learned segmenter, the content of its weights file
+(retrained in place, it is another configuration); the same configuration from another sweep file reuses its rows.
+The batch size is not in it: a pair's result does not depend on its batch (pairs of different sizes run as groups
+of one size, :mod:`svs_torch.size_groups`; RANSAC is seeded per pair; ``tests/test_batch_independence.py``). The
+code version is recorded per run: a store whose rows come from several versions says so when a sweep adds to it
+and in every ``svs-depth results`` summary. Tasks are fixed blocks of the pair list;
+a block whose rows are all stored is skipped, any other block runs whole and its rows are
 written in one transaction with ``INSERT OR IGNORE``. So a sweep killed at any moment and started again runs
 only what is missing and ends with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
 
@@ -36,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -48,11 +53,12 @@ from typing import Any
 from ..camera import parse_size
 from ..checks import InputError
 from ..data.pair_list import PairSource, read_pair_sources
+from ..learned_segmentation import weights_path
 from ..pipeline import PipelineConfig
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        preset_config, read_toml)
+                        parameter_types, preset_config, read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -100,9 +106,17 @@ def make_sweep_config(preset: str, overrides: dict[str, Any], size_wh: tuple[int
     """Resolve and check one configuration (an InputError naming ``source`` and the key if it is bad)."""
     config = apply_overrides(preset_config(preset, f"{source}: preset"), overrides, source)
     size = _size_text(size_wh)
-    digest = hashlib.sha256(json.dumps({"config": config_to_dict(config), "size": size}, sort_keys=True).encode())
+    identity = {"config": config_to_dict(config), "size": size}
+    if config.segmentation.segmenter != "otsu":
+        # The weights file can be retrained in place: its content, not its name, is the setting.
+        identity["weights_sha256"] = _file_sha256(weights_path(config.segmentation.segmenter))
+    digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode())
     return SweepConfig(digest.hexdigest()[:16], label if label is not None else describe_overrides(overrides),
                        preset, dict(overrides), size, config)
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _dedupe(sources: Sequence[PairSource]) -> tuple[PairSource, ...]:
@@ -132,13 +146,18 @@ def load_sweep(path: str | Path) -> Sweep:
     path = Path(path)
     name = str(path)
     table = read_toml(path, name)
-    for key in table:
-        _expect(key in SWEEP_KEYS, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)})")
+    # Other top-level keys are parameters, fixed for every configuration, as in a --config file (one format).
+    top_level = flatten_table({key: value for key, value in table.items() if key not in SWEEP_KEYS})
+    known = parameter_types()
+    for key in top_level:
+        _expect(key in known, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)}, or a parameter "
+                              f"such as segmentation.kernel_size)")
     paths = table.get("paths")
     paths = [paths] if isinstance(paths, str) else paths
     _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),
             f"{name}: paths: expected a list of scene folders or pair lists, got {table.get('paths')!r}")
-    resolved = [p if Path(p).is_absolute() else str(path.parent / p) for p in paths]
+    # Normalised ("experiments/../../shared" → "../shared"), as os.path.abspath does for the pairs' ids.
+    resolved = [p if Path(p).is_absolute() else os.path.normpath(path.parent / p) for p in paths]
     size = table.get("size", "native")
     _expect(isinstance(size, str), f"{name}: size: expected 'WxH' such as '320x240', or 'native', got {size!r}")
     size_wh = None if size == "native" else parse_size(size, f"{name}: size")
@@ -154,7 +173,7 @@ def load_sweep(path: str | Path) -> Sweep:
     entries = table.get("configs", [{}])
     _expect(isinstance(entries, list) and entries and all(isinstance(e, dict) for e in entries),
             f"{name}: configs: expected [[configs]] tables, got {entries!r}")
-    fixed = flatten_table(fixed)
+    fixed = {**top_level, **flatten_table(fixed)}
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
     points = expand_grid(flatten_table(grid), f"{name}: grid")
     configs = []

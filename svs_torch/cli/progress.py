@@ -1,0 +1,115 @@
+"""Progress of a long command (``eval``, ``sweep``, ``estimate --pairs``, ``capture``) on standard error.
+
+On a terminal: a tqdm bar, redrawn in place. Into a file or a pipe (a log, ``2> run.log``, a CI job): no
+carriage-return redraws, which a log shows as one unreadable line; instead a plain line every few seconds
+(``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary line at the end.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator
+from typing import TextIO, TypeVar
+
+__all__ = ["Progress"]
+
+T = TypeVar("T")
+
+
+class Progress:
+    """Progress over ``total`` items, a context manager.
+
+    Args:
+        total: how many items the command will run.
+        desc: the command's name, the start of every line (``"eval"``).
+        unit: what an item is (``"pair"``); lines say ``pairs``.
+        stream: where progress goes (None: standard error).
+        interval_s: seconds between plain lines when ``stream`` is not a terminal.
+        tty: force terminal (True) or plain (False) mode; None asks ``stream.isatty()``.
+        clock: seconds, monotonic (tests pass their own).
+    """
+
+    def __init__(self, total: int, desc: str, unit: str = "pair", stream: TextIO | None = None,
+                 interval_s: float = 5.0, tty: bool | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.total, self.desc, self.unit = total, desc, unit
+        self.stream = sys.stderr if stream is None else stream
+        self.interval_s, self.clock = interval_s, clock
+        self.done, self._closed, self._postfix = 0, False, ""
+        self.started = self._last = clock()
+        if tty is None:
+            try:
+                tty = self.stream.isatty()
+            except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
+                tty = False
+        self._bar = None
+        if tty:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, unit=unit, file=self.stream, desc=desc, dynamic_ncols=True,
+                             mininterval=0.5)
+
+    def _rate(self, elapsed_s: float) -> float | None:
+        return self.done / elapsed_s if elapsed_s > 0 else None
+
+    def update(self, count: int = 1) -> None:
+        """``count`` more items are done."""
+        self.done += count
+        if self._bar is not None:
+            self._bar.update(count)
+            return
+        now = self.clock()
+        if now - self._last >= self.interval_s and self.done < self.total:
+            self._last = now
+            rate = self._rate(now - self.started)
+            eta = f", ETA {(self.total - self.done) / rate:.0f} s" if rate else ""
+            speed = f", {rate:.1f} {self.unit}s/s" if rate else ""
+            postfix = f" ({self._postfix})" if self._postfix else ""
+            print(f"{self.desc}: {self.done}/{self.total} {self.unit}s{speed}{eta}{postfix}", file=self.stream,
+                  flush=True)
+
+    def over(self, iterable: Iterable[T]) -> Iterator[T]:
+        """The items of ``iterable``, each counted done when the next is asked for; the summary after the last
+        (``for item in progress.over(items)``, as ``for item in tqdm(items)``)."""
+        for item in iterable:
+            yield item
+            self.update(1)
+        self.close()
+
+    def set_postfix(self, **values: object) -> None:
+        """Numbers shown after the count (a loss, say): on the bar, or at the end of the next plain line."""
+        self._postfix = ", ".join(f"{key} {value}" for key, value in values.items())
+        if self._bar is not None:
+            self._bar.set_postfix(values, refresh=False)
+
+    def write(self, line: str, file: TextIO | None = None) -> None:
+        """Print a result line to ``file`` (standard output) without breaking the bar."""
+        file = sys.stdout if file is None else file
+        if self._bar is not None:
+            self._bar.write(line, file=file)
+        else:
+            print(line, file=file, flush=True)
+
+    def warn(self, line: str) -> None:
+        """Print a line on the progress stream (a warning) without breaking the bar."""
+        self.write(line, self.stream)
+
+    def close(self) -> None:
+        """End the bar; in plain mode, the summary line (count, seconds, rate). Once."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._bar is not None:
+            self._bar.close()
+            return
+        elapsed = self.clock() - self.started
+        rate = self._rate(elapsed)
+        print(f"{self.desc}: {self.done}/{self.total} {self.unit}s in {elapsed:.1f} s"
+              + (f", {rate:.1f} {self.unit}s/s" if rate else ""), file=self.stream, flush=True)
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,60 @@
+"""Which calibration a result used and where it came from, for every text and JSON report.
+
+A distance in metres is only as good as its focal length, baseline and doffs. Every report names them and their
+source: a scene's own file (``Teddy/calib.txt``), the pair list's line, the command-line options, a data set's
+nominal values, or the SVS camera model assumed, so that nobody reads metres from a guessed focal length without
+being told. Nothing here is differentiable (plain numbers and words).
+"""
+
+from __future__ import annotations
+
+from ..types import StereoBatch
+from .datasets import scene_calibration_source
+from .pair_list import PairSource
+
+__all__ = ["SVS_MODEL_ASSUMED", "calibration_record", "format_calibration", "pair_calibration_source"]
+
+#: The source of a plain pair's calibration when neither its list line nor an option gives one.
+SVS_MODEL_ASSUMED = "the SVS model assumed"
+
+
+def options_calibration_source(focal_px: float | None, baseline_m: float | None) -> str:
+    """The source of a plain pair's calibration from the command's ``--focal-px`` / ``--baseline-m``."""
+    given = [name for name, value in (("--focal-px", focal_px), ("--baseline-m", baseline_m)) if value is not None]
+    if len(given) == 2:
+        return "command-line options"
+    if given:
+        return f"command-line option {given[0]}, the SVS model assumed for the rest"
+    return SVS_MODEL_ASSUMED
+
+
+def pair_calibration_source(source: PairSource, focal_px: float | None = None,
+                            baseline_m: float | None = None) -> str:
+    """Where :func:`~svs_torch.data.load_pair_source` takes ``source``'s calibration from, given the command's
+    options ``focal_px`` / ``baseline_m`` (None: not given)."""
+    if source.scene:
+        return scene_calibration_source(source.left)
+    if source.focal_px is not None:
+        return f"the pair list, {source.listed_at}" if source.listed_at else "the pair list"
+    return options_calibration_source(focal_px, baseline_m)
+
+
+def calibration_record(batch: StereoBatch, index: int, source: str, width_scale: float = 1.0) -> dict:
+    """``{"source", "measured", "focal_px", "baseline_m", "doffs_px"}`` of pair ``index`` of ``batch``.
+
+    ``measured``: the data's (or the user's) calibration, not a nominal one. ``width_scale``: input width over
+    ``batch``'s width, so a resampled batch reports the focal length and doffs of the INPUT images (the values a
+    calib.txt or ``--focal-px`` gives).
+    """
+    return {"source": source, "measured": bool(batch.calibrated[index]),
+            "focal_px": round(float(batch.focal_px[index]) * width_scale, 4),
+            "baseline_m": round(float(batch.baseline_m[index]), 6),
+            "doffs_px": round(float(batch.doffs_px[index]) * width_scale, 4)}
+
+
+def format_calibration(record: dict | None) -> str:
+    """One line for text reports: ``calibration: f 1500.0 px, B 0.080 m, doffs 52.0 px (Teddy/calib.txt)``."""
+    if record is None:
+        return "calibration: none (the pair was not loaded)"
+    return (f"calibration: f {record['focal_px']:.1f} px, B {record['baseline_m']:.4g} m, doffs "
+            f"{record['doffs_px']:.1f} px ({record['source']})")

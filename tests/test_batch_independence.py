@@ -1,0 +1,168 @@
+"""A pair's result does not depend on its batch (issue 29): whatever the batch size, the order of the list and the
+sizes of the other pairs padded into the batch, every per-pair result — status, distances, counts, metrics and
+the pipeline's tensors over the pair's own pixels — equals that pair run alone, bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from svs_torch.data import collate_stereo_batches, load_stereo_pair, resize_stereo_batch
+from svs_torch.data.pair_list import read_pair_sources
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.evaluation import EvalSetup, evaluate_pairs
+from svs_torch.evaluation.metrics import evaluate_result
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.size_groups import crop_batch, merge_groups, size_groups
+
+#: Real scenes at sizes of their own (their aspect kept or not) and synthetic ones at two sizes.
+_REAL = [("middlebury_eval3_Q/Teddy", (224, 168)), ("middlebury_eval3_Q/Motorcycle", (240, 160)),
+         ("middlebury_2003_quarter/Cones", (200, 168)), ("middlebury_2001/Tsukuba", (192, 144)),
+         ("kitti/stereo2015_training", (320, 96))]
+
+
+def _row(evaluation) -> dict:
+    """A pair's evaluation row without its time (the only field allowed to depend on the batch)."""
+    return {k: v for k, v in dataclasses.asdict(evaluation).items() if k != "time_s"}
+
+
+def _pair_tensors(value, index: int, hw: tuple[int, int], path: str = "result"):
+    """Every tensor of a pipeline result at batch row ``index``, spatial maps cut to the pair's ``hw``."""
+    if isinstance(value, torch.Tensor):
+        if value.dim() == 0:
+            return
+        row = value[index]
+        if value.dim() == 4:
+            row = row[..., :hw[0], :hw[1]]
+        yield path, row
+    elif dataclasses.is_dataclass(value):
+        for f in dataclasses.fields(value):
+            yield from _pair_tensors(getattr(value, f.name), index, hw, f"{path}.{f.name}")
+    elif isinstance(value, tuple) and hasattr(value, "_fields"):
+        for name in value._fields:
+            yield from _pair_tensors(getattr(value, name), index, hw, f"{path}.{name}")
+
+
+def _assert_rows_equal(got, want, label: str) -> None:
+    """Tensors compared over the pair's own slots: a ragged dimension (keypoints, regions) may be padded further
+    in a batch, and the padding must be neutral (checked by the equal counts and validity masks)."""
+    got, want = dict(got), dict(want)
+    assert got.keys() == want.keys()
+    for path, expected in want.items():
+        actual = got[path]
+        assert actual.dim() == expected.dim(), f"{label}: {path}"
+        cut = tuple(slice(0, s) for s in expected.shape)
+        assert all(a >= e for a, e in zip(actual.shape, expected.shape)), f"{label}: {path} {actual.shape}"
+        assert torch.equal(actual[cut], expected), f"{label}: {path} differs from the pair run alone"
+
+
+@pytest.fixture(scope="module")
+def pool(data_dir: Path):
+    """Pairs of six sizes (real and synthetic), each with its result run alone."""
+    pairs = [resize_stereo_batch(load_stereo_pair(data_dir / relative), size) for relative, size in _REAL]
+    for size, seed in (((160, 120), 5), ((208, 152), 6)):
+        scenes = random_obstacle_scenes(1, 2, size_wh=size, generator=torch.Generator().manual_seed(seed))
+        pairs.append(scenes.batch)
+    config = PipelineConfig()
+    alone = []
+    with torch.no_grad():
+        for pair in pairs:
+            result = estimate_obstacle_depth(pair, config)
+            hw = tuple(pair.size_hw)
+            alone.append((_row(evaluate_result(pair, result, 0.0, [True])[0]), list(_pair_tensors(result, 0, hw))))
+    return pairs, alone, config
+
+
+@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_each_pair_equals_the_pair_alone(pool, data):
+    pairs, alone, config = pool
+    picks = data.draw(st.lists(st.integers(0, len(pairs) - 1), min_size=2, max_size=6), label="pairs")
+    picks = data.draw(st.permutations(picks), label="order")
+    batch_size = data.draw(st.integers(1, 4), label="batch size")
+    for start in range(0, len(picks), batch_size):
+        block = picks[start:start + batch_size]
+        batch = collate_stereo_batches([pairs[i] for i in block], mode="pad")
+        with torch.no_grad():
+            result = estimate_obstacle_depth(batch, config)
+        rows = evaluate_result(batch, result, 0.0, [True] * len(block))
+        for row, (index, pick) in zip(rows, enumerate(block)):
+            want_row, want_tensors = alone[pick]
+            assert _row(row) == want_row, f"pair {pick} in block {block}"
+            hw = tuple(batch.image_hw[index].tolist())
+            _assert_rows_equal(_pair_tensors(result, index, hw), want_tensors, f"pair {pick} in block {block}")
+
+
+def test_eval_rows_do_not_depend_on_batch_size_or_order(data_dir: Path, tmp_path: Path):
+    """The command line's path (load, block, run, score) on real scenes of four native sizes: the same rows at
+    ``--batch-size`` 1, 3 and 8 and with the list reversed."""
+    scenes = ["middlebury_eval3_Q/Teddy", "middlebury_2001/Tsukuba", "middlebury_eval3_Q/ArtL",
+              "middlebury_2003_quarter/Cones", "middlebury_eval3_Q/Teddy"]
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("".join(f"{data_dir / s}\n" for s in scenes))
+    sources = read_pair_sources([listing])
+
+    def rows(order, batch_size):
+        return {source.name: _row(e) for source, e in evaluate_pairs(order, EvalSetup(), batch_size=batch_size)}
+
+    reference = rows(sources, 1)
+    assert {r["status"] for r in reference.values()} == {"OK"}
+    assert rows(sources, 3) == reference
+    assert rows(list(reversed(sources)), 8) == reference
+
+
+def test_merge_pads_with_neutral_values_and_restores_order():
+    """merge_groups puts each group's rows back at their batch places, pads spatial maps to the batch's size and
+    ragged dimensions to the largest group's, with 0, False or −1 (indices, kept labels)."""
+    image_hw = torch.tensor([[4, 6], [3, 5], [4, 6]])
+    groups = size_groups(image_hw)
+    assert [(i.tolist(), hw) for i, hw in groups] == [([0, 2], (4, 6)), ([1], (3, 5))]
+
+    @dataclasses.dataclass(frozen=True)
+    class Part:
+        labels: torch.Tensor  # (B, 1, H, W)
+        idx: torch.Tensor  # (B, K) int64
+        kept_labels: torch.Tensor  # (B, N) int64
+        valid: torch.Tensor  # (B, K) bool
+        count: int
+
+    first = Part(torch.ones(2, 1, 4, 6, dtype=torch.int64), torch.tensor([[0, 1, 2], [2, 1, 0]]),
+                 torch.tensor([[1, 2], [3, 4]]), torch.ones(2, 3, dtype=torch.bool), 3)
+    second = Part(torch.full((1, 1, 3, 5), 7), torch.tensor([[4]]), torch.tensor([[5, 6]]),
+                  torch.ones(1, 1, dtype=torch.bool), 1)
+    merged = merge_groups([first, second], [i for i, _ in groups], (5, 7), [hw for _, hw in groups])
+    assert merged.labels.shape == (3, 1, 5, 7) and merged.count == 3
+    assert torch.equal(merged.labels[1, 0, :3, :5], torch.full((3, 5), 7))
+    assert int(merged.labels[1].sum()) == 7 * 15 and int(merged.labels[0].sum()) == 24
+    assert merged.idx.tolist() == [[0, 1, 2], [4, -1, -1], [2, 1, 0]]
+    assert merged.kept_labels.tolist() == [[1, 2], [5, 6], [3, 4]]
+    assert merged.valid.tolist() == [[True] * 3, [True, False, False], [True] * 3]
+
+
+def test_crop_batch_cuts_spatial_fields_only(data_dir: Path):
+    pair = resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_eval3_Q/Teddy"), (64, 48))
+    padded = collate_stereo_batches([pair], mode="pad", size_wh=(80, 60))
+    cropped = crop_batch(padded, 48, 64)
+    assert torch.equal(cropped.left, pair.left) and torch.equal(cropped.disparity_px, pair.disparity_px)
+    assert torch.equal(cropped.focal_px, pair.focal_px) and cropped.names == pair.names
+
+
+def test_segment_pair_ignores_padding(pool):
+    """The public segmentation entry on a padded batch: each pair's threshold and regions as alone."""
+    from svs_torch.pipeline import segment_pair
+    from svs_torch.segmentation import SegmentationConfig
+
+    pairs, _, _ = pool
+    batch = collate_stereo_batches(pairs[:3], mode="pad")
+    together = segment_pair(batch, SegmentationConfig())
+    for index, pair in enumerate(pairs[:3]):
+        alone = segment_pair(pair, SegmentationConfig())
+        h, w = pair.size_hw
+        assert torch.equal(together.left.threshold[index], alone.left.threshold[0])
+        assert torch.equal(together.left.labels[index, :, :h, :w], alone.left.labels[0])
+        assert not together.left.kept_mask[index, :, h:, :].any() and not together.left.kept_mask[index, ..., w:].any()

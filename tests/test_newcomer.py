@@ -1,0 +1,178 @@
+"""What a newcomer tripped on (issue 29 part 5): figure titles and layouts, help texts that disagree with the
+configuration, option aliases, one TOML format, normalised paths, an old results store."""
+
+from __future__ import annotations
+
+import sqlite3
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+from svs_torch.checks import InputError
+from svs_torch.cli import main
+from svs_torch.data import PairSource
+from svs_torch.data.datasets import pair_name
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.evaluation import PairEvaluation
+from svs_torch.evaluation.overrides import resolve_config
+from svs_torch.evaluation.report import csv_table, results_figure
+from svs_torch.evaluation.store import SCHEMA_VERSION, ResultStore
+from svs_torch.evaluation.sweep import load_sweep, make_sweep_config
+from svs_torch.figures import binary_title
+from svs_torch.pipeline import PipelineConfig, segment_pair
+from svs_torch.segmentation import SegmentationConfig
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_help_texts_take_their_values_from_the_configuration(capsys):
+    def _help(command: str) -> str:
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        return capsys.readouterr().out
+
+    text = " ".join(_help("features").split())
+    default, paper = PipelineConfig(), PipelineConfig.paper()
+    assert f"(default: {default.max_ratio}; --preset paper: {paper.max_ratio}, MATLAB's MaxRatio)" in text
+    assert f"strongest keypoints kept per image (default: {default.surf.max_keypoints})" in text
+    sweep_help = _help("sweep")
+    assert "--plot" not in sweep_help and "--figure" in sweep_help
+    assert "--plot" not in (REPO / "experiments" / "sweep_defaults.toml").read_text()
+    assert "exit status is 2 if any listed pair is BAD_INPUT" in " ".join(_help("estimate").split())
+
+
+@pytest.mark.parametrize("segmenter, method, words", [("otsu", "otsu", "binary (Otsu "),
+                                                       ("learned", "otsu", "binary (learned segmenter, p > 0.50)"),
+                                                       ("otsu", "canny", "Canny edges + closing")])
+def test_the_binary_panel_names_what_made_it(segmenter, method, words):
+    batch = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3)).batch
+    seg = segment_pair(batch, SegmentationConfig(segmenter=segmenter, method=method)).left
+    title = binary_title(seg, 0, segmenter, method)
+    assert title.startswith(words) and ("Otsu" in title) == (segmenter == "otsu" and method == "otsu")
+
+
+def test_a_pair_named_only_by_its_view_takes_the_scene_folder_name():
+    assert pair_name("/data/middlebury_eval3_Q/Teddy/im0.png") == "Teddy"
+    assert pair_name("/data/middlebury_2003_quarter/Cones/imL.png") == "Cones"
+    assert pair_name("/data/rig/left.png") == "rig"
+    assert pair_name("/data/opencv_samples/left01.jpg") == "left01"  # a name of its own stays
+    assert pair_name("/data/captures/pair0007_left.png") == "pair0007_left"
+
+
+def _store(path: Path, values_by_config: dict[str, list[float]], left: str = "scenes/x/../Teddy") -> ResultStore:
+    store = ResultStore(path)
+    store.add_pairs([PairSource(left=f"{left}{i}", scene=True) for i in range(3)])
+    run = store.start_run("test", "v", {}, "")
+    for number, (label, values) in enumerate(values_by_config.items()):
+        config = make_sweep_config("default", {"segmentation.kernel_size": 3 + 2 * number}, None, label)
+        store.add_configs([config.record()])
+        rows = [(PairSource(left=f"{left}{i}", scene=True).pair_id,
+                 PairEvaluation(name=f"scene{i}", status="OK", calibrated=True, has_truth=True, acc_r_min_pct=v,
+                                acc_r_max_pct=v - 1, acc_objects_pct=v - 0.5)) for i, v in enumerate(values)]
+        store.write_task(config.config_id, run, rows)
+    return store
+
+
+def test_results_figure_zooms_keeps_the_legend_off_the_bars_and_leaves_no_empty_panel(tmp_path):
+    import matplotlib.pyplot as plt
+
+    with _store(tmp_path / "one.sqlite", {"a": [96.0, 98.5, 99.0]}) as store:
+        figure = results_figure(store)
+    try:
+        assert figure._suptitle.get_text() == "one.sqlite: 1 configuration"
+        (bars,) = figure.axes
+        low, high = bars.get_ylim()
+        assert 90 < low < 95 and 99 < high <= 101  # zoomed to 95-99 %, not 0-100
+        figure.canvas.draw()
+        renderer = figure.canvas.get_renderer()
+        legend = bars.get_legend().get_window_extent(renderer)
+        assert legend.y0 >= bars.get_window_extent(renderer).y1 - 1  # above the bars, not over them
+    finally:
+        plt.close(figure)
+    with _store(tmp_path / "two.sqlite", {"a": [96.0, 98.5, 99.0], "b": [97.0, 98.0, 99.5]}) as store:
+        figure = results_figure(store)
+    try:
+        params, bars = figure.axes
+        assert figure._suptitle.get_text().endswith("2 configurations")
+        # One swept parameter and the bars: one row of two panels side by side, no third (blank) one.
+        assert len(figure.axes) == 2 and bars.get_position().x0 > params.get_position().x1
+        assert bars.get_position().y0 == pytest.approx(params.get_position().y0, abs=0.05)
+    finally:
+        plt.close(figure)
+
+
+def test_results_bars_span_the_rest_of_their_row(tmp_path):
+    import matplotlib.pyplot as plt
+
+    store = ResultStore(tmp_path / "grid.sqlite")
+    store.add_pairs([PairSource(left="Teddy", scene=True)])
+    run = store.start_run("test", "v", {}, "")
+    for kernel in (3, 5):
+        for window in (7, 9):
+            for ratio in (0.1, 0.2):
+                overrides = {"segmentation.kernel_size": kernel, "dense.window_size": window,
+                             "dense.uniqueness_ratio": ratio}
+                config = make_sweep_config("default", overrides, None)
+                store.add_configs([config.record()])
+                store.write_task(config.config_id, run, [(PairSource(left="Teddy", scene=True).pair_id,
+                                                          PairEvaluation(name="Teddy", status="OK", calibrated=True,
+                                                                         has_truth=True, acc_r_min_pct=90 + kernel,
+                                                                         acc_r_max_pct=95.0, acc_objects_pct=96.0))])
+    figure = results_figure(store)
+    store.close()
+    try:
+        *params, bars = figure.axes
+        assert len(params) == 3  # three swept parameters in the first row, the bars under them, full width
+        assert bars.get_position().x0 == pytest.approx(params[0].get_position().x0)
+        assert bars.get_position().x1 == pytest.approx(params[2].get_position().x1)
+    finally:
+        plt.close(figure)
+
+
+def test_results_accepts_out_and_csv_paths_are_normalised(tmp_path, capsys):
+    with _store(tmp_path / "one.sqlite", {"a": [96.0, 98.5, 99.0]}) as store:
+        header, rows = csv_table(store)
+    lefts = [row[header.index("left")] for row in rows]
+    assert lefts == ["scenes/Teddy0", "scenes/Teddy1", "scenes/Teddy2"]
+    assert main(["results", str(tmp_path / "one.sqlite"), "--out", str(tmp_path / "fig.png")]) == 0
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_one_toml_format_for_config_and_sweep_files(data_dir, tmp_path):
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text(f'paths = ["{teddy}"]\nsize = "160x120"\nmax_ratio = 0.7\n'
+                          f'[set]\n"dense.window_size" = 7\n')
+    with pytest.warns(UserWarning, match="the sweep's paths, size not used"):
+        config, preset, overrides = resolve_config("default", sweep_file)
+    assert (config.dense.window_size, config.max_ratio, preset) == (7, 0.7, "default")
+    assert overrides == {"max_ratio": 0.7, "dense.window_size": 7}
+    (sweep,) = load_sweep(sweep_file).configs  # and the same file is a sweep of one configuration
+    assert sweep.record()["config"]["max_ratio"] == 0.7 and sweep.record()["config"]["dense"]["window_size"] == 7
+    sweep_file.write_text(f'paths = ["{teddy}"]\n[grid]\n"dense.window_size" = [7, 9]\n')
+    with pytest.raises(InputError, match="grid: a sweep's grid makes several configurations"):
+        resolve_config("default", sweep_file)
+    plain = tmp_path / "config.toml"
+    plain.write_text('preset = "paper"\n[segmentation]\nkernel_size = 7\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a plain configuration file: nothing to say
+        config, preset, _ = resolve_config("default", plain)
+    assert (config.segmentation.kernel_size, preset) == (7, "paper")
+
+
+def test_a_version_1_store_is_read_as_it_is_and_upgraded_when_written(tmp_path):
+    path = tmp_path / "old.sqlite"
+    _store(path, {"a": [96.0, 98.0]}).close()
+    connection = sqlite3.connect(path)
+    connection.execute('ALTER TABLE results DROP COLUMN "calibration"')  # as version 1 wrote it
+    connection.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+    connection.commit()
+    connection.close()
+    with ResultStore(path, create=False) as store:
+        assert [row["calibration"] for row in store.results()] == [None, None]
+    with ResultStore(path) as store:
+        assert store.connection.execute("SELECT value FROM meta").fetchone() == (str(SCHEMA_VERSION),)
+        columns = [row[1] for row in store.connection.execute("PRAGMA table_info(results)")]
+        assert "calibration" in columns

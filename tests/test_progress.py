@@ -1,0 +1,70 @@
+"""Progress of long commands: a bar on a terminal, plain lines and a summary into a file or a pipe."""
+
+from __future__ import annotations
+
+import io
+import re
+import subprocess
+import sys
+
+from svs_torch.cli.progress import Progress
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_into_a_pipe_is_plain_lines_every_few_seconds_and_a_summary():
+    clock, stream, out = _Clock(), io.StringIO(), io.StringIO()
+    with Progress(10, "eval", stream=stream, interval_s=5.0, clock=clock) as progress:
+        for number in range(10):
+            clock.now += 2.0  # 2 s per pair: a line at 6, 12 and 18 s (3, 6 and 9 pairs), none per pair
+            progress.write(f"row {number}", out)
+            progress.update(1)
+    lines = stream.getvalue().splitlines()
+    assert "\r" not in stream.getvalue()
+    assert lines == ["eval: 3/10 pairs, 0.5 pairs/s, ETA 14 s", "eval: 6/10 pairs, 0.5 pairs/s, ETA 8 s",
+                     "eval: 9/10 pairs, 0.5 pairs/s, ETA 2 s", "eval: 10/10 pairs in 20.0 s, 0.5 pairs/s"]
+    assert out.getvalue().splitlines() == [f"row {n}" for n in range(10)]
+
+
+def test_progress_on_a_terminal_is_a_bar_and_keeps_result_lines_apart():
+    stream, out = _Terminal(), io.StringIO()
+    with Progress(4, "sweep", stream=stream) as progress:
+        for number in range(4):
+            progress.write(f"row {number}", out)
+            progress.update(1)
+    drawn = stream.getvalue()
+    assert "\r" in drawn and "sweep" in drawn and "4/4" in drawn  # tqdm's bar, redrawn in place
+    assert not re.search(r"pairs in \d", drawn)  # no plain summary line on a terminal
+    assert out.getvalue().splitlines() == [f"row {n}" for n in range(4)]
+
+
+def test_eval_into_a_pipe_has_no_carriage_returns(data_dir):
+    scene = data_dir / "middlebury_2001" / "Tsukuba"
+    done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "eval", str(scene), "--size", "160x120"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "\r" not in done.stderr
+    assert re.fullmatch(r"eval: 1/1 pairs in \d+\.\d s, \d+\.\d pairs/s", done.stderr.strip().splitlines()[-1])
+
+
+def test_progress_over_an_iterable_counts_each_item_and_shows_a_postfix():
+    clock, stream = _Clock(), io.StringIO()
+    progress = Progress(4, "train", unit="step", stream=stream, interval_s=5.0, clock=clock)
+    seen = []
+    for step in progress.over(range(4)):
+        seen.append(step)
+        clock.now += 3.0
+        progress.set_postfix(loss=f"{0.5 / (step + 1):.3f}")
+    assert seen == [0, 1, 2, 3]
+    assert stream.getvalue().splitlines() == ["train: 2/4 steps, 0.3 steps/s, ETA 6 s (loss 0.250)",
+                                              "train: 4/4 steps in 12.0 s, 0.3 steps/s"]
