@@ -19,7 +19,8 @@ from typing import IO
 
 from .errors import InputError
 
-__all__ = ["atomic_output", "check_output_file", "display_path", "path_kind", "write_bytes_atomic"]
+__all__ = ["atomic_output", "check_output_file", "display_path", "make_output_folder", "path_kind",
+           "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -65,6 +66,22 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
         raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
     if suffixes and target.suffix.lower() not in suffixes:
         raise InputError(f"{name}: expected {kinds or ' or '.join(suffixes)} file name, got {display_path(target)!r}")
+    return target
+
+
+def make_output_folder(path: str | os.PathLike, name: str) -> Path:
+    """``path`` as a folder to write into, made if missing (one level: its parent must exist); else
+    :class:`InputError` naming ``name``. Checked before any work starts."""
+    target = Path(path)
+    kind = path_kind(target, name) if str(path) else "other"
+    if kind == "folder":
+        return target
+    if kind != "missing":
+        raise InputError(f"{name}: expected a folder, got {'a file' if kind == 'file' else 'no usable path'}: "
+                         f"{display_path(target)!r}")
+    if path_kind(target.parent, name) != "folder":
+        raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
+    target.mkdir(exist_ok=True)
     return target
 
 

@@ -49,6 +49,10 @@ class StereoBatch:
             the right pixel x − d.
         disparity_valid: ``(B, 1, H, W)`` bool, where ``disparity_px`` is known; required with it.
         names: one name per pair (scene or file name), for reports.
+        disparity_nonoccluded: optional ``(B, 1, H, W)`` bool, where the GT pixel is also seen by the right
+            view (MiddEval3 ``mask0nocc.png`` = 255, KITTI ``disp_noc``); a subset of ``disparity_valid``. None
+            where the data has no such mask; in a batch where only some pairs have one, the others' are all
+            False (no pixel of theirs is known to be non-occluded, so their non-occluded metrics are null).
     """
 
     left: torch.Tensor
@@ -61,6 +65,7 @@ class StereoBatch:
     disparity_px: torch.Tensor | None = None
     disparity_valid: torch.Tensor | None = None
     names: tuple[str, ...] = ()
+    disparity_nonoccluded: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         dims = check_image(self.left, "left")
@@ -87,6 +92,11 @@ class StereoBatch:
             check_dtype(self.disparity_px, "disparity_px", "float")
             check_same_shape(self.left, "left", self.disparity_valid, "disparity_valid")
             check_dtype(self.disparity_valid, "disparity_valid", "bool")
+        if self.disparity_nonoccluded is not None:
+            if self.disparity_px is None:
+                raise InputError("disparity_nonoccluded: expected it only with disparity_px (a GT mask)")
+            check_same_shape(self.left, "left", self.disparity_nonoccluded, "disparity_nonoccluded")
+            check_dtype(self.disparity_nonoccluded, "disparity_nonoccluded", "bool")
         if self.names and len(self.names) != b:
             raise InputError(f"names: expected {b} names, one per pair, got {len(self.names)}")
 
@@ -102,6 +112,7 @@ class StereoBatch:
         disparity_px: torch.Tensor | None = None,
         disparity_valid: torch.Tensor | None = None,
         names: tuple[str, ...] = (),
+        disparity_nonoccluded: torch.Tensor | None = None,
     ) -> StereoBatch:
         """Build a batch from image tensors, broadcasting scalar calibration to every pair."""
         check_image(left, "left", check_range=False)
@@ -133,6 +144,7 @@ class StereoBatch:
             disparity_px=disparity_px,
             disparity_valid=disparity_valid,
             names=names,
+            disparity_nonoccluded=disparity_nonoccluded,
         )
 
     @property

@@ -13,9 +13,9 @@ import math
 from typing import Any
 
 __all__ = [
-    "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_figure_option", "dumps_strict", "finite_float", "non_negative_float",
-    "non_negative_int", "options_named", "positive_float", "positive_int", "seed_int", "too_small_reason",
-    "unit_interval_float", "with_config_values",
+    "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option", "dumps_strict",
+    "finite_float", "non_negative_float", "non_negative_int", "options_named", "positive_float", "positive_int",
+    "seed_int", "too_small_reason", "unit_interval_float", "with_config_values",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -124,6 +124,28 @@ def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases:
                         action=_FigureAction,
                         help=f"{help_text}{default_text}; {kinds}"
                              + (f" (also {', '.join(aliases)})" if aliases else ""))
+
+
+def _method_name(text: str) -> str:
+    """argparse type: a method name for Middlebury's file names (as ``evaluation.export.METHOD_NAME``)."""
+    if not (1 <= len(text) <= 64 and all(c.isascii() and (c.isalnum() or c in "_-") for c in text)):
+        raise argparse.ArgumentTypeError(f"expected 1-64 letters, digits, '_' or '-', got {text!r}")
+    return text
+
+
+def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
+    """``--disparity-out DIR``, ``--disparity-format`` and ``--method-name`` of ``eval`` and ``estimate``."""
+    group = parser.add_argument_group("disparity maps out (svs_torch/evaluation/export.py)")
+    group.add_argument("--disparity-out", metavar="DIR",
+                       help="write each pair's dense disparity map into DIR (made if missing), at the size the "
+                            "pipeline ran on, unmeasured pixels unknown; a rectified pair's map is brought back "
+                            "to the left image's pixels (needs the dense range rule)")
+    group.add_argument("--disparity-format", choices=("middlebury", "kitti"), default="middlebury",
+                       help="'middlebury': DIR/<scene>/disp0<NAME>.pfm (float32, +inf unknown) and "
+                            "time<NAME>.txt (seconds), the MiddEval3 SDK's layout (default); 'kitti': "
+                            "DIR/<pair>.png, uint16 = disparity x 256, 0 unknown, the KITTI devkit's")
+    group.add_argument("--method-name", default="SVSTorch", metavar="NAME", type=_method_name,
+                       help="NAME in Middlebury's file names (letters, digits, _ and -; default: SVSTorch)")
 
 
 class ConfigValue:

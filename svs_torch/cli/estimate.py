@@ -9,8 +9,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from .common import (add_figure_option, dumps_strict, finite_float, positive_float, positive_int, seed_int,
-                     too_small_reason)
+from .common import (add_disparity_export_options, add_figure_option, dumps_strict, finite_float, positive_float,
+                     positive_int, seed_int, too_small_reason)
 from .features import add_feature_options, add_pair_options, load_pair
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_file_source, calibration_from_args, check_no_manual_calibration,
@@ -48,6 +48,8 @@ examples:
   svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
   svs-depth estimate --pairs captured/index.jsonl --size 320x240
+  svs-depth estimate ../shared/data/middlebury_eval3_Q/Teddy --disparity-out maps   (maps/Teddy/disp0SVSTorch.pfm)
+  svs-depth estimate --pairs list.txt --disparity-out maps --disparity-format kitti   (maps/<left name>.png)
 list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGHT FOCAL_PX BASELINE_M
 [DOFFS_PX]' (that pair's own), or a scene folder (MiddEval3, Middlebury, KITTI: its own calibration).
 
@@ -107,6 +109,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
                              "lossless: .png, .bmp or .tif")
     parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines)")
+    add_disparity_export_options(parser)
     parser.set_defaults(func=run)
 
 
@@ -139,7 +142,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "time_s": 0.0, "calibration": None}
+            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
 
 
 def _calibration_source(source, args) -> str:
@@ -207,6 +210,11 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
                                  else None),
         "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
+        # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
+        # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
+        # its region's pixels inside it.
+        "dense_box_xywh": ([int(v) for v in result.dense.crop_xywh[index].tolist()] if result.dense is not None
+                           else None),
         "time_s": round(elapsed_s, 6),
     }
 
@@ -258,12 +266,49 @@ def _write_outputs(args, batch, result, factors) -> None:
                            lossless=True)
 
 
+def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:
+    """``--disparity-out``'s folder made, or its error raised, before any work (standard library only)."""
+    if args.disparity_out:
+        from ..errors import InputError
+        from ..files import make_output_folder
+
+        if range_rule == "paper":
+            raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense "
+                             "map), got --range paper")
+        make_output_folder(args.disparity_out, "--disparity-out")
+
+
+#: This process's export of ``--disparity-out`` (one per worker), so two listed pairs of one name are caught.
+_EXPORTS: dict[tuple, object] = {}
+
+
+def _write_disparity(args: argparse.Namespace, batch, result, time_s: float) -> None:
+    """Write the run's dense maps into ``--disparity-out`` (a pair that would overwrite another of this
+    process's is skipped with a warning naming both)."""
+    if not args.disparity_out:
+        return
+    import warnings
+
+    from ..errors import InputError
+    from ..evaluation.export import DisparityExport
+
+    key = (args.disparity_out, args.disparity_format, args.method_name)
+    export = _EXPORTS.setdefault(key, DisparityExport(Path(args.disparity_out), args.disparity_format,
+                                                      args.method_name))
+    try:
+        export.write(batch, result, time_s)
+    except InputError as error:
+        warnings.warn(str(error), RuntimeWarning, stacklevel=2)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.pairs:  # before any heavy import: the workers may be started without torch in this process
         from . import CliError
 
         if args.left or args.right or args.figure or args.masks_out:
             raise CliError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
+        _check_disparity_out(args, args.range_rule or ("paper" if getattr(args, "preset", None) == "paper"
+                                                       else None))
         return _run_many(args)
     from ..workers import imports_without_collection
 
@@ -287,6 +332,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.figure, args.figure_option)
     if args.masks_out:
         check_output_path(args.masks_out, "--masks-out", lossless=True)
+    _check_disparity_out(args, config.depth.rule)
     source = PairSource(left=args.left, right=None if scene else args.right, scene=scene)
     if scene:
         batch, factors = _load_source(source, args)
@@ -301,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
         report = pair_report(result, 0, factors, time.perf_counter() - started)
         report = with_calibration(report, batch, 0, factors, _calibration_source(source, args))
         _write_outputs(args, batch, result, factors)
+        _write_disparity(args, batch, result, report["time_s"])
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
     return 0
 
@@ -348,6 +395,7 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
         per_pair = (time.perf_counter() - started) / len(runnable)
+        _write_disparity(args, batch, result, per_pair)
     row, out = 0, []
     for source, (status, reason, loaded) in zip(chunk, entries):
         if loaded is None:

@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from .common import dumps_strict, finite_float, positive_float, positive_int
+from .common import add_disparity_export_options, dumps_strict, finite_float, positive_float, positive_int
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
                   with_calibrated_rectification)
@@ -19,6 +19,15 @@ Eq. (9) accuracy of R_min, R_max and each object (an object's true distance is t
 kept region; true R_min / R_max are the nearest / farthest object), the dense disparity error over the kept
 regions and the RANSAC inliers' disparity error (median, within 1 px, within 3 px), inlier precision, counts,
 status and time. A failed pair counts 0 % and is listed; nothing is hidden.
+
+The standard stereo metrics of the dense disparity map follow (Middlebury SDK: bad-0.5/1/2/4 %, avgerr, rms,
+A50/A90/A95/A99; KITTI: D1 %, error > 3 px and > 5 % of the true disparity), each with the density it was
+measured at (the share of the GT pixels the map covers; unknown pixels are not filled), over the kept regions
+and over the whole frame, on all GT pixels and on the non-occluded ones where the data has a mask (MiddEval3
+mask0nocc.png, KITTI disp_noc). Errors are in the data's native pixels, so the thresholds are the published
+ones even with --size (an error measured at 320 px wide is scaled by native width / 320). The table shows
+bad2n / bad2 (bad-2 % over the kept regions, non-occluded / all GT), avgerr (px), D1 % and dens; --json rows
+carry every metric (map_*/kept_* keys, and per object); rectified pairs and --range paper have none.
 
 PATH is a scene folder of any shared format (MiddEval3, Middlebury 2001-2006, KITTI, OpenCV aloe), a folder of
 scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M
@@ -38,10 +47,12 @@ examples:
   svs-depth eval ../shared/data/middlebury_eval3_Q --size 320x240
   svs-depth eval ../shared/data/middlebury_eval3_Q --preset paper --json | tail -1
   svs-depth eval scenes.txt --set segmentation.kernel_size=7 --set max_ratio=0.7 --db results.sqlite
+  svs-depth eval ../shared/data/middlebury_eval3_Q --disparity-out maps/   (maps/Teddy/disp0SVSTorch.pfm, ...)
 
 --json: one JSON object per pair, then one summary object as the last line, with pairs, failed,
 acc_r_min_pct, acc_r_max_pct, acc_objects_pct (over the pairs with their own calibration), nominal_calibration
-(the others, apart), pairs_per_s (loading included), the mean disparity errors and the failures. --db adds the
+(the others, apart), pairs_per_s (loading included), the mean disparity errors, the mean stereo metrics (over
+every pair that has them: they are disparities, whatever the calibration) and the failures. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
 row), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
@@ -68,6 +79,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_calibration_option(parser, "listed file pairs without their own calibration")
     parser.add_argument("--db", metavar="FILE.sqlite", help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
+    add_disparity_export_options(parser)
     parser.set_defaults(func=run)
 
 
@@ -79,17 +91,16 @@ def format_row(e) -> str:
     return (f"{e.name[:28]:<28} {e.status:<17} {_number(e.r_min_m, 3):>7} {_number(e.real_r_min_m, 3):>7} "
             f"{_number(e.acc_r_min_pct):>6} {_number(e.r_max_m, 3):>7} {_number(e.real_r_max_m, 3):>7} "
             f"{_number(e.acc_r_max_pct):>6} {_number(e.acc_objects_pct):>6} {_number(e.dense_within_1px, 2):>6} "
-            f"{_number(e.inlier_precision, 2):>6} {e.time_s:6.3f} {_calibration_mark(e):<7}")
+            f"{_number(e.inlier_precision, 2):>6} {_number(e.kept_nocc_bad2_pct):>6} "
+            f"{_number(e.kept_all_bad2_pct):>6} {_number(e.kept_all_avgerr_px, 2):>6} "
+            f"{_number(e.kept_all_d1_pct):>5} {_number(e.kept_all_density, 2):>5} {e.time_s:6.3f} "
+            f"{_calibration_mark(e):<7}")
 
 
 def _calibration_mark(e) -> str:
     """The table's calib column: ``own`` (the data's or the user's calibration), ``NOMINAL`` (none shipped:
     scored with a nominal one, apart from the headline means) or ``-`` (not loaded)."""
     return "-" if e.calibrated is None else "own" if e.calibrated else "NOMINAL"
-
-
-HEADER = (f"{'pair':<28} {'status':<17} {'R_min':>7} {'real':>7} {'Acc %':>6} {'R_max':>7} {'real':>7} "
-          f"{'Acc %':>6} {'obj %':>6} {'d<=1':>6} {'prec':>6} {'time s':>6} {'calib':<7}")
 
 
 def format_calibrations(evaluations) -> list[str]:
@@ -107,6 +118,33 @@ def format_calibrations(evaluations) -> list[str]:
     return lines
 
 
+HEADER = (f"{'pair':<28} {'status':<17} {'R_min':>7} {'real':>7} {'Acc %':>6} {'R_max':>7} {'real':>7} "
+          f"{'Acc %':>6} {'obj %':>6} {'d<=1':>6} {'prec':>6} {'bad2n':>6} {'bad2':>6} {'avgerr':>6} {'D1 %':>5} "
+          f"{'dens':>5} {'time s':>6} {'calib':<7}")
+
+
+def _stereo_lines(summary: dict) -> list[str]:
+    """The summary's stereo metrics, one line per scope (kept regions or whole frame; all or non-occluded GT)."""
+    lines = ["stereo metrics of the dense map (means over pairs, native px; bad-t and D1 in % of the pixels "
+             "measured, at the density shown):"]
+    for scope, label in (("kept_all", "kept regions, all GT"), ("kept_nocc", "kept regions, non-occluded"),
+                         ("map_all", "whole frame, all GT"), ("map_nocc", "whole frame, non-occluded")):
+        if summary.get(f"{scope}_density") is None:
+            lines.append(f"  {label}: -")
+            continue
+
+        def value(metric: str, digits: int = 1) -> str:
+            return _number(summary[f"{scope}_{metric}"], digits)
+
+        count = summary[f"{scope}_pairs"]
+        lines.append(f"  {label} ({count} pair{'' if count == 1 else 's'}): density {value('density', 3)}, "
+                     f"bad-0.5/1/2/4 {value('bad0_5_pct')}/{value('bad1_pct')}/{value('bad2_pct')}/"
+                     f"{value('bad4_pct')}, avgerr {value('avgerr_px', 2)}, rms {value('rms_px', 2)}, A50/90/95/99 "
+                     f"{value('a50_px', 2)}/{value('a90_px', 2)}/{value('a95_px', 2)}/{value('a99_px', 2)}, "
+                     f"D1 {value('d1_pct')}")
+    return lines
+
+
 def format_summary(summary: dict) -> list[str]:
     lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
              f"truth; {_number(summary['pairs_per_s'], 2)} pairs/s",
@@ -118,6 +156,7 @@ def format_summary(summary: dict) -> list[str]:
              f"inliers: median error {_number(summary['sparse_error_median_px'], 2)} px, precision "
              f"{_number(summary['inlier_precision'], 3)}",
              *_nominal_summary(summary.get("nominal_calibration")),
+             *_stereo_lines(summary),
              "statuses: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items())]
     for failure in summary["failures"]:
         lines.append(f"  failed: {failure['name']}: {failure['status']}"
@@ -131,6 +170,24 @@ def _nominal_summary(nominal: dict | None) -> list[str]:
     return [f"apart, {nominal['scored']} scored with a NOMINAL calibration (their data ship none; not in the means "
             f"above): R_min {_number(nominal['acc_r_min_pct'])} %, R_max {_number(nominal['acc_r_max_pct'])} %, "
             f"objects {_number(nominal['acc_objects_pct'])} %"]
+
+
+def disparity_export(args: argparse.Namespace, config):
+    """The :class:`~svs_torch.evaluation.export.DisparityExport` of ``--disparity-out`` (its folder made, or
+    the error raised, before any work), or None without the option."""
+    if not args.disparity_out:
+        return None
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..evaluation.export import DisparityExport
+
+    if config.depth.rule != "dense":
+        raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense map), "
+                         f"got depth.rule={config.depth.rule}")
+    export = DisparityExport(Path(args.disparity_out), args.disparity_format, args.method_name)
+    export.prepare()
+    return export
 
 
 def run(args: argparse.Namespace) -> int:
@@ -154,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
+    export = disparity_export(args, config)
     sources = read_pair_sources(args.paths, "path")
     store = run_id = None
     if args.db:
@@ -174,7 +232,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Progress(len(sources), "eval") as bar:
             block = []
-            for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update):
+            for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
+                                                     export.write if export is not None else None):
                 evaluations.append(evaluation)
                 block.append((source.pair_id, evaluation))
                 if len(block) == args.batch_size or len(evaluations) == len(sources):

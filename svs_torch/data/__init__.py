@@ -1,7 +1,8 @@
 """Real stereo data sets of the shared folder, SVS resampling and collation, and synthetic SVS scenes."""
 
 from .synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
-from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
+from .formats import (read_gray_image, read_kitti_disparity, read_middlebury_calib, read_pfm, read_scaled_disparity,
+                      write_kitti_disparity, write_pfm)
 from .datasets import (
     detect_stereo_layout,
     list_shared_pairs,
@@ -26,4 +27,5 @@ __all__ = [
     "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006", "load_middlebury_eval3",
     "load_opencv_aloe", "load_stereo_pair", "random_obstacle_scenes", "read_gray_image", "read_middlebury_calib",
     "read_pfm", "read_scaled_disparity", "render_obstacle_scenes", "resize_stereo_batch",
+    "read_kitti_disparity", "write_kitti_disparity", "write_pfm",
 ]

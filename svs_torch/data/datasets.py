@@ -22,6 +22,7 @@ import torch
 from ..camera import SVS_CAMERA
 from ..checks import InputError
 from ..files import display_path, path_kind
+from ..image_files import read_image_array as _imread
 from ..types import StereoBatch
 from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
 
@@ -73,8 +74,10 @@ def _make_batch(
     calibrated: bool = False,
     disparity: np.ndarray | None = None,
     valid: np.ndarray | None = None,
+    nonoccluded: np.ndarray | None = None,
 ) -> StereoBatch:
-    """One-pair batch from ``(1, 1, H, W)`` images and an optional ``(H, W)`` disparity and mask."""
+    """One-pair batch from ``(1, 1, H, W)`` images and an optional ``(H, W)`` disparity, its mask and its
+    non-occluded mask (kept only where the disparity is valid)."""
     h, w = left.shape[-2:]
     if right.shape != left.shape:
         rh, rw = right.shape[-2:]
@@ -86,8 +89,15 @@ def _make_batch(
                              f"{disparity.shape[1]}x{disparity.shape[0]} [{name}]")
         disparity_t = torch.from_numpy(np.ascontiguousarray(disparity)).to(left.dtype)[None, None]
         valid_t = torch.from_numpy(np.ascontiguousarray(valid))[None, None]
+    nonoccluded_t = None
+    if nonoccluded is not None:
+        if nonoccluded.shape != (h, w):
+            raise InputError(f"nonoccluded: expected the size of left {w}x{h} (WxH), got "
+                             f"{nonoccluded.shape[1]}x{nonoccluded.shape[0]} [{name}]")
+        nonoccluded_t = torch.from_numpy(np.ascontiguousarray(nonoccluded & valid))[None, None]
     return StereoBatch.from_images(left, right, focal_px, baseline_m, doffs_px, calibrated,
-                                   disparity_px=disparity_t, disparity_valid=valid_t, names=(name,))
+                                   disparity_px=disparity_t, disparity_valid=valid_t, names=(name,),
+                                   disparity_nonoccluded=nonoccluded_t)
 
 
 def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,16 +107,30 @@ def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[t
 def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``disp0GT.pfm``, ``calib.txt``), e.g. trainingQ/Teddy.
 
-    focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. GT valid where the PFM is finite.
+    focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. GT valid where the PFM is finite;
+    ``disparity_nonoccluded`` where ``mask0nocc.png`` (if the folder has it) is 255 (128 = occluded, 0 = no GT).
     """
     scene_dir = _check_dir(scene_dir, "scene_dir")
     calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
     left, right = _read_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
     gt = read_pfm(scene_dir / "disp0GT.pfm", "disparity")
     valid = np.isfinite(gt)
+    nonoccluded = None
+    if (scene_dir / "mask0nocc.png").is_file():
+        mask = _read_mask(scene_dir / "mask0nocc.png", "mask0nocc")
+        nonoccluded = mask == 255
     return _make_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]),
                        baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]),
-                       calibrated=True, disparity=np.where(valid, gt, 0.0), valid=valid)
+                       calibrated=True, disparity=np.where(valid, gt, 0.0), valid=valid, nonoccluded=nonoccluded)
+
+
+def _read_mask(path: Path, name: str) -> np.ndarray:
+    """A one-channel 8-bit mask image as ``(H, W)`` uint8."""
+    array = _imread(path, name)
+    if array.ndim != 2 or array.dtype != np.uint8:
+        raise InputError(f"{name}: expected a 1-channel uint8 mask image, got {array.dtype} with shape "
+                         f"{array.shape}: {display_path(path)}")
+    return array
 
 
 def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
@@ -161,23 +185,28 @@ def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float
 def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32) -> StereoBatch:
     """KITTI stereo 2012 (``colored_0/1``, ``disp_occ``) or 2015 (``image_2/3``, ``disp_occ_0``) training frame.
 
-    GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid). No calib files are shipped: focal and
+    GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid); where the folder also has the non-occluded
+    GT (``disp_noc`` / ``disp_noc_0``), its known pixels are ``disparity_nonoccluded`` (the shared copies have
+    only the all-pixel ``disp_occ``). No calib files are shipped: focal and
     baseline are the nominal values for the image width (MANIFEST §4; nearest listed width otherwise),
     calibrated False — use KITTI for disparity-level evaluation only.
     """
     root = _check_dir(root, "root")
     if (root / "colored_0").is_dir():
-        folders, prefix = ("colored_0", "colored_1", "disp_occ"), "kitti2012"
+        folders, prefix, noc = ("colored_0", "colored_1", "disp_occ"), "kitti2012", "disp_noc"
     elif (root / "image_2").is_dir():
-        folders, prefix = ("image_2", "image_3", "disp_occ_0"), "kitti2015"
+        folders, prefix, noc = ("image_2", "image_3", "disp_occ_0"), "kitti2015", "disp_noc_0"
     else:
         raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
     left, right = _read_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
     disparity, valid = read_scaled_disparity(root / folders[2] / f"{frame}.png", 256.0, "disparity")
+    nonoccluded = None
+    if (root / noc / f"{frame}.png").is_file():
+        nonoccluded = read_scaled_disparity(root / noc / f"{frame}.png", 256.0, "disparity_noc")[1]
     width = left.shape[-1]
     focal_px, baseline_m = _KITTI_NOMINAL[min(_KITTI_NOMINAL, key=lambda w: abs(w - width))]
     return _make_batch(left, right, f"{prefix}/{frame}", focal_px=focal_px, baseline_m=baseline_m,
-                       disparity=disparity, valid=valid)
+                       disparity=disparity, valid=valid, nonoccluded=nonoccluded)
 
 
 def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:

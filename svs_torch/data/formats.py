@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..checks import FLOAT_DTYPES, InputError
-from ..files import display_path
+from ..files import display_path, write_bytes_atomic
 from ..image_files import check_file as _check_file
 from ..image_files import read_image_array as _imread
 
@@ -25,7 +25,10 @@ __all__ = [
     "read_pfm",
     "read_middlebury_calib",
     "read_gray_image",
+    "read_kitti_disparity",
     "read_scaled_disparity",
+    "write_kitti_disparity",
+    "write_pfm",
 ]
 
 # Full-scale value of each supported integer image dtype: a pixel becomes value / full scale in [0, 1].
@@ -158,3 +161,53 @@ def read_scaled_disparity(path: str | Path, scale: float, name: str = "path") ->
     valid = array > 0
     disparity = np.where(valid, array.astype(np.float32) / np.float32(scale), np.float32(0.0))
     return disparity.astype(np.float32), valid
+
+
+def write_pfm(path: str | Path, array: np.ndarray) -> None:
+    """Write an ``(H, W)`` map as a one-channel PFM (``Pf``, little-endian float32: scale −1, rows bottom to
+    top), the Middlebury SDK's disparity format; ``+inf`` marks unknown disparities. :func:`read_pfm` reads it
+    back bit for bit. Written whole through :func:`~svs_torch.files.write_bytes_atomic`."""
+    array = np.asarray(array)
+    if array.ndim != 2 or array.shape[0] < 1 or array.shape[1] < 1 or not np.issubdtype(array.dtype, np.floating):
+        raise InputError(f"array: expected a non-empty (H, W) float map, got {array.dtype} {array.shape}")
+    height, width = array.shape
+    header = f"Pf\n{width} {height}\n-1\n".encode("ascii")
+    write_bytes_atomic(path, header + np.ascontiguousarray(np.flipud(array), dtype="<f4").tobytes())
+
+
+#: KITTI's disparity PNG: uint16, value = disparity · 256, 0 = unknown.
+KITTI_DISPARITY_SCALE = 256.0
+
+
+def write_kitti_disparity(path: str | Path, disparity_px: np.ndarray, valid: np.ndarray) -> None:
+    """Write an ``(H, W)`` disparity map as KITTI's uint16 PNG: ``round(d · 256)`` where ``valid``, 0 elsewhere.
+
+    A valid disparity is clipped to [1/256, 65535/256] px, the values the format can hold as known (0 means
+    unknown, so a known disparity below 1/512 px is written as 1/256 rather than lost); a negative or non-finite
+    one is written unknown. :func:`read_kitti_disparity` reads back exactly the multiples of 1/256 in that range.
+    Written whole through :func:`~svs_torch.files.write_bytes_atomic`."""
+    disparity_px, valid = np.asarray(disparity_px), np.asarray(valid)
+    if disparity_px.ndim != 2 or disparity_px.size == 0 or valid.shape != disparity_px.shape or valid.dtype != bool:
+        raise InputError(f"disparity_px, valid: expected a non-empty (H, W) map and an (H, W) bool mask, got "
+                         f"{disparity_px.shape} and {valid.dtype} {valid.shape}")
+    known = valid & np.isfinite(disparity_px) & (disparity_px >= 0)
+    scaled = np.rint(np.where(known, disparity_px, 0).astype(np.float64) * KITTI_DISPARITY_SCALE)
+    values = np.where(known, np.clip(scaled, 1, 65535), 0).astype(np.uint16)
+    ok, encoded = cv2.imencode(".png", values)
+    if not ok:  # pragma: no cover - OpenCV encodes any uint16 gray image as PNG
+        raise InputError(f"path: OpenCV could not encode a {values.shape} uint16 PNG for {display_path(path)}")
+    write_bytes_atomic(path, encoded.tobytes())
+
+
+def read_kitti_disparity(path: str | Path, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
+    """Read a KITTI disparity PNG (uint16, value / 256, 0 = unknown): disparity ``(H, W)`` float32 pixels (0
+    where unknown) and validity ``(H, W)`` bool."""
+    array = _imread(path, name)
+    if array.dtype != np.uint16:
+        raise InputError(f"{name}: expected a uint16 KITTI disparity PNG, got {array.dtype}"
+                         f"{'' if array.ndim == 2 else f' with {array.shape[2]} channels'}: {display_path(path)}")
+    if array.ndim != 2:
+        raise InputError(f"{name}: expected a 1-channel KITTI disparity PNG, got {array.shape[2]} channels: "
+                         f"{display_path(path)}")
+    valid = array > 0
+    return (array.astype(np.float32) / np.float32(KITTI_DISPARITY_SCALE)).astype(np.float32), valid

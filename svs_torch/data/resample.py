@@ -36,7 +36,7 @@ def _check_size_wh(size_wh: Sequence[int], name: str = "size_wh") -> tuple[int, 
 def _crop(batch: StereoBatch, height: int, width: int) -> StereoBatch:
     """The top-left ``height × width`` part of every tensor image of ``batch`` (drops bottom/right padding)."""
     fields = {}
-    for name in ("left", "right", "disparity_px", "disparity_valid"):
+    for name in ("left", "right", "disparity_px", "disparity_valid", "disparity_nonoccluded"):
         value = getattr(batch, name)
         fields[name] = None if value is None else value[..., :height, :width]
     return dataclasses.replace(batch, **fields)
@@ -53,7 +53,7 @@ def _resize_filled(batch: StereoBatch, width: int, height: int) -> StereoBatch:
         out = F.interpolate(image, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
         return out.clamp(0.0, 1.0)
 
-    disparity = valid = None
+    disparity = valid = nonoccluded = None
     if batch.disparity_px is not None:
         # Nearest at pixel centres: each new pixel takes one GT sample, so a depth edge never blends foreground
         # and background disparities into a value that belongs to neither surface.
@@ -61,6 +61,9 @@ def _resize_filled(batch: StereoBatch, width: int, height: int) -> StereoBatch:
         valid_float = batch.disparity_valid.to(batch.left.dtype)
         valid = F.interpolate(valid_float, size=(height, width), mode="nearest-exact") > 0.5
         disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
+        if batch.disparity_nonoccluded is not None:  # the same GT samples as the disparity's
+            nonoccluded_float = batch.disparity_nonoccluded.to(batch.left.dtype)
+            nonoccluded = (F.interpolate(nonoccluded_float, size=(height, width), mode="nearest-exact") > 0.5) & valid
     image_hw = torch.tensor([[height, width]], dtype=torch.int64, device=batch.left.device).expand(b, 2).clone()
     return dataclasses.replace(
         batch,
@@ -71,6 +74,7 @@ def _resize_filled(batch: StereoBatch, width: int, height: int) -> StereoBatch:
         image_hw=image_hw,
         disparity_px=disparity,
         disparity_valid=valid,
+        disparity_nonoccluded=nonoccluded,
     )
 
 
@@ -104,12 +108,14 @@ def _pad_to(batch: StereoBatch, height: int, width: int) -> StereoBatch:
     if (h, w) == (height, width):
         return batch
     pad = (0, width - w, 0, height - h)  # F.pad order: left, right, top, bottom of the last two dims
-    disparity = valid = None
+    disparity = valid = nonoccluded = None
     if batch.disparity_px is not None:
         disparity = F.pad(batch.disparity_px, pad, value=0.0)
         valid = F.pad(batch.disparity_valid, pad, value=False)
+    if batch.disparity_nonoccluded is not None:
+        nonoccluded = F.pad(batch.disparity_nonoccluded, pad, value=False)
     return dataclasses.replace(batch, left=F.pad(batch.left, pad, value=0.0), right=F.pad(batch.right, pad, value=0.0),
-                               disparity_px=disparity, disparity_valid=valid)
+                               disparity_px=disparity, disparity_valid=valid, disparity_nonoccluded=nonoccluded)
 
 
 def _concatenate(batches: Sequence[StereoBatch]) -> StereoBatch:
@@ -130,12 +136,18 @@ def _concatenate(batches: Sequence[StereoBatch]) -> StereoBatch:
                                for b in batches], dim=0)
         valid = torch.cat([b.disparity_valid if b.disparity_valid is not None
                            else torch.zeros_like(b.left, dtype=torch.bool) for b in batches], dim=0)
+    nonoccluded = None
+    if any(b.disparity_nonoccluded is not None for b in batches):
+        # A pair whose data has no non-occlusion mask: no pixel of it is known to be non-occluded.
+        nonoccluded = torch.cat([b.disparity_nonoccluded if b.disparity_nonoccluded is not None
+                                 else torch.zeros_like(b.left, dtype=torch.bool) for b in batches], dim=0)
     names: tuple[str, ...] = ()
     if any(b.names for b in batches):
         names = tuple(name for b in batches for name in (b.names or ("",) * b.batch_size))
     return StereoBatch(left=cat("left"), right=cat("right"), focal_px=cat("focal_px"), baseline_m=cat("baseline_m"),
                        doffs_px=cat("doffs_px"), calibrated=cat("calibrated"), image_hw=cat("image_hw"),
-                       disparity_px=disparity, disparity_valid=valid, names=names)
+                       disparity_px=disparity, disparity_valid=valid, names=names,
+                       disparity_nonoccluded=nonoccluded)
 
 
 def collate_stereo_batches(
@@ -153,7 +165,8 @@ def collate_stereo_batches(
             (or to ``size_wh`` if given, which must be at least that large); ``disparity_valid`` is False in
             the padding, and ``image_hw`` keeps each pair's true size, so pixel coordinates are unchanged.
 
-    Pairs without ground truth get disparity 0 and ``disparity_valid`` False when others have it; ``names`` are
+    Pairs without ground truth get disparity 0 and ``disparity_valid`` False when others have it (and
+    ``disparity_nonoccluded`` False when others have a non-occlusion mask); ``names`` are
     concatenated (empty strings for batches that have none).
 
     Returns:

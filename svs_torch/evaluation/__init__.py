@@ -3,13 +3,16 @@ pipeline and that the pipeline never imports.
 
 * :mod:`.metrics`: per-pair truth and scores (Eq. (9) of R_min, R_max and each object; dense and sparse
   disparity errors; inlier precision), batched over a :class:`~svs_torch.pipeline.PipelineResult`;
+* :mod:`.stereo_metrics`: the Middlebury SDK's and KITTI's metrics of dense disparity maps (bad-t, avgerr,
+  rms, A50–A99, D1, with their density), on all and non-occluded GT, batched;
 * :mod:`.runner`: batched evaluation of a list of pairs, and its summary;
 * :mod:`.overrides`: presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`;
 * :mod:`.store`: the SQLite results store (schema in its docstring);
 * :mod:`.sweep`: sweep files, tasks and runs; :mod:`.executors`: the local process pool and Dask;
 * :mod:`.report`: summaries, CSV and plots of a results store.
 
-Only :mod:`.metrics` and :mod:`.runner` are imported here; the others load when named.
+Only :mod:`.metrics`, :mod:`.stereo_metrics` and :mod:`.runner` are imported here; the others load when
+named.
 """
 
 from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, DisparityErrors, ObjectTruth, PairEstimate,
@@ -17,6 +20,8 @@ from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, DisparityErrors, Obj
                       estimates_from_result, evaluate_result, object_truth, score_pair, sparse_disparity_errors,
                       truth_list, with_nominal_calibration)
 from .runner import EvalSetup, evaluate_block, evaluate_pairs, summarize
+from .stereo_metrics import (STEREO_SCOPES, StereoMetrics, dense_map_metrics, measure_stereo_metrics,
+                             object_map_metrics)
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "EvalSetup", "ObjectTruth", "PairEstimate",
@@ -24,4 +29,5 @@ __all__ = [
     "estimates_from_result",
     "evaluate_block", "evaluate_pairs", "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors",
     "summarize", "truth_list", "with_nominal_calibration",
+    "STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics", "object_map_metrics",
 ]

@@ -20,6 +20,10 @@ Disparity errors (pixels, in the pair's working image):
   ``inlier_precision`` is the share of those inliers whose right point lies within 1 px of the true one in
   both x and y (a correct correspondence, not only a correct disparity).
 
+The standard stereo metrics of the dense map (Middlebury's bad-t, avgerr, rms, A-quantiles and KITTI's D1, each
+with its density, errors in the data's native pixels) are :mod:`.stereo_metrics`'; :class:`PairEvaluation`
+carries them as ``<scope>_<metric>`` fields and each object's in its ``objects`` entry.
+
 Medians are lower medians; shares are in [0, 1]. Nothing here is differentiable (medians of hard selections,
 status-gated estimates): these are reports, not losses.
 """
@@ -35,6 +39,7 @@ import torch
 from ..depth import kept_region_lower_median, masked_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
 from ..types import Segmentation, StereoBatch
+from .stereo_metrics import StereoMetrics, metric_values, pair_map_metrics
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "ObjectTruth", "PairEstimate", "PairEvaluation",
@@ -272,6 +277,62 @@ class PairEvaluation:
     num_inliers: int = 0
     rectified: bool = False
     time_s: float = 0.0
+    # Stereo metrics of the dense map (stereo_metrics.py; STEREO_SCOPES): over every GT pixel of the frame
+    # (map_*) or the kept regions (kept_*), all or non-occluded GT; errors in the data's native pixels
+    # (metric_px_scale = native / working width).
+    metric_px_scale: float | None = None
+    map_all_density: float | None = None
+    map_all_bad0_5_pct: float | None = None
+    map_all_bad1_pct: float | None = None
+    map_all_bad2_pct: float | None = None
+    map_all_bad4_pct: float | None = None
+    map_all_avgerr_px: float | None = None
+    map_all_rms_px: float | None = None
+    map_all_a50_px: float | None = None
+    map_all_a90_px: float | None = None
+    map_all_a95_px: float | None = None
+    map_all_a99_px: float | None = None
+    map_all_d1_pct: float | None = None
+    map_all_num_px: int | None = None
+    map_nocc_density: float | None = None
+    map_nocc_bad0_5_pct: float | None = None
+    map_nocc_bad1_pct: float | None = None
+    map_nocc_bad2_pct: float | None = None
+    map_nocc_bad4_pct: float | None = None
+    map_nocc_avgerr_px: float | None = None
+    map_nocc_rms_px: float | None = None
+    map_nocc_a50_px: float | None = None
+    map_nocc_a90_px: float | None = None
+    map_nocc_a95_px: float | None = None
+    map_nocc_a99_px: float | None = None
+    map_nocc_d1_pct: float | None = None
+    map_nocc_num_px: int | None = None
+    kept_all_density: float | None = None
+    kept_all_bad0_5_pct: float | None = None
+    kept_all_bad1_pct: float | None = None
+    kept_all_bad2_pct: float | None = None
+    kept_all_bad4_pct: float | None = None
+    kept_all_avgerr_px: float | None = None
+    kept_all_rms_px: float | None = None
+    kept_all_a50_px: float | None = None
+    kept_all_a90_px: float | None = None
+    kept_all_a95_px: float | None = None
+    kept_all_a99_px: float | None = None
+    kept_all_d1_pct: float | None = None
+    kept_all_num_px: int | None = None
+    kept_nocc_density: float | None = None
+    kept_nocc_bad0_5_pct: float | None = None
+    kept_nocc_bad1_pct: float | None = None
+    kept_nocc_bad2_pct: float | None = None
+    kept_nocc_bad4_pct: float | None = None
+    kept_nocc_avgerr_px: float | None = None
+    kept_nocc_rms_px: float | None = None
+    kept_nocc_a50_px: float | None = None
+    kept_nocc_a90_px: float | None = None
+    kept_nocc_a95_px: float | None = None
+    kept_nocc_a99_px: float | None = None
+    kept_nocc_d1_pct: float | None = None
+    kept_nocc_num_px: int | None = None
     objects: list[dict] = field(default_factory=list)
 
     @property
@@ -290,8 +351,14 @@ def _error_fields(errors: DisparityErrors | None, index: int, prefix: str) -> di
     return values
 
 
+def _stereo_fields(scopes: dict[str, StereoMetrics], index: int) -> dict:
+    return {f"{scope}_{key}": value for scope, metrics in scopes.items()
+            for key, value in metric_values(metrics, index).items()}
+
+
 def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 0.0,
-                    calibrated: Sequence[bool] | None = None) -> list[PairEvaluation]:
+                    calibrated: Sequence[bool] | None = None,
+                    px_scale: Sequence[float] | None = None) -> list[PairEvaluation]:
     """Score every pair of a pipeline run on ``batch`` (with or without ground truth).
 
     Args:
@@ -300,18 +367,24 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
         result: :func:`~svs_torch.pipeline.estimate_obstacle_depth`'s result on it.
         time_s: each pair's pipeline time, seconds.
         calibrated: per pair, whether the calibration was the data's own (before the nominal one).
+        px_scale: per pair, the data's native width over the width the pipeline ran at (the stereo metrics'
+            errors are in native pixels, :mod:`.stereo_metrics`); None: 1 (the pipeline ran at native size).
     """
     estimates = estimates_from_result(result)
     has_gt = batch.disparity_px is not None
     truth = object_truth(batch, result.segmentation.left) if has_gt else None
     dense = dense_disparity_errors(batch, result)
     sparse = sparse_disparity_errors(batch, result)
+    scale = None if px_scale is None else torch.tensor(list(px_scale), dtype=batch.left.dtype,
+                                                       device=batch.left.device)
+    scopes, per_object = pair_map_metrics(batch, result, scale)
     keypoints = result.num_keypoints.tolist()
     counts = zip(result.num_matches.tolist(), result.num_inliers.tolist(), result.rectified.tolist())
     evaluations = []
     for i, (estimate, (matches, inliers, rectified)) in enumerate(zip(estimates, counts)):
         score = score_pair(truth_list(truth, i), estimate) if truth is not None else PairScore(None, None, None,
                                                                                                  None, None)
+        objects = [dict(o, **metric_values(per_object[o["slot"]], i)) if per_object else o for o in score.objects]
         has_truth = has_gt and bool(batch.disparity_valid[i].any())
         evaluations.append(PairEvaluation(
             name=batch.names[i] if batch.names else str(i), status=estimate.status,
@@ -322,6 +395,7 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
             dense_num_px=int(dense.count[i]) if dense is not None else 0,
             sparse_num_points=int(sparse.count[i]) if sparse is not None else 0,
             num_keypoints_left=keypoints[i][0], num_keypoints_right=keypoints[i][1], num_matches=matches,
-            num_inliers=inliers, rectified=bool(rectified), time_s=time_s, objects=score.objects,
-            **_error_fields(dense, i, "dense"), **_error_fields(sparse, i, "sparse")))
+            num_inliers=inliers, rectified=bool(rectified), time_s=time_s, objects=objects,
+            metric_px_scale=(1.0 if px_scale is None else float(px_scale[i])) if scopes else None,
+            **_error_fields(dense, i, "dense"), **_error_fields(sparse, i, "sparse"), **_stereo_fields(scopes, i)))
     return evaluations

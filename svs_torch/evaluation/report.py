@@ -31,6 +31,8 @@ METRICS: tuple[tuple[str, str, bool], ...] = (
     ("acc_objects_pct", "Acc objects %", True),
     ("dense_within_1px", "dense within 1 px", True),
     ("inlier_precision", "inlier precision", True),
+    ("kept_all_bad2_pct", "bad-2 % (kept)", False),
+    ("kept_all_d1_pct", "D1 % (kept)", False),
     ("pipeline_s_per_pair", "s per pair", False),
 )
 _BOOLEAN_COLUMNS = {name for name, _ in RESULT_COLUMNS

@@ -24,9 +24,10 @@ from ..checks import InputError
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
 from ..data.pair_list import PairSource
-from ..pipeline import PipelineConfig, estimate_obstacle_depth
+from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
 from ..types import StereoBatch
 from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
+from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 
 __all__ = ["EvalSetup", "LoadedPair", "evaluate_block", "evaluate_pairs", "load_block", "run_loaded",
            "summarize", "MIN_SIDE_PX"]
@@ -66,7 +67,8 @@ class LoadedPair:
     """A listed pair after loading: ``batch`` (B = 1, resampled, nominal calibration where it had none) or
     None with the ``status`` and ``reason`` it gets instead; ``calibrated``: the data's own calibration;
     ``calibration``: the one its metres use and where it came from (:func:`~svs_torch.data.calibration_record`,
-    at the input size)."""
+    at the input size); ``px_scale``: the input's width over the batch's (native pixels per pixel the pipeline
+    ran at)."""
 
     source: PairSource
     batch: StereoBatch | None
@@ -74,6 +76,7 @@ class LoadedPair:
     reason: str | None = None
     calibrated: bool = False
     calibration: dict | None = None
+    px_scale: float = 1.0
 
 
 def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
@@ -92,13 +95,15 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     if not calibrated:  # the metres (truth and estimate alike) use the nominal values: say so, and why
         origin = "nominal, for scoring only: no calibration shipped or given"
     calibration = dict(calibration_record(batch, 0, origin), measured=calibrated)
+    native_width = batch.size_hw[1]
     if setup.size_wh is not None:
         batch = resize_stereo_batch(batch, setup.size_wh)
     height, width = batch.size_hw
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
                                                      f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels")
-    return LoadedPair(source, batch, calibrated=calibrated, calibration=calibration)
+    return LoadedPair(source, batch, calibrated=calibrated, calibration=calibration,
+                      px_scale=native_width / batch.size_hw[1])
 
 
 def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPair]:
@@ -110,28 +115,37 @@ def _unrun(pair: LoadedPair) -> PairEvaluation:
     return PairEvaluation(name=pair.source.name, status=pair.status, reason=pair.reason)
 
 
-def _run_batch(pairs: list[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
+#: ``on_result(batch, result, seconds per pair)``: called with each pipeline run (e.g. to write its maps).
+OnResult = Callable[[StereoBatch, PipelineResult, float], None]
+
+
+def _run_batch(pairs: list[LoadedPair], config: PipelineConfig,
+               on_result: OnResult | None = None) -> list[PairEvaluation]:
     batch = collate_stereo_batches([p.batch for p in pairs], mode="pad")
     started = time.perf_counter()
     with torch.no_grad():
         result = estimate_obstacle_depth(batch, config)
     per_pair = (time.perf_counter() - started) / len(pairs)
-    scored = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs])
+    scored = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs], [p.px_scale for p in pairs])
+    if on_result is not None:
+        on_result(batch, result, per_pair)
     return [dataclasses.replace(e, calibration=p.calibration) for e, p in zip(scored, pairs)]
 
 
-def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig) -> list[PairEvaluation]:
-    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order."""
+def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
+               on_result: OnResult | None = None) -> list[PairEvaluation]:
+    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order (``on_result``:
+    see :data:`OnResult`; an exception it raises makes the pairs ``ERROR`` as the pipeline's would)."""
     runnable = [p for p in pairs if p.batch is not None]
     scored: list[PairEvaluation] = []
     if runnable:
         try:
-            scored = _run_batch(runnable, config)
+            scored = _run_batch(runnable, config, on_result)
         except Exception:  # noqa: BLE001 -- find the pair that raises: every other pair still gets its result
             scored = []
             for pair in runnable:
                 try:
-                    scored += _run_batch([pair], config)
+                    scored += _run_batch([pair], config, on_result)
                 except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
                     scored.append(PairEvaluation(name=pair.source.name, status="ERROR",
                                                  reason=f"{type(error).__name__}: {' '.join(str(error).split())}"))
@@ -145,9 +159,11 @@ def evaluate_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[Pair
 
 
 def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: int = 16,
-                   on_block: Callable[[int], None] | None = None) -> Iterator[tuple[PairSource, PairEvaluation]]:
+                   on_block: Callable[[int], None] | None = None,
+                   on_result: OnResult | None = None) -> Iterator[tuple[PairSource, PairEvaluation]]:
     """Evaluate every listed pair in blocks of ``batch_size``, in order; the next block is decoded in a thread
-    while the pipeline runs on the current one. ``on_block(n)`` is called after each block of n pairs."""
+    while the pipeline runs on the current one. ``on_block(n)`` is called after each block of n pairs;
+    ``on_result`` with each pipeline run (:data:`OnResult`)."""
     blocks = [list(sources[i:i + batch_size]) for i in range(0, len(sources), batch_size)]
     if not blocks:
         return
@@ -157,7 +173,7 @@ def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: 
             loaded = pending.result()
             if number + 1 < len(blocks):
                 pending = loader.submit(load_block, blocks[number + 1], setup)
-            yield from zip(block, run_loaded(loaded, setup.config))
+            yield from zip(block, run_loaded(loaded, setup.config, on_result))
             if on_block is not None:
                 on_block(len(block))
 
@@ -176,7 +192,9 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     False: the data ship none) are kept apart in ``nominal_calibration`` (their count, names and means);
     disparity errors are means over the pairs that have them; ``pairs_per_s`` is pairs over
     ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
-    ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on.
+    ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics
+    (:data:`~svs_torch.evaluation.stereo_metrics.STEREO_FIELDS`) are means over the pairs that have them;
+    ``<scope>_pairs`` counts those pairs for each scope.
     """
     failures = [e for e in evaluations if not e.ok]
     with_truth = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
@@ -208,4 +226,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "statuses": {status: sum(e.status == status for e in evaluations)
                      for status in sorted({e.status for e in evaluations})},
         "failures": [{"name": e.name, "status": e.status, "reason": e.reason} for e in failures],
+        **{key: mean_of(key) for key in STEREO_FIELDS},
+        **{f"{scope}_pairs": sum(getattr(e, f"{scope}_density") is not None for e in evaluations)
+           for scope in STEREO_SCOPES},
     }

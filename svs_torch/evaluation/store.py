@@ -27,8 +27,14 @@ Schema (``schema_version`` 2: version 1 had no ``calibration`` column)::
              r_min_m, r_max_m, real_r_min_m, real_r_max_m, acc_r_min_pct, acc_r_max_pct, acc_objects_pct, num_objects,
              dense_error_median_px, dense_within_1px, dense_within_3px, dense_num_px, sparse_error_median_px,
              sparse_within_1px, sparse_within_3px, inlier_precision, sparse_num_points, num_keypoints_left,
-             num_keypoints_right, num_matches, num_inliers, rectified, time_s, objects (JSON list)>,
+             num_keypoints_right, num_matches, num_inliers, rectified, time_s, metric_px_scale, the stereo
+             metrics <scope>_<metric> for scope map_all, map_nocc, kept_all, kept_nocc and metric density,
+             bad0_5_pct, bad1_pct, bad2_pct, bad4_pct, avgerr_px, rms_px, a50_px, a90_px, a95_px, a99_px,
+             d1_pct, num_px (stereo_metrics.py), objects (JSON list)>,
             UNIQUE(config_id, pair_id))
+
+A file made before a result column existed gets it (NULL in its older rows) when opened to write; opened to
+read, it is left as it is and its rows read None there.
 
 Units are in the column names (``_m`` metres, ``_px`` pixels, ``_pct`` percent, ``_s`` seconds; ``within_*``
 and ``inlier_precision`` are shares in [0, 1]); booleans are 0/1; a metric that does not exist is NULL.
@@ -118,6 +124,17 @@ class ResultStore:
         if version is None or int(version[0]) != SCHEMA_VERSION:
             raise InputError(f"db: {self.path} has schema version {version and version[0]}, expected "
                              f"{SCHEMA_VERSION}")
+        if create:
+            self._add_missing_columns()
+
+    def _add_missing_columns(self) -> None:
+        """Result columns added since the file was made (e.g. the stereo metrics) are added, NULL in the rows
+        stored before them: those rows were never measured so, and NULL is what a missing metric is. (Opened to
+        read, the file is left as it is and :meth:`results` gives None for them.)"""
+        present = {row[1] for row in self.connection.execute("PRAGMA table_info(results)")}
+        missing = [(name, kind) for name, kind in RESULT_COLUMNS if name not in present]
+        if missing:
+            self._transaction((f'ALTER TABLE results ADD COLUMN "{name}" {kind}', ()) for name, kind in missing)
 
     def _from_version_1(self, create: bool) -> tuple[str]:
         """A version-1 store: opened to write, it gains the (empty) calibration column and becomes version 2;
@@ -206,5 +223,7 @@ class ResultStore:
             row = dict(zip(names, values))
             row["objects"] = json.loads(row["objects"]) if row["objects"] else []
             row["calibration"] = json.loads(row["calibration"]) if row.get("calibration") else None
+            for name, _ in RESULT_COLUMNS:  # a column the file predates (opened to read): not measured
+                row.setdefault(name, None)
             rows.append(row)
         return rows

@@ -1,0 +1,174 @@
+"""Disparity maps out (svs_torch.evaluation.export, the PFM and KITTI PNG writers of svs_torch.data.formats):
+exact round trips, the official layouts, and maps that read back to the depths the JSON reports."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.cli import main
+from svs_torch.data import (load_stereo_pair, read_kitti_disparity, read_middlebury_calib, read_pfm,
+                            write_kitti_disparity, write_pfm)
+from svs_torch.evaluation.export import DisparityExport, export_name
+from svs_torch.pipeline import estimate_obstacle_depth
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (375, 450)])
+def test_pfm_round_trip_is_bit_exact(tmp_path, generator, shape):
+    values = (torch.randn(shape, generator=generator, dtype=torch.float64) * 100).numpy().astype(np.float32)
+    values.flat[::5] = np.inf  # Middlebury's unknown
+    values.flat[1::7] = -0.0
+    write_pfm(tmp_path / "d.pfm", values)
+    back = read_pfm(tmp_path / "d.pfm")
+    assert back.dtype == np.float32 and back.view(np.uint32).tolist() == values.view(np.uint32).tolist()
+    # The layout itself, read by hand (MANIFEST §2): header, little-endian scale, rows bottom to top.
+    raw = (tmp_path / "d.pfm").read_bytes()
+    header = f"Pf\n{shape[1]} {shape[0]}\n-1\n".encode()
+    assert raw.startswith(header)
+    assert np.array_equal(np.frombuffer(raw[len(header):], "<f4").reshape(shape)[::-1], values)
+
+
+def test_kitti_png_round_trip_is_exact(tmp_path, generator):
+    steps = torch.randint(1, 65536, (37, 53), generator=generator).numpy()
+    disparity = (steps / 256.0).astype(np.float32)  # every value the format holds as known
+    valid = torch.rand(37, 53, generator=generator).numpy() > 0.3
+    write_kitti_disparity(tmp_path / "d.png", disparity, valid)
+    back, back_valid = read_kitti_disparity(tmp_path / "d.png")
+    assert np.array_equal(back_valid, valid) and np.array_equal(back[valid], disparity[valid])
+    assert not back[~valid].any()
+    raw = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)  # OpenCV's own decoding: uint16, d x 256
+    assert raw.dtype == np.uint16 and np.array_equal(raw, np.where(valid, steps, 0))
+
+
+def test_kitti_png_clips_what_it_cannot_hold(tmp_path):
+    disparity = np.array([[0.0, 0.001, 300.0, -2.0, np.nan, 12.3456]], dtype=np.float32)
+    write_kitti_disparity(tmp_path / "d.png", disparity, np.ones_like(disparity, dtype=bool))
+    raw = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+    # A known 0 or tiny disparity stays known (1/256); above 255.996 is clipped; negative and NaN are unknown.
+    assert raw[0].tolist() == [1, 1, 65535, 0, 0, round(12.3456 * 256)]
+
+
+def test_writers_and_reader_name_bad_input(tmp_path):
+    with pytest.raises(InputError, match="array: expected a non-empty"):
+        write_pfm(tmp_path / "d.pfm", np.zeros((2, 2, 3), np.float32))
+    with pytest.raises(InputError, match="disparity_px, valid"):
+        write_kitti_disparity(tmp_path / "d.png", np.zeros((2, 3)), np.zeros((3, 2), bool))
+    cv2.imwrite(str(tmp_path / "eight.png"), np.zeros((4, 4), np.uint8))
+    with pytest.raises(InputError, match="expected a uint16 KITTI disparity PNG"):
+        read_kitti_disparity(tmp_path / "eight.png")
+    with pytest.raises(InputError, match="--disparity-format"):
+        DisparityExport(tmp_path, "png")
+    with pytest.raises(InputError, match="--method-name"):
+        DisparityExport(tmp_path, "middlebury", "my method")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="--disparity-out: expected a folder"):
+        DisparityExport(tmp_path / "file").prepare()
+    with pytest.raises(InputError, match="does not exist"):
+        DisparityExport(tmp_path / "no" / "maps").prepare()
+
+
+def test_export_names():
+    assert [export_name(n) for n in ("eval3/Teddy", "kitti2012/000000_10", "captured/left 01.png", "..")] == \
+        ["Teddy", "000000_10", "left_01", "pair"]
+
+
+def test_written_maps_equal_the_dense_map(data_dir, tmp_path):
+    batch = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch)
+    assert not bool(result.rectified[0])
+    DisparityExport(tmp_path / "m").prepare()
+    DisparityExport(tmp_path / "m").write(batch, result, 0.25)
+    DisparityExport(tmp_path / "k", "kitti").prepare()
+    DisparityExport(tmp_path / "k", "kitti").write(batch, result, 0.25)
+    dense, valid = result.dense.disparity_px[0, 0].numpy(), result.dense.valid[0, 0].numpy()
+    pfm = read_pfm(tmp_path / "m" / "Teddy" / "disp0SVSTorch.pfm")
+    assert np.array_equal(np.isfinite(pfm), valid) and np.array_equal(pfm[valid], dense[valid])
+    assert (tmp_path / "m" / "Teddy" / "timeSVSTorch.txt").read_text() == "0.250000\n"
+    png, png_valid = read_kitti_disparity(tmp_path / "k" / "Teddy.png")
+    assert np.array_equal(png_valid, valid) and np.abs(png[valid] - dense[valid]).max() <= 1 / 512
+    export = DisparityExport(tmp_path / "m")
+    export.write(batch, result, 0.25)
+    with pytest.raises(InputError, match="would overwrite"):  # another pair of the same name in this export
+        export.write(dataclasses.replace(batch, names=("2003/Teddy",)), result, 0.25)
+
+
+def _fill_rows(d: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The documented fill (``DenseConfig.fill_invalid``): an unknown pixel takes its row's nearest known
+    neighbours' mean where they agree within 1 px, else the smaller (background); one side if only one."""
+    out, reach = d.copy(), ok.copy()
+    for y in range(d.shape[0]):
+        known = np.flatnonzero(ok[y])
+        if known.size == 0:
+            continue
+        for x in np.flatnonzero(~ok[y]):
+            right = known[np.searchsorted(known, x):]
+            left = known[:np.searchsorted(known, x)]
+            a = d[y, left[-1]] if left.size else None
+            b = d[y, right[0]] if right.size else None
+            out[y, x] = (b if a is None else a if b is None else (a + b) / 2 if abs(a - b) <= 1 else min(a, b))
+            reach[y, x] = True
+    return out, reach
+
+
+def test_exported_pfm_reads_back_to_the_json_depths(data_dir, tmp_path, capsys):
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    code = main(["estimate", str(scene), "--json", "--masks-out", str(tmp_path / "labels.png"),
+                 "--disparity-out", str(tmp_path / "maps")])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0 and report["status"] == "OK" and not report["rectified"]
+    pfm = read_pfm(tmp_path / "maps" / "Teddy" / "disp0SVSTorch.pfm")
+    labels = cv2.imread(str(tmp_path / "labels.png"), cv2.IMREAD_UNCHANGED)
+    calib = read_middlebury_calib(scene / "calib.txt")
+    focal, baseline_m, doffs = calib["cam0"][0, 0], calib["baseline"] / 1000, calib["doffs"]
+    filled, reach = _fill_rows(pfm.astype(np.float64), np.isfinite(pfm))
+    x0, y0, width, height = report["dense_box_xywh"]  # the statistics are over the searched box
+    box = np.zeros(pfm.shape, dtype=bool)
+    box[y0:y0 + height, x0:x0 + width] = True
+    reach &= box
+    checked = 0
+    for obj in report["objects"]:
+        if obj["depth_m"] is None:
+            continue
+        region = (labels == obj["label"]) & reach & (filled + doffs > 0)
+        depth = focal * baseline_m / (filled[region] + doffs)
+        assert np.median(depth) == pytest.approx(obj["depth_m"], abs=6e-5)  # the JSON rounds to 0.1 mm
+        assert np.percentile(depth, 10) == pytest.approx(obj["depth_p10_m"], abs=6e-5)
+        checked += 1
+    assert checked == 2
+
+
+def test_a_rectified_map_is_brought_back_to_the_left_grid(data_dir):
+    from svs_torch.evaluation.export import left_view_disparity
+
+    batch = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch)
+    # As if the left view had been rectified by a shift of 3 px to the left: rectified x = x - 3.
+    shift = torch.tensor([[[1.0, 0.0, -3.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    rectified = dataclasses.replace(result, rectified=torch.tensor([True]),
+                                    rectification=dataclasses.replace(result.rectification, H_left=shift))
+    back, back_valid = left_view_disparity(batch, rectified, 0)
+    dense, valid = result.dense.disparity_px[0, 0].numpy(), result.dense.valid[0, 0].numpy()
+    assert np.array_equal(back_valid[:, 3:], valid[:, :-3]) and not back_valid[:, :3].any()
+    assert np.array_equal(back[:, 3:][valid[:, :-3]], dense[:, :-3][valid[:, :-3]])
+
+
+def test_disparity_out_needs_the_dense_rule_and_a_folder(data_dir, tmp_path, capsys):
+    scene = str(data_dir / "middlebury_eval3_Q" / "Teddy")
+    assert main(["eval", scene, "--preset", "paper", "--disparity-out", str(tmp_path / "m")]) == 2
+    assert "--disparity-out: expected the dense range rule" in capsys.readouterr().err
+    assert main(["estimate", scene, "--range", "paper", "--disparity-out", str(tmp_path / "m")]) == 2
+    assert "--disparity-out: expected the dense range rule" in capsys.readouterr().err
+    assert main(["estimate", scene, "--disparity-out", str(tmp_path / "no" / "m")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's own refusal, exit status 2
+        main(["estimate", scene, "--method-name", "a b", "--disparity-out", str(tmp_path)])
+    assert "--method-name: expected 1-64 letters" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
