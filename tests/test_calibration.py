@@ -204,7 +204,7 @@ def test_rectify_refuses_ground_truth_and_padding(rig, data_dir):
     scene = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
     with pytest.raises(InputError, match="without ground truth"):
         rectify_with_calibration(scene, calibration)
-    padded = replace(scene, disparity_px=None, disparity_valid=None,
+    padded = replace(scene, disparity_px=None, disparity_valid=None, disparity_nonoccluded=None,
                      image_hw=torch.tensor([[100, 100]]))
     with pytest.raises(InputError, match="fill the batch"):
         rectify_with_calibration(padded, calibration)

@@ -191,5 +191,5 @@ def test_estimate_on_a_scene_folder_draws_its_ground_truth(data_dir, tmp_path, c
     assert main(["estimate", str(scene), "--size", "160x134", "--figure", str(figure), "--json"]) == 0
     assert cv2.imread(str(figure)) is not None
     assert main(["estimate", str(scene), "--focal-px", "300"]) == 2
-    assert capsys.readouterr().err.endswith("--focal-px, --baseline-m, --doffs-px: a scene folder brings its own "
-                                            "calibration\n")
+    assert capsys.readouterr().err.endswith("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder "
+                                            "brings its own calibration\n")
