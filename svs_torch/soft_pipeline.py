@@ -34,11 +34,12 @@ from .depth import DepthResult, ObjectDepths, labelled_quantile, nearest_obstacl
 from .dense_depth import range_from_objects
 from .rectification import warp_rectified
 
-__all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth", "subpixel_disparity"]
+__all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
+           "subpixel_disparity"]
 
 #: Half width of each quantile's band, as a share of the object's pixels: the median becomes the weighted mean
-#: of the depths ranked 40–60 % (``experiments/differentiable_agreement.py`` measures the agreement it gives).
-BAND_HALF_WIDTH = 0.1
+#: of the depths ranked 45–55 % (``experiments/differentiable_agreement.py`` measures the agreement it gives).
+BAND_HALF_WIDTH = 0.05
 
 
 def quantize_straight_through(image: torch.Tensor) -> torch.Tensor:
@@ -99,21 +100,23 @@ def _fit_at_winners(left: torch.Tensor, right: torch.Tensor, pixels: torch.Tenso
                     minimum: torch.Tensor, counts: torch.Tensor, image_w: torch.Tensor, window_size: int
                     ) -> torch.Tensor:
     """:func:`subpixel_disparity` at the hard stage's integer winners, recovered from its sub-pixel disparity
-    ``(P,)`` (``winner + offset``, offset in [−0.5, 0.5]): the least cost (first on ties) among the three integers
-    around it inside the pair's range [``minimum``, ``minimum + counts``) and the right view. One cost pass at
-    the five integers around it gives the winner and its neighbours' costs."""
-    guess = disparity.detach().round().long()
-    candidates = guess.unsqueeze(1) + torch.arange(-2, 3, device=left.device)  # (P, 5)
-    costs = _window_costs(left, right, pixels, candidates, window_size)
+    ``(P,)``: ``winner + offset`` with the offset in [−0.5, 0.5], so the winner is the nearest integer except where
+    the offset is ±0.5 (a tie of the winner with a neighbour) or within round-off of it; there the winner is the
+    least cost (first on ties) of the two integers around the value, inside the pair's range [``minimum``,
+    ``minimum + counts``) and the right view, found without gradients."""
     with torch.no_grad():
-        pair, inner = pixels[:, 0:1], candidates[:, 1:4]
-        right_x = pixels[:, 2:3] - inner
-        usable = ((inner >= minimum[pair]) & (inner < (minimum + counts)[pair]) & (right_x >= 0)
-                  & (right_x < image_w[pair]))
-        step = torch.where(usable, costs[:, 1:4], torch.full_like(costs[:, 1:4], torch.inf)).argmin(dim=1)
-    around = step.view(-1, 1) + torch.arange(3, device=left.device)  # the winner (index step + 1) ∓ 1
-    return subpixel_disparity(left, right, pixels, guess + step - 1, minimum, image_w, window_size,
-                              costs.gather(1, around))
+        winner = disparity.round().long()
+        near_half = ((disparity - winner).abs() > 0.5 - 1e-3).nonzero().squeeze(1)
+        if near_half.numel():
+            candidates = disparity[near_half].floor().long().unsqueeze(1) + torch.arange(2, device=left.device)
+            at = pixels[near_half]
+            costs = _window_costs(left, right, at, candidates, window_size)
+            pair, right_x = at[:, 0:1], at[:, 2:3] - candidates
+            usable = ((candidates >= minimum[pair]) & (candidates < (minimum + counts)[pair]) & (right_x >= 0)
+                      & (right_x < image_w[pair]))
+            costs = torch.where(usable, costs, torch.full_like(costs, torch.inf))
+            winner[near_half] = candidates.gather(1, costs.argmin(dim=1, keepdim=True)).squeeze(1)
+    return subpixel_disparity(left, right, pixels, winner, minimum, image_w, window_size)
 
 
 def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDisparity, wanted: torch.Tensor,
