@@ -14,9 +14,12 @@ continuous quantities from the images (and the segmenter's logits) given those d
    path is differentiable), with the hard validity as the mask.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
    high percentile) is replaced by the weighted mean of the object's depths whose hard rank lies within
-   ``BAND_HALF_WIDTH`` of it, so the gradient reaches every pixel of that band rather than the one or two order
-   statistics a median interpolates. The weights are the segmenter's probabilities (sigmoid of its logits) over
-   the hard kept regions, 1 for Otsu: the estimator is the same, and gradients reach the network's weights.
+   ``BAND_HALF_WIDTH`` of it (always with the two order statistics it interpolates), so the gradient reaches
+   every pixel of that band rather than the one or two a median interpolates. The weights are the segmenter's
+   probabilities (sigmoid of its logits) over the hard kept regions, 1 for Otsu: the estimator is the same, and
+   gradients reach the network's weights. Measured on the 28 held-out scenes (320×240 and native, Otsu and
+   learned): every median within 0.41 % of the hard one; the 10th / 90th percentiles, over a long tail of far
+   pixels, within 0.5 % for 95–100 % / 87–95 % of the objects.
 
 Not softened: the geometry. Rectified pairs are warped by the hard homographies (as constants; the warp itself
 is differentiable in the images); F and the homographies carry no gradient.
@@ -30,7 +33,7 @@ import torch
 
 from .dense import DenseConfig, DenseDisparity, _equiangular_offset, _mean_pool, fill_invalid_rows, \
     prefilter_xsobel, working_factor
-from .depth import DepthResult, ObjectDepths, labelled_quantile, nearest_obstacle
+from .depth import DepthResult, ObjectDepths, nearest_obstacle
 from .dense_depth import range_from_objects
 from .rectification import warp_rectified
 
@@ -38,8 +41,11 @@ __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_str
            "subpixel_disparity"]
 
 #: Half width of each quantile's band, as a share of the object's pixels: the median becomes the weighted mean
-#: of the depths ranked 45–55 % (``experiments/differentiable_agreement.py`` measures the agreement it gives).
-BAND_HALF_WIDTH = 0.05
+#: of the depths ranked 49–51 % (a hundred pixels of a 5000-pixel object).
+#: ``experiments/differentiable_agreement.py`` on the 28 held-out scenes at 320×240 (default): medians within 0.5 %
+#: of the hard ones for 85 % of objects at a half width of 0.05, 98 % at 0.02, 100 % at 0.01 (largest difference
+#: 0.15 %): an object's depths are often spread or bimodal around its median, so a wide band's mean is not it.
+BAND_HALF_WIDTH = 0.01
 
 
 def quantize_straight_through(image: torch.Tensor) -> torch.Tensor:
@@ -162,15 +168,25 @@ def band_mean(values: torch.Tensor, weights: torch.Tensor, band: torch.Tensor) -
 
 
 def _bands(depth: torch.Tensor, members: torch.Tensor, slots: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """``(B, N, Q, P)`` bool: each slot's members whose depth lies between its quantiles ``q ∓ BAND_HALF_WIDTH``
-    (the hard order statistics, no gradient)."""
+    """``(B, N, Q, P)`` bool: each slot's members (``members == slots[:, n]``, ``(B, P)``) whose rank among them
+    by ``depth`` ``(B, P)`` lies in ``[⌊(q − h)(n − 1)⌋, ⌈(q + h)(n − 1)⌉]``, h = ``BAND_HALF_WIDTH``: a band that
+    always holds the two order statistics the hard quantile interpolates (no gradient)."""
     with torch.no_grad():
-        bounds = torch.stack([(q - BAND_HALF_WIDTH).clamp(0, 1), (q + BAND_HALF_WIDTH).clamp(0, 1)], dim=1)
-        limits = labelled_quantile(depth, members, slots, bounds.flatten()).values  # (B, N, 2Q)
-        limits = limits.view(*slots.shape, -1, 2)
-        inside = members.unsqueeze(1) == slots.unsqueeze(-1)  # (B, N, P)
-        return (inside.unsqueeze(2) & (depth.view(depth.shape[0], 1, 1, -1) >= limits[..., :1])
-                & (depth.view(depth.shape[0], 1, 1, -1) <= limits[..., 1:]))
+        b, p = depth.shape
+        position = torch.arange(p, device=depth.device).expand(b, p)
+        bands = []
+        for n in range(slots.shape[1]):
+            member = members == slots[:, n:n + 1]  # (B, P)
+            order = torch.where(member, depth, torch.full_like(depth, torch.inf)).argsort(dim=1)
+            rank = torch.empty_like(position).scatter_(1, order, position)
+            last = (member.sum(dim=1, keepdim=True) - 1).clamp_min(0).to(torch.float64)  # (B, 1)
+            low = ((q - BAND_HALF_WIDTH).clamp(0, 1) * last).floor().long()  # (B, Q)
+            high = ((q + BAND_HALF_WIDTH).clamp(0, 1) * last).ceil().long()
+            bands.append(member.unsqueeze(1) & (rank.unsqueeze(1) >= low.unsqueeze(-1))
+                         & (rank.unsqueeze(1) <= high.unsqueeze(-1)))
+        if not bands:
+            return torch.zeros(b, 0, q.numel(), p, dtype=torch.bool, device=depth.device)
+        return torch.stack(bands, dim=1)
 
 
 def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:

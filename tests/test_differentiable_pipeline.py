@@ -15,8 +15,8 @@ from svs_torch.dense import DenseConfig
 from svs_torch.learned_segmentation import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig
-from svs_torch.soft_pipeline import (_soft_disparity, _window_costs, band_mean, quantize_straight_through,
-                                     subpixel_disparity)
+from svs_torch.soft_pipeline import (_bands, _soft_disparity, _window_costs, band_mean,
+                                     quantize_straight_through, subpixel_disparity)
 
 LEARNED = SegmentationConfig(segmenter="learned")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -89,6 +89,19 @@ def test_band_mean_gradcheck_and_values(generator):
     assert some.tolist() == band.any(-1).tolist()
     torch.testing.assert_close(torch.where(some, mean, 0.0).detach(), torch.tensor(expected, dtype=torch.float64))
     assert torch.autograd.gradcheck(lambda v, w: band_mean(v, w, band)[0], (values, weights))
+
+
+def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
+    """A 30-member object: the median interpolates ranks 14 and 15, a 1 % band around it by value would be empty."""
+    depth = torch.rand(1, 40, generator=generator, dtype=torch.float64)
+    members = torch.zeros(1, 40, dtype=torch.int64)
+    members[0, :30] = 3
+    bands = _bands(depth, members, torch.tensor([[3, -1]]), torch.tensor([0.5, 0.1], dtype=torch.float64))
+    ordered = depth[0, :30].sort().values
+    assert bands.shape == (1, 2, 2, 40) and not bool(bands[:, 1].any()) and not bool(bands[0, 0, :, 30:].any())
+    median_band = depth[0][bands[0, 0, 0]].sort().values
+    assert torch.equal(median_band, ordered[14:16])  # ranks ⌊0.49 · 29⌋ = 14 to ⌈0.51 · 29⌉ = 15
+    assert torch.equal(depth[0][bands[0, 0, 1]].sort().values, ordered[2:5])  # ranks ⌊0.09 · 29⌋ = 2 to ⌈0.11 · 29⌉ = 4
 
 
 # ------------------------------------------------------------------------------------------------- real pair
