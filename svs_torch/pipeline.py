@@ -332,14 +332,15 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     return depth, dense, verified, agreeing
 
 
-def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None
-                 ) -> StereoSegmentation:
+def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
+                 left_logits: torch.Tensor | None = None) -> StereoSegmentation:
     """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
     ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`; ``network``, or the
-    weights ``config.segmenter`` names); the same structure. Not differentiable."""
+    weights ``config.segmenter`` names; ``left_logits``: the left views' logits, already computed); the same
+    structure. Not differentiable."""
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
-    return segment_stereo_learned(batch, config, _network(batch, config, network))
+    return segment_stereo_learned(batch, config, _network(batch, config, network), left_logits)
 
 
 def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None) -> nn.Module:
@@ -401,13 +402,14 @@ def _detached(batch: StereoBatch) -> StereoBatch:
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
     """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: the hard pipeline without
     gradients, then, under ``config.differentiable``, the differentiable depths."""
+    logits = None
+    if config.differentiable and config.segmentation.segmenter != "otsu":
+        # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
+        logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right)
     with torch.no_grad():
-        result = _estimate_hard(_detached(batch), config, network)
+        result = _estimate_hard(_detached(batch), config, network, logits)
     if not config.differentiable:
         return result
-    logits = None
-    if config.segmentation.segmenter != "otsu":
-        logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right)
     pick = result.rectified.view(-1, 1, 1)
     identity = torch.eye(3, dtype=result.rectification.H_left.dtype, device=pick.device)
     depth = differentiable_depth(
@@ -419,7 +421,8 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth)
 
 
-def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
+def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,
+                   left_logits: torch.Tensor | None = None) -> PipelineResult:
     """The hard pipeline (no gradients) on a batch whose pairs all fill its tensors."""
     timings: dict[str, float] = {}
     clock = time.perf_counter()
@@ -430,7 +433,7 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         timings[stage] = now - clock
         clock = now
 
-    seg = segment_pair(batch, config.segmentation, network)
+    seg = segment_pair(batch, config.segmentation, network, left_logits)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

@@ -138,6 +138,10 @@ def test_teddy_learned_gradients_reach_both_images_and_the_weights(data_dir):
     grads = [p.grad for p in net.parameters()]
     assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
     assert sum(int((g != 0).sum()) for g in grads) > 0.5 * sum(p.numel() for p in net.parameters())
+    # The hard half is the hard pipeline's own result (the left logits computed once, with gradients).
+    plain = estimate_obstacle_depth(_teddy(data_dir), PipelineConfig(segmentation=LEARNED), network=net)
+    assert torch.equal(plain.segmentation.left.labels, result.segmentation.left.labels)
+    assert torch.equal(plain.depth.objects.depth_median_m, hard.depth_median_m)
 
 
 def test_rectified_pair_keeps_the_hard_values_and_passes_gradients(data_dir):
