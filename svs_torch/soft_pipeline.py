@@ -197,11 +197,12 @@ def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:
     left_index = torch.where(valid, index, -1).cummax(dim=-1).values
     right_index = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)
     fill = needed & ~valid
-    sources = torch.zeros_like(needed)
+    counts = torch.zeros(needed.shape, dtype=torch.int32, device=needed.device)
     for source in (left_index, right_index):
         usable = fill & (source >= 0) & (source < width)
-        sources = sources.scatter(-1, torch.where(usable, source, index), usable) | sources
-    return needed | sources
+        # Added, not written: several filled pixels share a source, and a plain scatter's order is not defined.
+        counts = counts.scatter_add(-1, torch.where(usable, source, index), usable.to(torch.int32))
+    return needed | (counts > 0)
 
 
 def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor,

@@ -15,7 +15,7 @@ from svs_torch.dense import DenseConfig
 from svs_torch.learned_segmentation import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig
-from svs_torch.soft_pipeline import (_bands, _soft_disparity, _window_costs, band_mean,
+from svs_torch.soft_pipeline import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean,
                                      quantize_straight_through, subpixel_disparity)
 
 LEARNED = SegmentationConfig(segmenter="learned")
@@ -102,6 +102,22 @@ def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
     median_band = depth[0][bands[0, 0, 0]].sort().values
     assert torch.equal(median_band, ordered[14:16])  # ranks ⌊0.49 · 29⌋ = 14 to ⌈0.51 · 29⌉ = 15
     assert torch.equal(depth[0][bands[0, 0, 1]].sort().values, ordered[2:5])  # ranks ⌊0.09 · 29⌋ = 2 to ⌈0.11 · 29⌉ = 4
+
+
+def test_fill_sources_are_the_valid_pixels_each_needed_fill_reads(generator):
+    valid = torch.rand(3, 4, 30, generator=generator) > 0.6
+    needed = torch.rand(3, 4, 30, generator=generator) > 0.7
+    found = _fill_sources(valid, needed)
+    expected = needed.clone()
+    for i, j in (~valid & needed).nonzero()[:, :2].unique(dim=0).tolist():  # a naive walk along each row
+        row_valid, row_needed = valid[i, j].tolist(), needed[i, j]
+        for x in range(30):
+            if row_needed[x] and not row_valid[x]:
+                left = [k for k in range(x) if row_valid[k]]
+                right = [k for k in range(x + 1, 30) if row_valid[k]]
+                for k in left[-1:] + right[:1]:
+                    expected[i, j, k] = True
+    assert torch.equal(found, expected)
 
 
 # ------------------------------------------------------------------------------------------------- real pair
