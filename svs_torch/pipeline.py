@@ -346,9 +346,10 @@ def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Mod
 def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None) -> nn.Module:
     """The learned segmenter's network on the batch's device: ``network`` (which must be there already: moving
     a caller's module would move the parameters its optimiser holds) or the cached weights of
-    ``config.segmenter``, moved."""
+    ``config.segmenter``, moved and frozen."""
     if network is None:
-        return _cached_obstacle_net(config.segmenter).to(batch.left.device)
+        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache.
+        return _cached_obstacle_net(config.segmenter).to(batch.left.device).requires_grad_(False)
     device = next(network.parameters()).device
     if device != batch.left.device:
         raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
