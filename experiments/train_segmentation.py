@@ -23,6 +23,16 @@ file, svs_torch/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.p
 split.
 
     python experiments/train_segmentation.py [--steps 700] [--batch-size 8] [--seed 0] [--out FILE]
+
+``--through-pipeline`` fine-tunes instead (issue 31): from ``--init`` (default: the shipped weights), on the pairs
+of ``--pairs`` (a pair list, as ``svs-depth`` reads; default: the training scenes above) at ``--size``, through the
+product's own entry, ``estimate_obstacle_depth(..., differentiable=True)`` with the network: every step runs the
+whole pipeline (the network's hard segmentation, SURF, RANSAC, the dense stage) with images that require grad,
+and the loss is the mean relative error of every ranged object's depth against the median ground-truth depth over
+its kept region (``svs_torch.evaluation.object_truth``, the accuracy's own truth), so training computes what
+deployment computes. The printed depth loss per step is that of the weights before the step.
+
+    python experiments/train_segmentation.py --through-pipeline [--pairs FILE] [--steps 20] [--out FILE]
 """
 
 from __future__ import annotations
@@ -42,12 +52,15 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch.cli.progress import Progress
-from svs_torch.data import load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.evaluation import with_nominal_calibration
-from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, obstacle_truth,
-                                            save_obstacle_net, segment_learned, soft_object_depths,
+from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
+                            resize_stereo_batch)
+from svs_torch.evaluation import object_truth, with_nominal_calibration
+from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net,
+                                            obstacle_truth, save_obstacle_net, segment_learned, soft_object_depths,
                                             stereo_features)
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation import SegmentationConfig
 from svs_torch.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -225,6 +238,62 @@ def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Ge
     return history
 
 
+def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet) -> tuple[torch.Tensor, int]:
+    """Mean relative error of every ranged object's differentiable depth against its region's median GT depth,
+    through ``estimate_obstacle_depth(..., differentiable=True)``; and the number of objects it averages."""
+    images = dataclasses.replace(batch, left=batch.left.clone().requires_grad_(),
+                                 right=batch.right.clone().requires_grad_())
+    config = PipelineConfig(differentiable=True, segmentation=SegmentationConfig(segmenter="learned"))
+    result = estimate_obstacle_depth(images, config, network=net)
+    truth = object_truth(batch, result.segmentation.left)
+    objects = result.depth.objects
+    both = objects.valid & truth.valid
+    true_m = torch.where(both, truth.depth_m.to(objects.depth_median_m.dtype), 1.0)
+    error = torch.where(both, (objects.depth_median_m - true_m).abs() / true_m, 0.0)
+    return error.sum() / both.sum().clamp(min=1), int(both.sum())
+
+
+def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, config: TrainConfig,
+                               generator: torch.Generator) -> list[dict]:
+    """``config.steps`` AdamW steps on batches of ``config.batch_size`` pairs drawn from ``pairs``, the loss of
+    :func:`pipeline_depth_loss`. The network stays in eval mode (its hard segmentation is deployment's)."""
+    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    history = []
+    for step in range(config.steps):
+        index = torch.randperm(len(pairs), generator=generator)[:config.batch_size].tolist()
+        loss, count = pipeline_depth_loss(collate_stereo_batches([pairs[i] for i in index]), net)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append({"step": step, "depth_loss": loss.item(), "num_objects": count})
+        print(f"step {step:3d}  depth loss {loss.item():.5f}  ({count} objects)", flush=True)
+    return history
+
+
+def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path:
+    generator = torch.Generator().manual_seed(config.seed)
+    if args.pairs:
+        sources = read_pair_list(args.pairs, "--pairs")
+        pairs = [load_pair_source(source) for source in sources]
+    else:
+        pairs = [with_nominal_calibration(load_stereo_pair(path)) for path in train_scenes(Path(args.data))]
+    width, height = (int(v) for v in args.size.split("x"))
+    pairs = [resize_stereo_batch(pair, (width, height)) for pair in pairs]
+    net = load_obstacle_net(args.init)
+    started = time.perf_counter()
+    history = fine_tune_through_pipeline(pairs, net, config, generator)
+    with torch.no_grad():
+        final, count = pipeline_depth_loss(collate_stereo_batches(pairs), net)
+    metadata = {"train": dataclasses.asdict(config), "mode": "through-pipeline", "init": args.init,
+                "pairs": [p.names[0] if p.names else "" for p in pairs], "size": args.size, "history": history,
+                "final_depth_loss_all_pairs": final.item(), "train_time_s": round(time.perf_counter() - started, 1),
+                "run": run_metadata(args.threads)}
+    save_obstacle_net(args.out, net, metadata)
+    print(f"{len(pairs)} pairs, {config.steps} steps; depth loss over all pairs {final.item():.5f} ({count} "
+          f"objects); weights written to {args.out}")
+    return Path(args.out)
+
+
 def main(argv: list[str] | None = None) -> Path:
     defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -234,9 +303,17 @@ def main(argv: list[str] | None = None) -> Path:
         parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),
                             default=getattr(defaults, field.name))
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--through-pipeline", action="store_true",
+                        help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
+    parser.add_argument("--pairs", help="--through-pipeline: a pair list (default: the training scenes)")
+    parser.add_argument("--init", default="learned", help="--through-pipeline: starting weights, 'learned' or "
+                        "'learned:PATH'")
+    parser.add_argument("--size", default="320x240", help="--through-pipeline: pairs resized to WxH")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = TrainConfig(**{field.name: getattr(args, field.name) for field in dataclasses.fields(TrainConfig)})
+    if args.through_pipeline:
+        return through_pipeline_main(args, config)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
     net_config = ObstacleNetConfig()

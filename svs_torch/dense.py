@@ -685,7 +685,7 @@ def _select_nearest_ranks(values: torch.Tensor, labels: torch.Tensor, slots: tor
     if values.dtype != torch.float32 or values.requires_grad or not kernels.available("labelled_select") or \
             bool(values.isnan().any()):
         return None
-    fractions = torch.tensor(q, dtype=torch.float32)
+    fractions = torch.tensor(q, dtype=torch.float32, device=values.device)
     selected = kernels.labelled_select(values.contiguous(), labels, slots, fractions)
     if selected is None:
         return None

@@ -292,20 +292,28 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
 
 
 def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig(segmenter="learned"),
-                           net: ObstacleNet | None = None) -> StereoSegmentation:
+                           net: ObstacleNet | None = None, left_logits: torch.Tensor | None = None
+                           ) -> StereoSegmentation:
     """Segment both views of every pair with the network: the drop-in for
     :func:`~svs_torch.segmentation.segment_stereo` (same structure, same ``config`` fields).
 
     The network is ``net``, or loaded from ``config.segmenter`` (:func:`load_obstacle_net`). The right view is
     segmented as the left view of the mirrored pair (both images flipped and swapped: right columns stay at
-    ``x − d``), one batch of 2B. Not differentiable; see :func:`soft_object_depths`.
+    ``x − d``), one batch of 2B; ``left_logits`` ``(B, 1, H, W)`` (the left views' logits, already computed by
+    the caller, e.g. with gradients) leaves only the right views to the network. Not differentiable; see
+    :func:`soft_object_depths`.
     """
     if net is None:
         net = _cached_obstacle_net(config.segmenter)
     b = batch.batch_size
     with torch.no_grad():
-        logits = predict_obstacle_logits(net, torch.cat([batch.left, batch.right.flip(-1)]),
-                                         torch.cat([batch.right, batch.left.flip(-1)]))
+        if left_logits is None:
+            logits = predict_obstacle_logits(net, torch.cat([batch.left, batch.right.flip(-1)]),
+                                             torch.cat([batch.right, batch.left.flip(-1)]))
+        else:
+            check_shape(left_logits, "left_logits", list(batch.left.shape))
+            logits = torch.cat([left_logits.detach().to(batch.left.dtype),
+                                predict_obstacle_logits(net, batch.right.flip(-1), batch.left.flip(-1))])
     threshold = net.config.probability_threshold
     left = segment_learned(batch.left, logits[:b], config, threshold)
     right = segment_learned(batch.right, logits[b:].flip(-1), config, threshold)

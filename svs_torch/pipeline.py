@@ -7,12 +7,14 @@ named in :class:`PipelineStatus`; one bad pair never stops the batch.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import time
 from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
+from torch import nn
 
 from .checks import InputError, check_instance
 from .dense import DenseConfig, DenseDisparity, estimate_dense_disparity, working_factor
@@ -20,7 +22,7 @@ from .dense_depth import count_agreeing_inliers, dense_object_depths, range_from
 from .depth import DepthConfig, DepthResult, estimate_depth, masked_quantile, nearest_obstacle, slot_labels
 from .detector import SurfConfig
 from .features import SurfFeatures, extract_surf_features
-from .learned_segmentation import segment_stereo_learned
+from .learned_segmentation import _cached_obstacle_net, predict_obstacle_logits, segment_stereo_learned
 from .mask_reductions import any_along
 from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
                        refine_matched_points)
@@ -29,6 +31,7 @@ from .rectification import (Rectification, RectificationConfig, RectificationSta
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
 from .size_groups import run_by_size
+from .soft_pipeline import differentiable_depth
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]
@@ -100,6 +103,11 @@ class PipelineConfig:
             Middlebury / KITTI views and 64 synthetic ones; the two others, Flowerpots and Reindeer squeezed to
             320×240, keep every object: each has 40 % of its region measured).
         seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
+        differentiable: after the hard pipeline (run without gradients: it makes every discrete decision), a
+            differentiable pass recomputes each object's depth from the images and the segmenter's logits
+            given those decisions (:mod:`svs_torch.soft_pipeline`): ``PipelineResult.depth`` then carries
+            gradients to both images and to the network's weights, and ``hard_depth`` keeps the hard values.
+            Needs the ``"dense"`` range rule.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).
@@ -130,6 +138,7 @@ class PipelineConfig:
     verify_min_inlier_share: float = 0.5
     verify_min_agreeing_inliers: int = 6
     seed: int = 0
+    differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
 
     def __post_init__(self) -> None:
         if self.features_on not in ("masked", "mask", "image"):
@@ -143,6 +152,11 @@ class PipelineConfig:
                 raise InputError(f"{name}: expected an integer >= 0, got {getattr(self, name)!r}")
         if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
             raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
+        if self.differentiable not in (True, False):
+            raise InputError(f"differentiable: expected a bool, got {self.differentiable!r}")
+        if self.differentiable and self.depth.rule != "dense":
+            raise InputError(f"differentiable: needs depth.rule 'dense' (the paper's rule ranges from extreme "
+                             f"inliers, nothing to differentiate), got {self.depth.rule!r}")
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
@@ -181,6 +195,8 @@ class PipelineResult:
             (``PipelineConfig.verify_min_inliers`` …); None under the ``"paper"`` rule.
         num_agreeing_inliers: ``(B,)`` int64, the RANSAC inliers whose disparity the dense map confirms
             (:func:`~svs_torch.dense_depth.count_agreeing_inliers`); None under the ``"paper"`` rule.
+        hard_depth: under ``PipelineConfig.differentiable``, the hard pipeline's :class:`DepthResult` (``depth``
+            is then the differentiable one); None otherwise.
     """
 
     status: torch.Tensor
@@ -201,6 +217,7 @@ class PipelineResult:
     timings_s: dict[str, float]
     verified: torch.Tensor | None = None
     num_agreeing_inliers: torch.Tensor | None = None
+    hard_depth: DepthResult | None = None
 
 
 def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
@@ -315,30 +332,61 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     return depth, dense, verified, agreeing
 
 
-def segment_pair(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
+                 left_logits: torch.Tensor | None = None) -> StereoSegmentation:
     """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
-    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`); the same structure.
-    Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes as groups of one size,
-    :mod:`svs_torch.size_groups`): padding never enters a threshold's histogram or a region."""
-    return run_by_size(batch, lambda group: _segment_group(group, config))
+    ``config.method``) or the learned segmenter (:mod:`svs_torch.learned_segmentation`; ``network``, or the
+    weights ``config.segmenter`` names; ``left_logits``: the left views' logits, already computed); the same
+    structure. Not differentiable. Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes
+    as groups of one size, :mod:`svs_torch.size_groups`): padding never enters a threshold's histogram or a region;
+    ``left_logits`` are for a batch whose pairs fill its tensors."""
+    if left_logits is None:
+        return run_by_size(batch, lambda group: _segment_group(group, config, network))
+    if not bool((batch.image_hw == torch.tensor(batch.size_hw, device=batch.image_hw.device)).all()):
+        raise InputError("left_logits: expected a batch whose pairs all fill its tensors (one size); pass none to "
+                         "segment a padded batch pair by pair size")
+    return _segment_group(batch, config, network, left_logits)
 
 
-def _segment_group(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+def _segment_group(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
+                   left_logits: torch.Tensor | None = None) -> StereoSegmentation:
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
-    return segment_stereo_learned(batch, config)
+    return segment_stereo_learned(batch, config, _network(batch, config, network), left_logits)
 
 
-def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig()) -> PipelineResult:
+def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None) -> nn.Module:
+    """The learned segmenter's network on the batch's device: ``network`` (which must be there already: moving
+    a caller's module would move the parameters its optimiser holds) or the cached weights of
+    ``config.segmenter``, moved and frozen."""
+    if network is None:
+        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache.
+        return _cached_obstacle_net(config.segmenter).to(batch.left.device).requires_grad_(False)
+    device = next(network.parameters()).device
+    if device != batch.left.device:
+        raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
+    return network
+
+
+def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig(),
+                            network: nn.Module | None = None) -> PipelineResult:
     """Range the obstacles of every pair of a stereo batch.
 
     Args:
         batch: :class:`~svs_torch.types.StereoBatch` (calibration: ``focal_px``, ``baseline_m``, ``doffs_px``).
         config: :class:`PipelineConfig`.
+        network: the learned segmenter's network (an :class:`~svs_torch.learned_segmentation.ObstacleNet`, e.g.
+            from :func:`~svs_torch.learned_segmentation.load_obstacle_net`) on the batch's device, used when
+            ``config.segmentation.segmenter`` is learned; None: the weights that setting names.
 
     Returns:
-        :class:`PipelineResult`. Not differentiable end to end (segmentation labels, keypoint selection,
-        matching and RANSAC are discrete); each stage's docstring says what is.
+        :class:`PipelineResult`. With ``config.differentiable`` (False by default) the hard pipeline runs
+        detached: images or calibration that require gradients are detached, and nothing in the result carries
+        a graph. With ``differentiable=True`` the hard pipeline still makes every discrete decision, and
+        ``result.depth`` (each object's ``depth_median_m`` / ``depth_low_m`` / ``depth_high_m``, the nearest
+        obstacle's ``depth_m`` and ``surface_m``, the range) is recomputed differentiably w.r.t. both images,
+        the calibration and the parameters of ``network`` (:mod:`svs_torch.soft_pipeline`); ``.valid`` masks
+        are the hard ones, and ``result.hard_depth`` holds the hard values.
 
     Each pair is ranged on its own ``image_hw`` pixels only: pairs of different sizes padded into one batch run as
     groups of one size, each cropped to its size (:mod:`svs_torch.size_groups`), so a pair's result is the same
@@ -346,11 +394,49 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     """
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", PipelineConfig)
-    return run_by_size(batch, lambda group: _estimate_group(group, config))
+    if network is not None:
+        check_instance(network, "network", nn.Module)
+        if config.segmentation.segmenter == "otsu":
+            raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
+    if not config.differentiable:
+        batch = _detached(batch)
+    return run_by_size(batch, lambda group: _estimate_group(group, config, network))
 
 
-def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResult:
-    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors."""
+def _detached(batch: StereoBatch) -> StereoBatch:
+    """The batch with every tensor detached (the hard path takes no gradients; a tensor that requires them would
+    make the in-place stages raise)."""
+    if not any(isinstance(v, torch.Tensor) and v.requires_grad for v in vars(batch).values()):
+        return batch
+    return dataclasses.replace(batch, **{k: v.detach() for k, v in vars(batch).items()
+                                         if isinstance(v, torch.Tensor)})
+
+
+def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
+    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: the hard pipeline without
+    gradients, then, under ``config.differentiable``, the differentiable depths."""
+    logits = None
+    if config.differentiable and config.segmentation.segmenter != "otsu":
+        # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
+        logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right)
+    with torch.no_grad():
+        result = _estimate_hard(_detached(batch), config, network, logits)
+    if not config.differentiable:
+        return result
+    pick = result.rectified.view(-1, 1, 1)
+    identity = torch.eye(3, dtype=result.rectification.H_left.dtype, device=pick.device)
+    depth = differentiable_depth(
+        batch.left, batch.right, result.segmentation.left.labels, logits, result.rectified,
+        torch.where(pick, result.rectification.H_left, identity), torch.where(pick, result.rectification.H_right,
+                                                                              identity),
+        result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
+        config.depth.object_percentiles, config.dense)
+    return dataclasses.replace(result, depth=depth, hard_depth=result.depth)
+
+
+def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,
+                   left_logits: torch.Tensor | None = None) -> PipelineResult:
+    """The hard pipeline (no gradients) on a batch whose pairs all fill its tensors."""
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -360,7 +446,7 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
         timings[stage] = now - clock
         clock = now
 
-    seg = _segment_group(batch, config.segmentation)
+    seg = _segment_group(batch, config.segmentation, network, left_logits)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)
@@ -371,7 +457,7 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
     points, matches = refine_matched_points(images[:b], images[b:], points, matches, left.keypoints.scale,
                                             config.refine_matches)
     lap("matching")
-    seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64)
+    seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64, device=batch.left.device)
     fundamental = estimate_fundamental_ransac(
         points.left, points.right, points.valid, threshold_px=config.ransac_threshold_px,
         confidence=config.ransac_confidence, max_iterations=config.ransac_max_iterations,
@@ -380,7 +466,8 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)
     rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
-    identity = torch.eye(3, dtype=rectification.H_left.dtype).expand_as(rectification.H_left)
+    identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
+                         ).expand_as(rectification.H_left)
     pick = rectified.view(-1, 1, 1)
     lap("rectification")
     depth = estimate_depth(

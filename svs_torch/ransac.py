@@ -475,7 +475,7 @@ def _finish(problem: _Problem, points_left: torch.Tensor, points_right: torch.Te
     distance_sq = _safe_ratio(algebraic.square(), grad_right + grad_left)
     found = best_loss.isfinite()
     # Squared in float64 tensors: a huge finite threshold squares to inf here instead of raising OverflowError.
-    inliers = valid & found.unsqueeze(-1) & (distance_sq <= torch.tensor(float(threshold_px), dtype=work).square())
+    inliers = valid & found.unsqueeze(-1) & (distance_sq <= torch.tensor(float(threshold_px), dtype=work, device=distance_sq.device).square())
     num_inliers = inliers.sum(-1)
     status = torch.full_like(num_inliers, FundamentalStatus.OK)
     status = torch.where(num_inliers < min_inliers, FundamentalStatus.TOO_FEW_INLIERS, status)

@@ -1,0 +1,108 @@
+"""Benchmark (issue 31): ``estimate_obstacle_depth(..., differentiable=True)`` forward + backward on B = 8 real pairs
+at 320×240, against the hard pipeline's forward on the same batch in the same run: Otsu and the learned segmenter
+(gradients to both images, and to the network's weights for the learned one). Median and spread of several runs,
+peak memory of one forward + backward (the process's peak resident set grows by it: ``ru_maxrss`` before and after,
+in a fresh process), thread count and load recorded.
+
+    python experiments/bench_differentiable.py [--threads 2] [--repeats 5] [--batch 8] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # spinning OpenMP threads on a shared CPU, see bench_ransac.py
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from svs_torch import StereoBatch
+from svs_torch.files import write_bytes_atomic
+from svs_torch.learned_segmentation import load_obstacle_net
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation import SegmentationConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from bench_segmentation import load_pairs, timed  # noqa: E402
+
+
+def forward_backward(batch: StereoBatch, config: PipelineConfig, net) -> None:
+    """One differentiable run and the backward pass of a loss on every ranged object's depth and the nearest."""
+    images = replace(batch, left=batch.left.clone().requires_grad_(), right=batch.right.clone().requires_grad_())
+    result = estimate_obstacle_depth(images, config, network=net)
+    objects = result.depth.objects
+    loss = (objects.depth_median_m * objects.valid).sum() + result.depth.nearest.depth_m.sum()
+    if loss.requires_grad:
+        loss.backward()
+    if net is not None:
+        net.zero_grad(set_to_none=True)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def configurations(net) -> dict:
+    learned = SegmentationConfig(segmenter="learned")
+    return {"otsu": (PipelineConfig(), None), "learned": (PipelineConfig(segmentation=learned), net)}
+
+
+def peak_growth_mb(batch: StereoBatch, config: PipelineConfig, net) -> float:
+    """How much one differentiable forward + backward raises the process's peak resident set, MB, after the hard
+    path ran once (kernels built, kornia loaded, the network's forward done)."""
+    estimate_obstacle_depth(batch, config, network=net)
+    before = peak_rss_mb()
+    forward_backward(batch, replace(config, differentiable=True), net)
+    return peak_rss_mb() - before
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--peak-of", choices=["otsu", "learned"], help=argparse.SUPPRESS)  # the fresh process
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    left, right = load_pairs(Path(args.data), args.batch)
+    batch = StereoBatch.from_images(left, right, 276.0, 0.1075)
+    net = load_obstacle_net()
+    if args.peak_of:
+        print(peak_growth_mb(batch, *configurations(net)[args.peak_of]))
+        return
+    results = {}
+    for name, (config, network) in configurations(net).items():
+        # Peak memory in a fresh process each: the peak resident set only shows what exceeds every earlier peak.
+        command = [sys.executable, __file__, "--data", args.data, "--threads", str(args.threads), "--batch",
+                   str(args.batch), "--peak-of", name]
+        results[f"{name}_peak_growth_mb"] = float(subprocess.run(command, capture_output=True, text=True,
+                                                                 check=True).stdout.split()[-1])
+        results[f"{name}_hard"] = timed(lambda: estimate_obstacle_depth(batch, config, network=network),
+                                        args.repeats, pairs=args.batch)
+        results[f"{name}_differentiable_fwd_bwd"] = timed(
+            lambda: forward_backward(batch, replace(config, differentiable=True), network), args.repeats,
+            pairs=args.batch)
+    print(f"threads {args.threads}, B = {args.batch} real pairs at 320x240, median of {args.repeats} runs")
+    for key, value in results.items():
+        if isinstance(value, dict):
+            print(f"  {key:34s} {value['median_ms'] / 1e3:7.3f} s  (min {value['min_ms'] / 1e3:.3f}, "
+                  f"max {value['max_ms'] / 1e3:.3f})")
+        else:
+            print(f"  {key:34s} {value:9.1f} MB")
+    if args.json:
+        report = {"metadata": run_metadata(args.threads, batch=args.batch), "results": results}
+        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())
+
+
+if __name__ == "__main__":
+    main()

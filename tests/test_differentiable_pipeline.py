@@ -1,0 +1,238 @@
+"""estimate_obstacle_depth(..., differentiable=True): the hard pipeline's decisions, depths with gradients to both
+images and the segmenter's weights (issue 31); and images that require grad under the hard path."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.data import collate_stereo_batches, load_middlebury_eval3, resize_stereo_batch
+from svs_torch.dense import DenseConfig
+from svs_torch.learned_segmentation import load_obstacle_net
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation import SegmentationConfig
+from svs_torch.soft_pipeline import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean,
+                                     quantize_straight_through, subpixel_disparity)
+
+LEARNED = SegmentationConfig(segmenter="learned")
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    return request.param
+
+
+def _teddy(data_dir, size_wh=(320, 240), device="cpu"):
+    batch = resize_stereo_batch(load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy"), size_wh)
+    return batch.to(device) if device != "cpu" else batch
+
+
+def _requiring_grad(batch):
+    return replace(batch, left=batch.left.clone().requires_grad_(), right=batch.right.clone().requires_grad_())
+
+
+# ------------------------------------------------------------------------------------------------- pieces
+def test_quantize_straight_through_rounds_and_passes_the_gradient(generator):
+    image = torch.rand(2, 1, 5, 7, generator=generator, dtype=torch.float64, requires_grad=True)
+    levels = quantize_straight_through(image)
+    assert torch.equal(levels, torch.round(image.detach() * 255))  # the hard stage's levels, exactly
+    levels.sum().backward()
+    assert torch.equal(image.grad, torch.full_like(image, 255.0))
+
+
+def test_window_costs_equal_a_naive_loop_with_clamped_reads(generator):
+    left = torch.rand(2, 1, 7, 11, generator=generator, dtype=torch.float64)
+    right = torch.rand(2, 1, 7, 11, generator=generator, dtype=torch.float64)
+    pixels = torch.tensor([[0, 0, 0], [0, 3, 5], [1, 6, 10], [1, 2, 1]])
+    disparities = torch.tensor([[0, 1, 2], [3, -1, 4], [9, 12, 0], [2, 1, 0]])
+    costs = _window_costs(left, right, pixels, disparities, 5)
+    L, R = left.numpy()[:, 0], right.numpy()[:, 0]
+    for p, (b, y, x) in enumerate(pixels.tolist()):
+        for c, d in enumerate(disparities[p].tolist()):
+            total = 0.0
+            for v in range(-2, 3):
+                for u in range(-2, 3):
+                    row = min(max(y + v, 0), 6)
+                    total += abs(L[b, row, min(max(x + u, 0), 10)] - R[b, row, min(max(x + u - d, 0), 10)])
+            assert costs[p, c].item() == pytest.approx(total, abs=1e-12)
+
+
+def test_subpixel_disparity_gradcheck(generator):
+    left = torch.rand(1, 1, 6, 12, generator=generator, dtype=torch.float64, requires_grad=True)
+    right = torch.rand(1, 1, 6, 12, generator=generator, dtype=torch.float64, requires_grad=True)
+    pixels = torch.tensor([[0, 2, 6], [0, 4, 9], [0, 1, 4]])
+    winner = torch.tensor([2, 3, 1])
+    minimum, width = torch.tensor([0]), torch.tensor([12])
+
+    def fit(a, b):
+        return subpixel_disparity(a, b, pixels, winner, minimum, width, 3)
+
+    assert torch.autograd.gradcheck(fit, (left, right), fast_mode=True)
+    offsets = fit(left, right).detach() - winner
+    assert bool((offsets.abs() <= 0.5).all()) and bool((offsets != 0).any())
+
+
+def test_band_mean_gradcheck_and_values(generator):
+    values = torch.rand(2, 9, generator=generator, dtype=torch.float64, requires_grad=True)
+    weights = torch.rand(2, 9, generator=generator, dtype=torch.float64, requires_grad=True)
+    band = torch.rand(2, 3, 9, generator=generator) > 0.4
+    band[1, 2] = False
+    mean, some = band_mean(values, weights, band)
+    v, w = values.detach(), weights.detach()
+    expected = [[float((v[i][band[i, m]] * w[i][band[i, m]]).sum() / w[i][band[i, m]].sum())
+                 if band[i, m].any() else 0.0 for m in range(3)] for i in range(2)]
+    assert some.tolist() == band.any(-1).tolist()
+    torch.testing.assert_close(torch.where(some, mean, 0.0).detach(), torch.tensor(expected, dtype=torch.float64))
+    assert torch.autograd.gradcheck(lambda v, w: band_mean(v, w, band)[0], (values, weights))
+
+
+def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
+    """A 30-member object: the median interpolates ranks 14 and 15, a 1 % band around it by value would be empty."""
+    depth = torch.rand(1, 40, generator=generator, dtype=torch.float64)
+    members = torch.zeros(1, 40, dtype=torch.int64)
+    members[0, :30] = 3
+    bands = _bands(depth, members, torch.tensor([[3, -1]]), torch.tensor([0.5, 0.1], dtype=torch.float64))
+    ordered = depth[0, :30].sort().values
+    assert bands.shape == (1, 2, 2, 40) and not bool(bands[:, 1].any()) and not bool(bands[0, 0, :, 30:].any())
+    median_band = depth[0][bands[0, 0, 0]].sort().values
+    assert torch.equal(median_band, ordered[14:16])  # ranks ⌊0.49 · 29⌋ = 14 to ⌈0.51 · 29⌉ = 15
+    assert torch.equal(depth[0][bands[0, 0, 1]].sort().values, ordered[2:5])  # ranks ⌊0.09 · 29⌋ = 2 to ⌈0.11 · 29⌉ = 4
+
+
+def test_fill_sources_are_the_valid_pixels_each_needed_fill_reads(generator):
+    valid = torch.rand(3, 4, 30, generator=generator) > 0.6
+    needed = torch.rand(3, 4, 30, generator=generator) > 0.7
+    found = _fill_sources(valid, needed)
+    expected = needed.clone()
+    for i, j in (~valid & needed).nonzero()[:, :2].unique(dim=0).tolist():  # a naive walk along each row
+        row_valid, row_needed = valid[i, j].tolist(), needed[i, j]
+        for x in range(30):
+            if row_needed[x] and not row_valid[x]:
+                left = [k for k in range(x) if row_valid[k]]
+                right = [k for k in range(x + 1, 30) if row_valid[k]]
+                for k in left[-1:] + right[:1]:
+                    expected[i, j, k] = True
+    assert torch.equal(found, expected)
+
+
+# ------------------------------------------------------------------------------------------------- real pair
+@pytest.mark.parametrize("working_width_px", [320, 160], ids=["factor1", "factor2"])
+def test_soft_dense_map_is_the_hard_map_bit_for_bit(data_dir, working_width_px):
+    batch = _teddy(data_dir)
+    config = PipelineConfig(dense=DenseConfig(working_width_px=working_width_px))
+    hard = estimate_obstacle_depth(batch, config)
+    assert not bool(hard.rectified.any())
+    dense = hard.dense
+    soft = _soft_disparity(batch.left.clone().requires_grad_(), batch.right, dense,
+                           torch.ones_like(dense.valid), batch.image_hw, config.dense)
+    assert int(dense.valid.sum()) > 5000
+    assert torch.equal(soft.detach()[dense.valid], dense.disparity_px[dense.valid])
+
+
+def test_teddy_learned_gradients_reach_both_images_and_the_weights(data_dir):
+    net = load_obstacle_net()
+    batch = _requiring_grad(_teddy(data_dir, (240, 180)))
+    config = PipelineConfig(differentiable=True, segmentation=LEARNED)
+    result = estimate_obstacle_depth(batch, config, network=net)
+    objects, hard = result.depth.objects, result.hard_depth.objects
+    assert bool(objects.valid.any())
+    assert torch.equal(objects.valid, hard.valid)
+    # The same estimator: every object within 0.5 % of the hard pipeline's depth.
+    relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
+    assert float(relative[objects.valid].max()) < 0.005
+    assert result.depth.nearest.depth_m.requires_grad
+    loss = objects.depth_median_m[objects.valid].sum() + result.depth.nearest.depth_m.sum()
+    loss.backward()
+    for image in (batch.left, batch.right):
+        assert bool(torch.isfinite(image.grad).all())
+        assert int((image.grad != 0).sum()) > 1000  # a band of pixels, not one or two order statistics
+    grads = [p.grad for p in net.parameters()]
+    assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
+    assert sum(int((g != 0).sum()) for g in grads) > 0.5 * sum(p.numel() for p in net.parameters())
+    # The hard half is the hard pipeline's own result (the left logits computed once, with gradients).
+    plain = estimate_obstacle_depth(_teddy(data_dir, (240, 180)), PipelineConfig(segmentation=LEARNED),
+                                    network=net)
+    assert torch.equal(plain.segmentation.left.labels, result.segmentation.left.labels)
+    assert torch.equal(plain.depth.objects.depth_median_m, hard.depth_median_m)
+
+
+def test_without_a_network_the_cached_one_passes_image_gradients_and_keeps_no_grad(data_dir):
+    from svs_torch.learned_segmentation import _cached_obstacle_net
+    batch = _requiring_grad(_teddy(data_dir, (160, 120)))
+    result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True, segmentation=LEARNED))
+    objects = result.depth.objects
+    objects.depth_median_m[objects.valid].sum().backward()
+    assert int((batch.left.grad != 0).sum()) > 100
+    assert all(p.grad is None for p in _cached_obstacle_net("learned").parameters())
+
+
+def test_rectified_pair_keeps_the_hard_values_and_passes_gradients(data_dir):
+    batch = _requiring_grad(_teddy(data_dir, (240, 180)))  # F rectifies at this size (degenerate at 160x120)
+    result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True, rectify="required"))
+    assert bool(result.rectified.all())
+    objects, hard = result.depth.objects, result.hard_depth.objects
+    relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
+    assert float(relative[objects.valid].max()) < 0.005
+    objects.depth_median_m[objects.valid].sum().backward()
+    assert int((batch.left.grad != 0).sum()) > 100 and int((batch.right.grad != 0).sum()) > 100
+
+
+def test_mixed_sizes_pass_gradients_to_each_pair(data_dir):
+    pairs = [_teddy(data_dir, (160, 120)), _teddy(data_dir, (200, 150))]
+    batch = _requiring_grad(collate_stereo_batches(pairs))
+    result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True))
+    valid = result.depth.objects.valid
+    assert bool(valid.any(dim=1).all())
+    result.depth.objects.depth_median_m[valid].sum().backward()
+    assert bool((batch.left.grad.flatten(1) != 0).any(dim=1).all())
+
+
+@pytest.mark.parametrize("preset", ["default", "paper", "learned"])
+def test_hard_presets_take_images_that_require_grad(data_dir, preset):
+    config = {"default": PipelineConfig(), "paper": PipelineConfig.paper(),
+              "learned": PipelineConfig(segmentation=LEARNED)}[preset]
+    plain = _teddy(data_dir, (160, 120))
+    detached = estimate_obstacle_depth(plain, config)
+    result = estimate_obstacle_depth(_requiring_grad(plain), config)  # raised a RuntimeError before issue 31
+    assert not result.depth.objects.depth_median_m.requires_grad
+    assert torch.equal(result.depth.objects.depth_median_m, detached.depth.objects.depth_median_m)
+    assert result.hard_depth is None
+
+
+def test_arguments_are_checked(data_dir):
+    with pytest.raises(InputError, match="differentiable: needs depth.rule 'dense'"):
+        replace(PipelineConfig.paper(), differentiable=True)
+    batch = _teddy(data_dir, (160, 120))
+    with pytest.raises(InputError, match="network: given, but config.segmentation.segmenter is 'otsu'"):
+        estimate_obstacle_depth(batch, PipelineConfig(differentiable=True), network=load_obstacle_net())
+    with pytest.raises(InputError, match="network: expected its parameters on the batch's device"):
+        estimate_obstacle_depth(batch, PipelineConfig(segmentation=LEARNED), network=load_obstacle_net().to("meta"))
+
+
+def test_results_follow_the_device(data_dir, device):
+    net = load_obstacle_net().to(device)
+    result = estimate_obstacle_depth(_requiring_grad(_teddy(data_dir, (160, 120), device)),
+                                     PipelineConfig(differentiable=True, segmentation=LEARNED), network=net)
+    assert result.depth.objects.depth_median_m.device.type == device
+
+
+def test_no_tensor_is_created_off_the_input_device(data_dir, monkeypatch):
+    """Without a GPU: every tensor the torch path creates without naming a device would land on the meta device
+    (and fail to mix with the CPU inputs). The compiled kernels are CPU-only by design, so they are off here."""
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    batch = _requiring_grad(_teddy(data_dir, (160, 120)))
+    net = load_obstacle_net()
+    config = PipelineConfig(differentiable=True, segmentation=LEARNED)
+    estimate_obstacle_depth(batch, PipelineConfig())  # imports done outside the guard
+    torch.set_default_device("meta")
+    try:
+        result = estimate_obstacle_depth(batch, config, network=net)
+    finally:
+        torch.set_default_device(None)
+    assert result.depth.objects.depth_median_m.device.type == "cpu"
+    assert np.isfinite(result.depth.objects.depth_median_m.detach().numpy()).all()
