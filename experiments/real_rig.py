@@ -166,9 +166,12 @@ def _pick(batch: StereoBatch, i: int) -> StereoBatch:
                        names=(batch.names[i],))
 
 
-def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True) -> list[dict]:
-    """Rows (one per condition) of one scene: svs_torch's default and StereoSGBM on the same pairs."""
-    stacked = stack_conditions(batch, conditions(batch, scene_index))
+def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True,
+              only: tuple[str, ...] | None = None) -> list[dict]:
+    """Rows (one per condition, or those whose name starts with one of ``only``) of one scene: svs_torch's
+    default and StereoSGBM on the same pairs."""
+    views = [v for v in conditions(batch, scene_index) if only is None or v[0].startswith(only)]
+    stacked = stack_conditions(batch, views)
     started = time.perf_counter()
     result = estimate_obstacle_depth(stacked, config)
     elapsed = time.perf_counter() - started
@@ -205,7 +208,7 @@ def _segmentation_of(seg, i: int):
 
 
 def run(splits: dict[str, list[Path]], sizes: list[str], config: PipelineConfig, rival: bool = True,
-        progress: bool = True) -> list[dict]:
+        only: tuple[str, ...] | None = None, progress: bool = True) -> list[dict]:
     rows = []
     jobs = [(size, split, index, path) for size in sizes for split, paths in splits.items()
             for index, path in enumerate(paths)]
@@ -213,7 +216,7 @@ def run(splits: dict[str, list[Path]], sizes: list[str], config: PipelineConfig,
         if progress:
             print(f"\r[{number}/{len(jobs)}] {size} {path.name}        ", end="", file=sys.stderr, flush=True)
         batch = resample(load_scene(path), size)
-        rows += [{"split": split, "size": size, **row} for row in run_scene(batch, index, config, rival)]
+        rows += [{"split": split, "size": size, **row} for row in run_scene(batch, index, config, rival, only)]
     if progress:
         print(file=sys.stderr)
     return rows
@@ -259,6 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sizes", default="320x240")
     parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
+    parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM (tuning runs)")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--markdown", type=Path)
@@ -267,7 +271,8 @@ def main(argv: list[str] | None = None) -> dict:
     splits = {name: paths[:args.limit] for name, paths in split_scenes(args.data).items()
               if name in args.splits.split(",")}
     started = time.perf_counter()
-    rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival)
+    only = None if args.conditions is None else tuple(args.conditions.split(","))
+    rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only)
     summary = summarize(rows)
     command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,

@@ -25,6 +25,7 @@ from .mask_reductions import any_along
 from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
                        refine_matched_points)
 from .ransac import estimate_fundamental_ransac
+from .row_alignment import RowAlignmentConfig, fit_row_alignment
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
@@ -84,6 +85,10 @@ class PipelineConfig:
             the SVS, where an F fitted to a few nearly planar obstacles would only add shear) or when F cannot
             rectify, and rectifies otherwise; ``"off"`` always measures x_left − x_right on the raw points.
         row_tolerance_px: see ``rectify="auto"``, pixels.
+        row_alignment: :class:`~svs_torch.row_alignment.RowAlignmentConfig`: under ``rectify="auto"``, a right
+            view whose matches fit a roll / vertical shift / scale of the right camera that moves some image
+            corner's row by more than its ``min_correction_px`` is aligned by that similarity instead (before
+            the projective rule): a loosely mounted second board (``experiments/real_rig.py``). None: off.
         rectification: :class:`~svs_torch.rectification.RectificationConfig`.
         depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
             ``"paper"``: min/max over the inliers, or robust percentiles).
@@ -121,6 +126,8 @@ class PipelineConfig:
     ransac_scoring: Literal["ransac", "msac", "lmeds"] = "msac"  # Sec. 3.3 (3) keeps the most inliers
     rectify: Literal["auto", "required", "off"] = "auto"  # Sec. 3.4, uncalibrated rectification
     row_tolerance_px: float = 1.0
+    # experiments/real_rig.py: roll 2 deg / shift 3 % of the right view at 320x240 lost 27-50 points per object.
+    row_alignment: RowAlignmentConfig | None = field(default_factory=RowAlignmentConfig)
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
@@ -278,6 +285,27 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
     return usable & (median > config.row_tolerance_px)
 
 
+def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResult, rectification: Rectification,
+                             image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(B,)`` bool rectified, and the ``(B, 3, 3)`` left and right homographies the disparities are measured
+    after (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds
+    one that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`."""
+    rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
+    identity = torch.eye(3, dtype=rectification.H_left.dtype).expand_as(rectification.H_left)
+    pick = rectified.view(-1, 1, 1)
+    H_left = torch.where(pick, rectification.H_left, identity)
+    H_right = torch.where(pick, rectification.H_right, identity)
+    if config.rectify != "auto" or config.row_alignment is None:
+        return rectified, H_left, H_right
+    # The similarity is fitted to every match, not F's inliers: F of a few planar obstacles may be loose.
+    alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds)
+    aligned = alignment.valid & (alignment.correction_px > config.row_alignment.min_correction_px)
+    pick = aligned.view(-1, 1, 1)
+    return (rectified | aligned, torch.where(pick, identity, H_left),
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right))
+
+
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
                  points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
                  H_right: torch.Tensor, config: PipelineConfig
@@ -379,14 +407,12 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
     lap("ransac")
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)
-    rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
-    identity = torch.eye(3, dtype=rectification.H_left.dtype).expand_as(rectification.H_left)
-    pick = rectified.view(-1, 1, 1)
+    rectified, H_left, H_right = _rectifying_homographies(points, fundamental, rectification, batch.image_hw,
+                                                          seeds, config)
     lap("rectification")
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
-        H_left=torch.where(pick, rectification.H_left, identity),
-        H_right=torch.where(pick, rectification.H_right, identity),
+        H_left=H_left, H_right=H_right,
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
     dense = verified = agreeing = None
     if config.depth.rule == "dense":
@@ -394,9 +420,7 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig) -> PipelineResul
                           & (fundamental.num_inliers >= config.verify_min_inliers)
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
         depth, dense, verified, agreeing = _dense_depth(
-            batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified,
-            torch.where(pick, rectification.H_left, identity), torch.where(pick, rectification.H_right, identity),
-            config)
+            batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
