@@ -369,18 +369,37 @@ def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) 
     return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
 
 
-def _select_pairs(pick: torch.Tensor, first, second):
-    """``first`` with pair b taken from ``second`` where ``pick[b]`` (nested dataclasses / tuples of tensors whose
-    first dimension is the pair; anything else from ``first``)."""
-    if isinstance(first, torch.Tensor) and first.dim() >= 1 and first.shape[0] == pick.shape[0]:
-        return torch.where(pick.view(-1, *[1] * (first.dim() - 1)), second, first)
+def _map_pairs(fn, num_pairs: int, *trees):
+    """Apply ``fn`` to the per-pair leaves of nested dataclasses / tuples (tensors whose first dimension is the
+    pair, and tuples of names, one per pair); every other leaf is taken from the first tree."""
+    first = trees[0]
+    if isinstance(first, torch.Tensor):
+        return fn(*trees) if first.dim() >= 1 and first.shape[0] == num_pairs else first
     if dataclasses.is_dataclass(first) and not isinstance(first, type):
-        return dataclasses.replace(first, **{f.name: _select_pairs(pick, getattr(first, f.name), getattr(second, f.name))
+        return dataclasses.replace(first, **{f.name: _map_pairs(fn, num_pairs, *(getattr(t, f.name) for t in trees))
                                              for f in dataclasses.fields(first) if f.init})
+    if isinstance(first, tuple) and first and all(isinstance(v, str) for v in first) and len(first) == num_pairs:
+        return tuple(fn(*(list(t) for t in trees)))
     if isinstance(first, tuple):
-        parts = [_select_pairs(pick, a, b) for a, b in zip(first, second)]
+        parts = [_map_pairs(fn, num_pairs, *items) for items in zip(*trees)]
         return type(first)(*parts) if hasattr(first, "_fields") else tuple(parts)
     return first
+
+
+def _take_pairs(tree, index: torch.Tensor, num_pairs: int):
+    """The pairs ``index`` ``(b,)`` of a nested result (see :func:`_map_pairs`)."""
+    return _map_pairs(lambda t: t[index] if isinstance(t, torch.Tensor) else [t[i] for i in index.tolist()],
+                      num_pairs, tree)
+
+
+def _put_pairs(tree, index: torch.Tensor, part, num_pairs: int):
+    """``tree`` with its pairs ``index`` replaced by ``part``'s (same order)."""
+    def put(whole, piece):
+        whole = whole.clone()
+        whole[index] = piece
+        return whole
+
+    return _map_pairs(put, num_pairs, tree, part)
 
 
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
@@ -395,14 +414,24 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
     retry = ~first[2] | (kept & ~first[0].objects.valid[:, :kept.shape[1]]).any(1)
     if config.noisy_retry_sigma_px is None or not bool(retry.any()):
         return first
-    smoothed = _smoothed(batch, config.noisy_retry_sigma_px, config.dense)
-    second = _dense_depth(smoothed, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right,
-                          config)
-    ranged_first, ranged_second = first[0].objects.valid.sum(1), second[0].objects.valid.sum(1)
+    # Only the retried pairs run again (a clean batch's verified pairs never pay for it).
+    index, b = retry.nonzero().flatten(), batch.batch_size
+    sub = (lambda tree: _take_pairs(tree, index, b))
+    smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
+    second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
+                          sub(rectified), sub(H_left), sub(H_right), config)
+    ranged_first, ranged_second = sub(first[0].objects.valid).sum(1), second[0].objects.valid.sum(1)
     # Only a verified second pass counts: views of different scenes are never verified, and smoothing must not
     # let their chance agreement reach the unverified share (experiments/verify_views.py).
-    pick = retry & second[2] & ((ranged_second > ranged_first) | (~first[2] & (ranged_second >= ranged_first)))
-    return _select_pairs(pick, first, second)
+    verified_first = sub(first[2])
+    pick = second[2] & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    if not bool(pick.any()):
+        return first
+    depth, dense, verified, agreeing = _put_pairs(first, index[pick], _take_pairs(second, pick.nonzero().flatten(),
+                                                                                 len(index)), b)
+    # The batch's deepest search (an int, not per pair).
+    dense = dataclasses.replace(dense, num_disparities=max(first[1].num_disparities, second[1].num_disparities))
+    return depth, dense, verified, agreeing
 
 
 def segment_pair(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
