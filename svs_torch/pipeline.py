@@ -31,6 +31,7 @@ from .row_alignment import RowAlignmentConfig, fit_row_alignment
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
+from .pair_trees import put_pairs, take_pairs
 from .size_groups import run_by_size
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -111,9 +112,8 @@ class PipelineConfig:
         noisy_retry_sigma_px: under the dense rule, a pair the sparse stage did not verify (or with a kept object
             unranged) is measured again on both views smoothed by a Gaussian of this σ (working pixels), and that
             second measurement is kept where it is verified and ranges more objects (or as many, the first not
-            verified): JPEG frames with sensor noise leave the x-Sobel SAD few
-            unique windows and the SURF matches few inliers the map confirms, while a clean pair is verified and
-            never retried. None: off.
+            verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
+            matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).
@@ -148,7 +148,7 @@ class PipelineConfig:
     verify_min_inlier_share: float = 0.5
     verify_min_agreeing_inliers: int = 6
     seed: int = 0
-    # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 93 %, digit 8 + sigma 8 58.7 -> 84 %.
+    # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
     noisy_retry_sigma_px: float | None = 1.0
 
     def __post_init__(self) -> None:
@@ -369,39 +369,6 @@ def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) 
     return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
 
 
-def _map_pairs(fn, num_pairs: int, *trees):
-    """Apply ``fn`` to the per-pair leaves of nested dataclasses / tuples (tensors whose first dimension is the
-    pair, and tuples of names, one per pair); every other leaf is taken from the first tree."""
-    first = trees[0]
-    if isinstance(first, torch.Tensor):
-        return fn(*trees) if first.dim() >= 1 and first.shape[0] == num_pairs else first
-    if dataclasses.is_dataclass(first) and not isinstance(first, type):
-        return dataclasses.replace(first, **{f.name: _map_pairs(fn, num_pairs, *(getattr(t, f.name) for t in trees))
-                                             for f in dataclasses.fields(first) if f.init})
-    if isinstance(first, tuple) and first and all(isinstance(v, str) for v in first) and len(first) == num_pairs:
-        return tuple(fn(*(list(t) for t in trees)))
-    if isinstance(first, tuple):
-        parts = [_map_pairs(fn, num_pairs, *items) for items in zip(*trees)]
-        return type(first)(*parts) if hasattr(first, "_fields") else tuple(parts)
-    return first
-
-
-def _take_pairs(tree, index: torch.Tensor, num_pairs: int):
-    """The pairs ``index`` ``(b,)`` of a nested result (see :func:`_map_pairs`)."""
-    return _map_pairs(lambda t: t[index] if isinstance(t, torch.Tensor) else [t[i] for i in index.tolist()],
-                      num_pairs, tree)
-
-
-def _put_pairs(tree, index: torch.Tensor, part, num_pairs: int):
-    """``tree`` with its pairs ``index`` replaced by ``part``'s (same order)."""
-    def put(whole, piece):
-        whole = whole.clone()
-        whole[index] = piece
-        return whole
-
-    return _map_pairs(put, num_pairs, tree, part)
-
-
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                             fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
@@ -416,7 +383,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
         return first
     # Only the retried pairs run again (a clean batch's verified pairs never pay for it).
     index, b = retry.nonzero().flatten(), batch.batch_size
-    sub = (lambda tree: _take_pairs(tree, index, b))
+    sub = (lambda tree: take_pairs(tree, index, b))
     smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
     second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
                           sub(rectified), sub(H_left), sub(H_right), config)
@@ -427,7 +394,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
     pick = second[2] & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
     if not bool(pick.any()):
         return first
-    depth, dense, verified, agreeing = _put_pairs(first, index[pick], _take_pairs(second, pick.nonzero().flatten(),
+    depth, dense, verified, agreeing = put_pairs(first, index[pick], take_pairs(second, pick.nonzero().flatten(),
                                                                                  len(index)), b)
     # The batch's deepest search (an int, not per pair).
     dense = dataclasses.replace(dense, num_disparities=max(first[1].num_disparities, second[1].num_disparities))
