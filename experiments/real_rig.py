@@ -243,8 +243,8 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 def markdown(summary: list[dict], command: str) -> str:
     lines = [f"`{command}`", "",
-             "| split | size | condition | pairs | svs_torch Acc objects % | Δ clean | ranged % | SGBM Acc objects % | "
-             "SGBM ranged % | worst pair |", "|" + "---|" * 10]
+             "| split | size | condition | pairs | svs_torch Acc objects % | Δ clean | ranged % | "
+             "SGBM Acc objects % | SGBM ranged % | worst pair |", "|" + "---|" * 10]
     clean = {(s["split"], s["size"]): s["acc_objects"] for s in summary if s["condition"] == "clean"}
     for s in summary:
         delta = s["acc_objects"] - clean.get((s["split"], s["size"]), float("nan"))

@@ -98,7 +98,8 @@ class RowAlignment:
 
 
 def _row_residuals(params: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """|b·x_r + a·y_r + t_y − y_l| for parameters ``(B, M, 3)`` = (a, b, t_y) and points ``(B, K, 2)``: ``(B, M, K)``."""
+    """|b·x_r + a·y_r + t_y − y_l| ``(B, M, K)`` for parameters ``(B, M, 3)`` = (a, b, t_y) and points
+    ``(B, K, 2)``."""
     a, b, t = params.unbind(-1)
     aligned = b[..., None] * right[:, None, :, 0] + a[..., None] * right[:, None, :, 1] + t[..., None]
     return (aligned - left[:, None, :, 1]).abs()

@@ -92,8 +92,8 @@ def test_misaligned_right_camera_extremes_are_ranged_as_the_aligned_pair(teddy):
     against 97.55 %; before the row alignment a roll or shift cost up to 50 points on the shared scenes). The rolled
     and shifted views are aligned."""
     focal = float(teddy.focal_px[0])
-    views = [("clean", teddy.left, teddy.right)] + [
-        (name, teddy.left, real_rig.misalign_right(teddy.right, m, focal)) for name, m in real_rig.MISALIGNMENTS.items()]
+    views = [("clean", teddy.left, teddy.right)] + [(name, teddy.left, real_rig.misalign_right(teddy.right, m, focal))
+                                                    for name, m in real_rig.MISALIGNMENTS.items()]
     scores, result = _per_object(teddy, views)
     clean = scores["clean"][1]
     assert clean > 96
