@@ -183,18 +183,21 @@ class EmulatorServer:
         holdoff_s: input is discarded for this long after each reply, seconds (§2).
         banner: send the master's power-up banner to its first connection.
         send_timeout_s: give up sending to a client that does not read for this long, seconds.
+        noise_sigma: independent Gaussian sensor noise of each board, 8-bit levels (``--noise-sigma``).
+        noise_seed: seed of the left board's noise; the right board's is the next one.
     """
 
     def __init__(self, host: str = "127.0.0.1", left_port: int = 10001, right_port: int = 10002, *,
                  source: FrameSource | None = None, use_pty: bool = False,
                  faults: dict[str, Faults] | None = None, holdoff_s: float = 0.001, banner: bool = True,
-                 send_timeout_s: float = 2.0) -> None:
+                 send_timeout_s: float = 2.0, noise_sigma: float = 0.0, noise_seed: int = 0) -> None:
         self.source = source if source is not None else SyntheticSource()
         start = time.monotonic()
         faults = faults or {}
         self.cameras = {name: CameraState(name, role, self.source, holdoff_s=holdoff_s, start_s=start,
-                                          faults=faults.get(name))
-                        for name, role in (("left", "master"), ("right", "slave"))}
+                                          faults=faults.get(name), noise_sigma=noise_sigma,
+                                          noise_seed=noise_seed + index)
+                        for index, (name, role) in enumerate((("left", "master"), ("right", "slave")))}
         self._stop = threading.Event()
         self._ports: dict[str, _BoardPort] = {}
         try:
@@ -271,6 +274,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
     p.add_argument("--holdoff-ms", type=float, default=1.0, help="input discarded after a reply, ms")
     p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
+    p.add_argument("--noise-sigma", type=float, default=0.0, metavar="LEVELS",
+                   help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
+    p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
     f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
@@ -302,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
         faults = _faults_from_args(args)
         chosen = ("left", "right") if args.fault_camera == "both" else (args.fault_camera,)
         server = EmulatorServer(args.host, args.left_port, args.right_port, source=source, use_pty=args.pty,
-                                faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000)
+                                faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000,
+                                noise_sigma=args.noise_sigma, noise_seed=args.noise_seed)
     except (OSError, ValueError) as err:
         print(f"hw.emulator: error: {err}", file=sys.stderr)
         return 1

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from svs_torch.camera import SVS_RESOLUTIONS
 from svs_torch.capture.protocol import encode_frame
@@ -98,10 +99,19 @@ class CameraState:
         start_s: the clock reading at power-up (for ``t`` and the source's time), seconds.
         faults: initial faults (copied).
         low_battery: what ``D`` reports.
+        noise_sigma: Gaussian sensor noise added to every frame before encoding, 8-bit levels (the OV9655's own
+            noise, independent in each camera); 0: none.
+        noise_seed: seed of this board's noise (``torch.Generator``); the two boards of a server get different
+            seeds so their noise is independent.
     """
 
     def __init__(self, camera: str, role: str, source: FrameSource, *, holdoff_s: float = 0.001,
-                 start_s: float = 0.0, faults: Faults | None = None, low_battery: bool = False) -> None:
+                 start_s: float = 0.0, faults: Faults | None = None, low_battery: bool = False,
+                 noise_sigma: float = 0.0, noise_seed: int = 0) -> None:
+        if not (np.isfinite(noise_sigma) and noise_sigma >= 0):
+            raise ValueError(f"noise_sigma: expected a finite σ >= 0 in 8-bit levels, got {noise_sigma!r}")
+        self.noise_sigma = float(noise_sigma)
+        self._noise = torch.Generator().manual_seed(noise_seed)
         self.camera = camera
         self.role = role
         self.source = source
@@ -189,6 +199,9 @@ class CameraState:
         image = np.ascontiguousarray(self.source(self.camera, width, height, now_s - self.start_s))
         if image.shape != (height, width):
             raise ValueError(f"source: expected a ({height}, {width}) image, got {image.shape}")
+        if self.noise_sigma > 0:
+            noise = torch.randn(image.shape, generator=self._noise, dtype=torch.float64).numpy() * self.noise_sigma
+            image = np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
         if self.flipped:
             image = image[::-1, ::-1]
         bgr = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_GRAY2BGR)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Literal
@@ -27,9 +28,11 @@ from .mask_reductions import any_along
 from .matching import (MatchedPoints, MatchRefinementConfig, gather_matched_points, match_sad,
                        refine_matched_points)
 from .ransac import estimate_fundamental_ransac
+from .row_alignment import RowAlignmentConfig, fit_row_alignment
 from .rectification import (Rectification, RectificationConfig, RectificationStatus, rectify_uncalibrated,
                              warp_rectified)
 from .segmentation import SegmentationConfig, segment_stereo
+from .pair_trees import put_pairs, take_pairs
 from .size_groups import run_by_size
 from .soft_pipeline import differentiable_depth
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
@@ -64,10 +67,11 @@ class PipelineConfig:
         surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
             ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
             weak ones that do not hold.
-        features_on: ``"masked"`` detects and describes on the masked obstacle images (the paper);
-            ``"mask"`` detects only inside the kept regions but on the unmasked images, so the artificial edge
-            between an obstacle and the blacked-out background makes no keypoints; ``"image"`` uses the whole
-            images (no segmentation gate).
+        features_on: ``"masked"`` detects and describes on the masked obstacle images (the paper, ``paper()``);
+            ``"mask"`` (the default) detects only inside the kept regions but on the unmasked images, so the
+            artificial edge between an obstacle and the blacked-out background makes no keypoints, and a right
+            view segmented a little differently (another exposure, a turned camera) keeps its matches;
+            ``"image"`` uses the whole images (no segmentation gate).
         max_ratio: SAD ratio test, Sec. 3.3 (2): 0.8 (Lowe's); MATLAB ``matchFeatures`` MaxRatio 0.6 in ``paper()``.
         mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
         laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
@@ -87,6 +91,10 @@ class PipelineConfig:
             the SVS, where an F fitted to a few nearly planar obstacles would only add shear) or when F cannot
             rectify, and rectifies otherwise; ``"off"`` always measures x_left − x_right on the raw points.
         row_tolerance_px: see ``rectify="auto"``, pixels.
+        row_alignment: :class:`~svs_torch.row_alignment.RowAlignmentConfig`: under ``rectify="auto"``, a right
+            view whose matches fit a roll / vertical shift / scale of the right camera that moves some image
+            corner's row by more than its ``min_correction_px`` is aligned by that similarity instead (before
+            the projective rule): a loosely mounted second board (``experiments/real_rig.py``). None: off.
         rectification: :class:`~svs_torch.rectification.RectificationConfig`.
         depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
             ``"paper"``: min/max over the inliers, or robust percentiles).
@@ -101,13 +109,20 @@ class PipelineConfig:
             matches between unrelated views, but the dense map confirms at most 5 of them, against 7 or more on
             197 of 199 real and synthetic pairs (``experiments/verify_views.py``: 1966 pairs of unrelated
             Middlebury / KITTI views and 64 synthetic ones; the two others, Flowerpots and Reindeer squeezed to
-            320×240, keep every object: each has 40 % of its region measured).
+            320×240, keep every object: each has 40 % of its region measured). With ``features_on="mask"``:
+            at most 2 on the unrelated views, 9 or more on 198 of 199 (the one left has no F), 7 objects of the
+            unrelated views ranged, as before.
         seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
         differentiable: after the hard pipeline (run without gradients: it makes every discrete decision), a
             differentiable pass recomputes each object's depth from the images and the segmenter's logits
             given those decisions (:mod:`svs_torch.soft_pipeline`): ``PipelineResult.depth`` then carries
             gradients to both images and to the network's weights, and ``hard_depth`` keeps the hard values.
             Needs the ``"dense"`` range rule.
+        noisy_retry_sigma_px: under the dense rule, a pair the sparse stage did not verify (or with a kept object
+            unranged) is measured again on both views smoothed by a Gaussian of this σ (working pixels), and that
+            second measurement is kept where it is verified and ranges more objects (or as many, the first not
+            verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
+            matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).
@@ -117,7 +132,9 @@ class PipelineConfig:
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
-    features_on: Literal["masked", "mask", "image"] = "masked"  # Sec. 3.3 (1): SURF on the masked images
+    # real_rig.py, tuned 320x240: the right view turned / shifted / brighter segments differently, and the masked
+    # images' artificial region borders then lose half the matches (roll 2 deg: 164 -> 72 on Aloe); "mask" keeps them.
+    features_on: Literal["masked", "mask", "image"] = "mask"  # the paper (Sec. 3.3 (1)): "masked"
     max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
     laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3
@@ -129,6 +146,8 @@ class PipelineConfig:
     ransac_scoring: Literal["ransac", "msac", "lmeds"] = "msac"  # Sec. 3.3 (3) keeps the most inliers
     rectify: Literal["auto", "required", "off"] = "auto"  # Sec. 3.4, uncalibrated rectification
     row_tolerance_px: float = 1.0
+    # experiments/real_rig.py: roll 2 deg / shift 3 % of the right view at 320x240 lost 27-50 points per object.
+    row_alignment: RowAlignmentConfig | None = field(default_factory=RowAlignmentConfig)
     rectification: RectificationConfig = field(default_factory=RectificationConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
@@ -139,6 +158,8 @@ class PipelineConfig:
     verify_min_agreeing_inliers: int = 6
     seed: int = 0
     differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
+    # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
+    noisy_retry_sigma_px: float | None = 1.0
 
     def __post_init__(self) -> None:
         if self.features_on not in ("masked", "mask", "image"):
@@ -157,6 +178,8 @@ class PipelineConfig:
         if self.differentiable and self.depth.rule != "dense":
             raise InputError(f"differentiable: needs depth.rule 'dense' (the paper's rule ranges from extreme "
                              f"inliers, nothing to differentiate), got {self.depth.rule!r}")
+        if self.noisy_retry_sigma_px is not None and not self.noisy_retry_sigma_px > 0:
+            raise InputError(f"noisy_retry_sigma_px: expected a σ > 0 or None, got {self.noisy_retry_sigma_px!r}")
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
@@ -165,7 +188,8 @@ class PipelineConfig:
     def paper(cls) -> PipelineConfig:
         """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
         defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
-        return cls(surf=SurfConfig(), max_ratio=0.6, refine_matches=None, depth=DepthConfig(rule="paper"))
+        return cls(surf=SurfConfig(), features_on="masked", max_ratio=0.6, refine_matches=None, row_alignment=None,
+                   depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None)
 
 
 @dataclass(frozen=True)
@@ -197,6 +221,10 @@ class PipelineResult:
             (:func:`~svs_torch.dense_depth.count_agreeing_inliers`); None under the ``"paper"`` rule.
         hard_depth: under ``PipelineConfig.differentiable``, the hard pipeline's :class:`DepthResult` (``depth``
             is then the differentiable one); None otherwise.
+        H_left, H_right: ``(B, 3, 3)``, the homographies the disparities were measured after: F's rectification
+            or the right view's row alignment where ``rectified``, the identity elsewhere.
+        smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
+            smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
     """
 
     status: torch.Tensor
@@ -218,6 +246,9 @@ class PipelineResult:
     verified: torch.Tensor | None = None
     num_agreeing_inliers: torch.Tensor | None = None
     hard_depth: DepthResult | None = None
+    H_left: torch.Tensor | None = None
+    H_right: torch.Tensor | None = None
+    smoothed: torch.Tensor | None = None
 
 
 def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
@@ -295,6 +326,28 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
     return usable & (median > config.row_tolerance_px)
 
 
+def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResult, rectification: Rectification,
+                             image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(B,)`` bool rectified, and the ``(B, 3, 3)`` left and right homographies the disparities are measured
+    after (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds
+    one that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`."""
+    rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
+    identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
+                         ).expand_as(rectification.H_left)
+    pick = rectified.view(-1, 1, 1)
+    H_left = torch.where(pick, rectification.H_left, identity)
+    H_right = torch.where(pick, rectification.H_right, identity)
+    if config.rectify != "auto" or config.row_alignment is None:
+        return rectified, H_left, H_right
+    # The similarity is fitted to every match, not F's inliers: F of a few planar obstacles may be loose.
+    alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds)
+    aligned = alignment.valid & (alignment.correction_px > config.row_alignment.min_correction_px)
+    pick = aligned.view(-1, 1, 1)
+    return (rectified | aligned, torch.where(pick, identity, H_left),
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right))
+
+
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
                  points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
                  H_right: torch.Tensor, config: PipelineConfig
@@ -330,6 +383,52 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
     return depth, dense, verified, agreeing
+
+
+def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) -> StereoBatch:
+    """Both views smoothed by a Gaussian of ``sigma_working_px`` working pixels of the dense stage."""
+    from kornia.filters import gaussian_blur2d  # imported here: kornia's import is slow and clean pairs never retry
+
+    sigma = sigma_working_px * working_factor(batch.left.shape[-1], config)
+    size = 2 * math.ceil(3 * sigma) + 1
+    blur = (lambda image: gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="replicate"))
+    return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
+
+
+def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
+                            fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
+                            rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
+                            config: PipelineConfig
+                            ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_dense_depth`, then on smoothed views for the pairs it left unverified or with a kept object
+    unranged (``config.noisy_retry_sigma_px``); per pair the second result where it is verified and ranges more
+    objects, or as many where the first was not verified. Also returns ``(B,)`` bool: the pairs whose result is
+    the smoothed pass's."""
+    first = _dense_depth(batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right, config)
+    from_smoothed = torch.zeros_like(rectified)
+    kept = seg.left.kept_labels >= 0
+    retry = ~first[2] | (kept & ~first[0].objects.valid[:, :kept.shape[1]]).any(1)
+    if config.noisy_retry_sigma_px is None or not bool(retry.any()):
+        return (*first, from_smoothed)
+    # Only the retried pairs run again (a clean batch's verified pairs never pay for it).
+    index, b = retry.nonzero().flatten(), batch.batch_size
+    sub = (lambda tree: take_pairs(tree, index, b))
+    smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
+    second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
+                          sub(rectified), sub(H_left), sub(H_right), config)
+    ranged_first, ranged_second = sub(first[0].objects.valid).sum(1), second[0].objects.valid.sum(1)
+    # Only a verified second pass counts: views of different scenes are never verified, and smoothing must not
+    # let their chance agreement reach the unverified share (experiments/verify_views.py).
+    verified_first = sub(first[2])
+    pick = second[2] & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    if not bool(pick.any()):
+        return (*first, from_smoothed)
+    from_smoothed[index[pick]] = True
+    depth, dense, verified, agreeing = put_pairs(first, index[pick], take_pairs(second, pick.nonzero().flatten(),
+                                                                                 len(index)), b)
+    # The batch's deepest search (an int, not per pair).
+    dense = dataclasses.replace(dense, num_disparities=max(first[1].num_disparities, second[1].num_disparities))
+    return depth, dense, verified, agreeing, from_smoothed
 
 
 def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
@@ -423,12 +522,14 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
         result = _estimate_hard(_detached(batch), config, network, logits)
     if not config.differentiable:
         return result
-    pick = result.rectified.view(-1, 1, 1)
-    identity = torch.eye(3, dtype=result.rectification.H_left.dtype, device=pick.device)
+    left, right = batch.left, batch.right
+    if config.noisy_retry_sigma_px is not None and bool(result.smoothed.any()):
+        # The pairs the hard stage measured on smoothed views are differentiated through the same (linear) blur.
+        blurred = _smoothed(batch, config.noisy_retry_sigma_px, config.dense)
+        pick = result.smoothed.view(-1, 1, 1, 1)
+        left, right = torch.where(pick, blurred.left, left), torch.where(pick, blurred.right, right)
     depth = differentiable_depth(
-        batch.left, batch.right, result.segmentation.left.labels, logits, result.rectified,
-        torch.where(pick, result.rectification.H_left, identity), torch.where(pick, result.rectification.H_right,
-                                                                              identity),
+        left, right, result.segmentation.left.labels, logits, result.rectified, result.H_left, result.H_right,
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
         config.depth.object_percentiles, config.dense)
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth)
@@ -465,25 +566,20 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     lap("ransac")
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)
-    rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
-    identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
-                         ).expand_as(rectification.H_left)
-    pick = rectified.view(-1, 1, 1)
+    rectified, H_left, H_right = _rectifying_homographies(points, fundamental, rectification, batch.image_hw,
+                                                          seeds, config)
     lap("rectification")
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
-        H_left=torch.where(pick, rectification.H_left, identity),
-        H_right=torch.where(pick, rectification.H_right, identity),
+        H_left=H_left, H_right=H_right,
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = None
+    dense = verified = agreeing = smoothed = None
     if config.depth.rule == "dense":
         fundamental_ok = ((fundamental.status == FundamentalStatus.OK)
                           & (fundamental.num_inliers >= config.verify_min_inliers)
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
-        depth, dense, verified, agreeing = _dense_depth(
-            batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified,
-            torch.where(pick, rectification.H_left, identity), torch.where(pick, rectification.H_right, identity),
-            config)
+        depth, dense, verified, agreeing, smoothed = _dense_depth_with_retry(
+            batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
@@ -493,4 +589,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
         num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
-        verified=verified, num_agreeing_inliers=agreeing)
+        verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed)

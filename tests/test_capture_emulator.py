@@ -88,6 +88,31 @@ def test_board_frame_at_current_size(command, code, size):
     assert (event.header.width, event.header.height) == size
 
 
+def _frame_pixels(board: CameraState, now_s: float) -> np.ndarray:
+    import cv2
+
+    (event,) = FrameParser().feed(board.feed(b"I", now_s).data)
+    return cv2.imdecode(np.frombuffer(event.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+
+
+def test_board_sensor_noise_is_gaussian_seeded_and_independent():
+    """--noise-sigma: each frame gets fresh Gaussian noise of the given σ before the JPEG, reproducible from the
+    seed and independent between boards with different seeds; σ 0 is the noise-free frame."""
+    quiet, noisy, same, other = (make_board(holdoff_s=0.0, noise_sigma=sigma, noise_seed=seed)
+                                 for sigma, seed in ((0.0, 0), (6.0, 0), (6.0, 0), (6.0, 1)))
+    for board in (quiet, noisy, same, other):
+        board.feed(b"q1", 0.0)  # the best quality: the JPEG keeps most of the noise
+    clean = _frame_pixels(quiet, 1.0)
+    first, second = _frame_pixels(noisy, 1.0), _frame_pixels(noisy, 2.0)
+    # flat_source's texture spans 40-240 for the left board: no clipping, so the difference is the noise + JPEG.
+    assert 5.0 < float((first - clean).std()) < 7.5 and abs(float((first - clean).mean())) < 0.5
+    assert float((second - first).std()) > 7  # a new draw each frame
+    assert np.array_equal(first, _frame_pixels(same, 1.0))  # seeded
+    assert float((_frame_pixels(other, 1.0) - first).std()) > 7  # another seed: independent noise (√2·σ apart)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        make_board(noise_sigma=-1.0)
+
+
 def test_board_discards_input_while_busy():
     board = make_board(holdoff_s=0.01)
     assert board.feed(b"VV", 0.0).data == version_line("master")  # the second V arrived while busy

@@ -448,6 +448,17 @@ def test_guide_runs_live_against_the_emulator(capsys):
     assert "Obstacle" in out or "obstacle" in out
 
 
+def test_guide_warns_on_a_noisy_emulator(capsys):
+    """The emulator's boards with σ 8 sensor noise each, JPEG at the worst digit 8: the guide still ranges the
+    obstacles and speaks; a negative σ is refused."""
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "8", "--quality", "8", "--count",
+                             "3", "--no-speech", "--far-m", "5.0")
+    assert code == 0 and "guide stopped after 3 pairs" in err
+    assert "Obstacle" in out or "obstacle" in out
+    code, _, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "-1", "--count", "1", "--no-speech")
+    assert code == 2 and "--emulator-noise" in err
+
+
 def test_guide_needs_boards_or_the_emulator(capsys):
     code, _, err = run_cli(capsys, "guide")
     assert code == 2 and "--emulator" in err

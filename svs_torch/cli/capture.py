@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -69,6 +70,9 @@ def add_parser(subparsers: Any) -> None:
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
+    parser.add_argument("--emulator-noise", type=float, default=0.0, metavar="LEVELS",
+                        help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
+                             "(default 0)")
     parser.set_defaults(func=run)
 
 
@@ -161,8 +165,11 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     from hw.emulator import EmulatorServer
     from hw.frames import SyntheticSource
 
+    noise = getattr(args, "emulator_noise", 0.0)
+    if not (math.isfinite(noise) and noise >= 0):
+        raise InputError(f"--emulator-noise: expected a σ >= 0 in 8-bit levels, got {noise!r}")
     source = SyntheticSource()
-    server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source))
+    server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source, noise_sigma=noise))
     source.prepare(size, timeout_s=30.0, complete=False)  # the first rendered keyframe, not the stand-in
     print(f"svs-depth: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)
     return server.urls["left"], server.urls["right"]

@@ -38,6 +38,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--left", metavar="URL", help="left (master) board: serial device or socket://HOST:10001")
     parser.add_argument("--right", metavar="URL", help="right (slave) board: serial device or socket://HOST:10002")
     parser.add_argument("--emulator", action="store_true", help="use an in-process SVS emulator on loopback")
+    parser.add_argument("--emulator-noise", type=float, default=0.0, metavar="LEVELS",
+                        help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
+                             "(default 0)")
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,

@@ -1,0 +1,293 @@
+"""Depth on the frames a real rig sends (issue 33, items 1 and 2): JPEG frames with sensor noise, and a right camera
+that is turned, tilted, shifted, scaled and exposed differently from the left.
+
+Each shared scene is perturbed, the pipeline runs on every condition of a scene as one batch, and each condition
+is scored by Eq. (9) per object (:func:`svs_torch.evaluation.evaluate_result`: an object's true distance is the
+median GT depth over its kept region of the LEFT view), with the share of pairs ranged, against OpenCV StereoSGBM
+run on the same raw pairs over the same kept regions (``paper_table1.opencv_dense_estimate``; a failed pair or
+object counts 0 %).
+
+Conditions (every random draw from a seeded torch.Generator: the scene's index, the condition's and the view's):
+- ``clean``: the pair as shipped.
+- ``jpeg qD + noise sS``: independent Gaussian sensor noise of σ = S 8-bit levels in each view, then each view
+  encoded as a baseline JPEG at the board's quality digit D (``hw.emulator_state.JPEG_QUALITY_FOR_DIGIT``:
+  digits 1–8 → OpenCV qualities 95…20) and decoded, as the SVS sends its frames.
+- misalignments of the RIGHT view only (the left view's ground truth stays valid): ``roll ±2°`` (rotation about
+  the image centre), ``tilt x / y ±1°`` (the keystone of a camera turned about its x / y axis, ``K R K⁻¹`` with
+  the pair's focal length, re-centred so the image centre stays put: a turn about y would otherwise also shift
+  every column by f·tan θ, a convergence change no uncalibrated method can tell from depth), ``shift ±3 %`` of
+  the height vertically, ``scale ±2 %`` about the centre, ``gain ±30 %``, and ``combined`` (roll 1°, tilt x
+  0.5°, tilt y −0.5°, shift 2 %, scale 1 %, gain −20 %). The right view is resampled bilinearly, outside pixels
+  are black (a real sensor has no pixels there either; they fall out of the kept regions' matches).
+
+    python experiments/real_rig.py [--splits held-out,tuned] [--sizes 320x240,native] [--limit N]
+                                   [--set KEY=VALUE ...] [--json out.json] [--markdown table.md]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spinning OpenMP threads on a shared CPU
+
+import argparse
+import dataclasses
+import json
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from svs_torch.data import resize_stereo_batch
+from svs_torch.evaluation import evaluate_result, score_pair, PairEstimate
+from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
+from svs_torch.files import atomic_output
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.types import StereoBatch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from hw.emulator_state import JPEG_QUALITY_FOR_DIGIT  # noqa: E402
+from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
+
+#: (digit, σ in 8-bit levels): every board digit, the issue's three named cases and the others at a moderate σ.
+JPEG_NOISE = [(1, 2.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 4.0), (6, 6.0), (7, 6.0), (8, 8.0)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Misalignment:
+    """A right camera's deviation from the ideal rig: roll, tilts (degrees), vertical shift (share of the height),
+    scale and gain (relative: 0.02 is 2 % larger / brighter)."""
+
+    roll_deg: float = 0.0
+    tilt_x_deg: float = 0.0
+    tilt_y_deg: float = 0.0
+    shift_y_fraction: float = 0.0
+    scale: float = 0.0
+    gain: float = 0.0
+
+
+MISALIGNMENTS = {
+    "roll +2°": Misalignment(roll_deg=2), "roll -2°": Misalignment(roll_deg=-2),
+    "tilt x +1°": Misalignment(tilt_x_deg=1), "tilt x -1°": Misalignment(tilt_x_deg=-1),
+    "tilt y +1°": Misalignment(tilt_y_deg=1), "tilt y -1°": Misalignment(tilt_y_deg=-1),
+    "shift +3%": Misalignment(shift_y_fraction=0.03), "shift -3%": Misalignment(shift_y_fraction=-0.03),
+    "scale +2%": Misalignment(scale=0.02), "scale -2%": Misalignment(scale=-0.02),
+    "gain +30%": Misalignment(gain=0.3), "gain -30%": Misalignment(gain=-0.3),
+    "combined": Misalignment(roll_deg=1, tilt_x_deg=0.5, tilt_y_deg=-0.5, shift_y_fraction=0.02, scale=0.01,
+                             gain=-0.2),
+}
+
+
+def misalignment_homography(m: Misalignment, height: int, width: int, focal_px: float) -> np.ndarray:
+    """The 3×3 homography taking an ideal right view's pixels to the misaligned camera's (x = column)."""
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    k = np.array([[focal_px, 0, cx], [0, focal_px, cy], [0, 0, 1]])
+    ax, ay, az = (math.radians(a) for a in (m.tilt_x_deg, m.tilt_y_deg, m.roll_deg))
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    rz = np.array([[math.cos(az), -math.sin(az), 0], [math.sin(az), math.cos(az), 0], [0, 0, 1]])
+    h = k @ rz @ ry @ rx @ np.linalg.inv(k)
+    centre = h @ np.array([cx, cy, 1.0])
+    # Re-centre: the turn's keystone stays, its shift of the whole view (f·tan θ) does not (module docstring).
+    recentre = np.array([[1, 0, cx - centre[0] / centre[2]], [0, 1, cy - centre[1] / centre[2]], [0, 0, 1]])
+    s = 1 + m.scale
+    scale = np.array([[s, 0, cx * (1 - s)], [0, s, cy * (1 - s)], [0, 0, 1]])
+    shift = np.array([[1, 0, 0], [0, 1, m.shift_y_fraction * height], [0, 0, 1]])
+    return shift @ scale @ recentre @ h
+
+
+def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> torch.Tensor:
+    """One right view ``(1, 1, H, W)`` in [0, 1] as the misaligned camera sees it."""
+    gray = image[0, 0].numpy().astype(np.float32)
+    height, width = gray.shape
+    h = misalignment_homography(m, height, width, focal_px)
+    warped = cv2.warpPerspective(gray, h, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return torch.from_numpy(np.clip(warped * (1 + m.gain), 0, 1)).to(image.dtype)[None, None]
+
+
+def camera_frame(image: torch.Tensor, digit: int, sigma_levels: float, generator: torch.Generator) -> torch.Tensor:
+    """One view ``(1, 1, H, W)`` in [0, 1] with Gaussian sensor noise of ``sigma_levels`` 8-bit levels, then
+    JPEG-encoded at the board's quality ``digit`` and decoded."""
+    noise = torch.randn(image.shape, generator=generator, dtype=torch.float64) * sigma_levels
+    levels = (image.to(torch.float64) * 255 + noise).round().clamp(0, 255).to(torch.uint8)[0, 0].numpy()
+    ok, encoded = cv2.imencode(".jpg", levels, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY_FOR_DIGIT[digit]])
+    if not ok:
+        raise RuntimeError("cv2.imencode failed")
+    decoded = cv2.imdecode(encoded, cv2.IMREAD_GRAYSCALE)
+    return torch.from_numpy(decoded.astype(np.float32) / 255).to(image.dtype)[None, None]
+
+
+def conditions(batch: StereoBatch, scene_index: int) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
+    """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views."""
+    out = [("clean", batch.left, batch.right)]
+    for number, (digit, sigma) in enumerate(JPEG_NOISE):
+        views = []
+        for view, image in enumerate((batch.left, batch.right)):
+            generator = torch.Generator().manual_seed(1_000_000 * scene_index + 1000 * number + view)
+            views.append(camera_frame(image, digit, sigma, generator))
+        out.append((f"jpeg q{digit} + noise s{sigma:g}", *views))
+    focal = float(batch.focal_px[0])
+    for name, m in MISALIGNMENTS.items():
+        out.append((name, batch.left, misalign_right(batch.right, m, focal)))
+    return out
+
+
+def stack_conditions(batch: StereoBatch, views: list[tuple[str, torch.Tensor, torch.Tensor]]) -> StereoBatch:
+    """One batch holding every condition of a single-pair ``batch`` (the same calibration and ground truth)."""
+    n = len(views)
+    rep = (lambda t: None if t is None else t.expand(n, *t.shape[1:]).clone())
+    return StereoBatch(left=torch.cat([v[1] for v in views]), right=torch.cat([v[2] for v in views]),
+                       focal_px=rep(batch.focal_px), baseline_m=rep(batch.baseline_m), doffs_px=rep(batch.doffs_px),
+                       calibrated=rep(batch.calibrated), image_hw=rep(batch.image_hw),
+                       disparity_px=rep(batch.disparity_px), disparity_valid=rep(batch.disparity_valid),
+                       names=tuple(v[0] for v in views))
+
+
+def resample(batch: StereoBatch, size: str) -> StereoBatch:
+    if size == "native":
+        return batch
+    width, height = (int(v) for v in size.split("x"))
+    return resize_stereo_batch(batch, (width, height))
+
+
+def _pick(batch: StereoBatch, i: int) -> StereoBatch:
+    one = (lambda t: None if t is None else t[i:i + 1])
+    return StereoBatch(left=one(batch.left), right=one(batch.right), focal_px=one(batch.focal_px),
+                       baseline_m=one(batch.baseline_m), doffs_px=one(batch.doffs_px),
+                       calibrated=one(batch.calibrated), image_hw=one(batch.image_hw),
+                       disparity_px=one(batch.disparity_px), disparity_valid=one(batch.disparity_valid),
+                       names=(batch.names[i],))
+
+
+def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True,
+              only: tuple[str, ...] | None = None) -> list[dict]:
+    """Rows (one per condition, or those whose name starts with one of ``only``) of one scene: svs_torch's
+    default and StereoSGBM on the same pairs."""
+    views = [v for v in conditions(batch, scene_index) if only is None or v[0].startswith(only)]
+    stacked = stack_conditions(batch, views)
+    started = time.perf_counter()
+    result = estimate_obstacle_depth(stacked, config)
+    elapsed = time.perf_counter() - started
+    rows = []
+    for i, evaluation in enumerate(evaluate_result(stacked, result)):
+        if not evaluation.has_truth or evaluation.acc_objects_pct is None:
+            continue
+        row = {"scene": batch.names[0], "condition": stacked.names[i], "status": evaluation.status,
+               "acc_objects": evaluation.acc_objects_pct, "rectified": evaluation.rectified,
+               "verified": None if result.verified is None else bool(result.verified[i]),
+               "time_s": elapsed / stacked.batch_size}
+        if rival:
+            seg = _segmentation_of(result.segmentation, i)
+            pair = _pick(stacked, i)
+            sgbm = opencv_dense_estimate(pair, seg, "sgbm", config.dense.window_size)
+            score = score_pair(object_truth(pair, seg), PairEstimate(sgbm["status"], sgbm["r_min_m"],
+                                                                     sgbm["r_max_m"], sgbm["objects_m"]))
+            row["sgbm_acc_objects"] = score.acc_objects_pct
+            row["sgbm_status"] = sgbm["status"]
+        rows.append(row)
+    return rows
+
+
+def _segmentation_of(seg, i: int):
+    """The pair ``i`` of a batched segmentation (the rival scores the same kept regions)."""
+    def one(value):
+        if isinstance(value, torch.Tensor):
+            return value[i:i + 1]
+        if dataclasses.is_dataclass(value):
+            return dataclasses.replace(value, **{f.name: one(getattr(value, f.name))
+                                                 for f in dataclasses.fields(value)})
+        return value
+    return one(seg)
+
+
+def run(splits: dict[str, list[Path]], sizes: list[str], config: PipelineConfig, rival: bool = True,
+        only: tuple[str, ...] | None = None, progress: bool = True) -> list[dict]:
+    rows = []
+    jobs = [(size, split, index, path) for size in sizes for split, paths in splits.items()
+            for index, path in enumerate(paths)]
+    for number, (size, split, index, path) in enumerate(jobs, start=1):
+        if progress:
+            print(f"\r[{number}/{len(jobs)}] {size} {path.name}        ", end="", file=sys.stderr, flush=True)
+        batch = resample(load_scene(path), size)
+        rows += [{"split": split, "size": size, **row} for row in run_scene(batch, index, config, rival, only)]
+    if progress:
+        print(file=sys.stderr)
+    return rows
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Per (split, size, condition): mean per-object accuracy, share ranged, the rival's, and the worst pair."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["split"], row["size"], row["condition"]), []).append(row)
+    out = []
+    for (split, size, condition), group in groups.items():
+        entry = {"split": split, "size": size, "condition": condition, "pairs": len(group),
+                 "acc_objects": statistics.fmean(r["acc_objects"] for r in group),
+                 "ranged": sum(r["status"] == "OK" for r in group) / len(group),
+                 "worst": min(group, key=lambda r: r["acc_objects"])["scene"],
+                 "worst_acc": min(r["acc_objects"] for r in group)}
+        if "sgbm_acc_objects" in group[0]:
+            entry["sgbm_acc_objects"] = statistics.fmean(r["sgbm_acc_objects"] or 0.0 for r in group)
+            entry["sgbm_ranged"] = sum(r["sgbm_status"] == "OK" for r in group) / len(group)
+        out.append(entry)
+    return out
+
+
+def markdown(summary: list[dict], command: str) -> str:
+    lines = [f"`{command}`", "",
+             "| split | size | condition | pairs | svs_torch Acc objects % | Δ clean | ranged % | "
+             "SGBM Acc objects % | SGBM ranged % | worst pair |", "|" + "---|" * 10]
+    clean = {(s["split"], s["size"]): s["acc_objects"] for s in summary if s["condition"] == "clean"}
+    for s in summary:
+        delta = s["acc_objects"] - clean.get((s["split"], s["size"]), float("nan"))
+        sgbm = (f"{s['sgbm_acc_objects']:.2f} | {100 * s['sgbm_ranged']:.0f}" if "sgbm_acc_objects" in s
+                else "— | —")
+        lines.append(f"| {s['split']} | {s['size']} | {s['condition']} | {s['pairs']} | {s['acc_objects']:.2f} | "
+                     f"{delta:+.2f} | {100 * s['ranged']:.0f} | {sgbm} | {s['worst']} {s['worst_acc']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=default_data_dir())
+    parser.add_argument("--splits", default="held-out")
+    parser.add_argument("--sizes", default="320x240")
+    parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
+    parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")
+    parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM (tuning runs)")
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--markdown", type=Path)
+    args = parser.parse_args(argv)
+    config = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
+    splits = {name: paths[:args.limit] for name, paths in split_scenes(args.data).items()
+              if name in args.splits.split(",")}
+    started = time.perf_counter()
+    only = None if args.conditions is None else tuple(args.conditions.split(","))
+    rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only)
+    summary = summarize(rows)
+    command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,
+                                        time_s=time.perf_counter() - started),
+              "summary": summary, "rows": rows}
+    table = markdown(summary, command)
+    print(table)
+    if args.json:
+        with atomic_output(args.json, "w") as stream:
+            json.dump(report, stream, indent=1)
+    if args.markdown:
+        with atomic_output(args.markdown, "w") as stream:
+            stream.write(table)
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,43 @@
+"""Per-pair take / put over nested results, against building the expected result pair by pair."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from svs_torch.pair_trees import put_pairs, take_pairs
+
+
+class Inner(NamedTuple):
+    values: torch.Tensor
+    count: int
+
+
+@dataclass(frozen=True)
+class Outer:
+    maps: torch.Tensor
+    inner: Inner
+    names: tuple[str, ...]
+    shared: torch.Tensor  # not per pair (its first dimension is not the batch's): left alone
+
+
+def _outer(batch: int, offset: float) -> Outer:
+    return Outer(maps=torch.arange(batch * 6, dtype=torch.float32).view(batch, 1, 2, 3) + offset,
+                 inner=Inner(torch.arange(batch * 2).view(batch, 2) + int(offset), 7),
+                 names=tuple(f"p{i}" for i in range(batch)), shared=torch.zeros(3))
+
+
+def test_take_then_put_matches_a_pair_by_pair_rebuild():
+    whole, other = _outer(5, 0.0), _outer(5, 100.0)
+    index = torch.tensor([3, 1])
+    part = take_pairs(other, index, 5)
+    assert part.names == ("p3", "p1") and part.inner.count == 7 and torch.equal(part.shared, torch.zeros(3))
+    assert torch.equal(part.maps, other.maps[[3, 1]])
+    merged = put_pairs(whole, index, part, 5)
+    for i in range(5):
+        source = other if i in (1, 3) else whole
+        assert torch.equal(merged.maps[i], source.maps[i]) and torch.equal(merged.inner.values[i],
+                                                                           source.inner.values[i])
+    assert torch.equal(whole.maps, _outer(5, 0.0).maps)  # the original is not modified
