@@ -3,9 +3,13 @@ real pairs at 320×240, once with the kernels and once with ``SVS_TORCH_KERNELS=
 lines differ, field by field (the time per pair aside).
 
     python experiments/kernel_parity.py [--data ../shared/data] [--size 320x240] [--workers 1]
+    python experiments/kernel_parity.py --torch lk_refine,usurf_describe   # those two off in the first run too
 
 The list: every scene folder of ``svs_torch.data.list_shared_pairs`` (Middlebury, KITTI, OpenCV's Aloe) and
-OpenCV's 13 chessboard pairs. Each run is a separate process, so the switch holds for every stage.
+OpenCV's 13 chessboard pairs. Each run is a separate process, so the switch holds for every stage. ``--torch``
+turns the named kernels off in the kernels' run (their wrappers answer None, so their callers run the torch
+paths; through a ``sitecustomize`` on the run's PYTHONPATH, so worker processes take it too): with the kernels
+that are not bit for bit off, no pair may differ.
 """
 
 from __future__ import annotations
@@ -36,10 +40,22 @@ def pair_lines(data_dir: Path) -> list[str]:
     return lines
 
 
-def run(pair_list: Path, size: str, workers: int, kernels: bool) -> tuple[list[dict], float]:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+#: Loaded at start-up by every process of a run (``sitecustomize``): the kernels named in
+#: ``SVS_PARITY_TORCH_KERNELS`` answer None, so their torch paths run.
+SITECUSTOMIZE = """import os
+if os.environ.get("SVS_PARITY_TORCH_KERNELS"):
+    import svs_torch.kernels as _kernels
+    for _name in os.environ["SVS_PARITY_TORCH_KERNELS"].split(","):
+        setattr(_kernels, _name, lambda *args, **kwargs: None)
+"""
+
+
+def run(pair_list: Path, size: str, workers: int, kernels: bool, torch_only: str = "") -> tuple[list[dict], float]:
+    env = dict(os.environ, PYTHONPATH=f"{pair_list.parent}{os.pathsep}{REPO}")
     if not kernels:
         env["SVS_TORCH_KERNELS"] = "torch"
+    if torch_only:
+        env["SVS_PARITY_TORCH_KERNELS"] = torch_only
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "estimate", "--pairs", str(pair_list), "--json",
                            "--size", size, "--workers", str(workers)], capture_output=True, text=True, env=env,
@@ -70,14 +86,17 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--torch", default="", help="kernels to turn off in the kernels' run, comma-separated")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         pair_list = Path(folder) / "pairs.txt"
         lines = pair_lines(args.data)
         pair_list.write_text("\n".join(lines) + "\n")
-        fused, fused_s = run(pair_list, args.size, args.workers, kernels=True)
+        (Path(folder) / "sitecustomize.py").write_text(SITECUSTOMIZE)
+        fused, fused_s = run(pair_list, args.size, args.workers, kernels=True, torch_only=args.torch)
         eager, eager_s = run(pair_list, args.size, args.workers, kernels=False)
-    print(f"{len(lines)} pairs at {args.size}: kernels {fused_s:.1f} s, torch paths {eager_s:.1f} s (wall, "
+    off = f" (but {args.torch})" if args.torch else ""
+    print(f"{len(lines)} pairs at {args.size}: kernels{off} {fused_s:.1f} s, torch paths {eager_s:.1f} s (wall, "
           "with start-up)")
     differing = 0
     for line, a, b in zip(lines, fused, eager):

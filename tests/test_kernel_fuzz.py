@@ -387,7 +387,8 @@ def _upright(xy: torch.Tensor) -> Keypoints:
     (lambda: block_match_sad(*_stereo(4, 40, 50), 0, 16, image_hw=torch.tensor([[40, 50]])),
      r"^image_hw: expected \(4, 2\), got \(1, 2\)"),
     (lambda: dense_disparity_over_regions(*_stereo(2, 20, 30), torch.ones(2, 1, 20, 30, dtype=torch.bool),
-                                          DisparityRange(torch.zeros(2, dtype=torch.int64), 16, torch.tensor([16, 400]))),
+                                          DisparityRange(torch.zeros(2, dtype=torch.int64), 16,
+                                                         torch.tensor([16, 400]))),
      r"^search.pair_num_disparities: expected values in \[1, 16\], got 400"),
     # empty images (was: SIGSEGV in lk_refine.c, usurf_describe.c, object_depths.c)
     (lambda: refine_matches_lk(*_stereo(1, 0, 30), MatchedPoints(
