@@ -26,6 +26,7 @@ import torch
 
 from . import kernels
 from .checks import InputError, check_dtype, check_shape
+from .kernels.checks import canonical_bool
 from .types import RegionProperties
 
 __all__ = ["label_connected_components", "connected_components_with_stats", "region_properties"]
@@ -164,11 +165,14 @@ def _run_properties(runs: _Runs, run_label: torch.Tensor, num_labels: torch.Tens
     )
 
 
-def _check_mask(mask: torch.Tensor, connectivity: int) -> None:
+def _check_mask(mask: torch.Tensor, connectivity: int) -> torch.Tensor:
+    """``mask`` checked, with bytes 0 / 1 only (:func:`~svs_torch.kernels.checks.canonical_bool`): the torch
+    path's ``&`` of two bools is bitwise, so a bool viewed from other bytes would split or drop runs."""
     check_shape(mask, "mask", ["B", 1, "H", "W"])
     check_dtype(mask, "mask", "bool")
     if connectivity not in (4, 8):
         raise InputError(f"connectivity: expected 4 or 8, got {connectivity!r}")
+    return canonical_bool(mask)
 
 
 def connected_components_with_stats(
@@ -186,14 +190,14 @@ def connected_components_with_stats(
         regions, areas, boxes and centroids as ``cv2.connectedComponentsWithStats`` (whose numbering may
         differ). Not differentiable.
     """
-    _check_mask(mask, connectivity)
+    mask = _check_mask(mask, connectivity)
     runs, run_label, num_labels, labels = _label_runs(mask, connectivity)
     return labels, num_labels, _run_properties(runs, run_label, num_labels)
 
 
 def label_connected_components(mask: torch.Tensor, connectivity: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """Labels ``(B, 1, H, W)`` int64 and ``num_labels (B,)`` of :func:`connected_components_with_stats`."""
-    _check_mask(mask, connectivity)
+    mask = _check_mask(mask, connectivity)
     _, _, num_labels, labels = _label_runs(mask, connectivity)
     return labels, num_labels
 

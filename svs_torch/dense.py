@@ -40,6 +40,7 @@ import torch.nn.functional as F
 
 from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
+from .kernels.checks import check_counts, check_image_hw, check_nonempty
 from .mask_reductions import any_along
 from .ordering import sort_last
 
@@ -255,7 +256,8 @@ def _gather_crop(image: torch.Tensor, y0: torch.Tensor, x0: torch.Tensor, height
     (replicate border)."""
     b, c, h, w = image.shape
     index = crop_index(x0, y0, height, width, (h, w)).unsqueeze(1).expand(b, c, height, width)
-    return image.reshape(b, c, h * w).gather(2, index.reshape(b, c, -1)).reshape(b, c, height, width)
+    # height · width, not -1: an empty batch (B = 0) has no size to infer it from.
+    return image.reshape(b, c, h * w).gather(2, index.reshape(b, c, height * width)).reshape(b, c, height, width)
 
 
 def crop_box(image: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -542,22 +544,37 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
 
 
 def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:
-    dims = check_image(left, "left", check_range=False)
-    check_image(right, "right", check_range=False)
+    # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
+    # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
+    # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
+    dims = check_image(left, "left")
+    check_image(right, "right")
     if left.shape != right.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    check_nonempty(left, "left")
     return dims["B"]
+
+
+def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Tensor:
+    """``image_hw`` ``(B, 2)``, each pair's size within the tensors (default: all of them)."""
+    b, _, h, w = left.shape
+    if image_hw is None:
+        return torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    return check_image_hw(image_hw, b, h, w)
 
 
 def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, b: int,
                  device: torch.device) -> torch.Tensor:
-    if not isinstance(num_disparities, int) or num_disparities < 1:
-        raise InputError(f"num_disparities: expected a positive int, got {num_disparities!r}")
+    if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
+        raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
     minimum = torch.as_tensor(min_disparity_px, device=device)
     if minimum.dim() == 0:
         minimum = minimum.expand(b)
     check_shape(minimum, "min_disparity_px", [b])
     check_dtype(minimum, "min_disparity_px", "int")
+    # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
+    if minimum.numel() and bool((minimum.abs() >= 2**31).any()):
+        raise InputError(f"min_disparity_px: expected values in (-2^31, 2^31), got {minimum.tolist()}")
     return minimum.long()
 
 
@@ -574,8 +591,7 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
     b = _check_pair(left, right)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
     h, w = left.shape[-2:]
-    if image_hw is None:
-        image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    image_hw = _check_sizes(image_hw, left)
     zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
     search = DisparityRange(minimum, num_disparities)
     box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
@@ -644,7 +660,8 @@ def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor
     y1 = torch.where(some, torch.minimum(y_last + margin_px + 1, image_hw[:, 0]), 1)
     x1 = torch.where(some, torch.minimum(x_last + margin_px + 1, image_hw[:, 1]), 1)
     own = torch.stack([x0, y0, x1 - x0, y1 - y0], dim=1)
-    height, width = int((y1 - y0).max()), int((x1 - x0).max())  # one host sync: the crop size
+    # One host sync: the crop size (1 x 1 for an empty batch, which has no box).
+    height, width = (int((y1 - y0).max()), int((x1 - x0).max())) if b else (1, 1)
     # Keep every box inside the padded frame: shift it back where the shared size would overhang.
     y0 = torch.minimum(y0, torch.full_like(y0, h - height)).clamp_min(0)
     x0 = torch.minimum(x0, torch.full_like(x0, w - width)).clamp_min(0)
@@ -682,9 +699,8 @@ def _select_nearest_ranks(values: torch.Tensor, labels: torch.Tensor, slots: tor
     where a count is 0). The kernel finds the members of rank ⌊p⌋ and ⌈p⌉ around ``p = q · (count − 1)``;
     the nearest rank (rounded in float64, as :func:`_nearest_rank` does) is one of the two. The same values
     as the sort, exactly; None without the kernel, or for values other than float32 without NaN."""
-    if values.dtype != torch.float32 or values.requires_grad or not kernels.available("labelled_select") or \
-            bool(values.isnan().any()):
-        return None
+    if values.dtype != torch.float32 or values.requires_grad or not kernels.available("labelled_select"):
+        return None  # (values with NaN: labelled_select gives None)
     fractions = torch.tensor(q, dtype=torch.float32, device=values.device)
     selected = kernels.labelled_select(values.contiguous(), labels, slots, fractions)
     if selected is None:
@@ -777,7 +793,11 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search.
     ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object; the range is then the union of the
     objects' ranges (see ``groups`` of :func:`disparity_search_range`)."""
-    b, _, h, w = left.shape
+    b = _check_pair(left, right)
+    _, _, h, w = left.shape
+    check_shape(mask, "mask", [b, 1, h, w])
+    check_dtype(mask, "mask", "bool")
+    image_hw = _check_sizes(image_hw, left)
     factor = max(1, round(w / config.coarse_width_px))
     small_hw = torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1)
     if objects is not None:
@@ -818,9 +838,10 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
     minimum = _check_range(search.min_disparity_px, search.num_disparities, b, left.device)
+    if search.pair_num_disparities is not None:
+        check_counts(search.pair_num_disparities, "search.pair_num_disparities", b, search.num_disparities)
     h, w = left.shape[-2:]
-    if image_hw is None:
-        image_hw = torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    image_hw = _check_sizes(image_hw, left)
     x0, y0, height, width, own = region_crop_boxes(mask, config.margin_px, image_hw)
     search = DisparityRange(minimum, search.num_disparities, search.pair_num_disparities)
     counts = search.pair_num_disparities
@@ -930,8 +951,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         check_shape(objects, "objects", [b, "N", *left.shape[-2:]])
         check_dtype(objects, "objects", "bool")
     height, width = left.shape[-2:]
-    if image_hw is None:
-        image_hw = torch.tensor([[height, width]], device=left.device).expand(b, 2)
+    image_hw = _check_sizes(image_hw, left)
     factor = working_factor(width, config)
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
     if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:

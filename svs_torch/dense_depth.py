@@ -20,6 +20,7 @@ import torch
 
 from . import kernels
 from .checks import InputError, check_dtype, check_shape
+from .kernels.checks import check_nonempty, check_rows
 from .dense import DenseDisparity, crop_index, fill_invalid_rows
 from .depth import Disparities, ObjectDepths, RangeEstimate, _interpolate_ranks, labelled_quantile
 from .rectification import apply_homography
@@ -66,9 +67,17 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         and ``num_valid_px``, ``num_in_view_px`` ``(B, N)`` int64 set.
     """
     disparity = dense.disparity_px
+    dims = check_shape(disparity, "dense.disparity_px", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(dense.valid, "dense.valid", [b, 1, h, w])
+    check_dtype(dense.valid, "dense.valid", "bool")
+    check_nonempty(disparity, "dense.disparity_px")
+    check_rows(dense.crop_xywh, "dense.crop_xywh", b, 4)
+    check_rows(dense.min_disparity_px, "dense.min_disparity_px", b)
+    check_rows(dense.pair_num_disparities, "dense.pair_num_disparities", b)
     check_shape(labels, "labels", list(disparity.shape))
     check_dtype(labels, "labels", "int")
-    b = disparity.shape[0]
+    check_rows(objects.label, "objects.label", b, "N")
     low, high = (float(p) for p in percentiles)
     if not 0 <= low <= high <= 100:
         raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")

@@ -302,7 +302,7 @@ def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float
         raise InputError(f"valid: expected the shape of values {tuple(values.shape)}, got {tuple(valid.shape)}")
     check_dtype(valid, "valid", "bool")
     q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
-    if bool(((q < 0) | (q > 1)).any()):
+    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too
         raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
     count = valid.sum(dim=-1, keepdim=True)  # (..., 1)
     shape = (*values.shape[:-1], q.numel())
@@ -331,14 +331,15 @@ def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.T
     check_shape(slots, "slots", [values.shape[0], "N"])
     check_dtype(slots, "slots", "int")
     q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
-    if bool(((q < 0) | (q > 1)).any()):
+    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too (the kernel casts it to a rank)
         raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
     b, p = values.shape
     shape = (b, slots.shape[1], q.numel())
     if p == 0 or slots.shape[1] == 0:
         return Quantiles(values.new_zeros(shape), torch.zeros(shape[:2], dtype=torch.bool, device=values.device))
-    if not (values.requires_grad and torch.is_grad_enabled()) and not bool(values.isnan().any()):
-        # The compiled selection (svs_torch/kernels/labelled_select.c): the same order statistics, O(P) per slot.
+    if not (values.requires_grad and torch.is_grad_enabled()):
+        # The compiled selection (svs_torch/kernels/labelled_select.c): the same order statistics, O(P) per slot;
+        # None for values with NaN (it orders by <), which the sort below puts last.
         selected = kernels.labelled_select(values, labels, slots, q)
         if selected is not None:
             count, below, above = selected

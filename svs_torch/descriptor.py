@@ -25,7 +25,8 @@ import math
 import torch
 
 from . import kernels
-from .checks import InputError, check_image, check_shape
+from .checks import InputError, check_dtype, check_image, check_shape
+from .kernels.checks import check_nonempty
 from .compiling import maybe_compiled
 from .integral import PaddedIntegral, padded_integral_image, sample_box_means, sample_cell_means
 from .types import Keypoints
@@ -46,6 +47,11 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     k = check_shape(keypoints.xy, "keypoints.xy", [b, "K", 2])["K"]
     check_shape(keypoints.scale, "keypoints.scale", [b, k])
     check_shape(keypoints.valid, "keypoints.valid", [b, k])
+    check_dtype(keypoints.valid, "keypoints.valid", "bool")
+    check_nonempty(image, "image")
+    # A NaN position has no pixel to sample (the kernel would cast it to an index, the torch path give NaN).
+    if bool((keypoints.xy.detach().isnan().any(-1) & keypoints.valid).any()):
+        raise InputError("keypoints.xy: expected no NaN at valid keypoints")
 
 
 def _border_px(image: torch.Tensor, keypoints: Keypoints, reach: float) -> int:
@@ -57,8 +63,13 @@ def _border_px(image: torch.Tensor, keypoints: Keypoints, reach: float) -> int:
         return 1
     radius = keypoints.scale.detach()[valid] * reach
     x, y = keypoints.xy.detach()[valid].unbind(-1)
-    beyond = torch.stack([radius - x, x + radius - (w - 1), radius - y, y + radius - (h - 1)]).amax()
-    return max(0, math.ceil(float(beyond))) + 2
+    beyond = float(torch.stack([radius - x, x + radius - (w - 1), radius - y, y + radius - (h - 1)]).amax())
+    # The border is allocated (a table of (H + 2·border)(W + 2·border) per image): a keypoint far outside, or a
+    # huge or NaN scale, would ask for memory no machine has.
+    if not beyond <= 2 * max(h, w):
+        raise InputError(f"keypoints: expected every valid keypoint's patch ({reach:.3g}·scale around xy) within "
+                         f"{2 * max(h, w)} px of the {h} x {w} image, got {beyond:.4g} px beyond it")
+    return max(0, math.ceil(beyond)) + 2
 
 
 def _padded_integral(image: torch.Tensor, keypoints: Keypoints, reach: float) -> PaddedIntegral:

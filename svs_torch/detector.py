@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from . import kernels
 from .checks import InputError, check_dtype, check_image, check_instance, check_shape
 from .hessian import HessianOctave, hessian_octaves, local_maxima_scores, maxima_support
+from .kernels.checks import check_nonempty
 from .types import Keypoints
 
 __all__ = ["SurfConfig", "detect_surf_keypoints", "metric_threshold_01"]
@@ -176,6 +177,7 @@ def detect_surf_keypoints(
         :func:`svs_torch.hessian.hessian_octaves` gives the differentiable response maps.
     """
     check_image(image, "image")
+    check_nonempty(image, "image")
     check_instance(config, "config", SurfConfig)
     b = image.shape[0]
     if mask is not None:

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from . import kernels
 from .checks import InputError, check_dtype, check_image, check_shape
+from .kernels.checks import check_nonempty
 from .types import Matches
 
 __all__ = ["MatchRefinementConfig", "MatchedPoints", "gather_matched_points", "match_sad", "max_sad_distance",
@@ -359,6 +360,7 @@ def refine_matches_lk(
     check_shape(points.right, "points.right", [dims["B"], k, 2])
     check_shape(points.valid, "points.valid", [dims["B"], k])
     check_dtype(points.valid, "points.valid", "bool")
+    check_nonempty(left, "left")
     if scale is not None:
         check_shape(scale, "scale", [dims["B"], k])
     if not (iterations >= 0 and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px and radius_scales > 0):

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from svs_torch import kernels
+from svs_torch.errors import InputError
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.features import SurfConfig, extract_surf_features
 from svs_torch.hessian import _interior_maxima, hessian_octaves, maxima_support
@@ -148,12 +149,14 @@ def test_local_maxima_kernel_ties_and_nan():
 
 
 def test_local_maxima_kernel_refuses_other_inputs():
-    """float64 maps, a support of another shape or a grid without interior are left to torch (None)."""
+    """float64 maps and a grid without interior are left to torch (None); a support of another shape is an
+    error (the kernel would read past it)."""
     if not kernels.available("local_maxima"):
         pytest.skip("no C compiler")
     support = torch.ones(1, 1, 3, 3, dtype=torch.bool)
     assert kernels.local_maxima(torch.zeros(1, 3, 5, 5, dtype=torch.float64), support, 0.0) is None
-    assert kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0) is None
+    with pytest.raises(InputError, match=r"^support: expected \(1, 1, 3, 4\), got \(1, 1, 3, 3\)"):
+        kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0)
     assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
 
 
@@ -184,7 +187,7 @@ def test_strongest_maxima_kernel_gives_the_dense_paths_topk(images, threads):
 @pytest.mark.skipif(not kernels.available("strongest_maxima"), reason="no C compiler")
 def test_strongest_maxima_kernel_ties_and_small_octaves():
     """Equal maxima come in index order (octave by octave); an octave without interior points adds nothing to
-    the index; float64 maps or k past the interior points are left to torch (None)."""
+    the index; float64 maps are left to torch (None), k past the interior points is an error (as topk's)."""
     dets = [torch.zeros(1, 3, 9, 9), torch.zeros(1, 3, 2, 2), torch.zeros(1, 3, 5, 5)]
     for det, places in ((dets[0], [(1, 6, 2), (1, 2, 6), (1, 2, 2)]), (dets[2], [(1, 2, 2)])):
         for s, y, x in places:
@@ -195,7 +198,8 @@ def test_strongest_maxima_kernel_ties_and_small_octaves():
     assert values[0, :5].tolist() == [2.0, 1.0, 1.0, 1.0, 1.0] and torch.isinf(values[0, 5:]).all()
     assert index[0, :5].tolist() == [3 * 7 + 3, 1 * 7 + 1, 1 * 7 + 5, 5 * 7 + 1, 49 + 1 * 3 + 1]
     assert kernels.strongest_maxima([d.double() for d in dets], supports, 0.5, 8) is None
-    assert kernels.strongest_maxima(dets, supports, 0.5, 59) is None
+    with pytest.raises(InputError, match=r"^k: expected an int in \[0, 58\]"):
+        kernels.strongest_maxima(dets, supports, 0.5, 59)
 
 
 @pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")

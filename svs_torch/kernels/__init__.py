@@ -8,14 +8,25 @@ box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxim
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of
-a torch function that stays the reference, the fallback and the differentiable path. The first ten give that torch
-path's values bit for bit, and the strongest maxima ``torch.topk``'s values and indices (equal values in index order,
-which ``torch.topk`` leaves open); the fit solves its 3 × 3 systems by its own elimination, not LAPACK's LU (offsets to
-about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each distance in its own order
-(on real descriptors: the same matches, the same costs); the refinement takes the same steps with its sums in double and
-in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor (``usurf_describe.c``) builds each image's
-integral and describes its keypoints in double, equal to the float64 torch path to 1e-6 and so within the float32 one's
-round-off (``tests/test_kernels.py``).
+a torch function that stays the reference, the fallback and the differentiable path. Eleven give that torch path's
+values bit for bit: the first ten, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
+order, which ``torch.topk`` leaves open). Four do not: the fit solves its 3 × 3 systems by its own elimination, not
+LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
+distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
+with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor
+(``usurf_describe.c``) builds each image's integral and describes its keypoints in double, equal to the float64 torch
+path to 1e-6 and to the float32 one within its round-off (5e-4), except where a response near 0 takes the other sign
+there (the extended descriptor's halves then move by up to 0.08). On the 58 shared real pairs at 320×240, 6 pipeline
+results differ from the torch paths' by 1–2 matches or inliers, from the last two (``experiments/kernel_parity.py``;
+the README's "Compiled kernels" says the same).
+
+Each wrapper below checks what its C code assumes (shapes, one row per pair, sizes and boxes within the buffers,
+non-empty images, finite parameters in range) and raises :class:`~svs_torch.InputError` naming the argument
+(:mod:`svs_torch.kernels.checks`); the C code then trusts its inputs. A wrapper answers None, for the torch path to
+run, for inputs of another dtype or device, for cases the kernel leaves to it (NaN values to select among, an octave
+without interior points, a table too small to read), or when the kernel is not built. ``tests/test_kernel_fuzz.py`` feeds
+drawn inputs through every public function that reaches a kernel; ``tests/sanitize/run.sh`` runs it against builds
+with AddressSanitizer and UBSan.
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
 cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
@@ -62,7 +73,10 @@ from pathlib import Path
 
 import torch
 
+from ..checks import check_shape
+from ..errors import InputError
 from . import loader
+from .checks import check_boxes, check_counts, check_image_hw, check_nonempty, check_number, check_rows
 from .loader import FLAGS, HEADERS, cache_dir  # noqa: F401  (re-exported: the loader's public names)
 
 __all__ = ["available", "block_match", "cache_dir", "fill_invalid_rows", "find_runs", "gray_levels", "hessian_octave",
@@ -159,14 +173,14 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     if (texture is True) if levels else isinstance(texture, torch.Tensor):
         raise ValueError("texture: expected a tensor or None with source 'levels', a bool with the raw sources")
     tensors = (left, right, texture) if isinstance(texture, torch.Tensor) else (left, right)
-    if not _on_cpu(torch.float32, *tensors) or any(t.shape != left.shape or t.dim() != 3 for t in tensors):
+    if not _on_cpu(torch.float32, *tensors) or mask is not None and not _on_cpu(torch.bool, mask):
         return None
-    if mask is not None and (not _on_cpu(torch.bool, mask) or mask.shape != left.shape):
-        return None
+    b, h, w = _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
+                                 lower_is_limit, uniqueness_ratio, lr_max_diff_px, texture_min, prefilter_cap,
+                                 mask_margin_px)
     library = load("block_match")
     if library is None:
         return None
-    b, h, w = left.shape
     left, right = left.contiguous(), right.contiguous()
     textured = texture is not None and texture is not False
     texture = texture.contiguous() if isinstance(texture, torch.Tensor) else None
@@ -189,6 +203,37 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     return disparity, valid.bool()
 
 
+#: The dense kernel keeps disparity indices in its 16-bit cost type (block_match.c): at most 65534 disparities.
+MAX_DISPARITIES = 65534
+
+
+def _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
+                       lower_is_limit, uniqueness_ratio, lr_max_diff_px, texture_min, prefilter_cap,
+                       mask_margin_px) -> tuple[int, int, int]:
+    """:func:`block_match`'s contract (see there), raising :class:`InputError`: returns B, H, W."""
+    dims = check_shape(left, "left", ["B", "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    for tensor, name in ((right, "right"), (texture, "texture"), (mask, "mask")):
+        if isinstance(tensor, torch.Tensor):
+            check_shape(tensor, name, [b, h, w])
+    check_nonempty(left, "left")
+    if not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
+        raise InputError(f"window_size: expected a positive odd int, got {window_size!r}")
+    check_boxes(boxes, b, h, w)
+    check_rows(min_disparity, "min_disparity", b)
+    check_counts(counts, "counts", b, MAX_DISPARITIES)
+    check_image_hw(image_hw, b, h, w)
+    check_rows(lower_is_limit, "lower_is_limit", b, kinds="bool")
+    check_number(uniqueness_ratio, "uniqueness_ratio", 0.0)
+    if lr_max_diff_px is not None:
+        check_number(lr_max_diff_px, "lr_max_diff_px", 0.0)
+    check_number(texture_min, "texture_min")
+    check_number(prefilter_cap, "prefilter_cap", 0.0)
+    if not isinstance(mask_margin_px, int) or mask_margin_px < 0:
+        raise InputError(f"mask_margin_px: expected a non-negative int, got {mask_margin_px!r}")
+    return b, h, w
+
+
 def hessian_octave(padded: torch.Tensor, pad: int, step: int, sizes: list[int], inverse_lobe_area: list[float],
                    inverse_dxy_area: list[float], dxy_weight: float, det_out: torch.Tensor,
                    trace_out: torch.Tensor) -> bool:
@@ -197,13 +242,21 @@ def hessian_octave(padded: torch.Tensor, pad: int, step: int, sizes: list[int], 
     by ``pad``), grid ``step`` pixels, one filter size and its two box normalisations per level, into
     ``det_out`` / ``trace_out`` ``(B, S, ny, nx)`` float32. Returns False, writing nothing, when the kernel is
     not available or a tensor does not fit (then the caller's torch path runs)."""
+    dims = check_shape(det_out, "det_out", ["B", "S", "ny", "nx"])
+    b, s, ny, nx = dims["B"], dims["S"], dims["ny"], dims["nx"]
+    check_shape(trace_out, "trace_out", [b, s, ny, nx])
+    check_shape(padded, "padded", [b, 1, "PH", "PW"])
+    if len(sizes) != s or len(inverse_lobe_area) != s or len(inverse_dxy_area) != s:
+        raise InputError(f"sizes, inverse_lobe_area, inverse_dxy_area: expected {s} levels each (det_out's S), got "
+                         f"{len(sizes)}, {len(inverse_lobe_area)}, {len(inverse_dxy_area)}")
+    if not isinstance(step, int) or step < 1 or not isinstance(pad, int) or pad < 0 or min(sizes, default=1) < 1:
+        raise InputError(f"step, pad, sizes: expected step >= 1, pad >= 0 and sizes >= 1, got {step!r}, {pad!r}, "
+                         f"{sizes!r}")
+    if (not _on_cpu(torch.float32, padded, det_out, trace_out) or not det_out.is_contiguous()
+            or not trace_out.is_contiguous() or ny < 1 or nx < 1 or b < 1):
+        return False
     library = load("hessian_octave")
     if library is None:
-        return False
-    b, s, ny, nx = det_out.shape
-    if (not _on_cpu(torch.float32, padded, det_out, trace_out) or padded.dim() != 4 or padded.shape[:2] != (b, 1)
-            or trace_out.shape != det_out.shape or len(sizes) != s or not det_out.is_contiguous()
-            or not trace_out.is_contiguous() or ny < 1 or nx < 1):
         return False
     # Every read must stay inside the table: a box reaches half its filter (+ 1 for the integral's corner) around
     # its grid point.
@@ -224,8 +277,11 @@ def padded_integral(image: torch.Tensor, means: torch.Tensor, pad: int) -> torch
     the C source), bit for bit: ``image`` ``(B, 1, H, W)`` float32, ``means`` ``(B,)`` float32 (each image's
     own, subtracted from its pixels). Returns the table ``(B, 1, H + 1 + 2·pad, W + 1 + 2·pad)``, or None when
     the kernel is not available or the inputs do not fit its contract."""
-    if not _on_cpu(torch.float32, image, means) or image.dim() != 4 or image.shape[1] != 1 or pad < 0 \
-            or means.shape != image.shape[:1]:
+    b = check_shape(image, "image", ["B", 1, "H", "W"])["B"]
+    check_shape(means, "means", [b])
+    if not isinstance(pad, int) or pad < 0:
+        raise InputError(f"pad: expected a non-negative int, got {pad!r}")
+    if not _on_cpu(torch.float32, image, means):
         return None
     library = load("padded_integral")
     if library is None:
@@ -238,16 +294,24 @@ def padded_integral(image: torch.Tensor, means: torch.Tensor, pad: int) -> torch
     return None if status != 0 else out
 
 
+def _check_support(support: torch.Tensor, name: str, b: int, inner: tuple[int, int, int]) -> None:
+    """A maxima support ``(B or 1, S − 2, ny − 2, nx − 2)``: one for every pair or one shared."""
+    rows = support.shape[0] if isinstance(support, torch.Tensor) and support.dim() == 4 else b
+    check_shape(support, name, [rows if rows in (1, b) else b, *inner])
+
+
 def local_maxima(det: torch.Tensor, support: torch.Tensor, threshold: float) -> torch.Tensor | None:
     """``svs_torch.hessian._interior_maxima`` in one pass: ``det`` ``(B, S, ny, nx)`` float32 where it is a
     3 × 3 × 3 maximum above ``threshold`` with ``support`` (``(B or 1, S − 2, ny − 2, nx − 2)`` bool), −inf
     elsewhere; ``(B, S − 2, ny − 2, nx − 2)``. None when the kernel is not available or the inputs do not fit
     its contract (then the caller's torch path runs)."""
-    b, s, ny, nx = det.shape
+    dims = check_shape(det, "det", ["B", "S", "ny", "nx"])
+    b, s, ny, nx = dims["B"], dims["S"], dims["ny"], dims["nx"]
     inner = (s - 2, ny - 2, nx - 2)
-    if (not (_on_cpu(torch.float32, det) and _on_cpu(torch.bool, support))
-            or support.dim() != 4 or tuple(support.shape[1:]) != inner or support.shape[0] not in (1, b)
-            or min(inner) < 1):
+    if min(inner) < 1:  # no interior point: the torch path's empty map
+        return None
+    _check_support(support, "support", b, inner)
+    if not (_on_cpu(torch.float32, det) and _on_cpu(torch.bool, support)):
         return None
     library = load("local_maxima")
     if library is None:
@@ -267,26 +331,27 @@ def strongest_maxima(dets: list[torch.Tensor], supports: list[torch.Tensor | Non
     ``(B, S, ny, nx)`` float32; ``supports[o]`` ``(B or 1, S − 2, ny − 2, nx − 2)`` bool, or None for an octave
     without interior points. None when the kernel is not available or the inputs do not fit its contract."""
     if not dets or len(supports) != len(dets):
-        return None
-    b, total = dets[0].shape[0], 0
+        raise InputError(f"supports: expected one per octave of dets ({len(dets)}, at least 1), got {len(supports)}")
+    b, total = check_shape(dets[0], "dets[0]", ["B", "S", "ny", "nx"])["B"], 0
     kept, pointers = [], []  # kept: the contiguous tensors, alive until the call returns
-    for det, support in zip(dets, supports):
-        if not _on_cpu(torch.float32, det) or det.dim() != 4 or det.shape[0] != b:
+    for octave, (det, support) in enumerate(zip(dets, supports)):
+        check_shape(det, f"dets[{octave}]", [b, "S", "ny", "nx"])
+        if not _on_cpu(torch.float32, det):
             return None
         inner = (det.shape[1] - 2, det.shape[2] - 2, det.shape[3] - 2)
         if min(inner) < 1:  # no interior point (the kernel reads nothing of it)
             pointers.append((det.shape[1:], 0, 0, 0))
             continue
-        if (support is None or not _on_cpu(torch.bool, support) or support.dim() != 4
-                or tuple(support.shape[1:]) != inner or support.shape[0] not in (1, b)):
+        _check_support(support, f"supports[{octave}]", b, inner)
+        if not _on_cpu(torch.bool, support):
             return None
         det, support = det.contiguous(), support.contiguous()
         kept += [det, support]
         pointers.append((det.shape[1:], det.data_ptr(), support.data_ptr(),
                          0 if support.shape[0] == 1 else support[0].numel()))
         total += inner[0] * inner[1] * inner[2]
-    if not 0 <= k <= total:
-        return None
+    if not isinstance(k, int) or not 0 <= k <= total:
+        raise InputError(f"k: expected an int in [0, {total}] (the octaves' interior points), got {k!r}")
     library = load("strongest_maxima")
     if library is None:
         return None
@@ -308,14 +373,25 @@ def refine_maxima(dets: list[torch.Tensor], traces: list[torch.Tensor], steps: l
     ``factor`` the detector's upsampling. Returns ``valid`` ``(B, K)`` bool, ``xy`` ``(B, K, 2)``, ``size``,
     ``peak`` ``(B, K)`` float64 and the trace's sign ``(B, K)`` int64; None when the kernel is not available or
     the inputs do not fit its contract (an octave without an interior, for one)."""
-    if (not dets or len(traces) != len(dets) or len(steps) != len(dets) or len(sizes) != len(dets)
-            or not _on_cpu(torch.float32, score, *dets, *traces) or not _on_cpu(torch.int64, index)
-            or score.dim() != 2 or index.shape != score.shape):
+    if not dets or len(traces) != len(dets) or len(steps) != len(dets) or len(sizes) != len(dets):
+        raise InputError(f"traces, steps, sizes: expected one per octave of dets ({len(dets)}, at least 1), got "
+                         f"{len(traces)}, {len(steps)}, {len(sizes)}")
+    dims = check_shape(score, "score", ["B", "K"])
+    b, k = dims["B"], dims["K"]
+    check_rows(index, "index", b, k)
+    total = 0
+    for octave, (det, trace, levels, step) in enumerate(zip(dets, traces, sizes, steps)):
+        check_shape(det, f"dets[{octave}]", [b, "S", "ny", "nx"])
+        check_shape(trace, f"traces[{octave}]", list(det.shape))
+        if len(levels) != det.shape[1] or len(levels) < 2 or not isinstance(step, int) or step < 1:
+            raise InputError(f"sizes[{octave}], steps[{octave}]: expected S >= 2 filter sizes (dets' S) and a grid "
+                             f"step >= 1, got {len(levels)} sizes for {tuple(det.shape)}, step {step!r}")
+        total += max(0, det.shape[1] - 2) * max(0, det.shape[2] - 2) * max(0, det.shape[3] - 2)
+    if (not _on_cpu(torch.float32, score, *dets, *traces) or not _on_cpu(torch.int64, index)
+            or min(min(det.shape[1:]) for det in dets) < 3):  # an octave without an interior: the torch path
         return None
-    b, k = score.shape
-    for det, trace, levels in zip(dets, traces, sizes):
-        if det.dim() != 4 or trace.shape != det.shape or det.shape[0] != b or min(det.shape[1:]) < 3 or len(levels) < 2:
-            return None
+    if index.numel() and bool(((index < 0) | (index >= total)).any()):
+        raise InputError(f"index: expected indices in [0, {total}) (the octaves' interior points)")
     library = load("refine_maxima")
     if library is None:
         return None
@@ -347,14 +423,23 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the
     inputs do not fit its contract."""
     tensors = (left, right, left_xy, right_xy, radius)
+    dims = check_shape(left, "left", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(right, "right", [b, 1, h, w])
+    k = check_shape(left_xy, "left_xy", [b, "K", 2])["K"]
+    check_shape(right_xy, "right_xy", [b, k, 2])
+    check_shape(radius, "radius", [b, k])
+    check_rows(active, "active", b, k, kinds="bool")
+    check_nonempty(left, "left")
+    if not isinstance(iterations, int) or iterations < 0:
+        raise InputError(f"iterations: expected a non-negative int, got {iterations!r}")
+    check_number(max_shift_px, "max_shift_px", 0.0)
     if (not (_on_cpu(torch.float32, *tensors) and _on_cpu(torch.bool, active))
-            or left.shape[-2] * left.shape[-1] >= 2**31):  # the kernel indexes an image with 32-bit offsets
+            or h * w >= 2**31):  # the kernel indexes an image with 32-bit offsets
         return None
     library = load("lk_refine")
     if library is None:
         return None
-    b, _, h, w = left.shape
-    k = radius.shape[1]
     left, right, left_xy, right_xy, radius, active = (t.contiguous() for t in (*tensors, active))
     refined, correlation = torch.empty(b, k, 2), torch.empty(b, k)
     library.lk_refine(left.data_ptr(), right.data_ptr(), b, h, w, k, left_xy.data_ptr(), right_xy.data_ptr(),
@@ -377,16 +462,29 @@ def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_left: t
     kernel is not available or the inputs do not fit its contract."""
     signs = sign_left is not None
     band = band_px is not None
+    dims = check_shape(desc_left, "desc_left", ["B", "K", "D"])
+    b, k, d = dims["B"], dims["K"], dims["D"]
+    k2 = check_shape(desc_right, "desc_right", [b, "K2", d])["K2"]
+    check_rows(valid_left, "valid_left", b, k, kinds="bool")
+    check_rows(valid_right, "valid_right", b, k2, kinds="bool")
+    if signs != (sign_right is not None) or band and (y_left is None or y_right is None):
+        raise InputError("sign_left, sign_right, y_left, y_right: expected both signs or neither, and both rows "
+                         "given a band_px")
+    for tensor, name, rows in ((sign_left, "sign_left", k), (sign_right, "sign_right", k2)):
+        if signs:
+            check_rows(tensor, name, b, rows)
+    for tensor, name, rows in ((y_left, "y_left", k), (y_right, "y_right", k2)):
+        if band:
+            check_rows(tensor, name, b, rows, kinds="float")
+    if band:
+        check_number(band_px, "band_px", 0.0)
     if (not (_on_cpu(torch.float32, desc_left, desc_right) and _on_cpu(torch.bool, valid_left, valid_right))
-            or signs != (sign_right is not None) or band and (y_left is None or y_right is None)
             or signs and not _on_cpu(torch.int64, sign_left, sign_right)
             or band and not _on_cpu(torch.float32, y_left, y_right)):
         return None
     library = load("sad_nearest")
     if library is None:
         return None
-    b, k, d = desc_left.shape
-    k2 = desc_right.shape[1]
     inputs = [t.contiguous() if t is not None else None for t in (
         desc_left, desc_right, valid_left, valid_right, sign_left if signs else None, sign_right if signs else None,
         y_left if band else None, y_right if band else None)]
@@ -405,13 +503,20 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
     ``q`` ``(Q,)`` float32. Returns ``(count, below, above)``: each slot's member count ``(B, N)`` and the
     members of rank ``floor`` / ``ceil`` of ``q · (count − 1)`` ``(B, N, Q)`` (0 for an empty slot); None when
     the kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(values, "values", ["B", "P"])
+    b, p = dims["B"], dims["P"]
+    check_rows(labels, "labels", b, p)
+    n = check_rows(slots, "slots", b, "N").shape[1]
+    k = check_shape(q, "q", ["Q"])["Q"]
+    if q.numel() and not bool(((q >= 0) & (q <= 1)).all()):  # NaN too: the kernel casts q · (count − 1) to int
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
     if not (_on_cpu(torch.float32, values, q) and _on_cpu(torch.int64, labels, slots)):
+        return None
+    if bool(values.isnan().any()):  # the selection orders by <, which NaN breaks: the torch path sorts them last
         return None
     library = load("labelled_select")
     if library is None:
         return None
-    b, p = values.shape
-    n, k = slots.shape[1], q.numel()
     values, labels, slots, q = (t.contiguous() for t in (values, labels, slots, q))
     count = torch.empty(b, n, dtype=torch.int64)
     below, above = torch.empty(b, n, k), torch.empty(b, n, k)
@@ -430,8 +535,10 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     """:func:`svs_torch.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
     fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
-    if (not (_on_cpu(torch.float32, disparity) and _on_cpu(torch.bool, valid)) or disparity.shape != valid.shape
-            or disparity.dim() < 1):
+    if disparity.dim() < 1:
+        raise InputError(f"disparity: expected (..., W), got {tuple(disparity.shape)}")
+    check_shape(valid, "valid", list(disparity.shape))
+    if not (_on_cpu(torch.float32, disparity) and _on_cpu(torch.bool, valid)):
         return None
     library = load("fill_invalid_rows")
     if library is None:
@@ -450,8 +557,11 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
     (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
     ending where ``value`` (int64, its shape) changes. None when the kernel is not available or the inputs do not
     fit its contract."""
-    if (not _on_cpu(torch.bool, foreground) or foreground.dim() < 1
-            or value is not None and (not _on_cpu(torch.int64, value) or value.shape != foreground.shape)):
+    if foreground.dim() < 1:
+        raise InputError(f"foreground: expected (..., W), got {tuple(foreground.shape)}")
+    if value is not None:
+        check_shape(value, "value", list(foreground.shape))
+    if not _on_cpu(torch.bool, foreground) or value is not None and not _on_cpu(torch.int64, value):
         return None
     library = load("find_runs")
     if library is None:
@@ -476,7 +586,8 @@ def gray_levels(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None
     image (see the C source): ``image`` ``(B, 1, H, W)`` float32 in [0, 1] → the uint8 levels ``(B, 1, H, W)``
     and the histograms ``(B, 256)`` int64, the torch path's values. None when the kernel is not available or
     the input does not fit its contract."""
-    if not _on_cpu(torch.float32, image) or image.dim() != 4 or image.shape[1] != 1:
+    check_shape(image, "image", ["B", 1, "H", "W"])
+    if not _on_cpu(torch.float32, image):
         return None
     library = load("gray_levels")
     if library is None:
@@ -490,14 +601,33 @@ def gray_levels(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None
     return None if status != 0 else (levels, histogram)
 
 
+def _check_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int,
+                connectivity: int) -> None:
+    """:func:`label_runs`' contract: runs inside the grid, in raster order, each within one row (as
+    :func:`find_runs` gives them); the two int64 ``(R,)`` checks cost a few passes over R runs, not the grid."""
+    if connectivity not in (4, 8):
+        raise InputError(f"connectivity: expected 4 or 8, got {connectivity!r}")
+    if not all(isinstance(v, int) and v >= 0 for v in (batch, height, width)):
+        raise InputError(f"batch, height, width: expected non-negative ints, got {batch!r}, {height!r}, {width!r}")
+    r = check_shape(start, "start", ["R"])["R"]
+    check_rows(end, "end", r)
+    if r == 0 or not _on_cpu(torch.int64, start, end):  # other dtypes are left to the torch path
+        return
+    row_start = start - start % width if width else start
+    bad = ((start < 0) | (end < start) | (end >= batch * height * width) | (end >= row_start + width)).any()
+    if bool(bad) or bool((start[1:] <= end[:-1]).any()):
+        raise InputError(f"start, end: expected runs in raster order inside one row each of the {batch} x {height} x "
+                         f"{width} grid (as find_runs gives them)")
+
+
 def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int, connectivity: int
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """:func:`svs_torch.components._label_runs` and ``_paint`` by one union-find sweep per image (see the C
     source): from the runs' flat ``start`` and ``end`` ``(R,)`` int64 of a ``(batch, height, width)`` grid, each
     run's label ``(R,)``, each image's number of labels ``(batch,)`` and the label image ``(batch, 1, height,
     width)``, all int64. None when the kernel is not available or the inputs do not fit its contract."""
-    if (not _on_cpu(torch.int64, start, end) or start.dim() != 1 or end.shape != start.shape
-            or connectivity not in (4, 8) or min(batch, height, width) < 0):
+    _check_runs(start, end, batch, height, width, connectivity)
+    if not _on_cpu(torch.int64, start, end):
         return None
     library = load("label_runs")
     if library is None:
@@ -510,6 +640,14 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
                                 run_label.data_ptr(), num_labels.data_ptr(), labels.data_ptr(),
                                 torch.get_num_threads())
     return None if status != 0 else (run_label, num_labels, labels)
+
+
+def _check_box_rows(boxes: torch.Tensor, name: str, b: int) -> None:
+    """Boxes ``(B, 4)`` int that :func:`object_depths` reads at any place (its columns and rows outside the frame
+    repeat the border), within 2³¹ so that no corner's arithmetic overflows."""
+    check_rows(boxes, name, b, 4)
+    if boxes.numel() and bool((boxes.abs() >= 2**31).any()):
+        raise InputError(f"{name}: expected (x0, y0, width, height) within ±2^31, got {boxes.tolist()}")
 
 
 def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
@@ -526,17 +664,25 @@ def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Te
     ``in_view_from`` on ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
     ``q · (count − 1)`` ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its
     contract."""
-    b = disparity.shape[0] if disparity.dim() == 3 else -1
-    if (not (_on_cpu(torch.float32, disparity, scale, doffs, q) and _on_cpu(torch.bool, valid)
-             and _on_cpu(torch.int64, labels, boxes, slots, in_view_from))
-            or disparity.dim() != 3 or valid.shape != disparity.shape or labels.shape != disparity.shape
-            or boxes.shape != (b, 4) or slots.dim() != 2 or slots.shape[0] != b or scale.shape != (b,)
-            or doffs.shape != (b,) or in_view_from.shape != (b,) or q.dim() != 1):
+    dims = check_shape(disparity, "disparity", ["B", "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(valid, "valid", [b, h, w])
+    check_shape(labels, "labels", [b, h, w])
+    check_nonempty(disparity, "disparity")
+    _check_box_rows(boxes, "boxes", b)
+    check_rows(slots, "slots", b, "N")
+    check_shape(scale, "scale", [b])
+    check_shape(doffs, "doffs", [b])
+    check_rows(in_view_from, "in_view_from", b)
+    check_shape(q, "q", ["Q"])
+    if q.numel() and not bool(((q >= 0) & (q <= 1)).all()):  # NaN too: the kernel casts q · (count − 1) to int
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    if not (_on_cpu(torch.float32, disparity, scale, doffs, q) and _on_cpu(torch.bool, valid)
+            and _on_cpu(torch.int64, labels, boxes, slots, in_view_from)):
         return None
     library = load("object_depths")
     if library is None:
         return None
-    h, w = disparity.shape[1:]
     n, k = slots.shape[1], q.numel()
     disparity, labels, boxes, slots, scale, doffs, in_view_from, q = (
         t.contiguous() for t in (disparity, labels, boxes, slots, scale, doffs, in_view_from, q))
@@ -558,14 +704,22 @@ def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch
     ``(B, K, 2)``, ``scale`` ``(B, K)`` float32; ``valid`` ``(B, K)`` bool. Returns ``(B, K, 64 or 128)``
     float32 unit descriptors, zero rows where not valid; None when the kernel is not available or the inputs
     do not fit its contract."""
-    if (not (_on_cpu(torch.float32, image, xy, scale) and _on_cpu(torch.bool, valid)) or image.dim() != 4
-            or image.shape[1] != 1):
+    dims = check_shape(image, "image", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    k = check_shape(xy, "xy", [b, "K", 2])["K"]
+    check_shape(scale, "scale", [b, k])
+    check_rows(valid, "valid", b, k, kinds="bool")
+    check_nonempty(image, "image")
+    if not isinstance(pad, int) or pad < 0:
+        raise InputError(f"pad: expected a non-negative int, got {pad!r}")
+    if not (_on_cpu(torch.float32, image, xy, scale) and _on_cpu(torch.bool, valid)):
         return None
+    # A NaN position would be cast to an index (undefined in C); ±inf and huge ones are clamped to the border.
+    if bool((xy.isnan().any(-1) & valid).any()):
+        raise InputError("xy: expected no NaN at valid keypoints")
     library = load("usurf_describe")
     if library is None:
         return None
-    b, _, h, w = image.shape
-    k = valid.shape[1]
     image, xy, scale = image.contiguous(), xy.contiguous(), scale.contiguous()
     mask = valid.to(torch.uint8).contiguous()
     out = torch.zeros(b, k, 128 if extended else 64)

@@ -29,7 +29,8 @@ static void fill_row(const float *d, const uint8_t *ok, int64_t W, int64_t *next
         const int has_left = last >= 0, has_right = next[x] < W;
         if (has_left && has_right) {
             const float from_left = d[last], from_right = d[next[x]];
-            const float smaller = from_left < from_right ? from_left : from_right;
+            /* torch.minimum's: NaN if either is NaN. */
+            const float smaller = from_left < from_right || isnan(from_left) ? from_left : from_right;
             out[x] = fabsf(from_left - from_right) <= 1.0f ? (from_left + from_right) / 2.0f : smaller;
         } else if (has_left) {
             out[x] = d[last];

@@ -27,7 +27,7 @@ static inline int joined(const uint8_t *row, const int64_t *value_row, int64_t x
     return row[x - 1] && row[x] && (!value_row || value_row[x - 1] == value_row[x]);
 }
 
-/* foreground: contiguous (rows, W) uint8 holding 0 or 1 (a torch bool's bytes); value: (rows, W) int64 or NULL
+/* foreground: contiguous (rows, W) uint8, nonzero where set (a torch bool's bytes); value: (rows, W) int64 or NULL
  * (with it a run also ends where the value changes). With start NULL, writes each row's number of runs to counts
  * (rows,); otherwise counts holds each row's first output slot (the exclusive prefix sum of the counts) and the
  * runs' flat start and end (inclusive) positions are written to start and end. Returns 0. */
@@ -38,12 +38,15 @@ int find_runs(const uint8_t *foreground, const int64_t *value, int64_t rows, int
     for (int64_t r = 0; r < rows; ++r) {
         const uint8_t *row = foreground + r * W;
         const int64_t *value_row = value ? value + r * W : 0;
-        if (!start) {  /* a run starts at each set pixel not joined to its left neighbour; branch-free (bytes 0/1) */
-            int64_t n = W > 0 ? row[0] : 0;
+        if (!start) {  /* a run starts at each set pixel not joined to its left neighbour; branch-free */
+            /* Any nonzero byte is set, as the writing pass below reads them: a bool tensor viewed from other
+             * bytes (a uint8 mask) must count the runs it writes, or the writes overrun the counted slots. */
+            int64_t n = W > 0 ? row[0] != 0 : 0;
             if (value_row)
-                for (int64_t x = 1; x < W; ++x) n += row[x] & !(row[x - 1] & (value_row[x - 1] == value_row[x]));
+                for (int64_t x = 1; x < W; ++x)
+                    n += (row[x] != 0) & !((row[x - 1] != 0) & (value_row[x - 1] == value_row[x]));
             else
-                for (int64_t x = 1; x < W; ++x) n += row[x] & (row[x - 1] ^ 1);
+                for (int64_t x = 1; x < W; ++x) n += (row[x] != 0) & (row[x - 1] == 0);
             counts[r] = n;
             continue;
         }

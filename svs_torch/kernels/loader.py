@@ -43,7 +43,10 @@ HEADERS = tuple(sorted(Path(__file__).parent.glob("*.h")))
 #: two cores with those workers, which spin for a while after every torch op: the Hessian kernel on 8 images
 #: took 42–66 ms with 2 pthreads, 30 ms with one, 22 ms with 2 OpenMP threads. A compiler without OpenMP
 #: builds the same source serially (the pragmas are ignored), under its own name.
-FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fopenmp"]
+#: ``SVS_TORCH_CFLAGS_EXTRA`` (e.g. ``-fsanitize=address,undefined``, by ``tests/sanitize/run.sh``) appends flags;
+#: being part of FLAGS they are part of every cache key, so such builds never replace the normal ones.
+FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fopenmp",
+         *os.environ.get("SVS_TORCH_CFLAGS_EXTRA", "").split()]
 #: ``CC --version`` answers in a few milliseconds; one that does not answer in this time is taken as hanging.
 PROBE_TIMEOUT_S = 10
 #: The slowest kernel (``block_match.c``) compiles in about 2 s, 7 s on two busy cores; a compile still running

@@ -1,0 +1,428 @@
+"""Fuzz (hypothesis) of every public function that reaches a C kernel of :mod:`svs_torch.kernels`: drawn shapes
+(empty images, K = 0, B = 0, batch lengths that do not match), values (NaN, ±inf, huge, negative), bool masks
+viewed from other bytes and out-of-range sizes, each run with the kernels and with ``SVS_TORCH_KERNELS=torch``.
+Both must give the same values (bit for bit where the kernel promises it, else to its stated tolerance) or both
+raise the same kind of error; never a crash. ``tests/sanitize/run.sh`` runs this file against kernels built with
+AddressSanitizer and UBSan, where an out-of-bounds read that happens to return is a failure too.
+
+Derandomized, so CI sees the same examples every run; the whole file takes about 25 s on two cores. More
+examples for a bug hunt: ``SVS_FUZZ_SCALE=20 pytest tests/test_kernel_fuzz.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from dataclasses import fields, is_dataclass
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from svs_torch import kernels
+from svs_torch.components import connected_components_with_stats, region_properties
+from svs_torch.dense import (DenseConfig, DenseDisparity, DisparityRange, block_match_sad,
+                             dense_disparity_over_regions, disparity_search_range, fill_invalid_rows)
+from svs_torch.dense_depth import dense_object_depths
+from svs_torch.depth import ObjectDepths, labelled_quantile
+from svs_torch.descriptor import describe_surf
+from svs_torch.errors import InputError
+from svs_torch.features import SurfConfig, extract_surf_features
+from svs_torch.matching import MatchedPoints, match_sad, refine_matches_lk
+from svs_torch.threshold import gray_levels_and_histogram
+from svs_torch.types import Keypoints
+
+pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
+
+SCALE = max(int(os.environ.get("SVS_FUZZ_SCALE", "1")), 1)
+
+
+def examples(count: int) -> settings:
+    return settings(max_examples=count * SCALE, deadline=None, derandomize=True, database=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+@contextlib.contextmanager
+def _torch_path():
+    """Every kernel off (``SVS_TORCH_KERNELS=torch``, read at each call) for the block."""
+    before = os.environ.get("SVS_TORCH_KERNELS")
+    os.environ["SVS_TORCH_KERNELS"] = "torch"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["SVS_TORCH_KERNELS"]
+        else:
+            os.environ["SVS_TORCH_KERNELS"] = before
+
+
+def _outcome(function, *args, **kwargs):
+    """The result, or the kind of error: only InputError may come out of a public function."""
+    try:
+        return function(*args, **kwargs)
+    except InputError as error:
+        assert str(error).split(":")[0], error  # names its argument first
+        return InputError
+
+
+def _leaves(value) -> list:
+    if is_dataclass(value):
+        return [leaf for f in fields(value) for leaf in _leaves(getattr(value, f.name))]
+    if isinstance(value, (tuple, list)):
+        return [leaf for item in value for leaf in _leaves(item)]
+    return [value]
+
+
+def _assert_same(fused, eager, atol: float = 0.0) -> None:
+    """Both raised InputError, or every tensor equal (NaN where NaN; within ``atol`` where the kernel's sums
+    round differently)."""
+    assert (fused is InputError) == (eager is InputError), (fused, eager)
+    if fused is InputError:
+        return
+    for a, b in zip(_leaves(fused), _leaves(eager), strict=True):
+        if isinstance(a, torch.Tensor):
+            assert a.shape == b.shape and a.dtype == b.dtype, (a.shape, b.shape, a.dtype, b.dtype)
+            torch.testing.assert_close(a, b, rtol=0, atol=atol, equal_nan=True)
+        else:
+            assert a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b)), (a, b)
+
+
+def _both(function, *args, atol: float = 0.0, **kwargs):
+    fused = _outcome(function, *args, **kwargs)
+    with _torch_path():
+        eager = _outcome(function, *args, **kwargs)
+    _assert_same(fused, eager, atol)
+    return fused
+
+
+SPECIALS = (math.nan, math.inf, -math.inf, 1e30, -1e30)
+
+
+@st.composite
+def tensors(draw, shape, low=0.0, high=1.0, specials=0.1, dtype=torch.float32):
+    """A float tensor of ``shape``: uniform in [low, high], a share ``specials`` of NaN / ±inf / huge values."""
+    seed = draw(st.integers(0, 2**31 - 1))
+    generator = torch.Generator().manual_seed(seed)
+    values = low + (high - low) * torch.rand(shape, generator=generator, dtype=torch.float64)
+    if specials and draw(st.booleans()):
+        pick = torch.rand(shape, generator=generator) < specials
+        choice = torch.tensor(SPECIALS, dtype=torch.float64)[torch.randint(len(SPECIALS), shape, generator=generator)]
+        values = torch.where(pick, choice, values)
+    return values.to(dtype)
+
+
+@st.composite
+def masks(draw, shape, odd_bytes=True):
+    """A bool mask, sometimes viewed from bytes other than 0 / 1 (a uint8 mask's ``view(torch.bool)``)."""
+    seed = draw(st.integers(0, 2**31 - 1))
+    generator = torch.Generator().manual_seed(seed)
+    density = draw(st.sampled_from([0.0, 0.3, 0.7, 1.0]))
+    mask = torch.rand(shape, generator=generator) < density
+    if odd_bytes and draw(st.booleans()):
+        raw = mask.to(torch.uint8) * torch.randint(1, 256, shape, generator=generator, dtype=torch.uint8)
+        mask = raw.view(torch.bool)
+    return mask
+
+
+#: B, H, W (0: empty images). B >= 1: several torch paths fail on an empty batch (a RuntimeError from
+#: ``reshape(b, -1)``, not a crash) in code no kernel reaches; ``tests/test_kernels.py`` covers B = 0 for the kernels.
+sizes = st.tuples(st.integers(1, 3), st.integers(0, 20), st.integers(0, 24))
+
+
+@st.composite
+def image_hws(draw, b, h, w):
+    """Each pair's size: usually valid, else too large, zero, or with the wrong number of rows."""
+    kind = draw(st.sampled_from(["none", "valid", "valid", "large", "zero", "rows"]))
+    if kind == "none":
+        return None
+    rows = b if kind != "rows" else draw(st.sampled_from([max(b - 1, 0), b + 1]))
+    hh = [draw(st.integers(1, max(h, 1))) for _ in range(rows)]
+    ww = [draw(st.integers(1, max(w, 1))) for _ in range(rows)]
+    if kind == "large" and rows:
+        hh[0], ww[0] = h + draw(st.integers(1, 300)), w + draw(st.integers(0, 300))
+    if kind == "zero" and rows:
+        hh[0] = 0
+    return torch.tensor(list(zip(hh, ww)), dtype=torch.int64).view(rows, 2)
+
+
+@given(size=sizes, data=st.data())
+@examples(40)
+def test_block_match_sad(size, data):
+    b, h, w = size
+    left = data.draw(tensors((b, 1, h, w), specials=0.05))
+    right = data.draw(tensors((b, 1, h, w), specials=0.05))
+    minimum = data.draw(st.integers(-4, 8))
+    count = data.draw(st.integers(1, 16))
+    config = DenseConfig(window_size=data.draw(st.sampled_from([3, 5])), prefilter=data.draw(
+        st.sampled_from(["xsobel", "none"])), lr_max_diff_px=data.draw(st.sampled_from([None, 1.0])))
+    _both(block_match_sad, left, right, minimum, count, config, data.draw(image_hws(b, h, w)))
+
+
+@given(size=sizes, data=st.data())
+@examples(40)
+def test_dense_disparity_over_regions(size, data):
+    b, h, w = size
+    left, right = data.draw(tensors((b, 1, h, w), specials=0.0)), data.draw(tensors((b, 1, h, w), specials=0.0))
+    mask = data.draw(masks((b, 1, h, w), odd_bytes=False))
+    count = data.draw(st.integers(1, 12))
+    own = data.draw(st.sampled_from(["none", "within", "above", "short"]))
+    rows = max(b - 1, 0) if own == "short" else b
+    pair = None if own == "none" else torch.tensor(
+        [data.draw(st.integers(1, count + (20 if own == "above" else 0))) for _ in range(rows)], dtype=torch.int64)
+    search = DisparityRange(torch.tensor([data.draw(st.integers(0, 6)) for _ in range(b)], dtype=torch.int64),
+                            count, pair)
+    _both(dense_disparity_over_regions, left, right, mask, search, DenseConfig(window_size=3),
+          data.draw(image_hws(b, h, w)))
+
+
+@given(shape=st.tuples(st.integers(0, 3), st.integers(0, 5), st.integers(0, 30)), data=st.data())
+@examples(40)
+def test_fill_invalid_rows(shape, data):
+    disparity = data.draw(tensors(shape, low=0, high=40))
+    _both(fill_invalid_rows, disparity, data.draw(masks(shape)))
+
+
+@given(shape=st.tuples(st.integers(1, 3), st.integers(0, 12), st.integers(0, 40)), connectivity=st.sampled_from(
+    [4, 8]), data=st.data())
+@examples(50)
+def test_connected_components(shape, connectivity, data):
+    b, h, w = shape
+    mask = data.draw(masks((b, 1, h, w)))
+    _both(connected_components_with_stats, mask, connectivity)
+    labels = (data.draw(tensors((b, 1, h, w), low=-1, high=4, specials=0.0))).to(torch.int64)
+    _both(region_properties, labels)
+
+
+@given(size=sizes, data=st.data())
+@examples(30)
+def test_gray_levels(size, data):
+    _both(gray_levels_and_histogram, data.draw(tensors((size[0], 1, size[1], size[2]), low=-0.2, high=1.2,
+                                                       specials=0.0)))
+
+
+@given(size=st.tuples(st.integers(1, 2), st.integers(0, 48), st.integers(0, 48)), data=st.data())
+@examples(20)
+def test_surf_features(size, data):
+    b, h, w = size
+    image = data.draw(tensors((b, 1, h, w), specials=0.0))
+    config = SurfConfig(max_keypoints=data.draw(st.sampled_from([0, 1, 30])), upsample=data.draw(st.booleans()),
+                        metric_threshold=data.draw(st.sampled_from([0.0, 10.0, 1000.0])))
+    # The descriptor kernel sums in double, the torch path in float32: descriptors within its round-off.
+    _both(extract_surf_features, image, config, atol=5e-4)
+
+
+@st.composite
+def keypoint_sets(draw, b, k, h, w):
+    xy = draw(tensors((b, k, 2), low=-5, high=max(h, w) + 5))
+    scale = draw(tensors((b, k), low=0.0, high=6.0))
+    valid = draw(masks((b, k)))
+    zeros = torch.zeros(b, k)
+    return Keypoints(xy=xy, scale=scale, score=zeros, laplacian_sign=torch.zeros(b, k, dtype=torch.int64),
+                     orientation=zeros, valid=valid)
+
+
+def _waves(b: int, h: int, w: int, phase: torch.Tensor, shift_px: float = 0.0) -> torch.Tensor:
+    """Smooth images with structure at every place ``(B, 1, H, W)``, one phase per image."""
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    return 0.5 + 0.4 * torch.sin((x + shift_px) / 3 + phase) * torch.cos(y / 4 - phase)
+
+
+@given(size=sizes, k=st.integers(0, 6), extended=st.booleans(), data=st.data())
+@examples(40)
+def test_describe_surf(size, k, extended, data):
+    """Extreme positions and scales (NaN, ±inf, 1e30, outside the image) must not crash and give the same
+    errors and zero rows; values are compared where a descriptor is defined by the image (a keypoint inside it,
+    scale >= 1): elsewhere the patch is a constant border, and a unit vector of round-off noise is any vector."""
+    b, h, w = size
+    image = _waves(b, h, w, data.draw(tensors((b, 1, 1, 1), high=6.0, specials=0.0)))
+    keypoints = data.draw(keypoint_sets(b, k, h, w))
+    fused = _outcome(describe_surf, image, keypoints, extended)
+    with _torch_path():
+        eager = _outcome(describe_surf, image, keypoints, extended)
+        # The kernel works in double: its reference is the torch path in float64 (the float32 path's round-off
+        # flips the sign of near-zero responses, which moves the extended descriptor's halves by up to 0.08).
+        exact = _outcome(describe_surf, image.double(), keypoints, extended)
+    assert (fused is InputError) == (eager is InputError) == (exact is InputError), (fused, eager)
+    if fused is InputError:
+        return
+    valid = keypoints.valid.view(torch.uint8) != 0
+    assert not bool(fused[~valid].any()) and not bool(eager[~valid].any())
+    x, y = keypoints.xy.unbind(-1)
+    defined = valid & (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (keypoints.scale >= 1) & (
+        keypoints.scale <= 6) & (min(h, w) >= 8)
+    torch.testing.assert_close(fused[defined], exact[defined].float(), rtol=0, atol=1e-5)
+
+
+@given(b=st.integers(1, 2), k=st.integers(0, 6), k2=st.integers(0, 6), d=st.sampled_from([0, 4, 64]),
+       mutual=st.booleans(), band=st.sampled_from([None, 0.0, 2.5]), data=st.data())
+@examples(50)
+def test_match_sad(b, k, k2, d, mutual, band, data):
+    left, right = data.draw(tensors((b, k, d), low=-1, high=1)), data.draw(tensors((b, k2, d), low=-1, high=1))
+    valid_left, valid_right = data.draw(masks((b, k))), data.draw(masks((b, k2)))
+    signs = data.draw(st.booleans())
+    gates = {}
+    if signs:
+        gates = {"laplacian_left": torch.randint(-1, 2, (b, k), generator=torch.Generator().manual_seed(k)),
+                 "laplacian_right": torch.randint(-1, 2, (b, k2), generator=torch.Generator().manual_seed(k2))}
+    if band is not None:
+        gates.update(xy_left=data.draw(tensors((b, k, 2), high=20)), xy_right=data.draw(tensors((b, k2, 2), high=20)),
+                     epipolar_band_px=band)
+    _both(match_sad, left, right, valid_left, valid_right, mutual=mutual, **gates)
+
+
+@given(size=st.tuples(st.integers(1, 2), st.integers(0, 30), st.integers(0, 30)), k=st.integers(0, 5),
+       data=st.data())
+@examples(30)
+def test_refine_matches_lk(size, k, data):
+    b, h, w = size
+    # Smooth images (a few blobs): on noise the Gauss-Newton steps are ill-conditioned and the kernel's double
+    # sums may take another branch of a clamp; on images with structure both paths land within 1e-3 px.
+    phase = data.draw(tensors((b, 1, 1, 1), high=6.0, specials=0.0))
+    left, right = _waves(b, h, w, phase), _waves(b, h, w, phase, shift_px=0.7)
+    xy_left = data.draw(tensors((b, k, 2), low=-3, high=max(h, w) + 3, specials=0.05))
+    xy_right = xy_left - 0.5
+    points = MatchedPoints(xy_left, xy_right, data.draw(masks((b, k), odd_bytes=False)))
+    scale = data.draw(st.sampled_from([None, "drawn"]))
+    scale = None if scale is None else data.draw(tensors((b, k), high=5.0, specials=0.0))
+    fused = _outcome(refine_matches_lk, left, right, points, scale, min_correlation=-1.0)
+    with _torch_path():
+        eager = _outcome(refine_matches_lk, left, right, points, scale, min_correlation=-1.0)
+    assert (fused is InputError) == (eager is InputError)
+    if fused is not InputError:
+        assert torch.equal(fused.valid, eager.valid)
+        finite = torch.isfinite(eager.right).all(-1) & torch.isfinite(eager.left).all(-1) & eager.valid
+        torch.testing.assert_close(fused.right[finite], eager.right[finite], rtol=0, atol=1e-3)
+
+
+@given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
+@examples(50)
+def test_labelled_quantile(b, p, n, data):
+    values = data.draw(tensors((b, p), low=-5, high=5))
+    labels = torch.randint(-1, 4, (b, p), generator=torch.Generator().manual_seed(p + n))
+    slots = torch.randint(-1, 4, (b, n), generator=torch.Generator().manual_seed(p * n + 1))
+    q = data.draw(st.lists(st.sampled_from([0.0, 0.1, 0.5, 0.9, 1.0, math.nan, -0.1, 1.5]), max_size=3))
+    _both(labelled_quantile, values, labels, slots, q)
+    valid = data.draw(masks((b, p), odd_bytes=False))
+    _both(disparity_search_range, values, valid, torch.full((b,), 40), DenseConfig())
+
+
+@given(size=st.tuples(st.integers(1, 3), st.integers(0, 12), st.integers(0, 16)), n=st.integers(0, 3),
+       fill=st.booleans(), data=st.data())
+@examples(40)
+def test_dense_object_depths(size, n, fill, data):
+    b, h, w = size
+    disparity = data.draw(tensors((b, 1, h, w), low=0, high=12))
+    valid = data.draw(masks((b, 1, h, w)))
+    labels = torch.randint(0, 3, (b, 1, h, w), generator=torch.Generator().manual_seed(h * w + n))
+    box = data.draw(st.sampled_from(["whole", "over", "short"]))
+    rows = max(b - 1, 0) if box == "short" else b
+    crop = torch.tensor([[0, 0, w + (5 if box == "over" else 0), h]] * rows, dtype=torch.int64).view(rows, 4)
+    minimum = torch.zeros(b, dtype=torch.int64)
+    dense = DenseDisparity(disparity, valid, minimum, 12, crop, torch.full((b,), data.draw(st.integers(1, 14))))
+    slot_labels = torch.arange(1, n + 1).expand(b, n).clone()
+    zeros = torch.zeros(b, n)
+    objects = ObjectDepths(label=slot_labels, area_px=torch.full((b, n), 5), centroid_x_px=zeros,
+                           side=torch.zeros(b, n, dtype=torch.int64), num_inliers=torch.zeros(b, n, dtype=torch.int64),
+                           depth_median_m=zeros, depth_low_m=zeros, depth_high_m=zeros,
+                           valid=torch.zeros(b, n, dtype=torch.bool), point_slot=torch.zeros(b, 0, dtype=torch.int64))
+    _both(dense_object_depths, dense, labels, objects, 500.0, 0.1, fill_invalid=fill, min_valid_px=1)
+
+
+@pytest.mark.parametrize("wrapper, args", [
+    ("block_match", lambda: (torch.rand(1, 8, 8), torch.rand(1, 8, 8), None, 3, torch.tensor([[0, 0, 9, 8]]),
+                             torch.zeros(1, dtype=torch.int64), torch.tensor([4]), torch.tensor([[8, 8]]),
+                             torch.ones(1, dtype=torch.bool), 0.0, None, 0.0, False)),
+    ("usurf_describe", lambda: (torch.rand(1, 1, 8, 8), -1, torch.zeros(1, 2, 2), torch.ones(1, 2),
+                                torch.ones(1, 2, dtype=torch.bool), False)),
+    ("sad_nearest", lambda: (torch.rand(1, 3, 8), torch.rand(1, 3, 4), torch.ones(1, 3, dtype=torch.bool),
+                             torch.ones(1, 3, dtype=torch.bool))),
+    ("labelled_select", lambda: (torch.rand(1, 9), torch.ones(1, 3, dtype=torch.int64),
+                                 torch.ones(1, 1, dtype=torch.int64), torch.tensor([0.5]))),
+    ("labelled_select", lambda: (torch.rand(1, 9), torch.ones(1, 9, dtype=torch.int64),
+                                 torch.ones(1, 1, dtype=torch.int64), torch.tensor([math.nan]))),
+    ("label_runs", lambda: (torch.tensor([0, 95]), torch.tensor([3, 120]), 1, 10, 10, 8)),
+    ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),
+                           torch.ones(1, 2), torch.ones(1, 2, dtype=torch.bool), 4, 2.0)),
+    ("padded_integral", lambda: (torch.rand(2, 1, 4, 4), torch.rand(2), -1)),
+    ("object_depths", lambda: (torch.rand(1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool),
+                               torch.ones(1, 4, 4, dtype=torch.int64), torch.tensor([[2, 0, 4, 4]] * 2),
+                               torch.ones(1, 1, dtype=torch.int64), torch.ones(1), torch.zeros(1),
+                               torch.zeros(1, dtype=torch.int64), True, torch.tensor([0.5]))),
+    ("refine_maxima", lambda: ([torch.rand(1, 4, 6, 6)], [torch.rand(1, 4, 6, 6)], [1], [[9, 15, 21, 27]],
+                               torch.ones(1, 1), torch.tensor([[500]]), 1.0, 0.5)),
+    ("hessian_octave", lambda: (torch.zeros(1, 1, 30, 30), 10, 0, [9, 15, 21, 27], [1.0] * 4, [1.0] * 4, 0.9,
+                                torch.empty(1, 4, 2, 2), torch.empty(1, 4, 2, 2))),
+    ("strongest_maxima", lambda: ([torch.rand(1, 4, 5, 5)], [torch.ones(1, 2, 3, 3, dtype=torch.bool)], 0.0, 99)),
+])
+def test_wrappers_refuse_what_their_kernels_cannot_read(wrapper, args):
+    """Each public wrapper of :mod:`svs_torch.kernels` checks what its C code assumes: a box past the frame (or a
+    box per pair for another batch), a negative pad, descriptor or label lengths that differ, runs outside the
+    grid, a NaN quantile, images of different sizes, indices past the maps, a zero grid step, more maxima than
+    points. (Under the sanitizer build the first of these read or wrote out of bounds before the checks.)"""
+    with pytest.raises(InputError, match=r"^[A-Za-z_][\w\[\]., ]*: "):
+        getattr(kernels, wrapper)(*args())
+
+
+def _stereo(b: int, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(b * 1000 + h * 10 + w)
+    return torch.rand(b, 1, h, w, generator=generator), torch.rand(b, 1, h, w, generator=generator)
+
+
+def _upright(xy: torch.Tensor) -> Keypoints:
+    b, k = xy.shape[:2]
+    zeros = torch.zeros(b, k)
+    return Keypoints(xy=xy, scale=torch.full((b, k), 2.0), score=zeros, laplacian_sign=torch.zeros(b, k,
+                     dtype=torch.int64), orientation=zeros, valid=torch.ones(b, k, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("call, message", [
+    # image_hw larger than the tensors (was: heap writes past block_match.c's map, or rows wrapping)
+    (lambda: block_match_sad(*_stereo(2, 40, 50), 0, 16, image_hw=torch.tensor([[400, 500], [400, 500]])),
+     r"^image_hw: expected \(height, width\) rows with 1 <= height <= 40 and 1 <= width <= 50"),
+    (lambda: block_match_sad(*_stereo(2, 40, 50), 0, 16, image_hw=torch.tensor([[40, 80], [40, 80]])),
+     r"^image_hw: expected .* got \[40, 80\]"),
+    # batch lengths: fewer rows than pairs, counts above num_disparities (was: out-of-bounds reads)
+    (lambda: block_match_sad(*_stereo(4, 40, 50), 0, 16, image_hw=torch.tensor([[40, 50]])),
+     r"^image_hw: expected \(4, 2\), got \(1, 2\)"),
+    (lambda: dense_disparity_over_regions(*_stereo(2, 20, 30), torch.ones(2, 1, 20, 30, dtype=torch.bool),
+                                          DisparityRange(torch.zeros(2, dtype=torch.int64), 16,
+                                                         torch.tensor([16, 400]))),
+     r"^search.pair_num_disparities: expected values in \[1, 16\], got 400"),
+    # empty images (was: SIGSEGV in lk_refine.c, usurf_describe.c, object_depths.c)
+    (lambda: refine_matches_lk(*_stereo(1, 0, 30), MatchedPoints(
+        torch.full((1, 3, 2), 5.0), torch.full((1, 3, 2), 5.0), torch.ones(1, 3, dtype=torch.bool))),
+     r"^left: expected images of at least 1 x 1 pixels, got \(1, 1, 0, 30\)"),
+    (lambda: describe_surf(torch.rand(1, 1, 20, 0), _upright(torch.full((1, 3, 2), 5.0))),
+     r"^image: expected images of at least 1 x 1 pixels"),
+    # a NaN quantile (was: an undefined NaN -> int cast in select_rank.h)
+    (lambda: labelled_quantile(torch.rand(2, 50), torch.ones(2, 50, dtype=torch.int64),
+                               torch.ones(2, 1, dtype=torch.int64), [math.nan]),
+     r"^q: expected quantiles in \[0, 1\], got \[nan\]"),
+    # a keypoint whose patch would need a border no memory holds
+    (lambda: describe_surf(torch.rand(1, 1, 20, 20), _upright(torch.tensor([[[1e30, 5.0]]]))),
+     r"^keypoints: expected every valid keypoint's patch"),
+    # images the dense kernel's exact sums cannot take
+    (lambda: block_match_sad(torch.full((1, 1, 8, 8), math.inf), torch.rand(1, 1, 8, 8), 0, 4),
+     r"^left: expected values in \[0, 1\]"),
+])
+def test_issue_30_inputs_raise_named_errors(call, message):
+    """The inputs the sanitizer audit of issue 30 found crashing the process (or reading out of bounds) through
+    public functions now raise InputError naming the argument, with the kernels and with the torch paths."""
+    with pytest.raises(InputError, match=message):
+        call()
+    with _torch_path(), pytest.raises(InputError, match=message):
+        call()
+
+
+def test_bool_masks_of_any_bytes_label_as_their_nonzero_pixels():
+    """A uint8 mask viewed as bool (bytes other than 0 / 1) overran find_runs.c's counted slots; now it labels as
+    the mask of its nonzero bytes, with the kernels and with the torch path (measured against that mask)."""
+    generator = torch.Generator().manual_seed(5)
+    raw = (torch.rand(2, 1, 64, 64, generator=generator) > 0.5).to(torch.uint8) * torch.randint(
+        1, 256, (2, 1, 64, 64), generator=generator, dtype=torch.uint8)
+    reference = connected_components_with_stats(raw != 0)
+    for outcome in (connected_components_with_stats(raw.view(torch.bool)), _both(
+            connected_components_with_stats, raw.view(torch.bool))):
+        assert torch.equal(outcome[0], reference[0]) and torch.equal(outcome[1], reference[1])
