@@ -215,7 +215,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "pairs": len(evaluations), "failed": len(failures), "scored": len(scored),
         "acc_r_min_pct": acc("acc_r_min_pct"), "acc_r_max_pct": acc("acc_r_max_pct"),
         "acc_objects_pct": acc("acc_objects_pct"),
-        "nominal_calibration": {"scored": len(nominal), "names": [e.name for e in nominal],
+        "nominal_calibration": {"scored": len(nominal), "names": sorted(e.name for e in nominal),
                                 **{key: acc(key, nominal) for key in ("acc_r_min_pct", "acc_r_max_pct",
                                                                       "acc_objects_pct")}},
         "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
@@ -225,7 +225,9 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "pairs_per_s": len(evaluations) / seconds if evaluations and seconds > 0 else None,
         "statuses": {status: sum(e.status == status for e in evaluations)
                      for status in sorted({e.status for e in evaluations})},
-        "failures": [{"name": e.name, "status": e.status, "reason": e.reason} for e in failures],
+        # Sorted by name: a summary does not depend on the order of the list either.
+        "failures": [{"name": e.name, "status": e.status, "reason": e.reason}
+                     for e in sorted(failures, key=lambda e: e.name)],
         **{key: mean_of(key) for key in STEREO_FIELDS},
         **{f"{scope}_pairs": sum(getattr(e, f"{scope}_density") is not None for e in evaluations)
            for scope in STEREO_SCOPES},
