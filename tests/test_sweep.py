@@ -257,3 +257,23 @@ def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_p
     assert header.endswith(",code_version") and sum(r.endswith(",0.0.1+git.old") for r in rows) == 2
     assert main(["results", str(reference[1])]) == 0
     assert "code versions" not in capsys.readouterr().out
+
+
+def test_results_rank_nominal_only_configurations_on_their_nominal_means(reference, tmp_path, capsys):
+    """A sweep over scenes that ship no calibration has no headline accuracy (nominal pairs are reported apart):
+    its configurations are still ranked, on their nominal means, and the summary says so."""
+    import shutil
+
+    db = tmp_path / "nominal.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        connection.execute("UPDATE results SET calibrated = 0")
+    connection.close()
+    assert main(["results", str(db), "--sort", "acc_objects_pct"]) == 0
+    out = capsys.readouterr().out
+    assert "nominal calibration" in out
+    summaries = json.loads((main(["results", str(db), "--json"]), capsys.readouterr().out)[1])["configs"]
+    order = sorted(summaries, key=lambda s: -s["nominal_calibration"]["acc_objects_pct"])
+    rows = [line.split()[0] for line in out.splitlines() if line[:16] in {s["config_id"] for s in summaries}]
+    assert rows == [s["config_id"] for s in order]

@@ -55,8 +55,20 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _rank_value(summary: dict, key: str) -> float | None:
+    """The summary's ``key``; for an accuracy with no pair of its own calibration, the nominal-calibration mean
+    (a sweep over scenes that ship none is still ranked, on the same footing for every configuration)."""
+    value = summary.get(key)
+    if value is None and key.startswith("acc_"):
+        value = (summary.get("nominal_calibration") or {}).get(key)
+    return value
+
+
 def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> None:
-    ranked = sorted(summaries, key=lambda s: -(s[args.sort] if s[args.sort] is not None else -1e9))
+    ranked = sorted(summaries, key=lambda s: -(v if (v := _rank_value(s, args.sort)) is not None else -1e9))
+    if any(s.get(args.sort) is None and _rank_value(s, args.sort) is not None for s in summaries):
+        print(f"note: {args.sort} ranks the means over pairs scored with a nominal calibration where a "
+              "configuration has no pair with its own (the table's '-')")
     shown = ranked[:args.top] if args.top else ranked
     print(f"{len(summaries)} configurations; ranked by {args.sort}"
           + (f", the best {len(shown)}" if len(shown) < len(ranked) else ""))
