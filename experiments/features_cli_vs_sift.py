@@ -120,16 +120,18 @@ def run_split(data_dir: Path, split: str, extra: list[str], limit: int | None) -
     return {"command": summary(command), "sift": summary(sift), "command_s": round(seconds, 2), "pairs": per_pair}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> dict:
+    """Runs the comparison, prints the table, writes ``--json``; returns the report."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--split", action="append", choices=tuple(SPLITS), help="default: both")
     parser.add_argument("--args", default="", help="extra options for the command, one shell-quoted string")
     parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--limit", type=int, help="first N pairs of each split (a quick look)")
     parser.add_argument("--json", metavar="FILE")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     extra = shlex.split(args.args)
-    report = {"metadata": run_metadata(threads=int(os.environ.get("OMP_NUM_THREADS", "0") or 0),
+    command = shlex.join(["python", "experiments/features_cli_vs_sift.py", *(sys.argv[1:] if argv is None else argv)])
+    report = {"metadata": run_metadata(threads=int(os.environ.get("OMP_NUM_THREADS", "0") or 0), command=command,
                                        command_args=extra, tolerance_px=TOLERANCE_PX, sift_ratio=SIFT_RATIO),
               "results": {}}
     print(f"svs-depth features L R --no-segment --json {' '.join(extra)}   vs   cv2.SIFT_create() + ratio "
@@ -148,6 +150,7 @@ def main() -> None:
         from svs_torch.files import write_bytes_atomic
 
         write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())
+    return report
 
 
 if __name__ == "__main__":
