@@ -15,6 +15,7 @@ from svs_torch.cli import main
 from svs_torch.data import PairSource
 from svs_torch.data.datasets import pair_name
 from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.detector import MAX_KEYPOINTS
 from svs_torch.evaluation import PairEvaluation
 from svs_torch.evaluation.overrides import resolve_config
 from svs_torch.evaluation.report import csv_table, results_figure
@@ -36,7 +37,11 @@ def test_help_texts_take_their_values_from_the_configuration(capsys):
     text = " ".join(_help("features").split())
     default, paper = PipelineConfig(), PipelineConfig.paper()
     assert f"(default: {default.max_ratio}; --preset paper: {paper.max_ratio}, MATLAB's MaxRatio)" in text
-    assert f"strongest keypoints kept per image (default: {default.surf.max_keypoints})" in text
+    # features keeps every keypoint by default (its own default, issue 33 item 4); the pipeline's commands the cap.
+    assert (f"strongest keypoints kept per image (default: {MAX_KEYPOINTS}, every keypoint found; --preset paper: "
+            f"{paper.surf.max_keypoints})") in text
+    assert (f"strongest keypoints kept per image (default: {default.surf.max_keypoints})"
+            in " ".join(_help("estimate").split()))
     sweep_help = _help("sweep")
     assert "--plot" not in sweep_help and "--figure" in sweep_help
     assert "--plot" not in (REPO / "experiments" / "sweep_defaults.toml").read_text()

@@ -1,0 +1,108 @@
+"""``svs-depth features``: its JSON fields and own defaults, and its matches on a real pair against the ground truth
+and a plain OpenCV SIFT loop (issue 33, item 4; the full table: ``experiments/features_cli_vs_sift.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import cv2
+import numpy as np
+
+from svs_torch.cli import build_parser, main
+from svs_torch.cli.features import COMMAND_MAX_KEYPOINTS, COMMAND_UPSAMPLE_MAX_PIXELS, command_config
+from svs_torch.detector import MAX_KEYPOINTS
+
+from conftest import REPO_ROOT
+
+sys.path.insert(0, str(REPO_ROOT / "experiments"))
+
+import features_cli_vs_sift  # noqa: E402
+
+TEDDY_2003 = "middlebury_2003_quarter/Teddy"  # held-out split, 450 x 375
+
+
+def features_json(capsys, *argv: str) -> dict:
+    assert main(["features", *argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_command_defaults_are_its_own_and_options_win():
+    def namespace(*options: str) -> argparse.Namespace:
+        return build_parser().parse_args(["features", "left.png", "right.png", *options])
+
+    assert COMMAND_MAX_KEYPOINTS == MAX_KEYPOINTS  # "every keypoint": the detector's own limit
+    config = command_config(namespace(), (375, 450))
+    assert config.surf.max_keypoints == MAX_KEYPOINTS and config.surf.upsample
+    side = int(COMMAND_UPSAMPLE_MAX_PIXELS**0.5)
+    assert not command_config(namespace(), (side + 1, side + 1)).surf.upsample  # large frames: no x2 scale space
+    given = command_config(namespace("--max-keypoints", "300", "--no-upsample"), (375, 450))
+    assert given.surf.max_keypoints == 300 and not given.surf.upsample
+    paper = command_config(namespace("--preset", "paper"), (375, 450))
+    assert paper.surf.max_keypoints == 512 and not paper.surf.upsample and paper.max_ratio == 0.6
+
+
+def test_json_fields_and_settings(data_dir, capsys):
+    scene = data_dir / TEDDY_2003
+    report = features_json(capsys, str(scene / "imL.png"), str(scene / "imR.png"), "--no-segment")
+    assert set(report) == {"status", "left", "right", "matches", "matched_xy", "refined", "segmented", "settings",
+                           "time_s"}
+    assert report["status"] == "OK" and report["refined"] and not report["segmented"] and report["time_s"] > 0
+    assert report["settings"] == {"max_keypoints": MAX_KEYPOINTS, "metric_threshold": 100.0, "upsample": True,
+                                  "max_ratio": 0.8, "mutual": False, "laplacian_gate": True}
+    assert 512 < len(report["left"]) <= MAX_KEYPOINTS  # more than the pipeline's cap: no cap in practice
+    assert len(report["matched_xy"]) == len(report["matches"])
+    for (i, j), row in zip(report["matches"], report["matched_xy"]):
+        assert 0 <= i < len(report["left"]) and 0 <= j < len(report["right"]) and len(row) == 4
+    capped = features_json(capsys, str(scene / "imL.png"), str(scene / "imR.png"), "--no-segment",
+                           "--max-keypoints", "200", "--no-upsample")
+    assert capped["settings"]["max_keypoints"] == 200 and not capped["settings"]["upsample"]
+    assert len(capped["left"]) <= 200
+
+
+def ground_truth_precision(matched: np.ndarray, disparity: np.ndarray) -> tuple[float, int]:
+    """Share (and count) of matches within 1 px of the GT disparity in x and 1 px in y, among those with GT."""
+    rows = np.clip(np.round(matched[:, 1]).astype(int), 0, disparity.shape[0] - 1)
+    cols = np.clip(np.round(matched[:, 0]).astype(int), 0, disparity.shape[1] - 1)
+    truth = disparity[rows, cols]
+    has_gt = truth > 0
+    error_x, error_y = np.abs(matched[:, 0] - matched[:, 2] - truth), np.abs(matched[:, 1] - matched[:, 3])
+    correct = has_gt & (error_x <= 1) & (error_y <= 1)
+    return float(correct.sum() / has_gt.sum()), int(correct.sum())
+
+
+def test_precision_on_a_real_pair_at_least_sift(data_dir, capsys):
+    """Teddy (2003, native 450 x 375): GT read here with OpenCV (disp2.png / 4, 0 = unknown), not by svs_torch."""
+    scene = data_dir / TEDDY_2003
+    left, right = str(scene / "imL.png"), str(scene / "imR.png")
+    disparity = cv2.imread(str(scene / "disp2.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / 4
+    report = features_json(capsys, left, right, "--no-segment")
+    precision, correct = ground_truth_precision(np.asarray(report["matched_xy"], np.float64), disparity)
+    sift = cv2.SIFT_create()
+    kl, dl = sift.detectAndCompute(cv2.imread(left, cv2.IMREAD_GRAYSCALE), None)
+    kr, dr = sift.detectAndCompute(cv2.imread(right, cv2.IMREAD_GRAYSCALE), None)
+    sift_rows = [kl[m.queryIdx].pt + kr[m.trainIdx].pt for m, n in cv2.BFMatcher().knnMatch(dl, dr, k=2)
+                 if m.distance < 0.8 * n.distance]
+    sift_precision, sift_correct = ground_truth_precision(np.asarray(sift_rows, np.float64), disparity)
+    # Measured: 0.871 of 1756 (1530 correct) against SIFT's 0.802 of 353 (283).
+    assert precision >= sift_precision and precision > 0.8
+    assert correct >= sift_correct / 2 and correct > 1000
+    # The keypoints' own (unrefined) positions are less precise: score matched_xy.
+    keypoints = np.asarray([report["left"][i]["xy"] + report["right"][j]["xy"] for i, j in report["matches"]])
+    assert ground_truth_precision(keypoints, disparity)[0] < precision
+
+
+def test_experiment_on_one_scene(data_dir, tmp_path):
+    """features_cli_vs_sift.py on the first tuned scene (ArtL): both methods scored, the command ahead."""
+    out = tmp_path / "features.json"
+    report = features_cli_vs_sift.main(["--data", str(data_dir), "--split", "tuned", "--limit", "1",
+                                        "--json", str(out)])
+    result = report["results"]["tuned"]
+    assert [p["scene"] for p in result["pairs"]] == ["middlebury_eval3_Q/ArtL"]
+    command, sift = result["command"], result["sift"]
+    assert command["pairs"] == sift["pairs"] == 1 and 0 < sift["correct"] <= sift["with_gt"] <= sift["matches"]
+    # Measured: 0.776 of 541 (420 correct) against SIFT's 0.656 of 186 (122).
+    assert command["precision"] >= sift["precision"] and command["correct"] >= sift["correct"] / 2
+    saved = json.loads(out.read_text())
+    assert saved["metadata"]["command"].startswith("python experiments/features_cli_vs_sift.py")
