@@ -540,14 +540,28 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
 
 def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, config: PipelineConfig
                                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The hard pass's homographies, with gradients to the images through the refined matches, F's refit and
-    Hartley's rectification where the pair was rectified from F (:mod:`svs_torch.soft_geometry`); constants for
-    row-aligned and unrectified pairs."""
-    rect = result.rectification
-    from_F = (result.rectified & (rect.status == RectificationStatus.OK)
-              & (result.H_left == rect.H_left).flatten(1).all(1) & (result.H_right == rect.H_right).flatten(1).all(1))
-    dtype = batch.left.dtype
-    if not bool(from_F.any()):
+    """The hard pass's homographies, with gradients to the images through the refined matches and F's refit and
+    Hartley's rectification, or the row alignment's refit, where the pair was rectified by them
+    (:mod:`svs_torch.soft_geometry`); the identity of unrectified pairs is a constant."""
+    rect, dtype = result.rectification, batch.left.dtype
+
+    def same(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return (a == b.to(a.dtype)).flatten(1).all(1)
+
+    from_F = (result.rectified & (rect.status == RectificationStatus.OK) & same(result.H_left, rect.H_left)
+              & same(result.H_right, rect.H_right))
+    from_rows, row_inliers = torch.zeros_like(from_F), torch.zeros_like(result.points.valid)
+    if config.rectify == "auto" and config.row_alignment is not None and bool((result.rectified & ~from_F).any()):
+        with torch.no_grad():  # the hard pass's alignment again (deterministic: the same seeds), for its inliers
+            seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64, device=batch.left.device)
+            points = result.points
+            alignment = fit_row_alignment(points.left, points.right, points.valid, batch.image_hw,
+                                          config.row_alignment, seeds)
+        identity = torch.eye(3, dtype=result.H_left.dtype, device=result.H_left.device).expand_as(result.H_left)
+        from_rows = (result.rectified & ~from_F & alignment.valid & same(result.H_left, identity)
+                     & same(result.H_right, alignment.H_right))
+        row_inliers = alignment.inliers
+    if not bool((from_F | from_rows).any()):
         return result.H_left.to(dtype), result.H_right.to(dtype)
     left, right = batch.left, batch.right
     if config.features_on == "masked":  # the views the matches were refined on
@@ -563,8 +577,8 @@ def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, con
                                           result.matches)
         moved = points.valid & (points.right != unrefined.right).any(dim=-1)
     return geometry_straight_through(left, right, points.left, points.right, radius, moved,
-                                     result.fundamental.inliers, result.fundamental.F, from_F, result.H_left,
-                                     result.H_right, batch.image_hw, config.rectification)
+                                     result.fundamental.inliers, result.fundamental.F, from_F, row_inliers,
+                                     from_rows, result.H_left, result.H_right, batch.image_hw, config.rectification)
 
 
 def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,

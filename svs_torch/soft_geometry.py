@@ -13,9 +13,10 @@ rectified from F); this module recomputes the continuous chain from the images g
 2. **F** (:func:`refit_fundamental_straight_through`): the weighted normalised 8-point
    (:func:`~svs_torch.epipolar.fundamental_8point`) on RANSAC's inliers, straight-through onto RANSAC's F (the
    values are RANSAC's, the gradients the refit's).
-3. **Homographies**: :func:`~svs_torch.rectification.rectify_uncalibrated` of that F (its maths is smooth in F),
-   straight-through onto the hard homographies (:func:`geometry_straight_through`), only for pairs rectified
-   from F; row-aligned pairs and unrectified ones keep their constant homographies.
+3. **Homographies**: :func:`~svs_torch.rectification.rectify_uncalibrated` of that F (its maths is smooth in F)
+   for pairs rectified from F; for row-aligned pairs the right view's similarity refitted by least squares on the
+   alignment's inliers (:func:`~svs_torch.row_alignment.row_alignment_homography`); both straight-through onto
+   the hard homographies (:func:`geometry_straight_through`). Unrectified pairs keep the identity, a constant.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch
 from .epipolar import fundamental_8point
 from .matching import LK_GRID_HALF_WIDTH, _centre, _sample_patches
 from .rectification import RectificationConfig, rectify_uncalibrated
+from .row_alignment import row_alignment_homography
 
 __all__ = ["MIN_REFIT_INLIERS", "geometry_straight_through", "lk_points_straight_through", "lk_step",
            "refit_fundamental_straight_through", "straight_through"]
@@ -111,24 +113,34 @@ def refit_fundamental_straight_through(F_hard: torch.Tensor, points_left: torch.
 def geometry_straight_through(left: torch.Tensor, right: torch.Tensor, xy_left: torch.Tensor,
                               xy_right: torch.Tensor, radius: torch.Tensor, moved: torch.Tensor,
                               inliers: torch.Tensor, F_hard: torch.Tensor, from_F: torch.Tensor,
-                              H_left: torch.Tensor, H_right: torch.Tensor, image_hw: torch.Tensor,
+                              row_inliers: torch.Tensor, from_rows: torch.Tensor, H_left: torch.Tensor,
+                              H_right: torch.Tensor, image_hw: torch.Tensor,
                               config: RectificationConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """The hard homographies ``H_left``, ``H_right`` ``(B, 3, 3)``, with gradients to the images ``(B, 1, H, W)``
-    (those the matches were refined on) where ``from_F`` ``(B,)``: the pairs rectified from RANSAC's ``F_hard``
-    with its ``inliers`` ``(B, K)`` among the matched points ``xy_left``, ``xy_right`` ``(B, K, 2)`` (refinement
-    ``radius`` and ``moved`` as :func:`lk_points_straight_through` takes them). Elsewhere, and for pairs with too
-    few inliers to refit F, the homographies are constants. Differentiable w.r.t. both images."""
+    (those the matches were refined on) through the matched points ``xy_left``, ``xy_right`` ``(B, K, 2)``
+    (refinement ``radius`` and ``moved`` as :func:`lk_points_straight_through` takes them) where the pair was
+    rectified from RANSAC's ``F_hard`` with its ``inliers`` ``(B, K)`` (``from_F`` ``(B,)``: F refitted, then
+    Hartley's method), or row-aligned (``from_rows`` ``(B,)``: the similarity refitted on ``row_inliers``
+    ``(B, K)``, :func:`~svs_torch.row_alignment.row_alignment_homography`). Elsewhere, and for pairs with too few
+    inliers to refit, the homographies are constants. Differentiable w.r.t. both images."""
     dtype = left.dtype
-    use = from_F & (inliers.sum(dim=1) >= MIN_REFIT_INLIERS)
-    if not bool(use.any()):
-        return H_left.detach().to(dtype), H_right.detach().to(dtype)
-    index = use.nonzero().squeeze(1)
-    xy_right_soft = lk_points_straight_through(left[index], right[index], xy_left[index], xy_right[index],
-                                               radius[index], moved[index] & inliers[index])
-    xy_left_used = xy_left[index].detach().to(dtype)
-    F, _ = refit_fundamental_straight_through(F_hard[index], xy_left_used, xy_right_soft, inliers[index])
-    soft = rectify_uncalibrated(F, xy_left_used, xy_right_soft, inliers[index], image_hw[index], config)
+    use_F = from_F & (inliers.sum(dim=1) >= MIN_REFIT_INLIERS)
+    use_rows = from_rows & ~from_F & (row_inliers.sum(dim=1) >= MIN_REFIT_INLIERS)
     H_left_out, H_right_out = H_left.detach().to(dtype), H_right.detach().to(dtype)
-    H_left_out = H_left_out.index_put((index,), straight_through(H_left_out[index], soft.H_left))
-    H_right_out = H_right_out.index_put((index,), straight_through(H_right_out[index], soft.H_right))
+    index = (use_F | use_rows).nonzero().squeeze(1)
+    if index.numel() == 0:
+        return H_left_out, H_right_out
+    points = xy_right.detach().to(dtype).index_put((index,), lk_points_straight_through(
+        left[index], right[index], xy_left[index], xy_right[index], radius[index], moved[index]))
+    xy_left = xy_left.detach().to(dtype)
+    fitted = use_F.nonzero().squeeze(1)
+    if fitted.numel():
+        F, _ = refit_fundamental_straight_through(F_hard[fitted], xy_left[fitted], points[fitted], inliers[fitted])
+        soft = rectify_uncalibrated(F, xy_left[fitted], points[fitted], inliers[fitted], image_hw[fitted], config)
+        H_left_out = H_left_out.index_put((fitted,), straight_through(H_left_out[fitted], soft.H_left))
+        H_right_out = H_right_out.index_put((fitted,), straight_through(H_right_out[fitted], soft.H_right))
+    aligned = use_rows.nonzero().squeeze(1)
+    if aligned.numel():
+        soft = row_alignment_homography(xy_left[aligned], points[aligned], row_inliers[aligned], image_hw[aligned])
+        H_right_out = H_right_out.index_put((aligned,), straight_through(H_right_out[aligned], soft.to(dtype)))
     return H_left_out, H_right_out

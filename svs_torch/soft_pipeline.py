@@ -24,7 +24,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
 4. **Geometry**: pairs rectified from F are warped by the hard homographies carrying gradients to both images
    (:mod:`~svs_torch.soft_geometry`: the LK-refined matches, F refitted by the weighted 8-point on RANSAC's
    inliers, Hartley's rectification of it, each straight-through onto the hard values); the warp is
-   differentiable in the images and the homographies. Row-aligned pairs' homographies are constants.
+   differentiable in the images and the homographies. Row-aligned pairs' similarities are refitted on the
+   alignment's inliers the same way.
 """
 
 from __future__ import annotations

@@ -142,8 +142,8 @@ def test_geometry_gives_the_hard_homographies_and_gradients_only_where_rectified
     assert bool((hard.status == 0).all())
     from_F = torch.tensor([True, False])
     H_left, H_right = geometry_straight_through(*images, xy_left, xy_right, torch.full((b, k), 4.0, dtype=F64),
-                                                inliers, inliers, F_hard, from_F, hard.H_left, hard.H_right,
-                                                torch.tensor([[32, 32]] * b), config)
+                                                inliers, inliers, F_hard, from_F, inliers, torch.zeros_like(from_F),
+                                                hard.H_left, hard.H_right, torch.tensor([[32, 32]] * b), config)
     assert torch.equal(H_left.detach(), hard.H_left) and torch.equal(H_right.detach(), hard.H_right)
     grads = torch.autograd.grad((H_left * torch.randn(b, 3, 3, generator=gen, dtype=F64)).sum()
                                 + (H_right * torch.randn(b, 3, 3, generator=gen, dtype=F64)).sum(), images)
