@@ -30,7 +30,10 @@ product's own entry, ``estimate_obstacle_depth(..., differentiable=True)`` with 
 whole pipeline (the network's hard segmentation, SURF, RANSAC, the dense stage) with images that require grad,
 and the loss is the mean relative error of every ranged object's depth against the median ground-truth depth over
 its kept region (``svs_torch.evaluation.object_truth``, the accuracy's own truth), so training computes what
-deployment computes. The printed depth loss per step is that of the weights before the step.
+deployment computes, plus ``--region-weight`` (default 1) × the same error of the probability-weighted mean depth
+over the whole kept region (its gradient reaches every pixel of the region, not only the median's band). With
+``--batch-size`` at least the number of pairs every step sees every pair, and the weights written are those of the
+lowest loss. The printed depth loss per step is that of the weights before the step.
 
     python experiments/train_segmentation.py --through-pipeline [--pairs FILE] [--steps 20] [--out FILE]
 """
@@ -57,8 +60,8 @@ from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stere
                             resize_stereo_batch)
 from svs_torch.evaluation import object_truth, with_nominal_calibration
 from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net,
-                                            obstacle_truth, save_obstacle_net, segment_learned, soft_object_depths,
-                                            stereo_features)
+                                            obstacle_truth, predict_obstacle_logits, save_obstacle_net,
+                                            segment_learned, soft_object_depths, stereo_features)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation import SegmentationConfig
 from svs_torch.types import StereoBatch
@@ -238,9 +241,29 @@ def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Ge
     return history
 
 
-def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet) -> tuple[torch.Tensor, int]:
+def region_mean_depth_m(batch: StereoBatch, result, net: ObstacleNet) -> torch.Tensor:
+    """``(B, N)``: each ranged object's mean depth over its whole kept region, every measured pixel weighted by
+    the network's obstacle probability (from the hard dense map, in the pairs measured on their raw rows; 0
+    elsewhere). Differentiable w.r.t. the network's weights: the gradient reaches every pixel of the region, where
+    the median's reaches only its band, so the probabilities, which the hard masks threshold, learn which of
+    the region's pixels belong to the object."""
+    probability = torch.sigmoid(predict_obstacle_logits(net, batch.left, batch.right)).flatten(1)  # (B, P)
+    dense = result.dense
+    disparity = dense.disparity_px.flatten(1) + batch.doffs_px.view(-1, 1)
+    measured = dense.valid.flatten(1) & (disparity > 0) & ~result.rectified.view(-1, 1)
+    depth = torch.where(measured, (batch.focal_px * batch.baseline_m).view(-1, 1) / torch.where(
+        measured, disparity, 1.0), 0.0)
+    slots = result.depth.objects.label  # (B, N)
+    member = (result.segmentation.left.labels.flatten(1).unsqueeze(1) == slots.unsqueeze(-1)) & measured.unsqueeze(1)
+    weights = member * probability.unsqueeze(1)  # (B, N, P)
+    return (weights * depth.unsqueeze(1)).sum(-1) / weights.sum(-1).clamp_min(1e-6)
+
+
+def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet, region_weight: float = 0.0
+                        ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Mean relative error of every ranged object's differentiable depth against its region's median GT depth,
-    through ``estimate_obstacle_depth(..., differentiable=True)``; and the number of objects it averages."""
+    through ``estimate_obstacle_depth(..., differentiable=True)``; the number of objects it averages; and the
+    loss to descend: that error plus ``region_weight`` × the same error of :func:`region_mean_depth_m`."""
     images = dataclasses.replace(batch, left=batch.left.clone().requires_grad_(),
                                  right=batch.right.clone().requires_grad_())
     config = PipelineConfig(differentiable=True, segmentation=SegmentationConfig(segmenter="learned"))
@@ -249,24 +272,44 @@ def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet) -> tuple[torch.Ten
     objects = result.depth.objects
     both = objects.valid & truth.valid
     true_m = torch.where(both, truth.depth_m.to(objects.depth_median_m.dtype), 1.0)
-    error = torch.where(both, (objects.depth_median_m - true_m).abs() / true_m, 0.0)
-    return error.sum() / both.sum().clamp(min=1), int(both.sum())
+    count = both.sum().clamp(min=1)
+    error = torch.where(both, (objects.depth_median_m - true_m).abs() / true_m, 0.0).sum() / count
+    total = error
+    if region_weight > 0 and torch.is_grad_enabled():
+        mean_m = region_mean_depth_m(batch, result, net)
+        total = total + region_weight * torch.where(both, (mean_m - true_m).abs() / true_m, 0.0).sum() / count
+    return error, int(both.sum()), total
 
 
 def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, config: TrainConfig,
-                               generator: torch.Generator) -> list[dict]:
-    """``config.steps`` AdamW steps on batches of ``config.batch_size`` pairs drawn from ``pairs``, the loss of
-    :func:`pipeline_depth_loss`. The network stays in eval mode (its hard segmentation is deployment's)."""
+                               generator: torch.Generator, region_weight: float = 0.0) -> list[dict]:
+    """``config.steps`` AdamW steps on batches of ``config.batch_size`` pairs drawn from ``pairs`` (every pair, a
+    full batch, when it holds them all: the loss is then the same quantity at every step), the loss of
+    :func:`pipeline_depth_loss` (with ``region_weight``). The network stays in eval mode (its hard segmentation is
+    deployment's).
+
+    The hard masks move with the weights and the gradient does not see them, so a step can raise the loss: with a
+    full batch the weights left in ``net`` are those of the lowest loss seen (the loss printed at a step is that
+    of the weights before it; one more forward scores the last step's weights)."""
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
-    history = []
-    for step in range(config.steps):
+    full_batch = config.batch_size >= len(pairs)
+    history, best = [], (math.inf, None, -1)
+    for step in range(config.steps + full_batch):
         index = torch.randperm(len(pairs), generator=generator)[:config.batch_size].tolist()
-        loss, count = pipeline_depth_loss(collate_stereo_batches([pairs[i] for i in index]), net)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        loss, count, total = pipeline_depth_loss(collate_stereo_batches([pairs[i] for i in index]), net,
+                                                 region_weight)
         history.append({"step": step, "depth_loss": loss.item(), "num_objects": count})
         print(f"step {step:3d}  depth loss {loss.item():.5f}  ({count} objects)", flush=True)
+        if full_batch and loss.item() < best[0]:
+            best = (loss.item(), {k: v.detach().clone() for k, v in net.state_dict().items()}, step)
+        if step == config.steps:  # the extra forward of a full batch: the last step's weights scored
+            break
+        optimizer.zero_grad()
+        total.backward()
+        optimizer.step()
+    if best[1] is not None:
+        net.load_state_dict(best[1])
+        print(f"kept the weights before step {best[2]} (depth loss {best[0]:.5f})", flush=True)
     return history
 
 
@@ -281,10 +324,11 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path
     pairs = [resize_stereo_batch(pair, (width, height)) for pair in pairs]
     net = load_obstacle_net(args.init)
     started = time.perf_counter()
-    history = fine_tune_through_pipeline(pairs, net, config, generator)
+    history = fine_tune_through_pipeline(pairs, net, config, generator, args.region_weight)
     with torch.no_grad():
-        final, count = pipeline_depth_loss(collate_stereo_batches(pairs), net)
+        final, count, _ = pipeline_depth_loss(collate_stereo_batches(pairs), net)
     metadata = {"train": dataclasses.asdict(config), "mode": "through-pipeline", "init": args.init,
+                "region_weight": args.region_weight,
                 "pairs": [p.names[0] if p.names else "" for p in pairs], "size": args.size, "history": history,
                 "final_depth_loss_all_pairs": final.item(), "train_time_s": round(time.perf_counter() - started, 1),
                 "run": run_metadata(args.threads)}
@@ -309,6 +353,8 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--init", default="learned", help="--through-pipeline: starting weights, 'learned' or "
                         "'learned:PATH'")
     parser.add_argument("--size", default="320x240", help="--through-pipeline: pairs resized to WxH")
+    parser.add_argument("--region-weight", type=float, default=1.0, help="--through-pipeline: weight of the "
+                        "probability-weighted mean depth over each whole kept region in the loss (0: the median's)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = TrainConfig(**{field.name: getattr(args, field.name) for field in dataclasses.fields(TrainConfig)})

@@ -34,6 +34,7 @@ from .rectification import (Rectification, RectificationConfig, RectificationSta
 from .segmentation import SegmentationConfig, segment_stereo
 from .pair_trees import put_pairs, take_pairs
 from .size_groups import run_by_size
+from .soft_geometry import geometry_straight_through
 from .soft_pipeline import differentiable_depth
 from .types import FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -222,7 +223,8 @@ class PipelineResult:
         hard_depth: under ``PipelineConfig.differentiable``, the hard pipeline's :class:`DepthResult` (``depth``
             is then the differentiable one); None otherwise.
         H_left, H_right: ``(B, 3, 3)``, the homographies the disparities were measured after: F's rectification
-            or the right view's row alignment where ``rectified``, the identity elsewhere.
+            or the right view's row alignment where ``rectified``, the identity elsewhere. Under
+            ``differentiable``, F's rectifications carry gradients to both images (``svs_torch.soft_geometry``).
         smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
             smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
     """
@@ -528,11 +530,55 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
         blurred = _smoothed(batch, config.noisy_retry_sigma_px, config.dense)
         pick = result.smoothed.view(-1, 1, 1, 1)
         left, right = torch.where(pick, blurred.left, left), torch.where(pick, blurred.right, right)
+    H_left, H_right = _differentiable_homographies(batch, result, config)
     depth = differentiable_depth(
-        left, right, result.segmentation.left.labels, logits, result.rectified, result.H_left, result.H_right,
+        left, right, result.segmentation.left.labels, logits, result.rectified, H_left, H_right,
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
         config.depth.object_percentiles, config.dense)
-    return dataclasses.replace(result, depth=depth, hard_depth=result.depth)
+    return dataclasses.replace(result, depth=depth, hard_depth=result.depth, H_left=H_left, H_right=H_right)
+
+
+def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, config: PipelineConfig
+                                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hard pass's homographies, with gradients to the images through the refined matches and F's refit and
+    Hartley's rectification, or the row alignment's refit, where the pair was rectified by them
+    (:mod:`svs_torch.soft_geometry`); the identity of unrectified pairs is a constant."""
+    rect, dtype = result.rectification, batch.left.dtype
+
+    def same(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return (a == b.to(a.dtype)).flatten(1).all(1)
+
+    from_F = (result.rectified & (rect.status == RectificationStatus.OK) & same(result.H_left, rect.H_left)
+              & same(result.H_right, rect.H_right))
+    from_rows, row_inliers = torch.zeros_like(from_F), torch.zeros_like(result.points.valid)
+    if config.rectify == "auto" and config.row_alignment is not None and bool((result.rectified & ~from_F).any()):
+        with torch.no_grad():  # the hard pass's alignment again (deterministic: the same seeds), for its inliers
+            seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64, device=batch.left.device)
+            points = result.points
+            alignment = fit_row_alignment(points.left, points.right, points.valid, batch.image_hw,
+                                          config.row_alignment, seeds)
+        identity = torch.eye(3, dtype=result.H_left.dtype, device=result.H_left.device).expand_as(result.H_left)
+        from_rows = (result.rectified & ~from_F & alignment.valid & same(result.H_left, identity)
+                     & same(result.H_right, alignment.H_right))
+        row_inliers = alignment.inliers
+    if not bool((from_F | from_rows).any()):
+        return result.H_left.to(dtype), result.H_right.to(dtype)
+    left, right = batch.left, batch.right
+    if config.features_on == "masked":  # the views the matches were refined on
+        left = left * result.segmentation.left.kept_mask.to(dtype)
+        right = right * result.segmentation.right.kept_mask.to(dtype)
+    points, refine = result.points, config.refine_matches
+    scale = result.features_left.keypoints.scale
+    if refine is None:
+        radius, moved = torch.ones_like(scale), torch.zeros_like(points.valid)
+    else:
+        radius = (refine.radius_scales * scale).clamp(refine.min_radius_px, refine.max_radius_px)
+        unrefined = gather_matched_points(result.features_left.keypoints.xy, result.features_right.keypoints.xy,
+                                          result.matches)
+        moved = points.valid & (points.right != unrefined.right).any(dim=-1)
+    return geometry_straight_through(left, right, points.left, points.right, radius, moved,
+                                     result.fundamental.inliers, result.fundamental.F, from_F, row_inliers,
+                                     from_rows, result.H_left, result.H_right, batch.image_hw, config.rectification)
 
 
 def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,

@@ -29,7 +29,7 @@ import torch
 from .checks import InputError, check_dtype, check_shape
 from .ransac import draw_minimal_samples
 
-__all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment"]
+__all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment", "row_alignment_homography"]
 
 _SAMPLE = 3  # matches per minimal sample: one row equation each, three unknowns (a, b, t_y)
 
@@ -201,3 +201,13 @@ def _accept(params: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor, ra
     return RowAlignment(H_right=torch.where(ok[:, None, None], homography, identity), inliers=inliers & ok[:, None],
                         num_inliers=torch.where(ok, count, 0),
                         correction_px=torch.where(ok, moved.abs().amax(1), torch.zeros_like(a)), valid=ok)
+
+
+def row_alignment_homography(points_left: torch.Tensor, points_right: torch.Tensor, inliers: torch.Tensor,
+                             image_hw: torch.Tensor) -> torch.Tensor:
+    """The right view's similarity ``(B, 3, 3)`` refitted by least squares to the matches ``inliers`` ``(B, K)``
+    bool (:attr:`RowAlignment.inliers`) of points ``(B, K, 2)`` pixels, for pairs of ``image_hw`` ``(B, 2)``: the
+    last step of :func:`fit_row_alignment` given its inliers, in float64. Differentiable w.r.t. the points (the
+    differentiable pass of the pipeline takes its gradient, issue 31)."""
+    left, right = points_left.to(torch.float64), points_right.to(torch.float64)
+    return _homography(_refit(left, right, inliers), image_hw)

@@ -21,8 +21,11 @@ continuous quantities from the images (and the segmenter's logits) given those d
    learned): every median within 0.41 % of the hard one; the 10th / 90th percentiles, over a long tail of far
    pixels, within 0.5 % for 95–100 % / 87–95 % of the objects.
 
-Not softened: the geometry. Rectified pairs are warped by the hard homographies (as constants; the warp itself
-is differentiable in the images); F and the homographies carry no gradient.
+4. **Geometry**: pairs rectified from F are warped by the hard homographies carrying gradients to both images
+   (:mod:`~svs_torch.soft_geometry`: the LK-refined matches, F refitted by the weighted 8-point on RANSAC's
+   inliers, Hartley's rectification of it, each straight-through onto the hard values); the warp is
+   differentiable in the images and the homographies. Row-aligned pairs' similarities are refitted on the
+   alignment's inliers the same way.
 """
 
 from __future__ import annotations
@@ -255,15 +258,16 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
     """:func:`soft_dense_depth` of a pipeline's batch: images ``(B, 1, H, W)``, the left ``labels`` and obstacle
     ``logits`` (None: every kept pixel weighs 1, the Otsu segmenter) in input pixels, warped by the hard homographies
     ``(B, 3, 3)`` where ``rectified`` ``(B,)`` (the hard stage's choice), as the dense stage warps them.
-    Differentiable w.r.t. both images, the logits and the calibration; the homographies are constants."""
+    Differentiable w.r.t. both images, the logits, the calibration and the homographies."""
     weights = torch.ones_like(left) if logits is None else torch.sigmoid(logits).to(left.dtype)
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
-        H_left, H_right = H_left.detach().to(left.dtype), H_right.detach().to(left.dtype)
+        H_left, H_right = H_left.to(left.dtype), H_right.to(left.dtype)
         left = torch.where(pick, warp_rectified(left, H_left), left)
         right = torch.where(pick, warp_rectified(right, H_right), right)
         weights = torch.where(pick, warp_rectified(weights, H_left), weights)
-        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
+        warped = warp_rectified(labels.to(torch.float64), H_left.detach().to(torch.float64), mode="nearest"
+                                ).round().long()
         labels = torch.where(pick, warped, labels)
     return soft_dense_depth(left, right, labels, weights, dense, hard, focal_px, baseline_m, doffs_px, image_hw,
                             percentiles, config)

@@ -488,3 +488,19 @@ def test_count_agreeing_inliers_by_hand():
     assert count_agreeing_inliers(dense, points, disparities, inliers, behind).tolist() == [0, 0]
     with pytest.raises(InputError, match="inliers"):
         count_agreeing_inliers(dense, points, disparities, inliers[:, :3])
+
+
+def test_box_sum_with_gradients_keeps_the_values_and_its_adjoint_passes_gradcheck(generator):
+    """The recorded box sum (issue 31: an autograd Function, its backward the adjoint box sum) gives the untracked
+    one's values bit for bit, and a pooling-based sum's gradient."""
+    from svs_torch.dense import _box_sum
+
+    volume = torch.randn(2, 3, 11, 13, generator=generator, dtype=torch.float64)
+    tracked = volume.clone().requires_grad_()
+    assert torch.equal(_box_sum(tracked, 5).detach(), _box_sum(volume, 5))
+    assert torch.autograd.gradcheck(lambda v: _box_sum(v, 3), (tracked,))
+    weights = torch.randn(2, 3, 7, 9, generator=generator, dtype=torch.float64)
+    (ours,) = torch.autograd.grad((_box_sum(tracked, 5) * weights).sum(), tracked)
+    (pooled,) = torch.autograd.grad((torch.nn.functional.avg_pool2d(tracked, 5, stride=1) * 25 * weights).sum(),
+                                    tracked)
+    assert torch.allclose(ours, pooled, atol=1e-12)

@@ -178,7 +178,17 @@ def test_rectified_pair_keeps_the_hard_values_and_passes_gradients(data_dir):
     objects, hard = result.depth.objects, result.hard_depth.objects
     relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
     assert float(relative[objects.valid].max()) < 0.005
-    objects.depth_median_m[objects.valid].sum().backward()
+    # The homographies are the hard ones, with a graph to both images (matches, F's refit, Hartley's method).
+    assert result.H_left.grad_fn is not None and result.H_right.grad_fn is not None
+    hard = estimate_obstacle_depth(_teddy(data_dir, (240, 180)), PipelineConfig(rectify="required"))
+    assert torch.equal(result.H_left.detach(), hard.H_left) and torch.equal(result.H_right.detach(), hard.H_right)
+    loss = objects.depth_median_m[objects.valid].sum()
+    through = torch.autograd.grad(loss, (result.H_left, result.H_right), retain_graph=True)
+    assert all(bool(torch.isfinite(g).all()) and float(g.abs().max()) > 0 for g in through)
+    reaching = torch.autograd.grad((result.H_left * through[0]).sum() + (result.H_right * through[1]).sum(),
+                                   (batch.left, batch.right), retain_graph=True)
+    assert all(bool(torch.isfinite(g).all()) and int((g != 0).sum()) > 100 for g in reaching)
+    loss.backward()
     assert int((batch.left.grad != 0).sum()) > 100 and int((batch.right.grad != 0).sum()) > 100
 
 

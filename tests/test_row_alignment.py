@@ -14,7 +14,7 @@ from conftest import REPO_ROOT
 from svs_torch import InputError
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.row_alignment import RowAlignmentConfig, fit_row_alignment
+from svs_torch.row_alignment import RowAlignmentConfig, fit_row_alignment, row_alignment_homography
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 
@@ -144,5 +144,23 @@ def test_differentiable_pass_follows_the_aligned_and_smoothed_pairs(teddy, data_
         assert bool(objects.valid.any())
         relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
         assert float(relative[objects.valid].max()) < 0.005, view[0]
-        objects.depth_median_m[objects.valid].sum().backward()
+        loss = objects.depth_median_m[objects.valid].sum()
+        if view[0] == "roll":  # the row alignment's homography carries a graph to the images (issue 31)
+            through = torch.autograd.grad(loss, result.H_right, retain_graph=True)[0]
+            assert float(through[0].abs().max()) > 0
+            reaching = torch.autograd.grad((result.H_right * through).sum(), stacked.right, retain_graph=True)[0]
+            assert int((reaching != 0).sum()) > 100 and bool(torch.isfinite(reaching).all())
+        loss.backward()
         assert int((stacked.left.grad != 0).sum()) > 100 and int((stacked.right.grad != 0).sum()) > 100
+
+
+def test_row_alignment_homography_is_the_fits_refit_and_differentiable(generator):
+    """Given the fit's inliers, the least-squares refit reproduces its homography (one more refit moves it by
+    round-off only, the inliers being exact), and its gradient w.r.t. the points passes gradcheck."""
+    left, right, image_hw = _misaligned_points(real_rig.Misalignment(roll_deg=2), outliers=15, generator=generator)
+    alignment = fit_row_alignment(left, right, torch.ones(left.shape[:2], dtype=torch.bool), image_hw)
+    refit = row_alignment_homography(left, right, alignment.inliers, image_hw)
+    assert torch.allclose(refit, alignment.H_right, atol=1e-6)
+    few = alignment.inliers & (torch.arange(left.shape[1]) < 30)
+    assert torch.autograd.gradcheck(lambda r: row_alignment_homography(left, r, few, image_hw),
+                                    (right.clone().requires_grad_(),), eps=1e-6, atol=1e-6)
