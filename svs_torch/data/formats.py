@@ -158,6 +158,11 @@ def read_scaled_disparity(path: str | Path, scale: float, name: str = "path") ->
         raise InputError(f"{name}: expected a 1-channel disparity image, got {array.shape[2]} channels: {path}")
     if array.dtype not in _FULL_SCALE:
         raise InputError(f"{name}: expected a uint8 or uint16 disparity image, got {array.dtype}: {path}")
+    return _scaled_disparity(array, scale)
+
+
+def _scaled_disparity(array: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Disparity ``value / scale`` (0 where the value is 0, unknown) in float32, and its validity."""
     valid = array > 0
     disparity = np.where(valid, array.astype(np.float32) / np.float32(scale), np.float32(0.0))
     return disparity.astype(np.float32), valid
@@ -209,5 +214,4 @@ def read_kitti_disparity(path: str | Path, name: str = "path") -> tuple[np.ndarr
     if array.ndim != 2:
         raise InputError(f"{name}: expected a 1-channel KITTI disparity PNG, got {array.shape[2]} channels: "
                          f"{display_path(path)}")
-    valid = array > 0
-    return (array.astype(np.float32) / np.float32(KITTI_DISPARITY_SCALE)).astype(np.float32), valid
+    return _scaled_disparity(array, KITTI_DISPARITY_SCALE)
