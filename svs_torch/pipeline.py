@@ -227,6 +227,9 @@ class PipelineResult:
             ``differentiable``, F's rectifications carry gradients to both images (``svs_torch.soft_geometry``).
         smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
             smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
+        row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
+            rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
+            (where ``row_aligned``; all False without a row alignment).
     """
 
     status: torch.Tensor
@@ -251,6 +254,8 @@ class PipelineResult:
     H_left: torch.Tensor | None = None
     H_right: torch.Tensor | None = None
     smoothed: torch.Tensor | None = None
+    row_aligned: torch.Tensor | None = None
+    row_alignment_inliers: torch.Tensor | None = None
 
 
 def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
@@ -330,10 +335,11 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
 
 def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResult, rectification: Rectification,
                              image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig
-                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(B,)`` bool rectified, and the ``(B, 3, 3)`` left and right homographies the disparities are measured
-    after (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds
-    one that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`."""
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(B,)`` bool rectified, the ``(B, 3, 3)`` left and right homographies the disparities are measured after
+    (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds one
+    that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`; and which pairs
+    the row alignment rectified ``(B,)`` and its inliers ``(B, K)`` (the differentiable pass refits it on them)."""
     rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
     identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
                          ).expand_as(rectification.H_left)
@@ -341,13 +347,13 @@ def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResu
     H_left = torch.where(pick, rectification.H_left, identity)
     H_right = torch.where(pick, rectification.H_right, identity)
     if config.rectify != "auto" or config.row_alignment is None:
-        return rectified, H_left, H_right
+        return rectified, H_left, H_right, torch.zeros_like(rectified), torch.zeros_like(points.valid)
     # The similarity is fitted to every match, not F's inliers: F of a few planar obstacles may be loose.
     alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds)
     aligned = alignment.valid & (alignment.correction_px > config.row_alignment.min_correction_px)
     pick = aligned.view(-1, 1, 1)
     return (rectified | aligned, torch.where(pick, identity, H_left),
-            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right))
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers)
 
 
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
@@ -543,24 +549,10 @@ def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, con
     """The hard pass's homographies, with gradients to the images through the refined matches and F's refit and
     Hartley's rectification, or the row alignment's refit, where the pair was rectified by them
     (:mod:`svs_torch.soft_geometry`); the identity of unrectified pairs is a constant."""
-    rect, dtype = result.rectification, batch.left.dtype
-
-    def same(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return (a == b.to(a.dtype)).flatten(1).all(1)
-
-    from_F = (result.rectified & (rect.status == RectificationStatus.OK) & same(result.H_left, rect.H_left)
-              & same(result.H_right, rect.H_right))
-    from_rows, row_inliers = torch.zeros_like(from_F), torch.zeros_like(result.points.valid)
-    if config.rectify == "auto" and config.row_alignment is not None and bool((result.rectified & ~from_F).any()):
-        with torch.no_grad():  # the hard pass's alignment again (deterministic: the same seeds), for its inliers
-            seeds = torch.full((batch.batch_size,), config.seed, dtype=torch.int64, device=batch.left.device)
-            points = result.points
-            alignment = fit_row_alignment(points.left, points.right, points.valid, batch.image_hw,
-                                          config.row_alignment, seeds)
-        identity = torch.eye(3, dtype=result.H_left.dtype, device=result.H_left.device).expand_as(result.H_left)
-        from_rows = (result.rectified & ~from_F & alignment.valid & same(result.H_left, identity)
-                     & same(result.H_right, alignment.H_right))
-        row_inliers = alignment.inliers
+    dtype = batch.left.dtype
+    # Recorded by the hard pass (_rectifying_homographies): which pairs each homography source rectified.
+    from_rows, row_inliers = result.row_aligned, result.row_alignment_inliers
+    from_F = result.rectified & ~from_rows
     if not bool((from_F | from_rows).any()):
         return result.H_left.to(dtype), result.H_right.to(dtype)
     left, right = batch.left, batch.right
@@ -612,8 +604,8 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     lap("ransac")
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)
-    rectified, H_left, H_right = _rectifying_homographies(points, fundamental, rectification, batch.image_hw,
-                                                          seeds, config)
+    rectified, H_left, H_right, row_aligned, row_inliers = _rectifying_homographies(
+        points, fundamental, rectification, batch.image_hw, seeds, config)
     lap("rectification")
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
@@ -635,4 +627,5 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
         num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
-        verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed)
+        verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed,
+        row_aligned=row_aligned, row_alignment_inliers=row_inliers)
