@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch.cli.progress import Progress
+from svs_torch.data import list_shared_pairs
 from svs_torch.evaluation import accuracy_pct
 from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth,
                                             segment_stereo_learned, stereo_features)
@@ -48,7 +49,7 @@ from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
-    """The reference without learning: the truth's own rule applied to the network's input disparity."""
+    """The reference without learning: the truth's own rule applied to the old network's input disparity."""
     _, disparity = stereo_features(batch.left, batch.right, net_config)
     disparity = F.interpolate(disparity, size=batch.size_hw, mode="bilinear", align_corners=False)
     estimated = dataclasses.replace(batch, disparity_px=disparity, disparity_valid=torch.ones_like(disparity,
@@ -56,15 +57,58 @@ def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
     return obstacle_truth(estimated).kept_mask
 
 
-def nearest_accuracy(batch, config: PipelineConfig, real_m: float) -> tuple[float, float | None, str]:
+def sgbm_rival(batch) -> tuple[torch.Tensor, float | None]:
+    """The classical stereo-aware rival: the truth's own procedure (Otsu of the disparity, 5×5 opening, two
+    largest regions) on OpenCV StereoSGBM's disparity (experiments/paper_table1.py's settings); its nearest
+    obstacle is the smaller median SGBM depth of its two regions."""
+    import cv2
+    import numpy as np
+
+    def gray(image):
+        return (image[0, 0].clamp(0, 1) * 255).round().byte().numpy()
+
+    width = batch.size_hw[1]
+    num_disparities = 16 * int(np.ceil(0.25 * width / 16))
+    matcher = cv2.StereoSGBM_create(0, num_disparities, 5, P1=8 * 25, P2=32 * 25, disp12MaxDiff=1,
+                                    uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
+    disparity = torch.from_numpy(matcher.compute(gray(batch.left), gray(batch.right)).astype(np.float32) / 16)
+    disparity = disparity.view(1, 1, *disparity.shape)
+    valid = disparity > 0
+    truth = obstacle_truth(dataclasses.replace(batch, disparity_px=disparity, disparity_valid=valid))
+    depths = []
+    for label in truth.kept_labels[0].tolist():
+        region = (truth.labels == label) & valid
+        if label > 0 and bool(region.any()):
+            d = float(disparity[region].median())
+            depths.append(float(batch.focal_px[0] * batch.baseline_m[0]) / (d + float(batch.doffs_px[0])))
+    return truth.kept_mask, min(depths) if depths else None
+
+
+def nearest_accuracy(batch, config: PipelineConfig, real_m: float) -> tuple[float, float | None, str, torch.Tensor]:
     result = estimate_obstacle_depth(batch, config)
     status = PipelineStatus(int(result.status[0])).name
     nearest = result.depth.nearest
     estimate = float(nearest.depth_m[0]) if status == "OK" and bool(nearest.valid[0]) else None
-    return accuracy_pct(real_m, estimate), estimate, status
+    return accuracy_pct(real_m, estimate), estimate, status, result.segmentation.left.kept_mask
 
 
-def evaluate_scene(path: Path, size: str, weights: str, net) -> dict | None:
+def method_configs(args) -> dict[str, PipelineConfig | str]:
+    """The compared segmenters: each a whole-pipeline configuration (or the SGBM rival)."""
+    default = PipelineConfig()
+    methods = {"default": default,
+               "otsu": PipelineConfig.paper() if args.otsu_preset == "paper" else dataclasses.replace(
+                   default, segmentation=SegmentationConfig()),
+               "learned": dataclasses.replace(default, segmentation=SegmentationConfig(segmenter="learned:"
+                                                                                         + args.weights)),
+               "sgbm": "sgbm"}
+    for spec in args.nearness or []:
+        name, _, path = spec.partition("=")
+        methods[name] = dataclasses.replace(default, segmentation=dataclasses.replace(
+            default.segmentation, segmenter="nearness:" + path))
+    return {name: methods[name] for name in args.methods.split(",")}
+
+
+def evaluate_scene(path: Path, size: str, methods: dict, old_net) -> dict | None:
     batch = resample(load_scene(path), size)
     truth = obstacle_truth(batch)
     if not bool(truth.nearest_valid[0]):
@@ -72,54 +116,67 @@ def evaluate_scene(path: Path, size: str, weights: str, net) -> dict | None:
     real = float(truth.nearest_m[0])
     row = {"scene": batch.names[0] if batch.names else path.name, "size": size, "truth_nearest_m": real,
            "truth_area_share": float(truth.kept_mask.float().mean())}
-    learned_config = SegmentationConfig(segmenter="learned:" + weights)
-    for name, seg in (("otsu", segment_stereo(batch)), ("learned", segment_stereo_learned(batch, learned_config, net))):
-        row[f"iou_{name}"] = float(mask_iou(seg.left.kept_mask, truth.kept_mask)[0])
-    row["iou_disparity_otsu"] = float(mask_iou(disparity_otsu_mask(batch, net.config), truth.kept_mask)[0])
-    for name, seg_config in (("otsu", SegmentationConfig()), ("learned", learned_config)):
-        acc, estimate, status = nearest_accuracy(batch, PipelineConfig(segmentation=seg_config), real)
-        row.update({f"acc_{name}": acc, f"nearest_{name}_m": estimate, f"status_{name}": status})
+    for name, config in methods.items():
+        if config == "sgbm":
+            mask, estimate = sgbm_rival(batch)
+            acc, status = accuracy_pct(real, estimate), "OK" if estimate is not None else "NO_DEPTH"
+        else:
+            acc, estimate, status, mask = nearest_accuracy(batch, config, real)
+        row.update({f"iou_{name}": float(mask_iou(mask, truth.kept_mask)[0]), f"acc_{name}": acc,
+                    f"nearest_{name}_m": estimate, f"status_{name}": status})
+    if old_net is not None:
+        row["iou_disparity_otsu"] = float(mask_iou(disparity_otsu_mask(batch, old_net.config), truth.kept_mask)[0])
     return row
 
 
-def markdown(rows: list[dict]) -> str:
+def markdown(rows: list[dict], names: list[str]) -> str:
     def number(value: float | None, digits: int) -> str:
         return "—" if value is None else f"{value:.{digits}f}"
 
-    lines = ["| scene | size | IoU Otsu | IoU learned | IoU disparity-Otsu (ref.) | truth nearest m | "
-             "Otsu nearest m | learned nearest m | Acc Otsu % | Acc learned % |", "|" + "---|" * 10]
+    lines = ["| scene | size | truth nearest m | " + " | ".join(f"IoU {n}" for n in names) + " | "
+             + " | ".join(f"nearest {n} m" for n in names) + " | " + " | ".join(f"Acc {n} %" for n in names) + " |",
+             "|" + "---|" * (3 + 3 * len(names))]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['size']} | {r['iou_otsu']:.3f} | {r['iou_learned']:.3f} | "
-                     f"{r['iou_disparity_otsu']:.3f} | {r['truth_nearest_m']:.3f} | {number(r['nearest_otsu_m'], 3)} | "
-                     f"{number(r['nearest_learned_m'], 3)} | {r['acc_otsu']:.1f} | {r['acc_learned']:.1f} |")
+        lines.append(f"| {r['scene']} | {r['size']} | {r['truth_nearest_m']:.3f} | "
+                     + " | ".join(f"{r[f'iou_{n}']:.3f}" for n in names) + " | "
+                     + " | ".join(number(r[f"nearest_{n}_m"], 3) for n in names) + " | "
+                     + " | ".join(f"{r[f'acc_{n}']:.1f}" for n in names) + " |")
     for size in sorted({r["size"] for r in rows}):
         group = [r for r in rows if r["size"] == size]
-        means = {key: statistics.mean(r[key] for r in group)
-                 for key in ("iou_otsu", "iou_learned", "iou_disparity_otsu", "acc_otsu", "acc_learned")}
-        lines.append(f"| **mean of {len(group)}** | {size} | **{means['iou_otsu']:.3f}** | "
-                     f"**{means['iou_learned']:.3f}** | {means['iou_disparity_otsu']:.3f} | | | | "
-                     f"**{means['acc_otsu']:.1f}** | **{means['acc_learned']:.1f}** |")
+        iou = [statistics.mean(r[f"iou_{n}"] for r in group) for n in names]
+        acc = [statistics.mean(r[f"acc_{n}"] for r in group) for n in names]
+        lines.append(f"| **mean of {len(group)}** | {size} | | " + " | ".join(f"**{v:.3f}**" for v in iou) + " | "
+                     + " | " * (len(names) - 1) + " | " + " | ".join(f"**{v:.1f}**" for v in acc) + " |")
     return "\n".join(lines)
 
 
-def wins(rows: list[dict]) -> str:
-    """One line per size: where the learned segmenter beats Otsu, and where it is worse."""
+def summary(rows: list[dict], names: list[str]) -> str:
+    """One line per size and method: mean IoU, mean nearest Acc, median Acc, scenes under 95 %."""
     lines = []
     for size in sorted({r["size"] for r in rows}):
         group = [r for r in rows if r["size"] == size]
-        iou = sum(r["iou_learned"] > r["iou_otsu"] for r in group)
-        acc = sum(r["acc_learned"] > r["acc_otsu"] for r in group)
-        worse = [r["scene"] for r in group if r["acc_learned"] < r["acc_otsu"] - 1.0]
-        lines.append(f"at {size}: learned beats Otsu on IoU in {iou} of {len(group)} scenes and on nearest Acc in "
-                     f"{acc}; nearest Acc more than 1 point worse on: {', '.join(worse) or 'none'}")
+        for n in names:
+            acc = [r[f"acc_{n}"] for r in group]
+            low = [r["scene"] for r in group if r[f"acc_{n}"] < 95]
+            lines.append(f"{size:>6} {n:>12}: IoU {statistics.mean(r[f'iou_{n}'] for r in group):.3f}, nearest Acc "
+                         f"mean {statistics.mean(acc):.1f} % (median {statistics.median(acc):.1f}); under 95 %: "
+                         f"{', '.join(low) or 'none'}")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
-    parser.add_argument("--splits", default="held-out", help="comma-separated: held-out, tuned")
+    parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="the 'learned' method's weights file "
+                        "(default: the shipped one)")
+    parser.add_argument("--nearness", action="append", metavar="NAME=FILE",
+                        help="another method: the default pipeline with the nearness segmenter of FILE")
+    parser.add_argument("--methods", default="default,otsu,learned,sgbm",
+                        help="comma-separated: default, otsu, learned, sgbm, or a --nearness NAME")
+    parser.add_argument("--otsu-preset", choices=("default", "paper"), default="default",
+                        help="the otsu method: the default pipeline with Otsu, or the whole paper preset")
+    parser.add_argument("--reference", action="store_true", help="also the old network's disparity-Otsu IoU")
+    parser.add_argument("--splits", default="held-out", help="comma-separated: held-out, tuned, kitti")
     parser.add_argument("--sizes", default="320", help="comma-separated: a width in pixels, or native")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
     parser.add_argument("--threads", type=int, default=2)
@@ -127,19 +184,22 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    net = load_obstacle_net("learned:" + args.weights)
+    methods = method_configs(args)
+    names = list(methods)
+    old_net = load_obstacle_net("learned:" + args.weights) if args.reference else None
     scenes = split_scenes(Path(args.data))
-    report = {"metadata": {**run_metadata(args.threads), "weights": args.weights,
-                           "weights_metadata": torch.load(args.weights, weights_only=True)["metadata"]}, "tables": {}}
+    scenes["kitti"] = [p for p in list_shared_pairs(Path(args.data)) if "kitti" in str(p)]
+    report = {"metadata": {**run_metadata(args.threads), "methods": {n: str(c) for n, c in methods.items()}},
+              "tables": {}}
     text = []
     for split in args.splits.split(","):
         paths = scenes[split][:args.limit] if args.limit else scenes[split]
         jobs = [(path, size) for size in args.sizes.split(",") for path in paths]
         rows, skipped = [], []
         for path, size in Progress(len(jobs), split, unit="scene").over(jobs):
-            row = evaluate_scene(path, size, args.weights, net)
+            row = evaluate_scene(path, size, methods, old_net)
             (rows.append(row) if row else skipped.append(path.name))
-        text += [f"## {split}", "", markdown(rows), "", wins(rows),
+        text += [f"## {split}", "", markdown(rows, names), "", summary(rows, names),
                  f"scenes without a truth distance (counted, not scored): {skipped or 'none'}", ""]
         report["tables"][split] = {"rows": rows, "skipped": skipped}
     print("\n".join(text))

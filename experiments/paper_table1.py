@@ -57,8 +57,8 @@ from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEsti
                                   with_nominal_calibration)
 from svs_torch.evaluation import object_truth as object_truth_batched
 from svs_torch.dense import working_factor
-from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig, segment_stereo
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, segment_pair
+from svs_torch.segmentation import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
@@ -296,7 +296,7 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
         segs, measurabilities, surfaces = {}, {}, {}
         for name in METHODS:
             seg_config = CONFIGS[name].segmentation if name in CONFIGS else default_seg
-            seg = segs.setdefault(seg_config, segment_stereo(batch, seg_config))
+            seg = segs.setdefault(seg_config, segment_pair(batch, seg_config))
             truth = object_truth(batch, seg)
             if not truth:
                 continue

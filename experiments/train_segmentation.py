@@ -104,8 +104,10 @@ def crop_batch(batch: StereoBatch, x0: int, y0: int, width: int, height: int) ->
     both principal points alike)."""
     window = (..., slice(y0, y0 + height), slice(x0, x0 + width))
     hw = torch.tensor([[height, width]]).expand(batch.batch_size, 2).clone()
+    nonoccluded = None if batch.disparity_nonoccluded is None else batch.disparity_nonoccluded[window]
     return dataclasses.replace(batch, left=batch.left[window], right=batch.right[window], image_hw=hw,
-                               disparity_px=batch.disparity_px[window], disparity_valid=batch.disparity_valid[window])
+                               disparity_px=batch.disparity_px[window], disparity_valid=batch.disparity_valid[window],
+                               disparity_nonoccluded=nonoccluded)
 
 
 def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
@@ -136,8 +138,10 @@ def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     right = (right + noise * torch.randn(right.shape, generator=generator)).clamp(0, 1)
     out = dataclasses.replace(batch, left=left, right=right)
     if float(torch.rand((), generator=generator)) < 0.5:
+        nonoccluded = None if out.disparity_nonoccluded is None else out.disparity_nonoccluded.flip(-2)
         out = dataclasses.replace(out, left=out.left.flip(-2), right=out.right.flip(-2),
-                                  disparity_px=out.disparity_px.flip(-2), disparity_valid=out.disparity_valid.flip(-2))
+                                  disparity_px=out.disparity_px.flip(-2), disparity_valid=out.disparity_valid.flip(-2),
+                                  disparity_nonoccluded=nonoccluded)
     return out
 
 
@@ -259,14 +263,15 @@ def region_mean_depth_m(batch: StereoBatch, result, net: ObstacleNet) -> torch.T
     return (weights * depth.unsqueeze(1)).sum(-1) / weights.sum(-1).clamp_min(1e-6)
 
 
-def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet, region_weight: float = 0.0
+def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet, region_weight: float = 0.0, segmenter: str = "learned"
                         ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Mean relative error of every ranged object's differentiable depth against its region's median GT depth,
     through ``estimate_obstacle_depth(..., differentiable=True)``; the number of objects it averages; and the
     loss to descend: that error plus ``region_weight`` × the same error of :func:`region_mean_depth_m`."""
     images = dataclasses.replace(batch, left=batch.left.clone().requires_grad_(),
                                  right=batch.right.clone().requires_grad_())
-    config = PipelineConfig(differentiable=True, segmentation=SegmentationConfig(segmenter="learned"))
+    segmentation = PipelineConfig().segmentation if segmenter == "nearness" else SegmentationConfig()
+    config = PipelineConfig(differentiable=True, segmentation=dataclasses.replace(segmentation, segmenter=segmenter))
     result = estimate_obstacle_depth(images, config, network=net)
     truth = object_truth(batch, result.segmentation.left)
     objects = result.depth.objects
@@ -282,7 +287,8 @@ def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet, region_weight: flo
 
 
 def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, config: TrainConfig,
-                               generator: torch.Generator, region_weight: float = 0.0) -> list[dict]:
+                               generator: torch.Generator, region_weight: float = 0.0, segmenter: str = "learned"
+                               ) -> list[dict]:
     """``config.steps`` AdamW steps on batches of ``config.batch_size`` pairs drawn from ``pairs`` (every pair, a
     full batch, when it holds them all: the loss is then the same quantity at every step), the loss of
     :func:`pipeline_depth_loss` (with ``region_weight``). The network stays in eval mode (its hard segmentation is
@@ -297,7 +303,7 @@ def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, confi
     for step in range(config.steps + full_batch):
         index = torch.randperm(len(pairs), generator=generator)[:config.batch_size].tolist()
         loss, count, total = pipeline_depth_loss(collate_stereo_batches([pairs[i] for i in index]), net,
-                                                 region_weight)
+                                                 region_weight, segmenter)
         history.append({"step": step, "depth_loss": loss.item(), "num_objects": count})
         print(f"step {step:3d}  depth loss {loss.item():.5f}  ({count} objects)", flush=True)
         if full_batch and loss.item() < best[0]:

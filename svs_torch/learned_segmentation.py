@@ -55,7 +55,11 @@ __all__ = [
 
 #: The weights shipped inside the package (``SegmentationConfig(segmenter="learned")``).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "obstacle_net.pt"
+#: The nearness segmenter's shipped correction network (``SegmentationConfig(segmenter="nearness")``, issue 32).
+NEARNESS_WEIGHTS = Path(__file__).resolve().parent / "weights" / "nearness_net.pt"
 _FORMAT = "svs_torch.obstacle_net/1"
+#: Each segmenter kind's file format, network and configuration classes.
+_KINDS = {"learned": (_FORMAT, "ObstacleNet"), "nearness": ("svs_torch.nearness_net/1", "NearnessNet")}
 NUM_FEATURES = 6  # channels of stereo_features
 
 
@@ -259,6 +263,9 @@ def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.T
     check_image(right, "right")
     if left.shape != right.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    if not isinstance(net, ObstacleNet):  # the nearness segmenter's correction network
+        from .nearness_segmentation import nearness_logits
+        return nearness_logits(net, left, right)[0]
     features, _ = stereo_features(left, right, net.config)
     logits = net(features.to(next(net.parameters()).dtype))
     return F.interpolate(logits, size=left.shape[-2:], mode="bilinear", align_corners=False).to(left.dtype)
@@ -305,6 +312,9 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
     """
     if net is None:
         net = _cached_obstacle_net(config.segmenter)
+    if not isinstance(net, ObstacleNet):
+        from .nearness_segmentation import segment_stereo_nearness
+        return segment_stereo_nearness(batch, config, net, left_logits)
     b = batch.batch_size
     with torch.no_grad():
         if left_logits is None:
@@ -322,17 +332,24 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
 
 
 def weights_path(segmenter: str) -> Path:
-    """The weights file of a ``SegmentationConfig.segmenter`` value: ``"learned"`` the shipped one,
-    ``"learned:PATH"`` PATH."""
-    if segmenter == "learned":
-        return SHIPPED_WEIGHTS
-    if segmenter.startswith("learned:") and len(segmenter) > len("learned:"):
-        return Path(segmenter[len("learned:"):]).expanduser()
-    raise InputError(f"segmenter: expected 'learned' or 'learned:PATH', got {segmenter!r}")
+    """The weights file of a ``SegmentationConfig.segmenter`` value: ``"learned"`` / ``"nearness"`` the shipped
+    one, ``"learned:PATH"`` / ``"nearness:PATH"`` PATH."""
+    kind, _, path = segmenter.partition(":")
+    if kind in _KINDS and path:
+        return Path(path).expanduser()
+    if kind in _KINDS and ":" not in segmenter:
+        return SHIPPED_WEIGHTS if kind == "learned" else NEARNESS_WEIGHTS
+    raise InputError(f"segmenter: expected learned, learned:PATH, nearness or nearness:PATH, got {segmenter!r}")
 
 
-def load_obstacle_net(segmenter: str = "learned") -> ObstacleNet:
-    """The :class:`ObstacleNet` of ``"learned"`` (shipped) or ``"learned:PATH"``, in float32 and eval mode.
+def _network_classes(kind: str) -> tuple[type[nn.Module], type]:
+    from .nearness_segmentation import NearnessNet, NearnessNetConfig
+    return (ObstacleNet, ObstacleNetConfig) if kind == "learned" else (NearnessNet, NearnessNetConfig)
+
+
+def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
+    """The network of ``"learned"`` / ``"nearness"`` (shipped) or ``"learned:PATH"`` / ``"nearness:PATH"``: an
+    :class:`ObstacleNet` or a :class:`~svs_torch.nearness_segmentation.NearnessNet`, in float32 and eval mode.
 
     Raises:
         InputError: one line, naming the file, when it is missing, not a weights file, or does not fit.
@@ -345,11 +362,16 @@ def load_obstacle_net(segmenter: str = "learned") -> ObstacleNet:
     except Exception as error:  # torch.load raises many types (zip, pickle, EOF, OS); all mean "not a weights file"
         reason = " ".join(str(error).split())[:200] or type(error).__name__
         raise InputError(f"segmenter: {str(path)!r} is not a weights file ({reason})") from None
-    if not isinstance(stored, dict) or stored.get("format") != _FORMAT:
-        raise InputError(f"segmenter: {str(path)!r} is not a svs_torch obstacle-network file (format {_FORMAT})")
+    kind = segmenter.partition(":")[0]
+    expected = _KINDS[kind][0]
+    if not isinstance(stored, dict) or stored.get("format") != expected:
+        found = f", found {stored.get('format')!r}" if isinstance(stored, dict) and "format" in stored else ""
+        raise InputError(f"segmenter: {str(path)!r} is not a svs_torch {kind} network file (format {expected}"
+                         f"{found})")
+    network_class, config_class = _network_classes(kind)
     try:
         settings = dict(stored["config"])
-        net = ObstacleNet(ObstacleNetConfig(**{**settings, "channels": tuple(settings["channels"])}))
+        net = network_class(config_class(**{**settings, "channels": tuple(settings["channels"])}))
         net.load_state_dict(stored["state_dict"])
     except (KeyError, TypeError, RuntimeError) as error:
         reason = " ".join(str(error).split())[:200]
@@ -357,10 +379,10 @@ def load_obstacle_net(segmenter: str = "learned") -> ObstacleNet:
     return net.float().eval()
 
 
-_NET_CACHE: dict[tuple[str, int, int], ObstacleNet] = {}
+_NET_CACHE: dict[tuple[str, str, int, int], nn.Module] = {}
 
 
-def _cached_obstacle_net(segmenter: str) -> ObstacleNet:
+def _cached_obstacle_net(segmenter: str) -> nn.Module:
     """:func:`load_obstacle_net` once per weights file and version (a batch loop or a sweep does not re-read it
     for every batch; a file rewritten in place, e.g. by a training run, is read again)."""
     path = weights_path(segmenter)
@@ -368,19 +390,20 @@ def _cached_obstacle_net(segmenter: str) -> ObstacleNet:
         stat = path.stat()
     except OSError:
         return load_obstacle_net(segmenter)  # its one-line error
-    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    key = (segmenter.partition(":")[0], str(path.resolve()), stat.st_mtime_ns, stat.st_size)
     if key not in _NET_CACHE:
         _NET_CACHE.clear()  # one network at a time: a sweep over weights files does not pile them up
         _NET_CACHE[key] = load_obstacle_net(segmenter)
     return _NET_CACHE[key]
 
 
-def save_obstacle_net(path: str | Path, net: ObstacleNet, metadata: dict | None = None) -> None:
+def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = None) -> None:
     """Write ``net``'s weights, its configuration and ``metadata`` (training settings, split) atomically, in a
     file :func:`load_obstacle_net` reads. ``metadata`` is stored as its JSON form (strings for anything else),
     so the file holds only tensors and plain values and loads with ``weights_only``."""
     path = Path(path)
-    stored = {"format": _FORMAT, "config": dataclasses.asdict(net.config),
+    kind = "learned" if isinstance(net, ObstacleNet) else "nearness"
+    stored = {"format": _KINDS[kind][0], "config": dataclasses.asdict(net.config),
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
               "metadata": json.loads(json.dumps(metadata or {}, default=str))}
     path.parent.mkdir(parents=True, exist_ok=True)

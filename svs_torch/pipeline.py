@@ -63,8 +63,10 @@ class PipelineConfig:
     defaults. Each nested config documents its own fields.
 
     Attributes:
-        segmentation: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions; ``method="canny"`` for the
-            paper's comparison row; ``segmenter="learned"`` for the network of issue 13).
+        segmentation: by default the nearness segmenter (:mod:`svs_torch.nearness_segmentation`: the near side
+            of the pair's measured disparity, corrected by a small network; the nearest region first, then the
+            largest). ``paper()``: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions); ``method="canny"`` for
+            the paper's comparison row; ``segmenter="learned"`` for the network of issue 13.
         surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
             ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
             weak ones that do not hold.
@@ -129,7 +131,10 @@ class PipelineConfig:
     (Table 1's "proposed" row).
     """
 
-    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    # The nearness segmenter, the nearest region first then the largest, regions of 1 % of the image at least: the
+    # best measured on the tuned scenes (experiments/select_nearness_rule.md, eval_segmentation.md; issue 32).
+    segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
+        segmenter="nearness", keep="nearest_first", min_area_fraction=0.01))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
@@ -189,7 +194,7 @@ class PipelineConfig:
     def paper(cls) -> PipelineConfig:
         """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
         defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
-        return cls(surf=SurfConfig(), features_on="masked", max_ratio=0.6, refine_matches=None, row_alignment=None,
+        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6, refine_matches=None, row_alignment=None,
                    depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None)
 
 
@@ -505,6 +510,11 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         check_instance(network, "network", nn.Module)
         if config.segmentation.segmenter == "otsu":
             raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
+        from .nearness_segmentation import NearnessNet
+        if config.segmentation.segmenter.startswith("nearness") != isinstance(network, NearnessNet):
+            expected = "a NearnessNet" if config.segmentation.segmenter.startswith("nearness") else "an ObstacleNet"
+            raise InputError(f"network: expected {expected} for segmenter {config.segmentation.segmenter!r}, got "
+                             f"{type(network).__name__}")
     if not config.differentiable:
         batch = _detached(batch)
     return run_by_size(batch, lambda group: _estimate_group(group, config, network))

@@ -24,7 +24,7 @@ from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
 from .types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
-__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions"]
+__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions", "keep_regions"]
 
 
 #: The widest structuring element, pixels: the opening pads the image by the element and passes over it once per
@@ -53,7 +53,15 @@ class SegmentationConfig:
             (the network shipped in ``svs_torch/weights/``, :mod:`svs_torch.learned_segmentation`) or
             ``"learned:PATH"`` (weights written by ``experiments/train_segmentation.py``). The learned one
             replaces the threshold (``method`` and ``foreground`` then do nothing) and keeps the opening,
-            ``connectivity`` and ``num_keep``.
+            ``connectivity`` and ``num_keep``. ``"nearness"`` (or ``"nearness:PATH"``): the disparity-based
+            segmenter with its shipped (or PATH's) correction network, :mod:`svs_torch.nearness_segmentation`.
+        keep: which ``num_keep`` regions are kept: ``"largest"`` by area (Sec. 3.2 step 6), ``"nearest"``
+            by their median disparity (a small near obstacle before a large far wall), or ``"nearest_first"``: the
+            nearest region, then the largest of the others (the nearest obstacle is never dropped, and the rest
+            is the paper's rule). ``"nearest"`` needs the stereo segmenter (``"nearness"``); under the others, which
+            measure no disparity, ``"nearest_first"`` keeps the largest regions.
+        min_area_fraction: under ``keep="nearest"`` / ``"nearest_first"``, regions smaller than this share of the image (e.g. 0.002 =
+            154 px at 320×240) are not candidates: a speck of wrong disparity is not an obstacle.
     """
 
     kernel_size: int = 5  # pixels; not stated in the paper, see above
@@ -62,7 +70,9 @@ class SegmentationConfig:
     connectivity: int = 8  # Sec. 3.2 step 4, MATLAB default
     foreground: Literal["bright", "dark"] = "bright"  # Sec. 3.2 step 2, im2bw
     method: Literal["otsu", "canny"] = "otsu"  # Sec. 3.2; "canny" is the paper's comparison row
-    segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13
+    segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13; "nearness" issue 32
+    keep: Literal["largest", "nearest", "nearest_first"] = "largest"  # Sec. 3.2 step 6
+    min_area_fraction: float = 0.0  # of the image's area
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_size, int) or not 1 <= self.kernel_size <= MAX_KERNEL_SIZE:
@@ -76,13 +86,22 @@ class SegmentationConfig:
             raise InputError(f"foreground: expected 'bright' or 'dark', got {self.foreground!r}")
         if self.method not in ("otsu", "canny"):
             raise InputError(f"method: expected 'otsu' or 'canny', got {self.method!r}")
-        if not (isinstance(self.segmenter, str) and (self.segmenter in ("otsu", "learned")
-                                                     or (self.segmenter.startswith("learned:")
-                                                         and len(self.segmenter) > len("learned:")))):
-            raise InputError(f"segmenter: expected otsu, learned or learned:PATH, got {self.segmenter!r}")
-        if self.segmenter.startswith("learned:") and not os.path.isfile(os.path.expanduser(self.segmenter[8:])):
+        kind, _, path = self.segmenter.partition(":") if isinstance(self.segmenter, str) else ("", "", "")
+        if kind not in ("otsu", "learned", "nearness") or (kind == "otsu" and self.segmenter != "otsu") \
+                or (":" in self.segmenter and not path):
+            raise InputError(f"segmenter: expected otsu, nearness, nearness:PATH, learned or learned:PATH, got "
+                             f"{self.segmenter!r}")
+        if path and not os.path.isfile(os.path.expanduser(path)):
             # Checked here so that a sweep or a batch run with a wrong path stops before any work starts.
-            raise InputError(f"segmenter: no weights file at {self.segmenter[8:]!r}")
+            raise InputError(f"segmenter: no weights file at {path!r}")
+        if self.keep not in ("largest", "nearest", "nearest_first"):
+            raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {self.keep!r}")
+        if self.keep == "nearest" and kind != "nearness":
+            raise InputError(f"keep: {self.keep!r} ranks regions by their disparity, which only the nearness segmenter "
+                             f"measures; got segmenter {self.segmenter!r} (use segmenter='nearness')")
+        if not (isinstance(self.min_area_fraction, (int, float)) and 0 <= self.min_area_fraction < 1):
+            raise InputError(f"min_area_fraction: expected a share of the image in [0, 1), got "
+                             f"{self.min_area_fraction!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
 
 
@@ -100,9 +119,47 @@ def keep_largest_regions(
         ``kept_labels`` ``(B, N)`` int64, largest area first, ties by label (raster) order, −1 where an image
         has fewer than N regions; ``kept_mask`` ``(B, 1, H, W)`` bool. Not differentiable.
     """
-    b, slots = regions.area_px.shape
     area = torch.where(regions.valid, regions.area_px, torch.full_like(regions.area_px, -1))
-    order = torch.sort(area, dim=1, descending=True, stable=True).indices[:, :num_keep]  # (B, <=N)
+    order = torch.sort(area, dim=1, descending=True, stable=True).indices  # (B, L)
+    return _keep_in_order(labels, regions, order, num_keep)
+
+
+def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
+                 min_area_px: float = 0.0, nearness: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`keep_largest_regions`, or under ``keep="nearest"`` the ``num_keep`` regions of at least
+    ``min_area_px`` pixels with the largest ``nearness`` ``(B, L)`` (e.g. median disparity; ties by area, then
+    label), nearest first; under ``"nearest_first"`` the nearest such region, then the largest of all the others.
+    Not differentiable."""
+    if keep == "largest":
+        return keep_largest_regions(labels, regions, num_keep)
+    if nearness is None:
+        raise InputError("nearness: keep='nearest' needs a nearness per region, got none")
+    candidate = regions.valid & (regions.area_px >= min_area_px)
+    order_area = torch.sort(torch.where(candidate, regions.area_px, -1), dim=1, descending=True, stable=True).indices
+    ranked = torch.gather(torch.where(candidate, nearness.to(torch.float64), -torch.inf), 1, order_area)
+    order = torch.gather(order_area, 1, torch.sort(ranked, dim=1, descending=True, stable=True).indices)
+    if keep == "nearest":
+        filtered = RegionProperties(area_px=regions.area_px, bbox_xyxy=regions.bbox_xyxy,
+                                    centroid_xy=regions.centroid_xy, valid=candidate)
+        return _keep_in_order(labels, filtered, order, num_keep)
+    # nearest_first: the nearest candidate (if any), then every valid region by area without it.
+    by_area = torch.sort(torch.where(regions.valid, regions.area_px, -1), dim=1, descending=True, stable=True).indices
+    if not order.shape[1]:
+        return _keep_in_order(labels, regions, by_area, num_keep)
+    first = order[:, :1]
+    has_first = torch.gather(candidate, 1, first)
+    moved = ((by_area == first) & has_first).to(torch.int8)  # the first, moved to the end (stable)
+    rest = torch.gather(by_area, 1, torch.sort(moved, dim=1, stable=True).indices)
+    order = torch.where(has_first, torch.cat([first, rest[:, :-1]], 1), by_area)
+    return _keep_in_order(labels, regions, order, num_keep)
+
+
+def _keep_in_order(labels: torch.Tensor, regions: RegionProperties, order: torch.Tensor, num_keep: int
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``num_keep`` valid region slots of ``order`` ``(B, L)`` as labels ``(B, N)`` (−1 for none) and
+    the mask of their union."""
+    b, slots = regions.area_px.shape
+    order = order[:, :num_keep]
     kept_valid = torch.gather(regions.valid, 1, order)
     kept = torch.where(kept_valid, order + 1, torch.full_like(order, -1))
     if kept.shape[1] < num_keep:

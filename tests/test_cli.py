@@ -196,7 +196,7 @@ def test_estimate_range_rules_and_presets(data_dir, capsys):
     Eq. (5)-(8); the dense rule is the accurate one on Teddy (GT objects 1.34 m and 1.72 m at 320 px)."""
     scene = data_dir / "middlebury_eval3_Q" / "Teddy"
     common = [str(scene / "im0.png"), str(scene / "im1.png"), "--focal-px", "1500", "--baseline-m", "0.08",
-              "--doffs-px", "52", "--size", "320x267", "--json"]
+              "--doffs-px", "52", "--size", "320x267", "--segmenter", "otsu", "--json"]  # the objects above: Otsu's
     reports = {}
     for name, extra in (("default", []), ("range", ["--range", "paper"]), ("preset", ["--preset", "paper"])):
         code, out, err = run_cli(capsys, "estimate", *common, *extra)

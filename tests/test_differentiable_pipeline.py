@@ -219,6 +219,9 @@ def test_arguments_are_checked(data_dir):
         replace(PipelineConfig.paper(), differentiable=True)
     batch = _teddy(data_dir, (160, 120))
     with pytest.raises(InputError, match="network: given, but config.segmentation.segmenter is 'otsu'"):
+        estimate_obstacle_depth(batch, PipelineConfig(differentiable=True, segmentation=SegmentationConfig()),
+                                network=load_obstacle_net())
+    with pytest.raises(InputError, match="network: expected a NearnessNet"):
         estimate_obstacle_depth(batch, PipelineConfig(differentiable=True), network=load_obstacle_net())
     with pytest.raises(InputError, match="network: expected its parameters on the batch's device"):
         estimate_obstacle_depth(batch, PipelineConfig(segmentation=LEARNED), network=load_obstacle_net().to("meta"))

@@ -135,8 +135,9 @@ def test_eval_agrees_with_paper_table1(data_dir, scene):
     height, width = load_stereo_pair(path).size_hw
     size = (320, round(height * 320 / width))  # paper_table1's "320": width 320, aspect kept
     rows = {r["method"]: r for r in paper_table1.run({"tuned": [path]}, ["320"], progress=False)}
-    for method, config in (("svs_torch default (dense)", PipelineConfig()),
-                           ("paper (MATLAB defaults, Eq. 5-8)", PipelineConfig.paper())):
+    # paper_table1 ranges every method over the same Otsu regions; the default pipeline keeps its own (nearness)
+    # regions since issue 32, so only the paper preset is compared here.
+    for method, config in (("paper (MATLAB defaults, Eq. 5-8)", PipelineConfig.paper()),):
         evaluation = evaluate_block(read_pair_sources([path]), EvalSetup(config, size))[0]
         row = rows[method]
         assert (evaluation.real_r_min_m, evaluation.real_r_max_m) == pytest.approx(RECORDED_TRUTH[scene], rel=1e-6)

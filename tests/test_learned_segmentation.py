@@ -100,7 +100,7 @@ def test_saved_weights_round_trip(tmp_path, scenes):
 
 
 @pytest.mark.parametrize("content, message", [
-    (None, "no weights file"), (b"\x00\x13garbage", "not a weights file"), ({"format": "other"}, "obstacle-network"),
+    (None, "no weights file"), (b"\x00\x13garbage", "not a weights file"), ({"format": "other"}, "learned network file"),
 ])
 def test_bad_weights_are_one_line_input_errors(tmp_path, content, message):
     path = tmp_path / "bad.pt"
@@ -257,7 +257,7 @@ def test_cli_estimate_with_the_learned_segmenter(tmp_path, capsys, svs_scene):
 
 @pytest.mark.parametrize("value, message", [
     ("learned:{tmp}/missing.pt", "no weights file"), ("learned:{tmp}/junk.pt", "not a weights file"),
-    ("bogus", "expected otsu, learned or learned:PATH"),
+    ("bogus", "expected otsu, nearness, nearness:PATH, learned or learned:PATH"),
 ])
 def test_cli_bad_segmenter_is_one_line_exit_2(tmp_path, capsys, svs_scene, value, message):
     left, right = _write_pair(tmp_path, svs_scene)

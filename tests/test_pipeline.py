@@ -12,7 +12,11 @@ from svs_torch import InputError, StereoBatch
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth import DepthConfig
+from svs_torch.segmentation import SegmentationConfig
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+
+#: Otsu's segmentation (the paper's), for tests of the later stages on bright synthetic boxes.
+OTSU = SegmentationConfig()
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +40,9 @@ def matched_truth(scenes, result, index: int) -> list[tuple[float, float]]:
 def test_synthetic_obstacles_are_ranged_within_one_percent(scenes, preset, tolerance):
     """The dense default ranges each object within 1 % of the exact median depth over its region (measured:
     0.15 % at worst over 32 objects); the paper's sparse rule within 2 %."""
-    config = PipelineConfig() if preset == "default" else PipelineConfig.paper()
+    # The ranging stages under test, on the regions Otsu keeps of this fixture (its boxes are the bright regions);
+    # the nearness segmenter (the default's) has its own tests in test_nearness_segmentation.py.
+    config = PipelineConfig(segmentation=OTSU) if preset == "default" else PipelineConfig.paper()
     result = estimate_obstacle_depth(scenes.batch, config)
     assert result.status.tolist() == [PipelineStatus.OK] * 6
     assert result.range_rule == ("dense" if preset == "default" else "paper")
@@ -152,7 +158,7 @@ def test_dense_rule_on_a_pair_that_needs_rectification(scenes):
 
     sub = scenes.batch.select([0, 2, 3])
     rolled = replace(sub, right=rotate(sub.right, torch.full((3,), 1.5)).clamp(0, 1))
-    result = estimate_obstacle_depth(rolled)
+    result = estimate_obstacle_depth(rolled, PipelineConfig(segmentation=OTSU))
     assert result.rectified.all() and result.status.tolist() == [PipelineStatus.OK] * 3
     # The inliers' rectified disparities agree with the dense map measured after the same homographies.
     assert result.verified.all() and (result.num_agreeing_inliers >= 0.8 * result.num_inliers).all()
@@ -178,7 +184,7 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     assert SVS_CAMERA.focal_px(320) * SVS_CAMERA.baseline_m / near_m > strip_px + 15
 
     def objects(min_in_view: int):
-        config = PipelineConfig(depth=DepthConfig(min_object_pixels_in_view=min_in_view))
+        config = PipelineConfig(segmentation=OTSU, depth=DepthConfig(min_object_pixels_in_view=min_in_view))
         result = estimate_obstacle_depth(scenes.batch, config)
         assert result.status.tolist() == [PipelineStatus.OK]
         return result.depth.objects

@@ -14,6 +14,11 @@ from conftest import REPO_ROOT
 from svs_torch import InputError
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation import SegmentationConfig
+
+#: These tests measure the row alignment on Otsu's regions (as when it was built, issue 33); the nearness
+#: segmenter under a rolled camera is measured in experiments/real_rig.py.
+OTSU = SegmentationConfig()
 from svs_torch.row_alignment import RowAlignmentConfig, fit_row_alignment, row_alignment_homography
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
@@ -82,7 +87,7 @@ def teddy(data_dir):
 
 def _per_object(batch, views):
     stacked = real_rig.stack_conditions(batch, views)
-    result = estimate_obstacle_depth(stacked, PipelineConfig())
+    result = estimate_obstacle_depth(stacked, PipelineConfig(segmentation=OTSU))
     return {e.name: (e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)}, result
 
 
@@ -138,7 +143,7 @@ def test_differentiable_pass_follows_the_aligned_and_smoothed_pairs(teddy, data_
         stacked = real_rig.stack_conditions(batch, [view])
         stacked = replace(stacked, left=stacked.left.clone().requires_grad_(),
                           right=stacked.right.clone().requires_grad_())
-        result = estimate_obstacle_depth(stacked, PipelineConfig(differentiable=True))
+        result = estimate_obstacle_depth(stacked, PipelineConfig(differentiable=True, segmentation=OTSU))
         assert bool(result.rectified[0]) or bool(result.smoothed[0]), view[0]
         objects, hard = result.depth.objects, result.hard_depth.objects
         assert bool(objects.valid.any())

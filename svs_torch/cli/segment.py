@@ -46,7 +46,14 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                         help="side of the square structuring element for erosion and dilation, pixels "
                              "(default: 5)")
     parser.add_argument("--keep", type=positive_int, default=2, metavar="N",
-                        help="how many of the largest regions to keep (paper: 2)")
+                        help="how many regions to keep (paper: 2)")
+    parser.add_argument("--keep-rule", choices=("largest", "nearest", "nearest_first"),
+                        help="which regions are kept: 'largest' by area (the paper, and with --segmenter otsu or "
+                             "learned), 'nearest' by median disparity, 'nearest_first' the nearest region then the "
+                             "largest others (default of the nearness segmenter: see --help of estimate)")
+    parser.add_argument("--min-area-fraction", type=float, metavar="SHARE",
+                        help="regions smaller than this share of the image are never kept by the nearness rules "
+                             "(e.g. 0.003 = 230 px at 320x240)")
     parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
                         help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
     parser.add_argument("--dark-objects", action="store_true",
@@ -68,10 +75,12 @@ def segmenter_choice(text: str) -> str:
 
 def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
     """``--segmenter``, for the commands that run the whole pipeline."""
-    parser.add_argument("--segmenter", type=segmenter_choice, metavar="otsu|learned|learned:PATH",
-                        help="how obstacles are found: 'otsu' (default, the paper: the brightest large regions), "
-                             "'learned' (the network shipped with svs_torch: what is near, from both views), or "
-                             "'learned:PATH' (weights written by experiments/train_segmentation.py)")
+    parser.add_argument("--segmenter", type=segmenter_choice, metavar="nearness|otsu|learned[:PATH]",
+                        help="how obstacles are found: 'nearness' (the pipeline's default, --preset default: the near side of "
+                             "the pair's measured disparity, corrected by a small network, the nearest region "
+                             "always kept), 'otsu' (the paper and --preset paper: the brightest large regions), "
+                             "'learned' (the older network of issue 13), or 'nearness:PATH' / 'learned:PATH' "
+                             "(weights written by experiments/train_nearness.py / train_segmentation.py)")
 
 
 def config_from_args(args: argparse.Namespace, base=None):
@@ -80,10 +89,19 @@ def config_from_args(args: argparse.Namespace, base=None):
 
     from ..segmentation import SegmentationConfig
 
-    with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter"):
+    with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter", keep="--keep-rule",
+                       min_area_fraction="--min-area-fraction"):
         config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
                          connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
-        return replace(config, segmenter=args.segmenter) if getattr(args, "segmenter", None) else config
+        if getattr(args, "segmenter", None):
+            # Only the nearness segmenter measures disparity: the others keep the largest regions.
+            stereo = args.segmenter.startswith("nearness")
+            config = replace(config, segmenter=args.segmenter, keep=config.keep if stereo else "largest")
+        if getattr(args, "keep_rule", None):
+            config = replace(config, keep=args.keep_rule)
+        if getattr(args, "min_area_fraction", None) is not None:
+            config = replace(config, min_area_fraction=args.min_area_fraction)
+        return config
 
 
 def image_report(seg, index: int) -> dict:

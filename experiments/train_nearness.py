@@ -1,0 +1,245 @@
+"""Train the nearness segmenter's correction network (svs_torch.nearness_segmentation), then fine-tune it through
+the differentiable pipeline (issue 32).
+
+Data (seeded, 704 samples at 320×240, the SVS's size and the segmenter's working width):
+- **real**: the ``tuned`` split of experiments/paper_table1.py minus its duplicates of held-out scenes (ArtL,
+  Teddy; see train_segmentation.py), as random crops of the scene resized to 320–560 px wide and as whole views;
+- **synthetic**: :func:`svs_torch.data.synthetic.random_obstacle_scenes`, 1–3 textured boxes 0.7 (three:
+  1.0) to 2.5 m away before a wall 2.5–8 m away (exact truth).
+Augmentation per sample (one seeded ``torch.Generator``): gamma, gain, offset, an exposure difference between the
+two cameras, intensity inversion (nearness must not be read from brightness), sensor noise, JPEG frames (the
+SVS sends JPEG; quality 40–95 on half the samples), a vertical flip (rows stay epipolar lines).
+
+Stage 1 (mask): the segmenter's own logits, exactly as deployed (:func:`~svs_torch.nearness_segmentation.
+nearness_logits`: the measured disparity's rule plus the network), against the opened near mask of
+:func:`~svs_torch.learned_segmentation.obstacle_truth`, BCE + Dice. The measured disparity does not depend on the
+network, so it is measured once per sample.
+
+Stage 2 (through the pipeline, ``--fine-tune-steps``): ``estimate_obstacle_depth(..., differentiable=True)`` with
+the network on whole training scenes at 320×240, the loss of ``train_segmentation.pipeline_depth_loss``: each ranged
+object's differentiable depth against the median ground-truth depth over its kept region; images require grad
+(the gradient reaches them through the segmenter's straight-through disparity and the depth stage). The weights
+of the lowest loss are kept.
+
+    python experiments/train_nearness.py [--steps 1200] [--fine-tune-steps 6] [--seed 0] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spinning OpenMP threads on a shared CPU
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from svs_torch.cli.progress import Progress
+from svs_torch.data import load_stereo_pair, resize_stereo_batch
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.evaluation import with_nominal_calibration
+from svs_torch.learned_segmentation import NEARNESS_WEIGHTS, obstacle_truth, save_obstacle_net
+from svs_torch.nearness_segmentation import (NearnessNet, NearnessNetConfig, _network_features,
+                                             measure_nearness_disparity)
+from svs_torch.types import StereoBatch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from paper_table1 import split_scenes  # noqa: E402
+from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from train_segmentation import (HELD_OUT_DUPLICATES, crop_batch, fine_tune_through_pipeline, mask_loss,  # noqa: E402
+                                train_scenes)
+
+SIZE_WH = (320, 240)
+
+
+@dataclasses.dataclass(frozen=True)
+class NearnessTrainConfig:
+    """Training settings (recorded in the weights file)."""
+
+    steps: int = 1200
+    batch_size: int = 12
+    learning_rate: float = 3e-3  # AdamW, cosine decay to 0
+    weight_decay: float = 1e-4
+    crops_per_scene: int = 40
+    views_per_scene: int = 8
+    num_synthetic: int = 320
+    fine_tune_steps: int = 6
+    fine_tune_learning_rate: float = 3e-4
+    seed: int = 0
+
+
+def _uniform(generator: torch.Generator, low: float, high: float) -> float:
+    return low + (high - low) * float(torch.rand((), generator=generator))
+
+
+def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
+    """The scene resized to a random width in 320–560 px (high enough for 240 rows), then a 320×240 window."""
+    height, width = batch.size_hw
+    new_width = max(round(_uniform(generator, 320, 560)), math.ceil(SIZE_WH[1] * width / height))
+    new_height = round(height * new_width / width)
+    scaled = resize_stereo_batch(batch, (new_width, new_height))
+    x0 = int(torch.randint(0, new_width - SIZE_WH[0] + 1, (), generator=generator))
+    y0 = int(torch.randint(0, new_height - SIZE_WH[1] + 1, (), generator=generator))
+    return crop_batch(scaled, x0, y0, *SIZE_WH)
+
+
+def _jpeg(image: torch.Tensor, quality: int) -> torch.Tensor:
+    pixels = (image[0, 0].clamp(0, 1) * 255).round().byte().numpy()
+    ok, data = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    decoded = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    return torch.from_numpy(decoded.astype(np.float32) / 255).view_as(image).to(image.dtype)
+
+
+def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
+    """The module docstring's photometric changes, JPEG and flip; one draw per call (B = 1)."""
+    def photometric(image: torch.Tensor, gamma: float, gain: float, offset: float) -> torch.Tensor:
+        return (image.clamp_min(0) ** gamma * gain + offset).clamp(0, 1)
+
+    gamma = math.exp(_uniform(generator, math.log(0.5), math.log(2.0)))
+    gain, offset = _uniform(generator, 0.6, 1.2), _uniform(generator, -0.15, 0.15)
+    left = photometric(batch.left, gamma, gain, offset)
+    right = photometric(batch.right, gamma, gain, offset)
+    right = (right * _uniform(generator, 0.8, 1.25) + _uniform(generator, -0.06, 0.06)).clamp(0, 1)
+    if float(torch.rand((), generator=generator)) < 0.35:
+        left, right = 1 - left, 1 - right
+    noise = _uniform(generator, 0.0, 0.025)
+    left = (left + noise * torch.randn(left.shape, generator=generator)).clamp(0, 1)
+    right = (right + noise * torch.randn(right.shape, generator=generator)).clamp(0, 1)
+    if float(torch.rand((), generator=generator)) < 0.5:
+        quality = int(torch.randint(40, 96, (), generator=generator))
+        left, right = _jpeg(left, quality), _jpeg(right, quality)
+    out = dataclasses.replace(batch, left=left, right=right)
+    if float(torch.rand((), generator=generator)) < 0.5:
+        nonoccluded = None if out.disparity_nonoccluded is None else out.disparity_nonoccluded.flip(-2)
+        out = dataclasses.replace(out, left=out.left.flip(-2), right=out.right.flip(-2),
+                                  disparity_px=out.disparity_px.flip(-2), disparity_valid=out.disparity_valid.flip(-2),
+                                  disparity_nonoccluded=nonoccluded)
+    return out
+
+
+def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]:
+    """``count`` synthetic 320×240 pairs (module docstring)."""
+    pairs = []
+    for _ in range(count):
+        num_objects = int(torch.randint(1, 4, (), generator=generator))
+        nearest_m = 0.7 if num_objects < 3 else 1.0  # three boxes side by side need room in both views
+        scene = random_obstacle_scenes(1, num_objects, size_wh=SIZE_WH, depth_range_m=(nearest_m, 2.5), background_depth_m=_uniform(generator, 2.5, 8.0),
+                                       noise_std=0.01, generator=generator)
+        pairs.append(scene.batch)
+    return pairs
+
+
+def real_pairs(scenes: list[Path], config: NearnessTrainConfig, generator: torch.Generator) -> list[StereoBatch]:
+    pairs = []
+    for path in scenes:
+        batch = with_nominal_calibration(load_stereo_pair(path))
+        pairs += [random_crop(batch, generator) for _ in range(config.crops_per_scene)]
+        pairs += [resize_stereo_batch(batch, SIZE_WH)] * config.views_per_scene
+    return pairs
+
+
+@dataclasses.dataclass
+class Pool:
+    """The samples stacked: the network's input, the rule's relative nearness and the truth mask."""
+
+    features: torch.Tensor  # (S, 5, h, w)
+    relative: torch.Tensor  # (S, 1, 240, 320)
+    target: torch.Tensor  # (S, 1, 240, 320) float
+
+
+def build_pool(pairs: list[StereoBatch], net_config: NearnessNetConfig, generator: torch.Generator) -> Pool:
+    rows = {"features": [], "relative": [], "target": []}
+    with torch.no_grad():
+        for pair in Progress(len(pairs), "samples").over(pairs):
+            pair = augment(pair, generator)
+            measured = measure_nearness_disparity(pair.left, pair.right, net_config)
+            rows["features"].append(_network_features(pair.left, measured, net_config.network_width_px))
+            rows["relative"].append(measured.relative)
+            rows["target"].append(obstacle_truth(pair).opened.float())
+    return Pool(**{name: torch.cat(values) for name, values in rows.items()})
+
+
+def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, generator: torch.Generator) -> list[dict]:
+    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
+    history = []
+    net.train()
+    bar = Progress(config.steps, "train", unit="step")
+    for step in bar.over(range(config.steps)):
+        index = torch.randint(0, pool.features.shape[0], (config.batch_size,), generator=generator)
+        correction = F.interpolate(net(pool.features[index]), size=SIZE_WH[::-1], mode="bilinear",
+                                   align_corners=False)
+        logits = net.config.rule_gain * pool.relative[index] + correction
+        loss = mask_loss(logits, pool.target[index])
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        if step % 50 == 0 or step == config.steps - 1:
+            history.append({"step": step, "mask_loss": round(loss.item(), 5)})
+        bar.set_postfix(mask=f"{loss.item():.3f}")
+    net.eval()
+    return history
+
+
+def main(argv: list[str] | None = None) -> Path:
+    defaults = NearnessTrainConfig()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--out", default=str(NEARNESS_WEIGHTS), help="weights file (default: the shipped one)")
+    for field in dataclasses.fields(NearnessTrainConfig):
+        parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),
+                            default=getattr(defaults, field.name))
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    config = NearnessTrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(NearnessTrainConfig)})
+    generator = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
+    net_config = NearnessNetConfig()
+    scenes = train_scenes(Path(args.data))
+    started = time.perf_counter()
+    pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
+    pool = build_pool(pairs, net_config, generator)
+    net = NearnessNet(net_config)
+    history = train_masks(pool, net, config, generator)
+    mask_time = time.perf_counter() - started
+    fine_tune = []
+    if config.fine_tune_steps:
+        whole = [resize_stereo_batch(with_nominal_calibration(load_stereo_pair(path)), SIZE_WH) for path in scenes]
+        tune = dataclasses.replace(_as_train_config(config), steps=config.fine_tune_steps,
+                                   batch_size=len(whole), learning_rate=config.fine_tune_learning_rate)
+        fine_tune = fine_tune_through_pipeline(whole, net, tune, generator, region_weight=1.0, segmenter="nearness")
+    elapsed = time.perf_counter() - started
+    split = split_scenes(Path(args.data))
+    metadata = {
+        "train": dataclasses.asdict(config), "train_time_s": round(elapsed, 1), "mask_time_s": round(mask_time, 1),
+        "num_samples": len(pairs), "train_scenes": [str(p.relative_to(args.data)) for p in scenes],
+        "excluded_duplicates": HELD_OUT_DUPLICATES,
+        "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
+        "mask_history": history, "fine_tune_history": fine_tune, "run": run_metadata(args.threads),
+        "num_parameters": sum(p.numel() for p in net.parameters()),
+        "command": "python experiments/train_nearness.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    }
+    save_obstacle_net(args.out, net, metadata)
+    print(f"{len(pairs)} samples, {config.steps} + {config.fine_tune_steps} steps, {elapsed:.0f} s; weights written "
+          f"to {args.out}")
+    return Path(args.out)
+
+
+def _as_train_config(config: NearnessTrainConfig):
+    from train_segmentation import TrainConfig
+    return TrainConfig(learning_rate=config.fine_tune_learning_rate, weight_decay=config.weight_decay,
+                       seed=config.seed)
+
+
+if __name__ == "__main__":
+    main()

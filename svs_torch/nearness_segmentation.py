@@ -1,0 +1,313 @@
+"""Nearness segmentation: the obstacles are what is near, read from the pair's disparity (issue 32).
+
+The paper's Otsu on intensity keeps the brightest large regions (often a wall, Sec. 3.2). The truth of an
+obstacle (:func:`svs_torch.learned_segmentation.obstacle_truth`) is instead the near side of the Otsu split of
+the scene's disparity. This segmenter applies that rule to a measured disparity and lets a small network correct
+it:
+
+1. **Disparity** (:func:`measure_nearness_disparity`): the dense stage's SAD block matcher over the whole left
+   view (:func:`svs_torch.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
+   rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
+   filled along their rows from the nearest measured ones, the farther side at an occlusion
+   (:func:`svs_torch.dense.fill_invalid_rows`). Measured on the tuned scenes (``experiments/eval_segmentation.py
+   --sweep-rule``): the fill lifts the rule's IoU with the truth from 0.58 to 0.62; a rejection left as a hole
+   breaks a region apart.
+2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity (the
+   truth's rule on the estimate) and ``spread`` its 10–90 % range (at least 1 px).
+3. **Correction** (:class:`NearnessNet`, ~15k parameters): a three-level U-Net at ``network_width_px`` over the
+   disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
+   to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself.
+4. **Regions**: probability above the threshold, the paper's opening and components, then the ``num_keep``
+   regions by ``SegmentationConfig.keep``: ``"nearest"`` ranks the regions of at least ``min_area_fraction`` of
+   the image by their median disparity (a small near obstacle is kept before a large far wall), ``"largest"`` by
+   area (the paper's rule).
+5. **Right view**: each kept left region shifted left by its own median disparity (a region's pixels sit at
+   ``x − d`` in the right view). One network pass per pair, not two.
+
+Gradients: in a differentiable run (images that require grad) the disparity's forward value is the hard
+measurement above and its gradient is that of the soft-argmin over the same SAD cost volume
+(:func:`svs_torch.dense.soft_block_match`, straight-through), so the logits are differentiable w.r.t. the
+network's parameters and both images. The split, the spread, the fill's choices and the kept regions are
+constants of the hard pass.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .checks import InputError, check_image
+from .components import connected_components_with_stats, region_properties
+from .dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
+from .depth import kept_region_lower_median
+from .morphology import open_binary, structuring_element
+from .segmentation import SegmentationConfig, _status, keep_regions
+from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
+from .types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
+
+__all__ = ["NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity",
+           "nearness_logits", "segment_stereo_nearness", "shift_regions_to_right"]
+
+NUM_FEATURES = 5  # channels of _network_features
+
+
+@dataclass(frozen=True)
+class NearnessNetConfig:
+    """Settings of the nearness segmenter (stored beside its weights; module docstring).
+
+    Attributes:
+        working_width_px: the disparity is measured on both images reduced (box average, integer factor) to
+            about this width, pixels.
+        window_size: SAD window side at that width, pixels, odd.
+        max_disparity_fraction: disparities ``[0, fraction · working width)`` are searched.
+        network_width_px: the network sees its features reduced to this width, pixels.
+        channels: widths of the three U-Net levels.
+        rule_gain: logits per spread of the rule ``(d − split) / spread``.
+        disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
+        probability_threshold: a pixel is an obstacle where its probability exceeds this.
+    """
+
+    working_width_px: int = 320
+    window_size: int = 9
+    max_disparity_fraction: float = 0.3
+    network_width_px: int = 80
+    channels: tuple[int, int, int] = (8, 16, 16)
+    rule_gain: float = 8.0
+    disparity_temperature: float = 0.003
+    probability_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("working_width_px", "network_width_px"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 16:
+                raise InputError(f"{name}: expected an int >= 16, got {value!r}")
+        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
+            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if not 0 < self.max_disparity_fraction < 1:
+            raise InputError(f"max_disparity_fraction: expected a value in (0, 1), got {self.max_disparity_fraction!r}")
+        if len(self.channels) != 3 or any(not isinstance(c, int) or c < 4 or c % 4 for c in self.channels):
+            raise InputError(f"channels: expected three multiples of 4, got {self.channels!r}")
+        if not self.rule_gain > 0 or not self.disparity_temperature > 0:
+            raise InputError(f"rule_gain, disparity_temperature: expected positive values, got "
+                             f"{self.rule_gain!r}, {self.disparity_temperature!r}")
+        if not 0 < self.probability_threshold < 1:
+            raise InputError(f"probability_threshold: expected a value in (0, 1), got {self.probability_threshold!r}")
+
+    def working_factor(self, width_px: int) -> int:
+        """The integer reduction of an image ``width_px`` wide (1: matched at its own size)."""
+        return max(1, round(width_px / self.working_width_px))
+
+
+def _block(inputs: int, outputs: int) -> nn.Sequential:
+    """Two 3×3 convolutions with group normalisation (batch-size independent: training and use agree)."""
+    return nn.Sequential(nn.Conv2d(inputs, outputs, 3, padding=1), nn.GroupNorm(4, outputs), nn.ReLU(inplace=True),
+                         nn.Conv2d(outputs, outputs, 3, padding=1), nn.GroupNorm(4, outputs), nn.ReLU(inplace=True))
+
+
+class NearnessNet(nn.Module):
+    """Three-level U-Net from the features ``(B, 5, h, w)`` to a correction of the rule's logits ``(B, 1, h, w)``.
+
+    The bottleneck sees the image's mean feature beside its own (nearness is relative to the scene). The head
+    starts at zero: an untrained network leaves the rule's logits unchanged. Differentiable w.r.t. its parameters
+    and its input.
+    """
+
+    def __init__(self, config: NearnessNetConfig = NearnessNetConfig()) -> None:
+        super().__init__()
+        self.config = config
+        c1, c2, c3 = config.channels
+        self.down1, self.down2, self.down3 = _block(NUM_FEATURES, c1), _block(c1, c2), _block(c2, c3)
+        self.middle = _block(2 * c3, c3)
+        self.up2, self.up1 = _block(c3 + c2, c2), _block(c2 + c1, c1)
+        self.head = nn.Conv2d(c1, 1, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        x1 = self.down1(features)
+        x2 = self.down2(F.max_pool2d(x1, 2, ceil_mode=True))
+        x3 = self.down3(F.max_pool2d(x2, 2, ceil_mode=True))
+        x3 = self.middle(torch.cat([x3, x3.mean((2, 3), keepdim=True).expand_as(x3)], 1))
+        y2 = self.up2(torch.cat([F.interpolate(x3, size=x2.shape[-2:], mode="bilinear"), x2], 1))
+        y1 = self.up1(torch.cat([F.interpolate(y2, size=x1.shape[-2:], mode="bilinear"), x1], 1))
+        return self.head(y1)
+
+
+@dataclass(frozen=True)
+class NearnessDisparity:
+    """The measured disparity of B left views, at the input size.
+
+    Attributes:
+        disparity_px: ``(B, 1, H, W)`` input pixels, filled (module docstring, step 1).
+        measured: ``(B, 1, H, W)`` bool, the block matcher accepted the pixel (not filled).
+        split_px: ``(B,)`` the Otsu split of the filled disparity; spread_px ``(B,)`` its 10–90 % range (≥ 1).
+        relative: ``(B, 1, H, W)`` ``(disparity − split) / spread``, the rule's nearness.
+    """
+
+    disparity_px: torch.Tensor
+    measured: torch.Tensor
+    split_px: torch.Tensor
+    spread_px: torch.Tensor
+    relative: torch.Tensor
+
+
+def _reduce(image: torch.Tensor, factor: int) -> torch.Tensor:
+    return F.avg_pool2d(image, factor, ceil_mode=True) if factor > 1 else image
+
+
+def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
+    flat = disparity.detach().flatten(1)
+    low, high = flat.amin(1), flat.amax(1)
+    spread = (high - low).view(-1, 1, 1, 1)
+    scaled = (disparity.detach() - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
+    level = otsu_threshold_level(gray_histogram(gray_levels(scaled)))
+    return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
+
+
+def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
+                               config: NearnessNetConfig = NearnessNetConfig()) -> NearnessDisparity:
+    """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1].
+
+    Differentiable w.r.t. both images when they require grad (straight-through: the hard value, the soft-argmin's
+    gradient); otherwise it runs without building a graph.
+    """
+    b = check_image(left, "left")["B"]
+    check_image(right, "right")
+    if right.shape != left.shape:
+        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    h, w = left.shape[-2:]
+    factor = config.working_factor(w)
+    small_left, small_right = _reduce(left, factor), _reduce(right, factor)
+    num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
+    dense = DenseConfig(window_size=config.window_size)
+    with torch.no_grad():
+        found = block_match_sad(small_left.detach(), small_right.detach(), 0, num_disparities, dense)
+        filled, reachable = fill_invalid_rows(found.disparity_px, found.valid)
+        filled = torch.where(reachable, filled, 0.0)
+    if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
+        soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
+        filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
+    disparity = F.interpolate(filled * factor, size=(h, w), mode="nearest")
+    measured = F.interpolate(found.valid.to(left.dtype), size=(h, w), mode="nearest") > 0.5
+    split = _otsu_split(disparity)
+    q = torch.quantile(disparity.detach().flatten(1), torch.tensor([0.1, 0.9], dtype=disparity.dtype,
+                                                                   device=left.device), dim=1)
+    spread = (q[1] - q[0]).clamp_min(1.0)
+    relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
+    return NearnessDisparity(disparity, measured, split, spread, relative)
+
+
+def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
+    """The network's input ``(B, 5, h, w)`` at ``width`` px: relative nearness, disparity / image width × 4,
+    measured share, the standardised left image, the column ``x / w``."""
+    h, w = left.shape[-2:]
+    size = (max(1, round(h * width / w)), width)
+    mean = left.mean((1, 2, 3), keepdim=True)
+    std = left.std((1, 2, 3), keepdim=True).clamp_min(1e-3)
+    full = torch.cat([measured.relative, measured.disparity_px * (4.0 / w), measured.measured.to(left.dtype),
+                      (left - mean) / std], 1)
+    small = F.interpolate(full, size=size, mode="area")
+    column = torch.linspace(0, 1, size[1], dtype=left.dtype, device=left.device).expand(left.shape[0], 1, *size)
+    return torch.cat([small, column], 1)
+
+
+def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor
+                    ) -> tuple[torch.Tensor, NearnessDisparity]:
+    """Obstacle logits ``(B, 1, H, W)`` of the left views: the rule's plus the network's correction (resized
+    bilinearly from its width), and the measured disparity. Differentiable w.r.t. the network's parameters and
+    both images (module docstring)."""
+    measured = measure_nearness_disparity(left, right, net.config)
+    features = _network_features(left, measured, net.config.network_width_px)
+    dtype = next(net.parameters()).dtype
+    correction = net(features.to(dtype))
+    correction = F.interpolate(correction, size=left.shape[-2:], mode="bilinear", align_corners=False)
+    return net.config.rule_gain * measured.relative + correction.to(left.dtype), measured
+
+
+def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor
+                             ) -> torch.Tensor:
+    """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot)."""
+    b = labels.shape[0]
+    slots = int(num_regions.max()) if num_regions.numel() else 0
+    every = torch.arange(1, slots + 1, device=labels.device).expand(b, slots)
+    median, _ = kept_region_lower_median(disparity.detach(), torch.ones_like(labels, dtype=torch.bool), labels,
+                                         every)
+    return median
+
+
+def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor
+                           ) -> torch.Tensor:
+    """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
+    moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
+    overlap the nearer (larger shift) wins, as it occludes the other."""
+    b, n = kept_labels.shape
+    w = labels.shape[-1]
+    out = torch.zeros_like(labels)
+    best = torch.full_like(labels, -1, dtype=shift_px.dtype)
+    column = torch.arange(w, device=labels.device)
+    for slot in range(n):  # N slots (the kept regions, 2 by default), not pairs
+        shift = shift_px[:, slot].round().long().view(b, 1, 1, 1)
+        source = column.view(1, 1, 1, w) + shift
+        inside = (source >= 0) & (source < w)
+        hit = torch.gather(labels, 3, source.clamp(0, w - 1).expand_as(labels)) == kept_labels[:, slot].view(b, 1, 1, 1)
+        hit = hit & inside & (kept_labels[:, slot] > 0).view(b, 1, 1, 1)
+        take = hit & (shift_px[:, slot].view(b, 1, 1, 1) > best)
+        out = torch.where(take, kept_labels[:, slot].view(b, 1, 1, 1), out)
+        best = torch.where(take, shift_px[:, slot].view(b, 1, 1, 1), best)
+    return out
+
+
+def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet,
+                            left_logits: torch.Tensor | None = None,
+                            measured: NearnessDisparity | None = None) -> StereoSegmentation:
+    """Both views of every pair (module docstring, steps 3–5): the drop-in for
+    :func:`~svs_torch.segmentation.segment_stereo`. ``left_logits`` and ``measured``: from
+    :func:`nearness_logits`, already computed by the caller (e.g. with gradients). Not differentiable.
+
+    ``threshold`` holds the probability threshold. The right view's ``binary`` and ``opened`` are its shifted
+    kept regions. Status as the Otsu stage's (``UNIFORM_IMAGE``: a one-level left or right image).
+    """
+    b = batch.batch_size
+    with torch.no_grad():
+        if left_logits is None:
+            left_logits, measured = nearness_logits(net, batch.left, batch.right)
+        elif measured is None:
+            measured = measure_nearness_disparity(batch.left, batch.right, net.config)
+    image = batch.left
+    threshold_value = net.config.probability_threshold
+    binary = left_logits.detach() > math.log(threshold_value / (1 - threshold_value))
+    element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
+    opened = open_binary(binary, element)
+    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
+    disparity = measured.disparity_px.detach()
+    region_disparity = _region_median_disparity(disparity, labels, num_regions)
+    h, w = image.shape[-2:]
+    kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep,
+                                          min_area_px=config.min_area_fraction * h * w,
+                                          nearness=region_disparity)
+    # A view of one gray level holds no disparity: the pair has no information (the Otsu stage's UNIFORM_IMAGE).
+    uniform = (gray_levels_and_histogram(torch.cat([image, batch.right]))[1] > 0).sum(1).view(2, b).eq(1).any(0)
+    threshold = torch.full((b,), threshold_value, dtype=image.dtype, device=image.device)
+    level = (threshold * 255).round().long()
+    status = _status(uniform, opened)
+    left = Segmentation(threshold=threshold, threshold_level=level, binary=binary, opened=opened, labels=labels,
+                        num_regions=num_regions, regions=regions, kept_labels=kept_labels, kept_mask=kept_mask,
+                        masked=image * kept_mask.to(image.dtype), status=status)
+    slot = (kept_labels - 1).clamp(min=0)
+    shift = torch.where(kept_labels > 0, torch.gather(region_disparity, 1, slot) if region_disparity.shape[1]
+                        else torch.zeros_like(kept_labels, dtype=disparity.dtype), 0.0)
+    right_labels = shift_regions_to_right(labels, kept_labels, shift)
+    right_mask = right_labels > 0
+    right = Segmentation(threshold=threshold, threshold_level=level, binary=right_mask, opened=right_mask,
+                         labels=right_labels, num_regions=num_regions,
+                         regions=region_properties(right_labels, num_regions), kept_labels=kept_labels,
+                         kept_mask=right_mask, masked=batch.right * right_mask.to(image.dtype),
+                         status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
+                                            status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))
+    pair_status = torch.where(left.status != SegmentationStatus.OK, left.status, right.status)
+    return StereoSegmentation(left=left, right=right, status=pair_status)

@@ -1,0 +1,145 @@
+"""The nearness segmenter (issue 32): the rule against the truth's own procedure, the keep rules, the right view's
+shifted regions, gradients, the default pipeline and clear errors."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from svs_torch.checks import InputError
+from svs_torch.components import connected_components_with_stats
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.learned_segmentation import load_obstacle_net, mask_iou, obstacle_truth, save_obstacle_net
+from svs_torch.nearness_segmentation import (NearnessNet, NearnessNetConfig, measure_nearness_disparity,
+                                             nearness_logits, segment_stereo_nearness, shift_regions_to_right)
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation import SegmentationConfig, keep_regions
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return random_obstacle_scenes(3, 2, depth_range_m=(1.0, 1.8), background_depth_m=4.0, noise_std=0.01,
+                                  generator=torch.Generator().manual_seed(3))
+
+
+def test_untrained_network_is_the_truths_rule_on_the_measured_disparity(scenes):
+    """A zero head leaves the rule: the near side of the Otsu split of the measured disparity, as
+    obstacle_truth computes it from a disparity map (its own, independent histogram code)."""
+    batch = scenes.batch
+    net = NearnessNet().eval()
+    logits, measured = nearness_logits(net, batch.left, batch.right)
+    as_truth = obstacle_truth(dataclasses.replace(batch, disparity_px=measured.disparity_px,
+                                                  disparity_valid=torch.ones_like(batch.disparity_valid),
+                                                  disparity_nonoccluded=None))
+    rule = logits > 0
+    agree = (rule == as_truth.near).float().mean()
+    assert agree > 0.995  # the two map disparities to 256 levels the same way; only split-level pixels may differ
+
+
+def test_rule_finds_the_synthetic_obstacles(scenes):
+    batch = scenes.batch
+    seg = segment_stereo_nearness(batch, PipelineConfig().segmentation, NearnessNet().eval())
+    truth = obstacle_truth(batch)
+    assert bool((mask_iou(seg.left.kept_mask, truth.kept_mask) > 0.8).all())
+    # The right view holds the same regions shifted by their disparity: compare with the truth's right view,
+    # the synthetic scene's left truth moved by the true disparity of each object.
+    assert bool((seg.right.kept_mask.flatten(1).sum(1) > 0.8 * seg.left.kept_mask.flatten(1).sum(1)).all())
+
+
+def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
+    mask = torch.zeros(1, 1, 40, 80, dtype=torch.bool)
+    mask[..., 0:30, 0:40] = True  # a large region (label 1)
+    mask[..., 0:20, 50:75] = True  # a medium region (label 2)
+    mask[..., 34:39, 60:66] = True  # a small region, nearest (label 3, 30 px)
+    labels, _, regions = connected_components_with_stats(mask, 8)
+    nearness = torch.tensor([[3.0, 5.0, 20.0]])  # median disparities: label 3 is the nearest
+    assert keep_regions(labels, regions, 2, "largest")[0].tolist() == [[1, 2]]
+    assert keep_regions(labels, regions, 2, "nearest", 0, nearness)[0].tolist() == [[3, 2]]
+    assert keep_regions(labels, regions, 2, "nearest_first", 0, nearness)[0].tolist() == [[3, 1]]
+    # Below the least area it is no candidate: the paper's rule then decides.
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness)[0].tolist() == [[2, 1]]
+    kept, kept_mask = keep_regions(labels, regions, 3, "nearest_first", 0, nearness)
+    assert kept.tolist() == [[3, 1, 2]] and int(kept_mask.sum()) == int(mask.sum())
+
+
+def test_shift_regions_to_right_moves_each_region_by_its_disparity():
+    labels = torch.zeros(1, 1, 6, 30, dtype=torch.int64)
+    labels[..., 1:3, 10:20] = 1
+    labels[..., 3:5, 22:28] = 2
+    right = shift_regions_to_right(labels, torch.tensor([[1, 2]]), torch.tensor([[4.0, 6.4]]))
+    expected = torch.zeros_like(labels)
+    expected[..., 1:3, 6:16] = 1
+    expected[..., 3:5, 16:22] = 2
+    assert torch.equal(right, expected)
+
+
+def test_gradients_reach_the_network_and_both_images(scenes):
+    torch.manual_seed(0)
+    net = NearnessNet(NearnessNetConfig(working_width_px=160, network_width_px=48))
+    torch.nn.init.normal_(net.head.weight, std=0.1)
+    batch = scenes.batch
+    left = batch.left[:1, :, :120, :160].clone().requires_grad_()
+    right = batch.right[:1, :, :120, :160].clone().requires_grad_()
+    logits, _ = nearness_logits(net, left, right)
+    logits.sigmoid().mean().backward()
+    assert left.grad.abs().sum() > 0 and right.grad.abs().sum() > 0
+    assert all(p.grad is not None and bool(torch.isfinite(p.grad).all()) for p in net.parameters())
+    assert net.head.weight.grad.abs().sum() > 0
+
+
+def test_network_gradcheck_float64():
+    net = NearnessNet(NearnessNetConfig(channels=(4, 4, 4))).double()
+    torch.nn.init.normal_(net.head.weight, std=0.1)
+    features = torch.randn(1, 5, 8, 12, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(net, (features,), eps=1e-6, atol=1e-5)
+
+
+def test_measured_disparity_is_hard_forward_soft_backward(scenes):
+    batch = scenes.batch
+    config = NearnessNetConfig(working_width_px=160)
+    with torch.no_grad():
+        hard = measure_nearness_disparity(batch.left, batch.right, config)
+    left = batch.left.clone().requires_grad_()
+    soft = measure_nearness_disparity(left, batch.right, config)
+    assert torch.equal(soft.disparity_px.detach(), hard.disparity_px)
+    soft.disparity_px.sum().backward()
+    assert left.grad.abs().sum() > 0
+
+
+def test_default_pipeline_runs_the_nearness_segmenter_and_trains_through_it(scenes):
+    config = PipelineConfig()
+    assert config.segmentation.segmenter == "nearness" and config.segmentation.keep == "nearest_first"
+    assert PipelineConfig.paper().segmentation == SegmentationConfig()  # the paper: Otsu, the two largest
+    result = estimate_obstacle_depth(scenes.batch, config)
+    assert bool((result.status == 0).all())
+    net = load_obstacle_net("nearness")
+    batch = dataclasses.replace(scenes.batch, left=scenes.batch.left.clone().requires_grad_())
+    differentiable = estimate_obstacle_depth(batch, dataclasses.replace(config, differentiable=True), network=net)
+    depth = differentiable.depth.objects.depth_median_m
+    valid = differentiable.depth.objects.valid
+    depth[valid].sum().backward()
+    assert batch.left.grad.abs().sum() > 0
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+
+
+def test_clear_errors(tmp_path):
+    with pytest.raises(InputError, match="keep: .nearest. ranks"):
+        SegmentationConfig(keep="nearest")
+    with pytest.raises(InputError, match="min_area_fraction"):
+        SegmentationConfig(segmenter="nearness", keep="nearest", min_area_fraction=2)
+    with pytest.raises(InputError, match="segmenter: expected otsu, nearness"):
+        SegmentationConfig(segmenter="nearnes")
+    with pytest.raises(InputError, match="no weights file"):
+        SegmentationConfig(segmenter="nearness:/no/such/file.pt")
+    old = tmp_path / "old.pt"
+    from svs_torch.learned_segmentation import ObstacleNet
+    save_obstacle_net(old, ObstacleNet())
+    with pytest.raises(InputError, match="not a svs_torch nearness network file"):
+        load_obstacle_net(f"nearness:{old}")
+    new = tmp_path / "new.pt"
+    save_obstacle_net(new, NearnessNet())
+    assert isinstance(load_obstacle_net(f"nearness:{new}"), NearnessNet)
+    with pytest.raises(InputError, match="window_size"):
+        NearnessNetConfig(window_size=8)
