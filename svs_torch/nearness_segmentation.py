@@ -9,12 +9,11 @@ it:
    view (:func:`svs_torch.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
    rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
    filled along their rows from the nearest measured ones, the farther side at an occlusion
-   (:func:`svs_torch.dense.fill_invalid_rows`). Measured on the tuned scenes (``experiments/eval_segmentation.py
-   --sweep-rule``): the fill lifts the rule's IoU with the truth from 0.58 to 0.62; a rejection left as a hole
-   breaks a region apart.
+   (:func:`svs_torch.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
+   and keep rule were chosen on the tuned scenes only (``experiments/select_nearness_rule.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity (the
    truth's rule on the estimate) and ``spread`` its 10–90 % range (at least 1 px).
-3. **Correction** (:class:`NearnessNet`, ~15k parameters): a three-level U-Net at ``network_width_px`` over the
+3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
    to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself.
 4. **Regions**: probability above the threshold, the paper's opening and components, then the ``num_keep``
