@@ -4,7 +4,9 @@ and keypoint matches. Each returns a uint8 BGR image for :func:`svs_torch.figure
 Readable by construction: every title is wrapped to its panel's width (nothing is clipped, which the tests
 check on the rendered text), labels on images are white on a dark box, match lines have a legend, a depth map
 has a colour bar (metres), and where the batch has ground truth it is shown beside the estimate on the same
-scale, with each object's true median depth next to the estimated one.
+scale, with each object's true median depth next to the estimated one. The title names the truly nearest
+obstacle's distance where it is known (:func:`true_nearest_obstacle`, or the caller's :class:`NearestTruth`) and
+says when no kept region holds it: the obstacle the pipeline ranges nearest is then the "nearest kept obstacle".
 
 Figures are for people; nothing here feeds back into the pipeline or is differentiable. matplotlib is imported
 inside the functions so that ``svs-depth --help`` stays fast.
@@ -13,6 +15,7 @@ inside the functions so that ``svs-depth --help`` stays fast.
 from __future__ import annotations
 
 import textwrap
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -20,7 +23,7 @@ import torch
 
 from .figures import objects_panel
 
-__all__ = ["estimate_figure", "matches_figure", "pipeline_figure", "render"]
+__all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
 
 PANEL_IN = 4.2  # the longer side of an image panel, inches
 MIN_PANEL_W_IN = 2.6  # narrower panels would clip their titles
@@ -28,6 +31,28 @@ TITLE_CHARS_PER_IN = 12  # characters per inch of a 10-point title
 INLIER, OUTLIER, MATCH, KEYPOINT = "#2ca02c", "#d62728", "#e6b800", "#1f77b4"
 LABEL_BOX = {"facecolor": "black", "alpha": 0.75, "edgecolor": "none", "pad": 2}
 NO_DEPTH_GRAY = "0.82"  # pixels without a depth: gray, not the white of the page
+# true_nearest_obstacle's two tolerances. A kept region holds the truly nearest truth region when their overlap is
+# at least this fraction of the smaller of the two: a kept neighbour's edge spills a pixel or two onto it (the 5x5
+# opening, the learned segmenter's mask resized from 160 px), 2 px of a 40 px wide region being 5 %, while a kept
+# region inside a large merged truth region (real scenes: one region for a whole table top) still counts.
+MIN_NEAREST_OVERLAP = 0.2
+# A truth region is "nearer" than the obstacle the pipeline ranges nearest only when its depth is below that
+# obstacle's own true depth by more than this fraction: on real scenes the GT regions merge neighbouring surfaces,
+# whose medians differ from a kept region's by a few per cent (Teddy, Art: the ranged region's truth is nearer).
+NEARER_MARGIN = 0.03
+
+
+class NearestTruth(NamedTuple):
+    """The truly nearest obstacle of one pair, for :func:`pipeline_figure`'s title.
+
+    Attributes:
+        depth_m: its true distance, metres.
+        kept_slot: the kept slot (column of ``result.segmentation.left.kept_labels``) whose region holds it; −1:
+            no kept region does (the pipeline missed it); None: not known (only the distance was given).
+    """
+
+    depth_m: float
+    kept_slot: int | None = None
 
 
 def render(figure) -> np.ndarray:
@@ -184,12 +209,113 @@ def _matches_axis(ax, left: np.ndarray, right: np.ndarray, keypoints_left, keypo
     ax.set_axis_off()
 
 
-def pipeline_figure(batch, result, index: int):
-    """The matplotlib :class:`~matplotlib.figure.Figure` of :func:`estimate_figure` (for tests and notebooks)."""
+def _region_lower_medians(values: torch.Tensor, known: torch.Tensor, labels: torch.Tensor,
+                          num_labels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower median (``torch.median``'s) of ``values`` ``(H, W)`` over each region 1..n of ``labels`` ``(H, W)``
+    where ``known``: ``(n,)`` medians (0 where empty) and ``(n,)`` int64 counts. Two stable sorts (by value, then
+    by label) put every region's values in order side by side: memory O(H·W) whatever n, where
+    :func:`svs_torch.depth.kept_region_lower_median` needs O(n·H·W)."""
+    take = known & (labels > 0)
+    region, value = labels[take], values[take]
+    order = torch.argsort(value, stable=True)
+    region, value = region[order], value[order]
+    order = torch.argsort(region, stable=True)
+    region, value = region[order], value[order]
+    count = torch.bincount(region, minlength=num_labels + 1)[1:]
+    start = torch.cumsum(count, 0) - count
+    at = (start + (count - 1).clamp(min=0) // 2).clamp(max=max(value.numel() - 1, 0))
+    median = value[at] if value.numel() else torch.zeros(num_labels, dtype=values.dtype, device=values.device)
+    return torch.where(count > 0, median, torch.zeros_like(median)), count
+
+
+def _truth_nearest_region(batch, index: int) -> tuple[float, torch.Tensor] | None:
+    """The truth region of pair ``index`` with the smallest lower-median GT depth: (metres, ``(H, W)`` mask), or
+    None without ground-truth depth or without a region. Every region of
+    :func:`svs_torch.learned_segmentation.obstacle_truth` counts, not only the two largest it keeps as the
+    segmenter's target: a smaller obstacle can be the nearer one (the demo's scene 3 with four objects)."""
+    from .learned_segmentation import obstacle_truth
+
+    if batch.disparity_px is None:
+        return None
+    pair = batch.select([index])
+    labels = obstacle_truth(pair).labels[0, 0]
+    depth, known = pair.ground_truth_depth_m()
+    region_depth, count = _region_lower_medians(depth[0, 0], known[0, 0], labels, int(labels.max()))
+    if not bool((count > 0).any()):
+        return None
+    nearest = int(torch.where(count > 0, region_depth, torch.inf).argmin())  # ties: the lower label
+    return float(region_depth[nearest]), labels == nearest + 1
+
+
+def true_nearest_obstacle(batch, result, index: int) -> NearestTruth | None:
+    """The truly nearest obstacle of pair ``index`` from the batch's ground truth, and the kept region of
+    ``result`` (a :class:`~svs_torch.pipeline.PipelineResult`) that holds it.
+
+    The obstacle the pipeline ranges nearest is the nearest (its slot, its own true median depth) unless a truth
+    region (:func:`_truth_nearest_region`) is nearer by more than ``NEARER_MARGIN``; that region is then held by
+    the kept region overlapping it most, when the overlap reaches ``MIN_NEAREST_OVERLAP`` of the smaller of the
+    two, and missed (``kept_slot`` −1) otherwise. None without ground truth, for an uncalibrated pair (no GT
+    depth) or when the truth has no region. Not differentiable (ground-truth statistics).
+    """
+    found = _truth_nearest_region(batch, index)
+    if found is None:
+        return None
+    depth_m, region = found
+    seg = result.segmentation.left
+    ranged = result.depth.nearest
+    own = _true_object_depths(batch, seg, index)
+    slot = int(ranged.slot[index]) if ranged is not None and bool(ranged.valid[index]) else -1
+    if slot in own and depth_m >= own[slot] * (1 - NEARER_MARGIN):
+        return NearestTruth(own[slot], slot)
+    overlap = []
+    for label in seg.kept_labels[index].tolist():
+        kept = seg.labels[index, 0] == label
+        smaller = min(int(region.sum()), int(kept.sum())) if label > 0 else 0
+        overlap.append(int((region & kept).sum()) / smaller if smaller else 0.0)
+    best = max(range(len(overlap)), key=overlap.__getitem__, default=-1)
+    return NearestTruth(depth_m, best if best >= 0 and overlap[best] >= MIN_NEAREST_OVERLAP else -1)
+
+
+def _nearest_summary(result, index: int, truth: dict[int, float], true_nearest: NearestTruth | None) -> list[str]:
+    """The title's parts about the nearest obstacle. The one the pipeline ranges nearest is "the nearest obstacle"
+    only where no truth says otherwise; where the truly nearest one is known to be another (or not known to be
+    it), it is "the nearest kept obstacle", and the true nearest distance follows, with whether it was kept."""
+    nearest = result.depth.nearest
+    slot = int(nearest.slot[index]) if nearest is not None and bool(nearest.valid[index]) else None
+    is_nearest = true_nearest is None or (slot is not None and true_nearest.kept_slot == slot)
+    parts = []
+    if slot is not None:
+        true_m = true_nearest.depth_m if true_nearest is not None and is_nearest else truth.get(slot)
+        true = f", true {true_m:.2f} m" if true_m is not None else ""
+        name = "nearest obstacle" if is_nearest else "nearest kept obstacle"
+        parts.append(f"{name} {float(nearest.depth_m[index]):.2f} m{true} (nearest surface "
+                     f"{float(nearest.surface_m[index]):.2f} m)")
+    if not is_nearest:
+        depth, kept_slot = true_nearest
+        if kept_slot is None:
+            parts.append(f"true nearest obstacle {depth:.2f} m")
+        elif kept_slot < 0:
+            parts.append(f"the nearest obstacle, true {depth:.2f} m, was not kept")
+        else:
+            parts.append(f"the nearest obstacle, true {depth:.2f} m, is #{kept_slot + 1}, not ranged nearest")
+    return parts
+
+
+def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None):
+    """The matplotlib :class:`~matplotlib.figure.Figure` of :func:`estimate_figure` (for tests and notebooks).
+
+    ``true_nearest``: the truly nearest obstacle for the title, a :class:`NearestTruth` or only its distance in
+    metres (the title then cannot say whether it was kept); None: :func:`true_nearest_obstacle` of the batch's
+    ground truth, where it has one.
+    """
     from matplotlib.figure import Figure
 
     from .pipeline import PipelineStatus
 
+    if true_nearest is None:
+        true_nearest = true_nearest_obstacle(batch, result, index)
+    elif not isinstance(true_nearest, NearestTruth):
+        true_nearest = NearestTruth(float(true_nearest))
     height, width = (int(v) for v in batch.image_hw[index].tolist())
     maps = _depth_maps(batch, result, index)
     columns = 1 + len(maps)
@@ -208,23 +334,19 @@ def pipeline_figure(batch, result, index: int):
                   index, f"matches on the segmented images: {int(result.num_keypoints[index, 0])} + "
                          f"{int(result.num_keypoints[index, 1])} keypoints, {int(result.num_matches[index])} matches",
                   match_w)
-    nearest = result.depth.nearest
-    summary = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule"
-    if bool(nearest.valid[index]):
-        slot = int(nearest.slot[index])
-        true = f", true {truth[slot]:.2f} m" if slot in truth else ""
-        summary = (f"nearest obstacle {float(nearest.depth_m[index]):.2f} m{true} (nearest surface "
-                   f"{float(nearest.surface_m[index]):.2f} m); " + summary)
+    status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule"
+    summary = "; ".join([*_nearest_summary(result, index, truth, true_nearest), status])
     name = batch.names[index] if batch.names else ""
     figure.suptitle(textwrap.fill(f"{name + ': ' if name else ''}{summary}", int(match_w * 11)), fontsize=11)
     return figure
 
 
-def estimate_figure(batch, result, index: int) -> np.ndarray:
+def estimate_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None) -> np.ndarray:
     """The pipeline on pair ``index`` as a uint8 BGR image: the kept objects with their median depths (and true
     depths), the dense depth map with a colour bar in metres (and the ground truth on the same scale when the
-    batch has it), and the matches with a legend (RANSAC inliers green, outliers red)."""
-    return render(pipeline_figure(batch, result, index))
+    batch has it), and the matches with a legend (RANSAC inliers green, outliers red). ``true_nearest``: as
+    :func:`pipeline_figure`'s."""
+    return render(pipeline_figure(batch, result, index, true_nearest=true_nearest))
 
 
 def matches_figure(left: torch.Tensor, right: torch.Tensor, keypoints, pairs: list[list[int]],

@@ -14,6 +14,8 @@ Render a synthetic scene as the SVS would see it (3.6 mm lenses, 10.75 cm baseli
 1-2 m in front of a wall, left and right views with exact ground-truth depth. Then run the whole pipeline
 (segmentation, SURF, SAD matching, RANSAC, rectification, depth) on the pair, print the true and the
 estimated depth of every obstacle, and write a figure of every step to svs_demo.png (or --figure FILE).
+It also names the truly nearest obstacle and says whether the pipeline kept it: where it did not, the one
+ranged nearest is the "nearest kept obstacle", and a warning line says so.
 A size under 5x5 pixels gives the status TOO_SMALL and no figure.
 """
 
@@ -56,19 +58,110 @@ def _truth_of_objects(scenes, seg) -> list[dict]:
     return found
 
 
+def _true_nearest(scenes, objects: list[dict], ranged_label: int | None) -> dict | None:
+    """The truly nearest visible obstacle of the scene's exact truth and whether the pipeline kept it.
+
+    Visible: a valid slot with pixels in the left view. Equal depths: the one ranged nearest first, then a kept
+    one, then the lowest slot. Kept: a kept left region covers it most (``objects``: the report's objects with
+    :func:`_truth_of_objects`' best-overlap ``true_object``). ``ranged_label``: the label of the object the
+    pipeline ranges nearest (None: none). None when no obstacle is visible.
+    """
+    ids = scenes.object_ids[0, 0]
+    depths = {k + 1: float(scenes.object_depth_m[0, k]) for k in range(scenes.object_depth_m.shape[1])
+              if bool(scenes.object_valid[0, k]) and bool((ids == k + 1).any())}
+    if not depths:
+        return None
+    nearest_m = min(depths.values())
+    kept_labels: dict[int, list[int]] = {}  # true obstacle -> labels of the kept objects that cover it most
+    for obj in objects:
+        kept_labels.setdefault(obj["true_object"], []).append(obj["label"])
+    ranged = next((obj["true_object"] for obj in objects if obj["label"] == ranged_label), None)
+    nearest = min((k for k, depth in depths.items() if depth == nearest_m),
+                  key=lambda k: (k != ranged, k not in kept_labels, k))
+    labels = kept_labels.get(nearest, [])
+    found = {"object": nearest, "depth_m": round(nearest_m, 3), "kept": bool(labels),
+             "kept_label": ranged_label if nearest == ranged else (labels[0] if labels else None),
+             "ranged_label": ranged_label, "ranged_is_nearest": nearest == ranged}
+    return {**found, "warning": _nearest_warning(found, objects)}
+
+
+def _nearest_warning(nearest: dict, objects: list[dict]) -> str | None:
+    """The line that says the truly nearest obstacle is not the one ranged nearest (None when it is)."""
+    if nearest["ranged_is_nearest"]:
+        return None
+    ranged = next((obj for obj in objects if obj["label"] == nearest["ranged_label"]), None)
+    if ranged is None:
+        other = "no kept obstacle was ranged"
+    else:
+        truth = (f"true obstacle {ranged['true_object']}" if ranged["true_object"] else "the background")
+        other = (f"object {ranged['label']} ({truth}, {ranged['median_true_depth_m']:.2f} m), ranged at "
+                 f"{ranged['depth_m']:.2f} m")
+    head = f"warning: the nearest obstacle (true obstacle {nearest['object']}, {nearest['depth_m']:.2f} m)"
+    if nearest["kept"]:
+        return f"{head} is object {nearest['kept_label']}, but {'the one ranged nearest is ' if ranged else ''}{other}"
+    return f"{head} was not kept; {'the nearest kept one is ' if ranged else ''}{other}"
+
+
+def _print_text(args, camera: dict, truth: list[dict], report: dict, true_nearest: dict | None) -> None:
+    """The demo's text: the scene, the pipeline's report, each kept object against its truth, the true nearest."""
+    from .estimate import format_report
+
+    width, height = camera["image_size_wh"]
+    print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
+          f"baseline {camera['baseline_m'] * 100:.2f} cm")
+    for obj in truth:
+        print(f"  true obstacle {obj['object']}: {obj['depth_m']:.2f} m, box {obj['bbox_xyxy']}")
+    ranged_is_nearest = true_nearest is not None and true_nearest["ranged_is_nearest"]
+    print("\n".join(format_report(report, "nearest obstacle" if ranged_is_nearest else "nearest kept obstacle")))
+    for obj in report["objects"]:
+        estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
+        print(f"  object {obj['label']} is true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}): "
+              f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
+    if true_nearest is None:
+        print("  true nearest obstacle: none (no obstacle is visible)")
+    else:
+        kept = f"kept as object {true_nearest['kept_label']}" if true_nearest["kept"] else "not kept"
+        print(f"  true nearest obstacle: true obstacle {true_nearest['object']} at {true_nearest['depth_m']:.2f} m, "
+              f"{kept}")
+        if true_nearest["warning"]:
+            print(true_nearest["warning"])
+    print(f"figure written to {args.figure}")
+
+
+def _demo_figure(batch, result, true_nearest: dict | None):
+    """The inputs and their masks in one row above the pipeline figure, whose title names the true nearest
+    obstacle from the scene's exact truth (None: the figure's own, from the ground-truth disparity)."""
+    import cv2
+
+    from ..figures import compose_grid, segmentation_panels
+    from ..plots import NearestTruth, estimate_figure
+
+    nearest = None
+    if true_nearest is not None:
+        nearest = NearestTruth(true_nearest["depth_m"],
+                               true_nearest["kept_label"] - 1 if true_nearest["kept"] else -1)
+    # Four 320-wide panels fill the pipeline figure's width (which shows the true depth beside the estimate),
+    # where two left a third of the row blank; the row is scaled to that width.
+    left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
+    right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right")
+    pipeline = estimate_figure(batch, result, 0, true_nearest=nearest)
+    top = compose_grid([[left_image], [right_image], [left_binary], [right_binary]])
+    top = cv2.resize(top, (pipeline.shape[1], round(top.shape[0] * pipeline.shape[1] / top.shape[1])),
+                     interpolation=cv2.INTER_AREA if top.shape[1] > pipeline.shape[1] else cv2.INTER_CUBIC)
+    return compose_grid([[top, pipeline]])
+
+
 def run(args: argparse.Namespace) -> int:
     from ..workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        import cv2
         import torch
 
         from ..camera import parse_size
         from ..checks import InputError
         from ..data.synthetic import random_obstacle_scenes
-        from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
+        from ..figures import check_output_path, write_image_atomic
         from ..pipeline import estimate_obstacle_depth
-        from ..plots import estimate_figure
         from .estimate import format_report, pair_report, unranged_report, with_calibration
         from .features import MAX_PIXELS
 
@@ -79,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
     reason = too_small_reason((height, width))
     if reason:
         report = unranged_report("TOO_SMALL", reason + "; no scene rendered, no figure written", "dense")
-        print(dumps_strict({"seed": args.seed, "truth": [], **report, "figure": None}) if args.json
+        print(dumps_strict({"seed": args.seed, "truth": [], "true_nearest": None, **report, "figure": None})
+              if args.json
               else "\n".join(format_report(report)))
         return 0
     generator = torch.Generator().manual_seed(args.seed)
@@ -98,30 +192,15 @@ def run(args: argparse.Namespace) -> int:
     ]
     for obj, match in zip(report["objects"], _truth_of_objects(scenes, result.segmentation.left)):
         obj.update({k: v for k, v in match.items() if k != "label"})
-
-    # The inputs and their masks in one row above the pipeline figure (which shows the true depth beside the
-    # estimate), scaled to its width: four 320-wide panels fill it, where two left a third of the row blank.
-    left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
-    right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right")
-    pipeline = estimate_figure(batch, result, 0)
-    top = compose_grid([[left_image], [right_image], [left_binary], [right_binary]])
-    top = cv2.resize(top, (pipeline.shape[1], round(top.shape[0] * pipeline.shape[1] / top.shape[1])),
-                     interpolation=cv2.INTER_AREA if top.shape[1] > pipeline.shape[1] else cv2.INTER_CUBIC)
-    figure = compose_grid([[top, pipeline]])
-    write_image_atomic(args.figure, figure, args.figure_option)
+    nearest = result.depth.nearest
+    ranged_label = int(nearest.slot[0]) + 1 if nearest is not None and bool(nearest.valid[0]) else None
+    true_nearest = _true_nearest(scenes, report["objects"], ranged_label)
+    write_image_atomic(args.figure, _demo_figure(batch, result, true_nearest), args.figure_option)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}
     if args.json:
-        print(dumps_strict({"seed": args.seed, "camera": camera, "truth": truth, **report, "figure": args.figure}))
+        print(dumps_strict({"seed": args.seed, "camera": camera, "truth": truth, "true_nearest": true_nearest,
+                            **report, "figure": args.figure}))
         return 0
-    print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
-          f"baseline {camera['baseline_m'] * 100:.2f} cm")
-    for obj in truth:
-        print(f"  true obstacle {obj['object']}: {obj['depth_m']:.2f} m, box {obj['bbox_xyxy']}")
-    print("\n".join(format_report(report)))
-    for obj in report["objects"]:
-        estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
-        print(f"  object {obj['label']} is true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}): "
-              f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
-    print(f"figure written to {args.figure}")
+    _print_text(args, camera, truth, report, true_nearest)
     return 0

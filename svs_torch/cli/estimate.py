@@ -219,7 +219,9 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     }
 
 
-def format_report(report: dict) -> list[str]:
+def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[str]:
+    """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
+    called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept)."""
     if report.get("reason"):
         return [f"status {report['status']}: {report['reason']}"]
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
@@ -244,7 +246,7 @@ def format_report(report: dict) -> list[str]:
         lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
                      f"box {obj['bbox_xyxy']}")
     if report["nearest_m"] is not None:
-        lines.append(f"  nearest obstacle: {report['nearest_m']:.2f} m, {report['nearest_side']} "
+        lines.append(f"  {nearest_name}: {report['nearest_m']:.2f} m, {report['nearest_side']} "
                      f"(nearest surface {report['nearest_surface_m']:.2f} m)")
     return lines
 

@@ -1,0 +1,206 @@
+"""The truly nearest obstacle is named where a ground truth exists (issue 32, item 5): ``demo``'s text and JSON and
+the pipeline figure's title say when the kept regions miss a nearer obstacle, and then call the one ranged nearest
+the "nearest kept obstacle".
+
+Every check holds for any segmenter: the demo's claims are compared with its own kept regions and the scene's exact
+truth, run with the pipeline's default segmenter and with Otsu and the learned one forced. Synthetic scenes (exact
+ground truth); the known scene is ``--objects 4 --seed 3``: its nearest obstacle (1.00 m, the narrowest of four)
+is not among Otsu's two largest regions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+import svs_torch.pipeline
+import svs_torch.plots
+from svs_torch.cli import main
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.figures import write_image_atomic
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.plots import NearestTruth, _region_lower_medians, pipeline_figure, render, true_nearest_obstacle
+
+MISSED_SCENE = ("--objects", "4", "--seed", "3")  # true obstacle 1 at 1.00 m is the narrowest: Otsu drops it
+KEPT_SCENE = ("--objects", "2", "--seed", "3")  # the same two nearest obstacles alone: both kept
+
+
+def config_with(segmenter: str | None) -> PipelineConfig:
+    """The default pipeline configuration, with ``segmenter`` instead of the default one (None: as it is)."""
+    config = PipelineConfig()
+    if segmenter is None:
+        return config
+    return dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter=segmenter))
+
+
+@pytest.fixture(params=[None, "otsu", "learned"], ids=["default", "otsu", "learned"])
+def segmenter(request, monkeypatch) -> str | None:
+    """The segmenter the demo's pipeline runs (None: the default, whichever it is)."""
+    if request.param is not None:
+        original = svs_torch.pipeline.estimate_obstacle_depth
+        config = config_with(request.param)
+        monkeypatch.setattr(svs_torch.pipeline, "estimate_obstacle_depth", lambda batch: original(batch, config))
+    return request.param
+
+
+@pytest.fixture
+def figure_titles(monkeypatch) -> list[str]:
+    """The titles of the pipeline figures drawn while the test runs."""
+    titles = []
+    original = svs_torch.plots.pipeline_figure
+
+    def recording(*args, **kwargs):
+        figure = original(*args, **kwargs)
+        titles.append(figure._suptitle.get_text().replace("\n", " "))
+        return figure
+
+    monkeypatch.setattr(svs_torch.plots, "pipeline_figure", recording)
+    return titles
+
+
+def run_demo(capsys, tmp_path, *argv: str) -> tuple[dict, str]:
+    """The demo's JSON report and its text for the same scene."""
+    figure = str(tmp_path / "demo.png")
+    assert main(["demo", *argv, "--json", "--figure", figure]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert main(["demo", *argv, "--figure", figure]) == 0
+    return report, capsys.readouterr().out
+
+
+def check_consistent(report: dict, text: str) -> dict:
+    """The true nearest obstacle of ``report`` against the scene's truth and the kept objects, in JSON and text."""
+    nearest = report["true_nearest"]
+    truth = {t["object"]: t["depth_m"] for t in report["truth"]}
+    assert nearest["depth_m"] == min(truth.values()) and truth[nearest["object"]] == nearest["depth_m"]
+    covering = [o["label"] for o in report["objects"] if o["true_object"] == nearest["object"]]
+    assert nearest["kept"] == bool(covering)
+    assert nearest["kept_label"] in covering if covering else nearest["kept_label"] is None
+    ranged = [o for o in report["objects"] if o["label"] == nearest["ranged_label"]]
+    assert len(ranged) == (report["nearest_m"] is not None)
+    if ranged:
+        assert ranged[0]["depth_m"] == pytest.approx(report["nearest_m"], abs=1e-3)
+    assert nearest["ranged_is_nearest"] == bool(ranged and ranged[0]["true_object"] == nearest["object"])
+    named = f"true nearest obstacle: true obstacle {nearest['object']} at {nearest['depth_m']:.2f} m"
+    assert named in text
+    if nearest["ranged_is_nearest"]:
+        assert nearest["warning"] is None and "warning" not in text
+        assert "  nearest obstacle: " in text and "nearest kept obstacle" not in text
+    else:
+        head = f"warning: the nearest obstacle (true obstacle {nearest['object']}, {nearest['depth_m']:.2f} m)"
+        assert nearest["warning"].startswith(head) and nearest["warning"] in text.splitlines()
+        assert ("was not kept" in nearest["warning"]) == (not nearest["kept"])
+        assert "  nearest kept obstacle: " in text and "  nearest obstacle: " not in text
+    return nearest
+
+
+def test_demo_reports_the_true_nearest_and_whether_it_was_kept(capsys, tmp_path, segmenter, figure_titles):
+    report, text = run_demo(capsys, tmp_path, *MISSED_SCENE)
+    nearest = check_consistent(report, text)
+    assert nearest["object"] == 1 and nearest["depth_m"] == pytest.approx(1.004, abs=1e-3)
+    if segmenter == "otsu":  # Otsu keeps the two largest regions: obstacles 2 and 4, not the narrow obstacle 1
+        assert not nearest["kept"] and nearest["kept_label"] is None and not nearest["ranged_is_nearest"]
+        assert "the nearest kept one is object 1 (true obstacle 2, 1.06 m)" in nearest["warning"]
+    # The figure's title says the same, from the same truth.
+    assert len(figure_titles) == 2
+    for title in figure_titles:
+        if nearest["ranged_is_nearest"]:
+            assert title.startswith("synthetic-0: nearest obstacle ") and "true 1.00 m" in title
+        else:
+            assert "nearest kept obstacle" in title
+            assert ("the nearest obstacle, true 1.00 m, was not kept" in title) == (not nearest["kept"])
+
+
+def test_demo_without_a_missed_obstacle_has_no_warning(capsys, tmp_path, segmenter, figure_titles):
+    report, text = run_demo(capsys, tmp_path, *KEPT_SCENE)
+    nearest = check_consistent(report, text)
+    assert nearest["kept"] and nearest["ranged_is_nearest"] and nearest["warning"] is None
+    assert nearest["object"] == 1 and nearest["kept_label"] == nearest["ranged_label"]
+    assert all("not kept" not in t and "nearest kept" not in t for t in figure_titles)
+
+
+def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path):
+    report, text = run_demo(capsys, tmp_path, "--objects", "0")
+    assert report["true_nearest"] is None
+    assert "true nearest obstacle: none" in text and "warning" not in text
+
+
+@pytest.fixture(scope="module")
+def missed_scene():
+    """The demo's known scene and Otsu's result on it (true obstacle 1 at 1.00 m not kept)."""
+    scenes = random_obstacle_scenes(1, 4, size_wh=(320, 240), generator=torch.Generator().manual_seed(3))
+    return scenes, estimate_obstacle_depth(scenes.batch, config_with("otsu"))
+
+
+def test_figure_title_says_the_kept_regions_miss_the_nearest(missed_scene, tmp_path):
+    scenes, result = missed_scene
+    nearest = true_nearest_obstacle(scenes.batch, result, 0)
+    assert nearest.kept_slot == -1 and nearest.depth_m == pytest.approx(float(scenes.object_depth_m[0, 0]))
+    figure = pipeline_figure(scenes.batch, result, 0)  # the truth from the batch's ground-truth disparity
+    write_image_atomic(tmp_path / "figure.png", render(figure))
+    title = figure._suptitle.get_text().replace("\n", " ")
+    assert title.startswith("synthetic-0: nearest kept obstacle 1.06 m, true 1.06 m")
+    assert "the nearest obstacle, true 1.00 m, was not kept" in title
+    assert (tmp_path / "figure.png").stat().st_size > 0
+
+
+def test_figure_title_from_the_callers_truth(missed_scene):
+    scenes, result = missed_scene
+    slot = int(result.depth.nearest.slot[0])
+    kept = pipeline_figure(scenes.batch, result, 0, true_nearest=NearestTruth(1.06, slot))._suptitle.get_text()
+    assert kept.startswith("synthetic-0: nearest obstacle 1.06 m, true 1.06 m") and "not kept" not in kept
+    other = pipeline_figure(scenes.batch, result, 0, true_nearest=NearestTruth(1.0, 1 - slot))._suptitle.get_text()
+    assert f"the nearest obstacle, true 1.00 m, is #{2 - slot}, not ranged" in other.replace("\n", " ")
+    distance = pipeline_figure(scenes.batch, result, 0, true_nearest=1.0)._suptitle.get_text().replace("\n", " ")
+    assert "nearest kept obstacle 1.06 m" in distance and "true nearest obstacle 1.00 m" in distance
+    assert "not kept" not in distance  # only a distance: whether it was kept is not known
+
+
+def test_figure_title_when_the_nearest_is_kept():
+    scenes = random_obstacle_scenes(1, 2, size_wh=(320, 240), generator=torch.Generator().manual_seed(3))
+    result = estimate_obstacle_depth(scenes.batch, config_with("otsu"))
+    nearest = true_nearest_obstacle(scenes.batch, result, 0)
+    assert nearest.kept_slot == int(result.depth.nearest.slot[0])
+    assert nearest.depth_m == pytest.approx(float(scenes.object_depth_m[0, 0]), abs=1e-6)
+    title = pipeline_figure(scenes.batch, result, 0)._suptitle.get_text()
+    assert title.startswith("synthetic-0: nearest obstacle 1.00 m, true 1.00 m") and "kept" not in title
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_region_lower_medians_match_torch_median(seed):
+    # Source: torch.median (the lower median) of each region's known values, one region at a time.
+    g = torch.Generator().manual_seed(seed)
+    values = torch.rand(13, 17, generator=g, dtype=torch.float64)
+    labels = torch.randint(0, 6, (13, 17), generator=g)
+    known = torch.rand(13, 17, generator=g) > 0.3
+    median, count = _region_lower_medians(values, known, labels, 7)  # label 6 and 7: no pixel
+    for label in range(1, 8):
+        picked = values[(labels == label) & known]
+        assert int(count[label - 1]) == picked.numel()
+        assert float(median[label - 1]) == (float(picked.median()) if picked.numel() else 0.0)
+    empty, none = _region_lower_medians(values, torch.zeros_like(known), labels, 3)
+    assert empty.tolist() == [0.0, 0.0, 0.0] and none.tolist() == [0, 0, 0]
+
+
+def test_true_nearest_kept_but_not_ranged_nearest_and_ties():
+    from types import SimpleNamespace
+
+    from svs_torch.cli.demo import _true_nearest
+
+    # Three obstacles side by side in a 1 x 3 left view, at 1.2, 1.0 and 1.0 m (a tie).
+    scenes = SimpleNamespace(object_ids=torch.tensor([[[[1, 2, 3]]]]), object_valid=torch.ones(1, 3, dtype=torch.bool),
+                             object_depth_m=torch.tensor([[1.2, 1.0, 1.0]]))
+    objects = [{"label": 1, "true_object": 1, "median_true_depth_m": 1.2, "depth_m": 1.1},
+               {"label": 2, "true_object": 3, "median_true_depth_m": 1.0, "depth_m": 1.15}]
+    found = _true_nearest(scenes, objects, ranged_label=1)  # the pipeline ranged the far one nearest
+    assert found["object"] == 3 and found["kept"] and found["kept_label"] == 2  # of the tie, the kept one
+    assert not found["ranged_is_nearest"]
+    assert found["warning"] == ("warning: the nearest obstacle (true obstacle 3, 1.00 m) is object 2, but the one "
+                                "ranged nearest is object 1 (true obstacle 1, 1.20 m), ranged at 1.10 m")
+    tied = _true_nearest(scenes, objects[1:], ranged_label=2)
+    assert tied["object"] == 3 and tied["ranged_is_nearest"] and tied["warning"] is None
+    missed = _true_nearest(scenes, objects[:1], ranged_label=None)
+    assert missed["object"] == 2 and not missed["kept"] and missed["kept_label"] is None
+    assert missed["warning"].endswith("(true obstacle 2, 1.00 m) was not kept; no kept obstacle was ranged")
