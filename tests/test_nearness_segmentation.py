@@ -143,3 +143,18 @@ def test_clear_errors(tmp_path):
     assert isinstance(load_obstacle_net(f"nearness:{new}"), NearnessNet)
     with pytest.raises(InputError, match="window_size"):
         NearnessNetConfig(window_size=8)
+
+
+def test_region_medians_equal_the_kept_region_lower_median():
+    """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
+    from svs_torch.depth import kept_region_lower_median
+    from svs_torch.nearness_segmentation import _region_median_disparity
+
+    generator = torch.Generator().manual_seed(1)
+    for _ in range(30):
+        labels = torch.randint(0, 6, (3, 1, 7, 9), generator=generator)
+        values = torch.randint(0, 5, (3, 1, 7, 9), generator=generator).float()  # ties, as filled disparities
+        count = labels.flatten(1).amax(1)
+        every = torch.arange(1, int(count.max()) + 1).expand(3, -1)
+        expected, _ = kept_region_lower_median(values, torch.ones_like(labels, dtype=torch.bool), labels, every)
+        assert torch.equal(_region_median_disparity(values, labels, count), expected)
