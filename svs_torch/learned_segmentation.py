@@ -184,18 +184,15 @@ def _block(inputs: int, outputs: int) -> nn.Sequential:
                          nn.Conv2d(outputs, outputs, 3, padding=1), nn.GroupNorm(4, outputs), nn.ReLU(inplace=True))
 
 
-class ObstacleNet(nn.Module):
-    """Three-level U-Net from :func:`stereo_features` ``(B, 6, h, w)`` to obstacle logits ``(B, 1, h, w)``.
+class ThreeLevelUNet(nn.Module):
+    """Three-level U-Net from ``inputs`` channels to one logit channel, ``channels`` wide at its three levels; the
+    bottleneck sees the image's mean feature beside its own (global context: nearness is relative to the rest of
+    the scene, as the truth's Otsu split is). Differentiable w.r.t. its parameters and its input."""
 
-    The bottleneck sees the image's mean feature beside its own (global context: nearness is relative to the
-    rest of the scene, as the truth's Otsu split is). Differentiable w.r.t. its parameters and its input.
-    """
-
-    def __init__(self, config: ObstacleNetConfig = ObstacleNetConfig()) -> None:
+    def __init__(self, inputs: int, channels: tuple[int, int, int]) -> None:
         super().__init__()
-        self.config = config
-        c1, c2, c3 = config.channels
-        self.down1, self.down2, self.down3 = _block(NUM_FEATURES, c1), _block(c1, c2), _block(c2, c3)
+        c1, c2, c3 = channels
+        self.down1, self.down2, self.down3 = _block(inputs, c1), _block(c1, c2), _block(c2, c3)
         self.middle = _block(2 * c3, c3)
         self.up2, self.up1 = _block(c3 + c2, c2), _block(c2 + c1, c1)
         self.head = nn.Conv2d(c1, 1, 1)
@@ -208,6 +205,14 @@ class ObstacleNet(nn.Module):
         y2 = self.up2(torch.cat([F.interpolate(x3, size=x2.shape[-2:], mode="bilinear"), x2], 1))
         y1 = self.up1(torch.cat([F.interpolate(y2, size=x1.shape[-2:], mode="bilinear"), x1], 1))
         return self.head(y1)
+
+
+class ObstacleNet(ThreeLevelUNet):
+    """:class:`ThreeLevelUNet` from :func:`stereo_features` ``(B, 6, h, w)`` to obstacle logits ``(B, 1, h, w)``."""
+
+    def __init__(self, config: ObstacleNetConfig = ObstacleNetConfig()) -> None:
+        super().__init__(NUM_FEATURES, config.channels)
+        self.config = config
 
 
 def _working_size(image: torch.Tensor, width: int) -> tuple[int, int]:

@@ -42,6 +42,7 @@ from torch import nn
 from .checks import InputError, check_image
 from .components import connected_components_with_stats, region_properties
 from .dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
+from .learned_segmentation import ThreeLevelUNet
 from .depth import kept_region_lower_median
 from .morphology import open_binary, structuring_element
 from .segmentation import SegmentationConfig, _status, keep_regions
@@ -101,39 +102,17 @@ class NearnessNetConfig:
         return max(1, round(width_px / self.working_width_px))
 
 
-def _block(inputs: int, outputs: int) -> nn.Sequential:
-    """Two 3×3 convolutions with group normalisation (batch-size independent: training and use agree)."""
-    return nn.Sequential(nn.Conv2d(inputs, outputs, 3, padding=1), nn.GroupNorm(4, outputs), nn.ReLU(inplace=True),
-                         nn.Conv2d(outputs, outputs, 3, padding=1), nn.GroupNorm(4, outputs), nn.ReLU(inplace=True))
-
-
-class NearnessNet(nn.Module):
-    """Three-level U-Net from the features ``(B, 5, h, w)`` to a correction of the rule's logits ``(B, 1, h, w)``.
-
-    The bottleneck sees the image's mean feature beside its own (nearness is relative to the scene). The head
-    starts at zero: an untrained network leaves the rule's logits unchanged. Differentiable w.r.t. its parameters
-    and its input.
+class NearnessNet(ThreeLevelUNet):
+    """:class:`~svs_torch.learned_segmentation.ThreeLevelUNet` from the features ``(B, 5, h, w)`` to a correction
+    of the rule's logits ``(B, 1, h, w)``. The head starts at zero: an untrained network leaves the rule's logits
+    unchanged. Differentiable w.r.t. its parameters and its input.
     """
 
     def __init__(self, config: NearnessNetConfig = NearnessNetConfig()) -> None:
-        super().__init__()
+        super().__init__(NUM_FEATURES, config.channels)
         self.config = config
-        c1, c2, c3 = config.channels
-        self.down1, self.down2, self.down3 = _block(NUM_FEATURES, c1), _block(c1, c2), _block(c2, c3)
-        self.middle = _block(2 * c3, c3)
-        self.up2, self.up1 = _block(c3 + c2, c2), _block(c2 + c1, c1)
-        self.head = nn.Conv2d(c1, 1, 1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
-
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        x1 = self.down1(features)
-        x2 = self.down2(F.max_pool2d(x1, 2, ceil_mode=True))
-        x3 = self.down3(F.max_pool2d(x2, 2, ceil_mode=True))
-        x3 = self.middle(torch.cat([x3, x3.mean((2, 3), keepdim=True).expand_as(x3)], 1))
-        y2 = self.up2(torch.cat([F.interpolate(x3, size=x2.shape[-2:], mode="bilinear"), x2], 1))
-        y1 = self.up1(torch.cat([F.interpolate(y2, size=x1.shape[-2:], mode="bilinear"), x1], 1))
-        return self.head(y1)
 
 
 @dataclass(frozen=True)
