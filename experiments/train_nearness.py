@@ -37,8 +37,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -54,8 +52,9 @@ from svs_torch.types import StereoBatch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
-from train_segmentation import (HELD_OUT_DUPLICATES, crop_batch, fine_tune_through_pipeline, mask_loss,  # noqa: E402
-                                train_scenes)
+import train_segmentation  # noqa: E402
+from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, crop_batch, fine_tune_through_pipeline,  # noqa: E402
+                                mask_loss, train_scenes)
 
 SIZE_WH = (320, 240)
 
@@ -76,10 +75,6 @@ class NearnessTrainConfig:
     seed: int = 0
 
 
-def _uniform(generator: torch.Generator, low: float, high: float) -> float:
-    return low + (high - low) * float(torch.rand((), generator=generator))
-
-
 def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     """The scene resized to a random width in 320–560 px (high enough for 240 rows), then a 320×240 window."""
     height, width = batch.size_hw
@@ -91,38 +86,10 @@ def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     return crop_batch(scaled, x0, y0, *SIZE_WH)
 
 
-def _jpeg(image: torch.Tensor, quality: int) -> torch.Tensor:
-    pixels = (image[0, 0].clamp(0, 1) * 255).round().byte().numpy()
-    ok, data = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    decoded = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
-    return torch.from_numpy(decoded.astype(np.float32) / 255).view_as(image).to(image.dtype)
-
-
 def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     """The module docstring's photometric changes, JPEG and flip; one draw per call (B = 1)."""
-    def photometric(image: torch.Tensor, gamma: float, gain: float, offset: float) -> torch.Tensor:
-        return (image.clamp_min(0) ** gamma * gain + offset).clamp(0, 1)
-
-    gamma = math.exp(_uniform(generator, math.log(0.5), math.log(2.0)))
-    gain, offset = _uniform(generator, 0.6, 1.2), _uniform(generator, -0.15, 0.15)
-    left = photometric(batch.left, gamma, gain, offset)
-    right = photometric(batch.right, gamma, gain, offset)
-    right = (right * _uniform(generator, 0.8, 1.25) + _uniform(generator, -0.06, 0.06)).clamp(0, 1)
-    if float(torch.rand((), generator=generator)) < 0.35:
-        left, right = 1 - left, 1 - right
-    noise = _uniform(generator, 0.0, 0.025)
-    left = (left + noise * torch.randn(left.shape, generator=generator)).clamp(0, 1)
-    right = (right + noise * torch.randn(right.shape, generator=generator)).clamp(0, 1)
-    if float(torch.rand((), generator=generator)) < 0.5:
-        quality = int(torch.randint(40, 96, (), generator=generator))
-        left, right = _jpeg(left, quality), _jpeg(right, quality)
-    out = dataclasses.replace(batch, left=left, right=right)
-    if float(torch.rand((), generator=generator)) < 0.5:
-        nonoccluded = None if out.disparity_nonoccluded is None else out.disparity_nonoccluded.flip(-2)
-        out = dataclasses.replace(out, left=out.left.flip(-2), right=out.right.flip(-2),
-                                  disparity_px=out.disparity_px.flip(-2), disparity_valid=out.disparity_valid.flip(-2),
-                                  disparity_nonoccluded=nonoccluded)
-    return out
+    return train_segmentation.augment(batch, generator, right_gain=(0.8, 1.25), right_offset=0.06, max_noise=0.025,
+                                      jpeg_share=0.5)
 
 
 def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]:
@@ -131,8 +98,9 @@ def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]
     for _ in range(count):
         num_objects = int(torch.randint(1, 4, (), generator=generator))
         nearest_m = 0.7 if num_objects < 3 else 1.0  # three boxes side by side need room in both views
-        scene = random_obstacle_scenes(1, num_objects, size_wh=SIZE_WH, depth_range_m=(nearest_m, 2.5), background_depth_m=_uniform(generator, 2.5, 8.0),
-                                       noise_std=0.01, generator=generator)
+        scene = random_obstacle_scenes(1, num_objects, size_wh=SIZE_WH, depth_range_m=(nearest_m, 2.5),
+                                       background_depth_m=_uniform(generator, 2.5, 8.0), noise_std=0.01,
+                                       generator=generator)
         pairs.append(scene.batch)
     return pairs
 

@@ -51,6 +51,8 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -121,8 +123,20 @@ def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     return crop_batch(scaled, x0, y0, *CROP_WH)
 
 
-def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
-    """Photometric changes (module docstring) and a vertical flip, one draw per call (B = 1)."""
+def jpeg_frame(image: torch.Tensor, quality: int) -> torch.Tensor:
+    """A ``(1, 1, H, W)`` image through an 8-bit JPEG encode and decode at ``quality`` (the SVS sends JPEG)."""
+    pixels = (image[0, 0].clamp(0, 1) * 255).round().byte().numpy()
+    _, data = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    decoded = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    return torch.from_numpy(decoded.astype(np.float32) / 255).view_as(image).to(image.dtype)
+
+
+def augment(batch: StereoBatch, generator: torch.Generator, right_gain: tuple[float, float] = (0.85, 1.15),
+            right_offset: float = 0.05, max_noise: float = 0.02, jpeg_share: float = 0.0) -> StereoBatch:
+    """Photometric changes (module docstring), on ``jpeg_share`` of the calls JPEG frames of quality 40–95, and a
+    vertical flip, one draw per call (B = 1). The right view's exposure differs by a gain in ``right_gain`` and an
+    offset up to ``±right_offset``; the noise's standard deviation is up to ``max_noise``. With ``jpeg_share`` 0
+    no JPEG draw is made (the draws of the runs that made the shipped weights)."""
     def photometric(image: torch.Tensor, gamma: float, gain: float, offset: float) -> torch.Tensor:
         return (image.clamp_min(0) ** gamma * gain + offset).clamp(0, 1)
 
@@ -130,12 +144,15 @@ def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     gain, offset = _uniform(generator, 0.6, 1.2), _uniform(generator, -0.15, 0.15)
     left = photometric(batch.left, gamma, gain, offset)
     right = photometric(batch.right, gamma, gain, offset)
-    right = (right * _uniform(generator, 0.85, 1.15) + _uniform(generator, -0.05, 0.05)).clamp(0, 1)
+    right = (right * _uniform(generator, *right_gain) + _uniform(generator, -right_offset, right_offset)).clamp(0, 1)
     if float(torch.rand((), generator=generator)) < 0.35:
         left, right = 1 - left, 1 - right
-    noise = _uniform(generator, 0.0, 0.02)
+    noise = _uniform(generator, 0.0, max_noise)
     left = (left + noise * torch.randn(left.shape, generator=generator)).clamp(0, 1)
     right = (right + noise * torch.randn(right.shape, generator=generator)).clamp(0, 1)
+    if jpeg_share > 0 and float(torch.rand((), generator=generator)) < jpeg_share:
+        quality = int(torch.randint(40, 96, (), generator=generator))
+        left, right = jpeg_frame(left, quality), jpeg_frame(right, quality)
     out = dataclasses.replace(batch, left=left, right=right)
     if float(torch.rand((), generator=generator)) < 0.5:
         nonoccluded = None if out.disparity_nonoccluded is None else out.disparity_nonoccluded.flip(-2)
