@@ -44,7 +44,7 @@ from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle
 from svs_torch.segmentation import SegmentationConfig, segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
+from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 
@@ -61,17 +61,7 @@ def sgbm_rival(batch) -> tuple[torch.Tensor, float | None]:
     """The classical stereo-aware rival: the truth's own procedure (Otsu of the disparity, 5×5 opening, two
     largest regions) on OpenCV StereoSGBM's disparity (experiments/paper_table1.py's settings); its nearest
     obstacle is the smaller median SGBM depth of its two regions."""
-    import cv2
-    import numpy as np
-
-    def gray(image):
-        return (image[0, 0].clamp(0, 1) * 255).round().byte().numpy()
-
-    width = batch.size_hw[1]
-    num_disparities = 16 * int(np.ceil(0.25 * width / 16))
-    matcher = cv2.StereoSGBM_create(0, num_disparities, 5, P1=8 * 25, P2=32 * 25, disp12MaxDiff=1,
-                                    uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
-    disparity = torch.from_numpy(matcher.compute(gray(batch.left), gray(batch.right)).astype(np.float32) / 16)
+    disparity = torch.from_numpy(opencv_disparity(batch, "sgbm"))
     disparity = disparity.view(1, 1, *disparity.shape)
     valid = disparity > 0
     truth = obstacle_truth(dataclasses.replace(batch, disparity_px=disparity, disparity_valid=valid))

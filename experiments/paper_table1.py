@@ -222,9 +222,9 @@ def _from_objects(objects: list[float | None], status_ok: bool) -> dict:
             "r_max_m": max(known) if known else None, "objects_m": objects, "inliers": 0}
 
 
-def opencv_dense_estimate(batch, seg, kind: str, window: int) -> dict:
-    """StereoBM or StereoSGBM over the whole pair (OpenCV's sample settings, the same window and disparity
-    range as svs_torch's fallback: [0, 0.25 W) rounded up to 16), median over each kept region."""
+def opencv_disparity(batch, kind: str, window: int = 5) -> np.ndarray:
+    """StereoBM (``kind="bm"``) or StereoSGBM's disparity of pair 0, pixels (≤ 0: none): OpenCV's sample settings,
+    the disparity range [0, 0.25 W) rounded up to 16, as svs_torch's fallback."""
     left, right = _gray_u8(batch.left), _gray_u8(batch.right)
     num_disparities = 16 * int(np.ceil(0.25 * left.shape[1] / 16))
     if kind == "bm":
@@ -232,7 +232,13 @@ def opencv_dense_estimate(batch, seg, kind: str, window: int) -> dict:
     else:
         matcher = cv2.StereoSGBM_create(0, num_disparities, 5, P1=8 * 25, P2=32 * 25, disp12MaxDiff=1,
                                         uniquenessRatio=10, speckleWindowSize=100, speckleRange=2)
-    disparity = matcher.compute(left, right).astype(np.float32) / 16
+    return matcher.compute(left, right).astype(np.float32) / 16
+
+
+def opencv_dense_estimate(batch, seg, kind: str, window: int) -> dict:
+    """StereoBM or StereoSGBM over the whole pair (OpenCV's sample settings, the same window and disparity
+    range as svs_torch's fallback: [0, 0.25 W) rounded up to 16), median over each kept region."""
+    disparity = opencv_disparity(batch, kind, window)
     depths = _region_depths(batch, seg, disparity, disparity > 0)
     out = _from_objects([None if z is None else float(np.median(z)) for z in depths], True)
     known = [z for z in depths if z is not None]
