@@ -39,9 +39,9 @@ from svs_torch.cli.progress import Progress
 from svs_torch.data import list_shared_pairs
 from svs_torch.evaluation import accuracy_pct
 from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth,
-                                            segment_stereo_learned, stereo_features)
+                                            stereo_features)
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig, segment_stereo
+from svs_torch.segmentation import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402

@@ -12,7 +12,6 @@ ranging). The held-out split is never read. The best mean of IoU and Acc / 100 o
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 import statistics
 import sys

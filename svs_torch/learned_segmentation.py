@@ -58,8 +58,8 @@ SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "obstacle_net.pt
 #: The nearness segmenter's shipped correction network (``SegmentationConfig(segmenter="nearness")``, issue 32).
 NEARNESS_WEIGHTS = Path(__file__).resolve().parent / "weights" / "nearness_net.pt"
 _FORMAT = "svs_torch.obstacle_net/1"
-#: Each segmenter kind's file format, network and configuration classes.
-_KINDS = {"learned": (_FORMAT, "ObstacleNet"), "nearness": ("svs_torch.nearness_net/1", "NearnessNet")}
+#: Each segmenter kind's weights-file format (the classes: :func:`_network_classes`).
+_KINDS = {"learned": _FORMAT, "nearness": "svs_torch.nearness_net/1"}
 NUM_FEATURES = 6  # channels of stereo_features
 
 
@@ -368,7 +368,7 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
         reason = " ".join(str(error).split())[:200] or type(error).__name__
         raise InputError(f"segmenter: {str(path)!r} is not a weights file ({reason})") from None
     kind = segmenter.partition(":")[0]
-    expected = _KINDS[kind][0]
+    expected = _KINDS[kind]
     if not isinstance(stored, dict) or stored.get("format") != expected:
         found = f", found {stored.get('format')!r}" if isinstance(stored, dict) and "format" in stored else ""
         raise InputError(f"segmenter: {str(path)!r} is not a svs_torch {kind} network file (format {expected}"
@@ -408,7 +408,7 @@ def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = 
     so the file holds only tensors and plain values and loads with ``weights_only``."""
     path = Path(path)
     kind = "learned" if isinstance(net, ObstacleNet) else "nearness"
-    stored = {"format": _KINDS[kind][0], "config": dataclasses.asdict(net.config),
+    stored = {"format": _KINDS[kind], "config": dataclasses.asdict(net.config),
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
               "metadata": json.loads(json.dumps(metadata or {}, default=str))}
     path.parent.mkdir(parents=True, exist_ok=True)

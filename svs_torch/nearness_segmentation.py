@@ -43,7 +43,6 @@ from .checks import InputError, check_image
 from .components import connected_components_with_stats, region_properties
 from .dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
 from .learned_segmentation import ThreeLevelUNet
-from .depth import kept_region_lower_median
 from .morphology import open_binary, structuring_element
 from .segmentation import SegmentationConfig, _status, keep_regions
 from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
