@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .checks import InputError, check_image
-from .components import connected_components_with_stats, region_properties
+from .components import RegionProperties, connected_components_with_stats, region_properties
 from .dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
 from .learned_segmentation import ThreeLevelUNet
 from .morphology import open_binary, structuring_element
@@ -226,6 +226,27 @@ def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_
     return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median))
 
 
+def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, region_disparity: torch.Tensor,
+                           measured: torch.Tensor, min_area_px: float) -> torch.Tensor:
+    """``(B, L)`` pixels of each region that the block matcher measured (``measured`` ``(B, 1, H, W)``, not
+    filled) at columns the right camera sees at the nearest region's disparity (x ≥ the largest median disparity
+    of the regions of at least ``min_area_px``): the pixels the dense stage can range (its objects need valid
+    pixels where the pair's whole search lands in the right image, :func:`~svs_torch.dense_depth.dense_object_depths`).
+    A region of filled rows only, or in the band only the left camera sees, would be kept and never ranged (its
+    slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the shared 2005–2006 scenes did so)."""
+    b, slots = regions.area_px.shape
+    big = regions.valid & (regions.area_px >= min_area_px)
+    if not slots:
+        return regions.area_px
+    nearest = torch.where(big, region_disparity, torch.zeros_like(region_disparity)).amax(1)  # (B,)
+    column = torch.arange(labels.shape[-1], device=labels.device, dtype=nearest.dtype)
+    seen = (column.view(1, 1, 1, -1) >= nearest.view(-1, 1, 1, 1)) & measured
+    keys = labels.flatten(1)
+    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
+    return counts[:, 1:].to(regions.area_px.dtype)
+
+
 def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor
                            ) -> torch.Tensor:
     """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
@@ -273,9 +294,11 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     disparity = measured.disparity_px.detach()
     region_disparity = _region_median_disparity(disparity, labels, num_regions)
     h, w = image.shape[-2:]
-    kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep,
-                                          min_area_px=config.min_area_fraction * h * w,
-                                          nearness=region_disparity)
+    min_area_px = config.min_area_fraction * h * w
+    kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep, min_area_px=min_area_px,
+                                          nearness=region_disparity,
+                                          candidate_area_px=_area_measured_in_view(
+                                              labels, regions, region_disparity, measured.measured, min_area_px))
     # A view of one gray level holds no disparity: the pair has no information (the Otsu stage's UNIFORM_IMAGE).
     uniform = (gray_levels_and_histogram(torch.cat([image, batch.right]))[1] > 0).sum(1).view(2, b).eq(1).any(0)
     threshold = torch.full((b,), threshold_value, dtype=image.dtype, device=image.device)

@@ -125,33 +125,43 @@ def keep_largest_regions(
 
 
 def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
-                 min_area_px: float = 0.0, nearness: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                 min_area_px: float = 0.0, nearness: torch.Tensor | None = None,
+                 candidate_area_px: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`keep_largest_regions`, or under ``keep="nearest"`` the ``num_keep`` regions of at least
     ``min_area_px`` pixels with the largest ``nearness`` ``(B, L)`` (e.g. median disparity; ties by area, then
-    label), nearest first; under ``"nearest_first"`` the nearest such region, then the largest of all the others.
-    Not differentiable."""
+    label), nearest first; under ``"nearest_first"`` the nearest such region, then the largest of the other such
+    regions (a pair with none of at least ``min_area_px``: the largest regions, as the paper). Under both
+    nearness rules a region smaller than ``min_area_px`` is never kept beside one that is not: a speck left by
+    the opening next to a near region covering most of the view would otherwise be ranged as an obstacle, from
+    a handful of pixels. ``candidate_area_px`` ``(B, L)``: the area held to ``min_area_px`` and ranking the
+    regions after the nearest (default: ``regions.area_px``; e.g. the pixels the other camera sees). Not
+    differentiable."""
     if keep == "largest":
         return keep_largest_regions(labels, regions, num_keep)
     if nearness is None:
         raise InputError("nearness: keep='nearest' needs a nearness per region, got none")
-    candidate = regions.valid & (regions.area_px >= min_area_px)
-    order_area = torch.sort(torch.where(candidate, regions.area_px, -1), dim=1, descending=True, stable=True).indices
+    area = regions.area_px if candidate_area_px is None else candidate_area_px.to(regions.area_px.dtype)
+    candidate = regions.valid & (area >= min_area_px)
+    order_area = torch.sort(torch.where(candidate, area, -1), dim=1, descending=True, stable=True).indices
     ranked = torch.gather(torch.where(candidate, nearness.to(torch.float64), -torch.inf), 1, order_area)
     order = torch.gather(order_area, 1, torch.sort(ranked, dim=1, descending=True, stable=True).indices)
+    filtered = RegionProperties(area_px=regions.area_px, bbox_xyxy=regions.bbox_xyxy,
+                                centroid_xy=regions.centroid_xy, valid=candidate)
     if keep == "nearest":
-        filtered = RegionProperties(area_px=regions.area_px, bbox_xyxy=regions.bbox_xyxy,
-                                    centroid_xy=regions.centroid_xy, valid=candidate)
         return _keep_in_order(labels, filtered, order, num_keep)
-    # nearest_first: the nearest candidate (if any), then every valid region by area without it.
-    by_area = torch.sort(torch.where(regions.valid, regions.area_px, -1), dim=1, descending=True, stable=True).indices
+    # nearest_first: the nearest candidate, then the other candidates by area (order_area without it).
     if not order.shape[1]:
-        return _keep_in_order(labels, regions, by_area, num_keep)
+        return _keep_in_order(labels, regions, order_area, num_keep)
     first = order[:, :1]
-    has_first = torch.gather(candidate, 1, first)
-    moved = ((by_area == first) & has_first).to(torch.int8)  # the first, moved to the end (stable)
-    rest = torch.gather(by_area, 1, torch.sort(moved, dim=1, stable=True).indices)
-    order = torch.where(has_first, torch.cat([first, rest[:, :-1]], 1), by_area)
-    return _keep_in_order(labels, regions, order, num_keep)
+    moved = (order_area == first).to(torch.int8)  # the first, moved to the end (stable)
+    rest = torch.gather(order_area, 1, torch.sort(moved, dim=1, stable=True).indices)
+    has_candidate = candidate.any(1, keepdim=True)
+    kept, kept_mask = _keep_in_order(labels, filtered, torch.cat([first, rest[:, :-1]], 1), num_keep)
+    if bool(has_candidate.all()):
+        return kept, kept_mask
+    largest, largest_mask = keep_largest_regions(labels, regions, num_keep)
+    return (torch.where(has_candidate, kept, largest),
+            torch.where(has_candidate.view(-1, *([1] * (labels.dim() - 1))), kept_mask, largest_mask))
 
 
 def _keep_in_order(labels: torch.Tensor, regions: RegionProperties, order: torch.Tensor, num_keep: int
