@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from svs_torch.checks import InputError
-from svs_torch.components import connected_components_with_stats
+from svs_torch.components import connected_components_with_stats, region_properties
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.learned_segmentation import load_obstacle_net, mask_iou, obstacle_truth, save_obstacle_net
 from svs_torch.nearness_segmentation import (NearnessNet, NearnessNetConfig, measure_nearness_disparity,
@@ -62,6 +62,30 @@ def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
     assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness)[0].tolist() == [[2, 1]]
     kept, kept_mask = keep_regions(labels, regions, 3, "nearest_first", 0, nearness)
     assert kept.tolist() == [[3, 1, 2]] and int(kept_mask.sum()) == int(mask.sum())
+    # A region under the least area is never kept beside one over it (a speck would be ranged from a handful
+    # of pixels); with none over it, the paper's two largest.
+    assert keep_regions(labels, regions, 2, "nearest_first", 600, nearness)[0].tolist() == [[1, -1]]
+    assert keep_regions(labels, regions, 2, "nearest", 600, nearness)[0].tolist() == [[1, -1]]
+    assert keep_regions(labels, regions, 2, "nearest_first", 5000, nearness)[0].tolist() == [[1, 2]]
+    # The area held to the least area can be another count (the nearness segmenter's: pixels both cameras see).
+    seen = torch.tensor([[0.0, 500.0, 30.0]])
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, seen)[0].tolist() == [[2, -1]]
+
+
+def test_regions_without_stereo_are_not_kept():
+    """A region in the band only the left camera sees, or of filled rows only (nothing measured), cannot be
+    ranged by the dense stage: the nearness segmenter does not keep it (shared Midd1, Lampshade1, Rocks1 did)."""
+    from svs_torch.nearness_segmentation import _area_measured_in_view
+
+    labels = torch.zeros(1, 1, 40, 100, dtype=torch.int64)
+    labels[..., 5:35, 40:90] = 1  # near (disparity 20), seen by both cameras
+    labels[..., 5:35, 2:15] = 2  # left of column 20: only the left camera sees it at the nearest disparity
+    labels[..., 36:40, 30:90] = 3  # nothing measured (filled rows)
+    regions = region_properties(labels, torch.tensor([3]))
+    measured = torch.ones(1, 1, 40, 100, dtype=torch.bool)
+    measured[..., 36:40, :] = False
+    area = _area_measured_in_view(labels, regions, torch.tensor([[20.0, 5.0, 6.0]]), measured, 10.0)
+    assert area.tolist() == [[1500.0, 0.0, 0.0]]
 
 
 def test_shift_regions_to_right_moves_each_region_by_its_disparity():
