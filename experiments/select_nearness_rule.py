@@ -20,9 +20,10 @@ from pathlib import Path
 import torch
 
 from svs_torch.depth import kept_region_lower_median
-from svs_torch.learned_segmentation import mask_iou, obstacle_truth
+from svs_torch.learned_segmentation import ObstacleTruth, mask_iou, obstacle_truth
 from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig, segment_stereo_nearness
 from svs_torch.segmentation import SegmentationConfig
+from svs_torch.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
@@ -31,6 +32,20 @@ from run_metadata import default_data_dir  # noqa: E402
 GRID = {"working_width_px": (160, 240, 320), "window_size": (7, 9, 13)}
 KEEP = [("largest", 0.0), ("nearest", 0.001), ("nearest", 0.003), ("nearest", 0.01), ("nearest_first", 0.003),
         ("nearest_first", 0.01)]
+
+
+def segmentation_scores(batch: StereoBatch, truth: ObstacleTruth, config: SegmentationConfig, net: NearnessNet
+                        ) -> tuple[float, float]:
+    """The IoU of the left kept mask with the truth obstacles and the segmentation-only nearest Acc (Eq. (9), %):
+    the truth's depth median over the nearer kept region against ``truth.nearest_m`` (0 when nothing is kept). One
+    pair (B = 1) whose truth has a nearest obstacle (``truth.nearest_valid``)."""
+    seg = segment_stereo_nearness(batch, config, net).left
+    depth, known = batch.ground_truth_depth_m()
+    median, count = kept_region_lower_median(depth, known, seg.labels, seg.kept_labels)
+    near = torch.where(count > 0, median, torch.inf).amin(1)
+    real = float(truth.nearest_m[0])
+    acc = max(0.0, 100 * (1 - abs(real - float(near[0])) / real)) if bool(torch.isfinite(near[0])) else 0.0
+    return float(mask_iou(seg.kept_mask, truth.kept_mask)[0]), acc
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -55,13 +70,8 @@ def main(argv: list[str] | None = None) -> None:
             config = SegmentationConfig(segmenter="nearness", keep=keep, min_area_fraction=area)
             scores = {"320": ([], []), "native": ([], [])}
             for size, batch, truth in scenes:
-                seg = segment_stereo_nearness(batch, config, net).left
-                depth, known = batch.ground_truth_depth_m()
-                median, count = kept_region_lower_median(depth, known, seg.labels, seg.kept_labels)
-                near = torch.where(count > 0, median, torch.inf).amin(1)
-                real = float(truth.nearest_m[0])
-                acc = max(0.0, 100 * (1 - abs(real - float(near[0])) / real)) if bool(torch.isfinite(near[0])) else 0.0
-                scores[size][0].append(float(mask_iou(seg.kept_mask, truth.kept_mask)[0]))
+                iou, acc = segmentation_scores(batch, truth, config, net)
+                scores[size][0].append(iou)
                 scores[size][1].append(acc)
             means = {size: (statistics.mean(v[0]), statistics.mean(v[1])) for size, v in scores.items()}
             lines.append(f"| {width} | {window} | {keep} | {area} | {means['320'][0]:.3f} | {means['320'][1]:.1f} | "

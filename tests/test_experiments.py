@@ -104,3 +104,40 @@ def test_real_rig_on_one_scene(data_dir, tmp_path):
     saved = json.loads(out_json.read_text())
     assert saved["metadata"]["command"].startswith("python experiments/real_rig.py") and len(saved["rows"]) == 3
     assert "| tuned | 320x240 | roll +2° | 1 |" in out_md.read_text()
+
+
+def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
+    """validate_nearness.py on two train scenes in two folds, the rule and a 2-step candidate, one crop each: a
+    row per scene, view and candidate; a scene's E/L variant shares its fold; the stage-1 training it runs per
+    fold is train_nearness.py's (the same weights for the same scenes, seed and step count)."""
+    import torch
+    import train_nearness
+    import validate_nearness
+
+    from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig
+
+    out_json, out_md = tmp_path / "cv.json", tmp_path / "cv.md"
+    report = validate_nearness.main(["--data", str(data_dir), "--limit", "2", "--checkpoints", "0,2",
+                                     "--num-synthetic", "2", "--crops-per-scene", "1", "--views-per-scene", "1",
+                                     "--val-crops", "1", "--json", str(out_json), "--markdown", str(out_md)])
+    rows = report["rows"]
+    assert {(r["scene"], r["view"]) for r in rows} == {(s, v) for s in ("Jadeplant", "Motorcycle")
+                                                       for v in ("320", "native", "crop 0")}
+    assert len(rows) == 12 and all(0 <= r["iou"] <= 1 and 0 <= r["acc"] <= 100 for r in rows)
+    assert [f["validate"] for f in report["folds"]] == [["Jadeplant"], ["Motorcycle"]]
+    assert json.loads(out_json.read_text())["best_steps"] in (0, 2) and "| rule (0 steps) |" in out_md.read_text()
+
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Motorcycle", "MotorcycleE", "Piano", "PianoL",
+                                                                   "Pipes")]
+    assert validate_nearness.assign_folds(scenes, 2) == [scenes[:2] + [scenes[4]], scenes[2:4]]
+    assert validate_nearness.assign_folds(scenes, 2, grouped=False) == [scenes[0::2], scenes[1::2]]
+
+    config = train_nearness.NearnessTrainConfig(steps=2, num_synthetic=2, crops_per_scene=1, views_per_scene=1)
+    nets, _ = validate_nearness.train_candidates(scenes[:1], config, [2])
+    generator = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)
+    pairs = train_nearness.real_pairs(scenes[:1], config, generator) + train_nearness.synthetic_pairs(2, generator)
+    pool = train_nearness.build_pool(pairs, NearnessNetConfig(), generator)
+    net = NearnessNet()
+    train_nearness.train_masks(pool, net, config, generator)
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), nets[2].state_dict().values()))
