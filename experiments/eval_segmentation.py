@@ -154,6 +154,21 @@ def summary(rows: list[dict], names: list[str]) -> str:
     return "\n".join(lines)
 
 
+LEGEND = ("default = the default pipeline (the nearness segmenter: the Otsu split of the pair's measured disparity, "
+          "the nearest region then the largest; svs_torch/weights/nearness_net.pt adds no correction, "
+          "experiments/validate_nearness.md); otsu = the paper's segmentation in the default pipeline; learned = "
+          "the network of issue 13; sgbm = the truth's own procedure on OpenCV StereoSGBM's disparity; NAME = the "
+          "nearness segmenter with the weights a --nearness NAME=FILE names. IoU: the left kept mask against the "
+          "truth obstacles; Acc: Eq. (9) of the nearest obstacle (the whole pipeline's nearest_m; SGBM's own median "
+          "depth).")
+
+
+def header(argv: list[str]) -> list[str]:
+    """The markdown report's title, the command that made it and the methods' legend."""
+    return ["# Segmenters against the truth obstacles (issue 32)", "", "Made by:", "",
+            "    python experiments/eval_segmentation.py " + " ".join(argv), "", LEGEND, ""]
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
@@ -194,7 +209,7 @@ def main(argv: list[str] | None = None) -> dict:
         report["tables"][split] = {"rows": rows, "skipped": skipped}
     print("\n".join(text))
     if args.markdown:
-        Path(args.markdown).write_text("\n".join(text))
+        Path(args.markdown).write_text("\n".join(header(argv if argv is not None else sys.argv[1:]) + text))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=str))
     return report

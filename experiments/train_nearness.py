@@ -21,7 +21,12 @@ object's differentiable depth against the median ground-truth depth over its kep
 (the gradient reaches them through the segmenter's straight-through disparity and the depth stage). The weights
 of the lowest loss are kept.
 
-    python experiments/train_nearness.py [--steps 1200] [--fine-tune-steps 6] [--seed 0] [--out FILE]
+    python experiments/train_nearness.py [--steps 0] [--fine-tune-steps 6] [--seed 0] [--out FILE]
+
+The shipped weights: ``--fine-tune-steps 0`` and no mask step, i.e. the rule alone. Leave-scenes-out validation
+(experiments/validate_nearness.py) scored the rule above 300 and 1200 mask steps; the 6 fine-tuning steps from the
+rule lowered the depth loss from 0.05994 to 0.05991 and moved the kept masks of the train scenes by at most 0.6 % of
+their pixels, not worth the network's pass on every pair.
 """
 
 from __future__ import annotations
@@ -63,7 +68,9 @@ SIZE_WH = (320, 240)
 class NearnessTrainConfig:
     """Training settings (recorded in the weights file)."""
 
-    steps: int = 1200
+    # Leave-scenes-out validation on the train scenes (experiments/validate_nearness.py) scored the rule alone
+    # above 300 and 1200 mask steps: the shipped network takes no mask step; --steps 1200 trains the correction.
+    steps: int = 0
     batch_size: int = 12
     learning_rate: float = 3e-3  # AdamW, cosine decay to 0
     weight_decay: float = 1e-4
@@ -175,10 +182,13 @@ def main(argv: list[str] | None = None) -> Path:
     net_config = NearnessNetConfig()
     scenes = train_scenes(Path(args.data))
     started = time.perf_counter()
-    pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
-    pool = build_pool(pairs, net_config, generator)
+    pairs, history = [], []
+    if config.steps:
+        pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
+        pool = build_pool(pairs, net_config, generator)
     net = NearnessNet(net_config)
-    history = train_masks(pool, net, config, generator)
+    if config.steps:
+        history = train_masks(pool, net, config, generator)
     mask_time = time.perf_counter() - started
     fine_tune = []
     if config.fine_tune_steps:

@@ -10,16 +10,19 @@ it:
    rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
    filled along their rows from the nearest measured ones, the farther side at an occlusion
    (:func:`svs_torch.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
-   and keep rule were chosen on the tuned scenes only (``experiments/select_nearness_rule.md``).
+   and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity (the
    truth's rule on the estimate) and ``spread`` its 10–90 % range (at least 1 px).
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
-   to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself.
+   to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
+   network is that: leave-scenes-out validation on the train scenes scored the rule above every trained
+   correction (``experiments/validate_nearness.md``), and deployment then skips the network's pass.
 4. **Regions**: probability above the threshold, the paper's opening and components, then the ``num_keep``
    regions by ``SegmentationConfig.keep``: ``"nearest"`` ranks the regions of at least ``min_area_fraction`` of
    the image by their median disparity (a small near obstacle is kept before a large far wall), ``"largest"`` by
-   area (the paper's rule).
+   area (the paper's rule). The area held to that least is the region's pixels the block matcher measured where
+   the right camera sees them: a band of filled rows, or one only the left camera sees, cannot be ranged.
 5. **Right view**: each kept left region shifted left by its own median disparity (a region's pixels sit at
    ``x − d`` in the right view). One network pass per pair, not two.
 
@@ -71,7 +74,7 @@ class NearnessNetConfig:
     """
 
     working_width_px: int = 320
-    window_size: int = 9
+    window_size: int = 7  # with working_width_px: experiments/select_nearness_rule.md
     max_disparity_fraction: float = 0.3
     network_width_px: int = 80
     channels: tuple[int, int, int] = (8, 16, 16)
@@ -112,6 +115,12 @@ class NearnessNet(ThreeLevelUNet):
         self.config = config
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
+
+    def adds_nothing(self) -> bool:
+        """Whether the correction is exactly zero for every input: the head's weights and bias are all zero (an
+        untrained network, or the shipped one: leave-scenes-out validation chose the rule alone,
+        experiments/validate_nearness.md). Its 1×1 head then multiplies finite features by zero."""
+        return not bool(self.head.weight.any()) and not bool(self.head.bias.any())
 
 
 @dataclass(frozen=True)
@@ -199,11 +208,15 @@ def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor
     bilinearly from its width), and the measured disparity. Differentiable w.r.t. the network's parameters and
     both images (module docstring)."""
     measured = measure_nearness_disparity(left, right, net.config)
+    rule = net.config.rule_gain * measured.relative
+    training = torch.is_grad_enabled() and any(p.requires_grad for p in net.parameters())
+    if not training and net.adds_nothing():
+        return rule, measured  # the same logits without the network's pass (a quarter of the segmenter's time)
     features = _network_features(left, measured, net.config.network_width_px)
     dtype = next(net.parameters()).dtype
     correction = net(features.to(dtype))
     correction = F.interpolate(correction, size=left.shape[-2:], mode="bilinear", align_corners=False)
-    return net.config.rule_gain * measured.relative + correction.to(left.dtype), measured
+    return rule + correction.to(left.dtype), measured
 
 
 def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor

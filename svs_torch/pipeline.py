@@ -131,10 +131,11 @@ class PipelineConfig:
     (Table 1's "proposed" row).
     """
 
-    # The nearness segmenter, the nearest region first then the largest, regions of 1 % of the image at least: the
-    # best measured on the tuned scenes (experiments/select_nearness_rule.md, eval_segmentation.md; issue 32).
+    # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least
+    # (both cameras' measured pixels): the best rule keeping by nearness on the train scenes
+    # (experiments/select_nearness_rule.md; the rule alone, experiments/validate_nearness.md; issue 32).
     segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
-        segmenter="nearness", keep="nearest_first", min_area_fraction=0.01))
+        segmenter="nearness", keep="nearest_first", min_area_fraction=0.003))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))

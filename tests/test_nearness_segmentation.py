@@ -182,3 +182,20 @@ def test_region_medians_equal_the_kept_region_lower_median():
         every = torch.arange(1, int(count.max()) + 1).expand(3, -1)
         expected, _ = kept_region_lower_median(values, torch.ones_like(labels, dtype=torch.bool), labels, every)
         assert torch.equal(_region_median_disparity(values, labels, count), expected)
+
+
+def test_a_zero_head_skips_the_network_with_the_same_logits(scenes):
+    """The shipped correction adds nothing (validate_nearness.py chose the rule): deployment skips its pass, and
+    the logits are those the network's pass gives (training, which needs its graph, still runs it)."""
+    batch = scenes.batch
+    net = NearnessNet().eval()
+    assert net.adds_nothing()
+    with torch.no_grad():
+        skipped, _ = nearness_logits(net, batch.left, batch.right)
+    full, _ = nearness_logits(net, batch.left, batch.right)  # parameters require grad: the network runs
+    assert full.requires_grad and torch.equal(skipped, full.detach())
+    with torch.no_grad():
+        net.head.bias.fill_(0.5)
+        assert not net.adds_nothing()
+        shifted, _ = nearness_logits(net, batch.left, batch.right)
+    assert torch.allclose(shifted, skipped + 0.5)
