@@ -35,6 +35,7 @@ constants of the hard pass.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -47,7 +48,8 @@ from .components import RegionProperties, connected_components_with_stats, regio
 from .dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
 from .learned_segmentation import ThreeLevelUNet
 from .morphology import open_binary, structuring_element
-from .segmentation import SegmentationConfig, _status, keep_regions
+from .pair_trees import take_pairs
+from .segmentation import SegmentationConfig, _status, keep_regions, segment_stereo
 from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 from .types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -290,7 +292,9 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     :func:`nearness_logits`, already computed by the caller (e.g. with gradients). Not differentiable.
 
     ``threshold`` holds the probability threshold. The right view's ``binary`` and ``opened`` are its shifted
-    kept regions. Status as the Otsu stage's (``UNIFORM_IMAGE``: a one-level left or right image).
+    kept regions. Status as the Otsu stage's (``UNIFORM_IMAGE``: a one-level left or right image). A pair whose
+    block matcher accepted less than ``config.min_measured_share`` of its left view is segmented by
+    :func:`~svs_torch.segmentation.segment_stereo` (Otsu, the two largest regions) instead: its disparity is chance.
     """
     b = batch.batch_size
     with torch.no_grad():
@@ -298,6 +302,28 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
             left_logits, measured = nearness_logits(net, batch.left, batch.right)
         elif measured is None:
             measured = measure_nearness_disparity(batch.left, batch.right, net.config)
+    share = measured.measured.flatten(1).to(torch.float32).mean(1)
+    fallback = share < config.min_measured_share
+    if not bool(fallback.any()):
+        return _segment_measured(batch, config, net, left_logits, measured)
+    # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.
+    from .size_groups import merge_groups
+
+    otsu = dataclasses.replace(config, segmenter="otsu", keep="largest", min_measured_share=0.0)
+    parts, indices = [], []
+    for index, run in ((fallback.nonzero().flatten(), lambda i: segment_stereo(batch.select(i), otsu)),
+                       ((~fallback).nonzero().flatten(), lambda i: _segment_measured(
+                           batch.select(i), config, net, left_logits[i], take_pairs(measured, i, b)))):
+        if len(index):
+            parts.append(run(index))
+            indices.append(index)
+    return merge_groups(parts, indices, batch.size_hw, [batch.size_hw] * len(parts))
+
+
+def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet, left_logits: torch.Tensor,
+                      measured: NearnessDisparity) -> StereoSegmentation:
+    """:func:`segment_stereo_nearness` from the left views' logits and measured disparity."""
+    b = batch.batch_size
     image = batch.left
     threshold_value = net.config.probability_threshold
     binary = left_logits.detach() > math.log(threshold_value / (1 - threshold_value))

@@ -62,6 +62,10 @@ class SegmentationConfig:
             measure no disparity, ``"nearest_first"`` keeps the largest regions.
         min_area_fraction: under ``keep="nearest"`` / ``"nearest_first"``, regions smaller than this share of the image (e.g. 0.002 =
             154 px at 320×240) are not candidates: a speck of wrong disparity is not an obstacle.
+        min_measured_share: the nearness segmenter's pairs whose block matcher accepted less than this share of
+            the left view are segmented by Otsu and the paper's two largest regions instead: views of two
+            different scenes (a misconnected camera) leave about 16 % accepted by chance, and a disparity so
+            sparse is not worth ranking by (experiments/nearness_fallback.md). 0: never.
     """
 
     kernel_size: int = 5  # pixels; not stated in the paper, see above
@@ -73,6 +77,7 @@ class SegmentationConfig:
     segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13; "nearness" issue 32
     keep: Literal["largest", "nearest", "nearest_first"] = "largest"  # Sec. 3.2 step 6
     min_area_fraction: float = 0.0  # of the image's area
+    min_measured_share: float = 0.0  # of the left view's pixels; the nearness segmenter only
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_size, int) or not 1 <= self.kernel_size <= MAX_KERNEL_SIZE:
@@ -102,6 +107,9 @@ class SegmentationConfig:
         if not (isinstance(self.min_area_fraction, (int, float)) and 0 <= self.min_area_fraction < 1):
             raise InputError(f"min_area_fraction: expected a share of the image in [0, 1), got "
                              f"{self.min_area_fraction!r}")
+        if not (isinstance(self.min_measured_share, (int, float)) and 0 <= self.min_measured_share <= 1):
+            raise InputError(f"min_measured_share: expected a share of the image in [0, 1], got "
+                             f"{self.min_measured_share!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
 
 

@@ -214,3 +214,28 @@ def test_every_region_the_default_keeps_on_real_scenes_is_ranged(data_dir):
             kept = result.segmentation.left.kept_labels >= 0
             assert int(result.status[0]) == 0 and bool(kept.any())
             assert torch.equal(result.depth.objects.valid[:, :kept.shape[1]] & kept, kept), name
+
+
+def test_views_of_two_scenes_fall_back_to_otsu_pair_by_pair(data_dir):
+    """A misconnected camera (left of one scene, right of another): the block matcher accepts little of the view,
+    and the default segments that pair as Otsu and the paper's two largest regions, while the real pair beside it
+    in the batch keeps the nearness segmenter (experiments/nearness_fallback.md)."""
+    from svs_torch.data import collate_stereo_batches, load_stereo_pair, resize_stereo_batch
+    from svs_torch.segmentation import segment_stereo
+
+    teddy, cones = (resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_2003_quarter" / name), (320, 240))
+                    for name in ("Teddy", "Cones"))
+    mixed = dataclasses.replace(teddy, right=cones.right)
+    batch = collate_stereo_batches([teddy, mixed])
+    config = PipelineConfig().segmentation
+    seg = segment_stereo_nearness(batch, config, NearnessNet().eval())
+    alone = segment_stereo_nearness(teddy, config, NearnessNet().eval())
+    otsu = segment_stereo(mixed, SegmentationConfig())
+    assert torch.equal(seg.left.kept_mask[:1], alone.left.kept_mask)
+    assert torch.equal(seg.left.kept_mask[1:], otsu.left.kept_mask)
+    assert torch.equal(seg.right.kept_mask[1:], otsu.right.kept_mask)
+    never = dataclasses.replace(config, min_measured_share=0.0)
+    assert not torch.equal(segment_stereo_nearness(mixed, never, NearnessNet().eval()).left.kept_mask,
+                           otsu.left.kept_mask)
+    with pytest.raises(InputError, match="min_measured_share"):
+        SegmentationConfig(min_measured_share=1.5)
