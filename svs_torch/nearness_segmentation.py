@@ -11,8 +11,8 @@ it:
    filled along their rows from the nearest measured ones, the farther side at an occlusion
    (:func:`svs_torch.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
    and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
-2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity (the
-   truth's rule on the estimate) and ``spread`` its 10–90 % range (at least 1 px).
+2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
+   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and ``spread`` its 10–90 % range (at least 1 px).
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
    to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
@@ -182,9 +182,12 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
     disparity = F.interpolate(filled * factor, size=(h, w), mode="nearest")
     measured = F.interpolate(found.valid.to(left.dtype), size=(h, w), mode="nearest") > 0.5
-    split = _otsu_split(disparity)
-    q = torch.quantile(disparity.detach().flatten(1), torch.tensor([0.1, 0.9], dtype=disparity.dtype,
+    q = torch.quantile(disparity.detach().flatten(1), torch.tensor([0.1, 0.9, 0.995], dtype=disparity.dtype,
                                                                    device=left.device), dim=1)
+    # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
+    # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
+    # above nearly every pixel.
+    split = _otsu_split(torch.minimum(disparity.detach(), q[2].view(b, 1, 1, 1)))
     spread = (q[1] - q[0]).clamp_min(1.0)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
     return NearnessDisparity(disparity, measured, split, spread, relative)
