@@ -8,8 +8,8 @@ matcher accepts separates the two; below ``SegmentationConfig.min_measured_share
 the paper's two largest regions.
 
 Scenes: every shared pair outside the held-out split of experiments/paper_table1.py (MiddEval3, Middlebury 2001,
-KITTI, the OpenCV sample), at 320×240. Positives: each pair clean, and JPEG-compressed at the SVS's worst quality
-digit (8: OpenCV quality 20) after Gaussian noise of σ 8 levels in each view. Negatives: the left view of one
+KITTI, the OpenCV sample), at 320×240. Positives: each pair clean, and as real_rig.py's camera frames at the SVS's
+worst quality digit (8) with Gaussian noise of σ 8 levels in each view. Negatives: the left view of one
 scene with the right view of another, every ordered pair of distinct scenes (variants of one scene, such as
 Piano / PianoL, are not paired). The default threshold: the value of the grid farthest from both the largest
 negative and the smallest positive (clean or JPEG): a real pair keeps the nearness segmenter, a pair of two scenes
@@ -24,7 +24,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -33,6 +32,7 @@ from svs_torch.nearness_segmentation import NearnessNetConfig, measure_nearness_
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
+from real_rig import camera_frame  # noqa: E402
 from run_metadata import default_data_dir  # noqa: E402
 
 GRID = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4)
@@ -40,14 +40,6 @@ GRID = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4)
 
 def accepted_share(left: torch.Tensor, right: torch.Tensor) -> float:
     return float(measure_nearness_disparity(left, right, NearnessNetConfig()).measured.float().mean())
-
-
-def camera_frame(image: torch.Tensor, generator: torch.Generator, quality: int = 20, sigma: float = 8.0
-                 ) -> torch.Tensor:
-    noisy = image[0, 0] * 255 + torch.randn(image.shape[-2:], generator=generator) * sigma
-    ok, buffer = cv2.imencode(".jpg", noisy.clamp(0, 255).round().to(torch.uint8).numpy(),
-                              [cv2.IMWRITE_JPEG_QUALITY, quality])
-    return torch.from_numpy(cv2.imdecode(buffer, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255)[None, None]
 
 
 def main(argv: list[str] | None = None) -> float:
@@ -60,7 +52,8 @@ def main(argv: list[str] | None = None) -> float:
     pairs = [resize_stereo_batch(load_stereo_pair(p), (320, 240)) for p in paths]
     generator = torch.Generator().manual_seed(0)
     clean = [accepted_share(b.left, b.right) for b in pairs]
-    jpeg = [accepted_share(camera_frame(b.left, generator), camera_frame(b.right, generator)) for b in pairs]
+    jpeg = [accepted_share(camera_frame(b.left, 8, 8.0, generator), camera_frame(b.right, 8, 8.0, generator))
+            for b in pairs]
     stem = [p.name.rstrip("LE") if "eval3" in str(p) else str(p) for p in paths]
     negative = [accepted_share(pairs[i].left, pairs[j].right) for i in range(len(pairs)) for j in range(len(pairs))
                 if i != j and stem[i] != stem[j]]
