@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 import torch
 
+from svs_torch.segmentation import SegmentationConfig
+
 from svs_torch import InputError
 from svs_torch.calibration import read_calibration, rectify_with_calibration, write_calibration
 from svs_torch.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
@@ -305,8 +307,11 @@ def test_a_loose_rig_with_its_calibration_ranges_as_a_perfect_rig():
                                                 T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
     rig = StereoCalibration((width, height), K, no_distortion, K, no_distortion, turn, T, R1, R2, P1, P2, Q)
     with torch.no_grad():
-        expected = estimate_obstacle_depth(perfect).depth.objects
-        config = with_calibrated_rectification(PipelineConfig(), Namespace(calibration="rig.json"))
+        # Otsu's regions, one per view whatever the warp's borders (this measures the rectification, not which
+        # regions the nearness segmenter ranks first on the two pairs).
+        base = PipelineConfig(segmentation=SegmentationConfig())
+        expected = estimate_obstacle_depth(perfect, base).depth.objects
+        config = with_calibrated_rectification(base, Namespace(calibration="rig.json"))
         found = estimate_obstacle_depth(rectify_with_calibration(raw, rig), config).depth.objects
     assert bool(expected.valid.all()) and bool(found.valid.all())
     torch.testing.assert_close(found.depth_median_m, expected.depth_median_m, atol=0.01, rtol=0)

@@ -141,7 +141,7 @@ def test_exported_pfm_reads_back_to_the_json_depths(data_dir, tmp_path, capsys):
         assert np.median(depth) == pytest.approx(obj["depth_m"], abs=6e-5)  # the JSON rounds to 0.1 mm
         assert np.percentile(depth, 10) == pytest.approx(obj["depth_p10_m"], abs=6e-5)
         checked += 1
-    assert checked == 2
+    assert checked == len(report["objects"]) >= 1  # every kept object ranged and read back
 
 
 def test_a_rectified_map_is_brought_back_to_the_left_grid(data_dir):

@@ -143,7 +143,8 @@ def test_differentiable_pass_follows_the_aligned_and_smoothed_pairs(teddy, data_
         stacked = real_rig.stack_conditions(batch, [view])
         stacked = replace(stacked, left=stacked.left.clone().requires_grad_(),
                           right=stacked.right.clone().requires_grad_())
-        result = estimate_obstacle_depth(stacked, PipelineConfig(differentiable=True, segmentation=OTSU))
+        result = estimate_obstacle_depth(stacked, PipelineConfig(differentiable=True, segmentation=OTSU,
+                                                                 features_on="mask"))
         assert bool(result.rectified[0]) or bool(result.smoothed[0]), view[0]
         objects, hard = result.depth.objects, result.hard_depth.objects
         assert bool(objects.valid.any())
