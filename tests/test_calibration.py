@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from svs_torch.segmentation import SegmentationConfig
-
 from svs_torch import InputError
 from svs_torch.calibration import read_calibration, rectify_with_calibration, write_calibration
 from svs_torch.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
 from svs_torch.cli import main
 from svs_torch.data import load_image_pair, resize_stereo_batch
 from svs_torch.rectified_figure import spread_rows
+from svs_torch.segmentation import SegmentationConfig
 
 BOARD = (9, 6)
 SQUARE_M = 0.025  # nominal: the shared set's square size is unknown (MANIFEST: |T| = 3.34 squares)
