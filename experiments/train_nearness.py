@@ -37,7 +37,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spin
 
 import argparse
 import dataclasses
-import math
 import sys
 import time
 from pathlib import Path
@@ -58,7 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 import train_segmentation  # noqa: E402
-from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, crop_batch, fine_tune_through_pipeline,  # noqa: E402
+from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, fine_tune_through_pipeline, real_pairs,  # noqa: E402
                                 mask_loss, train_scenes)
 
 SIZE_WH = (320, 240)
@@ -82,17 +81,6 @@ class NearnessTrainConfig:
     seed: int = 0
 
 
-def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
-    """The scene resized to a random width in 320–560 px (high enough for 240 rows), then a 320×240 window."""
-    height, width = batch.size_hw
-    new_width = max(round(_uniform(generator, 320, 560)), math.ceil(SIZE_WH[1] * width / height))
-    new_height = round(height * new_width / width)
-    scaled = resize_stereo_batch(batch, (new_width, new_height))
-    x0 = int(torch.randint(0, new_width - SIZE_WH[0] + 1, (), generator=generator))
-    y0 = int(torch.randint(0, new_height - SIZE_WH[1] + 1, (), generator=generator))
-    return crop_batch(scaled, x0, y0, *SIZE_WH)
-
-
 def augment(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
     """The module docstring's photometric changes, JPEG and flip; one draw per call (B = 1)."""
     return train_segmentation.augment(batch, generator, right_gain=(0.8, 1.25), right_offset=0.06, max_noise=0.025,
@@ -109,15 +97,6 @@ def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]
                                        background_depth_m=_uniform(generator, 2.5, 8.0), noise_std=0.01,
                                        generator=generator)
         pairs.append(scene.batch)
-    return pairs
-
-
-def real_pairs(scenes: list[Path], config: NearnessTrainConfig, generator: torch.Generator) -> list[StereoBatch]:
-    pairs = []
-    for path in scenes:
-        batch = with_nominal_calibration(load_stereo_pair(path))
-        pairs += [random_crop(batch, generator) for _ in range(config.crops_per_scene)]
-        pairs += [resize_stereo_batch(batch, SIZE_WH)] * config.views_per_scene
     return pairs
 
 
@@ -184,7 +163,7 @@ def main(argv: list[str] | None = None) -> Path:
     started = time.perf_counter()
     pairs, history = [], []
     if config.steps:
-        pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
+        pairs = real_pairs(scenes, config, generator, SIZE_WH) + synthetic_pairs(config.num_synthetic, generator)
         pool = build_pool(pairs, net_config, generator)
     net = NearnessNet(net_config)
     if config.steps:

@@ -112,15 +112,16 @@ def crop_batch(batch: StereoBatch, x0: int, y0: int, width: int, height: int) ->
                                disparity_nonoccluded=nonoccluded)
 
 
-def random_crop(batch: StereoBatch, generator: torch.Generator) -> StereoBatch:
-    """The scene resized to a random width in 160–280 px (high enough for 120 rows), then a random 160×120 crop."""
+def random_crop(batch: StereoBatch, generator: torch.Generator, crop_wh: tuple[int, int] = CROP_WH) -> StereoBatch:
+    """The scene resized to a random width from the crop's to 1.75 times it (160–280 px for the default 160×120;
+    at least high enough for the crop's rows), then a random ``crop_wh`` window."""
     height, width = batch.size_hw
-    new_width = max(round(_uniform(generator, 160, 280)), math.ceil(CROP_WH[1] * width / height))
+    new_width = max(round(_uniform(generator, crop_wh[0], crop_wh[0] * 7 / 4)), math.ceil(crop_wh[1] * width / height))
     new_height = round(height * new_width / width)
     scaled = resize_stereo_batch(batch, (new_width, new_height))
-    x0 = int(torch.randint(0, new_width - CROP_WH[0] + 1, (), generator=generator))
-    y0 = int(torch.randint(0, new_height - CROP_WH[1] + 1, (), generator=generator))
-    return crop_batch(scaled, x0, y0, *CROP_WH)
+    x0 = int(torch.randint(0, new_width - crop_wh[0] + 1, (), generator=generator))
+    y0 = int(torch.randint(0, new_height - crop_wh[1] + 1, (), generator=generator))
+    return crop_batch(scaled, x0, y0, *crop_wh)
 
 
 def jpeg_frame(image: torch.Tensor, quality: int) -> torch.Tensor:
@@ -173,13 +174,16 @@ def synthetic_pairs(count: int, generator: torch.Generator) -> list[StereoBatch]
     return pairs
 
 
-def real_pairs(scenes: list[Path], config: TrainConfig, generator: torch.Generator) -> list[StereoBatch]:
-    """Random crops and whole views of the real training scenes (module docstring)."""
+def real_pairs(scenes: list[Path], config, generator: torch.Generator, crop_wh: tuple[int, int] = CROP_WH
+               ) -> list[StereoBatch]:
+    """Random crops and whole views of the real training scenes at ``crop_wh`` (module docstring):
+    ``config.crops_per_scene`` and ``config.views_per_scene`` of each (a :class:`TrainConfig` or
+    train_nearness.py's)."""
     pairs = []
     for path in scenes:
         batch = with_nominal_calibration(load_stereo_pair(path))
-        pairs += [random_crop(batch, generator) for _ in range(config.crops_per_scene)]
-        whole = resize_stereo_batch(batch, CROP_WH)
+        pairs += [random_crop(batch, generator, crop_wh) for _ in range(config.crops_per_scene)]
+        whole = resize_stereo_batch(batch, crop_wh)
         pairs += [whole] * config.views_per_scene
     return pairs
 

@@ -8,7 +8,7 @@ train scene) are one unit, as ArtL / Teddy are kept out of training for duplicat
 units are dealt out, unit i to fold i % K (``--ungrouped``: every scene its own unit, which puts Motorcycle and
 MotorcycleE, Piano and PianoL on opposite sides of each fold).
 
-For every fold, the training pool is built exactly as train_nearness.py builds it (its ``real_pairs``,
+For every fold, the training pool is built exactly as train_nearness.py builds it (``real_pairs`` at 320×240,
 ``synthetic_pairs``, ``build_pool``; crops and whole views of the fold's training scenes, ``--num-synthetic``
 synthetic pairs, the same augmentation, one ``torch.Generator(seed)``), and stage 1 (``train_masks``) is run once
 per step count of ``--checkpoints``: separate runs, each with its own cosine schedule over its own length, from
@@ -17,15 +17,16 @@ the same initial weights and the same generator state after the pool (a 300-step
 the rule alone (an untrained ``NearnessNet()``: its head is zero). Stage 2 of train_nearness.py (the fine-tuning
 through the pipeline) is not run.
 
-Every candidate is scored on the fold's validation scenes with the shipped keep rule (``SegmentationConfig(
-segmenter="nearness", keep="nearest_first", min_area_fraction=0.01)``), as experiments/select_nearness_rule.py
-scores it (``segmentation_scores``): the left kept mask's IoU with the truth obstacles and the segmentation-only
-nearest Acc (the truth's depth median over the nearer kept region against the truth's nearest distance), on whole
-views 320 px wide and at native size, and separately on ``--val-crops`` random 320×240 crops per validation scene
-(train_nearness.random_crop, from a generator seeded with ``--seed`` over the sorted train scenes, so a scene's
-crops do not depend on the folds). A view whose truth has no nearest obstacle is left out (none of the whole
-views). The held-out split is never read. The candidate with the best mean of IoU + Acc / 100 over the whole
-validation views at both sizes (the mean over the two sizes, as select_nearness_rule.py) is printed last.
+Every candidate is scored on the fold's validation scenes with the shipped segmentation settings
+(``PipelineConfig().segmentation``: nearest first, select_nearness_rule.py's least area), as
+experiments/select_nearness_rule.py scores it (``segmentation_scores``): the left kept mask's IoU with the truth
+obstacles and the segmentation-only nearest Acc (the truth's depth median over the nearer kept region against the
+truth's nearest distance), on whole views 320 px wide and at native size, and separately on ``--val-crops`` random
+320×240 crops per validation scene (train_segmentation.random_crop, from a generator seeded with ``--seed`` over
+the sorted train scenes, so a scene's crops do not depend on the folds). A view whose truth has no nearest
+obstacle is left out (none of the whole views). The held-out split is never read. The candidate with the best
+mean of IoU + Acc / 100 over the whole validation views at both sizes (the mean over the two sizes, as
+select_nearness_rule.py) is printed last.
 
     python experiments/validate_nearness.py --markdown experiments/validate_nearness.md --json /tmp/cv.json \
         [--folds 2] [--checkpoints 0,300,1200] [--num-synthetic 160] [--val-crops 4] [--seed 0] [--limit N]
@@ -49,18 +50,17 @@ import torch
 
 from svs_torch.learned_segmentation import obstacle_truth
 from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
-from train_nearness import (NearnessTrainConfig, build_pool, random_crop, real_pairs, synthetic_pairs,  # noqa: E402
-                            train_masks)
-from train_segmentation import train_scenes  # noqa: E402
+from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
+from train_segmentation import random_crop, real_pairs, train_scenes  # noqa: E402
 
-#: The shipped keep rule (README; experiments/select_nearness_rule.md).
-KEEP = SegmentationConfig(segmenter="nearness", keep="nearest_first", min_area_fraction=0.01)
+#: The shipped segmentation settings (keep rule and least area: experiments/select_nearness_rule.md).
+KEEP = PipelineConfig().segmentation
 #: Settings of train_nearness.py's stage 1 taken over as arguments (steps come from --checkpoints).
 TRAIN_FIELDS = [f.name for f in dataclasses.fields(NearnessTrainConfig)
                 if f.name not in ("steps", "fine_tune_steps", "fine_tune_learning_rate")]
@@ -98,7 +98,7 @@ def train_candidates(scenes: list[Path], config: NearnessTrainConfig, step_count
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # as train_nearness.py: the network's initial weights
     started = time.perf_counter()
-    pairs = real_pairs(scenes, config, generator) + synthetic_pairs(config.num_synthetic, generator)
+    pairs = real_pairs(scenes, config, generator, SIZE_WH) + synthetic_pairs(config.num_synthetic, generator)
     pool = build_pool(pairs, net_config, generator)
     info = {"num_samples": len(pairs), "pool_time_s": round(time.perf_counter() - started, 1), "runs": {}}
     generator_state, global_state = generator.get_state(), torch.get_rng_state()
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> dict:
     scenes = sorted(train_scenes(data), key=lambda p: p.name)[:args.limit]
     folds = assign_folds(scenes, args.folds, grouped=not args.ungrouped)
     crop_generator = torch.Generator().manual_seed(args.seed)
-    crops = {p: [random_crop(load_scene(p), crop_generator) for _ in range(args.val_crops)] for p in scenes}
+    crops = {p: [random_crop(load_scene(p), crop_generator, SIZE_WH) for _ in range(args.val_crops)] for p in scenes}
 
     rows, fold_info, skipped = [], [], []
     for k, validation in enumerate(folds):

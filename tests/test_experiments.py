@@ -112,6 +112,7 @@ def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     fold is train_nearness.py's (the same weights for the same scenes, seed and step count)."""
     import torch
     import train_nearness
+    import train_segmentation
     import validate_nearness
 
     from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig
@@ -136,7 +137,8 @@ def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     nets, _ = validate_nearness.train_candidates(scenes[:1], config, [2])
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
-    pairs = train_nearness.real_pairs(scenes[:1], config, generator) + train_nearness.synthetic_pairs(2, generator)
+    pairs = (train_segmentation.real_pairs(scenes[:1], config, generator, train_nearness.SIZE_WH)
+             + train_nearness.synthetic_pairs(2, generator))
     pool = train_nearness.build_pool(pairs, NearnessNetConfig(), generator)
     net = NearnessNet()
     train_nearness.train_masks(pool, net, config, generator)
