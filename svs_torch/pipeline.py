@@ -411,7 +411,9 @@ def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) 
 
     sigma = sigma_working_px * working_factor(batch.left.shape[-1], config)
     size = 2 * math.ceil(3 * sigma) + 1
-    blur = (lambda image: gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="replicate"))
+    # Clamped: the kernel's weights sum to 1 only up to rounding, and a white pixel may come out at 1 + 2e-16,
+    # which StereoBatch refuses (hypothesis found it on a 1×1 white pair).
+    blur = (lambda image: gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="replicate").clamp(0, 1))
     return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
 
 
