@@ -12,7 +12,8 @@ it:
    (:func:`svs_torch.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
    and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
-   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and ``spread`` its 10–90 % range (at least 1 px).
+   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
+   ``spread`` its 10–90 % range (at least 1 px).
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
    to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
@@ -50,6 +51,7 @@ from .learned_segmentation import ThreeLevelUNet
 from .morphology import open_binary, structuring_element
 from .pair_trees import take_pairs
 from .segmentation import SegmentationConfig, _status, keep_regions, segment_stereo
+from .size_groups import merge_groups
 from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 from .types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
@@ -310,16 +312,13 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     if not bool(fallback.any()):
         return _segment_measured(batch, config, net, left_logits, measured)
     # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.
-    from .size_groups import merge_groups
-
     otsu = dataclasses.replace(config, segmenter="otsu", keep="largest", min_measured_share=0.0)
-    parts, indices = [], []
-    for index, run in ((fallback.nonzero().flatten(), lambda i: segment_stereo(batch.select(i), otsu)),
-                       ((~fallback).nonzero().flatten(), lambda i: _segment_measured(
-                           batch.select(i), config, net, left_logits[i], take_pairs(measured, i, b)))):
-        if len(index):
-            parts.append(run(index))
-            indices.append(index)
+    low, rest = fallback.nonzero().flatten(), (~fallback).nonzero().flatten()
+    parts, indices = [segment_stereo(batch.select(low), otsu)], [low]
+    if len(rest):
+        parts.append(_segment_measured(batch.select(rest), config, net, left_logits[rest],
+                                       take_pairs(measured, rest, b)))
+        indices.append(rest)
     return merge_groups(parts, indices, batch.size_hw, [batch.size_hw] * len(parts))
 
 

@@ -201,8 +201,8 @@ class PipelineConfig:
     def paper(cls) -> PipelineConfig:
         """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
         defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
-        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6, refine_matches=None, row_alignment=None,
-                   depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None)
+        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
+                   refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None)
 
 
 @dataclass(frozen=True)

@@ -60,8 +60,9 @@ class SegmentationConfig:
             nearest region, then the largest of the others (the nearest obstacle is never dropped, and the rest
             is the paper's rule). ``"nearest"`` needs the stereo segmenter (``"nearness"``); under the others, which
             measure no disparity, ``"nearest_first"`` keeps the largest regions.
-        min_area_fraction: under ``keep="nearest"`` / ``"nearest_first"``, regions smaller than this share of the image (e.g. 0.002 =
-            154 px at 320×240) are not candidates: a speck of wrong disparity is not an obstacle.
+        min_area_fraction: under ``keep="nearest"`` / ``"nearest_first"``, regions smaller than this share of the
+            image (e.g. 0.003 = 230 px at 320×240) are not candidates: a speck of wrong disparity is not an
+            obstacle.
         min_measured_share: the nearness segmenter's pairs whose block matcher accepted less than this share of
             the left view are segmented by Otsu and the paper's two largest regions instead: views of two
             different scenes (a misconnected camera) leave about 16 % accepted by chance, and a disparity so
