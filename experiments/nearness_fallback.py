@@ -9,11 +9,11 @@ the paper's two largest regions.
 
 Scenes: every shared pair outside the held-out split of experiments/paper_table1.py (MiddEval3, Middlebury 2001,
 KITTI, the OpenCV sample), at 320×240. Positives: each pair clean, and as real_rig.py's camera frames at the SVS's
-worst quality digit (8) with Gaussian noise of σ 8 levels in each view. Negatives: the left view of one
-scene with the right view of another, every ordered pair of distinct scenes (variants of one scene, such as
-Piano / PianoL, are not paired). The default threshold: the value of the grid farthest from both the largest
-negative and the smallest positive (clean or JPEG): a real pair keeps the nearness segmenter, a pair of two scenes
-does not.
+worst quality digit (8) with Gaussian noise of σ 8 levels in each view. Negatives: the left view of one scene with
+the right view of another, every ordered pair of distinct scenes (one scene under two names, such as Piano /
+PianoL, is not paired: verify_views.SAME_SCENE). The default threshold: the value of the grid farthest from both
+the largest negative and the smallest positive (clean or JPEG): a real pair keeps the nearness segmenter, a pair
+of two scenes does not.
 
     python experiments/nearness_fallback.py [--markdown FILE]
 """
@@ -33,6 +33,7 @@ from svs_torch.nearness_segmentation import NearnessNetConfig, measure_nearness_
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from real_rig import camera_frame  # noqa: E402
+from verify_views import SAME_SCENE  # noqa: E402
 from run_metadata import default_data_dir  # noqa: E402
 
 GRID = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4)
@@ -54,9 +55,9 @@ def main(argv: list[str] | None = None) -> float:
     clean = [accepted_share(b.left, b.right) for b in pairs]
     jpeg = [accepted_share(camera_frame(b.left, 8, 8.0, generator), camera_frame(b.right, 8, 8.0, generator))
             for b in pairs]
-    stem = [p.name.rstrip("LE") if "eval3" in str(p) else str(p) for p in paths]
+    scene = [SAME_SCENE.get(p.name, p.name) for p in paths]
     negative = [accepted_share(pairs[i].left, pairs[j].right) for i in range(len(pairs)) for j in range(len(pairs))
-                if i != j and stem[i] != stem[j]]
+                if scene[i] != scene[j]]
     quantiles = (lambda v: " / ".join(f"{q:.3f}" for q in np.quantile(v, [0, 0.05, 0.5, 0.95, 1])))
     lines = [f"# Accepted share of the left view: {len(pairs)} pairs outside the held-out split, 320×240", "",
              "Made by `python experiments/nearness_fallback.py" + (f" --markdown {args.markdown}`" if args.markdown
