@@ -57,8 +57,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 import train_segmentation  # noqa: E402
-from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, fine_tune_through_pipeline, real_pairs,  # noqa: E402
-                                mask_loss, train_scenes)
+from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
+                                fine_tune_through_pipeline, mask_loss, real_pairs, train_scenes)
 
 SIZE_WH = (320, 240)
 
@@ -145,17 +145,14 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
 
 
 def main(argv: list[str] | None = None) -> Path:
-    defaults = NearnessTrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--out", default=str(NEARNESS_WEIGHTS), help="weights file (default: the shipped one)")
-    for field in dataclasses.fields(NearnessTrainConfig):
-        parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),
-                            default=getattr(defaults, field.name))
+    names = add_config_options(parser, NearnessTrainConfig())
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    config = NearnessTrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(NearnessTrainConfig)})
+    config = NearnessTrainConfig(**{name: getattr(args, name) for name in names})
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
     net_config = NearnessNetConfig()

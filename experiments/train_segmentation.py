@@ -365,14 +365,21 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path
     return Path(args.out)
 
 
+def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[str, ...] = ()) -> list[str]:
+    """One typed ``--option`` per field of the dataclass instance ``defaults`` but ``skip``, defaulting to its
+    value; returns the fields' names (the training scripts' settings as command-line options)."""
+    names = [field.name for field in dataclasses.fields(defaults) if field.name not in skip]
+    for name in names:
+        value = getattr(defaults, name)
+        parser.add_argument("--" + name.replace("_", "-"), type=type(value), default=value)
+    return names
+
+
 def main(argv: list[str] | None = None) -> Path:
-    defaults = TrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--out", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
-    for field in dataclasses.fields(TrainConfig):
-        parser.add_argument("--" + field.name.replace("_", "-"), type=type(getattr(defaults, field.name)),
-                            default=getattr(defaults, field.name))
+    names = add_config_options(parser, TrainConfig())
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
@@ -384,7 +391,7 @@ def main(argv: list[str] | None = None) -> Path:
                         "probability-weighted mean depth over each whole kept region in the loss (0: the median's)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    config = TrainConfig(**{field.name: getattr(args, field.name) for field in dataclasses.fields(TrainConfig)})
+    config = TrainConfig(**{name: getattr(args, name) for name in names})
     if args.through_pipeline:
         return through_pipeline_main(args, config)
     generator = torch.Generator().manual_seed(config.seed)

@@ -57,13 +57,10 @@ from paper_table1 import load_scene, resample  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
-from train_segmentation import random_crop, real_pairs, train_scenes  # noqa: E402
+from train_segmentation import add_config_options, random_crop, real_pairs, train_scenes  # noqa: E402
 
 #: The shipped segmentation settings (keep rule and least area: experiments/select_nearness_rule.md).
 KEEP = PipelineConfig().segmentation
-#: Settings of train_nearness.py's stage 1 taken over as arguments (steps come from --checkpoints).
-TRAIN_FIELDS = [f.name for f in dataclasses.fields(NearnessTrainConfig)
-                if f.name not in ("steps", "fine_tune_steps", "fine_tune_learning_rate")]
 VARIANT_SUFFIXES = ("E", "L")  # MiddEval3: another exposure, other lighting of the same scene
 WHOLE_SIZES = ("320", "native")
 
@@ -154,7 +151,6 @@ def means_table(summary: dict[int, dict]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    defaults = NearnessTrainConfig()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--folds", type=int, default=2)
@@ -162,9 +158,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--val-crops", type=int, default=4, help="random 320x240 crops per validation scene")
     parser.add_argument("--limit", type=int, help="only the first N train scenes (sorted), for a quick run")
     parser.add_argument("--ungrouped", action="store_true", help="a scene's E/L variant is a unit of its own")
-    for name in TRAIN_FIELDS:
-        default = 160 if name == "num_synthetic" else getattr(defaults, name)
-        parser.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
+    # train_nearness.py's stage-1 settings as options (steps come from --checkpoints), 160 synthetic pairs a fold.
+    train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),
+                                      skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"))
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--markdown", metavar="FILE")
     parser.add_argument("--json", metavar="FILE")
@@ -172,7 +168,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     step_counts = sorted({int(s) for s in args.checkpoints.split(",")})
-    config = NearnessTrainConfig(**{name: getattr(args, name) for name in TRAIN_FIELDS}, fine_tune_steps=0)
+    config = NearnessTrainConfig(**{name: getattr(args, name) for name in train_fields}, fine_tune_steps=0)
     data = Path(args.data)
     scenes = sorted(train_scenes(data), key=lambda p: p.name)[:args.limit]
     folds = assign_folds(scenes, args.folds, grouped=not args.ungrouped)
