@@ -25,7 +25,7 @@ import torch
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from svs_torch.camera import parse_size  # noqa: E402
+from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
 from run_metadata import run_metadata  # noqa: E402

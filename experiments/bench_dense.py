@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.dense import DenseConfig, estimate_dense_disparity
-from svs_torch.segmentation import segment_stereo
+from svs_torch.depth.dense import DenseConfig, estimate_dense_disparity
+from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import default_data_dir, run_metadata  # noqa: E402

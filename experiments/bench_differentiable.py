@@ -24,10 +24,10 @@ from pathlib import Path
 import torch
 
 from svs_torch import StereoBatch
-from svs_torch.files import write_bytes_atomic
-from svs_torch.learned_segmentation import load_obstacle_net
+from svs_torch.core.files import write_bytes_atomic
+from svs_torch.segmentation.learned import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import default_data_dir, run_metadata  # noqa: E402

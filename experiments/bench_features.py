@@ -22,8 +22,8 @@ from pathlib import Path
 import cv2
 import torch
 
-from svs_torch.detector import SurfConfig
-from svs_torch.features import extract_surf_features
+from svs_torch.features.detector import SurfConfig
+from svs_torch.features.surf import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import run_metadata  # noqa: E402

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from svs_torch import StereoBatch
-from svs_torch.detector import SurfConfig
+from svs_torch.features.detector import SurfConfig
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

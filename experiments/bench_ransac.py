@@ -36,8 +36,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from svs_torch.epipolar import sampson_distance  # noqa: E402
-from svs_torch.ransac import estimate_fundamental_ransac  # noqa: E402
+from svs_torch.geometry.epipolar import sampson_distance  # noqa: E402
+from svs_torch.geometry.ransac import estimate_fundamental_ransac  # noqa: E402
 
 from run_metadata import run_metadata  # noqa: E402
 

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 import svs_torch
-from svs_torch.components import connected_components_with_stats
+from svs_torch.segmentation.components import connected_components_with_stats
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
-from svs_torch.segmentation import SegmentationConfig, segment_stereo
+from svs_torch.segmentation.segment import SegmentationConfig, segment_stereo
 
 from run_metadata import run_metadata
 

@@ -1,8 +1,8 @@
 """Pairs rectified by a chessboard calibration: should the pipeline rectify them again from F (``rectify="auto"``,
 ``"required"``) or not (``"off"``, what ``--calibration`` sets)?
 
-The shared OpenCV chessboard pairs are calibrated (:mod:`svs_torch.chessboard`, nominal 25 mm squares), rectified
-with it (:func:`svs_torch.calibration.rectify_with_calibration`) and ranged under each setting. The truth is the
+The shared OpenCV chessboard pairs are calibrated (:mod:`svs_torch.geometry.chessboard`, nominal 25 mm squares), rectified
+with it (:func:`svs_torch.geometry.calibration.rectify_with_calibration`) and ranged under each setting. The truth is the
 calibration's own: each corner's disparity after rectification (x_left − x_right of the corners found by OpenCV,
 mapped by the rectification), so a corner's depth is f·B / d. Reported per setting: how many pairs the pipeline
 rectified again from F, the pipeline's dense disparity at the corners against the corners' (median |error| per
@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 import torch
 
-from svs_torch.calibration import rectify_with_calibration
-from svs_torch.chessboard import calibrate_stereo_rig, collect_board_views, rectified_corners
+from svs_torch.geometry.calibration import rectify_with_calibration
+from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, rectified_corners
 from svs_torch.data import collate_stereo_batches, load_image_pair
-from svs_torch.files import write_bytes_atomic
+from svs_torch.core.files import write_bytes_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 BOARD, SQUARE_M = (9, 6), 0.025
@@ -74,7 +74,7 @@ def loose_rig(num_scenes: int, turn_deg: tuple[float, float, float]) -> dict:
     """Object distances of the perfect rig, the loose rig uncalibrated and the loose rig calibrated (see above)."""
     from argparse import Namespace
 
-    from svs_torch.calibration import StereoCalibration
+    from svs_torch.geometry.calibration import StereoCalibration
     from svs_torch.cli.rig import with_calibrated_rectification
     from svs_torch.data import random_obstacle_scenes
 

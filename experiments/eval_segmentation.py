@@ -1,7 +1,7 @@
 """Otsu against the learned segmenter on the held-out scenes: mask IoU with the truth obstacles and the pipeline's
 nearest-obstacle accuracy (issue 13).
 
-Truth (:func:`svs_torch.learned_segmentation.obstacle_truth`): Otsu of the valid GT disparity (near against far),
+Truth (:func:`svs_torch.segmentation.learned.obstacle_truth`): Otsu of the valid GT disparity (near against far),
 5×5 opening, the two largest regions; the nearest obstacle's distance is the median GT depth over the nearer of
 them (scenes without a shipped calibration use the nominal one for truth and estimate alike, as in
 experiments/paper_table1.py). Per scene:
@@ -38,10 +38,9 @@ import torch.nn.functional as F
 from svs_torch.cli.progress import Progress
 from svs_torch.data import list_shared_pairs
 from svs_torch.evaluation import accuracy_pct
-from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth,
-                                            stereo_features)
+from svs_torch.segmentation.learned import SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth, stereo_features
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402

@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
         ratio = result["command"]["correct"] / max(result["sift"]["correct"], 1)
         print(f"{split:<9} command / SIFT correct matches {ratio:.2f}; command {result['command_s']:.1f} s")
     if args.json:
-        from svs_torch.files import write_bytes_atomic
+        from svs_torch.core.files import write_bytes_atomic
 
         write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())
     return report

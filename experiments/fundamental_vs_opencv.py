@@ -50,12 +50,12 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from svs_torch.camera import parse_size  # noqa: E402
+from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch  # noqa: E402
-from svs_torch.epipolar import sampson_distance  # noqa: E402
-from svs_torch.matching import MatchedPoints, gather_matched_points, match_sad  # noqa: E402
-from svs_torch.ransac import estimate_fundamental_ransac  # noqa: E402
-from svs_torch.types import FundamentalStatus  # noqa: E402
+from svs_torch.geometry.epipolar import sampson_distance  # noqa: E402
+from svs_torch.geometry.matching import MatchedPoints, gather_matched_points, match_sad  # noqa: E402
+from svs_torch.geometry.ransac import estimate_fundamental_ransac  # noqa: E402
+from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
 from run_metadata import run_metadata  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
@@ -102,8 +102,8 @@ def sift_features(images: list[np.ndarray], max_keypoints: int) -> Features:
 
 def svs_features(images: list[np.ndarray], max_keypoints: int) -> Features:
     """svs_torch SURF (MATLAB defaults, upright), with Laplacian signs for gating."""
-    from svs_torch.detector import SurfConfig
-    from svs_torch.features import extract_surf_features
+    from svs_torch.features.detector import SurfConfig
+    from svs_torch.features.surf import extract_surf_features
 
     batch = torch.from_numpy(np.stack(images)).float().div(255.0).unsqueeze(1)
     features = extract_surf_features(batch, SurfConfig(max_keypoints=max_keypoints))

@@ -41,12 +41,15 @@ def pair_lines(data_dir: Path) -> list[str]:
 
 
 #: Loaded at start-up by every process of a run (``sitecustomize``): the kernels named in
-#: ``SVS_PARITY_TORCH_KERNELS`` answer None, so their torch paths run.
+#: ``SVS_PARITY_TORCH_KERNELS`` (in their stage's ``kernels`` module) answer None, so their torch paths run.
 SITECUSTOMIZE = """import os
 if os.environ.get("SVS_PARITY_TORCH_KERNELS"):
-    import svs_torch.kernels as _kernels
+    import importlib
     for _name in os.environ["SVS_PARITY_TORCH_KERNELS"].split(","):
-        setattr(_kernels, _name, lambda *args, **kwargs: None)
+        for _stage in ("segmentation", "features", "geometry", "depth"):
+            _kernels = importlib.import_module(f"svs_torch.{_stage}.kernels")
+            if hasattr(_kernels, _name):
+                setattr(_kernels, _name, lambda *args, **kwargs: None)
 """
 
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
-from svs_torch.nearness_segmentation import NearnessNetConfig, measure_nearness_disparity
+from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_disparity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402

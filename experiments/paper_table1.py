@@ -51,14 +51,12 @@ import numpy as np
 import torch
 
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
-from svs_torch.depth import estimate_depth
-from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEstimate, accuracy_pct,  # noqa: F401
-                                  disparity_map_errors, estimates_from_result, score_pair, truth_list,
-                                  with_nominal_calibration)
+from svs_torch.depth.sparse import estimate_depth
+from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEstimate, accuracy_pct, disparity_map_errors, estimates_from_result, score_pair, truth_list, with_nominal_calibration)
 from svs_torch.evaluation import object_truth as object_truth_batched
-from svs_torch.dense import working_factor
+from svs_torch.depth.dense import working_factor
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, segment_pair
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import default_data_dir, run_metadata  # noqa: E402

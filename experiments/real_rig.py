@@ -46,9 +46,9 @@ import torch
 from svs_torch.data import resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
-from svs_torch.files import atomic_output
+from svs_torch.core.files import atomic_output
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.types import StereoBatch
+from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))

@@ -35,9 +35,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch  # noqa: E402
-from svs_torch.detector import SurfConfig  # noqa: E402
-from svs_torch.features import extract_surf_features  # noqa: E402
-from svs_torch.matching import MatchedPoints, gather_matched_points, match_sad, refine_matches_lk  # noqa: E402
+from svs_torch.features.detector import SurfConfig  # noqa: E402
+from svs_torch.features.surf import extract_surf_features  # noqa: E402
+from svs_torch.geometry.matching import MatchedPoints, gather_matched_points, match_sad, refine_matches_lk  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run_metadata import run_metadata  # noqa: E402

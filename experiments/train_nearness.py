@@ -1,4 +1,4 @@
-"""Train the nearness segmenter's correction network (svs_torch.nearness_segmentation), then fine-tune it through
+"""Train the nearness segmenter's correction network (svs_torch.segmentation.nearness), then fine-tune it through
 the differentiable pipeline (issue 32).
 
 Data (seeded, 704 samples at 320×240, the SVS's size and the segmenter's working width):
@@ -10,9 +10,9 @@ Augmentation per sample (one seeded ``torch.Generator``): gamma, gain, offset, a
 two cameras, intensity inversion (nearness must not be read from brightness), sensor noise, JPEG frames (the
 SVS sends JPEG; quality 40–95 on half the samples), a vertical flip (rows stay epipolar lines).
 
-Stage 1 (mask): the segmenter's own logits, exactly as deployed (:func:`~svs_torch.nearness_segmentation.
+Stage 1 (mask): the segmenter's own logits, exactly as deployed (:func:`~svs_torch.segmentation.nearness.
 nearness_logits`: the measured disparity's rule plus the network), against the opened near mask of
-:func:`~svs_torch.learned_segmentation.obstacle_truth`, BCE + Dice. The measured disparity does not depend on the
+:func:`~svs_torch.segmentation.learned.obstacle_truth`, BCE + Dice. The measured disparity does not depend on the
 network, so it is measured once per sample.
 
 Stage 2 (through the pipeline, ``--fine-tune-steps``): ``estimate_obstacle_depth(..., differentiable=True)`` with
@@ -48,10 +48,9 @@ from svs_torch.cli.progress import Progress
 from svs_torch.data import load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import with_nominal_calibration
-from svs_torch.learned_segmentation import NEARNESS_WEIGHTS, obstacle_truth, save_obstacle_net
-from svs_torch.nearness_segmentation import (NearnessNet, NearnessNetConfig, _network_features,
-                                             measure_nearness_disparity)
-from svs_torch.types import StereoBatch
+from svs_torch.segmentation.learned import NEARNESS_WEIGHTS, obstacle_truth, save_obstacle_net
+from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, _network_features, measure_nearness_disparity)
+from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402

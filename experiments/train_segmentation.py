@@ -1,4 +1,4 @@
-"""Train the learned obstacle segmenter (svs_torch.learned_segmentation) through the depth, on the CPU in minutes.
+"""Train the learned obstacle segmenter (svs_torch.segmentation.learned) through the depth, on the CPU in minutes.
 
 Data, all at 160×120 (the network's working width):
 - **real**: the ``tuned`` split of experiments/paper_table1.py (MiddEval3 quarter size), **minus ArtL and Teddy**:
@@ -11,11 +11,11 @@ Augmentation, drawn once per sample from a seeded ``torch.Generator``: gamma, co
 inversion (nearness must not be read from brightness: the synthetic boxes are brighter than their wall), a
 right-view exposure change (as MotorcycleE / PianoL), sensor noise, a vertical flip (rows stay epipolar lines).
 
-Truth of every sample: :func:`~svs_torch.learned_segmentation.obstacle_truth` of its GT disparity. Loss: binary
+Truth of every sample: :func:`~svs_torch.segmentation.learned.obstacle_truth` of its GT disparity. Loss: binary
 cross-entropy + Dice on the opened near mask (the segmenter keeps the two largest regions itself, as the truth
 does), plus ``--depth-weight`` × the relative error ``|Z − Z_true| / Z_true`` of the nearest obstacle's depth
 through the soft path (soft region weights over the network's own kept regions, the soft-argmin disparity:
-:func:`~svs_torch.learned_segmentation.soft_object_depths`). The disparity does not depend on the network, so
+:func:`~svs_torch.segmentation.learned.soft_object_depths`). The disparity does not depend on the network, so
 it is computed once per sample with the features.
 
 Writes the weights with their configuration, the training settings and the scenes used (default: the shipped
@@ -61,12 +61,10 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
                             resize_stereo_batch)
 from svs_torch.evaluation import object_truth, with_nominal_calibration
-from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net,
-                                            obstacle_truth, predict_obstacle_logits, save_obstacle_net,
-                                            segment_learned, soft_object_depths, stereo_features)
+from svs_torch.segmentation.learned import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net, obstacle_truth, predict_obstacle_logits, save_obstacle_net, segment_learned, soft_object_depths, stereo_features)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
-from svs_torch.types import StereoBatch
+from svs_torch.segmentation.segment import SegmentationConfig
+from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402

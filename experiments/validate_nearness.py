@@ -48,8 +48,8 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.learned_segmentation import obstacle_truth
-from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig
+from svs_torch.segmentation.learned import obstacle_truth
+from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -13,7 +13,7 @@ vouches badly: 7-point RANSAC fits some F to a dozen chance matches. This script
   are not paired), and each synthetic scene's left view with the next scene's right view.
 
 For every pair it records RANSAC's status and inliers, the matches, and the inliers whose disparity the dense map
-confirms within one working pixel (:func:`svs_torch.dense_depth.count_agreeing_inliers`); each rule's verdict
+confirms within one working pixel (:func:`svs_torch.depth.dense_objects.count_agreeing_inliers`); each rule's verdict
 and the objects it lets through are then recomputed from the same run (the dense map does not depend on the
 rule). A rule is ``(verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers)`` of
 :class:`~svs_torch.pipeline.PipelineConfig` and ``DepthConfig.min_object_valid_fraction_unverified``; the first row
@@ -39,12 +39,12 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.camera import SVS_CAMERA
+from svs_torch.core.camera import SVS_CAMERA
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import with_nominal_calibration
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
-from svs_torch.types import StereoBatch
+from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402

@@ -23,7 +23,7 @@ import threading
 import time
 import tty
 
-from svs_torch.camera import parse_size
+from svs_torch.core.camera import parse_size
 
 from .emulator_state import CameraState, Faults, Reply
 from .frames import FrameSource, ImageFolderSource, SyntheticSource

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from svs_torch.camera import SVS_RESOLUTIONS
+from svs_torch.core.camera import SVS_RESOLUTIONS
 from svs_torch.capture.protocol import encode_frame
 
 from .frames import FrameSource

@@ -16,7 +16,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from svs_torch.camera import SVS_CAMERA, SVSCamera
+from svs_torch.core.camera import SVS_CAMERA, SVSCamera
 
 __all__ = ["FrameSource", "ObstacleTrack", "SyntheticSource", "ImageFolderSource", "render_simple_pair"]
 

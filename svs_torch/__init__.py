@@ -3,21 +3,31 @@
 A PyTorch reimplementation of an SVS obstacle-warning pipeline for visually impaired users: segment the
 obstacles (Otsu, opening, the largest regions), find SURF features, match by SAD, estimate the fundamental
 matrix by RANSAC, and range the obstacles from disparity. Every stage runs on a whole batch of pairs.
+
+The folders follow the data: ``segmentation/`` → ``features/`` → ``geometry/`` (matching, RANSAC,
+rectification) → ``depth/``, each stage with its C kernels in its own ``kernels/``; ``pipeline/`` composes them;
+``evaluation/``, ``plotting/``, ``data/``, ``capture/`` and ``cli/`` sit around it, and ``core/`` holds the small
+parts they all share. A package imports only ``core`` and what sits before it (the README's "Layout";
+``tests/test_layout.py`` checks it). Modules that moved keep their old paths for one release (``moved.py``).
 """
+
+from . import moved
+
+moved.install()
 
 # The public names load on first use (PEP 562): ``import svs_torch.cli`` (and ``svs-depth --help``) must not pay
 # for torch, kornia and OpenCV. ``from svs_torch import PipelineConfig`` works as before.
 _EXPORTS = {
-    "SVS_CAMERA": "camera", "SVS_RESOLUTIONS": "camera", "SVSCamera": "camera",
-    "InputError": "errors",
-    "SurfConfig": "detector",
-    "SurfFeatures": "features", "extract_surf_features": "features",
-    "match_sad": "matching",
+    "SVS_CAMERA": "core.camera", "SVS_RESOLUTIONS": "core.camera", "SVSCamera": "core.camera",
+    "InputError": "core.errors",
+    "SurfConfig": "features.detector",
+    "SurfFeatures": "features.surf", "extract_surf_features": "features.surf",
+    "match_sad": "geometry.matching",
     "PipelineConfig": "pipeline", "PipelineResult": "pipeline", "PipelineStatus": "pipeline",
     "estimate_obstacle_depth": "pipeline",
-    "estimate_fundamental_ransac": "ransac",
+    "estimate_fundamental_ransac": "geometry.ransac",
     "SegmentationConfig": "segmentation", "segment_images": "segmentation", "segment_stereo": "segmentation",
-    **{name: "types" for name in ("FundamentalResult", "FundamentalStatus", "Keypoints", "Matches",
+    **{name: "core.types" for name in ("FundamentalResult", "FundamentalStatus", "Keypoints", "Matches",
                                   "RegionProperties", "Segmentation", "SegmentationStatus", "StereoBatch",
                                   "StereoSegmentation")},
 }

@@ -44,7 +44,7 @@ def render_border_strip_scene(on_border: bool = True, near_m: float = 0.8, strip
     """A synthetic 320×240 SVS pair: a wide object 1.5 m away and a strip ``near_m`` away, ``strip_px`` wide. With
     ``on_border`` the strip's left edge is the image's (its disparity, 37 px at 0.8 m, is wider than it: none of
     its pixels' matches is in the right view); otherwise it stands 0.3 m right of the optical axis."""
-    from svs_torch.camera import SVS_CAMERA
+    from svs_torch.core.camera import SVS_CAMERA
     from svs_torch.data.synthetic import render_obstacle_scenes
 
     focal = SVS_CAMERA.focal_px(320)

@@ -18,7 +18,7 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import EvalSetup, evaluate_pairs, summarize
 from svs_torch.evaluation.metrics import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.size_groups import crop_batch, merge_groups, size_groups
+from svs_torch.core.size_groups import crop_batch, merge_groups, size_groups
 
 #: Real scenes at sizes of their own (their aspect kept or not) and synthetic ones at two sizes.
 _REAL = [("middlebury_eval3_Q/Teddy", (224, 168)), ("middlebury_eval3_Q/Motorcycle", (240, 160)),
@@ -158,7 +158,7 @@ def test_crop_batch_cuts_spatial_fields_only(data_dir: Path):
 def test_segment_pair_ignores_padding(pool):
     """The public segmentation entry on a padded batch: each pair's threshold and regions as alone."""
     from svs_torch.pipeline import segment_pair
-    from svs_torch.segmentation import SegmentationConfig
+    from svs_torch.segmentation.segment import SegmentationConfig
 
     pairs, _, _ = pool
     batch = collate_stereo_batches(pairs[:3], mode="pad")

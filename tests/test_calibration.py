@@ -13,12 +13,12 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.calibration import read_calibration, rectify_with_calibration, write_calibration
-from svs_torch.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
+from svs_torch.geometry.calibration import read_calibration, rectify_with_calibration, write_calibration
+from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
 from svs_torch.cli import main
 from svs_torch.data import load_image_pair, resize_stereo_batch
-from svs_torch.rectified_figure import spread_rows
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.plotting.rectified import spread_rows
+from svs_torch.segmentation.segment import SegmentationConfig
 
 BOARD = (9, 6)
 SQUARE_M = 0.025  # nominal: the shared set's square size is unknown (MANIFEST: |T| = 3.34 squares)
@@ -233,8 +233,8 @@ def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
     """The rectified views and the inliers mapped by the pipeline's homographies; nothing for an unrectified pair."""
     from types import SimpleNamespace
 
-    import svs_torch.rectified_figure as rectified_figure
-    from svs_torch.types import StereoBatch
+    import svs_torch.plotting.rectified as rectified_figure
+    from svs_torch.core.types import StereoBatch
 
     generator = torch.Generator().manual_seed(0)
     left = torch.rand(1, 1, 60, 80, generator=generator)
@@ -283,7 +283,7 @@ def test_a_loose_rig_with_its_calibration_ranges_as_a_perfect_rig():
     (measured: within 0.003 m; the uncalibrated path on the same raw pairs was off by up to 0.38 m)."""
     from argparse import Namespace
 
-    from svs_torch.calibration import StereoCalibration
+    from svs_torch.geometry.calibration import StereoCalibration
     from svs_torch.cli.rig import with_calibrated_rectification
     from svs_torch.data.synthetic import random_obstacle_scenes
     from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth

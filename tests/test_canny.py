@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from svs_torch.canny import canny_edges
-from svs_torch.segmentation import SegmentationConfig, segment_images
+from svs_torch.segmentation.canny import canny_edges
+from svs_torch.segmentation.segment import SegmentationConfig, segment_images
 
 
 def square_image(batch: int = 1) -> torch.Tensor:

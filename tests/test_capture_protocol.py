@@ -28,7 +28,7 @@ from svs_torch.capture.protocol import (
     size_code_for,
     size_command,
 )
-from svs_torch.checks import InputError
+from svs_torch.core.checks import InputError
 
 JPEG = b"\xff\xd8" + bytes(range(256)) * 3 + b"\xff\xd9"  # markers right, body arbitrary
 MASTER = b"##Version - SRV-1 Blackfin w/PicoC v2.1 built:12:00:00 - Feb 14 2011 (stereo master)\r\n"

@@ -275,7 +275,7 @@ def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
     import time
 
     from svs_torch.cli.estimate import _decode_while, _listed_lines
-    from svs_torch.image_files import preload_key
+    from svs_torch.core.image_files import preload_key
 
     for name in ("a.png", "b.png"):
         cv2.imwrite(str(tmp_path / name), np.full((4, 5), 7 if name == "a.png" else 9, np.uint8))
@@ -307,7 +307,7 @@ def test_worker_pool_forks_from_a_server_that_imported_torch():
     import gc
     import resource
 
-    from svs_torch.workers import stop_worker_server, worker_pool
+    from svs_torch.core.workers import stop_worker_server, worker_pool
 
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     executor = worker_pool(1, 1)
@@ -328,7 +328,7 @@ def test_worker_pool_forks_from_a_server_that_imported_torch():
 def test_worker_preload_ends_early_only_in_the_forkserver():
     """The forkserver skips torch's teardown when it stops; any other process that imports the preload module
     exits as usual, with its own exit status and its output flushed."""
-    code = "import sys, svs_torch.worker_preload; print('flushed', end=''); sys.exit(3)"
+    code = "import sys, svs_torch.pipeline.preload; print('flushed', end=''); sys.exit(3)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 3 and done.stdout == "flushed"
 
@@ -375,7 +375,7 @@ def test_estimate_workers_end_when_the_command_is_killed(data_dir, tmp_path):
 def test_allocator_keeps_freed_memory_in_a_fresh_process():
     """The command line's allocator settings are values glibc accepts (mallopt returns 0 for one it refuses,
     e.g. an mmap threshold past its 32 MB ceiling), and a batch still runs under them."""
-    code = ("from svs_torch.workers import keep_freed_memory\n"
+    code = ("from svs_torch.core.workers import keep_freed_memory\n"
             "assert keep_freed_memory()\n"
             "import torch\n"
             "from svs_torch.data.synthetic import random_obstacle_scenes\n"
@@ -390,7 +390,7 @@ def test_worker_start_up_freezes_its_imports_and_keeps_collecting():
     as long as the worker): afterwards the collector is on again, skips them, and still frees a new cycle. A
     collector that was off stays off."""
     code = ("import gc, weakref\n"
-            "from svs_torch.workers import imports_without_collection, start_worker\n"
+            "from svs_torch.core.workers import imports_without_collection, start_worker\n"
             "start_worker(1, ('svs_torch.pipeline',))\n"
             "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()\n"
             "class Node: pass\n"
@@ -408,7 +408,7 @@ def test_worker_start_up_keeps_numpy_blas_to_its_threads():
     """A one-thread worker gets no OpenBLAS threads from numpy's import (they spin and take the other workers'
     cores), unless the user asked for a number."""
     code = ("import os\n"
-            "from svs_torch.workers import start_worker\n"
+            "from svs_torch.core.workers import start_worker\n"
             "start_worker(1, ('svs_torch.pipeline',))\n"
             "import numpy\n"
             "assert os.environ['OPENBLAS_NUM_THREADS'] == os.environ.get('EXPECTED', '1')\n"

@@ -12,7 +12,7 @@ from skimage.measure import label as skimage_label
 
 from real_images import PAIRS, opencv_segmentation, read_gray
 from svs_torch import InputError
-from svs_torch.components import connected_components_with_stats, label_connected_components, region_properties
+from svs_torch.segmentation.components import (connected_components_with_stats, label_connected_components, region_properties)
 
 
 def assert_matches_opencv(mask: np.ndarray, labels, num, props, index: int, connectivity: int) -> None:

@@ -338,7 +338,7 @@ def test_preloaded_arrays_are_not_read_again(tmp_path):
     """An array another process decoded (``svs-depth estimate --pairs`` decodes in its parent while the workers
     start) is returned for its file instead of reading it; without it the file is read (and a missing one
     refused) as before."""
-    from svs_torch.image_files import PRELOADED, preload_key, read_image_array
+    from svs_torch.core.image_files import PRELOADED, preload_key, read_image_array
 
     path = tmp_path / "a.png"
     cv2.imwrite(str(path), np.arange(12, dtype=np.uint8).reshape(3, 4))

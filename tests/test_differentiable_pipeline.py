@@ -11,12 +11,11 @@ import torch
 
 from svs_torch import InputError
 from svs_torch.data import collate_stereo_batches, load_middlebury_eval3, resize_stereo_batch
-from svs_torch.dense import DenseConfig
-from svs_torch.learned_segmentation import load_obstacle_net
+from svs_torch.depth.dense import DenseConfig
+from svs_torch.segmentation.learned import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
-from svs_torch.soft_pipeline import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean,
-                                     quantize_straight_through, subpixel_disparity)
+from svs_torch.segmentation.segment import SegmentationConfig
+from svs_torch.pipeline.soft import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean, quantize_straight_through, subpixel_disparity)
 
 LEARNED = SegmentationConfig(segmenter="learned")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -162,13 +161,13 @@ def test_teddy_learned_gradients_reach_both_images_and_the_weights(data_dir):
 
 
 def test_without_a_network_the_cached_one_passes_image_gradients_and_keeps_no_grad(data_dir):
-    from svs_torch.learned_segmentation import _cached_obstacle_net
+    from svs_torch.segmentation.learned import cached_obstacle_net
     batch = _requiring_grad(_teddy(data_dir, (160, 120)))
     result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True, segmentation=LEARNED))
     objects = result.depth.objects
     objects.depth_median_m[objects.valid].sum().backward()
     assert int((batch.left.grad != 0).sum()) > 100
-    assert all(p.grad is None for p in _cached_obstacle_net("learned").parameters())
+    assert all(p.grad is None for p in cached_obstacle_net("learned").parameters())
 
 
 def test_rectified_pair_keeps_the_hard_values_and_passes_gradients(data_dir):

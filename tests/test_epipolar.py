@@ -10,8 +10,7 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.epipolar import (enforce_rank2, fundamental_7point, fundamental_8point, normalize_points_hartley,
-                                real_cubic_roots, sampson_distance, symmetric_epipolar_distance)
+from svs_torch.geometry.epipolar import (enforce_rank2, fundamental_7point, fundamental_8point, normalize_points_hartley, real_cubic_roots, sampson_distance, symmetric_epipolar_distance)
 
 MOTIONS = ["general", "rectified", "vertical", "forward"]
 

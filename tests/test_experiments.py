@@ -52,7 +52,7 @@ def test_region_measurability_sees_a_strip_outside_the_right_view():
     right view: the scene is not measurable; the same scene with the object moved to the centre is."""
     from conftest import render_border_strip_scene
 
-    from svs_torch.segmentation import segment_stereo
+    from svs_torch.segmentation.segment import segment_stereo
 
     verdicts = []
     for on_border in (True, False):
@@ -115,7 +115,7 @@ def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     import train_segmentation
     import validate_nearness
 
-    from svs_torch.nearness_segmentation import NearnessNet, NearnessNetConfig
+    from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 
     out_json, out_md = tmp_path / "cv.json", tmp_path / "cv.md"
     report = validate_nearness.main(["--data", str(data_dir), "--limit", "2", "--checkpoints", "0,2",

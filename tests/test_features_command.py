@@ -12,7 +12,7 @@ import numpy as np
 
 from svs_torch.cli import build_parser, main
 from svs_torch.cli.features import COMMAND_MAX_KEYPOINTS, COMMAND_UPSAMPLE_MAX_PIXELS, command_config
-from svs_torch.detector import MAX_KEYPOINTS
+from svs_torch.features.detector import MAX_KEYPOINTS
 
 from conftest import REPO_ROOT
 

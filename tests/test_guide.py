@@ -12,7 +12,7 @@ import pytest
 
 from svs_torch.capture.guide import (CLEAR, SPEECH_MISSING, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine,
                                      WarningPolicy)
-from svs_torch.checks import InputError
+from svs_torch.core.checks import InputError
 
 
 def run_policy(policy: WarningPolicy, samples: list[tuple[float, float | None]]) -> list[str | None]:

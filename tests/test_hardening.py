@@ -1,6 +1,6 @@
 """Property-based hardening (hypothesis): every public entry point and command, fed random sizes from 1x1 up,
 NaN / inf / constant images, odd dtypes and channel counts, random calibration and random bytes as files, either
-refuses with :class:`~svs_torch.errors.InputError` (the command line: exit 2 and one stderr line naming the
+refuses with :class:`~svs_torch.core.errors.InputError` (the command line: exit 2 and one stderr line naming the
 argument) or returns a result with a per-pair status (exit 0). Never another exception.
 
 Sizes stay at or below 64 px and the example counts small, so that the whole file runs in well under a minute on
@@ -33,8 +33,8 @@ from svs_torch.cli import build_parser, main
 from svs_torch.data import load_image_pair, load_stereo_pair
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data.formats import read_gray_image, read_middlebury_calib, read_pfm
-from svs_torch.errors import InputError
-from svs_torch.types import FundamentalStatus, SegmentationStatus
+from svs_torch.core.errors import InputError
+from svs_torch.core.types import FundamentalStatus, SegmentationStatus
 
 #: More examples for a bug hunt: ``SVS_HARDENING_SCALE=20 pytest tests/test_hardening.py``.
 SCALE = max(int(os.environ.get("SVS_HARDENING_SCALE", "1")), 1)

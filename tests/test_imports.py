@@ -17,7 +17,7 @@ def test_cli_help_does_not_import_torch():
 
 def test_public_names_load_on_first_use():
     import svs_torch
-    from svs_torch.checks import InputError
+    from svs_torch.core.checks import InputError
 
     assert svs_torch.InputError is InputError
     assert svs_torch.PipelineConfig().max_ratio > 0

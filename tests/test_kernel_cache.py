@@ -1,4 +1,4 @@
-"""The kernels' compile cache (svs_torch.kernels.loader): a folder others can write to is refused and nothing in
+"""The kernels' compile cache (svs_torch.core.kernels.loader): a folder others can write to is refused and nothing in
 it is loaded; the library names hold the flags actually used, the compiler and the CPU; a failed, hanging or
 unloadable build is remembered, so a later process neither retries it nor says more than one line. Each test has
 its own cache folder and starts as a new process would (:func:`_new_process`); the fake compilers are shell
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from svs_torch import kernels
-from svs_torch.kernels import loader
+from svs_torch.core import kernels
+from svs_torch.core.kernels import loader
 
 REAL_CC = shutil.which("cc") or shutil.which("gcc")
 needs_cc = pytest.mark.skipif(REAL_CC is None, reason="no C compiler")

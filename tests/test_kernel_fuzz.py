@@ -1,4 +1,4 @@
-"""Fuzz (hypothesis) of every public function that reaches a C kernel of :mod:`svs_torch.kernels`: drawn shapes
+"""Fuzz (hypothesis) of every public function that reaches a C kernel of a stage (its ``kernels/``): drawn shapes
 (empty images, K = 0, B = 0, batch lengths that do not match), values (NaN, ±inf, huge, negative), bool masks
 viewed from other bytes and out-of-range sizes, each run with the kernels and with ``SVS_TORCH_KERNELS=torch``.
 Both must give the same values (bit for bit where the kernel promises it, else to its stated tolerance) or both
@@ -21,21 +21,26 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from svs_torch import kernels
-from svs_torch.components import connected_components_with_stats, region_properties
-from svs_torch.dense import (DenseConfig, DenseDisparity, DisparityRange, block_match_sad,
-                             dense_disparity_over_regions, disparity_search_range, fill_invalid_rows)
-from svs_torch.dense_depth import dense_object_depths
-from svs_torch.depth import ObjectDepths, labelled_quantile
-from svs_torch.descriptor import describe_surf
-from svs_torch.errors import InputError
-from svs_torch.features import SurfConfig, extract_surf_features
-from svs_torch.matching import MatchedPoints, match_sad, refine_matches_lk
-from svs_torch.threshold import gray_levels_and_histogram
-from svs_torch.types import Keypoints
+from svs_torch.core import kernels
+from svs_torch.depth import kernels as depth_kernels
+from svs_torch.features import kernels as features_kernels
+from svs_torch.geometry import kernels as geometry_kernels
+from svs_torch.segmentation import kernels as segmentation_kernels
+from svs_torch.segmentation.components import connected_components_with_stats, region_properties
+from svs_torch.depth.dense import (DenseConfig, DenseDisparity, DisparityRange, block_match_sad, dense_disparity_over_regions, disparity_search_range, fill_invalid_rows)
+from svs_torch.depth.dense_objects import dense_object_depths
+from svs_torch.depth.sparse import ObjectDepths, labelled_quantile
+from svs_torch.features.descriptor import describe_surf
+from svs_torch.core.errors import InputError
+from svs_torch.features.surf import SurfConfig, extract_surf_features
+from svs_torch.geometry.matching import MatchedPoints, match_sad, refine_matches_lk
+from svs_torch.segmentation.threshold import gray_levels_and_histogram
+from svs_torch.core.types import Keypoints
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
 
+#: Every stage's kernel wrappers.
+STAGE_KERNELS = (segmentation_kernels, features_kernels, geometry_kernels, depth_kernels)
 SCALE = max(int(os.environ.get("SVS_FUZZ_SCALE", "1")), 1)
 
 
@@ -357,12 +362,13 @@ def test_dense_object_depths(size, n, fill, data):
     ("strongest_maxima", lambda: ([torch.rand(1, 4, 5, 5)], [torch.ones(1, 2, 3, 3, dtype=torch.bool)], 0.0, 99)),
 ])
 def test_wrappers_refuse_what_their_kernels_cannot_read(wrapper, args):
-    """Each public wrapper of :mod:`svs_torch.kernels` checks what its C code assumes: a box past the frame (or a
+    """Each public wrapper of a stage's ``kernels`` checks what its C code assumes: a box past the frame (or a
     box per pair for another batch), a negative pad, descriptor or label lengths that differ, runs outside the
     grid, a NaN quantile, images of different sizes, indices past the maps, a zero grid step, more maxima than
     points. (Under the sanitizer build the first of these read or wrote out of bounds before the checks.)"""
     with pytest.raises(InputError, match=r"^[A-Za-z_][\w\[\]., ]*: "):
-        getattr(kernels, wrapper)(*args())
+        stage = next(module for module in STAGE_KERNELS if hasattr(module, wrapper))
+        getattr(stage, wrapper)(*args())
 
 
 def _stereo(b: int, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:

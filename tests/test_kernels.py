@@ -1,4 +1,4 @@
-"""The fused C kernels (svs_torch.kernels) against the torch paths they replace: the same values bit for bit,
+"""The fused C kernels (svs_torch.core.kernels) against the torch paths they replace: the same values bit for bit,
 the fallback without a compiler, the on-disk cache. The dense-stage kernel's own tests are in test_dense.py."""
 
 from __future__ import annotations
@@ -9,11 +9,15 @@ import shutil
 import pytest
 import torch
 
-from svs_torch import kernels
-from svs_torch.errors import InputError
+from svs_torch.core import kernels
+from svs_torch.depth import kernels as depth_kernels
+from svs_torch.features import kernels as features_kernels
+from svs_torch.geometry import kernels as geometry_kernels
+from svs_torch.segmentation import kernels as segmentation_kernels
+from svs_torch.core.errors import InputError
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
-from svs_torch.features import SurfConfig, extract_surf_features
-from svs_torch.hessian import _interior_maxima, hessian_octaves, maxima_support
+from svs_torch.features.surf import SurfConfig, extract_surf_features
+from svs_torch.features.hessian import _interior_maxima, hessian_octaves, maxima_support
 
 needs_kernel = pytest.mark.skipif(not kernels.available("hessian_octave"), reason="no C compiler")
 
@@ -72,12 +76,12 @@ def test_padded_integral_kernel_is_bit_identical_to_torch(images):
     """The mean-removed, padded integral table in one pass equals integral_image + pad_integral bit for bit
     (float32 values, cumulative sums carried in double as torch's), on real images, odd sizes and a 1-pixel
     image; other dtypes are left to torch."""
-    from svs_torch.integral import integral_image, pad_integral
+    from svs_torch.features.integral import integral_image, pad_integral
 
     for batch in (images[..., :263, :317], images[:1, :, :1, :1]):
-        table = kernels.padded_integral(batch, batch.mean(dim=(-2, -1)).flatten(), 23)
+        table = features_kernels.padded_integral(batch, batch.mean(dim=(-2, -1)).flatten(), 23)
         assert torch.equal(table, pad_integral(integral_image(batch, subtract_mean=True), 23))
-    assert kernels.padded_integral(images.double(), images.double().mean(dim=(-2, -1)).flatten(), 23) is None
+    assert features_kernels.padded_integral(images.double(), images.double().mean(dim=(-2, -1)).flatten(), 23) is None
 
 
 def test_hessian_gradients_and_float64_take_the_torch_path(images):
@@ -97,12 +101,12 @@ def test_hessian_kernel_refuses_tables_it_cannot_read():
     padded = torch.rand(2, 1, 40, 44)
     det, trace = torch.zeros(2, 3, 8, 10), torch.zeros(2, 3, 8, 10)
     sizes, areas = [9, 15, 21], [1.0, 1.0, 1.0]
-    assert not kernels.hessian_octave(padded.double(), 12, 1, sizes, areas, areas, 0.9, det, trace)
-    assert not kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace.transpose(-1, -2)
+    assert not features_kernels.hessian_octave(padded.double(), 12, 1, sizes, areas, areas, 0.9, det, trace)
+    assert not features_kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace.transpose(-1, -2)
                                       .contiguous().transpose(-1, -2))
-    assert not kernels.hessian_octave(padded, 8, 1, sizes, areas, areas, 0.9, det, trace)  # 21 // 2 + 1 > 8
+    assert not features_kernels.hessian_octave(padded, 8, 1, sizes, areas, areas, 0.9, det, trace)  # 21 // 2 + 1 > 8
     assert not det.any() and not trace.any()
-    assert kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace) and det.any()
+    assert features_kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace) and det.any()
 
 
 @needs_kernel
@@ -124,7 +128,7 @@ def test_local_maxima_kernel_equals_torch(images):
     for octave in hessian_octaves(images, num_octaves=3):
         for support in (maxima_support(octave), maxima_support(octave, mask)):
             for threshold in (0.0, 1000 / 255**2):
-                fused = kernels.local_maxima(octave.det, support, threshold)
+                fused = features_kernels.local_maxima(octave.det, support, threshold)
                 assert torch.equal(fused, _interior_maxima(octave.det, support, threshold))
                 found += int(torch.isfinite(fused).sum())
     assert found > 100
@@ -134,7 +138,7 @@ def test_local_maxima_kernel_equals_torch(images):
 def test_local_maxima_kernel_ties_and_nan():
     """A tie with a neighbour counts as a maximum (as ``centre == peak`` does); a NaN neighbour rejects the
     point (torch's running maximum turns NaN); a NaN centre is never kept."""
-    from svs_torch.hessian import _interior_maxima
+    from svs_torch.features.hessian import _interior_maxima
 
     det = torch.zeros(1, 3, 7, 7)
     det[0, 1, 1, 1] = det[0, 1, 1, 2] = 2.0  # a tie
@@ -142,7 +146,7 @@ def test_local_maxima_kernel_ties_and_nan():
     det[0, 2, 5, 4] = float("nan")  # beside (1, 5, 5)
     det[0, 1, 3, 5] = float("nan")
     support = torch.ones(1, 1, 5, 5, dtype=torch.bool)
-    fused = kernels.local_maxima(det, support, 0.5)
+    fused = features_kernels.local_maxima(det, support, 0.5)
     assert torch.equal(fused, _interior_maxima(det, support, 0.5))
     assert fused[0, 0, 0, 0] == 2.0 and fused[0, 0, 0, 1] == 2.0
     assert torch.isfinite(fused).sum() == 2  # not (5, 5) beside the NaN, not the NaN centre
@@ -154,10 +158,10 @@ def test_local_maxima_kernel_refuses_other_inputs():
     if not kernels.available("local_maxima"):
         pytest.skip("no C compiler")
     support = torch.ones(1, 1, 3, 3, dtype=torch.bool)
-    assert kernels.local_maxima(torch.zeros(1, 3, 5, 5, dtype=torch.float64), support, 0.0) is None
+    assert features_kernels.local_maxima(torch.zeros(1, 3, 5, 5, dtype=torch.float64), support, 0.0) is None
     with pytest.raises(InputError, match=r"^support: expected \(1, 1, 3, 4\), got \(1, 1, 3, 3\)"):
-        kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0)
-    assert kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
+        features_kernels.local_maxima(torch.zeros(1, 3, 5, 6), support, 0.0)
+    assert features_kernels.local_maxima(torch.zeros(1, 3, 2, 5), torch.ones(1, 1, 0, 3, dtype=torch.bool), 0.0) is None
 
 
 def _dense_top(dets, supports, threshold, k):
@@ -176,7 +180,7 @@ def test_strongest_maxima_kernel_gives_the_dense_paths_topk(images, threads):
     dets = [octave.det for octave in octaves]
     for supports in ([maxima_support(o) for o in octaves], [maxima_support(o, mask) for o in octaves]):
         for k in (64, 5000):
-            values, index = _with_threads(threads, kernels.strongest_maxima, dets, supports, 1000 / 255**2, k)
+            values, index = _with_threads(threads, features_kernels.strongest_maxima, dets, supports, 1000 / 255**2, k)
             expected_values, expected_index = _dense_top(dets, supports, 1000 / 255**2, k)
             found = torch.isfinite(expected_values)
             assert torch.equal(values, expected_values)
@@ -194,12 +198,12 @@ def test_strongest_maxima_kernel_ties_and_small_octaves():
             det[0, s, y, x] = 1.0
     dets[0][0, 1, 4, 4] = 2.0
     supports = [torch.ones(1, 1, 7, 7, dtype=torch.bool), None, torch.ones(1, 1, 3, 3, dtype=torch.bool)]
-    values, index = kernels.strongest_maxima(dets, supports, 0.5, 8)
+    values, index = features_kernels.strongest_maxima(dets, supports, 0.5, 8)
     assert values[0, :5].tolist() == [2.0, 1.0, 1.0, 1.0, 1.0] and torch.isinf(values[0, 5:]).all()
     assert index[0, :5].tolist() == [3 * 7 + 3, 1 * 7 + 1, 1 * 7 + 5, 5 * 7 + 1, 49 + 1 * 3 + 1]
-    assert kernels.strongest_maxima([d.double() for d in dets], supports, 0.5, 8) is None
+    assert features_kernels.strongest_maxima([d.double() for d in dets], supports, 0.5, 8) is None
     with pytest.raises(InputError, match=r"^k: expected an int in \[0, 58\]"):
-        kernels.strongest_maxima(dets, supports, 0.5, 59)
+        features_kernels.strongest_maxima(dets, supports, 0.5, 59)
 
 
 @pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
@@ -208,7 +212,7 @@ def test_strongest_maxima_kernel_ties_and_small_octaves():
 def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
     """The runs of sparse, dense and blocky masks (rows all set, all clear, runs across the eight-pixel words and
     up to the row's end), with and without a value that splits them: the torch path's starts and ends."""
-    from svs_torch.components import _find_runs
+    from svs_torch.segmentation.components import _find_runs
 
     masks = [torch.rand(3, 5, width, generator=generator) > p for p in (0.9, 0.5, 0.05)]
     blocky = torch.rand(3, 5, 1, generator=generator).expand(3, 5, width) > 0.5  # whole rows set or clear
@@ -218,11 +222,11 @@ def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
     for mask in masks:
         value = torch.randint(1, 3, mask.shape, generator=generator)
         for given in (None, value):
-            assert kernels.find_runs(mask, given) is not None
+            assert segmentation_kernels.find_runs(mask, given) is not None
             fused = _with_threads(threads, _find_runs, mask, given)
             reference = _torch_path(monkeypatch, _find_runs, mask, given)
             assert torch.equal(fused.start, reference.start) and torch.equal(fused.end, reference.end)
-    assert kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
+    assert segmentation_kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
 
 
 @pytest.mark.skipif(not kernels.available("label_runs"), reason="no C compiler")
@@ -231,7 +235,7 @@ def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
 def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connectivity):
     """Labels, label counts and region properties of sparse, dense, diagonal and empty masks (components that
     touch only at a corner, that meet late through a U shape, a blank image amid others): the torch path's."""
-    from svs_torch.components import connected_components_with_stats
+    from svs_torch.segmentation.components import connected_components_with_stats
 
     masks = [torch.rand(4, 1, 9, 13, generator=generator) > p for p in (0.8, 0.5, 0.2)]
     shapes = torch.zeros(4, 1, 9, 13, dtype=torch.bool)
@@ -247,7 +251,7 @@ def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connect
             assert torch.equal(getattr(fused[2], field), getattr(reference[2], field))
     assert int(connected_components_with_stats(shapes, connectivity)[1][0]) == (1 if connectivity == 8 else 9)
     assert int(connected_components_with_stats(shapes, connectivity)[1][1]) == 1
-    assert kernels.label_runs(torch.zeros(2, dtype=torch.int32), torch.zeros(2, dtype=torch.int32), 1, 1, 2, 8) is None
+    assert segmentation_kernels.label_runs(torch.zeros(2, dtype=torch.int32), torch.zeros(2, dtype=torch.int32), 1, 1, 2, 8) is None
 
 
 @pytest.mark.skipif(not kernels.available("gray_levels"), reason="no C compiler")
@@ -255,15 +259,15 @@ def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connect
 def test_gray_levels_kernel_equals_torch(generator, threads):
     """Levels and histograms of random images, of the levels' exact half-way points (round half to even), of
     the range's ends and of sizes that are no multiple of the kernel's chunks: the torch path's."""
-    from svs_torch.threshold import gray_histogram, gray_levels
+    from svs_torch.segmentation.threshold import gray_histogram, gray_levels
 
     halves = (torch.arange(0, 255, dtype=torch.float32) + 0.5) / 255
     images = [torch.rand(3, 1, 67, 71, generator=generator), halves.view(1, 1, 5, 51).repeat(2, 1, 1, 1),
               torch.tensor([0.0, 1.0, 1e-9, 1 - 1e-7]).view(1, 1, 2, 2), torch.rand(2, 1, 1, 9000, generator=generator)]
     for image in images:
-        levels, histogram = _with_threads(threads, kernels.gray_levels, image)
+        levels, histogram = _with_threads(threads, segmentation_kernels.gray_levels, image)
         assert torch.equal(levels, gray_levels(image)) and torch.equal(histogram, gray_histogram(gray_levels(image)))
-    assert kernels.gray_levels(images[0].double()) is None
+    assert segmentation_kernels.gray_levels(images[0].double()) is None
 
 
 @pytest.mark.skipif(not kernels.available("refine_maxima"), reason="no C compiler")
@@ -272,12 +276,12 @@ def test_refine_maxima_kernel_equals_torch(images, monkeypatch, upsample):
     """The compiled fit of the strongest maxima gives the torch path's keypoints (positions, sizes, peaks, signs,
     validity) on a real scene, with the detector's upsampling and a blank image amid others; the 3 × 3 solve's
     rounding is the only difference allowed."""
-    from svs_torch.detector import SurfConfig, detect_surf_keypoints
+    from svs_torch.features.detector import SurfConfig, detect_surf_keypoints
 
     batch = torch.cat([images, torch.zeros_like(images[:1])])
     config = SurfConfig(upsample=upsample, max_keypoints=300)
     fused = detect_surf_keypoints(batch, config)
-    monkeypatch.setattr(kernels, "refine_maxima", lambda *args: None)
+    monkeypatch.setattr(features_kernels, "refine_maxima", lambda *args: None)
     reference = detect_surf_keypoints(batch, config)
     assert torch.equal(fused.valid, reference.valid) and int(fused.valid.sum()) > 500
     assert torch.equal(fused.laplacian_sign, reference.laplacian_sign) and not fused.valid[-1].any()
@@ -309,7 +313,7 @@ def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_p
     """The 16-bit search's vector types (64 bytes: one AVX-512 register here) are split by the compiler on a
     machine without AVX-512 (two AVX2 registers, four SSE2 ones): built for those, the kernel still equals the
     torch path, on widths that leave a partial vector and ranges of more than one vector of columns."""
-    from svs_torch.dense import DenseConfig, block_match_sad
+    from svs_torch.depth.dense import DenseConfig, block_match_sad
 
     compiler = shutil.which("cc") or shutil.which("gcc")
     if compiler is None:
@@ -351,18 +355,18 @@ def test_kernels_take_an_empty_batch():
     """B = 0 reaches the kernels as an empty batch (OpenMP still gets one thread) and gives empty results."""
     if not kernels.available("sad_nearest"):
         pytest.skip("no C compiler")
-    best, second, index, back = kernels.sad_nearest(torch.zeros(0, 4, 64), torch.zeros(0, 5, 64),
+    best, second, index, back = geometry_kernels.sad_nearest(torch.zeros(0, 4, 64), torch.zeros(0, 5, 64),
                                                     torch.ones(0, 4, dtype=torch.bool), torch.ones(0, 5, dtype=torch.bool))
     assert best.shape == (0, 4) and back.shape == (0, 5)
-    described = kernels.usurf_describe(torch.zeros(0, 1, 20, 20), 8, torch.zeros(0, 3, 2), torch.ones(0, 3),
+    described = features_kernels.usurf_describe(torch.zeros(0, 1, 20, 20), 8, torch.zeros(0, 3, 2), torch.ones(0, 3),
                                        torch.ones(0, 3, dtype=torch.bool), False)
     assert described.shape == (0, 3, 64)
-    table = kernels.padded_integral(torch.zeros(0, 1, 20, 20), torch.zeros(0), 8)
+    table = features_kernels.padded_integral(torch.zeros(0, 1, 20, 20), torch.zeros(0), 8)
     assert table.shape == (0, 1, 37, 37)
-    count, below, _ = kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
+    count, below, _ = depth_kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
                                               torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
     assert count.shape == (0, 2) and below.shape == (0, 2, 1)
-    values, index = kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)], [torch.ones(1, 1, 3, 3, dtype=torch.bool)],
+    values, index = features_kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)], [torch.ones(1, 1, 3, 3, dtype=torch.bool)],
                                              0.5, 4)
     assert values.shape == index.shape == (0, 4)
 
@@ -370,7 +374,7 @@ def test_kernels_take_an_empty_batch():
 def _block_match_inputs(seed: int) -> tuple:
     """Three pairs of whole-number images with their own boxes (one empty, one past the padded size) and
     ranges, for the dense kernel."""
-    from svs_torch.dense import quantize_levels
+    from svs_torch.depth.dense import quantize_levels
 
     generator = torch.Generator().manual_seed(seed)
     left = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
@@ -387,8 +391,8 @@ def test_dense_kernel_same_for_any_thread_count(threads):
     """Pairs and bands of rows are shared among OpenMP threads; no value depends on how."""
     inputs = _block_match_inputs(2)
     rules = (0.1, 1.0, 0.2, False)
-    reference = kernels.block_match(*inputs, *rules)
-    split = _with_threads(threads, kernels.block_match, *inputs, *rules)
+    reference = depth_kernels.block_match(*inputs, *rules)
+    split = _with_threads(threads, depth_kernels.block_match, *inputs, *rules)
     assert all(torch.equal(a, b) for a, b in zip(split, reference))
     assert reference[1][0].any() and reference[1][1].any() and not reference[1][2].any()  # the empty box
 
@@ -397,12 +401,12 @@ def test_dense_kernel_same_for_any_thread_count(threads):
 def test_dense_kernel_equals_the_torch_box_matcher():
     """Each pair at its own box and range equals the torch path's shared box (dense._match_box, which the
     kernel replaces) inside that box, and nothing is written outside it."""
-    from svs_torch import dense
+    from svs_torch.depth import dense
 
     left, right, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(3)
     config = dense.DenseConfig(window_size=size, prefilter="none", texture_threshold=0.0, kernel="torch")
     search = dense.DisparityRange(minimum, 16, counts)
-    found = kernels.block_match(left, right, None, size, boxes, minimum, counts, image_hw, lower,
+    found = depth_kernels.block_match(left, right, None, size, boxes, minimum, counts, image_hw, lower,
                                 config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False)
     expected, ok = dense._match_box(left.unsqueeze(1) / 255, right.unsqueeze(1) / 255, boxes[:, 0], boxes[:, 1],
                                     130, 90, search, image_hw, config, lower)
@@ -420,7 +424,7 @@ def test_dense_kernel_prefilters_as_the_torch_path(source):
     """From the raw images the kernel pre-filters a crop row at a time (x-Sobel, clip, quantize_levels; the
     texture from the left image's clipped x-Sobel): the same maps as from whole pre-filtered images, with boxes
     at and past the frame's edges (replicate border) and a texture rule that rejects some pixels."""
-    from svs_torch.dense import prefilter_xsobel, quantize_levels
+    from svs_torch.depth.dense import prefilter_xsobel, quantize_levels
 
     _, _, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(4)
     generator = torch.Generator().manual_seed(5)
@@ -433,14 +437,14 @@ def test_dense_kernel_prefilters_as_the_torch_path(source):
     levels = (quantize_levels(sobel_left), quantize_levels(sobel_right)) if source == "xsobel" else (
         quantize_levels(raw_left), quantize_levels(raw_right))
     rules = (0.1, 1.0, 2 / 255 * size ** 2, False)
-    expected = kernels.block_match(*levels, sobel_left.abs(), size, boxes, minimum, counts, image_hw, lower, *rules)
-    found = kernels.block_match(raw_left, raw_right, True, size, boxes, minimum, counts, image_hw, lower, *rules,
+    expected = depth_kernels.block_match(*levels, sobel_left.abs(), size, boxes, minimum, counts, image_hw, lower, *rules)
+    found = depth_kernels.block_match(raw_left, raw_right, True, size, boxes, minimum, counts, image_hw, lower, *rules,
                                 source=source, prefilter_cap=cap)
-    untextured = kernels.block_match(*levels, None, size, boxes, minimum, counts, image_hw, lower, *rules)
+    untextured = depth_kernels.block_match(*levels, None, size, boxes, minimum, counts, image_hw, lower, *rules)
     assert torch.equal(found[0], expected[0]) and torch.equal(found[1], expected[1])
     assert expected[1].sum() > 500 and untextured[1].sum() > expected[1].sum()  # the texture rule rejected some
     with pytest.raises(ValueError, match="texture"):
-        kernels.block_match(raw_left, raw_right, sobel_left, size, boxes, minimum, counts, image_hw, lower, *rules,
+        depth_kernels.block_match(raw_left, raw_right, sobel_left, size, boxes, minimum, counts, image_hw, lower, *rules,
                             source=source, prefilter_cap=cap)
 
 
@@ -454,9 +458,9 @@ def test_usurf_kernel_agrees_with_the_torch_descriptor(images, monkeypatch):
     none)."""
     import dataclasses
 
-    from svs_torch.descriptor import describe_surf
-    from svs_torch.detector import detect_surf_keypoints
-    from svs_torch.types import Keypoints
+    from svs_torch.features.descriptor import describe_surf
+    from svs_torch.features.detector import detect_surf_keypoints
+    from svs_torch.core.types import Keypoints
 
     keypoints = detect_surf_keypoints(images)
     assert int(keypoints.valid.sum()) > 300 and not bool(keypoints.valid.all())
@@ -484,9 +488,9 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     """The C refinement takes the torch path's steps with its sums in double and in its own order: on the
     matches of real pairs, the same rows pass the correlation gate (all but a rare one on the edge) and the
     points agree to 1e-3 px but for a rare ill-conditioned patch."""
-    from svs_torch import pipeline
+    from svs_torch.pipeline import run as pipeline
     from svs_torch.data import collate_stereo_batches, list_shared_pairs, load_stereo_pair
-    from svs_torch.matching import gather_matched_points, refine_matches_lk
+    from svs_torch.geometry.matching import gather_matched_points, refine_matches_lk
 
     pairs = [resize_stereo_batch(load_stereo_pair(path), (320, 240)) for path in list_shared_pairs(data_dir)[:6]]
     batch = collate_stereo_batches(pairs)
@@ -516,7 +520,7 @@ def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual, band
     """SAD matching through the C kernel gives the torch path's matches (cdist, topk, argmin) on real SURF
     descriptors, with the Laplacian gate, the epipolar band, the ratio test and the mutual check; costs equal to
     float32 round-off."""
-    from svs_torch.matching import match_sad
+    from svs_torch.geometry.matching import match_sad
 
     features = extract_surf_features(images, config=SurfConfig(metric_threshold=100.0))
     left, right = (features.descriptors[i:i + 1].expand(2, -1, -1).clone() for i in (0, 1))
@@ -544,7 +548,7 @@ def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual, band
 def test_sad_matching_kernel_edge_rows(band_px):
     """An invalid row, rows whose sign or band leaves no candidate or a single one, two at the same distance, an
     invalid column, the signs out of order: the same best / second / back as the masked matrix gives."""
-    from svs_torch.matching import _allowed
+    from svs_torch.geometry.matching import _allowed
 
     left = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0], [2.0, 2.0]]])
     right = torch.tensor([[[0.0, 0.5], [3.0, 3.0], [0.0, 1.5], [5.0, 5.0], [0.0, 0.5]]])
@@ -553,7 +557,7 @@ def test_sad_matching_kernel_edge_rows(band_px):
     sign_left, sign_right = torch.tensor([[1, 1, 1, -1, 7]]), torch.tensor([[1, -1, 1, 1, 1]])
     y_left, y_right = torch.tensor([[0.0, 5.0, 0.0, 0.0, 0.0]]), torch.tensor([[0.0, 0.0, 0.5, 0.0, 9.0]])
     xy_left, xy_right = torch.stack([y_left, y_left], -1), torch.stack([y_right, y_right], -1)
-    best, second, index, back = kernels.sad_nearest(left, right, valid_left, valid_right, sign_left, sign_right,
+    best, second, index, back = geometry_kernels.sad_nearest(left, right, valid_left, valid_right, sign_left, sign_right,
                                                     y_left, y_right, band_px)
     allowed = _allowed(valid_left, valid_right, sign_left, sign_right, xy_left, xy_right, band_px)
     distance = torch.where(allowed, torch.cdist(left, right, p=1), torch.inf)
@@ -575,7 +579,7 @@ def test_sad_matching_kernel_edge_rows(band_px):
 def test_labelled_select_kernel_gives_the_sorting_paths_quantiles(monkeypatch):
     """Quickselect per object gives the order statistics the sort gives, so the same quantiles bit for bit:
     negative values, ties, ±inf, labels of no slot, padded and repeated slots, empty slots, long rows."""
-    from svs_torch.depth import labelled_quantile
+    from svs_torch.depth.sparse import labelled_quantile
 
     generator = torch.Generator().manual_seed(4)
     cases = []
@@ -600,7 +604,7 @@ def test_labelled_select_kernel_gives_the_sorting_paths_quantiles(monkeypatch):
 def test_fill_rows_kernel_is_bit_identical_to_torch(monkeypatch):
     """Rows with no valid pixel, one, a few and nearly all; neighbours that agree (mean) and that do not
     (the smaller): the same fill and reachability as the torch path."""
-    from svs_torch.dense import fill_invalid_rows
+    from svs_torch.depth.dense import fill_invalid_rows
 
     generator = torch.Generator().manual_seed(5)
     disparity = torch.rand(4, 9, 57, generator=generator) * torch.tensor([0.5, 2.0, 10.0, 40.0]).view(4, 1, 1)
@@ -617,8 +621,8 @@ def _object_depth_inputs(seed: int) -> tuple:
     """Four pairs of dense disparities with their own boxes (inside the frame, past its left and right edges,
     empty), label images, slots (repeated, padding, a label no pixel holds), and calibrations under which some
     denominators are not positive and some depths overflow."""
-    from svs_torch.dense import DenseDisparity
-    from svs_torch.depth import ObjectDepths
+    from svs_torch.depth.dense import DenseDisparity
+    from svs_torch.depth.sparse import ObjectDepths
 
     generator = torch.Generator().manual_seed(seed)
     b, h, w = 4, 37, 53
@@ -646,12 +650,12 @@ def test_object_depths_kernel_is_bit_identical_to_torch(monkeypatch, fill, threa
     """Each pair read at its own box (clamped past the frame's edges) gives the torch path's statistics and
     counts bit for bit: with and without the row fill, repeated and padding slots, an empty box, non-positive
     denominators and overflowing depths, for any thread count."""
-    from svs_torch.dense_depth import dense_object_depths
+    from svs_torch.depth.dense_objects import dense_object_depths
 
     inputs = _object_depth_inputs(6)
     ran = []
-    compiled = kernels.object_depths
-    monkeypatch.setattr(kernels, "object_depths", lambda *args: ran.append(compiled(*args)) or ran[-1])
+    compiled = depth_kernels.object_depths
+    monkeypatch.setattr(depth_kernels, "object_depths", lambda *args: ran.append(compiled(*args)) or ran[-1])
     fused = _with_threads(threads, dense_object_depths, *inputs, percentiles=(10.0, 90.0), min_valid_px=1,
                           fill_invalid=fill)
     assert len(ran) == 1 and ran[0] is not None  # the kernel, not the fallback, gave ``fused``
@@ -673,7 +677,7 @@ def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
     fewer and changes no statistic."""
     from dataclasses import replace
 
-    from svs_torch.dense_depth import dense_object_depths
+    from svs_torch.depth.dense_objects import dense_object_depths
 
     if path == "torch":
         monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
@@ -709,7 +713,7 @@ def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
 
 def test_object_depths_gradients_take_the_torch_path():
     """With gradients wanted the statistics come from the torch path, and they reach the disparities."""
-    from svs_torch.dense_depth import dense_object_depths
+    from svs_torch.depth.dense_objects import dense_object_depths
 
     dense, labels, objects, _, _, doffs = _object_depth_inputs(7)
     focal, baseline = torch.full((4,), 100.0), torch.full((4,), 0.1)  # no overflowing depth: finite gradients

@@ -1,4 +1,4 @@
-"""The learned segmenter (svs_torch.learned_segmentation): truth from GT disparity, the network and its shipped
+"""The learned segmenter (svs_torch.segmentation.learned): truth from GT disparity, the network and its shipped
 weights, the hard segmenter in the pipeline and the CLI, and the soft path through the depth."""
 
 from __future__ import annotations
@@ -13,17 +13,14 @@ import numpy as np
 import pytest
 import torch
 
-from svs_torch.checks import InputError
+from svs_torch.core.checks import InputError
 from svs_torch.cli import main
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.dense import DenseConfig, block_match_sad
-from svs_torch.learned_segmentation import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net,
-                                            mask_iou, obstacle_truth, predict_obstacle_logits, save_obstacle_net,
-                                            segment_learned, segment_stereo_learned, soft_nearest_depth,
-                                            soft_object_depths)
+from svs_torch.depth.dense import DenseConfig, block_match_sad
+from svs_torch.segmentation.learned import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net, mask_iou, obstacle_truth, predict_obstacle_logits, save_obstacle_net, segment_learned, segment_stereo_learned, soft_nearest_depth, soft_object_depths)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
-from svs_torch.types import StereoBatch
+from svs_torch.segmentation.segment import SegmentationConfig
+from svs_torch.core.types import StereoBatch
 
 from conftest import REPO_ROOT
 

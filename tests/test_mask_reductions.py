@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from svs_torch.mask_reductions import any_along
+from svs_torch.core.mask_reductions import any_along
 
 
 @pytest.mark.parametrize("dim", [0, 1, -1, -2])

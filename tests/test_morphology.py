@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from real_images import PAIRS, read_gray
 from svs_torch import InputError
-from svs_torch.morphology import dilate, erode, open_binary, structuring_element
+from svs_torch.segmentation.morphology import dilate, erode, open_binary, structuring_element
 
 
 def to_u8(mask: np.ndarray) -> np.ndarray:

@@ -17,12 +17,12 @@ import pytest
 import torch
 
 import svs_torch.pipeline
-import svs_torch.plots
+import svs_torch.plotting.plots
 from svs_torch.cli import main
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.figures import write_image_atomic
+from svs_torch.plotting.figures import write_image_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.plots import NearestTruth, _region_lower_medians, pipeline_figure, render, true_nearest_obstacle
+from svs_torch.plotting.plots import NearestTruth, _region_lower_medians, pipeline_figure, render, true_nearest_obstacle
 
 MISSED_SCENE = ("--objects", "4", "--seed", "3")  # true obstacle 1 at 1.00 m is the narrowest: Otsu drops it
 KEPT_SCENE = ("--objects", "2", "--seed", "3")  # the same two nearest obstacles alone: both kept
@@ -50,14 +50,14 @@ def segmenter(request, monkeypatch) -> str | None:
 def figure_titles(monkeypatch) -> list[str]:
     """The titles of the pipeline figures drawn while the test runs."""
     titles = []
-    original = svs_torch.plots.pipeline_figure
+    original = svs_torch.plotting.plots.pipeline_figure
 
     def recording(*args, **kwargs):
         figure = original(*args, **kwargs)
         titles.append(figure._suptitle.get_text().replace("\n", " "))
         return figure
 
-    monkeypatch.setattr(svs_torch.plots, "pipeline_figure", recording)
+    monkeypatch.setattr(svs_torch.plotting.plots, "pipeline_figure", recording)
     return titles
 
 

@@ -8,14 +8,13 @@ import dataclasses
 import pytest
 import torch
 
-from svs_torch.checks import InputError
-from svs_torch.components import connected_components_with_stats, region_properties
+from svs_torch.core.checks import InputError
+from svs_torch.segmentation.components import connected_components_with_stats, region_properties
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.learned_segmentation import load_obstacle_net, mask_iou, obstacle_truth, save_obstacle_net
-from svs_torch.nearness_segmentation import (NearnessNet, NearnessNetConfig, measure_nearness_disparity,
-                                             nearness_logits, segment_stereo_nearness, shift_regions_to_right)
+from svs_torch.segmentation.learned import load_obstacle_net, mask_iou, obstacle_truth, save_obstacle_net
+from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, measure_nearness_disparity, nearness_logits, segment_stereo_nearness, shift_regions_to_right)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig, keep_regions
+from svs_torch.segmentation.segment import SegmentationConfig, keep_regions
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +74,7 @@ def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
 def test_regions_without_stereo_are_not_kept():
     """A region in the band only the left camera sees, or of filled rows only (nothing measured), cannot be
     ranged by the dense stage: the nearness segmenter does not keep it (shared Midd1, Lampshade1, Rocks1 did)."""
-    from svs_torch.nearness_segmentation import _area_measured_in_view
+    from svs_torch.segmentation.nearness import _area_measured_in_view
 
     labels = torch.zeros(1, 1, 40, 100, dtype=torch.int64)
     labels[..., 5:35, 40:90] = 1  # near (disparity 20), seen by both cameras
@@ -158,7 +157,7 @@ def test_clear_errors(tmp_path):
     with pytest.raises(InputError, match="no weights file"):
         SegmentationConfig(segmenter="nearness:/no/such/file.pt")
     old = tmp_path / "old.pt"
-    from svs_torch.learned_segmentation import ObstacleNet
+    from svs_torch.segmentation.learned import ObstacleNet
     save_obstacle_net(old, ObstacleNet())
     with pytest.raises(InputError, match="not a svs_torch nearness network file"):
         load_obstacle_net(f"nearness:{old}")
@@ -171,8 +170,8 @@ def test_clear_errors(tmp_path):
 
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
-    from svs_torch.depth import kept_region_lower_median
-    from svs_torch.nearness_segmentation import _region_median_disparity
+    from svs_torch.depth.sparse import kept_region_lower_median
+    from svs_torch.segmentation.nearness import _region_median_disparity
 
     generator = torch.Generator().manual_seed(1)
     for _ in range(30):
@@ -221,7 +220,7 @@ def test_views_of_two_scenes_fall_back_to_otsu_pair_by_pair(data_dir):
     and the default segments that pair as Otsu and the paper's two largest regions, while the real pair beside it
     in the batch keeps the nearness segmenter (experiments/nearness_fallback.md)."""
     from svs_torch.data import collate_stereo_batches, load_stereo_pair, resize_stereo_batch
-    from svs_torch.segmentation import segment_stereo
+    from svs_torch.segmentation.segment import segment_stereo
 
     teddy, cones = (resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_2003_quarter" / name), (320, 240))
                     for name in ("Teddy", "Cones"))

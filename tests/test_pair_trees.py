@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import torch
 
-from svs_torch.pair_trees import put_pairs, take_pairs
+from svs_torch.core.pair_trees import put_pairs, take_pairs
 
 
 class Inner(NamedTuple):

@@ -11,8 +11,8 @@ import torch
 from svs_torch import InputError, StereoBatch
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.depth import DepthConfig
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.depth.sparse import DepthConfig
+from svs_torch.segmentation.segment import SegmentationConfig
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
 
 #: Otsu's segmentation (the paper's), for tests of the later stages on bright synthetic boxes.
@@ -177,7 +177,7 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     the JSON-facing count says why."""
     from conftest import render_border_strip_scene
 
-    from svs_torch.camera import SVS_CAMERA
+    from svs_torch.core.camera import SVS_CAMERA
 
     near_m, strip_px = 0.8, 20
     scenes = render_border_strip_scene(near_m=near_m, strip_px=strip_px)

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from svs_torch import FundamentalStatus, InputError
-from svs_torch.epipolar import sampson_distance
-from svs_torch.ransac import _splitmix64, draw_minimal_samples, estimate_fundamental_ransac
+from svs_torch.geometry.epipolar import sampson_distance
+from svs_torch.geometry.ransac import _splitmix64, draw_minimal_samples, estimate_fundamental_ransac
 from test_epipolar import random_camera_pairs
 
 OK, TOO_FEW = FundamentalStatus.OK, FundamentalStatus.TOO_FEW_MATCHES

@@ -14,12 +14,12 @@ from conftest import REPO_ROOT
 from svs_torch import InputError
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation import SegmentationConfig
+from svs_torch.segmentation.segment import SegmentationConfig
 
 #: These tests measure the row alignment on Otsu's regions (as when it was built, issue 33); the nearness
 #: segmenter under a rolled camera is measured in experiments/real_rig.py.
 OTSU = SegmentationConfig()
-from svs_torch.row_alignment import RowAlignmentConfig, fit_row_alignment, row_alignment_homography
+from svs_torch.geometry.row_alignment import RowAlignmentConfig, fit_row_alignment, row_alignment_homography
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 

@@ -10,7 +10,7 @@ import torch
 
 from real_images import PAIRS, opencv_segmentation, read_gray
 from svs_torch import InputError, SegmentationStatus, StereoBatch
-from svs_torch.segmentation import SegmentationConfig, segment_images, segment_stereo
+from svs_torch.segmentation.segment import SegmentationConfig, segment_images, segment_stereo
 
 
 def stereo_batch(data_dir, size_wh=(320, 240)) -> tuple[StereoBatch, list[np.ndarray], list[np.ndarray]]:

@@ -1,4 +1,4 @@
-"""The differentiable pass's geometry (issue 31, svs_torch.soft_geometry): the LK-refined right points, F's refit
+"""The differentiable pass's geometry (issue 31, svs_torch.geometry.soft): the LK-refined right points, F's refit
 on RANSAC's inliers and Hartley's homographies, each with the hard values and gradients to the images."""
 
 from __future__ import annotations
@@ -6,11 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from svs_torch.epipolar import fundamental_8point
-from svs_torch.matching import MatchedPoints, _refine_lk_torch
-from svs_torch.rectification import RectificationConfig, rectify_uncalibrated
-from svs_torch.soft_geometry import (geometry_straight_through, lk_points_straight_through, lk_step,
-                                     refit_fundamental_straight_through)
+from svs_torch.geometry.epipolar import fundamental_8point
+from svs_torch.geometry.matching import MatchedPoints, _refine_lk_torch
+from svs_torch.geometry.rectification import RectificationConfig, rectify_uncalibrated
+from svs_torch.geometry.soft import (geometry_straight_through, lk_points_straight_through, lk_step, refit_fundamental_straight_through)
 
 from test_rectification import make_rigs
 

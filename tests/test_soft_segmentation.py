@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.morphology import dilate, erode, open_binary, structuring_element
-from svs_torch.segmentation import SegmentationConfig, segment_images
-from svs_torch.soft_segmentation import soft_dilate, soft_erode, soft_open, soft_segment_images, soft_threshold
+from svs_torch.segmentation.morphology import dilate, erode, open_binary, structuring_element
+from svs_torch.segmentation.segment import SegmentationConfig, segment_images
+from svs_torch.segmentation.soft import soft_dilate, soft_erode, soft_open, soft_segment_images, soft_threshold
 
 
 def blobs(batch: int, size: int, seed: int, dtype=torch.float64) -> torch.Tensor:

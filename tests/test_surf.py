@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from svs_torch import InputError, Keypoints
-from svs_torch.descriptor import describe_surf, surf_orientation, with_orientation
-from svs_torch.detector import SurfConfig, detect_surf_keypoints, metric_threshold_01
-from svs_torch.features import extract_surf_features
-from svs_torch.hessian import filter_sizes, hessian_octaves
+from svs_torch.features.descriptor import describe_surf, surf_orientation, with_orientation
+from svs_torch.features.detector import SurfConfig, detect_surf_keypoints, metric_threshold_01
+from svs_torch.features.surf import extract_surf_features
+from svs_torch.features.hessian import filter_sizes, hessian_octaves
 
 
 def smooth_image(batch: int, height: int, width: int, seed: int, dtype=torch.float64) -> torch.Tensor:
@@ -352,7 +352,7 @@ def test_real_pair_matches_mostly_at_the_true_disparity(data_dir):
 def test_features_in_cache_blocks_equal_one_batch(monkeypatch, upright):
     """extract_surf_features over blocks of images: the keypoints of one batch, padded to one K (zero / False
     rows); orientations and descriptors equal up to the integral image's float32 round-off."""
-    import svs_torch.features as features_module
+    import svs_torch.features.surf as features_module
     from svs_torch.data.synthetic import random_obstacle_scenes
 
     scenes = random_obstacle_scenes(6, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(2)).batch

@@ -9,7 +9,7 @@ import torch
 
 from real_images import PAIRS, read_gray
 from svs_torch import InputError
-from svs_torch.threshold import gray_histogram, gray_levels, otsu_threshold, threshold_binary
+from svs_torch.segmentation.threshold import gray_histogram, gray_levels, otsu_threshold, threshold_binary
 
 
 def as_tensor(images: list[np.ndarray], dtype=torch.float32) -> torch.Tensor:

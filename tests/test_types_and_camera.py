@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
-from svs_torch.camera import parse_size
-from svs_torch.checks import check_shape
+from svs_torch.core.camera import parse_size
+from svs_torch.core.checks import check_shape
 
 
 @pytest.mark.parametrize("width, expected", [(160, 138), (320, 276), (640, 553), (1280, 1105)])

@@ -1,7 +1,7 @@
 """Capture from the Surveyor SVS stereo camera: the SRV-1 byte protocol, one board's link, the stereo pair.
 
 ``protocol`` is pure (bytes in, values out); ``link`` speaks it over pyserial (UART or ``socket://``);
-``stereo`` grabs timestamped pairs and turns them into :class:`~svs_torch.types.StereoBatch`; ``guide`` holds the
+``stereo`` grabs timestamped pairs and turns them into :class:`~svs_torch.core.types.StereoBatch`; ``guide`` holds the
 reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter).
 """
 

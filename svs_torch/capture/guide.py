@@ -18,7 +18,7 @@ import sys
 import time
 from typing import TextIO
 
-from ..checks import InputError
+from ..core.checks import InputError
 
 __all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine",
            "LinesAbove", "CLEAR", "WARN", "STOP"]

@@ -23,7 +23,7 @@ from typing import Callable
 
 import serial
 
-from ..camera import SVS_RESOLUTIONS
+from ..core.camera import SVS_RESOLUTIONS
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameHeader, FrameParser, ParsedFrame, VersionInfo, describe_bytes,
                        find_line, find_token, max_jpeg_length, parse_battery_reply, parse_quality_reply,

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..camera import SVS_RESOLUTIONS
-from ..checks import InputError
+from ..core.camera import SVS_RESOLUTIONS
+from ..core.checks import InputError
 
 __all__ = [
     "ProtocolError",

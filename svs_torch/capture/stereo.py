@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 import torch
 
-from ..camera import SVS_CAMERA, SVSCamera
-from ..checks import InputError
-from ..types import StereoBatch
+from ..core.camera import SVS_CAMERA, SVSCamera
+from ..core.checks import InputError
+from ..core.types import StereoBatch
 from .link import CameraLink, CaptureError, LinkConfig, RawFrame
 from .protocol import VersionInfo, size_code_for
 

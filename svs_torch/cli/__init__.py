@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    from ..errors import InputError
-    from ..workers import keep_freed_memory
+    from ..core.errors import InputError
+    from ..core.workers import keep_freed_memory
 
     keep_freed_memory()  # the commands run batch after batch (see there why)
     prog = f"svs-depth {args.command}"

@@ -47,12 +47,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from ..benchmark import format_tables, run_benchmark
-        from ..checks import InputError
-        from ..files import atomic_output, check_output_file, path_kind
+        from ..evaluation.benchmark import format_tables, run_benchmark
+        from ..core.checks import InputError
+        from ..core.files import atomic_output, check_output_file, path_kind
         from .common import dumps_strict
 
     data_dir = Path(args.data) if args.data else None

@@ -50,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def parse_board(text: str) -> tuple[int, int]:
     """``"9x6"`` → (9, 6) inner corners (columns, rows), each 2 to 100."""
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text or "")
     if not match or min(int(match[1]), int(match[2])) < 2 or max(int(match[1]), int(match[2])) > 100:
@@ -75,7 +75,7 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     import glob
 
     from ..data import read_pair_list
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     if bool(args.left) == bool(args.pairs):
         raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, not both")
@@ -123,11 +123,11 @@ def _figure(path: str, option: str, calibration, views, images) -> None:
 
     import torch
 
-    from ..calibration import rectify_with_calibration
-    from ..chessboard import rectified_corners
-    from ..figures import write_image_atomic
-    from ..rectified_figure import rectified_pair_figure
-    from ..types import StereoBatch
+    from ..geometry.calibration import rectify_with_calibration
+    from ..geometry.chessboard import rectified_corners
+    from ..plotting.figures import write_image_atomic
+    from ..plotting.rectified import rectified_pair_figure
+    from ..core.types import StereoBatch
 
     left, right = (torch.from_numpy(image).float().div(255).view(1, 1, *image.shape) for image in images)
     # The batch's focal and baseline are placeholders: rectify_with_calibration sets the calibration's.
@@ -141,17 +141,17 @@ def _figure(path: str, option: str, calibration, views, images) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         import cv2
 
-        from ..calibration import write_calibration
-        from ..chessboard import calibrate_stereo_rig, collect_board_views
+        from ..geometry.calibration import write_calibration
+        from ..geometry.chessboard import calibrate_stereo_rig, collect_board_views
         from ..evaluation.sweep import code_version
-        from ..figures import check_output_path
-        from ..files import check_output_file
-        from ..image_files import read_image_array
+        from ..plotting.figures import check_output_path
+        from ..core.files import check_output_file
+        from ..core.image_files import read_image_array
 
     board = parse_board(args.board)
     check_output_file(args.out, "--out", (".json",), "a .json")

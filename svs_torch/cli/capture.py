@@ -25,9 +25,9 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..camera import parse_size
-from ..errors import InputError
-from ..files import display_path, path_kind, write_bytes_atomic
+from ..core.camera import parse_size
+from ..core.errors import InputError
+from ..core.files import display_path, path_kind, write_bytes_atomic
 from .common import positive_float, positive_int
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             camera = open_stereo_camera(args, size, stack)
             out.mkdir(parents=True, exist_ok=True)
             if calibration is not None:  # the frames stay as received; their rig's calibration goes beside them
-                from ..calibration import write_calibration
+                from ..geometry.calibration import write_calibration
 
                 write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))

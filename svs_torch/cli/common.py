@@ -93,9 +93,9 @@ def seed_int(text: str) -> int:
 
 @contextlib.contextmanager
 def options_named(**options: str):
-    """Re-raise a library :class:`~svs_torch.errors.InputError` that names a configuration field
+    """Re-raise a library :class:`~svs_torch.core.errors.InputError` that names a configuration field
     (``kernel_size: expected ...``) as naming the option the user typed (``--kernel-size: expected ...``)."""
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     try:
         yield

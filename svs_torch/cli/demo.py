@@ -133,8 +133,8 @@ def _demo_figure(batch, result, true_nearest: dict | None):
     obstacle from the scene's exact truth (None: the figure's own, from the ground-truth disparity)."""
     import cv2
 
-    from ..figures import compose_grid, segmentation_panels
-    from ..plots import NearestTruth, estimate_figure
+    from ..plotting.figures import compose_grid, segmentation_panels
+    from ..plotting.plots import NearestTruth, estimate_figure
 
     nearest = None
     if true_nearest is not None:
@@ -152,15 +152,15 @@ def _demo_figure(batch, result, true_nearest: dict | None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         import torch
 
-        from ..camera import parse_size
-        from ..checks import InputError
+        from ..core.camera import parse_size
+        from ..core.checks import InputError
         from ..data.synthetic import random_obstacle_scenes
-        from ..figures import check_output_path, write_image_atomic
+        from ..plotting.figures import check_output_path, write_image_atomic
         from ..pipeline import estimate_obstacle_depth
         from .estimate import format_report, pair_report, unranged_report, with_calibration
         from .features import MAX_PIXELS

@@ -163,7 +163,7 @@ def with_calibration(report: dict, batch, index: int, factors: tuple[float, floa
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
     """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
-    from ..depth import ObstacleSide
+    from ..depth.sparse import ObstacleSide
     from ..pipeline import PipelineStatus
 
     rng, objects = result.depth.range, result.depth.objects
@@ -252,11 +252,11 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
 
 
 def _write_outputs(args, batch, result, factors) -> None:
-    from ..figures import labels_image, write_image_atomic
-    from ..plots import estimate_figure
+    from ..plotting.figures import labels_image, write_image_atomic
+    from ..plotting.plots import estimate_figure
 
     if args.figure:
-        from ..rectified_figure import pipeline_rectified_figure, stack_images
+        from ..plotting.rectified import pipeline_rectified_figure, stack_images
 
         figure = estimate_figure(batch, result, 0)
         # A rectified pair also shows as rectified, with epipolar lines: the user sees that rectification worked.
@@ -271,8 +271,8 @@ def _write_outputs(args, batch, result, factors) -> None:
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:
     """``--disparity-out``'s folder made, or its error raised, before any work (standard library only)."""
     if args.disparity_out:
-        from ..errors import InputError
-        from ..files import make_output_folder
+        from ..core.errors import InputError
+        from ..core.files import make_output_folder
 
         if range_rule == "paper":
             raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense "
@@ -291,7 +291,7 @@ def _write_disparity(args: argparse.Namespace, batch, result, time_s: float) -> 
         return
     import warnings
 
-    from ..errors import InputError
+    from ..core.errors import InputError
     from ..evaluation.export import DisparityExport
 
     key = (args.disparity_out, args.disparity_format, args.method_name)
@@ -312,12 +312,12 @@ def run(args: argparse.Namespace) -> int:
         _check_disparity_out(args, args.range_rule or ("paper" if getattr(args, "preset", None) == "paper"
                                                        else None))
         return _run_many(args)
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from ..errors import InputError
+        from ..core.errors import InputError
         from ..data import PairSource, detect_stereo_layout
-        from ..figures import check_output_path
+        from ..plotting.figures import check_output_path
         from ..pipeline import estimate_obstacle_depth
 
     config = pipeline_config_from_args(args)
@@ -356,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _load_source(source, args: argparse.Namespace):
     """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does."""
-    from ..camera import parse_size
+    from ..core.camera import parse_size
     from ..data import load_pair_source, resize_stereo_batch
 
     batch = load_pair_source(source)
@@ -369,7 +369,7 @@ def _load_source(source, args: argparse.Namespace):
 def _load_entry(source, args) -> tuple[str | None, str | None, object]:
     """(status, reason, loaded pair) of one list entry: a pair to run has status None. Scenes and pairs listed
     with a calibration keep their own; the others take the command's (or the SVS model)."""
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     if source.problem:
         return "BAD_INPUT", source.problem, None
@@ -427,7 +427,7 @@ def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
 def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
     """Worker task: the number of listed pairs, or the one-line error of a bad list or bad options (sent back
     as text: the parent, which has not imported torch, raises it)."""
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     try:
         return len(_worker_setup(args)[0]), None
@@ -439,10 +439,10 @@ def _worker_chunk(args: argparse.Namespace, start: int, stop: int, decoded: dict
                   ) -> tuple[list[tuple[dict, str | None]], list[str]]:
     """Worker task: :func:`_estimate_chunk` of the list's entries ``[start, stop)``, and the warnings it raised
     (the parent shows them as its own one-line warnings). ``decoded``: image arrays the parent decoded for
-    these entries (:data:`svs_torch.image_files.PRELOADED`), used instead of reading those files again."""
+    these entries (:data:`svs_torch.core.image_files.PRELOADED`), used instead of reading those files again."""
     import warnings
 
-    from ..image_files import PRELOADED
+    from ..core.image_files import PRELOADED
 
     pairs, config = _worker_setup(args)
     PRELOADED.update(decoded or {})
@@ -488,8 +488,8 @@ def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int
     core), decode the first images of the list's ``lines`` (:func:`_listed_lines`) here on the other (cv2 and
     numpy only): {chunk index: {file key: array}}, sent with each chunk so that its worker skips those reads. A
     file that does not decode is left to the worker, which reports it as it would."""
-    from ..errors import InputError
-    from ..image_files import preload_key, read_image_array
+    from ..core.errors import InputError
+    from ..core.image_files import preload_key, read_image_array
 
     decoded: dict[int, dict] = {}
     for index, pair in enumerate(lines):
@@ -506,9 +506,9 @@ def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int
 def _worker_results(args: argparse.Namespace, lines: list[tuple[str, str] | None], workers: int, threads: int
                     ) -> tuple[int, Iterator[list]]:
     """The number of listed pairs, and the chunks' results in list order from ``workers`` processes of
-    :func:`svs_torch.workers.worker_pool`, each with ``threads`` torch threads (``lines``: the list's lines
+    :func:`svs_torch.core.workers.worker_pool`, each with ``threads`` torch threads (``lines``: the list's lines
     as :func:`_listed_lines` read them, for the images to decode ahead)."""
-    from ..workers import worker_pool
+    from ..core.workers import worker_pool
     from . import CliError
 
     executor = worker_pool(workers, threads, ("svs_torch.pipeline",))
@@ -544,7 +544,7 @@ def _ordered_chunks(executor, args: argparse.Namespace, total: int, decoded: dic
     warnings shown here as this process's own."""
     import warnings
 
-    from ..workers import stop_worker_server
+    from ..core.workers import stop_worker_server
 
     try:
         futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total),
@@ -564,7 +564,7 @@ def _ordered_chunks(executor, args: argparse.Namespace, total: int, decoded: dic
 def _run_many(args: argparse.Namespace) -> int:
     """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT.
     With more than one worker the batches run in worker processes and this process only prints."""
-    from ..workers import imports_without_collection, thread_budget
+    from ..core.workers import imports_without_collection, thread_budget
 
     budget = thread_budget()
     listed = _listed_lines(args.pairs)

@@ -179,7 +179,7 @@ def disparity_export(args: argparse.Namespace, config):
         return None
     from pathlib import Path
 
-    from ..errors import InputError
+    from ..core.errors import InputError
     from ..evaluation.export import DisparityExport
 
     if config.depth.rule != "dense":
@@ -191,14 +191,14 @@ def disparity_export(args: argparse.Namespace, config):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from dataclasses import asdict, replace
 
-        from ..camera import parse_size
+        from ..core.camera import parse_size
         from ..data import read_pair_sources
-        from ..errors import InputError
+        from ..core.errors import InputError
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
         from ..evaluation.sweep import make_sweep_config

@@ -55,7 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 #: The largest pair the command line works on (a 4096 x 4096 frame); larger ones are resampled with --size.
 MAX_PIXELS = 4096 * 4096
 #: ``features``' own keypoint cap under ``--preset default``: the detector's limit
-#: (:data:`svs_torch.detector.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The pipeline's
+#: (:data:`svs_torch.features.detector.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The pipeline's
 #: 512 suits 320x240 and RANSAC; at native size it kept a third of SIFT's correct matches
 #: (``experiments/features_cli_vs_sift.py``, tuned split: 0.36 of SIFT's; 4.6x with this default and x2 detection).
 COMMAND_MAX_KEYPOINTS = 10_000
@@ -117,7 +117,7 @@ def preset_config(args: argparse.Namespace):
         changes["max_ratio"] = args.max_ratio
     refine = getattr(args, "refine", None)
     if refine is not None:
-        from ..matching import MatchRefinementConfig
+        from ..geometry.matching import MatchRefinementConfig
 
         changes["refine_matches"] = (base.refine_matches or MatchRefinementConfig()) if refine else None
     return replace(base, **changes)
@@ -146,10 +146,10 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
     """The pair ``left``/``right`` with the calibration options ``args`` carries (``focal_px``, ``baseline_m``,
     ``doffs_px``; SVS defaults otherwise; or rectified by ``--calibration``'s rig, before any resampling),
     resampled to ``--size`` if given; and the x, y factors that map working pixels back to input pixels."""
-    from ..camera import parse_size
+    from ..core.camera import parse_size
     from ..data import load_image_pair, resize_stereo_batch
 
-    from ..checks import InputError
+    from ..core.checks import InputError
     from .rig import calibration_from_args
 
     new_size = parse_size(args.size, "--size") if args.size else None
@@ -159,7 +159,7 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     calibration = calibration_from_args(args)
     if calibration is not None:  # --calibration: rectified by the rig, its focal / baseline / doffs
-        from ..calibration import rectify_with_calibration
+        from ..geometry.calibration import rectify_with_calibration
 
         batch = rectify_with_calibration(batch, calibration)
     height, width = batch.size_hw
@@ -194,16 +194,16 @@ def settings_json(config) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         import torch
 
-        from ..features import extract_surf_features
-        from ..figures import check_output_path, write_image_atomic
-        from ..matching import gather_matched_points, match_sad, refine_matched_points
-        from ..plots import matches_figure
-        from ..segmentation import segment_stereo
+        from ..features.surf import extract_surf_features
+        from ..plotting.figures import check_output_path, write_image_atomic
+        from ..geometry.matching import gather_matched_points, match_sad, refine_matched_points
+        from ..plotting.plots import matches_figure
+        from ..segmentation.segment import segment_stereo
 
     if args.figure:
         check_output_path(args.figure, args.figure_option)

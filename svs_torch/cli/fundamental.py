@@ -55,14 +55,14 @@ def to_input_fundamental(fundamental, factors: tuple[float, float]) -> list[list
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from dataclasses import replace
 
-        from ..depth import DepthConfig
+        from ..depth.sparse import DepthConfig
         from ..pipeline import estimate_obstacle_depth
-        from ..types import FundamentalStatus
+        from ..core.types import FundamentalStatus
         from .features import preset_config
 
     batch, factors = load_pair(args.left, args.right, args)

@@ -62,14 +62,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from ..camera import parse_size
+        from ..core.camera import parse_size
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link import CaptureError
-        from ..checks import InputError
-        from ..depth import ObstacleSide
+        from ..core.checks import InputError
+        from ..depth.sparse import ObstacleSide
         from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .capture import open_stereo_camera
 
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
     calibration = calibration_from_args(args)
     if calibration is not None:
-        from ..calibration import rectify_with_calibration
+        from ..geometry.calibration import rectify_with_calibration
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)

@@ -92,7 +92,7 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
     from ..evaluation.store import ResultStore
-    from ..files import atomic_output, check_output_file
+    from ..core.files import atomic_output, check_output_file
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
     if args.figure:

@@ -21,7 +21,7 @@ def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "t
 
 
 def calibration_from_args(args: argparse.Namespace):
-    """The :class:`~svs_torch.calibration.StereoCalibration` of ``--calibration``, read once per ``args`` (a
+    """The :class:`~svs_torch.geometry.calibration.StereoCalibration` of ``--calibration``, read once per ``args`` (a
     worker process reads its own copy), or None without the option.
 
     Raises:
@@ -32,7 +32,7 @@ def calibration_from_args(args: argparse.Namespace):
         return None
     cached = vars(args).get("_calibration_read")
     if cached is None or cached[0] != path:
-        from ..calibration import read_calibration
+        from ..geometry.calibration import read_calibration
 
         cached = (path, read_calibration(path, "--calibration"))
         vars(args)["_calibration_read"] = cached
@@ -41,7 +41,7 @@ def calibration_from_args(args: argparse.Namespace):
 
 def check_no_manual_calibration(args: argparse.Namespace) -> None:
     """``--calibration`` excludes ``--focal-px``, ``--baseline-m`` and ``--doffs-px`` (the file gives them)."""
-    from ..errors import InputError
+    from ..core.errors import InputError
 
     if getattr(args, "calibration", None) and (getattr(args, "focal_px", None) or getattr(args, "baseline_m", None)
                                                 or getattr(args, "doffs_px", None)):

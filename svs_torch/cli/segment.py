@@ -63,8 +63,8 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
 def segmenter_choice(text: str) -> str:
     """argparse type: ``otsu``, ``learned`` or ``learned:PATH`` naming an existing weights file, checked by
     :class:`~svs_torch.segmentation.SegmentationConfig` itself (imported only when the option is given)."""
-    from ..errors import InputError
-    from ..segmentation import SegmentationConfig
+    from ..core.errors import InputError
+    from ..segmentation.segment import SegmentationConfig
 
     try:
         SegmentationConfig(segmenter=text)
@@ -87,7 +87,7 @@ def config_from_args(args: argparse.Namespace, base=None):
     """The segmentation options over ``base`` (a ``SegmentationConfig``; default the class defaults)."""
     from dataclasses import replace
 
-    from ..segmentation import SegmentationConfig
+    from ..segmentation.segment import SegmentationConfig
 
     with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter", keep="--keep-rule",
                        min_area_fraction="--min-area-fraction"):
@@ -105,8 +105,8 @@ def config_from_args(args: argparse.Namespace, base=None):
 
 
 def image_report(seg, index: int) -> dict:
-    """JSON-ready summary of image ``index`` of a :class:`~svs_torch.types.Segmentation`."""
-    from ..types import SegmentationStatus
+    """JSON-ready summary of image ``index`` of a :class:`~svs_torch.core.types.Segmentation`."""
+    from ..core.types import SegmentationStatus
 
     objects = []
     for label in seg.kept_labels[index].tolist():
@@ -143,11 +143,11 @@ def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..data import load_image_pair
-        from ..figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
+        from ..plotting.figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
         from ..pipeline import segment_pair
 
     config = config_from_args(args)

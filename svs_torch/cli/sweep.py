@@ -62,7 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..workers import imports_without_collection
+    from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..evaluation.sweep import load_sweep, run_sweep

@@ -8,7 +8,7 @@ being told. Nothing here is differentiable (plain numbers and words).
 
 from __future__ import annotations
 
-from ..types import StereoBatch
+from ..core.types import StereoBatch
 from .datasets import scene_calibration_source
 from .pair_list import PairSource
 

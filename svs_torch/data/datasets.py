@@ -1,6 +1,6 @@
 """Loaders for the real stereo data sets of ``../shared/data`` (formats and scales: ``MANIFEST.md`` §2–4).
 
-Each loader returns a :class:`~svs_torch.types.StereoBatch` with B = 1: gray left and right images
+Each loader returns a :class:`~svs_torch.core.types.StereoBatch` with B = 1: gray left and right images
 ``(1, 1, H, W)`` in [0, 1], the ground-truth disparity of the LEFT view ``(1, 1, H, W)`` in pixels (0 where
 unknown) with its mask ``disparity_valid``, the calibration where the data set gives one, and one name such as
 ``"eval3/Teddy"`` (the loader's prefix keeps names unique across data sets that share a scene).
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..camera import SVS_CAMERA
-from ..checks import InputError
-from ..files import display_path, path_kind
-from ..image_files import read_image_array as _imread
-from ..types import StereoBatch
+from ..core.camera import SVS_CAMERA
+from ..core.checks import InputError
+from ..core.files import display_path, path_kind
+from ..core.image_files import read_image_array as _imread
+from ..core.types import StereoBatch
 from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
 
 __all__ = [

@@ -1,6 +1,6 @@
 """Low-level readers for the file formats of the stereo data sets (``../shared/data/MANIFEST.md`` §2).
 
-Every reader raises :class:`~svs_torch.checks.InputError` with one line that names the argument and the problem
+Every reader raises :class:`~svs_torch.core.checks.InputError` with one line that names the argument and the problem
 (missing file, unreadable file, wrong channel count, unsupported dtype). Images are read with OpenCV so that the
 gray levels equal OpenCV's own (the segmentation stage compares its Otsu threshold with ``cv2.threshold``).
 Nothing here is differentiable: these are file readers.
@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import torch
 
-from ..checks import FLOAT_DTYPES, InputError
-from ..files import display_path, write_bytes_atomic
-from ..image_files import check_file as _check_file
-from ..image_files import read_image_array as _imread
+from ..core.checks import FLOAT_DTYPES, InputError
+from ..core.files import display_path, write_bytes_atomic
+from ..core.image_files import check_file as _check_file
+from ..core.image_files import read_image_array as _imread
 
 __all__ = [
     "read_pfm",
@@ -171,7 +171,7 @@ def _scaled_disparity(array: np.ndarray, scale: float) -> tuple[np.ndarray, np.n
 def write_pfm(path: str | Path, array: np.ndarray) -> None:
     """Write an ``(H, W)`` map as a one-channel PFM (``Pf``, little-endian float32: scale −1, rows bottom to
     top), the Middlebury SDK's disparity format; ``+inf`` marks unknown disparities. :func:`read_pfm` reads it
-    back bit for bit. Written whole through :func:`~svs_torch.files.write_bytes_atomic`."""
+    back bit for bit. Written whole through :func:`~svs_torch.core.files.write_bytes_atomic`."""
     array = np.asarray(array)
     if array.ndim != 2 or array.shape[0] < 1 or array.shape[1] < 1 or not np.issubdtype(array.dtype, np.floating):
         raise InputError(f"array: expected a non-empty (H, W) float map, got {array.dtype} {array.shape}")
@@ -190,7 +190,7 @@ def write_kitti_disparity(path: str | Path, disparity_px: np.ndarray, valid: np.
     A valid disparity is clipped to [1/256, 65535/256] px, the values the format can hold as known (0 means
     unknown, so a known disparity below 1/512 px is written as 1/256 rather than lost); a negative or non-finite
     one is written unknown. :func:`read_kitti_disparity` reads back exactly the multiples of 1/256 in that range.
-    Written whole through :func:`~svs_torch.files.write_bytes_atomic`."""
+    Written whole through :func:`~svs_torch.core.files.write_bytes_atomic`."""
     disparity_px, valid = np.asarray(disparity_px), np.asarray(valid)
     if disparity_px.ndim != 2 or disparity_px.size == 0 or valid.shape != disparity_px.shape or valid.dtype != bool:
         raise InputError(f"disparity_px, valid: expected a non-empty (H, W) map and an (H, W) bool mask, got "

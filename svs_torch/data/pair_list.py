@@ -30,9 +30,9 @@ from pathlib import Path
 
 import torch
 
-from ..checks import InputError
-from ..files import display_path, path_kind
-from ..types import StereoBatch
+from ..core.checks import InputError
+from ..core.files import display_path, path_kind
+from ..core.types import StereoBatch
 from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, load_stereo_pair
 
 __all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source"]
@@ -132,7 +132,7 @@ def _scenes_in(folder: Path) -> list[PairSource]:
 
 
 def _kind(path: Path) -> str:
-    """:func:`~svs_torch.files.path_kind`, with ``"unusable"`` for a name no file can have (a list line's problem,
+    """:func:`~svs_torch.core.files.path_kind`, with ``"unusable"`` for a name no file can have (a list line's problem,
     not an error of the whole list)."""
     try:
         return path_kind(path, "path")

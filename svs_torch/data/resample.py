@@ -17,8 +17,8 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from ..checks import InputError
-from ..types import StereoBatch
+from ..core.checks import InputError
+from ..core.types import StereoBatch
 
 __all__ = ["resize_stereo_batch", "collate_stereo_batches"]
 

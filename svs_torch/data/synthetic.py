@@ -24,9 +24,9 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from ..camera import SVS_CAMERA, SVSCamera
-from ..checks import InputError, check_dtype, check_shape
-from ..types import StereoBatch
+from ..core.camera import SVS_CAMERA, SVSCamera
+from ..core.checks import InputError, check_dtype, check_shape
+from ..core.types import StereoBatch
 
 __all__ = ["SyntheticScenes", "render_obstacle_scenes", "random_obstacle_scenes"]
 

@@ -2,7 +2,7 @@
 top-level function over picklable items and yields the results as they finish (in any order); the caller
 stores them, so only one process ever writes the results file.
 
-Local pool: :func:`svs_torch.workers.worker_pool` (workers forked from a server that imported torch once, or
+Local pool: :func:`svs_torch.core.workers.worker_pool` (workers forked from a server that imported torch once, or
 spawned; never forked from this process, whose torch thread pools may have started), each pinned to ``threads``
 torch threads so that workers × threads does not oversubscribe the cores; a worker ends itself when the sweep's
 process is gone (a sweep killed with SIGKILL leaves no orphan computing).
@@ -20,8 +20,8 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
-from ..checks import InputError
-from ..workers import available_cores, stop_worker_server, worker_pool
+from ..core.checks import InputError
+from ..core.workers import available_cores, stop_worker_server, worker_pool
 
 __all__ = ["available_cores", "connect_dask", "map_dask", "map_process_pool"]
 
@@ -29,7 +29,7 @@ __all__ = ["available_cores", "connect_dask", "map_dask", "map_process_pool"]
 def map_process_pool(function: Callable[[Any], Any], items: Iterable[Any], workers: int, threads: int
                      ) -> Iterator[Any]:
     """``function(item)`` for every item in ``workers`` processes of ``threads`` torch threads each
-    (:func:`svs_torch.workers.worker_pool`), yielded as each finishes. Leaving the loop early cancels what has
+    (:func:`svs_torch.core.workers.worker_pool`), yielded as each finishes. Leaving the loop early cancels what has
     not started."""
     executor = worker_pool(workers, threads)
     try:

@@ -15,7 +15,7 @@ cut off. Pixels the dense stage did not measure (outside the kept regions' crop,
 rectified pair's map is in rectified pixels; it is brought back to the left image's grid by nearest sampling
 of the rectified map at ``H_left · x`` (unknown where that falls outside), its values still rectified
 disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the horizontal offsets of the raw images
-differ by the rectification). Files go through the atomic writer (:mod:`svs_torch.files`).
+differ by the rectification). Files go through the atomic writer (:mod:`svs_torch.core.files`).
 
 Reading a map back to the reported depths: an object's median (and percentiles) in ``estimate``'s JSON is over
 its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
@@ -33,12 +33,12 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import torch
 
-from ..checks import InputError
+from ..core.checks import InputError
 from ..data.formats import write_kitti_disparity, write_pfm
-from ..files import make_output_folder, write_bytes_atomic
+from ..core.files import make_output_folder, write_bytes_atomic
 from ..pipeline import PipelineResult
-from ..rectification import warp_rectified
-from ..types import StereoBatch
+from ..geometry.rectification import warp_rectified
+from ..core.types import StereoBatch
 
 __all__ = ["EXPORT_FORMATS", "METHOD_NAME", "DisparityExport", "export_name", "left_view_disparity"]
 
@@ -97,7 +97,7 @@ class DisparityExport:
 
     def prepare(self) -> None:
         """Make the folder (before any work, so a bad name fails at once): see
-        :func:`~svs_torch.files.make_output_folder`."""
+        :func:`~svs_torch.core.files.make_output_folder`."""
         make_output_folder(self.directory, "--disparity-out")
 
     def paths(self, pair_name: str) -> tuple[Path, Path | None]:

@@ -36,9 +36,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..depth import kept_region_lower_median, masked_lower_median
+from ..depth.sparse import kept_region_lower_median, masked_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
-from ..types import Segmentation, StereoBatch
+from ..core.types import Segmentation, StereoBatch
 from .stereo_metrics import StereoMetrics, metric_values, pair_map_metrics
 
 __all__ = [

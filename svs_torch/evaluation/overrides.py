@@ -5,7 +5,7 @@ A key is the path of a field through the nested frozen dataclasses, e.g. ``segme
 ``surf.metric_threshold``, ``max_ratio``, ``dense.window_size``, ``refine_matches.min_correlation``. Each value is
 checked against the field's declared type (bool, int, float — finite —, str, ``Literal`` choices, optional
 values, ``tuple[float, float]``) and then by the dataclass itself (its ``__post_init__``), so a bad key or value
-is an :class:`~svs_torch.checks.InputError` naming the key before any work starts. A field that holds an
+is an :class:`~svs_torch.core.checks.InputError` naming the key before any work starts. A field that holds an
 optional configuration (``refine_matches``) takes ``false`` / ``"none"`` (off) or ``true`` (its defaults), and
 setting one of its sub-fields turns it on from its defaults. New configurations are built with
 ``dataclasses.replace``; the presets are never modified.
@@ -39,7 +39,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..checks import InputError
+from ..core.checks import InputError
 from ..pipeline import PipelineConfig
 
 __all__ = [

@@ -15,8 +15,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..checks import InputError
-from ..files import atomic_output
+from ..core.checks import InputError
+from ..core.files import atomic_output
 from .metrics import PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore

@@ -3,7 +3,7 @@
 One bad pair never stops the others: an entry that cannot be loaded is ``BAD_INPUT``, a pair under 5×5 pixels
 ``TOO_SMALL``, and a block whose pipeline run raises is run again pair by pair, so only the pair that raises is
 ``ERROR`` (with the exception in ``reason``). Each pair's result does not depend on its block, bit for bit: the
-pipeline runs pairs of different sizes as groups of one size, each on its own pixels (:mod:`svs_torch.size_groups`),
+pipeline runs pairs of different sizes as groups of one size, each on its own pixels (:mod:`svs_torch.core.size_groups`),
 and seeds RANSAC per pair, so a block can be re-run alone, at another batch size or in another order with equal
 results (``tests/test_batch_independence.py``).
 """
@@ -19,13 +19,13 @@ from dataclasses import dataclass
 
 import torch
 
-from ..calibration import StereoCalibration, rectify_with_calibration
-from ..checks import InputError
+from ..geometry.calibration import StereoCalibration, rectify_with_calibration
+from ..core.checks import InputError
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
 from ..data.pair_list import PairSource
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
-from ..types import StereoBatch
+from ..core.types import StereoBatch
 from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
 from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 
@@ -49,7 +49,7 @@ class EvalSetup:
         size_wh: resample every pair to (width, height) first; None keeps each pair's own size (pairs of
             different sizes are then padded into one batch, and the pipeline runs each size apart).
         focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
-        calibration: a rig's :class:`~svs_torch.calibration.StereoCalibration` for those pairs instead: they are
+        calibration: a rig's :class:`~svs_torch.geometry.calibration.StereoCalibration` for those pairs instead: they are
             rectified with it and take its focal, baseline and doffs (scenes and pairs listed with a calibration
             keep their own).
     """

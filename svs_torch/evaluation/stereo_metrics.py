@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_shape
 
 if TYPE_CHECKING:
     from ..pipeline import PipelineResult
-    from ..types import StereoBatch
+    from ..core.types import StereoBatch
 
 __all__ = ["BAD_THRESHOLDS_PX", "D1_ABSOLUTE_PX", "D1_RELATIVE", "METRIC_NAMES", "QUANTILES_PCT", "STEREO_FIELDS",
            "STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics", "metric_values",

@@ -51,7 +51,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..checks import InputError
+from ..core.checks import InputError
 from .metrics import PairEvaluation
 
 __all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]

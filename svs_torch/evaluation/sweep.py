@@ -22,7 +22,7 @@ A configuration's id is a hash of everything that can change a result: the whole
 :class:`~svs_torch.pipeline.PipelineConfig`, the size and, for a learned segmenter, the content of its weights file
 (retrained in place, it is another configuration); the same configuration from another sweep file reuses its rows.
 The batch size is not in it: a pair's result does not depend on its batch (pairs of different sizes run as groups
-of one size, :mod:`svs_torch.size_groups`; RANSAC is seeded per pair; ``tests/test_batch_independence.py``). The
+of one size, :mod:`svs_torch.core.size_groups`; RANSAC is seeded per pair; ``tests/test_batch_independence.py``). The
 code version is recorded per run: a store whose rows come from several versions says so when a sweep adds to it
 and in every ``svs-depth results`` summary. Tasks are fixed blocks of the pair list;
 a block whose rows are all stored is skipped, any other block runs whole and its rows are
@@ -50,10 +50,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..camera import parse_size
-from ..checks import InputError
+from ..core.camera import parse_size
+from ..core.checks import InputError
 from ..data.pair_list import PairSource, read_pair_sources
-from ..learned_segmentation import weights_path
+from ..segmentation.learned import weights_path
 from ..pipeline import PipelineConfig
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation

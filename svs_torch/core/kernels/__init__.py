@@ -1,0 +1,138 @@
+"""The one loader of every stage's C kernels, and what they share.
+
+Each stage keeps its kernels beside its torch code, in its own ``kernels/`` folder: the C sources and a
+``kernels/__init__.py`` of wrappers (``svs_torch.segmentation.kernels``, ``svs_torch.features.kernels``,
+``svs_torch.geometry.kernels``, ``svs_torch.depth.kernels``); each wrapper module declares its kernels'
+signatures (:func:`declare`) and calls them through :func:`load`. This folder holds what they share: the loader
+(``loader.py``: build, cache, open), the argument checks (``checks.py``) and the header every source includes
+(``common.h``: thread count, scratch allocation).
+
+Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
+through ``ctypes``: the runs of each mask row that the segmentation's connected components start from (``find_runs.c``)
+and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``), the dense stage's SAD
+block matching (``block_match.c``), its row fill of invalid pixels (``fill_invalid_rows.c``), its order statistics by
+label (``labelled_select.c``: the search range's percentiles) and each object's depth statistics, every pair read once
+at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
+box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
+all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
+its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
+(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of
+a torch function that stays the reference, the fallback and the differentiable path. Eleven give that torch path's
+values bit for bit: the first ten, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
+order, which ``torch.topk`` leaves open). Four do not: the fit solves its 3 × 3 systems by its own elimination, not
+LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
+distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
+with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor
+(``usurf_describe.c``) builds each image's integral and describes its keypoints in double, equal to the float64 torch
+path to 1e-6 and to the float32 one within its round-off (5e-4), except where a response near 0 takes the other sign
+there (the extended descriptor's halves then move by up to 0.08). On the 58 shared real pairs at 320×240, 6 pipeline
+results differ from the torch paths' by 1–2 matches or inliers, from the last two (``experiments/kernel_parity.py``;
+the README's "Compiled kernels" says the same).
+
+Each wrapper checks what its C code assumes (shapes, one row per pair, sizes and boxes within the buffers,
+non-empty images, finite parameters in range) and raises :class:`~svs_torch.InputError` naming the argument
+(:mod:`svs_torch.core.kernels.checks`); the C code then trusts its inputs. A wrapper answers None, for the torch path to
+run, for inputs of another dtype or device, for cases the kernel leaves to it (NaN values to select among, an octave
+without interior points, a table too small to read), or when the kernel is not built. ``tests/test_kernel_fuzz.py`` feeds
+drawn inputs through every public function that reaches a kernel; ``tests/sanitize/run.sh`` runs it against builds
+with AddressSanitizer and UBSan.
+
+Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
+cost volume (B × D × h × w) went through about 25 of them (x-Sobel differences, 2 (K − 1) box-sum adds, masking,
+the running minimum, the uniqueness rival, the right view's winner): 35–50 ms a pair at 320×240, most of a
+pipeline run. The kernel makes each output row's costs for every disparity and consumes them while they are in
+cache, with running window sums, then gives each finished row the rejections and the sub-pixel fit and writes it
+into the disparity map; each pair is matched at its own box and over its own range, where the torch path pads
+every pair to the batch's largest (on 64 real pairs at 320×240, one thread: the dense stage 9.3 → 6.5 ms a pair
+against the earlier kernel that returned winner statistics for torch to judge). Its inputs are whole numbers
+(``StereoBM``'s 8-bit levels), so every sum is exact and its results are bit-identical to the torch path's
+(``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch. Each
+Hessian level reads 32 integral-image corner views and made about 40 elementwise passes in eager torch, after a
+contiguous copy of the table per sub-lattice of the octave; the kernel makes a whole octave in one call, reading
+each grid point's corners from the padded table at the octave's step and doing the same float32 operations in
+the same order, its rows split over ``torch.get_num_threads()`` threads (16 images of 320×240, one thread,
+interleaved: ``hessian_octaves`` 54–75 → 42–43 ms, the copies and views it no longer makes); the padded integral
+table it reads is made in one pass per image (5.3 → 2.1 ms for the same 16 images). The maxima took a dozen
+passes (three running maxima of 3, compare, mask, select) for a few hundred survivors; the kernel tests each
+point once, most stopping at the threshold (on 16 real images at 320×240, octave 0: 20 → 3 ms); the detector then
+concatenated the maps (−inf at all but a few hundred of ~200 000 points an image) and partially sorted each whole
+row with ``torch.topk``, where the strongest-maxima kernel collects an image's maxima and sorts only them (the three
+octaves of 16 real images: about 19 → 12 ms). The refinement
+sampled every patch of the batch 14 times with ``grid_sample`` and reduced it in about 100 passes; the kernel
+refines one match at a time in L1 (on the 1 900 matches of 16 real pairs: 95 → 19 ms). Matching wrote the whole
+masked distance matrix and read it three times (topk, argmin); the kernel consumes each row of distances as it
+makes it (16 real pairs: 110 → 29 ms). The objects' depth statistics cropped every pair to the batch's largest
+box (three gathers, the fill, the depth, a selection and a count per object over it, so that a pair of B = 128
+cost twice a pair of B = 32); the kernel reads each pair once at its own box (64 real pairs at B = 8, one thread:
+1.84 → 0.7 ms a pair). The runs took about eight passes over the batch's masks and two ``nonzero``; the kernel
+reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms).
+
+The shared libraries are built and cached by :mod:`svs_torch.core.kernels.loader`: in a private folder
+(``$SVS_TORCH_CACHE``, default ``~/.cache/svs_torch``; one others can write to is refused), under a name that
+hashes the source, the shared headers, the flags actually used, the compiler and the CPU; a failed build is
+remembered there. Without a working compiler, or with ``SVS_TORCH_KERNELS=torch``, :func:`load` returns None
+(the first with one line on stderr) and the callers run their torch paths.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+import torch
+
+from . import loader
+from .loader import FLAGS, HEADERS, SOURCES, cache_dir  # noqa: F401  (re-exported: the loader's public names)
+
+__all__ = ["FLOAT", "INT", "POINTER", "available", "cache_dir", "declare", "load", "on_cpu", "rows_of"]
+
+#: The C types of the kernels' arguments: pointers to tensor data, int64 sizes, float parameters.
+POINTER, INT, FLOAT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+#: Each kernel's (argument types, return type), as declared in its C source; filled by each stage's wrappers.
+_SIGNATURES: dict[str, tuple[list, object]] = {}
+_LIBRARIES: dict[str, ctypes.CDLL | None] = {}
+
+
+def declare(signatures: dict[str, tuple[list, object]]) -> None:
+    """Record kernels' (argument types, return type), as their C sources declare them: each stage's wrapper
+    module does so for its own kernels when it is imported."""
+    _SIGNATURES.update(signatures)
+    for name in signatures:
+        if _LIBRARIES.get(name) is not None:  # loaded before its stage declared it
+            _bind(_LIBRARIES[name], name)
+
+
+def _bind(library: ctypes.CDLL, name: str) -> None:
+    if name in _SIGNATURES:
+        function = getattr(library, name)
+        function.argtypes, function.restype = _SIGNATURES[name]
+
+
+def load(name: str = "block_match") -> ctypes.CDLL | None:
+    """The compiled kernel ``name`` (a key of :data:`SOURCES`), compiling it on first use; None
+    when kernels are off (``SVS_TORCH_KERNELS=torch``) or it cannot be built or loaded (then the caller's torch
+    path runs; :func:`svs_torch.core.kernels.loader.open_library` says why once)."""
+    if os.environ.get("SVS_TORCH_KERNELS", "").lower() == "torch":
+        return None
+    if name not in _LIBRARIES:
+        library = loader.open_library(name)
+        if library is not None:
+            _bind(library, name)
+        _LIBRARIES[name] = library
+    return _LIBRARIES[name]
+
+
+def available(name: str = "block_match") -> bool:
+    """Whether the kernel ``name`` can run here."""
+    return load(name) is not None
+
+
+def on_cpu(dtype: torch.dtype, *tensors: torch.Tensor) -> bool:
+    """Whether every tensor is a CPU tensor of ``dtype``: the kernels read raw memory of one element type."""
+    return all(t.dtype == dtype and t.device.type == "cpu" for t in tensors)
+
+
+def rows_of(tensor: torch.Tensor) -> tuple[int, int]:
+    """A ``(..., W)`` tensor as rows for a row kernel: (number of rows, W)."""
+    width = tensor.shape[-1]
+    return (tensor.numel() // width if width else 0), width

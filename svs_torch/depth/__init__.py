@@ -1,0 +1,24 @@
+"""Stage 4, depth: the obstacles' distances.
+
+``sparse`` (the paper's rule, Eq. (5)–(8): depth from the RANSAC inliers' disparities, per object and over the
+pair; :class:`DepthConfig` and the depth results), ``quantiles`` (medians and percentiles over masks and labels),
+``dense`` (dense SAD block matching over the kept regions), ``soft_dense`` (its differentiable soft-argmin),
+``search_range`` (each pair's disparity range and crop box), ``dense_objects`` (each object's depth from the
+dense map, and the verification that both views show one scene); ``kernels/`` holds the C kernels of the block
+matching, the row fill, the order statistics by label and the objects' statistics, beside their torch paths.
+
+May import: ``svs_torch.core`` and ``geometry``'s public names (homographies). Never segmentation, the
+pipeline, ``evaluation``, ``data`` or the CLI.
+
+The names below were the old ``svs_torch.depth`` module's, and stay importable from here.
+"""
+
+from .sparse import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
+                     PointDepths, Quantiles, RangeEstimate, accuracy_percent, estimate_depth, estimate_range,
+                     kept_region_lower_median, labelled_quantile, masked_lower_median, masked_quantile,
+                     nearest_obstacle, object_depths, point_depths, rectified_disparity, slot_labels)
+
+__all__ = ["Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
+           "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
+           "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile",
+           "nearest_obstacle", "object_depths", "point_depths", "rectified_disparity", "slot_labels"]

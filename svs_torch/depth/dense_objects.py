@@ -1,0 +1,229 @@
+"""Obstacle depth from the dense disparity over each kept region (the product's range rule; Sec. 3.4 in spirit).
+
+The paper's Eq. (5)–(8) take R_min / R_max as the extremes over the sparse inliers. Here each kept object's
+distance is the median of ``Z = f·B / (d + doffs)`` over the valid dense disparities of its region
+(:mod:`svs_torch.depth.dense`), with a low and a high percentile and the count of valid pixels; R_min / R_max are the
+nearest and the farthest kept object, and the nearest obstacle's low percentile is its nearest visible surface.
+The same definition is used for the ground truth (``svs_torch`` experiments: the median GT depth over the kept
+region), so the two are directly comparable by Eq. (9).
+
+Only the pixels inside each pair's searched box are read (``DenseDisparity.crop_xywh``): the rest is invalid.
+Differentiable w.r.t. ``disparity_px``, focal length and baseline where valid (median and percentiles pass
+gradients to the order statistics they interpolate); masks and counts are not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from . import kernels
+from ..core.checks import InputError, check_dtype, check_shape
+from ..core.kernels.checks import check_nonempty, check_rows
+from .dense import DenseDisparity, crop_index, fill_invalid_rows
+from .sparse import Disparities, ObjectDepths, RangeEstimate, _interpolate_ranks, labelled_quantile
+from ..geometry.rectification import apply_homography
+
+__all__ = ["count_agreeing_inliers", "dense_object_depths", "range_from_objects"]
+
+
+def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str) -> torch.Tensor:
+    value = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    if value.dim() == 0:
+        value = value.expand(b)
+    check_shape(value, name, [b])
+    return value
+
+
+def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
+                        focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
+                        doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
+                        min_valid_px: int = 20, fill_invalid: bool = True,
+                        min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0) -> ObjectDepths:
+    """Per-object depth from dense disparity.
+
+    Args:
+        dense: :class:`~svs_torch.depth.dense.DenseDisparity` of the left view ``(B, 1, H, W)``.
+        labels: ``(B, 1, H, W)`` int64 left label image in the same pixels as ``dense`` (warped with the left
+            homography when the pair was rectified).
+        objects: the slots to fill (:func:`~svs_torch.depth.object_depths` over the sparse inliers gives their
+            labels, areas, sides and inlier counts; those are kept).
+        focal_px, baseline_m, doffs_px: scalars or ``(B,)``.
+        percentiles: low and high percentiles in [0, 100] besides the median.
+        min_valid_px: fewest valid dense pixels for an object's depth to count.
+        min_valid_fraction: least share of the region's pixels with a valid dense disparity for its depth to
+            count, a scalar or ``(B,)``: views that do not show the same scene (a swapped or frozen camera) leave
+            most pixels inconsistent, and such an object is not ranged rather than ranged wrong.
+        min_in_view_px: fewest valid pixels an object needs at columns ``x ≥ d_max`` of its pair, where every
+            disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``); 0: no
+            check. The statistics are still over all the object's pixels.
+        fill_invalid: give the region's invalid pixels the disparity of their row neighbours
+            (:func:`~svs_torch.depth.dense.fill_invalid_rows`) before taking the statistics, so that the median is
+            over the whole region, as the truth is, and not only over its well-textured part.
+
+    Returns:
+        ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels
+        and ``num_valid_px``, ``num_in_view_px`` ``(B, N)`` int64 set.
+    """
+    disparity = dense.disparity_px
+    dims = check_shape(disparity, "dense.disparity_px", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(dense.valid, "dense.valid", [b, 1, h, w])
+    check_dtype(dense.valid, "dense.valid", "bool")
+    check_nonempty(disparity, "dense.disparity_px")
+    check_rows(dense.crop_xywh, "dense.crop_xywh", b, 4)
+    check_rows(dense.min_disparity_px, "dense.min_disparity_px", b)
+    check_rows(dense.pair_num_disparities, "dense.pair_num_disparities", b)
+    check_shape(labels, "labels", list(disparity.shape))
+    check_dtype(labels, "labels", "int")
+    check_rows(objects.label, "objects.label", b, "N")
+    low, high = (float(p) for p in percentiles)
+    if not 0 <= low <= high <= 100:
+        raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
+    focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
+    baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
+    doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
+    slots = objects.label  # (B, N), −1 padding
+    q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
+    # The first column where every disparity of the pair's range lands inside the right image (x − d_max ≥ 0).
+    in_view_from = (dense.min_disparity_px + dense.pair_num_disparities - 1).clamp_min(0).long()
+    fused = None
+    gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
+    if not gradients and disparity.dim() == 4 and disparity.shape[1] == 1:
+        # The compiled path (svs_torch/kernels/object_depths.c): each pair read once at its own box, the same
+        # statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128:
+        # twice the time a pair of B = 32).
+        fused = kernels.object_depths(disparity[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
+                                      slots, (focal * baseline).view(b), doffs.view(b), in_view_from, fill_invalid, q)
+    if fused is not None:
+        members, count, in_view, below, above = fused
+        stats = _interpolate_ranks(below, above, members.unsqueeze(-1), q).values
+    else:
+        stats, count, in_view = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid,
+                                                  in_view_from)
+    count = torch.where(slots > 0, count, 0)
+    in_view = torch.where(slots > 0, in_view, 0)
+    fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
+    valid = (slots > 0) & (count >= max(min_valid_px, 1)) & (count >= fraction * objects.area_px)
+    if min_in_view_px > 0:
+        valid &= in_view >= min_in_view_px
+    stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
+    median, depth_low, depth_high = stats.unbind(-1)
+    return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
+                               valid=valid, num_valid_px=count, num_in_view_px=in_view)
+
+
+def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
+                      baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool,
+                      in_view_from: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`dense_object_depths`' statistics ``(B, N, 3)``, measured counts ``(B, N)`` and those of them at
+    frame columns from ``in_view_from`` ``(B,)`` on, in torch (the differentiable path): every pair cropped to
+    the batch's largest box."""
+    disparity = dense.disparity_px
+    b = disparity.shape[0]
+    x0, y0, width, height = dense.crop_xywh.unbind(1)
+    size_w, size_h = int(width.max()) if b else 0, int(height.max()) if b else 0
+    # One index for the three crops (clamped reads, as crop_box makes them).
+    index = crop_index(x0, y0, size_h, size_w, disparity.shape[-2:]).flatten(1)  # (B, P)
+    crop_d = disparity.flatten(1).gather(1, index)
+    # Positions past a pair's own box repeat its border pixels (clamped reads): they must not count.
+    inside = ((torch.arange(size_h, device=disparity.device).view(1, -1, 1) < height.view(-1, 1, 1))
+              & (torch.arange(size_w, device=disparity.device).view(1, 1, -1) < width.view(-1, 1, 1))).flatten(1)
+    crop_ok = dense.valid.flatten(1).gather(1, index) & inside
+    crop_labels = torch.where(inside, labels.long().flatten(1).gather(1, index), 0)
+    measured = crop_ok
+    if fill_invalid:
+        filled, reachable = fill_invalid_rows(crop_d.view(b, size_h, size_w), crop_ok.view(b, size_h, size_w))
+        crop_d, crop_ok = filled.flatten(1), reachable.flatten(1)
+    denominator = crop_d + doffs
+    crop_ok = crop_ok & (denominator > 0)
+    depth = focal * baseline / torch.where(crop_ok, denominator, torch.ones_like(denominator))
+    # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
+    crop_ok = crop_ok & torch.isfinite(depth) & (depth > 0)
+    depth = torch.where(crop_ok, depth, torch.zeros_like(denominator))  # (B, P)
+    stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
+                              q).values
+    measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
+    # The frame column of each crop position (clamped, as the reads are): in view from in_view_from on.
+    columns = (x0.view(-1, 1) + torch.arange(size_w, device=disparity.device)).clamp(0, disparity.shape[-1] - 1)
+    in_view = (columns >= in_view_from.view(-1, 1)).view(b, 1, size_w).expand(b, size_h, size_w).flatten(1)
+    # One compare and count per slot (a handful of objects) instead of a (B, N, P) volume of compares.
+    count, count_in_view = [], []
+    for n in range(slots.shape[1]):
+        member = measured_labels == slots[:, n:n + 1]
+        count.append(member.sum(dim=1))
+        count_in_view.append((member & in_view).sum(dim=1))
+    if not count:
+        return stats, torch.zeros_like(slots), torch.zeros_like(slots)
+    return stats, torch.stack(count, dim=1), torch.stack(count_in_view, dim=1)
+
+
+def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, disparities: Disparities,
+                           inliers: torch.Tensor, H_left: torch.Tensor | None = None,
+                           tolerance_px: float | torch.Tensor = 1.0) -> torch.Tensor:
+    """How many RANSAC inliers the dense map confirms: ``(B,)`` int64, the inliers whose sparse disparity lies
+    within ``tolerance_px`` of the dense disparity at their left point, where that pixel is valid.
+
+    Two independent measurements agree there: the sparse match (SURF, SAD, RANSAC's F) and the dense block
+    matcher's winner at that pixel. Between views of one scene most inliers on the kept regions agree; between
+    views of different scenes RANSAC can still fit some F to a dozen chance matches, but their disparities are
+    chance too and the dense map confirms almost none (``experiments/verify_views.py``: at most 5 on 1966
+    pairs of unrelated real views, at most 1 on 64 synthetic ones, 7 or more on 197 of 199 real and synthetic
+    pairs).
+
+    Args:
+        dense: :class:`~svs_torch.depth.dense.DenseDisparity` of the left view (rectified pixels where the pair was
+            rectified).
+        points_left: ``(B, K, 2)`` left points of the correspondences, input pixels.
+        disparities: their :class:`~svs_torch.depth.Disparities` (rectified by the same homographies).
+        inliers: ``(B, K)`` bool, RANSAC's inliers.
+        H_left: ``(B, 3, 3)`` the left homography the dense map was measured after; None: the identity.
+        tolerance_px: largest disagreement counted as agreement, a scalar or ``(B,)``, input pixels.
+
+    Not differentiable (a count).
+    """
+    check_shape(points_left, "points_left", ["B", "K", 2])
+    check_shape(inliers, "inliers", list(points_left.shape[:2]))
+    check_dtype(inliers, "inliers", "bool")
+    disparity = dense.disparity_px
+    b, (height, width) = disparity.shape[0], disparity.shape[-2:]
+    xy, usable = points_left, inliers & disparities.valid
+    if H_left is not None:
+        xy, in_front = apply_homography(H_left, points_left.to(H_left.dtype))
+        usable = usable & in_front
+    # The pixel holding each point (pixel centres at whole coordinates, as keypoints are).
+    column, row = xy[..., 0].round(), xy[..., 1].round()
+    usable = usable & (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    index = torch.where(usable, row * width + column, torch.zeros_like(row)).long()
+    dense_d = disparity.flatten(1).gather(1, index)
+    measured = dense.valid.flatten(1).gather(1, index) & usable
+    tolerance = _per_pair(tolerance_px, b, disparity, "tolerance_px").view(b, 1)
+    agree = measured & ((dense_d - disparities.disparity_px.to(dense_d.dtype)).abs() <= tolerance)
+    return agree.sum(dim=1)
+
+
+def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
+                       doffs_px: torch.Tensor | float = 0.0) -> RangeEstimate:
+    """R_min / R_max as the nearest / farthest valid object's median depth ``(B,)``; d_max / d_min their
+    disparities ``f·B / R − doffs``; ``num_disparities`` the valid dense pixels (or inliers) that entered."""
+    median = objects.depth_median_m
+    b = median.shape[0]
+    valid = objects.valid
+    present = valid.any(dim=1)
+    nearest = torch.where(valid, median, torch.full_like(median, torch.inf)).amin(dim=1) if median.shape[1] else \
+        median.new_zeros(b)
+    farthest = torch.where(valid, median, torch.full_like(median, -torch.inf)).amax(dim=1) if median.shape[1] else \
+        median.new_zeros(b)
+    r_min = torch.where(present, nearest, torch.zeros_like(nearest))
+    r_max = torch.where(present, farthest, torch.zeros_like(farthest))
+    scale = _per_pair(focal_px, b, median, "focal_px") * _per_pair(baseline_m, b, median, "baseline_m")
+    doffs = _per_pair(doffs_px, b, median, "doffs_px")
+
+    def disparity(depth: torch.Tensor) -> torch.Tensor:
+        return torch.where(present, scale / torch.where(present, depth, torch.ones_like(depth)) - doffs,
+                           torch.zeros_like(depth))
+
+    counts = objects.num_valid_px if objects.num_valid_px is not None else objects.num_inliers
+    used = torch.where(valid, counts, torch.zeros_like(counts)).sum(dim=1)
+    return RangeEstimate(disparity(r_max), disparity(r_min), r_min, r_max, used, present)

@@ -1,0 +1,227 @@
+"""The C kernels of the depth stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+cached and loaded, and what every wrapper promises."""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+
+from ...core.checks import check_shape
+from ...core.errors import InputError
+from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
+from ...core.kernels.checks import check_boxes, check_counts, check_image_hw, check_nonempty, check_number, check_rows
+
+__all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths"]
+
+declare({
+    "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
+                    + [POINTER, INT] + [POINTER] * 2 + [INT] * 2, ctypes.c_int),
+    "fill_invalid_rows": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
+    "labelled_select": ([POINTER] * 4 + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
+                      + [POINTER] * 5 + [INT], ctypes.c_int),
+})
+
+
+#: Where :func:`block_match` takes its levels from (the C source's SOURCE_ constants).
+BLOCK_MATCH_SOURCES = {"levels": 0, "raw": 1, "xsobel": 2}
+
+
+#: Rows of output per task: enough to amortise the K rows each band sums before its window can slide, small
+#: enough that one pair splits across threads (the B = 1 ``guide`` case).
+BAND_ROWS = 48
+
+
+def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor | bool | None, window_size: int,
+                boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
+                lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
+                texture_min: float, whole_range_in_view: bool, source: str = "levels",
+                prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0
+                ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``svs_torch.depth.dense._match_box`` of every pair at its own box and range, the kernel's contract (see the C
+    source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
+    whole numbers in [−255, 255] (:func:`svs_torch.depth.dense.quantize_levels`: then every cost is exact and the
+    result is the torch path's bit for bit); ``texture`` ``(B, H, W)`` float32 |x-Sobel| of the left image, or
+    None (no texture rule). With ``source="raw"`` or ``"xsobel"``: ``left``, ``right`` are the images themselves
+    and the kernel makes the levels a row at a time, ``quantize_levels`` of the image or of its
+    ``prefilter_xsobel`` at ``prefilter_cap``, the same values without whole pre-filtered images in memory, and
+    ``texture`` is True (the texture rule, on the left image's clipped x-Sobel) or False / None;
+    ``boxes`` ``(B, 4)`` x0, y0, width, height; ``min_disparity``, ``counts`` ``(B,)``; ``image_hw`` ``(B, 2)``;
+    ``lower_is_limit`` ``(B,)`` bool; the rules' parameters as in :class:`svs_torch.depth.dense.DenseConfig`
+    (``texture_min`` is the least window sum); ``mask`` ``(B, H, W)`` bool or None: where depth is wanted, then
+    only the pixels within ``mask_margin_px`` columns of their row's mask span are computed
+    (:func:`svs_torch.depth.dense.wanted_pixels`), each with the value the whole box gives it.
+
+    Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool; None when
+    the kernel is not available or the inputs do not fit its contract."""
+    if source not in BLOCK_MATCH_SOURCES:
+        raise ValueError(f"source: expected one of {sorted(BLOCK_MATCH_SOURCES)}, got {source!r}")
+    levels = source == "levels"
+    if (texture is True) if levels else isinstance(texture, torch.Tensor):
+        raise ValueError("texture: expected a tensor or None with source 'levels', a bool with the raw sources")
+    tensors = (left, right, texture) if isinstance(texture, torch.Tensor) else (left, right)
+    if not on_cpu(torch.float32, *tensors) or mask is not None and not on_cpu(torch.bool, mask):
+        return None
+    b, h, w = _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
+                                 lower_is_limit, uniqueness_ratio, lr_max_diff_px, texture_min, prefilter_cap,
+                                 mask_margin_px)
+    library = load("block_match")
+    if library is None:
+        return None
+    left, right = left.contiguous(), right.contiguous()
+    textured = texture is not None and texture is not False
+    texture = texture.contiguous() if isinstance(texture, torch.Tensor) else None
+    per_pair = [v.to(torch.int64).contiguous() for v in (boxes, min_disparity, counts, image_hw)]
+    lower = lower_is_limit.to(torch.uint8).contiguous()
+    if mask is not None:
+        mask = mask.contiguous().view(torch.uint8)  # bool is one byte of 0 or 1: read as it is
+    disparity = torch.zeros(b, h, w)
+    valid = torch.zeros(b, h, w, dtype=torch.uint8)
+    # The factors are made in double and rounded to float32, as torch does with a Python scalar.
+    status = library.block_match(
+        left.data_ptr(), right.data_ptr(), None if texture is None else texture.data_ptr(),
+        BLOCK_MATCH_SOURCES[source], prefilter_cap, int(textured), b, h, w, window_size,
+        *(v.data_ptr() for v in per_pair), lower.data_ptr(),
+        1 + uniqueness_ratio if uniqueness_ratio > 0 else 0.0, -1.0 if lr_max_diff_px is None else lr_max_diff_px,
+        texture_min, int(whole_range_in_view), None if mask is None else mask.data_ptr(), mask_margin_px,
+        disparity.data_ptr(), valid.data_ptr(), torch.get_num_threads(), BAND_ROWS)
+    if status != 0:
+        return None
+    return disparity, valid.bool()
+
+
+#: The dense kernel keeps disparity indices in its 16-bit cost type (block_match.c): at most 65534 disparities.
+MAX_DISPARITIES = 65534
+
+
+def _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
+                       lower_is_limit, uniqueness_ratio, lr_max_diff_px, texture_min, prefilter_cap,
+                       mask_margin_px) -> tuple[int, int, int]:
+    """:func:`block_match`'s contract (see there), raising :class:`InputError`: returns B, H, W."""
+    dims = check_shape(left, "left", ["B", "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    for tensor, name in ((right, "right"), (texture, "texture"), (mask, "mask")):
+        if isinstance(tensor, torch.Tensor):
+            check_shape(tensor, name, [b, h, w])
+    check_nonempty(left, "left")
+    if not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
+        raise InputError(f"window_size: expected a positive odd int, got {window_size!r}")
+    check_boxes(boxes, b, h, w)
+    check_rows(min_disparity, "min_disparity", b)
+    check_counts(counts, "counts", b, MAX_DISPARITIES)
+    check_image_hw(image_hw, b, h, w)
+    check_rows(lower_is_limit, "lower_is_limit", b, kinds="bool")
+    check_number(uniqueness_ratio, "uniqueness_ratio", 0.0)
+    if lr_max_diff_px is not None:
+        check_number(lr_max_diff_px, "lr_max_diff_px", 0.0)
+    check_number(texture_min, "texture_min")
+    check_number(prefilter_cap, "prefilter_cap", 0.0)
+    if not isinstance(mask_margin_px, int) or mask_margin_px < 0:
+        raise InputError(f"mask_margin_px: expected a non-negative int, got {mask_margin_px!r}")
+    return b, h, w
+
+
+def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The order statistics of :func:`svs_torch.depth.labelled_quantile` by selection (see the C source):
+    ``values`` ``(B, P)`` float32 without NaN, ``labels`` ``(B, P)`` and ``slots`` ``(B, N)`` int64, quantiles
+    ``q`` ``(Q,)`` float32. Returns ``(count, below, above)``: each slot's member count ``(B, N)`` and the
+    members of rank ``floor`` / ``ceil`` of ``q · (count − 1)`` ``(B, N, Q)`` (0 for an empty slot); None when
+    the kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(values, "values", ["B", "P"])
+    b, p = dims["B"], dims["P"]
+    check_rows(labels, "labels", b, p)
+    n = check_rows(slots, "slots", b, "N").shape[1]
+    k = check_shape(q, "q", ["Q"])["Q"]
+    if q.numel() and not bool(((q >= 0) & (q <= 1)).all()):  # NaN too: the kernel casts q · (count − 1) to int
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    if not (on_cpu(torch.float32, values, q) and on_cpu(torch.int64, labels, slots)):
+        return None
+    if bool(values.isnan().any()):  # the selection orders by <, which NaN breaks: the torch path sorts them last
+        return None
+    library = load("labelled_select")
+    if library is None:
+        return None
+    values, labels, slots, q = (t.contiguous() for t in (values, labels, slots, q))
+    count = torch.empty(b, n, dtype=torch.int64)
+    below, above = torch.empty(b, n, k), torch.empty(b, n, k)
+    status = library.labelled_select(values.data_ptr(), labels.data_ptr(), slots.data_ptr(), q.data_ptr(), b, p, n,
+                                     k, count.data_ptr(), below.data_ptr(), above.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (count, below, above)
+
+
+def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.depth.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
+    ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
+    fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
+    if disparity.dim() < 1:
+        raise InputError(f"disparity: expected (..., W), got {tuple(disparity.shape)}")
+    check_shape(valid, "valid", list(disparity.shape))
+    if not (on_cpu(torch.float32, disparity) and on_cpu(torch.bool, valid)):
+        return None
+    library = load("fill_invalid_rows")
+    if library is None:
+        return None
+    rows, width = rows_of(disparity)
+    disparity, valid = disparity.contiguous(), valid.contiguous()
+    filled, reachable = torch.empty_like(disparity), torch.empty_like(valid)
+    status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
+                                       reachable.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (filled, reachable)
+
+
+def _check_box_rows(boxes: torch.Tensor, name: str, b: int) -> None:
+    """Boxes ``(B, 4)`` int that :func:`object_depths` reads at any place (its columns and rows outside the frame
+    repeat the border), within 2³¹ so that no corner's arithmetic overflows."""
+    check_rows(boxes, name, b, 4)
+    if boxes.numel() and bool((boxes.abs() >= 2**31).any()):
+        raise InputError(f"{name}: expected (x0, y0, width, height) within ±2^31, got {boxes.tolist()}")
+
+
+def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Tensor, boxes: torch.Tensor,
+                  slots: torch.Tensor, scale: torch.Tensor, doffs: torch.Tensor, in_view_from: torch.Tensor,
+                  fill: bool, q: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The statistics of :func:`svs_torch.depth.dense_objects.dense_object_depths`, each pair read once at its own box
+    (see the C source): ``disparity`` ``(B, H, W)`` float32, ``valid`` ``(B, H, W)`` bool, ``labels``
+    ``(B, H, W)`` int64; ``boxes`` ``(B, 4)`` x0, y0, width, height; ``slots`` ``(B, N)`` int64; ``scale``
+    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``in_view_from`` ``(B,)`` int64, the first frame column
+    where the pair's whole disparity range lands inside the right image; ``fill``: fill invalid pixels from their
+    row first; quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, in_view, below, above)``: each
+    slot's member count, its members that were valid before the fill and those of them at columns from
+    ``in_view_from`` on ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
+    ``q · (count − 1)`` ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its
+    contract."""
+    dims = check_shape(disparity, "disparity", ["B", "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(valid, "valid", [b, h, w])
+    check_shape(labels, "labels", [b, h, w])
+    check_nonempty(disparity, "disparity")
+    _check_box_rows(boxes, "boxes", b)
+    check_rows(slots, "slots", b, "N")
+    check_shape(scale, "scale", [b])
+    check_shape(doffs, "doffs", [b])
+    check_rows(in_view_from, "in_view_from", b)
+    check_shape(q, "q", ["Q"])
+    if q.numel() and not bool(((q >= 0) & (q <= 1)).all()):  # NaN too: the kernel casts q · (count − 1) to int
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    if not (on_cpu(torch.float32, disparity, scale, doffs, q) and on_cpu(torch.bool, valid)
+            and on_cpu(torch.int64, labels, boxes, slots, in_view_from)):
+        return None
+    library = load("object_depths")
+    if library is None:
+        return None
+    n, k = slots.shape[1], q.numel()
+    disparity, labels, boxes, slots, scale, doffs, in_view_from, q = (
+        t.contiguous() for t in (disparity, labels, boxes, slots, scale, doffs, in_view_from, q))
+    valid = valid.contiguous().view(torch.uint8)
+    count, measured, in_view = (torch.empty(b, n, dtype=torch.int64) for _ in range(3))
+    below, above = torch.empty(b, n, k), torch.empty(b, n, k)
+    status = library.object_depths(disparity.data_ptr(), valid.data_ptr(), labels.data_ptr(), b, h, w,
+                                   boxes.data_ptr(), slots.data_ptr(), n, scale.data_ptr(), doffs.data_ptr(),
+                                   in_view_from.data_ptr(), int(fill), q.data_ptr(), k, count.data_ptr(),
+                                   measured.data_ptr(), in_view.data_ptr(), below.data_ptr(), above.data_ptr(),
+                                   torch.get_num_threads())
+    return None if status != 0 else (count, measured, in_view, below, above)
+

@@ -1,0 +1,195 @@
+"""Integral images and box sums, batched (the basis of SURF, Bay et al. 2008, Sec. 2).
+
+``integral_image(x)[..., r, c]`` is the sum of ``x[..., :r, :c]``: one extra zero row and column, so a box
+``[r0, r1) × [c0, c1)`` sums to ``I[r1, c1] − I[r0, c1] − I[r1, c0] + I[r0, c0]`` in four reads, whatever its size.
+
+Ways of reading boxes:
+- :func:`grid_box_sums`: one box shape at every point of a regular grid, by four slices of the integral's
+  sub-lattices (no gather);
+- :func:`sample_box_means` and :func:`sample_cell_means`: boxes at real-valued centres and sizes, by
+  bilinear reads of a :class:`PaddedIntegral` (exact area integrals of the pixel-constant image, smooth in
+  position and size, and differentiable with respect to the image).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import check_image
+
+__all__ = [
+    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "integral_image", "integral_phases", "pad_integral", "padded_integral_image",
+    "sample_box_means", "sample_cell_means",
+]
+
+
+def integral_image(image: torch.Tensor, subtract_mean: bool = False) -> torch.Tensor:
+    """Integral image ``(B, 1, H + 1, W + 1)`` of ``(B, 1, H, W)`` images, in the image's dtype; linear, so
+    differentiable.
+
+    With ``subtract_mean``, each image's mean is removed first. Zero-sum filters (the Hessian's) read the
+    same responses, while the sums stay near zero instead of growing to 10⁵ over a 640×480 image, so float32
+    keeps about five more significant digits in the small boxes.
+    """
+    check_image(image, "image", check_range=False)
+    if subtract_mean:
+        image = image - image.mean(dim=(-2, -1), keepdim=True)
+    return F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0))
+
+
+def pad_integral(integral: torch.Tensor, pad: int) -> torch.Tensor:
+    """Extend an integral image by ``pad`` on every side, constant in the outward direction.
+
+    Reads beyond the image then add nothing (a box partly outside sums only its inside part), so box
+    corners never need clamping.
+    """
+    return F.pad(integral, (pad, pad, pad, pad), mode="replicate")
+
+
+def integral_phases(padded: torch.Tensor, step: int) -> list[torch.Tensor]:
+    """Split a padded integral into its ``step²`` sub-lattices ``padded[..., a::step, b::step]``, contiguous.
+
+    Reading a box at every point of a grid with spacing ``step`` then takes unit-stride slices of one phase per
+    corner: on CPU an order of magnitude faster than strided reads, for one extra pass over the table.
+    """
+    if step == 1:
+        return [padded]
+    return [padded[..., a::step, b::step].contiguous() for a in range(step) for b in range(step)]
+
+
+def grid_box_corners(
+    phases: list[torch.Tensor], step: int, pad: int, rows: tuple[int, int], cols: tuple[int, int],
+    size_hw: tuple[int, int],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The four corner views of :func:`grid_box_sums` (bottom-right, top-right, bottom-left, top-left); the
+    box sum is ``a − b − c + d``. Views only: nothing is read yet."""
+    ny, nx = size_hw
+
+    def corner(r: int, c: int) -> torch.Tensor:
+        phase = phases[(pad + r) % step * step + (pad + c) % step]
+        top, left = (pad + r) // step, (pad + c) // step
+        return phase[..., top:top + ny, left:left + nx]
+
+    (r0, r1), (c0, c1) = rows, cols
+    return corner(r1, c1), corner(r0, c1), corner(r1, c0), corner(r0, c0)
+
+
+def grid_box_sums(
+    phases: list[torch.Tensor], step: int, pad: int, rows: tuple[int, int], cols: tuple[int, int],
+    size_hw: tuple[int, int],
+) -> torch.Tensor:
+    """Sum of the box ``[y + rows[0], y + rows[1]) × [x + cols[0], x + cols[1])`` at every grid point.
+
+    Args:
+        phases: :func:`integral_phases` of a :func:`pad_integral` output ``(B, C, H + 1 + 2·pad, W + 1 + 2·pad)``.
+        step: grid spacing in pixels; the grid is ``y = 0, step, 2·step, …`` (likewise x).
+        pad: the padding of the integral; box offsets must stay within it.
+        rows, cols: box extent relative to the grid point, in pixels, end exclusive.
+        size_hw: (ny, nx) grid points.
+
+    Returns:
+        ``(B, C, ny, nx)``. Four unit-stride slices, no gather.
+    """
+    a, b, c, d = grid_box_corners(phases, step, pad, rows, cols, size_hw)
+    return a - b - c + d
+
+
+@dataclass(frozen=True)
+class PaddedIntegral:
+    """Integral image of an image extended by ``pad`` pixels of replicate border on every side.
+
+    Attributes:
+        table: ``(B, 1, H + 2·pad + 1, W + 2·pad + 1)``.
+        pad: the border width, pixels. The continuous image coordinate u (pixel j spans [j − 0.5, j + 0.5])
+            sits at table index u + 0.5 + pad.
+    """
+
+    table: torch.Tensor
+    pad: int
+
+
+def padded_integral_image(image: torch.Tensor, pad: int, subtract_mean: bool = True) -> PaddedIntegral:
+    """:class:`PaddedIntegral` of ``(B, 1, H, W)`` images: boxes reaching past the border read the edge pixels
+    (replicate border, as OpenCV's ``getRectSubPix``). Linear in the image, so differentiable."""
+    check_image(image, "image", check_range=False)
+    if subtract_mean:
+        image = image - image.mean(dim=(-2, -1), keepdim=True)
+    if pad > 0:
+        image = F.pad(image, (pad, pad, pad, pad), mode="replicate")
+    return PaddedIntegral(F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0)), pad)
+
+
+def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Integral read at continuous image coordinates ``x, y`` (same shape ``(B, …)``), clamped to the table.
+
+    Bilinear interpolation of an integral image is the exact area integral of the pixel-constant image."""
+    table = integral.table
+    b, _, h1, w1 = table.shape
+    shape = x.shape
+    # grid_sample with align_corners=True maps −1 and 1 to the first and last table index.
+    gx = ((x + 0.5 + integral.pad).clamp(0, w1 - 1) * (2 / max(w1 - 1, 1)) - 1).reshape(b, -1, 1)
+    gy = ((y + 0.5 + integral.pad).clamp(0, h1 - 1) * (2 / max(h1 - 1, 1)) - 1).reshape(b, -1, 1)
+    grid = torch.cat([gx, gy], dim=-1).unsqueeze(2).to(table.dtype)  # (B, P, 1, 2)
+    return F.grid_sample(table, grid, mode="bilinear", align_corners=True).view(shape)
+
+
+def sample_box_means(
+    integral: PaddedIntegral, center_xy: torch.Tensor, half_width: torch.Tensor, half_height: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean intensity of axis-aligned boxes at real-valued centres.
+
+    Args:
+        integral: :class:`PaddedIntegral`; boxes should stay within its border.
+        center_xy: ``(B, P, 2)`` box centres, pixel-centre coordinates.
+        half_width: ``(B, P)`` half the box width, pixels (> 0).
+        half_height: ``(B, P)`` half the box height; default ``half_width`` (a square box).
+
+    Returns:
+        ``(B, P)``. Differentiable with respect to the image (and the centres).
+    """
+    half_height = half_width if half_height is None else half_height
+    x0, x1 = center_xy[..., 0] - half_width, center_xy[..., 0] + half_width
+    y0, y1 = center_xy[..., 1] - half_height, center_xy[..., 1] + half_height
+    corners = _bilinear_read(integral, torch.stack([x1, x1, x0, x0], -1), torch.stack([y1, y0, y1, y0], -1))
+    a, b, c, d = corners.unbind(-1)
+    return (a - b - c + d) / ((x1 - x0) * (y1 - y0))
+
+
+def _normalised_grid(integral: PaddedIntegral, coordinate: torch.Tensor, size: int) -> torch.Tensor:
+    """Continuous image coordinates → grid_sample coordinates (align_corners=True) of a table axis of ``size``."""
+    return (coordinate + 0.5 + integral.pad).clamp(0, size - 1) * (2 / max(size - 1, 1)) - 1
+
+
+def sample_cell_means(integral: PaddedIntegral, image_index: torch.Tensor, x_edges: torch.Tensor,
+                             y_edges: torch.Tensor) -> torch.Tensor:
+    """Means of the cells of a ragged set of P axis-aligned lattices, each on its own image of the batch: cell
+    (m, n) of lattice p spans [x_n, x_{n+1}] × [y_m, y_{m+1}] of image ``image_index[p]``.
+
+    Args:
+        integral: :class:`PaddedIntegral` of B images.
+        image_index: ``(P,)`` int64, the image of each lattice.
+        x_edges: ``(P, N + 1)``; y_edges: ``(P, M + 1)``, pixel-centre coordinates of that image.
+
+    Returns:
+        ``(P, M, N)``. Neighbouring cells share corners (a 21 × 21 lattice costs 22² reads, not 4 · 21²); the B
+        tables are read as one tall table (a free view of the contiguous batch), so no padding keypoint is
+        ever sampled. Differentiable with respect to the image.
+    """
+    table = integral.table.contiguous()
+    b, _, height, width = table.shape
+    tall = table.view(1, 1, b * height, width)
+    # Clamp within the lattice's own image, then shift to its block of the tall table.
+    rows = (y_edges + 0.5 + integral.pad).clamp(0, height - 1) + (image_index * height).unsqueeze(-1).to(y_edges.dtype)
+    p, n1 = x_edges.shape
+    m1 = y_edges.shape[-1]
+    grid = table.new_empty(1, p, m1, n1, 2)
+    grid[..., 0] = _normalised_grid(integral, x_edges, width).unsqueeze(-2)
+    grid[..., 1] = (rows * (2 / max(b * height - 1, 1)) - 1).unsqueeze(-1)
+    read = F.grid_sample(tall, grid.view(1, -1, 1, 2), mode="bilinear", align_corners=True).view(p, m1, n1)
+    sums = read[..., 1:, 1:] - read[..., :-1, 1:] - read[..., 1:, :-1] + read[..., :-1, :-1]
+    inverse_area = 1 / ((x_edges[..., 1:] - x_edges[..., :-1]).unsqueeze(-2) *
+                        (y_edges[..., 1:] - y_edges[..., :-1]).unsqueeze(-1))
+    return sums * inverse_area

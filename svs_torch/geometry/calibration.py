@@ -1,0 +1,296 @@
+"""A stereo rig's calibration: the file ``svs-depth calibrate`` writes, and rectifying pairs with it.
+
+The uncalibrated path of the paper (Sec. 3.4) estimates F from each pair's own matches and rectifies with it;
+a rig calibrated once with a chessboard (:mod:`svs_torch.geometry.chessboard`, OpenCV's ``calibrateCamera`` and
+``stereoCalibrate``) is rectified instead by the fixed maps of ``cv2.stereoRectify``, which also give the focal
+length, the baseline and the principal-point offset the depth needs: ``focal_px = P1[0, 0]``,
+``baseline_m = −P2[0, 3] / P2[0, 0]`` (= |T| for a horizontal rig) and ``doffs_px = P2[0, 2] − P1[0, 2]``
+(``StereoBatch``'s convention, cx_right − cx_left; OpenCV's Q gives Z = f·B / (d + cx_right − cx_left)).
+
+The file is JSON (easy to read from users' scripts): both cameras' K and distortion, R, T (metres), R1, R2, P1,
+P2, Q, the image size it was made at, the reprojection errors and the rectified row error, the board, the date
+and the software version. A pair of another size with the same aspect ratio (a rig calibrated at 640×480 and run
+at 320×240) is rectified with the matrices scaled to it (:meth:`StereoCalibration.scaled_to`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import InputError, check_instance
+from ..core.files import atomic_output, display_path, path_kind
+from ..core.types import StereoBatch
+
+__all__ = ["FORMAT", "StereoCalibration", "read_calibration", "rectify_with_calibration", "rectification_grids",
+           "write_calibration"]
+
+#: The file's ``format`` field: a JSON file without it is not a calibration of this package.
+FORMAT = "svs-depth stereo calibration"
+FORMAT_VERSION = 1
+#: Two sizes have the same aspect ratio (a resized image of the same view) within this relative difference.
+ASPECT_TOLERANCE = 0.01
+_MATRICES = {"R": (3, 3), "R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """A calibrated stereo rig (OpenCV's conventions: pixel centres at integers, x right, y down).
+
+    Attributes:
+        image_wh: (width, height) of the images the calibration was made at, pixels.
+        K_left, K_right: ``(3, 3)`` camera matrices, pixels. dist_left, dist_right: distortion coefficients.
+        R: ``(3, 3)``, T: ``(3,)`` metres: the right camera's pose, x_right = R·x_left + T.
+        R1, R2: ``(3, 3)`` rectifying rotations; P1, P2: ``(3, 4)`` rectified projections; Q: ``(4, 4)``.
+        rms_left_px, rms_right_px, rms_stereo_px: reprojection RMS of each camera's and the stereo calibration.
+        row_error_mean_px, row_error_max_px: |y_left − y_right| of the matching corners after rectification.
+        board: the chessboard (``inner_corners`` [columns, rows], ``square_m``); pairs: the pairs used;
+        created_utc, software: when and by what it was made.
+    """
+
+    image_wh: tuple[int, int]
+    K_left: np.ndarray
+    dist_left: np.ndarray
+    K_right: np.ndarray
+    dist_right: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    R1: np.ndarray
+    R2: np.ndarray
+    P1: np.ndarray
+    P2: np.ndarray
+    Q: np.ndarray
+    rms_left_px: float = math.nan
+    rms_right_px: float = math.nan
+    rms_stereo_px: float = math.nan
+    row_error_mean_px: float = math.nan
+    row_error_max_px: float = math.nan
+    board: dict = field(default_factory=dict)
+    pairs: tuple[str, ...] = ()
+    created_utc: str = ""
+    software: str = ""
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length of the rectified images, pixels (at ``image_wh``)."""
+        return float(self.P1[0, 0])
+
+    @property
+    def baseline_m(self) -> float:
+        """Distance between the rectified cameras' centres, metres (OpenCV: ``P2[0, 3] = −f·B``)."""
+        return float(-self.P2[0, 3] / self.P2[0, 0])
+
+    @property
+    def doffs_px(self) -> float:
+        """``cx_right − cx_left`` of the rectified images, pixels (0 with OpenCV's CALIB_ZERO_DISPARITY)."""
+        return float(self.P2[0, 2] - self.P1[0, 2])
+
+    def scaled_to(self, size_wh: tuple[int, int], name: str = "calibration") -> StereoCalibration:
+        """The calibration of the same rig for images resized to ``size_wh`` (the same view, another resolution):
+        K, P1, P2 and Q in the new pixels (pixel centres kept: x' = (x + 0.5)·s − 0.5); R, T, the distortion
+        (in normalised coordinates) unchanged.
+
+        Raises:
+            InputError: naming ``name``, when ``size_wh`` has another aspect ratio (another field of view).
+        """
+        width, height = (int(v) for v in size_wh)
+        if (width, height) == tuple(self.image_wh):
+            return self
+        sx, sy = width / self.image_wh[0], height / self.image_wh[1]
+        if abs(sx - sy) > ASPECT_TOLERANCE * max(sx, sy):
+            raise InputError(f"{name}: made at {self.image_wh[0]}x{self.image_wh[1]}, the pair is {width}x{height}: "
+                             "expected the same aspect ratio (the same view at another resolution)")
+        scale = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+        # Q maps an old pixel's (x, y, d, 1) to 3-D; a new pixel's (x', y', d') is first taken back to old pixels
+        # (x = (x' + 0.5) / sx − 0.5, likewise y, d = d' / sx), so Q' = Q · that map: the same 3-D points.
+        to_old = np.linalg.inv(scale)
+        q_map = np.eye(4)
+        q_map[0, 0], q_map[0, 3] = to_old[0, 0], to_old[0, 2]
+        q_map[1, 1], q_map[1, 3] = to_old[1, 1], to_old[1, 2]
+        q_map[2, 2] = 1 / sx  # disparities scale with x
+        return dataclasses.replace(
+            self, image_wh=(width, height), K_left=scale @ self.K_left, K_right=scale @ self.K_right,
+            P1=scale @ self.P1, P2=scale @ self.P2, Q=self.Q @ q_map)
+
+    def to_json(self) -> dict:
+        """The file's content (see the module docstring); derived focal, baseline and doffs for users' scripts."""
+        def listed(value: np.ndarray) -> list:
+            return np.asarray(value, dtype=np.float64).tolist()
+
+        return {
+            "format": FORMAT, "format_version": FORMAT_VERSION, "image_size_wh": list(self.image_wh),
+            "focal_px": self.focal_px, "baseline_m": self.baseline_m, "doffs_px": self.doffs_px,
+            "rms_left_px": self.rms_left_px, "rms_right_px": self.rms_right_px, "rms_stereo_px": self.rms_stereo_px,
+            "row_error_mean_px": self.row_error_mean_px, "row_error_max_px": self.row_error_max_px,
+            "board": self.board, "num_pairs": len(self.pairs), "pairs": list(self.pairs),
+            "K_left": listed(self.K_left), "dist_left": listed(np.ravel(self.dist_left)),
+            "K_right": listed(self.K_right), "dist_right": listed(np.ravel(self.dist_right)),
+            "R": listed(self.R), "T_m": listed(np.ravel(self.T)),
+            **{name: listed(getattr(self, name)) for name in ("R1", "R2", "P1", "P2", "Q")},
+            "created_utc": self.created_utc, "software": self.software,
+        }
+
+
+def write_calibration(path: str | os.PathLike, calibration: StereoCalibration, name: str = "--out") -> None:
+    """Write ``calibration`` as JSON to ``path`` whole (:func:`svs_torch.core.files.atomic_output`)."""
+    check_instance(calibration, "calibration", StereoCalibration)
+    text = json.dumps(_finite_or_none(calibration.to_json()), indent=1, allow_nan=False) + "\n"
+    try:
+        with atomic_output(path, "w", encoding="utf-8") as stream:
+            stream.write(text)
+    except OSError as error:
+        raise InputError(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}") from None
+
+
+def _finite_or_none(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def _matrix(record: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
+    value = record.get(key)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.shape != shape or not np.isfinite(array).all():
+        raise InputError(f"{where}: expected '{key}' as {'x'.join(map(str, shape))} finite numbers")
+    return array
+
+
+def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
+    value = record.get(key)
+    try:
+        array = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.size not in (4, 5, 8, 12, 14) or not np.isfinite(array).all():
+        raise InputError(f"{where}: expected '{key}' as 4, 5, 8, 12 or 14 finite distortion coefficients")
+    return array
+
+
+def _number(record: dict, key: str) -> float:
+    value = record.get(key)
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+
+
+def _parse(record: object, where: str) -> StereoCalibration:
+    """A :class:`StereoCalibration` from the file's JSON, every field checked (one-line errors naming it)."""
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        raise InputError(f"{where}: expected a JSON object with \"format\": \"{FORMAT}\" (svs-depth calibrate's "
+                         "output)")
+    size = record.get("image_size_wh")
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                              and v > 0 for v in size)):
+        raise InputError(f"{where}: expected 'image_size_wh' as [width, height], two positive integers")
+    matrices = {key: _matrix(record, key, shape, where) for key, shape in _MATRICES.items()}
+    K_left, K_right = (_matrix(record, key, (3, 3), where) for key in ("K_left", "K_right"))
+    T = _matrix(record, "T_m", (3,), where)
+    calibration = StereoCalibration(
+        image_wh=(size[0], size[1]), K_left=K_left, dist_left=_coefficients(record, "dist_left", where),
+        K_right=K_right, dist_right=_coefficients(record, "dist_right", where), T=T, **matrices,
+        **{key: _number(record, key) for key in ("rms_left_px", "rms_right_px", "rms_stereo_px",
+                                                 "row_error_mean_px", "row_error_max_px")},
+        board=record.get("board") if isinstance(record.get("board"), dict) else {},
+        pairs=tuple(str(p) for p in record.get("pairs", []) if isinstance(p, str)),
+        created_utc=str(record.get("created_utc", "")), software=str(record.get("software", "")))
+    for key in ("K_left", "K_right"):
+        K = getattr(calibration, key)
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise InputError(f"{where}: expected '{key}' with positive focal lengths, got {K[0, 0]} and {K[1, 1]}")
+    if not (calibration.focal_px > 0 and calibration.baseline_m > 0):
+        raise InputError(f"{where}: expected P1, P2 of a left-right rig (positive focal P1[0][0] and baseline "
+                         f"-P2[0][3]/P2[0][0]), got {calibration.focal_px:g} px and {calibration.baseline_m:g} m")
+    return calibration
+
+
+def read_calibration(path: str | os.PathLike, name: str = "--calibration") -> StereoCalibration:
+    """The calibration file ``path`` (written by :func:`write_calibration`).
+
+    Raises:
+        InputError: one line naming ``name`` and the file, for a missing or unreadable file, text that is not
+            JSON, or a field that is missing or wrong (its name and what was expected).
+    """
+    where = f"{name}: {display_path(path)}"
+    kind = path_kind(path, name)
+    if kind != "file":
+        raise InputError(f"{where}: expected a calibration file, got " +
+                         {"missing": "no such file", "folder": "a folder"}.get(kind, "a special file"))
+    try:
+        with open(path, "rb") as stream:
+            record = json.loads(stream.read().decode("utf-8"))
+    except OSError as error:
+        raise InputError(f"{where}: cannot read it: {error.strerror or error}") from None
+    except (UnicodeDecodeError, ValueError) as error:
+        raise InputError(f"{where}: expected a JSON calibration file ({' '.join(str(error).split())[:80]})") from None
+    return _parse(record, where)
+
+
+def rectification_grids(calibration: StereoCalibration, size_wh: tuple[int, int], dtype: torch.dtype,
+                        device: torch.device | str = "cpu") -> torch.Tensor:
+    """``(2, H, W, 2)`` sampling grids (left, right) for ``F.grid_sample`` (``align_corners=True``): where each
+    rectified pixel is read in the raw image, from ``cv2.initUndistortRectifyMap`` of the calibration scaled to
+    ``size_wh``. Not differentiable (fixed maps)."""
+    import cv2
+
+    scaled = calibration.scaled_to(size_wh)
+    width, height = scaled.image_wh
+    grids = []
+    for K, dist, R, P in ((scaled.K_left, scaled.dist_left, scaled.R1, scaled.P1),
+                          (scaled.K_right, scaled.dist_right, scaled.R2, scaled.P2)):
+        map_x, map_y = cv2.initUndistortRectifyMap(K, dist, R, P, (width, height), cv2.CV_32FC1)
+        # align_corners=True: −1 and +1 are the centres of the first and last pixels, OpenCV's 0 and W − 1.
+        grid = np.stack([2 * map_x / max(width - 1, 1) - 1, 2 * map_y / max(height - 1, 1) - 1], axis=-1)
+        grids.append(torch.from_numpy(grid))
+    return torch.stack(grids).to(device=device, dtype=dtype)
+
+
+def rectify_with_calibration(batch: StereoBatch, calibration: StereoCalibration,
+                             name: str = "--calibration") -> StereoBatch:
+    """``batch`` rectified by the calibrated rig: both views remapped (bilinear, zeros outside the raw image,
+    as ``cv2.remap``), focal, baseline and doffs from the calibration scaled to the pairs' size, ``calibrated``
+    True. Every pair must fill the batch's tensors (rectify pairs of different sizes apart) and have no ground
+    truth (a truth of the raw view would not hold for the rectified one).
+
+    Differentiable w.r.t. ``batch.left`` and ``batch.right`` (a fixed bilinear resampling); not w.r.t. the
+    calibration.
+
+    Raises:
+        InputError: naming ``name``, for a pair of another aspect ratio than the calibration's, a padded batch
+            or a batch with ground truth.
+    """
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(calibration, "calibration", StereoCalibration)
+    height, width = batch.size_hw
+    if not bool((batch.image_hw == torch.tensor([height, width], device=batch.image_hw.device)).all()):
+        raise InputError(f"{name}: expected pairs that fill the batch (rectify pairs of different sizes apart)")
+    if batch.disparity_px is not None:
+        raise InputError(f"{name}: expected pairs without ground truth (a scene folder brings its own calibration)")
+    scaled = calibration.scaled_to((width, height), name)
+    grids = rectification_grids(scaled, (width, height), batch.left.dtype, batch.left.device)
+    b = batch.batch_size
+
+    def remap(images: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+        # One grid for the whole batch: the rig is the same for every pair.
+        return F.grid_sample(images, grid.expand(b, -1, -1, -1), mode="bilinear", padding_mode="zeros",
+                             align_corners=True).clamp(0, 1)
+
+    def filled(value: float) -> torch.Tensor:
+        return torch.full((b,), value, dtype=batch.focal_px.dtype, device=batch.focal_px.device)
+
+    return dataclasses.replace(
+        batch, left=remap(batch.left, grids[0]), right=remap(batch.right, grids[1]), focal_px=filled(scaled.focal_px),
+        baseline_m=filled(scaled.baseline_m), doffs_px=filled(scaled.doffs_px),
+        calibrated=torch.ones(b, dtype=torch.bool, device=batch.calibrated.device))

@@ -1,0 +1,159 @@
+"""Calibrate a stereo rig from chessboard pairs with OpenCV, the well-kept library for it.
+
+Per pair: ``findChessboardCorners`` in both views, refined by ``cornerSubPix``; pairs where either view misses the
+board are left out (and counted). Then each camera alone (``calibrateCamera``), the two together with those
+intrinsics fixed (``stereoCalibrate``, ``CALIB_FIX_INTRINSIC``: the mono fits have more freedom per view, and the
+stereo step then only estimates R and T, as OpenCV's stereo_calib sample and the shared set's MANIFEST do), and the
+rectification (``stereoRectify`` with ``CALIB_ZERO_DISPARITY`` and ``alpha=0``: the rectified images hold only
+valid pixels, so no black border enters the segmentation's threshold). The board's square size in metres sets the
+unit of T, hence of the baseline and of every depth.
+
+Reported, as OpenCV computes them: the RMS reprojection error of each camera and of the stereo fit (pixels), and
+the rectified pair's row error: |y_left − y_right| of the matching corners mapped by the rectification
+(``undistortPoints`` with R1, P1 / R2, P2), mean and maximum, pixels. None of this is differentiable.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .calibration import StereoCalibration
+from ..core.checks import InputError
+
+__all__ = ["BoardViews", "MIN_PAIRS", "calibrate_stereo_rig", "collect_board_views", "find_board_corners",
+           "rectified_corners"]
+
+#: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
+#: warns below 3; a usable calibration wants 10–20 views across the field.
+MIN_PAIRS = 3
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+_STEREO_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-6)
+
+
+@dataclass(frozen=True)
+class BoardViews:
+    """The board's corners found in the pairs: ``left``, ``right`` lists of ``(N, 2)`` float32 arrays (the same
+    corner order in both views), ``names`` of the pairs used, ``skipped`` names of pairs without the board in
+    both views, ``image_wh`` the pairs' size."""
+
+    left: list[np.ndarray]
+    right: list[np.ndarray]
+    names: list[str]
+    skipped: list[str]
+    image_wh: tuple[int, int]
+
+
+def find_board_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
+    """The ``board = (columns, rows)`` inner corners of a chessboard in a uint8 gray ``image``, ``(N, 2)``
+    float32 refined to sub-pixel, or None when the whole board is not found."""
+    found, corners = cv2.findChessboardCorners(image, board,
+                                               flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if not found:
+        return None
+    # OpenCV's samples refine in a 23x23 window (half-size 11) at 640x480; on a smaller board image such a window
+    # takes in the next corners and pulls an edge corner off by pixels, so it is kept within a third of the
+    # nearest spacing of two corners.
+    corners = corners.reshape(-1, 1, 2)
+    spacing = float(np.linalg.norm(np.diff(corners.reshape(-1, 2), axis=0), axis=1).min())
+    half = int(np.clip(round(spacing / 3), 2, 11))
+    refined = cv2.cornerSubPix(image, corners, (half, half), (-1, -1), _SUBPIX_CRITERIA)
+    return refined.reshape(-1, 2).astype(np.float32)
+
+
+def _gray_u8(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if image.dtype != np.uint8:  # 16-bit (or float) captures: to the 8-bit range the detector expects
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return image
+
+
+def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], board: tuple[int, int]) -> BoardViews:
+    """The board in every ``(name, left image, right image)`` pair (see :class:`BoardViews`).
+
+    Raises:
+        InputError: naming ``pairs``, for pairs of different sizes, or fewer than :data:`MIN_PAIRS` pairs with the
+            board in both views.
+    """
+    left, right, names, skipped, size = [], [], [], [], None
+    for name, image_left, image_right in pairs:
+        image_left, image_right = _gray_u8(image_left), _gray_u8(image_right)
+        wh = (image_left.shape[1], image_left.shape[0])
+        if size is None:
+            size = wh
+        if wh != size or image_right.shape[:2] != image_left.shape[:2]:
+            raise InputError(f"pairs: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
+                             f"{image_right.shape[1]}x{image_right.shape[0]} or {wh[0]}x{wh[1]} in {name}")
+        corners = (find_board_corners(image_left, board), find_board_corners(image_right, board))
+        if corners[0] is None or corners[1] is None:
+            skipped.append(name)
+            continue
+        left.append(corners[0])
+        right.append(corners[1])
+        names.append(name)
+    if len(names) < MIN_PAIRS:
+        hint = " (check --board: inner corners, columns x rows)" if skipped else ""
+        raise InputError(f"pairs: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
+                         f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS}{hint}")
+    return BoardViews(left, right, names, skipped, size)
+
+
+def rectified_corners(calibration: StereoCalibration, views: BoardViews) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Every pair's corners mapped into the rectified images, left and right lists of ``(N, 2)``."""
+    out: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    cameras = ((calibration.K_left, calibration.dist_left, calibration.R1, calibration.P1),
+               (calibration.K_right, calibration.dist_right, calibration.R2, calibration.P2))
+    for side, corners, (K, dist, R, P) in zip(out, (views.left, views.right), cameras):
+        for points in corners:
+            side.append(cv2.undistortPoints(points.reshape(-1, 1, 2), K, dist, R=R, P=P).reshape(-1, 2))
+    return out
+
+
+def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, int], software: str = ""
+                         ) -> StereoCalibration:
+    """OpenCV's mono, stereo calibration and rectification of ``views`` (see the module docstring).
+
+    Args:
+        views: :func:`collect_board_views`' corners.
+        square_m: the side of one square of the board, metres (the unit of T, the baseline and every depth).
+        board: (columns, rows) of inner corners.
+        software: the version string recorded in the file.
+    """
+    if not (math.isfinite(square_m) and square_m > 0):
+        raise InputError(f"--square-m: expected a finite positive side in metres, got {square_m}")
+    columns, rows = board
+    grid = np.zeros((rows * columns, 3), np.float32)
+    grid[:, :2] = np.mgrid[0:columns, 0:rows].T.reshape(-1, 2) * square_m  # the corners' order in OpenCV
+    objects = [grid] * len(views.names)
+    size = views.image_wh
+    rms_left, K_left, dist_left, _, _ = cv2.calibrateCamera(objects, views.left, size, None, None)
+    rms_right, K_right, dist_right, _, _ = cv2.calibrateCamera(objects, views.right, size, None, None)
+    rms_stereo, K_left, dist_left, K_right, dist_right, R, T, _, _ = cv2.stereoCalibrate(
+        objects, views.left, views.right, K_left, dist_left, K_right, dist_right, size,
+        criteria=_STEREO_CRITERIA, flags=cv2.CALIB_FIX_INTRINSIC)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K_left, dist_left, K_right, dist_right, size, R, T,
+                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+    calibration = StereoCalibration(
+        image_wh=size, K_left=K_left, dist_left=dist_left.ravel(), K_right=K_right, dist_right=dist_right.ravel(),
+        R=R, T=T.ravel(), R1=R1, R2=R2, P1=P1, P2=P2, Q=Q, rms_left_px=float(rms_left),
+        rms_right_px=float(rms_right), rms_stereo_px=float(rms_stereo),
+        board={"inner_corners": [columns, rows], "square_m": square_m}, pairs=tuple(views.names),
+        created_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), software=software)
+    if calibration.baseline_m <= 0:
+        raise InputError("pairs: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
+                         "RIGHT swapped?")
+    rectified_left, rectified_right = rectified_corners(calibration, views)
+    rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
+    return _with_row_error(calibration, rows_apart)
+
+
+def _with_row_error(calibration: StereoCalibration, rows_apart: np.ndarray) -> StereoCalibration:
+    from dataclasses import replace
+
+    return replace(calibration, row_error_mean_px=float(rows_apart.mean()), row_error_max_px=float(rows_apart.max()))

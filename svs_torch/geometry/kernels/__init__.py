@@ -1,0 +1,104 @@
+"""The C kernels of the geometry stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+cached and loaded, and what every wrapper promises."""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+
+from ...core.checks import check_shape
+from ...core.errors import InputError
+from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
+from ...core.kernels.checks import check_nonempty, check_number, check_rows
+
+__all__ = ["available", "lk_refine", "load", "sad_nearest"]
+
+declare({
+    "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
+                  None),
+    "sad_nearest": ([POINTER] * 8 + [FLOAT] + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
+})
+
+
+def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
+              radius: torch.Tensor, active: torch.Tensor, iterations: int, max_shift_px: float
+              ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``svs_torch.geometry.matching._refine_lk``'s Gauss–Newton refinement, one match at a time (see the C source):
+    ``left``, ``right`` ``(B, 1, H, W)`` float32; ``left_xy``, ``right_xy`` ``(B, K, 2)``, ``radius`` ``(B, K)``
+    float32; ``active`` ``(B, K)`` bool, the rows to refine. Returns the refined right points ``(B, K, 2)`` and
+    the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the
+    inputs do not fit its contract."""
+    tensors = (left, right, left_xy, right_xy, radius)
+    dims = check_shape(left, "left", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(right, "right", [b, 1, h, w])
+    k = check_shape(left_xy, "left_xy", [b, "K", 2])["K"]
+    check_shape(right_xy, "right_xy", [b, k, 2])
+    check_shape(radius, "radius", [b, k])
+    check_rows(active, "active", b, k, kinds="bool")
+    check_nonempty(left, "left")
+    if not isinstance(iterations, int) or iterations < 0:
+        raise InputError(f"iterations: expected a non-negative int, got {iterations!r}")
+    check_number(max_shift_px, "max_shift_px", 0.0)
+    if (not (on_cpu(torch.float32, *tensors) and on_cpu(torch.bool, active))
+            or h * w >= 2**31):  # the kernel indexes an image with 32-bit offsets
+        return None
+    library = load("lk_refine")
+    if library is None:
+        return None
+    left, right, left_xy, right_xy, radius, active = (t.contiguous() for t in (*tensors, active))
+    refined, correlation = torch.empty(b, k, 2), torch.empty(b, k)
+    library.lk_refine(left.data_ptr(), right.data_ptr(), b, h, w, k, left_xy.data_ptr(), right_xy.data_ptr(),
+                      radius.data_ptr(), active.data_ptr(), iterations, max_shift_px, refined.data_ptr(),
+                      correlation.data_ptr(), torch.get_num_threads())
+    return refined, correlation
+
+
+def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_left: torch.Tensor,
+                valid_right: torch.Tensor, sign_left: torch.Tensor | None = None,
+                sign_right: torch.Tensor | None = None, y_left: torch.Tensor | None = None,
+                y_right: torch.Tensor | None = None, band_px: float | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """Nearest neighbours by SAD (see the C source): ``desc_left`` ``(B, K, D)``, ``desc_right`` ``(B, K2, D)``
+    float32; a candidate pair needs ``valid_left`` ``(B, K)`` and ``valid_right`` ``(B, K2)`` (bool), equal
+    ``sign_left`` / ``sign_right`` (int64, optional) and, given ``band_px``, ``|y_left − y_right| ≤ band_px``
+    (float32 ``(B, K)``, ``(B, K2)``), as :func:`svs_torch.geometry.matching._allowed`. Returns ``(best, second,
+    best_index, back)``: each left row's smallest and second-smallest allowed distance ``(B, K)`` (+inf if
+    none), the index of the smallest, and each right descriptor's nearest left row ``(B, K2)``; None when the
+    kernel is not available or the inputs do not fit its contract."""
+    signs = sign_left is not None
+    band = band_px is not None
+    dims = check_shape(desc_left, "desc_left", ["B", "K", "D"])
+    b, k, d = dims["B"], dims["K"], dims["D"]
+    k2 = check_shape(desc_right, "desc_right", [b, "K2", d])["K2"]
+    check_rows(valid_left, "valid_left", b, k, kinds="bool")
+    check_rows(valid_right, "valid_right", b, k2, kinds="bool")
+    if signs != (sign_right is not None) or band and (y_left is None or y_right is None):
+        raise InputError("sign_left, sign_right, y_left, y_right: expected both signs or neither, and both rows "
+                         "given a band_px")
+    for tensor, name, rows in ((sign_left, "sign_left", k), (sign_right, "sign_right", k2)):
+        if signs:
+            check_rows(tensor, name, b, rows)
+    for tensor, name, rows in ((y_left, "y_left", k), (y_right, "y_right", k2)):
+        if band:
+            check_rows(tensor, name, b, rows, kinds="float")
+    if band:
+        check_number(band_px, "band_px", 0.0)
+    if (not (on_cpu(torch.float32, desc_left, desc_right) and on_cpu(torch.bool, valid_left, valid_right))
+            or signs and not on_cpu(torch.int64, sign_left, sign_right)
+            or band and not on_cpu(torch.float32, y_left, y_right)):
+        return None
+    library = load("sad_nearest")
+    if library is None:
+        return None
+    inputs = [t.contiguous() if t is not None else None for t in (
+        desc_left, desc_right, valid_left, valid_right, sign_left if signs else None, sign_right if signs else None,
+        y_left if band else None, y_right if band else None)]
+    pointers = [0 if t is None else t.data_ptr() for t in inputs]
+    best, second = torch.empty(b, k), torch.empty(b, k)
+    best_index, back = torch.empty(b, k, dtype=torch.int64), torch.empty(b, k2, dtype=torch.int64)
+    status = library.sad_nearest(*pointers, band_px if band else 0.0, b, k, k2, d, best.data_ptr(),
+                                 second.data_ptr(), best_index.data_ptr(), back.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (best, second, best_index, back)
+

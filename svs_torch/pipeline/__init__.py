@@ -1,0 +1,14 @@
+"""The pipeline: the stages composed, one batch of pairs from images to obstacle distances.
+
+``config`` (:class:`PipelineConfig`, :class:`PipelineStatus`, :class:`PipelineResult`), ``run``
+(:func:`estimate_obstacle_depth`: segmentation → features → matching → RANSAC → rectification → dense depth,
+each batch run as groups of one size), ``soft`` (the differentiable pass over the hard pass's decisions) and
+``preload`` (worker processes that import the pipeline before their first task).
+
+May import: ``svs_torch.core`` and every stage's public names. Only ``evaluation``, ``plotting`` and the CLI
+import the pipeline; a stage never does.
+"""
+
+from .run import PipelineConfig, PipelineResult, PipelineStatus, estimate_obstacle_depth, segment_pair
+
+__all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]

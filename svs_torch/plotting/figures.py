@@ -1,0 +1,182 @@
+"""Figures for the command line: panels of images and masks drawn with OpenCV, label images, and writing an
+image file (the matplotlib figures are in :mod:`svs_torch.plotting.plots`).
+
+Figures are for people; nothing here feeds back into the pipeline. Files are written whole (a temporary file
+beside the target, then a rename, :mod:`svs_torch.core.files`) with the permissions the umask gives a new file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..core.checks import InputError
+from ..core.files import check_output_file, display_path, write_bytes_atomic
+from ..core.types import Segmentation
+
+__all__ = [
+    "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "binary_title", "check_output_path", "compose_grid",
+    "gray_to_bgr", "labels_image", "objects_panel", "segmentation_panels", "titled_panel", "write_image_atomic",
+]
+
+#: Colours of kept objects, largest first (BGR).
+PALETTE_BGR = [(0, 165, 255), (255, 128, 0), (0, 200, 0), (200, 0, 200), (0, 220, 220), (128, 0, 255)]
+#: File name endings a figure can be written as, and those that keep every value exactly (label images).
+FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+LOSSLESS_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def gray_to_bgr(gray: torch.Tensor) -> np.ndarray:
+    """``(H, W)`` float in [0, 1] → uint8 BGR image."""
+    u8 = (gray.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    return cv2.cvtColor(u8, cv2.COLOR_GRAY2BGR)
+
+
+def _wrap(text: str, width_px: int, scale: float) -> list[str]:
+    """Greedy word wrap of ``text`` so that each line is at most ``width_px`` wide at font ``scale``."""
+    lines: list[str] = []
+    for word in text.split():
+        candidate = f"{lines[-1]} {word}" if lines else word
+        if lines and cv2.getTextSize(candidate, _FONT, scale, 1)[0][0] <= width_px:
+            lines[-1] = candidate
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
+def titled_panel(panel: np.ndarray, title: str) -> np.ndarray:
+    """Put a title strip above a panel; a title wider than the panel is wrapped onto more lines, never clipped."""
+    width = panel.shape[1]
+    scale = 0.45 if width >= 160 else 0.35
+    lines = _wrap(title, max(width - 8, 1), scale)
+    line_h = int(round(36 * scale))
+    strip = np.full((line_h * len(lines) + 6, width, 3), 255, np.uint8)
+    for n, line in enumerate(lines):
+        cv2.putText(strip, line, (4, line_h * (n + 1)), _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([strip, panel])
+
+
+def _label(panel: np.ndarray, text: str, origin: tuple[int, int], colour: tuple[int, int, int],
+           scale: float = 0.4) -> None:
+    """White text on a black box, led by a swatch of the object's ``colour``, kept inside the panel: readable on
+    any texture and on the object's own tint (coloured text on a tint of its own colour is not)."""
+    (w, h), base = cv2.getTextSize(text, _FONT, scale, 1)
+    total = h + 3 + w  # swatch, space, text
+    x = int(min(max(origin[0], 1), max(panel.shape[1] - total - 2, 1)))
+    y = int(min(max(origin[1], h + 2), max(panel.shape[0] - base - 1, h + 2)))
+    cv2.rectangle(panel, (x - 1, y - h - 2), (x + total + 1, y + base), (0, 0, 0), cv2.FILLED)
+    cv2.rectangle(panel, (x, y - h), (x + h - 1, y - 1), colour, cv2.FILLED)
+    cv2.putText(panel, text, (x + h + 3, y), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:
+    """The grayscale image dimmed outside the kept objects, each object tinted, boxed and numbered."""
+    gray = image[index, 0]
+    panel = gray_to_bgr(gray * 0.35)
+    base = gray_to_bgr(gray)
+    labels = seg.labels[index, 0].cpu().numpy()
+    for rank, label in enumerate(seg.kept_labels[index].tolist()):
+        if label < 0:
+            continue
+        colour = np.array(PALETTE_BGR[rank % len(PALETTE_BGR)], np.float32)
+        region = labels == label
+        panel[region] = (0.6 * base[region] + 0.4 * colour).astype(np.uint8)
+        x0, y0, x1, y1 = seg.regions.bbox_xyxy[index, label - 1].tolist()
+        area = int(seg.regions.area_px[index, label - 1])
+        cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
+        _label(panel, f"#{rank + 1} {area}px", (x0 + 2, y0 + 12), tuple(int(c) for c in colour))
+    return panel
+
+
+def binary_title(seg: Segmentation, index: int, segmenter: str = "otsu", method: str = "otsu") -> str:
+    """What made the binary mask, for its panel: ``binary (Otsu 128) + opening``, ``binary (learned segmenter,
+    p > 0.50) + opening`` or ``Canny edges + closing`` (``segmenter`` and ``method`` as in
+    :class:`~svs_torch.segmentation.SegmentationConfig`)."""
+    threshold = int(seg.threshold_level[index])
+    if segmenter != "otsu":  # "learned" or "learned:PATH": the probability threshold, stored on the 0-255 scale
+        return f"binary (learned segmenter, p > {threshold / 255:.2f}) + opening"
+    return "Canny edges + closing" if method == "canny" else f"binary (Otsu {threshold}) + opening"
+
+
+def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side: str, segmenter: str = "otsu",
+                        method: str = "otsu") -> list[np.ndarray]:
+    """Three titled panels of one image: the input, the opened binary mask (titled by what made it:
+    :func:`binary_title`), the kept objects."""
+    mask = seg.opened[index, 0].to(image.dtype)
+    num_kept = int((seg.kept_labels[index] >= 0).sum())
+    return [
+        titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
+        titled_panel(gray_to_bgr(mask), f"{side} {binary_title(seg, index, segmenter, method)}"),
+        titled_panel(objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
+    ]
+
+
+def compose_grid(columns: list[list[np.ndarray]], gap: int = 6) -> np.ndarray:
+    """Stack panels: each inner list is a column, top to bottom; columns side by side, white gaps."""
+    height = max(sum(p.shape[0] for p in col) + gap * (len(col) - 1) for col in columns)
+    stacked = []
+    for col in columns:
+        width = max(p.shape[1] for p in col)
+        parts = []
+        for i, p in enumerate(col):
+            padded = np.full((p.shape[0], width, 3), 255, np.uint8)
+            padded[:, :p.shape[1]] = p
+            parts.append(padded)
+            if i < len(col) - 1:
+                parts.append(np.full((gap, width, 3), 255, np.uint8))
+        block = np.vstack(parts)
+        block = np.vstack([block, np.full((height - block.shape[0], width, 3), 255, np.uint8)])
+        stacked.append(block)
+        stacked.append(np.full((height, gap, 3), 255, np.uint8))
+    return np.hstack(stacked[:-1])
+
+
+def check_output_path(path: str | os.PathLike, name: str = "figure", lossless: bool = False) -> Path:
+    """``path`` as a :class:`Path` if an image can be written there, else :class:`InputError` naming ``name``.
+
+    The folder must exist, the path must not be a folder, and the ending must be an image format OpenCV writes
+    (``lossless``: only PNG, BMP or TIFF, which keep label values exact; JPEG would invent new ones).
+    """
+    if lossless:
+        return check_output_file(path, name, LOSSLESS_SUFFIXES, "a lossless .png, .bmp or .tif")
+    return check_output_file(path, name, FIGURE_SUFFIXES, "a .png, .jpg, .bmp or .tif")
+
+
+def write_image_atomic(path: str | os.PathLike, image: np.ndarray, name: str = "figure",
+                       lossless: bool = False) -> Path:
+    """Write ``image`` to ``path`` all at once (:func:`svs_torch.core.files.atomic_output`: a temporary file beside
+    it, then a rename), with the permissions of any new file (``0o666`` less the umask).
+
+    Raises :class:`InputError` naming ``name`` as :func:`check_output_path` does, or when the file cannot be
+    written.
+    """
+    target = check_output_path(path, name, lossless)
+    ok, encoded = cv2.imencode(target.suffix.lower(), image)
+    if not ok:
+        raise InputError(f"{name}: OpenCV could not encode a {target.suffix} image")
+    try:
+        write_bytes_atomic(target, encoded.tobytes())
+    except OSError as error:
+        raise InputError(f"{name}: cannot write {display_path(target)!r}: {error.strerror or error}") from None
+    return target
+
+
+def labels_image(seg: Segmentation, index: int, factors: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """uint8 label image of the kept regions of image ``index``: 0 background, 1..N largest first, resized
+    (nearest) by ``factors`` (x, y) back to the input image's pixel grid."""
+    labels = seg.labels[index, 0]
+    out = torch.zeros_like(labels, dtype=torch.uint8)
+    for rank, label in enumerate(seg.kept_labels[index].tolist(), start=1):
+        if label > 0:
+            out[labels == label] = rank
+    image = out.cpu().numpy()
+    h, w = image.shape
+    size = (int(round(w * factors[0])), int(round(h * factors[1])))
+    if size != (w, h):
+        image = cv2.resize(image, size, interpolation=cv2.INTER_NEAREST)
+    return image

@@ -1,0 +1,113 @@
+"""The C kernels of the segmentation stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+cached and loaded, and what every wrapper promises."""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+
+from ...core.checks import check_shape
+from ...core.errors import InputError
+from ...core.kernels import INT, POINTER, available, declare, load, on_cpu, rows_of
+from ...core.kernels.checks import check_rows
+
+__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load"]
+
+declare({
+    "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "gray_levels": ([POINTER] + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
+    "label_runs": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 3 + [INT], ctypes.c_int),
+})
+
+
+def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.segmentation.components._find_runs` in two passes per row (see the C source): the flat start and end
+    (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
+    ending where ``value`` (int64, its shape) changes. None when the kernel is not available or the inputs do not
+    fit its contract."""
+    if foreground.dim() < 1:
+        raise InputError(f"foreground: expected (..., W), got {tuple(foreground.shape)}")
+    if value is not None:
+        check_shape(value, "value", list(foreground.shape))
+    if not on_cpu(torch.bool, foreground) or value is not None and not on_cpu(torch.int64, value):
+        return None
+    library = load("find_runs")
+    if library is None:
+        return None
+    rows, width = rows_of(foreground)
+    foreground = foreground.contiguous()
+    value = None if value is None else value.contiguous()
+    value_ptr = 0 if value is None else value.data_ptr()
+    counts = torch.empty(rows, dtype=torch.int64)
+    threads = torch.get_num_threads()
+    library.find_runs(foreground.data_ptr(), value_ptr, rows, width, counts.data_ptr(), 0, 0, threads)
+    total = int(counts.sum())
+    first = counts.cumsum(0) - counts  # each row's first output slot
+    start, end = torch.empty(total, dtype=torch.int64), torch.empty(total, dtype=torch.int64)
+    library.find_runs(foreground.data_ptr(), value_ptr, rows, width, first.data_ptr(), start.data_ptr(),
+                      end.data_ptr(), threads)
+    return start, end
+
+
+def gray_levels(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.segmentation.threshold.gray_levels` and :func:`~svs_torch.segmentation.threshold.gray_histogram` in one read of each
+    image (see the C source): ``image`` ``(B, 1, H, W)`` float32 in [0, 1] → the uint8 levels ``(B, 1, H, W)``
+    and the histograms ``(B, 256)`` int64, the torch path's values. None when the kernel is not available or
+    the input does not fit its contract."""
+    check_shape(image, "image", ["B", 1, "H", "W"])
+    if not on_cpu(torch.float32, image):
+        return None
+    library = load("gray_levels")
+    if library is None:
+        return None
+    image = image.detach().contiguous()
+    b = image.shape[0]
+    levels = torch.empty(image.shape, dtype=torch.uint8)
+    histogram = torch.empty(b, 256, dtype=torch.int64)
+    status = library.gray_levels(image.data_ptr(), b, image[0].numel() if b else 0, levels.data_ptr(),
+                                 histogram.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (levels, histogram)
+
+
+def _check_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int,
+                connectivity: int) -> None:
+    """:func:`label_runs`' contract: runs inside the grid, in raster order, each within one row (as
+    :func:`find_runs` gives them); the two int64 ``(R,)`` checks cost a few passes over R runs, not the grid."""
+    if connectivity not in (4, 8):
+        raise InputError(f"connectivity: expected 4 or 8, got {connectivity!r}")
+    if not all(isinstance(v, int) and v >= 0 for v in (batch, height, width)):
+        raise InputError(f"batch, height, width: expected non-negative ints, got {batch!r}, {height!r}, {width!r}")
+    r = check_shape(start, "start", ["R"])["R"]
+    check_rows(end, "end", r)
+    if r == 0 or not on_cpu(torch.int64, start, end):  # other dtypes are left to the torch path
+        return
+    row_start = start - start % width if width else start
+    bad = ((start < 0) | (end < start) | (end >= batch * height * width) | (end >= row_start + width)).any()
+    if bool(bad) or bool((start[1:] <= end[:-1]).any()):
+        raise InputError(f"start, end: expected runs in raster order inside one row each of the {batch} x {height} x "
+                         f"{width} grid (as find_runs gives them)")
+
+
+def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, width: int, connectivity: int
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.segmentation.components._label_runs` and ``_paint`` by one union-find sweep per image (see the C
+    source): from the runs' flat ``start`` and ``end`` ``(R,)`` int64 of a ``(batch, height, width)`` grid, each
+    run's label ``(R,)``, each image's number of labels ``(batch,)`` and the label image ``(batch, 1, height,
+    width)``, all int64. None when the kernel is not available or the inputs do not fit its contract."""
+    _check_runs(start, end, batch, height, width, connectivity)
+    if not on_cpu(torch.int64, start, end):
+        return None
+    library = load("label_runs")
+    if library is None:
+        return None
+    start, end = start.contiguous(), end.contiguous()
+    run_label = torch.empty_like(start)
+    num_labels = torch.empty(batch, dtype=torch.int64)
+    labels = torch.empty(batch, 1, height, width, dtype=torch.int64)
+    status = library.label_runs(start.data_ptr(), end.data_ptr(), start.numel(), batch, height, width, connectivity,
+                                run_label.data_ptr(), num_labels.data_ptr(), labels.data_ptr(),
+                                torch.get_num_threads())
+    return None if status != 0 else (run_label, num_labels, labels)
+

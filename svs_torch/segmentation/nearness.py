@@ -1,0 +1,363 @@
+"""Nearness segmentation: the obstacles are what is near, read from the pair's disparity (issue 32).
+
+The paper's Otsu on intensity keeps the brightest large regions (often a wall, Sec. 3.2). The truth of an
+obstacle (:func:`svs_torch.segmentation.learned.obstacle_truth`) is instead the near side of the Otsu split of
+the scene's disparity. This segmenter applies that rule to a measured disparity and lets a small network correct
+it:
+
+1. **Disparity** (:func:`measure_nearness_disparity`): the dense stage's SAD block matcher over the whole left
+   view (:func:`svs_torch.depth.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
+   rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
+   filled along their rows from the nearest measured ones, the farther side at an occlusion
+   (:func:`svs_torch.depth.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
+   and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
+2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
+   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
+   ``spread`` its 10–90 % range (at least 1 px).
+3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
+   disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
+   to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
+   network is that: leave-scenes-out validation on the train scenes scored the rule above every trained
+   correction (``experiments/validate_nearness.md``), and deployment then skips the network's pass.
+4. **Regions**: probability above the threshold, the paper's opening and components, then the ``num_keep``
+   regions by ``SegmentationConfig.keep``: ``"nearest"`` ranks the regions of at least ``min_area_fraction`` of
+   the image by their median disparity (a small near obstacle is kept before a large far wall), ``"largest"`` by
+   area (the paper's rule). The area held to that least is the region's pixels the block matcher measured where
+   the right camera sees them: a band of filled rows, or one only the left camera sees, cannot be ranged.
+5. **Right view**: each kept left region shifted left by its own median disparity (a region's pixels sit at
+   ``x − d`` in the right view). One network pass per pair, not two.
+
+Gradients: in a differentiable run (images that require grad) the disparity's forward value is the hard
+measurement above and its gradient is that of the soft-argmin over the same SAD cost volume
+(:func:`svs_torch.depth.dense.soft_block_match`, straight-through), so the logits are differentiable w.r.t. the
+network's parameters and both images. The split, the spread, the fill's choices and the kept regions are
+constants of the hard pass.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..core.checks import InputError, check_image
+from .components import RegionProperties, connected_components_with_stats, region_properties
+from ..depth.dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
+from .learned import ThreeLevelUNet
+from .morphology import open_binary, structuring_element
+from ..core.pair_trees import take_pairs
+from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
+from ..core.size_groups import merge_groups
+from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
+from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
+
+__all__ = ["NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity",
+           "nearness_logits", "segment_stereo_nearness", "shift_regions_to_right"]
+
+NUM_FEATURES = 5  # channels of _network_features
+
+
+@dataclass(frozen=True)
+class NearnessNetConfig:
+    """Settings of the nearness segmenter (stored beside its weights; module docstring).
+
+    Attributes:
+        working_width_px: the disparity is measured on both images reduced (box average, integer factor) to
+            about this width, pixels.
+        window_size: SAD window side at that width, pixels, odd.
+        max_disparity_fraction: disparities ``[0, fraction · working width)`` are searched.
+        network_width_px: the network sees its features reduced to this width, pixels.
+        channels: widths of the three U-Net levels.
+        rule_gain: logits per spread of the rule ``(d − split) / spread``.
+        disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
+        probability_threshold: a pixel is an obstacle where its probability exceeds this.
+    """
+
+    working_width_px: int = 320
+    window_size: int = 7  # with working_width_px: experiments/select_nearness_rule.md
+    max_disparity_fraction: float = 0.3
+    network_width_px: int = 80
+    channels: tuple[int, int, int] = (8, 16, 16)
+    rule_gain: float = 8.0
+    disparity_temperature: float = 0.003
+    probability_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("working_width_px", "network_width_px"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 16:
+                raise InputError(f"{name}: expected an int >= 16, got {value!r}")
+        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
+            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if not 0 < self.max_disparity_fraction < 1:
+            raise InputError(f"max_disparity_fraction: expected a value in (0, 1), got {self.max_disparity_fraction!r}")
+        if len(self.channels) != 3 or any(not isinstance(c, int) or c < 4 or c % 4 for c in self.channels):
+            raise InputError(f"channels: expected three multiples of 4, got {self.channels!r}")
+        if not self.rule_gain > 0 or not self.disparity_temperature > 0:
+            raise InputError(f"rule_gain, disparity_temperature: expected positive values, got "
+                             f"{self.rule_gain!r}, {self.disparity_temperature!r}")
+        if not 0 < self.probability_threshold < 1:
+            raise InputError(f"probability_threshold: expected a value in (0, 1), got {self.probability_threshold!r}")
+
+    def working_factor(self, width_px: int) -> int:
+        """The integer reduction of an image ``width_px`` wide (1: matched at its own size)."""
+        return max(1, round(width_px / self.working_width_px))
+
+
+class NearnessNet(ThreeLevelUNet):
+    """:class:`~svs_torch.segmentation.learned.ThreeLevelUNet` from the features ``(B, 5, h, w)`` to a correction
+    of the rule's logits ``(B, 1, h, w)``. The head starts at zero: an untrained network leaves the rule's logits
+    unchanged. Differentiable w.r.t. its parameters and its input.
+    """
+
+    def __init__(self, config: NearnessNetConfig = NearnessNetConfig()) -> None:
+        super().__init__(NUM_FEATURES, config.channels)
+        self.config = config
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def adds_nothing(self) -> bool:
+        """Whether the correction is exactly zero for every input: the head's weights and bias are all zero (an
+        untrained network, or the shipped one: leave-scenes-out validation chose the rule alone,
+        experiments/validate_nearness.md). Its 1×1 head then multiplies finite features by zero."""
+        return not bool(self.head.weight.any()) and not bool(self.head.bias.any())
+
+
+@dataclass(frozen=True)
+class NearnessDisparity:
+    """The measured disparity of B left views, at the input size.
+
+    Attributes:
+        disparity_px: ``(B, 1, H, W)`` input pixels, filled (module docstring, step 1).
+        measured: ``(B, 1, H, W)`` bool, the block matcher accepted the pixel (not filled).
+        split_px: ``(B,)`` the Otsu split of the filled disparity; spread_px ``(B,)`` its 10–90 % range (≥ 1).
+        relative: ``(B, 1, H, W)`` ``(disparity − split) / spread``, the rule's nearness.
+    """
+
+    disparity_px: torch.Tensor
+    measured: torch.Tensor
+    split_px: torch.Tensor
+    spread_px: torch.Tensor
+    relative: torch.Tensor
+
+
+def _reduce(image: torch.Tensor, factor: int) -> torch.Tensor:
+    return F.avg_pool2d(image, factor, ceil_mode=True) if factor > 1 else image
+
+
+def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
+    flat = disparity.detach().flatten(1)
+    low, high = flat.amin(1), flat.amax(1)
+    spread = (high - low).view(-1, 1, 1, 1)
+    scaled = (disparity.detach() - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
+    level = otsu_threshold_level(gray_histogram(gray_levels(scaled)))
+    return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
+
+
+def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
+                               config: NearnessNetConfig = NearnessNetConfig()) -> NearnessDisparity:
+    """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1].
+
+    Differentiable w.r.t. both images when they require grad (straight-through: the hard value, the soft-argmin's
+    gradient); otherwise it runs without building a graph.
+    """
+    b = check_image(left, "left")["B"]
+    check_image(right, "right")
+    if right.shape != left.shape:
+        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    h, w = left.shape[-2:]
+    factor = config.working_factor(w)
+    small_left, small_right = _reduce(left, factor), _reduce(right, factor)
+    num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
+    dense = DenseConfig(window_size=config.window_size)
+    with torch.no_grad():
+        found = block_match_sad(small_left.detach(), small_right.detach(), 0, num_disparities, dense)
+        filled, reachable = fill_invalid_rows(found.disparity_px, found.valid)
+        filled = torch.where(reachable, filled, 0.0)
+    if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
+        soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
+        filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
+    disparity = F.interpolate(filled * factor, size=(h, w), mode="nearest")
+    measured = F.interpolate(found.valid.to(left.dtype), size=(h, w), mode="nearest") > 0.5
+    q = torch.quantile(disparity.detach().flatten(1), torch.tensor([0.1, 0.9, 0.995], dtype=disparity.dtype,
+                                                                   device=left.device), dim=1)
+    # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
+    # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
+    # above nearly every pixel.
+    split = _otsu_split(torch.minimum(disparity.detach(), q[2].view(b, 1, 1, 1)))
+    spread = (q[1] - q[0]).clamp_min(1.0)
+    relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
+    return NearnessDisparity(disparity, measured, split, spread, relative)
+
+
+def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
+    """The network's input ``(B, 5, h, w)`` at ``width`` px: relative nearness, disparity / image width × 4,
+    measured share, the standardised left image, the column ``x / w``."""
+    h, w = left.shape[-2:]
+    size = (max(1, round(h * width / w)), width)
+    mean = left.mean((1, 2, 3), keepdim=True)
+    std = left.std((1, 2, 3), keepdim=True).clamp_min(1e-3)
+    full = torch.cat([measured.relative, measured.disparity_px * (4.0 / w), measured.measured.to(left.dtype),
+                      (left - mean) / std], 1)
+    small = F.interpolate(full, size=size, mode="area")
+    column = torch.linspace(0, 1, size[1], dtype=left.dtype, device=left.device).expand(left.shape[0], 1, *size)
+    return torch.cat([small, column], 1)
+
+
+def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor
+                    ) -> tuple[torch.Tensor, NearnessDisparity]:
+    """Obstacle logits ``(B, 1, H, W)`` of the left views: the rule's plus the network's correction (resized
+    bilinearly from its width), and the measured disparity. Differentiable w.r.t. the network's parameters and
+    both images (module docstring)."""
+    measured = measure_nearness_disparity(left, right, net.config)
+    rule = net.config.rule_gain * measured.relative
+    training = torch.is_grad_enabled() and any(p.requires_grad for p in net.parameters())
+    if not training and net.adds_nothing():
+        return rule, measured  # the same logits without the network's pass (a quarter of the segmenter's time)
+    features = _network_features(left, measured, net.config.network_width_px)
+    dtype = next(net.parameters()).dtype
+    correction = net(features.to(dtype))
+    correction = F.interpolate(correction, size=left.shape[-2:], mode="bilinear", align_corners=False)
+    return rule + correction.to(left.dtype), measured
+
+
+def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor
+                             ) -> torch.Tensor:
+    """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot): the values of
+    :func:`~svs_torch.depth.kept_region_lower_median` over every label, from two sorts of ``(B, H·W)`` (by value,
+    then stably by label: each region's values lie together, ascending) rather than one of ``(B, L, H·W)``."""
+    b = labels.shape[0]
+    slots = int(num_regions.max()) if num_regions.numel() else 0
+    values = disparity.detach().flatten(1)
+    keys = labels.flatten(1)
+    by_value = torch.sort(values, dim=1, stable=True).indices
+    grouped = by_value.gather(1, torch.sort(keys.gather(1, by_value), dim=1, stable=True).indices)
+    ordered = values.gather(1, grouped)  # by label, then by value
+    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, keys, torch.ones_like(keys))  # label 0 (background) .. slots
+    start = counts.cumsum(1) - counts
+    middle = (start + (counts - 1).clamp(min=0) // 2)[:, 1:].clamp(max=max(values.shape[1] - 1, 0))
+    median = ordered.gather(1, middle) if values.shape[1] else values.new_zeros(b, slots)
+    return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median))
+
+
+def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, region_disparity: torch.Tensor,
+                           measured: torch.Tensor, min_area_px: float) -> torch.Tensor:
+    """``(B, L)`` pixels of each region that the block matcher measured (``measured`` ``(B, 1, H, W)``, not
+    filled) at columns the right camera sees at the nearest region's disparity (x ≥ the largest median disparity
+    of the regions of at least ``min_area_px``): the pixels the dense stage can range (its objects need valid
+    pixels where the pair's whole search lands in the right image, :func:`~svs_torch.depth.dense_objects.dense_object_depths`).
+    A region of filled rows only, or in the band only the left camera sees, would be kept and never ranged (its
+    slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the shared 2005–2006 scenes did so)."""
+    b, slots = regions.area_px.shape
+    big = regions.valid & (regions.area_px >= min_area_px)
+    if not slots:
+        return regions.area_px
+    nearest = torch.where(big, region_disparity, torch.zeros_like(region_disparity)).amax(1)  # (B,)
+    column = torch.arange(labels.shape[-1], device=labels.device, dtype=nearest.dtype)
+    seen = (column.view(1, 1, 1, -1) >= nearest.view(-1, 1, 1, 1)) & measured
+    keys = labels.flatten(1)
+    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
+    return counts[:, 1:].to(regions.area_px.dtype)
+
+
+def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor
+                           ) -> torch.Tensor:
+    """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
+    moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
+    overlap the nearer (larger shift) wins, as it occludes the other."""
+    b, n = kept_labels.shape
+    w = labels.shape[-1]
+    out = torch.zeros_like(labels)
+    best = torch.full_like(labels, -1, dtype=shift_px.dtype)
+    column = torch.arange(w, device=labels.device)
+    for slot in range(n):  # N slots (the kept regions, 2 by default), not pairs
+        shift = shift_px[:, slot].round().long().view(b, 1, 1, 1)
+        source = column.view(1, 1, 1, w) + shift
+        inside = (source >= 0) & (source < w)
+        hit = torch.gather(labels, 3, source.clamp(0, w - 1).expand_as(labels)) == kept_labels[:, slot].view(b, 1, 1, 1)
+        hit = hit & inside & (kept_labels[:, slot] > 0).view(b, 1, 1, 1)
+        take = hit & (shift_px[:, slot].view(b, 1, 1, 1) > best)
+        out = torch.where(take, kept_labels[:, slot].view(b, 1, 1, 1), out)
+        best = torch.where(take, shift_px[:, slot].view(b, 1, 1, 1), best)
+    return out
+
+
+def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet,
+                            left_logits: torch.Tensor | None = None,
+                            measured: NearnessDisparity | None = None) -> StereoSegmentation:
+    """Both views of every pair (module docstring, steps 3–5): the drop-in for
+    :func:`~svs_torch.segmentation.segment_stereo`. ``left_logits`` and ``measured``: from
+    :func:`nearness_logits`, already computed by the caller (e.g. with gradients). Not differentiable.
+
+    ``threshold`` holds the probability threshold. The right view's ``binary`` and ``opened`` are its shifted
+    kept regions. Status as the Otsu stage's (``UNIFORM_IMAGE``: a one-level left or right image). A pair whose
+    block matcher accepted less than ``config.min_measured_share`` of its left view is segmented by
+    :func:`~svs_torch.segmentation.segment_stereo` (Otsu, the two largest regions) instead: its disparity is chance.
+    """
+    b = batch.batch_size
+    with torch.no_grad():
+        if left_logits is None:
+            left_logits, measured = nearness_logits(net, batch.left, batch.right)
+        elif measured is None:
+            measured = measure_nearness_disparity(batch.left, batch.right, net.config)
+    share = measured.measured.flatten(1).to(torch.float32).mean(1)
+    fallback = share < config.min_measured_share
+    if not bool(fallback.any()):
+        return _segment_measured(batch, config, net, left_logits, measured)
+    # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.
+    otsu = dataclasses.replace(config, segmenter="otsu", keep="largest", min_measured_share=0.0)
+    low, rest = fallback.nonzero().flatten(), (~fallback).nonzero().flatten()
+    parts, indices = [segment_stereo(batch.select(low), otsu)], [low]
+    if len(rest):
+        parts.append(_segment_measured(batch.select(rest), config, net, left_logits[rest],
+                                       take_pairs(measured, rest, b)))
+        indices.append(rest)
+    return merge_groups(parts, indices, batch.size_hw, [batch.size_hw] * len(parts))
+
+
+def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet, left_logits: torch.Tensor,
+                      measured: NearnessDisparity) -> StereoSegmentation:
+    """:func:`segment_stereo_nearness` from the left views' logits and measured disparity."""
+    b = batch.batch_size
+    image = batch.left
+    threshold_value = net.config.probability_threshold
+    binary = left_logits.detach() > math.log(threshold_value / (1 - threshold_value))
+    element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
+    opened = open_binary(binary, element)
+    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
+    disparity = measured.disparity_px.detach()
+    region_disparity = _region_median_disparity(disparity, labels, num_regions)
+    h, w = image.shape[-2:]
+    min_area_px = config.min_area_fraction * h * w
+    kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep, min_area_px=min_area_px,
+                                          nearness=region_disparity,
+                                          candidate_area_px=_area_measured_in_view(
+                                              labels, regions, region_disparity, measured.measured, min_area_px))
+    # A view of one gray level holds no disparity: the pair has no information (the Otsu stage's UNIFORM_IMAGE).
+    uniform = (gray_levels_and_histogram(torch.cat([image, batch.right]))[1] > 0).sum(1).view(2, b).eq(1).any(0)
+    threshold = torch.full((b,), threshold_value, dtype=image.dtype, device=image.device)
+    level = (threshold * 255).round().long()
+    status = _status(uniform, opened)
+    left = Segmentation(threshold=threshold, threshold_level=level, binary=binary, opened=opened, labels=labels,
+                        num_regions=num_regions, regions=regions, kept_labels=kept_labels, kept_mask=kept_mask,
+                        masked=image * kept_mask.to(image.dtype), status=status)
+    slot = (kept_labels - 1).clamp(min=0)
+    shift = torch.where(kept_labels > 0, torch.gather(region_disparity, 1, slot) if region_disparity.shape[1]
+                        else torch.zeros_like(kept_labels, dtype=disparity.dtype), 0.0)
+    right_labels = shift_regions_to_right(labels, kept_labels, shift)
+    right_mask = right_labels > 0
+    right = Segmentation(threshold=threshold, threshold_level=level, binary=right_mask, opened=right_mask,
+                         labels=right_labels, num_regions=num_regions,
+                         regions=region_properties(right_labels, num_regions), kept_labels=kept_labels,
+                         kept_mask=right_mask, masked=batch.right * right_mask.to(image.dtype),
+                         status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
+                                            status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))
+    pair_status = torch.where(left.status != SegmentationStatus.OK, left.status, right.status)
+    return StereoSegmentation(left=left, right=right, status=pair_status)

@@ -1,0 +1,150 @@
+"""A differentiable relaxation of the segmentation stage, for learning thresholds or training upstream models.
+
+The hard stage (:mod:`svs_torch.segmentation`) is piecewise constant: Otsu's argmax, ``>``, min/max filters
+and component labels pass no gradient. Here:
+
+- the binary image becomes ``sigmoid((image − threshold) / temperature)``: gradients reach the image and the
+  threshold;
+- erosion and dilation become smooth min / max filters, ``T·log(mean exp(x / T))`` over the structuring
+  element (and its mirror for the minimum), which tend to the hard filters as ``T → 0`` and equal them on
+  constant windows;
+- region selection (which components are the N largest) stays a hard decision taken from the hard pipeline:
+  the soft mask is gated by the kept-region mask, so gradients flow inside the kept obstacles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from ..core.checks import InputError, check_dtype, check_image, check_shape
+from .morphology import anchor_padding, structuring_element
+from .segment import SegmentationConfig, segment_images
+from ..core.types import Segmentation
+
+__all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegmentation", "soft_segment_images"]
+
+
+def _check_temperature(temperature: float, name: str = "temperature") -> None:
+    if not temperature > 0:
+        raise InputError(f"{name}: expected a positive temperature, got {temperature!r}")
+
+
+def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: float = 0.02) -> torch.Tensor:
+    """Soft binary image ``sigmoid((image − threshold) / temperature)``.
+
+    Args:
+        image: ``(B, 1, H, W)`` float in [0, 1].
+        threshold: ``(B,)`` float on the [0, 1] scale (e.g. Otsu's, or a learnable parameter).
+        temperature: width of the transition on the [0, 1] intensity scale; ``→ 0`` gives ``image > threshold``.
+
+    Returns:
+        ``(B, 1, H, W)`` float in (0, 1). Differentiable with respect to ``image`` and ``threshold``.
+    """
+    check_image(image, "image")
+    check_shape(threshold, "threshold", [image.shape[0]])
+    check_dtype(threshold, "threshold", "float")
+    _check_temperature(temperature)
+    return torch.sigmoid((image - threshold.view(-1, 1, 1, 1)) / temperature)
+
+
+def _soft_max_filter(x: torch.Tensor, element: torch.Tensor, temperature: float) -> torch.Tensor:
+    """``T·log(mean over in-image offsets of exp(x / T))``, the same offsets and anchor as the hard filter."""
+    h, w = x.shape[-2:]
+    padded = F.pad(x, anchor_padding(element), value=float("-inf"))
+    offsets = element.nonzero().tolist()
+    windows = [padded[..., dy:dy + h, dx:dx + w] for dy, dx in offsets]
+    # Shift by the hard maximum for stability; the result's gradient does not depend on the shift.
+    peak = windows[0].detach()
+    for window in windows[1:]:
+        peak = torch.maximum(peak, window.detach())
+    total = torch.zeros_like(x)
+    count = torch.zeros_like(x)
+    for window in windows:
+        total = total + torch.exp((window - peak) / temperature)  # exp(−inf) = 0 outside the image
+        count = count + torch.isfinite(window).to(x.dtype)
+    return peak + temperature * torch.log(total / count)
+
+
+def _check_soft(x: torch.Tensor, element: torch.Tensor, temperature: float) -> None:
+    check_shape(x, "x", ["B", 1, "H", "W"])
+    check_dtype(x, "x", "float")
+    check_shape(element, "element", ["kh", "kw"])
+    check_dtype(element, "element", "bool")
+    if not bool(element.any()):
+        raise InputError("element: expected at least one True offset")
+    _check_temperature(temperature)
+
+
+def soft_dilate(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
+    """Smooth dilation of ``x (B, 1, H, W)`` float by ``element (kh, kw)`` bool; ``→ cv2.dilate`` as ``T → 0``.
+
+    Differentiable with respect to ``x`` (softmax weights over each window).
+    """
+    _check_soft(x, element, temperature)
+    return _soft_max_filter(x, element, temperature)
+
+
+def soft_erode(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
+    """Smooth erosion, ``−soft_dilate(−x)``; ``→ cv2.erode`` as ``T → 0``. Differentiable with respect to ``x``."""
+    _check_soft(x, element, temperature)
+    return -_soft_max_filter(-x, element, temperature)
+
+
+def soft_open(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
+    """Smooth opening (erosion then dilation). Differentiable with respect to ``x``."""
+    _check_soft(x, element, temperature)
+    return _soft_max_filter(-_soft_max_filter(-x, element, temperature), element, temperature)
+
+
+@dataclass(frozen=True)
+class SoftSegmentation:
+    """Soft segmentation of B images.
+
+    Attributes:
+        soft_binary: ``(B, 1, H, W)`` soft threshold of the image.
+        soft_opened: ``(B, 1, H, W)`` its smooth opening.
+        soft_mask: ``(B, 1, H, W)`` ``soft_opened`` gated by the hard kept-region mask.
+        masked: ``(B, 1, H, W)`` ``image · soft_mask``.
+        hard: the hard :class:`Segmentation` that chose the kept regions (and the default threshold).
+    """
+
+    soft_binary: torch.Tensor
+    soft_opened: torch.Tensor
+    soft_mask: torch.Tensor
+    masked: torch.Tensor
+    hard: Segmentation
+
+
+def soft_segment_images(
+    image: torch.Tensor,
+    threshold: torch.Tensor | None = None,
+    config: SegmentationConfig = SegmentationConfig(),
+    threshold_temperature: float = 0.02,
+    morphology_temperature: float = 0.05,
+) -> SoftSegmentation:
+    """Differentiable counterpart of :func:`svs_torch.segmentation.segment_images`.
+
+    Args:
+        image: ``(B, 1, H, W)`` float in [0, 1].
+        threshold: ``(B,)`` threshold on the [0, 1] scale; default: Otsu's (then no gradient reaches it).
+        config: the hard stage's :class:`SegmentationConfig` (element, connectivity, kept regions).
+        threshold_temperature: sigmoid width of :func:`soft_threshold`.
+        morphology_temperature: temperature of the smooth min / max filters.
+
+    Returns:
+        :class:`SoftSegmentation`. Gradients of ``soft_mask`` and ``masked`` reach ``image`` and ``threshold``;
+        which regions are kept is decided by the hard pipeline and carries no gradient.
+    """
+    hard = segment_images(image, config)
+    if threshold is None:
+        threshold = hard.threshold
+    soft_binary = soft_threshold(image, threshold, threshold_temperature)
+    if config.foreground == "dark":
+        soft_binary = 1 - soft_binary
+    element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
+    soft_opened = soft_open(soft_binary, element, morphology_temperature)
+    soft_mask = soft_opened * hard.kept_mask.to(image.dtype)
+    return SoftSegmentation(soft_binary, soft_opened, soft_mask, image * soft_mask, hard)
