@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.depth.dense import DenseConfig, estimate_dense_disparity
+from svs_torch.depth.dense import estimate_dense_disparity
+from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

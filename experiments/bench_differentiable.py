@@ -25,7 +25,7 @@ import torch
 
 from svs_torch import StereoBatch
 from svs_torch.core.files import write_bytes_atomic
-from svs_torch.segmentation.learned import load_obstacle_net
+from svs_torch.segmentation.network_files import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 

@@ -36,8 +36,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from svs_torch.geometry.epipolar import sampson_distance  # noqa: E402
-from svs_torch.geometry.ransac import estimate_fundamental_ransac  # noqa: E402
+from svs_torch.geometry.epipolar_distance import sampson_distance
+from svs_torch.geometry.ransac import estimate_fundamental_ransac
 
 from run_metadata import run_metadata  # noqa: E402
 

@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 import torch
 
+from svs_torch.core.files import write_bytes_atomic
+from svs_torch.data import collate_stereo_batches, load_image_pair
 from svs_torch.geometry.calibration import rectify_with_calibration
 from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, rectified_corners
-from svs_torch.data import collate_stereo_batches, load_image_pair
-from svs_torch.core.files import write_bytes_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 BOARD, SQUARE_M = (9, 6), 0.025

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.data import collate_stereo_batches, resize_stereo_batch
 from svs_torch.core.files import write_bytes_atomic
-from svs_torch.segmentation.learned import load_obstacle_net
+from svs_torch.data import collate_stereo_batches, resize_stereo_batch
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation.network_files import load_obstacle_net
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -38,7 +38,9 @@ import torch.nn.functional as F
 from svs_torch.cli.progress import Progress
 from svs_torch.data import list_shared_pairs
 from svs_torch.evaluation import accuracy_pct
-from svs_torch.segmentation.learned import SHIPPED_WEIGHTS, load_obstacle_net, mask_iou, obstacle_truth, stereo_features
+from svs_torch.segmentation.learned import mask_iou, obstacle_truth
+from svs_torch.segmentation.network import stereo_features
+from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 
@@ -154,7 +156,7 @@ def summary(rows: list[dict], names: list[str]) -> str:
 
 
 LEGEND = ("default = the default pipeline (the nearness segmenter: the Otsu split of the pair's measured disparity, "
-          "the nearest region then the largest; svs_torch/weights/nearness_net.pt adds no correction, "
+          "the nearest region then the largest; svs_torch/segmentation/weights/nearness_net.pt adds no correction, "
           "experiments/validate_nearness.md); otsu = the paper's segmentation in the default pipeline; learned = "
           "the network of issue 13; sgbm = the truth's own procedure on OpenCV StereoSGBM's disparity; NAME = the "
           "nearness segmenter with the weights a --nearness NAME=FILE names. IoU: the left kept mask against the "

@@ -52,9 +52,10 @@ import torch  # noqa: E402
 
 from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch  # noqa: E402
-from svs_torch.geometry.epipolar import sampson_distance  # noqa: E402
-from svs_torch.geometry.matching import MatchedPoints, gather_matched_points, match_sad  # noqa: E402
-from svs_torch.geometry.ransac import estimate_fundamental_ransac  # noqa: E402
+from svs_torch.geometry.epipolar_distance import sampson_distance
+from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_points
+from svs_torch.geometry.matching import match_sad
+from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
 from run_metadata import run_metadata  # noqa: E402

@@ -21,11 +21,11 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.depth.sparse import kept_region_lower_median
+from svs_torch.core.types import StereoBatch
+from svs_torch.depth.quantiles import kept_region_lower_median
 from svs_torch.segmentation.learned import ObstacleTruth, mask_iou, obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig, segment_stereo_nearness
 from svs_torch.segmentation.segment import SegmentationConfig
-from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402

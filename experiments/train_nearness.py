@@ -48,7 +48,8 @@ from svs_torch.cli.progress import Progress
 from svs_torch.data import load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import with_nominal_calibration
-from svs_torch.segmentation.learned import NEARNESS_WEIGHTS, obstacle_truth, save_obstacle_net
+from svs_torch.segmentation.learned import obstacle_truth
+from svs_torch.segmentation.network_files import NEARNESS_WEIGHTS, save_obstacle_net
 from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, _network_features, measure_nearness_disparity)
 from svs_torch.core.types import StereoBatch
 

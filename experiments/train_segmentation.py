@@ -19,7 +19,7 @@ through the soft path (soft region weights over the network's own kept regions, 
 it is computed once per sample with the features.
 
 Writes the weights with their configuration, the training settings and the scenes used (default: the shipped
-file, svs_torch/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.py`` scores them on the held-out
+file, svs_torch/segmentation/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.py`` scores them on the held-out
 split.
 
     python experiments/train_segmentation.py [--steps 700] [--batch-size 8] [--seed 0] [--out FILE]
@@ -61,7 +61,9 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
                             resize_stereo_batch)
 from svs_torch.evaluation import object_truth, with_nominal_calibration
-from svs_torch.segmentation.learned import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net, obstacle_truth, predict_obstacle_logits, save_obstacle_net, segment_learned, soft_object_depths, stereo_features)
+from svs_torch.segmentation.learned import obstacle_truth, segment_learned, soft_object_depths
+from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits, stereo_features
+from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 from svs_torch.core.types import StereoBatch

@@ -23,10 +23,9 @@ import threading
 import time
 import tty
 
-from svs_torch.core.camera import parse_size
-
 from .emulator_state import CameraState, Faults, Reply
 from .frames import FrameSource, ImageFolderSource, SyntheticSource
+from svs_torch.core.camera import parse_size
 
 __all__ = ["EmulatorServer", "main"]
 

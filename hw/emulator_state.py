@@ -21,10 +21,9 @@ import cv2
 import numpy as np
 import torch
 
-from svs_torch.core.camera import SVS_RESOLUTIONS
-from svs_torch.capture.protocol import encode_frame
-
 from .frames import FrameSource
+from svs_torch.capture.protocol import encode_frame
+from svs_torch.core.camera import SVS_RESOLUTIONS
 
 __all__ = ["Faults", "Reply", "CameraState", "JPEG_QUALITY_FOR_DIGIT", "version_line"]
 

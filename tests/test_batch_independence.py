@@ -12,13 +12,13 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from svs_torch.core.size_groups import crop_batch, merge_groups, size_groups
 from svs_torch.data import collate_stereo_batches, load_stereo_pair, resize_stereo_batch
 from svs_torch.data.pair_list import read_pair_sources
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import EvalSetup, evaluate_pairs, summarize
 from svs_torch.evaluation.metrics import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.core.size_groups import crop_batch, merge_groups, size_groups
 
 #: Real scenes at sizes of their own (their aspect kept or not) and synthetic ones at two sizes.
 _REAL = [("middlebury_eval3_Q/Teddy", (224, 168)), ("middlebury_eval3_Q/Motorcycle", (240, 160)),

@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.geometry.calibration import read_calibration, rectify_with_calibration, write_calibration
-from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
 from svs_torch.cli import main
 from svs_torch.data import load_image_pair, resize_stereo_batch
+from svs_torch.geometry.calibration import read_calibration, rectify_with_calibration, write_calibration
+from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
 from svs_torch.plotting.rectified import spread_rows
 from svs_torch.segmentation.segment import SegmentationConfig
 

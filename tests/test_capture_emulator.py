@@ -14,13 +14,13 @@ import time
 import numpy as np
 import pytest
 import torch
-
 from hw.emulator import EmulatorServer
 from hw.emulator_state import CameraState, Faults, version_line
 from hw.frames import ImageFolderSource, ObstacleTrack, SyntheticSource
-from svs_torch.core.camera import SVS_CAMERA
+
 from svs_torch.capture import CaptureError, LinkConfig, SVSStereoCamera, to_stereo_batch
 from svs_torch.capture.protocol import FrameParser, ParsedFrame
+from svs_torch.core.camera import SVS_CAMERA
 from svs_torch.core.checks import InputError
 
 # Short timeouts keep the whole file fast; loopback delivers a frame in well under a millisecond.

@@ -9,25 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from svs_torch.capture.protocol import (
-    BadFrame,
-    FrameParser,
-    ParsedFrame,
-    ProtocolError,
-    encode_frame,
-    find_line,
-    find_token,
-    max_jpeg_length,
-    parse_battery_reply,
-    parse_frame_header,
-    parse_quality_reply,
-    parse_uptime_reply,
-    parse_version_line,
-    quality_command,
-    size_acks,
-    size_code_for,
-    size_command,
-)
+from svs_torch.capture.protocol import (BadFrame, FrameParser, ParsedFrame, ProtocolError, encode_frame, find_line,
+                                        find_token, max_jpeg_length, parse_battery_reply, parse_frame_header,
+                                        parse_quality_reply, parse_uptime_reply, parse_version_line, quality_command,
+                                        size_acks, size_code_for, size_command)
 from svs_torch.core.checks import InputError
 
 JPEG = b"\xff\xd8" + bytes(range(256)) * 3 + b"\xff\xd9"  # markers right, body arbitrary

@@ -6,16 +6,16 @@ import json
 import math
 import os
 import platform
-from pathlib import Path
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-
 from real_images import PAIRS
+
 from svs_torch.cli import main
 
 TEDDY = PAIRS[0]
@@ -274,7 +274,7 @@ def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
     import threading
     import time
 
-    from svs_torch.cli.estimate import _decode_while, _listed_lines
+    from svs_torch.cli.estimate_many import _decode_while, _listed_lines
     from svs_torch.core.image_files import preload_key
 
     for name in ("a.png", "b.png"):
@@ -477,7 +477,7 @@ def test_estimate_help_states_the_verification_defaults():
 
 def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
     """The text report adds the in-view count only for an object with pixels where a match may be lost."""
-    from svs_torch.cli.estimate import format_report
+    from svs_torch.cli.estimate_report import format_report
 
     def obj(label: int, depth_m: float | None, valid: int, in_view: int) -> dict:
         return {"label": label, "depth_m": depth_m, "depth_p10_m": depth_m, "depth_p90_m": depth_m,

@@ -8,11 +8,12 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from real_images import PAIRS, opencv_segmentation, read_gray
 from skimage.measure import label as skimage_label
 
-from real_images import PAIRS, opencv_segmentation, read_gray
 from svs_torch import InputError
-from svs_torch.segmentation.components import (connected_components_with_stats, label_connected_components, region_properties)
+from svs_torch.segmentation.components import (connected_components_with_stats, label_connected_components,
+                                               region_properties)
 
 
 def assert_matches_opencv(mask: np.ndarray, labels, num, props, index: int, connectivity: int) -> None:

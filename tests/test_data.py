@@ -15,20 +15,9 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch
-from svs_torch.data import (
-    collate_stereo_batches,
-    list_shared_pairs,
-    load_image_pair,
-    load_kitti,
-    load_middlebury_2001,
-    load_middlebury_2003,
-    load_middlebury_eval3,
-    load_stereo_pair,
-    read_gray_image,
-    read_middlebury_calib,
-    read_pfm,
-    resize_stereo_batch,
-)
+from svs_torch.data import (collate_stereo_batches, list_shared_pairs, load_image_pair, load_kitti,
+                            load_middlebury_2001, load_middlebury_2003, load_middlebury_eval3, load_stereo_pair,
+                            read_gray_image, read_middlebury_calib, read_pfm, resize_stereo_batch)
 
 # MANIFEST.md §3 table: name → (width, height, valid fraction, min d, max d) in pixels. Our names replace the
 # MANIFEST's folder prefixes: eval3_Q/ → eval3/, 2005_2006_third/ → 2005_2006/, 2003_quarter/ → 2003/,

@@ -14,7 +14,12 @@ import torch
 from svs_torch import InputError
 from svs_torch.core import kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
-from svs_torch.depth.dense import (DenseConfig, DisparityRange, block_match_sad, coarse_search_range, dense_disparity_over_regions, disparity_search_range, estimate_dense_disparity, fill_invalid_rows, prefilter_xsobel, soft_block_match, wanted_pixels)
+from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
+from svs_torch.depth.cost_volume import prefilter_xsobel, wanted_pixels
+from svs_torch.depth.dense import estimate_dense_disparity
+from svs_torch.depth.dense_config import DenseConfig, DisparityRange
+from svs_torch.depth.search_range import coarse_search_range, disparity_search_range
+from svs_torch.depth.soft_dense import soft_block_match
 from svs_torch.segmentation.segment import segment_stereo
 
 F64 = torch.float64
@@ -279,7 +284,7 @@ def test_argument_errors():
 
 def test_search_range_per_object_keeps_a_small_far_object():
     """Pooled percentiles cut a small object's disparities as outliers of a big one; per-object groups do not."""
-    from svs_torch.depth.dense import disparity_search_range
+    from svs_torch.depth.search_range import disparity_search_range
 
     big = torch.full((1, 1000), 30.0) + torch.linspace(-2, 2, 1000)
     small = torch.full((1, 8), 8.0)
@@ -306,7 +311,7 @@ def test_search_range_by_selection_equals_the_sort(grouped, monkeypatch):
     ties, many counts (ranks that round up and down, an empty group, a pair without samples) and groups."""
     if not kernels.available("labelled_select"):
         pytest.skip("no C compiler")
-    import svs_torch.depth.dense as dense_module
+    import svs_torch.depth.search_range as dense_module
 
     generator = torch.Generator().manual_seed(7)
     samples = (torch.rand(6, 700, generator=generator) * 40).round() / 4  # quarter steps: many ties
@@ -336,7 +341,7 @@ def test_pooling_helpers_equal_torch_pooling():
     values bit for bit, at odd sizes and several factors."""
     import torch.nn.functional as F
 
-    from svs_torch.depth.dense import _any_pool, mean_pool
+    from svs_torch.depth.pooling import _any_pool, mean_pool
 
     generator = torch.Generator().manual_seed(3)
     for factor in (2, 3, 4):
@@ -349,7 +354,7 @@ def test_pooling_helpers_equal_torch_pooling():
 def test_cost_volume_winner_found_in_cache_blocks_equals_the_volume_minimum(monkeypatch):
     """The running winner of the blocked cost-volume loop is the volume's min over D (first index on ties),
     whatever the block size, with costs outside the image or past a pair's own count at +inf."""
-    import svs_torch.depth.dense as dense_module
+    import svs_torch.depth.cost_volume as dense_module
 
     generator = torch.Generator().manual_seed(4)
     left = dense_module.prefilter_xsobel(torch.rand(5, 1, 30, 40, generator=generator), 31 / 255)
@@ -384,7 +389,7 @@ needs_kernel = pytest.mark.skipif(not kernels.available(), reason="no C compiler
     DenseConfig(window_size=17, prefilter="none"),
 ], ids=["default", "strict", "raw-no-rules", "raw-float-costs"])
 def test_compiled_kernel_is_bit_identical_to_the_torch_path(config, generator):
-    """The fused C kernel (svs_torch.core.kernels) makes the torch path's float32 arithmetic in the same order:
+    """The fused C kernel (svs_torch.depth.kernels) makes the torch path's float32 arithmetic in the same order:
     same disparities, same validity, bit for bit — on whole images with per-pair ranges, a flat pair (every
     disparity ties), padding (image_hw) and a range wider than the image."""
     base = torch.rand(4, 1, 37, 61, generator=generator)
@@ -456,9 +461,9 @@ def test_count_agreeing_inliers_by_hand():
     """An inlier agrees where the dense map is valid at its (rounded, rectified) left point and within the
     tolerance of its sparse disparity; outliers, points off the map, invalid pixels and points behind the
     homography's line at infinity do not count."""
-    from svs_torch.depth.dense import DenseDisparity
+    from svs_torch.depth.dense_config import DenseDisparity
     from svs_torch.depth.dense_objects import count_agreeing_inliers
-    from svs_torch.depth.sparse import Disparities
+    from svs_torch.depth.depth_types import Disparities
 
     b, h, w = 2, 6, 8
     disparity = torch.arange(w, dtype=torch.float32).expand(b, 1, h, w).clone()  # d = column
@@ -491,7 +496,7 @@ def test_count_agreeing_inliers_by_hand():
 def test_box_sum_with_gradients_keeps_the_values_and_its_adjoint_passes_gradcheck(generator):
     """The recorded box sum (issue 31: an autograd Function, its backward the adjoint box sum) gives the untracked
     one's values bit for bit, and a pooling-based sum's gradient."""
-    from svs_torch.depth.dense import _box_sum
+    from svs_torch.depth.cost_volume import _box_sum
 
     volume = torch.randn(2, 3, 11, 13, generator=generator, dtype=torch.float64)
     tracked = volume.clone().requires_grad_()

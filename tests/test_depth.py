@@ -8,9 +8,12 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.depth.sparse import (DepthConfig, ObstacleSide, PointDepths, accuracy_percent, estimate_depth, estimate_range, labelled_quantile, masked_quantile, nearest_obstacle, object_depths, point_depths, rectified_disparity)
 from svs_torch.core.ordering import argsort_last, sort_last
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.depth.depth_types import DepthConfig, ObstacleSide, PointDepths
+from svs_torch.depth.quantiles import labelled_quantile, masked_quantile
+from svs_torch.depth.sparse import (accuracy_percent, estimate_depth, estimate_range, nearest_obstacle, object_depths,
+                                    point_depths, rectified_disparity)
 
 F64 = torch.float64
 

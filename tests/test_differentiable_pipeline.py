@@ -11,11 +11,12 @@ import torch
 
 from svs_torch import InputError
 from svs_torch.data import collate_stereo_batches, load_middlebury_eval3, resize_stereo_batch
-from svs_torch.depth.dense import DenseConfig
-from svs_torch.segmentation.learned import load_obstacle_net
+from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.pipeline.soft import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean,
+                                     quantize_straight_through, subpixel_disparity)
+from svs_torch.segmentation.network_files import load_obstacle_net
 from svs_torch.segmentation.segment import SegmentationConfig
-from svs_torch.pipeline.soft import (_bands, _fill_sources, _soft_disparity, _window_costs, band_mean, quantize_straight_through, subpixel_disparity)
 
 LEARNED = SegmentationConfig(segmenter="learned")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -161,7 +162,7 @@ def test_teddy_learned_gradients_reach_both_images_and_the_weights(data_dir):
 
 
 def test_without_a_network_the_cached_one_passes_image_gradients_and_keeps_no_grad(data_dir):
-    from svs_torch.segmentation.learned import cached_obstacle_net
+    from svs_torch.segmentation.network_files import cached_obstacle_net
     batch = _requiring_grad(_teddy(data_dir, (160, 120)))
     result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True, segmentation=LEARNED))
     objects = result.depth.objects

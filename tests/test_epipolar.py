@@ -10,7 +10,10 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.geometry.epipolar import (enforce_rank2, fundamental_7point, fundamental_8point, normalize_points_hartley, real_cubic_roots, sampson_distance, symmetric_epipolar_distance)
+from svs_torch.geometry.epipolar import fundamental_7point, fundamental_8point
+from svs_torch.geometry.epipolar_distance import sampson_distance, symmetric_epipolar_distance
+from svs_torch.geometry.minimal_solvers import enforce_rank2, real_cubic_roots
+from svs_torch.geometry.point_pairs import normalize_points_hartley
 
 MOTIONS = ["general", "rectified", "vertical", "forward"]
 

@@ -11,18 +11,18 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-
 from conftest import REPO_ROOT
-from svs_torch.core.checks import InputError
+
 from svs_torch.cli import main
-from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, read_pair_sources
-from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors,
-                                  disparity_map_errors, evaluate_block, object_truth, score_pair,
-                                  sparse_disparity_errors, summarize, with_nominal_calibration)
-from svs_torch.evaluation.overrides import apply_overrides, parse_assignment, resolve_config
-from svs_torch.geometry.matching import MatchRefinementConfig
-from svs_torch.pipeline import PipelineConfig
+from svs_torch.core.checks import InputError
 from svs_torch.core.types import StereoBatch
+from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, read_pair_sources
+from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors, disparity_map_errors,
+                                  evaluate_block, object_truth, score_pair, sparse_disparity_errors, summarize,
+                                  with_nominal_calibration)
+from svs_torch.evaluation.overrides import apply_overrides, parse_assignment, resolve_config
+from svs_torch.geometry.lk_refinement import MatchRefinementConfig
+from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 import paper_table1  # noqa: E402

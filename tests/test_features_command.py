@@ -9,12 +9,11 @@ import sys
 
 import cv2
 import numpy as np
+from conftest import REPO_ROOT
 
 from svs_torch.cli import build_parser, main
 from svs_torch.cli.features import COMMAND_MAX_KEYPOINTS, COMMAND_UPSAMPLE_MAX_PIXELS, command_config
 from svs_torch.features.detector import MAX_KEYPOINTS
-
-from conftest import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 

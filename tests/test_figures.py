@@ -15,10 +15,10 @@ import torch
 
 from svs_torch import StereoBatch, estimate_obstacle_depth
 from svs_torch.cli import main
+from svs_torch.core.errors import InputError
+from svs_torch.core.files import atomic_output, path_kind, write_bytes_atomic
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.plotting.figures import labels_image, objects_panel, write_image_atomic
-from svs_torch.core.files import atomic_output, path_kind, write_bytes_atomic
-from svs_torch.core.errors import InputError
 from svs_torch.plotting.plots import matches_figure, pipeline_figure, render
 
 

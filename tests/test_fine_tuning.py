@@ -6,11 +6,12 @@ from __future__ import annotations
 import sys
 
 import torch
-
 from conftest import REPO_ROOT
+
 from svs_torch.data import collate_stereo_batches, load_middlebury_eval3, resize_stereo_batch
-from svs_torch.segmentation.learned import load_obstacle_net, predict_obstacle_logits
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation.network import predict_obstacle_logits
+from svs_torch.segmentation.network_files import load_obstacle_net
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))

@@ -30,11 +30,11 @@ from svs_torch import (PipelineConfig, PipelineStatus, SegmentationConfig, Stere
                        estimate_fundamental_ransac, estimate_obstacle_depth, extract_surf_features, match_sad,
                        segment_stereo)
 from svs_torch.cli import build_parser, main
-from svs_torch.data import load_image_pair, load_stereo_pair
-from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.data.formats import read_gray_image, read_middlebury_calib, read_pfm
 from svs_torch.core.errors import InputError
 from svs_torch.core.types import FundamentalStatus, SegmentationStatus
+from svs_torch.data import load_image_pair, load_stereo_pair
+from svs_torch.data.formats import read_gray_image, read_middlebury_calib, read_pfm
+from svs_torch.data.synthetic import random_obstacle_scenes
 
 #: More examples for a bug hunt: ``SVS_HARDENING_SCALE=20 pytest tests/test_hardening.py``.
 SCALE = max(int(os.environ.get("SVS_HARDENING_SCALE", "1")), 1)

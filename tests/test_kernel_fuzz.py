@@ -22,20 +22,25 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from svs_torch.core import kernels
+from svs_torch.core.errors import InputError
+from svs_torch.core.types import Keypoints
 from svs_torch.depth import kernels as depth_kernels
+from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
+from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
+from svs_torch.depth.dense_objects import dense_object_depths
+from svs_torch.depth.depth_types import ObjectDepths
+from svs_torch.depth.quantiles import labelled_quantile
+from svs_torch.depth.search_range import disparity_search_range
 from svs_torch.features import kernels as features_kernels
+from svs_torch.features.descriptor import describe_surf
+from svs_torch.features.surf import SurfConfig, extract_surf_features
 from svs_torch.geometry import kernels as geometry_kernels
+from svs_torch.geometry.lk_refinement import refine_matches_lk
+from svs_torch.geometry.matched_points import MatchedPoints
+from svs_torch.geometry.matching import match_sad
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
-from svs_torch.depth.dense import (DenseConfig, DenseDisparity, DisparityRange, block_match_sad, dense_disparity_over_regions, disparity_search_range, fill_invalid_rows)
-from svs_torch.depth.dense_objects import dense_object_depths
-from svs_torch.depth.sparse import ObjectDepths, labelled_quantile
-from svs_torch.features.descriptor import describe_surf
-from svs_torch.core.errors import InputError
-from svs_torch.features.surf import SurfConfig, extract_surf_features
-from svs_torch.geometry.matching import MatchedPoints, match_sad, refine_matches_lk
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
-from svs_torch.core.types import Keypoints
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
 

@@ -10,14 +10,14 @@ import pytest
 import torch
 
 from svs_torch.core import kernels
-from svs_torch.depth import kernels as depth_kernels
-from svs_torch.features import kernels as features_kernels
-from svs_torch.geometry import kernels as geometry_kernels
-from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.core.errors import InputError
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
-from svs_torch.features.surf import SurfConfig, extract_surf_features
+from svs_torch.depth import kernels as depth_kernels
+from svs_torch.features import kernels as features_kernels
 from svs_torch.features.hessian import _interior_maxima, hessian_octaves, maxima_support
+from svs_torch.features.surf import SurfConfig, extract_surf_features
+from svs_torch.geometry import kernels as geometry_kernels
+from svs_torch.segmentation import kernels as segmentation_kernels
 
 needs_kernel = pytest.mark.skipif(not kernels.available("hessian_octave"), reason="no C compiler")
 
@@ -313,7 +313,8 @@ def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_p
     """The 16-bit search's vector types (64 bytes: one AVX-512 register here) are split by the compiler on a
     machine without AVX-512 (two AVX2 registers, four SSE2 ones): built for those, the kernel still equals the
     torch path, on widths that leave a partial vector and ranges of more than one vector of columns."""
-    from svs_torch.depth.dense import DenseConfig, block_match_sad
+    from svs_torch.depth.block_matching import block_match_sad
+    from svs_torch.depth.dense_config import DenseConfig
 
     compiler = shutil.which("cc") or shutil.which("gcc")
     if compiler is None:
@@ -374,7 +375,7 @@ def test_kernels_take_an_empty_batch():
 def _block_match_inputs(seed: int) -> tuple:
     """Three pairs of whole-number images with their own boxes (one empty, one past the padded size) and
     ranges, for the dense kernel."""
-    from svs_torch.depth.dense import quantize_levels
+    from svs_torch.depth.cost_volume import quantize_levels
 
     generator = torch.Generator().manual_seed(seed)
     left = quantize_levels(torch.rand(3, 130, 90, generator=generator) * 0.2 - 0.1)
@@ -401,7 +402,7 @@ def test_dense_kernel_same_for_any_thread_count(threads):
 def test_dense_kernel_equals_the_torch_box_matcher():
     """Each pair at its own box and range equals the torch path's shared box (dense._match_box, which the
     kernel replaces) inside that box, and nothing is written outside it."""
-    from svs_torch.depth import dense
+    from svs_torch.depth import block_matching as dense
 
     left, right, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(3)
     config = dense.DenseConfig(window_size=size, prefilter="none", texture_threshold=0.0, kernel="torch")
@@ -424,7 +425,7 @@ def test_dense_kernel_prefilters_as_the_torch_path(source):
     """From the raw images the kernel pre-filters a crop row at a time (x-Sobel, clip, quantize_levels; the
     texture from the left image's clipped x-Sobel): the same maps as from whole pre-filtered images, with boxes
     at and past the frame's edges (replicate border) and a texture rule that rejects some pixels."""
-    from svs_torch.depth.dense import prefilter_xsobel, quantize_levels
+    from svs_torch.depth.cost_volume import prefilter_xsobel, quantize_levels
 
     _, _, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(4)
     generator = torch.Generator().manual_seed(5)
@@ -488,9 +489,10 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     """The C refinement takes the torch path's steps with its sums in double and in its own order: on the
     matches of real pairs, the same rows pass the correlation gate (all but a rare one on the edge) and the
     points agree to 1e-3 px but for a rare ill-conditioned patch."""
-    from svs_torch.pipeline import run as pipeline
+    from svs_torch.pipeline import stages as pipeline
     from svs_torch.data import collate_stereo_batches, list_shared_pairs, load_stereo_pair
-    from svs_torch.geometry.matching import gather_matched_points, refine_matches_lk
+    from svs_torch.geometry.lk_refinement import refine_matches_lk
+    from svs_torch.geometry.matched_points import gather_matched_points
 
     pairs = [resize_stereo_batch(load_stereo_pair(path), (320, 240)) for path in list_shared_pairs(data_dir)[:6]]
     batch = collate_stereo_batches(pairs)
@@ -579,7 +581,7 @@ def test_sad_matching_kernel_edge_rows(band_px):
 def test_labelled_select_kernel_gives_the_sorting_paths_quantiles(monkeypatch):
     """Quickselect per object gives the order statistics the sort gives, so the same quantiles bit for bit:
     negative values, ties, ±inf, labels of no slot, padded and repeated slots, empty slots, long rows."""
-    from svs_torch.depth.sparse import labelled_quantile
+    from svs_torch.depth.quantiles import labelled_quantile
 
     generator = torch.Generator().manual_seed(4)
     cases = []
@@ -604,7 +606,7 @@ def test_labelled_select_kernel_gives_the_sorting_paths_quantiles(monkeypatch):
 def test_fill_rows_kernel_is_bit_identical_to_torch(monkeypatch):
     """Rows with no valid pixel, one, a few and nearly all; neighbours that agree (mean) and that do not
     (the smaller): the same fill and reachability as the torch path."""
-    from svs_torch.depth.dense import fill_invalid_rows
+    from svs_torch.depth.block_matching import fill_invalid_rows
 
     generator = torch.Generator().manual_seed(5)
     disparity = torch.rand(4, 9, 57, generator=generator) * torch.tensor([0.5, 2.0, 10.0, 40.0]).view(4, 1, 1)
@@ -621,8 +623,8 @@ def _object_depth_inputs(seed: int) -> tuple:
     """Four pairs of dense disparities with their own boxes (inside the frame, past its left and right edges,
     empty), label images, slots (repeated, padding, a label no pixel holds), and calibrations under which some
     denominators are not positive and some depths overflow."""
-    from svs_torch.depth.dense import DenseDisparity
-    from svs_torch.depth.sparse import ObjectDepths
+    from svs_torch.depth.dense_config import DenseDisparity
+    from svs_torch.depth.depth_types import ObjectDepths
 
     generator = torch.Generator().manual_seed(seed)
     b, h, w = 4, 37, 53

@@ -37,8 +37,14 @@ ALLOWED = {
 #: Longest module (lines) and function (lines from ``def`` to its last line).
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 60
-#: Functions allowed past MAX_FUNCTION_LINES, each with why it stays whole (and a ceiling of 80 lines).
-LONG_FUNCTIONS: dict[str, str] = {}
+#: Functions allowed past MAX_FUNCTION_LINES, each with why it stays whole (and a ceiling of 80 lines). All three
+#: are public entry points whose code is short: the length is their keyword-only signature and the docstring of
+#: each of its options, which belong with the function.
+LONG_FUNCTIONS: dict[str, str] = {
+    "svs_torch.geometry.ransac.estimate_fundamental_ransac": "18 lines of code; 17 of signature, 37 of docstring",
+    "svs_torch.geometry.lk_refinement.refine_matches_lk": "32 lines of code; 13 of signature, 28 of docstring",
+    "svs_torch.geometry.matching.match_sad": "24 lines of code; 15 of signature, 25 of docstring",
+}
 
 
 def _modules() -> list[tuple[str, Path]]:
@@ -153,14 +159,12 @@ def _function_lengths():
                 yield f"{module}.{node.name}", node.end_lineno - node.lineno + 1
 
 
-@pytest.mark.xfail(reason="the long modules and functions are split in a later step", strict=False)
 def test_no_module_is_longer_than_400_lines():
     long = [f"{path.relative_to(PACKAGE.parent)}: {n} lines" for _, path in _modules()
             if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES]
     assert not long, "\n".join(long)
 
 
-@pytest.mark.xfail(reason="the long modules and functions are split in a later step", strict=False)
 def test_no_function_is_longer_than_60_lines():
     long = [f"{name}: {n} lines" for name, n in _function_lengths()
             if n > MAX_FUNCTION_LINES and not (name in LONG_FUNCTIONS and n <= 80)]

@@ -12,17 +12,20 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
-from svs_torch.core.checks import InputError
-from svs_torch.cli import main
-from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.depth.dense import DenseConfig, block_match_sad
-from svs_torch.segmentation.learned import (SHIPPED_WEIGHTS, ObstacleNet, ObstacleNetConfig, load_obstacle_net, mask_iou, obstacle_truth, predict_obstacle_logits, save_obstacle_net, segment_learned, segment_stereo_learned, soft_nearest_depth, soft_object_depths)
-from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.segmentation.segment import SegmentationConfig
-from svs_torch.core.types import StereoBatch
-
 from conftest import REPO_ROOT
+
+from svs_torch.cli import main
+from svs_torch.core.checks import InputError
+from svs_torch.core.types import StereoBatch
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.depth.block_matching import block_match_sad
+from svs_torch.depth.dense_config import DenseConfig
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation.learned import (mask_iou, obstacle_truth, segment_learned, segment_stereo_learned,
+                                            soft_nearest_depth, soft_object_depths)
+from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits
+from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
+from svs_torch.segmentation.segment import SegmentationConfig
 
 
 @pytest.fixture(scope="module")

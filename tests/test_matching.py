@@ -12,7 +12,8 @@ import torch
 import svs_torch.geometry.matching as matching
 from svs_torch import InputError, Matches
 from svs_torch.core import kernels
-from svs_torch.geometry.matching import gather_matched_points, match_sad, max_sad_distance
+from svs_torch.geometry.matched_points import gather_matched_points
+from svs_torch.geometry.matching import match_sad, max_sad_distance
 
 
 def random_sets(generator: torch.Generator, b: int = 3, k: int = 40, k2: int = 50, d: int = 16,

@@ -8,8 +8,8 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from real_images import PAIRS, read_gray
+
 from svs_torch import InputError
 from svs_torch.segmentation.morphology import dilate, erode, open_binary, structuring_element
 

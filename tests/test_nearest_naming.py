@@ -20,8 +20,8 @@ import svs_torch.pipeline
 import svs_torch.plotting.plots
 from svs_torch.cli import main
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.plotting.figures import write_image_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.plotting.figures import write_image_atomic
 from svs_torch.plotting.plots import NearestTruth, _region_lower_medians, pipeline_figure, render, true_nearest_obstacle
 
 MISSED_SCENE = ("--objects", "4", "--seed", "3")  # true obstacle 1 at 1.00 m is the narrowest: Otsu drops it

@@ -9,11 +9,13 @@ import pytest
 import torch
 
 from svs_torch.core.checks import InputError
-from svs_torch.segmentation.components import connected_components_with_stats, region_properties
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.segmentation.learned import load_obstacle_net, mask_iou, obstacle_truth, save_obstacle_net
-from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, measure_nearness_disparity, nearness_logits, segment_stereo_nearness, shift_regions_to_right)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+from svs_torch.segmentation.components import connected_components_with_stats, region_properties
+from svs_torch.segmentation.learned import mask_iou, obstacle_truth
+from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, measure_nearness_disparity,
+                                             nearness_logits, segment_stereo_nearness, shift_regions_to_right)
+from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
 from svs_torch.segmentation.segment import SegmentationConfig, keep_regions
 
 
@@ -157,7 +159,7 @@ def test_clear_errors(tmp_path):
     with pytest.raises(InputError, match="no weights file"):
         SegmentationConfig(segmenter="nearness:/no/such/file.pt")
     old = tmp_path / "old.pt"
-    from svs_torch.segmentation.learned import ObstacleNet
+    from svs_torch.segmentation.network import ObstacleNet
     save_obstacle_net(old, ObstacleNet())
     with pytest.raises(InputError, match="not a svs_torch nearness network file"):
         load_obstacle_net(f"nearness:{old}")
@@ -170,7 +172,7 @@ def test_clear_errors(tmp_path):
 
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
-    from svs_torch.depth.sparse import kept_region_lower_median
+    from svs_torch.depth.quantiles import kept_region_lower_median
     from svs_torch.segmentation.nearness import _region_median_disparity
 
     generator = torch.Generator().manual_seed(1)

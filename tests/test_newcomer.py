@@ -10,19 +10,19 @@ from pathlib import Path
 import pytest
 import torch
 
-from svs_torch.core.checks import InputError
 from svs_torch.cli import main
+from svs_torch.core.checks import InputError
 from svs_torch.data import PairSource
 from svs_torch.data.datasets import pair_name
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.features.detector import MAX_KEYPOINTS
 from svs_torch.evaluation import PairEvaluation
 from svs_torch.evaluation.overrides import resolve_config
 from svs_torch.evaluation.report import csv_table, results_figure
 from svs_torch.evaluation.store import SCHEMA_VERSION, ResultStore
 from svs_torch.evaluation.sweep import load_sweep, make_sweep_config
-from svs_torch.plotting.figures import binary_title
+from svs_torch.features.detector import MAX_KEYPOINTS
 from svs_torch.pipeline import PipelineConfig, segment_pair
+from svs_torch.plotting.figures import binary_title
 from svs_torch.segmentation.segment import SegmentationConfig
 
 REPO = Path(__file__).resolve().parent.parent

@@ -11,9 +11,9 @@ import torch
 from svs_torch import InputError, StereoBatch
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.depth.sparse import DepthConfig
-from svs_torch.segmentation.segment import SegmentationConfig
+from svs_torch.depth.depth_types import DepthConfig
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+from svs_torch.segmentation.segment import SegmentationConfig
 
 #: Otsu's segmentation (the paper's), for tests of the later stages on bright synthetic boxes.
 OTSU = SegmentationConfig()

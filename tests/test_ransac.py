@@ -8,11 +8,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_epipolar import random_camera_pairs
 
 from svs_torch import FundamentalStatus, InputError
-from svs_torch.geometry.epipolar import sampson_distance
-from svs_torch.geometry.ransac import _splitmix64, draw_minimal_samples, estimate_fundamental_ransac
-from test_epipolar import random_camera_pairs
+from svs_torch.geometry.epipolar_distance import sampson_distance
+from svs_torch.geometry.ransac import estimate_fundamental_ransac
+from svs_torch.geometry.ransac_sampling import _splitmix64, draw_minimal_samples
 
 OK, TOO_FEW = FundamentalStatus.OK, FundamentalStatus.TOO_FEW_MATCHES
 

@@ -9,7 +9,8 @@ import torch
 
 from svs_torch import InputError
 from svs_torch.geometry.epipolar import fundamental_8point
-from svs_torch.geometry.rectification import (RectificationConfig, RectificationStatus, apply_homography, rectify_uncalibrated, warp_rectified)
+from svs_torch.geometry.rectification import (RectificationConfig, RectificationStatus, apply_homography,
+                                              rectify_uncalibrated, warp_rectified)
 
 F64 = torch.float64
 SIZE_HW = (480, 640)

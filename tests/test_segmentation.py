@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-
 from real_images import PAIRS, opencv_segmentation, read_gray
+
 from svs_torch import InputError, SegmentationStatus, StereoBatch
 from svs_torch.segmentation.segment import SegmentationConfig, segment_images, segment_stereo
 

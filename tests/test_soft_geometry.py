@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_rectification import make_rigs
 
 from svs_torch.geometry.epipolar import fundamental_8point
-from svs_torch.geometry.matching import MatchedPoints, _refine_lk_torch
+from svs_torch.geometry.lk_refinement import _refine_lk_torch
+from svs_torch.geometry.matched_points import MatchedPoints
 from svs_torch.geometry.rectification import RectificationConfig, rectify_uncalibrated
-from svs_torch.geometry.soft import (geometry_straight_through, lk_points_straight_through, lk_step, refit_fundamental_straight_through)
-
-from test_rectification import make_rigs
+from svs_torch.geometry.soft import (geometry_straight_through, lk_points_straight_through, lk_step,
+                                     refit_fundamental_straight_through)
 
 F64 = torch.float64
 

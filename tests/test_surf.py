@@ -12,8 +12,8 @@ import torch
 from svs_torch import InputError, Keypoints
 from svs_torch.features.descriptor import describe_surf, surf_orientation, with_orientation
 from svs_torch.features.detector import SurfConfig, detect_surf_keypoints, metric_threshold_01
-from svs_torch.features.surf import extract_surf_features
 from svs_torch.features.hessian import filter_sizes, hessian_octaves
+from svs_torch.features.surf import extract_surf_features
 
 
 def smooth_image(batch: int, height: int, width: int, seed: int, dtype=torch.float64) -> torch.Tensor:

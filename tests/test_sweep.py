@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from svs_torch.core.checks import InputError
 from svs_torch.cli import main
+from svs_torch.core.checks import InputError
 from svs_torch.evaluation.sweep import load_sweep, plan_tasks, run_sweep
 
 #: Four MiddEval3 scenes at 160x120, three configurations, one pair per task: 12 rows, 12 tasks.
@@ -223,7 +223,7 @@ def test_weights_content_is_part_of_the_configuration_id(tmp_path):
     import shutil
 
     from svs_torch.evaluation.sweep import make_sweep_config
-    from svs_torch.segmentation.learned import SHIPPED_WEIGHTS
+    from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS
 
     weights = tmp_path / "net.pt"
     shutil.copyfile(SHIPPED_WEIGHTS, weights)

@@ -13,13 +13,8 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch import SVS_CAMERA, InputError, StereoBatch
-from svs_torch.data.synthetic import (
-    SyntheticScenes,
-    _cast_rays,
-    _Scene,
-    random_obstacle_scenes,
-    render_obstacle_scenes,
-)
+from svs_torch.data.scene_rendering import _cast_rays, _Scene
+from svs_torch.data.synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 
 SMALL = (160, 120)
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
 from real_images import PAIRS, read_gray
+
 from svs_torch import InputError
 from svs_torch.segmentation.threshold import gray_histogram, gray_levels, otsu_threshold, threshold_binary
 

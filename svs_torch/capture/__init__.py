@@ -6,7 +6,8 @@ reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rat
 """
 
 from .guide import FpsMeter, LiveGuide, Speaker, WarningPolicy
-from .link import CameraLink, CaptureError, LinkConfig, LinkStats, RawFrame
+from .link import CameraLink
+from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame
 from .protocol import FrameParser, ProtocolError, VersionInfo
 from .stereo import Frame, PairBatch, StereoPair, SVSStereoCamera, decode_frame, to_stereo_batch
 

@@ -18,97 +18,21 @@ pyserial's ``read(n)`` returns short on timeout without raising, so reads use a 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 import serial
 
 from ..core.camera import SVS_RESOLUTIONS
+from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
-                       VERSION_PREFIX, BadFrame, FrameHeader, FrameParser, ParsedFrame, VersionInfo, describe_bytes,
-                       find_line, find_token, max_jpeg_length, parse_battery_reply, parse_quality_reply,
-                       parse_uptime_reply, parse_version_line, quality_command, size_acks, size_command)
+                       VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, VersionInfo, describe_bytes, find_line,
+                       find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply, parse_version_line,
+                       quality_command, size_acks, size_command)
 
-__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "CameraLink"]
+__all__ = ["CameraLink", "CaptureError", "LinkConfig", "LinkStats", "RawFrame"]
+
 
 Matcher = Callable[[bytes], "tuple[bytes, int] | None"]
-
-
-class CaptureError(RuntimeError):
-    """A camera link failed; the message names the camera, its URL, and what was expected vs received."""
-
-
-@dataclass(frozen=True)
-class LinkConfig:
-    """Settings of one camera link (times in seconds); the defaults suit a real SVS."""
-
-    baudrate: int = 2_304_000  # UART baud, 8N1 (§1; a 115,200 build exists); ignored by socket://
-    rtscts: bool = True  # UART hardware flow control (§1)
-    # Throughput for transfer timeouts, bytes/s; None = baudrate / 10 (8N1 sends 10 bits a byte). Right for
-    # socket:// too: the board's UART is the bottleneck behind the WiFi module.
-    link_bytes_per_s: float | None = None
-    reply_timeout_s: float = 1.0  # command sent → short reply complete, or frame header in (grab + encode)
-    transfer_margin_s: float = 0.5  # added to a frame's nominal transfer time
-    transfer_slack: float = 1.5  # factor on a frame's nominal transfer time
-    max_retries: int = 2  # extra attempts after a silent or broken reply (§3: I sometimes returns nothing)
-    max_reconnects: int = 2  # reopenings of a dropped link per command
-    reconnect_delay_s: float = 0.2  # pause before each reopening
-    command_gap_s: float = 0.002  # pause after a reply before the next command (§2: input discarded just after)
-    drain_quiet_s: float = 0.05  # resync: discard input until nothing arrived for this long...
-    drain_max_s: float = 0.5  # ...or for at most this long
-    poll_s: float = 0.02  # pyserial read timeout; deadlines are honoured to within it
-    write_timeout_s: float = 1.0  # pyserial write timeout (a UART stalled by RTS/CTS)
-
-    @property
-    def bytes_per_s(self) -> float:
-        """Throughput used for transfer timeouts, bytes/s."""
-        return self.link_bytes_per_s if self.link_bytes_per_s else self.baudrate / 10.0
-
-    def transfer_timeout_s(self, length: int) -> float:
-        """Seconds allowed for ``length`` JPEG bytes after their header."""
-        return self.transfer_margin_s + self.transfer_slack * length / self.bytes_per_s
-
-    def frame_attempt_timeout_s(self, size_code: str) -> float:
-        """Worst-case seconds of one ``I`` attempt at a size code (largest plausible JPEG, then a drain)."""
-        width, height = SVS_RESOLUTIONS[size_code]
-        return (self.command_gap_s + self.reply_timeout_s + self.transfer_timeout_s(max_jpeg_length(width, height))
-                + self.drain_max_s + 2 * self.poll_s)
-
-
-@dataclass
-class LinkStats:
-    """Counters of one link since it was created."""
-
-    frames: int = 0  # good frames returned
-    retries: int = 0  # commands re-sent after a silent or broken reply
-    reconnects: int = 0  # links reopened after a drop
-    stray_bytes: int = 0  # bytes skipped or drained that belonged to no expected reply
-    failures: list[str] = field(default_factory=list)  # the last few failure descriptions, newest last
-
-
-@dataclass(frozen=True)
-class RawFrame:
-    """One frame as received: the header, the JPEG bytes exactly as the board sent them, and when they came."""
-
-    header: FrameHeader  # size code, width, height, JPEG length
-    jpeg: bytes
-    request_monotonic_s: float  # time.monotonic() when the I that produced this frame was sent
-    arrival_monotonic_s: float  # time.monotonic() when the frame's last byte was read
-    arrival_wall_s: float  # time.time() at the same moment (Unix seconds)
-    attempts: int  # I commands sent for this frame (1 = no retry)
-    skipped_bytes: int  # stray bytes skipped before the header
-
-
-class _Dropped(Exception):
-    """Internal: the link broke (EOF, reset, device gone); carries the original error text."""
-
-
-@dataclass
-class _Attempt:
-    """Internal: why one frame attempt failed."""
-
-    reason: str
-    wrong_size: bool = False
 
 
 class CameraLink:

@@ -22,7 +22,8 @@ import torch
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
 from ..core.types import StereoBatch
-from .link import CameraLink, CaptureError, LinkConfig, RawFrame
+from .link import CameraLink
+from .link_types import CaptureError, LinkConfig, RawFrame
 from .protocol import VersionInfo, size_code_for
 
 __all__ = ["Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]

@@ -110,7 +110,7 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``capture``; returns the exit code (errors are one line on stderr)."""
-    from ..capture.link import CaptureError
+    from ..capture.link_types import CaptureError
 
     try:
         size, out = _check_args(args)
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
 
 def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack):
     """The stereo camera of ``--left``/``--right`` (or ``--emulator``), with the link options, closed by ``stack``."""
-    from ..capture.link import LinkConfig
+    from ..capture.link_types import LinkConfig
     from ..capture.stereo import SVSStereoCamera
 
     left, right = board_urls(args, size, stack)

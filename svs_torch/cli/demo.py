@@ -104,7 +104,7 @@ def _nearest_warning(nearest: dict, objects: list[dict]) -> str | None:
 
 def _print_text(args, camera: dict, truth: list[dict], report: dict, true_nearest: dict | None) -> None:
     """The demo's text: the scene, the pipeline's report, each kept object against its truth, the true nearest."""
-    from .estimate import format_report
+    from .estimate_report import format_report
 
     width, height = camera["image_size_wh"]
     print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
         from ..data.synthetic import random_obstacle_scenes
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..pipeline import estimate_obstacle_depth
-        from .estimate import format_report, pair_report, unranged_report, with_calibration
+        from .estimate_report import format_report, pair_report, unranged_report, with_calibration
         from .features import MAX_PIXELS
 
     width, height = parse_size(args.size, "--size")

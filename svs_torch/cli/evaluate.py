@@ -201,7 +201,6 @@ def run(args: argparse.Namespace) -> int:
         from ..core.errors import InputError
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
-        from ..evaluation.sweep import make_sweep_config
 
     size_wh = parse_size(args.size, "--size") if args.size else None
     check_no_manual_calibration(args)
@@ -213,17 +212,7 @@ def run(args: argparse.Namespace) -> int:
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     export = disparity_export(args, config)
     sources = read_pair_sources(args.paths, "path")
-    store = run_id = None
-    if args.db:
-        from ..evaluation.store import ResultStore
-        from ..evaluation.sweep import code_version, environment
-
-        sweep_config = make_sweep_config(preset, overrides, size_wh)
-        store = ResultStore(args.db)
-        store.add_configs([sweep_config.record()])
-        store.add_pairs(sources)
-        run_id = store.start_run("eval", code_version(), environment("in-process", 0, None),
-                                 " ".join(sys.argv[1:]))
+    store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
     evaluations = []
     if not args.json:
@@ -252,3 +241,19 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
     return 0
+
+
+def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -> tuple:
+    """With ``--db``: the results store, opened with this run's configuration and pairs recorded, the run's id
+    and its sweep configuration; (None, None, None) without."""
+    if not args.db:
+        return None, None, None
+    from ..evaluation.store import ResultStore
+    from ..evaluation.sweep import code_version, environment, make_sweep_config
+
+    sweep_config = make_sweep_config(preset, overrides, size_wh)
+    store = ResultStore(args.db)
+    store.add_configs([sweep_config.record()])
+    store.add_pairs(sources)
+    run_id = store.start_run("eval", code_version(), environment("in-process", 0, None), " ".join(sys.argv[1:]))
+    return store, run_id, sweep_config

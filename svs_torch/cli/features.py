@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (ConfigValue, add_figure_option, dumps_strict, non_negative_float, options_named,
-                     positive_int, too_small_reason, unit_interval_float, with_config_values)
+from .common import (ConfigValue, add_figure_option, dumps_strict, non_negative_float, options_named, positive_int,
+                     too_small_reason, unit_interval_float, with_config_values)
 from .segment import add_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
@@ -117,7 +117,7 @@ def preset_config(args: argparse.Namespace):
         changes["max_ratio"] = args.max_ratio
     refine = getattr(args, "refine", None)
     if refine is not None:
-        from ..geometry.matching import MatchRefinementConfig
+        from ..geometry.lk_refinement import MatchRefinementConfig
 
         changes["refine_matches"] = (base.refine_matches or MatchRefinementConfig()) if refine else None
     return replace(base, **changes)
@@ -201,7 +201,6 @@ def run(args: argparse.Namespace) -> int:
 
         from ..features.surf import extract_surf_features
         from ..plotting.figures import check_output_path, write_image_atomic
-        from ..geometry.matching import gather_matched_points, match_sad, refine_matched_points
         from ..plotting.plots import matches_figure
         from ..segmentation.segment import segment_stereo
 
@@ -223,17 +222,8 @@ def run(args: argparse.Namespace) -> int:
         seg = segment_stereo(batch, config.segmentation)
         left_image, right_image = seg.left.masked, seg.right.masked
     both = extract_surf_features(torch.cat([left_image, right_image]), config.surf)
-    kp, desc = both.keypoints, both.descriptors
-    gate = config.laplacian_gate
-    matches = match_sad(desc[:1], desc[1:], kp.valid[:1], kp.valid[1:], max_ratio=config.max_ratio,
-                        mutual=config.mutual, laplacian_left=kp.laplacian_sign[:1] if gate else None,
-                        laplacian_right=kp.laplacian_sign[1:] if gate else None, xy_left=kp.xy[:1],
-                        xy_right=kp.xy[1:], epipolar_band_px=config.epipolar_band_px)
-    # The matched points as the pipeline uses them: the right point refined to sub-pixel (and matches whose
-    # patches disagree dropped) unless the preset turns refinement off.
-    points = gather_matched_points(kp.xy[:1], kp.xy[1:], matches)
-    points, matches = refine_matched_points(left_image, right_image, points, matches, kp.scale[:1],
-                                            config.refine_matches)
+    kp = both.keypoints
+    points, matches = _match_features(both, left_image, right_image, config)
     elapsed = time.perf_counter() - started
     pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
     matched_xy = [to_input_pixels(points.left[0, i], factors) + to_input_pixels(points.right[0, i], factors)
@@ -257,3 +247,21 @@ def run(args: argparse.Namespace) -> int:
     if args.figure:
         print(f"figure written to {args.figure}")
     return 0
+
+
+def _match_features(both, left_image, right_image, config) -> tuple:
+    """The matched points and matches of the pair's features (``both``: left then right), as the pipeline
+    makes them: SAD matching with the preset's gates, then the right point refined to sub-pixel (and matches
+    whose patches disagree dropped) unless the preset turns refinement off."""
+    from ..geometry.lk_refinement import refine_matched_points
+    from ..geometry.matched_points import gather_matched_points
+    from ..geometry.matching import match_sad
+
+    kp, desc = both.keypoints, both.descriptors
+    gate = config.laplacian_gate
+    matches = match_sad(desc[:1], desc[1:], kp.valid[:1], kp.valid[1:], max_ratio=config.max_ratio,
+                        mutual=config.mutual, laplacian_left=kp.laplacian_sign[:1] if gate else None,
+                        laplacian_right=kp.laplacian_sign[1:] if gate else None, xy_left=kp.xy[:1],
+                        xy_right=kp.xy[1:], epipolar_band_px=config.epipolar_band_px)
+    points = gather_matched_points(kp.xy[:1], kp.xy[1:], matches)
+    return refine_matched_points(left_image, right_image, points, matches, kp.scale[:1], config.refine_matches)

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from dataclasses import replace
 
-        from ..depth.sparse import DepthConfig
+        from ..depth.depth_types import DepthConfig
         from ..pipeline import estimate_obstacle_depth
         from ..core.types import FundamentalStatus
         from .features import preset_config

@@ -65,27 +65,13 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from ..core.camera import parse_size
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
-        from ..capture.link import CaptureError
-        from ..core.checks import InputError
-        from ..depth.sparse import ObstacleSide
+        from ..capture.link_types import CaptureError
+        from ..depth.depth_types import ObstacleSide
         from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .capture import open_stereo_camera
 
-        from ..capture.protocol import size_code_for
-
-    size = parse_size(args.size, "--size")
-    try:
-        size_code_for(size)
-    except InputError:
-        raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
-    if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
-        raise InputError("--left, --right: give both board URLs, or --emulator")
-    if not 0 <= args.near_m < args.far_m:
-        raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
-    if args.quality is not None and not 1 <= args.quality <= 8:
-        raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
+    size = _checked_size(args)
     calibration = calibration_from_args(args)
     if calibration is not None:
         from ..geometry.calibration import rectify_with_calibration
@@ -128,3 +114,23 @@ def run(args: argparse.Namespace) -> int:
     status_line.close()
     print(f"guide stopped after {processed} pairs", file=sys.stderr)
     return 0
+
+
+def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
+    """The SVS frame size of ``--size``, after checking it and the other options before the camera opens."""
+    from ..capture.protocol import size_code_for
+    from ..core.camera import parse_size
+    from ..core.checks import InputError
+
+    size = parse_size(args.size, "--size")
+    try:
+        size_code_for(size)
+    except InputError:
+        raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
+    if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
+        raise InputError("--left, --right: give both board URLs, or --emulator")
+    if not 0 <= args.near_m < args.far_m:
+        raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
+    if args.quality is not None and not 1 <= args.quality <= 8:
+        raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
+    return size

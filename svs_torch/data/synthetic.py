@@ -19,32 +19,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError, check_dtype, check_shape
 from ..core.types import StereoBatch
+from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
-__all__ = ["SyntheticScenes", "render_obstacle_scenes", "random_obstacle_scenes"]
+__all__ = ["SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
 
-# Each surface carries a periodic noise tile of G × G texels spanning a square of side max(width, height)
-# (the background: its visible extent), so the texture is fixed to the surface and wraps seamlessly.
-_TILE_TEXELS = 256
-# Texture scales as gaussian sigmas in OUTPUT pixels at the surface's depth: a fine speckle that the
-# smallest SURF scale (sigma 1.2) responds to, and coarser blobs. Fixing them in pixels keeps every surface
-# equally rich in features at any depth and resolution; they are still world-fixed, since both views see a
-# surface at the same depth.
-_TEXTURE_SIGMA_PX = (1.2, 4.0)
-_TEXTURE_GAIN = 1.5  # tanh gain on the unit-variance noise: sharpens blob edges into corners
-# Intensity = mean + amplitude · tanh(...): obstacles in [0.52, 0.92], wall in [0.10, 0.40]. The gap between
-# the two ranges is what makes Otsu's two classes separable, with room for some sensor noise.
-_OBJECT_MEAN = (0.66, 0.78)
-_OBJECT_AMPLITUDE = 0.14
-_BACKGROUND_MEAN = (0.20, 0.30)
-_BACKGROUND_AMPLITUDE = 0.10
+
 # random_obstacle_scenes layout, as fractions of the image size: a border kept free of obstacles and a gap
 # between neighbouring obstacles' sectors, so the obstacles stay separate regions in both views.
 _BORDER_FRACTION = 0.03
@@ -78,175 +63,6 @@ class SyntheticScenes:
     object_bbox_xyxy: torch.Tensor
     object_center_xy_m: torch.Tensor | None = None
     object_size_m: torch.Tensor | None = None
-
-
-class _Scene(NamedTuple):
-    """Geometry shared by the ray casts of one render call (all tensors in the render dtype)."""
-
-    focal_px: float
-    principal_xy: tuple[float, float]
-    depth_m: torch.Tensor  # (B, K), padding slots made harmless (depth 1, never hit)
-    center_xy_m: torch.Tensor  # (B, K, 2)
-    size_m: torch.Tensor  # (B, K, 2)
-    valid: torch.Tensor  # (B, K) bool
-    background_depth_m: float
-
-
-def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
-               scene: _Scene) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest surface along the ray of each pixel of a camera at ``(camera_x_m, 0, 0)`` looking down +Z.
-
-    Args:
-        x_px: pixel columns (sub-pixel allowed), broadcastable to ``(B, 1, h, w)``.
-        y_px: pixel rows, broadcastable to ``(B, 1, h, w)``.
-        camera_x_m: the optical centre's X in metres (0 for the left camera, the baseline for the right).
-        scene: the object and background geometry.
-
-    Returns:
-        depth ``(B, 1, h, w)`` in metres of the nearest surface (exactly an object's depth or the background's)
-        and its slot ``(B, 1, h, w)`` int64, 0 for the background, k for object slot k. Edges are open
-        (a ray exactly on an edge misses); equal depths overlapping resolve to the lower slot.
-    """
-    b, k = scene.depth_m.shape
-    cx, cy = scene.principal_xy
-    depth = scene.depth_m.view(b, k, 1, 1)
-    # Where each ray meets object k's plane Z = Z_k, in world metres. Rectangles are axis-aligned, so the
-    # column test and the row test are separate: (B, K, h|1, w) and (B, K, h, w|1).
-    hit_x = camera_x_m + depth * ((x_px - cx) / scene.focal_px)
-    hit_y = depth * ((y_px - cy) / scene.focal_px)
-    center = scene.center_xy_m.view(b, k, 1, 1, 2)
-    half = scene.size_m.view(b, k, 1, 1, 2) / 2
-    inside_x = ((hit_x - center[..., 0]).abs() < half[..., 0]) & scene.valid.view(b, k, 1, 1)
-    inside_y = (hit_y - center[..., 1]).abs() < half[..., 1]
-    shape = (b, 1, *torch.broadcast_shapes(x_px.shape, y_px.shape)[-2:])  # (B, 1, h, w), also for K = 0
-    nearest = torch.full(shape, scene.background_depth_m, dtype=depth.dtype, device=depth.device)
-    slot = torch.zeros(shape, dtype=torch.int64, device=depth.device)
-    # A z-buffer over the K slots (K is small; a running minimum is faster and lighter than an argmin over
-    # a (B, K + 1, h, w) stack). Strict "<": on equal depths the lower slot wins.
-    for i in range(k):
-        closer = inside_x[:, i:i + 1] & inside_y[:, i:i + 1] & (depth[:, i:i + 1] < nearest)
-        nearest = torch.where(closer, depth[:, i:i + 1], nearest)
-        slot = torch.where(closer, i + 1, slot)
-    return nearest, slot
-
-
-def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
-                generator: torch.Generator) -> torch.Tensor:
-    """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
-    surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
-    square each tile spans."""
-    b, s = tile_depth_m.shape
-    g = _TILE_TEXELS
-    dtype, device = tile_depth_m.dtype, tile_depth_m.device
-    noise = torch.randn(b, s, 2, g, g, generator=generator, dtype=dtype, device=device)
-    level = torch.rand(b, s, generator=generator, dtype=dtype, device=device)
-    sigma_px = torch.tensor(_TEXTURE_SIGMA_PX, dtype=dtype, device=device)
-    texel_m = tile_side_m / g
-    # Sigma in texels; capped at G/4 so the lowest frequency survives and the normalisation below is sound.
-    sigma = (sigma_px * (tile_depth_m / focal_px).unsqueeze(-1) / texel_m.unsqueeze(-1)).clamp(max=g / 4)
-    freq_y = torch.fft.fftfreq(g, dtype=dtype, device=device).view(g, 1)
-    freq_x = torch.fft.rfftfreq(g, dtype=dtype, device=device).view(1, g // 2 + 1)
-    # Gaussian blur as a product in frequency: batched over surfaces with a different sigma each.
-    response = torch.exp(-2 * math.pi ** 2 * sigma.view(b, s, 2, 1, 1) ** 2 * (freq_y ** 2 + freq_x ** 2))
-    field = torch.fft.irfft2(torch.fft.rfft2(noise) * response, s=(g, g))
-    field = field - field.mean(dim=(-2, -1), keepdim=True)
-    field = field / field.std(dim=(-2, -1), keepdim=True)
-    texture = torch.tanh(_TEXTURE_GAIN * field.sum(dim=2) / math.sqrt(2))  # (B, S, G, G) in (-1, 1)
-    is_object = torch.arange(s, device=device).view(1, s) > 0
-    low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
-    high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
-    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE, _BACKGROUND_AMPLITUDE)
-    mean = low + (high - low) * level  # (B, S)
-    return mean.view(b, s, 1, 1) + amplitude.view(1, s, 1, 1) * texture
-
-
-def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int],
-                   generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Texture tiles ``(B, K + 1, G, G)`` of the wall (slot 0) and the objects, their centres ``(B, K + 1, 2)``
-    and sides ``(B, K + 1)`` in metres. An object's tile spans max(width, height) around its centre; the wall's
-    spans what either camera sees of it (the left view's extent plus the baseline).
-    """
-    b = scene.depth_m.shape[0]
-    options = {"dtype": scene.depth_m.dtype, "device": scene.depth_m.device}
-    wall_side = scene.background_depth_m * max(size_wh) / scene.focal_px + baseline_m
-    wall_center = torch.tensor([baseline_m / 2, 0.0], **options).expand(b, 1, 2)
-    tile_center = torch.cat([wall_center, scene.center_xy_m], dim=1)
-    tile_side = torch.cat([torch.full((b, 1), wall_side, **options), scene.size_m.amax(dim=-1)], dim=1)
-    tile_depth = torch.cat([torch.full((b, 1), scene.background_depth_m, **options), scene.depth_m], dim=1)
-    return _make_tiles(tile_depth, tile_side, scene.focal_px, generator), tile_center, tile_side
-
-
-def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor,
-           camera_x_m: float, scene: _Scene, tiles: torch.Tensor, tile_center_xy_m: torch.Tensor,
-           tile_side_m: torch.Tensor) -> torch.Tensor:
-    """Intensity ``(B, 1, h, w)`` of the surfaces hit (``depth``, ``slot`` from :func:`_cast_rays`).
-
-    The world hit point is mapped into its surface's tile (``tiles`` ``(B, S, G, G)``, centres
-    ``(B, S, 2)``, sides ``(B, S)``) and sampled bilinearly with wrap-around; one gather per corner, so
-    only the visible surface is sampled.
-    """
-    b, s, g, _ = tiles.shape
-    cx, cy = scene.principal_xy
-    row = g + 1
-    # Per-slot affine map from (depth · ray direction) to texel-centre coordinates (texel i covers [i, i + 1)
-    # of the tile scaled to G): u = Z·(x − cx)/f · G/side + ((camera_x − centre_x)·G/side + G/2 − 1/2).
-    # Gathering these (B, S) tables per pixel costs fewer full-image passes than mapping world points.
-    scale = g / tile_side_m
-    offset = (torch.tensor([camera_x_m, 0.0], dtype=scale.dtype, device=scale.device) - tile_center_xy_m)
-    offset = offset * scale.unsqueeze(-1) + (g / 2 - 0.5)  # (B, S, 2)
-    first = (torch.arange(b * s, device=slot.device).view(b, s) * (row * row))  # flat index of each tile
-    flat_slot = slot.flatten(1)
-
-    def per_pixel(table: torch.Tensor) -> torch.Tensor:
-        return table.gather(1, flat_slot).view_as(slot)
-
-    scale = per_pixel(scale)
-    # Wrapped into [0, G): the tiles are periodic, so surfaces larger than their tile stay seamless.
-    u = torch.addcmul(per_pixel(offset[..., 0]), depth * ((x_px - cx) / scene.focal_px), scale).remainder(g)
-    v = torch.addcmul(per_pixel(offset[..., 1]), depth * ((y_px - cy) / scene.focal_px), scale).remainder(g)
-    # Rounding can give exactly G; the clamp keeps the corner inside. The tiles get a wrapped extra row and
-    # column so the +1 neighbours need no integer modulo (which is slow on CPU).
-    u0, v0 = u.floor().clamp(max=g - 1), v.floor().clamp(max=g - 1)
-    fu, fv = u - u0, v - v0
-    padded = torch.cat([tiles, tiles[..., :1, :]], dim=-2)
-    padded = torch.cat([padded, padded[..., :1]], dim=-1).reshape(-1)  # (B·S·(G+1)²,)
-    corner = per_pixel(first) + (v0 * row + u0).long()  # exact: below 2^24 even in float32
-    # The other corners via shifted views of the flat tiles rather than three more index tensors.
-    top = torch.lerp(padded.take(corner), padded[1:].take(corner), fu)
-    bottom = torch.lerp(padded[row:].take(corner), padded[row + 1:].take(corner), fu)
-    return torch.lerp(top, bottom, fv)
-
-
-def _render_view(camera_x_m: float, scene: _Scene, size_wh: tuple[int, int], supersample: int,
-                 tiles: torch.Tensor, tile_center_xy_m: torch.Tensor, tile_side_m: torch.Tensor) -> torch.Tensor:
-    """One camera's image ``(B, 1, H, W)``: shade an s× finer grid, then average each s × s block."""
-    width, height = size_wh
-    dtype, device = scene.depth_m.dtype, scene.depth_m.device
-    # Sub-pixel sample centres of output pixel i: (j + 0.5) / s − 0.5 for the s samples j inside it.
-    x_px = ((torch.arange(width * supersample, dtype=dtype, device=device) + 0.5) / supersample - 0.5)
-    y_px = ((torch.arange(height * supersample, dtype=dtype, device=device) + 0.5) / supersample - 0.5)
-    x_px, y_px = x_px.view(1, 1, 1, -1), y_px.view(1, 1, -1, 1)
-    depth, slot = _cast_rays(x_px, y_px, camera_x_m, scene)
-    image = _shade(depth, slot, x_px, y_px, camera_x_m, scene, tiles, tile_center_xy_m, tile_side_m)
-    return F.avg_pool2d(image, supersample) if supersample > 1 else image
-
-
-def _visible_bboxes(object_ids: torch.Tensor, num_objects: int) -> torch.Tensor:
-    """``(B, K, 4)`` int64 ``x0, y0, x1, y1`` (exclusive ends) of labels 1..K in ``object_ids``; 0 if absent."""
-    b, _, h, w = object_ids.shape
-    labels = torch.arange(1, num_objects + 1, device=object_ids.device).view(1, num_objects, 1, 1)
-    mask = object_ids == labels  # (B, K, H, W)
-
-    def span(present: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        index = torch.arange(n, device=present.device)
-        first = torch.where(present, index, n).amin(dim=-1)
-        last = torch.where(present, index, -1).amax(dim=-1) + 1
-        seen = present.any(dim=-1)
-        return torch.where(seen, first, 0), torch.where(seen, last, 0)
-
-    x0, x1 = span(mask.any(dim=2), w)
-    y0, y1 = span(mask.any(dim=3), h)
-    return torch.stack([x0, y0, x1, y1], dim=-1)
 
 
 def _resolve_generator(generator: torch.Generator | None, device: torch.device) -> torch.Generator:

@@ -13,12 +13,15 @@ pipeline, ``evaluation``, ``data`` or the CLI.
 The names below were the old ``svs_torch.depth`` module's, and stay importable from here.
 """
 
-from .sparse import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
-                     PointDepths, Quantiles, RangeEstimate, accuracy_percent, estimate_depth, estimate_range,
-                     kept_region_lower_median, labelled_quantile, masked_lower_median, masked_quantile,
-                     nearest_obstacle, object_depths, point_depths, rectified_disparity, slot_labels)
+from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
+                          PointDepths, RangeEstimate)
+from .quantiles import Quantiles, kept_region_lower_median, labelled_quantile, masked_lower_median, masked_quantile
+from .sparse import (accuracy_percent, estimate_depth, estimate_range, nearest_obstacle, object_depths, point_depths,
+                     rectified_disparity, slot_labels)
 
-__all__ = ["Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
-           "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
-           "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile",
-           "nearest_obstacle", "object_depths", "point_depths", "rectified_disparity", "slot_labels"]
+__all__ = [
+    "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
+    "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
+    "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile", "nearest_obstacle",
+    "object_depths", "point_depths", "rectified_disparity", "slot_labels"
+]

@@ -18,12 +18,15 @@ import dataclasses
 
 import torch
 
-from . import kernels
 from ..core.checks import InputError, check_dtype, check_shape
 from ..core.kernels.checks import check_nonempty, check_rows
-from .dense import DenseDisparity, crop_index, fill_invalid_rows
-from .sparse import Disparities, ObjectDepths, RangeEstimate, _interpolate_ranks, labelled_quantile
 from ..geometry.rectification import apply_homography
+from . import kernels
+from .block_matching import fill_invalid_rows
+from .cost_volume import crop_index
+from .dense_config import DenseDisparity
+from .depth_types import Disparities, ObjectDepths, RangeEstimate
+from .quantiles import _interpolate_ranks, labelled_quantile
 
 __all__ = ["count_agreeing_inliers", "dense_object_depths", "range_from_objects"]
 
@@ -34,6 +37,43 @@ def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str
         value = value.expand(b)
     check_shape(value, name, [b])
     return value
+
+
+def _check_inputs(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
+                  percentiles: tuple[float, float]) -> tuple[int, float, float]:
+    """:func:`dense_object_depths`' arguments checked: the batch size and the two percentiles."""
+    disparity = dense.disparity_px
+    dims = check_shape(disparity, "dense.disparity_px", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(dense.valid, "dense.valid", [b, 1, h, w])
+    check_dtype(dense.valid, "dense.valid", "bool")
+    check_nonempty(disparity, "dense.disparity_px")
+    check_rows(dense.crop_xywh, "dense.crop_xywh", b, 4)
+    check_rows(dense.min_disparity_px, "dense.min_disparity_px", b)
+    check_rows(dense.pair_num_disparities, "dense.pair_num_disparities", b)
+    check_shape(labels, "labels", list(disparity.shape))
+    check_dtype(labels, "labels", "int")
+    check_rows(objects.label, "objects.label", b, "N")
+    low, high = (float(p) for p in percentiles)
+    if not 0 <= low <= high <= 100:
+        raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
+    return b, low, high
+
+
+def _compiled_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, scale: torch.Tensor,
+                         doffs: torch.Tensor, in_view_from: torch.Tensor, fill_invalid: bool, q: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The compiled path (``depth/kernels/object_depths.c``): each pair read once at its own box, the same
+    statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128: twice the
+    time a pair of B = 32). Each object's (median, low, high) depths, valid and in-view counts; None where the
+    kernel does not run."""
+    b = dense.disparity_px.shape[0]
+    fused = kernels.object_depths(dense.disparity_px[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
+                                  slots, scale.view(b), doffs.view(b), in_view_from, fill_invalid, q)
+    if fused is None:
+        return None
+    members, count, in_view, below, above = fused
+    return _interpolate_ranks(below, above, members.unsqueeze(-1), q).values, count, in_view
 
 
 def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
@@ -59,7 +99,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
             disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``); 0: no
             check. The statistics are still over all the object's pixels.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
-            (:func:`~svs_torch.depth.dense.fill_invalid_rows`) before taking the statistics, so that the median is
+            (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median is
             over the whole region, as the truth is, and not only over its well-textured part.
 
     Returns:
@@ -67,20 +107,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         and ``num_valid_px``, ``num_in_view_px`` ``(B, N)`` int64 set.
     """
     disparity = dense.disparity_px
-    dims = check_shape(disparity, "dense.disparity_px", ["B", 1, "H", "W"])
-    b, h, w = dims["B"], dims["H"], dims["W"]
-    check_shape(dense.valid, "dense.valid", [b, 1, h, w])
-    check_dtype(dense.valid, "dense.valid", "bool")
-    check_nonempty(disparity, "dense.disparity_px")
-    check_rows(dense.crop_xywh, "dense.crop_xywh", b, 4)
-    check_rows(dense.min_disparity_px, "dense.min_disparity_px", b)
-    check_rows(dense.pair_num_disparities, "dense.pair_num_disparities", b)
-    check_shape(labels, "labels", list(disparity.shape))
-    check_dtype(labels, "labels", "int")
-    check_rows(objects.label, "objects.label", b, "N")
-    low, high = (float(p) for p in percentiles)
-    if not 0 <= low <= high <= 100:
-        raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
+    b, low, high = _check_inputs(dense, labels, objects, percentiles)
     focal = _per_pair(focal_px, b, disparity, "focal_px").view(b, 1)
     baseline = _per_pair(baseline_m, b, disparity, "baseline_m").view(b, 1)
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
@@ -90,15 +117,10 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     in_view_from = (dense.min_disparity_px + dense.pair_num_disparities - 1).clamp_min(0).long()
     fused = None
     gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
-    if not gradients and disparity.dim() == 4 and disparity.shape[1] == 1:
-        # The compiled path (svs_torch/kernels/object_depths.c): each pair read once at its own box, the same
-        # statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128:
-        # twice the time a pair of B = 32).
-        fused = kernels.object_depths(disparity[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
-                                      slots, (focal * baseline).view(b), doffs.view(b), in_view_from, fill_invalid, q)
+    if not gradients:
+        fused = _compiled_statistics(dense, labels, slots, focal * baseline, doffs, in_view_from, fill_invalid, q)
     if fused is not None:
-        members, count, in_view, below, above = fused
-        stats = _interpolate_ranks(below, above, members.unsqueeze(-1), q).values
+        stats, count, in_view = fused
     else:
         stats, count, in_view = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid,
                                                   in_view_from)

@@ -34,11 +34,11 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError
-from ..data.formats import write_kitti_disparity, write_pfm
 from ..core.files import make_output_folder, write_bytes_atomic
-from ..pipeline import PipelineResult
-from ..geometry.rectification import warp_rectified
 from ..core.types import StereoBatch
+from ..data.formats import write_kitti_disparity, write_pfm
+from ..geometry.rectification import warp_rectified
+from ..pipeline import PipelineResult
 
 __all__ = ["EXPORT_FORMATS", "METHOD_NAME", "DisparityExport", "export_name", "left_view_disparity"]
 

@@ -19,13 +19,13 @@ from dataclasses import dataclass
 
 import torch
 
-from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..core.checks import InputError
+from ..core.types import StereoBatch
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
 from ..data.pair_list import PairSource
+from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
-from ..core.types import StereoBatch
 from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
 from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 

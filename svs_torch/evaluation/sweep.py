@@ -53,8 +53,8 @@ from typing import Any
 from ..core.camera import parse_size
 from ..core.checks import InputError
 from ..data.pair_list import PairSource, read_pair_sources
-from ..segmentation.learned import weights_path
 from ..pipeline import PipelineConfig
+from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,

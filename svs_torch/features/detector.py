@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from . import kernels
 from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
-from .hessian import HessianOctave, hessian_octaves, local_maxima_scores, maxima_support
 from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
+from . import kernels
+from .hessian import HessianOctave, hessian_octaves, local_maxima_scores, maxima_support
 
 __all__ = ["SurfConfig", "detect_surf_keypoints", "metric_threshold_01"]
 
@@ -92,7 +92,7 @@ def _candidates(octaves: list[HessianOctave], threshold: float, mask: torch.Tens
 
 def _strongest_maxima(octaves: list[HessianOctave], threshold: float, mask: torch.Tensor | None,
                       max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`_candidates` and its ``torch.topk`` in one C pass (:func:`svs_torch.core.kernels.strongest_maxima`): the
+    """:func:`_candidates` and its ``torch.topk`` in one C pass (:func:`svs_torch.features.kernels.strongest_maxima`): the
     same values and indices, equal scores in index order (which ``torch.topk`` leaves open). The dense maps of
     the octaves (−inf at all but a few hundred of ~200 000 points at 320×240) are never written, concatenated or
     partially sorted: 16 real images of 320×240, one thread, about 19 → 12 ms. None when the kernel cannot run."""
@@ -196,14 +196,22 @@ def detect_surf_keypoints(
         scores = _candidates(octaves, threshold, mask, config.compiled)
         top = torch.topk(scores, min(config.max_keypoints, scores.shape[1]), dim=1)
     top_score, index = top  # (B, k), strongest first; index into the octaves' concatenated interiors
-    # The compiled fit (svs_torch/kernels/refine_maxima.c): one loop over the keypoints instead of about fifty
+    # The compiled fit (svs_torch/features/kernels/refine_maxima.c): one loop over the keypoints instead of about fifty
     # small ops on (B, k) tensors; the same keypoints, its 3 × 3 solve's rounding aside.
     fitted = kernels.refine_maxima([o.det for o in octaves], [o.trace for o in octaves], [o.step for o in octaves],
                                    [list(o.sizes) for o in octaves], top_score, index, factor, config.max_offset)
     if fitted is not None:
         valid, xy, size, peak, sign = fitted
         return _pack(valid, xy, 1.2 * size / 9.0, peak, sign, image.dtype, config.max_keypoints)
-    tables = _octave_tables(octaves, image.device)
+    return _fit_keypoints(octaves, top_score, index, factor, config, image.dtype)
+
+
+def _fit_keypoints(octaves: list[HessianOctave], top_score: torch.Tensor, index: torch.Tensor, factor: int,
+                   config: SurfConfig, dtype: torch.dtype) -> Keypoints:
+    """The torch path of the keypoints' fit: each maximum's octave, level, row and column from its index into
+    the octaves' concatenated interiors, the quadratic fit of its 3 × 3 × 3 neighbourhood (:func:`_refine`),
+    its position and size in input pixels, and its Laplacian sign."""
+    tables = _octave_tables(octaves, top_score.device)
     octave_id = (torch.searchsorted(tables["offset"], index, right=True) - 1).clamp(min=0)
     local = index - tables["offset"][octave_id]
     inner_plane, inner_nx = tables["inner_plane"][octave_id], tables["inner_nx"][octave_id]
@@ -221,7 +229,7 @@ def detect_surf_keypoints(
     size = (tables["size0"][octave_id] + (level + offset[..., 2]) * tables["size_inc"][octave_id]) / factor
     trace = _octave_reader([o.trace for o in octaves], octave_id, position, nx, plane, radius=0)()
     sign = torch.where(trace >= 0, 1, -1).to(torch.int64)
-    return _pack(valid, xy, 1.2 * size / 9.0, peak, sign, image.dtype, config.max_keypoints)
+    return _pack(valid, xy, 1.2 * size / 9.0, peak, sign, dtype, config.max_keypoints)
 
 
 def _pack(valid, xy, scale, score, sign, dtype, k_total: int) -> Keypoints:

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import torch
 
-from . import kernels
 from ..core.checks import check_image
 from ..core.compiling import maybe_compiled
+from . import kernels
 from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
 __all__ = ["HessianOctave", "filter_sizes", "hessian_octaves"]
@@ -111,6 +111,18 @@ def _inside_levels(sizes: tuple[int, ...], step: int, grid_hw: tuple[int, int], 
     return torch.stack(levels)
 
 
+def _padded_table(image: torch.Tensor, pad: int, use_kernel: bool) -> torch.Tensor:
+    """The integral image of ``image`` minus its mean, padded by ``pad``: with ``use_kernel`` in one pass per
+    image by the C kernel (the same values), else by :func:`pad_integral` of :func:`integral_image`."""
+    padded = None
+    if use_kernel:
+        check_image(image, "image", check_range=False)
+        padded = kernels.padded_integral(image, image.mean(dim=(-2, -1)).flatten(), pad)
+    if padded is None:
+        padded = pad_integral(integral_image(image, subtract_mean=True), pad)
+    return padded
+
+
 def hessian_octaves(
     image: torch.Tensor, num_octaves: int = 3, num_scale_levels: int = 4, compiled: bool = False
 ) -> list[HessianOctave]:
@@ -123,7 +135,7 @@ def hessian_octaves(
         compiled: run the per-level kernel through ``torch.compile`` (identical output, about 10× faster on
             CPU once compiled; the first call compiles for about 20 s, later processes reuse inductor's
             on-disk cache). Without it, float32 images that need no gradient go through the fused C kernel of
-            :mod:`svs_torch.core.kernels` where it can be built (identical output too, no compile wait).
+            :mod:`svs_torch.features.kernels` where it can be built (identical output too, no compile wait).
 
     Returns:
         One :class:`HessianOctave` per octave, in the image's dtype. Differentiable with respect to ``image``.
@@ -137,12 +149,7 @@ def hessian_octaves(
     largest = filter_sizes(num_octaves - 1, num_scale_levels)[-1]
     pad = largest // 2 + 2
     kernel_ok = image.dtype == torch.float32 and not (torch.is_grad_enabled() and image.requires_grad)
-    padded = None
-    if kernel_ok and not compiled:  # the table in one pass per image, the same values (svs_torch.core.kernels)
-        check_image(image, "image", check_range=False)
-        padded = kernels.padded_integral(image, image.mean(dim=(-2, -1)).flatten(), pad)
-    if padded is None:
-        padded = pad_integral(integral_image(image, subtract_mean=True), pad)
+    padded = _padded_table(image, pad, kernel_ok and not compiled)
     # One dynamic-shape graph serves every level and octave: the slicing happens outside, so filter sizes and
     # offsets never reach the graph.
     level = maybe_compiled(_level_into, compiled)

@@ -7,9 +7,9 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from ..core.types import Keypoints
 from .descriptor import describe_surf, surf_orientation, with_orientation
 from .detector import SurfConfig, detect_surf_keypoints
-from ..core.types import Keypoints
 
 __all__ = ["SurfFeatures", "extract_surf_features"]
 

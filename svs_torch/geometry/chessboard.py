@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .calibration import StereoCalibration
 from ..core.checks import InputError
+from .calibration import StereoCalibration
 
 __all__ = ["BoardViews", "MIN_PAIRS", "calibrate_stereo_rig", "collect_board_views", "find_board_corners",
            "rectified_corners"]

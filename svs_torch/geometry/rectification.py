@@ -36,14 +36,8 @@ import torch
 from ..core.checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
-    "MappedPoints",
-    "Rectification",
-    "RectificationConfig",
-    "RectificationStatus",
-    "map_points",
-    "apply_homography",
-    "rectify_uncalibrated",
-    "warp_rectified",
+    "MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "map_points", "apply_homography",
+    "rectify_uncalibrated", "warp_rectified"
 ]
 
 #: F is treated as rank < 2 (no epipole) when ``‖adj F‖ ≤`` this times ``‖F‖²`` (``‖adj F‖ = σ₁σ₂`` for rank 2).

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
-from .ransac import draw_minimal_samples
+from .ransac_sampling import draw_minimal_samples
 
 __all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment", "row_alignment_homography"]
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 
 from .epipolar import fundamental_8point
-from .matching import LK_GRID_HALF_WIDTH, _centre, _sample_patches
+from .lk_refinement import LK_GRID_HALF_WIDTH, _centre, _sample_patches
 from .rectification import RectificationConfig, rectify_uncalibrated
 from .row_alignment import row_alignment_homography
 
@@ -43,7 +43,7 @@ def straight_through(hard: torch.Tensor, soft: torch.Tensor) -> torch.Tensor:
 
 def _lk_grid(radius: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The refinement's sample offsets ``(B, K, P, 2)`` and Gaussian weights ``(B, K, P)`` for patch radii
-    ``(B, K)`` (the same grid as :func:`~svs_torch.geometry.matching._refine_lk_torch`)."""
+    ``(B, K)`` (the same grid as :func:`~svs_torch.geometry.lk_refinement._refine_lk_torch`)."""
     half = LK_GRID_HALF_WIDTH
     grid = torch.arange(-half, half + 1, dtype=radius.dtype, device=radius.device)
     v, u = torch.meshgrid(grid, grid, indexing="ij")

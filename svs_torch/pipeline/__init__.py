@@ -9,6 +9,8 @@ May import: ``svs_torch.core`` and every stage's public names. Only ``evaluation
 import the pipeline; a stage never does.
 """
 
-from .run import PipelineConfig, PipelineResult, PipelineStatus, estimate_obstacle_depth, segment_pair
+from .config import PipelineConfig, PipelineResult, PipelineStatus
+from .run import estimate_obstacle_depth
+from .stages import segment_pair
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]

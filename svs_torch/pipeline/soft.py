@@ -10,7 +10,7 @@ continuous quantities from the images (and the segmenter's logits) given those d
    its two neighbours, from the images with gradients (same pre-filter, same 1/255 levels: rounded values,
    identity gradient), then the same equiangular sub-pixel fit (:func:`subpixel_disparity`). The values are
    the hard stage's, bit for bit; the gradient reaches both images through the costs.
-2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.dense.fill_invalid_rows`, whose torch
+2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`, whose torch
    path is differentiable), with the hard validity as the mask.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
    high percentile) is replaced by the weighted mean of the object's depths whose hard rank lies within
@@ -34,9 +34,15 @@ import dataclasses
 
 import torch
 
-from ..depth.dense import (DenseConfig, DenseDisparity, equiangular_offset, mean_pool, fill_invalid_rows, prefilter_xsobel, working_factor)
-from ..depth.sparse import DepthResult, ObjectDepths, nearest_obstacle
+from ..depth.block_matching import fill_invalid_rows
+from ..depth.cost_volume import prefilter_xsobel
+from ..depth.dense import working_factor
+from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import range_from_objects
+from ..depth.depth_types import DepthResult, ObjectDepths
+from ..depth.pooling import mean_pool
+from ..depth.sparse import nearest_obstacle
+from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
@@ -193,7 +199,7 @@ def _bands(depth: torch.Tensor, members: torch.Tensor, slots: torch.Tensor, q: t
 
 def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:
     """The valid pixels each ``needed`` invalid pixel of ``(..., W)`` rows is filled from (its nearest valid
-    pixel either side, :func:`~svs_torch.depth.dense.fill_invalid_rows`), or-ed into ``needed``."""
+    pixel either side, :func:`~svs_torch.depth.block_matching.fill_invalid_rows`), or-ed into ``needed``."""
     width = valid.shape[-1]
     index = torch.arange(width, device=valid.device).expand_as(valid)
     left_index = torch.where(valid, index, -1).cummax(dim=-1).values

@@ -9,7 +9,7 @@ it:
    view (:func:`svs_torch.depth.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
    rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
    filled along their rows from the nearest measured ones, the farther side at an occlusion
-   (:func:`svs_torch.depth.dense.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
+   (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
    and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
    its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
@@ -45,15 +45,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..core.checks import InputError, check_image
-from .components import RegionProperties, connected_components_with_stats, region_properties
-from ..depth.dense import DenseConfig, block_match_sad, fill_invalid_rows, soft_block_match
-from .learned import ThreeLevelUNet
-from .morphology import open_binary, structuring_element
 from ..core.pair_trees import take_pairs
-from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
 from ..core.size_groups import merge_groups
-from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
+from ..depth.block_matching import block_match_sad, fill_invalid_rows
+from ..depth.dense_config import DenseConfig
+from ..depth.soft_dense import soft_block_match
+from .components import RegionProperties, connected_components_with_stats, region_properties
+from .morphology import open_binary, structuring_element
+from .network import ThreeLevelUNet
+from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
+from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 
 __all__ = ["NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity",
            "nearness_logits", "segment_stereo_nearness", "shift_regions_to_right"]
@@ -109,7 +111,7 @@ class NearnessNetConfig:
 
 
 class NearnessNet(ThreeLevelUNet):
-    """:class:`~svs_torch.segmentation.learned.ThreeLevelUNet` from the features ``(B, 5, h, w)`` to a correction
+    """:class:`~svs_torch.segmentation.network.ThreeLevelUNet` from the features ``(B, 5, h, w)`` to a correction
     of the rule's logits ``(B, 1, h, w)``. The head starts at zero: an untrained network leaves the rule's logits
     unchanged. Differentiable w.r.t. its parameters and its input.
     """

@@ -17,12 +17,12 @@ from typing import Literal
 import torch
 
 from ..core.checks import InputError, check_image, check_instance
-from .components import connected_components_with_stats
 from ..core.mask_reductions import any_along
+from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from .canny import canny_edges
+from .components import connected_components_with_stats
 from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
-from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 
 __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions", "keep_regions"]
 
@@ -50,7 +50,7 @@ class SegmentationConfig:
         method: ``"otsu"`` (the paper's pre-processing: Otsu threshold, erosion, dilation) or ``"canny"`` (the
             paper's comparison variant: Canny edges, dilation, erosion; :mod:`svs_torch.segmentation.canny`).
         segmenter: which segmenter the pipeline runs: ``"otsu"`` (this module, by ``method``), ``"learned"``
-            (the network shipped in ``svs_torch/weights/``, :mod:`svs_torch.segmentation.learned`) or
+            (the network shipped in ``svs_torch/segmentation/weights/``, :mod:`svs_torch.segmentation.learned`) or
             ``"learned:PATH"`` (weights written by ``experiments/train_segmentation.py``). The learned one
             replaces the threshold (``method`` and ``foreground`` then do nothing) and keeps the opening,
             ``connectivity`` and ``num_keep``. ``"nearness"`` (or ``"nearness:PATH"``): the disparity-based

@@ -20,9 +20,9 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.types import Segmentation
 from .morphology import anchor_padding, structuring_element
 from .segment import SegmentationConfig, segment_images
-from ..core.types import Segmentation
 
 __all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegmentation", "soft_segment_images"]
 

@@ -1,4 +1,5 @@
-"""The C kernels of the depth stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+"""The C kernels of the depth stage (the ``.c`` sources beside this file) and their wrappers, each the fast path of
+a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
 cached and loaded, and what every wrapper promises."""
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
                 texture_min: float, whole_range_in_view: bool, source: str = "levels",
                 prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0
                 ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``svs_torch.depth.dense._match_box`` of every pair at its own box and range, the kernel's contract (see the C
+    """``svs_torch.depth.block_matching._match_box`` of every pair at its own box and range, the kernel's contract (see the C
     source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
     whole numbers in [−255, 255] (:func:`svs_torch.depth.dense.quantize_levels`: then every cost is exact and the
     result is the torch path's bit for bit); ``texture`` ``(B, H, W)`` float32 |x-Sobel| of the left image, or
@@ -152,7 +153,7 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
 
 
 def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`svs_torch.depth.dense.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
+    """:func:`svs_torch.depth.block_matching.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
     fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
     if disparity.dim() < 1:

@@ -1,4 +1,5 @@
-"""The C kernels of the features stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+"""The C kernels of the features stage (the ``.c`` sources beside this file) and their wrappers, each the fast path of
+a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
 cached and loaded, and what every wrapper promises."""
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_rows
 
-__all__ = ["available", "hessian_octave", "load", "local_maxima", "padded_integral", "refine_maxima",
-           "strongest_maxima", "usurf_describe"]
+__all__ = [
+    "available", "hessian_octave", "load", "local_maxima", "padded_integral", "refine_maxima", "strongest_maxima",
+    "usurf_describe"
+]
 
 declare({
     "hessian_octave": ([POINTER] + [INT] * 5 + [POINTER] + [INT] * 3 + [POINTER] * 2 + [FLOAT]

@@ -1,4 +1,5 @@
-"""The C kernels of the geometry stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+"""The C kernels of the geometry stage (the ``.c`` sources beside this file) and their wrappers, each the fast path of
+a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
 cached and loaded, and what every wrapper promises."""
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ declare({
 def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
               radius: torch.Tensor, active: torch.Tensor, iterations: int, max_shift_px: float
               ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``svs_torch.geometry.matching._refine_lk``'s Gauss–Newton refinement, one match at a time (see the C source):
+    """``svs_torch.geometry.lk_refinement._refine_lk``'s Gauss–Newton refinement, one match at a time (see the C source):
     ``left``, ``right`` ``(B, 1, H, W)`` float32; ``left_xy``, ``right_xy`` ``(B, K, 2)``, ``radius`` ``(B, K)``
     float32; ``active`` ``(B, K)`` bool, the rows to refine. Returns the refined right points ``(B, K, 2)`` and
     the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the

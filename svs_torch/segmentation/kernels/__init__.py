@@ -1,4 +1,5 @@
-"""The C kernels of the segmentation stage and their wrappers: see ``svs_torch.core.kernels`` for how they are built,
+"""The C kernels of the segmentation stage (the ``.c`` sources beside this file) and their wrappers, each the fast path of
+a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
 cached and loaded, and what every wrapper promises."""
 
 from __future__ import annotations

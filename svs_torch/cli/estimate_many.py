@@ -1,0 +1,288 @@
+"""``svs-depth estimate --pairs LIST``: every listed pair gets one line, in list order, its batches run in
+worker processes (the parent decodes the first images ahead and only prints) or in this process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from .common import dumps_strict, too_small_reason
+from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
+                              with_calibration)
+from .features import load_pair
+from .progress import Progress
+from .rig import calibration_from_args, check_no_manual_calibration, with_calibrated_rectification
+
+__all__ = []
+
+
+def _load_source(source, args: argparse.Namespace):
+    """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does."""
+    from ..core.camera import parse_size
+    from ..data import load_pair_source, resize_stereo_batch
+
+    batch = load_pair_source(source)
+    if not args.size:
+        return batch, (1.0, 1.0)
+    (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "--size")
+    return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
+
+
+def _load_entry(source, args) -> tuple[str | None, str | None, object]:
+    """(status, reason, loaded pair) of one list entry: a pair to run has status None. Scenes and pairs listed
+    with a calibration keep their own; the others take the command's (or the SVS model)."""
+    from ..core.errors import InputError
+
+    if source.problem:
+        return "BAD_INPUT", source.problem, None
+    try:
+        own = source.scene or source.focal_px is not None
+        loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)
+    except (InputError, OSError) as error:
+        return "BAD_INPUT", " ".join(str(error).split()), None
+    reason = too_small_reason(loaded[0].size_hw)
+    return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
+
+
+def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
+    """One batch of list entries run through the pipeline: each entry's report (with its ``left`` and
+    ``right``) and, for a BAD_INPUT entry, the reason."""
+    from ..data import collate_stereo_batches
+    from ..pipeline import estimate_obstacle_depth
+
+    entries = [_load_entry(entry, args) for entry in chunk]
+    runnable = [loaded for _, _, loaded in entries if loaded is not None]
+    result, per_pair = None, 0.0
+    if runnable:
+        # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
+        batch = collate_stereo_batches([b for b, _ in runnable], mode="pad")
+        started = time.perf_counter()
+        result = estimate_obstacle_depth(batch, config)
+        per_pair = (time.perf_counter() - started) / len(runnable)
+        _write_disparity(args, batch, result, per_pair)
+    row, out = 0, []
+    for source, (status, reason, loaded) in zip(chunk, entries):
+        if loaded is None:
+            report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
+        else:
+            report, bad = pair_report(result, row, loaded[1], per_pair), None
+            report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args))
+            row += 1
+        out.append(({"left": source.left, "right": source.right, **report}, bad))
+    return out
+
+
+def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
+    if args.pairs not in _WORKER_SETUP:
+        config = pipeline_config_from_args(args)  # first, as in one process: a bad option is the error shown
+        check_no_manual_calibration(args)
+        calibration_from_args(args)
+        _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
+    return _WORKER_SETUP[args.pairs]
+
+
+def _worker_count(args: argparse.Namespace) -> tuple[int, str | None]:
+    """Worker task: the number of listed pairs, or the one-line error of a bad list or bad options (sent back
+    as text: the parent, which has not imported torch, raises it)."""
+    from ..core.errors import InputError
+
+    try:
+        return len(_worker_setup(args)[0]), None
+    except InputError as error:
+        return 0, str(error)
+
+
+def _worker_chunk(args: argparse.Namespace, start: int, stop: int, decoded: dict | None = None
+                  ) -> tuple[list[tuple[dict, str | None]], list[str]]:
+    """Worker task: :func:`_estimate_chunk` of the list's entries ``[start, stop)``, and the warnings it raised
+    (the parent shows them as its own one-line warnings). ``decoded``: image arrays the parent decoded for
+    these entries (:data:`svs_torch.core.image_files.PRELOADED`), used instead of reading those files again."""
+    import warnings
+
+    from ..core.image_files import PRELOADED
+
+    pairs, config = _worker_setup(args)
+    PRELOADED.update(decoded or {})
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            lines = _estimate_chunk(pairs[start:stop], args, config)
+    finally:
+        PRELOADED.clear()
+    return lines, [str(warning.message) for warning in caught]
+
+
+def _listed_lines(path: str) -> list[tuple[str, str] | None]:
+    """The list's lines read without torch, one item per non-blank, non-comment line: its two image paths for a
+    plain pair line (``LEFT RIGHT`` with or without a calibration; relative to the list's folder, as
+    :func:`svs_torch.data.read_pair_list` resolves them), None for any other line (an ``index.jsonl``'s all).
+    Their number is about how many pairs the list holds (a scene-folder line may hold more), to choose the
+    number of workers; the paths say which files to decode ahead. Neither decides a result: a list that cannot
+    be read gives [] (the real reading reports why), and a line that turns into several entries only shifts
+    which files are decoded ahead."""
+    import shlex
+
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return []
+    if path.endswith(".jsonl"):
+        return [None for line in text.splitlines() if line.strip()]
+    lines: list[tuple[str, str] | None] = []
+    for line in text.splitlines():
+        try:
+            fields = shlex.split(line, comments=True)
+        except ValueError:
+            fields = [line]
+        if fields:
+            paths = [str(p if Path(p).is_absolute() else Path(path).parent / p) for p in fields[:2]]
+            lines.append((paths[0], paths[1]) if len(fields) in (2, 4, 5) else None)
+    return lines
+
+
+def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int) -> dict[int, dict]:
+    """While the thread ``starting`` waits for the workers (their server imports torch, 1.0–1.5 s, on one
+    core), decode the first images of the list's ``lines`` (:func:`_listed_lines`) here on the other (cv2 and
+    numpy only): {chunk index: {file key: array}}, sent with each chunk so that its worker skips those reads. A
+    file that does not decode is left to the worker, which reports it as it would."""
+    from ..core.errors import InputError
+    from ..core.image_files import preload_key, read_image_array
+
+    decoded: dict[int, dict] = {}
+    for index, pair in enumerate(lines):
+        if not starting.is_alive():
+            break
+        for path in pair or ():
+            try:
+                decoded.setdefault(index // batch_size, {})[preload_key(path)] = read_image_array(path, "pairs")
+            except (InputError, OSError):
+                pass
+    return decoded
+
+
+def _worker_results(args: argparse.Namespace, lines: list[tuple[str, str] | None], workers: int, threads: int
+                    ) -> tuple[int, Iterator[list]]:
+    """The number of listed pairs, and the chunks' results in list order from ``workers`` processes of
+    :func:`svs_torch.core.workers.worker_pool`, each with ``threads`` torch threads (``lines``: the list's lines
+    as :func:`_listed_lines` read them, for the images to decode ahead)."""
+    from ..core.workers import worker_pool
+    from . import CliError
+
+    executor = worker_pool(workers, threads, ("svs_torch.pipeline",))
+    counted: dict = {}
+
+    def start() -> None:
+        # One count task per worker: each starts its process now (which waits for the server's imports), and
+        # every worker reads the list it will need.
+        try:
+            counts = [executor.submit(_worker_count, args) for _ in range(workers)]
+            counted["count"] = counts[0].result()
+        except BaseException as error:  # raised again in the calling thread
+            counted["error"] = error
+
+    starting = threading.Thread(target=start, name="start-workers", daemon=True)
+    try:
+        starting.start()
+        decoded = _decode_while(starting, lines, args.batch_size)
+        starting.join()
+        if "error" in counted:
+            raise counted["error"]
+        total, problem = counted["count"]
+        if problem:
+            raise CliError(problem)
+    except BaseException:
+        executor.shutdown(wait=False, cancel_futures=True)
+        raise
+    return total, _ordered_chunks(executor, args, total, decoded)
+
+
+def _ordered_chunks(executor, args: argparse.Namespace, total: int, decoded: dict[int, dict]) -> Iterator[list]:
+    """Every chunk of the list submitted to ``executor``, its lines yielded in list order; the workers'
+    warnings shown here as this process's own."""
+    import warnings
+
+    from ..core.workers import stop_worker_server
+
+    try:
+        futures = [executor.submit(_worker_chunk, args, start, min(start + args.batch_size, total),
+                                   decoded.pop(start // args.batch_size, None))
+                   for start in range(0, total, args.batch_size)]
+        for future in futures:
+            lines, messages = future.result()
+            for message in messages:
+                warnings.warn(message, RuntimeWarning, stacklevel=2)
+            yield lines
+        executor.shutdown(wait=True)  # every task is done: the workers exit before this process does
+        stop_worker_server()  # and their server, waited for: their CPU time counts as this process's children's
+    finally:  # an error, Ctrl-C or a closed pipe: drop what has not started, do not wait for it
+        executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_many(args: argparse.Namespace) -> int:
+    """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT.
+    With more than one worker the batches run in worker processes and this process only prints."""
+    from ..core.workers import imports_without_collection, thread_budget
+
+    budget = thread_budget()
+    listed = _listed_lines(args.pairs)
+    chunks = -(-len(listed) // args.batch_size)
+    workers = max(1, min(budget if args.workers is None else args.workers, chunks))
+    if workers == 1:
+        with imports_without_collection():  # the pipeline's imports (see there)
+            config = pipeline_config_from_args(args)
+            check_no_manual_calibration(args)
+            calibration_from_args(args)
+        pairs = _read_pair_list(args.pairs)
+        total = len(pairs)
+        results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)
+                   for start in range(0, total, args.batch_size))
+    else:
+        total, results = _worker_results(args, listed, workers, max(1, budget // workers))
+    bad = []
+    # A bar for a person watching; in a log or a pipe, a plain line every few seconds and a summary.
+    with Progress(total, "estimate") as progress:
+        for lines in results:
+            for report, reason in lines:
+                if reason is not None:
+                    bad.append(reason)
+                heading = f"{report['left']} {report['right'] or ''}".rstrip()
+                progress.write(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]))
+            progress.update(len(lines))
+    if bad:
+        print(f"svs-depth estimate: error: pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
+              file=sys.stderr)
+        return 2
+    return 0
+
+
+def pipeline_config_from_args(args: argparse.Namespace):
+    """``--preset`` with every option the user gave (``--range``, ``--canny``, features, segmentation)."""
+    from dataclasses import replace
+
+    from .features import preset_config
+
+    config = replace(preset_config(args), seed=args.seed)
+    if args.canny:
+        config = replace(config, segmentation=replace(config.segmentation, method="canny"))
+    if args.range_rule:
+        config = replace(config, depth=replace(config.depth, rule=args.range_rule))
+    return with_calibrated_rectification(config, args)
+
+
+def _read_pair_list(path: str):
+    """The entries of a pair list (:func:`svs_torch.data.read_pair_list`): lines ``LEFT RIGHT``, ``LEFT RIGHT
+    FOCAL_PX BASELINE_M [DOFFS_PX]`` or a scene folder, or capture's ``index.jsonl``. An entry that is not a pair
+    keeps its ``problem``: it still gets its own output line."""
+    from ..data import read_pair_list
+
+    return read_pair_list(path, "pairs")
+
+
+#: This worker process's pair list and pipeline configuration, made once per list (every worker reads the list
+#: itself: the parent never imports torch).
+_WORKER_SETUP: dict[str, tuple[list, object]] = {}

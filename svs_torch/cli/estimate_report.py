@@ -1,0 +1,150 @@
+"""What ``svs-depth estimate`` says and writes about a pair: its JSON report (with the calibration its metres
+use), the lines printed for it, and its dense disparity map (``--disparity-out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .rig import calibration_file_source
+
+__all__ = ["format_report", "pair_report", "unranged_report", "with_calibration"]
+
+
+def unranged_report(status: str, reason: str, range_rule: str) -> dict:
+    """The report of a pair the pipeline did not run on (``TOO_SMALL``, ``BAD_INPUT``): the keys of
+    :func:`pair_report`, with null numbers, and the reason."""
+    return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
+            "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
+            "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
+            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
+
+
+def _calibration_source(source, args) -> str:
+    """Where pair ``source``'s calibration comes from: ``--calibration``'s file, its own data or list line, the
+    command's options, or the SVS model."""
+    from ..data import pair_calibration_source
+
+    return calibration_file_source(args, source) or pair_calibration_source(source, args.focal_px, args.baseline_m)
+
+
+def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str) -> dict:
+    """``report`` with the calibration its metres use, for the INPUT image size, and where it came from
+    (:func:`svs_torch.data.calibration_record`)."""
+    from ..data import calibration_record
+
+    return {**report, "calibration": calibration_record(batch, index, source, factors[0])}
+
+
+def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
+    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
+    from ..depth.depth_types import ObstacleSide
+    from ..pipeline import PipelineStatus
+
+    rng, objects = result.depth.range, result.depth.objects
+    regions = result.segmentation.left.regions
+    fx, fy = factors
+
+    def number(value, valid) -> float | None:
+        return round(float(value), 4) if bool(valid) else None
+
+    report_objects = []
+    for slot, label in enumerate(result.segmentation.left.kept_labels[index].tolist()):
+        if label < 0:
+            continue
+        x0, y0, x1, y1 = regions.bbox_xyxy[index, label - 1].tolist()
+        report_objects.append({
+            "label": slot + 1,
+            "area_px": int(round(int(regions.area_px[index, label - 1]) * fx * fy)),
+            "bbox_xyxy": [int(round(x0 * fx)), int(round(y0 * fy)), int(round(x1 * fx)), int(round(y1 * fy))],
+            "depth_m": number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
+            "depth_p10_m": number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
+            "depth_p90_m": number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
+            "num_inliers": int(objects.num_inliers[index, slot]),
+            "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
+            "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
+                               else None),
+            "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
+        })
+    nearest = result.depth.nearest
+    return {
+        "status": PipelineStatus(int(result.status[index])).name,
+        "range_rule": result.range_rule,
+        "r_min_m": number(rng.r_min_m[index], rng.valid[index]),
+        "r_max_m": number(rng.r_max_m[index], rng.valid[index]),
+        "d_min_px": number(rng.d_min_px[index], rng.valid[index]),
+        "d_max_px": number(rng.d_max_px[index], rng.valid[index]),
+        "nearest_m": number(nearest.depth_m[index], nearest.valid[index]),
+        "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
+        "nearest_surface_m": number(nearest.surface_m[index], nearest.valid[index]),
+        "objects": report_objects,
+        "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
+        "num_matches": int(result.num_matches[index]),
+        "num_inliers": int(result.num_inliers[index]),
+        "num_agreeing_inliers": (int(result.num_agreeing_inliers[index]) if result.num_agreeing_inliers is not None
+                                 else None),
+        "verified": bool(result.verified[index]) if result.verified is not None else None,
+        "rectified": bool(result.rectified[index]),
+        # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
+        # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
+        # its region's pixels inside it.
+        "dense_box_xywh": ([int(v) for v in result.dense.crop_xywh[index].tolist()] if result.dense is not None
+                           else None),
+        "time_s": round(elapsed_s, 6),
+    }
+
+
+def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[str]:
+    """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
+    called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept)."""
+    if report.get("reason"):
+        return [f"status {report['status']}: {report['reason']}"]
+    lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
+             f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
+    if report.get("calibration"):
+        from ..data import format_calibration
+
+        lines.append(f"  {format_calibration(report['calibration'])}")
+    if report["r_min_m"] is not None:
+        lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
+                     f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "
+                     f"{report['range_rule']} rule")
+    for obj in report["objects"]:
+        depth = "no depth"
+        if obj["depth_m"] is not None:
+            depth = f"{obj['depth_m']:.3f} m (p10 {obj['depth_p10_m']:.3f}, p90 {obj['depth_p90_m']:.3f})"
+        support = f"{obj['num_inliers']} inliers"
+        if obj["num_valid_px"] is not None:
+            support = f"{obj['num_valid_px']} valid px"
+            if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
+                support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
+        lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
+                     f"box {obj['bbox_xyxy']}")
+    if report["nearest_m"] is not None:
+        lines.append(f"  {nearest_name}: {report['nearest_m']:.2f} m, {report['nearest_side']} "
+                     f"(nearest surface {report['nearest_surface_m']:.2f} m)")
+    return lines
+
+
+#: This process's export of ``--disparity-out`` (one per worker), so two listed pairs of one name are caught.
+_EXPORTS: dict[tuple, object] = {}
+
+
+def _write_disparity(args: argparse.Namespace, batch, result, time_s: float) -> None:
+    """Write the run's dense maps into ``--disparity-out`` (a pair that would overwrite another of this
+    process's is skipped with a warning naming both)."""
+    if not args.disparity_out:
+        return
+    import warnings
+
+    from ..core.errors import InputError
+    from ..evaluation.export import DisparityExport
+
+    key = (args.disparity_out, args.disparity_format, args.method_name)
+    export = _EXPORTS.setdefault(key, DisparityExport(Path(args.disparity_out), args.disparity_format,
+                                                      args.method_name))
+    try:
+        export.write(batch, result, time_s)
+    except InputError as error:
+        warnings.warn(str(error), RuntimeWarning, stacklevel=2)

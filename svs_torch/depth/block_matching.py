@@ -1,0 +1,248 @@
+"""Hard SAD block matching (:func:`block_match_sad`, :func:`dense_disparity_over_regions`): the fused C kernel
+(``depth/kernels/block_match.c``) where it runs, else the torch path of :mod:`.cost_volume` and :mod:`.winner`,
+bit for bit the same; and the row fill of invalid pixels (:func:`fill_invalid_rows`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.kernels.checks import check_counts, check_image_hw, check_nonempty
+from ..core.mask_reductions import any_along
+from . import kernels
+from .cost_volume import (_box_sum, _cost_volume, _gather_crop, crop_box, prefilter_xsobel, quantize_levels,
+                          region_crop_boxes, wanted_pixels)
+from .dense_config import DenseConfig, DenseDisparity, DisparityRange
+from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_stats_torch
+
+__all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
+
+
+def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
+                  width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
+                  config: DenseConfig, counts: torch.Tensor, extra: int = 0) -> _WinnerStats:
+    """:class:`_WinnerStats` of the box at (x0, y0) from the torch cost volume. The box's first and last
+    ``extra`` columns serve only the right view's winner: the left statistics are of the columns between
+    (``right_best`` is of them all)."""
+    uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
+    costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
+                                     config, counts)
+    stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
+    core = slice(extra, width - extra)
+    return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best)
+
+
+def _compiled(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> bool:
+    """Whether the hard path may run the fused C kernel (:func:`_match_compiled`): float32 CPU images without
+    gradients, and ``config.kernel`` allows it."""
+    return (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
+            and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)))
+
+
+def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor, search: DisparityRange,
+                    image_hw: torch.Tensor, config: DenseConfig, lower_is_limit: torch.Tensor,
+                    mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`_match_box` of each pair at its own box ``(B, 4)`` (x0, y0, width, height) and its own range, by
+    the fused C kernel of :mod:`svs_torch.depth.kernels`, straight to the full-frame disparity and validity
+    ``(B, 1, H, W)``: the same values bit for bit (a pair's result never depends on its batch), without the
+    batch's shared box, the groups of ranges or the scatter back; with ``mask`` ``(B, 1, H, W)`` only at its
+    :func:`wanted_pixels`. None when the kernel cannot run here (then the torch path does; ``kernel="c"`` makes
+    that an error)."""
+    if not _compiled(left, right, config):
+        return None
+    counts = search.pair_num_disparities
+    if counts is None:
+        counts = torch.full_like(search.min_disparity_px, search.num_disparities)
+    size = config.window_size
+    # The kernel pre-filters (x-Sobel, clip, quantize_levels) and takes the texture a crop row at a time, the
+    # torch path's values: whole pre-filtered frames cost passes over every pair, most of it outside the kept
+    # regions (the dense stage on the shared Middlebury scenes at B = 32, 2 threads, interleaved: 3.0-3.2 ->
+    # 2.9 ms a pair).
+    found = kernels.block_match(
+        left[:, 0], right[:, 0], config.texture_threshold > 0, size, boxes, search.min_disparity_px, counts,
+        image_hw, lower_is_limit, config.uniqueness_ratio, config.lr_max_diff_px,
+        config.texture_threshold * size ** 2, config.whole_range_in_view,
+        source="xsobel" if config.prefilter == "xsobel" else "raw", prefilter_cap=config.prefilter_cap,
+        mask=None if mask is None else mask[:, 0], mask_margin_px=config.margin_px)
+    if found is None:
+        if config.kernel == "c":
+            raise InputError("kernel: 'c' asks for the compiled dense kernel, which is not available here "
+                             "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
+        return None
+    return found[0].unsqueeze(1), found[1].unsqueeze(1)
+
+
+def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
+               width: int, search: DisparityRange, image_hw: torch.Tensor, config: DenseConfig,
+               lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Disparity ``(B, height, width)`` and validity of the box at (x0, y0) of the images. The volume spans
+    D − 1 extra columns on each side so the right view's winner (left–right check) sees every candidate."""
+    sobel = prefilter_xsobel(left, config.prefilter_cap)
+    if config.prefilter == "xsobel":
+        left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
+    # StereoBM's levels: the matched values in whole 1/255 intensity steps (its pre-filter is uint8). The SAD
+    # costs are then whole numbers, exact in float32 (at most K² · 255 < 2²⁴) whatever the order of the sums,
+    # so the C kernel's running sums give the torch path's costs bit for bit.
+    left, right = quantize_levels(left), quantize_levels(right)
+    num_disparities = search.num_disparities
+    extra = num_disparities - 1 if config.lr_max_diff_px is not None else 0
+    counts = search.pair_num_disparities
+    if counts is None:
+        counts = torch.full_like(search.min_disparity_px, num_disparities)
+    # The extra columns serve only the right view's winner: every per-pixel verdict is made on the box itself.
+    stats = _winner_stats(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
+                          num_disparities, image_hw[:, 1], config, counts, extra)
+    best = stats.best
+    offset, ok = _winner(stats, num_disparities, config, lower_is_limit, counts)
+    if config.lr_max_diff_px is not None:
+        ok &= _left_right_consistent(best, stats.right_best, config.lr_max_diff_px, extra)
+    if config.texture_threshold > 0:
+        radius = config.window_size // 2
+        texture = _gather_crop(sobel.abs(), y0 - radius, x0 - radius, height + 2 * radius, width + 2 * radius)
+        ok &= _box_sum(texture, config.window_size).squeeze(1) >= config.texture_threshold * config.window_size ** 2
+    disparity = search.min_disparity_px.view(-1, 1, 1).to(offset.dtype) + best.to(offset.dtype) + offset
+    rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
+    cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
+    ok &= (rows >= 0) & (rows < image_hw[:, :1, None]) & (cols >= 0) & (cols < image_hw[:, 1:, None])
+    if config.whole_range_in_view:  # the pair's largest disparity must still land inside the right image
+        ok &= cols >= (search.min_disparity_px + counts - 1).view(-1, 1, 1)
+    return torch.where(ok, disparity, torch.zeros_like(disparity)), ok
+
+
+def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fill each invalid pixel of ``(..., W)`` rows from the nearest valid pixels to its left and right: their
+    mean where they agree within 1 px (a textureless patch inside one surface), otherwise the smaller
+    disparity (an occlusion is background: Hirschmüller 2008, Sec. 3.5); one side only where the other has
+    none. Returns the filled disparity and where a fill was possible (``valid`` or a valid pixel in the row).
+    Differentiable w.r.t. ``disparity``; without gradients a compiled kernel gives the same values in two
+    passes per row (:mod:`svs_torch.depth.kernels`)."""
+    if not (disparity.requires_grad and torch.is_grad_enabled()):
+        done = kernels.fill_invalid_rows(disparity, valid)
+        if done is not None:
+            return done
+    width = disparity.shape[-1]
+    index = torch.arange(width, device=disparity.device).expand_as(disparity)
+    left_index = torch.where(valid, index, -1).cummax(dim=-1).values
+    right_index = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)
+    has_left, has_right = left_index >= 0, right_index < width
+    from_left = disparity.gather(-1, left_index.clamp(0, width - 1))
+    from_right = disparity.gather(-1, right_index.clamp(0, width - 1))
+    agree = (from_left - from_right).abs() <= 1
+    both = torch.where(agree, (from_left + from_right) / 2, torch.minimum(from_left, from_right))
+    filled = torch.where(has_left & has_right, both, torch.where(has_left, from_left, from_right))
+    reachable = valid | has_left | has_right
+    return torch.where(valid, disparity, torch.where(reachable, filled, torch.zeros_like(filled))), reachable
+
+
+def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:
+    # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
+    # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
+    # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
+    dims = check_image(left, "left")
+    check_image(right, "right")
+    if left.shape != right.shape:
+        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    check_nonempty(left, "left")
+    return dims["B"]
+
+
+def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Tensor:
+    """``image_hw`` ``(B, 2)``, each pair's size within the tensors (default: all of them)."""
+    b, _, h, w = left.shape
+    if image_hw is None:
+        return torch.tensor([[h, w]], device=left.device).expand(b, 2)
+    return check_image_hw(image_hw, b, h, w)
+
+
+def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, b: int,
+                 device: torch.device) -> torch.Tensor:
+    if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
+        raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
+    minimum = torch.as_tensor(min_disparity_px, device=device)
+    if minimum.dim() == 0:
+        minimum = minimum.expand(b)
+    check_shape(minimum, "min_disparity_px", [b])
+    check_dtype(minimum, "min_disparity_px", "int")
+    # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
+    if minimum.numel() and bool((minimum.abs() >= 2**31).any()):
+        raise InputError(f"min_disparity_px: expected values in (-2^31, 2^31), got {minimum.tolist()}")
+    return minimum.long()
+
+
+def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
+                    num_disparities: int, config: DenseConfig = DenseConfig(),
+                    image_hw: torch.Tensor | None = None) -> DenseDisparity:
+    """Dense SAD block matching of whole images ``(B, 1, H, W)`` over the disparities
+    ``[min_disparity_px, min_disparity_px + num_disparities)`` (an int or ``(B,)`` int64 per pair).
+
+    Pixels whose right match ``x − d`` leaves the image for every candidate, and the rejections of the module
+    docstring, are invalid. ``image_hw`` ``(B, 2)`` gives each pair's size before padding (default: all of it).
+    Not differentiable (winner takes all); see :func:`soft_block_match`.
+    """
+    b = _check_pair(left, right)
+    minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
+    h, w = left.shape[-2:]
+    image_hw = _check_sizes(image_hw, left)
+    zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
+    search = DisparityRange(minimum, num_disparities)
+    box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
+    found = _match_compiled(left, right, box, search, image_hw, config, minimum <= 0)
+    if found is not None:
+        return DenseDisparity(found[0], found[1], minimum, num_disparities, box.clone(),
+                              torch.full_like(minimum, num_disparities))
+    disparity, ok = _match_box(left, right, zeros, zeros, h, w, search,
+                               image_hw, config, lower_is_limit=minimum <= 0)
+    return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone(),
+                          torch.full_like(minimum, num_disparities))
+
+
+def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
+                                 search: DisparityRange, config: DenseConfig = DenseConfig(),
+                                 image_hw: torch.Tensor | None = None) -> DenseDisparity:
+    """Dense SAD disparity of the left view, computed only near each pair's ``mask`` ``(B, 1, H, W)`` bool (the
+    kept regions: :func:`wanted_pixels`, each row's mask span and ``config.margin_px`` either side) and only over
+    ``search``; elsewhere invalid. A pixel's value is the one a whole-frame match gives it.
+
+    Args:
+        left, right: ``(B, 1, H, W)`` images (rectified, or a rig whose rows already agree).
+        mask: where depth is wanted (``Segmentation.kept_mask`` of the left view).
+        search: :class:`DisparityRange`, e.g. from :func:`disparity_search_range`.
+        image_hw: ``(B, 2)`` each pair's size before padding.
+
+    Returns:
+        :class:`DenseDisparity`. Not differentiable (see :func:`soft_block_match`).
+    """
+    b = _check_pair(left, right)
+    check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
+    check_dtype(mask, "mask", "bool")
+    minimum = _check_range(search.min_disparity_px, search.num_disparities, b, left.device)
+    if search.pair_num_disparities is not None:
+        check_counts(search.pair_num_disparities, "search.pair_num_disparities", b, search.num_disparities)
+    h, w = left.shape[-2:]
+    image_hw = _check_sizes(image_hw, left)
+    x0, y0, height, width, own = region_crop_boxes(mask, config.margin_px, image_hw)
+    search = DisparityRange(minimum, search.num_disparities, search.pair_num_disparities)
+    counts = search.pair_num_disparities
+    counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
+    some = any_along(mask.flatten(1), dim=1)
+    found = _match_compiled(left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search,
+                            image_hw, config, minimum <= 0, mask)
+    if found is not None:
+        return DenseDisparity(found[0], found[1], minimum, search.num_disparities, own, counts)
+    disparity, ok = _match_box(left, right, x0, y0, height, width, search,
+                               image_hw, config, lower_is_limit=minimum <= 0)
+    ok &= some.view(-1, 1, 1) & crop_box(wanted_pixels(mask, config.margin_px), x0, y0, height, width)[:, 0]
+    rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
+    cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
+    own_x0, own_y0, own_w, own_h = (v.view(-1, 1, 1) for v in own.unbind(1))
+    ok &= (rows >= own_y0) & (rows < own_y0 + own_h) & (cols >= own_x0) & (cols < own_x0 + own_w)
+    disparity = torch.where(ok, disparity, torch.zeros_like(disparity))
+    full = torch.zeros(b, h * w, dtype=disparity.dtype, device=left.device)
+    full_ok = torch.zeros(b, h * w, dtype=torch.bool, device=left.device)
+    index = ((y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)) * w
+             + x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)).reshape(b, -1)
+    full.scatter_(1, index, disparity.reshape(b, -1))
+    full_ok.scatter_(1, index, ok.reshape(b, -1))
+    return DenseDisparity(full.view(b, 1, h, w), full_ok.view(b, 1, h, w), minimum, search.num_disparities, own,
+                          counts)

@@ -1,0 +1,145 @@
+"""The dense stage's options (:class:`DenseConfig`), a search range (:class:`DisparityRange`) and its
+result (:class:`DenseDisparity`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import torch
+
+from ..core.checks import InputError
+
+__all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Options of the dense stage; defaults measured in ``experiments/paper_table1.py`` on the shared
+    Middlebury scenes (the tuned-vs-held-out split is in that script's docstring).
+
+    Attributes:
+        window_size: side of the square SAD window, pixels, odd (``StereoBM`` blockSize).
+        prefilter: ``"xsobel"`` (``StereoBM``'s default) or ``"none"`` (raw intensities).
+        prefilter_cap: clip of the x-Sobel response, [0, 1] intensity units (``StereoBM`` preFilterCap 31 on
+            0–255 images).
+        texture_threshold: least mean |clipped x-Sobel of the left image| over the window, [0, 1] units;
+            flatter windows are invalid (``StereoBM`` textureThreshold, there a sum over the window).
+        uniqueness_ratio: every cost more than 1 px from the best must exceed ``(1 + ratio)`` times the best
+            (``StereoBM`` uniquenessRatio, there in percent); 0 turns the check off.
+        lr_max_diff_px: largest left–right disagreement, pixels (``StereoBM`` disp12MaxDiff); None: no check.
+        working_width_px: the stage matches images reduced by an integer factor ``f ≈ W / working_width_px``
+            (box average) and scales the disparities back by ``f``: the cost volume shrinks ``f³`` times, and
+            on the shared scenes a 9-pixel window at this width ranged objects better than at native size.
+        margin_px: context around the kept regions' bounding box, working pixels.
+        range_source: ``"coarse"``: the range comes from a coarse dense pass over the whole fallback range
+            (:func:`coarse_search_range`); ``"inliers"``: from the sparse RANSAC inliers' disparities.
+        coarse_width_px: the coarse pass reduces the working images to about this width.
+        range_margin_px, range_margin_fraction: the search range is the samples' disparities widened by
+            ``max(range_margin_px, range_margin_fraction · span)`` on each side.
+        range_percentiles: the sample percentiles that bound the range before the margin (robust to a few
+            wrong samples; (0, 100) is their min and max).
+        max_num_disparities: most disparities searched per pair (the range is clipped around its centre).
+        fallback_max_disparity_fraction: the widest disparity searched, as a fraction of the width: the
+            coarse pass's range, and the range of a pair with too few samples.
+        min_range_inliers: fewest sparse inliers to bound the range from them.
+        min_range_pixels: fewest valid coarse pixels to bound the range from them.
+        fill_invalid: per-object statistics fill invalid pixels from their row neighbours first
+            (:func:`fill_invalid_rows`), so an object's median is over its whole region.
+        whole_range_in_view: a pixel counts only where its pair's whole disparity range lands inside the right
+            image, ``x ≥ d_max`` (``StereoBM`` leaves that left band unmatched): nearer the left border the true
+            match may be out of the right view and the best visible candidate is then wrong (a 15 px strip of a
+            near object on the left border of Middlebury Laundry is ranged at 11 m instead of 3.6 m). Off by
+            default: in ``experiments/paper_table1.py`` it fixed Laundry but dropped correctly ranged objects
+            near the left border elsewhere (tuned 320 px: R_min 98.9 → 89.1 %, a pair lost; held-out native:
+            98.0 / 92.4 → 97.3 / 90.1 %). The default guards per object instead, keeping every pixel:
+            ``DepthConfig.min_object_pixels_in_view`` leaves unranged only an object with too few pixels in view. The
+            coarse range pass never applies it (it only bounds the search).
+        kernel: how the hard path is computed: ``"auto"`` the fused C kernel of :mod:`svs_torch.depth.kernels`
+            where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and
+            range: bit-identical to the torch path, several times faster), else torch; ``"c"`` the kernel or an
+            error; ``"torch"`` the eager torch cost volume.
+    """
+
+    window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
+    prefilter: Literal["xsobel", "none"] = "xsobel"  # StereoBM PREFILTER_XSOBEL
+    prefilter_cap: float = 31 / 255  # StereoBM preFilterCap 31
+    texture_threshold: float = 2 / 255
+    uniqueness_ratio: float = 0.10
+    lr_max_diff_px: float | None = 1.0
+    working_width_px: int = 320
+    margin_px: int = 8
+    range_source: Literal["coarse", "inliers"] = "coarse"
+    coarse_width_px: int = 160
+    range_margin_px: float = 2.0
+    range_margin_fraction: float = 0.25
+    range_percentiles: tuple[float, float] = (1.0, 99.0)
+    max_num_disparities: int = 128
+    fallback_max_disparity_fraction: float = 0.25
+    min_range_inliers: int = 7
+    min_range_pixels: int = 20
+    fill_invalid: bool = True
+    kernel: Literal["auto", "c", "torch"] = "auto"
+    whole_range_in_view: bool = False  # paper_table1.py: on, tuned 320 R_min 98.9 -> 89.1 % (PianoL lost)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
+            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if self.range_source not in ("coarse", "inliers"):
+            raise InputError(f"range_source: expected 'coarse' or 'inliers', got {self.range_source!r}")
+        if not isinstance(self.working_width_px, int) or self.working_width_px < 8:
+            raise InputError(f"working_width_px: expected an int >= 8, got {self.working_width_px!r}")
+        if not isinstance(self.coarse_width_px, int) or self.coarse_width_px < 8:
+            raise InputError(f"coarse_width_px: expected an int >= 8, got {self.coarse_width_px!r}")
+        if self.kernel not in ("auto", "c", "torch"):
+            raise InputError(f"kernel: expected 'auto', 'c' or 'torch', got {self.kernel!r}")
+        if self.prefilter not in ("xsobel", "none"):
+            raise InputError(f"prefilter: expected 'xsobel' or 'none', got {self.prefilter!r}")
+        if not 0 <= self.uniqueness_ratio < 10:
+            raise InputError(f"uniqueness_ratio: expected a value in [0, 10), got {self.uniqueness_ratio!r}")
+        if self.lr_max_diff_px is not None and not self.lr_max_diff_px >= 0:
+            raise InputError(f"lr_max_diff_px: expected None or a value >= 0, got {self.lr_max_diff_px!r}")
+        if not isinstance(self.max_num_disparities, int) or self.max_num_disparities < 2:
+            raise InputError(f"max_num_disparities: expected an int >= 2, got {self.max_num_disparities!r}")
+        low, high = self.range_percentiles
+        if not 0 <= low <= high <= 100:
+            raise InputError(f"range_percentiles: expected 0 <= low <= high <= 100, got {self.range_percentiles}")
+        for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
+        if not isinstance(self.margin_px, int) or self.margin_px < 0:
+            raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
+
+
+class DisparityRange(NamedTuple):
+    """Per-pair search range ``[min_disparity_px, min_disparity_px + pair_num_disparities)``: ``(B,)`` int64
+    each; ``num_disparities`` is the batch's largest count, the depth of the shared cost volume (a pair's
+    disparities past its own count get no cost, so its result does not depend on its batch). Without
+    ``pair_num_disparities`` every pair searches ``num_disparities``."""
+
+    min_disparity_px: torch.Tensor
+    num_disparities: int
+    pair_num_disparities: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class DenseDisparity:
+    """Dense disparity of the left view, ``x_right = x_left − d``.
+
+    Attributes:
+        disparity_px: ``(B, 1, H, W)`` sub-pixel disparity, 0 where not valid.
+        valid: ``(B, 1, H, W)`` bool: inside the searched crop and every rejection passed.
+        min_disparity_px: ``(B,)`` int64, the range searched: ``[min, min + pair_num_disparities)``.
+        num_disparities: the batch's largest count D (the depth of the shared cost volume).
+        crop_xywh: ``(B, 4)`` int64, the searched box of each pair (x0, y0, width, height), pixels; every
+            valid pixel lies inside it.
+        pair_num_disparities: ``(B,)`` int64, each pair's own count.
+    """
+
+    disparity_px: torch.Tensor
+    valid: torch.Tensor
+    min_disparity_px: torch.Tensor
+    num_disparities: int
+    crop_xywh: torch.Tensor
+    pair_num_disparities: torch.Tensor

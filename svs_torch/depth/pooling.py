@@ -1,0 +1,38 @@
+"""Block averages and block ORs at an integer factor, bit for bit ``avg_pool2d`` and a max-pool, faster: the
+dense stage's working resolution and its coarse search.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["mean_pool"]
+
+
+def _block_slices(images: torch.Tensor, factor: int) -> list[torch.Tensor]:
+    """The ``factor²`` strided slices of ``images`` ``(..., H, W)`` (cut to whole blocks), one per offset of a
+    ``factor × factor`` block, in row-major order: a block's pixels are the same place of every slice."""
+    height, width = images.shape[-2] // factor * factor, images.shape[-1] // factor * factor
+    images = images[..., :height, :width]
+    return [images[..., i::factor, j::factor] for i in range(factor) for j in range(factor)]
+
+
+def mean_pool(images: torch.Tensor, factor: int) -> torch.Tensor:
+    """``F.avg_pool2d(images, factor)`` bit for bit (the same float sums in the same row-major order, then one
+    division), from the block slices: on this CPU 4–5× faster than ``avg_pool2d`` at factor 2."""
+    first, *rest = _block_slices(images, factor)
+    total = first
+    for part in rest:
+        total = total + part
+    return total / (factor * factor)
+
+
+def _any_pool(mask: torch.Tensor, factor: int) -> torch.Tensor:
+    """``F.max_pool2d(mask.float(), factor) > 0`` for a bool mask: whether any pixel of each block is set, by
+    OR-ing the block slices as bytes (on this CPU 20× faster than max-pooling a float copy). The OR of 0/1
+    bytes is 0 or 1, a bool's own bytes: viewed as bool, not converted (as :func:`any_along` does)."""
+    first, *rest = _block_slices(mask.view(torch.uint8), factor)
+    found = first
+    for part in rest:
+        found = found | part
+    return found.view(torch.bool)

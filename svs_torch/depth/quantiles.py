@@ -1,0 +1,125 @@
+"""Medians and percentiles over masks and labels, batched: what the depth rules report for each region.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+
+from ..core.checks import InputError, check_dtype, check_shape
+from ..core.ordering import argsort_last, sort_last
+from . import kernels
+
+__all__ = ["Quantiles", "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile"]
+
+
+class Quantiles(NamedTuple):
+    """``values`` ``(..., Q)`` (0 where not valid) and ``valid`` ``(...)`` bool (at least one element)."""
+
+    values: torch.Tensor
+    valid: torch.Tensor
+
+
+def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
+    (0 where empty) and ``(...,)`` int64 counts. Not differentiable (ground-truth statistics)."""
+    count = mask.sum(-1)
+    ordered = sort_last(torch.where(mask, values, torch.full_like(values, torch.inf)))
+    median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
+    return torch.where(count > 0, median, torch.zeros_like(median)), count
+
+
+def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: torch.Tensor,
+                             kept_labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`masked_lower_median` of ``values`` ``(B, 1, H, W)`` over each kept region's pixels where ``known``
+    holds: ``(B, N)`` medians (0 where empty) and counts, slot n for region ``kept_labels[:, n]`` (−1: none) of
+    ``labels`` ``(B, 1, H, W)``. The true distance of a region (GT depth), used for the truth of evaluations."""
+    b = values.shape[0]
+    region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
+              & known.reshape(b, 1, -1))  # (B, N, H·W)
+    return masked_lower_median(values.reshape(b, 1, -1).expand_as(region), region)
+
+
+def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float] | torch.Tensor) -> Quantiles:
+    """Quantiles ``q`` (in [0, 1]) over the valid entries of the last dimension of ``values`` ``(..., K)``,
+    linear interpolation between order statistics (numpy's default, ``torch.quantile``'s ``"linear"``).
+    Differentiable w.r.t. ``values`` (the two neighbouring order statistics get the gradient)."""
+    check_dtype(values, "values", "float")
+    if valid.shape != values.shape:
+        raise InputError(f"valid: expected the shape of values {tuple(values.shape)}, got {tuple(valid.shape)}")
+    check_dtype(valid, "valid", "bool")
+    q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    count = valid.sum(dim=-1, keepdim=True)  # (..., 1)
+    shape = (*values.shape[:-1], q.numel())
+    if values.shape[-1] == 0:
+        return Quantiles(values.new_zeros(shape), count.squeeze(-1) > 0)
+    ordered = sort_last(torch.where(valid, values, torch.full_like(values, torch.inf)))
+    rank = torch.arange(values.shape[-1], device=values.device)
+    ordered = torch.where(rank < count, ordered, torch.zeros_like(ordered))  # padding sorts last; zero it
+    low, high = _ranks(count, q)  # (..., Q)
+    return _interpolate_ranks(ordered.gather(-1, low), ordered.gather(-1, high), count, q)
+
+
+def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor,
+                      q: Sequence[float] | torch.Tensor) -> Quantiles:
+    """:func:`masked_quantile` of ``values`` ``(B, P)`` over each slot's entries, ``labels == slots[:, n]``, for
+    the slots ``(B, N)`` (a slot ≤ 0 and a label ≤ 0 take no entry): ``values`` ``(B, N, Q)``, ``valid``
+    ``(B, N)``. The same numbers as ``masked_quantile(values.unsqueeze(1).expand(B, N, P), labels == slots)``
+    with one sort of ``(B, P)`` instead of one of ``(B, N, P)``: each slot's order statistics are read from
+    the pair's sorted values at the places where its running count of members reaches the rank. Without
+    gradients, for float32 CPU values without NaN, a compiled quickselect per slot finds the same order
+    statistics (:mod:`svs_torch.depth.kernels`). Differentiable w.r.t. ``values`` (the two neighbouring order
+    statistics get the gradient)."""
+    check_dtype(values, "values", "float")
+    check_shape(labels, "labels", list(values.shape))
+    check_dtype(labels, "labels", "int")
+    check_shape(slots, "slots", [values.shape[0], "N"])
+    check_dtype(slots, "slots", "int")
+    q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too (the kernel casts it to a rank)
+        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    b, p = values.shape
+    shape = (b, slots.shape[1], q.numel())
+    if p == 0 or slots.shape[1] == 0:
+        return Quantiles(values.new_zeros(shape), torch.zeros(shape[:2], dtype=torch.bool, device=values.device))
+    if not (values.requires_grad and torch.is_grad_enabled()):
+        # The compiled selection (svs_torch/depth/kernels/labelled_select.c): the same order statistics, O(P) per slot;
+        # None for values with NaN (it orders by <), which the sort below puts last.
+        selected = kernels.labelled_select(values, labels, slots, q)
+        if selected is not None:
+            count, below, above = selected
+            return _interpolate_ranks(below, above, count.unsqueeze(-1), q)
+    labelled = labels > 0
+    keyed = torch.where(labelled, values, torch.full_like(values, torch.inf))
+    order = argsort_last(keyed)
+    ordered = keyed.gather(1, order)
+    sorted_labels = torch.where(labelled, labels, torch.zeros_like(labels)).gather(1, order)
+    member = (sorted_labels.unsqueeze(1) == slots.unsqueeze(-1)) & (slots > 0).unsqueeze(-1)  # (B, N, P)
+    running = member.cumsum(dim=-1)  # members up to and including each sorted place
+    count = running[..., -1:]  # (B, N, 1)
+    low, high = _ranks(count, q)
+    # The member of rank r sits where the running count first reaches r + 1.
+    places = torch.searchsorted(running, torch.cat([low, high], dim=-1) + 1).clamp_max(p - 1)
+    below, above = ordered.unsqueeze(1).expand(-1, shape[1], -1).gather(-1, places).chunk(2, dim=-1)
+    return _interpolate_ranks(below, above, count, q)
+
+
+def _ranks(count: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ranks below and above quantile ``q`` among ``count`` sorted members."""
+    position = q * (count - 1).clamp_min(0).to(q.dtype)
+    return position.floor().long(), position.ceil().long()
+
+
+def _interpolate_ranks(below: torch.Tensor, above: torch.Tensor, count: torch.Tensor,
+                       q: torch.Tensor) -> Quantiles:
+    """Linear interpolation between the order statistics ``below`` / ``above`` ``(..., Q)`` of quantile ``q``
+    among ``count`` ``(..., 1)`` members (0 where there are none)."""
+    position = q * (count - 1).clamp_min(0).to(q.dtype)
+    fraction = position - position.floor()
+    result = below + (above - below) * fraction
+    present = count > 0
+    return Quantiles(torch.where(present, result, torch.zeros_like(result)), present.squeeze(-1))

@@ -1,0 +1,97 @@
+"""Disparity errors against the ground truth, for the dense map and for the sparse inliers: mean and median
+absolute error, the share of bad pixels, over the pixels both know.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..core.types import StereoBatch
+from ..depth.quantiles import masked_lower_median
+from ..pipeline import PipelineResult
+
+__all__ = ["DisparityErrors", "dense_disparity_errors", "disparity_map_errors", "sparse_disparity_errors"]
+
+
+@dataclass(frozen=True)
+class DisparityErrors:
+    """Absolute disparity errors against GT, per pair. All ``(B,)``.
+
+    Attributes:
+        median_px: lower median of the errors, pixels (0 where not ``valid``).
+        within_1px, within_2px, within_3px: share of the errors at most 1 / 2 / 3 px (1 − Middlebury's bad-1
+            / bad-2 / bad-3).
+        count: int64, the pixels or points compared.
+        precision: share of correct correspondences (sparse only: within 1 px in x and y), else None.
+        valid: bool, at least one comparison.
+    """
+
+    median_px: torch.Tensor
+    within_1px: torch.Tensor
+    within_2px: torch.Tensor
+    within_3px: torch.Tensor
+    count: torch.Tensor
+    valid: torch.Tensor
+    precision: torch.Tensor | None = None
+
+
+def _errors(error: torch.Tensor, mask: torch.Tensor, correct: torch.Tensor | None = None) -> DisparityErrors:
+    """Statistics of ``error`` ``(B, P)`` where ``mask`` ``(B, P)`` holds."""
+    median, count = masked_lower_median(error, mask)
+    denominator = count.clamp(min=1).to(error.dtype)
+
+    def share(hit: torch.Tensor) -> torch.Tensor:
+        return (hit & mask).sum(-1).to(error.dtype) / denominator
+
+    return DisparityErrors(median, share(error <= 1.0), share(error <= 2.0), share(error <= 3.0), count, count > 0,
+                           None if correct is None else share(correct))
+
+
+def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Tensor,
+                         truth_valid: torch.Tensor, mask: torch.Tensor) -> DisparityErrors:
+    """Errors of any dense disparity map ``(B, 1, H, W)`` (the pipeline's, or a rival's such as ``StereoBM``'s)
+    against the GT ``truth_px`` where ``mask``, the map's ``valid`` and ``truth_valid`` all hold (bool maps of
+    the same shape)."""
+    b = disparity_px.shape[0]
+    error = (disparity_px - truth_px.to(disparity_px.dtype)).abs()
+    return _errors(error.reshape(b, -1), (mask & valid & truth_valid).reshape(b, -1))
+
+
+def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
+    """Dense disparity error over the kept left regions (module docstring); None under the paper rule."""
+    dense = result.dense
+    if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
+        return None
+    b = batch.batch_size
+    mask = result.segmentation.left.kept_mask & ~result.rectified.view(b, 1, 1, 1)
+    return disparity_map_errors(dense.disparity_px, dense.valid, batch.disparity_px, batch.disparity_valid, mask)
+
+
+def sparse_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
+    """Disparity error and precision of the RANSAC inliers (module docstring)."""
+    if batch.disparity_px is None:
+        return None
+    b, _, height, width = batch.disparity_px.shape
+    left, right = result.points.left, result.points.right  # (B, K, 2) each
+    column = left[..., 0].round().long().clamp(0, width - 1)
+    row = left[..., 1].round().long().clamp(0, height - 1)
+    flat = row * width + column  # (B, K)
+    truth = batch.disparity_px.reshape(b, -1).gather(1, flat)
+    known = batch.disparity_valid.reshape(b, -1).gather(1, flat)
+    mask = result.fundamental.inliers & result.points.valid & known
+    error = ((left[..., 0] - right[..., 0]) - truth).abs()
+    correct = (error <= 1.0) & ((left[..., 1] - right[..., 1]).abs() <= 1.0)
+    return _errors(error, mask, correct)
+
+
+def _error_fields(errors: DisparityErrors | None, index: int, prefix: str) -> dict:
+    if errors is None or not bool(errors.valid[index]):
+        return {}
+    values = {f"{prefix}_error_median_px": float(errors.median_px[index]),
+              f"{prefix}_within_1px": float(errors.within_1px[index]),
+              f"{prefix}_within_3px": float(errors.within_3px[index])}
+    if errors.precision is not None:
+        values["inlier_precision"] = float(errors.precision[index])
+    return values

@@ -1,0 +1,255 @@
+"""The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them), its
+per-pair status (:class:`PipelineStatus`: the stage that stopped) and its result (:class:`PipelineResult`).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from ..core.checks import InputError
+from ..core.types import FundamentalResult, Matches, StereoSegmentation
+from ..depth.dense_config import DenseConfig, DenseDisparity
+from ..depth.depth_types import DepthConfig, DepthResult
+from ..features.detector import SurfConfig
+from ..features.surf import SurfFeatures
+from ..geometry.lk_refinement import MatchRefinementConfig
+from ..geometry.matched_points import MatchedPoints
+from ..geometry.rectification import Rectification, RectificationConfig
+from ..geometry.row_alignment import RowAlignmentConfig
+from ..segmentation.segment import SegmentationConfig
+
+__all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineStatus"]
+
+
+#: A fundamental matrix needs 7 correspondences (Sec. 3.3 (3)).
+MIN_CORRESPONDENCES = 7
+
+
+class PipelineStatus(enum.IntEnum):
+    """Per-pair outcome of the whole pipeline; the first stage that failed names it."""
+
+    OK = 0
+    NO_OBJECTS = 1  # segmentation kept no region (blank, saturated or textureless image)
+    TOO_FEW_KEYPOINTS = 2  # fewer than 7 keypoints in the left or right image
+    TOO_FEW_MATCHES = 3  # fewer than 7 matches
+    RANSAC_FAILED = 4  # every sample degenerate, or too few inliers
+    DEGENERATE_RECTIFICATION = 5  # epipole in the image, singular F, or a wildly distorting homography
+    NO_POSITIVE_DISPARITY = 6  # no inlier with d + doffs > 0: nothing to range
+    NO_DENSE_DEPTH = 7  # dense rule: no kept object has enough valid dense disparities (flat, occluded)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of every stage; the defaults are the best measured configuration, ``paper()`` the paper's MATLAB
+    defaults. Each nested config documents its own fields.
+
+    Attributes:
+        segmentation: by default the nearness segmenter (:mod:`svs_torch.segmentation.nearness`: the near side
+            of the pair's measured disparity, corrected by a small network; the nearest region first, then the
+            largest). ``paper()``: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions); ``method="canny"`` for
+            the paper's comparison row; ``segmenter="learned"`` for the network of issue 13.
+        surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
+            ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
+            weak ones that do not hold.
+        features_on: ``"masked"`` detects and describes on the masked obstacle images (the paper, ``paper()``);
+            ``"mask"`` detects only inside the kept regions but on the unmasked images, so the
+            artificial edge between an obstacle and the blacked-out background makes no keypoints, and a right
+            view segmented a little differently (another exposure, a turned camera) keeps its matches;
+            ``"image"`` (the default) uses the whole images (no segmentation gate).
+        max_ratio: SAD ratio test, Sec. 3.3 (2): 0.8 (Lowe's); MATLAB ``matchFeatures`` MaxRatio 0.6 in ``paper()``.
+        mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
+        laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
+        epipolar_band_px: optional |y_left − y_right| limit on candidates, pixels (a nearly rectified rig).
+        refine_matches: :class:`~svs_torch.geometry.matching.MatchRefinementConfig`: sub-pixel Lucas–Kanade refinement of
+            each matched right point on the images the features were found on, with a correlation gate; None:
+            the keypoints as detected (the paper).
+        ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3).
+        ransac_confidence: stop when an all-inlier 7-point sample was drawn with this probability.
+        ransac_max_iterations: 7-point samples per pair at most.
+        ransac_scoring: ``"ransac"`` keeps the model with the most inliers (the paper's rule), ``"msac"`` the
+            lowest truncated Sampson cost (more accurate on the same samples; the default), ``"lmeds"`` the least
+            median (MATLAB's default method).
+        rectify: ``"required"`` rectifies from F before measuring disparity and fails the pair when that is
+            degenerate (the paper, Sec. 3.4); ``"auto"`` ranges the raw points when the inliers already lie on
+            the same rows (median |y_left − y_right| ≤ ``row_tolerance_px``: a mechanically parallel rig like
+            the SVS, where an F fitted to a few nearly planar obstacles would only add shear) or when F cannot
+            rectify, and rectifies otherwise; ``"off"`` always measures x_left − x_right on the raw points.
+        row_tolerance_px: see ``rectify="auto"``, pixels.
+        row_alignment: :class:`~svs_torch.geometry.row_alignment.RowAlignmentConfig`: under ``rectify="auto"``, a right
+            view whose matches fit a roll / vertical shift / scale of the right camera that moves some image
+            corner's row by more than its ``min_correction_px`` is aligned by that similarity instead (before
+            the projective rule): a loosely mounted second board (``experiments/real_rig.py``). None: off.
+        rectification: :class:`~svs_torch.geometry.rectification.RectificationConfig`.
+        depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
+            ``"paper"``: min/max over the inliers, or robust percentiles).
+        dense: :class:`~svs_torch.depth.dense.DenseConfig`, the dense SAD stage of the ``"dense"`` rule.
+        verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers: under the dense rule, the
+            sparse stage vouches that both views show one scene (``PipelineResult.verified``; the dense stage
+            then accepts an object on ``depth.min_object_valid_fraction`` of its pixels instead of the stricter
+            ``min_object_valid_fraction_unverified``) only when RANSAC found F with at least this many inliers,
+            making at least this share of the matches, of which at least this many have the disparity the dense
+            map measures at their pixel (within one working pixel,
+            :func:`~svs_torch.depth.dense_objects.count_agreeing_inliers`). 7-point RANSAC fits some F to a dozen chance
+            matches between unrelated views, but the dense map confirms at most 5 of them, against 7 or more on
+            197 of 199 real and synthetic pairs (``experiments/verify_views.py``: 1966 pairs of unrelated
+            Middlebury / KITTI views and 64 synthetic ones; the two others, Flowerpots and Reindeer squeezed to
+            320×240, keep every object: each has 40 % of its region measured). With ``features_on="mask"``:
+            at most 2 on the unrelated views, 9 or more on 198 of 199 (the one left has no F), 7 objects of the
+            unrelated views ranged, as before.
+        seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
+        differentiable: after the hard pipeline (run without gradients: it makes every discrete decision), a
+            differentiable pass recomputes each object's depth from the images and the segmenter's logits
+            given those decisions (:mod:`svs_torch.pipeline.soft`): ``PipelineResult.depth`` then carries
+            gradients to both images and to the network's weights, and ``hard_depth`` keeps the hard values.
+            Needs the ``"dense"`` range rule.
+        noisy_retry_sigma_px: under the dense rule, a pair the sparse stage did not verify (or with a kept object
+            unranged) is measured again on both views smoothed by a Gaussian of this σ (working pixels), and that
+            second measurement is kept where it is verified and ranges more objects (or as many, the first not
+            verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
+            matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
+
+    ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
+    (Table 1's "proposed" row).
+    """
+
+    # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least
+    # (both cameras' measured pixels): the best rule keeping by nearness on the train scenes
+    # (experiments/select_nearness_rule.md; the rule alone, experiments/validate_nearness.md; issue 32).
+    # Below 25 % of the view accepted by the block matcher, Otsu instead: views of two scenes
+    # (experiments/nearness_fallback.md).
+    segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
+        segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, min_measured_share=0.25))
+    # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
+    # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
+    surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
+    # real_rig.py, tuned 320x240: the right view turned / shifted / brighter segments differently, and the masked
+    # images' artificial region borders then lose half the matches (roll 2 deg: 164 -> 72 on Aloe); "mask" keeps them.
+    # With the nearness segmenter the right view's regions are the left ones moved by their disparity, and a turned
+    # or shifted right camera puts its obstacles elsewhere: whole images kept or raised the accuracy of every
+    # real_rig.py condition on the tuned scenes at 320x240 (roll 2 deg: 46 / 19 -> 81 / 84 %, shift 3 %: 26 / 39 ->
+    # 83 / 83 %, clean and JPEG unchanged).
+    features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
+    max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
+    mutual: bool = False  # MATLAB matchFeatures Unique = false
+    laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3
+    epipolar_band_px: float | None = None  # pixels; None: no band
+    refine_matches: MatchRefinementConfig | None = field(default_factory=MatchRefinementConfig)
+    ransac_threshold_px: float = 1.0  # pixels, Sampson distance
+    ransac_confidence: float = 0.99  # MATLAB / OpenCV default
+    ransac_max_iterations: int = 1024  # 7-point samples per pair
+    ransac_scoring: Literal["ransac", "msac", "lmeds"] = "msac"  # Sec. 3.3 (3) keeps the most inliers
+    rectify: Literal["auto", "required", "off"] = "auto"  # Sec. 3.4, uncalibrated rectification
+    row_tolerance_px: float = 1.0
+    # experiments/real_rig.py: roll 2 deg / shift 3 % of the right view at 320x240 lost 27-50 points per object.
+    row_alignment: RowAlignmentConfig | None = field(default_factory=RowAlignmentConfig)
+    rectification: RectificationConfig = field(default_factory=RectificationConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    # experiments/verify_views.py: the dense map's confirmation separates real pairs (>= 7 agreeing inliers, 197 of
+    # 199) from unrelated views (<= 5); 15 inliers left 7 real pairs unverified and verified 15 unrelated ones.
+    verify_min_inliers: int = 0
+    verify_min_inlier_share: float = 0.5
+    verify_min_agreeing_inliers: int = 6
+    seed: int = 0
+    differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
+    # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
+    noisy_retry_sigma_px: float | None = 1.0
+
+    def __post_init__(self) -> None:
+        if self.features_on not in ("masked", "mask", "image"):
+            raise InputError(f"features_on: expected 'masked', 'mask' or 'image', got {self.features_on!r}")
+        if self.rectify not in ("auto", "required", "off"):
+            raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
+        if not 0 < self.max_ratio <= 1:
+            raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
+        for name in ("verify_min_inliers", "verify_min_agreeing_inliers"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 0):
+                raise InputError(f"{name}: expected an integer >= 0, got {getattr(self, name)!r}")
+        if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
+            raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
+        if self.differentiable not in (True, False):
+            raise InputError(f"differentiable: expected a bool, got {self.differentiable!r}")
+        if self.differentiable and self.depth.rule != "dense":
+            raise InputError(f"differentiable: needs depth.rule 'dense' (the paper's rule ranges from extreme "
+                             f"inliers, nothing to differentiate), got {self.depth.rule!r}")
+        if self.noisy_retry_sigma_px is not None and not self.noisy_retry_sigma_px > 0:
+            raise InputError(f"noisy_retry_sigma_px: expected a σ > 0 or None, got {self.noisy_retry_sigma_px!r}")
+        if not 0 <= self.verify_min_inlier_share <= 1:
+            raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
+                             f"{self.verify_min_inlier_share!r}")
+
+    @classmethod
+    def paper(cls) -> PipelineConfig:
+        """The paper's pipeline exactly as published (Sec. 3.2–3.4): MATLAB's SURF, matching and RANSAC
+        defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
+        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
+                   refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None)
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """Per-pair results of :func:`estimate_obstacle_depth` (B pairs).
+
+    Attributes:
+        status: :class:`PipelineStatus` ``(B,)`` int64.
+        segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`.
+        features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.
+        matches: left-to-right :class:`~svs_torch.core.types.Matches`.
+        points: :class:`~svs_torch.geometry.matching.MatchedPoints` ``(B, K, 2)``: the matched points F is fitted to (the
+            right points refined to sub-pixel under ``refine_matches``), rows as in ``matches``.
+        fundamental: :class:`~svs_torch.core.types.FundamentalResult` over the matched rows (row k = left keypoint k).
+        rectification: :class:`~svs_torch.geometry.rectification.Rectification` computed from F (its homographies are
+            the identity where its status is not OK).
+        rectified: ``(B,)`` bool, pairs whose disparities were measured after rectification.
+        depth: :class:`~svs_torch.depth.DepthResult`: the pair's R_min / R_max, per-object depths of the kept
+            left regions and the nearest obstacle, by ``config.depth.rule`` (``range_rule``).
+        dense: :class:`~svs_torch.depth.dense.DenseDisparity` of the left view (in rectified pixels where
+            ``rectified``), None under the ``"paper"`` rule.
+        range_rule: ``"dense"`` or ``"paper"``: the rule that produced ``depth``.
+        num_keypoints: ``(B, 2)`` int64, valid keypoints left and right.
+        num_matches, num_inliers: ``(B,)`` int64.
+        timings_s: wall time of each stage for the whole batch, seconds.
+        verified: ``(B,)`` bool, under the dense rule: the sparse stage vouches that both views show one scene
+            (``PipelineConfig.verify_min_inliers`` …); None under the ``"paper"`` rule.
+        num_agreeing_inliers: ``(B,)`` int64, the RANSAC inliers whose disparity the dense map confirms
+            (:func:`~svs_torch.depth.dense_objects.count_agreeing_inliers`); None under the ``"paper"`` rule.
+        hard_depth: under ``PipelineConfig.differentiable``, the hard pipeline's :class:`DepthResult` (``depth``
+            is then the differentiable one); None otherwise.
+        H_left, H_right: ``(B, 3, 3)``, the homographies the disparities were measured after: F's rectification
+            or the right view's row alignment where ``rectified``, the identity elsewhere. Under
+            ``differentiable``, F's rectifications carry gradients to both images (``svs_torch.geometry.soft``).
+        smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
+            smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
+        row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
+            rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
+            (where ``row_aligned``; all False without a row alignment).
+    """
+
+    status: torch.Tensor
+    segmentation: StereoSegmentation
+    features_left: SurfFeatures
+    features_right: SurfFeatures
+    matches: Matches
+    points: MatchedPoints
+    fundamental: FundamentalResult
+    rectification: Rectification
+    rectified: torch.Tensor
+    depth: DepthResult
+    dense: DenseDisparity | None
+    range_rule: str
+    num_keypoints: torch.Tensor
+    num_matches: torch.Tensor
+    num_inliers: torch.Tensor
+    timings_s: dict[str, float]
+    verified: torch.Tensor | None = None
+    num_agreeing_inliers: torch.Tensor | None = None
+    hard_depth: DepthResult | None = None
+    H_left: torch.Tensor | None = None
+    H_right: torch.Tensor | None = None
+    smoothed: torch.Tensor | None = None
+    row_aligned: torch.Tensor | None = None
+    row_alignment_inliers: torch.Tensor | None = None

@@ -1,0 +1,147 @@
+"""The pipeline's last steps: whether to rectify (and with which homographies), then the dense depth over the
+kept regions, retried on a smoothed pair where the first pass measured too little.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from ..core.mask_reductions import any_along
+from ..core.pair_trees import put_pairs, take_pairs
+from ..core.types import FundamentalResult, StereoBatch, StereoSegmentation
+from ..depth.dense import estimate_dense_disparity, working_factor
+from ..depth.dense_config import DenseConfig, DenseDisparity
+from ..depth.dense_objects import count_agreeing_inliers, dense_object_depths, range_from_objects
+from ..depth.depth_types import DepthResult
+from ..depth.quantiles import masked_quantile
+from ..depth.sparse import nearest_obstacle, slot_labels
+from ..geometry.matched_points import MatchedPoints
+from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified
+from ..geometry.row_alignment import fit_row_alignment
+from .config import PipelineConfig
+
+__all__ = []
+
+
+def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, inliers: torch.Tensor,
+                       rectification: Rectification, config: PipelineConfig) -> torch.Tensor:
+    """``(B,)`` bool: pairs whose disparities are measured after rectification (see ``PipelineConfig.rectify``)."""
+    usable = rectification.status == RectificationStatus.OK
+    if config.rectify == "off":
+        return torch.zeros_like(usable)
+    if config.rectify == "required":
+        return usable
+    row_offset = (points_left[..., 1] - points_right[..., 1]).abs()
+    median = masked_quantile(row_offset, inliers, [0.5]).values[:, 0]
+    return usable & (median > config.row_tolerance_px)
+
+
+def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResult, rectification: Rectification,
+                             image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig
+                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(B,)`` bool rectified, the ``(B, 3, 3)`` left and right homographies the disparities are measured after
+    (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds one
+    that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`; and which pairs
+    the row alignment rectified ``(B,)`` and its inliers ``(B, K)`` (the differentiable pass refits it on them)."""
+    rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
+    identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
+                         ).expand_as(rectification.H_left)
+    pick = rectified.view(-1, 1, 1)
+    H_left = torch.where(pick, rectification.H_left, identity)
+    H_right = torch.where(pick, rectification.H_right, identity)
+    if config.rectify != "auto" or config.row_alignment is None:
+        return rectified, H_left, H_right, torch.zeros_like(rectified), torch.zeros_like(points.valid)
+    # The similarity is fitted to every match, not F's inliers: F of a few planar obstacles may be loose.
+    alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds)
+    aligned = alignment.valid & (alignment.correction_px > config.row_alignment.min_correction_px)
+    pick = aligned.view(-1, 1, 1)
+    return (rectified | aligned, torch.where(pick, identity, H_left),
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers)
+
+
+def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
+                 points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
+                 H_right: torch.Tensor, config: PipelineConfig
+                 ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor]:
+    """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
+    rectified: images and labels warped by the same homographies) over each pair's range (a coarse pass, or
+    the sparse inliers' disparities), then each object's depth statistics over its region. Also returns
+    whether the pair's geometry was verified (``fundamental_ok`` and enough inliers the dense map confirms)
+    and that count of agreeing inliers, ``(B,)`` each."""
+    left, right, labels = batch.left, batch.right, seg.left.labels
+    if bool(rectified.any()):
+        pick = rectified.view(-1, 1, 1, 1)
+        left = torch.where(pick, warp_rectified(left, H_left), left)
+        right = torch.where(pick, warp_rectified(right, H_right), right)
+        # Labels by nearest neighbour (never blended), as exact small integers in float64.
+        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
+        labels = torch.where(pick, warped, labels)
+    # One mask per kept object, so the search range covers a small object as well as a big one.
+    objects = labels == slot_labels(seg.left.kept_labels).view(batch.batch_size, -1, 1, 1)
+    mask = any_along(objects, dim=1, keepdim=True)
+    dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
+                                     sparse.disparities.disparity_px, sparse.disparities.valid, objects)
+    # Agreement within one working pixel (the dense map's own grid) between the sparse and the dense disparity.
+    agreeing = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
+                                      float(working_factor(batch.left.shape[-1], config.dense)))
+    verified = fundamental_ok & (agreeing >= config.verify_min_agreeing_inliers)
+    weight = verified.to(batch.left.dtype)
+    fraction = (weight * config.depth.min_object_valid_fraction
+                + (1 - weight) * config.depth.min_object_valid_fraction_unverified)
+    objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
+                                  config.depth.object_percentiles, config.depth.min_object_pixels,
+                                  config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view)
+    depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
+    depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
+    return depth, dense, verified, agreeing
+
+
+def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) -> StereoBatch:
+    """Both views smoothed by a Gaussian of ``sigma_working_px`` working pixels of the dense stage."""
+    from kornia.filters import gaussian_blur2d  # imported here: kornia's import is slow and clean pairs never retry
+
+    sigma = sigma_working_px * working_factor(batch.left.shape[-1], config)
+    size = 2 * math.ceil(3 * sigma) + 1
+    # Clamped: the kernel's weights sum to 1 only up to rounding, and a white pixel may come out at 1 + 2e-16,
+    # which StereoBatch refuses (hypothesis found it on a 1×1 white pair).
+    blur = (lambda image: gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="replicate").clamp(0, 1))
+    return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
+
+
+def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
+                            fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
+                            rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
+                            config: PipelineConfig
+                            ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_dense_depth`, then on smoothed views for the pairs it left unverified or with a kept object
+    unranged (``config.noisy_retry_sigma_px``); per pair the second result where it is verified and ranges more
+    objects, or as many where the first was not verified. Also returns ``(B,)`` bool: the pairs whose result is
+    the smoothed pass's."""
+    first = _dense_depth(batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right, config)
+    from_smoothed = torch.zeros_like(rectified)
+    kept = seg.left.kept_labels >= 0
+    retry = ~first[2] | (kept & ~first[0].objects.valid[:, :kept.shape[1]]).any(1)
+    if config.noisy_retry_sigma_px is None or not bool(retry.any()):
+        return (*first, from_smoothed)
+    # Only the retried pairs run again (a clean batch's verified pairs never pay for it).
+    index, b = retry.nonzero().flatten(), batch.batch_size
+    sub = (lambda tree: take_pairs(tree, index, b))
+    smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
+    second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
+                          sub(rectified), sub(H_left), sub(H_right), config)
+    ranged_first, ranged_second = sub(first[0].objects.valid).sum(1), second[0].objects.valid.sum(1)
+    # Only a verified second pass counts: views of different scenes are never verified, and smoothing must not
+    # let their chance agreement reach the unverified share (experiments/verify_views.py).
+    verified_first = sub(first[2])
+    pick = second[2] & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    if not bool(pick.any()):
+        return (*first, from_smoothed)
+    from_smoothed[index[pick]] = True
+    depth, dense, verified, agreeing = put_pairs(first, index[pick], take_pairs(second, pick.nonzero().flatten(),
+                                                                                 len(index)), b)
+    # The batch's deepest search (an int, not per pair).
+    dense = dataclasses.replace(dense, num_disparities=max(first[1].num_disparities, second[1].num_disparities))
+    return depth, dense, verified, agreeing, from_smoothed

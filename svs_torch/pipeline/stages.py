@@ -1,0 +1,121 @@
+"""The stages as the pipeline calls them: segmentation (with the learned segmenters' network), the feature
+images and SURF features, matching, and each pair's status from what the stages found.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..core.checks import InputError
+from ..core.size_groups import run_by_size
+from ..core.types import (FundamentalResult, FundamentalStatus, Matches, SegmentationStatus, StereoBatch,
+                          StereoSegmentation)
+from ..depth.depth_types import DepthResult
+from ..features.surf import SurfFeatures, extract_surf_features
+from ..geometry.matching import match_sad
+from ..geometry.rectification import Rectification, RectificationStatus
+from ..segmentation.learned import segment_stereo_learned
+from ..segmentation.network_files import cached_obstacle_net
+from ..segmentation.segment import SegmentationConfig, segment_stereo
+from .config import MIN_CORRESPONDENCES, PipelineConfig, PipelineStatus
+
+__all__ = ["segment_pair"]
+
+
+def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
+                    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The ``(2B, 1, H, W)`` images SURF runs on (left then right) and its detection mask (or None)."""
+    if config.features_on == "masked":
+        return torch.cat([seg.left.masked, seg.right.masked]), None
+    images = torch.cat([batch.left, batch.right])
+    if config.features_on == "image":
+        return images, None
+    return images, torch.cat([seg.left.kept_mask, seg.right.kept_mask])
+
+
+def _features(images: torch.Tensor, mask: torch.Tensor | None, config: PipelineConfig
+              ) -> tuple[SurfFeatures, SurfFeatures]:
+    """SURF on left and right as one batch of 2B images; split back."""
+    b = images.shape[0] // 2
+    both = extract_surf_features(images, config.surf, mask)
+
+    def half(sl: slice) -> SurfFeatures:
+        kp = both.keypoints
+        return SurfFeatures(type(kp)(kp.xy[sl], kp.scale[sl], kp.score[sl], kp.laplacian_sign[sl],
+                                     kp.orientation[sl], kp.valid[sl]), both.descriptors[sl])
+
+    return half(slice(0, b)), half(slice(b, 2 * b))
+
+
+def _match(left: SurfFeatures, right: SurfFeatures, config: PipelineConfig) -> Matches:
+    lk, rk = left.keypoints, right.keypoints
+    return match_sad(
+        left.descriptors, right.descriptors, lk.valid, rk.valid, max_ratio=config.max_ratio, mutual=config.mutual,
+        laplacian_left=lk.laplacian_sign if config.laplacian_gate else None,
+        laplacian_right=rk.laplacian_sign if config.laplacian_gate else None,
+        xy_left=lk.xy, xy_right=rk.xy, epipolar_band_px=config.epipolar_band_px)
+
+
+def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: FundamentalResult,
+            rectification: Rectification, depth: DepthResult, rectify: str, dense_rule: bool) -> torch.Tensor:
+    """First failing stage per pair (checked from the last stage back, so earlier stages win).
+
+    Under the dense rule the sparse stages are not needed to range a pair (they rectify it where its rows do
+    not agree, and vouch that both views show one scene): a pair whose features, matches or RANSAC failed is
+    still ranged on its raw rows (as ``rectify="auto"`` does for an aligned rig), with a stricter share of
+    valid pixels, unless rectification is ``"required"``."""
+    status = torch.full_like(fundamental.status, PipelineStatus.OK)
+    sparse_fatal = not dense_rule or rectify == "required"
+    checks = [
+        (~depth.range.valid, PipelineStatus.NO_DENSE_DEPTH if dense_rule else PipelineStatus.NO_POSITIVE_DISPARITY),
+        ((rectification.status != RectificationStatus.OK) & (rectify == "required"),
+         PipelineStatus.DEGENERATE_RECTIFICATION),
+    ]
+    if sparse_fatal:
+        checks += [
+            ((fundamental.status != FundamentalStatus.OK), PipelineStatus.RANSAC_FAILED),
+            (fundamental.status == FundamentalStatus.TOO_FEW_MATCHES, PipelineStatus.TOO_FEW_MATCHES),
+            ((num_keypoints < MIN_CORRESPONDENCES).any(dim=1), PipelineStatus.TOO_FEW_KEYPOINTS),
+        ]
+    checks.append(((seg.left.kept_labels[:, 0] < 0) | (seg.right.kept_labels[:, 0] < 0)
+                   | (seg.status != SegmentationStatus.OK), PipelineStatus.NO_OBJECTS))
+    for failed, code in checks:
+        status = torch.where(failed, torch.full_like(status, code), status)
+    return status
+
+
+def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
+                 left_logits: torch.Tensor | None = None) -> StereoSegmentation:
+    """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
+    ``config.method``) or the learned segmenter (:mod:`svs_torch.segmentation.learned`; ``network``, or the
+    weights ``config.segmenter`` names; ``left_logits``: the left views' logits, already computed); the same
+    structure. Not differentiable. Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes
+    as groups of one size, :mod:`svs_torch.core.size_groups`): padding never enters a threshold's histogram or a region;
+    ``left_logits`` are for a batch whose pairs fill its tensors."""
+    if left_logits is None:
+        return run_by_size(batch, lambda group: _segment_group(group, config, network))
+    if not bool((batch.image_hw == torch.tensor(batch.size_hw, device=batch.image_hw.device)).all()):
+        raise InputError("left_logits: expected a batch whose pairs all fill its tensors (one size); pass none to "
+                         "segment a padded batch pair by pair size")
+    return _segment_group(batch, config, network, left_logits)
+
+
+def _segment_group(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
+                   left_logits: torch.Tensor | None = None) -> StereoSegmentation:
+    if config.segmenter == "otsu":
+        return segment_stereo(batch, config)
+    return segment_stereo_learned(batch, config, _network(batch, config, network), left_logits)
+
+
+def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None) -> nn.Module:
+    """The learned segmenter's network on the batch's device: ``network`` (which must be there already: moving
+    a caller's module would move the parameters its optimiser holds) or the cached weights of
+    ``config.segmenter``, moved and frozen."""
+    if network is None:
+        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache.
+        return cached_obstacle_net(config.segmenter).to(batch.left.device).requires_grad_(False)
+    device = next(network.parameters()).device
+    if device != batch.left.device:
+        raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
+    return network

@@ -1,0 +1,118 @@
+"""The learned segmenters' weights files: where the shipped ones are (``weights/``), reading one into its
+network (once per file and version in a process) and writing one atomically with its metadata.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..core.checks import InputError
+from .network import ObstacleNet, ObstacleNetConfig
+
+__all__ = [
+    "NEARNESS_WEIGHTS", "SHIPPED_WEIGHTS", "cached_obstacle_net", "load_obstacle_net", "save_obstacle_net",
+    "weights_path"
+]
+
+
+#: The weights shipped inside the package (``SegmentationConfig(segmenter="learned")``).
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "obstacle_net.pt"
+#: The nearness segmenter's shipped correction network (``SegmentationConfig(segmenter="nearness")``, issue 32).
+NEARNESS_WEIGHTS = Path(__file__).resolve().parent / "weights" / "nearness_net.pt"
+_FORMAT = "svs_torch.obstacle_net/1"
+#: Each segmenter kind's weights-file format (the classes: :func:`_network_classes`).
+_KINDS = {"learned": _FORMAT, "nearness": "svs_torch.nearness_net/1"}
+
+
+def weights_path(segmenter: str) -> Path:
+    """The weights file of a ``SegmentationConfig.segmenter`` value: ``"learned"`` / ``"nearness"`` the shipped
+    one, ``"learned:PATH"`` / ``"nearness:PATH"`` PATH."""
+    kind, _, path = segmenter.partition(":")
+    if kind in _KINDS and path:
+        return Path(path).expanduser()
+    if kind in _KINDS and ":" not in segmenter:
+        return SHIPPED_WEIGHTS if kind == "learned" else NEARNESS_WEIGHTS
+    raise InputError(f"segmenter: expected learned, learned:PATH, nearness or nearness:PATH, got {segmenter!r}")
+
+
+def _network_classes(kind: str) -> tuple[type[nn.Module], type]:
+    from .nearness import NearnessNet, NearnessNetConfig
+    return (ObstacleNet, ObstacleNetConfig) if kind == "learned" else (NearnessNet, NearnessNetConfig)
+
+
+def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
+    """The network of ``"learned"`` / ``"nearness"`` (shipped) or ``"learned:PATH"`` / ``"nearness:PATH"``: an
+    :class:`ObstacleNet` or a :class:`~svs_torch.segmentation.nearness.NearnessNet`, in float32 and eval mode.
+
+    Raises:
+        InputError: one line, naming the file, when it is missing, not a weights file, or does not fit.
+    """
+    path = weights_path(segmenter)
+    if not path.is_file():
+        raise InputError(f"segmenter: no weights file at {str(path)!r}")
+    try:
+        stored = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch.load raises many types (zip, pickle, EOF, OS); all mean "not a weights file"
+        reason = " ".join(str(error).split())[:200] or type(error).__name__
+        raise InputError(f"segmenter: {str(path)!r} is not a weights file ({reason})") from None
+    kind = segmenter.partition(":")[0]
+    expected = _KINDS[kind]
+    if not isinstance(stored, dict) or stored.get("format") != expected:
+        found = f", found {stored.get('format')!r}" if isinstance(stored, dict) and "format" in stored else ""
+        raise InputError(f"segmenter: {str(path)!r} is not a svs_torch {kind} network file (format {expected}"
+                         f"{found})")
+    network_class, config_class = _network_classes(kind)
+    try:
+        settings = dict(stored["config"])
+        net = network_class(config_class(**{**settings, "channels": tuple(settings["channels"])}))
+        net.load_state_dict(stored["state_dict"])
+    except (KeyError, TypeError, RuntimeError) as error:
+        reason = " ".join(str(error).split())[:200]
+        raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None
+    return net.float().eval()
+
+
+_NET_CACHE: dict[tuple[str, str, int, int], nn.Module] = {}
+
+
+def cached_obstacle_net(segmenter: str) -> nn.Module:
+    """:func:`load_obstacle_net` once per weights file and version (a batch loop or a sweep does not re-read it
+    for every batch; a file rewritten in place, e.g. by a training run, is read again)."""
+    path = weights_path(segmenter)
+    try:
+        stat = path.stat()
+    except OSError:
+        return load_obstacle_net(segmenter)  # its one-line error
+    key = (segmenter.partition(":")[0], str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _NET_CACHE:
+        _NET_CACHE.clear()  # one network at a time: a sweep over weights files does not pile them up
+        _NET_CACHE[key] = load_obstacle_net(segmenter)
+    return _NET_CACHE[key]
+
+
+def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = None) -> None:
+    """Write ``net``'s weights, its configuration and ``metadata`` (training settings, split) atomically, in a
+    file :func:`load_obstacle_net` reads. ``metadata`` is stored as its JSON form (strings for anything else),
+    so the file holds only tensors and plain values and loads with ``weights_only``."""
+    path = Path(path)
+    kind = "learned" if isinstance(net, ObstacleNet) else "nearness"
+    stored = {"format": _KINDS[kind], "config": dataclasses.asdict(net.config),
+              "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
+              "metadata": json.loads(json.dumps(metadata or {}, default=str))}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(handle)
+    try:
+        torch.save(stored, temporary)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
