@@ -1,10 +1,10 @@
 """Pairs rectified by a chessboard calibration: should the pipeline rectify them again from F (``rectify="auto"``,
 ``"required"``) or not (``"off"``, what ``--calibration`` sets)?
 
-The shared OpenCV chessboard pairs are calibrated (:mod:`svs_torch.geometry.chessboard`, nominal 25 mm squares), rectified
-with it (:func:`svs_torch.geometry.calibration.rectify_with_calibration`) and ranged under each setting. The truth is the
-calibration's own: each corner's disparity after rectification (x_left − x_right of the corners found by OpenCV,
-mapped by the rectification), so a corner's depth is f·B / d. Reported per setting: how many pairs the pipeline
+The shared OpenCV chessboard pairs are calibrated (:mod:`svs_torch.geometry.chessboard`, nominal 25 mm squares),
+rectified with it (:func:`svs_torch.geometry.calibration.rectify_with_calibration`) and ranged under each setting. The
+truth is the calibration's own: each corner's disparity after rectification (x_left − x_right of the corners found by
+OpenCV, mapped by the rectification), so a corner's depth is f·B / d. Reported per setting: how many pairs the pipeline
 rectified again from F, the pipeline's dense disparity at the corners against the corners' (median |error| per
 pair, over the pairs it did not rectify again: after a second rectification the maps are in other pixels), and the
 nearest obstacle's distance per pair against the board's nearest corner (the board is the nearest object in every

@@ -50,7 +50,8 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.evaluation import with_nominal_calibration
 from svs_torch.segmentation.learned import obstacle_truth
 from svs_torch.segmentation.network_files import NEARNESS_WEIGHTS, save_obstacle_net
-from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, _network_features, measure_nearness_disparity)
+from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, _network_features,
+                                             measure_nearness_disparity)
 from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

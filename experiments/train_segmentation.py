@@ -19,8 +19,8 @@ through the soft path (soft region weights over the network's own kept regions, 
 it is computed once per sample with the features.
 
 Writes the weights with their configuration, the training settings and the scenes used (default: the shipped
-file, svs_torch/segmentation/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.py`` scores them on the held-out
-split.
+file, svs_torch/segmentation/weights/obstacle_net.pt). Then ``experiments/eval_segmentation.py`` scores them on the
+held-out split.
 
     python experiments/train_segmentation.py [--steps 700] [--batch-size 8] [--seed 0] [--out FILE]
 

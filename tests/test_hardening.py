@@ -643,7 +643,7 @@ def test_estimate_pairs_gives_every_listed_pair_one_line(data):
         code, out, err = run_main(["estimate", "--pairs", str(list_path), "--json", "--batch-size", batch_size,
                                    "--workers", "1"])
     assert code in (0, 2), err
-    # Progress into a pipe is plain lines starting "estimate: " (tests/test_progress.py); the rest is errors.
+    # Progress into a pipe is plain lines starting "estimate: " (tests/cli/test_progress.py); the rest is errors.
     err = "".join(line for line in err.splitlines(True) if not line.startswith("estimate: "))
     reports = [json.loads(line) for line in out.splitlines()]
     assert all("status" in report and "left" in report for report in reports)

@@ -6,6 +6,7 @@ module objects."""
 from __future__ import annotations
 
 import ast
+import re
 import importlib
 import sys
 import warnings
@@ -215,7 +216,8 @@ OLD_PUBLIC_NAMES = {
     "svs_torch.camera": ["SVSCamera", "SVS_CAMERA", "SVS_RESOLUTIONS", "parse_size"],
     "svs_torch.canny": ["canny_edges"],
     "svs_torch.checks": [
-        "InputError", "check_dtype", "check_finite", "check_image", "check_instance", "check_same_shape", "check_shape"],
+        "InputError", "check_dtype", "check_finite", "check_image", "check_instance", "check_same_shape",
+        "check_shape"],
     "svs_torch.chessboard": [
         "BoardViews", "MIN_PAIRS", "calibrate_stereo_rig", "collect_board_views", "find_board_corners",
         "rectified_corners"],
@@ -310,3 +312,29 @@ def test_every_old_module_path_still_has_its_public_names():
             module = importlib.import_module(old)
             missing += [f"{old}.{name}" for name in names if not hasattr(module, name)]
     assert not missing, missing
+
+
+def test_the_readme_layout_and_the_package_tree_say_the_same():
+    """The README's layout lists every package of ``svs_torch`` (and no other), every module of the stages, of
+    ``core`` and of the pipeline, and every folder it names inside them."""
+    block = (PACKAGE.parent / "README.md").read_text().split("## Layout", 1)[1].split("```")[1]
+    entries: dict[str, str] = {}
+    current = None
+    for line in block.splitlines():
+        match = re.match(r"  (\w+)/\s+(.*)", line)
+        if match:
+            current = match.group(1)
+            entries[current] = match.group(2)
+        elif current and line.startswith("   "):
+            entries[current] += " " + line.strip()
+        else:
+            current = None
+    packages = {path.parent.name for path in PACKAGE.glob("*/__init__.py")}
+    assert set(entries) == packages
+    for name in ("core", *STAGES, "pipeline"):
+        words = set(re.findall(r"[\w]+/?", entries[name]))
+        modules = {path.stem for path in (PACKAGE / name).glob("*.py") if path.stem != "__init__"}
+        assert modules <= words, f"{name}: not in the README's layout: {sorted(modules - words)}"
+        for folder in (word[:-1] for word in words if word.endswith("/")):
+            assert (PACKAGE / name / folder).is_dir(), f"{name}/{folder}"
+    assert "moved.py" in block and (PACKAGE / "moved.py").is_file()

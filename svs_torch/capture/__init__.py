@@ -2,7 +2,10 @@
 
 ``protocol`` is pure (bytes in, values out); ``link`` speaks it over pyserial (UART or ``socket://``);
 ``stereo`` grabs timestamped pairs and turns them into :class:`~svs_torch.core.types.StereoBatch`; ``guide`` holds the
-reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter).
+reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter); ``link_types`` what a
+link is configured with, counts and receives.
+
+May import: ``svs_torch.core`` only (pyserial, no torch at import). The CLI imports it.
 """
 
 from .guide import FpsMeter, LiveGuide, Speaker, WarningPolicy

@@ -2,6 +2,9 @@
 
 Each subcommand lives in its own module with ``add_parser(subparsers)`` and a ``run(args) -> int``; heavy
 imports (torch, OpenCV) happen inside ``run`` so that ``svs-depth --help`` answers at once.
+
+May import: every package of ``svs_torch``, and ``hw`` for ``--emulator`` (the device emulator beside the
+package). Nothing imports the CLI.
 """
 
 from __future__ import annotations

@@ -55,8 +55,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 #: The largest pair the command line works on (a 4096 x 4096 frame); larger ones are resampled with --size.
 MAX_PIXELS = 4096 * 4096
 #: ``features``' own keypoint cap under ``--preset default``: the detector's limit
-#: (:data:`svs_torch.features.detector.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The pipeline's
-#: 512 suits 320x240 and RANSAC; at native size it kept a third of SIFT's correct matches
+#: (:data:`svs_torch.features.detector.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The
+#: pipeline's 512 suits 320x240 and RANSAC; at native size it kept a third of SIFT's correct matches
 #: (``experiments/features_cli_vs_sift.py``, tuned split: 0.36 of SIFT's; 4.6x with this default and x2 detection).
 COMMAND_MAX_KEYPOINTS = 10_000
 #: ``features`` detects on the image enlarged twice (``--upsample``) up to this many pixels by default (more and

@@ -1,4 +1,9 @@
-"""Real stereo data sets of the shared folder, SVS resampling and collation, and synthetic SVS scenes."""
+"""Real stereo data sets of the shared folder, SVS resampling and collation, and synthetic SVS scenes
+(``synthetic``, rendered by ``scene_rendering``).
+
+May import: ``svs_torch.core`` only. No stage, the pipeline, ``evaluation`` or the CLI imports are needed to read
+or make data; the stages never import it (they take a ``StereoBatch``).
+"""
 
 from .synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from .formats import (read_gray_image, read_kitti_disparity, read_middlebury_calib, read_pfm, read_scaled_disparity,

@@ -1,10 +1,13 @@
 """Stage 4, depth: the obstacles' distances.
 
-``sparse`` (the paper's rule, Eq. (5)–(8): depth from the RANSAC inliers' disparities, per object and over the
-pair; :class:`DepthConfig` and the depth results), ``quantiles`` (medians and percentiles over masks and labels),
-``dense`` (dense SAD block matching over the kept regions), ``soft_dense`` (its differentiable soft-argmin),
-``search_range`` (each pair's disparity range and crop box), ``dense_objects`` (each object's depth from the
-dense map, and the verification that both views show one scene); ``kernels/`` holds the C kernels of the block
+``depth_types`` (:class:`DepthConfig` and the depth results), ``quantiles`` (medians and percentiles over masks
+and labels), ``sparse`` (the paper's rule, Eq. (5)–(8): depth from the RANSAC inliers' disparities, per object
+and over the pair); the dense stage: ``dense_config`` (its options and results), ``cost_volume`` (pre-filter,
+crops, window sums), ``winner`` (winner takes all, rejections, the right view's winner and the left-right
+check), ``block_matching`` (the hard matcher and the row fill), ``soft_dense`` (its differentiable
+soft-argmin), ``pooling``, ``search_range`` (each pair's disparity range), ``dense`` (the working resolution and
+:func:`~svs_torch.depth.dense.estimate_dense_disparity`), ``dense_objects`` (each object's depth from the dense
+map, and the verification that both views show one scene); ``kernels/`` holds the C kernels of the block
 matching, the row fill, the order statistics by label and the objects' statistics, beside their torch paths.
 
 May import: ``svs_torch.core`` and ``geometry``'s public names (homographies). Never segmentation, the

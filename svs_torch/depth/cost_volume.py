@@ -22,7 +22,7 @@ def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
     border. Differentiable w.r.t. the image (zero gradient where clipped).
 
     The six taps are added as shifted slices in the row-major order of the 3×3 kernel, which gives
-    ``F.conv2d``'s values bit for bit (checked in ``tests/test_dense.py``) at a tenth of its time on this
+    ``F.conv2d``'s values bit for bit (checked in ``tests/depth/test_dense.py``) at a tenth of its time on this
     CPU (single-channel ``conv2d`` is not vectorised: 105 ms against 9 for 32 images of 320×240)."""
     padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
     h, w = image.shape[-2:]

@@ -99,8 +99,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
             disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``); 0: no
             check. The statistics are still over all the object's pixels.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
-            (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median is
-            over the whole region, as the truth is, and not only over its well-textured part.
+            (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median
+            is over the whole region, as the truth is, and not only over its well-textured part.
 
     Returns:
         ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels

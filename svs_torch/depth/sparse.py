@@ -24,13 +24,11 @@ from ..core.checks import InputError, check_dtype, check_shape
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
                           PointDepths, RangeEstimate)
-from .quantiles import Quantiles, kept_region_lower_median, labelled_quantile, masked_lower_median, masked_quantile
+from .quantiles import masked_quantile
 
 __all__ = [
-    "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
-    "PointDepths", "Quantiles", "RangeEstimate", "accuracy_percent", "estimate_depth", "estimate_range",
-    "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile", "nearest_obstacle",
-    "object_depths", "point_depths", "rectified_disparity", "slot_labels"
+    "accuracy_percent", "estimate_depth", "estimate_range", "nearest_obstacle", "object_depths", "point_depths",
+    "rectified_disparity", "slot_labels"
 ]
 
 

@@ -9,7 +9,13 @@ pipeline and that the pipeline never imports.
 * :mod:`.overrides`: presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`;
 * :mod:`.store`: the SQLite results store (schema in its docstring);
 * :mod:`.sweep`: sweep files, tasks and runs; :mod:`.executors`: the local process pool and Dask;
-* :mod:`.report`: summaries, CSV and plots of a results store.
+* :mod:`.report`: summaries, CSV and plots of a results store;
+* :mod:`.disparity_errors`: disparity errors of the dense map and of the sparse inliers against the truth;
+* :mod:`.export`: dense disparity maps written in the Middlebury and KITTI formats;
+* :mod:`.benchmark`, :mod:`.bench_rivals`: ``svs-depth bench`` (pairs a second) and its rivals.
+
+May import: ``svs_torch.core``, the stages' public names, the pipeline and ``data``. Only the CLI and the
+experiments import it.
 
 Only :mod:`.metrics`, :mod:`.stereo_metrics` and :mod:`.runner` are imported here; the others load when
 named.

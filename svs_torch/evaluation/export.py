@@ -21,7 +21,7 @@ Reading a map back to the reported depths: an object's median (and percentiles) 
 its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
 nearest known neighbours' disparity (their mean where within 1 px, else the smaller; ``DenseConfig.fill_invalid``),
 ``Z = f·B / (d + doffs)``. Done so from the written PFMs of the ten MiddEval3 Q scenes, all 20 objects' medians
-agree with the JSON within its 0.1 mm rounding (tests/test_disparity_export.py does it for Teddy).
+agree with the JSON within its 0.1 mm rounding (tests/evaluation/test_disparity_export.py does it for Teddy).
 """
 
 from __future__ import annotations

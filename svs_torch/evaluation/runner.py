@@ -3,9 +3,9 @@
 One bad pair never stops the others: an entry that cannot be loaded is ``BAD_INPUT``, a pair under 5×5 pixels
 ``TOO_SMALL``, and a block whose pipeline run raises is run again pair by pair, so only the pair that raises is
 ``ERROR`` (with the exception in ``reason``). Each pair's result does not depend on its block, bit for bit: the
-pipeline runs pairs of different sizes as groups of one size, each on its own pixels (:mod:`svs_torch.core.size_groups`),
-and seeds RANSAC per pair, so a block can be re-run alone, at another batch size or in another order with equal
-results (``tests/test_batch_independence.py``).
+pipeline runs pairs of different sizes as groups of one size, each on its own pixels
+(:mod:`svs_torch.core.size_groups`), and seeds RANSAC per pair, so a block can be re-run alone, at another batch size or
+in another order with equal results (``tests/pipeline/test_batch_independence.py``).
 """
 
 from __future__ import annotations
@@ -49,9 +49,9 @@ class EvalSetup:
         size_wh: resample every pair to (width, height) first; None keeps each pair's own size (pairs of
             different sizes are then padded into one batch, and the pipeline runs each size apart).
         focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
-        calibration: a rig's :class:`~svs_torch.geometry.calibration.StereoCalibration` for those pairs instead: they are
-            rectified with it and take its focal, baseline and doffs (scenes and pairs listed with a calibration
-            keep their own).
+        calibration: a rig's :class:`~svs_torch.geometry.calibration.StereoCalibration` for those pairs instead:
+            they are rectified with it and take its focal, baseline and doffs (scenes and pairs listed with a
+            calibration keep their own).
     """
 
     config: PipelineConfig = PipelineConfig()

@@ -22,10 +22,10 @@ A configuration's id is a hash of everything that can change a result: the whole
 :class:`~svs_torch.pipeline.PipelineConfig`, the size and, for a learned segmenter, the content of its weights file
 (retrained in place, it is another configuration); the same configuration from another sweep file reuses its rows.
 The batch size is not in it: a pair's result does not depend on its batch (pairs of different sizes run as groups
-of one size, :mod:`svs_torch.core.size_groups`; RANSAC is seeded per pair; ``tests/test_batch_independence.py``). The
-code version is recorded per run: a store whose rows come from several versions says so when a sweep adds to it
-and in every ``svs-depth results`` summary. Tasks are fixed blocks of the pair list;
-a block whose rows are all stored is skipped, any other block runs whole and its rows are
+of one size, :mod:`svs_torch.core.size_groups`; RANSAC is seeded per pair;
+``tests/pipeline/test_batch_independence.py``). The code version is recorded per run: a store whose rows come from
+several versions says so when a sweep adds to it and in every ``svs-depth results`` summary. Tasks are fixed blocks of
+the pair list; a block whose rows are all stored is skipped, any other block runs whole and its rows are
 written in one transaction with ``INSERT OR IGNORE``. So a sweep killed at any moment and started again runs
 only what is missing and ends with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
 

@@ -92,8 +92,8 @@ def _candidates(octaves: list[HessianOctave], threshold: float, mask: torch.Tens
 
 def _strongest_maxima(octaves: list[HessianOctave], threshold: float, mask: torch.Tensor | None,
                       max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`_candidates` and its ``torch.topk`` in one C pass (:func:`svs_torch.features.kernels.strongest_maxima`): the
-    same values and indices, equal scores in index order (which ``torch.topk`` leaves open). The dense maps of
+    """:func:`_candidates` and its ``torch.topk`` in one C pass (:func:`svs_torch.features.kernels.strongest_maxima`):
+    the same values and indices, equal scores in index order (which ``torch.topk`` leaves open). The dense maps of
     the octaves (−inf at all but a few hundred of ~200 000 points at 320×240) are never written, concatenated or
     partially sorted: 16 real images of 320×240, one thread, about 19 → 12 ms. None when the kernel cannot run."""
     total = sum(max(s - 2, 0) * max(ny - 2, 0) * max(nx - 2, 0) for s, ny, nx in (o.det.shape[1:] for o in octaves))

@@ -221,7 +221,7 @@ def estimate_fundamental_ransac(
 
     Args:
         points_left, points_right: ``(B, K, 2)`` matched points in pixels (row k of both is one correspondence,
-            e.g. from :func:`svs_torch.geometry.matching.gather_matched_points`).
+            e.g. from :func:`svs_torch.geometry.matched_points.gather_matched_points`).
         valid: ``(B, K)`` bool; padding rows are never sampled, scored or reported as inliers.
         threshold_px: inlier threshold on the Sampson distance (not squared), pixels. MATLAB's default
             DistanceThreshold 0.01 is on the squared distance (0.1 px); OpenCV's FM_RANSAC threshold is on the

@@ -14,8 +14,8 @@ one linear equation per match: three matches fix ``(a, b, t_y)``. ``t_x`` cannot
 image centre keeps its column (the two principal points stay where they were). A keystone (a camera turned about
 its x or y axis by ~1°) is not modelled: measured, it costs under a point at 320×240.
 
-Batched over pairs: RANSAC over 3-match samples (the seeded counter-based draws of :mod:`svs_torch.geometry.ransac`, so a
-pair's result does not depend on its batch), then a least-squares refit on the inliers. Not differentiable (the
+Batched over pairs: RANSAC over 3-match samples (the seeded counter-based draws of :mod:`svs_torch.geometry.ransac`, so
+a pair's result does not depend on its batch), then a least-squares refit on the inliers. Not differentiable (the
 inlier sets are discrete); the refit is differentiable w.r.t. the points given the inliers.
 """
 

@@ -5,8 +5,8 @@ The hard pipeline decides everything discrete (the keypoints, the matches, RANSA
 rectified from F); this module recomputes the continuous chain from the images given those decisions:
 
 1. **Matched right points** (:func:`lk_points_straight_through`): the hard Lucas–Kanade refinement
-   (:func:`~svs_torch.geometry.matching.refine_matches_lk`) leaves each right point where its patch best aligns with the left
-   keypoint's patch. One Gauss–Newton step from that point, computed from the images with gradients, is (almost)
+   (:func:`~svs_torch.geometry.lk_refinement.refine_matches_lk`) leaves each right point where its patch best aligns with the
+   left keypoint's patch. One Gauss–Newton step from that point, computed from the images with gradients, is (almost)
    zero there, and its derivative w.r.t. the images is the derivative of the optimum (the implicit function
    theorem, with the Gauss–Newton Hessian). The point is ``hard + (step − step.detach())``: the hard value, the
    step's gradient. The left points (SURF keypoints) carry none.
@@ -121,8 +121,8 @@ def geometry_straight_through(left: torch.Tensor, right: torch.Tensor, xy_left: 
     (refinement ``radius`` and ``moved`` as :func:`lk_points_straight_through` takes them) where the pair was
     rectified from RANSAC's ``F_hard`` with its ``inliers`` ``(B, K)`` (``from_F`` ``(B,)``: F refitted, then
     Hartley's method), or row-aligned (``from_rows`` ``(B,)``: the similarity refitted on ``row_inliers``
-    ``(B, K)``, :func:`~svs_torch.geometry.row_alignment.row_alignment_homography`). Elsewhere, and for pairs with too few
-    inliers to refit, the homographies are constants. Differentiable w.r.t. both images."""
+    ``(B, K)``, :func:`~svs_torch.geometry.row_alignment.row_alignment_homography`). Elsewhere, and for pairs with too
+    few inliers to refit, the homographies are constants. Differentiable w.r.t. both images."""
     dtype = left.dtype
     use_F = from_F & (inliers.sum(dim=1) >= MIN_REFIT_INLIERS)
     use_rows = from_rows & ~from_F & (row_inliers.sum(dim=1) >= MIN_REFIT_INLIERS)

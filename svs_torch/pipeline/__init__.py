@@ -1,6 +1,7 @@
 """The pipeline: the stages composed, one batch of pairs from images to obstacle distances.
 
-``config`` (:class:`PipelineConfig`, :class:`PipelineStatus`, :class:`PipelineResult`), ``run``
+``config`` (:class:`PipelineConfig`, :class:`PipelineStatus`, :class:`PipelineResult`), ``stages`` (each stage
+as the pipeline calls it), ``ranging`` (the rectification choice and the dense depth with its retry), ``run``
 (:func:`estimate_obstacle_depth`: segmentation → features → matching → RANSAC → rectification → dense depth,
 each batch run as groups of one size), ``soft`` (the differentiable pass over the hard pass's decisions) and
 ``preload`` (worker processes that import the pipeline before their first task).

@@ -64,9 +64,9 @@ class PipelineConfig:
         mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
         laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
         epipolar_band_px: optional |y_left − y_right| limit on candidates, pixels (a nearly rectified rig).
-        refine_matches: :class:`~svs_torch.geometry.matching.MatchRefinementConfig`: sub-pixel Lucas–Kanade refinement of
-            each matched right point on the images the features were found on, with a correlation gate; None:
-            the keypoints as detected (the paper).
+        refine_matches: :class:`~svs_torch.geometry.lk_refinement.MatchRefinementConfig`: sub-pixel Lucas–Kanade
+            refinement of each matched right point on the images the features were found on, with a correlation
+            gate; None: the keypoints as detected (the paper).
         ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3).
         ransac_confidence: stop when an all-inlier 7-point sample was drawn with this probability.
         ransac_max_iterations: 7-point samples per pair at most.
@@ -199,8 +199,8 @@ class PipelineResult:
         segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`.
         features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.
         matches: left-to-right :class:`~svs_torch.core.types.Matches`.
-        points: :class:`~svs_torch.geometry.matching.MatchedPoints` ``(B, K, 2)``: the matched points F is fitted to (the
-            right points refined to sub-pixel under ``refine_matches``), rows as in ``matches``.
+        points: :class:`~svs_torch.geometry.matched_points.MatchedPoints` ``(B, K, 2)``: the matched points F is
+            fitted to (the right points refined to sub-pixel under ``refine_matches``), rows as in ``matches``.
         fundamental: :class:`~svs_torch.core.types.FundamentalResult` over the matched rows (row k = left keypoint k).
         rectification: :class:`~svs_torch.geometry.rectification.Rectification` computed from F (its homographies are
             the identity where its status is not OK).

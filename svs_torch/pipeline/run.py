@@ -23,12 +23,12 @@ from ..geometry.ransac import estimate_fundamental_ransac
 from ..geometry.rectification import rectify_uncalibrated
 from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
-from .config import PipelineConfig, PipelineResult, PipelineStatus
+from .config import PipelineConfig, PipelineResult
 from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed
 from .soft import differentiable_depth
-from .stages import _feature_images, _features, _match, _network, _segment_group, _status, segment_pair
+from .stages import _feature_images, _features, _match, _network, _segment_group, _status
 
-__all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "segment_pair"]
+__all__ = ["estimate_obstacle_depth"]
 
 
 def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig(),

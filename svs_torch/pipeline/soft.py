@@ -10,8 +10,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
    its two neighbours, from the images with gradients (same pre-filter, same 1/255 levels: rounded values,
    identity gradient), then the same equiangular sub-pixel fit (:func:`subpixel_disparity`). The values are
    the hard stage's, bit for bit; the gradient reaches both images through the costs.
-2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`, whose torch
-   path is differentiable), with the hard validity as the mask.
+2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`,
+   whose torch path is differentiable), with the hard validity as the mask.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
    high percentile) is replaced by the weighted mean of the object's depths whose hard rank lies within
    ``BAND_HALF_WIDTH`` of it (always with the two order statistics it interpolates), so the gradient reaches

@@ -45,8 +45,8 @@ class _Runs:
 
 def _find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None) -> _Runs:
     """Runs of ``foreground (B, H, W)`` bool; with ``value``, a run also ends where ``value`` changes. The C
-    kernel (:func:`svs_torch.segmentation.kernels.find_runs`) finds the same runs in two passes per row instead of about eight
-    over the batch and two ``nonzero``: 16 real 320×240 masks, one thread, about 3.0 → 0.6 ms."""
+    kernel (:func:`svs_torch.segmentation.kernels.find_runs`) finds the same runs in two passes per row instead of about
+    eight over the batch and two ``nonzero``: 16 real 320×240 masks, one thread, about 3.0 → 0.6 ms."""
     b, h, w = foreground.shape
     found = kernels.find_runs(foreground, value)
     if found is not None:
@@ -103,8 +103,8 @@ def _union_find(num_runs: int, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor
 
 def _label_runs(mask: torch.Tensor, connectivity: int) -> tuple[_Runs, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Runs of ``mask (B, 1, H, W)``, each run's label ``(R,)``, ``num_labels (B,)`` and the label image
-    ``(B, 1, H, W)`` int64. The C kernel (:func:`svs_torch.segmentation.kernels.label_runs`) sweeps each image's runs once
-    where the torch path below takes rounds of whole-table passes: the same labels; on the 16 masks of a batch of
+    ``(B, 1, H, W)`` int64. The C kernel (:func:`svs_torch.segmentation.kernels.label_runs`) sweeps each image's runs
+    once where the torch path below takes rounds of whole-table passes: the same labels; on the 16 masks of a batch of
     8 real 320×240 pairs, one thread, about 8.7 → 3.2 ms for the whole of
     :func:`connected_components_with_stats`."""
     b, _, h, w = mask.shape

@@ -9,8 +9,8 @@ it:
    view (:func:`svs_torch.depth.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
    rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
    filled along their rows from the nearest measured ones, the farther side at an occlusion
-   (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width, window
-   and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
+   (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width,
+   window and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
    its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
    ``spread`` its 10–90 % range (at least 1 px).
@@ -253,9 +253,10 @@ def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, regi
     """``(B, L)`` pixels of each region that the block matcher measured (``measured`` ``(B, 1, H, W)``, not
     filled) at columns the right camera sees at the nearest region's disparity (x ≥ the largest median disparity
     of the regions of at least ``min_area_px``): the pixels the dense stage can range (its objects need valid
-    pixels where the pair's whole search lands in the right image, :func:`~svs_torch.depth.dense_objects.dense_object_depths`).
-    A region of filled rows only, or in the band only the left camera sees, would be kept and never ranged (its
-    slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the shared 2005–2006 scenes did so)."""
+    pixels where the pair's whole search lands in the right image,
+    :func:`~svs_torch.depth.dense_objects.dense_object_depths`). A region of filled rows only, or in the band only the
+    left camera sees, would be kept and never ranged (its slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the
+    shared 2005–2006 scenes did so)."""
     b, slots = regions.area_px.shape
     big = regions.valid & (regions.area_px >= min_area_px)
     if not slots:

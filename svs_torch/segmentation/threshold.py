@@ -41,8 +41,9 @@ def gray_histogram(levels: torch.Tensor) -> torch.Tensor:
 
 def gray_levels_and_histogram(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`gray_levels` and :func:`gray_histogram` of ``(B, 1, H, W)`` images in [0, 1]: without a C compiler
-    the two torch functions; with one, a kernel that reads each image once (:func:`svs_torch.segmentation.kernels.gray_levels`,
-    the same values: 16 real 320×240 images, one thread, about 2.4 → 0.4 ms). Not differentiable."""
+    the two torch functions; with one, a kernel that reads each image once
+    (:func:`svs_torch.segmentation.kernels.gray_levels`, the same values: 16 real 320×240 images, one thread, about 2.4
+    → 0.4 ms). Not differentiable."""
     found = kernels.gray_levels(image)
     if found is not None:
         return found

@@ -33,8 +33,8 @@ Each wrapper checks what its C code assumes (shapes, one row per pair, sizes and
 non-empty images, finite parameters in range) and raises :class:`~svs_torch.InputError` naming the argument
 (:mod:`svs_torch.core.kernels.checks`); the C code then trusts its inputs. A wrapper answers None, for the torch path to
 run, for inputs of another dtype or device, for cases the kernel leaves to it (NaN values to select among, an octave
-without interior points, a table too small to read), or when the kernel is not built. ``tests/test_kernel_fuzz.py`` feeds
-drawn inputs through every public function that reaches a kernel; ``tests/sanitize/run.sh`` runs it against builds
+without interior points, a table too small to read), or when the kernel is not built. ``tests/core/test_kernel_fuzz.py``
+feeds drawn inputs through every public function that reaches a kernel; ``tests/sanitize/run.sh`` runs it against builds
 with AddressSanitizer and UBSan.
 
 Why a C kernel for the dense stage: eager torch pays one memory pass per elementwise op, and the dense stage's
@@ -46,7 +46,7 @@ into the disparity map; each pair is matched at its own box and over its own ran
 every pair to the batch's largest (on 64 real pairs at 320×240, one thread: the dense stage 9.3 → 6.5 ms a pair
 against the earlier kernel that returned winner statistics for torch to judge). Its inputs are whole numbers
 (``StereoBM``'s 8-bit levels), so every sum is exact and its results are bit-identical to the torch path's
-(``tests/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch. Each
+(``tests/depth/test_dense.py``). It is not differentiable; the soft path (``soft_block_match``) stays in torch. Each
 Hessian level reads 32 integral-image corner views and made about 40 elementwise passes in eager torch, after a
 contiguous copy of the table per sub-lattice of the octave; the kernel makes a whole octave in one call, reading
 each grid point's corners from the padded table at the octave's step and doing the same float32 operations in

@@ -40,8 +40,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
                 texture_min: float, whole_range_in_view: bool, source: str = "levels",
                 prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0
                 ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``svs_torch.depth.block_matching._match_box`` of every pair at its own box and range, the kernel's contract (see the C
-    source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
+    """``svs_torch.depth.block_matching._match_box`` of every pair at its own box and range, the kernel's contract (see
+    the C source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
     whole numbers in [−255, 255] (:func:`svs_torch.depth.dense.quantize_levels`: then every cost is exact and the
     result is the torch path's bit for bit); ``texture`` ``(B, H, W)`` float32 |x-Sobel| of the left image, or
     None (no texture rule). With ``source="raw"`` or ``"xsobel"``: ``left``, ``right`` are the images themselves

@@ -163,9 +163,9 @@ def strongest_maxima(dets: list[torch.Tensor], supports: list[torch.Tensor | Non
 def refine_maxima(dets: list[torch.Tensor], traces: list[torch.Tensor], steps: list[int], sizes: list[list[int]],
                   score: torch.Tensor, index: torch.Tensor, factor: float, max_offset: float
                   ) -> tuple[torch.Tensor, ...] | None:
-    """The keypoints of :func:`svs_torch.features.detector.detect_surf_keypoints` from its strongest maxima, one keypoint at
-    a time (see the C source): ``dets[o]``, ``traces[o]`` ``(B, S, ny, nx)`` float32 with the octave's grid step
-    and filter sizes; ``score`` ``(B, K)`` float32 and ``index`` ``(B, K)`` int64 (:func:`strongest_maxima`);
+    """The keypoints of :func:`svs_torch.features.detector.detect_surf_keypoints` from its strongest maxima, one
+    keypoint at a time (see the C source): ``dets[o]``, ``traces[o]`` ``(B, S, ny, nx)`` float32 with the octave's grid
+    step and filter sizes; ``score`` ``(B, K)`` float32 and ``index`` ``(B, K)`` int64 (:func:`strongest_maxima`);
     ``factor`` the detector's upsampling. Returns ``valid`` ``(B, K)`` bool, ``xy`` ``(B, K, 2)``, ``size``,
     ``peak`` ``(B, K)`` float64 and the trace's sign ``(B, K)`` int64; None when the kernel is not available or
     the inputs do not fit its contract (an octave without an interior, for one)."""

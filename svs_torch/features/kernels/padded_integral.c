@@ -6,7 +6,7 @@
  * every side (integral.pad_integral). Here each row is finished at once, in the torch path's arithmetic: the
  * subtraction in float32, each cumulative sum carried in double and rounded to float32 at every element (torch's
  * CPU cumsum accumulates float32 in double), the row sums over the rounded column sums. So the table is
- * bit-identical (tests/test_kernels.py).
+ * bit-identical (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
  */

@@ -9,7 +9,7 @@
  * (strongest_maxima's indices), its 27 det values read as they lie (the torch path's clamped reads), the same
  * finite differences in double in the same order, and Brown & Lowe's 3 x 3 system solved by Gaussian
  * elimination with partial pivoting. torch solves it with LAPACK's LU, whose rounding differs in the last bits:
- * offsets agree to about 1e-15 (tests/test_kernels.py).
+ * offsets agree to about 1e-15 (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
  * svs_torch/kernels/__init__.py.

@@ -9,7 +9,7 @@
  * 2 x 2-cell Haar differences, the sigma = 3.3 Gaussian centred between the middle samples, OpenCV's
  * sub-region-major layout, unit length), but in double and summed in its own order, so the descriptors agree with
  * the torch path's to its own float32 error (median 1e-5, at most a few 1e-4), not bit for bit
- * (tests/test_kernels.py).
+ * (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
  */

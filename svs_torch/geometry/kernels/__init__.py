@@ -25,9 +25,9 @@ declare({
 def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
               radius: torch.Tensor, active: torch.Tensor, iterations: int, max_shift_px: float
               ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``svs_torch.geometry.lk_refinement._refine_lk``'s Gauss–Newton refinement, one match at a time (see the C source):
-    ``left``, ``right`` ``(B, 1, H, W)`` float32; ``left_xy``, ``right_xy`` ``(B, K, 2)``, ``radius`` ``(B, K)``
-    float32; ``active`` ``(B, K)`` bool, the rows to refine. Returns the refined right points ``(B, K, 2)`` and
+    """``svs_torch.geometry.lk_refinement._refine_lk``'s Gauss–Newton refinement, one match at a time (see the C
+    source): ``left``, ``right`` ``(B, 1, H, W)`` float32; ``left_xy``, ``right_xy`` ``(B, K, 2)``, ``radius`` ``(B,
+    K)`` float32; ``active`` ``(B, K)`` bool, the rows to refine. Returns the refined right points ``(B, K, 2)`` and
     the weighted NCC at them ``(B, K)`` (0 for inactive rows), or None when the kernel is not available or the
     inputs do not fit its contract."""
     tensors = (left, right, left_xy, right_xy, radius)

@@ -8,7 +8,7 @@
  * samples with the border repeated, Gaussian weights, zero-mean unit-RMS patches, the Jacobian with its mean
  * and its component along the template removed, H^-1 applied once, steps clamped to 1 px), but the weighted
  * sums run in double and in their own order, so positions agree with the torch path to about 1e-4 px, not bit
- * for bit (tests/test_kernels.py).
+ * for bit (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
  */

@@ -1,5 +1,5 @@
-"""The C kernels of the segmentation stage (the ``.c`` sources beside this file) and their wrappers, each the fast path of
-a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
+"""The C kernels of the segmentation stage (the ``.c`` sources beside this file) and their wrappers, each the fast path
+of a torch function of the stage that stays its reference: see :mod:`svs_torch.core.kernels` for how they are built,
 cached and loaded, and what every wrapper promises."""
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ declare({
 
 def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`svs_torch.segmentation.components._find_runs` in two passes per row (see the C source): the flat start and end
-    (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
+    """:func:`svs_torch.segmentation.components._find_runs` in two passes per row (see the C source): the flat start and
+    end (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
     ending where ``value`` (int64, its shape) changes. None when the kernel is not available or the inputs do not
     fit its contract."""
     if foreground.dim() < 1:
@@ -53,10 +53,10 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
 
 
 def gray_levels(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`svs_torch.segmentation.threshold.gray_levels` and :func:`~svs_torch.segmentation.threshold.gray_histogram` in one read of each
-    image (see the C source): ``image`` ``(B, 1, H, W)`` float32 in [0, 1] → the uint8 levels ``(B, 1, H, W)``
-    and the histograms ``(B, 256)`` int64, the torch path's values. None when the kernel is not available or
-    the input does not fit its contract."""
+    """:func:`svs_torch.segmentation.threshold.gray_levels` and :func:`~svs_torch.segmentation.threshold.gray_histogram`
+    in one read of each image (see the C source): ``image`` ``(B, 1, H, W)`` float32 in [0, 1] → the uint8 levels
+    ``(B, 1, H, W)`` and the histograms ``(B, 256)`` int64, the torch path's values. None when the kernel is not
+    available or the input does not fit its contract."""
     check_shape(image, "image", ["B", 1, "H", "W"])
     if not on_cpu(torch.float32, image):
         return None

@@ -15,16 +15,16 @@ def test_rival_loop_and_whole_process_on_the_same_pairs(tmp_path):
     assert list(sets) == ["synthetic 320x240"] and len(sets["synthetic 320x240"]) == 3
     listing = tmp_path / "list.txt"
     listing.write_text("".join(f"{l} {r}\n" for l, r in sets["synthetic 320x240"]) + "missing.png also.png\n")
-    out = subprocess.run([sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing)], capture_output=True,
-                         text=True, check=True).stdout.splitlines()
+    out = subprocess.run([sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing)],
+                         capture_output=True, text=True, check=True).stdout.splitlines()
     rows = [json.loads(line) for line in out]
     assert [r["status"] for r in rows] == ["OK", "OK", "OK", "BAD_INPUT"]
     # Synthetic obstacles lie 1-2 m away: StereoBM medians over the kept regions must land there.
     assert all(0.7 < r["r_min_m"] <= r["r_max_m"] < 3.0 for r in rows[:3])
     assert all(r["inliers"] <= r["matches"] and min(r["keypoints"]) > 0 for r in rows[:3])
     # The pooled loop (the strongest a user writes for throughput) does the same work, in list order.
-    pooled = subprocess.run([sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing), "--workers", "2"],
-                            capture_output=True, text=True, check=True).stdout.splitlines()
+    command = [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing), "--workers", "2"]
+    pooled = subprocess.run(command, capture_output=True, text=True, check=True).stdout.splitlines()
     assert [json.loads(line) for line in pooled] == rows
     report_rows = whole_process({"synthetic 320x240": sets["synthetic 320x240"][:2]}, tmp_path, 1, 1)
     assert [r["rival"] for r in report_rows] == ["svs-depth estimate --pairs", "OpenCV SIFT loop", "OpenCV ORB loop",

@@ -103,7 +103,7 @@ def test_hessian_kernel_refuses_tables_it_cannot_read():
     sizes, areas = [9, 15, 21], [1.0, 1.0, 1.0]
     assert not features_kernels.hessian_octave(padded.double(), 12, 1, sizes, areas, areas, 0.9, det, trace)
     assert not features_kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace.transpose(-1, -2)
-                                      .contiguous().transpose(-1, -2))
+                                               .contiguous().transpose(-1, -2))
     assert not features_kernels.hessian_octave(padded, 8, 1, sizes, areas, areas, 0.9, det, trace)  # 21 // 2 + 1 > 8
     assert not det.any() and not trace.any()
     assert features_kernels.hessian_octave(padded, 12, 1, sizes, areas, areas, 0.9, det, trace) and det.any()
@@ -226,7 +226,8 @@ def test_find_runs_kernel_equals_torch(generator, monkeypatch, threads, width):
             fused = _with_threads(threads, _find_runs, mask, given)
             reference = _torch_path(monkeypatch, _find_runs, mask, given)
             assert torch.equal(fused.start, reference.start) and torch.equal(fused.end, reference.end)
-    assert segmentation_kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None  # int64 values only
+    # int64 values only
+    assert segmentation_kernels.find_runs(masks[0], torch.zeros(masks[0].shape, dtype=torch.int32)) is None
 
 
 @pytest.mark.skipif(not kernels.available("label_runs"), reason="no C compiler")
@@ -251,7 +252,8 @@ def test_label_runs_kernel_equals_torch(generator, monkeypatch, threads, connect
             assert torch.equal(getattr(fused[2], field), getattr(reference[2], field))
     assert int(connected_components_with_stats(shapes, connectivity)[1][0]) == (1 if connectivity == 8 else 9)
     assert int(connected_components_with_stats(shapes, connectivity)[1][1]) == 1
-    assert segmentation_kernels.label_runs(torch.zeros(2, dtype=torch.int32), torch.zeros(2, dtype=torch.int32), 1, 1, 2, 8) is None
+    int32 = torch.zeros(2, dtype=torch.int32)
+    assert segmentation_kernels.label_runs(int32, int32, 1, 1, 2, 8) is None
 
 
 @pytest.mark.skipif(not kernels.available("gray_levels"), reason="no C compiler")
@@ -357,18 +359,19 @@ def test_kernels_take_an_empty_batch():
     if not kernels.available("sad_nearest"):
         pytest.skip("no C compiler")
     best, second, index, back = geometry_kernels.sad_nearest(torch.zeros(0, 4, 64), torch.zeros(0, 5, 64),
-                                                    torch.ones(0, 4, dtype=torch.bool), torch.ones(0, 5, dtype=torch.bool))
+                                                             torch.ones(0, 4, dtype=torch.bool),
+                                                             torch.ones(0, 5, dtype=torch.bool))
     assert best.shape == (0, 4) and back.shape == (0, 5)
     described = features_kernels.usurf_describe(torch.zeros(0, 1, 20, 20), 8, torch.zeros(0, 3, 2), torch.ones(0, 3),
-                                       torch.ones(0, 3, dtype=torch.bool), False)
+                                                torch.ones(0, 3, dtype=torch.bool), False)
     assert described.shape == (0, 3, 64)
     table = features_kernels.padded_integral(torch.zeros(0, 1, 20, 20), torch.zeros(0), 8)
     assert table.shape == (0, 1, 37, 37)
     count, below, _ = depth_kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
-                                              torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
+                                                    torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
     assert count.shape == (0, 2) and below.shape == (0, 2, 1)
-    values, index = features_kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)], [torch.ones(1, 1, 3, 3, dtype=torch.bool)],
-                                             0.5, 4)
+    values, index = features_kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)],
+                                                      [torch.ones(1, 1, 3, 3, dtype=torch.bool)], 0.5, 4)
     assert values.shape == index.shape == (0, 4)
 
 
@@ -408,7 +411,7 @@ def test_dense_kernel_equals_the_torch_box_matcher():
     config = dense.DenseConfig(window_size=size, prefilter="none", texture_threshold=0.0, kernel="torch")
     search = dense.DisparityRange(minimum, 16, counts)
     found = depth_kernels.block_match(left, right, None, size, boxes, minimum, counts, image_hw, lower,
-                                config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False)
+                                      config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False)
     expected, ok = dense._match_box(left.unsqueeze(1) / 255, right.unsqueeze(1) / 255, boxes[:, 0], boxes[:, 1],
                                     130, 90, search, image_hw, config, lower)
     for b, (x0, y0, w, h) in enumerate(boxes.tolist()):
@@ -438,15 +441,16 @@ def test_dense_kernel_prefilters_as_the_torch_path(source):
     levels = (quantize_levels(sobel_left), quantize_levels(sobel_right)) if source == "xsobel" else (
         quantize_levels(raw_left), quantize_levels(raw_right))
     rules = (0.1, 1.0, 2 / 255 * size ** 2, False)
-    expected = depth_kernels.block_match(*levels, sobel_left.abs(), size, boxes, minimum, counts, image_hw, lower, *rules)
+    expected = depth_kernels.block_match(*levels, sobel_left.abs(), size, boxes, minimum, counts, image_hw, lower,
+                                         *rules)
     found = depth_kernels.block_match(raw_left, raw_right, True, size, boxes, minimum, counts, image_hw, lower, *rules,
-                                source=source, prefilter_cap=cap)
+                                      source=source, prefilter_cap=cap)
     untextured = depth_kernels.block_match(*levels, None, size, boxes, minimum, counts, image_hw, lower, *rules)
     assert torch.equal(found[0], expected[0]) and torch.equal(found[1], expected[1])
     assert expected[1].sum() > 500 and untextured[1].sum() > expected[1].sum()  # the texture rule rejected some
     with pytest.raises(ValueError, match="texture"):
-        depth_kernels.block_match(raw_left, raw_right, sobel_left, size, boxes, minimum, counts, image_hw, lower, *rules,
-                            source=source, prefilter_cap=cap)
+        depth_kernels.block_match(raw_left, raw_right, sobel_left, size, boxes, minimum, counts, image_hw, lower,
+                                  *rules, source=source, prefilter_cap=cap)
 
 
 @pytest.mark.skipif(not kernels.available("usurf_describe"), reason="no C compiler")
@@ -559,8 +563,8 @@ def test_sad_matching_kernel_edge_rows(band_px):
     sign_left, sign_right = torch.tensor([[1, 1, 1, -1, 7]]), torch.tensor([[1, -1, 1, 1, 1]])
     y_left, y_right = torch.tensor([[0.0, 5.0, 0.0, 0.0, 0.0]]), torch.tensor([[0.0, 0.0, 0.5, 0.0, 9.0]])
     xy_left, xy_right = torch.stack([y_left, y_left], -1), torch.stack([y_right, y_right], -1)
-    best, second, index, back = geometry_kernels.sad_nearest(left, right, valid_left, valid_right, sign_left, sign_right,
-                                                    y_left, y_right, band_px)
+    best, second, index, back = geometry_kernels.sad_nearest(left, right, valid_left, valid_right, sign_left,
+                                                             sign_right, y_left, y_right, band_px)
     allowed = _allowed(valid_left, valid_right, sign_left, sign_right, xy_left, xy_right, band_px)
     distance = torch.where(allowed, torch.cdist(left, right, p=1), torch.inf)
     nearest = torch.topk(distance, 2, dim=-1, largest=False)

@@ -6,7 +6,7 @@ raise the same kind of error; never a crash. ``tests/sanitize/run.sh`` runs this
 AddressSanitizer and UBSan, where an out-of-bounds read that happens to return is a failure too.
 
 Derandomized, so CI sees the same examples every run; the whole file takes about 25 s on two cores. More
-examples for a bug hunt: ``SVS_FUZZ_SCALE=20 pytest tests/test_kernel_fuzz.py``.
+examples for a bug hunt: ``SVS_FUZZ_SCALE=20 pytest tests/core/test_kernel_fuzz.py``.
 """
 
 from __future__ import annotations
@@ -137,7 +137,8 @@ def masks(draw, shape, odd_bytes=True):
 
 
 #: B, H, W (0: empty images). B >= 1: several torch paths fail on an empty batch (a RuntimeError from
-#: ``reshape(b, -1)``, not a crash) in code no kernel reaches; ``tests/test_kernels.py`` covers B = 0 for the kernels.
+#: ``reshape(b, -1)``, not a crash) in code no kernel reaches; ``tests/core/test_kernels.py`` covers B = 0 for the
+#: kernels.
 sizes = st.tuples(st.integers(1, 3), st.integers(0, 20), st.integers(0, 24))
 
 
