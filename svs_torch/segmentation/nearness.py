@@ -9,8 +9,11 @@ it:
    view (:func:`svs_torch.depth.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
    rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
    filled along their rows from the nearest measured ones, the farther side at an occlusion
-   (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart. Width,
-   window and keep rule were chosen on the train scenes only (``experiments/select_nearness_rule.md``).
+   (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart;
+   then a median over about 14 working pixels removes the specks and one-row streaks that JPEG frames with sensor
+   noise leave. Width, window and keep rule were chosen on the train scenes only
+   (``experiments/select_nearness_rule.md``), the uniqueness ratio and the median on them clean and as camera
+   frames (``select_nearness_denoise.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
    its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
    ``spread`` its 10–90 % range (at least 1 px).
@@ -75,6 +78,9 @@ class NearnessNetConfig:
         network_width_px: the network sees its features reduced to this width, pixels.
         channels: widths of the three U-Net levels.
         rule_gain: logits per spread of the rule ``(d − split) / spread``.
+        uniqueness_ratio: the block matcher's uniqueness rule (:class:`~svs_torch.depth.dense_config.DenseConfig`).
+        median_window: side of the median filter over the filled disparity, taken on the map halved (box
+            average) so a side of 7 spans about 14 working pixels; 1: no filter.
         disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
         probability_threshold: a pixel is an obstacle where its probability exceeds this.
     """
@@ -82,6 +88,8 @@ class NearnessNetConfig:
     working_width_px: int = 320
     window_size: int = 7  # with working_width_px: experiments/select_nearness_rule.md
     max_disparity_fraction: float = 0.3
+    uniqueness_ratio: float = 0.2  # DenseConfig's 0.10 keeps more noise matches on camera frames
+    median_window: int = 7  # with uniqueness_ratio: experiments/select_nearness_denoise.md
     network_width_px: int = 80
     channels: tuple[int, int, int] = (8, 16, 16)
     rule_gain: float = 8.0
@@ -95,6 +103,10 @@ class NearnessNetConfig:
                 raise InputError(f"{name}: expected an int >= 16, got {value!r}")
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
             raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if not isinstance(self.median_window, int) or self.median_window < 1 or self.median_window % 2 == 0:
+            raise InputError(f"median_window: expected an odd positive int, got {self.median_window!r}")
+        if not 0 <= self.uniqueness_ratio < 1:
+            raise InputError(f"uniqueness_ratio: expected a value in [0, 1), got {self.uniqueness_ratio!r}")
         if not 0 < self.max_disparity_fraction < 1:
             raise InputError(f"max_disparity_fraction: expected a value in (0, 1), got {self.max_disparity_fraction!r}")
         if len(self.channels) != 3 or any(not isinstance(c, int) or c < 4 or c % 4 for c in self.channels):
@@ -151,6 +163,22 @@ def _reduce(image: torch.Tensor, factor: int) -> torch.Tensor:
     return F.avg_pool2d(image, factor, ceil_mode=True) if factor > 1 else image
 
 
+def _median_halved(disparity: torch.Tensor, window: int) -> torch.Tensor:
+    """``disparity`` ``(B, 1, h, w)`` replaced by the ``window``-sided median of its 2×2 box averages (edges
+    replicated), back at ``(h, w)`` by nearest neighbour. JPEG frames with sensor noise leave the block matcher's
+    map full of specks and, once filled along the rows, one-row streaks; a wide median removes them
+    (experiments/select_nearness_denoise.md). On the halved map a 7×7 median spans 14×14 pixels at a quarter of
+    the cost of one over the whole map."""
+    if window == 1:
+        return disparity
+    b, c, h, w = disparity.shape
+    halved = F.avg_pool2d(disparity, 2, ceil_mode=True)
+    pad = window // 2
+    windows = F.pad(halved, (pad, pad, pad, pad), mode="replicate").unfold(2, window, 1).unfold(3, window, 1)
+    filtered = windows.reshape(*halved.shape, window * window).median(-1).values
+    return F.interpolate(filtered, scale_factor=2, mode="nearest")[..., :h, :w]
+
+
 def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
     """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
     flat = disparity.detach().flatten(1)
@@ -176,11 +204,11 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     factor = config.working_factor(w)
     small_left, small_right = _reduce(left, factor), _reduce(right, factor)
     num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
-    dense = DenseConfig(window_size=config.window_size)
+    dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
         found = block_match_sad(small_left.detach(), small_right.detach(), 0, num_disparities, dense)
         filled, reachable = fill_invalid_rows(found.disparity_px, found.valid)
-        filled = torch.where(reachable, filled, 0.0)
+        filled = _median_halved(torch.where(reachable, filled, 0.0), config.median_window)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
         soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin

@@ -1,0 +1,97 @@
+"""Choose how the nearness segmenter cleans its disparity for camera frames, on the train scenes only (issue 33).
+
+A real SVS sends JPEG frames with sensor noise in each camera. On such frames the nearness segmenter's block
+matcher (:func:`svs_torch.segmentation.nearness.measure_nearness_disparity`) accepts windows of noise in flat
+areas, and its map, filled along the rows, turns into specks and one-row streaks: the Otsu split moves onto them
+and the kept "nearest" regions are a few hundred pixels of noise (Shelves at 320×240, JPEG digit 1 with σ 2: the
+split moves from 14 to 31 px, the kept regions shrink from 21 065 to 225 px).
+
+Every combination of SAD window, uniqueness ratio and median window (on the halved map; 1: none) is scored with
+the shipped keep rule (``PipelineConfig().segmentation``) on the training scenes
+(``train_segmentation.train_scenes``: the held-out split is never read) at 320 px and native size, each scene
+clean and as real_rig.py's eight camera frames (every JPEG quality digit of the board with its noise σ), by
+select_nearness_rule.py's measures: the left kept mask's IoU with the truth obstacles and the segmentation-only
+nearest Acc. The score is the mean, over the four groups (two sizes, clean or camera frames), of IoU + Acc / 100;
+the best is printed last.
+
+    python experiments/select_nearness_denoise.py [--markdown FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import statistics
+import sys
+from pathlib import Path
+
+import torch
+
+from svs_torch.segmentation.learned import obstacle_truth
+from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
+from svs_torch.pipeline import PipelineConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from paper_table1 import load_scene, resample  # noqa: E402
+from real_rig import conditions  # noqa: E402
+from run_metadata import default_data_dir  # noqa: E402
+from select_nearness_rule import segmentation_scores  # noqa: E402
+from train_segmentation import train_scenes  # noqa: E402
+
+GRID = {"window_size": (7, 9), "uniqueness_ratio": (0.1, 0.2), "median_window": (1, 5, 7)}
+
+
+def views(data_dir: Path) -> list[tuple[str, str, object, object]]:
+    """``(size, "clean" | "camera", batch, truth)`` of every train scene with a nearest obstacle, clean and as
+    real_rig.py's JPEG + noise frames (seeded by the scene's index, as there)."""
+    out = []
+    for size in ("320", "native"):
+        for index, path in enumerate(train_scenes(data_dir)):
+            batch = resample(load_scene(path), size)
+            truth = obstacle_truth(batch)
+            if not bool(truth.nearest_valid[0]):
+                continue
+            for name, left, right in conditions(batch, index):
+                if name == "clean" or name.startswith("jpeg"):
+                    group = "clean" if name == "clean" else "camera"
+                    out.append((size, group, dataclasses.replace(batch, left=left, right=right), truth))
+    return out
+
+
+def main(argv: list[str] | None = None) -> tuple[float, dict]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=default_data_dir())
+    parser.add_argument("--markdown", metavar="FILE")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(2)
+    data = views(args.data)
+    keep = PipelineConfig().segmentation
+    groups = [(size, group) for size in ("320", "native") for group in ("clean", "camera")]
+    lines = ["| window | uniqueness | median | " + " | ".join(f"IoU / Acc % {s} {g}" for s, g in groups)
+             + " | score |", "|---|---|---|" + "---|" * (len(groups) + 1)]
+    best = None
+    for values in itertools.product(*GRID.values()):
+        settings = dict(zip(GRID, values))
+        net = NearnessNet(dataclasses.replace(NearnessNetConfig(), **settings)).eval()
+        scores: dict[tuple[str, str], list[tuple[float, float]]] = {g: [] for g in groups}
+        for size, group, batch, truth in data:
+            scores[(size, group)].append(segmentation_scores(batch, truth, keep, net))
+        means = {g: (statistics.mean(s[0] for s in v), statistics.mean(s[1] for s in v)) for g, v in scores.items()}
+        score = statistics.mean(iou + acc / 100 for iou, acc in means.values())
+        lines.append(f"| {values[0]} | {values[1]} | {values[2]} | "
+                     + " | ".join(f"{means[g][0]:.3f} / {means[g][1]:.1f}" for g in groups) + f" | {score:.3f} |")
+        print(lines[-1], flush=True)
+        if best is None or score > best[0]:
+            best = (score, settings)
+    lines.append(f"\nbest (mean of IoU + Acc/100 over both sizes, clean and camera frames): "
+                 + ", ".join(f"{k} {v}" for k, v in best[1].items()) + f" (score {best[0]:.3f})")
+    print(lines[-1])
+    if args.markdown:
+        Path(args.markdown).write_text(f"`python experiments/select_nearness_denoise.py --markdown {args.markdown}`\n\n"
+                                       + "\n".join(lines) + "\n")
+    return best
+
+
+if __name__ == "__main__":
+    main()
