@@ -7,8 +7,10 @@ matrix by RANSAC, and range the obstacles from disparity. Every stage runs on a 
 The folders follow the data: ``segmentation/`` → ``features/`` → ``geometry/`` (matching, RANSAC,
 rectification) → ``depth/``, each stage with its C kernels in its own ``kernels/``; ``pipeline/`` composes them;
 ``evaluation/``, ``plotting/``, ``data/``, ``capture/`` and ``cli/`` sit around it, and ``core/`` holds the small
-parts they all share. A package imports only ``core`` and what sits before it (the README's "Layout";
-``tests/test_layout.py`` checks it). Modules that moved keep their old paths for one release (``moved.py``).
+parts they all share. Imports go one way: every package may use ``core``, a stage only other stages' public
+names, the pipeline the stages, and only ``evaluation``, ``plotting`` and ``cli`` the pipeline (the README's
+"Layout"; ``tests/test_layout.py`` checks it). Modules that moved keep their old paths for one release
+(``moved.py``).
 """
 
 from . import moved
@@ -28,8 +30,8 @@ _EXPORTS = {
     "estimate_fundamental_ransac": "geometry.ransac",
     "SegmentationConfig": "segmentation", "segment_images": "segmentation", "segment_stereo": "segmentation",
     **{name: "core.types" for name in ("FundamentalResult", "FundamentalStatus", "Keypoints", "Matches",
-                                  "RegionProperties", "Segmentation", "SegmentationStatus", "StereoBatch",
-                                  "StereoSegmentation")},
+                                       "RegionProperties", "Segmentation", "SegmentationStatus", "StereoBatch",
+                                       "StereoSegmentation")},
 }
 
 

@@ -6,8 +6,8 @@ module objects."""
 from __future__ import annotations
 
 import ast
-import re
 import importlib
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -18,11 +18,12 @@ PACKAGE = Path(__file__).resolve().parent.parent / "svs_torch"
 
 #: The stages, in the order data flows through them.
 STAGES = ("segmentation", "features", "geometry", "depth")
-#: What each top-level package may import besides itself (``core`` everywhere). A stage may use other stages'
-#: public names (the nearness segmenter measures with the dense matcher), never the layers above it.
+#: What each top-level package may import besides itself (``core`` everywhere). A stage uses another stage's
+#: public names only where it measures with it (the nearness and learned segmenters run depth's block matcher,
+#: depth maps points through geometry's homographies), never the layers above it.
 ALLOWED = {
     "core": set(),
-    "segmentation": {"features", "geometry", "depth"},
+    "segmentation": {"depth"},
     "features": set(),
     "geometry": set(),
     "depth": {"geometry"},
