@@ -5,9 +5,10 @@ ones), ``canny`` (the paper's edge-based comparison), ``segment`` (the paper's r
 largest regions, and :class:`SegmentationConfig`), ``soft`` (a differentiable mask), ``learned`` (the older
 learned segmenter: its training truth, its segmentation and soft depths), ``network`` (the small U-Net that
 segments from the pair, and its stereo features), ``network_files`` (the networks' weights files), ``nearness``
-(the default: the near side of the pair's measured disparity, corrected by the network); ``weights/`` holds the shipped
-networks and ``kernels/`` the C kernels of the runs, their labels and the gray levels, beside the torch code they speed
-up.
+(the default: the near side of the pair's measured disparity, corrected by the network), ``nearness_regions``
+(the regions' measured disparity and area in the right view, as the nearness rules weigh them); ``weights/``
+holds the shipped networks and ``kernels/`` the C kernels of the runs, their labels and the gray levels, beside
+the torch code they speed up.
 
 May import: ``svs_torch.core`` and the public names of the later stages it measures with (the nearness and
 learned segmenters run ``depth``'s dense matching). Never the pipeline, ``evaluation``, ``data`` or the CLI.

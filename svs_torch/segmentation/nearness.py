@@ -54,14 +54,18 @@ from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSe
 from ..depth.block_matching import block_match_sad, fill_invalid_rows
 from ..depth.dense_config import DenseConfig
 from ..depth.soft_dense import soft_block_match
-from .components import RegionProperties, connected_components_with_stats, region_properties
+from .components import connected_components_with_stats, region_properties
 from .morphology import open_binary, structuring_element
+from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
 from .network import ThreeLevelUNet
 from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
 from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
 
-__all__ = ["NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity",
-           "nearness_logits", "segment_stereo_nearness", "shift_regions_to_right"]
+__all__ = [
+    "NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity", "nearness_logits",
+    "segment_stereo_nearness", "shift_regions_to_right"
+]
+
 
 NUM_FEATURES = 5  # channels of _network_features
 
@@ -71,8 +75,10 @@ class NearnessNetConfig:
     """Settings of the nearness segmenter (stored beside its weights; module docstring).
 
     Attributes:
-        working_width_px: the disparity is measured on both images reduced (box average, integer factor) to
-            about this width, pixels.
+        working_width_px: the disparity is measured on both images reduced (area average) to this width,
+            pixels, when they are wider: an integer factor left a 460-pixel scene at its own width, where the
+            window and the median span less of it (the native train scenes' IoU with the truth obstacles: 0.676
+            with an integer factor, 0.726 at this width; experiments/select_nearness_denoise.md).
         window_size: SAD window side at that width, pixels, odd.
         max_disparity_fraction: disparities ``[0, fraction · working width)`` are searched.
         network_width_px: the network sees its features reduced to this width, pixels.
@@ -117,9 +123,10 @@ class NearnessNetConfig:
         if not 0 < self.probability_threshold < 1:
             raise InputError(f"probability_threshold: expected a value in (0, 1), got {self.probability_threshold!r}")
 
-    def working_factor(self, width_px: int) -> int:
-        """The integer reduction of an image ``width_px`` wide (1: matched at its own size)."""
-        return max(1, round(width_px / self.working_width_px))
+    def working_factor(self, width_px: int) -> float:
+        """The reduction of an image ``width_px`` wide: ``width_px / working_width_px``, or 1 (matched at its own
+        size) when it is not wider."""
+        return max(1.0, width_px / self.working_width_px)
 
 
 class NearnessNet(ThreeLevelUNet):
@@ -159,8 +166,12 @@ class NearnessDisparity:
     relative: torch.Tensor
 
 
-def _reduce(image: torch.Tensor, factor: int) -> torch.Tensor:
-    return F.avg_pool2d(image, factor, ceil_mode=True) if factor > 1 else image
+def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
+    """``image`` ``(B, 1, H, W)`` area-averaged to ``width`` columns (the height in proportion) when wider."""
+    h, w = image.shape[-2:]
+    if w <= width:
+        return image
+    return F.interpolate(image, size=(max(1, round(h * width / w)), width), mode="area")
 
 
 def _median_halved(disparity: torch.Tensor, window: int) -> torch.Tensor:
@@ -201,8 +212,8 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     if right.shape != left.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
     h, w = left.shape[-2:]
-    factor = config.working_factor(w)
-    small_left, small_right = _reduce(left, factor), _reduce(right, factor)
+    small_left, small_right = _reduce(left, config.working_width_px), _reduce(right, config.working_width_px)
+    factor = w / small_left.shape[-1]  # working pixels to input pixels
     num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
     dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
@@ -254,70 +265,6 @@ def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor
     correction = net(features.to(dtype))
     correction = F.interpolate(correction, size=left.shape[-2:], mode="bilinear", align_corners=False)
     return rule + correction.to(left.dtype), measured
-
-
-def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor
-                             ) -> torch.Tensor:
-    """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot): the values of
-    :func:`~svs_torch.depth.kept_region_lower_median` over every label, from two sorts of ``(B, H·W)`` (by value,
-    then stably by label: each region's values lie together, ascending) rather than one of ``(B, L, H·W)``."""
-    b = labels.shape[0]
-    slots = int(num_regions.max()) if num_regions.numel() else 0
-    values = disparity.detach().flatten(1)
-    keys = labels.flatten(1)
-    by_value = torch.sort(values, dim=1, stable=True).indices
-    grouped = by_value.gather(1, torch.sort(keys.gather(1, by_value), dim=1, stable=True).indices)
-    ordered = values.gather(1, grouped)  # by label, then by value
-    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
-    counts.scatter_add_(1, keys, torch.ones_like(keys))  # label 0 (background) .. slots
-    start = counts.cumsum(1) - counts
-    middle = (start + (counts - 1).clamp(min=0) // 2)[:, 1:].clamp(max=max(values.shape[1] - 1, 0))
-    median = ordered.gather(1, middle) if values.shape[1] else values.new_zeros(b, slots)
-    return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median))
-
-
-def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, region_disparity: torch.Tensor,
-                           measured: torch.Tensor, min_area_px: float) -> torch.Tensor:
-    """``(B, L)`` pixels of each region that the block matcher measured (``measured`` ``(B, 1, H, W)``, not
-    filled) at columns the right camera sees at the nearest region's disparity (x ≥ the largest median disparity
-    of the regions of at least ``min_area_px``): the pixels the dense stage can range (its objects need valid
-    pixels where the pair's whole search lands in the right image,
-    :func:`~svs_torch.depth.dense_objects.dense_object_depths`). A region of filled rows only, or in the band only the
-    left camera sees, would be kept and never ranged (its slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the
-    shared 2005–2006 scenes did so)."""
-    b, slots = regions.area_px.shape
-    big = regions.valid & (regions.area_px >= min_area_px)
-    if not slots:
-        return regions.area_px
-    nearest = torch.where(big, region_disparity, torch.zeros_like(region_disparity)).amax(1)  # (B,)
-    column = torch.arange(labels.shape[-1], device=labels.device, dtype=nearest.dtype)
-    seen = (column.view(1, 1, 1, -1) >= nearest.view(-1, 1, 1, 1)) & measured
-    keys = labels.flatten(1)
-    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
-    counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
-    return counts[:, 1:].to(regions.area_px.dtype)
-
-
-def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor
-                           ) -> torch.Tensor:
-    """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
-    moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
-    overlap the nearer (larger shift) wins, as it occludes the other."""
-    b, n = kept_labels.shape
-    w = labels.shape[-1]
-    out = torch.zeros_like(labels)
-    best = torch.full_like(labels, -1, dtype=shift_px.dtype)
-    column = torch.arange(w, device=labels.device)
-    for slot in range(n):  # N slots (the kept regions, 2 by default), not pairs
-        shift = shift_px[:, slot].round().long().view(b, 1, 1, 1)
-        source = column.view(1, 1, 1, w) + shift
-        inside = (source >= 0) & (source < w)
-        hit = torch.gather(labels, 3, source.clamp(0, w - 1).expand_as(labels)) == kept_labels[:, slot].view(b, 1, 1, 1)
-        hit = hit & inside & (kept_labels[:, slot] > 0).view(b, 1, 1, 1)
-        take = hit & (shift_px[:, slot].view(b, 1, 1, 1) > best)
-        out = torch.where(take, kept_labels[:, slot].view(b, 1, 1, 1), out)
-        best = torch.where(take, shift_px[:, slot].view(b, 1, 1, 1), best)
-    return out
 
 
 def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet,

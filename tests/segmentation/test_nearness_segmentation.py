@@ -14,7 +14,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
 from svs_torch.segmentation.learned import mask_iou, obstacle_truth
 from svs_torch.segmentation.nearness import (NearnessNet, NearnessNetConfig, measure_nearness_disparity,
-                                             nearness_logits, segment_stereo_nearness, shift_regions_to_right)
+                                             nearness_logits, segment_stereo_nearness)
+from svs_torch.segmentation.nearness_regions import shift_regions_to_right
 from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
 from svs_torch.segmentation.segment import SegmentationConfig, keep_regions
 
@@ -76,7 +77,7 @@ def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
 def test_regions_without_stereo_are_not_kept():
     """A region in the band only the left camera sees, or of filled rows only (nothing measured), cannot be
     ranged by the dense stage: the nearness segmenter does not keep it (shared Midd1, Lampshade1, Rocks1 did)."""
-    from svs_torch.segmentation.nearness import _area_measured_in_view
+    from svs_torch.segmentation.nearness_regions import _area_measured_in_view
 
     labels = torch.zeros(1, 1, 40, 100, dtype=torch.int64)
     labels[..., 5:35, 40:90] = 1  # near (disparity 20), seen by both cameras
@@ -173,7 +174,7 @@ def test_clear_errors(tmp_path):
 def test_region_medians_equal_the_kept_region_lower_median():
     """The two-sort median per region equals depth.kept_region_lower_median over every label (its (B, L, P) form)."""
     from svs_torch.depth.quantiles import kept_region_lower_median
-    from svs_torch.segmentation.nearness import _region_median_disparity
+    from svs_torch.segmentation.nearness_regions import _region_median_disparity
 
     generator = torch.Generator().manual_seed(1)
     for _ in range(30):

@@ -1,0 +1,75 @@
+"""The candidate regions as the nearness rules weigh them: each region's median measured disparity, its area
+the right camera sees and the block matcher measured, and the kept regions shifted into the right view.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .components import RegionProperties
+
+__all__ = ["shift_regions_to_right"]
+
+
+def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor
+                             ) -> torch.Tensor:
+    """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot): the values of
+    :func:`~svs_torch.depth.kept_region_lower_median` over every label, from two sorts of ``(B, H·W)`` (by value,
+    then stably by label: each region's values lie together, ascending) rather than one of ``(B, L, H·W)``."""
+    b = labels.shape[0]
+    slots = int(num_regions.max()) if num_regions.numel() else 0
+    values = disparity.detach().flatten(1)
+    keys = labels.flatten(1)
+    by_value = torch.sort(values, dim=1, stable=True).indices
+    grouped = by_value.gather(1, torch.sort(keys.gather(1, by_value), dim=1, stable=True).indices)
+    ordered = values.gather(1, grouped)  # by label, then by value
+    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, keys, torch.ones_like(keys))  # label 0 (background) .. slots
+    start = counts.cumsum(1) - counts
+    middle = (start + (counts - 1).clamp(min=0) // 2)[:, 1:].clamp(max=max(values.shape[1] - 1, 0))
+    median = ordered.gather(1, middle) if values.shape[1] else values.new_zeros(b, slots)
+    return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median))
+
+
+def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, region_disparity: torch.Tensor,
+                           measured: torch.Tensor, min_area_px: float) -> torch.Tensor:
+    """``(B, L)`` pixels of each region that the block matcher measured (``measured`` ``(B, 1, H, W)``, not
+    filled) at columns the right camera sees at the nearest region's disparity (x ≥ the largest median disparity
+    of the regions of at least ``min_area_px``): the pixels the dense stage can range (its objects need valid
+    pixels where the pair's whole search lands in the right image,
+    :func:`~svs_torch.depth.dense_objects.dense_object_depths`). A region of filled rows only, or in the band only the
+    left camera sees, would be kept and never ranged (its slot scores 0 % in ``eval``: Midd1, Lampshade1, Rocks1 of the
+    shared 2005–2006 scenes did so)."""
+    b, slots = regions.area_px.shape
+    big = regions.valid & (regions.area_px >= min_area_px)
+    if not slots:
+        return regions.area_px
+    nearest = torch.where(big, region_disparity, torch.zeros_like(region_disparity)).amax(1)  # (B,)
+    column = torch.arange(labels.shape[-1], device=labels.device, dtype=nearest.dtype)
+    seen = (column.view(1, 1, 1, -1) >= nearest.view(-1, 1, 1, 1)) & measured
+    keys = labels.flatten(1)
+    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
+    return counts[:, 1:].to(regions.area_px.dtype)
+
+
+def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor
+                           ) -> torch.Tensor:
+    """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
+    moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
+    overlap the nearer (larger shift) wins, as it occludes the other."""
+    b, n = kept_labels.shape
+    w = labels.shape[-1]
+    out = torch.zeros_like(labels)
+    best = torch.full_like(labels, -1, dtype=shift_px.dtype)
+    column = torch.arange(w, device=labels.device)
+    for slot in range(n):  # N slots (the kept regions, 2 by default), not pairs
+        shift = shift_px[:, slot].round().long().view(b, 1, 1, 1)
+        source = column.view(1, 1, 1, w) + shift
+        inside = (source >= 0) & (source < w)
+        hit = torch.gather(labels, 3, source.clamp(0, w - 1).expand_as(labels)) == kept_labels[:, slot].view(b, 1, 1, 1)
+        hit = hit & inside & (kept_labels[:, slot] > 0).view(b, 1, 1, 1)
+        take = hit & (shift_px[:, slot].view(b, 1, 1, 1) > best)
+        out = torch.where(take, kept_labels[:, slot].view(b, 1, 1, 1), out)
+        best = torch.where(take, shift_px[:, slot].view(b, 1, 1, 1), best)
+    return out
