@@ -12,7 +12,8 @@ from ..core.checks import InputError, check_dtype, check_shape
 from ..core.ordering import argsort_last, sort_last
 from . import kernels
 
-__all__ = ["Quantiles", "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile"]
+__all__ = ["Quantiles", "kept_region_lower_median", "labelled_quantile", "masked_lower_median", "masked_quantile",
+           "region_lower_median", "row_quantile"]
 
 
 class Quantiles(NamedTuple):
@@ -40,6 +41,61 @@ def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: 
     region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
               & known.reshape(b, 1, -1))  # (B, N, H·W)
     return masked_lower_median(values.reshape(b, 1, -1).expand_as(region), region)
+
+
+def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: int
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower median (``torch.median``'s) of ``values`` ``(B, P)`` over each label ``1 .. num_labels`` of ``labels``
+    ``(B, P)`` (0: no region): ``(B, num_labels)`` medians (0 for an empty label) and int64 counts. The compiled
+    selection (:func:`svs_torch.depth.kernels.region_medians`, O(P)) gives the values of the torch path below,
+    which sorts each pair's values and then stably its labels, so each region's values lie together in ascending
+    order (two sorts of ``(B, P)`` rather than one of ``(B, num_labels, P)``). Not differentiable."""
+    check_shape(values, "values", ["B", "P"])
+    check_shape(labels, "labels", list(values.shape))
+    check_dtype(labels, "labels", "int")
+    if not (isinstance(num_labels, int) and num_labels >= 0):
+        raise InputError(f"num_labels: expected a non-negative int, got {num_labels!r}")
+    if labels.numel() and not (int(labels.min()) >= 0 and int(labels.max()) <= num_labels):
+        raise InputError(f"labels: expected labels in [0, {num_labels}], got [{int(labels.min())}, "
+                         f"{int(labels.max())}]")
+    fast = kernels.region_medians(values, labels.to(torch.int64), num_labels)
+    if fast is not None:
+        count, median = fast
+        return median, count
+    b, labels, values = labels.shape[0], labels.to(torch.int64), values.detach()
+    by_value = torch.sort(values, dim=1, stable=True).indices
+    grouped = by_value.gather(1, torch.sort(labels.gather(1, by_value), dim=1, stable=True).indices)
+    ordered = values.gather(1, grouped)  # by label, then by value
+    counts = torch.zeros(b, num_labels + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, labels, torch.ones_like(labels))  # label 0 (no region) .. num_labels
+    start = counts.cumsum(1) - counts
+    middle = (start + (counts - 1).clamp(min=0) // 2)[:, 1:].clamp(max=max(values.shape[1] - 1, 0))
+    median = ordered.gather(1, middle) if values.shape[1] else values.new_zeros(b, num_labels)
+    return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median)), counts[:, 1:]
+
+
+def row_quantile(values: torch.Tensor, q: Sequence[float]) -> torch.Tensor:
+    """``torch.quantile(values, q, dim=1).T`` of ``values`` ``(B, P)``, ``P ≥ 1``: ``(B, Q)``, the same numbers.
+    Without gradients, for float32 CPU values without NaN, the compiled selection
+    (:func:`svs_torch.depth.kernels.labelled_select`, O(P), where ``torch.quantile`` sorts each row) finds the two
+    order statistics of each quantile, interpolated here as ``torch.quantile`` does (rank ``q · (P − 1)`` in the
+    values' dtype, ``torch.lerp``). Differentiable w.r.t. ``values`` through ``torch.quantile`` otherwise."""
+    if check_shape(values, "values", ["B", "P"])["P"] == 0:
+        raise InputError("values: expected at least one value per row, got (B, 0)")
+    check_dtype(values, "values", "float")
+    q_tensor = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+    if not bool(((q_tensor >= 0) & (q_tensor <= 1)).all()):  # written so that NaN fails too
+        raise InputError(f"q: expected quantiles in [0, 1], got {q_tensor.tolist()}")
+    if not (values.requires_grad and torch.is_grad_enabled()):
+        b = values.shape[0]
+        ones = torch.ones(1, 1, dtype=torch.int64).expand(b, values.shape[1])
+        selected = kernels.labelled_select(values, ones, torch.ones(b, 1, dtype=torch.int64), q_tensor)
+        if selected is not None:
+            _, below, above = selected
+            rank = q_tensor * (values.shape[1] - 1)
+            weight = rank - rank.long().to(rank.dtype)
+            return torch.lerp(below[:, 0], above[:, 0], weight.expand(b, -1))
+    return torch.quantile(values, q_tensor, dim=1).T
 
 
 def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float] | torch.Tensor) -> Quantiles:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from ..depth.quantiles import region_lower_median
 from .components import RegionProperties
 
 __all__ = ["shift_regions_to_right"]
@@ -14,21 +15,10 @@ __all__ = ["shift_regions_to_right"]
 def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_regions: torch.Tensor
                              ) -> torch.Tensor:
     """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot): the values of
-    :func:`~svs_torch.depth.kept_region_lower_median` over every label, from two sorts of ``(B, H·W)`` (by value,
-    then stably by label: each region's values lie together, ascending) rather than one of ``(B, L, H·W)``."""
-    b = labels.shape[0]
+    :func:`~svs_torch.depth.kept_region_lower_median` over every label, by
+    :func:`~svs_torch.depth.region_lower_median` (one selection per region, not a sort per region)."""
     slots = int(num_regions.max()) if num_regions.numel() else 0
-    values = disparity.detach().flatten(1)
-    keys = labels.flatten(1)
-    by_value = torch.sort(values, dim=1, stable=True).indices
-    grouped = by_value.gather(1, torch.sort(keys.gather(1, by_value), dim=1, stable=True).indices)
-    ordered = values.gather(1, grouped)  # by label, then by value
-    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
-    counts.scatter_add_(1, keys, torch.ones_like(keys))  # label 0 (background) .. slots
-    start = counts.cumsum(1) - counts
-    middle = (start + (counts - 1).clamp(min=0) // 2)[:, 1:].clamp(max=max(values.shape[1] - 1, 0))
-    median = ordered.gather(1, middle) if values.shape[1] else values.new_zeros(b, slots)
-    return torch.where(counts[:, 1:] > 0, median, torch.zeros_like(median))
+    return region_lower_median(disparity.detach().flatten(1), labels.flatten(1), slots)[0]
 
 
 def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, region_disparity: torch.Tensor,

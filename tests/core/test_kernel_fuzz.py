@@ -29,7 +29,7 @@ from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
 from svs_torch.depth.dense_objects import dense_object_depths
 from svs_torch.depth.depth_types import ObjectDepths
-from svs_torch.depth.quantiles import labelled_quantile
+from svs_torch.depth.quantiles import labelled_quantile, region_lower_median, row_quantile
 from svs_torch.depth.search_range import disparity_search_range
 from svs_torch.features import kernels as features_kernels
 from svs_torch.features.descriptor import describe_surf
@@ -40,6 +40,7 @@ from svs_torch.geometry.matched_points import MatchedPoints
 from svs_torch.geometry.matching import match_sad
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
+from svs_torch.segmentation.nearness import _median_filter
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
@@ -319,6 +320,21 @@ def test_labelled_quantile(b, p, n, data):
     _both(disparity_search_range, values, valid, torch.full((b,), 40), DenseConfig())
 
 
+@given(size=sizes, window=st.sampled_from([1, 3, 7, 15, 17]), data=st.data())
+@examples(40)
+def test_nearness_map_statistics(size, window, data):
+    """The nearness segmenter's median filter, region medians and percentiles (its three kernels)."""
+    b, h, w = size
+    image = data.draw(tensors((b, 1, h, w), low=-3, high=40))
+    _both(_median_filter, image, window)
+    num_labels = data.draw(st.integers(0, 4))
+    labels = torch.randint(data.draw(st.sampled_from([0, -1])), num_labels + data.draw(st.sampled_from([1, 2])),
+                           (b, h * w), generator=torch.Generator().manual_seed(h * w + num_labels))
+    _both(region_lower_median, image.flatten(1), labels, num_labels)
+    q = data.draw(st.lists(st.sampled_from([0.0, 0.1, 0.995, 1.0, math.nan, 1.5]), min_size=1, max_size=3))
+    _both(row_quantile, image.flatten(1), q)
+
+
 @given(size=st.tuples(st.integers(1, 3), st.integers(0, 12), st.integers(0, 16)), n=st.integers(0, 3),
        fill=st.booleans(), data=st.data())
 @examples(40)
@@ -354,6 +370,9 @@ def test_dense_object_depths(size, n, fill, data):
     ("labelled_select", lambda: (torch.rand(1, 9), torch.ones(1, 9, dtype=torch.int64),
                                  torch.ones(1, 1, dtype=torch.int64), torch.tensor([math.nan]))),
     ("label_runs", lambda: (torch.tensor([0, 95]), torch.tensor([3, 120]), 1, 10, 10, 8)),
+    ("median_filter", lambda: (torch.rand(1, 1, 8, 8), 4)),
+    ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
+    ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),
                            torch.ones(1, 2), torch.ones(1, 2, dtype=torch.bool), 4, 2.0)),
     ("padded_integral", lambda: (torch.rand(2, 1, 4, 4), torch.rand(2), -1)),

@@ -370,6 +370,8 @@ def test_kernels_take_an_empty_batch():
     count, below, _ = depth_kernels.labelled_select(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64),
                                                     torch.ones(0, 2, dtype=torch.int64), torch.tensor([0.5]))
     assert count.shape == (0, 2) and below.shape == (0, 2, 1)
+    count, median = depth_kernels.region_medians(torch.zeros(0, 6), torch.zeros(0, 6, dtype=torch.int64), 3)
+    assert count.shape == median.shape == (0, 3)
     values, index = features_kernels.strongest_maxima([torch.zeros(0, 3, 5, 5)],
                                                       [torch.ones(1, 1, 3, 3, dtype=torch.bool)], 0.5, 4)
     assert values.shape == index.shape == (0, 4)
@@ -729,3 +731,64 @@ def test_object_depths_gradients_take_the_torch_path():
     result = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1)
     result.depth_median_m[result.valid].sum().backward()
     assert disparity.grad is not None and torch.isfinite(disparity.grad).all() and disparity.grad.abs().sum() > 0
+
+
+def _nearness_maps(generator: torch.Generator) -> list[torch.Tensor]:
+    """Disparity-like maps for the nearness segmenter's statistics: uniform values, few levels (ties everywhere),
+    ±inf among them, and odd and one-pixel sizes."""
+    maps = []
+    for shape in [(3, 1, 17, 23), (2, 1, 1, 9), (1, 1, 6, 1), (2, 1, 60, 80)]:
+        values = torch.rand(shape, generator=generator) * 40
+        maps += [values, values.round() / 4, torch.where(values > 36, torch.inf, torch.where(values < 2, -torch.inf,
+                                                                                              values))]
+    return maps
+
+
+@pytest.mark.skipif(not kernels.available("median_filter"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_median_filter_kernel_equals_the_sorting_path(generator, monkeypatch, threads):
+    """The tracked median (segmentation/kernels/median_filter.c) against the torch path that sorts every
+    window: the same values, for every window side up to the largest it takes."""
+    from svs_torch.segmentation.nearness import _median_filter
+
+    for image in _nearness_maps(generator):
+        for window in (1, 3, 7, 9, segmentation_kernels.MAX_MEDIAN_WINDOW):
+            fused = _with_threads(threads, segmentation_kernels.median_filter, image, window)
+            assert fused is not None
+            torch.testing.assert_close(fused, _torch_path(monkeypatch, _median_filter, image, window), rtol=0, atol=0)
+    image = _nearness_maps(generator)[0]
+    assert segmentation_kernels.median_filter(image, segmentation_kernels.MAX_MEDIAN_WINDOW + 2) is None
+    assert segmentation_kernels.median_filter(torch.where(image > 30, torch.nan, image), 7) is None
+    assert segmentation_kernels.median_filter(image.double(), 7) is None
+
+
+@pytest.mark.skipif(not kernels.available("region_medians"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_region_medians_kernel_equals_the_sorting_path(generator, monkeypatch, threads):
+    """Each region's lower median by selection (depth/kernels/region_medians.c) against the two sorts of the
+    torch path, with empty labels among them and labels beyond the last region's."""
+    from svs_torch.depth.quantiles import region_lower_median
+
+    for image in _nearness_maps(generator):
+        values = image.flatten(1)
+        for num_labels in (0, 1, 5, 40):
+            labels = torch.randint(0, num_labels + 1, values.shape, generator=generator)
+            fused = _with_threads(threads, region_lower_median, values, labels, num_labels)
+            eager = _torch_path(monkeypatch, region_lower_median, values, labels, num_labels)
+            torch.testing.assert_close(fused, eager, rtol=0, atol=0)
+            if num_labels:
+                member = values[0][labels[0] == 1]
+                if member.numel():
+                    assert fused[0][0, 0] == member.sort().values[(member.numel() - 1) // 2]
+
+
+@pytest.mark.skipif(not kernels.available("labelled_select"), reason="no C compiler")
+def test_row_quantile_equals_torch_quantile(generator):
+    """The nearness rule's percentiles by selection: ``torch.quantile``'s numbers, to the bit."""
+    from svs_torch.depth.quantiles import row_quantile
+
+    for image in _nearness_maps(generator):
+        for q in [(0.1, 0.9, 0.995), (0.0, 0.5, 1.0), (0.25,)]:
+            torch.testing.assert_close(row_quantile(image.flatten(1), q),
+                                       torch.quantile(image.flatten(1), torch.tensor(q), dim=1).T,
+                                       rtol=0, atol=0, equal_nan=True)

@@ -5,20 +5,23 @@ Each stage keeps its kernels beside its torch code, in its own ``kernels/`` fold
 ``svs_torch.geometry.kernels``, ``svs_torch.depth.kernels``); each wrapper module declares its kernels'
 signatures (:func:`declare`) and calls them through :func:`load`. This folder holds what they share: the loader
 (``loader.py``: build, cache, open), the argument checks (``checks.py``) and the header every source includes
-(``common.h``: thread count, scratch allocation).
+(``common.h``: thread count, scratch allocation), and the quickselect the stages' order statistics share
+(``select_rank.h``).
 
 Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
 through ``ctypes``: the runs of each mask row that the segmentation's connected components start from (``find_runs.c``)
 and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``), the dense stage's SAD
 block matching (``block_match.c``), its row fill of invalid pixels (``fill_invalid_rows.c``), its order statistics by
-label (``labelled_select.c``: the search range's percentiles) and each object's depth statistics, every pair read once
+label (``labelled_select.c``: the search range's and the nearness map's percentiles), each region's lower median
+(``region_medians.c``: the nearness segmenter's ranking), the nearness map's median filter (``median_filter.c``),
+and each object's depth statistics, every pair read once
 at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of
-a torch function that stays the reference, the fallback and the differentiable path. Eleven give that torch path's
-values bit for bit: the first ten, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
+a torch function that stays the reference, the fallback and the differentiable path. Thirteen give that torch path's
+values bit for bit: the first twelve, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
 order, which ``torch.topk`` leaves open). Four do not: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps

@@ -37,8 +37,8 @@ __all__ = ["FLAGS", "HEADERS", "SOURCES", "cache_dir", "open_library"]
 _PACKAGE = Path(__file__).resolve().parent.parent.parent
 #: Each kernel's C source, named after it, in the ``kernels/`` folder of its stage.
 SOURCES = {path.stem: path for path in sorted(_PACKAGE.glob("*/kernels/*.c"))}
-#: The headers the sources share (``core/kernels/common.h``: thread count, scratch allocation; depth's
-#: ``fill_row.h``, ``select_rank.h``: the row fill and the quickselect of the dense depth stage; features'
+#: The headers the sources share (``core/kernels/common.h``: thread count, scratch allocation; ``select_rank.h``:
+#: the quickselect of the depth stage's statistics; depth's ``fill_row.h``: the row fill of the dense stage; features'
 #: ``maxima.h``: SURF's maximum test): all part of every library's cache key (in the order of their names, as
 #: before they moved beside their stages, so that the cached libraries keep their names).
 HEADERS = tuple(sorted(_PACKAGE.glob("*/kernels/*.h"), key=lambda path: path.name))

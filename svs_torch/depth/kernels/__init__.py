@@ -13,13 +13,15 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_boxes, check_counts, check_image_hw, check_nonempty, check_number, check_rows
 
-__all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths"]
+__all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
+           "region_medians"]
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
                     + [POINTER, INT] + [POINTER] * 2 + [INT] * 2, ctypes.c_int),
     "fill_invalid_rows": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "labelled_select": ([POINTER] * 4 + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "region_medians": ([POINTER] * 2 + [INT] * 3 + [POINTER] * 2 + [INT], ctypes.c_int),
     "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
                       + [POINTER] * 5 + [INT], ctypes.c_int),
 })
@@ -150,6 +152,35 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
     status = library.labelled_select(values.data_ptr(), labels.data_ptr(), slots.data_ptr(), q.data_ptr(), b, p, n,
                                      k, count.data_ptr(), below.data_ptr(), above.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (count, below, above)
+
+
+def region_medians(values: torch.Tensor, labels: torch.Tensor, num_labels: int
+                   ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`svs_torch.depth.region_lower_median` by selection (see the C source): ``values`` ``(B, P)`` float32
+    without NaN, ``labels`` ``(B, P)`` int64 in ``[0, num_labels]``. Returns each label's member count and lower
+    median ``(B, num_labels)`` (0 for an empty label); None when the kernel is not available or the inputs do not
+    fit its contract."""
+    dims = check_shape(values, "values", ["B", "P"])
+    b, p = dims["B"], dims["P"]
+    check_rows(labels, "labels", b, p)
+    if not (isinstance(num_labels, int) and num_labels >= 0):
+        raise InputError(f"num_labels: expected a non-negative int, got {num_labels!r}")
+    if not (on_cpu(torch.float32, values) and on_cpu(torch.int64, labels)):
+        return None
+    if labels.numel() and not (int(labels.min()) >= 0 and int(labels.max()) <= num_labels):
+        raise InputError(f"labels: expected labels in [0, {num_labels}], got [{int(labels.min())}, "
+                         f"{int(labels.max())}]")
+    if bool(values.isnan().any()):  # the selection orders by <, which NaN breaks: the torch path sorts them last
+        return None
+    library = load("region_medians")
+    if library is None:
+        return None
+    values, labels = values.detach().contiguous(), labels.contiguous()
+    count = torch.empty(b, num_labels, dtype=torch.int64)
+    median = torch.empty(b, num_labels)
+    status = library.region_medians(values.data_ptr(), labels.data_ptr(), b, p, num_labels, count.data_ptr(),
+                                    median.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (count, median)
 
 
 def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:

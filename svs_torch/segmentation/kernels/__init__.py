@@ -13,12 +13,13 @@ from ...core.errors import InputError
 from ...core.kernels import INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows
 
-__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load"]
+__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
     "gray_levels": ([POINTER] + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "label_runs": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
 })
 
 
@@ -112,3 +113,30 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
                                 torch.get_num_threads())
     return None if status != 0 else (run_label, num_labels, labels)
 
+
+
+#: The largest window side :func:`median_filter` takes: it sorts a window by insertion once per row.
+MAX_MEDIAN_WINDOW = 15
+
+
+def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
+    """The ``window``-sided median of every pixel of ``image`` ``(B, 1, H, W)`` float32 over its window, edges
+    replicated, the element of rank ``(window² − 1) / 2`` (``torch.median``'s; see the C source): the values of
+    :func:`svs_torch.segmentation.nearness._median_filter`'s torch path. None when the kernel is not available or
+    the input does not fit its contract (another dtype or device, NaN values, a window over
+    ``MAX_MEDIAN_WINDOW``)."""
+    dims = check_shape(image, "image", ["B", 1, "H", "W"])
+    if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
+        raise InputError(f"window: expected an odd positive int, got {window!r}")
+    if window > MAX_MEDIAN_WINDOW or not on_cpu(torch.float32, image):
+        return None
+    if image.numel() == 0 or bool(image.isnan().any()):  # the merge orders by <, which NaN breaks
+        return None
+    library = load("median_filter")
+    if library is None:
+        return None
+    image = image.detach().contiguous()
+    out = torch.empty_like(image)
+    status = library.median_filter(image.data_ptr(), dims["B"], dims["H"], dims["W"], window, out.data_ptr(),
+                                   torch.get_num_threads())
+    return None if status != 0 else out
