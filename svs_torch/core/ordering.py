@@ -4,7 +4,7 @@ On CPU, ``torch.sort`` sorts each row with a scalar merge sort that always carri
 SIMD networks (x86-simd-sort). Measured on this project's 2-core reference machine, rows of 40 000 float32 in
 a batch of 8: ``torch.sort`` 15 ms, ``numpy.sort`` 1.0 ms, ``numpy.argsort`` 4.5 ms on the Intel Xeon it had
 until 2026-11; 13 ms against 8.7 for ``numpy.sort`` on the AMD EPYC it has since. The per-object order
-statistics of the dense depth stage (:func:`svs_torch.depth.labelled_quantile`) and the search ranges
+statistics of the dense depth stage (:func:`svs_torch.depth.quantiles.labelled_quantile`) and the search ranges
 (:func:`svs_torch.depth.dense.disparity_search_range`) sort that much every batch where their compiled selection
 (:mod:`svs_torch.core.kernels`) cannot run: with gradients, without a C compiler, or off float32.
 

@@ -16,7 +16,7 @@ def _region_median_disparity(disparity: torch.Tensor, labels: torch.Tensor, num_
                              ) -> torch.Tensor:
     """``(B, L)`` lower median disparity of every region of ``labels`` (0 for an empty slot): the values of
     :func:`~svs_torch.depth.kept_region_lower_median` over every label, by
-    :func:`~svs_torch.depth.region_lower_median` (one selection per region, not a sort per region)."""
+    :func:`~svs_torch.depth.quantiles.region_lower_median` (one selection per region, not a sort per region)."""
     slots = int(num_regions.max()) if num_regions.numel() else 0
     return region_lower_median(disparity.detach().flatten(1), labels.flatten(1), slots)[0]
 

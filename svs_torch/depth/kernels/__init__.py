@@ -127,7 +127,7 @@ def _check_block_match(left, right, texture, mask, window_size, boxes, min_dispa
 
 def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-    """The order statistics of :func:`svs_torch.depth.labelled_quantile` by selection (see the C source):
+    """The order statistics of :func:`svs_torch.depth.quantiles.labelled_quantile` by selection (see the C source):
     ``values`` ``(B, P)`` float32 without NaN, ``labels`` ``(B, P)`` and ``slots`` ``(B, N)`` int64, quantiles
     ``q`` ``(Q,)`` float32. Returns ``(count, below, above)``: each slot's member count ``(B, N)`` and the
     members of rank ``floor`` / ``ceil`` of ``q · (count − 1)`` ``(B, N, Q)`` (0 for an empty slot); None when
@@ -156,8 +156,8 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
 
 def region_medians(values: torch.Tensor, labels: torch.Tensor, num_labels: int
                    ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`svs_torch.depth.region_lower_median` by selection (see the C source): ``values`` ``(B, P)`` float32
-    without NaN, ``labels`` ``(B, P)`` int64 in ``[0, num_labels]``. Returns each label's member count and lower
+    """:func:`svs_torch.depth.quantiles.region_lower_median` by selection (see the C source): ``values`` ``(B, P)``
+    float32 without NaN, ``labels`` ``(B, P)`` int64 in ``[0, num_labels]``. Returns each label's member count and lower
     median ``(B, num_labels)`` (0 for an empty label); None when the kernel is not available or the inputs do not
     fit its contract."""
     dims = check_shape(values, "values", ["B", "P"])

@@ -1,11 +1,11 @@
-/* Fused dense SAD block matching for svs_torch.dense (the hard, non-differentiable path): from the images (pre-
- * filtered here a crop row at a time, or given as pre-filtered levels) to the disparity map, each pair over its
- * own box and its own disparity range.
+/* Fused dense SAD block matching for svs_torch.depth.block_matching (the hard, non-differentiable path): from the
+ * images (pre-filtered here a crop row at a time, or given as pre-filtered levels) to the disparity map, each pair
+ * over its own box and its own disparity range.
  *
- * The eager torch path (svs_torch/dense.py, _cost_volume + _winner + _right_winner + _match_box) makes about 40
- * passes over a B x D x h x w cost volume and its verdicts, with one box size and one disparity count for the
- * whole batch (the largest); here each pair is cropped at its own box (replicate border) and each output row's
- * costs for every disparity are made and consumed while they sit in cache:
+ * The eager torch path (svs_torch/depth/: cost_volume._cost_volume + winner._winner + winner._right_winner +
+ * block_matching._match_box) makes about 40 passes over a B x D x h x w cost volume and its verdicts, with one box
+ * size and one disparity count for the whole batch (the largest); here each pair is cropped at its own box
+ * (replicate border) and each output row's costs for every disparity are made and consumed while they sit in cache:
  *   A(y, x, d) = |L(y, x) - R(y, x + D - 1 - d)|                       (the right crop is D - 1 columns wider)
  *   V(y, x, d) = A(y) + ... + A(y + K - 1)                              (running: + the entering row - the leaving)
  *   C(y, x, d) = V(x) + ... + V(x + K - 1)
@@ -25,15 +25,15 @@
  * range), so cropping each pair at its own size changes no value, only the work: no pair pays for the batch's
  * largest box or range.
  *
- * The inputs are whole numbers (StereoBM's 8-bit levels, svs_torch.dense.quantize_levels), so every sum is an
- * exact float32 integer (K^2 * 510 < 2^24) in any order, and the results equal the torch path's bit for bit;
+ * The inputs are whole numbers (StereoBM's 8-bit levels, svs_torch.depth.cost_volume.quantize_levels), so every sum
+ * is an exact float32 integer (K^2 * 510 < 2^24) in any order, and the results equal the torch path's bit for bit;
  * minima and selects do no arithmetic, so streaming over d changes no value either. Where a band's costs fit
  * 16 bits (K^2 * max|L - R| < 65535: StereoBM's x-Sobel levels at any usual K) the same search runs on int16
  * samples and uint16 costs, twice the lanes per instruction (8 real pairs' crops at K = 9, one thread: 70 -> 42
  * ms), with the same whole numbers and so the same results.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: it could treat the
- * +inf costs as impossible). Loaded through ctypes by svs_torch/kernels/__init__.py, which falls back to the
+ * +inf costs as impossible). Loaded through ctypes by svs_torch/depth/kernels/__init__.py, which falls back to the
  * torch path without a compiler.
  */
 #include <math.h>
@@ -407,13 +407,13 @@ static void run_row_u16(const Pair *p, int64_t K, int64_t y, int fresh, const in
 
 static inline int64_t clamp_index(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
-/* The pre-filter of svs_torch.dense._match_compiled for image row y (all W columns), so that the caller need not
- * make whole pre-filtered images: the levels that the block matching compares (SOURCE_RAW: round(255 x);
- * SOURCE_XSOBEL: round(255 clip(Sobel_x, -cap, cap)), svs_torch.dense.quantize_levels of prefilter_xsobel) and,
- * when ``texture`` is given, |clip(Sobel_x, -cap, cap)| (the texture image). Replicate border as the torch path's
- * padding; the Sobel taps in its order, (((((t02 - t00) - 2 t10) + 2 t12) - t20) + t22), each step rounded to
- * float32 (2 t is exact, so the fused multiply-add of torch's alpha gives the same), then its clamp, then the
- * product by 255 rounded to float32 and rounded half to even (torch.round): the same values bit for bit. */
+/* The pre-filter of svs_torch.depth.block_matching._match_compiled for image row y (all W columns), so that the
+ * caller need not make whole pre-filtered images: the levels that the block matching compares (SOURCE_RAW:
+ * round(255 x); SOURCE_XSOBEL: round(255 clip(Sobel_x, -cap, cap)), svs_torch.depth.cost_volume.quantize_levels of
+ * prefilter_xsobel) and, when ``texture`` is given, |clip(Sobel_x, -cap, cap)| (the texture image). Replicate border
+ * as the torch path's padding; the Sobel taps in its order, (((((t02 - t00) - 2 t10) + 2 t12) - t20) + t22), each
+ * step rounded to float32 (2 t is exact, so the fused multiply-add of torch's alpha gives the same), then its clamp,
+ * then the product by 255 rounded to float32 and rounded half to even (torch.round): the same values bit for bit. */
 enum { SOURCE_LEVELS = 0, SOURCE_RAW = 1, SOURCE_XSOBEL = 2 };
 
 /* The clipped x-Sobel of one column from its left (a) and right (b) taps, and what prefilter_row keeps of it. */
@@ -511,7 +511,8 @@ static int to_samples16(const float *left, int64_t left_size, const float *right
     return (double)K * (double)K * (double)spread < 65535.0;
 }
 
-/* The rejections and the sub-pixel fit of svs_torch.dense._match_box, in its float32 operations and order. */
+/* The rejections and the sub-pixel fit of svs_torch.depth.block_matching._match_box, in its float32 operations and
+ * order. */
 typedef struct {
     float uniqueness_factor; /* 1 + uniqueness_ratio; 0: no uniqueness check */
     float lr_max_diff;       /* < 0: no left-right check */
@@ -552,7 +553,7 @@ static void finish_row(const Pair *p, const Rules *rules, int64_t y, const RowOu
 
 /* Window sums of the texture image for output row y of the band whose texture crop rows (the box's columns
  * and K - 1 more, from K / 2 left of the box) start at ``rows``: down the rows first, then along the columns,
- * each in order (the float sums of svs_torch.dense._box_sum), vectorised across columns. */
+ * each in order (the float sums of svs_torch.depth.cost_volume._box_sum), vectorised across columns. */
 static void texture_row(const float *rows, int64_t width, int64_t K, int64_t y, float *restrict column_sums,
                         float *restrict sums) {
     const int64_t n = width + K - 1;
@@ -686,7 +687,7 @@ static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const 
 }
 
 /* Dense SAD block matching of B pairs, each over its own box and its own disparity range, straight to the
- * disparity map (svs_torch.dense._match_box's result, bit for bit):
+ * disparity map (svs_torch.depth.block_matching._match_box's result, bit for bit):
  *   left, right: (B, H, W) images: with source SOURCE_LEVELS the pre-filtered images in whole levels, and
  *   texture (B, H, W) |x-Sobel| or NULL; with SOURCE_RAW or SOURCE_XSOBEL the raw intensities, pre-filtered
  *   here a crop row at a time (prefilter_row, x-Sobel clipped at prefilter_cap), and texture is ignored: the

@@ -1,11 +1,12 @@
-/* Row fill of invalid dense disparities, for svs_torch.dense.fill_invalid_rows (the no-gradient path).
+/* Row fill of invalid dense disparities, for svs_torch.depth.block_matching.fill_invalid_rows (the no-gradient
+ * path).
  *
  * The torch path finds each pixel's nearest valid neighbours by a cumulative max and a flipped cumulative min
  * of indices, gathers both and selects: about fifteen passes over the (rows, W) crop. Here each row is read
  * twice (fill_row.h), with the same float32 operations as the torch path, so the same values bit for bit.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py; rows are shared among num_threads OpenMP threads.
+ * svs_torch/depth/kernels/__init__.py; rows are shared among num_threads OpenMP threads.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,6 +1,6 @@
-/* The row fill of invalid dense disparities (svs_torch.dense.fill_invalid_rows), shared by fill_invalid_rows.c
- * and object_depths.c. Each row is read twice, right to left (the next valid column) and left to right (the
- * last valid one, and the output):
+/* The row fill of invalid dense disparities (svs_torch.depth.block_matching.fill_invalid_rows), shared by
+ * fill_invalid_rows.c and object_depths.c. Each row is read twice, right to left (the next valid column) and left
+ * to right (the last valid one, and the output):
  *   valid pixel:                   d
  *   valid neighbours on both sides: (dl + dr) / 2 where |dl - dr| <= 1, else min(dl, dr)
  *   one side only:                 that side's value;   none: 0, not reachable

@@ -1,4 +1,4 @@
-/* Order statistics of labelled values, for svs_torch.depth.labelled_quantile (the dense depth stage's
+/* Order statistics of labelled values, for svs_torch.depth.quantiles.labelled_quantile (the dense depth stage's
  * per-object median and percentiles, the no-gradient path).
  *
  * The torch path sorts every pair's (B, P) values once (numpy's argsort), gathers, and finds each slot's ranks
@@ -13,7 +13,7 @@
  * checks); +-inf are ordinary values.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
+ * svs_torch/depth/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,5 +1,5 @@
-/* Each kept object's depth statistics from the dense disparity map, for svs_torch.dense_depth.dense_object_depths
- * (the dense depth stage's last step, the no-gradient path).
+/* Each kept object's depth statistics from the dense disparity map, for
+ * svs_torch.depth.dense_objects.dense_object_depths (the dense depth stage's last step, the no-gradient path).
  *
  * The torch path crops every pair to the batch's largest box (one gather each for the disparity, its validity and
  * the labels), fills the invalid pixels row by row, converts to depth, takes each slot's order statistics and
@@ -18,7 +18,7 @@
  * so the same statistics bit for bit (the caller interpolates them with its own float32 ops).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
+ * svs_torch/depth/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
  */
 #include <float.h>
 #include <math.h>

@@ -1,5 +1,5 @@
-/* The lower median of every labelled region, for svs_torch.depth.region_lower_median (the nearness segmenter's
- * ranking of its candidate regions, the no-gradient path).
+/* The lower median of every labelled region, for svs_torch.depth.quantiles.region_lower_median (the nearness
+ * segmenter's ranking of its candidate regions, the no-gradient path).
  *
  * The torch path sorts each pair's (P,) values, then its labels stably in that order, so each region's values lie
  * together in ascending order, and reads the middle of each: two O(P log P) sorts and four gathers of the pair.

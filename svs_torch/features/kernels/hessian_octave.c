@@ -1,5 +1,5 @@
-/* One octave of SURF's box-filter Hessian, for svs_torch.hessian (the no-gradient path), read straight from the
- * padded integral image.
+/* One octave of SURF's box-filter Hessian, for svs_torch.features.hessian (the no-gradient path), read straight
+ * from the padded integral image.
  *
  * The eager torch path (hessian._det_trace) slices 32 integral-image corner views per level from the octave's
  * sub-lattices (integral.integral_phases: one contiguous copy of the whole table per phase) and makes about 40
@@ -11,7 +11,7 @@
  *   dxx = (box_0 - 3 box_1) * lobe,  dyy = (box_2 - 3 box_3) * lobe,  dxy = (((box_4 - box_5) - box_6) + box_7) * gap
  *   det = dxx dyy - (0.9 dxy)^2,  trace = dxx + dyy
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <stdint.h>
 
@@ -37,7 +37,7 @@
  * box rows [r0, r1) and columns [c0, c1) around the pixel read the table at (pad + step i + r, pad + step j + c).
  * sizes (S,): the filter sizes L; inverse_lobe_area, inverse_dxy_area (S,): each level's box normalisations.
  * det, trace: (B, S, ny, nx) contiguous. The B * S * ny rows are shared among num_threads OpenMP threads
- * (torch's own pool: see svs_torch/kernels/__init__.py). */
+ * (torch's own pool: see svs_torch/core/kernels/loader.py). */
 void hessian_octave(const float *padded, int64_t B, int64_t PH, int64_t PW, int64_t pad, int64_t step,
                     const int64_t *sizes, int64_t S, int64_t ny, int64_t nx, const float *inverse_lobe_area,
                     const float *inverse_dxy_area, float dxy_weight, float *det, float *trace,

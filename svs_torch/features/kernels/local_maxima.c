@@ -1,4 +1,4 @@
-/* Scale-space maxima of one SURF octave, for svs_torch.hessian (the no-gradient path).
+/* Scale-space maxima of one SURF octave, for svs_torch.features.hessian (the no-gradient path).
  *
  * hessian._interior_maxima takes three running maxima of 3 along x, y and scale (six passes over the octave's
  * maps), compares, masks and selects: about a dozen passes through memory for a few hundred maxima. Here each
@@ -7,7 +7,7 @@
  * its 3 x 3 x 3 block is larger (a NaN neighbour, which makes torch's running maximum NaN, also rejects it);
  * -inf elsewhere.
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared (see svs_torch/core/kernels/loader.py).
  */
 #include <math.h>
 #include <stdint.h>

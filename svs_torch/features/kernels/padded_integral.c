@@ -1,5 +1,5 @@
-/* The padded, mean-removed integral image of SURF's Hessian (svs_torch.hessian, the no-gradient path) in one
- * pass per image.
+/* The padded, mean-removed integral image of SURF's Hessian (svs_torch.features.hessian, the no-gradient path) in
+ * one pass per image.
  *
  * The torch path makes five passes over the image and the table: the mean's subtraction, a cumulative sum down
  * the columns, one along the rows, a zero row and column in front (F.pad), then a replicate pad of ``pad`` on
@@ -8,7 +8,7 @@
  * CPU cumsum accumulates float32 in double), the row sums over the rounded column sums. So the table is
  * bit-identical (tests/core/test_kernels.py).
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <stdint.h>
 #include <stdlib.h>

@@ -1,6 +1,6 @@
-/* Sub-pixel, sub-scale refinement of SURF's strongest maxima, for svs_torch.detector (the no-gradient path of the
- * index decoding, _octave_reader and _refine in detect_surf_keypoints, whose torch form stays the reference and
- * the fallback).
+/* Sub-pixel, sub-scale refinement of SURF's strongest maxima, for svs_torch.features.detector (the no-gradient
+ * path of the index decoding, _octave_reader and _refine in detect_surf_keypoints, whose torch form stays the
+ * reference and the fallback).
  *
  * The torch path gathers each keypoint's 3 x 3 x 3 neighbourhood from every octave and picks its own octave's,
  * then fits the quadratic with about forty small elementwise ops and a batched 3 x 3 solve: about 1 ms a pair at
@@ -12,7 +12,7 @@
  * offsets agree to about 1e-15 (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py.
+ * svs_torch/features/kernels/__init__.py.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,4 +1,4 @@
-/* The k strongest scale-space maxima of each image over all its SURF octaves, for svs_torch.detector (the
+/* The k strongest scale-space maxima of each image over all its SURF octaves, for svs_torch.features.detector (the
  * no-gradient path of local_maxima_scores, their concatenation and torch.topk).
  *
  * That path writes each octave's dense map of maxima (det at a few hundred points, -inf at the other ~200 000 of
@@ -10,7 +10,7 @@
  * values are torch.topk's; past an image's last maximum, -inf at index 0.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py; images are shared among num_threads OpenMP threads.
+ * svs_torch/features/kernels/__init__.py; images are shared among num_threads OpenMP threads.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,5 +1,5 @@
-/* Upright SURF descriptors (U-SURF) straight from the image, for svs_torch.descriptor (the no-gradient path of
- * _describe_upright; the torch path stays the reference and the differentiable path).
+/* Upright SURF descriptors (U-SURF) straight from the image, for svs_torch.features.descriptor (the no-gradient
+ * path of _describe_upright; the torch path stays the reference and the differentiable path).
  *
  * The torch path builds a float32 padded integral image, gathers the valid keypoints, reads a 22 x 22 lattice of
  * integral values per keypoint with grid_sample, turns it into 21 x 21 cell means, 20 x 20 Haar responses and 4 x 4
@@ -11,7 +11,7 @@
  * the torch path's to its own float32 error (median 1e-5, at most a few 1e-4), not bit for bit
  * (tests/core/test_kernels.py).
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <math.h>
 #include <stdint.h>
@@ -111,8 +111,8 @@ static void describe_one(const double *table, int64_t H1, int64_t W1, int64_t pa
 }
 
 /* The integral image (H + 2 pad + 1, W + 2 pad + 1) of an (H, W) image extended by ``pad`` pixels of replicate
- * border (svs_torch.integral.padded_integral_image), in double: exact enough without removing the mean first,
- * which the float32 torch path needs (its sums reach 10^4 over a 320 x 240 image). */
+ * border (svs_torch.features.integral.padded_integral_image), in double: exact enough without removing the mean
+ * first, which the float32 torch path needs (its sums reach 10^4 over a 320 x 240 image). */
 static void padded_integral(const float *image, int64_t H, int64_t W, int64_t pad, double *table) {
     const int64_t H1 = H + 2 * pad + 1, W1 = W + 2 * pad + 1;
     for (int64_t c = 0; c < W1; ++c) table[c] = 0;

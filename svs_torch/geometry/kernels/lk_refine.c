@@ -1,16 +1,16 @@
-/* Sub-pixel refinement of matched points by translational Lucas-Kanade, for svs_torch.matching (the
+/* Sub-pixel refinement of matched points by translational Lucas-Kanade, for svs_torch.geometry.lk_refinement (the
  * no-gradient path of refine_matches_lk; the torch path _refine_lk stays the reference).
  *
  * The torch path samples every patch of the batch with grid_sample and reduces it with a dozen elementwise
  * passes per Gauss-Newton step: 14 samplings of B x K x 169 points and about 100 passes in all. Here each
  * match is refined start to finish while its 169 samples sit in L1, one match per OpenMP iteration (torch's
- * own pool, see svs_torch/kernels/__init__.py). The arithmetic is the torch path's step for step (bilinear
+ * own pool, see svs_torch/core/kernels/loader.py). The arithmetic is the torch path's step for step (bilinear
  * samples with the border repeated, Gaussian weights, zero-mean unit-RMS patches, the Jacobian with its mean
  * and its component along the template removed, H^-1 applied once, steps clamped to 1 px), but the weighted
  * sums run in double and in their own order, so positions agree with the torch path to about 1e-4 px, not bit
  * for bit (tests/core/test_kernels.py).
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <math.h>
 #include <stdint.h>

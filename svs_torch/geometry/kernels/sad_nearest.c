@@ -1,4 +1,4 @@
-/* Nearest and second-nearest neighbours by SAD (L1) between descriptor sets, for svs_torch.matching (the
+/* Nearest and second-nearest neighbours by SAD (L1) between descriptor sets, for svs_torch.geometry.matching (the
  * no-gradient path of _match_group; the torch path, _allowed + torch.cdist + topk + argmin, stays the reference).
  *
  * The torch path builds the (B, K, K2) mask of allowed candidates (both valid, the same Laplacian sign, inside
@@ -11,7 +11,7 @@
  * summed in float32 over d in order, so it can differ from torch.cdist's (another summation order) in the last
  * bits. Candidates are visited in index order, so ties resolve as the torch path's (the first index).
  *
- * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/kernels/__init__.py).
+ * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,5 +1,5 @@
-/* Horizontal runs of a batch of binary images, for svs_torch.components (the no-gradient path of _find_runs, whose
- * torch form stays the reference and the fallback).
+/* Horizontal runs of a batch of binary images, for svs_torch.segmentation.components (the no-gradient path of
+ * _find_runs, whose torch form stays the reference and the fallback).
  *
  * The torch path clones the mask twice, ANDs shifted copies, clears the joined pixels and turns both maps into
  * positions with nonzero: about eight passes over the whole batch (16 images of 320x240 each segmentation) for a
@@ -7,7 +7,7 @@
  * the threads: the same start and end positions (flat, inclusive) in the same raster order.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py.
+ * svs_torch/segmentation/kernels/__init__.py.
  */
 #include <stdint.h>
 #include <string.h>

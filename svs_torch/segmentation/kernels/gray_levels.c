@@ -1,5 +1,5 @@
-/* Gray levels and their histogram, for svs_torch.threshold (the no-gradient path of gray_levels followed by
- * gray_histogram, whose torch forms stay the reference and the fallback).
+/* Gray levels and their histogram, for svs_torch.segmentation.threshold (the no-gradient path of gray_levels
+ * followed by gray_histogram, whose torch forms stay the reference and the fallback).
  *
  * The torch path multiplies, rounds, clamps and converts the float image (four passes), then widens the levels
  * to int32, offsets them by image and counts them with one bincount (three more): about 0.3 ms a pair for the 16
@@ -7,7 +7,7 @@
  * [0, 255] in float32, as torch computes it (so the same levels), written as a byte and counted.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py.
+ * svs_torch/segmentation/kernels/__init__.py.
  */
 #include <math.h>
 #include <stdint.h>
@@ -36,7 +36,7 @@ int gray_levels(const float *image, int64_t N, int64_t P, uint8_t *levels, int64
             /* The levels of a chunk first (a loop gcc vectorises), then their counts. */
             for (int64_t p = begin; p < end; ++p) {
                 float v = nearbyintf(x[p] * 255.0f);
-                v = v > 0.0f ? v : 0.0f; /* no NaN here: svs_torch.checks.check_image rules it out */
+                v = v > 0.0f ? v : 0.0f; /* no NaN here: svs_torch.core.checks.check_image rules it out */
                 v = v < 255.0f ? v : 255.0f;
                 out[p] = (uint8_t)v;
             }

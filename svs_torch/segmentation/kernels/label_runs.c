@@ -1,5 +1,5 @@
-/* Connected components of horizontal runs, for svs_torch.components (the no-gradient path of _label_runs and
- * _paint, whose torch form stays the reference and the fallback).
+/* Connected components of horizontal runs, for svs_torch.segmentation.components (the no-gradient path of
+ * _label_runs and _paint, whose torch form stays the reference and the fallback).
  *
  * The torch path finds the touching runs of consecutive rows by binary search, merges them in rounds of
  * min-hooking and pointer jumping (each round a handful of passes over every run and edge, and a host sync), and
@@ -11,7 +11,7 @@
  * image in raster order of each region's first pixel.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
- * svs_torch/kernels/__init__.py.
+ * svs_torch/segmentation/kernels/__init__.py.
  */
 #include <stdint.h>
 #include <stdlib.h>
@@ -46,9 +46,9 @@ static int64_t first_run_from(const int64_t *start, int64_t runs, int64_t positi
 }
 
 /* start, end (R,): the runs' flat start and end (inclusive) positions over a (B, H, W) batch in raster order
- * (svs_torch.kernels.find_runs); connectivity 4 or 8. Writes each run's label (R,) (1-based within its image),
- * each image's number of labels (B,), and, when ``labels`` is not NULL, the (B, H, W) label image (0 off the
- * runs). Images are shared among num_threads OpenMP threads. Returns 0, or -1 when memory could not be had. */
+ * (svs_torch.segmentation.kernels.find_runs); connectivity 4 or 8. Writes each run's label (R,) (1-based within its
+ * image), each image's number of labels (B,), and, when ``labels`` is not NULL, the (B, H, W) label image (0 off
+ * the runs). Images are shared among num_threads OpenMP threads. Returns 0, or -1 when memory could not be had. */
 int label_runs(const int64_t *start, const int64_t *end, int64_t R, int64_t B, int64_t H, int64_t W,
                int64_t connectivity, int64_t *run_label, int64_t *num_labels, int64_t *labels, int64_t num_threads) {
     int64_t *parent = malloc(sizeof(int64_t) * (size_t)(R > 0 ? R : 1));
