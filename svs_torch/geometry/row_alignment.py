@@ -16,7 +16,9 @@ its x or y axis by ~1°) is not modelled: measured, it costs under a point at 32
 
 Batched over pairs: RANSAC over 3-match samples (the seeded counter-based draws of :mod:`svs_torch.geometry.ransac`, so
 a pair's result does not depend on its batch), then a least-squares refit on the inliers. Not differentiable (the
-inlier sets are discrete); the refit is differentiable w.r.t. the points given the inliers.
+inlier sets are discrete); the refit is differentiable w.r.t. the points given the inliers. The hypotheses' MSAC
+costs are summed by a compiled kernel beside this stage (``kernels/row_alignment_cost.c``), whose torch reference
+is :func:`_msac_cost`'s own expression.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
+from . import kernels
 from .ransac_sampling import draw_minimal_samples
 
 __all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment", "row_alignment_homography"]
@@ -105,12 +108,28 @@ def _row_residuals(params: torch.Tensor, left: torch.Tensor, right: torch.Tensor
     return (aligned - left[:, None, :, 1]).abs()
 
 
+def _msac_cost(params: torch.Tensor, left: torch.Tensor, right: torch.Tensor, valid: torch.Tensor,
+               threshold_px: float) -> torch.Tensor:
+    """MSAC cost ``(B, M)`` of each hypothesis: its truncated squared row errors summed over the valid matches,
+    +inf for a degenerate sample. The compiled kernel (:func:`svs_torch.geometry.kernels.row_alignment_cost`) sums
+    each hypothesis in one pass; this torch expression is its reference, which writes ``(B, M, K)`` arrays."""
+    fast = kernels.row_alignment_cost(params, left[..., 1], right[..., 0], right[..., 1], valid, threshold_px)
+    if fast is not None:
+        return fast
+    residuals = _row_residuals(params, left, right)  # (B, M, K)
+    cost = torch.where(valid[:, None], residuals.clamp(max=threshold_px) ** 2, 0.0).sum(-1)
+    return torch.where(params.isnan().any(-1), float("inf"), cost)
+
+
 def _sample_params(left: torch.Tensor, right: torch.Tensor, valid: torch.Tensor, seeds: torch.Tensor,
                    num_hypotheses: int) -> torch.Tensor:
     """(a, b, t_y) of each pair's 3-match samples ``(B, M, 3)``, NaN where a sample is degenerate."""
+    if valid.shape[1] == 0:  # no match rows at all: nothing to sample (every hypothesis degenerate)
+        return torch.full((valid.shape[0], num_hypotheses, 3), float("nan"), dtype=left.dtype, device=left.device)
     order = torch.argsort((~valid).to(torch.int8), dim=1, stable=True)  # valid rows first
     ranks = draw_minimal_samples(seeds, 0, num_hypotheses, valid.sum(1), _SAMPLE)  # (B, M, 3)
-    rows = torch.gather(order, 1, ranks.flatten(1)).view_as(ranks)
+    # A pair with fewer than three matches has ranks past its rows: kept in range, and its samples dropped below.
+    rows = torch.gather(order, 1, ranks.clamp(max=valid.shape[1] - 1).flatten(1)).view_as(ranks)
 
     def pick(points: torch.Tensor, coordinate: int) -> torch.Tensor:
         return torch.gather(points[..., coordinate], 1, rows.flatten(1)).view_as(rows)
@@ -119,8 +138,9 @@ def _sample_params(left: torch.Tensor, right: torch.Tensor, valid: torch.Tensor,
     target = pick(left, 1).unsqueeze(-1)
     # Collinear or repeated samples make the system singular: their hypotheses are dropped, not perturbed.
     scale = system[..., :2].abs().amax((-1, -2)).clamp(min=1.0)
-    ok = torch.linalg.det(system / scale[..., None, None]).abs() > 1e-6
-    safe = torch.where(ok[..., None, None], system, torch.eye(3, dtype=system.dtype, device=system.device).expand_as(system))
+    ok = (torch.linalg.det(system / scale[..., None, None]).abs() > 1e-6) & (valid.sum(1, keepdim=True) >= _SAMPLE)
+    identity = torch.eye(3, dtype=system.dtype, device=system.device).expand_as(system)
+    safe = torch.where(ok[..., None, None], system, identity)
     params = torch.linalg.solve(safe, target).squeeze(-1)
     return torch.where(ok[..., None], params, torch.full_like(params, float("nan")))
 
@@ -166,10 +186,7 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     left, right = points_left.to(torch.float64), points_right.to(torch.float64)
     seeds = torch.zeros(dims["B"], dtype=torch.int64, device=left.device) if pair_seeds is None else pair_seeds
     params = _sample_params(left, right, valid, seeds, config.num_hypotheses)
-    residuals = _row_residuals(params, left, right)  # (B, M, K)
-    # MSAC: the truncated squared row error, padding rows and degenerate samples excluded.
-    cost = torch.where(valid[:, None], residuals.clamp(max=config.threshold_px) ** 2, 0.0).sum(-1)
-    cost = torch.where(params.isnan().any(-1), float("inf"), cost)
+    cost = _msac_cost(params, left, right, valid, config.threshold_px)
     best = torch.gather(params, 1, cost.argmin(1).view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
     inliers = valid & (_row_residuals(best.nan_to_num().unsqueeze(1), left, right)[:, 0] < config.threshold_px)
     refit = _refit(left, right, inliers)

@@ -38,6 +38,7 @@ from svs_torch.geometry import kernels as geometry_kernels
 from svs_torch.geometry.lk_refinement import refine_matches_lk
 from svs_torch.geometry.matched_points import MatchedPoints
 from svs_torch.geometry.matching import match_sad
+from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
 from svs_torch.segmentation.nearness import _median_filter
@@ -308,6 +309,20 @@ def test_refine_matches_lk(size, k, data):
         torch.testing.assert_close(fused.right[finite], eager.right[finite], rtol=0, atol=1e-3)
 
 
+@given(b=st.integers(0, 3), k=st.integers(0, 30), data=st.data())
+@examples(40)
+def test_row_alignment_costs(b, k, data):
+    """The row alignment's hypotheses scored by the kernel or by the (B, M, K) torch expression: the same
+    alignment, with padding rows, repeated points (degenerate samples) and NaN / infinite / huge coordinates."""
+    left = data.draw(tensors((b, k, 2), high=300.0, specials=0.05))
+    right = left + data.draw(tensors((b, k, 2), low=-2.0, high=2.0, specials=0.05))
+    if data.draw(st.booleans()) and k > 3:
+        right[:, 1:3] = right[:, :1]  # a repeated point: its samples are singular
+    valid = data.draw(masks((b, k), odd_bytes=False))
+    image_hw = torch.tensor([[240, 320]] * b, dtype=torch.int64).view(b, 2)
+    _both(fit_row_alignment, left, right, valid, image_hw)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -371,6 +386,11 @@ def test_dense_object_depths(size, n, fill, data):
                                  torch.ones(1, 1, dtype=torch.int64), torch.tensor([math.nan]))),
     ("label_runs", lambda: (torch.tensor([0, 95]), torch.tensor([3, 120]), 1, 10, 10, 8)),
     ("median_filter", lambda: (torch.rand(1, 1, 8, 8), 4)),
+    ("row_alignment_cost", lambda: (torch.rand(1, 4, 3, dtype=torch.float64), torch.rand(1, 5, dtype=torch.float64),
+                                    torch.rand(1, 5, dtype=torch.float64), torch.rand(1, 6, dtype=torch.float64),
+                                    torch.ones(1, 5, dtype=torch.bool), 1.0)),
+    ("row_alignment_cost", lambda: (torch.rand(1, 4, 3, dtype=torch.float64), *(torch.rand(1, 5, dtype=torch.float64)
+                                    for _ in range(3)), torch.ones(1, 5, dtype=torch.bool), math.nan)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),

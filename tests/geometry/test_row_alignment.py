@@ -69,6 +69,25 @@ def test_aligned_rig_and_too_few_matches_keep_their_rows(generator):
     assert not bool(result.valid[0]) and torch.equal(result.H_right[0], torch.eye(3, dtype=torch.float64))
 
 
+def test_compiled_costs_give_the_torch_paths_alignment(generator, monkeypatch):
+    """The MSAC costs summed by the C kernel or by the (B, M, K) torch expression choose the same alignment:
+    three misaligned pairs of different match counts in one padded batch, one with too few matches."""
+    pairs = [_misaligned_points(m, outliers=15, generator=generator) for m in (
+        real_rig.Misalignment(roll_deg=2), real_rig.Misalignment(shift_y_fraction=-0.03, scale=0.02),
+        real_rig.Misalignment(roll_deg=-1))]
+    left, right = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
+    valid = torch.ones(left.shape[:2], dtype=torch.bool)
+    valid[1, 40:] = False
+    valid[2, 2:] = False
+    image_hw = torch.cat([p[2] for p in pairs])
+    fused = fit_row_alignment(left, right, valid, image_hw)
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    reference = fit_row_alignment(left, right, valid, image_hw)
+    assert fused.valid.tolist() == [True, True, False]
+    for name in ("H_right", "inliers", "num_inliers", "correction_px", "valid"):
+        assert torch.equal(getattr(fused, name), getattr(reference, name)), name
+
+
 def test_alignment_rejects_bad_input():
     points = torch.zeros(1, 8, 2)
     with pytest.raises(InputError, match="valid"):

@@ -19,18 +19,21 @@ at its own box (``object_depths.c``), SURF's padded integral table (``padded_int
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
-(``sad_nearest.c``) and the Lucas–Kanade refinement of matched points (``lk_refine.c``). Each is the no-gradient path of
+(``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``) and the MSAC costs of the row
+alignment's hypotheses (``row_alignment_cost.c``). Each is the no-gradient path of
 a torch function that stays the reference, the fallback and the differentiable path. Thirteen give that torch path's
 values bit for bit: the first twelve, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
-order, which ``torch.topk`` leaves open). Four do not: the fit solves its 3 × 3 systems by its own elimination, not
+order, which ``torch.topk`` leaves open). Five do not: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
 with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor
 (``usurf_describe.c``) builds each image's integral and describes its keypoints in double, equal to the float64 torch
 path to 1e-6 and to the float32 one within its round-off (5e-4), except where a response near 0 takes the other sign
-there (the extended descriptor's halves then move by up to 0.08). On the 58 shared real pairs at 320×240, 6 pipeline
-results differ from the torch paths' by 1–2 matches or inliers, from the last two (``experiments/kernel_parity.py``;
-the README's "Compiled kernels" says the same).
+there (the extended descriptor's halves then move by up to 0.08); the row alignment sums each hypothesis's truncated
+row errors in match order, not torch's (the same alignments: ``tests/core/test_kernel_fuzz.py``). On the 58 shared
+real pairs at 320×240, the Middlebury and KITTI scenes' results equal the torch paths'; 12 of the 13 chessboard pairs
+differ by a few matches or inliers (and through their rectification, their depths), all from the refinement and the
+descriptor (``experiments/kernel_parity.py``; the README's "Compiled kernels" says the same).
 
 Each wrapper checks what its C code assumes (shapes, one row per pair, sizes and boxes within the buffers,
 non-empty images, finite parameters in range) and raises :class:`~svs_torch.InputError` naming the argument
@@ -68,7 +71,10 @@ makes it (16 real pairs: 110 → 29 ms). The objects' depth statistics cropped e
 box (three gathers, the fill, the depth, a selection and a count per object over it, so that a pair of B = 128
 cost twice a pair of B = 32); the kernel reads each pair once at its own box (64 real pairs at B = 8, one thread:
 1.84 → 0.7 ms a pair). The runs took about eight passes over the batch's masks and two ``nonzero``; the kernel
-reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms).
+reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms). The row alignment scored
+its 256 hypotheses against every match in six float64 passes over a ``(B, 256, K)`` array, K the batch's largest
+match count, so its time a pair grew with the batch; the kernel sums each hypothesis in one pass over its own pair's
+matches (synthetic pairs, one thread: 1.2 / 5.7 / 9.2 → 0.38 / 0.31 / 0.21 ms a pair at B = 8 / 32 / 128).
 
 The shared libraries are built and cached by :mod:`svs_torch.core.kernels.loader`: in a private folder
 (``$SVS_TORCH_CACHE``, default ``~/.cache/svs_torch``; one others can write to is refused), under a name that

@@ -13,11 +13,12 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_number, check_rows
 
-__all__ = ["available", "lk_refine", "load", "sad_nearest"]
+__all__ = ["available", "lk_refine", "load", "row_alignment_cost", "sad_nearest"]
 
 declare({
     "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
                   None),
+    "row_alignment_cost": ([POINTER] * 5 + [INT] * 3 + [ctypes.c_double, POINTER, INT], ctypes.c_int),
     "sad_nearest": ([POINTER] * 8 + [FLOAT] + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
 })
 
@@ -103,3 +104,29 @@ def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_left: t
                                  second.data_ptr(), best_index.data_ptr(), back.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (best, second, best_index, back)
 
+
+
+def row_alignment_cost(params: torch.Tensor, left_y: torch.Tensor, right_x: torch.Tensor, right_y: torch.Tensor,
+                       valid: torch.Tensor, threshold_px: float) -> torch.Tensor | None:
+    """``svs_torch.geometry.row_alignment._msac_cost`` in one pass per hypothesis (see the C source): ``params``
+    ``(B, M, 3)`` float64 (a, b, t_y), NaN where a sample was degenerate; ``left_y``, ``right_x``, ``right_y``
+    ``(B, K)`` float64; ``valid`` ``(B, K)`` bool. Returns the cost ``(B, M)`` float64 (+inf for a degenerate
+    hypothesis), or None when the kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(params, "params", ["B", "M", 3])
+    b, m = dims["B"], dims["M"]
+    k = check_shape(left_y, "left_y", [b, "K"])["K"]
+    for tensor, name in ((right_x, "right_x"), (right_y, "right_y")):
+        check_rows(tensor, name, b, k, kinds="float")
+    check_rows(valid, "valid", b, k, kinds="bool")
+    check_number(threshold_px, "threshold_px", 0.0)
+    if not (on_cpu(torch.float64, params, left_y, right_x, right_y) and on_cpu(torch.bool, valid)):
+        return None
+    library = load("row_alignment_cost")
+    if library is None:
+        return None
+    params, left_y, right_x, right_y, valid = (t.contiguous() for t in (params, left_y, right_x, right_y, valid))
+    cost = torch.empty(b, m, dtype=torch.float64)
+    status = library.row_alignment_cost(params.data_ptr(), left_y.data_ptr(), right_x.data_ptr(), right_y.data_ptr(),
+                                        valid.data_ptr(), b, m, k, float(threshold_px), cost.data_ptr(),
+                                        torch.get_num_threads())
+    return None if status != 0 else cost
