@@ -28,7 +28,13 @@ from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothe
 from .soft import differentiable_depth
 from .stages import _feature_images, _features, _match, _network, _segment_group, _status
 
-__all__ = ["estimate_obstacle_depth"]
+__all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
+
+#: The most left-view pixels one pass of the pipeline takes: a larger batch runs in consecutive chunks of whole pairs
+#: (:func:`svs_torch.core.size_groups.run_by_size`), each pair's result unchanged. 32 pairs of 320×240: on this
+#: project's 2-core machine the time a pair falls from B = 1 to 32 and rose again beyond, as the stages'
+#: intermediates outgrew the caches (``svs-depth bench``'s batch scaling).
+CHUNK_PIXELS = 32 * 320 * 240
 
 
 def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = PipelineConfig(),
@@ -57,6 +63,8 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     """
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", PipelineConfig)
+    if batch.batch_size == 0:
+        raise InputError("batch: expected at least one stereo pair, got an empty batch")
     if network is not None:
         check_instance(network, "network", nn.Module)
         if config.segmentation.segmenter == "otsu":
@@ -68,7 +76,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
                              f"{type(network).__name__}")
     if not config.differentiable:
         batch = _detached(batch)
-    return run_by_size(batch, lambda group: _estimate_group(group, config, network))
+    return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
 
 
 def _detached(batch: StereoBatch) -> StereoBatch:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import re
 import statistics
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -13,7 +15,8 @@ from svs_torch.data.calibration import calibration_record, format_calibration
 from svs_torch.data.datasets import scene_calibration_source
 from svs_torch.evaluation import PairEvaluation, summarize
 
-from test_cli import run_cli
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))  # run alone, pytest has not put it there
+from test_cli import run_cli  # noqa: E402
 
 # One scene of each layout and calibration rule (MANIFEST §1).
 SCENES = ["middlebury_eval3_Q/Teddy", "middlebury_2005_2006_third/Art", "middlebury_2005_2006_third/Aloe",

@@ -12,6 +12,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from svs_torch.core.errors import InputError
 from svs_torch.core.size_groups import crop_batch, merge_groups, size_groups
 from svs_torch.data import collate_stereo_batches, load_stereo_pair, resize_stereo_batch
 from svs_torch.data.pair_list import read_pair_sources
@@ -96,6 +97,27 @@ def test_each_pair_equals_the_pair_alone(pool, data):
             assert _row(row) == want_row, f"pair {pick} in block {block}"
             hw = tuple(batch.image_hw[index].tolist())
             _assert_rows_equal(_pair_tensors(result, index, hw), want_tensors, f"pair {pick} in block {block}")
+
+
+def test_a_batch_run_in_chunks_equals_each_pair_alone(pool, monkeypatch):
+    """A batch larger than ``CHUNK_PIXELS`` runs as consecutive chunks of whole pairs: each pair's result and
+    tensors are still the pair's alone, in batch order, for chunks within one size group and across groups."""
+    from svs_torch.pipeline import run
+
+    pairs, alone, config = pool
+    picks = [5, 5, 6, 5, 0, 5, 6, 5]
+    monkeypatch.setattr(run, "CHUNK_PIXELS", 2 * 160 * 120)  # two 160x120 pairs, one of the larger ones
+    batch = collate_stereo_batches([pairs[i] for i in picks], mode="pad")
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch, config)
+    rows = evaluate_result(batch, result, 0.0, [True] * len(picks))
+    for index, (row, pick) in enumerate(zip(rows, picks)):
+        want_row, want_tensors = alone[pick]
+        assert _row(row) == want_row, f"pair {pick} at {index}"
+        hw = tuple(batch.image_hw[index].tolist())
+        _assert_rows_equal(_pair_tensors(result, index, hw), want_tensors, f"pair {pick} at {index}")
+    with pytest.raises(InputError, match=r"^batch: expected at least one stereo pair"):
+        estimate_obstacle_depth(batch.select([]), config)
 
 
 def test_eval_rows_do_not_depend_on_batch_size_or_order(data_dir: Path, tmp_path: Path):
