@@ -21,6 +21,7 @@ from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification, RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
 from ..segmentation.segment import SegmentationConfig
+from .exposure import ExposureConfig
 
 __all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineStatus"]
 
@@ -111,6 +112,10 @@ class PipelineConfig:
             second measurement is kept where it is verified and ranges more objects (or as many, the first not
             verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
             matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
+        exposure: the right view's exposure matched to the left's before the first stage
+            (:mod:`svs_torch.pipeline.exposure`: an affine map of its quartiles onto the left view's, where they
+            differ by more than :attr:`ExposureConfig.min_change`; two boards' gains and exposures), e.g.
+            ``exposure=ExposureConfig()``. None (the default, and the paper's): off.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).
@@ -158,6 +163,9 @@ class PipelineConfig:
     differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
     # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
     noisy_retry_sigma_px: float | None = 1.0
+    # Off by default: on the tuned scenes (experiments/exposure.md) it ranges Piano behind a right camera 30 % brighter
+    # but loses PianoL (two lightings, not two gains) in as many conditions; the mean over them fell 90.1 -> 89.3 %.
+    exposure: ExposureConfig | None = None
 
     def __post_init__(self) -> None:
         if self.features_on not in ("masked", "mask", "image"):

@@ -24,6 +24,7 @@ from ..geometry.rectification import rectify_uncalibrated
 from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
+from .exposure import match_exposure
 from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed
 from .soft import differentiable_depth
 from .stages import _feature_images, _features, _match, _network, _segment_group, _status
@@ -91,6 +92,9 @@ def _detached(batch: StereoBatch) -> StereoBatch:
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
     """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: the hard pipeline without
     gradients, then, under ``config.differentiable``, the differentiable depths."""
+    if config.exposure is not None:  # before every stage, with gradients (issue 33: two boards, two exposures)
+        right, _ = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
+        batch = dataclasses.replace(batch, right=right)
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).

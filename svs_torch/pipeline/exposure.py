@@ -1,0 +1,83 @@
+"""The right view's exposure matched to the left's before any stage sees the pair (issue 33, item 2).
+
+Why: the SVS is two SRV-1 boards, each with its own sensor, gain and exposure, so one view of a pair is often
+brighter than the other. Every stage after segmentation compares the two views' intensities or gradients (the
+nearness segmenter's and the dense stage's block matching on clipped x-Sobel levels, whose SAD grows with a gain
+difference; their texture and uniqueness tests), and a right view 30 % brighter left a tuned scene (Middlebury
+Piano) unranged (``experiments/real_rig.py``, "gain +30%"). SURF's descriptors are normalised and do not need it.
+
+The map is affine, ``right' = clip(scale · right + offset, 0, 1)``, fitted so that two quantiles of the right view
+(default the quartiles) land on the left view's: a gain and a black level, robust to the few pixels that saturate
+and to the strips that only one camera sees. Pairs whose views already agree, ``|scale − 1| + |offset|`` within
+``min_change``, are left exactly as they are (a pair's two views of one scene never have identical histograms, so
+a correction smaller than that is noise, not exposure).
+
+Differentiable: ``scale`` and ``offset`` are ``torch.quantile``'s of the views (interpolated order statistics), so
+gradients flow to both images through the map and its parameters, except where the clip saturates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..core.checks import InputError, check_shape
+from ..depth.quantiles import row_quantile
+
+__all__ = ["ExposureConfig", "match_exposure"]
+
+
+@dataclass(frozen=True)
+class ExposureConfig:
+    """Options of :func:`match_exposure`.
+
+    Attributes:
+        quantiles: the two quantiles of each view the map matches (low, high), in (0, 1).
+        min_change: pairs with ``|scale − 1| + |offset|`` (offset in image units, [0, 1] intensities) at or below
+            this are left unchanged.
+    """
+
+    quantiles: tuple[float, float] = (0.25, 0.75)
+    min_change: float = 0.05
+
+    def __post_init__(self) -> None:
+        low, high = self.quantiles
+        if not 0 < low < high < 1:
+            raise InputError(f"quantiles: expected two quantiles 0 < low < high < 1, got {self.quantiles!r}")
+        if not self.min_change >= 0:
+            raise InputError(f"min_change: expected a number >= 0, got {self.min_change!r}")
+
+
+def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
+                   config: ExposureConfig = ExposureConfig()) -> tuple[torch.Tensor, torch.Tensor]:
+    """The right views mapped to their left views' exposure (module docstring).
+
+    Args:
+        left, right: ``(B, 1, H, W)`` images in [0, 1].
+        image_hw: ``(B, 2)`` int64, each pair's own size: only those pixels are measured (the pipeline calls this
+            on groups of one size, which fill their tensors).
+        config: :class:`ExposureConfig`.
+
+    Returns:
+        The right views ``(B, 1, H, W)`` (the same tensor when no pair needs a change) and whether each pair's was
+        changed ``(B,)`` bool.
+    """
+    dims = check_shape(left, "left", ["B", 1, "H", "W"])
+    check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
+    if not bool((image_hw == torch.tensor([dims["H"], dims["W"]], device=image_hw.device)).all()):
+        raise InputError(f"image_hw: expected every pair to fill the ({dims['H']}, {dims['W']}) images, got "
+                         f"{image_hw.tolist()}")
+    if dims["H"] * dims["W"] == 0:
+        return right, torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
+    low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
+    low_high_right = row_quantile(right.flatten(1), config.quantiles)
+    spread_right = low_high_right[:, 1] - low_high_right[:, 0]
+    # A flat right view (no spread to scale) is left alone rather than stretched from nothing.
+    scale = (low_high_left[:, 1] - low_high_left[:, 0]) / spread_right.clamp(min=1e-3)
+    offset = low_high_left[:, 0] - scale * low_high_right[:, 0]
+    changed = ((scale - 1).abs() + offset.abs() > config.min_change) & (spread_right > 1e-3)
+    if not bool(changed.any()):
+        return right, changed
+    mapped = (right * scale.view(-1, 1, 1, 1) + offset.view(-1, 1, 1, 1)).clamp(0, 1)
+    return torch.where(changed.view(-1, 1, 1, 1), mapped, right), changed
