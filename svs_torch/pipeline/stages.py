@@ -113,8 +113,15 @@ def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module 
     a caller's module would move the parameters its optimiser holds) or the cached weights of
     ``config.segmenter``, moved and frozen."""
     if network is None:
-        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache.
-        return cached_obstacle_net(config.segmenter).to(batch.left.device).requires_grad_(False)
+        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache. Moved
+        # and frozen only when it is not already (walking the module costs about a millisecond a call: guide's B = 1).
+        cached = cached_obstacle_net(config.segmenter)
+        parameters = list(cached.parameters())
+        if parameters and parameters[0].device != batch.left.device:
+            cached = cached.to(batch.left.device)
+        if any(p.requires_grad for p in parameters):
+            cached.requires_grad_(False)
+        return cached
     device = next(network.parameters()).device
     if device != batch.left.device:
         raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
