@@ -2,7 +2,8 @@
 
 What is measured (all on this machine, the thread count recorded):
 
-- **whole process from the command line**: ``svs-depth estimate --pairs LIST --json`` (start-up, imports, image
+- **whole process from the command line**: ``svs-depth estimate --pairs LIST --json`` (and the same with the
+  paper's ``--segmenter otsu``, to show what the default nearness segmenter costs; start-up, imports, image
   decoding, the default configuration) against the same work as plain OpenCV loops in their own processes
   (:mod:`svs_torch.evaluation.bench_rivals`: decode, Otsu + opening + two largest regions, SIFT or ORB, ratio matching,
   ``findFundamentalMat`` RANSAC, ``StereoBM`` median over the kept regions). Runs are interleaved (svs, SIFT,
@@ -11,7 +12,8 @@ What is measured (all on this machine, the thread count recorded):
   times at B = 32, the per-pair time from B = 1 to 128 (the same 128 synthetic pairs in batches of B, after a
   warm-up batch at each size; batches over 32 pairs of 320×240 run in chunks of 32), the peak resident
   memory per pair of the batch (a child process per B), the latency of one pair at B = 1 (what ``guide``
-  pays per frame), and kornia's own composition (``SIFTFeature`` + ``match_snn`` + ``RANSAC('fundamental')``).
+  pays per frame; also with the paper's Otsu segmenter), and kornia's own composition (``SIFTFeature`` +
+  ``match_snn`` + ``RANSAC('fundamental')``).
 - ``svs-depth --help`` start-up.
 - **comparable work**: per rival, the mean keypoints, matches, inliers and the median R_min over the pairs, so
   a win by doing less shows.
@@ -118,6 +120,9 @@ def whole_process(sets: dict[str, list], workdir: Path, repeats: int, threads: i
         commands = {
             "svs-depth estimate --pairs": [sys.executable, "-m", "svs_torch.cli", "estimate", "--pairs", str(listing),
                                            "--json"],
+            # The paper's segmenter beside the default (issue 32 item 4: what the nearness segmenter costs).
+            "svs-depth estimate --pairs --segmenter otsu": [sys.executable, "-m", "svs_torch.cli", "estimate",
+                                                            "--pairs", str(listing), "--json", "--segmenter", "otsu"],
             "OpenCV SIFT loop": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing),
                                  "--threads", str(threads)],
             "OpenCV ORB loop": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "orb", str(listing),
@@ -213,7 +218,28 @@ def in_process(repeats: int, threads: int) -> dict:
             stages = {k: round(v / b * 1e3, 2) for k, v in last.timings_s.items()}
     latency = next(row["ms_per_pair"] for row in scaling if row["B"] == 1)
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
+            "latency_ms_B1_otsu": _latency_otsu(scenes.batch.select(list(range(16))), config, repeats),
             "kornia_ms_per_pair": _kornia_composition(scenes.batch.select(list(range(8))), repeats)}
+
+
+def _latency_otsu(batch, config, repeats: int) -> float:
+    """The one-pair latency with the paper's segmenter (Otsu, the two largest regions) instead of the default's,
+    over the same first pairs: the median of ``repeats`` passes over them one at a time, in ms."""
+    import dataclasses
+
+    from ..pipeline import estimate_obstacle_depth
+
+    otsu = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter="otsu",
+                                                                        keep="largest"))
+    pairs = [batch.select([i]) for i in range(batch.batch_size)]
+    estimate_obstacle_depth(pairs[0], otsu)
+    runs = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        for pair in pairs:
+            estimate_obstacle_depth(pair, otsu)
+        runs.append((time.perf_counter() - started) / len(pairs))
+    return round(statistics.median(runs) * 1e3, 2)
 
 
 def _kornia_composition(batch, repeats: int) -> float:
@@ -312,7 +338,8 @@ def format_tables(report: dict) -> str:
     memory = {row["B"]: row for row in report.get("memory", [])}
     for row in inside["scaling"]:
         lines.append(f"| {row['B']} | {row['ms_per_pair']} | {memory.get(row['B'], {}).get('per_pair_mb', '-')} |")
-    lines += ["", f"latency of one pair (B = 1, guide's case): {inside['latency_ms_B1']} ms; kornia SIFTFeature + "
+    lines += ["", f"latency of one pair (B = 1, guide's case): {inside['latency_ms_B1']} ms (with the paper's Otsu "
+              f"segmenter: {inside.get('latency_ms_B1_otsu', '-')} ms); kornia SIFTFeature + "
               f"match_snn + RANSAC: {inside['kornia_ms_per_pair']} ms per pair; `svs-depth --help`: "
               f"{report['help_s']} s; threads {report['metadata']['threads']}, commit {report['metadata']['commit']}"]
     return "\n".join(lines)
