@@ -129,8 +129,8 @@ def run_by_size(batch: StereoBatch, run: Callable[[StereoBatch], T], max_pixels:
     ``max_pixels``: the most left-view pixels one call gets; a larger group runs as consecutive chunks of whole
     pairs (at least one pair a chunk). Why: every stage's intermediates grow with the batch, and once they
     outgrow the CPU's caches each elementwise pass costs more per pair (on 2 cores, the same 128 pairs of
-    320×240 in batches of 32: 14.8 ms a pair; in one call of 128: 17.7 ms; in chunks of 32: 16.3 ms). A pair's result does not depend on its batch, so chunks change
-    nothing but the time and the peak memory."""
+    320×240 in batches of 32: 14.8 ms a pair; in one call of 128: 17.7 ms; in chunks of 32: 16.3 ms). A pair's
+    result does not depend on its batch, so chunks change nothing but the time and the peak memory."""
     groups = size_groups(batch.image_hw)
     chunked = [(index[start:start + _chunk_pairs(hw, max_pixels)], hw) for index, hw in groups
                for start in range(0, len(index), _chunk_pairs(hw, max_pixels))]

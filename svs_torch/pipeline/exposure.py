@@ -1,10 +1,11 @@
 """The right view's exposure matched to the left's before any stage sees the pair (issue 33, item 2).
 
 Why: the SVS is two SRV-1 boards, each with its own sensor, gain and exposure, so one view of a pair is often
-brighter than the other. Every stage after segmentation compares the two views' intensities or gradients (the
-nearness segmenter's and the dense stage's block matching on clipped x-Sobel levels, whose SAD grows with a gain
-difference; their texture and uniqueness tests), and a right view 30 % brighter left a tuned scene (Middlebury
-Piano) unranged (``experiments/real_rig.py``, "gain +30%"). SURF's descriptors are normalised and do not need it.
+brighter than the other. The stages that compare the two views' intensities or gradients (the nearness
+segmenter's and the dense stage's block matching on clipped x-Sobel levels, whose SAD grows with a gain
+difference; their texture and uniqueness tests) are hurt by it: a right view 30 % brighter left a tuned scene
+(Middlebury Piano) unranged (``experiments/real_rig.py``, "gain +30%"). SURF's descriptors are normalised and do
+not need it.
 
 The map is affine, ``right' = clip(scale · right + offset, 0, 1)``, fitted so that two quantiles of the right view
 (default the quartiles) land on the left view's: a gain and a black level, robust to the few pixels that saturate
@@ -42,6 +43,9 @@ class ExposureConfig:
     min_change: float = 0.05
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.quantiles, (tuple, list)) and len(self.quantiles) == 2
+                and all(isinstance(q, (int, float)) for q in self.quantiles)):
+            raise InputError(f"quantiles: expected two numbers (low, high), got {self.quantiles!r}")
         low, high = self.quantiles
         if not 0 < low < high < 1:
             raise InputError(f"quantiles: expected two quantiles 0 < low < high < 1, got {self.quantiles!r}")
