@@ -53,15 +53,17 @@ def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: 
     check_shape(values, "values", ["B", "P"])
     check_shape(labels, "labels", list(values.shape))
     check_dtype(labels, "labels", "int")
+    # The kernel's wrapper checks num_labels and the labels' range itself (the same messages): they are checked
+    # here only where it leaves the values to the torch path.
+    fast = kernels.region_medians(values, labels.to(torch.int64), num_labels)
+    if fast is not None:
+        count, median = fast
+        return median, count
     if not (isinstance(num_labels, int) and num_labels >= 0):
         raise InputError(f"num_labels: expected a non-negative int, got {num_labels!r}")
     if labels.numel() and not (int(labels.min()) >= 0 and int(labels.max()) <= num_labels):
         raise InputError(f"labels: expected labels in [0, {num_labels}], got [{int(labels.min())}, "
                          f"{int(labels.max())}]")
-    fast = kernels.region_medians(values, labels.to(torch.int64), num_labels)
-    if fast is not None:
-        count, median = fast
-        return median, count
     b, labels, values = labels.shape[0], labels.to(torch.int64), values.detach()
     by_value = torch.sort(values, dim=1, stable=True).indices
     grouped = by_value.gather(1, torch.sort(labels.gather(1, by_value), dim=1, stable=True).indices)

@@ -191,9 +191,9 @@ def _median_halved(disparity: torch.Tensor, window: int) -> torch.Tensor:
 
 def _median_filter(image: torch.Tensor, window: int) -> torch.Tensor:
     """The ``window``-sided median (``torch.median``'s, the lower one) of each pixel of ``image`` ``(B, 1, h, w)``,
-    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: a sorted window
-    that slides along each row, 16 → 1 ms a pair of 320×240) gives the values of the torch path below, which
-    sorts every window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
+    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: the median tracked
+    from pixel to pixel along each row, 16 → 1 ms a pair of 320×240) gives the values of the torch path below,
+    which sorts every window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
     fast = kernels.median_filter(image, window)
     if fast is not None:
         return fast

@@ -115,7 +115,8 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
 
 
 
-#: The largest window side :func:`median_filter` takes: it sorts a window by insertion once per row.
+#: The largest window side :func:`median_filter` takes: each step of its tracked median reads all K² values of the
+#: window, so a larger window is left to the torch path.
 MAX_MEDIAN_WINDOW = 15
 
 
@@ -130,7 +131,7 @@ def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
         raise InputError(f"window: expected an odd positive int, got {window!r}")
     if window > MAX_MEDIAN_WINDOW or not on_cpu(torch.float32, image):
         return None
-    if image.numel() == 0 or bool(image.isnan().any()):  # the merge orders by <, which NaN breaks
+    if image.numel() == 0 or bool(image.isnan().any()):  # the tracking compares by <, which NaN breaks
         return None
     library = load("median_filter")
     if library is None:
