@@ -82,10 +82,10 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
 
 
 def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
-                generator: torch.Generator) -> torch.Tensor:
+                generator: torch.Generator, contrast: float = 1.0) -> torch.Tensor:
     """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
     surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
-    square each tile spans."""
+    square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value)."""
     b, s = tile_depth_m.shape
     g = _TILE_TEXELS
     dtype, device = tile_depth_m.dtype, tile_depth_m.device
@@ -106,13 +106,13 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
     is_object = torch.arange(s, device=device).view(1, s) > 0
     low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
     high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
-    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE, _BACKGROUND_AMPLITUDE)
+    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE * contrast, _BACKGROUND_AMPLITUDE * contrast)
     mean = low + (high - low) * level  # (B, S)
     return mean.view(b, s, 1, 1) + amplitude.view(1, s, 1, 1) * texture
 
 
-def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int],
-                   generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], generator: torch.Generator,
+                   contrast: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Texture tiles ``(B, K + 1, G, G)`` of the wall (slot 0) and the objects, their centres ``(B, K + 1, 2)``
     and sides ``(B, K + 1)`` in metres. An object's tile spans max(width, height) around its centre; the wall's
     spans what either camera sees of it (the left view's extent plus the baseline).
@@ -124,7 +124,7 @@ def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int],
     tile_center = torch.cat([wall_center, scene.center_xy_m], dim=1)
     tile_side = torch.cat([torch.full((b, 1), wall_side, **options), scene.size_m.amax(dim=-1)], dim=1)
     tile_depth = torch.cat([torch.full((b, 1), scene.background_depth_m, **options), scene.depth_m], dim=1)
-    return _make_tiles(tile_depth, tile_side, scene.focal_px, generator), tile_center, tile_side
+    return _make_tiles(tile_depth, tile_side, scene.focal_px, generator, contrast), tile_center, tile_side
 
 
 def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor,

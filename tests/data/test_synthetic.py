@@ -241,6 +241,28 @@ def test_supersample_one_and_noise_keep_ground_truth() -> None:
     assert noisy.batch.left.min() >= 0 and noisy.batch.left.max() <= 1
 
 
+def test_texture_contrast_scales_the_texture_only() -> None:
+    """The same scene at a lower texture contrast: the geometry and truth unchanged, each surface's intensities
+    spread about the same mean by that factor (the low-texture tuning scenes of
+    experiments/select_nearness_denoise.py)."""
+    default = random_obstacle_scenes(3, size_wh=(160, 120), generator=seeded(8), supersample=1)
+    same = random_obstacle_scenes(3, size_wh=(160, 120), generator=seeded(8), supersample=1, texture_contrast=1.0)
+    weak = random_obstacle_scenes(3, size_wh=(160, 120), generator=seeded(8), supersample=1, texture_contrast=0.3)
+    assert torch.equal(default.batch.left, same.batch.left) and torch.equal(default.batch.right, same.batch.right)
+    assert torch.equal(default.depth_m, weak.depth_m) and torch.equal(default.object_ids, weak.object_ids)
+    assert torch.equal(default.batch.disparity_px, weak.batch.disparity_px)
+    for scene in range(3):
+        for ident in range(3):  # 0 the wall, then each object
+            region = default.object_ids[scene] == ident
+            if int(region.sum()) < 50:
+                continue
+            strong_values, weak_values = default.batch.left[scene][region], weak.batch.left[scene][region]
+            assert float(weak_values.std() / strong_values.std()) == pytest.approx(0.3, abs=0.02)
+            assert float(weak_values.mean()) == pytest.approx(float(strong_values.mean()), abs=0.01)
+    flat = random_obstacle_scenes(1, size_wh=(160, 120), generator=seeded(8), supersample=1, texture_contrast=0)
+    assert float(flat.batch.left[flat.object_ids == 0].std()) < 1e-6
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
@@ -253,6 +275,8 @@ def test_supersample_one_and_noise_keep_ground_truth() -> None:
         ({"size_wh": (0, 120)}, r"size_wh: expected a positive \(width, height\)"),
         ({"supersample": 0}, "supersample: expected an integer >= 1"),
         ({"noise_std": -0.1}, "noise_std: expected a finite value >= 0"),
+        ({"texture_contrast": -0.5}, "texture_contrast: expected a finite number >= 0"),
+        ({"texture_contrast": float("nan")}, "texture_contrast: expected a finite number >= 0"),
     ],
 )
 def test_random_scene_errors(kwargs: dict, message: str) -> None:
