@@ -204,7 +204,8 @@ class PipelineResult:
 
     Attributes:
         status: :class:`PipelineStatus` ``(B,)`` int64.
-        segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`.
+        segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`; a stereo segmenter's (nearness,
+            learned) of the ``row_aligned`` pairs is made on their aligned views, its maps in input pixels.
         features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.
         matches: left-to-right :class:`~svs_torch.core.types.Matches`.
         points: :class:`~svs_torch.geometry.matched_points.MatchedPoints` ``(B, K, 2)``: the matched points F is

@@ -20,14 +20,14 @@ from ..depth.sparse import estimate_depth
 from ..geometry.lk_refinement import refine_matched_points
 from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
-from ..geometry.rectification import rectify_uncalibrated
+from ..geometry.rectification import rectify_uncalibrated, warp_rectified
 from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed
 from .soft import differentiable_depth
-from .stages import _feature_images, _features, _match, _network, _segment_group, _status
+from .stages import _feature_images, _features, _match, _network, _segment_group, _segment_row_aligned, _status
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -103,6 +103,8 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
         result = _estimate_hard(_detached(batch), config, network, logits)
     if not config.differentiable:
         return result
+    if logits is not None and bool(result.row_aligned.any()):
+        logits = _row_aligned_logits(batch, result, logits, _network(batch, config.segmentation, network))
     left, right = batch.left, batch.right
     if config.noisy_retry_sigma_px is not None and bool(result.smoothed.any()):
         # The pairs the hard stage measured on smoothed views are differentiated through the same (linear) blur.
@@ -115,6 +117,16 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
         config.depth.object_percentiles, config.dense)
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth, H_left=H_left, H_right=H_right)
+
+
+def _row_aligned_logits(batch: StereoBatch, result: PipelineResult, logits: torch.Tensor, net: nn.Module
+                        ) -> torch.Tensor:
+    """``logits`` with the rows of the pairs the hard pass segmented again on their row-aligned views
+    (:func:`~svs_torch.pipeline.stages._segment_row_aligned`) made likewise, with gradients to both images: what
+    the hard segmentation thresholded (the alignment itself is a constant here)."""
+    index = result.row_aligned.nonzero().flatten()
+    warped = warp_rectified(batch.right.index_select(0, index), result.H_right.index_select(0, index).detach())
+    return logits.index_copy(0, index, predict_obstacle_logits(net, batch.left.index_select(0, index), warped))
 
 
 def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, config: PipelineConfig
@@ -155,7 +167,7 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     def lap(stage: str) -> None:
         nonlocal clock
         now = time.perf_counter()
-        timings[stage] = now - clock
+        timings[stage] = timings.get(stage, 0.0) + now - clock  # segmentation may run twice (row-aligned pairs)
         clock = now
 
     seg = _segment_group(batch, config.segmentation, network, left_logits)
@@ -180,6 +192,9 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     rectified, H_left, H_right, row_aligned, row_inliers = _rectifying_homographies(
         points, fundamental, rectification, batch.image_hw, seeds, config)
     lap("rectification")
+    if config.segmentation.segmenter != "otsu" and bool(row_aligned.any()):  # they measure along rows: again
+        seg = _segment_row_aligned(batch, seg, row_aligned, H_right, config.segmentation, network)
+        lap("segmentation")
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right,

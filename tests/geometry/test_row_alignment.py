@@ -189,3 +189,53 @@ def test_row_alignment_homography_is_the_fits_refit_and_differentiable(generator
     few = alignment.inliers & (torch.arange(left.shape[1]) < 30)
     assert torch.autograd.gradcheck(lambda r: row_alignment_homography(left, r, few, image_hw),
                                     (right.clone().requires_grad_(),), eps=1e-6, atol=1e-6)
+
+
+def test_the_nearness_segmenter_runs_again_on_the_aligned_pair(data_dir):
+    """The default segmenter measures disparity along rows, which a rolled right camera breaks: MiddEval3 Pipes
+    at 320×240 with the right view rolled +2° kept its near object as a speck beside a strip the right view
+    cannot see (one of two objects ranged: 48 %). Segmented again on the row-aligned pair, every object is
+    ranged as on the perfect rig (measured 97.6 % against 97.4 % clean), and the right view's regions are in its
+    own pixels: the clean pair's right regions moved by the same roll."""
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"), "320x240")
+    focal = float(batch.focal_px[0])
+    roll = real_rig.Misalignment(roll_deg=2)
+    views = [("clean", batch.left, batch.right), ("roll", batch.left, real_rig.misalign_right(batch.right, roll, focal))]
+    stacked = real_rig.stack_conditions(batch, views)
+    result = estimate_obstacle_depth(stacked, PipelineConfig())
+    scores = {e.name: (e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)}
+    assert bool(result.row_aligned[1]) and not bool(result.row_aligned[0])
+    assert scores["roll"][0] == "OK" and scores["roll"][1] > scores["clean"][1] - 1 and scores["clean"][1] > 96
+    right = result.segmentation.right
+    moved = real_rig.misalign_right(right.kept_mask[:1].float(), roll, focal) > 0.5
+    overlap = (moved & right.kept_mask[1:]).sum() / (moved | right.kept_mask[1:]).sum()
+    assert float(overlap) > 0.8
+    assert torch.equal(right.masked[1:], stacked.right[1:] * right.kept_mask[1:])
+
+
+def test_the_differentiable_pass_segments_the_aligned_pair_as_the_hard_one(data_dir):
+    """Under differentiable=True the row-aligned pair's logits are made on its aligned views too, so the
+    differentiable depths are the hard ones (within 0.5 %) and carry gradients to both images."""
+    from dataclasses import replace
+
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"), "320x240")
+    rolled = real_rig.misalign_right(batch.right, real_rig.Misalignment(roll_deg=2), float(batch.focal_px[0]))
+    pair = replace(batch, left=batch.left.clone().requires_grad_(), right=rolled.clone().requires_grad_())
+    result = estimate_obstacle_depth(pair, PipelineConfig(differentiable=True))
+    assert bool(result.row_aligned[0])
+    objects, hard = result.depth.objects, result.hard_depth.objects
+    assert int(objects.valid.sum()) == 2
+    relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
+    assert float(relative[objects.valid].max()) < 0.005
+    objects.depth_median_m[objects.valid].sum().backward()
+    assert int((pair.left.grad != 0).sum()) > 100 and int((pair.right.grad != 0).sum()) > 100
+    # The weights it differentiates through are the probabilities the hard segmentation thresholded.
+    from svs_torch.pipeline.run import _row_aligned_logits
+    from svs_torch.pipeline.stages import _network
+    from svs_torch.segmentation.network import predict_obstacle_logits
+
+    net = _network(batch, PipelineConfig().segmentation, None)
+    unaligned = predict_obstacle_logits(net, batch.left, rolled)
+    aligned = _row_aligned_logits(replace(batch, right=rolled), result, unaligned, net)
+    assert torch.equal(aligned > 0, result.segmentation.left.binary)
+    assert not torch.equal(unaligned > 0, result.segmentation.left.binary)
