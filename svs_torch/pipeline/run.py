@@ -25,6 +25,7 @@ from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
+from .exposure_retry import retry_with_exposure
 from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed
 from .soft import differentiable_depth
 from .stages import _feature_images, _features, _match, _network, _segment_group, _segment_row_aligned, _status
@@ -90,17 +91,26 @@ def _detached(batch: StereoBatch) -> StereoBatch:
 
 
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
-    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: the hard pipeline without
-    gradients, then, under ``config.differentiable``, the differentiable depths."""
+    """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: :func:`_estimate_once`, then
+    the pairs it left unfinished whose views' exposures differ once more with them matched
+    (``config.exposure_retry``)."""
+    run = (lambda pairs, settings: _estimate_once(pairs, settings, network))
+    return retry_with_exposure(batch, run(batch, config), config, run)
+
+
+def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
+    """The hard pipeline without gradients, then, under ``config.differentiable``, the differentiable depths."""
+    matched = torch.zeros(batch.batch_size, dtype=torch.bool, device=batch.left.device)
     if config.exposure is not None:  # before every stage, with gradients (issue 33: two boards, two exposures)
-        right, _ = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
+        right, matched = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
         batch = dataclasses.replace(batch, right=right)
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
         logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right)
     with torch.no_grad():
-        result = _estimate_hard(_detached(batch), config, network, logits)
+        result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
+                                     exposure_matched=matched)
     if not config.differentiable:
         return result
     if logits is not None and bool(result.row_aligned.any()):

@@ -1,0 +1,66 @@
+"""A second run, with the right view's exposure matched, for the pairs the first run could not range and whose
+two views' exposures differ (issue 33, item 2: two boards, two gains).
+
+Why a retry and not always: matching the exposure before every stage (``PipelineConfig.exposure``) ranges a
+tuned scene behind a right camera 30 % brighter (Middlebury Piano: 0 → 99.5 %) but loses one whose two views are
+lit by different lamps (PianoL), where the map of one view's quartiles onto the other's is wrong for most of the
+image (``experiments/exposure.md``). A pair that the first run verified and ranged fully is left as it is; only a
+pair left unverified, or with a kept object unranged, whose views' quartiles differ by more than
+``ExposureConfig.min_change``, is run again on the matched views, and the second result is kept only where it is
+verified and ranges more objects (or as many, the first being unverified): views of two different scenes are
+never verified (``experiments/verify_views.py``), so the retry cannot let them through.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import torch
+
+from ..core.pair_trees import take_pairs
+from ..core.size_groups import merge_groups
+from ..core.types import StereoBatch
+from .config import PipelineConfig, PipelineResult
+from .exposure import match_exposure
+
+__all__ = []
+
+
+def _unfinished(result: PipelineResult) -> torch.Tensor:
+    """``(B,)`` bool: pairs left unverified or with a kept object unranged (under the dense rule)."""
+    kept = result.segmentation.left.kept_labels >= 0
+    unranged = (kept & ~result.depth.objects.valid[:, :kept.shape[1]]).any(1)
+    return ~result.verified | unranged
+
+
+def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: PipelineConfig,
+                        run: Callable[[StereoBatch, PipelineConfig], PipelineResult]) -> PipelineResult:
+    """``result`` with the pairs the module docstring names run again by ``run`` with
+    ``exposure=config.exposure_retry``, where that second result is better. ``batch``: the pairs ``result`` was
+    computed on (one size group, filling its tensors). Differentiable where ``run`` is (the retried pairs' map
+    carries gradients to both views, as ``PipelineConfig.exposure`` does)."""
+    if config.exposure_retry is None or config.exposure is not None or result.verified is None:
+        return result
+    unfinished = _unfinished(result)
+    if not bool(unfinished.any()):
+        return result
+    _, differs = match_exposure(batch.left.detach(), batch.right.detach(), batch.image_hw, config.exposure_retry)
+    index = (unfinished & differs).nonzero().flatten()
+    if len(index) == 0:
+        return result
+    second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
+    ranged_first = result.depth.objects.valid.index_select(0, index).sum(1)
+    ranged_second = second.depth.objects.valid.sum(1)
+    verified_first = result.verified.index_select(0, index)
+    pick = second.verified & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    if not bool(pick.any()):
+        return result
+    b, taken = batch.batch_size, index[pick]
+    rest = torch.ones(b, dtype=torch.bool, device=index.device).index_fill(0, taken, False).nonzero().flatten()
+    parts = [take_pairs(second, pick.nonzero().flatten(), len(index))]
+    indices = [taken]
+    if len(rest):
+        parts.insert(0, take_pairs(result, rest, b))
+        indices.insert(0, rest)
+    return merge_groups(parts, indices, batch.size_hw, [batch.size_hw] * len(parts))
