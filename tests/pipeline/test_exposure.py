@@ -135,17 +135,14 @@ def test_the_retry_is_differentiable_and_refuses_a_wrong_setting(data_dir):
     (and equal the hard ones within 0.5 %); a setting that is not an ExposureConfig is refused by name."""
     from dataclasses import replace
 
+    from conftest import assert_differentiable_depths_are_the_hard_ones
+
     real_rig = _real_rig()
     piano = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Piano"), "320x240")
     bright = real_rig.misalign_right(piano.right, real_rig.Misalignment(gain=0.3), float(piano.focal_px[0]))
     pair = replace(piano, left=piano.left.clone().requires_grad_(), right=bright.clone().requires_grad_())
     result = estimate_obstacle_depth(pair, PipelineConfig(differentiable=True))
     assert bool(result.exposure_matched[0])
-    objects, hard = result.depth.objects, result.hard_depth.objects
-    assert bool(objects.valid.any())
-    relative = (objects.depth_median_m.detach() - hard.depth_median_m).abs() / hard.depth_median_m.clamp_min(1e-9)
-    assert float(relative[objects.valid].max()) < 0.005
-    objects.depth_median_m[objects.valid].sum().backward()
-    assert int((pair.left.grad != 0).sum()) > 100 and int((pair.right.grad != 0).sum()) > 100
+    assert_differentiable_depths_are_the_hard_ones(result, pair.left, pair.right)
     with pytest.raises(InputError, match=r"^exposure_retry: expected an ExposureConfig or None"):
         PipelineConfig(exposure_retry=True)
