@@ -200,7 +200,8 @@ def test_the_nearness_segmenter_runs_again_on_the_aligned_pair(data_dir):
     batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"), "320x240")
     focal = float(batch.focal_px[0])
     roll = real_rig.Misalignment(roll_deg=2)
-    views = [("clean", batch.left, batch.right), ("roll", batch.left, real_rig.misalign_right(batch.right, roll, focal))]
+    rolled = real_rig.misalign_right(batch.right, roll, focal)
+    views = [("clean", batch.left, batch.right), ("roll", batch.left, rolled)]
     stacked = real_rig.stack_conditions(batch, views)
     result = estimate_obstacle_depth(stacked, PipelineConfig())
     scores = {e.name: (e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)}
