@@ -18,7 +18,8 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
+            "row_aligned": False, "exposure_matched": False, "dense_box_xywh": None, "time_s": 0.0,
+            "calibration": None}
 
 
 def _calibration_source(source, args) -> str:
@@ -86,6 +87,9 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
                                  else None),
         "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
+        # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched.
+        "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
+        "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
         # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
         # its region's pixels inside it.
@@ -106,6 +110,11 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
         from ..data import format_calibration
 
         lines.append(f"  {format_calibration(report['calibration'])}")
+    corrected = [text for key, text in (("row_aligned", "its rows aligned to the left camera's"),
+                                        ("exposure_matched", "its exposure matched to the left camera's"))
+                 if report.get(key)]
+    if corrected:
+        lines.append("  right camera: " + " and ".join(corrected))
     if report["r_min_m"] is not None:
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "
