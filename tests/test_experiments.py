@@ -143,3 +143,21 @@ def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     net = NearnessNet()
     train_nearness.train_masks(pool, net, config, generator)
     assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), nets[2].state_dict().values()))
+
+
+def test_real_rig_dims_the_views_for_a_jpeg_tuning_set(data_dir, tmp_path):
+    """--contrast halves both views' spread about the left view's mean (the truth unchanged), and the run scores
+    the dimmed scene; a factor outside (0, 1] is refused."""
+    import pytest
+    import torch
+
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
+    dim = real_rig.dimmed(batch, 0.5)
+    mean = batch.left.mean()
+    assert torch.allclose(dim.left, (mean + 0.5 * (batch.left - mean)).clamp(0, 1))
+    assert torch.equal(dim.disparity_px, batch.disparity_px) and real_rig.dimmed(batch, 1.0) is batch
+    report = real_rig.main(["--data", str(data_dir), "--splits", "tuned", "--limit", "1", "--conditions", "clean",
+                            "--no-rival", "--contrast", "0.5", "--json", str(tmp_path / "dim.json")])
+    assert len(report["rows"]) == 1 and report["rows"][0]["acc_objects"] > 90
+    with pytest.raises(SystemExit):
+        real_rig.main(["--data", str(data_dir), "--contrast", "0"])
