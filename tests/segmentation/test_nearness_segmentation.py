@@ -292,3 +292,28 @@ def test_median_of_the_halved_map_against_a_per_pixel_reference():
     assert _median_halved(torch.ones(1, 1, 1, 1), 7).shape == (1, 1, 1, 1)  # a map smaller than the window
     with pytest.raises(InputError, match="median_window"):
         NearnessNetConfig(median_window=4)
+
+
+def test_a_sparse_map_gets_the_wider_median():
+    """A map whose block matcher accepted less than ``sparse_share`` of the view (a camera frame's noise) is
+    filtered by ``sparse_median_window``, the others by ``median_window``, pair by pair in one batch; settings
+    out of range are refused by name."""
+    from svs_torch.segmentation.nearness import _median_by_share, _median_halved
+
+    generator = torch.Generator().manual_seed(3)
+    disparity = torch.randint(0, 40, (3, 1, 30, 40), generator=generator).float()
+    valid = torch.zeros(3, 1, 30, 40, dtype=torch.bool)
+    valid[0] = True  # all accepted
+    valid[1, ..., :8] = True  # 20 %: sparse
+    valid[2, ..., :20] = True  # 50 %
+    config = NearnessNetConfig()
+    out = _median_by_share(disparity, valid, config)
+    for b, window in ((0, config.median_window), (1, config.sparse_median_window), (2, config.median_window)):
+        assert torch.equal(out[b:b + 1], _median_halved(disparity[b:b + 1], window)), b
+    assert not torch.equal(out[1:2], _median_halved(disparity[1:2], config.median_window))
+    assert torch.equal(_median_by_share(disparity[1:2], valid[1:2], config),
+                       _median_halved(disparity[1:2], config.sparse_median_window))
+    with pytest.raises(InputError, match="sparse_median_window"):
+        NearnessNetConfig(sparse_median_window=10)
+    with pytest.raises(InputError, match="sparse_share"):
+        NearnessNetConfig(sparse_share=1.5)
