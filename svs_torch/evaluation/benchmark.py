@@ -24,6 +24,7 @@ Inputs are written to a temporary folder as PNG files: synthetic SVS scenes (320
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -192,54 +193,45 @@ def in_process(repeats: int, threads: int) -> dict:
     import torch
 
     from ..data.synthetic import random_obstacle_scenes
-    from ..pipeline import PipelineConfig, estimate_obstacle_depth
-
     from ..core.workers import keep_freed_memory
+    from ..pipeline import PipelineConfig
 
     torch.set_num_threads(threads)
     keep_freed_memory()  # glibc kept to freed memory, as the command line and its workers run
     config = PipelineConfig()
     scenes = random_obstacle_scenes(max(SCALING_BATCHES), 2, generator=torch.Generator().manual_seed(1))
     scaling, stages = [], {}
-    total = max(SCALING_BATCHES)
     # Every batch size runs the same pairs (all of them, in batches of B), so that the time a pair compares batch
     # sizes, not the scenes each size happened to take.
     for b in SCALING_BATCHES:
-        batches = [scenes.batch.select(list(range(start, min(start + b, total)))) for start in range(0, total, b)]
-        estimate_obstacle_depth(batches[0], config)  # warm-up at this size (a user's first batch pays for it once)
-        runs, last = [], None
-        for _ in range(repeats if b <= 32 else max(1, repeats // 2)):
-            started = time.perf_counter()
-            for batch in batches:
-                last = estimate_obstacle_depth(batch, config)
-            runs.append(time.perf_counter() - started)
-        scaling.append({"B": b, "ms_per_pair": round(statistics.median(runs) / total * 1e3, 2)})
+        ms, last = _ms_per_pair(scenes.batch, b, config, repeats if b <= 32 else max(1, repeats // 2))
+        scaling.append({"B": b, "ms_per_pair": ms})
         if b == 32:
             stages = {k: round(v / b * 1e3, 2) for k, v in last.timings_s.items()}
     latency = next(row["ms_per_pair"] for row in scaling if row["B"] == 1)
+    # The one-pair latency with the paper's segmenter (Otsu, the two largest regions) over the first 16 pairs.
+    otsu = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter="otsu",
+                                                                        keep="largest"))
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
-            "latency_ms_B1_otsu": _latency_otsu(scenes.batch.select(list(range(16))), config, repeats),
+            "latency_ms_B1_otsu": _ms_per_pair(scenes.batch.select(list(range(16))), 1, otsu, repeats)[0],
             "kornia_ms_per_pair": _kornia_composition(scenes.batch.select(list(range(8))), repeats)}
 
 
-def _latency_otsu(batch, config, repeats: int) -> float:
-    """The one-pair latency with the paper's segmenter (Otsu, the two largest regions) instead of the default's,
-    over the same first pairs: the median of ``repeats`` passes over them one at a time, in ms."""
-    import dataclasses
-
+def _ms_per_pair(pairs, b: int, config, repeats: int) -> tuple[float, object]:
+    """The pipeline's time a pair over all of ``pairs`` in batches of ``b``, after a warm-up batch at that size
+    (a user's first batch pays for it once): the median of ``repeats`` passes, in ms, and the last batch's result."""
     from ..pipeline import estimate_obstacle_depth
 
-    otsu = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter="otsu",
-                                                                        keep="largest"))
-    pairs = [batch.select([i]) for i in range(batch.batch_size)]
-    estimate_obstacle_depth(pairs[0], otsu)
-    runs = []
+    total = pairs.batch_size
+    batches = [pairs.select(list(range(start, min(start + b, total)))) for start in range(0, total, b)]
+    estimate_obstacle_depth(batches[0], config)
+    runs, last = [], None
     for _ in range(repeats):
         started = time.perf_counter()
-        for pair in pairs:
-            estimate_obstacle_depth(pair, otsu)
-        runs.append((time.perf_counter() - started) / len(pairs))
-    return round(statistics.median(runs) * 1e3, 2)
+        for batch in batches:
+            last = estimate_obstacle_depth(batch, config)
+        runs.append(time.perf_counter() - started)
+    return round(statistics.median(runs) / total * 1e3, 2), last
 
 
 def _kornia_composition(batch, repeats: int) -> float:

@@ -26,7 +26,7 @@ import torch
 from ..core.checks import InputError, check_shape
 from ..depth.quantiles import row_quantile
 
-__all__ = ["ExposureConfig", "match_exposure"]
+__all__ = ["ExposureConfig", "exposures_differ", "match_exposure"]
 
 
 @dataclass(frozen=True)
@@ -67,13 +67,31 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
         The right views ``(B, 1, H, W)`` (the same tensor when no pair needs a change) and whether each pair's was
         changed ``(B,)`` bool.
     """
+    scale, offset, changed = _fit(left, right, image_hw, config)
+    if not bool(changed.any()):
+        return right, changed
+    mapped = (right * scale.view(-1, 1, 1, 1) + offset.view(-1, 1, 1, 1)).clamp(0, 1)
+    return torch.where(changed.view(-1, 1, 1, 1), mapped, right), changed
+
+
+def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
+                     config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
+    """``(B,)`` bool: the pairs :func:`match_exposure` would change (arguments as there), without mapping any
+    view."""
+    return _fit(left, right, image_hw, config)[2]
+
+
+def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config: ExposureConfig
+         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The map's ``scale`` and ``offset`` ``(B,)`` and which pairs it changes ``(B,)`` bool (module docstring)."""
     dims = check_shape(left, "left", ["B", 1, "H", "W"])
     check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
     if not bool((image_hw == torch.tensor([dims["H"], dims["W"]], device=image_hw.device)).all()):
         raise InputError(f"image_hw: expected every pair to fill the ({dims['H']}, {dims['W']}) images, got "
                          f"{image_hw.tolist()}")
     if dims["H"] * dims["W"] == 0:
-        return right, torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
+        nothing = torch.zeros(dims["B"], dtype=right.dtype, device=right.device)
+        return nothing + 1, nothing, torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
     low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
     low_high_right = row_quantile(right.flatten(1), config.quantiles)
     spread_right = low_high_right[:, 1] - low_high_right[:, 0]
@@ -81,7 +99,4 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
     scale = (low_high_left[:, 1] - low_high_left[:, 0]) / spread_right.clamp(min=1e-3)
     offset = low_high_left[:, 0] - scale * low_high_right[:, 0]
     changed = ((scale - 1).abs() + offset.abs() > config.min_change) & (spread_right > 1e-3)
-    if not bool(changed.any()):
-        return right, changed
-    mapped = (right * scale.view(-1, 1, 1, 1) + offset.view(-1, 1, 1, 1)).clamp(0, 1)
-    return torch.where(changed.view(-1, 1, 1, 1), mapped, right), changed
+    return scale, offset, changed

@@ -22,16 +22,10 @@ from ..core.pair_trees import take_pairs
 from ..core.size_groups import merge_groups
 from ..core.types import StereoBatch
 from .config import PipelineConfig, PipelineResult
-from .exposure import match_exposure
+from .exposure import exposures_differ
+from .ranging import unranged_kept_object
 
 __all__ = []
-
-
-def _unfinished(result: PipelineResult) -> torch.Tensor:
-    """``(B,)`` bool: pairs left unverified or with a kept object unranged (under the dense rule)."""
-    kept = result.segmentation.left.kept_labels >= 0
-    unranged = (kept & ~result.depth.objects.valid[:, :kept.shape[1]]).any(1)
-    return ~result.verified | unranged
 
 
 def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: PipelineConfig,
@@ -42,10 +36,10 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     carries gradients to both views, as ``PipelineConfig.exposure`` does)."""
     if config.exposure_retry is None or config.exposure is not None or result.verified is None:
         return result
-    unfinished = _unfinished(result)
+    unfinished = ~result.verified | unranged_kept_object(result.segmentation, result.depth.objects)
     if not bool(unfinished.any()):
         return result
-    _, differs = match_exposure(batch.left.detach(), batch.right.detach(), batch.image_hw, config.exposure_retry)
+    differs = exposures_differ(batch.left.detach(), batch.right.detach(), batch.image_hw, config.exposure_retry)
     index = (unfinished & differs).nonzero().flatten()
     if len(index) == 0:
         return result

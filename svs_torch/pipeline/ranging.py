@@ -15,7 +15,7 @@ from ..core.types import FundamentalResult, StereoBatch, StereoSegmentation
 from ..depth.dense import estimate_dense_disparity, working_factor
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import count_agreeing_inliers, dense_object_depths, range_from_objects
-from ..depth.depth_types import DepthResult
+from ..depth.depth_types import DepthResult, ObjectDepths
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
@@ -111,6 +111,12 @@ def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) 
     return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
 
 
+def unranged_kept_object(seg: StereoSegmentation, objects: ObjectDepths) -> torch.Tensor:
+    """``(B,)`` bool: pairs with a kept region whose object got no depth."""
+    kept = seg.left.kept_labels >= 0
+    return (kept & ~objects.valid[:, :kept.shape[1]]).any(1)
+
+
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                             fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
@@ -122,8 +128,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
     the smoothed pass's."""
     first = _dense_depth(batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right, config)
     from_smoothed = torch.zeros_like(rectified)
-    kept = seg.left.kept_labels >= 0
-    retry = ~first[2] | (kept & ~first[0].objects.valid[:, :kept.shape[1]]).any(1)
+    retry = ~first[2] | unranged_kept_object(seg, first[0].objects)
     if config.noisy_retry_sigma_px is None or not bool(retry.any()):
         return (*first, from_smoothed)
     # Only the retried pairs run again (a clean batch's verified pairs never pay for it).

@@ -105,7 +105,6 @@ def sad_nearest(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_left: t
     return None if status != 0 else (best, second, best_index, back)
 
 
-
 def row_alignment_cost(params: torch.Tensor, left_y: torch.Tensor, right_x: torch.Tensor, right_y: torch.Tensor,
                        valid: torch.Tensor, threshold_px: float) -> torch.Tensor | None:
     """``svs_torch.geometry.row_alignment._msac_cost`` in one pass per hypothesis (see the C source): ``params``
