@@ -7,7 +7,12 @@ regions (the paper's segmentation), SIFT or ORB on the masked images, brute-forc
 kept region's median disparity as its depth; R_min / R_max are the nearest / farthest region. One JSON line
 per pair (keypoints, matches, inliers, depths), so the benchmark can check that the rivals did comparable work.
 
-    python -m svs_torch.evaluation.bench_rivals sift LIST.txt [--focal-px F] [--baseline-m B] [--workers N]
+    python svs_torch/evaluation/bench_rivals.py sift LIST.txt [--focal-px F] [--baseline-m B] [--workers N]
+
+Run it by its path, as the benchmark does: it imports only the standard library, OpenCV and numpy, as a user's
+own loop would. Through ``python -m svs_torch.evaluation.bench_rivals`` the ``svs_torch.evaluation`` package, and
+so torch, is imported first, in this process and in every worker the pool spawns (which re-imports the main
+module): 1.1-1.5 s each that a user's loop does not pay.
 
 ``--workers N`` runs the loop on a pool of N processes with one OpenCV thread each, the pairs split into N
 contiguous chunks and printed in list order: the strongest loop a user who wants throughput writes (2 processes

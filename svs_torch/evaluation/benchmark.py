@@ -6,7 +6,8 @@ What is measured (all on this machine, the thread count recorded):
   paper's ``--segmenter otsu``, to show what the default nearness segmenter costs; start-up, imports, image
   decoding, the default configuration) against the same work as plain OpenCV loops in their own processes
   (:mod:`svs_torch.evaluation.bench_rivals`: decode, Otsu + opening + two largest regions, SIFT or ORB, ratio matching,
-  ``findFundamentalMat`` RANSAC, ``StereoBM`` median over the kept regions). Runs are interleaved (svs, SIFT,
+  ``findFundamentalMat`` RANSAC, ``StereoBM`` median over the kept regions), run as a plain script that imports
+  only OpenCV and numpy, as a user's own loop does (:data:`RIVAL_COMMAND`). Runs are interleaved (svs, SIFT,
   ORB, svs, …) so a busy moment of the machine hits every rival alike; the median of ``repeats`` is reported.
 - **in-process** (glibc's allocator kept to freed memory, as the command line runs): the pipeline's stage
   times at B = 32, the per-pair time from B = 1 to 128 (the same 128 synthetic pairs in batches of B, after a
@@ -37,6 +38,12 @@ import time
 from pathlib import Path
 
 __all__ = ["run_benchmark", "format_tables"]
+
+#: The OpenCV rivals run as a plain script, by its path: ``python -m svs_torch.evaluation.bench_rivals`` would
+#: import the ``svs_torch.evaluation`` package, and with it torch (1.1-1.5 s), in the rival's process and again
+#: in each worker its pool spawns, which a user's own OpenCV loop never pays (512 real 320x240 pairs, ORB on a
+#: pool of 2: 8.0-8.7 s through the package, 4.0-4.7 s as a script).
+RIVAL_COMMAND = (sys.executable, str(Path(__file__).with_name("bench_rivals.py")))
 
 SCALING_BATCHES = (1, 8, 32, 128)
 
@@ -124,15 +131,11 @@ def whole_process(sets: dict[str, list], workdir: Path, repeats: int, threads: i
             # The paper's segmenter beside the default (issue 32 item 4: what the nearness segmenter costs).
             "svs-depth estimate --pairs --segmenter otsu": [sys.executable, "-m", "svs_torch.cli", "estimate",
                                                             "--pairs", str(listing), "--json", "--segmenter", "otsu"],
-            "OpenCV SIFT loop": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing),
-                                 "--threads", str(threads)],
-            "OpenCV ORB loop": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "orb", str(listing),
-                                "--threads", str(threads)],
+            "OpenCV SIFT loop": [*RIVAL_COMMAND, "sift", str(listing), "--threads", str(threads)],
+            "OpenCV ORB loop": [*RIVAL_COMMAND, "orb", str(listing), "--threads", str(threads)],
             # The strongest loop a user writes for throughput: one process per core, one OpenCV thread each.
-            f"OpenCV SIFT pool ({threads} proc)": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift",
-                                                   str(listing), "--workers", str(threads)],
-            f"OpenCV ORB pool ({threads} proc)": [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "orb",
-                                                  str(listing), "--workers", str(threads)],
+            f"OpenCV SIFT pool ({threads} proc)": [*RIVAL_COMMAND, "sift", str(listing), "--workers", str(threads)],
+            f"OpenCV ORB pool ({threads} proc)": [*RIVAL_COMMAND, "orb", str(listing), "--workers", str(threads)],
         }
         times: dict[str, list[float]] = {key: [] for key in commands}
         work: dict[str, dict] = {}

@@ -7,7 +7,7 @@ import json
 import subprocess
 import sys
 
-from svs_torch.evaluation.benchmark import _work_summary, format_tables, whole_process, write_inputs
+from svs_torch.evaluation.benchmark import RIVAL_COMMAND, _work_summary, format_tables, whole_process, write_inputs
 
 
 def test_rival_loop_and_whole_process_on_the_same_pairs(tmp_path):
@@ -15,15 +15,15 @@ def test_rival_loop_and_whole_process_on_the_same_pairs(tmp_path):
     assert list(sets) == ["synthetic 320x240"] and len(sets["synthetic 320x240"]) == 3
     listing = tmp_path / "list.txt"
     listing.write_text("".join(f"{l} {r}\n" for l, r in sets["synthetic 320x240"]) + "missing.png also.png\n")
-    out = subprocess.run([sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing)],
-                         capture_output=True, text=True, check=True).stdout.splitlines()
+    out = subprocess.run([*RIVAL_COMMAND, "sift", str(listing)], capture_output=True, text=True,
+                         check=True).stdout.splitlines()
     rows = [json.loads(line) for line in out]
     assert [r["status"] for r in rows] == ["OK", "OK", "OK", "BAD_INPUT"]
     # Synthetic obstacles lie 1-2 m away: StereoBM medians over the kept regions must land there.
     assert all(0.7 < r["r_min_m"] <= r["r_max_m"] < 3.0 for r in rows[:3])
     assert all(r["inliers"] <= r["matches"] and min(r["keypoints"]) > 0 for r in rows[:3])
     # The pooled loop (the strongest a user writes for throughput) does the same work, in list order.
-    command = [sys.executable, "-m", "svs_torch.evaluation.bench_rivals", "sift", str(listing), "--workers", "2"]
+    command = [*RIVAL_COMMAND, "sift", str(listing), "--workers", "2"]
     pooled = subprocess.run(command, capture_output=True, text=True, check=True).stdout.splitlines()
     assert [json.loads(line) for line in pooled] == rows
     report_rows = whole_process({"synthetic 320x240": sets["synthetic 320x240"][:2]}, tmp_path, 1, 1)
@@ -34,6 +34,17 @@ def test_rival_loop_and_whole_process_on_the_same_pairs(tmp_path):
     for svs in report_rows[:2]:  # both segmenters range the synthetic obstacles
         assert svs["work_ok"] == 2 and 0.7 < svs["work_median_r_min_m"] < 3.0
     assert report_rows[0]["svs_speedup"] == 1.0
+
+
+def test_rival_script_imports_no_torch():
+    """The rival is a user's own OpenCV loop: its process (and so every worker its pool spawns, which imports the
+    same script) never pays for torch's import, which the benchmark's svs_torch command does pay."""
+    probe = ("import runpy, sys; sys.argv = [sys.argv[1], '--help']\n"
+             "try:\n    runpy.run_path(sys.argv[0], run_name='__main__')\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in ('torch', 'svs_torch', 'kornia') if m in sys.modules))")
+    out = subprocess.run([RIVAL_COMMAND[0], "-c", probe, RIVAL_COMMAND[1]], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip().splitlines()[-1] == "[]"
 
 
 def test_work_summary_and_tables():
