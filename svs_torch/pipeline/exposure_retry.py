@@ -39,8 +39,13 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     unfinished = ~result.verified | unranged_kept_object(result.segmentation, result.depth.objects)
     if not bool(unfinished.any()):
         return result
-    differs = exposures_differ(batch.left.detach(), batch.right.detach(), batch.image_hw, config.exposure_retry)
-    index = (unfinished & differs).nonzero().flatten()
+    # The views' quantiles only of the unfinished pairs: over every pair they took 1.8 of 30 ms a pair (64 real
+    # 320x240 pairs, one thread), where 23 of the benchmark's 512 real pairs are unfinished.
+    candidates = unfinished.nonzero().flatten()
+    differs = exposures_differ(batch.left.detach().index_select(0, candidates),
+                               batch.right.detach().index_select(0, candidates),
+                               batch.image_hw.index_select(0, candidates), config.exposure_retry)
+    index = candidates[differs]
     if len(index) == 0:
         return result
     second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
