@@ -59,7 +59,8 @@ show one scene; where not (a swapped, frozen or unplugged camera), an object nee
 measured instead of 10 % ("num_agreeing_inliers"; experiments/verify_views.py).
 "row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
 the pair segmented again on them); "exposure_matched": a pair left unranged whose right camera is brighter or
-darker was run again with its exposure matched to the left's (PipelineConfig.exposure_retry).
+darker was run again with the two exposures matched, the darker view mapped onto the brighter one's so that
+both clip the same highlights (PipelineConfig.exposure_retry).
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """

@@ -112,10 +112,11 @@ class PipelineConfig:
             second measurement is kept where it is verified and ranges more objects (or as many, the first not
             verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
             matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
-        exposure: the right view's exposure matched to the left's before the first stage
-            (:mod:`svs_torch.pipeline.exposure`: an affine map of its quartiles onto the left view's, where they
-            differ by more than :attr:`ExposureConfig.min_change`; two boards' gains and exposures), e.g.
-            ``exposure=ExposureConfig()``. None (the default, and the paper's): off.
+        exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
+            an affine map through both views' quartiles, where they differ by more than
+            :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;
+            two boards' gains and exposures), e.g. ``exposure=ExposureConfig()``. None (the default, and the
+            paper's): off.
         exposure_retry: under the dense rule, a pair left unverified or with a kept object unranged whose views'
             exposures differ (by more than its ``min_change``) is run again with ``exposure`` set to this, and the
             second result is kept where it is verified and ranges more objects
@@ -248,8 +249,9 @@ class PipelineResult:
         row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
             rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
             (where ``row_aligned``; all False without a row alignment).
-        exposure_matched: ``(B,)`` bool, pairs whose right view's exposure was matched to the left's
-            (``PipelineConfig.exposure``, or the ``exposure_retry`` kept).
+        exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
+            onto the brighter (``PipelineConfig.exposure``, or the ``exposure_retry`` kept); the result's masked
+            images are of the mapped views.
     """
 
     status: torch.Tensor

@@ -102,8 +102,8 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     """The hard pipeline without gradients, then, under ``config.differentiable``, the differentiable depths."""
     matched = torch.zeros(batch.batch_size, dtype=torch.bool, device=batch.left.device)
     if config.exposure is not None:  # before every stage, with gradients (issue 33: two boards, two exposures)
-        right, matched = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
-        batch = dataclasses.replace(batch, right=right)
+        left, right, matched = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
+        batch = dataclasses.replace(batch, left=left, right=right)
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).

@@ -1,5 +1,6 @@
-"""The right view's exposure matched to the left's (svs_torch.pipeline.exposure, issue 33): the affine map against
-numpy's quantiles, the dead band, gradients, refusals, and a brighter right camera ranged as the pair was."""
+"""The two views' exposures matched, the darker onto the brighter (svs_torch.pipeline.exposure, issue 33): the
+affine map against numpy's quantiles, the dead band, gradients, refusals, and a brighter right camera ranged as the
+pair was."""
 
 from __future__ import annotations
 
@@ -16,42 +17,54 @@ def _views(generator: torch.Generator, b: int = 3, h: int = 24, w: int = 32) -> 
     return 0.1 + 0.7 * torch.rand(b, 1, h, w, generator=generator, dtype=torch.float64)
 
 
-def test_map_sends_the_right_quartiles_onto_the_left_ones(generator):
-    """Against numpy: the map is the affine one through both views' quartiles (np.quantile's linear rule)."""
+def test_the_darker_view_is_mapped_onto_the_brighter_ones_quartiles(generator):
+    """Against numpy: the map is the affine one through both views' quartiles (np.quantile's linear rule), applied
+    to the darker view (the smaller spread): the right view where it is darker, else the left by the inverse."""
     left = _views(generator).float()
     right = (left * torch.tensor([1.3, 0.7, 1.0]).view(-1, 1, 1, 1) + torch.tensor([0.0, 0.06, 0.0]).view(-1, 1, 1, 1)
              ).clamp(0, 1)
     hw = torch.tensor([[24, 32]] * 3)
-    mapped, changed = match_exposure(left, right, hw)
+    mapped_left, mapped_right, changed = match_exposure(left, right, hw)
     assert changed.tolist() == [True, True, False]
     for i in range(2):
         ql, qr = (np.quantile(v[i].flatten().numpy().astype(np.float64), [0.25, 0.75]) for v in (left, right))
         scale = (ql[1] - ql[0]) / (qr[1] - qr[0])
-        expected = np.clip(scale * right[i].numpy() + (ql[0] - scale * qr[0]), 0, 1)
-        np.testing.assert_allclose(mapped[i].numpy(), expected, atol=2e-6)
-        unsaturated = right[i] < 1
-        np.testing.assert_allclose(mapped[i][unsaturated].numpy(), left[i][unsaturated].numpy(), atol=2e-3)
-    assert torch.equal(mapped[2], right[2])  # the same exposure: untouched, bit for bit
+        offset = ql[0] - scale * qr[0]
+        if scale >= 1:  # pair 1: the right camera is the darker one
+            assert i == 1 and torch.equal(mapped_left[i], left[i])
+            np.testing.assert_allclose(mapped_right[i].numpy(), np.clip(scale * right[i].numpy() + offset, 0, 1),
+                                       atol=2e-6)
+            np.testing.assert_allclose(mapped_right[i].numpy(), left[i].numpy(), atol=2e-3)
+        else:  # pair 0: the right camera 30 % brighter, and clipped where left * 1.3 > 1
+            assert i == 0 and torch.equal(mapped_right[i], right[i])
+            np.testing.assert_allclose(mapped_left[i].numpy(), np.clip((left[i].numpy() - offset) / scale, 0, 1),
+                                       atol=2e-6)
+            # Both views now clip the same highlights: the point of mapping the darker view up.
+            np.testing.assert_allclose(mapped_left[i].numpy(), right[i].numpy(), atol=2e-3)
+            assert bool((mapped_left[i] == 1).any())
+    assert torch.equal(mapped_left[2], left[2]) and torch.equal(mapped_right[2], right[2])  # untouched, bit for bit
 
 
-def test_views_that_agree_or_a_flat_right_view_are_left_alone(generator):
+def test_views_that_agree_or_a_flat_view_are_left_alone(generator):
     left = _views(generator).float()
     hw = torch.tensor([[24, 32]] * 3)
     right = left * 1.02  # within the dead band
-    mapped, changed = match_exposure(left, right, hw)
-    assert mapped is right and not bool(changed.any())
+    mapped_left, mapped_right, changed = match_exposure(left, right, hw)
+    assert mapped_left is left and mapped_right is right and not bool(changed.any())
     flat = torch.full_like(left, 0.5)
-    mapped, changed = match_exposure(left, flat, hw)
-    assert mapped is flat and not bool(changed.any())
-    mapped, changed = match_exposure(left, left * 1.02, hw, ExposureConfig(min_change=0.0))
-    assert bool(changed.all())
+    for one, other in ((left, flat), (flat, left)):  # nothing to stretch, or nothing to stretch onto
+        mapped_left, mapped_right, changed = match_exposure(one, other, hw)
+        assert mapped_left is one and mapped_right is other and not bool(changed.any())
+    assert bool(match_exposure(left, left * 1.02, hw, ExposureConfig(min_change=0.0))[2].all())
 
 
 def test_gradients_flow_to_both_views(generator):
-    left = _views(generator, b=2, h=5, w=6).requires_grad_(True)
-    right = (left.detach() * 0.6 + 0.05).requires_grad_(True)
     hw = torch.tensor([[5, 6]] * 2)
-    assert torch.autograd.gradcheck(lambda a, b: match_exposure(a, b, hw)[0], (left, right))
+    for gain in (0.6, 1.3):  # the right view mapped, then the left one
+        left = _views(generator, b=2, h=5, w=6).mul(0.7).requires_grad_(True)
+        right = (left.detach() * gain + 0.05).requires_grad_(True)
+        which = 1 if gain < 1 else 0
+        assert torch.autograd.gradcheck(lambda a, b: match_exposure(a, b, hw)[which], (left, right))
 
 
 def test_bad_input_is_refused_by_name():
@@ -95,6 +108,24 @@ def test_a_brighter_right_camera_is_ranged_with_the_option(data_dir, exposure, r
     assert bool(result.exposure_matched[0]) == ranged
     if ranged:
         assert evaluation.acc_objects_pct > 97
+
+
+def test_a_clipping_right_camera_is_matched_by_mapping_the_left_view_up(data_dir):
+    """Piano at 320×240 behind a right camera 50 % brighter, 18 % of its view clipped at white. Mapped down, the
+    clipped wall beside the lamp stayed a flat patch facing a textured one, the nearness segmenter kept it as a
+    near region and the pair stayed unranged (0 %); mapping the darker left view up clips the same patch in both
+    views, and the default retry ranges the pair (99.4 %)."""
+    from svs_torch.evaluation import evaluate_result
+
+    real_rig = _real_rig()
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Piano"), "320x240")
+    clipped = real_rig.misalign_right(batch.right, real_rig.Misalignment(gain=0.5), float(batch.focal_px[0]))
+    assert float((clipped == 1).float().mean()) > 0.15
+    bright = real_rig.stack_conditions(batch, [("gain +50%", batch.left, clipped)])
+    result = estimate_obstacle_depth(bright, PipelineConfig())
+    evaluation = evaluate_result(bright, result)[0]
+    assert bool(result.exposure_matched[0]) and bool(result.verified[0])
+    assert evaluation.status == "OK" and evaluation.acc_objects_pct > 97
 
 
 @pytest.mark.parametrize("size", ["320x240", "native"])
