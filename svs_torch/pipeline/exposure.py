@@ -9,8 +9,8 @@ not need it.
 
 The map is affine, fitted so that two quantiles of the right view (default the quartiles) land on the left
 view's: a gain and a black level, robust to the few pixels that saturate and to the strips that only one camera
-sees. It is applied to the view of the smaller spread, mapped up onto the other's exposure and clipped to
-[0, 1]: ``right' = clip(scale · right + offset)`` where the right view is the darker (``scale ≥ 1``), else
+sees. It is applied to the darker view (the lower upper quantile), mapped up onto the other's exposure and
+clipped to [0, 1]: ``right' = clip(scale · right + offset)`` where the right view is the darker, else
 ``left' = clip((left − offset) / scale)``. Why the darker one up and not the brighter one down: a brighter camera
 clips its highlights, and a clipped patch has no texture. Mapped down it stays a flat patch facing a textured
 one, where the block matchers find wrong matches that the nearness segmenter keeps as a near region (Piano with
@@ -74,16 +74,16 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
         The left and the right views ``(B, 1, H, W)`` (the same tensors when no pair needs a change; in a pair that
         does, one of the two is mapped) and whether each pair was changed ``(B,)`` bool.
     """
-    scale, offset, changed = _fit(left, right, image_hw, config)
+    scale, offset, changed, right_darker = _fit(left, right, image_hw, config)
     if not bool(changed.any()):
         return left, right, changed
     scale, offset = scale.view(-1, 1, 1, 1), offset.view(-1, 1, 1, 1)
-    darker_right = changed.view(-1, 1, 1, 1) & (scale >= 1)
-    darker_left = changed.view(-1, 1, 1, 1) & (scale < 1)
+    darker_right = (changed & right_darker).view(-1, 1, 1, 1)
+    darker_left = (changed & ~right_darker).view(-1, 1, 1, 1)
     if bool(darker_right.any()):
         right = torch.where(darker_right, (right * scale + offset).clamp(0, 1), right)
     if bool(darker_left.any()):
-        # The inverse map: 0 < scale < 1 where it applies (a flat view is never changed, _fit).
+        # The inverse map: scale > 0 where it applies (a flat view is never changed, _fit).
         left = torch.where(darker_left, ((left - offset) / torch.where(darker_left, scale, 1.0)).clamp(0, 1), left)
     return left, right, changed
 
@@ -96,8 +96,9 @@ def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Te
 
 
 def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config: ExposureConfig
-         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The map's ``scale`` and ``offset`` ``(B,)`` and which pairs it changes ``(B,)`` bool (module docstring)."""
+         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The map's ``scale`` and ``offset`` ``(B,)``, which pairs it changes and in which the right view is the darker
+    (its upper quantile at or below the left's) ``(B,)`` bool each (module docstring)."""
     dims = check_shape(left, "left", ["B", 1, "H", "W"])
     check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
     if not bool((image_hw == torch.tensor([dims["H"], dims["W"]], device=image_hw.device)).all()):
@@ -105,7 +106,8 @@ def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config
                          f"{image_hw.tolist()}")
     if dims["H"] * dims["W"] == 0:
         nothing = torch.zeros(dims["B"], dtype=right.dtype, device=right.device)
-        return nothing + 1, nothing, torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
+        never = torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
+        return nothing + 1, nothing, never, never
     low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
     low_high_right = row_quantile(right.flatten(1), config.quantiles)
     spread_right = low_high_right[:, 1] - low_high_right[:, 0]
@@ -114,4 +116,4 @@ def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config
     scale = spread_left / spread_right.clamp(min=1e-3)
     offset = low_high_left[:, 0] - scale * low_high_right[:, 0]
     changed = ((scale - 1).abs() + offset.abs() > config.min_change) & (spread_right > 1e-3) & (spread_left > 1e-3)
-    return scale, offset, changed
+    return scale, offset, changed, low_high_right[:, 1] <= low_high_left[:, 1]

@@ -19,29 +19,31 @@ def _views(generator: torch.Generator, b: int = 3, h: int = 24, w: int = 32) -> 
 
 def test_the_darker_view_is_mapped_onto_the_brighter_ones_quartiles(generator):
     """Against numpy: the map is the affine one through both views' quartiles (np.quantile's linear rule), applied
-    to the darker view (the smaller spread): the right view where it is darker, else the left by the inverse."""
-    left = _views(generator).float()
-    right = (left * torch.tensor([1.3, 0.7, 1.0]).view(-1, 1, 1, 1) + torch.tensor([0.0, 0.06, 0.0]).view(-1, 1, 1, 1)
-             ).clamp(0, 1)
-    hw = torch.tensor([[24, 32]] * 3)
+    to the darker view (the lower upper quartile): the right view where it is darker, else the left by the
+    inverse. Pairs: a right camera 30 % brighter, one darker with a raised black level, the same exposure, and one
+    brighter by its black level alone."""
+    left = _views(generator, b=4).float()
+    right = (left * torch.tensor([1.3, 0.7, 1.0, 1.0]).view(-1, 1, 1, 1)
+             + torch.tensor([0.0, 0.06, 0.0, 0.1]).view(-1, 1, 1, 1)).clamp(0, 1)
+    hw = torch.tensor([[24, 32]] * 4)
     mapped_left, mapped_right, changed = match_exposure(left, right, hw)
-    assert changed.tolist() == [True, True, False]
-    for i in range(2):
+    assert changed.tolist() == [True, True, False, True]
+    for i in (0, 1, 3):
         ql, qr = (np.quantile(v[i].flatten().numpy().astype(np.float64), [0.25, 0.75]) for v in (left, right))
         scale = (ql[1] - ql[0]) / (qr[1] - qr[0])
         offset = ql[0] - scale * qr[0]
-        if scale >= 1:  # pair 1: the right camera is the darker one
+        if qr[1] <= ql[1]:  # pair 1: the right camera is the darker one
             assert i == 1 and torch.equal(mapped_left[i], left[i])
             np.testing.assert_allclose(mapped_right[i].numpy(), np.clip(scale * right[i].numpy() + offset, 0, 1),
                                        atol=2e-6)
             np.testing.assert_allclose(mapped_right[i].numpy(), left[i].numpy(), atol=2e-3)
-        else:  # pair 0: the right camera 30 % brighter, and clipped where left * 1.3 > 1
-            assert i == 0 and torch.equal(mapped_right[i], right[i])
+        else:  # pairs 0 and 3: the right camera brighter (pair 0 clipped where left * 1.3 > 1)
+            assert i in (0, 3) and torch.equal(mapped_right[i], right[i])
             np.testing.assert_allclose(mapped_left[i].numpy(), np.clip((left[i].numpy() - offset) / scale, 0, 1),
                                        atol=2e-6)
             # Both views now clip the same highlights: the point of mapping the darker view up.
             np.testing.assert_allclose(mapped_left[i].numpy(), right[i].numpy(), atol=2e-3)
-            assert bool((mapped_left[i] == 1).any())
+            assert i == 3 or bool((mapped_left[i] == 1).any())
     assert torch.equal(mapped_left[2], left[2]) and torch.equal(mapped_right[2], right[2])  # untouched, bit for bit
 
 
