@@ -220,9 +220,10 @@ def _median_by_share(disparity: torch.Tensor, valid: torch.Tensor, config: Nearn
 
 def _median_filter(image: torch.Tensor, window: int) -> torch.Tensor:
     """The ``window``-sided median (``torch.median``'s, the lower one) of each pixel of ``image`` ``(B, 1, h, w)``,
-    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: the median tracked
-    from pixel to pixel along each row, 16 → 1 ms a pair of 320×240) gives the values of the torch path below,
-    which sorts every window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
+    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: a selection network
+    over 16 pixels at a time up to 7×7, the median tracked from pixel to pixel above; the halved map of a 320×240
+    pair in 0.9 ms where the torch path takes 16) gives the values of the torch path below, which sorts every
+    window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
     fast = kernels.median_filter(image, window)
     if fast is not None:
         return fast

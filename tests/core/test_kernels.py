@@ -747,12 +747,13 @@ def _nearness_maps(generator: torch.Generator) -> list[torch.Tensor]:
 @pytest.mark.skipif(not kernels.available("median_filter"), reason="no C compiler")
 @pytest.mark.parametrize("threads", [1, 3])
 def test_median_filter_kernel_equals_the_sorting_path(generator, monkeypatch, threads):
-    """The tracked median (segmentation/kernels/median_filter.c) against the torch path that sorts every
-    window: the same values, for every window side up to the largest it takes."""
+    """The median kernel (segmentation/kernels/median_filter.c: a selection network up to 7×7, 16 pixels of a row
+    at a time, the tracked median above) against the torch path that sorts every window: the same values, for
+    every window side up to the largest it takes, on rows shorter and longer than the network's 16 lanes."""
     from svs_torch.segmentation.nearness import _median_filter
 
     for image in _nearness_maps(generator):
-        for window in (1, 3, 7, 9, segmentation_kernels.MAX_MEDIAN_WINDOW):
+        for window in (1, 3, 5, 7, 9, 11, segmentation_kernels.MAX_MEDIAN_WINDOW):
             fused = _with_threads(threads, segmentation_kernels.median_filter, image, window)
             assert fused is not None
             torch.testing.assert_close(fused, _torch_path(monkeypatch, _median_filter, image, window), rtol=0, atol=0)

@@ -115,8 +115,8 @@ def label_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int, 
 
 
 
-#: The largest window side :func:`median_filter` takes: each step of its tracked median reads all K² values of the
-#: window, so a larger window is left to the torch path.
+#: The largest window side :func:`median_filter` takes: over 7×7 each step of its tracked median reads all K² values
+#: of the window (up to 7×7 a selection network runs instead), so a larger window is left to the torch path.
 MAX_MEDIAN_WINDOW = 15
 
 
