@@ -22,9 +22,10 @@ from typing import TypeVar
 import torch
 import torch.nn.functional as F
 
+from .pair_trees import take_pairs
 from .types import StereoBatch
 
-__all__ = ["size_groups", "crop_batch", "merge_groups", "run_by_size"]
+__all__ = ["size_groups", "crop_batch", "merge_groups", "replace_pairs", "run_by_size"]
 
 T = TypeVar("T")
 
@@ -120,6 +121,17 @@ def merge_groups(results: list[T], indices: list[torch.Tensor], size_hw: tuple[i
     order[rows] = torch.arange(len(order), device=order.device)
     in_order = bool((order == torch.arange(len(order), device=order.device)).all())
     return _merge("", results, None if in_order else order, size_hw, group_hw)
+
+
+def replace_pairs(tree: T, index: torch.Tensor, part: T, num_pairs: int, size_hw: tuple[int, int]) -> T:
+    """``tree`` (the result of ``num_pairs`` pairs filling ``size_hw``) with its pairs ``index`` replaced by
+    ``part``'s, in that order: a second pass on some pairs, whose tensors may differ from the first's in their
+    other dimensions (keypoints, regions), so both are padded as :func:`merge_groups` pads."""
+    rest = torch.ones(num_pairs, dtype=torch.bool, device=index.device).index_fill(0, index, False)
+    rest = rest.nonzero().flatten()
+    if len(rest) == 0:
+        return part
+    return merge_groups([take_pairs(tree, rest, num_pairs), part], [rest, index], size_hw, [size_hw] * 2)
 
 
 def run_by_size(batch: StereoBatch, run: Callable[[StereoBatch], T], max_pixels: int | None = None) -> T:

@@ -16,14 +16,12 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-import torch
-
 from ..core.pair_trees import take_pairs
-from ..core.size_groups import merge_groups
+from ..core.size_groups import replace_pairs
 from ..core.types import StereoBatch
 from .config import PipelineConfig, PipelineResult
 from .exposure import exposures_differ
-from .ranging import unranged_kept_object
+from .ranging import second_pass_is_better, unranged_kept_object
 
 __all__ = []
 
@@ -49,17 +47,10 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     if len(index) == 0:
         return result
     second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
-    ranged_first = result.depth.objects.valid.index_select(0, index).sum(1)
-    ranged_second = second.depth.objects.valid.sum(1)
-    verified_first = result.verified.index_select(0, index)
-    pick = second.verified & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    pick = second_pass_is_better(result.verified.index_select(0, index),
+                                 result.depth.objects.valid.index_select(0, index), second.verified,
+                                 second.depth.objects.valid)
     if not bool(pick.any()):
         return result
-    b, taken = batch.batch_size, index[pick]
-    rest = torch.ones(b, dtype=torch.bool, device=index.device).index_fill(0, taken, False).nonzero().flatten()
-    parts = [take_pairs(second, pick.nonzero().flatten(), len(index))]
-    indices = [taken]
-    if len(rest):
-        parts.insert(0, take_pairs(result, rest, b))
-        indices.insert(0, rest)
-    return merge_groups(parts, indices, batch.size_hw, [batch.size_hw] * len(parts))
+    return replace_pairs(result, index[pick], take_pairs(second, pick.nonzero().flatten(), len(index)),
+                         batch.batch_size, batch.size_hw)

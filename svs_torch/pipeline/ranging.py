@@ -117,6 +117,17 @@ def unranged_kept_object(seg: StereoSegmentation, objects: ObjectDepths) -> torc
     return (kept & ~objects.valid[:, :kept.shape[1]]).any(1)
 
 
+def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tensor, verified_second: torch.Tensor,
+                          ranged_second: torch.Tensor) -> torch.Tensor:
+    """``(b,)`` bool: the pairs whose second pass (of the smoothed or the exposure retry) replaces the first:
+    verified and ranging more objects, or as many where the first was not verified (``verified_*`` ``(b,)`` bool,
+    ``ranged_*`` ``(b, N)`` bool, each object's ``valid``). Only a verified second pass counts: views of different
+    scenes are never verified, and a retry must not let their chance agreement reach the unverified share
+    (experiments/verify_views.py)."""
+    first, second = ranged_first.sum(1), ranged_second.sum(1)
+    return verified_second & ((second > first) | (~verified_first & (second >= first)))
+
+
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                             fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
@@ -137,11 +148,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
     smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
     second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
                           sub(rectified), sub(H_left), sub(H_right), config)
-    ranged_first, ranged_second = sub(first[0].objects.valid).sum(1), second[0].objects.valid.sum(1)
-    # Only a verified second pass counts: views of different scenes are never verified, and smoothing must not
-    # let their chance agreement reach the unverified share (experiments/verify_views.py).
-    verified_first = sub(first[2])
-    pick = second[2] & ((ranged_second > ranged_first) | (~verified_first & (ranged_second >= ranged_first)))
+    pick = second_pass_is_better(sub(first[2]), sub(first[0].objects.valid), second[2], second[0].objects.valid)
     if not bool(pick.any()):
         return (*first, from_smoothed)
     from_smoothed[index[pick]] = True

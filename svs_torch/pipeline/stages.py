@@ -10,8 +10,7 @@ import torch
 from torch import nn
 
 from ..core.checks import InputError
-from ..core.pair_trees import take_pairs
-from ..core.size_groups import merge_groups, run_by_size
+from ..core.size_groups import replace_pairs, run_by_size
 from ..core.types import (FundamentalResult, FundamentalStatus, Matches, Segmentation, SegmentationStatus,
                           StereoBatch, StereoSegmentation)
 from ..depth.depth_types import DepthResult
@@ -146,10 +145,7 @@ def _segment_row_aligned(batch: StereoBatch, seg: StereoSegmentation, aligned: t
     homographies = H_right.index_select(0, index).to(torch.float64)
     again = _segment_group(dataclasses.replace(sub, right=warp_rectified(sub.right, homographies)), config, network)
     again = dataclasses.replace(again, right=_unwarped(again.right, sub.right, torch.linalg.inv(homographies)))
-    rest = (~aligned).nonzero().flatten()
-    if len(rest) == 0:
-        return again
-    return merge_groups([take_pairs(seg, rest, b), again], [rest, index], batch.size_hw, [batch.size_hw] * 2)
+    return replace_pairs(seg, index, again, b, batch.size_hw)
 
 
 def _unwarped(seg: Segmentation, image: torch.Tensor, homographies: torch.Tensor) -> Segmentation:
