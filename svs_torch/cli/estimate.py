@@ -60,7 +60,9 @@ measured instead of 10 % ("num_agreeing_inliers"; experiments/verify_views.py).
 "row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
 the pair segmented again on them); "exposure_matched": a pair left unranged whose right camera is brighter or
 darker was run again with the two exposures matched, the darker view mapped onto the brighter one's so that
-both clip the same highlights (PipelineConfig.exposure_retry).
+both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the dense map measured too little
+of the kept regions (noisy or heavily compressed frames) and the depth was measured again at half the working
+width, where each pixel averages four times as many (PipelineConfig.coarse_retry_below_share).
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """

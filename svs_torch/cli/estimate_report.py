@@ -18,7 +18,8 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "row_aligned": False, "exposure_matched": False, "dense_box_xywh": None, "time_s": 0.0,
+            "row_aligned": False, "exposure_matched": False, "coarse_dense": False, "dense_box_xywh": None,
+            "time_s": 0.0,
             "calibration": None}
 
 
@@ -38,47 +39,55 @@ def with_calibration(report: dict, batch, index: int, factors: tuple[float, floa
     return {**report, "calibration": calibration_record(batch, index, source, factors[0])}
 
 
-def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
-    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
+def _number(value, valid) -> float | None:
+    return round(float(value), 4) if bool(valid) else None
+
+
+def _object_reports(result, index: int, factors: tuple[float, float]) -> list[dict]:
+    """The kept objects of pair ``index``, in input pixels (``factors``: input over working pixels, x and y)."""
     from ..depth.depth_types import ObstacleSide
-    from ..pipeline import PipelineStatus
 
-    rng, objects = result.depth.range, result.depth.objects
-    regions = result.segmentation.left.regions
+    objects, regions = result.depth.objects, result.segmentation.left.regions
     fx, fy = factors
-
-    def number(value, valid) -> float | None:
-        return round(float(value), 4) if bool(valid) else None
-
-    report_objects = []
+    reports = []
     for slot, label in enumerate(result.segmentation.left.kept_labels[index].tolist()):
         if label < 0:
             continue
         x0, y0, x1, y1 = regions.bbox_xyxy[index, label - 1].tolist()
-        report_objects.append({
+        reports.append({
             "label": slot + 1,
             "area_px": int(round(int(regions.area_px[index, label - 1]) * fx * fy)),
             "bbox_xyxy": [int(round(x0 * fx)), int(round(y0 * fy)), int(round(x1 * fx)), int(round(y1 * fy))],
-            "depth_m": number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
-            "depth_p10_m": number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
-            "depth_p90_m": number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
+            "depth_m": _number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
+            "depth_p10_m": _number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
+            "depth_p90_m": _number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
             "num_inliers": int(objects.num_inliers[index, slot]),
             "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
             "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
                                else None),
             "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
         })
+    return reports
+
+
+def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
+    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
+    from ..depth.depth_types import ObstacleSide
+    from ..pipeline import PipelineStatus
+
+    rng = result.depth.range
+    report_objects = _object_reports(result, index, factors)
     nearest = result.depth.nearest
     return {
         "status": PipelineStatus(int(result.status[index])).name,
         "range_rule": result.range_rule,
-        "r_min_m": number(rng.r_min_m[index], rng.valid[index]),
-        "r_max_m": number(rng.r_max_m[index], rng.valid[index]),
-        "d_min_px": number(rng.d_min_px[index], rng.valid[index]),
-        "d_max_px": number(rng.d_max_px[index], rng.valid[index]),
-        "nearest_m": number(nearest.depth_m[index], nearest.valid[index]),
+        "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
+        "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),
+        "d_min_px": _number(rng.d_min_px[index], rng.valid[index]),
+        "d_max_px": _number(rng.d_max_px[index], rng.valid[index]),
+        "nearest_m": _number(nearest.depth_m[index], nearest.valid[index]),
         "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
-        "nearest_surface_m": number(nearest.surface_m[index], nearest.valid[index]),
+        "nearest_surface_m": _number(nearest.surface_m[index], nearest.valid[index]),
         "objects": report_objects,
         "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
         "num_matches": int(result.num_matches[index]),
@@ -87,9 +96,11 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
                                  else None),
         "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
-        # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched.
+        # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched. Noisy
+        # frames: the dense map measured at half the working width (PipelineConfig.coarse_retry_below_share).
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
+        "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
         # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
         # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
         # its region's pixels inside it.
@@ -115,6 +126,8 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
                  if report.get(key)]
     if corrected:
         lines.append("  right camera: " + " and ".join(corrected))
+    if report.get("coarse_dense"):
+        lines.append("  noisy frames: depth measured at half the working width")
     if report["r_min_m"] is not None:
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "

@@ -112,6 +112,14 @@ class PipelineConfig:
             second measurement is kept where it is verified and ranges more objects (or as many, the first not
             verified): JPEG frames with sensor noise leave the x-Sobel SAD few unique windows and the SURF
             matches few inliers the map confirms, while a clean pair is verified and never retried. None: off.
+        coarse_retry_below_share: under the dense rule, a pair whose dense map measured less than this share of its
+            kept regions' pixels (``ObjectDepths.num_valid_px`` over ``area_px``: the uniqueness and left–right
+            checks reject a noisy frame's windows) is measured again at half the working width
+            (``DenseConfig.working_width_px // 2``: each working pixel the mean of 4× as many input pixels, the
+            window twice as wide), and that second measurement is kept where it is verified and ranges every
+            object the first did, or is unverified as the first was and ranges as many (``PipelineResult.coarse``;
+            :func:`~svs_torch.pipeline.ranging.coarse_is_better`). On the tuned scenes' camera frames it is the ranged pairs
+            with wrong depths that it mends, which no retry of unfinished pairs reaches. None: off (the paper's).
         exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
             an affine map through both views' quartiles, where they differ by more than
             :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;
@@ -170,6 +178,9 @@ class PipelineConfig:
     differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
     # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
     noisy_retry_sigma_px: float | None = 1.0
+    # experiments/coarse_retry.md (tuned scenes only): camera frames at half contrast, 320x240, 87.83 -> 91.26 %, their
+    # clean pairs 98.79 -> 98.85; native size within 0.05. Clean pairs measured 0.40-0.92 of their kept pixels.
+    coarse_retry_below_share: float | None = 0.45
     # Off by default: on the tuned scenes (experiments/exposure.md) it ranges Piano behind a right camera 30 % brighter
     # but loses PianoL (two lightings, not two gains) in as many conditions; the mean over them fell 90.1 -> 89.3 %.
     exposure: ExposureConfig | None = None
@@ -195,6 +206,9 @@ class PipelineConfig:
                              f"inliers, nothing to differentiate), got {self.depth.rule!r}")
         if self.noisy_retry_sigma_px is not None and not self.noisy_retry_sigma_px > 0:
             raise InputError(f"noisy_retry_sigma_px: expected a σ > 0 or None, got {self.noisy_retry_sigma_px!r}")
+        share = self.coarse_retry_below_share
+        if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 < share <= 1):
+            raise InputError(f"coarse_retry_below_share: expected a share in (0, 1] or None, got {share!r}")
         for name in ("exposure", "exposure_retry"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), ExposureConfig):
                 raise InputError(f"{name}: expected an ExposureConfig or None, got {getattr(self, name)!r}")
@@ -208,7 +222,7 @@ class PipelineConfig:
         defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8))."""
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
                    refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
-                   exposure_retry=None)
+                   coarse_retry_below_share=None, exposure_retry=None)
 
 
 @dataclass(frozen=True)
@@ -246,6 +260,8 @@ class PipelineResult:
             ``differentiable``, F's rectifications carry gradients to both images (``svs_torch.geometry.soft``).
         smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
             smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
+        coarse: ``(B,)`` bool, under the dense rule: pairs whose dense depth was measured at half the working width
+            (``PipelineConfig.coarse_retry_below_share``); None under the ``"paper"`` rule.
         row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
             rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
             (where ``row_aligned``; all False without a row alignment).
@@ -279,3 +295,4 @@ class PipelineResult:
     row_aligned: torch.Tensor | None = None
     exposure_matched: torch.Tensor | None = None
     row_alignment_inliers: torch.Tensor | None = None
+    coarse: torch.Tensor | None = None

@@ -1,5 +1,6 @@
 """The pipeline's last steps: whether to rectify (and with which homographies), then the dense depth over the
-kept regions, retried on a smoothed pair where the first pass measured too little.
+kept regions, measured again at half the working width where the first pass measured too few of a pair's kept
+pixels, and retried on a smoothed pair left unfinished.
 """
 
 from __future__ import annotations
@@ -128,32 +129,91 @@ def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tens
     return verified_second & ((second > first) | (~verified_first & (second >= first)))
 
 
+def coarse_config(config: PipelineConfig) -> PipelineConfig:
+    """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``)."""
+    return dataclasses.replace(config, dense=dataclasses.replace(
+        config.dense, working_width_px=max(8, config.dense.working_width_px // 2)))
+
+
+def measured_share(objects: ObjectDepths) -> torch.Tensor:
+    """``(B,)``: the share of the kept regions' pixels the dense map measured (0 without a kept region)."""
+    area = objects.area_px.clamp_min(0).sum(1)
+    return objects.num_valid_px.sum(1).to(torch.float64) / area.clamp_min(1).to(torch.float64)
+
+
+def _second_pass(current: tuple, index: torch.Tensor, settings: PipelineConfig, sigma_working_px: float | None,
+                 rule, batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
+                 fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
+                 rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor) -> tuple[tuple, torch.Tensor]:
+    """The pairs ``index`` of ``current`` (:func:`_dense_depth`'s result) measured again under ``settings``, on views
+    smoothed by ``sigma_working_px`` (None: as they are); each kept where ``rule(verified_first, ranged_first,
+    verified_second, ranged_second)`` ``(b,)`` bool says. Returns the merged result and the pairs replaced, a
+    subset of ``index``. Only these pairs run again: a clean batch's pairs never pay for it."""
+    b = batch.batch_size
+    sub = (lambda tree: take_pairs(tree, index, b))
+    views = sub(batch) if sigma_working_px is None else _smoothed(sub(batch), sigma_working_px, settings.dense)
+    second = _dense_depth(views, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
+                          sub(rectified), sub(H_left), sub(H_right), settings)
+    pick = rule(sub(current[2]), sub(current[0].objects.valid), second[2], second[0].objects.valid)
+    if not bool(pick.any()):
+        return current, index[:0]
+    merged = put_pairs(current, index[pick], take_pairs(second, pick.nonzero().flatten(), len(index)), b)
+    # The batch's deepest search (an int, not per pair).
+    dense = dataclasses.replace(merged[1], num_disparities=max(current[1].num_disparities, second[1].num_disparities))
+    return (merged[0], dense, *merged[2:]), index[pick]
+
+
+def coarse_is_better(verified_first: torch.Tensor, ranged_first: torch.Tensor, verified_second: torch.Tensor,
+                     ranged_second: torch.Tensor) -> torch.Tensor:
+    """``(b,)`` bool: the pairs whose coarse pass (``PipelineConfig.coarse_retry_below_share``) replaces the first:
+    verified and ranging every object the first did, or unverified as the first was and ranging as many (the same
+    objects measured on a coarser grid: an unverified pair's chance agreement must not reach more objects,
+    experiments/verify_views.py). Arguments as :func:`second_pass_is_better`'s."""
+    first, second = ranged_first.sum(1), ranged_second.sum(1)
+    return (verified_second & (second >= first)) | (~verified_first & ~verified_second & (second == first))
+
+
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                             fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
                             config: PipelineConfig
-                            ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`_dense_depth`, then on smoothed views for the pairs it left unverified or with a kept object
-    unranged (``config.noisy_retry_sigma_px``); per pair the second result where it is verified and ranges more
-    objects, or as many where the first was not verified. Also returns ``(B,)`` bool: the pairs whose result is
-    the smoothed pass's."""
-    first = _dense_depth(batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right, config)
-    from_smoothed = torch.zeros_like(rectified)
-    retry = ~first[2] | unranged_kept_object(seg, first[0].objects)
-    if config.noisy_retry_sigma_px is None or not bool(retry.any()):
-        return (*first, from_smoothed)
-    # Only the retried pairs run again (a clean batch's verified pairs never pay for it).
-    index, b = retry.nonzero().flatten(), batch.batch_size
-    sub = (lambda tree: take_pairs(tree, index, b))
-    smoothed = _smoothed(sub(batch), config.noisy_retry_sigma_px, config.dense)
-    second = _dense_depth(smoothed, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
-                          sub(rectified), sub(H_left), sub(H_right), config)
-    pick = second_pass_is_better(sub(first[2]), sub(first[0].objects.valid), second[2], second[0].objects.valid)
-    if not bool(pick.any()):
-        return (*first, from_smoothed)
-    from_smoothed[index[pick]] = True
-    depth, dense, verified, agreeing = put_pairs(first, index[pick], take_pairs(second, pick.nonzero().flatten(),
-                                                                                 len(index)), b)
-    # The batch's deepest search (an int, not per pair).
-    dense = dataclasses.replace(dense, num_disparities=max(first[1].num_disparities, second[1].num_disparities))
-    return depth, dense, verified, agreeing, from_smoothed
+                            ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor,
+                                       torch.Tensor]:
+    """:func:`_dense_depth`, then two second passes, each over a few pairs:
+
+    - **coarse** (``config.coarse_retry_below_share``): the pairs whose dense map measured too little of their
+      kept regions are measured again at half the working width (:func:`coarse_config`), kept by
+      :func:`coarse_is_better`. A noisy frame's x-Sobel SAD finds few unique windows at the working width, and
+      the ones it finds are often wrong (ranged, verified, far off); a working pixel four times as large halves
+      the noise, and a window twice as wide sees more texture. A pair no wider than the coarse working width
+      gains nothing and is not measured again;
+    - **smoothed** (``config.noisy_retry_sigma_px``): the pairs then left unverified or with a kept object unranged
+      are measured again on views smoothed by a Gaussian (of that σ in working pixels, at the coarse width for
+      the pairs that measured too little), kept by :func:`second_pass_is_better`.
+
+    Also returns ``(B,)`` bool each: the pairs whose result was measured on smoothed views, and those measured at
+    the coarse working width."""
+    passes = (batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right)
+    current = _dense_depth(*passes, config)
+    coarse, smoothed = torch.zeros_like(rectified), torch.zeros_like(rectified)
+    settings = coarse_config(config)
+    width = batch.left.shape[-1]
+    low = torch.zeros_like(rectified)
+    if (config.coarse_retry_below_share is not None
+            and working_factor(width, settings.dense) > working_factor(width, config.dense)):
+        objects = current[0].objects
+        low = (measured_share(objects) < config.coarse_retry_below_share) & (objects.area_px.sum(1) > 0)
+        if bool(low.any()):
+            current, replaced = _second_pass(current, low.nonzero().flatten(), settings, None, coarse_is_better,
+                                             *passes)
+            coarse[replaced] = True
+    if config.noisy_retry_sigma_px is None:
+        return (*current, smoothed, coarse)
+    retry = ~current[2] | unranged_kept_object(seg, current[0].objects)
+    for group, group_settings in ((retry & ~low, config), (retry & low, settings)):
+        if bool(group.any()):
+            current, replaced = _second_pass(current, group.nonzero().flatten(), group_settings,
+                                             config.noisy_retry_sigma_px, second_pass_is_better, *passes)
+            smoothed[replaced] = True
+            coarse[replaced] = group_settings is settings
+    return (*current, smoothed, coarse)

@@ -26,7 +26,7 @@ from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
-from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed
+from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config
 from .soft import differentiable_depth
 from .stages import _feature_images, _features, _match, _network, _segment_group, _segment_row_aligned, _status
 
@@ -117,15 +117,19 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         logits = _row_aligned_logits(batch, result, logits, _network(batch, config.segmentation, network))
     left, right = batch.left, batch.right
     if config.noisy_retry_sigma_px is not None and bool(result.smoothed.any()):
-        # The pairs the hard stage measured on smoothed views are differentiated through the same (linear) blur.
-        blurred = _smoothed(batch, config.noisy_retry_sigma_px, config.dense)
-        pick = result.smoothed.view(-1, 1, 1, 1)
-        left, right = torch.where(pick, blurred.left, left), torch.where(pick, blurred.right, right)
+        # The pairs the hard stage measured on smoothed views are differentiated through the same (linear) blur, of
+        # a σ in working pixels of the grid each was measured on.
+        for on_coarse, settings in ((False, config), (True, coarse_config(config))):
+            group = result.smoothed & (result.coarse == on_coarse)
+            if bool(group.any()):
+                blurred = _smoothed(batch, config.noisy_retry_sigma_px, settings.dense)
+                pick = group.view(-1, 1, 1, 1)
+                left, right = torch.where(pick, blurred.left, left), torch.where(pick, blurred.right, right)
     H_left, H_right = _differentiable_homographies(batch, result, config)
     depth = differentiable_depth(
         left, right, result.segmentation.left.labels, logits, result.rectified, H_left, H_right,
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
-        config.depth.object_percentiles, config.dense)
+        config.depth.object_percentiles, config.dense, result.coarse, coarse_config(config).dense)
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth, H_left=H_left, H_right=H_right)
 
 
@@ -209,12 +213,12 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right,
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = smoothed = None
+    dense = verified = agreeing = smoothed = coarse = None
     if config.depth.rule == "dense":
         fundamental_ok = ((fundamental.status == FundamentalStatus.OK)
                           & (fundamental.num_inliers >= config.verify_min_inliers)
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
-        depth, dense, verified, agreeing, smoothed = _dense_depth_with_retry(
+        depth, dense, verified, agreeing, smoothed, coarse = _dense_depth_with_retry(
             batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
@@ -226,4 +230,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
         verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed,
-        row_aligned=row_aligned, row_alignment_inliers=row_inliers)
+        row_aligned=row_aligned, row_alignment_inliers=row_inliers, coarse=coarse)

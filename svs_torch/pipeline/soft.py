@@ -216,12 +216,15 @@ def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:
 def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor,
                      dense: DenseDisparity, hard: DepthResult, focal_px: torch.Tensor, baseline_m: torch.Tensor,
                      doffs_px: torch.Tensor, image_hw: torch.Tensor, percentiles: tuple[float, float],
-                     config: DenseConfig) -> DepthResult:
+                     config: DenseConfig, coarse: torch.Tensor | None = None,
+                     coarse_config: DenseConfig | None = None) -> DepthResult:
     """``hard`` (the dense rule's :class:`~svs_torch.depth.DepthResult`) with each object's median, low and high
     depth, the nearest obstacle and the range recomputed as the module docstring says, from images ``(B, 1, H,
     W)`` (rectified where the hard stage rectified), the left ``labels`` and pixel ``weights`` in the same
     pixels, and the hard ``dense`` map. Differentiable w.r.t. the images, ``weights`` and the calibration;
-    validity and counts are the hard ones."""
+    validity and counts are the hard ones. The pairs ``coarse`` ``(B,)`` bool were measured under
+    ``coarse_config`` (half the working width: ``PipelineConfig.coarse_retry_below_share``), the rest under
+    ``config``."""
     b = left.shape[0]
     slots = hard.objects.label
     x0, y0, box_w, box_h = (v.view(-1, 1, 1, 1) for v in dense.crop_xywh.unbind(1))
@@ -239,7 +242,15 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
         members = torch.where(ok, labels.flatten(1), torch.zeros_like(labels.flatten(1)))
         bands = _bands(depth.to(torch.float64), members, slots, q)  # (B, N, 3, P)
         needed = _fill_sources(dense.valid, bands.any(dim=(1, 2)).view_as(dense.valid))
-    disparity = _soft_disparity(left, right, dense, needed, image_hw, config)
+    if coarse is not None and bool(coarse.any()):  # each pair on the working grid its hard map was measured on
+        disparity = dense.disparity_px
+        for group, settings in ((~coarse, config), (coarse, coarse_config)):
+            group = group.view(-1, 1, 1, 1)
+            if bool((needed & group).any()):
+                part = _soft_disparity(left, right, dense, needed & group, image_hw, settings)
+                disparity = torch.where(group, part, disparity)
+    else:
+        disparity = _soft_disparity(left, right, dense, needed, image_hw, config)
     if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
         filled, _ = fill_invalid_rows(disparity, dense.valid)
     soft_depth = scale / torch.where(ok, filled.flatten(1) + doffs, torch.ones_like(filled.flatten(1)))
@@ -259,11 +270,13 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
                          logits: torch.Tensor | None, rectified: torch.Tensor, H_left: torch.Tensor,
                          H_right: torch.Tensor, dense: DenseDisparity, hard: DepthResult, focal_px: torch.Tensor,
                          baseline_m: torch.Tensor, doffs_px: torch.Tensor, image_hw: torch.Tensor,
-                         percentiles: tuple[float, float], config: DenseConfig) -> DepthResult:
+                         percentiles: tuple[float, float], config: DenseConfig, coarse: torch.Tensor | None = None,
+                         coarse_config: DenseConfig | None = None) -> DepthResult:
     """:func:`soft_dense_depth` of a pipeline's batch: images ``(B, 1, H, W)``, the left ``labels`` and obstacle
     ``logits`` (None: every kept pixel weighs 1, the Otsu segmenter) in input pixels, warped by the hard homographies
-    ``(B, 3, 3)`` where ``rectified`` ``(B,)`` (the hard stage's choice), as the dense stage warps them.
-    Differentiable w.r.t. both images, the logits, the calibration and the homographies."""
+    ``(B, 3, 3)`` where ``rectified`` ``(B,)`` (the hard stage's choice), as the dense stage warps them; the pairs
+    ``coarse`` on ``coarse_config``'s working grid. Differentiable w.r.t. both images, the logits, the calibration
+    and the homographies."""
     weights = torch.ones_like(left) if logits is None else torch.sigmoid(logits).to(left.dtype)
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
@@ -275,4 +288,4 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
                                 ).round().long()
         labels = torch.where(pick, warped, labels)
     return soft_dense_depth(left, right, labels, weights, dense, hard, focal_px, baseline_m, doffs_px, image_hw,
-                            percentiles, config)
+                            percentiles, config, coarse, coarse_config)

@@ -491,6 +491,20 @@ def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
     assert "no depth, 607 valid px (0 where the right view holds every searched disparity)" in second
 
 
+def _estimate_pairs_json(capsys, tmp_path, pairs: dict) -> list[dict]:
+    """``{name: (left, right)}`` views ``(1, 1, H, W)`` written as ``NAME_left.png`` / ``NAME_right.png``, run through
+    ``estimate --pairs LIST --json``: each pair's report, in order."""
+    listed = []
+    for name, views in pairs.items():
+        for side, image in zip(("left", "right"), views):
+            cv2.imwrite(str(tmp_path / f"{name}_{side}.png"), (image[0, 0].numpy() * 255).round().astype(np.uint8))
+        listed.append(f"{tmp_path / (name + '_left.png')} {tmp_path / (name + '_right.png')}")
+    (tmp_path / "pairs.txt").write_text("\n".join(listed) + "\n")
+    code, out, err = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "pairs.txt"), "--json", "--workers", "1")
+    assert code == 0, err
+    return [json.loads(line) for line in out.splitlines()]
+
+
 def test_estimate_says_when_it_corrected_the_right_camera(data_dir, capsys, tmp_path):
     """A loosely mounted right camera rolled 2°, and one 30 % brighter (experiments/real_rig.py's conditions on
     MiddEval3 Pipes and Piano at 320×240): the JSON says which pair's rows were aligned and whose exposure was
@@ -498,21 +512,33 @@ def test_estimate_says_when_it_corrected_the_right_camera(data_dir, capsys, tmp_
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
     import real_rig
 
-    listed = []
+    pairs = {}
     for scene, misalignment in (("Pipes", real_rig.Misalignment(roll_deg=2)),
                                 ("Piano", real_rig.Misalignment(gain=0.3)), ("Teddy", None)):
         batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / scene), "320x240")
         right = batch.right if misalignment is None else real_rig.misalign_right(batch.right, misalignment,
                                                                                   float(batch.focal_px[0]))
-        for side, image in (("left", batch.left), ("right", right)):
-            cv2.imwrite(str(tmp_path / f"{scene}_{side}.png"), (image[0, 0].numpy() * 255).round().astype(np.uint8))
-        listed.append(f"{tmp_path / (scene + '_left.png')} {tmp_path / (scene + '_right.png')}")
-    (tmp_path / "pairs.txt").write_text("\n".join(listed) + "\n")
-    code, out, err = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "pairs.txt"), "--json", "--workers", "1")
-    assert code == 0, err
-    reports = [json.loads(line) for line in out.splitlines()]
+        pairs[scene] = (batch.left, right)
+    reports = _estimate_pairs_json(capsys, tmp_path, pairs)
     assert [(r["row_aligned"], r["exposure_matched"]) for r in reports] == [(True, False), (False, True),
                                                                            (False, False)]
     assert all(r["status"] == "OK" for r in reports)
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "Piano_left.png"), str(tmp_path / "Piano_right.png"))
     assert code == 0 and "right camera: its exposure matched to the left camera's" in out
+
+
+def test_estimate_says_when_noisy_frames_were_measured_on_the_coarse_grid(data_dir, capsys, tmp_path):
+    """MiddEval3 Pipes at 320×240 and half contrast, as a camera sends it at digit 8 with sensor noise σ 8
+    (experiments/real_rig.py's frames): the JSON's "coarse_dense" says its depth was measured at half the working
+    width, and the text says so; the clean pair says neither."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+    import real_rig
+
+    scene = real_rig.dimmed(real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"),
+                                              "320x240"), 0.5)
+    views = {name: (left, right) for name, left, right in real_rig.conditions(scene, 6)}  # Pipes: tuned index 6
+    reports = _estimate_pairs_json(capsys, tmp_path, {"clean": views["clean"], "jpeg": views["jpeg q8 + noise s8"]})
+    assert [r["coarse_dense"] for r in reports] == [False, True]
+    assert all(r["status"] == "OK" for r in reports)
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "jpeg_left.png"), str(tmp_path / "jpeg_right.png"))
+    assert code == 0 and "noisy frames: depth measured at half the working width" in out

@@ -155,7 +155,9 @@ def test_the_retry_keeps_a_pair_lit_by_two_lamps(data_dir, size):
         if name == "retry":
             assert result.exposure_matched.tolist() == [False, True]
     assert scores["retry"][0] == scores["off"][0]
-    assert scores["off"][1][0] == "NO_DENSE_DEPTH" and scores["retry"][1][0] == "OK"
+    # Without the retry the brighter pair is unranged, or at native size ranged wrong on the dense stage's coarse
+    # grid (a clipped patch: 31.7 %), which the retry then replaces.
+    assert (scores["off"][1][0] == "NO_DENSE_DEPTH" or scores["off"][1][1] < 50) and scores["retry"][1][0] == "OK"
     if size == "native":
         assert scores["retry"][0][0] == "OK" and scores["retry"][0][1] > 98
         assert scores["always"][0][0] == "NO_DENSE_DEPTH"
