@@ -2,10 +2,10 @@
 
 A pair whose dense map measured less than this share of its kept regions' pixels is measured again at half the
 working width. The tuned scenes run through experiments/real_rig.py's clean pair and its eight camera-frame
-conditions (JPEG digit 1–8 after sensor noise σ 2–8), at full and at half contrast (``--contrast 0.5``: the tuning set
-for camera frames, whose weak texture is what the held-out split's scenes lose to JPEG), at 320×240 and native size,
-with the pass off and at each candidate share. Per row: the mean per-object Eq. (9) accuracy over the split's pairs of
-the clean pair, and over its 8 × 10 camera frames. The held-out split is not read.
+conditions (JPEG digit 1–8 after sensor noise σ 2–8), at full and at half contrast (``--contrast 0.5``: the tuning
+set for camera frames, whose weak texture is what the held-out split's scenes lose to JPEG), at 320×240 and native
+size, with the pass off and at each candidate share. Per row: the mean per-object Eq. (9) accuracy over the split's
+pairs of the clean pair, and over its 8 × 10 camera frames. The held-out split is not read.
 
 Usage (2-core machine, about 6 minutes)::
 

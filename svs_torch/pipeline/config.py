@@ -118,8 +118,9 @@ class PipelineConfig:
             (``DenseConfig.working_width_px // 2``: each working pixel the mean of 4× as many input pixels, the
             window twice as wide), and that second measurement is kept where it is verified and ranges every
             object the first did, or is unverified as the first was and ranges as many (``PipelineResult.coarse``;
-            :func:`~svs_torch.pipeline.ranging.coarse_is_better`). On the tuned scenes' camera frames it is the ranged pairs
-            with wrong depths that it mends, which no retry of unfinished pairs reaches. None: off (the paper's).
+            :func:`~svs_torch.pipeline.ranging.coarse_is_better`). On the tuned scenes' camera frames it is the
+            ranged pairs with wrong depths that it mends, which no retry of unfinished pairs reaches. None: off
+            (the paper's).
         exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
             an affine map through both views' quartiles, where they differ by more than
             :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;

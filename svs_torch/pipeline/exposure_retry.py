@@ -54,13 +54,11 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     if len(index) == 0:
         return result
     second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
-    ranged_first = result.depth.objects.valid.index_select(0, index)
-    pick = second_pass_is_better(result.verified.index_select(0, index), ranged_first, second.verified,
+    # Against a second measured at the working width, a first from the coarse grid counts as unverified: the
+    # second replaces it where verified and ranging as many objects.
+    verified_first = result.verified.index_select(0, index) & ~(coarse.index_select(0, index) & ~second.coarse)
+    pick = second_pass_is_better(verified_first, result.depth.objects.valid.index_select(0, index), second.verified,
                                  second.depth.objects.valid)
-    # A first result from the coarse grid gives way to a second measured at the working width, verified and
-    # ranging as many objects.
-    pick |= (coarse.index_select(0, index) & ~second.coarse & second.verified
-             & (second.depth.objects.valid.sum(1) >= ranged_first.sum(1)))
     if not bool(pick.any()):
         return result
     return replace_pairs(result, index[pick], take_pairs(second, pick.nonzero().flatten(), len(index)),

@@ -16,6 +16,7 @@ import torch
 from conftest import REPO_ROOT
 
 from svs_torch import InputError
+from svs_torch.core.pair_trees import take_pairs
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.pipeline.ranging import coarse_config, coarse_is_better
@@ -56,7 +57,6 @@ def test_noisy_pairs_ranged_wrong_are_measured_on_the_coarse_grid(pipes_frames):
     assert acc_on[1] > 94 and acc_on[2] > 88
     assert acc_on[0] == acc_off[0] > 97
     assert torch.equal(on.depth.objects.depth_median_m[0], off.depth.objects.depth_median_m[0])
-    from svs_torch.core.pair_trees import take_pairs
     alone_batch = take_pairs(pipes_frames, torch.tensor([1]), 3)
     alone = estimate_obstacle_depth(alone_batch)
     assert bool(alone.coarse[0])
@@ -68,8 +68,6 @@ def test_differentiable_depths_of_a_coarse_pair_are_the_hard_ones(pipes_frames, 
     smoothed retry measured at the coarse width through a blur of the coarse grid's σ (MiddEval3 Jadeplant at half
     contrast, digit 6 + σ 6: unranged at the working width): every object within 0.5 % of the hard value, with
     gradients to both images of that pair only."""
-    from svs_torch.core.pair_trees import take_pairs
-
     jadeplant = real_rig.dimmed(real_rig.resample(
         real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Jadeplant"), "320x240"), 0.5)
     views = [v for v in real_rig.conditions(jadeplant, 1) if v[0] == "jpeg q6 + noise s6"]  # its tuned index: 1
