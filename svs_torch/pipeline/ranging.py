@@ -88,7 +88,11 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     # Agreement within one working pixel (the dense map's own grid) between the sparse and the dense disparity.
     agreeing = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
                                       float(working_factor(batch.left.shape[-1], config.dense)))
-    verified = fundamental_ok & (agreeing >= config.verify_min_agreeing_inliers)
+    vouched = agreeing >= config.verify_min_agreeing_inliers
+    if config.verify_many_inliers is not None:  # a clipped or noisy view's dense map confirms few of many
+        vouched = vouched | ((inliers.sum(1) >= config.verify_many_inliers)
+                             & (agreeing >= config.verify_many_inliers_min_agreeing))
+    verified = fundamental_ok & vouched
     weight = verified.to(batch.left.dtype)
     fraction = (weight * config.depth.min_object_valid_fraction
                 + (1 - weight) * config.depth.min_object_valid_fraction_unverified)

@@ -471,6 +471,8 @@ def test_estimate_help_states_the_verification_defaults():
 
     config = PipelineConfig()
     assert f"at least {config.verify_min_agreeing_inliers} RANSAC inliers" in estimate.EPILOG
+    assert (f"RANSAC kept {config.verify_many_inliers} inliers and the map confirms "
+            f"{config.verify_many_inliers_min_agreeing}") in estimate.EPILOG.replace("\n", " ")
     assert (f"needs {config.depth.min_object_valid_fraction_unverified:.0%} of its region measured instead of "
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
 

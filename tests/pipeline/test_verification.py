@@ -1,0 +1,66 @@
+"""When the sparse stage vouches that both views show one scene (``PipelineResult.verified``, issue 33): enough
+inliers the dense map confirms, or, where the dense map confirms few (a clipped or noisy view), many RANSAC inliers
+of which at least one is confirmed (``PipelineConfig.verify_many_inliers``, ``verify_many_inliers_min_agreeing``)."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+import torch
+from conftest import REPO_ROOT
+
+from svs_torch import InputError
+from svs_torch.evaluation import evaluate_result
+from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+
+sys.path.insert(0, str(REPO_ROOT / "experiments"))
+
+import real_rig  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def baby2(data_dir):
+    """Middlebury 2005 Baby2 (held-out) at 320×240: the clean pair, then the right view 30 % brighter, whose white
+    book clips whole (experiments/real_rig.py's "gain +30%")."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Baby2"), "320x240")
+    bright = real_rig.misalign_right(scene.right, real_rig.Misalignment(gain=0.3), float(scene.focal_px[0]))
+    return real_rig.stack_conditions(scene, [("clean", scene.left, scene.right), ("gain +30%", scene.left, bright)])
+
+
+def test_many_inliers_vouch_where_the_dense_map_confirms_few(baby2):
+    """The brighter pair: 121 inliers of 127 matches, of which the dense map (the book clipped in both views once
+    the exposures are matched) confirms 4, under the 6 it needs otherwise. Without the rule the pair is unverified and its
+    book, measured on a third of its pixels (under the unverified 40 %), is left unranged; with it the pair is
+    verified and ranged. The clean pair is verified by its confirmed inliers either way, with the same depth."""
+    alone = estimate_obstacle_depth(baby2, PipelineConfig())
+    without = estimate_obstacle_depth(baby2, PipelineConfig(verify_many_inliers=None))
+    assert int(alone.num_agreeing_inliers[1]) < PipelineConfig().verify_min_agreeing_inliers
+    assert int(alone.num_inliers[1]) >= PipelineConfig().verify_many_inliers
+    assert alone.verified.tolist() == [True, True] and without.verified.tolist() == [True, False]
+    assert int(without.status[1]) == PipelineStatus.NO_DENSE_DEPTH
+    scores = evaluate_result(baby2, alone)
+    assert scores[1].status == "OK" and scores[1].acc_objects_pct > 80
+    assert torch.equal(alone.depth.objects.depth_median_m[0], without.depth.objects.depth_median_m[0])
+
+
+def test_the_rule_counts_ransac_inliers_and_the_confirmed_ones(baby2):
+    """With the usual confirmation out of reach, the clean pair (135 inliers, 22 confirmed) is verified exactly
+    when its inliers reach ``verify_many_inliers`` and its confirmed ones ``verify_many_inliers_min_agreeing``
+    (out of reach too: no retry's pass verifies it)."""
+    clean = baby2.select(torch.tensor([0]))
+    first = estimate_obstacle_depth(clean)
+    inliers, agreeing = int(first.num_inliers[0]), int(first.num_agreeing_inliers[0])
+    for many, least, expected in ((inliers, agreeing, True), (inliers + 1, 1, False), (None, 0, False),
+                                  (inliers, 10**6, False)):
+        config = PipelineConfig(verify_min_agreeing_inliers=10**6, verify_many_inliers=many,
+                                verify_many_inliers_min_agreeing=least)
+        assert bool(estimate_obstacle_depth(clean, config).verified[0]) == expected, (many, least)
+
+
+@pytest.mark.parametrize("value", [0, -3, 2.5, True, "60"])
+def test_a_wrong_setting_is_refused_by_name(value):
+    with pytest.raises(InputError, match=r"^verify_many_inliers: expected an integer >= 1 or None"):
+        PipelineConfig(verify_many_inliers=value)
+    with pytest.raises(InputError, match=r"^verify_many_inliers_min_agreeing: expected an integer >= 0"):
+        PipelineConfig(verify_many_inliers_min_agreeing=-1 if value == 0 else value)
