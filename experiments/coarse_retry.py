@@ -26,7 +26,7 @@ import real_rig  # noqa: E402
 from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import default_data_dir  # noqa: E402
 
-from svs_torch.core.files import atomic_output  # noqa: E402
+from svs_torch.core.files import write_bytes_atomic  # noqa: E402
 from svs_torch.pipeline import PipelineConfig  # noqa: E402
 
 
@@ -70,8 +70,7 @@ def main(argv: list[str] | None = None) -> str:
     table = "\n".join(lines) + "\n"
     print(table)
     if args.markdown:
-        with atomic_output(args.markdown, "w") as stream:
-            stream.write(table)
+        write_bytes_atomic(args.markdown, table.encode("utf-8"))
     return table
 
 

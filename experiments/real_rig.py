@@ -51,7 +51,7 @@ import torch
 from svs_torch.data import resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
-from svs_torch.core.files import atomic_output
+from svs_torch.core.files import write_bytes_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.core.types import StereoBatch
 
@@ -300,11 +300,9 @@ def main(argv: list[str] | None = None) -> dict:
     table = markdown(summary, command)
     print(table)
     if args.json:
-        with atomic_output(args.json, "w") as stream:
-            json.dump(report, stream, indent=1)
+        write_bytes_atomic(args.json, json.dumps(report, indent=1).encode("utf-8"))
     if args.markdown:
-        with atomic_output(args.markdown, "w") as stream:
-            stream.write(table)
+        write_bytes_atomic(args.markdown, table.encode("utf-8"))
     return report
 
 

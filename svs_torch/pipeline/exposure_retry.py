@@ -40,7 +40,7 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     # A pair measured on the coarse grid counts as unfinished too: a brighter camera's clipped highlights leave the
     # working-width SAD as few unique windows as noise does, and the coarse grid may range the clipped patch
     # (tuned Piano at native size, right camera 30 % brighter: verified at 31.7 %; exposure matched: 99.4 %).
-    coarse = result.coarse if result.coarse is not None else torch.zeros_like(result.verified)
+    coarse = result.coarse  # set with verified, under the dense rule
     unfinished = ~result.verified | unranged_kept_object(result.segmentation, result.depth.objects) | coarse
     if not bool(unfinished.any()):
         return result
