@@ -64,6 +64,10 @@ darker was run again with the two exposures matched, the darker view mapped onto
 both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the dense map measured too little
 of the kept regions (noisy or heavily compressed frames) and the depth was measured again at half the working
 width, where each pixel averages four times as many (PipelineConfig.coarse_retry_below_share).
+"dropped_unmeasured": kept regions of which the dense map measured under 45 % of the pixels, dropped beside
+a nearer kept region it did measure (noise lets a far region be kept, and its few measured pixels are the wrong
+ones; PipelineConfig.drop_unmeasured_below_share); they are not listed in "objects", and the nearest obstacle
+is never one of them.
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """

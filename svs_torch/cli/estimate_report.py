@@ -18,7 +18,8 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "row_aligned": False, "exposure_matched": False, "coarse_dense": False, "dense_box_xywh": None,
+            "row_aligned": False, "exposure_matched": False, "coarse_dense": False, "dropped_unmeasured": 0,
+            "dense_box_xywh": None,
             "time_s": 0.0,
             "calibration": None}
 
@@ -101,6 +102,10 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
+        # Kept regions the dense map could not measure, dropped beside a nearer one it did
+        # (PipelineConfig.drop_unmeasured_below_share); they are not in "objects".
+        "dropped_unmeasured": (int(result.dropped_objects[index].sum()) if result.dropped_objects is not None
+                               else 0),
         # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of
         # --disparity-out's map; rectified pixels for a rectified pair): each object's depth statistics are over
         # its region's pixels inside it.
@@ -128,6 +133,9 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
         lines.append("  right camera: " + " and ".join(corrected))
     if report.get("coarse_dense"):
         lines.append("  noisy frames: depth measured at half the working width")
+    if report.get("dropped_unmeasured"):
+        count = report["dropped_unmeasured"]
+        lines.append(f"  {count} kept region{'s' if count > 1 else ''} the dense map could not measure: dropped")
     if report["r_min_m"] is not None:
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "

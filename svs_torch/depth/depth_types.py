@@ -130,7 +130,8 @@ class ObjectDepths:
     """Depth of each kept region (N slots; slot n is ``region_labels[:, n]``). All ``(B, N)``.
 
     Attributes:
-        label: int64 label of the slot, −1 for padding.
+        label: int64 label of the slot, −1 for padding (or a slot the pipeline dropped as unmeasured,
+            ``PipelineResult.dropped_objects``).
         area_px: int64 pixel count of the region in the label image.
         centroid_x_px: mean column of the region (pixel centres); 0 where the area is 0.
         side: :class:`ObstacleSide` of the centroid (thirds of the pair's width), NONE where the area is 0.

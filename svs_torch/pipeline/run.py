@@ -26,7 +26,8 @@ from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
-from .ranging import _dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config
+from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
+                      drop_unmeasured_objects)
 from .soft import differentiable_depth
 from .stages import _feature_images, _features, _match, _network, _segment_group, _segment_row_aligned, _status
 
@@ -213,13 +214,14 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right,
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = smoothed = coarse = None
+    dense = verified = agreeing = smoothed = coarse = dropped = None
     if config.depth.rule == "dense":
         fundamental_ok = ((fundamental.status == FundamentalStatus.OK)
                           & (fundamental.num_inliers >= config.verify_min_inliers)
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
         depth, dense, verified, agreeing, smoothed, coarse = _dense_depth_with_retry(
             batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
+        seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
@@ -230,4 +232,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
         verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed,
-        row_aligned=row_aligned, row_alignment_inliers=row_inliers, coarse=coarse)
+        row_aligned=row_aligned, row_alignment_inliers=row_inliers, coarse=coarse, dropped_objects=dropped)

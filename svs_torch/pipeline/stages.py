@@ -81,7 +81,8 @@ def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: F
             (fundamental.status == FundamentalStatus.TOO_FEW_MATCHES, PipelineStatus.TOO_FEW_MATCHES),
             ((num_keypoints < MIN_CORRESPONDENCES).any(dim=1), PipelineStatus.TOO_FEW_KEYPOINTS),
         ]
-    checks.append(((seg.left.kept_labels[:, 0] < 0) | (seg.right.kept_labels[:, 0] < 0)
+    # Every slot: a left slot dropped as unmeasured (PipelineConfig.drop_unmeasured_below_share) leaves a gap.
+    checks.append(((seg.left.kept_labels < 0).all(1) | (seg.right.kept_labels < 0).all(1)
                    | (seg.status != SegmentationStatus.OK), PipelineStatus.NO_OBJECTS))
     for failed, code in checks:
         status = torch.where(failed, torch.full_like(status, code), status)

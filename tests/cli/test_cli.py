@@ -464,6 +464,22 @@ def test_guide_needs_boards_or_the_emulator(capsys):
     assert code == 2 and "--emulator" in err
 
 
+def test_estimate_says_when_it_dropped_a_region_it_could_not_measure(data_dir, capsys, tmp_path):
+    """Held-out Midd1 at 320×240 as a board sends it at JPEG digit 1 with sensor noise σ 2 (experiments/real_rig.py):
+    the noise lets a far region in, which the dense map barely measures; the JSON's "dropped_unmeasured" counts it,
+    "objects" lists the measured one only, and the text says so. The clean pair drops nothing."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+    import real_rig
+
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Midd1"), "320x240")
+    views = {name: (left, right) for name, left, right in real_rig.conditions(scene, 17)}  # held-out index 17
+    reports = _estimate_pairs_json(capsys, tmp_path, {"clean": views["clean"], "jpeg": views["jpeg q1 + noise s2"]})
+    assert [r["dropped_unmeasured"] for r in reports] == [0, 1]
+    assert [len(r["objects"]) for r in reports] == [1, 1] and reports[1]["objects"][0]["depth_m"] is not None
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "jpeg_left.png"), str(tmp_path / "jpeg_right.png"))
+    assert code == 0 and "1 kept region the dense map could not measure: dropped" in out
+
+
 def test_estimate_help_states_the_verification_defaults():
     """The numbers ``estimate --help`` gives for the verification are the pipeline's defaults."""
     from svs_torch.cli import estimate
@@ -475,6 +491,8 @@ def test_estimate_help_states_the_verification_defaults():
             f"{config.verify_many_inliers_min_agreeing}") in estimate.EPILOG.replace("\n", " ")
     assert (f"needs {config.depth.min_object_valid_fraction_unverified:.0%} of its region measured instead of "
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
+    assert (f"the dense map measured under {config.drop_unmeasured_below_share:.0%} of".replace("%", " %")
+            in estimate.EPILOG.replace("\n", " "))
 
 
 def test_estimate_text_names_pixels_out_of_view_only_where_some_are():

@@ -184,8 +184,9 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     assert scenes.object_bbox_xyxy[0, 1].tolist()[::2] == [0, strip_px]
     assert SVS_CAMERA.focal_px(320) * SVS_CAMERA.baseline_m / near_m > strip_px + 15
 
-    def objects(min_in_view: int):
-        config = PipelineConfig(segmentation=OTSU, depth=DepthConfig(min_object_pixels_in_view=min_in_view))
+    def objects(min_in_view: int):  # without the drop of unmeasured regions, which drops the wrong strip too
+        config = PipelineConfig(segmentation=OTSU, depth=DepthConfig(min_object_pixels_in_view=min_in_view),
+                                drop_unmeasured_below_share=None)
         result = estimate_obstacle_depth(scenes.batch, config)
         assert result.status.tolist() == [PipelineStatus.OK]
         return result.depth.objects

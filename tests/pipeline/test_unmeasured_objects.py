@@ -1,0 +1,124 @@
+"""A kept region the dense map could not measure is dropped beside one it measured
+(``PipelineConfig.drop_unmeasured_below_share``, ``PipelineResult.dropped_objects``; issue 33, camera frames)."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import pytest
+import torch
+from conftest import REPO_ROOT
+
+from svs_torch import InputError
+from svs_torch.evaluation import evaluate_result
+from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+
+sys.path.insert(0, str(REPO_ROOT / "experiments"))
+
+import real_rig  # noqa: E402
+
+NOISY = "jpeg q1 + noise s2"
+
+
+@pytest.fixture(scope="module")
+def midd1(data_dir):
+    """Middlebury 2005 Midd1 (held-out) at 320×240: the clean pair, then the frames a board sends at JPEG digit 1
+    with sensor noise σ 2 in each view (experiments/real_rig.py; Midd1 is the held-out split's scene 17)."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Midd1"), "320x240")
+    views = [view for view in real_rig.conditions(scene, 17) if view[0] in ("clean", NOISY)]
+    assert [view[0] for view in views] == ["clean", NOISY]
+    return real_rig.stack_conditions(scene, views)
+
+
+@pytest.fixture(scope="module")
+def results(midd1):
+    return (estimate_obstacle_depth(midd1, PipelineConfig()),
+            estimate_obstacle_depth(midd1, PipelineConfig(drop_unmeasured_below_share=None)))
+
+
+def _share(objects, pair: int) -> list[float]:
+    return (objects.num_valid_px[pair].double() / objects.area_px[pair].clamp_min(1).double()).tolist()
+
+
+def test_a_far_region_the_noise_let_in_is_dropped(midd1, results):
+    """The noisy pair keeps a second, far region (about 10.7 m) whose dense map is mostly rejected: ranged on 10 %
+    of its pixels, farther than the measured obstacle but not as far as it is. It is dropped, the measured obstacle
+    stays with the same depth,
+    the pair scores as the clean one does, and the clean pair (one region, measured on two thirds) is unchanged."""
+    kept, without = results
+    slot = int(kept.dropped_objects[1].nonzero().flatten().item())
+    assert _share(without.depth.objects, 1)[slot] < 0.2 and bool(without.depth.objects.valid[1, slot])
+    assert evaluate_result(midd1, without)[1].acc_objects_pct < 85
+    other = 1 - slot
+    assert _share(kept.depth.objects, 1)[other] >= PipelineConfig().drop_unmeasured_below_share
+    assert float(without.depth.objects.depth_median_m[1, slot]) > float(without.depth.objects.depth_median_m[1, other])
+    assert int(kept.segmentation.left.kept_labels[1, slot]) == -1
+    assert not bool(kept.depth.objects.valid[1, slot]) and int(kept.depth.objects.label[1, slot]) == -1
+    region = without.segmentation.left.labels[1] == without.segmentation.left.kept_labels[1, slot]
+    assert not bool(kept.segmentation.left.kept_mask[1][region].any())
+    assert not bool(kept.segmentation.left.masked[1][region].any())
+    assert float(kept.depth.nearest.depth_m[1]) == float(without.depth.objects.depth_median_m[1, other])
+    assert float(kept.depth.range.r_max_m[1]) == float(kept.depth.range.r_min_m[1])
+    scores = evaluate_result(midd1, kept)
+    assert scores[1].status == "OK" and scores[1].num_objects == 1 and scores[1].acc_objects_pct > 97
+    assert not bool(kept.dropped_objects[0].any())
+    assert torch.equal(kept.depth.objects.depth_median_m[0], without.depth.objects.depth_median_m[0])
+    assert kept.status.tolist() == [PipelineStatus.OK] * 2
+
+
+def test_regions_all_measured_on_too_little_are_kept(midd1, results):
+    """Under a share no region reaches, nothing is dropped (no region was measured to warn about instead): the
+    result is the one without the rule; a lone region is never dropped either."""
+    _, without = results
+    strict = estimate_obstacle_depth(midd1, PipelineConfig(drop_unmeasured_below_share=0.99))
+    assert not bool(strict.dropped_objects.any())
+    assert torch.equal(strict.depth.objects.depth_median_m, without.depth.objects.depth_median_m)
+    assert torch.equal(strict.segmentation.left.kept_labels, without.segmentation.left.kept_labels)
+
+
+def test_a_region_ranged_nearer_than_the_measured_one_stays(data_dir):
+    """MiddEval3 ArtL at 320×240 at JPEG digit 8 with σ 8, on Otsu's regions: the nearer object (1.49 m) is measured
+    on 43 % of its pixels, under the share, beside the 1.75 m one measured on 54 %. Its few pixels range it nearer,
+    so it stays ranged: dropping it would move the warning to the farther object."""
+    from svs_torch.segmentation import SegmentationConfig
+
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
+    frames = [real_rig.camera_frame(image, 8, 8.0, torch.Generator().manual_seed(view))
+              for view, image in enumerate((scene.left, scene.right))]
+    pair = real_rig.stack_conditions(scene, [("q8 s8", *frames)])
+    result = estimate_obstacle_depth(pair, PipelineConfig(segmentation=SegmentationConfig()))
+    objects = result.depth.objects
+    share = _share(objects, 0)
+    low = min(range(2), key=lambda slot: share[slot])
+    assert share[low] < PipelineConfig().drop_unmeasured_below_share <= share[1 - low]
+    assert float(objects.depth_median_m[0, low]) < float(objects.depth_median_m[0, 1 - low])
+    assert not bool(result.dropped_objects.any()) and bool(objects.valid[0, :2].all())
+    assert float(result.depth.nearest.depth_m[0]) == float(objects.depth_median_m[0, low])
+
+
+def test_the_differentiable_pass_follows_the_drop(midd1, results):
+    """With ``differentiable=True`` the dropped slot stays invalid, the kept object's depth is within 0.5 % of the
+    hard one and carries gradients to both images."""
+    kept, _ = results
+    pair = midd1.select(torch.tensor([1]))
+    pair = dataclasses.replace(pair, left=pair.left.clone().requires_grad_(True),
+                               right=pair.right.clone().requires_grad_(True))
+    soft = estimate_obstacle_depth(pair, PipelineConfig(differentiable=True))
+    assert torch.equal(soft.dropped_objects, kept.dropped_objects[1:])
+    assert torch.equal(soft.depth.objects.valid, kept.depth.objects.valid[1:])
+    valid = soft.depth.objects.valid[0]
+    hard, value = kept.depth.objects.depth_median_m[1][valid], soft.depth.objects.depth_median_m[0][valid]
+    assert torch.allclose(value.detach(), hard.to(value.dtype), rtol=5e-3)
+    value.sum().backward()
+    assert float(pair.left.grad.abs().sum()) > 0 and float(pair.right.grad.abs().sum()) > 0
+
+
+def test_the_paper_preset_keeps_every_region():
+    assert PipelineConfig.paper().drop_unmeasured_below_share is None
+
+
+@pytest.mark.parametrize("value", [0, -0.1, 1.5, True, "0.45"])
+def test_a_wrong_share_is_refused_by_name(value):
+    with pytest.raises(InputError, match=r"^drop_unmeasured_below_share: expected a share in \(0, 1\] or None"):
+        PipelineConfig(drop_unmeasured_below_share=value)
