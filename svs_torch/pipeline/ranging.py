@@ -22,6 +22,7 @@ from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified
 from ..geometry.row_alignment import fit_row_alignment
+from ..segmentation.segment import kept_regions_mask
 from .config import PipelineConfig
 
 __all__ = []
@@ -197,20 +198,18 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     ``below_share`` None drops nothing."""
     objects = depth.objects
     kept = seg.left.kept_labels >= 0
-    if below_share is None:
+    if below_share is None or kept.shape[1] == 0:
         return seg, depth, torch.zeros_like(kept)
     share = objects.num_valid_px.to(torch.float64) / objects.area_px.clamp_min(1).to(torch.float64)
     measured = kept & objects.valid & (share >= below_share)
     # The nearest measured object's depth: a region ranged nearer than it is kept, however little was measured.
-    nearest_measured = torch.where(measured, objects.depth_median_m, torch.inf).amin(1, keepdim=True) \
-        if measured.shape[1] else objects.depth_median_m.new_full((measured.shape[0], 1), torch.inf)
+    nearest_measured = torch.where(measured, objects.depth_median_m, torch.inf).amin(1, keepdim=True)
     farther = ~objects.valid | (objects.depth_median_m >= nearest_measured)
     dropped = kept & (share < below_share) & farther & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped
     kept_labels = torch.where(dropped, torch.full_like(seg.left.kept_labels, -1), seg.left.kept_labels)
-    labels = seg.left.labels
-    kept_mask = any_along(labels == slot_labels(kept_labels).view(*kept_labels.shape, 1, 1), dim=1, keepdim=True)
+    kept_mask = kept_regions_mask(seg.left.labels, kept_labels, seg.left.regions.area_px.shape[1])
     left = dataclasses.replace(seg.left, kept_labels=kept_labels, kept_mask=kept_mask,
                                masked=torch.where(kept_mask, seg.left.masked, torch.zeros_like(seg.left.masked)))
     label = torch.where(dropped, torch.full_like(objects.label, -1), objects.label)

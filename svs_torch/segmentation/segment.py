@@ -24,7 +24,8 @@ from .components import connected_components_with_stats
 from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
 
-__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions", "keep_regions"]
+__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions", "keep_regions",
+           "kept_regions_mask"]
 
 
 #: The widest structuring element, pixels: the opening pads the image by the element and passes over it once per
@@ -183,12 +184,17 @@ def _keep_in_order(labels: torch.Tensor, regions: RegionProperties, order: torch
     kept = torch.where(kept_valid, order + 1, torch.full_like(order, -1))
     if kept.shape[1] < num_keep:
         kept = torch.cat([kept, kept.new_full((b, num_keep - kept.shape[1]), -1)], dim=1)
+    return kept, kept_regions_mask(labels, kept, slots)
+
+
+def kept_regions_mask(labels: torch.Tensor, kept_labels: torch.Tensor, num_slots: int) -> torch.Tensor:
+    """The union of the regions ``kept_labels`` ``(B, N)`` (−1: none) of ``labels`` ``(B, 1, H, W)``, whose labels
+    are at most ``num_slots``, as a bool mask of ``labels``' shape."""
     # Lookup table label -> kept, then one gather over the label image.
-    table = torch.zeros(b, slots + 1, dtype=torch.bool, device=labels.device)
-    table.scatter_(1, kept.clamp(min=0), kept >= 0)
+    table = torch.zeros(kept_labels.shape[0], num_slots + 1, dtype=torch.bool, device=labels.device)
+    table.scatter_(1, kept_labels.clamp(min=0), kept_labels >= 0)
     table[:, 0] = False
-    kept_mask = torch.gather(table, 1, labels.flatten(1)).view_as(labels)
-    return kept, kept_mask
+    return torch.gather(table, 1, labels.flatten(1)).view_as(labels)
 
 
 def _status(levels_uniform: torch.Tensor, opened: torch.Tensor) -> torch.Tensor:
