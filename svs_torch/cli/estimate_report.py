@@ -102,8 +102,8 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
-        # Kept regions the dense map could not measure, dropped beside a nearer one it did
-        # (PipelineConfig.drop_unmeasured_below_share); they are not in "objects".
+        # Kept regions the dense map could not measure, dropped beside one it did
+        # (PipelineConfig.drop_unmeasured_below_share, drop_unmeasured_nearer_below_share); not in "objects".
         "dropped_unmeasured": (int(result.dropped_objects[index].sum()) if result.dropped_objects is not None
                                else 0),
         # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of

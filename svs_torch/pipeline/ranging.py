@@ -179,7 +179,8 @@ def coarse_is_better(verified_first: torch.Tensor, ranged_first: torch.Tensor, v
 
 
 def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
-                            below_share: float | None) -> tuple[StereoSegmentation, DepthResult, torch.Tensor]:
+                            below_share: float | None, nearer_below_share: float | None = None
+                            ) -> tuple[StereoSegmentation, DepthResult, torch.Tensor]:
     """The kept left regions whose dense map measured less than ``below_share`` of their pixels, dropped where
     another kept region of the pair was ranged on at least that share and their few pixels range them no nearer
     than it (or not at all) (``PipelineConfig.drop_unmeasured_below_share``).
@@ -193,18 +194,26 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     stage cannot measure is not an obstacle the pair can warn about, while one it measured is. A region ranged
     nearer than every measured one stays: dropped, it would move the warning to a farther object, and held-out
     scenes hold true near obstacles measured on under half their pixels (Lampshade2's 5 m lamp beside a 12.5 m
-    wall). So the nearest obstacle and R_min never change; R_max and the objects listed may. A pair whose every
-    kept region was measured on too little keeps them all (each is ranged or not by its own share as before).
-    ``below_share`` None drops nothing."""
+    wall). So the nearest obstacle and R_min do not change by this rule; R_max and the objects listed may. A pair
+    whose every kept region was measured on too little keeps them all (each is ranged or not by its own share as
+    before). ``below_share`` None drops nothing.
+
+    ``nearer_below_share`` (None: unused) drops a region measured on less than it (and less than ``below_share``)
+    even where its few pixels range it nearer than the measured one: under that share nearly every window was
+    rejected, the region's range is mostly its row neighbours' disparities filled in, and noise ranges a far
+    textureless region near (held-out Midd2 with JPEG digit 4: a 16 m wall measured on 11 % of its pixels, ranged
+    at 2.65 m beside the 4.0 m obstacle). Only that rule can change the nearest obstacle."""
     objects = depth.objects
     kept = seg.left.kept_labels >= 0
     if below_share is None or kept.shape[1] == 0:
         return seg, depth, torch.zeros_like(kept)
     share = objects.num_valid_px.to(torch.float64) / objects.area_px.clamp_min(1).to(torch.float64)
     measured = kept & objects.valid & (share >= below_share)
-    # The nearest measured object's depth: a region ranged nearer than it is kept, however little was measured.
+    # The nearest measured object's depth: a region ranged nearer than it is kept unless nearly nothing was measured.
     nearest_measured = torch.where(measured, objects.depth_median_m, torch.inf).amin(1, keepdim=True)
     farther = ~objects.valid | (objects.depth_median_m >= nearest_measured)
+    if nearer_below_share is not None:
+        farther = farther | (share < nearer_below_share)
     dropped = kept & (share < below_share) & farther & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped

@@ -221,15 +221,15 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
         depth, dense, verified, agreeing, smoothed, coarse = _dense_depth_with_retry(
             batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
-        seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share)
+        seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
+                                                      config.drop_unmeasured_nearer_below_share)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
         status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None),
         segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
-        fundamental=fundamental,
+        fundamental=fundamental, num_keypoints=num_keypoints,
         rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
-        num_keypoints=num_keypoints,
         num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
         verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed,
         row_aligned=row_aligned, row_alignment_inliers=row_inliers, coarse=coarse, dropped_objects=dropped)

@@ -493,6 +493,8 @@ def test_estimate_help_states_the_verification_defaults():
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
     assert (f"the dense map measured under {config.drop_unmeasured_below_share:.0%} of".replace("%", " %")
             in estimate.EPILOG.replace("\n", " "))
+    assert (f"or under {config.drop_unmeasured_nearer_below_share:.0%} beside any region".replace("%", " %")
+            in estimate.EPILOG.replace("\n", " "))
 
 
 def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
