@@ -19,9 +19,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
             "row_aligned": False, "exposure_matched": False, "coarse_dense": False, "dropped_unmeasured": 0,
-            "dense_box_xywh": None,
-            "time_s": 0.0,
-            "calibration": None}
+            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
 
 
 def _calibration_source(source, args) -> str:

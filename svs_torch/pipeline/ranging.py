@@ -211,10 +211,10 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     measured = kept & objects.valid & (share >= below_share)
     # The nearest measured object's depth: a region ranged nearer than it is kept unless nearly nothing was measured.
     nearest_measured = torch.where(measured, objects.depth_median_m, torch.inf).amin(1, keepdim=True)
-    farther = ~objects.valid | (objects.depth_median_m >= nearest_measured)
+    droppable = ~objects.valid | (objects.depth_median_m >= nearest_measured)
     if nearer_below_share is not None:
-        farther = farther | (share < nearer_below_share)
-    dropped = kept & (share < below_share) & farther & measured.any(1, keepdim=True)
+        droppable = droppable | (share < nearer_below_share)
+    dropped = kept & (share < below_share) & droppable & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped
     kept_labels = torch.where(dropped, torch.full_like(seg.left.kept_labels, -1), seg.left.kept_labels)

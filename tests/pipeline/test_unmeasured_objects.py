@@ -22,14 +22,20 @@ import real_rig  # noqa: E402
 NOISY = "jpeg q1 + noise s2"
 
 
+def _held_out_frames(data_dir, name: str, scene_index: int, conditions: tuple[str, ...]):
+    """A held-out Middlebury 2005–2006 scene at 320×240 under experiments/real_rig.py's ``conditions`` (by name,
+    in that order; ``scene_index``: the scene's place in the split, which seeds its noise)."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / name), "320x240")
+    views = [view for view in real_rig.conditions(scene, scene_index) if view[0] in conditions]
+    assert [view[0] for view in views] == list(conditions)
+    return real_rig.stack_conditions(scene, views)
+
+
 @pytest.fixture(scope="module")
 def midd1(data_dir):
     """Middlebury 2005 Midd1 (held-out) at 320×240: the clean pair, then the frames a board sends at JPEG digit 1
     with sensor noise σ 2 in each view (experiments/real_rig.py; Midd1 is the held-out split's scene 17)."""
-    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Midd1"), "320x240")
-    views = [view for view in real_rig.conditions(scene, 17) if view[0] in ("clean", NOISY)]
-    assert [view[0] for view in views] == ["clean", NOISY]
-    return real_rig.stack_conditions(scene, views)
+    return _held_out_frames(data_dir, "Midd1", 17, ("clean", NOISY))
 
 
 @pytest.fixture(scope="module")
@@ -104,9 +110,7 @@ def test_a_far_wall_noise_ranges_near_is_dropped_under_the_nearer_share(data_dir
     it at about 2.7 m, nearer than the 4.0 m obstacle measured on 57 %. The share-only rule keeps it (it ranges
     nearer) and the pair warns about a wall that is far; under ``drop_unmeasured_nearer_below_share`` it is dropped
     and the nearest obstacle is the true one."""
-    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Midd2"), "320x240")
-    views = [view for view in real_rig.conditions(scene, 18) if view[0] == "jpeg q4 + noise s4"]
-    pair = real_rig.stack_conditions(scene, views)
+    pair = _held_out_frames(data_dir, "Midd2", 18, ("jpeg q4 + noise s4",))  # Midd2: the held-out scene 18
     kept = estimate_obstacle_depth(pair, PipelineConfig())
     share_only = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_nearer_below_share=None))
     objects = share_only.depth.objects
