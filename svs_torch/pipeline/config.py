@@ -243,7 +243,7 @@ class PipelineConfig:
         for name in ("verify_min_inliers", "verify_min_agreeing_inliers", "verify_many_inliers_min_agreeing"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, int) and value >= 0):
-                raise InputError(f"{name}: expected an integer >= 0, got {getattr(self, name)!r}")
+                raise InputError(f"{name}: expected an integer >= 0, got {value!r}")
         many = self.verify_many_inliers
         if many is not None and (isinstance(many, bool) or not isinstance(many, int) or many < 1):
             raise InputError(f"verify_many_inliers: expected an integer >= 1 or None, got {many!r}")

@@ -51,8 +51,8 @@ def _share(objects, pair: int) -> list[float]:
 def test_a_far_region_the_noise_let_in_is_dropped(midd1, results):
     """The noisy pair keeps a second, far region (about 10.7 m) whose dense map is mostly rejected: ranged on 10 %
     of its pixels, farther than the measured obstacle but not as far as it is. It is dropped, the measured obstacle
-    stays with the same depth,
-    the pair scores as the clean one does, and the clean pair (one region, measured on two thirds) is unchanged."""
+    stays with the same depth, the pair scores as the clean one does, and the clean pair (one region, measured on
+    two thirds) is unchanged."""
     kept, without = results
     slot = int(kept.dropped_objects[1].nonzero().flatten().item())
     assert _share(without.depth.objects, 1)[slot] < 0.2 and bool(without.depth.objects.valid[1, slot])

@@ -30,9 +30,9 @@ def baby2(data_dir):
 
 def test_many_inliers_vouch_where_the_dense_map_confirms_few(baby2):
     """The brighter pair: 121 inliers of 127 matches, of which the dense map (the book clipped in both views once
-    the exposures are matched) confirms 4, under the 6 it needs otherwise. Without the rule the pair is unverified and its
-    book, measured on a third of its pixels (under the unverified 40 %), is left unranged; with it the pair is
-    verified and ranged. The clean pair is verified by its confirmed inliers either way, with the same depth."""
+    the exposures are matched) confirms 4, under the 6 it needs otherwise. Without the rule the pair is unverified
+    and its book, measured on a third of its pixels (under the unverified 40 %), is left unranged; with it the pair
+    is verified and ranged. The clean pair is verified by its confirmed inliers either way, with the same depth."""
     alone = estimate_obstacle_depth(baby2, PipelineConfig())
     without = estimate_obstacle_depth(baby2, PipelineConfig(verify_many_inliers=None))
     assert int(alone.num_agreeing_inliers[1]) < PipelineConfig().verify_min_agreeing_inliers
