@@ -282,11 +282,15 @@ class StereoSegmentation:
     Attributes:
         left, right: :class:`Segmentation` of the left and right images.
         status: per-pair status ``(B,)`` int64: the left image's status where it is not OK, else the right's.
+        split_retaken: ``(B,)`` bool, the nearness segmenter's split was taken again under the 90th percentile of
+            the measured disparity (:mod:`svs_torch.segmentation.nearness_split`): a map with more wrong matches
+            than usual, which the pipeline's exposure retry also tries. None from segmenters without a split.
     """
 
     left: Segmentation
     right: Segmentation
     status: torch.Tensor
+    split_retaken: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)

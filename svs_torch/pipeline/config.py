@@ -149,12 +149,12 @@ class PipelineConfig:
             :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;
             two boards' gains and exposures), e.g. ``exposure=ExposureConfig()``. None (the default, and the
             paper's): off.
-        exposure_retry: under the dense rule, a pair left unverified or with a kept object unranged whose views'
-            exposures differ (by more than its ``min_change``) is run again with ``exposure`` set to this, and the
-            second result is kept where it is verified and ranges more objects
-            (:mod:`svs_torch.pipeline.exposure_retry`): the gain difference of two boards is corrected where it
-            costs a pair, and a pair lit by two lamps, which the map would lose, keeps its first result. None: off
-            (the paper's).
+        exposure_retry: under the dense rule, a pair left unverified, with a kept object unranged, or whose
+            nearness split was taken again, whose views' exposures differ (by more than its ``min_change``) is run
+            again with ``exposure`` set to this, and the second result is kept where it is verified and ranges
+            more objects (:mod:`svs_torch.pipeline.exposure_retry` gives the whole rule): the gain difference of
+            two boards is corrected where it costs a pair, and a pair lit by two lamps, which the map would lose,
+            keeps its first result. None: off (the paper's).
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).

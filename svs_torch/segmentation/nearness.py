@@ -15,8 +15,9 @@ it:
    (``experiments/select_nearness_rule.md``), the uniqueness ratio and the median on them clean and as camera
    frames (``select_nearness_denoise.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
-   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes) and
-   ``spread`` its 10–90 % range (at least 1 px).
+   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes), taken
+   again up to its 90th percentile where it leaves under ``min_near_share`` of the view near (more outliers than
+   that clip holds), and ``spread`` its 10–90 % range (at least 1 px).
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
    to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
@@ -53,15 +54,15 @@ from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.block_matching import block_match_sad, fill_invalid_rows
 from ..depth.dense_config import DenseConfig
-from ..depth.quantiles import row_quantile
 from ..depth.soft_dense import soft_block_match
 from . import kernels
 from .components import connected_components_with_stats, region_properties
 from .morphology import open_binary, structuring_element
 from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
+from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
 from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
-from .threshold import gray_histogram, gray_levels, gray_levels_and_histogram, otsu_threshold_level
+from .threshold import gray_levels_and_histogram
 
 __all__ = [
     "NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity", "nearness_logits",
@@ -95,6 +96,10 @@ class NearnessNetConfig:
             (experiments/nearness_fallback.md), so they keep ``median_window``.
         disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
         probability_threshold: a pixel is an obstacle where its probability exceeds this.
+        min_near_share: where the Otsu split leaves less than this share of the view nearer than it, the split
+            is taken again over the disparity clipped at its 90th percentile (:mod:`.nearness_split`); 0:
+            never. Chosen on the tuned split only (experiments/select_min_near_share.md). A weights file
+            written before this setting existed (the shipped one among them) takes this default.
     """
 
     working_width_px: int = 320
@@ -112,6 +117,7 @@ class NearnessNetConfig:
     rule_gain: float = 8.0
     disparity_temperature: float = 0.003
     probability_threshold: float = 0.5
+    min_near_share: float = 0.1  # experiments/select_min_near_share.md
 
     def __post_init__(self) -> None:
         for name in ("working_width_px", "network_width_px"):
@@ -124,6 +130,8 @@ class NearnessNetConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
+        if not 0 <= self.min_near_share < 1:
+            raise InputError(f"min_near_share: expected a share in [0, 1), got {self.min_near_share!r}")
         if not 0 <= self.sparse_share <= 1:
             raise InputError(f"sparse_share: expected a share in [0, 1], got {self.sparse_share!r}")
         if not 0 <= self.uniqueness_ratio < 1:
@@ -172,6 +180,8 @@ class NearnessDisparity:
         measured: ``(B, 1, H, W)`` bool, the block matcher accepted the pixel (not filled).
         split_px: ``(B,)`` the Otsu split of the filled disparity; spread_px ``(B,)`` its 10–90 % range (≥ 1).
         relative: ``(B, 1, H, W)`` ``(disparity − split) / spread``, the rule's nearness.
+        split_retaken: ``(B,)`` bool, the split was taken again under the 90th percentile
+            (``NearnessNetConfig.min_near_share``, :mod:`.nearness_split`).
     """
 
     disparity_px: torch.Tensor
@@ -179,6 +189,7 @@ class NearnessDisparity:
     split_px: torch.Tensor
     spread_px: torch.Tensor
     relative: torch.Tensor
+    split_retaken: torch.Tensor
 
 
 def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
@@ -234,16 +245,6 @@ def _median_filter(image: torch.Tensor, window: int) -> torch.Tensor:
     return windows.reshape(*image.shape, window * window).median(-1).values
 
 
-def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
-    flat = disparity.detach().flatten(1)
-    low, high = flat.amin(1), flat.amax(1)
-    spread = (high - low).view(-1, 1, 1, 1)
-    scaled = (disparity.detach() - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
-    level = otsu_threshold_level(gray_histogram(gray_levels(scaled)))
-    return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
-
-
 def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
                                config: NearnessNetConfig = NearnessNetConfig()) -> NearnessDisparity:
     """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1].
@@ -271,14 +272,9 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     if disparity.shape[-2:] != (h, w):  # (at the working size already, nearest resampling would copy it)
         disparity = F.interpolate(disparity, size=(h, w), mode="nearest")
         measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5
-    q = row_quantile(disparity.detach().flatten(1), (0.1, 0.9, 0.995)).T
-    # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
-    # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
-    # above nearly every pixel.
-    split = _otsu_split(torch.minimum(disparity.detach(), q[2].view(b, 1, 1, 1)))
-    spread = (q[1] - q[0]).clamp_min(1.0)
+    split, spread, retaken = nearness_split(disparity, config.min_near_share)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
-    return NearnessDisparity(disparity, measured, split, spread, relative)
+    return NearnessDisparity(disparity, measured, split, spread, relative, retaken)
 
 
 def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
@@ -337,7 +333,10 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.
     otsu = dataclasses.replace(config, segmenter="otsu", keep="largest", min_measured_share=0.0)
     low, rest = fallback.nonzero().flatten(), (~fallback).nonzero().flatten()
-    parts, indices = [segment_stereo(batch.select(low), otsu)], [low]
+    # Segmented by Otsu, their nearness split plays no part.
+    otsu_part = dataclasses.replace(segment_stereo(batch.select(low), otsu), split_retaken=torch.zeros(
+        len(low), dtype=torch.bool, device=batch.left.device))
+    parts, indices = [otsu_part], [low]
     if len(rest):
         parts.append(_segment_measured(batch.select(rest), config, net, left_logits[rest],
                                        take_pairs(measured, rest, b)))
@@ -383,4 +382,4 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
                          status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
                                             status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))
     pair_status = torch.where(left.status != SegmentationStatus.OK, left.status, right.status)
-    return StereoSegmentation(left=left, right=right, status=pair_status)
+    return StereoSegmentation(left=left, right=right, status=pair_status, split_retaken=measured.split_retaken)

@@ -258,7 +258,8 @@ def test_camera_frames_keep_the_clean_pairs_obstacles(data_dir):
     """Shelves (a train scene) at 320×240 as camera frames (JPEG 95 and 70 with σ 2 and 4 levels of noise in each
     view): the noise matches in flat areas once moved the Otsu split from 14 to 31 px and the kept "nearest" regions
     shrank from 21 065 to 225 px of specks. The median over the halved map keeps the clean pair's obstacles; without
-    it (median_window=1, the block matcher's own uniqueness) they are lost."""
+    it (median_window=1, the block matcher's own uniqueness) and without the split taken again under the 90th
+    percentile (min_near_share=0) they are lost; the split taken again alone recovers most of them."""
     from svs_torch.data import load_stereo_pair, resize_stereo_batch
 
     clean = resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Shelves"), (320, 240))
@@ -269,8 +270,12 @@ def test_camera_frames_keep_the_clean_pairs_obstacles(data_dir):
                                      right=_camera_frame(clean.right, quality, sigma, 2))
         kept = segment_stereo_nearness(frames, config, NearnessNet().eval()).left.kept_mask
         assert float(mask_iou(kept, reference)[0]) > 0.7, quality  # 0.83 and 0.76
-        raw = NearnessNet(NearnessNetConfig(median_window=1, uniqueness_ratio=0.1)).eval()
+        raw = NearnessNet(NearnessNetConfig(median_window=1, uniqueness_ratio=0.1, min_near_share=0.0)).eval()
         assert float(mask_iou(segment_stereo_nearness(frames, config, raw).left.kept_mask, reference)[0]) < 0.1
+        retaken = NearnessNet(NearnessNetConfig(median_window=1, uniqueness_ratio=0.1)).eval()
+        segmented = segment_stereo_nearness(frames, config, retaken)
+        assert bool(segmented.split_retaken[0]), quality
+        assert float(mask_iou(segmented.left.kept_mask, reference)[0]) > 0.5, quality
 
 
 def test_median_of_the_halved_map_against_a_per_pixel_reference():
@@ -317,3 +322,46 @@ def test_a_sparse_map_gets_the_wider_median():
         NearnessNetConfig(sparse_median_window=10)
     with pytest.raises(InputError, match="sparse_share"):
         NearnessNetConfig(sparse_share=1.5)
+
+
+def test_a_split_above_nearly_every_pixel_is_taken_again_under_the_90th_percentile():
+    """Wrong matches far above the scene (3 % of the map at 60–70 px where the scene lies at 8–18 px) draw the
+    Otsu split between them and the scene: the near side is those outliers alone. Under ``min_near_share`` the
+    split is taken again over the map clipped at its 90th percentile, pair by pair; a pair whose split leaves a
+    near side keeps it; 0 turns the rule off; out of range is refused by name."""
+    from svs_torch.segmentation.nearness_split import nearness_split
+
+    generator = torch.Generator().manual_seed(5)
+    disparity = 8 + 10 * torch.rand(2, 1, 40, 50, generator=generator)
+    disparity[0, :, :, :2] = 60 + 10 * torch.rand(40, 2, generator=generator)  # 4 % outliers
+    disparity[1, :, 20:] += 12  # a near half (20–30 px), no outliers
+    split_off, _, retaken_off = nearness_split(disparity, 0.0)
+    assert float((disparity[0] > split_off[0]).float().mean()) < 0.05  # the outliers alone are near
+    assert not bool(retaken_off.any())
+    split, spread, retaken = nearness_split(disparity, 0.1)
+    assert retaken.tolist() == [True, False]
+    assert 8 < float(split[0]) < 18 and float((disparity[0] > split[0]).float().mean()) > 0.2
+    assert float(split[1]) == float(split_off[1]) and 18 < float(split[1]) < 22
+    assert bool((spread >= 1).all())
+    with pytest.raises(InputError, match="min_near_share"):
+        NearnessNetConfig(min_near_share=1.0)
+
+
+def test_pianol_is_ranged_at_its_obstacle(data_dir):
+    """The tuned PianoL at 320×240 (the two views lit differently): 2.6 % of the measured map lies above 25 working
+    px where 90 % lies under 18, the Otsu split fell above the scene, the kept regions were specks and the pair went
+    unranged (NO_DENSE_DEPTH). Taken again under the 90th percentile, the split keeps the piano, ranged within 2 %
+    of its true distance (experiments/select_min_near_share.md); with the rule off the pair is still lost."""
+    from svs_torch.data import load_stereo_pair, resize_stereo_batch
+    from svs_torch.pipeline import PipelineStatus
+
+    batch = resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_eval3_Q" / "PianoL"), (320, 240))
+    truth = obstacle_truth(batch)
+    result = estimate_obstacle_depth(batch, PipelineConfig())
+    assert int(result.status[0]) == PipelineStatus.OK
+    real = float(truth.nearest_m[0])
+    assert abs(float(result.depth.nearest.depth_m[0]) - real) < 0.02 * real
+    assert float(mask_iou(result.segmentation.left.kept_mask, truth.kept_mask)[0]) > 0.5
+    off = NearnessNet(NearnessNetConfig(min_near_share=0.0)).eval()
+    seg_off = segment_stereo_nearness(batch, PipelineConfig().segmentation, off)
+    assert float(mask_iou(seg_off.left.kept_mask, truth.kept_mask)[0]) < 0.1

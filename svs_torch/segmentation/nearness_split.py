@@ -1,0 +1,67 @@
+"""Where the nearness rule splits a measured disparity map into near and far (:mod:`.nearness`, step 2).
+
+The split is the Otsu threshold of the filled disparity's 256-level histogram, the truth's rule applied to the
+estimate. A block matcher's wrong matches lie far above the scene, so the histogram spans the map only up to its
+99.5th percentile; where even that leaves less than ``min_near_share`` of the view near (more outliers than the
+clip holds), the split is taken again up to the 90th percentile, the top of the spread
+(``experiments/select_min_near_share.md``). Not differentiable: the split is a threshold (gradients of the
+rule's logits flow through the disparity, not the split).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..depth.quantiles import row_quantile
+from .threshold import gray_histogram, gray_levels, otsu_threshold_level
+
+__all__ = ["nearness_split"]
+
+
+def nearness_split(disparity: torch.Tensor, min_near_share: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The split ``(B,)`` of filled disparity maps ``(B, 1, H, W)`` (module docstring), their 10–90 % spread
+    ``(B,)`` (at least 1 px) and which pairs' split was taken again under the 90th percentile ``(B,)`` bool
+    (``min_near_share`` 0: never)."""
+    b = disparity.shape[0]
+    disparity = disparity.detach()
+    q = row_quantile(disparity.flatten(1), (0.1, 0.9, 0.995)).T
+    # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
+    # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
+    # above nearly every pixel.
+    split = _otsu_split(torch.minimum(disparity, q[2].view(b, 1, 1, 1)))
+    split, retaken = _split_leaving_near(disparity, split, q[1], min_near_share)
+    return split, (q[1] - q[0]).clamp_min(1.0), retaken
+
+
+def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
+    flat = disparity.flatten(1)
+    low, high = flat.amin(1), flat.amax(1)
+    spread = (high - low).view(-1, 1, 1, 1)
+    scaled = (disparity - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
+    level = otsu_threshold_level(gray_histogram(gray_levels(scaled)))
+    return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
+
+
+def _split_leaving_near(disparity: torch.Tensor, split: torch.Tensor, upper_px: torch.Tensor,
+                        min_near_share: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``split`` ``(B,)``, or where it leaves less than ``min_near_share`` of the map ``(B, 1, H, W)`` above it,
+    the Otsu split of the map clipped at ``upper_px`` ``(B,)`` (its 90th percentile, the spread's top) instead;
+    and which pairs' split was taken again ``(B,)`` bool.
+
+    Why: a few per cent of wrong matches far above the scene pass the 99.5 % clip and draw the split above
+    nearly every pixel (the tuned PianoL at 320×240, clean: 2.6 % of the view matched above 25 working px where
+    90 % lie under 18, the 99.5th percentile at 62; the split at 26 px left 2.5 % of the view near, the kept
+    regions were specks and the pair went unranged, ``NO_DENSE_DEPTH``). Clipped at the 90th percentile, the
+    split (11.5 px) stays inside the scene. Only such a split is taken again: one that leaves this share near
+    is left as it was."""
+    b = disparity.shape[0]
+    never = torch.zeros(b, dtype=torch.bool, device=disparity.device)
+    if min_near_share <= 0:
+        return split, never
+    near = (disparity > split.view(b, 1, 1, 1)).flatten(1).to(torch.float32).mean(1)
+    redo = near < min_near_share
+    if not bool(redo.any()):
+        return split, never
+    clipped = _otsu_split(torch.minimum(disparity, upper_px.view(b, 1, 1, 1)))
+    return torch.where(redo, clipped, split), redo
