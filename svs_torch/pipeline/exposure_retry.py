@@ -10,8 +10,8 @@ pair left unverified, or with a kept object unranged, or measured on the dense s
 views' quartiles differ by more than ``ExposureConfig.min_change``, is run again on the matched views. The second
 result is kept only where it is verified and ranges more objects (or as many, the first being unverified or coarse
 and the second not; or, the first's split taken again and the second's not, any object with more of the kept
-regions measured): views of two different scenes are
-never verified (``experiments/verify_views.py``), so the retry cannot let them through.
+regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the
+retry cannot let them through.
 
 Why the taken-again split: a brighter right camera clips its highlights, the clipped patch draws wrong matches
 above the scene, and the split taken under them may keep the wrong regions yet range them (tuned Piano at
@@ -87,9 +87,9 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
     # Where the first run's split was taken again and the matched views' split is not, the matched views give the
     # scene's usual map and the first's regions are suspect, however many it ranged: the second replaces the first
     # where verified, ranging an object and measuring more of its kept regions (Piano at 320×240, +30 %: two
-    # objects ranged on 59 % of their pixels at 89.3 %, matched one on 82 % at 99.3 %). A first that ranged all
-    # it kept is not replaced for ranging fewer than the second: PianoL's split is taken again on matched views
-    # too, and their extra region was wrong (JPEG digit 1: 97.7 -> 90.3 %).
+    # objects ranged on 59 % of their pixels at 89.3 %, matched one on 82 % at 99.3 %). A pair retried only for
+    # its split is not replaced because the second ranges more objects: PianoL's split is taken again on matched
+    # views too, and their extra region was wrong (JPEG digit 1: 97.7 -> 90.3 %).
     usual = retaken & ~_split_retaken(second) & second.verified & second.depth.objects.valid.any(1)
     more_measured = measured_share(second.depth.objects) > measured_share(first.depth.objects).index_select(0, index)
     return pick | (usual & more_measured)

@@ -172,13 +172,14 @@ def test_the_retry_keeps_a_pair_lit_by_two_lamps(data_dir, size):
 def test_a_split_taken_again_is_retried_but_kept_where_the_matched_views_need_it_too(data_dir):
     """PianoL at 320×240 as a camera frame (JPEG digit 1, noise σ 2): its split is taken again, so the retry runs
     it on matched views; there the split is taken again too and a second, wrong region is ranged (90.3 %), so the
-    first result (one object, 97.7 %) stays although the second ranges more objects. Where a split is taken
-    again only on the unmatched views (Piano behind a right camera 30 % brighter) the matched run replaces it."""
+    first result (one object, 97.7 %) stays although the second ranges more objects. (Where the split is taken
+    again only on the unmatched views, the matched run replaces it: test_a_brighter_right_camera_is_ranged_...)"""
     from svs_torch.evaluation import evaluate_result
 
     real_rig = _real_rig()
     scenes = data_dir / "middlebury_eval3_Q"
     lit = real_rig.resample(real_rig.load_scene(scenes / "PianoL"), "320x240")
+    # 5: PianoL's index in real_rig.py's tuned split, which seeds the scene's noise (its rows' frame).
     frame = next(view for view in real_rig.conditions(lit, 5) if view[0] == "jpeg q1 + noise s2")
     batch = real_rig.stack_conditions(lit, [frame])
     retried = estimate_obstacle_depth(batch, PipelineConfig())
