@@ -58,7 +58,8 @@ from run_metadata import default_data_dir, run_metadata  # noqa: E402
 RULES = [(15, 0.5, 0, 0.3, None), (10, 0.5, 0, 0.3, None), (0, 0.5, 6, 0.3, None), (0, 0.0, 6, 0.3, None),
          (15, 0.5, 6, 0.3, None), (0, 0.5, 4, 0.3, None), (0, 0.5, 8, 0.3, None), (0, 0.5, 6, 0.4, None),
          (0, 0.5, 6, 0.5, None), (0, 0.5, 6, 1.0, None), (0, 0.5, 6, 0.4, (20, 0)), (0, 0.5, 6, 0.4, (60, 0)),
-         (0, 0.5, 6, 0.4, (40, 1)), (0, 0.5, 6, 0.4, (60, 1))]
+         (0, 0.5, 6, 0.4, (40, 1)), (0, 0.5, 6, 0.4, (60, 1)), (0, 0.5, 4, 0.4, (60, 1)),
+         (0, 0.5, 5, 0.4, (60, 1))]
 #: The same scene under two names (MiddEval3's ArtL is 2005's Art, OpenCV's sample pair is Aloe, ...): never
 #: paired as unrelated.
 SAME_SCENE = {"ArtL": "Art", "MotorcycleE": "Motorcycle", "PianoL": "Piano", "opencv_samples": "Aloe"}

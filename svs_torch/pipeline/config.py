@@ -104,6 +104,8 @@ class PipelineConfig:
             confirms at most 4 inliers of unrelated views, up to 20 of a held-out 2005 scene against its
             near-duplicate (Baby1-3, Bowling1/2, Lampshade1/2, Midd1/2: the same objects moved), 6 such pairs
             verified; 196 of 199 real and synthetic pairs verified by it, 197 with ``verify_many_inliers``.
+            Lowered from 6 to 5 on 2026-11-25 (camera frames, issue 33): noise leaves the dense map confirming
+            few inliers of a real pair, and 5 stays above the 4 it confirms on unrelated views.
         verify_many_inliers, verify_many_inliers_min_agreeing: so many RANSAC inliers (with the share above)
             vouch with only this many of them confirmed by the dense map (None: never). A right camera that clips
             a white object, or noise, leaves a dense map that confirms few inliers of a real pair (held-out Baby2
@@ -195,9 +197,15 @@ class PipelineConfig:
     dense: DenseConfig = field(default_factory=DenseConfig)
     # experiments/verify_views.py: the dense map's confirmation separates real pairs (>= 7 agreeing inliers, 197 of
     # 199) from unrelated views (<= 5); 15 inliers left 7 real pairs unverified and verified 15 unrelated ones.
+    # 6 -> 5 (2026-11-25), chosen on the tuned split's half-contrast JPEG frames, the tuning set for camera frames
+    # (real_rig.py --splits tuned --contrast 0.5 --no-rival --set verify_min_agreeing_inliers=N): digit 7
+    # 87.41 -> 97.07 % at 5 and 4 (Piano 0 -> 94.7), digit 8 65.59 -> 75.02 at 4 only, no row lower; full contrast
+    # unchanged at both sizes. 5, not 4: the dense map confirms up to 4 inliers of unrelated views (Wood1 x Venus,
+    # verified at 4). verify_views.py at 5: tuning negatives 0 verified; held-out negatives 5 -> 7 of 1702, the two
+    # new ones Midd1 x Midd2 both ways (the same objects moved, 5 confirmed); every real and synthetic pair as at 6.
     verify_min_inliers: int = 0
     verify_min_inlier_share: float = 0.5
-    verify_min_agreeing_inliers: int = 6
+    verify_min_agreeing_inliers: int = 5
     # experiments/verify_views.py: F between views of different scenes kept at most 38 inliers (the held-out
     # 2005 near-duplicates Baby1-3, same objects moved; 12 on the tuning scenes' pairs, 9 synthetic). Tuned scenes
     # (experiments/real_rig.py --splits tuned --sizes 320x240,native --no-rival --set verify_many_inliers=N): with
