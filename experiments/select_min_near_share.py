@@ -2,7 +2,7 @@
 
 Where the Otsu split of the measured disparity leaves less than ``min_near_share`` of the view nearer than it, the
 segmenter takes the split again over the disparity clipped at its 90th percentile
-(:func:`svs_torch.segmentation.nearness._split_leaving_near`). Each candidate share is written beside the shipped
+(:func:`svs_torch.segmentation.nearness_split.nearness_split`). Each candidate share is written beside the shipped
 nearness weights into a temporary weights file and scored on the ``tuned`` split of experiments/paper_table1.py,
 at 320×240 and native size, twice:
 

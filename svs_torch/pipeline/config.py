@@ -196,7 +196,8 @@ class PipelineConfig:
     depth: DepthConfig = field(default_factory=DepthConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     # experiments/verify_views.py: the dense map's confirmation separates real pairs (>= 7 agreeing inliers, 197 of
-    # 199) from unrelated views (<= 5); 15 inliers left 7 real pairs unverified and verified 15 unrelated ones.
+    # 199) from unrelated views (<= 5 when first measured, <= 4 with the stages of 2026-11-25); 15 inliers left 7 real
+    # pairs unverified and verified 15 unrelated ones.
     # 6 -> 5 (2026-11-25), chosen on the tuned split's half-contrast JPEG frames, the tuning set for camera frames
     # (real_rig.py --splits tuned --contrast 0.5 --no-rival --set verify_min_agreeing_inliers=N): digit 7
     # 87.41 -> 97.07 % at 5 and 4 (Piano 0 -> 94.7), digit 8 65.59 -> 75.02 at 4 only, no row lower; full contrast

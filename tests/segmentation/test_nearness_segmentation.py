@@ -325,7 +325,7 @@ def test_a_sparse_map_gets_the_wider_median():
 
 
 def test_a_split_above_nearly_every_pixel_is_taken_again_under_the_90th_percentile():
-    """Wrong matches far above the scene (3 % of the map at 60–70 px where the scene lies at 8–18 px) draw the
+    """Wrong matches far above the scene (4 % of the map at 60–70 px where the scene lies at 8–18 px) draw the
     Otsu split between them and the scene: the near side is those outliers alone. Under ``min_near_share`` the
     split is taken again over the map clipped at its 90th percentile, pair by pair; a pair whose split leaves a
     near side keeps it; 0 turns the rule off; out of range is refused by name."""
