@@ -12,15 +12,18 @@ vouches badly: 7-point RANSAC fits some F to a dozen chance matches. This script
   scenes, both at 320×240; duplicates of one scene under another name, such as ArtL / Art or Piano / PianoL,
   are not paired), and each synthetic scene's left view with the next scene's right view.
 
-For every pair it records RANSAC's status and inliers, the matches, and the inliers whose disparity the dense map
-confirms within one working pixel (:func:`svs_torch.depth.dense_objects.count_agreeing_inliers`); each rule's verdict
-and the objects it lets through are then recomputed from the same run (the dense map does not depend on the
-rule). A rule is ``(verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
-DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing))`` of
-:class:`~svs_torch.pipeline.PipelineConfig`; the first row is the earlier default, and the defaults are one of the
-rows (``tests/test_experiments.py`` checks). The last: so many RANSAC inliers vouch with only so many confirmed by
-the dense map (a clipped or noisy view's dense map confirms few of them; the negatives' most inliers, in the
-first table, bound it).
+For every pair it records RANSAC's status and inliers, the matches, the inliers whose disparity the dense map
+confirms within one working pixel (:func:`svs_torch.depth.dense_objects.count_agreeing_inliers`) and those at a
+pixel it measured at all; each rule's verdict and the objects it lets through are then recomputed from the same run
+(the dense map does not depend on the rule). A rule is ``(verify_min_inliers, verify_min_inlier_share,
+verify_min_agreeing_inliers, DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers,
+verify_many_inliers_min_agreeing), (verify_unanimous_min_inliers, verify_unanimous_min_agreeing))`` of
+:class:`~svs_torch.pipeline.PipelineConfig`;
+the first row is the earlier default, and the defaults are one of the rows (``tests/test_experiments.py`` checks).
+The fifth: so many RANSAC inliers vouch with only so many confirmed by the dense map (a clipped or noisy view's
+dense map confirms few of them; the negatives' most inliers, in the first table, bound it). The last: so many
+inliers vouch where the dense map confirms at least so many and every one it measured (a noisy frame's map
+measures few windows; None: never).
 
 Choosing the default: positives and negatives from the scenes outside ``paper_table1.py``'s held-out split
 (MiddEval3, Middlebury 2001, KITTI, the OpenCV sample, synthetic) decide; the held-out split's are reported
@@ -54,12 +57,15 @@ from paper_table1 import is_held_out  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
-#: DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing) or None).
-RULES = [(15, 0.5, 0, 0.3, None), (10, 0.5, 0, 0.3, None), (0, 0.5, 6, 0.3, None), (0, 0.0, 6, 0.3, None),
-         (15, 0.5, 6, 0.3, None), (0, 0.5, 4, 0.3, None), (0, 0.5, 8, 0.3, None), (0, 0.5, 6, 0.4, None),
-         (0, 0.5, 6, 0.5, None), (0, 0.5, 6, 1.0, None), (0, 0.5, 6, 0.4, (20, 0)), (0, 0.5, 6, 0.4, (60, 0)),
-         (0, 0.5, 6, 0.4, (40, 1)), (0, 0.5, 6, 0.4, (60, 1)), (0, 0.5, 4, 0.4, (60, 1)),
-         (0, 0.5, 5, 0.4, (60, 1))]
+#: DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing) or None,
+#: (verify_unanimous_min_inliers, verify_unanimous_min_agreeing) or None).
+RULES = [(15, 0.5, 0, 0.3, None, None), (10, 0.5, 0, 0.3, None, None), (0, 0.5, 6, 0.3, None, None),
+         (0, 0.0, 6, 0.3, None, None), (15, 0.5, 6, 0.3, None, None), (0, 0.5, 4, 0.3, None, None),
+         (0, 0.5, 8, 0.3, None, None), (0, 0.5, 6, 0.4, None, None), (0, 0.5, 6, 0.5, None, None),
+         (0, 0.5, 6, 1.0, None, None), (0, 0.5, 6, 0.4, (20, 0), None), (0, 0.5, 6, 0.4, (60, 0), None),
+         (0, 0.5, 6, 0.4, (40, 1), None), (0, 0.5, 6, 0.4, (60, 1), None), (0, 0.5, 4, 0.4, (60, 1), None),
+         (0, 0.5, 5, 0.4, (60, 1), None), (0, 0.5, 5, 0.4, (60, 1), (1, 3)), (0, 0.5, 5, 0.4, (60, 1), (20, 3)),
+         (0, 0.5, 5, 0.4, (60, 1), (20, 2))]
 #: The same scene under two names (MiddEval3's ArtL is 2005's Art, OpenCV's sample pair is Aloe, ...): never
 #: paired as unrelated.
 SAME_SCENE = {"ArtL": "Art", "MotorcycleE": "Motorcycle", "PianoL": "Piano", "opencv_samples": "Aloe"}
@@ -82,7 +88,8 @@ def record(result, index: int) -> dict:
     return {"ok": status in (PipelineStatus.OK, PipelineStatus.NO_DENSE_DEPTH),
             "fundamental_ok": int(result.fundamental.status[index]) == 0,
             "inliers": int(result.num_inliers[index]), "matches": int(result.num_matches[index]),
-            "agreeing": int(result.num_agreeing_inliers[index]), "verified": bool(result.verified[index]),
+            "agreeing": int(result.num_agreeing_inliers[index]), "measured": int(result.num_measured_inliers[index]),
+            "verified": bool(result.verified[index]),
             "ranged": int(objects.valid[index].sum()) if status == PipelineStatus.OK else 0,
             "objects": [{"valid_px": int(objects.num_valid_px[index, n]),
                          "in_view_px": int(objects.num_in_view_px[index, n]), "area_px": int(objects.area_px[index, n])}
@@ -90,10 +97,12 @@ def record(result, index: int) -> dict:
 
 
 def verified(pair: dict, rule: tuple) -> bool:
-    min_inliers, share, agreeing, _, many = rule
+    min_inliers, share, agreeing, _, many, unanimous = rule
     return (pair["fundamental_ok"] and pair["inliers"] >= min_inliers and pair["inliers"] >= share * pair["matches"]
             and (pair["agreeing"] >= agreeing
-                 or (many is not None and pair["inliers"] >= many[0] and pair["agreeing"] >= many[1])))
+                 or (many is not None and pair["inliers"] >= many[0] and pair["agreeing"] >= many[1])
+                 or (unanimous is not None and pair["inliers"] >= unanimous[0] and pair["agreeing"] >= unanimous[1]
+                     and pair["agreeing"] == pair["measured"])))
 
 
 def ranged_objects(pair: dict, rule: tuple, config: PipelineConfig) -> int:
@@ -163,8 +172,8 @@ def report(sets: dict[str, list[dict]], config: PipelineConfig) -> str:
         most = max((p["inliers"] for p in pairs if p["fundamental_ok"]), default=0)
         lines.append(f"| {name} | {len(pairs)} (F found: {sum(p['fundamental_ok'] for p in pairs)}) | "
                      + " / ".join(map(str, pct)) + f" | {most} |")
-    lines += ["", "| rule (min inliers, share, min agreeing, unverified fraction, (many inliers, min agreeing)) | "
-              + " | ".join(sets) + " |",
+    lines += ["", "| rule (min inliers, share, min agreeing, unverified fraction, (many inliers, min agreeing), "
+              "(unanimous inliers, min agreeing)) | " + " | ".join(sets) + " |",
               "|---|" + "---|" * len(sets)]
     for rule in RULES:
         cells = []

@@ -78,7 +78,8 @@ def test_verify_views_on_a_few_scenes(data_dir, tmp_path):
     config = verify_views.PipelineConfig()
     default = (config.verify_min_inliers, config.verify_min_inlier_share, config.verify_min_agreeing_inliers,
                config.depth.min_object_valid_fraction_unverified,
-               (config.verify_many_inliers, config.verify_many_inliers_min_agreeing))
+               (config.verify_many_inliers, config.verify_many_inliers_min_agreeing),
+               (config.verify_unanimous_min_inliers, config.verify_unanimous_min_agreeing))
     assert default in verify_views.RULES  # the defaults are one of the measured rules
     positives = [p for name, pairs in sets.items() if name.startswith("positive/") for p in pairs]
     negatives = [p for name, pairs in sets.items() if name.startswith("negative/") for p in pairs]

@@ -55,9 +55,10 @@ status: "OK" when the obstacles were ranged; otherwise the stage that stopped (N
 TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
 a pair whose files cannot be read, with the reason in "reason". Numbers that do not exist are null.
 "verified": at least 5 RANSAC inliers have the disparity the dense map measures at their pixel, or RANSAC
-kept 60 inliers and the map confirms 1 (a clipped or noisy view confirms few), so both views show one scene;
-where not (a swapped, frozen or unplugged camera), an object needs 40 % of its region measured instead of 10 %
-("num_agreeing_inliers", "num_inliers"; experiments/verify_views.py).
+kept 60 inliers and the map confirms 1 (a clipped or noisy view confirms few), or kept 20 and the map confirms
+every one it measured, at least 3, so both views show one scene; where not (a swapped, frozen or unplugged
+camera), an object needs 40 % of its region measured instead of 10 % ("num_agreeing_inliers",
+"num_measured_inliers", "num_inliers"; experiments/verify_views.py).
 "row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
 the pair segmented again on them); "exposure_matched": a pair left unranged whose right camera is brighter or
 darker was run again with the two exposures matched, the darker view mapped onto the brighter one's so that

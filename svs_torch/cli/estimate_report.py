@@ -93,6 +93,8 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "num_inliers": int(result.num_inliers[index]),
         "num_agreeing_inliers": (int(result.num_agreeing_inliers[index]) if result.num_agreeing_inliers is not None
                                  else None),
+        "num_measured_inliers": (int(result.num_measured_inliers[index]) if result.num_measured_inliers is not None
+                                 else None),
         "verified": bool(result.verified[index]) if result.verified is not None else None,
         "rectified": bool(result.rectified[index]),
         # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched. Noisy

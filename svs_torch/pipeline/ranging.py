@@ -67,12 +67,12 @@ def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResu
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
                  points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
                  H_right: torch.Tensor, config: PipelineConfig
-                 ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor]:
+                 ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
     rectified: images and labels warped by the same homographies) over each pair's range (a coarse pass, or
     the sparse inliers' disparities), then each object's depth statistics over its region. Also returns
     whether the pair's geometry was verified (``fundamental_ok`` and enough inliers the dense map confirms)
-    and that count of agreeing inliers, ``(B,)`` each."""
+    and the counts of agreeing and of measured inliers, ``(B,)`` each."""
     left, right, labels = batch.left, batch.right, seg.left.labels
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
@@ -89,11 +89,9 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     # Agreement within one working pixel (the dense map's own grid) between the sparse and the dense disparity.
     agreeing = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
                                       float(working_factor(batch.left.shape[-1], config.dense)))
-    vouched = agreeing >= config.verify_min_agreeing_inliers
-    if config.verify_many_inliers is not None:  # a clipped or noisy view's dense map confirms few of many
-        vouched = vouched | ((inliers.sum(1) >= config.verify_many_inliers)
-                             & (agreeing >= config.verify_many_inliers_min_agreeing))
-    verified = fundamental_ok & vouched
+    # At any tolerance: every inlier at a pixel the dense map measured.
+    measured = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left, math.inf)
+    verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     weight = verified.to(batch.left.dtype)
     fraction = (weight * config.depth.min_object_valid_fraction
                 + (1 - weight) * config.depth.min_object_valid_fraction_unverified)
@@ -102,7 +100,21 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                                   config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
-    return depth, dense, verified, agreeing
+    return depth, dense, verified, agreeing, measured
+
+
+def _vouched(num_inliers: torch.Tensor, agreeing: torch.Tensor, measured: torch.Tensor,
+             config: PipelineConfig) -> torch.Tensor:
+    """``(B,)`` bool: the pairs whose RANSAC inliers ``(B,)`` the dense map confirms (``agreeing`` of the
+    ``measured`` ones) well enough that both views show one scene (``PipelineConfig.verify_*``)."""
+    vouched = agreeing >= config.verify_min_agreeing_inliers
+    if config.verify_many_inliers is not None:  # a clipped or noisy view's dense map confirms few of many
+        vouched = vouched | ((num_inliers >= config.verify_many_inliers)
+                             & (agreeing >= config.verify_many_inliers_min_agreeing))
+    if config.verify_unanimous_min_inliers is not None:  # a noisy map measures few inliers, and confirms them all
+        vouched = vouched | ((num_inliers >= config.verify_unanimous_min_inliers)
+                             & (agreeing >= config.verify_unanimous_min_agreeing) & (agreeing == measured))
+    return vouched
 
 
 def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) -> StereoBatch:
@@ -233,7 +245,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
                             config: PipelineConfig
                             ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor,
-                                       torch.Tensor]:
+                                       torch.Tensor, torch.Tensor]:
     """:func:`_dense_depth`, then two second passes, each over a few pairs:
 
     - **coarse** (``config.coarse_retry_below_share``): the pairs whose dense map measured too little of their

@@ -214,12 +214,12 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right,
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = smoothed = coarse = dropped = None
+    dense = verified = agreeing = measured = smoothed = coarse = dropped = None
     if config.depth.rule == "dense":
         fundamental_ok = ((fundamental.status == FundamentalStatus.OK)
                           & (fundamental.num_inliers >= config.verify_min_inliers)
                           & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
-        depth, dense, verified, agreeing, smoothed, coarse = _dense_depth_with_retry(
+        depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
             batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
         seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
                                                       config.drop_unmeasured_nearer_below_share)
@@ -228,8 +228,8 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     return PipelineResult(
         status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None),
         segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
-        fundamental=fundamental, num_keypoints=num_keypoints,
-        rectification=rectification, rectified=rectified, depth=depth, dense=dense, range_rule=config.depth.rule,
-        num_matches=matches.valid.sum(1), num_inliers=fundamental.num_inliers, timings_s=timings,
-        verified=verified, num_agreeing_inliers=agreeing, H_left=H_left, H_right=H_right, smoothed=smoothed,
-        row_aligned=row_aligned, row_alignment_inliers=row_inliers, coarse=coarse, dropped_objects=dropped)
+        fundamental=fundamental, num_keypoints=num_keypoints, rectification=rectification, rectified=rectified,
+        depth=depth, dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
+        num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
+        num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
+        row_alignment_inliers=row_inliers, coarse=coarse, dropped_objects=dropped)

@@ -1,6 +1,8 @@
 """When the sparse stage vouches that both views show one scene (``PipelineResult.verified``, issue 33): enough
 inliers the dense map confirms, or, where the dense map confirms few (a clipped or noisy view), many RANSAC inliers
-of which at least one is confirmed (``PipelineConfig.verify_many_inliers``, ``verify_many_inliers_min_agreeing``)."""
+of which at least one is confirmed (``PipelineConfig.verify_many_inliers``, ``verify_many_inliers_min_agreeing``),
+or enough inliers of which the dense map confirms every one it measured (``verify_unanimous_min_inliers``,
+``verify_unanimous_min_agreeing``)."""
 
 from __future__ import annotations
 
@@ -68,3 +70,58 @@ def test_a_wrong_setting_is_refused_by_name(value):
         PipelineConfig(verify_many_inliers=value)
     with pytest.raises(InputError, match=r"^verify_many_inliers_min_agreeing: expected an integer >= 0"):
         PipelineConfig(verify_many_inliers_min_agreeing=-1 if value == 0 else value)
+
+
+@pytest.fixture(scope="module")
+def dim_piano_frame(data_dir):
+    """MiddEval3 Piano (tuned split) at 320×240 at half contrast, sent as JPEG digit 8 frames with sensor noise
+    σ 8 (experiments/real_rig.py --splits tuned --contrast 0.5, its scene index 4): the tuning set's camera frames."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Piano"), "320x240")
+    scene = real_rig.dimmed(scene, 0.5)
+    views = [v for v in real_rig.conditions(scene, 4) if v[0] == "jpeg q8 + noise s8"]
+    return real_rig.stack_conditions(scene, views)
+
+
+def test_a_noisy_frame_whose_measured_inliers_all_agree_is_verified(dim_piano_frame):
+    """The dense map of the noisy frame measures a handful of the pair's RANSAC inliers, under the usual 5
+    confirmed, and confirms each one: with the rule the pair is verified and its obstacles ranged within 3 % of
+    their true distance; without it the pair is unverified and left without depth (NO_DENSE_DEPTH)."""
+    with_rule = estimate_obstacle_depth(dim_piano_frame)
+    without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None))
+    agreeing, measured = int(with_rule.num_agreeing_inliers[0]), int(with_rule.num_measured_inliers[0])
+    config = PipelineConfig()
+    assert config.verify_unanimous_min_agreeing <= agreeing == measured < config.verify_min_agreeing_inliers
+    assert int(with_rule.num_inliers[0]) >= config.verify_unanimous_min_inliers
+    assert bool(with_rule.verified[0]) and not bool(without.verified[0])
+    assert int(without.status[0]) == PipelineStatus.NO_DENSE_DEPTH
+    score = evaluate_result(dim_piano_frame, with_rule)[0]
+    assert score.status == "OK" and score.acc_objects_pct > 97
+
+
+def test_the_unanimous_rule_counts_inliers_and_the_measured_ones(baby2):
+    """With the other confirmations out of reach, a pair is verified exactly when RANSAC kept
+    ``verify_unanimous_min_inliers``, the dense map confirmed ``verify_unanimous_min_agreeing`` of them and every
+    one it measured: the clean Baby2 pair (135 inliers) has some measured and not confirmed, so it is never verified
+    by this rule, while the counts themselves are ordered (confirmed ≤ measured ≤ inliers)."""
+    clean = baby2.select(torch.tensor([0]))
+    first = estimate_obstacle_depth(clean)
+    inliers, agreeing = int(first.num_inliers[0]), int(first.num_agreeing_inliers[0])
+    measured = int(first.num_measured_inliers[0])
+    assert 0 < agreeing < measured <= inliers
+    for least_inliers, least_agreeing in ((1, 1), (inliers, agreeing), (inliers + 1, 1)):
+        config = PipelineConfig(verify_min_agreeing_inliers=10**6, verify_many_inliers=None,
+                                verify_unanimous_min_inliers=least_inliers,
+                                verify_unanimous_min_agreeing=least_agreeing)
+        result = estimate_obstacle_depth(clean, config)
+        confirmed = int(result.num_agreeing_inliers[0])
+        expected = (int(result.num_inliers[0]) >= least_inliers and confirmed >= least_agreeing
+                    and confirmed == int(result.num_measured_inliers[0]))
+        assert bool(result.verified[0]) == expected, (least_inliers, least_agreeing)
+
+
+@pytest.mark.parametrize("value", [0, -3, 2.5, True, "20"])
+def test_a_wrong_unanimous_setting_is_refused_by_name(value):
+    with pytest.raises(InputError, match=r"^verify_unanimous_min_inliers: expected an integer >= 1 or None"):
+        PipelineConfig(verify_unanimous_min_inliers=value)
+    with pytest.raises(InputError, match=r"^verify_unanimous_min_agreeing: expected an integer >= 1"):
+        PipelineConfig(verify_unanimous_min_agreeing=value)
