@@ -183,9 +183,12 @@ def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.
 
 def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, disparities: Disparities,
                            inliers: torch.Tensor, H_left: torch.Tensor | None = None,
-                           tolerance_px: float | torch.Tensor = 1.0) -> torch.Tensor:
+                           tolerance_px: float | torch.Tensor = 1.0, return_measured: bool = False
+                           ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """How many RANSAC inliers the dense map confirms: ``(B,)`` int64, the inliers whose sparse disparity lies
-    within ``tolerance_px`` of the dense disparity at their left point, where that pixel is valid.
+    within ``tolerance_px`` of the dense disparity at their left point, where that pixel is valid; with
+    ``return_measured`` (as ``torch.unique``'s ``return_counts``), also how many lie at a valid pixel, agreeing or
+    not, ``(B,)`` int64 (``PipelineConfig.verify_unanimous_min_inliers``).
 
     Two independent measurements agree there: the sparse match (SURF, SAD, RANSAC's F) and the dense block
     matcher's winner at that pixel. Between views of one scene most inliers on the kept regions agree; between
@@ -222,7 +225,7 @@ def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, dis
     measured = dense.valid.flatten(1).gather(1, index) & usable
     tolerance = _per_pair(tolerance_px, b, disparity, "tolerance_px").view(b, 1)
     agree = measured & ((dense_d - disparities.disparity_px.to(dense_d.dtype)).abs() <= tolerance)
-    return agree.sum(dim=1)
+    return (agree.sum(dim=1), measured.sum(dim=1)) if return_measured else agree.sum(dim=1)
 
 
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,

@@ -87,10 +87,9 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     # Agreement within one working pixel (the dense map's own grid) between the sparse and the dense disparity.
-    agreeing = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
-                                      float(working_factor(batch.left.shape[-1], config.dense)))
-    # At any tolerance: every inlier at a pixel the dense map measured.
-    measured = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left, math.inf)
+    agreeing, measured = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
+                                                float(working_factor(batch.left.shape[-1], config.dense)),
+                                                return_measured=True)
     verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     weight = verified.to(batch.left.dtype)
     fraction = (weight * config.depth.min_object_valid_fraction

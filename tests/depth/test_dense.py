@@ -479,6 +479,9 @@ def test_count_agreeing_inliers_by_hand():
     assert count.tolist() == [1, 1]
     assert count_agreeing_inliers(dense, points, disparities, inliers, tolerance_px=1.5).tolist() == [2, 2]
     assert count_agreeing_inliers(dense, points, disparities, torch.ones_like(inliers)).tolist() == [2, 2]
+    # Measured: the inliers at a valid pixel, agreeing or not (the first, the 1.4 px one and the far-off one).
+    agreeing, measured = count_agreeing_inliers(dense, points, disparities, inliers, return_measured=True)
+    assert agreeing.tolist() == [1, 1] and measured.tolist() == [3, 3]
     # Pair 1's dense map was measured after a shift of one column right: its points move with it.
     shift = torch.eye(3).expand(b, 3, 3).clone()
     shift[1, 0, 2] = 1.0
