@@ -68,7 +68,8 @@ width, where each pixel averages four times as many (PipelineConfig.coarse_retry
 "dropped_unmeasured": kept regions of which the dense map measured under 45 % of the pixels, dropped beside
 a nearer kept region it did measure (noise lets a far region be kept, and its few measured pixels are the wrong
 ones; PipelineConfig.drop_unmeasured_below_share), or under 15 % beside any region it measured, however near
-their filled-in range (PipelineConfig.drop_unmeasured_nearer_below_share); they are not listed in "objects".
+their filled-in range (PipelineConfig.drop_unmeasured_nearer_below_share), or left unranged beside one it ranged
+(wholly in the left band the right camera may not see); they are not listed in "objects".
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """

@@ -102,7 +102,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
-        # Kept regions the dense map could not measure, dropped beside one it did
+        # Kept regions the dense map could not measure, or left unranged, dropped beside one it ranged
         # (PipelineConfig.drop_unmeasured_below_share, drop_unmeasured_nearer_below_share); not in "objects".
         "dropped_unmeasured": (int(result.dropped_objects[index].sum()) if result.dropped_objects is not None
                                else 0),

@@ -144,8 +144,10 @@ class PipelineConfig:
             (:func:`~svs_torch.pipeline.ranging.drop_unmeasured_objects`; ``PipelineResult.dropped_objects``).
             Camera noise lets the segmenter keep a far region, or one straddling a depth edge, whose windows the
             dense checks mostly reject; the few kept are the wrong ones, and the pair would report a distance
-            nothing has. The nearest obstacle does not change by this rule. None: every kept region stays (the
-            paper's).
+            nothing has. A kept region the depth stage left unranged beside a ranged one is dropped too, whatever
+            its share (one wholly in the left band the right camera may not see:
+            ``DepthConfig.min_object_pixels_in_view``). The nearest obstacle does not change by this rule. None:
+            every kept region stays (the paper's).
         drop_unmeasured_nearer_below_share: a kept left region measured on less than this share is dropped as
             above even where its few pixels range it nearer than the measured one (with
             ``drop_unmeasured_below_share`` set): nearly every window rejected, its range is mostly its row

@@ -207,7 +207,10 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     scenes hold true near obstacles measured on under half their pixels (Lampshade2's 5 m lamp beside a 12.5 m
     wall). So the nearest obstacle and R_min do not change by this rule; R_max and the objects listed may. A pair
     whose every kept region was measured on too little keeps them all (each is ranged or not by its own share as
-    before). ``below_share`` None drops nothing.
+    before). A kept region the depth stage left unranged beside one it ranged is dropped whatever its share: one
+    wholly in the left band where the right camera may not see it (``DepthConfig.min_object_pixels_in_view``;
+    the tuned Jadeplant at native size, JPEG digit 6: a 2174-pixel region at x ≈ 114 beside a search range up to
+    197 px, listed with no distance) is no obstacle the pair can range. ``below_share`` None drops nothing.
 
     ``nearer_below_share`` (None: unused) drops a region measured on less than it (and less than ``below_share``)
     even where its few pixels range it nearer than the measured one: under that share nearly every window was
@@ -225,7 +228,9 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     droppable = ~objects.valid | (objects.depth_median_m >= nearest_measured)
     if nearer_below_share is not None:
         droppable = droppable | (share < nearer_below_share)
-    dropped = kept & (share < below_share) & droppable & measured.any(1, keepdim=True)
+    # Left unranged however much was measured: a region in the band the right camera may not see
+    # (DepthConfig.min_object_pixels_in_view) or too small to count.
+    dropped = kept & ((share < below_share) & droppable | ~objects.valid) & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped
     kept_labels = torch.where(dropped, torch.full_like(seg.left.kept_labels, -1), seg.left.kept_labels)

@@ -127,6 +127,31 @@ def test_a_far_wall_noise_ranges_near_is_dropped_under_the_nearer_share(data_dir
     assert scores.num_objects == 1 and scores.acc_objects_pct > 95 > scores_share_only.acc_objects_pct + 30
 
 
+def test_a_region_left_unranged_is_dropped_whatever_its_share(data_dir):
+    """The tuned MiddEval3 Jadeplant at native size, JPEG digit 6 with σ 6 (experiments/real_rig.py; the tuned
+    split's scene 1): noise lets the segmenter keep a second region of about 2 200 pixels on the left border, at
+    x ≈ 114 beside a search range up to about 197 px, where the right camera may not see it. Its dense map measured
+    most of it, but none at a column the whole range lands in view (``DepthConfig.min_object_pixels_in_view``), so
+    it was listed unranged and the pair scored about 49 %. It is dropped: the pair keeps the ranged plant, scored as
+    its clean pair is."""
+    scene = real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Jadeplant")
+    views = [view for view in real_rig.conditions(scene, 1) if view[0] == "jpeg q6 + noise s6"]
+    pair = real_rig.stack_conditions(scene, views)
+    kept = estimate_obstacle_depth(pair, PipelineConfig())
+    without = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_below_share=None))
+    objects = without.depth.objects
+    slot = int(kept.dropped_objects[0].nonzero().flatten().item())
+    assert not bool(objects.valid[0, slot]) and int(objects.num_in_view_px[0, slot]) == 0
+    assert _share(objects, 0)[slot] >= PipelineConfig().drop_unmeasured_below_share
+    assert evaluate_result(pair, without)[0].acc_objects_pct < 60
+    assert int(kept.segmentation.left.kept_labels[0, slot]) == -1
+    others = [other for other in range(objects.valid.shape[1]) if other != slot and objects.label[0, other] >= 0]
+    assert others and all(bool(kept.depth.objects.valid[0, other]) for other in others)
+    assert float(kept.depth.nearest.depth_m[0]) == float(without.depth.nearest.depth_m[0])
+    scores = evaluate_result(pair, kept)[0]
+    assert scores.status == "OK" and scores.num_objects == len(others) and scores.acc_objects_pct > 97
+
+
 def test_the_differentiable_pass_follows_the_drop(midd1, results):
     """With ``differentiable=True`` the dropped slot stays invalid, the kept object's depth is within 0.5 % of the
     hard one and carries gradients to both images."""
