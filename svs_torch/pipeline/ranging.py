@@ -230,7 +230,7 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
         droppable = droppable | (share < nearer_below_share)
     # Left unranged however much was measured: a region in the band the right camera may not see
     # (DepthConfig.min_object_pixels_in_view) or too small to count.
-    dropped = kept & ((share < below_share) & droppable | ~objects.valid) & measured.any(1, keepdim=True)
+    dropped = kept & (((share < below_share) & droppable) | ~objects.valid) & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped
     kept_labels = torch.where(dropped, torch.full_like(seg.left.kept_labels, -1), seg.left.kept_labels)
