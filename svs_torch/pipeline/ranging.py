@@ -225,11 +225,11 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     measured = kept & objects.valid & (share >= below_share)
     # The nearest measured object's depth: a region ranged nearer than it is kept unless nearly nothing was measured.
     nearest_measured = torch.where(measured, objects.depth_median_m, torch.inf).amin(1, keepdim=True)
-    droppable = ~objects.valid | (objects.depth_median_m >= nearest_measured)
+    droppable = objects.depth_median_m >= nearest_measured
     if nearer_below_share is not None:
         droppable = droppable | (share < nearer_below_share)
-    # Left unranged however much was measured: a region in the band the right camera may not see
-    # (DepthConfig.min_object_pixels_in_view) or too small to count.
+    # An unranged region goes however much was measured: one in the band the right camera may not see
+    # (DepthConfig.min_object_pixels_in_view), or too small to count.
     dropped = kept & (((share < below_share) & droppable) | ~objects.valid) & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
         return seg, depth, dropped
