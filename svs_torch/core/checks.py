@@ -91,7 +91,8 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
         if math.isnan(lo) or math.isnan(hi):
             raise InputError(f"{name}: expected values in [0, 1], got NaN")
         if not (lo >= 0.0 and hi <= 1.0):
-            raise InputError(f"{name}: expected values in [0, 1], got min {lo:.4g}, max {hi:.4g}")
+            # Nine digits tell a float32 one ulp above 1 (1.00000012) from 1 itself.
+            raise InputError(f"{name}: expected values in [0, 1], got min {lo:.9g}, max {hi:.9g}")
     return bindings
 
 

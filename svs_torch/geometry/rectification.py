@@ -37,7 +37,7 @@ from ..core.checks import InputError, check_dtype, check_image, check_shape
 
 __all__ = [
     "MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "map_points", "apply_homography",
-    "rectify_uncalibrated", "warp_rectified"
+    "rectify_uncalibrated", "warp_rectified", "warp_views"
 ]
 
 #: F is treated as rank < 2 (no epipole) when ``‖adj F‖ ≤`` this times ``‖F‖²`` (``‖adj F‖ = σ₁σ₂`` for rank 2).
@@ -161,6 +161,14 @@ def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str =
 
     return warp_perspective(images, homographies.to(images.dtype), (dims["H"], dims["W"]), mode=mode,
                             align_corners=True)
+
+
+def warp_views(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
+    """:func:`warp_rectified` of views ``(B, 1, H, W)`` in [0, 1] (bilinear), held to [0, 1]: a blend of saturated
+    pixels (1.0) can round a few ulps above 1, which every stage that takes a view refuses (a right camera 45 %
+    brighter than the left, clipped, and then rectified or row-aligned, stopped the whole batch). Only such ulps
+    move; differentiable as :func:`warp_rectified` inside the range."""
+    return warp_rectified(images, homographies).clamp(0.0, 1.0)
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:

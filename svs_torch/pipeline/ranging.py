@@ -20,7 +20,7 @@ from ..depth.depth_types import DepthResult, ObjectDepths
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
-from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified
+from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
 from ..geometry.row_alignment import fit_row_alignment
 from ..segmentation.segment import kept_regions_mask
 from .config import PipelineConfig
@@ -76,8 +76,8 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     left, right, labels = batch.left, batch.right, seg.left.labels
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
-        left = torch.where(pick, warp_rectified(left, H_left), left)
-        right = torch.where(pick, warp_rectified(right, H_right), right)
+        left = torch.where(pick, warp_views(left, H_left), left)
+        right = torch.where(pick, warp_views(right, H_right), right)
         # Labels by nearest neighbour (never blended), as exact small integers in float64.
         warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
         labels = torch.where(pick, warped, labels)

@@ -20,7 +20,7 @@ from ..depth.sparse import estimate_depth
 from ..geometry.lk_refinement import refine_matched_points
 from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
-from ..geometry.rectification import rectify_uncalibrated, warp_rectified
+from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
@@ -140,7 +140,7 @@ def _row_aligned_logits(batch: StereoBatch, result: PipelineResult, logits: torc
     (:func:`~svs_torch.pipeline.stages._segment_row_aligned`) made likewise, with gradients to both images: what
     the hard segmentation thresholded (the alignment itself is a constant here)."""
     index = result.row_aligned.nonzero().flatten()
-    warped = warp_rectified(batch.right.index_select(0, index), result.H_right.index_select(0, index).detach())
+    warped = warp_views(batch.right.index_select(0, index), result.H_right.index_select(0, index).detach())
     return logits.index_copy(0, index, predict_obstacle_logits(net, batch.left.index_select(0, index), warped))
 
 

@@ -43,7 +43,7 @@ from ..depth.depth_types import DepthResult, ObjectDepths
 from ..depth.pooling import mean_pool
 from ..depth.sparse import nearest_obstacle
 from ..depth.winner import equiangular_offset
-from ..geometry.rectification import warp_rectified
+from ..geometry.rectification import warp_rectified, warp_views
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
            "subpixel_disparity"]
@@ -281,8 +281,8 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
         H_left, H_right = H_left.to(left.dtype), H_right.to(left.dtype)
-        left = torch.where(pick, warp_rectified(left, H_left), left)
-        right = torch.where(pick, warp_rectified(right, H_right), right)
+        left = torch.where(pick, warp_views(left, H_left), left)
+        right = torch.where(pick, warp_views(right, H_right), right)
         weights = torch.where(pick, warp_rectified(weights, H_left), weights)
         warped = warp_rectified(labels.to(torch.float64), H_left.detach().to(torch.float64), mode="nearest"
                                 ).round().long()

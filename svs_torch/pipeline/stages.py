@@ -16,7 +16,7 @@ from ..core.types import (FundamentalResult, FundamentalStatus, Matches, Segment
 from ..depth.depth_types import DepthResult
 from ..features.surf import SurfFeatures, extract_surf_features
 from ..geometry.matching import match_sad
-from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified
+from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
 from ..segmentation.components import region_properties
 from ..segmentation.learned import segment_stereo_learned
 from ..segmentation.network_files import cached_obstacle_net
@@ -144,7 +144,8 @@ def _segment_row_aligned(batch: StereoBatch, seg: StereoSegmentation, aligned: t
     index, b = aligned.nonzero().flatten(), batch.batch_size
     sub = batch.select(index)
     homographies = H_right.index_select(0, index).to(torch.float64)
-    again = _segment_group(dataclasses.replace(sub, right=warp_rectified(sub.right, homographies)), config, network)
+    again = _segment_group(dataclasses.replace(sub, right=warp_views(sub.right, homographies)), config,
+                           network)
     again = dataclasses.replace(again, right=_unwarped(again.right, sub.right, torch.linalg.inv(homographies)))
     return replace_pairs(seg, index, again, b, batch.size_hw)
 

@@ -10,7 +10,7 @@ import torch
 from svs_torch import InputError
 from svs_torch.geometry.epipolar import fundamental_8point
 from svs_torch.geometry.rectification import (RectificationConfig, RectificationStatus, apply_homography,
-                                              rectify_uncalibrated, warp_rectified)
+                                              rectify_uncalibrated, warp_rectified, warp_views)
 
 F64 = torch.float64
 SIZE_HW = (480, 640)
@@ -316,3 +316,21 @@ def test_warp_matches_opencv(generator):
     assert np.abs(warped[0, 0].numpy()[interior] - theirs[interior]).max() < 1e-2
     identity = warp_rectified(image, torch.eye(3).expand(2, 3, 3))
     assert torch.allclose(identity, image, atol=1e-5)
+
+
+def test_warped_views_stay_in_the_unit_range():
+    """A white view warped bilinearly: kornia's blend of 1.0 pixels rounds one ulp above 1 at a few pixels (which
+    every stage taking a view refuses: a brighter, clipped right camera once stopped the whole batch), and
+    ``warp_views`` holds them at 1 while every other value is ``warp_rectified``'s."""
+    white = torch.ones(3, 1, 48, 64)
+    angles = torch.tensor([0.5, 1.0, 2.0]).deg2rad()
+    H = torch.zeros(3, 3, 3)
+    H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = 1.013 * angles.cos(), -1.013 * angles.sin(), \
+        1.013 * angles.sin(), 1.013 * angles.cos()
+    H[:, 0, 2], H[:, 1, 2], H[:, 2, 0], H[:, 2, 2] = 0.3, -0.7, 1e-5, 1.0
+    blended = warp_rectified(white, H)
+    assert bool((blended > 1).any())  # the rounding this guards against happens
+    views = warp_views(white, H)
+    assert float(views.max()) == 1.0 and torch.equal(views, blended.clamp(max=1.0))
+    image = torch.rand(3, 1, 48, 64, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(warp_views(image, H), warp_rectified(image, H).clamp(0, 1))
