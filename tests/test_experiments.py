@@ -108,6 +108,23 @@ def test_real_rig_on_one_scene(data_dir, tmp_path):
     assert "| tuned | 320x240 | roll +2° | 1 |" in out_md.read_text()
 
 
+def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
+    """--extremes: the clean pair and every corner of EXTREMES (two deviations at their limits), each right view
+    the one misalign_right makes; the tuned scene's corners are ranged (ArtL: 97-99.5 % measured)."""
+    import torch
+
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
+    views = real_rig.conditions(batch, 0, extremes=True)
+    assert [name for name, _, _ in views] == ["clean", *real_rig.EXTREMES]
+    name, left, right = views[1]
+    assert torch.equal(left, batch.left) and torch.equal(right, real_rig.misalign_right(
+        batch.right, real_rig.EXTREMES[name], float(batch.focal_px[0])))
+    report = real_rig.main(["--data", str(data_dir), "--splits", "tuned", "--limit", "1", "--no-rival",
+                            "--extremes", "--conditions", "clean,scale +2% gain"])
+    assert [row["condition"] for row in report["rows"]] == ["clean", "scale +2% gain +30%"]
+    assert all(row["status"] == "OK" and row["acc_objects"] > 95 for row in report["rows"])
+
+
 def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     """validate_nearness.py on two train scenes in two folds, the rule and a 2-step candidate, one crop each: a
     row per scene, view and candidate; a scene's E/L variant shares its fold; the stage-1 training it runs per
