@@ -165,9 +165,9 @@ def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str =
 
 def warp_views(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
     """:func:`warp_rectified` of views ``(B, 1, H, W)`` in [0, 1] (bilinear), held to [0, 1]: a blend of saturated
-    pixels (1.0) can round a few ulps above 1, which every stage that takes a view refuses (a right camera 45 %
-    brighter than the left, clipped, and then rectified or row-aligned, stopped the whole batch). Only such ulps
-    move; differentiable as :func:`warp_rectified` inside the range."""
+    pixels (1.0) can round a few ulps above 1, which every stage that takes a view refuses (a right camera 30 %
+    brighter and 2 % larger than the left, clipped at white, then row-aligned and rectified, stopped the whole
+    batch). Only such ulps move; differentiable as :func:`warp_rectified` inside the range."""
     return warp_rectified(images, homographies).clamp(0.0, 1.0)
 
 

@@ -144,8 +144,7 @@ def _segment_row_aligned(batch: StereoBatch, seg: StereoSegmentation, aligned: t
     index, b = aligned.nonzero().flatten(), batch.batch_size
     sub = batch.select(index)
     homographies = H_right.index_select(0, index).to(torch.float64)
-    again = _segment_group(dataclasses.replace(sub, right=warp_views(sub.right, homographies)), config,
-                           network)
+    again = _segment_group(dataclasses.replace(sub, right=warp_views(sub.right, homographies)), config, network)
     again = dataclasses.replace(again, right=_unwarped(again.right, sub.right, torch.linalg.inv(homographies)))
     return replace_pairs(seg, index, again, b, batch.size_hw)
 
