@@ -149,17 +149,14 @@ def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False
     """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views; with
     ``extremes``, the clean pair and :data:`EXTREMES` instead."""
     out = [("clean", batch.left, batch.right)]
-    if extremes:
-        focal = float(batch.focal_px[0])
-        return out + [(name, batch.left, misalign_right(batch.right, m, focal)) for name, m in EXTREMES.items()]
-    for number, (digit, sigma) in enumerate(JPEG_NOISE):
+    for number, (digit, sigma) in enumerate(() if extremes else JPEG_NOISE):
         views = []
         for view, image in enumerate((batch.left, batch.right)):
             generator = torch.Generator().manual_seed(1_000_000 * scene_index + 1000 * number + view)
             views.append(camera_frame(image, digit, sigma, generator))
         out.append((f"jpeg q{digit} + noise s{sigma:g}", *views))
     focal = float(batch.focal_px[0])
-    for name, m in MISALIGNMENTS.items():
+    for name, m in (EXTREMES if extremes else MISALIGNMENTS).items():
         out.append((name, batch.left, misalign_right(batch.right, m, focal)))
     return out
 
