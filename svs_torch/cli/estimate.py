@@ -60,11 +60,13 @@ every one it measured, at least 3, so both views show one scene; where not (a sw
 camera), an object needs 40 % of its region measured instead of 10 % ("num_agreeing_inliers",
 "num_measured_inliers", "num_inliers"; experiments/verify_views.py).
 "row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
-the pair segmented again on them); "exposure_matched": a pair left unranged whose right camera is brighter or
-darker was run again with the two exposures matched, the darker view mapped onto the brighter one's so that
-both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the dense map measured too little
-of the kept regions (noisy or heavily compressed frames) and the depth was measured again at half the working
-width, where each pixel averages four times as many (PipelineConfig.coarse_retry_below_share).
+the pair segmented again on them); "right_camera_turn_deg": [about y, about x], the turn of that camera its
+rows showed (a keystone, undone with the alignment), or null; "exposure_matched": a pair left unranged whose
+right camera is brighter or darker was run again with the two exposures matched, the darker view mapped onto
+the brighter one's so that both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the
+dense map measured too little of the kept regions (noisy or heavily compressed frames) and the depth was
+measured again at half the working width, where each pixel averages four times as many
+(PipelineConfig.coarse_retry_below_share).
 "dropped_unmeasured": kept regions of which the dense map measured under 45 % of the pixels, dropped beside
 a nearer kept region it did measure (noise lets a far region be kept, and its few measured pixels are the wrong
 ones; PipelineConfig.drop_unmeasured_below_share), or under 15 % beside any region it measured, however near

@@ -18,7 +18,8 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "row_aligned": False, "exposure_matched": False, "coarse_dense": False, "dropped_unmeasured": 0,
+            "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
+            "dropped_unmeasured": 0,
             "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
 
 
@@ -100,6 +101,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched. Noisy
         # frames: the dense map measured at half the working width (PipelineConfig.coarse_retry_below_share).
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
+        "right_camera_turn_deg": _turn(result, index),
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
         # Kept regions the dense map could not measure, or left unranged, dropped beside one it ranged
@@ -115,6 +117,15 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     }
 
 
+def _turn(result, index: int) -> list[float] | None:
+    """The right camera's turn about its y and x axes the row alignment undid (its keystone), degrees; None where
+    it undid none."""
+    turn = result.row_alignment_turn_deg
+    if turn is None or not bool((turn[index] != 0).any()):
+        return None
+    return [round(float(v), 3) for v in turn[index].tolist()]
+
+
 def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[str]:
     """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
     called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept)."""
@@ -126,7 +137,10 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
         from ..data import format_calibration
 
         lines.append(f"  {format_calibration(report['calibration'])}")
-    corrected = [text for key, text in (("row_aligned", "its rows aligned to the left camera's"),
+    turn = report.get("right_camera_turn_deg")
+    aligned = "its rows aligned to the left camera's" + (
+        f" (turned {turn[0]:+.1f}° about y, {turn[1]:+.1f}° about x: undone)" if turn else "")
+    corrected = [text for key, text in (("row_aligned", aligned),
                                         ("exposure_matched", "its exposure matched to the left camera's"))
                  if report.get(key)]
     if corrected:

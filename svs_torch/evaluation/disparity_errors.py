@@ -12,7 +12,8 @@ from ..core.types import StereoBatch
 from ..depth.quantiles import masked_lower_median
 from ..pipeline import PipelineResult
 
-__all__ = ["DisparityErrors", "dense_disparity_errors", "disparity_map_errors", "sparse_disparity_errors"]
+__all__ = ["DisparityErrors", "dense_disparity_errors", "disparity_map_errors", "map_in_left_pixels",
+           "sparse_disparity_errors"]
 
 
 @dataclass(frozen=True)
@@ -59,13 +60,21 @@ def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_
     return _errors(error.reshape(b, -1), (mask & valid & truth_valid).reshape(b, -1))
 
 
+def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:
+    """``(B,)`` bool: pairs whose dense map lies on the left view's pixels, the GT's grid: ranged on their raw
+    rows, or row-aligned (the row alignment warps the right view alone); F's rectification warps both views."""
+    aligned = getattr(result, "row_aligned", None)
+    aligned = torch.zeros_like(result.rectified) if aligned is None else aligned
+    return ~result.rectified | aligned
+
+
 def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
     """Dense disparity error over the kept left regions (module docstring); None under the paper rule."""
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
     b = batch.batch_size
-    mask = result.segmentation.left.kept_mask & ~result.rectified.view(b, 1, 1, 1)
+    mask = result.segmentation.left.kept_mask & map_in_left_pixels(result).view(b, 1, 1, 1)
     return disparity_map_errors(dense.disparity_px, dense.valid, batch.disparity_px, batch.disparity_valid, mask)
 
 

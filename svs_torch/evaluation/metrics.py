@@ -15,7 +15,8 @@ depth consistently, whatever f·B is; their metres are nominal.
 Disparity errors (pixels, in the pair's working image):
 
 * dense: ``|d_dense − d_GT|`` over the kept regions where both are valid, for pairs ranged on their raw rows
-  (a rectified pair's dense map is in rectified pixels, which GT does not share: null there);
+  (the dense map of a pair rectified from F is in rectified pixels, which GT does not share: null there; a
+  row-aligned pair's stays in the left view's);
 * sparse: ``|(x_left − x_right) − d_GT(x_left)|`` over the RANSAC inliers with GT at the rounded left point;
   ``inlier_precision`` is the share of those inliers whose right point lies within 1 px of the true one in
   both x and y (a correct correspondence, not only a correct disparity).

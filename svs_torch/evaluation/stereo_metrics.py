@@ -245,11 +245,14 @@ def metric_values(metrics: StereoMetrics, index: int) -> dict[str, float | int |
 
 def _raw_pixels(batch: StereoBatch, result: PipelineResult) -> torch.Tensor | None:
     """``(B, 1, H, W)`` bool: the pixels where the dense map and the GT share a grid (pairs ranged on their raw
-    rows: a rectified pair's map is in rectified pixels), or None when there is nothing to score."""
+    rows or row-aligned: the map of a pair rectified from F is in rectified pixels), or None when there is
+    nothing to score."""
+    from .disparity_errors import map_in_left_pixels  # (disparity_errors imports the pipeline: loaded late)
+
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
-    return (~result.rectified).view(-1, 1, 1, 1).expand_as(batch.disparity_valid)
+    return map_in_left_pixels(result).view(-1, 1, 1, 1).expand_as(batch.disparity_valid)
 
 
 def _scope_masks(batch: StereoBatch, result: PipelineResult, raw: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -284,8 +287,8 @@ def pair_map_metrics(batch: StereoBatch, result: PipelineResult, px_scale: torch
 def dense_map_metrics(batch: StereoBatch, result: PipelineResult,
                       px_scale: torch.Tensor | None = None) -> dict[str, StereoMetrics]:
     """:func:`measure_stereo_metrics` of the pipeline's dense map in each of :data:`STEREO_SCOPES` the data
-    has (``*_nocc`` only with ``batch.disparity_nonoccluded``); {} under the paper rule or without GT. A
-    rectified pair evaluates no pixel (its metrics are null): its map is not in the GT's pixels."""
+    has (``*_nocc`` only with ``batch.disparity_nonoccluded``); {} under the paper rule or without GT. A pair
+    rectified from F evaluates no pixel (its metrics are null): its map is not in the GT's pixels."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return {}

@@ -114,14 +114,16 @@ def geometry_straight_through(left: torch.Tensor, right: torch.Tensor, xy_left: 
                               xy_right: torch.Tensor, radius: torch.Tensor, moved: torch.Tensor,
                               inliers: torch.Tensor, F_hard: torch.Tensor, from_F: torch.Tensor,
                               row_inliers: torch.Tensor, from_rows: torch.Tensor, H_left: torch.Tensor,
-                              H_right: torch.Tensor, image_hw: torch.Tensor,
-                              config: RectificationConfig) -> tuple[torch.Tensor, torch.Tensor]:
+                              H_right: torch.Tensor, image_hw: torch.Tensor, config: RectificationConfig,
+                              focal_px: torch.Tensor | None = None, row_turn_deg: torch.Tensor | None = None
+                              ) -> tuple[torch.Tensor, torch.Tensor]:
     """The hard homographies ``H_left``, ``H_right`` ``(B, 3, 3)``, with gradients to the images ``(B, 1, H, W)``
     (those the matches were refined on) through the matched points ``xy_left``, ``xy_right`` ``(B, K, 2)``
     (refinement ``radius`` and ``moved`` as :func:`lk_points_straight_through` takes them) where the pair was
     rectified from RANSAC's ``F_hard`` with its ``inliers`` ``(B, K)`` (``from_F`` ``(B,)``: F refitted, then
     Hartley's method), or row-aligned (``from_rows`` ``(B,)``: the similarity refitted on ``row_inliers``
-    ``(B, K)``, :func:`~svs_torch.geometry.row_alignment.row_alignment_homography`). Elsewhere, and for pairs with too
+    ``(B, K)``, with the keystone's turn terms of ``row_turn_deg`` ``(B, 2)`` and ``focal_px`` ``(B,)`` where given:
+    :func:`~svs_torch.geometry.row_alignment.row_alignment_homography`). Elsewhere, and for pairs with too
     few inliers to refit, the homographies are constants. Differentiable w.r.t. both images."""
     dtype = left.dtype
     use_F = from_F & (inliers.sum(dim=1) >= MIN_REFIT_INLIERS)
@@ -141,6 +143,9 @@ def geometry_straight_through(left: torch.Tensor, right: torch.Tensor, xy_left: 
         H_right_out = H_right_out.index_put((fitted,), straight_through(H_right_out[fitted], soft.H_right))
     aligned = use_rows.nonzero().squeeze(1)
     if aligned.numel():
-        soft = row_alignment_homography(xy_left[aligned], points[aligned], row_inliers[aligned], image_hw[aligned])
+        turn = None if row_turn_deg is None else row_turn_deg[aligned]
+        focal = None if focal_px is None else focal_px[aligned]
+        soft = row_alignment_homography(xy_left[aligned], points[aligned], row_inliers[aligned], image_hw[aligned],
+                                        focal, turn)
         H_right_out = H_right_out.index_put((aligned,), straight_through(H_right_out[aligned], soft.to(dtype)))
     return H_left_out, H_right_out

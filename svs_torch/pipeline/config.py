@@ -82,8 +82,9 @@ class PipelineConfig:
         row_tolerance_px: see ``rectify="auto"``, pixels.
         row_alignment: :class:`~svs_torch.geometry.row_alignment.RowAlignmentConfig`: under ``rectify="auto"``, a right
             view whose matches fit a roll / vertical shift / scale of the right camera that moves some image
-            corner's row by more than its ``min_correction_px`` is aligned by that similarity instead (before
-            the projective rule): a loosely mounted second board (``experiments/real_rig.py``). None: off.
+            corner's row by more than its ``min_correction_px``, or whose rows read a turn of the right camera
+            about its y or x axis (a keystone), is aligned by that similarity (and unturned) instead (before the
+            projective rule): a loosely mounted second board (``experiments/real_rig.py``). None: off.
         rectification: :class:`~svs_torch.geometry.rectification.RectificationConfig`.
         depth: :class:`~svs_torch.depth.DepthConfig`: the range rule (``"dense"``, the default, or the paper's
             ``"paper"``: min/max over the inliers, or robust percentiles).
@@ -344,7 +345,9 @@ class PipelineResult:
             (``PipelineConfig.coarse_retry_below_share``); None under the ``"paper"`` rule.
         row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
             rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
-            (where ``row_aligned``; all False without a row alignment).
+            (where ``row_aligned``; all False without a row alignment); row_alignment_turn_deg ``(B, 2)``, the right
+            camera's turn about its y and x axes the alignment undid, degrees (its keystone,
+            :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none).
         dropped_objects: ``(B, N)`` bool, under the dense rule: the kept left slots dropped as unmeasured
             (``PipelineConfig.drop_unmeasured_below_share``; their ``kept_labels`` are now −1); None under the
             ``"paper"`` rule.
@@ -379,5 +382,6 @@ class PipelineResult:
     row_aligned: torch.Tensor | None = None
     exposure_matched: torch.Tensor | None = None
     row_alignment_inliers: torch.Tensor | None = None
+    row_alignment_turn_deg: torch.Tensor | None = None
     coarse: torch.Tensor | None = None
     dropped_objects: torch.Tensor | None = None

@@ -42,12 +42,13 @@ def _use_rectification(points_left: torch.Tensor, points_right: torch.Tensor, in
 
 
 def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResult, rectification: Rectification,
-                             image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig
-                             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                             image_hw: torch.Tensor, seeds: torch.Tensor, config: PipelineConfig,
+                             focal_px: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """``(B,)`` bool rectified, the ``(B, 3, 3)`` left and right homographies the disparities are measured after
     (identity where not rectified): a row alignment of the right view where ``config.row_alignment`` finds one
-    that matters (``rectify="auto"`` only), else F's rectification by :func:`_use_rectification`; and which pairs
-    the row alignment rectified ``(B,)`` and its inliers ``(B, K)`` (the differentiable pass refits it on them)."""
+    that matters (``rectify="auto"`` only; its keystone scaled by ``focal_px`` ``(B,)``), else F's rectification
+    by :func:`_use_rectification`; and which pairs the row alignment rectified ``(B,)``, its inliers ``(B, K)``
+    and its turns ``(B, 2)`` degrees (the differentiable pass refits it on them)."""
     rectified = _use_rectification(points.left, points.right, fundamental.inliers, rectification, config)
     identity = torch.eye(3, dtype=rectification.H_left.dtype, device=rectification.H_left.device
                          ).expand_as(rectification.H_left)
@@ -55,13 +56,18 @@ def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResu
     H_left = torch.where(pick, rectification.H_left, identity)
     H_right = torch.where(pick, rectification.H_right, identity)
     if config.rectify != "auto" or config.row_alignment is None:
-        return rectified, H_left, H_right, torch.zeros_like(rectified), torch.zeros_like(points.valid)
+        return (rectified, H_left, H_right, torch.zeros_like(rectified), torch.zeros_like(points.valid),
+                torch.zeros_like(H_left[:, 0, :2]))
     # The similarity is fitted to every match, not F's inliers: F of a few planar obstacles may be loose.
-    alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds)
-    aligned = alignment.valid & (alignment.correction_px > config.row_alignment.min_correction_px)
+    alignment = fit_row_alignment(points.left, points.right, points.valid, image_hw, config.row_alignment, seeds,
+                                  focal_px)
+    # A keystone moves rows by under a pixel at 320×240 yet biases the disparity at the edges by about one.
+    aligned = alignment.valid & ((alignment.correction_px > config.row_alignment.min_correction_px)
+                                 | alignment.keystone)
     pick = aligned.view(-1, 1, 1)
+    turn = torch.where(aligned[:, None], alignment.keystone_deg, 0.0).to(H_left.dtype)
     return (rectified | aligned, torch.where(pick, identity, H_left),
-            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers)
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers, turn)
 
 
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,

@@ -170,7 +170,8 @@ def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, con
         moved = points.valid & (points.right != unrefined.right).any(dim=-1)
     return geometry_straight_through(left, right, points.left, points.right, radius, moved,
                                      result.fundamental.inliers, result.fundamental.F, from_F, row_inliers,
-                                     from_rows, result.H_left, result.H_right, batch.image_hw, config.rectification)
+                                     from_rows, result.H_left, result.H_right, batch.image_hw, config.rectification,
+                                     batch.focal_px, result.row_alignment_turn_deg)
 
 
 def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,
@@ -204,8 +205,8 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     lap("ransac")
     rectification = rectify_uncalibrated(fundamental.F, points.left, points.right, fundamental.inliers,
                                          batch.image_hw, config.rectification)
-    rectified, H_left, H_right, row_aligned, row_inliers = _rectifying_homographies(
-        points, fundamental, rectification, batch.image_hw, seeds, config)
+    rectified, H_left, H_right, row_aligned, row_inliers, turn = _rectifying_homographies(
+        points, fundamental, rectification, batch.image_hw, seeds, config, batch.focal_px)
     lap("rectification")
     if config.segmentation.segmenter != "otsu" and bool(row_aligned.any()):  # they measure along rows: again
         seg = _segment_row_aligned(batch, seg, row_aligned, H_right, config.segmentation, network)
@@ -232,4 +233,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         depth=depth, dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
-        row_alignment_inliers=row_inliers, coarse=coarse, dropped_objects=dropped)
+        row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped)

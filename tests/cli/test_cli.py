@@ -528,23 +528,31 @@ def _estimate_pairs_json(capsys, tmp_path, pairs: dict) -> list[dict]:
 
 
 def test_estimate_says_when_it_corrected_the_right_camera(data_dir, capsys, tmp_path):
-    """A loosely mounted right camera rolled 2°, and one 30 % brighter (experiments/real_rig.py's conditions on
-    MiddEval3 Pipes and Piano at 320×240): the JSON says which pair's rows were aligned and whose exposure was
-    matched, and the text names the correction; an untouched pair says neither."""
+    """A loosely mounted right camera rolled 2°, one 30 % brighter, and one turned −1° about its y axis
+    (experiments/real_rig.py's conditions on MiddEval3 Pipes, Piano and Motorcycle at 320×240): the JSON says which
+    pair's rows were aligned, which camera's turn was undone and whose exposure was matched, and the text names the
+    correction; an untouched pair says neither."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
     import real_rig
 
     pairs = {}
     for scene, misalignment in (("Pipes", real_rig.Misalignment(roll_deg=2)),
-                                ("Piano", real_rig.Misalignment(gain=0.3)), ("Teddy", None)):
+                                ("Piano", real_rig.Misalignment(gain=0.3)), ("Teddy", None),
+                                ("Motorcycle", real_rig.Misalignment(tilt_y_deg=-1))):
         batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / scene), "320x240")
         right = batch.right if misalignment is None else real_rig.misalign_right(batch.right, misalignment,
                                                                                   float(batch.focal_px[0]))
         pairs[scene] = (batch.left, right)
     reports = _estimate_pairs_json(capsys, tmp_path, pairs)
     assert [(r["row_aligned"], r["exposure_matched"]) for r in reports] == [(True, False), (False, True),
-                                                                           (False, False)]
+                                                                           (False, False), (True, False)]
     assert all(r["status"] == "OK" for r in reports)
+    # The turned camera's keystone, read in the SVS model's focal length (276 px against the scene's 432: −0.6°).
+    assert [r["right_camera_turn_deg"] is None for r in reports] == [True, True, True, False]
+    assert -1.2 < reports[3]["right_camera_turn_deg"][0] < -0.3 and reports[3]["right_camera_turn_deg"][1] == 0
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "Motorcycle_left.png"),
+                           str(tmp_path / "Motorcycle_right.png"))
+    assert code == 0 and "right camera: its rows aligned to the left camera's (turned -0.6° about y" in out
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "Piano_left.png"), str(tmp_path / "Piano_right.png"))
     assert code == 0 and "right camera: its exposure matched to the left camera's" in out
 
