@@ -234,6 +234,8 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     if focal_px is None or config.keystone_min_deg is None:
         return similarity
     turned = _fit_keystone(left, right, inliers, valid, image_hw, focal_px.to(left.dtype), config)
+    if turned is None:
+        return similarity
     use = turned.valid
     return RowAlignment(H_right=torch.where(use[:, None, None], turned.H_right, similarity.H_right),
                         inliers=torch.where(use[:, None], turned.inliers, similarity.inliers),
@@ -338,13 +340,15 @@ def _mapped_row_residuals(homography: torch.Tensor, left: torch.Tensor, right: t
 
 
 def _fit_keystone(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor,
-                  image_hw: torch.Tensor, focal_px: torch.Tensor, config: RowAlignmentConfig) -> RowAlignment:
+                  image_hw: torch.Tensor, focal_px: torch.Tensor, config: RowAlignmentConfig) -> RowAlignment | None:
     """The keystone alignment (module docstring, "Keystone") started from the similarity's ``inliers``, valid where
-    a turn term is significant and the fit stays within the config's limits."""
+    a turn term is significant and the fit stays within the config's limits; None where no pair reads a turn."""
     params, error = _keystone_refit(left, right, inliers, image_hw, focal_px, torch.ones_like(valid[:, :2]))
     read = params[:, 3:] / params[:, :1]
     terms = ((torch.rad2deg(torch.atan(read)).abs() >= config.keystone_min_deg)
              & (params[:, 3:].abs() >= config.keystone_min_t * error[:, 3:]))
+    if not bool(terms.any()):  # no pair reads a turn (a straight rig): the refits below would change nothing
+        return None
     for _ in range(2):  # refit on the matches the turned model puts on their rows (at native size, more of them)
         params, _ = _keystone_refit(left, right, inliers, image_hw, focal_px, terms)
         homography = _keystone_homography(params, image_hw, focal_px)
