@@ -250,24 +250,37 @@ def _accept(params: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor, ra
     within the config's limits; the identity elsewhere."""
     a, b, t_y = params.unbind(-1)
     count = inliers.sum(1)
-    scale = 1 / torch.hypot(a, b).clamp(min=1e-12)  # the right camera's magnification
     homography = _homography(params, image_hw)
     height, width = image_hw.to(params.dtype).unbind(-1)
-    corners = torch.stack([torch.stack([x, y, torch.ones_like(x)], -1) for x, y in
-                           ((0 * width, 0 * height), (width - 1, 0 * height), (0 * width, height - 1),
-                            (width - 1, height - 1))], 1)  # (B, 4, 3)
-    moved = (corners @ homography.transpose(1, 2))[..., 1] - corners[..., 1]
     centre_shift = t_y + b * (width - 1) / 2 + (a - 1) * (height - 1) / 2
     gain = torch.maximum(torch.full_like(raw, config.min_gain), (config.min_gain_share * raw).ceil().long())
-    ok = (count >= config.min_inliers) & (count >= config.min_inlier_share * valid.sum(1)) & (count >= raw + gain) \
-        & (torch.atan2(b, a).abs() <= math.radians(config.max_roll_deg)) \
-        & ((scale - 1).abs() <= config.max_scale_change) \
-        & (centre_shift.abs() <= config.max_shift_fraction * height) & params.isfinite().all(-1)
+    ok = (_within_limits(a, b, centre_shift, count, valid, height, config, config.min_inliers)
+          & (count >= raw + gain) & params.isfinite().all(-1))
     identity = torch.eye(3, dtype=params.dtype, device=params.device).expand_as(homography)
     return RowAlignment(H_right=torch.where(ok[:, None, None], homography, identity), inliers=inliers & ok[:, None],
                         num_inliers=torch.where(ok, count, 0),
-                        correction_px=torch.where(ok, moved.abs().amax(1), torch.zeros_like(a)), valid=ok,
-                        keystone=torch.zeros_like(ok), keystone_deg=torch.zeros_like(params[:, :2]))
+                        correction_px=torch.where(ok, _corner_row_move(homography, image_hw), torch.zeros_like(a)),
+                        valid=ok, keystone=torch.zeros_like(ok), keystone_deg=torch.zeros_like(params[:, :2]))
+
+
+def _within_limits(a: torch.Tensor, b: torch.Tensor, centre_shift: torch.Tensor, count: torch.Tensor,
+                   valid: torch.Tensor, height: torch.Tensor, config: RowAlignmentConfig, least: int) -> torch.Tensor:
+    """``(B,)`` bool: an alignment with ``(a, b)`` (``a·v + b·u``), moving the image centre's row by
+    ``centre_shift``, fitted on ``count`` of the ``valid`` matches (at least ``least`` and ``min_inlier_share``),
+    stays within the config's roll, scale and shift limits."""
+    scale = 1 / torch.hypot(a, b).clamp(min=1e-12)  # the right camera's magnification
+    return ((count >= least) & (count >= config.min_inlier_share * valid.sum(1))
+            & (torch.atan2(b, a).abs() <= math.radians(config.max_roll_deg))
+            & ((scale - 1).abs() <= config.max_scale_change)
+            & (centre_shift.abs() <= config.max_shift_fraction * height))
+
+
+def _corner_row_move(homography: torch.Tensor, image_hw: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` the largest row move of the four image corners under ``homography`` ``(B, 3, 3)``, pixels."""
+    height, width = image_hw.to(homography.dtype).unbind(-1)
+    corners = torch.stack([torch.stack([x, y], -1) for x, y in ((0 * width, 0 * height), (width - 1, 0 * height),
+                           (0 * width, height - 1), (width - 1, height - 1))], 1)  # (B, 4, 2)
+    return _mapped_row_residuals(homography, corners, corners).amax(1)
 
 
 def row_alignment_homography(points_left: torch.Tensor, points_right: torch.Tensor, inliers: torch.Tensor,
@@ -357,15 +370,10 @@ def _fit_keystone(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor
     turn = torch.rad2deg(torch.atan(params[:, 3:] / a[:, None])) * torch.tensor([-1.0, 1.0], dtype=a.dtype,
                                                                                  device=a.device)
     count = inliers.sum(1)
-    height, width = image_hw.to(a.dtype).unbind(-1)
-    ok = (terms.any(1) & (count >= max(config.min_inliers, config.keystone_min_inliers))
-          & (count >= config.min_inlier_share * valid.sum(1)) & (turn.abs() <= config.keystone_max_deg).all(1)
-          & (torch.atan2(b, a).abs() <= math.radians(config.max_roll_deg))
-          & ((1 / torch.hypot(a, b).clamp(min=1e-12) - 1).abs() <= config.max_scale_change)
-          & (t.abs() <= config.max_shift_fraction * height) & params.isfinite().all(-1))
-    corners = torch.stack([torch.stack([x, y], -1) for x, y in ((0 * width, 0 * height), (width - 1, 0 * height),
-                           (0 * width, height - 1), (width - 1, height - 1))], 1)  # (B, 4, 2)
-    moved = _mapped_row_residuals(homography, corners, corners)
+    least = max(config.min_inliers, config.keystone_min_inliers)
+    ok = (_within_limits(a, b, t, count, valid, image_hw[:, 0].to(a.dtype), config, least) & terms.any(1)
+          & (turn.abs() <= config.keystone_max_deg).all(1) & params.isfinite().all(-1))
     return RowAlignment(H_right=homography, inliers=inliers & ok[:, None], num_inliers=torch.where(ok, count, 0),
-                        correction_px=torch.where(ok, moved.amax(1), torch.zeros_like(a)), valid=ok,
+                        correction_px=torch.where(ok, _corner_row_move(homography, image_hw), torch.zeros_like(a)),
+                        valid=ok,
                         keystone=ok, keystone_deg=torch.where(ok[:, None] & terms, turn, torch.zeros_like(turn)))

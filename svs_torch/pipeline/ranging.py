@@ -65,9 +65,10 @@ def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResu
     aligned = alignment.valid & ((alignment.correction_px > config.row_alignment.min_correction_px)
                                  | alignment.keystone)
     pick = aligned.view(-1, 1, 1)
-    turn = torch.where(aligned[:, None], alignment.keystone_deg, 0.0).to(H_left.dtype)
+    # keystone_deg is 0 wherever the alignment is not applied: a turn it reads makes it valid and applied.
     return (rectified | aligned, torch.where(pick, identity, H_left),
-            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers, turn)
+            torch.where(pick, alignment.H_right.to(H_right.dtype), H_right), aligned, alignment.inliers,
+            alignment.keystone_deg.to(H_left.dtype))
 
 
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
