@@ -11,9 +11,10 @@ it:
    filled along their rows from the nearest measured ones, the farther side at an occlusion
    (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart;
    then a median over about 14 working pixels removes the specks and one-row streaks that JPEG frames with sensor
-   noise leave. Width, window and keep rule were chosen on the train scenes only
-   (``experiments/select_nearness_rule.md``), the uniqueness ratio and the median on them clean and as camera
-   frames (``select_nearness_denoise.md``).
+   noise leave (optionally, a pair whose matcher accepted little of the view has its matches checked against
+   the pair measured at half that width: :mod:`.nearness_denoise`). Width, window and keep rule were chosen on
+   the train scenes only (``experiments/select_nearness_rule.md``), the uniqueness ratio and the median on them
+   clean and as camera frames (``select_nearness_denoise.md``).
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
    its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes), taken
    again up to its 90th percentile where it leaves under ``min_near_share`` of the view near (more outliers than
@@ -52,12 +53,12 @@ from ..core.checks import InputError, check_image
 from ..core.pair_trees import take_pairs
 from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
-from ..depth.block_matching import block_match_sad, fill_invalid_rows
+from ..depth.block_matching import block_match_sad
 from ..depth.dense_config import DenseConfig
 from ..depth.soft_dense import soft_block_match
-from . import kernels
 from .components import connected_components_with_stats, region_properties
 from .morphology import open_binary, structuring_element
+from .nearness_denoise import denoised_map
 from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
 from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
@@ -94,6 +95,11 @@ class NearnessNetConfig:
             ``sparse_share`` of the left view: a camera frame's noise (JPEG, sensor noise, a dim scene), whose map
             is then sparse specks that a 7×7 median keeps as regions. Clean pairs accept 41 % or more
             (experiments/nearness_fallback.md), so they keep ``median_window``.
+        sparse_reduction, sparse_agreement_px: such a sparse pair is also measured at ``1 / sparse_reduction`` of
+            the working width; its matches within ``sparse_agreement_px`` working pixels of that coarse map are
+            kept and the coarse map stands in for the rest (:mod:`.nearness_denoise`); ``sparse_reduction=1`` (the
+            default): never. A weights file written before these settings existed (the shipped one) takes these
+            defaults.
         disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
         probability_threshold: a pixel is an obstacle where its probability exceeds this.
         min_near_share: where the Otsu split leaves less than this share of the view nearer than it, the split
@@ -112,6 +118,9 @@ class NearnessNetConfig:
     # 96.26 -> 96.72 %, half contrast 85.07 -> 91.29 % (digit 4: 81.7 -> 95.5); clean pairs unchanged.
     sparse_median_window: int = 11
     sparse_share: float = 0.3
+    # Off: chosen on the tuned split (experiments/select_nearness_setting.md), but not taken (its "Shipped").
+    sparse_reduction: int = 1
+    sparse_agreement_px: float = 3.0
     network_width_px: int = 80
     channels: tuple[int, int, int] = (8, 16, 16)
     rule_gain: float = 8.0
@@ -132,6 +141,10 @@ class NearnessNetConfig:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
         if not 0 <= self.min_near_share < 1:
             raise InputError(f"min_near_share: expected a share in [0, 1), got {self.min_near_share!r}")
+        if not isinstance(self.sparse_reduction, int) or self.sparse_reduction < 1:
+            raise InputError(f"sparse_reduction: expected an int >= 1, got {self.sparse_reduction!r}")
+        if not self.sparse_agreement_px >= 0:
+            raise InputError(f"sparse_agreement_px: expected a distance >= 0, got {self.sparse_agreement_px!r}")
         if not 0 <= self.sparse_share <= 1:
             raise InputError(f"sparse_share: expected a share in [0, 1], got {self.sparse_share!r}")
         if not 0 <= self.uniqueness_ratio < 1:
@@ -200,51 +213,6 @@ def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
     return F.interpolate(image, size=(max(1, round(h * width / w)), width), mode="area")
 
 
-def _median_halved(disparity: torch.Tensor, window: int) -> torch.Tensor:
-    """``disparity`` ``(B, 1, h, w)`` replaced by the ``window``-sided median of its 2×2 box averages (edges
-    replicated), back at ``(h, w)`` by nearest neighbour. JPEG frames with sensor noise leave the block matcher's
-    map full of specks and, once filled along the rows, one-row streaks; a wide median removes them
-    (experiments/select_nearness_denoise.md). On the halved map a 7×7 median spans 14×14 pixels at a quarter of
-    the cost of one over the whole map."""
-    if window == 1:
-        return disparity
-    h, w = disparity.shape[-2:]
-    filtered = _median_filter(F.avg_pool2d(disparity, 2, ceil_mode=True), window)
-    return F.interpolate(filtered, scale_factor=2, mode="nearest")[..., :h, :w]
-
-
-def _median_by_share(disparity: torch.Tensor, valid: torch.Tensor, config: NearnessNetConfig) -> torch.Tensor:
-    """:func:`_median_halved` of each map ``(B, 1, h, w)`` with ``config.median_window``, or
-    ``config.sparse_median_window`` where the block matcher accepted less than ``config.sparse_share`` of it
-    (``valid``)."""
-    sparse = valid.flatten(1).to(torch.float32).mean(1) < config.sparse_share
-    if config.sparse_median_window == config.median_window or not bool(sparse.any()):
-        return _median_halved(disparity, config.median_window)
-    if bool(sparse.all()):
-        return _median_halved(disparity, config.sparse_median_window)
-    out = torch.empty_like(disparity)
-    for pick, window in ((~sparse, config.median_window), (sparse, config.sparse_median_window)):
-        index = pick.nonzero().flatten()
-        out[index] = _median_halved(disparity.index_select(0, index), window)
-    return out
-
-
-def _median_filter(image: torch.Tensor, window: int) -> torch.Tensor:
-    """The ``window``-sided median (``torch.median``'s, the lower one) of each pixel of ``image`` ``(B, 1, h, w)``,
-    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: a selection network
-    over 16 pixels at a time up to 7×7, the median tracked from pixel to pixel above; the halved map of a 320×240
-    pair in 0.9 ms where the torch path takes 16) gives the values of the torch path below, which sorts every
-    window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
-    fast = kernels.median_filter(image, window)
-    if fast is not None:
-        return fast
-    if image.numel() == 0:
-        return image.clone()
-    pad = window // 2
-    windows = F.pad(image, (pad, pad, pad, pad), mode="replicate").unfold(2, window, 1).unfold(3, window, 1)
-    return windows.reshape(*image.shape, window * window).median(-1).values
-
-
 def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
                                config: NearnessNetConfig = NearnessNetConfig()) -> NearnessDisparity:
     """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1].
@@ -263,12 +231,11 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
         found = block_match_sad(small_left.detach(), small_right.detach(), 0, num_disparities, dense)
-        filled, reachable = fill_invalid_rows(found.disparity_px, found.valid)
-        filled = _median_by_share(torch.where(reachable, filled, 0.0), found.valid, config)
+        filled, valid = denoised_map(small_left, small_right, found, num_disparities, dense, config)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
         soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
-    disparity, measured = filled * factor, found.valid
+    disparity, measured = filled * factor, valid
     if disparity.shape[-2:] != (h, w):  # (at the working size already, nearest resampling would copy it)
         disparity = F.interpolate(disparity, size=(h, w), mode="nearest")
         measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5

@@ -41,7 +41,7 @@ from svs_torch.geometry.matching import match_sad
 from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
-from svs_torch.segmentation.nearness import _median_filter
+from svs_torch.segmentation.nearness_denoise import _median_filter
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")

@@ -750,7 +750,7 @@ def test_median_filter_kernel_equals_the_sorting_path(generator, monkeypatch, th
     """The median kernel (segmentation/kernels/median_filter.c: a selection network up to 7×7, 16 pixels of a row
     at a time, the tracked median above) against the torch path that sorts every window: the same values, for
     every window side up to the largest it takes, on rows shorter and longer than the network's 16 lanes."""
-    from svs_torch.segmentation.nearness import _median_filter
+    from svs_torch.segmentation.nearness_denoise import _median_filter
 
     for image in _nearness_maps(generator):
         for window in (1, 3, 5, 7, 9, 11, segmentation_kernels.MAX_MEDIAN_WINDOW):

@@ -279,7 +279,7 @@ def test_camera_frames_keep_the_clean_pairs_obstacles(data_dir):
 
 
 def test_median_of_the_halved_map_against_a_per_pixel_reference():
-    from svs_torch.segmentation.nearness import _median_halved
+    from svs_torch.segmentation.nearness_denoise import _median_halved
 
     generator = torch.Generator().manual_seed(0)
     disparity = torch.randint(0, 40, (2, 1, 11, 14), generator=generator).float()
@@ -303,7 +303,7 @@ def test_a_sparse_map_gets_the_wider_median():
     """A map whose block matcher accepted less than ``sparse_share`` of the view (a camera frame's noise) is
     filtered by ``sparse_median_window``, the others by ``median_window``, pair by pair in one batch; settings
     out of range are refused by name."""
-    from svs_torch.segmentation.nearness import _median_by_share, _median_halved
+    from svs_torch.segmentation.nearness_denoise import _median_by_share, _median_halved
 
     generator = torch.Generator().manual_seed(3)
     disparity = torch.randint(0, 40, (3, 1, 30, 40), generator=generator).float()
@@ -312,11 +312,13 @@ def test_a_sparse_map_gets_the_wider_median():
     valid[1, ..., :8] = True  # 20 %: sparse
     valid[2, ..., :20] = True  # 50 %
     config = NearnessNetConfig()
-    out = _median_by_share(disparity, valid, config)
+    sparse = valid.flatten(1).float().mean(1) < config.sparse_share
+    assert sparse.tolist() == [False, True, False]
+    out = _median_by_share(disparity, sparse, config)
     for b, window in ((0, config.median_window), (1, config.sparse_median_window), (2, config.median_window)):
         assert torch.equal(out[b:b + 1], _median_halved(disparity[b:b + 1], window)), b
     assert not torch.equal(out[1:2], _median_halved(disparity[1:2], config.median_window))
-    assert torch.equal(_median_by_share(disparity[1:2], valid[1:2], config),
+    assert torch.equal(_median_by_share(disparity[1:2], sparse[1:2], config),
                        _median_halved(disparity[1:2], config.sparse_median_window))
     with pytest.raises(InputError, match="sparse_median_window"):
         NearnessNetConfig(sparse_median_window=10)
@@ -365,3 +367,73 @@ def test_pianol_is_ranged_at_its_obstacle(data_dir):
     off = NearnessNet(NearnessNetConfig(min_near_share=0.0)).eval()
     seg_off = segment_stereo_nearness(batch, PipelineConfig().segmentation, off)
     assert float(mask_iou(seg_off.left.kept_mask, truth.kept_mask)[0]) < 0.1
+
+
+def _dim_piano_frames(data_dir, quality: int, sigma: float):
+    """Piano (a tuned scene) at 320×240 with both views' contrast halved about the left view's mean, as
+    experiments/real_rig.py --contrast 0.5 makes it, and the same pair as camera frames."""
+    from svs_torch.data import load_stereo_pair, resize_stereo_batch
+
+    clean = resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Piano"), (320, 240))
+    mean = clean.left.mean()
+    clean = dataclasses.replace(clean, left=(mean + 0.5 * (clean.left - mean)).clamp(0, 1),
+                                right=(mean + 0.5 * (clean.right - mean)).clamp(0, 1))
+    frames = dataclasses.replace(clean, left=_camera_frame(clean.left, quality, sigma, 1),
+                                 right=_camera_frame(clean.right, quality, sigma, 2))
+    return clean, frames
+
+
+def test_a_sparse_camera_frame_is_checked_against_the_coarse_map(data_dir):
+    """Dim Piano as camera frames (JPEG 50, the board's digit 6, with σ 6 levels): the block matcher accepts 17 %
+    of the view, under ``sparse_share``, and the segmenter kept noise matches (IoU with the clean pair's kept
+    regions 0.15). Its matches checked against the pair measured at half the working width
+    (:mod:`svs_torch.segmentation.nearness_denoise`, ``sparse_reduction=2``) keep the clean pair's obstacles;
+    without the check (``sparse_reduction=1``, the default) they are lost. The pair's result is the same alone
+    and beside a clean pair, which never takes the coarse path."""
+    clean, frames = _dim_piano_frames(data_dir, 50, 6.0)
+    config = PipelineConfig().segmentation
+    fine_only = NearnessNet().eval()
+    net = NearnessNet(dataclasses.replace(fine_only.config, sparse_reduction=2)).eval()
+    reference = segment_stereo_nearness(clean, config, net).left.kept_mask
+    measured = measure_nearness_disparity(frames.left, frames.right, net.config)
+    unchecked = measure_nearness_disparity(frames.left, frames.right, fine_only.config)
+    assert float(unchecked.measured.float().mean()) < net.config.sparse_share  # the fine matcher's share
+    assert float(measured.measured.float().mean()) > float(unchecked.measured.float().mean())
+    kept = segment_stereo_nearness(frames, config, net).left.kept_mask
+    lost = segment_stereo_nearness(frames, config, fine_only).left.kept_mask
+    assert float(mask_iou(kept, reference)[0]) > 0.6  # 0.72
+    assert float(mask_iou(lost, reference)[0]) < 0.3  # 0.15
+    both = measure_nearness_disparity(torch.cat([clean.left, frames.left]), torch.cat([clean.right, frames.right]),
+                                      net.config)
+    assert torch.equal(both.disparity_px[1:], measured.disparity_px)
+    assert torch.equal(both.disparity_px[:1], measure_nearness_disparity(clean.left, clean.right,
+                                                                         fine_only.config).disparity_px)
+
+
+def test_fine_matches_are_kept_where_they_agree_with_the_coarse_map():
+    """:func:`~svs_torch.segmentation.nearness_denoise._checked_against_coarse` on views whose coarse map is a
+    known constant: a fine match within ``sparse_agreement_px`` of it stays, one farther off takes the coarse
+    value, and a pixel the fine matcher rejected is valid where the coarse matcher accepted it."""
+    from svs_torch.segmentation.nearness_denoise import _checked_against_coarse
+    from svs_torch.depth.dense_config import DenseConfig
+
+    generator = torch.Generator().manual_seed(5)
+    texture = torch.rand(1, 1, 60, 120, generator=generator)
+    texture = torch.nn.functional.interpolate(texture, size=(120, 240), mode="bilinear", align_corners=False)
+    shift = 8  # working pixels: 4 at half width
+    left, right = texture[..., :200], texture[..., shift:shift + 200]
+    config = NearnessNetConfig()
+    fine = torch.full((1, 1, 120, 200), float(shift))
+    fine[..., 60, 100] = shift + 1.0  # agrees within 1.5
+    fine[..., 60, 101] = shift + 4.0  # does not
+    valid = torch.ones_like(fine, dtype=torch.bool)
+    valid[..., 61, 100] = False
+    merged, merged_valid = _checked_against_coarse(left, right, fine, valid, 40, DenseConfig(window_size=7),
+                                                   config)
+    assert float(merged[..., 60, 100]) == shift + 1.0
+    assert abs(float(merged[..., 60, 101]) - shift) < 0.5  # the coarse map's value, in working pixels
+    assert bool(merged_valid[..., 61, 100])
+    with pytest.raises(InputError, match="sparse_reduction"):
+        NearnessNetConfig(sparse_reduction=0)
+    with pytest.raises(InputError, match="sparse_agreement_px"):
+        NearnessNetConfig(sparse_agreement_px=-1.0)

@@ -123,8 +123,8 @@ MAX_MEDIAN_WINDOW = 15
 def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
     """The ``window``-sided median of every pixel of ``image`` ``(B, 1, H, W)`` float32 over its window, edges
     replicated, the element of rank ``(window² − 1) / 2`` (``torch.median``'s; see the C source): the values of
-    :func:`svs_torch.segmentation.nearness._median_filter`'s torch path. None when the kernel is not available or
-    the input does not fit its contract (another dtype or device, NaN values, a window over
+    :func:`svs_torch.segmentation.nearness_denoise._median_filter`'s torch path. None when the kernel is not
+    available or the input does not fit its contract (another dtype or device, NaN values, a window over
     ``MAX_MEDIAN_WINDOW``)."""
     dims = check_shape(image, "image", ["B", 1, "H", "W"])
     if not (isinstance(window, int) and window >= 1 and window % 2 == 1):

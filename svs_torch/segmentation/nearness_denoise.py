@@ -1,0 +1,124 @@
+"""The nearness segmenter's disparity map made usable on a camera frame (issues 32 and 33): the block matcher's
+rejected pixels filled along their rows, a median over the map, and, for a pair whose matcher accepted too little
+of the view (JPEG frames with sensor noise, a dim scene), its accepted matches checked against the same pair
+measured at a coarser scale.
+
+Why the coarse check: on such a frame the uniqueness and left–right rules reject most windows at the working
+width, and many of the windows that pass are noise matches, so the filled map is specks and streaks whose Otsu
+split can keep a speck (tuned Piano at half contrast as JPEG digit 6 frames: 17 % of the view accepted, the kept
+regions' IoU with the clean pair's 0.15). Averaging 2×2 pixels halves the noise and the window spans twice as much
+of the scene: the same pair at half the working width accepts about three times as much and its map looks like
+the clean pair's (IoU 0.72). A fine match is kept where it agrees with that coarse map (its detail at depth
+edges), the coarse map stands in where it does not or where the fine matcher rejected the pixel, and the rows are
+filled and the median taken as before. Clean pairs accept 41 % or more (experiments/nearness_fallback.md) and
+never take this path.
+
+Off by default (``NearnessNetConfig.sparse_reduction=1``): on the tuned split it raises the camera frames' per
+object accuracy (experiments/select_nearness_setting.md), but on the held-out split it moves single pairs by
+10–35 points both ways and leaves the board's default JPEG digit below OpenCV SGBM at both sizes (that file's
+"Shipped" paragraph).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+
+from ..depth.block_matching import block_match_sad, fill_invalid_rows
+from ..depth.dense_config import DenseConfig, DenseDisparity
+from . import kernels
+
+if TYPE_CHECKING:
+    from .nearness import NearnessNetConfig
+
+__all__ = ["denoised_map"]
+
+
+def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity, num_disparities: int,
+                 dense: DenseConfig, config: NearnessNetConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The filled, median-filtered disparity ``(B, 1, h, w)`` (working pixels) of the block matcher's ``found``
+    on the working-width views ``left`` / ``right`` ``(B, 1, h, w)``, and the pixels it rests on: those the
+    matcher accepted, or for a sparse pair (module docstring) its agreeing fine matches and the coarse map's
+    accepted pixels. Each pair's result depends on that pair alone. Not differentiable (measured without
+    gradients; the segmenter's gradient path is the soft-argmin's)."""
+    disparity, valid = found.disparity_px, found.valid
+    sparse = valid.flatten(1).to(torch.float32).mean(1) < config.sparse_share
+    if config.sparse_reduction > 1 and bool(sparse.any()):
+        index = sparse.nonzero().flatten()
+        merged, merged_valid = _checked_against_coarse(
+            left.index_select(0, index), right.index_select(0, index), disparity.index_select(0, index),
+            valid.index_select(0, index), num_disparities, dense, config)
+        disparity, valid = disparity.index_copy(0, index, merged), valid.index_copy(0, index, merged_valid)
+    filled, reachable = fill_invalid_rows(disparity, valid)
+    return _median_by_share(torch.where(reachable, filled, 0.0), sparse, config), valid
+
+
+def _checked_against_coarse(left: torch.Tensor, right: torch.Tensor, disparity: torch.Tensor, valid: torch.Tensor,
+                            num_disparities: int, dense: DenseConfig, config: NearnessNetConfig
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fine map ``disparity`` / ``valid`` ``(n, 1, h, w)`` of sparse pairs merged with the same views
+    measured at ``1 / config.sparse_reduction`` of their width (filled and median-filtered there, then repeated
+    back to ``(h, w)`` in working pixels): a fine match within ``config.sparse_agreement_px`` of the coarse map
+    is kept, the coarse value taken elsewhere; valid where either the kept fine match or the coarse matcher
+    accepted the pixel."""
+    r = config.sparse_reduction
+    h, w = disparity.shape[-2:]
+    coarse_found = block_match_sad(F.avg_pool2d(left, r, ceil_mode=True), F.avg_pool2d(right, r, ceil_mode=True),
+                                   0, max(2, math.ceil(num_disparities / r)), dense)
+    coarse, reachable = fill_invalid_rows(coarse_found.disparity_px, coarse_found.valid)
+    coarse = _median_halved(torch.where(reachable, coarse, 0.0), config.median_window)
+
+    def repeat(t: torch.Tensor) -> torch.Tensor:
+        return t.repeat_interleave(r, -2).repeat_interleave(r, -1)[..., :h, :w]
+
+    coarse, coarse_valid = repeat(coarse) * r, repeat(coarse_found.valid)
+    agrees = valid & ((disparity - coarse).abs() <= config.sparse_agreement_px)
+    return torch.where(agrees, disparity, coarse), agrees | coarse_valid
+
+
+def _median_halved(disparity: torch.Tensor, window: int) -> torch.Tensor:
+    """``disparity`` ``(B, 1, h, w)`` replaced by the ``window``-sided median of its 2×2 box averages (edges
+    replicated), back at ``(h, w)`` by nearest neighbour. JPEG frames with sensor noise leave the block matcher's
+    map full of specks and, once filled along the rows, one-row streaks; a wide median removes them
+    (experiments/select_nearness_denoise.md). On the halved map a 7×7 median spans 14×14 pixels at a quarter of
+    the cost of one over the whole map."""
+    if window == 1:
+        return disparity
+    h, w = disparity.shape[-2:]
+    filtered = _median_filter(F.avg_pool2d(disparity, 2, ceil_mode=True), window)
+    return F.interpolate(filtered, scale_factor=2, mode="nearest")[..., :h, :w]
+
+
+def _median_by_share(disparity: torch.Tensor, sparse: torch.Tensor, config: NearnessNetConfig) -> torch.Tensor:
+    """:func:`_median_halved` of each map ``(B, 1, h, w)`` with ``config.median_window``, or
+    ``config.sparse_median_window`` for the ``sparse`` ``(B,)`` pairs: those whose block matcher accepted less
+    than ``config.sparse_share`` of the view."""
+    if config.sparse_median_window == config.median_window or not bool(sparse.any()):
+        return _median_halved(disparity, config.median_window)
+    if bool(sparse.all()):
+        return _median_halved(disparity, config.sparse_median_window)
+    out = torch.empty_like(disparity)
+    for pick, window in ((~sparse, config.median_window), (sparse, config.sparse_median_window)):
+        index = pick.nonzero().flatten()
+        out[index] = _median_halved(disparity.index_select(0, index), window)
+    return out
+
+
+def _median_filter(image: torch.Tensor, window: int) -> torch.Tensor:
+    """The ``window``-sided median (``torch.median``'s, the lower one) of each pixel of ``image`` ``(B, 1, h, w)``,
+    edges replicated. The compiled kernel (:func:`svs_torch.segmentation.kernels.median_filter`: a selection network
+    over 16 pixels at a time up to 7×7, the median tracked from pixel to pixel above; the halved map of a 320×240
+    pair in 0.9 ms where the torch path takes 16) gives the values of the torch path below, which sorts every
+    window, bit for bit. Not differentiable (the map it filters is measured without gradients)."""
+    fast = kernels.median_filter(image, window)
+    if fast is not None:
+        return fast
+    if image.numel() == 0:
+        return image.clone()
+    pad = window // 2
+    windows = F.pad(image, (pad, pad, pad, pad), mode="replicate").unfold(2, window, 1).unfold(3, window, 1)
+    return windows.reshape(*image.shape, window * window).median(-1).values
+
