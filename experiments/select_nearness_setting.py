@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from svs_torch.core.files import write_bytes_atomic
-from svs_torch.segmentation.nearness import NearnessNet
+from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -44,10 +44,8 @@ from run_metadata import default_data_dir  # noqa: E402
 SIZES = {"320": "320x240", "native": "native"}
 
 
-def parse_variant(text: str) -> dict:
-    """``"name=value[,name=value]"`` to ``{name: value}``, each value of its field's type in the shipped
-    config."""
-    shipped = load_obstacle_net("nearness").config
+def parse_variant(text: str, shipped: NearnessNetConfig) -> dict:
+    """``"name=value[,name=value]"`` to ``{name: value}``, each value of its field's type in ``shipped``."""
     fields = {f.name: type(getattr(shipped, f.name)) for f in dataclasses.fields(shipped)}
     out = {}
     for item in text.split(","):
@@ -58,9 +56,8 @@ def parse_variant(text: str) -> dict:
     return out
 
 
-def weights_with(folder: Path, variant: dict, number: int) -> Path:
-    """The shipped nearness network with ``variant``'s fields set, saved in ``folder``."""
-    shipped = load_obstacle_net("nearness")
+def weights_with(folder: Path, shipped: NearnessNet, variant: dict, number: int) -> Path:
+    """The ``shipped`` nearness network with ``variant``'s fields set, saved in ``folder``."""
     net = NearnessNet(dataclasses.replace(shipped.config, **variant))
     net.load_state_dict(shipped.state_dict())
     path = folder / f"nearness_{number}.pt"
@@ -86,10 +83,10 @@ def rig_scores(data: Path, path: Path, contrast: float, conditions: str | None) 
             for size, rig_size in SIZES.items()}
 
 
-def score(data: Path, folder: Path, variant: dict, number: int, contrasts: list[float],
+def score(data: Path, path: Path, variant: dict, number: int, contrasts: list[float],
           conditions: str | None) -> dict:
-    """The variant's clean segmentation and rig scores and its total (module docstring)."""
-    path = weights_with(folder, variant, number)
+    """The variant's (its weights file at ``path``) clean segmentation and rig scores and its total (module
+    docstring)."""
     seg = segmentation_scores(data, f"variant{number}", path)
     rig = {(size, contrast): acc for contrast in contrasts
            for size, acc in rig_scores(data, path, contrast, conditions).items()}
@@ -126,12 +123,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
-    variants = [parse_variant(text) for text in args.variants]
+    shipped = load_obstacle_net("nearness")  # read once: every variant is its weights with other settings
+    variants = [parse_variant(text, shipped.config) for text in args.variants]
     contrasts = [float(text) for text in args.contrasts.split(",")]
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as folder:
-        results = [score(args.data, Path(folder), variant, number, contrasts, args.conditions)
-                   for number, variant in enumerate(variants)]
+        results = [score(args.data, weights_with(Path(folder), shipped, variant, number), variant, number, contrasts,
+                         args.conditions) for number, variant in enumerate(variants)]
     best = max(results, key=lambda r: round(r["score"], 4))  # max keeps the first of equal scores
     command = "python experiments/select_nearness_setting.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = table(results, best, command, contrasts, args.conditions)
