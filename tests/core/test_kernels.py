@@ -521,6 +521,31 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     assert float(error.median()) < 1e-4 and float((error < 1e-3).float().mean()) > 0.99
 
 
+@pytest.mark.skipif(not kernels.available("lk_refine"), reason="no C compiler")
+def test_lk_kernel_matches_are_independent_of_their_neighbours(generator):
+    """The kernel refines several matches at once with their sums interleaved (see the C source); each match's
+    result is bit for bit the one it gets alone, whichever rows share its task (inactive rows, the batch's other
+    pair, a last task that is not full)."""
+    import torch.nn.functional as F
+
+    texture = F.avg_pool2d(torch.rand(2, 1, 90, 124, generator=generator), 3, 1)  # (2, 1, 88, 122), smooth
+    left, right = texture[:, :, :, :120].contiguous(), texture[:, :, :, 2:].contiguous()
+    k = 21
+    left_xy = torch.rand(2, k, 2, generator=generator) * torch.tensor([110.0, 78.0]) + 5.0
+    right_xy = left_xy + torch.rand(2, k, 2, generator=generator) * 2.0 - torch.tensor([3.0, 1.0])
+    radius = torch.rand(2, k, generator=generator) * 9.0 + 3.0
+    active = torch.rand(2, k, generator=generator) > 0.2
+    refined, correlation = geometry_kernels.lk_refine(left, right, left_xy, right_xy, radius, active, 8, 2.0)
+    assert bool((refined != right_xy)[active].any()) and bool((correlation[active] != 0).all())
+    assert torch.equal(refined[~active], right_xy[~active]) and bool((correlation[~active] == 0).all())
+    for b in range(2):
+        for n in active[b].nonzero().flatten().tolist():
+            alone, alone_correlation = geometry_kernels.lk_refine(
+                left[b:b + 1], right[b:b + 1], left_xy[b:b + 1, n:n + 1], right_xy[b:b + 1, n:n + 1],
+                radius[b:b + 1, n:n + 1], active[b:b + 1, n:n + 1], 8, 2.0)
+            assert torch.equal(alone[0, 0], refined[b, n]) and torch.equal(alone_correlation[0, 0], correlation[b, n])
+
+
 @pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
 @pytest.mark.parametrize("mutual", [False, True])
 @pytest.mark.parametrize("band_px", [None, 4.0])
