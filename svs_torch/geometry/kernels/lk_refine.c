@@ -13,7 +13,7 @@
  * Why LANES matches at once: each sum over a patch is a chain of dependent double adds, in a fixed order so that
  * results do not depend on the compiler; its latency, not the arithmetic, bounded the loop. The LANES matches'
  * chains are independent and run interleaved (lane fastest in memory, so they share vector registers), each in
- * its own order: the same bits as one match at a time (tests/core/test_kernels.py), 17-21 % less time on the
+ * its own order: the same bits as one match at a time (tests/core/test_kernels.py), 17-19 % less time on the
  * 2 791 matches of 8 synthetic pairs at one thread.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (see svs_torch/core/kernels/loader.py).
