@@ -24,6 +24,7 @@ import torch
 
 from ..core.checks import check_image
 from ..core.compiling import maybe_compiled
+from ..core.inference import outside_inference_mode
 from . import kernels
 from .integral import grid_box_corners, integral_image, integral_phases, pad_integral
 
@@ -96,6 +97,7 @@ def _level_into(corners: list[torch.Tensor], inverse_lobe_area: float, inverse_d
 
 
 @functools.lru_cache(maxsize=64)
+@outside_inference_mode  # cached across calls: never an inference tensor
 def _inside_levels(sizes: tuple[int, ...], step: int, grid_hw: tuple[int, int], image_hw: tuple[int, int],
                    device: torch.device) -> torch.Tensor:
     """``(S, ny, nx)`` bool: the whole filter of each size fits in the image at the grid point. Cached (a

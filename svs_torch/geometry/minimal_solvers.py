@@ -10,6 +10,8 @@ import math
 
 import torch
 
+from ..core.inference import outside_inference_mode
+
 __all__ = ["DEGENERATE_PIVOT_RATIO", "MAX_ROOT_DETERMINANT", "enforce_rank2", "real_cubic_roots"]
 
 
@@ -71,6 +73,7 @@ def _eight_point_from_design(design: torch.Tensor, weights: torch.Tensor) -> tor
 
 
 @functools.lru_cache(maxsize=8)
+@outside_inference_mode  # cached across calls: never an inference tensor
 def _mixing_matrix(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """A fixed orthogonal 9×9 matrix (a Householder reflection with an irregular normal), cached per dtype/device."""
     normal = torch.tensor([1.0, -2.0, 3.0, 5.0, -7.0, 11.0, 13.0, -17.0, 19.0], dtype=torch.float64)

@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from ..core.checks import InputError, check_instance
+from ..core.inference import plain_tensors
 from ..core.size_groups import run_by_size
 from ..core.types import FundamentalStatus, StereoBatch
 from ..depth.sparse import estimate_depth
@@ -77,9 +78,14 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
             expected = "a NearnessNet" if config.segmentation.segmenter.startswith("nearness") else "an ObstacleNet"
             raise InputError(f"network: expected {expected} for segmenter {config.segmentation.segmenter!r}, got "
                              f"{type(network).__name__}")
-    if not config.differentiable:
-        batch = _detached(batch)
-    return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
+    if config.differentiable:
+        return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
+    # Nothing to differentiate: the whole run in inference mode (its ops' bookkeeping is most of a one-pair call's
+    # time), and what it returns copied to ordinary tensors (svs_torch.core.inference).
+    batch = _detached(batch)
+    with torch.inference_mode():
+        result = run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
+    return plain_tensors(result)
 
 
 def _detached(batch: StereoBatch) -> StereoBatch:

@@ -122,7 +122,8 @@ def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module 
         cached = cached_obstacle_net(config.segmenter)
         parameters = list(cached.parameters())
         if parameters and parameters[0].device != batch.left.device:
-            cached = cached.to(batch.left.device)
+            with torch.inference_mode(False):  # moved in place, and kept: never inference tensors (core.inference)
+                cached = cached.to(batch.left.device)
         if any(p.requires_grad for p in parameters):
             cached.requires_grad_(False)
         return cached

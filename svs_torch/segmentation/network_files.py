@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from ..core.checks import InputError
+from ..core.inference import outside_inference_mode
 from .network import ObstacleNet, ObstacleNetConfig
 
 __all__ = [
@@ -82,6 +83,7 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
 _NET_CACHE: dict[tuple[str, str, int, int], nn.Module] = {}
 
 
+@outside_inference_mode  # the cached network's parameters: never inference tensors (a later call may train through)
 def cached_obstacle_net(segmenter: str) -> nn.Module:
     """:func:`load_obstacle_net` once per weights file and version (a batch loop or a sweep does not re-read it
     for every batch; a file rewritten in place, e.g. by a training run, is read again)."""

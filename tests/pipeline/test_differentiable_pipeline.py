@@ -249,3 +249,41 @@ def test_no_tensor_is_created_off_the_input_device(data_dir, monkeypatch):
         torch.set_default_device(None)
     assert result.depth.objects.depth_median_m.device.type == "cpu"
     assert np.isfinite(result.depth.objects.depth_median_m.detach().numpy()).all()
+
+
+def _tensors(tree):
+    if isinstance(tree, torch.Tensor):
+        yield tree
+    elif hasattr(tree, "__dataclass_fields__"):
+        for name in tree.__dataclass_fields__:
+            yield from _tensors(getattr(tree, name))
+    elif isinstance(tree, (tuple, list)):
+        for item in tree:
+            yield from _tensors(item)
+    elif isinstance(tree, dict):
+        for item in tree.values():
+            yield from _tensors(item)
+
+
+def test_a_hard_run_in_inference_mode_leaves_nothing_that_stops_training(data_dir):
+    # The hard pipeline runs in inference mode (svs_torch.core.inference). Emptied first, the caches it fills (the
+    # Hessian's tables, the 7-point solver's mixing matrix, the nearness network) must still train afterwards.
+    from svs_torch.features.hessian import _inside_levels
+    from svs_torch.geometry.minimal_solvers import _mixing_matrix
+    from svs_torch.segmentation import network_files
+    _inside_levels.cache_clear()
+    _mixing_matrix.cache_clear()
+    network_files._NET_CACHE.clear()
+    plain = _teddy(data_dir, (160, 120))
+    hard = estimate_obstacle_depth(plain, PipelineConfig())
+    tensors = list(_tensors(hard))
+    assert len(tensors) > 50 and not any(t.is_inference() for t in tensors)
+    hard.depth.objects.depth_median_m.mul_(1.0)  # an inference tensor would refuse this
+    assert not _mixing_matrix(torch.float64, torch.device("cpu")).is_inference()
+    net = next(iter(network_files._NET_CACHE.values()))
+    assert not any(p.is_inference() for p in net.parameters())
+    batch = _requiring_grad(plain)
+    result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True))
+    assert torch.equal(result.hard_depth.objects.depth_median_m, hard.depth.objects.depth_median_m)
+    result.depth.objects.depth_median_m[result.depth.objects.valid].sum().backward()
+    assert int((batch.left.grad != 0).sum()) > 100
