@@ -32,6 +32,16 @@ not K. ``experiments/bench_ransac.py`` times it against ``cv2.findFundamentalMat
 scoring block was measured and not adopted: 1.7× on that block (≈ 8 % of a run), losses that differ from eager
 in the 5th digit, and a compile on every new block shape.
 
+**The C kernel.** For MSAC and RANSAC scoring on CPU, :func:`estimate_fundamental_ransac` runs each pair start to
+finish in ``kernels/ransac_fundamental.c``, step for step the algorithm above (the same samples, rows, solver,
+scores, refits and stopping; :func:`svs_torch.geometry.kernels.ransac_fundamental`): this torch path batches well
+but is about 1 900 small operations for one pair, whose dispatch was nearly all of its time (one pair of 340
+matches 4.2 → 0.3 ms; 1.0 → 0.35 ms a pair at B = 8, one thread). Its LU, eigenvectors and sums run in their own
+order, so it is not bit for bit: on drawn scenes with outliers 959 of 960 pairs get the same inliers and F to
+1e-17 (the other a float32 tie between two hypotheses' scores), and the 58 shared real pairs at 320×240 the same
+results (``experiments/kernel_parity.py``). LMedS, other devices and ``SVS_TORCH_KERNELS=torch`` take this path,
+which stays the reference.
+
 Not differentiable: sampling, arg-min and thresholds are discrete. Refit the returned inliers with
 :func:`svs_torch.geometry.epipolar.fundamental_8point` for gradients.
 """
@@ -44,11 +54,15 @@ import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
 from ..core.types import FundamentalResult, FundamentalStatus
+from . import kernels
 from .epipolar_distance import _epipolar_terms, _safe_ratio
-from .minimal_solvers import _denormalize, _fix_sign_and_scale
-from .ransac_refine import _local_optimization, _polish
-from .ransac_sampling import _SAMPLE_SIZE, draw_minimal_samples
-from .ransac_scoring import _Problem, _prepare, _sampson_sq, _score, _select_pairs, _solve_chunk
+from .minimal_solvers import (_FAST_PIVOT_RATIO, DEGENERATE_PIVOT_RATIO, MAX_ROOT_DETERMINANT, _denormalize,
+                              _fix_sign_and_scale)
+from .ransac_refine import (LOCAL_OPTIMIZATION_STEPS, LOCAL_OPTIMIZATION_TOLERANCE, LOCAL_OPTIMIZATION_WINDOW,
+                            POLISH_STEPS, POLISH_WINDOW, _local_optimization, _polish)
+from .ransac_sampling import _SAMPLE_SIZE, PREVERIFY_POINTS, draw_minimal_samples
+from .ransac_scoring import (_DENOMINATOR_GUARD, _Problem, _prepare, _sampson_sq, _score, _select_pairs,
+                             _solve_chunk)
 
 __all__ = ["SCORINGS", "draw_minimal_samples", "estimate_fundamental_ransac"]
 
@@ -190,14 +204,34 @@ def _finish(problem: _Problem, points_left: torch.Tensor, points_right: torch.Te
     found = best_loss.isfinite()
     # Squared in float64 tensors: a huge finite threshold squares to inf here instead of raising OverflowError.
     inliers = valid & found.unsqueeze(-1) & (distance_sq <= torch.tensor(float(threshold_px), dtype=work, device=distance_sq.device).square())
+    return _result(fundamental, found, inliers, problem.num_valid, iterations, min_inliers, points_left.dtype)
+
+
+def _result(fundamental: torch.Tensor, found: torch.Tensor, inliers: torch.Tensor, num_valid: torch.Tensor,
+            iterations: torch.Tensor, min_inliers: int, dtype: torch.dtype) -> FundamentalResult:
+    """The :class:`FundamentalResult` of pixel models ``(B, 3, 3)`` float64, each pair's status from its counts."""
     num_inliers = inliers.sum(-1)
     status = torch.full_like(num_inliers, FundamentalStatus.OK)
     status = torch.where(num_inliers < min_inliers, FundamentalStatus.TOO_FEW_INLIERS, status)
     status = torch.where(~found, FundamentalStatus.DEGENERATE, status)
-    status = torch.where(problem.num_valid < _SAMPLE_SIZE, FundamentalStatus.TOO_FEW_MATCHES, status)
+    status = torch.where(num_valid < _SAMPLE_SIZE, FundamentalStatus.TOO_FEW_MATCHES, status)
     ok = status == FundamentalStatus.OK
-    return FundamentalResult(F=torch.where(ok.view(-1, 1, 1), fundamental, 0.0).to(points_left.dtype),
+    return FundamentalResult(F=torch.where(ok.view(-1, 1, 1), fundamental, 0.0).to(dtype),
                              inliers=inliers, num_inliers=num_inliers, status=status, iterations=iterations)
+
+
+def _kernel_settings(settings: dict, local_optimization: bool, preverification: bool, polish: bool) -> dict:
+    """The settings of :func:`svs_torch.geometry.kernels.ransac_fundamental`: the call's and this module's
+    constants (one source for both paths)."""
+    return {"threshold_px": settings["threshold_px"], "confidence": settings["confidence"],
+            "max_iterations": settings["max_iterations"], "chunk_size": settings["chunk_size"],
+            "scoring": float(settings["scoring"] == "ransac"), "local_optimization": float(local_optimization),
+            "preverification": float(preverification), "polish": float(polish), "lo_steps": LOCAL_OPTIMIZATION_STEPS,
+            "lo_window": LOCAL_OPTIMIZATION_WINDOW, "lo_tolerance": LOCAL_OPTIMIZATION_TOLERANCE,
+            "polish_steps": POLISH_STEPS, "polish_window": POLISH_WINDOW, "degenerate_pivot": DEGENERATE_PIVOT_RATIO,
+            "fast_pivot": _FAST_PIVOT_RATIO, "max_root_determinant": MAX_ROOT_DETERMINANT,
+            "guard": _DENOMINATOR_GUARD, "preverify_points": PREVERIFY_POINTS,
+            "preverify_keep_ratio": PREVERIFY_KEEP_RATIO}
 
 
 def estimate_fundamental_ransac(
@@ -261,6 +295,13 @@ def estimate_fundamental_ransac(
     if pair_seeds is None:
         pair_seeds = torch.randint(0, 1 << 62, (b,), generator=generator, device=points_left.device)
     pair_seeds = pair_seeds.to(torch.int64)
+    if scoring != "lmeds":
+        compiled = kernels.ransac_fundamental(
+            points_left.to(torch.float64), points_right.to(torch.float64), valid, pair_seeds,
+            _kernel_settings(settings, local_optimization, preverification, polish))
+        if compiled is not None:
+            fundamental, found, iterations, inliers = compiled
+            return _result(fundamental, found, inliers, valid.sum(-1), iterations, min_inliers, points_left.dtype)
     # The valid rows only, moved to the front (stable, so samples drawn by rank are unchanged).
     order = torch.argsort((~valid).to(torch.uint8), dim=-1, stable=True)
     rows = order[:, :int(valid.sum(-1).max()) if b else 0]

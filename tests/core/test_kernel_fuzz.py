@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 
 from svs_torch.core import kernels
 from svs_torch.core.errors import InputError
-from svs_torch.core.types import Keypoints
+from svs_torch.core.types import FundamentalStatus, Keypoints
 from svs_torch.depth import kernels as depth_kernels
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
@@ -38,6 +38,7 @@ from svs_torch.geometry import kernels as geometry_kernels
 from svs_torch.geometry.lk_refinement import refine_matches_lk
 from svs_torch.geometry.matched_points import MatchedPoints
 from svs_torch.geometry.matching import match_sad
+from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
@@ -323,6 +324,37 @@ def test_row_alignment_costs(b, k, data):
     _both(fit_row_alignment, left, right, valid, image_hw)
 
 
+@given(b=st.integers(0, 3), k=st.integers(0, 40), scoring=st.sampled_from(["msac", "ransac"]), data=st.data())
+@examples(40)
+def test_ransac_fundamental(b, k, scoring, data):
+    """RANSAC by the kernel or by the torch path: the same error or results of the same form, with padding rows,
+    repeated points (degenerate samples), huge and NaN coordinates (NaN only in padding: valid rows must be finite),
+    and chunks and limits of any size. The two agree on the inliers but for float32 ties
+    (``tests/geometry/test_ransac_kernel.py``), so here only the form and the invariants are compared."""
+    left = data.draw(tensors((b, k, 2), high=data.draw(st.sampled_from([1.0, 300.0, 1e30])), specials=0.0,
+                             dtype=torch.float64))
+    right = left + data.draw(tensors((b, k, 2), low=-3.0, high=3.0, specials=0.0, dtype=torch.float64))
+    if data.draw(st.booleans()) and k > 3:
+        right[:, 1:3] = right[:, :1]
+        left[:, 1:3] = left[:, :1]
+    valid = data.draw(masks((b, k), odd_bytes=False))
+    if data.draw(st.booleans()):
+        left = torch.where(valid.unsqueeze(-1), left, math.nan)  # padding may hold anything
+    settings = {"max_iterations": data.draw(st.integers(1, 300)), "chunk_size": data.draw(st.integers(1, 200)),
+                "threshold_px": data.draw(st.sampled_from([1e-6, 1.0, 1e6])), "scoring": scoring,
+                "confidence": data.draw(st.sampled_from([0.5, 0.99, 1.0])), "pair_seeds": torch.arange(b)}
+    fused = _outcome(estimate_fundamental_ransac, left, right, valid, **settings)
+    with _torch_path():
+        eager = _outcome(estimate_fundamental_ransac, left, right, valid, **settings)
+    assert (fused is InputError) == (eager is InputError)
+    if fused is not InputError:
+        for a, b_ in zip(_leaves(fused), _leaves(eager), strict=True):
+            assert a.shape == b_.shape and a.dtype == b_.dtype
+        assert not (fused.inliers & ~valid).any() and bool(torch.isfinite(fused.F).all())
+        short = FundamentalStatus.TOO_FEW_MATCHES  # decided by the counts alone
+        assert torch.equal(fused.status == short, eager.status == short)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -391,6 +423,10 @@ def test_dense_object_depths(size, n, fill, data):
                                     torch.ones(1, 5, dtype=torch.bool), 1.0)),
     ("row_alignment_cost", lambda: (torch.rand(1, 4, 3, dtype=torch.float64), *(torch.rand(1, 5, dtype=torch.float64)
                                     for _ in range(3)), torch.ones(1, 5, dtype=torch.bool), math.nan)),
+    ("ransac_fundamental", lambda: (torch.rand(1, 8, 2, dtype=torch.float64), torch.rand(1, 9, 2, dtype=torch.float64),
+                                    torch.ones(1, 8, dtype=torch.bool), torch.zeros(1, dtype=torch.int64), {})),
+    ("ransac_fundamental", lambda: (torch.rand(1, 8, 2, dtype=torch.float64), torch.rand(1, 8, 2, dtype=torch.float64),
+                                    torch.ones(1, 8, dtype=torch.bool), torch.zeros(2, dtype=torch.int64), {})),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),

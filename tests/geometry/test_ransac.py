@@ -18,6 +18,15 @@ from svs_torch.geometry.ransac_sampling import _splitmix64, draw_minimal_samples
 OK, TOO_FEW = FundamentalStatus.OK, FundamentalStatus.TOO_FEW_MATCHES
 
 
+@pytest.fixture(autouse=True, params=["kernel", "torch"])
+def ransac_path(request, monkeypatch):
+    """Every test twice: the C kernel (the default for MSAC and RANSAC scoring, where it is built) and the torch
+    path it mirrors (the reference; the only path for LMedS)."""
+    if request.param == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    return request.param
+
+
 def noisy_matches(b: int, k: int, outlier_ratio: float, generator: torch.Generator, motion: str = "general",
                   noise_px: float = 0.3):
     """Synthetic matches: exact projections + Gaussian noise, a share replaced by uniform outliers.

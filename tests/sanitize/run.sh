@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The C kernels built with AddressSanitizer and UBSan (into their own cache folder, so the normal builds stay),
 # then the kernel tests and the kernel fuzz run against them; any sanitizer report fails the run.
-#   tests/sanitize/run.sh                 # tests/core/test_kernels.py and tests/core/test_kernel_fuzz.py
+#   tests/sanitize/run.sh                 # tests/core/test_kernels.py, test_kernel_fuzz.py, geometry/test_ransac_kernel.py
 #   tests/sanitize/run.sh tests/depth/test_dense.py -k kernel   # other pytest arguments instead
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -17,7 +17,7 @@ export LD_PRELOAD="$asan $ubsan${LD_PRELOAD:+ $LD_PRELOAD}"
 export ASAN_OPTIONS="detect_leaks=0:abort_on_error=1:log_path=$log/asan"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:log_path=$log/ubsan"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
-[ $# -gt 0 ] || set -- tests/core/test_kernels.py tests/core/test_kernel_fuzz.py
+[ $# -gt 0 ] || set -- tests/core/test_kernels.py tests/core/test_kernel_fuzz.py tests/geometry/test_ransac_kernel.py
 status=0
 python -m pytest -q -p no:cacheprovider "$@" || status=$?
 if compgen -G "$log/*" > /dev/null; then

@@ -19,11 +19,14 @@ at its own box (``object_depths.c``), SURF's padded integral table (``padded_int
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
-(``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``) and the MSAC costs of the row
-alignment's hypotheses (``row_alignment_cost.c``). Each is the no-gradient path of
+(``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``), the MSAC costs of the row
+alignment's hypotheses (``row_alignment_cost.c``) and the whole RANSAC search for F, one pair at a time
+(``ransac_fundamental.c``). Each is the no-gradient path of
 a torch function that stays the reference, the fallback and the differentiable path. Thirteen give that torch path's
 values bit for bit: the first twelve, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
-order, which ``torch.topk`` leaves open). Five do not: the fit solves its 3 × 3 systems by its own elimination, not
+order, which ``torch.topk`` leaves open). Six do not (RANSAC's: its LU, eigenvectors and sums in its own order, the
+same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Five of them: the fit
+solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
 with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor

@@ -25,39 +25,34 @@ def check_rows(tensor: torch.Tensor, name: str, rows: int, *tail: int | str, kin
     return tensor
 
 
-def _first_bad(values: torch.Tensor, bad: torch.Tensor) -> str:
-    return str(values[bad.nonzero()[0, 0]].tolist())
-
-
 def check_image_hw(image_hw: torch.Tensor, b: int, h: int, w: int) -> torch.Tensor:
     """Each pair's size before padding ``(B, 2)`` int: at least 1 and within the ``H × W`` tensors (a kernel
-    reads and writes rows up to it)."""
+    reads and writes rows up to it). The rows are read as Python numbers: a handful of values, for which one copy
+    costs less than the nine small torch operations of a comparison (a one-pair call checks a dozen such)."""
     check_rows(image_hw, "image_hw", b, 2)
-    hw = image_hw.detach().to(torch.int64)
-    bad = (hw[:, 0] < 1) | (hw[:, 0] > h) | (hw[:, 1] < 1) | (hw[:, 1] > w)
-    if bool(bad.any()):
-        raise InputError(f"image_hw: expected (height, width) rows with 1 <= height <= {h} and 1 <= width <= {w} "
-                         f"(the image tensors' size), got {_first_bad(hw, bad)}")
+    for row in image_hw.tolist():
+        if not (1 <= row[0] <= h and 1 <= row[1] <= w):
+            raise InputError(f"image_hw: expected (height, width) rows with 1 <= height <= {h} and 1 <= width <= {w} "
+                             f"(the image tensors' size), got {row}")
     return image_hw
 
 
 def check_boxes(boxes: torch.Tensor, b: int, h: int, w: int, name: str = "boxes") -> torch.Tensor:
     """Boxes ``(B, 4)`` int as x0, y0, width, height, each inside the ``H × W`` frame (a kernel writes them)."""
     check_rows(boxes, name, b, 4)
-    x0, y0, width, height = boxes.detach().to(torch.int64).unbind(1)
-    bad = (x0 < 0) | (y0 < 0) | (width < 0) | (height < 0) | (x0 + width > w) | (y0 + height > h)
-    if bool(bad.any()):
-        raise InputError(f"{name}: expected (x0, y0, width, height) rows inside the {h} x {w} frame, "
-                         f"got {_first_bad(boxes, bad)}")
+    for x0, y0, width, height in boxes.tolist():
+        if min(x0, y0, width, height) < 0 or x0 + width > w or y0 + height > h:
+            raise InputError(f"{name}: expected (x0, y0, width, height) rows inside the {h} x {w} frame, "
+                             f"got {[x0, y0, width, height]}")
     return boxes
 
 
 def check_counts(counts: torch.Tensor, name: str, b: int, upper: int) -> torch.Tensor:
     """Per-pair counts ``(B,)`` int in ``[1, upper]`` (e.g. each pair's disparities within the batch's D)."""
     check_rows(counts, name, b)
-    bad = (counts < 1) | (counts > upper)
-    if bool(bad.any()):
-        raise InputError(f"{name}: expected values in [1, {upper}], got {_first_bad(counts, bad)}")
+    for count in counts.tolist():
+        if not 1 <= count <= upper:
+            raise InputError(f"{name}: expected values in [1, {upper}], got {count}")
     return counts
 
 

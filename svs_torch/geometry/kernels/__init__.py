@@ -13,11 +13,13 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_number, check_rows
 
-__all__ = ["available", "lk_refine", "load", "row_alignment_cost", "sad_nearest"]
+__all__ = ["RANSAC_SETTINGS", "available", "lk_refine", "load", "ransac_fundamental", "row_alignment_cost",
+           "sad_nearest"]
 
 declare({
     "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
                   None),
+    "ransac_fundamental": ([POINTER] * 5 + [INT] * 2 + [POINTER] * 4 + [INT], ctypes.c_int),
     "row_alignment_cost": ([POINTER] * 5 + [INT] * 3 + [ctypes.c_double, POINTER, INT], ctypes.c_int),
     "sad_nearest": ([POINTER] * 8 + [FLOAT] + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
 })
@@ -129,3 +131,53 @@ def row_alignment_cost(params: torch.Tensor, left_y: torch.Tensor, right_x: torc
                                         valid.data_ptr(), b, m, k, float(threshold_px), cost.data_ptr(),
                                         torch.get_num_threads())
     return None if status != 0 else cost
+
+
+#: The settings :func:`ransac_fundamental` takes, in the order of its C source's ``enum`` (each a number; the flags
+#: 0 or 1; ``scoring`` 0 for MSAC, 1 for RANSAC's count).
+RANSAC_SETTINGS = ("threshold_px", "confidence", "max_iterations", "chunk_size", "scoring", "local_optimization",
+                   "preverification", "polish", "lo_steps", "lo_window", "lo_tolerance", "polish_steps",
+                   "polish_window", "degenerate_pivot", "fast_pivot", "max_root_determinant", "guard",
+                   "preverify_points", "preverify_keep_ratio")
+#: The settings that count something: whole numbers, at least 1 (the steps at least 0).
+_RANSAC_COUNTS = {"max_iterations": 1, "chunk_size": 1, "lo_steps": 0, "polish_steps": 0, "preverify_points": 1,
+                  "preverify_keep_ratio": 1}
+
+
+def ransac_fundamental(points_left: torch.Tensor, points_right: torch.Tensor, valid: torch.Tensor,
+                       pair_seeds: torch.Tensor, settings: dict[str, float]
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """``svs_torch.geometry.ransac.estimate_fundamental_ransac``'s search, one pair at a time start to finish (see
+    the C source): ``points_left``, ``points_right`` ``(B, K, 2)`` float64 pixels, finite where ``valid`` ``(B,
+    K)`` (bool); ``pair_seeds`` ``(B,)`` int64; ``settings`` every name of :data:`RANSAC_SETTINGS`. Returns F ``(B,
+    3, 3)`` float64 in pixels (unit norm, zero where none was found), found ``(B,)`` bool, the hypotheses drawn
+    ``(B,)`` int64 and the inliers ``(B, K)`` bool; None when the kernel is not available or the inputs do not fit
+    its contract."""
+    dims = check_shape(points_left, "points_left", ["B", "K", 2])
+    b, k = dims["B"], dims["K"]
+    check_shape(points_right, "points_right", [b, k, 2])
+    check_rows(valid, "valid", b, k, kinds="bool")
+    check_rows(pair_seeds, "pair_seeds", b)
+    if set(settings) != set(RANSAC_SETTINGS):
+        raise InputError(f"settings: expected exactly {', '.join(RANSAC_SETTINGS)}, got {', '.join(sorted(settings))}")
+    for name in RANSAC_SETTINGS:
+        value = check_number(settings[name], f"settings[{name!r}]", 0.0)
+        least = _RANSAC_COUNTS.get(name)
+        if least is not None and not (value.is_integer() and least <= value < 2**53):
+            raise InputError(f"settings[{name!r}]: expected a whole number >= {least}, got {settings[name]!r}")
+    if not (on_cpu(torch.float64, points_left, points_right) and on_cpu(torch.bool, valid)
+            and on_cpu(torch.int64, pair_seeds)):
+        return None
+    library = load("ransac_fundamental")
+    if library is None:
+        return None
+    values = torch.tensor([float(settings[name]) for name in RANSAC_SETTINGS], dtype=torch.float64)
+    points_left, points_right, valid, pair_seeds = (t.contiguous() for t in (points_left, points_right, valid,
+                                                                             pair_seeds))
+    fundamental, iterations = torch.empty(b, 3, 3, dtype=torch.float64), torch.empty(b, dtype=torch.int64)
+    found, inliers = torch.empty(b, dtype=torch.bool), torch.empty(b, k, dtype=torch.bool)
+    status = library.ransac_fundamental(points_left.data_ptr(), points_right.data_ptr(), valid.data_ptr(),
+                                        pair_seeds.data_ptr(), values.data_ptr(), b, k, fundamental.data_ptr(),
+                                        found.data_ptr(), iterations.data_ptr(), inliers.data_ptr(),
+                                        torch.get_num_threads())
+    return None if status != 0 else (fundamental, found, iterations, inliers)
