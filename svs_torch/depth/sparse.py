@@ -165,9 +165,11 @@ def _region_geometry(labels: torch.Tensor, region_labels: torch.Tensor,
 
 def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left: torch.Tensor,
                   depths: PointDepths, image_hw: torch.Tensor | None = None,
-                  percentiles: tuple[float, float] = (10.0, 90.0), min_inliers: int = 1) -> ObjectDepths:
+                  percentiles: tuple[float, float] = (10.0, 90.0), min_inliers: int = 1,
+                  statistics: bool = True) -> ObjectDepths:
     """Per-object depth: each correspondence goes to the region under its left point; per region, the median
-    and ``percentiles`` of its depths.
+    and ``percentiles`` of its depths (``statistics=False``: zeros, every slot invalid, for a caller that only
+    wants the slots' geometry and inlier counts).
 
     Args:
         labels: ``(B, 1, H, W)`` int64 label image of the left view, 0 background (``Segmentation.labels``).
@@ -194,9 +196,13 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
     member = _point_slots(labels, region_labels, points_left, image_hw) & depths.valid.unsqueeze(-1)
     member = member.transpose(1, 2)  # (B, N, K)
     q = (0.5, *_quantile_levels(percentiles, "percentiles"))
-    stats = masked_quantile(depths.depth_m.unsqueeze(1).expand_as(member), member, q).values  # (B, N, 3)
     count = member.sum(dim=-1)
     valid = (region_labels > 0) & (area > 0) & (count >= max(min_inliers, 1))
+    if statistics:
+        stats = masked_quantile(depths.depth_m.unsqueeze(1).expand_as(member), member, q).values  # (B, N, 3)
+    else:
+        stats = depths.depth_m.new_zeros((*member.shape[:2], 3))
+        valid = torch.zeros_like(valid)
     stats = torch.where(valid.unsqueeze(-1), stats, torch.zeros_like(stats))
     point_slot = torch.full(member.shape[::2], -1, dtype=torch.int64, device=member.device)  # (B, K)
     if member.shape[1] > 0:
@@ -227,18 +233,25 @@ def estimate_depth(points_left: torch.Tensor, points_right: torch.Tensor, inlier
                    doffs_px: float | torch.Tensor | None = None, H_left: torch.Tensor | None = None,
                    H_right: torch.Tensor | None = None, labels: torch.Tensor | None = None,
                    region_labels: torch.Tensor | None = None, image_hw: torch.Tensor | None = None,
-                   config: DepthConfig = DepthConfig()) -> DepthResult:
+                   config: DepthConfig = DepthConfig(), statistics: bool = True) -> DepthResult:
     """The depth stage: rectified disparities of the inliers ``(B, K)``, the pair's range (Eq. (5)–(8)) and,
     given ``labels`` and ``region_labels``, per-object depths and the nearest obstacle. Arguments as in
-    :func:`rectified_disparity`, :func:`point_depths`, :func:`object_depths`."""
+    :func:`rectified_disparity`, :func:`point_depths`, :func:`object_depths`. ``statistics=False`` (the dense
+    rule, which measures them again: :mod:`svs_torch.pipeline.ranging`) leaves the range and the objects' depths
+    zero and invalid, and makes only the disparities, the depths and each slot's geometry and inlier count."""
     if (labels is None) != (region_labels is None):
         raise InputError("region_labels: expected it together with labels (both or neither)")
     disparities = rectified_disparity(points_left, points_right, inliers, H_left, H_right)
     depths = point_depths(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px)
-    pair_range = estimate_range(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px,
-                                config.percentiles)
+    if statistics:
+        pair_range = estimate_range(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px,
+                                    config.percentiles)
+    else:
+        zeros = depths.depth_m.new_zeros(depths.depth_m.shape[0])
+        pair_range = RangeEstimate(zeros, zeros, zeros, zeros, torch.zeros_like(zeros, dtype=torch.int64),
+                                   torch.zeros_like(zeros, dtype=torch.bool))
     if labels is None:
         return DepthResult(disparities, depths, pair_range, None, None)
     objects = object_depths(labels, region_labels, points_left, depths, image_hw, config.object_percentiles,
-                            config.min_object_inliers)
+                            config.min_object_inliers, statistics)
     return DepthResult(disparities, depths, pair_range, objects, nearest_obstacle(objects))

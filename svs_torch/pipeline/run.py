@@ -219,7 +219,7 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         lap("segmentation")
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
-        H_left=H_left, H_right=H_right,
+        H_left=H_left, H_right=H_right, statistics=config.depth.rule != "dense",  # the dense rule measures them
         labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
     dense = verified = agreeing = measured = smoothed = coarse = dropped = None
     if config.depth.rule == "dense":

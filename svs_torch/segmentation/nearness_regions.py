@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 
 from ..depth.quantiles import region_lower_median
+from . import kernels
 from .components import RegionProperties
 
 __all__ = ["shift_regions_to_right"]
@@ -47,7 +48,11 @@ def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shif
                            ) -> torch.Tensor:
     """The right view's label image ``(B, 1, H, W)``: kept region ``kept_labels[:, n]`` of the left ``labels``
     moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
-    overlap the nearer (larger shift) wins, as it occludes the other."""
+    overlap the nearer (larger shift) wins, as it occludes the other. Without gradients (it has none to give) the
+    C kernel of :func:`svs_torch.segmentation.kernels.shift_regions` computes the same labels row by row."""
+    compiled = kernels.shift_regions(labels, kept_labels, shift_px)
+    if compiled is not None:
+        return compiled
     b, n = kept_labels.shape
     w = labels.shape[-1]
     out = torch.zeros_like(labels)

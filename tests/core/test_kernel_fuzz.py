@@ -43,6 +43,7 @@ from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
 from svs_torch.segmentation.nearness_denoise import _median_filter
+from svs_torch.segmentation.nearness_regions import shift_regions_to_right
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
@@ -355,6 +356,19 @@ def test_ransac_fundamental(b, k, scoring, data):
         assert torch.equal(fused.status == short, eager.status == short)
 
 
+@given(size=sizes, n=st.integers(0, 3), data=st.data())
+@examples(40)
+def test_shift_regions_to_right(size, n, data):
+    """The kept regions moved into the right view by the kernel or the torch path: the same labels, with shifts
+    past either side, halves, huge, infinite and NaN shifts (the torch path's), and empty or dropped slots."""
+    b, h, w = size
+    generator = torch.Generator().manual_seed(b * 100 + h * 10 + w + n)
+    labels = torch.randint(0, 4, (b, 1, h, w), generator=generator)
+    kept = torch.randint(-1, 4, (b, n), generator=generator)
+    shift = data.draw(tensors((b, n), low=-30.0, high=30.0, specials=0.2)).round() / data.draw(st.sampled_from([1, 2]))
+    _both(shift_regions_to_right, labels, kept, shift)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -427,6 +441,10 @@ def test_dense_object_depths(size, n, fill, data):
                                     torch.ones(1, 8, dtype=torch.bool), torch.zeros(1, dtype=torch.int64), {})),
     ("ransac_fundamental", lambda: (torch.rand(1, 8, 2, dtype=torch.float64), torch.rand(1, 8, 2, dtype=torch.float64),
                                     torch.ones(1, 8, dtype=torch.bool), torch.zeros(2, dtype=torch.int64), {})),
+    ("shift_regions", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(2, 1, dtype=torch.int64),
+                               torch.zeros(2, 1))),
+    ("shift_regions", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(1, 2, dtype=torch.int64),
+                               torch.zeros(1, 3))),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),

@@ -293,3 +293,23 @@ def test_input_errors():
     with pytest.raises(InputError, match=r"labels: expected \(B, 1, H, W\)"):
         object_depths(torch.zeros(2, 4, 4, dtype=torch.int64), torch.ones(2, 1, dtype=torch.int64), points,
                       PointDepths(torch.zeros(2, 5), torch.ones(2, 5, dtype=torch.bool)))
+
+
+def test_without_statistics_only_the_depths_and_the_slots_geometry_are_made(generator):
+    # The dense rule measures the objects' depths again (svs_torch.pipeline.ranging): it asks for everything but
+    # the sparse statistics, which then stay zero and invalid; what it keeps is the same as with them.
+    scenes = random_obstacle_scenes(2, 2, size_wh=(160, 120), generator=generator)
+    left, right = _sample_object_points(scenes, 40, generator)
+    inliers = torch.rand(left.shape[:2], generator=generator) > 0.2
+    args = dict(labels=scenes.object_ids, region_labels=torch.tensor([[2, 1, -1]]).expand(2, 3),
+                focal_px=scenes.batch.focal_px.double(), baseline_m=scenes.batch.baseline_m.double())
+    full = estimate_depth(left, right, inliers, **args)
+    lean = estimate_depth(left, right, inliers, statistics=False, **args)
+    assert bool(full.objects.valid.any()) and bool(full.range.valid.all())
+    for name, fields in (("disparities", ("disparity_px", "row_error_px", "valid")), ("points", ("depth_m", "valid"))):
+        for field in fields:
+            assert torch.equal(getattr(getattr(full, name), field), getattr(getattr(lean, name), field))
+    for field in ("label", "area_px", "centroid_x_px", "side", "num_inliers", "point_slot"):
+        assert torch.equal(getattr(full.objects, field), getattr(lean.objects, field))
+    assert not lean.objects.valid.any() and not lean.range.valid.any() and not lean.nearest.valid.any()
+    assert not lean.objects.depth_median_m.any() and not lean.range.r_min_m.any()

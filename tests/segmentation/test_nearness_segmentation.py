@@ -101,6 +101,25 @@ def test_shift_regions_to_right_moves_each_region_by_its_disparity():
     assert torch.equal(right, expected)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_shift_regions_kernel_gives_the_torch_paths_labels(monkeypatch, threads):
+    # Overlapping regions (the nearer wins, the earlier slot on equal shifts), shifts off either side, halves that
+    # round to even, empty (0) and dropped (-1) slots: the kernel's labels are the torch path's exactly.
+    generator = torch.Generator().manual_seed(7)
+    labels = torch.randint(0, 5, (3, 1, 9, 40), generator=generator)
+    kept = torch.tensor([[1, 2, 3], [4, 0, 2], [3, -1, 3]])
+    shift = torch.tensor([[2.5, 3.5, 3.5], [-4.0, 5.0, 45.0], [39.6, 1.0, -0.5]])
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        fused = shift_regions_to_right(labels, kept, shift)
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+        eager = shift_regions_to_right(labels, kept, shift)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(fused, eager) and int((eager > 0).sum()) > 100
+
+
 def test_gradients_reach_the_network_and_both_images(scenes):
     torch.manual_seed(0)
     net = NearnessNet(NearnessNetConfig(working_width_px=160, network_width_px=48))

@@ -13,13 +13,14 @@ from ...core.errors import InputError
 from ...core.kernels import INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows
 
-__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter"]
+__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter", "shift_regions"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
     "gray_levels": ([POINTER] + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "label_runs": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 3 + [INT], ctypes.c_int),
     "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
+    "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
 })
 
 
@@ -140,4 +141,28 @@ def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
     out = torch.empty_like(image)
     status = library.median_filter(image.data_ptr(), dims["B"], dims["H"], dims["W"], window, out.data_ptr(),
                                    torch.get_num_threads())
+    return None if status != 0 else out
+
+
+def shift_regions(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor) -> torch.Tensor | None:
+    """:func:`svs_torch.segmentation.nearness_regions.shift_regions_to_right` one row at a time (see the C source):
+    ``labels`` ``(B, 1, H, W)`` int64, ``kept_labels`` ``(B, N)`` int64, ``shift_px`` ``(B, N)`` float32 → the
+    right view's labels ``(B, 1, H, W)`` int64, the torch path's exactly. None when the kernel is not available or
+    the inputs do not fit its contract (another dtype, or a shift that is not finite, which the torch path rounds
+    to an integer its own way)."""
+    dims = check_shape(labels, "labels", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    n = check_rows(kept_labels, "kept_labels", b, "N").shape[1]
+    check_shape(shift_px, "shift_px", [b, n])
+    if not (on_cpu(torch.int64, labels, kept_labels) and on_cpu(torch.float32, shift_px)):
+        return None
+    if not bool(shift_px.isfinite().all()):
+        return None
+    library = load("shift_regions")
+    if library is None:
+        return None
+    labels, kept_labels, shift_px = (t.contiguous() for t in (labels, kept_labels, shift_px))
+    out = torch.empty_like(labels)
+    status = library.shift_regions(labels.data_ptr(), kept_labels.data_ptr(), shift_px.data_ptr(), b, h, w, n,
+                                   out.data_ptr(), torch.get_num_threads())
     return None if status != 0 else out
