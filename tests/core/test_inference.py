@@ -3,16 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
+from test_pair_trees import Inner  # a named tuple of a tensor and a count
 
 from svs_torch.core.inference import outside_inference_mode, plain_tensors
-
-
-class Inner(NamedTuple):
-    values: torch.Tensor
-    count: int
 
 
 @dataclass(frozen=True)

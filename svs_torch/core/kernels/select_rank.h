@@ -7,27 +7,34 @@
 #include <math.h>
 #include <stdint.h>
 
-/* Puts the element of rank k of a[lo, hi) in place, smaller-or-equal ones before it, larger-or-equal after
- * (Hoare partition around a median of three; equal values stop both scans, so runs of ties split evenly). */
-static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
-    int64_t left = lo, right = hi - 1;
-    while (right > left) {
-        int64_t middle = left + (right - left) / 2;
-        float x = a[left], y = a[middle], z = a[right];
-        float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
-        int64_t i = left, j = right;
-        while (i <= j) {
-            while (a[i] < pivot) ++i;
-            while (pivot < a[j]) --j;
-            if (i <= j) {
-                float t = a[i];
-                a[i] = a[j];
-                a[j] = t;
-                ++i;
-                --j;
-            }
+/* One Hoare partition of a[left, right] (right > left) around a median of three; equal values stop both scans, so
+ * runs of ties split evenly. Afterwards a[left, *j] <= pivot <= a[*i, right] and every element between *j and *i
+ * equals the pivot. */
+static inline void partition(float *a, int64_t left, int64_t right, int64_t *i_out, int64_t *j_out) {
+    int64_t middle = left + (right - left) / 2;
+    float x = a[left], y = a[middle], z = a[right];
+    float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
+    int64_t i = left, j = right;
+    while (i <= j) {
+        while (a[i] < pivot) ++i;
+        while (pivot < a[j]) --j;
+        if (i <= j) {
+            float t = a[i];
+            a[i] = a[j];
+            a[j] = t;
+            ++i;
+            --j;
         }
-        /* Now a[left, j] <= pivot <= a[i, right] and every element between j and i equals the pivot. */
+    }
+    *i_out = i;
+    *j_out = j;
+}
+
+/* Puts the element of rank k of a[lo, hi) in place, smaller-or-equal ones before it, larger-or-equal after. */
+static void select_rank(float *a, int64_t lo, int64_t hi, int64_t k) {
+    int64_t left = lo, right = hi - 1, i, j;
+    while (right > left) {
+        partition(a, left, right, &i, &j);
         if (k <= j) right = j;
         else if (k >= i) left = i;
         else return;
@@ -44,23 +51,9 @@ static void select_ranks(float *a, int64_t lo, int64_t hi, const int64_t *ranks,
             select_rank(a, lo, hi, ranks[r0]);
             return;
         }
-        int64_t left = lo, right = hi - 1;
-        int64_t middle = left + (right - left) / 2;
-        float x = a[left], y = a[middle], z = a[right];
-        float pivot = x < y ? (y < z ? y : (x < z ? z : x)) : (x < z ? x : (y < z ? z : y));
-        int64_t i = left, j = right;
-        while (i <= j) {
-            while (a[i] < pivot) ++i;
-            while (pivot < a[j]) --j;
-            if (i <= j) {
-                float t = a[i];
-                a[i] = a[j];
-                a[j] = t;
-                ++i;
-                --j;
-            }
-        }
-        /* a[lo, j] <= pivot <= a[i, hi), and every element between j and i equals the pivot: ranks there are done. */
+        int64_t i, j;
+        partition(a, lo, hi - 1, &i, &j);
+        /* Ranks between j and i are done (their elements equal the pivot). */
         int64_t below = r0, beyond;
         while (below < r1 && ranks[below] <= j) ++below;
         beyond = below;
