@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from svs_torch.core.errors import InputError
 from svs_torch.core.files import write_bytes_atomic
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
@@ -52,7 +53,14 @@ def parse_variant(text: str, shipped: NearnessNetConfig) -> dict:
         name, _, value = item.partition("=")
         if name not in fields or not value:
             raise SystemExit(f"--variants: expected NAME=VALUE with NAME a NearnessNetConfig field, got {item!r}")
-        out[name] = fields[name](value)
+        try:
+            out[name] = fields[name](value)
+        except (TypeError, ValueError):
+            raise SystemExit(f"--variants: {name}: expected a {fields[name].__name__}, got {value!r}") from None
+    try:
+        dataclasses.replace(shipped, **out)  # the config's own range checks, before any scene is measured
+    except InputError as error:
+        raise SystemExit(f"--variants: {text!r}: {error}") from None
     return out
 
 
