@@ -15,9 +15,11 @@ by more than 1 / 2 px) and the median absolute error, mean over scenes; and Eq. 
 warns on, the nearest object's nearest visible surface (the 10th percentile of the nearest object's depths; truth:
 the 10th percentile of the GT depth over the object nearest by its median GT depth).
 
-Truth: the two largest regions of the left segmentation (Otsu, 5×5 opening) are the objects; an object's
-real distance is the median GT depth over its region, real R_min / R_max the nearer / farther object. Each
-method's R_min / R_max is its own rule's; Acc is Eq. (9); a failed pair counts 0 %, never hidden.
+Truth: the kept regions of the left segmentation are the objects; an object's real distance is the median GT
+depth over the pixels the default pipeline measures it over (its region's interior for the nearness segmenter:
+``svs_torch.pipeline.measured_labels``), where every method measures it too; real R_min / R_max the nearer /
+farther object. Each method's R_min / R_max is its own rule's; Acc is Eq. (9); a failed pair counts 0 %, never
+hidden.
 
 Scenes, two splits — svs_torch's dense defaults were tuned on the first and are reported on both:
 - ``tuned``: the 10 MiddEval3 quarter-size scenes (calib.txt: exact metric depth);
@@ -57,7 +59,7 @@ from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEsti
                                   with_nominal_calibration)
 from svs_torch.evaluation import object_truth as object_truth_batched
 from svs_torch.depth.dense import working_factor
-from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, segment_pair
+from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured_labels, segment_pair
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -302,7 +304,11 @@ def run(splits: dict[str, list[Path]], sizes: list[str], progress: bool = True) 
         segs, measurabilities, surfaces = {}, {}, {}
         for name in METHODS:
             seg_config = CONFIGS[name].segmentation if name in CONFIGS else default_seg
-            seg = segs.setdefault(seg_config, segment_pair(batch, seg_config))
+            if seg_config not in segs:  # every method's objects over the pixels the default pipeline measures
+                seg = segment_pair(batch, seg_config)
+                labels = measured_labels(seg, batch.left.shape[-1], CONFIGS["svs_torch default (dense)"])
+                segs[seg_config] = dataclasses.replace(seg, left=dataclasses.replace(seg.left, labels=labels))
+            seg = segs[seg_config]
             truth = object_truth(batch, seg)
             if not truth:
                 continue

@@ -3,9 +3,9 @@ that is turned, tilted, shifted, scaled and exposed differently from the left.
 
 Each shared scene is perturbed, the pipeline runs on every condition of a scene as one batch, and each condition
 is scored by Eq. (9) per object (:func:`svs_torch.evaluation.evaluate_result`: an object's true distance is the
-median GT depth over its kept region of the LEFT view), with the share of pairs ranged, against OpenCV StereoSGBM
-run on the same raw pairs over the same kept regions (``paper_table1.opencv_dense_estimate``; a failed pair or
-object counts 0 %).
+median GT depth over the pixels of the LEFT view it was measured over, its kept region's interior), with the share
+of pairs ranged, against OpenCV StereoSGBM run on the same raw pairs over the same pixels
+(``paper_table1.opencv_dense_estimate``; a failed pair or object counts 0 %).
 
 Conditions (every random draw from a seeded torch.Generator: the scene's index, the condition's and the view's):
 - ``clean``: the pair as shipped.
@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from svs_torch.data import resize_stereo_batch
-from svs_torch.evaluation import evaluate_result, score_pair, PairEstimate
+from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.files import write_bytes_atomic
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
@@ -206,7 +206,8 @@ def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, riva
                "verified": None if result.verified is None else bool(result.verified[i]),
                "time_s": elapsed / stacked.batch_size}
         if rival:
-            seg = _segmentation_of(result.segmentation, i)
+            # The objects' own pixels: the interiors the pipeline measured them over (measured_regions).
+            seg = _segmentation_of(dataclasses.replace(result.segmentation, left=measured_regions(result)), i)
             pair = _pick(stacked, i)
             sgbm = opencv_dense_estimate(pair, seg, "sgbm", config.dense.window_size)
             score = score_pair(object_truth(pair, seg), PairEstimate(sgbm["status"], sgbm["r_min_m"],

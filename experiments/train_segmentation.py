@@ -60,7 +60,7 @@ from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
                             resize_stereo_batch)
-from svs_torch.evaluation import object_truth, with_nominal_calibration
+from svs_torch.evaluation import measured_regions, object_truth, with_nominal_calibration
 from svs_torch.segmentation.learned import obstacle_truth, segment_learned, soft_object_depths
 from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits, stereo_features
 from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
@@ -279,7 +279,7 @@ def region_mean_depth_m(batch: StereoBatch, result, net: ObstacleNet) -> torch.T
     depth = torch.where(measured, (batch.focal_px * batch.baseline_m).view(-1, 1) / torch.where(
         measured, disparity, 1.0), 0.0)
     slots = result.depth.objects.label  # (B, N)
-    member = (result.segmentation.left.labels.flatten(1).unsqueeze(1) == slots.unsqueeze(-1)) & measured.unsqueeze(1)
+    member = (result.object_labels.flatten(1).unsqueeze(1) == slots.unsqueeze(-1)) & measured.unsqueeze(1)
     weights = member * probability.unsqueeze(1)  # (B, N, P)
     return (weights * depth.unsqueeze(1)).sum(-1) / weights.sum(-1).clamp_min(1e-6)
 
@@ -294,7 +294,7 @@ def pipeline_depth_loss(batch: StereoBatch, net: ObstacleNet, region_weight: flo
     segmentation = PipelineConfig().segmentation if segmenter == "nearness" else SegmentationConfig()
     config = PipelineConfig(differentiable=True, segmentation=dataclasses.replace(segmentation, segmenter=segmenter))
     result = estimate_obstacle_depth(images, config, network=net)
-    truth = object_truth(batch, result.segmentation.left)
+    truth = object_truth(batch, measured_regions(result))
     objects = result.depth.objects
     both = objects.valid & truth.valid
     true_m = torch.where(both, truth.depth_m.to(objects.depth_median_m.dtype), 1.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, dumps_strict, finite_float, positive_float,
@@ -119,8 +120,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                       "rectified pair: its rectified views with epipolar lines",
                       "--plot", "--out")
     parser.add_argument("--masks-out", metavar="LABELS.png",
-                        help="kept objects of the left image as a uint8 label image (0 background, 1..N); "
-                             "lossless: .png, .bmp or .tif")
+                        help="kept objects of the left image as a uint8 label image (0 background, 1..N): the "
+                             "pixels each object's depth is measured over (a kept region's interior, without the "
+                             "band the block matcher adds around a near object); lossless: .png, .bmp or .tif")
     parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines)")
     add_disparity_export_options(parser)
     parser.set_defaults(func=run)
@@ -138,9 +140,11 @@ def _write_outputs(args, batch, result, factors) -> None:
         rectified = pipeline_rectified_figure(batch, result, 0, args.calibration)
         write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),
                            args.figure_option)
-    if args.masks_out:
-        write_image_atomic(args.masks_out, labels_image(result.segmentation.left, 0, factors), "--masks-out",
-                           lossless=True)
+    if args.masks_out:  # each object's pixels as measured: its depth is the median over them
+        left = result.segmentation.left
+        if result.object_labels is not None:
+            left = dataclasses.replace(left, labels=result.object_labels)
+        write_image_atomic(args.masks_out, labels_image(left, 0, factors), "--masks-out", lossless=True)
 
 
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:

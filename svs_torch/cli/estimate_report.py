@@ -58,6 +58,8 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
             "label": slot + 1,
             "area_px": int(round(int(regions.area_px[index, label - 1]) * fx * fy)),
             "bbox_xyxy": [int(round(x0 * fx)), int(round(y0 * fy)), int(round(x1 * fx)), int(round(y1 * fy))],
+            # the pixels its depth is measured over: the region's interior (PipelineResult.object_labels)
+            "measured_area_px": int(round(int(objects.area_px[index, slot]) * fx * fy)),
             "depth_m": _number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
             "depth_p10_m": _number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
             "depth_p90_m": _number(objects.depth_high_m[index, slot], objects.valid[index, slot]),

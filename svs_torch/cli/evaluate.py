@@ -15,8 +15,9 @@ HELP = "score the pipeline against ground truth over many pairs (scene folders, 
 
 DESCRIPTION = """\
 Run the pipeline over every pair of PATH... in batches and score it against each pair's ground truth:
-Eq. (9) accuracy of R_min, R_max and each object (an object's true distance is the median GT depth over its
-kept region; true R_min / R_max are the nearest / farthest object), the dense disparity error over the kept
+Eq. (9) accuracy of R_min, R_max and each object (an object's true distance is the median GT depth over the
+pixels it is measured over, its kept region's interior; true R_min / R_max are the nearest / farthest object),
+the dense disparity error over the kept
 regions and the RANSAC inliers' disparity error (median, within 1 px, within 3 px), inlier precision, counts,
 status and time. A failed pair counts 0 % and is listed; nothing is hidden.
 

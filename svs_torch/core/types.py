@@ -285,12 +285,17 @@ class StereoSegmentation:
         split_retaken: ``(B,)`` bool, the nearness segmenter's split was taken again under the 90th percentile of
             the measured disparity (:mod:`svs_torch.segmentation.nearness_split`): a map with more wrong matches
             than usual, which the pipeline's exposure retry also tries. None from segmenters without a split.
+        from_disparity: ``(B,)`` bool, the kept regions were cut from a block-matched disparity map (the nearness
+            segmenter; False for a pair it segmented by Otsu instead, too little of its view measured): the
+            pipeline measures them over their interior (:mod:`svs_torch.segmentation.interior`). None from
+            segmenters without such a map.
     """
 
     left: Segmentation
     right: Segmentation
     status: torch.Tensor
     split_retaken: torch.Tensor | None = None
+    from_disparity: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)

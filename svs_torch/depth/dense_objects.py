@@ -4,8 +4,9 @@ The paper's Eq. (5)–(8) take R_min / R_max as the extremes over the sparse inl
 distance is the median of ``Z = f·B / (d + doffs)`` over the valid dense disparities of its region
 (:mod:`svs_torch.depth.dense`), with a low and a high percentile and the count of valid pixels; R_min / R_max are the
 nearest and the farthest kept object, and the nearest obstacle's low percentile is its nearest visible surface.
-The same definition is used for the ground truth (``svs_torch`` experiments: the median GT depth over the kept
-region), so the two are directly comparable by Eq. (9).
+The same definition is used for the ground truth (``svs_torch`` experiments: the median GT depth over the same
+pixels, the kept region's interior under ``PipelineConfig.region_interior_working_px``), so the two are directly
+comparable by Eq. (9).
 
 Only the pixels inside each pair's searched box are read (``DenseDisparity.crop_xywh``): the rest is invalid.
 Differentiable w.r.t. ``disparity_px``, focal length and baseline where valid (median and percentiles pass

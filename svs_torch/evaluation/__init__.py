@@ -23,8 +23,8 @@ named.
 
 from .disparity_errors import DisparityErrors, dense_disparity_errors, disparity_map_errors, sparse_disparity_errors
 from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, ObjectTruth, PairEstimate, PairEvaluation, PairScore,
-                      accuracy_pct, estimates_from_result, evaluate_result, object_truth, score_pair, truth_list,
-                      with_nominal_calibration)
+                      accuracy_pct, estimates_from_result, evaluate_result, measured_regions, object_truth,
+                      score_pair, truth_list, with_nominal_calibration)
 from .runner import EvalSetup, evaluate_block, evaluate_pairs, summarize
 from .stereo_metrics import STEREO_SCOPES, StereoMetrics, dense_map_metrics, measure_stereo_metrics, object_map_metrics
 
@@ -32,7 +32,8 @@ __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "EvalSetup", "ObjectTruth", "PairEstimate",
     "PairEvaluation", "PairScore", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors",
     "estimates_from_result",
-    "evaluate_block", "evaluate_pairs", "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors",
+    "evaluate_block", "evaluate_pairs", "evaluate_result", "measured_regions", "object_truth", "score_pair",
+    "sparse_disparity_errors",
     "summarize", "truth_list", "with_nominal_calibration",
     "STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics", "object_map_metrics",
 ]

@@ -47,7 +47,8 @@ from .stereo_metrics import StereoMetrics, metric_values, pair_map_metrics
 __all__ = [
     "DisparityErrors", "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "ObjectTruth", "PairEstimate", "PairEvaluation",
     "PairScore", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors", "estimates_from_result",
-    "evaluate_result", "object_truth", "score_pair", "sparse_disparity_errors", "with_nominal_calibration"
+    "evaluate_result", "measured_regions", "object_truth", "score_pair", "sparse_disparity_errors",
+    "with_nominal_calibration"
 ]
 
 
@@ -82,6 +83,15 @@ class ObjectTruth:
     depth_m: torch.Tensor
     num_px: torch.Tensor
     valid: torch.Tensor
+
+
+def measured_regions(result: PipelineResult) -> Segmentation:
+    """The left segmentation of ``result`` with the labels its objects were measured over
+    (``PipelineResult.object_labels``: the kept regions' interiors under
+    ``PipelineConfig.region_interior_working_px``): an object's true distance is the median ground truth over the
+    pixels its estimate is the median of."""
+    left = result.segmentation.left
+    return left if result.object_labels is None else dataclasses.replace(left, labels=result.object_labels)
 
 
 def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
@@ -294,7 +304,7 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
     """
     estimates = estimates_from_result(result)
     has_gt = batch.disparity_px is not None
-    truth = object_truth(batch, result.segmentation.left) if has_gt else None
+    truth = object_truth(batch, measured_regions(result)) if has_gt else None
     dense = dense_disparity_errors(batch, result)
     sparse = sparse_disparity_errors(batch, result)
     scale = None if px_scale is None else torch.tensor(list(px_scale), dtype=batch.left.dtype,

@@ -31,6 +31,7 @@ Nothing here is differentiable (thresholds, counts, a sort): these are reports.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -265,7 +266,10 @@ def _scope_masks(batch: StereoBatch, result: PipelineResult, raw: torch.Tensor) 
 
 
 def _object_masks(result: PipelineResult, raw: torch.Tensor) -> list[torch.Tensor]:
+    """Each kept object's pixels of ``raw``: those it was measured over (``PipelineResult.object_labels``)."""
     segmentation = result.segmentation.left
+    if result.object_labels is not None:
+        segmentation = dataclasses.replace(segmentation, labels=result.object_labels)
     labels = segmentation.kept_labels.view(*segmentation.kept_labels.shape, 1, 1)  # (B, N, 1, 1)
     return [raw & (segmentation.labels == labels[:, n:n + 1]) & (labels[:, n:n + 1] > 0)
             for n in range(segmentation.kept_labels.shape[1])]

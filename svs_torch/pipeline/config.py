@@ -154,6 +154,10 @@ class PipelineConfig:
             ``drop_unmeasured_below_share`` set): nearly every window rejected, its range is mostly its row
             neighbours' disparities filled in, and noise ranges a far textureless region near. The only rule that
             can change the nearest obstacle. None: a region ranged nearer than every measured one always stays.
+        region_interior_working_px: under the dense rule, each kept left region of the nearness segmenter is
+            measured over its interior, eroded by this radius in the dense stage's working pixels (at least one
+            input pixel each; :mod:`svs_torch.segmentation.interior`, ``PipelineResult.object_labels``): a block
+            matcher fattens near regions onto the background behind them. None: off (the paper's).
         exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
             an affine map through both views' quartiles, where they differ by more than
             :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;
@@ -251,6 +255,7 @@ class PipelineConfig:
     # 2.47 m beside the 2.78 m obstacle, dropped); native 92.06 at each. The lowest of the plateau drops fewest
     # regions, and a region measured on 32 % ranged nearer than the measured one is truly nearer there (PianoL).
     drop_unmeasured_nearer_below_share: float | None = 0.15
+    region_interior_working_px: float | None = 2.0  # experiments/select_region_interior.md (tuned split only)
     # Off by default: on the tuned scenes (experiments/exposure.md) it ranges Piano behind a right camera 30 % brighter
     # but loses PianoL (two lightings, not two gains) in as many conditions; the mean over them fell 90.1 -> 89.3 %.
     exposure: ExposureConfig | None = None
@@ -287,6 +292,8 @@ class PipelineConfig:
             if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
                                       or not 0 < share <= 1):
                 raise InputError(f"{name}: expected a share in (0, 1] or None, got {share!r}")
+        if (r := self.region_interior_working_px) is not None and not (type(r) in (int, float) and 0 <= r < 1000):
+            raise InputError(f"region_interior_working_px: expected a radius in [0, 1000) or None, got {r!r}")
         for name in ("exposure", "exposure_retry"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), ExposureConfig):
                 raise InputError(f"{name}: expected an ExposureConfig or None, got {getattr(self, name)!r}")
@@ -301,7 +308,7 @@ class PipelineConfig:
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
                    refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
                    coarse_retry_below_share=None, drop_unmeasured_below_share=None,
-                   drop_unmeasured_nearer_below_share=None, exposure_retry=None)
+                   drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None)
 
 
 @dataclass(frozen=True)
@@ -354,6 +361,10 @@ class PipelineResult:
         exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
             onto the brighter (``PipelineConfig.exposure``, or the ``exposure_retry`` kept); the result's masked
             images are of the mapped views.
+        object_labels: ``(B, 1, H, W)`` int64, the left labels each object of ``depth`` was measured over, input
+            pixels: the kept regions' interiors (``PipelineConfig.region_interior_working_px``), else the
+            segmentation's labels. An object's true distance is the median ground truth over the same pixels
+            (:func:`svs_torch.evaluation.measured_regions`); ``segmentation`` keeps the whole regions.
     """
 
     status: torch.Tensor
@@ -385,3 +396,4 @@ class PipelineResult:
     row_alignment_turn_deg: torch.Tensor | None = None
     coarse: torch.Tensor | None = None
     dropped_objects: torch.Tensor | None = None
+    object_labels: torch.Tensor | None = None

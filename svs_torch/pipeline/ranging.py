@@ -73,21 +73,27 @@ def _rectifying_homographies(points: MatchedPoints, fundamental: FundamentalResu
 
 def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult, fundamental_ok: torch.Tensor,
                  points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
-                 H_right: torch.Tensor, config: PipelineConfig
+                 H_right: torch.Tensor, object_labels: torch.Tensor, config: PipelineConfig
                  ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ``"dense"`` rule: SAD disparity over the kept regions (in rectified pixels where the pair was
-    rectified: images and labels warped by the same homographies) over each pair's range (a coarse pass, or
-    the sparse inliers' disparities), then each object's depth statistics over its region. Also returns
-    whether the pair's geometry was verified (``fundamental_ok`` and enough inliers the dense map confirms)
-    and the counts of agreeing and of measured inliers, ``(B,)`` each."""
+    """The ``"dense"`` rule: SAD disparity over the kept regions of ``seg`` (in rectified pixels where the pair
+    was rectified: images and labels warped by the same homographies) over each pair's range (a coarse pass, or
+    the sparse inliers' disparities), then each object's depth statistics over its region in ``object_labels``
+    ``(B, 1, H, W)`` (the kept regions' interiors, :func:`~svs_torch.pipeline.stages.measured_labels`, or
+    ``seg``'s labels; ``sparse.objects`` holds their areas). Also returns whether the pair's geometry was
+    verified (``fundamental_ok`` and enough inliers the dense map confirms) and the counts of agreeing and of
+    measured inliers, ``(B,)`` each."""
     left, right, labels = batch.left, batch.right, seg.left.labels
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
         left = torch.where(pick, warp_views(left, H_left), left)
         right = torch.where(pick, warp_views(right, H_right), right)
-        # Labels by nearest neighbour (never blended), as exact small integers in float64.
-        warped = warp_rectified(labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
-        labels = torch.where(pick, warped, labels)
+        # By nearest neighbour, as exact small integers in float64, with whether the pixel is in its object
+        # (not a border pixel object_labels left out) in the lowest bit: one warp for both label images.
+        coded = labels * 2 + (object_labels == labels).long()
+        moved = warp_rectified(coded.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
+        coded = torch.where(pick, moved, coded)
+        labels = coded // 2
+        object_labels = torch.where(coded % 2 == 1, labels, torch.zeros_like(labels))
     # One mask per kept object, so the search range covers a small object as well as a big one.
     objects = labels == slot_labels(seg.left.kept_labels).view(batch.batch_size, -1, 1, 1)
     mask = any_along(objects, dim=1, keepdim=True)
@@ -101,8 +107,8 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     weight = verified.to(batch.left.dtype)
     fraction = (weight * config.depth.min_object_valid_fraction
                 + (1 - weight) * config.depth.min_object_valid_fraction_unverified)
-    objects = dense_object_depths(dense, labels, sparse.objects, batch.focal_px, batch.baseline_m, batch.doffs_px,
-                                  config.depth.object_percentiles, config.depth.min_object_pixels,
+    objects = dense_object_depths(dense, object_labels, sparse.objects, batch.focal_px, batch.baseline_m,
+                                  batch.doffs_px, config.depth.object_percentiles, config.depth.min_object_pixels,
                                   config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
@@ -167,7 +173,8 @@ def measured_share(objects: ObjectDepths) -> torch.Tensor:
 def _second_pass(current: tuple, index: torch.Tensor, settings: PipelineConfig, sigma_working_px: float | None,
                  rule, batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                  fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
-                 rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor) -> tuple[tuple, torch.Tensor]:
+                 rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor, object_labels: torch.Tensor
+                 ) -> tuple[tuple, torch.Tensor]:
     """The pairs ``index`` of ``current`` (:func:`_dense_depth`'s result) measured again under ``settings``, on views
     smoothed by ``sigma_working_px`` (None: as they are); each kept where ``rule(verified_first, ranged_first,
     verified_second, ranged_second)`` ``(b,)`` bool says. Returns the merged result and the pairs replaced, a
@@ -176,7 +183,7 @@ def _second_pass(current: tuple, index: torch.Tensor, settings: PipelineConfig, 
     sub = (lambda tree: take_pairs(tree, index, b))
     views = sub(batch) if sigma_working_px is None else _smoothed(sub(batch), sigma_working_px, settings.dense)
     second = _dense_depth(views, sub(seg), sub(sparse), sub(fundamental_ok), sub(points_left), sub(inliers),
-                          sub(rectified), sub(H_left), sub(H_right), settings)
+                          sub(rectified), sub(H_left), sub(H_right), sub(object_labels), settings)
     pick = rule(sub(current[2]), sub(current[0].objects.valid), second[2], second[0].objects.valid)
     if not bool(pick.any()):
         return current, index[:0]
@@ -254,7 +261,7 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,
                             fundamental_ok: torch.Tensor, points_left: torch.Tensor, inliers: torch.Tensor,
                             rectified: torch.Tensor, H_left: torch.Tensor, H_right: torch.Tensor,
-                            config: PipelineConfig
+                            object_labels: torch.Tensor, config: PipelineConfig
                             ) -> tuple[DepthResult, DenseDisparity, torch.Tensor, torch.Tensor, torch.Tensor,
                                        torch.Tensor, torch.Tensor]:
     """:func:`_dense_depth`, then two second passes, each over a few pairs:
@@ -271,7 +278,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
 
     Also returns ``(B,)`` bool each: the pairs whose result was measured on smoothed views, and those measured at
     the coarse working width."""
-    passes = (batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right)
+    passes = (batch, seg, sparse, fundamental_ok, points_left, inliers, rectified, H_left, H_right, object_labels)
     current = _dense_depth(*passes, config)
     coarse, smoothed = torch.zeros_like(rectified), torch.zeros_like(rectified)
     settings = coarse_config(config)

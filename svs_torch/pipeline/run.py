@@ -16,7 +16,7 @@ from torch import nn
 from ..core.checks import InputError, check_instance
 from ..core.inference import plain_tensors
 from ..core.size_groups import run_by_size
-from ..core.types import FundamentalStatus, StereoBatch
+from ..core.types import FundamentalResult, FundamentalStatus, Matches, StereoBatch
 from ..depth.sparse import estimate_depth
 from ..geometry.lk_refinement import refine_matched_points
 from ..geometry.matched_points import gather_matched_points
@@ -30,7 +30,8 @@ from .exposure_retry import retry_with_exposure
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
-from .stages import _feature_images, _features, _match, _network, _segment_group, _segment_row_aligned, _status
+from .stages import (_feature_images, _features, _match, _network, _segment_group, _segment_row_aligned,
+                     _status, measured_labels)
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -134,7 +135,7 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
                 left, right = torch.where(pick, blurred.left, left), torch.where(pick, blurred.right, right)
     H_left, H_right = _differentiable_homographies(batch, result, config)
     depth = differentiable_depth(
-        left, right, result.segmentation.left.labels, logits, result.rectified, H_left, H_right,
+        left, right, result.object_labels, logits, result.rectified, H_left, H_right,
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
         config.depth.object_percentiles, config.dense, result.coarse, coarse_config(config).dense)
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth, H_left=H_left, H_right=H_right)
@@ -180,6 +181,13 @@ def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, con
                                      batch.focal_px, result.row_alignment_turn_deg)
 
 
+def _fundamental_ok(fundamental: FundamentalResult, matches: Matches, config: PipelineConfig) -> torch.Tensor:
+    """``(B,)`` bool: RANSAC found F with enough inliers, and a share of the matches, for the sparse stage to vouch
+    for the pair (``PipelineConfig.verify_min_inliers``, ``verify_min_inlier_share``)."""
+    return ((fundamental.status == FundamentalStatus.OK) & (fundamental.num_inliers >= config.verify_min_inliers)
+            & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
+
+
 def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,
                    left_logits: torch.Tensor | None = None) -> PipelineResult:
     """The hard pipeline (no gradients) on a batch whose pairs all fill its tensors."""
@@ -217,17 +225,16 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     if config.segmentation.segmenter != "otsu" and bool(row_aligned.any()):  # they measure along rows: again
         seg = _segment_row_aligned(batch, seg, row_aligned, H_right, config.segmentation, network)
         lap("segmentation")
+    object_labels = measured_labels(seg, batch.left.shape[-1], config)  # the dense search keeps whole regions
     depth = estimate_depth(
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right, statistics=config.depth.rule != "dense",  # the dense rule measures them
-        labels=seg.left.labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
+        labels=object_labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
     dense = verified = agreeing = measured = smoothed = coarse = dropped = None
     if config.depth.rule == "dense":
-        fundamental_ok = ((fundamental.status == FundamentalStatus.OK)
-                          & (fundamental.num_inliers >= config.verify_min_inliers)
-                          & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
         depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
-            batch, seg, depth, fundamental_ok, points.left, fundamental.inliers, rectified, H_left, H_right, config)
+            batch, seg, depth, _fundamental_ok(fundamental, matches, config), points.left, fundamental.inliers,
+            rectified, H_left, H_right, object_labels, config)
         seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
                                                       config.drop_unmeasured_nearer_below_share)
     lap("depth")
@@ -239,4 +246,5 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         depth=depth, dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
-        row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped)
+        row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped,
+        object_labels=object_labels)

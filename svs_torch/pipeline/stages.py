@@ -18,6 +18,7 @@ from ..features.surf import SurfFeatures, extract_surf_features
 from ..geometry.matching import match_sad
 from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
 from ..segmentation.components import region_properties
+from ..segmentation.interior import region_interiors
 from ..segmentation.learned import segment_stereo_learned
 from ..segmentation.network_files import cached_obstacle_net
 from ..segmentation.segment import SegmentationConfig, segment_stereo
@@ -131,6 +132,19 @@ def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module 
     if device != batch.left.device:
         raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
     return network
+
+
+def measured_labels(seg: StereoSegmentation, width_px: int, config: PipelineConfig) -> torch.Tensor:
+    """The left labels ``(B, 1, H, W)`` :func:`~svs_torch.pipeline.estimate_obstacle_depth` measures each object
+    over (``PipelineResult.object_labels``): the kept regions of a disparity-based segmenter cut to their interior
+    (``PipelineConfig.region_interior_working_px``: working pixels of the dense stage, at least one input pixel
+    each, for views ``width_px`` wide) under the dense rule, else ``seg``'s own left labels. A rival scored on the
+    pipeline's segmentation measures the same pixels with these."""
+    working_px = config.region_interior_working_px
+    if working_px is None or config.depth.rule != "dense" or seg.from_disparity is None:
+        return seg.left.labels
+    radius = round(working_px * max(1.0, width_px / config.dense.working_width_px))
+    return region_interiors(seg.left.labels, seg.left.kept_labels, radius, seg.from_disparity)
 
 
 def _segment_row_aligned(batch: StereoBatch, seg: StereoSegmentation, aligned: torch.Tensor, H_right: torch.Tensor,

@@ -302,6 +302,7 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     low, rest = fallback.nonzero().flatten(), (~fallback).nonzero().flatten()
     # Segmented by Otsu, their nearness split plays no part.
     otsu_part = dataclasses.replace(segment_stereo(batch.select(low), otsu), split_retaken=torch.zeros(
+        len(low), dtype=torch.bool, device=batch.left.device), from_disparity=torch.zeros(
         len(low), dtype=torch.bool, device=batch.left.device))
     parts, indices = [otsu_part], [low]
     if len(rest):
@@ -349,4 +350,5 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
                          status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
                                             status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))
     pair_status = torch.where(left.status != SegmentationStatus.OK, left.status, right.status)
-    return StereoSegmentation(left=left, right=right, status=pair_status, split_retaken=measured.split_retaken)
+    return StereoSegmentation(left=left, right=right, status=pair_status, split_retaken=measured.split_retaken,
+                              from_disparity=torch.ones(b, dtype=torch.bool, device=image.device))

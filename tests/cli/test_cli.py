@@ -185,9 +185,13 @@ def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path):
     labels = cv2.imread(str(masks), cv2.IMREAD_UNCHANGED)
     assert labels.dtype == np.uint8 and labels.shape == (375, 450)  # the input image's pixel grid
     assert set(np.unique(labels)) <= {0, 1, 2} and (labels == 1).sum() > 0
+    # The masks are the pixels each depth is measured over: the kept region's interior, inside its box by up to
+    # the interior's 2 working pixels (2 × 450 / 320 input pixels) on each side.
     x0, y0, x1, y1 = report["objects"][0]["bbox_xyxy"]
     ys, xs = np.nonzero(labels == 1)
-    assert abs(xs.min() - x0) <= 2 and abs(ys.min() - y0) <= 2 and abs(xs.max() + 1 - x1) <= 2
+    assert 0 <= xs.min() - x0 <= 5 and 0 <= ys.min() - y0 <= 5 and 0 <= x1 - (xs.max() + 1) <= 5
+    assert report["objects"][0]["measured_area_px"] == pytest.approx((labels == 1).sum(), rel=0.02)
+    assert report["objects"][0]["measured_area_px"] < report["objects"][0]["area_px"]
     assert cv2.imread(str(figure)) is not None
 
 

@@ -45,16 +45,17 @@ def _accuracy(batch, result) -> list[float]:
 
 
 def test_noisy_pairs_ranged_wrong_are_measured_on_the_coarse_grid(pipes_frames):
-    """Both noisy pairs are ranged and verified at the working width, but far off (measured 79.7 and 72.0 %); the
-    coarse pass measures them at 96.2 and 90.5 %. The clean pair measures most of its pixels and is not measured
-    again: its result is bit for bit the one without the pass. A noisy pair alone gets what it gets in the batch."""
+    """Both noisy pairs are ranged and verified at the working width, but off (measured 93.3 and 72.6 %; 79.7
+    and 72.0 % over the whole kept regions, before their interiors); the coarse pass measures them at 96.2 and
+    91.3 %. The clean pair measures most of its pixels and is not measured again: its result is bit for bit the
+    one without the pass. A noisy pair alone gets what it gets in the batch."""
     on = estimate_obstacle_depth(pipes_frames)
     off = estimate_obstacle_depth(pipes_frames, dataclasses.replace(PipelineConfig(), coarse_retry_below_share=None))
     acc_on, acc_off = _accuracy(pipes_frames, on), _accuracy(pipes_frames, off)
     assert on.coarse.tolist() == [False, True, True] and not bool(off.coarse.any())
     assert bool(on.verified.all()) and bool(off.verified.all())
-    assert acc_off[1] < 85 and acc_off[2] < 80
-    assert acc_on[1] > 94 and acc_on[2] > 88
+    assert acc_off[1] < 94 and acc_off[2] < 80
+    assert acc_on[1] > 95.5 and acc_on[2] > 90
     assert acc_on[0] == acc_off[0] > 97
     assert torch.equal(on.depth.objects.depth_median_m[0], off.depth.objects.depth_median_m[0])
     alone_batch = take_pairs(pipes_frames, torch.tensor([1]), 3)

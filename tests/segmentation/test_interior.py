@@ -1,0 +1,76 @@
+"""Kept regions cut to their interior (svs_torch.segmentation.interior): OpenCV's erosion of each kept region, a
+region too thin to keep half its pixels left whole, other regions and other pairs untouched."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.segmentation.interior import region_interiors
+
+
+def _scene() -> tuple[torch.Tensor, torch.Tensor]:
+    """Two pairs of 40×60 labels: a 20×24 block (1), a 3-pixel-wide bar (2), a block on the image border (3) and a
+    block not kept (4); slots keep 1, 2, 3."""
+    labels = torch.zeros(2, 1, 40, 60, dtype=torch.int64)
+    labels[:, 0, 5:25, 5:29] = 1
+    labels[:, 0, 5:35, 35:38] = 2
+    labels[:, 0, 28:40, 44:60] = 3
+    labels[:, 0, 30:38, 5:20] = 4
+    return labels, torch.tensor([[1, 2, 3], [1, 2, 3]])
+
+
+def test_thick_regions_are_eroded_as_opencv_erodes_them_and_the_rest_is_kept():
+    labels, kept = _scene()
+    out = region_interiors(labels, kept, 2, torch.tensor([True, False]))
+    element = np.ones((5, 5), np.uint8)
+    for label in (1, 3):  # OpenCV's default border erodes nothing at the image's edges
+        expected = cv2.erode((labels[0, 0] == label).numpy().astype(np.uint8), element) > 0
+        assert np.array_equal((out[0, 0] == label).numpy(), expected)
+    # the block on the border keeps its border rows and columns: only its inner sides move by 2
+    assert int((out[0, 0] == 3).sum()) == (12 - 2) * (16 - 2)
+    # a 3-pixel bar has no interior at radius 2 (nothing would be left): it stays whole
+    assert torch.equal(out[0, 0] == 2, labels[0, 0] == 2)
+    # a region not kept, and the pair not asked for, are as they were
+    assert torch.equal(out[0, 0] == 4, labels[0, 0] == 4)
+    assert torch.equal(out[1], labels[1])
+    # removed pixels are background, never another label
+    assert set(torch.unique(out).tolist()) == {0, 1, 2, 3, 4}
+
+
+def test_a_region_keeping_under_half_its_pixels_stays_whole():
+    labels = torch.zeros(1, 1, 30, 30, dtype=torch.int64)
+    labels[0, 0, 5:12, 5:25] = 1  # 7 × 20: radius 2 keeps 3 × 16 = 48 of 140 pixels
+    labels[0, 0, 15:28, 5:25] = 2  # 13 × 20: keeps 9 × 16 = 144 of 260
+    out = region_interiors(labels, torch.tensor([[1, 2]]), 2, torch.tensor([True]))
+    assert torch.equal(out == 1, labels == 1)
+    assert int((out == 2).sum()) == 144
+    assert int((region_interiors(labels, torch.tensor([[1, 2]]), 2, torch.tensor([True]), min_share=0.3) == 1).sum()
+               ) == 48
+
+
+def test_nothing_to_cut_returns_the_labels_themselves():
+    labels, kept = _scene()
+    pairs = torch.tensor([True, True])
+    assert region_interiors(labels, kept, 0, pairs) is labels
+    assert region_interiors(labels, kept, 2, torch.tensor([False, False])) is labels
+    assert region_interiors(labels, kept[:, :0], 2, pairs) is labels
+    assert torch.equal(region_interiors(labels, torch.full_like(kept, -1), 2, pairs), labels)
+
+
+@pytest.mark.parametrize("radius", [-1, 1.5, True])
+def test_a_bad_radius_is_refused_by_name(radius):
+    labels, kept = _scene()
+    with pytest.raises(InputError, match="radius_px"):
+        region_interiors(labels, kept, radius, torch.tensor([True, True]))
+
+
+def test_bad_labels_are_refused_by_name():
+    labels, kept = _scene()
+    with pytest.raises(InputError, match="labels"):
+        region_interiors(labels.float(), kept, 2, torch.tensor([True, True]))
+    with pytest.raises(InputError, match="pairs"):
+        region_interiors(labels, kept, 2, torch.tensor([True]))
