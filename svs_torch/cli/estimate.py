@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, dumps_strict, finite_float, positive_float,
@@ -141,10 +140,10 @@ def _write_outputs(args, batch, result, factors) -> None:
         write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),
                            args.figure_option)
     if args.masks_out:  # each object's pixels as measured: its depth is the median over them
-        left = result.segmentation.left
-        if result.object_labels is not None:
-            left = dataclasses.replace(left, labels=result.object_labels)
-        write_image_atomic(args.masks_out, labels_image(left, 0, factors), "--masks-out", lossless=True)
+        from ..evaluation.stereo_metrics import measured_regions
+
+        write_image_atomic(args.masks_out, labels_image(measured_regions(result), 0, factors), "--masks-out",
+                           lossless=True)
 
 
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:

@@ -40,26 +40,32 @@ def outside_inference_mode(function: Callable[..., T]) -> Callable[..., T]:
 
 def plain_tensors(tree: T) -> T:
     """``tree`` (nested dataclasses, named tuples, tuples, lists and dicts) with every inference tensor replaced by
-    an ordinary copy; ordinary tensors and every other leaf are kept as they are (not copied)."""
+    an ordinary copy; ordinary tensors and every other leaf are kept as they are (not copied). A tensor the tree
+    holds in several places (a result's ``object_labels`` and its segmentation's labels, where no region was cut)
+    is copied once and stays one tensor."""
     with torch.inference_mode(False):  # entered once: per tensor it cost half the copy's time
-        return _plain(tree)
+        return _plain(tree, {})
 
 
-def _plain(tree):
+def _plain(tree, copies: dict):
     if isinstance(tree, torch.Tensor):
-        return tree.clone() if tree.is_inference() else tree
+        if not tree.is_inference():
+            return tree
+        if id(tree) not in copies:
+            copies[id(tree)] = (tree, tree.clone())  # the original kept too: its id is not reused meanwhile
+        return copies[id(tree)][1]
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
-        changed = {f.name: _plain(getattr(tree, f.name)) for f in dataclasses.fields(tree) if f.init}
+        changed = {f.name: _plain(getattr(tree, f.name), copies) for f in dataclasses.fields(tree) if f.init}
         if all(changed[name] is getattr(tree, name) for name in changed):
             return tree
         return dataclasses.replace(tree, **changed)
     if isinstance(tree, tuple):
-        parts = [_plain(item) for item in tree]
+        parts = [_plain(item, copies) for item in tree]
         if all(new is old for new, old in zip(parts, tree)):
             return tree
         return type(tree)(*parts) if hasattr(tree, "_fields") else type(tree)(parts)
     if isinstance(tree, list):
-        return [_plain(item) for item in tree]
+        return [_plain(item, copies) for item in tree]
     if isinstance(tree, dict):
-        return {key: _plain(value) for key, value in tree.items()}
+        return {key: _plain(value, copies) for key, value in tree.items()}
     return tree

@@ -42,7 +42,7 @@ from ..depth.quantiles import kept_region_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
 from .disparity_errors import (DisparityErrors, _error_fields, dense_disparity_errors, disparity_map_errors,
                                sparse_disparity_errors)
-from .stereo_metrics import StereoMetrics, metric_values, pair_map_metrics
+from .stereo_metrics import StereoMetrics, measured_regions, metric_values, pair_map_metrics
 
 __all__ = [
     "DisparityErrors", "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "ObjectTruth", "PairEstimate", "PairEvaluation",
@@ -83,15 +83,6 @@ class ObjectTruth:
     depth_m: torch.Tensor
     num_px: torch.Tensor
     valid: torch.Tensor
-
-
-def measured_regions(result: PipelineResult) -> Segmentation:
-    """The left segmentation of ``result`` with the labels its objects were measured over
-    (``PipelineResult.object_labels``: the kept regions' interiors under
-    ``PipelineConfig.region_interior_working_px``): an object's true distance is the median ground truth over the
-    pixels its estimate is the median of."""
-    left = result.segmentation.left
-    return left if result.object_labels is None else dataclasses.replace(left, labels=result.object_labels)
 
 
 def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:

@@ -41,11 +41,11 @@ from ..core.checks import InputError, check_dtype, check_shape
 
 if TYPE_CHECKING:
     from ..pipeline import PipelineResult
-    from ..core.types import StereoBatch
+    from ..core.types import Segmentation, StereoBatch
 
 __all__ = ["BAD_THRESHOLDS_PX", "D1_ABSOLUTE_PX", "D1_RELATIVE", "METRIC_NAMES", "QUANTILES_PCT", "STEREO_FIELDS",
-           "STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics", "metric_values",
-           "object_map_metrics", "pair_map_metrics"]
+           "STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics", "measured_regions",
+           "metric_values", "object_map_metrics", "pair_map_metrics"]
 
 #: Middlebury's bad-pixel thresholds, native pixels.
 BAD_THRESHOLDS_PX = (0.5, 1.0, 2.0, 4.0)
@@ -265,11 +265,18 @@ def _scope_masks(batch: StereoBatch, result: PipelineResult, raw: torch.Tensor) 
     return {scope: masks[scope] for scope in STEREO_SCOPES if scope in masks}
 
 
+def measured_regions(result: PipelineResult) -> Segmentation:
+    """The left segmentation of ``result`` with the labels its objects were measured over
+    (``PipelineResult.object_labels``: the kept regions' interiors under
+    ``PipelineConfig.region_interior_working_px``): an object's true distance is the median ground truth over the
+    pixels its estimate is the median of, and its map metrics are over those pixels too."""
+    left = result.segmentation.left
+    return left if result.object_labels is None else dataclasses.replace(left, labels=result.object_labels)
+
+
 def _object_masks(result: PipelineResult, raw: torch.Tensor) -> list[torch.Tensor]:
-    """Each kept object's pixels of ``raw``: those it was measured over (``PipelineResult.object_labels``)."""
-    segmentation = result.segmentation.left
-    if result.object_labels is not None:
-        segmentation = dataclasses.replace(segmentation, labels=result.object_labels)
+    """Each kept object's pixels of ``raw``: those it was measured over (:func:`measured_regions`)."""
+    segmentation = measured_regions(result)
     labels = segmentation.kept_labels.view(*segmentation.kept_labels.shape, 1, 1)  # (B, N, 1, 1)
     return [raw & (segmentation.labels == labels[:, n:n + 1]) & (labels[:, n:n + 1] > 0)
             for n in range(segmentation.kept_labels.shape[1])]

@@ -36,6 +36,16 @@ def test_plain_tensors_copies_inference_tensors_only_and_keeps_their_values():
     assert torch.equal(weight.grad, plain.maps)
 
 
+def test_a_tensor_held_twice_is_copied_once_and_stays_shared():
+    """A result's ``object_labels`` is its segmentation's labels where no region was cut: one copy, one tensor."""
+    with torch.inference_mode():
+        labels = torch.arange(6).view(2, 3)
+        tree = Outer(maps=labels, inner=Inner(labels, 1), parts=[labels], named={}, kept=torch.zeros(1))
+    plain = plain_tensors(tree)
+    assert not plain.maps.is_inference() and plain.inner.values is plain.maps and plain.parts[0] is plain.maps
+    assert not plain.kept.is_inference() and plain.kept is not plain.maps
+
+
 def test_a_tree_without_inference_tensors_is_returned_as_is():
     tree = Outer(maps=torch.ones(1), inner=Inner(torch.ones(1), 1), parts=[], named={}, kept=torch.ones(1))
     assert plain_tensors(tree).maps is tree.maps and plain_tensors(tree).inner is tree.inner
