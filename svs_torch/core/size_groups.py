@@ -88,22 +88,31 @@ def _merge_tensors(name: str, parts: list[torch.Tensor], order: torch.Tensor | N
 
 
 def _merge(name: str, parts: list, order: torch.Tensor | None, size_hw: tuple[int, int],
-           group_hw: list[tuple[int, int]]):
+           group_hw: list[tuple[int, int]], memo: dict):
+    """``parts`` (one result leaf of each group) merged; ``memo`` keeps a tensor that every group's result holds in
+    several places (a segmentation's one mask as its binary, opened and kept masks) one merged tensor, as each
+    group's result had it: merged once, not once per place."""
     first = parts[0]
     if isinstance(first, torch.Tensor):
         if first.dim() == 0:
             return first
-        return _merge_tensors(name, parts, order, size_hw, group_hw)
+        key = (tuple(id(part) for part in parts), _fill_value(name, first))  # the parts live until the merge ends
+        if key not in memo:
+            memo[key] = _merge_tensors(name, parts, order, size_hw, group_hw)
+        return memo[key]
     if first is None:
         return None
+
+    def merged(child: str, items: list):
+        return _merge(child, items, order, size_hw, group_hw, memo)
+
     if dataclasses.is_dataclass(first):
-        return type(first)(**{f.name: _merge(f.name, [getattr(p, f.name) for p in parts], order, size_hw, group_hw)
+        return type(first)(**{f.name: merged(f.name, [getattr(p, f.name) for p in parts])
                               for f in dataclasses.fields(first) if f.init})
     if isinstance(first, tuple) and hasattr(first, "_fields"):  # a NamedTuple of tensors (e.g. MatchedPoints)
-        return type(first)(*(_merge(f, [getattr(p, f) for p in parts], order, size_hw, group_hw)
-                             for f in first._fields))
+        return type(first)(*(merged(f, [getattr(p, f) for p in parts]) for f in first._fields))
     if isinstance(first, (tuple, list)) and first and not isinstance(first[0], str):
-        return type(first)(_merge(name, list(items), order, size_hw, group_hw) for items in zip(*parts))
+        return type(first)(merged(name, list(items)) for items in zip(*parts))
     if isinstance(first, dict):  # stage timings: the batch's time is the groups' sum
         return {key: sum(p[key] for p in parts) for key in first}
     if isinstance(first, bool) or not isinstance(first, (int, float)):
@@ -120,7 +129,7 @@ def merge_groups(results: list[T], indices: list[torch.Tensor], size_hw: tuple[i
     order = torch.empty(len(rows), dtype=torch.int64, device=rows.device)
     order[rows] = torch.arange(len(order), device=order.device)
     in_order = bool((order == torch.arange(len(order), device=order.device)).all())
-    return _merge("", results, None if in_order else order, size_hw, group_hw)
+    return _merge("", results, None if in_order else order, size_hw, group_hw, {})
 
 
 def replace_pairs(tree: T, index: torch.Tensor, part: T, num_pairs: int, size_hw: tuple[int, int]) -> T:

@@ -81,12 +81,14 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
                              f"{type(network).__name__}")
     if config.differentiable:
         return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
-    # Nothing to differentiate: the whole run in inference mode (its ops' bookkeeping is most of a one-pair call's
-    # time), and what it returns copied to ordinary tensors (svs_torch.core.inference).
-    batch = _detached(batch)
-    with torch.inference_mode():
-        result = run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
-    return plain_tensors(result)
+    # Nothing to differentiate: each run in inference mode (its ops' bookkeeping is most of a one-pair call's time),
+    # and what it returns copied to ordinary tensors (svs_torch.core.inference). The chunks of a large batch are
+    # merged outside it: the merge's concatenations are then ordinary tensors already, not copied a second time.
+    def run_hard(group: StereoBatch) -> PipelineResult:
+        with torch.inference_mode():
+            return _estimate_group(group, config, network)
+
+    return plain_tensors(run_by_size(_detached(batch), run_hard, max_pixels=CHUNK_PIXELS))
 
 
 def _detached(batch: StereoBatch) -> StereoBatch:

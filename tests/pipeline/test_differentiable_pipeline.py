@@ -265,6 +265,27 @@ def _tensors(tree):
             yield from _tensors(item)
 
 
+def test_a_batch_run_in_chunks_is_merged_into_ordinary_tensors(data_dir, monkeypatch):
+    """A batch over ``CHUNK_PIXELS`` runs its chunks in inference mode and merges them outside it: the merged result
+    holds ordinary tensors only (the merge's own, not copied once more), with the values and the shared tensors of
+    one call."""
+    from svs_torch.pipeline import run
+
+    batch = _teddy(data_dir, (160, 120)).select([0, 0, 0])
+    whole = estimate_obstacle_depth(batch, PipelineConfig())
+    monkeypatch.setattr(run, "CHUNK_PIXELS", 160 * 120)  # one pair a chunk
+    chunked = estimate_obstacle_depth(batch, PipelineConfig())
+    tensors = list(_tensors(chunked))
+    assert len(tensors) > 50 and not any(t.is_inference() for t in tensors)
+    chunked.depth.objects.depth_median_m.mul_(1.0)  # an inference tensor would refuse this
+    assert torch.equal(chunked.depth.objects.depth_median_m, whole.depth.objects.depth_median_m)
+    assert torch.equal(chunked.object_labels, whole.object_labels) and torch.equal(chunked.status, whole.status)
+    # A tensor each chunk's result held in several places is merged once and stays one tensor, as in one call.
+    for result in (whole, chunked):
+        right = result.segmentation.right
+        assert right.binary is right.opened is right.kept_mask
+
+
 def test_a_hard_run_in_inference_mode_leaves_nothing_that_stops_training(data_dir):
     # The hard pipeline runs in inference mode (svs_torch.core.inference). Emptied first, the caches it fills (the
     # Hessian's tables, the 7-point solver's mixing matrix, the nearness network) must still train afterwards.
