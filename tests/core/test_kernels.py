@@ -577,6 +577,40 @@ def test_sad_matching_kernel_equals_cdist_path(images, monkeypatch, mutual, band
 
 
 @pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
+@pytest.mark.parametrize("band_px", [None, 0.3])
+def test_sad_nearest_splits_one_pairs_rows_among_threads_with_the_same_results(generator, band_px):
+    """With fewer pairs than threads (guide's one pair) each pair's rows go to the threads in blocks, each with its
+    own column minima merged in block order: best, second, index and back equal the one-thread path bit for bit,
+    and a column nearest to two equal rows of different blocks names the first (as torch's argmin)."""
+    b, k, k2, d = 1, 301, 257, 64
+    left, right = torch.rand(b, k, d, generator=generator), torch.rand(b, k2, d, generator=generator)
+    left[0, 250] = left[0, 3]
+    right[0, 17] = left[0, 3]  # column 17 is at distance 0 from rows 3 and 250, one in each half
+    valid_left, valid_right = torch.rand(b, k, generator=generator) > 0.1, torch.rand(b, k2, generator=generator) > 0.1
+    valid_left[0, [3, 250]], valid_right[0, 17] = True, True
+    sign_left = torch.randint(0, 2, (b, k), generator=generator) * 2 - 1
+    sign_right = torch.randint(0, 2, (b, k2), generator=generator) * 2 - 1
+    sign_left[0, [3, 250]], sign_right[0, 17] = 1, 1
+    y_left, y_right = torch.rand(b, k, generator=generator), torch.rand(b, k2, generator=generator)
+    y_left[0, [3, 250]], y_right[0, 17] = 0.5, 0.5
+    args = (left, right, valid_left, valid_right, sign_left, sign_right, y_left, y_right, band_px)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = geometry_kernels.sad_nearest(*args)
+        results = []
+        for count in (2, 3):
+            torch.set_num_threads(count)
+            results.append(geometry_kernels.sad_nearest(*args))
+    finally:
+        torch.set_num_threads(threads)
+    assert int(one[3][0, 17]) == 3 and float(one[0][0, 3]) == 0.0
+    for split in results:
+        for got, want in zip(split, one):
+            assert torch.equal(got, want)
+
+
+@pytest.mark.skipif(not kernels.available("sad_nearest"), reason="no C compiler")
 @pytest.mark.parametrize("band_px", [None, 1.0])
 def test_sad_matching_kernel_edge_rows(band_px):
     """An invalid row, rows whose sign or band leaves no candidate or a single one, two at the same distance, an
