@@ -56,4 +56,3 @@ def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px:
     cut = (interior >= min_share * total) & (total > 0) & pairs.view(b, 1)
     border = kept & ~inside & (region & cut.unsqueeze(-1)).any(1)
     return torch.where(border.view_as(labels), torch.zeros_like(labels), labels)
-

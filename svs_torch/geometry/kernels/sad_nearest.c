@@ -52,12 +52,16 @@ static int64_t group_columns(const float *right, const uint8_t *valid_right, con
 }
 
 /* Left rows [i0, i1) of pair b against its grouped columns: each row's best, second and best_index written, and
- * each column's nearest row among them kept in column_best / column_index (strict <: the first row on ties), which
- * the caller set to +inf / 0. distance: scratch of n floats. */
+ * each column's nearest row among them written to column_best / column_index (+inf / 0 where none; strict <: the
+ * first row on ties). distance: scratch of n floats. */
 static void match_rows(const float *left, const uint8_t *valid_left, const int64_t *sign_left, const float *y_left,
                        const float *y_right, float band, int64_t b, int64_t K, int64_t K2, int64_t D, int64_t i0,
                        int64_t i1, const column *columns, int64_t n, const float *grouped, float *distance,
                        float *column_best, int64_t *column_index, float *best, float *second, int64_t *best_index) {
+    for (int64_t j = 0; j < K2; ++j) {
+        column_best[j] = INFINITY;
+        column_index[j] = 0;
+    }
     for (int64_t i = i0; i < i1; ++i) {
         float first = INFINITY, next = INFINITY;
         int64_t first_index = 0;
@@ -117,15 +121,9 @@ static int nearest_by_row_blocks(const float *left, const float *right, const ui
         const int64_t n = group_columns(right, valid_right, sign_right, b, K2, D, columns, grouped);
 #pragma omp parallel for schedule(static) num_threads(threads)
         for (int t = 0; t < threads; ++t) {
-            float *column_best = block_best + (int64_t)t * K2;
-            int64_t *column_index = block_index + (int64_t)t * K2;
-            for (int64_t j = 0; j < K2; ++j) {
-                column_best[j] = INFINITY;
-                column_index[j] = 0;
-            }
             match_rows(left, valid_left, sign_left, y_left, y_right, band, b, K, K2, D, K * t / threads,
-                       K * (t + 1) / threads, columns, n, grouped, distance + (int64_t)t * K2, column_best,
-                       column_index, best, second, best_index);
+                       K * (t + 1) / threads, columns, n, grouped, distance + (int64_t)t * K2,
+                       block_best + (int64_t)t * K2, block_index + (int64_t)t * K2, best, second, best_index);
         }
         for (int64_t j = 0; j < K2; ++j) {
             float nearest = INFINITY;
@@ -174,14 +172,9 @@ int sad_nearest(const float *left, const float *right, const uint8_t *valid_left
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
             if (!ready) continue;
-            int64_t *column_index = back + b * K2;
-            for (int64_t j = 0; j < K2; ++j) {
-                column_best[j] = INFINITY;
-                column_index[j] = 0;
-            }
             const int64_t n = group_columns(right, valid_right, sign_right, b, K2, D, columns, grouped);
             match_rows(left, valid_left, sign_left, y_left, y_right, band, b, K, K2, D, 0, K, columns, n, grouped,
-                       distance, column_best, column_index, best, second, best_index);
+                       distance, column_best, back + b * K2, best, second, best_index);
         }
         free(distance);
         free(column_best);
