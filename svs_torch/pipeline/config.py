@@ -118,6 +118,8 @@ class PipelineConfig:
             (``PipelineResult.num_measured_inliers``; None: never). Camera noise leaves the dense map measuring few
             windows, so it confirms few inliers of a real pair, yet none it measures disagrees; between unrelated
             views its chance agreements come with disagreements.
+        verify_whole_view: a pair these rules leave unverified is checked again by them on a dense map of its whole
+            left view: its inliers lie anywhere, the first map is only near the kept regions (noise can move them).
         seed: RANSAC seed; every pair uses it, so a pair's result does not depend on its batch.
         differentiable: after the hard pipeline (run without gradients: it makes every discrete decision), a
             differentiable pass recomputes each object's depth from the images and the segmenter's logits
@@ -174,22 +176,20 @@ class PipelineConfig:
     (Table 1's "proposed" row).
     """
 
-    # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least
-    # (both cameras' measured pixels): the best rule keeping by nearness on the train scenes
-    # (experiments/select_nearness_rule.md; the rule alone, experiments/validate_nearness.md; issue 32).
-    # Below 17.5 % of the view accepted by the block matcher, Otsu instead: views of two scenes
-    # (experiments/nearness_fallback.md).
+    # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least (both
+    # cameras' measured pixels): the best rule keeping by nearness on the train scenes (experiments/select_nearness_
+    # rule.md; the rule alone, validate_nearness.md; issue 32). Below 17.5 % of the view accepted by the block
+    # matcher, Otsu instead: views of two scenes (experiments/nearness_fallback.md).
     segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
         segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, min_measured_share=0.175))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
-    # real_rig.py, tuned 320x240: the right view turned / shifted / brighter segments differently, and the masked
-    # images' artificial region borders then lose half the matches (roll 2 deg: 164 -> 72 on Aloe); "mask" keeps them.
-    # With the nearness segmenter the right view's regions are the left ones moved by their disparity, and a turned
-    # or shifted right camera puts its obstacles elsewhere: whole images kept or raised the accuracy of every
-    # real_rig.py condition on the tuned scenes at 320x240 (roll 2 deg: 46 / 19 -> 81 / 84 %, shift 3 %: 26 / 39 ->
-    # 83 / 83 %, clean and JPEG unchanged).
+    # real_rig.py, tuned 320x240: a turned / shifted / brighter right view segments differently and the masked images'
+    # region borders lose half the matches (roll 2 deg: 164 -> 72 on Aloe); "mask" keeps them. The nearness regions of
+    # the right view are the left ones moved by their disparity, which a turned or shifted camera moves elsewhere:
+    # whole images kept or raised every real_rig.py condition (tuned 320x240; roll 2 deg: 46 / 19 -> 81 / 84 %, shift
+    # 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
     features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
     max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
@@ -234,6 +234,7 @@ class PipelineConfig:
     # 57 % off; verify_views.py at these values: every negative set as before.
     verify_unanimous_min_inliers: int | None = 20
     verify_unanimous_min_agreeing: int = 3
+    verify_whole_view: bool = True  # see ranging._vouched_over_whole_view; experiments/real_rig.md (2026-11-28)
     seed: int = 0
     differentiable: bool = False  # issue 31: the hard pipeline's decisions, the depths recomputed with gradients
     # experiments/real_rig.py, tuned 320x240: JPEG digit 7 + sigma 6 68.8 -> 88.1 %, digit 8 + sigma 8 58.7 -> 78.4 %.
@@ -249,11 +250,10 @@ class PipelineConfig:
     # (seen in the report, not tuned on) the region dropped was truly the nearest (Lampshade2's lamp at 5 m, leaving
     # a wall at 12.5 m); the rule kept is safe by construction.
     drop_unmeasured_below_share: float | None = 0.45
-    # experiments/real_rig.py --splits tuned --sizes 320x240,native --no-rival --set
-    # drop_unmeasured_nearer_below_share=S (tuned scenes only), mean per object over every condition at 320x240: off
-    # and 0.1 89.57 %, 0.15 / 0.2 / 0.3 89.64 (Playroom at digit 8: a 3.5 m region measured on 12 %, ranged at
-    # 2.47 m beside the 2.78 m obstacle, dropped); native 92.06 at each. The lowest of the plateau drops fewest
-    # regions, and a region measured on 32 % ranged nearer than the measured one is truly nearer there (PianoL).
+    # real_rig.py --splits tuned --sizes 320x240,native --no-rival --set drop_unmeasured_nearer_below_share=S, mean per
+    # object over every condition at 320x240: off and 0.1 89.57 %, 0.15 / 0.2 / 0.3 89.64 (Playroom at digit 8: a 3.5 m
+    # region measured on 12 %, ranged at 2.47 m beside the 2.78 m obstacle, dropped); native 92.06 at each. The lowest
+    # drops fewest regions; a region measured on 32 % ranged nearer than the measured one is truly nearer (PianoL).
     drop_unmeasured_nearer_below_share: float | None = 0.15
     region_interior_working_px: float | None = 2.0  # experiments/select_region_interior.md (tuned split only)
     # Off by default: on the tuned scenes (experiments/exposure.md) it ranges Piano behind a right camera 30 % brighter
@@ -280,8 +280,9 @@ class PipelineConfig:
                 raise InputError(f"{name}: expected an integer >= 1 or None, got {many!r}")
         if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
             raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
-        if self.differentiable not in (True, False):
-            raise InputError(f"differentiable: expected a bool, got {self.differentiable!r}")
+        for name in ("verify_whole_view", "differentiable"):
+            if getattr(self, name) not in (True, False):
+                raise InputError(f"{name}: expected a bool, got {getattr(self, name)!r}")
         if self.differentiable and self.depth.rule != "dense":
             raise InputError(f"differentiable: needs depth.rule 'dense' (the paper's rule ranges from extreme "
                              f"inliers, nothing to differentiate), got {self.depth.rule!r}")

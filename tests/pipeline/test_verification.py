@@ -37,8 +37,8 @@ def test_many_inliers_vouch_where_the_dense_map_confirms_few(baby2):
     made; at today's 5 the pair is verified by its confirmed inliers as well). Without the rule the pair is
     unverified and its book, measured on a third of its pixels (under the unverified 40 %), is left unranged; with
     it the pair is verified and ranged. The clean pair is verified by its confirmed inliers either way, with the
-    same depth."""
-    config = PipelineConfig(verify_min_agreeing_inliers=6)
+    same depth. (The whole-view check is off here: its map of the whole view confirms enough of them too.)"""
+    config = PipelineConfig(verify_min_agreeing_inliers=6, verify_whole_view=False)
     alone = estimate_obstacle_depth(baby2, config)
     without = estimate_obstacle_depth(baby2, dataclasses.replace(config, verify_many_inliers=None))
     assert int(alone.num_agreeing_inliers[1]) < config.verify_min_agreeing_inliers
@@ -85,9 +85,11 @@ def dim_piano_frame(data_dir):
 def test_a_noisy_frame_whose_measured_inliers_all_agree_is_verified(dim_piano_frame):
     """The dense map of the noisy frame measures a handful of the pair's RANSAC inliers, under the usual 5
     confirmed, and confirms each one: with the rule the pair is verified and its obstacles ranged within 3 % of
-    their true distance; without it the pair is unverified and left without depth (NO_DENSE_DEPTH)."""
-    with_rule = estimate_obstacle_depth(dim_piano_frame)
-    without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None))
+    their true distance; without it the pair is unverified and left without depth (NO_DENSE_DEPTH). (The
+    whole-view check is off: it verifies this pair too, on a map of the whole view that measures 32 inliers.)"""
+    with_rule = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_whole_view=False))
+    without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None,
+                                                                      verify_whole_view=False))
     agreeing, measured = int(with_rule.num_agreeing_inliers[0]), int(with_rule.num_measured_inliers[0])
     config = PipelineConfig()
     assert config.verify_unanimous_min_agreeing <= agreeing == measured < config.verify_min_agreeing_inliers
@@ -125,3 +127,53 @@ def test_a_wrong_unanimous_setting_is_refused_by_name(value):
         PipelineConfig(verify_unanimous_min_inliers=value)
     with pytest.raises(InputError, match=r"^verify_unanimous_min_agreeing: expected an integer >= 1"):
         PipelineConfig(verify_unanimous_min_agreeing=value)
+
+
+@pytest.fixture(scope="module")
+def noisy_pianol_frames(data_dir):
+    """MiddEval3 PianoL (tuned split, its two views lit by different lamps) at 320×240, sent as JPEG digit 7 and 8
+    frames with sensor noise σ 6 / 8 (experiments/real_rig.py --splits tuned, its scene index 5): the noise makes
+    the segmenter keep small regions away from every RANSAC inlier."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "PianoL"), "320x240")
+    views = [v for v in real_rig.conditions(scene, 5) if v[0] in ("jpeg q7 + noise s6", "jpeg q8 + noise s8")]
+    return real_rig.stack_conditions(scene, views)
+
+
+def test_a_pair_whose_inliers_miss_the_kept_regions_is_verified_over_its_whole_view(noisy_pianol_frames):
+    """The kept regions' dense map measures none of the pair's inliers, so without the whole-view check the pair is
+    unverified and left without depth; the map of the whole view confirms at least the usual 5, and the pair is
+    verified and ranged (``PipelineConfig.verify_whole_view``). The counts reported are the ones that vouched."""
+    with_check = estimate_obstacle_depth(noisy_pianol_frames)
+    without = estimate_obstacle_depth(noisy_pianol_frames, PipelineConfig(verify_whole_view=False))
+    assert not bool(without.verified.any()) and bool((without.num_measured_inliers == 0).all())
+    assert bool((without.status == PipelineStatus.NO_DENSE_DEPTH).all())
+    assert bool(with_check.verified.all()) and bool((with_check.status == PipelineStatus.OK).all())
+    least = PipelineConfig().verify_min_agreeing_inliers
+    assert bool((with_check.num_agreeing_inliers >= least).all())
+    assert bool((with_check.num_agreeing_inliers <= with_check.num_measured_inliers).all())
+    assert bool((with_check.num_measured_inliers <= with_check.num_inliers).all())
+
+
+def test_the_whole_view_check_changes_no_pair_the_kept_regions_verify(baby2):
+    """Only a pair left unverified pays for the second map: a verified pair's result is the same with it off."""
+    on, off = estimate_obstacle_depth(baby2), estimate_obstacle_depth(baby2, PipelineConfig(verify_whole_view=False))
+    assert bool(off.verified.all())
+    for name in ("verified", "num_agreeing_inliers", "num_measured_inliers", "status"):
+        assert torch.equal(getattr(on, name), getattr(off, name)), name
+    assert torch.equal(on.depth.objects.depth_median_m, off.depth.objects.depth_median_m)
+
+
+def test_views_of_different_scenes_stay_unverified_over_the_whole_view(data_dir):
+    """A swapped or misconnected camera: the left view of one tuned scene with the right view of another is never
+    verified by the whole-view check either (experiments/verify_views.py measures every such pair)."""
+    names = ("Piano", "Jadeplant", "Playroom")
+    scenes = [real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / n), "320x240") for n in names]
+    pairs = [(f"{a} x {b}", scenes[i].left, scenes[j].right) for i, a in enumerate(names)
+             for j, b in enumerate(names) if i != j]
+    result = estimate_obstacle_depth(real_rig.stack_conditions(scenes[0], pairs))
+    assert not bool(result.verified.any())
+
+
+def test_a_wrong_whole_view_setting_is_refused_by_name():
+    with pytest.raises(InputError, match=r"^verify_whole_view: expected a bool, got 'yes'"):
+        PipelineConfig(verify_whole_view="yes")
