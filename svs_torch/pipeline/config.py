@@ -177,8 +177,8 @@ class PipelineConfig:
     """
 
     # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least (both
-    # cameras' measured pixels): the best rule keeping by nearness on the train scenes (experiments/select_nearness_
-    # rule.md; the rule alone, validate_nearness.md; issue 32). Below 17.5 % of the view accepted by the block
+    # cameras' measured pixels): the best rule keeping by nearness on the train scenes (issue 32; experiments/
+    # select_nearness_rule.md, the rule alone validate_nearness.md). Below 17.5 % of the view accepted by the block
     # matcher, Otsu instead: views of two scenes (experiments/nearness_fallback.md).
     segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
         segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, min_measured_share=0.175))
