@@ -99,14 +99,11 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     mask = any_along(objects, dim=1, keepdim=True)
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
-    # Agreement within one working pixel (the dense map's own grid) between the sparse and the dense disparity.
-    agreeing, measured = count_agreeing_inliers(dense, points_left, sparse.disparities, inliers, H_left,
-                                                float(working_factor(batch.left.shape[-1], config.dense)),
-                                                return_measured=True)
+    agreeing, measured = _confirmed_inliers(dense, points_left, sparse.disparities, inliers, H_left, config)
     verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     if config.verify_whole_view:
         verified, agreeing, measured = _vouched_over_whole_view(
-            left, right, batch.image_hw, sparse.disparities, points_left, inliers, H_left, fundamental_ok & ~verified,
+            left, right, batch.image_hw, sparse.disparities, points_left, inliers, H_left, fundamental_ok,
             (verified, agreeing, measured), config)
     weight = verified.to(batch.left.dtype)
     fraction = (weight * config.depth.min_object_valid_fraction
@@ -133,13 +130,25 @@ def _vouched(num_inliers: torch.Tensor, agreeing: torch.Tensor, measured: torch.
     return vouched
 
 
+def _confirmed_inliers(dense: DenseDisparity, points_left: torch.Tensor, disparities: Disparities,
+                       inliers: torch.Tensor, H_left: torch.Tensor, config: PipelineConfig
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The RANSAC inliers ``(B, K)`` the dense map confirms and those it measured, ``(B,)`` each: agreement within
+    one working pixel (the dense map's own grid) between the sparse and the dense disparity."""
+    width = dense.disparity_px.shape[-1]
+    return count_agreeing_inliers(dense, points_left, disparities, inliers, H_left,
+                                  float(working_factor(width, config.dense)), return_measured=True)
+
+
 def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor | None,
                              disparities: Disparities, points_left: torch.Tensor, inliers: torch.Tensor,
-                             H_left: torch.Tensor, unverified: torch.Tensor, verdict: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                             H_left: torch.Tensor, fundamental_ok: torch.Tensor,
+                             verdict: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
                              config: PipelineConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``verdict`` (verified, agreeing and measured inliers, ``(B,)`` each) with the ``unverified`` ``(B,)`` pairs
-    checked again against a dense map of their whole (rectified) left view: where it vouches
-    (:func:`_vouched`, the same rules), the pair is verified and its counts are that map's.
+    """``verdict`` (verified, agreeing and measured inliers, ``(B,)`` each) with the pairs it leaves unverified
+    whose F was found (``fundamental_ok`` ``(B,)``) checked again against a dense map of their whole (rectified)
+    left view: where it vouches (:func:`_vouched`, the same rules), the pair is verified and its counts are that
+    map's.
 
     Why: RANSAC's inliers lie anywhere in the view (``features_on="image"``), the dense map only near the kept
     regions. On a camera frame noise can make the segmenter keep small regions away from every inlier, so the
@@ -148,7 +157,7 @@ def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: 
     different scenes stay apart (``experiments/verify_views.py``). Only pairs left unverified pay for the pass, so
     a clean pair's result is unchanged.
     """
-    again = unverified.nonzero().flatten()
+    again = (fundamental_ok & ~verdict[0]).nonzero().flatten()
     if not len(again):
         return verdict
     pick = (lambda t: t.index_select(0, again))
@@ -157,9 +166,7 @@ def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: 
     dense = estimate_dense_disparity(pick(left), pick(right), whole, config.dense,
                                      None if image_hw is None else pick(image_hw), mine.disparity_px, mine.valid,
                                      whole)
-    agreeing, measured = count_agreeing_inliers(dense, pick(points_left), mine, pick(inliers), pick(H_left),
-                                                float(working_factor(left.shape[-1], config.dense)),
-                                                return_measured=True)
+    agreeing, measured = _confirmed_inliers(dense, pick(points_left), mine, pick(inliers), pick(H_left), config)
     vouched = _vouched(pick(inliers).sum(1), agreeing, measured, config)
     now = again[vouched]
     verified, agreeing_out, measured_out = (t.clone() for t in verdict)
