@@ -42,7 +42,7 @@ GRID = tuple(round(0.1 + 0.025 * i, 3) for i in range(13))
 
 
 def accepted_share(left: torch.Tensor, right: torch.Tensor) -> float:
-    return float(measure_nearness_disparity(left, right, NearnessNetConfig()).measured.float().mean())
+    return float(measure_nearness_disparity(left, right, NearnessNetConfig()).matched_share[0])
 
 
 def main(argv: list[str] | None = None) -> float:

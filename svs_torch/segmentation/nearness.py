@@ -195,6 +195,12 @@ class NearnessDisparity:
         relative: ``(B, 1, H, W)`` ``(disparity − split) / spread``, the rule's nearness.
         split_retaken: ``(B,)`` bool, the split was taken again under the 90th percentile
             (``NearnessNetConfig.min_near_share``, :mod:`.nearness_split`).
+        matched_share: ``(B,)`` the share of the left view the block matcher accepted, before any coarse check:
+            what tells views of two scenes from one (``SegmentationConfig.min_measured_share``,
+            experiments/nearness_fallback.md). The coarse check (:mod:`.nearness_denoise`) adds the coarse map's
+            acceptances to ``measured``, chance matches between unrelated views among them (at a quarter of the
+            width: views of two tuning scenes 0.14–0.30 of the view, their camera frames 0.30 and more), so
+            ``measured`` cannot tell them apart.
     """
 
     disparity_px: torch.Tensor
@@ -203,6 +209,7 @@ class NearnessDisparity:
     spread_px: torch.Tensor
     relative: torch.Tensor
     split_retaken: torch.Tensor
+    matched_share: torch.Tensor
 
 
 def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
@@ -239,9 +246,13 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     if disparity.shape[-2:] != (h, w):  # (at the working size already, nearest resampling would copy it)
         disparity = F.interpolate(disparity, size=(h, w), mode="nearest")
         measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5
+    matched = found.valid
+    if matched.shape[-2:] != (h, w):  # resampled as measured is, so that without the coarse check they agree
+        matched = F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
     split, spread, retaken = nearness_split(disparity, config.min_near_share)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
-    return NearnessDisparity(disparity, measured, split, spread, relative, retaken)
+    return NearnessDisparity(disparity, measured, split, spread, relative, retaken,
+                             matched.flatten(1).to(torch.float32).mean(1))
 
 
 def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
@@ -293,8 +304,7 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
             left_logits, measured = nearness_logits(net, batch.left, batch.right)
         elif measured is None:
             measured = measure_nearness_disparity(batch.left, batch.right, net.config)
-    share = measured.measured.flatten(1).to(torch.float32).mean(1)
-    fallback = share < config.min_measured_share
+    fallback = measured.matched_share < config.min_measured_share
     if not bool(fallback.any()):
         return _segment_measured(batch, config, net, left_logits, measured)
     # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.

@@ -408,9 +408,12 @@ def test_a_sparse_camera_frame_is_checked_against_the_coarse_map(data_dir):
     regions 0.15). Its matches checked against the pair measured at half the working width
     (:mod:`svs_torch.segmentation.nearness_denoise`, ``sparse_reduction=2``) keep the clean pair's obstacles;
     without the check (``sparse_reduction=1``, the default) they are lost. The pair's result is the same alone
-    and beside a clean pair, which never takes the coarse path."""
+    and beside a clean pair, which never takes the coarse path. The fine matcher's 17 % is under
+    ``min_measured_share``, so the default segmentation takes this pair as views of two scenes (Otsu), with the
+    check or without: the fallback reads the fine matcher's share (``matched_share``), which the coarse map does
+    not raise (it raises ``measured``), for views of two scenes leave about as much."""
     clean, frames = _dim_piano_frames(data_dir, 50, 6.0)
-    config = PipelineConfig().segmentation
+    config = dataclasses.replace(PipelineConfig().segmentation, min_measured_share=0.0)
     fine_only = NearnessNet().eval()
     net = NearnessNet(dataclasses.replace(fine_only.config, sparse_reduction=2)).eval()
     reference = segment_stereo_nearness(clean, config, net).left.kept_mask
@@ -418,6 +421,9 @@ def test_a_sparse_camera_frame_is_checked_against_the_coarse_map(data_dir):
     unchecked = measure_nearness_disparity(frames.left, frames.right, fine_only.config)
     assert float(unchecked.measured.float().mean()) < net.config.sparse_share  # the fine matcher's share
     assert float(measured.measured.float().mean()) > float(unchecked.measured.float().mean())
+    assert torch.equal(measured.matched_share, unchecked.matched_share)
+    assert float(measured.matched_share[0]) < PipelineConfig().segmentation.min_measured_share
+    assert not bool(segment_stereo_nearness(frames, PipelineConfig().segmentation, net).from_disparity[0])
     kept = segment_stereo_nearness(frames, config, net).left.kept_mask
     lost = segment_stereo_nearness(frames, config, fine_only).left.kept_mask
     assert float(mask_iou(kept, reference)[0]) > 0.6  # 0.72
