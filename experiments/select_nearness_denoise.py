@@ -36,13 +36,13 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.segmentation.learned import obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
+import real_rig  # noqa: E402
 from real_rig import conditions  # noqa: E402
 from run_metadata import default_data_dir  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
@@ -51,8 +51,8 @@ from train_segmentation import train_scenes  # noqa: E402
 # Median window 1 (no median) lost in every row of the first selection (score 1.36–1.47 against 1.53–1.57).
 GRID = {"window_size": (7, 9, 11), "uniqueness_ratio": (0.1, 0.2, 0.3, 0.4, 0.6), "median_window": (5, 7)}
 
-#: The weak-texture synthetic scenes: how many, their texture contrast, and the seed of their draws.
-SYNTHETIC_SCENES, SYNTHETIC_CONTRAST, SYNTHETIC_SEED = 16, 0.3, 7
+#: The weak-texture synthetic scenes: real_rig.py's ``--splits synthetic``.
+SYNTHETIC_SCENES, SYNTHETIC_CONTRAST = real_rig.SYNTHETIC_SCENES, real_rig.SYNTHETIC_TEXTURE_CONTRAST
 LEGEND = (f"320 / native: the train scenes, clean or as the board's eight camera frames (scored); 320 weak: "
           f"{SYNTHETIC_SCENES} synthetic scenes at texture contrast {SYNTHETIC_CONTRAST} (reported, not scored: see "
           f"the script's docstring). The fallback to Otsu is off while scoring.")
@@ -75,10 +75,8 @@ def views(data_dir: Path) -> list[tuple[str, str, object, object]]:
     for size in ("320", "native"):
         for index, path in enumerate(train_scenes(data_dir)):
             out += _frames(size, resample(load_scene(path), size), index)
-    synthetic = random_obstacle_scenes(SYNTHETIC_SCENES, 2, generator=torch.Generator().manual_seed(SYNTHETIC_SEED),
-                                       texture_contrast=SYNTHETIC_CONTRAST).batch
-    for index in range(SYNTHETIC_SCENES):
-        out += _frames("320 weak", synthetic.select([index]), index)
+    for index, pair in enumerate(real_rig.synthetic_scenes()):
+        out += _frames("320 weak", pair, index)
     return out
 
 

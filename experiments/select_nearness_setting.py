@@ -8,14 +8,16 @@ weights file and scored on the ``tuned`` split of experiments/paper_table1.py, a
   nearest obstacle's Acc (Eq. (9));
 - camera frames and a loose rig (experiments/real_rig.py, no rival; every condition unless ``--conditions``
   names some; at each ``--contrasts`` factor, 0.5 being the tuned split's stand-in for weakly textured scenes):
-  per object Acc.
+  per object Acc;
+- with ``--synthetic``, the same on real_rig.py's rendered weakly textured scenes (``--splits synthetic``, one
+  size): our own pairs, a tuning set for what plain surfaces lose to JPEG.
 
 The held-out split is never read. Chosen: the variant with the largest sum of the mean of (IoU, Acc / 100) over
 both sizes and the mean per object Acc / 100 over both sizes and contrasts; the first listed on a tie (list the
 one that changes least first).
 
     python experiments/select_nearness_setting.py --variants min_near_share=0 min_near_share=0.1 \\
-        [--contrasts 1,0.5] [--conditions clean,jpeg] [--markdown FILE]
+        [--contrasts 1,0.5] [--conditions clean,jpeg] [--synthetic] [--markdown FILE]
 
 ``experiments/select_min_near_share.md`` was made by this script's first form (``--shares``, since folded into
 ``--variants``); ``experiments/select_nearness_setting.md`` chose the sparse pairs' coarse check.
@@ -82,36 +84,44 @@ def segmentation_scores(data: Path, name: str, path: Path) -> dict[str, tuple[fl
                    statistics.fmean(r[f"acc_{name}"] for r in rows if r["size"] == size)) for size in SIZES}
 
 
-def rig_scores(data: Path, path: Path, contrast: float, conditions: str | None) -> dict[str, float]:
-    """{size: mean per object Acc %} over the tuned split's real_rig.py conditions at ``contrast``."""
-    argv = ["--data", str(data), "--splits", "tuned", "--sizes", ",".join(SIZES.values()), "--no-rival",
+def rig_scores(data: Path, path: Path, contrast: float, conditions: str | None, split: str = "tuned"
+               ) -> dict[str, float]:
+    """{size: mean per object Acc %} over the ``split``'s real_rig.py conditions at ``contrast`` (the rendered
+    ``synthetic`` split: its one size, as "320")."""
+    argv = ["--data", str(data), "--splits", split, "--sizes", ",".join(SIZES.values()), "--no-rival",
             "--contrast", str(contrast), "--set", f"segmentation.segmenter=nearness:{path}"]
     rows = real_rig.main(argv + (["--conditions", conditions] if conditions else []))["rows"]
     return {size: statistics.fmean(r["acc_objects"] or 0.0 for r in rows if r["size"] == rig_size)
-            for size, rig_size in SIZES.items()}
+            for size, rig_size in SIZES.items() if any(r["size"] == rig_size for r in rows)}
 
 
 def score(data: Path, path: Path, variant: dict, number: int, contrasts: list[float],
-          conditions: str | None) -> dict:
+          conditions: str | None, synthetic: bool = False) -> dict:
     """The variant's (its weights file at ``path``) clean segmentation and rig scores and its total (module
     docstring)."""
     seg = segmentation_scores(data, f"variant{number}", path)
     rig = {(size, contrast): acc for contrast in contrasts
            for size, acc in rig_scores(data, path, contrast, conditions).items()}
+    if synthetic:
+        rig[("synthetic", 1.0)] = rig_scores(data, path, 1.0, conditions, "synthetic")["320"]
     segmentation = statistics.fmean(v for iou, acc in seg.values() for v in (iou, acc / 100))
     return {"variant": variant, "seg": seg, "rig": rig, "score": segmentation + statistics.fmean(rig.values()) / 100}
 
 
-def table(results: list[dict], best: dict, command: str, contrasts: list[float], conditions: str | None) -> str:
-    """The markdown report."""
-    rig_columns = [(size, c) for c in contrasts for size in SIZES]
+def table(results: list[dict], best: dict, command: str, conditions: str | None) -> str:
+    """The markdown report: a column per rig score of the results (each contrast and size, then the synthetic
+    split's)."""
+    rig_columns = list(results[0]["rig"])
     lines = ["# A setting of the nearness segmenter, chosen on the tuned split", "", "Made by:", "",
              "    " + command, "", "Clean: IoU with the truth obstacles and the nearest obstacle's Acc "
              "(eval_segmentation.py).", f"Frames: per object Acc over real_rig.py's {conditions or 'every'} "
-             "condition(s) on the tuned split, at each contrast.",
+             "condition(s) on the tuned split, at each contrast"
+             + (", and on the rendered synthetic split (real_rig.py --splits synthetic)." if ("synthetic", 1.0)
+                in results[0]["rig"] else "."),
              "Score: mean of (IoU, Acc / 100) over both sizes + mean frames Acc / 100.", "",
              "| variant | IoU 320 | Acc 320 % | IoU native | Acc native % | "
-             + " | ".join(f"frames {s} ×{c} %" for s, c in rig_columns) + " | score |",
+             + " | ".join("frames synthetic %" if s == "synthetic" else f"frames {s} ×{c} %"
+                          for s, c in rig_columns) + " | score |",
              "|---" * (6 + len(rig_columns)) + "|"]
     for r in results:
         name = ", ".join(f"{k}={v}" for k, v in r["variant"].items())
@@ -129,6 +139,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]")
     parser.add_argument("--contrasts", default="1", help="comma-separated real_rig.py --contrast factors")
     parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
+    parser.add_argument("--synthetic", action="store_true",
+                        help="also score real_rig.py's rendered weakly textured scenes (--splits synthetic)")
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
     shipped = load_obstacle_net("nearness")  # read once: every variant is its weights with other settings
@@ -137,10 +149,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as folder:
         results = [score(args.data, weights_with(Path(folder), shipped, variant, number), variant, number, contrasts,
-                         args.conditions) for number, variant in enumerate(variants)]
+                         args.conditions, args.synthetic) for number, variant in enumerate(variants)]
     best = max(results, key=lambda r: round(r["score"], 4))  # max keeps the first of equal scores
     command = "python experiments/select_nearness_setting.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    report = table(results, best, command, contrasts, args.conditions)
+    report = table(results, best, command, args.conditions)
     print(report)
     if args.markdown:
         write_bytes_atomic(args.markdown, report.encode("utf-8"))

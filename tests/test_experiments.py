@@ -108,6 +108,24 @@ def test_real_rig_on_one_scene(data_dir, tmp_path):
     assert "| tuned | 320x240 | roll +2° | 1 |" in out_md.read_text()
 
 
+def test_real_rig_synthetic_split_is_rendered_and_measured_once(data_dir):
+    """--splits synthetic: our own seeded rendering (the same pairs on every call), measured at its one size
+    whatever --sizes asks; an unknown split is refused by name rather than skipped."""
+    import pytest
+    import torch
+
+    report = real_rig.main(["--data", str(data_dir), "--splits", "synthetic", "--limit", "1", "--sizes",
+                            "320x240,native", "--conditions", "clean,jpeg q4", "--no-rival"])
+    assert [(r["scene"], r["size"], r["condition"]) for r in report["rows"]] == [
+        ("synthetic-0", "320x240", "clean"), ("synthetic-0", "320x240", "jpeg q4 + noise s4")]
+    assert all(r["status"] == "OK" and r["acc_objects"] > 95 for r in report["rows"])  # measured 99.8-100 %
+    first, again = real_rig.synthetic_scenes(), real_rig.synthetic_scenes()
+    assert len(first) == real_rig.SYNTHETIC_SCENES and first[0].size_hw == (240, 320)
+    assert all(torch.equal(a.left, b.left) and torch.equal(a.right, b.right) for a, b in zip(first, again))
+    with pytest.raises(SystemExit, match="tuned-typo"):
+        real_rig.main(["--data", str(data_dir), "--splits", "tuned,tuned-typo", "--no-rival"])
+
+
 def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     """--extremes: the clean pair and every corner of EXTREMES (two deviations at their limits), each right view
     the one misalign_right makes; the tuned scene's corners are ranged (ArtL: 97-99.5 % measured)."""
@@ -180,3 +198,24 @@ def test_real_rig_dims_the_views_for_a_jpeg_tuning_set(data_dir, tmp_path):
     assert len(report["rows"]) == 1 and report["rows"][0]["acc_objects"] > 90
     with pytest.raises(SystemExit):
         real_rig.main(["--data", str(data_dir), "--contrast", "0"])
+
+
+def test_select_nearness_setting_reports_the_synthetic_split_as_its_own_column():
+    """select_nearness_setting.py --synthetic: the rendered scenes' frames are one more column of the table (and
+    of the score's mean), named as such; without it the table is as before."""
+    import select_nearness_setting
+
+    def result(synthetic: float | None, score: float) -> dict:
+        rig = {("320", 1.0): 98.5, ("native", 1.0): 99.1}
+        if synthetic is not None:
+            rig[("synthetic", 1.0)] = synthetic
+        return {"variant": {"sparse_reduction": 1}, "seg": {"320": (0.73, 96.3), "native": (0.75, 96.4)},
+                "rig": rig, "score": score}
+
+    with_synthetic = [result(98.87, 1.8396), result(99.71, 1.8433)]
+    text = select_nearness_setting.table(with_synthetic, with_synthetic[1], "cmd", None)
+    assert "| frames 320 ×1.0 % | frames native ×1.0 % | frames synthetic % | score |" in text
+    assert "| **sparse_reduction=1** | 0.730 | 96.3 | 0.750 | 96.4 | 98.50 | 99.10 | 99.71 | 1.8433 |" in text
+    assert "rendered synthetic split" in text
+    plain = select_nearness_setting.table([result(None, 1.8)], result(None, 1.8), "cmd", None)
+    assert "synthetic" not in plain and "| frames 320 ×1.0 % | frames native ×1.0 % | score |" in plain
