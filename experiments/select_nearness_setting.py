@@ -13,8 +13,8 @@ weights file and scored on the ``tuned`` split of experiments/paper_table1.py, a
   size): our own pairs, a tuning set for what plain surfaces lose to JPEG.
 
 The held-out split is never read. Chosen: the variant with the largest sum of the mean of (IoU, Acc / 100) over
-both sizes and the mean per object Acc / 100 over both sizes and contrasts; the first listed on a tie (list the
-one that changes least first).
+both sizes and the mean per object Acc / 100 over both sizes and contrasts (and the rendered split); the first
+listed on a tie (list the one that changes least first).
 
     python experiments/select_nearness_setting.py --variants min_near_share=0 min_near_share=0.1 \\
         [--contrasts 1,0.5] [--conditions clean,jpeg] [--synthetic] [--markdown FILE]

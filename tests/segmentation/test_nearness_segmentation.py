@@ -258,6 +258,10 @@ def test_views_of_two_scenes_fall_back_to_otsu_pair_by_pair(data_dir):
     never = dataclasses.replace(config, min_measured_share=0.0)
     assert not torch.equal(segment_stereo_nearness(mixed, never, NearnessNet().eval()).left.kept_mask,
                            otsu.left.kept_mask)
+    # With the coarse check on, whose map accepts chance matches of unrelated views too, the pair still falls back:
+    # the fallback reads the fine matcher's share.
+    checked = NearnessNet(NearnessNetConfig(sparse_reduction=4)).eval()
+    assert torch.equal(segment_stereo_nearness(mixed, config, checked).left.kept_mask, otsu.left.kept_mask)
     with pytest.raises(InputError, match="min_measured_share"):
         SegmentationConfig(min_measured_share=1.5)
 
