@@ -365,8 +365,7 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.perf_counter()
     only = None if args.conditions is None else tuple(args.conditions.split(","))
     rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only, contrast=args.contrast,
-               brightness=args.brightness,
-               extremes=args.extremes)
+               brightness=args.brightness, extremes=args.extremes)
     summary = summarize(rows)
     command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,
