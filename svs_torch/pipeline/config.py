@@ -161,10 +161,11 @@ class PipelineConfig:
             input pixel each; :mod:`svs_torch.segmentation.interior`, ``PipelineResult.object_labels``): a block
             matcher fattens near regions onto the background behind them. None: off (the paper's).
         exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
-            an affine map through both views' quartiles, where they differ by more than
-            :attr:`ExposureConfig.min_change`, applied to the darker view so that both clip the same highlights;
-            two boards' gains and exposures), e.g. ``exposure=ExposureConfig()``. None (the default, and the
-            paper's): off.
+            an affine map through both views' quartiles, where they differ by more than ``min_change``, applied to
+            the darker view so that both clip the same highlights), e.g. ``ExposureConfig()``. None: off.
+        exposure_right_clipped: where ``exposure`` is None, the same map first for the pairs whose right view clips
+            at white more of its pixels than the left by its ``min_right_clipped_share`` (which must be set): a
+            brighter right camera's one-sided highlights move the medians. None (the default): off.
         exposure_retry: under the dense rule, a pair left unverified, with a kept object unranged, or whose
             nearness split was taken again, whose views' exposures differ (by more than its ``min_change``) is run
             again with ``exposure`` set to this, and the second result is kept where it is verified and ranges
@@ -186,10 +187,9 @@ class PipelineConfig:
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
     # real_rig.py, tuned 320x240: a turned / shifted / brighter right view segments differently and the masked images'
-    # region borders lose half the matches (roll 2 deg: 164 -> 72 on Aloe); "mask" keeps them. The nearness regions of
-    # the right view are the left ones moved by their disparity, which a turned or shifted camera moves elsewhere:
-    # whole images kept or raised every real_rig.py condition (tuned 320x240; roll 2 deg: 46 / 19 -> 81 / 84 %, shift
-    # 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
+    # region borders lose half the matches; the nearness regions of the right view are the left ones moved by their
+    # disparity, which such a camera moves elsewhere: whole images kept or raised every condition (roll 2 deg: 46 /
+    # 19 -> 81 / 84 %, shift 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
     features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
     max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
@@ -210,12 +210,8 @@ class PipelineConfig:
     # experiments/verify_views.py: the dense map's confirmation separates real pairs (>= 7 agreeing inliers, 197 of
     # 199) from unrelated views (<= 5 when first measured, <= 4 with the stages of 2026-11-25); 15 inliers left 7 real
     # pairs unverified and verified 15 unrelated ones.
-    # 6 -> 5 (2026-11-25), chosen on the tuned split's half-contrast JPEG frames, the tuning set for camera frames
-    # (real_rig.py --splits tuned --contrast 0.5 --no-rival --set verify_min_agreeing_inliers=N): digit 7
-    # 87.41 -> 97.07 % at 5 and 4 (Piano 0 -> 94.7), digit 8 65.59 -> 75.02 at 4 only, no row lower; full contrast
-    # unchanged at both sizes. 5, not 4: the dense map confirms up to 4 inliers of unrelated views (Wood1 x Venus,
-    # verified at 4). verify_views.py at 5: tuning negatives 0 verified; held-out negatives 5 -> 7 of 1702, the two
-    # new ones Midd1 x Midd2 both ways (the same objects moved, 5 confirmed); every real and synthetic pair as at 6.
+    # 6 -> 5 (2026-11-25), chosen on the tuned split's half-contrast JPEG frames (experiments/real_rig.md, "sixth
+    # time"); 5, not 4: the dense map confirms up to 4 inliers of unrelated views (Wood1 x Venus, verified at 4).
     verify_min_inliers: int = 0
     verify_min_inlier_share: float = 0.5
     verify_min_agreeing_inliers: int = 5
@@ -256,9 +252,11 @@ class PipelineConfig:
     # drops fewest regions; a region measured on 32 % ranged nearer than the measured one is truly nearer (PianoL).
     drop_unmeasured_nearer_below_share: float | None = 0.15
     region_interior_working_px: float | None = 2.0  # experiments/select_region_interior.md (tuned split only)
-    # Off by default: on the tuned scenes (experiments/exposure.md) it ranges Piano behind a right camera 30 % brighter
-    # but loses PianoL (two lightings, not two gains) in as many conditions; the mean over them fell 90.1 -> 89.3 %.
+    # Off by default: it loses PianoL (two lightings, not two gains) where it ranges Piano (experiments/exposure.md).
     exposure: ExposureConfig | None = None
+    # Off by default (experiments/real_rig.md, "One-sided clipping"): chosen on the tuning sets (bright tuned scenes,
+    # right camera 30 % brighter: 98.78 -> 99.34 % at 320x240), it lost the held-out corners with a gain (up to 1.61).
+    exposure_right_clipped: ExposureConfig | None = None
     # experiments/exposure.md: the tuned scenes' "gain +30%" Piano 0 -> 99 % at both sizes, PianoL kept.
     exposure_retry: ExposureConfig | None = field(default_factory=ExposureConfig)
 
@@ -295,9 +293,11 @@ class PipelineConfig:
                 raise InputError(f"{name}: expected a share in (0, 1] or None, got {share!r}")
         if (r := self.region_interior_working_px) is not None and not (type(r) in (int, float) and 0 <= r < 1000):
             raise InputError(f"region_interior_working_px: expected a radius in [0, 1000) or None, got {r!r}")
-        for name in ("exposure", "exposure_retry"):
+        for name in ("exposure", "exposure_retry", "exposure_right_clipped"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), ExposureConfig):
                 raise InputError(f"{name}: expected an ExposureConfig or None, got {getattr(self, name)!r}")
+        if self.exposure_right_clipped is not None and self.exposure_right_clipped.min_right_clipped_share is None:
+            raise InputError("exposure_right_clipped: expected an ExposureConfig with min_right_clipped_share set")
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
@@ -360,7 +360,7 @@ class PipelineResult:
             (``PipelineConfig.drop_unmeasured_below_share``; their ``kept_labels`` are now −1); None under the
             ``"paper"`` rule.
         exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
-            onto the brighter (``PipelineConfig.exposure``, or the ``exposure_retry`` kept); the result's masked
+            onto the brighter (``exposure``, ``exposure_right_clipped``, or the ``exposure_retry`` kept); the masked
             images are of the mapped views.
         object_labels: ``(B, 1, H, W)`` int64, the left labels each object of ``depth`` was measured over, input
             pixels: the kept regions' interiors (``PipelineConfig.region_interior_working_px``), else the

@@ -20,6 +20,17 @@ brighter: 0 -> 93.3 %). Pairs whose views already agree, ``|scale − 1| + |offs
 left exactly as they are (a pair's two views of one scene never have identical histograms, so a correction
 smaller than that is noise, not exposure).
 
+With ``ExposureConfig.min_right_clipped_share`` only pairs whose right view is clipped at white on that much more of
+its pixels than the left are mapped (``PipelineConfig.exposure_right_clipped``). Why the right view: the block
+matchers' texture rule reads the left (reference) window, so a highlight clipped in the left view alone is a flat
+left patch the rule already rejects, while one clipped in the right view alone is a flat right patch facing a
+textured left one, whose wrong matches move the objects' medians (tuned scenes made bright,
+``experiments/real_rig.py --brightness 1.8``, right camera 30 % brighter: 98.78 -> 99.34 % per object at
+320×240). Such a view's upper quartile may lie on its clipped plateau, so its two quantiles are fitted below the
+larger clipped share of the two views (each scaled by one minus it): fitted on the quartiles, that map lost the
+same pairs (96.01 %). Off by default: the held-out corners that add a gain to a turn or tilt fell with it
+(``experiments/real_rig.md``, "One-sided clipping").
+
 Differentiable: ``scale`` and ``offset`` are ``torch.quantile``'s of the views (interpolated order statistics), so
 gradients flow to both images through the map and its parameters, except where the clip saturates.
 """
@@ -33,7 +44,10 @@ import torch
 from ..core.checks import InputError, check_shape
 from ..depth.quantiles import row_quantile
 
-__all__ = ["ExposureConfig", "exposures_differ", "match_exposure"]
+__all__ = ["CLIPPED_LEVEL", "ExposureConfig", "exposures_differ", "match_exposure", "right_clipped_more"]
+
+#: A pixel at or above this level is clipped at white (the 8-bit top level, 255 / 255, with room for round-off).
+CLIPPED_LEVEL = 254.5 / 255
 
 
 @dataclass(frozen=True)
@@ -44,10 +58,14 @@ class ExposureConfig:
         quantiles: the two quantiles of each view the map matches (low, high), in (0, 1).
         min_change: pairs with ``|scale − 1| + |offset|`` (offset in image units, [0, 1] intensities) at or below
             this are left unchanged.
+        min_right_clipped_share: None: every pair is fitted. A share in (0, 1]: only pairs whose right view has
+            at least this share of its pixels more clipped at white (:data:`CLIPPED_LEVEL`) than the left view,
+            and their quantiles fitted below the clipped share (module docstring).
     """
 
     quantiles: tuple[float, float] = (0.25, 0.75)
     min_change: float = 0.05
+    min_right_clipped_share: float | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.quantiles, (tuple, list)) and len(self.quantiles) == 2
@@ -58,6 +76,9 @@ class ExposureConfig:
             raise InputError(f"quantiles: expected two quantiles 0 < low < high < 1, got {self.quantiles!r}")
         if not self.min_change >= 0:
             raise InputError(f"min_change: expected a number >= 0, got {self.min_change!r}")
+        share = self.min_right_clipped_share
+        if share is not None and not (type(share) in (int, float) and 0 < share <= 1):
+            raise InputError(f"min_right_clipped_share: expected a share in (0, 1] or None, got {share!r}")
 
 
 def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
@@ -74,7 +95,36 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
         The left and the right views ``(B, 1, H, W)`` (the same tensors when no pair needs a change; in a pair that
         does, one of the two is mapped) and whether each pair was changed ``(B,)`` bool.
     """
-    scale, offset, changed, right_darker = _fit(left, right, image_hw, config)
+    _check_views(left, right, image_hw)
+    if config.min_right_clipped_share is None:
+        return _mapped(left, right, *_fit(left, right, image_hw, config))
+    pairs = right_clipped_more(left, right, config.min_right_clipped_share)
+    if not bool(pairs.any()):
+        return left, right, pairs
+    # Only those pairs are fitted: the fit below the clipped share sorts each view.
+    index = pairs.nonzero().flatten()
+    some_left, some_right = left.index_select(0, index), right.index_select(0, index)
+    some_left, some_right, some_changed = _mapped(some_left, some_right,
+                                                  *_fit(some_left, some_right, image_hw.index_select(0, index), config))
+    changed = torch.zeros_like(pairs).index_copy(0, index, some_changed)
+    if not bool(changed.any()):
+        return left, right, changed
+    return left.index_copy(0, index, some_left), right.index_copy(0, index, some_right), changed
+
+
+def right_clipped_more(left: torch.Tensor, right: torch.Tensor, min_share: float) -> torch.Tensor:
+    """``(B,)`` bool: the pairs whose right view ``(B, 1, H, W)`` has at least ``min_share`` of its pixels more
+    clipped at white (:data:`CLIPPED_LEVEL`) than the left view (module docstring)."""
+    return _clipped_share(right) - _clipped_share(left) >= min_share
+
+
+def _clipped_share(image: torch.Tensor) -> torch.Tensor:
+    return (image.detach() >= CLIPPED_LEVEL).flatten(1).to(torch.float32).mean(1)
+
+
+def _mapped(left: torch.Tensor, right: torch.Tensor, scale: torch.Tensor, offset: torch.Tensor, changed: torch.Tensor,
+            right_darker: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`match_exposure`'s views and ``changed`` from :func:`_fit`'s map."""
     if not bool(changed.any()):
         return left, right, changed
     scale, offset = scale.view(-1, 1, 1, 1), offset.view(-1, 1, 1, 1)
@@ -92,24 +142,28 @@ def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Te
                      config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
     """``(B,)`` bool: the pairs :func:`match_exposure` would change (arguments as there), without mapping any
     view."""
-    return _fit(left, right, image_hw, config)[2]
+    changed = _fit(left, right, image_hw, config)[2]
+    if config.min_right_clipped_share is not None:
+        changed &= right_clipped_more(left, right, config.min_right_clipped_share)
+    return changed
 
 
 def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config: ExposureConfig
          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The map's ``scale`` and ``offset`` ``(B,)``, which pairs it changes and in which the right view is the darker
     (its upper quantile at or below the left's) ``(B,)`` bool each (module docstring)."""
-    dims = check_shape(left, "left", ["B", 1, "H", "W"])
-    check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
-    if not bool((image_hw == torch.tensor([dims["H"], dims["W"]], device=image_hw.device)).all()):
-        raise InputError(f"image_hw: expected every pair to fill the ({dims['H']}, {dims['W']}) images, got "
-                         f"{image_hw.tolist()}")
+    dims = _check_views(left, right, image_hw)
     if dims["H"] * dims["W"] == 0:
         nothing = torch.zeros(dims["B"], dtype=right.dtype, device=right.device)
         never = torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
         return nothing + 1, nothing, never, never
-    low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
-    low_high_right = row_quantile(right.flatten(1), config.quantiles)
+    if config.min_right_clipped_share is None:
+        low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
+        low_high_right = row_quantile(right.flatten(1), config.quantiles)
+    else:  # below the larger clipped share, so that neither quantile lies on a clipped plateau
+        unclipped = 1 - torch.maximum(_clipped_share(left), _clipped_share(right)).to(left.dtype)
+        q = torch.tensor(config.quantiles, dtype=left.dtype, device=left.device) * unclipped.view(-1, 1)
+        low_high_left, low_high_right = _row_quantiles_of(left.flatten(1), q), _row_quantiles_of(right.flatten(1), q)
     spread_right = low_high_right[:, 1] - low_high_right[:, 0]
     spread_left = low_high_left[:, 1] - low_high_left[:, 0]
     # A flat view (no spread to scale) is left alone rather than stretched from nothing, or onto nothing.
@@ -117,3 +171,22 @@ def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config
     offset = low_high_left[:, 0] - scale * low_high_right[:, 0]
     changed = ((scale - 1).abs() + offset.abs() > config.min_change) & (spread_right > 1e-3) & (spread_left > 1e-3)
     return scale, offset, changed, low_high_right[:, 1] <= low_high_left[:, 1]
+
+
+def _check_views(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor) -> dict[str, int]:
+    dims = check_shape(left, "left", ["B", 1, "H", "W"])
+    check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])
+    if not bool((image_hw == torch.tensor([dims["H"], dims["W"]], device=image_hw.device)).all()):
+        raise InputError(f"image_hw: expected every pair to fill the ({dims['H']}, {dims['W']}) images, got "
+                         f"{image_hw.tolist()}")
+    return dims
+
+
+def _row_quantiles_of(values: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Each row's own quantiles: ``values`` ``(B, P)``, ``q`` ``(B, Q)`` in [0, 1] → ``(B, Q)``, interpolated between
+    order statistics as ``torch.quantile`` does (rank ``q · (P − 1)``). Differentiable w.r.t. ``values``."""
+    ordered = values.sort(dim=1).values
+    rank = q * (values.shape[1] - 1)
+    below = rank.floor().long().clamp(0, values.shape[1] - 1)
+    above = (below + 1).clamp(max=values.shape[1] - 1)
+    return torch.lerp(ordered.gather(1, below), ordered.gather(1, above), rank - below.to(rank.dtype))

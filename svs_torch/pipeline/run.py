@@ -111,8 +111,10 @@ def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Modu
 def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
     """The hard pipeline without gradients, then, under ``config.differentiable``, the differentiable depths."""
     matched = torch.zeros(batch.batch_size, dtype=torch.bool, device=batch.left.device)
-    if config.exposure is not None:  # before every stage, with gradients (issue 33: two boards, two exposures)
-        left, right, matched = match_exposure(batch.left, batch.right, batch.image_hw, config.exposure)
+    # Before every stage, with gradients (issue 33: two boards, two exposures); else a right camera's one-sided clip.
+    exposure = config.exposure if config.exposure is not None else config.exposure_right_clipped
+    if exposure is not None:
+        left, right, matched = match_exposure(batch.left, batch.right, batch.image_hw, exposure)
         batch = dataclasses.replace(batch, left=left, right=right)
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
