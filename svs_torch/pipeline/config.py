@@ -187,9 +187,9 @@ class PipelineConfig:
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))
     # real_rig.py, tuned 320x240: a turned / shifted / brighter right view segments differently and the masked images'
-    # region borders lose half the matches; the nearness regions of the right view are the left ones moved by their
-    # disparity, which such a camera moves elsewhere: whole images kept or raised every condition (roll 2 deg: 46 /
-    # 19 -> 81 / 84 %, shift 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
+    # region borders lose half the matches (roll 2 deg: 164 -> 72 on Aloe); the nearness regions of the right view are
+    # the left ones moved by their disparity, which such a camera moves elsewhere: whole images kept or raised every
+    # condition (roll 2 deg: 46 / 19 -> 81 / 84 %, shift 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
     features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
     max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
