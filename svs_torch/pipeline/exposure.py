@@ -44,7 +44,7 @@ import torch
 from ..core.checks import InputError, check_shape
 from ..depth.quantiles import row_quantile
 
-__all__ = ["CLIPPED_LEVEL", "ExposureConfig", "exposures_differ", "match_exposure", "right_clipped_more"]
+__all__ = ["CLIPPED_LEVEL", "ExposureConfig", "exposures_differ", "match_exposure"]
 
 #: A pixel at or above this level is clipped at white (the 8-bit top level, 255 / 255, with room for round-off).
 CLIPPED_LEVEL = 254.5 / 255
@@ -96,30 +96,33 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
         does, one of the two is mapped) and whether each pair was changed ``(B,)`` bool.
     """
     _check_views(left, right, image_hw)
-    if config.min_right_clipped_share is None:
-        return _mapped(left, right, *_fit(left, right, image_hw, config))
-    pairs = right_clipped_more(left, right, config.min_right_clipped_share)
-    if not bool(pairs.any()):
-        return left, right, pairs
-    # Only those pairs are fitted: the fit below the clipped share sorts each view.
-    index = pairs.nonzero().flatten()
-    some_left, some_right = left.index_select(0, index), right.index_select(0, index)
-    some_left, some_right, some_changed = _mapped(some_left, some_right,
-                                                  *_fit(some_left, some_right, image_hw.index_select(0, index), config))
-    changed = torch.zeros_like(pairs).index_copy(0, index, some_changed)
-    if not bool(changed.any()):
+    index, fit = _fit_selected(left, right, config)
+    if index is None:
+        return _mapped(left, right, *fit)
+    changed = torch.zeros(left.shape[0], dtype=torch.bool, device=left.device)
+    if not bool(fit[2].any()):
         return left, right, changed
-    return left.index_copy(0, index, some_left), right.index_copy(0, index, some_right), changed
-
-
-def right_clipped_more(left: torch.Tensor, right: torch.Tensor, min_share: float) -> torch.Tensor:
-    """``(B,)`` bool: the pairs whose right view ``(B, 1, H, W)`` has at least ``min_share`` of its pixels more
-    clipped at white (:data:`CLIPPED_LEVEL`) than the left view (module docstring)."""
-    return _clipped_share(right) - _clipped_share(left) >= min_share
+    some_left, some_right, some_changed = _mapped(left.index_select(0, index), right.index_select(0, index), *fit)
+    return (left.index_copy(0, index, some_left), right.index_copy(0, index, some_right),
+            changed.index_copy(0, index, some_changed))
 
 
 def _clipped_share(image: torch.Tensor) -> torch.Tensor:
     return (image.detach() >= CLIPPED_LEVEL).flatten(1).to(torch.float32).mean(1)
+
+
+def _fit_selected(left: torch.Tensor, right: torch.Tensor, config: ExposureConfig
+                  ) -> tuple[torch.Tensor | None, tuple[torch.Tensor, ...]]:
+    """:func:`_fit` over the pairs ``config`` selects: every pair (index None), or with
+    ``min_right_clipped_share`` the pairs whose right view is clipped at white (:data:`CLIPPED_LEVEL`) on that
+    share more of its pixels than the left, their index ``(n,)`` and their fit below the larger clipped share.
+    Only those pairs are fitted: the fit below the clipped share sorts each view."""
+    if config.min_right_clipped_share is None:
+        return None, _fit(left, right, config)
+    clipped_left, clipped_right = _clipped_share(left), _clipped_share(right)
+    index = (clipped_right - clipped_left >= config.min_right_clipped_share).nonzero().flatten()
+    unclipped = 1 - torch.maximum(clipped_left, clipped_right).index_select(0, index).to(left.dtype)
+    return index, _fit(left.index_select(0, index), right.index_select(0, index), config, unclipped)
 
 
 def _mapped(left: torch.Tensor, right: torch.Tensor, scale: torch.Tensor, offset: torch.Tensor, changed: torch.Tensor,
@@ -142,26 +145,27 @@ def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Te
                      config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
     """``(B,)`` bool: the pairs :func:`match_exposure` would change (arguments as there), without mapping any
     view."""
-    changed = _fit(left, right, image_hw, config)[2]
-    if config.min_right_clipped_share is not None:
-        changed &= right_clipped_more(left, right, config.min_right_clipped_share)
-    return changed
+    _check_views(left, right, image_hw)
+    index, fit = _fit_selected(left, right, config)
+    if index is None:
+        return fit[2]
+    return torch.zeros(left.shape[0], dtype=torch.bool, device=left.device).index_copy(0, index, fit[2])
 
 
-def _fit(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config: ExposureConfig
+def _fit(left: torch.Tensor, right: torch.Tensor, config: ExposureConfig, unclipped: torch.Tensor | None = None
          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The map's ``scale`` and ``offset`` ``(B,)``, which pairs it changes and in which the right view is the darker
-    (its upper quantile at or below the left's) ``(B,)`` bool each (module docstring)."""
-    dims = _check_views(left, right, image_hw)
-    if dims["H"] * dims["W"] == 0:
-        nothing = torch.zeros(dims["B"], dtype=right.dtype, device=right.device)
-        never = torch.zeros(dims["B"], dtype=torch.bool, device=right.device)
+    (its upper quantile at or below the left's) ``(B,)`` bool each (module docstring); with ``unclipped`` ``(B,)``,
+    each pair's quantiles scaled by it (fitted below the clipped share). The views as :func:`_check_views` passed
+    them."""
+    if left.shape[-2] * left.shape[-1] == 0:
+        nothing = torch.zeros(left.shape[0], dtype=right.dtype, device=right.device)
+        never = torch.zeros(left.shape[0], dtype=torch.bool, device=right.device)
         return nothing + 1, nothing, never, never
-    if config.min_right_clipped_share is None:
+    if unclipped is None:
         low_high_left = row_quantile(left.flatten(1), config.quantiles)  # (B, 2)
         low_high_right = row_quantile(right.flatten(1), config.quantiles)
     else:  # below the larger clipped share, so that neither quantile lies on a clipped plateau
-        unclipped = 1 - torch.maximum(_clipped_share(left), _clipped_share(right)).to(left.dtype)
         q = torch.tensor(config.quantiles, dtype=left.dtype, device=left.device) * unclipped.view(-1, 1)
         low_high_left, low_high_right = _row_quantiles_of(left.flatten(1), q), _row_quantiles_of(right.flatten(1), q)
     spread_right = low_high_right[:, 1] - low_high_right[:, 0]

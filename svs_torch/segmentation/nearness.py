@@ -244,12 +244,14 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
         soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
-    # matched: the fine matcher's own acceptances, resampled as measured is (without the coarse check, the same).
+    # matched: the fine matcher's own acceptances, resampled as measured is; without the coarse check (or where it
+    # changed no pair) they are measured itself, resampled once.
     disparity, measured, matched = filled * factor, valid, found.valid
     if disparity.shape[-2:] != (h, w):  # (at the working size already, nearest resampling would copy it)
         disparity = F.interpolate(disparity, size=(h, w), mode="nearest")
-        measured, matched = (F.interpolate(mask.to(left.dtype), size=(h, w), mode="nearest") > 0.5
-                             for mask in (measured, matched))
+        same = matched is measured
+        measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5
+        matched = measured if same else F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
     split, spread, retaken = nearness_split(disparity, config.min_near_share)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
     return NearnessDisparity(disparity, measured, split, spread, relative, retaken,

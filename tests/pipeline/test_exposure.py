@@ -10,7 +10,7 @@ import torch
 
 from svs_torch import InputError
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.pipeline.exposure import ExposureConfig, match_exposure
+from svs_torch.pipeline.exposure import ExposureConfig, exposures_differ, match_exposure
 
 #: The one-sided clipping rule (``PipelineConfig.exposure_right_clipped``) at the share chosen on the tuning sets.
 CLIPPED_RULE = ExposureConfig(min_right_clipped_share=0.05)
@@ -100,6 +100,7 @@ def test_only_a_right_view_clipped_more_is_mapped_fitted_below_the_clip(generato
     assert shares[0] > 0.3 and shares[2] == shares[3] == 0
     mapped_left, mapped_right, changed = match_exposure(left, right, hw, config)
     assert changed.tolist() == [True, False, False, False]
+    assert exposures_differ(left, right, hw, config).tolist() == changed.tolist()  # the same selection, unmapped
     assert torch.equal(mapped_right, right) and torch.equal(mapped_left[1:], left[1:])
     unclipped = 1 - max(float((v[0] >= 254.5 / 255).float().mean()) for v in (left, right))
     ql, qr = (np.quantile(v[0].flatten().numpy().astype(np.float64), [0.25 * unclipped, 0.75 * unclipped])
