@@ -14,20 +14,52 @@ from . import kernels
 from .cost_volume import (_box_sum, _cost_volume, _gather_crop, crop_box, prefilter_xsobel, quantize_levels,
                           region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
+from .semi_global import pair_residual_levels, semi_global_aggregate
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_stats_torch
 
 __all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
 
 
+def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], config: DenseConfig,
+            counts: torch.Tensor, extra: int, region: tuple[torch.Tensor, torch.Tensor]
+            ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """``costs`` ``(B, D, h, w)`` and their winner, semi-globally aggregated for the pairs whose residual over
+    ``region`` = (wanted ``(B, h, w − 2 extra)`` bool, own box ``(B, 4)`` relative to the box) reaches
+    ``config.smoothing_min_residual_levels`` (:mod:`.semi_global`). Each noisy pair is aggregated over its own
+    box only, widened by its own count − 1 columns (what its left–right check reads), so that its values never
+    depend on its batch."""
+    wanted, own = region
+    core = slice(extra, costs.shape[-1] - extra)
+    residual = pair_residual_levels(minimum[0][..., core], wanted, config.window_size)
+    noisy = (residual >= config.smoothing_min_residual_levels) & wanted.flatten(1).any(1)
+    if not bool(noisy.any()):
+        return costs, minimum
+    index = noisy.nonzero().squeeze(1)
+    picked, reach = costs[index], counts[index].view(-1, 1, 1) - 1
+    x0, y0, width, height = (v.view(-1, 1, 1) for v in own[index].unbind(1))
+    rows = torch.arange(costs.shape[-2], device=costs.device).view(1, -1, 1) - y0
+    cols = torch.arange(costs.shape[-1], device=costs.device).view(1, 1, -1) - extra - x0
+    inside = (rows >= 0) & (rows < height) & (cols >= -reach) & (cols < width + reach)
+    picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
+    scale = residual[index] * config.window_size ** 2
+    p1, p2 = (factor * scale for factor in config.smoothing_penalties)
+    costs = costs.index_copy(0, index, semi_global_aggregate(picked, p1, p2))
+    return costs, costs.min(dim=1)
+
+
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
-                  config: DenseConfig, counts: torch.Tensor, extra: int = 0) -> _WinnerStats:
+                  config: DenseConfig, counts: torch.Tensor, extra: int = 0,
+                  region: tuple[torch.Tensor, torch.Tensor] | None = None) -> _WinnerStats:
     """:class:`_WinnerStats` of the box at (x0, y0) from the torch cost volume. The box's first and last
     ``extra`` columns serve only the right view's winner: the left statistics are of the columns between
-    (``right_best`` is of them all)."""
+    (``right_best`` is of them all). With ``region`` and ``config.smoothing_penalties``, noisy pairs' costs
+    are aggregated first (:func:`_smooth`)."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
+    if region is not None and config.smoothing_penalties is not None:
+        costs, minimum = _smooth(costs, minimum, config, counts, extra, region)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
     core = slice(extra, width - extra)
     return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best)
@@ -35,8 +67,9 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
 
 def _compiled(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> bool:
     """Whether the hard path may run the fused C kernel (:func:`_match_compiled`): float32 CPU images without
-    gradients, and ``config.kernel`` allows it."""
-    return (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
+    gradients, ``config.kernel`` allows it, and no semi-global aggregation is asked for (the kernel keeps no
+    volume)."""
+    return (config.kernel != "torch" and config.smoothing_penalties is None and left.dtype == torch.float32 and left.device.type == "cpu"
             and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)))
 
 
@@ -75,9 +108,11 @@ def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor
 
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                width: int, search: DisparityRange, image_hw: torch.Tensor, config: DenseConfig,
-               lower_is_limit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+               lower_is_limit: torch.Tensor, region: tuple[torch.Tensor, torch.Tensor] | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Disparity ``(B, height, width)`` and validity of the box at (x0, y0) of the images. The volume spans
-    D − 1 extra columns on each side so the right view's winner (left–right check) sees every candidate."""
+    D − 1 extra columns on each side so the right view's winner (left–right check) sees every candidate.
+    ``region``: see :func:`_winner_stats`."""
     sobel = prefilter_xsobel(left, config.prefilter_cap)
     if config.prefilter == "xsobel":
         left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
@@ -92,7 +127,7 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
         counts = torch.full_like(search.min_disparity_px, num_disparities)
     # The extra columns serve only the right view's winner: every per-pixel verdict is made on the box itself.
     stats = _winner_stats(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
-                          num_disparities, image_hw[:, 1], config, counts, extra)
+                          num_disparities, image_hw[:, 1], config, counts, extra, region)
     best = stats.best
     offset, ok = _winner(stats, num_disparities, config, lower_is_limit, counts)
     if config.lr_max_diff_px is not None:
@@ -230,9 +265,11 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
                             image_hw, config, minimum <= 0, mask)
     if found is not None:
         return DenseDisparity(found[0], found[1], minimum, search.num_disparities, own, counts)
-    disparity, ok = _match_box(left, right, x0, y0, height, width, search,
-                               image_hw, config, lower_is_limit=minimum <= 0)
-    ok &= some.view(-1, 1, 1) & crop_box(wanted_pixels(mask, config.margin_px), x0, y0, height, width)[:, 0]
+    wanted = some.view(-1, 1, 1) & crop_box(wanted_pixels(mask, config.margin_px), x0, y0, height, width)[:, 0]
+    own_in_box = own - torch.stack([x0, y0, torch.zeros_like(x0), torch.zeros_like(y0)], 1)
+    disparity, ok = _match_box(left, right, x0, y0, height, width, search, image_hw, config,
+                               lower_is_limit=minimum <= 0, region=(wanted, own_in_box))
+    ok &= wanted
     rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
     cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)
     own_x0, own_y0, own_w, own_h = (v.view(-1, 1, 1) for v in own.unbind(1))

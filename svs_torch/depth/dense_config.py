@@ -60,6 +60,15 @@ class DenseConfig:
             where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and
             range: bit-identical to the torch path, several times faster), else torch; ``"c"`` the kernel or an
             error; ``"torch"`` the eager torch cost volume.
+        smoothing_penalties: ``(P1, P2)``: aggregate the SAD volume semi-globally before the winner
+            (:mod:`svs_torch.depth.semi_global`), with penalties in multiples of the pair's matching residual
+            (the median best SAD per window pixel over the wanted pixels, 8-bit levels of the clipped x-Sobel);
+            None (the default): plain block matching. Pairs with a residual under
+            ``smoothing_min_residual_levels`` (clean frames) are not aggregated. Runs the torch cost volume for
+            every pair (the fused kernel keeps no volume) and the C aggregation for the noisy ones. An option, off:
+            on the tuning sets (``experiments/real_rig.md``, "Semi-global aggregation") (4, 16) raised JPEG
+            frames at 320×240 but lowered them at native size, whose working images are already box-averaged.
+        smoothing_min_residual_levels: see ``smoothing_penalties``.
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -82,6 +91,8 @@ class DenseConfig:
     fill_invalid: bool = True
     kernel: Literal["auto", "c", "torch"] = "auto"
     whole_range_in_view: bool = False  # paper_table1.py: on, tuned 320 R_min 98.9 -> 89.1 % (PianoL lost)
+    smoothing_penalties: tuple[float, float] | None = None
+    smoothing_min_residual_levels: float = 11.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
@@ -108,6 +119,14 @@ class DenseConfig:
         for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
+        if self.smoothing_penalties is not None:
+            p1, p2 = self.smoothing_penalties
+            if not 0 <= p1 <= p2 < float("inf"):
+                raise InputError(f"smoothing_penalties: expected None or (P1, P2) with 0 <= P1 <= P2, got "
+                                 f"{self.smoothing_penalties!r}")
+        if not self.smoothing_min_residual_levels >= 0:
+            raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
+                             f"{self.smoothing_min_residual_levels!r}")
         if not isinstance(self.margin_px, int) or self.margin_px < 0:
             raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
 

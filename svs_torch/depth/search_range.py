@@ -161,8 +161,9 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
         if objects is not None:
             objects = _any_pool(objects, factor)
     full = disparity_search_range(left.new_zeros(b, 0), mask.new_zeros(b, 0), small_hw[:, 1], config)
-    coarse = dense_disparity_over_regions(left, right, mask, full, replace(config, whole_range_in_view=False),
-                                          small_hw)
+    # The coarse pass only bounds the search: plain block matching (no left band rule, no aggregation).
+    plain = replace(config, whole_range_in_view=False, smoothing_penalties=None)
+    coarse = dense_disparity_over_regions(left, right, mask, full, plain, small_hw)
     samples = (coarse.disparity_px * factor).flatten(1)
     inside = (coarse.valid & mask).flatten(1)
     groups = None if objects is None else objects.flatten(2)

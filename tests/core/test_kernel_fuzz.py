@@ -26,6 +26,7 @@ from svs_torch.core.errors import InputError
 from svs_torch.core.types import FundamentalStatus, Keypoints
 from svs_torch.depth import kernels as depth_kernels
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
+from svs_torch.depth.semi_global import semi_global_aggregate
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
 from svs_torch.depth.dense_objects import dense_object_depths
 from svs_torch.depth.depth_types import ObjectDepths
@@ -188,8 +189,17 @@ def test_dense_disparity_over_regions(size, data):
         [data.draw(st.integers(1, count + (20 if own == "above" else 0))) for _ in range(rows)], dtype=torch.int64)
     search = DisparityRange(torch.tensor([data.draw(st.integers(0, 6)) for _ in range(b)], dtype=torch.int64),
                             count, pair)
-    _both(dense_disparity_over_regions, left, right, mask, search, DenseConfig(window_size=3),
-          data.draw(image_hws(b, h, w)))
+    smoothing = data.draw(st.sampled_from([None, (1.0, 4.0)]))
+    config = DenseConfig(window_size=3, smoothing_penalties=smoothing, smoothing_min_residual_levels=0.0)
+    _both(dense_disparity_over_regions, left, right, mask, search, config, data.draw(image_hws(b, h, w)))
+
+
+@given(shape=st.tuples(st.integers(0, 3), st.integers(1, 6), st.integers(0, 9), st.integers(0, 70)), data=st.data())
+@examples(40)
+def test_semi_global_aggregate(shape, data):
+    costs = data.draw(tensors(shape, low=0, high=300, specials=0.1)).abs()
+    p1 = data.draw(tensors(shape[:1], low=0, high=50, specials=0.0))
+    _both(semi_global_aggregate, costs, p1, p1 * data.draw(st.sampled_from([1.0, 4.0])))
 
 
 @given(shape=st.tuples(st.integers(0, 3), st.integers(0, 5), st.integers(0, 30)), data=st.data())
@@ -446,6 +456,8 @@ def test_dense_object_depths(size, n, fill, data):
     ("shift_regions", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(1, 2, dtype=torch.int64),
                                torch.zeros(1, 3))),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
+    ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
+    ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),
                            torch.ones(1, 2), torch.ones(1, 2, dtype=torch.bool), 4, 2.0)),

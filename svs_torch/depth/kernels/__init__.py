@@ -14,7 +14,7 @@ from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cp
 from ...core.kernels.checks import check_boxes, check_counts, check_image_hw, check_nonempty, check_number, check_rows
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
-           "region_medians"]
+           "region_medians", "semi_global_columns"]
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
@@ -22,6 +22,7 @@ declare({
     "fill_invalid_rows": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "labelled_select": ([POINTER] * 4 + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "region_medians": ([POINTER] * 2 + [INT] * 3 + [POINTER] * 2 + [INT], ctypes.c_int),
+    "semi_global_columns": ([POINTER] + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
                       + [POINTER] * 5 + [INT], ctypes.c_int),
 })
@@ -201,6 +202,25 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     status = library.fill_invalid_rows(disparity.data_ptr(), valid.data_ptr(), rows, width, filled.data_ptr(),
                                        reachable.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (filled, reachable)
+
+
+def semi_global_columns(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor | None:
+    """``svs_torch.depth.semi_global._scan_columns_torch`` (see the C source), bit for bit: ``costs``
+    ``(B, D, H, W)`` float32, ``p1``, ``p2`` ``(B,)`` float32. Returns the paths down and up the rows, summed;
+    None when the kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
+    check_shape(p1, "p1", [dims["B"]])
+    check_shape(p2, "p2", [dims["B"]])
+    if not on_cpu(torch.float32, costs, p1, p2):
+        return None
+    library = load("semi_global_columns")
+    if library is None:
+        return None
+    costs, p1, p2 = costs.contiguous(), p1.contiguous(), p2.contiguous()
+    out = torch.empty_like(costs)
+    status = library.semi_global_columns(costs.data_ptr(), *costs.shape, p1.data_ptr(), p2.data_ptr(),
+                                         out.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else out
 
 
 def _check_box_rows(boxes: torch.Tensor, name: str, b: int) -> None:

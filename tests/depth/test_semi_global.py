@@ -1,0 +1,150 @@
+"""Semi-global aggregation of the dense stage (svs_torch.depth.semi_global, DenseConfig.smoothing_penalties):
+the C kernel against the torch path, both against a plain loop of Hirschmüller's Eq. (13), batch invariance,
+and what it is for: a noisy textured plane measured where plain block matching loses it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from svs_torch.core.errors import InputError
+from svs_torch.depth import kernels
+from svs_torch.depth.block_matching import dense_disparity_over_regions
+from svs_torch.depth.dense_config import DenseConfig, DisparityRange
+from svs_torch.depth.semi_global import _scan_columns_torch, pair_residual_levels, semi_global_aggregate
+
+
+def _volume(generator: torch.Generator, b: int = 3, d: int = 7, h: int = 11, w: int = 70) -> torch.Tensor:
+    costs = (torch.rand(b, d, h, w, generator=generator) * 500).round()
+    costs[0, 5:] = torch.inf  # past a pair's own count
+    costs[1, :, :, :3] = torch.inf  # outside its region: the row paths start again
+    costs[2, 2, 4, 5] = torch.inf  # one disparity outside the image
+    costs[2, :, 6, 40:45] = torch.inf
+    return costs
+
+
+def _eq13(costs: np.ndarray, p1: float, p2: float, step: tuple[int, int]) -> np.ndarray:
+    """One path of Hirschmüller's Eq. (13) by plain loops over one pair's (D, H, W) volume, ``step`` (dy, dx)."""
+    d_count, h, w = costs.shape
+    out = np.full_like(costs, np.inf)
+    ys = range(h) if step[0] >= 0 else range(h - 1, -1, -1)
+    xs = range(w) if step[1] >= 0 else range(w - 1, -1, -1)
+    for y in ys:
+        for x in xs:
+            py, px = y - step[0], x - step[1]
+            previous = out[:, py, px] if 0 <= py < h and 0 <= px < w else None
+            low = np.min(previous) if previous is not None else np.inf
+            for d in range(d_count):
+                if not np.isfinite(low):
+                    out[d, y, x] = costs[d, y, x]
+                    continue
+                near = min(previous[d - 1] if d > 0 else np.inf, previous[d + 1] if d + 1 < d_count else np.inf)
+                best = min(previous[d], near + p1, low + p2)
+                out[d, y, x] = costs[d, y, x] + (best - low)
+    return out
+
+
+def test_kernel_is_bit_identical_to_the_torch_path(generator):
+    costs = _volume(generator)
+    p1, p2 = torch.tensor([3.0, 0.0, 10.0]), torch.tensor([12.0, 0.0, 40.0])
+    fused = kernels.semi_global_columns(costs, p1, p2)
+    if fused is None:
+        pytest.skip("no C compiler here")
+    assert torch.equal(fused, _scan_columns_torch(costs, p1, p2))
+    empty = kernels.semi_global_columns(costs[:0], p1[:0], p2[:0])
+    assert empty is not None and empty.shape == (0, 7, 11, 70)
+
+
+def test_aggregation_is_eq13_summed_over_four_paths(generator):
+    costs = _volume(generator, w=9)
+    p1, p2 = torch.tensor([3.0, 5.0, 10.0]), torch.tensor([12.0, 5.0, 40.0])
+    total = semi_global_aggregate(costs, p1, p2)
+    for b in range(costs.shape[0]):
+        volume = costs[b].double().numpy()
+        paths = [_eq13(volume, float(p1[b]), float(p2[b]), step) for step in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        expected = (paths[0] + paths[1]) + (paths[2] + paths[3])
+        np.testing.assert_allclose(total[b].double().numpy(), expected, rtol=1e-6)
+
+
+def test_zero_penalties_are_four_times_the_costs(generator):
+    costs = _volume(generator)
+    zero = torch.zeros(3)
+    assert torch.equal(semi_global_aggregate(costs, zero, zero), 4 * costs)
+
+
+@pytest.mark.parametrize("costs, p1, p2, name", [
+    (torch.full((1, 2, 3, 3), float("nan")), torch.zeros(1), torch.zeros(1), "costs"),
+    (-torch.ones(1, 2, 3, 3), torch.zeros(1), torch.zeros(1), "costs"),
+    (torch.ones(2, 3, 3), torch.zeros(1), torch.zeros(1), "costs"),
+    (torch.ones(1, 2, 3, 3), torch.zeros(2), torch.zeros(2), "p1"),
+    (torch.ones(1, 2, 3, 3), torch.ones(1) * 2, torch.ones(1), "p1, p2"),
+])
+def test_bad_input_is_refused_by_name(costs, p1, p2, name):
+    with pytest.raises(InputError, match=f"^{name}: "):
+        semi_global_aggregate(costs, p1, p2)
+
+
+@pytest.mark.parametrize("penalties", [(-1.0, 2.0), (3.0, 2.0), (1.0, float("inf"))])
+def test_config_refuses_bad_penalties(penalties):
+    with pytest.raises(InputError, match="^smoothing_penalties: "):
+        DenseConfig(smoothing_penalties=penalties)
+    with pytest.raises(InputError, match="^smoothing_min_residual_levels: "):
+        DenseConfig(smoothing_min_residual_levels=-1.0)
+
+
+def test_residual_is_the_median_winner_cost_per_window_pixel():
+    best = torch.tensor([[[9.0, 18.0, torch.inf], [27.0, 900.0, 0.0]]])
+    wanted = torch.tensor([[[True, True, True], [True, False, False]]])
+    assert pair_residual_levels(best, wanted, 3).tolist() == [2.0]
+    assert pair_residual_levels(best, torch.zeros_like(wanted), 3).tolist() == [0.0]
+
+
+def _noisy_plane(seed: int, sigma: float, shift_px: int = 6, h: int = 60, w: int = 96) -> tuple[torch.Tensor, ...]:
+    """A weakly textured fronto-parallel plane at disparity ``shift_px``, independent noise in each view."""
+    generator = torch.Generator().manual_seed(seed)
+    texture = torch.nn.functional.avg_pool2d(torch.rand(1, 1, h, w + shift_px, generator=generator), 5, 1, 2)
+    texture = 0.5 + 0.6 * (texture - texture.mean())
+    left = texture[..., :w] + sigma * torch.randn(1, 1, h, w, generator=generator)
+    right = texture[..., shift_px:] + sigma * torch.randn(1, 1, h, w, generator=generator)
+    return left.clamp(0, 1), right.clamp(0, 1)
+
+
+def test_smoothing_measures_a_noisy_plane_that_block_matching_loses():
+    left, right = _noisy_plane(seed=3, sigma=0.03)
+    mask = torch.zeros(1, 1, *left.shape[-2:], dtype=torch.bool)
+    mask[..., 10:50, 25:85] = True
+    search = DisparityRange(torch.zeros(1, dtype=torch.int64), 16)
+    shares = {}
+    for name, penalties in (("plain", None), ("smoothed", (4.0, 16.0))):
+        config = DenseConfig(window_size=5, smoothing_penalties=penalties, smoothing_min_residual_levels=0.0)
+        found = dense_disparity_over_regions(left, right, mask, search, config)
+        right_ones = found.valid & mask & ((found.disparity_px - 6).abs() <= 1)
+        shares[name] = (right_ones.sum() / mask.sum()).item()
+    assert shares["smoothed"] > shares["plain"] + 0.2, shares
+
+
+def test_a_pairs_smoothed_map_does_not_depend_on_its_batch():
+    left, right = _noisy_plane(seed=5, sigma=0.03)
+    other_left, other_right = _noisy_plane(seed=6, sigma=0.01)
+    mask = torch.zeros(1, 1, *left.shape[-2:], dtype=torch.bool)
+    mask[..., 20:40, 30:60] = True
+    other_mask = torch.zeros_like(mask)
+    other_mask[..., 5:58, 10:90] = True  # a larger box: the batch's shared crop is larger than the first pair's
+    config = DenseConfig(window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=0.0)
+    alone = dense_disparity_over_regions(left, right, mask, DisparityRange(torch.tensor([0]), 12), config)
+    batch = dense_disparity_over_regions(
+        torch.cat([other_left, left]), torch.cat([other_right, right]), torch.cat([other_mask, mask]),
+        DisparityRange(torch.tensor([2, 0]), 16, torch.tensor([14, 12])), config)
+    assert torch.equal(batch.valid[1:], alone.valid)
+    assert torch.equal(batch.disparity_px[1:], alone.disparity_px)
+
+
+def test_clean_pairs_under_the_residual_gate_match_plain_block_matching():
+    left, right = _noisy_plane(seed=7, sigma=0.0)
+    mask = torch.ones(1, 1, *left.shape[-2:], dtype=torch.bool)
+    search = DisparityRange(torch.zeros(1, dtype=torch.int64), 16)
+    plain = dense_disparity_over_regions(left, right, mask, search, DenseConfig(window_size=5))
+    gated = dense_disparity_over_regions(left, right, mask, search, DenseConfig(
+        window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=1e6))
+    assert torch.equal(plain.valid, gated.valid) and torch.equal(plain.disparity_px, gated.disparity_px)
