@@ -5,6 +5,8 @@ bit for bit the same; and the row fill of invalid pixels (:func:`fill_invalid_ro
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_shape
@@ -58,30 +60,39 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
+    plain = costs
     if region is not None and config.smoothing_penalties is not None:
         costs, minimum = _smooth(costs, minimum, config, counts, extra, region)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
+    if costs is not plain:
+        # The aggregation picks the winner and makes the verdicts; the sub-pixel fit stays on the plain SAD
+        # costs at winner − 1, winner, winner + 1 (equal to the aggregated ones / 4 where nothing was
+        # aggregated), which the differentiable pass recomputes from the images (pipeline.soft, step 1).
+        neighbours = (stats.best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
+        near = plain.gather(1, neighbours.clamp(0, num_disparities - 1))
+        stats = stats._replace(before=near[:, 0], after=near[:, 2], fit_cost=near[:, 1])
     core = slice(extra, width - extra)
-    return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best)
+    return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best,
+                        None if stats.fit_cost is None else stats.fit_cost[..., core])
 
 
 def _compiled(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> bool:
     """Whether the hard path may run the fused C kernel (:func:`_match_compiled`): float32 CPU images without
-    gradients, ``config.kernel`` allows it, and no semi-global aggregation is asked for (the kernel keeps no
-    volume)."""
-    return (config.kernel != "torch" and config.smoothing_penalties is None and left.dtype == torch.float32 and left.device.type == "cpu"
+    gradients, and ``config.kernel`` allows it."""
+    return (config.kernel != "torch" and left.dtype == torch.float32 and left.device.type == "cpu"
             and not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)))
 
 
 def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor, search: DisparityRange,
                     image_hw: torch.Tensor, config: DenseConfig, lower_is_limit: torch.Tensor,
-                    mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor] | None:
+                    mask: torch.Tensor | None = None, best_cost: bool = False) -> tuple[torch.Tensor, ...] | None:
     """:func:`_match_box` of each pair at its own box ``(B, 4)`` (x0, y0, width, height) and its own range, by
     the fused C kernel of :mod:`svs_torch.depth.kernels`, straight to the full-frame disparity and validity
     ``(B, 1, H, W)``: the same values bit for bit (a pair's result never depends on its batch), without the
     batch's shared box, the groups of ranges or the scatter back; with ``mask`` ``(B, 1, H, W)`` only at its
-    :func:`wanted_pixels`. None when the kernel cannot run here (then the torch path does; ``kernel="c"`` makes
-    that an error)."""
+    :func:`wanted_pixels`; with ``best_cost`` also each computed pixel's winning cost ``(B, H, W)`` (NaN
+    elsewhere). None when the kernel cannot run here (then the torch path does; ``kernel="c"`` makes that an
+    error)."""
     if not _compiled(left, right, config):
         return None
     counts = search.pair_num_disparities
@@ -97,13 +108,13 @@ def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor
         image_hw, lower_is_limit, config.uniqueness_ratio, config.lr_max_diff_px,
         config.texture_threshold * size ** 2, config.whole_range_in_view,
         source="xsobel" if config.prefilter == "xsobel" else "raw", prefilter_cap=config.prefilter_cap,
-        mask=None if mask is None else mask[:, 0], mask_margin_px=config.margin_px)
+        mask=None if mask is None else mask[:, 0], mask_margin_px=config.margin_px, best_cost=best_cost)
     if found is None:
         if config.kernel == "c":
             raise InputError("kernel: 'c' asks for the compiled dense kernel, which is not available here "
                              "(no C compiler, or SVS_TORCH_KERNELS=torch); use 'auto' or 'torch'")
         return None
-    return found[0].unsqueeze(1), found[1].unsqueeze(1)
+    return (found[0].unsqueeze(1), found[1].unsqueeze(1), *found[2:])
 
 
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
@@ -232,6 +243,27 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
                           torch.full_like(minimum, num_disparities))
 
 
+def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
+                        config: DenseConfig, image_hw: torch.Tensor, found: tuple[torch.Tensor, ...]
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fused kernel's map ``found`` (disparity, valid, best cost), with the pairs whose residual reaches
+    ``config.smoothing_min_residual_levels`` matched again on the torch cost volume, aggregated (:func:`_smooth`):
+    the values the torch path alone gives, without a volume for the clean pairs."""
+    disparity, valid, best_cost = found
+    residual = pair_residual_levels(best_cost, ~best_cost.isnan(), config.window_size)
+    noisy = (residual >= config.smoothing_min_residual_levels) & any_along(mask.flatten(1), dim=1)
+    if not bool(noisy.any()):
+        return disparity, valid
+    index = noisy.nonzero().squeeze(1)
+    counts = search.pair_num_disparities
+    counts = None if counts is None else counts[index]
+    part = dense_disparity_over_regions(
+        left[index], right[index], mask[index], DisparityRange(search.min_disparity_px[index], search.num_disparities,
+                                                               counts),
+        replace(config, kernel="torch", smoothing_min_residual_levels=0.0), image_hw[index])
+    return disparity.index_copy(0, index, part.disparity_px), valid.index_copy(0, index, part.valid)
+
+
 def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
                                  search: DisparityRange, config: DenseConfig = DenseConfig(),
                                  image_hw: torch.Tensor | None = None) -> DenseDisparity:
@@ -261,10 +293,14 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     counts = search.pair_num_disparities
     counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
     some = any_along(mask.flatten(1), dim=1)
+    smoothing = config.smoothing_penalties is not None
     found = _match_compiled(left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search,
-                            image_hw, config, minimum <= 0, mask)
+                            image_hw, config, minimum <= 0, mask, best_cost=smoothing)
     if found is not None:
-        return DenseDisparity(found[0], found[1], minimum, search.num_disparities, own, counts)
+        disparity, valid = found[:2]
+        if smoothing:
+            disparity, valid = _smooth_noisy_pairs(left, right, mask, search, config, image_hw, found)
+        return DenseDisparity(disparity, valid, minimum, search.num_disparities, own, counts)
     wanted = some.view(-1, 1, 1) & crop_box(wanted_pixels(mask, config.margin_px), x0, y0, height, width)[:, 0]
     own_in_box = own - torch.stack([x0, y0, torch.zeros_like(x0), torch.zeros_like(y0)], 1)
     disparity, ok = _match_box(left, right, x0, y0, height, width, search, image_hw, config,

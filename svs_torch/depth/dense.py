@@ -32,6 +32,7 @@ cost volume with a temperature, whose gradients reach both images.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 import torch.nn.functional as F
@@ -121,6 +122,8 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         search = coarse_search_range(small_left, small_right, small_mask, small_hw, config, small_objects)
     else:
         search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
+    if factor > config.smoothing_max_reduction:  # the box average has already averaged the noise
+        config = replace(config, smoothing_penalties=None)
     dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
     return _enlarge(dense, factor, height, width)
 

@@ -63,12 +63,18 @@ class DenseConfig:
         smoothing_penalties: ``(P1, P2)``: aggregate the SAD volume semi-globally before the winner
             (:mod:`svs_torch.depth.semi_global`), with penalties in multiples of the pair's matching residual
             (the median best SAD per window pixel over the wanted pixels, 8-bit levels of the clipped x-Sobel);
-            None (the default): plain block matching. Pairs with a residual under
-            ``smoothing_min_residual_levels`` (clean frames) are not aggregated. Runs the torch cost volume for
-            every pair (the fused kernel keeps no volume) and the C aggregation for the noisy ones. An option, off:
-            on the tuning sets (``experiments/real_rig.md``, "Semi-global aggregation") (4, 16) raised JPEG
-            frames at 320×240 but lowered them at native size, whose working images are already box-averaged.
-        smoothing_min_residual_levels: see ``smoothing_penalties``.
+            the aggregated volume picks the winner and makes the verdicts, the sub-pixel fit stays on the plain
+            costs. None: plain block matching. Pairs with a residual under ``smoothing_min_residual_levels``
+            (clean frames) are not aggregated, nor pairs the stage reduces by more than
+            ``smoothing_max_reduction`` (``working_width_px``: the box average has already averaged the noise).
+            The fused kernel matches every pair and reports its residual; only the noisy pairs are matched again
+            on the torch cost volume, aggregated by a C kernel.
+        retry_smoothing_penalties: ``smoothing_penalties`` of the pipeline's second pass at half the working
+            width (``PipelineConfig.coarse_retry_below_share``: the pairs the first pass measured too little of),
+            where the default aggregates; the first pass stays plain block matching (``experiments/real_rig.md``,
+            "Semi-global aggregation": on the tuning sets, aggregating the second pass raised the camera frames
+            at 320×240 by 1.3 points and cost the clean pairs nothing; aggregating the first pass too cost them).
+        smoothing_min_residual_levels, smoothing_max_reduction: see ``smoothing_penalties``.
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -92,7 +98,9 @@ class DenseConfig:
     kernel: Literal["auto", "c", "torch"] = "auto"
     whole_range_in_view: bool = False  # paper_table1.py: on, tuned 320 R_min 98.9 -> 89.1 % (PianoL lost)
     smoothing_penalties: tuple[float, float] | None = None
-    smoothing_min_residual_levels: float = 11.0
+    retry_smoothing_penalties: tuple[float, float] | None = (4.0, 16.0)
+    smoothing_min_residual_levels: float = 9.0
+    smoothing_max_reduction: int = 2
 
     def __post_init__(self) -> None:
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
@@ -119,11 +127,12 @@ class DenseConfig:
         for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
-        if self.smoothing_penalties is not None:
-            p1, p2 = self.smoothing_penalties
-            if not 0 <= p1 <= p2 < float("inf"):
-                raise InputError(f"smoothing_penalties: expected None or (P1, P2) with 0 <= P1 <= P2, got "
-                                 f"{self.smoothing_penalties!r}")
+        for name in ("smoothing_penalties", "retry_smoothing_penalties"):
+            penalties = getattr(self, name)
+            if penalties is not None and not 0 <= penalties[0] <= penalties[1] < float("inf"):
+                raise InputError(f"{name}: expected None or (P1, P2) with 0 <= P1 <= P2, got {penalties!r}")
+        if not isinstance(self.smoothing_max_reduction, int) or self.smoothing_max_reduction < 1:
+            raise InputError(f"smoothing_max_reduction: expected an int >= 1, got {self.smoothing_max_reduction!r}")
         if not self.smoothing_min_residual_levels >= 0:
             raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
                              f"{self.smoothing_min_residual_levels!r}")

@@ -33,6 +33,7 @@ class _WinnerStats(NamedTuple):
     after: torch.Tensor
     rival: torch.Tensor | None
     right_best: torch.Tensor | None
+    fit_cost: torch.Tensor | None = None  # the sub-pixel fit's winner cost where it is not best_cost (aggregation)
 
 
 def _winner_stats_torch(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], uniqueness: bool,
@@ -58,7 +59,8 @@ def _winner(stats: _WinnerStats, num_disparities: int, config: DenseConfig, lowe
     """The sub-pixel offset of each winner and the uniqueness / range-edge verdict, ``(B, h, w)`` each."""
     best_cost, best, before, after = stats.best_cost, stats.best, stats.before, stats.after
     interior = (best > 0) & (best < num_disparities - 1) & torch.isfinite(before) & torch.isfinite(after)
-    offset = torch.where(interior, equiangular_offset(before, best_cost, after), torch.zeros_like(best_cost))
+    fit_cost = best_cost if stats.fit_cost is None else stats.fit_cost
+    offset = torch.where(interior, equiangular_offset(before, fit_cost, after), torch.zeros_like(best_cost))
     ok = torch.isfinite(best_cost) & (best < counts.view(-1, 1, 1) - 1)
     ok &= (best > 0) | lower_is_limit.view(-1, 1, 1)  # a winner on the range's inner edge is unreliable
     if config.uniqueness_ratio > 0:

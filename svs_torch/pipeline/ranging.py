@@ -205,9 +205,11 @@ def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tens
 
 
 def coarse_config(config: PipelineConfig) -> PipelineConfig:
-    """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``)."""
+    """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``),
+    aggregated with ``DenseConfig.retry_smoothing_penalties``."""
     return dataclasses.replace(config, dense=dataclasses.replace(
-        config.dense, working_width_px=max(8, config.dense.working_width_px // 2)))
+        config.dense, working_width_px=max(8, config.dense.working_width_px // 2),
+        smoothing_penalties=config.dense.retry_smoothing_penalties))
 
 
 def measured_share(objects: ObjectDepths) -> torch.Tensor:

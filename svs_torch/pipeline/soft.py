@@ -9,7 +9,10 @@ continuous quantities from the images (and the segmenter's logits) given those d
 1. **Dense disparity** at the pixels that reach an object's statistics: the SAD costs at the hard winner and
    its two neighbours, from the images with gradients (same pre-filter, same 1/255 levels: rounded values,
    identity gradient), then the same equiangular sub-pixel fit (:func:`subpixel_disparity`). The values are
-   the hard stage's, bit for bit; the gradient reaches both images through the costs.
+   the hard stage's, bit for bit; the gradient reaches both images through the costs. Where the hard winner
+   came from a semi-globally aggregated volume (:mod:`svs_torch.depth.semi_global`), its sub-pixel fit is
+   still on the plain costs, and the value is kept straight-through where the winner recovered from it is a
+   neighbour (a fit saturated at ±0.5).
 2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`,
    whose torch path is differentiable), with the hard validity as the mask.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
@@ -156,6 +159,10 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
     counts = torch.div(dense.pair_num_disparities, factor, rounding_mode="floor")
     values = hard[:, 0][pixels.unbind(1)]
     soft = _fit_at_winners(left, right, pixels, values, minimum, counts, small_w, config.window_size)
+    # Straight-through onto the hard values: they are equal, bit for bit, except where the winner came from an
+    # aggregated volume (DenseConfig.retry_smoothing_penalties) and the plain fit saturates at ±0.5, where the
+    # winner recovered from the value may be its neighbour.
+    soft = soft + (values.to(soft.dtype) - soft).detach()
     flat = hard.detach().to(soft.dtype).flatten()
     index = (pixels[:, 0] * h + pixels[:, 1]) * w + pixels[:, 2]
     small = flat.index_put((index,), soft).view(-1, 1, h, w)

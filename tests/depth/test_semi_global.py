@@ -4,6 +4,8 @@ and what it is for: a noisy textured plane measured where plain block matching l
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -148,3 +150,46 @@ def test_clean_pairs_under_the_residual_gate_match_plain_block_matching():
     gated = dense_disparity_over_regions(left, right, mask, search, DenseConfig(
         window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=1e6))
     assert torch.equal(plain.valid, gated.valid) and torch.equal(plain.disparity_px, gated.disparity_px)
+
+
+def test_the_fused_kernels_residual_gate_gives_the_torch_paths_map():
+    """The fused kernel matches every pair and reports its residual; the noisy pair alone is matched again on
+    the torch volume. The result is the torch path's, bit for bit, for the noisy and the clean pair."""
+    noisy_left, noisy_right = _noisy_plane(seed=8, sigma=0.04)
+    clean_left, clean_right = _noisy_plane(seed=9, sigma=0.0)
+    left, right = torch.cat([clean_left, noisy_left]), torch.cat([clean_right, noisy_right])
+    mask = torch.zeros(2, 1, *left.shape[-2:], dtype=torch.bool)
+    mask[0, :, 5:55, 10:90] = True
+    mask[1, :, 15:45, 20:70] = True
+    search = DisparityRange(torch.tensor([0, 1]), 16, torch.tensor([16, 14]))
+    config = DenseConfig(window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=4.0)
+    if not kernels.available():
+        pytest.skip("no C compiler here")
+    found = dense_disparity_over_regions(left, right, mask, search, config)
+    eager = dense_disparity_over_regions(left, right, mask, search, replace(config, kernel="torch"))
+    plain = dense_disparity_over_regions(left, right, mask, search, replace(config, smoothing_penalties=None))
+    assert torch.equal(found.valid, eager.valid) and torch.equal(found.disparity_px, eager.disparity_px)
+    assert torch.equal(found.valid[0], plain.valid[0]) and torch.equal(found.disparity_px[0], plain.disparity_px[0])
+    assert not torch.equal(found.valid[1], plain.valid[1]), "the noisy pair was not aggregated"
+
+
+def test_the_differentiable_pass_gives_an_aggregated_maps_values_with_gradients():
+    """The aggregation picks the winners; the sub-pixel fit stays on the plain SAD costs, which the
+    differentiable pass (svs_torch.pipeline.soft, step 1) recomputes from the images at those winners: the hard
+    values (straight-through where a saturated fit hides the winner), with gradients to the images."""
+    from svs_torch.pipeline.soft import _soft_disparity
+
+    left, right = _noisy_plane(seed=10, sigma=0.04)
+    mask = torch.zeros(1, 1, *left.shape[-2:], dtype=torch.bool)
+    mask[..., 10:50, 25:85] = True
+    search = DisparityRange(torch.zeros(1, dtype=torch.int64), 16)
+    config = DenseConfig(window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=0.0)
+    hard = dense_disparity_over_regions(left, right, mask, search, config)
+    plain = dense_disparity_over_regions(left, right, mask, search, replace(config, smoothing_penalties=None))
+    assert int(hard.valid.sum()) > int(plain.valid.sum())
+    image_hw = torch.tensor([list(left.shape[-2:])])
+    image = left.clone().requires_grad_()
+    soft = _soft_disparity(image, right, hard, mask, image_hw, config)
+    assert torch.equal(soft[hard.valid].detach(), hard.disparity_px[hard.valid])
+    soft[hard.valid].sum().backward()
+    assert int((image.grad != 0).sum()) > 100

@@ -87,14 +87,17 @@ def test_regions_all_measured_on_too_little_are_kept(midd1, results):
 def test_a_region_ranged_nearer_than_the_measured_one_stays(data_dir):
     """MiddEval3 ArtL at 320×240 at JPEG digit 8 with σ 8, on Otsu's regions: the nearer object (1.49 m) is measured
     on 43 % of its pixels, under the share, beside the 1.75 m one measured on 54 %. Its few pixels range it nearer,
-    so it stays ranged: dropping it would move the warning to the farther object."""
+    so it stays ranged: dropping it would move the warning to the farther object. (Without the coarse retry's
+    aggregation, ``DenseConfig.retry_smoothing_penalties``, which measures it on 75 %.)"""
+    from svs_torch.depth.dense_config import DenseConfig
     from svs_torch.segmentation import SegmentationConfig
 
     scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
     frames = [real_rig.camera_frame(image, 8, 8.0, torch.Generator().manual_seed(view))
               for view, image in enumerate((scene.left, scene.right))]
     pair = real_rig.stack_conditions(scene, [("q8 s8", *frames)])
-    result = estimate_obstacle_depth(pair, PipelineConfig(segmentation=SegmentationConfig()))
+    result = estimate_obstacle_depth(pair, PipelineConfig(segmentation=SegmentationConfig(),
+                                                          dense=DenseConfig(retry_smoothing_penalties=None)))
     objects = result.depth.objects
     share = _share(objects, 0)
     low = min(range(2), key=lambda slot: share[slot])

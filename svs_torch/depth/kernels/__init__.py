@@ -18,7 +18,7 @@ __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
-                    + [POINTER, INT] + [POINTER] * 2 + [INT] * 2, ctypes.c_int),
+                    + [POINTER, INT] + [POINTER] * 3 + [INT] * 2, ctypes.c_int),
     "fill_invalid_rows": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [INT], ctypes.c_int),
     "labelled_select": ([POINTER] * 4 + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "region_medians": ([POINTER] * 2 + [INT] * 3 + [POINTER] * 2 + [INT], ctypes.c_int),
@@ -41,8 +41,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
                 boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
                 lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
                 texture_min: float, whole_range_in_view: bool, source: str = "levels",
-                prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0
-                ) -> tuple[torch.Tensor, torch.Tensor] | None:
+                prefilter_cap: float = 0.0, mask: torch.Tensor | None = None, mask_margin_px: int = 0,
+                best_cost: bool = False) -> tuple[torch.Tensor, ...] | None:
     """``svs_torch.depth.block_matching._match_box`` of every pair at its own box and range, the kernel's contract (see
     the C source). With ``source="levels"``: ``left``, ``right`` ``(B, H, W)`` float32 pre-filtered images holding
     whole numbers in [−255, 255] (:func:`svs_torch.depth.dense.quantize_levels`: then every cost is exact and the
@@ -57,8 +57,9 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     only the pixels within ``mask_margin_px`` columns of their row's mask span are computed
     (:func:`svs_torch.depth.dense.wanted_pixels`), each with the value the whole box gives it.
 
-    Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool; None when
-    the kernel is not available or the inputs do not fit its contract."""
+    Returns the disparity ``(B, H, W)`` float32 (0 where not valid) and ``valid`` ``(B, H, W)`` bool, and with
+    ``best_cost`` each computed pixel's winning SAD (kept or not; +inf: no candidate; NaN where not computed);
+    None when the kernel is not available or the inputs do not fit its contract."""
     if source not in BLOCK_MATCH_SOURCES:
         raise ValueError(f"source: expected one of {sorted(BLOCK_MATCH_SOURCES)}, got {source!r}")
     levels = source == "levels"
@@ -82,6 +83,7 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
         mask = mask.contiguous().view(torch.uint8)  # bool is one byte of 0 or 1: read as it is
     disparity = torch.zeros(b, h, w)
     valid = torch.zeros(b, h, w, dtype=torch.uint8)
+    costs = torch.full((b, h, w), torch.nan) if best_cost else None
     # The factors are made in double and rounded to float32, as torch does with a Python scalar.
     status = library.block_match(
         left.data_ptr(), right.data_ptr(), None if texture is None else texture.data_ptr(),
@@ -89,10 +91,11 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
         *(v.data_ptr() for v in per_pair), lower.data_ptr(),
         1 + uniqueness_ratio if uniqueness_ratio > 0 else 0.0, -1.0 if lr_max_diff_px is None else lr_max_diff_px,
         texture_min, int(whole_range_in_view), None if mask is None else mask.data_ptr(), mask_margin_px,
-        disparity.data_ptr(), valid.data_ptr(), torch.get_num_threads(), BAND_ROWS)
+        disparity.data_ptr(), valid.data_ptr(), None if costs is None else costs.data_ptr(), torch.get_num_threads(),
+        BAND_ROWS)
     if status != 0:
         return None
-    return disparity, valid.bool()
+    return (disparity, valid.bool()) if costs is None else (disparity, valid.bool(), costs)
 
 
 #: The dense kernel keeps disparity indices in its 16-bit cost type (block_match.c): at most 65534 disparities.

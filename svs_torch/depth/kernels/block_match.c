@@ -521,12 +521,13 @@ typedef struct {
 } Rules;
 
 static void finish_row(const Pair *p, const Rules *rules, int64_t y, const RowOut *o, const float *texture_sum,
-                       int64_t x_begin, int64_t x_end, float *disparity, uint8_t *valid) {
+                       int64_t x_begin, int64_t x_end, float *disparity, uint8_t *valid, float *best_cost) {
     const int64_t row = p->y0 + y, count = p->D;
     if (row < 0 || row >= p->image_h) return;
     for (int64_t x = x_begin; x < x_end; ++x) {
         const int64_t best = o->best[x], column = p->x0 + x;
         const float cost = o->best_cost[x], before = o->before[x], after = o->after[x];
+        if (best_cost) best_cost[x] = cost; /* the winner's cost, kept or not (the pair's matching residual) */
         int ok = isfinite(cost) && best < count - 1 && (best > 0 || p->lower_is_limit);
         if (rules->uniqueness_factor > 0) ok = ok && o->rival[x] > rules->uniqueness_factor * cost;
         if (rules->lr_max_diff >= 0) {
@@ -641,7 +642,8 @@ static int band_pair(const Views *views, const Pair *p, int64_t W, int64_t K, in
 }
 
 static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const Pair *p, const Rules *rules,
-                     int64_t y_begin, int64_t y_end, Buffers *buf, float *disparity, uint8_t *valid) {
+                     int64_t y_begin, int64_t y_end, Buffers *buf, float *disparity, uint8_t *valid,
+                     float *best_cost) {
     const int64_t radius = K / 2, rows = y_end - y_begin + K - 1, row0 = p->y0 + y_begin - radius;
     const int64_t left_col0 = p->x0 - p->extra - radius, right_col0 = left_col0 - p->min_d - (p->D - 1);
     const int64_t texture_cols = p->width + K - 1;
@@ -682,7 +684,8 @@ static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const 
         int64_t x_begin, x_end;
         wanted_columns(views, p, W, y, &x_begin, &x_end);
         const int64_t offset = (p->y0 + y) * W + p->x0;
-        finish_row(p, rules, y, &out, sums, x_begin, x_end, disparity + offset, valid + offset);
+        finish_row(p, rules, y, &out, sums, x_begin, x_end, disparity + offset, valid + offset,
+                   best_cost ? best_cost + offset : NULL);
     }
 }
 
@@ -698,7 +701,8 @@ static void run_task(const Views *views, int64_t H, int64_t W, int64_t K, const 
  *   mask (B, H, W) uint8 or NULL: where depth is wanted; then only the pixels of a box row within mask_margin
  *   columns of that image row's mask span [first, last] are written, and a band of rows is searched only over
  *   the columns its rows want (a pixel's value is the whole box's: only the work shrinks);
- *   disparity (B, H, W) float32 and valid (B, H, W) uint8, zero on entry: written inside the boxes.
+ *   disparity (B, H, W) float32 and valid (B, H, W) uint8, zero on entry: written inside the boxes;
+ *   best_cost (B, H, W) float32 or NULL: each computed pixel's winning cost, kept or not (+inf: no candidate).
  * Returns 0, or -1 when memory could not be had (then nothing is valid; the caller runs its torch path). Pairs
  * and bands of rows are shared among num_threads OpenMP threads. */
 int block_match(const float *left, const float *right, const float *texture, int64_t source, float prefilter_cap,
@@ -706,7 +710,8 @@ int block_match(const float *left, const float *right, const float *texture, int
                 int64_t K, const int64_t *boxes, const int64_t *min_d, const int64_t *counts,
                 const int64_t *image_hw, const uint8_t *lower_is_limit, float uniqueness_factor,
                 float lr_max_diff, float texture_min, int64_t whole_range_in_view, const uint8_t *mask,
-                int64_t mask_margin, float *disparity, uint8_t *valid, int64_t num_threads, int64_t band_rows) {
+                int64_t mask_margin, float *disparity, uint8_t *valid, float *best_cost, int64_t num_threads,
+                int64_t band_rows) {
     if (B <= 0 || H <= 0 || W <= 0 || K < 1 || K % 2 == 0) return 0;
     if (source != SOURCE_LEVELS && source != SOURCE_RAW && source != SOURCE_XSOBEL) return -1;
     Pair *pairs = malloc(sizeof(Pair) * (size_t)B);
@@ -775,7 +780,8 @@ int block_match(const float *left, const float *right, const float *texture, int
                                  prefilter_cap, mask ? mask + b * H * W : NULL, mask_margin};
             Pair band;
             if (!band_pair(&views, p, W, K, y0, y1, &band)) continue;
-            run_task(&views, H, W, K, &band, &rules, y0, y1, &buf, disparity + b * H * W, valid + b * H * W);
+            run_task(&views, H, W, K, &band, &rules, y0, y1, &buf, disparity + b * H * W, valid + b * H * W,
+                     best_cost ? best_cost + b * H * W : NULL);
         }
         free(buf.left);
         free(buf.right);
