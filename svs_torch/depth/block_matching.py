@@ -21,6 +21,9 @@ from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_stats
 
 __all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
 
+#: Noisy pairs matched again and aggregated together (:func:`_smooth_noisy_pairs`); their maps do not depend on it.
+SMOOTH_BLOCK_PAIRS = 4
+
 
 def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], config: DenseConfig,
             counts: torch.Tensor, extra: int, region: tuple[torch.Tensor, torch.Tensor]
@@ -254,14 +257,18 @@ def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     noisy = (residual >= config.smoothing_min_residual_levels) & any_along(mask.flatten(1), dim=1)
     if not bool(noisy.any()):
         return disparity, valid
-    index = noisy.nonzero().squeeze(1)
     counts = search.pair_num_disparities
-    counts = None if counts is None else counts[index]
-    part = dense_disparity_over_regions(
-        left[index], right[index], mask[index], DisparityRange(search.min_disparity_px[index], search.num_disparities,
-                                                               counts),
-        replace(config, kernel="torch", smoothing_min_residual_levels=0.0), image_hw[index])
-    return disparity.index_copy(0, index, part.disparity_px), valid.index_copy(0, index, part.valid)
+    every = replace(config, kernel="torch", smoothing_min_residual_levels=0.0)
+    # A block of pairs at a time: each holds its volume several times over while it is aggregated (about 30 MB a
+    # pair at 320×240 and 64 disparities, times 6), so a bulk run's noisy batch is not held all at once.
+    for block in noisy.nonzero().squeeze(1).split(SMOOTH_BLOCK_PAIRS):
+        part = dense_disparity_over_regions(
+            left[block], right[block], mask[block],
+            DisparityRange(search.min_disparity_px[block], search.num_disparities,
+                           None if counts is None else counts[block]), every, image_hw[block])
+        disparity = disparity.index_copy(0, block, part.disparity_px)
+        valid = valid.index_copy(0, block, part.valid)
+    return disparity, valid
 
 
 def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,

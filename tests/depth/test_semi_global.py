@@ -193,3 +193,19 @@ def test_the_differentiable_pass_gives_an_aggregated_maps_values_with_gradients(
     assert torch.equal(soft[hard.valid].detach(), hard.disparity_px[hard.valid])
     soft[hard.valid].sum().backward()
     assert int((image.grad != 0).sum()) > 100
+
+
+def test_noisy_pairs_are_aggregated_a_block_at_a_time_with_the_same_maps(monkeypatch):
+    import svs_torch.depth.block_matching as block_matching
+
+    pairs = [_noisy_plane(seed=20 + k, sigma=0.03 + 0.005 * k) for k in range(5)]
+    left, right = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
+    mask = torch.zeros(5, 1, *left.shape[-2:], dtype=torch.bool)
+    for k in range(5):
+        mask[k, :, 5 + 2 * k:45 + k, 10 + 3 * k:80] = True
+    search = DisparityRange(torch.zeros(5, dtype=torch.int64), 16)
+    config = DenseConfig(window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=0.0)
+    together = dense_disparity_over_regions(left, right, mask, search, config)
+    monkeypatch.setattr(block_matching, "SMOOTH_BLOCK_PAIRS", 2)
+    blocks = dense_disparity_over_regions(left, right, mask, search, config)
+    assert torch.equal(together.valid, blocks.valid) and torch.equal(together.disparity_px, blocks.disparity_px)
