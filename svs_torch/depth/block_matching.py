@@ -48,7 +48,8 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
     scale = residual[index] * config.window_size ** 2
     p1, p2 = (factor * scale for factor in config.smoothing_penalties)
-    costs = costs.index_copy(0, index, semi_global_aggregate(picked, p1, p2))
+    aggregated = semi_global_aggregate(picked, p1, p2)
+    costs = aggregated if len(index) == len(costs) else costs.index_copy(0, index, aggregated)
     return costs, costs.min(dim=1)
 
 

@@ -74,7 +74,7 @@ def semi_global_aggregate(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tenso
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
     for name, value in (("p1", p1), ("p2", p2)):
         check_shape(value, name, [dims["B"]])
-    if bool((costs.isnan() | (costs < 0)).any()):
+    if costs.numel() and not bool(costs.min() >= 0):  # one pass: the minimum is NaN where any cost is
         raise InputError("costs: expected SAD costs >= 0 (or +inf where not searched), got NaN or negative values")
     if not (bool((p1 >= 0).all()) and bool((p2 >= p1).all())):
         raise InputError(f"p1, p2: expected 0 <= p1 <= p2 for every pair, got {p1.tolist()}, {p2.tolist()}")

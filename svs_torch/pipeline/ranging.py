@@ -163,7 +163,10 @@ def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: 
     pick = (lambda t: t.index_select(0, again))
     whole = torch.ones_like(pick(left), dtype=torch.bool)
     mine = take_pairs(disparities, again, left.shape[0])
-    dense = estimate_dense_disparity(pick(left), pick(right), whole, config.dense,
+    # Plain block matching even in the coarse retry: the map only confirms inliers, and an aggregated volume
+    # would cost a whole view's (experiments/real_rig.md, "Semi-global aggregation of the coarse retry").
+    plain = dataclasses.replace(config.dense, smoothing_penalties=None)
+    dense = estimate_dense_disparity(pick(left), pick(right), whole, plain,
                                      None if image_hw is None else pick(image_hw), mine.disparity_px, mine.valid,
                                      whole)
     agreeing, measured = _confirmed_inliers(dense, pick(points_left), mine, pick(inliers), pick(H_left), config)
