@@ -11,8 +11,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
    identity gradient), then the same equiangular sub-pixel fit (:func:`subpixel_disparity`). The values are
    the hard stage's, bit for bit; the gradient reaches both images through the costs. Where the hard winner
    came from a semi-globally aggregated volume (:mod:`svs_torch.depth.semi_global`), its sub-pixel fit is
-   still on the plain costs, and the value is kept straight-through where the winner recovered from it is a
-   neighbour (a fit saturated at ±0.5).
+   still on the plain costs; only where the winner recovered from the value is a neighbour (a fit saturated at
+   ±0.5) is the hard value kept, straight-through.
 2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`,
    whose torch path is differentiable), with the hard validity as the mask.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
@@ -159,10 +159,12 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
     counts = torch.div(dense.pair_num_disparities, factor, rounding_mode="floor")
     values = hard[:, 0][pixels.unbind(1)]
     soft = _fit_at_winners(left, right, pixels, values, minimum, counts, small_w, config.window_size)
-    # Straight-through onto the hard values: they are equal, bit for bit, except where the winner came from an
-    # aggregated volume (DenseConfig.retry_smoothing_penalties) and the plain fit saturates at ±0.5, where the
-    # winner recovered from the value may be its neighbour.
-    soft = soft + (values.to(soft.dtype) - soft).detach()
+    # The recomputed values equal the hard ones (bit for bit in float32) except where the winner came from an
+    # aggregated volume (DenseConfig.retry_smoothing_penalties) and its plain fit saturates at ±0.5: the winner
+    # recovered from the value may then be its neighbour, a step of about a pixel. There alone the hard value is
+    # kept, straight-through (elsewhere the recomputed value itself is returned, as before).
+    hidden = (soft.detach() - values.to(soft.dtype)).abs() > 1e-3
+    soft = torch.where(hidden, soft + (values.to(soft.dtype) - soft).detach(), soft)
     flat = hard.detach().to(soft.dtype).flatten()
     index = (pixels[:, 0] * h + pixels[:, 1]) * w + pixels[:, 2]
     small = flat.index_put((index,), soft).view(-1, 1, h, w)

@@ -209,3 +209,4 @@ def test_noisy_pairs_are_aggregated_a_block_at_a_time_with_the_same_maps(monkeyp
     monkeypatch.setattr(block_matching, "SMOOTH_BLOCK_PAIRS", 2)
     blocks = dense_disparity_over_regions(left, right, mask, search, config)
     assert torch.equal(together.valid, blocks.valid) and torch.equal(together.disparity_px, blocks.disparity_px)
+
