@@ -25,6 +25,15 @@ __all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows
 SMOOTH_BLOCK_PAIRS = 4
 
 
+def _noisy_pairs(best_cost: torch.Tensor, computed: torch.Tensor, config: DenseConfig
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each pair's matching residual over its ``computed`` pixels (winner costs ``best_cost``, ``(B, h, w)``
+    each) and whether it reaches ``config.smoothing_min_residual_levels`` with at least one such pixel, ``(B,)``
+    each: the one gate of the torch path (:func:`_smooth`) and the fused kernel's (:func:`_smooth_noisy_pairs`)."""
+    residual = pair_residual_levels(best_cost, computed, config.window_size)
+    return residual, (residual >= config.smoothing_min_residual_levels) & computed.flatten(1).any(1)
+
+
 def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], config: DenseConfig,
             counts: torch.Tensor, extra: int, region: tuple[torch.Tensor, torch.Tensor]
             ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
@@ -35,8 +44,7 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     depend on its batch."""
     wanted, own = region
     core = slice(extra, costs.shape[-1] - extra)
-    residual = pair_residual_levels(minimum[0][..., core], wanted, config.window_size)
-    noisy = (residual >= config.smoothing_min_residual_levels) & wanted.flatten(1).any(1)
+    residual, noisy = _noisy_pairs(minimum[0][..., core], wanted, config)
     if not bool(noisy.any()):
         return costs, minimum
     index = noisy.nonzero().squeeze(1)
@@ -254,8 +262,7 @@ def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     ``config.smoothing_min_residual_levels`` matched again on the torch cost volume, aggregated (:func:`_smooth`):
     the values the torch path alone gives, without a volume for the clean pairs."""
     disparity, valid, best_cost = found
-    residual = pair_residual_levels(best_cost, ~best_cost.isnan(), config.window_size)
-    noisy = (residual >= config.smoothing_min_residual_levels) & any_along(mask.flatten(1), dim=1)
+    noisy = _noisy_pairs(best_cost, ~best_cost.isnan(), config)[1]
     if not bool(noisy.any()):
         return disparity, valid
     counts = search.pair_num_disparities
