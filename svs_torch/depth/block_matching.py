@@ -266,14 +266,14 @@ def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     if not bool(noisy.any()):
         return disparity, valid
     counts = search.pair_num_disparities
-    every = replace(config, kernel="torch", smoothing_min_residual_levels=0.0)
+    every = replace(config, smoothing_min_residual_levels=0.0)
     # A block of pairs at a time: each holds its volume several times over while it is aggregated (about 30 MB a
     # pair at 320×240 and 64 disparities, times 6), so a bulk run's noisy batch is not held all at once.
     for block in noisy.nonzero().squeeze(1).split(SMOOTH_BLOCK_PAIRS):
-        part = dense_disparity_over_regions(
+        part = _over_regions(
             left[block], right[block], mask[block],
             DisparityRange(search.min_disparity_px[block], search.num_disparities,
-                           None if counts is None else counts[block]), every, image_hw[block])
+                           None if counts is None else counts[block]), every, image_hw[block], fused=False)
         disparity = disparity.index_copy(0, block, part.disparity_px)
         valid = valid.index_copy(0, block, part.valid)
     return disparity, valid
@@ -295,6 +295,13 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     Returns:
         :class:`DenseDisparity`. Not differentiable (see :func:`soft_block_match`).
     """
+    return _over_regions(left, right, mask, search, config, image_hw)
+
+
+def _over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
+                  config: DenseConfig, image_hw: torch.Tensor | None, fused: bool = True) -> DenseDisparity:
+    """:func:`dense_disparity_over_regions`; ``fused=False`` skips the fused kernel (the noisy pairs' torch cost
+    volume, :func:`_smooth_noisy_pairs`, whose window sums may still run compiled)."""
     b = _check_pair(left, right)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
@@ -309,8 +316,9 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     counts = torch.full_like(minimum, search.num_disparities) if counts is None else counts
     some = any_along(mask.flatten(1), dim=1)
     smoothing = config.smoothing_penalties is not None
-    found = _match_compiled(left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search,
-                            image_hw, config, minimum <= 0, mask, best_cost=smoothing)
+    found = None if not fused else _match_compiled(
+        left, right, torch.where(some.view(-1, 1), own, torch.zeros_like(own)), search, image_hw, config, minimum <= 0,
+        mask, best_cost=smoothing)
     if found is not None:
         disparity, valid = found[:2]
         if smoothing:

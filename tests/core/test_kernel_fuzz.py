@@ -26,6 +26,7 @@ from svs_torch.core.errors import InputError
 from svs_torch.core.types import FundamentalStatus, Keypoints
 from svs_torch.depth import kernels as depth_kernels
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
+from svs_torch.depth.cost_volume import _costs_in_cache
 from svs_torch.depth.semi_global import semi_global_aggregate
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
 from svs_torch.depth.dense_objects import dense_object_depths
@@ -200,6 +201,26 @@ def test_semi_global_aggregate(shape, data):
     costs = data.draw(tensors(shape, low=0, high=300, specials=0.1)).abs()
     p1 = data.draw(tensors(shape[:1], low=0, high=50, specials=0.0))
     _both(semi_global_aggregate, costs, p1, p1 * data.draw(st.sampled_from([1.0, 4.0])))
+
+
+@given(shape=st.tuples(st.integers(0, 3), st.integers(1, 6), st.integers(1, 9), st.integers(1, 20)),
+       data=st.data())
+@examples(40)
+def test_sad_volume(shape, data):
+    """The dense stage's cost volume (the semi-global path's): whole levels, which the kernel sums, or fractions,
+    NaN, ±inf and huge values, which it leaves to the torch loop."""
+    b, d, h, w = shape
+    k = data.draw(st.sampled_from([1, 3, 5]))
+    whole = data.draw(st.booleans())
+    left = data.draw(tensors((b, 1, h + k - 1, w + k - 1), low=-255, high=255, specials=0.0 if whole else 0.1))
+    right = data.draw(tensors((b, 1, h + k - 1, w + k - 1 + d - 1), low=-255, high=255,
+                              specials=0.0 if whole else 0.1))
+    if whole:
+        left, right = left.round(), right.round()
+    outside = data.draw(st.sampled_from([None, "mask"]))
+    if outside is not None:
+        outside = data.draw(masks((b, d, 1, w)))
+    _both(_costs_in_cache, left, right, h, w, d, k, outside)
 
 
 @given(shape=st.tuples(st.integers(0, 3), st.integers(0, 5), st.integers(0, 30)), data=st.data())
@@ -458,6 +479,8 @@ def test_dense_object_depths(size, n, fill, data):
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
     ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
     ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
+    ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),
+    ("sad_volume", lambda: (torch.rand(2, 6, 6), torch.rand(1, 6, 8), 4, 4, 3, None)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),
                            torch.ones(1, 2), torch.ones(1, 2, dtype=torch.bool), 4, 2.0)),

@@ -8,13 +8,14 @@ import ctypes
 
 import torch
 
-from ...core.checks import check_shape
+from ...core.checks import check_dtype, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
-from ...core.kernels.checks import check_boxes, check_counts, check_image_hw, check_nonempty, check_number, check_rows
+from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, check_image_hw, check_nonempty,
+                                   check_number, check_rows)
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
-           "region_medians", "semi_global_columns"]
+           "region_medians", "sad_volume", "semi_global_columns"]
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
@@ -23,6 +24,7 @@ declare({
     "labelled_select": ([POINTER] * 4 + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "region_medians": ([POINTER] * 2 + [INT] * 3 + [POINTER] * 2 + [INT], ctypes.c_int),
     "semi_global_columns": ([POINTER] + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
+    "sad_volume": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 4 + [INT], ctypes.c_int),
     "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
                       + [POINTER] * 5 + [INT], ctypes.c_int),
 })
@@ -224,6 +226,52 @@ def semi_global_columns(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor)
     status = library.semi_global_columns(costs.data_ptr(), *costs.shape, p1.data_ptr(), p2.data_ptr(),
                                          out.data_ptr(), torch.get_num_threads())
     return None if status != 0 else out
+
+
+#: The bound on :func:`sad_volume`'s sums: below 2**24 every partial sum of whole numbers is exact in float32.
+EXACT_SUM_LIMIT = 2.0**24
+
+
+def sad_volume(left: torch.Tensor, right: torch.Tensor, height: int, width: int, window_size: int,
+               outside: torch.Tensor | None) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None] | None:
+    """``svs_torch.depth.cost_volume._costs_in_cache`` (see the C source), bit for bit: ``left`` ``(B, height + K − 1,
+    width + K − 1)`` and ``right`` ``(B, height + K − 1, width + K − 1 + D − 1)`` float32 crops, ``outside``
+    ``(B, D, 1, width)`` bool or None. Returns the costs ``(B, D, height, width)`` and, with ``outside``, the winner
+    (min cost, first index) ``(B, height, width)`` each; None when the kernel is not available or the crops do not
+    fit its contract: whole finite numbers whose window sums stay below 2**24 (exact in float32 in any order)."""
+    size = int(window_size)
+    if size < 1:
+        raise InputError(f"window_size: expected a positive int, got {window_size!r}")
+    b = check_shape(left, "left", ["B", height + size - 1, width + size - 1])["B"]
+    d = right.shape[-1] - (width + size - 1) + 1 if right.dim() == 3 else 0
+    if d < 1:
+        raise InputError(f"right: expected (B, {height + size - 1}, {width + size - 1} + D - 1) with D >= 1, got "
+                         f"{tuple(right.shape)}")
+    check_shape(right, "right", [b, height + size - 1, width + size - 1 + d - 1])
+    if outside is not None:
+        check_shape(outside, "outside", [b, d, 1, width])
+        check_dtype(outside, "outside", "bool")
+    if height < 1 or width < 1 or not on_cpu(torch.float32, left, right):
+        return None
+    library = load("sad_volume")
+    if library is None:
+        return None
+    largest = max(float(left.abs().max()), float(right.abs().max())) if b else 0.0
+    # A window's sum is at most K² differences of 2 · largest; a sliding sum holds K + 1 more before it lets go.
+    if not (2 * largest * (size * size + size + 1) < EXACT_SUM_LIMIT  # NaN and inf fail it too
+            and bool((left == left.round()).all()) and bool((right == right.round()).all())):
+        return None
+    left, right = left.contiguous(), right.contiguous()
+    costs = left.new_empty(b, d, height, width)
+    winner = None
+    if outside is not None:
+        winner = (left.new_empty(b, height, width), torch.empty(b, height, width, dtype=torch.int64))
+        outside = canonical_bool(outside).contiguous().view(torch.uint8)
+    status = library.sad_volume(left.data_ptr(), right.data_ptr(), b, d, height, width, size,
+                                None if outside is None else outside.data_ptr(), costs.data_ptr(),
+                                None if winner is None else winner[0].data_ptr(),
+                                None if winner is None else winner[1].data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (costs, winner)
 
 
 def _check_box_rows(boxes: torch.Tensor, name: str, b: int) -> None:
