@@ -16,7 +16,7 @@ from . import kernels
 from .cost_volume import (_box_sum, _cost_volume, _gather_crop, crop_box, prefilter_xsobel, quantize_levels,
                           region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
-from .semi_global import pair_residual_levels, semi_global_aggregate
+from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_stats_torch
 
 __all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
@@ -56,9 +56,10 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
     scale = residual[index] * config.window_size ** 2
     p1, p2 = (factor * scale for factor in config.smoothing_penalties)
-    aggregated = semi_global_aggregate(picked, p1, p2)
-    costs = aggregated if len(index) == len(costs) else costs.index_copy(0, index, aggregated)
-    return costs, costs.min(dim=1)
+    aggregated, winner = semi_global_aggregate_with_winner(picked, p1, p2)
+    if len(index) == len(costs):
+        return aggregated, winner
+    return costs.index_copy(0, index, aggregated), tuple(m.index_copy(0, index, w) for m, w in zip(minimum, winner))
 
 
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,

@@ -25,7 +25,7 @@ import torch
 from ..core.checks import InputError, check_shape
 from . import kernels
 
-__all__ = ["pair_residual_levels", "semi_global_aggregate"]
+__all__ = ["pair_residual_levels", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
 
 
 def _scan_columns_torch(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor:
@@ -71,6 +71,15 @@ def semi_global_aggregate(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tenso
         The columns' paths (down + up) plus the rows' (right + left), in that order. No gradients (the C kernel
         where it runs, else the torch path; the same values bit for bit).
     """
+    return semi_global_aggregate_with_winner(costs, p1, p2)[0]
+
+
+def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor
+                                      ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """:func:`semi_global_aggregate` and its winner-takes-all: (the minimum over D, its first index), ``(B, H, W)``
+    each, as ``S.min(dim=1)``. The C kernels where they run (the rows' paths added to the columns' and the winner
+    taken in the same pass, without a transposed copy of the volume), else the torch path; the same values bit
+    for bit. Arguments and checks as :func:`semi_global_aggregate`'s."""
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
     for name, value in (("p1", p1), ("p2", p2)):
         check_shape(value, name, [dims["B"]])
@@ -79,12 +88,18 @@ def semi_global_aggregate(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tenso
     if not (bool((p1 >= 0).all()) and bool((p2 >= p1).all())):
         raise InputError(f"p1, p2: expected 0 <= p1 <= p2 for every pair, got {p1.tolist()}, {p2.tolist()}")
     p1, p2 = p1.to(costs.dtype), p2.to(costs.dtype)
-    if costs.numel() == 0:
-        return costs.detach().clone()
+    if costs.numel() == 0:  # (with D = 0 the winner is +inf at index 0, as a pixel with every cost +inf)
+        shape = (dims["B"], dims["H"], dims["W"])
+        return costs.detach().clone(), (costs.new_full(shape, torch.inf),
+                                        torch.zeros(shape, dtype=torch.int64, device=costs.device))
     with torch.no_grad():
         columns = _scan_columns(costs, p1, p2)
+        found = kernels.semi_global_rows(costs, p1, p2, columns)
+        if found is not None:
+            return found
         rows = _scan_columns(costs.transpose(-1, -2).contiguous(), p1, p2).transpose(-1, -2)
-        return columns + rows
+        aggregated = columns + rows
+        return aggregated, aggregated.min(dim=1)
 
 
 def pair_residual_levels(best_cost: torch.Tensor, wanted: torch.Tensor, window_size: int) -> torch.Tensor:

@@ -27,7 +27,7 @@ from svs_torch.core.types import FundamentalStatus, Keypoints
 from svs_torch.depth import kernels as depth_kernels
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
 from svs_torch.depth.cost_volume import _costs_in_cache
-from svs_torch.depth.semi_global import semi_global_aggregate
+from svs_torch.depth.semi_global import semi_global_aggregate, semi_global_aggregate_with_winner
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
 from svs_torch.depth.dense_objects import dense_object_depths
 from svs_torch.depth.depth_types import ObjectDepths
@@ -200,7 +200,9 @@ def test_dense_disparity_over_regions(size, data):
 def test_semi_global_aggregate(shape, data):
     costs = data.draw(tensors(shape, low=0, high=300, specials=0.1)).abs()
     p1 = data.draw(tensors(shape[:1], low=0, high=50, specials=0.0))
-    _both(semi_global_aggregate, costs, p1, p1 * data.draw(st.sampled_from([1.0, 4.0])))
+    p2 = p1 * data.draw(st.sampled_from([1.0, 4.0]))
+    _both(semi_global_aggregate, costs, p1, p2)
+    _both(semi_global_aggregate_with_winner, costs, p1, p2)
 
 
 @given(shape=st.tuples(st.integers(0, 3), st.integers(1, 6), st.integers(1, 9), st.integers(1, 20)),
@@ -480,6 +482,8 @@ def test_dense_object_depths(size, n, fill, data):
     ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
     ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
     ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),
+    ("semi_global_rows", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(2), torch.zeros(2), torch.rand(2, 3, 5, 4))),
+    ("semi_global_rows", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2), torch.rand(2, 3, 4, 5))),
     ("sad_volume", lambda: (torch.rand(2, 6, 6), torch.rand(1, 6, 8), 4, 4, 3, None)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),

@@ -14,7 +14,8 @@ from svs_torch.core.errors import InputError
 from svs_torch.depth import kernels
 from svs_torch.depth.block_matching import dense_disparity_over_regions
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
-from svs_torch.depth.semi_global import _scan_columns_torch, pair_residual_levels, semi_global_aggregate
+from svs_torch.depth.semi_global import (_scan_columns_torch, pair_residual_levels, semi_global_aggregate,
+                                         semi_global_aggregate_with_winner)
 
 
 def _volume(generator: torch.Generator, b: int = 3, d: int = 7, h: int = 11, w: int = 70) -> torch.Tensor:
@@ -56,6 +57,27 @@ def test_kernel_is_bit_identical_to_the_torch_path(generator):
     assert torch.equal(fused, _scan_columns_torch(costs, p1, p2))
     empty = kernels.semi_global_columns(costs[:0], p1[:0], p2[:0])
     assert empty is not None and empty.shape == (0, 7, 11, 70)
+
+
+def test_rows_kernel_and_winner_are_bit_identical_to_the_torch_path(generator):
+    """The rows' kernel (the row paths added to the columns' and the winner in one pass) against the torch path:
+    the columns' scan of the transposed volume, the sum, ``min(dim=1)``; ties (a flat volume, no penalties) take
+    the first disparity."""
+    for costs, p1, p2 in ((_volume(generator), torch.tensor([3.0, 0.0, 10.0]), torch.tensor([12.0, 0.0, 40.0])),
+                          (_volume(generator, d=40, h=9, w=37), torch.tensor([2.5, 1.0, 0.5]), torch.tensor([9.0, 1.0, 8.0])),
+                          (torch.zeros(2, 6, 5, 7), torch.zeros(2), torch.zeros(2))):
+        columns = _scan_columns_torch(costs, p1, p2)
+        fused = kernels.semi_global_rows(costs, p1, p2, columns)
+        if fused is None:
+            pytest.skip("no C compiler here")
+        expected = columns + _scan_columns_torch(costs.transpose(-1, -2).contiguous(), p1, p2).transpose(-1, -2)
+        minimum = expected.min(dim=1)
+        assert torch.equal(fused[0], expected)
+        assert torch.equal(fused[1][0], minimum.values) and torch.equal(fused[1][1], minimum.indices)
+        aggregated, (low, index) = semi_global_aggregate_with_winner(costs, p1, p2)
+        assert torch.equal(aggregated, expected) and torch.equal(index, minimum.indices)
+    with pytest.raises(InputError, match=r"^columns: expected"):
+        kernels.semi_global_rows(costs, p1, p2, columns[:, :, :-1])
 
 
 def test_aggregation_is_eq13_summed_over_four_paths(generator):

@@ -15,7 +15,7 @@ from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, c
                                    check_number, check_rows)
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
-           "region_medians", "sad_volume", "semi_global_columns"]
+           "region_medians", "sad_volume", "semi_global_columns", "semi_global_rows"]
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
@@ -25,6 +25,7 @@ declare({
     "region_medians": ([POINTER] * 2 + [INT] * 3 + [POINTER] * 2 + [INT], ctypes.c_int),
     "semi_global_columns": ([POINTER] + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "sad_volume": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 4 + [INT], ctypes.c_int),
+    "semi_global_rows": ([POINTER] + [INT] * 4 + [POINTER] * 6 + [INT], ctypes.c_int),
     "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
                       + [POINTER] * 5 + [INT], ctypes.c_int),
 })
@@ -226,6 +227,30 @@ def semi_global_columns(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor)
     status = library.semi_global_columns(costs.data_ptr(), *costs.shape, p1.data_ptr(), p2.data_ptr(),
                                          out.data_ptr(), torch.get_num_threads())
     return None if status != 0 else out
+
+
+def semi_global_rows(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor, columns: torch.Tensor
+                     ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]] | None:
+    """The rows' paths of :mod:`svs_torch.depth.semi_global` added to ``columns`` (:func:`semi_global_columns` of
+    the same ``costs``), and the sum's winner (see the C source), bit for bit: ``costs``, ``columns``
+    ``(B, D, H, W)`` float32, ``p1``, ``p2`` ``(B,)`` float32. Returns the aggregated volume and its (min, first
+    index) over D, ``(B, H, W)`` each; None when the kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
+    check_shape(columns, "columns", list(costs.shape))
+    check_shape(p1, "p1", [dims["B"]])
+    check_shape(p2, "p2", [dims["B"]])
+    if dims["D"] < 1 or not on_cpu(torch.float32, costs, p1, p2, columns):
+        return None
+    library = load("semi_global_rows")
+    if library is None:
+        return None
+    costs, p1, p2, columns = costs.contiguous(), p1.contiguous(), p2.contiguous(), columns.contiguous()
+    out = torch.empty_like(costs)
+    low = costs.new_empty(dims["B"], dims["H"], dims["W"])
+    best = torch.empty(dims["B"], dims["H"], dims["W"], dtype=torch.int64)
+    status = library.semi_global_rows(costs.data_ptr(), *costs.shape, p1.data_ptr(), p2.data_ptr(), columns.data_ptr(),
+                                      out.data_ptr(), low.data_ptr(), best.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (out, (low, best))
 
 
 #: The bound on :func:`sad_volume`'s sums: below 2**24 every partial sum of whole numbers is exact in float32.

@@ -7,9 +7,9 @@
  *   L(y, x, d) = C(y, x, d) + min(L(y-1, x, d), min(L(y-1, x, d-1), L(y-1, x, d+1)) + P1, m + P2) - m
  *   m = min_d L(y-1, x, d);  where m = +inf (the previous row wholly +inf: outside the pair's region) the path
  *   starts again: L(y, x, d) = C(y, x, d)
- * down the rows, then up them; out = L_down + L_up. The row paths are the same scan over the transposed volume
- * (the caller's). The float32 operations are the torch path's, in its order, so the values are the same bit
- * for bit: adds of the same operands and minima, which do no arithmetic.
+ * down the rows, then up them; out = L_down + L_up. The row paths are semi_global_rows.c's (without it, the torch
+ * path runs this scan over the transposed volume). The float32 operations are the torch path's, in its order, so
+ * the values are the same bit for bit: adds of the same operands and minima, which do no arithmetic.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: the +inf costs mark
  * disparities outside the image and pixels outside the pair's region). Loaded through ctypes by
