@@ -59,7 +59,8 @@ class DenseConfig:
         kernel: how the hard path is computed: ``"auto"`` the fused C kernel of :mod:`svs_torch.depth.kernels`
             where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and
             range: bit-identical to the torch path, several times faster), else torch; ``"c"`` the kernel or an
-            error; ``"torch"`` the eager torch cost volume.
+            error; ``"torch"`` the eager torch cost volume and its torch window sums (the semi-global aggregation
+            below runs its C kernels under every setting: the same values as its torch path).
         smoothing_penalties: ``(P1, P2)``: aggregate the SAD volume semi-globally before the winner
             (:mod:`svs_torch.depth.semi_global`), with penalties in multiples of the pair's matching residual
             (the median best SAD per window pixel over the wanted pixels, 8-bit levels of the clipped x-Sobel);
@@ -68,7 +69,7 @@ class DenseConfig:
             (clean frames) are not aggregated, nor pairs the stage reduces by more than
             ``smoothing_max_reduction`` (``working_width_px``: the box average has already averaged the noise).
             The fused kernel matches every pair and reports its residual; only the noisy pairs are matched again
-            on the torch cost volume, aggregated by a C kernel.
+            on their whole cost volume (window sums, then the aggregation and its winner, by C kernels).
         retry_smoothing_penalties: ``smoothing_penalties`` of the pipeline's second pass at half the working
             width (``PipelineConfig.coarse_retry_below_share``: the pairs the first pass measured too little of),
             where the default aggregates; the first pass stays plain block matching (``experiments/real_rig.md``,

@@ -64,7 +64,8 @@ def test_rows_kernel_and_winner_are_bit_identical_to_the_torch_path(generator):
     the columns' scan of the transposed volume, the sum, ``min(dim=1)``; ties (a flat volume, no penalties) take
     the first disparity."""
     for costs, p1, p2 in ((_volume(generator), torch.tensor([3.0, 0.0, 10.0]), torch.tensor([12.0, 0.0, 40.0])),
-                          (_volume(generator, d=40, h=9, w=37), torch.tensor([2.5, 1.0, 0.5]), torch.tensor([9.0, 1.0, 8.0])),
+                          (_volume(generator, d=40, h=9, w=37), torch.tensor([2.5, 1.0, 0.5]),
+                           torch.tensor([9.0, 1.0, 8.0])),
                           (torch.zeros(2, 6, 5, 7), torch.zeros(2), torch.zeros(2))):
         columns = _scan_columns_torch(costs, p1, p2)
         fused = kernels.semi_global_rows(costs, p1, p2, columns)

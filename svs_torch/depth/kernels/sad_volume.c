@@ -7,7 +7,7 @@
  * the K-row column sums of its differences in cache, sliding them down the band (one row added, one taken
  * away) and the window along each row the same way.
  *
- *   costs[b, d, y, x] = sum over the K x K window at (y, x) of |left[b, y + i, x + j] - right[b, y + i, x + j + D - 1 - d]|
+ *   costs[b, d, y, x] = the sum over i, j < K of |left[b, y + i, x + j] - right[b, y + i, x + j + D - 1 - d]|
  *                       (+inf where outside[b, d, x])
  *   best_cost, best   = the minimum over d and its first index (d ascending, strictly less replaces)
  *
