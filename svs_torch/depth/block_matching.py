@@ -76,7 +76,7 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
     plain = costs
     if region is not None and config.smoothing_penalties is not None:
         costs, minimum = _smooth(costs, minimum, config, counts, extra, region)
-    stats = _winner_stats_torch(costs, minimum, uniqueness, right_check)
+    stats = _winner_stats_torch(costs, minimum, uniqueness, right_check, compiled=config.kernel != "torch")
     if costs is not plain:
         # The aggregation picks the winner and makes the verdicts; the sub-pixel fit stays on the plain SAD
         # costs at winner − 1, winner, winner + 1 (equal to the aggregated ones / 4 where nothing was

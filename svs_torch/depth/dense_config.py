@@ -69,7 +69,8 @@ class DenseConfig:
             (clean frames) are not aggregated, nor pairs the stage reduces by more than
             ``smoothing_max_reduction`` (``working_width_px``: the box average has already averaged the noise).
             The fused kernel matches every pair and reports its residual; only the noisy pairs are matched again
-            on their whole cost volume (window sums, then the aggregation and its winner, by C kernels).
+            on their whole cost volume (its window sums, aggregation, winner and the winner's statistics by C
+            kernels).
         retry_smoothing_penalties: ``smoothing_penalties`` of the pipeline's second pass at half the working
             width (``PipelineConfig.coarse_retry_below_share``: the pairs the first pass measured too little of),
             where the default aggregates; the first pass stays plain block matching (``experiments/real_rig.md``,

@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 
+from . import kernels
 from .dense_config import DenseConfig
 
 __all__ = ["equiangular_offset"]
@@ -37,12 +38,16 @@ class _WinnerStats(NamedTuple):
 
 
 def _winner_stats_torch(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], uniqueness: bool,
-                        right: bool) -> _WinnerStats:
+                        right: bool, compiled: bool = True) -> _WinnerStats:
     """:class:`_WinnerStats` from the cost volume ``(B, D, h, w)`` (+inf where not searched) and its WTA
     ``minimum`` (found by :func:`_cost_volume`). ``costs`` is read, and restored after the uniqueness rival
-    writes into it."""
+    writes into it. ``compiled``: the C kernel :func:`svs_torch.depth.kernels.winner_statistics` where it runs
+    (the same values bit for bit, one read of the volume for each statistic), else the torch operations below."""
     num_disparities = costs.shape[1]
     best_cost, best = minimum  # (B, h, w)
+    found = kernels.winner_statistics(costs, best, uniqueness, right) if compiled and not costs.requires_grad else None
+    if found is not None:
+        return _WinnerStats(best_cost, best, *found)
     neighbours = (best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
     neighbours = neighbours.clamp(0, num_disparities - 1)  # (B, 3, h, w)
     near = costs.gather(1, neighbours)

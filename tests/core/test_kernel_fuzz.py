@@ -28,6 +28,7 @@ from svs_torch.depth import kernels as depth_kernels
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
 from svs_torch.depth.cost_volume import _costs_in_cache
 from svs_torch.depth.semi_global import semi_global_aggregate, semi_global_aggregate_with_winner
+from svs_torch.depth.winner import _winner_stats_torch
 from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, DisparityRange
 from svs_torch.depth.dense_objects import dense_object_depths
 from svs_torch.depth.depth_types import ObjectDepths
@@ -223,6 +224,18 @@ def test_sad_volume(shape, data):
     if outside is not None:
         outside = data.draw(masks((b, d, 1, w)))
     _both(_costs_in_cache, left, right, h, w, d, k, outside)
+
+
+@given(shape=st.tuples(st.integers(0, 3), st.integers(1, 6), st.integers(0, 5), st.integers(0, 24)), data=st.data())
+@examples(40)
+def test_winner_statistics(shape, data):
+    """The winner's statistics of a volume (the noisy pairs' aggregated one): NaN, ±inf and huge costs; the box is
+    at least as wide as the range, as the dense stage's always is."""
+    b, d, h, w = shape
+    costs = data.draw(tensors((b, d, h, w + d), low=0, high=300, specials=0.1))
+    minimum = costs.min(dim=1) if costs.numel() else (costs.new_empty(b, h, w + d),
+                                                        torch.zeros(b, h, w + d, dtype=torch.int64))
+    _both(_winner_stats_torch, costs, minimum, data.draw(st.booleans()), data.draw(st.booleans()))
 
 
 @given(shape=st.tuples(st.integers(0, 3), st.integers(0, 5), st.integers(0, 30)), data=st.data())
@@ -484,6 +497,8 @@ def test_dense_object_depths(size, n, fill, data):
     ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),
     ("semi_global_rows", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(2), torch.zeros(2), torch.rand(2, 3, 5, 4))),
     ("semi_global_rows", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2), torch.rand(2, 3, 4, 5))),
+    ("winner_statistics", lambda: (torch.rand(1, 3, 4, 5), torch.full((1, 4, 5), 3), True, True)),
+    ("winner_statistics", lambda: (torch.rand(1, 3, 4, 5), torch.zeros(1, 5, 4, dtype=torch.int64), True, True)),
     ("sad_volume", lambda: (torch.rand(2, 6, 6), torch.rand(1, 6, 8), 4, 4, 3, None)),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), -1), 2)),
     ("lk_refine", lambda: (torch.rand(1, 1, 8, 8), torch.rand(1, 1, 4, 4), torch.zeros(1, 2, 2), torch.zeros(1, 2, 2),

@@ -15,7 +15,7 @@ from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, c
                                    check_number, check_rows)
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
-           "region_medians", "sad_volume", "semi_global_columns", "semi_global_rows"]
+           "region_medians", "sad_volume", "semi_global_columns", "semi_global_rows", "winner_statistics"]
 
 declare({
     "block_match": ([POINTER] * 3 + [INT, FLOAT] + [INT] * 5 + [POINTER] * 5 + [FLOAT] * 3 + [INT]
@@ -26,6 +26,7 @@ declare({
     "semi_global_columns": ([POINTER] + [INT] * 4 + [POINTER] * 3 + [INT], ctypes.c_int),
     "sad_volume": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 4 + [INT], ctypes.c_int),
     "semi_global_rows": ([POINTER] + [INT] * 4 + [POINTER] * 6 + [INT], ctypes.c_int),
+    "winner_statistics": ([POINTER] * 2 + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
     "object_depths": ([POINTER] * 3 + [INT] * 3 + [POINTER] * 2 + [INT] + [POINTER] * 3 + [INT, POINTER, INT]
                       + [POINTER] * 5 + [INT], ctypes.c_int),
 })
@@ -251,6 +252,34 @@ def semi_global_rows(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor, co
     status = library.semi_global_rows(costs.data_ptr(), *costs.shape, p1.data_ptr(), p2.data_ptr(), columns.data_ptr(),
                                       out.data_ptr(), low.data_ptr(), best.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (out, (low, best))
+
+
+def winner_statistics(costs: torch.Tensor, best: torch.Tensor, uniqueness: bool, right: bool
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None] | None:
+    """``svs_torch.depth.winner._winner_stats_torch``'s statistics of the winners ``best`` ``(B, H, W)`` int64 in a
+    volume ``costs`` ``(B, D, H, W)`` float32 (see the C source), bit for bit: the costs at best ∓ 1 (clamped), with
+    ``uniqueness`` the least cost farther than 1 from best, with ``right`` the right view's winner; None when the
+    kernel is not available or the inputs do not fit its contract."""
+    dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
+    check_shape(best, "best", [dims["B"], dims["H"], dims["W"]])
+    check_dtype(best, "best", "int")
+    if best.numel() and not (int(best.min()) >= 0 and int(best.max()) < dims["D"]):
+        raise InputError(f"best: expected indices in [0, {dims['D']}), got values from {int(best.min())} to "
+                         f"{int(best.max())}")
+    if dims["D"] < 1 or not (on_cpu(torch.float32, costs) and on_cpu(torch.int64, best)):
+        return None
+    library = load("winner_statistics")
+    if library is None:
+        return None
+    costs, best = costs.contiguous(), best.contiguous()
+    shape = (dims["B"], dims["H"], dims["W"])
+    before, after = costs.new_empty(shape), costs.new_empty(shape)
+    rival = costs.new_empty(shape) if uniqueness else None
+    right_best = torch.empty(shape, dtype=torch.int64) if right else None
+    status = library.winner_statistics(costs.data_ptr(), best.data_ptr(), *costs.shape, before.data_ptr(),
+                                       after.data_ptr(), None if rival is None else rival.data_ptr(),
+                                       None if right_best is None else right_best.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (before, after, rival, right_best)
 
 
 #: The bound on :func:`sad_volume`'s sums: below 2**24 every partial sum of whole numbers is exact in float32.
