@@ -8,8 +8,9 @@
  *                   cost replaces it, as the torch path's running minimum), -1 where that minimum is not finite
  * The torch path gathers the neighbours, scatters +inf into the volume, takes a minimum over it and restores it,
  * then runs D small operations for the right winner: about 15 ms for one pair's 160 x 330 x 64 volume on two
- * threads. Here each task holds one row of one pair and reads the row's D lines once for each statistic (2 ms). Minima do no arithmetic and the NaN rules are
- * torch.minimum's (a NaN anywhere in a minimum makes it NaN), so the values are the torch path's bit for bit.
+ * threads. Here each task holds one row of one pair and reads the row's D lines once for each statistic (2 ms).
+ * Minima do no arithmetic and the NaN rules are torch.minimum's (a NaN anywhere in a minimum makes it NaN), so the
+ * values are the torch path's bit for bit.
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: +inf marks the costs
  * outside the image or the pair's range). Loaded through ctypes by svs_torch/depth/kernels/__init__.py, which falls
