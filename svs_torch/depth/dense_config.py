@@ -59,8 +59,9 @@ class DenseConfig:
         kernel: how the hard path is computed: ``"auto"`` the fused C kernel of :mod:`svs_torch.depth.kernels`
             where it can be built (costs, winner, rejections and sub-pixel fit, each pair at its own box and
             range: bit-identical to the torch path, several times faster), else torch; ``"c"`` the kernel or an
-            error; ``"torch"`` the eager torch cost volume and its torch window sums (the semi-global aggregation
-            below runs its C kernels under every setting: the same values as its torch path).
+            error; ``"torch"`` the eager torch cost volume, with its window sums and its winner's statistics in
+            torch too (the semi-global aggregation below runs its C kernels under every setting: the same values
+            as its torch path).
         smoothing_penalties: ``(P1, P2)``: aggregate the SAD volume semi-globally before the winner
             (:mod:`svs_torch.depth.semi_global`), with penalties in multiples of the pair's matching residual
             (the median best SAD per window pixel over the wanted pixels, 8-bit levels of the clipped x-Sobel);
