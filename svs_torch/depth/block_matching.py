@@ -17,7 +17,7 @@ from .cost_volume import (_box_sum, _cost_volume, _gather_crop, crop_box, prefil
                           region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
 from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
-from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_stats_torch
+from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
 
 __all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
 
@@ -81,8 +81,7 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
         # The aggregation picks the winner and makes the verdicts; the sub-pixel fit stays on the plain SAD
         # costs at winner − 1, winner, winner + 1 (equal to the aggregated ones / 4 where nothing was
         # aggregated), which the differentiable pass recomputes from the images (pipeline.soft, step 1).
-        neighbours = (stats.best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
-        near = plain.gather(1, neighbours.clamp(0, num_disparities - 1))
+        near = plain.gather(1, _winner_neighbours(stats.best, num_disparities))
         stats = stats._replace(before=near[:, 0], after=near[:, 2], fit_cost=near[:, 1])
     core = slice(extra, width - extra)
     return _WinnerStats(*(None if t is None else t[..., core] for t in stats[:5]), stats.right_best,

@@ -37,6 +37,13 @@ class _WinnerStats(NamedTuple):
     fit_cost: torch.Tensor | None = None  # the sub-pixel fit's winner cost where it is not best_cost (aggregation)
 
 
+def _winner_neighbours(best: torch.Tensor, num_disparities: int) -> torch.Tensor:
+    """``(B, 3, h, w)``: the indices best − 1, best, best + 1 of the winners ``best`` ``(B, h, w)``, clamped to
+    the range (gather them from a ``(B, D, h, w)`` volume for the costs the sub-pixel fit reads)."""
+    neighbours = best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=best.device).view(1, 3, 1, 1)
+    return neighbours.clamp(0, num_disparities - 1)
+
+
 def _winner_stats_torch(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], uniqueness: bool,
                         right: bool, compiled: bool = True) -> _WinnerStats:
     """:class:`_WinnerStats` from the cost volume ``(B, D, h, w)`` (+inf where not searched) and its WTA
@@ -48,8 +55,7 @@ def _winner_stats_torch(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.
     found = kernels.winner_statistics(costs, best, uniqueness, right) if compiled and not costs.requires_grad else None
     if found is not None:
         return _WinnerStats(best_cost, best, *found)
-    neighbours = (best.unsqueeze(1) + torch.tensor([-1, 0, 1], device=costs.device).view(1, 3, 1, 1))
-    neighbours = neighbours.clamp(0, num_disparities - 1)  # (B, 3, h, w)
+    neighbours = _winner_neighbours(best, num_disparities)
     near = costs.gather(1, neighbours)
     rival = None
     if uniqueness:  # the best cost farther than 1 px from the winner, without copying the volume
