@@ -19,7 +19,7 @@ from .dense_config import DenseConfig, DenseDisparity, DisparityRange
 from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
 
-__all__ = ["block_match_sad", "dense_disparity_over_regions", "fill_invalid_rows"]
+__all__ = ["block_match_sad", "block_match_sad_with_residual", "dense_disparity_over_regions", "fill_invalid_rows"]
 
 #: Noisy pairs matched again and aggregated together (:func:`_smooth_noisy_pairs`); their maps do not depend on it.
 SMOOTH_BLOCK_PAIRS = 4
@@ -132,10 +132,10 @@ def _match_compiled(left: torch.Tensor, right: torch.Tensor, boxes: torch.Tensor
 def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                width: int, search: DisparityRange, image_hw: torch.Tensor, config: DenseConfig,
                lower_is_limit: torch.Tensor, region: tuple[torch.Tensor, torch.Tensor] | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Disparity ``(B, height, width)`` and validity of the box at (x0, y0) of the images. The volume spans
-    D − 1 extra columns on each side so the right view's winner (left–right check) sees every candidate.
-    ``region``: see :func:`_winner_stats`."""
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Disparity ``(B, height, width)``, validity and the winning cost (+inf: no candidate) of the box at (x0, y0)
+    of the images. The volume spans D − 1 extra columns on each side so the right view's winner (left–right
+    check) sees every candidate. ``region``: see :func:`_winner_stats`."""
     sobel = prefilter_xsobel(left, config.prefilter_cap)
     if config.prefilter == "xsobel":
         left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
@@ -165,7 +165,7 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     ok &= (rows >= 0) & (rows < image_hw[:, :1, None]) & (cols >= 0) & (cols < image_hw[:, 1:, None])
     if config.whole_range_in_view:  # the pair's largest disparity must still land inside the right image
         ok &= cols >= (search.min_disparity_px + counts - 1).view(-1, 1, 1)
-    return torch.where(ok, disparity, torch.zeros_like(disparity)), ok
+    return torch.where(ok, disparity, torch.zeros_like(disparity)), ok, stats.best_cost
 
 
 def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -238,6 +238,26 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
     docstring, are invalid. ``image_hw`` ``(B, 2)`` gives each pair's size before padding (default: all of it).
     Not differentiable (winner takes all); see :func:`soft_block_match`.
     """
+    return _match_whole(left, right, min_disparity_px, num_disparities, config, image_hw, best_cost=False)[0]
+
+
+def block_match_sad_with_residual(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int,
+                                  num_disparities: int, config: DenseConfig = DenseConfig(),
+                                  image_hw: torch.Tensor | None = None) -> tuple[DenseDisparity, torch.Tensor]:
+    """:func:`block_match_sad` and each pair's matching residual ``(B,)``: the median winning SAD per window pixel
+    over its pixels with a candidate, in 8-bit levels of the pre-filtered images
+    (:func:`~svs_torch.depth.semi_global.pair_residual_levels`, the gate of ``DenseConfig.smoothing_penalties``).
+    The tuned Middlebury scenes at the nearness segmenter's settings (7×7 at 320 px wide): clean 1.9–7.5 levels,
+    as camera frames from JPEG digit 3 with σ 3 on 8.7–13.4 at 320×240. Not differentiable."""
+    found, best_cost = _match_whole(left, right, min_disparity_px, num_disparities, config, image_hw, best_cost=True)
+    return found, pair_residual_levels(best_cost, torch.ones_like(best_cost, dtype=torch.bool), config.window_size)
+
+
+def _match_whole(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int, num_disparities: int,
+                 config: DenseConfig, image_hw: torch.Tensor | None, best_cost: bool
+                 ) -> tuple[DenseDisparity, torch.Tensor | None]:
+    """:func:`block_match_sad` and every pixel's winning cost ``(B, H, W)`` (+inf: no candidate), which the
+    fused kernel writes only when asked (``best_cost``; None otherwise) and the torch path always has."""
     b = _check_pair(left, right)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
     h, w = left.shape[-2:]
@@ -245,14 +265,15 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
     zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
     search = DisparityRange(minimum, num_disparities)
     box = torch.tensor([[0, 0, w, h]], device=left.device).expand(b, 4)
-    found = _match_compiled(left, right, box, search, image_hw, config, minimum <= 0)
+    counts = torch.full_like(minimum, num_disparities)
+    found = _match_compiled(left, right, box, search, image_hw, config, minimum <= 0, best_cost=best_cost)
     if found is not None:
-        return DenseDisparity(found[0], found[1], minimum, num_disparities, box.clone(),
-                              torch.full_like(minimum, num_disparities))
-    disparity, ok = _match_box(left, right, zeros, zeros, h, w, search,
-                               image_hw, config, lower_is_limit=minimum <= 0)
+        return (DenseDisparity(found[0], found[1], minimum, num_disparities, box.clone(), counts),
+                found[2] if best_cost else None)
+    disparity, ok, winning = _match_box(left, right, zeros, zeros, h, w, search, image_hw, config,
+                                        lower_is_limit=minimum <= 0)
     return DenseDisparity(disparity.unsqueeze(1), ok.unsqueeze(1), minimum, num_disparities, box.clone(),
-                          torch.full_like(minimum, num_disparities))
+                          counts), winning
 
 
 def _smooth_noisy_pairs(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
@@ -326,8 +347,8 @@ def _over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, s
         return DenseDisparity(disparity, valid, minimum, search.num_disparities, own, counts)
     wanted = some.view(-1, 1, 1) & crop_box(wanted_pixels(mask, config.margin_px), x0, y0, height, width)[:, 0]
     own_in_box = own - torch.stack([x0, y0, torch.zeros_like(x0), torch.zeros_like(y0)], 1)
-    disparity, ok = _match_box(left, right, x0, y0, height, width, search, image_hw, config,
-                               lower_is_limit=minimum <= 0, region=(wanted, own_in_box))
+    disparity, ok, _ = _match_box(left, right, x0, y0, height, width, search, image_hw, config,
+                                  lower_is_limit=minimum <= 0, region=(wanted, own_in_box))
     ok &= wanted
     rows = y0.view(-1, 1, 1) + torch.arange(height, device=left.device).view(1, -1, 1)
     cols = x0.view(-1, 1, 1) + torch.arange(width, device=left.device).view(1, 1, -1)

@@ -406,21 +406,22 @@ def test_dense_kernel_same_for_any_thread_count(threads):
 @needs_kernel
 def test_dense_kernel_equals_the_torch_box_matcher():
     """Each pair at its own box and range equals the torch path's shared box (dense._match_box, which the
-    kernel replaces) inside that box, and nothing is written outside it."""
+    kernel replaces) inside that box, its winning costs too, and nothing is written outside it."""
     from svs_torch.depth import block_matching as dense
 
     left, right, _, size, boxes, minimum, counts, image_hw, lower = _block_match_inputs(3)
     config = dense.DenseConfig(window_size=size, prefilter="none", texture_threshold=0.0, kernel="torch")
     search = dense.DisparityRange(minimum, 16, counts)
     found = depth_kernels.block_match(left, right, None, size, boxes, minimum, counts, image_hw, lower,
-                                      config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False)
-    expected, ok = dense._match_box(left.unsqueeze(1) / 255, right.unsqueeze(1) / 255, boxes[:, 0], boxes[:, 1],
-                                    130, 90, search, image_hw, config, lower)
+                                      config.uniqueness_ratio, config.lr_max_diff_px, 0.0, False, best_cost=True)
+    expected, ok, cost = dense._match_box(left.unsqueeze(1) / 255, right.unsqueeze(1) / 255, boxes[:, 0],
+                                          boxes[:, 1], 130, 90, search, image_hw, config, lower)
     for b, (x0, y0, w, h) in enumerate(boxes.tolist()):
         inside = torch.zeros(130, 90, dtype=torch.bool)
         inside[y0:y0 + h, x0:x0 + w] = True
         assert torch.equal(found[1][b][inside], ok[b][:h, :w].flatten()) and not found[1][b][~inside].any()
         assert torch.equal(found[0][b][inside], expected[b][:h, :w].flatten())
+        assert torch.equal(found[2][b][inside], cost[b][:h, :w].flatten()) and found[2][b][~inside].isnan().all()
     assert found[1].sum() > 1000
 
 

@@ -12,7 +12,7 @@ import torch
 
 from svs_torch.core.errors import InputError
 from svs_torch.depth import kernels
-from svs_torch.depth.block_matching import dense_disparity_over_regions
+from svs_torch.depth.block_matching import block_match_sad, block_match_sad_with_residual, dense_disparity_over_regions
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
 from svs_torch.depth.semi_global import (_scan_columns_torch, pair_residual_levels, semi_global_aggregate,
                                          semi_global_aggregate_with_winner)
@@ -123,6 +123,25 @@ def test_residual_is_the_median_winner_cost_per_window_pixel():
     wanted = torch.tensor([[[True, True, True], [True, False, False]]])
     assert pair_residual_levels(best, wanted, 3).tolist() == [2.0]
     assert pair_residual_levels(best, torch.zeros_like(wanted), 3).tolist() == [0.0]
+
+
+def test_whole_view_residual_is_the_fused_kernels_and_the_torch_paths():
+    """:func:`block_match_sad_with_residual` (the nearness segmenter's noise gate): the map is
+    :func:`block_match_sad`'s and the residual the median winning cost per window pixel, the same from the fused
+    kernel and the torch path, pair by pair; a noisy pair's is above a clean one's."""
+    noisy_left, noisy_right = _noisy_plane(seed=10, sigma=0.04)
+    clean_left, clean_right = _noisy_plane(seed=11, sigma=0.0)
+    left, right = torch.cat([clean_left, noisy_left]), torch.cat([clean_right, noisy_right])
+    config = DenseConfig(window_size=5)
+    found, residual = block_match_sad_with_residual(left, right, 0, 16, config)
+    eager, eager_residual = block_match_sad_with_residual(left, right, 0, 16, replace(config, kernel="torch"))
+    plain = block_match_sad(left, right, 0, 16, config)
+    assert torch.equal(found.disparity_px, plain.disparity_px) and torch.equal(found.valid, plain.valid)
+    assert torch.equal(eager.disparity_px, plain.disparity_px) and torch.equal(eager.valid, plain.valid)
+    assert torch.equal(residual, eager_residual)
+    alone = block_match_sad_with_residual(noisy_left, noisy_right, 0, 16, config)[1]
+    assert torch.equal(alone, residual[1:])
+    assert float(residual[0]) == 0 < float(residual[1])  # the clean plane matches exactly
 
 
 def _noisy_plane(seed: int, sigma: float, shift_px: int = 6, h: int = 60, w: int = 96) -> tuple[torch.Tensor, ...]:
