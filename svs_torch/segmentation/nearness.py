@@ -7,8 +7,9 @@ it:
 
 1. **Disparity** (:func:`measure_nearness_disparity`): the dense stage's SAD block matcher over the whole left
    view (:func:`svs_torch.depth.dense.block_match_sad`: x-Sobel pre-filter, texture, uniqueness and left–right
-   rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px``, its rejected pixels
-   filled along their rows from the nearest measured ones, the farther side at an occlusion
+   rejections; the fused C kernel, about 0.5 ms a pair at 160 px) at ``working_width_px`` (a camera frame whose
+   noise the matching residual shows matched again with a wider window: :mod:`.nearness_denoise`), its rejected
+   pixels filled along their rows from the nearest measured ones, the farther side at an occlusion
    (:func:`svs_torch.depth.block_matching.fill_invalid_rows`): a rejection left as a hole breaks a region apart;
    then a median over about 14 working pixels removes the specks and one-row streaks that JPEG frames with sensor
    noise leave (optionally, a pair whose matcher accepted little of the view has its matches checked against
@@ -53,12 +54,10 @@ from ..core.checks import InputError, check_image
 from ..core.pair_trees import take_pairs
 from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
-from ..depth.block_matching import block_match_sad
 from ..depth.dense_config import DenseConfig
-from ..depth.soft_dense import soft_block_match
 from .components import connected_components_with_stats, region_properties
 from .morphology import open_binary, structuring_element
-from .nearness_denoise import denoised_map
+from .nearness_denoise import denoised_map, match_by_noise, soft_match_by_noise
 from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
 from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
@@ -91,6 +90,12 @@ class NearnessNetConfig:
         uniqueness_ratio: the block matcher's uniqueness rule (:class:`~svs_torch.depth.dense_config.DenseConfig`).
         median_window: side of the median filter over the filled disparity, taken on the map halved (box
             average) so a side of 7 spans about 14 working pixels; 1: no filter.
+        noisy_window_size, noisy_min_residual_levels: a pair whose matching residual at ``window_size`` (the median
+            winning SAD per window pixel, 8-bit levels of the clipped x-Sobel) reaches ``noisy_min_residual_levels``
+            is matched again with a ``noisy_window_size`` window (a camera frame's noise: :mod:`.nearness_denoise`);
+            ``noisy_window_size == window_size``: never. Chosen on the tuning sets (experiments/real_rig.md, "A
+            wider window for noisy pairs"). A weights file written before these settings existed (the shipped one)
+            takes these defaults.
         sparse_median_window, sparse_share: the median's side for a pair whose block matcher accepted less than
             ``sparse_share`` of the left view: a camera frame's noise (JPEG, sensor noise, a dim scene), whose map
             is then sparse specks that a 7×7 median keeps as regions. Clean pairs accept 41 % or more
@@ -116,6 +121,8 @@ class NearnessNetConfig:
     # The tuned split's camera frames at 320x240 (experiments/real_rig.py --splits tuned [--contrast 0.5]
     # --conditions clean,jpeg --no-rival), per object over the eight digits, PianoL aside: full contrast
     # 96.26 -> 96.72 %, half contrast 85.07 -> 91.29 % (digit 4: 81.7 -> 95.5); clean pairs unchanged.
+    noisy_window_size: int = 11
+    noisy_min_residual_levels: float = 7.5
     sparse_median_window: int = 11
     sparse_share: float = 0.3
     # Off: chosen twice (experiments/select_nearness_setting.md: the tuned split; then with rendered weakly textured
@@ -137,7 +144,7 @@ class NearnessNetConfig:
                 raise InputError(f"{name}: expected an int >= 16, got {value!r}")
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
             raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
-        for name in ("median_window", "sparse_median_window"):
+        for name in ("median_window", "sparse_median_window", "noisy_window_size"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
@@ -145,6 +152,9 @@ class NearnessNetConfig:
             raise InputError(f"min_near_share: expected a share in [0, 1), got {self.min_near_share!r}")
         if not isinstance(self.sparse_reduction, int) or self.sparse_reduction < 1:
             raise InputError(f"sparse_reduction: expected an int >= 1, got {self.sparse_reduction!r}")
+        if not self.noisy_min_residual_levels >= 0:
+            raise InputError(f"noisy_min_residual_levels: expected a level >= 0, got "
+                             f"{self.noisy_min_residual_levels!r}")
         if not self.sparse_agreement_px >= 0:
             raise InputError(f"sparse_agreement_px: expected a distance >= 0, got {self.sparse_agreement_px!r}")
         if not 0 <= self.sparse_share <= 1:
@@ -239,10 +249,10 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
     dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
-        found = block_match_sad(small_left.detach(), small_right.detach(), 0, num_disparities, dense)
+        found, widened = match_by_noise(small_left.detach(), small_right.detach(), num_disparities, dense, config)
         filled, valid = denoised_map(small_left, small_right, found, num_disparities, dense, config)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
-        soft = soft_block_match(small_left, small_right, 0, num_disparities, config.disparity_temperature, dense)
+        soft = soft_match_by_noise(small_left, small_right, num_disparities, dense, config, widened)
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin
     # matched: the fine matcher's own acceptances, resampled as measured is; without the coarse check (or where it
     # changed no pair) they are measured itself, resampled once.

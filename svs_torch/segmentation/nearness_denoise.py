@@ -1,7 +1,17 @@
-"""The nearness segmenter's disparity map made usable on a camera frame (issues 32 and 33): the block matcher's
-rejected pixels filled along their rows, a median over the map, and, for a pair whose matcher accepted too little
-of the view (JPEG frames with sensor noise, a dim scene), its accepted matches checked against the same pair
-measured at a coarser scale.
+"""The nearness segmenter's disparity map made usable on a camera frame (issues 32 and 33): a noisy pair matched
+with a wider window, the block matcher's rejected pixels filled along their rows, a median over the map, and,
+for a pair whose matcher accepted too little of the view (JPEG frames with sensor noise, a dim scene), its
+accepted matches checked against the same pair measured at a coarser scale.
+
+Why the wider window (:func:`match_by_noise`): a SAD over K² pixels sums the sensor noise of both views with the
+scene's texture; the gap between a wrong disparity's cost and the right one's grows as K², the noise's spread as
+K (independent pixels), so the noise's share falls as 1/K. At the working width's 7×7 window a camera frame's map
+is specks and streaks, whose Otsu split then cuts a near object's region into the wall behind it. A pair is noisy
+by its matching residual (the median winning SAD per window pixel, as the dense stage's aggregation gate reads
+it): the tuned scenes' clean pairs stay under the gate, and their camera frames at 320×240 reach it, most from the
+board's digit 1 and all from digit 3. Only such pairs are matched again, so a clean pair's map and its thin near
+objects keep the narrow window's detail. Chosen on the tuning sets (experiments/real_rig.md, "A wider window for
+noisy pairs").
 
 Why the coarse check: on such a frame the uniqueness and left–right rules reject most windows at the working
 width, and many of the windows that pass are noise matches, so the filled map is specks and streaks whose Otsu
@@ -21,20 +31,55 @@ object accuracy (experiments/select_nearness_setting.md), but on the held-out sp
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
-from ..depth.block_matching import block_match_sad, fill_invalid_rows
+from ..depth.block_matching import block_match_sad, block_match_sad_with_residual, fill_invalid_rows
 from ..depth.dense_config import DenseConfig, DenseDisparity
+from ..depth.soft_dense import soft_block_match
 from . import kernels
 
 if TYPE_CHECKING:
     from .nearness import NearnessNetConfig
 
-__all__ = ["denoised_map"]
+__all__ = ["denoised_map", "match_by_noise", "soft_match_by_noise"]
+
+
+def match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int, dense: DenseConfig,
+                   config: NearnessNetConfig) -> tuple[DenseDisparity, torch.Tensor]:
+    """The block matcher's map of the working-width views ``left`` / ``right`` ``(B, 1, h, w)`` over
+    ``[0, num_disparities)`` with ``dense``'s window, the pairs whose matching residual reaches
+    ``config.noisy_min_residual_levels`` matched again with ``config.noisy_window_size`` (module docstring); and
+    those pairs ``(B,)`` bool. Each pair's map depends on that pair alone. Not differentiable (see
+    :func:`soft_match_by_noise`)."""
+    found, residual = block_match_sad_with_residual(left, right, 0, num_disparities, dense)
+    widened = (residual >= config.noisy_min_residual_levels) & (config.noisy_window_size != dense.window_size)
+    if not bool(widened.any()):
+        return found, widened
+    index = widened.nonzero().flatten()
+    wide = block_match_sad(left.index_select(0, index), right.index_select(0, index), 0, num_disparities,
+                           dataclasses.replace(dense, window_size=config.noisy_window_size))
+    return dataclasses.replace(found, disparity_px=found.disparity_px.index_copy(0, index, wide.disparity_px),
+                               valid=found.valid.index_copy(0, index, wide.valid)), widened
+
+
+def soft_match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int, dense: DenseConfig,
+                        config: NearnessNetConfig, widened: torch.Tensor) -> torch.Tensor:
+    """The soft-argmin disparity ``(B, 1, h, w)`` (:func:`~svs_torch.depth.soft_dense.soft_block_match` at
+    ``config.disparity_temperature``) over the same windows as :func:`match_by_noise`: ``widened`` ``(B,)`` pairs'
+    with ``config.noisy_window_size``. Differentiable w.r.t. both images."""
+    soft = soft_block_match(left, right, 0, num_disparities, config.disparity_temperature, dense)
+    if not bool(widened.any()):
+        return soft
+    index = widened.nonzero().flatten()
+    wider = dataclasses.replace(dense, window_size=config.noisy_window_size)
+    wide = soft_block_match(left.index_select(0, index), right.index_select(0, index), 0, num_disparities,
+                            config.disparity_temperature, wider)
+    return soft.index_copy(0, index, wide)
 
 
 def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity, num_disparities: int,

@@ -66,7 +66,7 @@ class SegmentationConfig:
             obstacle.
         min_measured_share: the nearness segmenter's pairs whose block matcher accepted less than this share of
             the left view are segmented by Otsu and the paper's two largest regions instead: views of two
-            different scenes (a misconnected camera) leave about 16 % accepted by chance, and a disparity so
+            different scenes (a misconnected camera) leave up to about 10 % accepted by chance, and a disparity so
             sparse is not worth ranking by (experiments/nearness_fallback.md). 0: never.
     """
 

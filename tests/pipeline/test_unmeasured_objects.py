@@ -112,10 +112,14 @@ def test_a_far_wall_noise_ranges_near_is_dropped_under_the_nearer_share(data_dir
     textureless wall about 16 m away whose dense map is measured on 11 % of its pixels; the row-filled rest ranges
     it at about 2.7 m, nearer than the 4.0 m obstacle measured on 57 %. The share-only rule keeps it (it ranges
     nearer) and the pair warns about a wall that is far; under ``drop_unmeasured_nearer_below_share`` it is dropped
-    and the nearest obstacle is the true one."""
+    and the nearest obstacle is the true one. (With the 7×7 nearness map; the default's wider window for noisy
+    pairs no longer keeps that wall on this frame.)"""
+    from conftest import seven_by_seven_nearness
+
+    narrow = seven_by_seven_nearness()
     pair = _held_out_frames(data_dir, "Midd2", 18, ("jpeg q4 + noise s4",))  # Midd2: the held-out scene 18
-    kept = estimate_obstacle_depth(pair, PipelineConfig())
-    share_only = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_nearer_below_share=None))
+    kept = estimate_obstacle_depth(pair, PipelineConfig(), network=narrow)
+    share_only = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_nearer_below_share=None), network=narrow)
     objects = share_only.depth.objects
     share = _share(objects, 0)
     wall = min(range(2), key=lambda slot: share[slot])
@@ -136,12 +140,15 @@ def test_a_region_left_unranged_is_dropped_whatever_its_share(data_dir):
     x ≈ 114 beside a search range up to about 197 px, where the right camera may not see it. Its dense map measured
     most of it, but none at a column the whole range lands in view (``DepthConfig.min_object_pixels_in_view``), so
     it was listed unranged and the pair scored about 49 %. It is dropped: the pair keeps the ranged plant, scored as
-    its clean pair is."""
+    its clean pair is. (With the 7×7 nearness map, which kept that region.)"""
+    from conftest import seven_by_seven_nearness
+
+    narrow = seven_by_seven_nearness()
     scene = real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Jadeplant")
     views = [view for view in real_rig.conditions(scene, 1) if view[0] == "jpeg q6 + noise s6"]
     pair = real_rig.stack_conditions(scene, views)
-    kept = estimate_obstacle_depth(pair, PipelineConfig())
-    without = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_below_share=None))
+    kept = estimate_obstacle_depth(pair, PipelineConfig(), network=narrow)
+    without = estimate_obstacle_depth(pair, PipelineConfig(drop_unmeasured_below_share=None), network=narrow)
     objects = without.depth.objects
     slot = int(kept.dropped_objects[0].nonzero().flatten().item())
     assert not bool(objects.valid[0, slot]) and int(objects.num_in_view_px[0, slot]) == 0

@@ -86,10 +86,15 @@ def test_a_noisy_frame_whose_measured_inliers_all_agree_is_verified(dim_piano_fr
     """The dense map of the noisy frame measures a handful of the pair's RANSAC inliers, under the usual 5
     confirmed, and confirms each one: with the rule the pair is verified and its obstacles ranged within 3 % of
     their true distance; without it the pair is unverified and left without depth (NO_DENSE_DEPTH). (The
-    whole-view check is off: it verifies this pair too, on a map of the whole view that measures 32 inliers.)"""
-    with_rule = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_whole_view=False))
+    whole-view check is off: it verifies this pair too, on a map of the whole view that measures 32 inliers. With
+    the 7×7 nearness map, whose regions hold 4 measured inliers; with the default's wider window for noisy pairs
+    they hold one, and only the whole-view check verifies the pair.)"""
+    from conftest import seven_by_seven_nearness
+
+    narrow = seven_by_seven_nearness()
+    with_rule = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_whole_view=False), network=narrow)
     without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None,
-                                                                      verify_whole_view=False))
+                                                                      verify_whole_view=False), network=narrow)
     agreeing, measured = int(with_rule.num_agreeing_inliers[0]), int(with_rule.num_measured_inliers[0])
     config = PipelineConfig()
     assert config.verify_unanimous_min_agreeing <= agreeing == measured < config.verify_min_agreeing_inliers
@@ -142,9 +147,14 @@ def noisy_pianol_frames(data_dir):
 def test_a_pair_whose_inliers_miss_the_kept_regions_is_verified_over_its_whole_view(noisy_pianol_frames):
     """The kept regions' dense map measures none of the pair's inliers, so without the whole-view check the pair is
     unverified and left without depth; the map of the whole view confirms at least the usual 5, and the pair is
-    verified and ranged (``PipelineConfig.verify_whole_view``). The counts reported are the ones that vouched."""
-    with_check = estimate_obstacle_depth(noisy_pianol_frames)
-    without = estimate_obstacle_depth(noisy_pianol_frames, PipelineConfig(verify_whole_view=False))
+    verified and ranged (``PipelineConfig.verify_whole_view``). The counts reported are the ones that vouched.
+    (With the 7×7 nearness map, which kept those regions; the default's wider window for noisy pairs keeps regions
+    its inliers verify.)"""
+    from conftest import seven_by_seven_nearness
+
+    narrow = seven_by_seven_nearness()
+    with_check = estimate_obstacle_depth(noisy_pianol_frames, network=narrow)
+    without = estimate_obstacle_depth(noisy_pianol_frames, PipelineConfig(verify_whole_view=False), network=narrow)
     assert not bool(without.verified.any()) and bool((without.num_measured_inliers == 0).all())
     assert bool((without.status == PipelineStatus.NO_DENSE_DEPTH).all())
     assert bool(with_check.verified.all()) and bool((with_check.status == PipelineStatus.OK).all())
