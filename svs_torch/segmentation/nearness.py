@@ -93,9 +93,10 @@ class NearnessNetConfig:
         noisy_window_size, noisy_min_residual_levels: a pair whose matching residual at ``window_size`` (the median
             winning SAD per window pixel, 8-bit levels of the clipped x-Sobel) reaches ``noisy_min_residual_levels``
             is matched again with a ``noisy_window_size`` window (a camera frame's noise: :mod:`.nearness_denoise`);
-            ``noisy_window_size == window_size``: never. Chosen on the tuning sets (experiments/real_rig.md, "A
-            wider window for noisy pairs"). A weights file written before these settings existed (the shipped one)
-            takes these defaults.
+            ``noisy_window_size == window_size``: never. Chosen on the tuning sets
+            (experiments/select_nearness_setting.md, third selection; experiments/real_rig.md, "A wider window for
+            noisy pairs"). A weights file written before these settings existed (the shipped one) takes these
+            defaults.
         sparse_median_window, sparse_share: the median's side for a pair whose block matcher accepted less than
             ``sparse_share`` of the left view: a camera frame's noise (JPEG, sensor noise, a dim scene), whose map
             is then sparse specks that a 7×7 median keeps as regions. Clean pairs accept 41 % or more

@@ -10,8 +10,8 @@ is specks and streaks, whose Otsu split then cuts a near object's region into th
 by its matching residual (the median winning SAD per window pixel, as the dense stage's aggregation gate reads
 it): the tuned scenes' clean pairs stay under the gate, and their camera frames at 320×240 reach it, most from the
 board's digit 1 and all from digit 3. Only such pairs are matched again, so a clean pair's map and its thin near
-objects keep the narrow window's detail. Chosen on the tuning sets (experiments/real_rig.md, "A wider window for
-noisy pairs").
+objects keep the narrow window's detail. Chosen on the tuning sets (experiments/select_nearness_setting.md, third
+selection; experiments/real_rig.md, "A wider window for noisy pairs").
 
 Why the coarse check: on such a frame the uniqueness and left–right rules reject most windows at the working
 width, and many of the windows that pass are noise matches, so the filled map is specks and streaks whose Otsu
