@@ -48,11 +48,11 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     if not bool(noisy.any()):
         return costs, minimum
     index = noisy.nonzero().squeeze(1)
-    every = len(index) == len(costs)
+    all_noisy = len(index) == len(costs)
     # The aggregation only reads its volume: the whole batch's is not copied, nor masked where every pair's box
     # fills the shared one (a pair alone, B = 1). One pair's aggregated pass over a 200×160 box and 64 disparities
     # took 80 ms with the copy and the mask, 60 without (the same maps).
-    picked, reach = costs if every else costs[index], counts[index].view(-1, 1, 1) - 1
+    picked, reach = costs if all_noisy else costs[index], counts[index].view(-1, 1, 1) - 1
     x0, y0, width, height = (v.view(-1, 1, 1) for v in own[index].unbind(1))
     rows = torch.arange(costs.shape[-2], device=costs.device).view(1, -1, 1) - y0
     cols = torch.arange(costs.shape[-1], device=costs.device).view(1, 1, -1) - extra - x0
@@ -62,7 +62,7 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     scale = residual[index] * config.window_size ** 2
     p1, p2 = (factor * scale for factor in config.smoothing_penalties)
     aggregated, winner = semi_global_aggregate_with_winner(picked, p1, p2)
-    if every:
+    if all_noisy:
         return aggregated, winner
     return costs.index_copy(0, index, aggregated), tuple(m.index_copy(0, index, w) for m, w in zip(minimum, winner))
 

@@ -71,15 +71,20 @@ def soft_match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities
                         config: NearnessNetConfig, widened: torch.Tensor) -> torch.Tensor:
     """The soft-argmin disparity ``(B, 1, h, w)`` (:func:`~svs_torch.depth.soft_dense.soft_block_match` at
     ``config.disparity_temperature``) over the same windows as :func:`match_by_noise`: ``widened`` ``(B,)`` pairs'
-    with ``config.noisy_window_size``. Differentiable w.r.t. both images."""
-    soft = soft_block_match(left, right, 0, num_disparities, config.disparity_temperature, dense)
+    with ``config.noisy_window_size``. Each pair's volume is built once, at its own window. Differentiable w.r.t.
+    both images."""
     if not bool(widened.any()):
-        return soft
-    index = widened.nonzero().flatten()
+        return soft_block_match(left, right, 0, num_disparities, config.disparity_temperature, dense)
     wider = dataclasses.replace(dense, window_size=config.noisy_window_size)
-    wide = soft_block_match(left.index_select(0, index), right.index_select(0, index), 0, num_disparities,
-                            config.disparity_temperature, wider)
-    return soft.index_copy(0, index, wide)
+    out = None
+    for pick, window in ((~widened, dense), (widened, wider)):
+        index = pick.nonzero().flatten()
+        if len(index) == 0:
+            continue
+        part = soft_block_match(left.index_select(0, index), right.index_select(0, index), 0, num_disparities,
+                                config.disparity_temperature, window)
+        out = (part.new_zeros(len(pick), *part.shape[1:]) if out is None else out).index_copy(0, index, part)
+    return out
 
 
 def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity, num_disparities: int,
