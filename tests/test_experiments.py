@@ -237,3 +237,18 @@ def test_select_nearness_setting_reports_the_synthetic_split_as_its_own_column()
     assert "rendered synthetic split" in text
     plain = select_nearness_setting.table([result(None, 1.8)], result(None, 1.8), "cmd", None)
     assert "synthetic" not in plain and "| frames 320 ×1.0 % | frames native ×1.0 % | score |" in plain
+
+
+def test_exposure_change_separates_a_gain_from_what_each_view_sees(data_dir):
+    """experiments/exposure_change.py on the first three tuned scenes at 320×240: their pairs without a gain (clean,
+    camera frames, misaligned) stay under the retry's min_change and every pair with a ±30 % gain is above it, and
+    the retry runs no more pairs at it than at 0.05."""
+    import exposure_change
+
+    from svs_torch.pipeline.exposure import RETRY_MIN_CHANGE
+
+    out = exposure_change.main(["--sizes", "320x240", "--limit", "3", "--count-retries"])["320x240"]
+    plain, gain = out["changes"]["without a gain"], out["changes"]["a gain (±30 %, combined −20 %)"]
+    assert len(plain) == 3 * 19 and len(gain) == 3 * 3
+    assert max(value for value, _ in plain) < RETRY_MIN_CHANGE < min(value for value, _ in gain)
+    assert out["retried"][RETRY_MIN_CHANGE] <= out["retried"][0.05]

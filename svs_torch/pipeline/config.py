@@ -21,7 +21,7 @@ from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification, RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
 from ..segmentation.segment import SegmentationConfig
-from .exposure import ExposureConfig
+from .exposure import RETRY_MIN_CHANGE, ExposureConfig
 
 __all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineStatus"]
 
@@ -167,11 +167,11 @@ class PipelineConfig:
             at white more of its pixels than the left by its ``min_right_clipped_share`` (which must be set): a
             brighter right camera's one-sided highlights move the medians. None (the default): off.
         exposure_retry: under the dense rule, a pair left unverified, with a kept object unranged, or whose
-            nearness split was taken again, whose views' exposures differ (by more than its ``min_change``) is run
-            again with ``exposure`` set to this, and the second result is kept where it is verified and ranges
-            more objects (:mod:`svs_torch.pipeline.exposure_retry` gives the whole rule): the gain difference of
-            two boards is corrected where it costs a pair, and a pair lit by two lamps, which the map would lose,
-            keeps its first result. None: off (the paper's).
+            nearness split was taken again, whose views' exposures differ (by more than its ``min_change``,
+            :data:`~svs_torch.pipeline.exposure.RETRY_MIN_CHANGE` by default) is run again with ``exposure`` set
+            to this, and the second result is kept where it is verified and ranges more objects
+            (:mod:`svs_torch.pipeline.exposure_retry` gives the whole rule): the gain difference of two boards is
+            corrected where it costs a pair, and a pair lit by two lamps keeps its first result. None: off.
 
     ``PipelineConfig.paper()`` is the paper's pipeline with MATLAB's defaults and Eq. (5)–(8) as the range rule
     (Table 1's "proposed" row).
@@ -257,8 +257,8 @@ class PipelineConfig:
     # Off by default (experiments/real_rig.md, "One-sided clipping"): chosen on the tuning sets (bright tuned scenes,
     # right camera 30 % brighter: 98.78 -> 99.34 % at 320x240), it lost the held-out corners with a gain (up to 1.61).
     exposure_right_clipped: ExposureConfig | None = None
-    # experiments/exposure.md: the tuned scenes' "gain +30%" Piano 0 -> 99 % at both sizes, PianoL kept.
-    exposure_retry: ExposureConfig | None = field(default_factory=ExposureConfig)
+    # experiments/exposure.md: tuned "gain +30%" Piano 0 -> 99 % at both sizes, PianoL kept; RETRY_MIN_CHANGE's why.
+    exposure_retry: ExposureConfig | None = field(default_factory=lambda: ExposureConfig(min_change=RETRY_MIN_CHANGE))
 
     def __post_init__(self) -> None:
         if self.features_on not in ("masked", "mask", "image"):

@@ -44,10 +44,21 @@ import torch
 from ..core.checks import InputError, check_shape
 from ..depth.quantiles import row_quantile
 
-__all__ = ["CLIPPED_LEVEL", "ExposureConfig", "exposures_differ", "match_exposure"]
+__all__ = ["CLIPPED_LEVEL", "RETRY_MIN_CHANGE", "ExposureConfig", "exposure_change", "exposures_differ",
+           "match_exposure"]
 
 #: A pixel at or above this level is clipped at white (the 8-bit top level, 255 / 255, with room for round-off).
 CLIPPED_LEVEL = 254.5 / 255
+
+#: ``min_change`` of the default retry (``PipelineConfig.exposure_retry``). Two views of one scene never have the
+#: same quartiles (their borders and occlusions show different things), so a small ``|scale − 1| + |offset|`` is
+#: the scene, not a gain. The tuned scenes' pairs with a ±30 % gain measure 0.143 and up at both sizes (0.174 and
+#: up but for MotorcycleE and PianoL, shot at another exposure or under another lamp, whose own views differ by
+#: 0.17–0.57); the others' pairs without one, clean, as camera frames or misaligned, at most 0.148, 90 % of them
+#: under 0.105 (``python experiments/exposure_change.py``). At 0.05 the retry also ran pairs whose views differ
+#: only by what each sees, for no gain on the tuning sets, and a third of the held-out camera frames twice
+#: (experiments/exposure.md, "Which pairs are retried").
+RETRY_MIN_CHANGE = 0.14
 
 
 @dataclass(frozen=True)
@@ -150,6 +161,17 @@ def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Te
     if index is None:
         return fit[2]
     return torch.zeros(left.shape[0], dtype=torch.bool, device=left.device).index_copy(0, index, fit[2])
+
+
+def exposure_change(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
+                    config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
+    """``(B,)``: how far :func:`match_exposure`'s map would move each pair, ``|scale − 1| + |offset|`` (what
+    ``config.min_change`` bounds), fitted on ``config.quantiles`` of the whole views (``min_right_clipped_share``
+    not applied); 0 for a pair with a flat view, which is never mapped. Arguments as :func:`match_exposure`'s; not
+    differentiable (a measurement for choosing ``min_change``)."""
+    _check_views(left, right, image_hw)
+    scale, offset, moved, _ = _fit(left.detach(), right.detach(), ExposureConfig(config.quantiles, min_change=0.0))
+    return torch.where(moved, (scale - 1).abs() + offset.abs(), 0.0)
 
 
 def _fit(left: torch.Tensor, right: torch.Tensor, config: ExposureConfig, unclipped: torch.Tensor | None = None

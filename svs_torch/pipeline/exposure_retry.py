@@ -7,7 +7,9 @@ lit by different lamps (PianoL), where the map of one view's quartiles onto the 
 image (``experiments/exposure.md``). A pair that the first run verified and ranged fully is left as it is; only a
 pair left unverified, or with a kept object unranged, or measured on the dense stage's coarse grid
 (``PipelineResult.coarse``), or whose nearness split was taken again (``StereoSegmentation.split_retaken``), whose
-views' quartiles differ by more than ``ExposureConfig.min_change``, is run again on the matched views. The second
+views' quartiles differ by more than ``ExposureConfig.min_change`` (by default
+:data:`~svs_torch.pipeline.exposure.RETRY_MIN_CHANGE`: below it the difference is the two views' content, not a
+gain, and a second run there only costs time), is run again on the matched views. The second
 result is kept only where it is verified and ranges more objects (or as many, the first being unverified or coarse
 and the second not; or, the first's split taken again and the second's not, any object with more of the kept
 regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the

@@ -63,6 +63,30 @@ def test_views_that_agree_or_a_flat_view_are_left_alone(generator):
     assert bool(match_exposure(left, left * 1.02, hw, ExposureConfig(min_change=0.0))[2].all())
 
 
+def test_the_exposure_change_is_what_min_change_bounds(generator):
+    """exposure_change against numpy's quartiles: |scale − 1| + |offset| of the map through both views' quartiles
+    (a right camera 30 % darker: about 1 / 0.7 − 1), 0 for the same views and for a flat view; a pair is mapped
+    exactly where it exceeds min_change; a wrong shape is refused by name."""
+    from svs_torch.pipeline.exposure import exposure_change
+
+    left = _views(generator, b=4).float()
+    right = torch.cat([left[:1] * 0.7, left[1:2], left[2:3] * 1.1 + 0.02, torch.full_like(left[3:], 0.5)])
+    hw = torch.tensor([[24, 32]] * 4)
+    change = exposure_change(left, right, hw)
+    for i in (0, 2):
+        ql, qr = (np.quantile(v[i].flatten().numpy().astype(np.float64), [0.25, 0.75]) for v in (left, right))
+        scale = (ql[1] - ql[0]) / (qr[1] - qr[0])
+        assert change[i].item() == pytest.approx(abs(scale - 1) + abs(ql[0] - scale * qr[0]), abs=1e-5)
+    assert change[0].item() == pytest.approx(1 / 0.7 - 1, abs=1e-4)
+    assert change[1].item() == 0 and change[3].item() == 0
+    for min_change in (0.05, 0.14, 0.5):
+        expected = (change > min_change).tolist()
+        assert exposures_differ(left, right, hw, ExposureConfig(min_change=min_change)).tolist() == expected
+        assert match_exposure(left, right, hw, ExposureConfig(min_change=min_change))[2].tolist() == expected
+    with pytest.raises(InputError, match=r"^right: expected \(4, 1, 24, 32\)"):
+        exposure_change(left, right[:, :, :12], hw)
+
+
 def test_gradients_flow_to_both_views(generator):
     hw = torch.tensor([[5, 6]] * 2)
     for gain in (0.6, 1.3):  # the right view mapped, then the left one
@@ -305,6 +329,31 @@ def test_a_split_taken_again_is_retried_but_kept_where_the_matched_views_need_it
     assert int(matched.depth.objects.valid[0].sum()) > int(retried.depth.objects.valid[0].sum())
     kept, other = evaluate_result(batch, retried)[0], evaluate_result(batch, matched)[0]
     assert kept.acc_objects_pct > 97 and other.acc_objects_pct < kept.acc_objects_pct
+
+
+def test_a_camera_frame_whose_views_differ_only_by_content_is_not_run_again(data_dir):
+    """Pipes (a tuned scene) at 320×240 as a camera frame (JPEG digit 6, noise σ 6), without any gain: its views'
+    quartiles differ by 0.064 (what each view alone sees, not an exposure). The first run leaves it unfinished, so
+    a retry at the old min_change 0.05 ran the whole pipeline again on mapped views and kept that run; by default
+    (``RETRY_MIN_CHANGE``, under the 0.143 of the smallest tuned ±30 % gain) it is run once and its result is the
+    one without a retry. The Piano +30 % pairs above are still retried by default
+    (test_the_retry_keeps_a_pair_lit_by_two_lamps)."""
+    from svs_torch.pipeline.exposure import RETRY_MIN_CHANGE
+
+    real_rig = _real_rig()
+    pipes = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"), "320x240")
+    # 6: Pipes's index in real_rig.py's tuned split, which seeds the scene's noise (its rows' frame).
+    frame = next(view for view in real_rig.conditions(pipes, 6) if view[0] == "jpeg q6 + noise s6")
+    batch = real_rig.stack_conditions(pipes, [frame])
+    differs = [bool(exposures_differ(batch.left, batch.right, batch.image_hw, ExposureConfig(min_change=change))[0])
+               for change in (0.05, RETRY_MIN_CHANGE)]
+    assert differs == [True, False]
+    default = estimate_obstacle_depth(batch, PipelineConfig())
+    eager = estimate_obstacle_depth(batch, PipelineConfig(exposure_retry=ExposureConfig(min_change=0.05)))
+    without = estimate_obstacle_depth(batch, PipelineConfig(exposure_retry=None))
+    assert bool(eager.exposure_matched[0]) and not bool(default.exposure_matched[0])
+    assert torch.equal(default.depth.objects.depth_median_m, without.depth.objects.depth_median_m)
+    assert torch.equal(default.depth.objects.valid, without.depth.objects.valid)
 
 
 def test_the_retry_is_differentiable_and_refuses_a_wrong_setting(data_dir):
