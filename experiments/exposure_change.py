@@ -12,7 +12,7 @@ at the board's eight digits with sensor noise, each misalignment), at each size.
 - ``a gain (±30 %, combined −20 %)``: "gain +30%", "gain -30%" and "combined", every scene.
 
 With ``--count-retries`` the default pipeline runs every pair at ``min_change`` 0.05 (the retry's first setting)
-and at the default, and the pairs each runs again are counted (about 2 minutes).
+and at the default, and the pairs each runs again are counted (about 1.5 minutes for both sizes).
 
     python experiments/exposure_change.py [--sizes 320x240,native] [--count-retries] [--limit N]
 """
@@ -40,13 +40,14 @@ OTHER_EXPOSURE = ("MotorcycleE", "PianoL")
 
 
 def group_of(scene: str, condition: str) -> str:
+    """The group (module docstring) of a tuned ``scene``'s pair under ``condition``."""
     if "gain" in condition or condition == "combined":
         return "a gain (±30 %, combined −20 %)"
     return "MotorcycleE, PianoL without a gain" if scene in OTHER_EXPOSURE else "without a gain"
 
 
 def count_retries(batch, min_change: float) -> int:
-    """The pairs of ``batch`` the default pipeline, its retry at ``min_change``, runs a second time."""
+    """How many pairs of ``batch`` the default pipeline, with its retry at ``min_change``, runs a second time."""
     counted = []
     differ = exposure_retry.exposures_differ
 
@@ -87,10 +88,11 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{size}:")
         for group, values in changes.items():
             ordered = sorted(value for value, _ in values)
-            extreme = max(values) if group != "a gain (±30 %, combined −20 %)" else min(values)
+            # The end nearest the other groups: a gain's smallest change, the others' largest.
+            which, extreme = ("smallest", min(values)) if group.startswith("a gain") else ("largest", max(values))
             print(f"  {group:36s} {len(values):3d} pairs: min {ordered[0]:.3f}, median {statistics.median(ordered):.3f}"
                   f", 90th percentile {ordered[int(0.9 * (len(ordered) - 1))]:.3f}, max {ordered[-1]:.3f} "
-                  f"(the {'largest' if extreme == max(values) else 'smallest'}: {extreme[1]})")
+                  f"(the {which}: {extreme[1]})")
         if args.count_retries:
             total = sum(len(values) for values in changes.values())
             print("  run again: " + ", ".join(f"min_change {m:g}: {n} of {total}" for m, n in retried.items()))
