@@ -10,7 +10,7 @@ of pairs ranged, against OpenCV StereoSGBM run on the same raw pairs over the sa
 Conditions (every random draw from a seeded torch.Generator: the scene's index, the condition's and the view's):
 - ``clean``: the pair as shipped.
 - ``jpeg qD + noise sS``: independent Gaussian sensor noise of σ = S 8-bit levels in each view, then each view
-  encoded as a baseline JPEG at the board's quality digit D (``hw.emulator_state.JPEG_QUALITY_FOR_DIGIT``:
+  encoded as a baseline JPEG at the board's quality digit D (``svs_torch.data.JPEG_QUALITY_FOR_DIGIT``:
   digits 1–8 → OpenCV qualities 95…20) and decoded, as the SVS sends its frames.
 - misalignments of the RIGHT view only (the left view's ground truth stays valid): ``roll ±2°`` (rotation about
   the image centre), ``tilt x / y ±1°`` (the keystone of a camera turned about its x / y axis, ``K R K⁻¹`` with
@@ -63,7 +63,7 @@ import cv2
 import numpy as np
 import torch
 
-from svs_torch.data import resize_stereo_batch
+from svs_torch.data import camera_frames, resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.files import write_bytes_atomic
@@ -73,7 +73,6 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from hw.emulator_state import JPEG_QUALITY_FOR_DIGIT  # noqa: E402
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
@@ -151,14 +150,8 @@ def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> tor
 
 def camera_frame(image: torch.Tensor, digit: int, sigma_levels: float, generator: torch.Generator) -> torch.Tensor:
     """One view ``(1, 1, H, W)`` in [0, 1] with Gaussian sensor noise of ``sigma_levels`` 8-bit levels, then
-    JPEG-encoded at the board's quality ``digit`` and decoded."""
-    noise = torch.randn(image.shape, generator=generator, dtype=torch.float64) * sigma_levels
-    levels = (image.to(torch.float64) * 255 + noise).round().clamp(0, 255).to(torch.uint8)[0, 0].numpy()
-    ok, encoded = cv2.imencode(".jpg", levels, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY_FOR_DIGIT[digit]])
-    if not ok:
-        raise RuntimeError("cv2.imencode failed")
-    decoded = cv2.imdecode(encoded, cv2.IMREAD_GRAYSCALE)
-    return torch.from_numpy(decoded.astype(np.float32) / 255).to(image.dtype)[None, None]
+    JPEG-encoded at the board's quality ``digit`` and decoded (:func:`svs_torch.data.camera_frames`)."""
+    return camera_frames(image, digit, sigma_levels, generator)
 
 
 def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False

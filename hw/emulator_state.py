@@ -23,12 +23,11 @@ import torch
 
 from .frames import FrameSource
 from svs_torch.capture.protocol import encode_frame
+from svs_torch.data.camera_frames import JPEG_QUALITY_FOR_DIGIT
 from svs_torch.core.camera import SVS_RESOLUTIONS
 
 __all__ = ["Faults", "Reply", "CameraState", "JPEG_QUALITY_FOR_DIGIT", "version_line"]
 
-#: Board quality digit (1 best … 8 worst, default 4) → OpenCV JPEG quality (0–100). An emulator choice.
-JPEG_QUALITY_FOR_DIGIT = {1: 95, 2: 90, 3: 85, 4: 75, 5: 65, 6: 50, 7: 35, 8: 20}
 _BUILD = "built:12:00:00 - Feb 14 2011"
 _SIZE_COMMANDS = {ord("a"): ("3", b"#a"), ord("b"): ("5", b"#b"), ord("c"): ("7", b"#c"),
                   ord("d"): ("9", b"#d"), ord("A"): ("9", b"#d")}

@@ -23,9 +23,11 @@ from .datasets import (
 from .resample import collate_stereo_batches, resize_stereo_batch
 from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_sources
 from .calibration import calibration_record, format_calibration, pair_calibration_source
+from .camera_frames import JPEG_QUALITY_FOR_DIGIT, camera_frames
 
 __all__ = [
-    "PairSource", "SyntheticScenes", "calibration_record", "collate_stereo_batches", "detect_stereo_layout",
+    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frames",
+    "collate_stereo_batches", "detect_stereo_layout",
     "format_calibration",
     "load_pair_source", "pair_calibration_source",
     "read_pair_list", "read_pair_sources", "list_shared_pairs", "load_image_pair", "load_kitti",

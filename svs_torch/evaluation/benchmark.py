@@ -13,7 +13,8 @@ What is measured (all on this machine, the thread count recorded):
   times at B = 32, the per-pair time from B = 1 to 128 (the same 128 synthetic pairs in batches of B, after a
   warm-up batch at each size; batches over 32 pairs of 320×240 run in chunks of 32), the peak resident
   memory per pair of the batch (a child process per B), the latency of one pair at B = 1 (what ``guide``
-  pays per frame; also with the paper's Otsu segmenter), and kornia's own composition (``SIFTFeature`` +
+  pays per frame; also with the paper's Otsu segmenter, and both on the first 16 pairs as the board's default
+  camera frames, :func:`camera_pairs`), and kornia's own composition (``SIFTFeature`` +
   ``match_snn`` + ``RANSAC('fundamental')``).
 - ``svs-depth --help`` start-up.
 - **comparable work**: per rival, the mean keypoints, matches, inliers and the median R_min over the pairs, so
@@ -46,6 +47,9 @@ __all__ = ["run_benchmark", "format_tables"]
 RIVAL_COMMAND = (sys.executable, str(Path(__file__).with_name("bench_rivals.py")))
 
 SCALING_BATCHES = (1, 8, 32, 128)
+#: guide's latency is also timed on camera frames: the board's default JPEG digit, with sensor noise of σ 4 levels
+#: (experiments/real_rig.py's condition at that digit).
+CAMERA_DIGIT, CAMERA_SIGMA_LEVELS = 4, 4.0
 
 
 def _write_pngs(left, right, folder: Path, prefix: str) -> list[tuple[str, str]]:
@@ -215,9 +219,27 @@ def in_process(repeats: int, threads: int) -> dict:
     # The one-pair latency with the paper's segmenter (Otsu, the two largest regions) over the first 16 pairs.
     otsu = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter="otsu",
                                                                         keep="largest"))
+    first = scenes.batch.select(list(range(16)))
+    # guide's own input: a real SVS sends noisy JPEG frames, on which the pipeline takes more passes than on
+    # clean ones (a noisy map matched wider, the dense stage's coarse retry).
+    frames = camera_pairs(first)
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
-            "latency_ms_B1_otsu": _ms_per_pair(scenes.batch.select(list(range(16))), 1, otsu, repeats)[0],
+            "latency_ms_B1_otsu": _ms_per_pair(first, 1, otsu, repeats)[0],
+            "latency_ms_B1_camera": _ms_per_pair(frames, 1, config, repeats)[0],
+            "latency_ms_B1_camera_otsu": _ms_per_pair(frames, 1, otsu, repeats)[0],
             "kornia_ms_per_pair": _kornia_composition(scenes.batch.select(list(range(8))), repeats)}
+
+
+def camera_pairs(batch, digit: int = CAMERA_DIGIT, sigma_levels: float = CAMERA_SIGMA_LEVELS, seed: int = 0):
+    """``batch`` as an SVS sends it: each view noisy and JPEG-encoded at the board's quality ``digit``
+    (:func:`svs_torch.data.camera_frames`), the left and right views' noise drawn independently (seeded)."""
+    import torch
+
+    from ..data import camera_frames
+
+    views = [camera_frames(view, digit, sigma_levels, torch.Generator().manual_seed(seed + i))
+             for i, view in enumerate((batch.left, batch.right))]
+    return dataclasses.replace(batch, left=views[0], right=views[1])
 
 
 def _ms_per_pair(pairs, b: int, config, repeats: int) -> tuple[float, object]:
@@ -334,7 +356,9 @@ def format_tables(report: dict) -> str:
     for row in inside["scaling"]:
         lines.append(f"| {row['B']} | {row['ms_per_pair']} | {memory.get(row['B'], {}).get('per_pair_mb', '-')} |")
     lines += ["", f"latency of one pair (B = 1, guide's case): {inside['latency_ms_B1']} ms (with the paper's Otsu "
-              f"segmenter: {inside.get('latency_ms_B1_otsu', '-')} ms); kornia SIFTFeature + "
+              f"segmenter: {inside.get('latency_ms_B1_otsu', '-')} ms); as camera frames (JPEG digit {CAMERA_DIGIT}, "
+              f"noise σ {CAMERA_SIGMA_LEVELS:g}): {inside.get('latency_ms_B1_camera', '-')} ms (Otsu: "
+              f"{inside.get('latency_ms_B1_camera_otsu', '-')} ms); kornia SIFTFeature + "
               f"match_snn + RANSAC: {inside['kornia_ms_per_pair']} ms per pair; `svs-depth --help`: "
               f"{report['help_s']} s; threads {report['metadata']['threads']}, commit {report['metadata']['commit']}"]
     return "\n".join(lines)

@@ -71,3 +71,23 @@ def test_bench_help_and_bad_data(capsys):
     assert "OpenCV" in capsys.readouterr().out
     assert main(["bench", "--data", "/no/such/folder"]) == 2
     assert "--data: expected a folder" in capsys.readouterr().err
+
+
+def test_guides_latency_is_also_timed_on_camera_frames():
+    """The in-process report's camera-frame latency: the pairs as the board's default frames (each view noisy
+    and JPEG-encoded, the two views' noise independent, seeded), and the table line that reports it."""
+    import torch
+
+    from svs_torch.data import random_obstacle_scenes
+    from svs_torch.evaluation.benchmark import CAMERA_DIGIT, camera_pairs
+
+    batch = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(1)).batch
+    frames = camera_pairs(batch)
+    assert frames.left.shape == batch.left.shape and not torch.equal(frames.left, batch.left)
+    assert not torch.equal(frames.left - batch.left, frames.right - batch.right)
+    assert torch.equal(camera_pairs(batch).right, frames.right)
+    report = {"whole_process": [], "in_process": {
+        "stages_ms_per_pair_B32": {}, "scaling": [], "latency_ms_B1": 2.0, "latency_ms_B1_otsu": 1.0,
+        "latency_ms_B1_camera": 3.5, "latency_ms_B1_camera_otsu": 1.5, "kornia_ms_per_pair": 3.0},
+        "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}}
+    assert f"as camera frames (JPEG digit {CAMERA_DIGIT}, noise σ 4): 3.5 ms (Otsu: 1.5 ms)" in format_tables(report)
