@@ -72,7 +72,6 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
