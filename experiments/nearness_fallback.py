@@ -27,12 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
+from svs_torch.data import camera_frames, list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_disparity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
-from real_rig import camera_frame  # noqa: E402
 from verify_views import SAME_SCENE  # noqa: E402
 from run_metadata import default_data_dir  # noqa: E402
 
@@ -55,7 +54,7 @@ def main(argv: list[str] | None = None) -> float:
     pairs = [resize_stereo_batch(load_stereo_pair(p), (320, 240)) for p in paths]
     generator = torch.Generator().manual_seed(0)
     clean = [accepted_share(b.left, b.right) for b in pairs]
-    jpeg = [accepted_share(camera_frame(b.left, 8, 8.0, generator), camera_frame(b.right, 8, 8.0, generator))
+    jpeg = [accepted_share(camera_frames(b.left, 8, 8.0, generator), camera_frames(b.right, 8, 8.0, generator))
             for b in pairs]
     scene = [SAME_SCENE.get(p.name, p.name) for p in paths]
     negative = [accepted_share(pairs[i].left, pairs[j].right) for i in range(len(pairs)) for j in range(len(pairs))

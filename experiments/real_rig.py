@@ -147,12 +147,6 @@ def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> tor
     return torch.from_numpy(np.clip(warped * (1 + m.gain), 0, 1)).to(image.dtype)[None, None]
 
 
-def camera_frame(image: torch.Tensor, digit: int, sigma_levels: float, generator: torch.Generator) -> torch.Tensor:
-    """One view ``(1, 1, H, W)`` in [0, 1] with Gaussian sensor noise of ``sigma_levels`` 8-bit levels, then
-    JPEG-encoded at the board's quality ``digit`` and decoded (:func:`svs_torch.data.camera_frames`)."""
-    return camera_frames(image, digit, sigma_levels, generator)
-
-
 def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False
                ) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
     """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views; with
@@ -162,7 +156,7 @@ def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False
         views = []
         for view, image in enumerate((batch.left, batch.right)):
             generator = torch.Generator().manual_seed(1_000_000 * scene_index + 1000 * number + view)
-            views.append(camera_frame(image, digit, sigma, generator))
+            views.append(camera_frames(image, digit, sigma, generator))
         out.append((f"jpeg q{digit} + noise s{sigma:g}", *views))
     focal = float(batch.focal_px[0])
     for name, m in (EXTREMES if extremes else MISALIGNMENTS).items():

@@ -12,6 +12,7 @@ import torch
 from conftest import REPO_ROOT, assert_differentiable_depths_are_the_hard_ones
 
 from svs_torch import InputError
+from svs_torch.data import camera_frames
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
@@ -185,7 +186,7 @@ def test_jpeg_digit_8_with_noise_is_ranged_not_dropped(data_dir):
         if digit is None:
             views.append((name, batch.left, batch.right))
             continue
-        frames = [real_rig.camera_frame(image, digit, sigma, torch.Generator().manual_seed(view))
+        frames = [camera_frames(image, digit, sigma, torch.Generator().manual_seed(view))
                   for view, image in enumerate((batch.left, batch.right))]
         assert float((frames[0] - batch.left).std()) * 255 > 4  # the noise and the JPEG are really there
         views.append((name, *frames))
@@ -204,7 +205,7 @@ def test_differentiable_pass_follows_the_aligned_and_smoothed_pairs(teddy, data_
     focal = float(teddy.focal_px[0])
     views = [("roll", teddy.left, real_rig.misalign_right(teddy.right, real_rig.Misalignment(roll_deg=2), focal))]
     art = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
-    noisy = [real_rig.camera_frame(image, 8, 8.0, torch.Generator().manual_seed(view))
+    noisy = [camera_frames(image, 8, 8.0, torch.Generator().manual_seed(view))
              for view, image in enumerate((art.left, art.right))]
     for batch, view in ((teddy, views[0]), (art, ("q8 s8", *noisy))):
         stacked = real_rig.stack_conditions(batch, [view])

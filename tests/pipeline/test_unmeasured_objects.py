@@ -12,6 +12,7 @@ import torch
 from conftest import REPO_ROOT
 
 from svs_torch import InputError
+from svs_torch.data import camera_frames
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
 
@@ -93,7 +94,7 @@ def test_a_region_ranged_nearer_than_the_measured_one_stays(data_dir):
     from svs_torch.segmentation import SegmentationConfig
 
     scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
-    frames = [real_rig.camera_frame(image, 8, 8.0, torch.Generator().manual_seed(view))
+    frames = [camera_frames(image, 8, 8.0, torch.Generator().manual_seed(view))
               for view, image in enumerate((scene.left, scene.right))]
     pair = real_rig.stack_conditions(scene, [("q8 s8", *frames)])
     result = estimate_obstacle_depth(pair, PipelineConfig(segmentation=SegmentationConfig(),
