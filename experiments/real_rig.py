@@ -52,7 +52,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_ransac.py: spin
 
 import argparse
 import dataclasses
-import json
 import math
 import statistics
 import sys
@@ -66,14 +65,13 @@ import torch
 from svs_torch.data import camera_frames, resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
-from svs_torch.core.files import write_bytes_atomic
 from svs_torch.core.types import StereoBatch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import default_data_dir, run_metadata, write_report  # noqa: E402
 
 #: (digit, σ in 8-bit levels): every board digit, the issue's three named cases and the others at a moderate σ.
 JPEG_NOISE = [(1, 2.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 4.0), (6, 6.0), (7, 6.0), (8, 8.0)]
@@ -359,10 +357,7 @@ def main(argv: list[str] | None = None) -> dict:
               "summary": summary, "rows": rows}
     table = markdown(summary, command)
     print(table)
-    if args.json:
-        write_bytes_atomic(args.json, json.dumps(report, indent=1).encode("utf-8"))
-    if args.markdown:
-        write_bytes_atomic(args.markdown, table.encode("utf-8"))
+    write_report(report, table, args.json, args.markdown)
     return report
 
 

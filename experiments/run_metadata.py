@@ -31,3 +31,16 @@ def run_metadata(threads: int, **extra) -> dict:
             "numpy": numpy.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
             "cpus": os.cpu_count(), "threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
             "load_average": os.getloadavg(), **extra}
+
+
+def write_report(report: dict, table: str, json_path: Path | None, markdown_path: Path | None) -> None:
+    """``report`` as JSON to ``json_path`` and ``table`` to ``markdown_path``, each where given, each written whole
+    or not at all."""
+    import json
+
+    from svs_torch.core.files import write_bytes_atomic
+
+    if json_path:
+        write_bytes_atomic(json_path, json.dumps(report, indent=1).encode("utf-8"))
+    if markdown_path:
+        write_bytes_atomic(markdown_path, table.encode("utf-8"))

@@ -577,7 +577,8 @@ def pair_options(draw, command: str) -> list[str]:
     """A few random options of ``command``, each with a random value (most well-formed)."""
     choices = {
         "estimate": ["--focal-px", "--baseline-m", "--doffs-px", "--size", "--seed", "--kernel-size", "--keep",
-                     "--max-keypoints", "--max-ratio", "--metric-threshold", "--range", "--preset", "--segmenter"],
+                     "--max-keypoints", "--max-ratio", "--metric-threshold", "--range", "--preset", "--segmenter",
+                     "--near-min-area-fraction"],
         "features": ["--size", "--kernel-size", "--keep", "--max-keypoints", "--max-ratio", "--metric-threshold"],
         "fundamental": ["--size", "--seed", "--threshold-px", "--max-keypoints"],
         "segment": ["--kernel-size", "--keep", "--connectivity"],
@@ -585,7 +586,7 @@ def pair_options(draw, command: str) -> list[str]:
     good = {"--focal-px": "300", "--baseline-m": "0.1", "--doffs-px": "2", "--size": "24x20", "--seed": "3",
             "--kernel-size": "3", "--keep": "3", "--max-keypoints": "50", "--max-ratio": "0.9",
             "--metric-threshold": "10", "--range": "paper", "--preset": "paper", "--threshold-px": "2",
-            "--connectivity": "4", "--segmenter": "learned"}
+            "--connectivity": "4", "--segmenter": "learned", "--near-min-area-fraction": "0.001"}
     argv = []
     for option in draw(st.lists(st.sampled_from(choices), max_size=3, unique=True)):
         value = good[option] if draw(st.integers(0, 2)) else draw(OPTION_TEXT)

@@ -54,6 +54,9 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-area-fraction", type=float, metavar="SHARE",
                         help="regions smaller than this share of the image are never kept by the nearness rules "
                              "(e.g. 0.003 = 230 px at 320x240)")
+    parser.add_argument("--near-min-area-fraction", type=float, metavar="SHARE",
+                        help="a region under --min-area-fraction but at least this share is still kept where it is "
+                             "nearer than every larger region: a thin pole ahead (default 0.0015; 0: off)")
     parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
                         help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
     parser.add_argument("--dark-objects", action="store_true",
@@ -90,7 +93,7 @@ def config_from_args(args: argparse.Namespace, base=None):
     from ..segmentation.segment import SegmentationConfig
 
     with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter", keep="--keep-rule",
-                       min_area_fraction="--min-area-fraction"):
+                       min_area_fraction="--min-area-fraction", near_min_area_fraction="--near-min-area-fraction"):
         config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
                          connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
         if getattr(args, "segmenter", None):
@@ -101,6 +104,8 @@ def config_from_args(args: argparse.Namespace, base=None):
             config = replace(config, keep=args.keep_rule)
         if getattr(args, "min_area_fraction", None) is not None:
             config = replace(config, min_area_fraction=args.min_area_fraction)
+        if getattr(args, "near_min_area_fraction", None) is not None:
+            config = replace(config, near_min_area_fraction=args.near_min_area_fraction)
         return config
 
 

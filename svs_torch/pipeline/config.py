@@ -177,12 +177,12 @@ class PipelineConfig:
     (Table 1's "proposed" row).
     """
 
-    # The nearness segmenter, the nearest region first then the largest, regions of 0.3 % of the image at least (both
-    # cameras' measured pixels): the best rule keeping by nearness on the train scenes (issue 32; experiments/
-    # select_nearness_rule.md, the rule alone validate_nearness.md). Below 12.5 % of the view accepted by the block
-    # matcher, Otsu instead: views of two scenes (experiments/nearness_fallback.md, with noisy pairs' wider window).
+    # The nearness segmenter, nearest region first then largest, of 0.3 % of the image at least (measured by both
+    # cameras; 0.15 % if nearer than all those: experiments/thin_obstacles.md): select_nearness_rule.md. Under 12.5 %
+    # of the view accepted by the block matcher, Otsu: views of two scenes (experiments/nearness_fallback.md).
     segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
-        segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, min_measured_share=0.125))
+        segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, near_min_area_fraction=0.0015,
+        min_measured_share=0.125))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))

@@ -27,8 +27,9 @@ it:
    correction (``experiments/validate_nearness.md``), and deployment then skips the network's pass.
 4. **Regions**: probability above the threshold, the paper's opening and components, then the ``num_keep``
    regions by ``SegmentationConfig.keep``: ``"nearest"`` ranks the regions of at least ``min_area_fraction`` of
-   the image by their median disparity (a small near obstacle is kept before a large far wall), ``"largest"`` by
-   area (the paper's rule). The area held to that least is the region's pixels the block matcher measured where
+   the image by their median disparity (a small near obstacle is kept before a large far wall; one of at least
+   ``near_min_area_fraction`` where it is nearer than all of those, a thin pole), ``"largest"`` by area (the
+   paper's rule). The area held to that least is the region's pixels the block matcher measured where
    the right camera sees them: a band of filled rows, or one only the left camera sees, cannot be ranged.
 5. **Right view**: each kept left region shifted left by its own median disparity (a region's pixels sit at
    ``x − d`` in the right view). One network pass per pair, not two.
@@ -351,6 +352,7 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
     h, w = image.shape[-2:]
     min_area_px = config.min_area_fraction * h * w
     kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep, min_area_px=min_area_px,
+                                          near_min_area_px=config.near_min_area_fraction * h * w,
                                           nearness=region_disparity,
                                           candidate_area_px=_area_measured_in_view(
                                               labels, regions, region_disparity, measured.measured, min_area_px))

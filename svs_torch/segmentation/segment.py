@@ -33,6 +33,11 @@ __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_large
 MAX_KERNEL_SIZE = 255
 #: The most regions kept per image: label images are uint8 (0 background, 1..255), as ``--masks-out`` writes.
 MAX_KEEP = 255
+#: A region under the least area kept because it is the nearest (``near_min_area_fraction``) must have at least this
+#: share of its pixels counted (the nearness segmenter: measured by its block matcher where the right camera sees
+#: them): on the tuning sets most small near regions that were wrong were rows filled in from their neighbours (the
+#: dense stage measured 18–31 % of their pixels, the poles' of experiments/thin_obstacles.md 86 % or more).
+NEAR_MIN_COUNTED_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,12 @@ class SegmentationConfig:
         min_area_fraction: under ``keep="nearest"`` / ``"nearest_first"``, regions smaller than this share of the
             image (e.g. 0.003 = 230 px at 320×240) are not candidates: a speck of wrong disparity is not an
             obstacle.
+        near_min_area_fraction: under the same rules, a region of at least this share but under
+            ``min_area_fraction`` is still a candidate where it is nearer (a larger median disparity) than every
+            region of ``min_area_fraction`` and measured on at least half its pixels (:data:`NEAR_MIN_COUNTED_SHARE`):
+            a pole 3 cm wide 1.6 m ahead is 5 px wide at 320×240, and the nearness segmenter's median-filtered map
+            leaves it a region of a few hundred pixels (experiments/thin_obstacles.md). A speck behind the near
+            regions, or of filled rows, stays out. 0: off.
         min_measured_share: the nearness segmenter's pairs whose block matcher accepted less than this share of
             the left view are segmented by Otsu and the paper's two largest regions instead: views of two
             different scenes (a misconnected camera) leave up to about 10 % accepted by chance, and a disparity so
@@ -79,6 +90,7 @@ class SegmentationConfig:
     segmenter: str = "otsu"  # Sec. 3.2; "learned" is the paper's next step (Sec. 5), issue 13; "nearness" issue 32
     keep: Literal["largest", "nearest", "nearest_first"] = "largest"  # Sec. 3.2 step 6
     min_area_fraction: float = 0.0  # of the image's area
+    near_min_area_fraction: float = 0.0  # of the image's area
     min_measured_share: float = 0.0  # of the left view's pixels; the nearness segmenter only
 
     def __post_init__(self) -> None:
@@ -109,6 +121,9 @@ class SegmentationConfig:
         if not (isinstance(self.min_area_fraction, (int, float)) and 0 <= self.min_area_fraction < 1):
             raise InputError(f"min_area_fraction: expected a share of the image in [0, 1), got "
                              f"{self.min_area_fraction!r}")
+        if not (isinstance(self.near_min_area_fraction, (int, float)) and 0 <= self.near_min_area_fraction < 1):
+            raise InputError(f"near_min_area_fraction: expected a share of the image in [0, 1), got "
+                             f"{self.near_min_area_fraction!r}")
         if not (isinstance(self.min_measured_share, (int, float)) and 0 <= self.min_measured_share <= 1):
             raise InputError(f"min_measured_share: expected a share of the image in [0, 1], got "
                              f"{self.min_measured_share!r}")
@@ -136,7 +151,8 @@ def keep_largest_regions(
 
 def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
                  min_area_px: float = 0.0, nearness: torch.Tensor | None = None,
-                 candidate_area_px: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                 candidate_area_px: torch.Tensor | None = None, near_min_area_px: float = 0.0
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`keep_largest_regions`, or under ``keep="nearest"`` the ``num_keep`` regions of at least
     ``min_area_px`` pixels with the largest ``nearness`` ``(B, L)`` (e.g. median disparity; ties by area, then
     label), nearest first; under ``"nearest_first"`` the nearest such region, then the largest of the other such
@@ -144,14 +160,20 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     nearness rules a region smaller than ``min_area_px`` is never kept beside one that is not: a speck left by
     the opening next to a near region covering most of the view would otherwise be ranged as an obstacle, from
     a handful of pixels. ``candidate_area_px`` ``(B, L)``: the area held to ``min_area_px`` and ranking the
-    regions after the nearest (default: ``regions.area_px``; e.g. the pixels the other camera sees). Not
-    differentiable."""
+    regions after the nearest (default: ``regions.area_px``; e.g. the pixels the other camera sees). A region of
+    at least ``near_min_area_px`` (below ``min_area_px``) is a candidate too where it is nearer than every region
+    of ``min_area_px`` and that count holds at least :data:`NEAR_MIN_COUNTED_SHARE` of its pixels, so ranked
+    first. Not differentiable."""
     if keep == "largest":
         return keep_largest_regions(labels, regions, num_keep)
     if nearness is None:
         raise InputError("nearness: keep='nearest' needs a nearness per region, got none")
     area = regions.area_px if candidate_area_px is None else candidate_area_px.to(regions.area_px.dtype)
     candidate = regions.valid & (area >= min_area_px)
+    if 0 < near_min_area_px < min_area_px and candidate.shape[1]:  # no region at all: nothing to compare
+        small = regions.valid & ~candidate & (area >= near_min_area_px)
+        candidate = candidate | _small_near_regions(small & (area >= NEAR_MIN_COUNTED_SHARE * regions.area_px),
+                                                    candidate, nearness)
     order_area = torch.sort(torch.where(candidate, area, -1), dim=1, descending=True, stable=True).indices
     ranked = torch.gather(torch.where(candidate, nearness.to(torch.float64), -torch.inf), 1, order_area)
     order = torch.gather(order_area, 1, torch.sort(ranked, dim=1, descending=True, stable=True).indices)
@@ -172,6 +194,14 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     largest, largest_mask = keep_largest_regions(labels, regions, num_keep)
     return (torch.where(has_candidate, kept, largest),
             torch.where(has_candidate.view(-1, *([1] * (labels.dim() - 1))), kept_mask, largest_mask))
+
+
+def _small_near_regions(small: torch.Tensor, candidate: torch.Tensor, nearness: torch.Tensor) -> torch.Tensor:
+    """``(B, L)``: the ``small`` regions nearer (a larger ``nearness``) than every ``candidate`` region. A thin near
+    obstacle, not a speck beside the regions already ranked: in a pair with no candidate it stays out too."""
+    nearness = nearness.to(torch.float64)
+    nearest_candidate = torch.where(candidate, nearness, -torch.inf).amax(1, keepdim=True)
+    return small & (nearness > nearest_candidate) & candidate.any(1, keepdim=True)
 
 
 def _keep_in_order(labels: torch.Tensor, regions: RegionProperties, order: torch.Tensor, num_keep: int

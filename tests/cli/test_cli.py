@@ -111,6 +111,18 @@ def test_usage_errors_exit_non_zero(capsys):
     assert main([]) == 2
 
 
+def test_near_min_area_fraction_option(data_dir, capsys):
+    """``--near-min-area-fraction`` reaches the segmentation, and a share out of range is refused by name."""
+    from svs_torch.cli.segment import config_from_args
+    from svs_torch.cli import build_parser
+
+    args = build_parser().parse_args(["estimate", "a.png", "b.png", "--near-min-area-fraction", "0.001"])
+    assert config_from_args(args).near_min_area_fraction == 0.001
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "estimate", left, right, "--near-min-area-fraction", "1.5")
+    assert code == 2 and out == "" and err.count("\n") == 1 and "--near-min-area-fraction" in err
+
+
 def test_demo_ranges_the_synthetic_obstacles(capsys, tmp_path):
     figure = tmp_path / "demo.png"
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure), "--json", "--seed", "3")

@@ -74,6 +74,50 @@ def test_keep_rules_keep_a_small_near_region_before_a_large_far_one():
     assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, seen)[0].tolist() == [[2, -1]]
 
 
+def test_a_small_region_under_the_least_area_is_kept_only_where_it_is_the_nearest():
+    """``near_min_area_px``: a thin near pole (30 px here) under the least area is still kept first where it is
+    nearer than every region of the least area; a small region behind them, or one in a pair with none of the
+    least area, stays out."""
+    mask = torch.zeros(2, 1, 40, 80, dtype=torch.bool)
+    mask[..., 0:30, 0:40] = True  # a large region (label 1)
+    mask[..., 0:20, 50:75] = True  # a medium region (label 2)
+    mask[..., 34:39, 60:66] = True  # a small region (label 3, 30 px)
+    labels, _, regions = connected_components_with_stats(mask, 8)
+    nearness = torch.tensor([[3.0, 5.0, 20.0],  # the small region is the nearest
+                             [3.0, 5.0, 4.0]])  # the small region lies behind the medium one
+    kept = keep_regions(labels, regions, 2, "nearest_first", 31, nearness, near_min_area_px=20)[0]
+    assert kept.tolist() == [[3, 1], [2, 1]]
+    assert keep_regions(labels, regions, 2, "nearest", 31, nearness, near_min_area_px=20)[0].tolist() == [
+        [3, 2], [2, 1]]
+    # Under near_min_area_px, or with the rule off (0), or no smaller than the least area: as before.
+    for near in (31, 0, 40):
+        assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, near_min_area_px=near)[0].tolist() \
+            == [[2, 1], [2, 1]]
+    # Counted (e.g. measured) on under half its pixels, the small near region is filled rows: it stays out.
+    seen = regions.area_px.clone()
+    seen[:, 2] = 14
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, seen, near_min_area_px=10)[0].tolist() \
+        == [[2, 1], [2, 1]]
+    seen[:, 2] = 15
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, seen, near_min_area_px=10)[0].tolist() \
+        == [[3, 1], [2, 1]]
+    # A view without any region keeps none.
+    empty = torch.zeros(1, 1, 8, 8, dtype=torch.long)
+    none = region_properties(empty, torch.zeros(1, dtype=torch.long))
+    assert keep_regions(empty, none, 2, "nearest_first", 31, torch.zeros(1, 0), near_min_area_px=10)[0].tolist() \
+        == [[-1, -1]]
+    # No region of the least area: the paper's two largest, the small near region not among them.
+    assert keep_regions(labels, regions, 2, "nearest_first", 5000, nearness, near_min_area_px=20)[0].tolist() == [
+        [1, 2], [1, 2]]
+
+
+def test_near_min_area_fraction_is_checked():
+    with pytest.raises(InputError, match="near_min_area_fraction"):
+        SegmentationConfig(near_min_area_fraction=1.5)
+    with pytest.raises(InputError, match="near_min_area_fraction"):
+        SegmentationConfig(near_min_area_fraction="0.1")
+
+
 def test_regions_without_stereo_are_not_kept():
     """A region in the band only the left camera sees, or of filled rows only (nothing measured), cannot be
     ranged by the dense stage: the nearness segmenter does not keep it (shared Midd1, Lampshade1, Rocks1 did)."""
