@@ -89,7 +89,7 @@ def test_a_small_region_under_the_least_area_is_kept_only_where_it_is_the_neares
     assert kept.tolist() == [[3, 1], [2, 1]]
     assert keep_regions(labels, regions, 2, "nearest", 31, nearness, near_min_area_px=20)[0].tolist() == [
         [3, 2], [2, 1]]
-    # Under near_min_area_px, or with the rule off (0), or no smaller than the least area: as before.
+    # The rule off (0), or its least area not below the least area (31, 40): as before.
     for near in (31, 0, 40):
         assert keep_regions(labels, regions, 2, "nearest_first", 31, nearness, near_min_area_px=near)[0].tolist() \
             == [[2, 1], [2, 1]]
