@@ -16,12 +16,15 @@ Per pair the pole counts as
   percentile: :attr:`~svs_torch.depth.depth_types.NearestObstacle.surface_m`) does: a pole in front of the box may
   be kept as one region with it, whose median is the box's but whose near surface is the pole's.
 
+The control: the same 48 pairs without the pole (the box, the wall and their textures unchanged), where a warning
+nearer than 90 % of the box's distance is a false one: what keeping smaller regions could cost.
+
 The rival: OpenCV StereoSGBM's disparity through the truth's own procedure (Otsu of the disparity, 5×5 opening, the
 two largest regions; its nearest obstacle the smaller median depth of the two: ``eval_segmentation.sgbm_rival``).
 
 ``--min-area`` runs the default pipeline at each least area (``SegmentationConfig.min_area_fraction``, a share
 of the image) in turn: what the default's 0.3 % was checked on (experiments/thin_obstacles.md). Tuning data only
-(our own renderings). About 15 s a setting.
+(our own renderings). About 25 s with the rival on a 2-core machine, 15 s more for each further least area.
 
     python experiments/thin_obstacles.py [--min-area 0.003,0.01] [--set KEY=VALUE ...] [--no-rival]
                                          [--json F] [--markdown F]
@@ -63,12 +66,14 @@ def pole_cases() -> list[tuple[float, float, float]]:
     return [(w, z, x) for w in POLE_WIDTHS_M for z in POLE_DEPTHS_M for x in POLE_OFFSETS_M]
 
 
-def pole_scenes(cases: list[tuple[float, float, float]]):
-    """One rendered pair per case (module docstring), a :class:`~svs_torch.core.types.StereoBatch`."""
+def pole_scenes(cases: list[tuple[float, float, float]], with_pole: bool = True):
+    """One rendered pair per case (module docstring), a :class:`~svs_torch.core.types.StereoBatch`; without the
+    pole (the control: the same box, wall and textures) where ``with_pole`` is False."""
     depth = torch.tensor([[z, BOX_DEPTH_M] for (_, z, _) in cases])
     centre = torch.tensor([[[x, 0.0], [-BOX_OFFSET_M if x > 0 else BOX_OFFSET_M, 0.1]] for (_, _, x) in cases])
     size = torch.tensor([[[w, POLE_HEIGHT_M], [BOX_SIDE_M, BOX_SIDE_M]] for (w, _, _) in cases])
-    return render_obstacle_scenes(depth, centre, size, generator=torch.Generator().manual_seed(SEED),
+    valid = torch.tensor([[with_pole, True]] * len(cases))
+    return render_obstacle_scenes(depth, centre, size, valid, generator=torch.Generator().manual_seed(SEED),
                                   texture_contrast=0.5).batch
 
 
@@ -85,29 +90,37 @@ def is_pole(distance_m: float | None, pole_m: float) -> bool:
     return distance_m is not None and abs(distance_m - pole_m) <= TOLERANCE * pole_m
 
 
-def pipeline_rows(batch, config: PipelineConfig, cases, frame: str, setting: str) -> list[dict]:
+def outcome(setting: str, frame: str, case: tuple[float, float, float], pole: bool, nearest_m: float | None,
+            warning_m: float | None) -> dict:
+    """One pair's row: with the pole, whether it was found; without it, whether a warning came nearer than the
+    box (a false warning)."""
+    w, z, x = case
+    found = pole and is_pole(warning_m, z)
+    false = not pole and warning_m is not None and warning_m < (1 - TOLERANCE) * BOX_DEPTH_M
+    return {"setting": setting, "frame": frame, "width_m": w, "depth_m": z, "offset_m": x, "pole": pole,
+            "nearest_m": nearest_m, "warning_m": warning_m, "nearest": pole and is_pole(nearest_m, z),
+            "warned": found, "false_warning": false}
+
+
+def pipeline_rows(batch, config: PipelineConfig, cases, frame: str, setting: str, pole: bool) -> list[dict]:
     """Each pair's nearest obstacle and warning distance under ``config``."""
     result = estimate_obstacle_depth(batch, config)
     nearest = result.depth.nearest
     rows = []
-    for i, (w, z, x) in enumerate(cases):
+    for i, case in enumerate(cases):
         ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
         median = float(nearest.depth_m[i]) if ok else None
         surface = float(nearest.surface_m[i]) if ok else None
-        rows.append({"setting": setting, "frame": frame, "width_m": w, "depth_m": z, "offset_m": x,
-                     "nearest_m": median, "warning_m": surface, "nearest": is_pole(median, z),
-                     "warned": is_pole(surface, z)})
+        rows.append(outcome(setting, frame, case, pole, median, surface))
     return rows
 
 
-def rival_rows(batch, cases, frame: str) -> list[dict]:
+def rival_rows(batch, cases, frame: str, pole: bool) -> list[dict]:
     """StereoSGBM's nearest obstacle per pair (module docstring); a loop over pairs, as OpenCV runs."""
     rows = []
-    for i, (w, z, x) in enumerate(cases):
+    for i, case in enumerate(cases):
         _, nearest = sgbm_rival(batch.select([i]))
-        rows.append({"setting": "OpenCV SGBM", "frame": frame, "width_m": w, "depth_m": z, "offset_m": x,
-                     "nearest_m": nearest, "warning_m": nearest, "nearest": is_pole(nearest, z),
-                     "warned": is_pole(nearest, z)})
+        rows.append(outcome("OpenCV SGBM", frame, case, pole, nearest, nearest))
     return rows
 
 
@@ -115,14 +128,16 @@ def markdown(rows: list[dict], command: str) -> str:
     """One line per setting and frame: poles found nearest and warned of, by width."""
     lines = [f"`{command}`", "",
              "| setting | frames | nearest (of 48) | warned (of 48) | "
-             + " | ".join(f"warned, {100 * w:.0f} cm (of 12)" for w in POLE_WIDTHS_M) + " |",
-             "|---|---|---|---|" + "---|" * len(POLE_WIDTHS_M)]
+             + " | ".join(f"warned, {100 * w:.0f} cm (of 12)" for w in POLE_WIDTHS_M)
+             + " | without the pole: warned nearer than the box (of 48) |",
+             "|---|---|---|---|---|" + "---|" * len(POLE_WIDTHS_M)]
     keys = list(dict.fromkeys((r["setting"], r["frame"]) for r in rows))
     for setting, frame in keys:
         group = [r for r in rows if (r["setting"], r["frame"]) == (setting, frame)]
         widths = [sum(r["warned"] for r in group if r["width_m"] == w) for w in POLE_WIDTHS_M]
         lines.append(f"| {setting} | {frame} | {sum(r['nearest'] for r in group)} | "
-                     f"{sum(r['warned'] for r in group)} | " + " | ".join(str(n) for n in widths) + " |")
+                     f"{sum(r['warned'] for r in group)} | " + " | ".join(str(n) for n in widths)
+                     + f" | {sum(r['false_warning'] for r in group)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -156,14 +171,15 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(str(error))
     started = time.perf_counter()
     cases = pole_cases()
-    scenes = pole_scenes(cases)
     rows = []
-    for frame, digit, sigma in FRAMES:
-        batch = as_frames(scenes, digit, sigma)
-        for setting, config in settings.items():
-            rows += pipeline_rows(batch, config, cases, frame, setting)
-        if not args.no_rival:
-            rows += rival_rows(batch, cases, frame)
+    for pole in (True, False):
+        scenes = pole_scenes(cases, with_pole=pole)
+        for frame, digit, sigma in FRAMES:
+            batch = as_frames(scenes, digit, sigma)
+            for setting, config in settings.items():
+                rows += pipeline_rows(batch, config, cases, frame, setting, pole)
+            if not args.no_rival:
+                rows += rival_rows(batch, cases, frame, pole)
     command = "python experiments/thin_obstacles.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = markdown(sorted(rows, key=lambda r: (r["setting"], [f[0] for f in FRAMES].index(r["frame"]))), command)
     print(table)

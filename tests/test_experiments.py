@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
+import pytest
+
 from conftest import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
@@ -252,3 +254,24 @@ def test_exposure_change_separates_a_gain_from_what_each_view_sees(data_dir):
     assert len(plain) == 3 * 19 and len(gain) == 3 * 3
     assert max(value for value, _ in plain) < RETRY_MIN_CHANGE < min(value for value, _ in gain)
     assert out["retried"][RETRY_MIN_CHANGE] <= out["retried"][0.05]
+
+
+def test_thin_obstacles_counts_the_poles_warned_of_and_false_warnings_without_them():
+    """experiments/thin_obstacles.py on two of its poles (8 cm at 1.2 m, 5 cm at 1.6 m), clean: both warned of at
+    their distance, and the same pairs without the poles give no warning nearer than the box."""
+    import thin_obstacles
+
+    from svs_torch.pipeline import PipelineConfig
+
+    cases = [(0.08, 1.2, -0.3), (0.05, 1.6, 0.3)]
+    rows = []
+    for pole in (True, False):
+        rows += thin_obstacles.pipeline_rows(thin_obstacles.pole_scenes(cases, with_pole=pole), PipelineConfig(),
+                                             cases, "clean", "default", pole)
+    with_pole = [r for r in rows if r["pole"]]
+    assert all(r["warned"] and abs(r["warning_m"] - r["depth_m"]) < 0.1 * r["depth_m"] for r in with_pole)
+    assert not any(r["false_warning"] or r["warned"] for r in rows if not r["pole"])
+    assert all(abs(r["nearest_m"] - thin_obstacles.BOX_DEPTH_M) < 0.1 for r in rows if not r["pole"])
+    assert "| default | clean | 2 | 2 | 0 | 0 | 1 | 1 | 0 |" in thin_obstacles.markdown(rows, "command")
+    with pytest.raises(SystemExit):
+        thin_obstacles.main(["--min-area", "1.5"])
