@@ -33,7 +33,6 @@ of the image) in turn: what the default's 0.3 % was checked on (experiments/thin
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -45,7 +44,7 @@ from eval_segmentation import sgbm_rival  # noqa: E402
 from run_metadata import run_metadata, write_report  # noqa: E402
 
 from svs_torch.core.errors import InputError  # noqa: E402
-from svs_torch.data import camera_frames  # noqa: E402
+from svs_torch.data import camera_frame_pairs  # noqa: E402
 from svs_torch.data.synthetic import render_obstacle_scenes  # noqa: E402
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth  # noqa: E402
@@ -81,9 +80,7 @@ def as_frames(batch, digit: int, sigma_levels: float):
     """``batch`` as the board's frames at JPEG ``digit`` with sensor noise (0: unchanged)."""
     if digit == 0:
         return batch
-    generator = torch.Generator().manual_seed(SEED + digit)
-    return dataclasses.replace(batch, left=camera_frames(batch.left, digit, sigma_levels, generator),
-                               right=camera_frames(batch.right, digit, sigma_levels, generator))
+    return camera_frame_pairs(batch, digit, sigma_levels, torch.Generator().manual_seed(SEED + digit))
 
 
 def is_pole(distance_m: float | None, pole_m: float) -> bool:

@@ -23,10 +23,10 @@ from .datasets import (
 from .resample import collate_stereo_batches, resize_stereo_batch
 from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_sources
 from .calibration import calibration_record, format_calibration, pair_calibration_source
-from .camera_frames import JPEG_QUALITY_FOR_DIGIT, camera_frames
+from .camera_frames import JPEG_QUALITY_FOR_DIGIT, camera_frame_pairs, camera_frames
 
 __all__ = [
-    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frames",
+    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frame_pairs", "camera_frames",
     "collate_stereo_batches", "detect_stereo_layout",
     "format_calibration",
     "load_pair_source", "pair_calibration_source",

@@ -14,7 +14,7 @@ import torch
 
 from ..core.checks import InputError, check_shape
 
-__all__ = ["JPEG_QUALITY_FOR_DIGIT", "camera_frames"]
+__all__ = ["JPEG_QUALITY_FOR_DIGIT", "camera_frame_pairs", "camera_frames"]
 
 #: The board's JPEG quality digit (1 best … 8 worst, default 4) → OpenCV JPEG quality (0–100): an emulator's
 #: choice, not the firmware's, which ``hw/``'s SVS emulator encodes its frames with.
@@ -45,3 +45,13 @@ def camera_frames(images: torch.Tensor, digit: int, sigma_levels: float, generat
         decoded.append(cv2.imdecode(encoded, cv2.IMREAD_GRAYSCALE))
     frames = torch.from_numpy(np.stack(decoded).astype(np.float32) / 255)
     return frames.view(images.shape).to(device=images.device, dtype=images.dtype)
+
+
+def camera_frame_pairs(batch, digit: int, sigma_levels: float, generator: torch.Generator):
+    """The :class:`~svs_torch.core.types.StereoBatch` ``batch`` with both views made camera frames
+    (:func:`camera_frames`), the left view's noise drawn from ``generator`` first, then the right's: two boards'
+    independent noise. Not differentiable."""
+    import dataclasses
+
+    return dataclasses.replace(batch, left=camera_frames(batch.left, digit, sigma_levels, generator),
+                               right=camera_frames(batch.right, digit, sigma_levels, generator))

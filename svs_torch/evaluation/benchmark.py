@@ -14,7 +14,7 @@ What is measured (all on this machine, the thread count recorded):
   warm-up batch at each size; batches over 32 pairs of 320×240 run in chunks of 32), the peak resident
   memory per pair of the batch (a child process per B), the latency of one pair at B = 1 (what ``guide``
   pays per frame; also with the paper's Otsu segmenter, and both on the first 16 pairs as the board's default
-  camera frames, :func:`camera_pairs`), and kornia's own composition (``SIFTFeature`` +
+  camera frames, :func:`svs_torch.data.camera_frame_pairs`), and kornia's own composition (``SIFTFeature`` +
   ``match_snn`` + ``RANSAC('fundamental')``).
 - ``svs-depth --help`` start-up.
 - **comparable work**: per rival, the mean keypoints, matches, inliers and the median R_min over the pairs, so
@@ -199,6 +199,7 @@ def in_process(repeats: int, threads: int) -> dict:
     """Stage times at B = 32, per-pair time against B, latency at B = 1, kornia's composition."""
     import torch
 
+    from ..data import camera_frame_pairs
     from ..data.synthetic import random_obstacle_scenes
     from ..core.workers import keep_freed_memory
     from ..pipeline import PipelineConfig
@@ -222,24 +223,12 @@ def in_process(repeats: int, threads: int) -> dict:
     first = scenes.batch.select(list(range(16)))
     # guide's own input: a real SVS sends noisy JPEG frames, on which the pipeline takes more passes than on
     # clean ones (a noisy map matched wider, the dense stage's coarse retry).
-    frames = camera_pairs(first)
+    frames = camera_frame_pairs(first, CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, torch.Generator().manual_seed(0))
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
             "latency_ms_B1_otsu": _ms_per_pair(first, 1, otsu, repeats)[0],
             "latency_ms_B1_camera": _ms_per_pair(frames, 1, config, repeats)[0],
             "latency_ms_B1_camera_otsu": _ms_per_pair(frames, 1, otsu, repeats)[0],
             "kornia_ms_per_pair": _kornia_composition(scenes.batch.select(list(range(8))), repeats)}
-
-
-def camera_pairs(batch, digit: int = CAMERA_DIGIT, sigma_levels: float = CAMERA_SIGMA_LEVELS, seed: int = 0):
-    """``batch`` as an SVS sends it: each view noisy and JPEG-encoded at the board's quality ``digit``
-    (:func:`svs_torch.data.camera_frames`), the left and right views' noise drawn independently (seeded)."""
-    import torch
-
-    from ..data import camera_frames
-
-    views = [camera_frames(view, digit, sigma_levels, torch.Generator().manual_seed(seed + i))
-             for i, view in enumerate((batch.left, batch.right))]
-    return dataclasses.replace(batch, left=views[0], right=views[1])
 
 
 def _ms_per_pair(pairs, b: int, config, repeats: int) -> tuple[float, object]:

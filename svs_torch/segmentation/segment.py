@@ -36,7 +36,8 @@ MAX_KEEP = 255
 #: A region under the least area kept because it is the nearest (``near_min_area_fraction``) must have at least this
 #: share of its pixels counted (the nearness segmenter: measured by its block matcher where the right camera sees
 #: them): on the tuning sets most small near regions that were wrong were rows filled in from their neighbours (the
-#: dense stage measured 18–31 % of their pixels, the poles' of experiments/thin_obstacles.md 86 % or more).
+#: dense stage later measured 18–31 % of their pixels, and the poles of experiments/thin_obstacles.md 86 % or more;
+#: this share reads the segmenter's own count, which it has before the dense stage runs).
 NEAR_MIN_COUNTED_SHARE = 0.5
 
 

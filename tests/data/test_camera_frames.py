@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from svs_torch import InputError
-from svs_torch.data import JPEG_QUALITY_FOR_DIGIT, camera_frames, random_obstacle_scenes
+from svs_torch.data import JPEG_QUALITY_FOR_DIGIT, camera_frame_pairs, camera_frames, random_obstacle_scenes
 
 
 def _scene() -> torch.Tensor:
@@ -48,3 +48,12 @@ def test_a_higher_digit_loses_more_of_the_view():
 def test_bad_arguments_are_refused_by_name(images, digit, sigma, pattern):
     with pytest.raises(InputError, match=pattern):
         camera_frames(images, digit, sigma, torch.Generator())
+
+
+def test_pairs_draw_the_left_views_noise_then_the_rights():
+    batch = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(2)).batch
+    pair = camera_frame_pairs(batch, 4, 4.0, torch.Generator().manual_seed(5))
+    generator = torch.Generator().manual_seed(5)
+    assert torch.equal(pair.left, camera_frames(batch.left, 4, 4.0, generator))
+    assert torch.equal(pair.right, camera_frames(batch.right, 4, 4.0, generator))
+    assert torch.equal(pair.disparity_px, batch.disparity_px)

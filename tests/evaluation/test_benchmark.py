@@ -78,8 +78,11 @@ def test_guides_latency_is_also_timed_on_camera_frames():
     and JPEG-encoded, the two views' noise independent, seeded), and the table line that reports it."""
     import torch
 
-    from svs_torch.data import random_obstacle_scenes
-    from svs_torch.evaluation.benchmark import CAMERA_DIGIT, camera_pairs
+    from svs_torch.data import camera_frame_pairs, random_obstacle_scenes
+    from svs_torch.evaluation.benchmark import CAMERA_DIGIT, CAMERA_SIGMA_LEVELS
+
+    def camera_pairs(batch):  # as the benchmark makes them
+        return camera_frame_pairs(batch, CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, torch.Generator().manual_seed(0))
 
     batch = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(1)).batch
     frames = camera_pairs(batch)
