@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svs_torch.data import camera_frames, list_shared_pairs, load_stereo_pair, resize_stereo_batch
+from svs_torch.data import camera_frame_pairs, list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_disparity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -54,8 +54,8 @@ def main(argv: list[str] | None = None) -> float:
     pairs = [resize_stereo_batch(load_stereo_pair(p), (320, 240)) for p in paths]
     generator = torch.Generator().manual_seed(0)
     clean = [accepted_share(b.left, b.right) for b in pairs]
-    jpeg = [accepted_share(camera_frames(b.left, 8, 8.0, generator), camera_frames(b.right, 8, 8.0, generator))
-            for b in pairs]
+    jpeg = [accepted_share(frames.left, frames.right)
+            for frames in (camera_frame_pairs(b, 8, 8.0, generator) for b in pairs)]
     scene = [SAME_SCENE.get(p.name, p.name) for p in paths]
     negative = [accepted_share(pairs[i].left, pairs[j].right) for i in range(len(pairs)) for j in range(len(pairs))
                 if scene[i] != scene[j]]
