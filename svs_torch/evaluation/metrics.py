@@ -8,7 +8,7 @@ OK. Accuracy is Eq. (9), ``(1 − |real − est| / real) · 100``, floored at 0;
 object without depth) scores 0 %, so failures are counted, never hidden.
 
 Pairs without a measured calibration (``StereoBatch.calibrated`` False: most Middlebury 2005/2006 scenes,
-2003 Cones, 2001, KITTI, aloe) are scored with one nominal calibration (:func:`with_nominal_calibration`) for
+2003 Cones, 2001, KITTI, aloe) are scored with a nominal calibration (:func:`with_nominal_calibration`) for
 truth and estimate alike: with doffs 0 both depths scale with f·B, so Eq. (9) measures the disparity-derived
 depth consistently, whatever f·B is; their metres are nominal.
 
@@ -58,14 +58,18 @@ NOMINAL_FOCAL_PX, NOMINAL_BASELINE_M = 3740 / 3, 0.160
 
 
 def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
-    """``batch`` with every pair that is not ``calibrated`` given the nominal calibration (f 3740 / 3 px,
-    B 0.160 m, doffs 0) and marked calibrated, so its ground truth has a depth; calibrated pairs are unchanged.
-    Apply it at the input size, before any resampling (which scales focal and doffs)."""
+    """``batch`` with every pair that is not ``calibrated`` given a nominal calibration and marked calibrated, so
+    its ground truth has a depth; calibrated pairs are unchanged. The nominal one is Middlebury's (f 3740 / 3 px,
+    B 0.160 m), but a KITTI pair (its name starts with ``kitti``) keeps the focal and baseline its loader gave
+    (KITTI's rig, MANIFEST §4): its metres are then a street's, and a rule that reads the baseline in metres (the
+    ground plane's camera height, :mod:`svs_torch.segmentation.ground_plane`) sees a car's rig. doffs is 0 either
+    way. Apply it at the input size, before any resampling (which scales focal and doffs)."""
     keep = batch.calibrated
+    own_rig = keep | torch.tensor([name.startswith("kitti") for name in batch.names], device=keep.device)
     return dataclasses.replace(
         batch,
-        focal_px=torch.where(keep, batch.focal_px, torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX)),
-        baseline_m=torch.where(keep, batch.baseline_m, torch.full_like(batch.baseline_m, NOMINAL_BASELINE_M)),
+        focal_px=torch.where(own_rig, batch.focal_px, torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX)),
+        baseline_m=torch.where(own_rig, batch.baseline_m, torch.full_like(batch.baseline_m, NOMINAL_BASELINE_M)),
         doffs_px=torch.where(keep, batch.doffs_px, torch.zeros_like(batch.doffs_px)),
         calibrated=torch.ones_like(keep))
 
