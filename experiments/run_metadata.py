@@ -44,3 +44,36 @@ def write_report(report: dict, table: str, json_path: Path | None, markdown_path
         write_bytes_atomic(json_path, json.dumps(report, indent=1).encode("utf-8"))
     if markdown_path:
         write_bytes_atomic(markdown_path, table.encode("utf-8"))
+
+
+def command_line(script: str, argv: list[str] | None) -> str:
+    """How ``script`` (``experiments/NAME.py``) was run: with ``argv``, or this process's arguments."""
+    import sys
+
+    return f"python {script} " + " ".join(argv if argv is not None else sys.argv[1:])
+
+
+def report_rows(table: str, rows: list[dict], command: str, overrides: list[str], started_s: float,
+                json_path: Path | None, markdown_path: Path | None) -> dict:
+    """Print ``table``, and write it and the ``rows`` with the run's metadata (``command``, ``--set``'s
+    ``overrides``, the time since ``started_s`` on ``time.perf_counter``) where asked; returns the report."""
+    import time
+
+    import torch
+
+    print(table)
+    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=overrides,
+                                        time_s=time.perf_counter() - started_s), "rows": rows}
+    write_report(report, table, json_path, markdown_path)
+    return report
+
+
+def add_rendered_experiment_options(parser) -> None:
+    """The options of the rendered-scene experiments (thin_obstacles.py, walker_floor.py): ``--set`` (repeatable),
+    ``--no-rival``, ``--json`` and ``--markdown``."""
+    from pathlib import Path
+
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
+    parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM")
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--markdown", type=Path)

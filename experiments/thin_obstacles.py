@@ -41,7 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
-from run_metadata import run_metadata, write_report  # noqa: E402
+from run_metadata import add_rendered_experiment_options, command_line, report_rows  # noqa: E402
 
 from svs_torch.core.errors import InputError  # noqa: E402
 from svs_torch.data import camera_frame_pairs  # noqa: E402
@@ -157,10 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--min-area", default=None,
                         help="comma-separated least areas (shares of the image) to run in turn (default: the "
                              "pipeline's)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
-    parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM")
-    parser.add_argument("--json", type=Path)
-    parser.add_argument("--markdown", type=Path)
+    add_rendered_experiment_options(parser)
     args = parser.parse_args(argv)
     try:
         settings = pipeline_settings(args.set, args.min_area)
@@ -177,13 +174,9 @@ def main(argv: list[str] | None = None) -> dict:
                 rows += pipeline_rows(batch, config, cases, frame, setting, pole)
             if not args.no_rival:
                 rows += rival_rows(batch, cases, frame, pole)
-    command = "python experiments/thin_obstacles.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line("experiments/thin_obstacles.py", argv)
     table = markdown(sorted(rows, key=lambda r: (r["setting"], [f[0] for f in FRAMES].index(r["frame"]))), command)
-    print(table)
-    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,
-                                        time_s=time.perf_counter() - started), "rows": rows}
-    write_report(report, table, args.json, args.markdown)
-    return report
+    return report_rows(table, rows, command, args.set, started, args.json, args.markdown)
 
 
 if __name__ == "__main__":

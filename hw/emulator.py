@@ -24,7 +24,7 @@ import time
 import tty
 
 from .emulator_state import CameraState, Faults, Reply
-from .frames import FrameSource, ImageFolderSource, SyntheticSource
+from .frames import FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
 from svs_torch.core.camera import parse_size
 
 __all__ = ["EmulatorServer", "main"]
@@ -276,6 +276,11 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--noise-sigma", type=float, default=0.0, metavar="LEVELS",
                    help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
     p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
+    p.add_argument("--floor-height-m", type=float, default=None, metavar="M",
+                   help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
+                        "(default: no floor)")
+    p.add_argument("--camera-pitch-deg", type=float, default=20.0, metavar="DEG",
+                   help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
     f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
@@ -302,7 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
         source = (ImageFolderSource(args.images, step_s=args.image_step) if args.images
-                  else SyntheticSource(renderer="simple" if args.simple_frames else "torch"))
+                  else SyntheticSource(ObstacleTrack(floor_height_m=args.floor_height_m,
+                                                     camera_pitch_deg=args.camera_pitch_deg),
+                                       renderer="simple" if args.simple_frames else "torch"))
         prepare = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
         faults = _faults_from_args(args)
         chosen = ("left", "right") if args.fault_camera == "both" else (args.fault_camera,)

@@ -30,11 +30,13 @@ class ObstacleTrack:
 
     Obstacle k sits at ``center_xy_m[k]`` (X right, Y down, metres, left camera frame), is ``size_m[k]`` wide
     and high (metres), and its depth follows ``mid + amp · sin(2π (cycles_k · t / period_s) + phase_k)`` with
-    ``mid ± amp = depth_range_m``, so every track is periodic in ``period_s``.
+    ``mid ± amp = depth_range_m``, so every track is periodic in ``period_s``. ``floor_height_m``: the cameras
+    that high over a floor, pitched down ``camera_pitch_deg`` (a walker's view: the floor is not an obstacle, and
+    ``guide`` must not warn of it); None: no floor. Only the svs_torch renderer draws the floor.
     """
 
     def __init__(self, depth_range_m: tuple[float, float] = (0.8, 3.0), period_s: float = 12.0,
-                 num_keyframes: int = 24) -> None:
+                 num_keyframes: int = 24, floor_height_m: float | None = None, camera_pitch_deg: float = 0.0) -> None:
         self.center_xy_m = np.array([[-0.25, 0.0], [0.3, 0.05]])
         self.size_m = np.array([[0.30, 0.50], [0.25, 0.35]])
         self.cycles = np.array([1.0, 2.0])  # oscillations per period, one per obstacle
@@ -42,6 +44,8 @@ class ObstacleTrack:
         self.depth_range_m = depth_range_m
         self.period_s = period_s
         self.num_keyframes = num_keyframes
+        self.floor_height_m = floor_height_m
+        self.camera_pitch_deg = camera_pitch_deg
 
     def keyframe(self, time_s: float) -> int:
         """Index of the keyframe shown at ``time_s`` (keyframes are ``period_s / num_keyframes`` apart)."""
@@ -101,7 +105,8 @@ def _render_torch_pair(track: ObstacleTrack, keyframe: int, size_wh: tuple[int, 
     depths = torch.tensor(track.depths_m(keyframe), dtype=torch.float32).unsqueeze(0)  # (1, K)
     scenes = render_obstacle_scenes(depths, torch.tensor(track.center_xy_m, dtype=torch.float32).unsqueeze(0),
                                     torch.tensor(track.size_m, dtype=torch.float32).unsqueeze(0),
-                                    size_wh=size_wh, camera=camera, generator=torch.Generator().manual_seed(seed))
+                                    size_wh=size_wh, camera=camera, generator=torch.Generator().manual_seed(seed),
+                                    floor_height_m=track.floor_height_m, camera_pitch_deg=track.camera_pitch_deg)
 
     def to_u8(image: torch.Tensor) -> np.ndarray:
         return (image[0, 0] * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()

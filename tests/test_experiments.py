@@ -275,3 +275,33 @@ def test_thin_obstacles_counts_the_poles_warned_of_and_false_warnings_without_th
     assert "| default | clean | 2 | 2 | 0 | 0 | 1 | 1 | 0 |" in thin_obstacles.markdown(rows, "command")
     with pytest.raises(SystemExit):
         thin_obstacles.main(["--min-area", "1.5"])
+
+
+def test_walker_floor_counts_the_box_warned_of_and_the_floors_false_warnings():
+    """experiments/walker_floor.py on two of its scenes (a camera 1.5 m high pitched 20° and 30°, the near box 1.6 m
+    ahead), clean: with the floor left out (``--set segmentation.ground=true``) the box is named and warned of and
+    the same scenes without it give no warning nearer than the far box; with the floor kept (the default), the kept
+    regions are mostly floor and the scenes without the near box are warned of the floor."""
+    import walker_floor
+
+    from svs_torch.evaluation.overrides import apply_overrides
+    from svs_torch.pipeline import PipelineConfig
+
+    cases = [(1.5, 20.0, 1.6, -0.4), (1.5, 30.0, 1.6, 0.4)]
+    rows = []
+    for setting, config in (("floor out", apply_overrides(PipelineConfig(), {"segmentation.ground": True})),
+                            ("default", PipelineConfig())):
+        for near_box in (True, False):
+            for index, scenes in walker_floor.walker_scenes(cases, near_box):
+                rows += walker_floor.pipeline_rows(scenes, index, cases, config, "clean", setting, near_box,
+                                                   scenes.batch)
+    out = [r for r in rows if r["setting"] == "floor out"]
+    assert all(r["nearest"] and r["warned"] for r in out if r["near_box"])
+    assert not any(r["false_warning"] for r in out)
+    assert all(r["floor_kept_share"] < 0.1 for r in out)
+    kept = [r for r in rows if r["setting"] == "default"]
+    assert all(r["floor_kept_share"] > 0.3 for r in kept)
+    assert all(r["false_warning"] for r in kept if not r["near_box"])
+    assert "| floor out | clean | 2 | 2 | 0 | " in walker_floor.markdown(rows, "command")
+    with pytest.raises(SystemExit):
+        walker_floor.main(["--set", "segmentation.ground.min_camera_height_m=-1"])

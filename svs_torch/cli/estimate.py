@@ -19,8 +19,10 @@ __all__ = []
 
 HELP = "distance to the obstacles of a stereo pair: the whole pipeline"
 DESCRIPTION = """\
-Run the whole pipeline on a stereo pair: segment the obstacles (Otsu, opening, the largest regions), SURF
-features, SAD matching, fundamental matrix by RANSAC, rectification, then range the obstacles.
+Run the whole pipeline on a stereo pair: segment the obstacles (by default what is near in the pair's own
+disparity, the nearest region first; --floor on leaves out the floor or the road a walker's camera sees;
+--segmenter otsu: the paper's brightest largest regions), SURF features, SAD matching, fundamental matrix by
+RANSAC, rectification, then range the obstacles.
 
 By default (--range dense) a dense SAD block matcher measures the disparity at every pixel of the kept
 regions (on the rectified pair, or the raw one when its rows already agree); each object's distance is the

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import sys
 import time
 import warnings
@@ -41,6 +42,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-noise", type=float, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
+    parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
+                        help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees, "
+                             "as a walker wears them (default: no floor)")
+    parser.add_argument("--floor", choices=("on", "off"), default="off",
+                        help="'on': the floor (the road) found as a plane in the pair's disparity is not an "
+                             "obstacle, so a camera pitched down does not warn of the floor ahead; 'off' (default): "
+                             "a pile of rocks or cloth can read as a floor (experiments/walker_floor.md)")
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
@@ -78,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)
+    if args.floor == "on":
+        from ..segmentation.ground_plane import GroundPlaneConfig
+
+        config = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation,
+                                                                              ground=GroundPlaneConfig()))
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status

@@ -1,6 +1,7 @@
-"""The ray caster of the synthetic scenes: each pixel's ray against the scene's boxes and the back wall, the
-surfaces' textures (seeded tiles of smoothed noise fixed to the surface, so both views see the same texture
-at the same point), the shading, and each object's visible box.
+"""The ray caster of the synthetic scenes: each pixel's ray against the scene's boxes, the back wall and, optionally,
+the floor under a pitched camera (what a walker's camera sees below the horizon), the surfaces' textures (seeded
+tiles of smoothed noise fixed to the surface, so both views see the same texture at the same point), the shading,
+and each object's visible box.
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ _OBJECT_MEAN = (0.66, 0.78)
 _OBJECT_AMPLITUDE = 0.14
 _BACKGROUND_MEAN = (0.20, 0.30)
 _BACKGROUND_AMPLITUDE = 0.10
+# The floor: between the two, neither the brightest obstacle nor the dark wall (a grey carpet, a pavement).
+_FLOOR_MEAN = (0.35, 0.55)
+_FLOOR_AMPLITUDE = 0.10
+# The floor's texture scale is set at this distance ahead (it recedes: finer far off, coarser near).
+_FLOOR_TEXTURE_DEPTH_M = 2.0
 
 
 class _Scene(NamedTuple):
@@ -41,6 +47,18 @@ class _Scene(NamedTuple):
     size_m: torch.Tensor  # (B, K, 2)
     valid: torch.Tensor  # (B, K) bool
     background_depth_m: float
+    floor_height_m: float | None = None  # the camera's height over the floor; None: no floor
+    pitch_rad: float = 0.0  # the camera pitched down by this much (the floor's plane only)
+
+    @property
+    def floor_slot(self) -> int:
+        """The floor's slot in the z-buffer and the tiles: after the wall (0) and the K objects."""
+        return self.depth_m.shape[1] + 1
+
+    def along_floor(self, depth: torch.Tensor, y_px: torch.Tensor) -> torch.Tensor:
+        """The forward coordinate along the floor, metres, of the points at ``depth`` seen at rows ``y_px``."""
+        cy = self.principal_xy[1]
+        return depth * (math.cos(self.pitch_rad) - math.sin(self.pitch_rad) * (y_px - cy) / self.focal_px)
 
 
 def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
@@ -78,14 +96,24 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
         closer = inside_x[:, i:i + 1] & inside_y[:, i:i + 1] & (depth[:, i:i + 1] < nearest)
         nearest = torch.where(closer, depth[:, i:i + 1], nearest)
         slot = torch.where(closer, i + 1, slot)
+    if scene.floor_height_m is not None:
+        # The floor: the points P with P · down = h, down = (0, cos θ, sin θ) in the camera's frame (pitched down
+        # by θ). The ray (x − cx, y − cy, f) / f meets it at Z = h / (r · down) where r · down > 0 (below the
+        # horizon); it shows where nearer than every box and the wall.
+        toward = (y_px - cy) / scene.focal_px * math.cos(scene.pitch_rad) + math.sin(scene.pitch_rad)
+        floor = scene.floor_height_m / toward.clamp_min(1e-12)
+        closer = (toward > 0) & (floor < nearest)
+        nearest = torch.where(closer, floor.to(nearest.dtype), nearest)
+        slot = torch.where(closer, scene.floor_slot, slot)
     return nearest, slot
 
 
 def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
-                generator: torch.Generator, contrast: float = 1.0) -> torch.Tensor:
+                generator: torch.Generator, contrast: float = 1.0, floor: bool = False) -> torch.Tensor:
     """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
     surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
-    square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value)."""
+    square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value).
+    ``floor``: every slot is a floor's (its intensities)."""
     b, s = tile_depth_m.shape
     g = _TILE_TEXELS
     dtype, device = tile_depth_m.dtype, tile_depth_m.device
@@ -107,6 +135,9 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
     low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
     high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
     amplitude = torch.where(is_object, _OBJECT_AMPLITUDE * contrast, _BACKGROUND_AMPLITUDE * contrast)
+    if floor:
+        low, high = torch.full_like(low, _FLOOR_MEAN[0]), torch.full_like(high, _FLOOR_MEAN[1])
+        amplitude = torch.full_like(amplitude, _FLOOR_AMPLITUDE * contrast)
     mean = low + (high - low) * level  # (B, S)
     return mean.view(b, s, 1, 1) + amplitude.view(1, s, 1, 1) * texture
 
@@ -124,7 +155,17 @@ def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], g
     tile_center = torch.cat([wall_center, scene.center_xy_m], dim=1)
     tile_side = torch.cat([torch.full((b, 1), wall_side, **options), scene.size_m.amax(dim=-1)], dim=1)
     tile_depth = torch.cat([torch.full((b, 1), scene.background_depth_m, **options), scene.depth_m], dim=1)
-    return _make_tiles(tile_depth, tile_side, scene.focal_px, generator, contrast), tile_center, tile_side
+    tiles = _make_tiles(tile_depth, tile_side, scene.focal_px, generator, contrast)
+    if scene.floor_height_m is None:
+        return tiles, tile_center, tile_side
+    # The floor's tile, drawn after the others (a scene's boxes and wall look the same with or without it),
+    # spans the floor the cameras see up to the wall: X and the distance ahead along the floor.
+    floor_side = torch.full((b, 1), 2 * scene.background_depth_m + baseline_m, **options)
+    floor_tile = _make_tiles(torch.full((b, 1), _FLOOR_TEXTURE_DEPTH_M, **options), floor_side, scene.focal_px,
+                             generator, contrast, floor=True)
+    floor_center = torch.tensor([baseline_m / 2, scene.background_depth_m], **options).expand(b, 1, 2)
+    return (torch.cat([tiles, floor_tile], 1), torch.cat([tile_center, floor_center], 1),
+            torch.cat([tile_side, floor_side], 1))
 
 
 def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor,
@@ -154,7 +195,10 @@ def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: to
     scale = per_pixel(scale)
     # Wrapped into [0, G): the tiles are periodic, so surfaces larger than their tile stay seamless.
     u = torch.addcmul(per_pixel(offset[..., 0]), depth * ((x_px - cx) / scene.focal_px), scale).remainder(g)
-    v = torch.addcmul(per_pixel(offset[..., 1]), depth * ((y_px - cy) / scene.focal_px), scale).remainder(g)
+    down = depth * ((y_px - cy) / scene.focal_px)
+    if scene.floor_height_m is not None:  # the floor's second coordinate: the distance ahead along it
+        down = torch.where(slot == scene.floor_slot, scene.along_floor(depth, y_px), down)
+    v = torch.addcmul(per_pixel(offset[..., 1]), down, scale).remainder(g)
     # Rounding can give exactly G; the clamp keeps the corner inside. The tiles get a wrapped extra row and
     # column so the +1 neighbours need no integer modulo (which is slow on CPU).
     u0, v0 = u.floor().clamp(max=g - 1), v.floor().clamp(max=g - 1)

@@ -53,6 +53,8 @@ class SyntheticScenes:
             left-image pixels; zeros where none is visible.
         object_center_xy_m: ``(B, K, 2)`` centre (X, Y) in metres in the left camera frame; 0 in padding slots.
         object_size_m: ``(B, K, 2)`` width, height in metres; 0 in padding slots.
+        floor_mask: ``(B, 1, H, W)`` bool, the left view's floor pixels (their ``object_ids`` are 0: the floor
+            is not an obstacle); None for a scene rendered without a floor.
     """
 
     batch: StereoBatch
@@ -63,6 +65,7 @@ class SyntheticScenes:
     object_bbox_xyxy: torch.Tensor
     object_center_xy_m: torch.Tensor | None = None
     object_size_m: torch.Tensor | None = None
+    floor_mask: torch.Tensor | None = None
 
 
 def _resolve_generator(generator: torch.Generator | None, device: torch.device) -> torch.Generator:
@@ -77,6 +80,17 @@ def _resolve_generator(generator: torch.Generator | None, device: torch.device) 
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise InputError(message)
+
+
+def _check_look_args(texture_contrast: float, floor_height_m: float | None, camera_pitch_deg: float) -> None:
+    """Validate :func:`render_obstacle_scenes`'s texture contrast and floor."""
+    real = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+    _require(real(texture_contrast) and texture_contrast >= 0,
+             f"texture_contrast: expected a finite number >= 0, got {texture_contrast!r}")
+    _require(floor_height_m is None or (real(floor_height_m) and floor_height_m > 0),
+             f"floor_height_m: expected None or a positive finite height in metres, got {floor_height_m!r}")
+    _require(real(camera_pitch_deg) and -30 <= camera_pitch_deg <= 60,
+             f"camera_pitch_deg: expected degrees in [-30, 60], got {camera_pitch_deg!r}")
 
 
 def _check_size_wh(size_wh: tuple[int, int]) -> None:
@@ -131,8 +145,11 @@ def render_obstacle_scenes(
     supersample: int = 2,
     noise_std: float = 0.0,
     texture_contrast: float = 1.0,
+    floor_height_m: float | None = None,
+    camera_pitch_deg: float = 0.0,
 ) -> SyntheticScenes:
-    """Render B stereo pairs of K bright textured rectangles in front of a dark textured wall.
+    """Render B stereo pairs of K bright textured rectangles in front of a dark textured wall, optionally over a
+    textured floor.
 
     Args:
         object_depth_m: ``(B, K)`` depth of each rectangle, metres, below ``background_depth_m``.
@@ -150,25 +167,22 @@ def render_obstacle_scenes(
         texture_contrast: the surfaces' texture amplitude as a multiple of the default (0.14 on the objects,
             0.10 on the wall); e.g. 0.3 for the weakly textured fronts of real indoor obstacles (painted boards,
             cloth, a lampshade), which the camera's JPEG and noise wipe out before the speckle of the default.
+        floor_height_m: the cameras' height over a floor, metres (None: no floor): a walker's view, whose floor
+            in front of the feet is the nearest surface in view and not an obstacle. Its texture is fixed to it.
+        camera_pitch_deg: the cameras pitched down by this many degrees, in [−30, 60]; it moves only the floor
+            (the points ``P`` with ``P · (0, cos θ, sin θ) = floor_height_m`` in the camera's frame).
 
     Returns:
         :class:`SyntheticScenes` on ``object_depth_m``'s device. Not differentiable (see module docstring).
     """
     object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
                                       tuple(size_wh), background_depth_m, supersample, noise_std)
-    _require(isinstance(texture_contrast, (int, float)) and not isinstance(texture_contrast, bool)
-             and math.isfinite(texture_contrast) and texture_contrast >= 0,
-             f"texture_contrast: expected a finite number >= 0, got {texture_contrast!r}")
+    _check_look_args(texture_contrast, floor_height_m, camera_pitch_deg)
     width, height = size_wh
     device = object_depth_m.device
     generator = _resolve_generator(generator, device)
-    valid = object_valid.to(device)
-    # Padding slots get harmless geometry (never hit, but their tiles are still drawn, keeping draws fixed).
-    depth = torch.where(valid, object_depth_m.to(dtype), 1.0)
-    center = torch.where(valid.unsqueeze(-1), object_center_xy_m.to(device, dtype), 0.0)
-    size = torch.where(valid.unsqueeze(-1), object_size_m.to(device, dtype), 1.0)
-    scene = _Scene(camera.focal_px(width), camera.principal_point_px(width, height), depth, center, size, valid,
-                   float(background_depth_m))
+    scene = _make_scene(object_depth_m, object_center_xy_m, object_size_m, object_valid.to(device), camera,
+                        (width, height), dtype, background_depth_m, floor_height_m, camera_pitch_deg)
     tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator, float(texture_contrast))
     views = [_render_view(camera_x, scene, (width, height), supersample, *tiles)
              for camera_x in (0.0, camera.baseline_m)]
@@ -179,6 +193,19 @@ def render_obstacle_scenes(
     return _with_ground_truth(scene, left, right, camera.baseline_m)
 
 
+def _make_scene(depth_m: torch.Tensor, center_xy_m: torch.Tensor, size_m: torch.Tensor, valid: torch.Tensor,
+                camera: SVSCamera, size_wh: tuple[int, int], dtype: torch.dtype, background_depth_m: float,
+                floor_height_m: float | None, camera_pitch_deg: float) -> _Scene:
+    """The geometry :func:`render_obstacle_scenes` casts its rays against."""
+    # Padding slots get harmless geometry (never hit, but their tiles are still drawn, keeping draws fixed).
+    depth = torch.where(valid, depth_m.to(dtype), 1.0)
+    center = torch.where(valid.unsqueeze(-1), center_xy_m.to(valid.device, dtype), 0.0)
+    size = torch.where(valid.unsqueeze(-1), size_m.to(valid.device, dtype), 1.0)
+    floor = None if floor_height_m is None else float(floor_height_m)
+    return _Scene(camera.focal_px(size_wh[0]), camera.principal_point_px(*size_wh), depth, center, size, valid,
+                  float(background_depth_m), floor, math.radians(camera_pitch_deg))
+
+
 def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
                        baseline_m: float) -> SyntheticScenes:
     """Package rendered ``left``/``right`` ``(B, 1, H, W)`` with ground truth at the left pixel centres."""
@@ -186,6 +213,10 @@ def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
     x_px = torch.arange(width, **options).view(1, 1, 1, -1)
     y_px = torch.arange(height, **options).view(1, 1, -1, 1)
     depth_m, object_ids = _cast_rays(x_px, y_px, 0.0, scene)
+    floor_mask = None
+    if scene.floor_height_m is not None:  # the floor is not an obstacle: id 0, as the wall
+        floor_mask = object_ids == scene.floor_slot
+        object_ids = object_ids.masked_fill(floor_mask, 0)
     focal_px = torch.full((b,), scene.focal_px, **options)
     baseline = torch.full((b,), baseline_m, **options)
     disparity = (focal_px * baseline).view(b, 1, 1, 1) / depth_m
@@ -197,7 +228,7 @@ def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
                            object_depth_m=torch.where(valid, scene.depth_m, zero), object_valid=valid,
                            object_bbox_xyxy=_visible_bboxes(object_ids, valid.shape[1]),
                            object_center_xy_m=torch.where(valid.unsqueeze(-1), scene.center_xy_m, zero),
-                           object_size_m=torch.where(valid.unsqueeze(-1), scene.size_m, zero))
+                           object_size_m=torch.where(valid.unsqueeze(-1), scene.size_m, zero), floor_mask=floor_mask)
 
 
 def _check_random_args(batch_size: int, num_objects: int, size_wh: tuple[int, int],
@@ -269,8 +300,8 @@ def random_obstacle_scenes(
 
     Obstacles 1–2 m away by default, as in the paper; widths 0.3–0.6 m and heights 0.4–1.0 m (box-sized;
     capped so each obstacle fits its sector of the view, see :func:`_place_obstacles`). ``render_kwargs`` go to
-    :func:`render_obstacle_scenes` (``background_depth_m``, ``supersample``, ``noise_std``). The same
-    generator state gives identical scenes. Not differentiable.
+    :func:`render_obstacle_scenes` (``background_depth_m``, ``supersample``, ``noise_std``, ``floor_height_m``,
+    ``camera_pitch_deg``). The same generator state gives identical scenes. Not differentiable.
 
     Raises:
         InputError: naming ``batch_size``, ``num_objects`` (too many to fit side by side at ``near``),

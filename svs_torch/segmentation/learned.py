@@ -37,6 +37,7 @@ from ..depth.dense_config import DenseConfig
 from ..depth.quantiles import kept_region_lower_median
 from ..depth.soft_dense import soft_block_match
 from .components import connected_components_with_stats
+from .ground_plane import GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
 from .network import ObstacleNet, ObstacleNetConfig, _disparity_levels, predict_obstacle_logits, stereo_features
 from .network_files import SHIPPED_WEIGHTS, cached_obstacle_net, load_obstacle_net, save_obstacle_net
@@ -76,8 +77,11 @@ class ObstacleTruth:
     nearest_valid: torch.Tensor
 
 
-def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig()) -> ObstacleTruth:
-    """The truth obstacles (module docstring) with ``config``'s element, connectivity and ``num_keep``.
+def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig(),
+                   floor: GroundPlaneConfig | None = None) -> ObstacleTruth:
+    """The truth obstacles (module docstring) with ``config``'s element, connectivity and ``num_keep``; with
+    ``floor``, a walker's truth: the ground plane of the true disparity (:mod:`.ground_plane`, fitted to the valid
+    pixels at the nearness segmenter's working width) is not an obstacle and is left out of the split.
 
     Depths need a calibrated pair (:meth:`StereoBatch.ground_truth_depth_m`); an uncalibrated one still gets its
     masks, with ``nearest_valid`` False. Not differentiable.
@@ -88,6 +92,11 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
     if batch.disparity_px is None:
         raise InputError("batch: expected ground-truth disparity (disparity_px), got none")
     valid = batch.disparity_valid
+    if floor is not None:
+        from .nearness import NearnessNetConfig  # (nearness imports this module)
+        factor = NearnessNetConfig().working_factor(batch.left.shape[-1])
+        valid = valid & ~fit_ground_plane(batch.disparity_px.nan_to_num(0.0, 0.0, 0.0), valid, batch.baseline_m,
+                                          floor, factor, focal_px=batch.focal_px).mask
     levels = _disparity_levels(batch.disparity_px, valid)
     histogram = gray_histogram(levels)
     histogram[:, 0] -= (~valid).flatten(1).sum(1)  # invalid pixels were put at level 0: take them out again

@@ -19,7 +19,9 @@ it:
 2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
    its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes), taken
    again up to its 90th percentile where it leaves under ``min_near_share`` of the view near (more outliers than
-   that clip holds), and ``spread`` its 10–90 % range (at least 1 px).
+   that clip holds), and ``spread`` its 10–90 % range (at least 1 px). With ``SegmentationConfig.ground`` (off by
+   default: ``experiments/walker_floor.md``), the floor, found as a plane in the map (:mod:`.ground_plane`), is
+   left out of the split and its pixels are made far: for a walker the floor is not an obstacle.
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
    disparity, its validity, the rule's relative nearness, the left image and the column, whose output is added
    to the rule's logits. Its last layer starts at zero, so an untrained network is the rule itself. The shipped
@@ -57,6 +59,7 @@ from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
 from .components import connected_components_with_stats, region_properties
+from .ground_plane import GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
 from .nearness_denoise import denoised_map, match_by_noise, soft_match_by_noise
 from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
@@ -72,6 +75,9 @@ __all__ = [
 
 
 NUM_FEATURES = 5  # channels of _network_features
+#: The rule's relative nearness of a floor pixel: as far as a pixel one spread behind the split (logit −8 at the
+#: rule's gain), whatever the floor's own disparity.
+GROUND_RELATIVE = 1.0
 
 
 @dataclass(frozen=True)
@@ -215,6 +221,8 @@ class NearnessDisparity:
             acceptances to ``measured``, chance matches between unrelated views among them (at a quarter of the
             width: views of two tuning scenes 0.14–0.30 of the view, their camera frames 0.30 and more), so
             ``measured`` cannot tell them apart.
+        ground: ``(B, 1, H, W)`` bool, the floor (:mod:`.ground_plane`), left out of the split and made far in
+            ``relative``; None: not looked for.
     """
 
     disparity_px: torch.Tensor
@@ -224,6 +232,7 @@ class NearnessDisparity:
     relative: torch.Tensor
     split_retaken: torch.Tensor
     matched_share: torch.Tensor
+    ground: torch.Tensor | None = None
 
 
 def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
@@ -235,11 +244,16 @@ def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
 
 
 def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
-                               config: NearnessNetConfig = NearnessNetConfig()) -> NearnessDisparity:
-    """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1].
+                               config: NearnessNetConfig = NearnessNetConfig(),
+                               ground: GroundPlaneConfig | None = None,
+                               baseline_m: torch.Tensor | None = None,
+                               focal_px: torch.Tensor | None = None) -> NearnessDisparity:
+    """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1]; with ``ground``, the floor of rigs
+    of ``baseline_m`` ``(B,)`` metres and ``focal_px`` ``(B,)`` (at the images' size; None: no pitch limit) found
+    (:mod:`.ground_plane`), left out of the split and made far.
 
     Differentiable w.r.t. both images when they require grad (straight-through: the hard value, the soft-argmin's
-    gradient); otherwise it runs without building a graph.
+    gradient; the floor's pixels, a constant of the hard pass, get none); otherwise it runs without building a graph.
     """
     b = check_image(left, "left")["B"]
     check_image(right, "right")
@@ -264,10 +278,14 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
         same = matched is measured
         measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5
         matched = measured if same else F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
-    split, spread, retaken = nearness_split(disparity, config.min_near_share)
+    floor = None if ground is None else fit_ground_plane(disparity, measured, baseline_m, ground, factor,
+                                                         noisy=widened, focal_px=focal_px).mask
+    split, spread, retaken = nearness_split(disparity, config.min_near_share, floor)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
+    if floor is not None:
+        relative = relative.masked_fill(floor, -GROUND_RELATIVE)
     return NearnessDisparity(disparity, measured, split, spread, relative, retaken,
-                             matched.flatten(1).to(torch.float32).mean(1))
+                             matched.flatten(1).to(torch.float32).mean(1), floor)
 
 
 def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
@@ -284,12 +302,14 @@ def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: in
     return torch.cat([small, column], 1)
 
 
-def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor
+def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor, ground: GroundPlaneConfig | None = None,
+                    baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None
                     ) -> tuple[torch.Tensor, NearnessDisparity]:
     """Obstacle logits ``(B, 1, H, W)`` of the left views: the rule's plus the network's correction (resized
-    bilinearly from its width), and the measured disparity. Differentiable w.r.t. the network's parameters and
-    both images (module docstring)."""
-    measured = measure_nearness_disparity(left, right, net.config)
+    bilinearly from its width), and the measured disparity (``ground``, ``baseline_m``, ``focal_px``: as
+    :func:`measure_nearness_disparity`'s). Differentiable w.r.t. the network's parameters and both images (module
+    docstring)."""
+    measured = measure_nearness_disparity(left, right, net.config, ground, baseline_m, focal_px)
     rule = net.config.rule_gain * measured.relative
     training = torch.is_grad_enabled() and any(p.requires_grad for p in net.parameters())
     if not training and net.adds_nothing():
@@ -313,12 +333,12 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     block matcher accepted less than ``config.min_measured_share`` of its left view is segmented by
     :func:`~svs_torch.segmentation.segment_stereo` (Otsu, the two largest regions) instead: its disparity is chance.
     """
-    b = batch.batch_size
+    b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px)
     with torch.no_grad():
         if left_logits is None:
-            left_logits, measured = nearness_logits(net, batch.left, batch.right)
+            left_logits, measured = nearness_logits(net, batch.left, batch.right, *rig)
         elif measured is None:
-            measured = measure_nearness_disparity(batch.left, batch.right, net.config)
+            measured = measure_nearness_disparity(batch.left, batch.right, net.config, *rig)
     fallback = measured.matched_share < config.min_measured_share
     if not bool(fallback.any()):
         return _segment_measured(batch, config, net, left_logits, measured)

@@ -10,41 +10,66 @@ rule's logits flow through the disparity, not the split).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from ..depth.quantiles import row_quantile
+from ..depth.quantiles import labelled_quantile, row_quantile
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 
 __all__ = ["nearness_split"]
 
 
-def nearness_split(disparity: torch.Tensor, min_near_share: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The split ``(B,)`` of filled disparity maps ``(B, 1, H, W)`` (module docstring), their 10–90 % spread
     ``(B,)`` (at least 1 px) and which pairs' split was taken again under the 90th percentile ``(B,)`` bool
-    (``min_near_share`` 0: never)."""
+    (``min_near_share`` 0: never). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the
+    floor, :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split
+    by its extent rather than by the obstacles'); a pair that excludes every pixel keeps them all."""
     b = disparity.shape[0]
     disparity = disparity.detach()
-    q = row_quantile(disparity.flatten(1), (0.1, 0.9, 0.995)).T
+    if exclude is not None:
+        exclude = exclude & ~exclude.flatten(1).all(1).view(b, 1, 1, 1)
+        if not bool(exclude.any()):
+            exclude = None
+    if exclude is None:
+        q = row_quantile(disparity.flatten(1), (0.1, 0.9, 0.995)).T
+    else:  # the same quantiles of the pixels left in (label 1), the compiled selection where it runs
+        kept = (~exclude).flatten(1).to(torch.int64)
+        q = labelled_quantile(disparity.flatten(1), kept, torch.ones_like(kept[:, :1]), (0.1, 0.9, 0.995))
+        q = q.values[:, 0].T
     # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
     # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
     # above nearly every pixel.
-    split = _otsu_split(torch.minimum(disparity, q[2].view(b, 1, 1, 1)))
-    split, retaken = _split_leaving_near(disparity, split, q[1], min_near_share)
+    split = _otsu_split(torch.minimum(disparity, q[2].view(b, 1, 1, 1)), exclude)
+    split, retaken = _split_leaving_near(disparity, split, q[1], min_near_share, exclude)
     return split, (q[1] - q[0]).clamp_min(1.0), retaken
 
 
-def _otsu_split(disparity: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max]."""
+def _otsu_split(disparity: torch.Tensor, exclude: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B,)`` the disparity at the Otsu split of each map's 256-level histogram over its [min, max] (of the
+    pixels not in ``exclude``)."""
     flat = disparity.flatten(1)
-    low, high = flat.amin(1), flat.amax(1)
+    if exclude is None:
+        low, high = flat.amin(1), flat.amax(1)
+    else:
+        left_out = exclude.flatten(1)
+        low, high = flat.masked_fill(left_out, math.inf).amin(1), flat.masked_fill(left_out, -math.inf).amax(1)
     spread = (high - low).view(-1, 1, 1, 1)
     scaled = (disparity - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
-    level = otsu_threshold_level(gray_histogram(gray_levels(scaled)))
+    if exclude is None:
+        histogram = gray_histogram(gray_levels(scaled))
+    else:  # the excluded pixels counted at level 0 and taken out again
+        histogram = gray_histogram(gray_levels(scaled.masked_fill(exclude, 0.0)))
+        histogram[:, 0] -= exclude.flatten(1).sum(1)
+    level = otsu_threshold_level(histogram)
     return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
 
 
 def _split_leaving_near(disparity: torch.Tensor, split: torch.Tensor, upper_px: torch.Tensor,
-                        min_near_share: float) -> tuple[torch.Tensor, torch.Tensor]:
+                        min_near_share: float, exclude: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """``split`` ``(B,)``, or where it leaves less than ``min_near_share`` of the map ``(B, 1, H, W)`` above it,
     the Otsu split of the map clipped at ``upper_px`` ``(B,)`` (its 90th percentile, the spread's top) instead;
     and which pairs' split was taken again ``(B,)`` bool.
@@ -59,9 +84,13 @@ def _split_leaving_near(disparity: torch.Tensor, split: torch.Tensor, upper_px: 
     never = torch.zeros(b, dtype=torch.bool, device=disparity.device)
     if min_near_share <= 0:
         return split, never
-    near = (disparity > split.view(b, 1, 1, 1)).flatten(1).to(torch.float32).mean(1)
-    redo = near < min_near_share
+    near = disparity > split.view(b, 1, 1, 1)
+    if exclude is None:
+        share = near.flatten(1).to(torch.float32).mean(1)
+    else:
+        share = (near & ~exclude).flatten(1).sum(1) / (~exclude).flatten(1).sum(1).clamp_min(1)
+    redo = share < min_near_share
     if not bool(redo.any()):
         return split, never
-    clipped = _otsu_split(torch.minimum(disparity, upper_px.view(b, 1, 1, 1)))
+    clipped = _otsu_split(torch.minimum(disparity, upper_px.view(b, 1, 1, 1)), exclude)
     return torch.where(redo, clipped, split), redo

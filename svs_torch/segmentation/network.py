@@ -14,6 +14,7 @@ from torch import nn
 
 from ..core.checks import InputError, check_image
 from ..depth.soft_dense import soft_block_match
+from .ground_plane import GroundPlaneConfig
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 
 __all__ = [
@@ -157,16 +158,22 @@ def stereo_features(left: torch.Tensor, right: torch.Tensor, config: ObstacleNet
     return features, disparity
 
 
-def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.Tensor,
+                            ground: GroundPlaneConfig | None = None,
+                            baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None
+                            ) -> torch.Tensor:
     """Obstacle logits ``(B, 1, H, W)`` of the left view of images ``(B, 1, H, W)``, bilinearly resized from the
-    working size. Differentiable w.r.t. the network's parameters and both images."""
+    working size. Differentiable w.r.t. the network's parameters and both images. ``ground``
+    (:class:`~svs_torch.segmentation.ground_plane.GroundPlaneConfig` or None), ``baseline_m``, ``focal_px``
+    ``(B,)``: the nearness segmenter's floor (:func:`~svs_torch.segmentation.nearness.nearness_logits`); other
+    networks ignore them."""
     check_image(left, "left")
     check_image(right, "right")
     if left.shape != right.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
     if not isinstance(net, ObstacleNet):  # the nearness segmenter's correction network
         from .nearness import nearness_logits
-        return nearness_logits(net, left, right)[0]
+        return nearness_logits(net, left, right, ground, baseline_m, focal_px)[0]
     features, _ = stereo_features(left, right, net.config)
     logits = net(features.to(next(net.parameters()).dtype))
     return F.interpolate(logits, size=left.shape[-2:], mode="bilinear", align_corners=False).to(left.dtype)

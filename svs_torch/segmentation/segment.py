@@ -21,6 +21,7 @@ from ..core.mask_reductions import any_along
 from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from .canny import canny_edges
 from .components import connected_components_with_stats
+from .ground_plane import GroundPlaneConfig
 from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
 
@@ -80,6 +81,9 @@ class SegmentationConfig:
             the left view are segmented by Otsu and the paper's two largest regions instead: views of two
             different scenes (a misconnected camera) leave up to about 10 % accepted by chance, and a disparity so
             sparse is not worth ranking by (experiments/nearness_fallback.md). 0: never.
+        ground: the nearness segmenter's floor (:class:`~svs_torch.segmentation.ground_plane.GroundPlaneConfig`):
+            the ground plane found in the pair's disparity is not an obstacle (a walker's floor, a street's road);
+            None: not looked for (the other segmenters never look).
     """
 
     kernel_size: int = 5  # pixels; not stated in the paper, see above
@@ -93,6 +97,7 @@ class SegmentationConfig:
     min_area_fraction: float = 0.0  # of the image's area
     near_min_area_fraction: float = 0.0  # of the image's area
     min_measured_share: float = 0.0  # of the left view's pixels; the nearness segmenter only
+    ground: GroundPlaneConfig | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.kernel_size, int) or not 1 <= self.kernel_size <= MAX_KERNEL_SIZE:
@@ -128,6 +133,8 @@ class SegmentationConfig:
         if not (isinstance(self.min_measured_share, (int, float)) and 0 <= self.min_measured_share <= 1):
             raise InputError(f"min_measured_share: expected a share of the image in [0, 1], got "
                              f"{self.min_measured_share!r}")
+        if self.ground is not None and not isinstance(self.ground, GroundPlaneConfig):
+            raise InputError(f"ground: expected a GroundPlaneConfig or None, got {self.ground!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
 
 

@@ -144,6 +144,30 @@ def test_synthetic_source_depths_oscillate_in_range():
     assert left.shape == (240, 320) and left.dtype == np.uint8 and not np.array_equal(left, right)
 
 
+def test_synthetic_source_with_a_floor_is_not_warned_of_the_floor():
+    """The emulator's walker view (--floor-height-m 1.3 --camera-pitch-deg 20): the floor is seen from 1.8 m on;
+    with both obstacles farther (keyframe 9: 2.68 and 2.36 m) the warning distance with the floor left out
+    (``guide --floor on``) is the nearer obstacle's, where with the floor kept (the default) it is the floor's."""
+    from hw.frames import _render_torch_pair
+
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.evaluation.overrides import apply_overrides
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    track = ObstacleTrack(floor_height_m=1.3, camera_pitch_deg=20.0)
+    left, right = (torch.from_numpy(v).float().div(255).view(1, 1, 240, 320)
+                   for v in _render_torch_pair(track, 9, (320, 240), SVS_CAMERA, 0))
+    batch = StereoBatch.from_images(left, right, SVS_CAMERA.focal_px(320), SVS_CAMERA.baseline_m)
+    nearest = min(track.depths_m(9))
+    warnings = []
+    for config in (apply_overrides(PipelineConfig(), {"segmentation.ground": True}), PipelineConfig()):
+        found = estimate_obstacle_depth(batch, config).depth.nearest
+        assert bool(found.valid[0])
+        warnings.append(float(found.surface_m[0]))
+    assert abs(warnings[0] - nearest) < 0.1 * nearest
+    assert warnings[1] < 0.85 * nearest
+
+
 def test_image_folder_source(tmp_path):
     for name, value in (("left01.png", 50), ("right01.png", 150)):
         import cv2

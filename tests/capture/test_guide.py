@@ -200,3 +200,26 @@ def test_guide_prints_warnings_above_its_status_line(monkeypatch):
     assert status and all(re.fullmatch(r"\s*[\d.]+ fps  nearest (none|[\d.]+ m)  \w+  \w+", line) for line in status)
     assert all(line.startswith(("svs-depth: emulator on", "warning: ", "Obstacle", "Stop", "guide stopped"))
                for line in screen if "fps" not in line), screen
+
+
+def test_guide_on_an_emulated_floor_leaves_the_floor_out_when_asked(monkeypatch):
+    """``guide --emulator --emulator-floor-m 1.3`` shows the cameras over a floor; ``--floor on`` runs the pipeline
+    with the ground plane (what every pair is ranged with), ``--floor off`` (the default) without it."""
+    import svs_torch.pipeline as pipeline
+    from svs_torch.cli import main
+
+    real, grounds = pipeline.estimate_obstacle_depth, []
+
+    def recording_pipeline(batch, config, *args, **kwargs):
+        grounds.append(config.segmentation.ground)
+        return real(batch, config, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording_pipeline)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "on", "--count", "2",
+                 "--no-speech"]) == 0
+    assert len(grounds) == 2 and all(g is not None for g in grounds)
+    grounds.clear()
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--count", "1", "--no-speech"]) == 0
+    assert grounds == [None]

@@ -300,3 +300,76 @@ def test_render_errors(field: str, value: torch.Tensor, message: str) -> None:
             "size": torch.full((1, 2, 2), 0.5), "valid": None} | {field: value}
     with pytest.raises(InputError, match=message):
         render_obstacle_scenes(args["depth"], args["center"], args["size"], args["valid"], size_wh=SMALL)
+
+
+def floor_scenes(height_m: float = 1.3, pitch_deg: float = 20.0, seed: int = 7) -> SyntheticScenes:
+    """Two boxes 1.5 and 2.2 m ahead over a floor, as a walker's camera pitched down sees them."""
+    depth = torch.tensor([[1.5, 2.2]])
+    centre = torch.tensor([[[-0.4, 0.3], [0.5, 0.2]]])
+    size = torch.tensor([[[0.4, 0.6], [0.5, 0.6]]])
+    return render_obstacle_scenes(depth, centre, size, floor_height_m=height_m, camera_pitch_deg=pitch_deg,
+                                  size_wh=SMALL, generator=torch.Generator().manual_seed(seed))
+
+
+def test_without_a_floor_the_scenes_are_unchanged() -> None:
+    args = (torch.tensor([[1.5]]), torch.tensor([[[0.0, 0.1]]]), torch.tensor([[[0.5, 0.5]]]))
+    plain = render_obstacle_scenes(*args, size_wh=SMALL, generator=torch.Generator().manual_seed(3))
+    named = render_obstacle_scenes(*args, size_wh=SMALL, generator=torch.Generator().manual_seed(3),
+                                   floor_height_m=None, camera_pitch_deg=25.0)
+    assert torch.equal(plain.batch.left, named.batch.left) and torch.equal(plain.batch.right, named.batch.right)
+    assert plain.floor_mask is None and named.floor_mask is None
+
+
+@pytest.mark.parametrize("pitch_deg", [0.0, 20.0])
+def test_the_floors_disparity_is_the_planes(pitch_deg: float) -> None:
+    """A floor h below a camera pitched down by θ has d = B·((y − cy)·cos θ + f·sin θ) / h, affine in the row;
+    it is seen only below the horizon, and it is not an obstacle (id 0)."""
+    scenes = floor_scenes(pitch_deg=pitch_deg)
+    floor = scenes.floor_mask[0, 0]
+    (w, h), theta = SMALL, np.radians(pitch_deg)
+    f, (_, cy) = SVS_CAMERA.focal_px(w), SVS_CAMERA.principal_point_px(w, h)
+    rows = torch.arange(h, dtype=torch.float32).view(-1, 1).expand(h, w)
+    expected = SVS_CAMERA.baseline_m * ((rows - cy) * np.cos(theta) + f * np.sin(theta)) / 1.3
+    torch.testing.assert_close(scenes.batch.disparity_px[0, 0][floor], expected[floor].float(), rtol=1e-4, atol=1e-4)
+    assert bool(floor.any()) and not bool(floor[(expected <= 0)].any())
+    assert not bool((scenes.object_ids[0, 0][floor] != 0).any())
+    # The boxes stand in front of the floor and hide it; the far wall is behind it.
+    assert bool((scenes.object_ids[0, 0] == 1).any()) and bool((scenes.object_ids[0, 0] == 2).any())
+
+
+def test_a_pitched_camera_sees_the_floor_nearer() -> None:
+    level, pitched = floor_scenes(pitch_deg=0.0), floor_scenes(pitch_deg=25.0)
+    nearest = [float(s.depth_m[s.floor_mask].min()) for s in (level, pitched)]
+    assert nearest[0] > 3.0 > 1.8 > nearest[1]  # beyond 3 m level; under 2 m pitched 25°: in the warning band
+    assert float(pitched.batch.disparity_px[pitched.floor_mask].max()) > float(
+        level.batch.disparity_px[level.floor_mask].max())
+    # The pitched floor's disparity is a plane over the image: a least-squares fit in (x, y, 1) leaves nothing.
+    rows, cols = torch.nonzero(pitched.floor_mask[0, 0], as_tuple=True)
+    design = torch.stack([cols, rows, torch.ones_like(rows)], dim=1).double()
+    disparity = pitched.batch.disparity_px[0, 0][rows, cols].double().unsqueeze(1)
+    residual = design @ torch.linalg.lstsq(design, disparity).solution - disparity
+    assert float(residual.abs().max()) < 1e-4
+
+
+def test_the_floors_texture_is_on_the_floor() -> None:
+    """Both views see the same texture at the same floor point: L(x) ≈ R(x − d) on the floor."""
+    scenes = floor_scenes()
+    warped, inside = sample_right_at(scenes, scenes.batch.disparity_px)
+    occluded, _ = occluded_in_right(scenes)
+    keep = inside & scenes.floor_mask & ~occluded
+    error = (scenes.batch.left - warped).abs()[keep].median()
+    unwarped, _ = sample_right_at(scenes, torch.zeros_like(scenes.batch.left))
+    assert error < 0.02 and (scenes.batch.left - unwarped).abs()[keep].median() > 3 * error
+    # Between the obstacles' gray and the wall's: neither Otsu's bright class nor the background's darkest.
+    level = scenes.batch.left[scenes.floor_mask].mean()
+    assert 0.3 < float(level) < 0.6
+
+
+@pytest.mark.parametrize("kwargs,message", [({"floor_height_m": -1.0}, "floor_height_m"),
+                                            ({"floor_height_m": float("nan")}, "floor_height_m"),
+                                            ({"floor_height_m": 1.3, "camera_pitch_deg": 75.0}, "camera_pitch_deg"),
+                                            ({"camera_pitch_deg": True}, "camera_pitch_deg")])
+def test_floor_argument_errors(kwargs: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        render_obstacle_scenes(torch.tensor([[1.5]]), torch.tensor([[[0.0, 0.0]]]), torch.tensor([[[0.5, 0.5]]]),
+                               **kwargs)

@@ -1,0 +1,174 @@
+"""The ground plane of the nearness map (svs_torch.segmentation.ground_plane): a floor is found where a walker's
+camera would see one, and only there."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from svs_torch.core.errors import InputError
+from svs_torch.segmentation.ground_plane import GroundPlaneConfig, _least_squares, fit_ground_plane
+from svs_torch.segmentation.nearness_split import nearness_split
+
+H, W = 240, 320
+FOCAL_PX, BASELINE_M = 283.0, 0.1075
+CY = 119.5
+
+
+def floor_scene(height_m=1.3, pitch_deg=15.0, roll_deg=0.0, boxes=((60, 140, 1.5), (200, 260, 1.2)),
+                wall_m=4.0, noise_px=0.0, seed=0):
+    """A disparity map ``(1, 1, H, W)``: a floor under a camera ``height_m`` high pitched down ``pitch_deg``, a wall
+    at ``wall_m`` and boxes (columns x0, x1 and depth) standing on the floor; the floor's mask."""
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                            indexing="ij")
+    theta, phi = math.radians(pitch_deg), math.radians(roll_deg)
+    # A rolled camera: image axes turned by phi about the optical axis.
+    u, v = (xs - 159.5) / FOCAL_PX, (ys - CY) / FOCAL_PX
+    down_along_rows = v * math.cos(phi) - u * math.sin(phi)
+    floor_d = BASELINE_M * FOCAL_PX * (down_along_rows * math.cos(theta) + math.sin(theta)) / height_m
+    depth = torch.full((H, W), wall_m, dtype=torch.float64)
+    floor = floor_d > FOCAL_PX * BASELINE_M / wall_m
+    depth = torch.where(floor, FOCAL_PX * BASELINE_M / floor_d.clamp_min(1e-9), depth)
+    for x0, x1, z in boxes:
+        # A box stands on the floor: it hides the floor above the row where the floor is at its depth.
+        on = (xs >= x0) & (xs < x1) & (floor_d < FOCAL_PX * BASELINE_M / z) & (ys > 30)
+        depth = torch.where(on, torch.full_like(depth, z), depth)
+    disparity = FOCAL_PX * BASELINE_M / depth
+    if noise_px:
+        disparity = disparity + noise_px * torch.randn(H, W, generator=torch.Generator().manual_seed(seed),
+                                                       dtype=torch.float64)
+    is_floor = (depth != wall_m) & ~torch.isin(depth, torch.tensor([z for *_, z in boxes], dtype=torch.float64))
+    return disparity.float().view(1, 1, H, W), is_floor.view(1, 1, H, W)
+
+
+def fit(disparity, measured=None, baseline_m=BASELINE_M, **settings):
+    measured = torch.ones_like(disparity, dtype=torch.bool) if measured is None else measured
+    baseline = torch.full((disparity.shape[0],), baseline_m)
+    return fit_ground_plane(disparity, measured, baseline, GroundPlaneConfig(**settings))
+
+
+@pytest.mark.parametrize("height_m,pitch_deg,roll_deg", [(1.3, 15.0, 0.0), (1.6, 30.0, 5.0), (1.0, 5.0, -8.0)])
+def test_a_walkers_floor_is_found_with_its_height(height_m, pitch_deg, roll_deg):
+    disparity, is_floor = floor_scene(height_m, pitch_deg, roll_deg, noise_px=0.2)
+    plane = fit(disparity)
+    assert bool(plane.found[0])
+    # B / hypot(a, b) is the height over the cosine of the pitch (module docstring).
+    expected = height_m / math.cos(math.radians(pitch_deg))
+    # Within 5 %: a band of the wall and the boxes' feet lie within the tolerance, all in front (refit comment).
+    assert float(plane.camera_height_m[0]) == pytest.approx(expected, rel=0.05)
+    a, b = plane.coefficients[0, :2].tolist()
+    assert math.degrees(math.atan2(-a, b)) == pytest.approx(roll_deg, abs=1.0)
+    mask = plane.mask[0, 0]
+    assert float((mask & is_floor[0, 0]).sum() / is_floor.sum()) > 0.95  # the floor is taken out...
+    boxes = ~is_floor[0, 0] & (disparity[0, 0] > 20)
+    assert float((mask & boxes).sum() / boxes.sum()) < 0.15  # ...and the boxes standing on it stay
+
+
+def test_the_refit_is_numpys_least_squares_and_lies_on_the_floor():
+    generator = torch.Generator().manual_seed(1)
+    x, y = torch.rand(500, generator=generator) * W, torch.rand(500, generator=generator) * H
+    d = (0.002 * x + 0.08 * y - 3 + 0.1 * torch.randn(2, 500, generator=generator))
+    weight = torch.rand(2, 500, generator=generator) > 0.3
+    plane = _least_squares(x, y, d, weight)
+    for i in range(2):
+        pick = weight[i].numpy()
+        design = np.stack([x.numpy()[pick], y.numpy()[pick], np.ones(pick.sum())], 1).astype(np.float64)
+        reference = np.linalg.lstsq(design, d[i].numpy()[pick].astype(np.float64), rcond=None)[0]
+        np.testing.assert_allclose(plane[i].double().numpy(), reference, rtol=1e-4, atol=1e-4)
+    # The fitted floor of a noisy map lies on the true floor: its residual there is well under the noise.
+    disparity, is_floor = floor_scene(noise_px=0.3, seed=2)
+    clean, _ = floor_scene()
+    a, b, c = fit(disparity).coefficients[0].tolist()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32),
+                            indexing="ij")
+    residual = (a * xs + b * ys + c - clean[0, 0])[is_floor[0, 0]].abs()
+    assert float(residual.median()) < 0.15
+
+
+def test_fronto_parallel_scenes_have_no_floor():
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    disparity = torch.full((1, 1, H, W), 8.0)
+    disparity[..., 40:200, 40:140] = 20.0
+    disparity[..., 60:240, 180:300] = 25.0
+    assert not bool(fit(disparity).found[0])
+
+
+def test_a_slanted_backdrop_with_the_scene_behind_it_is_not_a_floor():
+    """A plane whose disparity grows down the image but with much of the scene behind it (a tilted table top with
+    the room beyond its edge, a leaning board) is not a floor: nothing is seen under a floor."""
+    disparity, _ = floor_scene(boxes=())
+    behind = disparity.clone()
+    behind[..., 150:, :160] = 3.0  # a far room seen below the plane's edge
+    assert bool(fit(disparity).found[0])
+    assert not bool(fit(behind).found[0])
+
+
+def test_the_height_range_is_in_metres_of_the_rig():
+    disparity, _ = floor_scene(height_m=1.3, pitch_deg=15.0)
+    assert bool(fit(disparity).found[0])
+    # The same map from a rig of a third of the baseline is a floor 0.45 m down: a table top, not a walker's floor.
+    assert not bool(fit(disparity, baseline_m=BASELINE_M / 3).found[0])
+    assert not bool(fit(disparity, baseline_m=math.nan).found[0])
+    assert bool(fit(disparity, baseline_m=BASELINE_M / 3, min_camera_height_m=0.3).found[0])
+
+
+def test_a_wall_facing_the_camera_is_not_a_shallow_floor():
+    """Within the tolerance a shallow plane runs along a wall over a band of rows; its inliers all lie at one
+    disparity, so it is not taken for a floor (here with a rig whose baseline would make that band's slope a
+    walker's floor), and a level camera's floor, seen only beyond 3 m (a span of 2.3 px), is not looked for
+    either."""
+    level, _ = floor_scene(height_m=1.3, pitch_deg=0.0)
+    assert not bool(fit(level, baseline_m=BASELINE_M / 3).found[0])
+    assert not bool(fit(level).found[0])
+
+
+def test_a_pairs_plane_does_not_depend_on_its_batch():
+    maps = [floor_scene(1.3, 15.0)[0], floor_scene(1.6, 25.0, 4.0, noise_px=0.3)[0], torch.full((1, 1, H, W), 9.0)]
+    together = fit(torch.cat(maps))
+    for i, single in enumerate(maps):
+        alone = fit(single)
+        assert torch.equal(together.found[i:i + 1], alone.found)
+        torch.testing.assert_close(together.coefficients[i:i + 1], alone.coefficients)
+        assert torch.equal(together.mask[i:i + 1], alone.mask)
+    assert together.found.tolist() == [True, True, False]
+
+
+def test_unmeasured_pixels_are_not_fitted_but_are_masked():
+    disparity, is_floor = floor_scene()
+    # Half the pixels unmeasured (filled), at random.
+    measured = torch.rand(is_floor.shape, generator=torch.Generator().manual_seed(4)) < 0.5
+    plane = fit(disparity, measured)
+    assert bool(plane.found[0])
+    assert float((plane.mask & is_floor).sum() / is_floor.sum()) > 0.95
+
+
+def test_bad_arguments_name_themselves():
+    disparity, _ = floor_scene()
+    with pytest.raises(InputError, match="measured"):
+        fit_ground_plane(disparity, torch.ones(1, 1, 5, 5, dtype=torch.bool), torch.tensor([0.1]))
+    with pytest.raises(InputError, match="baseline_m"):
+        fit_ground_plane(disparity, torch.ones_like(disparity, dtype=torch.bool), None)
+    with pytest.raises(InputError, match="min_camera_height_m"):
+        GroundPlaneConfig(min_camera_height_m=2.0, max_camera_height_m=1.0)
+    with pytest.raises(InputError, match="max_roll_deg"):
+        GroundPlaneConfig(max_roll_deg=95.0)
+    with pytest.raises(InputError, match="hypotheses"):
+        GroundPlaneConfig(hypotheses=2)
+    with pytest.raises(InputError, match="max_behind_share"):
+        GroundPlaneConfig(max_behind_share=0.0)
+
+
+def test_the_split_leaves_the_floor_out():
+    """The split over the map without the floor is the split of the other pixels alone."""
+    disparity, is_floor = floor_scene(pitch_deg=25.0)
+    rest = disparity[~is_floor].view(1, 1, 1, -1)
+    split, spread, _ = nearness_split(disparity, 0.1, is_floor)
+    split_rest, spread_rest, _ = nearness_split(rest, 0.1)
+    torch.testing.assert_close(split, split_rest)
+    torch.testing.assert_close(spread, spread_rest)
+    # Excluding nothing is the plain split; excluding every pixel keeps them all.
+    torch.testing.assert_close(nearness_split(disparity, 0.1, torch.zeros_like(is_floor))[0],
+                               nearness_split(disparity, 0.1)[0])
+    torch.testing.assert_close(nearness_split(disparity, 0.1, torch.ones_like(is_floor))[0],
+                               nearness_split(disparity, 0.1)[0])
