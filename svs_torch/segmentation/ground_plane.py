@@ -3,7 +3,7 @@
 A walker's camera looks ahead and a little down, so the lower part of every frame is floor (outdoors, road), and
 the floor in front of the feet is the nearest surface the camera sees. The nearness rule (:mod:`.nearness`) keeps
 what is near, so without this step it keeps the floor and names it the nearest obstacle (the shared KITTI street
-pair ``2015/000000_10``: the road ranged at 3.6 m while the car beside the path is not kept).
+pair ``2015/000000_10``: the road ranged at 6.9 m while the car beside the path is not kept).
 
 Why a plane in disparity: every 3-D plane seen by a rectified pair has a disparity affine in the pixel,
 ``d = a·x + b·y + c``. For the floor, at ``h`` metres below a camera pitched down by θ and rolled by φ,
