@@ -24,7 +24,7 @@ import time
 import tty
 
 from .emulator_state import CameraState, Faults, Reply
-from .frames import FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
+from .frames import WALKER_PITCH_DEG, FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
 from svs_torch.core.camera import parse_size
 
 __all__ = ["EmulatorServer", "main"]
@@ -279,7 +279,7 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--floor-height-m", type=float, default=None, metavar="M",
                    help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
                         "(default: no floor)")
-    p.add_argument("--camera-pitch-deg", type=float, default=20.0, metavar="DEG",
+    p.add_argument("--camera-pitch-deg", type=float, default=WALKER_PITCH_DEG, metavar="DEG",
                    help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")

@@ -22,6 +22,9 @@ __all__ = ["FrameSource", "ObstacleTrack", "SyntheticSource", "ImageFolderSource
 
 FrameSource = Callable[[str, int, int, float], np.ndarray]
 
+#: A walker's cameras over a floor (``ObstacleTrack.floor_height_m``), pitched down this many degrees unless told.
+WALKER_PITCH_DEG = 20.0
+
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
 
 

@@ -11,6 +11,7 @@ import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
+from .segment import add_floor_option, with_floor
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
@@ -44,12 +45,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
     parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
-                        help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees, "
-                             "as a walker wears them (default: no floor)")
-    parser.add_argument("--floor", choices=("on", "off"), default="off",
-                        help="'on': the floor (the road) found as a plane in the pair's disparity is not an "
-                             "obstacle, so a camera pitched down does not warn of the floor ahead; 'off' (default): "
-                             "a pile of rocks or cloth can read as a floor (experiments/walker_floor.md)")
+                        help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
+                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them (default: no floor)")
+    add_floor_option(parser)
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
@@ -87,11 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)
-    if args.floor == "on":
-        from ..segmentation.ground_plane import GroundPlaneConfig
-
-        config = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation,
-                                                                              ground=GroundPlaneConfig()))
+    config = dataclasses.replace(config, segmentation=with_floor(config.segmentation, args.floor))
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status

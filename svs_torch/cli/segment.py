@@ -57,16 +57,33 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--near-min-area-fraction", type=float, metavar="SHARE",
                         help="a region under --min-area-fraction but at least this share is still kept where it is "
                              "nearer than every larger region: a thin pole ahead (default 0.0015; 0: off)")
+    add_floor_option(parser)
+    parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
+                        help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
+    parser.add_argument("--dark-objects", action="store_true",
+                        help="obstacles are darker than the background: keep pixels at or below the threshold")
+
+
+def add_floor_option(parser: argparse.ArgumentParser) -> None:
+    """``--floor on|off``: whether the nearness segmenter leaves the floor out (:func:`with_floor`)."""
     parser.add_argument("--floor", choices=("on", "off"),
                         help="'on': the floor (the road) that the nearness segmenter finds as a plane in the pair's "
                              "disparity is not an obstacle, as for a walker; 'off': it is kept like any near "
                              "surface (default: off, a pile of rocks or cloth can read as a floor: "
                              "experiments/walker_floor.md; settings with units: --set "
                              "segmentation.ground.max_camera_height_m=M)")
-    parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
-                        help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
-    parser.add_argument("--dark-objects", action="store_true",
-                        help="obstacles are darker than the background: keep pixels at or below the threshold")
+
+
+def with_floor(config, choice: str | None):
+    """The ``SegmentationConfig`` ``config`` with ``--floor``'s ``choice``: ``"on"`` looks for the floor (its own
+    settings, or the defaults), ``"off"`` does not, None leaves it as it is."""
+    from dataclasses import replace
+
+    from ..segmentation.ground_plane import GroundPlaneConfig
+
+    if choice is None:
+        return config
+    return replace(config, ground=(config.ground or GroundPlaneConfig()) if choice == "on" else None)
 
 
 def segmenter_choice(text: str) -> str:
@@ -112,11 +129,7 @@ def config_from_args(args: argparse.Namespace, base=None):
             config = replace(config, min_area_fraction=args.min_area_fraction)
         if getattr(args, "near_min_area_fraction", None) is not None:
             config = replace(config, near_min_area_fraction=args.near_min_area_fraction)
-        if getattr(args, "floor", None) is not None:
-            from ..segmentation.ground_plane import GroundPlaneConfig
-
-            config = replace(config, ground=(config.ground or GroundPlaneConfig()) if args.floor == "on" else None)
-        return config
+        return with_floor(config, getattr(args, "floor", None))
 
 
 def image_report(seg, index: int) -> dict:

@@ -26,7 +26,8 @@ from .calibration import calibration_record, format_calibration, pair_calibratio
 from .camera_frames import JPEG_QUALITY_FOR_DIGIT, camera_frame_pairs, camera_frames
 
 __all__ = [
-    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frame_pairs", "camera_frames",
+    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frame_pairs",
+    "camera_frames",
     "collate_stereo_batches", "detect_stereo_layout",
     "format_calibration",
     "load_pair_source", "pair_calibration_source",

@@ -303,8 +303,7 @@ def _least_squares(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, weight: to
 def _pixels_on(plane: torch.Tensor, found: torch.Tensor, disparity: torch.Tensor, tolerance_px: torch.Tensor,
                tolerance_fraction: float) -> torch.Tensor:
     """``(B, 1, H, W)`` bool: the pixels of ``disparity`` within the tolerance (``tolerance_px`` ``(B, 1, 1, 1)``)
-    of their pair's ``plane`` ``(B, 3)``
-    (none where not ``found``)."""
+    of their pair's ``plane`` ``(B, 3)`` (none where not ``found``)."""
     b, _, h, w = disparity.shape
     xs = torch.arange(w, dtype=disparity.dtype, device=disparity.device).view(1, 1, 1, w)
     ys = torch.arange(h, dtype=disparity.dtype, device=disparity.device).view(1, 1, h, 1)

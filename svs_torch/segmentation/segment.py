@@ -124,12 +124,10 @@ class SegmentationConfig:
         if self.keep == "nearest" and kind != "nearness":
             raise InputError(f"keep: {self.keep!r} ranks regions by their disparity, which only the nearness segmenter "
                              f"measures; got segmenter {self.segmenter!r} (use segmenter='nearness')")
-        if not (isinstance(self.min_area_fraction, (int, float)) and 0 <= self.min_area_fraction < 1):
-            raise InputError(f"min_area_fraction: expected a share of the image in [0, 1), got "
-                             f"{self.min_area_fraction!r}")
-        if not (isinstance(self.near_min_area_fraction, (int, float)) and 0 <= self.near_min_area_fraction < 1):
-            raise InputError(f"near_min_area_fraction: expected a share of the image in [0, 1), got "
-                             f"{self.near_min_area_fraction!r}")
+        for name in ("min_area_fraction", "near_min_area_fraction"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 <= value < 1):
+                raise InputError(f"{name}: expected a share of the image in [0, 1), got {value!r}")
         if not (isinstance(self.min_measured_share, (int, float)) and 0 <= self.min_measured_share <= 1):
             raise InputError(f"min_measured_share: expected a share of the image in [0, 1], got "
                              f"{self.min_measured_share!r}")
