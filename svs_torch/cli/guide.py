@@ -21,13 +21,15 @@ nearest obstacle's nearest visible surface (the 10th depth percentile of its den
 the distance band (default 1-2 m, the range the system was designed for): a
 spoken message when espeak-ng is installed, always a text line, rate-limited so it does not chatter (a
 message repeats after --repeat-s seconds unless the distance class changes). A status line shows frames
-per second, the nearest distance and its side.
+per second, the nearest distance and its side. The floor (the road) ahead, which a walker's camera sees as
+its nearest surface, is not an obstacle (--floor).
 """
 
 EPILOG = """\
 examples:
   svs-depth guide --emulator                                   try it without a device
-  svs-depth guide --emulator --emulator-floor-m 1.3 --floor on a walker's view: the floor ahead is not warned of
+  svs-depth guide --emulator --emulator-floor-m 1.3           a walker's view: the floor ahead is not warned of
+  svs-depth guide --emulator --emulator-floor-m 1.3 --floor off   the same view, the floor kept: warned of
   svs-depth guide --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
 Stop with Ctrl-C.
@@ -47,7 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
                              "(hw.frames.WALKER_PITCH_DEG) as a walker wears them (default: no floor)")
-    add_floor_option(parser)
+    add_floor_option(parser, "on", "a walker's camera sees the floor ahead as the nearest surface; a heap seen "
+                                   "from above can read as a floor too: experiments/walker_floor.md", settings=False)
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,

@@ -64,14 +64,18 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                         help="obstacles are darker than the background: keep pixels at or below the threshold")
 
 
-def add_floor_option(parser: argparse.ArgumentParser) -> None:
-    """``--floor on|off``: whether the nearness segmenter leaves the floor out (:func:`with_floor`)."""
-    parser.add_argument("--floor", choices=("on", "off"),
+def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
+                     why: str = "a pile of rocks or cloth can read as a floor: experiments/walker_floor.md",
+                     settings: bool = True) -> None:
+    """``--floor on|off``: whether the nearness segmenter leaves the floor out (:func:`with_floor`). ``default``: the
+    command's choice without the option ("off" leaves the configuration as it is, so ``--set`` still sets the
+    floor), and ``why``, a clause giving its reason, shown in the help; ``settings``: the command takes ``--set``."""
+    parser.add_argument("--floor", choices=("on", "off"), default=None if default == "off" else default,
                         help="'on': the floor (the road) that the nearness segmenter finds as a plane in the pair's "
                              "disparity is not an obstacle, as for a walker; 'off': it is kept like any near "
-                             "surface (default: off, a pile of rocks or cloth can read as a floor: "
-                             "experiments/walker_floor.md; settings with units: --set "
-                             "segmentation.ground.max_camera_height_m=M)")
+                             f"surface (default: {default}, {why}"
+                             + ("; settings with units: --set segmentation.ground.max_camera_height_m=M)"
+                                if settings else ")"))
 
 
 def with_floor(config, choice: str | None):

@@ -202,11 +202,13 @@ def test_guide_prints_warnings_above_its_status_line(monkeypatch):
                for line in screen if "fps" not in line), screen
 
 
-def test_guide_on_an_emulated_floor_leaves_the_floor_out_when_asked(monkeypatch):
-    """``guide --emulator --emulator-floor-m 1.3`` shows the cameras over a floor; ``--floor on`` runs the pipeline
-    with the ground plane (what every pair is ranged with), ``--floor off`` (the default) without it."""
+def test_guide_on_an_emulated_floor_leaves_the_floor_out_by_default(monkeypatch):
+    """``guide --emulator --emulator-floor-m 1.3`` shows the cameras over a floor; by default (a walker's command)
+    and with ``--floor on`` it runs the pipeline with the ground plane (what every pair is ranged with), with
+    ``--floor off`` without it."""
     import svs_torch.pipeline as pipeline
     from svs_torch.cli import main
+    from svs_torch.segmentation.ground_plane import GroundPlaneConfig
 
     real, grounds = pipeline.estimate_obstacle_depth, []
 
@@ -217,9 +219,13 @@ def test_guide_on_an_emulated_floor_leaves_the_floor_out_when_asked(monkeypatch)
     monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording_pipeline)
     monkeypatch.setattr(sys, "stdout", io.StringIO())
     monkeypatch.setattr(sys, "stderr", io.StringIO())
-    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "on", "--count", "2",
-                 "--no-speech"]) == 0
-    assert len(grounds) == 2 and all(g is not None for g in grounds)
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--count", "2", "--no-speech"]) == 0
+    assert len(grounds) == 2 and all(g == GroundPlaneConfig() for g in grounds)
     grounds.clear()
-    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--count", "1", "--no-speech"]) == 0
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "on", "--count", "1",
+                 "--no-speech"]) == 0
+    assert grounds == [GroundPlaneConfig()]
+    grounds.clear()
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "off", "--count", "1",
+                 "--no-speech"]) == 0
     assert grounds == [None]

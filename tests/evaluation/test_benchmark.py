@@ -93,4 +93,5 @@ def test_guides_latency_is_also_timed_on_camera_frames():
         "stages_ms_per_pair_B32": {}, "scaling": [], "latency_ms_B1": 2.0, "latency_ms_B1_otsu": 1.0,
         "latency_ms_B1_camera": 3.5, "latency_ms_B1_camera_otsu": 1.5, "kornia_ms_per_pair": 3.0},
         "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}}
-    assert f"as camera frames (JPEG digit {CAMERA_DIGIT}, noise σ 4): 3.5 ms (Otsu: 1.5 ms)" in format_tables(report)
+    assert (f"as camera frames (JPEG digit {CAMERA_DIGIT}, noise σ 4, guide's floor rule on): 3.5 ms (Otsu: 1.5 ms)"
+            in format_tables(report))
