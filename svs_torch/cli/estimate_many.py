@@ -52,11 +52,19 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
 def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
     """One batch of list entries run through the pipeline: each entry's report (with its ``left`` and
     ``right``) and, for a BAD_INPUT entry, the reason."""
-    from ..data import collate_stereo_batches
-    from ..pipeline import estimate_obstacle_depth
+    import torch
 
     entries = [_load_entry(entry, args) for entry in chunk]
     runnable = [loaded for _, _, loaded in entries if loaded is not None]
+    with torch.inference_mode():  # the result is read, never trained on: its tensors need no copy (core.inference)
+        return _reports(chunk, entries, runnable, args, config)
+
+
+def _reports(chunk, entries: list, runnable: list, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
+    """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk`` (``runnable``: those that loaded)."""
+    from ..data import collate_stereo_batches
+    from ..pipeline import estimate_obstacle_depth
+
     result, per_pair = None, 0.0
     if runnable:
         # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.

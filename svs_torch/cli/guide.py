@@ -75,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
+        import torch
+
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link_types import CaptureError
         from ..depth.depth_types import ObstacleSide
@@ -102,8 +104,9 @@ def run(args: argparse.Namespace) -> int:
             warnings.showwarning = status_line.show_warning
             camera = open_stereo_camera(args, size, stack)
             for item in camera.stream_batches(1, num_batches=args.count or None):
-                batch = item.batch if calibration is None else rectify_with_calibration(item.batch, calibration)
-                result = estimate_obstacle_depth(batch, config)
+                with torch.inference_mode():  # read, never trained on: no copy of the result (core.inference)
+                    batch = item.batch if calibration is None else rectify_with_calibration(item.batch, calibration)
+                    result = estimate_obstacle_depth(batch, config)
                 nearest = result.depth.nearest
                 # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
                 # a walker reaches first, not the median of an object that may recede.

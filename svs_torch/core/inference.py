@@ -10,7 +10,9 @@ Tensors made in inference mode are "inference tensors": outside it they cannot b
 backward, so a caller that trains a segmenter against a hard result, or edits one, would fail far from the cause.
 So nothing made there is handed out as is: :func:`plain_tensors` copies a result's inference tensors to ordinary
 ones before it is returned, and tensors a process keeps between calls (cached tables, loaded networks) are made
-outside inference mode even when first asked for inside it (:func:`outside_inference_mode`).
+outside inference mode even when first asked for inside it (:func:`outside_inference_mode`). A caller that is in
+inference mode itself (``guide``'s loop, ``estimate --pairs``' chunks: they read the result and drop it) gets the
+inference tensors as they are: the copy cost 1 ms a 320×240 pair at B = 1, 2 % of ``guide``'s frame.
 """
 
 from __future__ import annotations

@@ -286,6 +286,19 @@ def test_a_batch_run_in_chunks_is_merged_into_ordinary_tensors(data_dir, monkeyp
         assert right.binary is right.opened is right.kept_mask
 
 
+def test_a_caller_in_inference_mode_gets_the_same_result_uncopied(data_dir):
+    """A caller already in inference mode (guide's loop) asked for inference tensors: the result is not copied to
+    ordinary ones, and holds the same values as an ordinary call's."""
+    batch = _teddy(data_dir, (160, 120))
+    plain = estimate_obstacle_depth(batch, PipelineConfig())
+    with torch.inference_mode():
+        inside = estimate_obstacle_depth(batch, PipelineConfig())
+    tensors = list(_tensors(inside))
+    assert len(tensors) > 50 and all(t.is_inference() for t in tensors if t is not batch.left and t is not batch.right)
+    assert torch.equal(inside.depth.objects.depth_median_m, plain.depth.objects.depth_median_m)
+    assert torch.equal(inside.object_labels, plain.object_labels) and torch.equal(inside.status, plain.status)
+
+
 def test_a_hard_run_in_inference_mode_leaves_nothing_that_stops_training(data_dir):
     # The hard pipeline runs in inference mode (svs_torch.core.inference). Emptied first, the caches it fills (the
     # Hessian's tables, the 7-point solver's mixing matrix, the nearness network) must still train afterwards.
