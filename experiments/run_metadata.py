@@ -69,11 +69,33 @@ def report_rows(table: str, rows: list[dict], command: str, overrides: list[str]
 
 
 def add_rendered_experiment_options(parser) -> None:
-    """The options of the rendered-scene experiments (thin_obstacles.py, walker_floor.py): ``--set`` (repeatable),
-    ``--no-rival``, ``--json`` and ``--markdown``."""
+    """The options of the rendered-scene experiments (thin_obstacles.py, walker_floor.py, walker_heaps.py): ``--set``
+    (repeatable), ``--no-rival``, ``--json`` and ``--markdown``."""
     from pathlib import Path
 
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--markdown", type=Path)
+
+
+def rendered_experiment_setup(doc: str, argv: list[str] | None):
+    """A rendered-scene experiment's start (walker_floor.py, walker_heaps.py): its options parsed from ``argv``
+    (:func:`add_rendered_experiment_options`; ``doc``'s first paragraph the description), the pipeline's
+    configuration with ``--set``'s overrides (a bad one is the parser's error), the setting's name for the table,
+    and the start time on ``time.perf_counter``."""
+    import argparse
+    import time
+
+    from svs_torch.core.errors import InputError
+    from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
+    from svs_torch.pipeline import PipelineConfig
+
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    add_rendered_experiment_options(parser)
+    args = parser.parse_args(argv)
+    try:
+        config = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
+    except InputError as error:
+        parser.error(str(error))
+    return args, config, "default" + "".join(f", {text}" for text in args.set), time.perf_counter()

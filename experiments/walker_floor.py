@@ -33,23 +33,19 @@ minute with the rival on a 2-core machine.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
-from run_metadata import add_rendered_experiment_options, command_line, report_rows  # noqa: E402
+from run_metadata import command_line, rendered_experiment_setup, report_rows  # noqa: E402
 from thin_obstacles import FRAMES, as_frames  # noqa: E402
 
-from svs_torch.core.errors import InputError  # noqa: E402
 from svs_torch.data.synthetic import render_obstacle_scenes  # noqa: E402
-from svs_torch.evaluation.overrides import apply_overrides, parse_assignment  # noqa: E402
-from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth  # noqa: E402
+from svs_torch.pipeline import PipelineStatus, estimate_obstacle_depth  # noqa: E402
 
 #: The camera's heights (m) and pitches (degrees down); the near box's distances ahead and offsets (m).
 HEIGHTS_M, PITCHES_DEG, AHEAD_M, OFFSETS_M = (1.2, 1.5), (10.0, 20.0, 30.0), (1.2, 1.6, 2.0), (-0.4, 0.4)
@@ -160,15 +156,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_rendered_experiment_options(parser)
-    args = parser.parse_args(argv)
-    try:
-        config = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
-    except InputError as error:
-        parser.error(str(error))
-    setting = "default" + "".join(f", {text}" for text in args.set)
-    started = time.perf_counter()
+    args, config, setting, started = rendered_experiment_setup(__doc__, argv)
     cases = walker_cases()
     rows = []
     for near_box in (True, False):

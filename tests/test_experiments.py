@@ -305,3 +305,27 @@ def test_walker_floor_counts_the_box_warned_of_and_the_floors_false_warnings():
     assert "| floor out | clean | 2 | 2 | 0 | " in walker_floor.markdown(rows, "command")
     with pytest.raises(SystemExit):
         walker_floor.main(["--set", "segmentation.ground.min_camera_height_m=-1"])
+
+
+def test_walker_heaps_counts_the_heap_warned_of_with_the_floor_left_out():
+    """experiments/walker_heaps.py on three of its heaps, clean: with the floor left out (guide's default) each heap,
+    the walker's two and the one filling the lower view, is kept, named nearest and warned of; with the floor kept,
+    the floor in front of the walker's heap at 20° is named nearest instead."""
+    import walker_heaps
+
+    from svs_torch.evaluation.overrides import apply_overrides
+    from svs_torch.pipeline import PipelineConfig
+
+    cases = [("walker", 1.5, 20.0, 1.6, -0.3, 0.45, 0.35), ("walker", 1.5, 30.0, 1.6, 0.3, 0.45, 0.35),
+             ("filling", 1.3, 35.0, 1.2, 0.2, 1.0, 0.5)]
+    rows = []
+    for setting, config in (("floor out", apply_overrides(PipelineConfig(), {"segmentation.ground": True})),
+                            ("default", PipelineConfig())):
+        for index, scenes in walker_heaps.heap_scenes(cases):
+            rows += walker_heaps.pipeline_rows(scenes, index, cases, config, "clean", setting, scenes.batch)
+    out = [r for r in rows if r["setting"] == "floor out"]
+    assert all(r["nearest"] and r["warned"] and r["heap_kept"] > 0.7 for r in out)
+    assert not any(r["false_warning"] for r in out)
+    kept = [r for r in rows if r["setting"] == "default"]
+    assert not kept[0]["nearest"] and kept[0]["nearest_m"] > 1.1 * kept[0]["truth_median_m"]
+    assert "| floor out | clean | walker | 2 of 2 | 2 of 2 | 0 | " in walker_heaps.markdown(rows, "command")

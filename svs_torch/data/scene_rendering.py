@@ -12,6 +12,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from .heap_rendering import HeapField, heap_hits
+
 __all__ = []
 
 
@@ -49,11 +51,17 @@ class _Scene(NamedTuple):
     background_depth_m: float
     floor_height_m: float | None = None  # the camera's height over the floor; None: no floor
     pitch_rad: float = 0.0  # the camera pitched down by this much (the floor's plane only)
+    heap: HeapField | None = None  # a heap on the floor (:mod:`.heap_rendering`); None: none
 
     @property
     def floor_slot(self) -> int:
         """The floor's slot in the z-buffer and the tiles: after the wall (0) and the K objects."""
         return self.depth_m.shape[1] + 1
+
+    @property
+    def heap_slot(self) -> int:
+        """The heap's slot: after the floor's."""
+        return self.floor_slot + 1
 
     def along_floor(self, depth: torch.Tensor, y_px: torch.Tensor) -> torch.Tensor:
         """The forward coordinate along the floor, metres, of the points at ``depth`` seen at rows ``y_px``."""
@@ -105,15 +113,22 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
         closer = (toward > 0) & (floor < nearest)
         nearest = torch.where(closer, floor.to(nearest.dtype), nearest)
         slot = torch.where(closer, scene.floor_slot, slot)
+    if scene.heap is not None:
+        heap = heap_hits(x_px, y_px, camera_x_m, scene.focal_px, scene.principal_xy, scene.floor_height_m,
+                         scene.pitch_rad, scene.heap)
+        closer = heap < nearest
+        nearest = torch.where(closer, heap.to(nearest.dtype), nearest)
+        slot = torch.where(closer, scene.heap_slot, slot)
     return nearest, slot
 
 
 def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
-                generator: torch.Generator, contrast: float = 1.0, floor: bool = False) -> torch.Tensor:
+                generator: torch.Generator, contrast: float = 1.0, floor: bool = False,
+                heap: bool = False) -> torch.Tensor:
     """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
     surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
     square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value).
-    ``floor``: every slot is a floor's (its intensities)."""
+    ``floor``: every slot is a floor's (its intensities); ``heap``: every slot is an obstacle's."""
     b, s = tile_depth_m.shape
     g = _TILE_TEXELS
     dtype, device = tile_depth_m.dtype, tile_depth_m.device
@@ -131,7 +146,7 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
     field = field - field.mean(dim=(-2, -1), keepdim=True)
     field = field / field.std(dim=(-2, -1), keepdim=True)
     texture = torch.tanh(_TEXTURE_GAIN * field.sum(dim=2) / math.sqrt(2))  # (B, S, G, G) in (-1, 1)
-    is_object = torch.arange(s, device=device).view(1, s) > 0
+    is_object = (torch.arange(s, device=device).view(1, s) > 0) | heap
     low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
     high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
     amplitude = torch.where(is_object, _OBJECT_AMPLITUDE * contrast, _BACKGROUND_AMPLITUDE * contrast)
@@ -164,8 +179,18 @@ def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], g
     floor_tile = _make_tiles(torch.full((b, 1), _FLOOR_TEXTURE_DEPTH_M, **options), floor_side, scene.focal_px,
                              generator, contrast, floor=True)
     floor_center = torch.tensor([baseline_m / 2, scene.background_depth_m], **options).expand(b, 1, 2)
-    return (torch.cat([tiles, floor_tile], 1), torch.cat([tile_center, floor_center], 1),
-            torch.cat([tile_side, floor_side], 1))
+    tiles, tile_center = torch.cat([tiles, floor_tile], 1), torch.cat([tile_center, floor_center], 1)
+    tile_side = torch.cat([tile_side, floor_side], 1)
+    if scene.heap is None:
+        return tiles, tile_center, tile_side
+    # The heap's tile, after the floor's: an obstacle's intensities, fixed to the floor coordinates under it (its
+    # lateral X and its distance ahead), at the texture scale of its depth.
+    heap_side = scene.heap.side_m.clamp_min(1e-3).view(b, 1)
+    heap_center = scene.heap.origin_m.view(b, 1, 2) + heap_side.unsqueeze(-1) / 2
+    heap_tile = _make_tiles(heap_center[..., 1].clamp_min(0.5), heap_side, scene.focal_px, generator, contrast,
+                            heap=True)
+    return (torch.cat([tiles, heap_tile], 1), torch.cat([tile_center, heap_center], 1),
+            torch.cat([tile_side, heap_side], 1))
 
 
 def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor,
@@ -196,8 +221,8 @@ def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: to
     # Wrapped into [0, G): the tiles are periodic, so surfaces larger than their tile stay seamless.
     u = torch.addcmul(per_pixel(offset[..., 0]), depth * ((x_px - cx) / scene.focal_px), scale).remainder(g)
     down = depth * ((y_px - cy) / scene.focal_px)
-    if scene.floor_height_m is not None:  # the floor's second coordinate: the distance ahead along it
-        down = torch.where(slot == scene.floor_slot, scene.along_floor(depth, y_px), down)
+    if scene.floor_height_m is not None:  # the floor's (and a heap's) second coordinate: the distance ahead along it
+        down = torch.where(slot >= scene.floor_slot, scene.along_floor(depth, y_px), down)
     v = torch.addcmul(per_pixel(offset[..., 1]), down, scale).remainder(g)
     # Rounding can give exactly G; the clamp keeps the corner inside. The tiles get a wrapped extra row and
     # column so the +1 neighbours need no integer modulo (which is slow on CPU).

@@ -25,6 +25,7 @@ import torch
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError, check_dtype, check_shape
 from ..core.types import StereoBatch
+from .heap_rendering import make_heap_field
 from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
 __all__ = ["SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
@@ -55,6 +56,8 @@ class SyntheticScenes:
         object_size_m: ``(B, K, 2)`` width, height in metres; 0 in padding slots.
         floor_mask: ``(B, 1, H, W)`` bool, the left view's floor pixels (their ``object_ids`` are 0: the floor
             is not an obstacle); None for a scene rendered without a floor.
+        heap_mask: ``(B, 1, H, W)`` bool, the left view's pixels of the heap on the floor (an obstacle outside the
+            K slots: their ``object_ids`` are 0); None for scenes rendered without heaps.
     """
 
     batch: StereoBatch
@@ -66,6 +69,7 @@ class SyntheticScenes:
     object_center_xy_m: torch.Tensor | None = None
     object_size_m: torch.Tensor | None = None
     floor_mask: torch.Tensor | None = None
+    heap_mask: torch.Tensor | None = None
 
 
 def _resolve_generator(generator: torch.Generator | None, device: torch.device) -> torch.Generator:
@@ -91,6 +95,21 @@ def _check_look_args(texture_contrast: float, floor_height_m: float | None, came
              f"floor_height_m: expected None or a positive finite height in metres, got {floor_height_m!r}")
     _require(real(camera_pitch_deg) and -30 <= camera_pitch_deg <= 60,
              f"camera_pitch_deg: expected degrees in [-30, 60], got {camera_pitch_deg!r}")
+
+
+def _check_heaps(heaps: torch.Tensor | None, batch_size: int, floor_height_m: float | None, roughness_m: float) -> None:
+    """Validate :func:`render_obstacle_scenes`'s heaps (None: none)."""
+    if heaps is None:
+        return
+    _require(floor_height_m is not None, "heaps: expected a floor to stand on (give floor_height_m)")
+    _require(isinstance(heaps, torch.Tensor) and heaps.shape == (batch_size, 4) and heaps.is_floating_point()
+             and bool(torch.isfinite(heaps).all()),
+             f"heaps: expected a finite float tensor of shape ({batch_size}, 4) (x, ahead, radius, height in "
+             f"metres), got {heaps.dtype if isinstance(heaps, torch.Tensor) else type(heaps).__name__} "
+             f"{tuple(heaps.shape) if isinstance(heaps, torch.Tensor) else ''}")
+    _require(bool((heaps[:, 2:] >= 0).all()), "heaps: expected radii and heights >= 0 metres")
+    _require(isinstance(roughness_m, (int, float)) and not isinstance(roughness_m, bool) and math.isfinite(roughness_m)
+             and roughness_m >= 0, f"heap_roughness_m: expected a finite height >= 0 in metres, got {roughness_m!r}")
 
 
 def _check_size_wh(size_wh: tuple[int, int]) -> None:
@@ -147,9 +166,11 @@ def render_obstacle_scenes(
     texture_contrast: float = 1.0,
     floor_height_m: float | None = None,
     camera_pitch_deg: float = 0.0,
+    heaps: torch.Tensor | None = None,
+    heap_roughness_m: float = 0.05,
 ) -> SyntheticScenes:
     """Render B stereo pairs of K bright textured rectangles in front of a dark textured wall, optionally over a
-    textured floor.
+    textured floor with heaps on it.
 
     Args:
         object_depth_m: ``(B, K)`` depth of each rectangle, metres, below ``background_depth_m``.
@@ -161,16 +182,16 @@ def render_obstacle_scenes(
         background_depth_m: depth of the wall, metres.
         generator: source of the textures and the noise; None draws a fresh nondeterministic seed.
         dtype: floating dtype of the outputs (the geometry is computed in it too).
-        supersample: s; images are shaded on an s× finer grid and area-averaged (antialiasing). The ground
-            truth is taken at the output pixel centres.
+        supersample: images shaded on a finer grid by this factor and area-averaged (truth at pixel centres).
         noise_std: standard deviation of additive gaussian sensor noise on [0, 1] intensities.
-        texture_contrast: the surfaces' texture amplitude as a multiple of the default (0.14 on the objects,
-            0.10 on the wall); e.g. 0.3 for the weakly textured fronts of real indoor obstacles (painted boards,
-            cloth, a lampshade), which the camera's JPEG and noise wipe out before the speckle of the default.
-        floor_height_m: the cameras' height over a floor, metres (None: no floor): a walker's view, whose floor
-            in front of the feet is the nearest surface in view and not an obstacle. Its texture is fixed to it.
+        texture_contrast: the texture amplitude as a multiple of the default (0.14 on objects, 0.10 on the wall);
+            e.g. 0.3 for weakly textured real fronts (painted boards, cloth), which JPEG and noise wipe out.
+        floor_height_m: the cameras' height over a textured floor, metres (None: none): a walker's view, whose
+            floor ahead is the nearest surface in view and not an obstacle.
         camera_pitch_deg: the cameras pitched down by this many degrees, in [−30, 60]; it moves only the floor
-            (the points ``P`` with ``P · (0, cos θ, sin θ) = floor_height_m`` in the camera's frame).
+            (``P · (0, cos θ, sin θ) = floor_height_m`` in the camera's frame) and the heaps.
+        heaps: ``(B, 4)`` a heap on each floor: centre X, distance ahead, radius, height, metres (radius 0: none);
+            a dome with rocks of ``heap_roughness_m`` on it, textured as an obstacle (:mod:`.heap_rendering`).
 
     Returns:
         :class:`SyntheticScenes` on ``object_depth_m``'s device. Not differentiable (see module docstring).
@@ -178,19 +199,24 @@ def render_obstacle_scenes(
     object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
                                       tuple(size_wh), background_depth_m, supersample, noise_std)
     _check_look_args(texture_contrast, floor_height_m, camera_pitch_deg)
-    width, height = size_wh
-    device = object_depth_m.device
+    _check_heaps(heaps, object_depth_m.shape[0], floor_height_m, heap_roughness_m)
+    (width, height), device = size_wh, object_depth_m.device
     generator = _resolve_generator(generator, device)
     scene = _make_scene(object_depth_m, object_center_xy_m, object_size_m, object_valid.to(device), camera,
                         (width, height), dtype, background_depth_m, floor_height_m, camera_pitch_deg)
+    if heaps is not None:  # drawn before the tiles: scenes without heaps draw what they drew before
+        scene = scene._replace(heap=make_heap_field(heaps.to(device, dtype), float(heap_roughness_m), generator))
     tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator, float(texture_contrast))
-    views = [_render_view(camera_x, scene, (width, height), supersample, *tiles)
-             for camera_x in (0.0, camera.baseline_m)]
-    if noise_std > 0:
-        views = [view + noise_std * torch.randn(view.shape, generator=generator, dtype=dtype, device=device)
-                 for view in views]
-    left, right = (view.clamp(0.0, 1.0) for view in views)
+    left, right = (_with_noise(_render_view(camera_x, scene, (width, height), supersample, *tiles), noise_std,
+                               generator) for camera_x in (0.0, camera.baseline_m))
     return _with_ground_truth(scene, left, right, camera.baseline_m)
+
+
+def _with_noise(view: torch.Tensor, noise_std: float, generator: torch.Generator) -> torch.Tensor:
+    """``view`` with additive Gaussian sensor noise of ``noise_std`` (drawn from ``generator``), held to [0, 1]."""
+    if noise_std > 0:
+        view = view + noise_std * torch.randn(view.shape, generator=generator, dtype=view.dtype, device=view.device)
+    return view.clamp(0.0, 1.0)
 
 
 def _make_scene(depth_m: torch.Tensor, center_xy_m: torch.Tensor, size_m: torch.Tensor, valid: torch.Tensor,
@@ -213,10 +239,13 @@ def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
     x_px = torch.arange(width, **options).view(1, 1, 1, -1)
     y_px = torch.arange(height, **options).view(1, 1, -1, 1)
     depth_m, object_ids = _cast_rays(x_px, y_px, 0.0, scene)
-    floor_mask = None
+    floor_mask = heap_mask = None
     if scene.floor_height_m is not None:  # the floor is not an obstacle: id 0, as the wall
         floor_mask = object_ids == scene.floor_slot
         object_ids = object_ids.masked_fill(floor_mask, 0)
+    if scene.heap is not None:  # an obstacle outside the K slots: its own mask
+        heap_mask = object_ids == scene.heap_slot
+        object_ids = object_ids.masked_fill(heap_mask, 0)
     focal_px = torch.full((b,), scene.focal_px, **options)
     baseline = torch.full((b,), baseline_m, **options)
     disparity = (focal_px * baseline).view(b, 1, 1, 1) / depth_m
@@ -228,7 +257,8 @@ def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
                            object_depth_m=torch.where(valid, scene.depth_m, zero), object_valid=valid,
                            object_bbox_xyxy=_visible_bboxes(object_ids, valid.shape[1]),
                            object_center_xy_m=torch.where(valid.unsqueeze(-1), scene.center_xy_m, zero),
-                           object_size_m=torch.where(valid.unsqueeze(-1), scene.size_m, zero), floor_mask=floor_mask)
+                           object_size_m=torch.where(valid.unsqueeze(-1), scene.size_m, zero), floor_mask=floor_mask,
+                           heap_mask=heap_mask)
 
 
 def _check_random_args(batch_size: int, num_objects: int, size_wh: tuple[int, int],

@@ -1,0 +1,119 @@
+"""Heaps on the rendered floor: continuous rough surfaces (a pile of rocks, a heap of cloth or rubble) that rise from
+the floor a walker's camera sees, drawn by marching each pixel's ray through a height field.
+
+Why: the floor rule (:mod:`svs_torch.segmentation.ground_plane`) fits a plane to the nearness map and leaves out
+what lies on it. The renderer's boxes face the camera, so a heap of them is a staircase of fronts that no plane
+holds; a rock pile or draped cloth is one continuous surface, rough at the scale of its rocks, and a plane fitted to
+its upper side holds much of it within a pixel of disparity (experiments/walker_floor.md). These heaps are tuning
+data for that case.
+
+The height field is a dome of the heap's height over its radius, plus rocks (Gaussian bumps of a few centimetres at
+random places on it), sampled on a square grid over the floor (its lateral X and its distance ahead along the
+floor, both in metres) and read bilinearly. A ray meets it where its height over the floor first falls below the
+field's: found by stepping through the heap's extent ahead and refining by bisection. Not differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+__all__ = []
+
+#: Height-field samples per side, ray steps through the heap's extent ahead, and bisection refinements.
+_GRID, _STEPS, _BISECTIONS = 128, 64, 8
+#: Rocks per heap, and their radii as shares of the heap's radius.
+_ROCKS, _ROCK_RADIUS_SHARE = 48, (0.06, 0.16)
+#: A ray's hit counts as the heap's where the field stands at least this high (metres); lower, it is the floor.
+_MIN_HEIGHT_M = 0.003
+
+
+class HeapField(NamedTuple):
+    """Each scene's height field (B heaps, at most one a scene).
+
+    Attributes:
+        heights_m: ``(B, 1, G, G)`` the height over the floor, metres; rows run ahead, columns lateral.
+        origin_m: ``(B, 2)`` the grid's corner: lateral X and distance ahead, metres.
+        side_m: ``(B,)`` the grid's side, metres (0: no heap in that scene).
+    """
+
+    heights_m: torch.Tensor
+    origin_m: torch.Tensor
+    side_m: torch.Tensor
+
+
+def make_heap_field(heaps: torch.Tensor, roughness_m: float, generator: torch.Generator) -> HeapField:
+    """The height fields of ``heaps`` ``(B, 4)``: centre X, centre distance ahead, radius and height, metres (a
+    radius of 0: none), with rocks of ``roughness_m`` high drawn from ``generator``."""
+    b = heaps.shape[0]
+    options = {"dtype": heaps.dtype, "device": heaps.device}
+    centre, radius, height = heaps[:, :2], heaps[:, 2], heaps[:, 3]
+    side = 2.2 * radius
+    cells = (torch.arange(_GRID, **options) + 0.5) / _GRID - 0.5  # grid cell centres in units of the side
+    lateral = cells.view(1, 1, -1) * side.view(b, 1, 1)
+    ahead = cells.view(1, -1, 1) * side.view(b, 1, 1)
+    share = (lateral ** 2 + ahead ** 2) / radius.clamp_min(1e-9).view(b, 1, 1) ** 2
+    dome = height.view(b, 1, 1) * (1 - share).clamp_min(0) ** 0.75
+    # Rocks: uniform over the heap's disc, their radii and heights drawn, each a Gaussian bump.
+    angle = torch.rand(b, _ROCKS, generator=generator, **options) * (2 * math.pi)
+    reach = torch.rand(b, _ROCKS, generator=generator, **options).sqrt() * radius.view(b, 1)
+    low, high = _ROCK_RADIUS_SHARE
+    size = (low + (high - low) * torch.rand(b, _ROCKS, generator=generator, **options)) * radius.view(b, 1)
+    rise = roughness_m * (0.5 + 0.5 * torch.rand(b, _ROCKS, generator=generator, **options))
+    dx = lateral.unsqueeze(-1) - (reach * angle.cos()).view(b, 1, 1, -1)
+    dy = ahead.unsqueeze(-1) - (reach * angle.sin()).view(b, 1, 1, -1)
+    rocks = (rise.view(b, 1, 1, -1) * torch.exp(-(dx ** 2 + dy ** 2) / (2 * size.view(b, 1, 1, -1) ** 2))).sum(-1)
+    field = torch.where(share < 1, dome + rocks, torch.zeros_like(dome))
+    origin = centre - side.unsqueeze(-1) / 2
+    return HeapField(field.unsqueeze(1), origin, torch.where(radius > 0, side, torch.zeros_like(side)))
+
+
+def _field_at(heap: HeapField, lateral_m: torch.Tensor, ahead_m: torch.Tensor) -> torch.Tensor:
+    """The field's height ``(B, 1, h, w)`` at floor points ``(B, 1, h, w)`` (0 outside the grid)."""
+    side = heap.side_m.clamp_min(1e-9).view(-1, 1, 1, 1)
+    u = (lateral_m - heap.origin_m[:, 0].view(-1, 1, 1, 1)) / side * 2 - 1
+    v = (ahead_m - heap.origin_m[:, 1].view(-1, 1, 1, 1)) / side * 2 - 1
+    grid = torch.stack([u[:, 0], v[:, 0]], -1)  # (B, h, w, 2): x along the columns (lateral), y along the rows
+    return F.grid_sample(heap.heights_m, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+def heap_hits(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float, focal_px: float,
+              principal_xy: tuple[float, float], floor_height_m: float, pitch_rad: float,
+              heap: HeapField) -> torch.Tensor:
+    """The depth ``(B, 1, h, w)`` (metres, along the optical axis) where each pixel's ray first meets the heap, +inf
+    where it does not, for a camera at ``(camera_x_m, 0, 0)`` ``floor_height_m`` over the floor, pitched down by
+    ``pitch_rad`` (:func:`svs_torch.data.scene_rendering._cast_rays`' conventions)."""
+    cx, cy = principal_xy
+    b = heap.side_m.shape[0]
+    across, down = (x_px - cx) / focal_px, (y_px - cy) / focal_px
+    toward = down * math.cos(pitch_rad) + math.sin(pitch_rad)  # the ray's fall towards the floor per metre of depth
+    forward = math.cos(pitch_rad) - math.sin(pitch_rad) * down  # its distance ahead along the floor per metre
+    shape = (b, 1, *torch.broadcast_shapes(x_px.shape, y_px.shape)[-2:])
+    forward = forward.expand(shape)
+    ahead0, side = heap.origin_m[:, 1].view(-1, 1, 1, 1), heap.side_m.view(-1, 1, 1, 1)
+    reachable = forward > 1e-6
+    near = torch.where(reachable, ahead0.clamp_min(0) / forward.clamp_min(1e-6), 0.0)
+    far = torch.where(reachable, (ahead0 + side).clamp_min(0) / forward.clamp_min(1e-6), 0.0)
+
+    def gap(depth: torch.Tensor) -> torch.Tensor:  # the ray's height over the floor minus the field's
+        return (floor_height_m - depth * toward) - _field_at(heap, camera_x_m + depth * across, depth * forward)
+
+    found = torch.zeros(shape, dtype=torch.bool, device=x_px.device)
+    before, after = near.clone(), far.clone()
+    previous = near
+    for step in range(1, _STEPS):
+        depth = near + (far - near) * (step / (_STEPS - 1))
+        crossed = ~found & (gap(depth) <= 0)
+        before, after = torch.where(crossed, previous, before), torch.where(crossed, depth, after)
+        found |= crossed
+        previous = depth
+    for _ in range(_BISECTIONS):
+        middle = (before + after) / 2
+        below = gap(middle) <= 0
+        before, after = torch.where(below, before, middle), torch.where(below, middle, after)
+    height = _field_at(heap, camera_x_m + after * across, after * forward)
+    hit = found & reachable & (side > 0) & (height >= _MIN_HEIGHT_M)
+    return torch.where(hit, after, torch.full_like(after, math.inf))
