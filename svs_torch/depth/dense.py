@@ -51,7 +51,7 @@ __all__ = [
     "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
     "crop_index", "dense_disparity_over_regions", "disparity_search_range", "equiangular_offset",
     "estimate_dense_disparity", "mean_pool", "prefilter_xsobel", "quantize_levels", "region_crop_boxes",
-    "soft_block_match", "wanted_pixels"
+    "soft_block_match", "wanted_pixels", "working_factor", "working_window"
 ]
 
 
@@ -91,6 +91,20 @@ def working_factor(width_px: int, config: DenseConfig = DenseConfig()) -> int:
     return max(1, round(width_px / config.working_width_px))
 
 
+def working_window(width_px: int, config: DenseConfig = DenseConfig()) -> int:
+    """The window side :func:`estimate_dense_disparity` matches images ``width_px`` wide with, working pixels:
+    ``config.window_size``, or with ``config.scale_window`` where the images are matched unreduced and wider than
+    ``config.working_width_px`` (353–479 px: the integer factor rounds to 1), the odd side nearest ``window_size ·
+    width_px / working_width_px``. Why: there a fixed window spans up to a third less of the scene than at 320 px
+    with the same noise per pixel (a reduced pair's box average has averaged it); on the tuned scenes resampled to
+    448×336 as camera frames a 13-pixel window ranged objects better than a 9-pixel one, at 320×240 worse
+    (experiments/real_rig.md, "The window at the working width")."""
+    if not config.scale_window or working_factor(width_px, config) > 1:  # reduced: the box average took the noise
+        return config.window_size
+    scaled = config.window_size * width_px / config.working_width_px
+    return max(config.window_size, 2 * round((scaled - 1) / 2) + 1)
+
+
 def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
                              config: DenseConfig = DenseConfig(), image_hw: torch.Tensor | None = None,
                              inlier_disparity_px: torch.Tensor | None = None,
@@ -98,7 +112,8 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
                              objects: torch.Tensor | None = None) -> DenseDisparity:
     """The dense stage of the pipeline: reduce to ``working_width_px``, find each pair's search range (a coarse
     pass, or the sparse inliers' disparities ``(B, K)`` with ``inlier_valid``), match over the kept regions
-    ``mask`` ``(B, 1, H, W)``, and return the disparity on the input grid (in input pixels).
+    ``mask`` ``(B, 1, H, W)`` with :func:`working_window`'s window, and return the disparity on the input grid (in
+    input pixels).
 
     ``min_disparity_px``, ``num_disparities`` and ``crop_xywh`` of the result are in input pixels too (the
     working range times the factor). ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object,
@@ -124,6 +139,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
     if factor > config.smoothing_max_reduction:  # the box average has already averaged the noise
         config = replace(config, smoothing_penalties=None)
+    config = replace(config, window_size=working_window(width, config))  # after the coarse pass: its own width
     dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
     return _enlarge(dense, factor, height, width)
 

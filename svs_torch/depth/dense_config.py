@@ -32,6 +32,10 @@ class DenseConfig:
         working_width_px: the stage matches images reduced by an integer factor ``f ≈ W / working_width_px``
             (box average) and scales the disparities back by ``f``: the cost volume shrinks ``f³`` times, and
             on the shared scenes a 9-pixel window at this width ranged objects better than at native size.
+        scale_window: where the integer factor leaves the images unreduced and wider than ``working_width_px``
+            (353–479 px), the window is the odd side nearest ``window_size`` × their width / ``working_width_px``,
+            spanning as much of the scene as at that width (:func:`~svs_torch.depth.dense.working_window`). False:
+            ``window_size`` at every width.
         margin_px: context around the kept regions' bounding box, working pixels.
         range_source: ``"coarse"``: the range comes from a coarse dense pass over the whole fallback range
             (:func:`coarse_search_range`); ``"inliers"``: from the sparse RANSAC inliers' disparities.
@@ -87,6 +91,7 @@ class DenseConfig:
     uniqueness_ratio: float = 0.10
     lr_max_diff_px: float | None = 1.0
     working_width_px: int = 320
+    scale_window: bool = True  # experiments/real_rig.md, "The window at the working width" (tuning sets only)
     margin_px: int = 8
     range_source: Literal["coarse", "inliers"] = "coarse"
     coarse_width_px: int = 160
@@ -108,6 +113,8 @@ class DenseConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
             raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if not isinstance(self.scale_window, bool):
+            raise InputError(f"scale_window: expected a bool, got {self.scale_window!r}")
         if self.range_source not in ("coarse", "inliers"):
             raise InputError(f"range_source: expected 'coarse' or 'inliers', got {self.range_source!r}")
         if not isinstance(self.working_width_px, int) or self.working_width_px < 8:

@@ -39,7 +39,7 @@ import torch
 
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
-from ..depth.dense import working_factor
+from ..depth.dense import working_factor, working_window
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import range_from_objects
 from ..depth.depth_types import DepthResult, ObjectDepths
@@ -158,7 +158,7 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
     minimum = torch.div(dense.min_disparity_px, factor, rounding_mode="floor")
     counts = torch.div(dense.pair_num_disparities, factor, rounding_mode="floor")
     values = hard[:, 0][pixels.unbind(1)]
-    soft = _fit_at_winners(left, right, pixels, values, minimum, counts, small_w, config.window_size)
+    soft = _fit_at_winners(left, right, pixels, values, minimum, counts, small_w, working_window(width, config))
     # The recomputed values equal the hard ones (bit for bit in float32) except where the winner came from an
     # aggregated volume (DenseConfig.retry_smoothing_penalties) and its plain fit saturates at ±0.5: the winner
     # recovered from the value may then be its neighbour, a step of about a pixel. There alone the hard value is

@@ -16,7 +16,7 @@ from svs_torch.core import kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
 from svs_torch.depth.cost_volume import prefilter_xsobel, wanted_pixels
-from svs_torch.depth.dense import estimate_dense_disparity
+from svs_torch.depth.dense import estimate_dense_disparity, working_window
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
 from svs_torch.depth.search_range import coarse_search_range, disparity_search_range
 from svs_torch.depth.soft_dense import soft_block_match
@@ -261,6 +261,7 @@ def test_prefilter_matches_opencv_sobel(teddy):
     ({"lr_max_diff_px": -1.0}, "lr_max_diff_px: expected None or a value >= 0"),
     ({"range_percentiles": (50.0, 10.0)}, "range_percentiles: expected 0 <= low <= high <= 100"),
     ({"kernel": "gpu"}, "kernel: expected 'auto', 'c' or 'torch'"),
+    ({"scale_window": 1}, "scale_window: expected a bool"),
 ])
 def test_config_errors(kwargs, message):
     with pytest.raises(InputError, match=message):
@@ -510,3 +511,20 @@ def test_box_sum_with_gradients_keeps_the_values_and_its_adjoint_passes_gradchec
     (pooled,) = torch.autograd.grad((torch.nn.functional.avg_pool2d(tracked, 5, stride=1) * 25 * weights).sum(),
                                     tracked)
     assert torch.allclose(ours, pooled, atol=1e-12)
+
+
+def test_the_window_spans_the_same_share_of_the_view_at_every_working_width(teddy):
+    """``working_window``: 9 at the 320-px working width and wherever the factor reduces the images; the odd side
+    nearest 9 · W / 320 where the images are matched unreduced and wider (the held-out scenes at native size,
+    413–465 px wide); off, 9 everywhere. The stage matches with it."""
+    widths = (160, 320, 352, 413, 448, 465, 480, 640, 741)
+    assert [working_window(w) for w in widths] == [9, 9, 9, 11, 13, 13, 9, 9, 9]
+    assert {working_window(w, DenseConfig(scale_window=False)) for w in widths} == {9}
+    assert working_window(448, DenseConfig(window_size=7)) == 9 and working_window(465, DenseConfig(window_size=7)) == 11
+    for size_wh, changed in (((448, 336), True), ((320, 267), False)):
+        pair = resize_stereo_batch(teddy, size_wh)
+        mask = torch.zeros_like(pair.left, dtype=torch.bool)
+        mask[..., size_wh[1] // 4:size_wh[1] * 3 // 4, size_wh[0] // 8:size_wh[0] * 7 // 8] = True
+        scaled = estimate_dense_disparity(pair.left, pair.right, mask, DenseConfig())
+        fixed = estimate_dense_disparity(pair.left, pair.right, mask, DenseConfig(scale_window=False))
+        assert torch.equal(scaled.disparity_px, fixed.disparity_px) != changed

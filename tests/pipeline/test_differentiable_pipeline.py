@@ -121,7 +121,7 @@ def test_fill_sources_are_the_valid_pixels_each_needed_fill_reads(generator):
 
 
 # ------------------------------------------------------------------------------------------------- real pair
-@pytest.mark.parametrize("working_width_px", [320, 160], ids=["factor1", "factor2"])
+@pytest.mark.parametrize("working_width_px", [320, 160, 224], ids=["factor1", "factor2", "factor1-window13"])
 def test_soft_dense_map_is_the_hard_map_bit_for_bit(data_dir, working_width_px):
     batch = _teddy(data_dir)
     config = PipelineConfig(dense=DenseConfig(working_width_px=working_width_px))
