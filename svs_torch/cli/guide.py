@@ -29,7 +29,7 @@ EPILOG = """\
 examples:
   svs-depth guide --emulator                                   try it without a device
   svs-depth guide --emulator --emulator-floor-m 1.3           a walker's view: the floor ahead is not warned of
-  svs-depth guide --emulator --emulator-floor-m 1.3 --floor off   the same view, the floor kept: warned of
+  svs-depth guide --emulator --emulator-floor-m 1.3 --floor off   the same view, the floor kept and warned of
   svs-depth guide --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
 Stop with Ctrl-C.
