@@ -281,6 +281,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "(default: no floor)")
     p.add_argument("--camera-pitch-deg", type=float, default=WALKER_PITCH_DEG, metavar="DEG",
                    help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
+    p.add_argument("--heap-ahead-m", type=float, default=None, metavar="M",
+                   help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
+                        "high (an obstacle; default: none)")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
     f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
@@ -308,7 +311,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         source = (ImageFolderSource(args.images, step_s=args.image_step) if args.images
                   else SyntheticSource(ObstacleTrack(floor_height_m=args.floor_height_m,
-                                                     camera_pitch_deg=args.camera_pitch_deg),
+                                                     camera_pitch_deg=args.camera_pitch_deg,
+                                                     heap_ahead_m=args.heap_ahead_m),
                                        renderer="simple" if args.simple_frames else "torch"))
         prepare = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
         faults = _faults_from_args(args)

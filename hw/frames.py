@@ -24,6 +24,9 @@ FrameSource = Callable[[str, int, int, float], np.ndarray]
 
 #: A walker's cameras over a floor (``ObstacleTrack.floor_height_m``), pitched down this many degrees unless told.
 WALKER_PITCH_DEG = 20.0
+#: The heap a walker's view can show on the floor (``ObstacleTrack.heap_ahead_m``): radius and height, metres (the
+#: walker heaps of experiments/walker_heaps.py), with rocks of 5 cm on it.
+HEAP_RADIUS_M, HEAP_HEIGHT_M, HEAP_ROCKS_M = 0.45, 0.35, 0.05
 
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
 
@@ -35,11 +38,17 @@ class ObstacleTrack:
     and high (metres), and its depth follows ``mid + amp · sin(2π (cycles_k · t / period_s) + phase_k)`` with
     ``mid ± amp = depth_range_m``, so every track is periodic in ``period_s``. ``floor_height_m``: the cameras
     that high over a floor, pitched down ``camera_pitch_deg`` (a walker's view: the floor is not an obstacle, and
-    ``guide`` must not warn of it); None: no floor. Only the svs_torch renderer draws the floor.
+    ``guide`` must not warn of it); None: no floor. ``heap_ahead_m``: a heap of rocks on that floor, this far ahead
+    in the middle of the view (:data:`HEAP_RADIUS_M`, :data:`HEAP_HEIGHT_M`; an obstacle ``guide`` must warn of);
+    None: none. Only the svs_torch renderer draws the floor and the heap.
     """
 
     def __init__(self, depth_range_m: tuple[float, float] = (0.8, 3.0), period_s: float = 12.0,
-                 num_keyframes: int = 24, floor_height_m: float | None = None, camera_pitch_deg: float = 0.0) -> None:
+                 num_keyframes: int = 24, floor_height_m: float | None = None, camera_pitch_deg: float = 0.0,
+                 heap_ahead_m: float | None = None) -> None:
+        if heap_ahead_m is not None and (floor_height_m is None or not heap_ahead_m > 0):
+            raise ValueError(f"heap_ahead_m: expected a distance > 0 metres on a floor (give floor_height_m), got "
+                             f"{heap_ahead_m!r} with floor_height_m={floor_height_m!r}")
         self.center_xy_m = np.array([[-0.25, 0.0], [0.3, 0.05]])
         self.size_m = np.array([[0.30, 0.50], [0.25, 0.35]])
         self.cycles = np.array([1.0, 2.0])  # oscillations per period, one per obstacle
@@ -49,6 +58,7 @@ class ObstacleTrack:
         self.num_keyframes = num_keyframes
         self.floor_height_m = floor_height_m
         self.camera_pitch_deg = camera_pitch_deg
+        self.heap_ahead_m = heap_ahead_m
 
     def keyframe(self, time_s: float) -> int:
         """Index of the keyframe shown at ``time_s`` (keyframes are ``period_s / num_keyframes`` apart)."""
@@ -106,10 +116,13 @@ def _render_torch_pair(track: ObstacleTrack, keyframe: int, size_wh: tuple[int, 
     from svs_torch.data.synthetic import render_obstacle_scenes
 
     depths = torch.tensor(track.depths_m(keyframe), dtype=torch.float32).unsqueeze(0)  # (1, K)
+    heaps = None if track.heap_ahead_m is None else torch.tensor([[0.0, track.heap_ahead_m, HEAP_RADIUS_M,
+                                                                    HEAP_HEIGHT_M]])
     scenes = render_obstacle_scenes(depths, torch.tensor(track.center_xy_m, dtype=torch.float32).unsqueeze(0),
                                     torch.tensor(track.size_m, dtype=torch.float32).unsqueeze(0),
                                     size_wh=size_wh, camera=camera, generator=torch.Generator().manual_seed(seed),
-                                    floor_height_m=track.floor_height_m, camera_pitch_deg=track.camera_pitch_deg)
+                                    floor_height_m=track.floor_height_m, camera_pitch_deg=track.camera_pitch_deg,
+                                    heaps=heaps, heap_roughness_m=HEAP_ROCKS_M)
 
     def to_u8(image: torch.Tensor) -> np.ndarray:
         return (image[0, 0] * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()

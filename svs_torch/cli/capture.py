@@ -168,8 +168,12 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     noise = getattr(args, "emulator_noise", 0.0)
     if not (math.isfinite(noise) and noise >= 0):
         raise InputError(f"--emulator-noise: expected a σ >= 0 in 8-bit levels, got {noise!r}")
-    floor = getattr(args, "emulator_floor_m", None)
-    source = SyntheticSource(ObstacleTrack(floor_height_m=floor, camera_pitch_deg=WALKER_PITCH_DEG) if floor else None)
+    floor, heap = getattr(args, "emulator_floor_m", None), getattr(args, "emulator_heap_m", None)
+    if heap is not None and floor is None:
+        raise InputError(f"--emulator-heap-m: expected --emulator-floor-m too (a heap stands on the floor), got "
+                         f"{heap!r} without it")
+    source = SyntheticSource(ObstacleTrack(floor_height_m=floor, camera_pitch_deg=WALKER_PITCH_DEG,
+                                           heap_ahead_m=heap) if floor else None)
     server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source, noise_sigma=noise))
     source.prepare(size, timeout_s=30.0, complete=False)  # the first rendered keyframe, not the stand-in
     print(f"svs-depth: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)

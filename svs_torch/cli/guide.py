@@ -30,6 +30,7 @@ examples:
   svs-depth guide --emulator                                   try it without a device
   svs-depth guide --emulator --emulator-floor-m 1.3           a walker's view: the floor ahead is not warned of
   svs-depth guide --emulator --emulator-floor-m 1.3 --floor off   the same view, the floor kept and warned of
+  svs-depth guide --emulator --emulator-floor-m 1.3 --emulator-heap-m 1.5   a heap of rocks on the floor, warned of
   svs-depth guide --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
 Stop with Ctrl-C.
@@ -49,6 +50,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
                              "(hw.frames.WALKER_PITCH_DEG) as a walker wears them (default: no floor)")
+    parser.add_argument("--emulator-heap-m", type=positive_float, metavar="M",
+                        help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
+                             "0.35 m high, which guide warns of (default: none)")
     add_floor_option(parser, "on", "a walker's camera sees the floor ahead as the nearest surface; a heap seen "
                                    "from above can read as a floor too: experiments/walker_floor.md", settings=False)
     parser.add_argument("--size", default="320x240", metavar="WxH",

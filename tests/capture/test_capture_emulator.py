@@ -147,7 +147,8 @@ def test_synthetic_source_depths_oscillate_in_range():
 def test_synthetic_source_with_a_floor_is_not_warned_of_the_floor():
     """The emulator's walker view (--floor-height-m 1.3 --camera-pitch-deg 20): the floor is seen from 1.8 m on;
     with both obstacles farther (keyframe 9: 2.68 and 2.36 m) the warning distance with the floor left out
-    (``guide --floor on``) is the nearer obstacle's, where with the floor kept (the default) it is the floor's."""
+    (``guide``'s default) is the nearer obstacle's, where with the floor kept (``--floor off``, ``estimate``'s
+    default) it is the floor's."""
     from hw.frames import _render_torch_pair
 
     from svs_torch.core.types import StereoBatch
@@ -166,6 +167,32 @@ def test_synthetic_source_with_a_floor_is_not_warned_of_the_floor():
         warnings.append(float(found.surface_m[0]))
     assert abs(warnings[0] - nearest) < 0.1 * nearest
     assert warnings[1] < 0.85 * nearest
+
+
+def test_synthetic_source_with_a_heap_on_the_floor_is_warned_of_the_heap():
+    """--floor-height-m 1.3 --heap-ahead-m 1.5: a heap of rocks on the floor 1.5 m ahead (0.45 m in radius, its front
+    about 1.1–1.4 m away along the axis) is warned of with the floor left out (``guide``'s default), nearer than the
+    boxes (keyframe 9: 2.68 and 2.36 m); the same view without the heap is warned of at the nearer box. A heap
+    needs a floor."""
+    from hw.frames import _render_torch_pair
+
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.evaluation.overrides import apply_overrides
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    config = apply_overrides(PipelineConfig(), {"segmentation.ground": True})
+    warnings = []
+    for heap in (1.5, None):
+        track = ObstacleTrack(floor_height_m=1.3, camera_pitch_deg=20.0, heap_ahead_m=heap)
+        left, right = (torch.from_numpy(v).float().div(255).view(1, 1, 240, 320)
+                       for v in _render_torch_pair(track, 9, (320, 240), SVS_CAMERA, 0))
+        batch = StereoBatch.from_images(left, right, SVS_CAMERA.focal_px(320), SVS_CAMERA.baseline_m)
+        found = estimate_obstacle_depth(batch, config).depth.nearest
+        assert bool(found.valid[0])
+        warnings.append(float(found.surface_m[0]))
+    assert 1.0 < warnings[0] < 1.5 and abs(warnings[1] - min(track.depths_m(9))) < 0.1 * min(track.depths_m(9))
+    with pytest.raises(ValueError, match="heap_ahead_m: expected a distance > 0 metres on a floor"):
+        ObstacleTrack(heap_ahead_m=1.5)
 
 
 def test_image_folder_source(tmp_path):

@@ -229,3 +229,26 @@ def test_guide_on_an_emulated_floor_leaves_the_floor_out_by_default(monkeypatch)
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "off", "--count", "1",
                  "--no-speech"]) == 0
     assert grounds == [None]
+
+
+def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
+    """``--emulator-heap-m`` without ``--emulator-floor-m`` is refused before anything runs (a heap stands on the
+    floor); with it, the emulator's track carries the heap."""
+    import hw.frames as frames
+
+    from svs_torch.cli import main
+
+    assert main(["guide", "--emulator", "--emulator-heap-m", "1.5", "--count", "1", "--no-speech"]) == 2
+    assert "--emulator-heap-m: expected --emulator-floor-m too" in capsys.readouterr().err
+    tracks = []
+    real = frames.ObstacleTrack
+
+    def recording_track(*args, **kwargs):
+        tracks.append(real(*args, **kwargs))
+        return tracks[-1]
+
+    monkeypatch.setattr(frames, "ObstacleTrack", recording_track)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", "1.5", "--count", "1",
+                 "--no-speech"]) == 0
+    assert [(t.floor_height_m, t.heap_ahead_m) for t in tracks] == [(1.3, 1.5)]
