@@ -55,16 +55,16 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
     import torch
 
     entries = [_load_entry(entry, args) for entry in chunk]
-    runnable = [loaded for _, _, loaded in entries if loaded is not None]
     with torch.inference_mode():  # the result is read, never trained on: its tensors need no copy (core.inference)
-        return _reports(chunk, entries, runnable, args, config)
+        return _reports(chunk, entries, args, config)
 
 
-def _reports(chunk, entries: list, runnable: list, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
-    """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk`` (``runnable``: those that loaded)."""
+def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
+    """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk``."""
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
+    runnable = [loaded for _, _, loaded in entries if loaded is not None]
     result, per_pair = None, 0.0
     if runnable:
         # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.

@@ -98,9 +98,7 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
         valid = valid & ~fit_ground_plane(batch.disparity_px.nan_to_num(0.0, 0.0, 0.0), valid, batch.baseline_m,
                                           floor, factor, focal_px=batch.focal_px).mask
     levels = _disparity_levels(batch.disparity_px, valid)
-    histogram = gray_histogram(levels)
-    histogram[:, 0] -= (~valid).flatten(1).sum(1)  # invalid pixels were put at level 0: take them out again
-    level = otsu_threshold_level(histogram)
+    level = otsu_threshold_level(gray_histogram(levels, ~valid))
     near = valid & (levels > level.to(torch.uint8).view(-1, 1, 1, 1))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=near.device)
     opened = open_binary(near, element)

@@ -58,12 +58,7 @@ def _otsu_split(disparity: torch.Tensor, exclude: torch.Tensor | None = None) ->
         low, high = flat.masked_fill(left_out, math.inf).amin(1), flat.masked_fill(left_out, -math.inf).amax(1)
     spread = (high - low).view(-1, 1, 1, 1)
     scaled = (disparity - low.view(-1, 1, 1, 1)) / torch.where(spread > 0, spread, 1.0)
-    if exclude is None:
-        histogram = gray_histogram(gray_levels(scaled))
-    else:  # the excluded pixels counted at level 0 and taken out again
-        histogram = gray_histogram(gray_levels(scaled.masked_fill(exclude, 0.0)))
-        histogram[:, 0] -= exclude.flatten(1).sum(1)
-    level = otsu_threshold_level(histogram)
+    level = otsu_threshold_level(gray_histogram(gray_levels(scaled), exclude))
     return low + (level.to(flat.dtype) + 0.5) / 255 * (high - low)
 
 

@@ -27,8 +27,9 @@ def gray_levels(image: torch.Tensor) -> torch.Tensor:
     return (image.detach() * (NUM_LEVELS - 1)).round_().clamp_(0, NUM_LEVELS - 1).to(torch.uint8)
 
 
-def gray_histogram(levels: torch.Tensor) -> torch.Tensor:
-    """Per-image histogram of gray levels ``(B, 1, H, W)`` uint8 → counts ``(B, 256)`` int64.
+def gray_histogram(levels: torch.Tensor, ignore: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-image histogram of gray levels ``(B, 1, H, W)`` uint8 → counts ``(B, 256)`` int64; ``ignore``
+    ``(B, 1, H, W)`` bool: pixels not counted, whatever their level (invalid disparities, a floor).
 
     One ``bincount`` over the whole batch, with each image's levels offset into its own 256 bins (int32
     offsets: a quarter of the memory traffic of int64 for the same result).
@@ -36,6 +37,8 @@ def gray_histogram(levels: torch.Tensor) -> torch.Tensor:
     b = levels.shape[0]
     offsets = torch.arange(b, device=levels.device, dtype=torch.int32).view(b, 1) * NUM_LEVELS
     flat = (levels.reshape(b, -1).to(torch.int32) + offsets).flatten()
+    if ignore is not None:
+        flat = flat[~ignore.reshape(-1)]
     return torch.bincount(flat, minlength=b * NUM_LEVELS).view(b, NUM_LEVELS)
 
 

@@ -66,6 +66,18 @@ def test_histogram_counts_every_pixel():
     assert histogram.shape == (3, 256) and torch.equal(histogram.sum(1), torch.full((3,), 35))
 
 
+def test_histogram_leaves_out_the_ignored_pixels_whatever_their_level():
+    """``ignore``: each image's histogram is that of its other pixels alone (numpy's, per image)."""
+    generator = torch.Generator().manual_seed(5)
+    levels = torch.randint(0, 256, (3, 1, 20, 30), generator=generator, dtype=torch.uint8)
+    ignore = torch.rand(3, 1, 20, 30, generator=generator) < 0.4
+    histogram = gray_histogram(levels, ignore)
+    for i in range(3):
+        expected = np.bincount(levels[i][~ignore[i]].numpy(), minlength=256)
+        assert np.array_equal(histogram[i].numpy(), expected)
+    assert torch.equal(gray_histogram(levels, torch.zeros_like(ignore)), gray_histogram(levels))
+
+
 def test_errors_name_the_argument():
     with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\), got \(2, 3, 4, 4\)"):
         otsu_threshold(torch.rand(2, 3, 4, 4))
