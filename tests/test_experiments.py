@@ -329,3 +329,20 @@ def test_walker_heaps_counts_the_heap_warned_of_with_the_floor_left_out():
     kept = [r for r in rows if r["setting"] == "default"]
     assert not kept[0]["nearest"] and kept[0]["nearest_m"] > 1.1 * kept[0]["truth_median_m"]
     assert "| floor out | clean | walker | 2 of 2 | 2 of 2 | 0 | " in walker_heaps.markdown(rows, "command")
+
+
+def test_camera_frames_gate_compares_the_gate_with_skipping_it(data_dir, capsys):
+    """Every camera frame the gate widens gets the same result with ``camera_frames``; the clean pairs, which the
+    gate leaves at the narrow window, are the ones that change."""
+    import camera_frames_gate
+
+    rows = camera_frames_gate.main(["--data", str(data_dir), "--splits", "synthetic", "--limit", "2",
+                                    "--contrasts", "1"])
+    assert [r["condition"] for r in rows][:2] == ["clean", "jpeg q1 + noise s2"] and len(rows) == 9
+    assert all(r["pairs"] == 2 for r in rows)
+    assert rows[0]["widened"] == 0
+    for row in rows:
+        if row["widened"] == row["pairs"]:
+            assert row["differ"] == 0 and row["acc_gate"] == row["acc_camera_frames"]
+    assert sum(r["widened"] for r in rows[1:]) >= 14
+    assert "pairs with another result" in capsys.readouterr().out

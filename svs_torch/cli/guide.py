@@ -94,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)
-    config = dataclasses.replace(config, segmentation=with_floor(config.segmentation, args.floor))
+    # A camera's frames: the nearness map skips its noise gate (SegmentationConfig.camera_frames).
+    config = dataclasses.replace(config, segmentation=dataclasses.replace(
+        with_floor(config.segmentation, args.floor), camera_frames=True))
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status

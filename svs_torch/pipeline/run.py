@@ -23,7 +23,7 @@ from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
 from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
-from ..segmentation.ground_plane import GroundPlaneConfig
+from ..segmentation.segment import SegmentationConfig
 from ..segmentation.network import predict_obstacle_logits
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
@@ -124,7 +124,8 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
         logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right,
-                                         config.segmentation.ground, batch.baseline_m, batch.focal_px)
+                                         config.segmentation.ground, batch.baseline_m, batch.focal_px,
+                                         config.segmentation.camera_frames)
     with torch.no_grad():
         result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
                                      exposure_matched=matched)
@@ -132,7 +133,7 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         return result
     if logits is not None and bool(result.row_aligned.any()):
         logits = _row_aligned_logits(batch, result, logits, _network(batch, config.segmentation, network),
-                                     config.segmentation.ground)
+                                     config.segmentation)
     left, right = batch.left, batch.right
     if config.noisy_retry_sigma_px is not None and bool(result.smoothed.any()):
         # The pairs the hard stage measured on smoothed views are differentiated through the same (linear) blur, of
@@ -152,15 +153,18 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
 
 
 def _row_aligned_logits(batch: StereoBatch, result: PipelineResult, logits: torch.Tensor, net: nn.Module,
-                        ground: GroundPlaneConfig | None = None) -> torch.Tensor:
+                        segmentation: SegmentationConfig = SegmentationConfig()) -> torch.Tensor:
     """``logits`` with the rows of the pairs the hard pass segmented again on their row-aligned views
     (:func:`~svs_torch.pipeline.stages._segment_row_aligned`) made likewise, with gradients to both images: what
-    the hard segmentation thresholded (the alignment itself is a constant here)."""
+    the hard segmentation thresholded (the alignment itself is a constant here; ``segmentation``: its floor and
+    noise gate)."""
     index = result.row_aligned.nonzero().flatten()
     warped = warp_views(batch.right.index_select(0, index), result.H_right.index_select(0, index).detach())
     return logits.index_copy(0, index, predict_obstacle_logits(net, batch.left.index_select(0, index), warped,
-                                                               ground, batch.baseline_m.index_select(0, index),
-                                                               batch.focal_px.index_select(0, index)))
+                                                               segmentation.ground,
+                                                               batch.baseline_m.index_select(0, index),
+                                                               batch.focal_px.index_select(0, index),
+                                                               segmentation.camera_frames))
 
 
 def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, config: PipelineConfig

@@ -133,9 +133,8 @@ class NearnessNetConfig:
     noisy_min_residual_levels: float = 7.5
     sparse_median_window: int = 11
     sparse_share: float = 0.3
-    # Off: chosen twice (experiments/select_nearness_setting.md: the tuned split; then with rendered weakly textured
-    # scenes too), not taken either time: the held-out split fell at the board's default JPEG digit (its "Shipped"
-    # paragraphs).
+    # Off: chosen twice (experiments/select_nearness_setting.md: the tuned split, then rendered scenes too), not taken
+    # either time: the held-out split fell at the board's default JPEG digit (its "Shipped" paragraphs).
     sparse_reduction: int = 1
     sparse_agreement_px: float = 3.0
     network_width_px: int = 80
@@ -150,9 +149,7 @@ class NearnessNetConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 16:
                 raise InputError(f"{name}: expected an int >= 16, got {value!r}")
-        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
-            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
-        for name in ("median_window", "sparse_median_window", "noisy_window_size"):
+        for name in ("window_size", "median_window", "sparse_median_window", "noisy_window_size"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
@@ -245,12 +242,13 @@ def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
 
 def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
                                config: NearnessNetConfig = NearnessNetConfig(),
-                               ground: GroundPlaneConfig | None = None,
-                               baseline_m: torch.Tensor | None = None,
-                               focal_px: torch.Tensor | None = None) -> NearnessDisparity:
+                               ground: GroundPlaneConfig | None = None, baseline_m: torch.Tensor | None = None,
+                               focal_px: torch.Tensor | None = None, camera_frames: bool = False
+                               ) -> NearnessDisparity:
     """Step 1–2 of the module docstring on images ``(B, 1, H, W)`` in [0, 1]; with ``ground``, the floor of rigs
     of ``baseline_m`` ``(B,)`` metres and ``focal_px`` ``(B,)`` (at the images' size; None: no pitch limit) found
-    (:mod:`.ground_plane`), left out of the split and made far.
+    (:mod:`.ground_plane`), left out of the split and made far. ``camera_frames``: images no wider than the working
+    width are matched with ``config.noisy_window_size`` at once (``SegmentationConfig.camera_frames``).
 
     Differentiable w.r.t. both images when they require grad (straight-through: the hard value, the soft-argmin's
     gradient; the floor's pixels, a constant of the hard pass, get none); otherwise it runs without building a graph.
@@ -263,6 +261,8 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     small_left, small_right = _reduce(left, config.working_width_px), _reduce(right, config.working_width_px)
     factor = w / small_left.shape[-1]  # working pixels to input pixels
     num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
+    if camera_frames and small_left.shape[-1] == w:  # not reduced, so its noise is not averaged away
+        config = dataclasses.replace(config, noisy_min_residual_levels=0.0)
     dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
         found, widened = match_by_noise(small_left.detach(), small_right.detach(), num_disparities, dense, config)
@@ -303,13 +303,13 @@ def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: in
 
 
 def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor, ground: GroundPlaneConfig | None = None,
-                    baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None
-                    ) -> tuple[torch.Tensor, NearnessDisparity]:
+                    baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None,
+                    camera_frames: bool = False) -> tuple[torch.Tensor, NearnessDisparity]:
     """Obstacle logits ``(B, 1, H, W)`` of the left views: the rule's plus the network's correction (resized
-    bilinearly from its width), and the measured disparity (``ground``, ``baseline_m``, ``focal_px``: as
-    :func:`measure_nearness_disparity`'s). Differentiable w.r.t. the network's parameters and both images (module
-    docstring)."""
-    measured = measure_nearness_disparity(left, right, net.config, ground, baseline_m, focal_px)
+    bilinearly from its width), and the measured disparity (``ground``, ``baseline_m``, ``focal_px``,
+    ``camera_frames``: as :func:`measure_nearness_disparity`'s). Differentiable w.r.t. the network's parameters and
+    both images (module docstring)."""
+    measured = measure_nearness_disparity(left, right, net.config, ground, baseline_m, focal_px, camera_frames)
     rule = net.config.rule_gain * measured.relative
     training = torch.is_grad_enabled() and any(p.requires_grad for p in net.parameters())
     if not training and net.adds_nothing():
@@ -333,7 +333,7 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     block matcher accepted less than ``config.min_measured_share`` of its left view is segmented by
     :func:`~svs_torch.segmentation.segment_stereo` (Otsu, the two largest regions) instead: its disparity is chance.
     """
-    b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px)
+    b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px, config.camera_frames)
     with torch.no_grad():
         if left_logits is None:
             left_logits, measured = nearness_logits(net, batch.left, batch.right, *rig)

@@ -160,20 +160,20 @@ def stereo_features(left: torch.Tensor, right: torch.Tensor, config: ObstacleNet
 
 def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.Tensor,
                             ground: GroundPlaneConfig | None = None,
-                            baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None
-                            ) -> torch.Tensor:
+                            baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None,
+                            camera_frames: bool = False) -> torch.Tensor:
     """Obstacle logits ``(B, 1, H, W)`` of the left view of images ``(B, 1, H, W)``, bilinearly resized from the
     working size. Differentiable w.r.t. the network's parameters and both images. ``ground``
     (:class:`~svs_torch.segmentation.ground_plane.GroundPlaneConfig` or None), ``baseline_m``, ``focal_px``
-    ``(B,)``: the nearness segmenter's floor (:func:`~svs_torch.segmentation.nearness.nearness_logits`); other
-    networks ignore them."""
+    ``(B,)``: the nearness segmenter's floor, and ``camera_frames`` its noise gate
+    (:func:`~svs_torch.segmentation.nearness.nearness_logits`); other networks ignore them."""
     check_image(left, "left")
     check_image(right, "right")
     if left.shape != right.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
     if not isinstance(net, ObstacleNet):  # the nearness segmenter's correction network
         from .nearness import nearness_logits
-        return nearness_logits(net, left, right, ground, baseline_m, focal_px)[0]
+        return nearness_logits(net, left, right, ground, baseline_m, focal_px, camera_frames)[0]
     features, _ = stereo_features(left, right, net.config)
     logits = net(features.to(next(net.parameters()).dtype))
     return F.interpolate(logits, size=left.shape[-2:], mode="bilinear", align_corners=False).to(left.dtype)

@@ -556,6 +556,58 @@ def test_a_noisy_camera_frame_is_matched_with_the_wider_window(data_dir):
         NearnessNetConfig(noisy_min_residual_levels=-1.0)
 
 
+def test_camera_frames_skip_the_noise_gate_with_the_maps_the_gate_gives(data_dir):
+    """``SegmentationConfig.camera_frames``: a frame the gate widens gets the same map, segmentation, pipeline result
+    and gradient without the first pass; a clean pair at the working width is matched with the wider window as a
+    noisy one is; a pair wider than the working width keeps the gate."""
+    import torch.nn.functional as F
+
+    from svs_torch.segmentation.nearness_denoise import match_by_noise
+
+    clean, frames = _dim_piano_frames(data_dir, 50, 6.0)
+    net = NearnessNet().eval()
+    skipping = dataclasses.replace(net.config, noisy_min_residual_levels=0.0)
+    gated = measure_nearness_disparity(frames.left, frames.right, net.config)
+    assert gated.relative.shape[-1] == net.config.working_width_px
+    for name in ("disparity_px", "measured", "split_px", "relative"):
+        assert torch.equal(getattr(gated, name), getattr(measure_nearness_disparity(
+            frames.left, frames.right, net.config, camera_frames=True), name)), name
+    assert torch.equal(measure_nearness_disparity(clean.left, clean.right, net.config, camera_frames=True).disparity_px,
+                       measure_nearness_disparity(clean.left, clean.right, skipping).disparity_px)
+    assert not torch.equal(measure_nearness_disparity(clean.left, clean.right, net.config).disparity_px,
+                           measure_nearness_disparity(clean.left, clean.right, skipping).disparity_px)
+    from svs_torch.depth.dense_config import DenseConfig
+    dense = DenseConfig(window_size=net.config.window_size, uniqueness_ratio=net.config.uniqueness_ratio)
+    views = (torch.cat([clean.left, frames.left]), torch.cat([clean.right, frames.right]))
+    found, widened = match_by_noise(*views, 96, dense, skipping)
+    assert widened.tolist() == [True, True]
+    gate_found, gate_widened = match_by_noise(*views, 96, dense, net.config)
+    assert gate_widened.tolist() == [False, True]
+    assert torch.equal(found.disparity_px[1:], gate_found.disparity_px[1:])
+    assert torch.equal(found.valid[1:], gate_found.valid[1:])
+    # Wider than the working width: averaged down before matching, so the gate still decides.
+    wide = [F.interpolate(v, size=(336, 448), mode="bilinear", align_corners=False).clamp(0, 1)
+            for v in (clean.left, clean.right)]
+    assert torch.equal(measure_nearness_disparity(*wide, net.config).disparity_px,
+                       measure_nearness_disparity(*wide, net.config, camera_frames=True).disparity_px)
+    # Through the segmenter and the whole pipeline, with gradients.
+    config = PipelineConfig()
+    camera = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, camera_frames=True))
+    assert torch.equal(segment_stereo_nearness(frames, config.segmentation, net).left.kept_mask,
+                       segment_stereo_nearness(frames, camera.segmentation, net).left.kept_mask)
+    first, second = estimate_obstacle_depth(frames, config), estimate_obstacle_depth(frames, camera)
+    assert torch.equal(first.depth.objects.depth_median_m, second.depth.objects.depth_median_m)
+    grads = []
+    for camera_frames in (False, True):
+        left = frames.left.clone().requires_grad_()
+        measure_nearness_disparity(left, frames.right, net.config, camera_frames=camera_frames).disparity_px.sum(
+            ).backward()
+        grads.append(left.grad)
+    assert torch.equal(grads[0], grads[1])
+    with pytest.raises(InputError, match="^camera_frames: "):
+        SegmentationConfig(camera_frames=1)
+
+
 def test_a_noisy_pairs_edge_rows_take_the_nearest_row_whose_window_is_inside(data_dir):
     """The block matcher crops with a replicated border, so on a noisy pair a window within K // 2 rows of the top
     or bottom edge repeats the edge row and its noise decides the match. A widened (noisy) pair's edge rows are
