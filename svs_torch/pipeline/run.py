@@ -23,8 +23,8 @@ from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
 from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
-from ..segmentation.segment import SegmentationConfig
 from ..segmentation.network import predict_obstacle_logits
+from ..segmentation.segment import SegmentationConfig
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
