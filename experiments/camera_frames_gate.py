@@ -101,9 +101,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     splits = scene_splits(args.data, args.splits.split(","), args.limit)
     rows = []
     for contrast in (float(c) for c in args.contrasts.split(",")):
-        shared = {k: v for k, v in splits.items() if k != "synthetic" or contrast == 1}
-        if shared:
-            rows += compare(shared, contrast)
+        at_contrast = {k: v for k, v in splits.items() if k != "synthetic" or contrast == 1}
+        if at_contrast:
+            rows += compare(at_contrast, contrast)
     command = "python experiments/camera_frames_gate.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = markdown(rows, command)
     print(table)

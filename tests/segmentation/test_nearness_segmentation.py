@@ -562,6 +562,7 @@ def test_camera_frames_skip_the_noise_gate_with_the_maps_the_gate_gives(data_dir
     noisy one is; a pair wider than the working width keeps the gate."""
     import torch.nn.functional as F
 
+    from svs_torch.depth.dense_config import DenseConfig
     from svs_torch.segmentation.nearness_denoise import match_by_noise
 
     clean, frames = _dim_piano_frames(data_dir, 50, 6.0)
@@ -576,7 +577,6 @@ def test_camera_frames_skip_the_noise_gate_with_the_maps_the_gate_gives(data_dir
                        measure_nearness_disparity(clean.left, clean.right, skipping).disparity_px)
     assert not torch.equal(measure_nearness_disparity(clean.left, clean.right, net.config).disparity_px,
                            measure_nearness_disparity(clean.left, clean.right, skipping).disparity_px)
-    from svs_torch.depth.dense_config import DenseConfig
     dense = DenseConfig(window_size=net.config.window_size, uniqueness_ratio=net.config.uniqueness_ratio)
     views = (torch.cat([clean.left, frames.left]), torch.cat([clean.right, frames.right]))
     found, widened = match_by_noise(*views, 96, dense, skipping)
