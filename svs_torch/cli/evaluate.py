@@ -28,7 +28,8 @@ and over the whole frame, on all GT pixels and on the non-occluded ones where th
 mask0nocc.png, KITTI disp_noc). Errors are in the data's native pixels, so the thresholds are the published
 ones even with --size (an error measured at 320 px wide is scaled by native width / 320). The table shows
 bad2n / bad2 (bad-2 % over the kept regions, non-occluded / all GT), avgerr (px), D1 % and dens; --json rows
-carry every metric (map_*/kept_* keys, and per object); rectified pairs and --range paper have none.
+carry every metric (map_*/kept_* keys, and per object); rectified pairs and the paper's range rule
+(--preset paper, --set depth.rule=paper) have none.
 
 PATH is a scene folder of any shared format (MiddEval3, Middlebury 2001-2006, KITTI, OpenCV aloe), a folder of
 scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M

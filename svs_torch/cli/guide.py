@@ -54,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
                              "0.35 m high, which guide warns of (default: none)")
     add_floor_option(parser, "on", "a walker's camera sees the floor ahead as the nearest surface; a heap seen "
-                                   "from above can read as a floor too: experiments/walker_floor.md", settings=False)
+                                   "from above can read as a floor too: experiments/walker_floor.md")
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,

@@ -48,9 +48,10 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep", type=positive_int, default=2, metavar="N",
                         help="how many regions to keep (paper: 2)")
     parser.add_argument("--keep-rule", choices=("largest", "nearest", "nearest_first"),
-                        help="which regions are kept: 'largest' by area (the paper, and with --segmenter otsu or "
-                             "learned), 'nearest' by median disparity, 'nearest_first' the nearest region then the "
-                             "largest others (default of the nearness segmenter: see --help of estimate)")
+                        help="which regions are kept: 'largest' by area (the paper's rule, and the only one of the "
+                             "Otsu and learned segmenters), 'nearest' by median disparity, 'nearest_first' the "
+                             "nearest region then the largest others (default of the nearness segmenter: see --help "
+                             "of estimate)")
     parser.add_argument("--min-area-fraction", type=float, metavar="SHARE",
                         help="regions smaller than this share of the image are never kept by the nearness rules "
                              "(e.g. 0.003 = 230 px at 320x240)")
@@ -65,17 +66,15 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
 
 
 def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
-                     why: str = "a pile of rocks or cloth can read as a floor: experiments/walker_floor.md",
-                     settings: bool = True) -> None:
+                     why: str = "a pile of rocks or cloth can read as a floor: experiments/walker_floor.md") -> None:
     """``--floor on|off``: whether the nearness segmenter leaves the floor out (:func:`with_floor`). ``default``: the
-    command's choice without the option ("off" leaves the configuration as it is, so ``--set`` still sets the
-    floor), and ``why``, a clause giving its reason, shown in the help; ``settings``: the command takes ``--set``."""
+    command's choice without the option ("off" leaves the configuration as it is), and ``why``, a clause giving its
+    reason, shown in the help. The floor's own settings (``svs-depth eval --set segmentation.ground.KEY=VALUE``)
+    are named only by the commands that take ``--set``, not here: none of this option's commands does."""
     parser.add_argument("--floor", choices=("on", "off"), default=None if default == "off" else default,
                         help="'on': the floor (the road) that the nearness segmenter finds as a plane in the pair's "
                              "disparity is not an obstacle, as for a walker; 'off': it is kept like any near "
-                             f"surface (default: {default}, {why}"
-                             + ("; settings with units: --set segmentation.ground.max_camera_height_m=M)"
-                                if settings else ")"))
+                             f"surface (default: {default}, {why})")
 
 
 def with_floor(config, choice: str | None):
@@ -106,9 +105,9 @@ def segmenter_choice(text: str) -> str:
 def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
     """``--segmenter``, for the commands that run the whole pipeline."""
     parser.add_argument("--segmenter", type=segmenter_choice, metavar="nearness|otsu|learned[:PATH]",
-                        help="how obstacles are found: 'nearness' (the pipeline's default, --preset default: the near side of "
+                        help="how obstacles are found: 'nearness' (the pipeline's default: the near side of "
                              "the pair's measured disparity, corrected by a small network, the nearest region "
-                             "always kept), 'otsu' (the paper and --preset paper: the brightest large regions), "
+                             "always kept), 'otsu' (the paper's: the brightest large regions), "
                              "'learned' (the older network of issue 13), or 'nearness:PATH' / 'learned:PATH' "
                              "(weights written by experiments/train_nearness.py / train_segmentation.py)")
 

@@ -38,6 +38,29 @@ def test_help_teaches_every_command():
         assert word in result.stdout
 
 
+#: Options a command's help names that belong to another command it points to: calibrate's file is given to the
+#: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
+#: --nthreads; results reads eval's --db files.
+OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
+                          "results": {"--db"}}
+
+
+def test_every_option_a_commands_help_names_is_one_it_takes():
+    """A help that teaches an option the command refuses sends the user into an error (estimate's --floor help
+    once said "--set segmentation.ground...", which only eval and sweep take)."""
+    import argparse
+    import re
+
+    from svs_torch.cli import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert {"estimate", "guide", "eval", "sweep", "segment"} <= set(commands)
+    for name, parser in commands.items():
+        taken = {option for action in parser._actions for option in action.option_strings}
+        named = set(re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", parser.format_help()))
+        assert named - taken <= OTHER_COMMANDS_OPTIONS.get(name, set()), (name, sorted(named - taken))
+
+
 def test_segment_json_equals_opencv(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, err = run_cli(capsys, "segment", left, right, "--json", "--kernel-size", "3", "--keep", "3")
