@@ -111,6 +111,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_pair_options(parser)
     add_segmentation_options(parser)
     add_segmenter_option(parser)
+    parser.add_argument("--camera-frames", action="store_true",
+                        help="the pairs are a camera's JPEG frames with sensor noise (svs-depth capture's): the "
+                             "nearness map of a pair up to 320 px wide is matched with its wider noise window at "
+                             "once, without the gate that measures the noise first; a ninth less time a frame, the "
+                             "same results at the board's digits 3-8 (experiments/camera_frames_gate.md). guide "
+                             "always does this")
     parser.add_argument("--canny", action="store_true", help="segment with Canny edges (the paper's comparison)")
     add_feature_options(parser)
     parser.add_argument("--range", choices=("dense", "paper"), dest="range_rule",

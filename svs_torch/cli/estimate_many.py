@@ -269,7 +269,8 @@ def _run_many(args: argparse.Namespace) -> int:
 
 
 def pipeline_config_from_args(args: argparse.Namespace):
-    """``--preset`` with every option the user gave (``--range``, ``--canny``, features, segmentation)."""
+    """``--preset`` with every option the user gave (``--range``, ``--canny``, ``--camera-frames``, features,
+    segmentation)."""
     from dataclasses import replace
 
     from .features import preset_config
@@ -279,6 +280,8 @@ def pipeline_config_from_args(args: argparse.Namespace):
         config = replace(config, segmentation=replace(config.segmentation, method="canny"))
     if args.range_rule:
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))
+    if getattr(args, "camera_frames", False):
+        config = replace(config, segmentation=replace(config.segmentation, camera_frames=True))
     return with_calibrated_rectification(config, args)
 
 

@@ -611,3 +611,41 @@ def test_estimate_says_when_noisy_frames_were_measured_on_the_coarse_grid(data_d
     assert all(r["status"] == "OK" for r in reports)
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "jpeg_left.png"), str(tmp_path / "jpeg_right.png"))
     assert code == 0 and "noisy frames: depth measured at half the working width" in out
+
+
+def test_estimate_camera_frames_ranges_a_camera_frame_as_the_noise_gate_does(tmp_path, capsys):
+    """``estimate --camera-frames``: a rendered pair as the board's default frames (JPEG digit 4, σ 4), which the
+    nearness map's noise gate widens, gets the same objects and distances without the gate's first pass."""
+    import torch
+
+    from svs_torch.data import camera_frames
+    from svs_torch.data.synthetic import random_obstacle_scenes
+
+    scene = random_obstacle_scenes(1, 2, generator=torch.Generator().manual_seed(3)).batch
+    paths = []
+    for side, image in (("L", scene.left), ("R", scene.right)):
+        frame = camera_frames(image, 4, 4.0, torch.Generator().manual_seed(len(paths)))
+        paths.append(str(tmp_path / f"{side}.png"))
+        cv2.imwrite(paths[-1], (frame[0, 0] * 255).round().byte().numpy())
+    from svs_torch.cli import build_parser
+    from svs_torch.cli.estimate_many import pipeline_config_from_args
+    from svs_torch.depth.block_matching import block_match_sad_with_residual
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.segmentation.nearness import NearnessNetConfig
+
+    for extra, expected in (([], False), (["--camera-frames"], True)):
+        args = build_parser().parse_args(["estimate", *paths, *extra])
+        assert pipeline_config_from_args(args).segmentation.camera_frames is expected
+    gate = NearnessNetConfig()
+    views = [torch.from_numpy(cv2.imread(path, cv2.IMREAD_GRAYSCALE)).float()[None, None] / 255 for path in paths]
+    residual = block_match_sad_with_residual(*views, 0, 96, DenseConfig(window_size=gate.window_size,
+                                                                        uniqueness_ratio=gate.uniqueness_ratio))[1]
+    assert float(residual[0]) >= gate.noisy_min_residual_levels  # the gate widens it (9.4 levels)
+    reports = []
+    for extra in ([], ["--camera-frames"]):
+        code, out, err = run_cli(capsys, "estimate", *paths, "--json", *extra)
+        assert code == 0, err
+        reports.append(json.loads(out))
+    assert reports[0]["objects"] and reports[0]["objects"] == reports[1]["objects"]
+    for key in ("nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "status"):
+        assert reports[0][key] == reports[1][key], key
