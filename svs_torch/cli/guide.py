@@ -22,7 +22,8 @@ the distance band (default 1-2 m, the range the system was designed for): a
 spoken message when espeak-ng is installed, always a text line, rate-limited so it does not chatter (a
 message repeats after --repeat-s seconds unless the distance class changes). A status line shows frames
 per second, the nearest distance and its side. The floor (the road) ahead, which a walker's camera sees as
-its nearest surface, is not an obstacle (--floor).
+its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
+obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
 """
 
 EPILOG = """\

@@ -40,9 +40,9 @@ def test_help_teaches_every_command():
 
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
 #: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
-#: --nthreads; results reads eval's --db files.
+#: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does.
 OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
-                          "results": {"--db"}}
+                          "results": {"--db"}, "guide": {"--camera-frames"}}
 
 
 def test_every_option_a_commands_help_names_is_one_it_takes():
