@@ -89,7 +89,7 @@ class SegmentationConfig:
             width (320 px) with its wider noise window at once, instead of a first pass whose matching residual
             decides (``NearnessNetConfig.noisy_min_residual_levels``). At 320×240 that gate widened every camera
             frame of the tuning sets at the board's digits 3–8, whose results are then the same, and 63 of 72 at
-            digits 1–2, whose means moved by +0.02 to +0.05 points (``experiments/camera_frames_gate.md``); a
+            digits 1–2, whose means moved by 0.00 to +0.05 points (``experiments/camera_frames_gate.md``); a
             frame saves the first pass, about a ninth of its time at B = 1. Wider pairs, averaged down before
             matching, keep the gate. Leave it off where pairs may be clean: the gate keeps them at the narrow
             window (the tuned split matched wider: 99.28 → 99.47 % per object, at half contrast 99.08 → 98.95).
