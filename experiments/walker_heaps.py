@@ -40,12 +40,13 @@ from run_metadata import command_line, rendered_experiment_setup, report_rows  #
 from thin_obstacles import FRAMES, as_frames  # noqa: E402
 from walker_floor import FAR_AHEAD_M, FAR_BOX_M, upright_box  # noqa: E402
 
+from svs_torch.data.heap_rendering import WALKER_HEAP_HEIGHT_M, WALKER_HEAP_RADIUS_M  # noqa: E402
 from svs_torch.data.synthetic import render_obstacle_scenes  # noqa: E402
 from svs_torch.pipeline import PipelineStatus, estimate_obstacle_depth  # noqa: E402
 
 #: (kind, camera height m, pitch degrees, heap ahead m, offset m, radius m, height m) of every pair.
-WALKER = [("walker", h, p, f, x, 0.45, 0.35) for h in (1.2, 1.5) for p in (10.0, 20.0, 30.0)
-          for f in (1.2, 1.6, 2.0) for x in (-0.3, 0.3)]
+WALKER = [("walker", h, p, f, x, WALKER_HEAP_RADIUS_M, WALKER_HEAP_HEIGHT_M) for h in (1.2, 1.5)
+          for p in (10.0, 20.0, 30.0) for f in (1.2, 1.6, 2.0) for x in (-0.3, 0.3)]
 FILLING = [("filling", h, p, f, x, 1.0, 0.5) for h in (1.0, 1.3) for p in (30.0, 35.0) for f in (1.2, 1.5)
            for x in (-0.2, 0.2)]
 BED = [("bed", h, p, f, x, 1.4, 0.15) for h in (1.0, 1.3) for p in (30.0, 35.0) for f in (1.4, 1.8)

@@ -24,9 +24,6 @@ FrameSource = Callable[[str, int, int, float], np.ndarray]
 
 #: A walker's cameras over a floor (``ObstacleTrack.floor_height_m``), pitched down this many degrees unless told.
 WALKER_PITCH_DEG = 20.0
-#: The heap a walker's view can show on the floor (``ObstacleTrack.heap_ahead_m``): radius and height, metres (the
-#: walker heaps of experiments/walker_heaps.py), with rocks of 5 cm on it.
-HEAP_RADIUS_M, HEAP_HEIGHT_M, HEAP_ROCKS_M = 0.45, 0.35, 0.05
 
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
 
@@ -39,8 +36,8 @@ class ObstacleTrack:
     ``mid ± amp = depth_range_m``, so every track is periodic in ``period_s``. ``floor_height_m``: the cameras
     that high over a floor, pitched down ``camera_pitch_deg`` (a walker's view: the floor is not an obstacle, and
     ``guide`` must not warn of it); None: no floor. ``heap_ahead_m``: a heap of rocks on that floor, this far ahead
-    in the middle of the view (:data:`HEAP_RADIUS_M`, :data:`HEAP_HEIGHT_M`; an obstacle ``guide`` must warn of);
-    None: none. Only the svs_torch renderer draws the floor and the heap.
+    in the middle of the view, of ``svs_torch.data.heap_rendering.WALKER_HEAP_RADIUS_M`` and ``_HEIGHT_M`` (an
+    obstacle ``guide`` must warn of); None: none. Only the svs_torch renderer draws the floor and the heap.
     """
 
     def __init__(self, depth_range_m: tuple[float, float] = (0.8, 3.0), period_s: float = 12.0,
@@ -113,16 +110,17 @@ def _render_torch_pair(track: ObstacleTrack, keyframe: int, size_wh: tuple[int, 
                        seed: int) -> tuple[np.ndarray, np.ndarray]:
     """One keyframe through ``svs_torch.data.synthetic.render_obstacle_scenes``; left, right (H, W) uint8."""
     import torch
+    from svs_torch.data.heap_rendering import WALKER_HEAP_HEIGHT_M, WALKER_HEAP_RADIUS_M
     from svs_torch.data.synthetic import render_obstacle_scenes
 
     depths = torch.tensor(track.depths_m(keyframe), dtype=torch.float32).unsqueeze(0)  # (1, K)
-    heaps = None if track.heap_ahead_m is None else torch.tensor([[0.0, track.heap_ahead_m, HEAP_RADIUS_M,
-                                                                    HEAP_HEIGHT_M]])
+    heaps = None if track.heap_ahead_m is None else torch.tensor([[0.0, track.heap_ahead_m, WALKER_HEAP_RADIUS_M,
+                                                                    WALKER_HEAP_HEIGHT_M]])
     scenes = render_obstacle_scenes(depths, torch.tensor(track.center_xy_m, dtype=torch.float32).unsqueeze(0),
                                     torch.tensor(track.size_m, dtype=torch.float32).unsqueeze(0),
                                     size_wh=size_wh, camera=camera, generator=torch.Generator().manual_seed(seed),
                                     floor_height_m=track.floor_height_m, camera_pitch_deg=track.camera_pitch_deg,
-                                    heaps=heaps, heap_roughness_m=HEAP_ROCKS_M)
+                                    heaps=heaps)
 
     def to_u8(image: torch.Tensor) -> np.ndarray:
         return (image[0, 0] * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()

@@ -21,7 +21,11 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-__all__ = []
+__all__ = ["WALKER_HEAP_HEIGHT_M", "WALKER_HEAP_RADIUS_M"]
+
+#: A heap of rocks beside a walker's path, radius and height in metres: the "walker" heaps of
+#: experiments/walker_heaps.py and the one the device emulator draws on its floor (``hw.frames.ObstacleTrack``).
+WALKER_HEAP_RADIUS_M, WALKER_HEAP_HEIGHT_M = 0.45, 0.35
 
 #: Height-field samples per side, ray steps through the heap's extent ahead, and bisection refinements.
 _GRID, _STEPS, _BISECTIONS = 128, 64, 8
