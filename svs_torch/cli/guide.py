@@ -11,7 +11,7 @@ import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
-from .segment import add_floor_option, with_floor
+from .segment import add_floor_option
 
 HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 
@@ -95,9 +95,7 @@ def run(args: argparse.Namespace) -> int:
 
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)
-    # A camera's frames: the nearness map skips its noise gate (SegmentationConfig.camera_frames).
-    config = dataclasses.replace(config, segmentation=dataclasses.replace(
-        with_floor(config.segmentation, args.floor), camera_frames=True))
+    config = dataclasses.replace(config, segmentation=config.segmentation.for_guide(args.floor == "on"))
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status

@@ -80,13 +80,7 @@ def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
 def with_floor(config, choice: str | None):
     """The ``SegmentationConfig`` ``config`` with ``--floor``'s ``choice``: ``"on"`` looks for the floor (its own
     settings, or the defaults), ``"off"`` does not, None leaves it as it is."""
-    from dataclasses import replace
-
-    from ..segmentation.ground_plane import GroundPlaneConfig
-
-    if choice is None:
-        return config
-    return replace(config, ground=(config.ground or GroundPlaneConfig()) if choice == "on" else None)
+    return config if choice is None else config.with_floor(choice == "on")
 
 
 def segmenter_choice(text: str) -> str:

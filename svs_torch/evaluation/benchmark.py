@@ -204,7 +204,6 @@ def in_process(repeats: int, threads: int) -> dict:
     from ..data.synthetic import random_obstacle_scenes
     from ..core.workers import keep_freed_memory
     from ..pipeline import PipelineConfig
-    from ..segmentation.ground_plane import GroundPlaneConfig
 
     torch.set_num_threads(threads)
     keep_freed_memory()  # glibc kept to freed memory, as the command line and its workers run
@@ -226,11 +225,8 @@ def in_process(repeats: int, threads: int) -> dict:
     # guide's own input: a real SVS sends noisy JPEG frames, on which the pipeline takes more passes than on
     # clean ones (a noisy map matched wider, the dense stage's coarse retry).
     frames = camera_frame_pairs(first, CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, torch.Generator().manual_seed(0))
-    # ... and guide's own configuration: the floor left out (guide's --floor on, its default), and its frames taken
-    # for a camera's, so that the nearness map skips its noise gate (SegmentationConfig.camera_frames).
-    walker = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation,
-                                                                          ground=GroundPlaneConfig(),
-                                                                          camera_frames=True))
+    # ... and guide's own configuration (SegmentationConfig.for_guide: a camera's frames, the floor left out).
+    walker = dataclasses.replace(config, segmentation=config.segmentation.for_guide())
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
             "latency_ms_B1_otsu": _ms_per_pair(first, 1, otsu, repeats)[0],
             "latency_ms_B1_camera": _ms_per_pair(frames, 1, walker, repeats)[0],

@@ -11,7 +11,7 @@ in :mod:`svs_torch.segmentation.soft` carries gradients to the image and the thr
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
@@ -146,6 +146,16 @@ class SegmentationConfig:
         if not isinstance(self.camera_frames, bool):
             raise InputError(f"camera_frames: expected True or False, got {self.camera_frames!r}")
         structuring_element(self.kernel_shape, self.kernel_size)  # validates the shape name
+
+    def with_floor(self, left_out: bool) -> SegmentationConfig:
+        """These settings with the floor left out (``ground``: its own settings where given, else the defaults) or
+        kept (None): ``--floor on`` / ``off``."""
+        return replace(self, ground=(self.ground or GroundPlaneConfig()) if left_out else None)
+
+    def for_guide(self, floor_left_out: bool = True) -> SegmentationConfig:
+        """These settings as ``svs-depth guide`` runs them, which its benchmark times too: a camera's frames
+        (``camera_frames``) and, unless ``floor_left_out`` is False (``--floor off``), the floor left out."""
+        return replace(self.with_floor(floor_left_out), camera_frames=True)
 
 
 def keep_largest_regions(

@@ -92,3 +92,19 @@ def test_gradients_flow_through_the_pipeline_with_the_floor_left_out(data_dir):
 
 def test_the_paper_preset_and_the_other_segmenters_never_look_for_a_floor():
     assert PipelineConfig.paper().segmentation.ground is None
+
+
+def test_guides_settings_are_a_camera_frames_and_the_floor_left_out_with_its_own_settings():
+    """``SegmentationConfig.with_floor`` / ``for_guide``: what ``--floor on|off`` and ``svs-depth guide`` (and its
+    benchmark) run: the floor's own settings kept where given, else the defaults; off: none; guide: camera frames."""
+    from svs_torch.segmentation.segment import SegmentationConfig
+
+    base = PipelineConfig().segmentation
+    assert base.ground is None and not base.camera_frames
+    assert base.with_floor(True).ground == GroundPlaneConfig() and base.with_floor(False).ground is None
+    own = dataclasses.replace(base, ground=GroundPlaneConfig(max_camera_height_m=2.0))
+    assert own.with_floor(True).ground.max_camera_height_m == 2.0
+    guide = own.for_guide()
+    assert guide.camera_frames and guide.ground.max_camera_height_m == 2.0
+    assert base.for_guide(floor_left_out=False) == dataclasses.replace(base, camera_frames=True)
+    assert isinstance(guide, SegmentationConfig) and guide.segmenter == base.segmenter
