@@ -618,8 +618,13 @@ def test_estimate_camera_frames_ranges_a_camera_frame_as_the_noise_gate_does(tmp
     nearness map's noise gate widens, gets the same objects and distances without the gate's first pass."""
     import torch
 
+    from svs_torch.cli import build_parser
+    from svs_torch.cli.estimate_many import pipeline_config_from_args
     from svs_torch.data import camera_frames
     from svs_torch.data.synthetic import random_obstacle_scenes
+    from svs_torch.depth.block_matching import block_match_sad_with_residual
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.segmentation.nearness import NearnessNetConfig
 
     scene = random_obstacle_scenes(1, 2, generator=torch.Generator().manual_seed(3)).batch
     paths = []
@@ -627,12 +632,6 @@ def test_estimate_camera_frames_ranges_a_camera_frame_as_the_noise_gate_does(tmp
         frame = camera_frames(image, 4, 4.0, torch.Generator().manual_seed(len(paths)))
         paths.append(str(tmp_path / f"{side}.png"))
         cv2.imwrite(paths[-1], (frame[0, 0] * 255).round().byte().numpy())
-    from svs_torch.cli import build_parser
-    from svs_torch.cli.estimate_many import pipeline_config_from_args
-    from svs_torch.depth.block_matching import block_match_sad_with_residual
-    from svs_torch.depth.dense_config import DenseConfig
-    from svs_torch.segmentation.nearness import NearnessNetConfig
-
     for extra, expected in (([], False), (["--camera-frames"], True)):
         args = build_parser().parse_args(["estimate", *paths, *extra])
         assert pipeline_config_from_args(args).segmentation.camera_frames is expected
