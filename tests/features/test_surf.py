@@ -287,7 +287,12 @@ def test_mask_restricts_keypoints_and_blank_images_give_none():
 
 def test_gradients_reach_the_image():
     image = smooth_image(1, 23, 24, 10).requires_grad_()
-    torch.autograd.gradcheck(lambda x: hessian_octaves(x, num_octaves=1, num_scale_levels=3)[0].det, (image,))
+    # Every input pixel's column of the Jacobian is checked, against 16 fixed random mixtures of the 1 656 outputs
+    # instead of each output (one backward pass each): 3 s instead of 14, and a 1 % error in one border pixel's
+    # gradient still fails it.
+    mixtures = torch.randn(3 * 23 * 24, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    torch.autograd.gradcheck(
+        lambda x: hessian_octaves(x, num_octaves=1, num_scale_levels=3)[0].det.flatten(1) @ mixtures, (image,))
     kp = make_keypoints([[11.2, 11.7]], [0.8])
     torch.autograd.gradcheck(lambda x: describe_surf(x, kp), (image,))
 
