@@ -127,13 +127,19 @@ __attribute__((noinline)) static void step_right_f32(int64_t n, float fd, const 
     }
 }
 
-/* The 16-bit search, blocked: LANES columns at a time go through every disparity with the winner's state in
- * vector registers (GCC / Clang vector extensions: one zmm register with AVX-512, two ymm with AVX2, four
- * xmm with SSE2), where the streaming search loads and stores every state row again at each disparity. The
- * row's costs, every disparity's, are made first into a D x ``stride`` block, which both views' winners then
- * read a vector at a time. The same selects in the same order as step_left_f32 / step_right_f32, so the same
- * winners. */
-#define LANES 32
+/* The 16-bit search, blocked: GROUPS x LANES columns at a time go through every disparity with the winner's
+ * state in vector registers (GCC / Clang vector extensions), where the streaming search loads and stores every
+ * state row again at each disparity. The row's costs, every disparity's, are made first into a D x ``stride``
+ * block, which both views' winners then read a vector at a time. The same selects in the same order as
+ * step_left_f32 / step_right_f32, so the same winners.
+ *
+ * A vector is one register (VECTOR_BYTES, common.h). GROUPS vectors of columns go through the disparities side by
+ * side: independent chains of selects, so that each hides the latency of the other's comparisons (with AVX-512,
+ * 64 real 320x240 pairs at the command line's B = 8, one thread: the block matching 3.7 -> 2.7 ms a pair with the
+ * needed columns above; with AVX2, a 320x240 frame's 48 disparities 8.7 -> 6.4 ms); the eight state vectors of
+ * two groups fill the 16 registers of AVX2 or SSE2. */
+#define LANES (VECTOR_BYTES / 2)
+#define GROUPS 2
 typedef uint16_t lanes_u16 __attribute__((vector_size(2 * LANES)));
 typedef int16_t lanes_mask __attribute__((vector_size(2 * LANES))); /* a comparison's lanes: -1 or 0 */
 
@@ -146,16 +152,6 @@ static inline lanes_u16 load_lanes(const uint16_t *source) {
 static inline lanes_u16 pick(lanes_mask where, lanes_u16 a, lanes_u16 b) {
     return (lanes_u16)(((lanes_mask)a & where) | ((lanes_mask)b & ~where));
 }
-
-/* GROUPS vectors of columns go through the disparities side by side: independent chains of selects, so that each
- * hides the latency of the other's comparisons (with AVX-512, 64 real 320x240 pairs at the command line's B = 8,
- * one thread: the block matching 3.7 -> 2.7 ms a pair with the needed columns above). Without AVX-512 one group
- * of LANES already fills the 16 vector registers. */
-#if defined(__AVX512BW__)
-#define GROUPS 2
-#else
-#define GROUPS 1
-#endif
 
 /* The left view's winner statistics of GROUPS x LANES output columns whose costs at disparity d sit at costs +
  * d * stride: best_cost, best, before, after, rival into ``out`` (5 x GROUPS x LANES), as step_left_f32 makes

@@ -52,7 +52,7 @@ static float track_median(const float *v, int n, int rank, float m) {
 }
 
 #define NET_MAX 64   /* the most values a window may hold for the network path */
-#define NET_LANES 16 /* pixels of a row through the network side by side: one AVX-512 register of floats */
+#define NET_LANES (VECTOR_BYTES / 4) /* pixels of a row through the network side by side: a register of floats */
 #define NET_MAX_COMPARATORS 544 /* Batcher's odd-even merge sort of 64 values has 543 */
 
 /* The compare-exchanges that leave the element of rank ``rank`` of ``n`` <= NET_MAX values at index ``rank``
@@ -81,8 +81,8 @@ static int median_network(int n, int rank, uint8_t *from, uint8_t *to) {
     return kept;
 }
 
-/* NET_LANES floats in one vector (GCC / Clang vector extensions: one zmm register with AVX-512, two ymm with
- * AVX2), and a comparison's lanes (-1 or 0). Written as vectors, not as a loop over lanes: a loop's two rows of
+/* NET_LANES floats in one vector (GCC / Clang vector extensions: one register, VECTOR_BYTES of common.h), and a
+ * comparison's lanes (-1 or 0). Written as vectors, not as a loop over lanes: a loop's two rows of
  * one comparator may alias as far as the compiler knows, and it then compiled each lane to a compare and a
  * branch (64 real 320x240 maps: 2.3 -> 20 ms a pair instead of faster). */
 typedef float lanes_f32 __attribute__((vector_size(4 * NET_LANES)));
