@@ -26,7 +26,11 @@
 
 static inline float min2(float a, float b) { return b < a ? b : a; }
 
-/* One disparity of a step (out of line, restrict arguments, no branches: gcc vectorises it over x). */
+/* One disparity of a step (out of line, restrict arguments, no branches: gcc vectorises it over x). best - m is
+ * computed in every column and zeroed by a bit mask where the path starts again: written as ``restart ? 0 :
+ * best - m``, the subtraction (inf - inf there) may raise a floating-point exception only where it is taken, and
+ * GCC 12 vectorised that select only with AVX-512's masked operations, leaving the loop scalar on AVX2. The same
+ * values: c + (+0) where the path starts again, c + (best - m) elsewhere. */
 __attribute__((noinline)) static void step_row(int64_t n, const float *restrict c, const float *restrict here,
                                                const float *restrict lo, const float *restrict hi,
                                                const float *restrict low, const float *restrict restart,
@@ -34,7 +38,13 @@ __attribute__((noinline)) static void step_row(int64_t n, const float *restrict 
     for (int64_t x = 0; x < n; ++x) {
         const float m = low[x];
         const float best = min2(min2(here[x], min2(hi[x], lo[x]) + p1), m + p2);
-        o[x] = c[x] + (restart[x] != 0.0f ? 0.0f : best - m);
+        const float step = best - m;
+        uint32_t bits;
+        __builtin_memcpy(&bits, &step, sizeof bits);
+        bits &= restart[x] == 0.0f ? 0xffffffffu : 0u;
+        float kept;
+        __builtin_memcpy(&kept, &bits, sizeof kept);
+        o[x] = c[x] + kept;
     }
 }
 
