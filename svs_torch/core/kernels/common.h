@@ -1,6 +1,6 @@
 /* What every kernel of svs_torch/<stage>/kernels shares: its vector width, its OpenMP thread count and its scratch
- * allocations (and their failure). Each source includes it; svs_torch/core/kernels/loader.py hashes it into every library's cache
- * key, so a change here rebuilds them all. */
+ * allocations (and their failure). Each source includes it; svs_torch/core/kernels/loader.py hashes it into every
+ * library's cache key, so a change here rebuilds them all. */
 #ifndef SVS_TORCH_KERNELS_COMMON_H
 #define SVS_TORCH_KERNELS_COMMON_H
 
