@@ -311,12 +311,16 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
 
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction sets")
 @pytest.mark.parametrize("march", ["x86-64", "x86-64-v3"], ids=["sse2", "avx2"])
-def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_path, generator):
-    """The 16-bit search's vector types (64 bytes: one AVX-512 register here) are split by the compiler on a
-    machine without AVX-512 (two AVX2 registers, four SSE2 ones): built for those, the kernel still equals the
-    torch path, on widths that leave a partial vector and ranges of more than one vector of columns."""
+def test_vector_kernels_same_on_smaller_instruction_sets(march, monkeypatch, tmp_path, generator):
+    """The kernels written with vector types size them to one register of the instruction set built for
+    (``VECTOR_BYTES`` in common.h: 16 bytes for SSE2, 32 for AVX2), and the semi-global column step is written so
+    that AVX2 vectorises it. Built for those instruction sets, whatever this machine has, the 16-bit block
+    matcher, the median filter's network and the semi-global pass still equal their torch paths, on widths that
+    leave a partial vector and ranges of more than one vector of columns."""
     from svs_torch.depth.block_matching import block_match_sad
     from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.depth.semi_global import _scan_columns_torch
+    from svs_torch.segmentation.nearness_denoise import _median_filter
 
     compiler = shutil.which("cc") or shutil.which("gcc")
     if compiler is None:
@@ -329,6 +333,13 @@ def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_p
     right = 0.9 * torch.roll(base, shifts=-6, dims=-1) + 0.1 * torch.rand(3, 1, 41, 77, generator=generator)
     minimum, image_hw = torch.tensor([0, 2, 1]), torch.tensor([[41, 77], [35, 70], [41, 77]])
     expected = [block_match_sad(base, right, minimum, n, DenseConfig(kernel="torch"), image_hw) for n in (12, 45)]
+    maps = _nearness_maps(generator)
+    medians = [_torch_path(monkeypatch, _median_filter, image, 7) for image in maps]
+    costs = (torch.rand(2, 9, 13, 37, generator=generator) * 300).round()
+    costs[0, :, :, :5] = torch.inf  # outside the pair's region: the path starts again after it
+    costs[1, :4] = torch.inf
+    p1, p2 = torch.tensor([3.0, 8.0]), torch.tensor([12.0, 30.0])
+    aggregated = _scan_columns_torch(costs, p1, p2)
     monkeypatch.setenv("CC", str(wrapper))
     monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
     monkeypatch.setattr(kernels, "_LIBRARIES", {})
@@ -337,6 +348,26 @@ def test_dense_kernel_same_on_smaller_instruction_sets(march, monkeypatch, tmp_p
         found = block_match_sad(base, right, minimum, n, DenseConfig(kernel="c"), image_hw)
         assert torch.equal(found.disparity_px, reference.disparity_px) and torch.equal(found.valid, reference.valid)
         assert found.valid.sum() > 1000
+    for image, reference in zip(maps, medians):
+        torch.testing.assert_close(segmentation_kernels.median_filter(image, 7), reference, rtol=0, atol=0)
+    assert torch.equal(depth_kernels.semi_global_columns(costs, p1, p2), aggregated)
+
+
+def test_vector_types_are_sized_by_the_register_width():
+    """Every kernel's GCC vector type takes its size from ``VECTOR_BYTES`` (common.h), never a fixed byte count:
+    a type wider than the machine's registers is compiled one lane at a time without AVX-512 (the block matcher
+    and the median were 8x slower on an AVX2 machine that way)."""
+    from svs_torch.core.kernels.loader import SOURCES
+
+    declared = 0
+    for name, path in SOURCES.items():
+        for line in path.read_text().splitlines():
+            if "vector_size(" in line:
+                declared += 1
+                size = line.split("vector_size(", 1)[1].split(")", 1)[0]
+                assert "LANES" in size, f"{name}: vector_size({size}) is not sized by VECTOR_BYTES"
+    source = "".join(path.read_text() for path in SOURCES.values())
+    assert declared >= 4 and source.count("VECTOR_BYTES /") == 2
 
 
 def test_shared_headers_are_part_of_every_cache_key(monkeypatch, tmp_path):
@@ -807,9 +838,10 @@ def _nearness_maps(generator: torch.Generator) -> list[torch.Tensor]:
 @pytest.mark.skipif(not kernels.available("median_filter"), reason="no C compiler")
 @pytest.mark.parametrize("threads", [1, 3])
 def test_median_filter_kernel_equals_the_sorting_path(generator, monkeypatch, threads):
-    """The median kernel (segmentation/kernels/median_filter.c: a selection network up to 7×7, 16 pixels of a row
-    at a time, the tracked median above) against the torch path that sorts every window: the same values, for
-    every window side up to the largest it takes, on rows shorter and longer than the network's 16 lanes."""
+    """The median kernel (segmentation/kernels/median_filter.c: a selection network up to 7×7, a register of
+    pixels of a row at a time, 4 to 16, the tracked median above) against the torch path that sorts every window:
+    the same values, for every window side up to the largest it takes, on rows shorter and longer than the
+    network's lanes."""
     from svs_torch.segmentation.nearness_denoise import _median_filter
 
     for image in _nearness_maps(generator):
