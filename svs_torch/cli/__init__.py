@@ -122,6 +122,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # numpy's OpenBLAS starts a thread per core when OpenCV first imports numpy, and they spin before they sleep;
+    # no command calls it (torch has its own BLAS), so the command's own process keeps it to one thread, as its
+    # workers do (core.workers.start_worker). A user's own setting stands.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from ..core.errors import InputError
     from ..core.workers import keep_freed_memory
 

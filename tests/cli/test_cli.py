@@ -460,6 +460,23 @@ def test_worker_start_up_keeps_numpy_blas_to_its_threads():
                    env={**env, "OPENBLAS_NUM_THREADS": "2", "EXPECTED": "2"})
 
 
+def test_command_keeps_numpy_blas_to_one_thread_unless_asked(data_dir):
+    """The command's own process, like its workers, leaves numpy's OpenBLAS one thread when OpenCV imports numpy
+    (no command calls it, and its idle threads spin on the cores the pipeline uses); a user's number stands."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code = ("import os, sys\n"
+            "from svs_torch.cli import main\n"
+            "assert 'numpy' not in sys.modules  # the setting comes before numpy's import\n"
+            f"assert main(['segment', {left!r}, {right!r}, '--json']) == 0\n"
+            "assert 'numpy' in sys.modules\n"
+            "print(os.environ['OPENBLAS_NUM_THREADS'])\n")
+    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
+    for given, expected in ((None, "1"), ("2", "2")):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300,
+                              env=env if given is None else {**env, "OPENBLAS_NUM_THREADS": given})
+        assert done.stdout.strip().splitlines()[-1] == expected
+
+
 def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--size", "320x240", "--json",
