@@ -359,15 +359,11 @@ def test_vector_types_are_sized_by_the_register_width():
     and the median were 8x slower on an AVX2 machine that way)."""
     from svs_torch.core.kernels.loader import SOURCES
 
-    declared = 0
-    for name, path in SOURCES.items():
-        for line in path.read_text().splitlines():
-            if "vector_size(" in line:
-                declared += 1
-                size = line.split("vector_size(", 1)[1].split(")", 1)[0]
-                assert "LANES" in size, f"{name}: vector_size({size}) is not sized by VECTOR_BYTES"
-    source = "".join(path.read_text() for path in SOURCES.values())
-    assert declared >= 4 and source.count("VECTOR_BYTES /") == 2
+    texts = {name: path.read_text() for name, path in SOURCES.items()}
+    sizes = [(name, part.split(")", 1)[0]) for name, text in texts.items() for part in text.split("vector_size(")[1:]]
+    for name, size in sizes:
+        assert "LANES" in size, f"{name}: vector_size({size}) is not sized by VECTOR_BYTES"
+    assert len(sizes) >= 4 and "".join(texts.values()).count("VECTOR_BYTES /") == 2
 
 
 def test_shared_headers_are_part_of_every_cache_key(monkeypatch, tmp_path):
