@@ -431,6 +431,30 @@ def test_dense_kernel_same_for_any_thread_count(threads):
 
 
 @needs_kernel
+@pytest.mark.parametrize("rows", [1, 7, 40, 48, 500])
+def test_dense_kernel_same_for_any_band_height(rows, monkeypatch):
+    """A pair's rows are matched in bands (tasks for the threads); no value depends on their height, so the
+    height can be chosen for balance alone."""
+    inputs = _block_match_inputs(5)
+    rules = (0.1, 1.0, 0.2, False)
+    reference = depth_kernels.block_match(*inputs, *rules)
+    monkeypatch.setattr(depth_kernels, "band_rows", lambda height, batch, threads: rows)
+    found = _with_threads(2, depth_kernels.block_match, *inputs, *rules)
+    assert all(torch.equal(a, b) for a, b in zip(found, reference))
+
+
+def test_dense_kernel_bands_are_even_for_fewer_pairs_than_threads():
+    """One pair on two threads: a 240-row view in 6 bands of 40 rows, not 5 of 48 (3 bands on one thread set the
+    time); as many pairs as threads keep the usual height."""
+    assert depth_kernels.band_rows(240, 1, 2) == 40
+    assert depth_kernels.band_rows(188, 1, 2) == 47  # 4 bands already
+    assert depth_kernels.band_rows(130, 1, 3) == 44
+    assert depth_kernels.band_rows(10, 1, 2) == 5
+    assert depth_kernels.band_rows(240, 2, 2) == depth_kernels.band_rows(240, 1, 1) == depth_kernels.BAND_ROWS
+    assert depth_kernels.band_rows(0, 0, 2) == depth_kernels.BAND_ROWS
+
+
+@needs_kernel
 def test_dense_kernel_equals_the_torch_box_matcher():
     """Each pair at its own box and range equals the torch path's shared box (dense._match_box, which the
     kernel replaces) inside that box, its winning costs too, and nothing is written outside it."""

@@ -41,6 +41,19 @@ BLOCK_MATCH_SOURCES = {"levels": 0, "raw": 1, "xsobel": 2}
 BAND_ROWS = 48
 
 
+def band_rows(height: int, batch: int, threads: int) -> int:
+    """Rows per task for boxes up to ``height`` rows over ``batch`` pairs and ``threads`` threads: about
+    :data:`BAND_ROWS`, but where the pairs are fewer than the threads, the bands of a pair are made a multiple of
+    the threads, of equal height. Why: at B = 1 (``guide``) a 240-row view made 5 bands of 48 for 2 threads, and
+    the one that took 3 set the call's time; 6 bands of 40 share it evenly (``tests/core/test_kernels.py``: the
+    same values at any band height)."""
+    if batch >= threads or height <= 0:
+        return BAND_ROWS
+    bands = -(-height // BAND_ROWS)
+    bands = -(-bands // threads) * threads
+    return max(1, -(-height // bands))
+
+
 def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor | bool | None, window_size: int,
                 boxes: torch.Tensor, min_disparity: torch.Tensor, counts: torch.Tensor, image_hw: torch.Tensor,
                 lower_is_limit: torch.Tensor, uniqueness_ratio: float, lr_max_diff_px: float | None,
@@ -88,6 +101,7 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     disparity = torch.zeros(b, h, w)
     valid = torch.zeros(b, h, w, dtype=torch.uint8)
     costs = torch.full((b, h, w), torch.nan) if best_cost else None
+    threads = torch.get_num_threads()
     # The factors are made in double and rounded to float32, as torch does with a Python scalar.
     status = library.block_match(
         left.data_ptr(), right.data_ptr(), None if texture is None else texture.data_ptr(),
@@ -95,8 +109,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
         *(v.data_ptr() for v in per_pair), lower.data_ptr(),
         1 + uniqueness_ratio if uniqueness_ratio > 0 else 0.0, -1.0 if lr_max_diff_px is None else lr_max_diff_px,
         texture_min, int(whole_range_in_view), None if mask is None else mask.data_ptr(), mask_margin_px,
-        disparity.data_ptr(), valid.data_ptr(), None if costs is None else costs.data_ptr(), torch.get_num_threads(),
-        BAND_ROWS)
+        disparity.data_ptr(), valid.data_ptr(), None if costs is None else costs.data_ptr(), threads,
+        band_rows(int(per_pair[0][:, 3].max()) if b else 0, b, threads))
     if status != 0:
         return None
     return (disparity, valid.bool()) if costs is None else (disparity, valid.bool(), costs)
