@@ -156,12 +156,7 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     ``config.noisy_tolerance_px``. ``focal_px`` ``(B,)``: the map's focal length in its pixels, which the pitch
     limit reads (None: no pitch limit). Not differentiable."""
     b, _, h, w = disparity.shape
-    if measured.shape != disparity.shape or measured.dtype != torch.bool:
-        raise InputError(f"measured: expected a bool tensor of shape {tuple(disparity.shape)}, got "
-                         f"{measured.dtype} {tuple(measured.shape)}")
-    if not isinstance(baseline_m, torch.Tensor) or baseline_m.shape != (b,):
-        raise InputError(f"baseline_m: expected a tensor of shape ({b},), got "
-                         f"{tuple(baseline_m.shape) if isinstance(baseline_m, torch.Tensor) else baseline_m!r}")
+    _check_fit_arguments(disparity, measured, baseline_m)
     disparity = disparity.detach().to(torch.float32)
     stride = max(1, round(w / config.grid_columns))
     grid_d = disparity[:, 0, stride // 2::stride, stride // 2::stride]  # (B, gh, gw)
@@ -179,6 +174,10 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     hypotheses = _sample_planes(grid_d, grid_ok, grid_ok & lower, xs, ys, config, generator)
     rig = _Rig(baseline_m, focal_px, (w - 1) / 2, (h - 1) / 2)
     plausible = _plausible(hypotheses, rig, config)
+    if not bool(plausible.any()):
+        # No sample can be a walker's floor (a scene of upright surfaces): the rest would find none, and its
+        # scoring and the whole-view mask are about two thirds of the fit's time (``guide`` fits every frame).
+        return _no_plane(disparity)
     inliers, behind = _inliers(hypotheses, x, y, points_d, points_ok, tolerance, config.tolerance_fraction)
     plausible &= (behind <= config.max_behind_share) & (_span(inliers, points_d) >= min_span)
     # Each inlier weighs by how low it lies in the view, none above the sampled rows: a shallow plane through the
@@ -199,9 +198,30 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     found = _plausible(plane.unsqueeze(1), rig, config)[:, 0] & (share >= config.min_share)
     found &= (behind[:, 0] <= config.max_behind_share) & (_span(on_plane, points_d)[:, 0] >= min_span)
     found &= counts.gather(1, best.view(-1, 1))[:, 0] > 0
+    if not bool(found.any()):
+        return _no_plane(disparity)
     mask = _pixels_on(plane, found, disparity, tolerance.view(b, 1, 1, 1), config.tolerance_fraction)
     height = baseline_m.to(torch.float32) / torch.hypot(plane[:, 0], plane[:, 1]).clamp_min(1e-12)
     return GroundPlane(torch.where(found.view(-1, 1), plane, 0.0), found, torch.where(found, height, math.nan), mask)
+
+
+def _check_fit_arguments(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor) -> None:
+    """:func:`fit_ground_plane`'s ``measured`` and ``baseline_m`` against ``disparity``, raising :class:`InputError`."""
+    b = disparity.shape[0]
+    if measured.shape != disparity.shape or measured.dtype != torch.bool:
+        raise InputError(f"measured: expected a bool tensor of shape {tuple(disparity.shape)}, got "
+                         f"{measured.dtype} {tuple(measured.shape)}")
+    if not isinstance(baseline_m, torch.Tensor) or baseline_m.shape != (b,):
+        raise InputError(f"baseline_m: expected a tensor of shape ({b},), got "
+                         f"{tuple(baseline_m.shape) if isinstance(baseline_m, torch.Tensor) else baseline_m!r}")
+
+
+def _no_plane(disparity: torch.Tensor) -> GroundPlane:
+    """The :class:`GroundPlane` of maps ``disparity`` ``(B, 1, H, W)`` where no pair has one: what the whole fit
+    gives then (zero coefficients, NaN heights, an empty mask)."""
+    b = disparity.shape[0]
+    return GroundPlane(disparity.new_zeros(b, 3), torch.zeros(b, dtype=torch.bool, device=disparity.device),
+                       disparity.new_full((b,), math.nan), torch.zeros_like(disparity, dtype=torch.bool))
 
 
 def _sample_planes(d: torch.Tensor, measured: torch.Tensor, candidate: torch.Tensor, xs: torch.Tensor,

@@ -134,6 +134,22 @@ def test_a_pairs_plane_does_not_depend_on_its_batch():
     assert together.found.tolist() == [True, True, False]
 
 
+def test_a_map_without_a_floor_gives_what_the_whole_fit_gives():
+    """The fit stops early where no pair can have a floor (no sample passes the rig's tests, or no plane survives
+    the scoring); its answer for such a pair is the whole fit's, which runs when a floor is beside it in a batch."""
+    upright = torch.full((1, 1, H, W), 8.0)
+    upright[..., 40:200, 40:140] = 20.0
+    backdrop, _ = floor_scene(boxes=())
+    backdrop[..., 150:, :160] = 3.0  # plausible samples, but a far room seen below the plane's edge
+    floor = floor_scene(1.3, 15.0)[0]
+    for pair in (upright, backdrop):
+        alone, whole = fit(pair), fit(torch.cat([floor, pair]))
+        assert whole.found.tolist() == [True, False] and alone.found.tolist() == [False]
+        for name in ("coefficients", "found", "camera_height_m", "mask"):
+            expected, got = getattr(whole, name)[1:], getattr(alone, name)
+            assert got.dtype == expected.dtype and torch.equal(got.nan_to_num(-1.0), expected.nan_to_num(-1.0))
+
+
 def test_unmeasured_pixels_are_not_fitted_but_are_masked():
     disparity, is_floor = floor_scene()
     # Half the pixels unmeasured (filled), at random.
