@@ -1,4 +1,4 @@
-"""``any`` over a dimension of a bool mask through a byte maximum.
+"""``any`` and ``all`` of a bool mask through a byte maximum or minimum, and a NaN test by one maximum.
 
 On CPU, torch's bool reductions run a generic loop: on this project's 2-core reference machine (AMD EPYC,
 torch 2.13) ``mask.any(dim=-1)`` over a batch of 8 masks of 320×240 takes 1.5 ms, ``mask.any(dim=-2)`` 0.6 ms
@@ -8,6 +8,11 @@ the kept objects' union, the crop boxes of the dense stage). torch stores a bool
 maximum byte is that same byte of the answer, and viewing it as bool costs nothing (converting it with
 ``.bool()`` or ``!= 0`` would cost 0.3 ms more).
 
+The same holds for a whole mask tested in Python (``bool(mask.any())``, ``bool(mask.all())``: 96 / 78 µs against
+8 / 9 µs for one 320×240 mask, two threads, this VM), and for the kernels' wrappers' NaN test
+(``bool(values.isnan().any())``, 107 µs, a comparison pass and a bool reduction, against one ``amax``, which
+propagates NaN: :func:`has_nan`). A frame of ``guide`` made about ten such tests on whole-frame masks.
+
 Masks carry no gradient: nothing here is differentiable.
 """
 
@@ -15,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["any_along"]
+__all__ = ["all_along", "any_along", "any_true", "all_true", "has_nan"]
 
 
 def any_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
@@ -24,3 +29,32 @@ def any_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tens
     if mask.dtype != torch.bool or mask.shape[dim] == 0:
         return mask.any(dim=dim, keepdim=keepdim)
     return mask.view(torch.uint8).amax(dim=dim, keepdim=keepdim).view(torch.bool)
+
+
+def all_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
+    """``mask.all(dim=dim, keepdim=keepdim)`` for a bool ``mask``, as the minimum of its bytes; an empty ``dim``
+    gives True as ``all`` does."""
+    if mask.dtype != torch.bool or mask.shape[dim] == 0:
+        return mask.all(dim=dim, keepdim=keepdim)
+    return mask.view(torch.uint8).amin(dim=dim, keepdim=keepdim).view(torch.bool)
+
+
+def any_true(mask: torch.Tensor) -> bool:
+    """``bool(mask.any())`` for a bool ``mask`` (False when empty), by the maximum of its bytes."""
+    if mask.dtype != torch.bool:
+        return bool(mask.any())
+    return mask.numel() > 0 and bool(mask.view(torch.uint8).max())
+
+
+def all_true(mask: torch.Tensor) -> bool:
+    """``bool(mask.all())`` for a bool ``mask`` (True when empty), by the minimum of its bytes."""
+    if mask.dtype != torch.bool:
+        return bool(mask.all())
+    return mask.numel() == 0 or bool(mask.view(torch.uint8).min())
+
+
+def has_nan(values: torch.Tensor) -> bool:
+    """``bool(values.isnan().any())`` for a floating tensor, by one maximum (which is NaN where any value is)."""
+    if not values.is_floating_point() or values.numel() == 0:
+        return bool(values.isnan().any())
+    return bool(values.detach().max().isnan())

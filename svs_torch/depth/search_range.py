@@ -9,6 +9,7 @@ from dataclasses import replace
 import torch
 
 from ..core.checks import check_dtype, check_shape
+from ..core.mask_reductions import all_true
 from ..core.ordering import sort_last
 from . import kernels
 from .block_matching import _check_pair, _check_sizes, dense_disparity_over_regions
@@ -113,7 +114,7 @@ def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: 
     check_dtype(groups, "groups", "bool")
     inside = groups & valid.unsqueeze(1)  # (B, G, P)
     selected = None
-    if groups.shape[1] and bool((inside.sum(dim=1) <= 1).all()):  # disjoint groups (objects): one label each
+    if groups.shape[1] and all_true(inside.sum(dim=1) <= 1):  # disjoint groups (objects): one label each
         number = torch.arange(1, groups.shape[1] + 1, device=groups.device)
         member = (inside * number.view(1, -1, 1)).sum(dim=1)  # (B, P): the sample's group + 1, or 0
         selected = _select_nearest_ranks(disparity_px.detach(), member,

@@ -42,6 +42,7 @@ from typing import NamedTuple
 import torch
 
 from ..core.errors import InputError
+from ..core.mask_reductions import any_along
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
 
@@ -305,7 +306,7 @@ def _span(inliers: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     none)."""
     top = torch.where(inliers, d.unsqueeze(1), -math.inf).amax(-1)
     bottom = torch.where(inliers, d.unsqueeze(1), math.inf).amin(-1)
-    return torch.where(inliers.any(-1), top - bottom, 0.0)
+    return torch.where(any_along(inliers, -1), top - bottom, 0.0)
 
 
 def _least_squares(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
+from ..core.mask_reductions import any_along, any_true
 from .morphology import erode, structuring_element
 
 __all__ = ["region_interiors"]
@@ -44,15 +45,15 @@ def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px:
     check_shape(pairs, "pairs", [b])
     if isinstance(radius_px, bool) or not isinstance(radius_px, int) or radius_px < 0:
         raise InputError(f"radius_px: expected an int >= 0, got {radius_px!r}")
-    if radius_px == 0 or kept_labels.shape[1] == 0 or not bool(pairs.any()):
+    if radius_px == 0 or kept_labels.shape[1] == 0 or not any_true(pairs):
         return labels
     flat = labels.flatten(1)
     region = flat.unsqueeze(1) == torch.where(kept_labels > 0, kept_labels, -1).unsqueeze(-1)  # (B, N, H·W)
-    kept = region.any(1)
+    kept = any_along(region, 1)
     # Kept regions are separate components of one mask, so eroding their union erodes each on its own.
     inside = erode(kept.view_as(labels), structuring_element("square", 2 * radius_px + 1, device=labels.device))
     inside = inside.flatten(1)
     total, interior = region.sum(-1), (region & inside.unsqueeze(1)).sum(-1)
     cut = (interior >= min_share * total) & (total > 0) & pairs.view(b, 1)
-    border = kept & ~inside & (region & cut.unsqueeze(-1)).any(1)
+    border = kept & ~inside & any_along(region & cut.unsqueeze(-1), 1)
     return torch.where(border.view_as(labels), torch.zeros_like(labels), labels)

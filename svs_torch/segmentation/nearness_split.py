@@ -14,6 +14,7 @@ import math
 
 import torch
 
+from ..core.mask_reductions import all_along, any_true
 from ..depth.quantiles import labelled_quantile, row_quantile
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 
@@ -30,8 +31,8 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
     b = disparity.shape[0]
     disparity = disparity.detach()
     if exclude is not None:
-        exclude = exclude & ~exclude.flatten(1).all(1).view(b, 1, 1, 1)
-        if not bool(exclude.any()):
+        exclude = exclude & ~all_along(exclude.flatten(1), 1).view(b, 1, 1, 1)
+        if not any_true(exclude):
             exclude = None
     if exclude is None:
         q = row_quantile(disparity.flatten(1), (0.1, 0.9, 0.995)).T

@@ -1,11 +1,12 @@
-"""any_along: torch's ``any`` over a dimension of a bool mask, the same answer by a byte maximum."""
+"""any_along, all_along, any_true, all_true, has_nan: torch's ``any``, ``all`` and NaN test of a mask or values, the
+same answers by a byte maximum or minimum, or one maximum."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from svs_torch.core.mask_reductions import any_along
+from svs_torch.core.mask_reductions import all_along, all_true, any_along, any_true, has_nan
 
 
 @pytest.mark.parametrize("dim", [0, 1, -1, -2])
@@ -29,3 +30,34 @@ def test_any_along_empty_and_other_dtypes():
     assert any_along(torch.zeros(0, 4, dtype=torch.bool), 1).shape == (0,)
     values = torch.tensor([[0.0, 2.0], [0.0, 0.0]])
     assert torch.equal(any_along(values, 1), torch.tensor([True, False]))
+
+
+@pytest.mark.parametrize("dim", [0, 1, -1])
+def test_all_along_equals_torch_all(generator, dim):
+    mask = torch.rand(4, 3, 9, 11, generator=generator) > 0.03
+    mask[1] = True
+    for case in (mask, mask.transpose(-1, -2), mask[:, :, ::2, 1:]):
+        found = all_along(case, dim)
+        assert found.dtype == torch.bool and torch.equal(found, case.all(dim=dim))
+    assert torch.equal(all_along(torch.zeros(2, 0, 3, dtype=torch.bool), 1), torch.ones(2, 3, dtype=torch.bool))
+
+
+def test_whole_mask_tests_equal_torchs(generator):
+    """Whole masks, contiguous or not, all-False, all-True, one pixel, empty; other dtypes take torch's test."""
+    mask = torch.zeros(2, 1, 24, 32, dtype=torch.bool)
+    cases = [mask, ~mask, torch.rand(2, 1, 24, 32, generator=generator) > 0.5, mask[..., ::3, 1:],
+             torch.zeros(0, 5, dtype=torch.bool), (~mask).transpose(-1, -2)]
+    one = mask.clone()
+    one[1, 0, 23, 31] = True
+    cases.append(one)
+    for case in cases:
+        assert any_true(case) is bool(case.any()) and all_true(case) is bool(case.all())
+    assert any_true(torch.tensor([0, 2])) and not all_true(torch.tensor([0, 2]))
+
+
+def test_has_nan_equals_isnan_any():
+    nan, inf = float("nan"), float("inf")
+    for values in (torch.tensor([1.0, nan, 3.0]), torch.tensor([inf, -inf, 0.0]), torch.full((3, 4), nan)[:, ::2],
+                   torch.zeros(0), torch.tensor([[0.0, 1.0], [nan, 2.0]]).t(), torch.tensor([1, 2]),
+                   torch.tensor([-inf, nan], dtype=torch.float64)):
+        assert has_nan(values) is bool(values.isnan().any())

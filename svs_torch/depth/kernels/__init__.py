@@ -13,6 +13,7 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, check_image_hw, check_nonempty,
                                    check_number, check_rows)
+from ...core.mask_reductions import has_nan
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
            "region_medians", "sad_volume", "semi_global_columns", "semi_global_rows", "winner_statistics"]
@@ -163,7 +164,7 @@ def labelled_select(values: torch.Tensor, labels: torch.Tensor, slots: torch.Ten
         raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
     if not (on_cpu(torch.float32, values, q) and on_cpu(torch.int64, labels, slots)):
         return None
-    if bool(values.isnan().any()):  # the selection orders by <, which NaN breaks: the torch path sorts them last
+    if has_nan(values):  # the selection orders by <, which NaN breaks: the torch path sorts them last
         return None
     library = load("labelled_select")
     if library is None:
@@ -192,7 +193,7 @@ def region_medians(values: torch.Tensor, labels: torch.Tensor, num_labels: int
     if labels.numel() and not (int(labels.min()) >= 0 and int(labels.max()) <= num_labels):
         raise InputError(f"labels: expected labels in [0, {num_labels}], got [{int(labels.min())}, "
                          f"{int(labels.max())}]")
-    if bool(values.isnan().any()):  # the selection orders by <, which NaN breaks: the torch path sorts them last
+    if has_nan(values):  # the selection orders by <, which NaN breaks: the torch path sorts them last
         return None
     library = load("region_medians")
     if library is None:

@@ -12,6 +12,7 @@ from ...core.checks import check_shape
 from ...core.errors import InputError
 from ...core.kernels import INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows
+from ...core.mask_reductions import has_nan
 
 __all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter", "shift_regions"]
 
@@ -132,7 +133,7 @@ def median_filter(image: torch.Tensor, window: int) -> torch.Tensor | None:
         raise InputError(f"window: expected an odd positive int, got {window!r}")
     if window > MAX_MEDIAN_WINDOW or not on_cpu(torch.float32, image):
         return None
-    if image.numel() == 0 or bool(image.isnan().any()):  # the tracking compares by <, which NaN breaks
+    if image.numel() == 0 or has_nan(image):  # the tracking compares by <, which NaN breaks
         return None
     library = load("median_filter")
     if library is None:
