@@ -91,10 +91,45 @@ def test_guides_latency_is_also_timed_on_camera_frames():
     assert torch.equal(camera_pairs(batch).right, frames.right)
     report = {"whole_process": [], "in_process": {
         "stages_ms_per_pair_B32": {}, "scaling": [], "latency_ms_B1": 2.0, "latency_ms_B1_otsu": 1.0,
-        "latency_ms_B1_camera": 3.5, "latency_ms_B1_camera_otsu": 1.5, "kornia_ms_per_pair": 3.0},
+        "latency_ms_B1_camera": 3.5, "latency_ms_B1_camera_otsu": 1.5, "latency_ms_B1_camera_floor": 4.5,
+        "kornia_ms_per_pair": 3.0},
         "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}}
     assert (f"as camera frames the way guide runs them (JPEG digit {CAMERA_DIGIT}, noise σ 4, guide's floor rule on, "
-            "inference mode): 3.5 ms (Otsu: 1.5 ms)" in format_tables(report))
+            "inference mode): 3.5 ms (Otsu: 1.5 ms), over a walker's floor (1.5 m below a camera pitched 20°): 4.5 ms"
+            in format_tables(report))
+
+
+def test_the_walker_frames_have_a_floor_that_guide_finds(monkeypatch):
+    """The walker latency's frames are what their name says: guide's floor rule finds the floor in them (and the
+    obstacles are still ranged), where the plain synthetic scenes have none to find."""
+    import dataclasses
+
+    import torch
+
+    import svs_torch.segmentation.nearness as nearness
+    from svs_torch.data import camera_frame_pairs, random_obstacle_scenes
+    from svs_torch.evaluation.benchmark import (CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, WALKER_FLOOR_HEIGHT_M,
+                                                WALKER_PITCH_DEG)
+    from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+
+    found, fit = [], nearness.fit_ground_plane
+
+    def recorded(*args, **kwargs):
+        plane = fit(*args, **kwargs)
+        found.append(plane.found)
+        return plane
+
+    monkeypatch.setattr(nearness, "fit_ground_plane", recorded)
+    config = PipelineConfig()
+    guide = dataclasses.replace(config, segmentation=config.segmentation.for_guide())
+    for floor in (True, False):
+        extra = {"floor_height_m": WALKER_FLOOR_HEIGHT_M, "camera_pitch_deg": WALKER_PITCH_DEG} if floor else {}
+        scenes = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(1), **extra)
+        frames = camera_frame_pairs(scenes.batch, CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, torch.Generator().manual_seed(0))
+        found.clear()
+        result = estimate_obstacle_depth(frames, guide)
+        assert found and all(f.tolist() == [floor, floor] for f in found)
+        assert (result.status == PipelineStatus.OK).all() and result.depth.nearest.valid.all()
 
 
 def test_guides_latency_is_timed_the_way_guide_calls_the_pipeline(monkeypatch):
