@@ -28,6 +28,7 @@ Inputs are written to a temporary folder as PNG files: synthetic SVS scenes (320
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -249,8 +250,6 @@ def _ms_per_pair(pairs, b: int, config, repeats: int, as_guide: bool = False) ->
     """The pipeline's time a pair over all of ``pairs`` in batches of ``b``, after a warm-up batch at that size
     (a user's first batch pays for it once): the median of ``repeats`` passes, in ms, and the last batch's result.
     ``as_guide``: each call under ``torch.inference_mode``, as ``svs-depth guide`` makes it."""
-    import contextlib
-
     import torch
 
     from ..pipeline import estimate_obstacle_depth
