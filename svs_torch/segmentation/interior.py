@@ -16,7 +16,9 @@ from __future__ import annotations
 import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
+from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along, any_true
+from . import kernels
 from .morphology import erode, structuring_element
 
 __all__ = ["region_interiors"]
@@ -45,8 +47,12 @@ def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px:
     check_shape(pairs, "pairs", [b])
     if isinstance(radius_px, bool) or not isinstance(radius_px, int) or radius_px < 0:
         raise InputError(f"radius_px: expected an int >= 0, got {radius_px!r}")
+    pairs = canonical_bool(pairs)  # a mask viewed from other bytes: nonzero is True, on both paths
     if radius_px == 0 or kept_labels.shape[1] == 0 or not any_true(pairs):
         return labels
+    fused = kernels.region_interiors(labels, kept_labels, radius_px, pairs, min_share)
+    if fused is not None:  # the same labels, each pair read once (svs_torch/segmentation/kernels/region_interiors.c)
+        return fused
     flat = labels.flatten(1)
     region = flat.unsqueeze(1) == torch.where(kept_labels > 0, kept_labels, -1).unsqueeze(-1)  # (B, N, H·W)
     kept = any_along(region, 1)

@@ -45,6 +45,7 @@ from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
+from svs_torch.segmentation.interior import region_interiors
 from svs_torch.segmentation.nearness_denoise import _median_filter
 from svs_torch.segmentation.nearness_regions import shift_regions_to_right
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
@@ -415,6 +416,21 @@ def test_shift_regions_to_right(size, n, data):
     _both(shift_regions_to_right, labels, kept, shift)
 
 
+@given(size=sizes, n=st.integers(0, 3), radius=st.integers(0, 30), data=st.data())
+@examples(40)
+def test_region_interiors(size, n, radius, data):
+    """The kept regions cut to their interior by the kernel or the torch path: the same labels, with empty views,
+    empty, repeated or absent slots, radii past the view, pairs viewed from odd bytes, and shares that are NaN,
+    infinite or outside [0, 1]."""
+    b, h, w = size
+    generator = torch.Generator().manual_seed(b * 100 + h * 10 + w + n + radius)
+    labels = torch.randint(0, 4, (b, 1, h, w), generator=generator)
+    kept = torch.randint(-1, 5, (b, n), generator=generator)
+    pairs = data.draw(masks((b,)))
+    share = data.draw(st.sampled_from([0.5, 0.0, 1.0, 0.3, math.nan, math.inf, -math.inf, 2.0]))
+    _both(region_interiors, labels, kept, radius, pairs, share)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -492,6 +508,10 @@ def test_dense_object_depths(size, n, fill, data):
     ("shift_regions", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(1, 2, dtype=torch.int64),
                                torch.zeros(1, 3))),
     ("region_medians", lambda: (torch.rand(1, 9), torch.full((1, 9), 3), 2)),
+    ("region_interiors", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(2, 1, dtype=torch.int64), 1,
+                                  torch.ones(1, dtype=torch.bool), 0.5)),
+    ("region_interiors", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(1, 1, dtype=torch.int64), -1,
+                                  torch.ones(1, dtype=torch.bool), 0.5)),
     ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
     ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
     ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),

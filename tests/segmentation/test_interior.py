@@ -74,3 +74,32 @@ def test_bad_labels_are_refused_by_name():
         region_interiors(labels.float(), kept, 2, torch.tensor([True, True]))
     with pytest.raises(InputError, match="pairs"):
         region_interiors(labels, kept, 2, torch.tensor([True]))
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_kernel_gives_the_torch_paths_labels(generator, monkeypatch, threads):
+    """The C kernel (each pair read once) against the torch path: random blocky labels with a thin band, slots
+    empty, repeated, absent from the view or beyond its labels, some pairs not cut, radii past the view, shares on
+    either side of the threshold and not numbers at all."""
+    from svs_torch.segmentation import kernels
+
+    if not kernels.available("region_interiors"):
+        pytest.skip("no C compiler")
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for trial in range(6):
+            coarse = torch.randint(0, 7, (3, 1, 6, 8), generator=generator)
+            labels = torch.nn.functional.interpolate(coarse.float(), size=(30, 40), mode="nearest").long()
+            labels[:, :, trial: trial + 3, :] = 9  # a band too thin to keep half of itself
+            kept = torch.randint(-1, 11, (3, 4), generator=generator)
+            kept[0, 1] = kept[0, 0]
+            pairs = torch.rand(3, generator=generator) > 0.3
+            for radius, share in ((1, 0.5), (2, 0.5), (2, 0.2), (60, 0.0), (1, float("nan")), (1, -float("inf"))):
+                fused = region_interiors(labels, kept, radius, pairs, share)
+                monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+                eager = region_interiors(labels, kept, radius, pairs, share)
+                monkeypatch.delenv("SVS_TORCH_KERNELS")
+                assert torch.equal(fused, eager), (trial, radius, share)
+    finally:
+        torch.set_num_threads(before)

@@ -14,7 +14,8 @@ and their labelling (``label_runs.c``), its gray levels and their histogram (``g
 block matching (``block_match.c``), its row fill of invalid pixels (``fill_invalid_rows.c``), its order statistics by
 label (``labelled_select.c``: the search range's and the nearness map's percentiles), each region's lower median
 (``region_medians.c``: the nearness segmenter's ranking), the nearness map's median filter (``median_filter.c``),
-the kept regions moved into the right view (``shift_regions.c``), and each object's depth statistics, every pair
+the kept regions moved into the right view (``shift_regions.c``) and cut to their interior (``region_interiors.c``),
+and each object's depth statistics, every pair
 read once at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
@@ -22,11 +23,11 @@ its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search 
 (``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``), the MSAC costs of the row
 alignment's hypotheses (``row_alignment_cost.c``) and the whole RANSAC search for F, one pair at a time
 (``ransac_fundamental.c``). Each is the no-gradient path of
-a torch function that stays the reference, the fallback and the differentiable path. Fourteen give that torch path's
-values bit for bit: the first thirteen, and the strongest maxima ``torch.topk``'s values and indices (equal values in index
-order, which ``torch.topk`` leaves open). Six do not (RANSAC's: its LU, eigenvectors and sums in its own order, the
-same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Five of them: the fit
-solves its 3 × 3 systems by its own elimination, not
+a torch function that stays the reference, the fallback and the differentiable path. Fifteen give that torch path's
+values bit for bit: the first fourteen, and the strongest maxima ``torch.topk``'s values and indices (equal values
+in index order, which ``torch.topk`` leaves open). Six do not (RANSAC's: its LU, eigenvectors and sums in its own
+order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Five of
+them: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
 with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor

@@ -10,11 +10,12 @@ import torch
 
 from ...core.checks import check_shape
 from ...core.errors import InputError
-from ...core.kernels import INT, POINTER, available, declare, load, on_cpu, rows_of
+from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows
 from ...core.mask_reductions import has_nan
 
-__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter", "shift_regions"]
+__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter", "region_interiors",
+           "shift_regions"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
@@ -22,6 +23,7 @@ declare({
     "label_runs": ([POINTER] * 2 + [INT] * 5 + [POINTER] * 3 + [INT], ctypes.c_int),
     "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
+    "region_interiors": ([POINTER] * 3 + [INT] * 5 + [FLOAT, POINTER, INT], ctypes.c_int),
 })
 
 
@@ -166,4 +168,33 @@ def shift_regions(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: tor
     out = torch.empty_like(labels)
     status = library.shift_regions(labels.data_ptr(), kept_labels.data_ptr(), shift_px.data_ptr(), b, h, w, n,
                                    out.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else out
+
+
+def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px: int, pairs: torch.Tensor,
+                     min_share: float) -> torch.Tensor | None:
+    """:func:`svs_torch.segmentation.interior.region_interiors` a pair at a time (see the C source): ``labels``
+    ``(B, 1, H, W)`` int64, ``kept_labels`` ``(B, N)`` int64, ``radius_px`` an int >= 0, ``pairs`` ``(B,)`` bool,
+    ``min_share`` a real number → the labels with the cut regions' borders set to 0, the torch path's exactly.
+    None when the kernel is not available or the inputs do not fit its contract (another dtype, a share that is
+    not a real number)."""
+    dims = check_shape(labels, "labels", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    n = check_shape(kept_labels, "kept_labels", [b, "N"])["N"]
+    check_shape(pairs, "pairs", [b])
+    if isinstance(radius_px, bool) or not isinstance(radius_px, int) or radius_px < 0:
+        raise InputError(f"radius_px: expected an int >= 0, got {radius_px!r}")
+    if isinstance(min_share, bool) or not isinstance(min_share, (int, float)):
+        return None
+    if not on_cpu(torch.int64, labels, kept_labels) or not on_cpu(torch.bool, pairs):
+        return None
+    library = load("region_interiors")
+    if library is None:
+        return None
+    labels, kept_labels = labels.contiguous(), kept_labels.contiguous()
+    pair_bytes = pairs.contiguous().view(torch.uint8)  # nonzero is True, as torch reads a bool
+    out = torch.empty_like(labels)
+    status = library.region_interiors(labels.data_ptr(), kept_labels.data_ptr(), pair_bytes.data_ptr(), b, h, w, n,
+                                      min(radius_px, max(h, w)), float(min_share), out.data_ptr(),
+                                      torch.get_num_threads())
     return None if status != 0 else out
