@@ -53,8 +53,9 @@ static void erode_square(const uint8_t *mask, int64_t H, int64_t W, int64_t r, u
     }
 }
 
-/* labels (B, H, W) int64; kept (B, N) int64; pairs (B,) bytes, nonzero: cut this pair's regions; radius >= 1 (at
- * most max(H, W): a wider window is clipped to the same); min_share as float32. Writes out (B, H, W) int64.
+/* labels (B, H, W) int64; kept (B, N) int64; pairs (B,) bytes, nonzero: cut this pair's regions; radius >= 0 (0:
+ * the interior is the region, nothing is cut; the wrapper passes at most max(H, W), as a wider window is clipped to
+ * the same); min_share as float32. Writes out (B, H, W) int64.
  * Returns -1 when memory could not be had (the caller runs the torch path). */
 int region_interiors(const int64_t *labels, const int64_t *kept, const uint8_t *pairs, int64_t B, int64_t H,
                      int64_t W, int64_t N, int64_t radius, float min_share, int64_t *out, int64_t num_threads) {
