@@ -45,6 +45,7 @@ import torch
 from ..core.checks import InputError, check_dtype, check_shape
 from . import kernels
 from .ransac_sampling import draw_minimal_samples
+from .row_alignment_keystone import keystone_homography, keystone_refit, mapped_row_residuals
 
 __all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment", "row_alignment_homography"]
 
@@ -223,17 +224,19 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
             raise InputError("focal_px: expected finite focal lengths > 0, pixels")
     left, right = points_left.to(torch.float64), points_right.to(torch.float64)
     seeds = torch.zeros(dims["B"], dtype=torch.int64, device=left.device) if pair_seeds is None else pair_seeds
-    params = _sample_params(left, right, valid, seeds, config.num_hypotheses)
-    cost = _msac_cost(params, left, right, valid, config.threshold_px)
-    best = torch.gather(params, 1, cost.argmin(1).view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
-    inliers = valid & (_row_residuals(best.nan_to_num().unsqueeze(1), left, right)[:, 0] < config.threshold_px)
-    refit = _refit(left, right, inliers)
-    inliers = valid & (_row_residuals(refit.unsqueeze(1), left, right)[:, 0] < config.threshold_px)
-    raw = (valid & ((left[..., 1] - right[..., 1]).abs() < config.threshold_px)).sum(1)
-    similarity = _accept(refit, inliers, valid, raw, image_hw, config)
-    if focal_px is None or config.keystone_min_deg is None:
+    keystone = focal_px is not None and config.keystone_min_deg is not None
+    focal = focal_px.to(left.dtype) if keystone else None
+    fast = None
+    if not (torch.is_grad_enabled() and (points_left.requires_grad or points_right.requires_grad)):
+        fast = _fit_similarity_kernel(left, right, valid, image_hw, seeds, focal, config)
+    if fast is not None:
+        similarity, inliers, reads_turn = fast
+        keystone = keystone and bool(reads_turn.any())  # else _fit_keystone finds no turn either
+    else:
+        similarity, inliers = _fit_similarity(left, right, valid, image_hw, seeds, config)
+    if not keystone:
         return similarity
-    turned = _fit_keystone(left, right, inliers, valid, image_hw, focal_px.to(left.dtype), config)
+    turned = _fit_keystone(left, right, inliers, valid, image_hw, focal, config)
     if turned is None:
         return similarity
     use = turned.valid
@@ -242,6 +245,39 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
                         num_inliers=torch.where(use, turned.num_inliers, similarity.num_inliers),
                         correction_px=torch.where(use, turned.correction_px, similarity.correction_px),
                         valid=similarity.valid | use, keystone=use, keystone_deg=turned.keystone_deg)
+
+
+def _fit_similarity(left: torch.Tensor, right: torch.Tensor, valid: torch.Tensor, image_hw: torch.Tensor,
+                    seeds: torch.Tensor, config: RowAlignmentConfig) -> tuple[RowAlignment, torch.Tensor]:
+    """The similarity (RANSAC over 3-match samples, then the least-squares refit and :func:`_accept`) of points
+    ``(B, K, 2)`` float64, and its inliers ``(B, K)`` before the acceptance (where a keystone fit starts)."""
+    params = _sample_params(left, right, valid, seeds, config.num_hypotheses)
+    cost = _msac_cost(params, left, right, valid, config.threshold_px)
+    best = torch.gather(params, 1, cost.argmin(1).view(-1, 1, 1).expand(-1, 1, 3)).squeeze(1)
+    inliers = valid & (_row_residuals(best.nan_to_num().unsqueeze(1), left, right)[:, 0] < config.threshold_px)
+    refit = _refit(left, right, inliers)
+    inliers = valid & (_row_residuals(refit.unsqueeze(1), left, right)[:, 0] < config.threshold_px)
+    raw = (valid & ((left[..., 1] - right[..., 1]).abs() < config.threshold_px)).sum(1)
+    return _accept(refit, inliers, valid, raw, image_hw, config), inliers
+
+
+def _fit_similarity_kernel(left: torch.Tensor, right: torch.Tensor, valid: torch.Tensor, image_hw: torch.Tensor,
+                           seeds: torch.Tensor, focal_px: torch.Tensor | None, config: RowAlignmentConfig
+                           ) -> tuple[RowAlignment, torch.Tensor, torch.Tensor] | None:
+    """:func:`_fit_similarity` by the C kernel (``kernels/row_alignment_fit.c``), with ``(B,)`` bool where the
+    keystone model reads a significant turn (False everywhere without ``focal_px``); None where it cannot run."""
+    settings = {name: getattr(config, name) for name in kernels.ROW_ALIGNMENT_SETTINGS
+                if name not in ("max_roll_rad", "keystone_min_deg")}
+    settings["max_roll_rad"] = math.radians(config.max_roll_deg)
+    settings["keystone_min_deg"] = config.keystone_min_deg if config.keystone_min_deg is not None else 0.0
+    fast = kernels.row_alignment_fit(left, right, valid, image_hw, seeds, focal_px, settings)
+    if fast is None:
+        return None
+    homography, inliers, ok, count, correction, reads_turn = fast
+    similarity = RowAlignment(H_right=homography, inliers=inliers & ok[:, None], num_inliers=torch.where(ok, count, 0),
+                              correction_px=correction, valid=ok, keystone=torch.zeros_like(ok),
+                              keystone_deg=torch.zeros_like(homography[:, 0, :2]))
+    return similarity, inliers, reads_turn
 
 
 def _accept(params: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor, raw: torch.Tensor,
@@ -280,7 +316,7 @@ def _corner_row_move(homography: torch.Tensor, image_hw: torch.Tensor) -> torch.
     height, width = image_hw.to(homography.dtype).unbind(-1)
     corners = torch.stack([torch.stack([x, y], -1) for x, y in ((0 * width, 0 * height), (width - 1, 0 * height),
                            (0 * width, height - 1), (width - 1, height - 1))], 1)  # (B, 4, 2)
-    return _mapped_row_residuals(homography, corners, corners).amax(1)
+    return mapped_row_residuals(homography, corners, corners).amax(1)
 
 
 def row_alignment_homography(points_left: torch.Tensor, points_right: torch.Tensor, inliers: torch.Tensor,
@@ -298,74 +334,25 @@ def row_alignment_homography(points_left: torch.Tensor, points_right: torch.Tens
         return similarity
     terms = keystone_deg != 0
     focal = focal_px.to(torch.float64)
-    params, _ = _keystone_refit(left, right, inliers, image_hw, focal, terms)
-    turned = _keystone_homography(params, image_hw, focal)
+    params, _ = keystone_refit(left, right, inliers, image_hw, focal, terms)
+    turned = keystone_homography(params, image_hw, focal)
     return torch.where(terms.any(1)[:, None, None], turned, similarity)
-
-
-def _keystone_design(right: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor,
-                     terms: torch.Tensor) -> torch.Tensor:
-    """The keystone model's design ``(B, K, 5)``: ``(v, u, 1, u·v/f, v²/f)`` of the right points in pixels from the
-    image centre, the last two zeroed where ``terms`` ``(B, 2)`` bool is False."""
-    cy, cx = ((image_hw.to(right.dtype) - 1) / 2).unbind(-1)
-    u, v = right[..., 0] - cx[:, None], right[..., 1] - cy[:, None]
-    f, keep = focal_px.to(right.dtype)[:, None], terms.to(right.dtype)
-    return torch.stack([v, u, torch.ones_like(u), keep[:, :1] * u * v / f, keep[:, 1:] * v * v / f], -1)
-
-
-def _keystone_refit(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor, image_hw: torch.Tensor,
-                    focal_px: torch.Tensor, terms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares ``(a, b, t, p, q)`` ``(B, 5)`` of ``y_l = a·v + b·u + t + p·u·v/f + q·v²/f`` (rows from the
-    centre) over each pair's inliers, and their standard errors ``(B, 5)`` (unused terms: p or q held at 0)."""
-    design = _keystone_design(right, image_hw, focal_px, terms)
-    target = left[..., 1] - (image_hw[:, :1].to(left.dtype) - 1) / 2
-    weight = inliers.to(design.dtype)
-    weighted = design * weight[..., None]
-    normal = weighted.transpose(1, 2) @ design + 1e-9 * torch.eye(5, dtype=design.dtype, device=design.device)
-    params = torch.linalg.solve(normal, weighted.transpose(1, 2) @ target[..., None]).squeeze(-1)
-    residual = (design @ params[..., None]).squeeze(-1) - target
-    variance = (weight * residual ** 2).sum(1) / (weight.sum(1) - 5).clamp(min=1)
-    error = (torch.linalg.inv(normal).diagonal(dim1=-2, dim2=-1) * variance[:, None]).clamp(min=0).sqrt()
-    return params, error
-
-
-def _keystone_homography(params: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor) -> torch.Tensor:
-    """``(B, 3, 3)``: undo the turn's keystone about the image centre, then the similarity ``(a, b, t)`` (module
-    docstring, "Keystone")."""
-    a, b, t, p, q = params.unbind(-1)
-    cy, cx = ((image_hw.to(params.dtype) - 1) / 2).unbind(-1)
-    zero, one = torch.zeros_like(a), torch.ones_like(a)
-
-    def matrix(*rows: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        return torch.stack([torch.stack(row, -1) for row in rows], -2)
-
-    to_centre = matrix((one, zero, -cx), (zero, one, -cy), (zero, zero, one))
-    from_centre = matrix((one, zero, cx), (zero, one, cy), (zero, zero, one))
-    similarity = matrix((a, -b, zero), (b, a, t), (zero, zero, one))
-    unturn = matrix((one, zero, zero), (zero, one, zero), (-p / (a * focal_px), -q / (a * focal_px), one))
-    return from_centre @ similarity @ unturn @ to_centre
-
-
-def _mapped_row_residuals(homography: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """|row of ``homography`` applied to the right points − left row| ``(B, K)``."""
-    mapped = torch.cat([right, torch.ones_like(right[..., :1])], -1) @ homography.transpose(1, 2)
-    return (mapped[..., 1] / mapped[..., 2] - left[..., 1]).abs()
 
 
 def _fit_keystone(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor,
                   image_hw: torch.Tensor, focal_px: torch.Tensor, config: RowAlignmentConfig) -> RowAlignment | None:
     """The keystone alignment (module docstring, "Keystone") started from the similarity's ``inliers``, valid where
     a turn term is significant and the fit stays within the config's limits; None where no pair reads a turn."""
-    params, error = _keystone_refit(left, right, inliers, image_hw, focal_px, torch.ones_like(valid[:, :2]))
+    params, error = keystone_refit(left, right, inliers, image_hw, focal_px, torch.ones_like(valid[:, :2]))
     read = params[:, 3:] / params[:, :1]
     terms = ((torch.rad2deg(torch.atan(read)).abs() >= config.keystone_min_deg)
              & (params[:, 3:].abs() >= config.keystone_min_t * error[:, 3:]))
     if not bool(terms.any()):  # no pair reads a turn (a straight rig): the refits below would change nothing
         return None
     for _ in range(2):  # refit on the matches the turned model puts on their rows (at native size, more of them)
-        params, _ = _keystone_refit(left, right, inliers, image_hw, focal_px, terms)
-        homography = _keystone_homography(params, image_hw, focal_px)
-        inliers = valid & (_mapped_row_residuals(homography, left, right) < config.threshold_px)
+        params, _ = keystone_refit(left, right, inliers, image_hw, focal_px, terms)
+        homography = keystone_homography(params, image_hw, focal_px)
+        inliers = valid & (mapped_row_residuals(homography, left, right) < config.threshold_px)
     a, b, t = params[:, 0], params[:, 1], params[:, 2]
     turn = torch.rad2deg(torch.atan(params[:, 3:] / a[:, None])) * torch.tensor([-1.0, 1.0], dtype=a.dtype,
                                                                                  device=a.device)

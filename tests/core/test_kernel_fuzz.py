@@ -42,6 +42,7 @@ from svs_torch.geometry.lk_refinement import refine_matches_lk
 from svs_torch.geometry.matched_points import MatchedPoints
 from svs_torch.geometry.matching import match_sad
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
+from svs_torch.geometry.rectification import rectify_uncalibrated
 from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
@@ -369,7 +370,37 @@ def test_row_alignment_costs(b, k, data):
         right[:, 1:3] = right[:, :1]  # a repeated point: its samples are singular
     valid = data.draw(masks((b, k), odd_bytes=False))
     image_hw = torch.tensor([[240, 320]] * b, dtype=torch.int64).view(b, 2)
-    _both(fit_row_alignment, left, right, valid, image_hw)
+    # With focal lengths the kernel also reads the keystone (its LU is not LAPACK's: to 1e-9).
+    focal_px = data.draw(st.sampled_from([None, torch.full((b,), 300.0, dtype=torch.float64)]))
+    _both(fit_row_alignment, left, right, valid, image_hw, focal_px=focal_px, atol=1e-9)
+
+
+@given(b=st.integers(0, 3), k=st.integers(0, 30), dtype=st.sampled_from([torch.float32, torch.float64]),
+       data=st.data())
+@examples(40)
+def test_rectify_uncalibrated(b, k, dtype, data):
+    """Hartley's rectification with the parallel x row by the kernel or the torch path: the same statuses and
+    inlier counts, homographies and epipoles to their last bits, with near-rectified and arbitrary F (NaN,
+    infinite, huge, zero), points of the same kinds, inliers viewed from odd bytes and per-pair image sizes."""
+    near = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    spread = data.draw(st.sampled_from([1e-3, 1.0]))
+    F = near + data.draw(tensors((b, 3, 3), low=-spread, high=spread, specials=0.05, dtype=torch.float64))
+    left = data.draw(tensors((b, k, 2), high=300.0, specials=0.05, dtype=dtype))
+    right = left + data.draw(tensors((b, k, 2), low=-20.0, high=2.0, specials=0.05, dtype=dtype))
+    inliers = data.draw(masks((b, k)))
+    image_hw = torch.tensor([[data.draw(st.integers(1, 300)), data.draw(st.integers(1, 400))] for _ in range(b)],
+                            dtype=torch.int64).view(b, 2)
+    fused = _outcome(rectify_uncalibrated, F.to(dtype), left, right, inliers, image_hw)
+    with _torch_path():
+        eager = _outcome(rectify_uncalibrated, F.to(dtype), left, right, inliers, image_hw)
+    assert fused is not InputError and eager is not InputError
+    assert torch.equal(fused.status, eager.status) and torch.equal(fused.num_inliers, eager.num_inliers)
+    close = 1e-9 if dtype == torch.float64 else 1e-5  # float32 outputs: a float64 ulp may round the other way
+    for name in ("H_left", "H_right", "epipole_left", "epipole_right"):
+        torch.testing.assert_close(getattr(fused, name), getattr(eager, name), rtol=close, atol=close,
+                                   equal_nan=True)
+    rms = eager.rms_row_error_px.to(torch.float64)  # float32 rows round to 1e-7 of the coordinates in torch's sums
+    torch.testing.assert_close(fused.rms_row_error_px.to(torch.float64), rms, rtol=1e-4, atol=1e-4, equal_nan=True)
 
 
 @given(b=st.integers(0, 3), k=st.integers(0, 40), scoring=st.sampled_from(["msac", "ransac"]), data=st.data())
@@ -499,6 +530,16 @@ def test_dense_object_depths(size, n, fill, data):
                                     torch.ones(1, 5, dtype=torch.bool), 1.0)),
     ("row_alignment_cost", lambda: (torch.rand(1, 4, 3, dtype=torch.float64), *(torch.rand(1, 5, dtype=torch.float64)
                                     for _ in range(3)), torch.ones(1, 5, dtype=torch.bool), math.nan)),
+    ("rectify_parallel", lambda: (torch.rand(1, 3, 3), torch.rand(1, 5, 2), torch.rand(1, 4, 2),
+                                  torch.ones(1, 5, dtype=torch.bool), torch.tensor([[4, 5]]), 7, 4.0, 45.0)),
+    ("rectify_parallel", lambda: (torch.rand(2, 3, 3), torch.rand(2, 5, 2), torch.rand(2, 5, 2),
+                                  torch.ones(2, 5, dtype=torch.bool), torch.tensor([[4, 5]]), 7, 4.0, 45.0)),
+    ("row_alignment_fit", lambda: (torch.rand(1, 5, 2, dtype=torch.float64), torch.rand(1, 5, 2, dtype=torch.float64),
+                                   torch.ones(1, 6, dtype=torch.bool), torch.tensor([[4, 5]]),
+                                   torch.zeros(1, dtype=torch.int64), None, {})),
+    ("row_alignment_fit", lambda: (torch.rand(1, 5, 2, dtype=torch.float64), torch.rand(1, 5, 2, dtype=torch.float64),
+                                   torch.ones(1, 5, dtype=torch.bool), torch.tensor([[4, 5]]),
+                                   torch.zeros(1, dtype=torch.int64), torch.ones(2, dtype=torch.float64), {})),
     ("ransac_fundamental", lambda: (torch.rand(1, 8, 2, dtype=torch.float64), torch.rand(1, 9, 2, dtype=torch.float64),
                                     torch.ones(1, 8, dtype=torch.bool), torch.zeros(1, dtype=torch.int64), {})),
     ("ransac_fundamental", lambda: (torch.rand(1, 8, 2, dtype=torch.float64), torch.rand(1, 8, 2, dtype=torch.float64),

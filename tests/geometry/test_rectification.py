@@ -334,3 +334,40 @@ def test_warped_views_stay_in_the_unit_range():
     assert float(views.max()) == 1.0 and torch.equal(views, blended.clamp(max=1.0))
     image = torch.rand(3, 1, 48, 64, generator=torch.Generator().manual_seed(0))
     assert torch.equal(warp_views(image, H), warp_rectified(image, H).clamp(0, 1))
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_compiled_parallel_mode_gives_the_torch_paths_rectification(generator, monkeypatch, dtype, threads):
+    """The C kernel (a pair in one pass) against the torch path: every status (OK, zero, rank-1 and NaN F, an
+    epipole in the image, too few inliers; a distorted pair under tight limits), homographies and epipoles to their
+    last bits, the RMS row error to its dtype's round-off, per-pair image sizes and some inliers left out."""
+    from svs_torch.geometry import kernels
+
+    if not kernels.available("rectify_parallel"):
+        pytest.skip("no C compiler")
+    F, left, right, inliers = _bad_cases(generator)
+    rigs = make_rigs(6, 20, generator, max_angle_rad=0.05, baseline_jitter=0.3)
+    F, left, right = torch.cat([F, rigs[0]]), torch.cat([left, rigs[1]]), torch.cat([right, rigs[2]])
+    inliers = torch.cat([inliers, torch.rand(6, 20, generator=generator) > 0.2])
+    image_hw = torch.tensor([[480, 640]] * 6 + [[480, 640], [240, 320]] * 3)
+    F, left, right = F.to(dtype), left.to(dtype), right.to(dtype)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for config in (PARALLEL, RectificationConfig(max_area_scale=1.05, max_rotation_deg=2.0)):
+            fused = rectify_uncalibrated(F, left, right, inliers, image_hw, config)
+            monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+            eager = rectify_uncalibrated(F, left, right, inliers, image_hw, config)
+            monkeypatch.delenv("SVS_TORCH_KERNELS")
+            assert torch.equal(fused.status, eager.status) and torch.equal(fused.num_inliers, eager.num_inliers)
+            assert set(fused.status.tolist()) >= ({0, 1, 2, 3} if config is PARALLEL else {1, 2, 3, 4})
+            exact = 1e-12 if dtype == F64 else 1e-5  # float32: a float64 ulp may round the other way
+            for name in ("H_left", "H_right", "epipole_left", "epipole_right"):
+                a, b = getattr(fused, name), getattr(eager, name)
+                assert a.dtype == b.dtype == dtype, name
+                torch.testing.assert_close(a, b, rtol=exact, atol=exact)
+            # float32 rows of 640 px round to 3e-5 px in torch's sums; the kernel's are in double.
+            torch.testing.assert_close(fused.rms_row_error_px, eager.rms_row_error_px, rtol=1e-6,
+                                       atol=1e-9 if dtype == F64 else 1e-4)
+    finally:
+        torch.set_num_threads(before)

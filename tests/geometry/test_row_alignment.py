@@ -118,23 +118,53 @@ def test_aligned_rig_and_too_few_matches_keep_their_rows(generator):
     assert not bool(result.valid[0]) and torch.equal(result.H_right[0], torch.eye(3, dtype=torch.float64))
 
 
-def test_compiled_costs_give_the_torch_paths_alignment(generator, monkeypatch):
-    """The MSAC costs summed by the C kernel or by the (B, M, K) torch expression choose the same alignment:
-    three misaligned pairs of different match counts in one padded batch, one with too few matches."""
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_compiled_fit_gives_the_torch_paths_alignment(generator, monkeypatch, threads):
+    """The similarity fitted by the C kernel (samples, costs, refit, limits and the keystone reading in one pass a
+    pair) or by the torch path: the same inliers, acceptance and keystone, homographies to 1e-9, on five
+    misaligned pairs of different match counts in one padded batch (rolled, shifted and scaled, turned about
+    either axis, one with too few matches), with and without focal lengths."""
+    from svs_torch.geometry import kernels
+    from svs_torch.geometry.row_alignment import _fit_similarity_kernel
+    from svs_torch.geometry.row_alignment_keystone import keystone_refit
+
+    if not kernels.available("row_alignment_fit"):
+        pytest.skip("no C compiler")
     pairs = [_misaligned_points(m, outliers=15, generator=generator) for m in (
         real_rig.Misalignment(roll_deg=2), real_rig.Misalignment(shift_y_fraction=-0.03, scale=0.02),
-        real_rig.Misalignment(roll_deg=-1))]
+        real_rig.Misalignment(roll_deg=-1), real_rig.Misalignment(tilt_y_deg=1),
+        real_rig.Misalignment(tilt_x_deg=-1, roll_deg=0.5))]
     left, right = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
     valid = torch.ones(left.shape[:2], dtype=torch.bool)
     valid[1, 40:] = False
     valid[2, 2:] = False
     image_hw = torch.cat([p[2] for p in pairs])
-    fused = fit_row_alignment(left, right, valid, image_hw)
-    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
-    reference = fit_row_alignment(left, right, valid, image_hw)
-    assert fused.valid.tolist() == [True, True, False]
-    for name in ("H_right", "inliers", "num_inliers", "correction_px", "valid"):
-        assert torch.equal(getattr(fused, name), getattr(reference, name)), name
+    focal = FOCAL_PX.expand(len(pairs))
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for focal_px in (None, focal):
+            fused = fit_row_alignment(left, right, valid, image_hw, focal_px=focal_px)
+            monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+            reference = fit_row_alignment(left, right, valid, image_hw, focal_px=focal_px)
+            monkeypatch.delenv("SVS_TORCH_KERNELS")
+            turned = focal_px is not None  # the tilt about y alone moves too few rows for the similarity
+            assert fused.valid.tolist() == [True, True, False, turned, True]
+            assert fused.keystone.tolist() == [False, False, False, turned, turned]
+            for name in ("inliers", "num_inliers", "valid", "keystone"):
+                assert torch.equal(getattr(fused, name), getattr(reference, name)), name
+            for name in ("H_right", "correction_px", "keystone_deg"):
+                torch.testing.assert_close(getattr(fused, name), getattr(reference, name), rtol=0, atol=1e-9)
+        # The kernel's keystone reading is the torch refit's significance test.
+        similarity, inliers, reads = _fit_similarity_kernel(left, right, valid, image_hw, torch.zeros(5).long(),
+                                                            focal, RowAlignmentConfig())
+        params, error = keystone_refit(left, right, inliers, image_hw, focal, torch.ones(5, 2, dtype=torch.bool))
+        config = RowAlignmentConfig()
+        terms = ((torch.rad2deg(torch.atan(params[:, 3:] / params[:, :1])).abs() >= config.keystone_min_deg)
+                 & (params[:, 3:].abs() >= config.keystone_min_t * error[:, 3:]))
+        assert reads.tolist() == terms.any(1).tolist() == [False, False, False, True, True]
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_alignment_rejects_bad_input():

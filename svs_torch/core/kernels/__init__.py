@@ -21,12 +21,13 @@ box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxim
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``), the MSAC costs of the row
-alignment's hypotheses (``row_alignment_cost.c``) and the whole RANSAC search for F, one pair at a time
-(``ransac_fundamental.c``). Each is the no-gradient path of
+alignment's hypotheses (``row_alignment_cost.c``) and its whole similarity fit (``row_alignment_fit.c``), the whole
+RANSAC search for F, one pair at a time (``ransac_fundamental.c``), and Hartley's rectifying homographies with the
+parallel x row (``rectify_parallel.c``). Each is the no-gradient path of
 a torch function that stays the reference, the fallback and the differentiable path. Fifteen give that torch path's
 values bit for bit: the first fourteen, and the strongest maxima ``torch.topk``'s values and indices (equal values
-in index order, which ``torch.topk`` leaves open). Six do not (RANSAC's: its LU, eigenvectors and sums in its own
-order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Five of
+in index order, which ``torch.topk`` leaves open). Eight do not (RANSAC's: its LU, eigenvectors and sums in its own
+order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Seven of
 them: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
@@ -34,7 +35,11 @@ with its sums in double and in its own order, so its points agree to about 1e-4 
 (``usurf_describe.c``) builds each image's integral and describes its keypoints in double, equal to the float64 torch
 path to 1e-6 and to the float32 one within its round-off (5e-4), except where a response near 0 takes the other sign
 there (the extended descriptor's halves then move by up to 0.08); the row alignment sums each hypothesis's truncated
-row errors in match order, not torch's (the same alignments: ``tests/core/test_kernel_fuzz.py``). On the 58 shared
+row errors in match order, not torch's (the same alignments: ``tests/core/test_kernel_fuzz.py``), and its whole fit
+also solves its samples and refits by its own LU (the same inliers, acceptances and keystone readings, homographies
+to 1e-9: ``tests/geometry/test_row_alignment.py``); the rectification makes the adjugate's cross products, the
+norms and the area test's determinant its own way (homographies and epipoles to their last bits, statuses the same:
+``tests/geometry/test_rectification.py``). On the 58 shared
 real pairs at 320×240, the Middlebury and KITTI scenes' results equal the torch paths'; 12 of the 13 chessboard pairs
 differ by a few matches or inliers (and through their rectification, their depths), all from the refinement and the
 descriptor (``experiments/kernel_parity.py``; the README's "Compiled kernels" says the same).
@@ -78,7 +83,10 @@ cost twice a pair of B = 32); the kernel reads each pair once at its own box (64
 reads each row twice, skipping eight pixels at a time (16 masks of 320×240: 3.0 → 0.6 ms). The row alignment scored
 its 256 hypotheses against every match in six float64 passes over a ``(B, 256, K)`` array, K the batch's largest
 match count, so its time a pair grew with the batch; the kernel sums each hypothesis in one pass over its own pair's
-matches (synthetic pairs, one thread: 1.2 / 5.7 / 9.2 → 0.38 / 0.31 / 0.21 ms a pair at B = 8 / 32 / 128).
+matches (synthetic pairs, one thread: 1.2 / 5.7 / 9.2 → 0.38 / 0.31 / 0.21 ms a pair at B = 8 / 32 / 128). At
+B = 1, guide's call, the cost is torch's dispatch, not memory: the rectification and the row alignment's fit were
+each 130–180 small operations on 3 × 3 matrices and a few hundred matches (3.0 and 3.2 ms a frame), where their
+kernels take 0.3 and 0.35 ms (the stage 6.8 → 1.6 ms a frame on the bench's camera frames).
 
 The shared libraries are built and cached by :mod:`svs_torch.core.kernels.loader`: in a private folder
 (``$SVS_TORCH_CACHE``, default ``~/.cache/svs_torch``; one others can write to is refused), under a name that

@@ -13,14 +13,16 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_number, check_rows
 
-__all__ = ["RANSAC_SETTINGS", "available", "lk_refine", "load", "ransac_fundamental", "row_alignment_cost",
-           "sad_nearest"]
+__all__ = ["RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available", "lk_refine", "load", "ransac_fundamental",
+           "rectify_parallel", "row_alignment_cost", "row_alignment_fit", "sad_nearest"]
 
 declare({
     "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
                   None),
     "ransac_fundamental": ([POINTER] * 5 + [INT] * 2 + [POINTER] * 4 + [INT], ctypes.c_int),
+    "rectify_parallel": ([POINTER] * 5 + [INT] * 3 + [ctypes.c_double] * 2 + [INT] + [POINTER] * 7 + [INT], None),
     "row_alignment_cost": ([POINTER] * 5 + [INT] * 3 + [ctypes.c_double, POINTER, INT], ctypes.c_int),
+    "row_alignment_fit": ([POINTER] * 7 + [INT] * 2 + [POINTER] * 6 + [INT], ctypes.c_int),
     "sad_nearest": ([POINTER] * 8 + [FLOAT] + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
 })
 
@@ -131,6 +133,105 @@ def row_alignment_cost(params: torch.Tensor, left_y: torch.Tensor, right_x: torc
                                         valid.data_ptr(), b, m, k, float(threshold_px), cost.data_ptr(),
                                         torch.get_num_threads())
     return None if status != 0 else cost
+
+
+def rectify_parallel(F: torch.Tensor, points_left: torch.Tensor, points_right: torch.Tensor, inliers: torch.Tensor,
+                     image_hw: torch.Tensor, min_inliers: int, max_area_scale: float, max_rotation_deg: float
+                     ) -> tuple[torch.Tensor, ...] | None:
+    """``svs_torch.geometry.rectification.rectify_uncalibrated`` with ``x_alignment="parallel"``, one pair in one
+    pass (see the C source): ``F`` ``(B, 3, 3)`` float32 or float64; ``points_left``, ``points_right`` ``(B, K, 2)``
+    of F's dtype; ``inliers`` ``(B, K)`` bool; ``image_hw`` ``(B, 2)`` int64, each at least 1; the config's limits.
+    Returns ``(H_left, H_right, status, num_inliers, epipole_left, epipole_right, rms_row_error_px)`` as
+    :class:`~svs_torch.geometry.rectification.Rectification` holds them (float tensors in F's dtype), or None when
+    the kernel is not available or the inputs do not fit its contract."""
+    b = check_shape(F, "F", ["B", 3, 3])["B"]
+    k = check_shape(points_left, "points_left", [b, "K", 2])["K"]
+    check_shape(points_right, "points_right", [b, k, 2])
+    check_rows(inliers, "inliers", b, k, kinds="bool")
+    check_rows(image_hw, "image_hw", b, 2)
+    if not isinstance(min_inliers, int):
+        raise InputError(f"min_inliers: expected an int, got {min_inliers!r}")
+    for value, name in ((max_area_scale, "max_area_scale"), (max_rotation_deg, "max_rotation_deg")):
+        if not isinstance(value, (int, float)):  # any float: inf is no limit, NaN fails every pair as in torch
+            raise InputError(f"{name}: expected a number, got {value!r}")
+    dtype = F.dtype
+    if (dtype not in (torch.float32, torch.float64) or not on_cpu(dtype, F, points_left, points_right)
+            or not on_cpu(torch.bool, inliers) or not on_cpu(torch.int64, image_hw)
+            or bool((image_hw < 1).any())):
+        return None
+    library = load("rectify_parallel")
+    if library is None:
+        return None
+    f64 = torch.float64
+    F, points_left, points_right = (t.to(f64).contiguous() for t in (F, points_left, points_right))
+    inliers, image_hw = inliers.contiguous(), image_hw.contiguous()
+    H_left, H_right = torch.empty(b, 3, 3, dtype=f64), torch.empty(b, 3, 3, dtype=f64)
+    epipole_left, epipole_right = torch.empty(b, 3, dtype=f64), torch.empty(b, 3, dtype=f64)
+    rms = torch.empty(b, dtype=f64)
+    status, num_inliers = torch.empty(b, dtype=torch.int64), torch.empty(b, dtype=torch.int64)
+    library.rectify_parallel(F.data_ptr(), points_left.data_ptr(), points_right.data_ptr(), inliers.data_ptr(),
+                             image_hw.data_ptr(), b, k, min_inliers, float(max_area_scale), float(max_rotation_deg),
+                             int(dtype == torch.float32), H_left.data_ptr(), H_right.data_ptr(),
+                             epipole_left.data_ptr(), epipole_right.data_ptr(), rms.data_ptr(), status.data_ptr(),
+                             num_inliers.data_ptr(), torch.get_num_threads())
+    return (H_left.to(dtype), H_right.to(dtype), status, num_inliers, epipole_left.to(dtype), epipole_right.to(dtype),
+            rms.to(dtype))
+
+
+#: The settings :func:`row_alignment_fit` takes, in the order of its C source's ``enum``: those of
+#: :class:`~svs_torch.geometry.row_alignment.RowAlignmentConfig` (the roll limit in radians; ``keystone_min_deg``
+#: unused without focal lengths).
+ROW_ALIGNMENT_SETTINGS = ("threshold_px", "num_hypotheses", "min_inliers", "min_inlier_share", "min_gain",
+                          "min_gain_share", "max_roll_rad", "max_scale_change", "max_shift_fraction",
+                          "keystone_min_deg", "keystone_min_t")
+
+
+def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, valid: torch.Tensor,
+                      image_hw: torch.Tensor, pair_seeds: torch.Tensor, focal_px: torch.Tensor | None,
+                      settings: dict[str, float]) -> tuple[torch.Tensor, ...] | None:
+    """``svs_torch.geometry.row_alignment.fit_row_alignment``'s similarity, and whether a keystone reads, one pair
+    at a time (see the C source): ``points_left``, ``points_right`` ``(B, K, 2)`` float64 pixels; ``valid`` ``(B,
+    K)`` bool; ``image_hw`` ``(B, 2)`` int64, each at least 1; ``pair_seeds`` ``(B,)`` int64; ``focal_px`` ``(B,)``
+    float64 or None (no keystone reading); ``settings`` every name of :data:`ROW_ALIGNMENT_SETTINGS`. Returns
+    ``(H_right (B, 3, 3), inliers (B, K) bool before the acceptance, accepted (B,) bool, their count (B,) int64,
+    correction_px (B,), reads_turn (B,) bool)``, or None when the kernel is not available or the inputs do not fit
+    its contract."""
+    dims = check_shape(points_left, "points_left", ["B", "K", 2])
+    b, k = dims["B"], dims["K"]
+    check_shape(points_right, "points_right", [b, k, 2])
+    check_rows(valid, "valid", b, k, kinds="bool")
+    check_rows(image_hw, "image_hw", b, 2)
+    check_rows(pair_seeds, "pair_seeds", b)
+    if focal_px is not None:
+        check_rows(focal_px, "focal_px", b, kinds="float")
+    if set(settings) != set(ROW_ALIGNMENT_SETTINGS):
+        raise InputError(f"settings: expected exactly {', '.join(ROW_ALIGNMENT_SETTINGS)}, "
+                         f"got {', '.join(sorted(settings))}")
+    values = [check_number(settings[name], f"settings[{name!r}]") for name in ROW_ALIGNMENT_SETTINGS]
+    for name in ("num_hypotheses", "min_inliers", "min_gain"):
+        if not (float(settings[name]).is_integer() and 0 <= settings[name] < 2**53):
+            raise InputError(f"settings[{name!r}]: expected a whole number >= 0, got {settings[name]!r}")
+    floats = (points_left, points_right) if focal_px is None else (points_left, points_right, focal_px)
+    if (not (on_cpu(torch.float64, *floats) and on_cpu(torch.bool, valid) and on_cpu(torch.int64, image_hw, pair_seeds))
+            or bool((image_hw < 1).any())):
+        return None
+    library = load("row_alignment_fit")
+    if library is None:
+        return None
+    points_left, points_right, valid, image_hw, pair_seeds = (
+        t.contiguous() for t in (points_left, points_right, valid, image_hw, pair_seeds))
+    focal = 0 if focal_px is None else focal_px.contiguous()
+    table = torch.tensor(values, dtype=torch.float64)
+    homography, correction = torch.empty(b, 3, 3, dtype=torch.float64), torch.empty(b, dtype=torch.float64)
+    inliers, accepted, turn = (torch.empty(*shape, dtype=torch.bool) for shape in ((b, k), (b,), (b,)))
+    count = torch.empty(b, dtype=torch.int64)
+    status = library.row_alignment_fit(points_left.data_ptr(), points_right.data_ptr(), valid.data_ptr(),
+                                       image_hw.data_ptr(), pair_seeds.data_ptr(),
+                                       0 if focal_px is None else focal.data_ptr(), table.data_ptr(), b, k,
+                                       homography.data_ptr(), inliers.data_ptr(), accepted.data_ptr(),
+                                       count.data_ptr(), correction.data_ptr(), turn.data_ptr(),
+                                       torch.get_num_threads())
+    return None if status != 0 else (homography, inliers, accepted, count, correction, turn)
 
 
 #: The settings :func:`ransac_fundamental` takes, in the order of its C source's ``enum`` (each a number; the flags

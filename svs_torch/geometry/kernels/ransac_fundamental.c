@@ -26,6 +26,7 @@
 #include <string.h>
 
 #include "common.h"
+#include "minimal_samples.h"
 
 #define SAMPLE 7
 
@@ -56,32 +57,6 @@ typedef struct {
     double guard; /* added to the float32 scores' Sampson denominator (ransac_scoring._DENOMINATOR_GUARD) */
     int64_t preverify_points;
 } Problem;
-
-static const uint64_t GAMMA = 0x9E3779B97F4A7C15ULL, MIX1 = 0xBF58476D1CE4E5B9ULL, MIX2 = 0x94D049BB133111EBULL;
-
-static uint64_t splitmix64(uint64_t z) {
-    z = (z ^ (z >> 30)) * MIX1;
-    z = (z ^ (z >> 27)) * MIX2;
-    return z ^ (z >> 31);
-}
-
-/* ransac_sampling.draw_minimal_samples for hypothesis h: 7 distinct ranks in [0, max(n, 7)) by Floyd's algorithm. */
-static void draw_sample(uint64_t seed, int64_t h, int64_t n, int64_t *ranks) {
-    const int64_t population = n > SAMPLE ? n : SAMPLE;
-    for (int slot = 0; slot < SAMPLE; ++slot) {
-        const uint64_t counter = (uint64_t)h * SAMPLE + (uint64_t)(slot + 1);
-        const uint64_t bits = splitmix64(seed + counter * GAMMA) >> 11;
-        const int64_t top = population - SAMPLE + slot;
-        int64_t pick = (int64_t)(bits % (uint64_t)(top + 1));
-        for (int i = 0; i < slot; ++i) {
-            if (ranks[i] == pick) {
-                pick = top;
-                break;
-            }
-        }
-        ranks[slot] = pick;
-    }
-}
 
 /* ransac_sampling._preverification_rows: the rows of the smallest keys (signed, as torch's int64 topk). */
 static void preverification_rows(uint64_t seed, Problem *pr, int64_t points, int64_t *keys) {
@@ -639,7 +614,7 @@ static double search(const Problem *pr, const Settings *st, Work *w, uint64_t se
                                                                             : st->max_iterations - first;
         for (int64_t h = 0; h < count; ++h) {
             int64_t ranks[SAMPLE];
-            draw_sample(seed, first + h, pr->n, ranks);
+            draw_minimal_sample(seed, first + h, pr->n, SAMPLE, ranks);  /* draw_minimal_samples */
             for (int r = 0; r < SAMPLE; ++r) memcpy(sample + 9 * r, pr->design + 9 * ranks[r], 9 * sizeof(double));
             seven_point(sample, mixing, st, w->models + 27 * h, w->usable + 3 * h);
         }
