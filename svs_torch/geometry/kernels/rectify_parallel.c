@@ -10,8 +10,8 @@
  * the cross products of the adjugate, the norms and the determinant of the area test (here the rule of Sarrus).
  * Homographies and epipoles therefore agree with the torch path to the last bits, not bit for bit, and a status
  * can differ only where a test's value ties its threshold to those bits. The RMS row error over the inliers is
- * summed in double in match order, from the homographies rounded to the output's dtype as the torch path uses
- * them (torch computes it in that dtype: equal within its round-off).
+ * computed in the output's dtype from the homographies rounded to it, as the torch path does, summed in match
+ * order (equal within that dtype's round-off).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (svs_torch/core/kernels/loader.py). Loaded
  * through ctypes by svs_torch/geometry/kernels/__init__.py; pairs are shared among num_threads OpenMP threads.
@@ -146,11 +146,46 @@ static int shape_ok(const double *h, const double corners[4][3], double max_area
     return shaped && angle <= max_rotation_deg;
 }
 
-/* Row of the point (x, y) under h rounded as the output: its y / w, and whether w > 0. */
-static int mapped_row(const double *h, double x, double y, double *row) {
-    const double w = (x * h[6] + y * h[7]) + h[8];
-    *row = ((x * h[3] + y * h[4]) + h[5]) / (w > 0 ? w : 1.0);
-    return w > 0;
+/* _rms_row_error: the RMS of the inliers' rectified row differences, over those in front of both cameras (w > 0),
+ * in double for float64 outputs. */
+static double rms_row_error(const double *h_left, const double *h_right, const double *left, const double *right,
+                            const uint8_t *inliers, int64_t K) {
+    double total = 0.0;
+    int64_t used = 0;
+    for (int64_t k = 0; k < K; ++k) {
+        if (!inliers[k]) continue;
+        const double xl = left[2 * k], yl = left[2 * k + 1], xr = right[2 * k], yr = right[2 * k + 1];
+        const double wl = (xl * h_left[6] + yl * h_left[7]) + h_left[8];
+        const double wr = (xr * h_right[6] + yr * h_right[7]) + h_right[8];
+        if (!(wl > 0 && wr > 0)) continue;
+        const double error = ((xl * h_left[3] + yl * h_left[4]) + h_left[5]) / wl
+                             - ((xr * h_right[3] + yr * h_right[4]) + h_right[5]) / wr;
+        total += error * error;
+        ++used;
+    }
+    return sqrt(total / (double)(used > 0 ? used : 1));
+}
+
+/* The same in float for float32 outputs, as torch computes it (so that a huge row error overflows as there). */
+static double rms_row_error_float(const double *h_left, const double *h_right, const double *left,
+                                  const double *right, const uint8_t *inliers, int64_t K) {
+    float hl[9], hr[9], total = 0.0f;
+    for (int i = 0; i < 9; ++i) {
+        hl[i] = (float)h_left[i];
+        hr[i] = (float)h_right[i];
+    }
+    int64_t used = 0;
+    for (int64_t k = 0; k < K; ++k) {
+        if (!inliers[k]) continue;
+        const float xl = (float)left[2 * k], yl = (float)left[2 * k + 1];
+        const float xr = (float)right[2 * k], yr = (float)right[2 * k + 1];
+        const float wl = (xl * hl[6] + yl * hl[7]) + hl[8], wr = (xr * hr[6] + yr * hr[7]) + hr[8];
+        if (!(wl > 0 && wr > 0)) continue;
+        const float error = ((xl * hl[3] + yl * hl[4]) + hl[5]) / wl - ((xr * hr[3] + yr * hr[4]) + hr[5]) / wr;
+        total += error * error;
+        ++used;
+    }
+    return sqrtf(total / (float)(used > 0 ? used : 1));
 }
 
 /* f (B, 3, 3) float64, pixel F; points_left, points_right (B, K, 2) float64 pixels; inliers (B, K) uint8;
@@ -218,18 +253,9 @@ void rectify_parallel(const double *f, const double *points_left, const double *
             const double n = norm3(e[0], e[1], e[2]);
             for (int i = 0; i < 3; ++i) pixel[s][i] = rank2 ? e[i] / n : 0.0;
         }
-        double total = 0.0;
-        int64_t used = 0;
-        for (int64_t k = 0; k < K; ++k) {
-            if (!inliers[p * K + k]) continue;
-            const double *pl = points_left + 2 * (p * K + k), *pr = points_right + 2 * (p * K + k);
-            double row_left, row_right;
-            if (mapped_row(out_left, pl[0], pl[1], &row_left) && mapped_row(out_right, pr[0], pr[1], &row_right)) {
-                const double error = row_left - row_right;
-                total += error * error;
-                ++used;
-            }
-        }
-        rms[p] = sqrt(total / (double)(used > 0 ? used : 1));
+        rms[p] = round_float ? rms_row_error_float(out_left, out_right, points_left + 2 * p * K,
+                                                   points_right + 2 * p * K, inliers + p * K, K)
+                             : rms_row_error(out_left, out_right, points_left + 2 * p * K, points_right + 2 * p * K,
+                                             inliers + p * K, K);
     }
 }
