@@ -42,7 +42,9 @@ from typing import NamedTuple
 import torch
 
 from ..core.errors import InputError
+from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
+from . import kernels
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
 
@@ -158,8 +160,29 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     limit reads (None: no pitch limit). Not differentiable."""
     b, _, h, w = disparity.shape
     _check_fit_arguments(disparity, measured, baseline_m)
+    measured = canonical_bool(measured)  # a mask viewed from other bytes: nonzero is True, on both paths
     disparity = disparity.detach().to(torch.float32)
     stride = max(1, round(w / config.grid_columns))
+    if min(h, w) <= stride // 2:  # no grid point: nothing to fit (an empty map, or one thinner than the stride)
+        return _no_plane(disparity)
+    tolerance = torch.full((b,), config.tolerance_px, device=disparity.device)
+    if noisy is not None:
+        tolerance = torch.where(noisy.to(disparity.device), config.noisy_tolerance_px, tolerance)
+    tolerance, min_span = tolerance.view(b, 1, 1) * working_factor, config.min_span_px * working_factor
+    draws = _draws(config, generator).to(disparity.device)
+    fast = _fit_by_kernel(disparity, measured, baseline_m, tolerance.view(b), focal_px, draws, config, stride,
+                          min_span)
+    if fast is not None:
+        return fast
+    return _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config)
+
+
+def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
+                  focal_px: torch.Tensor | None, tolerance: torch.Tensor, min_span: float, draws: torch.Tensor,
+                  stride: int, config: GroundPlaneConfig) -> GroundPlane:
+    """:func:`fit_ground_plane` in torch, the kernel's reference: its grid ``stride``, ``tolerance`` ``(B, 1, 1)``
+    and ``min_span`` in the map's pixels, the samples' ``draws`` ``(N, 5)``."""
+    b, _, h, w = disparity.shape
     grid_d = disparity[:, 0, stride // 2::stride, stride // 2::stride]  # (B, gh, gw)
     grid_ok = measured[:, 0, stride // 2::stride, stride // 2::stride] & (grid_d > 0)
     gh, gw = grid_d.shape[-2:]
@@ -167,12 +190,8 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     xs = torch.arange(gw, dtype=torch.float32, device=disparity.device) * stride + stride // 2
     x, y = xs.view(1, -1).expand(gh, gw).reshape(-1), ys.view(-1, 1).expand(gh, gw).reshape(-1)
     points_d, points_ok = grid_d.reshape(b, -1), grid_ok.reshape(b, -1)
-    tolerance = torch.full((b,), config.tolerance_px, device=disparity.device)
-    if noisy is not None:
-        tolerance = torch.where(noisy.to(disparity.device), config.noisy_tolerance_px, tolerance)
-    tolerance, min_span = tolerance.view(b, 1, 1) * working_factor, config.min_span_px * working_factor
     lower = (ys >= (1 - config.lower_rows_fraction) * h).view(1, -1, 1)
-    hypotheses = _sample_planes(grid_d, grid_ok, grid_ok & lower, xs, ys, config, generator)
+    hypotheses = _sample_planes(grid_d, grid_ok, grid_ok & lower, xs, ys, draws)
     rig = _Rig(baseline_m, focal_px, (w - 1) / 2, (h - 1) / 2)
     plausible = _plausible(hypotheses, rig, config)
     if not bool(plausible.any()):
@@ -225,19 +244,51 @@ def _no_plane(disparity: torch.Tensor) -> GroundPlane:
                        disparity.new_full((b,), math.nan), torch.zeros_like(disparity, dtype=torch.bool))
 
 
+#: The default samples' uniforms by (seed, hypotheses): the same numbers every call (guide fits every frame).
+_DRAWS: dict[tuple[int, int], torch.Tensor] = {}
+
+
+def _draws(config: GroundPlaneConfig, generator: torch.Generator | None) -> torch.Tensor:
+    """The samples' uniforms ``(N, 5)`` float64 on the CPU: from ``generator``, or from one seeded with
+    ``config.seed`` (drawn once per process)."""
+    if generator is not None:
+        return torch.rand(config.hypotheses, 5, generator=generator, dtype=torch.float64)
+    key = (config.seed, config.hypotheses)
+    if key not in _DRAWS:
+        _DRAWS[key] = torch.rand(config.hypotheses, 5, generator=torch.Generator().manual_seed(config.seed),
+                                 dtype=torch.float64)
+    return _DRAWS[key]
+
+
+def _fit_by_kernel(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
+                   tolerance_px: torch.Tensor, focal_px: torch.Tensor | None, draws: torch.Tensor,
+                   config: GroundPlaneConfig, stride: int, min_span_px: float) -> GroundPlane | None:
+    """:func:`fit_ground_plane` by the C kernel (``kernels/ground_plane_fit.c``) from its grid ``stride``, the
+    samples' ``draws`` ``(N, 5)``, ``tolerance_px`` ``(B,)`` and ``min_span_px`` in the map's pixels; None where it
+    cannot run."""
+    h, w = disparity.shape[-2:]
+    settings = {"stride": stride, "min_span_px": min_span_px, "tolerance_fraction": config.tolerance_fraction,
+                "lower_row": (1 - config.lower_rows_fraction) * h,
+                "tan_roll": math.tan(math.radians(config.max_roll_deg)), "min_height_m": config.min_camera_height_m,
+                "max_height_m": config.max_camera_height_m, "tan_pitch": math.tan(math.radians(config.max_pitch_deg)),
+                "max_behind_share": config.max_behind_share, "min_share": config.min_share, "centre_x": (w - 1) / 2,
+                "centre_y": (h - 1) / 2}
+    focal = None if focal_px is None else focal_px.to(torch.float32)
+    fast = kernels.ground_plane_fit(disparity, measured, baseline_m.to(torch.float32), tolerance_px, focal, draws,
+                                    settings)
+    return None if fast is None else GroundPlane(*fast)
+
+
 def _sample_planes(d: torch.Tensor, measured: torch.Tensor, candidate: torch.Tensor, xs: torch.Tensor,
-                   ys: torch.Tensor, config: GroundPlaneConfig, generator: torch.Generator | None) -> torch.Tensor:
+                   ys: torch.Tensor, draws: torch.Tensor) -> torch.Tensor:
     """``(B, N, 3)`` planes through three grid points of each pair (``d``, ``measured``, ``candidate`` ``(B, gh, gw)``,
-    the grid's pixel columns ``xs`` ``(gw,)`` and rows ``ys`` ``(gh,)``), picked by uniform draws shared by all
-    pairs: the first point is the pair's ``floor(u · count)``-th candidate; the other two lie within a window of
-    an eighth of the grid's width and a sixth of its height around it, so that a floor that fills a strip of the
-    view's bottom is sampled whole as often as it is hit (three points drawn over the lower rows all land on a
-    floor seen over a fifth of them once in 125 samples). A sample with a point off the grid or unmeasured, or
+    the grid's pixel columns ``xs`` ``(gw,)`` and rows ``ys`` ``(gh,)``), picked by the uniform ``draws`` ``(N, 5)``
+    shared by all pairs: the first point is the pair's ``floor(u · count)``-th candidate; the other two lie within a
+    window of an eighth of the grid's width and a sixth of its height around it, so that a floor that fills a strip
+    of the view's bottom is sampled whole as often as it is hit (three points drawn over the lower rows all land on
+    a floor seen over a fifth of them once in 125 samples). A sample with a point off the grid or unmeasured, or
     nearly collinear, gets NaN."""
     b, gh, gw = d.shape
-    if generator is None:
-        generator = torch.Generator().manual_seed(config.seed)
-    draws = torch.rand(config.hypotheses, 5, generator=generator, dtype=torch.float64).to(d.device)
     flat = candidate.flatten(1)
     count = flat.sum(-1)  # (B,)
     rank = (draws[:, 0].unsqueeze(0) * count.view(-1, 1)).long()  # (B, N)

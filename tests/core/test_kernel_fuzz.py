@@ -46,6 +46,7 @@ from svs_torch.geometry.rectification import rectify_uncalibrated
 from svs_torch.geometry.row_alignment import fit_row_alignment
 from svs_torch.segmentation import kernels as segmentation_kernels
 from svs_torch.segmentation.components import connected_components_with_stats, region_properties
+from svs_torch.segmentation.ground_plane import GroundPlaneConfig, fit_ground_plane
 from svs_torch.segmentation.interior import region_interiors
 from svs_torch.segmentation.nearness_denoise import _median_filter
 from svs_torch.segmentation.nearness_regions import shift_regions_to_right
@@ -462,6 +463,25 @@ def test_region_interiors(size, n, radius, data):
     _both(region_interiors, labels, kept, radius, pairs, share)
 
 
+@given(size=sizes, data=st.data())
+@examples(40)
+def test_fit_ground_plane(size, data):
+    """The ground plane by the kernel or the torch path, bit for bit: maps smaller than the grid's stride, NaN,
+    infinite and negative disparities, odd-byte masks, baselines that are NaN or 0, and with or without focal
+    lengths (some NaN) and the noisy tolerance."""
+    b, h, w = size
+    disparity = data.draw(tensors((b, 1, h, w), low=-2.0, high=40.0, specials=0.05))
+    ramp = torch.linspace(0, 30, h).view(1, 1, h, 1) if h else torch.zeros(1, 1, 0, 1)
+    if data.draw(st.booleans()):  # a floor-like ramp down the rows, so that some samples pass the rig's tests
+        disparity = disparity * 0.05 + ramp
+    measured = data.draw(masks((b, 1, h, w)))
+    baseline = data.draw(st.sampled_from([torch.full((b,), 0.1), torch.tensor([0.1, math.nan, 0.0])[:b]]))
+    focal = data.draw(st.sampled_from([None, torch.full((b,), 200.0), torch.tensor([200.0, math.nan, -1.0])[:b]]))
+    noisy = data.draw(st.sampled_from([None, torch.ones(b, dtype=torch.bool)]))
+    config = GroundPlaneConfig(grid_columns=data.draw(st.sampled_from([8, 40])))
+    _both(fit_ground_plane, disparity, measured, baseline, config, focal_px=focal, noisy=noisy)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -553,6 +573,10 @@ def test_dense_object_depths(size, n, fill, data):
                                   torch.ones(1, dtype=torch.bool), 0.5)),
     ("region_interiors", lambda: (torch.zeros(1, 1, 4, 5, dtype=torch.int64), torch.ones(1, 1, dtype=torch.int64), -1,
                                   torch.ones(1, dtype=torch.bool), 0.5)),
+    ("ground_plane_fit", lambda: (torch.rand(1, 1, 4, 5), torch.ones(1, 1, 4, 4, dtype=torch.bool), torch.ones(1),
+                                  torch.ones(1), None, torch.rand(8, 5, dtype=torch.float64), {})),
+    ("ground_plane_fit", lambda: (torch.rand(1, 1, 4, 5), torch.ones(1, 1, 4, 5, dtype=torch.bool), torch.ones(1),
+                                  torch.ones(1), None, torch.rand(8, 4, dtype=torch.float64), {})),
     ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
     ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
     ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),

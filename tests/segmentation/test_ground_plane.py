@@ -150,6 +150,54 @@ def test_a_map_without_a_floor_gives_what_the_whole_fit_gives():
             assert got.dtype == expected.dtype and torch.equal(got.nan_to_num(-1.0), expected.nan_to_num(-1.0))
 
 
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_kernel_gives_the_torch_paths_plane(monkeypatch, threads):
+    """The C kernel (each pair's whole fit in one pass) against the torch path, bit for bit: floors under level,
+    pitched and rolled cameras with noise, a fronto-parallel scene, a slanted backdrop, unmeasured pixels, the
+    noisy tolerance, a working factor, a seeded generator, a rig without a baseline and no pitch limit."""
+    from svs_torch.segmentation import kernels
+
+    if not kernels.available("ground_plane_fit"):
+        pytest.skip("no C compiler")
+    backdrop, _ = floor_scene(boxes=())
+    backdrop[..., 150:, :160] = 3.0
+    maps = torch.cat([floor_scene(1.3, 15.0)[0], floor_scene(1.6, 25.0, 4.0, noise_px=0.3)[0],
+                      floor_scene(1.0, 5.0, -8.0, noise_px=0.6, seed=2)[0], torch.full((1, 1, H, W), 9.0), backdrop,
+                      floor_scene(2.0, 30.0, noise_px=1.0, seed=3)[0]])
+    measured = torch.rand(maps.shape, generator=torch.Generator().manual_seed(5)) < 0.8
+    baseline = torch.tensor([BASELINE_M] * 5 + [math.nan])
+    calls = [dict(), dict(noisy=torch.tensor([True, False] * 3), working_factor=2.0),
+             dict(focal_px=torch.full((6,), FOCAL_PX)), dict(generator=torch.Generator().manual_seed(9))]
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for options in calls:
+            generator = options.pop("generator", None)
+            fused = fit_ground_plane(maps, measured, baseline, GroundPlaneConfig(), generator=generator, **options)
+            if generator is not None:
+                generator.manual_seed(9)
+            monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+            eager = fit_ground_plane(maps, measured, baseline, GroundPlaneConfig(), generator=generator, **options)
+            monkeypatch.delenv("SVS_TORCH_KERNELS")
+            assert fused.found[:3].any() and not fused.found[3:].any()  # floors found and not, both paths alike
+            for name in ("coefficients", "found", "camera_height_m", "mask"):
+                expected, got = getattr(eager, name), getattr(fused, name)
+                assert got.dtype == expected.dtype and torch.equal(got.nan_to_num(-1.0), expected.nan_to_num(-1.0))
+    finally:
+        torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("kernels_off", [False, True])
+def test_a_map_without_grid_points_has_no_plane(monkeypatch, kernels_off):
+    """An empty map, or one no taller than half the grid's stride, has no plane (the torch path had indexed an
+    empty grid: a RuntimeError)."""
+    if kernels_off:
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    for h, w in ((0, 320), (3, 320), (240, 0)):
+        plane = fit(torch.full((2, 1, h, w), 5.0))
+        assert plane.found.tolist() == [False, False] and plane.mask.shape == (2, 1, h, w) and not plane.mask.any()
+
+
 def test_unmeasured_pixels_are_not_fitted_but_are_masked():
     disparity, is_floor = floor_scene()
     # Half the pixels unmeasured (filled), at random.

@@ -15,7 +15,7 @@ block matching (``block_match.c``), its row fill of invalid pixels (``fill_inval
 label (``labelled_select.c``: the search range's and the nearness map's percentiles), each region's lower median
 (``region_medians.c``: the nearness segmenter's ranking), the nearness map's median filter (``median_filter.c``),
 the kept regions moved into the right view (``shift_regions.c``) and cut to their interior (``region_interiors.c``),
-and each object's depth statistics, every pair
+the floor's plane found in the nearness map (``ground_plane_fit.c``), and each object's depth statistics, every pair
 read once at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
 all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
@@ -26,8 +26,8 @@ RANSAC search for F, one pair at a time (``ransac_fundamental.c``), and Hartley'
 parallel x row (``rectify_parallel.c``). Each is the no-gradient path of
 a torch function that stays the reference, the fallback and the differentiable path. Fifteen give that torch path's
 values bit for bit: the first fourteen, and the strongest maxima ``torch.topk``'s values and indices (equal values
-in index order, which ``torch.topk`` leaves open). Eight do not (RANSAC's: its LU, eigenvectors and sums in its own
-order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Seven of
+in index order, which ``torch.topk`` leaves open). Nine do not (RANSAC's: its LU, eigenvectors and sums in its own
+order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Eight of
 them: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
@@ -39,7 +39,9 @@ row errors in match order, not torch's (the same alignments: ``tests/core/test_k
 also solves its samples and refits by its own LU (the same inliers, acceptances and keystone readings, homographies
 to 1e-9: ``tests/geometry/test_row_alignment.py``); the rectification makes the adjugate's cross products, the
 norms and the area test's determinant its own way (homographies and epipoles to their last bits, statuses the same:
-``tests/geometry/test_rectification.py``). On the 58 shared
+``tests/geometry/test_rectification.py``); the ground plane solves its samples and refits by its own LU (the same
+planes and masks bit for bit on the tests' maps and the pipeline's frames: ``tests/segmentation/test_ground_plane.py``).
+On the 58 shared
 real pairs at 320×240, the Middlebury and KITTI scenes' results equal the torch paths'; 12 of the 13 chessboard pairs
 differ by a few matches or inliers (and through their rectification, their depths), all from the refinement and the
 descriptor (``experiments/kernel_parity.py``; the README's "Compiled kernels" says the same).
@@ -86,7 +88,8 @@ match count, so its time a pair grew with the batch; the kernel sums each hypoth
 matches (synthetic pairs, one thread: 1.2 / 5.7 / 9.2 → 0.38 / 0.31 / 0.21 ms a pair at B = 8 / 32 / 128). At
 B = 1, guide's call, the cost is torch's dispatch, not memory: the rectification and the row alignment's fit were
 each 130–180 small operations on 3 × 3 matrices and a few hundred matches (3.0 and 3.2 ms a frame), where their
-kernels take 0.3 and 0.35 ms (the stage 6.8 → 1.6 ms a frame on the bench's camera frames).
+kernels take 0.3 and 0.35 ms (the stage 6.8 → 1.6 ms a frame on the bench's camera frames); the ground plane's fit,
+about 150 operations on the map's grid, 3.2 ms a frame where no floor is found and 5.8 where one is, 0.7 and 1.2.
 
 The shared libraries are built and cached by :mod:`svs_torch.core.kernels.loader`: in a private folder
 (``$SVS_TORCH_CACHE``, default ``~/.cache/svs_torch``; one others can write to is refused), under a name that

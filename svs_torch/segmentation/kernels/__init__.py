@@ -14,8 +14,8 @@ from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cp
 from ...core.kernels.checks import check_rows
 from ...core.mask_reductions import has_nan
 
-__all__ = ["available", "find_runs", "gray_levels", "label_runs", "load", "median_filter", "region_interiors",
-           "shift_regions"]
+__all__ = ["GROUND_PLANE_SETTINGS", "available", "find_runs", "gray_levels", "ground_plane_fit", "label_runs", "load",
+           "median_filter", "region_interiors", "shift_regions"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
@@ -24,6 +24,7 @@ declare({
     "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "region_interiors": ([POINTER] * 3 + [INT] * 5 + [FLOAT, POINTER, INT], ctypes.c_int),
+    "ground_plane_fit": ([POINTER] * 7 + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
 })
 
 
@@ -198,3 +199,55 @@ def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px:
                                       min(radius_px, max(h, w)), float(min_share), out.data_ptr(),
                                       torch.get_num_threads())
     return None if status != 0 else out
+
+
+#: The settings :func:`ground_plane_fit` takes, in the order of its C source's ``enum``: the grid's stride, the
+#: least span in map pixels, ``GroundPlaneConfig.tolerance_fraction``, the first sampled row ``(1 −
+#: lower_rows_fraction) · H``, the tangents of the roll and pitch limits, the camera heights, the behind and inlier
+#: shares, and the map's centre column and row.
+GROUND_PLANE_SETTINGS = ("stride", "min_span_px", "tolerance_fraction", "lower_row", "tan_roll", "min_height_m",
+                         "max_height_m", "tan_pitch", "max_behind_share", "min_share", "centre_x", "centre_y")
+
+
+def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
+                     tolerance_px: torch.Tensor, focal_px: torch.Tensor | None, draws: torch.Tensor,
+                     settings: dict[str, float]) -> tuple[torch.Tensor, ...] | None:
+    """:func:`svs_torch.segmentation.ground_plane.fit_ground_plane` a pair at a time (see the C source):
+    ``disparity`` ``(B, 1, H, W)`` float32, ``measured`` ``(B, 1, H, W)`` bool; ``baseline_m`` and ``tolerance_px``
+    (in the map's pixels) ``(B,)`` float32; ``focal_px`` ``(B,)`` float32 or None (no pitch limit); ``draws``
+    ``(N, 5)`` float64 uniforms, the samples; ``settings`` every name of :data:`GROUND_PLANE_SETTINGS`. Returns the
+    plane's coefficients ``(B, 3)``, found ``(B,)`` bool, the camera height ``(B,)`` and the mask ``(B, 1, H, W)``
+    bool; None when the kernel is not available or the inputs do not fit its contract (a NaN focal length)."""
+    dims = check_shape(disparity, "disparity", ["B", 1, "H", "W"])
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    check_shape(measured, "measured", [b, 1, h, w])
+    check_rows(baseline_m, "baseline_m", b, kinds="float")
+    check_rows(tolerance_px, "tolerance_px", b, kinds="float")
+    if focal_px is not None:
+        check_rows(focal_px, "focal_px", b, kinds="float")
+    n = check_shape(draws, "draws", ["N", 5])["N"]
+    if set(settings) != set(GROUND_PLANE_SETTINGS):
+        raise InputError(f"settings: expected exactly {', '.join(GROUND_PLANE_SETTINGS)}, "
+                         f"got {', '.join(sorted(settings))}")
+    values = [float(settings[name]) for name in GROUND_PLANE_SETTINGS]
+    if not (float(settings["stride"]).is_integer() and 1 <= settings["stride"] < 2**31):
+        raise InputError(f"settings['stride']: expected a whole number >= 1, got {settings['stride']!r}")
+    floats = (disparity, baseline_m, tolerance_px) + (() if focal_px is None else (focal_px,))
+    if (not (on_cpu(torch.float32, *floats) and on_cpu(torch.bool, measured) and on_cpu(torch.float64, draws))
+            or focal_px is not None and bool(focal_px.isnan().any())):
+        return None
+    library = load("ground_plane_fit")
+    if library is None:
+        return None
+    disparity, measured, baseline_m, tolerance_px, draws = (
+        t.contiguous() for t in (disparity, measured, baseline_m, tolerance_px, draws))
+    focal = None if focal_px is None else focal_px.contiguous()
+    table = torch.tensor(values, dtype=torch.float64)
+    plane, height = torch.empty(b, 3), torch.empty(b)
+    found, mask = torch.empty(b, dtype=torch.bool), torch.empty(b, 1, h, w, dtype=torch.bool)
+    status = library.ground_plane_fit(disparity.data_ptr(), measured.view(torch.uint8).data_ptr(),
+                                      baseline_m.data_ptr(), tolerance_px.data_ptr(),
+                                      0 if focal is None else focal.data_ptr(), draws.data_ptr(), table.data_ptr(),
+                                      b, h, w, n, plane.data_ptr(), found.data_ptr(), height.data_ptr(),
+                                      mask.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (plane, found, height, mask)
