@@ -14,6 +14,7 @@ from ..checks import check_dtype, check_shape
 from ..errors import InputError
 
 __all__ = ["canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty", "check_number",
+           "settings_table",
            "check_rows"]
 
 
@@ -74,6 +75,20 @@ def check_number(value: float, name: str, low: float | None = None, high: float 
         bounds = f" in [{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
         raise InputError(f"{name}: expected a finite number{bounds}, got {value!r}")
     return number
+
+
+def settings_table(settings: dict[str, float], names: tuple[str, ...], counts: dict[str, int],
+                   low: float | None = None) -> torch.Tensor:
+    """``settings`` as the float64 table ``(len(names),)`` a kernel reads, in the order of ``names`` (its C source's
+    ``enum``): exactly those names, each a finite number (at least ``low``), those in ``counts`` whole numbers of at
+    least their value there (a kernel casts them to integers)."""
+    if set(settings) != set(names):
+        raise InputError(f"settings: expected exactly {', '.join(names)}, got {', '.join(sorted(settings))}")
+    values = [check_number(settings[name], f"settings[{name!r}]", low) for name in names]
+    for name, least in counts.items():
+        if not (float(settings[name]).is_integer() and least <= settings[name] < 2**53):
+            raise InputError(f"settings[{name!r}]: expected a whole number >= {least}, got {settings[name]!r}")
+    return torch.tensor(values, dtype=torch.float64)
 
 
 def canonical_bool(mask: torch.Tensor) -> torch.Tensor:

@@ -11,7 +11,7 @@ import torch
 from ...core.checks import check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
-from ...core.kernels.checks import check_nonempty, check_number, check_rows
+from ...core.kernels.checks import check_nonempty, check_number, check_rows, settings_table
 
 __all__ = ["RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available", "lk_refine", "load", "ransac_fundamental",
            "rectify_parallel", "row_alignment_cost", "row_alignment_fit", "sad_nearest"]
@@ -204,13 +204,7 @@ def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, val
     check_rows(pair_seeds, "pair_seeds", b)
     if focal_px is not None:
         check_rows(focal_px, "focal_px", b, kinds="float")
-    if set(settings) != set(ROW_ALIGNMENT_SETTINGS):
-        raise InputError(f"settings: expected exactly {', '.join(ROW_ALIGNMENT_SETTINGS)}, "
-                         f"got {', '.join(sorted(settings))}")
-    values = [check_number(settings[name], f"settings[{name!r}]") for name in ROW_ALIGNMENT_SETTINGS]
-    for name in ("num_hypotheses", "min_inliers", "min_gain"):
-        if not (float(settings[name]).is_integer() and 0 <= settings[name] < 2**53):
-            raise InputError(f"settings[{name!r}]: expected a whole number >= 0, got {settings[name]!r}")
+    table = settings_table(settings, ROW_ALIGNMENT_SETTINGS, {"num_hypotheses": 1, "min_inliers": 0, "min_gain": 0})
     floats = (points_left, points_right) if focal_px is None else (points_left, points_right, focal_px)
     if (not (on_cpu(torch.float64, *floats) and on_cpu(torch.bool, valid) and on_cpu(torch.int64, image_hw, pair_seeds))
             or bool((image_hw < 1).any())):
@@ -221,7 +215,6 @@ def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, val
     points_left, points_right, valid, image_hw, pair_seeds = (
         t.contiguous() for t in (points_left, points_right, valid, image_hw, pair_seeds))
     focal = 0 if focal_px is None else focal_px.contiguous()
-    table = torch.tensor(values, dtype=torch.float64)
     homography, correction = torch.empty(b, 3, 3, dtype=torch.float64), torch.empty(b, dtype=torch.float64)
     inliers, accepted, turn = (torch.empty(*shape, dtype=torch.bool) for shape in ((b, k), (b,), (b,)))
     count = torch.empty(b, dtype=torch.int64)
@@ -259,20 +252,13 @@ def ransac_fundamental(points_left: torch.Tensor, points_right: torch.Tensor, va
     check_shape(points_right, "points_right", [b, k, 2])
     check_rows(valid, "valid", b, k, kinds="bool")
     check_rows(pair_seeds, "pair_seeds", b)
-    if set(settings) != set(RANSAC_SETTINGS):
-        raise InputError(f"settings: expected exactly {', '.join(RANSAC_SETTINGS)}, got {', '.join(sorted(settings))}")
-    for name in RANSAC_SETTINGS:
-        value = check_number(settings[name], f"settings[{name!r}]", 0.0)
-        least = _RANSAC_COUNTS.get(name)
-        if least is not None and not (value.is_integer() and least <= value < 2**53):
-            raise InputError(f"settings[{name!r}]: expected a whole number >= {least}, got {settings[name]!r}")
+    values = settings_table(settings, RANSAC_SETTINGS, _RANSAC_COUNTS, low=0.0)
     if not (on_cpu(torch.float64, points_left, points_right) and on_cpu(torch.bool, valid)
             and on_cpu(torch.int64, pair_seeds)):
         return None
     library = load("ransac_fundamental")
     if library is None:
         return None
-    values = torch.tensor([float(settings[name]) for name in RANSAC_SETTINGS], dtype=torch.float64)
     points_left, points_right, valid, pair_seeds = (t.contiguous() for t in (points_left, points_right, valid,
                                                                              pair_seeds))
     fundamental, iterations = torch.empty(b, 3, 3, dtype=torch.float64), torch.empty(b, dtype=torch.int64)

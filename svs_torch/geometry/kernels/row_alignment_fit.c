@@ -28,6 +28,7 @@
 
 #include "common.h"
 #include "minimal_samples.h"
+#include "small_lu.h"
 
 /* 180 / pi, the constant torch.rad2deg multiplies by. */
 #define DEGREES_PER_RADIAN 57.295779513082320876798154814105170332405472466564
@@ -39,49 +40,6 @@ enum {
     THRESHOLD, NUM_HYPOTHESES, MIN_INLIERS, MIN_INLIER_SHARE, MIN_GAIN, MIN_GAIN_SHARE, MAX_ROLL_RAD, MAX_SCALE_CHANGE,
     MAX_SHIFT_FRACTION, KEYSTONE_MIN_DEG, KEYSTONE_MIN_T, NUM_SETTINGS
 };
-
-/* LU of the n x n row-major a in place, rows swapped for the largest pivot (the first of equal ones), as
- * LAPACK's getrf; returns the determinant. */
-static double lu_factor(double *a, int n, int *pivot) {
-    double det = 1.0;
-    for (int j = 0; j < n; ++j) {
-        int p = j;
-        for (int i = j + 1; i < n; ++i)
-            if (fabs(a[i * n + j]) > fabs(a[p * n + j])) p = i;
-        pivot[j] = p;
-        if (p != j) {
-            for (int c = 0; c < n; ++c) {
-                const double t = a[j * n + c];
-                a[j * n + c] = a[p * n + c];
-                a[p * n + c] = t;
-            }
-            det = -det;
-        }
-        det *= a[j * n + j];
-        const double inverse = 1.0 / a[j * n + j];
-        for (int i = j + 1; i < n; ++i) {
-            const double l = a[i * n + j] * inverse;
-            a[i * n + j] = l;
-            for (int c = j + 1; c < n; ++c) a[i * n + c] -= l * a[j * n + c];
-        }
-    }
-    return det;
-}
-
-/* Solves with lu_factor's factors: b (n) is overwritten by x. */
-static void lu_solve(const double *a, int n, const int *pivot, double *b) {
-    for (int j = 0; j < n; ++j) {  /* every interchange first: the stored multipliers are those of P a */
-        const double t = b[j];
-        b[j] = b[pivot[j]];
-        b[pivot[j]] = t;
-    }
-    for (int j = 0; j < n; ++j)
-        for (int i = j + 1; i < n; ++i) b[i] -= a[i * n + j] * b[j];
-    for (int j = n - 1; j >= 0; --j) {
-        b[j] /= a[j * n + j];
-        for (int i = 0; i < j; ++i) b[i] -= a[i * n + j] * b[j];
-    }
-}
 
 /* |b x_r + a y_r + t_y - y_l| of match k (_row_residuals). */
 static inline double row_residual(const double *h, const double *left, const double *right, int64_t k) {
@@ -99,7 +57,7 @@ static void best_hypothesis(const double *left, const double *right, const int64
             int64_t ranks[SAMPLE];
             draw_minimal_sample(seed, h, n, SAMPLE, ranks);
             double system[9], scaled[9], largest = 1.0;
-            int pivot[3];
+            int pivot[3], singular;
             for (int s = 0; s < SAMPLE; ++s) {
                 const int64_t k = rows[ranks[s]];
                 system[3 * s] = right[2 * k + 1];
@@ -109,8 +67,9 @@ static void best_hypothesis(const double *left, const double *right, const int64
                 largest = fmax(largest, fmax(fabs(system[3 * s]), fabs(system[3 * s + 1])));
             }
             for (int i = 0; i < 9; ++i) scaled[i] = system[i] / largest;
-            if (fabs(lu_factor(scaled, 3, pivot)) > 1e-6) {  /* else a collinear or repeated sample: dropped */
-                lu_factor(system, 3, pivot);
+            /* |det| of the scaled system at most 1e-6: a collinear or repeated sample, dropped */
+            if (fabs(lu_factor(scaled, 3, pivot, &singular)) > 1e-6) {
+                lu_factor(system, 3, pivot, &singular);
                 lu_solve(system, 3, pivot, params);
                 cost = 0.0;
                 for (int64_t i = 0; i < n; ++i) {
@@ -144,8 +103,8 @@ static void refit(const double *left, const double *right, const uint8_t *inlier
         }
     }
     for (int i = 0; i < 3; ++i) normal[4 * i] += 1e-9;
-    int pivot[3];
-    lu_factor(normal, 3, pivot);
+    int pivot[3], singular;
+    lu_factor(normal, 3, pivot, &singular);
     for (int i = 0; i < 3; ++i) params[i] = rhs[i];
     lu_solve(normal, 3, pivot, params);
 }
@@ -166,8 +125,8 @@ static int reads_turn(const double *left, const double *right, const uint8_t *in
         weight += 1.0;
     }
     for (int i = 0; i < 5; ++i) normal[6 * i] += 1e-9;
-    int pivot[5];
-    lu_factor(normal, 5, pivot);
+    int pivot[5], singular;
+    lu_factor(normal, 5, pivot, &singular);
     double params[5];
     for (int i = 0; i < 5; ++i) params[i] = rhs[i];
     lu_solve(normal, 5, pivot, params);

@@ -11,7 +11,7 @@ import torch
 from ...core.checks import check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
-from ...core.kernels.checks import check_rows
+from ...core.kernels.checks import check_rows, settings_table
 from ...core.mask_reductions import has_nan
 
 __all__ = ["GROUND_PLANE_SETTINGS", "available", "find_runs", "gray_levels", "ground_plane_fit", "label_runs", "load",
@@ -226,12 +226,7 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     if focal_px is not None:
         check_rows(focal_px, "focal_px", b, kinds="float")
     n = check_shape(draws, "draws", ["N", 5])["N"]
-    if set(settings) != set(GROUND_PLANE_SETTINGS):
-        raise InputError(f"settings: expected exactly {', '.join(GROUND_PLANE_SETTINGS)}, "
-                         f"got {', '.join(sorted(settings))}")
-    values = [float(settings[name]) for name in GROUND_PLANE_SETTINGS]
-    if not (float(settings["stride"]).is_integer() and 1 <= settings["stride"] < 2**31):
-        raise InputError(f"settings['stride']: expected a whole number >= 1, got {settings['stride']!r}")
+    table = settings_table(settings, GROUND_PLANE_SETTINGS, {"stride": 1})
     floats = (disparity, baseline_m, tolerance_px) + (() if focal_px is None else (focal_px,))
     if (not (on_cpu(torch.float32, *floats) and on_cpu(torch.bool, measured) and on_cpu(torch.float64, draws))
             or focal_px is not None and bool(focal_px.isnan().any())):
@@ -242,7 +237,6 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     disparity, measured, baseline_m, tolerance_px, draws = (
         t.contiguous() for t in (disparity, measured, baseline_m, tolerance_px, draws))
     focal = None if focal_px is None else focal_px.contiguous()
-    table = torch.tensor(values, dtype=torch.float64)
     plane, height = torch.empty(b, 3), torch.empty(b)
     found, mask = torch.empty(b, dtype=torch.bool), torch.empty(b, 1, h, w, dtype=torch.bool)
     status = library.ground_plane_fit(disparity.data_ptr(), measured.view(torch.uint8).data_ptr(),

@@ -21,6 +21,7 @@
 #include <stdlib.h>
 
 #include "common.h"
+#include "small_lu.h"
 
 /* The settings, in the order of svs_torch.segmentation.kernels.GROUND_PLANE_SETTINGS. */
 enum {
@@ -28,56 +29,13 @@ enum {
     MIN_SHARE, CENTRE_X, CENTRE_Y, NUM_SETTINGS
 };
 
-/* LU of the n x n row-major a in place with partial pivoting (the first largest pivot); returns the determinant,
- * and *singular where a pivot is exactly 0 (LAPACK's info > 0). */
-static double lu_factor(double *a, int n, int *pivot, int *singular) {
-    double det = 1.0;
-    *singular = 0;
-    for (int j = 0; j < n; ++j) {
-        int p = j;
-        for (int i = j + 1; i < n; ++i)
-            if (fabs(a[i * n + j]) > fabs(a[p * n + j])) p = i;
-        pivot[j] = p;
-        if (p != j) {
-            for (int c = 0; c < n; ++c) {
-                const double t = a[j * n + c];
-                a[j * n + c] = a[p * n + c];
-                a[p * n + c] = t;
-            }
-            det = -det;
-        }
-        det *= a[j * n + j];
-        if (a[j * n + j] == 0.0) {
-            *singular = 1;
-            continue;
-        }
-        const double inverse = 1.0 / a[j * n + j];
-        for (int i = j + 1; i < n; ++i) {
-            const double l = a[i * n + j] * inverse;
-            a[i * n + j] = l;
-            for (int c = j + 1; c < n; ++c) a[i * n + c] -= l * a[j * n + c];
-        }
-    }
-    return det;
-}
-
 /* Solves a x = b (3 x 3) into x; returns 0 when a is exactly singular (x is then unset). */
 static int solve3(double *a, const double *b, double *x, double *det) {
     int pivot[3], singular;
     *det = lu_factor(a, 3, pivot, &singular);
     if (singular) return 0;
     for (int i = 0; i < 3; ++i) x[i] = b[i];
-    for (int j = 0; j < 3; ++j) {  /* every interchange first: the multipliers are those of P a */
-        const double t = x[j];
-        x[j] = x[pivot[j]];
-        x[pivot[j]] = t;
-    }
-    for (int j = 0; j < 3; ++j)
-        for (int i = j + 1; i < 3; ++i) x[i] -= a[i * 3 + j] * x[j];
-    for (int j = 2; j >= 0; --j) {
-        x[j] /= a[j * 3 + j];
-        for (int i = 0; i < j; ++i) x[i] -= a[i * 3 + j] * x[j];
-    }
+    lu_solve(a, 3, pivot, x);
     return 1;
 }
 
