@@ -93,11 +93,15 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         pair_list = Path(folder) / "pairs.txt"
-        lines = pair_lines(args.data)
+        # Absolute: estimate reads a list's relative paths from the list's folder (here a temporary one).
+        lines = pair_lines(args.data.resolve())
         pair_list.write_text("\n".join(lines) + "\n")
         (Path(folder) / "sitecustomize.py").write_text(SITECUSTOMIZE)
         fused, fused_s = run(pair_list, args.size, args.workers, kernels=True, torch_only=args.torch)
         eager, eager_s = run(pair_list, args.size, args.workers, kernels=False)
+    unread = [line for line, a, b in zip(lines, fused, eager) if "BAD_INPUT" in (a.get("status"), b.get("status"))]
+    if unread:  # equal error lines are no parity: say so rather than count them as agreeing
+        sys.exit(f"{len(unread)} of {len(lines)} pairs were not read (BAD_INPUT), first: {unread[0]}")
     off = f" (but {args.torch})" if args.torch else ""
     print(f"{len(lines)} pairs at {args.size}: kernels{off} {fused_s:.1f} s, torch paths {eager_s:.1f} s (wall, "
           "with start-up)")

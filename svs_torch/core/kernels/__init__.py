@@ -42,7 +42,7 @@ norms and the area test's determinant its own way (homographies and epipoles to 
 ``tests/geometry/test_rectification.py``); the ground plane solves its samples and refits by its own LU (the same
 planes and masks bit for bit on the tests' maps and the pipeline's frames: ``tests/segmentation/test_ground_plane.py``).
 On the 58 shared
-real pairs at 320×240, the Middlebury and KITTI scenes' results equal the torch paths'; 12 of the 13 chessboard pairs
+real pairs at 320×240, the Middlebury and KITTI scenes' results equal the torch paths'; 10 of the 13 chessboard pairs
 differ by a few matches or inliers (and through their rectification, their depths), all from the refinement and the
 descriptor (``experiments/kernel_parity.py``; the README's "Compiled kernels" says the same).
 
