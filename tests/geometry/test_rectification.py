@@ -371,3 +371,14 @@ def test_the_compiled_parallel_mode_gives_the_torch_paths_rectification(generato
                                        atol=1e-9 if dtype == F64 else 1e-4)
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_huge_inlier_minimum_and_bad_limits(generator):
+    """A minimum past int64 refuses every pair on both paths (the kernel's argument is clamped, not wrapped); limits
+    that would refuse every pair, or are not numbers, are refused when the config is made."""
+    F, left, right, _ = make_rigs(2, 20, generator)
+    strict = RectificationConfig(min_inliers=2**70)
+    assert rectify_uncalibrated(F, left, right, all_inliers(left), SIZE_HW, strict).status.tolist() == [1, 1]
+    for bad in (dict(max_area_scale=0.5), dict(max_rotation_deg=0.0), dict(min_inliers=-1), dict(x_alignment="x")):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            RectificationConfig(**bad)

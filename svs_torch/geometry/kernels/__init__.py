@@ -170,7 +170,8 @@ def rectify_parallel(F: torch.Tensor, points_left: torch.Tensor, points_right: t
     rms = torch.empty(b, dtype=f64)
     status, num_inliers = torch.empty(b, dtype=torch.int64), torch.empty(b, dtype=torch.int64)
     library.rectify_parallel(F.data_ptr(), points_left.data_ptr(), points_right.data_ptr(), inliers.data_ptr(),
-                             image_hw.data_ptr(), b, k, min_inliers, float(max_area_scale), float(max_rotation_deg),
+                             image_hw.data_ptr(), b, k, max(-2**62, min(min_inliers, 2**62)),  # an int64 either way
+                             float(max_area_scale), float(max_rotation_deg),
                              int(dtype == torch.float32), H_left.data_ptr(), H_right.data_ptr(),
                              epipole_left.data_ptr(), epipole_right.data_ptr(), rms.data_ptr(), status.data_ptr(),
                              num_inliers.data_ptr(), torch.get_num_threads())
