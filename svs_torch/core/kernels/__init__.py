@@ -5,8 +5,8 @@ Each stage keeps its kernels beside its torch code, in its own ``kernels/`` fold
 ``svs_torch.geometry.kernels``, ``svs_torch.depth.kernels``); each wrapper module declares its kernels'
 signatures (:func:`declare`) and calls them through :func:`load`. This folder holds what they share: the loader
 (``loader.py``: build, cache, open), the argument checks (``checks.py``) and the header every source includes
-(``common.h``: thread count, scratch allocation), and the quickselect the stages' order statistics share
-(``select_rank.h``).
+(``common.h``: thread count, scratch allocation), the quickselect the stages' order statistics share
+(``select_rank.h``) and the LU of their small linear systems (``small_lu.h``).
 
 Fused C kernels for the memory-bound hot spots, compiled once per machine with the system's C compiler and loaded
 through ``ctypes``: the runs of each mask row that the segmentation's connected components start from (``find_runs.c``)

@@ -14,8 +14,7 @@ from ..checks import check_dtype, check_shape
 from ..errors import InputError
 
 __all__ = ["canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty", "check_number",
-           "settings_table",
-           "check_rows"]
+           "check_rows", "settings_table"]
 
 
 def check_rows(tensor: torch.Tensor, name: str, rows: int, *tail: int | str, kinds: str = "int") -> torch.Tensor:

@@ -1,5 +1,5 @@
-/* LU with partial pivoting for the small dense systems of the geometry and segmentation kernels (3 x 3 samples and
- * refits, the keystone's 5 x 5 normal equations), shared by row_alignment_fit.c and ground_plane_fit.c. Rows are
+/* LU with partial pivoting for the kernels' small dense systems (3 x 3 samples and refits, the keystone's 5 x 5 normal
+ * equations, SURF's quadratic fit), shared by row_alignment_fit.c, ground_plane_fit.c and refine_maxima.c. Rows are
  * swapped for the largest pivot (the first of equal ones), as LAPACK's getrf; the arithmetic is not LAPACK's
  * (which the torch paths call), so solutions agree with theirs to about 1e-15 relative, not bit for bit. */
 #ifndef SVS_TORCH_KERNELS_SMALL_LU_H

@@ -7,9 +7,9 @@
  * the command line's settings, nearly all of it per-op overhead on (B, K) tensors. Here each keypoint is one
  * loop iteration: its octave, level, row and column from its index into the octaves' concatenated interiors
  * (strongest_maxima's indices), its 27 det values read as they lie (the torch path's clamped reads), the same
- * finite differences in double in the same order, and Brown & Lowe's 3 x 3 system solved by Gaussian
- * elimination with partial pivoting. torch solves it with LAPACK's LU, whose rounding differs in the last bits:
- * offsets agree to about 1e-15 (tests/core/test_kernels.py).
+ * finite differences in double in the same order, and Brown & Lowe's 3 x 3 system solved by LU with partial
+ * pivoting (small_lu.h, shared with the geometry kernels). torch solves it with LAPACK's LU, whose rounding differs
+ * in the last bits: offsets agree to about 1e-15 (tests/core/test_kernels.py).
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp. Loaded through ctypes by
  * svs_torch/features/kernels/__init__.py.
@@ -18,38 +18,7 @@
 #include <stdint.h>
 
 #include "common.h"
-
-/* Solve A x = r (3 x 3, row-major, both overwritten) by elimination with partial pivoting (the first largest
- * pivot, as LAPACK's idamax). Returns 0 when a pivot is exactly zero (LAPACK's info > 0). */
-static int solve3(double a[3][3], double r[3], double x[3]) {
-    for (int k = 0; k < 3; ++k) {
-        int p = k;
-        for (int i = k + 1; i < 3; ++i)
-            if (fabs(a[i][k]) > fabs(a[p][k])) p = i;
-        if (a[p][k] == 0.0) return 0;
-        if (p != k) {
-            for (int j = 0; j < 3; ++j) {
-                const double t = a[k][j];
-                a[k][j] = a[p][j];
-                a[p][j] = t;
-            }
-            const double t = r[k];
-            r[k] = r[p];
-            r[p] = t;
-        }
-        for (int i = k + 1; i < 3; ++i) {
-            const double l = a[i][k] / a[k][k];
-            for (int j = k + 1; j < 3; ++j) a[i][j] -= l * a[k][j];
-            r[i] -= l * r[k];
-        }
-    }
-    for (int k = 2; k >= 0; --k) {
-        double s = r[k];
-        for (int j = k + 1; j < 3; ++j) s -= a[k][j] * x[j];
-        x[k] = s / a[k][k];
-    }
-    return 1;
-}
+#include "small_lu.h"
 
 static inline int64_t clamp_cell(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
@@ -92,9 +61,11 @@ int refine_maxima(const int64_t *det, const int64_t *trace, const int64_t *shape
         const double dxs = (AT(1, 0, 1) - AT(-1, 0, 1) - AT(1, 0, -1) + AT(-1, 0, -1)) / 4;
         const double dys = (AT(0, 1, 1) - AT(0, -1, 1) - AT(0, 1, -1) + AT(0, -1, -1)) / 4;
 #undef AT
-        double a[3][3] = {{dxx, dxy, dxs}, {dxy, dyy, dys}, {dxs, dys, dss}}, r[3] = {-g[0], -g[1], -g[2]};
-        double x[3] = {0.0, 0.0, 0.0};
-        int solved = solve3(a, r, x) && isfinite(x[0]) && isfinite(x[1]) && isfinite(x[2]);
+        double a[9] = {dxx, dxy, dxs, dxy, dyy, dys, dxs, dys, dss}, x[3] = {-g[0], -g[1], -g[2]};
+        int pivot[3], singular;
+        lu_factor(a, 3, pivot, &singular);
+        if (!singular) lu_solve(a, 3, pivot, x);
+        int solved = !singular && isfinite(x[0]) && isfinite(x[1]) && isfinite(x[2]);
         if (!solved) x[0] = x[1] = x[2] = 0.0;
         peak[row] = centre + 0.5 * (g[0] * x[0] + g[1] * x[1] + g[2] * x[2]);
         valid[row] = isfinite(score[row]) && solved && fabs(x[0]) <= max_offset && fabs(x[1]) <= max_offset

@@ -215,13 +215,13 @@ def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, val
         return None
     points_left, points_right, valid, image_hw, pair_seeds = (
         t.contiguous() for t in (points_left, points_right, valid, image_hw, pair_seeds))
-    focal = 0 if focal_px is None else focal_px.contiguous()
+    focal = None if focal_px is None else focal_px.contiguous()
     homography, correction = torch.empty(b, 3, 3, dtype=torch.float64), torch.empty(b, dtype=torch.float64)
     inliers, accepted, turn = (torch.empty(*shape, dtype=torch.bool) for shape in ((b, k), (b,), (b,)))
     count = torch.empty(b, dtype=torch.int64)
     status = library.row_alignment_fit(points_left.data_ptr(), points_right.data_ptr(), valid.data_ptr(),
                                        image_hw.data_ptr(), pair_seeds.data_ptr(),
-                                       0 if focal_px is None else focal.data_ptr(), table.data_ptr(), b, k,
+                                       0 if focal is None else focal.data_ptr(), table.data_ptr(), b, k,
                                        homography.data_ptr(), inliers.data_ptr(), accepted.data_ptr(),
                                        count.data_ptr(), correction.data_ptr(), turn.data_ptr(),
                                        torch.get_num_threads())
