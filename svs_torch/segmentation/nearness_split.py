@@ -16,6 +16,7 @@ import torch
 
 from ..core.mask_reductions import all_along, any_true
 from ..depth.quantiles import labelled_quantile, row_quantile
+from . import kernels
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 
 __all__ = ["nearness_split"]
@@ -40,12 +41,19 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
         kept = (~exclude).flatten(1).to(torch.int64)
         q = labelled_quantile(disparity.flatten(1), kept, torch.ones_like(kept[:, :1]), (0.1, 0.9, 0.995))
         q = q.values[:, 0].T
+    spread = (q[1] - q[0]).clamp_min(1.0)
+    # The compiled split: the steps below in one kernel, reading the map three times instead of a dozen (the same
+    # values; at guide's B = 1 on a 320×240 camera frame 1.1–1.6 ms → 0.2).
+    fast = kernels.nearness_split(disparity.flatten(1), None if exclude is None else exclude.flatten(1), q[2], q[1],
+                                  min_near_share)
+    if fast is not None:
+        return fast[0], spread, fast[1]
     # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
     # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
     # above nearly every pixel.
     split = _otsu_split(torch.minimum(disparity, q[2].view(b, 1, 1, 1)), exclude)
     split, retaken = _split_leaving_near(disparity, split, q[1], min_near_share, exclude)
-    return split, (q[1] - q[0]).clamp_min(1.0), retaken
+    return split, spread, retaken
 
 
 def _otsu_split(disparity: torch.Tensor, exclude: torch.Tensor | None = None) -> torch.Tensor:

@@ -50,6 +50,7 @@ from svs_torch.segmentation.ground_plane import GroundPlaneConfig, fit_ground_pl
 from svs_torch.segmentation.interior import region_interiors
 from svs_torch.segmentation.nearness_denoise import _median_filter
 from svs_torch.segmentation.nearness_regions import shift_regions_to_right
+from svs_torch.segmentation.nearness_split import nearness_split
 from svs_torch.segmentation.threshold import gray_levels_and_histogram
 
 pytestmark = pytest.mark.skipif(not kernels.available("find_runs"), reason="no C compiler")
@@ -482,6 +483,23 @@ def test_fit_ground_plane(size, data):
     _both(fit_ground_plane, disparity, measured, baseline, config, focal_px=focal, noisy=noisy)
 
 
+@given(size=sizes, data=st.data())
+@examples(50)
+def test_nearness_split(size, data):
+    """The nearness split by the kernel or the torch path, bit for bit: maps with NaN, infinite, huge and negative
+    disparities, a few levels (ties at the split), flat maps, odd-byte floors that leave out some, all or none of
+    a pair's pixels, and minimum near shares that never, sometimes or always take the split again."""
+    b, h, w = size
+    disparity = data.draw(tensors((b, 1, h, w), low=-2.0, high=60.0, specials=0.05))
+    if data.draw(st.booleans()):  # a few levels: ties with the split, and flat maps
+        disparity = (disparity / 15).round() * 15
+    exclude = data.draw(st.sampled_from([None, "mask"]))
+    if exclude is not None:
+        exclude = data.draw(masks((b, 1, h, w)))
+    share = data.draw(st.sampled_from([0.0, 0.1, 0.5, 1.0, -1.0, 2.0]))
+    _both(nearness_split, disparity, share, exclude)  # (an empty map: its quantiles refuse it on both paths)
+
+
 @given(b=st.integers(1, 3), p=st.integers(0, 40), n=st.integers(0, 3), data=st.data())
 @examples(50)
 def test_labelled_quantile(b, p, n, data):
@@ -577,6 +595,10 @@ def test_dense_object_depths(size, n, fill, data):
                                   torch.ones(1), None, torch.rand(8, 5, dtype=torch.float64), {})),
     ("ground_plane_fit", lambda: (torch.rand(1, 1, 4, 5), torch.ones(1, 1, 4, 5, dtype=torch.bool), torch.ones(1),
                                   torch.ones(1), None, torch.rand(8, 4, dtype=torch.float64), {})),
+    ("nearness_split", lambda: (torch.rand(2, 9), None, torch.ones(2), torch.ones(1), 0.1)),
+    ("nearness_split", lambda: (torch.rand(2, 9), torch.zeros(2, 8, dtype=torch.bool), torch.ones(2), torch.ones(2),
+                                0.1)),
+    ("nearness_split", lambda: (torch.rand(2, 9), None, torch.ones(2), torch.ones(2), math.nan)),
     ("semi_global_columns", lambda: (torch.rand(2, 3, 4, 5), torch.zeros(1), torch.zeros(2))),
     ("semi_global_columns", lambda: (torch.rand(3, 4, 5), torch.zeros(3), torch.zeros(3))),
     ("sad_volume", lambda: (torch.rand(1, 6, 6), torch.rand(1, 6, 5), 4, 4, 3, None)),

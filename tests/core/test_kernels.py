@@ -3,6 +3,7 @@ the fallback without a compiler, the on-disk cache. The dense-stage kernel's own
 
 from __future__ import annotations
 
+import math
 import platform
 import shutil
 
@@ -270,6 +271,37 @@ def test_gray_levels_kernel_equals_torch(generator, threads):
         levels, histogram = _with_threads(threads, segmentation_kernels.gray_levels, image)
         assert torch.equal(levels, gray_levels(image)) and torch.equal(histogram, gray_histogram(gray_levels(image)))
     assert segmentation_kernels.gray_levels(images[0].double()) is None
+
+
+@pytest.mark.skipif(not kernels.available("nearness_split"), reason="no C compiler")
+@pytest.mark.parametrize("threads", [1, 3])
+def test_nearness_split_kernel_equals_torch(generator, monkeypatch, threads):
+    """The nearness split's kernel gives the torch path's splits and retakings bit for bit: a scene's map with
+    a few wrong matches far above it (the split taken again under the 90th percentile), maps of a few levels (ties
+    at the split), a flat map, with and without a floor left out (one pair leaving out every pixel, which then
+    counts them all), at any share; a map with NaN or an infinity, and float64, are left to the torch path."""
+    from svs_torch.segmentation.nearness_split import nearness_split
+
+    scene = torch.rand(3, 1, 48, 64, generator=generator) * 12
+    scene[:, :, 10:30, 20:40] += 20  # a near box
+    outliers = torch.rand(3, 1, 48, 64, generator=generator) < 0.03
+    maps = [scene, torch.where(outliers, 95.0, scene), (scene / 8).round() * 8, torch.full((2, 1, 5, 7), 3.5)]
+    for disparity in maps:
+        floor = torch.zeros_like(disparity, dtype=torch.bool)
+        floor[:, :, -12:] = True
+        floor[0] = True
+        for exclude in (None, floor):
+            for share in (0.0, 0.1, 0.45):
+                fast = _with_threads(threads, nearness_split, disparity, share, exclude)
+                assert all(torch.equal(a, b) for a, b in zip(
+                    fast, _torch_path(monkeypatch, nearness_split, disparity, share, exclude)))
+    assert bool(nearness_split(maps[1], 0.1)[2].any())  # the taken-again path ran
+    flat = maps[0].flatten(1)
+    clip = flat.amax(1)
+    assert segmentation_kernels.nearness_split(flat, None, clip, clip, 0.1) is not None
+    for bad in (flat.index_fill(1, torch.tensor([5]), math.nan), flat.index_fill(1, torch.tensor([5]), math.inf)):
+        assert segmentation_kernels.nearness_split(bad, None, clip, clip, 0.1) is None
+    assert segmentation_kernels.nearness_split(flat.double(), None, clip.double(), clip.double(), 0.1) is None
 
 
 @pytest.mark.skipif(not kernels.available("refine_maxima"), reason="no C compiler")

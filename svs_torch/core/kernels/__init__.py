@@ -13,8 +13,9 @@ through ``ctypes``: the runs of each mask row that the segmentation's connected 
 and their labelling (``label_runs.c``), its gray levels and their histogram (``gray_levels.c``), the dense stage's SAD
 block matching (``block_match.c``), its row fill of invalid pixels (``fill_invalid_rows.c``), its order statistics by
 label (``labelled_select.c``: the search range's and the nearness map's percentiles), each region's lower median
-(``region_medians.c``: the nearness segmenter's ranking), the nearness map's median filter (``median_filter.c``),
-the kept regions moved into the right view (``shift_regions.c``) and cut to their interior (``region_interiors.c``),
+(``region_medians.c``: the nearness segmenter's ranking), the nearness map's median filter (``median_filter.c``)
+and its split into near and far (``nearness_split.c``), the kept regions moved into the right view
+(``shift_regions.c``) and cut to their interior (``region_interiors.c``),
 the floor's plane found in the nearness map (``ground_plane_fit.c``), and each object's depth statistics, every pair
 read once at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
 box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
@@ -23,12 +24,12 @@ its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search 
 (``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``), the MSAC costs of the row
 alignment's hypotheses (``row_alignment_cost.c``) and its whole similarity fit (``row_alignment_fit.c``), the whole
 RANSAC search for F, one pair at a time (``ransac_fundamental.c``), and Hartley's rectifying homographies with the
-parallel x row (``rectify_parallel.c``). Each is the no-gradient path of
-a torch function that stays the reference, the fallback and the differentiable path. Fifteen give that torch path's
-values bit for bit: the first fourteen, and the strongest maxima ``torch.topk``'s values and indices (equal values
-in index order, which ``torch.topk`` leaves open). Nine do not (RANSAC's: its LU, eigenvectors and sums in its own
-order, the same inliers but where two hypotheses' float32 scores tie; :mod:`svs_torch.geometry.ransac`). Eight of
-them: the fit solves its 3 × 3 systems by its own elimination, not
+parallel x row (``rectify_parallel.c``). Each is the no-gradient path of a torch function that stays the
+reference, the fallback and the differentiable path. Sixteen give that torch path's values bit for bit: those
+named before the strongest maxima but the floor's plane, and the strongest maxima ``torch.topk``'s values and
+indices (equal values in index order, which ``torch.topk`` leaves open). Nine do not (RANSAC's: its LU,
+eigenvectors and sums in its own order, the same inliers but where two hypotheses' float32 scores tie;
+:mod:`svs_torch.geometry.ransac`). Eight of them: the fit solves its 3 × 3 systems by its own elimination, not
 LAPACK's LU (offsets to about 1e-15: the same float32 keypoints on the shared scenes); the matching kernel sums each
 distance in its own order (on real descriptors: the same matches, the same costs); the refinement takes the same steps
 with its sums in double and in its own order, so its points agree to about 1e-4 px; the U-SURF descriptor

@@ -5,6 +5,7 @@ cached and loaded, and what every wrapper promises."""
 from __future__ import annotations
 
 import ctypes
+import math
 
 import torch
 
@@ -15,7 +16,7 @@ from ...core.kernels.checks import check_rows, settings_table
 from ...core.mask_reductions import has_nan
 
 __all__ = ["GROUND_PLANE_SETTINGS", "available", "find_runs", "gray_levels", "ground_plane_fit", "label_runs", "load",
-           "median_filter", "region_interiors", "shift_regions"]
+           "median_filter", "nearness_split", "region_interiors", "shift_regions"]
 
 declare({
     "find_runs": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 3 + [INT], ctypes.c_int),
@@ -25,6 +26,7 @@ declare({
     "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "region_interiors": ([POINTER] * 3 + [INT] * 5 + [FLOAT, POINTER, INT], ctypes.c_int),
     "ground_plane_fit": ([POINTER] * 7 + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
+    "nearness_split": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [FLOAT, INT] + [POINTER] * 2 + [INT], ctypes.c_int),
 })
 
 
@@ -245,3 +247,34 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
                                       b, h, w, n, plane.data_ptr(), found.data_ptr(), height.data_ptr(),
                                       mask.data_ptr(), torch.get_num_threads())
     return None if status != 0 else (plane, found, height, mask)
+
+
+def nearness_split(disparity: torch.Tensor, exclude: torch.Tensor | None, clip_high: torch.Tensor,
+                   clip_retry: torch.Tensor, min_near_share: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The split of :func:`svs_torch.segmentation.nearness_split.nearness_split` (see the C source): ``disparity``
+    ``(B, P)`` float32, ``exclude`` ``(B, P)`` bool or None, the maps clipped at ``clip_high`` ``(B,)`` (their
+    99.5th percentiles) and, where the split leaves less than ``min_near_share`` of the pixels near, at
+    ``clip_retry`` ``(B,)`` (their 90th) instead. Returns the split ``(B,)`` float32 and which pairs' was taken again
+    ``(B,)`` bool, the torch path's values; None when the kernel is not available or the inputs do not fit its
+    contract (a value that is NaN or infinite, an empty map or batch)."""
+    b, p = check_shape(disparity, "disparity", ["B", "P"]).values()
+    if exclude is not None:
+        check_shape(exclude, "exclude", [b, p])
+    check_rows(clip_high, "clip_high", b, kinds="float")
+    check_rows(clip_retry, "clip_retry", b, kinds="float")
+    if not isinstance(min_near_share, (int, float)) or math.isnan(min_near_share):
+        raise InputError(f"min_near_share: expected a number, got {min_near_share!r}")
+    if (b == 0 or p == 0 or not on_cpu(torch.float32, disparity, clip_high, clip_retry)
+            or exclude is not None and not on_cpu(torch.bool, exclude)):
+        return None
+    library = load("nearness_split")
+    if library is None:
+        return None
+    disparity, clip_high, clip_retry = (t.detach().contiguous() for t in (disparity, clip_high, clip_retry))
+    exclude = None if exclude is None else exclude.contiguous()
+    split, retaken = torch.empty(b), torch.empty(b, dtype=torch.bool)
+    left_out = 0 if exclude is None else exclude.view(torch.uint8).data_ptr()
+    status = library.nearness_split(disparity.data_ptr(), left_out, b, p, clip_high.data_ptr(),
+                                    clip_retry.data_ptr(), float(min_near_share), int(min_near_share > 0),
+                                    split.data_ptr(), retaken.data_ptr(), torch.get_num_threads())
+    return None if status != 0 else (split, retaken)
