@@ -345,10 +345,11 @@ def test_kernels_build_without_openmp(images, monkeypatch, tmp_path):
 @pytest.mark.parametrize("march", ["x86-64", "x86-64-v3"], ids=["sse2", "avx2"])
 def test_vector_kernels_same_on_smaller_instruction_sets(march, monkeypatch, tmp_path, generator):
     """The kernels written with vector types size them to one register of the instruction set built for
-    (``VECTOR_BYTES`` in common.h: 16 bytes for SSE2, 32 for AVX2), and the semi-global column step is written so
-    that AVX2 vectorises it. Built for those instruction sets, whatever this machine has, the 16-bit block
-    matcher, the median filter's network and the semi-global pass still equal their torch paths, on widths that
-    leave a partial vector and ranges of more than one vector of columns."""
+    (``VECTOR_BYTES`` in common.h: 16 bytes for SSE2, 32 for AVX2), and the semi-global column and row steps are
+    written so that AVX2 vectorises them. Built for those instruction sets, whatever this machine has, the 16-bit
+    block matcher, the median filter's network and the semi-global passes still equal their torch paths, on widths
+    that leave a partial vector, ranges of more than one vector of columns and heights that leave a partial block
+    of rows."""
     from svs_torch.depth.block_matching import block_match_sad
     from svs_torch.depth.dense_config import DenseConfig
     from svs_torch.depth.semi_global import _scan_columns_torch
@@ -372,6 +373,7 @@ def test_vector_kernels_same_on_smaller_instruction_sets(march, monkeypatch, tmp
     costs[1, :4] = torch.inf
     p1, p2 = torch.tensor([3.0, 8.0]), torch.tensor([12.0, 30.0])
     aggregated = _scan_columns_torch(costs, p1, p2)
+    with_rows = aggregated + _scan_columns_torch(costs.transpose(-1, -2).contiguous(), p1, p2).transpose(-1, -2)
     monkeypatch.setenv("CC", str(wrapper))
     monkeypatch.setenv("SVS_TORCH_CACHE", str(tmp_path / "cache"))
     monkeypatch.setattr(kernels, "_LIBRARIES", {})
@@ -383,6 +385,8 @@ def test_vector_kernels_same_on_smaller_instruction_sets(march, monkeypatch, tmp
     for image, reference in zip(maps, medians):
         torch.testing.assert_close(segmentation_kernels.median_filter(image, 7), reference, rtol=0, atol=0)
     assert torch.equal(depth_kernels.semi_global_columns(costs, p1, p2), aggregated)
+    rows, (low, index) = depth_kernels.semi_global_rows(costs, p1, p2, aggregated)
+    assert torch.equal(rows, with_rows) and torch.equal(index, with_rows.min(dim=1).indices)
 
 
 def test_vector_types_are_sized_by_the_register_width():

@@ -3,13 +3,16 @@
  *
  * The torch path runs the column scan (semi_global_columns.c) a second time on the transposed volume, adds the two
  * and takes the minimum over the disparities: two transposed copies of the volume, an add and a reduction. Here
- * each task transposes one row of the volume (in cache-sized blocks) so that each pixel's D costs are contiguous,
- * and walks along it with the disparities as the vector lanes:
+ * each task takes a block of ROWS rows of one pair, transposed so that each column's D x ROWS costs are
+ * contiguous, and walks along the rows with the block's rows as the vector lanes, as the column
+ * kernel walks down the columns with the columns as its lanes:
  *   L(x, d) = C(x, d) + min(L(x-1, d), min(L(x-1, d-1), L(x-1, d+1)) + P1, m + P2) - m,  m = min_d L(x-1, d)
- *   (m = +inf: the previous pixel wholly +inf, outside the pair's region, and the path starts again: L = C)
+ *   (m = +inf: the previous pixel wholly +inf, outside the pair's region, and the path starts again: L = C + 0)
  * rightwards, then leftwards; out = columns + (L_right + L_left), and the minimum of out over d with its first
  * index. The float32 operations are the torch path's, in its order (a minimum does no arithmetic, so its order
- * is free), so the values are the same bit for bit.
+ * is free), so the values are the same bit for bit. (Until 2026-11-29 the lanes were the disparities of one pixel,
+ * a call a pixel with a scalar tail of D mod 8: on a noisy 320x240 frame's coarse retry, 33 x 120 x 224, 3.7 ms on
+ * two threads where the column kernel takes 1.2.)
  *
  * Build: cc -O3 -march=native -ffp-contract=off -fPIC -shared -fopenmp (no -ffast-math: the +inf costs mark
  * disparities outside the image and pixels outside the pair's region). Loaded through ctypes by
@@ -21,50 +24,63 @@
 
 #include "common.h"
 
-/* The side of the blocks a row is transposed in: 16 floats are a cache line, and a block's lines of both
- * layouts stay in the first-level cache. */
-#define TILE 16
-/* Partial minima of a pixel's D path costs, one vector of them (a minimum's order does not change its value). */
-#define PARTS 8
+/* Rows a task walks at once: the lanes of every step (two AVX2 vectors, four SSE2 ones, one AVX-512 one). */
+#define ROWS 16
 
 static inline float min2(float a, float b) { return b < a ? b : a; }
 
-/* m = the minimum of the D values at ``v``. */
-static float smallest(const float *restrict v, int64_t D) {
-    float part[PARTS];
-    int64_t d = 0;
-    for (int64_t k = 0; k < PARTS; ++k) part[k] = INFINITY;
-    for (; d + PARTS <= D; d += PARTS)
-        for (int64_t k = 0; k < PARTS; ++k) part[k] = min2(part[k], v[d + k]);
-    for (int64_t k = 0; d + k < D; ++k) part[k] = min2(part[k], v[d + k]);
-    float m = part[0];
-    for (int64_t k = 1; k < PARTS; ++k) m = min2(m, part[k]);
-    return m;
+/* One step of the path at one column, every lane: ``cost`` (D x ROWS), after ``prev`` (the path at the previous
+ * column: (D + 2) x ROWS, +inf in the first and last ROWS so that d - 1 and d + 1 need no branch) whose minima over
+ * d are ``low`` (ROWS), into ``here`` (the same layout as prev; its padding is the caller's); ``keep`` holds all
+ * ones where the path goes on, 0 where it starts again (low = +inf), and best - m is masked by it rather than
+ * selected, as in semi_global_columns.c, so that gcc vectorises the select on AVX2 (c + (+0) where the path starts
+ * again, the torch path's value). Writes the minima of here's values over d to ``next`` (ROWS). Out of line,
+ * restrict arguments, no branches: gcc vectorises it over the lanes. */
+__attribute__((noinline)) static void step_lanes(int64_t D, const float *restrict cost, const float *restrict prev,
+                                                 const float *restrict low, const uint32_t *restrict keep,
+                                                 float p1, float p2, float *restrict here, float *restrict next) {
+    for (int64_t r = 0; r < ROWS; ++r) next[r] = INFINITY;
+    for (int64_t d = 0; d < D; ++d) {
+        const float *lo = prev + d * ROWS, *mid = lo + ROWS, *hi = mid + ROWS;
+        const float *c = cost + d * ROWS;
+        float *o = here + (d + 1) * ROWS;
+        for (int64_t r = 0; r < ROWS; ++r) {
+            const float m = low[r];
+            const float best = min2(min2(mid[r], min2(hi[r], lo[r]) + p1), m + p2);
+            const float step = best - m;
+            uint32_t bits;
+            __builtin_memcpy(&bits, &step, sizeof bits);
+            bits &= keep[r];
+            float kept;
+            __builtin_memcpy(&kept, &bits, sizeof kept);
+            o[r] = c[r] + kept;
+            next[r] = min2(next[r], o[r]);
+        }
+    }
 }
 
-/* The step's D values (out of line, restrict arguments, no branches: gcc vectorises it over d); ``lo``, ``mid``
- * and ``hi`` are the previous pixel's path at d - 1, d and d + 1, ``m`` its minimum. Returns the minimum of the
- * values written, taken PARTS at a time as they are made (the next step's m). */
-__attribute__((noinline)) static float step_pixel(int64_t D, const float *restrict cost, const float *restrict lo,
-                                                  const float *restrict mid, const float *restrict hi, float m,
-                                                  float p1, float p2, float *restrict here) {
-    float part[PARTS];
-    for (int64_t k = 0; k < PARTS; ++k) part[k] = INFINITY;
-    int64_t d = 0;
-    for (; d + PARTS <= D; d += PARTS)
-        for (int64_t k = 0; k < PARTS; ++k) {
-            const float best = min2(min2(mid[d + k], min2(hi[d + k], lo[d + k]) + p1), m + p2);
-            here[d + k] = cost[d + k] + (best - m);
-            part[k] = min2(part[k], here[d + k]);
+/* The path's first column: L = C, and its minima over d. */
+static void start_lanes(int64_t D, const float *cost, float *here, float *next) {
+    for (int64_t r = 0; r < ROWS; ++r) next[r] = INFINITY;
+    for (int64_t d = 0; d < D; ++d)
+        for (int64_t r = 0; r < ROWS; ++r) {
+            here[(d + 1) * ROWS + r] = cost[d * ROWS + r];
+            next[r] = min2(next[r], cost[d * ROWS + r]);
         }
-    for (int64_t k = 0; d + k < D; ++k) {
-        const float best = min2(min2(mid[d + k], min2(hi[d + k], lo[d + k]) + p1), m + p2);
-        here[d + k] = cost[d + k] + (best - m);
-        part[k] = min2(part[k], here[d + k]);
+}
+
+/* A path's step at column ``x`` (``first``: no previous column), the lanes' minima carried in ``low``. */
+static void walk(int64_t D, const float *cost, const float *prev, float *here, float *low, uint32_t *keep,
+                 float p1, float p2, int first) {
+    float next[ROWS];
+    for (int64_t r = 0; r < ROWS; ++r) here[r] = here[(D + 1) * ROWS + r] = INFINITY;
+    if (first) {
+        start_lanes(D, cost, here, next);
+    } else {
+        for (int64_t r = 0; r < ROWS; ++r) keep[r] = isfinite(low[r]) ? 0xffffffffu : 0u;
+        step_lanes(D, cost, prev, low, keep, p1, p2, here, next);
     }
-    float next = part[0];
-    for (int64_t k = 1; k < PARTS; ++k) next = min2(next, part[k]);
-    return next;
+    for (int64_t r = 0; r < ROWS; ++r) low[r] = next[r];
 }
 
 /* n pixels of one disparity d: out = columns + sum, and the running winner (no branches: gcc vectorises it over
@@ -81,22 +97,22 @@ __attribute__((noinline)) static void add_row(int64_t n, const float *restrict c
     }
 }
 
-/* One step of a path at one pixel: ``cost`` (its D costs) after ``prev`` (the path at the previous pixel: D + 2
- * values, +inf at both ends so that d - 1 and d + 1 need no branch; NULL at the first pixel) whose minimum is
- * ``m``, into ``cur`` (the same layout). Returns the minimum of cur's D values. */
-static float step(const float *cost, const float *prev, float m, float *cur, int64_t D, float p1, float p2) {
-    cur[0] = INFINITY;
-    cur[D + 1] = INFINITY;
-    float *here = cur + 1;
-    if (prev == NULL) {
-        for (int64_t d = 0; d < D; ++d) here[d] = cost[d];
-        return smallest(here, D);
-    }
-    if (!isfinite(m)) {
-        for (int64_t d = 0; d < D; ++d) here[d] = cost[d] + 0.0f;
-        return smallest(here, D);
-    }
-    return step_pixel(D, cost, prev, prev + 1, prev + 2, m, p1, p2, here);
+/* The block's costs (rows y0 .. y0 + n - 1 of plane ``volume``, D planes of ``plane`` floats, rows of W) into
+ * ``block`` (W x D x ROWS); lanes past n get 0 (their paths are made and never read). Each source row is read
+ * whole, in order: read a tile of columns of all D x ROWS rows at a time, the reads missed the cache at nearly
+ * every line (more streams than the prefetchers follow) and the transpose took most of the kernel's time; a
+ * disparity's W lines of the block stay in the first-level cache while its ROWS rows are written in. */
+static void transpose_in(const float *volume, int64_t D, int64_t W, int64_t plane, int64_t n, float *block) {
+    for (int64_t d = 0; d < D; ++d)
+        for (int64_t r = 0; r < ROWS; ++r) {
+            float *to = block + d * ROWS + r;
+            if (r < n) {
+                const float *src = volume + d * plane + r * W;
+                for (int64_t x = 0; x < W; ++x) to[x * D * ROWS] = src[x];
+            } else {
+                for (int64_t x = 0; x < W; ++x) to[x * D * ROWS] = 0.0f;
+            }
+        }
 }
 
 /* costs, columns, out: (B, D, H, W) float32; p1, p2: (B,); low: (B, H, W) float32 and best: (B, H, W) int64, the
@@ -104,49 +120,53 @@ static float step(const float *cost, const float *prev, float m, float *cur, int
  * the torch path). */
 int semi_global_rows(const float *costs, int64_t B, int64_t D, int64_t H, int64_t W, const float *p1, const float *p2,
                      const float *columns, float *out, float *low, int64_t *best, int64_t num_threads) {
-    const int64_t tasks = B * H, plane = H * W, lane = D + 2;
+    const int64_t blocks = (H + ROWS - 1) / ROWS, tasks = B * blocks, plane = H * W, lane = (D + 2) * ROWS;
     const int threads = thread_count(num_threads, tasks);
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        /* the row's costs (W, D), its rightward path then both paths' sum (W, D + 2), two leftward steps */
-        float *row = scratch(W * D + W * lane + 2 * lane, sizeof(float));
-        const int ready = scratch_ready(row != NULL, &failed);
-#pragma omp for schedule(static)
+        /* the block's costs (W, D, ROWS), its rightward path then both paths' sum (W, D + 2, ROWS), two leftward
+         * steps, one disparity's sums back in rows (ROWS, W) */
+        float *block = scratch(W * D * ROWS + W * lane + 2 * lane + ROWS * W, sizeof(float));
+        const int ready = scratch_ready(block != NULL, &failed);
+#pragma omp for schedule(dynamic, 1)
         for (int64_t task = 0; task < tasks; ++task) {
             if (!ready) continue;
-            const int64_t b = task / H, y = task % H, at = b * D * plane + y * W;
-            float *path = row + W * D, *left = path + W * lane;
-            for (int64_t x0 = 0; x0 < W; x0 += TILE)
-                for (int64_t d0 = 0; d0 < D; d0 += TILE)
-                    for (int64_t d = d0; d < d0 + TILE && d < D; ++d)
-                        for (int64_t x = x0; x < x0 + TILE && x < W; ++x) row[x * D + d] = costs[at + d * plane + x];
-            float m = INFINITY;
+            const int64_t b = task / blocks, y0 = (task % blocks) * ROWS;
+            const int64_t n = H - y0 < ROWS ? H - y0 : ROWS, at = b * D * plane + y0 * W;
+            float *path = block + W * D * ROWS, *left = path + W * lane, *rows = left + 2 * lane;
+            float m[ROWS];
+            uint32_t keep[ROWS];
+            transpose_in(costs + at, D, W, plane, n, block);
             for (int64_t x = 0; x < W; ++x)
-                m = step(row + x * D, x ? path + (x - 1) * lane : NULL, m, path + x * lane, D, p1[b], p2[b]);
-            const float *previous = NULL;
+                walk(D, block + x * D * ROWS, x ? path + (x - 1) * lane : NULL, path + x * lane, m, keep, p1[b],
+                     p2[b], x == 0);
             for (int64_t x = W - 1; x >= 0; --x) {
-                float *current = left + ((W - 1 - x) % 2) * lane, *sum = path + x * lane + 1;
-                m = step(row + x * D, previous, m, current, D, p1[b], p2[b]);
-                for (int64_t d = 0; d < D; ++d) sum[d] = sum[d] + current[d + 1];
-                previous = current;
+                float *current = left + ((W - 1 - x) % 2) * lane, *sum = path + x * lane + ROWS;
+                walk(D, block + x * D * ROWS, left + ((W - x) % 2) * lane, current, m, keep, p1[b], p2[b],
+                     x == W - 1);
+                for (int64_t i = 0; i < D * ROWS; ++i) sum[i] = sum[i] + current[ROWS + i];
             }
-            /* back to (D, W), added to the columns' paths; each pixel's d ascending, so that a strictly smaller
-             * total replaces the winner: the first index on ties, +inf and index 0 where every total is +inf */
-            float *lowest = low + b * plane + y * W;
-            int64_t *index = best + b * plane + y * W;
-            for (int64_t x = 0; x < W; ++x) {
-                lowest[x] = INFINITY;
-                index[x] = 0;
+            /* each disparity's sums back in rows, added to the columns' paths; each pixel's d ascending, so that a
+             * strictly smaller total replaces the winner: the first index on ties, +inf and index 0 where every
+             * total is +inf */
+            float *lowest = low + b * plane + y0 * W;
+            int64_t *index = best + b * plane + y0 * W;
+            for (int64_t i = 0; i < n * W; ++i) {
+                lowest[i] = INFINITY;
+                index[i] = 0;
             }
-            for (int64_t x0 = 0; x0 < W; x0 += TILE) /* the sums transposed back into row, (D, W) */
-                for (int64_t d0 = 0; d0 < D; d0 += TILE)
-                    for (int64_t x = x0; x < x0 + TILE && x < W; ++x)
-                        for (int64_t d = d0; d < d0 + TILE && d < D; ++d) row[d * W + x] = path[x * lane + 1 + d];
-            for (int64_t d = 0; d < D; ++d)
-                add_row(W, columns + at + d * plane, row + d * W, d, out + at + d * plane, lowest, index);
+            for (int64_t d = 0; d < D; ++d) {
+                for (int64_t x = 0; x < W; ++x) {
+                    const float *sum = path + x * lane + (d + 1) * ROWS;
+                    for (int64_t r = 0; r < n; ++r) rows[r * W + x] = sum[r];
+                }
+                for (int64_t r = 0; r < n; ++r)
+                    add_row(W, columns + at + d * plane + r * W, rows + r * W, d, out + at + d * plane + r * W,
+                            lowest + r * W, index + r * W);
+            }
         }
-        free(row);
+        free(block);
     }
     return failed ? -1 : 0;
 }
