@@ -17,8 +17,9 @@ Time svs_torch as a user meets it against rivals doing the same work, in one run
   largest regions, SIFT or ORB, ratio matching, findFundamentalMat RANSAC, StereoBM median over the regions),
   interleaved, the median of --repeats runs, on synthetic SVS pairs and (with the shared data) real pairs at
   320x240 and 640x480;
-- in-process: stage times at B = 32, per-pair time from B = 1 to 128, peak memory per pair, one-pair latency,
-  kornia's SIFTFeature + match_snn + RANSAC; and 'svs-depth --help' start-up.
+- in-process: stage times at B = 32, per-pair time from B = 1 to 128, peak memory per pair, one-pair latency
+  (with the shared data also guide's, frame by frame on the real pairs as camera frames: median, 90th
+  percentile, max), kornia's SIFTFeature + match_snn + RANSAC; and 'svs-depth --help' start-up.
 
 Each rival's keypoints, matches, inliers and median R_min are printed beside its speed, so a win by doing less
 shows. Takes a few minutes at the defaults.

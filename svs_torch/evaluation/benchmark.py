@@ -16,8 +16,9 @@ What is measured (all on this machine, the thread count recorded):
   pays per frame; also with the paper's Otsu segmenter, and both on the first 16 pairs as the board's default
   camera frames, :func:`svs_torch.data.camera_frame_pairs`, the nearness segmenter's then with guide's floor
   rule on and each call under ``torch.inference_mode``, as guide runs it, and once more with a walker's floor
-  under the obstacles, which guide's floor rule finds), and kornia's own composition
-  (``SIFTFeature`` + ``match_snn`` + ``RANSAC('fundamental')``).
+  under the obstacles, which guide's floor rule finds), with the data folder guide's latency frame by frame on
+  the shared real pairs as camera frames (its median, 90th percentile and maximum: :mod:`.frame_latency`), and
+  kornia's own composition (``SIFTFeature`` + ``match_snn`` + ``RANSAC('fundamental')``).
 - ``svs-depth --help`` start-up.
 - **comparable work**: per rival, the mean keypoints, matches, inliers and the median R_min over the pairs, so
   a win by doing less shows.
@@ -40,6 +41,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from .frame_latency import GOAL_MS, real_frame_latency
 
 __all__ = ["run_benchmark", "format_tables"]
 
@@ -202,8 +205,9 @@ def _child_peak_memory(batch_size: int) -> dict:
             "per_pair_mb": round((values["peak_mb"] - values["base_mb"]) / batch_size, 2)}
 
 
-def in_process(repeats: int, threads: int) -> dict:
-    """Stage times at B = 32, per-pair time against B, latency at B = 1, kornia's composition."""
+def in_process(repeats: int, threads: int, data_dir: Path | None = None) -> dict:
+    """Stage times at B = 32, per-pair time against B, latency at B = 1, kornia's composition; with ``data_dir``,
+    guide's latency frame by frame on the shared real pairs as camera frames (:mod:`.frame_latency`)."""
     import torch
 
     from ..data import camera_frame_pairs
@@ -238,7 +242,10 @@ def in_process(repeats: int, threads: int) -> dict:
     floor_frames = camera_frame_pairs(floor.batch, CAMERA_DIGIT, CAMERA_SIGMA_LEVELS, torch.Generator().manual_seed(0))
     # The camera frames are timed as guide's loop runs them: under inference mode, which reads each result and
     # drops it, so the pipeline hands out its tensors uncopied (svs_torch.core.inference).
+    real = {} if data_dir is None else real_frame_latency(data_dir, {"nearness": walker, "otsu": otsu}, repeats,
+                                                          CAMERA_DIGIT, CAMERA_SIGMA_LEVELS)
     return {"stages_ms_per_pair_B32": stages, "scaling": scaling, "latency_ms_B1": latency,
+            "latency_real_camera_frames": real,
             "latency_ms_B1_otsu": _ms_per_pair(first, 1, otsu, repeats)[0],
             "latency_ms_B1_camera": _ms_per_pair(frames, 1, walker, repeats, as_guide=True)[0],
             "latency_ms_B1_camera_otsu": _ms_per_pair(frames, 1, otsu, repeats, as_guide=True)[0],
@@ -340,7 +347,7 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
         report = {"whole_process": whole_process(sets, workdir, repeats, threads, progress)}
     if progress:
         progress("in-process: stages, batch scaling, latency, kornia")
-    report["in_process"] = in_process(repeats, threads)
+    report["in_process"] = in_process(repeats, threads, data_dir)
     report["help_s"] = help_time(repeats)
     if memory:
         if progress:
@@ -374,4 +381,12 @@ def format_tables(report: dict) -> str:
               f"{WALKER_PITCH_DEG:g}°): {inside.get('latency_ms_B1_camera_floor', '-')} ms; kornia SIFTFeature + "
               f"match_snn + RANSAC: {inside['kornia_ms_per_pair']} ms per pair; `svs-depth --help`: "
               f"{report['help_s']} s; threads {report['metadata']['threads']}, commit {report['metadata']['commit']}"]
+    real = inside.get("latency_real_camera_frames") or {}
+    if real:
+        lines += ["", f"guide frame by frame on the shared real pairs as camera frames (320x240, JPEG digit "
+                  f"{CAMERA_DIGIT}, noise σ {CAMERA_SIGMA_LEVELS:g}, B = 1, inference mode; goal {GOAL_MS:g} ms):",
+                  "", "| segmenter | frames | median ms | 90th percentile ms | max ms | frames over the goal |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {name} | {row['frames']} | {row['median_ms']} | {row['p90_ms']} | {row['max_ms']} | "
+                  f"{row['over_goal']} |" for name, row in real.items()]
     return "\n".join(lines)

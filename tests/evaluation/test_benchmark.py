@@ -150,3 +150,30 @@ def test_guides_latency_is_timed_the_way_guide_calls_the_pipeline(monkeypatch):
     modes.clear()
     benchmark._ms_per_pair(pairs, 2, None, 1)
     assert modes == [False, False]
+
+
+def test_guides_latency_on_real_frames_is_reported_frame_by_frame(data_dir):
+    """With the data folder the benchmark also times guide on the shared real pairs as camera frames, one frame at
+    a time, and reports their distribution (the frames that take the pipeline's second passes are the slow ones
+    a mean hides): the median, the 90th percentile by nearest rank, the maximum and the frames over the goal."""
+    import dataclasses
+
+    from svs_torch.evaluation.frame_latency import GOAL_MS, _summary, real_frame_latency
+    from svs_torch.pipeline import PipelineConfig
+
+    assert _summary([10, 20, 30, 40, 60, 70, 80, 90, 100, 5]) == {
+        "frames": 10, "median_ms": 50.0, "p90_ms": 90, "max_ms": 100, "over_goal": 5}
+    assert GOAL_MS == 50.0
+    config = PipelineConfig()
+    otsu = dataclasses.replace(config, segmentation=dataclasses.replace(config.segmentation, segmenter="otsu",
+                                                                        keep="largest"))
+    report = real_frame_latency(data_dir, {"otsu": otsu}, 1, 4, 4.0, limit=2)
+    row = report["otsu"]
+    assert row["frames"] == 2 and 0 < row["median_ms"] <= row["p90_ms"] <= row["max_ms"]
+    text = format_tables({"whole_process": [], "in_process": {
+        "stages_ms_per_pair_B32": {}, "scaling": [], "latency_ms_B1": 2.0, "kornia_ms_per_pair": 3.0,
+        "latency_real_camera_frames": {"nearness": {"frames": 45, "median_ms": 38.2, "p90_ms": 71.0,
+                                                    "max_ms": 104.5, "over_goal": 9}}},
+        "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}})
+    assert "guide frame by frame on the shared real pairs as camera frames" in text
+    assert "| nearness | 45 | 38.2 | 71.0 | 104.5 | 9 |" in text
