@@ -69,7 +69,7 @@ static void start_lanes(int64_t D, const float *cost, float *here, float *next) 
         }
 }
 
-/* A path's step at column ``x`` (``first``: no previous column), the lanes' minima carried in ``low``. */
+/* One step of a path into ``here`` (``first``: its first column, no ``prev``), the lanes' minima carried in ``low``. */
 static void walk(int64_t D, const float *cost, const float *prev, float *here, float *low, uint32_t *keep,
                  float p1, float p2, int first) {
     float next[ROWS];
