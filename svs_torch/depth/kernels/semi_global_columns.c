@@ -20,32 +20,19 @@
 #include <stdlib.h>
 
 #include "common.h"
+#include "path_step.h"
 
 /* Columns per task: 16 floats of a row are one cache line's worth of each of the D rows the scan keeps. */
 #define STRIP 64
 
-static inline float min2(float a, float b) { return b < a ? b : a; }
-
-/* One disparity of a step (out of line, restrict arguments, no branches: gcc vectorises it over x). best - m is
- * computed in every column and zeroed by a bit mask where the path starts again: written as ``restart ? 0 :
- * best - m``, the subtraction (inf - inf there) may raise a floating-point exception only where it is taken, and
- * GCC 12 vectorised that select only with AVX-512's masked operations, leaving the loop scalar on AVX2. The same
- * values: c + (+0) where the path starts again, c + (best - m) elsewhere. */
+/* One disparity of a step (out of line, restrict arguments, no branches: gcc vectorises it over x): path_step.h's
+ * step in each column, the path started again where ``restart`` is 1. */
 __attribute__((noinline)) static void step_row(int64_t n, const float *restrict c, const float *restrict here,
                                                const float *restrict lo, const float *restrict hi,
                                                const float *restrict low, const float *restrict restart,
                                                float p1, float p2, float *restrict o) {
-    for (int64_t x = 0; x < n; ++x) {
-        const float m = low[x];
-        const float best = min2(min2(here[x], min2(hi[x], lo[x]) + p1), m + p2);
-        const float step = best - m;
-        uint32_t bits;
-        __builtin_memcpy(&bits, &step, sizeof bits);
-        bits &= restart[x] == 0.0f ? 0xffffffffu : 0u;
-        float kept;
-        __builtin_memcpy(&kept, &bits, sizeof kept);
-        o[x] = c[x] + kept;
-    }
+    for (int64_t x = 0; x < n; ++x)
+        o[x] = path_step(c[x], here[x], lo[x], hi[x], low[x], restart[x] == 0.0f ? 0xffffffffu : 0u, p1, p2);
 }
 
 /* One step of the path: the row ``cost`` (D rows of ``stride`` floats, n columns used) after ``prev`` (the path's

@@ -23,19 +23,17 @@
 #include <stdlib.h>
 
 #include "common.h"
+#include "path_step.h"
 
 /* Rows a task walks at once: the lanes of every step (two AVX2 vectors, four SSE2 ones, one AVX-512 one). */
 #define ROWS 16
 
-static inline float min2(float a, float b) { return b < a ? b : a; }
-
-/* One step of the path at one column, every lane: ``cost`` (D x ROWS), after ``prev`` (the path at the previous
- * column: (D + 2) x ROWS, +inf in the first and last ROWS so that d - 1 and d + 1 need no branch) whose minima over
- * d are ``low`` (ROWS), into ``here`` (the same layout as prev; its padding is the caller's); ``keep`` holds all
- * ones where the path goes on, 0 where it starts again (low = +inf), and best - m is masked by it rather than
- * selected, as in semi_global_columns.c, so that gcc vectorises the select on AVX2 (c + (+0) where the path starts
- * again, the torch path's value). Writes the minima of here's values over d to ``next`` (ROWS). Out of line,
- * restrict arguments, no branches: gcc vectorises it over the lanes. */
+/* One step of the path at one column, every lane (path_step.h's): ``cost`` (D x ROWS), after ``prev`` (the path
+ * at the previous column: (D + 2) x ROWS, +inf in the first and last ROWS so that d - 1 and d + 1 need no branch)
+ * whose minima over d are ``low`` (ROWS), into ``here`` (the same layout as prev; its padding is the caller's);
+ * ``keep`` holds all ones where the path goes on, 0 where it starts again (low = +inf). Writes the minima of
+ * here's values over d to ``next`` (ROWS). Out of line, restrict arguments, no branches: gcc vectorises it over
+ * the lanes. */
 __attribute__((noinline)) static void step_lanes(int64_t D, const float *restrict cost, const float *restrict prev,
                                                  const float *restrict low, const uint32_t *restrict keep,
                                                  float p1, float p2, float *restrict here, float *restrict next) {
@@ -45,15 +43,7 @@ __attribute__((noinline)) static void step_lanes(int64_t D, const float *restric
         const float *c = cost + d * ROWS;
         float *o = here + (d + 1) * ROWS;
         for (int64_t r = 0; r < ROWS; ++r) {
-            const float m = low[r];
-            const float best = min2(min2(mid[r], min2(hi[r], lo[r]) + p1), m + p2);
-            const float step = best - m;
-            uint32_t bits;
-            __builtin_memcpy(&bits, &step, sizeof bits);
-            bits &= keep[r];
-            float kept;
-            __builtin_memcpy(&kept, &bits, sizeof kept);
-            o[r] = c[r] + kept;
+            o[r] = path_step(c[r], mid[r], lo[r], hi[r], low[r], keep[r], p1, p2);
             next[r] = min2(next[r], o[r]);
         }
     }
