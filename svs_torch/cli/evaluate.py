@@ -17,9 +17,8 @@ DESCRIPTION = """\
 Run the pipeline over every pair of PATH... in batches and score it against each pair's ground truth:
 Eq. (9) accuracy of R_min, R_max and each object (an object's true distance is the median GT depth over the
 pixels it is measured over, its kept region's interior; true R_min / R_max are the nearest / farthest object),
-the dense disparity error over the kept
-regions and the RANSAC inliers' disparity error (median, within 1 px, within 3 px), inlier precision, counts,
-status and time. A failed pair counts 0 % and is listed; nothing is hidden.
+the dense disparity error over the kept regions and the RANSAC inliers' disparity error (median, within 1 px,
+within 3 px), inlier precision, counts, status and time. A failed pair counts 0 % and is listed; nothing is hidden.
 
 The standard stereo metrics of the dense disparity map follow (Middlebury SDK: bad-0.5/1/2/4 %, avgerr, rms,
 A50/A90/A95/A99; KITTI: D1 %, error > 3 px and > 5 % of the true disparity), each with the density it was
