@@ -21,6 +21,7 @@ import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
+from ..core.image_files import JPEG_GRAY_DECODE
 from ..core.types import StereoBatch
 from .link import CameraLink
 from .link_types import CaptureError, LinkConfig, RawFrame
@@ -86,7 +87,7 @@ class PairBatch:
 
 def decode_frame(raw: RawFrame, camera: str, where: str) -> Frame:
     """Decode a received JPEG to grayscale; raises :class:`CaptureError` naming ``where`` if it does not decode."""
-    image = cv2.imdecode(np.frombuffer(raw.jpeg, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    image = cv2.imdecode(np.frombuffer(raw.jpeg, dtype=np.uint8), JPEG_GRAY_DECODE)  # as estimate reads a file
     want = (raw.header.height, raw.header.width)
     if image is None or image.shape != want:
         got = "nothing" if image is None else f"{image.shape[1]}x{image.shape[0]}"

@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     paths = pair_paths(args)
 
     def gray(path: str, name: str):
-        image = read_image_array(path, name)
+        image = read_image_array(path, name, gray=True)
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
     source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)

@@ -167,7 +167,7 @@ def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int
             break
         for path in pair or ():
             try:
-                decoded.setdefault(index // batch_size, {})[preload_key(path)] = read_image_array(path, "pairs")
+                decoded.setdefault(index // batch_size, {})[preload_key(path)] = read_image_array(path, "pairs", gray=True)
             except (InputError, OSError):
                 pass
     return decoded

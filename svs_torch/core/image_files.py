@@ -21,11 +21,17 @@ import numpy as np
 from .errors import InputError
 from .files import display_path, path_kind
 
-__all__ = ["MAX_DECODED_PIXELS", "PRELOADED", "check_file", "preload_key", "read_image_array"]
+__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "preload_key", "read_image_array"]
 
 #: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is taken
 #: (and removed) by the first read of that file.
 PRELOADED: dict[str, np.ndarray] = {}
+
+#: A JPEG file's first bytes (start of image, then a marker), and how ``gray`` (and the live stream,
+#: :func:`svs_torch.capture.stereo.decode_frame`) decodes one: its luma, orientation tags ignored as
+#: ``IMREAD_UNCHANGED`` ignores them (the pixels stay where the camera put them).
+_JPEG_START = b"\xff\xd8\xff"
+JPEG_GRAY_DECODE = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
 
 
 def preload_key(path: str | Path) -> str:
@@ -114,8 +120,15 @@ def _declared_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def read_image_array(path: str | Path, name: str) -> np.ndarray:
+def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndarray:
     """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`.
+
+    ``gray``: a JPEG file is decoded to its gray levels at once (OpenCV's ``IMREAD_GRAYSCALE``: the luma the
+    JPEG stores, as ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)`` reads it and as ``guide`` decodes the SVS's frames,
+    :func:`svs_torch.capture.stereo.decode_frame`), not to colour first: a colour JPEG's chroma is stored at half
+    width (the SVS's 4:2:2), and BGR upsampled from it and weighted back to gray moves 8 % of a street frame's
+    pixels by up to 18 levels, so ``estimate`` on a frame ``capture`` saved would not see what ``guide`` saw.
+    Other formats, and JPEGs without ``gray``, come unchanged.
 
     The file's bytes are read by Python and decoded from memory: any file name works, a truncated file is
     refused (reading from a file, OpenCV would fill a truncated JPEG's missing rows with gray), and the
@@ -142,7 +155,8 @@ def read_image_array(path: str | Path, name: str) -> np.ndarray:
             # imdecode returns None (it does not raise) for bytes it cannot decode, e.g. text renamed .png, and
             # raises cv2.error for e.g. a header announcing more pixels than OpenCV's limit.
             try:
-                array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+                array = cv2.imdecode(data, JPEG_GRAY_DECODE if gray and data[:3].tobytes() == _JPEG_START else
+                                     cv2.IMREAD_UNCHANGED)
             except cv2.error as error:
                 complaints.append(_decoder_message(str(error).strip().splitlines()[-1]))
     reason = f": {' '.join(complaints[0].split())[:160]}" if complaints else ""

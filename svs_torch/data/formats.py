@@ -113,8 +113,10 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     """Read an 8- or 16-bit gray or colour image (alpha ignored) as a gray tensor ``(1, 1, H, W)`` in [0, 1].
 
     Color images are converted with ``cv2.cvtColor(BGR2GRAY)``, so the gray levels equal OpenCV's own
-    conversion (0.299 R + 0.587 G + 0.114 B, rounded to the input's integer type). uint8 values are divided
-    by 255 and uint16 by 65535; a uint8 image round-trips exactly: ``round(tensor * 255)`` gives it back.
+    conversion (0.299 R + 0.587 G + 0.114 B, rounded to the input's integer type); a JPEG is decoded to its
+    luma at once, as ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)`` and ``guide``'s live frames are
+    (:func:`~svs_torch.core.image_files.read_image_array`'s ``gray``). uint8 values are divided by 255 and uint16
+    by 65535; a uint8 image round-trips exactly: ``round(tensor * 255)`` gives it back.
 
     Raises:
         InputError: naming ``name``, for a missing file, a file OpenCV cannot decode, a channel count other
@@ -123,7 +125,7 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     if dtype not in FLOAT_DTYPES:
         # Gray levels in [0, 1] need a float type the pipeline computes in; int64 would floor them to 0 or 1.
         raise InputError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
-    array = _imread(path, name)
+    array = _imread(path, name, gray=True)
     channels = 1 if array.ndim == 2 else array.shape[2]
     if channels not in (1, 2, 3, 4):
         raise InputError(f"{name}: expected 1 (gray), 2 (gray + alpha), 3 (BGR) or 4 (BGRA) channels, "

@@ -296,6 +296,27 @@ def test_gray_images_round_trip_and_equal_opencv(tmp_path: Path, data_dir: Path)
     assert np.array_equal((gray[0, 0] * 255).round().to(torch.uint8).numpy(), expected)
 
 
+def test_a_colour_jpeg_is_read_as_its_luma_as_guide_decodes_it(tmp_path: Path, data_dir: Path) -> None:
+    """The SVS sends colour 4:2:2 JPEGs. A file of one (what ``capture`` and ``guide --record`` save) is read to
+    the gray levels OpenCV's ``imread(..., IMREAD_GRAYSCALE)`` gives and ``guide`` decodes live, exactly: not
+    decoded to colour and weighted back, which moves a street frame's pixels by up to 18 levels."""
+    from svs_torch.capture.link_types import RawFrame
+    from svs_torch.capture.protocol import FrameHeader
+    from svs_torch.capture.stereo import decode_frame
+
+    colour = cv2.imread(str(data_dir / "kitti/stereo2015_training/image_2/000000_10.png"))[:240, :320]
+    ok, encoded = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 75, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                                                cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422])
+    path = tmp_path / "pair000000_left.jpg"
+    path.write_bytes(encoded.tobytes())
+    read = (read_gray_image(path)[0, 0] * 255).round().to(torch.uint8).numpy()
+    assert np.array_equal(read, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+    weighted = cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2GRAY)
+    assert not np.array_equal(read, weighted)  # what it was read as before: the two differ on this frame
+    raw = RawFrame(FrameHeader("5", 320, 240, encoded.size), encoded.tobytes(), 0.0, 0.0, 0.0, 1, 0)
+    assert np.array_equal(decode_frame(raw, "left", "test").image, read)
+
+
 @pytest.mark.parametrize("little_endian", [True, False])
 def test_read_pfm_flips_rows_and_keeps_inf(tmp_path: Path, little_endian: bool) -> None:
     image = np.array([[1.5, np.inf, 3.0], [4.0, 5.0, -6.25]], dtype=np.float32)  # (H, W) top row first
