@@ -27,19 +27,27 @@ from .emulator_state import CameraState, Faults, Reply
 from .frames import WALKER_PITCH_DEG, FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
 from svs_torch.core.camera import parse_size
 
-__all__ = ["EmulatorServer", "main"]
+__all__ = ["SVS_LINK_BYTES_PER_S", "EmulatorServer", "main"]
 
 _POLL_S = 0.05  # how often the I/O threads look at the stop flag, seconds
+
+#: The bytes a second an SVS board's link carries: its UART at 2,304,000 baud, about 2.53 Mbit/s actual, 8N1 (10
+#: bits a byte), which the WiFi module bridges too (SVS_PROTOCOL.md §1). A 320×240 frame of about 14 kB takes
+#: 55 ms. ``EmulatorServer(link_bytes_per_s=...)``, ``--link-rate``; the command line's ``--emulator`` uses it.
+SVS_LINK_BYTES_PER_S = 253_000
+
+_PACED_CHUNK_BYTES = 4096  # a paced reply is written in pieces this large, each when the link would have sent it
 
 
 class _BoardPort(threading.Thread):
     """The I/O of one board: a TCP listener with at most one client, and optionally a pty."""
 
     def __init__(self, state: CameraState, host: str, port: int, use_pty: bool, banner: bool,
-                 send_timeout_s: float, stop: threading.Event) -> None:
+                 send_timeout_s: float, stop: threading.Event, link_bytes_per_s: float | None = None) -> None:
         super().__init__(name=f"svs-emulator-{state.camera}", daemon=True)
         self.state = state
         self.send_timeout_s = send_timeout_s
+        self.link_bytes_per_s = link_bytes_per_s
         self.stop_event = stop
         self.listener = socket.create_server((host, port))
         self.listener.setblocking(False)
@@ -134,16 +142,25 @@ class _BoardPort(threading.Thread):
             self._close_client()
 
     def _send_reply(self, reply: Reply, out: socket.socket | int) -> float | None:
-        """Send a reply as planned; the clock reading just before its last write, or None if it was cut off."""
+        """Send a reply as planned; the clock reading just before its last write, or None if it was cut off.
+        With ``link_bytes_per_s``, no byte leaves before the board's link would have sent it: the reply's last
+        byte no earlier than its length at that rate after its first."""
         if reply.delay_s > 0 and self.stop_event.wait(reply.delay_s):
             return None
         step = max(1, reply.chunk_bytes if reply.chunk_bytes > 0 else len(reply.data))
-        last_write_s = time.monotonic()
+        if self.link_bytes_per_s:
+            step = min(step, _PACED_CHUNK_BYTES)
+        began_s = last_write_s = time.monotonic()
         for start in range(0, len(reply.data), step):
             if start and reply.chunk_delay_s > 0 and self.stop_event.wait(reply.chunk_delay_s):
                 return None
+            piece = reply.data[start:start + step]
+            if self.link_bytes_per_s:
+                due_s = began_s + (start + len(piece)) / self.link_bytes_per_s
+                if due_s > time.monotonic() and self.stop_event.wait(due_s - time.monotonic()):
+                    return None
             last_write_s = time.monotonic()
-            if not self._write(out, reply.data[start:start + step]):
+            if not self._write(out, piece):
                 return None
         return last_write_s
 
@@ -184,12 +201,17 @@ class EmulatorServer:
         send_timeout_s: give up sending to a client that does not read for this long, seconds.
         noise_sigma: independent Gaussian sensor noise of each board, 8-bit levels (``--noise-sigma``).
         noise_seed: seed of the left board's noise; the right board's is the next one.
+        link_bytes_per_s: each board's replies paced to this many bytes a second, as its link carries them
+            (:data:`SVS_LINK_BYTES_PER_S`: the SVS's UART); None: as fast as the socket takes them.
     """
 
     def __init__(self, host: str = "127.0.0.1", left_port: int = 10001, right_port: int = 10002, *,
                  source: FrameSource | None = None, use_pty: bool = False,
                  faults: dict[str, Faults] | None = None, holdoff_s: float = 0.001, banner: bool = True,
-                 send_timeout_s: float = 2.0, noise_sigma: float = 0.0, noise_seed: int = 0) -> None:
+                 send_timeout_s: float = 2.0, noise_sigma: float = 0.0, noise_seed: int = 0,
+                 link_bytes_per_s: float | None = None) -> None:
+        if link_bytes_per_s is not None and not link_bytes_per_s > 0:
+            raise ValueError(f"link_bytes_per_s: expected a positive rate or None, got {link_bytes_per_s!r}")
         self.source = source if source is not None else SyntheticSource()
         start = time.monotonic()
         faults = faults or {}
@@ -201,7 +223,8 @@ class EmulatorServer:
         self._ports: dict[str, _BoardPort] = {}
         try:
             for (name, state), port in zip(self.cameras.items(), (left_port, right_port)):
-                self._ports[name] = _BoardPort(state, host, port, use_pty, banner, send_timeout_s, self._stop)
+                self._ports[name] = _BoardPort(state, host, port, use_pty, banner, send_timeout_s, self._stop,
+                                               link_bytes_per_s)
         except OSError:
             for board in self._ports.values():
                 board.close()
@@ -272,6 +295,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
                    help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
     p.add_argument("--holdoff-ms", type=float, default=1.0, help="input discarded after a reply, ms")
+    p.add_argument("--link-rate", type=float, default=SVS_LINK_BYTES_PER_S, metavar="BYTES/S",
+                   help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
+                        "UART sends them (default %(default)s); 0: as fast as the socket takes them")
     p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
     p.add_argument("--noise-sigma", type=float, default=0.0, metavar="LEVELS",
                    help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
@@ -319,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
         chosen = ("left", "right") if args.fault_camera == "both" else (args.fault_camera,)
         server = EmulatorServer(args.host, args.left_port, args.right_port, source=source, use_pty=args.pty,
                                 faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000,
-                                noise_sigma=args.noise_sigma, noise_seed=args.noise_seed)
+                                noise_sigma=args.noise_sigma, noise_seed=args.noise_seed,
+                                link_bytes_per_s=args.link_rate or None)
     except (OSError, ValueError) as err:
         print(f"hw.emulator: error: {err}", file=sys.stderr)
         return 1

@@ -7,6 +7,7 @@ names the camera and URL, within the bound the link states. Real-device tests ar
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import time
@@ -250,6 +251,28 @@ def test_quality_changes_jpeg_size(emulator):
     assert sizes[1] > sizes[8]
     with pytest.raises(InputError, match="quality"):
         SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], quality=9, config=FAST)
+
+
+def test_a_paced_link_sends_frames_no_faster_than_the_boards_uart():
+    """``link_bytes_per_s``: each frame arrives no sooner than its bytes take at that rate (the SVS's UART,
+    ``SVS_LINK_BYTES_PER_S``, for the command line's --emulator); unpaced, the same frames come at once."""
+    from hw.emulator import SVS_LINK_BYTES_PER_S
+
+    assert SVS_LINK_BYTES_PER_S == 253_000  # 2.53 Mbit/s actual at 2,304,000 baud, 10 bits a byte (SVS_PROTOCOL §1)
+    rate = 50_000.0  # a 20 kB frame: 0.4 s on such a link, under a millisecond on loopback
+    for paced in (True, False):
+        with EmulatorServer(left_port=0, right_port=0, source=flat_source,
+                            link_bytes_per_s=rate if paced else None) as server:
+            link = dataclasses.replace(FAST, link_bytes_per_s=rate)  # the driver's timeouts for that link
+            with SVSStereoCamera(server.urls["left"], server.urls["right"], config=link) as cam:
+                frame = cam.grab_pair().left
+                took_s = frame.arrival_monotonic_s - frame.request_monotonic_s
+                if paced:
+                    assert took_s >= (10 + len(frame.jpeg)) / rate - 0.002  # header + JPEG on the wire
+                else:
+                    assert took_s < 0.5 * len(frame.jpeg) / rate
+    with pytest.raises(ValueError, match="link_bytes_per_s"):
+        EmulatorServer(left_port=0, right_port=0, source=flat_source, link_bytes_per_s=0)
 
 
 def test_stream_batches(camera):
