@@ -35,7 +35,7 @@ from .rig import add_calibration_option, calibration_from_args
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
 
-__all__ = ["add_parser", "run"]
+__all__ = ["INDEX_NAME", "add_parser", "new_pairs_folder", "run", "save_pair"]
 
 PROG = "svs-depth capture"
 INDEX_NAME = "index.jsonl"
@@ -99,13 +99,20 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
         raise InputError("--left, --right: not used with --emulator (it picks its own loopback ports)")
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: both board URLs are needed (or --emulator)")
-    out = Path(args.out)
-    kind = path_kind(out, "--out-dir")
+    return size, new_pairs_folder(args.out, "--out-dir")
+
+
+def new_pairs_folder(value: str, option: str) -> Path:
+    """The folder ``value`` of ``option`` that pairs will be saved to (created later, if missing), checked before
+    the camera opens: a file there, or a folder already holding an ``index.jsonl``, is refused (nothing is ever
+    appended to another run's pairs)."""
+    out = Path(value)
+    kind = path_kind(out, option)
     if kind not in ("missing", "folder"):
-        raise InputError(f"--out-dir: expected a folder, got a {kind}: {display_path(out)}")
-    if kind == "folder" and path_kind(out / INDEX_NAME, "--out-dir") != "missing":
-        raise InputError(f"--out-dir: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
-    return size, out
+        raise InputError(f"{option}: expected a folder, got a {kind}: {display_path(out)}")
+    if kind == "folder" and path_kind(out / INDEX_NAME, option) != "missing":
+        raise InputError(f"{option}: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
             index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
             progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):
-                record = _save_pair(out, camera.grab_pair())
+                record = save_pair(out, camera.grab_pair())
                 index.write(json.dumps(record) + "\n")
                 index.flush()
                 done += 1
@@ -183,13 +190,15 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     return server.urls["left"], server.urls["right"]
 
 
-def _save_pair(out: Path, pair: StereoPair) -> dict[str, Any]:
-    """Write both JPEGs; the pair's index record."""
+def save_pair(out: Path | None, pair: StereoPair) -> dict[str, Any]:
+    """Write both JPEGs as received into ``out`` (None: write nothing); the pair's index record (module
+    docstring; without ``left``/``right`` when nothing was written)."""
     record: dict[str, Any] = {"index": pair.index}
     for name, frame in (("left", pair.left), ("right", pair.right)):
-        file_name = f"pair{pair.index:06d}_{name}.jpg"
-        write_bytes_atomic(out / file_name, frame.jpeg)
-        record[name] = file_name
+        if out is not None:
+            file_name = f"pair{pair.index:06d}_{name}.jpg"
+            write_bytes_atomic(out / file_name, frame.jpeg)
+            record[name] = file_name
     record["width"], record["height"] = pair.left.size_wh
     for name, frame in (("left", pair.left), ("right", pair.right)):
         record.update(_frame_fields(name, frame))

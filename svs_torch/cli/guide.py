@@ -18,12 +18,15 @@ HELP = "live obstacle warnings from an SVS (or the built-in emulator)"
 DESCRIPTION = """\
 Grab pairs from the SVS continuously, run the whole pipeline on the most recent one, and warn when the
 nearest obstacle's nearest visible surface (the 10th depth percentile of its dense disparities) is within
-the distance band (default 1-2 m, the range the system was designed for): a
-spoken message when espeak-ng is installed, always a text line, rate-limited so it does not chatter (a
-message repeats after --repeat-s seconds unless the distance class changes). A status line shows frames
-per second, the nearest distance and its side. The floor (the road) ahead, which a walker's camera sees as
-its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
-obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
+the distance band (default 1-2 m, the range the system was designed for): a spoken message when espeak-ng
+is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
+seconds unless the distance class changes). A status line shows frames per second, the nearest distance
+and its side. The floor (the road) ahead, which a walker's camera sees as its nearest surface, is not an
+obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the obstacles' disparity map is
+matched with its wider noise window at once, as estimate --camera-frames does.
+
+--json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
+ranged, and at the end prints the estimate command that ranges them again to the same distances.
 """
 
 EPILOG = """\
@@ -34,6 +37,7 @@ examples:
   svs-depth guide --emulator --emulator-floor-m 1.3 --emulator-heap-m 1.5   a heap of rocks on the floor, warned of
   svs-depth guide --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
+  svs-depth guide --emulator --count 50 --json --record walk/ > walk.jsonl   a walk kept, to range again
 Stop with Ctrl-C.
 """
 
@@ -73,22 +77,79 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
     parser.add_argument("--count", type=non_negative_int, default=0,
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
-    parser.set_defaults(func=run, out=".", json=False)
+    parser.add_argument("--json", action="store_true",
+                        help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
+                             "--json's fields, the capture's times, and 'warning' (distance, class, words said), "
+                             "'dropped_pairs', 'latency_s'; the warnings' text goes to stderr")
+    parser.add_argument("--record", metavar="DIR",
+                        help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
+                             "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
+                             "them again alike; DIR is created, and must not hold an index.jsonl")
+    parser.set_defaults(func=run, out=".")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        import torch
-
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link_types import CaptureError
         from ..depth.depth_types import ObstacleSide
-        from ..pipeline import PipelineConfig, estimate_obstacle_depth
-        from .capture import open_stereo_camera
+        from .capture import new_pairs_folder, open_stereo_camera
+        from .guide_log import GuideLog
 
-    size = _checked_size(args)
+        size = _checked_size(args)
+        record_dir = None if args.record is None else new_pairs_folder(args.record, "--record")
+        ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
+    policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
+    status_line = StatusLine(sys.stderr)
+    # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
+    # is drawn again below: the spoken warnings (stdout), the speaker's own notices, Python warnings (a board in
+    # the wrong stereo role, a library's deprecation).
+    # With --json, stdout holds the JSON lines alone, and the warnings' text goes above the status line on stderr.
+    words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
+    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=words))
+    log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration)
+    processed = 0
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(warnings.catch_warnings())
+            warnings.showwarning = status_line.show_warning
+            camera = open_stereo_camera(args, size, stack)
+            log.open()
+            stack.callback(log.close)  # the pairs recorded so far stay listed, whatever stops the loop
+            for item in camera.stream_batches(1, num_batches=args.count or None):
+                started = time.perf_counter()
+                result = ranged(item.batch)
+                elapsed_s = time.perf_counter() - started
+                nearest = result.depth.nearest
+                # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
+                # a walker reaches first, not the median of an object that may recede.
+                distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
+                message = guide.update(distance, time.monotonic())
+                side = ObstacleSide(int(nearest.side[0])).name.lower()
+                status_line.show(f"{guide.status(distance)}  {side}")
+                warned = {"distance_m": None if distance is None else round(distance, 4),
+                          "class": guide.policy.current, "message": message}
+                log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
+                processed += 1
+    except KeyboardInterrupt:
+        return _stopped(status_line, log, f"guide stopped after {processed} pairs", 130)
+    except (CaptureError, OSError) as error:
+        return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
+    finally:
+        guide.speaker.close()
+    return _stopped(status_line, log, f"guide stopped after {processed} pairs", 0)
+
+
+def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
+    """The whole pipeline as guide runs it on one grabbed pair (a :class:`~svs_torch.core.types.StereoBatch` of
+    one): rectified with ``--calibration`` (checked against ``size`` before the camera opens) if given, the
+    walker's segmentation (``--floor``), no gradients."""
+    import torch
+
+    from ..pipeline import PipelineConfig, estimate_obstacle_depth
+
     calibration = calibration_from_args(args)
     if calibration is not None:
         from ..geometry.calibration import rectify_with_calibration
@@ -96,43 +157,22 @@ def run(args: argparse.Namespace) -> int:
         calibration.scaled_to(size, "--calibration")  # a rig of another aspect ratio fails before the camera opens
     config = with_calibrated_rectification(PipelineConfig(), args)
     config = dataclasses.replace(config, segmentation=config.segmentation.for_guide(args.floor == "on"))
-    policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
-    status_line = StatusLine(sys.stderr)
-    # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
-    # is drawn again below: the spoken warnings (stdout), the speaker's own notices, Python warnings (a board in
-    # the wrong stereo role, a library's deprecation).
-    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=status_line.lines_above(sys.stdout)))
-    processed = 0
-    try:
-        with contextlib.ExitStack() as stack:
-            stack.enter_context(warnings.catch_warnings())
-            warnings.showwarning = status_line.show_warning
-            camera = open_stereo_camera(args, size, stack)
-            for item in camera.stream_batches(1, num_batches=args.count or None):
-                with torch.inference_mode():  # read, never trained on: no copy of the result (core.inference)
-                    batch = item.batch if calibration is None else rectify_with_calibration(item.batch, calibration)
-                    result = estimate_obstacle_depth(batch, config)
-                nearest = result.depth.nearest
-                # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
-                # a walker reaches first, not the median of an object that may recede.
-                distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-                guide.update(distance, time.monotonic())
-                side = ObstacleSide(int(nearest.side[0])).name.lower()
-                status_line.show(f"{guide.status(distance)}  {side}")
-                processed += 1
-    except KeyboardInterrupt:
-        status_line.close()
-        print(f"guide stopped after {processed} pairs", file=sys.stderr)
-        return 130
-    except (CaptureError, OSError) as error:
-        status_line.close()
-        print(f"svs-depth guide: error: {' '.join(str(error).split())}", file=sys.stderr)
-        return 1
-    finally:
-        guide.speaker.close()
+
+    def ranged(batch):
+        with torch.inference_mode():  # read, never trained on: no copy of the result (core.inference)
+            return estimate_obstacle_depth(batch if calibration is None
+                                           else rectify_with_calibration(batch, calibration), config)
+
+    return ranged
+
+
+def _stopped(status_line, log, text: str, code: int) -> int:
+    """End the status line, then say ``text`` and what was recorded on stderr; returns ``code``."""
     status_line.close()
-    print(f"guide stopped after {processed} pairs", file=sys.stderr)
-    return 0
+    print(text, file=sys.stderr)
+    if (summary := log.summary()) is not None:
+        print(summary, file=sys.stderr)
+    return code
 
 
 def _checked_size(args: argparse.Namespace) -> tuple[int, int]:

@@ -40,9 +40,10 @@ def test_help_teaches_every_command():
 
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
 #: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
-#: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does.
+#: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does, and its record is
+#: ranged again by estimate --pairs.
 OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
-                          "results": {"--db"}, "guide": {"--camera-frames"}}
+                          "results": {"--db"}, "guide": {"--camera-frames", "--pairs"}}
 
 
 def test_every_option_a_commands_help_names_is_one_it_takes():
@@ -513,6 +514,46 @@ def test_guide_warns_on_a_noisy_emulator(capsys):
     assert "Obstacle" in out or "obstacle" in out
     code, _, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "-1", "--count", "1", "--no-speech")
     assert code == 2 and "--emulator-noise" in err
+
+
+def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_path):
+    """``guide --json --record DIR``: a JSON line per pair ranged on stdout (estimate --json's fields, the capture's
+    times, the warning, the pairs skipped, the latency), the warnings' words on stderr; DIR in capture's layout
+    with the same lines; and ``estimate --pairs DIR/index.jsonl`` with guide's settings (the command it prints)
+    ranges the recorded frames exactly as guide did live."""
+    record = tmp_path / "walk"
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "4", "--count", "3", "--no-speech",
+                             "--far-m", "5.0", "--json", "--record", str(record))
+    assert code == 0 and "guide stopped after 3 pairs" in err
+    lines = [json.loads(line) for line in out.splitlines()]  # stdout is JSON alone
+    assert len(lines) == 3 and ("Obstacle" in err or "obstacle" in err)  # the 1-5 m band: words, on stderr
+    for line in lines:
+        assert line["status"] == "OK" and line["nearest_m"] > 0 and line["objects"]
+        assert set(line["warning"]) == {"distance_m", "class", "message"}
+        assert line["warning"]["distance_m"] == pytest.approx(line["nearest_surface_m"], abs=1e-4)
+        assert line["dropped_pairs"] >= 0 and line["latency_s"] >= line["time_s"] > 0
+        assert (record / line["left"]).read_bytes()[:2] == b"\xff\xd8" and (record / line["right"]).is_file()
+    assert any(line["warning"]["message"] for line in lines)
+    assert [json.loads(line) for line in (record / "index.jsonl").read_text().splitlines()] == lines
+    replay = next(line for line in err.splitlines() if "range them again with: " in line).split("with: ")[1]
+    assert replay.endswith("--floor on --camera-frames --json")
+    argv = replay.split()[1:] + ["--workers", "1"]
+    code, again, _ = run_cli(capsys, *argv)
+    assert code == 0
+    for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
+        for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
+                    "objects"):
+            assert offline[key] == live[key], key
+
+
+def test_guide_record_refuses_a_folder_that_holds_pairs(capsys, tmp_path):
+    """--record never appends to another run's pairs, and says so before the camera opens."""
+    (tmp_path / "index.jsonl").write_text("")
+    code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--record", str(tmp_path))
+    assert code == 2 and "--record" in err and "already exists" in err and "emulator on" not in err
+    (tmp_path / "file").write_text("")
+    code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--record", str(tmp_path / "file"))
+    assert code == 2 and "--record: expected a folder" in err
 
 
 def test_guide_needs_boards_or_the_emulator(capsys):

@@ -1,0 +1,88 @@
+"""What ``svs-depth guide`` keeps of a walk besides its warnings: a JSON line per pair it ranged (``--json``) and
+the pairs themselves (``--record DIR``).
+
+Why: an assistive-technology developer needs to know, after the walk, what the guide saw and said: a warning that
+came late, or one about the wrong thing, is found in the record and ranged again offline. ``--record`` writes
+``capture``'s layout (each board's JPEG exactly as received, and ``index.jsonl``, a line per pair flushed only
+after both its images are in place), so ``svs-depth estimate --pairs DIR/index.jsonl --floor on --camera-frames``
+ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same
+way (:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index
+with ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate
+--json`` (:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the distance warned
+on, its class ``clear`` / ``warn`` / ``stop`` and the words said, if any), ``dropped_pairs`` (pairs that arrived
+while the previous one was ranged and were never ranged), ``latency_s`` (from the left frame's arrival to the
+warning). Only the pairs guide ranged are kept: the record is what the walker was told about.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from ..core.files import display_path
+from .capture import INDEX_NAME, save_pair
+
+__all__ = ["GuideLog", "replay_command"]
+
+
+class GuideLog:
+    """The ``--json`` lines (to ``stream``; None: none) and the ``--record`` folder (``record_dir``, checked by
+    :func:`~svs_torch.cli.capture.new_pairs_folder`; None: none) of one guide run, whose ``--floor`` and
+    ``--calibration`` were ``floor`` and ``calibration``. :meth:`open` before the first pair, :meth:`close` after
+    the last."""
+
+    def __init__(self, stream: TextIO | None, record_dir: Path | None, floor: str = "on",
+                 calibration: str | None = None) -> None:
+        self.stream, self.record_dir = stream, record_dir
+        self.replay = (floor, calibration)  # guide's settings that estimate needs to range the pairs alike
+        self._index: TextIO | None = None
+        self.num_recorded = 0
+
+    def open(self) -> None:
+        if self.record_dir is not None:
+            self.record_dir.mkdir(parents=True, exist_ok=True)
+            self._index = open(self.record_dir / INDEX_NAME, "x", encoding="utf-8")
+
+    def write(self, pair, result, elapsed_s: float, warning: dict[str, Any], num_dropped: int) -> None:
+        """Keep pair ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) and its one-pair ``result``,
+        ranged in ``elapsed_s`` seconds, with what guide made of it (``warning``) and how many pairs it skipped
+        before it (``num_dropped``)."""
+        if self.stream is None and self._index is None:
+            return
+        from .estimate_report import pair_report
+
+        latency_s = time.monotonic() - pair.left.arrival_monotonic_s  # before the files are written
+        record = save_pair(self.record_dir if self._index is not None else None, pair)
+        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s))
+        record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
+        line = json.dumps(record) + "\n"
+        if self._index is not None:  # after both images are in place (save_pair)
+            self._index.write(line)
+            self._index.flush()
+            self.num_recorded += 1
+        if self.stream is not None:
+            self.stream.write(line)
+            self.stream.flush()
+
+    def close(self) -> None:
+        """Close the index (safe to call twice)."""
+        if self._index is not None:
+            self._index.close()
+            self._index = None
+
+    def summary(self) -> str | None:
+        """What was recorded and how to range it again (None: nothing recorded)."""
+        if not self.num_recorded:
+            return None
+        return (f"svs-depth guide: recorded {self.num_recorded} pairs in {display_path(self.record_dir)}; range "
+                f"them again with: {replay_command(self.record_dir, *self.replay)}")
+
+
+def replay_command(record_dir: Path, floor: str = "on", calibration: str | None = None) -> str:
+    """The ``estimate`` command that ranges a ``--record`` folder's pairs with guide's settings."""
+    options = f" --floor {floor} --camera-frames"
+    if calibration:
+        options += f" --calibration {calibration}"
+    return f"svs-depth estimate --pairs {display_path(record_dir / INDEX_NAME)}{options} --json"
