@@ -135,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
                 processed += 1
     except KeyboardInterrupt:
         return _stopped(status_line, log, f"guide stopped after {processed} pairs", 130)
+    except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
+        _stopped(status_line, log, f"guide stopped after {processed} pairs", 141)
+        raise
     except (CaptureError, OSError) as error:
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
     finally:

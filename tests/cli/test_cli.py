@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -544,6 +545,20 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
         for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
                     "objects"):
             assert offline[key] == live[key], key
+
+
+def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys):
+    """``guide --json | head -1``: the reader closes the pipe; guide stops with every command's 141, no error."""
+    class ClosedPipe(io.StringIO):
+        def write(self, text: str) -> int:
+            if text.startswith("{"):
+                raise BrokenPipeError(32, "Broken pipe")
+            return super().write(text)
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
+    err = capsys.readouterr().err
+    assert "guide stopped after 0 pairs" in err and "error" not in err
 
 
 def test_guide_record_refuses_a_folder_that_holds_pairs(capsys, tmp_path):
