@@ -167,7 +167,8 @@ def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int
             break
         for path in pair or ():
             try:
-                decoded.setdefault(index // batch_size, {})[preload_key(path)] = read_image_array(path, "pairs", gray=True)
+                array = read_image_array(path, "pairs", gray=True)  # as read_gray_image reads it
+                decoded.setdefault(index // batch_size, {})[preload_key(path)] = array
             except (InputError, OSError):
                 pass
     return decoded
