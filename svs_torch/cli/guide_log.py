@@ -5,13 +5,14 @@ Why: an assistive-technology developer needs to know, after the walk, what the g
 came late, or one about the wrong thing, is found in the record and ranged again offline. ``--record`` writes
 ``capture``'s layout (each board's JPEG exactly as received, and ``index.jsonl``, a line per pair flushed only
 after both its images are in place), so ``svs-depth estimate --pairs DIR/index.jsonl --floor on --camera-frames``
-ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same
-way (:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index
-with ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate
---json`` (:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the distance warned
-on, its class ``clear`` / ``warn`` / ``stop`` and the words said, if any), ``dropped_pairs`` (pairs that arrived
-while the previous one was ranged and were never ranged), ``latency_s`` (from the left frame's arrival to the
-warning). Only the pairs guide ranged are kept: the record is what the walker was told about.
+ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
+(:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index with
+``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
+(:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the distance warned on, its
+class ``clear`` / ``warn`` / ``stop`` and the words said, if any), ``dropped_pairs`` (pairs that arrived while the
+previous one was ranged and were never ranged), ``latency_s`` (from the request of the left frame, when the board
+grabbed it, to the warning: its encoding and the link's transfer included). Only the pairs guide ranged are kept:
+the record is what the walker was told about.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ class GuideLog:
             return
         from .estimate_report import pair_report
 
-        latency_s = time.monotonic() - pair.left.arrival_monotonic_s  # before the files are written
+        latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         record = save_pair(self.record_dir if self._index is not None else None, pair)
         record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s))
         record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
