@@ -73,6 +73,12 @@ class WarningPolicy:
         self._last_spoken_s = now_s
         return self.message(new, distance_m)
 
+    def reset(self) -> None:
+        """Forget the last class and message (the camera was lost): the next distance in or below the band is
+        warned of at once."""
+        self.current = CLEAR
+        self._last_spoken_s = -math.inf
+
     @staticmethod
     def message(distance_class: str, distance_m: float) -> str:
         """The words for a class and distance, e.g. ``Obstacle ahead, 1.5 metres``."""

@@ -25,6 +25,10 @@ and its side. The floor (the road) ahead, which a walker's camera sees as its ne
 obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the obstacles' disparity map is
 matched with its wider noise window at once, as estimate --camera-frames does.
 
+A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened
+again every --reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends
+guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set.
+
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances.
 """
@@ -80,11 +84,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
                              "--json's fields, the capture's times, and 'warning' (distance, class, words said), "
-                             "'dropped_pairs', 'latency_s'; the warnings' text goes to stderr")
+                             "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back; "
+                             "the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
                              "them again alike; DIR is created, and must not hold an index.jsonl")
+    parser.add_argument("--reconnect-s", type=positive_float, default=2.0, metavar="S",
+                        help="a camera that stops answering in the middle of a walk is said to be lost (spoken) "
+                             "and opened again every S seconds until it answers (default: 2)")
+    parser.add_argument("--give-up-s", type=non_negative_float, default=0.0, metavar="S",
+                        help="stop (exit 1) once the camera has been lost for S seconds (default: 0, never: a "
+                             "walker's guide keeps trying)")
     parser.set_defaults(func=run, out=".")
 
 
@@ -94,9 +105,9 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link_types import CaptureError
-        from ..depth.depth_types import ObstacleSide
-        from .capture import new_pairs_folder, open_stereo_camera
+        from .capture import new_pairs_folder
         from .guide_log import GuideLog
+        from .guide_loop import GuideSession
 
         size = _checked_size(args)
         record_dir = None if args.record is None else new_pairs_folder(args.record, "--record")
@@ -110,39 +121,23 @@ def run(args: argparse.Namespace) -> int:
     words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=words))
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration)
-    processed = 0
+    session = GuideSession(args, size, ranged, guide, status_line, log)
     try:
         with contextlib.ExitStack() as stack:
             stack.enter_context(warnings.catch_warnings())
             warnings.showwarning = status_line.show_warning
-            camera = open_stereo_camera(args, size, stack)
-            log.open()
             stack.callback(log.close)  # the pairs recorded so far stay listed, whatever stops the loop
-            for item in camera.stream_batches(1, num_batches=args.count or None):
-                started = time.perf_counter()
-                result = ranged(item.batch)
-                elapsed_s = time.perf_counter() - started
-                nearest = result.depth.nearest
-                # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part
-                # a walker reaches first, not the median of an object that may recede.
-                distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-                message = guide.update(distance, time.monotonic())
-                side = ObstacleSide(int(nearest.side[0])).name.lower()
-                status_line.show(f"{guide.status(distance)}  {side}")
-                warned = {"distance_m": None if distance is None else round(distance, 4),
-                          "class": guide.policy.current, "message": message}
-                log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
-                processed += 1
+            session.run()
     except KeyboardInterrupt:
-        return _stopped(status_line, log, f"guide stopped after {processed} pairs", 130)
+        return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 130)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
-        _stopped(status_line, log, f"guide stopped after {processed} pairs", 141)
+        _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 141)
         raise
     except (CaptureError, OSError) as error:
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
     finally:
         guide.speaker.close()
-    return _stopped(status_line, log, f"guide stopped after {processed} pairs", 0)
+    return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 0)
 
 
 def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):

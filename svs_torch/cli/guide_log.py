@@ -42,7 +42,8 @@ class GuideLog:
         self.num_recorded = 0
 
     def open(self) -> None:
-        if self.record_dir is not None:
+        """Create the record's folder and index (once: a camera opened again appends to the same index)."""
+        if self.record_dir is not None and self._index is None:
             self.record_dir.mkdir(parents=True, exist_ok=True)
             self._index = open(self.record_dir / INDEX_NAME, "x", encoding="utf-8")
 
@@ -65,6 +66,13 @@ class GuideLog:
             self.num_recorded += 1
         if self.stream is not None:
             self.stream.write(line)
+            self.stream.flush()
+
+    def event(self, name: str, **fields: Any) -> None:
+        """A ``--json`` line ``{"event": name, "wall_s": ..., **fields}`` (the camera lost or back); never in the
+        record, whose lines are pairs that ``estimate --pairs`` reads."""
+        if self.stream is not None:
+            self.stream.write(json.dumps({"event": name, "wall_s": round(time.time(), 3), **fields}) + "\n")
             self.stream.flush()
 
     def close(self) -> None:

@@ -561,6 +561,32 @@ def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys)
     assert "guide stopped after 0 pairs" in err and "error" not in err
 
 
+def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
+    """The left board stops answering grabs in the middle of a walk (here from the first grab, after the camera
+    opened): guide says "Camera lost" once, opens the camera again every --reconnect-s seconds, says "Camera back"
+    when a pair comes through, and goes on to its --count; --json has a line for each. A camera lost for longer than
+    --give-up-s ends guide with exit 1."""
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+
+    from svs_torch.cli.guide_loop import CAMERA_BACK, CAMERA_LOST
+
+    fast = ["--no-speech", "--timeout", "0.2", "--reconnect-s", "0.05", "--json"]
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple")) as server:
+        server.set_faults("left", silent_grabs=8)
+        code, out, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
+                                 "--count", "2", *fast)
+        assert code == 0 and "guide stopped after 2 pairs" in err
+        assert err.count(CAMERA_LOST) == 1 and err.count(CAMERA_BACK) == 1
+        lines = [json.loads(line) for line in out.splitlines()]
+        assert [line.get("event") for line in lines] == ["camera_lost", "camera_back", None, None]
+        assert "left camera" in lines[0]["error"] and lines[1]["lost_s"] > 0
+        server.set_faults("left", silent_grabs=1000)
+        code, _, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
+                               "--count", "2", "--give-up-s", "0.5", *fast)
+        assert code == 1 and "camera lost for" in err and "--give-up-s 0.5" in err
+
+
 def test_guide_record_refuses_a_folder_that_holds_pairs(capsys, tmp_path):
     """--record never appends to another run's pairs, and says so before the camera opens."""
     (tmp_path / "index.jsonl").write_text("")

@@ -1,0 +1,105 @@
+"""The loop of ``svs-depth guide``: grab the newest pair, range it, warn, keep it; and a camera that stops
+answering in the middle of a walk is said to be lost, and opened again until it answers.
+
+Why: the two boards talk over WiFi, and a walker moves through places where the link drops for seconds. Before,
+a link that stayed down past the driver's own retries (``LinkConfig.max_retries`` / ``max_reconnects``, about
+a second) ended ``guide`` with one line on the screen: the walker, who does not look at a screen, heard nothing
+and was no longer warned. Now the loss is spoken at once ("Camera lost. No warnings until it is back."), the
+camera is opened again every ``--reconnect-s`` seconds, and the first pair ranged after it is back is spoken too
+("Camera back."), the warning state cleared so that an obstacle in the band is warned of at once. A camera that
+never opened (a wrong address, a board switched off) still ends guide with its error, exit 1, as before; so does
+one lost for ``--give-up-s`` seconds, if set. With ``--json`` each loss and return is a line of its own
+(``{"event": "camera_lost", ...}``, ``{"event": "camera_back", "lost_s": ...}``); ``--record`` keeps pairs only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from typing import Callable
+
+from .capture import open_stereo_camera
+from .guide_log import GuideLog
+
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "GuideSession"]
+
+CAMERA_LOST = "Camera lost. No warnings until it is back."
+CAMERA_BACK = "Camera back."
+
+
+class GuideSession:
+    """One ``guide`` run: ``ranged`` (the pipeline on a one-pair batch), ``guide`` (a
+    :class:`~svs_torch.capture.guide.LiveGuide`), the ``status_line`` and the ``log`` (:class:`GuideLog`), over the
+    camera of ``args`` at ``size``. ``processed`` counts the pairs ranged."""
+
+    def __init__(self, args: argparse.Namespace, size: tuple[int, int], ranged: Callable, guide, status_line,
+                 log: GuideLog) -> None:
+        self.args, self.size, self.ranged = args, size, ranged
+        self.guide, self.status_line, self.log = guide, status_line, log
+        self.processed = 0
+        self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
+        self.lost_at_s: float | None = None
+
+    def run(self) -> None:
+        """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
+
+        Raises:
+            CaptureError: the camera never opened, or stayed lost for ``--give-up-s`` seconds (if set).
+        """
+        from ..capture.link_types import CaptureError
+
+        while True:
+            try:
+                with contextlib.ExitStack() as stack:
+                    camera = open_stereo_camera(self.args, self.size, stack)
+                    self.opened = True
+                    self.log.open()  # only once a camera answered: a refused one leaves no folder
+                    remaining = self.args.count - self.processed if self.args.count else None
+                    for item in camera.stream_batches(1, num_batches=remaining):
+                        self._range(item)
+                return
+            except CaptureError as error:
+                if not self.opened:
+                    raise
+                self._lost(error)
+
+    def _lost(self, error: Exception) -> None:
+        """Say the camera is lost (once a loss), give up after ``--give-up-s``, and wait ``--reconnect-s``."""
+        from ..capture.link_types import CaptureError
+
+        now = time.monotonic()
+        if self.lost_at_s is None:
+            self.lost_at_s = now
+            self.guide.speaker.say(CAMERA_LOST)
+            self.guide.policy.reset()  # an obstacle seen when it is back is warned of at once
+            self.log.event("camera_lost", error=" ".join(str(error).split()))
+        lost_s = now - self.lost_at_s
+        if self.args.give_up_s and lost_s >= self.args.give_up_s:
+            raise CaptureError(f"camera lost for {lost_s:.0f} s (--give-up-s {self.args.give_up_s:g}): "
+                               f"{' '.join(str(error).split())}")
+        self.status_line.show(f"camera lost {lost_s:.0f} s ago: opening it again")
+        time.sleep(self.args.reconnect_s)
+
+    def _range(self, item) -> None:
+        """Range one grabbed pair (a :class:`~svs_torch.capture.stereo.PairBatch` of one), warn, keep it."""
+        from ..depth.depth_types import ObstacleSide
+
+        started = time.perf_counter()
+        result = self.ranged(item.batch)
+        elapsed_s = time.perf_counter() - started
+        if self.lost_at_s is not None:  # back only once a pair came through, not when the link merely opened
+            self.guide.speaker.say(CAMERA_BACK)
+            self.log.event("camera_back", lost_s=round(time.monotonic() - self.lost_at_s, 3))
+            self.lost_at_s = None
+        nearest = result.depth.nearest
+        # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
+        # reaches first, not the median of an object that may recede.
+        distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
+        message = self.guide.update(distance, time.monotonic())
+        side = ObstacleSide(int(nearest.side[0])).name.lower()
+        self.status_line.show(f"{self.guide.status(distance)}  {side}")
+        warned = {"distance_m": None if distance is None else round(distance, 4),
+                  "class": self.guide.policy.current, "message": message}
+        self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
+        self.processed += 1
