@@ -19,10 +19,15 @@ import contextlib
 import time
 from typing import Callable
 
+from ..capture.link_types import CaptureError
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
 __all__ = ["CAMERA_BACK", "CAMERA_LOST", "GuideSession"]
+
+#: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
+#: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
+_CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
@@ -47,27 +52,41 @@ class GuideSession:
         Raises:
             CaptureError: the camera never opened, or stayed lost for ``--give-up-s`` seconds (if set).
         """
-        from ..capture.link_types import CaptureError
-
         while True:
-            try:
-                with contextlib.ExitStack() as stack:
+            with contextlib.ExitStack() as stack:  # the camera closed before waiting to open it again
+                try:
                     camera = open_stereo_camera(self.args, self.size, stack)
+                except _CAMERA_ERRORS as error:
+                    if not self.opened or isinstance(error, BrokenPipeError):
+                        raise
+                    lost = error
+                else:
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
-                    remaining = self.args.count - self.processed if self.args.count else None
-                    for item in camera.stream_batches(1, num_batches=remaining):
-                        self._range(item)
+                    lost = self._range_stream(camera)
+            if lost is None:
                 return
-            except CaptureError as error:
-                if not self.opened:
-                    raise
-                self._lost(error)
+            self._lost(lost)
+
+    def _range_stream(self, camera) -> Exception | None:
+        """Range the pairs ``camera`` streams until ``--count`` (None) or until it is lost (its error). Only the
+        camera's errors are a loss: one writing the record or the JSON lines is raised."""
+        remaining = self.args.count - self.processed if self.args.count else None
+        stream = camera.stream_batches(1, num_batches=remaining)
+        with contextlib.closing(stream):  # its grabbing thread stops whatever ends the loop
+            while True:
+                try:
+                    item = next(stream)
+                except StopIteration:
+                    return None
+                except _CAMERA_ERRORS as error:
+                    if isinstance(error, BrokenPipeError):
+                        raise
+                    return error
+                self._range(item)
 
     def _lost(self, error: Exception) -> None:
         """Say the camera is lost (once a loss), give up after ``--give-up-s``, and wait ``--reconnect-s``."""
-        from ..capture.link_types import CaptureError
-
         now = time.monotonic()
         if self.lost_at_s is None:
             self.lost_at_s = now
