@@ -587,6 +587,20 @@ def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
         assert code == 1 and "camera lost for" in err and "--give-up-s 0.5" in err
 
 
+def test_guide_a_full_disk_is_an_error_not_a_lost_camera(monkeypatch, capsys, tmp_path):
+    """Only the camera's errors are a loss: a record that cannot be written ends guide (exit 1, the reason said),
+    and the walker is not told the camera was lost."""
+    import svs_torch.cli.guide_log as guide_log
+
+    def full_disk(out, pair):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(guide_log, "save_pair", full_disk)
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "2", "--no-speech", "--record",
+                             str(tmp_path / "walk"))
+    assert code == 1 and "No space left on device" in err and "Camera lost" not in out + err
+
+
 def test_guide_record_refuses_a_folder_that_holds_pairs(capsys, tmp_path):
     """--record never appends to another run's pairs, and says so before the camera opens."""
     (tmp_path / "index.jsonl").write_text("")
