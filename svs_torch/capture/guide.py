@@ -21,7 +21,7 @@ from typing import TextIO
 from ..core.checks import InputError
 
 __all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine",
-           "LinesAbove", "CLEAR", "WARN", "STOP"]
+           "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
@@ -164,6 +164,41 @@ class Speaker:
             except subprocess.TimeoutExpired:
                 self._stop_previous()
             self._process = None
+
+
+CANNOT_SEE = "Cannot see ahead. No warnings until it can."
+SEEING_AGAIN = "Seeing ahead again."
+
+
+class SightWatch:
+    """Whether the guide can see: silence must mean "nothing near", not "nothing measured".
+
+    A pair the pipeline could not range (any status but OK: a covered lens or the dark leave blank frames,
+    ``NO_OBJECTS`` / ``TOO_FEW_KEYPOINTS``; noise that nothing verifies, ``NO_DENSE_DEPTH``) gives no distance,
+    which the :class:`WarningPolicy` takes as clear. When no pair has been ranged for ``blind_s`` seconds (from the
+    start too), :meth:`update` returns :data:`CANNOT_SEE` once; the first pair ranged after that,
+    :data:`SEEING_AGAIN`. A single failed pair among ranged ones says nothing. ``blind_s`` 0: never.
+    """
+
+    def __init__(self, blind_s: float = 2.0, start_s: float | None = None) -> None:
+        if not (blind_s >= 0 and math.isfinite(blind_s)):
+            raise InputError(f"blind_s: expected a finite number of seconds >= 0, got {blind_s}")
+        self.blind_s = blind_s
+        self.last_seen_s = time.monotonic() if start_s is None else start_s
+        self.blind = False
+
+    def update(self, ranged: bool, now_s: float) -> str | None:
+        """Take whether the pair at ``now_s`` was ranged; the words to say, or None."""
+        if ranged:
+            self.last_seen_s = now_s
+            if self.blind:
+                self.blind = False
+                return SEEING_AGAIN
+            return None
+        if self.blind_s and not self.blind and now_s - self.last_seen_s >= self.blind_s:
+            self.blind = True
+            return CANNOT_SEE
+        return None
 
 
 class FpsMeter:

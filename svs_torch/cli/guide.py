@@ -25,9 +25,11 @@ and its side. The floor (the road) ahead, which a walker's camera sees as its ne
 obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the obstacles' disparity map is
 matched with its wider noise window at once, as estimate --camera-frames does.
 
-A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened
-again every --reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends
-guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set.
+Silence means nothing is near, never that nothing was measured: when no pair could be ranged for --blind-s
+seconds (a covered lens, the dark), "Cannot see ahead" is said, and "Seeing ahead again" when one is. A camera
+that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened again every
+--reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends guide with
+its error (exit 1), as does one lost for --give-up-s seconds if that is set.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances.
@@ -93,6 +95,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--reconnect-s", type=positive_float, default=2.0, metavar="S",
                         help="a camera that stops answering in the middle of a walk is said to be lost (spoken) "
                              "and opened again every S seconds until it answers (default: 2)")
+    parser.add_argument("--blind-s", type=non_negative_float, default=2.0, metavar="S",
+                        help="say 'Cannot see ahead' when no pair could be ranged for S seconds (a covered lens, "
+                             "the dark: silence would mean the way is clear), and 'Seeing ahead again' when one is "
+                             "(default: 2; 0: never)")
     parser.add_argument("--give-up-s", type=non_negative_float, default=0.0, metavar="S",
                         help="stop (exit 1) once the camera has been lost for S seconds (default: 0, never: a "
                              "walker's guide keeps trying)")

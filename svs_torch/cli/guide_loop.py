@@ -45,6 +45,7 @@ class GuideSession:
         self.processed = 0
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
         self.lost_at_s: float | None = None
+        self.sight = None  # a SightWatch, from when the camera first answers
 
     def run(self) -> None:
         """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
@@ -63,6 +64,10 @@ class GuideSession:
                 else:
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
+                    if self.sight is None:
+                        from ..capture.guide import SightWatch
+
+                        self.sight = SightWatch(self.args.blind_s)
                     lost = self._range_stream(camera)
             if lost is None:
                 return
@@ -100,6 +105,21 @@ class GuideSession:
         self.status_line.show(f"camera lost {lost_s:.0f} s ago: opening it again")
         time.sleep(self.args.reconnect_s)
 
+    def _watch_sight(self, result, now_s: float) -> None:
+        """Say when no pair has been ranged for ``--blind-s`` seconds, and when one is again
+        (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear."""
+        from ..capture.guide import CANNOT_SEE
+        from ..pipeline import PipelineStatus
+
+        status = PipelineStatus(int(result.status[0]))
+        said = self.sight.update(status == PipelineStatus.OK, now_s)
+        if said is None:
+            return
+        self.guide.speaker.say(said)
+        if said == CANNOT_SEE:
+            self.guide.policy.reset()  # an obstacle seen again is warned of at once
+        self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status.name)
+
     def _range(self, item) -> None:
         """Range one grabbed pair (a :class:`~svs_torch.capture.stereo.PairBatch` of one), warn, keep it."""
         from ..depth.depth_types import ObstacleSide
@@ -107,10 +127,13 @@ class GuideSession:
         started = time.perf_counter()
         result = self.ranged(item.batch)
         elapsed_s = time.perf_counter() - started
+        now = time.monotonic()
         if self.lost_at_s is not None:  # back only once a pair came through, not when the link merely opened
             self.guide.speaker.say(CAMERA_BACK)
-            self.log.event("camera_back", lost_s=round(time.monotonic() - self.lost_at_s, 3))
+            self.log.event("camera_back", lost_s=round(now - self.lost_at_s, 3))
             self.lost_at_s = None
+            self.sight.last_seen_s = now  # the time lost was said already; sight is judged from here
+        self._watch_sight(result, now)
         nearest = result.depth.nearest
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.

@@ -10,8 +10,8 @@ import warnings
 
 import pytest
 
-from svs_torch.capture.guide import (CLEAR, SPEECH_MISSING, STOP, WARN, FpsMeter, LiveGuide, Speaker, StatusLine,
-                                     WarningPolicy)
+from svs_torch.capture.guide import (CANNOT_SEE, CLEAR, SEEING_AGAIN, SPEECH_MISSING, STOP, WARN, FpsMeter,
+                                     LiveGuide, SightWatch, Speaker, StatusLine, WarningPolicy)
 from svs_torch.core.checks import InputError
 
 
@@ -25,6 +25,29 @@ def run_policy(policy: WarningPolicy, samples: list[tuple[float, float | None]])
 ])
 def test_classify_default_band(distance, expected):
     assert WarningPolicy().classify(distance) == expected
+
+
+def test_sight_watch_says_when_nothing_was_ranged_for_a_while():
+    """Silence must mean "nothing near": no pair ranged for blind_s seconds (from the start too) is said once,
+    the first ranged pair after it too; a single failure among ranged pairs says nothing; 0 never says it."""
+    watch = SightWatch(blind_s=2.0, start_s=0.0)
+    said = [watch.update(ranged, now) for now, ranged in
+            [(0.5, True), (1.0, False), (2.4, False), (2.6, False), (3.0, False), (3.5, False), (4.0, True),
+             (4.5, True), (5.0, False)]]
+    assert said == [None, None, None, CANNOT_SEE, None, None, SEEING_AGAIN, None, None]
+    assert SightWatch(blind_s=1.0, start_s=0.0).update(False, 1.0) == CANNOT_SEE  # never ranged since the start
+    never = SightWatch(blind_s=0.0, start_s=0.0)
+    assert [never.update(False, t) for t in (1.0, 100.0)] == [None, None]
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(InputError, match="blind_s"):
+            SightWatch(blind_s=bad)
+
+
+def test_warning_policy_reset_warns_again_at_once():
+    policy = WarningPolicy(repeat_s=10.0)
+    assert policy.update(1.5, 0.0) is not None and policy.update(1.5, 1.0) is None  # rate-limited
+    policy.reset()
+    assert policy.current == CLEAR and policy.update(1.5, 2.0) is not None  # after a loss: at once
 
 
 def test_warns_in_band_and_rate_limits_repeats():

@@ -587,6 +587,28 @@ def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
         assert code == 1 and "camera lost for" in err and "--give-up-s 0.5" in err
 
 
+def test_guide_says_when_it_cannot_see(capsys):
+    """A covered lens: the boards send blank frames, which the pipeline cannot range. Silence would tell the
+    walker the way is clear; guide says "Cannot see ahead" once no pair was ranged for --blind-s seconds, and
+    --json has a line for it."""
+    import numpy as np
+    from hw.emulator import EmulatorServer
+
+    from svs_torch.capture.guide import CANNOT_SEE
+
+    def covered(camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+        return np.full((height, width), 12, dtype=np.uint8)
+
+    with EmulatorServer(left_port=0, right_port=0, source=covered) as server:
+        code, out, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
+                                 "--count", "8", "--no-speech", "--blind-s", "0.2", "--json")
+    assert code == 0 and err.count(CANNOT_SEE) == 1
+    lines = [json.loads(line) for line in out.splitlines()]
+    events = [line for line in lines if "event" in line]
+    assert [e["event"] for e in events] == ["cannot_see"] and events[0]["status"] != "OK"
+    assert all(line["status"] != "OK" for line in lines if "event" not in line)
+
+
 def test_guide_a_full_disk_is_an_error_not_a_lost_camera(monkeypatch, capsys, tmp_path):
     """Only the camera's errors are a loss: a record that cannot be written ends guide (exit 1, the reason said),
     and the walker is not told the camera was lost."""
