@@ -86,8 +86,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
                              "--json's fields, the capture's times, and 'warning' (distance, class, words said), "
-                             "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back; "
-                             "the warnings' text goes to stderr")
+                             "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back, or "
+                             "guide cannot see or sees again; the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
