@@ -18,6 +18,7 @@ the record is what the walker was told about.
 from __future__ import annotations
 
 import json
+import shlex
 import time
 from pathlib import Path
 from typing import Any, TextIO
@@ -32,7 +33,7 @@ class GuideLog:
     """The ``--json`` lines (to ``stream``; None: none) and the ``--record`` folder (``record_dir``, checked by
     :func:`~svs_torch.cli.capture.new_pairs_folder`; None: none) of one guide run, whose ``--floor`` and
     ``--calibration`` were ``floor`` and ``calibration``. :meth:`open` before the first pair, :meth:`close` after
-    the last."""
+    the last; :meth:`summary` then says what was recorded."""
 
     def __init__(self, stream: TextIO | None, record_dir: Path | None, floor: str = "on",
                  calibration: str | None = None) -> None:
@@ -69,8 +70,8 @@ class GuideLog:
             self.stream.flush()
 
     def event(self, name: str, **fields: Any) -> None:
-        """A ``--json`` line ``{"event": name, "wall_s": ..., **fields}`` (the camera lost or back); never in the
-        record, whose lines are pairs that ``estimate --pairs`` reads."""
+        """A ``--json`` line ``{"event": name, "wall_s": ..., **fields}`` (the camera lost or back, guide unable
+        to see or seeing again); never in the record, whose lines are pairs that ``estimate --pairs`` reads."""
         if self.stream is not None:
             self.stream.write(json.dumps({"event": name, "wall_s": round(time.time(), 3), **fields}) + "\n")
             self.stream.flush()
@@ -93,5 +94,5 @@ def replay_command(record_dir: Path, floor: str = "on", calibration: str | None 
     """The ``estimate`` command that ranges a ``--record`` folder's pairs with guide's settings."""
     options = f" --floor {floor} --camera-frames"
     if calibration:
-        options += f" --calibration {calibration}"
-    return f"svs-depth estimate --pairs {display_path(record_dir / INDEX_NAME)}{options} --json"
+        options += f" --calibration {shlex.quote(calibration)}"
+    return f"svs-depth estimate --pairs {shlex.quote(display_path(record_dir / INDEX_NAME))}{options} --json"

@@ -1,5 +1,6 @@
-"""The loop of ``svs-depth guide``: grab the newest pair, range it, warn, keep it; and a camera that stops
-answering in the middle of a walk is said to be lost, and opened again until it answers.
+"""The loop of ``svs-depth guide``: grab the newest pair, range it, warn, keep it; a camera that stops
+answering in the middle of a walk is said to be lost, and opened again until it answers; and a guide that could
+range no pair for ``--blind-s`` seconds says that it cannot see (:class:`~svs_torch.capture.guide.SightWatch`).
 
 Why: the two boards talk over WiFi, and a walker moves through places where the link drops for seconds. Before,
 a link that stayed down past the driver's own retries (``LinkConfig.max_retries`` / ``max_reconnects``, about

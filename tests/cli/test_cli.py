@@ -8,6 +8,7 @@ import math
 import os
 import platform
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -538,7 +539,7 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert [json.loads(line) for line in (record / "index.jsonl").read_text().splitlines()] == lines
     replay = next(line for line in err.splitlines() if "range them again with: " in line).split("with: ")[1]
     assert replay.endswith("--floor on --camera-frames --json")
-    argv = replay.split()[1:] + ["--workers", "1"]
+    argv = shlex.split(replay)[1:] + ["--workers", "1"]
     code, again, _ = run_cli(capsys, *argv)
     assert code == 0
     for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
