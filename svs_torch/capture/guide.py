@@ -173,11 +173,11 @@ SEEING_AGAIN = "Seeing ahead again."
 class SightWatch:
     """Whether the guide can see: silence must mean "nothing near", not "nothing measured".
 
-    A pair the pipeline could not range (any status but OK: a covered lens or the dark leave blank frames,
-    ``NO_OBJECTS`` / ``TOO_FEW_KEYPOINTS``; noise that nothing verifies, ``NO_DENSE_DEPTH``) gives no distance,
-    which the :class:`WarningPolicy` takes as clear. When no pair has been ranged for ``blind_s`` seconds (from the
-    start too), :meth:`update` returns :data:`CANNOT_SEE` once; the first pair ranged after that,
-    :data:`SEEING_AGAIN`. A single failed pair among ranged ones says nothing. ``blind_s`` 0: never.
+    A pair the pipeline could not see (a covered lens or the dark leave blank frames; noise that nothing verifies,
+    ``NO_DENSE_DEPTH``) gives no distance, which the :class:`WarningPolicy` takes as clear. When no pair has been
+    seen for ``blind_s`` seconds (from the start too), :meth:`update` returns :data:`CANNOT_SEE` once; the first
+    pair seen after that, :data:`SEEING_AGAIN`. A single pair not seen among seen ones says nothing. ``blind_s`` 0:
+    never. The caller says what was seen (``guide``: ranged, or a view whose disparity map found only floor).
     """
 
     def __init__(self, blind_s: float = 2.0, start_s: float | None = None) -> None:
@@ -188,7 +188,7 @@ class SightWatch:
         self.blind = False
 
     def update(self, ranged: bool, now_s: float) -> str | None:
-        """Take whether the pair at ``now_s`` was ranged; the words to say, or None."""
+        """Take whether the pair at ``now_s`` was seen (``ranged``); the words to say, or None."""
         if ranged:
             self.last_seen_s = now_s
             if self.blind:

@@ -113,7 +113,13 @@ class GuideSession:
         from ..pipeline import PipelineStatus
 
         status = PipelineStatus(int(result.status[0]))
-        said = self.sight.update(status == PipelineStatus.OK, now_s)
+        # Seen: ranged, or no obstacle kept from a disparity map that measured the view (a view of floor only, a
+        # walker's camera pitched down in an empty corridor). Blank frames measure too little to be segmented by
+        # their map (from_disparity False), and a pair whose kept regions could not be ranged is not seen either.
+        from_map = result.segmentation.from_disparity
+        seen = status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
+                                               and bool(from_map[0]))
+        said = self.sight.update(seen, now_s)
         if said is None:
             return
         self.guide.speaker.say(said)

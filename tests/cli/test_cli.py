@@ -610,6 +610,36 @@ def test_guide_says_when_it_cannot_see(capsys):
     assert all(line["status"] != "OK" for line in lines if "event" not in line)
 
 
+def test_guide_sees_a_view_of_floor_only():
+    """Not seen: blank frames, which are too flat for a disparity map (Otsu segmented them) and keep nothing, and a
+    pair whose kept regions could not be ranged. Seen: a view whose map measured it and kept nothing, a camera
+    pitched down at the floor of an empty corridor (the floor is not an obstacle) - no "Cannot see" there."""
+    import argparse
+    from types import SimpleNamespace
+
+    import torch
+
+    from svs_torch.capture.guide import CANNOT_SEE, SightWatch, WarningPolicy
+    from svs_torch.cli.guide_loop import GuideSession
+    from svs_torch.pipeline import PipelineStatus
+
+    said = []
+    guide = SimpleNamespace(speaker=SimpleNamespace(say=said.append), policy=WarningPolicy())
+    log = SimpleNamespace(event=lambda name, **fields: None)
+
+    def result(status: PipelineStatus, from_map: bool):
+        return SimpleNamespace(status=torch.tensor([int(status)]),
+                               segmentation=SimpleNamespace(from_disparity=torch.tensor([from_map])))
+
+    for status, from_map, blind in ((PipelineStatus.NO_OBJECTS, True, False), (PipelineStatus.NO_OBJECTS, False, True),
+                                    (PipelineStatus.NO_DENSE_DEPTH, True, True), (PipelineStatus.OK, False, False)):
+        session = GuideSession(argparse.Namespace(blind_s=1.0), (320, 240), None, guide, None, log)
+        session.sight, said[:] = SightWatch(blind_s=1.0, start_s=0.0), []
+        for now in (0.5, 1.0, 1.5):
+            session._watch_sight(result(status, from_map), now)
+        assert (said == [CANNOT_SEE]) == blind, (status, from_map)
+
+
 def test_guide_a_full_disk_is_an_error_not_a_lost_camera(monkeypatch, capsys, tmp_path):
     """Only the camera's errors are a loss: a record that cannot be written ends guide (exit 1, the reason said),
     and the walker is not told the camera was lost."""
