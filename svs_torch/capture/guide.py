@@ -1,4 +1,5 @@
-"""Reusable pieces of a live guide loop: when to warn, how to say it, and how fast the loop runs.
+"""Reusable pieces of a live guide loop: when to warn, how to say it, whether it can see, and how fast the loop
+runs.
 
 The warning rule follows the paper's use case (a walker warned of obstacles 1–2 m ahead): a distance inside
 the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
@@ -187,9 +188,9 @@ class SightWatch:
         self.last_seen_s = time.monotonic() if start_s is None else start_s
         self.blind = False
 
-    def update(self, ranged: bool, now_s: float) -> str | None:
-        """Take whether the pair at ``now_s`` was seen (``ranged``); the words to say, or None."""
-        if ranged:
+    def update(self, seen: bool, now_s: float) -> str | None:
+        """Take whether the pair at ``now_s`` was seen; the words to say, or None."""
+        if seen:
             self.last_seen_s = now_s
             if self.blind:
                 self.blind = False
