@@ -37,6 +37,10 @@ _FLOOR_MEAN = (0.35, 0.55)
 _FLOOR_AMPLITUDE = 0.10
 # The floor's texture scale is set at this distance ahead (it recedes: finer far off, coarser near).
 _FLOOR_TEXTURE_DEPTH_M = 2.0
+# The floor's tile spans the floor up to a wall at most this far ahead, and wraps beyond it: its 256 texels
+# spread over a deeper floor lost the fine speckle (a wall at 20 m: the near floor's x-gradients 3 times weaker
+# than with one at 4 m, a floor no camera frame could match), which a real floor keeps at any depth.
+_FLOOR_TILE_MAX_DEPTH_M = 4.0
 
 
 class _Scene(NamedTuple):
@@ -175,7 +179,8 @@ def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], g
         return tiles, tile_center, tile_side
     # The floor's tile, drawn after the others (a scene's boxes and wall look the same with or without it),
     # spans the floor the cameras see up to the wall: X and the distance ahead along the floor.
-    floor_side = torch.full((b, 1), 2 * scene.background_depth_m + baseline_m, **options)
+    floor_depth_m = min(scene.background_depth_m, _FLOOR_TILE_MAX_DEPTH_M)
+    floor_side = torch.full((b, 1), 2 * floor_depth_m + baseline_m, **options)
     floor_tile = _make_tiles(torch.full((b, 1), _FLOOR_TEXTURE_DEPTH_M, **options), floor_side, scene.focal_px,
                              generator, contrast, floor=True)
     floor_center = torch.tensor([baseline_m / 2, scene.background_depth_m], **options).expand(b, 1, 2)
