@@ -6,7 +6,6 @@ import argparse
 import contextlib
 import dataclasses
 import sys
-import time
 import warnings
 
 from .common import non_negative_float, non_negative_int, positive_float, positive_int

@@ -25,6 +25,7 @@ from typing import Any, TextIO
 
 from ..core.files import display_path
 from .capture import INDEX_NAME, save_pair
+from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
 
@@ -54,8 +55,6 @@ class GuideLog:
         before it (``num_dropped``)."""
         if self.stream is None and self._index is None:
             return
-        from .estimate_report import pair_report
-
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         record = save_pair(self.record_dir if self._index is not None else None, pair)
         record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s))

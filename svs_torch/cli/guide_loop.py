@@ -20,7 +20,10 @@ import contextlib
 import time
 from typing import Callable
 
+from ..capture.guide import CANNOT_SEE, SightWatch
 from ..capture.link_types import CaptureError
+from ..depth.depth_types import ObstacleSide
+from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
@@ -66,8 +69,6 @@ class GuideSession:
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
                     if self.sight is None:
-                        from ..capture.guide import SightWatch
-
                         self.sight = SightWatch(self.args.blind_s)
                     lost = self._range_stream(camera)
             if lost is None:
@@ -109,9 +110,6 @@ class GuideSession:
     def _watch_sight(self, result, now_s: float) -> None:
         """Say when no pair has been ranged for ``--blind-s`` seconds, and when one is again
         (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear."""
-        from ..capture.guide import CANNOT_SEE
-        from ..pipeline import PipelineStatus
-
         status = PipelineStatus(int(result.status[0]))
         # Seen: ranged, or no obstacle kept from a disparity map that measured the view (a view of floor only, a
         # walker's camera pitched down in an empty corridor). Blank frames measure too little to be segmented by
@@ -129,8 +127,6 @@ class GuideSession:
 
     def _range(self, item) -> None:
         """Range one grabbed pair (a :class:`~svs_torch.capture.stereo.PairBatch` of one), warn, keep it."""
-        from ..depth.depth_types import ObstacleSide
-
         started = time.perf_counter()
         result = self.ranged(item.batch)
         elapsed_s = time.perf_counter() - started
