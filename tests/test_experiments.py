@@ -146,6 +146,26 @@ def test_real_rig_synthetic_split_is_rendered_and_measured_once(data_dir):
         real_rig.main(["--data", str(data_dir), "--splits", "tuned,tuned-typo", "--no-rival"])
 
 
+def test_real_rig_noise_seed_draws_other_camera_frames(data_dir):
+    """--noise-seed N: another draw of every camera frame's noise (the same on every call; 0 is the tables' own),
+    the clean pair and the misalignments unchanged; a negative seed refused."""
+    import pytest
+    import torch
+
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
+    own, other, again = (real_rig.conditions(batch, 0, noise_seed=n) for n in (0, 1, 1))
+    assert [name for name, _, _ in own] == [name for name, _, _ in other]
+    assert torch.equal(own[0][1], batch.left) and torch.equal(other[0][2], batch.right)  # clean
+    frames = [i for i, (name, _, _) in enumerate(own) if name.startswith("jpeg")]
+    assert len(frames) == len(real_rig.JPEG_NOISE)
+    for i in frames:
+        assert not torch.equal(own[i][1], other[i][1]) and not torch.equal(own[i][2], other[i][2])
+        assert torch.equal(other[i][1], again[i][1]) and torch.equal(other[i][2], again[i][2])
+    assert all(torch.equal(o[2], p[2]) for o, p in zip(own, other) if not o[0].startswith("jpeg"))
+    with pytest.raises(SystemExit):
+        real_rig.main(["--data", str(data_dir), "--noise-seed", "-1"])
+
+
 def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     """--extremes: the clean pair and every corner of EXTREMES (two deviations at their limits), each right view
     the one misalign_right makes; the tuned scene's corners are ranged (ArtL: 97-99.5 % measured)."""
