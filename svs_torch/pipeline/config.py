@@ -1,5 +1,6 @@
-"""The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them), its
-per-pair status (:class:`PipelineStatus`: the stage that stopped) and its result (:class:`PipelineResult`).
+"""The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them) and its
+per-pair status (:class:`PipelineStatus`: the stage that stopped); its result, :class:`PipelineResult`, is in
+:mod:`.result` and re-exported here.
 """
 
 from __future__ import annotations
@@ -8,20 +9,16 @@ import enum
 from dataclasses import dataclass, field
 from typing import Literal
 
-import torch
-
 from ..core.checks import InputError
-from ..core.types import FundamentalResult, Matches, StereoSegmentation
-from ..depth.dense_config import DenseConfig, DenseDisparity
-from ..depth.depth_types import DepthConfig, DepthResult
+from ..depth.dense_config import DenseConfig
+from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
-from ..features.surf import SurfFeatures
 from ..geometry.lk_refinement import MatchRefinementConfig
-from ..geometry.matched_points import MatchedPoints
-from ..geometry.rectification import Rectification, RectificationConfig
+from ..geometry.rectification import RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
 from ..segmentation.segment import SegmentationConfig
 from .exposure import RETRY_MIN_CHANGE, ExposureConfig
+from .result import PipelineResult  # noqa: F401  (re-exported: its home until the module grew past 400 lines)
 
 __all__ = ["MIN_CORRESPONDENCES", "PipelineConfig", "PipelineResult", "PipelineStatus"]
 
@@ -310,91 +307,3 @@ class PipelineConfig:
                    refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
                    coarse_retry_below_share=None, drop_unmeasured_below_share=None,
                    drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None)
-
-
-@dataclass(frozen=True)
-class PipelineResult:
-    """Per-pair results of :func:`estimate_obstacle_depth` (B pairs).
-
-    Attributes:
-        status: :class:`PipelineStatus` ``(B,)`` int64.
-        segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`; a stereo segmenter's (nearness,
-            learned) of the ``row_aligned`` pairs is made on their aligned views, its maps in input pixels.
-        features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.
-        matches: left-to-right :class:`~svs_torch.core.types.Matches`.
-        points: :class:`~svs_torch.geometry.matched_points.MatchedPoints` ``(B, K, 2)``: the matched points F is
-            fitted to (the right points refined to sub-pixel under ``refine_matches``), rows as in ``matches``.
-        fundamental: :class:`~svs_torch.core.types.FundamentalResult` over the matched rows (row k = left keypoint k).
-        rectification: :class:`~svs_torch.geometry.rectification.Rectification` computed from F (its homographies are
-            the identity where its status is not OK).
-        rectified: ``(B,)`` bool, pairs whose disparities were measured after rectification.
-        depth: :class:`~svs_torch.depth.DepthResult`: the pair's R_min / R_max, per-object depths of the kept
-            left regions and the nearest obstacle, by ``config.depth.rule`` (``range_rule``).
-        dense: :class:`~svs_torch.depth.dense.DenseDisparity` of the left view (in rectified pixels where
-            ``rectified``), None under the ``"paper"`` rule.
-        range_rule: ``"dense"`` or ``"paper"``: the rule that produced ``depth``.
-        num_keypoints: ``(B, 2)`` int64, valid keypoints left and right.
-        num_matches, num_inliers: ``(B,)`` int64.
-        timings_s: wall time of each stage for the whole batch, seconds.
-        verified: ``(B,)`` bool, under the dense rule: the sparse stage vouches that both views show one scene
-            (``PipelineConfig.verify_min_inliers`` …); None under the ``"paper"`` rule.
-        num_agreeing_inliers: ``(B,)`` int64, the RANSAC inliers whose disparity the dense map confirms
-            (:func:`~svs_torch.depth.dense_objects.count_agreeing_inliers`); None under the ``"paper"`` rule.
-        num_measured_inliers: ``(B,)`` int64, the RANSAC inliers at a pixel the dense map measured (agreeing or
-            not); None under the ``"paper"`` rule.
-        hard_depth: under ``PipelineConfig.differentiable``, the hard pipeline's :class:`DepthResult` (``depth``
-            is then the differentiable one); None otherwise.
-        H_left, H_right: ``(B, 3, 3)``, the homographies the disparities were measured after: F's rectification
-            or the right view's row alignment where ``rectified``, the identity elsewhere. Under
-            ``differentiable``, F's rectifications carry gradients to both images (``svs_torch.geometry.soft``).
-        smoothed: ``(B,)`` bool, under the dense rule: pairs whose dense depth comes from the second pass on
-            smoothed views (``PipelineConfig.noisy_retry_sigma_px``); None under the ``"paper"`` rule.
-        coarse: ``(B,)`` bool, under the dense rule: pairs whose dense depth was measured at half the working width
-            (``PipelineConfig.coarse_retry_below_share``); None under the ``"paper"`` rule.
-        row_aligned: ``(B,)`` bool, pairs rectified by the right view's row alignment rather than F's
-            rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
-            (where ``row_aligned``; all False without a row alignment); row_alignment_turn_deg ``(B, 2)``, the right
-            camera's turn about its y and x axes the alignment undid, degrees (its keystone,
-            :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none).
-        dropped_objects: ``(B, N)`` bool, under the dense rule: the kept left slots dropped as unmeasured
-            (``PipelineConfig.drop_unmeasured_below_share``; their ``kept_labels`` are now −1); None under the
-            ``"paper"`` rule.
-        exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
-            onto the brighter (``exposure``, ``exposure_right_clipped``, or the ``exposure_retry`` kept); the masked
-            images are of the mapped views.
-        object_labels: ``(B, 1, H, W)`` int64, the left labels each object of ``depth`` was measured over, input
-            pixels: the kept regions' interiors (``PipelineConfig.region_interior_working_px``), else the
-            segmentation's labels. An object's true distance is the median ground truth over the same pixels
-            (:func:`svs_torch.evaluation.measured_regions`); ``segmentation`` keeps the whole regions.
-    """
-
-    status: torch.Tensor
-    segmentation: StereoSegmentation
-    features_left: SurfFeatures
-    features_right: SurfFeatures
-    matches: Matches
-    points: MatchedPoints
-    fundamental: FundamentalResult
-    rectification: Rectification
-    rectified: torch.Tensor
-    depth: DepthResult
-    dense: DenseDisparity | None
-    range_rule: str
-    num_keypoints: torch.Tensor
-    num_matches: torch.Tensor
-    num_inliers: torch.Tensor
-    timings_s: dict[str, float]
-    verified: torch.Tensor | None = None
-    num_agreeing_inliers: torch.Tensor | None = None
-    num_measured_inliers: torch.Tensor | None = None
-    hard_depth: DepthResult | None = None
-    H_left: torch.Tensor | None = None
-    H_right: torch.Tensor | None = None
-    smoothed: torch.Tensor | None = None
-    row_aligned: torch.Tensor | None = None
-    exposure_matched: torch.Tensor | None = None
-    row_alignment_inliers: torch.Tensor | None = None
-    row_alignment_turn_deg: torch.Tensor | None = None
-    coarse: torch.Tensor | None = None
-    dropped_objects: torch.Tensor | None = None
-    object_labels: torch.Tensor | None = None
