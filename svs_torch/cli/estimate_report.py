@@ -68,6 +68,8 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
             "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
                                else None),
             "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
+            # its region spanned two surfaces far apart: ranged over the nearer (PipelineConfig.measure_near_surface)
+            "near_surface": bool(result.near_surface[index, slot]) if result.near_surface is not None else False,
         })
     return reports
 
@@ -165,6 +167,8 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
             support = f"{obj['num_valid_px']} valid px"
             if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
                 support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
+        if obj.get("near_surface"):  # a report read back from an older JSON has no such key
+            depth += f" over the near surface ({obj['measured_area_px']} px) of a region spanning two"
         lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
                      f"box {obj['bbox_xyxy']}")
     if report["nearest_m"] is not None:

@@ -157,6 +157,10 @@ class PipelineConfig:
             measured over its interior, eroded by this radius in the dense stage's working pixels (at least one
             input pixel each; :mod:`svs_torch.segmentation.interior`, ``PipelineResult.object_labels``): a block
             matcher fattens near regions onto the background behind them. None: off (the paper's).
+        measure_near_surface: under the dense rule, a kept object whose dense disparities split into two surfaces
+            far apart (a near obstacle and the wall behind it, joined into one region by camera noise) is ranged
+            over its near surface only (:mod:`svs_torch.pipeline.near_surface`; ``PipelineResult.near_surface``).
+            False: over the whole region (the paper's).
         exposure: the two views' exposures matched before the first stage (:mod:`svs_torch.pipeline.exposure`:
             an affine map through both views' quartiles, where they differ by more than ``min_change``, applied to
             the darker view so that both clip the same highlights), e.g. ``ExposureConfig()``. None: off.
@@ -249,6 +253,7 @@ class PipelineConfig:
     # drops fewest regions; a region measured on 32 % ranged nearer than the measured one is truly nearer (PianoL).
     drop_unmeasured_nearer_below_share: float | None = 0.15
     region_interior_working_px: float | None = 2.0  # experiments/select_region_interior.md (tuned split only)
+    measure_near_surface: bool = True  # experiments/real_rig.md, "Two surfaces in one kept region" (tuning sets)
     # Off by default: it loses PianoL (two lightings, not two gains) where it ranges Piano (experiments/exposure.md).
     exposure: ExposureConfig | None = None
     # Off by default (experiments/real_rig.md, "One-sided clipping"): chosen on the tuning sets (bright tuned scenes,
@@ -275,7 +280,7 @@ class PipelineConfig:
                 raise InputError(f"{name}: expected an integer >= 1 or None, got {many!r}")
         if not (isinstance(self.seed, int) and -2**63 <= self.seed < 2**63):
             raise InputError(f"seed: expected a 64-bit integer, got {self.seed!r}")  # the RANSAC seeds are int64
-        for name in ("verify_whole_view", "differentiable"):
+        for name in ("verify_whole_view", "differentiable", "measure_near_surface"):
             if getattr(self, name) not in (True, False):
                 raise InputError(f"{name}: expected a bool, got {getattr(self, name)!r}")
         if self.differentiable and self.depth.rule != "dense":
@@ -306,4 +311,5 @@ class PipelineConfig:
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
                    refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
                    coarse_retry_below_share=None, drop_unmeasured_below_share=None,
-                   drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None)
+                   drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None,
+                   measure_near_surface=False)

@@ -69,8 +69,11 @@ class PipelineResult:
             images are of the mapped views.
         object_labels: ``(B, 1, H, W)`` int64, the left labels each object of ``depth`` was measured over, input
             pixels: the kept regions' interiors (``PipelineConfig.region_interior_working_px``), else the
-            segmentation's labels. An object's true distance is the median ground truth over the same pixels
+            segmentation's labels, an object ranged over its near surface cut to it (``near_surface``). An object's
+            true distance is the median ground truth over the same pixels
             (:func:`svs_torch.evaluation.measured_regions`); ``segmentation`` keeps the whole regions.
+        near_surface: ``(B, N)`` bool, under the dense rule with ``PipelineConfig.measure_near_surface``: the objects
+            whose region spanned two surfaces, ranged over the nearer; None otherwise.
     """
 
     status: torch.Tensor
@@ -103,3 +106,4 @@ class PipelineResult:
     coarse: torch.Tensor | None = None
     dropped_objects: torch.Tensor | None = None
     object_labels: torch.Tensor | None = None
+    near_surface: torch.Tensor | None = None

@@ -16,7 +16,8 @@ from torch import nn
 from ..core.checks import InputError, check_instance
 from ..core.inference import plain_tensors
 from ..core.size_groups import run_by_size
-from ..core.types import FundamentalResult, FundamentalStatus, Matches, StereoBatch
+from ..core.types import FundamentalResult, FundamentalStatus, Matches, StereoBatch, StereoSegmentation
+from ..depth.depth_types import DepthResult
 from ..depth.sparse import estimate_depth
 from ..geometry.lk_refinement import refine_matched_points
 from ..geometry.matched_points import gather_matched_points
@@ -28,6 +29,7 @@ from ..segmentation.segment import SegmentationConfig
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
+from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
@@ -204,6 +206,24 @@ def _fundamental_ok(fundamental: FundamentalResult, matches: Matches, config: Pi
             & (fundamental.num_inliers >= config.verify_min_inlier_share * matches.valid.sum(1)))
 
 
+def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult, fundamental_ok: torch.Tensor,
+                points_left: torch.Tensor, inliers: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor,
+                H_right: torch.Tensor, object_labels: torch.Tensor, config: PipelineConfig) -> tuple:
+    """The dense range rule's stages after the sparse one: the dense depth with its second passes, the kept regions
+    it could not measure dropped, and the two-surface objects measured over their near surface. Returns the
+    segmentation, depth and object labels after them, then the dense map and the verified, agreeing, measured,
+    smoothed, coarse, dropped and near-surface flags (:class:`PipelineResult`'s fields of those names)."""
+    depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
+        batch, seg, depth, fundamental_ok, points_left, inliers, rectified, H_left, H_right, object_labels, config)
+    seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
+                                                  config.drop_unmeasured_nearer_below_share)
+    near = None
+    if config.measure_near_surface:
+        depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, inliers,
+                                                           batch.focal_px, batch.baseline_m, batch.doffs_px, config)
+    return seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped, near
+
+
 def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None,
                    left_logits: torch.Tensor | None = None) -> PipelineResult:
     """The hard pipeline (no gradients) on a batch whose pairs all fill its tensors."""
@@ -246,13 +266,11 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right, statistics=config.depth.rule != "dense",  # the dense rule measures them
         labels=object_labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = measured = smoothed = coarse = dropped = None
+    dense = verified = agreeing = measured = smoothed = coarse = dropped = near = None
     if config.depth.rule == "dense":
-        depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
-            batch, seg, depth, _fundamental_ok(fundamental, matches, config), points.left, fundamental.inliers,
-            rectified, H_left, H_right, object_labels, config)
-        seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
-                                                      config.drop_unmeasured_nearer_below_share)
+        (seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped,
+         near) = _dense_rule(batch, seg, depth, _fundamental_ok(fundamental, matches, config), points.left,
+                             fundamental.inliers, rectified, H_left, H_right, object_labels, config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
@@ -263,4 +281,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
         row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped,
-        object_labels=object_labels)
+        object_labels=object_labels, near_surface=near)
