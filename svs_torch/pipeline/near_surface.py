@@ -55,6 +55,9 @@ MAX_INLIER_RATIO = 1.25
 INLIER_MARGIN_PX = 2.0
 #: Bins of each object's disparity histogram for Otsu's split.
 HISTOGRAM_BINS = 64
+#: The screen over a quarter of the pixels asks this share of the groups' least share and of the ratio's excess
+#: over 1 (0.2 and 1.8 for 0.25 and 2): an object it lets through is tested again over every pixel.
+SCREEN_SLACK = 0.8
 
 
 def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labels: torch.Tensor,
@@ -73,26 +76,24 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     if slots.shape[1] == 0 or not bool(((slots > 0) & ~rectified.view(-1, 1)).any()):
         return depth, object_labels, cut
     disparity, valid = dense.disparity_px.detach(), dense.valid
-    # The pixels its depth is measured over: the row-filled map where the depth rule fills it.
-    filled, reachable = (fill_invalid_rows(disparity[:, 0], valid[:, 0]) if config.dense.fill_invalid
-                         else (disparity[:, 0], valid[:, 0]))
     sparse = depth.disparities
     known = inliers & sparse.valid & sparse.disparity_px.isfinite()
     top = torch.where(known, sparse.disparity_px.detach(), torch.zeros_like(sparse.disparity_px)).amax(1)
     limit = MAX_INLIER_RATIO * top + INLIER_MARGIN_PX  # (B,)
     least = max(1.0, MIN_COHERENT_AREA_FRACTION * object_labels.shape[-2] * object_labels.shape[-1])
-    labels = object_labels
-    for n in range(slots.shape[1]):  # a handful of objects, each over the whole batch
-        slot = slots[:, n].view(-1, 1, 1, 1)
-        member = (object_labels == slot) & (slot > 0) & ~rectified.view(-1, 1, 1, 1)
-        threshold, split = _two_groups(disparity, member & valid, limit, least)
-        cut[:, n] = split
-        if bool(split.any()):
-            far = member & split.view(-1, 1, 1, 1) & ~(reachable.unsqueeze(1)
-                                                       & (filled.unsqueeze(1) > threshold.view(-1, 1, 1, 1)))
-            labels = torch.where(far, torch.zeros_like(labels), labels)
+    position = _slot_positions(object_labels, slots, rectified)  # (B, 1, H, W): each pixel's object, N for none
+    threshold, cut = _split_objects(disparity, valid, position, slots.shape[1], limit, least)
     if not bool(cut.any()):
         return depth, object_labels, cut
+    # The pixels its depth is measured over: the row-filled map where the depth rule fills it.
+    filled, reachable = (fill_invalid_rows(disparity[:, 0], valid[:, 0]) if config.dense.fill_invalid
+                         else (disparity[:, 0], valid[:, 0]))
+    inside = position < slots.shape[1]
+    slot_of_pixel = position.clamp(max=slots.shape[1] - 1).flatten(1)
+    pixel_cut = inside & cut.gather(1, slot_of_pixel).view_as(position)
+    pixel_threshold = threshold.gather(1, slot_of_pixel).view_as(position)
+    near_side = reachable.unsqueeze(1) & (filled.unsqueeze(1) > pixel_threshold)
+    labels = torch.where(pixel_cut & ~near_side, torch.zeros_like(object_labels), object_labels)
     near = dense_object_depths(dense, labels, objects, focal_px, baseline_m, doffs_px,
                                config.depth.object_percentiles, config.depth.min_object_pixels,
                                config.dense.fill_invalid, 0.0, config.depth.min_object_pixels_in_view)
@@ -100,12 +101,13 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     cut = cut & near.valid
     if not bool(cut.any()):
         return depth, object_labels, cut
-    keep = torch.stack([~cut[:, n].view(-1, 1, 1) | (object_labels[:, 0] != slots[:, n].view(-1, 1, 1))
-                        for n in range(slots.shape[1])]).all(0).unsqueeze(1)
-    labels = torch.where(keep, object_labels, labels)
+    pixel_cut = inside & cut.gather(1, slot_of_pixel).view_as(position)
+    labels = torch.where(pixel_cut & ~near_side, torch.zeros_like(object_labels), object_labels)
     # Its area is now the pixels it is measured over (estimate --json's measured_area_px).
-    area = torch.stack([(labels == slots[:, n].view(-1, 1, 1, 1)).flatten(1).sum(1)
-                        for n in range(slots.shape[1])], dim=1)
+    b, n = slots.shape
+    kept = (inside & (labels > 0)).flatten(1)
+    pair = torch.arange(b, device=slots.device).view(-1, 1).expand_as(kept)
+    area = torch.bincount((pair * n + slot_of_pixel)[kept], minlength=b * n).view(b, n)
     merged = dataclasses.replace(objects, area_px=torch.where(cut, area, objects.area_px), **{
         name: torch.where(cut, getattr(near, name), getattr(objects, name))
         for name in ("depth_median_m", "depth_low_m", "depth_high_m", "num_valid_px", "num_in_view_px")})
@@ -113,43 +115,87 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     return DepthResult(depth.disparities, depth.points, depth_range, merged, nearest_obstacle(merged)), labels, cut
 
 
-def _two_groups(disparity: torch.Tensor, member: torch.Tensor, limit: torch.Tensor, least: float
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Otsu's split of each pair's ``member`` disparities ``(B, 1, H, W)`` and whether it makes two surfaces
-    (module docstring): the threshold ``(B,)`` and ``(B,)`` bool."""
+def _split_objects(disparity: torch.Tensor, valid: torch.Tensor, position: torch.Tensor, n: int, limit: torch.Tensor,
+                   least: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_two_groups` over every pixel for the objects a screen over every other row and column, with looser
+    bounds, lets through: most objects of most frames show one surface, and the whole test over every object took
+    2 ms a camera frame (the thresholds ``(B, n)``, 0 where not tested, and the objects split)."""
+    _, candidate = _two_groups(*(t[..., ::2, ::2] for t in (disparity, valid, position)), n, limit, least / 4,
+                               screen=True)
+    if not bool(candidate.any()):
+        return torch.zeros(candidate.shape, dtype=disparity.dtype, device=disparity.device), candidate
+    screened = torch.where(candidate.gather(1, position.clamp(max=n - 1).flatten(1)).view_as(position), position, n)
+    return _two_groups(disparity, valid, screened, n, limit, least)
+
+
+def _slot_positions(object_labels: torch.Tensor, slots: torch.Tensor, rectified: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` int64: the slot n of ``slots`` ``(B, N)`` whose object each pixel of ``object_labels``
+    belongs to, N where none (a slot ≤ 0 holds none; a ``rectified`` pair's pixels are left out)."""
+    b, n = slots.shape
+    size = int(object_labels.max()) + 2 if object_labels.numel() else 2
+    table = torch.full((b, size), n, dtype=torch.long, device=slots.device)
+    # A slot holding no object writes to the last column, which no label reads.
+    columns = torch.where(slots > 0, slots, torch.full_like(slots, size - 1)).long()
+    table.scatter_(1, columns, torch.arange(n, device=slots.device).expand(b, n).contiguous())
+    table[:, -1] = n
+    table[rectified] = n
+    return table.gather(1, object_labels.flatten(1).clamp(0, size - 2)).view_as(object_labels)
+
+
+def _two_groups(disparity: torch.Tensor, valid: torch.Tensor, position: torch.Tensor, n: int, limit: torch.Tensor,
+                least: float, screen: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Otsu's split of each object's measured disparities (``disparity``, ``valid`` ``(B, 1, H, W)``; the object of
+    each pixel ``position``, one of ``n`` or ``n`` for none) and whether it makes two surfaces (module docstring):
+    the thresholds and ``(B, n)`` bool. One pass over the objects' measured pixels for every object; only the
+    objects that pass the groups' shares and ratio are looked at again, over the whole view (rare). ``screen``: the
+    groups' shares and ratio only, each bound a fifth looser (:data:`SCREEN_SLACK`)."""
     b = disparity.shape[0]
-    values, mask = disparity.flatten(1), member.flatten(1)
-    count = mask.sum(1)
-    low = torch.where(mask, values, torch.inf).amin(1)
-    high = torch.where(mask, values, -torch.inf).amax(1)
+    keys = b * n
+    values, where_ = disparity.flatten(1), position.flatten(1)
+    pair, pixel = (valid.flatten(1) & (where_ < n)).nonzero(as_tuple=True)
+    key = pair * n + where_[pair, pixel]
+    v = values[pair, pixel]
+    count = torch.bincount(key, minlength=keys)
+    threshold = _otsu_by_key(v, key, keys)
+    near = v > threshold[key]
+    n_near = torch.bincount(key, weights=near.double(), minlength=keys)
+    n_far = count - n_near
+    sum_near = torch.bincount(key, weights=torch.where(near, v, 0.0).double(), minlength=keys)
+    mean_near = sum_near / n_near.clamp_min(1)
+    mean_far = (torch.bincount(key, weights=v.double(), minlength=keys) - sum_near) / n_far.clamp_min(1)
+    slack = SCREEN_SLACK if screen else 1.0
+    share, ratio = MIN_CLASS_SHARE * slack, 1 + (MIN_DISPARITY_RATIO - 1) * slack
+    split = ((n_near >= share * count) & (n_far >= share * count) & (n_near > 0)
+             & (mean_near >= ratio * mean_far.clamp_min(1e-3))).view(b, n)
+    threshold = threshold.view(b, n)
+    if screen:
+        return threshold, split
+    for slot in range(n):  # the candidates only: the near group's median and its largest piece
+        if not bool(split[:, slot].any()):
+            continue
+        group = (position == slot) & valid & (disparity > threshold[:, slot].view(-1, 1, 1, 1))
+        median_near, _ = masked_lower_median(values, group.flatten(1))
+        _, _, properties = connected_components_with_stats(group)
+        largest = properties.area_px.amax(1) if properties.area_px.shape[1] else torch.zeros_like(median_near)
+        n_group = group.flatten(1).sum(1)
+        split[:, slot] &= ((median_near <= limit) & (largest >= MIN_COHERENT_SHARE * n_group) & (largest >= least))
+    return threshold, split
+
+
+def _otsu_by_key(values: torch.Tensor, key: torch.Tensor, keys: int) -> torch.Tensor:
+    """Otsu's threshold ``(keys,)`` of the ``values`` under each ``key`` (1-D, the same length): a histogram of
+    :data:`HISTOGRAM_BINS` bins between the key's least and greatest value, the upper edge of the bin that best
+    splits it (the between-class variance in float64)."""
+    low = torch.full((keys,), torch.inf, device=values.device).scatter_reduce(0, key, values, "amin")
+    high = torch.full((keys,), -torch.inf, device=values.device).scatter_reduce(0, key, values, "amax")
     span = (high - low).clamp_min(1e-6)
-    bins = ((values - low.view(-1, 1)) / span.view(-1, 1) * HISTOGRAM_BINS).floor().clamp(0, HISTOGRAM_BINS - 1)
-    index = torch.where(mask, bins.long(), torch.zeros_like(bins, dtype=torch.long))
-    histogram = torch.zeros(b, HISTOGRAM_BINS, dtype=torch.float64, device=disparity.device)
-    histogram.scatter_add_(1, index, mask.to(torch.float64))
-    centres = low.view(-1, 1).double() + (torch.arange(HISTOGRAM_BINS, device=disparity.device) + 0.5) \
-        * span.view(-1, 1).double() / HISTOGRAM_BINS
+    bins = ((values - low[key]) / span[key] * HISTOGRAM_BINS).floor().clamp(0, HISTOGRAM_BINS - 1).long()
+    histogram = torch.bincount(key * HISTOGRAM_BINS + bins, minlength=keys * HISTOGRAM_BINS).view(keys, -1).double()
+    low64, span64 = low.double().view(-1, 1), span.double().view(-1, 1)
+    centres = low64 + (torch.arange(HISTOGRAM_BINS, device=values.device) + 0.5) * span64 / HISTOGRAM_BINS
     w0 = histogram.cumsum(1)
     s0 = (histogram * centres).cumsum(1)
     w1, s1 = w0[:, -1:] - w0, s0[:, -1:] - s0
     between = torch.where((w0 > 0) & (w1 > 0), (s0 * w1 - s1 * w0) ** 2 / (w0 * w1).clamp_min(1), 0.0)
     k = between.argmax(1, keepdim=True)
-    threshold = (low.view(-1, 1).double() + (k + 1) * span.view(-1, 1).double() / HISTOGRAM_BINS).squeeze(1)
-    threshold = threshold.to(disparity.dtype)
-    near = mask & (values > threshold.view(-1, 1))
-    far = mask & ~near
-    n_near, n_far = near.sum(1), far.sum(1)
-    mean_near = torch.where(near, values, 0.0).sum(1) / n_near.clamp_min(1)
-    mean_far = torch.where(far, values, 0.0).sum(1) / n_far.clamp_min(1)
-    split = ((n_near >= MIN_CLASS_SHARE * count) & (n_far >= MIN_CLASS_SHARE * count) & (n_near > 0)
-             & (mean_near >= MIN_DISPARITY_RATIO * mean_far.clamp_min(1e-3)))
-    if not bool(split.any()):
-        return threshold, split
-    median_near, _ = masked_lower_median(values, near)
-    split = split & (median_near <= limit)
-    if not bool(split.any()):
-        return threshold, split
-    _, _, properties = connected_components_with_stats(near.view_as(member))
-    largest = properties.area_px.amax(1) if properties.area_px.shape[1] else torch.zeros_like(n_near)
-    split = split & (largest >= MIN_COHERENT_SHARE * n_near) & (largest >= least)
-    return threshold, split
+    return (low64 + (k + 1) * span64 / HISTOGRAM_BINS).squeeze(1).to(values.dtype)

@@ -13,7 +13,7 @@ from conftest import REPO_ROOT
 from svs_torch import InputError
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-from svs_torch.pipeline.near_surface import MIN_DISPARITY_RATIO, _two_groups
+from svs_torch.pipeline.near_surface import MIN_DISPARITY_RATIO, _split_objects, _two_groups
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 
@@ -34,10 +34,20 @@ def _map(near_px: float, far_px: float, pattern: str) -> tuple[torch.Tensor, tor
     return disparity, torch.ones_like(disparity, dtype=torch.bool)
 
 
+def _groups(disparity, member, limit, least):
+    """:func:`_two_groups` of one object, the ``member`` pixels."""
+    position = torch.where(member, 0, 1)
+    return _two_groups(disparity, torch.ones_like(member), position, 1, limit, least)
+
+
 def test_two_coherent_surfaces_far_apart_are_split_between_them():
+    """Split, between the two; the screen over a quarter of the pixels lets the object through to the same test."""
     disparity, member = _map(40.0, 10.0, "blocks")
-    threshold, split = _two_groups(disparity, member, torch.tensor([60.0]), 200.0)
-    assert split.tolist() == [True] and 10 < float(threshold) < 40
+    threshold, split = _groups(disparity, member, torch.tensor([60.0]), 200.0)
+    assert split.tolist() == [[True]] and 10 < float(threshold) < 40
+    position = torch.where(member, 0, 1)
+    screened = _split_objects(disparity, torch.ones_like(member), position, 1, torch.tensor([60.0]), 200.0)
+    assert torch.equal(screened[0], threshold) and torch.equal(screened[1], split)
 
 
 @pytest.mark.parametrize("case", ["scattered", "close", "beyond the inliers", "small"])
@@ -49,12 +59,12 @@ def test_no_split_for_noise_close_surfaces_or_a_near_group_nothing_else_saw(case
     disparity, member = _map(near, 10.0, "scattered" if case == "scattered" else "blocks")
     limit = torch.tensor([near / 2 if case == "beyond the inliers" else 100.0])
     least = 60 * 40 + 1.0 if case == "small" else 200.0
-    assert _two_groups(disparity, member, limit, least)[1].tolist() == [False]
+    assert _groups(disparity, member, limit, least)[1].tolist() == [[False]]
 
 
 def test_an_empty_member_region_is_not_split():
     disparity, member = _map(40.0, 10.0, "blocks")
-    assert _two_groups(disparity, torch.zeros_like(member), torch.tensor([60.0]), 200.0)[1].tolist() == [False]
+    assert _groups(disparity, torch.zeros_like(member), torch.tensor([60.0]), 200.0)[1].tolist() == [[False]]
 
 
 @pytest.fixture(scope="module")
