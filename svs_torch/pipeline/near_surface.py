@@ -29,6 +29,7 @@ import dataclasses
 
 import torch
 
+from ..core.pair_trees import put_pairs, take_pairs
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.dense_config import DenseDisparity
 from ..depth.dense_objects import dense_object_depths, range_from_objects
@@ -85,34 +86,49 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     threshold, cut = _split_objects(disparity, valid, position, slots.shape[1], limit, least)
     if not bool(cut.any()):
         return depth, object_labels, cut
+    # Only the pairs with an object to cut are measured again: a bulk batch's other pairs do not pay for them.
+    b, n = slots.shape
+    pairs = cut.any(1).nonzero().flatten()
+    sub = (lambda tree: take_pairs(tree, pairs, b))
     # The pixels its depth is measured over: the row-filled map where the depth rule fills it.
-    filled, reachable = (fill_invalid_rows(disparity[:, 0], valid[:, 0]) if config.dense.fill_invalid
-                         else (disparity[:, 0], valid[:, 0]))
-    inside = position < slots.shape[1]
-    slot_of_pixel = position.clamp(max=slots.shape[1] - 1).flatten(1)
-    pixel_cut = inside & cut.gather(1, slot_of_pixel).view_as(position)
-    pixel_threshold = threshold.gather(1, slot_of_pixel).view_as(position)
-    near_side = reachable.unsqueeze(1) & (filled.unsqueeze(1) > pixel_threshold)
-    labels = torch.where(pixel_cut & ~near_side, torch.zeros_like(object_labels), object_labels)
-    near = dense_object_depths(dense, labels, objects, focal_px, baseline_m, doffs_px,
-                               config.depth.object_percentiles, config.depth.min_object_pixels,
+    filled, reachable = ((fill_invalid_rows if config.dense.fill_invalid else _unfilled)(sub(disparity)[:, 0],
+                                                                                          sub(valid)[:, 0]))
+    cut_labels = (lambda which: _cut_labels(sub(position), sub(object_labels), which, sub(threshold), filled,
+                                            reachable))
+    near = dense_object_depths(sub(dense), cut_labels(sub(cut)), sub(objects), sub(focal_px), sub(baseline_m),
+                               sub(doffs_px), config.depth.object_percentiles, config.depth.min_object_pixels,
                                config.dense.fill_invalid, 0.0, config.depth.min_object_pixels_in_view)
     # An object whose near surface cannot be ranged keeps its whole region and its depth.
-    cut = cut & near.valid
-    if not bool(cut.any()):
-        return depth, object_labels, cut
-    pixel_cut = inside & cut.gather(1, slot_of_pixel).view_as(position)
-    labels = torch.where(pixel_cut & ~near_side, torch.zeros_like(object_labels), object_labels)
+    part = sub(cut) & near.valid
+    if not bool(part.any()):
+        return depth, object_labels, torch.zeros_like(cut)
+    labels = object_labels.index_copy(0, pairs, cut_labels(part))
+    cut, near = torch.zeros_like(cut).index_copy(0, pairs, part), put_pairs(objects, pairs, near, b)
     # Its area is now the pixels it is measured over (estimate --json's measured_area_px).
-    b, n = slots.shape
-    kept = (inside & (labels > 0)).flatten(1)
-    pair = torch.arange(b, device=slots.device).view(-1, 1).expand_as(kept)
-    area = torch.bincount((pair * n + slot_of_pixel)[kept], minlength=b * n).view(b, n)
+    inside = (position < n).flatten(1) & (labels > 0).flatten(1)
+    key = torch.arange(b, device=slots.device).view(-1, 1) * n + position.clamp(max=n - 1).flatten(1)
+    area = torch.bincount(key[inside], minlength=b * n).view(b, n)
     merged = dataclasses.replace(objects, area_px=torch.where(cut, area, objects.area_px), **{
         name: torch.where(cut, getattr(near, name), getattr(objects, name))
         for name in ("depth_median_m", "depth_low_m", "depth_high_m", "num_valid_px", "num_in_view_px")})
     depth_range = range_from_objects(merged, focal_px, baseline_m, doffs_px)
     return DepthResult(depth.disparities, depth.points, depth_range, merged, nearest_obstacle(merged)), labels, cut
+
+
+def _unfilled(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The map as it is, where the depth rule does not fill it (``DenseConfig.fill_invalid`` False)."""
+    return disparity, valid
+
+
+def _cut_labels(position: torch.Tensor, object_labels: torch.Tensor, cut: torch.Tensor, threshold: torch.Tensor,
+                filled: torch.Tensor, reachable: torch.Tensor) -> torch.Tensor:
+    """``object_labels`` ``(b, 1, H, W)`` without the pixels of each ``cut`` ``(b, N)`` object whose (filled)
+    disparity is not above its ``threshold`` ``(b, N)``: the object cut to its near surface."""
+    n = cut.shape[1]
+    slot = position.clamp(max=n - 1).flatten(1)
+    near = reachable.unsqueeze(1) & (filled.unsqueeze(1) > threshold.gather(1, slot).view_as(position))
+    far = (position < n) & cut.gather(1, slot).view_as(position) & ~near
+    return torch.where(far, torch.zeros_like(object_labels), object_labels)
 
 
 def _split_objects(disparity: torch.Tensor, valid: torch.Tensor, position: torch.Tensor, n: int, limit: torch.Tensor,
@@ -122,10 +138,16 @@ def _split_objects(disparity: torch.Tensor, valid: torch.Tensor, position: torch
     2 ms a camera frame (the thresholds ``(B, n)``, 0 where not tested, and the objects split)."""
     _, candidate = _two_groups(*(t[..., ::2, ::2] for t in (disparity, valid, position)), n, limit, least / 4,
                                screen=True)
+    threshold = torch.zeros(candidate.shape, dtype=disparity.dtype, device=disparity.device)
     if not bool(candidate.any()):
-        return torch.zeros(candidate.shape, dtype=disparity.dtype, device=disparity.device), candidate
-    screened = torch.where(candidate.gather(1, position.clamp(max=n - 1).flatten(1)).view_as(position), position, n)
-    return _two_groups(disparity, valid, screened, n, limit, least)
+        return threshold, candidate
+    pairs = candidate.any(1).nonzero().flatten()
+    sub = (lambda t: t.index_select(0, pairs))
+    position = sub(position)
+    screened = torch.where(sub(candidate).gather(1, position.clamp(max=n - 1).flatten(1)).view_as(position),
+                           position, n)
+    part_threshold, part = _two_groups(sub(disparity), sub(valid), screened, n, sub(limit), least)
+    return threshold.index_copy(0, pairs, part_threshold), torch.zeros_like(candidate).index_copy(0, pairs, part)
 
 
 def _slot_positions(object_labels: torch.Tensor, slots: torch.Tensor, rectified: torch.Tensor) -> torch.Tensor:
