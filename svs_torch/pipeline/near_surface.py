@@ -208,8 +208,8 @@ def _otsu_by_key(values: torch.Tensor, key: torch.Tensor, keys: int) -> torch.Te
     """Otsu's threshold ``(keys,)`` of the ``values`` under each ``key`` (1-D, the same length): a histogram of
     :data:`HISTOGRAM_BINS` bins between the key's least and greatest value, the upper edge of the bin that best
     splits it (the between-class variance in float64)."""
-    low = torch.full((keys,), torch.inf, device=values.device).scatter_reduce(0, key, values, "amin")
-    high = torch.full((keys,), -torch.inf, device=values.device).scatter_reduce(0, key, values, "amax")
+    low = values.new_full((keys,), torch.inf).scatter_reduce(0, key, values, "amin")
+    high = values.new_full((keys,), -torch.inf).scatter_reduce(0, key, values, "amax")
     span = (high - low).clamp_min(1e-6)
     bins = ((values - low[key]) / span[key] * HISTOGRAM_BINS).floor().clamp(0, HISTOGRAM_BINS - 1).long()
     histogram = torch.bincount(key * HISTOGRAM_BINS + bins, minlength=keys * HISTOGRAM_BINS).view(keys, -1).double()

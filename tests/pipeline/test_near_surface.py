@@ -62,6 +62,12 @@ def test_no_split_for_noise_close_surfaces_or_a_near_group_nothing_else_saw(case
     assert _groups(disparity, member, limit, least)[1].tolist() == [[False]]
 
 
+def test_float64_maps_are_split_alike():
+    disparity, member = _map(40.0, 10.0, "blocks")
+    threshold, split = _groups(disparity.double(), member, torch.tensor([60.0], dtype=torch.float64), 200.0)
+    assert split.tolist() == [[True]] and threshold.dtype == torch.float64 and 10 < float(threshold) < 40
+
+
 def test_an_empty_member_region_is_not_split():
     disparity, member = _map(40.0, 10.0, "blocks")
     assert _groups(disparity, torch.zeros_like(member), torch.tensor([60.0]), 200.0)[1].tolist() == [[False]]
