@@ -61,8 +61,10 @@ class GuideSession:
             with contextlib.ExitStack() as stack:  # the camera closed before waiting to open it again
                 try:
                     camera = open_stereo_camera(self.args, self.size, stack)
+                except BrokenPipeError:  # stdout's reader gone, never the camera
+                    raise
                 except _CAMERA_ERRORS as error:
-                    if not self.opened or isinstance(error, BrokenPipeError):
+                    if not self.opened:
                         raise
                     lost = error
                 else:
@@ -86,9 +88,9 @@ class GuideSession:
                     item = next(stream)
                 except StopIteration:
                     return None
+                except BrokenPipeError:
+                    raise
                 except _CAMERA_ERRORS as error:
-                    if isinstance(error, BrokenPipeError):
-                        raise
                     return error
                 self._range(item)
 
@@ -141,7 +143,7 @@ class GuideSession:
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
         distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-        message = self.guide.update(distance, time.monotonic())
+        message = self.guide.update(distance, now)
         side = ObstacleSide(int(nearest.side[0])).name.lower()
         self.status_line.show(f"{self.guide.status(distance)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
