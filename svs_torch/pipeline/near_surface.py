@@ -37,6 +37,7 @@ from ..depth.depth_types import DepthResult
 from ..depth.quantiles import masked_lower_median
 from ..depth.sparse import nearest_obstacle
 from ..segmentation.components import connected_components_with_stats
+from ..segmentation.threshold import otsu_threshold_level
 from .config import PipelineConfig
 
 __all__ = []
@@ -205,19 +206,13 @@ def _two_groups(disparity: torch.Tensor, valid: torch.Tensor, position: torch.Te
 
 
 def _otsu_by_key(values: torch.Tensor, key: torch.Tensor, keys: int) -> torch.Tensor:
-    """Otsu's threshold ``(keys,)`` of the ``values`` under each ``key`` (1-D, the same length): a histogram of
-    :data:`HISTOGRAM_BINS` bins between the key's least and greatest value, the upper edge of the bin that best
-    splits it (the between-class variance in float64)."""
+    """Otsu's threshold ``(keys,)`` of the ``values`` under each ``key`` (1-D, the same length): the upper edge of
+    the bin :func:`~svs_torch.segmentation.threshold.otsu_threshold_level` picks in a histogram of
+    :data:`HISTOGRAM_BINS` bins between the key's least and greatest value."""
     low = values.new_full((keys,), torch.inf).scatter_reduce(0, key, values, "amin")
     high = values.new_full((keys,), -torch.inf).scatter_reduce(0, key, values, "amax")
     span = (high - low).clamp_min(1e-6)
     bins = ((values - low[key]) / span[key] * HISTOGRAM_BINS).floor().clamp(0, HISTOGRAM_BINS - 1).long()
-    histogram = torch.bincount(key * HISTOGRAM_BINS + bins, minlength=keys * HISTOGRAM_BINS).view(keys, -1).double()
-    low64, span64 = low.double().view(-1, 1), span.double().view(-1, 1)
-    centres = low64 + (torch.arange(HISTOGRAM_BINS, device=values.device) + 0.5) * span64 / HISTOGRAM_BINS
-    w0 = histogram.cumsum(1)
-    s0 = (histogram * centres).cumsum(1)
-    w1, s1 = w0[:, -1:] - w0, s0[:, -1:] - s0
-    between = torch.where((w0 > 0) & (w1 > 0), (s0 * w1 - s1 * w0) ** 2 / (w0 * w1).clamp_min(1), 0.0)
-    k = between.argmax(1, keepdim=True)
-    return (low64 + (k + 1) * span64 / HISTOGRAM_BINS).squeeze(1).to(values.dtype)
+    histogram = torch.bincount(key * HISTOGRAM_BINS + bins, minlength=keys * HISTOGRAM_BINS).view(keys, -1)
+    level = otsu_threshold_level(histogram)
+    return (low.double() + (level + 1) * span.double() / HISTOGRAM_BINS).to(values.dtype)

@@ -55,7 +55,8 @@ def gray_levels_and_histogram(image: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def otsu_threshold_level(histogram: torch.Tensor) -> torch.Tensor:
-    """Otsu's level from histograms ``(B, 256)`` → ``(B,)`` int64 in 0..255.
+    """Otsu's level from histograms ``(B, 256)`` → ``(B,)`` int64 in 0..255 (or ``(B, L)`` of any L bins → 0..L−1:
+    a histogram of other values, e.g. an object's disparities, :mod:`svs_torch.pipeline.near_surface`).
 
     Maximises the between-class variance σ²_B(t) = (s₁·w₂ − s₂·w₁)² / (w₁·w₂·n²) over t, where w and s are the
     count and the level sum of the classes ``≤ t`` and ``> t``. The numerator is computed exactly in float64
@@ -64,10 +65,10 @@ def otsu_threshold_level(histogram: torch.Tensor) -> torch.Tensor:
     with one gray level has no admissible split and gets level 0, OpenCV's answer.
     """
     counts = histogram.to(torch.float64)
-    levels = torch.arange(NUM_LEVELS, dtype=torch.float64, device=histogram.device)
+    levels = torch.arange(histogram.shape[-1], dtype=torch.float64, device=histogram.device)
     total = counts.sum(dim=1, keepdim=True)  # (B, 1)
     level_sum = (counts * levels).sum(dim=1, keepdim=True)  # (B, 1)
-    w1 = counts.cumsum(dim=1)  # (B, 256)
+    w1 = counts.cumsum(dim=1)  # (B, L)
     s1 = (counts * levels).cumsum(dim=1)
     w2 = total - w1
     s2 = level_sum - s1
