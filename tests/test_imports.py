@@ -28,3 +28,26 @@ def test_public_names_load_on_first_use():
         assert "no_such_name" in str(error)
     else:
         raise AssertionError("an unknown name must raise AttributeError")
+
+
+def test_rendering_and_ranging_a_scene_do_not_import_sympy():
+    # torch.broadcast_shapes imports torch._refs and sympy on its first call: 0.6-1.2 s of `svs-depth demo`'s
+    # whole process, which renders a scene and ranges it (svs_torch.data.heap_rendering.rays_shape).
+    code = ("import sys, torch\n"
+            "from svs_torch.data.synthetic import random_obstacle_scenes\n"
+            "from svs_torch.pipeline import estimate_obstacle_depth\n"
+            "scenes = random_obstacle_scenes(1, 2, generator=torch.Generator().manual_seed(0), floor_height_m=1.2)\n"
+            "estimate_obstacle_depth(scenes.batch)\n"
+            "print('SYMPY', 'sympy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "SYMPY False" in out
+
+
+def test_rays_shape_is_the_broadcast_shape():
+    import torch
+
+    from svs_torch.data.heap_rendering import rays_shape
+
+    x, y = torch.zeros(1, 1, 1, 7), torch.zeros(1, 1, 5, 1)
+    assert rays_shape(3, x, y) == (3, 1, *torch.broadcast_shapes(x.shape, y.shape)[-2:]) == (3, 1, 5, 7)
+    assert rays_shape(2, torch.zeros(2, 1, 4, 6), torch.zeros(6)) == (2, 1, 4, 6)

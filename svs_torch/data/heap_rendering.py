@@ -84,6 +84,14 @@ def _field_at(heap: HeapField, lateral_m: torch.Tensor, ahead_m: torch.Tensor) -
     return F.grid_sample(heap.heights_m, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
+def rays_shape(batch_size: int, x_px: torch.Tensor, y_px: torch.Tensor) -> tuple[int, int, int, int]:
+    """``(B, 1, h, w)``: the rays of pixel columns ``x_px`` and rows ``y_px`` broadcast together.
+
+    By ``torch.broadcast_tensors`` (views, no copy), not ``torch.broadcast_shapes``: in torch 2.13 that imports
+    ``torch._refs`` and with it sympy on its first call, 0.6–1.2 s of the demo's whole process."""
+    return (batch_size, 1, *torch.broadcast_tensors(x_px, y_px)[0].shape[-2:])
+
+
 def heap_hits(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float, focal_px: float,
               principal_xy: tuple[float, float], floor_height_m: float, pitch_rad: float,
               heap: HeapField) -> torch.Tensor:
@@ -95,7 +103,7 @@ def heap_hits(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float, focal_p
     across, down = (x_px - cx) / focal_px, (y_px - cy) / focal_px
     toward = down * math.cos(pitch_rad) + math.sin(pitch_rad)  # the ray's fall towards the floor per metre of depth
     forward = math.cos(pitch_rad) - math.sin(pitch_rad) * down  # its distance ahead along the floor per metre
-    shape = (b, 1, *torch.broadcast_shapes(x_px.shape, y_px.shape)[-2:])
+    shape = rays_shape(b, x_px, y_px)
     forward = forward.expand(shape)
     ahead0, side = heap.origin_m[:, 1].view(-1, 1, 1, 1), heap.side_m.view(-1, 1, 1, 1)
     reachable = forward > 1e-6

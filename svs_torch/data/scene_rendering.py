@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from .heap_rendering import HeapField, heap_hits
+from .heap_rendering import HeapField, heap_hits, rays_shape
 
 __all__ = []
 
@@ -99,7 +99,7 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
     half = scene.size_m.view(b, k, 1, 1, 2) / 2
     inside_x = ((hit_x - center[..., 0]).abs() < half[..., 0]) & scene.valid.view(b, k, 1, 1)
     inside_y = (hit_y - center[..., 1]).abs() < half[..., 1]
-    shape = (b, 1, *torch.broadcast_shapes(x_px.shape, y_px.shape)[-2:])  # (B, 1, h, w), also for K = 0
+    shape = rays_shape(b, x_px, y_px)  # (B, 1, h, w), also for K = 0
     nearest = torch.full(shape, scene.background_depth_m, dtype=depth.dtype, device=depth.device)
     slot = torch.zeros(shape, dtype=torch.int64, device=depth.device)
     # A z-buffer over the K slots (K is small; a running minimum is faster and lighter than an argmin over
