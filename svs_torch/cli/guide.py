@@ -113,10 +113,14 @@ def run(args: argparse.Namespace) -> int:
         from .capture import new_pairs_folder
         from .guide_log import GuideLog
         from .guide_loop import GuideSession
+        from .guide_warm_up import import_deferred_modules, warm_up
 
         size = _checked_size(args)
         record_dir = None if args.record is None else new_pairs_folder(args.record, "--record")
         ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
+        import_deferred_modules()
+    # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
+    warm_up(ranged, size)
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status

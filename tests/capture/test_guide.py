@@ -243,15 +243,16 @@ def test_guide_on_an_emulated_floor_leaves_the_floor_out_by_default(monkeypatch)
     monkeypatch.setattr(sys, "stdout", io.StringIO())
     monkeypatch.setattr(sys, "stderr", io.StringIO())
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--count", "2", "--no-speech"]) == 0
-    assert len(grounds) == 2 and all(g == GroundPlaneConfig() for g in grounds)
+    # Each run ranges its warm-up pair first, with the configuration of the camera's pairs.
+    assert len(grounds) == 3 and all(g == GroundPlaneConfig() for g in grounds)
     grounds.clear()
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "on", "--count", "1",
                  "--no-speech"]) == 0
-    assert grounds == [GroundPlaneConfig()]
+    assert grounds == [GroundPlaneConfig()] * 2
     grounds.clear()
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "off", "--count", "1",
                  "--no-speech"]) == 0
-    assert grounds == [None]
+    assert grounds == [None] * 2
 
 
 def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
@@ -275,3 +276,70 @@ def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", "1.5", "--count", "1",
                  "--no-speech"]) == 0
     assert [(t.floor_height_m, t.heap_ahead_m) for t in tracks] == [(1.3, 1.5)]
+
+
+def test_warm_up_ranges_one_camera_frame_pair_of_the_frame_size_and_shows_no_warning():
+    import torch
+
+    from svs_torch.cli.guide_warm_up import warm_up
+    from svs_torch.core.camera import SVS_CAMERA
+
+    seen = []
+
+    def ranged(batch):
+        warnings.warn("about the warm-up pair", UserWarning)
+        seen.append(batch)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        seconds = warm_up(ranged, (160, 120))
+    assert not caught
+    assert len(seen) == 1 and seconds > 0
+    batch = seen[0]
+    assert batch.left.shape == batch.right.shape == (1, 1, 120, 160) and batch.names == ("warm-up",)
+    assert not bool(batch.calibrated[0]) and float(batch.focal_px[0]) == pytest.approx(SVS_CAMERA.focal_px(160))
+    levels = batch.left * 255  # a camera's frame: whole 8-bit levels, not a rendered image's
+    assert float((levels - levels.round()).abs().max()) < 1e-3 and not torch.equal(batch.left, batch.right)
+
+
+def test_every_kornia_module_the_pipeline_imports_at_first_need_is_imported_by_guide_s_warm_up():
+    import ast
+    import pathlib
+
+    import svs_torch
+    from svs_torch.cli.guide_warm_up import DEFERRED_MODULES
+
+    root = pathlib.Path(svs_torch.__file__).parent
+    deferred = set()
+    for package in ("core", "segmentation", "features", "geometry", "depth", "pipeline"):
+        for path in (root / package).rglob("*.py"):
+            for function in ast.walk(ast.parse(path.read_text())):
+                if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                for node in ast.walk(function):
+                    if isinstance(node, ast.ImportFrom):
+                        deferred.add(node.module or "")
+                    elif isinstance(node, ast.Import):
+                        deferred.update(alias.name for alias in node.names)
+    kornia = {name for name in deferred if name.split(".")[0] == "kornia"}
+    assert kornia and kornia <= set(DEFERRED_MODULES), kornia - set(DEFERRED_MODULES)
+
+
+def test_guide_ranges_its_warm_up_pair_before_the_camera_s_first_and_reports_only_the_camera_s(monkeypatch, capsys):
+    import json
+
+    import svs_torch.pipeline as pipeline
+    from svs_torch.cli import main
+
+    real = pipeline.estimate_obstacle_depth
+    names = []
+
+    def named(batch, *args, **kwargs):
+        names.append(batch.names[0])
+        return real(batch, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", named)
+    assert main(["guide", "--emulator", "--count", "2", "--no-speech", "--json"]) == 0
+    assert names[0] == "warm-up" and names.count("warm-up") == 1 and len(names) == 3
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert len([line for line in lines if "event" not in line]) == 2
