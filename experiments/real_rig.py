@@ -39,13 +39,19 @@ measured once whatever ``--sizes`` asks.
 ``--extremes`` measures the clean pair and the corners of the envelope instead: two of the deviations above at their
 limits at once (:data:`EXTREMES`), which the issue's "test the extremes" asks for and the single ones miss.
 
+``--loose-rig-digit D`` measures both at once, as a loosely mounted SVS sends its frames: the aligned pair and each
+misalignment above, each pair's views then made the cameras' frames at JPEG digit D with its sensor noise
+(:data:`JPEG_NOISE`; the right view misaligned first, as the camera sees it, then encoded), named
+``<misalignment> + jpeg qD``.
+
 ``--noise-seed N`` draws the camera frames' noise again (N = 0, the default, is the tables' own draw; the clean
 pair and the misalignments are the same for every N). A row of ten or 28 pairs moves by whole points with the draw
 (held-out native digit 6: 98.35 / 95.67 / 97.78 % over draws 0 / 1 / 2), so a selection or a claim that should not
 hang on one pair's verdict takes the mean over a few draws.
 
     python experiments/real_rig.py [--splits held-out,tuned,synthetic] [--sizes 320x240,native] [--limit N]
-                                   [--contrast C] [--brightness K] [--extremes] [--noise-seed N]
+                                   [--contrast C] [--brightness K] [--extremes | --loose-rig-digit D]
+                                   [--noise-seed N]
                                    [--set KEY=VALUE ...] [--json out.json] [--markdown table.md]
 """
 
@@ -153,12 +159,14 @@ def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> tor
     return torch.from_numpy(np.clip(warped * (1 + m.gain), 0, 1)).to(image.dtype)[None, None]
 
 
-def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False, noise_seed: int = 0
-               ) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
+def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False, noise_seed: int = 0,
+               loose_rig_digit: int | None = None) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
     """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views; with
-    ``extremes``, the clean pair and :data:`EXTREMES` instead. ``noise_seed``: which draw of the camera frames'
-    noise (0: the tables' own)."""
+    ``extremes``, the clean pair and :data:`EXTREMES` instead; with ``loose_rig_digit``, the clean pair and
+    :func:`loose_rig_conditions`. ``noise_seed``: which draw of the camera frames' noise (0: the tables' own)."""
     out = [("clean", batch.left, batch.right)]
+    if loose_rig_digit is not None:
+        return out + loose_rig_conditions(batch, scene_index, loose_rig_digit, noise_seed)
     for number, (digit, sigma) in enumerate(() if extremes else JPEG_NOISE):
         views = []
         for view, image in enumerate((batch.left, batch.right)):
@@ -169,6 +177,25 @@ def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False, noi
     focal = float(batch.focal_px[0])
     for name, m in (EXTREMES if extremes else MISALIGNMENTS).items():
         out.append((name, batch.left, misalign_right(batch.right, m, focal)))
+    return out
+
+
+def loose_rig_conditions(batch: StereoBatch, scene_index: int, digit: int, noise_seed: int = 0
+                         ) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
+    """The aligned pair and every :data:`MISALIGNMENTS` pair as the cameras' frames at JPEG ``digit`` with its
+    sensor noise (the module docstring's ``--loose-rig-digit``), each view's noise its own seeded draw."""
+    sigma = dict(JPEG_NOISE)[digit]
+    focal = float(batch.focal_px[0])
+    out = []
+    for number, (name, m) in enumerate([("aligned", None), *MISALIGNMENTS.items()]):
+        right = batch.right if m is None else misalign_right(batch.right, m, focal)
+        views = []
+        for view, image in enumerate((batch.left, right)):
+            # Seeds of their own: condition numbers from 50 up, which the aligned camera frames never reach.
+            generator = torch.Generator().manual_seed(NOISE_SEED_STRIDE * noise_seed + 1_000_000 * scene_index
+                                                      + 1000 * (50 + number) + view)
+            views.append(camera_frames(image, digit, sigma, generator))
+        out.append((f"{name} + jpeg q{digit}", *views))
     return out
 
 
@@ -200,10 +227,11 @@ def _pick(batch: StereoBatch, i: int) -> StereoBatch:
 
 
 def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True,
-              only: tuple[str, ...] | None = None, extremes: bool = False, noise_seed: int = 0) -> list[dict]:
+              only: tuple[str, ...] | None = None, extremes: bool = False, noise_seed: int = 0,
+              loose_rig_digit: int | None = None) -> list[dict]:
     """Rows (one per condition, or those whose name starts with one of ``only``) of one scene: svs_torch's
     default and StereoSGBM on the same pairs."""
-    views = [v for v in conditions(batch, scene_index, extremes, noise_seed)
+    views = [v for v in conditions(batch, scene_index, extremes, noise_seed, loose_rig_digit)
              if only is None or v[0].startswith(only)]
     stacked = stack_conditions(batch, views)
     started = time.perf_counter()
@@ -281,7 +309,8 @@ def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
 
 def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: PipelineConfig, rival: bool = True,
         only: tuple[str, ...] | None = None, progress: bool = True, contrast: float = 1.0,
-        extremes: bool = False, brightness: float = 1.0, noise_seed: int = 0) -> list[dict]:
+        extremes: bool = False, brightness: float = 1.0, noise_seed: int = 0,
+        loose_rig_digit: int | None = None) -> list[dict]:
     rows = []
     # A rendered pair has one size, measured once.
     jobs = [(size, split, index, scene) for size in sizes for split, scenes in splits.items()
@@ -294,7 +323,7 @@ def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: P
         batch = brightened(dimmed(scene if rendered else resample(load_scene(scene), size), contrast), brightness)
         label = f"{batch.size_hw[1]}x{batch.size_hw[0]}" if rendered else size
         rows += [{"split": split, "size": label, **row}
-                 for row in run_scene(batch, index, config, rival, only, extremes, noise_seed)]
+                 for row in run_scene(batch, index, config, rival, only, extremes, noise_seed, loose_rig_digit)]
     if progress:
         print(file=sys.stderr)
     return rows
@@ -348,12 +377,17 @@ def main(argv: list[str] | None = None) -> dict:
                         help="scale both views by K first, clipped (K >= 1; default 1): a bright scene")
     parser.add_argument("--extremes", action="store_true",
                         help="the clean pair and two misalignments at their limits at once (EXTREMES) instead")
+    parser.add_argument("--loose-rig-digit", type=int, default=None, metavar="D",
+                        help="the clean pair, then the aligned pair and each misalignment as camera frames at JPEG "
+                             "digit D (1-8) with its sensor noise: a loosely mounted SVS")
     parser.add_argument("--noise-seed", type=int, default=0,
                         help="another draw of the camera frames' noise (default 0: the tables' own); for "
                              "selections that should not hang on one draw")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
+    if args.loose_rig_digit is not None and (args.extremes or args.loose_rig_digit not in dict(JPEG_NOISE)):
+        parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, got {args.loose_rig_digit}")
     if args.noise_seed < 0:
         parser.error(f"--noise-seed: expected an int >= 0, got {args.noise_seed}")
     if not 0 < args.contrast <= 1:
@@ -365,7 +399,8 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.perf_counter()
     only = None if args.conditions is None else tuple(args.conditions.split(","))
     rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only, contrast=args.contrast,
-               brightness=args.brightness, extremes=args.extremes, noise_seed=args.noise_seed)
+               brightness=args.brightness, extremes=args.extremes, noise_seed=args.noise_seed,
+               loose_rig_digit=args.loose_rig_digit)
     summary = summarize(rows)
     command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,

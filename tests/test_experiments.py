@@ -183,6 +183,29 @@ def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     assert all(row["status"] == "OK" and row["acc_objects"] > 95 for row in report["rows"])
 
 
+def test_real_rig_loose_rig_digit_makes_each_misaligned_pair_camera_frames(data_dir):
+    """--loose-rig-digit D: the clean pair, then the aligned pair and each misalignment as camera frames at digit D
+    (the right view misaligned first, then encoded: whole 8-bit levels), each view its own draw; a digit outside
+    1-8, or with --extremes, refused."""
+    import pytest
+    import torch
+
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
+    views = real_rig.conditions(batch, 0, loose_rig_digit=4)
+    assert [name for name, _, _ in views] == ["clean", "aligned + jpeg q4",
+                                             *(f"{name} + jpeg q4" for name in real_rig.MISALIGNMENTS)]
+    name, left, right = views[3]  # roll -2°
+    turned = real_rig.misalign_right(batch.right, real_rig.MISALIGNMENTS["roll -2°"], float(batch.focal_px[0]))
+    assert 0.5 < float((right - turned).abs().mean() * 255) < 8  # that view, with the camera's noise and JPEG
+    assert float((right * 255 - (right * 255).round()).abs().max()) < 1e-3
+    assert not torch.equal(views[1][1], views[2][1])  # the left view's noise is drawn again for every pair
+    again = real_rig.conditions(batch, 0, loose_rig_digit=4)
+    assert all(torch.equal(a[2], b[2]) for a, b in zip(views, again))
+    for bad in (["--loose-rig-digit", "9"], ["--loose-rig-digit", "4", "--extremes"]):
+        with pytest.raises(SystemExit):
+            real_rig.main(["--data", str(data_dir), *bad])
+
+
 def test_validate_nearness_on_two_scenes(data_dir, tmp_path):
     """validate_nearness.py on two train scenes in two folds, the rule and a 2-step candidate, one crop each: a
     row per scene, view and candidate; a scene's E/L variant shares its fold; the stage-1 training it runs per

@@ -69,7 +69,9 @@ right camera is brighter or darker was run again with the two exposures matched,
 the brighter one's so that both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the
 dense map measured too little of the kept regions (noisy or heavily compressed frames) and the depth was
 measured again at half the working width, where each pixel averages four times as many
-(PipelineConfig.coarse_retry_below_share).
+(PipelineConfig.coarse_retry_below_share). "features_smoothed": a pair left unverified (noisy or heavily
+compressed frames: few matches) was run again with SURF on views smoothed by a Gaussian of 1.5 px, and that run
+was kept (PipelineConfig.noisy_features_retry_sigma_px).
 "dropped_unmeasured": kept regions of which the dense map measured under 45 % of the pixels, dropped beside
 a nearer kept region it did measure (noise lets a far region be kept, and its few measured pixels are the wrong
 ones; PipelineConfig.drop_unmeasured_below_share), or under 15 % beside any region it measured, however near

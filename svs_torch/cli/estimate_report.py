@@ -19,6 +19,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
             "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
+            "features_smoothed": False,
             "dropped_unmeasured": 0,
             "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
 
@@ -108,6 +109,9 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "right_camera_turn_deg": _turn(result, index),
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
+        # Noisy frames: SURF run again on smoothed views (PipelineConfig.noisy_features_retry_sigma_px).
+        "features_smoothed": (bool(result.features_smoothed[index]) if result.features_smoothed is not None
+                              else False),
         # Kept regions the dense map could not measure, or left unranged, dropped beside one it ranged
         # (PipelineConfig.drop_unmeasured_below_share, drop_unmeasured_nearer_below_share); not in "objects".
         "dropped_unmeasured": (int(result.dropped_objects[index].sum()) if result.dropped_objects is not None
@@ -149,6 +153,8 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
                  if report.get(key)]
     if corrected:
         lines.append("  right camera: " + " and ".join(corrected))
+    if report.get("features_smoothed"):
+        lines.append("  noisy frames: features found on smoothed views")
     if report.get("coarse_dense"):
         lines.append("  noisy frames: depth measured at half the working width")
     if report.get("dropped_unmeasured"):

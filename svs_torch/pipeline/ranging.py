@@ -6,7 +6,6 @@ pixels, and retried on a smoothed pair left unfinished.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 
@@ -24,6 +23,7 @@ from ..geometry.rectification import Rectification, RectificationStatus, warp_re
 from ..geometry.row_alignment import fit_row_alignment
 from ..segmentation.segment import kept_regions_mask
 from .config import PipelineConfig
+from .stages import gaussian_smoothed
 
 __all__ = []
 
@@ -180,14 +180,9 @@ def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: 
 
 def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) -> StereoBatch:
     """Both views smoothed by a Gaussian of ``sigma_working_px`` working pixels of the dense stage."""
-    from kornia.filters import gaussian_blur2d  # imported here: kornia's import is slow and clean pairs never retry
-
     sigma = sigma_working_px * working_factor(batch.left.shape[-1], config)
-    size = 2 * math.ceil(3 * sigma) + 1
-    # Clamped: the kernel's weights sum to 1 only up to rounding, and a white pixel may come out at 1 + 2e-16,
-    # which StereoBatch refuses (hypothesis found it on a 1×1 white pair).
-    blur = (lambda image: gaussian_blur2d(image, (size, size), (sigma, sigma), border_type="replicate").clamp(0, 1))
-    return dataclasses.replace(batch, left=blur(batch.left), right=blur(batch.right))
+    return dataclasses.replace(batch, left=gaussian_smoothed(batch.left, sigma),
+                               right=gaussian_smoothed(batch.right, sigma))
 
 
 def unranged_kept_object(seg: StereoSegmentation, objects: ObjectDepths) -> torch.Tensor:

@@ -67,6 +67,8 @@ class PipelineResult:
         exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
             onto the brighter (``exposure``, ``exposure_right_clipped``, or the ``exposure_retry`` kept); the masked
             images are of the mapped views.
+        features_smoothed: ``(B,)`` bool, pairs whose SURF features were found on views smoothed by a Gaussian
+            (``PipelineConfig.feature_smoothing_sigma_px``: the ``noisy_features_retry_sigma_px`` retry kept).
         object_labels: ``(B, 1, H, W)`` int64, the left labels each object of ``depth`` was measured over, input
             pixels: the kept regions' interiors (``PipelineConfig.region_interior_working_px``), else the
             segmentation's labels, an object ranged over its near surface cut to it (``near_surface``). An object's
@@ -107,3 +109,4 @@ class PipelineResult:
     dropped_objects: torch.Tensor | None = None
     object_labels: torch.Tensor | None = None
     near_surface: torch.Tensor | None = None
+    features_smoothed: torch.Tensor | None = None

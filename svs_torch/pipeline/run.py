@@ -29,12 +29,13 @@ from ..segmentation.segment import SegmentationConfig
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
+from .features_retry import features_smoothed, retry_with_smoothed_features
 from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
 from .stages import (_feature_images, _features, _match, _network, _segment_group, _segment_row_aligned,
-                     _status, measured_labels)
+                     _status, gaussian_smoothed, measured_labels)
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -108,10 +109,12 @@ def _detached(batch: StereoBatch) -> StereoBatch:
 
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
     """:func:`estimate_obstacle_depth` on a batch whose pairs all fill its tensors: :func:`_estimate_once`, then
-    the pairs it left unfinished whose views' exposures differ once more with them matched
+    the pairs it left unverified once more with SURF on smoothed views (``config.noisy_features_retry_sigma_px``),
+    then the pairs still unfinished whose views' exposures differ once more with them matched
     (``config.exposure_retry``)."""
     run = (lambda pairs, settings: _estimate_once(pairs, settings, network))
-    return retry_with_exposure(batch, run(batch, config), config, run)
+    first = retry_with_smoothed_features(batch, run(batch, config), config, run)
+    return retry_with_exposure(batch, first, config, run)
 
 
 def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
@@ -130,7 +133,8 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
                                          config.segmentation.camera_frames)
     with torch.no_grad():
         result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
-                                     exposure_matched=matched)
+                                     exposure_matched=matched,
+                                     features_smoothed=features_smoothed(batch.batch_size, config, batch.left.device))
     if not config.differentiable:
         return result
     if logits is not None and bool(result.row_aligned.any()):
@@ -184,6 +188,9 @@ def _differentiable_homographies(batch: StereoBatch, result: PipelineResult, con
     if config.features_on == "masked":  # the views the matches were refined on
         left = left * result.segmentation.left.kept_mask.to(dtype)
         right = right * result.segmentation.right.kept_mask.to(dtype)
+    if config.feature_smoothing_sigma_px is not None:  # ... smoothed as SURF's were (stages._feature_images)
+        left = gaussian_smoothed(left, config.feature_smoothing_sigma_px)
+        right = gaussian_smoothed(right, config.feature_smoothing_sigma_px)
     points, refine = result.points, config.refine_matches
     scale = result.features_left.keypoints.scale
     if refine is None:

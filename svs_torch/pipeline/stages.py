@@ -5,6 +5,7 @@ images and SURF features, matching, and each pair's status from what the stages 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 from torch import nn
@@ -29,13 +30,27 @@ __all__ = ["segment_pair"]
 
 def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
                     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The ``(2B, 1, H, W)`` images SURF runs on (left then right) and its detection mask (or None)."""
+    """The ``(2B, 1, H, W)`` images SURF runs on (left then right), smoothed where
+    ``config.feature_smoothing_sigma_px`` says, and its detection mask (or None)."""
     if config.features_on == "masked":
-        return torch.cat([seg.left.masked, seg.right.masked]), None
-    images = torch.cat([batch.left, batch.right])
-    if config.features_on == "image":
-        return images, None
-    return images, torch.cat([seg.left.kept_mask, seg.right.kept_mask])
+        images, mask = torch.cat([seg.left.masked, seg.right.masked]), None
+    else:
+        images = torch.cat([batch.left, batch.right])
+        mask = None if config.features_on == "image" else torch.cat([seg.left.kept_mask, seg.right.kept_mask])
+    if config.feature_smoothing_sigma_px is not None:
+        images = gaussian_smoothed(images, config.feature_smoothing_sigma_px)
+    return images, mask
+
+
+def gaussian_smoothed(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """``images`` ``(N, 1, H, W)`` in [0, 1] smoothed by a Gaussian of ``sigma_px`` pixels (±3σ, the border
+    replicated), held to [0, 1]. Differentiable w.r.t. ``images``."""
+    from kornia.filters import gaussian_blur2d  # imported here: kornia's import is slow and clean pairs never need it
+
+    size = 2 * math.ceil(3 * sigma_px) + 1
+    # Clamped: the kernel's weights sum to 1 only up to rounding, and a white pixel may come out at 1 + 2e-16,
+    # which StereoBatch refuses (hypothesis found it on a 1×1 white pair).
+    return gaussian_blur2d(images, (size, size), (sigma_px, sigma_px), border_type="replicate").clamp(0, 1)
 
 
 def _features(images: torch.Tensor, mask: torch.Tensor | None, config: PipelineConfig

@@ -779,6 +779,23 @@ def test_estimate_says_when_noisy_frames_were_measured_on_the_coarse_grid(data_d
     assert code == 0 and "noisy frames: depth measured at half the working width" in out
 
 
+def test_estimate_says_when_noisy_frames_were_matched_on_smoothed_views(capsys, tmp_path):
+    """A rendered scene as a loose rig's JPEG digit 8 frames (experiments/real_rig.py --loose-rig-digit 8, scene
+    11, aligned): SURF on the frames as they are matches too few for the pair to be verified, and the retry on
+    smoothed views ranges it; the JSON's "features_smoothed" and the text say so, the clean pair says neither."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+    import real_rig
+
+    scene = real_rig.synthetic_scenes()[11]
+    frames = {name: (left, right) for name, left, right in real_rig.loose_rig_conditions(scene, 11, 8)}
+    reports = _estimate_pairs_json(capsys, tmp_path, {"clean": (scene.left, scene.right),
+                                                      "jpeg": frames["aligned + jpeg q8"]})
+    assert [r["features_smoothed"] for r in reports] == [False, True]
+    assert all(r["status"] == "OK" and r["verified"] for r in reports)
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "jpeg_left.png"), str(tmp_path / "jpeg_right.png"))
+    assert code == 0 and "noisy frames: features found on smoothed views" in out
+
+
 def test_estimate_camera_frames_ranges_a_camera_frame_as_the_noise_gate_does(tmp_path, capsys):
     """``estimate --camera-frames``: a rendered pair as the board's default frames (JPEG digit 4, σ 4), which the
     nearness map's noise gate widens, gets the same objects and distances without the gate's first pass."""

@@ -86,15 +86,18 @@ def test_a_noisy_frame_whose_measured_inliers_all_agree_is_verified(dim_piano_fr
     """The dense map of the noisy frame measures a handful of the pair's RANSAC inliers, under the usual 5
     confirmed, and confirms each one: with the rule the pair is verified and its obstacles ranged within 3 % of
     their true distance; without it the pair is unverified and left without depth (NO_DENSE_DEPTH). (The
-    whole-view check is off: it verifies this pair too, on a map of the whole view that measures 32 inliers. With
+    features' retry on smoothed views is off. The whole-view check is off: it verifies this pair too, on a map of the whole view that measures 32 inliers. With
     the 7×7 nearness map, whose regions hold 4 measured inliers; with the default's wider window for noisy pairs
     they hold one, and only the whole-view check verifies the pair.)"""
     from conftest import seven_by_seven_nearness
 
     narrow = seven_by_seven_nearness()
-    with_rule = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_whole_view=False), network=narrow)
-    without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None,
-                                                                      verify_whole_view=False), network=narrow)
+    # The retry with SURF on smoothed views is off too: it verifies the pair without the rule (its own test,
+    # tests/pipeline/test_features_retry.py).
+    alone = dict(verify_whole_view=False, noisy_features_retry_sigma_px=None)
+    with_rule = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(**alone), network=narrow)
+    without = estimate_obstacle_depth(dim_piano_frame, PipelineConfig(verify_unanimous_min_inliers=None, **alone),
+                                      network=narrow)
     agreeing, measured = int(with_rule.num_agreeing_inliers[0]), int(with_rule.num_measured_inliers[0])
     config = PipelineConfig()
     assert config.verify_unanimous_min_agreeing <= agreeing == measured < config.verify_min_agreeing_inliers
