@@ -9,9 +9,8 @@ keypoints a view), RANSAC too few inliers to verify the pair, and it was left wi
 (``PipelineConfig.feature_smoothing_sigma_px``) leaves the scene's blobs and removes most of the noise's: the same
 pairs matched 18–39 times and were ranged at 98–99 % per object. The retry's σ, 1.5 px, was chosen on the tuning
 sets (``PipelineConfig.noisy_features_retry_sigma_px``; ``experiments/real_rig.md``, "A loose rig's camera
-frames"). Only the features and the matches' refinement see
-the smoothed views; the segmentation and the dense depth (which has its own smoothed retry,
-``PipelineConfig.noisy_retry_sigma_px``) run on the views as they are.
+frames"). Only the features and the matches' refinement see the smoothed views; the segmentation and the dense
+depth (which has its own smoothed retry, ``PipelineConfig.noisy_retry_sigma_px``) run on the views as they are.
 
 Why a retry and not always: a clean or mildly compressed pair is verified by the first run, and its features on
 the views as they are are the finer ones. The second result is kept only where it is verified and ranges as many
