@@ -3,7 +3,7 @@ wait for what a process does only once.
 
 What a process does once: load the C kernels, make torch's first calls, and import the modules the pipeline imports
 only when a pair first needs them. The largest of these is kornia (0.24–0.29 s on this machine), which the noisy
-retry's Gaussian (:func:`svs_torch.pipeline.ranging._smoothed`) and the rectifying warp
+retries' Gaussian (:func:`svs_torch.pipeline.stages.gaussian_smoothed`) and the rectifying warp
 (:func:`svs_torch.geometry.rectification.warp_rectified`) import at their first call: a command ranging clean,
 aligned pairs never pays for it, but a walker's guide would pay it in the middle of a walk, at the first noisy or
 loose-rig frame. Measured on the shared real pairs as 320×240 camera frames (JPEG digit 4, noise σ 4), two
