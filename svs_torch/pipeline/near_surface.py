@@ -16,7 +16,9 @@ Two guards against noise, which also makes near groups: the near group's largest
 is one piece), and its median disparity is at most :data:`MAX_INLIER_RATIO` times the pair's largest RANSAC inlier
 disparity plus :data:`INLIER_MARGIN_PX` (a near surface the features saw nothing as near as is more likely a blob of
 wrong matches: the tuned PianoL as a digit 8 frame, a coherent group at 62 px among true 13–17 px, inliers up to 19).
-A pair rectified by the pipeline is left as it is: its map is in rectified pixels, its labels in input pixels.
+A pair the pipeline rectified (a loose rig without a calibration) is split in rectified pixels, where its map is:
+its labels warped there as the dense stage warps them, the near group's pixels measured there, and the input pixels
+whose rectified position lies in the near group kept in the labels it reports (``PipelineResult.object_labels``).
 
 Chosen on the tuning sets only, over three draws of the camera noise (``experiments/real_rig.py --noise-seed``;
 ``experiments/real_rig.md``, "Two surfaces in one kept region"). Not differentiable (a mask); the differentiable
@@ -36,6 +38,7 @@ from ..depth.dense_objects import dense_object_depths, range_from_objects
 from ..depth.depth_types import DepthResult
 from ..depth.quantiles import masked_lower_median
 from ..depth.sparse import nearest_obstacle
+from ..geometry.rectification import warp_rectified
 from ..segmentation.components import connected_components_with_stats
 from ..segmentation.threshold import otsu_threshold_level
 from .config import PipelineConfig
@@ -63,27 +66,28 @@ SCREEN_SLACK = 0.8
 
 
 def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labels: torch.Tensor,
-                          rectified: torch.Tensor, inliers: torch.Tensor, focal_px: torch.Tensor,
+                          rectified: torch.Tensor, H_left: torch.Tensor, inliers: torch.Tensor, focal_px: torch.Tensor,
                           baseline_m: torch.Tensor, doffs_px: torch.Tensor, config: PipelineConfig
                           ) -> tuple[DepthResult, torch.Tensor, torch.Tensor]:
     """``depth`` with each two-surface object (module docstring) ranged over its near surface, the object labels it
-    was then measured over ``(B, 1, H, W)`` and which objects were cut ``(B, N)`` bool. ``dense``: the final dense
-    map, in input pixels where not ``rectified`` ``(B,)``; ``object_labels``: the labels the objects were measured
-    over; ``inliers`` ``(B, K)`` bool: RANSAC's inliers among ``depth.disparities``; ``config``: the pipeline's
-    (its depth rule's settings). An object keeps its validity: a near surface that cannot be ranged leaves the
-    object as it was."""
+    was then measured over ``(B, 1, H, W)`` (input pixels) and which objects were cut ``(B, N)`` bool. ``dense``: the
+    final dense map, in input pixels, or in rectified pixels where ``rectified`` ``(B,)`` (by ``H_left``
+    ``(B, 3, 3)``); ``object_labels``: the labels the objects were measured over, input pixels; ``inliers``
+    ``(B, K)`` bool: RANSAC's inliers among ``depth.disparities``; ``config``: the pipeline's (its depth rule's
+    settings). An object keeps its validity: a near surface that cannot be ranged leaves the object as it was."""
     objects = depth.objects
     slots = torch.where(objects.valid, objects.label, torch.zeros_like(objects.label))
     cut = torch.zeros_like(objects.valid)
-    if slots.shape[1] == 0 or not bool(((slots > 0) & ~rectified.view(-1, 1)).any()):
+    if slots.shape[1] == 0 or not bool((slots > 0).any()):
         return depth, object_labels, cut
+    map_labels = _in_map_pixels(object_labels, rectified, H_left)
     disparity, valid = dense.disparity_px.detach(), dense.valid
     sparse = depth.disparities
     known = inliers & sparse.valid & sparse.disparity_px.isfinite()
     top = torch.where(known, sparse.disparity_px.detach(), torch.zeros_like(sparse.disparity_px)).amax(1)
     limit = MAX_INLIER_RATIO * top + INLIER_MARGIN_PX  # (B,)
     least = max(1.0, MIN_COHERENT_AREA_FRACTION * object_labels.shape[-2] * object_labels.shape[-1])
-    position = _slot_positions(object_labels, slots, rectified)  # (B, 1, H, W): each pixel's object, N for none
+    position = _slot_positions(map_labels, slots)  # (B, 1, H, W): each pixel's object, N for none
     threshold, cut = _split_objects(disparity, valid, position, slots.shape[1], limit, least)
     if not bool(cut.any()):
         return depth, object_labels, cut
@@ -94,7 +98,7 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     # The pixels its depth is measured over: the row-filled map where the depth rule fills it.
     filled, reachable = ((fill_invalid_rows if config.dense.fill_invalid else _unfilled)(sub(disparity)[:, 0],
                                                                                           sub(valid)[:, 0]))
-    cut_labels = (lambda which: _cut_labels(sub(position), sub(object_labels), which, sub(threshold), filled,
+    cut_labels = (lambda which: _cut_labels(sub(position), sub(map_labels), which, sub(threshold), filled,
                                             reachable))
     near = dense_object_depths(sub(dense), cut_labels(sub(cut)), sub(objects), sub(focal_px), sub(baseline_m),
                                sub(doffs_px), config.depth.object_percentiles, config.depth.min_object_pixels,
@@ -103,9 +107,11 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     part = sub(cut) & near.valid
     if not bool(part.any()):
         return depth, object_labels, torch.zeros_like(cut)
-    labels = object_labels.index_copy(0, pairs, cut_labels(part))
+    labels = object_labels.index_copy(0, pairs, _in_input_pixels(cut_labels(part), sub(object_labels),
+                                                                 sub(rectified), sub(H_left)))
     cut, near = torch.zeros_like(cut).index_copy(0, pairs, part), put_pairs(objects, pairs, near, b)
-    # Its area is now the pixels it is measured over (estimate --json's measured_area_px).
+    # Its area is now the pixels it is measured over (estimate --json's measured_area_px), counted in input pixels.
+    position = _slot_positions(object_labels, slots)
     inside = (position < n).flatten(1) & (labels > 0).flatten(1)
     key = torch.arange(b, device=slots.device).view(-1, 1) * n + position.clamp(max=n - 1).flatten(1)
     area = torch.bincount(key[inside], minlength=b * n).view(b, n)
@@ -151,9 +157,36 @@ def _split_objects(disparity: torch.Tensor, valid: torch.Tensor, position: torch
     return threshold.index_copy(0, pairs, part_threshold), torch.zeros_like(candidate).index_copy(0, pairs, part)
 
 
-def _slot_positions(object_labels: torch.Tensor, slots: torch.Tensor, rectified: torch.Tensor) -> torch.Tensor:
+def _in_map_pixels(object_labels: torch.Tensor, rectified: torch.Tensor, H_left: torch.Tensor) -> torch.Tensor:
+    """``object_labels`` ``(B, 1, H, W)`` in the dense map's pixels: warped by ``H_left`` (nearest) where
+    ``rectified``, exactly as :func:`svs_torch.pipeline.ranging._dense_depth` warps the labels it measures over."""
+    if not bool(rectified.any()):
+        return object_labels
+    moved = warp_rectified(object_labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
+    return torch.where(rectified.view(-1, 1, 1, 1), moved, object_labels)
+
+
+def _in_input_pixels(cut_map_labels: torch.Tensor, object_labels: torch.Tensor, rectified: torch.Tensor,
+                     H_left: torch.Tensor) -> torch.Tensor:
+    """The input-pixel labels of objects cut in the map's pixels (``cut_map_labels`` ``(b, 1, H, W)``): as they are
+    where not ``rectified``; else ``object_labels`` without each pixel whose rectified position (``H_left``,
+    nearest) held its label before the cut and holds none after it."""
+    if not bool(rectified.any()):
+        return cut_map_labels
+    map_labels = _in_map_pixels(object_labels, rectified, H_left)
+    # Both label images back in one warp: the label before the cut, and in the lowest bit whether it stayed.
+    coded = map_labels * 2 + (cut_map_labels == map_labels).long()
+    # inv_ex: a rectified pair's homography is invertible; a hostile one must not stop the batch here.
+    back = warp_rectified(coded.to(torch.float64), torch.linalg.inv_ex(H_left.to(torch.float64)).inverse,
+                          mode="nearest").round().long()
+    lost = (back // 2 == object_labels) & (back % 2 == 0) & (object_labels > 0)
+    kept = torch.where(lost, torch.zeros_like(object_labels), object_labels)
+    return torch.where(rectified.view(-1, 1, 1, 1), kept, cut_map_labels)
+
+
+def _slot_positions(object_labels: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
     """``(B, 1, H, W)`` int64: the slot n of ``slots`` ``(B, N)`` whose object each pixel of ``object_labels``
-    belongs to, N where none (a slot ≤ 0 holds none; a ``rectified`` pair's pixels are left out)."""
+    belongs to, N where none (a slot ≤ 0 holds none)."""
     b, n = slots.shape
     size = int(object_labels.max()) + 2 if object_labels.numel() else 2
     table = torch.full((b, size), n, dtype=torch.long, device=slots.device)
@@ -161,7 +194,6 @@ def _slot_positions(object_labels: torch.Tensor, slots: torch.Tensor, rectified:
     columns = torch.where(slots > 0, slots, torch.full_like(slots, size - 1)).long()
     table.scatter_(1, columns, torch.arange(n, device=slots.device).expand(b, n).contiguous())
     table[:, -1] = n
-    table[rectified] = n
     return table.gather(1, object_labels.flatten(1).clamp(0, size - 2)).view_as(object_labels)
 
 

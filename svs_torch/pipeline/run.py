@@ -226,7 +226,7 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
                                                   config.drop_unmeasured_nearer_below_share)
     near = None
     if config.measure_near_surface:
-        depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, inliers,
+        depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, H_left, inliers,
                                                            batch.focal_px, batch.baseline_m, batch.doffs_px, config)
     return seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped, near
 
