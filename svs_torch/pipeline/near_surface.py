@@ -38,10 +38,10 @@ from ..depth.dense_objects import dense_object_depths, range_from_objects
 from ..depth.depth_types import DepthResult
 from ..depth.quantiles import masked_lower_median
 from ..depth.sparse import nearest_obstacle
-from ..geometry.rectification import warp_rectified
 from ..segmentation.components import connected_components_with_stats
 from ..segmentation.threshold import otsu_threshold_level
 from .config import PipelineConfig
+from .stages import warp_labels
 
 __all__ = []
 
@@ -107,11 +107,13 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     part = sub(cut) & near.valid
     if not bool(part.any()):
         return depth, object_labels, torch.zeros_like(cut)
-    labels = object_labels.index_copy(0, pairs, _in_input_pixels(cut_labels(part), sub(object_labels),
-                                                                 sub(rectified), sub(H_left)))
+    labels = object_labels.index_copy(0, pairs, _in_input_pixels(cut_labels(part), sub(map_labels),
+                                                                 sub(object_labels), sub(rectified), sub(H_left)))
     cut, near = torch.zeros_like(cut).index_copy(0, pairs, part), put_pairs(objects, pairs, near, b)
-    # Its area is now the pixels it is measured over (estimate --json's measured_area_px), counted in input pixels.
-    position = _slot_positions(object_labels, slots)
+    # Its area is now the pixels it is measured over (estimate --json's measured_area_px), counted in input pixels
+    # (the positions above are in the map's, which differ only where a pair was rectified).
+    if bool(rectified.any()):
+        position = _slot_positions(object_labels, slots)
     inside = (position < n).flatten(1) & (labels > 0).flatten(1)
     key = torch.arange(b, device=slots.device).view(-1, 1) * n + position.clamp(max=n - 1).flatten(1)
     area = torch.bincount(key[inside], minlength=b * n).view(b, n)
@@ -162,23 +164,21 @@ def _in_map_pixels(object_labels: torch.Tensor, rectified: torch.Tensor, H_left:
     ``rectified``, exactly as :func:`svs_torch.pipeline.ranging._dense_depth` warps the labels it measures over."""
     if not bool(rectified.any()):
         return object_labels
-    moved = warp_rectified(object_labels.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
-    return torch.where(rectified.view(-1, 1, 1, 1), moved, object_labels)
+    return torch.where(rectified.view(-1, 1, 1, 1), warp_labels(object_labels, H_left), object_labels)
 
 
-def _in_input_pixels(cut_map_labels: torch.Tensor, object_labels: torch.Tensor, rectified: torch.Tensor,
-                     H_left: torch.Tensor) -> torch.Tensor:
-    """The input-pixel labels of objects cut in the map's pixels (``cut_map_labels`` ``(b, 1, H, W)``): as they are
-    where not ``rectified``; else ``object_labels`` without each pixel whose rectified position (``H_left``,
-    nearest) held its label before the cut and holds none after it."""
+def _in_input_pixels(cut_map_labels: torch.Tensor, map_labels: torch.Tensor, object_labels: torch.Tensor,
+                     rectified: torch.Tensor, H_left: torch.Tensor) -> torch.Tensor:
+    """The input-pixel labels of objects cut in the map's pixels (``cut_map_labels`` ``(b, 1, H, W)``, from
+    ``map_labels``, :func:`_in_map_pixels` of ``object_labels``): as they are where not ``rectified``; else
+    ``object_labels`` without each pixel whose rectified position (``H_left``, nearest) held its label before the
+    cut and holds none after it."""
     if not bool(rectified.any()):
         return cut_map_labels
-    map_labels = _in_map_pixels(object_labels, rectified, H_left)
     # Both label images back in one warp: the label before the cut, and in the lowest bit whether it stayed.
     coded = map_labels * 2 + (cut_map_labels == map_labels).long()
     # inv_ex: a rectified pair's homography is invertible; a hostile one must not stop the batch here.
-    back = warp_rectified(coded.to(torch.float64), torch.linalg.inv_ex(H_left.to(torch.float64)).inverse,
-                          mode="nearest").round().long()
+    back = warp_labels(coded, torch.linalg.inv_ex(H_left.to(torch.float64)).inverse)
     lost = (back // 2 == object_labels) & (back % 2 == 0) & (object_labels > 0)
     kept = torch.where(lost, torch.zeros_like(object_labels), object_labels)
     return torch.where(rectified.view(-1, 1, 1, 1), kept, cut_map_labels)

@@ -19,11 +19,11 @@ from ..depth.depth_types import DepthResult, Disparities, ObjectDepths
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
-from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
+from ..geometry.rectification import Rectification, RectificationStatus, warp_views
 from ..geometry.row_alignment import fit_row_alignment
 from ..segmentation.segment import kept_regions_mask
 from .config import PipelineConfig
-from .stages import gaussian_smoothed
+from .stages import gaussian_smoothed, warp_labels
 
 __all__ = []
 
@@ -90,7 +90,7 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
         # By nearest neighbour, as exact small integers in float64, with whether the pixel is in its object
         # (not a border pixel object_labels left out) in the lowest bit: one warp for both label images.
         coded = labels * 2 + (object_labels == labels).long()
-        moved = warp_rectified(coded.to(torch.float64), H_left.to(torch.float64), mode="nearest").round().long()
+        moved = warp_labels(coded, H_left)
         coded = torch.where(pick, moved, coded)
         labels = coded // 2
         object_labels = torch.where(coded % 2 == 1, labels, torch.zeros_like(labels))

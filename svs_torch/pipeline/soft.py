@@ -47,6 +47,7 @@ from ..depth.pooling import mean_pool
 from ..depth.sparse import nearest_obstacle
 from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified, warp_views
+from .stages import warp_labels
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
            "subpixel_disparity"]
@@ -293,8 +294,6 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
         left = torch.where(pick, warp_views(left, H_left), left)
         right = torch.where(pick, warp_views(right, H_right), right)
         weights = torch.where(pick, warp_rectified(weights, H_left), weights)
-        warped = warp_rectified(labels.to(torch.float64), H_left.detach().to(torch.float64), mode="nearest"
-                                ).round().long()
-        labels = torch.where(pick, warped, labels)
+        labels = torch.where(pick, warp_labels(labels, H_left.detach()), labels)
     return soft_dense_depth(left, right, labels, weights, dense, hard, focal_px, baseline_m, doffs_px, image_hw,
                             percentiles, config, coarse, coarse_config)

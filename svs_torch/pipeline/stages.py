@@ -42,6 +42,13 @@ def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: Pipelin
     return images, mask
 
 
+def warp_labels(labels: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
+    """Label images or masks ``(B, 1, H, W)`` warped by ``homographies`` ``(B, 3, 3)`` (original to warped pixels)
+    by nearest neighbour, as exact small integers in float64 and rounded back: int64, 0 outside. Not
+    differentiable."""
+    return warp_rectified(labels.to(torch.float64), homographies.to(torch.float64), mode="nearest").round().long()
+
+
 def gaussian_smoothed(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
     """``images`` ``(N, 1, H, W)`` in [0, 1] smoothed by a Gaussian of ``sigma_px`` pixels (±3σ, the border
     replicated), held to [0, 1]. Differentiable w.r.t. ``images``."""
@@ -183,9 +190,9 @@ def _unwarped(seg: Segmentation, image: torch.Tensor, homographies: torch.Tensor
     """A right view's segmentation made on its warped image, mapped back by ``homographies`` (warped to input
     pixels) onto ``image``'s pixels: its maps by nearest neighbour, its regions measured again."""
     def back(mask: torch.Tensor) -> torch.Tensor:
-        return warp_rectified(mask.to(torch.float64), homographies, mode="nearest").round()
+        return warp_labels(mask, homographies)
 
-    labels = back(seg.labels).long()
+    labels = back(seg.labels)
     kept = back(seg.kept_mask) > 0  # (the learned segmenter's and Otsu's labels hold every region, kept or not)
     return dataclasses.replace(seg, binary=back(seg.binary) > 0, opened=back(seg.opened) > 0, labels=labels,
                                regions=region_properties(labels, seg.num_regions), kept_mask=kept,

@@ -149,7 +149,7 @@ def test_a_rectified_pair_is_cut_in_its_map_s_pixels_and_reported_in_its_input_p
     cut = moved.clone()
     cut[0, :, 4:10, 10:14] = 0  # the object's right half in the map: its input columns 7..10
     cut[1, :, 2:8, 7:11] = 0
-    back = _in_input_pixels(cut, labels, rectified, H)
+    back = _in_input_pixels(cut, moved, labels, rectified, H)
     expected = labels.clone()
     expected[:, :, 2:8, 7:11] = 0
     assert torch.equal(back, expected)
