@@ -15,6 +15,18 @@ and the second not; or, the first's split taken again and the second's not, any 
 regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the
 retry cannot let them through.
 
+Why a complete first result needs a plausible second: a first run verified with every kept object ranged is
+retried only because the dense stage measured it on its coarse grid. Where the matched views are measured on the
+coarse grid too, a second that ranges more objects has not ranged what the first could not; it has kept another
+region, and on a camera frame that region may be a blob of wrong matches (tuned PianoL at 320×240, right camera
+30 % brighter, JPEG digit 4: an extra object at 63 px among a scene of 9–18 px, ranged at 0.75 m where its truth is
+1.86: 99.5 → 69.7 % per object). Such a second replaces the first only where each object it ranges lies within
+the features' reach: its disparity at most :data:`~svs_torch.pipeline.near_surface.MAX_INLIER_RATIO` times the
+pair's :data:`INLIER_RANK`-th largest RANSAC inlier disparity plus
+:data:`~svs_torch.pipeline.near_surface.INLIER_MARGIN_PX`, the near-surface rule's bound. A rendered scene whose
+matched frame finds its second box still takes it (digit 8, right camera 30 % brighter: 99.2 % per object,
+where the first kept would give 75.0).
+
 Why the taken-again split: a brighter right camera clips its highlights, the clipped patch draws wrong matches
 above the scene, and the split taken under them may keep the wrong regions yet range them (tuned Piano at
 320×240, right camera 30 % brighter: two objects ranged at 89.3 % with its split taken again, its nearest at
@@ -35,9 +47,14 @@ from ..core.size_groups import replace_pairs
 from ..core.types import StereoBatch
 from .config import PipelineConfig, PipelineResult
 from .exposure import exposures_differ
+from .near_surface import INLIER_MARGIN_PX, MAX_INLIER_RATIO
 from .ranging import measured_share, second_pass_is_better, unranged_kept_object
 
 __all__ = []
+
+#: The inlier disparity an object's is bounded by (module docstring) is the pair's this-th largest: one or two wrong
+#: inliers along a row do not widen it (the PianoL frame above: 133.5 and 30.9 px, then 19.6).
+INLIER_RANK = 3
 
 
 def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: PipelineConfig,
@@ -69,7 +86,8 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     if len(index) == 0:
         return result
     second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
-    pick = _second_is_better(result, second, index, unfinished.index_select(0, index), retaken.index_select(0, index))
+    pick = _second_is_better(result, second, index, unfinished.index_select(0, index), retaken.index_select(0, index),
+                             batch.select(index))
     if not bool(pick.any()):
         return result
     return replace_pairs(result, index[pick], take_pairs(second, pick.nonzero().flatten(), len(index)),
@@ -77,16 +95,22 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
 
 
 def _second_is_better(first: PipelineResult, second: PipelineResult, index: torch.Tensor, unfinished: torch.Tensor,
-                      retaken: torch.Tensor) -> torch.Tensor:
+                      retaken: torch.Tensor, retried: StereoBatch) -> torch.Tensor:
     """``(b,)`` bool: the retried pairs ``index`` of ``first`` whose ``second`` result replaces the first
-    (``unfinished``, ``retaken`` ``(b,)``: why each was retried; module docstring)."""
+    (``unfinished``, ``retaken`` ``(b,)``: why each was retried; ``retried``: those pairs, for their calibration;
+    module docstring)."""
     coarse = first.coarse.index_select(0, index)
     # Against a second measured at the working width, a first from the coarse grid counts as unverified: the
     # second replaces it where verified and ranging as many objects.
     verified_first = first.verified.index_select(0, index) & ~(coarse & ~second.coarse)
     ranged_first = first.depth.objects.valid.index_select(0, index)
-    pick = unfinished & second_pass_is_better(verified_first, ranged_first, second.verified,
-                                              second.depth.objects.valid)
+    # A first verified with every kept object ranged (retried for its coarse grid alone) gives way only to a second
+    # whose objects the features reach (module docstring).
+    b = len(first.verified)
+    complete = verified_first & ~unranged_kept_object(take_pairs(first.segmentation, index, b),
+                                                     take_pairs(first.depth.objects, index, b))
+    pick = unfinished & (~complete | _objects_within_inliers(second, retried)) & second_pass_is_better(
+        verified_first, ranged_first, second.verified, second.depth.objects.valid)
     # Where the first run's split was taken again and the matched views' split is not, the matched views give the
     # scene's usual map and the first's regions are suspect, however many it ranged: the second replaces the first
     # where verified, ranging an object and measuring more of its kept regions (Piano at 320×240, +30 %: two
@@ -102,3 +126,24 @@ def _split_retaken(result: PipelineResult) -> torch.Tensor:
     """``(B,)`` bool: the pairs whose nearness split was taken again (all False for a segmenter without one)."""
     retaken = result.segmentation.split_retaken
     return torch.zeros_like(result.verified) if retaken is None else retaken
+
+
+def _objects_within_inliers(result: PipelineResult, batch: StereoBatch) -> torch.Tensor:
+    """``(B,)`` bool: the pairs of ``result`` (on ``batch``) whose every ranged object has a disparity (from its
+    median depth, ``f·B / Z − doffs``) of at most ``MAX_INLIER_RATIO`` times the pair's :data:`INLIER_RANK`-th
+    largest RANSAC inlier disparity plus ``INLIER_MARGIN_PX`` (the largest there is, with fewer inliers; False
+    without any). Not differentiable (a choice between results)."""
+    sparse = result.depth.disparities
+    disparity = sparse.disparity_px.detach()
+    known = result.fundamental.inliers & sparse.valid & disparity.isfinite()
+    rank = min(INLIER_RANK, disparity.shape[1])
+    if rank == 0:
+        return torch.zeros_like(result.verified)
+    top = torch.where(known, disparity, torch.full_like(disparity, -torch.inf)).topk(rank, dim=1).values
+    count = known.sum(1).clamp(max=rank)
+    reach = top.gather(1, (count - 1).clamp_min(0).unsqueeze(1)).to(torch.float64) * MAX_INLIER_RATIO + INLIER_MARGIN_PX
+    objects = result.depth.objects
+    scale = (batch.focal_px * batch.baseline_m).detach().to(torch.float64).unsqueeze(1)
+    object_disparity = (scale / objects.depth_median_m.detach().to(torch.float64).clamp_min(1e-12)
+                        - batch.doffs_px.detach().to(torch.float64).unsqueeze(1))
+    return (count > 0) & ~(objects.valid & (object_disparity > reach)).any(1)
