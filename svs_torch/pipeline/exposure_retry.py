@@ -19,7 +19,7 @@ Why a complete first result needs a plausible second: a first run verified with 
 retried only because the dense stage measured it on its coarse grid. Where the matched views are measured on the
 coarse grid too, a second that ranges more objects has not ranged what the first could not; it has kept another
 region, and on a camera frame that region may be a blob of wrong matches (tuned PianoL at 320×240, right camera
-30 % brighter, JPEG digit 4: an extra object at 63 px among a scene of 9–18 px, ranged at 0.75 m where its truth is
+30 % brighter, JPEG digit 4: an extra object at 63 px among a scene of 7–23 px, ranged at 0.75 m where its truth is
 1.86: 99.5 → 69.7 % per object). Such a second replaces the first only where each object it ranges lies within
 the features' reach: its disparity at most :data:`~svs_torch.pipeline.near_surface.MAX_INLIER_RATIO` times the
 pair's :data:`INLIER_RANK`-th largest RANSAC inlier disparity plus
@@ -52,8 +52,8 @@ from .ranging import measured_share, second_pass_is_better, unranged_kept_object
 
 __all__ = []
 
-#: The inlier disparity an object's is bounded by (module docstring) is the pair's this-th largest: one or two wrong
-#: inliers along a row do not widen it (the PianoL frame above: 133.5 and 30.9 px, then 19.6).
+#: Which of the pair's RANSAC inlier disparities, from the largest, bounds its objects' (module docstring): the third,
+#: so that one or two wrong inliers along a row do not widen the bound (the PianoL frame above: 133.5, 30.9, 19.6 px).
 INLIER_RANK = 3
 
 
