@@ -391,3 +391,24 @@ def test_camera_frames_gate_compares_the_gate_with_skipping_it(data_dir, capsys)
             assert row["differ"] == 0 and row["acc_gate"] == row["acc_camera_frames"]
     assert sum(r["widened"] for r in rows[1:]) >= 14
     assert "pairs with another result" in capsys.readouterr().out
+
+
+def test_guide_second_passes_times_guide_with_and_without_them(data_dir, tmp_path, capsys):
+    """experiments/guide_second_passes.py on two shared pairs: guide's configuration with both second passes,
+    without each and without either, every other setting guide's own."""
+    import guide_second_passes
+
+    from svs_torch.pipeline import PipelineConfig
+
+    configs = guide_second_passes.configurations()
+    default = PipelineConfig()
+    assert list(configs) == ["both passes", "no exposure retry", "no coarse retry", "neither"]
+    assert configs["both passes"] == default.for_guide()
+    assert configs["neither"] == default.for_guide(second_passes=False)
+    assert configs["no coarse retry"].exposure_retry == default.exposure_retry
+    assert configs["no coarse retry"].coarse_retry_below_share is None
+    report = guide_second_passes.main(["--data", str(data_dir), "--limit", "2", "--repeats", "1",
+                                       "--json", str(tmp_path / "passes.json")])
+    assert set(report["rows"]) == set(configs) and all(row["frames"] == 2 for row in report["rows"].values())
+    assert "| neither | 2 |" in capsys.readouterr().out
+

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import re
 import stat
@@ -253,6 +254,36 @@ def test_guide_on_an_emulated_floor_leaves_the_floor_out_by_default(monkeypatch)
     assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--floor", "off", "--count", "1",
                  "--no-speech"]) == 0
     assert grounds == [None] * 2
+
+
+def test_guide_second_passes_off_runs_neither_retry(monkeypatch):
+    """``guide`` runs the pipeline with the coarse and the exposure retries (``PipelineConfig.for_guide``), and
+    ``--second-passes off`` without either; every other setting, guide's segmentation included, is the same."""
+    import svs_torch.pipeline as pipeline
+    from svs_torch.cli import main
+    from svs_torch.pipeline import PipelineConfig
+
+    real, configs = pipeline.estimate_obstacle_depth, []
+
+    def recording_pipeline(batch, config, *args, **kwargs):
+        configs.append(config)
+        return real(batch, config, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording_pipeline)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    default = PipelineConfig()
+    for extra, passes in (([], True), (["--second-passes", "on"], True), (["--second-passes", "off"], False)):
+        configs.clear()
+        assert main(["guide", "--emulator", "--count", "1", "--no-speech", *extra]) == 0
+        assert len(configs) == 2 and configs[0] == configs[1]  # the warm-up pair's and the camera's
+        config = configs[-1]
+        assert config == default.for_guide(second_passes=passes)
+        assert config.segmentation == default.segmentation.for_guide()
+        assert (config.coarse_retry_below_share, config.exposure_retry) == (
+            (default.coarse_retry_below_share, default.exposure_retry) if passes else (None, None))
+        assert dataclasses.replace(config, coarse_retry_below_share=default.coarse_retry_below_share,
+                                   exposure_retry=default.exposure_retry, segmentation=default.segmentation) == default
 
 
 def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
