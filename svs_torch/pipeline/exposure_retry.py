@@ -72,7 +72,8 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     # A nearness split taken again counts too: a brighter camera's clipped patch also draws wrong matches above
     # the scene, and the split taken under them may range a pair whose obstacle it lost (module docstring).
     retaken = _split_retaken(result)
-    unfinished = ~result.verified | unranged_kept_object(result.segmentation, result.depth.objects) | coarse
+    unranged = unranged_kept_object(result.segmentation, result.depth.objects)
+    unfinished = ~result.verified | unranged | coarse
     retried = unfinished | retaken
     if not bool(retried.any()):
         return result
@@ -85,9 +86,10 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     index = candidates[differs]
     if len(index) == 0:
         return result
-    second = run(batch.select(index), dataclasses.replace(config, exposure=config.exposure_retry))
-    pick = _second_is_better(result, second, index, unfinished.index_select(0, index), retaken.index_select(0, index),
-                             batch.select(index))
+    pairs = batch.select(index)
+    second = run(pairs, dataclasses.replace(config, exposure=config.exposure_retry))
+    why = (t.index_select(0, index) for t in (unfinished, retaken, unranged))
+    pick = _second_is_better(result, second, index, *why, pairs)
     if not bool(pick.any()):
         return result
     return replace_pairs(result, index[pick], take_pairs(second, pick.nonzero().flatten(), len(index)),
@@ -95,10 +97,10 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
 
 
 def _second_is_better(first: PipelineResult, second: PipelineResult, index: torch.Tensor, unfinished: torch.Tensor,
-                      retaken: torch.Tensor, retried: StereoBatch) -> torch.Tensor:
+                      retaken: torch.Tensor, unranged: torch.Tensor, retried: StereoBatch) -> torch.Tensor:
     """``(b,)`` bool: the retried pairs ``index`` of ``first`` whose ``second`` result replaces the first
-    (``unfinished``, ``retaken`` ``(b,)``: why each was retried; ``retried``: those pairs, for their calibration;
-    module docstring)."""
+    (``unfinished``, ``retaken`` ``(b,)``: why each was retried; ``unranged`` ``(b,)``: those the first left with a
+    kept object unranged; ``retried``: those pairs, for their calibration; module docstring)."""
     coarse = first.coarse.index_select(0, index)
     # Against a second measured at the working width, a first from the coarse grid counts as unverified: the
     # second replaces it where verified and ranging as many objects.
@@ -106,9 +108,7 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
     ranged_first = first.depth.objects.valid.index_select(0, index)
     # A first verified with every kept object ranged (retried for its coarse grid alone) gives way only to a second
     # whose objects the features reach (module docstring).
-    b = len(first.verified)
-    complete = verified_first & ~unranged_kept_object(take_pairs(first.segmentation, index, b),
-                                                     take_pairs(first.depth.objects, index, b))
+    complete = verified_first & ~unranged
     pick = unfinished & (~complete | _objects_within_inliers(second, retried)) & second_pass_is_better(
         verified_first, ranged_first, second.verified, second.depth.objects.valid)
     # Where the first run's split was taken again and the matched views' split is not, the matched views give the
