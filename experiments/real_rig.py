@@ -242,7 +242,9 @@ def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, riva
         if not evaluation.has_truth or evaluation.acc_objects_pct is None:
             continue
         row = {"scene": batch.names[0], "condition": stacked.names[i], "status": evaluation.status,
-               "acc_objects": evaluation.acc_objects_pct, "rectified": evaluation.rectified,
+               "acc_objects": evaluation.acc_objects_pct, "acc_r_min": evaluation.acc_r_min_pct or 0.0,
+               "acc_r_max": evaluation.acc_r_max_pct or 0.0, "rectified": evaluation.rectified,
+               "dropped": sum(bool(o.get("dropped")) for o in evaluation.objects),
                "verified": None if result.verified is None else bool(result.verified[i]),
                "time_s": elapsed / stacked.batch_size}
         if rival:
@@ -338,6 +340,8 @@ def summarize(rows: list[dict]) -> list[dict]:
     for (split, size, condition), group in groups.items():
         entry = {"split": split, "size": size, "condition": condition, "pairs": len(group),
                  "acc_objects": statistics.fmean(r["acc_objects"] for r in group),
+                 "acc_r_min": statistics.fmean(r["acc_r_min"] for r in group),
+                 "acc_r_max": statistics.fmean(r["acc_r_max"] for r in group),
                  "ranged": sum(r["status"] == "OK" for r in group) / len(group),
                  "worst": min(group, key=lambda r: r["acc_objects"])["scene"],
                  "worst_acc": min(r["acc_objects"] for r in group)}

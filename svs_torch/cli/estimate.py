@@ -72,11 +72,10 @@ measured again at half the working width, where each pixel averages four times a
 (PipelineConfig.coarse_retry_below_share). "features_smoothed": a pair left unverified (noisy or heavily
 compressed frames: few matches) was run again with SURF on views smoothed by a Gaussian of 1.5 px, and that run
 was kept (PipelineConfig.noisy_features_retry_sigma_px).
-"dropped_unmeasured": kept regions of which the dense map measured under 45 % of the pixels, dropped beside
-a nearer kept region it did measure (noise lets a far region be kept, and its few measured pixels are the wrong
-ones; PipelineConfig.drop_unmeasured_below_share), or under 15 % beside any region it measured, however near
-their filled-in range (PipelineConfig.drop_unmeasured_nearer_below_share), or left unranged beside one it ranged
-(wholly in the left band the right camera may not see); they are not listed in "objects".
+"dropped_unmeasured": 0 by default, which lists every kept region, one the dense map measured on few pixels
+with their distance, one it could not range with "no depth". Set PipelineConfig.drop_unmeasured_below_share
+(eval and sweep: --set drop_unmeasured_below_share=0.45) and it counts the kept regions dropped for that, not
+listed in "objects"; `svs-depth eval` still scores each as an object without a distance, 0 %.
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
 """

@@ -112,8 +112,8 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         # Noisy frames: SURF run again on smoothed views (PipelineConfig.noisy_features_retry_sigma_px).
         "features_smoothed": (bool(result.features_smoothed[index]) if result.features_smoothed is not None
                               else False),
-        # Kept regions the dense map could not measure, or left unranged, dropped beside one it ranged
-        # (PipelineConfig.drop_unmeasured_below_share, drop_unmeasured_nearer_below_share); not in "objects".
+        # Kept regions the dense map could not measure, or left unranged, dropped beside one it ranged: only with
+        # PipelineConfig.drop_unmeasured_below_share set (off by default); not in "objects".
         "dropped_unmeasured": (int(result.dropped_objects[index].sum()) if result.dropped_objects is not None
                                else 0),
         # The box the dense stage searched (x0, y0, width, height; the pixels of the image it ran on, e.g. of

@@ -138,7 +138,9 @@ class PairScore:
         real_r_min_m, real_r_max_m: nearest / farthest object's true distance.
         acc_r_min_pct, acc_r_max_pct: Eq. (9) of the estimated R_min / R_max against them.
         acc_objects_pct: mean Eq. (9) over the objects with a truth, each against its own slot's estimate.
-        objects: per slot with a truth: ``{"slot", "real_m", "estimated_m", "acc_pct"}``.
+        objects: per slot with a truth: ``{"slot", "real_m", "estimated_m", "acc_pct"}``; :func:`evaluate_result`
+            adds ``"dropped"`` under the dense rule: a kept region the depth stage dropped as unmeasured
+            (``PipelineResult.dropped_objects``), which scores 0 % like any object left without a distance.
     """
 
     real_r_min_m: float | None
@@ -305,6 +307,7 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
     scale = None if px_scale is None else torch.tensor(list(px_scale), dtype=batch.left.dtype,
                                                        device=batch.left.device)
     scopes, per_object = pair_map_metrics(batch, result, scale)
+    dropped = result.dropped_objects.tolist() if result.dropped_objects is not None else None
     keypoints = result.num_keypoints.tolist()
     counts = zip(result.num_matches.tolist(), result.num_inliers.tolist(), result.rectified.tolist())
     evaluations = []
@@ -312,6 +315,8 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
         score = score_pair(truth_list(truth, i), estimate) if truth is not None else PairScore(None, None, None,
                                                                                                  None, None)
         objects = [dict(o, **metric_values(per_object[o["slot"]], i)) if per_object else o for o in score.objects]
+        if dropped is not None:  # scored as an object without a distance (stereo_metrics.measured_regions)
+            objects = [dict(o, dropped=dropped[i][o["slot"]]) for o in objects]
         has_truth = has_gt and bool(batch.disparity_valid[i].any())
         evaluations.append(PairEvaluation(
             name=batch.names[i] if batch.names else str(i), status=estimate.status,

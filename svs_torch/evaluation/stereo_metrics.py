@@ -269,8 +269,16 @@ def measured_regions(result: PipelineResult) -> Segmentation:
     """The left segmentation of ``result`` with the labels its objects were measured over
     (``PipelineResult.object_labels``: the kept regions' interiors under
     ``PipelineConfig.region_interior_working_px``): an object's true distance is the median ground truth over the
-    pixels its estimate is the median of, and its map metrics are over those pixels too."""
+    pixels its estimate is the median of, and its map metrics are over those pixels too.
+
+    A region the segmentation kept and the depth stage dropped as unmeasured (``PipelineResult.dropped_labels``)
+    stays an object, one without a distance: it scores 0 % and its truth counts towards the real R_max, as an
+    unranged object's does. Otherwise dropping a region the pair cannot measure would hide it from the score, and
+    a rule that drops the hard objects would look better than one that ranges them."""
     left = result.segmentation.left
+    if result.dropped_labels is not None:
+        kept = torch.where(result.dropped_labels >= 0, result.dropped_labels, left.kept_labels)
+        left = dataclasses.replace(left, kept_labels=kept)
     return left if result.object_labels is None else dataclasses.replace(left, labels=result.object_labels)
 
 

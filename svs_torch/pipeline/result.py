@@ -63,7 +63,9 @@ class PipelineResult:
             :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none).
         dropped_objects: ``(B, N)`` bool, under the dense rule: the kept left slots dropped as unmeasured
             (``PipelineConfig.drop_unmeasured_below_share``; their ``kept_labels`` are now −1); None under the
-            ``"paper"`` rule.
+            ``"paper"`` rule. dropped_labels: ``(B, N)`` int64, the left label each dropped slot held (−1 elsewhere),
+            so that an evaluation scores a dropped region as an object left without a distance
+            (:func:`~svs_torch.evaluation.measured_regions`); None under the ``"paper"`` rule.
         exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
             onto the brighter (``exposure``, ``exposure_right_clipped``, or the ``exposure_retry`` kept); the masked
             images are of the mapped views.
@@ -107,6 +109,7 @@ class PipelineResult:
     row_alignment_turn_deg: torch.Tensor | None = None
     coarse: torch.Tensor | None = None
     dropped_objects: torch.Tensor | None = None
+    dropped_labels: torch.Tensor | None = None
     object_labels: torch.Tensor | None = None
     near_surface: torch.Tensor | None = None
     features_smoothed: torch.Tensor | None = None

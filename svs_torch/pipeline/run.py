@@ -273,11 +273,13 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right, statistics=config.depth.rule != "dense",  # the dense rule measures them
         labels=object_labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = measured = smoothed = coarse = dropped = near = None
+    dense = verified = agreeing = measured = smoothed = coarse = dropped = dropped_labels = near = None
     if config.depth.rule == "dense":
+        kept_labels = seg.left.kept_labels  # the dense rule changes them only by dropping unmeasured regions
         (seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped,
          near) = _dense_rule(batch, seg, depth, _fundamental_ok(fundamental, matches, config), points.left,
                              fundamental.inliers, rectified, H_left, H_right, object_labels, config)
+        dropped_labels = torch.where(dropped, kept_labels, torch.full_like(kept_labels, -1))
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
@@ -288,4 +290,4 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
         row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped,
-        object_labels=object_labels, near_surface=near)
+        dropped_labels=dropped_labels, object_labels=object_labels, near_surface=near)

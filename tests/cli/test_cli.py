@@ -45,7 +45,8 @@ def test_help_teaches_every_command():
 #: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does, and its record is
 #: ranged again by estimate --pairs.
 OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
-                          "results": {"--db"}, "guide": {"--camera-frames", "--pairs"}}
+                          "results": {"--db"}, "guide": {"--camera-frames", "--pairs"},
+                          "estimate": {"--set"}}  # "dropped_unmeasured": eval's and sweep's --set, named as theirs
 
 
 def test_every_option_a_commands_help_names_is_one_it_takes():
@@ -669,20 +670,31 @@ def test_guide_needs_boards_or_the_emulator(capsys):
     assert code == 2 and "--emulator" in err
 
 
-def test_estimate_says_when_it_dropped_a_region_it_could_not_measure(data_dir, capsys, tmp_path):
+def test_estimate_lists_a_region_it_barely_measured_and_says_when_one_was_dropped(data_dir, capsys, tmp_path):
     """Held-out Midd1 at 320×240 as a board sends it at JPEG digit 1 with sensor noise σ 2 (experiments/real_rig.py):
-    the noise lets a far region in, which the dense map barely measures; the JSON's "dropped_unmeasured" counts it,
-    "objects" lists the measured one only, and the text says so. The clean pair drops nothing."""
+    the noise lets a far region in, which the dense map barely measures. By default nothing is dropped: "objects"
+    lists it with the distance its few pixels give, beside the measured obstacle. A run that drops it
+    (``PipelineConfig.drop_unmeasured_below_share``) counts it in "dropped_unmeasured", lists the measured object
+    only, and the text says so."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
     import real_rig
+
+    from svs_torch.cli.estimate_report import format_report, pair_report
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
     scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_2005_2006_third" / "Midd1"), "320x240")
     views = {name: (left, right) for name, left, right in real_rig.conditions(scene, 17)}  # held-out index 17
     reports = _estimate_pairs_json(capsys, tmp_path, {"clean": views["clean"], "jpeg": views["jpeg q1 + noise s2"]})
-    assert [r["dropped_unmeasured"] for r in reports] == [0, 1]
-    assert [len(r["objects"]) for r in reports] == [1, 1] and reports[1]["objects"][0]["depth_m"] is not None
+    assert [r["dropped_unmeasured"] for r in reports] == [0, 0]
+    assert [len(r["objects"]) for r in reports] == [1, 2]
+    assert all(o["depth_m"] is not None for o in reports[1]["objects"])
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "jpeg_left.png"), str(tmp_path / "jpeg_right.png"))
-    assert code == 0 and "1 kept region the dense map could not measure: dropped" in out
+    assert code == 0 and "could not measure" not in out
+    noisy = real_rig.stack_conditions(scene, [("jpeg", *views["jpeg q1 + noise s2"])])
+    dropping = estimate_obstacle_depth(noisy, PipelineConfig(drop_unmeasured_below_share=0.45))
+    report = pair_report(dropping, 0, (1.0, 1.0), 0.0)
+    assert report["dropped_unmeasured"] == 1 and len(report["objects"]) == 1
+    assert "  1 kept region the dense map could not measure: dropped" in format_report(report)
 
 
 def test_estimate_help_states_the_verification_defaults():
@@ -696,10 +708,8 @@ def test_estimate_help_states_the_verification_defaults():
             f"{config.verify_many_inliers_min_agreeing}") in estimate.EPILOG.replace("\n", " ")
     assert (f"needs {config.depth.min_object_valid_fraction_unverified:.0%} of its region measured instead of "
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
-    assert (f"the dense map measured under {config.drop_unmeasured_below_share:.0%} of".replace("%", " %")
-            in estimate.EPILOG.replace("\n", " "))
-    assert (f"or under {config.drop_unmeasured_nearer_below_share:.0%} beside any region".replace("%", " %")
-            in estimate.EPILOG.replace("\n", " "))
+    assert config.drop_unmeasured_below_share is None
+    assert '"dropped_unmeasured": 0 by default, which lists every kept region' in estimate.EPILOG.replace("\n", " ")
 
 
 def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
