@@ -157,13 +157,15 @@ class PipelineConfig:
             dense checks mostly reject; the few kept are the wrong ones, and the pair would report a distance
             nothing has. A kept region the depth stage left unranged beside a ranged one is dropped too, whatever
             its share (one wholly in the left band the right camera may not see:
-            ``DepthConfig.min_object_pixels_in_view``). The nearest obstacle does not change by this rule. None:
-            every kept region stays (the paper's).
+            ``DepthConfig.min_object_pixels_in_view``). The nearest obstacle does not change by this rule. None
+            (the default, and the paper's): every kept region stays, and an evaluation scores a dropped one as an
+            object without a distance anyway (``PipelineResult.dropped_labels``): dropping hides nothing from a score.
         drop_unmeasured_nearer_below_share: a kept left region measured on less than this share is dropped as
             above even where its few pixels range it nearer than the measured one (with
             ``drop_unmeasured_below_share`` set): nearly every window rejected, its range is mostly its row
             neighbours' disparities filled in, and noise ranges a far textureless region near. The only rule that
-            can change the nearest obstacle. None: a region ranged nearer than every measured one always stays.
+            can change the nearest obstacle. None (the default): a region ranged nearer than every measured one
+            always stays.
         region_interior_working_px: under the dense rule, each kept left region of the nearness segmenter is
             measured over its interior, eroded by this radius in the dense stage's working pixels (at least one
             input pixel each; :mod:`svs_torch.segmentation.interior`, ``PipelineResult.object_labels``): a block
