@@ -259,7 +259,8 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     Returns ``seg`` with those slots of the left ``kept_labels`` set to −1 and the left ``kept_mask`` / ``masked``
     without them (the right view's segmentation, which the features were found on, is left as it was), ``depth``
     with those objects' ``label`` −1 and ``valid`` False and the range and nearest obstacle recomputed, and the
-    dropped slots ``(B, N)`` bool. Camera noise lets the segmenter keep a far or depth-straddling region whose
+    label each dropped slot held ``(B, N)`` int64, −1 elsewhere (``PipelineResult.dropped_labels``: an evaluation
+    still scores the region). Camera noise lets the segmenter keep a far or depth-straddling region whose
     dense map is mostly rejected (held-out Midd1 with JPEG digit 1: a 10.7 m region measured on 10 % of its pixels
     and ranged at 6.8 m beside the 4.1 m obstacle), and the few pixels kept are the wrong ones: a region the dense
     stage cannot measure is not an obstacle the pair can warn about, while one it measured is. A region ranged
@@ -279,8 +280,9 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     at 2.65 m beside the 4.0 m obstacle). Only that rule can change the nearest obstacle."""
     objects = depth.objects
     kept = seg.left.kept_labels >= 0
+    none = torch.full_like(seg.left.kept_labels, -1)
     if below_share is None or kept.shape[1] == 0:
-        return seg, depth, torch.zeros_like(kept)
+        return seg, depth, none
     share = objects.num_valid_px.to(torch.float64) / objects.area_px.clamp_min(1).to(torch.float64)
     measured = kept & objects.valid & (share >= below_share)
     # The nearest measured object's depth: a region ranged nearer than it is kept unless nearly nothing was measured.
@@ -292,8 +294,8 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     # (DepthConfig.min_object_pixels_in_view), or too small to count.
     dropped = kept & (((share < below_share) & droppable) | ~objects.valid) & measured.any(1, keepdim=True)
     if not bool(dropped.any()):
-        return seg, depth, dropped
-    kept_labels = torch.where(dropped, torch.full_like(seg.left.kept_labels, -1), seg.left.kept_labels)
+        return seg, depth, none
+    kept_labels = torch.where(dropped, none, seg.left.kept_labels)
     kept_mask = kept_regions_mask(seg.left.labels, kept_labels, seg.left.regions.area_px.shape[1])
     left = dataclasses.replace(seg.left, kept_labels=kept_labels, kept_mask=kept_mask,
                                masked=torch.where(kept_mask, seg.left.masked, torch.zeros_like(seg.left.masked)))
@@ -301,7 +303,7 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     objects = dataclasses.replace(objects, label=label, valid=objects.valid & ~dropped)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(depth.disparities, depth.points, depth_range, objects, nearest_obstacle(objects))
-    return dataclasses.replace(seg, left=left), depth, dropped
+    return dataclasses.replace(seg, left=left), depth, torch.where(dropped, seg.left.kept_labels, none)
 
 
 def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResult,

@@ -61,11 +61,11 @@ class PipelineResult:
             (where ``row_aligned``; all False without a row alignment); row_alignment_turn_deg ``(B, 2)``, the right
             camera's turn about its y and x axes the alignment undid, degrees (its keystone,
             :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none).
-        dropped_objects: ``(B, N)`` bool, under the dense rule: the kept left slots dropped as unmeasured
-            (``PipelineConfig.drop_unmeasured_below_share``; their ``kept_labels`` are now −1); None under the
-            ``"paper"`` rule. dropped_labels: ``(B, N)`` int64, the left label each dropped slot held (−1 elsewhere),
-            so that an evaluation scores a dropped region as an object left without a distance
+        dropped_labels: ``(B, N)`` int64, under the dense rule: the left label each kept slot dropped as
+            unmeasured held (``PipelineConfig.drop_unmeasured_below_share``; its ``kept_labels`` entry is now −1),
+            −1 elsewhere, so that an evaluation scores a dropped region as an object left without a distance
             (:func:`~svs_torch.evaluation.measured_regions`); None under the ``"paper"`` rule.
+            ``dropped_objects`` (a property) is the same as ``(B, N)`` bool.
         exposure_matched: ``(B,)`` bool, pairs whose two views' exposures were matched, the darker view mapped
             onto the brighter (``exposure``, ``exposure_right_clipped``, or the ``exposure_retry`` kept); the masked
             images are of the mapped views.
@@ -108,8 +108,13 @@ class PipelineResult:
     row_alignment_inliers: torch.Tensor | None = None
     row_alignment_turn_deg: torch.Tensor | None = None
     coarse: torch.Tensor | None = None
-    dropped_objects: torch.Tensor | None = None
     dropped_labels: torch.Tensor | None = None
     object_labels: torch.Tensor | None = None
     near_surface: torch.Tensor | None = None
     features_smoothed: torch.Tensor | None = None
+
+    @property
+    def dropped_objects(self) -> torch.Tensor | None:
+        """``(B, N)`` bool: the kept left slots dropped as unmeasured (:attr:`dropped_labels` ≥ 0); None under the
+        ``"paper"`` rule."""
+        return None if self.dropped_labels is None else self.dropped_labels >= 0

@@ -219,7 +219,8 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     """The dense range rule's stages after the sparse one: the dense depth with its second passes, the kept regions
     it could not measure dropped, and the two-surface objects measured over their near surface. Returns the
     segmentation, depth and object labels after them, then the dense map and the verified, agreeing, measured,
-    smoothed, coarse, dropped and near-surface flags (:class:`PipelineResult`'s fields of those names)."""
+    smoothed, coarse and near-surface flags and the dropped slots' labels (:class:`PipelineResult`'s fields of
+    those names)."""
     depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
         batch, seg, depth, fundamental_ok, points_left, inliers, rectified, H_left, H_right, object_labels, config)
     seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
@@ -273,13 +274,11 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         points.left, points.right, fundamental.inliers, batch.focal_px, batch.baseline_m, batch.doffs_px,
         H_left=H_left, H_right=H_right, statistics=config.depth.rule != "dense",  # the dense rule measures them
         labels=object_labels, region_labels=seg.left.kept_labels, image_hw=batch.image_hw, config=config.depth)
-    dense = verified = agreeing = measured = smoothed = coarse = dropped = dropped_labels = near = None
+    dense = verified = agreeing = measured = smoothed = coarse = dropped = near = None
     if config.depth.rule == "dense":
-        kept_labels = seg.left.kept_labels  # the dense rule changes them only by dropping unmeasured regions
         (seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped,
          near) = _dense_rule(batch, seg, depth, _fundamental_ok(fundamental, matches, config), points.left,
                              fundamental.inliers, rectified, H_left, H_right, object_labels, config)
-        dropped_labels = torch.where(dropped, kept_labels, torch.full_like(kept_labels, -1))
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
     return PipelineResult(
@@ -289,5 +288,5 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         depth=depth, dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
-        row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_objects=dropped,
-        dropped_labels=dropped_labels, object_labels=object_labels, near_surface=near)
+        row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_labels=dropped,
+        object_labels=object_labels, near_surface=near)
