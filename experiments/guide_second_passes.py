@@ -27,8 +27,7 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.data import camera_frame_pairs, list_shared_pairs, load_stereo_pair, resize_stereo_batch
-from svs_torch.evaluation.frame_latency import GOAL_MS, _summary
+from svs_torch.evaluation.frame_latency import GOAL_MS, latency_summary, real_camera_frames
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -54,10 +53,7 @@ def interleaved_latency(data: Path, configs: dict[str, PipelineConfig], repeats:
     """:func:`~svs_torch.evaluation.frame_latency.real_frame_latency`'s frames and summary, with the configurations
     taken in turn on each frame (and their order turned each repeat), so that the machine's load drifting during
     the run falls on all of them alike."""
-    paths = list_shared_pairs(data)[:limit]
-    frames = [camera_frame_pairs(resize_stereo_batch(load_stereo_pair(path), (320, 240)), digit,
-                                 NOISE_FOR_DIGIT[digit], torch.Generator().manual_seed(index))
-              for index, path in enumerate(paths)]
+    frames = real_camera_frames(data, digit, NOISE_FOR_DIGIT[digit], limit=limit)
     times = {name: [[] for _ in frames] for name in configs}
     with torch.inference_mode():
         for config in configs.values():  # warm-up
@@ -70,7 +66,7 @@ def interleaved_latency(data: Path, configs: dict[str, PipelineConfig], repeats:
                     started = time.perf_counter()
                     estimate_obstacle_depth(frame, config)
                     times[name][index].append(time.perf_counter() - started)
-    return {name: _summary([statistics.median(runs) * 1e3 for runs in per_frame])
+    return {name: latency_summary([statistics.median(runs) * 1e3 for runs in per_frame])
             for name, per_frame in times.items() if per_frame}
 
 

@@ -51,7 +51,7 @@ SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its 
                       "coarser grid, and one left unfinished whose cameras' exposures differ again with them "
                       "matched; 'off': never, so no frame waits for a second run (the shared real pairs as digit 4 "
                       "frames: slowest 215 -> 69 ms) but noisy frames are ranged worse (held-out digit 4 frames: "
-                      "98.0 -> 95.4 %% per object): experiments/guide_second_passes.md (default: on)")
+                      "98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

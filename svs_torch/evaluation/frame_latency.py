@@ -18,7 +18,7 @@ import statistics
 import time
 from pathlib import Path
 
-__all__ = ["GOAL_MS", "real_frame_latency"]
+__all__ = ["GOAL_MS", "latency_summary", "real_camera_frames", "real_frame_latency"]
 
 #: guide's latency goal a frame at B = 1 (issue 32, item 4), in ms.
 GOAL_MS = 50.0
@@ -34,12 +34,9 @@ def real_frame_latency(data_dir: Path, configs: dict, repeats: int, digit: int, 
     frames slower than :data:`GOAL_MS`); an empty dict where the folder holds no pair."""
     import torch
 
-    from ..data import camera_frame_pairs, list_shared_pairs, load_stereo_pair, resize_stereo_batch
     from ..pipeline import estimate_obstacle_depth
 
-    paths = list_shared_pairs(data_dir)[:limit]
-    frames = [camera_frame_pairs(resize_stereo_batch(load_stereo_pair(path), size), digit, sigma_levels,
-                                 torch.Generator().manual_seed(index)) for index, path in enumerate(paths)]
+    frames = real_camera_frames(data_dir, digit, sigma_levels, size, limit)
     report = {}
     for name, config in configs.items():
         times = []
@@ -54,11 +51,28 @@ def real_frame_latency(data_dir: Path, configs: dict, repeats: int, digit: int, 
                     runs.append(time.perf_counter() - started)
                 times.append(statistics.median(runs) * 1e3)
         if times:
-            report[name] = _summary(times)
+            report[name] = latency_summary(times)
     return report
 
 
-def _summary(times_ms: list[float]) -> dict:
+def real_camera_frames(data_dir: Path, digit: int, sigma_levels: float, size: tuple[int, int] = (320, 240),
+                       limit: int | None = None) -> list:
+    """The first ``limit`` shared real pairs (:func:`svs_torch.data.list_shared_pairs`), each resampled to ``size``
+    and made a camera frame (JPEG ``digit``, sensor noise of ``sigma_levels`` in each view, seeded by the pair's
+    index), each a :class:`~svs_torch.core.types.StereoBatch` of one pair: the frames :func:`real_frame_latency`
+    times."""
+    import torch
+
+    from ..data import camera_frame_pairs, list_shared_pairs, load_stereo_pair, resize_stereo_batch
+
+    return [camera_frame_pairs(resize_stereo_batch(load_stereo_pair(path), size), digit, sigma_levels,
+                               torch.Generator().manual_seed(index))
+            for index, path in enumerate(list_shared_pairs(data_dir)[:limit])]
+
+
+def latency_summary(times_ms: list[float]) -> dict:
+    """``{"frames", "median_ms", "p90_ms", "max_ms", "over_goal"}`` of frame times in ms (:func:`real_frame_latency`'s
+    rows)."""
     ordered = sorted(times_ms)
     p90 = ordered[max(0, math.ceil(0.9 * len(ordered)) - 1)]
     return {"frames": len(ordered), "median_ms": round(statistics.median(ordered), 1), "p90_ms": round(p90, 1),

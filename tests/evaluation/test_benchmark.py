@@ -158,10 +158,10 @@ def test_guides_latency_on_real_frames_is_reported_frame_by_frame(data_dir):
     a mean hides): the median, the 90th percentile by nearest rank, the maximum and the frames over the goal."""
     import dataclasses
 
-    from svs_torch.evaluation.frame_latency import GOAL_MS, _summary, real_frame_latency
+    from svs_torch.evaluation.frame_latency import GOAL_MS, latency_summary, real_frame_latency
     from svs_torch.pipeline import PipelineConfig
 
-    assert _summary([10, 20, 30, 40, 60, 70, 80, 90, 100, 5]) == {
+    assert latency_summary([10, 20, 30, 40, 60, 70, 80, 90, 100, 5]) == {
         "frames": 10, "median_ms": 50.0, "p90_ms": 90, "max_ms": 100, "over_goal": 5}
     assert GOAL_MS == 50.0
     config = PipelineConfig()
