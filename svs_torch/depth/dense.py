@@ -80,9 +80,10 @@ def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> Den
         grown = grown[..., :height, :width]
         return F.pad(grown, (0, width - grown.shape[-1], 0, height - grown.shape[-2]))
 
+    top = None if dense.in_view_top_px is None else (dense.in_view_top_px + 1) * factor - 1  # as min + count - 1
     return DenseDisparity(grow(dense.disparity_px * factor), grow(dense.valid), dense.min_disparity_px * factor,
                           dense.num_disparities * factor, dense.crop_xywh * factor,
-                          dense.pair_num_disparities * factor)
+                          dense.pair_num_disparities * factor, top)
 
 
 def working_factor(width_px: int, config: DenseConfig = DenseConfig()) -> int:
@@ -141,6 +142,8 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         config = replace(config, smoothing_penalties=None)
     config = replace(config, window_size=working_window(width, config))  # after the coarse pass: its own width
     dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
+    if search.in_view_top_px is not None:
+        dense = replace(dense, in_view_top_px=search.in_view_top_px)
     return _enlarge(dense, factor, height, width)
 
 

@@ -44,6 +44,11 @@ class DenseConfig:
             ``max(range_margin_px, range_margin_fraction · span)`` on each side.
         range_percentiles: the sample percentiles that bound the range before the margin (robust to a few
             wrong samples; (0, 100) is their min and max).
+        in_view_detached_tail_share: the top of the disparities the in-view rule allows for
+            (``DepthConfig.min_object_pixels_in_view``) leaves out a near tail of an object's coarse disparities cut
+            off from its median by an empty coarse pixel and holding at most this share of them (clustered wrong
+            matches of noisy frames; :func:`~svs_torch.depth.search_range._detached_tail_ceiling`); the range
+            searched keeps them. None: the top of the range searched.
         max_num_disparities: most disparities searched per pair (the range is clipped around its centre).
         fallback_max_disparity_fraction: the widest disparity searched, as a fraction of the width: the
             coarse pass's range, and the range of a pair with too few samples.
@@ -98,6 +103,7 @@ class DenseConfig:
     range_margin_px: float = 2.0
     range_margin_fraction: float = 0.25
     range_percentiles: tuple[float, float] = (1.0, 99.0)
+    in_view_detached_tail_share: float | None = 0.1  # real_rig.md, "The in-view top": 0.05-0.2 alike (tuning sets)
     max_num_disparities: int = 128
     fallback_max_disparity_fraction: float = 0.25
     min_range_inliers: int = 7
@@ -131,6 +137,10 @@ class DenseConfig:
             raise InputError(f"lr_max_diff_px: expected None or a value >= 0, got {self.lr_max_diff_px!r}")
         if not isinstance(self.max_num_disparities, int) or self.max_num_disparities < 2:
             raise InputError(f"max_num_disparities: expected an int >= 2, got {self.max_num_disparities!r}")
+        share = self.in_view_detached_tail_share
+        if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
+                                  or not 0 <= share < 0.5):
+            raise InputError(f"in_view_detached_tail_share: expected None or a share in [0, 0.5), got {share!r}")
         low, high = self.range_percentiles
         if not 0 <= low <= high <= 100:
             raise InputError(f"range_percentiles: expected 0 <= low <= high <= 100, got {self.range_percentiles}")
@@ -154,11 +164,14 @@ class DisparityRange(NamedTuple):
     """Per-pair search range ``[min_disparity_px, min_disparity_px + pair_num_disparities)``: ``(B,)`` int64
     each; ``num_disparities`` is the batch's largest count, the depth of the shared cost volume (a pair's
     disparities past its own count get no cost, so its result does not depend on its batch). Without
-    ``pair_num_disparities`` every pair searches ``num_disparities``."""
+    ``pair_num_disparities`` every pair searches ``num_disparities``. ``in_view_top_px`` ``(B,)`` int64
+    (optional): the largest disparity the in-view rule allows for, at most the range's top
+    (``DenseConfig.in_view_detached_tail_share``)."""
 
     min_disparity_px: torch.Tensor
     num_disparities: int
     pair_num_disparities: torch.Tensor | None = None
+    in_view_top_px: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -173,6 +186,8 @@ class DenseDisparity:
         crop_xywh: ``(B, 4)`` int64, the searched box of each pair (x0, y0, width, height), pixels; every
             valid pixel lies inside it.
         pair_num_disparities: ``(B,)`` int64, each pair's own count.
+        in_view_top_px: ``(B,)`` int64 or None: the largest disparity the in-view rule allows for
+            (``DisparityRange.in_view_top_px``); None: the top of the range searched.
     """
 
     disparity_px: torch.Tensor
@@ -181,3 +196,4 @@ class DenseDisparity:
     num_disparities: int
     crop_xywh: torch.Tensor
     pair_num_disparities: torch.Tensor
+    in_view_top_px: torch.Tensor | None = None

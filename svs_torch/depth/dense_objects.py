@@ -97,8 +97,9 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
             count, a scalar or ``(B,)``: views that do not show the same scene (a swapped or frozen camera) leave
             most pixels inconsistent, and such an object is not ranged rather than ranged wrong.
         min_in_view_px: fewest valid pixels an object needs at columns ``x ≥ d_max`` of its pair, where every
-            disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``); 0: no
-            check. The statistics are still over all the object's pixels.
+            disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``; ``d_max``:
+            the range's top, or ``dense.in_view_top_px`` below it); 0: no check. The statistics are still over all
+            the object's pixels.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
             (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median
             is over the whole region, as the truth is, and not only over its well-textured part.
@@ -114,8 +115,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
     slots = objects.label  # (B, N), −1 padding
     q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
-    # The first column where every disparity of the pair's range lands inside the right image (x − d_max ≥ 0).
-    in_view_from = (dense.min_disparity_px + dense.pair_num_disparities - 1).clamp_min(0).long()
+    in_view_from = _in_view_from(dense)
     fused = None
     gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
     if not gradients:
@@ -135,6 +135,15 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     median, depth_low, depth_high = stats.unbind(-1)
     return dataclasses.replace(objects, depth_median_m=median, depth_low_m=depth_low, depth_high_m=depth_high,
                                valid=valid, num_valid_px=count, num_in_view_px=in_view)
+
+
+def _in_view_from(dense: DenseDisparity) -> torch.Tensor:
+    """``(B,)`` int64: the first column where every disparity of the pair's range lands inside the right image
+    (``x − d_max ≥ 0``; ``d_max`` without noise's detached wrong matches where ``dense.in_view_top_px`` says)."""
+    top = dense.min_disparity_px + dense.pair_num_disparities - 1
+    if dense.in_view_top_px is not None:
+        top = torch.minimum(top, dense.in_view_top_px)
+    return top.clamp_min(0).long()
 
 
 def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,

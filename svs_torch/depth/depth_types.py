@@ -56,7 +56,8 @@ class DepthConfig:
             Nearer the left border a near surface's match can lie outside the right view, and the best visible
             candidate is then wrong: an object that lies wholly in that band has no pixel the right camera is
             sure to see, and is not ranged rather than ranged wrong (Middlebury Laundry at 320 px: a 38 px
-            strip 3.6 m away on the left border was ranged at 11.3 m). 0 turns the check off. Unlike
+            strip 3.6 m away on the left border was ranged at 11.3 m). ``d_max`` leaves out a detached near tail
+            of noise's wrong coarse matches (``DenseConfig.in_view_detached_tail_share``). 0 turns the check off. Unlike
             ``DenseConfig.whole_range_in_view`` it drops no pixel: an object with enough pixels in view keeps
             its median over all of them.
     """

@@ -51,7 +51,8 @@ def _select_nearest_ranks(values: torch.Tensor, labels: torch.Tensor, slots: tor
 
 def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, image_w: torch.Tensor,
                            config: DenseConfig = DenseConfig(), extra_margin_px: float = 0.0,
-                           min_count: int | None = None, groups: torch.Tensor | None = None) -> DisparityRange:
+                           min_count: int | None = None, groups: torch.Tensor | None = None,
+                           tail_bin_px: float | None = None) -> DisparityRange:
     """Per-pair search range from sample disparities ``(B, P)`` (``valid`` ``(B, P)``: coarse dense pixels of
     the kept regions, or sparse inliers): their ``range_percentiles`` widened by
     ``max(range_margin_px, range_margin_fraction · span) + extra_margin_px`` on each side, clipped at 0 and to
@@ -63,18 +64,28 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     are then taken within each group that has at least ``min_count`` samples and the pair's range is their
     union, so a small object at a different distance is not cut away as the outer percent of the pixels of a
     big one (measured: a 97-pixel far object of Middlebury Baby2 at 320 px was ranged at 7.5 m instead of
-    11.5 m when the percentiles pooled both objects)."""
+    11.5 m when the percentiles pooled both objects).
+
+    ``tail_bin_px`` (optional, with ``config.in_view_detached_tail_share``): the samples' grid, e.g. the coarse
+    pass's pixel. The range's ``in_view_top_px`` is then its top with each group's detached near tail left out
+    (:func:`_detached_tail_ceiling`); the range searched keeps every sample."""
     check_shape(disparity_px, "disparity_px", ["B", "P"])
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
     values = disparity_px.detach().to(torch.float64)
     enough_count = config.min_range_inliers if min_count is None else min_count
     percentiles = (config.range_percentiles[0] / 100, config.range_percentiles[1] / 100)
+    share = config.in_view_detached_tail_share if tail_bin_px is not None else None
+    if groups is None and share is not None:
+        groups = valid.unsqueeze(1)  # the pair's samples as one group, to find its detached tail
+    trimmed_high = None
     if groups is None:
         count, low, high = _pair_percentiles(disparity_px, values, valid, percentiles)
     else:
-        count, low, high = _group_percentiles(disparity_px, values, valid, groups, percentiles, enough_count)
+        count, low, high, trimmed_high = _group_percentiles(disparity_px, values, valid, groups, percentiles,
+                                                            enough_count, tail_bin_px, share)
     margin = torch.clamp_min((high - low) * config.range_margin_fraction, config.range_margin_px) + extra_margin_px
+    low_sample = low
     enough = count >= enough_count
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
@@ -85,7 +96,13 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     low = torch.where(high - low + 1 > span, (centre - span / 2).floor().clamp_min(0), low)
     span = span.clamp_min(2).long()
     num_disparities = int(span.max()) if span.numel() else 2
-    return DisparityRange(low.long(), num_disparities, span)
+    in_view_top = None
+    if trimmed_high is not None:  # the range it would search without the tail, never above the range searched
+        top = low + span - 1
+        trimmed_margin = torch.clamp_min((trimmed_high - low_sample) * config.range_margin_fraction,
+                                         config.range_margin_px) + extra_margin_px
+        in_view_top = torch.where(enough, torch.minimum((trimmed_high + trimmed_margin).ceil(), top), top).long()
+    return DisparityRange(low.long(), num_disparities, span, in_view_top)
 
 
 def _pair_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: torch.Tensor,
@@ -106,10 +123,13 @@ def _pair_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: t
 
 
 def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: torch.Tensor, groups: torch.Tensor,
-                       percentiles: tuple[float, float], enough_count: int
-                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                       percentiles: tuple[float, float], enough_count: int, tail_bin_px: float | None = None,
+                       tail_share: float | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """The union over each pair's groups of at least ``enough_count`` samples of their percentile ranges: the
-    pair's count of samples in those groups, the lowest low and the highest high (0 where no group has enough)."""
+    pair's count of samples in those groups, the lowest low and the highest high (0 where no group has enough).
+    With ``tail_bin_px`` and ``tail_share`` also the highest high once each group leaves out its detached near
+    tail (:func:`_detached_tail_ceiling`), else None."""
     check_shape(groups, "groups", [disparity_px.shape[0], "G", disparity_px.shape[1]])
     check_dtype(groups, "groups", "bool")
     inside = groups & valid.unsqueeze(1)  # (B, G, P)
@@ -133,7 +153,41 @@ def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: 
     high = torch.where(used, group_high, torch.full_like(group_high, -torch.inf)).amax(dim=1)
     count = torch.where(used.any(dim=1), group_count.sum(dim=1), torch.zeros_like(group_count[:, 0]))
     low, high = torch.where(used.any(dim=1), low, 0.0), torch.where(used.any(dim=1), high, 0.0)
-    return count, low, high
+    trimmed_high = None
+    if tail_bin_px is not None and tail_share is not None:
+        ceiling = _detached_tail_ceiling(values, inside, tail_bin_px, tail_share)
+        trimmed_high = torch.where(used, torch.minimum(group_high, ceiling), -torch.inf).amax(dim=1)
+        trimmed_high = torch.where(used.any(dim=1), trimmed_high, 0.0)
+    return count, low, high, trimmed_high
+
+
+def _detached_tail_ceiling(values: torch.Tensor, inside: torch.Tensor, bin_px: float, share: float
+                           ) -> torch.Tensor:
+    """Per group ``(B, G)``: the ceiling of its samples ``values`` ``(B, P)`` (``inside`` ``(B, G, P)``) once a
+    detached near tail is left out. The samples are binned by ``bin_px``; the lowest empty bin above the group's
+    median bin with at most ``share`` of its samples above it ends the group (the ceiling is that bin's lower
+    edge); ``inf`` where there is none. Why: a coarse pass over noisy frames (JPEG, sensor noise, a lighting
+    change) finds a few percent of wrong matches, often in clusters far above the true disparities, enough to
+    lift the 99th percentile two- or threefold (tuned PianoL at native size, JPEG digit 2: 35–87 against true
+    8–26 working pixels), and an object near the left border then lies in the band the in-view rule leaves
+    unranged (``DepthConfig.min_object_pixels_in_view``; measured: a Playroom object at JPEG digit 7, PianoL at
+    native size, digits 2 and 3)."""
+    b, g, _ = inside.shape
+    if values.shape[1] == 0:
+        return torch.full((b, g), torch.inf, dtype=torch.float64, device=values.device)
+    wanted = inside.any(dim=1)
+    bins = torch.where(wanted, values / bin_px, 0.0).nan_to_num(0.0, 0.0, 0.0).floor().clamp_min(0).long()  # (B, P)
+    count = int(bins.max()) + 2
+    hist = torch.zeros(b, g, count, dtype=torch.float64, device=values.device)
+    hist.scatter_add_(2, bins.unsqueeze(1).expand(b, g, -1), inside.to(torch.float64))
+    total = hist.sum(dim=2, keepdim=True)
+    below = hist.cumsum(dim=2) - hist  # samples in lower bins
+    above = total - below - hist  # samples in higher bins
+    index = torch.arange(count, device=values.device).view(1, 1, -1)
+    median = ((below + hist) < total / 2).sum(dim=2, keepdim=True)  # the bin holding the median sample
+    cut = (hist == 0) & (index > median) & (above <= share * total)
+    high_bin = torch.where(cut, index, count).amin(dim=2)
+    return torch.where(high_bin < count, high_bin.to(torch.float64) * bin_px, torch.inf)
 
 
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
@@ -169,4 +223,4 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     inside = (coarse.valid & mask).flatten(1)
     groups = None if objects is None else objects.flatten(2)
     return disparity_search_range(samples, inside, image_hw[:, 1], config, extra_margin_px=factor,
-                                  min_count=config.min_range_pixels, groups=groups)
+                                  min_count=config.min_range_pixels, groups=groups, tail_bin_px=factor)

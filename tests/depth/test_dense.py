@@ -306,6 +306,60 @@ def test_search_range_per_object_keeps_a_small_far_object():
         disparity_search_range(samples, valid, torch.tensor([320]), config, groups=groups[:, :, :5])
 
 
+def _reference_tail_ceiling(values: np.ndarray, bin_px: float, share: float) -> float:
+    """Written from the docstring of ``_detached_tail_ceiling``: a loop over the bins of one group."""
+    bins = np.floor(values / bin_px).astype(int)
+    hist = np.bincount(bins, minlength=bins.max() + 2)
+    total, median = len(values), 0
+    while hist[:median + 1].sum() < total / 2:
+        median += 1
+    for k in range(median + 1, len(hist)):
+        if hist[k] == 0 and hist[k + 1:].sum() <= share * total:
+            return k * bin_px
+    return np.inf
+
+
+def test_in_view_top_leaves_out_a_detached_near_tail_of_wrong_matches():
+    """A cluster of wrong coarse matches far above an object's disparities (noisy frames) lifts the 99th
+    percentile; with ``in_view_detached_tail_share`` the top the in-view rule allows for leaves out a near tail
+    cut off by an empty coarse pixel and holding at most that share, while the range searched keeps it, and a
+    tail holding more is kept. The ceilings equal a loop over the bins."""
+    from svs_torch.depth.search_range import _detached_tail_ceiling
+
+    generator = torch.Generator().manual_seed(3)
+    main = 15 + 2 * torch.randn(2, 950, generator=generator, dtype=F64).clamp(-3, 3)
+    tail = torch.tensor([[68.0] * 30 + [84.0] * 20, [68.0] * 25 + [2.0] * 25], dtype=F64)
+    samples = torch.cat([main, tail], dim=1)
+    valid = torch.ones_like(samples, dtype=torch.bool)
+    width = torch.tensor([700, 700])
+    plain = disparity_search_range(samples, valid, width, DenseConfig(in_view_detached_tail_share=None), min_count=20,
+                                   tail_bin_px=2)
+    top = plain.min_disparity_px + plain.pair_num_disparities - 1
+    assert plain.in_view_top_px is None and (top >= 68).all()
+    config = DenseConfig()  # the default: 0.1
+    trimmed = disparity_search_range(samples, valid, width, config, min_count=20, tail_bin_px=2)
+    assert torch.equal(trimmed.min_disparity_px, plain.min_disparity_px)  # the same range searched
+    assert torch.equal(trimmed.pair_num_disparities, plain.pair_num_disparities)
+    assert (trimmed.in_view_top_px < 40).all() and (trimmed.in_view_top_px >= 21).all()  # its own 9-21 px + margin
+    kept = disparity_search_range(samples, valid, width, replace(config, in_view_detached_tail_share=0.01),
+                                  min_count=20, tail_bin_px=2)
+    assert torch.equal(kept.in_view_top_px, top)  # tails of 2–3 % > 1 %: kept
+    # Without the coarse grid (sparse inliers) nothing is trimmed; one group is the pair.
+    assert disparity_search_range(samples, valid, width, config, min_count=20).in_view_top_px is None
+    grouped = disparity_search_range(samples, valid, width, config, min_count=20, groups=valid.unsqueeze(1),
+                                     tail_bin_px=2)
+    assert torch.equal(grouped.in_view_top_px, trimmed.in_view_top_px)
+    values = torch.cat([torch.randint(0, 60, (3, 40), generator=generator),
+                        torch.randint(20, 30, (3, 400), generator=generator)], dim=1).to(F64) + 0.5
+    inside = torch.rand(3, 2, 440, generator=generator) < 0.5
+    ceiling = _detached_tail_ceiling(values, inside, 2.0, 0.06)
+    for b in range(3):
+        for g in range(2):
+            assert float(ceiling[b, g]) == _reference_tail_ceiling(values[b][inside[b, g]].numpy(), 2.0, 0.06)
+    with pytest.raises(InputError, match="in_view_detached_tail_share"):
+        DenseConfig(in_view_detached_tail_share=0.5)
+
+
 @pytest.mark.parametrize("grouped", [False, True])
 def test_search_range_by_selection_equals_the_sort(grouped, monkeypatch):
     """The compiled selection of the range's nearest-rank percentiles gives the sort's range exactly, with
