@@ -11,8 +11,8 @@ views' quartiles differ by more than ``ExposureConfig.min_change`` (by default
 :data:`~svs_torch.pipeline.exposure.RETRY_MIN_CHANGE`: below it the difference is the two views' content, not a
 gain, and a second run there only costs time), is run again on the matched views. The second
 result is kept only where it is verified and ranges more objects (or as many, the first being unverified or coarse
-and the second not; or, the first's split taken again and the second's not, or the first coarse and the second
-not, any object with more of the kept regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the
+and the second not; or, the first's split taken again and the second's not, any object with more of the kept
+regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the
 retry cannot let them through.
 
 Why a complete first result needs a plausible second: a first run verified with every kept object ranged is
@@ -118,13 +118,8 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
     # its split is not replaced because the second ranges more objects: PianoL's split is taken again on matched
     # views too, and their extra region was wrong (JPEG digit 1: 97.7 -> 90.3 %).
     usual = retaken & ~_split_retaken(second) & second.verified & second.depth.objects.valid.any(1)
-    # Likewise a first from the coarse grid against a second at the working width: the clipped patch that left the
-    # working width too little to measure may also have cut the scene into regions the grid ranges wrong (tuned
-    # Piano at native size, +30 %: two objects ranged on 40 % of their pixels at 80.1 %; matched, one on 82 % at
-    # 99.7 %), and a count of ranged objects does not compare two segmentations.
-    from_grid = coarse & ~second.coarse & second.verified & second.depth.objects.valid.any(1)
     more_measured = measured_share(second.depth.objects) > measured_share(first.depth.objects).index_select(0, index)
-    return pick | ((usual | from_grid) & more_measured)
+    return pick | (usual & more_measured)
 
 
 def _split_retaken(result: PipelineResult) -> torch.Tensor:
