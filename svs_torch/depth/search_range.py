@@ -84,8 +84,9 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     else:
         count, low, high, trimmed_high = _group_percentiles(disparity_px, values, valid, groups, percentiles,
                                                             enough_count, tail_bin_px, share)
-    margin = torch.clamp_min((high - low) * config.range_margin_fraction, config.range_margin_px) + extra_margin_px
-    low_sample = low
+    margin = _margin(low, high, config, extra_margin_px)
+    # The range it would search without the detached tail: the same margin rule from the trimmed top.
+    trimmed_top = None if trimmed_high is None else trimmed_high + _margin(low, trimmed_high, config, extra_margin_px)
     enough = count >= enough_count
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
@@ -97,12 +98,16 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     span = span.clamp_min(2).long()
     num_disparities = int(span.max()) if span.numel() else 2
     in_view_top = None
-    if trimmed_high is not None:  # the range it would search without the tail, never above the range searched
+    if trimmed_top is not None:  # never above the range searched
         top = low + span - 1
-        trimmed_margin = torch.clamp_min((trimmed_high - low_sample) * config.range_margin_fraction,
-                                         config.range_margin_px) + extra_margin_px
-        in_view_top = torch.where(enough, torch.minimum((trimmed_high + trimmed_margin).ceil(), top), top).long()
+        in_view_top = torch.where(enough, torch.minimum(trimmed_top.ceil(), top), top).long()
     return DisparityRange(low.long(), num_disparities, span, in_view_top)
+
+
+def _margin(low: torch.Tensor, high: torch.Tensor, config: DenseConfig, extra_margin_px: float) -> torch.Tensor:
+    """What the range adds on each side of the samples' ``low``–``high`` percentiles:
+    ``max(range_margin_px, range_margin_fraction · span) + extra_margin_px``."""
+    return torch.clamp_min((high - low) * config.range_margin_fraction, config.range_margin_px) + extra_margin_px
 
 
 def _pair_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: torch.Tensor,
@@ -177,17 +182,17 @@ def _detached_tail_ceiling(values: torch.Tensor, inside: torch.Tensor, bin_px: f
         return torch.full((b, g), torch.inf, dtype=torch.float64, device=values.device)
     wanted = inside.any(dim=1)
     bins = torch.where(wanted, values / bin_px, 0.0).nan_to_num(0.0, 0.0, 0.0).floor().clamp_min(0).long()  # (B, P)
-    count = int(bins.max()) + 2
-    hist = torch.zeros(b, g, count, dtype=torch.float64, device=values.device)
+    num_bins = int(bins.max()) + 2
+    hist = torch.zeros(b, g, num_bins, dtype=torch.float64, device=values.device)
     hist.scatter_add_(2, bins.unsqueeze(1).expand(b, g, -1), inside.to(torch.float64))
     total = hist.sum(dim=2, keepdim=True)
     below = hist.cumsum(dim=2) - hist  # samples in lower bins
     above = total - below - hist  # samples in higher bins
-    index = torch.arange(count, device=values.device).view(1, 1, -1)
+    index = torch.arange(num_bins, device=values.device).view(1, 1, -1)
     median = ((below + hist) < total / 2).sum(dim=2, keepdim=True)  # the bin holding the median sample
     cut = (hist == 0) & (index > median) & (above <= share * total)
-    high_bin = torch.where(cut, index, count).amin(dim=2)
-    return torch.where(high_bin < count, high_bin.to(torch.float64) * bin_px, torch.inf)
+    high_bin = torch.where(cut, index, num_bins).amin(dim=2)
+    return torch.where(high_bin < num_bins, high_bin.to(torch.float64) * bin_px, torch.inf)
 
 
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
