@@ -49,6 +49,11 @@ class DenseConfig:
             off from its median by an empty coarse pixel and holding at most this share of them (clustered wrong
             matches of noisy frames; :func:`~svs_torch.depth.search_range._detached_tail_ceiling`); the range
             searched keeps them. None: the top of the range searched.
+        in_view_margin: the margin that in-view top is widened by (with ``in_view_detached_tail_share`` set):
+            ``"object"``, the range's margin rule applied to each kept object's own coarse disparities, the top
+            being the highest object's; ``"pair"``, the rule applied to the span of all of them, so that a far
+            object (or its own far tail of wrong matches) lifts the top above the nearest object's and widens the
+            band the in-view rule leaves unranged on the left border. The range searched is the same either way.
         max_num_disparities: most disparities searched per pair (the range is clipped around its centre).
         fallback_max_disparity_fraction: the widest disparity searched, as a fraction of the width: the
             coarse pass's range, and the range of a pair with too few samples.
@@ -104,6 +109,7 @@ class DenseConfig:
     range_margin_fraction: float = 0.25
     range_percentiles: tuple[float, float] = (1.0, 99.0)
     in_view_detached_tail_share: float | None = 0.1  # real_rig.md, "The in-view top": 0.05-0.2 alike (tuning sets)
+    in_view_margin: Literal["object", "pair"] = "object"  # real_rig.md, "The in-view top": the tuning sets alike
     max_num_disparities: int = 128
     fallback_max_disparity_fraction: float = 0.25
     min_range_inliers: int = 7
@@ -141,6 +147,8 @@ class DenseConfig:
         if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
                                   or not 0 <= share < 0.5):
             raise InputError(f"in_view_detached_tail_share: expected None or a share in [0, 0.5), got {share!r}")
+        if self.in_view_margin not in ("object", "pair"):
+            raise InputError(f"in_view_margin: expected 'object' or 'pair', got {self.in_view_margin!r}")
         low, high = self.range_percentiles
         if not 0 <= low <= high <= 100:
             raise InputError(f"range_percentiles: expected 0 <= low <= high <= 100, got {self.range_percentiles}")

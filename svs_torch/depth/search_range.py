@@ -19,6 +19,11 @@ from .pooling import _any_pool, mean_pool
 __all__ = ["coarse_search_range", "disparity_search_range"]
 
 
+#: Per group ``(B, G)`` of :func:`_group_percentiles`: whether it bounds the range, its low, and its high without its
+#: detached near tail.
+_Trimmed = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
 def _nearest_rank(ordered: torch.Tensor, count: torch.Tensor, q: float) -> torch.Tensor:
     """Nearest-rank quantile ``q`` of the first ``count`` entries of each sorted row of ``ordered`` ``(B, P)``."""
     if ordered.shape[1] == 0:
@@ -68,7 +73,8 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
 
     ``tail_bin_px`` (optional, with ``config.in_view_detached_tail_share``): the samples' grid, e.g. the coarse
     pass's pixel. The range's ``in_view_top_px`` is then its top with each group's detached near tail left out
-    (:func:`_detached_tail_ceiling`); the range searched keeps every sample."""
+    (:func:`_detached_tail_ceiling`) and, with ``config.in_view_margin="object"``, each group's margin from its own
+    span (:func:`_in_view_top`); the range searched keeps every sample."""
     check_shape(disparity_px, "disparity_px", ["B", "P"])
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
@@ -78,15 +84,14 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     share = config.in_view_detached_tail_share if tail_bin_px is not None else None
     if groups is None and share is not None:
         groups = valid.unsqueeze(1)  # the pair's samples as one group, to find its detached tail
-    trimmed_high = None
+    trimmed = None
     if groups is None:
         count, low, high = _pair_percentiles(disparity_px, values, valid, percentiles)
     else:
-        count, low, high, trimmed_high = _group_percentiles(disparity_px, values, valid, groups, percentiles,
-                                                            enough_count, tail_bin_px, share)
+        count, low, high, trimmed = _group_percentiles(disparity_px, values, valid, groups, percentiles,
+                                                       enough_count, tail_bin_px, share)
     margin = _margin(low, high, config, extra_margin_px)
-    # The range it would search without the detached tail: the same margin rule from the trimmed top.
-    trimmed_top = None if trimmed_high is None else trimmed_high + _margin(low, trimmed_high, config, extra_margin_px)
+    trimmed_top = None if trimmed is None else _in_view_top(trimmed, low, config, extra_margin_px)
     enough = count >= enough_count
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
@@ -102,6 +107,19 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
         top = low + span - 1
         in_view_top = torch.where(enough, torch.minimum(trimmed_top.ceil(), top), top).long()
     return DisparityRange(low.long(), num_disparities, span, in_view_top)
+
+
+def _in_view_top(trimmed: _Trimmed, low: torch.Tensor, config: DenseConfig,
+                 extra_margin_px: float) -> torch.Tensor:
+    """The top ``(B,)`` of the disparities the in-view rule allows for, before it is capped at the range searched:
+    the highest of the used groups' tops without their detached near tails (``trimmed`` = used, low and trimmed
+    high, ``(B, G)`` each), each widened by the margin rule. ``config.in_view_margin`` ``"object"``: each group's
+    margin from its own span, as if it were ranged alone; ``"pair"``: from the pair's span down to ``low``, so
+    another object's far tail of wrong matches (or a far object) widens it (0 where no group is used)."""
+    used, group_low, group_high = trimmed
+    base = group_low if config.in_view_margin == "object" else low.unsqueeze(1).expand_as(group_low)
+    tops = torch.where(used, group_high + _margin(base, group_high, config, extra_margin_px), -torch.inf)
+    return torch.where(used.any(dim=1), tops.amax(dim=1), 0.0)
 
 
 def _margin(low: torch.Tensor, high: torch.Tensor, config: DenseConfig, extra_margin_px: float) -> torch.Tensor:
@@ -130,11 +148,11 @@ def _pair_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: t
 def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: torch.Tensor, groups: torch.Tensor,
                        percentiles: tuple[float, float], enough_count: int, tail_bin_px: float | None = None,
                        tail_share: float | None = None
-                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Trimmed | None]:
     """The union over each pair's groups of at least ``enough_count`` samples of their percentile ranges: the
     pair's count of samples in those groups, the lowest low and the highest high (0 where no group has enough).
-    With ``tail_bin_px`` and ``tail_share`` also the highest high once each group leaves out its detached near
-    tail (:func:`_detached_tail_ceiling`), else None."""
+    With ``tail_bin_px`` and ``tail_share`` also, per group ``(B, G)``, whether it is used, its low and its high
+    once it leaves out its detached near tail (:func:`_detached_tail_ceiling`), else None."""
     check_shape(groups, "groups", [disparity_px.shape[0], "G", disparity_px.shape[1]])
     check_dtype(groups, "groups", "bool")
     inside = groups & valid.unsqueeze(1)  # (B, G, P)
@@ -158,12 +176,11 @@ def _group_percentiles(disparity_px: torch.Tensor, values: torch.Tensor, valid: 
     high = torch.where(used, group_high, torch.full_like(group_high, -torch.inf)).amax(dim=1)
     count = torch.where(used.any(dim=1), group_count.sum(dim=1), torch.zeros_like(group_count[:, 0]))
     low, high = torch.where(used.any(dim=1), low, 0.0), torch.where(used.any(dim=1), high, 0.0)
-    trimmed_high = None
+    trimmed = None
     if tail_bin_px is not None and tail_share is not None:
         ceiling = _detached_tail_ceiling(values, inside, tail_bin_px, tail_share)
-        trimmed_high = torch.where(used, torch.minimum(group_high, ceiling), -torch.inf).amax(dim=1)
-        trimmed_high = torch.where(used.any(dim=1), trimmed_high, 0.0)
-    return count, low, high, trimmed_high
+        trimmed = used, group_low, torch.minimum(group_high, ceiling)
+    return count, low, high, trimmed
 
 
 def _detached_tail_ceiling(values: torch.Tensor, inside: torch.Tensor, bin_px: float, share: float

@@ -360,6 +360,56 @@ def test_in_view_top_leaves_out_a_detached_near_tail_of_wrong_matches():
         DenseConfig(in_view_detached_tail_share=0.5)
 
 
+def _reference_in_view_top(groups: list[np.ndarray], config: DenseConfig, extra_px: float, per_object: bool) -> float:
+    """Written from the docstrings of ``DenseConfig.in_view_margin`` and ``_in_view_top`` for groups without a
+    detached near tail: each group's nearest-rank percentiles, the margin rule from its own span ("object") or
+    from the lowest group's low ("pair"), the highest top."""
+    def rank(values, q):
+        ordered = np.sort(values)
+        return ordered[int(round((len(ordered) - 1) * q))]
+
+    low_q, high_q = (p / 100 for p in config.range_percentiles)
+    lows, highs = [rank(g, low_q) for g in groups], [rank(g, high_q) for g in groups]
+    tops = [high + max(config.range_margin_px, config.range_margin_fraction * (high - (low if per_object else min(lows))))
+            + extra_px for low, high in zip(lows, highs)]
+    return float(np.ceil(max(tops)))
+
+
+def test_in_view_top_takes_each_objects_margin_from_its_own_span():
+    """Two kept objects: a near one at 44–52 px and a far one at 20–26 px whose coarse matches hold a 3 % tail of
+    wrong far matches at 2–4 px (not detached above its median, so kept). The range searched spans both with the
+    margin of that whole span; the in-view top widens each object's top by its own span's margin, so the far
+    object's tail no longer lifts it (the near object's 99th percentile 52 px, plus 2 px for the coarse grid and
+    the margin: of the whole 3–52 px span, 12 px, "pair": 67; of its own 44–52 px, 2 px, "object": 56), while the
+    range searched is 0–67 px either way. Both equal a reference
+    written from the docstrings; one group gives the same top either way."""
+    generator = torch.Generator().manual_seed(5)
+    near = 44 + 8 * torch.rand(600, generator=generator, dtype=F64)
+    far = torch.cat([20 + 6 * torch.rand(388, generator=generator, dtype=F64),
+                     2 + 2 * torch.rand(12, generator=generator, dtype=F64)])
+    samples = torch.cat([near, far]).unsqueeze(0)
+    valid = torch.ones_like(samples, dtype=torch.bool)
+    groups = torch.zeros(1, 2, 1000, dtype=torch.bool)
+    groups[0, 0, :600], groups[0, 1, 600:] = True, True
+    width = torch.tensor([320])
+    tops = {}
+    for margin in ("object", "pair"):
+        config = DenseConfig(in_view_margin=margin)
+        found = disparity_search_range(samples, valid, width, config, extra_margin_px=2, min_count=20, groups=groups,
+                                       tail_bin_px=2)
+        expected = _reference_in_view_top([near.numpy(), far.numpy()], config, 2, margin == "object")
+        searched_top = int(found.min_disparity_px[0] + found.pair_num_disparities[0] - 1)
+        assert int(found.in_view_top_px[0]) == min(expected, searched_top)
+        tops[margin] = (int(found.in_view_top_px[0]), found.min_disparity_px, found.pair_num_disparities)
+    assert (tops["object"][0], tops["pair"][0]) == (56, 67)
+    assert torch.equal(tops["object"][1], tops["pair"][1]) and torch.equal(tops["object"][2], tops["pair"][2])
+    one = [disparity_search_range(samples, valid, width, DenseConfig(in_view_margin=m), extra_margin_px=2,
+                                  min_count=20, tail_bin_px=2).in_view_top_px for m in ("object", "pair")]
+    assert torch.equal(one[0], one[1])
+    with pytest.raises(InputError, match="in_view_margin: expected 'object' or 'pair'"):
+        DenseConfig(in_view_margin="pairs")
+
+
 @pytest.mark.parametrize("grouped", [False, True])
 def test_search_range_by_selection_equals_the_sort(grouped, monkeypatch):
     """The compiled selection of the range's nearest-rank percentiles gives the sort's range exactly, with
