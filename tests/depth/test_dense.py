@@ -370,8 +370,9 @@ def _reference_in_view_top(groups: list[np.ndarray], config: DenseConfig, extra_
 
     low_q, high_q = (p / 100 for p in config.range_percentiles)
     lows, highs = [rank(g, low_q) for g in groups], [rank(g, high_q) for g in groups]
-    tops = [high + max(config.range_margin_px, config.range_margin_fraction * (high - (low if per_object else min(lows))))
-            + extra_px for low, high in zip(lows, highs)]
+    bases = lows if per_object else [min(lows)] * len(lows)
+    tops = [high + max(config.range_margin_px, config.range_margin_fraction * (high - base)) + extra_px
+            for base, high in zip(bases, highs)]
     return float(np.ceil(max(tops)))
 
 
