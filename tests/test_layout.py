@@ -46,6 +46,7 @@ LONG_FUNCTIONS: dict[str, str] = {
     "svs_torch.geometry.ransac.estimate_fundamental_ransac": "18 lines of code; 17 of signature, 37 of docstring",
     "svs_torch.geometry.lk_refinement.refine_matches_lk": "32 lines of code; 13 of signature, 28 of docstring",
     "svs_torch.geometry.matching.match_sad": "24 lines of code; 15 of signature, 25 of docstring",
+    "svs_torch.data.synthetic.render_obstacle_scenes": "15 lines of code; 20 of signature, 30 of docstring",
 }
 
 

@@ -128,11 +128,12 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
 
 def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px: float,
                 generator: torch.Generator, contrast: float = 1.0, floor: bool = False,
-                heap: bool = False) -> torch.Tensor:
+                heap: bool = False, wall_contrast: float | None = None) -> torch.Tensor:
     """Periodic texture tiles ``(B, S, G, G)`` in [0, 1], slot 0 the wall, from the depth ``(B, S)`` of each
     surface (it sets the texture scale, see the module constants) and the side ``(B, S)`` in metres of the
-    square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value).
-    ``floor``: every slot is a floor's (its intensities); ``heap``: every slot is an obstacle's."""
+    square each tile spans; ``contrast`` scales the texture amplitudes (the same random draws at any value), and
+    ``wall_contrast`` the wall's instead where given. ``floor``: every slot is a floor's (its intensities); ``heap``:
+    every slot is an obstacle's."""
     b, s = tile_depth_m.shape
     g = _TILE_TEXELS
     dtype, device = tile_depth_m.dtype, tile_depth_m.device
@@ -153,7 +154,8 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
     is_object = (torch.arange(s, device=device).view(1, s) > 0) | heap
     low = torch.where(is_object, _OBJECT_MEAN[0], _BACKGROUND_MEAN[0])
     high = torch.where(is_object, _OBJECT_MEAN[1], _BACKGROUND_MEAN[1])
-    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE * contrast, _BACKGROUND_AMPLITUDE * contrast)
+    wall = contrast if wall_contrast is None else wall_contrast
+    amplitude = torch.where(is_object, _OBJECT_AMPLITUDE * contrast, _BACKGROUND_AMPLITUDE * wall)
     if floor:
         low, high = torch.full_like(low, _FLOOR_MEAN[0]), torch.full_like(high, _FLOOR_MEAN[1])
         amplitude = torch.full_like(amplitude, _FLOOR_AMPLITUDE * contrast)
@@ -162,7 +164,8 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
 
 
 def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], generator: torch.Generator,
-                   contrast: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   contrast: float = 1.0, wall_contrast: float | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Texture tiles ``(B, K + 1, G, G)`` of the wall (slot 0) and the objects, their centres ``(B, K + 1, 2)``
     and sides ``(B, K + 1)`` in metres. An object's tile spans max(width, height) around its centre; the wall's
     spans what either camera sees of it (the left view's extent plus the baseline).
@@ -174,7 +177,7 @@ def _surface_tiles(scene: _Scene, baseline_m: float, size_wh: tuple[int, int], g
     tile_center = torch.cat([wall_center, scene.center_xy_m], dim=1)
     tile_side = torch.cat([torch.full((b, 1), wall_side, **options), scene.size_m.amax(dim=-1)], dim=1)
     tile_depth = torch.cat([torch.full((b, 1), scene.background_depth_m, **options), scene.depth_m], dim=1)
-    tiles = _make_tiles(tile_depth, tile_side, scene.focal_px, generator, contrast)
+    tiles = _make_tiles(tile_depth, tile_side, scene.focal_px, generator, contrast, wall_contrast=wall_contrast)
     if scene.floor_height_m is None:
         return tiles, tile_center, tile_side
     # The floor's tile, drawn after the others (a scene's boxes and wall look the same with or without it),

@@ -86,11 +86,14 @@ def _require(condition: bool, message: str) -> None:
         raise InputError(message)
 
 
-def _check_look_args(texture_contrast: float, floor_height_m: float | None, camera_pitch_deg: float) -> None:
-    """Validate :func:`render_obstacle_scenes`'s texture contrast and floor."""
+def _check_look_args(texture_contrast: float, floor_height_m: float | None, camera_pitch_deg: float,
+                     wall_texture_contrast: float | None = None) -> None:
+    """Validate :func:`render_obstacle_scenes`'s texture contrasts and floor."""
     real = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
     _require(real(texture_contrast) and texture_contrast >= 0,
              f"texture_contrast: expected a finite number >= 0, got {texture_contrast!r}")
+    _require(wall_texture_contrast is None or (real(wall_texture_contrast) and wall_texture_contrast >= 0),
+             f"wall_texture_contrast: expected None or a finite number >= 0, got {wall_texture_contrast!r}")
     _require(floor_height_m is None or (real(floor_height_m) and floor_height_m > 0),
              f"floor_height_m: expected None or a positive finite height in metres, got {floor_height_m!r}")
     _require(real(camera_pitch_deg) and -30 <= camera_pitch_deg <= 60,
@@ -164,6 +167,7 @@ def render_obstacle_scenes(
     supersample: int = 2,
     noise_std: float = 0.0,
     texture_contrast: float = 1.0,
+    wall_texture_contrast: float | None = None,
     floor_height_m: float | None = None,
     camera_pitch_deg: float = 0.0,
     heaps: torch.Tensor | None = None,
@@ -186,6 +190,9 @@ def render_obstacle_scenes(
         noise_std: standard deviation of additive gaussian sensor noise on [0, 1] intensities.
         texture_contrast: the texture amplitude as a multiple of the default (0.14 on objects, 0.10 on the wall);
             e.g. 0.3 for weakly textured real fronts (painted boards, cloth), which JPEG and noise wipe out.
+        wall_texture_contrast: the wall's texture amplitude as a multiple of its default instead (None: as
+            ``texture_contrast``); e.g. 0.1 for a plain painted wall, about one 8-bit level, which a camera's noise
+            hides (the same random draws at any value).
         floor_height_m: the cameras' height over a textured floor, metres (None: none): a walker's view, whose
             floor ahead is the nearest surface in view and not an obstacle.
         camera_pitch_deg: the cameras pitched down by this many degrees, in [−30, 60]; it moves only the floor
@@ -198,7 +205,7 @@ def render_obstacle_scenes(
     """
     object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
                                       tuple(size_wh), background_depth_m, supersample, noise_std)
-    _check_look_args(texture_contrast, floor_height_m, camera_pitch_deg)
+    _check_look_args(texture_contrast, floor_height_m, camera_pitch_deg, wall_texture_contrast)
     _check_heaps(heaps, object_depth_m.shape[0], floor_height_m, heap_roughness_m)
     (width, height), device = size_wh, object_depth_m.device
     generator = _resolve_generator(generator, device)
@@ -206,7 +213,8 @@ def render_obstacle_scenes(
                         (width, height), dtype, background_depth_m, floor_height_m, camera_pitch_deg)
     if heaps is not None:  # drawn before the tiles: scenes without heaps draw what they drew before
         scene = scene._replace(heap=make_heap_field(heaps.to(device, dtype), float(heap_roughness_m), generator))
-    tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator, float(texture_contrast))
+    tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator, float(texture_contrast),
+                           None if wall_texture_contrast is None else float(wall_texture_contrast))
     left, right = (_with_noise(_render_view(camera_x, scene, (width, height), supersample, *tiles), noise_std,
                                generator) for camera_x in (0.0, camera.baseline_m))
     return _with_ground_truth(scene, left, right, camera.baseline_m)

@@ -263,6 +263,24 @@ def test_texture_contrast_scales_the_texture_only() -> None:
     assert float(flat.batch.left[flat.object_ids == 0].std()) < 1e-6
 
 
+def test_wall_texture_contrast_scales_the_wall_only() -> None:
+    """A plain wall (``wall_texture_contrast``) behind the same objects: the geometry, truth and objects' pixels
+    unchanged, the wall's intensities spread about the same mean by that factor instead of ``texture_contrast``
+    (experiments/real_rig.py ``--splits synthetic-wall``)."""
+    default = random_obstacle_scenes(3, size_wh=(160, 120), generator=seeded(8), supersample=1)
+    plain = random_obstacle_scenes(3, size_wh=(160, 120), generator=seeded(8), supersample=1,
+                                   wall_texture_contrast=0.1)
+    assert torch.equal(default.batch.disparity_px, plain.batch.disparity_px)
+    objects, wall = default.object_ids > 0, default.object_ids == 0
+    assert torch.equal(default.batch.left[objects], plain.batch.left[objects])
+    for scene in range(3):
+        strong, weak = default.batch.left[scene][wall[scene]], plain.batch.left[scene][wall[scene]]
+        assert float(weak.std() / strong.std()) == pytest.approx(0.1, abs=0.01)
+        assert float(weak.mean()) == pytest.approx(float(strong.mean()), abs=0.01)
+    with pytest.raises(InputError, match="wall_texture_contrast: expected None or a finite number >= 0"):
+        random_obstacle_scenes(1, size_wh=(160, 120), generator=seeded(8), wall_texture_contrast=-1.0)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
