@@ -61,7 +61,7 @@ from ..depth.dense_config import DenseConfig
 from .components import connected_components_with_stats, region_properties
 from .ground_plane import GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
-from .nearness_denoise import denoised_map, match_by_noise, soft_match_by_noise
+from .nearness_denoise import check_denoise_settings, denoised_map, match_by_noise, soft_match_by_noise
 from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
 from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
@@ -119,6 +119,10 @@ class NearnessNetConfig:
             is taken again over the disparity clipped at its 90th percentile (:mod:`.nearness_split`); 0:
             never. Chosen on the tuned split only (experiments/select_min_near_share.md). A weights file
             written before this setting existed (the shipped one among them) takes this default.
+        max_fill_px: on a noisy pair (``noisy_min_residual_levels``), the row fill of step 1 fills a run of
+            rejected pixels longer than this many working pixels only between two measured pixels that agree or
+            in the left band; other long runs stay far (:mod:`.nearness_denoise`, "Why long runs stay unfilled").
+            None (the default): every run is filled. A weights file written before this setting existed takes it.
     """
 
     working_width_px: int = 320
@@ -143,6 +147,7 @@ class NearnessNetConfig:
     disparity_temperature: float = 0.003
     probability_threshold: float = 0.5
     min_near_share: float = 0.1  # experiments/select_min_near_share.md
+    max_fill_px: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("working_width_px", "network_width_px"):
@@ -153,17 +158,9 @@ class NearnessNetConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
+        check_denoise_settings(self)
         if not 0 <= self.min_near_share < 1:
             raise InputError(f"min_near_share: expected a share in [0, 1), got {self.min_near_share!r}")
-        if not isinstance(self.sparse_reduction, int) or self.sparse_reduction < 1:
-            raise InputError(f"sparse_reduction: expected an int >= 1, got {self.sparse_reduction!r}")
-        if not self.noisy_min_residual_levels >= 0:
-            raise InputError(f"noisy_min_residual_levels: expected a level >= 0, got "
-                             f"{self.noisy_min_residual_levels!r}")
-        if not self.sparse_agreement_px >= 0:
-            raise InputError(f"sparse_agreement_px: expected a distance >= 0, got {self.sparse_agreement_px!r}")
-        if not 0 <= self.sparse_share <= 1:
-            raise InputError(f"sparse_share: expected a share in [0, 1], got {self.sparse_share!r}")
         if not 0 <= self.uniqueness_ratio < 1:
             raise InputError(f"uniqueness_ratio: expected a value in [0, 1), got {self.uniqueness_ratio!r}")
         if not 0 < self.max_disparity_fraction < 1:
@@ -266,7 +263,7 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     dense = DenseConfig(window_size=config.window_size, uniqueness_ratio=config.uniqueness_ratio)
     with torch.no_grad():
         found, widened = match_by_noise(small_left.detach(), small_right.detach(), num_disparities, dense, config)
-        filled, valid = denoised_map(small_left, small_right, found, num_disparities, dense, config)
+        filled, valid = denoised_map(small_left, small_right, found, num_disparities, dense, config, widened)
     if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):
         soft = soft_match_by_noise(small_left, small_right, num_disparities, dense, config, widened)
         filled = filled + (soft - soft.detach())  # straight-through: forward hard, gradient of the soft-argmin

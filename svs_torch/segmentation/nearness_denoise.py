@@ -37,6 +37,18 @@ Off by default (``NearnessNetConfig.sparse_reduction=1``): on the tuned split it
 object accuracy (experiments/select_nearness_setting.md), but on the held-out split it moves single pairs by
 10–35 points both ways and leaves the board's default JPEG digit below OpenCV SGBM at both sizes (that file's
 "Shipped" paragraph).
+
+Why long runs stay unfilled (``NearnessNetConfig.max_fill_px``, off by default): on a noisy pair a plain wall (a
+painted wall's texture is about one 8-bit level, under a camera's noise) is rejected almost everywhere, and the row
+fill carries the nearest measured pixels across it: a box's edge along the rows to the view's border, or a speck of
+wrong match. The map then joins the boxes and the wall into one near region, the kept region is mostly wall and
+its distance the box's (rendered boxes 1–2 m before a plain wall at 5 m, ``experiments/real_rig.py --splits
+synthetic-wall``: 99.97 % per object clean, 50.7–88.8 % as JPEG frames). With the setting a noisy pair's run of
+rejected pixels is filled only where it is short, lies between two measured pixels that agree within 1 px (one
+surface with a featureless patch), or runs from the left edge to a surface within its own disparity of it (the
+band the right view cannot show it in); a longer run stays far. It ranges those frames at 97.7–99.9 % (digits
+3–7), but the tuned scenes' camera frames, whose near surfaces also hold long rejected runs, lose 0.3–1.2 points
+at 320×240 (``experiments/real_rig.md``, "A plain wall behind the obstacles"), so it stays off.
 """
 
 from __future__ import annotations
@@ -48,6 +60,7 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 
+from ..core.checks import InputError
 from ..depth.block_matching import block_match_sad, block_match_sad_with_residual, fill_invalid_rows
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.soft_dense import soft_block_match
@@ -56,7 +69,22 @@ from . import kernels
 if TYPE_CHECKING:
     from .nearness import NearnessNetConfig
 
-__all__ = ["denoised_map", "match_by_noise", "soft_match_by_noise"]
+__all__ = ["check_denoise_settings", "denoised_map", "fillable_runs", "match_by_noise", "soft_match_by_noise"]
+
+
+def check_denoise_settings(config: NearnessNetConfig) -> None:
+    """The checks of the settings this module reads (``NearnessNetConfig.__post_init__`` calls it)."""
+    fill = config.max_fill_px
+    if fill is not None and (isinstance(fill, bool) or not isinstance(fill, int) or fill < 0):
+        raise InputError(f"max_fill_px: expected None or an int >= 0, got {fill!r}")
+    if not isinstance(config.sparse_reduction, int) or config.sparse_reduction < 1:
+        raise InputError(f"sparse_reduction: expected an int >= 1, got {config.sparse_reduction!r}")
+    if not config.noisy_min_residual_levels >= 0:
+        raise InputError(f"noisy_min_residual_levels: expected a level >= 0, got {config.noisy_min_residual_levels!r}")
+    if not config.sparse_agreement_px >= 0:
+        raise InputError(f"sparse_agreement_px: expected a distance >= 0, got {config.sparse_agreement_px!r}")
+    if not 0 <= config.sparse_share <= 1:
+        raise InputError(f"sparse_share: expected a share in [0, 1], got {config.sparse_share!r}")
 
 
 def match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities: int, dense: DenseConfig,
@@ -127,7 +155,8 @@ def soft_match_by_noise(left: torch.Tensor, right: torch.Tensor, num_disparities
 
 
 def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity, num_disparities: int,
-                 dense: DenseConfig, config: NearnessNetConfig) -> tuple[torch.Tensor, torch.Tensor]:
+                 dense: DenseConfig, config: NearnessNetConfig, noisy: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The filled, median-filtered disparity ``(B, 1, h, w)`` (working pixels) of the block matcher's ``found``
     on the working-width views ``left`` / ``right`` ``(B, 1, h, w)``, and the pixels it rests on: those the
     matcher accepted, or for a sparse pair (module docstring) its agreeing fine matches and the coarse map's
@@ -142,7 +171,28 @@ def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity,
             valid.index_select(0, index), num_disparities, dense, config)
         disparity, valid = disparity.index_copy(0, index, merged), valid.index_copy(0, index, merged_valid)
     filled, reachable = fill_invalid_rows(disparity, valid)
+    if config.max_fill_px is not None and noisy is not None and bool(noisy.any()):
+        limited = fillable_runs(disparity, valid, config.max_fill_px) | ~noisy.view(-1, 1, 1, 1)
+        reachable = reachable & limited
     return _median_by_share(torch.where(reachable, filled, 0.0), sparse, config), valid
+
+
+def fillable_runs(disparity: torch.Tensor, valid: torch.Tensor, max_px: int) -> torch.Tensor:
+    """``(..., W)`` bool: the ``valid`` pixels, and the rejected ones whose run of rejected pixels along the row
+    may be filled (module docstring, "Why long runs stay unfilled"): a run at most ``max_px`` long, one between two
+    measured pixels whose disparities agree within 1 px (one surface), or one from the left edge to a measured
+    pixel at x whose disparity d reaches within ``max_px`` of it (x ≤ d + max_px: the band the right view cannot
+    show that surface in)."""
+    width = valid.shape[-1]
+    index = torch.arange(width, device=valid.device).expand_as(valid)
+    before = torch.where(valid, index, -1).cummax(dim=-1).values  # the last valid pixel at or left of x
+    after = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)  # the first at or right of x
+    left_value = disparity.gather(-1, before.clamp(0, width - 1))
+    right_value = disparity.gather(-1, after.clamp(0, width - 1))
+    short = after - before - 1 <= max_px
+    one_surface = (before >= 0) & (after < width) & ((left_value - right_value).abs() <= 1)
+    band = (before < 0) & (after < width) & (after <= right_value + max_px)
+    return valid | short | one_surface | band
 
 
 def _checked_against_coarse(left: torch.Tensor, right: torch.Tensor, disparity: torch.Tensor, valid: torch.Tensor,
