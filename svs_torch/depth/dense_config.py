@@ -49,7 +49,7 @@ class DenseConfig:
             off from its median by an empty coarse pixel and holding at most this share of them (clustered wrong
             matches of noisy frames; :func:`~svs_torch.depth.search_range._detached_tail_ceiling`); the range
             searched keeps them. None: the top of the range searched.
-        in_view_margin: the margin that in-view top is widened by (with ``in_view_detached_tail_share`` set):
+        in_view_margin: the margin the in-view top is widened by (with ``in_view_detached_tail_share`` set):
             ``"object"``, the range's margin rule applied to each kept object's own coarse disparities, the top
             being the highest object's; ``"pair"``, the rule applied to the span of all of them, so that a far
             object (or its own far tail of wrong matches) lifts the top above the nearest object's and widens the
@@ -109,7 +109,7 @@ class DenseConfig:
     range_margin_fraction: float = 0.25
     range_percentiles: tuple[float, float] = (1.0, 99.0)
     in_view_detached_tail_share: float | None = 0.1  # real_rig.md, "The in-view top": 0.05-0.2 alike (tuning sets)
-    in_view_margin: Literal["object", "pair"] = "object"  # real_rig.md, "The in-view top": the tuning sets alike
+    in_view_margin: Literal["object", "pair"] = "object"  # real_rig.md, "Each object's own margin"
     max_num_disparities: int = 128
     fallback_max_disparity_fraction: float = 0.25
     min_range_inliers: int = 7

@@ -47,7 +47,7 @@ synthetic-wall``: 99.97 % per object clean, 50.7–88.8 % as JPEG frames). With 
 rejected pixels is filled only where it is short, lies between two measured pixels that agree within 1 px (one
 surface with a featureless patch), or runs from the left edge to a surface within its own disparity of it (the
 band the right view cannot show it in); a longer run stays far. It ranges those frames at 97.7–99.9 % (digits
-3–7), but the tuned scenes' camera frames, whose near surfaces also hold long rejected runs, lose 0.3–1.2 points
+3–7), but the tuned scenes' camera frames, whose kept regions change shape with it, lose 0.3–1.0 points
 at 320×240 (``experiments/real_rig.md``, "A plain wall behind the obstacles"), so it stays off.
 """
 
@@ -160,8 +160,9 @@ def denoised_map(left: torch.Tensor, right: torch.Tensor, found: DenseDisparity,
     """The filled, median-filtered disparity ``(B, 1, h, w)`` (working pixels) of the block matcher's ``found``
     on the working-width views ``left`` / ``right`` ``(B, 1, h, w)``, and the pixels it rests on: those the
     matcher accepted, or for a sparse pair (module docstring) its agreeing fine matches and the coarse map's
-    accepted pixels. Each pair's result depends on that pair alone. Not differentiable (measured without
-    gradients; the segmenter's gradient path is the soft-argmin's)."""
+    accepted pixels. ``noisy`` ``(B,)`` bool: the pairs :func:`match_by_noise` matched with the wider window, whose
+    long runs ``config.max_fill_px`` limits (None: none). Each pair's result depends on that pair alone. Not
+    differentiable (measured without gradients; the segmenter's gradient path is the soft-argmin's)."""
     disparity, valid = found.disparity_px, found.valid
     sparse = valid.flatten(1).to(torch.float32).mean(1) < config.sparse_share
     if config.sparse_reduction > 1 and bool(sparse.any()):
