@@ -41,3 +41,16 @@ def test_take_then_put_matches_a_pair_by_pair_rebuild():
         assert torch.equal(merged.maps[i], source.maps[i]) and torch.equal(merged.inner.values[i],
                                                                            source.inner.values[i])
     assert torch.equal(whole.maps, _outer(5, 0.0).maps)  # the original is not modified
+
+
+def test_taking_every_pair_in_order_is_the_tree_itself():
+    """Every pair in order (a second pass on a one-pair batch, as guide runs it) takes the tree as it is, no copy;
+    any other index, even every pair in another order, takes copies."""
+    whole = _outer(3, 0.0)
+    assert take_pairs(whole, torch.arange(3), 3) is whole
+    one = _outer(1, 0.0)
+    assert take_pairs(one, torch.tensor([0]), 1) is one
+    shuffled = take_pairs(whole, torch.tensor([2, 1, 0]), 3)
+    assert shuffled is not whole and torch.equal(shuffled.maps, whole.maps.flip(0))
+    part = take_pairs(whole, torch.tensor([0, 1]), 3)
+    assert part.maps.data_ptr() != whole.maps.data_ptr()
