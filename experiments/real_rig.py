@@ -39,7 +39,7 @@ measured once whatever ``--sizes`` asks.
 ``--splits synthetic-wall`` adds scenes of our own rendering of another kind (:data:`WALL_SCENES` pairs at 320×240,
 two well-textured boxes 1–2 m ahead of a plain wall :data:`WALL_DEPTH_M` m away whose texture is
 :data:`WALL_TEXTURE_CONTRAST` of the default, about one 8-bit level; seed :data:`WALL_SEED`): a camera's noise hides
-such a wall, which the held-out split's Midd1 and Midd2 show, and a tuning set for what it does to the segmentation.
+such a wall (the held-out split's Midd1 and Midd2 show it): a tuning set for what that does to the segmentation.
 
 ``--extremes`` measures the clean pair and the corners of the envelope instead: two of the deviations above at their
 limits at once (:data:`EXTREMES`), which the issue's "test the extremes" asks for and the single ones miss.

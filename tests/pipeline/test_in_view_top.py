@@ -1,5 +1,6 @@
-"""The in-view rule's top (``DenseConfig.in_view_detached_tail_share``) on a tuned camera frame: noise's wrong coarse
-matches, detached far above the scene's disparities, no longer push an object near the left border out of view."""
+"""The in-view rule's top on real pairs: noise's wrong coarse matches, detached far above the scene's disparities
+(``DenseConfig.in_view_detached_tail_share``), and a far object's span (``DenseConfig.in_view_margin``) no longer
+push an object near the left border out of view."""
 
 from __future__ import annotations
 
