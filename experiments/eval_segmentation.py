@@ -15,11 +15,15 @@ is not an obstacle (issue 32), and the issue's truth counts the floor of Motorcy
 - Acc (Eq. (9)) of the whole pipeline's ``nearest_m`` (default configuration, only the segmenter changed)
   against the truth distance; a pair that is not OK, or without a nearest obstacle, counts 0 %.
 
+``--camera-frames D``: each scene's views made the frames a real SVS sends first, JPEG at the board's quality digit
+D with the sensor noise experiments/real_rig.py pairs with it (``real_rig.JPEG_NOISE``; each view's own noise, seeded
+by the scene's index in its split), the truth unchanged (it is the left view's): what a walker's warning rests on.
+
 Scenes: the held-out split of paper_table1.py (Middlebury 2005/2006 and 2003, never trained on; their duplicates
 ArtL and Teddy are left out of training, see train_segmentation.py), at 320 px wide (the SVS's size) by default.
 
     python experiments/eval_segmentation.py [--weights FILE] [--splits held-out] [--sizes 320]
-                                            [--truth issue|walker] [--set KEY=VALUE ...]
+                                            [--truth issue|walker] [--camera-frames D] [--set KEY=VALUE ...]
                                             [--markdown table.md] [--json out.json]
 """
 
@@ -40,7 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch.cli.progress import Progress
-from svs_torch.data import list_shared_pairs
+from svs_torch.data import camera_frame_pairs, list_shared_pairs
 from svs_torch.evaluation import accuracy_pct
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.segmentation.ground_plane import GroundPlaneConfig
@@ -52,6 +56,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
+from real_rig import JPEG_NOISE  # noqa: E402
 from run_metadata import default_data_dir, run_metadata  # noqa: E402
 
 
@@ -106,9 +111,13 @@ def method_configs(args) -> dict[str, PipelineConfig | str]:
     return {name: methods[name] for name in args.methods.split(",")}
 
 
-def evaluate_scene(path: Path, size: str, methods: dict, old_net, floor: GroundPlaneConfig | None = None
-                   ) -> dict | None:
+def evaluate_scene(path: Path, size: str, methods: dict, old_net, floor: GroundPlaneConfig | None = None,
+                   frames: tuple[int, int] | None = None) -> dict | None:
+    """One scene's row; ``frames``: (JPEG digit, seed) to make its views camera frames first (module docstring)."""
     batch = resample(load_scene(path), size)
+    if frames is not None:
+        digit, seed = frames
+        batch = camera_frame_pairs(batch, digit, dict(JPEG_NOISE)[digit], torch.Generator().manual_seed(seed))
     truth = obstacle_truth(batch, floor=floor)
     if not bool(truth.nearest_valid[0]):
         return None
@@ -172,9 +181,11 @@ LEGEND = ("default = the default pipeline (the nearness segmenter: the Otsu spli
           "depth).")
 
 
-def header(argv: list[str]) -> list[str]:
+def header(argv: list[str], camera_frames: int | None = None) -> list[str]:
     """The markdown report's title, the command that made it and the methods' legend."""
-    return ["# Segmenters against the truth obstacles (issue 32)", "", "Made by:", "",
+    frames = "" if camera_frames is None else (f", on camera frames (JPEG digit {camera_frames} with its sensor noise, "
+                                               "both views; the truth is the clean left view's)")
+    return [f"# Segmenters against the truth obstacles (issue 32){frames}", "", "Made by:", "",
             "    python experiments/eval_segmentation.py " + " ".join(argv), "", LEGEND, ""]
 
 
@@ -195,6 +206,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the truth obstacles: the issue's (Otsu of the true disparity, floors included) or a "
                              "walker's (the true disparity's ground plane left out: a floor is not an obstacle)")
     parser.add_argument("--reference", action="store_true", help="also the old network's disparity-Otsu IoU")
+    parser.add_argument("--camera-frames", type=int, choices=sorted(dict(JPEG_NOISE)), metavar="D",
+                        help="make each pair's views camera frames first: JPEG at the board's digit D (1-8) with its "
+                             "sensor noise (experiments/real_rig.py)")
     parser.add_argument("--splits", default="held-out", help="comma-separated: held-out, tuned, kitti")
     parser.add_argument("--sizes", default="320", help="comma-separated: a width in pixels, or native")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
@@ -213,17 +227,20 @@ def main(argv: list[str] | None = None) -> dict:
     text = []
     for split in args.splits.split(","):
         paths = scenes[split][:args.limit] if args.limit else scenes[split]
-        jobs = [(path, size) for size in args.sizes.split(",") for path in paths]
+        jobs = [(index, path, size) for size in args.sizes.split(",") for index, path in enumerate(paths)]
         rows, skipped = [], []
-        for path, size in Progress(len(jobs), split, unit="scene").over(jobs):
-            row = evaluate_scene(path, size, methods, old_net, GroundPlaneConfig() if args.truth == "walker" else None)
+        for index, path, size in Progress(len(jobs), split, unit="scene").over(jobs):
+            frames = None if args.camera_frames is None else (args.camera_frames, index)
+            row = evaluate_scene(path, size, methods, old_net, GroundPlaneConfig() if args.truth == "walker" else None,
+                                 frames)
             (rows.append(row) if row else skipped.append(path.name))
         text += [f"## {split}", "", markdown(rows, names), "", summary(rows, names),
                  f"scenes without a truth distance (counted, not scored): {skipped or 'none'}", ""]
         report["tables"][split] = {"rows": rows, "skipped": skipped}
     print("\n".join(text))
     if args.markdown:
-        Path(args.markdown).write_text("\n".join(header(argv if argv is not None else sys.argv[1:]) + text))
+        Path(args.markdown).write_text("\n".join(header(argv if argv is not None else sys.argv[1:], args.camera_frames)
+                                                 + text))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=str))
     return report
