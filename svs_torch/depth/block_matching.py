@@ -19,7 +19,8 @@ from .dense_config import DenseConfig, DenseDisparity, DisparityRange
 from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
 
-__all__ = ["block_match_sad", "block_match_sad_with_residual", "dense_disparity_over_regions", "fill_invalid_rows"]
+__all__ = ["block_match_sad", "block_match_sad_with_residual", "dense_disparity_over_regions", "fill_invalid_rows",
+           "valid_row_neighbours"]
 
 #: Noisy pairs matched again and aggregated together (:func:`_smooth_noisy_pairs`); their maps do not depend on it.
 SMOOTH_BLOCK_PAIRS = 4
@@ -185,17 +186,26 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
         if done is not None:
             return done
     width = disparity.shape[-1]
-    index = torch.arange(width, device=disparity.device).expand_as(disparity)
-    left_index = torch.where(valid, index, -1).cummax(dim=-1).values
-    right_index = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)
+    left_index, right_index, from_left, from_right = valid_row_neighbours(disparity, valid)
     has_left, has_right = left_index >= 0, right_index < width
-    from_left = disparity.gather(-1, left_index.clamp(0, width - 1))
-    from_right = disparity.gather(-1, right_index.clamp(0, width - 1))
     agree = (from_left - from_right).abs() <= 1
     both = torch.where(agree, (from_left + from_right) / 2, torch.minimum(from_left, from_right))
     filled = torch.where(has_left & has_right, both, torch.where(has_left, from_left, from_right))
     reachable = valid | has_left | has_right
     return torch.where(valid, disparity, torch.where(reachable, filled, torch.zeros_like(filled))), reachable
+
+
+def valid_row_neighbours(disparity: torch.Tensor, valid: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For each pixel of ``(..., W)`` rows: the column of the nearest ``valid`` pixel at or left of it (−1: none)
+    and at or right of it (W: none), and their disparities (the row's end pixel's where there is none): what
+    :func:`fill_invalid_rows` fills from, and what a rule on the runs of invalid pixels between them reads."""
+    width = disparity.shape[-1]
+    index = torch.arange(width, device=disparity.device).expand_as(disparity)
+    left_index = torch.where(valid, index, -1).cummax(dim=-1).values
+    right_index = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)
+    return (left_index, right_index, disparity.gather(-1, left_index.clamp(0, width - 1)),
+            disparity.gather(-1, right_index.clamp(0, width - 1)))
 
 
 def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:

@@ -61,7 +61,8 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError
-from ..depth.block_matching import block_match_sad, block_match_sad_with_residual, fill_invalid_rows
+from ..depth.block_matching import (block_match_sad, block_match_sad_with_residual, fill_invalid_rows,
+                                    valid_row_neighbours)
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.soft_dense import soft_block_match
 from . import kernels
@@ -185,11 +186,7 @@ def fillable_runs(disparity: torch.Tensor, valid: torch.Tensor, max_px: int) -> 
     pixel at x whose disparity d reaches within ``max_px`` of it (x ≤ d + max_px: the band the right view cannot
     show that surface in)."""
     width = valid.shape[-1]
-    index = torch.arange(width, device=valid.device).expand_as(valid)
-    before = torch.where(valid, index, -1).cummax(dim=-1).values  # the last valid pixel at or left of x
-    after = torch.where(valid, index, width).flip(-1).cummin(dim=-1).values.flip(-1)  # the first at or right of x
-    left_value = disparity.gather(-1, before.clamp(0, width - 1))
-    right_value = disparity.gather(-1, after.clamp(0, width - 1))
+    before, after, left_value, right_value = valid_row_neighbours(disparity, valid)
     short = after - before - 1 <= max_px
     one_surface = (before >= 0) & (after < width) & ((left_value - right_value).abs() <= 1)
     band = (before < 0) & (after < width) & (after <= right_value + max_px)
