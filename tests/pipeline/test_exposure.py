@@ -4,6 +4,8 @@ pair was."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -265,9 +267,7 @@ def test_a_brighter_larger_right_view_with_white_patches_is_ranged(data_dir):
     assert min(misaligned) > 97.5 and all(m > c - 1.0 for m, c in zip(misaligned, clean))
 
 
-@pytest.mark.parametrize("size", ["320x240", pytest.param("native", marks=pytest.mark.xfail(strict=True, reason=(
-    "a known loss since DenseConfig.in_view_detached_tail_share (experiments/real_rig.md, 'The in-view top'): its "
-    "coarse-grid pass now ranges both objects, one wrong, so the retry's second (one object) loses on the count")))])
+@pytest.mark.parametrize("size", ["320x240", "native"])
 def test_the_retry_keeps_a_pair_lit_by_two_lamps(data_dir, size):
     """MiddEval3 PianoL (Piano under a second lamp) in one batch with Piano behind a right camera 30 % brighter.
     Matching the exposure before every stage ranges the brighter pair but costs PianoL accuracy (99.2 -> 98.6 % at
@@ -276,7 +276,9 @@ def test_the_retry_keeps_a_pair_lit_by_two_lamps(data_dir, size):
     retry runs only the pairs the first run left unfinished or whose split was taken again, and keeps a second
     result only where it is verified (and, for a split taken again, where the matched views' split is the usual
     one, which PianoL's is not), so PianoL keeps its first result at both sizes and the brighter pair is ranged
-    (99.6 % at 320×240, 99.7 % native)."""
+    (99.6 % at 320×240, 99.7 % native). At native size the first run's coarse grid ranges two objects, one of them
+    a clipped patch beyond the features' reach (70.9 px where the inliers reach 62.7): it does not count against
+    the matched run's one object (a known loss, 80.1 %, from DenseConfig.in_view_detached_tail_share until then)."""
     from svs_torch.evaluation import evaluate_result
 
     real_rig = _real_rig()
@@ -408,3 +410,43 @@ def test_a_complete_first_result_gives_way_only_to_objects_the_features_reach(da
         scores = [evaluate_result(batch, r)[0].acc_objects_pct for r in (first, matched, retried)]
         assert scores[2] == (scores[1] if replaced else scores[0]) and scores[2] > 99
         assert min(scores[:2]) < 80
+
+
+def test_objects_beyond_the_features_reach_are_those_past_the_third_largest_inlier(data_dir):
+    """``exposure_retry._beyond_inliers`` against the reach computed here from its docstring: an object whose
+    disparity (from its median depth) exceeds 1.25 times the third largest RANSAC inlier disparity plus 2 px is
+    beyond; one just inside is not; an object not ranged never is; a pair without an inlier has every ranged object
+    beyond and no object within reach."""
+    from svs_torch.pipeline.exposure_retry import _beyond_inliers, _objects_within_inliers
+
+    real_rig = _real_rig()
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Piano"), "320x240")
+    batch = real_rig.stack_conditions(scene, [("a", scene.left, scene.right), ("b", scene.left, scene.right)])
+    result = estimate_obstacle_depth(batch, PipelineConfig())
+    sparse = result.depth.disparities
+    known = result.fundamental.inliers & sparse.valid
+    third = sorted(sparse.disparity_px[0][known[0]].tolist(), reverse=True)[2]
+    reach = 1.25 * third + 2.0
+    scale = float(batch.focal_px[0] * batch.baseline_m[0])
+    doffs = float(batch.doffs_px[0])
+    objects = result.depth.objects
+    n = objects.valid.shape[1]
+    assert n >= 1
+    depth = torch.full((2, n), scale / (reach - 5.0 + doffs), dtype=objects.depth_median_m.dtype)
+    depth[0, 0] = scale / (reach + 0.5 + doffs)
+    valid = torch.zeros(2, n, dtype=torch.bool)
+    valid[:, 0] = True
+    objects = dataclasses.replace(objects, depth_median_m=depth, valid=valid)
+    # Pair "b" keeps its inliers out: none is known there.
+    fundamental = dataclasses.replace(result.fundamental, inliers=torch.stack([result.fundamental.inliers[0],
+                                                                              torch.zeros_like(known[1])]))
+    tweaked = dataclasses.replace(result, depth=dataclasses.replace(result.depth, objects=objects),
+                                  fundamental=fundamental)
+    beyond, has_inliers = _beyond_inliers(tweaked, batch)
+    assert has_inliers.tolist() == [True, False]
+    assert beyond[0].tolist() == [True] + [False] * (n - 1) and beyond[1].tolist() == valid[1].tolist()
+    assert _objects_within_inliers(tweaked, batch).tolist() == [False, False]
+    inside = dataclasses.replace(objects, depth_median_m=torch.full_like(depth, scale / (reach - 0.5 + doffs)))
+    tweaked = dataclasses.replace(tweaked, depth=dataclasses.replace(result.depth, objects=inside))
+    assert _beyond_inliers(tweaked, batch)[0][0].tolist() == [False] * n
+    assert _objects_within_inliers(tweaked, batch).tolist() == [True, False]
