@@ -5,6 +5,7 @@ bit for bit the same; and the row fill of invalid pixels (:func:`fill_invalid_ro
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import torch
@@ -36,13 +37,15 @@ def _noisy_pairs(best_cost: torch.Tensor, computed: torch.Tensor, config: DenseC
 
 
 def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], config: DenseConfig,
-            counts: torch.Tensor, extra: int, region: tuple[torch.Tensor, torch.Tensor]
+            counts: torch.Tensor, extra: int, region: tuple[torch.Tensor, torch.Tensor],
+            intensity_costs: Callable[[torch.Tensor], torch.Tensor] | None = None
             ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """``costs`` ``(B, D, h, w)`` and their winner, semi-globally aggregated for the pairs whose residual over
     ``region`` = (wanted ``(B, h, w − 2 extra)`` bool, own box ``(B, 4)`` relative to the box) reaches
     ``config.smoothing_min_residual_levels`` (:mod:`.semi_global`). Each noisy pair is aggregated over its own
     box only, widened by its own count − 1 columns (what its left–right check reads), so that its values never
-    depend on its batch."""
+    depend on its batch. ``intensity_costs``: the intensities' SAD volume of the pairs it is given the index of,
+    added to theirs times ``config.smoothing_intensity_weight`` before the aggregation (its docstring)."""
     wanted, own = region
     core = slice(extra, costs.shape[-1] - extra)
     residual, noisy = _noisy_pairs(minimum[0][..., core], wanted, config)
@@ -60,6 +63,11 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     inside = (rows >= 0) & (rows < height) & (cols >= -reach) & (cols < width + reach)
     if not bool(inside.all()):
         picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
+    if intensity_costs is not None:
+        picked = picked + config.smoothing_intensity_weight * intensity_costs(index)
+        # The penalties in units of the summed costs' residual, over the same wanted pixels.
+        residual = residual.index_copy(0, index, pair_residual_levels(
+            picked.amin(dim=1)[..., core], wanted[index], config.window_size))
     scale = residual[index] * config.window_size ** 2
     p1, p2 = (factor * scale for factor in config.smoothing_penalties)
     aggregated, winner = semi_global_aggregate_with_winner(picked, p1, p2)
@@ -71,17 +79,22 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
 def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, height: int,
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
                   config: DenseConfig, counts: torch.Tensor, extra: int = 0,
-                  region: tuple[torch.Tensor, torch.Tensor] | None = None) -> _WinnerStats:
+                  region: tuple[torch.Tensor, torch.Tensor] | None = None,
+                  intensities: tuple[torch.Tensor, torch.Tensor] | None = None) -> _WinnerStats:
     """:class:`_WinnerStats` of the box at (x0, y0) from the torch cost volume. The box's first and last
     ``extra`` columns serve only the right view's winner: the left statistics are of the columns between
     (``right_best`` is of them all). With ``region`` and ``config.smoothing_penalties``, noisy pairs' costs
-    are aggregated first (:func:`_smooth`)."""
+    are aggregated first (:func:`_smooth`), with ``intensities`` (the views' 8-bit levels before the pre-filter)
+    their SAD added (``config.smoothing_intensity_weight``)."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
     plain = costs
     if region is not None and config.smoothing_penalties is not None:
-        costs, minimum = _smooth(costs, minimum, config, counts, extra, region)
+        intensity_costs = None if intensities is None else (lambda index: _cost_volume(
+            intensities[0][index], intensities[1][index], x0[index], y0[index], height, width, min_disparity[index],
+            num_disparities, image_w[index], config, counts[index])[0])
+        costs, minimum = _smooth(costs, minimum, config, counts, extra, region, intensity_costs)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check, compiled=config.kernel != "torch")
     if costs is not plain:
         # The aggregation picks the winner and makes the verdicts; the sub-pixel fit stays on the plain SAD
@@ -143,6 +156,9 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     of the images. The volume spans D − 1 extra columns on each side so the right view's winner (left–right
     check) sees every candidate. ``region``: see :func:`_winner_stats`."""
     sobel = prefilter_xsobel(left, config.prefilter_cap)
+    aggregated = region is not None and config.smoothing_penalties is not None
+    intensities = ((quantize_levels(left), quantize_levels(right))
+                   if aggregated and config.smoothing_intensity_weight > 0 and config.prefilter == "xsobel" else None)
     if config.prefilter == "xsobel":
         left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
     # StereoBM's levels: the matched values in whole 1/255 intensity steps (its pre-filter is uint8). The SAD
@@ -156,7 +172,7 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
         counts = torch.full_like(search.min_disparity_px, num_disparities)
     # The extra columns serve only the right view's winner: every per-pixel verdict is made on the box itself.
     stats = _winner_stats(left, right, x0 - extra, y0, height, width + 2 * extra, search.min_disparity_px,
-                          num_disparities, image_hw[:, 1], config, counts, extra, region)
+                          num_disparities, image_hw[:, 1], config, counts, extra, region, intensities)
     best = stats.best
     offset, ok = _winner(stats, num_disparities, config, lower_is_limit, counts)
     if config.lr_max_diff_px is not None:

@@ -92,6 +92,13 @@ class DenseConfig:
             "Semi-global aggregation": on the tuning sets, aggregating the second pass raised the camera frames
             at 320×240 by 1.3 points and cost the clean pairs nothing; aggregating the first pass too cost them).
         smoothing_min_residual_levels, smoothing_max_reduction: see ``smoothing_penalties``.
+        smoothing_intensity_weight: on the pairs aggregated semi-globally, the SAD of the intensities themselves
+            (8-bit levels) times this is added to the x-Sobel SAD before the aggregation, and the penalties are
+            taken in units of that sum's residual, as OpenCV's ``StereoSGBM`` adds a quarter of the intensities'
+            cost to the x-derivative's. A featureless surface's x-Sobel holds only noise away from its left and
+            right edges, and the columns' paths carry the disparity of what lies above and below into it; its
+            intensity step against the background holds it a window wide (``experiments/real_rig.md``,
+            "Featureless obstacles"). 0: the x-Sobel costs alone.
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -121,6 +128,7 @@ class DenseConfig:
     retry_smoothing_penalties: tuple[float, float] | None = (4.0, 16.0)
     smoothing_min_residual_levels: float = 9.0
     smoothing_max_reduction: int = 2
+    smoothing_intensity_weight: float = 0.25  # experiments/real_rig.md, "Featureless obstacles" (tuning sets)
 
     def __post_init__(self) -> None:
         if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
@@ -161,6 +169,9 @@ class DenseConfig:
                 raise InputError(f"{name}: expected None or (P1, P2) with 0 <= P1 <= P2, got {penalties!r}")
         if not isinstance(self.smoothing_max_reduction, int) or self.smoothing_max_reduction < 1:
             raise InputError(f"smoothing_max_reduction: expected an int >= 1, got {self.smoothing_max_reduction!r}")
+        weight = self.smoothing_intensity_weight
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < float("inf"):
+            raise InputError(f"smoothing_intensity_weight: expected a finite value >= 0, got {weight!r}")
         if not self.smoothing_min_residual_levels >= 0:
             raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
                              f"{self.smoothing_min_residual_levels!r}")
