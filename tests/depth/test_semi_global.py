@@ -253,7 +253,6 @@ def test_noisy_pairs_are_aggregated_a_block_at_a_time_with_the_same_maps(monkeyp
     assert torch.equal(together.valid, blocks.valid) and torch.equal(together.disparity_px, blocks.disparity_px)
 
 
-
 def _featureless_box(seed: int, sigma: float, h: int = 64, w: int = 112, box_px: int = 14,
                      wall_px: int = 4) -> tuple[torch.Tensor, ...]:
     """A plain bright box (no texture, only each view's noise) at disparity ``box_px`` before a textured dark wall at
