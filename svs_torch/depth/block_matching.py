@@ -91,9 +91,10 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
                                      config, counts)
     plain = costs
     if region is not None and config.smoothing_penalties is not None:
+        # Without the counts: no winner, no +inf mask (the x-Sobel costs it is added to carry the +inf already).
         intensity_costs = None if intensities is None else (lambda index: _cost_volume(
             intensities[0][index], intensities[1][index], x0[index], y0[index], height, width, min_disparity[index],
-            num_disparities, image_w[index], config, counts[index])[0])
+            num_disparities, image_w[index], config)[0])
         costs, minimum = _smooth(costs, minimum, config, counts, extra, region, intensity_costs)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check, compiled=config.kernel != "torch")
     if costs is not plain:
