@@ -308,27 +308,28 @@ def brightened(batch: StereoBatch, factor: float) -> StereoBatch:
                                right=(batch.right * factor).clamp(0, 1))
 
 
+def _rendered_pairs(count: int, seed: int, **render) -> list[StereoBatch]:
+    """``count`` seeded scenes of two boxes (:func:`random_obstacle_scenes` with ``render``), one single-pair batch
+    each."""
+    scenes = random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed), **render).batch
+    return [scenes.select([i]) for i in range(count)]
+
+
 def synthetic_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic`` pairs (module docstring), one single-pair batch each."""
-    scenes = random_obstacle_scenes(SYNTHETIC_SCENES, 2, generator=torch.Generator().manual_seed(SYNTHETIC_SEED),
-                                    texture_contrast=SYNTHETIC_TEXTURE_CONTRAST).batch
-    return [scenes.select([i]) for i in range(SYNTHETIC_SCENES)]
+    return _rendered_pairs(SYNTHETIC_SCENES, SYNTHETIC_SEED, texture_contrast=SYNTHETIC_TEXTURE_CONTRAST)
 
 
 def wall_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic-wall`` pairs (module docstring), one single-pair batch each."""
-    scenes = random_obstacle_scenes(WALL_SCENES, 2, generator=torch.Generator().manual_seed(WALL_SEED),
-                                    background_depth_m=WALL_DEPTH_M,
-                                    wall_texture_contrast=WALL_TEXTURE_CONTRAST).batch
-    return [scenes.select([i]) for i in range(WALL_SCENES)]
+    return _rendered_pairs(WALL_SCENES, WALL_SEED, background_depth_m=WALL_DEPTH_M,
+                           wall_texture_contrast=WALL_TEXTURE_CONTRAST)
 
 
 def plain_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic-plain`` pairs (module docstring), one single-pair batch each."""
-    scenes = random_obstacle_scenes(PLAIN_SCENES, 2, generator=torch.Generator().manual_seed(PLAIN_SEED),
-                                    background_depth_m=PLAIN_WALL_DEPTH_M, texture_contrast=PLAIN_TEXTURE_CONTRAST,
-                                    wall_texture_contrast=1.0).batch
-    return [scenes.select([i]) for i in range(PLAIN_SCENES)]
+    return _rendered_pairs(PLAIN_SCENES, PLAIN_SEED, background_depth_m=PLAIN_WALL_DEPTH_M,
+                           texture_contrast=PLAIN_TEXTURE_CONTRAST, wall_texture_contrast=1.0)
 
 
 def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
