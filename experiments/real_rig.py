@@ -56,13 +56,16 @@ misalignment above, each pair's views then made the cameras' frames at JPEG digi
 ``--noise-seed N`` draws the camera frames' noise again (N = 0, the default, is the tables' own draw; the clean
 pair and the misalignments are the same for every N). A row of ten or 28 pairs moves by whole points with the draw
 (held-out native digit 6: 98.35 / 95.67 / 97.78 % over draws 0 / 1 / 2), so a selection or a claim that should not
-hang on one pair's verdict takes the mean over a few draws.
+hang on one pair's verdict takes the mean over a few draws. ``--noise-seed 0,1,2`` measures those draws in one run:
+each draw's camera frames (the clean pair, the misalignments and the corners, which no draw changes, once), each
+row then the mean over every pair of every draw, each draw's own mean beside it (``per_draw``) and the worst pair
+named with its draw.
 
     python experiments/real_rig.py [--splits held-out,tuned,synthetic,synthetic-wall,synthetic-plain]
                                    [--sizes 320x240,native]
                                    [--limit N]
                                    [--contrast C] [--brightness K] [--extremes | --loose-rig-digit D]
-                                   [--noise-seed N]
+                                   [--noise-seed N[,N...]]
                                    [--set KEY=VALUE ...] [--json out.json] [--markdown table.md]
 """
 
@@ -245,11 +248,13 @@ def _pick(batch: StereoBatch, i: int) -> StereoBatch:
 
 def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True,
               only: tuple[str, ...] | None = None, extremes: bool = False, noise_seed: int = 0,
-              loose_rig_digit: int | None = None) -> list[dict]:
-    """Rows (one per condition, or those whose name starts with one of ``only``) of one scene: svs_torch's
-    default and StereoSGBM on the same pairs."""
+              loose_rig_digit: int | None = None, frames_only: bool = False) -> list[dict]:
+    """Rows (one per condition, or those whose name starts with one of ``only``; with ``frames_only`` only the
+    camera frames, whose noise a draw changes) of one scene: svs_torch's default and StereoSGBM on the same pairs."""
     views = [v for v in conditions(batch, scene_index, extremes, noise_seed, loose_rig_digit)
-             if only is None or v[0].startswith(only)]
+             if (only is None or v[0].startswith(only)) and (not frames_only or "jpeg" in v[0])]
+    if not views:
+        return []
     stacked = stack_conditions(batch, views)
     started = time.perf_counter()
     result = estimate_obstacle_depth(stacked, config)
@@ -348,7 +353,9 @@ def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
 def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: PipelineConfig, rival: bool = True,
         only: tuple[str, ...] | None = None, progress: bool = True, contrast: float = 1.0,
         extremes: bool = False, brightness: float = 1.0, noise_seed: int = 0,
-        loose_rig_digit: int | None = None) -> list[dict]:
+        loose_rig_digit: int | None = None, frames_only: bool = False) -> list[dict]:
+    """Rows of every scene of ``splits`` at each of ``sizes`` (:func:`run_scene`), each tagged with its split, size
+    and ``noise_seed``."""
     rows = []
     # A rendered pair has one size, measured once.
     jobs = [(size, split, index, scene) for size in sizes for split, scenes in splits.items()
@@ -357,30 +364,40 @@ def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: P
         rendered = isinstance(scene, StereoBatch)
         if progress:
             name = scene.names[0] if rendered else scene.name
-            print(f"\r[{number}/{len(jobs)}] {size} {name}        ", end="", file=sys.stderr, flush=True)
+            print(f"\r[{number}/{len(jobs)}] draw {noise_seed} {size} {name}        ", end="", file=sys.stderr,
+                  flush=True)
         batch = brightened(dimmed(scene if rendered else resample(load_scene(scene), size), contrast), brightness)
         label = f"{batch.size_hw[1]}x{batch.size_hw[0]}" if rendered else size
-        rows += [{"split": split, "size": label, **row}
-                 for row in run_scene(batch, index, config, rival, only, extremes, noise_seed, loose_rig_digit)]
+        rows += [{"split": split, "size": label, **row, "noise_seed": noise_seed}
+                 for row in run_scene(batch, index, config, rival, only, extremes, noise_seed, loose_rig_digit,
+                                      frames_only)]
     if progress:
         print(file=sys.stderr)
     return rows
 
 
 def summarize(rows: list[dict]) -> list[dict]:
-    """Per (split, size, condition): mean per-object accuracy, share ranged, the rival's, and the worst pair."""
+    """Per (split, size, condition): mean per-object accuracy over its pairs and noise draws, share ranged, the
+    rival's, and the worst pair; ``draws`` and, with more than one, each draw's own mean (``per_draw``, in the
+    order of the draws)."""
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
         groups.setdefault((row["split"], row["size"], row["condition"]), []).append(row)
     out = []
     for (split, size, condition), group in groups.items():
-        entry = {"split": split, "size": size, "condition": condition, "pairs": len(group),
+        draws = list(dict.fromkeys(r.get("noise_seed", 0) for r in group))
+        worst = min(group, key=lambda r: r["acc_objects"])
+        entry = {"split": split, "size": size, "condition": condition,
+                 "pairs": len({r["scene"] for r in group}), "draws": len(draws),
                  "acc_objects": statistics.fmean(r["acc_objects"] for r in group),
                  "acc_r_min": statistics.fmean(r["acc_r_min"] for r in group),
                  "acc_r_max": statistics.fmean(r["acc_r_max"] for r in group),
                  "ranged": sum(r["status"] == "OK" for r in group) / len(group),
-                 "worst": min(group, key=lambda r: r["acc_objects"])["scene"],
-                 "worst_acc": min(r["acc_objects"] for r in group)}
+                 "worst": worst["scene"] + (f" (draw {worst.get('noise_seed', 0)})" if len(draws) > 1 else ""),
+                 "worst_acc": worst["acc_objects"]}
+        if len(draws) > 1:
+            entry["per_draw"] = [statistics.fmean(r["acc_objects"] for r in group if r.get("noise_seed", 0) == d)
+                                 for d in draws]
         if "sgbm_acc_objects" in group[0]:
             entry["sgbm_acc_objects"] = statistics.fmean(r["sgbm_acc_objects"] or 0.0 for r in group)
             entry["sgbm_ranged"] = sum(r["sgbm_status"] == "OK" for r in group) / len(group)
@@ -389,17 +406,31 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 
 def markdown(summary: list[dict], command: str) -> str:
+    """The summary as a table; with several noise draws, a column of each draw's own mean."""
+    draws = any(s.get("draws", 1) > 1 for s in summary)
     lines = [f"`{command}`", "",
-             "| split | size | condition | pairs | svs_torch Acc objects % | Δ clean | ranged % | "
-             "SGBM Acc objects % | SGBM ranged % | worst pair |", "|" + "---|" * 10]
+             "| split | size | condition | pairs | svs_torch Acc objects % | " + ("per draw | " if draws else "")
+             + "Δ clean | ranged % | SGBM Acc objects % | SGBM ranged % | worst pair |",
+             "|" + "---|" * (11 if draws else 10)]
     clean = {(s["split"], s["size"]): s["acc_objects"] for s in summary if s["condition"] == "clean"}
     for s in summary:
         delta = s["acc_objects"] - clean.get((s["split"], s["size"]), float("nan"))
         sgbm = (f"{s['sgbm_acc_objects']:.2f} | {100 * s['sgbm_ranged']:.0f}" if "sgbm_acc_objects" in s
                 else "— | —")
+        per_draw = (" / ".join(f"{v:.2f}" for v in s["per_draw"]) if "per_draw" in s else "—") + " | "
         lines.append(f"| {s['split']} | {s['size']} | {s['condition']} | {s['pairs']} | {s['acc_objects']:.2f} | "
-                     f"{delta:+.2f} | {100 * s['ranged']:.0f} | {sgbm} | {s['worst']} {s['worst_acc']:.1f} |")
+                     + (per_draw if draws else "")
+                     + f"{delta:+.2f} | {100 * s['ranged']:.0f} | {sgbm} | {s['worst']} {s['worst_acc']:.1f} |")
     return "\n".join(lines) + "\n"
+
+
+def _noise_seeds(text: str) -> list[int] | None:
+    """``--noise-seed``'s draws: distinct ints >= 0 separated by commas, in order; None if it is not that."""
+    try:
+        seeds = [int(part) for part in text.split(",")]
+    except ValueError:
+        return None
+    return seeds if all(seed >= 0 for seed in seeds) and len(set(seeds)) == len(seeds) else None
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -420,16 +451,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--loose-rig-digit", type=int, default=None, metavar="D",
                         help="the clean pair, then the aligned pair and each misalignment as camera frames at JPEG "
                              "digit D (1-8) with its sensor noise: a loosely mounted SVS")
-    parser.add_argument("--noise-seed", type=int, default=0,
-                        help="another draw of the camera frames' noise (default 0: the tables' own); for "
-                             "selections that should not hang on one draw")
+    parser.add_argument("--noise-seed", default="0", metavar="N[,N...]",
+                        help="another draw of the camera frames' noise (default 0: the tables' own), or several, "
+                             "each row then their mean with each draw's beside it; for selections and claims "
+                             "that should not hang on one draw")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
     if args.loose_rig_digit is not None and (args.extremes or args.loose_rig_digit not in dict(JPEG_NOISE)):
         parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, got {args.loose_rig_digit}")
-    if args.noise_seed < 0:
-        parser.error(f"--noise-seed: expected an int >= 0, got {args.noise_seed}")
+    seeds = _noise_seeds(args.noise_seed)
+    if seeds is None:
+        parser.error(f"--noise-seed: expected distinct ints >= 0 separated by commas, got {args.noise_seed!r}")
     if not 0 < args.contrast <= 1:
         parser.error(f"--contrast: expected a factor in (0, 1], got {args.contrast}")
     if not 1 <= args.brightness < math.inf:
@@ -438,9 +471,13 @@ def main(argv: list[str] | None = None) -> dict:
     splits = scene_splits(args.data, args.splits.split(","), args.limit)
     started = time.perf_counter()
     only = None if args.conditions is None else tuple(args.conditions.split(","))
-    rows = run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only, contrast=args.contrast,
-               brightness=args.brightness, extremes=args.extremes, noise_seed=args.noise_seed,
-               loose_rig_digit=args.loose_rig_digit)
+    rows = []
+    for draw, seed in enumerate(seeds):  # the conditions no draw changes, with the first draw only
+        if draw and args.extremes:  # no camera frame among them
+            break
+        rows += run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only,
+                    contrast=args.contrast, brightness=args.brightness, extremes=args.extremes, noise_seed=seed,
+                    loose_rig_digit=args.loose_rig_digit, frames_only=draw > 0)
     summary = summarize(rows)
     command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import statistics
 import sys
 
 import pytest
@@ -225,6 +226,34 @@ def test_real_rig_noise_seed_draws_other_camera_frames(data_dir):
     with pytest.raises(SystemExit):
         real_rig.main(["--data", str(data_dir), "--noise-seed", "-1"])
 
+
+
+def test_real_rig_measures_several_noise_draws_in_one_run(data_dir):
+    """--noise-seed 0,1: each draw's camera frames, the clean pair once; a row is the mean over every pair of every
+    draw, with each draw's own mean beside it, and each draw's rows are those of a run of that draw alone; a
+    repeated, negative or unreadable draw is refused."""
+    import pytest
+
+    args = ["--data", str(data_dir), "--splits", "synthetic-plain", "--limit", "2", "--conditions", "clean,jpeg q7",
+            "--no-rival"]
+    both = real_rig.main([*args, "--noise-seed", "0,1"])
+    assert [(r["scene"], r["condition"][:7], r["noise_seed"]) for r in both["rows"]] == [
+        ("synthetic-0", "clean", 0), ("synthetic-0", "jpeg q7", 0), ("synthetic-1", "clean", 0),
+        ("synthetic-1", "jpeg q7", 0), ("synthetic-0", "jpeg q7", 1), ("synthetic-1", "jpeg q7", 1)]
+    alone = {n: real_rig.main([*args, "--noise-seed", str(n)]) for n in (0, 1)}
+    for n in (0, 1):
+        frames = [r["acc_objects"] for r in alone[n]["rows"] if r["condition"].startswith("jpeg")]
+        assert [r["acc_objects"] for r in both["rows"] if r["noise_seed"] == n and r["condition"] != "clean"] == frames
+    per_draw = [statistics.fmean(r["acc_objects"] for r in alone[n]["rows"] if r["condition"] != "clean")
+                for n in (0, 1)]
+    summary = {s["condition"]: s for s in both["summary"]}
+    frames = summary["jpeg q7 + noise s6"]
+    assert frames["pairs"] == 2 and frames["draws"] == 2 and frames["per_draw"] == pytest.approx(per_draw)
+    assert frames["acc_objects"] == pytest.approx(statistics.fmean(per_draw)) and "(draw " in frames["worst"]
+    assert summary["clean"]["draws"] == 1 and "per_draw" not in summary["clean"]
+    for bad in ("1,1", "0,-1", "a"):
+        with pytest.raises(SystemExit):
+            real_rig.main([*args, "--noise-seed", bad])
 
 def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     """--extremes: the clean pair and every corner of EXTREMES (two deviations at their limits), each right view
