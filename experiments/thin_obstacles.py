@@ -116,7 +116,7 @@ def rival_rows(batch, cases, frame: str, pole: bool) -> list[dict]:
     """StereoSGBM's nearest obstacle per pair (module docstring); a loop over pairs, as OpenCV runs."""
     rows = []
     for i, case in enumerate(cases):
-        _, nearest = sgbm_rival(batch.select([i]))
+        _, nearest, _ = sgbm_rival(batch.select([i]))
         rows.append(outcome("OpenCV SGBM", frame, case, pole, nearest, nearest))
     return rows
 

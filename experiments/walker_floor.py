@@ -131,7 +131,7 @@ def rival_rows(scenes, index, cases, frame: str, near_box: bool, batch) -> list[
     truth = truth_m(scenes, 0 if near_box else 1)
     rows = []
     for j, i in enumerate(index):
-        mask, nearest = sgbm_rival(batch.select([j]))
+        mask, nearest, _ = sgbm_rival(batch.select([j]))
         floor = float((mask & scenes.floor_mask[j:j + 1]).sum() / mask.sum().clamp_min(1))
         rows.append(outcome("OpenCV SGBM", frame, cases[i], near_box, float(truth[j]), nearest, nearest, floor))
     return rows

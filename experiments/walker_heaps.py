@@ -115,7 +115,7 @@ def rival_rows(scenes, index, cases, frame: str, batch) -> list[dict]:
     truth = heap_truth(scenes)
     rows = []
     for j, i in enumerate(index):
-        mask, nearest = sgbm_rival(batch.select([j]))
+        mask, nearest, _ = sgbm_rival(batch.select([j]))
         kept = float((mask & scenes.heap_mask[j:j + 1]).sum() / scenes.heap_mask[j:j + 1].sum().clamp_min(1))
         rows.append(outcome("OpenCV SGBM", frame, cases[i], truth[j], nearest, nearest, kept))
     return rows

@@ -207,6 +207,33 @@ def test_eval_segmentation_scores_camera_frames_against_the_clean_truth(data_dir
         eval_segmentation.main(["--data", str(data_dir), "--camera-frames", "9"])
 
 
+
+def test_eval_segmentation_scores_the_warning_a_walker_hears(data_dir):
+    """The warning's Acc: the pipeline's surface_m (the distance guide speaks) against the 10th GT depth percentile
+    over the nearer truth region, that percentile taken here again with numpy; SGBM's warning is its nearest
+    region's same percentile, so never farther than its median."""
+    import numpy as np
+
+    import eval_segmentation
+    from svs_torch.evaluation import accuracy_pct
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+    from svs_torch.segmentation.learned import obstacle_truth
+
+    report = eval_segmentation.main(["--data", str(data_dir), "--splits", "tuned", "--limit", "1", "--methods",
+                                     "default,sgbm"])
+    row = report["tables"]["tuned"]["rows"][0]
+    batch = paper_table1.resample(paper_table1.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320")
+    truth = obstacle_truth(batch)
+    slot = int(np.argmin(np.where(truth.region_valid[0].numpy(), truth.region_depth_m[0].numpy(), np.inf)))
+    depth, known = (t[0, 0].numpy() for t in batch.ground_truth_depth_m())
+    region = (truth.labels[0, 0].numpy() == int(truth.kept_labels[0, slot])) & known
+    assert row["truth_warning_m"] == pytest.approx(float(np.percentile(depth[region], 10)), rel=1e-9)
+    assert row["truth_warning_m"] < row["truth_nearest_m"]
+    surface = float(estimate_obstacle_depth(batch, PipelineConfig()).depth.nearest.surface_m[0])
+    assert row["warning_default_m"] == pytest.approx(surface)
+    assert row["warning_acc_default"] == pytest.approx(accuracy_pct(row["truth_warning_m"], surface))
+    assert row["warning_sgbm_m"] <= row["nearest_sgbm_m"] and 0 < row["warning_acc_sgbm"] <= 100
+
 def test_real_rig_noise_seed_draws_other_camera_frames(data_dir):
     """--noise-seed N: another draw of every camera frame's noise (the same on every call; 0 is the tables' own),
     the clean pair and the misalignments unchanged; a negative seed refused."""
