@@ -433,6 +433,21 @@ def _noise_seeds(text: str) -> list[int] | None:
     return seeds if all(seed >= 0 for seed in seeds) and len(set(seeds)) == len(seeds) else None
 
 
+def run_draws(splits: dict[str, list[Path | StereoBatch]], config: PipelineConfig, args: argparse.Namespace,
+              seeds: list[int]) -> list[dict]:
+    """:func:`run`'s rows for each noise draw of ``seeds``, as ``args`` (main's options) ask: the conditions no draw
+    changes (the clean pair, the misalignments, the corners) with the first draw only."""
+    only = None if args.conditions is None else tuple(args.conditions.split(","))
+    rows = []
+    for draw, seed in enumerate(seeds):
+        if draw and args.extremes:  # no camera frame among them
+            break
+        rows += run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only,
+                    contrast=args.contrast, brightness=args.brightness, extremes=args.extremes, noise_seed=seed,
+                    loose_rig_digit=args.loose_rig_digit, frames_only=draw > 0)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=default_data_dir())
@@ -470,14 +485,7 @@ def main(argv: list[str] | None = None) -> dict:
     config = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
     splits = scene_splits(args.data, args.splits.split(","), args.limit)
     started = time.perf_counter()
-    only = None if args.conditions is None else tuple(args.conditions.split(","))
-    rows = []
-    for draw, seed in enumerate(seeds):  # the conditions no draw changes, with the first draw only
-        if draw and args.extremes:  # no camera frame among them
-            break
-        rows += run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only,
-                    contrast=args.contrast, brightness=args.brightness, extremes=args.extremes, noise_seed=seed,
-                    loose_rig_digit=args.loose_rig_digit, frames_only=draw > 0)
+    rows = run_draws(splits, config, args, seeds)
     summary = summarize(rows)
     command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,
