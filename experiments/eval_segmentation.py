@@ -93,9 +93,9 @@ def sgbm_rival(batch) -> tuple[torch.Tensor, float | None, float | None]:
         region = (truth.labels == label) & valid
         if label > 0 and bool(region.any()):
             scale, doffs = float(batch.focal_px[0] * batch.baseline_m[0]), float(batch.doffs_px[0])
-            depth = scale / (disparity[region].double() + doffs)
-            regions.append((scale / (float(disparity[region].median()) + doffs),
-                            float(torch.quantile(depth, WARNING_PERCENTILE / 100))))
+            values = disparity[region]
+            regions.append((scale / (float(values.median()) + doffs),
+                            float(torch.quantile(scale / (values.double() + doffs), WARNING_PERCENTILE / 100))))
     nearest = min(regions, default=(None, None))
     return truth.kept_mask, nearest[0], nearest[1]
 

@@ -385,7 +385,7 @@ def summarize(rows: list[dict]) -> list[dict]:
         groups.setdefault((row["split"], row["size"], row["condition"]), []).append(row)
     out = []
     for (split, size, condition), group in groups.items():
-        draws = list(dict.fromkeys(r.get("noise_seed", 0) for r in group))
+        draws = list(dict.fromkeys(r["noise_seed"] for r in group))
         worst = min(group, key=lambda r: r["acc_objects"])
         entry = {"split": split, "size": size, "condition": condition,
                  "pairs": len({r["scene"] for r in group}), "draws": len(draws),
@@ -393,10 +393,10 @@ def summarize(rows: list[dict]) -> list[dict]:
                  "acc_r_min": statistics.fmean(r["acc_r_min"] for r in group),
                  "acc_r_max": statistics.fmean(r["acc_r_max"] for r in group),
                  "ranged": sum(r["status"] == "OK" for r in group) / len(group),
-                 "worst": worst["scene"] + (f" (draw {worst.get('noise_seed', 0)})" if len(draws) > 1 else ""),
+                 "worst": worst["scene"] + (f" (draw {worst['noise_seed']})" if len(draws) > 1 else ""),
                  "worst_acc": worst["acc_objects"]}
         if len(draws) > 1:
-            entry["per_draw"] = [statistics.fmean(r["acc_objects"] for r in group if r.get("noise_seed", 0) == d)
+            entry["per_draw"] = [statistics.fmean(r["acc_objects"] for r in group if r["noise_seed"] == d)
                                  for d in draws]
         if "sgbm_acc_objects" in group[0]:
             entry["sgbm_acc_objects"] = statistics.fmean(r["sgbm_acc_objects"] or 0.0 for r in group)
@@ -407,7 +407,7 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 def markdown(summary: list[dict], command: str) -> str:
     """The summary as a table; with several noise draws, a column of each draw's own mean."""
-    draws = any(s.get("draws", 1) > 1 for s in summary)
+    draws = any(s["draws"] > 1 for s in summary)
     lines = [f"`{command}`", "",
              "| split | size | condition | pairs | svs_torch Acc objects % | " + ("per draw | " if draws else "")
              + "Δ clean | ranged % | SGBM Acc objects % | SGBM ranged % | worst pair |",
