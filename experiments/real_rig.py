@@ -44,6 +44,11 @@ such a wall (the held-out split's Midd1 and Midd2 show it): a tuning set for wha
 :data:`PLAIN_TEXTURE_CONTRAST` of the default, 1–2 m ahead of a fully textured wall :data:`PLAIN_WALL_DEPTH_M` m away;
 seed :data:`PLAIN_SEED`): a featureless near surface, which noise joins to the wall behind it (the held-out split's
 lampshades and Laundry show it), so that the nearest obstacle is ranged at the wall.
+``--splits synthetic-border`` (:data:`BORDER_SCENES` pairs, seed :data:`BORDER_SEED`) puts a near box (1–1.6 m)
+right of the centre and a second box 1.2–1.45 times as far away (the nearness rule keeps both) on the left border,
+cut off by it, its right edge :data:`BORDER_EDGE_PX` pixels from the border: a far object the right camera sees
+only over a band of columns the near object's disparities would call out of view (the held-out split's Bowling1
+at native size, with a right camera 2 % larger, shows one), before a wall at 4 m.
 
 ``--extremes`` measures the clean pair and the corners of the envelope instead: two of the deviations above at their
 limits at once (:data:`EXTREMES`), which the issue's "test the extremes" asks for and the single ones miss.
@@ -61,7 +66,7 @@ each draw's camera frames (the clean pair, the misalignments and the corners, wh
 row then the mean over every pair of every draw, each draw's own mean beside it (``per_draw``) and the worst pair
 named with its draw.
 
-    python experiments/real_rig.py [--splits held-out,tuned,synthetic,synthetic-wall,synthetic-plain]
+    python experiments/real_rig.py [--splits held-out,tuned,synthetic,synthetic-wall,synthetic-plain,synthetic-border]
                                    [--sizes 320x240,native]
                                    [--limit N]
                                    [--contrast C] [--brightness K] [--extremes | --loose-rig-digit D]
@@ -91,7 +96,8 @@ from svs_torch.data import camera_frames, resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.types import StereoBatch
-from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.core.camera import SVS_CAMERA
+from svs_torch.data.synthetic import random_obstacle_scenes, render_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -113,6 +119,9 @@ WALL_SCENES, WALL_DEPTH_M, WALL_TEXTURE_CONTRAST, WALL_SEED = 16, 5.0, 0.1, 7
 #: ``--splits synthetic-plain`` (module docstring): how many rendered pairs, the textured wall's distance (m), the
 #: boxes' texture contrast, and their seed.
 PLAIN_SCENES, PLAIN_WALL_DEPTH_M, PLAIN_TEXTURE_CONTRAST, PLAIN_SEED = 16, 2.8, 0.1, 13
+#: ``--splits synthetic-border`` (module docstring): how many rendered pairs, their seed, and the range of the far
+#: box's right edge in pixels from the left border (at 320 px wide).
+BORDER_SCENES, BORDER_SEED, BORDER_EDGE_PX = 16, 21, (20.0, 40.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -337,16 +346,38 @@ def plain_scenes() -> list[StereoBatch]:
                            texture_contrast=PLAIN_TEXTURE_CONTRAST, wall_texture_contrast=1.0)
 
 
+def border_scenes() -> list[StereoBatch]:
+    """The ``--splits synthetic-border`` pairs (module docstring), one single-pair batch each: per pair, the near
+    box's depth, the far one's depth ratio, their widths, the far box's right edge and the boxes' heights and
+    heights' centres, in that order from one seeded generator."""
+    n, width = BORDER_SCENES, 320
+    generator = torch.Generator().manual_seed(BORDER_SEED)
+    uniform = (lambda low, high: low + (high - low) * torch.rand(n, generator=generator, dtype=torch.float64))
+    focal, centre = SVS_CAMERA.focal_px(width), (width - 1) / 2
+    near_m = uniform(1.0, 1.6)
+    far_m = near_m * uniform(1.2, 1.45)
+    near_width_m, far_width_m = uniform(0.35, 0.5), uniform(0.4, 0.7)
+    far_right_m = (uniform(*BORDER_EDGE_PX) - centre) / focal * far_m  # the far box's right edge, cut by the border
+    centre_xy = torch.stack([torch.stack([uniform(0.0, 0.3), uniform(-0.1, 0.2)], 1),
+                             torch.stack([far_right_m - far_width_m / 2, uniform(-0.2, 0.1)], 1)], 1)
+    size = torch.stack([torch.stack([near_width_m, uniform(0.5, 0.9)], 1),
+                        torch.stack([far_width_m, uniform(0.6, 1.0)], 1)], 1)
+    scenes = render_obstacle_scenes(torch.stack([near_m, far_m], 1).float(), centre_xy.float(), size.float(),
+                                    size_wh=(width, 240), generator=generator).batch
+    return [scenes.select([i]) for i in range(n)]
+
+
 def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
                  ) -> dict[str, list[Path | StereoBatch]]:
     """The scenes of each split ``names`` names (the first ``limit`` of each): shared scenes' paths, or the
-    rendered pairs of ``synthetic``, ``synthetic-wall`` and ``synthetic-plain``."""
+    rendered pairs of ``synthetic``, ``synthetic-wall``, ``synthetic-plain`` and ``synthetic-border``."""
     shared = split_scenes(data_dir)
-    rendered = {"synthetic": synthetic_scenes, "synthetic-wall": wall_scenes, "synthetic-plain": plain_scenes}
+    rendered = {"synthetic": synthetic_scenes, "synthetic-wall": wall_scenes, "synthetic-plain": plain_scenes,
+                "synthetic-border": border_scenes}
     unknown = [name for name in names if name not in (*shared, *rendered)]
     if unknown:
-        raise SystemExit(f"--splits: expected held-out, tuned, synthetic, synthetic-wall or synthetic-plain, got "
-                         f"{', '.join(unknown)}")
+        raise SystemExit(f"--splits: expected held-out, tuned, synthetic, synthetic-wall, synthetic-plain or "
+                         f"synthetic-border, got {', '.join(unknown)}")
     return {name: (rendered[name]() if name in rendered else shared[name])[:limit] for name in names}
 
 
