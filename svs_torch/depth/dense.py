@@ -80,10 +80,11 @@ def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> Den
         grown = grown[..., :height, :width]
         return F.pad(grown, (0, width - grown.shape[-1], 0, height - grown.shape[-2]))
 
-    top = None if dense.in_view_top_px is None else (dense.in_view_top_px + 1) * factor - 1  # as min + count - 1
+    top, object_top = ((None if t is None else (t + 1) * factor - 1)  # as min + count - 1
+                       for t in (dense.in_view_top_px, dense.object_in_view_top_px))
     return DenseDisparity(grow(dense.disparity_px * factor), grow(dense.valid), dense.min_disparity_px * factor,
                           dense.num_disparities * factor, dense.crop_xywh * factor,
-                          dense.pair_num_disparities * factor, top)
+                          dense.pair_num_disparities * factor, top, object_top)
 
 
 def working_factor(width_px: int, config: DenseConfig = DenseConfig()) -> int:
@@ -143,7 +144,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     config = replace(config, window_size=working_window(width, config))  # after the coarse pass: its own width
     dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
     if search.in_view_top_px is not None:
-        dense = replace(dense, in_view_top_px=search.in_view_top_px)
+        dense = replace(dense, in_view_top_px=search.in_view_top_px, object_in_view_top_px=search.object_in_view_top_px)
     return _enlarge(dense, factor, height, width)
 
 

@@ -54,6 +54,13 @@ class DenseConfig:
             being the highest object's; ``"pair"``, the rule applied to the span of all of them, so that a far
             object (or its own far tail of wrong matches) lifts the top above the nearest object's and widens the
             band the in-view rule leaves unranged on the left border. The range searched is the same either way.
+        in_view_per_object: each kept object is in view from its own in-view top (its coarse disparities'
+            top, the rules above), not the highest object's: a far object on the left border beside a near one is
+            ranged where the right camera sees it at its own distance (False: every object from the pair's top,
+            the rule before; the rendered border set's far boxes then go unranged in up to 4 of its 16 pairs).
+        in_view_own_min_valid_share: an object's own top counts only where at least this share of its pixels from
+            there on is valid (:func:`~svs_torch.depth.dense_objects.dense_object_depths`): an object the right
+            camera cannot see gets wrong small coarse disparities, and so a low top of its own, but few valid pixels.
         max_num_disparities: most disparities searched per pair (the range is clipped around its centre).
         fallback_max_disparity_fraction: the widest disparity searched, as a fraction of the width: the
             coarse pass's range, and the range of a pair with too few samples.
@@ -117,6 +124,8 @@ class DenseConfig:
     range_percentiles: tuple[float, float] = (1.0, 99.0)
     in_view_detached_tail_share: float | None = 0.1  # real_rig.md, "The in-view top": 0.05-0.2 alike (tuning sets)
     in_view_margin: Literal["object", "pair"] = "object"  # real_rig.md, "Each object's own margin"
+    in_view_per_object: bool = True  # real_rig.md, "Each object's own in-view top" (tuning and rendered sets)
+    in_view_own_min_valid_share: float = 0.5  # the same section: a wrong near strip 0.33, seen far boxes >= 0.93
     max_num_disparities: int = 128
     fallback_max_disparity_fraction: float = 0.25
     min_range_inliers: int = 7
@@ -155,6 +164,11 @@ class DenseConfig:
         if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
                                   or not 0 <= share < 0.5):
             raise InputError(f"in_view_detached_tail_share: expected None or a share in [0, 0.5), got {share!r}")
+        if not isinstance(self.in_view_per_object, bool):
+            raise InputError(f"in_view_per_object: expected a bool, got {self.in_view_per_object!r}")
+        share = self.in_view_own_min_valid_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
+            raise InputError(f"in_view_own_min_valid_share: expected a share in [0, 1], got {share!r}")
         if self.in_view_margin not in ("object", "pair"):
             raise InputError(f"in_view_margin: expected 'object' or 'pair', got {self.in_view_margin!r}")
         low, high = self.range_percentiles
@@ -185,12 +199,14 @@ class DisparityRange(NamedTuple):
     disparities past its own count get no cost, so its result does not depend on its batch). Without
     ``pair_num_disparities`` every pair searches ``num_disparities``. ``in_view_top_px`` ``(B,)`` int64
     (optional): the largest disparity the in-view rule allows for, at most the range's top
-    (``DenseConfig.in_view_detached_tail_share``)."""
+    (``DenseConfig.in_view_detached_tail_share``); ``object_in_view_top_px`` ``(B, N)`` int64 (optional): each
+    kept object's own (``DenseConfig.in_view_per_object``)."""
 
     min_disparity_px: torch.Tensor
     num_disparities: int
     pair_num_disparities: torch.Tensor | None = None
     in_view_top_px: torch.Tensor | None = None
+    object_in_view_top_px: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -207,6 +223,8 @@ class DenseDisparity:
         pair_num_disparities: ``(B,)`` int64, each pair's own count.
         in_view_top_px: ``(B,)`` int64 or None: the largest disparity the in-view rule allows for
             (``DisparityRange.in_view_top_px``); None: the top of the range searched.
+        object_in_view_top_px: ``(B, N)`` int64 or None: each kept object's own, in the order of the objects the
+            range was found for (``DenseConfig.in_view_per_object``); None: ``in_view_top_px`` for every object.
     """
 
     disparity_px: torch.Tensor
@@ -216,3 +234,4 @@ class DenseDisparity:
     crop_xywh: torch.Tensor
     pair_num_disparities: torch.Tensor
     in_view_top_px: torch.Tensor | None = None
+    object_in_view_top_px: torch.Tensor | None = None

@@ -81,7 +81,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                         focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
                         doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
                         min_valid_px: int = 20, fill_invalid: bool = True,
-                        min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0) -> ObjectDepths:
+                        min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0,
+                        min_own_view_valid_share: float = 0.0) -> ObjectDepths:
     """Per-object depth from dense disparity.
 
     Args:
@@ -98,8 +99,9 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
             most pixels inconsistent, and such an object is not ranged rather than ranged wrong.
         min_in_view_px: fewest valid pixels an object needs at columns ``x ≥ d_max`` of its pair, where every
             disparity searched lands inside the right image (``DepthConfig.min_object_pixels_in_view``; ``d_max``:
-            the range's top, or ``dense.in_view_top_px`` below it); 0: no check. The statistics are still over all
-            the object's pixels.
+            the range's top, ``dense.in_view_top_px`` below it, or the object's own ``dense.object_in_view_top_px``
+            where at least ``min_own_view_valid_share`` of its pixels from there on are valid: :func:`_trusted_from`);
+            0: no check. The statistics are still over all the object's pixels.
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
             (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median
             is over the whole region, as the truth is, and not only over its well-textured part.
@@ -115,7 +117,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     doffs = _per_pair(doffs_px, b, disparity, "doffs_px").view(b, 1)
     slots = objects.label  # (B, N), −1 padding
     q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
-    in_view_from = _in_view_from(dense)
+    in_view_from = _trusted_from(dense, labels, slots, min_own_view_valid_share)
     fused = None
     gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
     if not gradients:
@@ -137,20 +139,55 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                                valid=valid, num_valid_px=count, num_in_view_px=in_view)
 
 
-def _in_view_from(dense: DenseDisparity) -> torch.Tensor:
-    """``(B,)`` int64: the first column where every disparity of the pair's range lands inside the right image
-    (``x − d_max ≥ 0``; ``d_max`` without noise's detached wrong matches where ``dense.in_view_top_px`` says)."""
+def _in_view_from(dense: DenseDisparity, num_slots: int) -> torch.Tensor:
+    """``(B, N)`` int64: each object's first column where every disparity of the pair's range lands inside the
+    right image (``x − d_max ≥ 0``; ``d_max`` without noise's detached wrong matches where ``dense.in_view_top_px``
+    says, and the object's own where ``dense.object_in_view_top_px`` gives it)."""
     top = dense.min_disparity_px + dense.pair_num_disparities - 1
     if dense.in_view_top_px is not None:
         top = torch.minimum(top, dense.in_view_top_px)
-    return top.clamp_min(0).long()
+    top = top.unsqueeze(1).expand(-1, num_slots)
+    own = dense.object_in_view_top_px
+    if own is not None:
+        if own.shape[1] != num_slots:
+            raise InputError(f"dense.object_in_view_top_px: expected one column per object slot ({num_slots}), got "
+                             f"shape {tuple(own.shape)}")
+        top = torch.minimum(top, own)
+    return top.clamp_min(0).long().contiguous()
+
+
+def _trusted_from(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, min_share: float
+                  ) -> torch.Tensor:
+    """:func:`_in_view_from` ``(B, N)``, where an object's own top lies below its pair's only if at least
+    ``min_share`` of its pixels (``labels == slots``) from its own first column on are valid, else from the pair's.
+    Why: an object the right camera cannot see at all (wholly in the band its true disparity leaves out of view)
+    still gets coarse matches, wrong and small, so its own top is low; the dense matcher's checks then reject most
+    of its pixels (a near strip on the left border: a third valid; a far box seen there: 0.93–1.00, camera frames
+    and a ±30 % gain included; experiments/real_rig.md, "Each object's own in-view top")."""
+    num_slots = slots.shape[1]
+    own = _in_view_from(dense, num_slots)
+    if dense.object_in_view_top_px is None:
+        return own
+    shared = _in_view_from(dataclasses.replace(dense, object_in_view_top_px=None), num_slots)
+    lowered = (own < shared) & (slots > 0)
+    if min_share <= 0 or not bool(lowered.any()):
+        return own
+    pairs = lowered.any(dim=1).nonzero().flatten()  # only the pairs with a lowered object pay for the count
+    pair_labels, valid = labels[pairs, 0], dense.valid[pairs, 0]
+    columns = torch.arange(labels.shape[-1], device=labels.device).view(1, 1, -1)
+    share = []
+    for n in range(num_slots):  # a handful of objects
+        band = (pair_labels == slots[pairs, n].view(-1, 1, 1)) & (columns >= own[pairs, n].view(-1, 1, 1))
+        share.append((band & valid).flatten(1).sum(1) / band.flatten(1).sum(1).clamp_min(1))
+    trusted = torch.ones_like(lowered).index_copy(0, pairs, torch.stack(share, dim=1) >= min_share)
+    return torch.where(lowered & ~trusted, shared, own)
 
 
 def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
                       baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool,
                       in_view_from: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`dense_object_depths`' statistics ``(B, N, 3)``, measured counts ``(B, N)`` and those of them at
-    frame columns from ``in_view_from`` ``(B,)`` on, in torch (the differentiable path): every pair cropped to
+    frame columns from ``in_view_from`` ``(B, N)`` on, in torch (the differentiable path): every pair cropped to
     the batch's largest box."""
     disparity = dense.disparity_px
     b = disparity.shape[0]
@@ -179,11 +216,11 @@ def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.
     measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
     # The frame column of each crop position (clamped, as the reads are): in view from in_view_from on.
     columns = (x0.view(-1, 1) + torch.arange(size_w, device=disparity.device)).clamp(0, disparity.shape[-1] - 1)
-    in_view = (columns >= in_view_from.view(-1, 1)).view(b, 1, size_w).expand(b, size_h, size_w).flatten(1)
     # One compare and count per slot (a handful of objects) instead of a (B, N, P) volume of compares.
     count, count_in_view = [], []
     for n in range(slots.shape[1]):
         member = measured_labels == slots[:, n:n + 1]
+        in_view = (columns >= in_view_from[:, n:n + 1]).view(b, 1, size_w).expand(b, size_h, size_w).flatten(1)
         count.append(member.sum(dim=1))
         count_in_view.append((member & in_view).sum(dim=1))
     if not count:

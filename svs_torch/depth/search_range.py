@@ -74,7 +74,8 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     ``tail_bin_px`` (optional, with ``config.in_view_detached_tail_share``): the samples' grid, e.g. the coarse
     pass's pixel. The range's ``in_view_top_px`` is then its top with each group's detached near tail left out
     (:func:`_detached_tail_ceiling`) and, with ``config.in_view_margin="object"``, each group's margin from its own
-    span (:func:`_in_view_top`); the range searched keeps every sample."""
+    span (:func:`_in_view_tops`), and with ``config.in_view_per_object`` and ``groups`` each group's own top too
+    (``object_in_view_top_px``); the range searched keeps every sample."""
     check_shape(disparity_px, "disparity_px", ["B", "P"])
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
@@ -82,6 +83,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     enough_count = config.min_range_inliers if min_count is None else min_count
     percentiles = (config.range_percentiles[0] / 100, config.range_percentiles[1] / 100)
     share = config.in_view_detached_tail_share if tail_bin_px is not None else None
+    object_groups = groups is not None
     if groups is None and share is not None:
         groups = valid.unsqueeze(1)  # the pair's samples as one group, to find its detached tail
     trimmed = None
@@ -91,7 +93,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
         count, low, high, trimmed = _group_percentiles(disparity_px, values, valid, groups, percentiles,
                                                        enough_count, tail_bin_px, share)
     margin = _margin(low, high, config, extra_margin_px)
-    trimmed_top = None if trimmed is None else _in_view_top(trimmed, low, config, extra_margin_px)
+    group_tops = None if trimmed is None else _in_view_tops(trimmed, low, config, extra_margin_px)
     enough = count >= enough_count
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
@@ -102,24 +104,29 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     low = torch.where(high - low + 1 > span, (centre - span / 2).floor().clamp_min(0), low)
     span = span.clamp_min(2).long()
     num_disparities = int(span.max()) if span.numel() else 2
-    in_view_top = None
-    if trimmed_top is not None:  # never above the range searched
+    in_view_top = object_tops = None
+    if group_tops is not None:  # never above the range searched
         top = low + span - 1
-        in_view_top = torch.where(enough, torch.minimum(trimmed_top.ceil(), top), top).long()
-    return DisparityRange(low.long(), num_disparities, span, in_view_top)
+        used = group_tops > -torch.inf
+        pair_top = torch.where(used.any(dim=1), group_tops.amax(dim=1), 0.0)
+        in_view_top = torch.where(enough, torch.minimum(pair_top.ceil(), top), top).long()
+        if config.in_view_per_object and object_groups:
+            object_tops = torch.where(enough.unsqueeze(1) & used, torch.minimum(group_tops.ceil(), top.unsqueeze(1)),
+                                      in_view_top.unsqueeze(1).to(group_tops.dtype)).long()
+    return DisparityRange(low.long(), num_disparities, span, in_view_top, object_tops)
 
 
-def _in_view_top(trimmed: _Trimmed, low: torch.Tensor, config: DenseConfig,
-                 extra_margin_px: float) -> torch.Tensor:
-    """The top ``(B,)`` of the disparities the in-view rule allows for, before it is capped at the range searched:
-    the highest of the used groups' tops without their detached near tails (``trimmed`` = used, low and trimmed
-    high, ``(B, G)`` each), each widened by the margin rule. ``config.in_view_margin`` ``"object"``: each group's
-    margin from its own span, as if it were ranged alone; ``"pair"``: from the pair's span down to ``low``, so
-    another object's far tail of wrong matches (or a far object) widens it (0 where no group is used)."""
+def _in_view_tops(trimmed: _Trimmed, low: torch.Tensor, config: DenseConfig,
+                  extra_margin_px: float) -> torch.Tensor:
+    """Each group's top ``(B, G)`` of the disparities the in-view rule allows for, before it is capped at the
+    range searched: its top without its detached near tail (``trimmed`` = used, low and trimmed high, ``(B, G)``
+    each), widened by the margin rule; −inf for a group not used. ``config.in_view_margin`` ``"object"``: each
+    group's margin from its own span, as if it were ranged alone; ``"pair"``: from the pair's span down to
+    ``low``, so another object's far tail of wrong matches (or a far object) widens it. The pair's top is the
+    highest (0 where no group is used)."""
     used, group_low, group_high = trimmed
     base = group_low if config.in_view_margin == "object" else low.unsqueeze(1).expand_as(group_low)
-    tops = torch.where(used, group_high + _margin(base, group_high, config, extra_margin_px), -torch.inf)
-    return torch.where(used.any(dim=1), tops.amax(dim=1), 0.0)
+    return torch.where(used, group_high + _margin(base, group_high, config, extra_margin_px), -torch.inf)
 
 
 def _margin(low: torch.Tensor, high: torch.Tensor, config: DenseConfig, extra_margin_px: float) -> torch.Tensor:

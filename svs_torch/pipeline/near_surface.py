@@ -102,7 +102,8 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
                                             reachable))
     near = dense_object_depths(sub(dense), cut_labels(sub(cut)), sub(objects), sub(focal_px), sub(baseline_m),
                                sub(doffs_px), config.depth.object_percentiles, config.depth.min_object_pixels,
-                               config.dense.fill_invalid, 0.0, config.depth.min_object_pixels_in_view)
+                               config.dense.fill_invalid, 0.0, config.depth.min_object_pixels_in_view,
+                               config.dense.in_view_own_min_valid_share)
     # An object whose near surface cannot be ranged keeps its whole region and its depth.
     part = sub(cut) & near.valid
     if not bool(part.any()):

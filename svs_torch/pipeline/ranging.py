@@ -110,7 +110,8 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                 + (1 - weight) * config.depth.min_object_valid_fraction_unverified)
     objects = dense_object_depths(dense, object_labels, sparse.objects, batch.focal_px, batch.baseline_m,
                                   batch.doffs_px, config.depth.object_percentiles, config.depth.min_object_pixels,
-                                  config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view)
+                                  config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view,
+                                  config.dense.in_view_own_min_valid_share)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
     return depth, dense, verified, agreeing, measured

@@ -614,7 +614,7 @@ def test_dense_object_depths(size, n, fill, data):
     ("object_depths", lambda: (torch.rand(1, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool),
                                torch.ones(1, 4, 4, dtype=torch.int64), torch.tensor([[2, 0, 4, 4]] * 2),
                                torch.ones(1, 1, dtype=torch.int64), torch.ones(1), torch.zeros(1),
-                               torch.zeros(1, dtype=torch.int64), True, torch.tensor([0.5]))),
+                               torch.zeros(1, 1, dtype=torch.int64), True, torch.tensor([0.5]))),
     ("refine_maxima", lambda: ([torch.rand(1, 4, 6, 6)], [torch.rand(1, 4, 6, 6)], [1], [[9, 15, 21, 27]],
                                torch.ones(1, 1), torch.tensor([[500]]), 1.0, 0.5)),
     ("hessian_octave", lambda: (torch.zeros(1, 1, 30, 30), 10, 0, [9, 15, 21, 27], [1.0] * 4, [1.0] * 4, 0.9,

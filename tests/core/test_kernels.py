@@ -824,12 +824,14 @@ def test_object_depths_kernel_is_bit_identical_to_torch(monkeypatch, fill, threa
 
 
 @pytest.mark.parametrize("path", ["auto", "torch"])
-def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
+@pytest.mark.parametrize("own_tops", [False, True])
+def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path, own_tops):
     """``num_in_view_px`` counts, per slot, the measured pixels (each position of the searched box, clamped to
     the frame as ``num_valid_px`` counts them: valid, positive denominator, finite depth) at frame columns
-    ``x ≥ min_disparity_px + pair_num_disparities − 1``, as a loop over the box does, for ranges that start above
-    and below 0, one wider than the frame and an empty one; ``min_in_view_px`` drops exactly the objects with
-    fewer and changes no statistic."""
+    ``x ≥ min_disparity_px + pair_num_disparities − 1``, or from each object's own top below that where
+    ``object_in_view_top_px`` gives one, as a loop over the box does, for ranges that start above and below 0, one
+    wider than the frame and an empty one; ``min_in_view_px`` drops exactly the objects with fewer and changes no
+    statistic."""
     from dataclasses import replace
 
     from svs_torch.depth.dense_objects import dense_object_depths
@@ -839,6 +841,8 @@ def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
     dense, labels, objects, focal, baseline, doffs = _object_depth_inputs(8)
     dense = replace(dense, min_disparity_px=torch.tensor([5, -3, 0, 2]),
                     pair_num_disparities=torch.tensor([10, 4, 80, 0]))
+    if own_tops:  # below, at and above the pair's top; a repeated label (pair 1) counts from its first slot's
+        dense = replace(dense, object_in_view_top_px=torch.tensor([[9, 30, 2], [0, 7, -4], [50, 90, 1], [3, 0, 1]]))
     result = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1)
     b, n = objects.label.shape
     expected = torch.zeros(b, n, dtype=torch.int64)
@@ -848,15 +852,19 @@ def test_objects_pixels_in_view_counted_by_hand(monkeypatch, path):
         for y in (min(max(y0 + j, 0), labels.shape[-2] - 1) for j in range(height)):
             for x in (min(max(x0 + k, 0), labels.shape[-1] - 1) for k in range(width)):
                 denominator = dense.disparity_px[i, 0, y, x] + doffs[i]  # float32, as the statistics
-                if x < d_max or not dense.valid[i, 0, y, x] or denominator <= 0:
+                if not dense.valid[i, 0, y, x] or denominator <= 0:
                     continue
                 if not 0 < float(focal[i] * baseline[i] / denominator) < float("inf"):
                     continue
                 for k in range(n):
-                    expected[i, k] += int(objects.label[i, k] > 0 and labels[i, 0, y, x] == objects.label[i, k])
+                    first = next(e for e in range(n) if objects.label[i, e] == objects.label[i, k])
+                    top = d_max if not own_tops else min(d_max, int(dense.object_in_view_top_px[i, first]))
+                    expected[i, k] += int(objects.label[i, k] > 0 and labels[i, 0, y, x] == objects.label[i, k]
+                                          and x >= max(top, 0))
     assert torch.equal(result.num_in_view_px, expected)
     assert (result.num_in_view_px <= result.num_valid_px).all()
-    assert torch.equal(result.num_in_view_px[2], torch.zeros(n, dtype=torch.int64))  # d_max past the frame
+    # Pair 2's d_max lies past the frame: nothing in view, but where an object's own top lies inside it.
+    assert result.num_in_view_px[2, 1:].eq(0).all() and (result.num_in_view_px[2, 0] > 0) == own_tops
     assert (result.num_in_view_px[0] > 0).any() and (result.num_in_view_px[0] < result.num_valid_px[0]).any()
     threshold = int(expected[result.valid].max())  # only the best-seen object keeps its depth
     checked = dense_object_depths(dense, labels, objects, focal, baseline, doffs, min_valid_px=1,

@@ -411,6 +411,71 @@ def test_in_view_top_takes_each_objects_margin_from_its_own_span():
         DenseConfig(in_view_margin="pairs")
 
 
+def test_in_view_top_of_each_object():
+    """``DenseConfig.in_view_per_object``: each group's own in-view top beside the pair's, equal to the reference
+    written from the docstrings for that group alone (near 44–52 px: 56; far 20–26 px with its far tail: its own
+    span's margin), capped at the range searched; a group with too few samples gets the pair's top; without groups,
+    or with the setting off, none. The range searched and the pair's top are the same either way."""
+    generator = torch.Generator().manual_seed(5)
+    near = 44 + 8 * torch.rand(600, generator=generator, dtype=F64)
+    far = torch.cat([20 + 6 * torch.rand(388, generator=generator, dtype=F64),
+                     2 + 2 * torch.rand(12, generator=generator, dtype=F64)])
+    samples = torch.cat([near, far, torch.full((5,), 30.0, dtype=F64)]).unsqueeze(0)
+    valid = torch.ones_like(samples, dtype=torch.bool)
+    groups = torch.zeros(1, 3, 1005, dtype=torch.bool)
+    groups[0, 0, :600], groups[0, 1, 600:1000], groups[0, 2, 1000:] = True, True, True  # the third: 5 < 20 samples
+    width, config = torch.tensor([320]), DenseConfig()
+    assert config.in_view_per_object
+    found = disparity_search_range(samples, valid, width, config, extra_margin_px=2, min_count=20, groups=groups,
+                                   tail_bin_px=2)
+    searched_top = int(found.min_disparity_px[0] + found.pair_num_disparities[0] - 1)
+    own = [min(_reference_in_view_top([g.numpy()], config, 2, True), searched_top) for g in (near, far)]
+    assert found.object_in_view_top_px.tolist() == [[*own, int(found.in_view_top_px[0])]]
+    assert own[0] == 56 == int(found.in_view_top_px[0]) and own[1] < 40
+    plain = disparity_search_range(samples, valid, width, DenseConfig(in_view_per_object=False), extra_margin_px=2,
+                                   min_count=20, groups=groups, tail_bin_px=2)
+    assert plain.object_in_view_top_px is None
+    assert all(torch.equal(getattr(plain, f), getattr(found, f))
+               for f in ("min_disparity_px", "pair_num_disparities", "in_view_top_px"))
+    alone = disparity_search_range(samples, valid, width, config, extra_margin_px=2, min_count=20, tail_bin_px=2)
+    assert alone.object_in_view_top_px is None and alone.in_view_top_px is not None
+    with pytest.raises(InputError, match="in_view_per_object: expected a bool"):
+        DenseConfig(in_view_per_object=1)
+    for share in (-0.1, 1.5, True, float("nan")):
+        with pytest.raises(InputError, match=r"in_view_own_min_valid_share: expected a share in \[0, 1\]"):
+            DenseConfig(in_view_own_min_valid_share=share)
+
+
+@pytest.mark.parametrize("path", ["auto", "torch"])
+def test_own_in_view_top_needs_most_of_its_band_measured(monkeypatch, path):
+    """An object in view from its own top (8 px, below its pair's 20) keeps it where at least
+    ``min_own_view_valid_share`` of its pixels from column 8 on are valid (pair 0: all of them), and is in view from
+    its pair's top where fewer are (pair 1: 3 of 8 columns, 0.375 < 0.5): counted by hand, on both paths."""
+    from svs_torch.depth.dense_config import DenseDisparity
+    from svs_torch.depth.dense_objects import dense_object_depths
+    from svs_torch.depth.depth_types import ObjectDepths
+
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    b, h, w = 2, 10, 40
+    labels = torch.zeros(b, 1, h, w, dtype=torch.int64)
+    labels[..., :16] = 1
+    valid = torch.zeros(b, 1, h, w, dtype=torch.bool)
+    valid[0, ..., :16] = True
+    valid[1, ..., :5], valid[1, ..., 13:16] = True, True
+    dense = DenseDisparity(torch.where(valid, 2.0, 0.0), valid, torch.zeros(b, dtype=torch.int64), 21,
+                           torch.tensor([[0, 0, w, h]] * b), torch.full((b,), 21), torch.full((b,), 20),
+                           torch.full((b, 1), 8))
+    zeros = torch.zeros(b, 1)
+    objects = ObjectDepths(torch.ones(b, 1, dtype=torch.int64), torch.full((b, 1), 160), zeros,
+                           torch.zeros(b, 1, dtype=torch.int64), torch.zeros(b, 1, dtype=torch.int64), zeros, zeros,
+                           zeros, torch.zeros(b, 1, dtype=torch.bool), torch.zeros(b, 0, dtype=torch.int64))
+    counted = {share: dense_object_depths(dense, labels, objects, 100.0, 0.1, min_valid_px=1, fill_invalid=False,
+                                          min_own_view_valid_share=share).num_in_view_px[:, 0].tolist()
+               for share in (0.0, 0.375, 0.5)}
+    assert counted == {0.0: [8 * h, 3 * h], 0.375: [8 * h, 3 * h], 0.5: [8 * h, 0]}
+
+
 @pytest.mark.parametrize("grouped", [False, True])
 def test_search_range_by_selection_equals_the_sort(grouped, monkeypatch):
     """The compiled selection of the range's nearest-rank percentiles gives the sort's range exactly, with

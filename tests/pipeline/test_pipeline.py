@@ -11,6 +11,7 @@ import torch
 from svs_torch import InputError, StereoBatch
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.depth.depth_types import DepthConfig
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
@@ -174,7 +175,9 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     """A bright strip 0.8 m away on the left border, 20 px wide where its disparity is 37 px, has no match
     inside the right view: the best visible candidate ranged it at 9.9 m. By default it is not ranged (none
     of its valid pixels lies at x ≥ the pair's largest searched disparity), the object beside it still is, and
-    the JSON-facing count says why."""
+    the JSON-facing count says why. Its wrong coarse matches give it a low in-view top of its own, but only a
+    third of its pixels from there on are valid, under ``DenseConfig.in_view_own_min_valid_share``: so the
+    pair's top holds (with no such share asked, its own top lets it be ranged wrong)."""
     from conftest import render_border_strip_scene
 
     from svs_torch.core.camera import SVS_CAMERA
@@ -184,19 +187,22 @@ def test_an_object_the_right_camera_cannot_see_is_not_ranged():
     assert scenes.object_bbox_xyxy[0, 1].tolist()[::2] == [0, strip_px]
     assert SVS_CAMERA.focal_px(320) * SVS_CAMERA.baseline_m / near_m > strip_px + 15
 
-    def objects(min_in_view: int):  # without the drop of unmeasured regions, which drops the wrong strip too
+    def objects(min_in_view: int, own_share: float = DenseConfig().in_view_own_min_valid_share):
+        # Without the drop of unmeasured regions, which drops the wrong strip too.
         config = PipelineConfig(segmentation=OTSU, depth=DepthConfig(min_object_pixels_in_view=min_in_view),
+                                dense=DenseConfig(in_view_own_min_valid_share=own_share),
                                 drop_unmeasured_below_share=None)
         result = estimate_obstacle_depth(scenes.batch, config)
         assert result.status.tolist() == [PipelineStatus.OK]
         return result.depth.objects
 
-    checked, unchecked = objects(20), objects(0)
+    checked, unchecked, own_top = objects(20), objects(0), objects(20, own_share=0.0)
     strip = int((checked.centroid_x_px[0] < strip_px).nonzero())
     wide = 1 - strip
     assert int(checked.num_valid_px[0, strip]) >= 20 and int(checked.num_in_view_px[0, strip]) == 0
     assert not checked.valid[0, strip]
-    assert bool(unchecked.valid[0, strip]) and float(unchecked.depth_median_m[0, strip]) > 2 * near_m  # ranged wrong
+    for wrong in (unchecked, own_top):
+        assert bool(wrong.valid[0, strip]) and float(wrong.depth_median_m[0, strip]) > 2 * near_m  # ranged wrong
     assert bool(checked.valid[0, wide]) and float(checked.depth_median_m[0, wide]) == pytest.approx(1.5, rel=0.01)
     assert int(checked.num_in_view_px[0, wide]) == int(checked.num_valid_px[0, wide])
     with pytest.raises(InputError, match="min_object_pixels_in_view: expected an int >= 0"):

@@ -156,15 +156,20 @@ def test_a_region_left_unranged_is_dropped_whatever_its_share(data_dir):
     most of it, but none at a column the whole range lands in view (``DepthConfig.min_object_pixels_in_view``), so
     it was listed unranged and the pair scored about 49 %. It is dropped: the pair keeps the ranged plant. Scored,
     the pair is where it was, since a region dropped and one listed unranged are both objects without a distance.
-    (With the 7×7 nearness map, which kept that region.)"""
+    (With the 7×7 nearness map, which kept that region, and every object in view from the pair's top: in view from
+    its own, ``DenseConfig.in_view_per_object``, the default since, the region is ranged at 2.54 m, 99.9 %.)"""
     from conftest import seven_by_seven_nearness
 
     narrow = seven_by_seven_nearness()
     scene = real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Jadeplant")
     views = [view for view in real_rig.conditions(scene, 1) if view[0] == "jpeg q6 + noise s6"]
     pair = real_rig.stack_conditions(scene, views)
-    kept = estimate_obstacle_depth(pair, DROPPING, network=narrow)
-    without = estimate_obstacle_depth(pair, PipelineConfig(), network=narrow)
+    shared_top = (lambda config: dataclasses.replace(config, dense=dataclasses.replace(config.dense,
+                                                                                       in_view_per_object=False)))
+    kept = estimate_obstacle_depth(pair, shared_top(DROPPING), network=narrow)
+    without = estimate_obstacle_depth(pair, shared_top(PipelineConfig()), network=narrow)
+    own_top = evaluate_result(pair, estimate_obstacle_depth(pair, PipelineConfig(), network=narrow))[0]
+    assert len(own_top.objects) == 2 and all(row["acc_pct"] > 99 for row in own_top.objects)
     objects = without.depth.objects
     slot = int(kept.dropped_objects[0].nonzero().flatten().item())
     assert not bool(objects.valid[0, slot]) and int(objects.num_in_view_px[0, slot]) == 0

@@ -358,13 +358,12 @@ def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Te
     """The statistics of :func:`svs_torch.depth.dense_objects.dense_object_depths`, each pair read once at its own box
     (see the C source): ``disparity`` ``(B, H, W)`` float32, ``valid`` ``(B, H, W)`` bool, ``labels``
     ``(B, H, W)`` int64; ``boxes`` ``(B, 4)`` x0, y0, width, height; ``slots`` ``(B, N)`` int64; ``scale``
-    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``in_view_from`` ``(B,)`` int64, the first frame column
-    where the pair's whole disparity range lands inside the right image; ``fill``: fill invalid pixels from their
-    row first; quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, in_view, below, above)``: each
-    slot's member count, its members that were valid before the fill and those of them at columns from
-    ``in_view_from`` on ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of
-    ``q · (count − 1)`` ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its
-    contract."""
+    (focal · baseline) and ``doffs`` ``(B,)`` float32; ``in_view_from`` ``(B, N)`` int64, each slot's first frame
+    column where the whole disparity range it is allowed lands inside the right image; ``fill``: fill invalid
+    pixels from their row first; quantiles ``q`` ``(Q,)`` float32. Returns ``(count, measured, in_view, below,
+    above)``: each slot's member count, its members that were valid before the fill and those of them at columns
+    from its ``in_view_from`` on ``(B, N)``, and the members of rank ``floor`` / ``ceil`` of ``q · (count − 1)``
+    ``(B, N, Q)``; None when the kernel is not available or the inputs do not fit its contract."""
     dims = check_shape(disparity, "disparity", ["B", "H", "W"])
     b, h, w = dims["B"], dims["H"], dims["W"]
     check_shape(valid, "valid", [b, h, w])
@@ -374,7 +373,7 @@ def object_depths(disparity: torch.Tensor, valid: torch.Tensor, labels: torch.Te
     check_rows(slots, "slots", b, "N")
     check_shape(scale, "scale", [b])
     check_shape(doffs, "doffs", [b])
-    check_rows(in_view_from, "in_view_from", b)
+    check_shape(in_view_from, "in_view_from", [b, slots.shape[1]])
     check_shape(q, "q", ["Q"])
     if q.numel() and not bool(((q >= 0) & (q <= 1)).all()):  # NaN too: the kernel casts q · (count − 1) to int
         raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")

@@ -11,8 +11,8 @@
  *   den = d + doffs;  ok &= den > 0;  Z = scale / den  (scale = focal * baseline, made by the caller in float32)
  *   ok &= isfinite(Z) && Z > 0
  *   members of slot n: Z where ok and label == slots[n] (> 0);  measured[n]: those that were valid before the fill
- *   in_view[n]: those measured at a frame column >= in_view_from[b] (where the pair's whole disparity range lands
- *   inside the right image: DepthConfig.min_object_pixels_in_view)
+ *   in_view[n]: those measured at a frame column >= in_view_from[b, n] (where the whole disparity range the object
+ *   is allowed lands inside the right image: DepthConfig.min_object_pixels_in_view)
  * then the members grouped by slot (a counting sort) and each slot's order statistics by quickselect
  * (select_rank.h). The same float32 operations as the torch path,
  * so the same statistics bit for bit (the caller interpolates them with its own float32 ops).
@@ -58,7 +58,7 @@ __attribute__((noinline)) static void depth_row(const float *restrict values, co
 
 /* ``disparity`` (B, H, W) float32, ``valid`` (B, H, W) uint8, ``labels`` (B, H, W) int64; ``boxes`` (B, 4) x0,
  * y0, width, height; ``slots`` (B, N) int64 (<= 0: padding); ``scale``, ``doffs`` (B,) float32; ``q`` (Q,)
- * float32; ``in_view_from`` (B,) int64, the first frame column in view. Out: ``count`` (B, N) members,
+ * float32; ``in_view_from`` (B, N) int64, each slot's first frame column in view. Out: ``count`` (B, N) members,
  * ``measured`` (B, N), ``in_view`` (B, N), ``below`` / ``above`` (B, N, Q). Returns 0, or -1
  * when memory could not be had or N > 126 (a slot's index is kept in 8 bits); the caller then runs the torch path. */
 int object_depths(const float *disparity, const uint8_t *valid, const int64_t *labels, int64_t B, int64_t H,
@@ -109,7 +109,7 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
                 count[b * N + n] = measured[b * N + n] = in_view[b * N + n] = 0;
             }
             const float pair_scale = scale[b], pair_doffs = doffs[b];
-            const int64_t view_from = in_view_from[b];
+            const int64_t *view_from = in_view_from + b * N;
             /* The box columns inside the frame, [inside_lo, inside_hi); the others repeat its border column. */
             const int64_t inside_lo = x0 < 0 ? (-x0 < w ? -x0 : w) : 0;
             const int64_t inside_hi = x0 + w > W ? (W - x0 > inside_lo ? W - x0 : inside_lo) : w;
@@ -145,7 +145,9 @@ int object_depths(const float *disparity, const uint8_t *valid, const int64_t *l
                           row_usable, slot_of + p);
                 /* bit 0: valid before the fill; bit 1: that, and at a frame column in view. */
                 for (int64_t i = 0; i < w; ++i)
-                    measured_of[p + i] = (uint8_t)(row_ok[i] * (1 + 2 * (clamp_index(x0 + i, W) >= view_from)));
+                    measured_of[p + i] = (uint8_t)(row_ok[i] * (1 + 2 * (slot_of[p + i] >= 0
+                                                                         && clamp_index(x0 + i, W)
+                                                                                >= view_from[slot_of[p + i]])));
                 p += w;
             }
             /* The members grouped by slot (a counting sort), then each slot's order statistics. */
