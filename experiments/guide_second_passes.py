@@ -17,6 +17,14 @@ measured on the tuning sets with ``experiments/real_rig.py`` (its ``--set`` turn
 
 from __future__ import annotations
 
+import os
+
+# Timed as guide's own process runs: it sets no OpenMP wait policy. The experiments' PASSIVE (real_rig.py, imported
+# below, sets it for bulk runs) puts OpenMP's threads to sleep between the many small parallel regions of a one-pair
+# frame: on the AMD VM on 2026-11-30 median 22.5 against 15.2 ms a frame, 6 frames over 50 ms against 1. The
+# OpenMP runtime reads the variable when torch loads it, so it is dropped before that.
+os.environ.pop("OMP_WAIT_POLICY", None)
+
 import argparse
 import dataclasses
 import json
@@ -83,7 +91,8 @@ def main(argv: list[str] | None = None) -> dict:
     if not rows:
         raise SystemExit(f"--data: no shared pair under {args.data}")
     print(f"guide frame by frame, shared real pairs at 320x240 as JPEG digit {args.digit} frames (noise σ "
-          f"{NOISE_FOR_DIGIT[args.digit]:g}), B = 1, {torch.get_num_threads()} threads; goal {GOAL_MS:g} ms")
+          f"{NOISE_FOR_DIGIT[args.digit]:g}), B = 1, {torch.get_num_threads()} threads, OpenMP wait policy unset "
+          f"(as guide's process); goal {GOAL_MS:g} ms")
     print("\n| second passes | frames | median ms | 90th percentile ms | max ms | frames over the goal |")
     print("|---|---|---|---|---|---|")
     for name, row in rows.items():
