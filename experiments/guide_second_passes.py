@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import os
 
-# Timed as guide's own process runs: it sets no OpenMP wait policy. The experiments' PASSIVE (real_rig.py, imported
-# below, sets it for bulk runs) puts OpenMP's threads to sleep between the many small parallel regions of a one-pair
-# frame: on the AMD VM on 2026-11-30 median 22.5 against 15.2 ms a frame, 6 frames over 50 ms against 1. The
-# OpenMP runtime reads the variable when torch loads it, so it is dropped before that.
+# Timed as guide's own process runs: it sets no OpenMP wait policy. A shell that exports PASSIVE for bulk runs on a
+# shared machine (the experiments' own default, real_rig.py's) puts OpenMP's threads to sleep between the many small
+# parallel regions of a one-pair frame: on the AMD VM on 2026-11-30 median 22.5 against 15.2 ms a frame, 6 frames
+# over 50 ms against 1. The OpenMP runtime reads the variable when torch loads it, so it is dropped before that.
 os.environ.pop("OMP_WAIT_POLICY", None)
 
 import argparse

@@ -347,9 +347,8 @@ def plain_scenes() -> list[StereoBatch]:
 
 
 def border_scenes() -> list[StereoBatch]:
-    """The ``--splits synthetic-border`` pairs (module docstring), one single-pair batch each: per pair, the near
-    box's depth, the far one's depth ratio, their widths, the far box's right edge and the boxes' heights and
-    heights' centres, in that order from one seeded generator."""
+    """The ``--splits synthetic-border`` pairs (module docstring), one single-pair batch each; every size, depth and
+    place drawn from one generator seeded with :data:`BORDER_SEED`, so each run renders the same pairs."""
     n, width = BORDER_SCENES, 320
     generator = torch.Generator().manual_seed(BORDER_SEED)
     uniform = (lambda low, high: low + (high - low) * torch.rand(n, generator=generator, dtype=torch.float64))
