@@ -193,10 +193,11 @@ class PipelineConfig:
 
     # The nearness segmenter, nearest region first then largest, of 0.3 % of the image at least (measured by both
     # cameras; 0.15 % if nearer than all those: experiments/thin_obstacles.md): select_nearness_rule.md. Under 12.5 %
-    # of the view accepted by the block matcher, Otsu: views of two scenes (experiments/nearness_fallback.md).
+    # of the view accepted by the block matcher, Otsu: views of two scenes (experiments/nearness_fallback.md). A
+    # region half clipped at white is no candidate (real_rig.md, "Clipped regions": tuning sets, 0.5-0.7 alike).
     segmentation: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(
         segmenter="nearness", keep="nearest_first", min_area_fraction=0.003, near_min_area_fraction=0.0015,
-        min_measured_share=0.125))
+        min_measured_share=0.125, max_clipped_share=0.5))
     # MetricThreshold 100 rather than MATLAB's 1000, ratio 0.8 rather than 0.6, matches refined: the best measured
     # (experiments/surf_vs_sift.py and fundamental_vs_opencv.py --config; see the README's "Precise geometry").
     surf: SurfConfig = field(default_factory=lambda: SurfConfig(metric_threshold=100.0))

@@ -42,13 +42,11 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import InputError, check_shape
+from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import row_quantile
 
 __all__ = ["CLIPPED_LEVEL", "RETRY_MIN_CHANGE", "ExposureConfig", "exposure_change", "exposures_differ",
            "match_exposure"]
-
-#: A pixel at or above this level is clipped at white (the 8-bit top level, 255 / 255, with room for round-off).
-CLIPPED_LEVEL = 254.5 / 255
 
 #: ``min_change`` of the default retry (``PipelineConfig.exposure_retry``). Two views of one scene never have the
 #: same quartiles (their borders and occlusions show different things), so a small ``|scale − 1| + |offset|`` is

@@ -62,7 +62,8 @@ from .components import connected_components_with_stats, region_properties
 from .ground_plane import GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
 from .nearness_denoise import check_denoise_settings, denoised_map, match_by_noise, soft_match_by_noise
-from .nearness_regions import _area_measured_in_view, _region_median_disparity, shift_regions_to_right
+from .nearness_regions import (_area_measured_in_view, _region_median_disparity, _without_clipped,
+                               shift_regions_to_right)
 from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
 from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
@@ -368,11 +369,12 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
     region_disparity = _region_median_disparity(disparity, labels, num_regions)
     h, w = image.shape[-2:]
     min_area_px = config.min_area_fraction * h * w
+    candidate_area_px = _without_clipped(_area_measured_in_view(labels, regions, region_disparity, measured.measured,
+                                                                min_area_px), labels, regions, image,
+                                         config.max_clipped_share)
     kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep, min_area_px=min_area_px,
                                           near_min_area_px=config.near_min_area_fraction * h * w,
-                                          nearness=region_disparity,
-                                          candidate_area_px=_area_measured_in_view(
-                                              labels, regions, region_disparity, measured.measured, min_area_px))
+                                          nearness=region_disparity, candidate_area_px=candidate_area_px)
     # A view of one gray level holds no disparity: the pair has no information (the Otsu stage's UNIFORM_IMAGE).
     uniform = (gray_levels_and_histogram(torch.cat([image, batch.right]))[1] > 0).sum(1).view(2, b).eq(1).any(0)
     threshold = torch.full((b,), threshold_value, dtype=image.dtype, device=image.device)

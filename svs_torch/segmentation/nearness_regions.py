@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import region_lower_median
 from . import kernels
 from .components import RegionProperties
@@ -42,6 +43,22 @@ def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, regi
     counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
     counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
     return counts[:, 1:].to(regions.area_px.dtype)
+
+
+def _without_clipped(candidate_area_px: torch.Tensor, labels: torch.Tensor, regions: RegionProperties,
+                     left: torch.Tensor, max_share: float | None) -> torch.Tensor:
+    """``candidate_area_px`` ``(B, L)`` with 0 for every region of ``labels`` ``(B, 1, H, W)`` holding at least
+    ``max_share`` of its pixels clipped at white (:data:`~svs_torch.core.levels.CLIPPED_LEVEL`) in ``left``
+    ``(B, 1, H, W)``; unchanged for None. Why: a saturated patch has no texture, so no matcher measures it; its
+    nearness is its row fill's, and kept it was left unranged beside a real obstacle (the tuned Piano made bright,
+    ``experiments/real_rig.py --brightness 1.4``, at 416×312: a white wall 96 % clipped, measured on 9 % of its
+    pixels, the pair at 50 % in 18 conditions; experiments/real_rig.md, "Clipped regions")."""
+    if max_share is None or candidate_area_px.shape[1] == 0:
+        return candidate_area_px
+    clipped = torch.zeros(labels.shape[0], candidate_area_px.shape[1] + 1, dtype=torch.int64, device=labels.device)
+    clipped.scatter_add_(1, labels.flatten(1), (left.detach() >= CLIPPED_LEVEL).flatten(1).to(torch.int64))
+    share = clipped[:, 1:].to(torch.float64) / regions.area_px.clamp_min(1).to(torch.float64)
+    return torch.where(share >= max_share, torch.zeros_like(candidate_area_px), candidate_area_px)
 
 
 def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shift_px: torch.Tensor

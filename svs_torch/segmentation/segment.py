@@ -81,6 +81,10 @@ class SegmentationConfig:
             the left view are segmented by Otsu and the paper's two largest regions instead: views of two
             different scenes (a misconnected camera) leave up to about 10 % accepted by chance, and a disparity so
             sparse is not worth ranking by (experiments/nearness_fallback.md). 0: never.
+        max_clipped_share: the nearness segmenter's regions with at least this share of their left-view pixels
+            clipped at white are not candidates: a saturated patch has no texture, so no matcher measures it, and
+            kept it stays unranged and takes a slot from a real obstacle (experiments/real_rig.md, "Clipped
+            regions"). None: every region is a candidate.
         ground: the nearness segmenter's floor (:class:`~svs_torch.segmentation.ground_plane.GroundPlaneConfig`):
             the ground plane found in the pair's disparity is not an obstacle (a walker's floor, a street's road);
             None: not looked for (the other segmenters never look).
@@ -106,6 +110,7 @@ class SegmentationConfig:
     min_area_fraction: float = 0.0  # of the image's area
     near_min_area_fraction: float = 0.0  # of the image's area
     min_measured_share: float = 0.0  # of the left view's pixels; the nearness segmenter only
+    max_clipped_share: float | None = None  # of a region's pixels; the nearness segmenter only
     ground: GroundPlaneConfig | None = None
     camera_frames: bool = False
 
@@ -141,6 +146,10 @@ class SegmentationConfig:
         if not (isinstance(self.min_measured_share, (int, float)) and 0 <= self.min_measured_share <= 1):
             raise InputError(f"min_measured_share: expected a share of the image in [0, 1], got "
                              f"{self.min_measured_share!r}")
+        share = self.max_clipped_share
+        if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
+                                  or not 0 < share <= 1):
+            raise InputError(f"max_clipped_share: expected None or a share of a region in (0, 1], got {share!r}")
         if self.ground is not None and not isinstance(self.ground, GroundPlaneConfig):
             raise InputError(f"ground: expected a GroundPlaneConfig or None, got {self.ground!r}")
         if not isinstance(self.camera_frames, bool):

@@ -211,3 +211,22 @@ def test_the_paper_preset_keeps_every_region():
 def test_a_wrong_share_is_refused_by_name(name, value):
     with pytest.raises(InputError, match=rf"^{name}: expected a share in \(0, 1\] or None"):
         PipelineConfig(**{name: value})
+
+
+def test_a_region_clipped_at_white_is_not_kept(data_dir):
+    """The tuned MiddEval3 Piano at 416×312 made bright (experiments/real_rig.py ``--brightness 1.4``, the tuned
+    split's scene 5, clean): the white wall at the top right is 96 % clipped, measured on 9 % of its pixels; kept as
+    the second region it went unranged (the pair at 50 %). A region at least half clipped is no candidate
+    (``SegmentationConfig.max_clipped_share``): the pair keeps the piano alone, ranged within 1 %."""
+    scene = real_rig.brightened(real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Piano"),
+                                                  "416x312"), 1.4)
+    pair = real_rig.stack_conditions(scene, [real_rig.conditions(scene, 5)[0]])
+    default = PipelineConfig()
+    assert default.segmentation.max_clipped_share == 0.5
+    every = dataclasses.replace(default, segmentation=dataclasses.replace(default.segmentation,
+                                                                           max_clipped_share=None))
+    before, after = evaluate_result(pair, estimate_obstacle_depth(pair, every))[0], evaluate_result(
+        pair, estimate_obstacle_depth(pair, default))[0]
+    assert [row["estimated_m"] is None for row in before.objects] == [False, True]
+    assert len(after.objects) == 1 and after.acc_objects_pct > 99
+    assert after.objects[0]["real_m"] == pytest.approx(before.objects[0]["real_m"])

@@ -37,8 +37,12 @@ def test_many_inliers_vouch_where_the_dense_map_confirms_few(baby2):
     made; at today's 5 the pair is verified by its confirmed inliers as well). Without the rule the pair is
     unverified and its book, measured on a third of its pixels (under the unverified 40 %), is left unranged; with
     it the pair is verified and ranged. The clean pair is verified by its confirmed inliers either way, with the
-    same depth. (The whole-view check is off here: its map of the whole view confirms enough of them too.)"""
-    config = PipelineConfig(verify_min_agreeing_inliers=6, verify_whole_view=False)
+    same depth. (The whole-view check is off here: its map of the whole view confirms enough of them too. So is the
+    clipped-region rule, ``SegmentationConfig.max_clipped_share``, since made the default: the book, clipped in the
+    matched views, is then no candidate, and the pair keeps the scene's other regions.)"""
+    default = PipelineConfig()
+    config = PipelineConfig(verify_min_agreeing_inliers=6, verify_whole_view=False,
+                            segmentation=dataclasses.replace(default.segmentation, max_clipped_share=None))
     alone = estimate_obstacle_depth(baby2, config)
     without = estimate_obstacle_depth(baby2, dataclasses.replace(config, verify_many_inliers=None))
     assert int(alone.num_agreeing_inliers[1]) < config.verify_min_agreeing_inliers

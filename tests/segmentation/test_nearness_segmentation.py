@@ -134,6 +134,32 @@ def test_regions_without_stereo_are_not_kept():
     assert area.tolist() == [[1500.0, 0.0, 0.0]]
 
 
+def test_regions_mostly_clipped_at_white_are_not_candidates():
+    """``SegmentationConfig.max_clipped_share``: a region with at least that share of its left-view pixels at the
+    clipped level (255 / 255, and the round-off above 254.5 / 255) gets no candidate area; one just under keeps
+    its area, and so does every region with the rule off (None)."""
+    from svs_torch.core.levels import CLIPPED_LEVEL
+    from svs_torch.segmentation.nearness_regions import _without_clipped
+
+    labels = torch.zeros(1, 1, 10, 40, dtype=torch.int64)
+    labels[..., :, 0:10], labels[..., :, 10:20], labels[..., :, 20:30] = 1, 2, 3  # 100 pixels each
+    left = torch.full((1, 1, 10, 40), 0.5)
+    left[..., :5, 0:10] = 1.0  # region 1: 50 % clipped
+    left[..., :4, 10:20] = 254.6 / 255  # region 2: 40 % clipped (round-off above the level counts)
+    left[..., 4, 10:20] = 254.4 / 255  # ... and just under the level does not
+    left[..., :, 20:30] = 1.0  # region 3: all clipped
+    assert float(left[0, 0, 0, 10]) >= CLIPPED_LEVEL > float(left[0, 0, 4, 10])
+    regions = region_properties(labels, torch.tensor([3]))
+    area = torch.tensor([[80.0, 70.0, 60.0]])
+    assert _without_clipped(area, labels, regions, left, 0.5).tolist() == [[0.0, 70.0, 0.0]]
+    assert _without_clipped(area, labels, regions, left, 0.4).tolist() == [[0.0, 0.0, 0.0]]
+    assert torch.equal(_without_clipped(area, labels, regions, left, None), area)
+    assert PipelineConfig().segmentation.max_clipped_share == 0.5 and SegmentationConfig().max_clipped_share is None
+    for bad in (0, 1.5, True, "0.5"):
+        with pytest.raises(InputError, match="max_clipped_share"):
+            SegmentationConfig(max_clipped_share=bad)
+
+
 def test_shift_regions_to_right_moves_each_region_by_its_disparity():
     labels = torch.zeros(1, 1, 6, 30, dtype=torch.int64)
     labels[..., 1:3, 10:20] = 1
