@@ -369,9 +369,8 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
     region_disparity = _region_median_disparity(disparity, labels, num_regions)
     h, w = image.shape[-2:]
     min_area_px = config.min_area_fraction * h * w
-    candidate_area_px = _without_clipped(_area_measured_in_view(labels, regions, region_disparity, measured.measured,
-                                                                min_area_px), labels, regions, image,
-                                         config.max_clipped_share)
+    candidate_area_px = _area_measured_in_view(labels, regions, region_disparity, measured.measured, min_area_px)
+    candidate_area_px = _without_clipped(candidate_area_px, labels, regions, image, config.max_clipped_share)
     kept_labels, kept_mask = keep_regions(labels, regions, config.num_keep, config.keep, min_area_px=min_area_px,
                                           near_min_area_px=config.near_min_area_fraction * h * w,
                                           nearness=region_disparity, candidate_area_px=candidate_area_px)

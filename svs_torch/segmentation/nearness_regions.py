@@ -52,7 +52,7 @@ def _without_clipped(candidate_area_px: torch.Tensor, labels: torch.Tensor, regi
     ``(B, 1, H, W)``; unchanged for None. Why: a saturated patch has no texture, so no matcher measures it; its
     nearness is its row fill's, and kept it was left unranged beside a real obstacle (the tuned Piano made bright,
     ``experiments/real_rig.py --brightness 1.4``, at 416×312: a white wall 96 % clipped, measured on 9 % of its
-    pixels, the pair at 50 % in 18 conditions; experiments/real_rig.md, "Clipped regions")."""
+    pixels, the pair at 50 % in 11 of its 22 conditions; experiments/real_rig.md, "Clipped regions")."""
     if max_share is None or candidate_area_px.shape[1] == 0:
         return candidate_area_px
     clipped = torch.zeros(labels.shape[0], candidate_area_px.shape[1] + 1, dtype=torch.int64, device=labels.device)
