@@ -88,11 +88,11 @@ def sgbm_rival(batch) -> tuple[torch.Tensor, float | None, float | None]:
     disparity = disparity.view(1, 1, *disparity.shape)
     valid = disparity > 0
     truth = obstacle_truth(dataclasses.replace(batch, disparity_px=disparity, disparity_valid=valid))
+    scale, doffs = float(batch.focal_px[0] * batch.baseline_m[0]), float(batch.doffs_px[0])
     regions = []  # (median depth, warning depth) of each kept region
     for label in truth.kept_labels[0].tolist():
         region = (truth.labels == label) & valid
         if label > 0 and bool(region.any()):
-            scale, doffs = float(batch.focal_px[0] * batch.baseline_m[0]), float(batch.doffs_px[0])
             values = disparity[region]
             regions.append((scale / (float(values.median()) + doffs),
                             float(torch.quantile(scale / (values.double() + doffs), WARNING_PERCENTILE / 100))))

@@ -140,35 +140,32 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
 
 
 def _in_view_from(dense: DenseDisparity, num_slots: int) -> torch.Tensor:
-    """``(B, N)`` int64: each object's first column where every disparity of the pair's range lands inside the
-    right image (``x − d_max ≥ 0``; ``d_max`` without noise's detached wrong matches where ``dense.in_view_top_px``
-    says, and the object's own where ``dense.object_in_view_top_px`` gives it)."""
+    """``(B, N)`` int64: the pair's first column where every disparity of its range lands inside the right image
+    (``x − d_max ≥ 0``; ``d_max`` without noise's detached wrong matches where ``dense.in_view_top_px`` says), for
+    each of its ``num_slots`` objects."""
     top = dense.min_disparity_px + dense.pair_num_disparities - 1
     if dense.in_view_top_px is not None:
         top = torch.minimum(top, dense.in_view_top_px)
-    top = top.unsqueeze(1).expand(-1, num_slots)
-    own = dense.object_in_view_top_px
-    if own is not None:
-        if own.shape[1] != num_slots:
-            raise InputError(f"dense.object_in_view_top_px: expected one column per object slot ({num_slots}), got "
-                             f"shape {tuple(own.shape)}")
-        top = torch.minimum(top, own)
-    return top.clamp_min(0).long().contiguous()
+    return top.clamp_min(0).long().unsqueeze(1).expand(-1, num_slots).contiguous()
 
 
 def _trusted_from(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, min_share: float
                   ) -> torch.Tensor:
-    """:func:`_in_view_from` ``(B, N)``, where an object's own top lies below its pair's only if at least
-    ``min_share`` of its pixels (``labels == slots``) from its own first column on are valid, else from the pair's.
-    Why: an object the right camera cannot see at all (wholly in the band its true disparity leaves out of view)
-    still gets coarse matches, wrong and small, so its own top is low; the dense matcher's checks then reject most
-    of its pixels (a near strip on the left border: a third valid; a far box seen there: 0.93–1.00, camera frames
-    and a ±30 % gain included; experiments/real_rig.md, "Each object's own in-view top")."""
+    """Each object's first column in view ``(B, N)``: the pair's (:func:`_in_view_from`), or the object's own from
+    ``dense.object_in_view_top_px`` where that lies below it and at least ``min_share`` of its pixels
+    (``labels == slots``) from its own first column on are valid. Why: an object the right camera cannot see at all
+    (wholly in the band its true disparity leaves out of view) still gets coarse matches, wrong and small, so its
+    own top is low; the dense matcher's checks then reject most of its pixels (a near strip on the left border: a
+    third valid; a far box seen there: 0.93–1.00, camera frames and a ±30 % gain included;
+    experiments/real_rig.md, "Each object's own in-view top")."""
     num_slots = slots.shape[1]
-    own = _in_view_from(dense, num_slots)
+    shared = _in_view_from(dense, num_slots)
     if dense.object_in_view_top_px is None:
-        return own
-    shared = _in_view_from(dataclasses.replace(dense, object_in_view_top_px=None), num_slots)
+        return shared
+    if dense.object_in_view_top_px.shape != shared.shape:
+        raise InputError(f"dense.object_in_view_top_px: expected one column per object slot ({num_slots}), got "
+                         f"shape {tuple(dense.object_in_view_top_px.shape)}")
+    own = torch.minimum(shared, dense.object_in_view_top_px.clamp_min(0).long())
     lowered = (own < shared) & (slots > 0)
     if min_share <= 0 or not bool(lowered.any()):
         return own

@@ -39,10 +39,15 @@ def _area_measured_in_view(labels: torch.Tensor, regions: RegionProperties, regi
     nearest = torch.where(big, region_disparity, torch.zeros_like(region_disparity)).amax(1)  # (B,)
     column = torch.arange(labels.shape[-1], device=labels.device, dtype=nearest.dtype)
     seen = (column.view(1, 1, 1, -1) >= nearest.view(-1, 1, 1, 1)) & measured
-    keys = labels.flatten(1)
-    counts = torch.zeros(b, slots + 1, dtype=torch.int64, device=labels.device)
-    counts.scatter_add_(1, keys, seen.flatten(1).to(torch.int64))
-    return counts[:, 1:].to(regions.area_px.dtype)
+    return _label_counts(labels, seen, slots).to(regions.area_px.dtype)
+
+
+def _label_counts(labels: torch.Tensor, flags: torch.Tensor, slots: int) -> torch.Tensor:
+    """``(B, slots)`` int64: how many pixels of each region of ``labels`` ``(B, 1, H, W)`` (1 … ``slots``; 0, the
+    background, not counted) ``flags`` ``(B, 1, H, W)`` bool marks."""
+    counts = torch.zeros(labels.shape[0], slots + 1, dtype=torch.int64, device=labels.device)
+    counts.scatter_add_(1, labels.flatten(1), flags.flatten(1).to(torch.int64))
+    return counts[:, 1:]
 
 
 def _without_clipped(candidate_area_px: torch.Tensor, labels: torch.Tensor, regions: RegionProperties,
@@ -55,9 +60,8 @@ def _without_clipped(candidate_area_px: torch.Tensor, labels: torch.Tensor, regi
     pixels, the pair at 50 % in 11 of its 22 conditions; experiments/real_rig.md, "Clipped regions")."""
     if max_share is None or candidate_area_px.shape[1] == 0:
         return candidate_area_px
-    clipped = torch.zeros(labels.shape[0], candidate_area_px.shape[1] + 1, dtype=torch.int64, device=labels.device)
-    clipped.scatter_add_(1, labels.flatten(1), (left.detach() >= CLIPPED_LEVEL).flatten(1).to(torch.int64))
-    share = clipped[:, 1:].to(torch.float64) / regions.area_px.clamp_min(1).to(torch.float64)
+    clipped = _label_counts(labels, left.detach() >= CLIPPED_LEVEL, candidate_area_px.shape[1])
+    share = clipped.to(torch.float64) / regions.area_px.clamp_min(1).to(torch.float64)
     return torch.where(share >= max_share, torch.zeros_like(candidate_area_px), candidate_area_px)
 
 
