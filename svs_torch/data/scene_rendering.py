@@ -56,6 +56,7 @@ class _Scene(NamedTuple):
     floor_height_m: float | None = None  # the camera's height over the floor; None: no floor
     pitch_rad: float = 0.0  # the camera pitched down by this much (the floor's plane only)
     heap: HeapField | None = None  # a heap on the floor (:mod:`.heap_rendering`); None: none
+    slope: torch.Tensor | None = None  # (B, K) dZ/dX of each box front turned about its vertical axis; None: all 0
 
     @property
     def floor_slot(self) -> int:
@@ -91,11 +92,16 @@ def _cast_rays(x_px: torch.Tensor, y_px: torch.Tensor, camera_x_m: float,
     b, k = scene.depth_m.shape
     cx, cy = scene.principal_xy
     depth = scene.depth_m.view(b, k, 1, 1)
-    # Where each ray meets object k's plane Z = Z_k, in world metres. Rectangles are axis-aligned, so the
-    # column test and the row test are separate: (B, K, h|1, w) and (B, K, h, w|1).
+    center = scene.center_xy_m.view(b, k, 1, 1, 2)
+    if scene.slope is not None:
+        # A front turned about its vertical axis: Z = Z_k + s (X − X_k). The ray X = camera_x + Z u meets it at
+        # Z = (Z_k + s (camera_x − X_k)) / (1 − s u), a depth per column (B, K, 1, w).
+        slope, ray_x = scene.slope.view(b, k, 1, 1), (x_px - cx) / scene.focal_px
+        depth = (depth + slope * (camera_x_m - center[..., 0])) / (1 - slope * ray_x)
+    # Where each ray meets object k's plane, in world metres. Rectangles are axis-aligned (a turned one as seen
+    # from above), so the column test and the row test are separate: (B, K, h|1, w) and (B, K, h, w|1).
     hit_x = camera_x_m + depth * ((x_px - cx) / scene.focal_px)
     hit_y = depth * ((y_px - cy) / scene.focal_px)
-    center = scene.center_xy_m.view(b, k, 1, 1, 2)
     half = scene.size_m.view(b, k, 1, 1, 2) / 2
     inside_x = ((hit_x - center[..., 0]).abs() < half[..., 0]) & scene.valid.view(b, k, 1, 1)
     inside_y = (hit_y - center[..., 1]).abs() < half[..., 1]

@@ -48,7 +48,8 @@ class SyntheticScenes:
             ``doffs_px = 0``, ``calibrated`` True, names ``"synthetic-<i>"``.
         depth_m: left-view depth in metres ``(B, 1, H, W)``, at the left pixel centres.
         object_ids: ``(B, 1, H, W)`` int64, 0 for the background, k for object slot k (1-based) at that pixel.
-        object_depth_m: ``(B, K)`` depth of each object's front, metres; 0 in padding slots.
+        object_depth_m: ``(B, K)`` depth of each object's front (at its centre for a turned one), metres; 0 in padding
+            slots.
         object_valid: ``(B, K)`` bool, False in padding slots (a valid object may still be fully hidden).
         object_bbox_xyxy: ``(B, K, 4)`` int64 ``x0, y0, x1, y1`` (x1, y1 exclusive) of each object's visible
             left-image pixels; zeros where none is visible.
@@ -172,6 +173,7 @@ def render_obstacle_scenes(
     camera_pitch_deg: float = 0.0,
     heaps: torch.Tensor | None = None,
     heap_roughness_m: float = 0.05,
+    object_yaw_deg: torch.Tensor | None = None,
 ) -> SyntheticScenes:
     """Render B stereo pairs of K bright textured rectangles in front of a dark textured wall, optionally over a
     textured floor with heaps on it.
@@ -199,6 +201,10 @@ def render_obstacle_scenes(
             (``P · (0, cos θ, sin θ) = floor_height_m`` in the camera's frame) and the heaps.
         heaps: ``(B, 4)`` a heap on each floor: centre X, distance ahead, radius, height, metres (radius 0: none);
             a dome with rocks of ``heap_roughness_m`` on it, textured as an obstacle (:mod:`.heap_rendering`).
+        object_yaw_deg: ``(B, K)`` each rectangle turned about its vertical axis through its centre by this many
+            degrees in [−60, 60] (positive: its right side farther), so that its depth and disparity change across
+            it as a real surface's do; its width is then measured along X (as seen from above) and
+            ``object_depth_m`` is its depth at its centre. None: every front faces the cameras.
 
     Returns:
         :class:`SyntheticScenes` on ``object_depth_m``'s device. Not differentiable (see module docstring).
@@ -211,6 +217,8 @@ def render_obstacle_scenes(
     generator = _resolve_generator(generator, device)
     scene = _make_scene(object_depth_m, object_center_xy_m, object_size_m, object_valid.to(device), camera,
                         (width, height), dtype, background_depth_m, floor_height_m, camera_pitch_deg)
+    if object_yaw_deg is not None:
+        scene = scene._replace(slope=_front_slopes(object_yaw_deg, scene, background_depth_m))
     if heaps is not None:  # drawn before the tiles: scenes without heaps draw what they drew before
         scene = scene._replace(heap=make_heap_field(heaps.to(device, dtype), float(heap_roughness_m), generator))
     tiles = _surface_tiles(scene, camera.baseline_m, (width, height), generator, float(texture_contrast),
@@ -218,6 +226,25 @@ def render_obstacle_scenes(
     left, right = (_with_noise(_render_view(camera_x, scene, (width, height), supersample, *tiles), noise_std,
                                generator) for camera_x in (0.0, camera.baseline_m))
     return _with_ground_truth(scene, left, right, camera.baseline_m)
+
+
+def _front_slopes(yaw_deg: torch.Tensor, scene: _Scene, background_depth_m: float) -> torch.Tensor:
+    """``dZ/dX`` ``(B, K)`` of fronts turned by ``yaw_deg`` (0 in padding slots), after checking that each turned
+    front stays between the cameras and the wall and is seen from the front by every ray of the view."""
+    check_shape(yaw_deg, "object_yaw_deg", list(scene.depth_m.shape))
+    check_dtype(yaw_deg, "object_yaw_deg", "float")
+    yaw = yaw_deg.to(scene.depth_m.device, scene.depth_m.dtype)
+    _require(bool(torch.isfinite(yaw).all()) and bool((yaw.abs() <= 60).all()),
+             "object_yaw_deg: expected finite angles in [-60, 60] degrees")
+    slope = torch.where(scene.valid, torch.tan(torch.deg2rad(yaw)), 0.0)
+    reach = slope.abs() * scene.size_m[..., 0] / 2  # the depth change from the centre to either side
+    _require(bool(((scene.depth_m - reach > 0.05) & (scene.depth_m + reach < background_depth_m) | ~scene.valid).all()),
+             f"object_yaw_deg: a turned front must stay between 0.05 m and background_depth_m={background_depth_m}")
+    # The widest ray of the view, |x - cx| / f, must meet every front from its side facing the cameras.
+    widest = (scene.principal_xy[0] + 1) / scene.focal_px
+    _require(bool((slope.abs() * widest < 0.9).all()),
+             "object_yaw_deg: a front turned this far is seen edge-on at the image border")
+    return slope
 
 
 def _with_noise(view: torch.Tensor, noise_std: float, generator: torch.Generator) -> torch.Tensor:
