@@ -215,6 +215,27 @@ def test_real_rig_synthetic_border_split_ranges_a_far_box_on_the_left_border(dat
     assert rows["true"]["synthetic-0"] == rows["false"]["synthetic-0"]  # one box kept: nothing to change
 
 
+def test_real_rig_synthetic_slant_split_turns_both_boxes(data_dir):
+    """--splits synthetic-slant: seeded, two boxes each turned by 25–50° either way, so that the true disparity
+    changes along every row of a front (a fronto-parallel front's is constant along its rows, the wall's too); the
+    clean pairs are ranged."""
+    import torch
+
+    first, again = real_rig.slant_scenes(), real_rig.slant_scenes()
+    assert len(first) == real_rig.SLANT_SCENES and all(torch.equal(a.left, b.left) for a, b in zip(first, again))
+    wall = float(first[0].focal_px[0] * first[0].baseline_m[0]) / 4.0
+    for pair in first:
+        truth = pair.disparity_px[0, 0]
+        front = truth > wall + 1
+        inside = front[:, 1:] & front[:, :-1]  # both pixels of a step on a front
+        steps = (truth[:, 1:] - truth[:, :-1]).abs()[inside]
+        assert steps.numel() > 1000 and float((steps > 1e-3).float().mean()) > 0.95
+        assert float(steps.max()) < 1  # no jump: within one front, the disparity changes smoothly
+    report = real_rig.main(["--data", str(data_dir), "--splits", "synthetic-slant", "--limit", "2", "--conditions",
+                            "clean", "--no-rival"])
+    assert all(r["acc_objects"] > 95 for r in report["rows"]) and len(report["rows"]) == 2
+
+
 def test_eval_segmentation_scores_camera_frames_against_the_clean_truth(data_dir):
     """--camera-frames D: the views are made the board's frames first (seeded by the scene's index), the truth stays
     the clean left view's, and the noisy frames move the kept mask; a digit the board has not is refused."""
