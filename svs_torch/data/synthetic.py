@@ -366,7 +366,7 @@ def random_obstacle_scenes(
     Obstacles 1–2 m away by default, as in the paper; widths 0.3–0.6 m and heights 0.4–1.0 m (box-sized;
     capped so each obstacle fits its sector of the view, see :func:`_place_obstacles`). ``render_kwargs`` go to
     :func:`render_obstacle_scenes` (``background_depth_m``, ``supersample``, ``noise_std``, ``floor_height_m``,
-    ``camera_pitch_deg``). The same generator state gives identical scenes. Not differentiable.
+    ``camera_pitch_deg``, ``object_yaw_deg``). The same generator state gives identical scenes. Not differentiable.
 
     Raises:
         InputError: naming ``batch_size``, ``num_objects`` (too many to fit side by side at ``near``),
