@@ -238,7 +238,8 @@ def _front_slopes(yaw_deg: torch.Tensor, scene: _Scene, background_depth_m: floa
              "object_yaw_deg: expected finite angles in [-60, 60] degrees")
     slope = torch.where(scene.valid, torch.tan(torch.deg2rad(yaw)), 0.0)
     reach = slope.abs() * scene.size_m[..., 0] / 2  # the depth change from the centre to either side
-    _require(bool(((scene.depth_m - reach > 0.05) & (scene.depth_m + reach < background_depth_m) | ~scene.valid).all()),
+    between = (scene.depth_m - reach > 0.05) & (scene.depth_m + reach < background_depth_m)
+    _require(bool((between | ~scene.valid).all()),
              f"object_yaw_deg: a turned front must stay between 0.05 m and background_depth_m={background_depth_m}")
     # The widest ray of the view, |x - cx| / f, must meet every front from its side facing the cameras.
     widest = (scene.principal_xy[0] + 1) / scene.focal_px
