@@ -12,7 +12,9 @@ at the board's eight digits with sensor noise, each misalignment), at each size.
 - ``a gain (±30 %, combined −20 %)``: "gain +30%", "gain -30%" and "combined", every scene.
 
 With ``--count-retries`` the default pipeline runs every pair at ``min_change`` 0.05 (the retry's first setting)
-and at the default, and the pairs each runs again are counted (about 1.5 minutes for both sizes).
+and at ``RETRY_MIN_CHANGE``, each without the test of the map at the matched points
+(``PipelineConfig.exposure_retry_max_residual_ratio`` None), and at the default, and the pairs each runs again
+are counted (about 2 minutes for both sizes; experiments/exposure.md, "The map at the matched points").
 
     python experiments/exposure_change.py [--sizes 320x240,native] [--count-retries] [--limit N]
 """
@@ -32,7 +34,7 @@ from run_metadata import default_data_dir  # noqa: E402
 
 from svs_torch.data import load_stereo_pair  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth  # noqa: E402
-from svs_torch.pipeline import exposure_retry  # noqa: E402
+from svs_torch.pipeline import run as pipeline_run  # noqa: E402
 from svs_torch.pipeline.exposure import RETRY_MIN_CHANGE, ExposureConfig, exposure_change  # noqa: E402
 
 #: The tuned scenes whose two views were shot at another exposure or under another lamp.
@@ -46,22 +48,31 @@ def group_of(scene: str, condition: str) -> str:
     return "MotorcycleE, PianoL without a gain" if scene in OTHER_EXPOSURE else "without a gain"
 
 
-def count_retries(batch, min_change: float) -> int:
-    """How many pairs of ``batch`` the default pipeline, with its retry at ``min_change``, runs a second time."""
+#: The retry settings ``--count-retries`` compares: (name, ``min_change``, ``exposure_retry_max_residual_ratio``).
+RETRY_SETTINGS = (("min_change 0.05, no map test", 0.05, None),
+                  (f"min_change {RETRY_MIN_CHANGE:g}, no map test", RETRY_MIN_CHANGE, None),
+                  ("the default (the map test at 0.8)", RETRY_MIN_CHANGE, 0.8))
+
+
+def count_retries(batch, min_change: float, max_residual_ratio: float | None) -> int:
+    """How many pairs of ``batch`` the default pipeline, with its retry at ``min_change`` and
+    ``exposure_retry_max_residual_ratio``, runs a second time (the pairs handed to the second run)."""
     counted = []
-    differ = exposure_retry.exposures_differ
+    retry = pipeline_run.retry_with_exposure
 
-    def counting(*args, **kwargs):
-        out = differ(*args, **kwargs)
-        counted.append(int(out.sum()))
-        return out
+    def counting(batch, result, config, run):
+        def counted_run(pairs, settings):
+            counted.append(pairs.batch_size)
+            return run(pairs, settings)
+        return retry(batch, result, config, counted_run)
 
-    exposure_retry.exposures_differ = counting
+    pipeline_run.retry_with_exposure = counting
     try:
         with torch.inference_mode():
-            estimate_obstacle_depth(batch, PipelineConfig(exposure_retry=ExposureConfig(min_change=min_change)))
+            estimate_obstacle_depth(batch, PipelineConfig(exposure_retry=ExposureConfig(min_change=min_change),
+                                                          exposure_retry_max_residual_ratio=max_residual_ratio))
     finally:
-        exposure_retry.exposures_differ = differ
+        pipeline_run.retry_with_exposure = retry
     return sum(counted)
 
 
@@ -75,7 +86,7 @@ def main(argv: list[str] | None = None) -> dict:
     out: dict = {}
     for size in args.sizes.split(","):
         changes: dict[str, list[tuple[float, str]]] = {}
-        retried = {0.05: 0, RETRY_MIN_CHANGE: 0}
+        retried = {name: 0 for name, _, _ in RETRY_SETTINGS}
         for index, path in enumerate(scenes):
             pair = real_rig.resample(load_stereo_pair(path), size)
             views = real_rig.conditions(pair, index)
@@ -83,8 +94,8 @@ def main(argv: list[str] | None = None) -> dict:
             for (condition, _, _), change in zip(views, exposure_change(batch.left, batch.right, batch.image_hw)):
                 changes.setdefault(group_of(path.name, condition), []).append((float(change), path.name))
             if args.count_retries:
-                for min_change in retried:
-                    retried[min_change] += count_retries(batch, min_change)
+                for name, min_change, ratio in RETRY_SETTINGS:
+                    retried[name] += count_retries(batch, min_change, ratio)
         print(f"{size}:")
         for group, values in changes.items():
             ordered = sorted(value for value, _ in values)
@@ -95,7 +106,7 @@ def main(argv: list[str] | None = None) -> dict:
                   f"(the {which}: {extreme[1]})")
         if args.count_retries:
             total = sum(len(values) for values in changes.values())
-            print("  run again: " + ", ".join(f"min_change {m:g}: {n} of {total}" for m, n in retried.items()))
+            print("  run again: " + ", ".join(f"{name}: {n} of {total}" for name, n in retried.items()))
         out[size] = {"changes": changes, "retried": retried}
     return out
 

@@ -66,7 +66,8 @@ camera), an object needs 40 % of its region measured instead of 10 % ("num_agree
 the pair segmented again on them); "right_camera_turn_deg": [about y, about x], the turn of that camera its
 rows showed (a keystone, undone with the alignment), or null; "exposure_matched": a pair left unranged whose
 right camera is brighter or darker was run again with the two exposures matched, the darker view mapped onto
-the brighter one's so that both clip the same highlights (PipelineConfig.exposure_retry). "coarse_dense": the
+the brighter one's so that both clip the same highlights, where that map brings the views together at the
+matched features (a gain, not a second lamp; PipelineConfig.exposure_retry). "coarse_dense": the
 dense map measured too little of the kept regions (noisy or heavily compressed frames) and the depth was
 measured again at half the working width, where each pixel averages four times as many
 (PipelineConfig.coarse_retry_below_share). "features_smoothed": a pair left unverified (noisy or heavily

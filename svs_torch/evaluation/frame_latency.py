@@ -5,10 +5,11 @@ their mean is a typical frame's. Real scenes as camera frames are not: a pair wh
 of its kept regions is measured again at half the working width (``PipelineConfig.coarse_retry_below_share``),
 and one left unfinished whose views' exposures differ is run again with them matched
 (``PipelineConfig.exposure_retry``); with both, at the board's default digit, 11 of the 45 shared real pairs end
-on the coarse grid and 6 are run again on matched views, 2–4 times a frame's usual time: the frames a walker
-waits longest for (``guide --second-passes off`` runs neither, at a cost in accuracy:
-:meth:`~svs_torch.pipeline.PipelineConfig.for_guide`). So each frame is timed on its own and the distribution
-reported: its median, 90th percentile and maximum, and how many frames took longer than the goal.
+on the coarse grid and (before the retry asked the map at the matched points first) 6 were run again on matched
+views, 2–4 times a frame's usual time: the frames a walker waits longest for (``guide --second-passes off`` runs
+neither, at a cost in accuracy: :meth:`~svs_torch.pipeline.PipelineConfig.for_guide`). So each frame is timed on
+its own and the distribution reported: its median, 90th percentile and maximum, and how many frames took longer
+than the goal.
 """
 
 from __future__ import annotations

@@ -40,13 +40,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from ..core.checks import InputError, check_shape
 from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import row_quantile
 
 __all__ = ["CLIPPED_LEVEL", "RETRY_MIN_CHANGE", "ExposureConfig", "exposure_change", "exposures_differ",
-           "match_exposure"]
+           "match_exposure", "matched_residual_ratio"]
 
 #: ``min_change`` of the default retry (``PipelineConfig.exposure_retry``). Two views of one scene never have the
 #: same quartiles (their borders and occlusions show different things), so a small ``|scale − 1| + |offset|`` is
@@ -170,6 +171,60 @@ def exposure_change(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Ten
     _check_views(left, right, image_hw)
     scale, offset, moved, _ = _fit(left.detach(), right.detach(), ExposureConfig(config.quantiles, min_change=0.0))
     return torch.where(moved, (scale - 1).abs() + offset.abs(), 0.0)
+
+
+#: Side of the square patch, pixels, whose mean :func:`matched_residual_ratio` compares at each match: it averages
+#: out a camera frame's noise and JPEG blocks, and a keypoint a pixel off moves it little.
+RESIDUAL_PATCH_PX = 5
+
+#: Fewest matches :func:`matched_residual_ratio` measures a pair on (NaN below).
+MIN_RESIDUAL_MATCHES = 5
+
+
+def matched_residual_ratio(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, left_xy: torch.Tensor,
+                           right_xy: torch.Tensor, valid: torch.Tensor, config: ExposureConfig = ExposureConfig()
+                           ) -> torch.Tensor:
+    """``(B,)``: how far :func:`match_exposure`'s map brings the two views together where they see the same points,
+    ``median |left − right|`` over each pair's ``valid`` matches after the map divided by the same before it, on
+    the means of a :data:`RESIDUAL_PATCH_PX` square patch about each point (the median of an even count being the
+    lower middle value, as ``torch.median``'s).
+
+    Why: two cameras' gains differ by one map, the same at every point, so the matched points agree after it (tuned
+    Piano, right camera 30 % brighter: 0.25). Two views lit by different lamps differ by another factor at each
+    point, which one map fitted to the histograms does not undo (PianoL: 0.99–1.65, ``experiments/exposure.md``).
+
+    Args:
+        left, right, image_hw, config: as :func:`match_exposure`'s (every pair filling the images).
+        left_xy, right_xy: ``(B, K, 2)`` matched points (x, y), pixels, e.g. a pair's RANSAC inliers.
+        valid: ``(B, K)`` bool, the matches to measure.
+
+    Returns:
+        ``(B,)`` the ratio (1 where the map leaves the pair unchanged), NaN for a pair with fewer than
+        :data:`MIN_RESIDUAL_MATCHES` valid matches. Not differentiable (a measurement for choosing a second run).
+    """
+    dims = _check_views(left, right, image_hw)
+    check_shape(left_xy, "left_xy", [dims["B"], "K", 2])
+    check_shape(right_xy, "right_xy", [dims["B"], left_xy.shape[1], 2])
+    check_shape(valid, "valid", [dims["B"], left_xy.shape[1]])
+    left, right = left.detach(), right.detach()
+    before = [_patch_means(view, xy.detach()).unsqueeze(1).unsqueeze(1) for view, xy in ((left, left_xy),
+                                                                                      (right, right_xy))]
+    after = _mapped(*before, *_fit(left, right, config))[:2]
+    mask = valid.bool()
+    medians = [torch.where(mask, (a - b).abs().flatten(1), torch.nan).nanmedian(1).values
+               for a, b in (before, after)]
+    ratio = medians[1] / medians[0].clamp_min(1e-6)
+    return torch.where(mask.sum(1) >= MIN_RESIDUAL_MATCHES, ratio, torch.nan)
+
+
+def _patch_means(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """``(B, K)``: the mean of ``image`` ``(B, 1, H, W)`` over the :data:`RESIDUAL_PATCH_PX` square about each of
+    ``xy`` ``(B, K, 2)`` (rounded to the pixel, clamped into the image; the patch cut by the border)."""
+    height, width = image.shape[-2:]
+    means = F.avg_pool2d(image, RESIDUAL_PATCH_PX, stride=1, padding=RESIDUAL_PATCH_PX // 2, count_include_pad=False)
+    x = xy[..., 0].round().long().clamp(0, width - 1)
+    y = xy[..., 1].round().long().clamp(0, height - 1)
+    return means.flatten(1).gather(1, y * width + x)
 
 
 def _fit(left: torch.Tensor, right: torch.Tensor, config: ExposureConfig, unclipped: torch.Tensor | None = None

@@ -15,6 +15,15 @@ and the second not; or, the first's split taken again and the second's not, any 
 regions measured): views of two different scenes are never verified (``experiments/verify_views.py``), so the
 retry cannot let them through.
 
+Why the map must bring the matched points together (``PipelineConfig.exposure_retry_max_residual_ratio``): a
+second run helps where one camera's gain differs from the other's, and a gain is one map for every point of the
+view. Where the map fitted to the two views' quartiles leaves the first run's RANSAC inliers as far apart as before
+(:func:`~svs_torch.pipeline.exposure.matched_residual_ratio` over 0.8), the views differ by their lighting or their
+content, and the second run is another draw of the same noise, not a corrected pair. Such runs were seven in ten
+of those the tuning sets ran (199 of 288: 186 whose second was not kept, PianoL's among them, guide's one frame over
+50 ms, and 13 that were, mostly PianoL's: a draw that fell better, balanced by as many that fell worse, the
+camera-frame suite 98.668 -> 98.660 % per object; ``experiments/exposure.md``, "The map at the matched points").
+
 Why a complete first result needs a plausible second: a first run verified with every kept object ranged is
 retried only because the dense stage measured it on its coarse grid. Where the matched views are measured on the
 coarse grid too, a second that ranges more objects has not ranged what the first could not; it has kept another
@@ -49,7 +58,7 @@ from ..core.pair_trees import take_pairs
 from ..core.size_groups import replace_pairs
 from ..core.types import StereoBatch
 from .config import PipelineConfig, PipelineResult
-from .exposure import exposures_differ
+from .exposure import exposures_differ, matched_residual_ratio
 from .near_surface import INLIER_MARGIN_PX, MAX_INLIER_RATIO
 from .ranging import measured_share, second_pass_is_better, unranged_kept_object
 
@@ -86,6 +95,8 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     differs = exposures_differ(batch.left.detach().index_select(0, candidates),
                                batch.right.detach().index_select(0, candidates),
                                batch.image_hw.index_select(0, candidates), config.exposure_retry)
+    if config.exposure_retry_max_residual_ratio is not None:
+        differs &= _map_brings_inliers_together(batch, result, candidates, config)
     index = candidates[differs]
     if len(index) == 0:
         return result
@@ -131,6 +142,19 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
     usual = retaken & ~_split_retaken(second) & second.verified & second.depth.objects.valid.any(1)
     more_measured = measured_share(second.depth.objects) > measured_share(first.depth.objects).index_select(0, index)
     return pick | (usual & more_measured)
+
+
+def _map_brings_inliers_together(batch: StereoBatch, result: PipelineResult, candidates: torch.Tensor,
+                                 config: PipelineConfig) -> torch.Tensor:
+    """``(n,)`` bool: the ``candidates`` of ``batch`` whose views the retry's map brings together at the first
+    run's RANSAC inliers, its residual there at most ``config.exposure_retry_max_residual_ratio`` of the unmapped
+    views' (or measured on too few inliers to tell; module docstring)."""
+    points, inliers = result.points, result.fundamental.inliers & result.points.valid
+    ratio = matched_residual_ratio(*(t.detach().index_select(0, candidates) for t in (batch.left, batch.right)),
+                                   batch.image_hw.index_select(0, candidates),
+                                   *(t.index_select(0, candidates) for t in (points.left, points.right, inliers)),
+                                   config.exposure_retry)
+    return ~(ratio > config.exposure_retry_max_residual_ratio)  # NaN (too few inliers): run it again
 
 
 def _split_retaken(result: PipelineResult) -> torch.Tensor:
