@@ -508,7 +508,7 @@ def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(g
     scene = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 52, 76, generator=generator, dtype=torch.float64), 3,
                                            stride=1)  # (1, 1, 50, 74): smooth enough for patch means
     scene = 0.15 + 0.6 * (scene - scene.min()) / (scene.max() - scene.min())
-    left, seen = scene[..., 8:], scene[..., :-8]  # the left view's x is the right view's x + 8
+    left, seen = scene[..., 8:], scene[..., :-8]  # a point at x in the left view is at x + 8 in the right
     falloff = torch.linspace(0.55, 1.45, seen.shape[-1], dtype=torch.float64)
     rights = {"gain": (0.7 * seen).clamp(0, 1), "two lamps": (seen * falloff).clamp(0, 1)}
     ys, xs = torch.meshgrid(torch.arange(2, 48, 5.0), torch.arange(1, 58, 6.0), indexing="ij")
