@@ -49,9 +49,10 @@ Stop with Ctrl-C.
 #: ``--second-passes``: what each choice does and costs (PipelineConfig.for_guide).
 SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its obstacles is measured again on a "
                       "coarser grid, and one left unfinished whose cameras' exposures differ again with them "
-                      "matched; 'off': never, so no frame waits for a second run (the shared real pairs as digit 4 "
-                      "frames: slowest 215 -> 69 ms) but noisy frames are ranged worse (held-out digit 4 frames: "
-                      "98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
+                      "matched where that brings their matched features together; 'off': never, so no frame "
+                      "waits for a second run (the shared real pairs as digit 4 frames on a 2-core machine: slowest "
+                      "about 40 -> 19 ms; digit 8: 98 -> 35 ms) but noisy frames are ranged worse (held-out digit 4 "
+                      "frames: 98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

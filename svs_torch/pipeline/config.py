@@ -339,9 +339,9 @@ class PipelineConfig:
         False) and, with ``second_passes`` False (``guide --second-passes off``), neither pass that measures a
         pair again: the dense stage's coarse retry (``coarse_retry_below_share``) and the exposure retry
         (``exposure_retry``). Without them no frame waits for a second run (the shared real pairs as digit 4
-        frames: 90th percentile 154 → 62 ms, slowest 215 → 69), but noisy frames lose accuracy (held-out digit 4
-        frames at 320×240: 97.95 → 95.34 % per object), so they stay on by default
-        (``experiments/guide_second_passes.md``)."""
+        frames on a 2-core machine at 918d3e3: 90th percentile 24–26 → 17–19 ms, slowest 36–44 → 18–19; digit 8:
+        slowest 98 → 35), but noisy frames lose accuracy (held-out digit 4 frames at 320×240: 97.95 → 95.34 % per
+        object), so they stay on by default (``experiments/guide_second_passes.md``)."""
         passes = {} if second_passes else {"coarse_retry_below_share": None, "exposure_retry": None}
         return replace(self, segmentation=self.segmentation.for_guide(floor_left_out), **passes)
 
