@@ -95,9 +95,9 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
     differs = exposures_differ(batch.left.detach().index_select(0, candidates),
                                batch.right.detach().index_select(0, candidates),
                                batch.image_hw.index_select(0, candidates), config.exposure_retry)
-    if config.exposure_retry_max_residual_ratio is not None:
-        differs &= _map_brings_inliers_together(batch, result, candidates, config)
     index = candidates[differs]
+    if config.exposure_retry_max_residual_ratio is not None and len(index):
+        index = index[_map_brings_inliers_together(batch, result, index, config)]
     if len(index) == 0:
         return result
     pairs = batch.select(index)
@@ -146,9 +146,10 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
 
 def _map_brings_inliers_together(batch: StereoBatch, result: PipelineResult, candidates: torch.Tensor,
                                  config: PipelineConfig) -> torch.Tensor:
-    """``(n,)`` bool: the ``candidates`` of ``batch`` whose views the retry's map brings together at the first
-    run's RANSAC inliers, its residual there at most ``config.exposure_retry_max_residual_ratio`` of the unmapped
-    views' (or measured on too few inliers to tell; module docstring)."""
+    """``(n,)`` bool: the ``candidates`` of ``batch`` (those whose views' exposures differ) whose views the retry's
+    map brings together at the first run's RANSAC inliers, its residual there at most
+    ``config.exposure_retry_max_residual_ratio`` of the unmapped views' (or measured on too few inliers to tell;
+    module docstring)."""
     points, inliers = result.points, result.fundamental.inliers & result.points.valid
     ratio = matched_residual_ratio(*(t.detach().index_select(0, candidates) for t in (batch.left, batch.right)),
                                    batch.image_hw.index_select(0, candidates),
