@@ -21,16 +21,18 @@ __all__ = ["main", "build_parser", "CliError"]
 DESCRIPTION = """\
 Range obstacles 1–2 m ahead with a Surveyor SVS stereo camera, batched in PyTorch.
 
-The pipeline of the paper, stage by stage: segment the obstacles (Otsu threshold, erosion + dilation, the
-largest connected regions), find SURF features on the masked images, match them by SAD, estimate the
-fundamental matrix by RANSAC, rectify, and range the obstacles from disparity (R = f·B/d).
+The pipeline of the paper, stage by stage: segment the obstacles, find SURF features, match them by SAD,
+estimate the fundamental matrix by RANSAC, rectify, and range the obstacles from disparity (R = f·B/d). By
+default the obstacles are what is near in the pair's own disparity, the nearest region first, and each is
+ranged by its median over a dense disparity map; --preset paper runs the paper's exact steps (Otsu threshold,
+erosion + dilation, the two largest regions, SURF on the masked images, depth from the matched points).
 """
 
 EPILOG = """\
 examples:
   svs-depth demo                          a synthetic SVS scene ranged (no camera needed); writes svs_demo.png
   svs-depth estimate left.png right.png   distance to the obstacles of a stereo pair
-  svs-depth segment left.png right.png    segment a stereo pair, print the obstacles found
+  svs-depth segment left.png right.png    the obstacles estimate keeps (--preset paper: Otsu's)
   svs-depth segment L.png R.png --json    the same as JSON, for scripts
   svs-depth segment L.png R.png --figure seg.png --kernel-size 7 --keep 3
   svs-depth features L.png R.png --size 320x240 --figure matches.png  SURF keypoints and SAD matches

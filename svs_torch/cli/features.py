@@ -13,15 +13,16 @@ HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their m
 
 DESCRIPTION = """\
 Detect SURF keypoints (box-filter Hessian, upright 64-D descriptors) on both images of a pair, by default on
-the segmented obstacle images as the paper does (Sec. 3.3 (1)), and match them by SAD with a ratio test
+the segmented obstacle images as the paper does (Sec. 3.3 (1)): the regions 'svs-depth segment' shows, the
+nearness segmenter's (Otsu's two largest under --preset paper). Match them by SAD with a ratio test
 (--max-ratio; MATLAB's MaxRatio in --preset paper) and SURF's Laplacian-sign check (Sec. 3.3 (2)).
 
 Under --preset default this command keeps every keypoint the detector finds (up to 10000 per image, as
 cv2.SIFT_create() keeps all) and detects on the image enlarged twice for pairs up to 1 megapixel, unless
---max-keypoints / --no-upsample say otherwise: on the shared real pairs at native size 0.84-0.92 of its
-matched points lie within 1 px of the ground truth, against 0.77-0.86 for a plain OpenCV SIFT loop, with 3-5x
-as many correct matches (experiments/features_cli_vs_sift.py). The pipeline (estimate, eval) keeps its own
-settings.
+--max-keypoints / --no-upsample say otherwise: on the shared real pairs at native size with --no-segment,
+0.84-0.92 of its matched points lie within 1 px of the ground truth, against 0.77-0.86 for a plain OpenCV SIFT
+loop, with 3-5x as many correct matches (experiments/features_cli_vs_sift.py). The pipeline (estimate, eval) keeps its own
+settings, and detects on the whole images unless --preset paper.
 
 Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first. In --json,
 "matches" pairs keypoint indices (their detected positions) and "matched_xy" gives each match's points as the
@@ -202,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
         from ..features.surf import extract_surf_features
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..plotting.plots import matches_figure
-        from ..segmentation.segment import segment_stereo
+        from ..pipeline import segment_pair
 
     if args.figure:
         check_output_path(args.figure, args.figure_option)
@@ -219,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     left_image, right_image = batch.left, batch.right
     if not args.no_segment:
-        seg = segment_stereo(batch, config.segmentation)
+        seg = segment_pair(batch, config.segmentation)  # the preset's segmenter, as segment runs it
         left_image, right_image = seg.left.masked, seg.right.masked
     both = extract_surf_features(torch.cat([left_image, right_image]), config.surf)
     kp = both.keypoints

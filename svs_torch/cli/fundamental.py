@@ -12,10 +12,12 @@ from .segment import add_segmentation_options
 HELP = "fundamental matrix of a stereo pair from SURF matches by RANSAC"
 
 DESCRIPTION = """\
-Estimate the fundamental matrix of a stereo pair as the paper does (Sec. 3.3): SURF keypoints on the
-segmented obstacles (or the whole images with --no-segment), SAD matches with MATLAB's ratio test, then RANSAC
-over random 7-point samples with local optimisation. F maps a left point to its right epipolar line:
-x_right^T F x_left = 0, in input-image pixels, unit Frobenius norm.
+Estimate the fundamental matrix of a stereo pair as estimate does (Sec. 3.3): SURF keypoints, SAD matches with
+a ratio test, then RANSAC over random 7-point samples with local optimisation. Under --preset default the
+keypoints are found on the whole images, as estimate finds them (a turned or shifted camera segments each view a
+little differently); under --preset paper on the segmented obstacles, with MATLAB's ratio test (--no-segment:
+the whole images). F maps a left point to its right epipolar line: x_right^T F x_left = 0, in input-image
+pixels, unit Frobenius norm.
 """
 
 EPILOG = """\
@@ -32,7 +34,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("left", help="left image file")
     parser.add_argument("right", help="right image file, the same size as the left")
     add_pair_options(parser)
-    parser.add_argument("--no-segment", action="store_true", help="match features of the whole images")
+    parser.add_argument("--no-segment", action="store_true",
+                        help="match features of the whole images (what --preset default does already)")
     add_segmentation_options(parser)
     add_feature_options(parser)
     parser.add_argument("--threshold-px", type=positive_float, help="RANSAC Sampson-distance threshold, px (preset: 1)")

@@ -1,4 +1,5 @@
-"""``svs-depth segment``: the paper's obstacle segmentation (Sec. 3.2) on one stereo pair."""
+"""``svs-depth segment``: the obstacle segmentation of one stereo pair, the pipeline's (what ``estimate`` keeps) or
+the paper's (Sec. 3.2, ``--preset paper``)."""
 
 from __future__ import annotations
 
@@ -7,21 +8,29 @@ import time
 
 from .common import add_figure_option, dumps_strict, options_named, positive_int
 
-HELP = "segment the obstacles of a stereo pair (Otsu, opening, largest regions)"
+HELP = "segment the obstacles of a stereo pair (what estimate keeps; --preset paper: Otsu, largest regions)"
 
 DESCRIPTION = """\
-Segment the obstacles of a stereo pair as the paper's pre-processing does (Sec. 3.2): grayscale, Otsu
-threshold, erosion then dilation with an N x N square, connected regions, keep the N largest.
+Segment the obstacles of a stereo pair as 'svs-depth estimate' does by default: the nearness segmenter keeps
+what is near in the pair's own disparity (a block matcher over the left view, the near side of its Otsu
+split, the paper's opening and connected regions), the nearest region first, then the largest other one.
+The same regions estimate ranges, before its depth stage cuts each to its interior.
 
-Prints, for the left and the right image, the Otsu threshold (0-255) and the kept objects, largest first:
-area in pixels, bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in input-image pixels.
+--preset paper is the paper's pre-processing (Sec. 3.2) instead: grayscale, Otsu threshold, erosion then
+dilation with an N x N square, connected regions, keep the N largest: the brightest large regions, often a
+wall (--segmenter otsu is the same with the default's other settings).
+
+Prints, for the left and the right image, the threshold (Otsu's level 0-255, or the nearness segmenter's
+obstacle probability) and the kept objects in the order kept: area in pixels, bounding box (x0, y0
+inclusive; x1, y1 exclusive) and centroid, in input-image pixels. The right view's regions are the left
+ones moved by their disparity under the nearness segmenter.
 """
 
 EPILOG = """\
 examples:
-  svs-depth segment left.png right.png
+  svs-depth segment left.png right.png                          # the regions estimate keeps
+  svs-depth segment left.png right.png --preset paper           # the paper's: Otsu, two largest
   svs-depth segment left.png right.png --kernel-size 7 --keep 3 --figure seg.png
-  svs-depth segment left.png right.png --segmenter learned      # what is near, not what is bright
   svs-depth segment left.png right.png --json | jq '.left.objects[0].area_px'
 """
 
@@ -32,6 +41,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("left", help="left image file (gray or color, 8 or 16 bit)")
     parser.add_argument("right", help="right image file, the same size as the left")
+    parser.add_argument("--preset", choices=("default", "paper"), default="default",
+                        help="'default': the segmentation estimate runs (the nearness segmenter); 'paper': the "
+                             "paper's Otsu threshold and N largest regions (Sec. 3.2); the options below change "
+                             "either")
     add_segmentation_options(parser)
     add_segmenter_option(parser)
     add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out",
@@ -173,9 +186,10 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..data import load_image_pair
         from ..plotting.figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
-        from ..pipeline import segment_pair
+        from ..pipeline import PipelineConfig, segment_pair
 
-    config = config_from_args(args)
+    base = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
+    config = config_from_args(args, base.segmentation)
     if args.figure:
         check_output_path(args.figure, args.figure_option)
     batch = load_image_pair(args.left, args.right)
@@ -193,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
         print(dumps_strict({
             "left": left, "right": right,
             "image_size_wh": [width, height],
-            "config": {"segmenter": config.segmenter, "kernel_size": config.kernel_size, "keep": config.num_keep,
+            "config": {"preset": args.preset, "segmenter": config.segmenter, "keep_rule": config.keep,
+                       "kernel_size": config.kernel_size, "keep": config.num_keep,
                        "connectivity": config.connectivity, "foreground": config.foreground},
             "time_s": round(elapsed, 6),
         }))

@@ -67,7 +67,8 @@ def test_every_option_a_commands_help_names_is_one_it_takes():
 
 def test_segment_json_equals_opencv(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
-    code, out, err = run_cli(capsys, "segment", left, right, "--json", "--kernel-size", "3", "--keep", "3")
+    code, out, err = run_cli(capsys, "segment", left, right, "--json", "--preset", "paper", "--kernel-size", "3",
+                             "--keep", "3")
     assert code == 0 and err == ""
     report = json.loads(out)
     # The loader converts colour with cv2.cvtColor (IMREAD_GRAYSCALE's codec conversion rounds differently).
@@ -83,12 +84,36 @@ def test_segment_json_equals_opencv(data_dir, capsys):
     assert objects[0]["bbox_xyxy"] == [x, y, x + w, y + h]
     np.testing.assert_allclose(objects[0]["centroid_xy"], centroids[best], atol=1e-3)
     assert report["config"]["kernel_size"] == 3 and report["image_size_wh"] == [gray.shape[1], gray.shape[0]]
+    assert report["config"]["segmenter"] == "otsu" and report["config"]["keep_rule"] == "largest"
+
+
+def test_segment_shows_the_regions_estimate_keeps(data_dir, capsys):
+    """Was: ``segment`` ran the paper's Otsu segmentation unless told otherwise, while ``estimate`` keeps what is
+    near (issue 32), so a user looking at why estimate ranged a region saw other regions. Now the default is the
+    pipeline's segmentation: the same kept regions, in the same order, as ``estimate --json`` ranges."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "segment", left, right, "--json")
+    assert code == 0 and err == ""
+    report = json.loads(out)
+    code, out, err = run_cli(capsys, "estimate", left, right, "--json")
+    assert code == 0
+    ranged = json.loads(out)["objects"]
+    assert report["config"]["segmenter"] == "nearness" and report["config"]["keep_rule"] == "nearest_first"
+    kept = report["left"]["objects"]
+    assert len(kept) == len(ranged) >= 1
+    assert [(o["area_px"], o["bbox_xyxy"]) for o in kept] == [(o["area_px"], o["bbox_xyxy"]) for o in ranged]
+    code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--segmenter", "otsu")
+    otsu = json.loads(out)
+    code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--preset", "paper")
+    assert otsu["left"]["objects"] == json.loads(out)["left"]["objects"] != kept
 
 
 def test_segment_text_and_figure(data_dir, capsys, tmp_path):
     left, right = (str(data_dir / p) for p in TEDDY)
     figure = tmp_path / "seg.png"
     code, out, _ = run_cli(capsys, "segment", left, right, "--out", str(figure))
+    assert code == 0 and "left: nearness segmenter, obstacle probability above 0.50" in out and "#1 label" in out
+    code, out, _ = run_cli(capsys, "segment", left, right, "--preset", "paper")
     assert code == 0 and "left: Otsu threshold" in out and "#1 label" in out
     image = cv2.imread(str(figure))
     assert image is not None and image.shape[0] > 3 * 375 and image.shape[1] > 2 * 450

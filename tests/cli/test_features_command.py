@@ -105,3 +105,30 @@ def test_experiment_on_one_scene(data_dir, tmp_path):
     assert command["precision"] >= sift["precision"] and command["correct"] >= sift["correct"] / 2
     saved = json.loads(out.read_text())
     assert saved["metadata"]["command"].startswith("python experiments/features_cli_vs_sift.py")
+
+
+
+def test_segmented_features_lie_on_the_regions_segment_shows(data_dir, capsys):
+    """Was: the segmented path masked the views by Otsu's regions whatever the preset, while ``segment`` and
+    ``estimate`` keep the nearness segmenter's. Now the keypoints lie on the preset's own kept regions: the
+    nearness segmenter's by default, Otsu's two largest under ``--preset paper``. A keypoint's box filter reaches
+    past a region's edge by half its size, 9 · scale / 1.2 / 2 (a masked edge is a strong blob there)."""
+    from svs_torch.data import load_image_pair
+    from svs_torch.pipeline import PipelineConfig, segment_pair
+
+    scene = data_dir / TEDDY_2003
+    left, right = str(scene / "imL.png"), str(scene / "imR.png")
+    batch = load_image_pair(left, right)
+
+    def distance_px(config: PipelineConfig, xy: np.ndarray) -> np.ndarray:
+        kept = segment_pair(batch, config.segmentation).left.kept_mask[0, 0].numpy().astype(np.uint8)
+        return cv2.distanceTransform(1 - kept, cv2.DIST_L2, 5)[xy[:, 1], xy[:, 0]]
+
+    for preset, own, other in (("default", PipelineConfig(), PipelineConfig.paper()),
+                               ("paper", PipelineConfig.paper(), PipelineConfig())):
+        report = features_json(capsys, left, right, "--preset", preset)
+        assert report["segmented"] and len(report["left"]) > 100
+        xy = np.array([point["xy"] for point in report["left"]]).round().astype(int)
+        scale = np.array([point["scale"] for point in report["left"]])
+        assert (distance_px(own, xy) <= 3.75 * scale + 1).all(), preset
+        assert (distance_px(other, xy) > 3.75 * scale + 1).any(), preset  # the presets' regions differ on Teddy
