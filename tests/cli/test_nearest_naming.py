@@ -42,7 +42,8 @@ def segmenter(request, monkeypatch) -> str | None:
     if request.param is not None:
         original = svs_torch.pipeline.estimate_obstacle_depth
         config = config_with(request.param)
-        monkeypatch.setattr(svs_torch.pipeline, "estimate_obstacle_depth", lambda batch: original(batch, config))
+        monkeypatch.setattr(svs_torch.pipeline, "estimate_obstacle_depth",
+                            lambda batch, _preset=None: original(batch, config))
     return request.param
 
 
@@ -111,6 +112,19 @@ def test_demo_reports_the_true_nearest_and_whether_it_was_kept(capsys, tmp_path,
         else:
             assert "nearest kept obstacle" in title
             assert ("the nearest obstacle, true 1.00 m, was not kept" in title) == (not nearest["kept"])
+
+
+def test_demo_keeps_the_nearest_and_the_paper_preset_misses_it(capsys, tmp_path):
+    """The README's example: by default the narrow nearest obstacle of ``--objects 4 --seed 3`` is kept and ranged
+    nearest; the paper's preset (Otsu's two largest regions) misses it and says so."""
+    report, text = run_demo(capsys, tmp_path, *MISSED_SCENE)
+    nearest = check_consistent(report, text)
+    assert report["preset"] == "default" and nearest["kept"] and nearest["ranged_is_nearest"]
+    assert report["nearest_m"] == pytest.approx(1.004, abs=0.01)
+    report, text = run_demo(capsys, tmp_path, *MISSED_SCENE, "--preset", "paper")
+    nearest = check_consistent(report, text)
+    assert report["preset"] == "paper" and report["range_rule"] == "paper" and not nearest["kept"]
+    assert "the nearest kept one is object 1 (true obstacle 2, 1.06 m)" in nearest["warning"]
 
 
 def test_demo_without_a_missed_obstacle_has_no_warning(capsys, tmp_path, segmenter, figure_titles):
