@@ -20,10 +20,10 @@ The same regions estimate ranges, before its depth stage cuts each to its interi
 dilation with an N x N square, connected regions, keep the N largest: the brightest large regions, often a
 wall (--segmenter otsu is the same with the default's other settings).
 
-Prints, for the left and the right image, the threshold (Otsu's level 0-255, or the nearness segmenter's
-obstacle probability) and the kept objects in the order kept: area in pixels, bounding box (x0, y0
-inclusive; x1, y1 exclusive) and centroid, in input-image pixels. The right view's regions are the left
-ones moved by their disparity under the nearness segmenter.
+Prints, for the left and the right image, the threshold (Otsu's level, or the nearness segmenter's obstacle
+probability; in --json both as levels 0-255) and the kept objects in the order kept: area in pixels,
+bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in input-image pixels. The right view's
+regions are the left ones moved by their disparity under the nearness segmenter.
 """
 
 EPILOG = """\
