@@ -14,7 +14,8 @@ DESCRIPTION = """\
 Segment the obstacles of a stereo pair as 'svs-depth estimate' does by default: the nearness segmenter keeps
 what is near in the pair's own disparity (a block matcher over the left view, the near side of its Otsu
 split, the paper's opening and connected regions), the nearest region first, then the largest other one.
-The same regions estimate ranges, before its depth stage cuts each to its interior.
+The same regions estimate ranges (unless it segments a pair again, on exposure-matched or row-aligned views),
+before its depth stage cuts each to its interior.
 
 --preset paper is the paper's pre-processing (Sec. 3.2) instead: grayscale, Otsu threshold, erosion then
 dilation with an N x N square, connected regions, keep the N largest: the brightest large regions, often a

@@ -107,7 +107,6 @@ def test_experiment_on_one_scene(data_dir, tmp_path):
     assert saved["metadata"]["command"].startswith("python experiments/features_cli_vs_sift.py")
 
 
-
 def test_segmented_features_lie_on_the_regions_segment_shows(data_dir, capsys):
     """Was: the segmented path masked the views by Otsu's regions whatever the preset, while ``segment`` and
     ``estimate`` keep the nearness segmenter's. Now the keypoints lie on the preset's own kept regions: the
