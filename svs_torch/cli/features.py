@@ -213,7 +213,9 @@ def run(args: argparse.Namespace) -> int:
     if reason:
         if args.json:
             print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
-                                "matched_xy": [], "segmented": not args.no_segment, "time_s": 0.0}))
+                                "matched_xy": [], "segmented": not args.no_segment,
+                                "segmenter": None if args.no_segment else config.segmentation.segmenter,
+                                "time_s": 0.0}))
         else:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
         return 0
@@ -236,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
                             "refined": config.refine_matches is not None, "segmented": not args.no_segment,
+                            "segmenter": None if args.no_segment else config.segmentation.segmenter,
                             "settings": settings_json(config), "time_s": round(elapsed, 6)}))
         return 0
     print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "

@@ -45,9 +45,10 @@ def test_command_defaults_are_its_own_and_options_win():
 def test_json_fields_and_settings(data_dir, capsys):
     scene = data_dir / TEDDY_2003
     report = features_json(capsys, str(scene / "imL.png"), str(scene / "imR.png"), "--no-segment")
-    assert set(report) == {"status", "left", "right", "matches", "matched_xy", "refined", "segmented", "settings",
-                           "time_s"}
+    assert set(report) == {"status", "left", "right", "matches", "matched_xy", "refined", "segmented", "segmenter",
+                           "settings", "time_s"}
     assert report["status"] == "OK" and report["refined"] and not report["segmented"] and report["time_s"] > 0
+    assert report["segmenter"] is None
     assert report["settings"] == {"max_keypoints": MAX_KEYPOINTS, "metric_threshold": 100.0, "upsample": True,
                                   "max_ratio": 0.8, "mutual": False, "laplacian_gate": True}
     assert 512 < len(report["left"]) <= MAX_KEYPOINTS  # more than the pipeline's cap: no cap in practice
@@ -126,7 +127,7 @@ def test_segmented_features_lie_on_the_regions_segment_shows(data_dir, capsys):
     for preset, own, other in (("default", PipelineConfig(), PipelineConfig.paper()),
                                ("paper", PipelineConfig.paper(), PipelineConfig())):
         report = features_json(capsys, left, right, "--preset", preset)
-        assert report["segmented"] and len(report["left"]) > 100
+        assert report["segmented"] and report["segmenter"] == own.segmentation.segmenter and len(report["left"]) > 100
         xy = np.array([point["xy"] for point in report["left"]]).round().astype(int)
         scale = np.array([point["scale"] for point in report["left"]])
         assert (distance_px(own, xy) <= 3.75 * scale + 1).all(), preset
