@@ -1,8 +1,9 @@
 """svs_torch: batched, differentiable stereo obstacle ranging for the Surveyor SVS camera.
 
 A PyTorch reimplementation of an SVS obstacle-warning pipeline for visually impaired users: segment the
-obstacles (Otsu, opening, the largest regions), find SURF features, match by SAD, estimate the fundamental
-matrix by RANSAC, and range the obstacles from disparity. Every stage runs on a whole batch of pairs.
+obstacles (by default what is near in the pair's own disparity; the paper's Otsu, opening and largest regions in
+``PipelineConfig.paper()``), find SURF features, match by SAD, estimate the fundamental matrix by RANSAC, and
+range the obstacles from disparity. Every stage runs on a whole batch of pairs.
 
 The folders follow the data: ``segmentation/`` → ``features/`` → ``geometry/`` (matching, RANSAC,
 rectification) → ``depth/``, each stage with its C kernels in its own ``kernels/``; ``pipeline/`` composes them;
