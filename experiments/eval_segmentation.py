@@ -1,5 +1,6 @@
-"""Otsu against the learned segmenter on the held-out scenes: mask IoU with the truth obstacles and the pipeline's
-nearest-obstacle accuracy (issue 13).
+"""The segmenters on the held-out scenes: mask IoU with the truth obstacles and the pipeline's nearest-obstacle
+accuracy (issues 13 and 32): the default (the nearness segmenter), Otsu, the learned one, and OpenCV StereoSGBM's
+disparity under the truth's own rule.
 
 Truth (:func:`svs_torch.segmentation.learned.obstacle_truth`): Otsu of the valid GT disparity (near against far),
 5×5 opening, the two largest regions; the nearest obstacle's distance is the median GT depth over the nearer of
@@ -9,9 +10,9 @@ instead, the ground plane of the valid GT disparity (:mod:`svs_torch.segmentatio
 segmenter's own fit, here on the true disparity) left out before the split: for a walker the floor or the road
 is not an obstacle (issue 32), and the issue's truth counts the floor of Motorcycle and Piano as one. Per scene:
 
-- IoU of the left kept mask with the truth mask: Otsu (the paper's segmentation, the pipeline's default), the
-  learned segmenter, and, as a reference that learns nothing, Otsu of the soft-argmin disparity the network
-  sees (its own input at 160 px, resized back);
+- IoU of the left kept mask with the truth mask: the default (the nearness segmenter), Otsu (the paper's
+  segmentation), the learned segmenter, SGBM, and with ``--reference``, as a reference that learns nothing, Otsu
+  of the soft-argmin disparity the older network sees (its own input at 160 px, resized back);
 - Acc (Eq. (9)) of the whole pipeline's ``nearest_m`` (default configuration, only the segmenter changed)
   against the truth distance; a pair that is not OK, or without a nearest obstacle, counts 0 %;
 - the warning's Acc: the distance ``svs-depth guide`` speaks, the nearest object's nearest visible surface
