@@ -1,11 +1,13 @@
 """The OpenCV rivals of ``svs-depth bench``: the paper's pipeline as a plain OpenCV loop, run as its own process
 so that its whole-process time (start-up, decoding) is measured the way ``svs-depth estimate --pairs`` is.
 
-Per pair, the same work as the svs_torch default: decode both images, Otsu + 5×5 opening + the two largest
-regions (the paper's segmentation), SIFT or ORB on the masked images, brute-force matching with the ratio test
-0.8, ``findFundamentalMat`` RANSAC (1 px, 0.99), and ``StereoBM`` (SAD, 9×9 window) over the frame with each
-kept region's median disparity as its depth; R_min / R_max are the nearest / farthest region. One JSON line
-per pair (keypoints, matches, inliers, depths), so the benchmark can check that the rivals did comparable work.
+Per pair, the paper's steps, as the svs_torch default takes them but for its segmentation (the default keeps
+what is near in a whole-frame disparity map; the rival keeps Otsu's regions): decode both images, Otsu + 5×5
+opening + the two largest regions (the paper's segmentation), SIFT or ORB on the masked images, brute-force
+matching with the ratio test 0.8, ``findFundamentalMat`` RANSAC (1 px, 0.99), and ``StereoBM`` (SAD, 9×9
+window) over the frame with each kept region's median disparity as its depth; R_min / R_max are the nearest /
+farthest region. One JSON line per pair (keypoints, matches, inliers, depths), so the benchmark can check that
+the rivals did comparable work.
 
     python svs_torch/evaluation/bench_rivals.py sift LIST.txt [--focal-px F] [--baseline-m B] [--workers N]
 
