@@ -50,6 +50,7 @@ def test_help_texts_take_their_values_from_the_configuration(capsys):
 
 @pytest.mark.parametrize("segmenter, method, words", [("otsu", "otsu", "binary (Otsu "),
                                                        ("learned", "otsu", "binary (learned segmenter, p > 0.50)"),
+                                                       ("nearness", "otsu", "binary (nearness segmenter, p > 0.50)"),
                                                        ("otsu", "canny", "Canny edges + closing")])
 def test_the_binary_panel_names_what_made_it(segmenter, method, words):
     batch = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3)).batch

@@ -141,9 +141,10 @@ def _print_text(args, camera: dict, truth: list[dict], report: dict, true_neares
     print(f"figure written to {args.figure}")
 
 
-def _demo_figure(batch, result, true_nearest: dict | None):
+def _demo_figure(batch, result, true_nearest: dict | None, segmentation):
     """The inputs and their masks in one row above the pipeline figure, whose title names the true nearest
-    obstacle from the scene's exact truth (None: the figure's own, from the ground-truth disparity)."""
+    obstacle from the scene's exact truth (None: the figure's own, from the ground-truth disparity); each mask's
+    title names what made it (``segmentation``: the run's ``SegmentationConfig``)."""
     import cv2
 
     from ..plotting.figures import compose_grid, segmentation_panels
@@ -155,8 +156,9 @@ def _demo_figure(batch, result, true_nearest: dict | None):
                                true_nearest["kept_label"] - 1 if true_nearest["kept"] else -1)
     # Four 320-wide panels fill the pipeline figure's width (which shows the true depth beside the estimate),
     # where two left a third of the row blank; the row is scaled to that width.
-    left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left")
-    right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right")
+    made_by = (segmentation.segmenter, segmentation.method)
+    left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left", *made_by)
+    right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right", *made_by)
     pipeline = estimate_figure(batch, result, 0, true_nearest=nearest)
     top = compose_grid([[left_image], [right_image], [left_binary], [right_binary]])
     top = cv2.resize(top, (pipeline.shape[1], round(top.shape[0] * pipeline.shape[1] / top.shape[1])),
@@ -194,7 +196,8 @@ def run(args: argparse.Namespace) -> int:
         scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
     batch = scenes.batch
     started = time.perf_counter()
-    result = estimate_obstacle_depth(batch, PipelineConfig.paper() if args.preset == "paper" else PipelineConfig())
+    config = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
+    result = estimate_obstacle_depth(batch, config)
     elapsed = time.perf_counter() - started
     report = with_calibration(pair_report(result, 0, (1.0, 1.0), elapsed), batch, 0, (1.0, 1.0),
                               "the SVS model: the synthetic scene's own camera")
@@ -208,7 +211,8 @@ def run(args: argparse.Namespace) -> int:
     nearest = result.depth.nearest
     ranged_label = int(nearest.slot[0]) + 1 if nearest is not None and bool(nearest.valid[0]) else None
     true_nearest = _true_nearest(scenes, report["objects"], ranged_label)
-    write_image_atomic(args.figure, _demo_figure(batch, result, true_nearest), args.figure_option)
+    write_image_atomic(args.figure, _demo_figure(batch, result, true_nearest, config.segmentation),
+                       args.figure_option)
     camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
               "image_size_wh": [width, height]}
     if args.json:

@@ -94,12 +94,13 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
 
 
 def binary_title(seg: Segmentation, index: int, segmenter: str = "otsu", method: str = "otsu") -> str:
-    """What made the binary mask, for its panel: ``binary (Otsu 128) + opening``, ``binary (learned segmenter,
-    p > 0.50) + opening`` or ``Canny edges + closing`` (``segmenter`` and ``method`` as in
+    """What made the binary mask, for its panel: ``binary (Otsu 128) + opening``, ``binary (nearness segmenter,
+    p > 0.50) + opening`` (or the learned one's) or ``Canny edges + closing`` (``segmenter`` and ``method`` as in
     :class:`~svs_torch.segmentation.SegmentationConfig`)."""
     threshold = int(seg.threshold_level[index])
-    if segmenter != "otsu":  # "learned" or "learned:PATH": the probability threshold, stored on the 0-255 scale
-        return f"binary (learned segmenter, p > {threshold / 255:.2f}) + opening"
+    if segmenter != "otsu":  # a network's ("nearness", "learned", either ":PATH"): its probability threshold, 0-255
+        name = segmenter.split(":", 1)[0]
+        return f"binary ({name} segmenter, p > {threshold / 255:.2f}) + opening"
     return "Canny edges + closing" if method == "canny" else f"binary (Otsu {threshold}) + opening"
 
 

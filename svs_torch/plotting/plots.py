@@ -327,11 +327,14 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     truth = _objects_axis(figure.add_subplot(grid[0, 0]), batch, result, index, panel_w)
     _depth_axes(figure, grid, maps, panel_w)
     seg = result.segmentation
-    images = [image[index, 0, :height, :width].detach().cpu().numpy() for image in (seg.left.masked,
-                                                                                     seg.right.masked)]
+    # The whole views, dimmed outside the kept regions: the default finds its features on the whole images, the
+    # paper's preset on the masked ones (inside the regions), and either is drawn where it was found.
+    images = [(view[index, 0, :height, :width] * (0.35 + 0.65 * kept[index, 0, :height, :width].to(view.dtype)))
+              .detach().cpu().numpy() for view, kept in ((batch.left, seg.left.kept_mask),
+                                                         (batch.right, seg.right.kept_mask))]
     _matches_axis(figure.add_subplot(grid[1, :]), *images, result.features_left.keypoints,
                   result.features_right.keypoints, result.matches.idx[index].tolist(), result.fundamental.inliers,
-                  index, f"matches on the segmented images: {int(result.num_keypoints[index, 0])} + "
+                  index, f"matches (the kept regions bright): {int(result.num_keypoints[index, 0])} + "
                          f"{int(result.num_keypoints[index, 1])} keypoints, {int(result.num_matches[index])} matches",
                   match_w)
     status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule"

@@ -90,6 +90,27 @@ def test_pipeline_figure_labels_are_white_on_dark_boxes_and_lines_have_a_legend(
     assert any(t.startswith("RANSAC inlier (") for t in legend) and any(t.startswith("outlier (") for t in legend)
 
 
+def test_pipeline_figure_draws_the_matches_on_the_views_they_were_found_on(scene):
+    """Was: the matches were drawn on the masked images, black outside the kept regions, while the default finds
+    its features on the whole views (``features_on="image"``): keypoints floated on black. Now the whole views,
+    dimmed outside the kept regions: each side's panel is the view times 0.35 there and the view inside."""
+    batch, result = scene
+    figure = pipeline_figure(batch, result, 0)
+    ax = next(ax for ax in figure.axes if ax.get_title().startswith("matches (the kept regions bright)"))
+    canvas = ax.get_images()[0].get_array()
+    height, width = batch.size_hw
+    for side, (view, seg) in enumerate(((batch.left, result.segmentation.left),
+                                        (batch.right, result.segmentation.right))):
+        offset = side * (width + max(4, width // 50))
+        drawn = np.asarray(canvas[:, offset:offset + width])
+        image, kept = view[0, 0].numpy(), seg.kept_mask[0, 0].numpy()
+        np.testing.assert_allclose(drawn, np.where(kept, image, 0.35 * image), atol=1e-6)
+    keypoints = result.features_left.keypoints
+    xy = keypoints.xy[0][keypoints.valid[0]].round().long()
+    outside = ~result.segmentation.left.kept_mask[0, 0][xy[:, 1].clamp(0, height - 1), xy[:, 0].clamp(0, width - 1)]
+    assert bool(outside.any())  # the default's keypoints lie outside the regions too, on a visible background
+
+
 def test_pipeline_figure_without_ground_truth_has_no_truth_panel():
     images = torch.rand(1, 1, 40, 56, generator=torch.Generator().manual_seed(0))
     batch = StereoBatch.from_images(images, images.roll(-2, -1), 100.0, 0.1)
