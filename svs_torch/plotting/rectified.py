@@ -89,10 +89,11 @@ def stack_images(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
 
 def pipeline_rectified_figure(batch, result, index: int, calibration_name: str | None = None) -> np.ndarray | None:
     """Pair ``index`` of a pipeline run as rectified, with epipolar lines through its RANSAC inliers (a uint8 BGR
-    image), or None when the pair was not rectified: by the pipeline's uncalibrated rectification from F
-    (``result.rectified``, Sec. 3.4: both views warped by its homographies, the inliers mapped by them) or, with
-    ``calibration_name``, by that calibration file before the pipeline (the batch's images are the rectified
-    ones)."""
+    image), or None when the pair was not rectified: by the homographies the pipeline measured its disparities
+    after (``result.rectified``; ``result.H_left`` / ``H_right``: the uncalibrated rectification from F, Sec.
+    3.4, or the right view's row alignment of a loose rig, ``result.row_aligned``; both views warped by them, the
+    inliers mapped by them) or, with ``calibration_name``, by that calibration file before the pipeline (the
+    batch's images are the rectified ones)."""
     import torch
 
     from ..geometry.rectification import apply_homography, warp_rectified
@@ -102,12 +103,19 @@ def pipeline_rectified_figure(batch, result, index: int, calibration_name: str |
     left, right = batch.left[index:index + 1], batch.right[index:index + 1]
     points = [result.points.left[index:index + 1], result.points.right[index:index + 1]]
     if bool(result.rectified[index]):
-        H = [result.rectification.H_left[index:index + 1], result.rectification.H_right[index:index + 1]]
+        # What the disparities were measured after: F's rectification, or the row alignment, which warps only the
+        # right view (a result from before H_left / H_right were recorded: F's).
+        used = getattr(result, "H_left", None) is not None
+        H = [(result.H_left if used else result.rectification.H_left)[index:index + 1],
+             (result.H_right if used else result.rectification.H_right)[index:index + 1]]
         left, right = warp_rectified(left, H[0]), warp_rectified(right, H[1])
         mapped = [apply_homography(h, p) for h, p in zip(H, points)]
         points = [m.xy for m in mapped]
         inliers = inliers & mapped[0].valid[0] & mapped[1].valid[0]
-        how = "rectified from F (the paper's uncalibrated rectification, Sec. 3.4)"
+        aligned = getattr(result, "row_aligned", None)
+        how = ("the right view's rows aligned to the left view's (its turn, shift and scale fitted to the matches)"
+               if aligned is not None and bool(aligned[index])
+               else "rectified from F (the paper's uncalibrated rectification, Sec. 3.4)")
     elif calibration_name:
         how = f"rectified by the calibration {calibration_name}"
     else:

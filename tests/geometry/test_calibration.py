@@ -261,6 +261,18 @@ def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
     assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0) is None
     assert rectified_figure.pipeline_rectified_figure(batch, unrectified, 0, "rig.json") is not None
     assert "by the calibration rig.json" in shown["args"][4]
+    # Was: a pair the row alignment rectified (a loose rig) was drawn after F's homographies, which the pipeline had
+    # not used. Now the ones it measured its disparities after (H_left / H_right), and the title says which.
+    wrong = SimpleNamespace(H_left=torch.eye(3).unsqueeze(0), H_right=torch.eye(3).unsqueeze(0))
+    aligned = SimpleNamespace(**{**vars(result), "rectification": wrong, "H_left": torch.eye(3).unsqueeze(0),
+                                 "H_right": back, "row_aligned": torch.tensor([True])})
+    assert rectified_figure.pipeline_rectified_figure(batch, aligned, 0) is not None
+    _, _, mapped_left, mapped_right, title = shown["args"]
+    assert "rows aligned to the left view's" in title and "from F" not in title
+    np.testing.assert_allclose(mapped_left[:, 1], mapped_right[:, 1], atol=1e-3)
+    by_f = SimpleNamespace(**{**vars(aligned), "row_aligned": torch.tensor([False])})
+    rectified_figure.pipeline_rectified_figure(batch, by_f, 0)
+    assert "rectified from F" in shown["args"][4]
 
 
 def test_calibrated_pairs_are_not_rectified_again_and_match_along_rows():
