@@ -74,6 +74,25 @@ def _label(panel: np.ndarray, text: str, origin: tuple[int, int], colour: tuple[
     cv2.putText(panel, text, (x + h + 3, y), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
+#: Rows of the objects panel the area label (``#1 928px``, :func:`~svs_torch.plotting.figures.objects_panel`)
+#: takes at the top of each object's box, image pixels.
+AREA_LABEL_ROWS = 16
+#: The padding of a depth label's box (``plots.LABEL_BOX``), points.
+LABEL_PAD_POINTS = 2
+
+
+def depth_label_y(centroid_y: float, box_top: float, lines: int, size_hw: tuple[int, int], width_in: float) -> float:
+    """The row of an object's depth label (``lines`` lines of 9 pt, centred on it): its centroid's, or lower
+    where the label would cover the area label at the top of its box (a short region, e.g. a far window whose
+    centroid lies near its top), kept inside the image. ``width_in``: the panel's width in inches at 100 dpi,
+    ``size_hw`` the image's."""
+    height, width = size_hw
+    points_to_px = 100 / 72 * width / (100 * width_in)  # image pixels per point on the drawn panel
+    half = (lines * 9 * 1.25 + 2 * LABEL_PAD_POINTS) * points_to_px / 2
+    y = max(centroid_y, box_top + AREA_LABEL_ROWS + half)
+    return min(y, max(height - half, 0.0))
+
+
 def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:
     """The grayscale image dimmed outside the kept objects, each object tinted, boxed and numbered."""
     gray = image[index, 0]

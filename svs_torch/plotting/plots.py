@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from .figures import objects_panel
+from .figures import LABEL_PAD_POINTS, depth_label_y, objects_panel
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
 
@@ -29,7 +29,7 @@ PANEL_IN = 4.2  # the longer side of an image panel, inches
 MIN_PANEL_W_IN = 2.6  # narrower panels would clip their titles
 TITLE_CHARS_PER_IN = 12  # characters per inch of a 10-point title
 INLIER, OUTLIER, MATCH, KEYPOINT = "#2ca02c", "#d62728", "#e6b800", "#1f77b4"
-LABEL_BOX = {"facecolor": "black", "alpha": 0.75, "edgecolor": "none", "pad": 2}
+LABEL_BOX = {"facecolor": "black", "alpha": 0.75, "edgecolor": "none", "pad": LABEL_PAD_POINTS}
 NO_DEPTH_GRAY = "0.82"  # pixels without a depth: gray, not the white of the page
 # true_nearest_obstacle's two tolerances. A kept region holds the truly nearest truth region when their overlap is
 # at least this fraction of the smaller of the two: a kept neighbour's edge spills a pixel or two onto it (the 5x5
@@ -139,7 +139,9 @@ def _objects_axis(ax, batch, result, index: int, width_in: float) -> dict[int, f
                     else "no depth")
         true = f"\ntrue {truth[slot]:.2f} m" if slot in truth else ""
         cx, cy = seg.regions.centroid_xy[index, label - 1].tolist()
-        ax.text(cx, cy, f"#{slot + 1}: {estimate}{true}", color="white", fontsize=9, ha="center", va="center",
+        top = float(seg.regions.bbox_xyxy[index, label - 1, 1])
+        ax.text(cx, depth_label_y(cy, top, 2 if true else 1, (height, width), width_in),
+                f"#{slot + 1}: {estimate}{true}", color="white", fontsize=9, ha="center", va="center",
                 bbox=LABEL_BOX, clip_on=True)
     _title(ax, "left: kept objects, median depth" + (" (and true depth)" if truth else ""), width_in)
     ax.set_axis_off()

@@ -18,7 +18,8 @@ from svs_torch.cli import main
 from svs_torch.core.errors import InputError
 from svs_torch.core.files import atomic_output, path_kind, write_bytes_atomic
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.plotting.figures import labels_image, objects_panel, write_image_atomic
+from svs_torch.plotting.figures import (AREA_LABEL_ROWS, depth_label_y, labels_image, objects_panel,
+                                        write_image_atomic)
 from svs_torch.plotting.plots import matches_figure, pipeline_figure, render
 
 
@@ -109,6 +110,20 @@ def test_pipeline_figure_draws_the_matches_on_the_views_they_were_found_on(scene
     xy = keypoints.xy[0][keypoints.valid[0]].round().long()
     outside = ~result.segmentation.left.kept_mask[0, 0][xy[:, 1].clamp(0, height - 1), xy[:, 0].clamp(0, width - 1)]
     assert bool(outside.any())  # the default's keypoints lie outside the regions too, on a visible background
+
+
+def test_a_depth_label_leaves_the_area_label_of_a_short_region_readable():
+    """Was: the depth label sat on the region's centroid, which for a short region (held-out Laundry's window at
+    320 px, a box 20 rows tall) covered the ``#1 928px`` label at the top of its box. Now it sits below that
+    label where it would cover it, and stays inside the image."""
+    size_hw, width_in = (240, 320), 4.2
+    assert depth_label_y(120.0, 40.0, 2, size_hw, width_in) == 120.0  # a tall region: on its centroid
+    moved = depth_label_y(95.0, 88.0, 2, size_hw, width_in)
+    one_line = depth_label_y(95.0, 88.0, 1, size_hw, width_in)
+    assert moved > one_line > 88.0 + AREA_LABEL_ROWS  # the label's upper half clears the area label's rows
+    half = moved - (88.0 + AREA_LABEL_ROWS)
+    assert 5.0 < half < 20.0  # two lines of 9 pt, about 27 px on a 320 px panel 4.2 in wide
+    assert depth_label_y(235.0, 230.0, 2, size_hw, width_in) == pytest.approx(240 - half)  # kept inside
 
 
 def test_pipeline_figure_without_ground_truth_has_no_truth_panel():
