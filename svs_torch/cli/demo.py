@@ -176,8 +176,7 @@ def run(args: argparse.Namespace) -> int:
         from ..core.checks import InputError
         from ..data.synthetic import random_obstacle_scenes
         from ..plotting.figures import check_output_path, write_image_atomic
-        from ..evaluation.overrides import preset_config
-        from ..pipeline import estimate_obstacle_depth
+        from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .estimate_report import format_report, pair_report, unranged_report, with_calibration
         from .features import MAX_PIXELS
 
@@ -197,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
         scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
     batch = scenes.batch
     started = time.perf_counter()
-    config = preset_config(args.preset, "--preset")
+    config = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
     result = estimate_obstacle_depth(batch, config)
     elapsed = time.perf_counter() - started
     report = with_calibration(pair_report(result, 0, (1.0, 1.0), elapsed), batch, 0, (1.0, 1.0),

@@ -187,10 +187,10 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..data import load_image_pair
         from ..plotting.figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
-        from ..evaluation.overrides import preset_config
-        from ..pipeline import segment_pair
+        from ..pipeline import PipelineConfig, segment_pair
 
-    config = config_from_args(args, preset_config(args.preset, "--preset").segmentation)
+    base = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
+    config = config_from_args(args, base.segmentation)
     if args.figure:
         check_output_path(args.figure, args.figure_option)
     batch = load_image_pair(args.left, args.right)
