@@ -47,7 +47,7 @@ from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import row_quantile
 
 __all__ = ["CLIPPED_LEVEL", "RETRY_MIN_CHANGE", "ExposureConfig", "exposure_change", "exposures_differ",
-           "match_exposure", "matched_residual_ratio"]
+           "match_exposure", "matched_residual_ratio", "pairs_to_match"]
 
 #: ``min_change`` of the default retry (``PipelineConfig.exposure_retry``). Two views of one scene never have the
 #: same quartiles (their borders and occlusions show different things), so a small ``|scale − 1| + |offset|`` is
@@ -151,15 +151,26 @@ def _mapped(left: torch.Tensor, right: torch.Tensor, scale: torch.Tensor, offset
     return left, right, changed
 
 
+def _fit_every_pair(left: torch.Tensor, right: torch.Tensor, config: ExposureConfig
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_fit`'s four ``(B,)`` tensors as :func:`match_exposure` applies them: :func:`_fit_selected`'s map,
+    and no change (scale 1, offset 0) for a pair ``config.min_right_clipped_share`` leaves out."""
+    index, fit = _fit_selected(left, right, config)
+    if index is None:
+        return fit
+    b, device = left.shape[0], left.device
+    scale = torch.ones(b, dtype=fit[0].dtype, device=device).index_copy(0, index, fit[0])
+    offset = torch.zeros(b, dtype=fit[1].dtype, device=device).index_copy(0, index, fit[1])
+    never = torch.zeros(b, dtype=torch.bool, device=device)
+    return scale, offset, never.index_copy(0, index, fit[2]), never.index_copy(0, index, fit[3])
+
+
 def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
                      config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
     """``(B,)`` bool: the pairs :func:`match_exposure` would change (arguments as there), without mapping any
     view."""
     _check_views(left, right, image_hw)
-    index, fit = _fit_selected(left, right, config)
-    if index is None:
-        return fit[2]
-    return torch.zeros(left.shape[0], dtype=torch.bool, device=left.device).index_copy(0, index, fit[2])
+    return _fit_every_pair(left, right, config)[2]
 
 
 def exposure_change(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
@@ -202,14 +213,45 @@ def matched_residual_ratio(left: torch.Tensor, right: torch.Tensor, image_hw: to
         ``(B,)`` the ratio (1 where the map leaves the pair unchanged), NaN for a pair with fewer than
         :data:`MIN_RESIDUAL_MATCHES` valid matches. Not differentiable (a measurement for choosing a second run).
     """
+    _check_matches(left, right, image_hw, left_xy, right_xy, valid)
+    left, right = left.detach(), right.detach()
+    return _residual_ratio(left, right, left_xy, right_xy, valid, _fit_every_pair(left, right, config))
+
+
+def pairs_to_match(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, left_xy: torch.Tensor,
+                   right_xy: torch.Tensor, valid: torch.Tensor, config: ExposureConfig = ExposureConfig(),
+                   max_residual_ratio: float | None = None) -> torch.Tensor:
+    """``(B,)`` bool: the pairs :func:`exposures_differ` names whose map also brings their ``valid`` matches
+    together, :func:`matched_residual_ratio` at most ``max_residual_ratio`` (or NaN: too few matches to tell);
+    None: every pair that differs. One fit of the map for both tests, the patch means only of the pairs that
+    differ. Arguments as :func:`matched_residual_ratio`'s; not differentiable."""
+    _check_matches(left, right, image_hw, left_xy, right_xy, valid)
+    left, right = left.detach(), right.detach()
+    fit = _fit_every_pair(left, right, config)
+    differ = fit[2]
+    if max_residual_ratio is None or not bool(differ.any()):
+        return differ
+    index = differ.nonzero().flatten()
+    pick = (lambda t: t.index_select(0, index))
+    ratio = _residual_ratio(pick(left), pick(right), pick(left_xy), pick(right_xy), pick(valid),
+                            tuple(pick(t) for t in fit))
+    return differ.index_copy(0, index, ~(ratio > max_residual_ratio))  # NaN (too few matches): True
+
+
+def _check_matches(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, left_xy: torch.Tensor,
+                   right_xy: torch.Tensor, valid: torch.Tensor) -> None:
     dims = _check_views(left, right, image_hw)
     check_shape(left_xy, "left_xy", [dims["B"], "K", 2])
     check_shape(right_xy, "right_xy", [dims["B"], left_xy.shape[1], 2])
     check_shape(valid, "valid", [dims["B"], left_xy.shape[1]])
-    left, right = left.detach(), right.detach()
+
+
+def _residual_ratio(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
+                    valid: torch.Tensor, fit: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """:func:`matched_residual_ratio` of detached views under :func:`_fit`'s map ``fit``."""
     before = [_patch_means(view, xy.detach()).unsqueeze(1).unsqueeze(1) for view, xy in ((left, left_xy),
                                                                                       (right, right_xy))]
-    after = _mapped(*before, *_fit(left, right, config))[:2]
+    after = _mapped(*before, *fit)[:2]
     mask = valid.bool()
     medians = [torch.where(mask, (a - b).abs().flatten(1), torch.nan).nanmedian(1).values
                for a, b in (before, after)]

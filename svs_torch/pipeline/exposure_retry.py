@@ -58,7 +58,7 @@ from ..core.pair_trees import take_pairs
 from ..core.size_groups import replace_pairs
 from ..core.types import StereoBatch
 from .config import PipelineConfig, PipelineResult
-from .exposure import exposures_differ, matched_residual_ratio
+from .exposure import pairs_to_match
 from .near_surface import INLIER_MARGIN_PX, MAX_INLIER_RATIO
 from .ranging import measured_share, second_pass_is_better, unranged_kept_object
 
@@ -91,13 +91,15 @@ def retry_with_exposure(batch: StereoBatch, result: PipelineResult, config: Pipe
         return result
     # The views' quantiles only of the unfinished pairs: over every pair they took 1.8 of 30 ms a pair (64 real
     # 320x240 pairs, one thread), where 23 of the benchmark's 512 real pairs are unfinished.
+    # Those whose views' exposures differ, and whose map brings the first run's RANSAC inliers together (module
+    # docstring; too few inliers to tell: run again).
     candidates = retried.nonzero().flatten()
-    differs = exposures_differ(batch.left.detach().index_select(0, candidates),
-                               batch.right.detach().index_select(0, candidates),
-                               batch.image_hw.index_select(0, candidates), config.exposure_retry)
-    index = candidates[differs]
-    if config.exposure_retry_max_residual_ratio is not None and len(index):
-        index = index[_map_brings_inliers_together(batch, result, index, config)]
+    points, inliers = result.points, result.fundamental.inliers & result.points.valid
+    index = candidates[pairs_to_match(
+        *(t.detach().index_select(0, candidates) for t in (batch.left, batch.right)),
+        batch.image_hw.index_select(0, candidates),
+        *(t.index_select(0, candidates) for t in (points.left, points.right, inliers)),
+        config.exposure_retry, config.exposure_retry_max_residual_ratio)]
     if len(index) == 0:
         return result
     pairs = batch.select(index)
@@ -142,20 +144,6 @@ def _second_is_better(first: PipelineResult, second: PipelineResult, index: torc
     usual = retaken & ~_split_retaken(second) & second.verified & second.depth.objects.valid.any(1)
     more_measured = measured_share(second.depth.objects) > measured_share(first.depth.objects).index_select(0, index)
     return pick | (usual & more_measured)
-
-
-def _map_brings_inliers_together(batch: StereoBatch, result: PipelineResult, candidates: torch.Tensor,
-                                 config: PipelineConfig) -> torch.Tensor:
-    """``(n,)`` bool: the ``candidates`` of ``batch`` (those whose views' exposures differ) whose views the retry's
-    map brings together at the first run's RANSAC inliers, its residual there at most
-    ``config.exposure_retry_max_residual_ratio`` of the unmapped views' (or measured on too few inliers to tell;
-    module docstring)."""
-    points, inliers = result.points, result.fundamental.inliers & result.points.valid
-    ratio = matched_residual_ratio(*(t.detach().index_select(0, candidates) for t in (batch.left, batch.right)),
-                                   batch.image_hw.index_select(0, candidates),
-                                   *(t.index_select(0, candidates) for t in (points.left, points.right, inliers)),
-                                   config.exposure_retry)
-    return ~(ratio > config.exposure_retry_max_residual_ratio)  # NaN (too few inliers): run it again
 
 
 def _split_retaken(result: PipelineResult) -> torch.Tensor:

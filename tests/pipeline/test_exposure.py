@@ -533,6 +533,44 @@ def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(g
         matched_residual_ratio(left, rights["gain"], image_hw[:1], left_xy[None], right_xy[None, :3], valid[None])
 
 
+def test_the_pairs_to_match_are_those_that_differ_and_whose_map_brings_their_matches_together(generator):
+    """``pairs_to_match`` (the retry's one call, one fit) is ``exposures_differ`` and-ed with
+    ``matched_residual_ratio`` at most the bound, NaN counting as True; pairs whose views agree are never named.
+    Under ``min_right_clipped_share`` the ratio measures the map ``match_exposure`` applies: a pair it leaves alone
+    (its right view not clipped more) keeps ratio 1, not the whole views' map."""
+    from svs_torch.pipeline.exposure import exposures_differ, match_exposure, matched_residual_ratio, pairs_to_match
+
+    scene = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 52, 76, generator=generator, dtype=torch.float64), 3,
+                                           stride=1)
+    scene = 0.15 + 0.6 * (scene - scene.min()) / (scene.max() - scene.min())
+    left, seen = scene[..., 8:], scene[..., :-8]
+    falloff = torch.linspace(0.55, 1.45, seen.shape[-1], dtype=torch.float64)
+    rights = torch.cat([(0.7 * seen).clamp(0, 1), (seen * falloff).clamp(0, 1), (0.7 * seen).clamp(0, 1), seen])
+    lefts = left.expand(4, -1, -1, -1)
+    ys, xs = torch.meshgrid(torch.arange(2, 48, 5.0), torch.arange(1, 58, 6.0), indexing="ij")
+    left_xy = torch.stack([xs.flatten(), ys.flatten()], 1).to(torch.float64).expand(4, -1, -1)
+    right_xy = left_xy + torch.tensor([8.0, 0.0], dtype=torch.float64)
+    valid = torch.ones(4, left_xy.shape[1], dtype=torch.bool)
+    valid[2, 4:] = False  # the second gain pair: too few matches to tell
+    image_hw = torch.tensor([list(left.shape[-2:])] * 4)
+    config = ExposureConfig()
+    differ = exposures_differ(lefts, rights, image_hw, config)
+    ratio = matched_residual_ratio(lefts, rights, image_hw, left_xy, right_xy, valid, config)
+    assert differ.tolist() == [True, True, True, False]
+    for bound in (0.8, 0.05):
+        picked = pairs_to_match(lefts, rights, image_hw, left_xy, right_xy, valid, config, bound)
+        assert picked.tolist() == (differ & ~(ratio > bound)).tolist()
+    assert pairs_to_match(lefts, rights, image_hw, left_xy, right_xy, valid, config, 0.8).tolist() == [
+        True, False, True, False]
+    assert pairs_to_match(lefts, rights, image_hw, left_xy, right_xy, valid, config).tolist() == differ.tolist()
+    clipped = ExposureConfig(min_right_clipped_share=0.05)  # no right view here is clipped at white
+    assert not bool(match_exposure(lefts, rights, image_hw, clipped)[2].any())
+    unmapped = matched_residual_ratio(lefts[:2], rights[:2], image_hw[:2], left_xy[:2], right_xy[:2], valid[:2],
+                                      clipped)
+    assert unmapped.tolist() == [1.0, 1.0]
+    assert not bool(pairs_to_match(lefts, rights, image_hw, left_xy, right_xy, valid, clipped, 0.8).any())
+
+
 def test_a_pair_lit_by_two_lamps_is_not_run_again_where_the_map_cannot_bring_it_together(data_dir):
     """PianoL at 320×240 as the board's default camera frame (JPEG digit 4, noise σ 4): its first result is
     complete but measured on the dense stage's coarse grid with its split taken again, so the retry's rule names
