@@ -332,11 +332,16 @@ def brightened(batch: StereoBatch, factor: float) -> StereoBatch:
                                right=(batch.right * factor).clamp(0, 1))
 
 
+def _single_pairs(batch: StereoBatch) -> list[StereoBatch]:
+    """``batch`` as one single-pair batch per pair (how the rendered splits list their scenes)."""
+    return [batch.select([i]) for i in range(batch.batch_size)]
+
+
 def _rendered_pairs(count: int, seed: int, **render) -> list[StereoBatch]:
     """``count`` seeded scenes of two boxes (:func:`random_obstacle_scenes` with ``render``), one single-pair batch
     each."""
-    scenes = random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed), **render).batch
-    return [scenes.select([i]) for i in range(count)]
+    return _single_pairs(random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed),
+                                                **render).batch)
 
 
 def synthetic_scenes() -> list[StereoBatch]:
@@ -371,9 +376,8 @@ def border_scenes() -> list[StereoBatch]:
                              torch.stack([far_right_m - far_width_m / 2, uniform(-0.2, 0.1)], 1)], 1)
     size = torch.stack([torch.stack([near_width_m, uniform(0.5, 0.9)], 1),
                         torch.stack([far_width_m, uniform(0.6, 1.0)], 1)], 1)
-    scenes = render_obstacle_scenes(torch.stack([near_m, far_m], 1).float(), centre_xy.float(), size.float(),
-                                    size_wh=(width, 240), generator=generator).batch
-    return [scenes.select([i]) for i in range(n)]
+    return _single_pairs(render_obstacle_scenes(torch.stack([near_m, far_m], 1).float(), centre_xy.float(),
+                                                size.float(), size_wh=(width, 240), generator=generator).batch)
 
 
 def slant_scenes() -> list[StereoBatch]:
@@ -383,9 +387,8 @@ def slant_scenes() -> list[StereoBatch]:
     low, high = SLANT_YAW_DEG
     magnitude = low + (high - low) * torch.rand(SLANT_SCENES, 2, generator=generator)
     sign = torch.where(torch.rand(SLANT_SCENES, 2, generator=generator) < 0.5, -1.0, 1.0)
-    scenes = random_obstacle_scenes(SLANT_SCENES, 2, generator=generator, object_yaw_deg=sign * magnitude,
-                                    texture_contrast=SLANT_TEXTURE_CONTRAST).batch
-    return [scenes.select([i]) for i in range(SLANT_SCENES)]
+    return _single_pairs(random_obstacle_scenes(SLANT_SCENES, 2, generator=generator, object_yaw_deg=sign * magnitude,
+                                                texture_contrast=SLANT_TEXTURE_CONTRAST).batch)
 
 
 def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
