@@ -104,17 +104,14 @@ def pipeline_rectified_figure(batch, result, index: int, calibration_name: str |
     points = [result.points.left[index:index + 1], result.points.right[index:index + 1]]
     if bool(result.rectified[index]):
         # What the disparities were measured after: F's rectification, or the row alignment, which warps only the
-        # right view (a result from before H_left / H_right were recorded: F's).
-        used = getattr(result, "H_left", None) is not None
-        H = [(result.H_left if used else result.rectification.H_left)[index:index + 1],
-             (result.H_right if used else result.rectification.H_right)[index:index + 1]]
+        # right view.
+        H = [result.H_left[index:index + 1], result.H_right[index:index + 1]]
         left, right = warp_rectified(left, H[0]), warp_rectified(right, H[1])
         mapped = [apply_homography(h, p) for h, p in zip(H, points)]
         points = [m.xy for m in mapped]
         inliers = inliers & mapped[0].valid[0] & mapped[1].valid[0]
-        aligned = getattr(result, "row_aligned", None)
         how = ("the right view's rows aligned to the left view's (its turn, shift and scale fitted to the matches)"
-               if aligned is not None and bool(aligned[index])
+               if bool(result.row_aligned[index])
                else "rectified from F (the paper's uncalibrated rectification, Sec. 3.4)")
     elif calibration_name:
         how = f"rectified by the calibration {calibration_name}"

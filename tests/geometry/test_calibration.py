@@ -248,7 +248,8 @@ def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
     result = SimpleNamespace(
         rectified=torch.tensor([True]), fundamental=SimpleNamespace(inliers=torch.tensor([[1, 1, 1, 1, 1, 0]]).bool()),
         points=SimpleNamespace(left=points_left, right=points_right, valid=torch.ones(1, 6, dtype=torch.bool)),
-        rectification=SimpleNamespace(H_left=torch.eye(3).unsqueeze(0), H_right=back))
+        rectification=SimpleNamespace(H_left=torch.eye(3).unsqueeze(0), H_right=back),
+        H_left=torch.eye(3).unsqueeze(0), H_right=back, row_aligned=torch.tensor([False]))  # F's, as the pipeline
     batch = StereoBatch.from_images(left, left, 100.0, 0.1)
     shown = {}
     monkeypatch.setattr(rectified_figure, "rectified_pair_figure",
