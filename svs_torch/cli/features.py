@@ -210,12 +210,13 @@ def run(args: argparse.Namespace) -> int:
     batch, factors = load_pair(args.left, args.right, args)
     config = command_config(args, batch.size_hw)
     reason = too_small_reason(batch.size_hw)
+    # Whether, and by which segmenter, the views were masked (the same in every JSON answer).
+    masked = {"segmented": not args.no_segment,
+              "segmenter": None if args.no_segment else config.segmentation.segmenter}
     if reason:
         if args.json:
             print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
-                                "matched_xy": [], "segmented": not args.no_segment,
-                                "segmenter": None if args.no_segment else config.segmentation.segmenter,
-                                "time_s": 0.0}))
+                                "matched_xy": [], **masked, "time_s": 0.0}))
         else:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
         return 0
@@ -237,8 +238,7 @@ def run(args: argparse.Namespace) -> int:
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
         print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
-                            "refined": config.refine_matches is not None, "segmented": not args.no_segment,
-                            "segmenter": None if args.no_segment else config.segmentation.segmenter,
+                            "refined": config.refine_matches is not None, **masked,
                             "settings": settings_json(config), "time_s": round(elapsed, 6)}))
         return 0
     print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "
