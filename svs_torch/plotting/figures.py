@@ -87,7 +87,7 @@ def depth_label_y(centroid_y: float, box_top: float, lines: int, size_hw: tuple[
     centroid lies near its top), kept inside the image. ``width_in``: the panel's width in inches at 100 dpi,
     ``size_hw`` the image's."""
     height, width = size_hw
-    points_to_px = 100 / 72 * width / (100 * width_in)  # image pixels per point on the drawn panel
+    points_to_px = width / (72 * width_in)  # image pixels per point on the drawn panel (72 points an inch)
     half = (lines * 9 * 1.25 + 2 * LABEL_PAD_POINTS) * points_to_px / 2
     y = max(centroid_y, box_top + AREA_LABEL_ROWS + half)
     return min(y, max(height - half, 0.0))
