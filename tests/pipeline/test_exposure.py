@@ -497,6 +497,19 @@ def _reference_residual_ratio(left: np.ndarray, right: np.ndarray, left_xy: np.n
     return float(lower_median(after) / lower_median(before))
 
 
+def _gain_and_two_lamps(generator: torch.Generator) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """One textured scene ``(1, 1, 50, 74)`` (smooth enough for patch means) as the left view and right views seen
+    8 px apart (a point at x in the left view is at x + 8 in the right): behind a camera 30 % darker ("gain"), lit
+    by a lamp whose light falls off across the view, 0.55 to 1.45 of the left's ("two lamps"), and as it is
+    ("same")."""
+    scene = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 52, 76, generator=generator, dtype=torch.float64), 3,
+                                           stride=1)
+    scene = 0.15 + 0.6 * (scene - scene.min()) / (scene.max() - scene.min())
+    left, seen = scene[..., 8:], scene[..., :-8]
+    falloff = torch.linspace(0.55, 1.45, seen.shape[-1], dtype=torch.float64)
+    return left, {"gain": (0.7 * seen).clamp(0, 1), "two lamps": (seen * falloff).clamp(0, 1), "same": seen}
+
+
 def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(generator):
     """``matched_residual_ratio`` (the exposure retry's test of whether a second run can help) against the numpy
     reference above. One textured scene seen 8 px apart: behind a right camera 30 % darker the quartile map makes
@@ -505,12 +518,7 @@ def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(g
     Fewer than 5 matches give NaN; a wrong shape is refused by name."""
     from svs_torch.pipeline.exposure import matched_residual_ratio
 
-    scene = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 52, 76, generator=generator, dtype=torch.float64), 3,
-                                           stride=1)  # (1, 1, 50, 74): smooth enough for patch means
-    scene = 0.15 + 0.6 * (scene - scene.min()) / (scene.max() - scene.min())
-    left, seen = scene[..., 8:], scene[..., :-8]  # a point at x in the left view is at x + 8 in the right
-    falloff = torch.linspace(0.55, 1.45, seen.shape[-1], dtype=torch.float64)
-    rights = {"gain": (0.7 * seen).clamp(0, 1), "two lamps": (seen * falloff).clamp(0, 1)}
+    left, rights = _gain_and_two_lamps(generator)
     ys, xs = torch.meshgrid(torch.arange(2, 48, 5.0), torch.arange(1, 58, 6.0), indexing="ij")
     left_xy = torch.stack([xs.flatten() + 0.3, ys.flatten() - 0.2], 1).to(torch.float64)
     right_xy = left_xy + torch.tensor([8.0, 0.0], dtype=torch.float64)
@@ -524,7 +532,7 @@ def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(g
                                    image_hw, left_xy.expand(3, -1, -1), right_xy.expand(3, -1, -1),
                                    torch.stack([valid, valid, few]), config)
     assert ratio.shape == (3,) and bool(ratio[2].isnan())
-    for i, name in enumerate(rights):
+    for i, name in enumerate(("gain", "two lamps")):
         expected = _reference_residual_ratio(left[0, 0].numpy(), rights[name][0, 0].numpy(), left_xy.numpy(),
                                              right_xy.numpy(), valid.numpy(), config.min_change)
         assert float(ratio[i]) == pytest.approx(expected, rel=1e-9, abs=1e-12)
@@ -540,12 +548,8 @@ def test_the_pairs_to_match_are_those_that_differ_and_whose_map_brings_their_mat
     (its right view not clipped more) keeps ratio 1, not the whole views' map."""
     from svs_torch.pipeline.exposure import exposures_differ, match_exposure, matched_residual_ratio, pairs_to_match
 
-    scene = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 52, 76, generator=generator, dtype=torch.float64), 3,
-                                           stride=1)
-    scene = 0.15 + 0.6 * (scene - scene.min()) / (scene.max() - scene.min())
-    left, seen = scene[..., 8:], scene[..., :-8]
-    falloff = torch.linspace(0.55, 1.45, seen.shape[-1], dtype=torch.float64)
-    rights = torch.cat([(0.7 * seen).clamp(0, 1), (seen * falloff).clamp(0, 1), (0.7 * seen).clamp(0, 1), seen])
+    left, views = _gain_and_two_lamps(generator)
+    rights = torch.cat([views["gain"], views["two lamps"], views["gain"], views["same"]])
     lefts = left.expand(4, -1, -1, -1)
     ys, xs = torch.meshgrid(torch.arange(2, 48, 5.0), torch.arange(1, 58, 6.0), indexing="ij")
     left_xy = torch.stack([xs.flatten(), ys.flatten()], 1).to(torch.float64).expand(4, -1, -1)
