@@ -5,8 +5,12 @@ The warning rule follows the paper's use case (a walker warned of obstacles 1–
 the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
 obstacle) silence. A message is not repeated more often than every ``repeat_s`` seconds unless the distance
 moved to another class. A more urgent class is taken at once; a less urgent one only when the distance is past
-the edge by ``hysteresis_m``, so a distance hovering on an edge does not flap (and no warning is delayed). Nothing here
-needs a camera: the loop feeds distances in metres and clock readings in seconds.
+the edge by ``hysteresis_m``, so a distance hovering on an edge does not flap. Each frame's distance is first
+confirmed by the frames before it: the rule takes the median of the last ``confirm_frames`` (a frame with no
+obstacle counts as farther than any), so one camera frame ranged wrong by its noise neither raises a warning nor
+drops one, at the cost of a new obstacle being warned of ``confirm_frames // 2`` frames later
+(:data:`CONFIRM_FRAMES`). Nothing here needs a camera: the loop feeds distances in metres and clock readings in
+seconds.
 """
 
 from __future__ import annotations
@@ -21,11 +25,15 @@ from typing import TextIO
 
 from ..core.checks import InputError
 
-__all__ = ["SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide", "StatusLine",
-           "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP"]
+__all__ = ["CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide",
+           "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
+
+#: The frames a distance is confirmed over (the median of the last 3): rendered walks toward a box as the board's
+#: camera frames at 20 frames/s, digits 4-8, and the shared scenes' frames held still (experiments/guide_confirm.md).
+CONFIRM_FRAMES = 3
 
 
 class WarningPolicy:
@@ -37,18 +45,24 @@ class WarningPolicy:
         repeat_s: least time between two messages of the same class, seconds.
         hysteresis_m: to move to a less urgent class a distance must pass the edge by this much, metres.
         warn_below_band: also warn (urgently) below ``near_m``; if False such distances are silent.
+        confirm_frames: the rule takes the median of the last this many frames' distances (module docstring;
+            for an even count the farther of the two middle ones); 1: each frame's own.
     """
 
     def __init__(self, near_m: float = 1.0, far_m: float = 2.0, repeat_s: float = 3.0, hysteresis_m: float = 0.1,
-                 warn_below_band: bool = True) -> None:
+                 warn_below_band: bool = True, confirm_frames: int = CONFIRM_FRAMES) -> None:
         if not 0 <= near_m < far_m:
             raise InputError(f"near_m, far_m: expected 0 <= near_m < far_m, got {near_m}, {far_m}")
         if repeat_s < 0 or hysteresis_m < 0:
             raise InputError(f"repeat_s, hysteresis_m: expected non-negative values, got {repeat_s}, {hysteresis_m}")
+        if isinstance(confirm_frames, bool) or not isinstance(confirm_frames, int) or confirm_frames < 1:
+            raise InputError(f"confirm_frames: expected a whole number of frames >= 1, got {confirm_frames!r}")
         self.near_m, self.far_m = near_m, far_m
         self.repeat_s, self.hysteresis_m = repeat_s, hysteresis_m
         self.warn_below_band = warn_below_band
         self.current = CLEAR  # class of the last distance
+        self.confirmed_m: float | None = None  # the distance the rule took last (the median), None: no obstacle
+        self._recent: collections.deque[float] = collections.deque(maxlen=confirm_frames)
         self._last_spoken_s = -math.inf
 
     def classify(self, distance_m: float | None) -> str:
@@ -59,8 +73,19 @@ class WarningPolicy:
             return STOP if self.warn_below_band else CLEAR
         return WARN
 
+    def confirm(self, distance_m: float | None) -> float | None:
+        """Add one frame's distance (metres, None = no obstacle); the median of the last ``confirm_frames``
+        (fewer at the start), None where that is no obstacle."""
+        self._recent.append(distance_m if distance_m is not None and math.isfinite(distance_m) else math.inf)
+        ordered = sorted(self._recent)
+        median = ordered[len(ordered) // 2]  # the farther middle one of an even count: a warning needs a majority
+        return median if math.isfinite(median) else None
+
     def update(self, distance_m: float | None, now_s: float) -> str | None:
-        """Take the nearest obstacle distance (metres, None = none) at ``now_s``; the message to say, or None."""
+        """Take one frame's nearest obstacle distance (metres, None = none) at ``now_s``; the message to say, or
+        None. The rule reads the confirmed distance (:meth:`confirm`, kept as ``confirmed_m``), which the message
+        speaks."""
+        distance_m = self.confirmed_m = self.confirm(distance_m)
         new = self.classify(distance_m)
         if _SEVERITY[new] < _SEVERITY[self.current] and distance_m is not None and math.isfinite(distance_m):
             # Escalate at once, relax only once the distance is past the edge by the hysteresis margin.
@@ -75,9 +100,11 @@ class WarningPolicy:
         return self.message(new, distance_m)
 
     def reset(self) -> None:
-        """Forget the last class and message (the camera was lost): the next distance in or below the band is
-        warned of at once."""
+        """Forget the last class, message and distances (the camera was lost): the next distance in or below the
+        band is warned of at once, confirmed by the frames from then on only."""
         self.current = CLEAR
+        self.confirmed_m = None
+        self._recent.clear()
         self._last_spoken_s = -math.inf
 
     @staticmethod

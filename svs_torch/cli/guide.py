@@ -18,10 +18,12 @@ Grab pairs from the SVS continuously, run the whole pipeline on the most recent 
 nearest obstacle's nearest visible surface (the 10th depth percentile of its dense disparities) is within
 the distance band (default 1-2 m, the range the system was designed for): a spoken message when espeak-ng
 is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
-seconds unless the distance class changes). A status line shows frames per second, the nearest distance
-and its side. The floor (the road) ahead, which a walker's camera sees as its nearest surface, is not an
-obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the obstacles' disparity map is
-matched with its wider noise window at once, as estimate --camera-frames does.
+seconds unless the distance class changes). Each pair's distance is confirmed by the pairs before it: the
+band is judged on the median of the last --confirm-frames, so one noisy frame ranged wrong is not said. A
+status line shows frames per second, that distance and the nearest obstacle's side. The floor (the road)
+ahead, which a walker's camera sees as its nearest surface, is not an obstacle (--floor). The frames are a
+camera's (JPEG with sensor noise), so the obstacles' disparity map is matched with its wider noise window at
+once, as estimate --camera-frames does.
 
 Silence means nothing is near, never that nothing was measured: when no pair could be ranged for --blind-s
 seconds (a covered lens, the dark), "Cannot see ahead" is said, and "Seeing ahead again" when one is. A camera
@@ -53,6 +55,14 @@ SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its 
                       "waits for a second run (the shared real pairs as digit 4 frames on a 2-core machine: slowest "
                       "about 40 -> 19 ms; digit 8: 98 -> 35 ms) but noisy frames are ranged worse (held-out digit 4 "
                       "frames: 98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
+
+#: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that
+#: module imports torch, which ``--help`` must not wait for (a test holds the two equal).
+CONFIRM_FRAMES = 3
+CONFIRM_FRAMES_HELP = ("warn on the median of the last N pairs' distances, so that one camera frame ranged wrong by "
+                       "its noise neither raises a warning nor silences one; a new obstacle is warned of N // 2 pairs "
+                       "later (about 50 ms at 20 pairs/s); 1: each pair alone (default: 3, "
+                       "experiments/guide_confirm.md)")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -87,13 +97,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
                         help="seconds before the same warning repeats (default: 3)")
+    parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
+                        help=CONFIRM_FRAMES_HELP)
     add_calibration_option(parser, "the frames")
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
     parser.add_argument("--count", type=non_negative_int, default=0,
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
-                             "--json's fields, the capture's times, and 'warning' (distance, class, words said), "
+                             "--json's fields, the capture's times, and 'warning' (the pair's distance, the confirmed "
+                             "one the class was judged on, the class, words said), "
                              "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back, or "
                              "guide cannot see or sees again; the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
@@ -130,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         import_deferred_modules()
     # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
     warm_up(ranged, size)
-    policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s)
+    policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s,
+                           confirm_frames=args.confirm_frames)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
     # is drawn again below: the spoken warnings (stdout), the speaker's own notices, Python warnings (a board in

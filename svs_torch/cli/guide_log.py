@@ -8,7 +8,8 @@ after both its images are in place), so ``svs-depth estimate --pairs DIR/index.j
 ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
 (:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index with
 ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
-(:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the distance warned on, its
+(:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the pair's own distance
+``distance_m``, the median of the last ``--confirm-frames`` pairs' that the class was judged on ``confirmed_m``, the
 class ``clear`` / ``warn`` / ``stop`` and the words said, if any), ``dropped_pairs`` (pairs that arrived while the
 previous one was ranged and were never ranged), ``latency_s`` (from the request of the left frame, when the board
 grabbed it, to the warning: its encoding and the link's transfer included). Only the pairs guide ranged are kept:

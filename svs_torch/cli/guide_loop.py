@@ -144,9 +144,11 @@ class GuideSession:
         # reaches first, not the median of an object that may recede.
         distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
         message = self.guide.update(distance, now)
+        confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         side = ObstacleSide(int(nearest.side[0])).name.lower()
-        self.status_line.show(f"{self.guide.status(distance)}  {side}")
+        self.status_line.show(f"{self.guide.status(confirmed)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
+                  "confirmed_m": None if confirmed is None else round(confirmed, 4),
                   "class": self.guide.policy.current, "message": message}
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
         self.processed += 1

@@ -11,8 +11,8 @@ import warnings
 
 import pytest
 
-from svs_torch.capture.guide import (CANNOT_SEE, CLEAR, SEEING_AGAIN, SPEECH_MISSING, STOP, WARN, FpsMeter,
-                                     LiveGuide, SightWatch, Speaker, StatusLine, WarningPolicy)
+from svs_torch.capture.guide import (CANNOT_SEE, CLEAR, CONFIRM_FRAMES, SEEING_AGAIN, SPEECH_MISSING, STOP, WARN,
+                                     FpsMeter, LiveGuide, SightWatch, Speaker, StatusLine, WarningPolicy)
 from svs_torch.core.checks import InputError
 
 
@@ -57,7 +57,8 @@ def test_warns_in_band_and_rate_limits_repeats():
 
 
 def test_class_change_speaks_at_once():
-    said = run_policy(WarningPolicy(repeat_s=10.0), [(0.0, 1.5), (0.5, 0.8), (0.6, 0.7), (1.0, 3.0), (1.2, 1.8)])
+    said = run_policy(WarningPolicy(repeat_s=10.0, confirm_frames=1),
+                      [(0.0, 1.5), (0.5, 0.8), (0.6, 0.7), (1.0, 3.0), (1.2, 1.8)])
     assert said == ["Obstacle ahead, 1.5 metres", "Stop. Obstacle at 0.8 metres", None, None,
                     "Obstacle ahead, 1.8 metres"]
 
@@ -68,13 +69,45 @@ def test_silent_beyond_band_and_without_obstacle():
 
 def test_hysteresis_stops_flapping_on_band_edge():
     samples = [(0.1 * i, 1.97 if i % 2 else 2.04) for i in range(10)]
-    policy = WarningPolicy(repeat_s=100.0, hysteresis_m=0.1)
+    policy = WarningPolicy(repeat_s=100.0, hysteresis_m=0.1, confirm_frames=1)
     said = run_policy(policy, samples)
     assert said[0] is None and said[1] == "Obstacle ahead, 2.0 metres"
     assert said[2:] == [None] * 8 and policy.current == WARN
     assert run_policy(policy, [(2.0, 2.2)]) == [None] and policy.current == CLEAR  # well past the edge
-    flappy = run_policy(WarningPolicy(repeat_s=100.0, hysteresis_m=0.0), samples)
+    flappy = run_policy(WarningPolicy(repeat_s=100.0, hysteresis_m=0.0, confirm_frames=1), samples)
     assert sum(m is not None for m in flappy) == 5
+
+
+def test_one_noisy_frame_neither_warns_nor_silences_a_warning():
+    """The default rule judges the median of the last three frames (CONFIRM_FRAMES): a single frame ranged wrong
+    (a far wall's frame ranged at 1.6 m; one frame of an obstacle in the band that found nothing) changes nothing,
+    where each frame alone speaks three times; a true obstacle is warned of on its second frame, at the median's
+    distance, and two frames in a row with no obstacle end the warning."""
+    assert CONFIRM_FRAMES == 3
+    distances = [3.9, 1.6, 3.9, 3.9, 1.5, 1.4, None, 1.3, None, None]
+    frames = [(0.05 * i, d) for i, d in enumerate(distances)]
+    policy = WarningPolicy(repeat_s=10.0)
+    said = run_policy(policy, frames)
+    assert said == [None] * 5 + ["Obstacle ahead, 1.5 metres"] + [None] * 4
+    assert policy.current == CLEAR and policy.confirmed_m is None
+    alone = run_policy(WarningPolicy(repeat_s=10.0, confirm_frames=1), frames)
+    assert alone == [None, "Obstacle ahead, 1.6 metres", None, None, "Obstacle ahead, 1.5 metres", None, None,
+                     "Obstacle ahead, 1.3 metres", None, None]
+
+
+def test_confirmed_distance_is_the_median_of_the_last_frames():
+    """An odd count takes the middle distance, an even one the farther middle one (a warning needs a majority); a
+    frame without an obstacle counts as farther than any; reset forgets the frames."""
+    policy = WarningPolicy(confirm_frames=3)
+    assert [policy.confirm(d) for d in (2.0, 1.0, 1.5, 3.0, None, None)] == [2.0, 2.0, 1.5, 1.5, 3.0, None]
+    two = WarningPolicy(confirm_frames=2)
+    assert [two.confirm(d) for d in (1.2, 1.8, float("nan"), 1.0)] == [1.2, 1.8, None, None]
+    policy.update(1.2, 0.0)
+    policy.reset()
+    assert policy.confirmed_m is None and policy.confirm(1.3) == 1.3  # the frames before the reset are gone
+    for bad in (0, -1, 2.5, True, "3"):
+        with pytest.raises(InputError, match="confirm_frames: expected a whole number of frames >= 1"):
+            WarningPolicy(confirm_frames=bad)
 
 
 def test_no_warning_below_band_when_disabled():
@@ -156,7 +189,8 @@ def test_fps_meter():
 
 def test_live_guide_with_fake_distances():
     stream = io.StringIO()
-    guide = LiveGuide(WarningPolicy(repeat_s=2.0), Speaker(None, stream=stream), FpsMeter(window_s=5.0))
+    guide = LiveGuide(WarningPolicy(repeat_s=2.0, confirm_frames=1), Speaker(None, stream=stream),
+                      FpsMeter(window_s=5.0))
     distances = [3.0, 2.5, 1.9, 1.8, 1.7, 1.2, 0.9, 0.9, None, 1.5]
     said = [guide.update(d, now_s=0.25 * i) for i, d in enumerate(distances)]
     assert said == [None, None, "Obstacle ahead, 1.9 metres", None, None, None, "Stop. Obstacle at 0.9 metres",

@@ -557,11 +557,14 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert len(lines) == 3 and ("Obstacle" in err or "obstacle" in err)  # the 1-5 m band: words, on stderr
     for line in lines:
         assert line["status"] == "OK" and line["nearest_m"] > 0 and line["objects"]
-        assert set(line["warning"]) == {"distance_m", "class", "message"}
+        assert set(line["warning"]) == {"distance_m", "confirmed_m", "class", "message"}
         assert line["warning"]["distance_m"] == pytest.approx(line["nearest_surface_m"], abs=1e-4)
         assert line["dropped_pairs"] >= 0 and line["latency_s"] >= line["time_s"] > 0
         assert (record / line["left"]).read_bytes()[:2] == b"\xff\xd8" and (record / line["right"]).is_file()
     assert any(line["warning"]["message"] for line in lines)
+    # confirmed over the last three pairs (--confirm-frames): the median of the pairs' own distances so far
+    seen = [line["warning"]["distance_m"] for line in lines]
+    assert [line["warning"]["confirmed_m"] for line in lines] == [seen[0], max(seen[:2]), sorted(seen)[1]]
     assert [json.loads(line) for line in (record / "index.jsonl").read_text().splitlines()] == lines
     replay = next(line for line in err.splitlines() if "range them again with: " in line).split("with: ")[1]
     assert replay.endswith("--floor on --camera-frames --json")
@@ -572,6 +575,19 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
         for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
                     "objects"):
             assert offline[key] == live[key], key
+
+
+def test_guide_confirm_frames_option():
+    """--confirm-frames defaults to the warning rule's own CONFIRM_FRAMES (written out in the parser, which must not
+    import torch) and takes a whole number of pairs >= 1."""
+    from svs_torch.capture.guide import CONFIRM_FRAMES
+    from svs_torch.cli import build_parser
+
+    assert build_parser().parse_args(["guide", "--emulator"]).confirm_frames == CONFIRM_FRAMES
+    assert build_parser().parse_args(["guide", "--emulator", "--confirm-frames", "1"]).confirm_frames == 1
+    for bad in ("0", "1.5"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["guide", "--emulator", "--confirm-frames", bad])
 
 
 def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys):
