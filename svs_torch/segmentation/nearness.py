@@ -83,7 +83,8 @@ GROUND_RELATIVE = 1.0
 
 @dataclass(frozen=True)
 class NearnessNetConfig:
-    """Settings of the nearness segmenter (stored beside its weights; module docstring).
+    """Settings of the nearness segmenter (stored beside its weights; module docstring). A weights file written
+    before a setting existed (the shipped one among them) takes its default.
 
     Attributes:
         working_width_px: the disparity is measured on both images reduced (area average) to this width,
@@ -103,8 +104,7 @@ class NearnessNetConfig:
             is matched again with a ``noisy_window_size`` window (a camera frame's noise: :mod:`.nearness_denoise`);
             ``noisy_window_size == window_size``: never. Chosen on the tuning sets
             (experiments/select_nearness_setting.md, third selection; experiments/real_rig.md, "A wider window for
-            noisy pairs"). A weights file written before these settings existed (the shipped one) takes these
-            defaults.
+            noisy pairs").
         sparse_median_window, sparse_share: the median's side for a pair whose block matcher accepted less than
             ``sparse_share`` of the left view: a camera frame's noise (JPEG, sensor noise, a dim scene), whose map
             is then sparse specks that a 7×7 median keeps as regions. Clean pairs accept 41 % or more
@@ -112,18 +112,19 @@ class NearnessNetConfig:
         sparse_reduction, sparse_agreement_px: such a sparse pair is also measured at ``1 / sparse_reduction`` of
             the working width; its matches within ``sparse_agreement_px`` working pixels of that coarse map are
             kept and the coarse map stands in for the rest (:mod:`.nearness_denoise`); ``sparse_reduction=1`` (the
-            default): never. A weights file written before these settings existed (the shipped one) takes these
-            defaults.
+            default): never.
         disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
         probability_threshold: a pixel is an obstacle where its probability exceeds this.
         min_near_share: where the Otsu split leaves less than this share of the view nearer than it, the split
             is taken again over the disparity clipped at its 90th percentile (:mod:`.nearness_split`); 0:
-            never. Chosen on the tuned split only (experiments/select_min_near_share.md). A weights file
-            written before this setting existed (the shipped one among them) takes this default.
+            never. Chosen on the tuned split only (experiments/select_min_near_share.md).
+        max_retaken_near_share: a split taken again that leaves more than this share of the view near is not
+            taken: it lies inside one surface's disparities (a small near object before a flat wall), and the first
+            split stands (experiments/small_near_obstacles.md); 1: always taken.
         max_fill_px: on a noisy pair (``noisy_min_residual_levels``), the row fill of step 1 fills a run of
             rejected pixels longer than this many working pixels only between two measured pixels that agree or
             in the left band; other long runs stay far (:mod:`.nearness_denoise`, "Why long runs stay unfilled").
-            None (the default): every run is filled. A weights file written before this setting existed takes it.
+            None (the default): every run is filled.
     """
 
     working_width_px: int = 320
@@ -131,9 +132,8 @@ class NearnessNetConfig:
     max_disparity_fraction: float = 0.3
     uniqueness_ratio: float = 0.2  # DenseConfig's 0.10 keeps more noise matches on camera frames
     median_window: int = 7  # with uniqueness_ratio: experiments/select_nearness_denoise.md
-    # The tuned split's camera frames at 320x240 (experiments/real_rig.py --splits tuned [--contrast 0.5]
-    # --conditions clean,jpeg --no-rival), per object over the eight digits, PianoL aside: full contrast
-    # 96.26 -> 96.72 %, half contrast 85.07 -> 91.29 % (digit 4: 81.7 -> 95.5); clean pairs unchanged.
+    # The tuned split's 320x240 camera frames (real_rig.py --splits tuned [--contrast 0.5] --conditions clean,jpeg
+    # --no-rival), per object over 8 digits, PianoL aside: 96.26 -> 96.72 %, half contrast 85.07 -> 91.29 %.
     noisy_window_size: int = 11
     noisy_min_residual_levels: float = 7.5
     sparse_median_window: int = 11
@@ -148,6 +148,7 @@ class NearnessNetConfig:
     disparity_temperature: float = 0.003
     probability_threshold: float = 0.5
     min_near_share: float = 0.1  # experiments/select_min_near_share.md
+    max_retaken_near_share: float = 0.9  # experiments/small_near_obstacles.md
     max_fill_px: int | None = None
 
     def __post_init__(self) -> None:
@@ -160,8 +161,9 @@ class NearnessNetConfig:
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
         check_denoise_settings(self)
-        if not 0 <= self.min_near_share < 1:
-            raise InputError(f"min_near_share: expected a share in [0, 1), got {self.min_near_share!r}")
+        if not 0 <= self.min_near_share < 1 or not 0 < self.max_retaken_near_share <= 1:
+            raise InputError(f"min_near_share, max_retaken_near_share: expected shares in [0, 1) and (0, 1], got "
+                             f"{self.min_near_share!r}, {self.max_retaken_near_share!r}")
         if not 0 <= self.uniqueness_ratio < 1:
             raise InputError(f"uniqueness_ratio: expected a value in [0, 1), got {self.uniqueness_ratio!r}")
         if not 0 < self.max_disparity_fraction < 1:
@@ -278,7 +280,7 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
         matched = measured if same else F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
     floor = None if ground is None else fit_ground_plane(disparity, measured, baseline_m, ground, factor,
                                                          noisy=widened, focal_px=focal_px).mask
-    split, spread, retaken = nearness_split(disparity, config.min_near_share, floor)
+    split, spread, retaken = nearness_split(disparity, config.min_near_share, floor, config.max_retaken_near_share)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
     if floor is not None:
         relative = relative.masked_fill(floor, -GROUND_RELATIVE)

@@ -4,8 +4,12 @@ The split is the Otsu threshold of the filled disparity's 256-level histogram, t
 estimate. A block matcher's wrong matches lie far above the scene, so the histogram spans the map only up to its
 99.5th percentile; where even that leaves less than ``min_near_share`` of the view near (more outliers than the
 clip holds), the split is taken again up to the 90th percentile, the top of the spread
-(``experiments/select_min_near_share.md``). Not differentiable: the split is a threshold (gradients of the
-rule's logits flow through the disparity, not the split).
+(``experiments/select_min_near_share.md``). A split taken again that leaves nearly the whole view near
+(``max_retaken_near_share``) is not taken: the near side was no outliers but a small near object before one flat
+surface, whose disparities hold the 90th percentile, so the second split cuts that surface's own noise and keeps the
+wall with the object (a 0.25 × 0.4 m box 1.25–2 m before a wall at 4.5 m, 3–6 % of the view: the wall named the
+nearest obstacle; ``experiments/small_near_obstacles.md``). Not differentiable: the split is a threshold (gradients
+of the rule's logits flow through the disparity, not the split).
 """
 
 from __future__ import annotations
@@ -22,13 +26,14 @@ from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 __all__ = ["nearness_split"]
 
 
-def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torch.Tensor | None = None
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torch.Tensor | None = None,
+                   max_retaken_near_share: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The split ``(B,)`` of filled disparity maps ``(B, 1, H, W)`` (module docstring), their 10–90 % spread
     ``(B,)`` (at least 1 px) and which pairs' split was taken again under the 90th percentile ``(B,)`` bool
-    (``min_near_share`` 0: never). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the
-    floor, :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split
-    by its extent rather than by the obstacles'); a pair that excludes every pixel keeps them all."""
+    (``min_near_share`` 0: never; a second split leaving more than ``max_retaken_near_share`` of the pixels near is
+    not taken, 1: always). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the floor,
+    :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split by its
+    extent rather than by the obstacles'); a pair that excludes every pixel keeps them all."""
     b = disparity.shape[0]
     disparity = disparity.detach()
     if exclude is not None:
@@ -42,18 +47,39 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
         q = labelled_quantile(disparity.flatten(1), kept, torch.ones_like(kept[:, :1]), (0.1, 0.9, 0.995))
         q = q.values[:, 0].T
     spread = (q[1] - q[0]).clamp_min(1.0)
+    split, retaken = _splits(disparity, exclude, q, min_near_share)
+    if max_retaken_near_share < 1 and any_true(retaken):
+        undo = retaken & (_near_share(disparity, split, exclude) > max_retaken_near_share)
+        if any_true(undo):
+            first, _ = _splits(disparity, exclude, q, 0.0)
+            split, retaken = torch.where(undo, first, split), retaken & ~undo
+    return split, spread, retaken
+
+
+def _splits(disparity: torch.Tensor, exclude: torch.Tensor | None, q: torch.Tensor, min_near_share: float
+            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Otsu split ``(B,)`` of each map under its 99.5th percentile ``q[2]``, taken again under its 90th
+    ``q[1]`` where it leaves less than ``min_near_share`` near, and which pairs' was ``(B,)`` bool."""
+    b = disparity.shape[0]
     # The compiled split: the steps below in one kernel, four reads of the map instead of a dozen passes (the same
     # values; at guide's B = 1 on a 320×240 camera frame 1.4–1.8 ms → 0.3, the percentiles above unchanged).
     fast = kernels.nearness_split(disparity.flatten(1), None if exclude is None else exclude.flatten(1), q[2], q[1],
                                   min_near_share)
     if fast is not None:
-        return fast[0], spread, fast[1]
+        return fast
     # The histogram spans the map's [min, 99.5 %]: a few wrong matches far above the rest (Tsukuba at 7×7: up to
     # 113 px where 99 % lie under 20) would otherwise squeeze the scene into a few levels and move the split
     # above nearly every pixel.
     split = _otsu_split(torch.minimum(disparity, q[2].view(b, 1, 1, 1)), exclude)
-    split, retaken = _split_leaving_near(disparity, split, q[1], min_near_share, exclude)
-    return split, spread, retaken
+    return _split_leaving_near(disparity, split, q[1], min_near_share, exclude)
+
+
+def _near_share(disparity: torch.Tensor, split: torch.Tensor, exclude: torch.Tensor | None) -> torch.Tensor:
+    """``(B,)`` the share of each map's pixels (those not in ``exclude``) above its ``split``."""
+    near = disparity > split.view(-1, 1, 1, 1)
+    if exclude is None:
+        return near.flatten(1).to(torch.float32).mean(1)
+    return (near & ~exclude).flatten(1).sum(1) / (~exclude).flatten(1).sum(1).clamp_min(1)
 
 
 def _otsu_split(disparity: torch.Tensor, exclude: torch.Tensor | None = None) -> torch.Tensor:
@@ -88,12 +114,7 @@ def _split_leaving_near(disparity: torch.Tensor, split: torch.Tensor, upper_px: 
     never = torch.zeros(b, dtype=torch.bool, device=disparity.device)
     if min_near_share <= 0:
         return split, never
-    near = disparity > split.view(b, 1, 1, 1)
-    if exclude is None:
-        share = near.flatten(1).to(torch.float32).mean(1)
-    else:
-        share = (near & ~exclude).flatten(1).sum(1) / (~exclude).flatten(1).sum(1).clamp_min(1)
-    redo = share < min_near_share
+    redo = _near_share(disparity, split, exclude) < min_near_share
     if not bool(redo.any()):
         return split, never
     clipped = _otsu_split(torch.minimum(disparity, upper_px.view(b, 1, 1, 1)), exclude)

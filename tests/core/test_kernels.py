@@ -291,10 +291,10 @@ def test_nearness_split_kernel_equals_torch(generator, monkeypatch, threads):
         floor[:, :, -12:] = True
         floor[0] = True
         for exclude in (None, floor):
-            for share in (0.0, 0.1, 0.45):
-                fast = _with_threads(threads, nearness_split, disparity, share, exclude)
+            for share, most in ((0.0, 1.0), (0.1, 1.0), (0.45, 1.0), (0.1, 0.9), (0.45, 0.3)):
+                fast = _with_threads(threads, nearness_split, disparity, share, exclude, most)
                 assert all(torch.equal(a, b) for a, b in zip(
-                    fast, _torch_path(monkeypatch, nearness_split, disparity, share, exclude)))
+                    fast, _torch_path(monkeypatch, nearness_split, disparity, share, exclude, most)))
     assert bool(nearness_split(maps[1], 0.1)[2].any())  # the taken-again path ran
     flat = maps[0].flatten(1)
     clip = flat.amax(1)
