@@ -16,10 +16,9 @@ it:
    the pair measured at half that width: :mod:`.nearness_denoise`). Width, window and keep rule were chosen on
    the train scenes only (``experiments/select_nearness_rule.md``), the uniqueness ratio and the median on them
    clean and as camera frames (``select_nearness_denoise.md``).
-2. **Rule logits**: ``gain · (d − split) / spread`` with ``split`` the Otsu split of the filled disparity up to
-   its 99.5th percentile (the truth's rule on the estimate, without the outliers a block matcher makes), taken
-   again up to its 90th percentile where it leaves under ``min_near_share`` of the view near (more outliers than
-   that clip holds), and ``spread`` its 10–90 % range (at least 1 px). With ``SegmentationConfig.ground`` (off by
+2. **Rule logits**: ``gain · (d − split) / spread``, ``split`` the Otsu split of the filled disparity up to its
+   99.5th percentile (the truth's rule, without a block matcher's outliers; taken again where too little is near:
+   :mod:`.nearness_split`), ``spread`` its 10–90 % range (≥ 1 px). With ``SegmentationConfig.ground`` (off by
    default: ``experiments/walker_floor.md``), the floor, found as a plane in the map (:mod:`.ground_plane`), is
    left out of the split and its pixels are made far: for a walker the floor is not an obstacle.
 3. **Correction** (:class:`NearnessNet`, 25.6k parameters): a three-level U-Net at ``network_width_px`` over the
@@ -87,10 +86,9 @@ class NearnessNetConfig:
     before a setting existed (the shipped one among them) takes its default.
 
     Attributes:
-        working_width_px: the disparity is measured on both images reduced (area average) to this width,
-            pixels, when they are wider: an integer factor left a 460-pixel scene at its own width, where the
-            window and the median span less of it (the native train scenes' IoU with the truth obstacles: 0.676
-            with an integer factor, 0.726 at this width; experiments/select_nearness_denoise.md).
+        working_width_px: the disparity is measured on both images reduced (area average) to this width, pixels,
+            when wider: an integer factor left a 460-pixel scene at its own width, where the window and the median
+            span less of it (native train scenes' IoU 0.676 against 0.726; experiments/select_nearness_denoise.md).
         window_size: SAD window side at that width, pixels, odd.
         max_disparity_fraction: disparities ``[0, fraction · working width)`` are searched.
         network_width_px: the network sees its features reduced to this width, pixels.
@@ -102,9 +100,8 @@ class NearnessNetConfig:
         noisy_window_size, noisy_min_residual_levels: a pair whose matching residual at ``window_size`` (the median
             winning SAD per window pixel, 8-bit levels of the clipped x-Sobel) reaches ``noisy_min_residual_levels``
             is matched again with a ``noisy_window_size`` window (a camera frame's noise: :mod:`.nearness_denoise`);
-            ``noisy_window_size == window_size``: never. Chosen on the tuning sets
-            (experiments/select_nearness_setting.md, third selection; experiments/real_rig.md, "A wider window for
-            noisy pairs").
+            ``noisy_window_size == window_size``: never. Chosen on the tuning sets (select_nearness_setting.md,
+            third selection; real_rig.md, "A wider window for noisy pairs").
         sparse_median_window, sparse_share: the median's side for a pair whose block matcher accepted less than
             ``sparse_share`` of the left view: a camera frame's noise (JPEG, sensor noise, a dim scene), whose map
             is then sparse specks that a 7×7 median keeps as regions. Clean pairs accept 41 % or more
@@ -115,12 +112,12 @@ class NearnessNetConfig:
             default): never.
         disparity_temperature: the soft-argmin's temperature (pre-filtered intensity units) of the gradient path.
         probability_threshold: a pixel is an obstacle where its probability exceeds this.
-        min_near_share: where the Otsu split leaves less than this share of the view nearer than it, the split
-            is taken again over the disparity clipped at its 90th percentile (:mod:`.nearness_split`); 0:
-            never. Chosen on the tuned split only (experiments/select_min_near_share.md).
-        max_retaken_near_share: a split taken again that leaves more than this share of the view near is not
-            taken: it lies inside one surface's disparities (a small near object before a flat wall), and the first
-            split stands (experiments/small_near_obstacles.md); 1: always taken.
+        min_near_share: where the Otsu split leaves less than this share of the view near, it is taken again under
+            the 90th percentile (:mod:`.nearness_split`); 0: never (experiments/select_min_near_share.md).
+        max_retaken_near_share, min_retaken_gap: a split taken again is not taken where it leaves more than
+            ``max_retaken_near_share`` of the view near, or where its two sides' median disparities differ by less
+            than ``min_retaken_gap`` of the near side's: it lies inside one surface's disparities (a small near object
+            before a flat wall), and the first split stands (experiments/small_near_obstacles.md); 1 and 0: taken.
         max_fill_px: on a noisy pair (``noisy_min_residual_levels``), the row fill of step 1 fills a run of
             rejected pixels longer than this many working pixels only between two measured pixels that agree or
             in the left band; other long runs stay far (:mod:`.nearness_denoise`, "Why long runs stay unfilled").
@@ -149,6 +146,7 @@ class NearnessNetConfig:
     probability_threshold: float = 0.5
     min_near_share: float = 0.1  # experiments/select_min_near_share.md
     max_retaken_near_share: float = 0.9  # experiments/small_near_obstacles.md
+    min_retaken_gap: float = 0.1
     max_fill_px: int | None = None
 
     def __post_init__(self) -> None:
@@ -161,9 +159,10 @@ class NearnessNetConfig:
             if not isinstance(value, int) or value < 1 or value % 2 == 0:
                 raise InputError(f"{name}: expected an odd positive int, got {value!r}")
         check_denoise_settings(self)
-        if not 0 <= self.min_near_share < 1 or not 0 < self.max_retaken_near_share <= 1:
-            raise InputError(f"min_near_share, max_retaken_near_share: expected shares in [0, 1) and (0, 1], got "
-                             f"{self.min_near_share!r}, {self.max_retaken_near_share!r}")
+        shares = (self.min_near_share, self.max_retaken_near_share, self.min_retaken_gap)
+        if not (0 <= shares[0] < 1 and 0 < shares[1] <= 1 and 0 <= shares[2] < 1):
+            raise InputError(f"min_near_share, max_retaken_near_share, min_retaken_gap: expected shares in [0, 1), "
+                             f"(0, 1] and [0, 1), got {shares}")
         if not 0 <= self.uniqueness_ratio < 1:
             raise InputError(f"uniqueness_ratio: expected a value in [0, 1), got {self.uniqueness_ratio!r}")
         if not 0 < self.max_disparity_fraction < 1:
@@ -280,7 +279,8 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
         matched = measured if same else F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
     floor = None if ground is None else fit_ground_plane(disparity, measured, baseline_m, ground, factor,
                                                          noisy=widened, focal_px=focal_px).mask
-    split, spread, retaken = nearness_split(disparity, config.min_near_share, floor, config.max_retaken_near_share)
+    split, spread, retaken = nearness_split(disparity, config.min_near_share, floor, config.max_retaken_near_share,
+                                            config.min_retaken_gap)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
     if floor is not None:
         relative = relative.masked_fill(floor, -GROUND_RELATIVE)

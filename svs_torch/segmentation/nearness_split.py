@@ -4,12 +4,14 @@ The split is the Otsu threshold of the filled disparity's 256-level histogram, t
 estimate. A block matcher's wrong matches lie far above the scene, so the histogram spans the map only up to its
 99.5th percentile; where even that leaves less than ``min_near_share`` of the view near (more outliers than the
 clip holds), the split is taken again up to the 90th percentile, the top of the spread
-(``experiments/select_min_near_share.md``). A split taken again that leaves nearly the whole view near
-(``max_retaken_near_share``) is not taken: the near side was no outliers but a small near object before one flat
-surface, whose disparities hold the 90th percentile, so the second split cuts that surface's own noise and keeps the
-wall with the object (a 0.25 × 0.4 m box 1.25–2 m before a wall at 4.5 m, 3–6 % of the view: the wall named the
-nearest obstacle; ``experiments/small_near_obstacles.md``). Not differentiable: the split is a threshold (gradients
-of the rule's logits flow through the disparity, not the split).
+(``experiments/select_min_near_share.md``). A split taken again that lies inside one surface's disparities is not
+taken, and the first split stands: the near side was no outliers but a small near object before a flat wall, whose
+disparities hold the 90th percentile, so the second split falls below the whole wall (a clean pair: nearly the
+whole view left near, ``max_retaken_near_share``) or cuts its noise in two (a camera frame: both sides' median
+disparities within ``min_retaken_gap`` of each other, where the tuning suite's 598 second splits part sides
+17–80 % apart). Either way the wall was kept with the object and named the nearest obstacle (a 0.25 × 0.4 m box
+1.25–2 m before a wall at 4.5 m, 3–6 % of the view; ``experiments/small_near_obstacles.md``). Not differentiable:
+the split is a threshold (gradients of the rule's logits flow through the disparity, not the split).
 """
 
 from __future__ import annotations
@@ -27,11 +29,13 @@ __all__ = ["nearness_split"]
 
 
 def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torch.Tensor | None = None,
-                   max_retaken_near_share: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   max_retaken_near_share: float = 1.0, min_retaken_gap: float = 0.0
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The split ``(B,)`` of filled disparity maps ``(B, 1, H, W)`` (module docstring), their 10–90 % spread
     ``(B,)`` (at least 1 px) and which pairs' split was taken again under the 90th percentile ``(B,)`` bool
-    (``min_near_share`` 0: never; a second split leaving more than ``max_retaken_near_share`` of the pixels near is
-    not taken, 1: always). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the floor,
+    (``min_near_share`` 0: never; a second split leaving more than ``max_retaken_near_share`` of the pixels near,
+    or whose sides' median disparities differ by less than ``min_retaken_gap`` of the near side's, is not taken;
+    1 and 0: always). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the floor,
     :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split by its
     extent rather than by the obstacles'); a pair that excludes every pixel keeps them all."""
     b = disparity.shape[0]
@@ -48,12 +52,29 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
         q = q.values[:, 0].T
     spread = (q[1] - q[0]).clamp_min(1.0)
     split, retaken = _splits(disparity, exclude, q, min_near_share)
-    if max_retaken_near_share < 1 and any_true(retaken):
-        undo = retaken & (_near_share(disparity, split, exclude) > max_retaken_near_share)
+    if (max_retaken_near_share < 1 or min_retaken_gap > 0) and any_true(retaken):
+        undo = retaken & ((_near_share(disparity, split, exclude) > max_retaken_near_share)
+                          | (_sides_gap(disparity, split, exclude, retaken) < min_retaken_gap))
         if any_true(undo):
             first, _ = _splits(disparity, exclude, q, 0.0)
             split, retaken = torch.where(undo, first, split), retaken & ~undo
     return split, spread, retaken
+
+
+def _sides_gap(disparity: torch.Tensor, split: torch.Tensor, exclude: torch.Tensor | None, pairs: torch.Tensor
+               ) -> torch.Tensor:
+    """``(B,)`` for the maps ``pairs`` ``(B,)`` bool: the difference of the median disparities above and at or below
+    ``split`` over the one above (of the pixels not in ``exclude``; 1 where a side is empty); ``inf`` elsewhere."""
+    b = disparity.shape[0]
+    side = torch.where(disparity > split.view(b, 1, 1, 1), 1, 2)
+    if exclude is not None:
+        side = side.masked_fill(exclude, 0)
+    side = side.masked_fill(~pairs.view(b, 1, 1, 1), 0).flatten(1)  # the other pairs take no median
+    slots = torch.tensor([[1, 2]], device=disparity.device).expand(b, 2)
+    medians = labelled_quantile(disparity.flatten(1), side, slots, (0.5,))
+    near, far = medians.values[:, 0, 0], medians.values[:, 1, 0]
+    gap = torch.where(medians.valid.all(1), (near - far) / near.clamp_min(1e-6), 1.0)
+    return torch.where(pairs, gap, math.inf)
 
 
 def _splits(disparity: torch.Tensor, exclude: torch.Tensor | None, q: torch.Tensor, min_near_share: float

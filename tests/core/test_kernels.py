@@ -291,10 +291,11 @@ def test_nearness_split_kernel_equals_torch(generator, monkeypatch, threads):
         floor[:, :, -12:] = True
         floor[0] = True
         for exclude in (None, floor):
-            for share, most in ((0.0, 1.0), (0.1, 1.0), (0.45, 1.0), (0.1, 0.9), (0.45, 0.3)):
-                fast = _with_threads(threads, nearness_split, disparity, share, exclude, most)
+            for share, most, gap in ((0.0, 1.0, 0.0), (0.1, 1.0, 0.0), (0.45, 1.0, 0.0), (0.1, 0.9, 0.1),
+                                     (0.45, 0.3, 0.5)):
+                fast = _with_threads(threads, nearness_split, disparity, share, exclude, most, gap)
                 assert all(torch.equal(a, b) for a, b in zip(
-                    fast, _torch_path(monkeypatch, nearness_split, disparity, share, exclude, most)))
+                    fast, _torch_path(monkeypatch, nearness_split, disparity, share, exclude, most, gap)))
     assert bool(nearness_split(maps[1], 0.1)[2].any())  # the taken-again path ran
     flat = maps[0].flatten(1)
     clip = flat.amax(1)
