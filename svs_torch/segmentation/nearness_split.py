@@ -8,8 +8,8 @@ clip holds), the split is taken again up to the 90th percentile, the top of the 
 taken, and the first split stands: the near side was no outliers but a small near object before a flat wall, whose
 disparities hold the 90th percentile, so the second split falls below the whole wall (a clean pair: nearly the
 whole view left near, ``max_retaken_near_share``) or cuts its noise in two (a camera frame: both sides' median
-disparities within ``min_retaken_gap`` of each other, where the tuning suite's 598 second splits part sides
-17–80 % apart). Either way the wall was kept with the object and named the nearest obstacle (a 0.25 × 0.4 m box
+disparities within ``min_retaken_gap`` of each other, where the tuning suite's 598 second splits part their sides
+by 17 % or more). Either way the wall was kept with the object and named the nearest obstacle (a 0.25 × 0.4 m box
 1.25–2 m before a wall at 4.5 m, 3–6 % of the view; ``experiments/small_near_obstacles.md``). Not differentiable:
 the split is a threshold (gradients of the rule's logits flow through the disparity, not the split).
 """
