@@ -19,7 +19,7 @@ own rule (:class:`svs_torch.capture.guide.WarningPolicy`) for each N, at 20 pair
   every further message (the class left and entered again: chatter) and every pair judged clear after it (a
   warning silenced) is scored. The tuned split chooses; the held-out split is reported.
 
-Run: ``python experiments/guide_confirm.py --markdown experiments/guide_confirm.md`` (about 6 minutes on 2 cores).
+Run: ``python experiments/guide_confirm.py --markdown experiments/guide_confirm.md`` (about 3.5 minutes on 2 cores).
 """
 
 from __future__ import annotations
