@@ -104,7 +104,7 @@ from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, 
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.types import StereoBatch
 from svs_torch.core.camera import SVS_CAMERA
-from svs_torch.data.synthetic import random_obstacle_scenes, render_obstacle_scenes
+from svs_torch.data.synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -337,28 +337,32 @@ def _single_pairs(batch: StereoBatch) -> list[StereoBatch]:
     return [batch.select([i]) for i in range(batch.batch_size)]
 
 
-def _rendered_pairs(count: int, seed: int, **render) -> list[StereoBatch]:
-    """``count`` seeded scenes of two boxes (:func:`random_obstacle_scenes` with ``render``), one single-pair batch
-    each."""
-    return _single_pairs(random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed),
-                                                **render).batch)
+def rendered_scenes(name: str) -> SyntheticScenes:
+    """The rendered split ``name`` (``"synthetic"``, ``"wall"`` or ``"plain"``; module docstring) with its exact
+    truth: seeded scenes of two boxes (:func:`random_obstacle_scenes`), the same pairs every call."""
+    count, seed, render = {
+        "synthetic": (SYNTHETIC_SCENES, SYNTHETIC_SEED, {"texture_contrast": SYNTHETIC_TEXTURE_CONTRAST}),
+        "wall": (WALL_SCENES, WALL_SEED, {"background_depth_m": WALL_DEPTH_M,
+                                          "wall_texture_contrast": WALL_TEXTURE_CONTRAST}),
+        "plain": (PLAIN_SCENES, PLAIN_SEED, {"background_depth_m": PLAIN_WALL_DEPTH_M,
+                                             "texture_contrast": PLAIN_TEXTURE_CONTRAST, "wall_texture_contrast": 1.0}),
+    }[name]
+    return random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed), **render)
 
 
 def synthetic_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic`` pairs (module docstring), one single-pair batch each."""
-    return _rendered_pairs(SYNTHETIC_SCENES, SYNTHETIC_SEED, texture_contrast=SYNTHETIC_TEXTURE_CONTRAST)
+    return _single_pairs(rendered_scenes("synthetic").batch)
 
 
 def wall_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic-wall`` pairs (module docstring), one single-pair batch each."""
-    return _rendered_pairs(WALL_SCENES, WALL_SEED, background_depth_m=WALL_DEPTH_M,
-                           wall_texture_contrast=WALL_TEXTURE_CONTRAST)
+    return _single_pairs(rendered_scenes("wall").batch)
 
 
 def plain_scenes() -> list[StereoBatch]:
     """The ``--splits synthetic-plain`` pairs (module docstring), one single-pair batch each."""
-    return _rendered_pairs(PLAIN_SCENES, PLAIN_SEED, background_depth_m=PLAIN_WALL_DEPTH_M,
-                           texture_contrast=PLAIN_TEXTURE_CONTRAST, wall_texture_contrast=1.0)
+    return _single_pairs(rendered_scenes("plain").batch)
 
 
 def border_scenes() -> list[StereoBatch]:

@@ -37,7 +37,8 @@ from pathlib import Path
 import torch
 
 from svs_torch.data import camera_frame_pairs
-from svs_torch.data.synthetic import random_obstacle_scenes, render_obstacle_scenes
+from svs_torch.data.synthetic import render_obstacle_scenes
+from svs_torch.evaluation import accuracy_pct
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.network_files import load_obstacle_net
 
@@ -65,18 +66,10 @@ def small_scenes():
 
 
 def scene_sets() -> dict:
-    """The rendered sets, each a ``SyntheticScenes`` batch (real_rig.py's seeds and settings)."""
-    def rendered(count: int, seed: int, **render):
-        return random_obstacle_scenes(count, 2, generator=torch.Generator().manual_seed(seed), **render)
-
-    return {"small": small_scenes(),
-            "plain": rendered(real_rig.PLAIN_SCENES, real_rig.PLAIN_SEED,
-                              background_depth_m=real_rig.PLAIN_WALL_DEPTH_M,
-                              texture_contrast=real_rig.PLAIN_TEXTURE_CONTRAST, wall_texture_contrast=1.0),
-            "wall": rendered(real_rig.WALL_SCENES, real_rig.WALL_SEED, background_depth_m=real_rig.WALL_DEPTH_M,
-                             wall_texture_contrast=real_rig.WALL_TEXTURE_CONTRAST),
-            "synthetic": rendered(real_rig.SYNTHETIC_SCENES, real_rig.SYNTHETIC_SEED,
-                                  texture_contrast=real_rig.SYNTHETIC_TEXTURE_CONTRAST)}
+    """The rendered sets, each a ``SyntheticScenes`` batch: ``small``, and real_rig.py's own ``plain``, ``wall``
+    and ``synthetic``."""
+    return {"small": small_scenes(), **{name: real_rig.rendered_scenes(name) for name in ("plain", "wall",
+                                                                                          "synthetic")}}
 
 
 def nearest_accuracy(scenes, config: PipelineConfig, digit: int | None) -> float:
@@ -90,10 +83,8 @@ def nearest_accuracy(scenes, config: PipelineConfig, digit: int | None) -> float
             scenes.batch, digit, dict(real_rig.JPEG_NOISE)[digit], torch.Generator().manual_seed(100 * digit + draw))
         with torch.inference_mode():
             nearest = estimate_obstacle_depth(batch, config).depth.nearest
-        for i in range(batch.batch_size):
-            real = float(truth[i])
-            ranged = bool(nearest.valid[i])
-            scores.append(max(0.0, 100 * (1 - abs(float(nearest.depth_m[i]) - real) / real)) if ranged else 0.0)
+        scores += [accuracy_pct(float(truth[i]), float(nearest.depth_m[i]) if bool(nearest.valid[i]) else None)
+                   for i in range(batch.batch_size)]
     return statistics.fmean(scores)
 
 
