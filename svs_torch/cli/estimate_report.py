@@ -189,18 +189,12 @@ _EXPORTS: dict[tuple, object] = {}
 
 def _write_disparity(args: argparse.Namespace, batch, result, time_s: float) -> None:
     """Write the run's dense maps into ``--disparity-out`` (a pair that would overwrite another of this
-    process's is skipped with a warning naming both)."""
+    process's is skipped with a warning naming both: :meth:`~svs_torch.evaluation.export.DisparityExport.write`)."""
     if not args.disparity_out:
         return
-    import warnings
-
-    from ..core.errors import InputError
     from ..evaluation.export import DisparityExport
 
     key = (args.disparity_out, args.disparity_format, args.method_name)
     export = _EXPORTS.setdefault(key, DisparityExport(Path(args.disparity_out), args.disparity_format,
                                                       args.method_name))
-    try:
-        export.write(batch, result, time_s)
-    except InputError as error:
-        warnings.warn(str(error), RuntimeWarning, stacklevel=2)
+    export.write(batch, result, time_s)

@@ -35,7 +35,9 @@ scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGH
 [DOFFS_PX]' or a scene folder per line) or svs-depth capture's index.jsonl. Every pair keeps its own
 calibration; a scene without a measured one is scored with a nominal one for truth and estimate alike (its
 metres nominal): it is marked NOMINAL in the calib column and its accuracy reported apart from the headline
-means. Every row names its calibration and source ("calibration" in the JSON; a list after the table).
+means. A listed pair without ground truth is ranged in the metres estimate gives it (the SVS model, or
+--focal-px / --baseline-m, either alone). A KITTI training folder stands for each of its frames. Every row names
+its calibration and source ("calibration" in the JSON; a list after the table).
 
 Configuration: --preset default|paper, or --config FILE.toml, then any --set KEY=VALUE with a dotted field of
 the pipeline configuration: segmentation.kernel_size, segmentation.num_keep, surf.metric_threshold,
@@ -100,8 +102,12 @@ def format_row(e) -> str:
 
 def _calibration_mark(e) -> str:
     """The table's calib column: ``own`` (the data's or the user's calibration), ``NOMINAL`` (none shipped:
-    scored with a nominal one, apart from the headline means) or ``-`` (not loaded)."""
-    return "-" if e.calibrated is None else "own" if e.calibrated else "NOMINAL"
+    scored with a nominal one, apart from the headline means), ``model`` (the SVS model assumed, for some or all
+    of it, as ``estimate`` ranges such a pair) or ``-`` (not loaded)."""
+    if e.calibrated is None:
+        return "-"
+    nominal = e.calibration is not None and e.calibration["source"].startswith("nominal")
+    return "own" if e.calibrated else "NOMINAL" if nominal else "model"
 
 
 def format_calibrations(evaluations) -> list[str]:

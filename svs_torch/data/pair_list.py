@@ -83,7 +83,7 @@ class PairSource:
             return self.left[:60]
         if self.scene and _kind(path) == "file":  # a KITTI left image: data set / frame
             return f"{path.parent.parent.name}/{path.stem}"
-        return f"{path.parent.name}/{path.name}"
+        return f"{path.resolve().parent.name}/{path.name}"  # "L.png" listed alone: its folder's name, not "/L.png"
 
     @property
     def calibration(self) -> dict | None:
@@ -120,7 +120,7 @@ def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | t
 def _scenes_in(folder: Path) -> list[PairSource]:
     """The scenes a folder stands for: itself, its scene sub-folders, or the shared data folder's pairs."""
     if detect_stereo_layout(folder):
-        return [PairSource(left=str(folder), scene=True)]
+        return _scene_sources(folder)
     shared = list_shared_pairs(folder)  # the shared data folder: its data sets' own layout
     if shared:
         return [PairSource(left=str(path), scene=True) for path in shared]
@@ -128,7 +128,17 @@ def _scenes_in(folder: Path) -> list[PairSource]:
         children = sorted(child for child in folder.iterdir() if child.is_dir())
     except OSError:  # a folder that cannot be listed holds no scene we can read
         return []
-    return [PairSource(left=str(child), scene=True) for child in children if detect_stereo_layout(child)]
+    return [source for child in children if detect_stereo_layout(child) for source in _scene_sources(child)]
+
+
+def _scene_sources(folder: Path) -> list[PairSource]:
+    """A scene folder's pairs: itself, or each frame of a KITTI training folder (its left images), as the shared
+    data folder lists them: ``load_stereo_pair`` on the folder alone reads only frame 000000_10."""
+    if detect_stereo_layout(folder) == "kitti":
+        lefts = [path for name in _KITTI_LEFT_FOLDERS for path in sorted((folder / name).glob("*.png"))]
+        if lefts:
+            return [PairSource(left=str(path), scene=True) for path in lefts]
+    return [PairSource(left=str(folder), scene=True)]
 
 
 def _kind(path: Path) -> str:

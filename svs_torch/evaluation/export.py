@@ -27,6 +27,7 @@ agree with the JSON within its 0.1 mm rounding (tests/evaluation/test_disparity_
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
@@ -86,7 +87,7 @@ class DisparityExport:
     directory: Path
     format: str = "middlebury"
     method: str = "SVSTorch"
-    # Export name -> the pair written under it in this process, so a second pair of that name is refused.
+    # Export name -> the pair written under it in this process, so a second pair of that name is not written (warned).
     _claimed: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -111,17 +112,19 @@ class DisparityExport:
     def write(self, batch: StereoBatch, result: PipelineResult, time_s: float) -> list[Path]:
         """Write every pair of a pipeline run (each with ``time_s`` seconds); returns the map files.
 
-        Raises:
-            InputError: a pair whose :func:`export_name` another pair of this process was written under
-                (``eval3/Teddy`` and ``2003/Teddy``): never overwritten in silence; export them separately.
+        A pair whose :func:`export_name` another pair of this process was written under (``eval3/Teddy`` and
+        ``2003/Teddy``, ``kitti2012/000000_10`` and ``kitti2015/000000_10``) is not written, with a
+        ``RuntimeWarning`` naming both: a map is never overwritten in silence, and the pair's own results (its
+        scores in ``eval``) stand. Export such pairs in separate runs.
         """
         written = []
         for index in range(batch.batch_size):
             name = batch.names[index] if batch.names else str(index)
             key = export_name(name)
             if self._claimed.setdefault(key, name) != name:
-                raise InputError(f"--disparity-out: {name!r} would overwrite {self._claimed[key]!r}, written as "
-                                 f"{key!r}; export them in separate runs")
+                warnings.warn(f"--disparity-out: {name!r} not written: it would overwrite {self._claimed[key]!r}, "
+                              f"written as {key!r}; export them in separate runs", RuntimeWarning, stacklevel=2)
+                continue
             disparity, valid = left_view_disparity(batch, result, index)
             target, timing = self.paths(name)
             if self.format == "kitti":

@@ -91,9 +91,15 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
             return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
     calibrated = bool(batch.calibrated[0])
     origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
-    batch = with_nominal_calibration(batch)
-    if not calibrated:  # the metres (truth and estimate alike) use the nominal values: say so, and why
+    given = not source.scene and (setup.focal_px is not None or setup.baseline_m is not None)
+    if not calibrated and batch.disparity_px is not None and not given:
+        # The truth needs some f·B to have a depth (Eq. (9) does not depend on which): say so, and why.
+        batch = with_nominal_calibration(batch)
         origin = "nominal, for scoring only: no calibration shipped or given"
+    elif not calibrated and batch.disparity_px is not None:
+        # A lone --focal-px or --baseline-m is the user's, the SVS model the rest: as `estimate` ranges the pair.
+        batch = dataclasses.replace(batch, calibrated=torch.ones_like(batch.calibrated))
+    # A pair without truth keeps its loader's values (the SVS model where none was given): `estimate`'s metres.
     calibration = dict(calibration_record(batch, 0, origin), measured=calibrated)
     native_width = batch.size_hw[1]
     if setup.size_wh is not None:

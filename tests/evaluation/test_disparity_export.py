@@ -95,8 +95,12 @@ def test_written_maps_equal_the_dense_map(data_dir, tmp_path):
     assert np.array_equal(png_valid, valid) and np.abs(png[valid] - dense[valid]).max() <= 1 / 512
     export = DisparityExport(tmp_path / "m")
     export.write(batch, result, 0.25)
-    with pytest.raises(InputError, match="would overwrite"):  # another pair of the same name in this export
-        export.write(dataclasses.replace(batch, names=("2003/Teddy",)), result, 0.25)
+    pfm_file = tmp_path / "m" / "Teddy" / "disp0SVSTorch.pfm"
+    before = pfm_file.read_bytes()
+    other = dataclasses.replace(batch, names=("2003/Teddy",))
+    with pytest.warns(RuntimeWarning, match="'2003/Teddy' not written: it would overwrite 'eval3/Teddy'"):
+        assert export.write(other, result, 0.25) == []  # another pair of the same name in this export: skipped
+    assert pfm_file.read_bytes() == before
 
 
 def _fill_rows(d: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
