@@ -121,7 +121,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "once, without the gate that measures the noise first; a ninth less time a frame, the "
                              "same results at the board's digits 3-8 (experiments/camera_frames_gate.md). guide "
                              "always does this")
-    parser.add_argument("--canny", action="store_true", help="segment with Canny edges (the paper's comparison)")
+    parser.add_argument("--canny", action="store_true",
+                        help="segment with Canny edges (the paper's comparison row; with --segmenter otsu or "
+                             "--preset paper)")
     add_feature_options(parser)
     parser.add_argument("--range", choices=("dense", "paper"), dest="range_rule",
                         help="how to range the obstacles: 'dense' (default) the median of dense disparity over "

@@ -275,9 +275,11 @@ def pipeline_config_from_args(args: argparse.Namespace):
     from dataclasses import replace
 
     from .features import preset_config
+    from .segment import check_segmenter_options
 
     config = replace(preset_config(args), seed=args.seed)
     if args.canny:
+        check_segmenter_options(config.segmentation.segmenter, canny=True)
         config = replace(config, segmentation=replace(config.segmentation, method="canny"))
     if args.range_rule:
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))

@@ -76,7 +76,8 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
                         help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
     parser.add_argument("--dark-objects", action="store_true",
-                        help="obstacles are darker than the background: keep pixels at or below the threshold")
+                        help="obstacles are darker than the background: keep pixels at or below the threshold "
+                             "(the Otsu segmenter's threshold, as the paper's preset runs it)")
 
 
 def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
@@ -114,8 +115,8 @@ def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
     """``--segmenter``, for the commands that run the whole pipeline."""
     parser.add_argument("--segmenter", type=segmenter_choice, metavar="nearness|otsu|learned[:PATH]",
                         help="how obstacles are found: 'nearness' (the pipeline's default: the near side of "
-                             "the pair's measured disparity, corrected by a small network, the nearest region "
-                             "always kept), 'otsu' (the paper's: the brightest large regions), "
+                             "the pair's measured disparity, the nearest region always kept), 'otsu' (the "
+                             "paper's: the brightest large regions), "
                              "'learned' (the older network of issue 13), or 'nearness:PATH' / 'learned:PATH' "
                              "(weights written by experiments/train_nearness.py / train_segmentation.py)")
 
@@ -140,7 +141,30 @@ def config_from_args(args: argparse.Namespace, base=None):
             config = replace(config, min_area_fraction=args.min_area_fraction)
         if getattr(args, "near_min_area_fraction", None) is not None:
             config = replace(config, near_min_area_fraction=args.near_min_area_fraction)
-        return with_floor(config, getattr(args, "floor", None))
+        config = with_floor(config, getattr(args, "floor", None))
+    check_segmenter_options(config.segmenter, dark_objects=args.dark_objects, floor=getattr(args, "floor", None),
+                            segmenter_option=hasattr(args, "segmenter"))
+    return config
+
+
+def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: str | None = None,
+                            canny: bool = False, segmenter_option: bool = True) -> None:
+    """Reject an option that the chosen ``segmenter`` would silently ignore: ``--dark-objects`` and ``--canny``
+    change the brightness threshold, which only the Otsu segmenter has; ``--floor on`` leaves out a plane found
+    in the measured disparity, which only the nearness segmenter measures. ``segmenter_option``: the command
+    takes ``--segmenter`` (the message then names it)."""
+    from ..core.errors import InputError
+
+    kind = segmenter.partition(":")[0]
+    fix = "add --segmenter otsu (or --preset paper)" if segmenter_option else "add --preset paper"
+    for option, given in (("--dark-objects", dark_objects), ("--canny", canny)):
+        if given and kind != "otsu":
+            raise InputError(f"{option}: only the Otsu segmenter thresholds brightness, and this run segments with "
+                             f"{segmenter!r}; {fix}")
+    if floor == "on" and kind != "nearness":
+        raise InputError(f"--floor: 'on' leaves out the floor the nearness segmenter finds in the measured "
+                         f"disparity, and this run segments with {segmenter!r}; drop --floor or use --segmenter "
+                         f"nearness")
 
 
 def image_report(seg, index: int) -> dict:

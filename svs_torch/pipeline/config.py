@@ -48,9 +48,10 @@ class PipelineConfig:
 
     Attributes:
         segmentation: by default the nearness segmenter (:mod:`svs_torch.segmentation.nearness`: the near side
-            of the pair's measured disparity, corrected by a small network; the nearest region first, then the
-            largest). ``paper()``: Sec. 3.2 (Otsu, 5×5 opening, the two largest regions); ``method="canny"`` for
-            the paper's comparison row; ``segmenter="learned"`` for the network of issue 13.
+            of the pair's measured disparity; its shipped correction network adds nothing and is skipped; the
+            nearest region first, then the largest). ``paper()``: Sec. 3.2 (Otsu, 5×5 opening, the two largest
+            regions); ``method="canny"`` for the paper's comparison row; ``segmenter="learned"`` for the network
+            of issue 13.
         surf: Sec. 3.3 (1), MATLAB ``detectSURFFeatures`` defaults except ``metric_threshold`` 100 (1000 in
             ``paper()``): more keypoints on small frames, and the refinement's correlation gate removes the
             weak ones that do not hold.

@@ -65,7 +65,7 @@ from .nearness_regions import (_area_measured_in_view, _region_median_disparity,
                                shift_regions_to_right)
 from .nearness_split import nearness_split
 from .network import ThreeLevelUNet
-from .segment import SegmentationConfig, _status, keep_regions, segment_stereo
+from .segment import SegmentationConfig, _status, keep_regions, segment_stereo, without_kept_regions
 from .threshold import gray_levels_and_histogram
 
 __all__ = [
@@ -360,8 +360,7 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
 def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet, left_logits: torch.Tensor,
                       measured: NearnessDisparity) -> StereoSegmentation:
     """:func:`segment_stereo_nearness` from the left views' logits and measured disparity."""
-    b = batch.batch_size
-    image = batch.left
+    b, image = batch.batch_size, batch.left
     threshold_value = net.config.probability_threshold
     binary = left_logits.detach() > math.log(threshold_value / (1 - threshold_value))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
@@ -378,6 +377,7 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
                                           nearness=region_disparity, candidate_area_px=candidate_area_px)
     # A view of one gray level holds no disparity: the pair has no information (the Otsu stage's UNIFORM_IMAGE).
     uniform = (gray_levels_and_histogram(torch.cat([image, batch.right]))[1] > 0).sum(1).view(2, b).eq(1).any(0)
+    kept_labels, kept_mask = without_kept_regions(uniform, kept_labels, kept_mask)
     threshold = torch.full((b,), threshold_value, dtype=image.dtype, device=image.device)
     level = (threshold * 255).round().long()
     status = _status(uniform, opened)

@@ -264,6 +264,15 @@ def kept_regions_mask(labels: torch.Tensor, kept_labels: torch.Tensor, num_slots
     return torch.gather(table, 1, labels.flatten(1)).view_as(labels)
 
 
+def without_kept_regions(drop: torch.Tensor, kept_labels: torch.Tensor, kept_mask: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``kept_labels`` ``(B, N)`` and ``kept_mask`` ``(B, 1, H, W)`` with nothing kept in the images ``drop``
+    ``(B,)``: a one-level image (``UNIFORM_IMAGE``) is wholly foreground, as Otsu leaves it, but holds no
+    obstacle to report."""
+    return (torch.where(drop.view(-1, 1), torch.full_like(kept_labels, -1), kept_labels),
+            kept_mask & ~drop.view(-1, 1, 1, 1))
+
+
 def _status(levels_uniform: torch.Tensor, opened: torch.Tensor) -> torch.Tensor:
     """Per-image :class:`SegmentationStatus` from a uniform-image flag ``(B,)`` and the opened mask."""
     any_fg = any_along(opened.flatten(1), dim=1)
@@ -302,6 +311,7 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
     labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     uniform = (histogram > 0).sum(dim=1) == 1  # one gray level: Otsu has no split
+    kept_labels, kept_mask = without_kept_regions(uniform, kept_labels, kept_mask)
     return Segmentation(
         threshold=threshold,
         threshold_level=level,

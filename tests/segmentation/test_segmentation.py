@@ -101,8 +101,10 @@ def test_blank_saturated_and_textureless_pairs_get_a_status_not_an_exception():
                                         SegmentationStatus.UNIFORM_IMAGE, SegmentationStatus.OK]
     assert seg.status.tolist()[1:] == [SegmentationStatus.UNIFORM_IMAGE] * 3
     assert not seg.left.kept_mask[1].any()  # black: empty mask (OpenCV: nothing above level 0)
-    assert seg.left.kept_mask[2].all()  # white: one full region (OpenCV: everything above level 0)
-    assert seg.right.kept_mask[3].all()
+    # White: one full region (OpenCV: everything above level 0), but a one-level view holds no obstacle to keep.
+    assert seg.left.opened[2].all() and seg.right.opened[3].all()
+    assert not seg.left.kept_mask[2].any() and not seg.right.kept_mask[3].any()
+    assert seg.left.kept_labels[2].tolist() == seg.right.kept_labels[3].tolist() == [-1, -1]
     assert int(seg.left.num_regions[1]) == 0 and seg.left.kept_labels[1].tolist() == [-1, -1]
 
 
