@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from ..core.files import display_path, path_kind, write_bytes_atomic
+from ..core.files import check_writable_folder, display_path, path_kind, write_bytes_atomic
 from .common import positive_float, positive_int
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -112,6 +112,8 @@ def new_pairs_folder(value: str, option: str) -> Path:
         raise InputError(f"{option}: expected a folder, got a {kind}: {display_path(out)}")
     if kind == "folder" and path_kind(out / INDEX_NAME, option) != "missing":
         raise InputError(f"{option}: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
+    # The folder, or the nearest existing one it will be made in, must take files before the camera opens.
+    check_writable_folder(out if kind == "folder" else next(p for p in out.absolute().parents if p.is_dir()), option)
     return out
 
 

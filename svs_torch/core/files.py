@@ -19,8 +19,8 @@ from typing import IO
 
 from .errors import InputError
 
-__all__ = ["atomic_output", "check_output_file", "display_path", "make_output_folder", "path_kind",
-           "write_bytes_atomic"]
+__all__ = ["atomic_output", "check_output_file", "check_writable_folder", "display_path", "make_output_folder",
+           "path_kind", "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -66,7 +66,22 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
         raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
     if suffixes and target.suffix.lower() not in suffixes:
         raise InputError(f"{name}: expected {kinds or ' or '.join(suffixes)} file name, got {display_path(target)!r}")
+    check_writable_folder(target.parent, name)
     return target
+
+
+def check_writable_folder(folder: str | os.PathLike, name: str) -> None:
+    """:class:`InputError` naming ``name`` unless a file can be created in the existing ``folder``: tried with an
+    empty file, removed at once, since permission bits do not tell (root, a read-only mount, ``/sys``). Checked
+    before any work starts, so that one output that cannot be written leaves no other written."""
+    probe = Path(folder) / f".svs-depth-write-test.{uuid.uuid4().hex[:8]}"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as error:
+        raise InputError(f"{name}: cannot write in folder {display_path(folder)!r} "
+                         f"({error.strerror or type(error).__name__})") from None
+    with contextlib.suppress(OSError):
+        probe.unlink()
 
 
 def make_output_folder(path: str | os.PathLike, name: str) -> Path:
@@ -75,13 +90,18 @@ def make_output_folder(path: str | os.PathLike, name: str) -> Path:
     target = Path(path)
     kind = path_kind(target, name) if str(path) else "other"
     if kind == "folder":
+        check_writable_folder(target, name)
         return target
     if kind != "missing":
         raise InputError(f"{name}: expected a folder, got {'a file' if kind == 'file' else 'no usable path'}: "
                          f"{display_path(target)!r}")
     if path_kind(target.parent, name) != "folder":
         raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
-    target.mkdir(exist_ok=True)
+    try:
+        target.mkdir(exist_ok=True)
+    except OSError as error:
+        raise InputError(f"{name}: cannot make folder {display_path(target)!r} "
+                         f"({error.strerror or type(error).__name__})") from None
     return target
 
 

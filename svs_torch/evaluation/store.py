@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError
+from ..core.files import check_writable_folder
 from .metrics import PairEvaluation
 
 __all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
@@ -105,6 +106,8 @@ class ResultStore:
                              f"{self.path}")
         if create and self.path.parent and not self.path.parent.is_dir():
             raise InputError(f"db: the folder {self.path.parent} does not exist")
+        if create and not self.path.exists():  # else sqlite's "unable to open database file" would call it no store
+            check_writable_folder(self.path.parent, "db")
         try:
             # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
             self.connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
