@@ -78,7 +78,8 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     from ..core.errors import InputError
 
     if bool(args.left) == bool(args.pairs):
-        raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, not both")
+        raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, "
+                         + ("not both" if args.left else "got neither"))
     if args.pairs:
         sources = read_pair_list(args.pairs, "--pairs")
         bad = next((s for s in sources if s.problem or s.scene or s.right is None), None)

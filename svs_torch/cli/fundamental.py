@@ -17,7 +17,7 @@ a ratio test, then RANSAC over random 7-point samples with local optimisation. U
 keypoints are found on the whole images, as estimate finds them (a turned or shifted camera segments each view a
 little differently); under --preset paper on the segmented obstacles, with MATLAB's ratio test (--no-segment:
 the whole images). F maps a left point to its right epipolar line: x_right^T F x_left = 0, in input-image
-pixels, unit Frobenius norm.
+pixels, unit Frobenius norm; null (text: "no F") where no sample gave a model (TOO_FEW_MATCHES, DEGENERATE).
 """
 
 EPILOG = """\
@@ -92,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
             inliers.append(left + right)
     report = {
         "status": FundamentalStatus(int(fundamental.status[0])).name,
-        "F": to_input_fundamental(fundamental.F[0], factors),
+        # No sample gave a model (too few matches, or only degenerate ones): no F, not a zero matrix.
+        "F": to_input_fundamental(fundamental.F[0], factors) if bool(fundamental.F[0].any()) else None,
         "num_matches": int(result.num_matches[0]),
         "num_inliers": int(fundamental.num_inliers[0]),
         "iterations": int(fundamental.iterations[0]),
@@ -104,6 +105,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"status {report['status']}: {report['num_inliers']} inliers of {report['num_matches']} matches, "
           f"{report['iterations']} samples, {elapsed * 1e3:.0f} ms")
+    if report["F"] is None:
+        print("no F: no sample of seven matches gave a model")
+        return 0
     print("F (x_right^T F x_left = 0, input pixels):")
     for row in report["F"]:
         print("  " + "  ".join(f"{v: .6e}" for v in row))

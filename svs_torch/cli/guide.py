@@ -105,10 +105,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
-                             "--json's fields, the capture's times, and 'warning' (the pair's distance, the confirmed "
-                             "one the class was judged on, the class, words said), "
-                             "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back, or "
-                             "guide cannot see or sees again; the warnings' text goes to stderr")
+                             "--json's fields (the calibration its metres use among them), the capture's times, and "
+                             "'warning' (the pair's distance, the confirmed one the class was judged on, the class, "
+                             "words said), 'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is "
+                             "lost or back, or guide cannot see or sees again; the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
     # With --json, stdout holds the JSON lines alone, and the warnings' text goes above the status line on stderr.
     words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", stream=words))
-    log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration)
+    log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
+                   calibration_from_args(args))
     session = GuideSession(args, size, ranged, guide, status_line, log)
     try:
         with contextlib.ExitStack() as stack:
@@ -217,7 +218,9 @@ def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
         size_code_for(size)
     except InputError:
         raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
-    if args.emulator == bool(args.left or args.right) or (not args.emulator and not (args.left and args.right)):
+    if args.emulator and (args.left or args.right):
+        raise InputError("--left, --right: the boards' URLs, or --emulator, not both")
+    if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: give both board URLs, or --emulator")
     if not 0 <= args.near_m < args.far_m:
         raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")

@@ -8,12 +8,12 @@ after both its images are in place), so ``svs-depth estimate --pairs DIR/index.j
 ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
 (:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index with
 ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
-(:func:`~svs_torch.cli.estimate_report.pair_report`), and guide's own: ``warning`` (the pair's own distance
-``distance_m``, the median of the last ``--confirm-frames`` pairs' that the class was judged on ``confirmed_m``, the
-class ``clear`` / ``warn`` / ``stop`` and the words said, if any), ``dropped_pairs`` (pairs that arrived while the
-previous one was ranged and were never ranged), ``latency_s`` (from the request of the left frame, when the board
-grabbed it, to the warning: its encoding and the link's transfer included). Only the pairs guide ranged are kept:
-the record is what the walker was told about.
+(:func:`~svs_torch.cli.estimate_report.pair_report`) with the ``calibration`` its metres use, and guide's own:
+``warning`` (the pair's own distance ``distance_m``, the median of the last ``--confirm-frames`` pairs' that the
+class was judged on ``confirmed_m``, the class ``clear`` / ``warn`` / ``stop`` and the words said, if any),
+``dropped_pairs`` (pairs that arrived while the previous one was ranged and were never ranged), ``latency_s``
+(from the request of the left frame, when the board grabbed it, to the warning: its encoding and the link's transfer
+included). Only the pairs guide ranged are kept: the record is what the walker was told about.
 """
 
 from __future__ import annotations
@@ -38,9 +38,11 @@ class GuideLog:
     the last; :meth:`summary` then says what was recorded."""
 
     def __init__(self, stream: TextIO | None, record_dir: Path | None, floor: str = "on",
-                 calibration: str | None = None) -> None:
+                 calibration: str | None = None, rig=None) -> None:
         self.stream, self.record_dir = stream, record_dir
         self.replay = (floor, calibration)  # guide's settings that estimate needs to range the pairs alike
+        self.rig = rig  # the StereoCalibration read from ``calibration`` (None: the SVS model)
+        self._calibrations: dict[tuple[int, int], dict] = {}
         self._index: TextIO | None = None
         self.num_recorded = 0
 
@@ -58,7 +60,7 @@ class GuideLog:
             return
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         record = save_pair(self.record_dir if self._index is not None else None, pair)
-        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s))
+        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration=self._calibration(pair.left.size_wh))
         record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
         line = json.dumps(record) + "\n"
         if self._index is not None:  # after both images are in place (save_pair)
@@ -68,6 +70,25 @@ class GuideLog:
         if self.stream is not None:
             self.stream.write(line)
             self.stream.flush()
+
+    def _calibration(self, size_wh: tuple[int, int]) -> dict:
+        """The calibration the metres of a pair of ``size_wh`` use, as ``estimate --json`` names it
+        (:func:`~svs_torch.data.calibration_record`): the ``--calibration`` rig scaled to the frames, which guide
+        rectifies them with, or the SVS model guide ranges them with."""
+        if size_wh not in self._calibrations:
+            from ..core.camera import SVS_CAMERA
+            from ..data.calibration import SVS_MODEL_ASSUMED
+
+            if self.rig is None:
+                values = (SVS_MODEL_ASSUMED, False, SVS_CAMERA.focal_px(size_wh[0]), SVS_CAMERA.baseline_m, 0.0)
+            else:
+                rig = self.rig.scaled_to(size_wh, "--calibration")
+                values = (f"--calibration {self.replay[1]} (the pair rectified by it)", True, rig.focal_px,
+                          rig.baseline_m, rig.doffs_px)
+            source, measured, focal_px, baseline_m, doffs_px = values
+            self._calibrations[size_wh] = {"source": source, "measured": measured, "focal_px": round(focal_px, 4),
+                                           "baseline_m": round(baseline_m, 6), "doffs_px": round(doffs_px, 4)}
+        return self._calibrations[size_wh]
 
     def event(self, name: str, **fields: Any) -> None:
         """A ``--json`` line ``{"event": name, "wall_s": ..., **fields}`` (the camera lost or back, guide unable

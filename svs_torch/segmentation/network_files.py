@@ -61,8 +61,9 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     try:
         stored = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch.load raises many types (zip, pickle, EOF, OS); all mean "not a weights file"
-        reason = " ".join(str(error).split())[:200] or type(error).__name__
-        raise InputError(f"segmenter: {str(path)!r} is not a weights file ({reason})") from None
+        # Its own text advises loading with weights_only=False, which would run code from an untrusted file.
+        raise InputError(f"segmenter: {str(path)!r} is not a weights file (not tensors saved by torch.save: "
+                         f"{type(error).__name__})") from None
     kind = segmenter.partition(":")[0]
     expected = _KINDS[kind]
     if not isinstance(stored, dict) or stored.get("format") != expected:

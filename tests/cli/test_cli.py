@@ -573,8 +573,9 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert code == 0
     for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
         for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
-                    "objects"):
+                    "objects", "calibration"):  # guide names the calibration its metres use, as estimate does
             assert offline[key] == live[key], key
+    assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
 def test_guide_confirm_frames_option():
