@@ -1,0 +1,146 @@
+"""What a user meets at the edges of the commands: an option the chosen segmenter would ignore, an output that
+cannot be written, a fit that found no model, metres that agree between ``eval`` and ``estimate``, every frame of
+a KITTI folder, and a weights file that is not one."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from real_images import PAIRS
+
+import svs_torch.core.files as files
+from svs_torch import InputError
+from svs_torch.cli import main
+from svs_torch.core.files import check_writable_folder
+from svs_torch.data import read_pair_sources
+from svs_torch.evaluation.store import ResultStore
+
+TEDDY = PAIRS[0]
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (("estimate", "--canny"), "--canny: only the Otsu segmenter thresholds brightness, and this run segments with "
+                              "'nearness'; add --segmenter otsu (or --preset paper)"),
+    (("estimate", "--dark-objects"), "--dark-objects: only the Otsu segmenter"),
+    (("segment", "--dark-objects"), "--dark-objects: only the Otsu segmenter"),
+    (("features", "--dark-objects"), "segments with 'nearness'; add --preset paper"),  # features has no --segmenter
+    (("estimate", "--floor", "on", "--segmenter", "otsu"), "--floor: 'on' leaves out the floor the nearness "
+                                                           "segmenter finds"),
+])
+def test_an_option_the_segmenter_would_ignore_is_refused(data_dir, capsys, argv, message):
+    """``--canny`` and ``--dark-objects`` change Otsu's threshold, which the default nearness segmenter does not
+    have; ``--floor on`` needs the nearness segmenter's disparity. Each used to change nothing, in silence."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, argv[0], left, right, *argv[1:])
+    assert code == 2 and out == "" and message in err and err.count("\n") == 1
+
+
+def test_the_options_work_with_the_otsu_segmenter(data_dir, capsys):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    _, bright, _ = run_cli(capsys, "segment", left, right, "--segmenter", "otsu", "--json")
+    code, dark, _ = run_cli(capsys, "segment", left, right, "--segmenter", "otsu", "--dark-objects", "--json")
+    assert code == 0 and json.loads(dark)["left"] != json.loads(bright)["left"]
+
+
+def _blocking(monkeypatch, blocked: Path) -> None:
+    """``os.open`` refusing to create files in ``blocked`` (as a read-only mount does, whoever runs the test)."""
+    real_open = os.open
+
+    def fake_open(path, flags, *args, **kwargs):
+        if Path(path).parent == blocked and flags & os.O_CREAT:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(files.os, "open", fake_open)
+
+
+def test_an_output_that_cannot_be_written_stops_the_run_before_anything_is_written(data_dir, capsys, tmp_path,
+                                                                                   monkeypatch):
+    """Every output is tried before the pipeline runs: a figure is not left behind when the masks' folder
+    refuses files (it used to be written, then the run failed on the masks and printed no result)."""
+    blocked = tmp_path / "read-only"
+    blocked.mkdir()
+    _blocking(monkeypatch, blocked)
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "estimate", left, right, "--figure", str(tmp_path / "fig.png"),
+                             "--masks-out", str(blocked / "masks.png"), "--json")
+    assert code == 2 and out == ""
+    assert f"--masks-out: cannot write in folder '{blocked}' (Permission denied)" in err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["read-only"]
+    with pytest.raises(InputError, match="db: cannot write in folder"):
+        ResultStore(blocked / "results.sqlite")
+    check_writable_folder(tmp_path, "--out")  # a writable folder: nothing raised, nothing left
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["read-only"]
+
+
+def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
+    """A blank pair has no matches: its F is null (text: "no F"), not a zero matrix that reads as a result."""
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 80), 128, np.uint8))
+    left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "TOO_FEW_MATCHES" and report["F"] is None
+    code, out, _ = run_cli(capsys, "fundamental", left, right)
+    assert code == 0 and "no F" in out
+
+
+def test_eval_ranges_a_pair_without_truth_in_the_metres_estimate_gives(data_dir, capsys, tmp_path):
+    """A listed file pair has no ground truth: eval reports it in the metres estimate reports (the SVS model, or
+    the options given), not in the nominal calibration it scores pairs with truth by; a lone --focal-px counts."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    listed = tmp_path / "pairs.txt"
+    listed.write_text(f"{left} {right}\n")
+    for options in ((), ("--focal-px", "400")):
+        _, out, _ = run_cli(capsys, "estimate", left, right, "--json", *options)
+        estimated = json.loads(out)
+        code, out, _ = run_cli(capsys, "eval", str(listed), "--json", *options)
+        row = json.loads(out.splitlines()[0])
+        assert code == 0 and row["status"] == "OK"
+        assert row["r_min_m"] == pytest.approx(estimated["r_min_m"], rel=1e-3)
+        assert row["calibration"]["focal_px"] == pytest.approx(estimated["calibration"]["focal_px"], rel=1e-6)
+        assert row["calibration"]["source"] == estimated["calibration"]["source"]
+    assert row["calibration"]["focal_px"] == 400
+
+
+def test_a_kitti_training_folder_lists_each_of_its_frames(data_dir):
+    sources = read_pair_sources([data_dir / "kitti" / "stereo2012_training"])
+    frames = sorted((data_dir / "kitti" / "stereo2012_training" / "colored_0").glob("*.png"))
+    assert len(frames) >= 2 and [s.left for s in sources] == [str(f) for f in frames]
+    assert all(s.scene for s in sources)
+
+
+def test_a_file_that_is_not_weights_is_named_without_torch_s_advice(data_dir, capsys, tmp_path):
+    """torch.load's own text advises weights_only=False, which would run an untrusted file's code."""
+    fake = tmp_path / "fake.pt"
+    fake.write_bytes(b"not a weights file")
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, _, err = run_cli(capsys, "estimate", left, right, "--segmenter", f"nearness:{fake}")
+    assert code == 2 and "is not a weights file (not tensors saved by torch.save" in err
+    assert "weights_only" not in err
+
+
+def test_a_blank_pair_keeps_no_region(capsys, tmp_path):
+    """A one-level view is wholly above Otsu's threshold (as OpenCV thresholds it), but it holds no obstacle: no
+    region is kept or listed, under either segmenter."""
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 80), 200, np.uint8))
+    left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
+    for preset in ("default", "paper"):
+        code, out, _ = run_cli(capsys, "estimate", left, right, "--json", "--preset", preset)
+        report = json.loads(out)
+        assert code == 0 and report["status"] == "NO_OBJECTS" and report["objects"] == []
+        code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--preset", preset)
+        segmented = json.loads(out)
+        assert segmented["left"]["status"] == "UNIFORM_IMAGE" and segmented["left"]["objects"] == []
