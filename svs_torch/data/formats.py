@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import cv2
@@ -33,6 +34,8 @@ __all__ = [
 
 # Full-scale value of each supported integer image dtype: a pixel becomes value / full scale in [0, 1].
 _FULL_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
+#: A 16-bit image whose brightest level is under this (12 bits) likely holds a 10- or 12-bit sensor's levels.
+_FEW_BITS_LEVEL = 4096
 
 
 def read_pfm(path: str | Path, name: str = "path") -> np.ndarray:
@@ -140,6 +143,11 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     elif array.ndim == 3:
         array = array[:, :, 0]
     full_scale = _FULL_SCALE[array.dtype]
+    brightest = int(array.max())
+    if array.dtype == np.uint16 and 0 < brightest < _FEW_BITS_LEVEL:
+        warnings.warn(f"{name}: a 16-bit image whose brightest level is {brightest} of 65535, read as nearly black; "
+                      f"if it holds 10- or 12-bit data, scale it to the full 16-bit range: {path}", RuntimeWarning,
+                      stacklevel=2)
     # Divide in float64 then cast: k / 255 rounded once to float32 lies within half an ulp of the exact value,
     # so multiplying by 255 and rounding recovers k exactly.
     gray = torch.from_numpy(array.astype(np.float64) / full_scale).to(dtype)

@@ -289,6 +289,10 @@ def test_gray_images_round_trip_and_equal_opencv(tmp_path: Path, data_dir: Path)
     cv2.imwrite(str(tmp_path / "deep.png"), deep)
     gray16 = read_gray_image(tmp_path / "deep.png")
     assert np.array_equal((gray16[0, 0].double() * 65535).round().numpy().astype(np.uint16), deep)
+    # 10-bit levels in a 16-bit file read as nearly black: said, and read as they are.
+    cv2.imwrite(str(tmp_path / "ten_bits.png"), (np.arange(64, dtype=np.uint16) * 16).reshape(8, 8))
+    with pytest.warns(RuntimeWarning, match="left: a 16-bit image whose brightest level is 1008 of 65535"):
+        assert float(read_gray_image(tmp_path / "ten_bits.png", "left").max()) == pytest.approx(1008 / 65535)
     # A color file: the gray levels are OpenCV's own BGR→gray conversion, exactly.
     path = data_dir / "middlebury_eval3_Q/Teddy/im0.png"
     expected = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2GRAY)
