@@ -87,9 +87,10 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
         wh = (image_left.shape[1], image_left.shape[0])
         if size is None:
             size = wh
-        if wh != size or image_right.shape[:2] != image_left.shape[:2]:
-            raise InputError(f"pairs: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
-                             f"{image_right.shape[1]}x{image_right.shape[0]} or {wh[0]}x{wh[1]} in {name}")
+        for view, image in (("left", image_left), ("right", image_right)):
+            if (image.shape[1], image.shape[0]) != size:
+                raise InputError(f"pairs: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
+                                 f"{image.shape[1]}x{image.shape[0]} in the {view} view of {name}")
         corners = (find_board_corners(image_left, board), find_board_corners(image_right, board))
         if corners[0] is None or corners[1] is None:
             skipped.append(name)

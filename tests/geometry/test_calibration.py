@@ -164,6 +164,14 @@ def test_calibrate_bad_input(capsys, samples, tmp_path, argv, message):
     assert not (tmp_path / "rig.json").exists()
 
 
+def test_calibrate_names_the_view_of_another_size_and_neither_source(capsys, tmp_path):
+    small, large = np.zeros((240, 320), np.uint8), np.zeros((480, 640), np.uint8)
+    with pytest.raises(InputError, match="got 320x240 in the right view of b"):
+        collect_board_views([("a", large, large), ("b", large, small)], (9, 6))
+    code, _, stderr = run_cli(capsys, "calibrate", "--square-m", "0.025", "--out", str(tmp_path / "rig.json"))
+    assert code == 2 and "give left images (files or patterns) or --pairs LIST.txt, got neither" in stderr
+
+
 def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     calibration, _ = rig
     path = tmp_path / "rig.json"
