@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (ConfigValue, add_figure_option, dumps_strict, non_negative_float, options_named, positive_int,
+from .common import (ConfigValue, _number, add_figure_option, dumps_strict, non_negative_float, options_named,
                      too_small_reason, unit_interval_float, with_config_values)
 from .segment import add_segmentation_options
 
@@ -71,6 +71,19 @@ def add_pair_options(parser: argparse.ArgumentParser) -> None:
                         help="resample the pair to this size first (e.g. 320x240, the SVS default)")
 
 
+#: ``SURFConfig``'s largest ``max_keypoints`` (``svs_torch.features.detector.MAX_KEYPOINTS``, written out here: the
+#: parser must not wait for torch; a test holds the two equal).
+MAX_KEYPOINTS = 10_000
+
+
+def keypoint_count(text: str) -> int:
+    """argparse type of ``--max-keypoints``: an integer from 1 to :data:`MAX_KEYPOINTS`."""
+    value = _number(text, int)
+    if not 1 <= value <= MAX_KEYPOINTS:
+        raise argparse.ArgumentTypeError(f"expected an integer from 1 to {MAX_KEYPOINTS}, got {text!r}")
+    return value
+
+
 def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool = False) -> None:
     """The preset and the feature/matching options; each option left out keeps the preset's value (with
     ``command_defaults``, the ``features`` command's own keypoint cap and upsampling, see :func:`command_config`)."""
@@ -80,7 +93,7 @@ def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool 
                              "inliers (Eq. 5-8)")
     keypoints_default = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: %(preset_value)s"
                          if command_defaults else "%(preset_value)s")
-    with_config_values(parser.add_argument("--max-keypoints", type=positive_int, metavar="K",
+    with_config_values(parser.add_argument("--max-keypoints", type=keypoint_count, metavar="K",
                                            help=f"strongest keypoints kept per image (default: {keypoints_default})"),
                        preset_value=ConfigValue("surf.max_keypoints"))
     parser.add_argument("--metric-threshold", type=non_negative_float, metavar="T",

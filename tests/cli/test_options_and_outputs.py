@@ -144,3 +144,16 @@ def test_a_blank_pair_keeps_no_region(capsys, tmp_path):
         code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--preset", preset)
         segmented = json.loads(out)
         assert segmented["left"]["status"] == "UNIFORM_IMAGE" and segmented["left"]["objects"] == []
+
+
+def test_max_keypoints_option_states_its_own_range(capsys):
+    """The parser writes the detector's cap out (it must not wait for torch): the two stay equal, and 0, which
+    the option refuses, is not offered in its message."""
+    from svs_torch.cli.features import MAX_KEYPOINTS
+    from svs_torch.features.detector import MAX_KEYPOINTS as DETECTOR_MAX_KEYPOINTS
+
+    assert MAX_KEYPOINTS == DETECTOR_MAX_KEYPOINTS
+    for value in ("0", str(MAX_KEYPOINTS + 1)):
+        with pytest.raises(SystemExit):
+            main(["features", "a.png", "b.png", "--max-keypoints", value])
+        assert f"expected an integer from 1 to {MAX_KEYPOINTS}, got '{value}'" in capsys.readouterr().err
