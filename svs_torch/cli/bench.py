@@ -54,11 +54,15 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation.benchmark import format_tables, run_benchmark
         from ..core.checks import InputError
         from ..core.files import atomic_output, check_output_file, path_kind
+        from ..data import list_shared_pairs
         from .common import dumps_strict
 
     data_dir = Path(args.data) if args.data else None
     if data_dir is not None and path_kind(data_dir, "--data") != "folder":
         raise InputError(f"--data: expected a folder, got {args.data!r}")
+    if data_dir is not None and not list_shared_pairs(data_dir):  # else only the synthetic set ran, unsaid
+        raise InputError(f"--data: no shared pair with ground truth in {args.data!r} (expected the shared data "
+                         f"folder: middlebury_eval3_Q/, middlebury_2005_2006_third/, kitti/, ...)")
     if args.json:
         check_output_file(args.json, "--json")  # before minutes of work, not after
     report = run_benchmark(args.pairs, args.repeats, args.threads, data_dir,

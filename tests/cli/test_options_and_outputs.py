@@ -157,3 +157,9 @@ def test_max_keypoints_option_states_its_own_range(capsys):
         with pytest.raises(SystemExit):
             main(["features", "a.png", "b.png", "--max-keypoints", value])
         assert f"expected an integer from 1 to {MAX_KEYPOINTS}, got '{value}'" in capsys.readouterr().err
+
+
+def test_bench_refuses_a_data_folder_without_shared_pairs(capsys, tmp_path):
+    """It ran the synthetic set alone, unsaid, as if the real sets had been asked for and measured."""
+    code, out, err = run_cli(capsys, "bench", "--data", str(tmp_path), "--pairs", "2", "--repeats", "1")
+    assert code == 2 and out == "" and "--data: no shared pair with ground truth in" in err
