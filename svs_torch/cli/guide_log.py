@@ -77,7 +77,7 @@ class GuideLog:
         rectifies them with, or the SVS model guide ranges them with."""
         if size_wh not in self._calibrations:
             from ..core.camera import SVS_CAMERA
-            from ..data.calibration import SVS_MODEL_ASSUMED
+            from ..data.calibration import SVS_MODEL_ASSUMED, calibration_fields
 
             if self.rig is None:
                 values = (SVS_MODEL_ASSUMED, False, SVS_CAMERA.focal_px(size_wh[0]), SVS_CAMERA.baseline_m, 0.0)
@@ -85,9 +85,7 @@ class GuideLog:
                 rig = self.rig.scaled_to(size_wh, "--calibration")
                 values = (f"--calibration {self.replay[1]} (the pair rectified by it)", True, rig.focal_px,
                           rig.baseline_m, rig.doffs_px)
-            source, measured, focal_px, baseline_m, doffs_px = values
-            self._calibrations[size_wh] = {"source": source, "measured": measured, "focal_px": round(focal_px, 4),
-                                           "baseline_m": round(baseline_m, 6), "doffs_px": round(doffs_px, 4)}
+            self._calibrations[size_wh] = calibration_fields(*values)
         return self._calibrations[size_wh]
 
     def event(self, name: str, **fields: Any) -> None:

@@ -12,7 +12,7 @@ from ..core.types import StereoBatch
 from .datasets import scene_calibration_source
 from .pair_list import PairSource
 
-__all__ = ["SVS_MODEL_ASSUMED", "calibration_record", "format_calibration", "pair_calibration_source"]
+__all__ = ["SVS_MODEL_ASSUMED", "calibration_fields", "calibration_record", "format_calibration", "pair_calibration_source"]
 
 #: The source of a plain pair's calibration when neither its list line nor an option gives one.
 SVS_MODEL_ASSUMED = "the SVS model assumed"
@@ -46,10 +46,14 @@ def calibration_record(batch: StereoBatch, index: int, source: str, width_scale:
     ``batch``'s width, so a resampled batch reports the focal length and doffs of the INPUT images (the values a
     calib.txt or ``--focal-px`` gives).
     """
-    return {"source": source, "measured": bool(batch.calibrated[index]),
-            "focal_px": round(float(batch.focal_px[index]) * width_scale, 4),
-            "baseline_m": round(float(batch.baseline_m[index]), 6),
-            "doffs_px": round(float(batch.doffs_px[index]) * width_scale, 4)}
+    return calibration_fields(source, bool(batch.calibrated[index]), float(batch.focal_px[index]) * width_scale,
+                              float(batch.baseline_m[index]), float(batch.doffs_px[index]) * width_scale)
+
+
+def calibration_fields(source: str, measured: bool, focal_px: float, baseline_m: float, doffs_px: float) -> dict:
+    """The report's calibration record (:func:`calibration_record`) from plain values, rounded alike."""
+    return {"source": source, "measured": measured, "focal_px": round(focal_px, 4),
+            "baseline_m": round(baseline_m, 6), "doffs_px": round(doffs_px, 4)}
 
 
 def format_calibration(record: dict | None) -> str:
