@@ -164,6 +164,11 @@ def calibrations(draw):
     return values
 
 
+#: The configurations the pipeline properties run: the default, the paper's preset and the differentiable pass.
+PIPELINE_VARIANTS = {"default": PipelineConfig, "paper": PipelineConfig.paper,
+                     "differentiable": lambda: PipelineConfig(differentiable=True)}
+
+
 def _batch_or_error(pair, calibration) -> StereoBatch | None:
     try:
         return StereoBatch.from_images(pair[0], pair[1], *calibration)
@@ -178,18 +183,18 @@ def _batch_or_error(pair, calibration) -> StereoBatch | None:
 
 
 @examples(60)
-@given(pair=image_pairs(), calibration=calibrations(), paper=st.booleans())
+@given(pair=image_pairs(), calibration=calibrations(), variant=st.sampled_from(list(PIPELINE_VARIANTS)))
 # Found by hypothesis: the smoothed retry's Gaussian turned a white pixel into 1 + 2e-16, which StereoBatch refused.
 @example(pair=(torch.ones(1, 1, 1, 1, dtype=torch.float64), torch.ones(1, 1, 1, 1, dtype=torch.float64)),
-         calibration=[20.0, 1.0, 0.0], paper=False)
-def test_pipeline_refuses_or_gives_every_pair_a_status(pair, calibration, paper):
+         calibration=[20.0, 1.0, 0.0], variant="default")
+def test_pipeline_refuses_or_gives_every_pair_a_status(pair, calibration, variant):
     batch = _batch_or_error(pair, calibration)
     if batch is None:
         return
     assert torch.isfinite(batch.focal_px).all() and (batch.focal_px > 0).all()
     assert torch.isfinite(batch.baseline_m).all() and (batch.baseline_m > 0).all()
     assert torch.isfinite(batch.doffs_px).all()
-    result = estimate_obstacle_depth(batch, PipelineConfig.paper() if paper else PipelineConfig())
+    result = estimate_obstacle_depth(batch, PIPELINE_VARIANTS[variant]())
     check_status(result.status, batch.batch_size, PipelineStatus)
     event(f"status {PipelineStatus(int(result.status[0])).name}")
     ok = result.status == PipelineStatus.OK
@@ -808,6 +813,39 @@ def test_a_calibration_whose_depths_underflow_is_not_ranged():
         assert result.status[0] != PipelineStatus.OK and not result.depth.range.valid[0]
     normal = estimate_obstacle_depth(StereoBatch.from_images(scenes.batch.left, scenes.batch.right, 34.5, 0.1075))
     assert normal.status[0] == PipelineStatus.OK
+
+
+def test_a_pair_with_nothing_kept_gets_a_status_under_the_differentiable_pass():
+    """Was: RuntimeError 'cannot reshape tensor of 0 elements' from the soft window costs (no pixel to recompute),
+    failing the whole batch. Now the blank pair gets NO_OBJECTS and its neighbour the hard pass's depth."""
+    scenes = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3))
+    blank = torch.zeros_like(scenes.batch.left)
+    batch = StereoBatch.from_images(torch.cat([scenes.batch.left, blank]), torch.cat([scenes.batch.right, blank]),
+                                    scenes.batch.focal_px[0], scenes.batch.baseline_m[0])
+    hard = estimate_obstacle_depth(batch)
+    soft = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True))
+    assert soft.status.tolist() == hard.status.tolist() == [PipelineStatus.OK, PipelineStatus.NO_OBJECTS]
+    torch.testing.assert_close(soft.depth.range.r_min_m, hard.depth.range.r_min_m, rtol=0.02, atol=0.0)
+
+
+@pytest.mark.parametrize("height, width", [(1, 320), (2, 640), (3, 2000)])
+@pytest.mark.parametrize("variant", ["default", "differentiable"])
+def test_strips_a_few_rows_high_get_a_status(height, width, variant):
+    """Was: InputError 'left: expected images of at least 1 x 1 pixels, got (1, 1, 0, 160)' for the whole batch:
+    the dense stage reduced by the width's factor, and the height rounded to no row. Now each pair has a status."""
+    strip = torch.rand(2, 1, height, width, generator=torch.Generator().manual_seed(height))
+    batch = StereoBatch.from_images(strip, strip.roll(-3, dims=-1), 276.0, 0.1075)
+    result = estimate_obstacle_depth(batch, PIPELINE_VARIANTS[variant]())
+    check_status(result.status, 2, PipelineStatus)
+
+
+def test_no_keypoints_asked_for_leaves_the_dense_stage_to_range():
+    """Was: IndexError 'amax(): Expected reduction dim 1 to have non-zero size' in the near-surface split for
+    SurfConfig(max_keypoints=0). Now the dense stage ranges the scene without sparse inliers."""
+    scenes = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3))
+    result = estimate_obstacle_depth(scenes.batch, PipelineConfig(surf=SurfConfig(max_keypoints=0)))
+    check_status(result.status, 1, PipelineStatus)
+    assert result.depth.disparities.valid.shape[1] == 0
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -87,10 +87,13 @@ def _enlarge(dense: DenseDisparity, factor: int, height: int, width: int) -> Den
                           dense.pair_num_disparities * factor, top, object_top)
 
 
-def working_factor(width_px: int, config: DenseConfig = DenseConfig()) -> int:
-    """The integer factor :func:`estimate_dense_disparity` reduces images ``width_px`` wide by (about
-    ``width_px / config.working_width_px``, at least 1): one working pixel is this many input pixels."""
-    return max(1, round(width_px / config.working_width_px))
+def working_factor(width_px: int, config: DenseConfig = DenseConfig(), height_px: int | None = None) -> int:
+    """The integer factor :func:`estimate_dense_disparity` reduces images ``width_px`` wide (and ``height_px``
+    high, when given) by: about ``width_px / config.working_width_px``, at least 1 and at most the height, so that
+    a strip a few rows high keeps a row (it was reduced to none and failed the batch): one working pixel is this
+    many input pixels."""
+    factor = max(1, round(width_px / config.working_width_px))
+    return factor if height_px is None else max(1, min(factor, height_px))
 
 
 def working_window(width_px: int, config: DenseConfig = DenseConfig()) -> int:
@@ -130,7 +133,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         check_dtype(objects, "objects", "bool")
     height, width = left.shape[-2:]
     image_hw = _check_sizes(image_hw, left)
-    factor = working_factor(width, config)
+    factor = working_factor(width, config, height)
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
     if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:
         small_objects = None

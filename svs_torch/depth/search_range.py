@@ -234,7 +234,7 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     check_shape(mask, "mask", [b, 1, h, w])
     check_dtype(mask, "mask", "bool")
     image_hw = _check_sizes(image_hw, left)
-    factor = max(1, round(w / config.coarse_width_px))
+    factor = max(1, min(round(w / config.coarse_width_px), h))  # a strip a few rows high keeps a row
     small_hw = torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1)
     if objects is not None:
         check_shape(objects, "objects", [b, "N", h, w])

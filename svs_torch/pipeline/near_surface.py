@@ -84,7 +84,9 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     disparity, valid = dense.disparity_px.detach(), dense.valid
     sparse = depth.disparities
     known = inliers & sparse.valid & sparse.disparity_px.isfinite()
-    top = torch.where(known, sparse.disparity_px.detach(), torch.zeros_like(sparse.disparity_px)).amax(1)
+    # A zero column (no keypoints asked for: SurfConfig.max_keypoints = 0) keeps amax defined.
+    known_px = torch.where(known, sparse.disparity_px.detach(), torch.zeros_like(sparse.disparity_px))
+    top = torch.cat([known_px, known_px.new_zeros(known_px.shape[0], 1)], dim=1).amax(1)
     limit = MAX_INLIER_RATIO * top + INLIER_MARGIN_PX  # (B,)
     least = max(1.0, MIN_COHERENT_AREA_FRACTION * object_labels.shape[-2] * object_labels.shape[-1])
     position = _slot_positions(map_labels, slots)  # (B, 1, H, W): each pixel's object, N for none

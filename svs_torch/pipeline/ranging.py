@@ -136,9 +136,9 @@ def _confirmed_inliers(dense: DenseDisparity, points_left: torch.Tensor, dispari
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """The RANSAC inliers ``(B, K)`` the dense map confirms and those it measured, ``(B,)`` each: agreement within
     one working pixel (the dense map's own grid) between the sparse and the dense disparity."""
-    width = dense.disparity_px.shape[-1]
+    height, width = dense.disparity_px.shape[-2:]
     return count_agreeing_inliers(dense, points_left, disparities, inliers, H_left,
-                                  float(working_factor(width, config.dense)), return_measured=True)
+                                  float(working_factor(width, config.dense, height)), return_measured=True)
 
 
 def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor | None,
@@ -181,7 +181,7 @@ def _vouched_over_whole_view(left: torch.Tensor, right: torch.Tensor, image_hw: 
 
 def _smoothed(batch: StereoBatch, sigma_working_px: float, config: DenseConfig) -> StereoBatch:
     """Both views smoothed by a Gaussian of ``sigma_working_px`` working pixels of the dense stage."""
-    sigma = sigma_working_px * working_factor(batch.left.shape[-1], config)
+    sigma = sigma_working_px * working_factor(batch.left.shape[-1], config, batch.left.shape[-2])
     return dataclasses.replace(batch, left=gaussian_smoothed(batch.left, sigma),
                                right=gaussian_smoothed(batch.right, sigma))
 
@@ -331,10 +331,10 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
     current = _dense_depth(*passes, config)
     coarse, smoothed = torch.zeros_like(rectified), torch.zeros_like(rectified)
     settings = coarse_config(config)
-    width = batch.left.shape[-1]
+    height, width = batch.left.shape[-2:]
     low = torch.zeros_like(rectified)
     if (config.coarse_retry_below_share is not None
-            and working_factor(width, settings.dense) > working_factor(width, config.dense)):
+            and working_factor(width, settings.dense, height) > working_factor(width, config.dense, height)):
         objects = current[0].objects
         low = (measured_share(objects) < config.coarse_retry_below_share) & (objects.area_px.sum(1) > 0)
         if bool(low.any()):

@@ -90,9 +90,10 @@ def _window_costs(left: torch.Tensor, right: torch.Tensor, pixels: torch.Tensor,
     corner = (pixels[:, 0] * (h + 2 * radius) + pixels[:, 1]) * stride + pixels[:, 2] + pad_left - radius
     index = corner.view(-1, 1) + window  # (P, K²)
     # index_select rather than advanced indexing: 3x faster forward and backward on this CPU.
-    left_values = left_flat.index_select(0, index.flatten()).view(-1, 1, index.shape[1])  # (P, 1, K²)
+    # Sizes spelled out, not -1: a pair with no kept object gives P = 0, where -1 is ambiguous.
+    left_values = left_flat.index_select(0, index.flatten()).view(index.shape[0], 1, index.shape[1])  # (P, 1, K²)
     right_index = (index.unsqueeze(1) - disparities.unsqueeze(-1)).flatten()
-    right_values = right_flat.index_select(0, right_index).view(*disparities.shape, -1)  # (P, C, K²)
+    right_values = right_flat.index_select(0, right_index).view(*disparities.shape, index.shape[1])  # (P, C, K²)
     return (left_values - right_values).abs().sum(dim=-1)
 
 
@@ -142,7 +143,7 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
     """The dense map ``(B, 1, H, W)``: the hard values everywhere, recomputed with gradients at the valid pixels
     of ``wanted`` ``(B, 1, H, W)`` (on the working grid the hard stage matched on, then enlarged as it is)."""
     height, width = left.shape[-2:]
-    factor = working_factor(width, config)
+    factor = working_factor(width, config, height)
     if factor > 1:
         left, right = mean_pool(left, factor), mean_pool(right, factor)
     if config.prefilter == "xsobel":
