@@ -22,6 +22,9 @@ __all__ = [
     "check_instance",
     "check_same_shape",
     "check_finite",
+    "check_flag",
+    "check_count",
+    "check_real",
 ]
 
 
@@ -123,3 +126,38 @@ def check_finite(tensor: torch.Tensor, name: str, positive: bool = False) -> Non
     if bool(bad.any()):
         first = float(values[bad].flatten()[0])
         raise InputError(f"{name}: expected finite{' positive' if positive else ''} values, got {first}")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Settings of the configuration dataclasses: checked when a configuration is built, so that a sweep's absurd value
+# is refused by its field's name rather than failing late, or silently changing nothing (a string taken as true).
+
+
+def check_flag(value: object, name: str) -> None:
+    """A bool setting (``True`` / ``False``; a string such as ``"no"`` would be truthy)."""
+    if value is not True and value is not False:
+        raise InputError(f"{name}: expected a bool, got {value!r}")
+
+
+def check_count(value: object, name: str, least: int = 0, optional: bool = False) -> None:
+    """A whole-number setting of at least ``least`` (``None`` allowed with ``optional``)."""
+    if optional and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise InputError(f"{name}: expected an int >= {least}{' or None' if optional else ''}, got {value!r}")
+
+
+def check_real(value: object, name: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False,
+               high_open: bool = False, optional: bool = False) -> None:
+    """A finite real setting in the interval from ``low`` to ``high`` (each end closed unless ``*_open``;
+    ``None`` allowed with ``optional``), e.g. ``max_offset: expected a finite number in [0, inf), got nan``."""
+    if optional and value is None:
+        return
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    if not (math.isfinite(number) and (low < number if low_open else low <= number)
+            and (number < high if high_open else number <= high)):
+        opening = "(" if low_open or math.isinf(low) else "["
+        interval = f"{opening}{low:g}, {high:g}{')' if high_open or math.isinf(high) else ']'}"
+        raise InputError(f"{name}: expected a finite number in {interval}{' or None' if optional else ''}, "
+                         f"got {value!r}")
+

@@ -9,7 +9,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_count, check_real
 
 __all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
 
@@ -191,6 +191,9 @@ class DenseConfig:
                              f"{self.smoothing_min_residual_levels!r}")
         if not isinstance(self.margin_px, int) or self.margin_px < 0:
             raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
+        check_real(self.fallback_max_disparity_fraction, "fallback_max_disparity_fraction", 0.0, 1.0, low_open=True)
+        check_count(self.min_range_inliers, "min_range_inliers")  # 0 counts as 1: a range needs a sample
+        check_count(self.min_range_pixels, "min_range_pixels")
 
 
 class DisparityRange(NamedTuple):

@@ -10,7 +10,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_count, check_real
 
 __all__ = [
     "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
@@ -77,6 +77,10 @@ class DepthConfig:
         if isinstance(self.min_object_pixels_in_view, bool) or not isinstance(self.min_object_pixels_in_view, int) \
                 or self.min_object_pixels_in_view < 0:
             raise InputError(f"min_object_pixels_in_view: expected an int >= 0, got {self.min_object_pixels_in_view!r}")
+        check_count(self.min_object_inliers, "min_object_inliers")
+        check_count(self.min_object_pixels, "min_object_pixels")
+        for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
+            check_real(getattr(self, name), name, 0.0, 1.0)
 
 
 @dataclass(frozen=True)

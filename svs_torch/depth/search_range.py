@@ -94,7 +94,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
                                                        enough_count, tail_bin_px, share)
     margin = _margin(low, high, config, extra_margin_px)
     group_tops = None if trimmed is None else _in_view_tops(trimmed, low, config, extra_margin_px)
-    enough = count >= enough_count
+    enough = count >= max(enough_count, 1)  # a minimum of 0 still needs a sample to take percentiles of
     fallback_high = (image_w.to(torch.float64) * config.fallback_max_disparity_fraction).clamp_min(2)
     low = torch.where(enough, (low - margin).floor().clamp_min(0), torch.zeros_like(low))
     high = torch.where(enough, (high + margin).ceil(), fallback_high.floor())

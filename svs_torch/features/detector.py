@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
+from ..core.checks import InputError, check_dtype, check_flag, check_image, check_instance, check_real, check_shape
 from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
 from . import kernels
@@ -75,6 +75,9 @@ class SurfConfig:
         if not isinstance(self.max_keypoints, int) or not 0 <= self.max_keypoints <= MAX_KEYPOINTS:
             raise InputError(f"max_keypoints: expected an integer from 0 to {MAX_KEYPOINTS}, got "
                              f"{self.max_keypoints!r}")
+        check_real(self.max_offset, "max_offset", 0.0)
+        for name in ("upright", "extended", "upsample", "compiled"):
+            check_flag(getattr(self, name), name)
 
 
 def metric_threshold_01(metric_threshold: float) -> float:

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_count, check_flag, check_real
 from ..depth.dense_config import DenseConfig
 from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
@@ -330,6 +330,13 @@ class PipelineConfig:
         if (ratio := self.exposure_retry_max_residual_ratio) is not None and not (
                 type(ratio) in (int, float) and 0 < ratio < math.inf):
             raise InputError(f"exposure_retry_max_residual_ratio: expected a ratio > 0 or None, got {ratio!r}")
+        for name in ("mutual", "laplacian_gate"):
+            check_flag(getattr(self, name), name)
+        check_real(self.epipolar_band_px, "epipolar_band_px", 0.0, optional=True)
+        check_real(self.ransac_threshold_px, "ransac_threshold_px", 0.0, low_open=True)
+        check_real(self.ransac_confidence, "ransac_confidence", 0.0, 1.0, low_open=True)
+        check_count(self.ransac_max_iterations, "ransac_max_iterations", 1)
+        check_real(self.row_tolerance_px, "row_tolerance_px", 0.0)
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")

@@ -3,12 +3,13 @@ batching and determinism."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
 import torch
 
-from svs_torch import InputError, StereoBatch
+from svs_torch import InputError, StereoBatch, SurfConfig
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth.dense_config import DenseConfig
@@ -149,6 +150,46 @@ def test_config_errors_name_the_field():
         PipelineConfig(rectify="yes")
     with pytest.raises(InputError, match=r"max_ratio: expected a ratio in \(0, 1\]"):
         PipelineConfig(max_ratio=1.5)
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: SurfConfig(max_offset=-1.0), r"max_offset: expected a finite number in \[0, inf\), got -1"),
+    (lambda: SurfConfig(max_offset=math.nan), "max_offset: expected a finite number"),
+    (lambda: SurfConfig(upright="no"), "upright: expected a bool, got 'no'"),
+    (lambda: DenseConfig(fallback_max_disparity_fraction=math.nan), "fallback_max_disparity_fraction: expected"),
+    (lambda: DenseConfig(fallback_max_disparity_fraction=0.0), r"fallback_max_disparity_fraction: .* \(0, 1\]"),
+    (lambda: DenseConfig(fallback_max_disparity_fraction=5.0), "fallback_max_disparity_fraction: expected"),
+    (lambda: DenseConfig(min_range_inliers=-1), "min_range_inliers: expected an int >= 0"),
+    (lambda: DenseConfig(min_range_pixels=2.5), "min_range_pixels: expected an int >= 0"),
+    (lambda: DepthConfig(min_object_valid_fraction=2.0), r"min_object_valid_fraction: .* \[0, 1\], got 2"),
+    (lambda: DepthConfig(min_object_valid_fraction_unverified=-1.0), "min_object_valid_fraction_unverified:"),
+    (lambda: DepthConfig(min_object_pixels=-5), "min_object_pixels: expected an int >= 0, got -5"),
+    (lambda: DepthConfig(min_object_inliers=-1), "min_object_inliers: expected an int >= 0, got -1"),
+    (lambda: PipelineConfig(row_tolerance_px=-1.0), "row_tolerance_px: expected a finite number"),
+    (lambda: PipelineConfig(row_tolerance_px=math.nan), "row_tolerance_px: expected a finite number"),
+    (lambda: PipelineConfig(mutual="yes"), "mutual: expected a bool, got 'yes'"),
+    (lambda: PipelineConfig(ransac_threshold_px=-1.0), r"ransac_threshold_px: .* \(0, inf\), got -1"),
+    (lambda: PipelineConfig(ransac_confidence=1.5), "ransac_confidence: expected a finite number"),
+    (lambda: PipelineConfig(ransac_max_iterations=0), "ransac_max_iterations: expected an int >= 1"),
+    (lambda: PipelineConfig(epipolar_band_px=-2.0), "epipolar_band_px: expected a finite number .* or None"),
+])
+def test_absurd_settings_are_refused_by_their_field(make, message):
+    """Was: accepted, then a raw error later (ransac_threshold_px named as RANSAC's threshold_px), NaN comparisons
+    that changed nothing, or a string taken as true."""
+    with pytest.raises(InputError, match=message):
+        make()
+
+
+def test_a_range_minimum_of_zero_samples_ranges_as_one(scenes):
+    """Was: DenseConfig(min_range_inliers=0) counted a pair with no sample as enough, its search range NaN: every
+    pair NO_DENSE_DEPTH. A range needs a sample, so 0 acts as 1."""
+    sub = scenes.batch.select([0, 1])
+    for config in (DenseConfig(min_range_inliers=0), DenseConfig(min_range_pixels=0)):
+        zero = estimate_obstacle_depth(sub, PipelineConfig(dense=config))
+        one = estimate_obstacle_depth(sub, PipelineConfig(dense=replace(config, min_range_inliers=max(
+            config.min_range_inliers, 1), min_range_pixels=max(config.min_range_pixels, 1))))
+        assert zero.status.tolist() == one.status.tolist() == [PipelineStatus.OK] * 2
+        assert torch.equal(zero.depth.range.r_min_m, one.depth.range.r_min_m)
 
 
 def test_dense_rule_on_a_pair_that_needs_rectification(scenes):
