@@ -12,7 +12,8 @@ import the pipeline; a stage never does.
 
 from .config import PipelineConfig, PipelineResult, PipelineStatus
 from .run import estimate_obstacle_depth
-from .stages import measured_labels, segment_pair
+from ..segmentation.stereo import segment_pair
+from .stages import measured_labels
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "measured_labels",
            "segment_pair"]

@@ -26,6 +26,7 @@ from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import predict_obstacle_logits
 from ..segmentation.segment import SegmentationConfig
+from ..segmentation.stereo import segment_same_size, segmenter_network
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
@@ -34,8 +35,7 @@ from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
-from .stages import (_feature_images, _features, _match, _network, _segment_group, _segment_row_aligned,
-                     _status, gaussian_smoothed, measured_labels)
+from .stages import _feature_images, _features, _match, _segment_row_aligned, _status, gaussian_smoothed, measured_labels
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -128,7 +128,7 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
-        logits = predict_obstacle_logits(_network(batch, config.segmentation, network), batch.left, batch.right,
+        logits = predict_obstacle_logits(segmenter_network(batch, config.segmentation, network), batch.left, batch.right,
                                          config.segmentation.ground, batch.baseline_m, batch.focal_px,
                                          config.segmentation.camera_frames)
     with torch.no_grad():
@@ -138,7 +138,7 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     if not config.differentiable:
         return result
     if logits is not None and bool(result.row_aligned.any()):
-        logits = _row_aligned_logits(batch, result, logits, _network(batch, config.segmentation, network),
+        logits = _row_aligned_logits(batch, result, logits, segmenter_network(batch, config.segmentation, network),
                                      config.segmentation)
     left, right = batch.left, batch.right
     if config.noisy_retry_sigma_px is not None and bool(result.smoothed.any()):
@@ -244,7 +244,7 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         timings[stage] = timings.get(stage, 0.0) + now - clock  # segmentation may run twice (row-aligned pairs)
         clock = now
 
-    seg = _segment_group(batch, config.segmentation, network, left_logits)
+    seg = segment_same_size(batch, config.segmentation, network, left_logits)
     lap("segmentation")
     images, detect_mask = _feature_images(batch, seg, config)
     left, right = _features(images, detect_mask, config)

@@ -1,5 +1,6 @@
-"""The stages as the pipeline calls them: segmentation (with the learned segmenters' network), the feature
-images and SURF features, matching, and each pair's status from what the stages found.
+"""The stages as the pipeline calls them: segmentation of a row-aligned pair again (the segmenters themselves:
+:mod:`svs_torch.segmentation.stereo`), the feature images and SURF features, matching, and each pair's status from
+what the stages found.
 """
 
 from __future__ import annotations
@@ -10,8 +11,7 @@ import math
 import torch
 from torch import nn
 
-from ..core.checks import InputError
-from ..core.size_groups import replace_pairs, run_by_size
+from ..core.size_groups import replace_pairs
 from ..core.types import (FundamentalResult, FundamentalStatus, Matches, Segmentation, SegmentationStatus,
                           StereoBatch, StereoSegmentation)
 from ..depth.depth_types import DepthResult
@@ -20,12 +20,9 @@ from ..geometry.matching import match_sad
 from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
 from ..segmentation.components import region_properties
 from ..segmentation.interior import region_interiors
-from ..segmentation.learned import segment_stereo_learned
-from ..segmentation.network_files import cached_obstacle_net
-from ..segmentation.segment import SegmentationConfig, segment_stereo
+from ..segmentation.segment import SegmentationConfig
+from ..segmentation.stereo import segment_same_size
 from .config import MIN_CORRESPONDENCES, PipelineConfig, PipelineStatus
-
-__all__ = ["segment_pair"]
 
 
 def _feature_images(batch: StereoBatch, seg: StereoSegmentation, config: PipelineConfig
@@ -112,50 +109,6 @@ def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: F
     return status
 
 
-def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
-                 left_logits: torch.Tensor | None = None) -> StereoSegmentation:
-    """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
-    ``config.method``) or the learned segmenter (:mod:`svs_torch.segmentation.learned`; ``network``, or the
-    weights ``config.segmenter`` names; ``left_logits``: the left views' logits, already computed); the same
-    structure. Not differentiable. Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes
-    as groups of one size, :mod:`svs_torch.core.size_groups`): padding never enters a threshold's histogram or a region;
-    ``left_logits`` are for a batch whose pairs fill its tensors."""
-    if left_logits is None:
-        return run_by_size(batch, lambda group: _segment_group(group, config, network))
-    if not bool((batch.image_hw == torch.tensor(batch.size_hw, device=batch.image_hw.device)).all()):
-        raise InputError("left_logits: expected a batch whose pairs all fill its tensors (one size); pass none to "
-                         "segment a padded batch pair by pair size")
-    return _segment_group(batch, config, network, left_logits)
-
-
-def _segment_group(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
-                   left_logits: torch.Tensor | None = None) -> StereoSegmentation:
-    if config.segmenter == "otsu":
-        return segment_stereo(batch, config)
-    return segment_stereo_learned(batch, config, _network(batch, config, network), left_logits)
-
-
-def _network(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None) -> nn.Module:
-    """The learned segmenter's network on the batch's device: ``network`` (which must be there already: moving
-    a caller's module would move the parameters its optimiser holds) or the cached weights of
-    ``config.segmenter``, moved and frozen."""
-    if network is None:
-        # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache. Moved
-        # and frozen only when it is not already (walking the module cost 0.3 ms a call, paid at guide's B = 1).
-        cached = cached_obstacle_net(config.segmenter)
-        parameters = list(cached.parameters())
-        if parameters and parameters[0].device != batch.left.device:
-            with torch.inference_mode(False):  # moved in place, and kept: never inference tensors (core.inference)
-                cached = cached.to(batch.left.device)
-        if any(p.requires_grad for p in parameters):
-            cached.requires_grad_(False)
-        return cached
-    device = next(network.parameters()).device
-    if device != batch.left.device:
-        raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
-    return network
-
-
 def measured_labels(seg: StereoSegmentation, width_px: int, config: PipelineConfig) -> torch.Tensor:
     """The left labels ``(B, 1, H, W)`` :func:`~svs_torch.pipeline.estimate_obstacle_depth` measures each object
     over (``PipelineResult.object_labels``): the kept regions of a disparity-based segmenter cut to their interior
@@ -181,7 +134,7 @@ def _segment_row_aligned(batch: StereoBatch, seg: StereoSegmentation, aligned: t
     index, b = aligned.nonzero().flatten(), batch.batch_size
     sub = batch.select(index)
     homographies = H_right.index_select(0, index).to(torch.float64)
-    again = _segment_group(dataclasses.replace(sub, right=warp_views(sub.right, homographies)), config, network)
+    again = segment_same_size(dataclasses.replace(sub, right=warp_views(sub.right, homographies)), config, network)
     again = dataclasses.replace(again, right=_unwarped(again.right, sub.right, torch.linalg.inv(homographies)))
     return replace_pairs(seg, index, again, b, batch.size_hw)
 

@@ -295,6 +295,9 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
     """
     check_image(image, "image")
     check_instance(config, "config", SegmentationConfig)
+    if config.segmenter != "otsu":  # it ran Otsu in silence
+        raise InputError(f"config: segment_images runs the Otsu segmenter on single images; segmenter "
+                         f"{config.segmenter!r} segments both views of a pair: use segment_stereo")
     levels, histogram = gray_levels_and_histogram(image)
     level = otsu_threshold_level(histogram)
     threshold = level.to(image.dtype) / 255
@@ -330,12 +333,19 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
 
 
 def segment_stereo(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig()) -> StereoSegmentation:
-    """Segment both images of every pair; left and right run as one batch of 2B images.
+    """Segment both images of every pair by ``config.segmenter``: Otsu (left and right as one batch of 2B
+    images, :func:`segment_images`), or the learned / nearness segmenter as the pipeline runs it
+    (:func:`svs_torch.segmentation.stereo.segment_pair`, with the shipped or named weights).
 
     Returns:
         :class:`StereoSegmentation`; its pair ``status`` is the left image's where not OK, else the right's.
     """
     check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
+    if config.segmenter != "otsu":  # it ran Otsu in silence
+        from .stereo import segment_pair  # which builds on this module
+
+        return segment_pair(batch, config)
     b = batch.batch_size
     both = segment_images(torch.cat([batch.left, batch.right], dim=0), config)
     left, right = _split(both, b)

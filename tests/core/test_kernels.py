@@ -584,6 +584,7 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     """The C refinement takes the torch path's steps with its sums in double and in its own order: on the
     matches of real pairs, the same rows pass the correlation gate (all but a rare one on the edge) and the
     points agree to 1e-3 px but for a rare ill-conditioned patch."""
+    from svs_torch.pipeline import segment_pair
     from svs_torch.pipeline import stages as pipeline
     from svs_torch.data import collate_stereo_batches, list_shared_pairs, load_stereo_pair
     from svs_torch.geometry.lk_refinement import refine_matches_lk
@@ -592,7 +593,7 @@ def test_lk_kernel_agrees_with_the_torch_refinement(data_dir, monkeypatch):
     pairs = [resize_stereo_batch(load_stereo_pair(path), (320, 240)) for path in list_shared_pairs(data_dir)[:6]]
     batch = collate_stereo_batches(pairs)
     config = pipeline.PipelineConfig()
-    images, mask = pipeline._feature_images(batch, pipeline.segment_pair(batch, config.segmentation), config)
+    images, mask = pipeline._feature_images(batch, segment_pair(batch, config.segmentation), config)
     left, right = pipeline._features(images, mask, config)
     points = gather_matched_points(left.keypoints.xy, right.keypoints.xy, pipeline._match(left, right, config))
     b = batch.batch_size

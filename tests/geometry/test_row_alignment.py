@@ -369,10 +369,10 @@ def test_the_differentiable_pass_segments_the_aligned_pair_as_the_hard_one(data_
     assert_differentiable_depths_are_the_hard_ones(result, pair.left, pair.right)
     # The weights it differentiates through are the probabilities the hard segmentation thresholded.
     from svs_torch.pipeline.run import _row_aligned_logits
-    from svs_torch.pipeline.stages import _network
+    from svs_torch.segmentation.stereo import segmenter_network
     from svs_torch.segmentation.network import predict_obstacle_logits
 
-    net = _network(batch, PipelineConfig().segmentation, None)
+    net = segmenter_network(batch, PipelineConfig().segmentation, None)
     unaligned = predict_obstacle_logits(net, batch.left, rolled)
     aligned = _row_aligned_logits(replace(batch, right=rolled), result, unaligned, net)
     assert torch.equal(aligned > 0, result.segmentation.left.binary)

@@ -142,3 +142,18 @@ def test_config_sweep_with_replace_and_errors():
         SegmentationConfig(kernel_shape="hexagon")
     with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\), got \(1, 40, 50\)"):
         segment_images(torch.rand(1, 40, 50))
+
+
+@pytest.mark.parametrize("segmenter", ["nearness", "learned"])
+def test_segment_stereo_runs_the_segmenter_its_config_names(data_dir, segmenter):
+    """Was: segment_stereo ran Otsu whatever ``config.segmenter`` said, in silence. Now it segments as the pipeline
+    does; segment_images, which has one view, refuses a stereo segmenter by name."""
+    from svs_torch.pipeline import segment_pair
+
+    batch, _, _ = stereo_batch(data_dir)
+    config = SegmentationConfig(segmenter=segmenter)
+    ours = segment_stereo(batch, config)
+    assert torch.equal(ours.left.kept_mask, segment_pair(batch, config).left.kept_mask)
+    assert not torch.equal(ours.left.kept_mask, segment_stereo(batch, SegmentationConfig()).left.kept_mask)
+    with pytest.raises(InputError, match=f"config: segment_images runs the Otsu segmenter .* {segmenter!r}"):
+        segment_images(batch.left, config)
