@@ -25,6 +25,7 @@ __all__ = [
     "check_flag",
     "check_count",
     "check_real",
+    "check_generator",
 ]
 
 
@@ -161,3 +162,9 @@ def check_real(value: object, name: str, low: float = -math.inf, high: float = m
         raise InputError(f"{name}: expected a finite number in {interval}{' or None' if optional else ''}, "
                          f"got {value!r}")
 
+
+def check_generator(generator: object, name: str = "generator") -> None:
+    """``None`` or a :class:`torch.Generator` (every random draw goes through one), e.g. not a seed."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise InputError(f"{name}: expected a torch.Generator or None (seed one with manual_seed), got "
+                         f"{type(generator).__name__}")

@@ -172,13 +172,23 @@ class StereoBatch:
         return torch.where(valid, scale / safe, torch.zeros_like(denom)), valid
 
     def select(self, index: torch.Tensor | list[int] | slice) -> StereoBatch:
-        """The pairs at ``index`` (a slice, a list of ints or an int64/bool tensor) as a new batch."""
+        """The pairs at ``index`` (a slice, a list of ints or an int64/bool tensor) as a new batch; a negative
+        index counts from the end, as in a list."""
+        b = self.batch_size
         if isinstance(index, slice):
-            keep = list(range(self.batch_size))[index]
+            keep = list(range(b))[index]
         elif isinstance(index, torch.Tensor) and index.dtype == torch.bool:
+            if tuple(index.shape) != (b,):
+                raise InputError(f"index: expected a ({b},) bool mask, got {tuple(index.shape)}")
             keep = index.nonzero().flatten().tolist()
         else:
-            keep = [int(i) for i in index]
+            try:
+                keep = [int(i) for i in (index.flatten().tolist() if isinstance(index, torch.Tensor) else index)]
+            except (TypeError, ValueError):
+                raise InputError(f"index: expected a slice, ints or a bool mask, got {index!r}") from None
+            if any(not -b <= i < b for i in keep):
+                raise InputError(f"index: expected pair indices in [-{b}, {b}), got {keep}")
+            keep = [i % b for i in keep]
         idx = torch.tensor(keep, dtype=torch.int64, device=self.left.device)
         fields = {}
         for field in dataclasses.fields(self):

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_generator, check_shape
 from ..core.types import StereoBatch
 from .heap_rendering import make_heap_field
 from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
@@ -75,6 +75,7 @@ class SyntheticScenes:
 
 def _resolve_generator(generator: torch.Generator | None, device: torch.device) -> torch.Generator:
     """The caller's generator, or a fresh one with a nondeterministic seed: the global RNG is never used."""
+    check_generator(generator)
     if generator is not None:
         return generator
     fresh = torch.Generator(device=device)

@@ -38,5 +38,5 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     logits = torch.where(any_inside.unsqueeze(1), logits, torch.zeros_like(logits))
     weights = torch.softmax(logits, dim=1)
     values = (minimum.view(-1, 1) + torch.arange(num_disparities, device=left.device)).to(costs.dtype)
-    expected = (weights * values.view(b, -1, 1, 1)).sum(dim=1, keepdim=True)
+    expected = (weights * values.view(b, num_disparities, 1, 1)).sum(dim=1, keepdim=True)  # b may be 0
     return torch.where(any_inside.unsqueeze(1), expected, values[:, :1].view(b, 1, 1, 1).expand_as(expected))

@@ -32,11 +32,13 @@ status-gated estimates): these are reports, not losses.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 
+from ..core.checks import InputError, check_instance
 from ..core.types import Segmentation, StereoBatch
 from ..depth.quantiles import kept_region_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
@@ -126,7 +128,18 @@ def estimates_from_result(result: PipelineResult) -> list[PairEstimate]:
 
 
 def accuracy_pct(real: float, estimated: float | None) -> float:
-    """Eq. (9): ``(1 − |real − estimated| / real) · 100``; a missing estimate (or a worse than 0 %) counts 0."""
+    """Eq. (9): ``(1 − |real − estimated| / real) · 100``; a missing estimate (or a worse than 0 %) counts 0.
+
+    Raises:
+        InputError: ``real`` is not a finite positive distance (0 divided by zero; a negative one scored above
+            100 %).
+    """
+    try:
+        number = math.nan if isinstance(real, bool) else float(real)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not 0 < number < math.inf:
+        raise InputError(f"real: expected a finite positive distance, got {real!r}")
     return 0.0 if estimated is None else max(0.0, (1 - abs(real - estimated) / real) * 100)
 
 
@@ -299,6 +312,7 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
         px_scale: per pair, the data's native width over the width the pipeline ran at (the stereo metrics'
             errors are in native pixels, :mod:`.stereo_metrics`); None: 1 (the pipeline ran at native size).
     """
+    _check_evaluated(batch, result, calibrated, px_scale)
     estimates = estimates_from_result(result)
     has_gt = batch.disparity_px is not None
     truth = object_truth(batch, measured_regions(result)) if has_gt else None
@@ -331,3 +345,18 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
             metric_px_scale=(1.0 if px_scale is None else float(px_scale[i])) if scopes else None,
             **_error_fields(dense, i, "dense"), **_error_fields(sparse, i, "sparse"), **_stereo_fields(scopes, i)))
     return evaluations
+
+
+def _check_evaluated(batch: StereoBatch, result: PipelineResult, calibrated: Sequence[bool] | None,
+                     px_scale: Sequence[float] | None) -> None:
+    """:func:`evaluate_result`'s arguments: a result of a run on this batch (its pairs, its size), one value per pair
+    (a result of another batch failed deep inside torch, or scored pairs against another's truth)."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult)
+    b, size = batch.batch_size, tuple(result.segmentation.left.kept_mask.shape[-2:])
+    if result.status.shape[0] != b or size != batch.size_hw:
+        raise InputError(f"result: expected the result of a run on batch ({b} pairs of {batch.size_hw[1]}x"
+                         f"{batch.size_hw[0]}), got {result.status.shape[0]} pairs of {size[1]}x{size[0]}")
+    for name, values in (("calibrated", calibrated), ("px_scale", px_scale)):
+        if values is not None and len(values) != b:
+            raise InputError(f"{name}: expected {b} values, one per pair, got {len(values)}")

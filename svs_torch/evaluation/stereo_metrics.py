@@ -144,8 +144,8 @@ def _measure(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Te
             check_shape(mask, "mask", list(disparity_px.shape))
             check_dtype(mask, "mask", "bool")
     dtype, device = disparity_px.dtype, disparity_px.device
-    pixels = disparity_px[0, 0].numel()
-    rows, columns = (truth_valid & valid).reshape(b, -1).nonzero(as_tuple=True)  # grouped by pair, in order
+    pixels = disparity_px.shape[-2] * disparity_px.shape[-1]  # of one map (B may be 0)
+    rows, columns = (truth_valid & valid).reshape(b, pixels).nonzero(as_tuple=True)  # grouped by pair, in order
     flat = rows * pixels + columns  # (M,)
     estimate = disparity_px.reshape(-1).index_select(0, flat)
     truth = truth_px.to(dtype).reshape(-1).index_select(0, flat)
@@ -174,7 +174,7 @@ def _measure(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: torch.Te
                          sorted_d1=table(d1_hit, False).gather(1, order),
                          sorted_error64=torch.where(present, ordered, torch.zeros_like(ordered)).to(torch.float64),
                          ordered=ordered, below=torch.searchsorted(ordered, thresholds, right=True), batch_size=b)
-    return [_one_mask(truth_valid.reshape(b, -1) if mask is None else (truth_valid & mask).reshape(b, -1),
+    return [_one_mask(truth_valid.reshape(b, pixels) if mask is None else (truth_valid & mask).reshape(b, pixels),
                       measured, dtype) for mask in masks]
 
 

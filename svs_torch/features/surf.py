@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from ..core.checks import check_shape
 from ..core.types import Keypoints
 from .descriptor import describe_surf, surf_orientation, with_orientation
 from .detector import SurfConfig, detect_surf_keypoints
@@ -42,7 +43,12 @@ def extract_surf_features(
         keypoints; the detection itself is not. A batch of more than ``BLOCK_IMAGES`` images runs in blocks of
         that many (cache), padded to one K.
     """
-    if image.dim() == 4 and image.shape[0] > BLOCK_IMAGES:
+    check_shape(image, "image", ["B", 1, "H", "W"])  # before the blocks read its shape (an array has no dim())
+    # A strided view (a crop, a channel of a colour batch) is summed in another order by the integral image and
+    # gave slightly different keypoints than the same pixels copied: one layout, one answer.
+    image = image.contiguous()
+    mask = None if mask is None or not isinstance(mask, torch.Tensor) else mask.contiguous()
+    if image.shape[0] > BLOCK_IMAGES:
         # Blocks of images, each batched, then padded to one K: the integral images and box-filter responses of
         # a block stay in cache, of a whole batch they do not (320x240, ms per image: 6.5 in blocks of 8 against
         # 19 for 64 images at once and 28 for 128; in the pipeline on the 45 shared pairs, features 44 -> 10 ms a

@@ -48,6 +48,8 @@ def _check_match_args(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_l
     dims.update(check_shape(desc_right, "desc_right", [dims["B"], "K2", dims["D"]]))
     check_dtype(desc_left, "desc_left", "float")
     check_dtype(desc_right, "desc_right", "float")
+    if desc_right.dtype != desc_left.dtype:  # cdist would refuse the mix from deep inside torch
+        raise InputError(f"desc_right: expected the dtype of desc_left, {desc_left.dtype}, got {desc_right.dtype}")
     check_shape(valid_left, "valid_left", [dims["B"], dims["K"]])
     check_dtype(valid_left, "valid_left", "bool")
     check_shape(valid_right, "valid_right", [dims["B"], dims["K2"]])
@@ -123,7 +125,7 @@ def _match_group(desc_left: torch.Tensor, desc_right: torch.Tensor, gates: tuple
 
 def _used_rows(valid: torch.Tensor) -> int:
     """1 + the last valid row index over the batch (0 when nothing is valid)."""
-    if valid.shape[1] == 0:
+    if valid.numel() == 0:  # no keypoint rows, or no pairs (B = 0)
         return 0
     rows = torch.arange(1, valid.shape[1] + 1, device=valid.device)
     return int((valid * rows).amax())

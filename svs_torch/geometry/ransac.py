@@ -52,7 +52,7 @@ import math
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_generator, check_shape
 from ..core.types import FundamentalResult, FundamentalStatus
 from . import kernels
 from .epipolar_distance import _epipolar_terms, _safe_ratio
@@ -170,6 +170,7 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
     check_dtype(points_right, "points_right", "float")
     check_shape(valid, "valid", [dims["B"], dims["K"]])
     check_dtype(valid, "valid", "bool")
+    check_generator(generator)
     if pair_seeds is not None:
         if generator is not None:
             raise InputError("pair_seeds: expected either pair_seeds or generator, not both")

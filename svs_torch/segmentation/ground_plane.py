@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..core.checks import check_generator
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
@@ -252,6 +253,7 @@ _DRAWS: dict[tuple[int, int], torch.Tensor] = {}
 def _draws(config: GroundPlaneConfig, generator: torch.Generator | None) -> torch.Tensor:
     """The samples' uniforms ``(N, 5)`` float64 on the CPU: from ``generator``, or from one seeded with
     ``config.seed`` (drawn once per process)."""
+    check_generator(generator)
     if generator is not None:
         return torch.rand(config.hypotheses, 5, generator=generator, dtype=torch.float64)
     key = (config.seed, config.hypotheses)

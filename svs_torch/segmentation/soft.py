@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_finite, check_image, check_shape
 from ..core.types import Segmentation
 from .morphology import anchor_padding, structuring_element
 from .segment import SegmentationConfig, segment_images
@@ -46,6 +46,7 @@ def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: fl
     check_image(image, "image")
     check_shape(threshold, "threshold", [image.shape[0]])
     check_dtype(threshold, "threshold", "float")
+    check_finite(threshold, "threshold")  # a NaN gave NaN masks in silence (any finite value is a threshold)
     _check_temperature(temperature)
     return torch.sigmoid((image - threshold.view(-1, 1, 1, 1)) / temperature)
 

@@ -1,0 +1,104 @@
+"""Edge inputs of the Python API that an audit of its public calls found, pinned down: each was a raw error from
+deep inside torch (or Python), or a silent wrong answer. The docstring of each test says which."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from svs_torch import (InputError, estimate_fundamental_ransac, estimate_obstacle_depth,
+                       extract_surf_features, match_sad)
+from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.depth.soft_dense import soft_block_match
+from svs_torch.evaluation import evaluate_result, measure_stereo_metrics
+from svs_torch.evaluation.metrics import accuracy_pct
+from svs_torch.segmentation.soft import soft_segment_images
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return random_obstacle_scenes(3, 2, size_wh=(96, 72), generator=torch.Generator().manual_seed(5))
+
+
+# ------------------------------------------------------------------------------------------------- B = 0
+def test_an_empty_batch_gives_empty_results(generator):
+    """Was: IndexError / 'cannot reshape tensor of 0 elements' from match_sad, soft_block_match and
+    measure_stereo_metrics on a batch of no pairs."""
+    descriptors, valid = torch.rand(0, 5, 64, generator=generator), torch.ones(0, 5, dtype=torch.bool)
+    matches = match_sad(descriptors, descriptors, valid, valid)
+    assert matches.idx.shape == (0, 5) and matches.cost.shape == (0, 5)
+    images = torch.rand(0, 1, 12, 20, generator=generator)
+    assert soft_block_match(images, images, 0, 8, 0.1).shape == (0, 1, 12, 20)
+    metrics = measure_stereo_metrics(images, images > 0, images, images > 0)
+    assert metrics.bad_pct.shape == (0, 4) and metrics.density.shape == (0,)
+
+
+# ------------------------------------------------------------------------------------------------- wrong types
+def test_match_sad_names_mixed_descriptor_dtypes(generator):
+    """Was: RuntimeError from cdist ('expected scalar type Float but found Double')."""
+    valid = torch.ones(1, 4, dtype=torch.bool)
+    with pytest.raises(InputError, match="desc_right: expected the dtype of desc_left, torch.float32, got "
+                                         "torch.float64"):
+        match_sad(torch.rand(1, 4, 64, generator=generator),
+                  torch.rand(1, 4, 64, generator=generator, dtype=torch.float64), valid, valid)
+
+
+def test_a_seed_passed_as_the_generator_is_refused(generator):
+    """Was: TypeError from torch.randint ('received an invalid combination of arguments')."""
+    points = torch.rand(1, 10, 2, generator=generator)
+    with pytest.raises(InputError, match="generator: expected a torch.Generator or None"):
+        estimate_fundamental_ransac(points, points, torch.ones(1, 10, dtype=torch.bool), generator=5)
+    with pytest.raises(InputError, match="generator: expected a torch.Generator or None"):
+        random_obstacle_scenes(1, 1, size_wh=(48, 36), generator=7)
+
+
+def test_surf_names_an_array_and_answers_a_strided_view_as_its_copy(scenes):
+    """Was: AttributeError ''numpy.ndarray' object has no attribute 'dim''; and a transposed-back view of an image
+    gave slightly different keypoints than the same pixels stored in order."""
+    image = scenes.batch.left
+    with pytest.raises(InputError, match=r"image: expected a torch.Tensor of shape \(B, 1, H, W\), got ndarray"):
+        extract_surf_features(image.numpy())
+    strided = image.transpose(-1, -2).contiguous().transpose(-1, -2)
+    assert not strided.is_contiguous()
+    ours, theirs = extract_surf_features(strided), extract_surf_features(image)
+    assert torch.equal(ours.keypoints.xy, theirs.keypoints.xy)
+    assert torch.equal(ours.descriptors, theirs.descriptors)
+
+
+def test_select_counts_negative_indices_from_the_end_and_names_a_bad_one(scenes):
+    """Was: IndexError from index_select for select([-1]) (a list's last item), and for an index past the end."""
+    batch = scenes.batch
+    assert torch.equal(batch.select([-1]).left, batch.select([2]).left)
+    assert torch.equal(batch.select(torch.tensor([0, -2])).left, batch.select([0, 1]).left)
+    with pytest.raises(InputError, match=r"index: expected pair indices in \[-3, 3\), got \[3\]"):
+        batch.select([3])
+    with pytest.raises(InputError, match=r"index: expected a \(3,\) bool mask, got \(2,\)"):
+        batch.select(torch.tensor([True, False]))
+
+
+def test_evaluate_result_refuses_a_result_of_another_batch(scenes):
+    """Was: RuntimeError 'The size of tensor a (3) must match the size of tensor b (1)' from the scoring."""
+    result = estimate_obstacle_depth(scenes.batch.select([0]))
+    with pytest.raises(InputError, match=r"result: expected the result of a run on batch \(3 pairs of 96x72\), "
+                                         r"got 1 pairs of 96x72"):
+        evaluate_result(scenes.batch, result)
+    with pytest.raises(InputError, match="px_scale: expected 1 values, one per pair, got 2"):
+        evaluate_result(scenes.batch.select([0]), result, px_scale=[1.0, 1.0])
+
+
+# ------------------------------------------------------------------------------------------------- silent answers
+@pytest.mark.parametrize("real", [0.0, -1.0, float("nan"), float("inf")])
+def test_accuracy_needs_a_finite_positive_true_distance(real):
+    """Was: ZeroDivisionError for 0, and 300 % for a true distance of −1 m against an estimate of 1 m."""
+    with pytest.raises(InputError, match="real: expected a finite positive distance"):
+        accuracy_pct(real, 1.0)
+    assert accuracy_pct(np.float32(2.0), 1.9) == pytest.approx(95.0)
+
+
+def test_a_nan_threshold_is_refused_not_turned_into_nan_masks(scenes):
+    """Was: soft_segment_images(image, threshold=NaN) returned NaN masks without a word."""
+    image = scenes.batch.left
+    with pytest.raises(InputError, match="threshold: expected finite values, got nan"):
+        soft_segment_images(image, torch.full((3,), float("nan")))
+
