@@ -878,6 +878,21 @@ def test_odd_arguments_get_one_line_naming_them(tmp_path, capfd, argv, message):
     assert capfd.readouterr().err == ""  # nothing below Python's stderr either
 
 
+def test_a_failing_right_view_gets_one_line_without_the_left_views_warning(tmp_path, capfd):
+    """Found by the pair-command property (SVS_HARDENING_SCALE=60): a 16-bit left view read as nearly black warned
+    before the missing right view's error, two lines for a refusal. A pair's warnings now wait for both views; a pair
+    that loads gives them all."""
+    left = tmp_path / "left.png"
+    cv2.imwrite(str(left), np.full((24, 32), 2043, np.uint16))
+    code, _, err = run_main(["estimate", str(left), str(tmp_path / "missing.png")])
+    assert code == 2 and err.splitlines() == [f"svs-depth estimate: error: right: file not found: "
+                                              f"{tmp_path / 'missing.png'}"]
+    code, _, err = run_main(["estimate", str(left), str(left), "--json"])
+    assert code == 0 and [line.split(": a 16-bit")[0] for line in err.splitlines()] == [
+        "svs-depth estimate: warning: left", "svs-depth estimate: warning: right"]
+    assert capfd.readouterr().err == ""
+
+
 @pytest.mark.parametrize("suffix, cut", [(".png", 0.5), (".png", 0.05), (".tif", 0.5), (".bmp", 0.1), (".jpg", 0.5)])
 def test_a_damaged_image_file_gives_one_line_and_nothing_from_the_decoders(tmp_path, capfd, suffix, cut):
     """Was: libpng / libtiff / OpenCV's logger printed their own lines ('libpng error: IDAT: CRC error', '[ERROR:0@...]

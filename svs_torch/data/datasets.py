@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +102,14 @@ def _make_batch(
 
 
 def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
+    """Both views; a view's warnings (a 16-bit file read as nearly black) are given once both are read, so a pair
+    whose right view fails gets its one error, not a warning about its left view first."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        left, right = read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
+    for warning in caught:
+        warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+    return left, right
 
 
 def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
