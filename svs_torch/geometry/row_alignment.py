@@ -345,7 +345,8 @@ def _fit_keystone(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor
                   image_hw: torch.Tensor, focal_px: torch.Tensor, config: RowAlignmentConfig) -> RowAlignment | None:
     """The keystone alignment (module docstring, "Keystone") started from the similarity's ``inliers``, valid where
     a turn term is significant and the fit stays within the config's limits; None where no pair reads a turn."""
-    params, error = keystone_refit(left, right, inliers, image_hw, focal_px, torch.ones_like(valid[:, :2]))
+    both_terms = torch.ones(valid.shape[0], 2, dtype=torch.bool, device=valid.device)  # (B, 2) even for K < 2
+    params, error = keystone_refit(left, right, inliers, image_hw, focal_px, both_terms)
     read = params[:, 3:] / params[:, :1]
     terms = ((torch.rad2deg(torch.atan(read)).abs() >= config.keystone_min_deg)
              & (params[:, 3:].abs() >= config.keystone_min_t * error[:, 3:]))

@@ -377,3 +377,16 @@ def test_the_differentiable_pass_segments_the_aligned_pair_as_the_hard_one(data_
     aligned = _row_aligned_logits(replace(batch, right=rolled), result, unaligned, net)
     assert torch.equal(aligned > 0, result.segmentation.left.binary)
     assert not torch.equal(unaligned > 0, result.segmentation.left.binary)
+
+
+@pytest.mark.parametrize("b", [0, 1, 2])
+@pytest.mark.parametrize("k", [0, 1])
+def test_under_two_matches_give_no_alignment_on_the_torch_path(monkeypatch, b, k):
+    """Found by the kernel fuzz (SVS_FUZZ_SCALE=20): with fewer than two match rows the keystone refit's turn terms
+    were (B, K) instead of (B, 2), and the torch path raised 'stack expects each tensor to be equal size'."""
+    monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    points = torch.rand(b, k, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(k)) * 100
+    alignment = fit_row_alignment(points, points.clone(), torch.ones(b, k, dtype=torch.bool),
+                                  torch.full((b, 2), 100, dtype=torch.int64),
+                                  focal_px=torch.full((b,), 100.0, dtype=torch.float64))
+    assert alignment.H_right.shape == (b, 3, 3) and not alignment.valid.any()
