@@ -1,7 +1,10 @@
-"""Edge inputs of the Python API that an audit of its public calls found, pinned down: each was a raw error from
-deep inside torch (or Python), or a silent wrong answer. The docstring of each test says which."""
+"""Edge inputs of the Python API that an audit of its public calls (and the kernel fuzz run at a larger scale) found,
+pinned down: each was a raw error from deep inside torch (or Python), or a silent wrong answer. The docstring of
+each test says which."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -102,3 +105,29 @@ def test_a_nan_threshold_is_refused_not_turned_into_nan_masks(scenes):
     with pytest.raises(InputError, match="threshold: expected finite values, got nan"):
         soft_segment_images(image, torch.full((3,), float("nan")))
 
+
+
+# ------------------------------------------------------------------------------------------------- kernel fuzz finds
+def test_descriptors_refuse_a_keypoint_scale_that_is_not_finite_and_positive(scenes):
+    """Found by the kernel fuzz (SVS_FUZZ_SCALE=40): a valid keypoint of scale -inf passed the border's memory check
+    (its patch lay -inf px beyond the image) and overflowed math.ceil."""
+    from svs_torch.features.descriptor import describe_surf
+
+    keypoints = extract_surf_features(scenes.batch.left).keypoints
+    for bad in (-float("inf"), float("nan"), 0.0, -1.0):
+        scale = torch.where(keypoints.valid, keypoints.scale, 0.0)
+        scale[0, 0] = bad
+        with pytest.raises(InputError, match="keypoints.scale: expected finite positive scales at valid keypoints"):
+            describe_surf(scenes.batch.left, dataclasses.replace(keypoints, scale=scale))
+
+
+def test_match_sad_refuses_nan_descriptors_in_valid_rows(generator):
+    """Found by the kernel fuzz (SVS_FUZZ_SCALE=40): a NaN descriptor row won the torch path's mutual check (NaN is
+    argmin's least) while the kernel ignored it, so the two paths matched differently. Padding may hold anything."""
+    left = torch.rand(1, 3, 4, generator=generator)
+    right = torch.rand(1, 1, 4, generator=generator)
+    left[0, 2, 3] = float("nan")
+    with pytest.raises(InputError, match="desc_left: expected finite descriptors in valid rows"):
+        match_sad(left, right, torch.ones(1, 3, dtype=torch.bool), torch.ones(1, 1, dtype=torch.bool), mutual=True)
+    matches = match_sad(left, right, torch.tensor([[True, True, False]]), torch.ones(1, 1, dtype=torch.bool))
+    assert matches.idx.shape == (1, 3) and matches.idx[0, 2] == -1

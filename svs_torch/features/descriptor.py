@@ -52,6 +52,12 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     # A NaN position has no pixel to sample (the kernel would cast it to an index, the torch path give NaN).
     if bool((keypoints.xy.detach().isnan().any(-1) & keypoints.valid).any()):
         raise InputError("keypoints.xy: expected no NaN at valid keypoints")
+    # A scale of -inf put the patch at -inf px "beyond" the image, which passed the border's memory check and then
+    # overflowed math.ceil; a scale of 0 or below has no patch to sample.
+    scale = keypoints.scale.detach()[keypoints.valid]
+    if not bool((scale.isfinite() & (scale > 0)).all()):
+        bad = scale[~(scale.isfinite() & (scale > 0))][0]
+        raise InputError(f"keypoints.scale: expected finite positive scales at valid keypoints, got {float(bad):g}")
 
 
 def _border_px(image: torch.Tensor, keypoints: Keypoints, reach: float) -> int:

@@ -54,6 +54,12 @@ def _check_match_args(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_l
     check_dtype(valid_left, "valid_left", "bool")
     check_shape(valid_right, "valid_right", [dims["B"], dims["K2"]])
     check_dtype(valid_right, "valid_right", "bool")
+    # A NaN distance is the least to argmin (the torch path's mutual check) and no distance to the kernel: the two
+    # paths matched differently. Padding may hold anything; only valid rows are read.
+    for name, desc, valid in (("desc_left", desc_left, valid_left), ("desc_right", desc_right, valid_right)):
+        if not bool(desc.detach().isfinite().all()) and not bool(
+                torch.where(valid.unsqueeze(-1), desc.detach(), 0.0).isfinite().all()):
+            raise InputError(f"{name}: expected finite descriptors in valid rows (NaN or inf found)")
     return dims
 
 
