@@ -47,7 +47,8 @@ def extract_surf_features(
     # A strided view (a crop, a channel of a colour batch) is summed in another order by the integral image and
     # gave slightly different keypoints than the same pixels copied: one layout, one answer.
     image = image.contiguous()
-    mask = None if mask is None or not isinstance(mask, torch.Tensor) else mask.contiguous()
+    if isinstance(mask, torch.Tensor):  # anything else is named by the detector's own check
+        mask = mask.contiguous()
     if image.shape[0] > BLOCK_IMAGES:
         # Blocks of images, each batched, then padded to one K: the integral images and box-filter responses of
         # a block stay in cache, of a whole batch they do not (320x240, ms per image: 6.5 in blocks of 8 against
