@@ -10,9 +10,9 @@ May import: ``svs_torch.core`` and every stage's public names. Only ``evaluation
 import the pipeline; a stage never does.
 """
 
+from ..segmentation.stereo import segment_pair
 from .config import PipelineConfig, PipelineResult, PipelineStatus
 from .run import estimate_obstacle_depth
-from ..segmentation.stereo import segment_pair
 from .stages import measured_labels
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "measured_labels",

@@ -35,7 +35,8 @@ from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
-from .stages import _feature_images, _features, _match, _segment_row_aligned, _status, gaussian_smoothed, measured_labels
+from .stages import (_feature_images, _features, _match, _segment_row_aligned, _status, gaussian_smoothed,
+                     measured_labels)
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -128,9 +129,9 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     logits = None
     if config.differentiable and config.segmentation.segmenter != "otsu":
         # The left views' logits once, with gradients: the hard segmentation thresholds them (detached).
-        logits = predict_obstacle_logits(segmenter_network(batch, config.segmentation, network), batch.left, batch.right,
-                                         config.segmentation.ground, batch.baseline_m, batch.focal_px,
-                                         config.segmentation.camera_frames)
+        net = segmenter_network(batch, config.segmentation, network)
+        logits = predict_obstacle_logits(net, batch.left, batch.right, config.segmentation.ground, batch.baseline_m,
+                                         batch.focal_px, config.segmentation.camera_frames)
     with torch.no_grad():
         result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
                                      exposure_matched=matched,
