@@ -844,8 +844,10 @@ def test_no_keypoints_asked_for_leaves_the_dense_stage_to_range():
     SurfConfig(max_keypoints=0). Now the dense stage ranges the scene without sparse inliers."""
     scenes = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3))
     result = estimate_obstacle_depth(scenes.batch, PipelineConfig(surf=SurfConfig(max_keypoints=0)))
-    check_status(result.status, 1, PipelineStatus)
-    assert result.depth.disparities.valid.shape[1] == 0
+    assert result.status.tolist() == [PipelineStatus.OK] and result.depth.disparities.valid.shape[1] == 0
+    with_keypoints = estimate_obstacle_depth(scenes.batch)
+    torch.testing.assert_close(result.depth.objects.depth_median_m, with_keypoints.depth.objects.depth_median_m,
+                               rtol=0.01, atol=0.0)
 
 
 @pytest.mark.parametrize("argv, message", [
