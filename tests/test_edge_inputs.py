@@ -62,6 +62,8 @@ def test_surf_names_an_array_and_answers_a_strided_view_as_its_copy(scenes):
     image = scenes.batch.left
     with pytest.raises(InputError, match=r"image: expected a torch.Tensor of shape \(B, 1, H, W\), got ndarray"):
         extract_surf_features(image.numpy())
+    with pytest.raises(InputError, match=r"mask: expected a torch.Tensor of shape \(3, 1, 72, 96\), got ndarray"):
+        extract_surf_features(image, mask=image.numpy() > 0)
     strided = image.transpose(-1, -2).contiguous().transpose(-1, -2)
     assert not strided.is_contiguous()
     ours, theirs = extract_surf_features(strided), extract_surf_features(image)
