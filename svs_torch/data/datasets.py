@@ -12,9 +12,11 @@ scenes whose values follow from it); elsewhere the values are nominal and depth 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -101,15 +103,22 @@ def _make_batch(
                                    disparity_nonoccluded=nonoccluded_t)
 
 
-def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both views; a view's warnings (a 16-bit file read as nearly black) are given once both are read, so a pair
-    whose right view fails gets its one error, not a warning about its left view first."""
+@contextlib.contextmanager
+def _warnings_once_loaded() -> Iterator[None]:
+    """The warnings raised inside (a 16-bit file read as nearly black), given only when the block completes: a pair
+    that then fails (its right view missing, of another size) gets its one error, not a warning about a view
+    first."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        left, right = read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
+        yield
     for warning in caught:
         warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
-    return left, right
+
+
+def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Both views (their warnings given once both are read)."""
+    with _warnings_once_loaded():
+        return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
 
 
 def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
@@ -247,7 +256,13 @@ def load_image_pair(
             finite and positive, a non-finite doffs, or
             left and right of different sizes (naming ``right`` and both sizes).
     """
-    left, right = _read_pair(Path(left_path), Path(right_path), dtype)
+    with _warnings_once_loaded():  # until the pair is built: views of two sizes are refused without a warning
+        return _image_pair(Path(left_path), Path(right_path), focal_px, baseline_m, doffs_px, dtype)
+
+
+def _image_pair(left_path: Path, right_path: Path, focal_px: float | None, baseline_m: float | None,
+                doffs_px: float, dtype: torch.dtype) -> StereoBatch:
+    left, right = _read_pair(left_path, right_path, dtype)
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{name}: expected a finite positive value, got {value}")
