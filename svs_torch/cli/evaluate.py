@@ -32,12 +32,12 @@ carry every metric (map_*/kept_* keys, and per object); rectified pairs and the 
 
 PATH is a scene folder of any shared format (MiddEval3, Middlebury 2001-2006, KITTI, OpenCV aloe), a folder of
 scene folders (or the shared data folder), a pair list ('LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M
-[DOFFS_PX]' or a scene folder per line) or svs-depth capture's index.jsonl. Every pair keeps its own
-calibration; a scene without a measured one is scored with a nominal one for truth and estimate alike (its
-metres nominal): it is marked NOMINAL in the calib column and its accuracy reported apart from the headline
-means. A listed pair without ground truth is ranged in the metres estimate gives it (the SVS model, or
---focal-px / --baseline-m, either alone). A KITTI training folder stands for each of its frames. Every row names
-its calibration and source ("calibration" in the JSON; a list after the table).
+[DOFFS_PX]' or a scene folder per line; # comments; paths relative to the list's folder) or svs-depth capture's
+index.jsonl. Every pair keeps its own calibration; a scene without a measured one is scored with a nominal one
+for truth and estimate alike (its metres nominal): it is marked NOMINAL in the calib column and its accuracy
+reported apart from the headline means. A listed pair without ground truth is ranged in the metres estimate
+gives it (the SVS model, or --focal-px / --baseline-m, either alone). A KITTI training folder stands for each of
+its frames. Every row names its calibration and source ("calibration" in the JSON; a list after the table).
 
 Configuration: --preset default|paper, or --config FILE.toml, then any --set KEY=VALUE with a dotted field of
 the pipeline configuration: segmentation.kernel_size, segmentation.num_keep, surf.metric_threshold,
