@@ -106,8 +106,9 @@ def _make_batch(
 @contextlib.contextmanager
 def _warnings_once_loaded() -> Iterator[None]:
     """The warnings raised inside (a 16-bit file read as nearly black), given only when the block completes: a pair
-    that then fails (its right view missing, of another size) gets its one error, not a warning about a view
-    first."""
+    that then fails (its right view missing, of another size, its ground truth unreadable) gets its one error, not
+    a warning about a view first. Each loader below is wrapped in it whole (a context manager made by
+    ``contextmanager`` is also a decorator)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
@@ -116,11 +117,10 @@ def _warnings_once_loaded() -> Iterator[None]:
 
 
 def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both views (their warnings given once both are read)."""
-    with _warnings_once_loaded():
-        return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
+    return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
 
 
+@_warnings_once_loaded()
 def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``disp0GT.pfm``, ``calib.txt``), e.g. trainingQ/Teddy.
 
@@ -150,6 +150,7 @@ def _read_mask(path: Path, name: str) -> np.ndarray:
     return array
 
 
+@_warnings_once_loaded()
 def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Middlebury 2005/2006 third-size scene (``view1.png`` left, ``view5.png`` right, ``disp1.png`` = 3·d).
 
@@ -166,6 +167,7 @@ def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.
                        calibrated=dmin_full is not None, disparity=disparity, valid=valid)
 
 
+@_warnings_once_loaded()
 def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
 
@@ -185,6 +187,7 @@ def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float
     return _make_batch(left, right, f"2003/{scene_dir.name}", disparity=disparity, valid=valid, **camera)
 
 
+@_warnings_once_loaded()
 def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Middlebury 2001 scene: Tsukuba (``imL/imR.png``, ``truedisp.pgm`` = 16·d) or Venus (``im2/im6.ppm``,
     ``disp2.pgm`` = 8·d); 0 = unknown. No calibration: SVS nominal focal and baseline, calibrated False."""
@@ -199,6 +202,7 @@ def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float
                        baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
 
 
+@_warnings_once_loaded()
 def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32) -> StereoBatch:
     """KITTI stereo 2012 (``colored_0/1``, ``disp_occ``) or 2015 (``image_2/3``, ``disp_occ_0``) training frame.
 
@@ -226,6 +230,7 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
                        disparity=disparity, valid=valid, nonoccluded=nonoccluded)
 
 
+@_warnings_once_loaded()
 def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """OpenCV sample Aloe (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png`` = d, 0 = unknown), full size 1282×1110.
 
@@ -238,6 +243,7 @@ def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) 
                        baseline_m=_MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
 
 
+@_warnings_once_loaded()
 def load_image_pair(
     left_path: str | Path,
     right_path: str | Path,
@@ -256,13 +262,7 @@ def load_image_pair(
             finite and positive, a non-finite doffs, or
             left and right of different sizes (naming ``right`` and both sizes).
     """
-    with _warnings_once_loaded():  # until the pair is built: views of two sizes are refused without a warning
-        return _image_pair(Path(left_path), Path(right_path), focal_px, baseline_m, doffs_px, dtype)
-
-
-def _image_pair(left_path: Path, right_path: Path, focal_px: float | None, baseline_m: float | None,
-                doffs_px: float, dtype: torch.dtype) -> StereoBatch:
-    left, right = _read_pair(left_path, right_path, dtype)
+    left, right = _read_pair(Path(left_path), Path(right_path), dtype)
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{name}: expected a finite positive value, got {value}")
@@ -290,6 +290,7 @@ def pair_name(left_path: str | Path) -> str:
     return path.resolve().parent.name or path.stem if generic else path.stem
 
 
+@_warnings_once_loaded()
 def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Load one pair, detecting the format from a folder's contents.
 
