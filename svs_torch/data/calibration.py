@@ -12,7 +12,8 @@ from ..core.types import StereoBatch
 from .datasets import scene_calibration_source
 from .pair_list import PairSource
 
-__all__ = ["SVS_MODEL_ASSUMED", "calibration_fields", "calibration_record", "format_calibration", "pair_calibration_source"]
+__all__ = ["SVS_MODEL_ASSUMED", "calibration_fields", "calibration_record", "format_calibration",
+           "pair_calibration_source"]
 
 #: The source of a plain pair's calibration when neither its list line nor an option gives one.
 SVS_MODEL_ASSUMED = "the SVS model assumed"

@@ -74,11 +74,8 @@ class DepthConfig:
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
-        if isinstance(self.min_object_pixels_in_view, bool) or not isinstance(self.min_object_pixels_in_view, int) \
-                or self.min_object_pixels_in_view < 0:
-            raise InputError(f"min_object_pixels_in_view: expected an int >= 0, got {self.min_object_pixels_in_view!r}")
-        check_count(self.min_object_inliers, "min_object_inliers")
-        check_count(self.min_object_pixels, "min_object_pixels")
+        for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
+            check_count(getattr(self, name), name)
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
             check_real(getattr(self, name), name, 0.0, 1.0)
 
