@@ -286,16 +286,43 @@ class StatusLine:
 
     A message (a warning) gets a line of its own: the status line is wiped first, the message printed on
     ``message_stream`` with a newline, then the status drawn again below it, so neither overwrites the other
-    when both streams reach the same terminal.
+    when both streams reach the same terminal. Into a file or a pipe (``guide 2> walk.log``, a service's journal)
+    there is no redrawing, which a log shows as one line growing for the whole walk: the status is a plain line
+    every ``interval_s`` seconds, and the last one shown is printed at :meth:`close` (as
+    :class:`svs_torch.cli.progress.Progress` does for the long commands).
+
+    Args:
+        stream: where the status goes (None: nowhere).
+        interval_s: seconds between plain status lines when ``stream`` is not a terminal.
+        tty: force terminal (True) or plain (False) mode; None asks ``stream.isatty()``.
+        clock: seconds, monotonic (tests pass their own).
     """
 
-    def __init__(self, stream: TextIO | None = sys.stderr) -> None:
-        self.stream = stream
+    def __init__(self, stream: TextIO | None = sys.stderr, interval_s: float = 5.0, tty: bool | None = None,
+                 clock=time.monotonic) -> None:
+        self.stream, self.interval_s, self.clock = stream, interval_s, clock
+        if tty is None:
+            try:
+                tty = stream is not None and stream.isatty()
+            except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
+                tty = False
+        self.tty = bool(tty)
         self._shown = ""
+        self._printed_at: float | None = None  # plain mode: when the last status line was printed
+        self._pending = ""  # plain mode: the status shown since then, printed at the next interval or at close
 
     def show(self, text: str) -> None:
-        """Replace the status line with ``text`` (padded so no tail of a longer old status is left)."""
+        """Replace the status line with ``text`` (padded so no tail of a longer old status is left); in plain
+        mode, print it as a line when ``interval_s`` has passed since the last one."""
         if self.stream is None:
+            return
+        if not self.tty:
+            now = self.clock()
+            if self._printed_at is None or now - self._printed_at >= self.interval_s:
+                print(text, file=self.stream, flush=True)
+                self._printed_at, self._pending = now, ""
+            else:
+                self._pending = text
             return
         padding = " " * max(len(self._shown) - len(text), 0)
         print(f"\r{text}{padding}", end="", file=self.stream, flush=True)
@@ -316,10 +343,13 @@ class StatusLine:
             self.show(shown)
 
     def close(self) -> None:
-        """End the status line with a newline (the next output starts on a fresh line)."""
+        """End the status line with a newline (the next output starts on a fresh line); in plain mode, print the
+        last status not printed yet."""
         if self.stream is not None and self._shown:
             print(file=self.stream, flush=True)
-        self._shown = ""
+        if self.stream is not None and self._pending:
+            print(self._pending, file=self.stream, flush=True)
+        self._shown = self._pending = ""
 
     def lines_above(self, message_stream: TextIO | None = None) -> LinesAbove:
         """A text stream whose every line is a :meth:`message`: hand it to what prints on its own (a

@@ -218,7 +218,7 @@ def terminal_screen(text: str) -> list[str]:
 
 def test_warnings_get_their_own_line_and_the_status_line_is_redrawn():
     terminal = io.StringIO()  # stdout and stderr on one terminal
-    status_line = StatusLine(terminal)
+    status_line = StatusLine(terminal, tty=True)
     status_line.show(" 12.5 fps  nearest 1.4 m  warn  left")
     with warnings.catch_warnings():
         warnings.simplefilter("always")
@@ -233,6 +233,37 @@ def test_warnings_get_their_own_line_and_the_status_line_is_redrawn():
         "Obstacle ahead, 1.4 metres",
         " 12.0 fps  nearest 1.3 m  warn  left",
     ]
+
+
+def test_status_line_into_a_log_is_a_plain_line_every_interval():
+    """Into a file or a pipe the status is never redrawn with carriage returns (a log would show the whole walk as
+    one line): a plain line at most every interval, messages on lines of their own, the last status at close."""
+    log, now = io.StringIO(), [0.0]
+    status_line = StatusLine(log, interval_s=5.0, clock=lambda: now[0])
+    assert not status_line.tty  # a StringIO has no terminal behind it
+    for step in range(12):  # a frame every second
+        now[0] = float(step)
+        status_line.show(f"{step:5.1f} fps  nearest 1.4 m  warn  left")
+        if step == 3:
+            status_line.message("Obstacle ahead, 1.4 metres")
+    status_line.close()
+    assert "\r" not in log.getvalue()
+    assert log.getvalue().splitlines() == [
+        "  0.0 fps  nearest 1.4 m  warn  left",
+        "Obstacle ahead, 1.4 metres",
+        "  5.0 fps  nearest 1.4 m  warn  left",
+        " 10.0 fps  nearest 1.4 m  warn  left",
+        " 11.0 fps  nearest 1.4 m  warn  left",
+    ]
+
+
+def test_status_line_close_prints_nothing_twice():
+    log = io.StringIO()
+    status_line = StatusLine(log, tty=False)
+    status_line.show("  1.0 fps  nearest none  clear  -")
+    status_line.close()
+    status_line.close()
+    assert log.getvalue() == "  1.0 fps  nearest none  clear  -\n"
 
 
 def test_guide_prints_warnings_above_its_status_line(monkeypatch):
