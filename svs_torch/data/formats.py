@@ -119,7 +119,8 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     conversion (0.299 R + 0.587 G + 0.114 B, rounded to the input's integer type); a JPEG is decoded to its
     luma at once, as ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)`` and ``guide``'s live frames are
     (:func:`~svs_torch.core.image_files.read_image_array`'s ``gray``). uint8 values are divided by 255 and uint16
-    by 65535; a uint8 image round-trips exactly: ``round(tensor * 255)`` gives it back.
+    by 65535; a uint8 image round-trips exactly: ``round(tensor * 255)`` gives it back. Not differentiable (a
+    tensor read from a file, with no ``grad_fn``).
 
     Raises:
         InputError: naming ``name``, for a missing file, a file OpenCV cannot decode, a channel count other

@@ -216,7 +216,8 @@ def valid_row_neighbours(disparity: torch.Tensor, valid: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """For each pixel of ``(..., W)`` rows: the column of the nearest ``valid`` pixel at or left of it (−1: none)
     and at or right of it (W: none), and their disparities (the row's end pixel's where there is none): what
-    :func:`fill_invalid_rows` fills from, and what a rule on the runs of invalid pixels between them reads."""
+    :func:`fill_invalid_rows` fills from, and what a rule on the runs of invalid pixels between them reads.
+    Differentiable w.r.t. ``disparity`` through the two gathered disparities; the int64 columns are not."""
     width = disparity.shape[-1]
     index = torch.arange(width, device=disparity.device).expand_as(disparity)
     left_index = torch.where(valid, index, -1).cummax(dim=-1).values

@@ -94,7 +94,8 @@ class _BoxSum(torch.autograd.Function):
 def crop_index(x0: torch.Tensor, y0: torch.Tensor, height: int, width: int, image_hw: tuple[int, int]
                ) -> torch.Tensor:
     """``(B, height, width)`` flat pixel indices of the crops at per-pair corners ``x0``, ``y0`` ``(B,)`` of an
-    ``image_hw`` frame, clamped to it (replicate border): :func:`crop_box` gathers at them."""
+    ``image_hw`` frame, clamped to it (replicate border): :func:`crop_box` gathers at them. Not differentiable
+    (integer indices)."""
     h, w = image_hw
     rows = (y0.view(-1, 1) + torch.arange(height, device=y0.device)).clamp(0, h - 1)  # (B, h')
     cols = (x0.view(-1, 1) + torch.arange(width, device=x0.device)).clamp(0, w - 1)  # (B, w')
@@ -218,7 +219,7 @@ def region_crop_boxes(mask: torch.Tensor, margin_px: int, image_hw: torch.Tensor
     ``margin_px``: per-pair offsets ``x0, y0`` ``(B,)`` and the size ``height, width``; and each pair's own box
     ``(B, 4)`` as x0, y0, width, height (results outside it are discarded, so that a pair's result does not
     depend on its batch). A pair with an empty mask gets a 1-pixel box at the origin (the caller marks it
-    invalid)."""
+    invalid). Not differentiable (integer boxes of a bool mask)."""
     b, _, h, w = mask.shape
     if image_hw is None:
         image_hw = torch.tensor([[h, w]], device=mask.device).expand(b, 2)
@@ -252,7 +253,8 @@ def wanted_pixels(mask: torch.Tensor, margin_px: int) -> torch.Tensor:
     row without one). Depth is read only on the mask, and the row fill of its invalid pixels
     (:func:`fill_invalid_rows`) reaches along rows, so a margin along the row keeps the neighbours it fills
     from; computing the whole bounding box of two objects far apart would add the frame between them (the mask
-    is about a third of a 320×240 frame on the shared scenes, its bounding box more than nine tenths)."""
+    is about a third of a 320×240 frame on the shared scenes, its bounding box more than nine tenths). Not
+    differentiable (a bool mask)."""
     w = mask.shape[-1]
     index = torch.arange(w, device=mask.device)
     rows = any_along(mask, dim=-1, keepdim=True)

@@ -83,7 +83,7 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                         min_valid_px: int = 20, fill_invalid: bool = True,
                         min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0,
                         min_own_view_valid_share: float = 0.0) -> ObjectDepths:
-    """Per-object depth from dense disparity.
+    """Per-object depth from dense disparity; differentiable w.r.t. ``dense.disparity_px`` and the calibration.
 
     Args:
         dense: :class:`~svs_torch.depth.dense.DenseDisparity` of the left view ``(B, 1, H, W)``.
@@ -275,7 +275,9 @@ def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, dis
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
                        doffs_px: torch.Tensor | float = 0.0) -> RangeEstimate:
     """R_min / R_max as the nearest / farthest valid object's median depth ``(B,)``; d_max / d_min their
-    disparities ``f·B / R − doffs``; ``num_disparities`` the valid dense pixels (or inliers) that entered."""
+    disparities ``f·B / R − doffs``; ``num_disparities`` the valid dense pixels (or inliers) that entered.
+    Differentiable w.r.t. the nearest and farthest valid ``objects.depth_median_m`` and the calibration;
+    ``num_disparities`` and ``valid`` are not."""
     median = objects.depth_median_m
     b = median.shape[0]
     valid = objects.valid

@@ -36,7 +36,8 @@ def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: 
                              kept_labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`masked_lower_median` of ``values`` ``(B, 1, H, W)`` over each kept region's pixels where ``known``
     holds: ``(B, N)`` medians (0 where empty) and counts, slot n for region ``kept_labels[:, n]`` (−1: none) of
-    ``labels`` ``(B, 1, H, W)``. The true distance of a region (GT depth), used for the truth of evaluations."""
+    ``labels`` ``(B, 1, H, W)``. The true distance of a region (GT depth), used for the truth of evaluations.
+    Gradients flow to ``values`` at each region's median pixel (a gather after the sort); the counts have none."""
     b = values.shape[0]
     region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
               & known.reshape(b, 1, -1))  # (B, N, H·W)

@@ -75,7 +75,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     pass's pixel. The range's ``in_view_top_px`` is then its top with each group's detached near tail left out
     (:func:`_detached_tail_ceiling`) and, with ``config.in_view_margin="object"``, each group's margin from its own
     span (:func:`_in_view_tops`), and with ``config.in_view_per_object`` and ``groups`` each group's own top too
-    (``object_in_view_top_px``); the range searched keeps every sample."""
+    (``object_in_view_top_px``); the range searched keeps every sample. Not differentiable (integer ranges)."""
     check_shape(disparity_px, "disparity_px", ["B", "P"])
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
@@ -228,7 +228,7 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     ``f``-pixel allowance for the coarse grid. This needs no sparse inlier (a pair whose features failed still
     gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search.
     ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object; the range is then the union of the
-    objects' ranges (see ``groups`` of :func:`disparity_search_range`)."""
+    objects' ranges (see ``groups`` of :func:`disparity_search_range`). Not differentiable (integer ranges)."""
     b = _check_pair(left, right)
     _, _, h, w = left.shape
     check_shape(mask, "mask", [b, 1, h, w])

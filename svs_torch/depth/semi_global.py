@@ -79,7 +79,8 @@ def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2:
     """:func:`semi_global_aggregate` and its winner-takes-all: (the minimum over D, its first index), ``(B, H, W)``
     each, as ``S.min(dim=1)``. The C kernels where they run (the rows' paths added to the columns' and the winner
     taken in the same pass, without a transposed copy of the volume), else the torch path; the same values bit
-    for bit. Arguments and checks as :func:`semi_global_aggregate`'s."""
+    for bit. Arguments and checks as :func:`semi_global_aggregate`'s. No gradients (computed under
+    ``torch.no_grad``; the index is int64)."""
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
     for name, value in (("p1", p1), ("p2", p2)):
         check_shape(value, name, [dims["B"]])
@@ -105,7 +106,7 @@ def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2:
 def pair_residual_levels(best_cost: torch.Tensor, wanted: torch.Tensor, window_size: int) -> torch.Tensor:
     """Each pair's matching residual ``(B,)``: the median over ``wanted`` ``(B, H, W)`` bool of the finite
     winner costs ``best_cost`` ``(B, H, W)`` (window SADs of whole levels), per window pixel; 0 where a pair has
-    no such pixel."""
+    no such pixel. Differentiable w.r.t. ``best_cost`` (``nanmedian``: the median pixel gets the gradient)."""
     finite = wanted & torch.isfinite(best_cost)
     values = torch.where(finite, best_cost, torch.full_like(best_cost, torch.nan)).flatten(1)
     median = values.nanmedian(dim=1).values

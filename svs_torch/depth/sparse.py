@@ -82,7 +82,8 @@ def rectified_disparity(points_left: torch.Tensor, points_right: torch.Tensor, v
 def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: float | torch.Tensor,
                  baseline_m: float | torch.Tensor, doffs_px: float | torch.Tensor | None = None) -> PointDepths:
     """Depth ``Z = f·B / (d + doffs)`` (Eq. (7)–(8) per point) of disparities ``(B, K)``; ``focal_px``,
-    ``baseline_m``, ``doffs_px`` scalars or ``(B,)`` (``StereoBatch`` fields; doffs 0 for the SVS)."""
+    ``baseline_m``, ``doffs_px`` scalars or ``(B,)`` (``StereoBatch`` fields; doffs 0 for the SVS).
+    Differentiable w.r.t. ``disparity_px`` and the calibration where valid; ``valid`` is not."""
     _check_values(disparity_px, "disparity_px", valid, "valid")
     denominator = disparity_px + _per_pair(doffs_px, disparity_px, "doffs_px")
     valid = valid & (denominator > 0)
@@ -101,6 +102,8 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
 
     ``percentiles=None`` is the paper: d_max and d_min are the max and min (5)–(6). ``(low, high)`` uses those
     percentiles instead (robust to a wrong same-row match). Disparities with ``d + doffs ≤ 0`` are left out.
+    Differentiable w.r.t. ``disparity_px`` (the selected or interpolated ones) and, for the depths, the
+    calibration; ``num_disparities`` and ``valid`` are not.
     """
     depths = point_depths(disparity_px, valid, focal_px, baseline_m, doffs_px)
     q = (0.0, 1.0) if percentiles is None else _quantile_levels(percentiles, "percentiles")
@@ -143,7 +146,8 @@ def _point_slots(labels: torch.Tensor, region_labels: torch.Tensor, points: torc
 def slot_labels(region_labels: torch.Tensor) -> torch.Tensor:
     """``region_labels`` with every padding or background slot (label ≤ 0) set to −1, which no pixel of a label
     image holds (labels are ≥ 0, 0 background): ``labels == slot_labels(...)`` is then each slot's region in one
-    comparison, without a second full-frame pass for ``& (region_labels > 0)``."""
+    comparison, without a second full-frame pass for ``& (region_labels > 0)``. Not differentiable (integer
+    labels)."""
     return torch.where(region_labels > 0, region_labels, -1)
 
 
@@ -169,7 +173,8 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
                   statistics: bool = True) -> ObjectDepths:
     """Per-object depth: each correspondence goes to the region under its left point; per region, the median
     and ``percentiles`` of its depths (``statistics=False``: zeros, every slot invalid, for a caller that only
-    wants the slots' geometry and inlier counts).
+    wants the slots' geometry and inlier counts). Its depths are differentiable w.r.t. ``depths.depth_m`` (the
+    order statistics they interpolate), nothing else is (``points_left`` is rounded to a pixel).
 
     Args:
         labels: ``(B, 1, H, W)`` int64 label image of the left view, 0 background (``Segmentation.labels``).
@@ -238,7 +243,9 @@ def estimate_depth(points_left: torch.Tensor, points_right: torch.Tensor, inlier
     given ``labels`` and ``region_labels``, per-object depths and the nearest obstacle. Arguments as in
     :func:`rectified_disparity`, :func:`point_depths`, :func:`object_depths`. ``statistics=False`` (the dense
     rule, which measures them again: :mod:`svs_torch.pipeline.ranging`) leaves the range and the objects' depths
-    zero and invalid, and makes only the disparities, the depths and each slot's geometry and inlier count."""
+    zero and invalid, and makes only the disparities, the depths and each slot's geometry and inlier count.
+    Differentiable w.r.t. the points, homographies and calibration where valid, as its parts are (module
+    docstring); masks, counts, slots and sides are not."""
     if (labels is None) != (region_labels is None):
         raise InputError("region_labels: expected it together with labels (both or neither)")
     disparities = rectified_disparity(points_left, points_right, inliers, H_left, H_right)

@@ -16,7 +16,8 @@ __all__ = ["equiangular_offset"]
 
 
 def equiangular_offset(before: torch.Tensor, best: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
-    """Sub-pixel offset in [−0.5, 0.5] of a V-shaped minimum through three costs (Shimizu & Okutomi 2001)."""
+    """Sub-pixel offset in [−0.5, 0.5] of a V-shaped minimum through three costs (Shimizu & Okutomi 2001).
+    Differentiable w.r.t. the three costs (zero gradient where the offset is clamped or the rise is 0)."""
     rise = 2 * (torch.maximum(before, after) - best)
     safe = torch.where(rise > 0, rise, torch.ones_like(rise))
     return torch.where(rise > 0, (before - after) / safe, torch.zeros_like(rise)).clamp(-0.5, 0.5)

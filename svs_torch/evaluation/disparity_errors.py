@@ -54,7 +54,8 @@ def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_
                          truth_valid: torch.Tensor, mask: torch.Tensor) -> DisparityErrors:
     """Errors of any dense disparity map ``(B, 1, H, W)`` (the pipeline's, or a rival's such as ``StereoBM``'s)
     against the GT ``truth_px`` where ``mask``, the map's ``valid`` and ``truth_valid`` all hold (bool maps of
-    the same shape)."""
+    the same shape). Only ``median_px`` carries gradients (to ``disparity_px`` and ``truth_px`` at the median
+    pixel); the shares and counts are thresholds and sums of bools."""
     b = disparity_px.shape[0]
     error = (disparity_px - truth_px.to(disparity_px.dtype)).abs()
     return _errors(error.reshape(b, -1), (mask & valid & truth_valid).reshape(b, -1))
@@ -62,7 +63,8 @@ def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_
 
 def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:
     """``(B,)`` bool: pairs whose dense map lies on the left view's pixels, the GT's grid: ranged on their raw
-    rows, or row-aligned (the row alignment warps the right view alone); F's rectification warps both views."""
+    rows, or row-aligned (the row alignment warps the right view alone); F's rectification warps both views.
+    Not differentiable (bool)."""
     aligned = getattr(result, "row_aligned", None)
     aligned = torch.zeros_like(result.rectified) if aligned is None else aligned
     return ~result.rectified | aligned

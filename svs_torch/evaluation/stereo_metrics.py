@@ -115,6 +115,10 @@ def measure_stereo_metrics(disparity_px: torch.Tensor, valid: torch.Tensor, trut
                    px_scale: torch.Tensor | None = None) -> StereoMetrics:
     """Middlebury's and KITTI's metrics of ``B`` disparity maps against their GT (module docstring).
 
+    Reports, not losses: only ``avgerr_px``, ``rms_px`` and ``quantile_px`` carry gradients (to ``disparity_px``,
+    ``truth_px`` and ``px_scale``), and ``rms_px``'s are NaN at a pair's known pixels where its RMS is 0 (none
+    covered, or no error).
+
     Args:
         disparity_px: ``(B, 1, H, W)`` estimated disparity of the left view, in the map's pixels.
         valid: ``(B, 1, H, W)`` bool, where the estimate exists (unknown pixels lower the density).
@@ -292,7 +296,8 @@ def _object_masks(result: PipelineResult, raw: torch.Tensor) -> list[torch.Tenso
 
 def pair_map_metrics(batch: StereoBatch, result: PipelineResult, px_scale: torch.Tensor | None = None
                      ) -> tuple[dict[str, StereoMetrics], list[StereoMetrics]]:
-    """:func:`dense_map_metrics` and :func:`object_map_metrics` together, with one sort of the errors."""
+    """:func:`dense_map_metrics` and :func:`object_map_metrics` together, with one sort of the errors. Gradients as
+    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return {}, []
@@ -307,7 +312,8 @@ def dense_map_metrics(batch: StereoBatch, result: PipelineResult,
                       px_scale: torch.Tensor | None = None) -> dict[str, StereoMetrics]:
     """:func:`measure_stereo_metrics` of the pipeline's dense map in each of :data:`STEREO_SCOPES` the data
     has (``*_nocc`` only with ``batch.disparity_nonoccluded``); {} under the paper rule or without GT. A pair
-    rectified from F evaluates no pixel (its metrics are null): its map is not in the GT's pixels."""
+    rectified from F evaluates no pixel (its metrics are null): its map is not in the GT's pixels. Gradients as
+    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return {}
@@ -320,7 +326,8 @@ def dense_map_metrics(batch: StereoBatch, result: PipelineResult,
 def object_map_metrics(batch: StereoBatch, result: PipelineResult,
                        px_scale: torch.Tensor | None = None) -> list[StereoMetrics]:
     """:func:`measure_stereo_metrics` of the dense map over each kept object's region (all GT pixels), one
-    per kept slot (slot n is ``kept_labels[:, n]``); [] where :func:`dense_map_metrics` is {}."""
+    per kept slot (slot n is ``kept_labels[:, n]``); [] where :func:`dense_map_metrics` is {}. Gradients as
+    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return []

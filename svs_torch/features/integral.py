@@ -44,7 +44,7 @@ def pad_integral(integral: torch.Tensor, pad: int) -> torch.Tensor:
     """Extend an integral image by ``pad`` on every side, constant in the outward direction.
 
     Reads beyond the image then add nothing (a box partly outside sums only its inside part), so box
-    corners never need clamping.
+    corners never need clamping. Differentiable with respect to ``integral`` (a replicate pad).
     """
     return F.pad(integral, (pad, pad, pad, pad), mode="replicate")
 
@@ -54,6 +54,7 @@ def integral_phases(padded: torch.Tensor, step: int) -> list[torch.Tensor]:
 
     Reading a box at every point of a grid with spacing ``step`` then takes unit-stride slices of one phase per
     corner: on CPU an order of magnitude faster than strided reads, for one extra pass over the table.
+    Differentiable with respect to ``padded`` (copies of its slices).
     """
     if step == 1:
         return [padded]
@@ -65,7 +66,7 @@ def grid_box_corners(
     size_hw: tuple[int, int],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The four corner views of :func:`grid_box_sums` (bottom-right, top-right, bottom-left, top-left); the
-    box sum is ``a − b − c + d``. Views only: nothing is read yet."""
+    box sum is ``a − b − c + d``. Views only: nothing is read yet; gradients flow to the phases they view."""
     ny, nx = size_hw
 
     def corner(r: int, c: int) -> torch.Tensor:
@@ -91,7 +92,8 @@ def grid_box_sums(
         size_hw: (ny, nx) grid points.
 
     Returns:
-        ``(B, C, ny, nx)``. Four unit-stride slices, no gather.
+        ``(B, C, ny, nx)``. Four unit-stride slices, no gather; linear, so differentiable with respect to
+        ``phases``.
     """
     a, b, c, d = grid_box_corners(phases, step, pad, rows, cols, size_hw)
     return a - b - c + d

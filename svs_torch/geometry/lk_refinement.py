@@ -60,7 +60,8 @@ def refine_matched_points(left: torch.Tensor, right: torch.Tensor, points: Match
                           scale: torch.Tensor | None, config: MatchRefinementConfig | None
                           ) -> tuple[MatchedPoints, Matches]:
     """:func:`refine_matches_lk` as a pipeline stage: the refined points, and ``matches`` without the rows the
-    correlation gate dropped (so match counts and the points agree). ``config`` None: both unchanged."""
+    correlation gate dropped (so match counts and the points agree). ``config`` None: both unchanged. Gradients
+    flow to the kept left points and costs (passed through), not to the refined right points (detached)."""
     if config is None:
         return points, matches
     refined = refine_matches_lk(left, right, points, scale, **asdict(config))

@@ -39,7 +39,8 @@ def draw_minimal_samples(pair_seeds: torch.Tensor, first_hypothesis: int, num_hy
 
     Hypothesis h (global index, ``first_hypothesis ≤ h < first_hypothesis + M``) of pair b depends only on
     ``pair_seeds[b]``, h and ``num_valid[b]`` (counter-based SplitMix64, then Floyd's algorithm, which draws a
-    uniform subset). Pairs with fewer than ``sample_size`` valid rows get ranks that must be ignored.
+    uniform subset). Pairs with fewer than ``sample_size`` valid rows get ranks that must be ignored. Not
+    differentiable (integer ranks).
     """
     device = pair_seeds.device
     hypotheses = torch.arange(first_hypothesis, first_hypothesis + num_hypotheses, device=device)

@@ -149,7 +149,7 @@ def apply_homography(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
 
 def map_points(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
     """``points`` ``(B, K, 2)`` through the homographies ``H`` ``(B, 3, 3)``, with where each lands in front of
-    the camera (positive homogeneous w)."""
+    the camera (positive homogeneous w). Differentiable w.r.t. ``H`` and ``points`` where valid."""
     mapped = points @ H[:, :2, :2].transpose(1, 2) + H[:, :2, 2].unsqueeze(1)  # (B, K, 2)
     w = points @ H[:, 2, :2].unsqueeze(-1) + H[:, 2, 2].view(-1, 1, 1)  # (B, K, 1)
     valid = w > 0

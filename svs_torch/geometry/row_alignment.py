@@ -205,6 +205,9 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     """Fit each pair's right-view similarity that puts its matches on their left rows, and where ``focal_px`` is
     given, the keystone of a right camera turned about its y or x axis (module docstring).
 
+    Points that require grad take the torch path: ``H_right``, ``correction_px`` (and a keystone's ``keystone_deg``)
+    carry gradients to the points (and ``focal_px``) through the least-squares refit on the chosen inliers.
+
     Args:
         points_left, points_right: ``(B, K, 2)`` matched pixels (x = column).
         valid: ``(B, K)`` bool, rows holding a match.

@@ -14,7 +14,8 @@ __all__ = ["keystone_design", "keystone_homography", "keystone_refit", "mapped_r
 def keystone_design(right: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor,
                     terms: torch.Tensor) -> torch.Tensor:
     """The keystone model's design ``(B, K, 5)``: ``(v, u, 1, u·v/f, v²/f)`` of the right points in pixels from the
-    image centre, the last two zeroed where ``terms`` ``(B, 2)`` bool is False."""
+    image centre, the last two zeroed where ``terms`` ``(B, 2)`` bool is False. Differentiable w.r.t. ``right``
+    and ``focal_px``."""
     cy, cx = ((image_hw.to(right.dtype) - 1) / 2).unbind(-1)
     u, v = right[..., 0] - cx[:, None], right[..., 1] - cy[:, None]
     f, keep = focal_px.to(right.dtype)[:, None], terms.to(right.dtype)
@@ -24,7 +25,8 @@ def keystone_design(right: torch.Tensor, image_hw: torch.Tensor, focal_px: torch
 def keystone_refit(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor, image_hw: torch.Tensor,
                    focal_px: torch.Tensor, terms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Least-squares ``(a, b, t, p, q)`` ``(B, 5)`` of ``y_l = a·v + b·u + t + p·u·v/f + q·v²/f`` (rows from the
-    centre) over each pair's inliers, and their standard errors ``(B, 5)`` (unused terms: p or q held at 0)."""
+    centre) over each pair's inliers, and their standard errors ``(B, 5)`` (unused terms: p or q held at 0).
+    Both differentiable w.r.t. ``left``, ``right`` and ``focal_px`` given the inliers."""
     design = keystone_design(right, image_hw, focal_px, terms)
     target = left[..., 1] - (image_hw[:, :1].to(left.dtype) - 1) / 2
     weight = inliers.to(design.dtype)
@@ -39,7 +41,7 @@ def keystone_refit(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tenso
 
 def keystone_homography(params: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor) -> torch.Tensor:
     """``(B, 3, 3)``: undo the turn's keystone about the image centre, then the similarity ``(a, b, t)`` (module
-    docstring, "Keystone")."""
+    docstring, "Keystone"). Differentiable w.r.t. ``params`` and ``focal_px``."""
     a, b, t, p, q = params.unbind(-1)
     cy, cx = ((image_hw.to(params.dtype) - 1) / 2).unbind(-1)
     zero, one = torch.zeros_like(a), torch.ones_like(a)
@@ -55,6 +57,7 @@ def keystone_homography(params: torch.Tensor, image_hw: torch.Tensor, focal_px: 
 
 
 def mapped_row_residuals(homography: torch.Tensor, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """|row of ``homography`` applied to the right points − left row| ``(B, K)``."""
+    """|row of ``homography`` applied to the right points − left row| ``(B, K)``. Differentiable w.r.t.
+    ``homography`` and both points (not at a zero residual, a kink)."""
     mapped = torch.cat([right, torch.ones_like(right[..., :1])], -1) @ homography.transpose(1, 2)
     return (mapped[..., 1] / mapped[..., 2] - left[..., 1]).abs()

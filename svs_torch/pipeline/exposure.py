@@ -103,7 +103,8 @@ def match_exposure(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
 
     Returns:
         The left and the right views ``(B, 1, H, W)`` (the same tensors when no pair needs a change; in a pair that
-        does, one of the two is mapped) and whether each pair was changed ``(B,)`` bool.
+        does, one of the two is mapped) and whether each pair was changed ``(B,)`` bool. The mapped view carries
+        gradients to both images (module docstring: through the map and its quantiles, not where clipped).
     """
     _check_views(left, right, image_hw)
     index, fit = _fit_selected(left, right, config)
@@ -168,7 +169,7 @@ def _fit_every_pair(left: torch.Tensor, right: torch.Tensor, config: ExposureCon
 def exposures_differ(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor,
                      config: ExposureConfig = ExposureConfig()) -> torch.Tensor:
     """``(B,)`` bool: the pairs :func:`match_exposure` would change (arguments as there), without mapping any
-    view."""
+    view. Not differentiable (bool)."""
     _check_views(left, right, image_hw)
     return _fit_every_pair(left, right, config)[2]
 

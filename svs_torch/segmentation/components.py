@@ -196,7 +196,8 @@ def connected_components_with_stats(
 
 
 def label_connected_components(mask: torch.Tensor, connectivity: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    """Labels ``(B, 1, H, W)`` int64 and ``num_labels (B,)`` of :func:`connected_components_with_stats`."""
+    """Labels ``(B, 1, H, W)`` int64 and ``num_labels (B,)`` of :func:`connected_components_with_stats`. Not
+    differentiable."""
     mask = _check_mask(mask, connectivity)
     _, _, num_labels, labels = _label_runs(mask, connectivity)
     return labels, num_labels

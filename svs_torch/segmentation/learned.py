@@ -114,7 +114,8 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
 
 
 def mask_iou(mask: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """Intersection over union ``(B,)`` of two ``(B, 1, H, W)`` bool masks; 1 where both are empty."""
+    """Intersection over union ``(B,)`` of two ``(B, 1, H, W)`` bool masks; 1 where both are empty. Not
+    differentiable (counts of bool masks)."""
     check_shape(mask, "mask", ["B", 1, "H", "W"])
     check_shape(truth, "truth", list(mask.shape))
     inter = (mask & truth).flatten(1).sum(1)

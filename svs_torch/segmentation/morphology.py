@@ -25,7 +25,7 @@ def structuring_element(shape: str, size: int, device: torch.device | None = Non
     """A ``(size, size)`` bool structuring element: ``"square"``, ``"cross"`` or ``"ellipse"`` (disk).
 
     ``"ellipse"`` equals ``cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))``; ``"square"`` is
-    MATLAB's ``strel('square', size)``.
+    MATLAB's ``strel('square', size)``. Not differentiable (a constant bool table).
     """
     if not isinstance(size, int) or size < 1:
         raise InputError(f"size: expected a positive integer, got {size!r}")
@@ -87,7 +87,8 @@ def _shift_reduce(mask: torch.Tensor, element: torch.Tensor, erosion: bool) -> t
 
 
 def dilate(mask: torch.Tensor, element: torch.Tensor) -> torch.Tensor:
-    """Binary dilation of ``mask (B, 1, H, W)`` bool by ``element (kh, kw)`` bool; equals ``cv2.dilate``."""
+    """Binary dilation of ``mask (B, 1, H, W)`` bool by ``element (kh, kw)`` bool; equals ``cv2.dilate``. Not
+    differentiable (bool in, bool out)."""
     _check(mask, element)
     if not bool(element.any()):
         return torch.zeros_like(mask)
@@ -95,7 +96,8 @@ def dilate(mask: torch.Tensor, element: torch.Tensor) -> torch.Tensor:
 
 
 def erode(mask: torch.Tensor, element: torch.Tensor) -> torch.Tensor:
-    """Binary erosion of ``mask (B, 1, H, W)`` bool by ``element (kh, kw)`` bool; equals ``cv2.erode``."""
+    """Binary erosion of ``mask (B, 1, H, W)`` bool by ``element (kh, kw)`` bool; equals ``cv2.erode``. Not
+    differentiable (bool in, bool out)."""
     _check(mask, element)
     if not bool(element.any()):
         return torch.ones_like(mask)
@@ -103,5 +105,6 @@ def erode(mask: torch.Tensor, element: torch.Tensor) -> torch.Tensor:
 
 
 def open_binary(mask: torch.Tensor, element: torch.Tensor) -> torch.Tensor:
-    """Erosion then dilation (morphological opening): removes specks smaller than the element."""
+    """Erosion then dilation (morphological opening): removes specks smaller than the element. Not
+    differentiable (bool in, bool out)."""
     return dilate(erode(mask, element), element)

@@ -184,7 +184,7 @@ def fillable_runs(disparity: torch.Tensor, valid: torch.Tensor, max_px: int) -> 
     may be filled (module docstring, "Why long runs stay unfilled"): a run at most ``max_px`` long, one between two
     measured pixels whose disparities agree within 1 px (one surface), or one from the left edge to a measured
     pixel at x whose disparity d reaches within ``max_px`` of it (x ≤ d + max_px: the band the right view cannot
-    show that surface in)."""
+    show that surface in). Not differentiable (a bool mask)."""
     width = valid.shape[-1]
     before, after, left_value, right_value = valid_row_neighbours(disparity, valid)
     short = after - before - 1 <= max_px

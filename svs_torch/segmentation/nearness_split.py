@@ -37,7 +37,8 @@ def nearness_split(disparity: torch.Tensor, min_near_share: float, exclude: torc
     or whose sides' median disparities differ by less than ``min_retaken_gap`` of the near side's, is not taken;
     1 and 0: always). ``exclude`` ``(B, 1, H, W)`` bool: pixels left out of every statistic (the floor,
     :mod:`.ground_plane`: it spans every disparity from the feet to the horizon and would move the split by its
-    extent rather than by the obstacles'); a pair that excludes every pixel keeps them all."""
+    extent rather than by the obstacles'); a pair that excludes every pixel keeps them all. Not differentiable
+    (``disparity`` is detached: module docstring)."""
     b = disparity.shape[0]
     disparity = disparity.detach()
     if exclude is not None:

@@ -256,7 +256,7 @@ def _keep_in_order(labels: torch.Tensor, regions: RegionProperties, order: torch
 
 def kept_regions_mask(labels: torch.Tensor, kept_labels: torch.Tensor, num_slots: int) -> torch.Tensor:
     """The union of the regions ``kept_labels`` ``(B, N)`` (−1: none) of ``labels`` ``(B, 1, H, W)``, whose labels
-    are at most ``num_slots``, as a bool mask of ``labels``' shape."""
+    are at most ``num_slots``, as a bool mask of ``labels``' shape. Not differentiable (a bool mask)."""
     # Lookup table label -> kept, then one gather over the label image.
     table = torch.zeros(kept_labels.shape[0], num_slots + 1, dtype=torch.bool, device=labels.device)
     table.scatter_(1, kept_labels.clamp(min=0), kept_labels >= 0)

@@ -36,7 +36,8 @@ def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Mod
 
 def segment_same_size(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
                       left_logits: torch.Tensor | None = None) -> StereoSegmentation:
-    """:func:`segment_pair` of a batch whose pairs fill its tensors (one size)."""
+    """:func:`segment_pair` of a batch whose pairs fill its tensors (one size). Not differentiable (each view's
+    ``masked`` carries its image's gradient inside the kept mask only)."""
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
     return segment_stereo_learned(batch, config, segmenter_network(batch, config, network), left_logits)

@@ -32,7 +32,7 @@ def gray_histogram(levels: torch.Tensor, ignore: torch.Tensor | None = None) -> 
     ``(B, 1, H, W)`` bool: pixels not counted, whatever their level (invalid disparities, a floor).
 
     One ``bincount`` over the whole batch, with each image's levels offset into its own 256 bins (int32
-    offsets: a quarter of the memory traffic of int64 for the same result).
+    offsets: a quarter of the memory traffic of int64 for the same result). Not differentiable (counts).
     """
     b = levels.shape[0]
     offsets = torch.arange(b, device=levels.device, dtype=torch.int32).view(b, 1) * NUM_LEVELS
@@ -62,7 +62,8 @@ def otsu_threshold_level(histogram: torch.Tensor) -> torch.Tensor:
     count and the level sum of the classes ``≤ t`` and ``> t``. The numerator is computed exactly in float64
     (integer sums below 2⁵³), so plateaus over empty bins tie exactly and the first level of a plateau wins,
     as in OpenCV. A level whose class probability is below FLT_EPSILON is skipped (OpenCV's rule); an image
-    with one gray level has no admissible split and gets level 0, OpenCV's answer.
+    with one gray level has no admissible split and gets level 0, OpenCV's answer. Not differentiable (an
+    argmax).
     """
     counts = histogram.to(torch.float64)
     levels = torch.arange(histogram.shape[-1], dtype=torch.float64, device=histogram.device)
@@ -104,7 +105,8 @@ def threshold_binary(image: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
     """Binary image ``(B, 1, H, W)`` bool: gray level ``> level`` (OpenCV ``THRESH_BINARY``; MATLAB ``im2bw``).
 
     ``image`` is a float image in [0, 1] or its uint8 :func:`gray_levels`; ``level`` ``(B,)`` int in 0..255.
-    Compares integer gray levels, so ``image`` and OpenCV's uint8 input give identical masks.
+    Compares integer gray levels, so ``image`` and OpenCV's uint8 input give identical masks. Not
+    differentiable (rounding and a comparison).
     """
     levels = image if image.dtype == torch.uint8 else gray_levels(image)
     # min(levels, level) differs from levels exactly where levels > level. The same mask, but torch compares
