@@ -133,3 +133,29 @@ def test_match_sad_refuses_nan_descriptors_in_valid_rows(generator):
         match_sad(left, right, torch.ones(1, 3, dtype=torch.bool), torch.ones(1, 1, dtype=torch.bool), mutual=True)
     matches = match_sad(left, right, torch.tensor([[True, True, False]]), torch.ones(1, 1, dtype=torch.bool))
     assert matches.idx.shape == (1, 3) and matches.idx[0, 2] == -1
+
+
+# ------------------------------------------------------------------------------------------------- images with grad
+def test_the_hard_block_matchers_take_images_that_require_grad(scenes):
+    """Found by the docstring audit of gradients: block_match_sad, dense_disparity_over_regions,
+    coarse_search_range and estimate_dense_disparity raised 'minimum(): functions with out=... arguments don't
+    support automatic differentiation' when an image required grad (a training loop's views). They are winner
+    takes all: the answer is the one without gradients, and carries none."""
+    from svs_torch.depth.dense import (DisparityRange, block_match_sad, coarse_search_range,
+                                       dense_disparity_over_regions, estimate_dense_disparity)
+
+    batch = scenes.batch
+    left, right = batch.left.clone().requires_grad_(True), batch.right.clone().requires_grad_(True)
+    mask = (scenes.object_ids > 0).view_as(batch.left)
+    search = DisparityRange(torch.zeros(batch.batch_size, dtype=torch.int64), 32)
+    calls = {
+        "block_match_sad": lambda a, b: block_match_sad(a, b, 0, 32).disparity_px,
+        "dense_disparity_over_regions": lambda a, b: dense_disparity_over_regions(a, b, mask, search).disparity_px,
+        "coarse_search_range": lambda a, b: coarse_search_range(a, b, mask, batch.image_hw).min_disparity_px,
+        "estimate_dense_disparity": lambda a, b: estimate_dense_disparity(a, b, mask).disparity_px,
+    }
+    for name, call in calls.items():
+        with_grad = call(left, right)
+        assert not with_grad.requires_grad, name
+        assert torch.equal(with_grad, call(batch.left, batch.right)), name
+

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
 from ..core.kernels.checks import check_counts, check_image_hw, check_nonempty
 from ..core.mask_reductions import any_along
 from . import kernels
@@ -226,7 +226,7 @@ def valid_row_neighbours(disparity: torch.Tensor, valid: torch.Tensor
             disparity.gather(-1, right_index.clamp(0, width - 1)))
 
 
-def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:
+def _check_pair(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) -> int:
     # Values in [0, 1]: then the levels are whole numbers within ±255 and every SAD sum is exact, in the C
     # kernel's running window sums as in the torch path's box sums; an inf, a NaN or a huge value would make
     # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
@@ -235,6 +235,7 @@ def _check_pair(left: torch.Tensor, right: torch.Tensor) -> int:
     if left.shape != right.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
     check_nonempty(left, "left")
+    check_instance(config, "config", DenseConfig)
     return dims["B"]
 
 
@@ -269,8 +270,7 @@ def block_match_sad(left: torch.Tensor, right: torch.Tensor, min_disparity_px: t
 
     Pixels whose right match ``x − d`` leaves the image for every candidate, and the rejections of the module
     docstring, are invalid. ``image_hw`` ``(B, 2)`` gives each pair's size before padding (default: all of it).
-    Not differentiable (winner takes all); see :func:`soft_block_match`.
-    """
+    Not differentiable (winner takes all); see :func:`soft_block_match`."""
     return _match_whole(left, right, min_disparity_px, num_disparities, config, image_hw, best_cost=False)[0]
 
 
@@ -286,12 +286,13 @@ def block_match_sad_with_residual(left: torch.Tensor, right: torch.Tensor, min_d
     return found, pair_residual_levels(best_cost, torch.ones_like(best_cost, dtype=torch.bool), config.window_size)
 
 
+@torch.no_grad()  # winner takes all: no gradient (soft_block_match has one); out= ops refuse grad
 def _match_whole(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torch.Tensor | int, num_disparities: int,
                  config: DenseConfig, image_hw: torch.Tensor | None, best_cost: bool
                  ) -> tuple[DenseDisparity, torch.Tensor | None]:
     """:func:`block_match_sad` and every pixel's winning cost ``(B, H, W)`` (+inf: no candidate), which the
     fused kernel writes only when asked (``best_cost``; None otherwise) and the torch path always has."""
-    b = _check_pair(left, right)
+    b = _check_pair(left, right, config)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
     h, w = left.shape[-2:]
     image_hw = _check_sizes(image_hw, left)
@@ -352,11 +353,12 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     return _over_regions(left, right, mask, search, config, image_hw)
 
 
+@torch.no_grad()  # winner takes all: no gradient (soft_block_match has one); out= ops refuse grad
 def _over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
                   config: DenseConfig, image_hw: torch.Tensor | None, fused: bool = True) -> DenseDisparity:
     """:func:`dense_disparity_over_regions`; ``fused=False`` skips the fused kernel (the noisy pairs' torch cost
     volume, :func:`_smooth_noisy_pairs`, whose window sums may still run compiled)."""
-    b = _check_pair(left, right)
+    b = _check_pair(left, right, config)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
     minimum = _check_range(search.min_disparity_px, search.num_disparities, b, left.device)

@@ -125,7 +125,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     so the coarse range covers every object (see :func:`coarse_search_range`). Not differentiable (see
     :func:`soft_block_match`).
     """
-    b = _check_pair(left, right)
+    b = _check_pair(left, right, config)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
     if objects is not None:

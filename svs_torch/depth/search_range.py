@@ -229,7 +229,7 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     gets a range) and is not fooled by a wrong same-row inlier. It costs about ``1 / f³`` of a full search.
     ``objects`` ``(B, N, H, W)`` bool (optional): one mask per kept object; the range is then the union of the
     objects' ranges (see ``groups`` of :func:`disparity_search_range`). Not differentiable (integer ranges)."""
-    b = _check_pair(left, right)
+    b = _check_pair(left, right, config)
     _, _, h, w = left.shape
     check_shape(mask, "mask", [b, 1, h, w])
     check_dtype(mask, "mask", "bool")

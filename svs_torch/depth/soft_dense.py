@@ -24,7 +24,7 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     Gradients flow to both images (through the pre-filter, the absolute differences and the softmax) and are
     defined wherever no difference is exactly zero.
     """
-    b = _check_pair(left, right)
+    b = _check_pair(left, right, config)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
     if not temperature > 0:
         raise InputError(f"temperature: expected a positive number, got {temperature!r}")
