@@ -5,6 +5,7 @@ each test says which."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth.soft_dense import soft_block_match
 from svs_torch.evaluation import evaluate_result, measure_stereo_metrics
 from svs_torch.evaluation.metrics import accuracy_pct
+from svs_torch.pipeline import PipelineConfig
 from svs_torch.segmentation.soft import soft_segment_images
 
 
@@ -159,3 +161,52 @@ def test_the_hard_block_matchers_take_images_that_require_grad(scenes):
         assert not with_grad.requires_grad, name
         assert torch.equal(with_grad, call(batch.left, batch.right)), name
 
+
+# ------------------------------------------------------------------------------------------------- wrong containers
+def _wrong_container_calls():
+    from svs_torch.data import collate_stereo_batches, resize_stereo_batch
+    from svs_torch.data.calibration import calibration_record
+    from svs_torch.depth.dense import block_match_sad
+    from svs_torch.evaluation import dense_map_metrics, object_truth, with_nominal_calibration
+    from svs_torch.evaluation.disparity_errors import dense_disparity_errors
+    from svs_torch.evaluation.overrides import apply_overrides
+    from svs_torch.evaluation.report import csv_table
+    from svs_torch.evaluation.stereo_metrics import measured_regions
+    from svs_torch.pipeline import PipelineConfig, segment_pair
+    from svs_torch.segmentation.learned import segment_stereo_learned
+
+    image = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
+    return [
+        ("batch: expected a StereoBatch, got Tensor", lambda b: segment_pair(image, b.segmentation_config)),
+        ("config: expected a SegmentationConfig, got PipelineConfig", lambda b: segment_pair(b.batch,
+                                                                                              PipelineConfig())),
+        ("batch: expected a StereoBatch, got str", lambda b: resize_stereo_batch("left.png", (32, 24))),
+        ("batches[1]: expected a StereoBatch, got Tensor", lambda b: collate_stereo_batches([b.batch, image])),
+        ("batches: expected a sequence of at least one StereoBatch, got one StereoBatch",
+         lambda b: collate_stereo_batches(b.batch)),
+        ("batch: expected a StereoBatch, got dict", lambda b: calibration_record({}, 0, "calib.txt")),
+        ("result: expected a PipelineResult, got NoneType", lambda b: dense_map_metrics(b.batch, None)),
+        ("result: expected a PipelineResult, got StereoBatch", lambda b: measured_regions(b.batch)),
+        ("result: expected a PipelineResult, got NoneType", lambda b: dense_disparity_errors(b.batch, None)),
+        ("segmentation: expected a Segmentation, got NoneType", lambda b: object_truth(b.batch, None)),
+        ("batch: expected a StereoBatch, got Tensor", lambda b: with_nominal_calibration(image)),
+        ("config: expected a PipelineConfig, got dict", lambda b: apply_overrides({}, {"seed": 1})),
+        ("store: expected a ResultStore, got str", lambda b: csv_table("sweep.sqlite")),
+        ("batch: expected a StereoBatch, got Tensor", lambda b: segment_stereo_learned(image, b.segmentation_config)),
+        ("config: expected a DenseConfig, got PipelineConfig", lambda b: block_match_sad(image, image, 0, 8,
+                                                                                          PipelineConfig())),
+    ]
+
+
+@pytest.mark.parametrize("index", range(15))
+def test_a_wrong_container_is_named(index, scenes):
+    """Found by calling each public function that takes a batch, a result, a configuration or a results store with
+    something else: each was an AttributeError ('str' object has no attribute 'size_hw') from inside."""
+    message, call = _wrong_container_calls()[index]
+
+    class Arguments:
+        batch = scenes.batch
+        segmentation_config = PipelineConfig().segmentation
+
+    with pytest.raises(InputError, match=re.escape(message)):
+        call(Arguments)

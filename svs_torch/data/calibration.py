@@ -8,6 +8,7 @@ being told. Nothing here is differentiable (plain numbers and words).
 
 from __future__ import annotations
 
+from ..core.checks import check_instance
 from ..core.types import StereoBatch
 from .datasets import scene_calibration_source
 from .pair_list import PairSource
@@ -47,6 +48,7 @@ def calibration_record(batch: StereoBatch, index: int, source: str, width_scale:
     ``batch``'s width, so a resampled batch reports the focal length and doffs of the INPUT images (the values a
     calib.txt or ``--focal-px`` gives).
     """
+    check_instance(batch, "batch", StereoBatch)
     return calibration_fields(source, bool(batch.calibrated[index]), float(batch.focal_px[index]) * width_scale,
                               float(batch.baseline_m[index]), float(batch.doffs_px[index]) * width_scale)
 

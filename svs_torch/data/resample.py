@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..core.types import StereoBatch
 
 __all__ = ["resize_stereo_batch", "collate_stereo_batches"]
@@ -90,6 +90,7 @@ def resize_stereo_batch(batch: StereoBatch, size_wh: Sequence[int]) -> StereoBat
 
     Differentiable w.r.t. ``left`` and ``right``; not w.r.t. the ground truth (nearest sampling).
     """
+    check_instance(batch, "batch", StereoBatch)
     width, height = _check_size_wh(size_wh)
     full = torch.tensor(batch.size_hw, dtype=torch.int64, device=batch.image_hw.device)
     if bool((batch.image_hw == full).all()):
@@ -172,8 +173,11 @@ def collate_stereo_batches(
     Returns:
         A :class:`StereoBatch` with B = the total number of pairs.
     """
-    if not batches:
-        raise InputError("batches: expected at least one StereoBatch, got none")
+    if isinstance(batches, StereoBatch) or not batches:
+        raise InputError("batches: expected a sequence of at least one StereoBatch, got "
+                         + ("one StereoBatch" if isinstance(batches, StereoBatch) else "none"))
+    for index, batch in enumerate(batches):
+        check_instance(batch, f"batches[{index}]", StereoBatch)
     if mode not in ("resize", "pad"):
         raise InputError(f"mode: expected 'resize' or 'pad', got {mode!r}")
     if mode == "resize":

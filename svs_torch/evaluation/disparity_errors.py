@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..core.checks import check_instance
 from ..core.types import StereoBatch
 from ..depth.quantiles import masked_lower_median
 from ..pipeline import PipelineResult
@@ -65,6 +66,7 @@ def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:
     """``(B,)`` bool: pairs whose dense map lies on the left view's pixels, the GT's grid: ranged on their raw
     rows, or row-aligned (the row alignment warps the right view alone); F's rectification warps both views.
     Not differentiable (bool)."""
+    check_instance(result, "result", PipelineResult, ("rectified",))
     aligned = getattr(result, "row_aligned", None)
     aligned = torch.zeros_like(result.rectified) if aligned is None else aligned
     return ~result.rectified | aligned
@@ -72,6 +74,8 @@ def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:
 
 def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
     """Dense disparity error over the kept left regions (module docstring); None under the paper rule."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult, ("dense", "rectified", "segmentation"))
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
@@ -82,6 +86,8 @@ def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> Dispar
 
 def sparse_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
     """Disparity error and precision of the RANSAC inliers (module docstring)."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult, ("points", "fundamental"))
     if batch.disparity_px is None:
         return None
     b, _, height, width = batch.disparity_px.shape

@@ -34,7 +34,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import torch
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..core.files import make_output_folder, write_bytes_atomic
 from ..core.types import StereoBatch
 from ..data.formats import write_kitti_disparity, write_pfm
@@ -60,6 +60,8 @@ def export_name(pair_name: str) -> str:
 def left_view_disparity(batch: StereoBatch, result: PipelineResult, index: int) -> tuple[np.ndarray, np.ndarray]:
     """Pair ``index``'s dense disparity in its left image's grid (module docstring): ``(H, W)`` float32
     disparity (0 where unknown) and ``(H, W)`` bool validity, at the pair's own ``image_hw``."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult)
     if result.dense is None:
         raise InputError("result: expected a dense disparity map (the 'dense' range rule), got none")
     height, width = (int(v) for v in batch.image_hw[index].tolist())

@@ -66,6 +66,7 @@ def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
     (KITTI's rig, MANIFEST §4): its metres are then a street's, and a rule that reads the baseline in metres (the
     ground plane's camera height, :mod:`svs_torch.segmentation.ground_plane`) sees a car's rig. doffs is 0 either
     way. Apply it at the input size, before any resampling (which scales focal and doffs)."""
+    check_instance(batch, "batch", StereoBatch)
     keep = batch.calibrated
     own_rig = keep | torch.tensor([name.startswith("kitti") for name in batch.names], device=keep.device)
     return dataclasses.replace(
@@ -97,6 +98,8 @@ def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
     Raises:
         InputError: the batch has no ground truth.
     """
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(segmentation, "segmentation", Segmentation, ("labels", "kept_labels"))
     depth, known = batch.ground_truth_depth_m()  # (B, 1, H, W) each
     median, count = kept_region_lower_median(depth, known, segmentation.labels, segmentation.kept_labels)
     return ObjectTruth(depth_m=median, num_px=count, valid=count > 0)
@@ -115,6 +118,7 @@ class PairEstimate:
 
 def estimates_from_result(result: PipelineResult) -> list[PairEstimate]:
     """The :class:`PairEstimate` of every pair of a :class:`~svs_torch.pipeline.PipelineResult`."""
+    check_instance(result, "result", PipelineResult)
     rng, objects = result.depth.range, result.depth.objects
     rows = zip(result.status.tolist(), rng.valid.tolist(), rng.r_min_m.tolist(), rng.r_max_m.tolist(),
                objects.depth_median_m.tolist(), objects.valid.tolist())

@@ -39,7 +39,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
 
 __all__ = [
@@ -205,6 +205,7 @@ def apply_overrides(config: PipelineConfig, overrides: Mapping[str, Any], source
         InputError: ``source: unknown parameter 'key'`` (with close matches), or ``source: key: expected
             <type>, got <value>``, or the dataclass's own check of the new value, named by its key.
     """
+    check_instance(config, "config", PipelineConfig)
     known = parameter_types()
     for key, value in overrides.items():
         if key not in known:
@@ -326,6 +327,7 @@ def describe_overrides(overrides: Mapping[str, Any]) -> str:
 
 def config_to_dict(config: PipelineConfig) -> dict[str, Any]:
     """The whole configuration as JSON-ready nested dicts (tuples as lists)."""
+    check_instance(config, "config", PipelineConfig)
     def plain(value: Any) -> Any:
         if isinstance(value, dict):
             return {k: plain(v) for k, v in value.items()}

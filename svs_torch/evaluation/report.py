@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output
 from .metrics import PairEvaluation
 from .runner import summarize
@@ -51,6 +51,7 @@ def config_summaries(store: ResultStore) -> list[dict]:
     """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
     ``overrides`` and the ``code_versions`` its rows were computed by), in the order the configurations were
     stored; configurations without rows are left out."""
+    check_instance(store, "store", ResultStore)
     by_config: dict[str, list[PairEvaluation]] = {}
     versions: dict[str, list[str]] = {}
     for row in store.results():
@@ -81,6 +82,7 @@ def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
 
 def swept_parameters(store: ResultStore) -> list[str]:
     """The override keys whose value differs between the stored configurations (plus ``preset`` if it does)."""
+    check_instance(store, "store", ResultStore)
     configs = store.configs()
     keys: list[str] = []
     for config in configs:
@@ -99,6 +101,7 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     """Header and rows, one per (configuration, pair): :data:`CSV_FIRST`, then the configuration's ``label``,
     ``size`` and each swept parameter's value (``param:<key>``), then every other result column, then the
     ``code_version`` of the run that wrote the row."""
+    check_instance(store, "store", ResultStore)
     configs = {c["config_id"]: c for c in store.configs()}
     swept = swept_parameters(store)
     rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
@@ -162,6 +165,7 @@ def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
 
 def plot_results(store: ResultStore, path: str | Path) -> Path:
     """Write :func:`results_figure` to ``path``, under a temporary name and renamed, never half-written."""
+    check_instance(store, "store", ResultStore)
     import matplotlib.pyplot as plt
 
     path = Path(path)
@@ -178,6 +182,7 @@ def results_figure(store: ResultStore):
     """The results figure (a matplotlib Figure): one panel per swept parameter (mean Eq. (9) accuracy of R_min,
     R_max and objects at each value, averaged over the other parameters) and, filling the rest of the last row,
     per-scene bars of the best configuration by object accuracy, zoomed to the data, its legend above them."""
+    check_instance(store, "store", ResultStore)
     import matplotlib
 
     matplotlib.use("Agg")

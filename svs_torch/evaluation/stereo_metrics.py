@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_instance, check_shape
 
 if TYPE_CHECKING:
     from ..pipeline import PipelineResult
@@ -252,8 +252,12 @@ def _raw_pixels(batch: StereoBatch, result: PipelineResult) -> torch.Tensor | No
     """``(B, 1, H, W)`` bool: the pixels where the dense map and the GT share a grid (pairs ranged on their raw
     rows or row-aligned: the map of a pair rectified from F is in rectified pixels), or None when there is
     nothing to score."""
-    from .disparity_errors import map_in_left_pixels  # (disparity_errors imports the pipeline: loaded late)
+    from ..core.types import StereoBatch
+    from ..pipeline import PipelineResult
+    from .disparity_errors import map_in_left_pixels  # (these import the pipeline: loaded late)
 
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(result, "result", PipelineResult)
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
@@ -279,6 +283,9 @@ def measured_regions(result: PipelineResult) -> Segmentation:
     stays an object, one without a distance: it scores 0 % and its truth counts towards the real R_max, as an
     unranged object's does. Otherwise dropping a region the pair cannot measure would hide it from the score, and
     a rule that drops the hard objects would look better than one that ranges them."""
+    from ..pipeline import PipelineResult  # (loaded late, as in _raw_pixels)
+
+    check_instance(result, "result", PipelineResult)
     left = result.segmentation.left
     if result.dropped_labels is not None:
         kept = torch.where(result.dropped_labels >= 0, result.dropped_labels, left.kept_labels)

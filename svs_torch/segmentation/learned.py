@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
 from ..depth.quantiles import kept_region_lower_median
@@ -89,6 +89,8 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
     Raises:
         InputError: the batch has no ground-truth disparity.
     """
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     if batch.disparity_px is None:
         raise InputError("batch: expected ground-truth disparity (disparity_px), got none")
     valid = batch.disparity_valid
@@ -162,6 +164,8 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
     the caller, e.g. with gradients) leaves only the right views to the network. Not differentiable; see
     :func:`soft_object_depths`.
     """
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     if net is None:
         net = cached_obstacle_net(config.segmenter)
     if not isinstance(net, ObstacleNet):
@@ -249,6 +253,8 @@ def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: S
     """The whole soft path on the left views of ``batch``: :func:`~svs_torch.depth.dense.soft_block_match` over
     ``[0, num_disparities)`` then :func:`soft_object_depths`. Differentiable w.r.t. ``logits`` and both images;
     as both temperatures ``→ 0`` it tends to the mean winner-takes-all disparity over each hard kept region."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(segmentation, "segmentation", Segmentation)
     disparity = soft_block_match(batch.left, batch.right, 0, num_disparities, disparity_temperature, dense)
     return soft_object_depths(logits, segmentation, disparity, batch.focal_px, batch.baseline_m, batch.doffs_px,
                               mask_temperature)

@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.checks import InputError, check_image
+from ..core.checks import InputError, check_image, check_instance
 from ..core.pair_trees import take_pairs
 from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
@@ -324,15 +324,15 @@ def nearness_logits(net: NearnessNet, left: torch.Tensor, right: torch.Tensor, g
 def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net: NearnessNet,
                             left_logits: torch.Tensor | None = None,
                             measured: NearnessDisparity | None = None) -> StereoSegmentation:
-    """Both views of every pair (module docstring, steps 3–5): the drop-in for
-    :func:`~svs_torch.segmentation.segment_stereo`. ``left_logits`` and ``measured``: from
-    :func:`nearness_logits`, already computed by the caller (e.g. with gradients). Not differentiable.
-
-    ``threshold`` holds the probability threshold. The right view's ``binary`` and ``opened`` are its shifted
-    kept regions. Status as the Otsu stage's (``UNIFORM_IMAGE``: a one-level left or right image). A pair whose
-    block matcher accepted less than ``config.min_measured_share`` of its left view is segmented by
-    :func:`~svs_torch.segmentation.segment_stereo` (Otsu, the two largest regions) instead: its disparity is chance.
-    """
+    """Both views of every pair (module docstring, steps 3–5): the drop-in for Otsu's
+    :func:`~svs_torch.segmentation.segment_stereo`. ``left_logits`` and ``measured``: from :func:`nearness_logits`,
+    already computed by the caller (e.g. with gradients). Not differentiable. ``threshold`` holds the probability
+    threshold. The right view's ``binary`` and ``opened`` are its shifted kept regions. Status as the Otsu stage's
+    (``UNIFORM_IMAGE``: a one-level left or right image). A pair whose block matcher accepted less than
+    ``config.min_measured_share`` of its left view is segmented by Otsu and the two largest regions instead: its
+    disparity is chance."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px, config.camera_frames)
     with torch.no_grad():
         if left_logits is None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..core.size_groups import run_by_size
 from ..core.types import StereoBatch, StereoSegmentation
 from .learned import segment_stereo_learned
@@ -26,6 +26,8 @@ def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Mod
     structure. Not differentiable. Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes
     as groups of one size, :mod:`svs_torch.core.size_groups`): padding never enters a threshold's histogram or a region;
     ``left_logits`` are for a batch whose pairs fill its tensors."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     if left_logits is None:
         return run_by_size(batch, lambda group: segment_same_size(group, config, network))
     if not bool((batch.image_hw == torch.tensor(batch.size_hw, device=batch.image_hw.device)).all()):
@@ -38,6 +40,8 @@ def segment_same_size(batch: StereoBatch, config: SegmentationConfig, network: n
                       left_logits: torch.Tensor | None = None) -> StereoSegmentation:
     """:func:`segment_pair` of a batch whose pairs fill its tensors (one size). Not differentiable (each view's
     ``masked`` carries its image's gradient inside the kept mask only)."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     if config.segmenter == "otsu":
         return segment_stereo(batch, config)
     return segment_stereo_learned(batch, config, segmenter_network(batch, config, network), left_logits)
@@ -47,6 +51,8 @@ def segmenter_network(batch: StereoBatch, config: SegmentationConfig, network: n
     """The learned segmenter's network on the batch's device: ``network`` (which must be there already: moving
     a caller's module would move the parameters its optimiser holds) or the cached weights of
     ``config.segmenter``, moved and frozen."""
+    check_instance(batch, "batch", StereoBatch)
+    check_instance(config, "config", SegmentationConfig)
     if network is None:
         # Frozen: a differentiable run takes gradients to the images through it, never into the shared cache. Moved
         # and frozen only when it is not already (walking the module cost 0.3 ms a call, paid at guide's B = 1).
