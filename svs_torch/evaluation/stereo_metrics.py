@@ -26,7 +26,8 @@ the map is at another size than the data (the pipeline ran on a resized pair), `
 error in the map's pixels into native pixels (``W_native / W_map``): the errors are converted, the thresholds
 stay as published. The pixels themselves are then those of the resized grid (each with its nearest GT sample).
 
-Nothing here is differentiable (thresholds, counts, a sort): these are reports.
+These are reports: the shares, counts and densities are thresholds and sums of bools; only the mean, the RMS
+and the quantiles carry gradients to the map, the GT and ``px_scale`` (:func:`measure_stereo_metrics`).
 """
 
 from __future__ import annotations
@@ -116,8 +117,7 @@ def measure_stereo_metrics(disparity_px: torch.Tensor, valid: torch.Tensor, trut
     """Middlebury's and KITTI's metrics of ``B`` disparity maps against their GT (module docstring).
 
     Reports, not losses: only ``avgerr_px``, ``rms_px`` and ``quantile_px`` carry gradients (to ``disparity_px``,
-    ``truth_px`` and ``px_scale``), and ``rms_px``'s are NaN at a pair's known pixels where its RMS is 0 (none
-    covered, or no error).
+    ``truth_px`` and ``px_scale``; an RMS of 0 has the subgradient 0).
 
     Args:
         disparity_px: ``(B, 1, H, W)`` estimated disparity of the left view, in the map's pixels.
@@ -216,7 +216,11 @@ def _one_mask(evaluated: torch.Tensor, m: _Measured, dtype: torch.dtype) -> Ster
     shares = (counts.to(torch.float64) * 100.0 / denominator.view(b, 1)).to(dtype)
     kept = m.sorted_error64 * covered
     avgerr = (kept.cumsum(1)[:, -1] / denominator).to(dtype)
-    rms = (kept.square().cumsum(1)[:, -1] / denominator).sqrt().to(dtype)
+    mean_square = kept.square().cumsum(1)[:, -1] / denominator
+    # sqrt's derivative is infinite at 0, and 0 · inf = NaN would reach every pair of the batch in a backward pass
+    # through any pair's metrics: an RMS of 0 (no pixel covered, or no error) gets the subgradient 0 instead.
+    nonzero = mean_square > 0
+    rms = torch.where(nonzero, torch.where(nonzero, mean_square, 1.0).sqrt(), 0.0).to(dtype)
     # Inverse empirical CDF: the k-th smallest covered error, k = ceil(q · n) (1-based, integer arithmetic),
     # found where the pair's running count of covered pixels first reaches k.
     ranks = torch.stack([(q * num_covered + 99) // 100 for q in QUANTILES_PCT], dim=1).clamp(min=1)  # (B, 4)

@@ -143,6 +143,29 @@ def test_nothing_covered_and_nothing_evaluated():
     assert metric_values(m, 1) == dict.fromkeys(metric_values(m, 1))
 
 
+def test_gradients_of_the_mean_and_rms_are_finite_where_a_pair_is_exact():
+    """Found by the gradient docstring audit: a pair whose RMS is 0 (an exact map, or nothing covered) put NaN into
+    the whole batch's gradient (sqrt's infinite derivative at 0 times a zero upstream), even when only another
+    pair's RMS was differentiated. Its subgradient is 0; elsewhere the gradient is the analytic one."""
+    generator = torch.Generator().manual_seed(0)
+    truth = torch.rand(3, 1, 6, 7, generator=generator, dtype=torch.float64) * 20
+    noise = torch.rand(3, 1, 6, 7, generator=generator, dtype=torch.float64) - 0.5
+    noise[0] = 0.0  # pair 0 exact
+    estimate = (truth + noise).requires_grad_(True)
+    known = torch.ones_like(truth, dtype=torch.bool)
+    covered = known.clone()
+    covered[2] = False  # pair 2 covers nothing
+    metrics = measure_stereo_metrics(estimate, covered, truth, known)
+    assert metrics.rms_px[0] == 0 and metrics.rms_px[2] == 0
+    (metrics.rms_px[1] + metrics.avgerr_px.sum()).backward()
+    assert torch.isfinite(estimate.grad).all()
+    n = truth[1].numel()
+    expected_rms = noise[1] / (n * noise[1].square().mean().sqrt())  # d sqrt(mean e²) / d e
+    torch.testing.assert_close(estimate.grad[1], expected_rms + noise[1].sign() / n)
+    torch.testing.assert_close(estimate.grad[0], torch.zeros_like(truth[0]))  # |e|' at 0 is 0 in torch, and rms 0
+    torch.testing.assert_close(estimate.grad[2], torch.zeros_like(truth[2]))
+
+
 def test_padding_and_other_pairs_change_nothing(data_dir):
     teddy = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
     kitti = load_stereo_pair(data_dir / "kitti" / "stereo2012_training")
