@@ -25,7 +25,8 @@ class Quantiles(NamedTuple):
 
 def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
-    (0 where empty) and ``(...,)`` int64 counts. Not differentiable (ground-truth statistics)."""
+    (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
+    after the sort); the counts have none."""
     count = mask.sum(-1)
     ordered = sort_last(torch.where(mask, values, torch.full_like(values, torch.inf)))
     median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)

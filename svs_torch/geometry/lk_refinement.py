@@ -125,7 +125,8 @@ def refine_matches_lk(
 
     Returns:
         :class:`MatchedPoints`: the same left points, refined right points, ``valid`` a subset of the input's
-        (rows that became invalid are zeroed). No useful gradient (fixed-step optimisation on detached inputs).
+        (rows that became invalid are zeroed). The left points pass their gradients through; the refined right
+        points carry none (a fixed-step optimisation on detached inputs).
     """
     dims = check_image(left, "left", check_range=False)
     check_shape(right, "right", [dims["B"], 1, dims["H"], dims["W"]])

@@ -23,9 +23,10 @@ def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Mod
     """Both views of every pair segmented by ``config.segmenter``: Otsu (the paper, Sec. 3.2; or Canny by
     ``config.method``) or the learned segmenter (:mod:`svs_torch.segmentation.learned`; ``network``, or the
     weights ``config.segmenter`` names; ``left_logits``: the left views' logits, already computed); the same
-    structure. Not differentiable. Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes
-    as groups of one size, :mod:`svs_torch.core.size_groups`): padding never enters a threshold's histogram or a region;
-    ``left_logits`` are for a batch whose pairs fill its tensors."""
+    structure. Not differentiable (each view's ``masked`` carries its image's gradient inside the kept mask only).
+    Each pair is segmented on its own ``image_hw`` pixels (pairs of different sizes as groups of one size,
+    :mod:`svs_torch.core.size_groups`): padding never enters a threshold's histogram or a region; ``left_logits``
+    are for a batch whose pairs fill its tensors."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", SegmentationConfig)
     if left_logits is None:
