@@ -39,6 +39,8 @@ ALLOWED = {
 #: Longest module (lines) and function (lines from ``def`` to its last line).
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 60
+#: Longest line (characters) of the package and the device side: a reader's editor shows a whole line.
+MAX_LINE_CHARS = 120
 #: Functions allowed past MAX_FUNCTION_LINES, each with why it stays whole (and a ceiling of 80 lines). All three
 #: are public entry points whose code is short: the length is their keyword-only signature and the docstring of
 #: each of its options, which belong with the function.
@@ -165,6 +167,13 @@ def _function_lengths():
 def test_no_module_is_longer_than_400_lines():
     long = [f"{path.relative_to(PACKAGE.parent)}: {n} lines" for _, path in _modules()
             if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES]
+    assert not long, "\n".join(long)
+
+
+def test_no_line_is_longer_than_120_characters():
+    paths = [path for _, path in _modules()] + sorted((PACKAGE.parent / "hw").rglob("*.py"))
+    long = [f"{path.relative_to(PACKAGE.parent)}:{number}: {len(line)} characters" for path in paths
+            for number, line in enumerate(path.read_text().splitlines(), 1) if len(line) > MAX_LINE_CHARS]
     assert not long, "\n".join(long)
 
 

@@ -263,7 +263,8 @@ def environment(executor: str, workers: int, threads: int | None) -> dict:
     import torch
 
     return {"python": platform.python_version(), "platform": platform.platform(), "machine": platform.machine(),
-            "cpus": available_cores(), "torch": torch.__version__, "numpy": numpy.__version__, "opencv": cv2.__version__,
+            "cpus": available_cores(), "torch": torch.__version__, "numpy": numpy.__version__,
+            "opencv": cv2.__version__,
             "executor": executor, "workers": workers, "threads_per_worker": threads}
 
 

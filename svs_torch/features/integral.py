@@ -21,7 +21,8 @@ import torch.nn.functional as F
 from ..core.checks import check_image
 
 __all__ = [
-    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "integral_image", "integral_phases", "pad_integral", "padded_integral_image",
+    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "integral_image", "integral_phases", "pad_integral",
+    "padded_integral_image",
     "sample_box_means", "sample_cell_means",
 ]
 

@@ -204,7 +204,8 @@ def _finish(problem: _Problem, points_left: torch.Tensor, points_right: torch.Te
     distance_sq = _safe_ratio(algebraic.square(), grad_right + grad_left)
     found = best_loss.isfinite()
     # Squared in float64 tensors: a huge finite threshold squares to inf here instead of raising OverflowError.
-    inliers = valid & found.unsqueeze(-1) & (distance_sq <= torch.tensor(float(threshold_px), dtype=work, device=distance_sq.device).square())
+    threshold_sq = torch.tensor(float(threshold_px), dtype=work, device=distance_sq.device).square()
+    inliers = valid & found.unsqueeze(-1) & (distance_sq <= threshold_sq)
     return _result(fundamental, found, inliers, problem.num_valid, iterations, min_inliers, points_left.dtype)
 
 

@@ -5,10 +5,10 @@ The hard pipeline decides everything discrete (the keypoints, the matches, RANSA
 rectified from F); this module recomputes the continuous chain from the images given those decisions:
 
 1. **Matched right points** (:func:`lk_points_straight_through`): the hard Lucas–Kanade refinement
-   (:func:`~svs_torch.geometry.lk_refinement.refine_matches_lk`) leaves each right point where its patch best aligns with the
-   left keypoint's patch. One Gauss–Newton step from that point, computed from the images with gradients, is (almost)
-   zero there, and its derivative w.r.t. the images is the derivative of the optimum (the implicit function
-   theorem, with the Gauss–Newton Hessian). The point is ``hard + (step − step.detach())``: the hard value, the
+   (:func:`~svs_torch.geometry.lk_refinement.refine_matches_lk`) leaves each right point where its patch best aligns
+   with the left keypoint's patch. One Gauss–Newton step from that point, computed from the images with gradients,
+   is (almost) zero there, and its derivative w.r.t. the images is the derivative of the optimum (the implicit
+   function theorem, with the Gauss–Newton Hessian). The point is ``hard + (step − step.detach())``: the hard value, the
    step's gradient. The left points (SURF keypoints) carry none.
 2. **F** (:func:`refit_fundamental_straight_through`): the weighted normalised 8-point
    (:func:`~svs_torch.geometry.epipolar.fundamental_8point`) on RANSAC's inliers, straight-through onto RANSAC's F (the

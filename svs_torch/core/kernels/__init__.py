@@ -17,9 +17,10 @@ label (``labelled_select.c``: the search range's and the nearness map's percenti
 and its split into near and far (``nearness_split.c``), the kept regions moved into the right view
 (``shift_regions.c``) and cut to their interior (``region_interiors.c``),
 the floor's plane found in the nearness map (``ground_plane_fit.c``), and each object's depth statistics, every pair
-read once at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave of its
-box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of them over
-all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints (``refine_maxima.c``),
+read once at its own box (``object_depths.c``), SURF's padded integral table (``padded_integral.c``), a whole octave
+of its box-filter Hessian (``hessian_octave.c``), its scale-space maxima (``local_maxima.c``) and the strongest of
+them over all the octaves of an image (``strongest_maxima.c``), the quadratic fit that makes them keypoints
+(``refine_maxima.c``),
 its upright descriptor (``usurf_describe.c``), the SAD nearest-neighbour search of descriptor matching
 (``sad_nearest.c``), the Lucas–Kanade refinement of matched points (``lk_refine.c``), the MSAC costs of the row
 alignment's hypotheses (``row_alignment_cost.c``) and its whole similarity fit (``row_alignment_fit.c``), the whole
