@@ -308,7 +308,9 @@ class StatusLine:
                 tty = False
         self.tty = bool(tty)
         self._shown = ""
-        self._printed_at: float | None = None  # plain mode: when the last status line was printed
+        # Plain mode: when the last status line was printed. The first waits an interval too, so it reports a rate
+        # measured over some frames, not the 0 fps of the first.
+        self._printed_at = clock()
         self._pending = ""  # plain mode: the status shown since then, printed at the next interval or at close
 
     def show(self, text: str) -> None:
@@ -318,7 +320,7 @@ class StatusLine:
             return
         if not self.tty:
             now = self.clock()
-            if self._printed_at is None or now - self._printed_at >= self.interval_s:
+            if now - self._printed_at >= self.interval_s:
                 print(text, file=self.stream, flush=True)
                 self._printed_at, self._pending = now, ""
             else:

@@ -249,7 +249,6 @@ def test_status_line_into_a_log_is_a_plain_line_every_interval():
     status_line.close()
     assert "\r" not in log.getvalue()
     assert log.getvalue().splitlines() == [
-        "  0.0 fps  nearest 1.4 m  warn  left",
         "Obstacle ahead, 1.4 metres",
         "  5.0 fps  nearest 1.4 m  warn  left",
         " 10.0 fps  nearest 1.4 m  warn  left",
