@@ -83,7 +83,11 @@ def _sample_patches(image: torch.Tensor, centres: torch.Tensor, offsets: torch.T
 def _centre(values: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted zero-mean patches and their weighted RMS ``(…, 1)`` (clamped away from 0)."""
     centred = values - (values * weight).sum(-1, keepdim=True)
-    return centred, ((centred**2) * weight).sum(-1, keepdim=True).sqrt().clamp(min=1e-6)
+    mean_square = ((centred**2) * weight).sum(-1, keepdim=True)
+    # A flat patch's RMS is 0, where sqrt's derivative is infinite and 0 · inf = NaN reached both images' gradients
+    # (geometry.soft.lk_step): its square root is taken of 1 instead, the same values (the clamp gives 1e-6).
+    nonzero = mean_square > 0
+    return centred, torch.where(nonzero, torch.where(nonzero, mean_square, 1.0).sqrt(), 0.0).clamp(min=1e-6)
 
 
 def refine_matches_lk(

@@ -338,10 +338,14 @@ def row_alignment_homography(points_left: torch.Tensor, points_right: torch.Tens
     if focal_px is None or keystone_deg is None:
         return similarity
     terms = keystone_deg != 0
-    focal = focal_px.to(torch.float64)
-    params, _ = keystone_refit(left, right, inliers, image_hw, focal, terms)
-    turned = keystone_homography(params, image_hw, focal)
-    return torch.where(terms.any(1)[:, None, None], turned, similarity)
+    # Only the turned pairs are refitted: a pair without inliers has a = 0 in the turn's p / (a·f), whose NaN
+    # gradient would pass a torch.where as NaN times 0.
+    index = terms.any(1).nonzero().squeeze(1)
+    if index.numel() == 0:
+        return similarity
+    focal = focal_px.to(torch.float64).expand(terms.shape[0])[index]
+    params, _ = keystone_refit(left[index], right[index], inliers[index], image_hw[index], focal, terms[index])
+    return similarity.index_put((index,), keystone_homography(params, image_hw[index], focal))
 
 
 def _fit_keystone(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tensor, valid: torch.Tensor,

@@ -35,8 +35,10 @@ def keystone_refit(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tenso
     params = torch.linalg.solve(normal, weighted.transpose(1, 2) @ target[..., None]).squeeze(-1)
     residual = (design @ params[..., None]).squeeze(-1) - target
     variance = (weight * residual ** 2).sum(1) / (weight.sum(1) - 5).clamp(min=1)
-    error = (torch.linalg.inv(normal).diagonal(dim1=-2, dim2=-1) * variance[:, None]).clamp(min=0).sqrt()
-    return params, error
+    error_square = torch.linalg.inv(normal).diagonal(dim1=-2, dim2=-1) * variance[:, None]
+    # A pair without inliers (or an exact fit) has 0 here, where sqrt's infinite derivative made a NaN gradient.
+    positive = error_square > 0
+    return params, torch.where(positive, torch.where(positive, error_square, 1.0).sqrt(), 0.0)
 
 
 def keystone_homography(params: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor) -> torch.Tensor:

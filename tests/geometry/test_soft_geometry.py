@@ -149,3 +149,37 @@ def test_geometry_gives_the_hard_homographies_and_gradients_only_where_rectified
                                 + (H_right * torch.randn(b, 3, 3, generator=gen, dtype=F64)).sum(), images)
     for grad in grads:
         assert bool(grad[0].any()) and not bool(grad[1].any()) and bool(torch.isfinite(grad).all())
+
+
+def test_degenerate_rows_and_pairs_give_finite_gradients():
+    """Found by an audit of the gradient claims: each gave finite values but NaN gradients (sqrt's or a quotient's
+    infinite derivative at 0, times the zero a mask passes back): a flat patch in lk_step (both images' gradients,
+    over the patch); a pair without inliers in keystone_refit's standard errors; and a pair without inliers in
+    row_alignment_homography with a focal length, even where no pair is turned."""
+    from svs_torch.geometry.row_alignment import row_alignment_homography
+    from svs_torch.geometry.row_alignment_keystone import keystone_refit
+
+    d, generator = torch.float64, torch.Generator().manual_seed(0)
+    left = torch.rand(1, 1, 40, 40, dtype=d, generator=generator)
+    left[..., 10:30, 10:30] = 0.5  # a flat square around the point
+    left.requires_grad_(True)
+    right = left.detach().clone().requires_grad_(True)
+    xy = torch.tensor([[[20.0, 20.0]]], dtype=d)
+    step = lk_step(left, right, xy, xy + 0.3, torch.tensor([[4.0]], dtype=d), torch.tensor([[True]]))
+    assert torch.equal(step, torch.zeros_like(step))
+    assert all(g.isfinite().all() for g in torch.autograd.grad(step.sum(), [left, right]))
+
+    points_left = (torch.rand(2, 12, 2, dtype=d, generator=generator) * 60).requires_grad_(True)
+    shift = 0.3 * torch.rand(2, 12, 2, dtype=d, generator=generator)
+    points_right = (points_left.detach() + shift).requires_grad_(True)
+    inliers = torch.ones(2, 12, dtype=torch.bool)
+    inliers[1] = False
+    image_hw, focal = torch.tensor([[72, 96], [72, 96]]), torch.tensor([80.0, 80.0], dtype=d)
+    _, errors = keystone_refit(points_left, points_right, inliers, image_hw, focal, torch.ones(2, 2, dtype=torch.bool))
+    assert torch.equal(errors[1], torch.zeros(5, dtype=d))
+    assert torch.autograd.grad(errors.sum(), points_left)[0].isfinite().all()
+    for turn in ([[0.5, 0.0], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]]):
+        homography = row_alignment_homography(points_left, points_right, inliers, image_hw, focal,
+                                              torch.tensor(turn, dtype=d))
+        assert homography[0].isfinite().all()
+        assert all(g.isfinite().all() for g in torch.autograd.grad(homography.sum(), [points_left, points_right]))
