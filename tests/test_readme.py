@@ -1,4 +1,4 @@
-"""The README's two set-up commands are the ones CI and users run."""
+"""The README's two set-up commands are the ones CI and users run, and its Python examples run."""
 
 from __future__ import annotations
 
@@ -18,3 +18,16 @@ def test_readme_has_exactly_two_setup_commands_and_ci_runs_the_test_one():
     assert commands == ['pip install -e . && svs-depth demo', 'pip install -e ".[test]" && pytest']
     ci_lines = [line.strip() for line in (REPO_ROOT / ".ci" / "run").read_text().splitlines()]
     assert commands[1] in ci_lines
+
+
+def test_the_python_examples_run_in_order(data_dir, capsys):
+    """Each ```python block runs after the ones before it (the training step uses the first example's batch), on
+    the shared data wherever the README says ../shared/data."""
+    readme = (REPO_ROOT / "README.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", readme, flags=re.S)
+    assert len(blocks) >= 2
+    namespace: dict = {}
+    for block in blocks:
+        exec(compile(block.replace("../shared/data", str(data_dir)), "README.md", "exec"), namespace)
+    assert "OK dense" in capsys.readouterr().out
+    assert all(p.grad is not None and p.grad.isfinite().all() for p in namespace["net"].parameters())
