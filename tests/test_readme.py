@@ -31,3 +31,12 @@ def test_the_python_examples_run_in_order(data_dir, capsys):
         exec(compile(block.replace("../shared/data", str(data_dir)), "README.md", "exec"), namespace)
     assert "OK dense" in capsys.readouterr().out
     assert all(p.grad is not None and p.grad.isfinite().all() for p in namespace["net"].parameters())
+
+
+def test_the_hardware_notes_python_example_runs():
+    """hw/README.md's example: the driver grabbing pairs from the emulator, as from the device."""
+    blocks = re.findall(r"```python\n(.*?)```", (REPO_ROOT / "hw" / "README.md").read_text(), flags=re.S)
+    namespace: dict = {}
+    for block in blocks:
+        exec(compile(block, "hw/README.md", "exec"), namespace)
+    assert tuple(namespace["batch"].left.shape) == (4, 1, 240, 320)
