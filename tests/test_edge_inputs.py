@@ -173,6 +173,7 @@ def _wrong_container_calls():
     from svs_torch.evaluation.report import csv_table
     from svs_torch.evaluation.stereo_metrics import measured_regions
     from svs_torch.pipeline import PipelineConfig, segment_pair
+    from svs_torch.segmentation import SegmentationConfig
     from svs_torch.segmentation.learned import segment_stereo_learned
 
     image = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
@@ -195,13 +196,17 @@ def _wrong_container_calls():
         ("batch: expected a StereoBatch, got Tensor", lambda b: segment_stereo_learned(image, b.segmentation_config)),
         ("config: expected a DenseConfig, got PipelineConfig", lambda b: block_match_sad(image, image, 0, 8,
                                                                                           PipelineConfig())),
+        ("network: expected an ObstacleNet for segmenter 'learned', got Linear", lambda b: estimate_obstacle_depth(
+            b.batch, PipelineConfig(segmentation=SegmentationConfig(segmenter="learned")),
+            network=torch.nn.Linear(2, 2))),
     ]
 
 
-@pytest.mark.parametrize("index", range(15))
+@pytest.mark.parametrize("index", range(16))
 def test_a_wrong_container_is_named(index, scenes):
     """Found by calling each public function that takes a batch, a result, a configuration or a results store with
-    something else: each was an AttributeError ('str' object has no attribute 'size_hw') from inside."""
+    something else (or a network of another kind): each was an AttributeError ('str' object has no attribute
+    'size_hw', 'Linear' object has no attribute 'config') from inside."""
     message, call = _wrong_container_calls()[index]
 
     class Arguments:

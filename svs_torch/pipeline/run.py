@@ -24,7 +24,7 @@ from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
 from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
-from ..segmentation.network import predict_obstacle_logits
+from ..segmentation.network import ObstacleNet, predict_obstacle_logits
 from ..segmentation.segment import SegmentationConfig
 from ..segmentation.stereo import segment_same_size, segmenter_network
 from .config import PipelineConfig, PipelineResult
@@ -77,14 +77,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     if batch.batch_size == 0:
         raise InputError("batch: expected at least one stereo pair, got an empty batch")
     if network is not None:
-        check_instance(network, "network", nn.Module)
-        if config.segmentation.segmenter == "otsu":
-            raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
-        from ..segmentation.nearness import NearnessNet
-        if config.segmentation.segmenter.startswith("nearness") != isinstance(network, NearnessNet):
-            expected = "a NearnessNet" if config.segmentation.segmenter.startswith("nearness") else "an ObstacleNet"
-            raise InputError(f"network: expected {expected} for segmenter {config.segmentation.segmenter!r}, got "
-                             f"{type(network).__name__}")
+        _check_network(network, config.segmentation.segmenter)
     if config.differentiable:
         return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
     # Nothing to differentiate: each run in inference mode (its ops' bookkeeping is most of a one-pair call's time),
@@ -106,6 +99,20 @@ def _detached(batch: StereoBatch) -> StereoBatch:
         return batch
     return dataclasses.replace(batch, **{k: v.detach() for k, v in vars(batch).items()
                                          if isinstance(v, torch.Tensor)})
+
+
+def _check_network(network: object, segmenter: str) -> None:
+    """A caller's network must be the kind its segmenter runs: a NearnessNet, or an ObstacleNet (whose ``config``
+    the learned segmenter's features read); not one for Otsu, which has none."""
+    from ..segmentation.nearness import NearnessNet
+
+    check_instance(network, "network", nn.Module)
+    if segmenter == "otsu":
+        raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
+    nearness = segmenter.startswith("nearness")
+    if not isinstance(network, NearnessNet if nearness else ObstacleNet):
+        expected = "a NearnessNet" if nearness else "an ObstacleNet"
+        raise InputError(f"network: expected {expected} for segmenter {segmenter!r}, got {type(network).__name__}")
 
 
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
