@@ -77,6 +77,8 @@ class LoadedPair:
     calibrated: bool = False
     calibration: dict | None = None
     px_scale: float = 1.0
+    name: str | None = None  # the batch's name for the pair (``eval3/Teddy``), once it was read
+    has_truth: bool = False  # it was read with ground truth: a pair that then fails still counts 0 %
 
 
 def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
@@ -105,11 +107,12 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     if setup.size_wh is not None:
         batch = resize_stereo_batch(batch, setup.size_wh)
     height, width = batch.size_hw
+    read = dict(calibrated=calibrated, calibration=calibration, name=batch.names[0] if batch.names else None,
+                has_truth=batch.disparity_px is not None and bool(batch.disparity_valid.any()))
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
-                                                     f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels")
-    return LoadedPair(source, batch, calibrated=calibrated, calibration=calibration,
-                      px_scale=native_width / batch.size_hw[1])
+                                                     f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels", **read)
+    return LoadedPair(source, batch, px_scale=native_width / batch.size_hw[1], **read)
 
 
 def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPair]:
@@ -117,8 +120,12 @@ def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPa
     return [_load_one(source, setup) for source in sources]
 
 
-def _unrun(pair: LoadedPair) -> PairEvaluation:
-    return PairEvaluation(name=pair.source.name, status=pair.status, reason=pair.reason)
+def _unrun(pair: LoadedPair, status: str | None = None, reason: str | None = None) -> PairEvaluation:
+    """A pair the pipeline gave no result for: one it could not load, or ``status`` ``ERROR``. Once read, it keeps
+    its name, calibration and whether it has truth, so a failure with truth counts 0 % as the pipeline's do."""
+    return PairEvaluation(name=pair.name or pair.source.name, status=status or pair.status,
+                          reason=reason or pair.reason, calibrated=pair.calibrated if pair.name else None,
+                          calibration=pair.calibration, has_truth=pair.has_truth)
 
 
 #: ``on_result(batch, result, seconds per pair)``: called with each pipeline run (e.g. to write its maps).
@@ -153,8 +160,7 @@ def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
                 try:
                     scored += _run_batch([pair], config, on_result)
                 except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
-                    scored.append(PairEvaluation(name=pair.source.name, status="ERROR",
-                                                 reason=f"{type(error).__name__}: {' '.join(str(error).split())}"))
+                    scored.append(_unrun(pair, "ERROR", f"{type(error).__name__}: {' '.join(str(error).split())}"))
     ran = iter(scored)
     return [next(ran) if p.batch is not None else _unrun(p) for p in pairs]
 

@@ -163,6 +163,28 @@ def test_summary_counts_failures_at_zero_percent():
     assert [f["name"] for f in summary["failures"]] == ["b", "c"]
 
 
+def test_a_pair_that_fails_after_it_was_read_counts_zero_percent(data_dir):
+    """Found by a review of the evaluation: a pair with truth whose run raised (here the on_result callback, as a
+    map export into a blocked path does) was an ERROR row without its truth, calibration or name, so the summary
+    left it out of the accuracy means: the means were the other pairs' alone."""
+    from svs_torch.evaluation import evaluate_pairs
+
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL")]
+    sources = read_pair_sources([str(scene) for scene in scenes])
+
+    def export(batch, result, seconds):
+        if any(name.endswith("Teddy") for name in batch.names):
+            raise OSError("maps/Teddy: not a folder")
+
+    setup = EvalSetup(size_wh=(160, 120))
+    rows = [row for _, row in evaluate_pairs(sources, setup, batch_size=2, on_result=export)]
+    teddy, artl = rows
+    assert teddy.status == "ERROR" and teddy.name == "eval3/Teddy" and teddy.has_truth and teddy.calibrated
+    summary = summarize(rows)
+    assert (summary["failed"], summary["scored"]) == (1, 2)
+    assert summary["acc_objects_pct"] == pytest.approx(artl.acc_objects_pct / 2)
+
+
 # --- configuration overrides ---------------------------------------------------------------------------------
 
 def test_overrides_set_nested_fields_with_their_types():
