@@ -44,7 +44,7 @@ from ..pipeline import PipelineConfig
 
 __all__ = [
     "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid", "flatten_table",
-    "load_config_file", "parameter_types", "parse_assignment", "preset_config", "resolve_config",
+    "load_config_file", "merge_overrides", "parameter_types", "parse_assignment", "preset_config", "resolve_config",
 ]
 
 #: The named starting points: the product's best measured defaults and the paper exactly as published.
@@ -288,7 +288,7 @@ def load_config_file(path: str | Path, name: str = "--config") -> tuple[str, dic
     if unused:  # said, not silently dropped: the command's own PATH and options decide these
         warnings.warn(f"{name}: {path}: the sweep's {', '.join(unused)} not used (this command's PATH, --size and "
                       f"--batch-size apply)", stacklevel=2)
-    return preset, {**flatten_table(table), **flatten_table(fixed)}
+    return preset, merge_overrides(flatten_table(table), flatten_table(fixed))
 
 
 def resolve_config(preset: str = "default", config_file: str | Path | None = None,
@@ -305,10 +305,22 @@ def resolve_config(preset: str = "default", config_file: str | Path | None = Non
         overrides.update(from_file)
     else:
         base = preset_config(preset, "--preset")
-    sets = dict(parse_assignment(text) for text in assignments)
+    sets = merge_overrides(*({key: value} for key, value in map(parse_assignment, assignments)))
     config = apply_overrides(base, sets, "--set")
-    overrides.update(sets)
-    return config, preset, overrides
+    return config, preset, merge_overrides(overrides, sets)
+
+
+def merge_overrides(*mappings: Mapping[str, Any]) -> dict[str, Any]:
+    """The overrides of ``mappings`` one after another, as one dict in which a key assigned again moves to the end:
+    applied in its order (as :func:`apply_overrides` does), it gives what the mappings give in turn. A plain merge
+    keeps a key where it first came with its last value, so ``a.b=1``, ``a=none``, ``a.b=2`` would apply ``a.b=2``
+    before ``a=none``, and a stored configuration would replay into another one than ran."""
+    ordered: dict[str, Any] = {}
+    for mapping in mappings:
+        for key, value in mapping.items():
+            ordered.pop(key, None)
+            ordered[key] = value
+    return ordered
 
 
 def expand_grid(grid: Mapping[str, Any], source: str = "grid") -> list[dict[str, Any]]:
@@ -328,6 +340,7 @@ def describe_overrides(overrides: Mapping[str, Any]) -> str:
 def config_to_dict(config: PipelineConfig) -> dict[str, Any]:
     """The whole configuration as JSON-ready nested dicts (tuples as lists)."""
     check_instance(config, "config", PipelineConfig)
+
     def plain(value: Any) -> Any:
         if isinstance(value, dict):
             return {k: plain(v) for k, v in value.items()}

@@ -58,7 +58,7 @@ from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        parameter_types, preset_config, read_toml)
+                        merge_overrides, parameter_types, preset_config, read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -173,7 +173,7 @@ def load_sweep(path: str | Path) -> Sweep:
     entries = table.get("configs", [{}])
     _expect(isinstance(entries, list) and entries and all(isinstance(e, dict) for e in entries),
             f"{name}: configs: expected [[configs]] tables, got {entries!r}")
-    fixed = {**top_level, **flatten_table(fixed)}
+    fixed = merge_overrides(top_level, flatten_table(fixed))
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
     points = expand_grid(flatten_table(grid), f"{name}: grid")
     configs = []
@@ -183,13 +183,14 @@ def load_sweep(path: str | Path) -> Sweep:
         source = f"{name}: configs[{number}]"
         _expect(entry_preset in PRESETS, f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got "
                                          f"{entry_preset!r}")
-        make_sweep_config(entry_preset, {**fixed, **entry}, size_wh, source=source)
+        make_sweep_config(entry_preset, merge_overrides(fixed, entry), size_wh, source=source)
         for point in points:
-            varying = {**entry, **point}
+            varying = merge_overrides(entry, point)
             label = describe_overrides(varying)
             if entry_preset != preset:
                 label = f"preset={entry_preset} {label}"
-            configs.append(make_sweep_config(entry_preset, {**fixed, **varying}, size_wh, label, f"{name}: grid"))
+            configs.append(make_sweep_config(entry_preset, merge_overrides(fixed, varying), size_wh, label,
+                                             f"{name}: grid"))
     sources = read_pair_sources(resolved, f"{name}: paths")
     return make_sweep(sources, configs, size_wh, batch_size, path.read_text(encoding="utf-8"))
 

@@ -236,6 +236,21 @@ def test_config_file_then_set(tmp_path):
         parse_assignment("max_ratio")
 
 
+def test_a_later_assignment_wins_and_the_stored_overrides_replay_what_ran(tmp_path):
+    """Found by a review of the evaluation: overrides were kept in a plain dict, so a key assigned again kept its
+    first place. `--set a.b=0.5 --set a=none --set a.b=0.6` applied a.b before a (refinement off, not on at 0.6),
+    and a config file's `a = "none"` then `a.b = 0.5` with `--set a=none` was stored as an order that replays into
+    refinement on (eval --db then filed its rows under another configuration than ran)."""
+    config, _, overrides = resolve_config(assignments=["refine_matches.min_correlation=0.5", "refine_matches=none",
+                                                       "refine_matches.min_correlation=0.6"])
+    assert config.refine_matches is not None and config.refine_matches.min_correlation == 0.6
+    path = tmp_path / "config.toml"
+    path.write_text('refine_matches = "none"\n"refine_matches.min_correlation" = 0.5\n')
+    for sets in (["refine_matches=none"], ["refine_matches.min_correlation=0.7"], []):
+        config, _, overrides = resolve_config(config_file=path, assignments=sets)
+        assert apply_overrides(PipelineConfig(), overrides) == config, sets
+
+
 # --- pair lists ----------------------------------------------------------------------------------------------
 
 def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
