@@ -132,6 +132,8 @@ class SVSStereoCamera:
         flip: True sends ``y`` (camera mounted upside down), False ``Y``, None nothing.
         config: timeouts and UART settings of both links.
         strict_roles: raise instead of warn when the left board is not the master or the right not the slave.
+        first_index: the index of the first pair grabbed (a camera opened again after a loss goes on counting, so
+            a record's pair files are not overwritten).
 
     Raises:
         InputError: a bad ``size_wh`` or ``quality``.
@@ -140,15 +142,17 @@ class SVSStereoCamera:
 
     def __init__(self, left_url: str, right_url: str, size_wh: tuple[int, int] = (320, 240), *,
                  quality: int | None = None, flip: bool | None = None, config: LinkConfig | None = None,
-                 strict_roles: bool = False) -> None:
+                 strict_roles: bool = False, first_index: int = 0) -> None:
         self._size_code = size_code_for(tuple(size_wh))
+        if isinstance(first_index, bool) or not isinstance(first_index, int) or first_index < 0:
+            raise InputError(f"first_index: expected an integer >= 0, got {first_index!r}")
         if quality is not None and (not isinstance(quality, int) or not 1 <= quality <= 8):
             raise InputError(f"quality: expected an integer 1 (best) to 8 (worst) or None, got {quality!r}")
         self.links = {"left": CameraLink(left_url, "left", config), "right": CameraLink(right_url, "right", config)}
         self.size_wh = tuple(size_wh)
         self.versions: dict[str, VersionInfo] = {}
         self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="svs-capture")
-        self._next_index = 0
+        self._next_index = first_index
         try:
             self._both(lambda link: self._setup(link, quality, flip))
             self._check_roles(strict_roles)
@@ -193,6 +197,11 @@ class SVSStereoCamera:
         code = size_code_for(tuple(size_wh))
         self._both(lambda link: link.set_size(code))
         self._size_code, self.size_wh = code, tuple(size_wh)
+
+    @property
+    def next_index(self) -> int:
+        """The index the next pair grabbed will have (the first camera's count, for one opened again)."""
+        return self._next_index
 
     def grab_pair(self) -> StereoPair:
         """Send ``I`` to both boards back to back, read both frames concurrently, decode them to grayscale.

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.files import check_writable_folder, display_path, path_kind, write_bytes_atomic
-from .common import positive_float, positive_int
+from .common import non_negative_float, positive_float, positive_int
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
@@ -70,7 +70,7 @@ def add_parser(subparsers: Any) -> None:
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
-    parser.add_argument("--emulator-noise", type=float, default=0.0, metavar="LEVELS",
+    parser.add_argument("--emulator-noise", type=non_negative_float, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
     parser.set_defaults(func=run)
@@ -157,14 +157,17 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack):
-    """The stereo camera of ``--left``/``--right`` (or ``--emulator``), with the link options, closed by ``stack``."""
+def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack,
+                       first_index: int = 0):
+    """The stereo camera of ``--left``/``--right`` (or ``--emulator``), with the link options, closed by ``stack``;
+    its first pair has index ``first_index``."""
     from ..capture.link_types import LinkConfig
     from ..capture.stereo import SVSStereoCamera
 
     left, right = board_urls(args, size, stack)
     config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
-    return stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config))
+    return stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config,
+                                               first_index=first_index))
 
 
 def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:

@@ -72,7 +72,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--left", metavar="URL", help="left (master) board: serial device or socket://HOST:10001")
     parser.add_argument("--right", metavar="URL", help="right (slave) board: serial device or socket://HOST:10002")
     parser.add_argument("--emulator", action="store_true", help="use an in-process SVS emulator on loopback")
-    parser.add_argument("--emulator-noise", type=float, default=0.0, metavar="LEVELS",
+    parser.add_argument("--emulator-noise", type=non_negative_float, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
     parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",

@@ -50,6 +50,7 @@ class GuideSession:
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
+        self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
 
     def run(self) -> None:
         """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
@@ -60,7 +61,8 @@ class GuideSession:
         while True:
             with contextlib.ExitStack() as stack:  # the camera closed before waiting to open it again
                 try:
-                    camera = open_stereo_camera(self.args, self.size, stack)
+                    # Numbered on from the camera before a loss: --record's pair files are never overwritten.
+                    camera = open_stereo_camera(self.args, self.size, stack, first_index=self.next_pair_index)
                 except BrokenPipeError:  # stdout's reader gone, never the camera
                     raise
                 except _CAMERA_ERRORS as error:
@@ -72,7 +74,10 @@ class GuideSession:
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
                     if self.sight is None:
                         self.sight = SightWatch(self.args.blind_s)
-                    lost = self._range_stream(camera)
+                    try:
+                        lost = self._range_stream(camera)
+                    finally:
+                        self.next_pair_index = camera.next_index
             if lost is None:
                 return
             self._lost(lost)

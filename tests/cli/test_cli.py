@@ -631,6 +631,50 @@ def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
         assert code == 1 and "camera lost for" in err and "--give-up-s 0.5" in err
 
 
+def test_guide_record_goes_on_numbering_after_the_camera_is_lost(capsys, tmp_path):
+    """Found by a review of the capture side: the camera opened again after a loss counted its pairs from 0, so
+    --record wrote pair000000 again over the first pair's files, and index.jsonl had two lines of index 0, the first
+    pointing at the later pair's images."""
+    import threading
+    import time
+
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+
+    record = tmp_path / "walk"
+    index = record / "index.jsonl"
+
+    def lose_the_right_board_once(server):  # after two recorded pairs: one loss, then it answers again
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (index.exists() and index.read_text().count("\n") >= 2):
+            time.sleep(0.01)
+        server.set_faults("right", silent_grabs=3)
+
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple")) as server:
+        threading.Thread(target=lose_the_right_board_once, args=(server,), daemon=True).start()
+        code, _, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
+                               "--size", "160x120", "--timeout", "0.3", "--reconnect-s", "0.1", "--count", "5",
+                               "--record", str(record), "--no-speech")
+    assert code == 0, err
+    lines = [json.loads(line) for line in index.read_text().splitlines()]
+    indices = [line["index"] for line in lines]
+    assert len(lines) == 5 and len(set(indices)) == 5 and indices == sorted(indices), indices
+    for line in lines:  # each line's files are its own pair's, as received
+        assert (record / line["left"]).stat().st_size == line["left_bytes"]
+
+
+@pytest.mark.parametrize("command", ["capture", "guide"])
+def test_a_negative_emulator_noise_is_an_option_error(command, capsys, tmp_path):
+    """Found by a review of the capture side: capture checked --emulator-noise only once grabbing had begun and
+    reported it as a capture failure (exit 1, '0 of 10 pairs saved')."""
+    with pytest.raises(SystemExit) as exited:
+        main([command, "--emulator", "--emulator-noise", "-1", "--count", "1",
+              *(["--out-dir", str(tmp_path / "pairs")] if command == "capture" else ["--no-speech"])])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and "--emulator-noise: expected a finite number >= 0, got '-1'" in err
+    assert not (tmp_path / "pairs").exists()
+
+
 def test_guide_says_when_it_cannot_see(capsys):
     """A covered lens: the boards send blank frames, which the pipeline cannot range. Silence would tell the
     walker the way is clear; guide says "Cannot see ahead" once no pair was ranged for --blind-s seconds, and
