@@ -142,7 +142,9 @@ class GuideSession:
             self.guide.speaker.say(CAMERA_BACK)
             self.log.event("camera_back", lost_s=round(now - self.lost_at_s, 3))
             self.lost_at_s = None
-            self.sight.last_seen_s = now  # the time lost was said already; sight is judged from here
+            # The time lost was said already; sight is judged from here, and a view still blind is said again
+            # after --blind-s (silence after "Camera back." would read as a clear way).
+            self.sight.last_seen_s, self.sight.blind = now, False
         self._watch_sight(result, now)
         nearest = result.depth.nearest
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker

@@ -697,6 +697,55 @@ def test_guide_says_when_it_cannot_see(capsys):
     assert all(line["status"] != "OK" for line in lines if "event" not in line)
 
 
+def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatch):
+    """Found by a review of the capture side: blind, then lost, then back: "Camera back." was said and then nothing,
+    though the frames were still blank, as if warnings were on again and the way clear."""
+    import argparse
+    import time
+    from types import SimpleNamespace
+
+    import torch
+
+    import svs_torch.cli.guide_loop as guide_loop
+    from svs_torch.capture import CaptureError
+    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
+
+    said = []
+
+    class Words:  # what the walker hears
+        def write(self, text):
+            said.extend(line for line in text.split("\n") if line)
+            return len(text)
+
+        def flush(self):
+            pass
+
+    class BlankCamera:  # a covered lens: a pair every 20 ms for `seconds`, then (the first) a dropped link
+        next_index = 0
+
+        def __init__(self, seconds, fails):
+            self.seconds, self.fails = seconds, fails
+
+        def stream_batches(self, batch_size, num_batches=None):
+            end = time.monotonic() + self.seconds
+            while time.monotonic() < end:
+                time.sleep(0.02)
+                yield SimpleNamespace(batch=None, pairs=[None], num_dropped=0)
+            if self.fails:
+                raise CaptureError("right camera: link dropped")
+
+    cameras = iter([BlankCamera(0.4, True), BlankCamera(0.6, False)])
+    monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: next(cameras))
+    nearest = SimpleNamespace(valid=torch.tensor([False]), surface_m=torch.tensor([0.0]), side=torch.tensor([0]))
+    blank = SimpleNamespace(status=torch.tensor([7]), segmentation=SimpleNamespace(from_disparity=None),
+                            depth=SimpleNamespace(nearest=nearest))
+    args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    guide_loop.GuideSession(args, (320, 240), lambda batch: blank, guide, StatusLine(None),
+                            guide_loop.GuideLog(None, None)).run()
+    assert said == [CANNOT_SEE, guide_loop.CAMERA_LOST, guide_loop.CAMERA_BACK, CANNOT_SEE]
+
+
 def test_guide_sees_a_view_of_floor_only():
     """Not seen: blank frames, which are too flat for a disparity map (Otsu segmented them) and keep nothing, and a
     pair whose kept regions could not be ranged. Seen: a view whose map measured it and kept nothing, a camera
