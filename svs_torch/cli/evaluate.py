@@ -219,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     export = disparity_export(args, config)
     sources = read_pair_sources(args.paths, "path")
+    _check_no_option_calibration_in_store(args, sources)
     store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
     evaluations = []
@@ -248,6 +249,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
     return 0
+
+
+def _check_no_option_calibration_in_store(args: argparse.Namespace, sources) -> None:
+    """A results store keys a file pair by its files and the calibration its list line gives: rows ranged with
+    --focal-px, --baseline-m or --doffs-px would be filed under the same keys as the SVS model's (and a later run
+    with other values silently kept the first's rows)."""
+    from ..core.errors import InputError
+
+    options = [name for name, value, default in (("--focal-px", args.focal_px, None), ("--baseline-m",
+               args.baseline_m, None), ("--doffs-px", args.doffs_px, 0.0)) if value != default]
+    if args.db and options and any(not source.scene and source.focal_px is None for source in sources):
+        raise InputError(f"{', '.join(options)}, --db: a results store does not record a calibration given as an "
+                         f"option; give it on the pairs' list lines ('LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]') or "
+                         f"run without --db")
 
 
 def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -> tuple:

@@ -251,6 +251,21 @@ def test_a_later_assignment_wins_and_the_stored_overrides_replay_what_ran(tmp_pa
         assert apply_overrides(PipelineConfig(), overrides) == config, sets
 
 
+def test_eval_db_refuses_a_calibration_given_as_an_option_for_file_pairs(data_dir, tmp_path, capsys):
+    """Found by a review of the evaluation: a store keys a file pair by its files (and its list line's calibration),
+    so a second `eval --db` with another --focal-px was filed under the first run's keys and silently dropped.
+    Scenes, which carry their own calibration, are not concerned."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
+    store = tmp_path / "runs.sqlite"
+    code = main(["eval", str(listing), "--size", "160x120", "--focal-px", "500", "--db", str(store)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--focal-px, --db: a results store does not record a calibration given as an option" in err
+    assert not store.exists()
+    assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "500", "--db", str(store), "--json"]) == 0
+
+
 # --- pair lists ----------------------------------------------------------------------------------------------
 
 def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
