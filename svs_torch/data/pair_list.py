@@ -37,6 +37,8 @@ from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, 
 
 __all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source"]
 
+#: An index.jsonl line's calibration fields, in a list line's order.
+CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
 #: What a list line may hold, for error messages.
 LINE_FORMS = "'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]' or a scene folder"
 _KITTI_LEFT_FOLDERS = ("colored_0", "image_2")
@@ -209,14 +211,18 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             continue
         left, right = (str(p if Path(p).is_absolute() else path.parent / p)
                        for p in (record["left"], record["right"]))
-        numbers = [record.get(key) for key in ("focal_px", "baseline_m", "doffs_px")]
-        if numbers[0] is None and numbers[1] is None:
+        numbers = [record.get(key) for key in CALIBRATION_KEYS]
+        if all(number is None for number in numbers):
             sources.append(PairSource(left=left, right=right))
             continue
+        if None in numbers[:2]:  # checked first: a doffs_px without both would be read in baseline_m's place
+            given = ", ".join(key for key, number in zip(CALIBRATION_KEYS, numbers) if number is not None)
+            sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected both focal_px and "
+                                                                      f"baseline_m in a calibration, got {given}"))
+            continue
         calibration = _calibration([str(v) for v in numbers if v is not None], where, line)
-        if isinstance(calibration, PairSource) or None in numbers[:2]:
-            sources.append(calibration if isinstance(calibration, PairSource) else PairSource(
-                left=line.strip()[:80], problem=f"{where}: expected both focal_px and baseline_m"))
+        if isinstance(calibration, PairSource):
+            sources.append(calibration)
             continue
         sources.append(PairSource(left=left, right=right, focal_px=calibration[0], baseline_m=calibration[1],
                                   doffs_px=calibration[2], listed_at=where.split(": ", 1)[-1]))

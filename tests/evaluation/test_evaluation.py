@@ -293,6 +293,16 @@ def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
     entries = read_pair_list(index)
     assert entries[0].left == str(tmp_path / "l.jpg") and entries[0].problem is None
     assert "line 2" in entries[1].problem
+    # Found by a review of the evaluation: a doffs_px alone was dropped without a word, and with focal_px alone it
+    # was read in baseline_m's place ('BASELINE_M: expected a finite positive number, got -3').
+    index.write_text('{"left": "l.jpg", "right": "r.jpg", "doffs_px": -3}\n'
+                     '{"left": "l.jpg", "right": "r.jpg", "focal_px": 500, "doffs_px": -3}\n'
+                     '{"left": "l.jpg", "right": "r.jpg", "focal_px": 500, "baseline_m": 0.1, "doffs_px": -3}\n')
+    alone, no_baseline, whole = read_pair_list(index)
+    assert alone.problem.endswith("expected both focal_px and baseline_m in a calibration, got doffs_px")
+    assert no_baseline.problem.endswith("expected both focal_px and baseline_m in a calibration, got focal_px, "
+                                        "doffs_px")
+    assert (whole.focal_px, whole.baseline_m, whole.doffs_px) == (500.0, 0.1, -3.0)
     with pytest.raises(InputError, match="no such file or folder"):
         read_pair_sources([tmp_path / "missing"])
     assert [s.name for s in read_pair_sources([data_dir / "middlebury_2003_quarter"])] == [
