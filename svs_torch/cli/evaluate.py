@@ -205,6 +205,7 @@ def run(args: argparse.Namespace) -> int:
 
         from ..core.camera import parse_size
         from ..data import read_pair_sources
+        from ..data.pair_list import unique_sources
         from ..core.errors import InputError
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
@@ -218,7 +219,10 @@ def run(args: argparse.Namespace) -> int:
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     export = disparity_export(args, config)
-    sources = read_pair_sources(args.paths, "path")
+    sources, repeated = unique_sources(read_pair_sources(args.paths, "path"))
+    if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
+        names = ", ".join(dict.fromkeys(source.name for source in repeated))
+        print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
     _check_no_option_calibration_in_store(args, sources)
     store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)

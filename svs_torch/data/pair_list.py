@@ -35,7 +35,7 @@ from ..core.files import display_path, path_kind
 from ..core.types import StereoBatch
 from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, load_stereo_pair
 
-__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source"]
+__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources"]
 
 #: An index.jsonl line's calibration fields, in a list line's order.
 CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
@@ -229,6 +229,17 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
     if not sources:
         raise InputError(f"{name}: no pair listed in {path}")
     return sources
+
+
+def unique_sources(sources: Sequence[PairSource]) -> tuple[list[PairSource], list[PairSource]]:
+    """``sources`` with each pair once, in order of first listing (by :attr:`PairSource.pair_id`: the same files,
+    however spelled, and the same listed calibration), and the entries dropped as repeats."""
+    seen: set[str] = set()
+    unique, repeated = [], []
+    for source in sources:
+        (repeated if source.pair_id in seen else unique).append(source)
+        seen.add(source.pair_id)
+    return unique, repeated
 
 
 def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:

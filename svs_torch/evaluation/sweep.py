@@ -52,7 +52,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.checks import InputError
-from ..data.pair_list import PairSource, read_pair_sources
+from ..data.pair_list import PairSource, read_pair_sources, unique_sources
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
@@ -120,13 +120,7 @@ def _file_sha256(path: Path) -> str:
 
 
 def _dedupe(sources: Sequence[PairSource]) -> tuple[PairSource, ...]:
-    seen: set[str] = set()
-    unique = []
-    for source in sources:
-        if source.pair_id not in seen:
-            seen.add(source.pair_id)
-            unique.append(source)
-    return tuple(unique)
+    return tuple(unique_sources(sources)[0])
 
 
 def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], size_wh: tuple[int, int] | None,

@@ -266,6 +266,19 @@ def test_eval_db_refuses_a_calibration_given_as_an_option_for_file_pairs(data_di
     assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "500", "--db", str(store), "--json"]) == 0
 
 
+def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
+    """Found by a review of the evaluation: a scene listed twice (however spelled) weighed twice in eval's means,
+    while its own --db store and a sweep count it once."""
+    import json
+
+    teddy, artl = (data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL"))
+    assert main(["eval", str(teddy), str(artl), f"{teddy}/", "--size", "160x120", "--json"]) == 0
+    out, err = capsys.readouterr()
+    lines = [json.loads(line) for line in out.splitlines()]
+    assert len(lines) == 3 and lines[-1]["pairs"] == 2 and lines[-1]["scored"] == 2
+    assert "listed more than once, evaluated once: middlebury_eval3_Q/Teddy" in err
+
+
 # --- pair lists ----------------------------------------------------------------------------------------------
 
 def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
