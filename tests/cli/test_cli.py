@@ -540,8 +540,9 @@ def test_guide_warns_on_a_noisy_emulator(capsys):
                              "3", "--no-speech", "--far-m", "5.0")
     assert code == 0 and "guide stopped after 3 pairs" in err
     assert "Obstacle" in out or "obstacle" in out
-    code, _, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "-1", "--count", "1", "--no-speech")
-    assert code == 2 and "--emulator-noise" in err
+    with pytest.raises(SystemExit) as exited:  # an option error, before anything opens
+        run_cli(capsys, "guide", "--emulator", "--emulator-noise", "-1", "--count", "1", "--no-speech")
+    assert exited.value.code == 2 and "--emulator-noise" in capsys.readouterr().err
 
 
 def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_path):
