@@ -4,8 +4,9 @@ runs.
 The warning rule follows the paper's use case (a walker warned of obstacles 1–2 m ahead): a distance inside
 the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
 obstacle) silence. A message is not repeated more often than every ``repeat_s`` seconds unless the distance
-moved to another class. A more urgent class is taken at once; a less urgent one only when the distance is past
-the edge by ``hysteresis_m``, so a distance hovering on an edge does not flap. Each frame's distance is first
+moved to another class than the one last spoken (a return to it after a frame of silence is not a new class). A
+more urgent class is taken at once; a less urgent one only when the distance is past the edge by
+``hysteresis_m``, so a distance hovering on an edge does not flap. Each frame's distance is first
 confirmed by the frames before it: the rule takes the median of the last ``confirm_frames`` (a frame with no
 obstacle counts as farther than any), so one camera frame ranged wrong by its noise neither raises a warning nor
 drops one, at the cost of a new obstacle being warned of ``confirm_frames // 2`` frames later
@@ -64,6 +65,7 @@ class WarningPolicy:
         self.confirmed_m: float | None = None  # the distance the rule took last (the median), None: no obstacle
         self._recent: collections.deque[float] = collections.deque(maxlen=confirm_frames)
         self._last_spoken_s = -math.inf
+        self._last_spoken_class: str | None = None
 
     def classify(self, distance_m: float | None) -> str:
         """Class of a distance without hysteresis: ``stop`` (below the band), ``warn`` (in it) or ``clear``."""
@@ -91,12 +93,14 @@ class WarningPolicy:
             # Escalate at once, relax only once the distance is past the edge by the hysteresis margin.
             relaxed = self.classify(distance_m - self.hysteresis_m)
             new = relaxed if _SEVERITY[relaxed] < _SEVERITY[self.current] else self.current
-        changed, self.current = new != self.current, new
+        self.current = new
         if new == CLEAR:
             return None
-        if not changed and now_s - self._last_spoken_s < self.repeat_s:
+        # Within repeat_s only a class other than the one last spoken is said: an obstacle seen every other frame
+        # (warn, clear, warn, ...) is said once, not at each return to the band, which cut the speech into pieces.
+        if new == self._last_spoken_class and now_s - self._last_spoken_s < self.repeat_s:
             return None
-        self._last_spoken_s = now_s
+        self._last_spoken_s, self._last_spoken_class = now_s, new
         return self.message(new, distance_m)
 
     def reset(self) -> None:
@@ -106,6 +110,7 @@ class WarningPolicy:
         self.confirmed_m = None
         self._recent.clear()
         self._last_spoken_s = -math.inf
+        self._last_spoken_class = None
 
     @staticmethod
     def message(distance_class: str, distance_m: float) -> str:
