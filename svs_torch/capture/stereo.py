@@ -121,6 +121,13 @@ def to_stereo_batch(pairs: list[StereoPair] | tuple[StereoPair, ...], *, dtype: 
                                    calibrated=False, names=tuple(f"pair{p.index}" for p in pairs))
 
 
+#: The most two frames of one pair may arrive apart before both are grabbed again (:class:`SVSStereoCamera`): both
+#: boards' frames arrive within a few tens of milliseconds, and a retry of one board's grab waits its reply timeout.
+MAX_FRAME_GAP_S = 0.25
+#: How many times a pair whose frames came too far apart is grabbed again.
+REGRABS_FOR_GAP = 2
+
+
 class SVSStereoCamera:
     """Both SVS boards: open, identify (``V``), set size, grab pairs; a context manager that closes the links.
 
@@ -134,6 +141,9 @@ class SVSStereoCamera:
         strict_roles: raise instead of warn when the left board is not the master or the right not the slave.
         first_index: the index of the first pair grabbed (a camera opened again after a loss goes on counting, so
             a record's pair files are not overwritten).
+        max_frame_gap_s: a pair whose two frames arrived further apart (one board needed a retry while the other's
+            frame waited) is grabbed again, both boards, up to twice; None: never. A walker moves and the scene
+            with him: frames seconds apart are not a stereo pair.
 
     Raises:
         InputError: a bad ``size_wh`` or ``quality``.
@@ -142,8 +152,12 @@ class SVSStereoCamera:
 
     def __init__(self, left_url: str, right_url: str, size_wh: tuple[int, int] = (320, 240), *,
                  quality: int | None = None, flip: bool | None = None, config: LinkConfig | None = None,
-                 strict_roles: bool = False, first_index: int = 0) -> None:
+                 strict_roles: bool = False, first_index: int = 0, max_frame_gap_s: float | None = MAX_FRAME_GAP_S
+                 ) -> None:
         self._size_code = size_code_for(tuple(size_wh))
+        if max_frame_gap_s is not None and not (isinstance(max_frame_gap_s, (int, float)) and max_frame_gap_s > 0):
+            raise InputError(f"max_frame_gap_s: expected seconds > 0 or None, got {max_frame_gap_s!r}")
+        self.max_frame_gap_s = max_frame_gap_s
         if isinstance(first_index, bool) or not isinstance(first_index, int) or first_index < 0:
             raise InputError(f"first_index: expected an integer >= 0, got {first_index!r}")
         if quality is not None and (not isinstance(quality, int) or not 1 <= quality <= 8):
@@ -185,12 +199,14 @@ class SVSStereoCamera:
         return self.links["left"].config
 
     def pair_timeout_s(self) -> float:
-        """Worst-case seconds of :meth:`grab_pair` when every retry and reconnect is used (pessimistic bound)."""
+        """Worst-case seconds of :meth:`grab_pair` when every retry and reconnect is used (pessimistic bound; a pair
+        grabbed again for its frames' gap, ``max_frame_gap_s``, pays its frames' time again)."""
         cfg = self.config
         frame = (cfg.max_retries + 1) * cfg.frame_attempt_timeout_s(self._size_code)
         reconnect = cfg.max_reconnects * (cfg.max_reconnects + 1) * (cfg.reconnect_delay_s + _CONNECT_TIMEOUT_S
                                                                       + cfg.drain_max_s + cfg.reply_timeout_s)
-        return frame + reconnect
+        regrabs = 0 if self.max_frame_gap_s is None else REGRABS_FOR_GAP
+        return (1 + regrabs) * frame + reconnect
 
     def set_size(self, size_wh: tuple[int, int]) -> None:
         """Change the frame size on both boards."""
@@ -209,11 +225,14 @@ class SVSStereoCamera:
         Raises:
             CaptureError: a camera gave no valid frame within its retries (the message names it).
         """
-        self.links["left"].request_frame()
-        self.links["right"].request_frame()
-        left, right = self._both(lambda link: decode_frame(link.read_frame(), link.name, link.where))
-        pair = StereoPair(index=self._next_index, left=left, right=right,
-                          time_between_frames_s=right.arrival_monotonic_s - left.arrival_monotonic_s)
+        for _ in range(1 + REGRABS_FOR_GAP):
+            self.links["left"].request_frame()
+            self.links["right"].request_frame()
+            left, right = self._both(lambda link: decode_frame(link.read_frame(), link.name, link.where))
+            gap_s = right.arrival_monotonic_s - left.arrival_monotonic_s
+            if self.max_frame_gap_s is None or abs(gap_s) <= self.max_frame_gap_s:
+                break
+        pair = StereoPair(index=self._next_index, left=left, right=right, time_between_frames_s=gap_s)
         self._next_index += 1
         return pair
 

@@ -52,7 +52,9 @@ def emulator():
 
 @pytest.fixture
 def camera(emulator):
-    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], config=FAST) as cam:
+    # The link's own retries are what these tests count: a pair is not grabbed again for its frames' gap here
+    # (test_a_pair_whose_frames_came_apart_is_grabbed_again).
+    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
         yield cam
 
 
@@ -310,7 +312,7 @@ def test_capture_over_pty():
     with EmulatorServer(left_port=0, right_port=0, source=flat_source, use_pty=True) as server:
         paths = server.pty_paths
         assert set(paths) == {"left", "right"} and all(p.startswith("/dev/") for p in paths.values())
-        with SVSStereoCamera(paths["left"], paths["right"], (640, 480), config=FAST) as cam:
+        with SVSStereoCamera(paths["left"], paths["right"], (640, 480), config=FAST, max_frame_gap_s=None) as cam:
             assert cam.versions["right"].role == "slave"
             assert cam.grab_pair().left.size_wh == (640, 480)
             server.set_faults("right", silent_grabs=1, garbage_frames=1)
@@ -361,6 +363,24 @@ def test_wrong_size_frame_is_fixed(emulator, camera):
     pair = camera.grab_pair()
     assert pair.left.size_wh == (320, 240) and pair.left.attempts == 2
     assert "expected size code '5' (320x240), got '7' (640x480)" in camera.links["left"].stats.failures[-1]
+
+
+@pytest.mark.parametrize("max_gap_s", [0.25, None])
+def test_a_pair_whose_frames_came_apart_is_grabbed_again(emulator, max_gap_s):
+    """Found by a review of the capture side: when one board needed a retry, the other's frame waited for it and
+    the pair's frames came a reply timeout apart (4 s at guide's default), yet were ranged as one stereo pair. Such
+    a pair is now grabbed again from both boards (max_frame_gap_s; None: as before)."""
+    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], config=FAST,
+                         max_frame_gap_s=max_gap_s) as cam:
+        cam.grab_pair()
+        emulator.set_faults("right", silent_grabs=1)
+        pair = cam.grab_pair()
+    if max_gap_s is None:
+        assert pair.right.attempts == 2 and pair.time_between_frames_s > FAST.reply_timeout_s
+    else:
+        assert pair.left.attempts == pair.right.attempts == 1 and abs(pair.time_between_frames_s) <= max_gap_s
+    with pytest.raises(InputError, match="max_frame_gap_s"):
+        SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], max_frame_gap_s=0)
 
 
 def test_dropped_link_reconnects(emulator, camera):
