@@ -18,9 +18,10 @@ Grab pairs from the SVS continuously, run the whole pipeline on the most recent 
 nearest obstacle's nearest visible surface (the 10th depth percentile of its dense disparities) is within
 the distance band (default 1-2 m, the range the system was designed for): a spoken message when espeak-ng
 is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
-seconds unless the distance class changes to another than the one last said). Each pair's distance is confirmed by the pairs before it: the
-band is judged on the median of the last --confirm-frames, so one noisy frame ranged wrong is not said. A
-status line shows frames per second, that distance and the nearest obstacle's side. The floor (the road)
+seconds unless the distance class changes to another than the one last said). Each pair's distance is
+confirmed by the pairs before it: the band is judged on the median of the last --confirm-frames, so one noisy
+frame ranged wrong is not said. A status line shows frames per second, that distance and the nearest
+obstacle's side. The floor (the road)
 ahead, which a walker's camera sees as its nearest surface, is not an obstacle (--floor). The frames are a
 camera's (JPEG with sensor noise), so the obstacles' disparity map is matched with its wider noise window at
 once, as estimate --camera-frames does.
