@@ -35,6 +35,7 @@ __all__ = [
     "load_middlebury_2003",
     "load_middlebury_2001",
     "load_kitti",
+    "kitti_left_images",
     "load_opencv_aloe",
     "load_image_pair",
     "load_stereo_pair",
@@ -230,6 +231,16 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
                        disparity=disparity, valid=valid, nonoccluded=nonoccluded)
 
 
+def kitti_left_images(root: str | Path) -> list[Path]:
+    """The left images of a KITTI training folder that have ground truth, sorted: frame ``_10`` (a download also
+    holds ``_11``, the next frame of the flow benchmark, with no disparity, which :func:`load_kitti` cannot score)."""
+    root = Path(root)
+    for left, truth in (("colored_0", "disp_occ"), ("image_2", "disp_occ_0")):
+        if (root / left).is_dir():
+            return sorted(path for path in (root / left).glob("*.png") if (root / truth / path.name).is_file())
+    return []
+
+
 @_warnings_once_loaded()
 def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """OpenCV sample Aloe (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png`` = d, 0 = unknown), full size 1282×1110.
@@ -370,8 +381,8 @@ def list_shared_pairs(data_dir: str | Path) -> list[Path]:
     for folder, marker in (("middlebury_eval3_Q", "calib.txt"), ("middlebury_2005_2006_third", "view1.png"),
                            ("middlebury_2003_quarter", "imL.png"), ("middlebury_2001", "*disp*.pgm")):
         pairs += sorted(d for d in (data_dir / folder).glob("*") if d.is_dir() and any(d.glob(marker)))
-    for left_dir in ("kitti/stereo2012_training/colored_0", "kitti/stereo2015_training/image_2"):
-        pairs += sorted((data_dir / left_dir).glob("*.png"))
+    for kitti in ("kitti/stereo2012_training", "kitti/stereo2015_training"):
+        pairs += kitti_left_images(data_dir / kitti)
     if (data_dir / "opencv_samples" / "aloeL.jpg").is_file():
         pairs.append(data_dir / "opencv_samples")
     return pairs

@@ -33,7 +33,8 @@ import torch
 from ..core.checks import InputError
 from ..core.files import display_path, path_kind
 from ..core.types import StereoBatch
-from .datasets import detect_stereo_layout, list_shared_pairs, load_image_pair, load_stereo_pair
+from .datasets import (detect_stereo_layout, kitti_left_images, list_shared_pairs, load_image_pair,
+                       load_stereo_pair)
 
 __all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources"]
 
@@ -137,7 +138,7 @@ def _scene_sources(folder: Path) -> list[PairSource]:
     """A scene folder's pairs: itself, or each frame of a KITTI training folder (its left images), as the shared
     data folder lists them: ``load_stereo_pair`` on the folder alone reads only frame 000000_10."""
     if detect_stereo_layout(folder) == "kitti":
-        lefts = [path for name in _KITTI_LEFT_FOLDERS for path in sorted((folder / name).glob("*.png"))]
+        lefts = kitti_left_images(folder)  # the frames with truth: a download's _11 frames have none
         if lefts:
             return [PairSource(left=str(path), scene=True) for path in lefts]
     return [PairSource(left=str(folder), scene=True)]

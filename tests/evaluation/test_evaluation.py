@@ -281,6 +281,24 @@ def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
 
 # --- pair lists ----------------------------------------------------------------------------------------------
 
+def test_a_kitti_download_lists_its_frames_with_truth_only(data_dir, tmp_path, capsys):
+    """Found by a review of the evaluation: a KITTI training folder as downloaded holds frames _10 and _11, and only
+    _10 has disparity truth; every _11 frame was listed and became a failed pair (BAD_INPUT, no disp_occ)."""
+    import shutil
+
+    shared = data_dir / "kitti" / "stereo2012_training"
+    root = tmp_path / "training"
+    for folder in ("colored_0", "colored_1", "disp_occ"):
+        (root / folder).mkdir(parents=True)
+        shutil.copy(shared / folder / "000000_10.png", root / folder / "000000_10.png")
+        if folder != "disp_occ":
+            shutil.copy(shared / folder / "000000_10.png", root / folder / "000000_11.png")
+    sources = read_pair_sources([root])
+    assert [Path(source.left).name for source in sources] == ["000000_10.png"]
+    assert main(["eval", str(root), "--size", "160x48", "--json"]) == 0
+    assert '"failed": 0' in capsys.readouterr().out
+
+
 def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
     teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
     listing = tmp_path / "pairs.txt"
