@@ -259,8 +259,11 @@ class CameraLink:
         cfg = self.config
         if parser.header is not None:
             h = parser.header
+            # A board whose UART is slower than the link assumes (a 115,200-baud build behind the WiFi module too)
+            # sends too slowly for the transfer timeout: say which speed was assumed.
             return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within "
-                    f"{cfg.transfer_timeout_s(h.length):.2f} s of its header, got {parser.buffered}")
+                    f"{cfg.transfer_timeout_s(h.length):.2f} s of its header, got {parser.buffered} (the timeout "
+                    f"assumes {cfg.bytes_per_s * 10:,.0f} baud: a slower board's --baud)")
         size = f" of {'x'.join(map(str, SVS_RESOLUTIONS[self.size_code]))}" if self.size_code else ""
         reason = (f"sent {CMD_GRAB!r}, expected a '##IMJ' frame{size} within {cfg.reply_timeout_s:g} s, "
                   f"got {describe_bytes(received)}")

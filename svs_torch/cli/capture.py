@@ -63,7 +63,8 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--quality", type=int, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
     parser.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD,
-                        help=f"UART speed for serial devices (default: {DEFAULT_BAUD})")
+                        help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
+                             f"a frame's bytes may take (default: {DEFAULT_BAUD}; 115200 for a board built so)")
     parser.add_argument("--timeout", type=positive_float, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most twice "
                              f"(default: {DEFAULT_TIMEOUT_S:g})")

@@ -88,7 +88,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
-                        help="UART speed for serial links (default: 2304000)")
+                        help="the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
+                             "a frame's bytes may take (default: 2304000; 115200 for a board built so)")
     parser.add_argument("--timeout", type=positive_float, default=2.0,
                         help="reply timeout per command, seconds (default: 2)")
     parser.add_argument("--quality", type=int, metavar="1-8",
