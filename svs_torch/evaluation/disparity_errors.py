@@ -1,5 +1,7 @@
 """Disparity errors against the ground truth, for the dense map and for the sparse inliers: mean and median
-absolute error, the share of bad pixels, over the pixels both know.
+absolute error, the share of bad pixels, over the pixels both know. In the pixels the pipeline ran at (a resized
+pair's, with its GT resampled): the stereo metrics (:mod:`.stereo_metrics`) are the ones in the data's native
+pixels, at the published thresholds.
 """
 
 from __future__ import annotations
