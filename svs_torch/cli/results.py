@@ -79,6 +79,11 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
               f"{_number(s['acc_r_max_pct']):>7} {_number(s['acc_objects_pct']):>6} "
               f"{_number(s['dense_within_1px'], 2):>5} {_number(s['inlier_precision'], 2):>5} "
               f"{_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} ({s['preset']}, {s['size']})")
+    missing = [s for s in summaries if s.get("pairs_missing")]
+    if missing:
+        print("note: the configurations were not all measured on the same pairs ("
+              + ", ".join(f"{s['config_id']} lacks {s['pairs_missing']}" for s in missing)
+              + "): their means are over different pairs; resume the sweep (or rerun) to compare like with like")
     for s in summaries:
         if len(s["code_versions"]) > 1:
             print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "

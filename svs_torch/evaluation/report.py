@@ -49,23 +49,28 @@ def _evaluation(row: dict) -> PairEvaluation:
 
 def config_summaries(store: ResultStore) -> list[dict]:
     """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
-    ``overrides`` and the ``code_versions`` its rows were computed by), in the order the configurations were
-    stored; configurations without rows are left out."""
+    ``overrides``, the ``code_versions`` its rows were computed by and ``pairs_missing``, how many of the pairs
+    any configuration was measured on it lacks: an interrupted sweep's means are over different pairs), in the
+    order the configurations were stored; configurations without rows are left out."""
     check_instance(store, "store", ResultStore)
     by_config: dict[str, list[PairEvaluation]] = {}
     versions: dict[str, list[str]] = {}
+    pairs: dict[str, set[str]] = {}
     for row in store.results():
         by_config.setdefault(row["config_id"], []).append(_evaluation(row))
+        pairs.setdefault(row["config_id"], set()).add(row["pair_id"])
         seen = versions.setdefault(row["config_id"], [])
         if row["code_version"] not in seen:
             seen.append(row["code_version"])
+    every_pair = set().union(*pairs.values())
     summaries = []
     for config in store.configs():
         rows = by_config.get(config["config_id"])
         if rows:
             summary = summarize(rows)
             summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
-                             | {"code_versions": versions[config["config_id"]]} | summary)
+                             | {"code_versions": versions[config["config_id"]],
+                                "pairs_missing": len(every_pair - pairs[config["config_id"]])} | summary)
     return summaries
 
 

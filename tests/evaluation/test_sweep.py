@@ -259,6 +259,26 @@ def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_p
     assert "code versions" not in capsys.readouterr().out
 
 
+def test_results_say_when_configurations_were_measured_on_different_pairs(reference, tmp_path, capsys):
+    """Found by a review of the evaluation: after an interrupted sweep each configuration was summarised over the
+    rows it had, and ranked against the others over different pairs without a word."""
+    import shutil
+
+    db = tmp_path / "interrupted.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        config_id = connection.execute("SELECT config_id FROM results ORDER BY config_id LIMIT 1").fetchone()[0]
+        connection.execute("DELETE FROM results WHERE rowid IN (SELECT rowid FROM results WHERE config_id = ? "
+                           "LIMIT 2)", (config_id,))
+    connection.close()
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert f"not all measured on the same pairs ({config_id} lacks 2)" in out
+    assert main(["results", str(reference[1])]) == 0
+    assert "same pairs" not in capsys.readouterr().out
+
+
 def test_results_rank_nominal_only_configurations_on_their_nominal_means(reference, tmp_path, capsys):
     """A sweep over scenes that ship no calibration has no headline accuracy (nominal pairs are reported apart):
     its configurations are still ranked, on their nominal means, and the summary says so."""
