@@ -8,7 +8,8 @@ arrives while a command is handled is discarded, so never pipeline). Every wait 
   header, the length being the one the header announces (bounded by :func:`~.protocol.max_jpeg_length`);
 * a silent or broken reply is retried ``max_retries`` times (§3: ``I`` sometimes returns nothing), after
   discarding input until the link has been quiet for ``drain_quiet_s`` (at most ``drain_max_s``);
-* a dropped link is reopened up to ``max_reconnects`` times per command, and the size and quality are re-sent.
+* a dropped link is reopened up to ``max_reconnects`` times per command, and the size, quality and flip are
+  re-sent (to a board that sends a frame of another size, a reset one, too).
 
 pyserial's ``read(n)`` returns short on timeout without raising, so reads use a short fixed timeout
 (``poll_s``) in a loop that checks the deadline: a deadline is overshot by at most ``poll_s``. Opening a
@@ -51,6 +52,7 @@ class CameraLink:
         self.stats = LinkStats()
         self.size_code: str | None = None  # size set on the board; frames of another size are rejected
         self.quality: int | None = None  # JPEG quality digit set on the board, if any
+        self.flip: bool | None = None  # the image flip set on the board (y / Y), if any
         self._serial: serial.SerialBase | None = None
         self._last_reply_s = 0.0
         self._request_s = 0.0
@@ -145,6 +147,21 @@ class CameraLink:
         expected = f"a line starting {prefix!r}"
         return self.command(command, lambda buf: find_line(buf, prefix), expected, **kwargs)
 
+    def set_flip(self, flip: bool, *, allow_reconnect: bool = True) -> None:
+        """Flip the image (``y``: a camera mounted upside down) or not (``Y``), and remember it to restore."""
+        self.command_ack(b"y" if flip else b"Y", (b"#y",) if flip else (b"#Y",), allow_reconnect=allow_reconnect)
+        self.flip = flip
+
+    def restore_settings(self, *, allow_reconnect: bool = True) -> None:
+        """Send again the size, quality and flip this link set: after a reconnect, or to a board that sent a frame
+        of another size (it was reset to its power-on settings, all of them)."""
+        if self.size_code is not None:
+            self.set_size(self.size_code, allow_reconnect=allow_reconnect)
+        if self.quality is not None:
+            self.set_quality(self.quality, allow_reconnect=allow_reconnect)
+        if self.flip is not None:
+            self.set_flip(self.flip, allow_reconnect=allow_reconnect)
+
     def set_size(self, size_code: str, *, allow_reconnect: bool = True) -> None:
         """Select a frame size by its code (``'5'`` = 320×240) and remember it for checking frames."""
         self.command_ack(size_command(size_code), size_acks(size_code), allow_reconnect=allow_reconnect)
@@ -213,8 +230,8 @@ class CameraLink:
                                    f"{time.monotonic() - start:.2f} s; last attempt: {outcome.reason}")
             self.stats.retries += 1
             self._drain_quietly()
-            if outcome.wrong_size and self.size_code is not None:
-                self.set_size(self.size_code)
+            if outcome.wrong_size:  # a board reset to its power-on settings: every one this link set
+                self.restore_settings()
             self.request_frame()
 
     def grab(self) -> RawFrame:
@@ -322,7 +339,7 @@ class CameraLink:
             self._pending_drop = str(err)
 
     def _reconnect(self, reason: str) -> None:
-        """Reopen the link and restore the size and quality; raises CaptureError if it cannot."""
+        """Reopen the link and restore the size, quality and flip; raises CaptureError if it cannot."""
         self.stats.reconnects += 1
         self._note_failure(f"link dropped: {reason}")
         self.close()
@@ -334,10 +351,7 @@ class CameraLink:
             except CaptureError:
                 if attempt == self.config.max_reconnects:
                     raise
-        if self.size_code is not None:
-            self.set_size(self.size_code, allow_reconnect=False)
-        if self.quality is not None:
-            self.set_quality(self.quality, allow_reconnect=False)
+        self.restore_settings(allow_reconnect=False)
 
     def _note_failure(self, reason: str) -> None:
         self.stats.failures = (self.stats.failures + [reason])[-8:]

@@ -181,7 +181,7 @@ class SVSStereoCamera:
         if quality is not None:
             link.set_quality(quality)
         if flip is not None:
-            link.command_ack(b"y" if flip else b"Y", (b"#y",) if flip else (b"#Y",))
+            link.set_flip(flip)
 
     def _check_roles(self, strict: bool) -> None:
         roles = {name: self.versions[name].role for name in ("left", "right")}

@@ -383,6 +383,23 @@ def test_a_pair_whose_frames_came_apart_is_grabbed_again(emulator, max_gap_s):
         SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], max_frame_gap_s=0)
 
 
+def test_a_reset_or_reconnected_board_gets_every_setting_again(emulator):
+    """Found by a review of the capture side: a board that came back at its power-on settings (a frame of another
+    size) got its size again but not its quality, and a reconnected one its size and quality but not its flip."""
+    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], (640, 480), quality=8, flip=True,
+                         config=FAST) as cam:
+        board = emulator.cameras["left"]
+        cam.grab_pair()
+        board.size_code, board.quality, board.flipped = "5", 4, False  # a brown-out: power-on settings
+        cam.grab_pair()
+        assert (board.size_code, board.quality, board.flipped) == ("7", 8, True)
+        emulator.drop_connection("left")
+        time.sleep(0.2)  # the emulator closes the socket in its own thread
+        board.flipped = False
+        cam.grab_pair()
+        assert cam.links["left"].stats.reconnects >= 1 and board.flipped and board.quality == 8
+
+
 def test_dropped_link_reconnects(emulator, camera):
     emulator.set_faults("left", drop_after_frames=1)
     camera.grab_pair()  # the link drops right after this frame
