@@ -104,8 +104,8 @@ CSV_FIRST = ("config", "left", "right", "status", "r_min_m", "r_max_m", "acc_r_m
 
 def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     """Header and rows, one per (configuration, pair): :data:`CSV_FIRST`, then the configuration's ``label``,
-    ``size`` and each swept parameter's value (``param:<key>``), then every other result column, then the
-    ``code_version`` of the run that wrote the row."""
+    ``size`` and each swept parameter's value in the configuration that ran (``param:<key>``), then every other
+    result column, then the ``code_version`` of the run that wrote the row."""
     check_instance(store, "store", ResultStore)
     configs = {c["config_id"]: c for c in store.configs()}
     swept = swept_parameters(store)
@@ -114,7 +114,7 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     rows = []
     for row in store.results():
         config = configs[row["config_id"]]
-        params = [config["preset"] if key == "preset" else config["overrides"].get(key) for key in swept]
+        params = [config["preset"] if key == "preset" else _value_that_ran(config, key) for key in swept]
         # Paths as a person would write them: a sweep file's "../../shared/data" joined to its folder reads
         # "experiments/../../shared/..." until normalised (the same file; ids keep the absolute path).
         paths = {key: os.path.normpath(row[key]) if row[key] else row[key] for key in ("left", "right")}
@@ -123,6 +123,17 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
         rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
                     + [values[name] for name in rest] + [row["code_version"]])
     return header, rows
+
+
+def _value_that_ran(config: dict, key: str) -> Any:
+    """A swept parameter's value in the configuration that ran (its preset's where it was not overridden: an empty
+    cell read as 'not set' hid the 0.8 a default configuration ran with), from the stored whole configuration."""
+    value: Any = config.get("config")
+    for part in key.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return config["overrides"].get(key)  # a store that predates the whole configuration, or a None parent
+        value = value[part]
+    return value
 
 
 def _scene_bars(axis, store: ResultStore, summary: dict) -> None:

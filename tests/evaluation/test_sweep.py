@@ -17,6 +17,7 @@ import pytest
 from svs_torch.cli import main
 from svs_torch.core.checks import InputError
 from svs_torch.evaluation.sweep import load_sweep, plan_tasks, run_sweep
+from svs_torch.pipeline import PipelineConfig
 
 #: Four MiddEval3 scenes at 160x120, three configurations, one pair per task: 12 rows, 12 tasks.
 SCENES = ("Teddy", "ArtL", "Piano", "Motorcycle")
@@ -277,6 +278,25 @@ def test_results_say_when_configurations_were_measured_on_different_pairs(refere
     assert f"not all measured on the same pairs ({config_id} lacks 2)" in out
     assert main(["results", str(reference[1])]) == 0
     assert "same pairs" not in capsys.readouterr().out
+
+
+def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
+    """Found by a review of the evaluation: a param: column held the override, so a configuration that kept its
+    preset's value showed an empty cell (the default's max_ratio 0.8, the paper preset's 0.6)."""
+    import csv
+    import io
+
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "160x120"\n'
+                          '[[configs]]\n[[configs]]\nmax_ratio = 0.7\n[[configs]]\npreset = "paper"\n')
+    store = tmp_path / "s.sqlite"
+    assert main(["sweep", str(sweep_file), "--db", str(store)]) == 0
+    capsys.readouterr()
+    assert main(["results", str(store), "--csv", "-"]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    ran = {(row["param:preset"], row["label"]): float(row["param:max_ratio"]) for row in rows}
+    assert ran == {("default", "(preset)"): PipelineConfig().max_ratio, ("default", "max_ratio=0.7"): 0.7,
+                   ("paper", "preset=paper (preset)"): PipelineConfig.paper().max_ratio}
 
 
 def test_results_rank_nominal_only_configurations_on_their_nominal_means(reference, tmp_path, capsys):
