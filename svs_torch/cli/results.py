@@ -55,18 +55,11 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _rank_value(summary: dict, key: str) -> float | None:
-    """The summary's ``key``; for an accuracy with no pair of its own calibration, the nominal-calibration mean
-    (a sweep over scenes that ship none is still ranked, on the same footing for every configuration)."""
-    value = summary.get(key)
-    if value is None and key.startswith("acc_"):
-        value = (summary.get("nominal_calibration") or {}).get(key)
-    return value
-
-
 def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> None:
-    ranked = sorted(summaries, key=lambda s: -(v if (v := _rank_value(s, args.sort)) is not None else -1e9))
-    if any(s.get(args.sort) is None and _rank_value(s, args.sort) is not None for s in summaries):
+    from ..evaluation.report import ranked_value
+
+    ranked = sorted(summaries, key=lambda s: -(v if (v := ranked_value(s, args.sort)) is not None else -1e9))
+    if any(s.get(args.sort) is None and ranked_value(s, args.sort) is not None for s in summaries):
         print(f"note: {args.sort} ranks the means over pairs scored with a nominal calibration where a "
               "configuration has no pair with its own (the table's '-')")
     shown = ranked[:args.top] if args.top else ranked
@@ -91,7 +84,7 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     print("best by each metric:")
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1
-        print(f"  {label:<18} {_number(s[key], digits):>7}  {s['config_id']}  {s['label']}")
+        print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}")
 
 
 def run(args: argparse.Namespace) -> int:

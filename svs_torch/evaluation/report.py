@@ -21,8 +21,8 @@ from .metrics import PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
-__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "results_figure",
-           "swept_parameters"]
+__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "ranked_value",
+           "results_figure", "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -74,13 +74,23 @@ def config_summaries(store: ResultStore) -> list[dict]:
     return summaries
 
 
+def ranked_value(summary: dict, key: str) -> float | None:
+    """The summary's ``key``; for an accuracy with no pair of its own calibration, the nominal-calibration mean
+    (a sweep over scenes that ship none is still ranked, on the same footing for every configuration): what the
+    results table ranks by and the figure plots."""
+    value = summary.get(key)
+    if value is None and key.startswith("acc_"):
+        value = (summary.get("nominal_calibration") or {}).get(key)
+    return value
+
+
 def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
-    """``(metric key, label, best summary)`` for each metric some configuration has."""
+    """``(metric key, label, best summary)`` for each metric some configuration has (by :func:`ranked_value`)."""
     best = []
     for key, label, higher in METRICS:
-        candidates = [s for s in summaries if s.get(key) is not None]
+        candidates = [s for s in summaries if ranked_value(s, key) is not None]
         if candidates:
-            pick = max(candidates, key=lambda s: s[key]) if higher else min(candidates, key=lambda s: s[key])
+            pick = (max if higher else min)(candidates, key=lambda s: ranked_value(s, key))
             best.append((key, label, pick))
     return best
 
@@ -169,7 +179,7 @@ def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
     for metric, label in (("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"), ("acc_objects_pct", "objects")):
         means = []
         for level in levels:
-            group = [s[metric] for s in summaries if repr(value(s)) == level and s[metric] is not None]
+            group = [v for s in summaries if repr(value(s)) == level and (v := ranked_value(s, metric)) is not None]
             means.append(sum(group) / len(group) if group else float("nan"))
         axis.plot(range(len(levels)), means, marker="o", label=label)
     axis.set_xticks(range(len(levels)), [level.strip("'") for level in levels], fontsize=8)
@@ -215,7 +225,8 @@ def results_figure(store: ResultStore):
     grid = figure.add_gridspec(rows, columns)
     for number, key in enumerate(swept):
         _parameter_axis(figure.add_subplot(grid[number // columns, number % columns]), summaries, key)
-    best = max(summaries, key=lambda s: s["acc_objects_pct"] if s["acc_objects_pct"] is not None else -1.0)
+    # The table's ranking: nominal-calibration means where a configuration has no pair of its own calibration.
+    best = max(summaries, key=lambda s: v if (v := ranked_value(s, "acc_objects_pct")) is not None else -1.0)
     row, column = divmod(len(swept), columns)
     _scene_bars(figure.add_subplot(grid[row, column:]), store, best)  # the rest of its row: no empty panels
     count = len(summaries)
