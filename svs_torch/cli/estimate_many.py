@@ -133,7 +133,7 @@ def _listed_lines(path: str) -> list[tuple[str, str] | None]:
     number of workers; the paths say which files to decode ahead. Neither decides a result: a list that cannot
     be read gives [] (the real reading reports why), and a line that turns into several entries only shifts
     which files are decoded ahead."""
-    import shlex
+    from ..core.files import split_list_line
 
     try:
         text = Path(path).read_text(encoding="utf-8", errors="replace")
@@ -144,7 +144,7 @@ def _listed_lines(path: str) -> list[tuple[str, str] | None]:
     lines: list[tuple[str, str] | None] = []
     for line in text.splitlines():
         try:
-            fields = shlex.split(line, comments=True)
+            fields = split_list_line(line)
         except ValueError:
             fields = [line]
         if fields:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,7 +21,7 @@ from typing import IO
 from .errors import InputError
 
 __all__ = ["atomic_output", "check_output_file", "check_writable_folder", "display_path", "make_output_folder",
-           "path_kind", "write_bytes_atomic"]
+           "path_kind", "split_list_line", "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -133,3 +134,27 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` whole (see :func:`atomic_output`)."""
     with atomic_output(path) as stream:
         stream.write(data)
+
+
+def split_list_line(line: str) -> list[str]:
+    """A list file's line as its fields, split as a POSIX shell splits words: quotes and backslashes group, and
+    ``#`` starts a comment only at the start of a word (``take#2/left.png`` is a path; ``shlex.split`` with
+    ``comments=True`` cut it at the ``#``). Raises ValueError for unbalanced quotes, as ``shlex.split`` does."""
+    quote, word_starts, index = None, True, 0
+    while index < len(line):
+        char = line[index]
+        if quote is not None:
+            if char == quote:
+                quote = None
+            elif char == "\\" and quote == '"':
+                index += 1  # an escaped character inside double quotes
+        elif char == "\\":
+            index += 1  # an escaped character: never a comment or a quote
+        elif char in "'\"":
+            quote = char
+        elif char == "#" and word_starts:
+            line = line[:index]
+            break
+        word_starts = quote is None and char.isspace()
+        index += 1
+    return shlex.split(line, comments=False)

@@ -12,7 +12,8 @@ A pair comes from one of:
 * a PATH argument: a scene folder, a folder of scene folders, the shared data folder (every pair of
   :func:`~svs_torch.data.list_shared_pairs`), a list file or an ``index.jsonl``.
 
-List files take ``#`` comments and shell quoting (paths with spaces); relative paths are relative to the list.
+List files take ``#`` comments and shell quoting (paths with spaces), as a shell reads them (a ``#`` inside a word, as
+in ``take#2/left.png``, is part of it); relative paths are relative to the list.
 Every pair keeps its own calibration. An entry that cannot be a pair (wrong field count, a bad number, a folder
 that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so that it gets its own line and
 status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole is an :class:`InputError`.
@@ -23,7 +24,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shlex
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from ..core.checks import InputError
-from ..core.files import display_path, path_kind
+from ..core.files import display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
 from .datasets import (detect_stereo_layout, kitti_left_images, list_shared_pairs, load_image_pair,
                        load_stereo_pair)
@@ -258,7 +258,7 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
     for number, line in enumerate(text.splitlines(), start=1):
         where = f"{name}: line {number} of {path}"
         try:
-            fields = shlex.split(line, comments=True)
+            fields = split_list_line(line)
         except ValueError:
             sources.append(_bad(where, "unbalanced quotes", line))
             continue

@@ -281,6 +281,29 @@ def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
 
 # --- pair lists ----------------------------------------------------------------------------------------------
 
+def test_a_hash_inside_a_listed_path_is_part_of_it(data_dir, tmp_path):
+    """Found by a review of the evaluation: a list line's '#' started a comment anywhere (shlex), so
+    'take#2/left.png take#2/right.png' became one field; as in a shell, it starts one only at the start of a word."""
+    import shutil
+
+    from svs_torch.core.files import split_list_line
+
+    assert split_list_line("take#2/l.png take#2/r.png  # a pair") == ["take#2/l.png", "take#2/r.png"]
+    assert split_list_line("'a #b' c\\ #d e #f") == ["a #b", "c #d", "e"]
+    assert split_list_line("   # a whole comment") == []
+    with pytest.raises(ValueError):
+        split_list_line('"unbalanced')
+    folder = tmp_path / "take#2"
+    folder.mkdir()
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    shutil.copy(teddy / "im0.png", folder / "left.png")
+    shutil.copy(teddy / "im1.png", folder / "right.png")
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("take#2/left.png take#2/right.png  # Teddy, copied\n")
+    (source,) = read_pair_list(listing)
+    assert source.problem is None and source.left == str(folder / "left.png")
+
+
 def test_a_kitti_download_lists_its_frames_with_truth_only(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a KITTI training folder as downloaded holds frames _10 and _11, and only
     _10 has disparity truth; every _11 frame was listed and became a failed pair (BAD_INPUT, no disp_occ)."""
