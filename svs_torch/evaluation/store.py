@@ -190,17 +190,20 @@ class ResultStore:
         return [row[0] for row in self.connection.execute("SELECT DISTINCT code_version FROM runs ORDER BY run_id")]
 
     def done(self, config_ids: Sequence[str] | None = None) -> set[tuple[str, str]]:
-        """The (config_id, pair_id) keys already stored."""
-        rows = self.connection.execute("SELECT config_id, pair_id FROM results")
+        """The (config_id, pair_id) keys already stored, but those of ``ERROR`` rows: a run that raised (out of
+        memory, a full disk under an export) is run again when a sweep resumes."""
+        rows = self.connection.execute("SELECT config_id, pair_id FROM results WHERE status IS NOT 'ERROR'")
         wanted = None if config_ids is None else set(config_ids)
         return {(c, p) for c, p in rows if wanted is None or c in wanted}
 
     def write_task(self, config_id: str, run_id: int, rows: Sequence[tuple[str, PairEvaluation]]) -> int:
         """Store one task's ``(pair_id, evaluation)`` rows in one transaction; rows already present are kept as
-        they are (INSERT OR IGNORE). Returns the number of new rows."""
+        they are, but an ``ERROR`` row, which a new result replaces. Returns the number of rows written."""
         names = ["config_id", "pair_id", "run_id"] + [name for name, _ in RESULT_COLUMNS]
         columns = ", ".join(f'"{name}"' for name in names)
-        sql = f"INSERT OR IGNORE INTO results({columns}) VALUES ({', '.join('?' * len(names))})"
+        replace = ", ".join(f'"{name}" = excluded."{name}"' for name in names[2:])
+        sql = (f"INSERT INTO results({columns}) VALUES ({', '.join('?' * len(names))}) ON CONFLICT(config_id, "
+               f"pair_id) DO UPDATE SET {replace} WHERE results.status IS 'ERROR'")
         before = self.connection.total_changes
         self._transaction((sql, [config_id, pair_id, run_id]
                            + [_to_sql(getattr(evaluation, name)) for name, _ in RESULT_COLUMNS])

@@ -300,6 +300,31 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
                    ("paper", "preset=paper (preset)"): PipelineConfig.paper().max_ratio}
 
 
+def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
+    """Found by a review of the evaluation: an ERROR row (a run that raised: out of memory, a full disk under an
+    export) counted as done, so resuming a sweep never ran it again. Other stored rows are still kept as they are."""
+    from svs_torch.data import PairSource
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.store import ResultStore
+    from svs_torch.evaluation.sweep import make_sweep_config
+
+    pairs = [PairSource(left=f"scene{i}", scene=True) for i in range(2)]
+    config = make_sweep_config("default", {}, None, "default")
+    with ResultStore(tmp_path / "runs.sqlite") as store:
+        store.add_pairs(pairs)
+        store.add_configs([config.record()])
+        run = store.start_run("test", "v", {}, "")
+        store.write_task(config.config_id, run, [(pairs[0].pair_id, PairEvaluation("a", "ERROR", reason="MemoryError")),
+                                                 (pairs[1].pair_id, PairEvaluation("b", "OK", acc_r_min_pct=90.0))])
+        assert store.done() == {(config.config_id, pairs[1].pair_id)}
+        written = store.write_task(config.config_id, run, [
+            (pairs[0].pair_id, PairEvaluation("a", "OK", acc_r_min_pct=97.0)),
+            (pairs[1].pair_id, PairEvaluation("b", "OK", acc_r_min_pct=10.0))])
+        assert written == 1 and len(store.done()) == 2
+        rows = {row["name"]: row for row in store.results()}
+    assert (rows["a"]["status"], rows["a"]["acc_r_min_pct"]) == ("OK", 97.0) and rows["b"]["acc_r_min_pct"] == 90.0
+
+
 def test_results_rank_nominal_only_configurations_on_their_nominal_means(reference, tmp_path, capsys):
     """A sweep over scenes that ship no calibration has no headline accuracy (nominal pairs are reported apart):
     its configurations are still ranked, on their nominal means, and the summary says so."""
