@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..core.checks import InputError, check_dtype, check_instance, check_shape
+from ..core.numerics import safe_sqrt
 
 if TYPE_CHECKING:
     from ..pipeline import PipelineResult
@@ -217,10 +218,8 @@ def _one_mask(evaluated: torch.Tensor, m: _Measured, dtype: torch.dtype) -> Ster
     kept = m.sorted_error64 * covered
     avgerr = (kept.cumsum(1)[:, -1] / denominator).to(dtype)
     mean_square = kept.square().cumsum(1)[:, -1] / denominator
-    # sqrt's derivative is infinite at 0, and 0 · inf = NaN would reach every pair of the batch in a backward pass
-    # through any pair's metrics: an RMS of 0 (no pixel covered, or no error) gets the subgradient 0 instead.
-    nonzero = mean_square > 0
-    rms = torch.where(nonzero, torch.where(nonzero, mean_square, 1.0).sqrt(), 0.0).to(dtype)
+    # An RMS of 0 (no pixel covered, or no error) gets the subgradient 0: a NaN would reach every pair of the batch.
+    rms = safe_sqrt(mean_square).to(dtype)
     # Inverse empirical CDF: the k-th smallest covered error, k = ceil(q · n) (1-based, integer arithmetic),
     # found where the pair's running count of covered pixels first reaches k.
     ranks = torch.stack([(q * num_covered + 99) // 100 for q in QUANTILES_PCT], dim=1).clamp(min=1)  # (B, 4)

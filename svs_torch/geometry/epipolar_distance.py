@@ -9,6 +9,7 @@ import math
 import torch
 
 from ..core.checks import check_dtype, check_shape
+from ..core.numerics import safe_sqrt
 from .point_pairs import _check_pair, _point_spec
 
 __all__ = ["sampson_distance", "symmetric_epipolar_distance"]
@@ -85,12 +86,7 @@ def sampson_distance(points_left: torch.Tensor, points_right: torch.Tensor, fund
     _check_distance_args(points_left, points_right, fundamental)
     algebraic, grad_right, grad_left = _epipolar_terms(points_left, points_right, fundamental)
     distance_sq = _safe_ratio(algebraic.square(), grad_right + grad_left)
-    return distance_sq if squared else _safe_sqrt(distance_sq)
-
-
-def _safe_sqrt(value: torch.Tensor) -> torch.Tensor:
-    positive = value > 0
-    return torch.where(positive, torch.where(positive, value, 1.0).sqrt(), 0.0)
+    return distance_sq if squared else safe_sqrt(distance_sq)
 
 
 def symmetric_epipolar_distance(points_left: torch.Tensor, points_right: torch.Tensor, fundamental: torch.Tensor,
@@ -105,4 +101,4 @@ def symmetric_epipolar_distance(points_left: torch.Tensor, points_right: torch.T
     algebraic, grad_right, grad_left = _epipolar_terms(points_left, points_right, fundamental)
     algebraic_sq = algebraic.square()
     distance_sq = _safe_ratio(algebraic_sq, grad_right) + _safe_ratio(algebraic_sq, grad_left)
-    return distance_sq if squared else _safe_sqrt(distance_sq)
+    return distance_sq if squared else safe_sqrt(distance_sq)

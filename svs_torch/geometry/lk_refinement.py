@@ -13,6 +13,7 @@ import torch.nn.functional as F
 
 from ..core.checks import InputError, check_dtype, check_image, check_shape
 from ..core.kernels.checks import check_nonempty
+from ..core.numerics import safe_sqrt
 from ..core.types import Matches
 from . import kernels
 from .matched_points import MatchedPoints
@@ -85,9 +86,8 @@ def _centre(values: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, t
     centred = values - (values * weight).sum(-1, keepdim=True)
     mean_square = ((centred**2) * weight).sum(-1, keepdim=True)
     # A flat patch's RMS is 0, where sqrt's derivative is infinite and 0 · inf = NaN reached both images' gradients
-    # (geometry.soft.lk_step): its square root is taken of 1 instead, the same values (the clamp gives 1e-6).
-    nonzero = mean_square > 0
-    return centred, torch.where(nonzero, torch.where(nonzero, mean_square, 1.0).sqrt(), 0.0).clamp(min=1e-6)
+    # (geometry.soft.lk_step); the clamp gives it 1e-6.
+    return centred, safe_sqrt(mean_square).clamp(min=1e-6)
 
 
 def refine_matches_lk(

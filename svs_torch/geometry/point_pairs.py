@@ -8,6 +8,7 @@ import math
 import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
+from ..core.numerics import safe_sqrt
 
 __all__ = ["normalize_points_hartley"]
 
@@ -52,9 +53,7 @@ def normalize_points_hartley(points: torch.Tensor,
     centroid = (points * weights.unsqueeze(-1)).sum(-2) / total_safe  # (..., 2)
     offsets = points - centroid.unsqueeze(-2)
     distance_sq = offsets.square().sum(-1)
-    positive = distance_sq > 0
-    # sqrt has an infinite derivative at 0: take it only where the distance is positive.
-    distance = torch.where(positive, torch.where(positive, distance_sq, 1.0).sqrt(), 0.0)
+    distance = safe_sqrt(distance_sq)  # sqrt has an infinite derivative at 0
     mean_distance = (distance * weights).sum(-1, keepdim=True) / total_safe  # (..., 1)
     spread = mean_distance > 0
     scale = torch.where(spread, math.sqrt(2.0) / torch.where(spread, mean_distance, 1.0), 1.0)  # (..., 1)

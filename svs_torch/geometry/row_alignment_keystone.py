@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.numerics import safe_sqrt
+
 __all__ = ["keystone_design", "keystone_homography", "keystone_refit", "mapped_row_residuals"]
 
 
@@ -37,8 +39,7 @@ def keystone_refit(left: torch.Tensor, right: torch.Tensor, inliers: torch.Tenso
     variance = (weight * residual ** 2).sum(1) / (weight.sum(1) - 5).clamp(min=1)
     error_square = torch.linalg.inv(normal).diagonal(dim1=-2, dim2=-1) * variance[:, None]
     # A pair without inliers (or an exact fit) has 0 here, where sqrt's infinite derivative made a NaN gradient.
-    positive = error_square > 0
-    return params, torch.where(positive, torch.where(positive, error_square, 1.0).sqrt(), 0.0)
+    return params, safe_sqrt(error_square)
 
 
 def keystone_homography(params: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor) -> torch.Tensor:
