@@ -3,10 +3,10 @@
 ``types`` (the batch and result containers: ``StereoBatch``, ``Keypoints``, ``Matches``, ...), ``errors``
 (``InputError``), ``checks`` (argument checks that raise it), ``files`` (paths, atomic writes), ``image_files``
 (reading and writing image files), ``camera`` (the SVS camera model), ``ordering`` (stable sort orders),
-``mask_reductions`` (fast ``any`` over bool masks), ``pair_trees`` and ``size_groups`` (taking the pairs of a batch
-out of a result and putting them back), ``compiling`` (optional ``torch.compile``), ``workers`` (worker processes
-without torch in the parent), and ``kernels/``, the one loader that builds, caches and opens every stage's C
-kernels.
+``mask_reductions`` (fast ``any`` over bool masks), ``numerics`` (a square root with a finite gradient at 0),
+``pair_trees`` and ``size_groups`` (taking the pairs of a batch out of a result and putting them back),
+``compiling`` (optional ``torch.compile``), ``workers`` (worker processes without torch in the parent), and
+``kernels/``, the one loader that builds, caches and opens every stage's C kernels.
 
 May import: the standard library, torch, numpy, OpenCV, and core itself. Nothing here imports a stage, the
 pipeline, ``data``, ``evaluation``, ``plotting``, ``capture`` or the CLI.
