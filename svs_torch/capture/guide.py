@@ -25,6 +25,7 @@ import time
 from typing import TextIO
 
 from ..core.checks import InputError
+from ..core.files import stream_is_terminal
 
 __all__ = ["CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide",
            "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP"]
@@ -306,12 +307,7 @@ class StatusLine:
     def __init__(self, stream: TextIO | None = sys.stderr, interval_s: float = 5.0, tty: bool | None = None,
                  clock=time.monotonic) -> None:
         self.stream, self.interval_s, self.clock = stream, interval_s, clock
-        if tty is None:
-            try:
-                tty = stream is not None and stream.isatty()
-            except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
-                tty = False
-        self.tty = bool(tty)
+        self.tty = stream_is_terminal(stream) if tty is None else bool(tty)
         self._shown = ""
         # Plain mode: when the last status line was printed. The first waits an interval too, so it reports a rate
         # measured over some frames, not the 0 fps of the first.

@@ -12,6 +12,8 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TextIO, TypeVar
 
+from ..core.files import stream_is_terminal
+
 __all__ = ["Progress"]
 
 T = TypeVar("T")
@@ -39,10 +41,7 @@ class Progress:
         self.done, self._closed, self._postfix = 0, False, ""
         self.started = self._last = clock()
         if tty is None:
-            try:
-                tty = self.stream.isatty()
-            except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
-                tty = False
+            tty = stream_is_terminal(self.stream)
         self._bar = None
         if tty:
             from tqdm import tqdm

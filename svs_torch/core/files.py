@@ -21,7 +21,7 @@ from typing import IO
 from .errors import InputError
 
 __all__ = ["atomic_output", "check_output_file", "check_writable_folder", "display_path", "make_output_folder",
-           "path_kind", "split_list_line", "write_bytes_atomic"]
+           "path_kind", "split_list_line", "stream_is_terminal", "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -158,3 +158,11 @@ def split_list_line(line: str) -> list[str]:
         word_starts = quote is None and char.isspace()
         index += 1
     return shlex.split(line, comments=False)
+
+
+def stream_is_terminal(stream: IO | None) -> bool:
+    """Whether ``stream`` is a terminal (redrawn lines, bars) rather than a file, a pipe or nothing (plain lines)."""
+    try:
+        return stream is not None and stream.isatty()
+    except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
+        return False
