@@ -35,6 +35,7 @@ __all__ = [
     "load_middlebury_2003",
     "load_middlebury_2001",
     "load_kitti",
+    "KITTI_LEFT_FOLDERS",
     "kitti_left_images",
     "load_opencv_aloe",
     "load_image_pair",
@@ -58,6 +59,11 @@ _TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0
 # KITTI rectified-camera values inferred from the image width (MANIFEST §4; not verified per frame):
 # width → (focal px, baseline m). 1242: P_rect_02 of 2011_09_26, B = (44.857 + 339.524) / 721.538.
 _KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
+#: The KITTI training layouts, 2012 then 2015: (left, right, truth, non-occluded truth) folders and the name prefix.
+_KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"),
+                  ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "kitti2015"))
+#: The folders of a KITTI training folder's left images.
+KITTI_LEFT_FOLDERS = tuple(layout[0] for layout in _KITTI_LAYOUTS)
 
 
 def _check_dir(path: str | Path, name: str) -> Path:
@@ -214,12 +220,10 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
     calibrated False — use KITTI for disparity-level evaluation only.
     """
     root = _check_dir(root, "root")
-    if (root / "colored_0").is_dir():
-        folders, prefix, noc = ("colored_0", "colored_1", "disp_occ"), "kitti2012", "disp_noc"
-    elif (root / "image_2").is_dir():
-        folders, prefix, noc = ("image_2", "image_3", "disp_occ_0"), "kitti2015", "disp_noc_0"
-    else:
+    layout = next((layout for layout in _KITTI_LAYOUTS if (root / layout[0]).is_dir()), None)
+    if layout is None:
         raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
+    *folders, noc, prefix = layout
     left, right = _read_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
     disparity, valid = read_scaled_disparity(root / folders[2] / f"{frame}.png", 256.0, "disparity")
     nonoccluded = None
@@ -235,7 +239,7 @@ def kitti_left_images(root: str | Path) -> list[Path]:
     """The left images of a KITTI training folder that have ground truth, sorted: frame ``_10`` (a download also
     holds ``_11``, the next frame of the flow benchmark, with no disparity, which :func:`load_kitti` cannot score)."""
     root = Path(root)
-    for left, truth in (("colored_0", "disp_occ"), ("image_2", "disp_occ_0")):
+    for left, _, truth, _, _ in _KITTI_LAYOUTS:
         if (root / left).is_dir():
             return sorted(path for path in (root / left).glob("*.png") if (root / truth / path.name).is_file())
     return []
@@ -310,7 +314,7 @@ def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> St
     (the entries of :func:`list_shared_pairs`).
     """
     path = Path(path)
-    if path_kind(path, "path") == "file" and path.parent.name in ("colored_0", "image_2"):
+    if path_kind(path, "path") == "file" and path.parent.name in KITTI_LEFT_FOLDERS:
         return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
     path = _check_dir(path, "path")
     layout = detect_stereo_layout(path)
@@ -364,7 +368,7 @@ _LAYOUT_MARKERS = (
     ("2003", [("imL.png", "disp2.png")]),
     ("2001", [("truedisp.pgm",), ("disp2.pgm",)]),
     ("aloe", [("aloeL.jpg",)]),
-    ("kitti", [("colored_0",), ("image_2",)]),
+    ("kitti", [(folder,) for folder in KITTI_LEFT_FOLDERS]),
 )
 _LOADERS = {"eval3": load_middlebury_eval3, "2005_2006": load_middlebury_2005_2006, "2003": load_middlebury_2003,
             "2001": load_middlebury_2001, "aloe": load_opencv_aloe}

@@ -33,8 +33,8 @@ import torch
 from ..core.checks import InputError
 from ..core.files import display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
-from .datasets import (detect_stereo_layout, kitti_left_images, list_shared_pairs, load_image_pair,
-                       load_stereo_pair)
+from .datasets import (KITTI_LEFT_FOLDERS, detect_stereo_layout, kitti_left_images, list_shared_pairs,
+                       load_image_pair, load_stereo_pair)
 
 __all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources"]
 
@@ -42,7 +42,6 @@ __all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_sourc
 CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
 #: What a list line may hold, for error messages.
 LINE_FORMS = "'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]' or a scene folder"
-_KITTI_LEFT_FOLDERS = ("colored_0", "image_2")
 
 
 @dataclass(frozen=True)
@@ -154,7 +153,7 @@ def _kind(path: Path) -> str:
 
 
 def _is_kitti_left(path: Path) -> bool:
-    return _kind(path) == "file" and path.parent.name in _KITTI_LEFT_FOLDERS
+    return _kind(path) == "file" and path.parent.name in KITTI_LEFT_FOLDERS
 
 
 def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[PairSource]:
