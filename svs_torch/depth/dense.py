@@ -42,7 +42,7 @@ from . import kernels
 from .block_matching import _check_pair, _check_sizes, _compiled, block_match_sad, dense_disparity_over_regions
 from .cost_volume import crop_box, crop_index, prefilter_xsobel, quantize_levels, region_crop_boxes, wanted_pixels
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
-from .pooling import _any_pool, mean_pool
+from .pooling import _any_pool, mean_pool, reduction_factor
 from .search_range import coarse_search_range, disparity_search_range
 from .soft_dense import soft_block_match
 from .winner import equiangular_offset
@@ -92,8 +92,7 @@ def working_factor(width_px: int, config: DenseConfig = DenseConfig(), height_px
     high, when given) by: about ``width_px / config.working_width_px``, at least 1 and at most the height, so that
     a strip a few rows high keeps a row (it was reduced to none and failed the batch): one working pixel is this
     many input pixels."""
-    factor = max(1, round(width_px / config.working_width_px))
-    return factor if height_px is None else max(1, min(factor, height_px))
+    return reduction_factor(width_px, config.working_width_px, height_px)
 
 
 def working_window(width_px: int, config: DenseConfig = DenseConfig()) -> int:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["mean_pool"]
+__all__ = ["mean_pool", "reduction_factor"]
 
 
 def _block_slices(images: torch.Tensor, factor: int) -> list[torch.Tensor]:
@@ -37,3 +37,10 @@ def _any_pool(mask: torch.Tensor, factor: int) -> torch.Tensor:
     for part in rest:
         found = found | part
     return found.view(torch.bool)
+
+
+def reduction_factor(width_px: int, target_width_px: float, height_px: int | None = None) -> int:
+    """The integer factor that reduces images ``width_px`` wide to about ``target_width_px``: at least 1, and at
+    most ``height_px`` when given, so that a strip a few rows high keeps a row (it was reduced to none)."""
+    factor = max(1, round(width_px / target_width_px))
+    return factor if height_px is None else max(1, min(factor, height_px))

@@ -14,7 +14,7 @@ from ..core.ordering import sort_last
 from . import kernels
 from .block_matching import _check_pair, _check_sizes, dense_disparity_over_regions
 from .dense_config import DenseConfig, DisparityRange
-from .pooling import _any_pool, mean_pool
+from .pooling import _any_pool, mean_pool, reduction_factor
 
 __all__ = ["coarse_search_range", "disparity_search_range"]
 
@@ -234,7 +234,7 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     check_shape(mask, "mask", [b, 1, h, w])
     check_dtype(mask, "mask", "bool")
     image_hw = _check_sizes(image_hw, left)
-    factor = max(1, min(round(w / config.coarse_width_px), h))  # a strip a few rows high keeps a row
+    factor = reduction_factor(w, config.coarse_width_px, h)
     small_hw = torch.div(image_hw, factor, rounding_mode="floor").clamp_min(1)
     if objects is not None:
         check_shape(objects, "objects", [b, "N", h, w])
