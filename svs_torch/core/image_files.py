@@ -21,7 +21,8 @@ import numpy as np
 from .errors import InputError
 from .files import display_path, path_kind
 
-__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "preload_key", "read_image_array"]
+__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "declared_size", "preload_key",
+           "read_image_array"]
 
 #: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is taken
 #: (and removed) by the first read of that file.
@@ -98,10 +99,14 @@ def _decoder_message(line: str) -> str:
 #: The most pixels an image file may declare (8192 x 8192): a 30000 x 30000 PNG of zeros is a 1 MB file that
 #: would decode into 900 MB, then be refused for its size anyway.
 MAX_DECODED_PIXELS = 1 << 26
+#: libjpeg's warnings for a JPEG whose image data is damaged (lost or wrong entropy-coded bytes): it still returns an
+#: image, with the damaged blocks filled. Not "N extraneous bytes before marker", which some cameras write and which
+#: costs no pixel.
+_DAMAGED_JPEG = re.compile(r"Corrupt JPEG data: (?!\d+ extraneous bytes)|Premature end of JPEG file")
 _JPEG_FRAME_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
-def _declared_size(data: bytes) -> tuple[int, int] | None:
+def declared_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from a PNG or JPEG header, read before decoding; None for other formats or a header
     that does not say (OpenCV then decides)."""
     if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
@@ -144,7 +149,7 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
         data = np.frombuffer(path.read_bytes(), np.uint8)
     except OSError as error:
         raise InputError(f"{name}: cannot read {display_path(path)}: {error.strerror or error}") from None
-    declared = _declared_size(data[:65536].tobytes())
+    declared = declared_size(data[:65536].tobytes())
     if declared is not None and declared[0] * declared[1] > MAX_DECODED_PIXELS:
         raise InputError(f"{name}: the file declares {declared[0]}x{declared[1]} pixels, more than the "
                          f"{MAX_DECODED_PIXELS // 2**20} megapixels read: {display_path(path)}")
@@ -163,6 +168,9 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     if array is None:
         kind = "an empty file" if not data.size else "not a readable image file"
         raise InputError(f"{name}: {kind} (OpenCV could not decode it{reason}): {display_path(path)}")
-    # A file that decodes is taken as it is: what the decoders said about it (an unknown TIFF tag, a PNG colour
-    # profile) is not worth a line.
+    damaged = next((line for line in complaints if _DAMAGED_JPEG.search(line)), None)
+    if damaged is not None:  # libjpeg decoded what it could and filled the rest: an image, but not the scene's
+        raise InputError(f"{name}: a damaged JPEG (libjpeg: {' '.join(damaged.split())[:120]}): {display_path(path)}")
+    # Otherwise a file that decodes is taken as it is: what the decoders said about it (an unknown TIFF tag, a PNG
+    # colour profile, bytes between a JPEG's segments) is not worth a line.
     return array
