@@ -77,8 +77,10 @@ def read_pfm(path: str | Path, name: str = "path") -> np.ndarray:
     return np.ascontiguousarray(np.flipud(data.reshape(shape))).astype(np.float32, copy=False)
 
 
-# "key = value" with any whitespace around either side; a value is a bracketed matrix or one token.
-_CALIB_ENTRY = re.compile(r"(\w+)\s*=\s*(\[[^\]]*\]|[^\s\[\]]+)")
+# "key = value" with spaces or tabs around either side, on one line; a value is a bracketed matrix or one token.
+_CALIB_ENTRY = re.compile(r"(\w+)[ \t]*=[ \t]*(\[[^\]]*\]|[^\s\[\]]*)")
+#: calib.txt's values that must be finite and positive (focal lengths and sizes), or only finite.
+_CALIB_POSITIVE = ("baseline", "width", "height")
 
 
 def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, float | np.ndarray]:
@@ -90,11 +92,18 @@ def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, flo
     Returns:
         A dict with at least ``cam0``, ``cam1`` (pixels), ``doffs`` (pixels, ``cx1 − cx0``) and ``baseline``
         (millimetres), plus whatever else the file holds (``width``, ``height``, ``ndisp``, ``vmin``, ...).
+
+    Raises:
+        InputError: naming ``name``, the key and the file, for a key given twice or without a value, a value that
+            is not a number (or a 3×3 matrix for ``cam0`` / ``cam1``), a baseline, width, height or focal length
+            that is not finite and positive, or a doffs that is not finite.
     """
     path = _check_file(path, name)
     text = path.read_text(encoding="ascii", errors="replace")
     calib: dict[str, float | np.ndarray] = {}
     for key, raw in _CALIB_ENTRY.findall(text):
+        if key in calib:
+            raise InputError(f"{name}: '{key}' given twice: {display_path(path)}")
         try:
             if raw.startswith("["):
                 rows = [row.split() for row in raw.strip("[]").split(";")]
@@ -102,14 +111,29 @@ def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, flo
             else:
                 calib[key] = float(raw)
         except ValueError:
-            raise InputError(f"{name}: cannot parse calib entry {key}={raw!r}: {path}") from None
+            raise InputError(f"{name}: expected a number for '{key}', got {raw!r}: {display_path(path)}") from None
     for key in ("cam0", "cam1", "doffs", "baseline"):
         if key not in calib:
-            raise InputError(f"{name}: calib file lacks '{key}': {path}")
+            raise InputError(f"{name}: calib file lacks '{key}': {display_path(path)}")
+    _check_calib_values(calib, name, path)
+    return calib
+
+
+def _check_calib_values(calib: dict, name: str, path: Path) -> None:
+    """The values depth is computed from, checked (see :func:`read_middlebury_calib`)."""
     for key in ("cam0", "cam1"):
         if np.shape(calib[key]) != (3, 3):
-            raise InputError(f"{name}: expected {key} as a 3x3 matrix, got shape {np.shape(calib[key])}: {path}")
-    return calib
+            raise InputError(f"{name}: expected {key} as a 3x3 matrix, got shape {np.shape(calib[key])}: "
+                             f"{display_path(path)}")
+        focal = calib[key][0, 0]
+        if not (np.isfinite(calib[key]).all() and focal > 0):
+            raise InputError(f"{name}: expected {key} finite with a positive focal length, got f {focal:g}: "
+                             f"{display_path(path)}")
+    for key in ("doffs", *_CALIB_POSITIVE):
+        value = calib.get(key)
+        if isinstance(value, float) and not (math.isfinite(value) and (key == "doffs" or value > 0)):
+            need = "a finite number" if key == "doffs" else "a finite positive number"
+            raise InputError(f"{name}: expected {need} for '{key}', got {value:g}: {display_path(path)}")
 
 
 def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = torch.float32) -> torch.Tensor:
