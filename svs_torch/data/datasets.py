@@ -12,11 +12,8 @@ scenes whose values follow from it); elsewhere the values are nominal and depth 
 
 from __future__ import annotations
 
-import contextlib
 import math
 import re
-import warnings
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +21,13 @@ import torch
 
 from ..core.camera import SVS_CAMERA
 from ..core.checks import InputError
-from ..core.files import display_path, path_kind
-from ..core.image_files import read_image_array as _imread
+from ..core.files import path_kind
 from ..core.types import StereoBatch
-from .formats import read_gray_image, read_middlebury_calib, read_pfm, read_scaled_disparity
+from .formats import read_kitti_disparity, read_scaled_disparity
+from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
+                         eval3_calibration_source, load_middlebury_2001, load_middlebury_2003,
+                         load_middlebury_2005_2006, load_middlebury_eval3)
+from .scene_batch import check_scene_dir, make_scene_batch, read_view_pair, warnings_once_loaded
 
 __all__ = [
     "load_middlebury_eval3",
@@ -41,21 +41,13 @@ __all__ = [
     "load_image_pair",
     "load_stereo_pair",
     "list_shared_pairs",
+    "SHARED_DATA_FOLDERS",
     "detect_stereo_layout",
     "pair_name",
+    "scene_name",
     "scene_calibration_source",
 ]
 
-# Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
-# (MANIFEST §1–2); third-size images divide focal and dmin by 3.
-_MIDDLEBURY_2005_FOCAL_FULL_PX = 3740.0
-_MIDDLEBURY_2005_BASELINE_M = 0.160
-# Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
-# ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
-_MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
-# MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same images and
-# scale as the 2003 quarter-size Teddy (its GT agrees with disp0GT.pfm to a median difference of 0 px).
-_TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0}
 # KITTI rectified-camera values inferred from the image width (MANIFEST §4; not verified per frame):
 # width → (focal px, baseline m). 1242: P_rect_02 of 2011_09_26, B = (44.857 + 339.524) / 721.538.
 _KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
@@ -66,173 +58,31 @@ _KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"
 KITTI_LEFT_FOLDERS = tuple(layout[0] for layout in _KITTI_LAYOUTS)
 
 
-def _check_dir(path: str | Path, name: str) -> Path:
-    kind = path_kind(path, name)
-    if kind != "folder":
-        raise InputError(f"{name}: expected a folder, got {'no such path' if kind == 'missing' else 'a file'}: "
-                         f"{display_path(path)}")
-    return Path(path)
-
-
-def _make_batch(
-    left: torch.Tensor,
-    right: torch.Tensor,
-    name: str,
-    focal_px: float,
-    baseline_m: float,
-    doffs_px: float = 0.0,
-    calibrated: bool = False,
-    disparity: np.ndarray | None = None,
-    valid: np.ndarray | None = None,
-    nonoccluded: np.ndarray | None = None,
-) -> StereoBatch:
-    """One-pair batch from ``(1, 1, H, W)`` images and an optional ``(H, W)`` disparity, its mask and its
-    non-occluded mask (kept only where the disparity is valid)."""
-    h, w = left.shape[-2:]
-    if right.shape != left.shape:
-        rh, rw = right.shape[-2:]
-        raise InputError(f"right: expected the size of left {w}x{h} (WxH), got {rw}x{rh} [{name}]")
-    disparity_t = valid_t = None
-    if disparity is not None:
-        if disparity.shape != (h, w):
-            raise InputError(f"disparity: expected the size of left {w}x{h} (WxH), got "
-                             f"{disparity.shape[1]}x{disparity.shape[0]} [{name}]")
-        disparity_t = torch.from_numpy(np.ascontiguousarray(disparity)).to(left.dtype)[None, None]
-        valid_t = torch.from_numpy(np.ascontiguousarray(valid))[None, None]
-    nonoccluded_t = None
-    if nonoccluded is not None:
-        if nonoccluded.shape != (h, w):
-            raise InputError(f"nonoccluded: expected the size of left {w}x{h} (WxH), got "
-                             f"{nonoccluded.shape[1]}x{nonoccluded.shape[0]} [{name}]")
-        nonoccluded_t = torch.from_numpy(np.ascontiguousarray(nonoccluded & valid))[None, None]
-    return StereoBatch.from_images(left, right, focal_px, baseline_m, doffs_px, calibrated,
-                                   disparity_px=disparity_t, disparity_valid=valid_t, names=(name,),
-                                   disparity_nonoccluded=nonoccluded_t)
-
-
-@contextlib.contextmanager
-def _warnings_once_loaded() -> Iterator[None]:
-    """The warnings raised inside (a 16-bit file read as nearly black), given only when the block completes: a pair
-    that then fails (its right view missing, of another size, its ground truth unreadable) gets its one error, not
-    a warning about a view first. Each loader below is wrapped in it whole (a context manager made by
-    ``contextmanager`` is also a decorator)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        yield
-    for warning in caught:
-        warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
-
-
-def _read_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    return read_gray_image(left_path, "left", dtype), read_gray_image(right_path, "right", dtype)
-
-
-@_warnings_once_loaded()
-def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
-    """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``disp0GT.pfm``, ``calib.txt``), e.g. trainingQ/Teddy.
-
-    focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. GT valid where the PFM is finite;
-    ``disparity_nonoccluded`` where ``mask0nocc.png`` (if the folder has it) is 255 (128 = occluded, 0 = no GT).
-    """
-    scene_dir = _check_dir(scene_dir, "scene_dir")
-    calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
-    left, right = _read_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
-    gt = read_pfm(scene_dir / "disp0GT.pfm", "disparity")
-    valid = np.isfinite(gt)
-    nonoccluded = None
-    if (scene_dir / "mask0nocc.png").is_file():
-        mask = _read_mask(scene_dir / "mask0nocc.png", "mask0nocc")
-        nonoccluded = mask == 255
-    return _make_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]),
-                       baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]),
-                       calibrated=True, disparity=np.where(valid, gt, 0.0), valid=valid, nonoccluded=nonoccluded)
-
-
-def _read_mask(path: Path, name: str) -> np.ndarray:
-    """A one-channel 8-bit mask image as ``(H, W)`` uint8."""
-    array = _imread(path, name)
-    if array.ndim != 2 or array.dtype != np.uint8:
-        raise InputError(f"{name}: expected a 1-channel uint8 mask image, got {array.dtype} with shape "
-                         f"{array.shape}: {display_path(path)}")
-    return array
-
-
-@_warnings_once_loaded()
-def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
-    """Middlebury 2005/2006 third-size scene (``view1.png`` left, ``view5.png`` right, ``disp1.png`` = 3·d).
-
-    Nominal focal 3740 / 3 px and baseline 0.160 m for every scene. ``doffs`` = dmin / 3 is known only for Art
-    (dmin 200 → 66.667 px), so only Art is calibrated; the others get doffs 0 and calibrated False.
-    """
-    scene_dir = _check_dir(scene_dir, "scene_dir")
-    left, right = _read_pair(scene_dir / "view1.png", scene_dir / "view5.png", dtype)
-    disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", 3.0, "disparity")
-    dmin_full = _MIDDLEBURY_2005_DMIN_FULL_PX.get(scene_dir.name)
-    return _make_batch(left, right, f"2005_2006/{scene_dir.name}", focal_px=_MIDDLEBURY_2005_FOCAL_FULL_PX / 3.0,
-                       baseline_m=_MIDDLEBURY_2005_BASELINE_M,
-                       doffs_px=0.0 if dmin_full is None else dmin_full / 3.0,
-                       calibrated=dmin_full is not None, disparity=disparity, valid=valid)
-
-
-@_warnings_once_loaded()
-def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
-    """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
-
-    No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
-    baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same images at the same 450×375
-    scale (the GT maps agree, median difference 0 px), so the values hold here; note they are Middlebury's own
-    round, nominal numbers, as trusted as eval3/Teddy's and no more. Other scenes (Cones) get the SVS nominal
-    focal and baseline and calibrated False.
-    """
-    scene_dir = _check_dir(scene_dir, "scene_dir")
-    left, right = _read_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
-    disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity")
-    if scene_dir.name == "Teddy":
-        camera = dict(_TEDDY_2003_QUARTER, calibrated=True)
-    else:
-        camera = {"focal_px": SVS_CAMERA.focal_px(left.shape[-1]), "baseline_m": SVS_CAMERA.baseline_m}
-    return _make_batch(left, right, f"2003/{scene_dir.name}", disparity=disparity, valid=valid, **camera)
-
-
-@_warnings_once_loaded()
-def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
-    """Middlebury 2001 scene: Tsukuba (``imL/imR.png``, ``truedisp.pgm`` = 16·d) or Venus (``im2/im6.ppm``,
-    ``disp2.pgm`` = 8·d); 0 = unknown. No calibration: SVS nominal focal and baseline, calibrated False."""
-    scene_dir = _check_dir(scene_dir, "scene_dir")
-    if (scene_dir / "truedisp.pgm").is_file():
-        left, right = _read_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
-        disparity, valid = read_scaled_disparity(scene_dir / "truedisp.pgm", 16.0, "disparity")
-    else:
-        left, right = _read_pair(scene_dir / "im2.ppm", scene_dir / "im6.ppm", dtype)
-        disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
-    return _make_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
-                       baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
-
-
-@_warnings_once_loaded()
+@warnings_once_loaded()
 def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32) -> StereoBatch:
     """KITTI stereo 2012 (``colored_0/1``, ``disp_occ``) or 2015 (``image_2/3``, ``disp_occ_0``) training frame.
 
     GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid); where the folder also has the non-occluded
     GT (``disp_noc`` / ``disp_noc_0``), its known pixels are ``disparity_nonoccluded`` (the shared copies have
-    only the all-pixel ``disp_occ``). No calib files are shipped: focal and
+    only the all-pixel ``disp_occ``). A frame without a GT file (a testing frame, an ``_11`` frame) loads without
+    ground truth. No calib files are shipped: focal and
     baseline are the nominal values for the image width (MANIFEST §4; nearest listed width otherwise),
     calibrated False — use KITTI for disparity-level evaluation only.
     """
-    root = _check_dir(root, "root")
+    root = check_scene_dir(root, "root")
     layout = next((layout for layout in _KITTI_LAYOUTS if (root / layout[0]).is_dir()), None)
     if layout is None:
         raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
     *folders, noc, prefix = layout
-    left, right = _read_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
-    disparity, valid = read_scaled_disparity(root / folders[2] / f"{frame}.png", 256.0, "disparity")
-    nonoccluded = None
-    if (root / noc / f"{frame}.png").is_file():
-        nonoccluded = read_scaled_disparity(root / noc / f"{frame}.png", 256.0, "disparity_noc")[1]
+    left, right = read_view_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
+    truth: dict[str, np.ndarray] = {}
+    if (root / folders[2] / f"{frame}.png").exists():  # a testing frame, or an _11 frame, has none
+        truth["disparity"], truth["valid"] = read_kitti_disparity(root / folders[2] / f"{frame}.png", "disparity")
+        if (root / noc / f"{frame}.png").is_file():
+            truth["nonoccluded"] = read_kitti_disparity(root / noc / f"{frame}.png", "disparity_noc")[1]
     width = left.shape[-1]
     focal_px, baseline_m = _KITTI_NOMINAL[min(_KITTI_NOMINAL, key=lambda w: abs(w - width))]
-    return _make_batch(left, right, f"{prefix}/{frame}", focal_px=focal_px, baseline_m=baseline_m,
-                       disparity=disparity, valid=valid, nonoccluded=nonoccluded)
+    return make_scene_batch(left, right, f"{prefix}/{frame}", focal_px=focal_px, baseline_m=baseline_m, **truth)
 
 
 def kitti_left_images(root: str | Path) -> list[Path]:
@@ -245,20 +95,20 @@ def kitti_left_images(root: str | Path) -> list[Path]:
     return []
 
 
-@_warnings_once_loaded()
+@warnings_once_loaded()
 def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """OpenCV sample Aloe (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png`` = d, 0 = unknown), full size 1282×1110.
 
     Middlebury 2006 nominal full-size focal 3740 px and baseline 0.160 m; dmin unknown → calibrated False.
     """
-    directory = _check_dir(directory, "directory")
-    left, right = _read_pair(directory / "aloeL.jpg", directory / "aloeR.jpg", dtype)
+    directory = check_scene_dir(directory, "directory")
+    left, right = read_view_pair(directory / "aloeL.jpg", directory / "aloeR.jpg", dtype)
     disparity, valid = read_scaled_disparity(directory / "aloeGT.png", 1.0, "disparity")
-    return _make_batch(left, right, "opencv/aloe", focal_px=_MIDDLEBURY_2005_FOCAL_FULL_PX,
-                       baseline_m=_MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
+    return make_scene_batch(left, right, "opencv/aloe", focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX,
+                       baseline_m=MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
 
 
-@_warnings_once_loaded()
+@warnings_once_loaded()
 def load_image_pair(
     left_path: str | Path,
     right_path: str | Path,
@@ -277,7 +127,7 @@ def load_image_pair(
             finite and positive, a non-finite doffs, or
             left and right of different sizes (naming ``right`` and both sizes).
     """
-    left, right = _read_pair(Path(left_path), Path(right_path), dtype)
+    left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise InputError(f"{name}: expected a finite positive value, got {value}")
@@ -285,7 +135,7 @@ def load_image_pair(
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px}")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
-    return _make_batch(left, right, pair_name(left_path),
+    return make_scene_batch(left, right, pair_name(left_path),
                        focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
                        baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
                        doffs_px=float(doffs_px), calibrated=calibrated)
@@ -305,7 +155,7 @@ def pair_name(left_path: str | Path) -> str:
     return path.resolve().parent.name or path.stem if generic else path.stem
 
 
-@_warnings_once_loaded()
+@warnings_once_loaded()
 def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Load one pair, detecting the format from a folder's contents.
 
@@ -316,7 +166,7 @@ def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> St
     path = Path(path)
     if path_kind(path, "path") == "file" and path.parent.name in KITTI_LEFT_FOLDERS:
         return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
-    path = _check_dir(path, "path")
+    path = check_scene_dir(path, "path")
     layout = detect_stereo_layout(path)
     if layout is None:
         raise InputError(f"path: no known stereo layout (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in "
@@ -340,6 +190,22 @@ def detect_stereo_layout(path: str | Path) -> str | None:
     return None
 
 
+def scene_name(path: str | Path) -> str:
+    """The name :func:`load_stereo_pair` gives the scene at ``path`` (``eval3/Teddy``, ``kitti2015/000000_10``,
+    ``opencv/aloe``), from its file names alone; the folder's own name for a folder of no known layout."""
+    path = Path(path)
+    prefixes = {layout[0]: layout[-1] for layout in _KITTI_LAYOUTS}
+    if path.parent.name in prefixes and path.suffix:  # a KITTI left image
+        return f"{prefixes[path.parent.name]}/{path.stem}"
+    layout = detect_stereo_layout(path)
+    if layout == "aloe":
+        return "opencv/aloe"
+    if layout == "kitti":
+        folder = next(layout[0] for layout in _KITTI_LAYOUTS if (path / layout[0]).is_dir())
+        return f"{prefixes[folder]}/000000_10"
+    return f"{layout}/{path.name}" if layout else path.name
+
+
 def scene_calibration_source(path: str | Path) -> str:
     """Where the calibration :func:`load_stereo_pair` gives the scene at ``path`` comes from, in words: the file
     it was read from, or the nominal values assumed where the data set ships none (the loaders' own rules;
@@ -349,8 +215,8 @@ def scene_calibration_source(path: str | Path) -> str:
         return "KITTI nominal values for the image width assumed: no calib file shipped"
     layout = detect_stereo_layout(path)
     if layout == "eval3":
-        return f"{path.name}/calib.txt"
-    if layout == "2005_2006" and path.name in _MIDDLEBURY_2005_DMIN_FULL_PX:
+        return eval3_calibration_source(path)
+    if layout == "2005_2006" and path.name in MIDDLEBURY_2005_DMIN_FULL_PX:
         return "Middlebury nominal f and B, dmin from MiddEval3 ArtL's calib.txt"
     if layout in ("2005_2006", "aloe"):
         return "Middlebury 2005/2006 nominal f and B assumed: no calibration shipped, dmin unknown"
@@ -378,9 +244,10 @@ def list_shared_pairs(data_dir: str | Path) -> list[Path]:
     """Every pair with ground truth in the shared data folder, as paths for :func:`load_stereo_pair`.
 
     45 pairs when the folder is complete (MANIFEST §1): 10 eval3_Q, 26 2005/2006, 2 2003, 2 2001, 4 KITTI left
-    images and the OpenCV samples folder (Aloe). Sorted within each data set; missing data sets are skipped.
+    images and the OpenCV samples folder (Aloe). Sorted within each data set; missing data sets are skipped. Only
+    the data sets' own folders (:data:`SHARED_DATA_FOLDERS`) are looked in.
     """
-    data_dir = _check_dir(data_dir, "data_dir")
+    data_dir = check_scene_dir(data_dir, "data_dir")
     pairs: list[Path] = []
     for folder, marker in (("middlebury_eval3_Q", "calib.txt"), ("middlebury_2005_2006_third", "view1.png"),
                            ("middlebury_2003_quarter", "imL.png"), ("middlebury_2001", "*disp*.pgm")):
@@ -390,3 +257,8 @@ def list_shared_pairs(data_dir: str | Path) -> list[Path]:
     if (data_dir / "opencv_samples" / "aloeL.jpg").is_file():
         pairs.append(data_dir / "opencv_samples")
     return pairs
+
+
+#: The shared data folder's sub-folders :func:`list_shared_pairs` reads (MANIFEST §1).
+SHARED_DATA_FOLDERS = ("middlebury_eval3_Q", "middlebury_2005_2006_third", "middlebury_2003_quarter",
+                       "middlebury_2001", "kitti", "opencv_samples")

@@ -1,0 +1,157 @@
+"""Loaders of the Middlebury stereo data sets (MiddEval3, 2005/2006, 2003, 2001; formats and scales: ``MANIFEST.md``
+§1–2), each a B = 1 :class:`~svs_torch.core.types.StereoBatch` (see :mod:`svs_torch.data.datasets`).
+
+Convention for all: a left pixel x sees the right pixel x − d (verified photometrically, MANIFEST §3). Nothing here
+is differentiable: these are file readers.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..core.camera import SVS_CAMERA
+from ..core.checks import InputError
+from ..core.files import display_path
+from ..core.image_files import declared_size
+from ..core.types import StereoBatch
+from .formats import read_middlebury_calib, read_pfm, read_scaled_disparity
+from .scene_batch import check_scene_dir, make_scene_batch, read_mask_image, read_view_pair, warnings_once_loaded
+
+__all__ = ["MIDDLEBURY_2005_BASELINE_M", "MIDDLEBURY_2005_DMIN_FULL_PX", "MIDDLEBURY_2005_FOCAL_FULL_PX",
+           "eval3_calibration_source", "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006",
+           "load_middlebury_eval3"]
+
+# Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
+# (MANIFEST §1–2); half- and third-size images divide focal and dmin by 2 and 3.
+MIDDLEBURY_2005_FOCAL_FULL_PX = 3740.0
+MIDDLEBURY_2005_BASELINE_M = 0.160
+# The full-size views' widths (1240 to 1390 px; the third-size copies are 413–465, MANIFEST §1).
+_MIDDLEBURY_2005_FULL_WIDTHS_PX = (1240, 1390)
+# Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
+# ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
+MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
+# MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same images and
+# scale as the 2003 quarter-size Teddy (its GT agrees with disp0GT.pfm to a median difference of 0 px).
+_TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0}
+
+
+@warnings_once_loaded()
+def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``calib.txt``, ``disp0GT.pfm`` where the scene has a
+    ground truth), e.g. trainingQ/Teddy.
+
+    focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. A ``calib.txt`` written for another image
+    width (the views resized, MANIFEST §1, the file kept) has its focal and doffs scaled by the views' width over
+    its ``width``, as the disparities are. GT valid where the PFM is finite; ``disparity_nonoccluded`` where
+    ``mask0nocc.png`` (if the folder has it) is 255 (128 = occluded, 0 = no GT). A scene without ``disp0GT.pfm`` (a
+    test scene, or the data unpacked without the GT archive) loads without ground truth.
+    """
+    scene_dir = check_scene_dir(scene_dir, "scene_dir")
+    calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
+    left, right = read_view_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
+    scale = _calib_width_scale(calib, left.shape[-1])
+    truth: dict[str, np.ndarray] = {}
+    if (scene_dir / "disp0GT.pfm").exists():
+        gt = read_pfm(scene_dir / "disp0GT.pfm", "disparity")
+        if gt.ndim != 2:
+            raise InputError(f"disparity: expected a 1-channel PFM ('Pf'), got {gt.shape[2]} channels ('PF'): "
+                             f"{display_path(scene_dir / 'disp0GT.pfm')}")
+        valid = np.isfinite(gt)
+        truth = {"disparity": np.where(valid, gt, 0.0), "valid": valid}
+        if (scene_dir / "mask0nocc.png").is_file():
+            truth["nonoccluded"] = read_mask_image(scene_dir / "mask0nocc.png", "mask0nocc") == 255
+    return make_scene_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]) * scale,
+                       baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]) * scale,
+                       calibrated=True, **truth)
+
+
+def _calib_width_scale(calib: dict, width_px: int) -> float:
+    """The views' width over the width ``calib.txt`` was written for (1 where it does not say): its focal and doffs
+    are in that width's pixels, and a resize scales them by the width alone, as
+    :func:`~svs_torch.data.resize_stereo_batch` does (disparities run along x)."""
+    return width_px / float(calib["width"]) if "width" in calib else 1.0
+
+
+@warnings_once_loaded()
+def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2005/2006 scene (``view1.png`` left, ``view5.png`` right, ``disp1.png``) at any of the data set's
+    three sizes: full (1240–1390 px wide), half or third (the shared copies, 413–465 px).
+
+    ``disp1.png`` holds full-size disparities at every size (MANIFEST §2: the third-size values are 3·d), so the
+    size divides them by 1, 2 or 3, read from the views' width; a width of none of the three sizes is refused
+    (its disparity scale is unknown). Nominal focal 3740 px and baseline 0.160 m at full size, the focal divided
+    alike. ``doffs`` = dmin over the same divisor is known only for Art (dmin 200: 66.667 px at third size), so
+    only Art is calibrated; the others get doffs 0 and calibrated False.
+    """
+    scene_dir = check_scene_dir(scene_dir, "scene_dir")
+    left, right = read_view_pair(scene_dir / "view1.png", scene_dir / "view5.png", dtype)
+    divisor = _middlebury_2005_divisor(left.shape[-1], scene_dir / "view1.png")
+    disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", divisor, "disparity")
+    dmin_full = MIDDLEBURY_2005_DMIN_FULL_PX.get(scene_dir.name)
+    return make_scene_batch(left, right, f"2005_2006/{scene_dir.name}",
+                       focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX / divisor, baseline_m=MIDDLEBURY_2005_BASELINE_M,
+                       doffs_px=0.0 if dmin_full is None else dmin_full / divisor,
+                       calibrated=dmin_full is not None, disparity=disparity, valid=valid)
+
+
+def _middlebury_2005_divisor(width_px: int, path: Path) -> float:
+    """1, 2 or 3: the full, half or third size of a 2005/2006 view ``width_px`` wide (a pixel of rounding allowed)."""
+    low, high = _MIDDLEBURY_2005_FULL_WIDTHS_PX
+    for divisor in (1.0, 2.0, 3.0):
+        if low / divisor - 2 <= width_px <= high / divisor + 2:
+            return divisor
+    raise InputError(f"left: expected a Middlebury 2005/2006 view of full ({low}–{high} px wide), half or third size "
+                     f"(its disp1.png's scale follows the size), got {width_px} px: {display_path(path)}")
+
+
+@warnings_once_loaded()
+def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
+
+    No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
+    baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same images at the same 450×375
+    scale (the GT maps agree, median difference 0 px), so the values hold here; note they are Middlebury's own
+    round, nominal numbers, as trusted as eval3/Teddy's and no more. Other scenes (Cones) get the SVS nominal
+    focal and baseline and calibrated False.
+    """
+    scene_dir = check_scene_dir(scene_dir, "scene_dir")
+    left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
+    disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity")
+    if scene_dir.name == "Teddy":
+        camera = dict(_TEDDY_2003_QUARTER, calibrated=True)
+    else:
+        camera = {"focal_px": SVS_CAMERA.focal_px(left.shape[-1]), "baseline_m": SVS_CAMERA.baseline_m}
+    return make_scene_batch(left, right, f"2003/{scene_dir.name}", disparity=disparity, valid=valid, **camera)
+
+
+@warnings_once_loaded()
+def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+    """Middlebury 2001 scene: Tsukuba (``imL/imR.png``, ``truedisp.pgm`` = 16·d) or Venus (``im2/im6.ppm``,
+    ``disp2.pgm`` = 8·d); 0 = unknown. No calibration: SVS nominal focal and baseline, calibrated False."""
+    scene_dir = check_scene_dir(scene_dir, "scene_dir")
+    if (scene_dir / "truedisp.pgm").is_file():
+        left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
+        disparity, valid = read_scaled_disparity(scene_dir / "truedisp.pgm", 16.0, "disparity")
+    else:
+        left, right = read_view_pair(scene_dir / "im2.ppm", scene_dir / "im6.ppm", dtype)
+        disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
+    return make_scene_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
+                       baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
+
+
+def eval3_calibration_source(scene_dir: Path) -> str:
+    """``Teddy/calib.txt``, and how its focal and doffs were scaled where the views are of another width
+    (:func:`load_middlebury_eval3`); read from the file and the PNG's header alone."""
+    source = f"{scene_dir.name}/calib.txt"
+    try:
+        calib_width = read_middlebury_calib(scene_dir / "calib.txt", "calib").get("width")
+        with (scene_dir / "im0.png").open("rb") as handle:
+            size = declared_size(handle.read(64))
+    except (InputError, OSError):  # the loader says what is wrong with them
+        return source
+    if calib_width is None or size is None or size[0] == calib_width:
+        return source
+    return f"{source}, scaled from its {calib_width:g} px wide to the views' {size[0]}"
