@@ -33,10 +33,11 @@ import torch
 from ..core.checks import InputError
 from ..core.files import display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
-from .datasets import (KITTI_LEFT_FOLDERS, detect_stereo_layout, kitti_left_images, list_shared_pairs,
-                       load_image_pair, load_stereo_pair)
+from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
+                       list_shared_pairs, load_image_pair, load_stereo_pair, scene_name)
 
-__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources"]
+__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources",
+           "with_distinct_names"]
 
 #: An index.jsonl line's calibration fields, in a list line's order.
 CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
@@ -56,6 +57,9 @@ class PairSource:
             where the list gives none (a scene's own, or the caller's default).
         problem: why the entry cannot be a pair (a one-line reason naming the list and line); None if it can.
         listed_at: ``"line N of LIST"`` for a pair whose calibration its list line gives (for reports).
+        label: the name to report the pair by where another listed pair would have its name (two folders both
+            called ``Teddy``): the name with the folders that tell them apart, ``eval3/Teddy (a)``. None: its
+            own name.
     """
 
     left: str
@@ -66,6 +70,7 @@ class PairSource:
     doffs_px: float | None = None
     problem: str | None = None
     listed_at: str | None = None
+    label: str | None = None
 
     @property
     def pair_id(self) -> str:
@@ -79,8 +84,10 @@ class PairSource:
 
     @property
     def name(self) -> str:
-        """A short readable name: ``parent/name`` of the scene folder or the left file."""
+        """A short readable name: ``parent/name`` of the scene folder or the left file (or the :attr:`label`)."""
         path = Path(self.left)
+        if self.label is not None:
+            return self.label
         if self.problem is not None:
             return self.left[:60]
         if self.scene and _kind(path) == "file":  # a KITTI left image: data set / frame
@@ -120,17 +127,18 @@ def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | t
 
 
 def _scenes_in(folder: Path) -> list[PairSource]:
-    """The scenes a folder stands for: itself, its scene sub-folders, or the shared data folder's pairs."""
+    """The scenes a folder stands for: itself, or its scene sub-folders, where the shared data folder's data sets
+    (:data:`~svs_torch.data.datasets.SHARED_DATA_FOLDERS`) give their pairs and any other sub-folder its own."""
     if detect_stereo_layout(folder):
         return _scene_sources(folder)
-    shared = list_shared_pairs(folder)  # the shared data folder: its data sets' own layout
-    if shared:
-        return [PairSource(left=str(path), scene=True) for path in shared]
+    shared = [PairSource(left=str(path), scene=True) for path in list_shared_pairs(folder)]
     try:
         children = sorted(child for child in folder.iterdir() if child.is_dir())
     except OSError:  # a folder that cannot be listed holds no scene we can read
-        return []
-    return [source for child in children if detect_stereo_layout(child) for source in _scene_sources(child)]
+        return shared
+    if shared:  # the data sets' folders gave their pairs; a scene beside them is one more (not one instead)
+        children = [child for child in children if child.name not in SHARED_DATA_FOLDERS]
+    return shared + [source for child in children if detect_stereo_layout(child) for source in _scene_sources(child)]
 
 
 def _scene_sources(folder: Path) -> list[PairSource]:
@@ -186,7 +194,7 @@ def _read_text(path: Path, name: str) -> str:
         got = {"folder": "a folder", "missing": "no file"}.get(kind, "a special file")
         raise InputError(f"{name}: expected a list file, got {got}: {display_path(path)}")
     try:
-        return path.read_bytes().decode("utf-8")
+        return path.read_bytes().decode("utf-8-sig")  # "-sig": a Windows editor's byte-order mark is not text
     except UnicodeDecodeError:
         raise InputError(f"{name}: expected a UTF-8 text file with one {LINE_FORMS} per line: {path}") from None
     except OSError as error:
@@ -269,7 +277,7 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
         sources.extend(_line_sources(fields, path.parent, where, line))
     if not sources:
         raise InputError(f"{name}: no pair listed in {path}")
-    return sources
+    return with_distinct_names(sources)
 
 
 def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[PairSource]:
@@ -295,7 +303,44 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
             sources += read_pair_list(path, name)
         else:
             raise InputError(f"{name}: no such file or folder: {path}")
-    return sources
+    return with_distinct_names(sources)
+
+
+def _loaded_name(source: PairSource) -> str:
+    """The name :func:`load_pair_source` gives ``source`` without a label."""
+    return scene_name(source.left) if source.scene else replace(source, label=None).name
+
+
+def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:
+    """``sources``, each pair that would share its name with another pair (not the same pair listed again) labelled
+    with the folders that tell them apart: ``eval3/Teddy (a)`` and ``eval3/Teddy (b)`` for ``a/Teddy`` and
+    ``b/Teddy``. Reports, stores and exported maps then keep them apart (an export is named after the pair)."""
+    groups: dict[str, dict[str, Path]] = {}
+    for source in sources:
+        if source.problem is None:
+            groups.setdefault(_loaded_name(source), {})[source.pair_id] = Path(os.path.abspath(source.left))
+    labels = {}
+    for name, paths in groups.items():
+        if len(paths) > 1:
+            labels.update(zip(paths, (f"{name} ({tail})" for tail in _telling_folders(list(paths.values())))))
+    return [replace(source, label=labels.get(source.pair_id)) if source.problem is None else source
+            for source in sources]
+
+
+def _telling_folders(paths: list[Path]) -> list[str]:
+    """For each path, the fewest of its parent folders, nearest first, that no other path shares once the parent
+    folders all of them end with are left out; numbers where the folders are the same (the same files listed with
+    two calibrations)."""
+    parents = [path.parent.parts for path in paths]
+    common = 0
+    while all(len(parts) > common for parts in parents) and len({parts[-1 - common] for parts in parents}) == 1:
+        common += 1
+    trimmed = [parts[:len(parts) - common] for parts in parents]
+    for count in range(1, max(map(len, trimmed)) + 1):
+        tails = ["/".join(parts[-count:]) for parts in trimmed]
+        if len(set(tails)) == len(tails) and all(tails):
+            return tails
+    return [str(number) for number in range(1, len(paths) + 1)]
 
 
 def load_pair_source(source: PairSource, focal_px: float | None = None, baseline_m: float | None = None,
@@ -318,4 +363,4 @@ def load_pair_source(source: PairSource, focal_px: float | None = None, baseline
                                 source.doffs_px or 0.0, dtype)
     else:
         batch = load_image_pair(source.left, source.right, focal_px, baseline_m, doffs_px, dtype)
-    return batch if source.scene else replace(batch, names=(source.name,))
+    return batch if source.scene and source.label is None else replace(batch, names=(source.name,))

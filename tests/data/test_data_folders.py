@@ -1,0 +1,149 @@
+"""Scene folders as users have them, not only as the shared copies are: other sizes of a data set, a calib.txt kept
+beside resized views, a scene without its ground truth, scenes beside the data sets, two scenes of one name, damaged
+or hand-edited files. Each test builds its folder from the shared data in ``tmp_path``."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from svs_torch import InputError
+from svs_torch.data import (load_middlebury_2005_2006, load_middlebury_eval3, load_opencv_aloe, load_stereo_pair,
+                            read_gray_image, read_middlebury_calib, read_pair_list, read_pair_sources,
+                            write_pfm)
+from svs_torch.data.datasets import load_kitti, scene_calibration_source
+from svs_torch.data.pair_list import load_pair_source
+
+
+def _median_depth_m(batch) -> float:
+    valid = batch.disparity_valid[0, 0]
+    disparity = batch.disparity_px[0, 0][valid]
+    return float((batch.focal_px[0] * batch.baseline_m[0] / (disparity + batch.doffs_px[0])).median())
+
+
+def test_a_full_size_2005_2006_scene_is_read_at_its_own_scale(tmp_path: Path, data_dir: Path) -> None:
+    # OpenCV's Aloe is Middlebury 2006 Aloe at full size: as a 2005/2006 folder its disp1.png is d itself, not 3·d.
+    samples, scene = data_dir / "opencv_samples", tmp_path / "Aloe"
+    scene.mkdir()
+    for view, name in (("aloeL.jpg", "view1.png"), ("aloeR.jpg", "view5.png")):
+        cv2.imwrite(str(scene / name), cv2.imread(str(samples / view)))
+    shutil.copy(samples / "aloeGT.png", scene / "disp1.png")
+    full, reference = load_middlebury_2005_2006(scene), load_opencv_aloe(samples)
+    assert float(full.disparity_px.max()) == 211.0 and float(full.focal_px[0]) == 3740.0
+    assert (full.disparity_px == reference.disparity_px).all()
+    third = load_middlebury_2005_2006(data_dir / "middlebury_2005_2006_third" / "Aloe")
+    assert float(third.focal_px[0]) == pytest.approx(3740.0 / 3)
+    assert _median_depth_m(full) == pytest.approx(_median_depth_m(third), rel=0.02)  # one scene, one depth
+    small = tmp_path / "Small"
+    small.mkdir()
+    for name in ("view1.png", "view5.png", "disp1.png"):  # 320 px: no size of the data set, so no known scale
+        cv2.imwrite(str(small / name), cv2.resize(cv2.imread(str(scene / name), cv2.IMREAD_UNCHANGED), (320, 277)))
+    with pytest.raises(InputError, match=r"left: expected a Middlebury 2005/2006 view of full .* got 320 px"):
+        load_middlebury_2005_2006(small)
+
+
+def test_a_calib_txt_kept_beside_resized_views_is_scaled_to_them(tmp_path: Path, data_dir: Path) -> None:
+    original = data_dir / "middlebury_eval3_Q" / "Teddy"
+    scene = tmp_path / "Teddy225"
+    shutil.copytree(original, scene)
+    for name in ("im0.png", "im1.png"):
+        cv2.imwrite(str(scene / name), cv2.resize(cv2.imread(str(original / name)), (225, 188),
+                                                  interpolation=cv2.INTER_AREA))
+    truth = load_middlebury_eval3(original)
+    gt = np.where(truth.disparity_valid[0, 0].numpy(), truth.disparity_px[0, 0].numpy(), np.inf)
+    write_pfm(scene / "disp0GT.pfm", cv2.resize(gt, (225, 188), interpolation=cv2.INTER_NEAREST) * 0.5)
+    (scene / "mask0nocc.png").unlink()
+    batch = load_middlebury_eval3(scene)
+    assert float(batch.focal_px[0]) == pytest.approx(750.0) and float(batch.doffs_px[0]) == pytest.approx(26.0)
+    assert _median_depth_m(batch) == pytest.approx(_median_depth_m(truth), rel=0.01)
+    assert scene_calibration_source(scene) == "Teddy225/calib.txt, scaled from its 450 px wide to the views' 225"
+    assert scene_calibration_source(original) == "Teddy/calib.txt"
+
+
+def test_scenes_without_ground_truth_load_without_it(tmp_path: Path, data_dir: Path) -> None:
+    scene = tmp_path / "TeddyTest"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    (scene / "disp0GT.pfm").unlink()
+    batch = load_stereo_pair(scene)
+    assert batch.disparity_px is None and float(batch.focal_px[0]) == 1500.0
+    kitti = tmp_path / "kitti"
+    shutil.copytree(data_dir / "kitti" / "stereo2015_training", kitti)
+    shutil.rmtree(kitti / "disp_occ_0")
+    assert load_stereo_pair(kitti / "image_2" / "000000_10.png").disparity_px is None
+
+
+def test_kitti_truth_must_be_16_bit(tmp_path: Path, data_dir: Path) -> None:
+    kitti = tmp_path / "kitti"
+    shutil.copytree(data_dir / "kitti" / "stereo2015_training", kitti)
+    truth = kitti / "disp_occ_0" / "000000_10.png"
+    cv2.imwrite(str(truth), (cv2.imread(str(truth), cv2.IMREAD_UNCHANGED) // 256).astype(np.uint8))
+    with pytest.raises(InputError, match="disparity: expected a uint16 KITTI disparity PNG, got uint8"):
+        load_kitti(kitti)
+
+
+def test_a_three_channel_pfm_truth_is_named(tmp_path: Path, data_dir: Path) -> None:
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    (scene / "disp0GT.pfm").write_bytes(b"PF\n450 375\n-1\n" + np.zeros((375, 450, 3), "<f4").tobytes())
+    with pytest.raises(InputError, match=r"disparity: expected a 1-channel PFM \('Pf'\), got 3 channels"):
+        load_middlebury_eval3(scene)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("baseline=", "baseline= -80\n#"), r"calib: expected a finite positive number for 'baseline', got -80: "),
+    (("doffs=", "doffs= nan\n#"), r"calib: expected a finite number for 'doffs', got nan: "),
+    (("doffs=", "doffs=\n#"), r"calib: expected a number for 'doffs', got '': "),
+    (("width=", "width= 450\nwidth="), r"calib: 'width' given twice: "),
+    (("cam0=", "cam0=[0 0 225; 0 0 187; 0 0 1]\n#"), r"calib: expected cam0 finite with a positive focal length"),
+])
+def test_bad_calib_values_name_the_key_and_the_file(tmp_path: Path, data_dir: Path, edit, message) -> None:
+    text = (data_dir / "middlebury_eval3_Q" / "Teddy" / "calib.txt").read_text()
+    key, replacement = edit
+    path = tmp_path / "calib.txt"
+    path.write_text("\n".join(replacement + line.split("=", 1)[1] if line.strip().startswith(key) else line
+                              for line in text.splitlines()))
+    with pytest.raises(InputError, match=message + r".*calib\.txt"):
+        read_middlebury_calib(path, "calib")
+
+
+def test_a_damaged_jpeg_is_refused_and_an_intact_one_read(tmp_path: Path, data_dir: Path) -> None:
+    data = bytearray((data_dir / "opencv_samples" / "aloeL.jpg").read_bytes())
+    data[len(data) // 2:len(data) // 2 + 2000] = bytes(2000)  # libjpeg would fill the rest of the image with gray
+    (tmp_path / "damaged.jpg").write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"left: a damaged JPEG \(libjpeg: Corrupt JPEG data"):
+        read_gray_image(tmp_path / "damaged.jpg", "left")
+    expected = cv2.imread(str(data_dir / "opencv_samples" / "aloeL.jpg"), cv2.IMREAD_GRAYSCALE)
+    assert (read_gray_image(data_dir / "opencv_samples" / "aloeL.jpg")[0, 0].mul(255).round().numpy()
+            == expected).all()
+
+
+def test_scenes_beside_the_data_sets_are_listed_too(tmp_path: Path, data_dir: Path) -> None:
+    (tmp_path / "middlebury_2001").mkdir()
+    shutil.copytree(data_dir / "middlebury_2001" / "Venus", tmp_path / "middlebury_2001" / "Venus")
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", tmp_path / "MyTeddy")
+    assert [source.name for source in read_pair_sources([tmp_path])] == ["middlebury_2001/Venus",
+                                                                         f"{tmp_path.name}/MyTeddy"]
+
+
+def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -> None:
+    for folder, scene in (("a", "Teddy"), ("b", "Piano")):
+        shutil.copytree(data_dir / "middlebury_eval3_Q" / scene, tmp_path / folder / "Teddy")
+    sources = read_pair_sources([tmp_path / "a" / "Teddy", tmp_path / "b" / "Teddy", tmp_path / "a" / "Teddy"])
+    assert [source.name for source in sources] == ["eval3/Teddy (a)", "eval3/Teddy (b)", "eval3/Teddy (a)"]
+    assert [load_pair_source(source).names[0] for source in sources[:2]] == ["eval3/Teddy (a)", "eval3/Teddy (b)"]
+    listed = tmp_path / "pairs.txt"  # file pairs too: both would be Teddy/im0.png
+    listed.write_text("a/Teddy/im0.png a/Teddy/im1.png\nb/Teddy/im0.png b/Teddy/im1.png\n")
+    assert [source.name for source in read_pair_list(listed)] == ["Teddy/im0.png (a)", "Teddy/im0.png (b)"]
+    alone = read_pair_sources([data_dir / "middlebury_eval3_Q" / "Teddy", data_dir / "middlebury_2003_quarter"])
+    assert [source.name for source in alone][0] == "middlebury_eval3_Q/Teddy"  # no other eval3/Teddy: no label
+
+
+def test_a_pair_list_saved_with_a_byte_order_mark_reads(tmp_path: Path, data_dir: Path) -> None:
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listed = tmp_path / "pairs.txt"
+    listed.write_bytes(f"\ufeff# my pairs\r\n{teddy / 'im0.png'} {teddy / 'im1.png'}\r\n".encode("utf-8"))
+    assert [source.problem for source in read_pair_list(listed)] == [None]
