@@ -49,12 +49,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def parse_board(text: str) -> tuple[int, int]:
-    """``"9x6"`` → (9, 6) inner corners (columns, rows), each 2 to 100."""
+    """``"9x6"`` → (9, 6) inner corners (columns, rows), each 3 to 100 (OpenCV's corner finder needs 3)."""
     from ..core.errors import InputError
 
     match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text or "")
-    if not match or min(int(match[1]), int(match[2])) < 2 or max(int(match[1]), int(match[2])) > 100:
-        raise InputError(f"--board: expected inner corners as COLSxROWS, each 2 to 100, e.g. 9x6, got {text!r}")
+    if not match or min(int(match[1]), int(match[2])) < 3 or max(int(match[1]), int(match[2])) > 100:
+        raise InputError(f"--board: expected inner corners as COLSxROWS, each 3 to 100, e.g. 9x6, got {text!r}")
     return int(match[1]), int(match[2])
 
 
@@ -82,11 +82,11 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
                          + ("not both" if args.left else "got neither"))
     if args.pairs:
         sources = read_pair_list(args.pairs, "--pairs")
-        bad = next((s for s in sources if s.problem or s.scene or s.right is None), None)
-        if bad is not None:
+        bad = next((s for s in sources if s.problem or s.scene or s.right is None or s.focal_px is not None), None)
+        if bad is not None:  # a focal length and baseline on a line are what calibrating finds, not an input
             raise InputError(bad.problem or f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
-                                            f"{bad.left}")
-        return [(s.left, s.right) for s in sources]
+                                            f"{bad.listed_at or bad.left}")
+        return _once_each([(s.left, s.right) for s in sources])
     lefts: list[str] = []
     for pattern in args.left:
         found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
@@ -99,7 +99,22 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
         if right is None:
             raise InputError(f"left: {left!r} has no 'left' in its name to find its right image (use --pairs)")
         pairs.append((left, right))
-    return pairs
+    return _once_each(pairs)
+
+
+def _once_each(pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Each pair once (patterns that overlap, a line listed twice): a view counted twice is no new view of the board,
+    and three copies of one view leave the stereo fit degenerate."""
+    import os
+
+    seen: set[tuple[str, str]] = set()
+    unique = []
+    for pair in pairs:
+        key = (os.path.realpath(pair[0]), os.path.realpath(pair[1]))
+        if key not in seen:
+            seen.add(key)
+            unique.append(pair)
+    return unique
 
 
 def _text(calibration, views, out: str) -> list[str]:
@@ -118,27 +133,27 @@ def _text(calibration, views, out: str) -> list[str]:
     return lines
 
 
-def _figure(path: str, option: str, calibration, views, images) -> None:
-    """The first used pair rectified with its corners and epipolar lines."""
+def _figure(calibration, views, images):
+    """The first used pair rectified with its corners and epipolar lines (8- or 16-bit views)."""
     from pathlib import Path
 
+    import numpy as np
     import torch
 
     from ..geometry.calibration import rectify_with_calibration
     from ..geometry.chessboard import rectified_corners
-    from ..plotting.figures import write_image_atomic
     from ..plotting.rectified import rectified_pair_figure
     from ..core.types import StereoBatch
 
-    left, right = (torch.from_numpy(image).float().div(255).view(1, 1, *image.shape) for image in images)
+    left, right = (torch.from_numpy(image.astype(np.float32) / np.iinfo(image.dtype).max).view(1, 1, *image.shape)
+                   for image in images)
     # The batch's focal and baseline are placeholders: rectify_with_calibration sets the calibration's.
     batch = rectify_with_calibration(StereoBatch.from_images(left, right, 1.0, 1.0), calibration)
     corners_left, corners_right = rectified_corners(calibration, views)
-    figure = rectified_pair_figure(batch.left[0, 0].numpy(), batch.right[0, 0].numpy(), corners_left[0],
+    return rectified_pair_figure(batch.left[0, 0].numpy(), batch.right[0, 0].numpy(), corners_left[0],
                                    corners_right[0], f"{Path(views.names[0]).name} rectified by the calibration: "
                                    f"RMS {calibration.rms_stereo_px:.2f} px, row error over all pairs mean "
                                    f"{calibration.row_error_mean_px:.2f} px", point_label="corner")
-    write_image_atomic(path, figure, option)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -150,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         from ..geometry.calibration import write_calibration
         from ..geometry.chessboard import calibrate_stereo_rig, collect_board_views
         from ..evaluation.sweep import code_version
-        from ..plotting.figures import check_output_path
+        from ..plotting.figures import check_output_path, write_image_atomic
         from ..core.files import check_output_file
         from ..core.image_files import read_image_array
 
@@ -166,12 +181,14 @@ def run(args: argparse.Namespace) -> int:
 
     source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
     pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
-    views = collect_board_views(pairs, board)
-    calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}")
+    views = collect_board_views(pairs, board, source)
+    calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
+    figure = None
+    if args.figure:  # drawn before anything is written: a figure that fails leaves no calibration file behind
+        figure = _figure(calibration, views, next(p for p in pairs if p[0] == views.names[0])[1:])
     write_calibration(args.out, calibration)
-    if args.figure:
-        first = next(p for p in pairs if p[0] == views.names[0])
-        _figure(args.figure, args.figure_option, calibration, views, first[1:])
+    if figure is not None:
+        write_image_atomic(args.figure, figure, args.figure_option)
     if args.json:
         print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "out": args.out}), flush=True)
     else:

@@ -118,7 +118,8 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> I
     if mode not in ("w", "wb"):
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     target = Path(path)
-    temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.tmp")
+    # At most 200 characters of the name: any name a folder takes (255 bytes) leaves room for the temporary's.
+    temporary = target.with_name(f".{target.name[:200]}.{uuid.uuid4().hex[:8]}.tmp")
     handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(handle, mode, **open_kwargs) as stream:

@@ -74,33 +74,34 @@ def _gray_u8(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], board: tuple[int, int]) -> BoardViews:
+def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], board: tuple[int, int],
+                        name: str = "pairs") -> BoardViews:
     """The board in every ``(name, left image, right image)`` pair (see :class:`BoardViews`).
 
     Raises:
-        InputError: naming ``pairs``, for pairs of different sizes, or fewer than :data:`MIN_PAIRS` pairs with the
-            board in both views.
+        InputError: naming ``name`` (the argument the pairs came from), for pairs of different sizes, or fewer than
+            :data:`MIN_PAIRS` pairs with the board in both views.
     """
     left, right, names, skipped, size = [], [], [], [], None
-    for name, image_left, image_right in pairs:
+    for pair_name, image_left, image_right in pairs:
         image_left, image_right = _gray_u8(image_left), _gray_u8(image_right)
         wh = (image_left.shape[1], image_left.shape[0])
         if size is None:
             size = wh
         for view, image in (("left", image_left), ("right", image_right)):
             if (image.shape[1], image.shape[0]) != size:
-                raise InputError(f"pairs: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
-                                 f"{image.shape[1]}x{image.shape[0]} in the {view} view of {name}")
+                raise InputError(f"{name}: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
+                                 f"{image.shape[1]}x{image.shape[0]} in the {view} view of {pair_name}")
         corners = (find_board_corners(image_left, board), find_board_corners(image_right, board))
         if corners[0] is None or corners[1] is None:
-            skipped.append(name)
+            skipped.append(pair_name)
             continue
         left.append(corners[0])
         right.append(corners[1])
-        names.append(name)
+        names.append(pair_name)
     if len(names) < MIN_PAIRS:
         hint = " (check --board: inner corners, columns x rows)" if skipped else ""
-        raise InputError(f"pairs: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
+        raise InputError(f"{name}: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
                          f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS}{hint}")
     return BoardViews(left, right, names, skipped, size)
 
@@ -116,8 +117,8 @@ def rectified_corners(calibration: StereoCalibration, views: BoardViews) -> tupl
     return out
 
 
-def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, int], software: str = ""
-                         ) -> StereoCalibration:
+def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, int], software: str = "",
+                         name: str = "pairs") -> StereoCalibration:
     """OpenCV's mono, stereo calibration and rectification of ``views`` (see the module docstring).
 
     Args:
@@ -125,6 +126,7 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         square_m: the side of one square of the board, metres (the unit of T, the baseline and every depth).
         board: (columns, rows) of inner corners.
         software: the version string recorded in the file.
+        name: the argument the pairs came from, for errors.
     """
     if not (math.isfinite(square_m) and square_m > 0):
         raise InputError(f"--square-m: expected a finite positive side in metres, got {square_m}")
@@ -147,7 +149,7 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         board={"inner_corners": [columns, rows], "square_m": square_m}, pairs=tuple(views.names),
         created_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), software=software)
     if calibration.baseline_m <= 0:
-        raise InputError("pairs: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
+        raise InputError(f"{name}: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
                          "RIGHT swapped?")
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])

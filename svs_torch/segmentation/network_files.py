@@ -110,7 +110,7 @@ def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = 
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
               "metadata": json.loads(json.dumps(metadata or {}, default=str))}
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name[:200]}.", suffix=".tmp")  # room left
     os.close(handle)
     try:
         torch.save(stored, temporary)
