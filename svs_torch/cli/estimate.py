@@ -11,7 +11,8 @@ from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
 from .features import add_feature_options, add_pair_options, load_pair
-from .rig import add_calibration_option, calibration_from_args, check_no_manual_calibration
+from .rig import (add_calibration_option, calibration_file_source, calibration_from_args,
+                  check_no_manual_calibration)
 from .segment import add_segmentation_options, add_segmenter_option
 
 __all__ = []
@@ -217,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
         report = pair_report(result, 0, factors, time.perf_counter() - started)
-        report = with_calibration(report, batch, 0, factors, _calibration_source(source, args))
+        report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
+                                  calibration_file_source(args, source) is not None)
         _write_outputs(args, batch, result, factors)
         _write_disparity(args, batch, result, report["time_s"])
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)

@@ -16,7 +16,8 @@ from .estimate_report import (_calibration_source, _write_disparity, format_repo
                               with_calibration)
 from .features import load_pair
 from .progress import Progress
-from .rig import calibration_from_args, check_no_manual_calibration, with_calibrated_rectification
+from .rig import (calibration_file_source, calibration_from_args, check_no_manual_calibration,
+                  with_calibrated_rectification)
 
 __all__ = []
 
@@ -79,7 +80,8 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
         else:
             report, bad = pair_report(result, row, loaded[1], per_pair), None
-            report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args))
+            report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args),
+                                      calibration_file_source(args, source) is not None)
             row += 1
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out

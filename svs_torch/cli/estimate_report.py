@@ -21,7 +21,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
             "features_smoothed": False,
             "dropped_unmeasured": 0,
-            "dense_box_xywh": None, "time_s": 0.0, "calibration": None}
+            "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None}
 
 
 def _calibration_source(source, args) -> str:
@@ -32,12 +32,15 @@ def _calibration_source(source, args) -> str:
     return calibration_file_source(args, source) or pair_calibration_source(source, args.focal_px, args.baseline_m)
 
 
-def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str) -> dict:
+def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str,
+                     rectified_by_file: bool = False) -> dict:
     """``report`` with the calibration its metres use, for the INPUT image size, and where it came from
-    (:func:`svs_torch.data.calibration_record`)."""
+    (:func:`svs_torch.data.calibration_record`); ``calibration_rectified``: the pair was rectified by
+    ``--calibration``'s file before the pipeline (whose own ``rectified`` says it rectified the pair from its F)."""
     from ..data import calibration_record
 
-    return {**report, "calibration": calibration_record(batch, index, source, factors[0])}
+    return {**report, "calibration_rectified": rectified_by_file,
+            "calibration": calibration_record(batch, index, source, factors[0])}
 
 
 def _number(value, valid) -> float | None:
@@ -88,8 +91,9 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),
-        "d_min_px": _number(rng.d_min_px[index], rng.valid[index]),
-        "d_max_px": _number(rng.d_max_px[index], rng.valid[index]),
+        # In input pixels, as the calibration's focal and doffs (R = f·B / (d + doffs) holds with the reported values)
+        "d_min_px": _number(rng.d_min_px[index] * factors[0], rng.valid[index]),
+        "d_max_px": _number(rng.d_max_px[index] * factors[0], rng.valid[index]),
         "nearest_m": _number(nearest.depth_m[index], nearest.valid[index]),
         "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
         "nearest_surface_m": _number(nearest.surface_m[index], nearest.valid[index]),

@@ -12,8 +12,15 @@ __all__ = ["add_calibration_option", "calibration_file_source", "calibration_fro
            "with_calibrated_rectification"]
 
 
+def _calibration_path(text: str) -> str:
+    """argparse type: a path that is not empty (``--calibration "$RIG"`` with RIG unset must not run uncalibrated)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a calibration file from 'svs-depth calibrate', got {text!r}")
+    return text
+
+
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
-    parser.add_argument("--calibration", metavar="RIG.json",
+    parser.add_argument("--calibration", metavar="RIG.json", type=_calibration_path,
                         help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
                              "and take its focal length, baseline and doffs (scaled to their size; boxes and "
                              "figures are then in rectified pixels); without it the paper's uncalibrated "
@@ -28,7 +35,7 @@ def calibration_from_args(args: argparse.Namespace):
         InputError: one line naming ``--calibration``, for a file that is not a calibration.
     """
     path = getattr(args, "calibration", None)
-    if not path:
+    if path is None:
         return None
     cached = vars(args).get("_calibration_read")
     if cached is None or cached[0] != path:
@@ -43,8 +50,8 @@ def check_no_manual_calibration(args: argparse.Namespace) -> None:
     """``--calibration`` excludes ``--focal-px``, ``--baseline-m`` and ``--doffs-px`` (the file gives them)."""
     from ..core.errors import InputError
 
-    if getattr(args, "calibration", None) and (getattr(args, "focal_px", None) or getattr(args, "baseline_m", None)
-                                                or getattr(args, "doffs_px", None)):
+    given = [getattr(args, option, None) is not None for option in ("focal_px", "baseline_m")]
+    if getattr(args, "calibration", None) is not None and (any(given) or getattr(args, "doffs_px", None)):
         raise InputError("--calibration: the file gives focal, baseline and doffs; drop --focal-px, --baseline-m "
                          "and --doffs-px")
 

@@ -159,10 +159,17 @@ def _finite_or_none(value):
     return value
 
 
+def _numbers_only(value) -> bool:
+    """Nested lists of JSON numbers (numpy would take ``"500"`` as 500)."""
+    if isinstance(value, list):
+        return all(_numbers_only(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(record: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
     value = record.get(key)
     try:
-        array = np.asarray(value, dtype=np.float64)
+        array = np.asarray(value, dtype=np.float64) if _numbers_only(value) else None
     except (TypeError, ValueError):
         array = None
     if array is None or array.shape != shape or not np.isfinite(array).all():
@@ -173,7 +180,7 @@ def _matrix(record: dict, key: str, shape: tuple[int, ...], where: str) -> np.nd
 def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
     value = record.get(key)
     try:
-        array = np.asarray(value, dtype=np.float64).ravel()
+        array = np.asarray(value, dtype=np.float64).ravel() if _numbers_only(value) else None
     except (TypeError, ValueError):
         array = None
     if array is None or array.size not in (4, 5, 8, 12, 14) or not np.isfinite(array).all():
@@ -191,6 +198,12 @@ def _parse(record: object, where: str) -> StereoCalibration:
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         raise InputError(f"{where}: expected a JSON object with \"format\": \"{FORMAT}\" (svs-depth calibrate's "
                          "output)")
+    version = record.get("format_version", FORMAT_VERSION)
+    if not (isinstance(version, int) and not isinstance(version, bool) and 1 <= version <= FORMAT_VERSION):
+        raise InputError(f"{where}: expected 'format_version' 1 to {FORMAT_VERSION} (this svs_torch's), got "
+                         f"{version!r}: written by a newer svs_torch?")
+    if not (isinstance(record.get("pairs", []), list) and all(isinstance(p, str) for p in record.get("pairs", []))):
+        raise InputError(f"{where}: expected 'pairs' as a list of the chessboard pairs' names")
     size = record.get("image_size_wh")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
                                                               and v > 0 for v in size)):
@@ -204,7 +217,7 @@ def _parse(record: object, where: str) -> StereoCalibration:
         **{key: _number(record, key) for key in ("rms_left_px", "rms_right_px", "rms_stereo_px",
                                                  "row_error_mean_px", "row_error_max_px")},
         board=record.get("board") if isinstance(record.get("board"), dict) else {},
-        pairs=tuple(str(p) for p in record.get("pairs", []) if isinstance(p, str)),
+        pairs=tuple(record.get("pairs", [])),
         created_utc=str(record.get("created_utc", "")), software=str(record.get("software", "")))
     for key in ("K_left", "K_right"):
         K = getattr(calibration, key)
@@ -213,7 +226,32 @@ def _parse(record: object, where: str) -> StereoCalibration:
     if not (calibration.focal_px > 0 and calibration.baseline_m > 0):
         raise InputError(f"{where}: expected P1, P2 of a left-right rig (positive focal P1[0][0] and baseline "
                          f"-P2[0][3]/P2[0][0]), got {calibration.focal_px:g} px and {calibration.baseline_m:g} m")
+    _check_one_rig(calibration, record, where)
     return calibration
+
+
+def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> None:
+    """The file's parts describe one rig (a hand edit of one part alone is refused, not half applied): R, R1, R2
+    rotations; P1 and P2 one rectified camera matrix; |T| the baseline of P2; the summary values (``focal_px``,
+    ``baseline_m``, ``doffs_px``, which nothing reads) those of P1 and P2."""
+    for key in ("R", "R1", "R2"):
+        R = getattr(calibration, key)
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+            raise InputError(f"{where}: expected '{key}' as a rotation (orthonormal, determinant +1)")
+    same = [math.isclose(calibration.P1[row, column], calibration.P2[row, column], rel_tol=1e-9)
+            for row, column in ((0, 0), (1, 1), (1, 2))]  # fx, fy and cy: one rectified camera, moved along x
+    if not all(same):
+        raise InputError(f"{where}: expected P1 and P2 with one focal length and one row centre (rectified views), "
+                         f"got focal {calibration.P1[0, 0]:g} and {calibration.P2[0, 0]:g} px")
+    if not math.isclose(float(np.linalg.norm(calibration.T)), calibration.baseline_m, rel_tol=1e-6):
+        raise InputError(f"{where}: expected |T_m| = the baseline of P2 ({calibration.baseline_m:.6g} m), got "
+                         f"{float(np.linalg.norm(calibration.T)):.6g} m")
+    for key in ("focal_px", "baseline_m", "doffs_px"):
+        value, implied = record.get(key), getattr(calibration, key)
+        if value is not None and not (isinstance(value, (int, float)) and math.isclose(value, implied, rel_tol=1e-6,
+                                                                                       abs_tol=1e-9)):
+            raise InputError(f"{where}: '{key}' {value!r} is not the {implied:.6g} its P1 and P2 give (they are "
+                             "what rectifies; calibrate again rather than edit one value)")
 
 
 def read_calibration(path: str | os.PathLike, name: str = "--calibration") -> StereoCalibration:

@@ -118,6 +118,14 @@ def test_file_round_trips(rig, tmp_path):
     (lambda r: {**r, "image_size_wh": [640]}, "expected 'image_size_wh' as \\[width, height\\]"),
     (lambda r: {**r, "dist_left": [0, 1]}, "expected 'dist_left' as 4, 5, 8"),
     (lambda r: {**r, "P2": [[500, 0, 320, 40], [0, 500, 240, 0], [0, 0, 1, 0]]}, "expected P1, P2 of a left-right rig"),
+    # Hand edits of one part of the rig alone: refused, not half applied (the part the rectification reads wins).
+    (lambda r: {**r, "pairs": None}, "expected 'pairs' as a list"),
+    (lambda r: {**r, "R1": [[0, 0, 0]] * 3}, "expected 'R1' as a rotation"),
+    (lambda r: {**r, "P1": [[100, *r["P1"][0][1:]], *r["P1"][1:]]}, "expected P1 and P2 with one focal length"),
+    (lambda r: {**r, "T_m": [0, 0, 0]}, r"expected \|T_m\| = the baseline of P2"),
+    (lambda r: {**r, "baseline_m": 0.09}, "'baseline_m' 0.09 is not the 0.0831805 its P1 and P2 give"),
+    (lambda r: {**r, "format_version": 99}, "expected 'format_version' 1 to 1"),
+    (lambda r: {**r, "K_left": [[str(v) for v in row] for row in r["K_left"]]}, "expected 'K_left' as 3x3 finite"),
 ])
 def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
     calibration, _ = rig
@@ -155,13 +163,50 @@ def test_calibrate_command(capsys, samples, tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--board", "9"], "--board: expected inner corners as COLSxROWS"),
-    (["--board", "7x5"], "board was found in both views of 0 of 2 pairs"),
+    (["--board", "2x6"], "--board: expected inner corners as COLSxROWS, each 3 to 100"),  # OpenCV's own limit
+    (["--board", "7x5"], "left: the 7x5 board was found in both views of 0 of 2 pairs"),
 ])
 def test_calibrate_bad_input(capsys, samples, tmp_path, argv, message):
     code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[12].jpg"), "--square-m", "0.025",
                               "--out", str(tmp_path / "rig.json"), *argv)
     assert code == 2 and message in stderr and stderr.count("\n") == 1
     assert not (tmp_path / "rig.json").exists()
+
+
+def test_calibrate_counts_each_pair_once_and_refuses_listed_calibrations(capsys, samples, tmp_path):
+    listed = tmp_path / "boards.txt"
+    listed.write_text(f"{samples / 'left01.jpg'} {samples / 'right01.jpg'}\n" * 3)  # one view, not three
+    code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"))
+    assert code == 2 and "--pairs: the 9x6 board was found in both views of 1 of 1 pairs" in stderr
+    listed.write_text(f"{samples / 'left01.jpg'} {samples / 'right01.jpg'} 500 0.1\n")
+    code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"))
+    assert code == 2 and "expected 'LEFT RIGHT' lines of chessboard images, got line 1 of" in stderr
+
+
+def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samples, tmp_path):
+    for view in ("left", "right"):
+        for number in (1, 2, 3, 4):
+            image = cv2.imread(str(samples / f"{view}0{number}.jpg"), 0).astype(np.uint16) * 257
+            cv2.imwrite(str(tmp_path / f"{view}0{number}.png"), image)
+    out, figure = tmp_path / "rig.json", tmp_path / "rig.png"
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out",
+                              str(out), "--figure", str(figure))
+    assert code == 0, stderr
+    assert cv2.imread(str(figure)).mean() > 20  # the rectified boards, not a black picture
+    out.unlink()
+    long_name = tmp_path / ("f" * 240 + ".png")  # a name a folder takes: its temporary file must fit too
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out",
+                              str(out), "--figure", str(long_name))
+    assert code == 0 and long_name.is_file() and out.is_file(), stderr
+
+
+def test_an_empty_calibration_path_is_refused(capsys, samples):
+    # `--calibration "$RIG"` with RIG unset must not range in the SVS model's metres.
+    with pytest.raises(SystemExit) as exited:
+        main(["estimate", str(samples / "left01.jpg"), str(samples / "right01.jpg"), "--calibration", ""])
+    assert exited.value.code == 2 and "--calibration: expected a calibration file" in capsys.readouterr().err
 
 
 def test_calibrate_names_the_view_of_another_size_and_neither_source(capsys, tmp_path):
@@ -181,6 +226,7 @@ def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
                               "--json", "--figure", str(figure))
     report = json.loads(stdout)
     assert code == 0 and report["status"] == "OK" and report["rectified"] is False  # the rig's, not F's
+    assert report["calibration_rectified"] is True
     # The calibration the metres used, for the input images (640x480), and where it came from.
     record = report["calibration"]
     assert record["source"] == f"--calibration {path} (the pair rectified by it)" and record["measured"] is True
@@ -188,6 +234,9 @@ def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     assert record["baseline_m"] == pytest.approx(calibration.baseline_m, abs=1e-6)
     # The board, 0.25-0.5 m away by its own corners (f·B / corner disparity), is the nearest obstacle.
     assert 0.3 < report["nearest_m"] < 0.5
+    # d_max in the input's pixels, as the focal and doffs beside it: R_min = f·B / (d_max + doffs) holds.
+    assert report["r_min_m"] == pytest.approx(record["focal_px"] * record["baseline_m"]
+                                              / (report["d_max_px"] + record["doffs_px"]), rel=1e-3)
     assert cv2.imread(str(figure)).shape[0] > 1000  # the rectified pair with epipolar lines below the pipeline's
     code, _, stderr = run_cli(capsys, "estimate", left, right, "--calibration", str(path), "--focal-px", "500")
     assert code == 2 and "--calibration: the file gives focal" in stderr
