@@ -474,13 +474,14 @@ def markdown(summary: list[dict], command: str) -> str:
              "|" + "---|" * (11 if draws else 10)]
     clean = {(s["split"], s["size"]): s["acc_objects"] for s in summary if s["condition"] == "clean"}
     for s in summary:
-        delta = s["acc_objects"] - clean.get((s["split"], s["size"]), float("nan"))
+        base = clean.get((s["split"], s["size"]))  # "—" where the run had no clean condition
+        delta = "—" if base is None else f"{s['acc_objects'] - base:+.2f}"
         sgbm = (f"{s['sgbm_acc_objects']:.2f} | {100 * s['sgbm_ranged']:.0f}" if "sgbm_acc_objects" in s
                 else "— | —")
         per_draw = (" / ".join(f"{v:.2f}" for v in s["per_draw"]) if "per_draw" in s else "—") + " | "
         lines.append(f"| {s['split']} | {s['size']} | {s['condition']} | {s['pairs']} | {s['acc_objects']:.2f} | "
                      + (per_draw if draws else "")
-                     + f"{delta:+.2f} | {100 * s['ranged']:.0f} | {sgbm} | {s['worst']} {s['worst_acc']:.1f} |")
+                     + f"{delta} | {100 * s['ranged']:.0f} | {sgbm} | {s['worst']} {s['worst_acc']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
