@@ -378,7 +378,8 @@ def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[st
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--out", default=str(SHIPPED_WEIGHTS), help="weights file (default: the shipped one)")
+    parser.add_argument("--out", help="weights file (default: the shipped one, which this training reproduces; "
+                        "--through-pipeline needs one: a fine-tune on your pairs never replaces the shipped weights)")
     names = add_config_options(parser, TrainConfig())
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--through-pipeline", action="store_true",
@@ -393,7 +394,10 @@ def main(argv: list[str] | None = None) -> Path:
     torch.set_num_threads(args.threads)
     config = TrainConfig(**{name: getattr(args, name) for name in names})
     if args.through_pipeline:
+        if args.out is None:
+            parser.error("--through-pipeline: expected --out FILE for the fine-tuned weights")
         return through_pipeline_main(args, config)
+    args.out = args.out or str(SHIPPED_WEIGHTS)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
     net_config = ObstacleNetConfig()

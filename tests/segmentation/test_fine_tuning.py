@@ -1,10 +1,11 @@
 """experiments/train_segmentation.py --through-pipeline (issue 31): the region term of the loss and the weights kept
-by a full-batch fine-tuning."""
+by a full-batch fine-tuning, and the shipped weights kept out of its reach."""
 
 from __future__ import annotations
 
 import sys
 
+import pytest
 import torch
 from conftest import REPO_ROOT
 
@@ -62,3 +63,10 @@ def test_full_batch_fine_tuning_keeps_the_weights_of_the_lowest_loss(data_dir):
         final, count, _ = train_segmentation.pipeline_depth_loss(collate_stereo_batches(pairs), net)
     assert count > 0
     assert abs(final.item() - min(h["depth_loss"] for h in history)) < 1e-5
+
+
+def test_a_fine_tune_without_out_is_refused_before_any_work(capsys) -> None:
+    # The shipped weights are the reproduction's default output, never a fine-tune's on a user's pairs.
+    with pytest.raises(SystemExit) as exited:
+        train_segmentation.main(["--through-pipeline", "--steps", "1"])
+    assert exited.value.code == 2 and "expected --out FILE" in capsys.readouterr().err
