@@ -58,10 +58,10 @@ CACHE_BLOCK_BYTES = 2 * 1024 * 1024
 def _box_sum(volume: torch.Tensor, size: int) -> torch.Tensor:
     """Sums over ``size × size`` windows of the last two dims, no padding (valid part only), separably, as
     running sums of shifted slices: on this CPU 2.7× faster than ``avg_pool2d`` with (k, 1) and (1, k)
-    kernels, whose vertical pass is not vectorised, and as fast as cumulative sums without their round-off.
-    Differentiable (:class:`_BoxSum`: the same values bit for bit)."""
-    if torch.is_grad_enabled() and volume.requires_grad:
-        return _BoxSum.apply(volume, size)
+    kernels, whose vertical pass is not vectorised, and as fast as cumulative sums without their round-off. Its
+    adjoint is the box sum of the gradient zero-padded by ``size − 1`` (the soft-argmin's backward,
+    :mod:`svs_torch.depth.soft_dense`). Not differentiable itself (in-place sums: call it on tensors without
+    gradients)."""
     height, width = volume.shape[-2] - size + 1, volume.shape[-1] - size + 1
     rows = volume[..., 0:height, :].clone()
     for offset in range(1, size):
@@ -70,25 +70,6 @@ def _box_sum(volume: torch.Tensor, size: int) -> torch.Tensor:
     for offset in range(1, size):
         summed.add_(rows[..., offset:offset + width])
     return summed
-
-
-class _BoxSum(torch.autograd.Function):
-    """:func:`_box_sum` with its adjoint as the backward: each input pixel receives the sum of the gradients of
-    the windows that hold it, the box sum of the gradient zero-padded by ``size − 1``. Recorded slices would
-    each allocate, zero and fill a volume-sized gradient in the backward (2 (size − 1) of them: most of the
-    learned segmenter's backward, issue 31)."""
-
-    @staticmethod
-    def forward(ctx, volume: torch.Tensor, size: int) -> torch.Tensor:
-        ctx.size = size
-        with torch.no_grad():
-            return _box_sum(volume, size)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
-        pad = ctx.size - 1
-        with torch.no_grad():
-            return _box_sum(torch.nn.functional.pad(grad, (pad, pad, pad, pad)), ctx.size), None
 
 
 def crop_index(x0: torch.Tensor, y0: torch.Tensor, height: int, width: int, image_hw: tuple[int, int]
@@ -143,21 +124,11 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     disparities = min_disparity.view(-1, 1) + torch.arange(num_disparities, device=left.device)  # (B, D)
     right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)
     inside = ((right_x >= 0) & (right_x < image_w.view(-1, 1, 1))).unsqueeze(2)  # (B, D, 1, width)
-    wl = width + 2 * radius
     left_crop, right_crop = _crops(left, right, x0, y0, height, width, min_disparity, num_disparities, radius)
     # The hard path's +inf: outside the image or past the pair's own count of disparities.
     outside = None if counts is None else ~(inside & _own(counts, num_disparities))  # (B, D, 1, width)
-    if torch.is_grad_enabled() and (left.requires_grad or right.requires_grad):  # the soft path: no in-place ops
-        windows = right_crop.squeeze(1).unfold(-1, wl, 1).flip(-2)  # (B, hl, D, wl) view, d ascending
-        volume = (left_crop.squeeze(1).unsqueeze(-2) - windows).abs().transpose(1, 2).contiguous()
-        costs = _box_sum(volume, config.window_size)
-        winner = None
-        if outside is not None:
-            costs = costs.masked_fill(outside, torch.inf)
-            winner = costs.min(dim=1)
-    else:
-        costs, winner = _costs_in_cache(left_crop, right_crop, height, width, num_disparities, config.window_size,
-                                        outside, compiled=config.kernel != "torch")
+    costs, winner = _costs_in_cache(left_crop, right_crop, height, width, num_disparities, config.window_size,
+                                    outside, compiled=config.kernel != "torch")
     return costs, inside, winner
 
 

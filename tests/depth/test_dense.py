@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from svs_torch import InputError
 from svs_torch.core import kernels
@@ -238,6 +239,45 @@ def test_soft_block_match_gradcheck_and_low_temperature_limit(generator):
     integer = (hard.disparity_px - hard.disparity_px.round()).abs() < 1e-12  # no sub-pixel shift applied
     assert integer.any()
     torch.testing.assert_close(cold[hard.valid & integer], hard.disparity_px[hard.valid & integer])
+
+
+def _soft_block_match_op_by_op(left, right, minimum, count, temperature, config):
+    """The soft-argmin written the plain way, every op recorded by autograd: a reference for the hand-written
+    backward of :func:`soft_block_match` (replicate borders, costs as window means, no weight outside the image)."""
+    size, (h, w) = config.window_size, left.shape[-2:]
+    images = [prefilter_xsobel(image, config.prefilter_cap) if config.prefilter == "xsobel" else image
+              for image in (left, right)]
+    r = size // 2
+    left_p, right_p = (F.pad(image, (r, r, r, r), mode="replicate") for image in images)
+    weights_by_pair = []
+    for pair, low in enumerate(minimum.tolist()):
+        costs, inside = [], []
+        for index in range(count):
+            shift = low + index
+            columns = (torch.arange(w + 2 * r) - shift).clamp(0, w - 1 + 2 * r)
+            difference = (left_p[pair, 0] - right_p[pair, 0][:, columns]).abs()
+            costs.append(F.avg_pool2d(difference[None, None], size, stride=1)[0, 0])
+            inside.append((torch.arange(w) - shift >= 0).expand(h, w))
+        logits = torch.where(torch.stack(inside), -torch.stack(costs) / temperature, -torch.inf)
+        weights = torch.softmax(logits, dim=0)
+        weights_by_pair.append((weights * (low + torch.arange(count, dtype=left.dtype)).view(-1, 1, 1)).sum(0))
+    return torch.stack(weights_by_pair)[:, None]
+
+
+def test_soft_block_match_backward_equals_the_op_by_op_one(teddy):
+    # The hand-written backward (one disparity at a time) against autograd's own, on a real crop in float64.
+    left = teddy.left[:1, :, 100:130, 200:260].double().requires_grad_()
+    right = teddy.right[:1, :, 100:130, 180:240].double().requires_grad_()
+    left2, right2 = (t.detach().clone().requires_grad_() for t in (left, right))
+    config, minimum = DenseConfig(window_size=7), torch.tensor([3])
+    ours = soft_block_match(left, right, minimum, 12, 0.003, config)
+    reference = _soft_block_match_op_by_op(left2, right2, minimum, 12, 0.003, config)
+    torch.testing.assert_close(ours[..., 20:], reference[..., 20:], rtol=0, atol=1e-9)  # every candidate inside
+    weight = torch.linspace(0.5, 1.5, 40, dtype=F64)
+    (ours[..., 20:] * weight).sum().backward()
+    (reference[..., 20:] * weight).sum().backward()
+    torch.testing.assert_close(left.grad, left2.grad, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(right.grad, right2.grad, rtol=1e-9, atol=1e-9)
 
 
 def test_soft_block_match_gradients_reach_both_images(generator):
