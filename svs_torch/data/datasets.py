@@ -86,12 +86,15 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
 
 
 def kitti_left_images(root: str | Path) -> list[Path]:
-    """The left images of a KITTI training folder that have ground truth, sorted: frame ``_10`` (a download also
-    holds ``_11``, the next frame of the flow benchmark, with no disparity, which :func:`load_kitti` cannot score)."""
+    """The left images of a KITTI folder, sorted: in a training folder those with ground truth, frame ``_10`` (a
+    download also holds ``_11``, the next frame of the flow benchmark, with no disparity, which :func:`load_kitti`
+    cannot score); in a folder without any (a testing folder), every frame, loaded without truth."""
     root = Path(root)
     for left, _, truth, _, _ in _KITTI_LAYOUTS:
         if (root / left).is_dir():
-            return sorted(path for path in (root / left).glob("*.png") if (root / truth / path.name).is_file())
+            frames = sorted((root / left).glob("*.png"))
+            scored = [path for path in frames if (root / truth / path.name).is_file()]
+            return scored or frames
     return []
 
 

@@ -28,8 +28,8 @@ __all__ = ["MIDDLEBURY_2005_BASELINE_M", "MIDDLEBURY_2005_DMIN_FULL_PX", "MIDDLE
 # (MANIFEST §1–2); half- and third-size images divide focal and dmin by 2 and 3.
 MIDDLEBURY_2005_FOCAL_FULL_PX = 3740.0
 MIDDLEBURY_2005_BASELINE_M = 0.160
-# The full-size views' widths (1240 to 1390 px; the third-size copies are 413–465, MANIFEST §1).
-_MIDDLEBURY_2005_FULL_WIDTHS_PX = (1240, 1390)
+# The full-size views' widths (Baby1 1240 px to Midd1 1396; the third-size copies are 413–465, MANIFEST §1).
+_MIDDLEBURY_2005_FULL_WIDTHS_PX = (1240, 1396)
 # Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
 # ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
 MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
@@ -78,7 +78,7 @@ def _calib_width_scale(calib: dict, width_px: int) -> float:
 @warnings_once_loaded()
 def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
     """Middlebury 2005/2006 scene (``view1.png`` left, ``view5.png`` right, ``disp1.png``) at any of the data set's
-    three sizes: full (1240–1390 px wide), half or third (the shared copies, 413–465 px).
+    three sizes: full (1240–1396 px wide), half or third (the shared copies, 413–465 px).
 
     ``disp1.png`` holds full-size disparities at every size (MANIFEST §2: the third-size values are 3·d), so the
     size divides them by 1, 2 or 3, read from the views' width; a width of none of the three sizes is refused
@@ -98,7 +98,8 @@ def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.
 
 
 def _middlebury_2005_divisor(width_px: int, path: Path) -> float:
-    """1, 2 or 3: the full, half or third size of a 2005/2006 view ``width_px`` wide (a pixel of rounding allowed)."""
+    """1, 2 or 3: the full, half or third size of a 2005/2006 view ``width_px`` wide (two pixels of rounding
+    allowed)."""
     low, high = _MIDDLEBURY_2005_FULL_WIDTHS_PX
     for divisor in (1.0, 2.0, 3.0):
         if low / divisor - 2 <= width_px <= high / divisor + 2:

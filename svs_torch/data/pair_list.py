@@ -315,28 +315,35 @@ def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:
     """``sources``, each pair that would share its name with another pair (not the same pair listed again) labelled
     with the folders that tell them apart: ``eval3/Teddy (a)`` and ``eval3/Teddy (b)`` for ``a/Teddy`` and
     ``b/Teddy``. Reports, stores and exported maps then keep them apart (an export is named after the pair)."""
-    groups: dict[str, dict[str, Path]] = {}
+    groups: dict[str, dict[tuple, Path]] = {}
     for source in sources:
         if source.problem is None:
-            groups.setdefault(_loaded_name(source), {})[source.pair_id] = Path(os.path.abspath(source.left))
+            groups.setdefault(_loaded_name(source), {})[_identity(source)] = Path(os.path.abspath(source.left))
     labels = {}
     for name, paths in groups.items():
         if len(paths) > 1:
             labels.update(zip(paths, (f"{name} ({tail})" for tail in _telling_folders(list(paths.values())))))
-    return [replace(source, label=labels.get(source.pair_id)) if source.problem is None else source
+    return [replace(source, label=labels.get(_identity(source))) if source.problem is None else source
             for source in sources]
+
+
+def _identity(source: PairSource) -> tuple:
+    """The files a pair reads, links resolved, and its listed calibration: one scene reached through a symbolic
+    link is the same pair, not one to tell apart."""
+    return (os.path.realpath(source.left), source.right and os.path.realpath(source.right), source.focal_px,
+            source.baseline_m, source.doffs_px)
 
 
 def _telling_folders(paths: list[Path]) -> list[str]:
     """For each path, the fewest of its parent folders, nearest first, that no other path shares once the parent
     folders all of them end with are left out; numbers where the folders are the same (the same files listed with
     two calibrations)."""
-    parents = [path.parent.parts for path in paths]
+    parents = [path.parent.parts[1 if path.anchor else 0:] for path in paths]  # no root or drive: not a name
     common = 0
     while all(len(parts) > common for parts in parents) and len({parts[-1 - common] for parts in parents}) == 1:
         common += 1
     trimmed = [parts[:len(parts) - common] for parts in parents]
-    for count in range(1, max(map(len, trimmed)) + 1):
+    for count in range(1, max(map(len, trimmed), default=0) + 1):
         tails = ["/".join(parts[-count:]) for parts in trimmed]
         if len(set(tails)) == len(tails) and all(tails):
             return tails

@@ -6,7 +6,8 @@
 * ``kitti`` (devkit): ``DIR/<pair>.png``, uint16, disparity × 256, 0 = unknown.
 
 ``<scene>`` / ``<pair>`` is the last part of the pair's name without an image suffix (``eval3/Teddy`` → ``Teddy``,
-``kitti2012/000000_10`` → ``000000_10``, ``dir/left.png`` → ``left``).
+``kitti2012/000000_10`` → ``000000_10``, ``dir/left.png`` → ``left``; a pair labelled apart from another of its
+name keeps the label's folders, ``eval3/Teddy (x/a)`` → ``Teddy_x_a``).
 
 Each map is the pair's dense disparity (:attr:`~svs_torch.pipeline.PipelineResult.dense`) in the pixel grid
 and disparity units of the image the pipeline ran on: the pair's own size (native, or the ``--size`` it was
@@ -50,10 +51,15 @@ METHOD_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 
 def export_name(pair_name: str) -> str:
-    """The file or folder name of a pair in an export (module docstring); unusual characters become ``_``."""
-    last = PurePosixPath(pair_name.replace("\\", "/")).name or "pair"
+    """The file or folder name of a pair in an export (module docstring); unusual characters become ``_``. A pair
+    labelled with the folders that tell it from another of its name (``eval3/Teddy (x/a)``,
+    :attr:`~svs_torch.data.PairSource.label`) keeps them: ``Teddy_x_a``."""
+    labelled = re.fullmatch(r"(.*) \(([^()]+)\)", pair_name)
+    base, folders = (labelled[1], labelled[2]) if labelled else (pair_name, "")
+    last = PurePosixPath(base.replace("\\", "/")).name or "pair"
     if PurePosixPath(last).suffix.lower() in _IMAGE_SUFFIXES:
         last = PurePosixPath(last).stem
+    last += f"_{folders}" if folders else ""
     return re.sub(r"[^A-Za-z0-9_.-]", "_", last).lstrip(".") or "pair"
 
 

@@ -5,7 +5,7 @@ or hand-edited files. Each test builds its folder from the shared data in ``tmp_
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 
 import cv2
 import numpy as np
@@ -16,7 +16,8 @@ from svs_torch.data import (load_middlebury_2005_2006, load_middlebury_eval3, lo
                             read_gray_image, read_middlebury_calib, read_pair_list, read_pair_sources,
                             write_pfm)
 from svs_torch.data.datasets import load_kitti, scene_calibration_source
-from svs_torch.data.pair_list import load_pair_source
+from svs_torch.data.pair_list import _telling_folders, load_pair_source
+from svs_torch.evaluation.export import export_name
 
 
 def _median_depth_m(batch) -> float:
@@ -44,6 +45,17 @@ def test_a_full_size_2005_2006_scene_is_read_at_its_own_scale(tmp_path: Path, da
         cv2.imwrite(str(small / name), cv2.resize(cv2.imread(str(scene / name), cv2.IMREAD_UNCHANGED), (320, 277)))
     with pytest.raises(InputError, match=r"left: expected a Middlebury 2005/2006 view of full .* got 320 px"):
         load_middlebury_2005_2006(small)
+
+
+@pytest.mark.parametrize("width, focal_px", [(1396, 3740.0), (698, 1870.0)])  # Midd1, the widest: full and half
+def test_the_widest_2005_2006_scene_loads_at_full_and_half_size(tmp_path: Path, data_dir: Path, width,
+                                                               focal_px) -> None:
+    third = data_dir / "middlebury_2005_2006_third" / "Midd1"
+    for name in ("view1.png", "view5.png", "disp1.png"):  # disp1.png holds full-size disparities at every size
+        image = cv2.imread(str(third / name), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / name), cv2.resize(image, (width, 370 * width // 465),
+                                                     interpolation=cv2.INTER_NEAREST))
+    assert float(load_middlebury_2005_2006(tmp_path).focal_px[0]) == focal_px
 
 
 def test_a_calib_txt_kept_beside_resized_views_is_scaled_to_them(tmp_path: Path, data_dir: Path) -> None:
@@ -74,6 +86,8 @@ def test_scenes_without_ground_truth_load_without_it(tmp_path: Path, data_dir: P
     shutil.copytree(data_dir / "kitti" / "stereo2015_training", kitti)
     shutil.rmtree(kitti / "disp_occ_0")
     assert load_stereo_pair(kitti / "image_2" / "000000_10.png").disparity_px is None
+    # A KITTI testing folder (no truth at all) stands for every frame, as a training folder for its scored ones.
+    assert [source.name for source in read_pair_sources([kitti])] == ["kitti/000000_10", "kitti/000001_10"]
 
 
 def test_kitti_truth_must_be_16_bit(tmp_path: Path, data_dir: Path) -> None:
@@ -140,6 +154,16 @@ def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -
     assert [source.name for source in read_pair_list(listed)] == ["Teddy/im0.png (a)", "Teddy/im0.png (b)"]
     alone = read_pair_sources([data_dir / "middlebury_eval3_Q" / "Teddy", data_dir / "middlebury_2003_quarter"])
     assert [source.name for source in alone][0] == "middlebury_eval3_Q/Teddy"  # no other eval3/Teddy: no label
+    (tmp_path / "link").symlink_to(tmp_path / "a")  # one scene reached twice: the same pair, not two to tell apart
+    assert read_pair_sources([tmp_path / "a" / "Teddy", tmp_path / "link" / "Teddy"])[1].label is None
+    # Labels of two folders keep both in an exported map's name; a root or drive is no folder to tell them by.
+    deeper = [tmp_path / f"{x}/{a}/Teddy" for x, a in (("x", "a"), ("y", "a"), ("x", "b"))]
+    for path in deeper:
+        shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", path)
+    names = [source.name for source in read_pair_sources(deeper)]
+    assert names == ["eval3/Teddy (x/a)", "eval3/Teddy (y/a)", "eval3/Teddy (x/b)"]
+    assert [export_name(name) for name in names] == ["Teddy_x_a", "Teddy_y_a", "Teddy_x_b"]
+    assert _telling_folders([PureWindowsPath("C:/data/Teddy"), PureWindowsPath("D:/data/Teddy")]) == ["1", "2"]
 
 
 def test_a_pair_list_saved_with_a_byte_order_mark_reads(tmp_path: Path, data_dir: Path) -> None:
