@@ -134,18 +134,18 @@ def _text(calibration, views, out: str) -> list[str]:
 
 
 def _figure(calibration, views, images):
-    """The first used pair rectified with its corners and epipolar lines (8- or 16-bit views)."""
+    """The first used pair rectified with its corners and epipolar lines (8-, 16-bit or float views, drawn as the
+    corner finder saw them)."""
     from pathlib import Path
 
-    import numpy as np
     import torch
 
     from ..geometry.calibration import rectify_with_calibration
-    from ..geometry.chessboard import rectified_corners
+    from ..geometry.chessboard import board_image_u8, rectified_corners
     from ..plotting.rectified import rectified_pair_figure
     from ..core.types import StereoBatch
 
-    left, right = (torch.from_numpy(image.astype(np.float32) / np.iinfo(image.dtype).max).view(1, 1, *image.shape)
+    left, right = (torch.from_numpy(board_image_u8(image)).float().div(255).view(1, 1, *image.shape[:2])
                    for image in images)
     # The batch's focal and baseline are placeholders: rectify_with_calibration sets the calibration's.
     batch = rectify_with_calibration(StereoBatch.from_images(left, right, 1.0, 1.0), calibration)

@@ -6,7 +6,9 @@ came late, or one about the wrong thing, is found in the record and ranged again
 ``capture``'s layout (each board's JPEG exactly as received, and ``index.jsonl``, a line per pair flushed only
 after both its images are in place), so ``svs-depth estimate --pairs DIR/index.jsonl --floor on --camera-frames``
 ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
-(:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). Each line (on stdout with ``--json``, in the index with
+(:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). One exception: a frame damaged on the link that libjpeg
+still decodes, its lost blocks filled, is ranged live (guide has no other frame of that moment), while ``estimate``
+refuses the file (a damaged JPEG: its pair gets BAD_INPUT). Each line (on stdout with ``--json``, in the index with
 ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
 (:func:`~svs_torch.cli.estimate_report.pair_report`) with the ``calibration`` its metres use, and guide's own:
 ``warning`` (the pair's own distance ``distance_m``, the median of the last ``--confirm-frames`` pairs' that the
@@ -60,7 +62,8 @@ class GuideLog:
             return
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         record = save_pair(self.record_dir if self._index is not None else None, pair)
-        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration=self._calibration(pair.left.size_wh))
+        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration_rectified=self.rig is not None,
+                      calibration=self._calibration(pair.left.size_wh))
         record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
         line = json.dumps(record) + "\n"
         if self._index is not None:  # after both images are in place (save_pair)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shlex
+import sys
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import IO
 from .errors import InputError
 
 __all__ = ["atomic_output", "check_output_file", "check_writable_folder", "display_path", "make_output_folder",
-           "path_kind", "split_list_line", "stream_is_terminal", "write_bytes_atomic"]
+           "path_kind", "short_name", "split_list_line", "stream_is_terminal", "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -44,7 +45,7 @@ def path_kind(path: str | os.PathLike, name: str) -> str:
             system allows) or a path that cannot be looked at (no permission on a folder on the way).
     """
     try:
-        status = os.stat(path)
+        os.stat(path)
     except (FileNotFoundError, NotADirectoryError):
         return "missing"
     except (OSError, ValueError) as error:
@@ -106,6 +107,12 @@ def make_output_folder(path: str | os.PathLike, name: str) -> Path:
     return target
 
 
+def short_name(name: str, limit_bytes: int = 200) -> str:
+    """At most ``limit_bytes`` of ``name`` as the file system encodes it, whole characters only: the stem of a
+    temporary file beside ``name`` (any name a folder takes, 255 bytes, then leaves room for the temporary's)."""
+    return os.fsencode(name)[:limit_bytes].decode(sys.getfilesystemencoding(), "ignore")
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> Iterator[IO]:
     """A stream to write ``path`` whole: a temporary file beside it (same folder, so the rename is atomic),
@@ -118,8 +125,7 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> I
     if mode not in ("w", "wb"):
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     target = Path(path)
-    # At most 200 characters of the name: any name a folder takes (255 bytes) leaves room for the temporary's.
-    temporary = target.with_name(f".{target.name[:200]}.{uuid.uuid4().hex[:8]}.tmp")
+    temporary = target.with_name(f".{short_name(target.name)}.{uuid.uuid4().hex[:8]}.tmp")
     handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(handle, mode, **open_kwargs) as stream:

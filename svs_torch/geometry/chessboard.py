@@ -26,8 +26,8 @@ import numpy as np
 from ..core.checks import InputError
 from .calibration import StereoCalibration
 
-__all__ = ["BoardViews", "MIN_PAIRS", "calibrate_stereo_rig", "collect_board_views", "find_board_corners",
-           "rectified_corners"]
+__all__ = ["BoardViews", "MIN_PAIRS", "board_image_u8", "calibrate_stereo_rig", "collect_board_views",
+           "find_board_corners", "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
 #: warns below 3; a usable calibration wants 10–20 views across the field.
@@ -66,7 +66,9 @@ def find_board_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray 
     return refined.reshape(-1, 2).astype(np.float32)
 
 
-def _gray_u8(image: np.ndarray) -> np.ndarray:
+def board_image_u8(image: np.ndarray) -> np.ndarray:
+    """A board image as the corner finder sees it: gray uint8, a 16-bit or float capture stretched to 0–255 (its
+    darkest to its brightest level)."""
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if image.dtype != np.uint8:  # 16-bit (or float) captures: to the 8-bit range the detector expects
@@ -84,7 +86,7 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
     """
     left, right, names, skipped, size = [], [], [], [], None
     for pair_name, image_left, image_right in pairs:
-        image_left, image_right = _gray_u8(image_left), _gray_u8(image_right)
+        image_left, image_right = board_image_u8(image_left), board_image_u8(image_right)
         wh = (image_left.shape[1], image_left.shape[0])
         if size is None:
             size = wh

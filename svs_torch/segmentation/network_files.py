@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from ..core.checks import InputError
+from ..core.files import short_name
 from ..core.inference import outside_inference_mode
 from .network import ObstacleNet, ObstacleNetConfig
 
@@ -110,7 +111,7 @@ def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = 
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
               "metadata": json.loads(json.dumps(metadata or {}, default=str))}
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name[:200]}.", suffix=".tmp")  # room left
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{short_name(path.name)}.", suffix=".tmp")
     os.close(handle)
     try:
         torch.save(stored, temporary)

@@ -196,10 +196,22 @@ def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samp
     assert code == 0, stderr
     assert cv2.imread(str(figure)).mean() > 20  # the rectified boards, not a black picture
     out.unlink()
-    long_name = tmp_path / ("f" * 240 + ".png")  # a name a folder takes: its temporary file must fit too
+    long_name = tmp_path / ("é" * 120 + ".png")  # 245 bytes, a name a folder takes: its temporary must fit too
     code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out",
                               str(out), "--figure", str(long_name))
     assert code == 0 and long_name.is_file() and out.is_file(), stderr
+
+
+def test_calibrate_draws_float_boards(capsys, samples, tmp_path):
+    # Float captures (a TIFF in [0, 1]) are found as the corner finder sees them, and drawn the same way.
+    for view in ("left", "right"):
+        for number in (1, 2, 3, 4):
+            image = cv2.imread(str(samples / f"{view}0{number}.jpg"), 0).astype(np.float32) / 255
+            cv2.imwrite(str(tmp_path / f"{view}0{number}.tif"), image)
+    figure = tmp_path / "rig.png"
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.tif"), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"), "--figure", str(figure))
+    assert code == 0 and cv2.imread(str(figure)).mean() > 20, stderr
 
 
 def test_an_empty_calibration_path_is_refused(capsys, samples):
@@ -280,6 +292,11 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--out-dir", str(tmp_path / "other"),
                            "--size", "1280x1024", "--calibration", str(path))
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
+    # guide's JSON lines say the rig rectified each pair, as estimate's do.
+    code, stdout, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120",
+                                "--json", "--calibration", str(path))
+    line = json.loads(stdout.splitlines()[0])
+    assert code == 0 and line["calibration_rectified"] is True and line["calibration"]["measured"] is True, err
     # guide checks the rig against its frame size before it opens the camera (test_cli runs it live).
     code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "1280x1024",
                            "--calibration", str(path))
