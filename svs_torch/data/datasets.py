@@ -8,6 +8,9 @@ Convention for all: a left pixel x sees the right pixel x − d (verified photom
 
 ``calibrated`` is True only where focal, baseline and doffs come from the data (MiddEval3 ``calib.txt``, and the
 scenes whose values follow from it); elsewhere the values are nominal and depth is not meaningful.
+
+The Middlebury loaders live in :mod:`.middlebury` (and are importable from here), KITTI, the OpenCV sample, plain
+image pairs and the detection of a folder's layout here, what they share in :mod:`.scene_batch`.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) 
     left, right = read_view_pair(directory / "aloeL.jpg", directory / "aloeR.jpg", dtype)
     disparity, valid = read_scaled_disparity(directory / "aloeGT.png", 1.0, "disparity")
     return make_scene_batch(left, right, "opencv/aloe", focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX,
-                       baseline_m=MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
+                            baseline_m=MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
 
 
 @warnings_once_loaded()
@@ -139,9 +142,9 @@ def load_image_pair(
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
     return make_scene_batch(left, right, pair_name(left_path),
-                       focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
-                       baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
-                       doffs_px=float(doffs_px), calibrated=calibrated)
+                            focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
+                            baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
+                            doffs_px=float(doffs_px), calibrated=calibrated)
 
 
 # Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair

@@ -64,8 +64,8 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
         if (scene_dir / "mask0nocc.png").is_file():
             truth["nonoccluded"] = read_mask_image(scene_dir / "mask0nocc.png", "mask0nocc") == 255
     return make_scene_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]) * scale,
-                       baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]) * scale,
-                       calibrated=True, **truth)
+                            baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]) * scale,
+                            calibrated=True, **truth)
 
 
 def _calib_width_scale(calib: dict, width_px: int) -> float:
@@ -92,9 +92,9 @@ def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.
     disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", divisor, "disparity")
     dmin_full = MIDDLEBURY_2005_DMIN_FULL_PX.get(scene_dir.name)
     return make_scene_batch(left, right, f"2005_2006/{scene_dir.name}",
-                       focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX / divisor, baseline_m=MIDDLEBURY_2005_BASELINE_M,
-                       doffs_px=0.0 if dmin_full is None else dmin_full / divisor,
-                       calibrated=dmin_full is not None, disparity=disparity, valid=valid)
+                            focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX / divisor, baseline_m=MIDDLEBURY_2005_BASELINE_M,
+                            doffs_px=0.0 if dmin_full is None else dmin_full / divisor,
+                            calibrated=dmin_full is not None, disparity=disparity, valid=valid)
 
 
 def _middlebury_2005_divisor(width_px: int, path: Path) -> float:
@@ -140,7 +140,7 @@ def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float
         left, right = read_view_pair(scene_dir / "im2.ppm", scene_dir / "im6.ppm", dtype)
         disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
     return make_scene_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
-                       baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
+                            baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
 
 
 def eval3_calibration_source(scene_dir: Path) -> str:

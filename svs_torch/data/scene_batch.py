@@ -71,8 +71,8 @@ def make_scene_batch(
 def warnings_once_loaded() -> Iterator[None]:
     """The warnings raised inside (a 16-bit file read as nearly black), given only when the block completes: a pair
     that then fails (its right view missing, of another size, its ground truth unreadable) gets its one error, not
-    a warning about a view first. Each loader below is wrapped in it whole (a context manager made by
-    ``contextmanager`` is also a decorator)."""
+    a warning about a view first. Each loader of :mod:`.datasets` and :mod:`.middlebury` is wrapped in it whole (a
+    context manager made by ``contextmanager`` is also a decorator)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
