@@ -315,16 +315,17 @@ def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:
     """``sources``, each pair that would share its name with another pair (not the same pair listed again) labelled
     with the folders that tell them apart: ``eval3/Teddy (a)`` and ``eval3/Teddy (b)`` for ``a/Teddy`` and
     ``b/Teddy``. Reports, stores and exported maps then keep them apart (an export is named after the pair)."""
+    identities = [None if source.problem is not None else _identity(source) for source in sources]
     groups: dict[str, dict[tuple, Path]] = {}
-    for source in sources:
-        if source.problem is None:
-            groups.setdefault(_loaded_name(source), {})[_identity(source)] = Path(os.path.abspath(source.left))
+    for source, identity in zip(sources, identities):
+        if identity is not None:
+            groups.setdefault(_loaded_name(source), {})[identity] = Path(os.path.abspath(source.left))
     labels = {}
     for name, paths in groups.items():
         if len(paths) > 1:
             labels.update(zip(paths, (f"{name} ({tail})" for tail in _telling_folders(list(paths.values())))))
-    return [replace(source, label=labels.get(_identity(source))) if source.problem is None else source
-            for source in sources]
+    return [source if identity is None else replace(source, label=labels.get(identity))
+            for source, identity in zip(sources, identities)]
 
 
 def _identity(source: PairSource) -> tuple:

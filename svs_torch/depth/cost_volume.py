@@ -135,8 +135,9 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
 def _costs_in_cache(left_crop: torch.Tensor, right_crop: torch.Tensor, height: int, width: int, num_disparities: int,
                     size: int, outside: torch.Tensor | None, compiled: bool = True
                     ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:
-    """The hard path of :func:`_cost_volume`: disparity by disparity, a block of pairs at a time, so that each
-    slab's differences and box sums stay in cache; with ``outside``, the +inf costs and the running winner.
+    """The costs of :func:`_cost_volume` and of the soft-argmin's forward (:mod:`.soft_dense`): disparity by
+    disparity, a block of pairs at a time, so that each slab's differences and box sums stay in cache; with
+    ``outside``, the +inf costs and the running winner.
     ``compiled``: the C kernel :func:`svs_torch.depth.kernels.sad_volume` where it runs (the same values bit for
     bit, about a tenth of the time), else this loop."""
     found = kernels.sad_volume(left_crop[:, 0], right_crop[:, 0], height, width, size, outside) if compiled else None
