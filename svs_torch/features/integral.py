@@ -21,9 +21,8 @@ import torch.nn.functional as F
 from ..core.checks import check_image
 
 __all__ = [
-    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "integral_image", "integral_phases", "pad_integral",
-    "padded_integral_image",
-    "sample_box_means", "sample_cell_means",
+    "PaddedIntegral", "grid_box_corners", "grid_box_sums", "image_means", "integral_image", "integral_phases",
+    "pad_integral", "padded_integral_image", "sample_box_means", "sample_cell_means",
 ]
 
 
@@ -37,8 +36,19 @@ def integral_image(image: torch.Tensor, subtract_mean: bool = False) -> torch.Te
     """
     check_image(image, "image", check_range=False)
     if subtract_mean:
-        image = image - image.mean(dim=(-2, -1), keepdim=True)
+        image = image - image_means(image).view(-1, 1, 1, 1)
     return F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0))
+
+
+def image_means(image: torch.Tensor) -> torch.Tensor:
+    """Each image's mean ``(B,)`` of ``(B, 1, H, W)`` images, summed in one fixed order whatever the batch: a
+    sequential scan of its pixels (a cumulative sum), not ``mean``, whose reduction torch splits across threads by
+    the tensor's shape (1 or 16 images of 320×240 gave 5 of 16 means one ulp apart, so SURF's responses differed
+    with the batch size; issue 29). Differentiable (every pixel's weight is ``1 / (H·W)``)."""
+    flat = image.reshape(image.shape[0], -1)
+    if flat.shape[1] == 0:
+        return flat.sum(dim=1)
+    return flat.cumsum(dim=1)[:, -1] / flat.shape[1]
 
 
 def pad_integral(integral: torch.Tensor, pad: int) -> torch.Tensor:
@@ -116,13 +126,45 @@ class PaddedIntegral:
 
 def padded_integral_image(image: torch.Tensor, pad: int, subtract_mean: bool = True) -> PaddedIntegral:
     """:class:`PaddedIntegral` of ``(B, 1, H, W)`` images: boxes reaching past the border read the edge pixels
-    (replicate border, as OpenCV's ``getRectSubPix``). Linear in the image, so differentiable."""
+    (replicate border, as OpenCV's ``getRectSubPix``). Linear in the image, so differentiable.
+
+    The table is anchored at the image's top-left corner (table index ``pad, pad`` holds 0): each value is the
+    signed sum between that corner and its own, summed outward from the corner, so the values over the image and
+    within any border do not depend on ``pad``. Why: a batch's border is as wide as its largest keypoint needs, and
+    a table summed from its own corner gave an image other float roundings, so other descriptors, in another batch
+    (issue 29). Box sums, differences of four values, are those of the plain integral image."""
     check_image(image, "image", check_range=False)
     if subtract_mean:
-        image = image - image.mean(dim=(-2, -1), keepdim=True)
+        image = image - image_means(image).view(-1, 1, 1, 1)
     if pad > 0:
         image = F.pad(image, (pad, pad, pad, pad), mode="replicate")
-    return PaddedIntegral(F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0)), pad)
+    return PaddedIntegral(_anchored_cumsum(_anchored_cumsum(image, -1, pad), -2, pad), pad)
+
+
+def _anchored_cumsum(values: torch.Tensor, dim: int, origin: int) -> torch.Tensor:
+    """Signed cumulative sums along ``dim`` at the ``n + 1`` boundaries of ``n`` values, 0 at boundary ``origin``:
+    ``Σ values[origin:t]`` after it, ``−Σ values[t:origin]`` before it, each summed outward from ``origin``."""
+    n = values.shape[dim]
+    after = values.narrow(dim, origin, n - origin).cumsum(dim)
+    before = values.narrow(dim, 0, origin).flip(dim).cumsum(dim).flip(dim).neg()
+    return torch.cat([before, torch.zeros_like(values.narrow(dim, 0, 1)), after], dim)
+
+
+def _table_axis(coordinate: torch.Tensor, pad: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where continuous image coordinates fall on a table axis of ``size`` >= 2 (index = coordinate + 0.5 + pad):
+    the index before (at most ``size − 2``) and the weight of the one after, the coordinate clamped to the table
+    (``grid_sample``'s bilinear, ``align_corners=True``). The weight comes from ``coordinate + 0.5`` before ``pad``
+    is added, so it does not depend on the border (the C kernel's reads, in double, are exact too).
+    Differentiable in the coordinate."""
+    shifted = coordinate + 0.5
+    whole = torch.floor(shifted.detach())
+    fraction = shifted - whole
+    first = whole.to(torch.int64).add_(pad)
+    low, high = torch.aminmax(first) if first.numel() else (0, 0)
+    if not 0 <= int(low) <= int(high) <= size - 2:  # rare: reads off the table
+        fraction = torch.where(first < 0, 0.0, torch.where(first > size - 2, 1.0, fraction))
+        first = first.clamp_(0, size - 2)
+    return first, fraction
 
 
 def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -131,12 +173,14 @@ def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -
     Bilinear interpolation of an integral image is the exact area integral of the pixel-constant image."""
     table = integral.table
     b, _, h1, w1 = table.shape
-    shape = x.shape
-    # grid_sample with align_corners=True maps −1 and 1 to the first and last table index.
-    gx = ((x + 0.5 + integral.pad).clamp(0, w1 - 1) * (2 / max(w1 - 1, 1)) - 1).reshape(b, -1, 1)
-    gy = ((y + 0.5 + integral.pad).clamp(0, h1 - 1) * (2 / max(h1 - 1, 1)) - 1).reshape(b, -1, 1)
-    grid = torch.cat([gx, gy], dim=-1).unsqueeze(2).to(table.dtype)  # (B, P, 1, 2)
-    return F.grid_sample(table, grid, mode="bilinear", align_corners=True).view(shape)
+    x0, fx = _table_axis(x.reshape(b, -1), integral.pad, w1)
+    y0, fy = _table_axis(y.reshape(b, -1), integral.pad, h1)
+    flat = table.reshape(b, h1 * w1)
+    index = y0.mul_(w1).add_(x0)
+    # The other three corners through views of the table shifted by 1, w1 and w1 + 1 (no index tensor is added to).
+    top = torch.lerp(flat.gather(1, index), flat[:, 1:].gather(1, index), fx)
+    bottom = torch.lerp(flat[:, w1:].gather(1, index), flat[:, w1 + 1:].gather(1, index), fx)
+    return torch.lerp(top, bottom, fy).view(x.shape)
 
 
 def sample_box_means(
@@ -161,11 +205,6 @@ def sample_box_means(
     return (a - b - c + d) / ((x1 - x0) * (y1 - y0))
 
 
-def _normalised_grid(integral: PaddedIntegral, coordinate: torch.Tensor, size: int) -> torch.Tensor:
-    """Continuous image coordinates → grid_sample coordinates (align_corners=True) of a table axis of ``size``."""
-    return (coordinate + 0.5 + integral.pad).clamp(0, size - 1) * (2 / max(size - 1, 1)) - 1
-
-
 def sample_cell_means(integral: PaddedIntegral, image_index: torch.Tensor, x_edges: torch.Tensor,
                              y_edges: torch.Tensor) -> torch.Tensor:
     """Means of the cells of a ragged set of P axis-aligned lattices, each on its own image of the batch: cell
@@ -177,22 +216,24 @@ def sample_cell_means(integral: PaddedIntegral, image_index: torch.Tensor, x_edg
         x_edges: ``(P, N + 1)``; y_edges: ``(P, M + 1)``, pixel-centre coordinates of that image.
 
     Returns:
-        ``(P, M, N)``. Neighbouring cells share corners (a 21 × 21 lattice costs 22² reads, not 4 · 21²); the B
-        tables are read as one tall table (a free view of the contiguous batch), so no padding keypoint is
-        ever sampled. Differentiable with respect to the image.
+        ``(P, M, N)``. Neighbouring cells share corners (a 21 × 21 lattice costs 22² reads, not 4 · 21²); each
+        lattice reads its own image's table only, so no padding keypoint is ever sampled. Differentiable with
+        respect to the image.
     """
-    table = integral.table.contiguous()
+    table = integral.table
     b, _, height, width = table.shape
-    tall = table.view(1, 1, b * height, width)
-    # Clamp within the lattice's own image, then shift to its block of the tall table.
-    rows = (y_edges + 0.5 + integral.pad).clamp(0, height - 1) + (image_index * height).unsqueeze(-1).to(y_edges.dtype)
-    p, n1 = x_edges.shape
-    m1 = y_edges.shape[-1]
-    grid = table.new_empty(1, p, m1, n1, 2)
-    grid[..., 0] = _normalised_grid(integral, x_edges, width).unsqueeze(-2)
-    grid[..., 1] = (rows * (2 / max(b * height - 1, 1)) - 1).unsqueeze(-1)
-    read = F.grid_sample(tall, grid.view(1, -1, 1, 2), mode="bilinear", align_corners=True).view(p, m1, n1)
-    sums = read[..., 1:, 1:] - read[..., :-1, 1:] - read[..., 1:, :-1] + read[..., :-1, :-1]
+    x0, fx = _table_axis(x_edges, integral.pad, width)  # (P, N + 1)
+    y0, fy = _table_axis(y_edges, integral.pad, height)  # (P, M + 1)
+    flat = table.reshape(b * height * width)
+    index = (image_index * (height * width)).view(-1, 1, 1) + (y0 * width).unsqueeze(-1) + x0.unsqueeze(-2)
+    fx, fy = fx.unsqueeze(-2), fy.unsqueeze(-1)
+    shape, index = index.shape, index.view(-1)
+
+    def read(shift: int) -> torch.Tensor:  # the corner ``shift`` table places on, through a view (no index added to)
+        return flat[shift:].gather(0, index).view(shape)
+
+    corners = torch.lerp(torch.lerp(read(0), read(1), fx), torch.lerp(read(width), read(width + 1), fx), fy)
+    sums = corners[..., 1:, 1:] - corners[..., :-1, 1:] - corners[..., 1:, :-1] + corners[..., :-1, :-1]
     inverse_area = 1 / ((x_edges[..., 1:] - x_edges[..., :-1]).unsqueeze(-2) *
                         (y_edges[..., 1:] - y_edges[..., :-1]).unsqueeze(-1))
     return sums * inverse_area

@@ -77,10 +77,10 @@ def test_padded_integral_kernel_is_bit_identical_to_torch(images):
     """The mean-removed, padded integral table in one pass equals integral_image + pad_integral bit for bit
     (float32 values, cumulative sums carried in double as torch's), on real images, odd sizes and a 1-pixel
     image; other dtypes are left to torch."""
-    from svs_torch.features.integral import integral_image, pad_integral
+    from svs_torch.features.integral import image_means, integral_image, pad_integral
 
     for batch in (images[..., :263, :317], images[:1, :, :1, :1]):
-        table = features_kernels.padded_integral(batch, batch.mean(dim=(-2, -1)).flatten(), 23)
+        table = features_kernels.padded_integral(batch, image_means(batch), 23)
         assert torch.equal(table, pad_integral(integral_image(batch, subtract_mean=True), 23))
     assert features_kernels.padded_integral(images.double(), images.double().mean(dim=(-2, -1)).flatten(), 23) is None
 

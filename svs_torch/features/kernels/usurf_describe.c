@@ -2,8 +2,8 @@
  * path of _describe_upright; the torch path stays the reference and the differentiable path).
  *
  * The torch path builds a float32 padded integral image, gathers the valid keypoints, reads a 22 x 22 lattice of
- * integral values per keypoint with grid_sample, turns it into 21 x 21 cell means, 20 x 20 Haar responses and 4 x 4
- * sub-region sums in about 30 passes over B x K x 400 values, and scatters the rows back. Here each image's integral
+ * integral values per keypoint by bilinear gathers, turns it into 21 x 21 cell means, 20 x 20 Haar responses and
+ * 4 x 4 sub-region sums in about 30 passes over B x K x 400 values, and scatters the rows back. Here each image's integral
  * is built once in double and each keypoint is described start to finish while its lattice sits in L1. The
  * arithmetic is the torch path's (bilinear reads of the table clamped to its extent, cell means over the cell areas,
  * 2 x 2-cell Haar differences, the sigma = 3.3 Gaussian centred between the middle samples, OpenCV's
@@ -112,22 +112,36 @@ static void describe_one(const double *table, int64_t H1, int64_t W1, int64_t pa
 
 /* The integral image (H + 2 pad + 1, W + 2 pad + 1) of an (H, W) image extended by ``pad`` pixels of replicate
  * border (svs_torch.features.integral.padded_integral_image), in double: exact enough without removing the mean
- * first, which the float32 torch path needs (its sums reach 10^4 over a 320 x 240 image). */
+ * first, which the float32 torch path needs (its sums reach 10^4 over a 320 x 240 image). Anchored at the image's
+ * top-left corner (table index pad, pad): each value is the signed sum between that corner and its own, summed
+ * outward from the corner, so it does not depend on ``pad``. Why: the border is the batch's (wide enough for the
+ * batch's largest keypoint), and a table summed from its own corner gave an image's descriptors other float
+ * roundings in another batch (issue 29). Box sums, differences of four values, are unchanged. */
+static void row_prefix(const float *row, int64_t W, int64_t pad, double *out) {
+    const int64_t W1 = W + 2 * pad + 1;
+    out[pad] = 0;
+    for (int64_t c = pad + 1; c < W1; ++c) { /* rightward from the corner: pixel j = c - 1 - pad */
+        const int64_t j = c - 1 - pad;
+        out[c] = out[c - 1] + row[j >= W ? W - 1 : j];
+    }
+    for (int64_t c = pad - 1; c >= 0; --c) out[c] = out[c + 1] - row[0]; /* leftward: the replicated first pixel */
+}
+
 static void padded_integral(const float *image, int64_t H, int64_t W, int64_t pad, double *table) {
     const int64_t H1 = H + 2 * pad + 1, W1 = W + 2 * pad + 1;
-    for (int64_t c = 0; c < W1; ++c) table[c] = 0;
-    for (int64_t r = 1; r < H1; ++r) {
+    for (int64_t c = 0; c < W1; ++c) table[pad * W1 + c] = 0;
+    for (int64_t r = pad + 1; r < H1; ++r) { /* downward: image row i = r - 1 - pad */
         const int64_t i = r - 1 - pad;
-        const float *row = image + (i < 0 ? 0 : (i >= H ? H - 1 : i)) * W;
         double *out = table + r * W1;
         const double *above = out - W1;
-        double run = 0;
-        out[0] = 0;
-        for (int64_t c = 1; c < W1; ++c) {
-            const int64_t j = c - 1 - pad;
-            run += row[j < 0 ? 0 : (j >= W ? W - 1 : j)];
-            out[c] = above[c] + run;
-        }
+        row_prefix(image + (i >= H ? H - 1 : i) * W, W, pad, out);
+        for (int64_t c = 0; c < W1; ++c) out[c] = above[c] + out[c];
+    }
+    for (int64_t r = pad - 1; r >= 0; --r) { /* upward: the replicated first row */
+        double *out = table + r * W1;
+        const double *below = out + W1;
+        row_prefix(image, W, pad, out);
+        for (int64_t c = 0; c < W1; ++c) out[c] = below[c] - out[c];
     }
 }
 
