@@ -18,6 +18,7 @@ import torch
 
 from ..core.checks import InputError, check_image, check_instance
 from ..core.mask_reductions import any_along
+from ..core.size_groups import run_by_size
 from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from .canny import canny_edges
 from .components import connected_components_with_stats
@@ -335,7 +336,9 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
 def segment_stereo(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig()) -> StereoSegmentation:
     """Segment both images of every pair by ``config.segmenter``: Otsu (left and right as one batch of 2B
     images, :func:`segment_images`), or the learned / nearness segmenter as the pipeline runs it
-    (:func:`svs_torch.segmentation.stereo.segment_pair`, with the shipped or named weights).
+    (:func:`svs_torch.segmentation.stereo.segment_pair`, with the shipped or named weights). Each pair is segmented
+    on its own ``image_hw`` pixels (:mod:`svs_torch.core.size_groups`): a padded pair's border never enters its
+    threshold's histogram or a region.
 
     Returns:
         :class:`StereoSegmentation`; its pair ``status`` is the left image's where not OK, else the right's.
@@ -346,6 +349,11 @@ def segment_stereo(batch: StereoBatch, config: SegmentationConfig = Segmentation
         from .stereo import segment_pair  # which builds on this module
 
         return segment_pair(batch, config)
+    return run_by_size(batch, lambda group: _segment_stereo_otsu(group, config))
+
+
+def _segment_stereo_otsu(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+    """:func:`segment_stereo`'s Otsu branch on a batch whose pairs fill its tensors (one size)."""
     b = batch.batch_size
     both = segment_images(torch.cat([batch.left, batch.right], dim=0), config)
     left, right = _split(both, b)

@@ -89,6 +89,27 @@ def test_batched_equals_per_pair(data_dir):
             assert torch.equal(getattr(single.right, field)[0], getattr(whole.right, field)[i]), field
 
 
+def test_a_padded_pair_is_segmented_on_its_own_pixels(data_dir):
+    """Pairs of two sizes padded into one batch: each pair's Otsu level, opening and kept regions are the pair's
+    alone (the padding's black never enters a histogram or a region), as the pipeline's segmentation."""
+    from svs_torch.data import collate_stereo_batches, resize_stereo_batch
+
+    batch, _, _ = stereo_batch(data_dir)
+    small = resize_stereo_batch(batch.select([1]), (200, 150))
+    padded = collate_stereo_batches([batch.select([0]), small], mode="pad")
+    whole = segment_stereo(padded)
+    for index, pair in enumerate((batch.select([0]), small)):
+        alone = segment_stereo(pair)
+        h, w = pair.size_hw
+        for view in ("left", "right"):
+            got, want = getattr(whole, view), getattr(alone, view)
+            assert torch.equal(got.threshold_level[index], want.threshold_level[0]), (index, view)
+            for field in ("opened", "labels", "kept_mask"):
+                assert torch.equal(getattr(got, field)[index, :, :h, :w], getattr(want, field)[0]), (index, view, field)
+    assert torch.equal(whole.status, torch.cat([segment_stereo(batch.select([0])).status,
+                                                segment_stereo(small).status]))
+
+
 def test_blank_saturated_and_textureless_pairs_get_a_status_not_an_exception():
     left = torch.rand(4, 1, 40, 50, generator=torch.Generator().manual_seed(0))
     left = torch.nn.functional.avg_pool2d(left, 5, 1, 2)  # smooth blobs: a normal image
