@@ -94,6 +94,25 @@ def test_evaluate_result_refuses_a_result_of_another_batch(scenes):
         evaluate_result(scenes.batch.select([0]), result, px_scale=[1.0, 1.0])
 
 
+def test_map_and_inlier_scores_refuse_a_result_of_another_batch(scenes):
+    """Was: the sparse and dense disparity errors and the map metrics scored pair 0's result against pair 1's
+    truth in silence, or answered None, {} or [] (as for a pair without truth) for a result of another size."""
+    from svs_torch.data import resize_stereo_batch
+    from svs_torch.evaluation import dense_disparity_errors, dense_map_metrics, object_map_metrics
+    from svs_torch.evaluation import sparse_disparity_errors
+
+    result = estimate_obstacle_depth(scenes.batch.select([0]))
+    larger = resize_stereo_batch(scenes.batch.select([1]), (128, 96))
+    for score in (sparse_disparity_errors, dense_disparity_errors, dense_map_metrics, object_map_metrics):
+        with pytest.raises(InputError, match=r"result: expected the result of a run on batch \(3 pairs of 96x72\), "
+                                             r"got 1 pairs of 96x72"):
+            score(scenes.batch, result)
+        if score is not sparse_disparity_errors:  # the inliers' points carry no image size
+            with pytest.raises(InputError, match=r"batch \(1 pairs of 128x96\), got 1 pairs of 96x72"):
+                score(larger, result)
+    assert sparse_disparity_errors(scenes.batch.select([0]), result) is not None
+
+
 # ------------------------------------------------------------------------------------------------- silent answers
 @pytest.mark.parametrize("real", [0.0, -1.0, float("nan"), float("inf")])
 def test_accuracy_needs_a_finite_positive_true_distance(real):

@@ -10,12 +10,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check_instance
+from ..core.checks import InputError, check_instance
 from ..core.types import StereoBatch
 from ..depth.quantiles import masked_lower_median
 from ..pipeline import PipelineResult
 
-__all__ = ["DisparityErrors", "dense_disparity_errors", "disparity_map_errors", "map_in_left_pixels",
+__all__ = ["DisparityErrors", "check_result_of", "dense_disparity_errors", "disparity_map_errors", "map_in_left_pixels",
            "sparse_disparity_errors"]
 
 
@@ -74,10 +74,26 @@ def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:
     return ~result.rectified | aligned
 
 
+def check_result_of(batch: StereoBatch, result: PipelineResult) -> None:
+    """``result`` is a run on ``batch``: as many pairs, and its maps of the batch's size. Why: another batch's
+    result was scored against this batch's truth in silence (or failed deep inside torch). ``result`` may be a
+    stand-in with ``segmentation`` or ``points`` only (as hand-made test cases are)."""
+    segmentation = getattr(result, "segmentation", None)
+    if segmentation is not None:
+        mask = segmentation.left.kept_mask
+        pairs, size = mask.shape[0], tuple(mask.shape[-2:])
+    else:
+        pairs, size = result.points.left.shape[0], batch.size_hw
+    if pairs != batch.batch_size or size != batch.size_hw:
+        raise InputError(f"result: expected the result of a run on batch ({batch.batch_size} pairs of "
+                         f"{batch.size_hw[1]}x{batch.size_hw[0]}), got {pairs} pairs of {size[1]}x{size[0]}")
+
+
 def dense_disparity_errors(batch: StereoBatch, result: PipelineResult) -> DisparityErrors | None:
     """Dense disparity error over the kept left regions (module docstring); None under the paper rule."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(result, "result", PipelineResult, ("dense", "rectified", "segmentation"))
+    check_result_of(batch, result)
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
@@ -90,6 +106,7 @@ def sparse_disparity_errors(batch: StereoBatch, result: PipelineResult) -> Dispa
     """Disparity error and precision of the RANSAC inliers (module docstring)."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(result, "result", PipelineResult, ("points", "fundamental"))
+    check_result_of(batch, result)
     if batch.disparity_px is None:
         return None
     b, _, height, width = batch.disparity_px.shape

@@ -42,8 +42,8 @@ from ..core.checks import InputError, check_instance
 from ..core.types import Segmentation, StereoBatch
 from ..depth.quantiles import kept_region_lower_median
 from ..pipeline import PipelineResult, PipelineStatus
-from .disparity_errors import (DisparityErrors, _error_fields, dense_disparity_errors, disparity_map_errors,
-                               sparse_disparity_errors)
+from .disparity_errors import (DisparityErrors, _error_fields, check_result_of, dense_disparity_errors,
+                               disparity_map_errors, sparse_disparity_errors)
 from .stereo_metrics import StereoMetrics, measured_regions, metric_values, pair_map_metrics
 
 __all__ = [
@@ -357,10 +357,8 @@ def _check_evaluated(batch: StereoBatch, result: PipelineResult, calibrated: Seq
     (a result of another batch failed deep inside torch, or scored pairs against another's truth)."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(result, "result", PipelineResult)
-    b, size = batch.batch_size, tuple(result.segmentation.left.kept_mask.shape[-2:])
-    if result.status.shape[0] != b or size != batch.size_hw:
-        raise InputError(f"result: expected the result of a run on batch ({b} pairs of {batch.size_hw[1]}x"
-                         f"{batch.size_hw[0]}), got {result.status.shape[0]} pairs of {size[1]}x{size[0]}")
+    check_result_of(batch, result)
+    b = batch.batch_size
     for name, values in (("calibrated", calibrated), ("px_scale", px_scale)):
         if values is not None and len(values) != b:
             raise InputError(f"{name}: expected {b} values, one per pair, got {len(values)}")

@@ -257,10 +257,11 @@ def _raw_pixels(batch: StereoBatch, result: PipelineResult) -> torch.Tensor | No
     nothing to score."""
     from ..core.types import StereoBatch
     from ..pipeline import PipelineResult
-    from .disparity_errors import map_in_left_pixels  # (these import the pipeline: loaded late)
+    from .disparity_errors import check_result_of, map_in_left_pixels  # (these import the pipeline: loaded late)
 
     check_instance(batch, "batch", StereoBatch)
     check_instance(result, "result", PipelineResult)
+    check_result_of(batch, result)
     dense = result.dense
     if dense is None or batch.disparity_px is None or dense.disparity_px.shape != batch.disparity_px.shape:
         return None
