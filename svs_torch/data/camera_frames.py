@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.checks import InputError, check_shape
+from ..core.checks import InputError, check_instance, check_shape
+from ..core.types import StereoBatch
 
 __all__ = ["JPEG_QUALITY_FOR_DIGIT", "camera_frame_pairs", "camera_frames"]
 
@@ -34,6 +35,9 @@ def camera_frames(images: torch.Tensor, digit: int, sigma_levels: float, generat
         raise InputError(f"digit: expected the board's JPEG quality digit, an int in 1..8, got {digit!r}")
     if not (isinstance(sigma_levels, (int, float)) and 0 <= sigma_levels < 256):
         raise InputError(f"sigma_levels: expected a noise level in [0, 256) 8-bit levels, got {sigma_levels!r}")
+    if not isinstance(generator, torch.Generator):  # None drew from torch's global generator: another answer each run
+        raise InputError(f"generator: expected a torch.Generator (the noise is drawn from it; seed one with "
+                         f"manual_seed), got {type(generator).__name__}")
     noise = torch.randn(images.shape, generator=generator, dtype=torch.float64) * sigma_levels
     levels = (images.detach().cpu().to(torch.float64) * 255 + noise).round().clamp(0, 255).to(torch.uint8).numpy()
     quality = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY_FOR_DIGIT[digit]]
@@ -47,11 +51,13 @@ def camera_frames(images: torch.Tensor, digit: int, sigma_levels: float, generat
     return frames.view(images.shape).to(device=images.device, dtype=images.dtype)
 
 
-def camera_frame_pairs(batch, digit: int, sigma_levels: float, generator: torch.Generator):
+def camera_frame_pairs(batch: StereoBatch, digit: int, sigma_levels: float, generator: torch.Generator
+                       ) -> StereoBatch:
     """The :class:`~svs_torch.core.types.StereoBatch` ``batch`` with both views made camera frames
     (:func:`camera_frames`), the left view's noise drawn from ``generator`` first, then the right's: two boards'
     independent noise. Not differentiable."""
     import dataclasses
 
+    check_instance(batch, "batch", StereoBatch)
     return dataclasses.replace(batch, left=camera_frames(batch.left, digit, sigma_levels, generator),
                                right=camera_frames(batch.right, digit, sigma_levels, generator))

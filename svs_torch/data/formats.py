@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.checks import FLOAT_DTYPES, InputError
+from ..core.checks import FLOAT_DTYPES, InputError, check_real
 from ..core.files import display_path, write_bytes_atomic
 from ..core.image_files import check_file as _check_file
 from ..core.image_files import read_image_array as _imread
@@ -188,6 +188,7 @@ def read_scaled_disparity(path: str | Path, scale: float, name: str = "path") ->
     Returns:
         disparity ``(H, W)`` float32 in pixels (0 where unknown) and validity ``(H, W)`` bool.
     """
+    check_real(scale, "scale", 0.0, low_open=True)  # 0 gave inf disparities, a negative one negative ones
     array = _imread(path, name)
     if array.ndim != 2:
         raise InputError(f"{name}: expected a 1-channel disparity image, got {array.shape[2]} channels: {path}")

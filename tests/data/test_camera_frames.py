@@ -50,6 +50,15 @@ def test_bad_arguments_are_refused_by_name(images, digit, sigma, pattern):
         camera_frames(images, digit, sigma, torch.Generator())
 
 
+@pytest.mark.parametrize("generator", [None, 7])
+def test_the_noise_needs_a_generator(generator):
+    """Was: None drew from torch's global generator (another frame each run), 7 a TypeError from torch.randn."""
+    with pytest.raises(InputError, match=r"^generator: expected a torch.Generator .*, got (NoneType|int)"):
+        camera_frames(torch.zeros(1, 1, 8, 8), 4, 4.0, generator)
+    with pytest.raises(InputError, match=r"^batch: expected a StereoBatch, got Tensor"):
+        camera_frame_pairs(torch.zeros(1, 1, 8, 8), 4, 4.0, torch.Generator())
+
+
 def test_pairs_draw_the_left_views_noise_then_the_rights():
     batch = random_obstacle_scenes(2, 2, generator=torch.Generator().manual_seed(2)).batch
     pair = camera_frame_pairs(batch, 4, 4.0, torch.Generator().manual_seed(5))

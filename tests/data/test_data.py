@@ -335,6 +335,15 @@ def test_read_pfm_flips_rows_and_keeps_inf(tmp_path: Path, little_endian: bool) 
         read_pfm(path, "disparity")
 
 
+@pytest.mark.parametrize("scale", [0.0, -4.0, float("nan"), "3"])
+def test_read_scaled_disparity_needs_a_positive_scale(data_dir: Path, scale) -> None:
+    """Was: scale 0 gave inf disparities, a negative one negative disparities, NaN NaN ones, all as known."""
+    from svs_torch.data import read_scaled_disparity
+
+    with pytest.raises(InputError, match=r"^scale: expected a finite number in \(0, inf\)"):
+        read_scaled_disparity(data_dir / "opencv_samples" / "aloeGT.png", scale)
+
+
 def test_read_middlebury_calib_tolerates_odd_whitespace(tmp_path: Path, data_dir: Path) -> None:
     path = tmp_path / "calib.txt"
     path.write_text("  cam0=[ 10 0 4 ;0 10 3; 0 0 1 ] \n cam1 =[10 0 6; 0 10 3; 0 0 1]\n"
