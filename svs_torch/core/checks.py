@@ -26,6 +26,7 @@ __all__ = [
     "check_count",
     "check_real",
     "check_generator",
+    "check_percentiles",
 ]
 
 
@@ -163,6 +164,18 @@ def check_real(value: object, name: str, low: float = -math.inf, high: float = m
         interval = f"{opening}{low:g}, {high:g}{')' if high_open or math.isinf(high) else ']'}"
         raise InputError(f"{name}: expected a finite number in {interval}{' or None' if optional else ''}, "
                          f"got {value!r}")
+
+
+def check_percentiles(value: object, name: str, optional: bool = False) -> None:
+    """A ``(low, high)`` pair of percentiles with ``0 <= low <= high <= 100`` (``None`` allowed with ``optional``),
+    e.g. ``percentiles: expected (low, high) with 0 <= low <= high <= 100, got (90, 10)``."""
+    if optional and value is None:
+        return
+    real = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+    if not (isinstance(value, (tuple, list)) and len(value) == 2 and all(real(v) for v in value)
+            and 0 <= value[0] <= value[1] <= 100):
+        raise InputError(f"{name}: expected (low, high) with 0 <= low <= high <= 100{' or None' if optional else ''}"
+                         f", got {value!r}")
 
 
 def check_generator(generator: object, name: str = "generator") -> None:

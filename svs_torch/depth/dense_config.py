@@ -9,7 +9,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_count, check_real
+from ..core.checks import InputError, check_count, check_percentiles, check_real
 
 __all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
 
@@ -171,9 +171,7 @@ class DenseConfig:
             raise InputError(f"in_view_own_min_valid_share: expected a share in [0, 1], got {share!r}")
         if self.in_view_margin not in ("object", "pair"):
             raise InputError(f"in_view_margin: expected 'object' or 'pair', got {self.in_view_margin!r}")
-        low, high = self.range_percentiles
-        if not 0 <= low <= high <= 100:
-            raise InputError(f"range_percentiles: expected 0 <= low <= high <= 100, got {self.range_percentiles}")
+        check_percentiles(self.range_percentiles, "range_percentiles")
         for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")

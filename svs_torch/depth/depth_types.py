@@ -10,7 +10,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_count, check_real
+from ..core.checks import InputError, check_count, check_percentiles, check_real
 
 __all__ = [
     "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
@@ -78,6 +78,8 @@ class DepthConfig:
             check_count(getattr(self, name), name)
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
             check_real(getattr(self, name), name, 0.0, 1.0)
+        check_percentiles(self.percentiles, "percentiles", optional=True)
+        check_percentiles(self.object_percentiles, "object_percentiles")
 
 
 @dataclass(frozen=True)

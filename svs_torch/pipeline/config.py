@@ -287,12 +287,16 @@ class PipelineConfig:
     exposure_retry_max_residual_ratio: float | None = 0.8
 
     def __post_init__(self) -> None:
+        self._check_stage_settings()
         if self.features_on not in ("masked", "mask", "image"):
             raise InputError(f"features_on: expected 'masked', 'mask' or 'image', got {self.features_on!r}")
         if self.rectify not in ("auto", "required", "off"):
             raise InputError(f"rectify: expected 'auto', 'required' or 'off', got {self.rectify!r}")
-        if not 0 < self.max_ratio <= 1:
-            raise InputError(f"max_ratio: expected a ratio in (0, 1], got {self.max_ratio!r}")
+        if self.ransac_scoring not in ("ransac", "msac", "lmeds"):
+            raise InputError(f"ransac_scoring: expected 'ransac', 'msac' or 'lmeds', got {self.ransac_scoring!r}")
+        ratio = self.max_ratio
+        if isinstance(ratio, bool) or not isinstance(ratio, (int, float)) or not 0 < ratio <= 1:
+            raise InputError(f"max_ratio: expected a ratio in (0, 1], got {ratio!r}")
         for name, least in (("verify_min_inliers", 0), ("verify_min_agreeing_inliers", 0),
                             ("verify_many_inliers_min_agreeing", 0), ("verify_unanimous_min_agreeing", 1)):
             value = getattr(self, name)
@@ -340,6 +344,20 @@ class PipelineConfig:
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
+
+    def _check_stage_settings(self) -> None:
+        """Each stage's settings are that stage's configuration (None only where a stage can be left out). Why:
+        ``depth=None`` or ``surf={}`` was accepted and failed inside a stage, as ``'NoneType' object has no
+        attribute 'rule'``."""
+        for name, kind, optional in (
+                ("segmentation", SegmentationConfig, False), ("surf", SurfConfig, False),
+                ("refine_matches", MatchRefinementConfig, True), ("row_alignment", RowAlignmentConfig, True),
+                ("rectification", RectificationConfig, False), ("depth", DepthConfig, False),
+                ("dense", DenseConfig, False)):
+            value = getattr(self, name)
+            if not (isinstance(value, kind) or (optional and value is None)):
+                raise InputError(f"{name}: expected a {kind.__name__}{' or None' if optional else ''}, got "
+                                 f"{type(value).__name__}")
 
     def for_guide(self, floor_left_out: bool = True, second_passes: bool = True) -> PipelineConfig:
         """These settings as ``svs-depth guide`` runs them, which its benchmark times too: guide's segmentation

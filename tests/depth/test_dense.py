@@ -299,7 +299,7 @@ def test_prefilter_matches_opencv_sobel(teddy):
     ({"prefilter": "census"}, "prefilter: expected 'xsobel' or 'none'"),
     ({"range_source": "gt"}, "range_source: expected 'coarse' or 'inliers'"),
     ({"lr_max_diff_px": -1.0}, "lr_max_diff_px: expected None or a value >= 0"),
-    ({"range_percentiles": (50.0, 10.0)}, "range_percentiles: expected 0 <= low <= high <= 100"),
+    ({"range_percentiles": (50.0, 10.0)}, r"range_percentiles: expected \(low, high\) with 0 <= low <= high <= 100"),
     ({"kernel": "gpu"}, "kernel: expected 'auto', 'c' or 'torch'"),
     ({"scale_window": 1}, "scale_window: expected a bool"),
 ])

@@ -172,6 +172,15 @@ def test_config_errors_name_the_field():
     (lambda: PipelineConfig(ransac_confidence=1.5), "ransac_confidence: expected a finite number"),
     (lambda: PipelineConfig(ransac_max_iterations=0), "ransac_max_iterations: expected an int >= 1"),
     (lambda: PipelineConfig(epipolar_band_px=-2.0), "epipolar_band_px: expected a finite number .* or None"),
+    (lambda: DepthConfig(percentiles=(90.0, 10.0)), r"percentiles: expected \(low, high\) .* or None, got \(90"),
+    (lambda: DepthConfig(object_percentiles=(5.0,)), r"object_percentiles: expected \(low, high\) with 0 <= low"),
+    (lambda: DepthConfig(object_percentiles="10,90"), "object_percentiles: expected"),
+    (lambda: PipelineConfig(max_ratio="0.7"), r"max_ratio: expected a ratio in \(0, 1\], got '0.7'"),
+    (lambda: PipelineConfig(depth=None), "depth: expected a DepthConfig, got NoneType"),
+    (lambda: PipelineConfig(dense=None), "dense: expected a DenseConfig, got NoneType"),
+    (lambda: PipelineConfig(surf={}), "surf: expected a SurfConfig, got dict"),
+    (lambda: PipelineConfig(row_alignment=DenseConfig()), "row_alignment: expected a RowAlignmentConfig or None"),
+    (lambda: PipelineConfig(ransac_scoring="best"), "ransac_scoring: expected 'ransac', 'msac' or 'lmeds'"),
 ])
 def test_absurd_settings_are_refused_by_their_field(make, message):
     """Was: accepted, then a raw error later (ransac_threshold_px named as RANSAC's threshold_px), NaN comparisons
