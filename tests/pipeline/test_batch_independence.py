@@ -191,3 +191,24 @@ def test_segment_pair_ignores_padding(pool):
         assert torch.equal(together.left.threshold[index], alone.left.threshold[0])
         assert torch.equal(together.left.labels[index, :, :h, :w], alone.left.labels[0])
         assert not together.left.kept_mask[index, :, h:, :].any() and not together.left.kept_mask[index, ..., w:].any()
+
+
+def test_real_pairs_at_one_size_equal_each_pair_alone(data_dir: Path):
+    """Four real pairs at 320×240 (one size group, so one batched call) on two threads: every tensor of each pair's
+    result equals the pair's alone. Was: SURF's image means (torch splits a large reduction across threads by the
+    tensor's shape) and its descriptors' integral table (padded for the batch's largest keypoint) rounded
+    differently in a batch; 151 descriptor values of eight views differed."""
+    scenes = sorted((data_dir / "middlebury_eval3_Q").iterdir())[:4]
+    pairs = [resize_stereo_batch(load_stereo_pair(scene), (320, 240)) for scene in scenes]
+    config = PipelineConfig()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with torch.no_grad():
+            batched = estimate_obstacle_depth(collate_stereo_batches(pairs, mode="pad"), config)
+            for index, pair in enumerate(pairs):
+                alone = estimate_obstacle_depth(pair, config)
+                _assert_rows_equal(_pair_tensors(batched, index, (240, 320)), _pair_tensors(alone, 0, (240, 320)),
+                                   scenes[index].name)
+    finally:
+        torch.set_num_threads(threads)
