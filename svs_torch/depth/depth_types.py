@@ -106,11 +106,16 @@ class PointDepths:
 class RangeEstimate:
     """The pair's disparity and depth range (Sec. 3.4). All ``(B,)``; zeros where not ``valid``.
 
+    Under the paper's rule (``DepthConfig.rule="paper"``) it is Eq. (5)–(8) over the RANSAC inliers; under the
+    default dense rule R_min / R_max are the nearest / farthest ranged object's median depth and d_max / d_min
+    their disparities (:func:`svs_torch.depth.dense_objects.range_from_objects`).
+
     Attributes:
-        d_min_px, d_max_px: Eq. (6), (5) over the inliers with ``d + doffs > 0`` (or the chosen percentiles).
-        r_min_m: Eq. (7), ``f·B / (d_max + doffs)``.
-        r_max_m: Eq. (8), ``f·B / (d_min + doffs)``.
-        num_disparities: int64, inliers that entered.
+        d_min_px, d_max_px: Eq. (6), (5) over the inliers with ``d + doffs > 0`` (or the chosen percentiles);
+            dense rule: ``f·B / R − doffs`` of R_max and R_min.
+        r_min_m: Eq. (7), ``f·B / (d_max + doffs)``; dense rule: the nearest ranged object's median depth.
+        r_max_m: Eq. (8), ``f·B / (d_min + doffs)``; dense rule: the farthest ranged object's median depth.
+        num_disparities: int64, inliers that entered; dense rule: the ranged objects' valid dense pixels.
         valid: bool, at least one did.
     """
 
@@ -140,9 +145,11 @@ class ObjectDepths:
         centroid_x_px: mean column of the region (pixel centres); 0 where the area is 0.
         side: :class:`ObstacleSide` of the centroid (thirds of the pair's width), NONE where the area is 0.
         num_inliers: int64, valid depths whose left point lies on the region.
-        depth_median_m, depth_low_m, depth_high_m: median and ``object_percentiles`` of those depths;
-            0 where not ``valid``.
-        valid: bool, the slot holds a region with at least ``min_inliers`` valid depths.
+        depth_median_m, depth_low_m, depth_high_m: median and ``object_percentiles`` of those depths (under the
+            default dense rule: of the region's dense-map depths, its invalid pixels filled from their rows,
+            :func:`svs_torch.depth.dense_objects.dense_object_depths`); 0 where not ``valid``.
+        valid: bool, the slot holds a region with at least ``min_inliers`` valid depths (dense rule: enough valid
+            dense pixels by ``DepthConfig.min_object_pixels``, its valid-fraction and in-view rules).
         point_slot: ``(B, K)`` int64, the slot of each correspondence (−1: none or invalid depth).
         num_valid_px: ``(B, N)`` int64, valid dense-disparity pixels of the region when the depths come from the
             dense stage (:func:`svs_torch.depth.dense_objects.dense_object_depths`); None for the sparse rule.
