@@ -16,6 +16,7 @@ image pairs and the detection of a folder's layout here, what they share in :mod
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from pathlib import Path
 
@@ -133,12 +134,16 @@ def load_image_pair(
             finite and positive, a non-finite doffs, or
             left and right of different sizes (naming ``right`` and both sizes).
     """
-    left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
+    # Numbers only: a str from a script raised TypeError from math.isfinite, and True was taken as a focal of 1 px.
+    def number(value: object) -> bool:
+        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise InputError(f"{name}: expected a finite positive value, got {value}")
-    if not math.isfinite(doffs_px):
-        raise InputError(f"doffs_px: expected a finite value, got {doffs_px}")
+        if value is not None and not (number(value) and value > 0):
+            raise InputError(f"{name}: expected a finite positive value, got {value!r}")
+    if not number(doffs_px):
+        raise InputError(f"doffs_px: expected a finite value, got {doffs_px!r}")
+    left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
     return make_scene_batch(left, right, pair_name(left_path),

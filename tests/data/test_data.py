@@ -251,6 +251,20 @@ def test_load_image_pair_calibration(data_dir: Path) -> None:
     assert bool(given.calibrated) and float(given.doffs_px) == 3.0
 
 
+@pytest.mark.parametrize("calibration, message", [
+    ({"focal_px": "500", "baseline_m": 0.1}, "focal_px: expected a finite positive value, got '500'"),
+    ({"focal_px": True, "baseline_m": 0.1}, "focal_px: expected a finite positive value, got True"),
+    ({"doffs_px": "3"}, "doffs_px: expected a finite value, got '3'"),
+])
+def test_load_image_pair_takes_numbers_only(tmp_path: Path, data_dir: Path, calibration, message) -> None:
+    """Was: TypeError 'must be real number, not str' from math.isfinite, and True taken as a focal of 1 px. The
+    calibration is checked before a file is read (a missing file does not hide it); a numpy number is a number."""
+    with pytest.raises(InputError, match=f"^{message}$"):
+        load_image_pair(tmp_path / "missing_left.png", tmp_path / "missing_right.png", **calibration)
+    left, right = data_dir / "middlebury_2001/Venus/im2.ppm", data_dir / "middlebury_2001/Venus/im6.ppm"
+    assert float(load_image_pair(left, right, focal_px=np.float32(500.0), baseline_m=0.1).focal_px) == 500.0
+
+
 def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> None:
     with pytest.raises(InputError, match="left: file not found"):
         read_gray_image(tmp_path / "missing.png", "left")
