@@ -90,6 +90,8 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     """
     bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
     check_dtype(tensor, name, "float")
+    if tensor.is_meta:  # shapes without values (a model traced on the meta device): nothing to range
+        raise InputError(f"{name}: expected an image with values, got a tensor on the meta device")
     if check_range and tensor.numel() > 0:
         # One pass: aminmax propagates NaN, so a NaN anywhere shows in the extremes.
         lo, hi = (float(v) for v in torch.aminmax(tensor.detach()))

@@ -65,6 +65,9 @@ def test_stereo_batch_checks_its_fields():
         make_batch(disparity_px=torch.zeros(3, 1, 4, 5))
     with pytest.raises(InputError, match="names: expected 3 names, one per pair, got 1"):
         make_batch(names=("a",))
+    meta = torch.zeros(1, 1, 4, 5, device="meta")  # was: RuntimeError 'Tensor.item() cannot be called on meta tensors'
+    with pytest.raises(InputError, match="^left: expected an image with values, got a tensor on the meta device$"):
+        StereoBatch.from_images(meta, meta, 276.0, 0.1)
 
 
 def test_ground_truth_depth_masks_unknown_and_non_positive_disparity():
