@@ -240,13 +240,15 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
 
 
 def unique_sources(sources: Sequence[PairSource]) -> tuple[list[PairSource], list[PairSource]]:
-    """``sources`` with each pair once, in order of first listing (by :attr:`PairSource.pair_id`: the same files,
-    however spelled, and the same listed calibration), and the entries dropped as repeats."""
-    seen: set[str] = set()
+    """``sources`` with each pair once, in order of first listing (the same files, however spelled or linked to,
+    and the same listed calibration), and the entries dropped as repeats. Why links too: a scene reached through a
+    symbolic link beside its own folder was evaluated twice, counted twice in every mean."""
+    seen: set = set()
     unique, repeated = [], []
     for source in sources:
-        (repeated if source.pair_id in seen else unique).append(source)
-        seen.add(source.pair_id)
+        key = source.pair_id if source.problem is not None else _identity(source)
+        (repeated if key in seen else unique).append(source)
+        seen.add(key)
     return unique, repeated
 
 

@@ -279,6 +279,21 @@ def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
     assert "listed more than once, evaluated once: middlebury_eval3_Q/Teddy" in err
 
 
+def test_eval_runs_a_scene_reached_through_a_link_once(data_dir, tmp_path, capsys):
+    """Was: a symbolic link to a scene listed beside the scene's own folder was evaluated twice, counted twice in
+    every mean (its paths differ; its files are the same)."""
+    import json
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    link = tmp_path / "Teddy"
+    link.symlink_to(teddy.resolve(), target_is_directory=True)
+    assert main(["eval", str(teddy), str(link), "--size", "160x120", "--json"]) == 0
+    out, err = capsys.readouterr()
+    lines = [json.loads(line) for line in out.splitlines()]
+    assert len(lines) == 2 and lines[-1]["pairs"] == 1
+    assert "listed more than once, evaluated once" in err
+
+
 # --- pair lists ----------------------------------------------------------------------------------------------
 
 def test_a_hash_inside_a_listed_path_is_part_of_it(data_dir, tmp_path):
