@@ -315,6 +315,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
     f.add_argument("--garbage", type=int, default=0, metavar="N", help="stray bytes before the next N frames")
     f.add_argument("--truncate", type=int, default=0, metavar="N", help="cut the next N frames in half")
+    f.add_argument("--damage", type=int, default=0, metavar="N",
+                   help="zero 2000 bytes inside the next N frames' JPEGs (they still decode, partly gray)")
     f.add_argument("--wrong-length", type=int, default=0, metavar="N", help="misannounce the next N lengths")
     f.add_argument("--wrong-length-delta", type=int, default=64, metavar="BYTES")
     f.add_argument("--drip-chunk", type=int, default=0, metavar="BYTES", help="send replies in chunks of BYTES")
@@ -326,7 +328,7 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def _faults_from_args(args: argparse.Namespace) -> Faults:
     return Faults(silent_grabs=args.silent, garbage_frames=args.garbage, truncated_frames=args.truncate,
-                  wrong_length_frames=args.wrong_length, wrong_length_delta=args.wrong_length_delta,
+                  damaged_frames=args.damage, wrong_length_frames=args.wrong_length, wrong_length_delta=args.wrong_length_delta,
                   drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
                   drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
 

@@ -49,6 +49,8 @@ class Faults:
         garbage_frames: the next n frames are preceded by ``garbage``.
         garbage: the stray bytes (by default they contain partial ``##IMJ`` magic to test the scanner).
         truncated_frames: the next n frames announce their full length but stop after half the JPEG.
+        damaged_frames: the next n frames have 2 000 bytes from the middle of their JPEG zeroed (a link's bit
+            errors): the length is right and libjpeg still decodes them, the lost blocks gray.
         wrong_length_frames: the next n frames announce ``len + wrong_length_delta`` bytes.
         wrong_length_delta: bytes added to the announced length (negative: announce fewer than sent).
         drip_chunk_bytes: when > 0, every reply is sent in chunks of this many bytes...
@@ -61,6 +63,7 @@ class Faults:
     garbage_frames: int = 0
     garbage: bytes = b"\x00\xff#?##IM\r\n#IMJ##"
     truncated_frames: int = 0
+    damaged_frames: int = 0
     wrong_length_frames: int = 0
     wrong_length_delta: int = 64
     drip_chunk_bytes: int = 0
@@ -226,6 +229,11 @@ class CameraState:
         if f.truncated_frames > 0:
             f.truncated_frames -= 1
             jpeg = jpeg[:len(jpeg) // 2]
+        if f.damaged_frames > 0:
+            f.damaged_frames -= 1
+            middle = len(jpeg) // 2
+            zeroed = max(0, min(2000, len(jpeg) - middle - 2))  # the end-of-image marker kept
+            jpeg = jpeg[:middle] + bytes(zeroed) + jpeg[middle + zeroed:]
         data = encode_frame(self.size_code, jpeg, announced_length=announced)
         if f.garbage_frames > 0:
             f.garbage_frames -= 1

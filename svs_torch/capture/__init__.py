@@ -10,13 +10,14 @@ May import: ``svs_torch.core`` only (pyserial, no torch at import). The CLI impo
 
 from .guide import FpsMeter, LiveGuide, Speaker, WarningPolicy
 from .link import CameraLink
-from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame
+from .link_types import CaptureError, DamagedFrameError, LinkConfig, LinkStats, RawFrame
 from .protocol import FrameParser, ProtocolError, VersionInfo
 from .stereo import Frame, PairBatch, StereoPair, SVSStereoCamera, decode_frame, to_stereo_batch
 
 __all__ = [
     "CameraLink",
     "CaptureError",
+    "DamagedFrameError",
     "FpsMeter",
     "Frame",
     "FrameParser",

@@ -16,6 +16,11 @@ class CaptureError(RuntimeError):
     """A camera link failed; the message names the camera, its URL, and what was expected vs received."""
 
 
+class DamagedFrameError(CaptureError):
+    """A frame arrived whole (its announced length) but its JPEG data was damaged on the way: libjpeg decodes
+    it with its lost blocks gray, an image that is not the scene (:func:`svs_torch.capture.stereo.decode_frame`)."""
+
+
 @dataclass(frozen=True)
 class LinkConfig:
     """Settings of one camera link (times in seconds); the defaults suit a real SVS."""

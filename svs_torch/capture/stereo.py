@@ -15,16 +15,15 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
-import cv2
 import numpy as np
 import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
-from ..core.image_files import JPEG_GRAY_DECODE
+from ..core.image_files import JPEG_GRAY_DECODE, damaged_jpeg, decode_collecting
 from ..core.types import StereoBatch
 from .link import CameraLink
-from .link_types import CaptureError, LinkConfig, RawFrame
+from .link_types import CaptureError, DamagedFrameError, LinkConfig, RawFrame
 from .protocol import VersionInfo, size_code_for
 
 __all__ = ["Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]
@@ -86,13 +85,18 @@ class PairBatch:
 
 
 def decode_frame(raw: RawFrame, camera: str, where: str) -> Frame:
-    """Decode a received JPEG to grayscale; raises :class:`CaptureError` naming ``where`` if it does not decode."""
-    image = cv2.imdecode(np.frombuffer(raw.jpeg, dtype=np.uint8), JPEG_GRAY_DECODE)  # as estimate reads a file
+    """Decode a received JPEG to grayscale (as ``estimate`` reads a file); raises :class:`CaptureError` naming
+    ``where`` if it does not decode, and :class:`DamagedFrameError` if libjpeg says its image data was damaged
+    (it decodes, its lost blocks gray: ranged, a gray block is a wall that is not there)."""
+    image, complaints = decode_collecting(np.frombuffer(raw.jpeg, dtype=np.uint8), JPEG_GRAY_DECODE)
     want = (raw.header.height, raw.header.width)
     if image is None or image.shape != want:
         got = "nothing" if image is None else f"{image.shape[1]}x{image.shape[0]}"
         raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, decoded {got} "
                            f"from {len(raw.jpeg)} bytes")
+    damaged = damaged_jpeg(complaints)
+    if damaged is not None:
+        raise DamagedFrameError(f"{where}: a JPEG damaged on the link (libjpeg: {damaged}), {len(raw.jpeg)} bytes")
     return Frame(camera=camera, image=image, jpeg=raw.jpeg, request_monotonic_s=raw.request_monotonic_s,
                  arrival_monotonic_s=raw.arrival_monotonic_s, arrival_wall_s=raw.arrival_wall_s,
                  attempts=raw.attempts)
@@ -126,6 +130,10 @@ def to_stereo_batch(pairs: list[StereoPair] | tuple[StereoPair, ...], *, dtype: 
 MAX_FRAME_GAP_S = 0.25
 #: How many times a pair whose frames came too far apart is grabbed again.
 REGRABS_FOR_GAP = 2
+#: How many times a pair with a frame damaged on the link (:class:`DamagedFrameError`) is grabbed again before the
+#: damage is reported as the camera's failure: one damaged frame is a link's bit error, three in a row a link that
+#: cannot carry frames.
+REGRABS_FOR_DAMAGE = 2
 
 
 class SVSStereoCamera:
@@ -205,7 +213,7 @@ class SVSStereoCamera:
         frame = (cfg.max_retries + 1) * cfg.frame_attempt_timeout_s(self._size_code)
         reconnect = cfg.max_reconnects * (cfg.max_reconnects + 1) * (cfg.reconnect_delay_s + _CONNECT_TIMEOUT_S
                                                                       + cfg.drain_max_s + cfg.reply_timeout_s)
-        regrabs = 0 if self.max_frame_gap_s is None else REGRABS_FOR_GAP
+        regrabs = REGRABS_FOR_DAMAGE + (0 if self.max_frame_gap_s is None else REGRABS_FOR_GAP)
         return (1 + regrabs) * frame + reconnect
 
     def set_size(self, size_wh: tuple[int, int]) -> None:
@@ -222,16 +230,28 @@ class SVSStereoCamera:
     def grab_pair(self) -> StereoPair:
         """Send ``I`` to both boards back to back, read both frames concurrently, decode them to grayscale.
 
+        A pair with a frame damaged on the link (:class:`DamagedFrameError`) is grabbed again, both boards, up to
+        :data:`REGRABS_FOR_DAMAGE` times.
+
         Raises:
-            CaptureError: a camera gave no valid frame within its retries (the message names it).
+            CaptureError: a camera gave no valid frame within its retries (the message names it);
+                :class:`DamagedFrameError` when its frames were damaged every time.
         """
-        for _ in range(1 + REGRABS_FOR_GAP):
+        gap_regrabs = damage_regrabs = 0
+        while True:
             self.links["left"].request_frame()
             self.links["right"].request_frame()
-            left, right = self._both(lambda link: decode_frame(link.read_frame(), link.name, link.where))
+            try:
+                left, right = self._both(lambda link: decode_frame(link.read_frame(), link.name, link.where))
+            except DamagedFrameError:
+                if damage_regrabs == REGRABS_FOR_DAMAGE:
+                    raise
+                damage_regrabs += 1  # both boards again: a pair is two frames of one moment
+                continue
             gap_s = right.arrival_monotonic_s - left.arrival_monotonic_s
-            if self.max_frame_gap_s is None or abs(gap_s) <= self.max_frame_gap_s:
+            if self.max_frame_gap_s is None or abs(gap_s) <= self.max_frame_gap_s or gap_regrabs == REGRABS_FOR_GAP:
                 break
+            gap_regrabs += 1
         pair = StereoPair(index=self._next_index, left=left, right=right, time_between_frames_s=gap_s)
         self._next_index += 1
         return pair
@@ -288,7 +308,8 @@ class SVSStereoCamera:
         errors = [f.exception() for f in futures]
         failed = [e for e in errors if e is not None]
         if len(failed) == 2 and all(isinstance(e, CaptureError) for e in failed):
-            raise CaptureError(f"{failed[0]}; and {failed[1]}") from failed[0]
+            both_damaged = all(isinstance(e, DamagedFrameError) for e in failed)
+            raise (DamagedFrameError if both_damaged else CaptureError)(f"{failed[0]}; and {failed[1]}") from failed[0]
         if failed:
             raise failed[0]
         return futures[0].result(), futures[1].result()

@@ -6,9 +6,10 @@ came late, or one about the wrong thing, is found in the record and ranged again
 ``capture``'s layout (each board's JPEG exactly as received, and ``index.jsonl``, a line per pair flushed only
 after both its images are in place), so ``svs-depth estimate --pairs DIR/index.jsonl --floor on --camera-frames``
 ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
-(:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). One exception: a frame damaged on the link that libjpeg
-still decodes, its lost blocks filled, is ranged live (guide has no other frame of that moment), while ``estimate``
-refuses the file (a damaged JPEG: its pair gets BAD_INPUT). Each line (on stdout with ``--json``, in the index with
+(:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). A frame libjpeg finds damaged on the link is never
+ranged: the pair is grabbed again (:class:`~svs_torch.capture.DamagedFrameError`), as ``estimate`` refuses such a
+file (BAD_INPUT); damage libjpeg does not notice (a flipped bit that decodes to other values) is ranged by both.
+Each line (on stdout with ``--json``, in the index with
 ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
 (:func:`~svs_torch.cli.estimate_report.pair_report`) with the ``calibration`` its metres use, and guide's own:
 ``warning`` (the pair's own distance ``distance_m``, the median of the last ``--confirm-frames`` pairs' that the

@@ -21,8 +21,8 @@ import numpy as np
 from .errors import InputError
 from .files import display_path, path_kind
 
-__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "declared_size", "preload_key",
-           "read_image_array"]
+__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_size",
+           "decode_collecting", "preload_key", "read_image_array"]
 
 #: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is taken
 #: (and removed) by the first read of that file.
@@ -125,6 +125,29 @@ def declared_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def decode_collecting(data: np.ndarray, flags: int) -> tuple[np.ndarray | None, list[str]]:
+    """``cv2.imdecode(data, flags)`` (None for bytes it cannot decode) and what the decoders said meanwhile, one
+    message a line (:func:`_native_stderr_collected`), instead of their lines on stderr."""
+    complaints: list[str] = []
+    array = None
+    if data.size:
+        with _native_stderr_collected(complaints):
+            # imdecode returns None (it does not raise) for bytes it cannot decode, e.g. text renamed .png, and
+            # raises cv2.error for e.g. a header announcing more pixels than OpenCV's limit.
+            try:
+                array = cv2.imdecode(data, flags)
+            except cv2.error as error:
+                complaints.append(_decoder_message(str(error).strip().splitlines()[-1]))
+    return array, complaints
+
+
+def damaged_jpeg(complaints: list[str]) -> str | None:
+    """libjpeg's complaint, among a decode's ``complaints``, that the JPEG's image data was damaged (shortened to
+    a line), or None: such a JPEG still decodes, its lost blocks filled with gray."""
+    damaged = next((line for line in complaints if _DAMAGED_JPEG.search(line)), None)
+    return None if damaged is None else ' '.join(damaged.split())[:120]
+
+
 def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndarray:
     """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`.
 
@@ -153,24 +176,15 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     if declared is not None and declared[0] * declared[1] > MAX_DECODED_PIXELS:
         raise InputError(f"{name}: the file declares {declared[0]}x{declared[1]} pixels, more than the "
                          f"{MAX_DECODED_PIXELS // 2**20} megapixels read: {display_path(path)}")
-    complaints: list[str] = []
-    array = None
-    if data.size:
-        with _native_stderr_collected(complaints):
-            # imdecode returns None (it does not raise) for bytes it cannot decode, e.g. text renamed .png, and
-            # raises cv2.error for e.g. a header announcing more pixels than OpenCV's limit.
-            try:
-                array = cv2.imdecode(data, JPEG_GRAY_DECODE if gray and data[:3].tobytes() == _JPEG_START else
-                                     cv2.IMREAD_UNCHANGED)
-            except cv2.error as error:
-                complaints.append(_decoder_message(str(error).strip().splitlines()[-1]))
+    array, complaints = decode_collecting(data, JPEG_GRAY_DECODE if gray and data[:3].tobytes() == _JPEG_START else
+                                          cv2.IMREAD_UNCHANGED)
     reason = f": {' '.join(complaints[0].split())[:160]}" if complaints else ""
     if array is None:
         kind = "an empty file" if not data.size else "not a readable image file"
         raise InputError(f"{name}: {kind} (OpenCV could not decode it{reason}): {display_path(path)}")
-    damaged = next((line for line in complaints if _DAMAGED_JPEG.search(line)), None)
+    damaged = damaged_jpeg(complaints)
     if damaged is not None:  # libjpeg decoded what it could and filled the rest: an image, but not the scene's
-        raise InputError(f"{name}: a damaged JPEG (libjpeg: {' '.join(damaged.split())[:120]}): {display_path(path)}")
+        raise InputError(f"{name}: a damaged JPEG (libjpeg: {damaged}): {display_path(path)}")
     # Otherwise a file that decodes is taken as it is: what the decoders said about it (an unknown TIFF tag, a PNG
     # colour profile, bytes between a JPEG's segments) is not worth a line.
     return array

@@ -12,6 +12,7 @@ import os
 import socket
 import time
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -356,6 +357,34 @@ def test_persistent_fault_fails_clearly_in_time(emulator, camera, faults, messag
     assert time.monotonic() - start < attempt_bound_s()
     assert f"right camera ({emulator.urls['right']})" in str(info.value)
     assert "no valid frame after 3 attempts of b'I'" in str(info.value)
+
+
+def test_a_frame_damaged_on_the_link_is_grabbed_again(data_dir):
+    """Was: a frame whose JPEG data was damaged on the link (its length right) decoded with its lost blocks gray,
+    and guide ranged it: a gray block is a wall that is not there. Now the pair is grabbed again, both boards, and
+    frames damaged every time are the camera's failure. (A real view: libjpeg says "premature end of data segment"
+    for it; on the seeded noise of flat_source the same damage reads as extraneous bytes, which cameras also write
+    and which is not refused.)"""
+    from svs_torch.capture import DamagedFrameError
+
+    view = cv2.imread(str(data_dir / "middlebury_eval3_Q" / "Teddy" / "im0.png"), cv2.IMREAD_GRAYSCALE)
+
+    def real_source(camera: str, width: int, height: int, time_s: float) -> np.ndarray:
+        return cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
+
+    with EmulatorServer(left_port=0, right_port=0, source=real_source) as emulator, \
+            SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], config=FAST) as camera:
+        camera.grab_pair()
+        emulator.set_faults("right", damaged_frames=1)
+        sent = emulator.cameras["left"].frames_sent
+        pair = camera.grab_pair()
+        assert emulator.cameras["left"].frames_sent == sent + 2  # the left board's frame of that moment too
+        assert pair.right.image.shape == (240, 320) and pair.right.attempts == 1
+        emulator.set_faults("right", damaged_frames=10)
+        with pytest.raises(DamagedFrameError, match=r"right camera .*: a JPEG damaged on the link \(libjpeg: Corrupt"):
+            camera.grab_pair()
+        emulator.set_faults("right", damaged_frames=0)
+        assert camera.grab_pair().right.attempts == 1
 
 
 def test_wrong_size_frame_is_fixed(emulator, camera):
