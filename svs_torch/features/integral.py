@@ -13,6 +13,7 @@ Ways of reading boxes:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -45,7 +46,7 @@ def image_means(image: torch.Tensor) -> torch.Tensor:
     sequential scan of its pixels (a cumulative sum), not ``mean``, whose reduction torch splits across threads by
     the tensor's shape (1 or 16 images of 320×240 gave 5 of 16 means one ulp apart, so SURF's responses differed
     with the batch size; issue 29). Differentiable (every pixel's weight is ``1 / (H·W)``)."""
-    flat = image.reshape(image.shape[0], -1)
+    flat = image.reshape(image.shape[0], math.prod(image.shape[1:]))  # (-1 cannot be inferred for no image)
     if flat.shape[1] == 0:
         return flat.sum(dim=1)
     return flat.cumsum(dim=1)[:, -1] / flat.shape[1]

@@ -397,3 +397,11 @@ def test_real_views_features_do_not_depend_on_the_batch(data_dir, path):
             assert torch.equal(alone.descriptors, whole.descriptors[i:i + 1, :k]), f"{path}: view {i}"
     finally:
         torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_no_image_gives_no_features(dtype):
+    """An empty batch (a block of a list with no pair of its size) gives empty features: the per-image means of no
+    image are no values (a reshape to (0, -1) would fail)."""
+    features = extract_surf_features(torch.zeros(0, 1, 40, 50, dtype=dtype))
+    assert features.descriptors.shape[0] == 0 and features.keypoints.valid.shape[0] == 0
