@@ -328,7 +328,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def _faults_from_args(args: argparse.Namespace) -> Faults:
     return Faults(silent_grabs=args.silent, garbage_frames=args.garbage, truncated_frames=args.truncate,
-                  damaged_frames=args.damage, wrong_length_frames=args.wrong_length, wrong_length_delta=args.wrong_length_delta,
+                  damaged_frames=args.damage, wrong_length_frames=args.wrong_length,
+                  wrong_length_delta=args.wrong_length_delta,
                   drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
                   drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
 

@@ -266,7 +266,8 @@ class Segmentation:
         regions: properties of every region (:class:`RegionProperties`, L = max n over the batch).
         kept_labels: labels of the kept regions ``(B, N)`` int64 in the order the keep rule ranks them (the
             paper's "largest": largest area first; the nearness segmenter's: nearest first,
-            :func:`svs_torch.segmentation.segment.keep_regions`), −1 where an image has fewer than N regions, and in a pipeline result's left view where the region was dropped as unmeasured
+            :func:`svs_torch.segmentation.segment.keep_regions`), −1 where an image has fewer than N regions, and
+            in a pipeline result's left view where the region was dropped as unmeasured
             (``PipelineConfig.drop_unmeasured_below_share``; the slots after it stay where they were).
         kept_mask: union of the kept regions ``(B, 1, H, W)`` bool.
         masked: the grayscale image where ``kept_mask`` holds, 0 elsewhere ``(B, 1, H, W)``.
