@@ -28,9 +28,13 @@ from ..core.checks import InputError
 from ..core.files import stream_is_terminal
 
 __all__ = ["CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide",
-           "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP"]
+           "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP",
+           "UNSEEN"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
+#: What guide reports instead of ``clear`` for a pair it could not measure (no obstacle kept and no map of the
+#: view): nothing is known to be near, which is not a clear way.
+UNSEEN = "unseen"
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
 
 #: The frames a distance is confirmed over (the median of the last 3): rendered walks toward a box as the board's
@@ -281,10 +285,11 @@ class LiveGuide:
             self.speaker.say(message)
         return message
 
-    def status(self, nearest_m: float | None) -> str:
-        """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn``."""
+    def status(self, nearest_m: float | None, shown_class: str | None = None) -> str:
+        """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn`` (``shown_class``: the class to show instead of
+        the policy's, e.g. :data:`UNSEEN`)."""
         distance = "none" if nearest_m is None else f"{nearest_m:.1f} m"
-        return f"{self.meter.fps:5.1f} fps  nearest {distance}  {self.policy.current}"
+        return f"{self.meter.fps:5.1f} fps  nearest {distance}  {shown_class or self.policy.current}"
 
 
 class StatusLine:

@@ -20,7 +20,7 @@ import contextlib
 import time
 from typing import Callable
 
-from ..capture.guide import CANNOT_SEE, SightWatch
+from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
@@ -114,9 +114,10 @@ class GuideSession:
         self.status_line.show(f"camera lost {lost_s:.0f} s ago: opening it again")
         time.sleep(self.args.reconnect_s)
 
-    def _watch_sight(self, result, now_s: float) -> None:
+    def _watch_sight(self, result, now_s: float) -> bool:
         """Say when no pair has been ranged for ``--blind-s`` seconds, and when one is again
-        (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear."""
+        (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear.
+        Returns whether this pair was seen."""
         status = PipelineStatus(int(result.status[0]))
         # Seen: ranged, or no obstacle kept from a disparity map that measured the view (a view of floor only, a
         # walker's camera pitched down in an empty corridor). Blank frames measure too little to be segmented by
@@ -125,12 +126,12 @@ class GuideSession:
         seen = status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
                                                and bool(from_map[0]))
         said = self.sight.update(seen, now_s)
-        if said is None:
-            return
-        self.guide.speaker.say(said)
-        if said == CANNOT_SEE:
-            self.guide.policy.reset()  # an obstacle seen again is warned of at once
-        self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status.name)
+        if said is not None:
+            self.guide.speaker.say(said)
+            if said == CANNOT_SEE:
+                self.guide.policy.reset()  # an obstacle seen again is warned of at once
+            self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status.name)
+        return seen
 
     def _range(self, item) -> None:
         """Range one grabbed pair (a :class:`~svs_torch.capture.stereo.PairBatch` of one), warn, keep it."""
@@ -145,7 +146,7 @@ class GuideSession:
             # The time lost was said already; sight is judged from here, and a view still blind is said again
             # after --blind-s (silence after "Camera back." would read as a clear way).
             self.sight.last_seen_s, self.sight.blind = now, False
-        self._watch_sight(result, now)
+        seen = self._watch_sight(result, now)
         nearest = result.depth.nearest
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
@@ -153,9 +154,12 @@ class GuideSession:
         message = self.guide.update(distance, now)
         confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         side = ObstacleSide(int(nearest.side[0])).name.lower()
-        self.status_line.show(f"{self.guide.status(confirmed)}  {side}")
+        # A pair that measured nothing is not a clear way: "unseen" where the class would read "clear" (a belt or
+        # a logger acting on the class would otherwise tell the walker the way is clear while guide cannot see).
+        shown = UNSEEN if not seen and self.guide.policy.current == CLEAR else self.guide.policy.current
+        self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
                   "confirmed_m": None if confirmed is None else round(confirmed, 4),
-                  "class": self.guide.policy.current, "message": message}
+                  "class": shown, "message": message}
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
         self.processed += 1

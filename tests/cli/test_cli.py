@@ -696,6 +696,10 @@ def test_guide_says_when_it_cannot_see(capsys):
     events = [line for line in lines if "event" in line]
     assert [e["event"] for e in events] == ["cannot_see"] and events[0]["status"] != "OK"
     assert all(line["status"] != "OK" for line in lines if "event" not in line)
+    # Was: each of these pairs' class read "clear" (and the status line "clear"): a belt acting on the class told
+    # the walker the way was clear while guide could not see.
+    assert {line["warning"]["class"] for line in lines if "event" not in line} == {"unseen"}
+    assert " clear " not in err and "unseen" in err
 
 
 def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatch):
