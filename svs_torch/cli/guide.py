@@ -109,8 +109,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
                              "--json's fields (the calibration its metres use among them), the capture's times, and "
                              "'warning' (the pair's distance, the confirmed one the class was judged on, the class: "
-                             "clear, warn, stop, or unseen for a pair that measured nothing; the words said), 'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is "
-                             "lost or back, or guide cannot see or sees again; the warnings' text goes to stderr")
+                             "clear, warn, stop, or unseen for a pair that measured nothing; the words said), "
+                             "'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is lost or back, "
+                             "or guide cannot see or sees again; the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
