@@ -93,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
     from ..core.files import atomic_output, check_output_file
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
+    if args.csv == "-" and (args.json or args.summary):  # the summary's JSON was the table's last line, or lost
+        from ..core.checks import InputError
+
+        raise InputError(f"--csv: the table and {'--json' if args.json else '--summary'} would both go to standard "
+                         f"output; give --csv a FILE.csv")
     if args.figure:
         check_output_file(args.figure, args.figure_option, (".png", ".pdf", ".svg"), "a .png, .pdf or .svg")
     if args.csv and args.csv != "-":
@@ -114,6 +119,6 @@ def run(args: argparse.Namespace) -> int:
             if args.json:
                 print(dumps_strict({"configs": summaries,
                                     "best": {key: s["config_id"] for key, _, s in best}}))
-            elif args.csv != "-":
+            else:
                 _print_summary(summaries, best, args)
     return 0

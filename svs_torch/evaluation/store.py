@@ -106,19 +106,10 @@ class ResultStore:
                              f"{self.path}")
         if create and self.path.parent and not self.path.parent.is_dir():
             raise InputError(f"db: the folder {self.path.parent} does not exist")
-        if create and not self.path.exists():  # else sqlite's "unable to open database file" would call it no store
+        if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
             check_writable_folder(self.path.parent, "db")
         try:
-            # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
-            self.connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
-            self.connection.execute("PRAGMA journal_mode=WAL")
-            # NORMAL in WAL mode: a committed transaction survives a crash of the process (only a power cut
-            # may lose the last ones), at a fraction of FULL's fsyncs.
-            self.connection.execute("PRAGMA synchronous=NORMAL")
-            if create:
-                self.connection.executescript(_SCHEMA)
-                self.connection.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)",
-                                        (str(SCHEMA_VERSION),))
+            self.connection = self._connect_to_write() if create else self._connect_to_read()
             version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.DatabaseError as error:
             raise InputError(f"db: {self.path} is not a results store ({error})") from None
@@ -129,6 +120,40 @@ class ResultStore:
                              f"{SCHEMA_VERSION}")
         if create:
             self._add_missing_columns()
+
+    def _connect_to_write(self) -> sqlite3.Connection:
+        """The store opened to write, its tables made if it is new. Another program's SQLite file is refused before
+        anything is written to it (a mistyped --db added the store's tables beside its own)."""
+        # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
+        connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
+        tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if tables and "meta" not in tables:
+            connection.close()
+            raise InputError(f"db: {self.path} is another program's SQLite file (tables {', '.join(sorted(tables))}),"
+                             f" not a results store: name a new file")
+        connection.execute("PRAGMA journal_mode=WAL")
+        # NORMAL in WAL mode: a committed transaction survives a crash of the process (only a power cut may lose
+        # the last ones), at a fraction of FULL's fsyncs.
+        connection.execute("PRAGMA synchronous=NORMAL")
+        connection.executescript(_SCHEMA)
+        connection.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        return connection
+
+    def _connect_to_read(self) -> sqlite3.Connection:
+        """The store opened to read, the file left as it is (a read turned another program's file into WAL mode
+        before). A WAL store needs its folder writable even to be read (its shared-memory file); in a folder that
+        is not (an archive, a colleague's share), a store closed cleanly (no ``-wal`` file beside it) is read as
+        an immutable file. (Not ``mode=ro`` first: in a writable folder it would leave an empty ``-wal`` and a
+        ``-shm`` file behind, which only a writer removes.)"""
+        try:
+            connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
+            connection.execute("SELECT name FROM sqlite_master").fetchall()
+            return connection
+        except sqlite3.OperationalError:
+            if Path(f"{self.path}-wal").exists():  # rows not yet in the file: immutable would not see them
+                raise
+        uri = f"{self.path.resolve().as_uri()}?mode=ro&immutable=1"
+        return sqlite3.connect(uri, uri=True, isolation_level=None)
 
     def _add_missing_columns(self) -> None:
         """Result columns added since the file was made (e.g. the stereo metrics) are added, NULL in the rows

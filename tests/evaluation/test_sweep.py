@@ -207,6 +207,53 @@ def test_results_summary_csv_and_plot(reference, tmp_path, capsys):
     assert len(summary["configs"]) == 3 and all(c["pairs"] == 4 for c in summary["configs"])
     assert main(["results", str(tmp_path / "none.sqlite")]) == 2
     assert "expected a results file" in capsys.readouterr().err
+    for both in ("--json", "--summary"):  # was: the JSON summary the CSV's last line, or the summary dropped
+        assert main(["results", str(db), "--csv", both]) == 2
+        assert f"--csv: the table and {both} would both go to standard output" in capsys.readouterr().err
+
+
+def test_results_leave_other_files_alone_and_sweeps_refuse_them(reference, data_dir, tmp_path, capsys):
+    """Found by an audit of the results store: `results` (a read) turned another program's SQLite file into WAL
+    mode and a 0-byte file into a 4 KB one while refusing them, and `sweep` / `eval --db` added the store's tables
+    beside another program's own."""
+    import hashlib
+
+    other = tmp_path / "other.sqlite"
+    with sqlite3.connect(other) as connection:
+        connection.execute("CREATE TABLE t (x)")
+    empty = tmp_path / "empty.sqlite"
+    empty.touch()
+    before = {path: hashlib.sha256(path.read_bytes()).hexdigest() for path in (other, empty)}
+    for path in (other, empty):
+        assert main(["results", str(path)]) == 2
+        assert "is not a results store" in capsys.readouterr().err
+    assert before == {path: hashlib.sha256(path.read_bytes()).hexdigest() for path in (other, empty)}
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    assert main(["eval", str(teddy), "--size", "160x120", "--db", str(other)]) == 2
+    assert "is another program's SQLite file (tables t), not a results store" in capsys.readouterr().err
+    assert before[other] == hashlib.sha256(other.read_bytes()).hexdigest()
+
+
+def test_results_read_a_store_in_a_folder_they_cannot_write(reference, monkeypatch, capsys):
+    """Found by an audit of the results store: a WAL store needs its folder writable even to be read (its
+    shared-memory file), so a colleague's store on a read-only share was "not a results store (unable to open
+    database file)". A store closed cleanly is then read as an immutable file (the refusal is simulated: root
+    writes anywhere)."""
+    from svs_torch.evaluation import store as store_module
+
+    _, db = reference
+    connect = sqlite3.connect
+
+    def read_only_folder(database, *args, **kwargs):
+        if "immutable=1" not in str(database):
+            raise sqlite3.OperationalError("unable to open database file")
+        return connect(database, *args, **kwargs)
+
+    monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)
+    assert main(["results", str(db), "--json"]) == 0
+    assert len(json.loads(capsys.readouterr().out)["configs"]) == 3
+    monkeypatch.undo()
+    assert not Path(f"{db}-wal").exists() and not Path(f"{db}-shm").exists()  # nothing left beside it
 
 
 def test_native_size_rows_do_not_depend_on_the_batch_size(data_dir, tmp_path):
