@@ -22,7 +22,7 @@ from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
 __all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "ranked_value",
-           "results_figure", "swept_parameters"]
+           "parameter_value", "results_figure", "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -96,13 +96,16 @@ def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
 
 
 def swept_parameters(store: ResultStore) -> list[str]:
-    """The override keys whose value differs between the stored configurations (plus ``preset`` if it does)."""
+    """The override keys whose value differs between the stored configurations (plus ``preset`` and ``size`` if
+    they do)."""
     check_instance(store, "store", ResultStore)
     configs = store.configs()
     keys: list[str] = []
     for config in configs:
         keys += [key for key in config["overrides"] if key not in keys]
     swept = [key for key in keys if len({repr(c["overrides"].get(key)) for c in configs}) > 1]
+    if len({c["size"] for c in configs}) > 1:  # else a panel averaged 160x120 and 320x240 rows in silence
+        swept.insert(0, "size")
     if len({c["preset"] for c in configs}) > 1:
         swept.insert(0, "preset")
     return swept
@@ -118,13 +121,13 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     result column, then the ``code_version`` of the run that wrote the row."""
     check_instance(store, "store", ResultStore)
     configs = {c["config_id"]: c for c in store.configs()}
-    swept = swept_parameters(store)
+    swept = [key for key in swept_parameters(store) if key != "size"]  # the table has a size column of its own
     rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
     header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest, "code_version"]
     rows = []
     for row in store.results():
         config = configs[row["config_id"]]
-        params = [config["preset"] if key == "preset" else _value_that_ran(config, key) for key in swept]
+        params = [parameter_value(config, key) for key in swept]
         # Paths as a person would write them: a sweep file's "../../shared/data" joined to its folder reads
         # "experiments/../../shared/..." until normalised (the same file; ids keep the absolute path).
         paths = {key: os.path.normpath(row[key]) if row[key] else row[key] for key in ("left", "right")}
@@ -133,6 +136,12 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
         rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
                     + [values[name] for name in rest] + [row["code_version"]])
     return header, rows
+
+
+def parameter_value(config: dict, key: str) -> Any:
+    """A stored configuration's value of a swept parameter (:func:`swept_parameters`): its preset, its size, or
+    the value the configuration ran with (:func:`_value_that_ran`)."""
+    return config[key] if key in ("preset", "size") else _value_that_ran(config, key)
 
 
 def _value_that_ran(config: dict, key: str) -> Any:
@@ -169,9 +178,9 @@ def _scene_bars(axis, store: ResultStore, summary: dict) -> None:
     axis.legend(fontsize=7, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
 
 
-def _parameter_axis(axis, summaries: Sequence[dict], key: str) -> None:
-    def value(s: dict) -> Any:
-        return s["preset"] if key == "preset" else s["overrides"].get(key)
+def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], key: str) -> None:
+    def value(s: dict) -> Any:  # the value that ran, as the CSV's: an override left out read "None" before
+        return parameter_value(configs[s["config_id"]], key)
 
     values = {repr(value(s)): value(s) for s in summaries}
     numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values.values())
@@ -223,8 +232,9 @@ def results_figure(store: ResultStore):
     rows = -(-panels // columns)
     figure = plt.figure(figsize=(5.2 * columns, 4.4 * rows))
     grid = figure.add_gridspec(rows, columns)
+    configs = {c["config_id"]: c for c in store.configs()}
     for number, key in enumerate(swept):
-        _parameter_axis(figure.add_subplot(grid[number // columns, number % columns]), summaries, key)
+        _parameter_axis(figure.add_subplot(grid[number // columns, number % columns]), summaries, configs, key)
     # The table's ranking: nominal-calibration means where a configuration has no pair of its own calibration.
     best = max(summaries, key=lambda s: v if (v := ranked_value(s, "acc_objects_pct")) is not None else -1.0)
     row, column = divmod(len(swept), columns)

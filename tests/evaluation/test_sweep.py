@@ -345,6 +345,18 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
     ran = {(row["param:preset"], row["label"]): float(row["param:max_ratio"]) for row in rows}
     assert ran == {("default", "(preset)"): PipelineConfig().max_ratio, ("default", "max_ratio=0.7"): 0.7,
                    ("paper", "preset=paper (preset)"): PipelineConfig.paper().max_ratio}
+    # The figure's panels too (found by an audit: its max_ratio panel had a level "None" averaging the default's
+    # 0.8 and the paper preset's 0.6); and a store of two sizes gets a size panel (its rows were averaged in silence).
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    sweep_file.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "128x96"\n')
+    assert main(["sweep", str(sweep_file), "--db", str(store)]) == 0
+    with ResultStore(store, create=False) as opened:
+        figure = results_figure(opened)
+    panels = {axis.get_xlabel(): [tick.get_text() for tick in axis.get_xticklabels()] for axis in figure.axes}
+    assert panels["max_ratio"] == ["0.6", "0.7", "0.8"]
+    assert sorted(panels["size"]) == ["128x96", "160x120"] and panels["preset"] == ["paper", "default"]
 
 
 def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
