@@ -157,6 +157,12 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
     except Exception as error:  # noqa: BLE001 -- the last line of defence: one line, never a traceback
+        # (concurrent.futures' BrokenProcessPool by name: importing it would slow every command's start.)
+        if type(error).__name__ == "BrokenProcessPool":  # a worker killed from outside (OOM killer): not a bug
+            print(f"{prog}: error: a worker process died (killed, or out of memory: try fewer --workers or a "
+                  "smaller batch); rows a --db store committed are kept, and the same command runs only what is "
+                  "missing", file=sys.stderr)
+            return 1
         print(f"{prog}: internal error: {type(error).__name__}: {' '.join(str(error).split())[:300]} "
               "(please report it)", file=sys.stderr)
         return 1

@@ -981,3 +981,19 @@ def test_estimate_camera_frames_ranges_a_camera_frame_as_the_noise_gate_does(tmp
     assert reports[0]["objects"] and reports[0]["objects"] == reports[1]["objects"]
     for key in ("nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "status"):
         assert reports[0][key] == reports[1][key], key
+
+
+def test_a_worker_that_died_is_said_so_not_reported_as_a_bug(capsys, monkeypatch, tmp_path):
+    """Found by an audit of sweep: a pool worker killed from outside (the OOM killer) ended the command with
+    "internal error: BrokenProcessPool ... (please report it)"; it is a worker that died, and what to do is run
+    the same command again."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    import svs_torch.cli.results as results_command
+
+    def dies(args):
+        raise BrokenProcessPool("A process in the process pool was terminated abruptly")
+
+    monkeypatch.setattr(results_command, "run", dies)
+    code, out, err = run_cli(capsys, "results", str(tmp_path / "s.sqlite"))
+    assert code == 1 and "a worker process died" in err and "internal error" not in err
