@@ -29,7 +29,7 @@ EPILOG = """\
 examples:
   svs-depth bench                                  # synthetic pairs only
   svs-depth bench --data ../shared/data --json bench.json
-  svs-depth bench --pairs 32 --repeats 1 --no-memory   # a quick look
+  svs-depth bench --pairs 32 --repeats 1 --no-memory   # a quicker look (the in-process part as always)
 """
 
 
@@ -38,7 +38,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", metavar="DIR", help="the shared data folder for real pairs (default: none, "
                                                       "synthetic pairs only)")
-    parser.add_argument("--pairs", type=positive_int, default=64, metavar="N", help="pairs per input set (default: 64)")
+    parser.add_argument("--pairs", type=positive_int, default=64, metavar="N",
+                        help="pairs per input set of the whole-process runs (default: 64); the in-process part "
+                             "always runs its 128 synthetic pairs, B = 1 to 128 (about 3 GB at its peak)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per rival; the median is reported "
                                                                         "(default: 3)")
     parser.add_argument("--threads", type=positive_int, default=2, help="threads for every rival (default: 2)")
