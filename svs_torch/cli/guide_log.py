@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from ..core.files import display_path
-from .capture import INDEX_NAME, save_pair
+from .capture import CALIBRATION_NAME, INDEX_NAME, save_pair
 from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
@@ -50,9 +50,16 @@ class GuideLog:
         self.num_recorded = 0
 
     def open(self) -> None:
-        """Create the record's folder and index (once: a camera opened again appends to the same index)."""
+        """Create the record's folder and index (once: a camera opened again appends to the same index), and with
+        ``--calibration`` a copy of the rig's calibration beside the pairs, as ``capture`` keeps it (the replay
+        command names the copy: the original's relative path broke from another folder)."""
         if self.record_dir is not None and self._index is None:
             self.record_dir.mkdir(parents=True, exist_ok=True)
+            if self.rig is not None:
+                from ..geometry.calibration import write_calibration
+
+                write_calibration(self.record_dir / CALIBRATION_NAME, self.rig, "--record")
+                self.replay = (self.replay[0], str(self.record_dir / CALIBRATION_NAME))
             self._index = open(self.record_dir / INDEX_NAME, "x", encoding="utf-8")
 
     def write(self, pair, result, elapsed_s: float, warning: dict[str, Any], num_dropped: int) -> None:

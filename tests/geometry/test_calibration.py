@@ -297,6 +297,13 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
                                 "--json", "--calibration", str(path))
     line = json.loads(stdout.splitlines()[0])
     assert code == 0 and line["calibration_rectified"] is True and line["calibration"]["measured"] is True, err
+    # --record keeps the rig's calibration beside the pairs, as capture does, and the replay command names that
+    # copy (found by an audit: the folder held only the pairs, the command the original's relative path).
+    record = tmp_path / "walk"
+    code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120",
+                           "--record", str(record), "--calibration", str(path))
+    assert code == 0 and (record / "calibration.json").read_text() == path.read_text(), err
+    assert f"--calibration {record / 'calibration.json'}" in err
     # guide checks the rig against its frame size before it opens the camera (test_cli runs it live).
     code, _, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "1280x1024",
                            "--calibration", str(path))
