@@ -94,9 +94,9 @@ def run(args: argparse.Namespace) -> int:
             bar.close()
     total = len(sweep.configs) * len(sweep.sources)
     print(f"svs-depth sweep: {outcome.rows_written} rows written by {outcome.tasks} tasks, "
-          f"{outcome.rows_already_done + outcome.rows_written} of {total} stored in {args.db}", file=sys.stderr)
+          f"{outcome.rows_stored} of {total} stored in {args.db}", file=sys.stderr)
     if args.json:
         print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "tasks": outcome.tasks,
-                            "rows_written": outcome.rows_written, "rows_stored": outcome.rows_already_done
-                            + outcome.rows_written, "rows_total": total, "run_id": outcome.run_id}))
+                            "rows_written": outcome.rows_written, "rows_stored": outcome.rows_stored,
+                            "rows_total": total, "run_id": outcome.run_id}))
     return 0

@@ -265,12 +265,15 @@ def environment(executor: str, workers: int, threads: int | None) -> dict:
 
 @dataclass(frozen=True)
 class SweepOutcome:
-    """What a run did: tasks run, rows written, rows that were already stored, and the run's id."""
+    """What a run did: tasks run, rows written, rows of this sweep that were already stored, the run's id, and the
+    rows of this sweep stored at its end (ERROR rows not counted: a resume runs them again), counted in the store:
+    a sweep running beside it on the same store may have written some."""
 
     tasks: int
     rows_written: int
     rows_already_done: int
     run_id: int
+    rows_stored: int = 0
 
 
 def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, scheduler: str | None = None,
@@ -292,7 +295,10 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
     with ResultStore(db) as store:
         store.add_configs(c.record() for c in sweep.configs)
         store.add_pairs(sweep.sources)
-        done = store.done([c.config_id for c in sweep.configs])
+        config_ids = [c.config_id for c in sweep.configs]
+        # This sweep's rows only: the store may hold the same configurations on other pairs ("3 of 1 stored").
+        keys = {(c.config_id, s.pair_id) for c in sweep.configs for s in sweep.sources}
+        done = store.done(config_ids) & keys
         if scheduler:
             executor, count, threads = "dask", 0, threads or 1
         else:
@@ -312,7 +318,7 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
         if on_start is not None:
             on_start(sum(len(t.sources) for t in tasks), len(done))
         if not tasks:
-            return SweepOutcome(0, 0, len(done), run_id)
+            return SweepOutcome(0, 0, len(done), run_id, len(done))
         if client is not None:
             results = map_dask(client, run_task, tasks)
         elif count == 0:
@@ -324,4 +330,4 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
             written += store.write_task(result.config_id, run_id, result.rows)
             if on_task is not None:
                 on_task(result)
-        return SweepOutcome(len(tasks), written, len(done), run_id)
+        return SweepOutcome(len(tasks), written, len(done), run_id, len(store.done(config_ids) & keys))

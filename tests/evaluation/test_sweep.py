@@ -359,6 +359,23 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
     assert sorted(panels["size"]) == ["128x96", "160x120"] and panels["preset"] == ["paper", "default"]
 
 
+def test_rows_stored_counts_this_sweeps_rows_only(data_dir, tmp_path, capsys):
+    """Found by an audit of sweep: a store holding the same configuration on other pairs gave "3 of 1 stored" and
+    rows_stored 3 for a sweep of one pair (the store's rows of that configuration were counted, not the sweep's)."""
+    teddy, artl = (data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL"))
+    both, one = tmp_path / "both.toml", tmp_path / "one.toml"
+    both.write_text(f'paths = ["{teddy}", "{artl}"]\nsize = "128x96"\n')
+    one.write_text(f'paths = ["{teddy}"]\nsize = "128x96"\n')
+    store = tmp_path / "s.sqlite"
+    assert main(["sweep", str(both), "--db", str(store), "--workers", "0", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[-1])["rows_stored"] == 2
+    assert main(["sweep", str(one), "--db", str(store), "--workers", "0", "--json"]) == 0
+    out, err = capsys.readouterr()
+    summary = json.loads(out.splitlines()[-1])
+    assert (summary["rows_stored"], summary["rows_total"], summary["rows_written"]) == (1, 1, 0)
+    assert "1 rows already in" in err and "1 of 1 stored" in err
+
+
 def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
     """Found by a review of the evaluation: an ERROR row (a run that raised: out of memory, a full disk under an
     export) counted as done, so resuming a sweep never ran it again. Other stored rows are still kept as they are."""
