@@ -94,7 +94,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="reply timeout per command, seconds (default: 2)")
     parser.add_argument("--quality", type=int, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")
-    parser.add_argument("--near-m", type=non_negative_float, default=1.0, help="warning band start, metres (default: 1)")
+    parser.add_argument("--near-m", type=non_negative_float, default=1.0,
+                        help="warning band start, metres (default: 1.0)")
     parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
                         help="seconds before the same warning repeats (default: 3)")
@@ -105,12 +106,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--count", type=non_negative_int, default=0,
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.add_argument("--json", action="store_true",
-                        help="a JSON line per pair ranged on stdout, for another program to act on: estimate "
-                             "--json's fields (the calibration its metres use among them), the capture's times, "
-                             "'warning' (the pair's and the confirmed distance, the class: clear, warn, stop, or "
-                             "unseen for a pair that measured nothing; the words said), 'dropped_pairs', 'latency_s'; "
-                             "a line {\"event\": ...} when the camera is lost or back, or guide cannot see or sees "
-                             "again; the warnings' text goes to stderr")
+                        help="a JSON line per pair ranged on stdout for another program: estimate --json's fields "
+                             "(with the calibration its metres use), the capture's times, 'warning' (the pair's and "
+                             "the confirmed distance, the class clear / warn / stop, or unseen: nothing measured; the "
+                             "words said), 'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is "
+                             "lost or back, or guide cannot see or sees again; the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
