@@ -292,6 +292,8 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
         on_start: called once with (rows to run, rows already stored) before any task runs.
     """
     warn = warn or (lambda message: print(f"warning: {message}", file=sys.stderr))
+    if scheduler:  # reached (with workers) before the store is made: else a bad address left a store without rows
+        connect_dask(scheduler, lambda message: None).close()
     with ResultStore(db) as store:
         store.add_configs(c.record() for c in sweep.configs)
         store.add_pairs(sweep.sources)

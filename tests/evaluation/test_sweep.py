@@ -376,6 +376,22 @@ def test_rows_stored_counts_this_sweeps_rows_only(data_dir, tmp_path, capsys):
     assert "1 rows already in" in err and "1 of 1 stored" in err
 
 
+def test_a_scheduler_that_cannot_be_reached_leaves_no_store(data_dir, tmp_path, monkeypatch, capsys):
+    """Found by an audit of sweep: --scheduler at an address with no scheduler (or no workers) failed after the
+    store was made with its configurations and no row, which `results` then listed as "0 configurations"."""
+    import svs_torch.evaluation.sweep as sweep_module
+
+    def unreachable(address, warn):
+        raise InputError(f"--scheduler: cannot reach a Dask scheduler at {address!r} (timed out)")
+
+    monkeypatch.setattr(sweep_module, "connect_dask", unreachable)
+    sweep_file = tmp_path / "one.toml"
+    sweep_file.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "128x96"\n')
+    store = tmp_path / "s.sqlite"
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert "cannot reach a Dask scheduler" in capsys.readouterr().err and not store.exists()
+
+
 def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
     """Found by a review of the evaluation: an ERROR row (a run that raised: out of memory, a full disk under an
     export) counted as done, so resuming a sweep never ran it again. Other stored rows are still kept as they are."""
