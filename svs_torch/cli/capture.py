@@ -100,7 +100,38 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
         raise InputError("--left, --right: not used with --emulator (it picks its own loopback ports)")
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: both board URLs are needed (or --emulator)")
+    check_board_urls(args)
     return size, new_pairs_folder(args.out, "--out-dir")
+
+
+#: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
+_LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
+
+
+def check_board_urls(args: argparse.Namespace) -> None:
+    """``--left`` and ``--right`` as links pyserial can open, and two of them, before the camera is opened. Why:
+    ``socket://HOST`` without its port failed inside pyserial ("'<=' not supported between 'int' and
+    'NoneType'"), ``http://...`` as a capture error (exit 1, not a bad argument), and one URL given twice as the
+    link closing right after it opened."""
+    from urllib.parse import urlsplit
+
+    if args.emulator:
+        return
+    for option, url in (("--left", args.left), ("--right", args.right)):
+        if "://" not in url:
+            continue  # a serial device
+        parts = urlsplit(url)
+        if parts.scheme not in _LINK_SCHEMES:
+            raise InputError(f"{option}: expected a serial device or socket://HOST:PORT, got {url!r}")
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if parts.scheme == "socket" and not (parts.hostname and port):
+            raise InputError(f"{option}: expected socket://HOST:PORT (the left board 10001, the right 10002), got "
+                             f"{url!r}")
+    if args.left == args.right:
+        raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 
 
 def new_pairs_folder(value: str, option: str) -> Path:

@@ -530,6 +530,11 @@ def test_cli_defaults_match_link_defaults():
     (["--size", "100x100", "--emulator"], "--size: expected 160x120"),
     (["--left", "socket://x:1", "--emulator"], "--left, --right: not used with --emulator"),
     (["--left", "socket://x:1"], "--left, --right: both board URLs are needed"),
+    # Were: pyserial's "'<=' not supported between instances of 'int' and 'NoneType'" (no port), a capture error
+    # with exit 1 (http), and "the link closed right after opening" (one URL twice).
+    (["--left", "socket://127.0.0.1", "--right", "socket://127.0.0.1:10002"], "--left: expected socket://HOST:PORT"),
+    (["--left", "http://x:1", "--right", "socket://x:2"], "--left: expected a serial device or socket://HOST:PORT"),
+    (["--left", "socket://x:1", "--right", "socket://x:1"], "--left, --right: expected the two boards' links"),
 ])
 def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     from svs_torch.cli import main
