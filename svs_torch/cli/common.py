@@ -14,7 +14,8 @@ from typing import Any
 
 __all__ = [
     "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option", "dumps_strict",
-    "finite_float", "non_negative_float", "non_negative_int", "options_named", "positive_float", "positive_int",
+    "finite_float", "non_negative_float", "non_negative_int", "options_named", "output_path", "positive_float",
+    "positive_int",
     "seed_int", "too_small_reason", "unit_interval_float", "with_config_values",
 ]
 
@@ -106,6 +107,14 @@ def options_named(**options: str):
         raise
 
 
+def output_path(text: str) -> str:
+    """argparse type: an output file or folder that is not empty. Why: ``--disparity-out "$OUT"`` with OUT unset
+    ran, wrote nothing and exited 0."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
+    return text
+
+
 class _FigureAction(argparse.Action):
     """Store the figure file and the option name the user typed, so that an error names it."""
 
@@ -121,7 +130,7 @@ def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases:
     default_text = f" (default: {default})" if default else ""
     parser.set_defaults(figure_option="--figure")
     parser.add_argument("--figure", *aliases, dest="figure", metavar="FIG.png", default=default,
-                        action=_FigureAction,
+                        action=_FigureAction, type=output_path,
                         help=f"{help_text}{default_text}; {kinds}"
                              + (f" (also {', '.join(aliases)})" if aliases else ""))
 
@@ -136,7 +145,7 @@ def _method_name(text: str) -> str:
 def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
     """``--disparity-out DIR``, ``--disparity-format`` and ``--method-name`` of ``eval`` and ``estimate``."""
     group = parser.add_argument_group("disparity maps out (svs_torch/evaluation/export.py)")
-    group.add_argument("--disparity-out", metavar="DIR",
+    group.add_argument("--disparity-out", metavar="DIR", type=output_path,
                        help="write each pair's dense disparity map into DIR (made if missing), at the size the "
                             "pipeline ran on, unmeasured pixels unknown; a rectified pair's map is brought back "
                             "to the left image's pixels (needs the dense range rule)")

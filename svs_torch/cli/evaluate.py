@@ -6,7 +6,8 @@ import argparse
 import sys
 import time
 
-from .common import add_disparity_export_options, dumps_strict, finite_float, positive_float, positive_int
+from .common import (add_disparity_export_options, dumps_strict, finite_float, output_path, positive_float,
+                     positive_int)
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
                   with_calibrated_rectification)
@@ -82,7 +83,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
     add_calibration_option(parser, "listed file pairs without their own calibration")
-    parser.add_argument("--db", metavar="FILE.sqlite", help="also store every row in this results file")
+    parser.add_argument("--db", metavar="FILE.sqlite", type=output_path,
+                        help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
     add_disparity_export_options(parser)
     parser.set_defaults(func=run)

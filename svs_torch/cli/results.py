@@ -7,7 +7,7 @@ import contextlib
 import csv
 import sys
 
-from .common import add_figure_option, dumps_strict, non_negative_int
+from .common import add_figure_option, dumps_strict, non_negative_int, output_path
 
 HELP = "summarise, export (CSV) or plot a sweep's results file"
 
@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("db", metavar="FILE.sqlite", help="results file of svs-depth sweep or eval --db")
     parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
-    parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv",
+    parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv", type=output_path,
                         help="one row per (configuration, pair), to FILE.csv or standard output")
     add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",
                       kinds=".png, .pdf or .svg")
