@@ -162,6 +162,23 @@ def _write_outputs(args, batch, result, factors) -> None:
                            lossless=True)
 
 
+def _check_outputs_apart(args: argparse.Namespace) -> None:
+    """``--figure`` and ``--masks-out`` neither one file nor an input image. Why: ``--masks-out`` named as the left
+    image wrote the labels over it (exit 0), and one name for both outputs kept only the labels."""
+    import os
+
+    from ..core.errors import InputError
+
+    outputs = [(option, path) for option, path in ((args.figure_option, args.figure), ("--masks-out", args.masks_out))
+               if path]
+    if len(outputs) == 2 and os.path.realpath(outputs[0][1]) == os.path.realpath(outputs[1][1]):
+        raise InputError(f"--masks-out: the same file as {outputs[0][0]} ({outputs[1][1]}): name two files")
+    for option, path in outputs:
+        for name, image in (("left", args.left), ("right", args.right)):
+            if image and os.path.isfile(image) and os.path.exists(path) and os.path.samefile(path, image):
+                raise InputError(f"{option}: {path} is the {name} image: it would be written over")
+
+
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:
     """``--disparity-out``'s folder made, or its error raised, before any work (standard library only)."""
     if args.disparity_out:
@@ -205,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.figure, args.figure_option)
     if args.masks_out:
         check_output_path(args.masks_out, "--masks-out", lossless=True)
+    _check_outputs_apart(args)
     _check_disparity_out(args, config.depth.rule)
     source = PairSource(left=args.left, right=None if scene else args.right, scene=scene)
     if scene:

@@ -63,6 +63,24 @@ def export_name(pair_name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", last).lstrip(".") or "pair"
 
 
+def _not_an_export(target: Path, timing: Path | None) -> str | None:
+    """What an existing ``target`` is when it is not a map an export wrote (which a run again replaces), or None.
+    Why: ``--disparity-out`` pointed at the pairs' own folder wrote a KITTI map over the left image it was named
+    after, and ``--method-name GT`` a scene's ``disp0GT.pfm``. A Middlebury map of ours has its time file beside
+    it; a KITTI map is a 16-bit one-channel PNG (an image is 8-bit or colour)."""
+    if not target.exists():
+        return None
+    if not target.is_file():
+        return "not a file"
+    if timing is not None:
+        return None if timing.is_file() else "a PFM without its time file (ground truth?)"
+    with open(target, "rb") as handle:
+        header = handle.read(26)
+    # PNG: 8-byte signature, IHDR length and type, width, height, then bit depth (byte 24) and colour type (25).
+    is_png = header[:8] == b"\x89PNG\r\n\x1a\n" and len(header) == 26
+    return None if is_png and header[24] == 16 and header[25] == 0 else "an image, not a 16-bit disparity map"
+
+
 def left_view_disparity(batch: StereoBatch, result: PipelineResult, index: int) -> tuple[np.ndarray, np.ndarray]:
     """Pair ``index``'s dense disparity in its left image's grid (module docstring): ``(H, W)`` float32
     disparity (0 where unknown) and ``(H, W)`` bool validity, at the pair's own ``image_hw``."""
@@ -133,8 +151,13 @@ class DisparityExport:
                 warnings.warn(f"--disparity-out: {name!r} not written: it would overwrite {self._claimed[key]!r}, "
                               f"written as {key!r}; export them in separate runs", RuntimeWarning, stacklevel=2)
                 continue
-            disparity, valid = left_view_disparity(batch, result, index)
             target, timing = self.paths(name)
+            other = _not_an_export(target, timing)
+            if other:
+                warnings.warn(f"--disparity-out: {name!r} not written: {target} exists and is {other}, not a map "
+                              f"this command wrote; name another folder", RuntimeWarning, stacklevel=2)
+                continue
+            disparity, valid = left_view_disparity(batch, result, index)
             if self.format == "kitti":
                 write_kitti_disparity(target, disparity, valid)
             else:

@@ -163,3 +163,46 @@ def test_bench_refuses_a_data_folder_without_shared_pairs(capsys, tmp_path):
     """It ran the synthetic set alone, unsaid, as if the real sets had been asked for and measured."""
     code, out, err = run_cli(capsys, "bench", "--data", str(tmp_path), "--pairs", "2", "--repeats", "1")
     assert code == 2 and out == "" and "--data: no shared pair with ground truth in" in err
+
+
+@pytest.mark.parametrize("argv", [["estimate", "TEDDY", "--figure", ""], ["estimate", "TEDDY", "--masks-out", " "],
+                                  ["estimate", "TEDDY", "--disparity-out", ""], ["eval", "TEDDY", "--db", ""],
+                                  ["results", "s.sqlite", "--csv", ""]])
+def test_an_empty_output_name_is_refused(data_dir, capsys, argv):
+    """Found by an audit of the outputs: `--disparity-out "$OUT"` with OUT unset ran, wrote nothing, exit 0."""
+    argv = [str(data_dir / "middlebury_eval3_Q" / "Teddy") if a == "TEDDY" else a for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and "expected a file or folder name" in capsys.readouterr().err
+
+
+def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
+    """Found by an audit of the outputs: --masks-out named as the left image wrote the labels over it, one name for
+    --figure and --masks-out kept only the labels, --disparity-out into the pairs' folder wrote a KITTI map over the
+    left image it is named after, and --method-name GT a scene's disp0GT.pfm (each exit 0, no word)."""
+    import shutil
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    left, right = tmp_path / "teddyL.png", tmp_path / "teddyR.png"
+    shutil.copy(teddy / "im0.png", left)
+    shutil.copy(teddy / "im1.png", right)
+    before = left.read_bytes()
+    code, _, err = run_cli(capsys, "estimate", str(left), str(right), "--size", "160x120", "--masks-out", str(left))
+    assert code == 2 and "is the left image: it would be written over" in err
+    code, _, err = run_cli(capsys, "estimate", str(left), str(right), "--size", "160x120", "--figure",
+                           str(tmp_path / "f.png"), "--masks-out", str(tmp_path / "f.png"))
+    assert code == 2 and "the same file as --figure" in err
+    (tmp_path / "list.txt").write_text("teddyL.png teddyR.png\n")
+    code, _, err = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "list.txt"), "--size", "160x120",
+                           "--workers", "1", "--disparity-out", str(tmp_path), "--disparity-format", "kitti")
+    assert code == 0 and "'teddyL' not written" in err and left.read_bytes() == before
+    scene = tmp_path / "scenes" / "Teddy"
+    shutil.copytree(teddy, scene)
+    truth = (scene / "disp0GT.pfm").read_bytes()
+    code, _, err = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--disparity-out",
+                           str(tmp_path / "scenes"), "--method-name", "GT")
+    assert code == 0 and "a PFM without its time file" in err and (scene / "disp0GT.pfm").read_bytes() == truth
+    out = tmp_path / "maps"  # a folder of its own: a run again replaces its own maps
+    for _ in range(2):
+        code, _, err = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--disparity-out", str(out))
+        assert code == 0 and "not written" not in err and (out / "Teddy" / "disp0SVSTorch.pfm").is_file()
