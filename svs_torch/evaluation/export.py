@@ -68,17 +68,19 @@ def _not_an_export(target: Path, timing: Path | None) -> str | None:
     Why: ``--disparity-out`` pointed at the pairs' own folder wrote a KITTI map over the left image it was named
     after, and ``--method-name GT`` a scene's ``disp0GT.pfm``. A Middlebury map of ours has its time file beside
     it; a KITTI map is a 16-bit one-channel PNG (an image is 8-bit or colour)."""
+    if target.parent.exists() and not target.parent.is_dir():
+        return f"under {target.parent}, a file where its folder goes"
     if not target.exists():
         return None
     if not target.is_file():
-        return "not a file"
+        return "there and not a file"
     if timing is not None:
-        return None if timing.is_file() else "a PFM without its time file (ground truth?)"
+        return None if timing.is_file() else "there, a PFM without its time file (ground truth?)"
     with open(target, "rb") as handle:
         header = handle.read(26)
     # PNG: 8-byte signature, IHDR length and type, width, height, then bit depth (byte 24) and colour type (25).
     is_png = header[:8] == b"\x89PNG\r\n\x1a\n" and len(header) == 26
-    return None if is_png and header[24] == 16 and header[25] == 0 else "an image, not a 16-bit disparity map"
+    return None if is_png and header[24] == 16 and header[25] == 0 else "there, an image, not a 16-bit disparity map"
 
 
 def left_view_disparity(batch: StereoBatch, result: PipelineResult, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -154,15 +156,19 @@ class DisparityExport:
             target, timing = self.paths(name)
             other = _not_an_export(target, timing)
             if other:
-                warnings.warn(f"--disparity-out: {name!r} not written: {target} exists and is {other}, not a map "
-                              f"this command wrote; name another folder", RuntimeWarning, stacklevel=2)
+                warnings.warn(f"--disparity-out: {name!r} not written: {target} is {other}, not a map this "
+                              f"command wrote; name another folder", RuntimeWarning, stacklevel=2)
                 continue
             disparity, valid = left_view_disparity(batch, result, index)
-            if self.format == "kitti":
-                write_kitti_disparity(target, disparity, valid)
-            else:
-                target.parent.mkdir(exist_ok=True)
-                write_pfm(target, np.where(valid, disparity, np.float32(np.inf)))
-                write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
+            try:
+                if self.format == "kitti":
+                    write_kitti_disparity(target, disparity, valid)
+                else:
+                    target.parent.mkdir(exist_ok=True)
+                    write_pfm(target, np.where(valid, disparity, np.float32(np.inf)))
+                    write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
+            except OSError as error:  # a full disk: the run stops (exit 1), the option and the file named
+                raise OSError(error.errno, f"--disparity-out: cannot write {target}: "
+                                           f"{error.strerror or error}") from None
             written.append(target)
         return written

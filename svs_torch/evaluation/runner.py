@@ -141,24 +141,40 @@ def _run_batch(pairs: list[LoadedPair], config: PipelineConfig,
     per_pair = (time.perf_counter() - started) / len(pairs)
     scored = evaluate_result(batch, result, per_pair, [p.calibrated for p in pairs], [p.px_scale for p in pairs])
     if on_result is not None:
-        on_result(batch, result, per_pair)
+        try:
+            on_result(batch, result, per_pair)
+        except Exception as error:
+            raise _OutputFailed(error) from error
     return [dataclasses.replace(e, calibration=p.calibration) for e, p in zip(scored, pairs)]
+
+
+class _OutputFailed(Exception):
+    """``on_result`` raised: an output of the run (a map export) failed, not the pair; re-raised as it was."""
+
+    def __init__(self, error: Exception) -> None:
+        super().__init__(str(error))
+        self.error = error
 
 
 def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
                on_result: OnResult | None = None) -> list[PairEvaluation]:
     """Run the pipeline on the loaded pairs of a block as one batch and score them, in order (``on_result``:
-    see :data:`OnResult`; an exception it raises makes the pairs ``ERROR`` as the pipeline's would)."""
+    see :data:`OnResult`; an exception it raises stops the run: a map export that cannot be written, a full disk,
+    is not the pairs' failure, and scored as one it read as a 33 % accuracy)."""
     runnable = [p for p in pairs if p.batch is not None]
     scored: list[PairEvaluation] = []
     if runnable:
         try:
             scored = _run_batch(runnable, config, on_result)
+        except _OutputFailed as failed:
+            raise failed.error from None
         except Exception:  # noqa: BLE001 -- find the pair that raises: every other pair still gets its result
             scored = []
             for pair in runnable:
                 try:
                     scored += _run_batch([pair], config, on_result)
+                except _OutputFailed as failed:
+                    raise failed.error from None
                 except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
                     scored.append(_unrun(pair, "ERROR", f"{type(error).__name__}: {' '.join(str(error).split())}"))
     ran = iter(scored)

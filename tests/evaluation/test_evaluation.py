@@ -163,21 +163,40 @@ def test_summary_counts_failures_at_zero_percent():
     assert [f["name"] for f in summary["failures"]] == ["b", "c"]
 
 
-def test_a_pair_that_fails_after_it_was_read_counts_zero_percent(data_dir):
-    """Found by a review of the evaluation: a pair with truth whose run raised (here the on_result callback, as a
-    map export into a blocked path does) was an ERROR row without its truth, calibration or name, so the summary
-    left it out of the accuracy means: the means were the other pairs' alone."""
+def test_an_output_that_cannot_be_written_stops_the_run(data_dir):
+    """Found by an audit of the outputs: a map export that failed (a full disk) made its pairs ERROR rows, scored
+    0 %, so a disk problem read as a 33 % accuracy with exit 0. An output's failure is the run's, not the pair's:
+    it stops the run with its error. (A pair whose own run raises is still an ERROR row scored 0 %, its truth and
+    name kept: test_a_pair_the_pipeline_fails_on_counts_zero_percent.)"""
     from svs_torch.evaluation import evaluate_pairs
 
     scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL")]
     sources = read_pair_sources([str(scene) for scene in scenes])
 
     def export(batch, result, seconds):
-        if any(name.endswith("Teddy") for name in batch.names):
-            raise OSError("maps/Teddy: not a folder")
+        raise OSError(28, "--disparity-out: cannot write maps/Teddy/disp0SVSTorch.pfm: No space left on device")
 
-    setup = EvalSetup(size_wh=(160, 120))
-    rows = [row for _, row in evaluate_pairs(sources, setup, batch_size=2, on_result=export)]
+    with pytest.raises(OSError, match="No space left on device"):
+        list(evaluate_pairs(sources, EvalSetup(size_wh=(160, 120)), batch_size=2, on_result=export))
+
+
+def test_a_pair_the_pipeline_fails_on_counts_zero_percent(data_dir, monkeypatch):
+    """Found by a review of the evaluation: a pair with truth whose run raised was an ERROR row without its truth,
+    calibration or name, so the summary left it out of the accuracy means: the means were the other pairs' alone."""
+    import svs_torch.evaluation.runner as runner
+    from svs_torch.evaluation import evaluate_pairs
+
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL")]
+    sources = read_pair_sources([str(scene) for scene in scenes])
+    estimate = runner.estimate_obstacle_depth
+
+    def fails_on_teddy(batch, config):
+        if any(name.endswith("Teddy") for name in batch.names):
+            raise RuntimeError("a pipeline failure")
+        return estimate(batch, config)
+
+    monkeypatch.setattr(runner, "estimate_obstacle_depth", fails_on_teddy)
+    rows = [row for _, row in evaluate_pairs(sources, EvalSetup(size_wh=(160, 120)), batch_size=2)]
     teddy, artl = rows
     assert teddy.status == "ERROR" and teddy.name == "eval3/Teddy" and teddy.has_truth and teddy.calibrated
     summary = summarize(rows)
