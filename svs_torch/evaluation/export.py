@@ -143,7 +143,9 @@ class DisparityExport:
         A pair whose :func:`export_name` another pair of this process was written under (``eval3/Teddy`` and
         ``2003/Teddy``, ``kitti2012/000000_10`` and ``kitti2015/000000_10``) is not written, with a
         ``RuntimeWarning`` naming both: a map is never overwritten in silence, and the pair's own results (its
-        scores in ``eval``) stand. Export such pairs in separate runs.
+        scores in ``eval``) stand. Export such pairs in separate runs. Likewise a target that is there and not a
+        map an export wrote (an input image, a ground truth: :func:`_not_an_export`) is left alone, warned. A
+        write that fails (a full disk) raises ``OSError`` naming ``--disparity-out`` and the file.
         """
         written = []
         for index in range(batch.batch_size):
