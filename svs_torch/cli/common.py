@@ -119,6 +119,8 @@ class _FigureAction(argparse.Action):
     """Store the figure file and the option name the user typed, so that an error names it."""
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:
+        if not values.strip():  # named as typed (argparse's type error would say "--figure/--plot/--out")
+            parser.error(f"{option_string or '--figure'}: expected a file name, got {values!r}")
         setattr(namespace, self.dest, values)
         namespace.figure_option = option_string or "--figure"
 
@@ -130,7 +132,7 @@ def add_figure_option(parser: argparse.ArgumentParser, help_text: str, *aliases:
     default_text = f" (default: {default})" if default else ""
     parser.set_defaults(figure_option="--figure")
     parser.add_argument("--figure", *aliases, dest="figure", metavar="FIG.png", default=default,
-                        action=_FigureAction, type=output_path,
+                        action=_FigureAction,
                         help=f"{help_text}{default_text}; {kinds}"
                              + (f" (also {', '.join(aliases)})" if aliases else ""))
 
