@@ -19,7 +19,7 @@ import dataclasses
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_percentiles, check_shape
 from ..core.kernels.checks import check_nonempty, check_rows
 from ..geometry.rectification import apply_homography
 from . import kernels
@@ -55,9 +55,8 @@ def _check_inputs(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDe
     check_shape(labels, "labels", list(disparity.shape))
     check_dtype(labels, "labels", "int")
     check_rows(objects.label, "objects.label", b, "N")
+    check_percentiles(percentiles, "percentiles")
     low, high = (float(p) for p in percentiles)
-    if not 0 <= low <= high <= 100:
-        raise InputError(f"percentiles: expected (low, high) with 0 <= low <= high <= 100, got {percentiles}")
     return b, low, high
 
 

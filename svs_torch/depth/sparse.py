@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_percentiles, check_shape
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
                           PointDepths, RangeEstimate)
@@ -41,9 +41,8 @@ def _per_pair(value: float | torch.Tensor | None, like: torch.Tensor, name: str)
 
 
 def _quantile_levels(percentiles: tuple[float, float], name: str) -> tuple[float, float]:
+    check_percentiles(percentiles, name)
     low, high = (float(p) for p in percentiles)
-    if not 0 <= low <= high <= 100:
-        raise InputError(f"{name}: expected (low, high) with 0 <= low <= high <= 100, got {tuple(percentiles)}")
     return low / 100, high / 100
 
 
