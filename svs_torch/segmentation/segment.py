@@ -26,8 +26,8 @@ from .ground_plane import GroundPlaneConfig
 from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
 
-__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "keep_largest_regions", "keep_regions",
-           "kept_regions_mask"]
+__all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "segment_stereo_otsu", "keep_largest_regions",
+           "keep_regions", "kept_regions_mask"]
 
 
 #: The widest structuring element, pixels: the opening pads the image by the element and passes over it once per
@@ -349,11 +349,12 @@ def segment_stereo(batch: StereoBatch, config: SegmentationConfig = Segmentation
         from .stereo import segment_pair  # which builds on this module
 
         return segment_pair(batch, config)
-    return run_by_size(batch, lambda group: _segment_stereo_otsu(group, config))
+    return run_by_size(batch, lambda group: segment_stereo_otsu(group, config))
 
 
-def _segment_stereo_otsu(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
-    """:func:`segment_stereo`'s Otsu branch on a batch whose pairs fill its tensors (one size)."""
+def segment_stereo_otsu(batch: StereoBatch, config: SegmentationConfig) -> StereoSegmentation:
+    """:func:`segment_stereo`'s Otsu branch on a batch whose pairs fill its tensors (one size group, as
+    :func:`svs_torch.segmentation.stereo.segment_same_size` gets). Not differentiable."""
     b = batch.batch_size
     both = segment_images(torch.cat([batch.left, batch.right], dim=0), config)
     left, right = _split(both, b)

@@ -13,7 +13,7 @@ from ..core.size_groups import run_by_size
 from ..core.types import StereoBatch, StereoSegmentation
 from .learned import segment_stereo_learned
 from .network_files import cached_obstacle_net
-from .segment import SegmentationConfig, segment_stereo
+from .segment import SegmentationConfig, segment_stereo_otsu
 
 __all__ = ["segment_pair", "segment_same_size", "segmenter_network"]
 
@@ -43,8 +43,8 @@ def segment_same_size(batch: StereoBatch, config: SegmentationConfig, network: n
     ``masked`` carries its image's gradient inside the kept mask only)."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", SegmentationConfig)
-    if config.segmenter == "otsu":
-        return segment_stereo(batch, config)
+    if config.segmenter == "otsu":  # already one size group: segment_stereo would group it again
+        return segment_stereo_otsu(batch, config)
     return segment_stereo_learned(batch, config, segmenter_network(batch, config, network), left_logits)
 
 
