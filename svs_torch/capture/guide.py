@@ -257,9 +257,14 @@ class FpsMeter:
         return self.fps
 
     @property
+    def measured(self) -> bool:
+        """Whether the window holds a rate: two ticks at different times (one frame has no rate yet)."""
+        return len(self._ticks) >= 2 and self._ticks[-1] > self._ticks[0]
+
+    @property
     def fps(self) -> float:
         """Frames/s: ticks in the window minus one over the time they span; 0 with fewer than two ticks."""
-        if len(self._ticks) < 2 or self._ticks[-1] <= self._ticks[0]:
+        if not self.measured:
             return 0.0
         return (len(self._ticks) - 1) / (self._ticks[-1] - self._ticks[0])
 
@@ -289,7 +294,9 @@ class LiveGuide:
         """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn`` (``shown_class``: the class to show instead of
         the policy's, e.g. :data:`UNSEEN`)."""
         distance = "none" if nearest_m is None else f"{nearest_m:.1f} m"
-        return f"{self.meter.fps:5.1f} fps  nearest {distance}  {shown_class or self.policy.current}"
+        # Before a second frame there is no rate: "--", not a rate of 0 (guide --count 1 ended on "0.0 fps").
+        rate = f"{self.meter.fps:5.1f}" if self.meter.measured else "   --"
+        return f"{rate} fps  nearest {distance}  {shown_class or self.policy.current}"
 
 
 class StatusLine:

@@ -213,6 +213,18 @@ def test_live_guide_with_fake_distances():
     assert guide.status(1.5) == "  4.0 fps  nearest 1.5 m  warn"
 
 
+def test_status_before_a_second_frame_shows_no_rate():
+    """One frame has no rate: the status says "--" (guide --count 1 ended on "0.0 fps", read as a stalled camera)."""
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=io.StringIO()), FpsMeter(window_s=5.0))
+    assert guide.status(None) == "   -- fps  nearest none  clear"
+    guide.update(None, now_s=1.0)
+    assert not guide.meter.measured
+    assert guide.status(None).startswith("   -- fps")
+    guide.update(None, now_s=1.5)
+    assert guide.meter.measured
+    assert guide.status(None).startswith("  2.0 fps")
+
+
 def terminal_screen(text: str) -> list[str]:
     """What a terminal shows after ``text``: ``\\r`` returns to the start of the line (later text overwrites),
     ``\\n`` starts a new one."""
