@@ -43,8 +43,9 @@ from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
 
 __all__ = [
-    "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid", "flatten_table",
-    "load_config_file", "merge_overrides", "parameter_types", "parse_assignment", "preset_config", "resolve_config",
+    "LABEL_SEPARATOR", "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid",
+    "flatten_table", "load_config_file", "merge_labels", "merge_overrides", "parameter_types", "parse_assignment",
+    "preset_config", "resolve_config",
 ]
 
 #: The named starting points: the product's best measured defaults and the paper exactly as published.
@@ -330,6 +331,20 @@ def expand_grid(grid: Mapping[str, Any], source: str = "grid") -> list[dict[str,
             raise InputError(f"{source}: {key}: expected a non-empty list of values, got {values!r}")
     keys = list(grid)
     return [dict(zip(keys, combination)) for combination in itertools.product(*(grid[k] for k in keys))]
+
+
+#: Between the labels of one configuration reached by several descriptions (``max_ratio=0.8`` is the default's value).
+LABEL_SEPARATOR = " | "
+
+
+def merge_labels(*labels: str) -> str:
+    """One label for a configuration several descriptions reach: each distinct description once, in order,
+    joined by :data:`LABEL_SEPARATOR` (a results summary then shows every name it ran under, not the first)."""
+    seen: dict[str, None] = {}
+    for label in labels:
+        for part in label.split(LABEL_SEPARATOR):
+            seen.setdefault(part, None)
+    return LABEL_SEPARATOR.join(seen)
 
 
 def describe_overrides(overrides: Mapping[str, Any]) -> str:

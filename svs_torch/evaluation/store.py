@@ -9,7 +9,8 @@ Schema (``schema_version`` 2: version 1 had no ``calibration`` column)::
 
     meta(key TEXT PRIMARY KEY, value TEXT)            -- schema_version
     configs(config_id TEXT PRIMARY KEY,               -- sha256 of {"config": the whole PipelineConfig, "size"}
-            label TEXT,                               -- the overrides as "key=value ..." ("(preset)" if none)
+            label TEXT,                               -- the overrides as "key=value ..." ("(preset)" if none;
+                                                      -- " | " between the descriptions of one configuration)
             preset TEXT,                              -- "default" or "paper": what the overrides apply to
             overrides TEXT,                           -- JSON {dotted key: value}
             size TEXT,                                -- "320x240", or "native"
@@ -54,6 +55,7 @@ from typing import Any
 from ..core.checks import InputError
 from ..core.files import check_writable_folder
 from .metrics import PairEvaluation
+from .overrides import merge_labels
 
 __all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
 
@@ -193,10 +195,24 @@ class ResultStore:
             raise
 
     def add_configs(self, configs: Iterable[dict]) -> None:
-        """Record configurations (``config_id``, ``label``, ``preset``, ``overrides``, ``size``, ``config``)."""
-        self._transaction(("INSERT OR IGNORE INTO configs VALUES (?, ?, ?, ?, ?, ?)",
-                           (c["config_id"], c["label"], c["preset"], json.dumps(c["overrides"]), c["size"],
-                            json.dumps(c["config"]))) for c in configs)
+        """Record configurations (``config_id``, ``label``, ``preset``, ``overrides``, ``size``, ``config``). A
+        configuration already stored under another description keeps its row and gains the new label
+        (:func:`~.overrides.merge_labels`): a sweep whose ``max_ratio=0.8`` is the stored default is summarised
+        under both names, not under the first sweep's alone."""
+        configs = list(configs)
+        stored = dict(self.connection.execute("SELECT config_id, label FROM configs").fetchall())
+        statements = []
+        for c in configs:
+            key = c["config_id"]
+            if key not in stored:
+                stored[key] = c["label"]
+                statements.append(("INSERT OR IGNORE INTO configs VALUES (?, ?, ?, ?, ?, ?)",
+                                   (key, c["label"], c["preset"], json.dumps(c["overrides"]), c["size"],
+                                    json.dumps(c["config"]))))
+            elif (label := merge_labels(stored[key], c["label"])) != stored[key]:
+                stored[key] = label
+                statements.append(("UPDATE configs SET label = ? WHERE config_id = ?", (label, key)))
+        self._transaction(statements)
 
     def add_pairs(self, pairs: Iterable[Any]) -> None:
         """Record :class:`~svs_torch.data.PairSource` entries."""

@@ -58,7 +58,7 @@ from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        merge_overrides, parameter_types, preset_config, read_toml)
+                        merge_labels, merge_overrides, parameter_types, preset_config, read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -125,8 +125,13 @@ def _dedupe(sources: Sequence[PairSource]) -> tuple[PairSource, ...]:
 
 def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], size_wh: tuple[int, int] | None,
                batch_size: int = DEFAULT_BATCH_SIZE, text: str = "") -> Sweep:
-    """A sweep from pairs and configurations made in code (the same configuration twice counts once)."""
-    unique = {c.config_id: c for c in configs}
+    """A sweep from pairs and configurations made in code (the same configuration twice counts once, labelled by
+    every description that reached it: :func:`~.overrides.merge_labels`)."""
+    unique: dict[str, SweepConfig] = {}
+    for c in configs:
+        first = unique.setdefault(c.config_id, c)
+        if first is not c:
+            unique[c.config_id] = dataclasses.replace(first, label=merge_labels(first.label, c.label))
     return Sweep(_dedupe(sources), tuple(unique.values()), size_wh, batch_size, text)
 
 
@@ -181,8 +186,8 @@ def load_sweep(path: str | Path) -> Sweep:
         for point in points:
             varying = merge_overrides(entry, point)
             label = describe_overrides(varying)
-            if entry_preset != preset:
-                label = f"preset={entry_preset} {label}"
+            if entry_preset != preset:  # "preset=paper", not "preset=paper (preset)"
+                label = f"preset={entry_preset}" if not varying else f"preset={entry_preset} {label}"
             configs.append(make_sweep_config(entry_preset, merge_overrides(fixed, varying), size_wh, label,
                                              f"{name}: grid"))
     sources = read_pair_sources(resolved, f"{name}: paths")

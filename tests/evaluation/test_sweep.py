@@ -344,7 +344,7 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     ran = {(row["param:preset"], row["label"]): float(row["param:max_ratio"]) for row in rows}
     assert ran == {("default", "(preset)"): PipelineConfig().max_ratio, ("default", "max_ratio=0.7"): 0.7,
-                   ("paper", "preset=paper (preset)"): PipelineConfig.paper().max_ratio}
+                   ("paper", "preset=paper"): PipelineConfig.paper().max_ratio}
     # The figure's panels too (found by an audit: its max_ratio panel had a level "None" averaging the default's
     # 0.8 and the paper preset's 0.6); and a store of two sizes gets a size panel (its rows were averaged in silence).
     from svs_torch.evaluation.report import results_figure
@@ -390,6 +390,27 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_store(data_dir, tmp_path, 
     store = tmp_path / "s.sqlite"
     assert main(["sweep", str(sweep_file), "--db", str(store), "--scheduler", "tcp://127.0.0.1:1"]) == 2
     assert "cannot reach a Dask scheduler" in capsys.readouterr().err and not store.exists()
+
+
+def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_path):
+    """Found by an audit: a configuration stored by one sweep and reached again by another under another description
+    (``max_ratio=0.8`` is the default's value) was summarised under the first sweep's label alone, so the second
+    sweep's rows appeared as ``(preset)``; within one sweep the last description won."""
+    from svs_torch.evaluation.store import ResultStore
+    from svs_torch.evaluation.sweep import make_sweep, make_sweep_config
+
+    default = make_sweep_config("default", {}, None, "(preset)")
+    same = make_sweep_config("default", {"max_ratio": PipelineConfig().max_ratio}, None, "max_ratio=0.8")
+    other = make_sweep_config("default", {"max_ratio": 0.7}, None, "max_ratio=0.7")
+    assert same.config_id == default.config_id != other.config_id
+    sweep = make_sweep([], [default, other, same], None)
+    assert [c.label for c in sweep.configs] == ["(preset) | max_ratio=0.8", "max_ratio=0.7"]
+    with ResultStore(tmp_path / "runs.sqlite") as store:
+        store.add_configs([default.record()])
+        store.add_configs([same.record(), other.record()])
+        store.add_configs([same.record(), default.record()])  # a sweep run again: no label twice
+        labels = {c["config_id"]: c["label"] for c in store.configs()}
+    assert labels == {default.config_id: "(preset) | max_ratio=0.8", other.config_id: "max_ratio=0.7"}
 
 
 def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
