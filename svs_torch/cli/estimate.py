@@ -238,9 +238,12 @@ def run(args: argparse.Namespace) -> int:
         report = pair_report(result, 0, factors, time.perf_counter() - started)
         report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
                                   calibration_file_source(args, source) is not None)
+    # The report first: an output that cannot be written (a full disk: exit 1, the option and the file named)
+    # does not take the pair's distances with it.
+    print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
+    if not reason:
         _write_outputs(args, batch, result, factors)
         _write_disparity(args, batch, result, report["time_s"])
-    print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)
     return 0
 
 

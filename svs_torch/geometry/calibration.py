@@ -139,14 +139,16 @@ class StereoCalibration:
 
 
 def write_calibration(path: str | os.PathLike, calibration: StereoCalibration, name: str = "--out") -> None:
-    """Write ``calibration`` as JSON to ``path`` whole (:func:`svs_torch.core.files.atomic_output`)."""
+    """Write ``calibration`` as JSON to ``path`` whole (:func:`svs_torch.core.files.atomic_output`); an
+    :class:`OSError` naming ``name`` and the file when it cannot be written."""
     check_instance(calibration, "calibration", StereoCalibration)
     text = json.dumps(_finite_or_none(calibration.to_json()), indent=1, allow_nan=False) + "\n"
     try:
         with atomic_output(path, "w", encoding="utf-8") as stream:
             stream.write(text)
     except OSError as error:
-        raise InputError(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}") from None
+        raise OSError(error.errno, f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}"
+                      ) from None
 
 
 def _finite_or_none(value):

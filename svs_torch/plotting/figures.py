@@ -172,8 +172,9 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray, name: str = "
     """Write ``image`` to ``path`` all at once (:func:`svs_torch.core.files.atomic_output`: a temporary file beside
     it, then a rename), with the permissions of any new file (``0o666`` less the umask).
 
-    Raises :class:`InputError` naming ``name`` as :func:`check_output_path` does, or when the file cannot be
-    written.
+    Raises :class:`InputError` naming ``name`` as :func:`check_output_path` does (a usage error: exit 2), and
+    :class:`OSError` naming ``name`` and the file when it cannot be written (a full disk, an I/O error: the
+    command's failure, exit 1, as ``--disparity-out``'s).
     """
     target = check_output_path(path, name, lossless)
     ok, encoded = cv2.imencode(target.suffix.lower(), image)
@@ -182,7 +183,8 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray, name: str = "
     try:
         write_bytes_atomic(target, encoded.tobytes())
     except OSError as error:
-        raise InputError(f"{name}: cannot write {display_path(target)!r}: {error.strerror or error}") from None
+        raise OSError(error.errno, f"{name}: cannot write {display_path(target)!r}: {error.strerror or error}"
+                      ) from None
     return target
 
 

@@ -85,6 +85,25 @@ def test_an_output_that_cannot_be_written_stops_the_run_before_anything_is_writt
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["read-only"]
 
 
+def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_dir, capsys, tmp_path, monkeypatch):
+    """Found by an audit: a figure a full disk refused was a usage error (exit 2) and the pair's distances were
+    never printed. The report comes first; the write's failure is the command's (exit 1), naming the option and the
+    file; no figure is left behind, whole or in part."""
+    from svs_torch.plotting import figures
+
+    def full_disk(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(figures, "write_bytes_atomic", full_disk)
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure = tmp_path / "fig.png"
+    code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure), "--json")
+    assert code == 1
+    assert json.loads(out)["status"] == "OK"
+    assert f"--figure: cannot write '{figure}': No space left on device" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
     """A blank pair has no matches: its F is null (text: "no F"), not a zero matrix that reads as a result."""
     for name in ("left.png", "right.png"):
