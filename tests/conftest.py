@@ -18,6 +18,16 @@ def find_shared_data() -> Path | None:
     return path if (path / "MANIFEST.md").is_file() else None
 
 
+def pytest_report_header(config) -> str:
+    """Which shared data the run reads, first thing: a clone outside the workspace skipped its real-data tests with a
+    line per test at the end only (found by a newcomer's run)."""
+    path = find_shared_data()
+    if path is not None:
+        return f"svs_torch shared data: {path}"
+    return ("svs_torch shared data: NOT FOUND (set SVS_TORCH_DATA or place it at ../shared/data beside the clone): "
+            "the tests that read it are skipped" + (", and fail under CI" if os.environ.get("CI") else ""))
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The shared data folder; a missing folder fails under CI (CI always has it) and skips elsewhere."""

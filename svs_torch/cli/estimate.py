@@ -80,7 +80,9 @@ with their distance, one it could not range with "no depth". Set PipelineConfig.
 (eval and sweep: --set drop_unmeasured_below_share=0.45) and it counts the kept regions dropped for that, not
 listed in "objects"; `svs-depth eval` still scores each as an object without a distance, 0 %.
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
-read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair.
+read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair; 1 an output
+(--figure, --masks-out, --disparity-out) that cannot be written, a full disk: the option and the file named, the
+report printed before it.
 """
 
 

@@ -64,8 +64,8 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-rule", choices=("largest", "nearest", "nearest_first"),
                         help="which regions are kept: 'largest' by area (the paper's rule, and the only one of the "
                              "Otsu and learned segmenters), 'nearest' by median disparity, 'nearest_first' the "
-                             "nearest region then the largest others (default of the nearness segmenter: see --help "
-                             "of estimate)")
+                             "nearest region then the largest others (default: 'nearest_first' with the nearness "
+                             "segmenter, the product's default, 'largest' with the others)")
     parser.add_argument("--min-area-fraction", type=float, metavar="SHARE",
                         help="regions smaller than this share of the image are never kept by the nearness rules "
                              "(e.g. 0.003 = 230 px at 320x240)")
