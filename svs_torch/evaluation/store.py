@@ -45,6 +45,7 @@ Everything but ``time_s`` and ``run_id`` is deterministic: a resumed sweep's row
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import sqlite3
 import time
@@ -58,6 +59,9 @@ from .metrics import PairEvaluation
 from .overrides import merge_labels
 
 __all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
+
+#: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL.
+SQLITE_IOERR, SQLITE_FULL = 10, 13
 
 SCHEMA_VERSION = 2
 
@@ -98,6 +102,15 @@ def _to_sql(value: Any) -> Any:
     return value
 
 
+def _raise_if_disk_failed(error: sqlite3.DatabaseError, path: Path) -> None:
+    """An :class:`OSError` naming the store for SQLite's full disk or I/O error (the run's failure, exit 1, as an
+    export's: a full disk read as "not a results store", a usage error, or as an internal error)."""
+    code = getattr(error, "sqlite_errorcode", 0) & 0xFF  # the primary code of an extended one
+    if code in (SQLITE_FULL, SQLITE_IOERR):
+        raise OSError(errno.ENOSPC if code == SQLITE_FULL else errno.EIO,
+                      f"db: cannot write {path}: {error}") from None
+
+
 class ResultStore:
     """An open results store (see the module docstring); a context manager that closes it."""
 
@@ -110,10 +123,15 @@ class ResultStore:
             raise InputError(f"db: the folder {self.path.parent} does not exist")
         if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
             check_writable_folder(self.path.parent, "db")
+        new = create and not self.path.exists()
         try:
             self.connection = self._connect_to_write() if create else self._connect_to_read()
             version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.DatabaseError as error:
+            if new:  # a store that could not be made is not left behind, nor its journal
+                for leftover in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
+                    leftover.unlink(missing_ok=True)
+            _raise_if_disk_failed(error, self.path)
             raise InputError(f"db: {self.path} is not a results store ({error})") from None
         if version is not None and int(version[0]) == 1:  # version 1 lacks only the calibration column
             version = self._from_version_1(create)
@@ -183,15 +201,22 @@ class ResultStore:
     def close(self) -> None:
         self.connection.close()
 
-    def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> None:
+    def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> int | None:
+        """Run ``statements`` as one transaction; the row id the last one inserted. SQLite's full disk or I/O
+        error is an :class:`OSError` naming the store (:func:`_raise_if_disk_failed`)."""
         cursor = self.connection.cursor()
-        cursor.execute("BEGIN IMMEDIATE")
         try:
+            cursor.execute("BEGIN IMMEDIATE")
             for sql, values in statements:
                 cursor.execute(sql, values)
+            row_id = cursor.lastrowid
             cursor.execute("COMMIT")
-        except BaseException:
-            cursor.execute("ROLLBACK")
+            return row_id
+        except BaseException as error:
+            if self.connection.in_transaction:  # a full disk may have ended it already
+                cursor.execute("ROLLBACK")
+            if isinstance(error, sqlite3.DatabaseError):
+                _raise_if_disk_failed(error, self.path)
             raise
 
     def add_configs(self, configs: Iterable[dict]) -> None:
@@ -222,10 +247,9 @@ class ResultStore:
 
     def start_run(self, command: str, code_version: str, environment: dict, sweep: str) -> int:
         """Record a run; returns its ``run_id``."""
-        cursor = self.connection.execute(
+        return int(self._transaction([(
             "INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) VALUES (?, ?, ?, ?, ?)",
-            (time.time(), command, code_version, json.dumps(environment), sweep))
-        return int(cursor.lastrowid)
+            (time.time(), command, code_version, json.dumps(environment), sweep))]))
 
     def code_versions(self) -> list[str]:
         return [row[0] for row in self.connection.execute("SELECT DISTINCT code_version FROM runs ORDER BY run_id")]

@@ -413,6 +413,47 @@ def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_pat
     assert labels == {default.config_id: "(preset) | max_ratio=0.8", other.config_id: "max_ratio=0.7"}
 
 
+def test_a_full_disk_is_the_runs_failure_naming_the_store(tmp_path, monkeypatch, capsys):
+    """Found by filling a 1 MB tmpfs: a store that could not be made on a full disk was "not a results store" (a
+    usage error, exit 2) and left its 4 KB file and journal behind; rows that could not be written were an
+    "internal error ... please report it". Both are now an OSError naming the store (exit 1); a failed new store
+    leaves nothing, a failed task commits none of its rows. (SQLite's page limit stands in for the disk.)"""
+    from svs_torch.data import PairSource
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.store import ResultStore
+    from svs_torch.evaluation.sweep import make_sweep_config
+
+    pairs = [PairSource(left=f"scene{i}", scene=True) for i in range(40)]
+    config = make_sweep_config("default", {}, None, "default")
+    path = tmp_path / "runs.sqlite"
+    with ResultStore(path) as store:
+        store.add_pairs(pairs)
+        store.add_configs([config.record()])
+        run = store.start_run("test", "v", {}, "")
+        pages = store.connection.execute("PRAGMA page_count").fetchone()[0]
+        store.connection.execute(f"PRAGMA max_page_count = {pages}")
+        rows = [(p.pair_id, PairEvaluation(p.name, "OK", reason="x" * 2000)) for p in pairs]
+        with pytest.raises(OSError, match=f"db: cannot write {path}: database or disk is full"):
+            store.write_task(config.config_id, run, rows)
+        assert store.results() == [] and not store.connection.in_transaction
+    assert main(["results", str(path)]) == 0  # what was committed reads as before
+    capsys.readouterr()
+
+    def full(self):
+        error = sqlite3.OperationalError("database or disk is full")
+        error.sqlite_errorcode = 13
+        sqlite3.connect(self.path).close()  # the file sqlite made before the disk filled
+        raise error
+
+    monkeypatch.setattr(ResultStore, "_connect_to_write", full)
+    with pytest.raises(OSError, match="db: cannot write .*new.sqlite: database or disk is full"):
+        ResultStore(tmp_path / "new.sqlite")
+    assert not (tmp_path / "new.sqlite").exists()
+    with pytest.raises(OSError, match="cannot write"):  # an existing store is kept, whatever failed
+        ResultStore(path)
+    assert path.is_file()
+
+
 def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
     """Found by a review of the evaluation: an ERROR row (a run that raised: out of memory, a full disk under an
     export) counted as done, so resuming a sweep never ran it again. Other stored rows are still kept as they are."""
