@@ -41,7 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--board", default="9x6", metavar="COLSxROWS",
                         help="inner corners of the chessboard, columns x rows (default: 9x6, OpenCV's sample)")
     parser.add_argument("--square-m", type=positive_float, required=True,
-                        help="side of one square of the board, metres (sets the unit of the baseline)")
+                        help="side of one square of the board, metres, at most 1 (25 mm is 0.025; sets the scale "
+                             "of the baseline)")
     parser.add_argument("--out", required=True, metavar="RIG.json", help="the calibration file to write")
     add_figure_option(parser, "figure: the first pair rectified, side by side, with its corners and epipolar lines")
     parser.add_argument("--json", action="store_true", help="print the calibration file's content as one JSON line")

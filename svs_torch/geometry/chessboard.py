@@ -26,12 +26,15 @@ import numpy as np
 from ..core.checks import InputError
 from .calibration import StereoCalibration
 
-__all__ = ["BoardViews", "MIN_PAIRS", "board_image_u8", "calibrate_stereo_rig", "collect_board_views",
+__all__ = ["BoardViews", "MAX_SQUARE_M", "MIN_PAIRS", "board_image_u8", "calibrate_stereo_rig", "collect_board_views",
            "find_board_corners", "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
 #: warns below 3; a usable calibration wants 10–20 views across the field.
 MIN_PAIRS = 3
+#: The largest square side taken, metres: a board of larger squares is no printed chessboard, and a side in
+#: millimetres typed as metres (25 for 0.025) gave an 83 m baseline in silence.
+MAX_SQUARE_M = 1.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
 _STEREO_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-6)
 
@@ -105,7 +108,28 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
         hint = " (check --board: inner corners, columns x rows)" if skipped else ""
         raise InputError(f"{name}: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
                          f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS}{hint}")
+    _check_views_differ(left, right, names, name)
     return BoardViews(left, right, names, skipped, size)
+
+
+#: Corners within this many pixels of another pair's (median over the board) show the same pose of the board.
+SAME_POSE_PX = 1.0
+
+
+def _check_views_differ(left: list[np.ndarray], right: list[np.ndarray], names: list[str], name: str) -> None:
+    """At least :data:`MIN_PAIRS` poses of the board, and two cameras apart. Why: copies of one pair under other
+    names, or the same image as both views, made OpenCV's fit degenerate, and the error blamed swapped cameras."""
+    same_image = [n for n, a, b in zip(names, left, right) if np.median(np.linalg.norm(a - b, axis=-1)) < SAME_POSE_PX]
+    if len(same_image) == len(names):
+        raise InputError(f"{name}: the left and right views show the board at the same pixels in every pair (e.g. "
+                         f"{same_image[0]}): expected two cameras' images, LEFT and RIGHT from each camera")
+    poses: list[np.ndarray] = []
+    for corners in left:
+        if all(np.median(np.linalg.norm(corners - pose, axis=-1)) >= SAME_POSE_PX for pose in poses):
+            poses.append(corners)
+    if len(poses) < MIN_PAIRS:
+        raise InputError(f"{name}: the board is in {len(poses)} pose(s) over {len(names)} pairs (copies of one "
+                         f"pair?); expected at least {MIN_PAIRS}: move and tilt the board between pairs")
 
 
 def rectified_corners(calibration: StereoCalibration, views: BoardViews) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -130,8 +154,9 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         software: the version string recorded in the file.
         name: the argument the pairs came from, for errors.
     """
-    if not (math.isfinite(square_m) and square_m > 0):
-        raise InputError(f"--square-m: expected a finite positive side in metres, got {square_m}")
+    if not (math.isfinite(square_m) and 0 < square_m <= MAX_SQUARE_M):
+        raise InputError(f"--square-m: expected the side of one square in metres, over 0 and at most {MAX_SQUARE_M:g} "
+                         f"(25 mm is 0.025), got {square_m:g}")
     columns, rows = board
     grid = np.zeros((rows * columns, 3), np.float32)
     grid[:, :2] = np.mgrid[0:columns, 0:rows].T.reshape(-1, 2) * square_m  # the corners' order in OpenCV

@@ -185,6 +185,29 @@ def test_calibrate_counts_each_pair_once_and_refuses_listed_calibrations(capsys,
     assert code == 2 and "expected 'LEFT RIGHT' lines of chessboard images, got line 1 of" in stderr
 
 
+def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_millimetres(capsys, samples, tmp_path):
+    """Found by an audit: four copies of one pair under other names, or each left image given as its own right,
+    ended with "are LEFT and RIGHT swapped?"; --square-m 25 (millimetres typed as metres) wrote an 83 m baseline."""
+    import shutil
+
+    copies = tmp_path / "copies"
+    copies.mkdir()
+    for number in range(1, 5):
+        for view in ("left", "right"):
+            shutil.copy(samples / f"{view}01.jpg", copies / f"{view}0{number}.jpg")
+    out = tmp_path / "rig.json"
+    code, _, stderr = run_cli(capsys, "calibrate", str(copies / "left*.jpg"), "--square-m", "0.025", "--out", str(out))
+    assert code == 2 and "left: the board is in 1 pose(s) over 4 pairs (copies of one pair?); expected at least 3" in stderr
+    listed = tmp_path / "boards.txt"
+    listed.write_text("".join(f"{samples / f'left0{n}.jpg'} {samples / f'left0{n}.jpg'}\n" for n in (1, 2, 3, 4)))
+    code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out", str(out))
+    assert code == 2 and "--pairs: the left and right views show the board at the same pixels in every pair" in stderr
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "25", "--out",
+                              str(out))
+    assert code == 2 and "--square-m: expected the side of one square in metres, over 0 and at most 1" in stderr
+    assert not out.exists()
+
+
 def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samples, tmp_path):
     for view in ("left", "right"):
         for number in (1, 2, 3, 4):
