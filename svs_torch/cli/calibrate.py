@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import re
 
-from .common import add_figure_option, dumps_strict, positive_float
+from .common import add_figure_option, check_outputs_apart, dumps_strict, positive_float
 
 HELP = "calibrate a stereo rig from chessboard pairs; writes the file for --calibration"
 
@@ -74,10 +74,13 @@ def right_name(left: str) -> str | None:
 def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     """The (left, right) files named by LEFT patterns or --pairs."""
     import glob
+    import os
 
     from ..data import read_pair_list
     from ..core.errors import InputError
 
+    if args.pairs is not None and not args.pairs.strip():  # --pairs "$LIST" with LIST unset: not "neither"
+        raise InputError(f"--pairs: expected a list file name, got {args.pairs!r}")
     if bool(args.left) == bool(args.pairs):
         raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, "
                          + ("not both" if args.left else "got neither"))
@@ -91,6 +94,9 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     lefts: list[str] = []
     for pattern in args.left:
         found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if os.path.isdir(pattern):
+            raise InputError(f"left: {pattern!r} is a folder: expected left images, e.g. "
+                             f"{os.path.join(pattern, 'left*.jpg')!r} (quoted), or --pairs LIST.txt")
         if not found:
             raise InputError(f"left: no file matches {pattern!r}")
         lefts += found
@@ -175,6 +181,9 @@ def run(args: argparse.Namespace) -> int:
     if args.figure:
         check_output_path(args.figure, args.figure_option)
     paths = pair_paths(args)
+    inputs = [("--pairs list", args.pairs)] + [(f"{view} image of a pair", path) for pair in paths
+                                                for view, path in zip(("left", "right"), pair)]
+    check_outputs_apart([("--out", args.out), (args.figure_option, args.figure)], inputs)
 
     def gray(path: str, name: str):
         image = read_image_array(path, name, gray=True)

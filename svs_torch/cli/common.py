@@ -13,7 +13,8 @@ import math
 from typing import Any
 
 __all__ = [
-    "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option", "dumps_strict",
+    "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
+    "check_outputs_apart", "dumps_strict",
     "finite_float", "non_negative_float", "non_negative_int", "options_named", "output_path", "positive_float",
     "positive_int", "seed_int", "too_small_reason", "unit_interval_float", "with_config_values",
 ]
@@ -112,6 +113,25 @@ def output_path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
     return text
+
+
+def check_outputs_apart(outputs: list[tuple[str, str | None]], inputs: list[tuple[str, str | None]]) -> None:
+    """Refuse, before any work, two outputs ``(option, path)`` at one file and an output that is one of the
+    ``inputs`` ``(name, path)`` (None paths are skipped). Why: ``segment L.png R.png --figure L.png`` wrote the
+    figure over the left image (exit 0), ``calibrate --pairs list.txt --out list.txt`` the calibration over its
+    list; the next run read the figure as the image."""
+    import os
+
+    from ..core.errors import InputError
+
+    named = [(option, path) for option, path in outputs if path]
+    for number, (option, path) in enumerate(named):
+        for other_option, other in named[:number]:
+            if os.path.realpath(path) == os.path.realpath(other):
+                raise InputError(f"{option}: the same file as {other_option} ({path}): name two files")
+        for name, source in inputs:
+            if source and os.path.isfile(source) and os.path.exists(path) and os.path.samefile(path, source):
+                raise InputError(f"{option}: {path} is the {name}: it would be written over")
 
 
 class _FigureAction(argparse.Action):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (add_disparity_export_options, add_figure_option, dumps_strict, finite_float, output_path,
-                     positive_float, positive_int, seed_int, too_small_reason)
+from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
+                     finite_float, output_path, positive_float, positive_int, seed_int, too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
@@ -167,18 +167,8 @@ def _write_outputs(args, batch, result, factors) -> None:
 def _check_outputs_apart(args: argparse.Namespace) -> None:
     """``--figure`` and ``--masks-out`` neither one file nor an input image. Why: ``--masks-out`` named as the left
     image wrote the labels over it (exit 0), and one name for both outputs kept only the labels."""
-    import os
-
-    from ..core.errors import InputError
-
-    outputs = [(option, path) for option, path in ((args.figure_option, args.figure), ("--masks-out", args.masks_out))
-               if path]
-    if len(outputs) == 2 and os.path.realpath(outputs[0][1]) == os.path.realpath(outputs[1][1]):
-        raise InputError(f"--masks-out: the same file as {outputs[0][0]} ({outputs[1][1]}): name two files")
-    for option, path in outputs:
-        for name, image in (("left", args.left), ("right", args.right)):
-            if image and os.path.isfile(image) and os.path.exists(path) and os.path.samefile(path, image):
-                raise InputError(f"{option}: {path} is the {name} image: it would be written over")
+    check_outputs_apart([(args.figure_option, args.figure), ("--masks-out", args.masks_out)],
+                        [("left image", args.left), ("right image", args.right)])
 
 
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:

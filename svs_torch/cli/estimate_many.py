@@ -28,7 +28,7 @@ def _load_source(source, args: argparse.Namespace):
     from ..data import load_pair_source, resize_stereo_batch
 
     batch = load_pair_source(source)
-    if not args.size:
+    if args.size is None:  # "" is an error (parse_size), not "native": --size "$SIZE" with SIZE unset
         return batch, (1.0, 1.0)
     (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "--size")
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)

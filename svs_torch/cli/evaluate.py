@@ -214,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
 
-    size_wh = parse_size(args.size, "--size") if args.size else None
+    size_wh = parse_size(args.size, "--size") if args.size is not None else None  # "": an error, not native
     check_no_manual_calibration(args)
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (ConfigValue, _number, add_figure_option, dumps_strict, non_negative_float, options_named,
-                     too_small_reason, unit_interval_float, with_config_values)
-from .segment import add_segmentation_options
+from .common import (ConfigValue, _number, add_figure_option, check_outputs_apart, dumps_strict, non_negative_float,
+                     options_named, too_small_reason, unit_interval_float, with_config_values)
+from .segment import add_segmentation_options, refuse_unused_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
 
@@ -166,7 +166,7 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
     from ..core.checks import InputError
     from .rig import calibration_from_args
 
-    new_size = parse_size(args.size, "--size") if args.size else None
+    new_size = parse_size(args.size, "--size") if args.size is not None else None  # "": an error, not native
     if new_size and new_size[0] * new_size[1] > MAX_PIXELS:
         raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
     batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
@@ -207,6 +207,17 @@ def settings_json(config) -> dict:
             "laplacian_gate": config.laplacian_gate}
 
 
+def _check_before_work(args: argparse.Namespace, check_output_path) -> None:
+    """The options no image is needed to refuse: segmentation options a whole-image run would ignore, and a figure
+    that cannot be written or would be written over an input."""
+    if args.no_segment:
+        refuse_unused_segmentation_options(args, "--no-segment matches the whole images' features", " or --no-segment")
+    if args.figure:
+        check_output_path(args.figure, args.figure_option)
+        check_outputs_apart([(args.figure_option, args.figure)],
+                            [("left image", args.left), ("right image", args.right)])
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -218,8 +229,7 @@ def run(args: argparse.Namespace) -> int:
         from ..plotting.plots import matches_figure
         from ..pipeline import segment_pair
 
-    if args.figure:
-        check_output_path(args.figure, args.figure_option)
+    _check_before_work(args, check_output_path)
     batch, factors = load_pair(args.left, args.right, args)
     config = command_config(args, batch.size_hw)
     reason = too_small_reason(batch.size_hw)

@@ -7,7 +7,7 @@ import time
 
 from .common import dumps_strict, positive_float, seed_int, too_small_reason
 from .features import add_feature_options, add_pair_options, load_pair, to_input_pixels
-from .segment import add_segmentation_options
+from .segment import add_segmentation_options, refuse_unused_segmentation_options
 
 HELP = "fundamental matrix of a stereo pair from SURF matches by RANSAC"
 
@@ -64,10 +64,15 @@ def run(args: argparse.Namespace) -> int:
         from dataclasses import replace
 
         from ..depth.depth_types import DepthConfig
-        from ..pipeline import estimate_obstacle_depth
+        from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from ..core.types import FundamentalStatus
         from .features import preset_config
 
+    preset = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
+    if args.no_segment or preset.features_on == "image":  # F from the whole images: segmentation changes nothing
+        how = "--no-segment" if args.no_segment else "as --preset default does"
+        refuse_unused_segmentation_options(args, f"this run finds F from the whole images' features ({how})",
+                                           ", or use --preset paper (the segmented obstacles)")
     batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)
     if reason:

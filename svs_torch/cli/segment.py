@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_figure_option, dumps_strict, options_named, positive_int
+from .common import add_figure_option, check_outputs_apart, dumps_strict, options_named, positive_int
 
 HELP = "segment the obstacles of a stereo pair (what estimate keeps; --preset paper: Otsu, largest regions)"
 
@@ -56,11 +56,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
     """The segmentation options shared by the commands that segment."""
-    parser.add_argument("--kernel-size", type=positive_int, default=5, metavar="N",
+    # No argparse defaults: the preset's values stand unless given, and a command can tell what was given
+    # (given_segmentation_options).
+    parser.add_argument("--kernel-size", type=positive_int, metavar="N",
                         help="side of the square structuring element for erosion and dilation, pixels "
                              "(default: 5)")
-    parser.add_argument("--keep", type=positive_int, default=2, metavar="N",
-                        help="how many regions to keep (paper: 2)")
+    parser.add_argument("--keep", type=positive_int, metavar="N",
+                        help="how many regions to keep (default: 2, the paper's)")
     parser.add_argument("--keep-rule", choices=("largest", "nearest", "nearest_first"),
                         help="which regions are kept: 'largest' by area (the paper's rule, and the only one of the "
                              "Otsu and learned segmenters), 'nearest' by median disparity, 'nearest_first' the "
@@ -73,11 +75,34 @@ def add_segmentation_options(parser: argparse.ArgumentParser) -> None:
                         help="a region under --min-area-fraction but at least this share is still kept where it is "
                              "nearer than every larger region: a thin pole ahead (default 0.0015; 0: off)")
     add_floor_option(parser)
-    parser.add_argument("--connectivity", type=int, choices=(4, 8), default=8,
+    parser.add_argument("--connectivity", type=int, choices=(4, 8),
                         help="pixel connectivity of regions (default: 8, as MATLAB bwlabel)")
     parser.add_argument("--dark-objects", action="store_true",
                         help="obstacles are darker than the background: keep pixels at or below the threshold "
                              "(the Otsu segmenter's threshold, as the paper's preset runs it)")
+
+
+#: The options of :func:`add_segmentation_options` (and ``--segmenter``) with the ``args`` field each sets.
+SEGMENTATION_OPTIONS = (("--segmenter", "segmenter"), ("--kernel-size", "kernel_size"), ("--keep", "keep"),
+                        ("--keep-rule", "keep_rule"), ("--min-area-fraction", "min_area_fraction"),
+                        ("--near-min-area-fraction", "near_min_area_fraction"), ("--floor", "floor"),
+                        ("--connectivity", "connectivity"), ("--dark-objects", "dark_objects"))
+
+
+def given_segmentation_options(args: argparse.Namespace) -> list[str]:
+    """The segmentation options the user gave (a command that segments nothing refuses them, rather than ignore
+    them: ``features --no-segment --keep 3`` ran as without it)."""
+    return [option for option, field in SEGMENTATION_OPTIONS if getattr(args, field, None) not in (None, False)]
+
+
+def refuse_unused_segmentation_options(args: argparse.Namespace, reason: str, fix: str) -> None:
+    """An InputError naming the first segmentation option given (:func:`given_segmentation_options`) to a run that
+    segments nothing (``reason``), with ``fix``, the clause after "drop the option"."""
+    from ..core.errors import InputError
+
+    given = given_segmentation_options(args)
+    if given:
+        raise InputError(f"{given[0]}: {reason}, which no segmentation option changes; drop {given[0]}{fix}")
 
 
 def add_floor_option(parser: argparse.ArgumentParser, default: str = "off",
@@ -129,8 +154,11 @@ def config_from_args(args: argparse.Namespace, base=None):
 
     with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter", keep="--keep-rule",
                        min_area_fraction="--min-area-fraction", near_min_area_fraction="--near-min-area-fraction"):
-        config = replace(base or SegmentationConfig(), kernel_size=args.kernel_size, num_keep=args.keep,
-                         connectivity=args.connectivity, foreground="dark" if args.dark_objects else "bright")
+        base = base or SegmentationConfig()
+        config = replace(base, kernel_size=base.kernel_size if args.kernel_size is None else args.kernel_size,
+                         num_keep=base.num_keep if args.keep is None else args.keep,
+                         connectivity=base.connectivity if args.connectivity is None else args.connectivity,
+                         foreground="dark" if args.dark_objects else "bright")
         if getattr(args, "segmenter", None):
             # Only the nearness segmenter measures disparity: the others keep the largest regions.
             stereo = args.segmenter.startswith("nearness")
@@ -143,16 +171,21 @@ def config_from_args(args: argparse.Namespace, base=None):
             config = replace(config, near_min_area_fraction=args.near_min_area_fraction)
         config = with_floor(config, getattr(args, "floor", None))
     check_segmenter_options(config.segmenter, dark_objects=args.dark_objects, floor=getattr(args, "floor", None),
-                            segmenter_option=hasattr(args, "segmenter"))
+                            segmenter_option=hasattr(args, "segmenter"), keep_rule=getattr(args, "keep_rule", None),
+                            area_options=[option for option, field in SEGMENTATION_OPTIONS[4:6]
+                                          if getattr(args, field, None) is not None])
     return config
 
 
 def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: str | None = None,
-                            canny: bool = False, segmenter_option: bool = True) -> None:
+                            canny: bool = False, segmenter_option: bool = True, keep_rule: str | None = None,
+                            area_options: list[str] | tuple[str, ...] = ()) -> None:
     """Reject an option that the chosen ``segmenter`` would silently ignore: ``--dark-objects`` and ``--canny``
     change the brightness threshold, which only the Otsu segmenter has; ``--floor on`` leaves out a plane found
-    in the measured disparity, which only the nearness segmenter measures. ``segmenter_option``: the command
-    takes ``--segmenter`` (the message then names it)."""
+    in the measured disparity, which only the nearness segmenter measures; so do a nearness ``keep_rule``
+    (``--keep-rule nearest_first`` kept the largest regions under Otsu, and the JSON named the rule) and the
+    nearness rules' area options (``area_options``, the names given). ``segmenter_option``: the command takes
+    ``--segmenter`` (the message then names it)."""
     from ..core.errors import InputError
 
     kind = segmenter.partition(":")[0]
@@ -161,6 +194,11 @@ def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: s
         if given and kind != "otsu":
             raise InputError(f"{option}: only the Otsu segmenter thresholds brightness, and this run segments with "
                              f"{segmenter!r}; {fix}")
+    if kind != "nearness" and (keep_rule in ("nearest", "nearest_first") or area_options):
+        option = f"--keep-rule {keep_rule}" if keep_rule in ("nearest", "nearest_first") else area_options[0]
+        raise InputError(f"{option}: only the nearness segmenter ranks regions by disparity, and this run segments "
+                         f"with {segmenter!r}; drop it or use "
+                         + ("--segmenter nearness" if segmenter_option else "--preset default"))
     if floor == "on" and kind != "nearness":
         raise InputError(f"--floor: 'on' leaves out the floor the nearness segmenter finds in the measured "
                          f"disparity, and this run segments with {segmenter!r}; drop --floor or use --segmenter "
@@ -217,6 +255,8 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_args(args, base.segmentation)
     if args.figure:
         check_output_path(args.figure, args.figure_option)
+        check_outputs_apart([(args.figure_option, args.figure)],
+                            [("left image", args.left), ("right image", args.right)])
     batch = load_image_pair(args.left, args.right)
     started = time.perf_counter()
     seg = segment_pair(batch, config)

@@ -62,7 +62,9 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
     folder must exist, the path must not be a folder, and with ``suffixes`` its ending must be one of them
     (``kinds`` says which in the message, e.g. ``"a .png, .pdf or .svg"``). Checked before any work starts."""
     target = Path(path)
-    if not str(path) or path_kind(target, name) == "folder":
+    if not os.fspath(path).strip():  # Path("") is the current folder: "got the folder '.'" hid the empty name
+        raise InputError(f"{name}: expected a file name, got {os.fspath(path)!r}")
+    if path_kind(target, name) == "folder":
         raise InputError(f"{name}: expected a file name, got the folder {display_path(target)!r}")
     if path_kind(target.parent, name) != "folder":
         raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")

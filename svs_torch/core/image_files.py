@@ -42,6 +42,8 @@ def preload_key(path: str | Path) -> str:
 
 def check_file(path: str | Path, name: str) -> Path:
     """``path`` as a :class:`Path`; raises :class:`InputError` naming ``name`` when it is not an existing file."""
+    if not os.fspath(path).strip():  # Path("") is the current folder: "got a directory ... ." hid the empty name
+        raise InputError(f"{name}: expected a file name, got {os.fspath(path)!r}")
     kind = path_kind(path, name)
     if kind == "missing":
         raise InputError(f"{name}: file not found: {display_path(path)}")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import re
 from pathlib import Path
 
@@ -143,6 +144,9 @@ def load_image_pair(
             raise InputError(f"{name}: expected a finite positive value, got {value!r}")
     if not number(doffs_px):
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px!r}")
+    for name, path in (("left", left_path), ("right", right_path)):
+        if isinstance(path, (str, os.PathLike)) and not os.fspath(path).strip():  # Path("") is the current folder
+            raise InputError(f"{name}: expected an image file name, got {os.fspath(path)!r}")
     left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]

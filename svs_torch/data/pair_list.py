@@ -259,6 +259,8 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
         InputError: (naming ``name``) for a missing, unreadable or non-UTF-8 file, or one that lists nothing.
             A bad line is not an error: it becomes a :class:`PairSource` with ``problem`` set.
     """
+    if not os.fspath(path).strip():
+        raise InputError(f"{name}: expected a list file name, got {os.fspath(path)!r}")
     path = Path(path)
     text = _read_text(path, name)
     if path.suffix == ".jsonl":

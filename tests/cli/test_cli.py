@@ -168,8 +168,10 @@ def test_near_min_area_fraction_option(data_dir, capsys):
     from svs_torch.cli.segment import config_from_args
     from svs_torch.cli import build_parser
 
+    from svs_torch.pipeline import PipelineConfig
+
     args = build_parser().parse_args(["estimate", "a.png", "b.png", "--near-min-area-fraction", "0.001"])
-    assert config_from_args(args).near_min_area_fraction == 0.001
+    assert config_from_args(args, PipelineConfig().segmentation).near_min_area_fraction == 0.001
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, err = run_cli(capsys, "estimate", left, right, "--near-min-area-fraction", "1.5")
     assert code == 2 and out == "" and err.count("\n") == 1 and "--near-min-area-fraction" in err

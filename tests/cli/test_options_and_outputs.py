@@ -226,3 +226,69 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     for _ in range(2):
         code, _, err = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--disparity-out", str(out))
         assert code == 0 and "not written" not in err and (out / "Teddy" / "disp0SVSTorch.pfm").is_file()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["segment", "{L}", "{R}", "--figure", "{L}"], "--figure: {L} is the left image: it would be written over"),
+    (["features", "{L}", "{R}", "--figure", "{R}"], "--figure: {R} is the right image: it would be written over"),
+    (["features", "{L}", "{R}", "--no-segment", "--keep", "3"],
+     "--keep: --no-segment matches the whole images' features, which no segmentation option changes"),
+    (["fundamental", "{L}", "{R}", "--kernel-size", "31"],
+     "--kernel-size: this run finds F from the whole images' features (as --preset default does)"),
+    (["fundamental", "{L}", "{R}", "--dark-objects"], "--dark-objects: this run finds F from the whole images'"),
+    (["segment", "{L}", "{R}", "--segmenter", "otsu", "--keep-rule", "nearest_first"],
+     "--keep-rule nearest_first: only the nearness segmenter ranks regions by disparity, and this run segments "
+     "with 'otsu'; drop it or use --segmenter nearness"),
+    (["features", "{L}", "{R}", "--preset", "paper", "--min-area-fraction", "0.5"],
+     "--min-area-fraction: only the nearness segmenter ranks regions by disparity"),
+    (["features", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
+    (["fundamental", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
+    (["segment", "{L}", ""], "right: expected an image file name, got ''"),
+])
+def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys, tmp_path, argv, message):
+    """Found by an audit of the smaller commands: a figure named as an input was written over it (exit 0);
+    segmentation options a whole-image run never reads, a nearness rule under Otsu, and an empty --size (native
+    size) ran as if not given; an empty image name was "a directory or special file: ."."""
+    import shutil
+
+    names = {}
+    for key, source in zip("LR", TEDDY):
+        names[key] = str(tmp_path / f"{key}.png")
+        shutil.copy(data_dir / source, names[key])
+    before = {key: Path(path).read_bytes() for key, path in names.items()}
+    code, out, err = run_cli(capsys, *(a.format(**names) for a in argv))
+    assert code == 2 and out == "" and message.format(**names) in err and err.count("\n") == 1
+    assert {key: Path(path).read_bytes() for key, path in names.items()} == before
+
+
+def test_fundamental_takes_segmentation_options_where_it_segments(data_dir, capsys):
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper", "--keep", "1", "--size", "160x120",
+                           "--json")
+    assert code == 0 and json.loads(out)["status"] in ("OK", "TOO_FEW_MATCHES", "DEGENERATE")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["{S}", "--square-m", "0.025", "--out", "{T}/rig.json"], "left: '{S}' is a folder: expected left images, e.g."),
+    (["--pairs", "", "--square-m", "0.025", "--out", "{T}/rig.json"], "--pairs: expected a list file name, got ''"),
+    (["{S}/left0[1-3].jpg", "--square-m", "0.025", "--out", ""], "--out: expected a file name, got ''"),
+    (["{S}/left0[1-3].jpg", "--square-m", "0.025", "--out", "{T}/rig.json", "--figure", "{T}/copy.jpg"],
+     "--figure: {T}/copy.jpg is the left image of a pair: it would be written over"),
+])
+def test_calibrate_names_folders_empty_names_and_inputs_as_outputs(data_dir, capsys, tmp_path, argv, message):
+    import shutil
+
+    samples = str(data_dir / "opencv_samples")
+    shutil.copy(data_dir / "opencv_samples" / "left04.jpg", tmp_path / "copy.jpg")
+    shutil.copy(data_dir / "opencv_samples" / "right04.jpg", tmp_path / "copy_right.jpg")
+    fields = {"S": samples, "T": str(tmp_path)}
+    argv = [a.format(**fields) for a in argv]
+    if "--figure" in argv:  # the figure named as one of the pairs' images: a list file gives that pair
+        listed = tmp_path / "pairs.txt"
+        listed.write_text("".join(f"{samples}/left0{n}.jpg {samples}/right0{n}.jpg\n" for n in (1, 2, 3))
+                          + f"{tmp_path}/copy.jpg {tmp_path}/copy_right.jpg\n")
+        argv = ["--pairs", str(listed), *argv[1:]]
+    code, out, err = run_cli(capsys, "calibrate", *argv)
+    assert code == 2 and out == "" and message.format(**fields) in err
+    assert not (tmp_path / "rig.json").exists() and (tmp_path / "copy.jpg").read_bytes() == \
+        (data_dir / "opencv_samples" / "left04.jpg").read_bytes()
