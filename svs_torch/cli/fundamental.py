@@ -18,6 +18,8 @@ keypoints are found on the whole images, as estimate finds them (a turned or shi
 little differently); under --preset paper on the segmented obstacles, with MATLAB's ratio test (--no-segment:
 the whole images). F maps a left point to its right epipolar line: x_right^T F x_left = 0, in input-image
 pixels, unit Frobenius norm; null (text: "no F") where no sample gave a model (TOO_FEW_MATCHES, DEGENERATE).
+JSON "inliers": one [x_left, y_left, x_right, y_right] per inlier match, input-image pixels (pixel centres at
+whole numbers).
 """
 
 EPILOG = """\

@@ -317,8 +317,11 @@ def _check_random_args(batch_size: int, num_objects: int, size_wh: tuple[int, in
     sector = size_wh[0] * (1 - 2 * _BORDER_FRACTION) / max(num_objects, 1)
     room_m = (sector - _GAP_FRACTION * size_wh[0] - focal * camera.baseline_m / near) * near / focal
     if num_objects > 0 and room_m < _MIN_SECTOR_WIDTH_M:
-        raise InputError(f"num_objects: {num_objects} obstacles do not fit side by side in both views at "
-                         f"{near} m (room for {room_m:.3g} m each, need {_MIN_SECTOR_WIDTH_M} m)")
+        # The most that fit: each sector holds the gap, the obstacle's disparity and the narrowest obstacle.
+        needed_px = _GAP_FRACTION * size_wh[0] + focal * (camera.baseline_m + _MIN_SECTOR_WIDTH_M) / near
+        fit = int(size_wh[0] * (1 - 2 * _BORDER_FRACTION) // needed_px)
+        raise InputError(f"num_objects: {num_objects} obstacles do not fit side by side in both views at {near} m "
+                         f"and {size_wh[0]}x{size_wh[1]} (each needs {_MIN_SECTOR_WIDTH_M} m); at most {fit} fit")
 
 
 def _place_obstacles(batch_size: int, num_objects: int, size_wh: tuple[int, int],

@@ -295,6 +295,8 @@ def test_wall_texture_contrast_scales_the_wall_only() -> None:
         ({"noise_std": -0.1}, "noise_std: expected a finite value >= 0"),
         ({"texture_contrast": -0.5}, "texture_contrast: expected a finite number >= 0"),
         ({"texture_contrast": float("nan")}, "texture_contrast: expected a finite number >= 0"),
+        # The most that fit is said, not a negative room (demo --objects 20: "room for -0.0762 m each").
+        ({"num_objects": 20, "size_wh": (320, 240)}, r"num_objects: 20 obstacles do not fit .* at most 4 fit"),
     ],
 )
 def test_random_scene_errors(kwargs: dict, message: str) -> None:
