@@ -232,6 +232,8 @@ def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]
     """Human-readable lines for one image's report."""
     rule = (f"Otsu threshold {report['threshold']}/255" if segmenter == "otsu"
             else f"{segmenter} segmenter, obstacle probability above {report['threshold'] / 255:.2f}")
+    if report["status"] == "UNIFORM_IMAGE":  # its threshold and its one "region" (the whole image) mean nothing
+        return [f"{side}: status UNIFORM_IMAGE, one level everywhere: nothing to segment", "  no object kept"]
     lines = [f"{side}: {rule}, {report['num_regions']} regions, status {report['status']}"]
     if not report["objects"]:
         lines.append("  no object kept")

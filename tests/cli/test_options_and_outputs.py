@@ -164,6 +164,10 @@ def test_a_blank_pair_keeps_no_region(capsys, tmp_path):
         code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--preset", preset)
         segmented = json.loads(out)
         assert segmented["left"]["status"] == "UNIFORM_IMAGE" and segmented["left"]["objects"] == []
+        # The text says so, without a threshold and "1 regions" beside "no object kept" (an audit found them odd).
+        code, out, _ = run_cli(capsys, "segment", left, right, "--preset", preset)
+        assert code == 0 and out.splitlines()[:2] == [
+            "left: status UNIFORM_IMAGE, one level everywhere: nothing to segment", "  no object kept"]
 
 
 def test_max_keypoints_option_states_its_own_range(capsys):
