@@ -172,8 +172,8 @@ def config_from_args(args: argparse.Namespace, base=None):
         config = with_floor(config, getattr(args, "floor", None))
     check_segmenter_options(config.segmenter, dark_objects=args.dark_objects, floor=getattr(args, "floor", None),
                             segmenter_option=hasattr(args, "segmenter"), keep_rule=getattr(args, "keep_rule", None),
-                            area_options=[option for option, field in SEGMENTATION_OPTIONS[4:6]
-                                          if getattr(args, field, None) is not None])
+                            area_options=[option for option, field in SEGMENTATION_OPTIONS
+                                          if field.endswith("area_fraction") and getattr(args, field) is not None])
     return config
 
 
