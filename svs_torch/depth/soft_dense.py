@@ -32,10 +32,14 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
 
     Gradients flow to both images (through the pre-filter, the absolute differences and the softmax) and are
     defined wherever no difference is exactly zero (there the absolute value's gradient is taken as 0, as
-    autograd's).
+    autograd's); not to ``temperature``, a constant (a tensor that requires grad is refused). First derivatives
+    only: the backward is written by hand, and a second one (``create_graph=True`` through it) raises instead of
+    giving the zeros it gave before.
     """
     b = _check_pair(left, right, config)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
+    if isinstance(temperature, torch.Tensor) and temperature.requires_grad:
+        raise InputError("temperature: expected a number; no gradient flows to it (got a tensor that requires grad)")
     if not temperature > 0:
         raise InputError(f"temperature: expected a positive number, got {temperature!r}")
     h, w = left.shape[-2:]
@@ -69,13 +73,17 @@ class _SoftArgminSAD(torch.autograd.Function):
             logits.masked_fill_(~inside.any(dim=1, keepdim=True), 0.0)  # no candidate: uniform, replaced later
             weights = torch.softmax(logits, dim=1)
             expected = (weights * values.view(b, d, 1, 1)).sum(dim=1, keepdim=True)
-        ctx.save_for_backward(left_crop, right_crop, weights, values, expected)
+        ctx.save_for_backward(left_crop, right_crop, weights, values, expected, inside)
         ctx.size, ctx.temperature = size, temperature
         return expected
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        left_crop, right_crop, weights, values, expected = ctx.saved_tensors
+        left_crop, right_crop, weights, values, expected, inside = ctx.saved_tensors
+        if torch.is_grad_enabled():
+            # create_graph=True: the hand-written backward below runs without a graph, so a second derivative
+            # through it was silently zero; here the forward is taken again op by op and differentiated by autograd.
+            return (*_differentiable_backward(ctx, grad, left_crop, right_crop, inside, values), None, None, None, None)
         size, (b, d) = ctx.size, values.shape
         pad, width = size - 1, left_crop.shape[-1]
         scaled = grad[:, 0] / (size * size * ctx.temperature)  # (B, H, W)
@@ -92,3 +100,20 @@ class _SoftArgminSAD(torch.autograd.Function):
                 grad_left += grad_difference
                 grad_right[..., start:start + width] -= grad_difference
         return grad_left.unsqueeze(1), grad_right.unsqueeze(1), None, None, None, None
+
+
+def _differentiable_backward(ctx, grad: torch.Tensor, left_crop: torch.Tensor, right_crop: torch.Tensor,
+                             inside: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+    """The crops' gradients of :class:`_SoftArgminSAD` with their own graph (``create_graph=True``): its forward op
+    by op (window means by ``avg_pool2d``: equal to the forward's up to round-off), differentiated by autograd."""
+    size, temperature, (b, d) = ctx.size, ctx.temperature, values.shape
+    width = left_crop.shape[-1]
+    wanted = [t for t, needed in zip((left_crop, right_crop), ctx.needs_input_grad[:2]) if needed]
+    with torch.enable_grad():
+        means = torch.cat([F.avg_pool2d((left_crop - right_crop[..., d - 1 - i:d - 1 - i + width]).abs(), size,
+                                        stride=1) for i in range(d)], dim=1)
+        logits = (-means / temperature).masked_fill(~inside, -torch.inf)
+        logits = logits.masked_fill(~inside.any(dim=1, keepdim=True), 0.0)
+        expected = (torch.softmax(logits, dim=1) * values.view(b, d, 1, 1)).sum(dim=1, keepdim=True)
+        found = iter(torch.autograd.grad(expected, wanted, grad, create_graph=True))
+    return tuple(next(found) if needed else None for needed in ctx.needs_input_grad[:2])

@@ -241,6 +241,26 @@ def test_soft_block_match_gradcheck_and_low_temperature_limit(generator):
     torch.testing.assert_close(cold[hard.valid & integer], hard.disparity_px[hard.valid & integer])
 
 
+def test_soft_block_match_second_derivatives_are_the_true_ones(generator):
+    """Found by an audit: the hand-written backward ran without a graph, so create_graph=True gave a second
+    derivative of zero in silence (a gradient penalty through the soft-argmin trained on nothing). With
+    create_graph the backward is taken op by op: gradgradcheck, and the op-by-op reference's Hessian-vector
+    product; a temperature that asks for a gradient is refused (none flows to it)."""
+    left = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)
+    right = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)
+    for config in (DenseConfig(window_size=3, prefilter="none"), DenseConfig(window_size=3)):
+        assert torch.autograd.gradgradcheck(lambda a, b: soft_block_match(a, b, 0, 4, 0.1, config), (left, right))
+        squared = []
+        for run in (lambda a, b: soft_block_match(a, b, torch.tensor([0]), 4, 0.1, config),
+                    lambda a, b: _soft_block_match_op_by_op(a, b, torch.tensor([0]), 4, 0.1, config)):
+            first, = torch.autograd.grad(run(left, right).sum(), left, create_graph=True)
+            squared.append(torch.autograd.grad((first ** 2).sum(), right)[0])
+        assert squared[0].abs().sum() > 0
+        torch.testing.assert_close(squared[0], squared[1])
+    with pytest.raises(InputError, match="temperature: expected a number; no gradient flows to it"):
+        soft_block_match(left, right, 0, 4, torch.tensor(0.1, requires_grad=True))
+
+
 def _soft_block_match_op_by_op(left, right, minimum, count, temperature, config):
     """The soft-argmin written the plain way, every op recorded by autograd: a reference for the hand-written
     backward of :func:`soft_block_match` (replicate borders, costs as window means, no weight outside the image)."""
