@@ -321,3 +321,26 @@ def test_a_hard_run_in_inference_mode_leaves_nothing_that_stops_training(data_di
     assert torch.equal(result.hard_depth.objects.depth_median_m, hard.depth.objects.depth_median_m)
     result.depth.objects.depth_median_m[result.depth.objects.valid].sum().backward()
     assert int((batch.left.grad != 0).sum()) > 100
+
+
+def test_the_nearest_obstacle_is_the_hard_pipelines_choice_with_soft_values():
+    """Found by an audit: the differentiable pass chose the nearest obstacle again on its soft medians, so two
+    obstacles a few hundredths of a millimetre apart swapped the warned side (slot 0, left -> slot 1, right) and the
+    gradient trained the other obstacle. The slot, side and validity are the hard pipeline's; the depth is the soft
+    median at that slot."""
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    count, generator = 32, torch.Generator().manual_seed(2)
+    depth = torch.stack([torch.full((count,), 1.5), 1.5 + (torch.rand(count, generator=generator) - 0.5) * 0.002], 1)
+    center = torch.tensor([[-0.35, 0.0], [0.35, 0.0]]).expand(count, 2, 2)
+    size = torch.tensor([[0.4, 0.6]] * 2).expand(count, 2, 2)
+    batch = render_obstacle_scenes(depth, center, size, size_wh=(128, 96), generator=generator).batch
+    batch = batch.select(torch.tensor([7]))  # the near tie whose soft medians order the other way
+    result = estimate_obstacle_depth(_requiring_grad(batch), PipelineConfig(differentiable=True))
+    hard, soft = result.hard_depth.nearest, result.depth.nearest
+    for field in ("slot", "side", "valid"):
+        assert torch.equal(getattr(soft, field), getattr(hard, field))
+    medians = result.depth.objects.depth_median_m
+    assert medians[0, 1] < medians[0, 0]  # the soft medians do order the other way
+    assert soft.depth_m[0] == medians[0, hard.slot[0]] and soft.depth_m.requires_grad
+    assert soft.surface_m[0] == result.depth.objects.depth_low_m[0, hard.slot[0]]
