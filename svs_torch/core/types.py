@@ -71,6 +71,8 @@ class StereoBatch:
         dims = check_image(self.left, "left")
         check_image(self.right, "right")
         check_same_shape(self.left, "left", self.right, "right")
+        if self.right.dtype != self.left.dtype:  # the differentiable pass followed the right view's in silence
+            raise InputError(f"right: expected the left view's dtype {self.left.dtype}, got {self.right.dtype}")
         b = dims["B"]
         if min(dims["H"], dims["W"]) < 1:
             raise InputError(f"left: expected images of at least 1x1 pixels, got {dims['W']}x{dims['H']} (WxH)")

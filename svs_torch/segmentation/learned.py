@@ -229,6 +229,10 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
     dims = check_shape(logits, "logits", ["B", 1, "H", "W"])
     check_shape(disparity_px, "disparity_px", list(logits.shape))
     check_shape(segmentation.labels, "segmentation.labels", list(logits.shape))
+    for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
+        check_shape(value, name, [dims["B"]])  # a (3,) calibration for 2 pairs failed deep in a broadcast
+    if bool(torch.isnan(logits).any()):  # NaN logits left every object invalid in silence
+        raise InputError("logits: expected numbers, got NaN")
     if not mask_temperature > 0:
         raise InputError(f"mask_temperature: expected a positive number, got {mask_temperature!r}")
     b, n = dims["B"], segmentation.kept_labels.shape[1]

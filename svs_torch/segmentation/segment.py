@@ -294,7 +294,8 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
         the uint8 image: ``threshold(THRESH_OTSU)``, ``erode``, ``dilate``, ``connectedComponentsWithStats``.
         Not differentiable (``masked`` carries the image's gradient inside the kept mask only).
     """
-    check_image(image, "image")
+    if check_image(image, "image")["B"] == 0:  # a reshape deep in the histogram said it before
+        raise InputError("image: expected at least one image, got an empty batch")
     check_instance(config, "config", SegmentationConfig)
     if config.segmenter != "otsu":  # it ran Otsu in silence
         raise InputError(f"config: segment_images runs the Otsu segmenter on single images; segmenter "

@@ -65,6 +65,10 @@ def test_stereo_batch_checks_its_fields():
         make_batch(disparity_px=torch.zeros(3, 1, 4, 5))
     with pytest.raises(InputError, match="names: expected 3 names, one per pair, got 1"):
         make_batch(names=("a",))
+    # Found by an audit: a float64 right view beside a float32 left made the differentiable depth float64, its
+    # values other than the float32 pair's, while the hard result stayed float32.
+    with pytest.raises(InputError, match="^right: expected the left view's dtype torch.float32, got torch.float64$"):
+        StereoBatch.from_images(torch.rand(1, 1, 4, 5), torch.rand(1, 1, 4, 5, dtype=torch.float64), 276.0, 0.1)
     meta = torch.zeros(1, 1, 4, 5, device="meta")  # was: RuntimeError 'Tensor.item() cannot be called on meta tensors'
     with pytest.raises(InputError, match="^left: expected an image with values, got a tensor on the meta device$"):
         StereoBatch.from_images(meta, meta, 276.0, 0.1)

@@ -87,3 +87,22 @@ def test_errors_name_the_argument():
         soft_dilate(image, torch.zeros(3, 3, dtype=torch.bool))
     with pytest.raises(InputError, match="x: expected a float tensor"):
         soft_erode(image > 0.5, structuring_element("square", 3))
+
+
+def test_empty_batches_calibration_of_another_batch_and_nan_logits_are_named():
+    """Found by an audit of the differentiable side: an empty batch failed in a reshape deep in the histogram, a
+    calibration of 3 for 2 pairs in a broadcast, and NaN logits left every object invalid without a word."""
+    from svs_torch.segmentation import segment_images
+    from svs_torch.segmentation.learned import soft_object_depths
+
+    images = torch.rand(2, 1, 24, 32, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for run in (segment_images, soft_segment_images):
+        with pytest.raises(InputError, match="^image: expected at least one image, got an empty batch$"):
+            run(images[:0])
+    hard = segment_images(images)
+    ones, zeros = torch.ones(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    with pytest.raises(InputError, match=r"^focal_px: expected \(2\), got \(3\)$"):
+        soft_object_depths(images, hard, images, torch.ones(3), ones, zeros)
+    with pytest.raises(InputError, match="^logits: expected numbers, got NaN$"):
+        soft_object_depths(images * float("nan"), hard, images, ones, ones, zeros)
+    assert soft_object_depths(images, hard, images, ones, ones, zeros).depth_m.shape[0] == 2
