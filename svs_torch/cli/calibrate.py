@@ -29,7 +29,8 @@ examples:
   svs-depth estimate left.jpg right.jpg --calibration rig.json
 LEFT: left image files or quoted patterns (*, ?); each right image is the file of the same name with 'left'
 replaced by 'right' (also Left/Right, LEFT/RIGHT). --pairs: a list file, one 'LEFT RIGHT' per line.
-exit status: 0 written; 2 bad arguments, unreadable images, or too few pairs with the board in both views.
+exit status: 0 written; 2 bad arguments, unreadable images, or too few pairs with the board in both views (or
+in too few poses); 1 the file or the figure cannot be written (a full disk: the option and the file named).
 """
 
 

@@ -61,7 +61,9 @@ dense_* and sparse_* errors are in the pixels the pipeline ran at (--size), the 
 the data's native pixels, at the published thresholds. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
 row, but an ERROR row, which is replaced), for svs-depth results.
-exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set.
+exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set;
+1 an output that cannot be written (--disparity-out or --db on a full disk: the option and the file named; the
+rows a --db store committed are kept).
 """
 
 
