@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -261,23 +262,39 @@ class SVSStereoCamera:
         return [self.grab_pair() for _ in range(count)]
 
     def stream_batches(self, batch_size: int, *, num_batches: int | None = None, dtype: torch.dtype = torch.float32,
-                       device: torch.device | str | None = None) -> Iterator[PairBatch]:
+                       device: torch.device | str | None = None, idle_s: float | None = None
+                       ) -> Iterator[PairBatch | None]:
         """Grab pairs continuously in a background thread; yield each time ``batch_size`` new pairs arrived.
 
         Each item holds the ``batch_size`` most recent pairs; pairs that arrived while the consumer was busy and
         are no longer among them are counted in ``num_dropped``. Stops after ``num_batches`` (None: never) or when
-        the generator is closed; a capture error in the background is raised here. Do not call
-        :meth:`grab_pair` while streaming.
+        the generator is closed; a capture error in the background is raised here (and no batch within
+        ``batch_size`` times :meth:`pair_timeout_s`). With ``idle_s``, None is yielded each ``idle_s`` seconds no
+        batch came in the meantime: the consumer can act on the wait (``guide`` says it cannot see when the link
+        froze while the driver retried, instead of seconds of silence). Do not call :meth:`grab_pair` while
+        streaming.
         """
         if not isinstance(batch_size, int) or batch_size < 1:
             raise InputError(f"batch_size: expected a positive integer, got {batch_size!r}")
+        if idle_s is not None and not (isinstance(idle_s, (int, float)) and idle_s > 0):
+            raise InputError(f"idle_s: expected None or a positive number of seconds, got {idle_s!r}")
         state = _Stream(batch_size)
         thread = threading.Thread(target=self._stream_loop, args=(state,), name="svs-stream", daemon=True)
         thread.start()
         try:
             produced = 0
+            timeout_s = batch_size * self.pair_timeout_s()
             while num_batches is None or produced < num_batches:
-                pairs, dropped = state.take(timeout_s=batch_size * self.pair_timeout_s())
+                deadline = time.monotonic() + timeout_s
+                taken = None
+                while taken is None:
+                    left_s = deadline - time.monotonic()
+                    if left_s <= 0:
+                        raise CaptureError(f"stream_batches: no {batch_size} new pairs within {timeout_s:.1f} s")
+                    taken = state.take(left_s if idle_s is None else min(idle_s, left_s))
+                    if taken is None and idle_s is not None:
+                        yield None
+                pairs, dropped = taken
                 yield PairBatch(to_stereo_batch(pairs, dtype=dtype, device=device), pairs, dropped)
                 produced += 1
         finally:
@@ -343,12 +360,14 @@ class _Stream:
             self.error = err
             self.cond.notify_all()
 
-    def take(self, timeout_s: float) -> tuple[tuple[StereoPair, ...], int]:
+    def take(self, timeout_s: float) -> tuple[tuple[StereoPair, ...], int] | None:
+        """The latest pairs and how many were dropped, once ``batch_size`` new ones came; None after ``timeout_s``
+        without them; the grabbing thread's error raised."""
         with self.cond:
             ready = self.cond.wait_for(lambda: self.error is not None or self.new >= self.batch_size, timeout_s)
             if self.error is not None:
                 raise self.error
             if not ready:
-                raise CaptureError(f"stream_batches: no {self.batch_size} new pairs within {timeout_s:.1f} s")
+                return None
             dropped, self.new = self.new - self.batch_size, 0
             return tuple(self.ring), dropped

@@ -11,6 +11,11 @@ camera is opened again every ``--reconnect-s`` seconds, and the first pair range
 never opened (a wrong address, a board switched off) still ends guide with its error, exit 1, as before; so does
 one lost for ``--give-up-s`` seconds, if set. With ``--json`` each loss and return is a line of its own
 (``{"event": "camera_lost", ...}``, ``{"event": "camera_back", "lost_s": ...}``); ``--record`` keeps pairs only.
+
+Sight is judged on time, not only on the pairs that come: a link that froze while the driver retries brings no
+pair for seconds, and the stream ticks (``IDLE_TICK_S``) so that "Cannot see ahead" comes after ``--blind-s``;
+and a pair whose two frames came more than ``MAX_FRAME_GAP_S`` apart after the camera's regrabs is not ranged
+(``{"event": "frames_apart"}``) and counts as not seen.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from typing import Callable
 
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
+from ..capture.stereo import MAX_FRAME_GAP_S
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
@@ -35,6 +41,8 @@ _CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
+#: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
+IDLE_TICK_S = 0.25
 
 
 class GuideSession:
@@ -86,7 +94,9 @@ class GuideSession:
         """Range the pairs ``camera`` streams until ``--count`` (None) or until it is lost (its error). Only the
         camera's errors are a loss: one writing the record or the JSON lines is raised."""
         remaining = self.args.count - self.processed if self.args.count else None
-        stream = camera.stream_batches(1, num_batches=remaining)
+        # A tick while no pair comes (the link froze and the driver retries): sight is judged on time, not only on
+        # pairs, so the walker hears "Cannot see ahead" after --blind-s, not seconds of silence until the loss.
+        stream = camera.stream_batches(1, num_batches=remaining, idle_s=IDLE_TICK_S)
         with contextlib.closing(stream):  # its grabbing thread stops whatever ends the loop
             while True:
                 try:
@@ -97,7 +107,13 @@ class GuideSession:
                     raise
                 except _CAMERA_ERRORS as error:
                     return error
-                self._range(item)
+                if item is None:
+                    if self.lost_at_s is None:  # a camera already said lost is not also said blind
+                        self._watch_sight(False, "WAITING_FOR_FRAMES", time.monotonic())
+                elif abs(item.pairs[0].time_between_frames_s) > MAX_FRAME_GAP_S:
+                    self._torn(item)
+                else:
+                    self._range(item)
 
     def _lost(self, error: Exception) -> None:
         """Say the camera is lost (once a loss), give up after ``--give-up-s``, and wait ``--reconnect-s``."""
@@ -114,24 +130,60 @@ class GuideSession:
         self.status_line.show(f"camera lost {lost_s:.0f} s ago: opening it again")
         time.sleep(self.args.reconnect_s)
 
-    def _watch_sight(self, result, now_s: float) -> bool:
-        """Say when no pair has been ranged for ``--blind-s`` seconds, and when one is again
-        (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear.
-        Returns whether this pair was seen."""
+    @staticmethod
+    def _seen(result) -> bool:
+        """Whether a ranged pair saw: ranged, or no obstacle kept from a disparity map that measured the view (a
+        view of floor only, a walker's camera pitched down in an empty corridor). Blank frames measure too little
+        to be segmented by their map (from_disparity False), and a pair whose kept regions could not be ranged is
+        not seen either."""
         status = PipelineStatus(int(result.status[0]))
-        # Seen: ranged, or no obstacle kept from a disparity map that measured the view (a view of floor only, a
-        # walker's camera pitched down in an empty corridor). Blank frames measure too little to be segmented by
-        # their map (from_disparity False), and a pair whose kept regions could not be ranged is not seen either.
         from_map = result.segmentation.from_disparity
-        seen = status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
+        return status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
                                                and bool(from_map[0]))
+
+    def _watch_sight(self, seen: bool, status: str, now_s: float) -> None:
+        """Say when nothing has been seen for ``--blind-s`` seconds, and when something is again
+        (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear.
+        ``status``: why, in the JSON event (the pipeline's status, or what kept the pair from being ranged)."""
         said = self.sight.update(seen, now_s)
         if said is not None:
             self.guide.speaker.say(said)
             if said == CANNOT_SEE:
                 self.guide.policy.reset()  # an obstacle seen again is warned of at once
-            self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status.name)
-        return seen
+            self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status)
+        if not seen and said is None and status == "WAITING_FOR_FRAMES":
+            waited_s = now_s - self.sight.last_seen_s
+            self.status_line.show(f"{self.guide.status(self.guide.policy.confirmed_m, self._shown(False))}  "
+                                  f"waiting for frames, nothing seen for {waited_s:.1f} s")
+
+    def _shown(self, seen: bool) -> str:
+        """The class shown and logged: "unseen" where the policy's would read "clear" on a pair that saw nothing
+        (a belt or a logger acting on the class would otherwise tell the walker the way is clear)."""
+        return UNSEEN if not seen and self.guide.policy.current == CLEAR else self.guide.policy.current
+
+    def _torn(self, item) -> None:
+        """A pair whose two frames came further apart than :data:`MAX_FRAME_GAP_S` after the camera's own regrabs
+        (one board kept missing its grab): not ranged, not seen. Why: the walker and the scene move between the
+        frames, and such pairs were ranged (a 0.8 m obstacle said "clear" at 2-3 m, a 2 m one "Stop" at 0.5 m)."""
+        now = time.monotonic()
+        self._come_back(now)
+        gap_s = item.pairs[0].time_between_frames_s
+        self._watch_sight(False, "FRAMES_APART", now)
+        self.status_line.show(f"{self.guide.status(self.guide.policy.confirmed_m, self._shown(False))}  "
+                              f"frames {abs(gap_s):.2f} s apart: not ranged")
+        self.log.event("frames_apart", pair=item.pairs[0].index, time_between_frames_s=round(gap_s, 3),
+                       num_dropped=item.num_dropped)
+        self.processed += 1
+
+    def _come_back(self, now: float) -> None:
+        """Say the camera is back at the first pair after a loss (not when the link merely opened)."""
+        if self.lost_at_s is not None:
+            self.guide.speaker.say(CAMERA_BACK)
+            self.log.event("camera_back", lost_s=round(now - self.lost_at_s, 3))
+            self.lost_at_s = None
+            # The time lost was said already; sight is judged from here, and a view still blind is said again
+            # after --blind-s (silence after "Camera back." would read as a clear way).
+            self.sight.last_seen_s, self.sight.blind = now, False
 
     def _range(self, item) -> None:
         """Range one grabbed pair (a :class:`~svs_torch.capture.stereo.PairBatch` of one), warn, keep it."""
@@ -139,14 +191,9 @@ class GuideSession:
         result = self.ranged(item.batch)
         elapsed_s = time.perf_counter() - started
         now = time.monotonic()
-        if self.lost_at_s is not None:  # back only once a pair came through, not when the link merely opened
-            self.guide.speaker.say(CAMERA_BACK)
-            self.log.event("camera_back", lost_s=round(now - self.lost_at_s, 3))
-            self.lost_at_s = None
-            # The time lost was said already; sight is judged from here, and a view still blind is said again
-            # after --blind-s (silence after "Camera back." would read as a clear way).
-            self.sight.last_seen_s, self.sight.blind = now, False
-        seen = self._watch_sight(result, now)
+        self._come_back(now)
+        seen = self._seen(result)
+        self._watch_sight(seen, PipelineStatus(int(result.status[0])).name, now)
         nearest = result.depth.nearest
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
@@ -154,9 +201,7 @@ class GuideSession:
         message = self.guide.update(distance, now)
         confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         side = ObstacleSide(int(nearest.side[0])).name.lower()
-        # A pair that measured nothing is not a clear way: "unseen" where the class would read "clear" (a belt or
-        # a logger acting on the class would otherwise tell the walker the way is clear while guide cannot see).
-        shown = UNSEEN if not seen and self.guide.policy.current == CLEAR else self.guide.policy.current
+        shown = self._shown(seen)
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
                   "confirmed_m": None if confirmed is None else round(confirmed, 4),

@@ -287,6 +287,20 @@ def test_stream_batches(camera):
     assert items[1].pairs[0].index > items[0].pairs[-1].index
 
 
+def test_stream_batches_ticks_while_no_pair_comes(emulator, camera):
+    """``idle_s``: None each idle_s seconds no pair came (guide judges sight on time, not only on pairs: a frozen
+    link was seconds of silence); pairs still come as before."""
+    emulator.set_faults("left", grab_delay_s=0.35)
+    try:
+        items = list(camera.stream_batches(1, num_batches=2, idle_s=0.1))
+    finally:
+        emulator.set_faults("left", grab_delay_s=0.0)
+    assert [item is None for item in items].count(False) == 2 and items[-1] is not None
+    assert items.count(None) >= 2  # at least two ticks before the first delayed pair
+    with pytest.raises(InputError, match="idle_s: expected None or a positive number of seconds"):
+        next(camera.stream_batches(1, idle_s=0))
+
+
 def test_banner_is_drained():
     with EmulatorServer(left_port=0, right_port=0, source=flat_source, banner=True) as server:
         with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST) as cam:

@@ -733,11 +733,11 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
         def __init__(self, seconds, fails):
             self.seconds, self.fails = seconds, fails
 
-        def stream_batches(self, batch_size, num_batches=None):
+        def stream_batches(self, batch_size, num_batches=None, idle_s=None):
             end = time.monotonic() + self.seconds
             while time.monotonic() < end:
                 time.sleep(0.02)
-                yield SimpleNamespace(batch=None, pairs=[None], num_dropped=0)
+                yield SimpleNamespace(batch=None, pairs=[SimpleNamespace(time_between_frames_s=0.01)], num_dropped=0)
             if self.fails:
                 raise CaptureError("right camera: link dropped")
 
@@ -779,8 +779,53 @@ def test_guide_sees_a_view_of_floor_only():
         session = GuideSession(argparse.Namespace(blind_s=1.0), (320, 240), None, guide, None, log)
         session.sight, said[:] = SightWatch(blind_s=1.0, start_s=0.0), []
         for now in (0.5, 1.0, 1.5):
-            session._watch_sight(result(status, from_map), now)
+            session._watch_sight(session._seen(result(status, from_map)), status.name, now)
         assert (said == [CANNOT_SEE]) == blind, (status, from_map)
+
+
+@pytest.mark.parametrize("stream", ["torn pairs", "no pairs"])
+def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatch, stream):
+    """Found by an audit against the emulator: a pair whose right frame came 2 s after the left (one board kept
+    missing its grab, past the camera's regrabs) was ranged - a 0.8 m obstacle "clear", a 2 m one "Stop" at 0.5 m;
+    and a frozen link was 5 s of silence (sight was judged only when a pair came) before "Camera lost". Now such a
+    pair is not ranged and not seen, a stream that brings nothing ticks, and "Cannot see ahead" comes after
+    --blind-s either way."""
+    import argparse
+    import time
+    from types import SimpleNamespace
+
+    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
+    from svs_torch.cli import guide_loop
+
+    said, events, ranged = [], [], []
+
+    class Camera:
+        next_index = 0
+
+        def stream_batches(self, batch_size, num_batches=None, idle_s=None):
+            assert idle_s == guide_loop.IDLE_TICK_S
+            end = time.monotonic() + 0.4
+            while time.monotonic() < end:
+                time.sleep(0.02)
+                torn = SimpleNamespace(index=3, time_between_frames_s=2.06)
+                yield SimpleNamespace(batch=None, pairs=[torn], num_dropped=0) if stream == "torn pairs" else None
+
+    class Words:
+        def write(self, text):
+            said.extend(line for line in text.split("\n") if line)
+            return len(text)
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
+    log = guide_loop.GuideLog(None, None)
+    monkeypatch.setattr(log, "event", lambda name, **fields: events.append(name))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
+    guide_loop.GuideSession(args, (320, 240), ranged.append, guide, StatusLine(None), log).run()
+    assert said == [CANNOT_SEE] and ranged == []
+    assert ("frames_apart" in events) == (stream == "torn pairs") and "cannot_see" in events
 
 
 def test_guide_a_full_disk_is_an_error_not_a_lost_camera(monkeypatch, capsys, tmp_path):
