@@ -82,8 +82,10 @@ def render_simple_pair(depths_m: np.ndarray, center_xy_m: np.ndarray, size_m: np
     wall_shift = int(round(focal * camera.baseline_m / background_depth_m))
     wall = cv2.resize(rng.uniform(25, 100, (height // 4 + 1, (width + wall_shift) // 4 + 1)),
                       (width + wall_shift, height), interpolation=cv2.INTER_NEAREST)
-    left = wall[:, wall_shift:].copy()
-    right = wall[:, :width].copy()
+    # L(x) = R(x − d): the right view sees the wall shifted by its disparity (the two slices the other way round
+    # gave the wall a disparity of −d, which the pipeline ranged as obstacles 0.3-0.6 m ahead: "Stop").
+    left = wall[:, :width].copy()
+    right = wall[:, wall_shift:].copy()
     cx, cy = camera.principal_point_px(width, height)
     for k in np.argsort(-depths_m):  # far to near: nearer rectangles paint over farther ones
         z = float(depths_m[k])

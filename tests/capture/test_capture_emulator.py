@@ -148,6 +148,30 @@ def test_synthetic_source_depths_oscillate_in_range():
     assert left.shape == (240, 320) and left.dtype == np.uint8 and not np.array_equal(left, right)
 
 
+def test_the_stand_in_frames_wall_has_its_own_disparity():
+    """Found by an audit: the stand-in renderer (--simple-frames, and every emulator's first frames before
+    --prepare's) drew the 4 m wall at a disparity of -7 px, which the pipeline ranged as obstacles 0.3-0.6 m
+    ahead ("Stop"). The wall's disparity is f B / 4 m: the left row equals the right row shifted by it; and the
+    pipeline ranges the rectangles at their depths."""
+    from hw.frames import render_simple_pair
+
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    depths = np.array([1.9, 0.9])
+    left, right = render_simple_pair(depths, np.array([[-0.3, 0.0], [0.25, 0.0]]), np.array([[0.3, 0.4]] * 2),
+                                     (320, 240))
+    shift = int(round(SVS_CAMERA.focal_px(320) * SVS_CAMERA.baseline_m / 4.0))
+    assert np.array_equal(left[:8, shift:], right[:8, :320 - shift])  # the top rows: wall only
+    batch = StereoBatch.from_images(torch.from_numpy(left / 255.0).float()[None, None],
+                                    torch.from_numpy(right / 255.0).float()[None, None],
+                                    SVS_CAMERA.focal_px(320), SVS_CAMERA.baseline_m)
+    result = estimate_obstacle_depth(batch, PipelineConfig())
+    ranged = sorted(float(d) for d, ok in zip(result.depth.objects.depth_median_m[0], result.depth.objects.valid[0])
+                    if ok)
+    assert ranged and abs(ranged[0] - 0.9) < 0.05 and result.depth.nearest.surface_m[0] > 0.8
+
+
 def test_synthetic_source_with_a_floor_is_not_warned_of_the_floor():
     """The emulator's walker view (--floor-height-m 1.3 --camera-pitch-deg 20): the floor is seen from 1.8 m on;
     with both obstacles farther (keyframe 9: 2.68 and 2.36 m) the warning distance with the floor left out
