@@ -12,7 +12,6 @@ Run: ``python -m hw.emulator [--pty] [--images DIR] [fault options]``; Ctrl-C st
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import select
@@ -23,9 +22,9 @@ import threading
 import time
 import tty
 
+from .emulator_args import faults_from_args, parse_args
 from .emulator_state import CameraState, Faults, Reply
-from .frames import WALKER_PITCH_DEG, FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
-from svs_torch.core.camera import parse_size
+from .frames import FrameSource, ImageFolderSource, ObstacleTrack, SyntheticSource
 
 __all__ = ["SVS_LINK_BYTES_PER_S", "EmulatorServer", "main"]
 
@@ -130,7 +129,12 @@ class _BoardPort(threading.Thread):
             client.close()
 
     def _handle(self, data: bytes, out: socket.socket | int) -> None:
-        reply = self.state.feed(data, time.monotonic())
+        try:
+            reply = self.state.feed(data, time.monotonic())
+        except Exception as err:  # noqa: BLE001 -- a frame that cannot be made: no reply, as a busy board; the
+            # board serves on (its thread died before, the port closed, and the emulator looked alive).
+            print(f"hw.emulator: {self.state.camera} board: no reply: {err}", file=sys.stderr, flush=True)
+            return
         if reply is None:
             return
         last_write_s = self._send_reply(reply, out)
@@ -283,74 +287,26 @@ class EmulatorServer:
         self.stop()
 
 
-def _parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m hw.emulator", description=__doc__.split("\n\n")[0])
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s)")
-    p.add_argument("--left-port", type=int, default=10001, help="left/master TCP port, 0 = free (default %(default)s)")
-    p.add_argument("--right-port", type=int, default=10002, help="right/slave TCP port, 0 = free (default %(default)s)")
-    p.add_argument("--pty", action="store_true", help="also serve each board on a pseudo-terminal")
-    p.add_argument("--images", metavar="DIR", help="left/right image folder (default: synthetic obstacles)")
-    p.add_argument("--image-step", type=float, default=1.0, help="seconds per image pair (default %(default)s)")
-    p.add_argument("--simple-frames", action="store_true", help="fast stand-in renderer instead of svs_torch's")
-    p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
-                   help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
-    p.add_argument("--holdoff-ms", type=float, default=1.0, help="input discarded after a reply, ms")
-    p.add_argument("--link-rate", type=float, default=SVS_LINK_BYTES_PER_S, metavar="BYTES/S",
-                   help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
-                        "UART sends them (default %(default)s); 0: as fast as the socket takes them")
-    p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
-    p.add_argument("--noise-sigma", type=float, default=0.0, metavar="LEVELS",
-                   help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
-    p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
-    p.add_argument("--floor-height-m", type=float, default=None, metavar="M",
-                   help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
-                        "(default: no floor)")
-    p.add_argument("--camera-pitch-deg", type=float, default=WALKER_PITCH_DEG, metavar="DEG",
-                   help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
-    p.add_argument("--heap-ahead-m", type=float, default=None, metavar="M",
-                   help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
-                        "high (an obstacle; default: none)")
-    f = p.add_argument_group("faults (replies to I)")
-    f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
-    f.add_argument("--silent", type=int, default=0, metavar="N", help="no reply to the next N grabs")
-    f.add_argument("--garbage", type=int, default=0, metavar="N", help="stray bytes before the next N frames")
-    f.add_argument("--truncate", type=int, default=0, metavar="N", help="cut the next N frames in half")
-    f.add_argument("--damage", type=int, default=0, metavar="N",
-                   help="zero 2000 bytes inside the next N frames' JPEGs (they still decode, partly gray)")
-    f.add_argument("--wrong-length", type=int, default=0, metavar="N", help="misannounce the next N lengths")
-    f.add_argument("--wrong-length-delta", type=int, default=64, metavar="BYTES")
-    f.add_argument("--drip-chunk", type=int, default=0, metavar="BYTES", help="send replies in chunks of BYTES")
-    f.add_argument("--drip-delay", type=float, default=0.0, metavar="S", help="pause between chunks, seconds")
-    f.add_argument("--drop-after", type=int, default=None, metavar="N", help="drop the TCP link after N frames")
-    f.add_argument("--grab-delay", type=float, default=0.0, metavar="S", help="grab + encode time, seconds")
-    return p.parse_args(argv)
-
-
-def _faults_from_args(args: argparse.Namespace) -> Faults:
-    return Faults(silent_grabs=args.silent, garbage_frames=args.garbage, truncated_frames=args.truncate,
-                  damaged_frames=args.damage, wrong_length_frames=args.wrong_length,
-                  wrong_length_delta=args.wrong_length_delta,
-                  drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
-                  drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the emulator until Ctrl-C or SIGTERM; returns the exit code."""
-    args = _parse_args(argv)
+    args = parse_args(argv, __doc__.split("\n\n")[0], SVS_LINK_BYTES_PER_S)
     try:
         source = (ImageFolderSource(args.images, step_s=args.image_step) if args.images
                   else SyntheticSource(ObstacleTrack(floor_height_m=args.floor_height_m,
                                                      camera_pitch_deg=args.camera_pitch_deg,
                                                      heap_ahead_m=args.heap_ahead_m),
                                        renderer="simple" if args.simple_frames else "torch"))
-        prepare = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
-        faults = _faults_from_args(args)
+        prepare = args.prepare_sizes
+        faults = faults_from_args(args)
         chosen = ("left", "right") if args.fault_camera == "both" else (args.fault_camera,)
         server = EmulatorServer(args.host, args.left_port, args.right_port, source=source, use_pty=args.pty,
                                 faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000,
                                 noise_sigma=args.noise_sigma, noise_seed=args.noise_seed,
                                 link_bytes_per_s=args.link_rate or None)
-    except (OSError, ValueError) as err:
+    except ValueError as err:  # the image folder (no pairs, an image that does not decode)
+        print(f"hw.emulator: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a port in use
         print(f"hw.emulator: error: {err}", file=sys.stderr)
         return 1
     stop = threading.Event()

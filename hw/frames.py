@@ -270,6 +270,13 @@ class ImageFolderSource:
         if not self.pairs:
             raise ValueError(f"images: no left/right image pairs found in {folder} (expected left/ and right/ "
                              "subfolders, or files named like left01.png / right01.png)")
+        # Every file checked at start (its header, not decoded): an empty or foreign file killed a board's thread
+        # at its first grab of that pair.
+        unreadable = next((path for pair in self.pairs for path in pair if not cv2.haveImageReader(str(path))), None)
+        if unreadable is not None:
+            raise ValueError(f"images: {unreadable} is not an image OpenCV can read")
+        if not (step_s > 0 and math.isfinite(step_s)):
+            raise ValueError(f"step_s: expected a positive number of seconds, got {step_s!r}")
         self.step_s = step_s
         self._lock = threading.Lock()
         self._cache: dict[tuple[int, int, int, str], np.ndarray] = {}

@@ -586,3 +586,52 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     assert status == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--image-step", "0"], "argument --image-step: expected a finite positive number, got '0'"),
+    (["--wrong-length-delta", "20000000"], "argument --wrong-length-delta: expected -65536..65536 bytes"),
+    (["--floor-height-m", "-1"], "argument --floor-height-m: expected a finite positive number"),
+    (["--left-port", "70000"], "argument --left-port: expected a TCP port 0..65535"),
+    (["--prepare", "abc"], "--prepare: expected WIDTHxHEIGHT"),
+    (["--heap-ahead-m", "1.5"], "--heap-ahead-m: expected --floor-height-m too"),
+    (["--noise-sigma", "-1"], "argument --noise-sigma: expected a finite number >= 0"),
+    (["--camera-pitch-deg", "95"], "--camera-pitch-deg: expected degrees in (-90, 90)"),
+])
+def test_emulator_refuses_values_that_killed_a_board_thread(capsys, argv, message):
+    """Found by an audit: these ran, and a board's thread died at its first grab (a ZeroDivisionError, the frame
+    encoder's error), its port closed while the emulator looked alive; or they ended with exit 1 as if a port were
+    taken. Each is a usage error now (exit 2), before anything listens."""
+    from hw.emulator import main as emulator_main
+
+    with pytest.raises(SystemExit) as stopped:
+        emulator_main([*argv, "--left-port", "0", "--right-port", "0"] if "--left-port" not in argv else argv)
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_emulator_refuses_an_image_folder_with_a_file_it_cannot_read(capsys, tmp_path, data_dir):
+    import shutil
+
+    from hw.emulator import main as emulator_main
+
+    shutil.copy(data_dir / "opencv_samples" / "left01.jpg", tmp_path / "left01.jpg")
+    (tmp_path / "right01.jpg").write_bytes(b"")
+    assert emulator_main(["--images", str(tmp_path), "--left-port", "0", "--right-port", "0"]) == 2
+    assert f"images: {tmp_path / 'right01.jpg'} is not an image OpenCV can read" in capsys.readouterr().err
+
+
+def test_a_frame_the_source_cannot_make_is_no_reply_and_the_board_serves_on(capsys):
+    """A source that raises (a file gone from the folder mid-run) was a board thread's death; now that grab gets
+    no reply (a busy board, which the driver retries) and the next one is served."""
+    calls = []
+
+    def flaky(camera, width, height, time_s):
+        calls.append(camera)
+        if len(calls) == 1:
+            raise ValueError("images: cannot read gone.jpg")
+        return np.full((height, width), 128, np.uint8)
+
+    with EmulatorServer(left_port=0, right_port=0, source=flaky) as server:
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST) as cam:
+            pair = cam.grab_pair()
+    assert pair.left.image.shape == (240, 320) and "no reply: images: cannot read gone.jpg" in capsys.readouterr().err

@@ -1,0 +1,111 @@
+"""The emulator's command line (``python -m hw.emulator --help``): its options, each checked when parsed.
+
+Why here and not where the values are used: a bad value there (a step of 0 s between image pairs, a length delta
+of millions, a negative floor height) killed a board's thread in the middle of a run, its port closed while the
+emulator looked alive.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from .emulator_state import Faults
+from .frames import WALKER_PITCH_DEG
+from svs_torch.cli.common import finite_float, non_negative_float, non_negative_int, positive_float
+from svs_torch.core.camera import parse_size
+
+__all__ = ["faults_from_args", "parse_args"]
+
+
+def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float) -> argparse.Namespace:
+    """The emulator's options (``description``: its help's first paragraph; ``link_bytes_per_s``: the default
+    pace), with ``prepare_sizes``, the ``--prepare`` sizes parsed; a bad value is a usage error (exit 2)."""
+    p = argparse.ArgumentParser(prog="python -m hw.emulator", description=description)
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default %(default)s)")
+    p.add_argument("--left-port", type=_port, default=10001,
+                   help="left/master TCP port, 0 = free (default %(default)s)")
+    p.add_argument("--right-port", type=_port, default=10002,
+                   help="right/slave TCP port, 0 = free (default %(default)s)")
+    p.add_argument("--pty", action="store_true", help="also serve each board on a pseudo-terminal")
+    p.add_argument("--images", metavar="DIR", help="left/right image folder (default: synthetic obstacles)")
+    p.add_argument("--image-step", type=positive_float, default=1.0,
+                   help="seconds per image pair (default %(default)s)")
+    p.add_argument("--simple-frames", action="store_true", help="fast stand-in renderer instead of svs_torch's")
+    p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
+                   help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
+    p.add_argument("--holdoff-ms", type=non_negative_float, default=1.0, help="input discarded after a reply, ms")
+    p.add_argument("--link-rate", type=non_negative_float, default=link_bytes_per_s, metavar="BYTES/S",
+                   help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
+                        "UART sends them (default %(default)s); 0: as fast as the socket takes them")
+    p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
+    p.add_argument("--noise-sigma", type=non_negative_float, default=0.0, metavar="LEVELS",
+                   help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
+    p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
+    p.add_argument("--floor-height-m", type=positive_float, default=None, metavar="M",
+                   help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
+                        "(default: no floor)")
+    p.add_argument("--camera-pitch-deg", type=finite_float, default=WALKER_PITCH_DEG, metavar="DEG",
+                   help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
+    p.add_argument("--heap-ahead-m", type=positive_float, default=None, metavar="M",
+                   help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
+                        "high (an obstacle; default: none)")
+    f = p.add_argument_group("faults (replies to I)")
+    f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
+    f.add_argument("--silent", type=non_negative_int, default=0, metavar="N", help="no reply to the next N grabs")
+    f.add_argument("--garbage", type=non_negative_int, default=0, metavar="N",
+                   help="stray bytes before the next N frames")
+    f.add_argument("--truncate", type=non_negative_int, default=0, metavar="N", help="cut the next N frames in half")
+    f.add_argument("--damage", type=non_negative_int, default=0, metavar="N",
+                   help="zero 2000 bytes inside the next N frames' JPEGs (they still decode, partly gray)")
+    f.add_argument("--wrong-length", type=non_negative_int, default=0, metavar="N",
+                   help="misannounce the next N lengths")
+    f.add_argument("--wrong-length-delta", type=_length_delta, default=64, metavar="BYTES",
+                   help="bytes added to the announced length, -65536..65536 (default %(default)s)")
+    f.add_argument("--drip-chunk", type=non_negative_int, default=0, metavar="BYTES",
+                   help="send replies in chunks of BYTES")
+    f.add_argument("--drip-delay", type=non_negative_float, default=0.0, metavar="S",
+                   help="pause between chunks, seconds")
+    f.add_argument("--drop-after", type=non_negative_int, default=None, metavar="N",
+                   help="drop the TCP link after N frames")
+    f.add_argument("--grab-delay", type=non_negative_float, default=0.0, metavar="S",
+                   help="grab + encode time, seconds")
+    args = p.parse_args(argv)
+    # Checked here, not in the threads that use them: a bad value there killed a board's thread mid-run.
+    if not -90 < args.camera_pitch_deg < 90:
+        p.error(f"--camera-pitch-deg: expected degrees in (-90, 90), got {args.camera_pitch_deg:g}")
+    if args.heap_ahead_m is not None and args.floor_height_m is None:
+        p.error("--heap-ahead-m: expected --floor-height-m too (a heap stands on the floor)")
+    try:
+        args.prepare_sizes = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
+    except ValueError as err:  # svs_torch's InputError is a ValueError
+        p.error(str(err))
+    return args
+
+
+def _port(text: str) -> int:
+    """argparse type: a TCP port, 0 (a free one) to 65535."""
+    port = non_negative_int(text)
+    if port > 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 0..65535, got {text!r}")
+    return port
+
+
+def _length_delta(text: str) -> int:
+    """argparse type: bytes added to a frame's announced length (a frame's length field is 32 bits; a delta of
+    millions made the frame encoder raise in the board's thread)."""
+    try:
+        delta = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of bytes, got {text!r}") from None
+    if abs(delta) > 65536:
+        raise argparse.ArgumentTypeError(f"expected -65536..65536 bytes, got {text!r}")
+    return delta
+
+
+def faults_from_args(args: argparse.Namespace) -> Faults:
+    """The faults the options ask for (``Faults``' fields)."""
+    return Faults(silent_grabs=args.silent, garbage_frames=args.garbage, truncated_frames=args.truncate,
+                  damaged_frames=args.damage, wrong_length_frames=args.wrong_length,
+                  wrong_length_delta=args.wrong_length_delta,
+                  drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
+                  drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
