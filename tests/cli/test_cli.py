@@ -1044,3 +1044,23 @@ def test_a_worker_that_died_is_said_so_not_reported_as_a_bug(capsys, monkeypatch
     monkeypatch.setattr(results_command, "run", dies)
     code, out, err = run_cli(capsys, "results", str(tmp_path / "s.sqlite"))
     assert code == 1 and "a worker process died" in err and "internal error" not in err
+
+
+def test_guide_stopped_by_sigterm_says_what_it_recorded(tmp_path):
+    """Found by an audit: a service manager stops guide with SIGTERM, which ended it at once (exit 143) without its
+    last status, the number of pairs recorded or the replay command. It now stops as Ctrl-C does, exit 143."""
+    import signal
+
+    record = tmp_path / "walk"
+    command = [sys.executable, "-m", "svs_torch.cli", "guide", "--emulator", "--no-speech", "--json", "--record",
+               str(record)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        process.stdout.readline()  # a pair was ranged: the camera is open and the loop runs
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 143
+    assert "guide stopped after" in err and "svs-depth estimate --pairs" in err and "Traceback" not in err
+    assert (record / "index.jsonl").read_text().count("\n") >= 1
