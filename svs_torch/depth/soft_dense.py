@@ -32,9 +32,9 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
 
     Gradients flow to both images (through the pre-filter, the absolute differences and the softmax) and are
     defined wherever no difference is exactly zero (there the absolute value's gradient is taken as 0, as
-    autograd's); not to ``temperature``, a constant (a tensor that requires grad is refused). First derivatives
-    only: the backward is written by hand, and a second one (``create_graph=True`` through it) raises instead of
-    giving the zeros it gave before.
+    autograd's); not to ``temperature``, a constant (a tensor that requires grad is refused). The backward is
+    written by hand (no volume-sized temporaries); with ``create_graph=True`` it is taken again op by op by
+    autograd, so second derivatives are the true ones (the hand-written one gave zeros, in silence).
     """
     b = _check_pair(left, right, config)
     minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
