@@ -79,9 +79,10 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
 
     from ..data import read_pair_list
     from ..core.errors import InputError
+    from ..core.files import check_path_given
 
-    if args.pairs is not None and not args.pairs.strip():  # --pairs "$LIST" with LIST unset: not "neither"
-        raise InputError(f"--pairs: expected a list file name, got {args.pairs!r}")
+    if args.pairs is not None:  # --pairs "$LIST" with LIST unset: an empty name, not "neither"
+        check_path_given(args.pairs, "--pairs", "a list file name")
     if bool(args.left) == bool(args.pairs):
         raise InputError("left, --pairs: give left images (files or patterns) or --pairs LIST.txt, "
                          + ("not both" if args.left else "got neither"))

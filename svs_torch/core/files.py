@@ -21,8 +21,9 @@ from typing import IO
 
 from .errors import InputError
 
-__all__ = ["atomic_output", "check_output_file", "check_writable_folder", "display_path", "make_output_folder",
-           "path_kind", "short_name", "split_list_line", "stream_is_terminal", "write_bytes_atomic"]
+__all__ = ["atomic_output", "check_output_file", "check_path_given", "check_writable_folder", "display_path",
+           "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
+           "write_bytes_atomic"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -56,14 +57,21 @@ def path_kind(path: str | os.PathLike, name: str) -> str:
     return "file" if os.path.isfile(path) else "other"
 
 
+def check_path_given(path: str | os.PathLike, name: str, what: str = "a file name") -> None:
+    """Refuse an empty (or blank) path, naming ``name`` and ``what`` was expected. Why: ``Path("")`` is the current
+    folder, so an empty name (``--out "$OUT"`` with OUT unset) was reported as "the folder '.'" or "a directory".
+    Checked before the name becomes a :class:`Path`."""
+    if not os.fspath(path).strip():
+        raise InputError(f"{name}: expected {what}, got {os.fspath(path)!r}")
+
+
 def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, ...] = (),
                       kinds: str = "") -> Path:
     """``path`` as a :class:`Path` if a file can be written there, else :class:`InputError` naming ``name``: the
     folder must exist, the path must not be a folder, and with ``suffixes`` its ending must be one of them
     (``kinds`` says which in the message, e.g. ``"a .png, .pdf or .svg"``). Checked before any work starts."""
+    check_path_given(path, name)
     target = Path(path)
-    if not os.fspath(path).strip():  # Path("") is the current folder: "got the folder '.'" hid the empty name
-        raise InputError(f"{name}: expected a file name, got {os.fspath(path)!r}")
     if path_kind(target, name) == "folder":
         raise InputError(f"{name}: expected a file name, got the folder {display_path(target)!r}")
     if path_kind(target.parent, name) != "folder":

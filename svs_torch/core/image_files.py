@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
-from .files import display_path, path_kind
+from .files import check_path_given, display_path, path_kind
 
 __all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_size",
            "decode_collecting", "preload_key", "read_image_array"]
@@ -42,8 +42,7 @@ def preload_key(path: str | Path) -> str:
 
 def check_file(path: str | Path, name: str) -> Path:
     """``path`` as a :class:`Path`; raises :class:`InputError` naming ``name`` when it is not an existing file."""
-    if not os.fspath(path).strip():  # Path("") is the current folder: "got a directory ... ." hid the empty name
-        raise InputError(f"{name}: expected a file name, got {os.fspath(path)!r}")
+    check_path_given(path, name)
     kind = path_kind(path, name)
     if kind == "missing":
         raise InputError(f"{name}: file not found: {display_path(path)}")

@@ -26,7 +26,7 @@ import torch
 
 from ..core.camera import SVS_CAMERA
 from ..core.checks import InputError
-from ..core.files import path_kind
+from ..core.files import check_path_given, path_kind
 from ..core.types import StereoBatch
 from .formats import read_kitti_disparity, read_scaled_disparity
 from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
@@ -145,8 +145,8 @@ def load_image_pair(
     if not number(doffs_px):
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px!r}")
     for name, path in (("left", left_path), ("right", right_path)):
-        if isinstance(path, (str, os.PathLike)) and not os.fspath(path).strip():  # Path("") is the current folder
-            raise InputError(f"{name}: expected an image file name, got {os.fspath(path)!r}")
+        if isinstance(path, (str, os.PathLike)):  # before Path(), which makes "" the current folder
+            check_path_given(path, name, "an image file name")
     left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]

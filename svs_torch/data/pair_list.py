@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from ..core.checks import InputError
-from ..core.files import display_path, path_kind, split_list_line
+from ..core.files import check_path_given, display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
                        list_shared_pairs, load_image_pair, load_stereo_pair, scene_name)
@@ -259,8 +259,7 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
         InputError: (naming ``name``) for a missing, unreadable or non-UTF-8 file, or one that lists nothing.
             A bad line is not an error: it becomes a :class:`PairSource` with ``problem`` set.
     """
-    if not os.fspath(path).strip():
-        raise InputError(f"{name}: expected a list file name, got {os.fspath(path)!r}")
+    check_path_given(path, name, "a list file name")
     path = Path(path)
     text = _read_text(path, name)
     if path.suffix == ".jsonl":
