@@ -14,8 +14,8 @@ one lost for ``--give-up-s`` seconds, if set. With ``--json`` each loss and retu
 
 Sight is judged on time, not only on the pairs that come: a link that froze while the driver retries brings no
 pair for seconds, and the stream ticks (``IDLE_TICK_S``) so that "Cannot see ahead" comes after ``--blind-s``;
-and a pair whose two frames came more than ``MAX_FRAME_GAP_S`` apart after the camera's regrabs is not ranged
-(``{"event": "frames_apart"}``) and counts as not seen.
+and a pair whose two frames came further apart than the camera's ``max_frame_gap_s`` after its regrabs is not
+ranged (``{"event": "frames_apart"}``) and counts as not seen.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from typing import Callable
 
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
-from ..capture.stereo import MAX_FRAME_GAP_S
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
@@ -94,6 +93,7 @@ class GuideSession:
         """Range the pairs ``camera`` streams until ``--count`` (None) or until it is lost (its error). Only the
         camera's errors are a loss: one writing the record or the JSON lines is raised."""
         remaining = self.args.count - self.processed if self.args.count else None
+        gap_limit_s = camera.max_frame_gap_s  # the camera's own test of a torn pair, after its regrabs
         # A tick while no pair comes (the link froze and the driver retries): sight is judged on time, not only on
         # pairs, so the walker hears "Cannot see ahead" after --blind-s, not seconds of silence until the loss.
         stream = camera.stream_batches(1, num_batches=remaining, idle_s=IDLE_TICK_S)
@@ -108,9 +108,8 @@ class GuideSession:
                 except _CAMERA_ERRORS as error:
                     return error
                 if item is None:
-                    if self.lost_at_s is None:  # a camera already said lost is not also said blind
-                        self._watch_sight(False, "WAITING_FOR_FRAMES", time.monotonic())
-                elif abs(item.pairs[0].time_between_frames_s) > MAX_FRAME_GAP_S:
+                    self._waiting(time.monotonic())
+                elif gap_limit_s is not None and abs(item.pairs[0].time_between_frames_s) > gap_limit_s:
                     self._torn(item)
                 else:
                     self._range(item)
@@ -141,20 +140,28 @@ class GuideSession:
         return status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
                                                and bool(from_map[0]))
 
-    def _watch_sight(self, seen: bool, status: str, now_s: float) -> None:
+    def _watch_sight(self, seen: bool, status: str, now_s: float) -> str | None:
         """Say when nothing has been seen for ``--blind-s`` seconds, and when something is again
         (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear.
-        ``status``: why, in the JSON event (the pipeline's status, or what kept the pair from being ranged)."""
+        ``status``: why, in the JSON event (the pipeline's status, or what kept the pair from being ranged).
+        Returns the words said, or None."""
         said = self.sight.update(seen, now_s)
         if said is not None:
             self.guide.speaker.say(said)
             if said == CANNOT_SEE:
                 self.guide.policy.reset()  # an obstacle seen again is warned of at once
             self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status)
-        if not seen and said is None and status == "WAITING_FOR_FRAMES":
-            waited_s = now_s - self.sight.last_seen_s
-            self.status_line.show(f"{self.guide.status(self.guide.policy.confirmed_m, self._shown(False))}  "
-                                  f"waiting for frames, nothing seen for {waited_s:.1f} s")
+        return said
+
+    def _show_not_seen(self, detail: str) -> None:
+        """The status line of a moment nothing was seen, with ``detail`` (why)."""
+        self.status_line.show(f"{self.guide.status(self.guide.policy.confirmed_m, self._shown(False))}  {detail}")
+
+    def _waiting(self, now: float) -> None:
+        """A tick of a stream that brings no pair: sight judged on time (not while the camera is already said
+        lost: it is not also said blind)."""
+        if self.lost_at_s is None and self._watch_sight(False, "WAITING_FOR_FRAMES", now) is None:
+            self._show_not_seen(f"waiting for frames, nothing seen for {now - self.sight.last_seen_s:.1f} s")
 
     def _shown(self, seen: bool) -> str:
         """The class shown and logged: "unseen" where the policy's would read "clear" on a pair that saw nothing
@@ -162,15 +169,14 @@ class GuideSession:
         return UNSEEN if not seen and self.guide.policy.current == CLEAR else self.guide.policy.current
 
     def _torn(self, item) -> None:
-        """A pair whose two frames came further apart than :data:`MAX_FRAME_GAP_S` after the camera's own regrabs
+        """A pair whose two frames came further apart than the camera's ``max_frame_gap_s`` after its own regrabs
         (one board kept missing its grab): not ranged, not seen. Why: the walker and the scene move between the
         frames, and such pairs were ranged (a 0.8 m obstacle said "clear" at 2-3 m, a 2 m one "Stop" at 0.5 m)."""
         now = time.monotonic()
         self._come_back(now)
         gap_s = item.pairs[0].time_between_frames_s
         self._watch_sight(False, "FRAMES_APART", now)
-        self.status_line.show(f"{self.guide.status(self.guide.policy.confirmed_m, self._shown(False))}  "
-                              f"frames {abs(gap_s):.2f} s apart: not ranged")
+        self._show_not_seen(f"frames {abs(gap_s):.2f} s apart: not ranged")
         self.log.event("frames_apart", pair=item.pairs[0].index, time_between_frames_s=round(gap_s, 3),
                        num_dropped=item.num_dropped)
         self.processed += 1

@@ -728,7 +728,7 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
             pass
 
     class BlankCamera:  # a covered lens: a pair every 20 ms for `seconds`, then (the first) a dropped link
-        next_index = 0
+        next_index, max_frame_gap_s = 0, 0.25
 
         def __init__(self, seconds, fails):
             self.seconds, self.fails = seconds, fails
@@ -800,7 +800,7 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     said, events, ranged = [], [], []
 
     class Camera:
-        next_index = 0
+        next_index, max_frame_gap_s = 0, 0.25
 
         def stream_batches(self, batch_size, num_batches=None, idle_s=None):
             assert idle_s == guide_loop.IDLE_TICK_S
