@@ -14,9 +14,9 @@ from typing import Any
 
 __all__ = [
     "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
-    "check_outputs_apart", "dumps_strict",
-    "finite_float", "non_negative_float", "non_negative_int", "options_named", "output_path", "positive_float",
-    "positive_int", "seed_int", "too_small_reason", "unit_interval_float", "with_config_values",
+    "check_outputs_apart", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named",
+    "output_path", "positive_float", "positive_int", "seed_int", "too_small_reason", "unit_interval_float",
+    "with_config_values",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
