@@ -7,6 +7,8 @@ import re
 
 from .common import add_figure_option, check_outputs_apart, dumps_strict, positive_float
 
+MAX_SQUARE_M = 1.0  # geometry.chessboard.MAX_SQUARE_M (not imported: a parser must not import torch or cv2)
+
 HELP = "calibrate a stereo rig from chessboard pairs; writes the file for --calibration"
 
 DESCRIPTION = """\
@@ -41,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--pairs", metavar="LIST.txt", help="a list file with one 'LEFT RIGHT' per line instead")
     parser.add_argument("--board", default="9x6", metavar="COLSxROWS",
                         help="inner corners of the chessboard, columns x rows (default: 9x6, OpenCV's sample)")
-    parser.add_argument("--square-m", type=positive_float, required=True,
+    parser.add_argument("--square-m", type=square_metres, required=True,
                         help="side of one square of the board, metres, at most 1 (25 mm is 0.025; sets the scale "
                              "of the baseline)")
     parser.add_argument("--out", required=True, metavar="RIG.json", help="the calibration file to write")
@@ -206,3 +208,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("\n".join(_text(calibration, views, args.out)), flush=True)
     return 0
+
+
+def square_metres(text: str) -> float:
+    """argparse type of --square-m: over 0 and at most MAX_SQUARE_M, refused before any chessboard is read."""
+    value = positive_float(text)
+    if value > MAX_SQUARE_M:
+        raise argparse.ArgumentTypeError(f"expected the side of one square in metres, at most {MAX_SQUARE_M:g} "
+                                         f"(25 mm is 0.025), got {text!r}")
+    return value

@@ -25,7 +25,10 @@ SQUARE_M = 0.025  # nominal: the shared set's square size is unknown (MANIFEST: 
 
 
 def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
+    try:
+        code = main(list(argv))
+    except SystemExit as stop:  # argparse's usage errors
+        code = stop.code
     captured = capsys.readouterr()
     return code, captured.out, captured.err
 
@@ -204,8 +207,14 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
     assert code == 2 and "--pairs: the left and right views show the board at the same pixels in every pair" in stderr
     code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "25", "--out",
                               str(out))
-    assert code == 2 and "--square-m: expected the side of one square in metres, over 0 and at most 1" in stderr
+    assert code == 2 and "--square-m: expected the side of one square in metres, at most 1 (25 mm is 0.025)" in stderr
     assert not out.exists()
+    # refused as it is parsed, before a single chessboard is read (the folder here does not exist)
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "none" / "left*.jpg"), "--square-m", "25",
+                              "--out", str(out))
+    assert code == 2 and "--square-m" in stderr and "none" not in stderr
+    with pytest.raises(InputError, match="--square-m: expected the side of one square in metres, over 0 and at most 1"):
+        calibrate_stereo_rig(None, 25.0, (9, 6), "test", "left")
 
 
 def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samples, tmp_path):
