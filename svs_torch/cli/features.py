@@ -89,7 +89,7 @@ def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool 
     ``command_defaults``, the ``features`` command's own keypoint cap and upsampling, see :func:`command_config`)."""
     parser.add_argument("--preset", choices=("default", "paper"), default="default",
                         help="'default': svs_torch's best measured settings (dense depth over the obstacles); "
-                             "'paper': the paper exactly, MATLAB's defaults and R = f*B/d over the RANSAC "
+                             "'paper': the paper's steps, MATLAB's defaults and R = f*B/d over the RANSAC "
                              "inliers (Eq. 5-8)")
     keypoints_default = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: %(preset_value)s"
                          if command_defaults else "%(preset_value)s")

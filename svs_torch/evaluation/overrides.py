@@ -48,7 +48,7 @@ __all__ = [
     "preset_config", "resolve_config",
 ]
 
-#: The named starting points: the product's best measured defaults and the paper exactly as published.
+#: The named starting points: the product's best measured defaults and the paper's steps as published.
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {"default": PipelineConfig, "paper": PipelineConfig.paper}
 
 _NONE_WORDS = ("none", "null", "off")

@@ -22,7 +22,7 @@ class PipelineResult:
     """Per-pair results of :func:`estimate_obstacle_depth` (B pairs).
 
     Attributes:
-        status: :class:`PipelineStatus` ``(B,)`` int64.
+        status: :class:`PipelineStatus` ``(B,)`` int64; a pair not OK is unranged (its ``depth`` not ``valid``).
         segmentation: the :class:`~svs_torch.core.types.StereoSegmentation`; a stereo segmenter's (nearness,
             learned) of the ``row_aligned`` pairs is made on their aligned views, its maps in input pixels.
         features_left, features_right: :class:`~svs_torch.features.SurfFeatures` of each side.

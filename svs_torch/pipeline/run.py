@@ -36,7 +36,7 @@ from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smooth
                       drop_unmeasured_objects)
 from .soft import differentiable_depth
 from .stages import (_feature_images, _features, _match, _segment_row_aligned, _status, gaussian_smoothed,
-                     measured_labels)
+                     measured_labels, without_failed_pairs)
 
 __all__ = ["CHUNK_PIXELS", "estimate_obstacle_depth"]
 
@@ -289,11 +289,12 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
                              fundamental.inliers, rectified, H_left, H_right, object_labels, config)
     lap("depth")
     num_keypoints = torch.stack([left.keypoints.valid.sum(1), right.keypoints.valid.sum(1)], dim=1)
+    status = _status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None)
     return PipelineResult(
-        status=_status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None),
+        status=status, depth=without_failed_pairs(depth, status),
         segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
         fundamental=fundamental, num_keypoints=num_keypoints, rectification=rectification, rectified=rectified,
-        depth=depth, dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
+        dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
         row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_labels=dropped,

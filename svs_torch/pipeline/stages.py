@@ -14,7 +14,7 @@ from torch import nn
 from ..core.size_groups import replace_pairs
 from ..core.types import (FundamentalResult, FundamentalStatus, Matches, Segmentation, SegmentationStatus,
                           StereoBatch, StereoSegmentation)
-from ..depth.depth_types import DepthResult
+from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths, ObstacleSide, RangeEstimate
 from ..features.surf import SurfFeatures, extract_surf_features
 from ..geometry.matching import match_sad
 from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
@@ -107,6 +107,37 @@ def _status(seg: StereoSegmentation, num_keypoints: torch.Tensor, fundamental: F
     for failed, code in checks:
         status = torch.where(failed, torch.full_like(status, code), status)
     return status
+
+
+def without_failed_pairs(depth: DepthResult, status: torch.Tensor) -> DepthResult:
+    """``depth`` with every pair whose ``status`` is not OK left unranged: its range, objects and nearest obstacle
+    not ``valid`` and zero, as their types say of what is not valid. A stage can fail after depth was measured
+    (``rectify="required"`` with a degenerate rectification: the disparities are the raw points'), and a failed
+    pair must not hand its distances to a reader who checks ``valid`` and not ``status``."""
+    ok = status == PipelineStatus.OK
+    if bool(ok.all()):
+        return depth
+
+    def kept(values: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+        return torch.where(where, values, torch.zeros_like(values))
+
+    r = depth.range
+    depth_range = RangeEstimate(kept(r.d_min_px, ok), kept(r.d_max_px, ok), kept(r.r_min_m, ok), kept(r.r_max_m, ok),
+                                kept(r.num_disparities, ok), r.valid & ok)
+    objects = depth.objects
+    if objects is not None:
+        valid = objects.valid & ok[:, None]
+        objects = dataclasses.replace(objects, valid=valid, depth_median_m=kept(objects.depth_median_m, valid),
+                                      depth_low_m=kept(objects.depth_low_m, valid),
+                                      depth_high_m=kept(objects.depth_high_m, valid))
+    nearest = depth.nearest
+    if nearest is not None:
+        valid = nearest.valid & ok
+        nearest = NearestObstacle(torch.where(valid, nearest.slot, torch.full_like(nearest.slot, -1)),
+                                  kept(nearest.depth_m, valid),
+                                  torch.where(valid, nearest.side, torch.full_like(nearest.side, ObstacleSide.NONE)),
+                                  valid, None if nearest.surface_m is None else kept(nearest.surface_m, valid))
+    return DepthResult(depth.disparities, depth.points, depth_range, objects, nearest)
 
 
 def measured_labels(seg: StereoSegmentation, width_px: int, config: PipelineConfig) -> torch.Tensor:

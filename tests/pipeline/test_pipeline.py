@@ -277,3 +277,20 @@ def test_geometry_is_verified_on_real_views_and_not_on_unrelated_ones(scenes):
     assert paper.verified is None and paper.num_agreeing_inliers is None
     with pytest.raises(InputError, match="verify_min_agreeing_inliers: expected an integer >= 0"):
         PipelineConfig(verify_min_agreeing_inliers=-1)
+
+
+@pytest.mark.parametrize("preset, size", [("default", (120, 90)), ("paper", (160, 120))])
+def test_a_pair_failed_after_depth_reports_no_distance(data_dir, preset, size):
+    """rectify="required" fails a pair whose F cannot rectify after its disparities were measured on the raw
+    points: its range, objects and nearest obstacle must not stay valid beside the failed status."""
+    teddy = load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy")
+    degenerate = resize_stereo_batch(teddy, size)  # F does not rectify at this size (it does at 320x240)
+    base = PipelineConfig() if preset == "default" else PipelineConfig.paper()
+    auto = estimate_obstacle_depth(degenerate, base)
+    result = estimate_obstacle_depth(degenerate, replace(base, rectify="required"))
+    assert result.status.tolist() == [PipelineStatus.DEGENERATE_RECTIFICATION]
+    assert bool(auto.depth.range.valid.all()) and bool(auto.depth.nearest.valid.all())  # ranged before the rule
+    depth = result.depth
+    assert not depth.range.valid.any() and not depth.objects.valid.any() and not depth.nearest.valid.any()
+    assert float(depth.range.r_min_m.abs().sum() + depth.objects.depth_median_m.abs().sum()) == 0.0
+    assert depth.nearest.slot.tolist() == [-1] and float(depth.nearest.depth_m.abs().sum()) == 0.0
