@@ -381,10 +381,11 @@ class PipelineConfig:
         (``"ransac"``; `svs-depth eval ../shared/data --size 320x240 --preset paper`: R_min / R_max / per object
         87.8 / 65.0 / 84.4 % against 92.4 / 67.6 / 84.2 with ``"ransac"``, the 12 pairs with a calibration), and a
         pair whose inliers already lie on the same rows is ranged on its raw points (``rectify="auto"``) rather
-        than rectified from F whatever it is (``"required"``): an F fitted to a few nearly planar obstacles leaves
-        27 of the 45 shared pairs' rectification degenerate at 320×240, each then a failed pair (per object 39.4 %
-        over the same 12). ``replace(PipelineConfig.paper(), ransac_scoring="ransac", rectify="required")``
-        (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter."""
+        than rectified from F whatever it is (``"required"``): an F fitted to a few nearly planar obstacles is
+        degenerate for rectification on 28 of the 45 shared pairs at 320×240, each then a failed pair (per object
+        47.9 % over the same 12). ``replace(PipelineConfig.paper(), ransac_scoring="ransac", rectify="required")``
+        (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter: 27
+        degenerate, 39.4 %."""
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
                    refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
                    noisy_features_retry_sigma_px=None, coarse_retry_below_share=None, drop_unmeasured_below_share=None,
