@@ -24,9 +24,9 @@ from ..geometry.matched_points import gather_matched_points
 from ..geometry.ransac import estimate_fundamental_ransac
 from ..geometry.rectification import rectify_uncalibrated, warp_views
 from ..geometry.soft import geometry_straight_through
-from ..segmentation.network import ObstacleNet, predict_obstacle_logits
+from ..segmentation.network import check_finite_logits, predict_obstacle_logits
 from ..segmentation.segment import SegmentationConfig
-from ..segmentation.stereo import segment_same_size, segmenter_network
+from ..segmentation.stereo import check_network, segment_same_size, segmenter_network
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
@@ -77,7 +77,7 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     if batch.batch_size == 0:
         raise InputError("batch: expected at least one stereo pair, got an empty batch")
     if network is not None:
-        _check_network(network, config.segmentation.segmenter)
+        check_network(network, config.segmentation.segmenter)
     if config.differentiable:
         return run_by_size(batch, lambda group: _estimate_group(group, config, network), max_pixels=CHUNK_PIXELS)
     # Nothing to differentiate: each run in inference mode (its ops' bookkeeping is most of a one-pair call's time),
@@ -99,20 +99,6 @@ def _detached(batch: StereoBatch) -> StereoBatch:
         return batch
     return dataclasses.replace(batch, **{k: v.detach() for k, v in vars(batch).items()
                                          if isinstance(v, torch.Tensor)})
-
-
-def _check_network(network: object, segmenter: str) -> None:
-    """A caller's network must be the kind its segmenter runs: a NearnessNet, or an ObstacleNet (whose ``config``
-    the learned segmenter's features read); not one for Otsu, which has none."""
-    from ..segmentation.nearness import NearnessNet
-
-    check_instance(network, "network", nn.Module)
-    if segmenter == "otsu":
-        raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
-    nearness = segmenter.startswith("nearness")
-    if not isinstance(network, NearnessNet if nearness else ObstacleNet):
-        expected = "a NearnessNet" if nearness else "an ObstacleNet"
-        raise InputError(f"network: expected {expected} for segmenter {segmenter!r}, got {type(network).__name__}")
 
 
 def _estimate_group(batch: StereoBatch, config: PipelineConfig, network: nn.Module | None) -> PipelineResult:
@@ -139,6 +125,7 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         net = segmenter_network(batch, config.segmentation, network)
         logits = predict_obstacle_logits(net, batch.left, batch.right, config.segmentation.ground, batch.baseline_m,
                                          batch.focal_px, config.segmentation.camera_frames)
+        check_finite_logits(logits, "network")
     with torch.no_grad():
         result = dataclasses.replace(_estimate_hard(_detached(batch), config, network, logits),
                                      exposure_matched=matched,

@@ -39,7 +39,8 @@ from ..depth.soft_dense import soft_block_match
 from .components import connected_components_with_stats
 from .ground_plane import GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
-from .network import ObstacleNet, ObstacleNetConfig, _disparity_levels, predict_obstacle_logits, stereo_features
+from .network import (ObstacleNet, ObstacleNetConfig, _disparity_levels, check_finite_logits, predict_obstacle_logits,
+                      stereo_features)
 from .network_files import SHIPPED_WEIGHTS, cached_obstacle_net, load_obstacle_net, save_obstacle_net
 from .segment import SegmentationConfig, _status, keep_largest_regions
 from .threshold import gray_histogram, gray_levels_and_histogram, otsu_threshold_level
@@ -178,8 +179,10 @@ def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = Segm
                                              torch.cat([batch.right, batch.left.flip(-1)]))
         else:
             check_shape(left_logits, "left_logits", list(batch.left.shape))
+            check_finite_logits(left_logits, "left_logits")
             logits = torch.cat([left_logits.detach().to(batch.left.dtype),
                                 predict_obstacle_logits(net, batch.right.flip(-1), batch.left.flip(-1))])
+    check_finite_logits(logits.view(2, b, -1).transpose(0, 1), "network")
     threshold = net.config.probability_threshold
     left = segment_learned(batch.left, logits[:b], config, threshold)
     right = segment_learned(batch.right, logits[b:].flip(-1), config, threshold)

@@ -64,14 +64,12 @@ from .nearness_denoise import check_denoise_settings, denoised_map, match_by_noi
 from .nearness_regions import (_area_measured_in_view, _region_median_disparity, _without_clipped,
                                shift_regions_to_right)
 from .nearness_split import nearness_split
-from .network import ThreeLevelUNet
+from .network import ThreeLevelUNet, check_finite_logits
 from .segment import SegmentationConfig, _status, keep_regions, segment_stereo, without_kept_regions
 from .threshold import gray_levels_and_histogram
 
-__all__ = [
-    "NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity", "nearness_logits",
-    "segment_stereo_nearness", "shift_regions_to_right"
-]
+__all__ = ["NearnessDisparity", "NearnessNet", "NearnessNetConfig", "measure_nearness_disparity", "nearness_logits",
+           "segment_stereo_nearness", "shift_regions_to_right"]
 
 
 NUM_FEATURES = 5  # channels of _network_features
@@ -334,11 +332,13 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", SegmentationConfig)
     b, rig = batch.batch_size, (config.ground, batch.baseline_m, batch.focal_px, config.camera_frames)
+    source = "network" if left_logits is None else "left_logits"
     with torch.no_grad():
         if left_logits is None:
             left_logits, measured = nearness_logits(net, batch.left, batch.right, *rig)
         elif measured is None:
             measured = measure_nearness_disparity(batch.left, batch.right, net.config, *rig)
+    check_finite_logits(left_logits, source)
     fallback = measured.matched_share < config.min_measured_share
     if not bool(fallback.any()):
         return _segment_measured(batch, config, net, left_logits, measured)

@@ -17,9 +17,8 @@ from ..depth.soft_dense import soft_block_match
 from .ground_plane import GroundPlaneConfig
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
 
-__all__ = [
-    "NUM_FEATURES", "ObstacleNet", "ObstacleNetConfig", "ThreeLevelUNet", "predict_obstacle_logits", "stereo_features"
-]
+__all__ = ["NUM_FEATURES", "ObstacleNet", "ObstacleNetConfig", "ThreeLevelUNet", "check_finite_logits",
+           "predict_obstacle_logits", "stereo_features"]
 
 
 def _disparity_levels(disparity: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -156,6 +155,16 @@ def stereo_features(left: torch.Tensor, right: torch.Tensor, config: ObstacleNet
                           (disparity - q[1].view(-1, 1, 1, 1)) / spread,
                           (disparity - _otsu_disparity(disparity).view(-1, 1, 1, 1)) / spread, column], 1)
     return features, disparity
+
+
+def check_finite_logits(logits: torch.Tensor, name: str) -> None:
+    """Obstacle logits ``(B, ...)`` with a NaN or an infinity are refused, naming the pairs: thresholded, a NaN is
+    "not an obstacle", and a diverged network (or a caller's broken ``left_logits``) would tell a walker the way is
+    clear. ``name``: the argument they came from."""
+    bad = ~torch.isfinite(logits.detach()).flatten(1).all(1)
+    if bool(bad.any()):
+        raise InputError(f"{name}: expected finite obstacle logits, got NaN or inf for pair(s) "
+                         f"{bad.nonzero().flatten().tolist()} (a diverged or corrupted network?)")
 
 
 def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.Tensor,

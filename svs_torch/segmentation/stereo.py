@@ -12,10 +12,11 @@ from ..core.checks import InputError, check_instance
 from ..core.size_groups import run_by_size
 from ..core.types import StereoBatch, StereoSegmentation
 from .learned import segment_stereo_learned
+from .network import ObstacleNet
 from .network_files import cached_obstacle_net
 from .segment import SegmentationConfig, segment_stereo_otsu
 
-__all__ = ["segment_pair", "segment_same_size", "segmenter_network"]
+__all__ = ["check_network", "segment_pair", "segment_same_size", "segmenter_network"]
 
 
 def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Module | None = None,
@@ -29,8 +30,14 @@ def segment_pair(batch: StereoBatch, config: SegmentationConfig, network: nn.Mod
     are for a batch whose pairs fill its tensors."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", SegmentationConfig)
+    if batch.batch_size == 0:
+        raise InputError("batch: expected at least one pair, got an empty batch")
+    if network is not None:
+        check_network(network, config.segmenter)
     if left_logits is None:
         return run_by_size(batch, lambda group: segment_same_size(group, config, network))
+    if config.segmenter == "otsu":
+        raise InputError("left_logits: given, but config.segmenter is 'otsu', which reads none")
     if not bool((batch.image_hw == torch.tensor(batch.size_hw, device=batch.image_hw.device)).all()):
         raise InputError("left_logits: expected a batch whose pairs all fill its tensors (one size); pass none to "
                          "segment a padded batch pair by pair size")
@@ -65,7 +72,22 @@ def segmenter_network(batch: StereoBatch, config: SegmentationConfig, network: n
         if any(p.requires_grad for p in parameters):
             cached.requires_grad_(False)
         return cached
+    check_network(network, config.segmenter)
     device = next(network.parameters()).device
     if device != batch.left.device:
         raise InputError(f"network: expected its parameters on the batch's device {batch.left.device}, got {device}")
     return network
+
+
+def check_network(network: object, segmenter: str) -> None:
+    """A caller's network must be the kind its segmenter runs: a NearnessNet, or an ObstacleNet (whose ``config``
+    the learned segmenter's features read); not one for Otsu, which has none."""
+    from .nearness import NearnessNet
+
+    check_instance(network, "network", nn.Module)
+    if segmenter == "otsu":
+        raise InputError("network: given, but config.segmentation.segmenter is 'otsu' (use a learned one)")
+    nearness = segmenter.startswith("nearness")
+    if not isinstance(network, NearnessNet if nearness else ObstacleNet):
+        expected = "a NearnessNet" if nearness else "an ObstacleNet"
+        raise InputError(f"network: expected {expected} for segmenter {segmenter!r}, got {type(network).__name__}")

@@ -811,3 +811,35 @@ def test_max_fill_px_ranges_boxes_before_a_plain_wall_as_camera_frames():
                            for net in (shipped, limited))
     assert default[1].acc_objects_pct < 50 and with_limit[1].acc_objects_pct > 99
     assert default[0].acc_objects_pct == with_limit[0].acc_objects_pct > 99
+
+
+@pytest.mark.parametrize("segmenter", ["nearness", "learned"])
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_a_network_that_outputs_nan_is_refused_not_read_as_no_obstacle(scenes, segmenter, differentiable):
+    """A diverged network's NaN logits were thresholded to "not an obstacle": NO_OBJECTS, the way clear."""
+    net = load_obstacle_net(segmenter)
+    with torch.no_grad():
+        for parameter in net.parameters():
+            parameter.fill_(float("nan"))
+    config = PipelineConfig(segmentation=SegmentationConfig(segmenter=segmenter), differentiable=differentiable)
+    with pytest.raises(InputError, match=r"network: expected finite obstacle logits, got NaN or inf for pair\(s\)"):
+        estimate_obstacle_depth(scenes.batch, config, network=net)
+
+
+def test_segment_pair_checks_its_network_its_batch_and_given_logits(scenes):
+    from svs_torch.pipeline import segment_pair
+
+    learned = SegmentationConfig(segmenter="learned")
+    with pytest.raises(InputError, match="network: expected an ObstacleNet for segmenter 'learned', got NearnessNet"):
+        segment_pair(scenes.batch, learned, network=NearnessNet())  # ran the nearness segmenter in silence
+    with pytest.raises(InputError, match="network: expected an ObstacleNet for segmenter 'learned', got Linear"):
+        segment_pair(scenes.batch, learned, network=torch.nn.Linear(2, 2))  # an AttributeError from inside
+    with pytest.raises(InputError, match="batch: expected at least one pair, got an empty batch"):
+        segment_pair(scenes.batch.select(torch.tensor([], dtype=torch.int64)), SegmentationConfig())
+    nan_logits = torch.full_like(scenes.batch.left, float("nan"))
+    with pytest.raises(InputError, match="left_logits: given, but config.segmenter is 'otsu', which reads none"):
+        segment_pair(scenes.batch, SegmentationConfig(segmenter="otsu"), left_logits=nan_logits)  # ignored
+    for config in (SegmentationConfig(segmenter="nearness"), learned):
+        with pytest.raises(InputError, match=r"left_logits: expected finite obstacle logits, got NaN or inf for "
+                                             r"pair\(s\) \[0, 1, 2\]"):
+            segment_pair(scenes.batch, config, left_logits=nan_logits)
