@@ -26,8 +26,10 @@ class Quantiles(NamedTuple):
 def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
-    after the sort); the counts have none."""
+    after the sort); the counts have none. An empty last dimension (no keypoint at all) gives 0 and 0."""
     count = mask.sum(-1)
+    if values.shape[-1] == 0:
+        return values.sum(-1), count  # zeros, with a graph to values where there is one
     ordered = sort_last(torch.where(mask, values, torch.full_like(values, torch.inf)))
     median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
     return torch.where(count > 0, median, torch.zeros_like(median)), count

@@ -437,3 +437,13 @@ def test_eval_command_json_summary_and_failures(data_dir, tmp_path, capsys):
     code = main(["eval", str(listing), "--set", "segmentation.kernal_size=3"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "unknown parameter 'segmentation.kernal_size'" in err[0]
+
+
+def test_a_pair_with_no_keypoint_at_all_is_scored_not_an_error(data_dir, capsys):
+    """surf.max_keypoints=0 is a valid setting (the dense stage ranges without sparse inliers), yet scoring its
+    empty inlier set failed in a median of nothing: every pair ERROR, and a sweep's resume re-ran them for ever."""
+    code = main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--size", "320x240", "--json",
+                 "--set", "surf.max_keypoints=0"])
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert code == 0 and lines[0]["status"] == "OK" and lines[0]["acc_objects_pct"] > 90
+    assert lines[0]["sparse_within_1px"] is None and lines[-1]["statuses"] == {"OK": 1}
