@@ -159,8 +159,10 @@ def _stereo_lines(summary: dict) -> list[str]:
 
 
 def format_summary(summary: dict) -> list[str]:
+    nominal = (summary.get("nominal_calibration") or {}).get("scored") or 0
     lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
-             f"truth; {_number(summary['pairs_per_s'], 2)} pairs/s",
+             f"truth with their own calibration" + (f" and {nominal} with a NOMINAL one (apart, below)" if nominal
+                                                    else "") + f"; {_number(summary['pairs_per_s'], 2)} pairs/s",
              f"mean Acc (Eq. 9) over {summary['scored']} pairs with their own calibration: R_min "
              f"{_number(summary['acc_r_min_pct'])} %, R_max "
              f"{_number(summary['acc_r_max_pct'])} %, objects {_number(summary['acc_objects_pct'])} %",

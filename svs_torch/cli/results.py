@@ -15,7 +15,9 @@ DESCRIPTION = """\
 Read a results file of svs-depth sweep (or eval --db).
 
 --summary (the default): each configuration's mean Eq. (9) accuracy of R_min, R_max and the objects (a failed
-pair counts 0 %), dense and inlier disparity quality, failures and time, best first; then the best
+pair counts 0 %) over the pairs scored with their own calibration, or, where more pairs were scored with a
+nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those (the 'scored' column says
+which, and how many); dense and inlier disparity quality, failures and time, best first; then the best
 configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right, status,
 r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size, the
 swept parameters (param:KEY) and every other column, among them the stereo metrics of the dense map
@@ -42,12 +44,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="one row per (configuration, pair), to FILE.csv or standard output")
     add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",
                       kinds=".png, .pdf or .svg")
-    parser.add_argument("--top", type=non_negative_int, default=10,
-                        help="configurations listed in the summary, best first (0: all; default: 10)")
+    parser.add_argument("--top", type=non_negative_int,
+                        help="configurations listed in the summary, best first (0: all; default: 10, and all with "
+                             "--json)")
     parser.add_argument("--sort", default="acc_objects_pct",
                         choices=("acc_r_min_pct", "acc_r_max_pct", "acc_objects_pct", "dense_within_1px",
                                  "inlier_precision"), help="metric the summary ranks by (default: acc_objects_pct)")
-    parser.add_argument("--json", action="store_true", help="the summary as one JSON object")
+    parser.add_argument("--json", action="store_true",
+                        help="the summary as one JSON object: configs (best first by --sort), sort, best")
     parser.set_defaults(func=run)
 
 
@@ -56,22 +60,24 @@ def _number(value, digits: int = 1) -> str:
 
 
 def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> None:
-    from ..evaluation.report import ranked_value
+    from ..evaluation.report import ranked_group, ranked_value
 
-    ranked = sorted(summaries, key=lambda s: -(v if (v := ranked_value(s, args.sort)) is not None else -1e9))
-    if any(s.get(args.sort) is None and ranked_value(s, args.sort) is not None for s in summaries):
-        print(f"note: {args.sort} ranks the means over pairs scored with a nominal calibration where a "
-              "configuration has no pair with its own (the table's '-')")
-    shown = ranked[:args.top] if args.top else ranked
+    shown = ranked_summaries(summaries, args)
     print(f"{len(summaries)} configurations; ranked by {args.sort}"
-          + (f", the best {len(shown)}" if len(shown) < len(ranked) else ""))
-    print(f"{'config':<16} {'pairs':>5} {'fail':>4} {'R_min %':>7} {'R_max %':>7} {'obj %':>6} {'d<=1':>5} "
-          f"{'prec':>5} {'s/pair':>6}  label")
+          + (f", the best {len(shown)}" if len(shown) < len(summaries) else ""))
+    print(f"{'config':<16} {'pairs':>5} {'fail':>4} {'scored':>6} {'R_min %':>7} {'R_max %':>7} {'obj %':>6} "
+          f"{'d<=1':>5} {'prec':>5} {'s/pair':>6}  label")
     for s in shown:
-        print(f"{s['config_id']:<16} {s['pairs']:>5} {s['failed']:>4} {_number(s['acc_r_min_pct']):>7} "
-              f"{_number(s['acc_r_max_pct']):>7} {_number(s['acc_objects_pct']):>6} "
-              f"{_number(s['dense_within_1px'], 2):>5} {_number(s['inlier_precision'], 2):>5} "
-              f"{_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} ({s['preset']}, {s['size']})")
+        group, count = ranked_group(s)
+        scored = f"{count}{' n' if group == 'nominal' else ''}"
+        print(f"{s['config_id']:<16} {s['pairs']:>5} {s['failed']:>4} {scored:>6} "
+              f"{_number(ranked_value(s, 'acc_r_min_pct')):>7} {_number(ranked_value(s, 'acc_r_max_pct')):>7} "
+              f"{_number(ranked_value(s, 'acc_objects_pct')):>6} {_number(s['dense_within_1px'], 2):>5} "
+              f"{_number(s['inlier_precision'], 2):>5} {_number(s['pipeline_s_per_pair'], 3):>6}  {s['label']} "
+              f"({s['preset']}, {s['size']})")
+    if any(ranked_group(s)[0] == "nominal" for s in shown):
+        print("note: 'scored' is the pairs the accuracies are over; 'n': scored with a nominal calibration (their "
+              "data ship none), more than those with their own (svs-depth eval shows both groups)")
     missing = [s for s in summaries if s.get("pairs_missing")]
     if missing:
         print("note: the configurations were not all measured on the same pairs ("
@@ -85,6 +91,16 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1
         print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}")
+
+
+def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[dict]:
+    """The summaries best first by ``--sort`` (as ranked_value reads it), the first ``--top`` of them (all with
+    --top 0; without --top, 10 in the table and all in JSON)."""
+    from ..evaluation.report import ranked_value
+
+    ranked = sorted(summaries, key=lambda s: -(v if (v := ranked_value(s, args.sort)) is not None else -1e9))
+    top = args.top if args.top is not None else (0 if args.json else 10)
+    return ranked[:top] if top else ranked
 
 
 def run(args: argparse.Namespace) -> int:
@@ -117,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
             summaries = config_summaries(store)
             best = best_by_metric(summaries)
             if args.json:
-                print(dumps_strict({"configs": summaries,
+                print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best}}))
             else:
                 _print_summary(summaries, best, args)

@@ -95,6 +95,7 @@ def test_eval_marks_nominal_scenes_and_lists_each_calibration(data_dir, capsys):
             "shipped or given)") in out
     assert "mean Acc (Eq. 9) over 1 pairs with their own calibration" in out
     assert "apart, 1 scored with a NOMINAL calibration" in out
+    assert "2 pairs, 0 failed, 1 scored against ground truth with their own calibration and 1 with a NOMINAL one" in out
     code, out, _ = run_cli(capsys, "eval", *map(str, scenes), "--size", "160x120", "--json")
     *rows, summary = [json.loads(line) for line in out.splitlines()]
     assert [r["calibration"]["measured"] for r in rows] == [False, True]

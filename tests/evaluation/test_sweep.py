@@ -512,3 +512,35 @@ def test_results_rank_nominal_only_configurations_on_their_nominal_means(referen
     assert panels and all(line.get_ydata().size and not np.isnan(line.get_ydata()).all() for axis in panels
                           for line in axis.get_lines())
     assert best["label"] in figure.axes[-1].get_title()
+
+
+def test_results_rank_over_the_larger_group_and_json_keeps_sort_and_top(reference, tmp_path, capsys):
+    """Found by an audit of the bulk commands: over 26 Middlebury 2005/2006 scenes, one of which ships its own
+    calibration, `results` ranked (and named best) by that one pair while the table said 26; and --json ignored
+    --sort and --top."""
+    import shutil
+
+    db = tmp_path / "mostly_nominal.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE results SET calibrated = 0 WHERE pair_id != ?", (first,))
+    connection.close()
+    assert main(["results", str(db), "--json", "--top", "0"]) == 0
+    summaries = json.loads(capsys.readouterr().out)["configs"]
+    assert all(s["scored"] == 1 and s["nominal_calibration"]["scored"] == 3 for s in summaries)
+    by_nominal = sorted(summaries, key=lambda s: -s["nominal_calibration"]["acc_objects_pct"])
+    assert [s["config_id"] for s in summaries] == [s["config_id"] for s in by_nominal]  # best first, as the table
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split() for line in out.splitlines() if line[:16].strip() in {s["config_id"] for s in summaries}]
+    assert [row[0] for row in rows] == [s["config_id"] for s in by_nominal] and all(row[3:5] == ["3", "n"]
+                                                                                    for row in rows)
+    assert float(rows[0][7]) == round(by_nominal[0]["nominal_calibration"]["acc_objects_pct"], 1)
+    assert "'n': scored with a nominal calibration" in out
+    assert main(["results", str(db), "--json", "--top", "1", "--sort", "acc_r_min_pct"]) == 0
+    picked = json.loads(capsys.readouterr().out)
+    best_r_min = max(summaries, key=lambda s: s["nominal_calibration"]["acc_r_min_pct"])
+    assert picked["sort"] == "acc_r_min_pct" and [s["config_id"] for s in picked["configs"]] == [
+        best_r_min["config_id"]]
