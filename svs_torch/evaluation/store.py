@@ -58,12 +58,16 @@ from ..core.files import check_writable_folder
 from .metrics import PairEvaluation
 from .overrides import merge_labels
 
-__all__ = ["RESULT_COLUMNS", "SCHEMA_VERSION", "ResultStore"]
+__all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
 #: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL.
 SQLITE_IOERR, SQLITE_FULL = 10, 13
 
 SCHEMA_VERSION = 2
+#: Stored statuses a resumed run retries (evaluation.runner.UNRUN_STATUSES): a pipeline that raised, and a pair
+#: whose files could not be read or were too small when it ran (since added, mended or replaced, perhaps).
+RETRIED_STATUSES = ("ERROR", "BAD_INPUT", "TOO_SMALL")
+_RETRIED_SQL = "(" + ", ".join(f"'{status}'" for status in RETRIED_STATUSES) + ")"
 
 _SQL_TYPES = {"str": "TEXT", "bool": "INTEGER", "int": "INTEGER", "float": "REAL", "list": "TEXT", "dict": "TEXT"}
 
@@ -255,20 +259,23 @@ class ResultStore:
         return [row[0] for row in self.connection.execute("SELECT DISTINCT code_version FROM runs ORDER BY run_id")]
 
     def done(self, config_ids: Sequence[str] | None = None) -> set[tuple[str, str]]:
-        """The (config_id, pair_id) keys already stored, but those of ``ERROR`` rows: a run that raised (out of
-        memory, a full disk under an export) is run again when a sweep resumes."""
-        rows = self.connection.execute("SELECT config_id, pair_id FROM results WHERE status IS NOT 'ERROR'")
+        """The (config_id, pair_id) keys already stored, but those of rows with a :data:`RETRIED_STATUSES`
+        status: a run that raised (out of memory, a full disk under an export), or a pair whose files were
+        missing, unreadable or too small then, is run again when a sweep resumes (and its new row replaces the
+        old one)."""
+        rows = self.connection.execute(f"SELECT config_id, pair_id FROM results WHERE status NOT IN {_RETRIED_SQL}")
         wanted = None if config_ids is None else set(config_ids)
         return {(c, p) for c, p in rows if wanted is None or c in wanted}
 
     def write_task(self, config_id: str, run_id: int, rows: Sequence[tuple[str, PairEvaluation]]) -> int:
         """Store one task's ``(pair_id, evaluation)`` rows in one transaction; rows already present are kept as
-        they are, but an ``ERROR`` row, which a new result replaces. Returns the number of rows written."""
+        they are, but a row of a :data:`RETRIED_STATUSES` status, which a new result replaces. Returns the number
+        of rows written."""
         names = ["config_id", "pair_id", "run_id"] + [name for name, _ in RESULT_COLUMNS]
         columns = ", ".join(f'"{name}"' for name in names)
         replace = ", ".join(f'"{name}" = excluded."{name}"' for name in names[2:])
         sql = (f"INSERT INTO results({columns}) VALUES ({', '.join('?' * len(names))}) ON CONFLICT(config_id, "
-               f"pair_id) DO UPDATE SET {replace} WHERE results.status IS 'ERROR'")
+               f"pair_id) DO UPDATE SET {replace} WHERE results.status IN {_RETRIED_SQL}")
         before = self.connection.total_changes
         self._transaction((sql, [config_id, pair_id, run_id]
                            + [_to_sql(getattr(evaluation, name)) for name, _ in RESULT_COLUMNS])

@@ -447,3 +447,29 @@ def test_a_pair_with_no_keypoint_at_all_is_scored_not_an_error(data_dir, capsys)
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert code == 0 and lines[0]["status"] == "OK" and lines[0]["acc_objects_pct"] > 90
     assert lines[0]["sparse_within_1px"] is None and lines[-1]["statuses"] == {"OK": 1}
+
+
+def test_a_pair_unreadable_then_mended_is_run_again_into_the_store(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: a listed pair whose files were missing stayed BAD_INPUT in a store
+    for ever; a later run found the files, printed the pair OK, and threw its row away (results: 'fail 1')."""
+    import shutil
+    import sqlite3
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\nlater_L.png later_R.png\n")
+    db = tmp_path / "s.sqlite"
+    args = ["eval", str(listing), "--size", "160x120", "--db", str(db)]
+
+    def stored() -> list[str]:
+        connection = sqlite3.connect(db)
+        try:
+            return sorted(status for (status,) in connection.execute("SELECT status FROM results"))
+        finally:
+            connection.close()
+
+    assert main(args) == 0 and stored() == ["BAD_INPUT", "OK"]
+    shutil.copy(teddy / "im0.png", tmp_path / "later_L.png")
+    shutil.copy(teddy / "im1.png", tmp_path / "later_R.png")
+    assert main(args) == 0 and stored() == ["OK", "OK"]
+    capsys.readouterr()
