@@ -140,8 +140,9 @@ class DenseConfig:
     smoothing_intensity_weight: float = 0.25  # experiments/real_rig.md, "Featureless obstacles" (tuning sets)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.window_size, int) or self.window_size < 1 or self.window_size % 2 == 0:
-            raise InputError(f"window_size: expected an odd positive int, got {self.window_size!r}")
+        if not isinstance(self.window_size, int) or not 1 <= self.window_size <= 255 or self.window_size % 2 == 0:
+            # 255: StereoBM's limit and the kernel's (depth.kernels.MAX_WINDOW); 10001 took 1.8 GB on a 64x48 view
+            raise InputError(f"window_size: expected an odd int from 1 to 255, got {self.window_size!r}")
         if not isinstance(self.scale_window, bool):
             raise InputError(f"scale_window: expected a bool, got {self.scale_window!r}")
         if self.range_source not in ("coarse", "inliers"):
@@ -173,8 +174,8 @@ class DenseConfig:
             raise InputError(f"in_view_margin: expected 'object' or 'pair', got {self.in_view_margin!r}")
         check_percentiles(self.range_percentiles, "range_percentiles")
         for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
-            if not getattr(self, name) >= 0:
-                raise InputError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
+            if not 0 <= getattr(self, name) <= 1e6:  # 1e308 failed late, an overflow of the kernel's texture_min
+                raise InputError(f"{name}: expected a value from 0 to 1e6, got {getattr(self, name)!r}")
         for name in ("smoothing_penalties", "retry_smoothing_penalties"):
             penalties = getattr(self, name)
             if penalties is not None and not 0 <= penalties[0] <= penalties[1] < float("inf"):
@@ -187,8 +188,8 @@ class DenseConfig:
         if not self.smoothing_min_residual_levels >= 0:
             raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
                              f"{self.smoothing_min_residual_levels!r}")
-        if not isinstance(self.margin_px, int) or self.margin_px < 0:
-            raise InputError(f"margin_px: expected an int >= 0, got {self.margin_px!r}")
+        if not isinstance(self.margin_px, int) or not 0 <= self.margin_px < 2**31:
+            raise InputError(f"margin_px: expected an int from 0 to 2^31 - 1, got {self.margin_px!r}")
         check_real(self.fallback_max_disparity_fraction, "fallback_max_disparity_fraction", 0.0, 1.0, low_open=True)
         check_count(self.min_range_inliers, "min_range_inliers")  # 0 counts as 1: a range needs a sample
         check_count(self.min_range_pixels, "min_range_pixels")

@@ -50,6 +50,7 @@ def _check_inputs(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDe
     check_dtype(dense.valid, "dense.valid", "bool")
     check_nonempty(disparity, "dense.disparity_px")
     check_rows(dense.crop_xywh, "dense.crop_xywh", b, 4)
+    _check_boxes_in_frame(dense.crop_xywh, h, w)
     check_rows(dense.min_disparity_px, "dense.min_disparity_px", b)
     check_rows(dense.pair_num_disparities, "dense.pair_num_disparities", b)
     check_shape(labels, "labels", list(disparity.shape))
@@ -58,6 +59,18 @@ def _check_inputs(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDe
     check_percentiles(percentiles, "percentiles")
     low, high = (float(p) for p in percentiles)
     return b, low, high
+
+
+def _check_boxes_in_frame(boxes: torch.Tensor, h: int, w: int) -> None:
+    """Each searched box (x0, y0, width, height) within the ``h`` × ``w`` map widened by its own size on every
+    side (a box may reach past the frame, whose border repeats there): one 4e7 px wide on an 8 × 16 map was counted
+    320 million valid pixels (4.4 GB), and x0 = -2^63 overflowed the kernel's arithmetic."""
+    x0, y0, width, height = boxes.long().unbind(1)
+    inside = ((x0 >= -w) & (y0 >= -h) & (width >= 0) & (height >= 0) & (width <= 2 * w - x0)
+              & (height <= 2 * h - y0))
+    if not bool(inside.all()):
+        raise InputError(f"dense.crop_xywh: expected boxes (x0, y0, width, height) within the {w}x{h} map widened "
+                         f"by its size on each side, got {boxes[~inside].tolist()[:4]}")
 
 
 def _compiled_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, scale: torch.Tensor,

@@ -6,12 +6,18 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import InputError
+
 __all__ = ["mean_pool", "reduction_factor"]
 
 
 def _block_slices(images: torch.Tensor, factor: int) -> list[torch.Tensor]:
     """The ``factor²`` strided slices of ``images`` ``(..., H, W)`` (cut to whole blocks), one per offset of a
     ``factor × factor`` block, in row-major order: a block's pixels are the same place of every slice."""
+    if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= min(images.shape[-2:]):
+        # factor² slices: a factor of 3000 on a 4x4 image took 49 s and 3.6 GB before failing
+        raise InputError(f"factor: expected an int from 1 to the images' smaller side "
+                         f"{min(images.shape[-2:])}, got {factor!r}")
     height, width = images.shape[-2] // factor * factor, images.shape[-1] // factor * factor
     images = images[..., :height, :width]
     return [images[..., i::factor, j::factor] for i in range(factor) for j in range(factor)]

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import torch
 
-from ..core.checks import check_dtype, check_shape
+from ..core.checks import check_dtype, check_finite, check_shape
 from ..core.mask_reductions import all_true
 from ..core.ordering import sort_last
 from . import kernels
@@ -80,15 +80,15 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     check_shape(valid, "valid", list(disparity_px.shape))
     check_dtype(valid, "valid", "bool")
     values = disparity_px.detach().to(torch.float64)
+    check_finite(values[valid], "disparity_px")  # where valid: an inf sample made a range from -2^63
     enough_count = config.min_range_inliers if min_count is None else min_count
     percentiles = (config.range_percentiles[0] / 100, config.range_percentiles[1] / 100)
     share = config.in_view_detached_tail_share if tail_bin_px is not None else None
     object_groups = groups is not None
     if groups is None and share is not None:
         groups = valid.unsqueeze(1)  # the pair's samples as one group, to find its detached tail
-    trimmed = None
     if groups is None:
-        count, low, high = _pair_percentiles(disparity_px, values, valid, percentiles)
+        count, low, high, trimmed = *_pair_percentiles(disparity_px, values, valid, percentiles), None
     else:
         count, low, high, trimmed = _group_percentiles(disparity_px, values, valid, groups, percentiles,
                                                        enough_count, tail_bin_px, share)

@@ -18,11 +18,14 @@ from ..core.types import Matches
 from . import kernels
 from .matched_points import MatchedPoints
 
-__all__ = ["LK_GRID_HALF_WIDTH", "MatchRefinementConfig", "refine_matched_points", "refine_matches_lk"]
+__all__ = ["LK_GRID_HALF_WIDTH", "MAX_LK_ITERATIONS", "MatchRefinementConfig", "refine_matched_points",
+           "refine_matches_lk"]
 
 
 #: Half-width, in samples, of the patch grid of :func:`refine_matches_lk` (a 13 × 13 grid).
 LK_GRID_HALF_WIDTH = 6
+#: The most Gauss–Newton steps a refinement may take (8 by default); a C int underneath, where 2^64 + 1 ran as 1.
+MAX_LK_ITERATIONS = 1000
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,8 @@ class MatchRefinementConfig:
     min_correlation: float = 0.7
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.iterations, int) and self.iterations >= 0):
-            raise InputError(f"iterations: expected a non-negative integer, got {self.iterations!r}")
+        if not (isinstance(self.iterations, int) and 0 <= self.iterations <= MAX_LK_ITERATIONS):
+            raise InputError(f"iterations: expected an integer from 0 to {MAX_LK_ITERATIONS}, got {self.iterations!r}")
         if not (self.max_shift_px >= 0 and self.radius_scales > 0 and 0 < self.min_radius_px <= self.max_radius_px):
             raise InputError("MatchRefinementConfig: expected max_shift_px >= 0, radius_scales > 0 and "
                              f"0 < min_radius_px <= max_radius_px, got {self.max_shift_px!r}, "
@@ -141,10 +144,11 @@ def refine_matches_lk(
     check_nonempty(left, "left")
     if scale is not None:
         check_shape(scale, "scale", [dims["B"], k])
-    if not (iterations >= 0 and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px and radius_scales > 0):
-        raise InputError("refine_matches_lk: expected iterations >= 0, max_shift_px >= 0, radius_scales > 0 and "
-                         f"0 < min_radius_px <= max_radius_px, got {iterations}, {max_shift_px}, {radius_scales}, "
-                         f"{min_radius_px}, {max_radius_px}")
+    if not (0 <= iterations <= MAX_LK_ITERATIONS and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px
+            and radius_scales > 0):
+        raise InputError(f"refine_matches_lk: expected 0 <= iterations <= {MAX_LK_ITERATIONS}, max_shift_px >= 0, "
+                         f"radius_scales > 0 and 0 < min_radius_px <= max_radius_px, got {iterations}, {max_shift_px}, "
+                         f"{radius_scales}, {min_radius_px}, {max_radius_px}")
     if k == 0 or not bool(points.valid.any()):
         return points
     # Work on the valid rows only: compacted to the front (a stable sort keeps their order) and cut at the

@@ -951,3 +951,75 @@ def test_row_quantile_equals_torch_quantile(generator):
             torch.testing.assert_close(row_quantile(image.flatten(1), q),
                                        torch.quantile(image.flatten(1), torch.tensor(q), dim=1).T,
                                        rtol=0, atol=0, equal_nan=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Found by an audit of the kernels' safety (hostile calls of the public and semi-public functions): two crashes,
+# C integer overflows and sizes without a bound. Each call below crashed, ran undefined arithmetic, or wrapped a
+# number silently before; each is now refused by name (or, for the semi-public wrapper, left to the torch path).
+
+def _dense_objects_call(crop: list[int]):
+    from svs_torch.depth.dense_config import DenseDisparity
+    from svs_torch.depth.dense_objects import dense_object_depths
+    from svs_torch.depth.depth_types import ObjectDepths
+
+    dense = DenseDisparity(torch.rand(1, 1, 8, 16) * 5, torch.ones(1, 1, 8, 16, dtype=torch.bool),
+                           torch.zeros(1, dtype=torch.int64), 8, torch.tensor([crop]), torch.full((1,), 8))
+    zero, zero_int = torch.zeros(1, 1), torch.zeros(1, 1, dtype=torch.int64)
+    objects = ObjectDepths(label=torch.tensor([[1]]), area_px=torch.full((1, 1), 5), centroid_x_px=zero,
+                           side=zero_int, num_inliers=zero_int, depth_median_m=zero, depth_low_m=zero,
+                           depth_high_m=zero, valid=zero_int.bool(), point_slot=torch.zeros(1, 0, dtype=torch.int64))
+    return lambda: dense_object_depths(dense, torch.ones(1, 1, 8, 16, dtype=torch.int64), objects, 500.0, 0.1)
+
+
+@pytest.mark.parametrize("crop", [[-2**63, 0, 4, 4], [0, 0, 40_000_000, 4], [-17, 0, 4, 4], [0, 20, 4, 4],
+                                  [0, 0, 4, -1]])
+def test_dense_object_depths_refuses_a_box_far_outside_its_map(crop):
+    """x0 = -2^63 passed an abs() bound (abs(-2^63) is -2^63 in torch) and wrote out of bounds (SIGSEGV); a box
+    4e7 wide on an 8x16 map counted 320 million valid pixels in 4.4 GB."""
+    with pytest.raises(InputError, match=r"dense\.crop_xywh: expected boxes \(x0, y0, width, height\) within the "
+                                         r"16x8 map widened by its size on each side"):
+        _dense_objects_call(crop)()
+    _dense_objects_call([-16, -8, 48, 24])()  # past the frame by its size: the border repeats there
+    with pytest.raises(InputError, match=r"boxes: expected \(x0, y0, width, height\) within ±2\^31"):
+        depth_kernels._check_box_rows(torch.tensor([[-2**63, 0, 4, 4]]), "boxes", 1)
+
+
+def test_semi_global_columns_leaves_no_disparity_to_the_torch_path():
+    """D = 0 with H >= 2 read the empty output's null pointer (SIGSEGV)."""
+    assert depth_kernels.semi_global_columns(torch.zeros(1, 0, 4, 3), torch.zeros(1), torch.zeros(1)) is None
+
+
+def test_sizes_beyond_what_the_kernels_hold_are_refused():
+    from svs_torch.depth.block_matching import block_match_sad
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.depth.pooling import mean_pool
+    from svs_torch.depth.search_range import disparity_search_range
+    from svs_torch.geometry.lk_refinement import MatchRefinementConfig
+
+    image = torch.rand(1, 1, 8, 16)
+    with pytest.raises(InputError, match=r"min_disparity_px: expected values in \(-2\^31, 2\^31\)"):
+        block_match_sad(image, image, torch.tensor([-2**63]), 8)  # the abs() bound again: C overflow
+    for window in (257, 10_001, 2**64 + 1):  # 2^64 + 1 ran as a 1-pixel window through ctypes; 10 001: 1.8 GB
+        with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 255"):
+            DenseConfig(window_size=window)
+    with pytest.raises(InputError, match="texture_threshold: expected a value from 0 to 1e6"):
+        DenseConfig(texture_threshold=1e308)
+    with pytest.raises(InputError, match=r"margin_px: expected an int from 0 to 2\^31 - 1"):
+        DenseConfig(margin_px=2**63 - 1)
+    with pytest.raises(InputError, match="iterations: expected an integer from 0 to 1000"):
+        MatchRefinementConfig(iterations=2**64 + 1)
+    for factor in (0, 1000, -2):  # 1000 on a 4x4 image: 10 s and 820 MB of slices
+        with pytest.raises(InputError, match="factor: expected an int from 1 to the images' smaller side 4"):
+            mean_pool(torch.rand(1, 1, 4, 4), factor)
+    with pytest.raises(InputError, match="disparity_px: expected finite values, got inf"):
+        disparity_search_range(torch.tensor([[math.inf, 3.0]]), torch.ones(1, 2, dtype=torch.bool),
+                               torch.tensor([16]), DenseConfig())
+    left = image[:, 0]
+    args = dict(texture=None, mask=None, boxes=torch.tensor([[0, 0, 16, 8]]), min_disparity=torch.zeros(1, dtype=torch.int64),
+                counts=torch.full((1,), 4), image_hw=torch.tensor([[8, 16]]), lower_is_limit=torch.zeros(1, dtype=torch.bool),
+                uniqueness_ratio=0.0, lr_max_diff_px=None, texture_min=0.0, prefilter_cap=31.0)
+    with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 255"):
+        depth_kernels._check_block_match(left, left, window_size=3037000499, mask_margin_px=0, **args)
+    with pytest.raises(InputError, match=r"mask_margin_px: expected an int from 0 to 2\^31 - 1"):
+        depth_kernels._check_block_match(left, left, window_size=9, mask_margin_px=2**63 - 1, **args)

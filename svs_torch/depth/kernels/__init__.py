@@ -119,6 +119,8 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
 
 #: The dense kernel keeps disparity indices in its 16-bit cost type (block_match.c): at most 65534 disparities.
 MAX_DISPARITIES = 65534
+#: The largest SAD window (OpenCV's StereoBM's too): its scratch rows grow with the window's square.
+MAX_WINDOW = 255
 
 
 def _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
@@ -131,8 +133,8 @@ def _check_block_match(left, right, texture, mask, window_size, boxes, min_dispa
         if isinstance(tensor, torch.Tensor):
             check_shape(tensor, name, [b, h, w])
     check_nonempty(left, "left")
-    if not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
-        raise InputError(f"window_size: expected a positive odd int, got {window_size!r}")
+    if not isinstance(window_size, int) or not 1 <= window_size <= MAX_WINDOW or window_size % 2 == 0:
+        raise InputError(f"window_size: expected an odd int from 1 to {MAX_WINDOW}, got {window_size!r}")
     check_boxes(boxes, b, h, w)
     check_rows(min_disparity, "min_disparity", b)
     check_counts(counts, "counts", b, MAX_DISPARITIES)
@@ -143,8 +145,8 @@ def _check_block_match(left, right, texture, mask, window_size, boxes, min_dispa
         check_number(lr_max_diff_px, "lr_max_diff_px", 0.0)
     check_number(texture_min, "texture_min")
     check_number(prefilter_cap, "prefilter_cap", 0.0)
-    if not isinstance(mask_margin_px, int) or mask_margin_px < 0:
-        raise InputError(f"mask_margin_px: expected a non-negative int, got {mask_margin_px!r}")
+    if not isinstance(mask_margin_px, int) or not 0 <= mask_margin_px < 2**31:  # column sums in int64
+        raise InputError(f"mask_margin_px: expected an int from 0 to 2^31 - 1, got {mask_margin_px!r}")
     return b, h, w
 
 
@@ -233,7 +235,7 @@ def semi_global_columns(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor)
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
     check_shape(p1, "p1", [dims["B"]])
     check_shape(p2, "p2", [dims["B"]])
-    if not on_cpu(torch.float32, costs, p1, p2):
+    if dims["D"] < 1 or not on_cpu(torch.float32, costs, p1, p2):  # D = 0 crashed the kernel: the torch path's
         return None
     library = load("semi_global_columns")
     if library is None:
@@ -347,7 +349,7 @@ def _check_box_rows(boxes: torch.Tensor, name: str, b: int) -> None:
     """Boxes ``(B, 4)`` int that :func:`object_depths` reads at any place (its columns and rows outside the frame
     repeat the border), within 2³¹ so that no corner's arithmetic overflows."""
     check_rows(boxes, name, b, 4)
-    if boxes.numel() and bool((boxes.abs() >= 2**31).any()):
+    if boxes.numel() and bool(((boxes >= 2**31) | (boxes <= -2**31)).any()):  # not abs(): abs(-2^63) < 0
         raise InputError(f"{name}: expected (x0, y0, width, height) within ±2^31, got {boxes.tolist()}")
 
 

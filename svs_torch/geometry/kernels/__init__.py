@@ -44,8 +44,8 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     check_shape(radius, "radius", [b, k])
     check_rows(active, "active", b, k, kinds="bool")
     check_nonempty(left, "left")
-    if not isinstance(iterations, int) or iterations < 0:
-        raise InputError(f"iterations: expected a non-negative int, got {iterations!r}")
+    if not isinstance(iterations, int) or not 0 <= iterations < 2**31:  # a C int: 2^64 + 1 ran as 1
+        raise InputError(f"iterations: expected an int from 0 to 2^31 - 1, got {iterations!r}")
     check_number(max_shift_px, "max_shift_px", 0.0)
     if (not (on_cpu(torch.float32, *tensors) and on_cpu(torch.bool, active))
             or h * w >= 2**31):  # the kernel indexes an image with 32-bit offsets
