@@ -234,3 +234,53 @@ def test_a_wrong_container_is_named(index, scenes):
 
     with pytest.raises(InputError, match=re.escape(message)):
         call(Arguments)
+
+
+def test_the_library_calls_an_api_audit_found_unchecked():
+    """Found by an audit of the Python API (each a silent wrong result or a deep error before)."""
+    import dataclasses
+
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.data import collate_stereo_batches
+    from svs_torch.data.camera_frames import camera_frames
+    from svs_torch.depth.dense import estimate_dense_disparity
+    from svs_torch.depth.quantiles import kept_region_lower_median, masked_lower_median
+    from svs_torch.segmentation.components import connected_components_with_stats
+    from svs_torch.segmentation.segment import SegmentationConfig, keep_largest_regions, keep_regions
+    from svs_torch.segmentation.soft import soft_segment_images
+
+    mask = torch.zeros(1, 1, 20, 20, dtype=torch.bool)
+    mask[0, 0, 2:5, 2:5] = mask[0, 0, 10:18, 10:18] = True
+    labels, _, regions = connected_components_with_stats(mask)
+    for message, call in [
+        ("keep: expected 'largest', 'nearest' or 'nearest_first', got 'Largest'",  # ran as "nearest_first"
+         lambda: keep_regions(labels, regions, 1, "Largest")),
+        ("num_keep: expected an int >= 0, got -1", lambda: keep_largest_regions(labels, regions, -1)),  # kept L - 1
+        ("labels: expected a int tensor", lambda: keep_regions(labels.float(), regions, 1)),
+        ("nearness: expected (1, 2), got (3)", lambda: keep_regions(labels, regions, 1, "nearest",
+                                                                    nearness=torch.zeros(3))),
+        ("mask: expected a bool tensor", lambda: masked_lower_median(torch.rand(2, 5), torch.ones(2, 5))),
+        ("labels: expected (2, 1, 4, 4), got (3, 1, 4, 4)", lambda: kept_region_lower_median(
+            torch.rand(2, 1, 4, 4), torch.ones(2, 1, 4, 4, dtype=torch.bool), torch.ones(3, 1, 4, 4, dtype=torch.long),
+            torch.ones(2, 1, dtype=torch.long))),
+        # 0-255 by mistake came out as all-white frames
+        ("images: expected values in [0, 1], got min", lambda: camera_frames(torch.rand(2, 1, 8, 8) * 255 + 1, 4, 4.0,
+                                                                            torch.Generator().manual_seed(0))),
+        ("config.method: the soft segmentation relaxes Otsu's threshold ('otsu'), got 'canny'",
+         lambda: soft_segment_images(torch.rand(1, 1, 16, 16), config=SegmentationConfig(method="canny"))),
+        ("left: expected at least one pair, got an empty batch", lambda: estimate_dense_disparity(
+            torch.rand(0, 1, 8, 8), torch.rand(0, 1, 8, 8), torch.ones(0, 1, 8, 8, dtype=torch.bool))),
+    ]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            call()
+    assert camera_frames(torch.rand(0, 1, 8, 8), 4, 4.0, torch.Generator()).shape == (0, 1, 8, 8)
+    batch = StereoBatch.from_images(torch.rand(3, 1, 8, 8), torch.rand(3, 1, 8, 8), 276.0, 0.1075)
+    image_hw = batch.image_hw.clone()
+    image_hw[1] = 0
+    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) of at least 1 "
+                                                   "pixel, got [[0, 0]]")):
+        dataclasses.replace(batch, image_hw=image_hw)  # a later stage blamed left's "0x0" images
+    broken = batch.left.clone()
+    broken[2, 0, 1, 1] = float("nan")
+    with pytest.raises(InputError, match=re.escape("left: expected values in [0, 1], got NaN (image 2 of 3)")):
+        collate_stereo_batches([dataclasses.replace(batch, left=broken)])  # which of a bulk run's pairs?

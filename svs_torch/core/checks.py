@@ -96,11 +96,18 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
         # One pass: aminmax propagates NaN, so a NaN anywhere shows in the extremes.
         lo, hi = (float(v) for v in torch.aminmax(tensor.detach()))
         if math.isnan(lo) or math.isnan(hi):
-            raise InputError(f"{name}: expected values in [0, 1], got NaN")
+            raise InputError(f"{name}: expected values in [0, 1], got NaN{_in_pairs(tensor.isnan())}")
         if not (lo >= 0.0 and hi <= 1.0):
             # Nine digits tell a float32 one ulp above 1 (1.00000012) from 1 itself.
-            raise InputError(f"{name}: expected values in [0, 1], got min {lo:.9g}, max {hi:.9g}")
+            raise InputError(f"{name}: expected values in [0, 1], got min {lo:.9g}, max {hi:.9g}"
+                             f"{_in_pairs((tensor < 0) | (tensor > 1))}")
     return bindings
+
+
+def _in_pairs(bad: torch.Tensor) -> str:
+    """`` (image 2 of 3)``: which of a batch's images hold the ``bad`` values, so a bulk run can find the file."""
+    images = bad.detach().flatten(1).any(1).nonzero().flatten().tolist()
+    return f" (image{'s' if len(images) > 1 else ''} {', '.join(map(str, images[:8]))} of {bad.shape[0]})"
 
 
 def check_instance(value: object, name: str, kind: type, fields: tuple[str, ...] = ()) -> None:

@@ -87,6 +87,9 @@ class StereoBatch:
         check_dtype(self.calibrated, "calibrated", "bool")
         check_shape(self.image_hw, "image_hw", [b, 2])
         check_dtype(self.image_hw, "image_hw", "int")
+        if b and not bool((self.image_hw >= 1).all()):  # else a later stage blamed left's 0x0 "image"
+            raise InputError(f"image_hw: expected each pair's (height, width) of at least 1 pixel, got "
+                             f"{self.image_hw[~(self.image_hw >= 1).all(1)].tolist()[:4]}")
         if (self.disparity_px is None) != (self.disparity_valid is None):
             raise InputError("disparity_valid: expected it together with disparity_px (both or neither)")
         if self.disparity_px is not None:

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.checks import InputError, check_instance, check_shape
+from ..core.checks import InputError, check_image, check_instance
 from ..core.types import StereoBatch
 
 __all__ = ["JPEG_QUALITY_FOR_DIGIT", "camera_frame_pairs", "camera_frames"]
@@ -28,9 +28,7 @@ def camera_frames(images: torch.Tensor, digit: int, sigma_levels: float, generat
     levels (drawn from ``generator``, all of the batch's noise in one draw, in float64), rounded to 8-bit levels,
     JPEG-encoded at the board's quality ``digit`` (:data:`JPEG_QUALITY_FOR_DIGIT`) and decoded; the same shape
     and dtype. Not differentiable (a JPEG round trip)."""
-    dims = check_shape(images, "images", ["B", 1, "H", "W"])
-    if not images.dtype.is_floating_point:
-        raise InputError(f"images: expected a floating-point tensor in [0, 1], got {images.dtype}")
+    dims = check_image(images, "images")  # 0-255 by mistake came out all white; NaN as noise near 0
     if not (isinstance(digit, int) and digit in JPEG_QUALITY_FOR_DIGIT):
         raise InputError(f"digit: expected the board's JPEG quality digit, an int in 1..8, got {digit!r}")
     if not (isinstance(sigma_levels, (int, float)) and 0 <= sigma_levels < 256):
@@ -38,6 +36,8 @@ def camera_frames(images: torch.Tensor, digit: int, sigma_levels: float, generat
     if not isinstance(generator, torch.Generator):  # None drew from torch's global generator: another answer each run
         raise InputError(f"generator: expected a torch.Generator (the noise is drawn from it; seed one with "
                          f"manual_seed), got {type(generator).__name__}")
+    if dims["B"] == 0:
+        return images.detach().clone()
     noise = torch.randn(images.shape, generator=generator, dtype=torch.float64) * sigma_levels
     levels = (images.detach().cpu().to(torch.float64) * 255 + noise).round().clamp(0, 255).to(torch.uint8).numpy()
     quality = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY_FOR_DIGIT[digit]]

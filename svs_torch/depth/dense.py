@@ -37,7 +37,7 @@ from dataclasses import replace
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_shape
 from . import kernels
 from .block_matching import _check_pair, _check_sizes, _compiled, block_match_sad, dense_disparity_over_regions
 from .cost_volume import crop_box, crop_index, prefilter_xsobel, quantize_levels, region_crop_boxes, wanted_pixels
@@ -125,6 +125,8 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     :func:`soft_block_match`).
     """
     b = _check_pair(left, right, config)
+    if b == 0:  # its search range is a reduction over the batch's pairs
+        raise InputError("left: expected at least one pair, got an empty batch")
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
     if objects is not None:

@@ -27,6 +27,8 @@ def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
     after the sort); the counts have none. An empty last dimension (no keypoint at all) gives 0 and 0."""
+    check_shape(mask, "mask", list(values.shape))
+    check_dtype(mask, "mask", "bool")
     count = mask.sum(-1)
     if values.shape[-1] == 0:
         return values.sum(-1), count  # zeros, with a graph to values where there is one
@@ -41,7 +43,11 @@ def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: 
     holds: ``(B, N)`` medians (0 where empty) and counts, slot n for region ``kept_labels[:, n]`` (−1: none) of
     ``labels`` ``(B, 1, H, W)``. The true distance of a region (GT depth), used for the truth of evaluations.
     Gradients flow to ``values`` at each region's median pixel (a gather after the sort); the counts have none."""
-    b = values.shape[0]
+    b = check_shape(values, "values", ["B", 1, "H", "W"])["B"]
+    for tensor, name in ((known, "known"), (labels, "labels")):
+        check_shape(tensor, name, list(values.shape))
+    check_dtype(known, "known", "bool")
+    check_shape(kept_labels, "kept_labels", [b, "N"])
     region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
               & known.reshape(b, 1, -1))  # (B, N, H·W)
     return masked_lower_median(values.reshape(b, 1, -1).expand_as(region), region)

@@ -121,7 +121,9 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
 
 def accuracy_percent(real_m: torch.Tensor, estimated_m: torch.Tensor) -> Accuracy:
     """Eq. (9): ``(1 − |real − est| / real) · 100`` elementwise (broadcast); valid where ``real > 0`` and both
-    are finite. Differentiable w.r.t. both where valid (not at ``real = est``, a kink)."""
+    are finite. Not floored: an estimate over twice the truth is below 0 (a loss that keeps its gradient), where
+    the evaluation's :func:`svs_torch.evaluation.accuracy_pct` counts it 0 %, as it counts a missing one.
+    Differentiable w.r.t. both where valid (not at ``real = est``, a kink)."""
     real_m, estimated_m = torch.broadcast_tensors(torch.as_tensor(real_m), torch.as_tensor(estimated_m))
     valid = (real_m > 0) & torch.isfinite(real_m) & torch.isfinite(estimated_m)
     safe_real = torch.where(valid, real_m, torch.ones_like(real_m))

@@ -132,7 +132,9 @@ def estimates_from_result(result: PipelineResult) -> list[PairEstimate]:
 
 
 def accuracy_pct(real: float, estimated: float | None) -> float:
-    """Eq. (9): ``(1 − |real − estimated| / real) · 100``; a missing estimate (or a worse than 0 %) counts 0.
+    """Eq. (9): ``(1 − |real − estimated| / real) · 100``; a missing estimate (or a worse than 0 %) counts 0, so a
+    mean over pairs is not dragged below 0 by one wild estimate (:func:`svs_torch.depth.accuracy_percent`, the
+    differentiable tensor form, is not floored).
 
     Raises:
         InputError: ``real`` is not a finite positive distance (0 divided by zero; a negative one scored above

@@ -16,7 +16,7 @@ from typing import Literal
 
 import torch
 
-from ..core.checks import InputError, check_image, check_instance
+from ..core.checks import InputError, check_count, check_dtype, check_image, check_instance, check_shape
 from ..core.mask_reductions import any_along
 from ..core.size_groups import run_by_size
 from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
@@ -182,9 +182,25 @@ def keep_largest_regions(
         ``kept_labels`` ``(B, N)`` int64, largest area first, ties by label (raster) order, −1 where an image
         has fewer than N regions; ``kept_mask`` ``(B, 1, H, W)`` bool. Not differentiable.
     """
+    _check_keep(labels, regions, num_keep)
     area = torch.where(regions.valid, regions.area_px, torch.full_like(regions.area_px, -1))
     order = torch.sort(area, dim=1, descending=True, stable=True).indices  # (B, L)
     return _keep_in_order(labels, regions, order, num_keep)
+
+
+def _check_keep(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
+                nearness: torch.Tensor | None = None) -> None:
+    """The keep functions' arguments (an audit: ``keep="Largest"`` ran as ``"nearest_first"``, ``num_keep=-1`` kept
+    all but one region, float labels failed in a gather)."""
+    b = check_shape(labels, "labels", ["B", 1, "H", "W"])["B"]
+    check_dtype(labels, "labels", "int")
+    check_instance(regions, "regions", RegionProperties)
+    slots = check_shape(regions.area_px, "regions.area_px", [b, "L"])["L"]
+    check_count(num_keep, "num_keep")
+    if keep not in ("largest", "nearest", "nearest_first"):
+        raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {keep!r}")
+    if nearness is not None:
+        check_shape(nearness, "nearness", [b, slots])
 
 
 def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
@@ -202,6 +218,7 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     at least ``near_min_area_px`` (below ``min_area_px``) is a candidate too where it is nearer than every region
     of ``min_area_px`` and that count holds at least :data:`NEAR_MIN_COUNTED_SHARE` of its pixels, so ranked
     first. Not differentiable."""
+    _check_keep(labels, regions, num_keep, keep, nearness)
     if keep == "largest":
         return keep_largest_regions(labels, regions, num_keep)
     if nearness is None:

@@ -40,7 +40,7 @@ def test_a_higher_digit_loses_more_of_the_view():
 
 @pytest.mark.parametrize("images, digit, sigma, pattern", [
     (torch.zeros(1, 3, 8, 8), 4, 4.0, r"^images: expected"),
-    (torch.zeros(1, 1, 8, 8, dtype=torch.uint8), 4, 4.0, r"^images: expected a floating-point"),
+    (torch.zeros(1, 1, 8, 8, dtype=torch.uint8), 4, 4.0, r"^images: expected a float tensor, got torch.uint8"),
     (torch.zeros(1, 1, 8, 8), 9, 4.0, r"^digit: expected the board's JPEG quality digit"),
     (torch.zeros(1, 1, 8, 8), "4", 4.0, r"^digit: expected"),
     (torch.zeros(1, 1, 8, 8), 4, -1.0, r"^sigma_levels: expected a noise level"),
