@@ -12,8 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from .common import dumps_strict, too_small_reason
-from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
-                              with_calibration)
+from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, format_report, pair_report,
+                              unranged_report, with_calibration)
 from .features import load_pair
 from .progress import Progress
 from .rig import (calibration_file_source, calibration_from_args, check_no_manual_calibration,
@@ -93,6 +93,7 @@ def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
         check_no_manual_calibration(args)
         calibration_from_args(args)
         _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
+        claim_export_names(args, _WORKER_SETUP[args.pairs][0])
     return _WORKER_SETUP[args.pairs]
 
 

@@ -196,9 +196,30 @@ def _write_disparity(args: argparse.Namespace, batch, result, time_s: float) -> 
     process's is skipped with a warning naming both: :meth:`~svs_torch.evaluation.export.DisparityExport.write`)."""
     if not args.disparity_out:
         return
+    _export(args).write(batch, result, time_s)
+
+
+def _export(args: argparse.Namespace):
+    """This process's :class:`~svs_torch.evaluation.export.DisparityExport` of ``--disparity-out``."""
     from ..evaluation.export import DisparityExport
 
     key = (args.disparity_out, args.disparity_format, args.method_name)
-    export = _EXPORTS.setdefault(key, DisparityExport(Path(args.disparity_out), args.disparity_format,
-                                                      args.method_name))
-    export.write(batch, result, time_s)
+    return _EXPORTS.setdefault(key, DisparityExport(Path(args.disparity_out), args.disparity_format,
+                                                    args.method_name))
+
+
+def claim_export_names(args: argparse.Namespace, sources) -> None:
+    """Give each export name to the first listed pair that has it, before any is written: worker processes each
+    see a part of the list, and each wrote its own pair of a shared name (``eval3/Teddy`` and ``2003/Teddy``),
+    one over the other, the survivor varying from run to run. Every worker claims from the whole list, so the
+    later pairs are skipped and warned wherever they run, as in one process."""
+    if not args.disparity_out:
+        return
+    from ..data.datasets import scene_name
+    from ..evaluation.export import export_name
+
+    export = _export(args)
+    for source in sources:
+        if source.problem is None:  # the name the pair's batch will carry (data.load_pair_source)
+            name = scene_name(source.left) if source.scene and source.label is None else source.name
+            export._claimed.setdefault(export_name(name), name)

@@ -176,3 +176,20 @@ def test_disparity_out_needs_the_dense_rule_and_a_folder(data_dir, tmp_path, cap
         main(["estimate", scene, "--method-name", "a b", "--disparity-out", str(tmp_path)])
     assert "--method-name: expected 1-64 letters" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
+
+
+def test_estimate_pairs_on_workers_writes_the_first_listed_of_a_shared_name(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: with --workers 2 each worker wrote its own Teddy into the one
+    export folder, one over the other, the survivor varying from run to run, without a warning; one worker kept
+    the first and warned. Every worker claims the names from the whole list now."""
+    listing = tmp_path / "teddys.txt"
+    listing.write_text(f"{data_dir / 'middlebury_eval3_Q' / 'Teddy'}\n{data_dir / 'middlebury_2003_quarter' / 'Teddy'}\n")
+    maps = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"maps{workers}"
+        assert main(["estimate", "--pairs", str(listing), "--size", "160x120", "--json", "--workers", workers,
+                     "--batch-size", "1", "--disparity-out", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert err.count("'2003/Teddy' not written: it would overwrite 'eval3/Teddy'") == 1, err
+        maps[workers] = (out / "Teddy" / "disp0SVSTorch.pfm").read_bytes()
+    assert maps["1"] == maps["2"]
