@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-__all__ = ["SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size"]
+__all__ = ["MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size"]
 
 #: The frame sizes the SVS firmware can grab, keyed by the size code in its ``##IMJ`` header
 #: (SVS_PROTOCOL.md §3): ``'3'`` 160×120, ``'5'`` 320×240 (power-on default), ``'7'`` 640×480, ``'9'`` 1280×1024.
@@ -69,6 +69,10 @@ class SVSCamera:
 SVS_CAMERA = SVSCamera()
 
 
+#: The largest side ``--size`` resamples to (8K video is 7680 wide; a pair at 8192 x 8192 is 0.5 GB a view in float32).
+MAX_SIZE_PX = 8192
+
+
 def parse_size(text: str, name: str = "size") -> tuple[int, int]:
     """Parse ``"320x240"`` into ``(width, height)``; raises :class:`InputError` naming ``name`` otherwise."""
     parts = text.lower().replace("×", "x").split("x")
@@ -78,4 +82,6 @@ def parse_size(text: str, name: str = "size") -> tuple[int, int]:
     width, height = (int(p) for p in parts)
     if width <= 0 or height <= 0:
         raise InputError(f"{name}: expected a positive width and height, got {text!r}")
+    if max(width, height) > MAX_SIZE_PX:  # 100000x100000 stopped a whole eval run failing to allocate 40 GB
+        raise InputError(f"{name}: expected a width and height of at most {MAX_SIZE_PX} px, got {text!r}")
     return width, height

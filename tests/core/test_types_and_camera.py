@@ -31,6 +31,10 @@ def test_parse_size():
         parse_size("320")
     with pytest.raises(InputError, match="expected a positive width and height"):
         parse_size("0x240")
+    # An audit: --size 100000x100000 ended a whole eval (or sweep) run in a failed 40 GB allocation.
+    assert parse_size("8192x6144") == (8192, 6144)
+    with pytest.raises(InputError, match="--size: expected a width and height of at most 8192 px, got '100000x100000'"):
+        parse_size("100000x100000", "--size")
 
 
 def test_check_shape_binds_letters_and_names_the_argument():
