@@ -15,8 +15,8 @@ from typing import Any
 __all__ = [
     "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
     "check_outputs_apart", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named",
-    "output_path", "positive_float", "positive_int", "seed_int", "too_small_reason", "unit_interval_float",
-    "with_config_values",
+    "output_path", "positive_float", "positive_int", "resolve_export_options", "seed_int", "too_small_reason",
+    "unit_interval_float", "with_config_values",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -170,12 +170,25 @@ def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
                        help="write each pair's dense disparity map into DIR (made if missing), at the size the "
                             "pipeline ran on, unmeasured pixels unknown; a rectified pair's map is brought back "
                             "to the left image's pixels (needs the dense range rule)")
-    group.add_argument("--disparity-format", choices=("middlebury", "kitti"), default="middlebury",
+    group.add_argument("--disparity-format", choices=("middlebury", "kitti"),
                        help="'middlebury': DIR/<scene>/disp0<NAME>.pfm (float32, +inf unknown) and "
                             "time<NAME>.txt (seconds), the MiddEval3 SDK's layout (default); 'kitti': "
                             "DIR/<pair>.png, uint16 = disparity x 256, 0 unknown, the KITTI devkit's")
-    group.add_argument("--method-name", default="SVSTorch", metavar="NAME", type=_method_name,
+    group.add_argument("--method-name", metavar="NAME", type=_method_name,
                        help="NAME in Middlebury's file names (letters, digits, _ and -; default: SVSTorch)")
+
+
+def resolve_export_options(args: argparse.Namespace) -> None:
+    """``--disparity-format`` and ``--method-name`` given without ``--disparity-out`` are refused (they ran
+    without effect, exit 0); their defaults filled in where it is given."""
+    from ..core.errors import InputError
+
+    given = [name for name, value in (("--disparity-format", args.disparity_format),
+                                      ("--method-name", args.method_name)) if value is not None]
+    if given and not args.disparity_out:
+        raise InputError(f"{given[0]}: given without --disparity-out, whose files it names")
+    args.disparity_format = args.disparity_format or "middlebury"
+    args.method_name = args.method_name or "SVSTorch"
 
 
 class ConfigValue:

@@ -6,7 +6,8 @@ import argparse
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
-                     finite_float, output_path, positive_float, positive_int, seed_int, too_small_reason)
+                     finite_float, output_path, positive_float, positive_int, resolve_export_options, seed_int,
+                     too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
@@ -103,7 +104,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "its line, and the exit status is 2 if any listed pair is BAD_INPUT")
     # 8: whole process over 96 shared pairs at 320x240, 9.3 / 9.5-9.8 / 11.0-11.6 s at 8 / 16 / 32 (larger
     # batches pad more and leave the cache).
-    parser.add_argument("--batch-size", type=positive_int, default=8,
+    parser.add_argument("--batch-size", type=positive_int,
                         help="pairs per batch with --pairs (default: 8, the fastest measured)")
     # One single-threaded worker per core: on this project's 2-core machine, 512 real pairs at 320x240 took
     # 24.8 s in one process of 2 torch threads and 17.2 s as two processes of one thread each (torch's
@@ -185,9 +186,22 @@ def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> No
         make_output_folder(args.disparity_out, "--disparity-out")
 
 
+def _check_run_options(args: argparse.Namespace) -> None:
+    """Options of a run of many pairs refused without --pairs (they ran without effect), and the export's."""
+    resolve_export_options(args)
+    if not args.pairs and (args.workers is not None or args.batch_size is not None):
+        from . import CliError
+
+        raise CliError(f"{'--workers' if args.workers is not None else '--batch-size'}: only with --pairs (a run of "
+                       "many pairs); one pair runs in this process, as one batch")
+
+
 def run(args: argparse.Namespace) -> int:
+    _check_run_options(args)
     if args.pairs:  # before any heavy import: the workers may be started without torch in this process
         from . import CliError
+
+        args.batch_size = args.batch_size or 8
 
         if args.left or args.right or args.figure or args.masks_out:
             raise CliError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")

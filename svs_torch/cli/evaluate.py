@@ -7,7 +7,7 @@ import sys
 import time
 
 from .common import (add_disparity_export_options, dumps_strict, finite_float, output_path, positive_float,
-                     positive_int)
+                     positive_int, resolve_export_options)
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
                   with_calibrated_rectification)
@@ -218,6 +218,7 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation import EvalSetup, evaluate_pairs, summarize
         from ..evaluation.overrides import resolve_config
 
+    resolve_export_options(args)
     size_wh = parse_size(args.size, "--size") if args.size is not None else None  # "": an error, not native
     check_no_manual_calibration(args)
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet

@@ -248,6 +248,12 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (["features", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
     (["fundamental", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
     (["segment", "{L}", ""], "right: expected an image file name, got ''"),
+    # Found by an audit of the bulk commands: each ran without effect, exit 0.
+    (["eval", "{L}", "{R}", "--method-name", "X"], "--method-name: given without --disparity-out, whose files it names"),
+    (["estimate", "{L}", "{R}", "--disparity-format", "kitti"],
+     "--disparity-format: given without --disparity-out, whose files it names"),
+    (["estimate", "{L}", "{R}", "--workers", "2"], "--workers: only with --pairs (a run of many pairs)"),
+    (["estimate", "{L}", "{R}", "--batch-size", "4"], "--batch-size: only with --pairs (a run of many pairs)"),
 ])
 def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys, tmp_path, argv, message):
     """Found by an audit of the smaller commands: a figure named as an input was written over it (exit 0);
