@@ -160,6 +160,12 @@ def _value_that_ran(config: dict, key: str) -> Any:
         if not isinstance(value, dict) or part not in value:
             return config["overrides"].get(key)  # a store that predates the whole configuration, or a None parent
         value = value[part]
+    if isinstance(value, dict) or (value is None and key in config["overrides"]):
+        # An optional sub-setting (refine_matches, row_alignment, exposure, ...): switched on, its whole settings
+        # dict made an unreadable CSV cell and figure tick; it reads as the value it was swept with, or "on".
+        override = config["overrides"].get(key)
+        return override if override is not None and not isinstance(override, dict) else (
+            "on" if isinstance(value, dict) else None)
     return value
 
 
