@@ -74,10 +74,11 @@ class PairSource:
 
     @property
     def pair_id(self) -> str:
-        """A stable identity for result stores: absolute paths (and the listed calibration, if any)."""
+        """A stable identity for result stores: absolute paths, links resolved (a folder and a link to it are one
+        pair, as within a run: :func:`unique_sources`), and the listed calibration, if any."""
         if self.problem is not None:
             return f"bad:{self.problem}"
-        parts = [os.path.abspath(self.left)] + ([os.path.abspath(self.right)] if self.right else [])
+        parts = [os.path.realpath(self.left)] + ([os.path.realpath(self.right)] if self.right else [])
         if self.focal_px is not None:
             parts.append(f"f={self.focal_px!r},B={self.baseline_m!r},doffs={self.doffs_px or 0.0!r}")
         return "|".join(parts)

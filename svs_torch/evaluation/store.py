@@ -47,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import json
+import os
 import sqlite3
 import time
 from collections.abc import Iterable, Sequence
@@ -265,7 +266,8 @@ class ResultStore:
         old one)."""
         rows = self.connection.execute(f"SELECT config_id, pair_id FROM results WHERE status NOT IN {_RETRIED_SQL}")
         wanted = None if config_ids is None else set(config_ids)
-        return {(c, p) for c, p in rows if wanted is None or c in wanted}
+        canonical = _canonical_ids()
+        return {(c, canonical(p)) for c, p in rows if wanted is None or c in wanted}
 
     def write_task(self, config_id: str, run_id: int, rows: Sequence[tuple[str, PairEvaluation]]) -> int:
         """Store one task's ``(pair_id, evaluation)`` rows in one transaction; rows already present are kept as
@@ -304,4 +306,31 @@ class ResultStore:
             for name, _ in RESULT_COLUMNS:  # a column the file predates (opened to read): not measured
                 row.setdefault(name, None)
             rows.append(row)
-        return rows
+        return _latest_of_each_pair(rows)
+
+
+def _canonical_ids():
+    """A function from a stored pair id to the id of its files with symbolic links resolved (as
+    :attr:`~svs_torch.data.PairSource.pair_id` writes them since): an id written through a link before names
+    the same pair, and counts once. A bad list line's id (``bad:...``) stays."""
+    cache: dict[str, str] = {}
+
+    def canonical(pair_id: str) -> str:
+        if pair_id not in cache:
+            cache[pair_id] = pair_id if pair_id.startswith("bad:") else "|".join(
+                part if part.startswith("f=") else os.path.realpath(part) for part in pair_id.split("|"))
+        return cache[pair_id]
+    return canonical
+
+
+def _latest_of_each_pair(rows: list[dict]) -> list[dict]:
+    """``rows`` with each (configuration, pair) once, its pair id made canonical (:func:`_canonical_ids`), the row
+    of the latest run kept: one scene stored under two spellings (a folder and a link to it) weighed twice in every
+    mean."""
+    canonical, latest = _canonical_ids(), {}
+    for row in rows:
+        row["pair_id"] = canonical(row["pair_id"])
+        key = (row["config_id"], row["pair_id"])
+        if key not in latest or (row["run_id"] or 0) > (latest[key]["run_id"] or 0):
+            latest[key] = row
+    return sorted(latest.values(), key=lambda row: (row["config_id"], row["pair_id"]))

@@ -313,6 +313,32 @@ def test_eval_runs_a_scene_reached_through_a_link_once(data_dir, tmp_path, capsy
     assert "listed more than once, evaluated once" in err
 
 
+def test_a_store_counts_a_scene_reached_through_a_link_once(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: the same scene stored by one run through its folder and by another
+    through a link was two pairs in `results` (every mean counted it twice); a row a store already holds under
+    the link's spelling (written before ids resolved links) counts once too."""
+    import json
+    import sqlite3
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    link = tmp_path / "link_Teddy"
+    link.symlink_to(teddy.resolve(), target_is_directory=True)
+    db = tmp_path / "s.sqlite"
+    for path in (teddy, link):
+        assert main(["eval", str(path), "--size", "160x120", "--db", str(db)]) == 0
+    connection = sqlite3.connect(db)
+    with connection:  # an older store's id: the link's own absolute path
+        connection.execute("INSERT INTO pairs(pair_id, left, right) VALUES (?, ?, NULL)", (str(link), str(link)))
+        connection.execute("INSERT INTO results SELECT config_id, ?, run_id, " + ", ".join(
+            f'"{d[1]}"' for d in connection.execute("PRAGMA table_info(results)").fetchall()[3:])
+                           + " FROM results", (str(link),))
+        assert connection.execute("SELECT count(*) FROM results").fetchone()[0] == 2
+    connection.close()
+    capsys.readouterr()
+    assert main(["results", str(db), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["configs"][0]["pairs"] == 1
+
+
 # --- pair lists ----------------------------------------------------------------------------------------------
 
 def test_a_hash_inside_a_listed_path_is_part_of_it(data_dir, tmp_path):
