@@ -63,6 +63,8 @@ def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: 
     check_shape(values, "values", ["B", "P"])
     check_shape(labels, "labels", list(values.shape))
     check_dtype(labels, "labels", "int")
+    if isinstance(num_labels, int) and num_labels > max(values.shape[1], 1):  # 2^40 asked for an 8.8 TB table
+        raise InputError(f"num_labels: expected at most one label per value ({values.shape[1]}), got {num_labels}")
     # The kernel's wrapper checks num_labels and the labels' range itself (the same messages): they are checked
     # here only where it leaves the values to the torch path.
     fast = kernels.region_medians(values, labels.to(torch.int64), num_labels)

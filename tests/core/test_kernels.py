@@ -1023,3 +1023,19 @@ def test_sizes_beyond_what_the_kernels_hold_are_refused():
         depth_kernels._check_block_match(left, left, window_size=3037000499, mask_margin_px=0, **args)
     with pytest.raises(InputError, match=r"mask_margin_px: expected an int from 0 to 2\^31 - 1"):
         depth_kernels._check_block_match(left, left, window_size=9, mask_margin_px=2**63 - 1, **args)
+
+
+def test_label_slots_beyond_the_pixels_are_refused():
+    """A label id sets the table sizes: one pixel labelled 2^24 in a 4x4 image took 2.6 GB in region_properties,
+    and region_lower_median(num_labels=2**40) asked for 8.8 TB, each a RuntimeError from an allocation."""
+    from svs_torch.depth.quantiles import region_lower_median
+    from svs_torch.segmentation.components import region_properties
+
+    labels = torch.zeros(1, 1, 4, 4, dtype=torch.int64)
+    labels[0, 0, 1, 1] = 2**24
+    with pytest.raises(InputError, match="labels: expected labels 1..n with n at most the 16 pixels of an image"):
+        region_properties(labels)
+    labels[0, 0, 1, 1] = 16
+    assert region_properties(labels).area_px.shape == (1, 16)
+    with pytest.raises(InputError, match=r"num_labels: expected at most one label per value \(16\), got 1099511627776"):
+        region_lower_median(torch.rand(1, 16), torch.zeros(1, 16, dtype=torch.int64), 2**40)
