@@ -272,7 +272,11 @@ def _check_no_option_calibration_in_store(args: argparse.Namespace, sources) -> 
 
     options = [name for name, value, default in (("--focal-px", args.focal_px, None), ("--baseline-m",
                args.baseline_m, None), ("--doffs-px", args.doffs_px, 0.0)) if value != default]
-    if args.db and options and any(not source.scene and source.focal_px is None for source in sources):
+    takers = [source for source in sources if not source.scene and source.focal_px is None and not source.problem]
+    if options and sources and not takers:  # it ran, exit 0, as if not given
+        raise InputError(f"{', '.join(options)}: every listed pair has its own calibration (a scene folder, or a list "
+                         f"line that gives one), which the option would not change; drop it")
+    if args.db and options and takers:
         raise InputError(f"{', '.join(options)}, --db: a results store does not record a calibration given as an "
                          f"option; give it on the pairs' list lines ('LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]') or "
                          f"run without --db")

@@ -499,3 +499,15 @@ def test_a_pair_unreadable_then_mended_is_run_again_into_the_store(data_dir, tmp
     shutil.copy(teddy / "im1.png", tmp_path / "later_R.png")
     assert main(args) == 0 and stored() == ["OK", "OK"]
     capsys.readouterr()
+
+
+def test_a_calibration_option_no_listed_pair_takes_is_refused(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: eval --focal-px / --baseline-m over scene folders (which carry their
+    own calibration) ran as if not given, exit 0; estimate refused the same."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "300", "--baseline-m", "0.2"]) == 2
+    assert "--focal-px, --baseline-m: every listed pair has its own calibration" in capsys.readouterr().err
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
+    assert main(["eval", str(listing), "--size", "160x120", "--focal-px", "300", "--json"]) == 0  # a file pair takes it
+    assert '"focal_px": 300.0' in capsys.readouterr().out
