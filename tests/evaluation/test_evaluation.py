@@ -282,7 +282,9 @@ def test_eval_db_refuses_a_calibration_given_as_an_option_for_file_pairs(data_di
     err = capsys.readouterr().err
     assert code == 2 and "--focal-px, --db: a results store does not record a calibration given as an option" in err
     assert not store.exists()
-    assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "500", "--db", str(store), "--json"]) == 0
+    assert main(["eval", str(teddy), "--size", "160x120", "--db", str(store), "--json"]) == 0
+    # A scene carries its own calibration: the option, which it would not take, is refused (it was ignored).
+    assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "500", "--db", str(store), "--json"]) == 2
 
 
 def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):
