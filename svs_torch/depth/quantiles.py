@@ -63,8 +63,9 @@ def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: 
     check_shape(values, "values", ["B", "P"])
     check_shape(labels, "labels", list(values.shape))
     check_dtype(labels, "labels", "int")
-    if isinstance(num_labels, int) and num_labels > max(values.shape[1], 1):  # 2^40 asked for an 8.8 TB table
-        raise InputError(f"num_labels: expected at most one label per value ({values.shape[1]}), got {num_labels}")
+    most = max(values.shape[1], 65536)  # one slot per label in the outputs: 2^40 asked for 8.8 TB
+    if isinstance(num_labels, int) and num_labels > most:
+        raise InputError(f"num_labels: expected at most {most} (the values per pair, or 65536), got {num_labels}")
     # The kernel's wrapper checks num_labels and the labels' range itself (the same messages): they are checked
     # here only where it leaves the values to the torch path.
     fast = kernels.region_medians(values, labels.to(torch.int64), num_labels)
@@ -144,6 +145,7 @@ def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.T
     gradients, for float32 CPU values without NaN, a compiled quickselect per slot finds the same order
     statistics (:mod:`svs_torch.depth.kernels`). Differentiable w.r.t. ``values`` (the two neighbouring order
     statistics get the gradient)."""
+    check_shape(values, "values", ["B", "P"])  # 1-D or 3-D values failed unpacking their shape
     check_dtype(values, "values", "float")
     check_shape(labels, "labels", list(values.shape))
     check_dtype(labels, "labels", "int")

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_shape
+from ..core.checks import InputError, check_dtype, check_shape
 from . import kernels
 
 __all__ = ["pair_residual_levels", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
@@ -82,6 +82,7 @@ def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2:
     for bit. Arguments and checks as :func:`semi_global_aggregate`'s. No gradients (computed under
     ``torch.no_grad``; the index is int64)."""
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
+    check_dtype(costs, "costs", "float")  # int64 costs failed converting +inf deep inside
     for name, value in (("p1", p1), ("p2", p2)):
         check_shape(value, name, [dims["B"]])
     if costs.numel() and not bool(costs.min() >= 0):  # one pass: the minimum is NaN where any cost is

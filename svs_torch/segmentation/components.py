@@ -221,9 +221,9 @@ def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = No
         num_labels = labels.flatten(1).amax(dim=1).clamp(min=0) if labels.numel() else \
             torch.zeros(labels.shape[0], dtype=torch.int64, device=labels.device)
     check_shape(num_labels, "num_labels", [labels.shape[0]])
-    pixels = labels.shape[-2] * labels.shape[-1]
-    if num_labels.numel() and int(num_labels.max()) > max(pixels, 1):  # one slot per label: 2^24 took 2.6 GB
-        raise InputError(f"labels: expected labels 1..n with n at most the {pixels} pixels of an image (number "
+    most = max(labels.shape[-2] * labels.shape[-1], 65536)  # one slot per label: 2^24 took 2.6 GB
+    if num_labels.numel() and int(num_labels.max()) > most:
+        raise InputError(f"labels: expected labels 1..n with n at most {most} (an image's pixels, or 65536; number "
                          f"them consecutively), got {int(num_labels.max())} label slots")
     grid = labels[:, 0].to(torch.int64)
     runs = _find_runs(grid > 0, grid)

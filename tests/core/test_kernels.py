@@ -1033,9 +1033,22 @@ def test_label_slots_beyond_the_pixels_are_refused():
 
     labels = torch.zeros(1, 1, 4, 4, dtype=torch.int64)
     labels[0, 0, 1, 1] = 2**24
-    with pytest.raises(InputError, match="labels: expected labels 1..n with n at most the 16 pixels of an image"):
+    with pytest.raises(InputError, match=r"labels: expected labels 1..n with n at most 65536 \(an image's pixels"):
         region_properties(labels)
     labels[0, 0, 1, 1] = 16
     assert region_properties(labels).area_px.shape == (1, 16)
-    with pytest.raises(InputError, match=r"num_labels: expected at most one label per value \(16\), got 1099511627776"):
+    with pytest.raises(InputError, match=r"num_labels: expected at most 65536 \(the values per pair, or 65536\), "
+                                         r"got 1099511627776"):
         region_lower_median(torch.rand(1, 16), torch.zeros(1, 16, dtype=torch.int64), 2**40)
+
+
+def test_shapes_and_dtypes_the_kernel_audit_found_failing_deep():
+    from svs_torch.depth.quantiles import labelled_quantile
+    from svs_torch.depth.semi_global import semi_global_aggregate
+
+    with pytest.raises(InputError, match="costs: expected a float tensor, got torch.int64"):
+        semi_global_aggregate(torch.zeros(1, 2, 3, 3, dtype=torch.int64), torch.zeros(1), torch.zeros(1))
+    with pytest.raises(InputError, match=r"values: expected \(B, P\), got \(5\)"):
+        labelled_quantile(torch.rand(5), torch.zeros(5, dtype=torch.long), torch.zeros(1, 1, dtype=torch.long),
+                          torch.tensor([0.5]))
+
