@@ -23,8 +23,8 @@ r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id
 swept parameters (param:KEY) and every other column, among them the stereo metrics of the dense map
 (<scope>_<metric>: scope map_all, map_nocc, kept_all or kept_nocc; metric density, bad0_5_pct ... bad4_pct,
 avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px; empty where a pair has none, as in rows stored before
-they existed); paths are shown normalised (no '..'). --figure: mean accuracy against each swept parameter and
-per-scene bars of the best configuration.
+they existed); paths are shown normalised (no inner '..'; a leading one, relative to the folder it was run in,
+stays). --figure: mean accuracy against each swept parameter and per-scene bars of the best configuration.
 """
 
 EPILOG = """\
