@@ -25,7 +25,7 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -57,6 +57,8 @@ class PairSource:
             where the list gives none (a scene's own, or the caller's default).
         problem: why the entry cannot be a pair (a one-line reason naming the list and line); None if it can.
         listed_at: ``"line N of LIST"`` for a pair whose calibration its list line gives (for reports).
+        list_file: the list file (as its name was given) the entry was read from; None for a scene folder named
+            itself. A results store forgets a bad line of this list that is no longer bad (mended or removed).
         label: the name to report the pair by where another listed pair would have its name (two folders both
             called ``Teddy``): the name with the folders that tell them apart, ``eval3/Teddy (a)``. None: its
             own name.
@@ -70,6 +72,7 @@ class PairSource:
     doffs_px: float | None = None
     problem: str | None = None
     listed_at: str | None = None
+    list_file: str | None = field(default=None, compare=False)  # where it was read, not what it is
     label: str | None = None
 
     @property
@@ -264,7 +267,7 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
     path = Path(path)
     text = _read_text(path, name)
     if path.suffix == ".jsonl":
-        return _index_sources(text, path, name)
+        return [replace(source, list_file=str(path)) for source in _index_sources(text, path, name)]
     sources: list[PairSource] = []
     for number, line in enumerate(text.splitlines(), start=1):
         where = f"{name}: line {number} of {path}"
@@ -281,7 +284,7 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
         sources.extend(_line_sources(fields, path.parent, where, line))
     if not sources:
         raise InputError(f"{name}: no pair listed in {path}")
-    return with_distinct_names(sources)
+    return [replace(source, list_file=str(path)) for source in with_distinct_names(sources)]
 
 
 def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[PairSource]:

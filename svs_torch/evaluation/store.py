@@ -245,10 +245,20 @@ class ResultStore:
         self._transaction(statements)
 
     def add_pairs(self, pairs: Iterable[Any]) -> None:
-        """Record :class:`~svs_torch.data.PairSource` entries."""
-        self._transaction(("INSERT OR IGNORE INTO pairs VALUES (?, ?, ?, ?, ?, ?)",
-                           (p.pair_id, p.name, p.left, p.right, int(p.scene),
-                            json.dumps(p.calibration) if p.calibration else None)) for p in pairs)
+        """Record :class:`~svs_torch.data.PairSource` entries, and forget the rows of a line of one of their lists
+        that was bad when stored and is not now (mended or removed: its ``bad:`` id, which names the list and the
+        line, no longer among them): a line whose typo was mended left a failed pair in every mean for ever."""
+        pairs = list(pairs)
+        current = {p.pair_id for p in pairs}
+        lists = {p.list_file for p in pairs if getattr(p, "list_file", None)}
+        stale = [pair_id for (pair_id,) in self.connection.execute("SELECT pair_id FROM pairs WHERE pair_id LIKE "
+                                                                    "'bad:%'")
+                 if pair_id not in current and any(f" of {name}: " in pair_id for name in lists)]
+        self._transaction([*(("DELETE FROM results WHERE pair_id = ?", (pair_id,)) for pair_id in stale),
+                           *(("DELETE FROM pairs WHERE pair_id = ?", (pair_id,)) for pair_id in stale),
+                           *(("INSERT OR IGNORE INTO pairs VALUES (?, ?, ?, ?, ?, ?)",
+                              (p.pair_id, p.name, p.left, p.right, int(p.scene),
+                               json.dumps(p.calibration) if p.calibration else None)) for p in pairs)])
 
     def start_run(self, command: str, code_version: str, environment: dict, sweep: str) -> int:
         """Record a run; returns its ``run_id``."""

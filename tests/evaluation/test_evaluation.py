@@ -513,3 +513,23 @@ def test_a_calibration_option_no_listed_pair_takes_is_refused(data_dir, tmp_path
     listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
     assert main(["eval", str(listing), "--size", "160x120", "--focal-px", "300", "--json"]) == 0  # a file pair takes it
     assert '"focal_px": 300.0' in capsys.readouterr().out
+
+
+def test_a_list_line_mended_since_leaves_no_failed_pair_in_the_store(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: a line `L R 40O 0.16` (a letter O) was stored BAD_INPUT under an id
+    naming the line; mended to 400, its pair ran OK under its own id and the old failure stayed: 'pairs 3, fail 1'
+    for two listed pairs, in every mean. A line of another list is not touched."""
+    import json
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing, other = tmp_path / "list.txt", tmp_path / "other.txt"
+    db = tmp_path / "s.sqlite"
+    other.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'} x 0.16\n")
+    assert main(["eval", str(other), "--size", "160x120", "--db", str(db)]) == 0
+    for focal in ("40O", "400"):
+        listing.write_text(f"{teddy}\n{teddy / 'im0.png'} {teddy / 'im1.png'} {focal} 0.16\n")
+        assert main(["eval", str(listing), "--size", "160x120", "--db", str(db)]) == 0
+    capsys.readouterr()
+    assert main(["results", str(db), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)["configs"][0]
+    assert (summary["pairs"], summary["failed"]) == (3, 1)  # the other list's bad line stays; the mended one went
