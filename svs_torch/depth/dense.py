@@ -106,7 +106,7 @@ def working_window(width_px: int, config: DenseConfig = DenseConfig()) -> int:
     if not config.scale_window or working_factor(width_px, config) > 1:  # reduced: the box average took the noise
         return config.window_size
     scaled = config.window_size * width_px / config.working_width_px
-    return max(config.window_size, 2 * round((scaled - 1) / 2) + 1)
+    return min(max(config.window_size, 2 * round((scaled - 1) / 2) + 1), kernels.MAX_WINDOW)
 
 
 def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,

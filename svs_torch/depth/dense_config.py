@@ -140,9 +140,9 @@ class DenseConfig:
     smoothing_intensity_weight: float = 0.25  # experiments/real_rig.md, "Featureless obstacles" (tuning sets)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.window_size, int) or not 1 <= self.window_size <= 255 or self.window_size % 2 == 0:
-            # 255: StereoBM's limit and the kernel's (depth.kernels.MAX_WINDOW); 10001 took 1.8 GB on a 64x48 view
-            raise InputError(f"window_size: expected an odd int from 1 to 255, got {self.window_size!r}")
+        if not isinstance(self.window_size, int) or not 1 <= self.window_size <= 511 or self.window_size % 2 == 0:
+            # depth.kernels.MAX_WINDOW (dense.working_window widens no further); 10001 took 1.8 GB on a 64x48 view
+            raise InputError(f"window_size: expected an odd int from 1 to 511, got {self.window_size!r}")
         if not isinstance(self.scale_window, bool):
             raise InputError(f"scale_window: expected a bool, got {self.scale_window!r}")
         if self.range_source not in ("coarse", "inliers"):

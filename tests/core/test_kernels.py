@@ -1000,8 +1000,8 @@ def test_sizes_beyond_what_the_kernels_hold_are_refused():
     image = torch.rand(1, 1, 8, 16)
     with pytest.raises(InputError, match=r"min_disparity_px: expected values in \(-2\^31, 2\^31\)"):
         block_match_sad(image, image, torch.tensor([-2**63]), 8)  # the abs() bound again: C overflow
-    for window in (257, 10_001, 2**64 + 1):  # 2^64 + 1 ran as a 1-pixel window through ctypes; 10 001: 1.8 GB
-        with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 255"):
+    for window in (513, 10_001, 2**64 + 1):  # 2^64 + 1 ran as a 1-pixel window through ctypes; 10 001: 1.8 GB
+        with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 511"):
             DenseConfig(window_size=window)
     with pytest.raises(InputError, match="texture_threshold: expected a value from 0 to 1e6"):
         DenseConfig(texture_threshold=1e308)
@@ -1019,7 +1019,7 @@ def test_sizes_beyond_what_the_kernels_hold_are_refused():
     args = dict(texture=None, mask=None, boxes=torch.tensor([[0, 0, 16, 8]]), min_disparity=torch.zeros(1, dtype=torch.int64),
                 counts=torch.full((1,), 4), image_hw=torch.tensor([[8, 16]]), lower_is_limit=torch.zeros(1, dtype=torch.bool),
                 uniqueness_ratio=0.0, lr_max_diff_px=None, texture_min=0.0, prefilter_cap=31.0)
-    with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 255"):
+    with pytest.raises(InputError, match="window_size: expected an odd int from 1 to 511"):
         depth_kernels._check_block_match(left, left, window_size=3037000499, mask_margin_px=0, **args)
     with pytest.raises(InputError, match=r"mask_margin_px: expected an int from 0 to 2\^31 - 1"):
         depth_kernels._check_block_match(left, left, window_size=9, mask_margin_px=2**63 - 1, **args)
@@ -1051,4 +1051,18 @@ def test_shapes_and_dtypes_the_kernel_audit_found_failing_deep():
     with pytest.raises(InputError, match=r"values: expected \(B, P\), got \(5\)"):
         labelled_quantile(torch.rand(5), torch.zeros(5, dtype=torch.long), torch.zeros(1, 1, dtype=torch.long),
                           torch.tensor([0.5]))
+
+
+def test_the_largest_window_a_configuration_takes_runs_at_every_size(data_dir):
+    """A review: the dense stage widens a window by up to 1.5 for views 353-479 px wide (dense.working_window),
+    and refused the 281 it made of a configured 201 (then the bound): every such pair ERROR."""
+    from svs_torch.depth.dense import working_window
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
+
+    assert max(working_window(width, DenseConfig(window_size=511)) for width in range(300, 700)) == (
+        depth_kernels.MAX_WINDOW)
+    batch = resize_stereo_batch(load_middlebury_eval3(data_dir / "middlebury_eval3_Q" / "Teddy"), (448, 336))
+    result = estimate_obstacle_depth(batch, PipelineConfig(dense=DenseConfig(window_size=201)))
+    assert int(result.status[0]) in (PipelineStatus.OK, PipelineStatus.NO_DENSE_DEPTH)
 

@@ -315,7 +315,7 @@ def test_prefilter_matches_opencv_sobel(teddy):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"window_size": 4}, "window_size: expected an odd int from 1 to 255"),
+    ({"window_size": 4}, "window_size: expected an odd int from 1 to 511"),
     ({"prefilter": "census"}, "prefilter: expected 'xsobel' or 'none'"),
     ({"range_source": "gt"}, "range_source: expected 'coarse' or 'inliers'"),
     ({"lr_max_diff_px": -1.0}, "lr_max_diff_px: expected None or a value >= 0"),
