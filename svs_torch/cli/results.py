@@ -133,8 +133,9 @@ def run(args: argparse.Namespace) -> int:
             summaries = config_summaries(store)
             best = best_by_metric(summaries)
             if args.json:
-                print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
-                                    "best": {key: s["config_id"] for key, _, s in best}}))
+                shown = ranked_summaries(summaries, args)  # "best" among them: every id it names is listed
+                print(dumps_strict({"configs": shown, "sort": args.sort,
+                                    "best": {key: s["config_id"] for key, _, s in best_by_metric(shown)}}))
             else:
                 _print_summary(summaries, best, args)
     return 0

@@ -71,16 +71,24 @@ def config_summaries(store: ResultStore) -> list[dict]:
             summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
                              | {"code_versions": versions[config["config_id"]],
                                 "pairs_missing": len(every_pair - pairs[config["config_id"]])} | summary)
+    # One group for every configuration (ranked_group): each choosing its own, a configuration measured on fewer
+    # pairs was ranked by its own-calibration mean against the others' nominal ones, under one heading.
+    own = sum(s.get("scored") or 0 for s in summaries)
+    nominal = sum((s.get("nominal_calibration") or {}).get("scored") or 0 for s in summaries)
+    for s in summaries:
+        s["ranked_group"] = "nominal" if nominal > own else "own"
     return summaries
 
 
 def ranked_group(summary: dict) -> tuple[str, int]:
-    """Which pairs a summary's accuracies are ranked over, and how many: ``("own", n)``, the pairs scored with
-    their own calibration (the headline means of ``eval``), or ``("nominal", n)``, those scored with a nominal
-    one (their data ship none), where they are more. A sweep over 26 Middlebury 2005/2006 scenes has one with a
+    """Which pairs a summary's accuracies are ranked over, and how many of them it has: ``("own", n)``, the pairs
+    scored with their own calibration (the headline means of ``eval``), or ``("nominal", n)``, those scored with a
+    nominal one (their data ship none), where the store holds more of those (``config_summaries`` decides once for
+    every configuration, its ``ranked_group``). A sweep over 26 Middlebury 2005/2006 scenes has one with a
     calibration of its own (Art): ranked on it alone, the window best by it was the worst over the other 25."""
     own, nominal = summary.get("scored") or 0, (summary.get("nominal_calibration") or {}).get("scored") or 0
-    return ("nominal", nominal) if nominal > own else ("own", own)
+    group = summary.get("ranked_group") or ("nominal" if nominal > own else "own")
+    return group, nominal if group == "nominal" else own
 
 
 def ranked_value(summary: dict, key: str) -> float | None:

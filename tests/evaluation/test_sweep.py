@@ -544,6 +544,7 @@ def test_results_rank_over_the_larger_group_and_json_keeps_sort_and_top(referenc
     best_r_min = max(summaries, key=lambda s: s["nominal_calibration"]["acc_r_min_pct"])
     assert picked["sort"] == "acc_r_min_pct" and [s["config_id"] for s in picked["configs"]] == [
         best_r_min["config_id"]]
+    assert set(picked["best"].values()) == {best_r_min["config_id"]}  # "best" names only listed configurations
 
 
 def test_a_swept_optional_sub_setting_reads_as_its_swept_value():
@@ -556,3 +557,26 @@ def test_a_swept_optional_sub_setting_reads_as_its_swept_value():
     default = {"overrides": {}, "config": {"refine_matches": {"radius_scales": 1.5}, "seed": 0}}
     assert [parameter_value(c, "refine_matches") for c in (on, off, default)] == [True, False, "on"]
     assert parameter_value({"overrides": {}, "config": {"dense": {"window_size": 9}}}, "dense.window_size") == 9
+
+
+def test_results_rank_every_configuration_over_one_group(reference, tmp_path, capsys):
+    """A review: each configuration chose its own group, so one measured on fewer pairs (its own-calibration mean)
+    was ranked against the others' nominal means under one heading."""
+    import shutil
+
+    db = tmp_path / "mixed.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
+        last = connection.execute("SELECT max(config_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE results SET calibrated = 0 WHERE pair_id != ?", (first,))
+        connection.execute("DELETE FROM results WHERE config_id = ? AND pair_id != ?", (last, first))
+    connection.close()
+    assert main(["results", str(db), "--json"]) == 0
+    summaries = {s["config_id"]: s for s in json.loads(capsys.readouterr().out)["configs"]}
+    assert {s["ranked_group"] for s in summaries.values()} == {"nominal"}
+    assert summaries[last]["scored"] == 1 and summaries[last]["nominal_calibration"]["scored"] == 0
+    assert main(["results", str(db)]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines() if line[:16].strip() in summaries]
+    assert rows[-1][0] == last and rows[-1][3:6] == ["0", "n", "-"]  # no nominal pair: last, its means '-'

@@ -119,9 +119,7 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
 
 #: The dense kernel keeps disparity indices in its 16-bit cost type (block_match.c): at most 65534 disparities.
 MAX_DISPARITIES = 65534
-#: The largest SAD window, DenseConfig's and dense.working_window's (which widens no further): scratch rows grow
-#: with the window's square (10 001 took 1.8 GB).
-MAX_WINDOW = 511
+MAX_WINDOW = 511  #: the largest SAD window (DenseConfig's, dense.working_window's): scratch grows with its square
 
 
 def _check_block_match(left, right, texture, mask, window_size, boxes, min_disparity, counts, image_hw,
