@@ -227,12 +227,12 @@ def run(args: argparse.Namespace) -> int:
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
-    export = disparity_export(args, config)
     sources, repeated = unique_sources(read_pair_sources(args.paths, "path"))
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
         names = ", ".join(dict.fromkeys(source.name for source in repeated))
         print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
     _check_no_option_calibration_in_store(args, sources)
+    export = disparity_export(args, config)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
     evaluations = []
@@ -273,9 +273,10 @@ def _check_no_option_calibration_in_store(args: argparse.Namespace, sources) -> 
     options = [name for name, value, default in (("--focal-px", args.focal_px, None), ("--baseline-m",
                args.baseline_m, None), ("--doffs-px", args.doffs_px, 0.0)) if value != default]
     takers = [source for source in sources if not source.scene and source.focal_px is None and not source.problem]
-    if options and sources and not takers:  # it ran, exit 0, as if not given
-        raise InputError(f"{', '.join(options)}: every listed pair has its own calibration (a scene folder, or a list "
-                         f"line that gives one), which the option would not change; drop it")
+    if options and sources and not takers and not any(source.problem for source in sources):  # it ran as if not given
+        raise InputError(f"{', '.join(options)}: every listed pair is a scene folder (its data's calibration, or a "
+                         f"nominal one for scoring where it ships none) or a list line that gives one, which the "
+                         f"option does not change; drop it")
     if args.db and options and takers:
         raise InputError(f"{', '.join(options)}, --db: a results store does not record a calibration given as an "
                          f"option; give it on the pairs' list lines ('LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]') or "

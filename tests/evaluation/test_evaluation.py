@@ -508,7 +508,14 @@ def test_a_calibration_option_no_listed_pair_takes_is_refused(data_dir, tmp_path
     own calibration) ran as if not given, exit 0; estimate refused the same."""
     teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
     assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "300", "--baseline-m", "0.2"]) == 2
-    assert "--focal-px, --baseline-m: every listed pair has its own calibration" in capsys.readouterr().err
+    assert "--focal-px, --baseline-m: every listed pair is a scene folder" in capsys.readouterr().err
+    out_folder = tmp_path / "maps"
+    assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "300", "--disparity-out", str(out_folder)]) == 2
+    assert not out_folder.exists()  # refused before the output folder was made
+    bad = tmp_path / "bad.txt"
+    bad.write_text("a b c\n")  # a bad line is reported as such, not as a calibration the option would not change
+    assert main(["eval", str(bad), "--size", "160x120", "--focal-px", "300", "--json"]) == 0
+    assert '"status": "BAD_INPUT"' in capsys.readouterr().out
     listing = tmp_path / "list.txt"
     listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
     assert main(["eval", str(listing), "--size", "160x120", "--focal-px", "300", "--json"]) == 0  # a file pair takes it
