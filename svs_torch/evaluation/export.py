@@ -117,6 +117,8 @@ class DisparityExport:
     method: str = "SVSTorch"
     # Export name -> the pair written under it in this process, so a second pair of that name is not written (warned).
     _claimed: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
+    # Export names claimed from a whole list before any pair ran (worker processes: cli.estimate_report).
+    _claimed_ahead: set[str] = field(default_factory=set, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.format not in EXPORT_FORMATS:
@@ -152,8 +154,10 @@ class DisparityExport:
             name = batch.names[index] if batch.names else str(index)
             key = export_name(name)
             if self._claimed.setdefault(key, name) != name:
-                warnings.warn(f"--disparity-out: {name!r} not written: it would overwrite {self._claimed[key]!r}, "
-                              f"written as {key!r}; export them in separate runs", RuntimeWarning, stacklevel=2)
+                what = ("its export name belongs to {!r}, listed before it" if key in self._claimed_ahead
+                        else "it would overwrite {!r}").format(self._claimed[key])
+                warnings.warn(f"--disparity-out: {name!r} not written: {what}, written as {key!r}; export them in "
+                              f"separate runs", RuntimeWarning, stacklevel=2)
                 continue
             target, timing = self.paths(name)
             other = _not_an_export(target, timing)

@@ -190,6 +190,6 @@ def test_estimate_pairs_on_workers_writes_the_first_listed_of_a_shared_name(data
         assert main(["estimate", "--pairs", str(listing), "--size", "160x120", "--json", "--workers", workers,
                      "--batch-size", "1", "--disparity-out", str(out)]) == 0
         err = capsys.readouterr().err
-        assert err.count("'2003/Teddy' not written: it would overwrite 'eval3/Teddy'") == 1, err
+        assert err.count("'2003/Teddy' not written: ") == 1 and "'eval3/Teddy'" in err, err
         maps[workers] = (out / "Teddy" / "disp0SVSTorch.pfm").read_bytes()
     assert maps["1"] == maps["2"]
