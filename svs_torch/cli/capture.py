@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.files import check_writable_folder, display_path, path_kind, write_bytes_atomic
-from .common import non_negative_float, positive_float, positive_int
+from .common import non_negative_float, positive_float, positive_int, timeout_seconds
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
@@ -65,7 +65,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD,
                         help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
                              f"a frame's bytes may take (default: {DEFAULT_BAUD}; 115200 for a board built so)")
-    parser.add_argument("--timeout", type=positive_float, default=DEFAULT_TIMEOUT_S, metavar="S",
+    parser.add_argument("--timeout", type=timeout_seconds, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most twice "
                              f"(default: {DEFAULT_TIMEOUT_S:g})")
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")

@@ -15,8 +15,8 @@ from typing import Any
 __all__ = [
     "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
     "check_outputs_apart", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named",
-    "output_path", "positive_float", "positive_int", "resolve_export_options", "seed_int", "too_small_reason",
-    "unit_interval_float", "with_config_values",
+    "output_path", "positive_float", "positive_int", "resolve_export_options", "seed_int", "timeout_seconds",
+    "too_small_reason", "unit_interval_float", "with_config_values",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -45,6 +45,15 @@ def positive_float(text: str) -> float:
     value = _number(text, float)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a finite positive number, got {text!r}")
+    return value
+
+
+def timeout_seconds(text: str) -> float:
+    """argparse type of a reply timeout: over 0 and at most a day (1e10 s failed deep inside: over the platform's
+    longest wait, threading.TIMEOUT_MAX)."""
+    value = positive_float(text)
+    if value > 86400:
+        raise argparse.ArgumentTypeError(f"expected seconds over 0 and at most 86400 (a day), got {text!r}")
     return value
 
 

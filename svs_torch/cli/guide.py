@@ -7,7 +7,7 @@ import contextlib
 import sys
 import warnings
 
-from .common import non_negative_float, non_negative_int, positive_float, positive_int
+from .common import non_negative_float, non_negative_int, positive_float, positive_int, timeout_seconds
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -92,7 +92,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
                         help="the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
                              "a frame's bytes may take (default: 2304000; 115200 for a board built so)")
-    parser.add_argument("--timeout", type=positive_float, default=2.0,
+    parser.add_argument("--timeout", type=timeout_seconds, default=2.0,
                         help="reply timeout per command, seconds (default: 2)")
     parser.add_argument("--quality", type=int, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import os
 import sys
 
 from .common import add_figure_option, dumps_strict, non_negative_int, output_path
@@ -118,6 +119,10 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.figure, args.figure_option, (".png", ".pdf", ".svg"), "a .png, .pdf or .svg")
     if args.csv and args.csv != "-":
         check_output_file(args.csv, "--csv")
+        if os.path.exists(args.csv) and os.path.samefile(args.csv, args.db):  # it wrote the table over the store
+            from ..core.checks import InputError
+
+            raise InputError(f"--csv: {args.csv} is the results file itself: it would be written over")
     with ResultStore(args.db, create=False) as store:
         if args.csv:
             header, rows = csv_table(store)

@@ -72,8 +72,12 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
     (``kinds`` says which in the message, e.g. ``"a .png, .pdf or .svg"``). Checked before any work starts."""
     check_path_given(path, name)
     target = Path(path)
-    if path_kind(target, name) == "folder":
+    kind = path_kind(target, name)
+    if kind == "folder":
         raise InputError(f"{name}: expected a file name, got the folder {display_path(target)!r}")
+    if kind == "other":  # written whole and renamed over it, a device (/dev/null, /dev/full) became a plain file
+        raise InputError(f"{name}: expected a regular file name, got {display_path(target)!r} (a device or other "
+                         f"special file)")
     if path_kind(target.parent, name) != "folder":
         raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
     if suffixes and target.suffix.lower() not in suffixes:
@@ -130,11 +134,12 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> I
 
     ``mode`` is ``"wb"`` or ``"w"`` (then ``open_kwargs`` such as ``encoding``, ``newline`` go to the text
     stream). The file is created with ``os.open(..., 0o666)``, so the umask (and a folder's default ACL) decides
-    its permissions, as for any new file.
+    its permissions, as for any new file. A symbolic link is written through, its target replaced (renamed over,
+    the link itself became a plain file).
     """
     if mode not in ("w", "wb"):
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
-    target = Path(path)
+    target = Path(os.path.realpath(path)) if os.path.islink(path) else Path(path)
     temporary = target.with_name(f".{short_name(target.name)}.{uuid.uuid4().hex[:8]}.tmp")
     handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:

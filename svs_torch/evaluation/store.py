@@ -149,6 +149,11 @@ class ResultStore:
     def _connect_to_write(self) -> sqlite3.Connection:
         """The store opened to write, its tables made if it is new. Another program's SQLite file is refused before
         anything is written to it (a mistyped --db added the store's tables beside its own)."""
+        # SQLite takes a file shorter than its 100-byte header for an empty database and writes the tables into it:
+        # a 1-byte text file named by --db became a store.
+        if self.path.is_file() and 0 < self.path.stat().st_size < 100:
+            raise InputError(f"db: {self.path} is not a results store (a file of {self.path.stat().st_size} bytes, "
+                             f"not SQLite): name a new file")
         # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
         connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
         tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}

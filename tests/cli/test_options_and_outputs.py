@@ -302,3 +302,44 @@ def test_calibrate_names_folders_empty_names_and_inputs_as_outputs(data_dir, cap
     assert code == 2 and out == "" and message.format(**fields) in err
     assert not (tmp_path / "rig.json").exists() and (tmp_path / "copy.jpg").read_bytes() == \
         (data_dir / "opencv_samples" / "left04.jpg").read_bytes()
+
+
+def test_outputs_never_replace_a_device_a_link_or_the_store_itself(data_dir, capsys, tmp_path):
+    """Found by fuzzing the command line: every output was written whole and renamed over its name, so a device
+    (`results --csv /dev/full` made this machine's /dev/full a plain file) and a symbolic link were replaced by
+    plain files; `results DB --csv DB` wrote the table over the store; `eval --db` of a 1-byte file made it a
+    store; `guide --timeout 1e10` failed deep inside."""
+    import shutil
+    import sqlite3
+
+    names = {}
+    for key, source in zip("LR", TEDDY):
+        names[key] = str(tmp_path / f"{key}.png")
+        shutil.copy(data_dir / source, names[key])
+    node = tmp_path / "node"
+    os.mkfifo(node)  # a special file as a device is (mknod needs root): renamed over, it became a plain file
+    for argv, option in ((["estimate", names["L"], names["R"], "--size", "160x120", "--figure", str(node)],
+                          "--figure"),
+                         (["estimate", names["L"], names["R"], "--size", "160x120", "--masks-out", str(node)],
+                          "--masks-out")):
+        code, _, err = run_cli(capsys, *argv)
+        assert code == 2 and f"{option}: expected a regular file name" in err
+        assert node.is_fifo()
+    db = tmp_path / "s.sqlite"
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    assert run_cli(capsys, "eval", str(scene), "--size", "160x120", "--db", str(db))[0] == 0
+    target, link = tmp_path / "rows.csv", tmp_path / "link.csv"
+    target.write_text("")
+    link.symlink_to(target)
+    assert run_cli(capsys, "results", str(db), "--csv", str(link))[0] == 0
+    assert link.is_symlink() and target.read_text().startswith("config,left,right")  # written through the link
+    code, _, err = run_cli(capsys, "results", str(db), "--csv", str(db))
+    assert code == 2 and "--csv: " in err and "is the results file itself" in err
+    sqlite3.connect(db).execute("SELECT count(*) FROM results").fetchone()  # still a store
+    one = tmp_path / "one.txt"
+    one.write_text("x")
+    code, _, err = run_cli(capsys, "eval", str(scene), "--size", "160x120", "--db", str(one))
+    assert code == 2 and "is not a results store (a file of 1 bytes, not SQLite)" in err and one.read_text() == "x"
+    with pytest.raises(SystemExit):
+        run_cli(capsys, "guide", "--emulator", "--timeout", "1e10")
+    assert "--timeout: expected seconds over 0 and at most 86400" in capsys.readouterr().err
