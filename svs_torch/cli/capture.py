@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from ..core.files import check_writable_folder, display_path, path_kind, write_bytes_atomic
+from ..core.files import check_path_given, check_writable_folder, display_path, path_kind, write_bytes_atomic
 from .common import non_negative_float, positive_float, positive_int, timeout_seconds
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -96,7 +96,7 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
         raise InputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
-    if args.emulator and (args.left or args.right):
+    if args.emulator and (args.left is not None or args.right is not None):  # '' too: it was run as not given
         raise InputError("--left, --right: not used with --emulator (it picks its own loopback ports)")
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: both board URLs are needed (or --emulator)")
@@ -138,6 +138,7 @@ def new_pairs_folder(value: str, option: str) -> Path:
     """The folder ``value`` of ``option`` that pairs will be saved to (created later, if missing), checked before
     the camera opens: a file there, or a folder already holding an ``index.jsonl``, is refused (nothing is ever
     appended to another run's pairs)."""
+    check_path_given(value, option, "a folder name")  # '' saved the pairs into the current folder
     out = Path(value)
     kind = path_kind(out, option)
     if kind not in ("missing", "folder"):

@@ -190,6 +190,10 @@ def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> No
 def _check_run_options(args: argparse.Namespace) -> None:
     """Options of a run of many pairs refused without --pairs (they ran without effect), and the export's."""
     resolve_export_options(args)
+    if args.pairs is not None:  # '' ran LEFT RIGHT as if --pairs were not given
+        from ..core.files import check_path_given
+
+        check_path_given(args.pairs, "--pairs", "a list file name")
     if not args.pairs and (args.workers is not None or args.batch_size is not None):
         from . import CliError
 

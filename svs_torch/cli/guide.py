@@ -251,7 +251,7 @@ def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
         size_code_for(size)
     except InputError:
         raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
-    if args.emulator and (args.left or args.right):
+    if args.emulator and (args.left is not None or args.right is not None):  # '' too: it was run as not given
         raise InputError("--left, --right: the boards' URLs, or --emulator, not both")
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: give both board URLs, or --emulator")

@@ -254,6 +254,10 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
      "--disparity-format: given without --disparity-out, whose files it names"),
     (["estimate", "{L}", "{R}", "--workers", "2"], "--workers: only with --pairs (a run of many pairs)"),
     (["estimate", "{L}", "{R}", "--batch-size", "4"], "--batch-size: only with --pairs (a run of many pairs)"),
+    # Found by fuzzing the command line: an empty value ran as if the option were not given.
+    (["estimate", "{L}", "{R}", "--pairs", ""], "--pairs: expected a list file name, got ''"),
+    (["capture", "--emulator", "--count", "1", "--out-dir", ""], "--out-dir: expected a folder name, got ''"),
+    (["guide", "--emulator", "--left", "", "--count", "1"], "--left, --right: the boards' URLs, or --emulator, not both"),
 ])
 def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys, tmp_path, argv, message):
     """Found by an audit of the smaller commands: a figure named as an input was written over it (exit 0);
