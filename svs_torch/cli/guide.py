@@ -117,7 +117,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
                              "them again alike; DIR is created, and must not hold an index.jsonl")
-    parser.add_argument("--reconnect-s", type=positive_float, default=2.0, metavar="S",
+    parser.add_argument("--reconnect-s", type=timeout_seconds, default=2.0, metavar="S",
                         help="a camera that stops answering in the middle of a walk is said to be lost (spoken) "
                              "and opened again every S seconds until it answers (default: 2)")
     parser.add_argument("--blind-s", type=non_negative_float, default=2.0, metavar="S",

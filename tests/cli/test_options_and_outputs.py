@@ -344,6 +344,7 @@ def test_outputs_never_replace_a_device_a_link_or_the_store_itself(data_dir, cap
     one.write_text("x")
     code, _, err = run_cli(capsys, "eval", str(scene), "--size", "160x120", "--db", str(one))
     assert code == 2 and "is not a results store (a file of 1 bytes, not SQLite)" in err and one.read_text() == "x"
-    with pytest.raises(SystemExit):
-        run_cli(capsys, "guide", "--emulator", "--timeout", "1e10")
-    assert "--timeout: expected seconds over 0 and at most 86400" in capsys.readouterr().err
+    for option in ("--timeout", "--reconnect-s"):  # a thread join's and a sleep's: OverflowError at 1e10
+        with pytest.raises(SystemExit):
+            run_cli(capsys, "guide", "--emulator", option, "1e10")
+        assert f"{option}: expected seconds over 0 and at most 86400" in capsys.readouterr().err
