@@ -60,7 +60,7 @@ every pair that has them: they are disparities, whatever the calibration) and th
 dense_* and sparse_* errors are in the pixels the pipeline ran at (--size), the map_* and kept_* metrics in
 the data's native pixels, at the published thresholds. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
-row, but an ERROR row, which is replaced), for svs-depth results.
+row, but an ERROR, BAD_INPUT or TOO_SMALL row, which is replaced), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set;
 1 an output that cannot be written (--disparity-out or --db on a full disk: the option and the file named; the
 rows a --db store committed are kept).

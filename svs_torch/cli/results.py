@@ -5,10 +5,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import os
 import sys
 
-from .common import add_figure_option, dumps_strict, non_negative_int, output_path
+from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, output_path
 
 HELP = "summarise, export (CSV) or plot a sweep's results file"
 
@@ -119,10 +118,9 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.figure, args.figure_option, (".png", ".pdf", ".svg"), "a .png, .pdf or .svg")
     if args.csv and args.csv != "-":
         check_output_file(args.csv, "--csv")
-        if os.path.exists(args.csv) and os.path.samefile(args.csv, args.db):  # it wrote the table over the store
-            from ..core.checks import InputError
-
-            raise InputError(f"--csv: {args.csv} is the results file itself: it would be written over")
+    # `results DB --csv DB` wrote the table over the store
+    check_outputs_apart([("--csv", None if args.csv == "-" else args.csv), (args.figure_option, args.figure)],
+                        [("results file itself", args.db)])
     with ResultStore(args.db, create=False) as store:
         if args.csv:
             header, rows = csv_table(store)

@@ -271,8 +271,8 @@ def environment(executor: str, workers: int, threads: int | None) -> dict:
 @dataclass(frozen=True)
 class SweepOutcome:
     """What a run did: tasks run, rows written, rows of this sweep that were already stored, the run's id, and the
-    rows of this sweep stored at its end (ERROR rows not counted: a resume runs them again), counted in the store:
-    a sweep running beside it on the same store may have written some."""
+    rows of this sweep stored at its end (rows of a RETRIED_STATUSES status not counted: a resume runs them again),
+    counted in the store: a sweep running beside it on the same store may have written some."""
 
     tasks: int
     rows_written: int
