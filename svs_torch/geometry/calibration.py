@@ -108,16 +108,11 @@ class StereoCalibration:
             raise InputError(f"{name}: made at {self.image_wh[0]}x{self.image_wh[1]}, the pair is {width}x{height}: "
                              "expected the same aspect ratio (the same view at another resolution)")
         scale = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-        # Q maps an old pixel's (x, y, d, 1) to 3-D; a new pixel's (x', y', d') is first taken back to old pixels
-        # (x = (x' + 0.5) / sx − 0.5, likewise y, d = d' / sx), so Q' = Q · that map: the same 3-D points.
-        to_old = np.linalg.inv(scale)
-        q_map = np.eye(4)
-        q_map[0, 0], q_map[0, 3] = to_old[0, 0], to_old[0, 2]
-        q_map[1, 1], q_map[1, 3] = to_old[1, 1], to_old[1, 2]
-        q_map[2, 2] = 1 / sx  # disparities scale with x
-        return dataclasses.replace(
-            self, image_wh=(width, height), K_left=scale @ self.K_left, K_right=scale @ self.K_right,
-            P1=scale @ self.P1, P2=scale @ self.P2, Q=self.Q @ q_map)
+        P1, P2 = scale @ self.P1, scale @ self.P2
+        # Q as cv2.stereoRectify gives it at the new size: the same 3-D point for a pixel's (x', y', d') as the old
+        # Q for the old pixel (x = (x' + 0.5) / sx − 0.5, likewise y, d = d' / sx), up to the homogeneous scale.
+        return dataclasses.replace(self, image_wh=(width, height), K_left=scale @ self.K_left,
+                                   K_right=scale @ self.K_right, P1=P1, P2=P2, Q=_implied_q(P1, P2))
 
     def to_json(self) -> dict:
         """The file's content (see the module docstring); derived focal, baseline and doffs for users' scripts."""
@@ -232,10 +227,18 @@ def _parse(record: object, where: str) -> StereoCalibration:
     return calibration
 
 
+def _implied_q(P1: np.ndarray, P2: np.ndarray) -> np.ndarray:
+    """OpenCV's reprojection matrix of two rectified camera matrices (``cv2.stereoRectify``'s Q): (x, y, d, 1)
+    to 3-D, with Tx = P2[0, 3] / f the (negative) baseline of a left-right rig."""
+    focal, tx = P1[0, 0], P2[0, 3] / P2[0, 0]
+    return np.array([[1.0, 0.0, 0.0, -P1[0, 2]], [0.0, 1.0, 0.0, -P1[1, 2]], [0.0, 0.0, 0.0, focal],
+                     [0.0, 0.0, -1.0 / tx, (P1[0, 2] - P2[0, 2]) / tx]])
+
+
 def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> None:
     """The file's parts describe one rig (a hand edit of one part alone is refused, not half applied): R, R1, R2
-    rotations; P1 and P2 one rectified camera matrix; |T| the baseline of P2; the summary values (``focal_px``,
-    ``baseline_m``, ``doffs_px``, which nothing reads) those of P1 and P2."""
+    rotations; P1 and P2 one rectified camera matrix; Q the reprojection matrix they give; |T| the baseline of
+    P2; the summary values (``focal_px``, ``baseline_m``, ``doffs_px``, which nothing reads) those of P1 and P2."""
     for key in ("R", "R1", "R2"):
         R = getattr(calibration, key)
         if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
@@ -245,6 +248,10 @@ def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> 
     if not all(same):
         raise InputError(f"{where}: expected P1 and P2 with one focal length and one row centre (rectified views), "
                          f"got focal {calibration.P1[0, 0]:g} and {calibration.P2[0, 0]:g} px")
+    Q, implied = calibration.Q, _implied_q(calibration.P1, calibration.P2)  # homogeneous: equal up to a scale
+    if Q[2, 3] == 0 or not np.allclose(Q * (implied[2, 3] / Q[2, 3]), implied, rtol=1e-6, atol=1e-9):
+        raise InputError(f"{where}: expected 'Q' as the reprojection matrix P1 and P2 give (OpenCV's "
+                         "stereoRectify), got another")
     if not math.isclose(float(np.linalg.norm(calibration.T)), calibration.baseline_m, rel_tol=1e-6):
         raise InputError(f"{where}: expected |T_m| = the baseline of P2 ({calibration.baseline_m:.6g} m), got "
                          f"{float(np.linalg.norm(calibration.T)):.6g} m")

@@ -81,7 +81,7 @@ def test_rectified_pair_has_the_board_on_the_same_rows(rig, samples):
     assert np.abs(batch.left[0, 0].numpy() - reference).max() < 0.01
 
 
-def test_resized_pair_uses_scaled_intrinsics(rig, samples):
+def test_resized_pair_uses_scaled_intrinsics(rig, samples, tmp_path):
     calibration, _ = rig
     raw = resize_stereo_batch(load_image_pair(samples / "left03.jpg", samples / "right03.jpg"), (320, 240))
     batch = rectify_with_calibration(raw, calibration)
@@ -96,6 +96,9 @@ def test_resized_pair_uses_scaled_intrinsics(rig, samples):
     half = calibration.scaled_to((320, 240))
     old_point, new_point = calibration.Q @ [100.0, 50.0, 20.0, 1.0], half.Q @ [49.75, 24.75, 10.0, 1.0]
     np.testing.assert_allclose(new_point[:3] / new_point[3], old_point[:3] / old_point[3], rtol=1e-9)
+    # ... in the form OpenCV writes it for P1 and P2, so a file of the scaled rig reads back.
+    write_calibration(tmp_path / "half.json", half)
+    np.testing.assert_array_equal(read_calibration(tmp_path / "half.json").Q, half.Q)
     with pytest.raises(InputError, match="--calibration: made at 640x480, the pair is 320x320"):
         rectify_with_calibration(resize_stereo_batch(raw, (320, 320)), calibration)
 
@@ -126,6 +129,7 @@ def test_file_round_trips(rig, tmp_path):
     (lambda r: {**r, "R1": [[0, 0, 0]] * 3}, "expected 'R1' as a rotation"),
     (lambda r: {**r, "P1": [[100, *r["P1"][0][1:]], *r["P1"][1:]]}, "expected P1 and P2 with one focal length"),
     (lambda r: {**r, "T_m": [0, 0, 0]}, r"expected \|T_m\| = the baseline of P2"),
+    (lambda r: {**r, "Q": [*r["Q"][:2], [0, 0, 0, 1e308], r["Q"][3]]}, "expected 'Q' as the reprojection matrix"),
     (lambda r: {**r, "baseline_m": 0.09}, "'baseline_m' 0.09 is not the 0.0831805 its P1 and P2 give"),
     (lambda r: {**r, "format_version": 99}, "expected 'format_version' 1 to 1"),
     (lambda r: {**r, "K_left": [[str(v) for v in row] for row in r["K_left"]]}, "expected 'K_left' as 3x3 finite"),
