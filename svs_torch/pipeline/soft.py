@@ -236,6 +236,9 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     ``coarse_config`` (half the working width: ``PipelineConfig.coarse_retry_below_share``), the rest under
     ``config``."""
     b = left.shape[0]
+    # In the images' dtype, as the hard stage's depths are (a float64 calibration with float32 images made every
+    # soft depth float64 beside the hard ones' float32); the cast keeps the calibration's gradients.
+    focal_px, baseline_m, doffs_px = (v.to(left.dtype) for v in (focal_px, baseline_m, doffs_px))
     slots = hard.objects.label
     x0, y0, box_w, box_h = (v.view(-1, 1, 1, 1) for v in dense.crop_xywh.unbind(1))
     rows = torch.arange(left.shape[-2], device=left.device).view(1, 1, -1, 1)

@@ -192,6 +192,18 @@ def test_rectified_pair_keeps_the_hard_values_and_passes_gradients(data_dir):
     assert int((batch.left.grad != 0).sum()) > 100 and int((batch.right.grad != 0).sum()) > 100
 
 
+def test_a_float64_calibration_keeps_the_images_dtype_and_its_gradient(data_dir):
+    batch = _requiring_grad(_teddy(data_dir, (160, 120)))
+    focal = batch.focal_px.double().requires_grad_(True)
+    batch = replace(batch, focal_px=focal, baseline_m=batch.baseline_m.double(), doffs_px=batch.doffs_px.double())
+    result = estimate_obstacle_depth(batch, PipelineConfig(differentiable=True))
+    depth = result.depth
+    for value in (depth.objects.depth_median_m, depth.nearest.depth_m, depth.range.r_min_m, depth.range.d_max_px):
+        assert value.dtype == torch.float32  # the hard depths' and the images' dtype, not the calibration's
+    depth.nearest.depth_m[depth.nearest.valid].sum().backward()
+    assert float(focal.grad.abs().sum()) > 0 and int((batch.left.grad != 0).sum()) > 100
+
+
 def test_mixed_sizes_pass_gradients_to_each_pair(data_dir):
     pairs = [_teddy(data_dir, (160, 120)), _teddy(data_dir, (200, 150))]
     batch = _requiring_grad(collate_stereo_batches(pairs))
