@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..core.checks import InputError
 from ..core.mask_reductions import any_along
 from . import kernels
 from .dense_config import DenseConfig
@@ -16,6 +17,23 @@ __all__ = [
     "CACHE_BLOCK_BYTES", "crop_box", "crop_index", "prefilter_xsobel", "quantize_levels", "region_crop_boxes",
     "wanted_pixels"
 ]
+
+
+# One pair's cost volume past 2^31 float32 values (8 GB) is refused by name, not left to fail in torch's allocator
+# (65 534 disparities over a 64-px-wide pair asked 68 GB). No real pair comes near: 256 disparities over a
+# 1390x1110 Middlebury view are 5e8. A batch's memory is its size times that: the caller's choice.
+MAX_VOLUME_VALUES = 2**31
+
+
+def check_volume_size(num_disparities: int, height: int, width: int) -> None:
+    """InputError naming ``num_disparities`` when one pair's cost volume, ``num_disparities`` by ``height`` by
+    ``width`` (with the left–right check's extra columns), passes :data:`MAX_VOLUME_VALUES`."""
+    values = num_disparities * height * width
+    if values > MAX_VOLUME_VALUES:
+        raise InputError(f"num_disparities: {num_disparities} disparities ask for a {values * 4 / 2**30:.0f} GB cost "
+                         f"volume per pair ({num_disparities} x {height} x {width} values, the left-right check's "
+                         f"columns included; at most {MAX_VOLUME_VALUES * 4 // 2**30} GB): a pair's disparities that "
+                         "can match a pixel are fewer than twice its width")
 
 
 def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
@@ -120,6 +138,7 @@ def _cost_volume(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: 
     pairs' own disparity ``counts`` ``(B,)`` are given (the hard path), the costs outside the image or past a
     pair's count set to +inf and the winner-takes-all ``(min cost, index)`` over D, both ``(B, height, width)``,
     found while each slab is in cache (the first index on ties, as ``min(dim=1)``); else None."""
+    check_volume_size(num_disparities, height, width)
     radius = config.window_size // 2
     disparities = min_disparity.view(-1, 1) + torch.arange(num_disparities, device=left.device)  # (B, D)
     right_x = x0.view(-1, 1, 1) + torch.arange(width, device=left.device) - disparities.unsqueeze(-1)

@@ -1012,6 +1012,14 @@ def test_sizes_beyond_what_the_kernels_hold_are_refused():
     for factor in (0, 1000, -2):  # 1000 on a 4x4 image: 10 s and 820 MB of slices
         with pytest.raises(InputError, match="factor: expected an int from 1 to the images' smaller side 4"):
             mean_pool(torch.rand(1, 1, 4, 4), factor)
+    # 65 534 disparities over a 64x48 pair: a 68 GB allocation failed inside torch; 3 000 still run.
+    from svs_torch.depth.soft_dense import soft_block_match
+    small = torch.rand(1, 1, 48, 64)
+    with pytest.raises(InputError, match=r"num_disparities: 65534 disparities ask for a 1537 GB cost volume per pair"):
+        block_match_sad(small, small, 0, 65534)
+    with pytest.raises(InputError, match=r"num_disparities: 40000 disparities ask for a 9 GB cost volume per pair"):
+        soft_block_match(torch.rand(1, 1, 900, 64), torch.rand(1, 1, 900, 64), 0, 40000, 1.0)
+    assert block_match_sad(small, small, 0, 3000).disparity_px.shape == small.shape
     with pytest.raises(InputError, match="disparity_px: expected finite values, got inf"):
         disparity_search_range(torch.tensor([[math.inf, 3.0]]), torch.ones(1, 2, dtype=torch.bool),
                                torch.tensor([16]), DenseConfig())
