@@ -65,18 +65,27 @@ def _label(panel: np.ndarray, text: str, origin: tuple[int, int], colour: tuple[
            scale: float = 0.4) -> None:
     """White text on a black box, led by a swatch of the object's ``colour``, kept inside the panel: readable on
     any texture and on the object's own tint (coloured text on a tint of its own colour is not)."""
-    (w, h), base = cv2.getTextSize(text, _FONT, scale, 1)
+    thickness = max(1, round(scale / 0.4))  # strokes as wide, for the size, as 0.4's single pixel
+    (w, h), base = cv2.getTextSize(text, _FONT, scale, thickness)
     total = h + 3 + w  # swatch, space, text
     x = int(min(max(origin[0], 1), max(panel.shape[1] - total - 2, 1)))
     y = int(min(max(origin[1], h + 2), max(panel.shape[0] - base - 1, h + 2)))
     cv2.rectangle(panel, (x - 1, y - h - 2), (x + total + 1, y + base), (0, 0, 0), cv2.FILLED)
     cv2.rectangle(panel, (x, y - h), (x + h - 1, y - 1), colour, cv2.FILLED)
-    cv2.putText(panel, text, (x + h + 3, y), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(panel, text, (x + h + 3, y), _FONT, scale, (255, 255, 255), thickness, cv2.LINE_AA)
 
 
 #: Rows of the objects panel the area label (``#1 928px``, :func:`~svs_torch.plotting.figures.objects_panel`)
-#: takes at the top of each object's box, image pixels.
+#: takes at the top of each object's box, image pixels, in an image up to 320 px wide (times
+#: :func:`panel_scale` in a wider one).
 AREA_LABEL_ROWS = 16
+
+
+def panel_scale(width_px: int) -> float:
+    """How much larger the objects panel draws its labels and box lines in an image ``width_px`` wide: 1 up to
+    320 px (the SVS's width), in proportion beyond, so that a figure, drawn at one size whatever the image's, shows
+    them alike (at 1282 px a 1-pixel box and a 0.4 label were a hairline and an unreadable speck)."""
+    return max(1.0, width_px / 320)
 #: The padding of a depth label's box (``plots.LABEL_BOX``), points.
 LABEL_PAD_POINTS = 2
 
@@ -89,7 +98,7 @@ def depth_label_y(centroid_y: float, box_top: float, lines: int, size_hw: tuple[
     height, width = size_hw
     points_to_px = width / (72 * width_in)  # image pixels per point on the drawn panel (72 points an inch)
     half = (lines * 9 * 1.25 + 2 * LABEL_PAD_POINTS) * points_to_px / 2
-    y = max(centroid_y, box_top + AREA_LABEL_ROWS + half)
+    y = max(centroid_y, box_top + AREA_LABEL_ROWS * panel_scale(width) + half)
     return min(y, max(height - half, 0.0))
 
 
@@ -107,8 +116,10 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
         panel[region] = (0.6 * base[region] + 0.4 * colour).astype(np.uint8)
         x0, y0, x1, y1 = seg.regions.bbox_xyxy[index, label - 1].tolist()
         area = int(seg.regions.area_px[index, label - 1])
-        cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
-        _label(panel, f"#{rank + 1} {area}px", (x0 + 2, y0 + 12), tuple(int(c) for c in colour))
+        scale = panel_scale(panel.shape[1])
+        cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), round(scale))
+        _label(panel, f"#{rank + 1} {area}px", (x0 + round(2 * scale), y0 + round(12 * scale)),
+               tuple(int(c) for c in colour), 0.4 * scale)
     return panel
 
 

@@ -5,6 +5,7 @@ temporary file with the permissions the umask gives."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import stat
 
@@ -162,6 +163,25 @@ def test_objects_panel_labels_are_white(scene):
     panel = objects_panel(batch.left, result.segmentation.left, 0)
     near_white = (panel.min(axis=2) > 230).sum()
     assert near_white > 10  # the white label text (the image itself is dimmed below 0.6 gray)
+
+
+def test_objects_panel_labels_grow_with_the_image(scene):
+    """A figure draws the panel at one size whatever the image's: at 1282 px wide a 1-pixel box and a 0.4 label
+    were a hairline and an unreadable speck. The same objects in an image 4x the size, 384 px wide, have labels
+    384 / 320 = 1.2x as large (the panel's base size holds up to 320 px)."""
+    batch, result = scene
+    seg = result.segmentation.left
+    one = dataclasses.replace(seg, kept_labels=torch.tensor([[int(seg.kept_labels[0, 0]), -1]]))  # one label
+    big = dataclasses.replace(one, labels=one.labels.repeat_interleave(4, -1).repeat_interleave(4, -2),
+                              regions=dataclasses.replace(one.regions, bbox_xyxy=one.regions.bbox_xyxy * 4))
+    image = batch.left.repeat_interleave(4, -1).repeat_interleave(4, -2)
+    assert image.shape[-1] == 384
+
+    def text_pixels(panel: np.ndarray) -> int:  # the white label text (the image is dimmed or tinted below it)
+        return int((panel.min(axis=2) > 230).sum())
+
+    small, large = text_pixels(objects_panel(batch.left, one, 0)), text_pixels(objects_panel(image, big, 0))
+    assert small > 20 and 1.3 * small < large < 2.5 * small  # the same label at 1.2x: 56 and 101 pixels
 
 
 def test_figure_file_is_a_png_with_the_umask_mode(scene, tmp_path):
