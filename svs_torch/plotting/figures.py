@@ -65,7 +65,7 @@ def _label(panel: np.ndarray, text: str, origin: tuple[int, int], colour: tuple[
            scale: float = 0.4) -> None:
     """White text on a black box, led by a swatch of the object's ``colour``, kept inside the panel: readable on
     any texture and on the object's own tint (coloured text on a tint of its own colour is not)."""
-    thickness = max(1, round(scale / 0.4))  # strokes as wide, for the size, as 0.4's single pixel
+    thickness = max(1, round(scale / 0.6))  # strokes that grow with the size (one pixel up to 0.89)
     (w, h), base = cv2.getTextSize(text, _FONT, scale, thickness)
     total = h + 3 + w  # swatch, space, text
     x = int(min(max(origin[0], 1), max(panel.shape[1] - total - 2, 1)))
