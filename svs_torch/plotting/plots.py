@@ -181,6 +181,10 @@ def _match_segments(keypoints_left, keypoints_right, idx: list[int], inliers, in
     return segments
 
 
+#: The most match lines a figure draws (an even share of each kind beyond it).
+MAX_DRAWN_MATCHES = 200
+
+
 def _matches_axis(ax, left: np.ndarray, right: np.ndarray, keypoints_left, keypoints_right, idx: list[int],
                   inliers, index: int, title: str, width_in: float) -> None:
     """Both images side by side (gray), keypoints as circles, matches as lines with a legend below."""
@@ -198,11 +202,15 @@ def _matches_axis(ax, left: np.ndarray, right: np.ndarray, keypoints_left, keypo
     segments = _match_segments(keypoints_left, keypoints_right, idx, inliers, index, width + gap)
     styles = {"outlier": (OUTLIER, "outlier"), "inlier": (INLIER, "RANSAC inlier"), "match": (MATCH, "SAD match")}
     handles = []
+    # Every stride-th match of each kind where there are more than MAX_DRAWN_MATCHES (a native pair's thousand
+    # lines hid the images); the legend gives every count.
+    stride = max(1, -(-sum(len(v) for v in segments.values()) // MAX_DRAWN_MATCHES))
     for kind in (("inlier", "outlier") if inliers is not None else ("match",)):
         colour, name = styles[kind]
         if segments[kind]:
-            ax.add_collection(LineCollection(segments[kind], colors=colour, linewidths=0.8))
-        handles.append(Line2D([], [], color=colour, label=f"{name} ({len(segments[kind])})"))
+            ax.add_collection(LineCollection(segments[kind][::stride], colors=colour, linewidths=0.8))
+        drawn = f", {len(segments[kind][::stride])} drawn" if stride > 1 else ""
+        handles.append(Line2D([], [], color=colour, label=f"{name} ({len(segments[kind])}{drawn})"))
     handles.append(Line2D([], [], marker="o", linestyle="none", markerfacecolor="none", markeredgecolor=KEYPOINT,
                           label="SURF keypoint"))
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=len(handles), fontsize=9,

@@ -158,6 +158,30 @@ def test_matches_figure_has_a_legend_for_inliers_and_outliers(scene):
     assert plain.shape[0] > 0 and not np.array_equal(image, plain)  # inlier colours differ from plain matches
 
 
+def test_matches_beyond_the_most_drawn_are_thinned_and_counted(scene, monkeypatch):
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+
+    from svs_torch.plotting import plots
+
+    batch, result = scene
+    idx = result.matches.idx[0].tolist()
+    total = sum(j >= 0 for j in idx)
+    assert total > 8
+
+    def drawn(most: int) -> tuple[int, list[str]]:
+        monkeypatch.setattr(plots, "MAX_DRAWN_MATCHES", most)
+        ax = Figure().add_subplot()
+        plots._matches_axis(ax, batch.left[0, 0].numpy(), batch.right[0, 0].numpy(), result.features_left.keypoints,
+                            result.features_right.keypoints, idx, None, 0, "matches", 4.0)
+        lines = sum(len(c.get_segments()) for c in ax.collections if isinstance(c, LineCollection))
+        return lines, [t.get_text() for t in ax.get_legend().get_texts()]
+
+    assert drawn(1000) == (total, [f"SAD match ({total})", "SURF keypoint"])
+    lines, legend = drawn(4)
+    assert lines <= 4 and legend[0] == f"SAD match ({total}, {lines} drawn)"
+
+
 def test_objects_panel_labels_are_white(scene):
     batch, result = scene
     panel = objects_panel(batch.left, result.segmentation.left, 0)
