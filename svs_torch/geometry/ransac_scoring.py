@@ -34,6 +34,7 @@ class _ScoringSet(NamedTuple):
     denominator: torch.Tensor  # (B, 12, R) float32 monomials: Sampson denominator = g(F) · m
     median_offsets: torch.Tensor  # (B, 1, R) float32, LMedS only: 0 on valid rows, ±inf on padding
     median_rank: int  # LMedS only: the 1-based rank that is each pair's median after the offsets
+    num_rows: torch.Tensor  # (B, 1) float64: each pair's own (valid) rows in the set
 
 
 class _Problem(NamedTuple):
@@ -63,7 +64,7 @@ def _scoring_set(numerator: torch.Tensor, denominator: torch.Tensor, valid: torc
     padding_rank = (~valid).cumsum(-1) - 1
     below = (~valid) & (padding_rank < (common - rank).unsqueeze(-1))
     offsets = torch.where(valid, 0.0, torch.where(below, -math.inf, math.inf)).float().unsqueeze(1)
-    return _ScoringSet(numerator, denominator, offsets, common)
+    return _ScoringSet(numerator, denominator, offsets, common, count.double().unsqueeze(-1))
 
 
 def _normalize_shared_scale(points_left: torch.Tensor, points_right: torch.Tensor, valid: torch.Tensor
@@ -108,13 +109,24 @@ def _prepare(points_left: torch.Tensor, points_right: torch.Tensor, valid: torch
                     full=_scoring_set(numerator, denominator, valid), subset=subset)
 
 
+def _products(coefficients: torch.Tensor, monomials: torch.Tensor) -> torch.Tensor:
+    """``(B, S, M)`` · ``(B, M, R)`` → ``(B, S, R)``, each entry Σ_m c_m · x_m summed in one fixed order (the C
+    kernel's), so it is the same whatever B, S and R: a batched matrix product rounds an entry differently with R
+    (its blocking), so a pair's float32 scores depended on the widest pair of its batch, and LMedS, whose medians
+    on a few matches are near-exact fits 1e-15 apart, picked another model beside another pair."""
+    out = coefficients[..., :1] * monomials[:, :1]
+    for m in range(1, monomials.shape[1]):
+        out += coefficients[..., m:m + 1] * monomials[:, m:m + 1]
+    return out
+
+
 def _score(rows: _ScoringSet, fundamental: torch.Tensor, usable: torch.Tensor, threshold_sq: torch.Tensor,
            scoring: str) -> torch.Tensor:
     """Loss of each model ``(B, S, 3, 3)`` (normalised coordinates) on ``rows`` → ``(B, S)`` float64, lower is
     better; inf where ``usable`` is False.
 
-    Blocks of models are scored by two matrix products and a few in-place passes, never materialising more
-    than about ``_SCORE_BLOCK_ENTRIES`` distances.
+    Blocks of models are scored by two fixed-order products (:func:`_products`) and a few in-place passes, never
+    materialising more than about ``_SCORE_BLOCK_ENTRIES`` distances.
     """
     b, s = usable.shape
     r = rows.numerator.shape[-1]
@@ -124,16 +136,19 @@ def _score(rows: _ScoringSet, fundamental: torch.Tensor, usable: torch.Tensor, t
     block = max(1, _SCORE_BLOCK_ENTRIES // max(1, b * r))
     losses = [torch.zeros(b, 0, dtype=torch.float64, device=usable.device)]
     for start in range(0, s, block):
-        distance_sq = torch.bmm(coefficients_num[:, start:start + block], rows.numerator)  # (B, s', R)
+        distance_sq = _products(coefficients_num[:, start:start + block], rows.numerator)  # (B, s', R)
         distance_sq = distance_sq.mul_(distance_sq).div_(
-            torch.bmm(coefficients_den[:, start:start + block], rows.denominator))
+            _products(coefficients_den[:, start:start + block], rows.denominator))
         if scoring == "lmeds":
             loss = distance_sq.add_(rows.median_offsets).kthvalue(rows.median_rank, dim=-1).values
         elif scoring == "ransac":
-            count = (distance_sq <= threshold_sq).sum(-1, dtype=torch.float32)
-            # MSAC cost / t² < R + 1: the fraction only breaks ties between equal counts.
+            # Over the pair's own n rows: padding scores 0, an inlier of every model, and counting it (or
+            # dividing by the batch's widest R) made the loss, so local optimisation's relative stop, depend on
+            # the pair's batch neighbours.
+            count = (distance_sq <= threshold_sq).sum(-1, dtype=torch.float32).double() - (r - rows.num_rows)
+            # MSAC cost / t² < n + 1: the fraction only breaks ties between equal counts.
             tie = torch.minimum(distance_sq, threshold_sq, out=distance_sq).sum(-1) / threshold_sq.view(-1, 1)
-            loss = tie.double() / (r + 1) - count.double()
+            loss = tie.double() / (rows.num_rows + 1) - count
         else:
             loss = torch.minimum(distance_sq, threshold_sq, out=distance_sq).sum(-1)
         losses.append(loss.double())
@@ -165,7 +180,7 @@ def _select_pairs(problem: _Problem, index: torch.Tensor) -> _Problem:
     def pick(value):
         if isinstance(value, _ScoringSet):
             return value._replace(numerator=pick(value.numerator), denominator=pick(value.denominator),
-                                  median_offsets=pick(value.median_offsets))
+                                  median_offsets=pick(value.median_offsets), num_rows=pick(value.num_rows))
         return value.index_select(0, index)
 
     return _Problem(*(pick(value) for value in problem))

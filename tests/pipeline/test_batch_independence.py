@@ -212,3 +212,18 @@ def test_real_pairs_at_one_size_equal_each_pair_alone(data_dir: Path):
                                    scenes[index].name)
     finally:
         torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("scoring, scene", [("lmeds", "middlebury_2005_2006_third/Flowerpots"),
+                                            ("ransac", "middlebury_eval3_Q/MotorcycleE")])
+def test_each_ransac_scoring_keeps_a_pair_independent_of_its_batch(data_dir: Path, scoring, scene):
+    """The paper preset under the other two scorings, each pair beside Venus (more matches): LMedS left Flowerpots
+    RANSAC_FAILED beside it (OK alone: its scores came from a matrix product that rounds with the widest pair's
+    rows), and RANSAC's count of padding as inliers moved MotorcycleE's R_min 2.108 -> 2.104 m."""
+    venus, pair = (resize_stereo_batch(load_stereo_pair(data_dir / name), (320, 240))
+                   for name in ("middlebury_2001/Venus", scene))
+    config = dataclasses.replace(PipelineConfig.paper(), ransac_scoring=scoring)
+    with torch.no_grad():
+        alone = estimate_obstacle_depth(pair, config)
+        batched = estimate_obstacle_depth(collate_stereo_batches([venus, pair], mode="pad"), config)
+    _assert_rows_equal(_pair_tensors(batched, 1, (240, 320)), _pair_tensors(alone, 0, (240, 320)), scene)

@@ -44,10 +44,9 @@ typedef struct {
     int ransac_scoring, local_optimization, preverification, polish;
 } Settings;
 
-/* One pair's prepared rows (the torch path's _Problem): n valid rows in index order, padded to the batch's widest
- * pair (width) for the two scores that count padding (RANSAC's inlier count). */
+/* One pair's prepared rows (the torch path's _Problem): n valid rows in index order. */
 typedef struct {
-    int64_t n, width, subset_size;
+    int64_t n, subset_size;
     double *design;  /* (n, 9) rows a with x'^T F x = a . f, normalised points */
     double *quadratic; /* (n, 12) Sampson-denominator monomials */
     float *design32, *quadratic32; /* the same in float32, for the scores */
@@ -144,8 +143,8 @@ static void prepare(const double *left, const double *right, int64_t n, double t
     pr->threshold_sq = (threshold_px * scale) * (threshold_px * scale);
 }
 
-/* ransac_scoring._score of one model over a set of rows (rows NULL: all n, padded to width; else the subset):
- * float32 squared Sampson distances; MSAC sum of min(d^2, t^2), or RANSAC's -count plus the MSAC tie-break. */
+/* ransac_scoring._score of one model over a set of rows (all n, or the subset): float32 squared Sampson distances;
+ * MSAC sum of min(d^2, t^2), or RANSAC's -count plus the MSAC tie-break, both over the pair's own rows. */
 static double score(const Problem *pr, const double *f, int use_subset, double threshold_sq, int ransac) {
     float fn[9], gd[12];
     double g[12];
@@ -154,10 +153,8 @@ static double score(const Problem *pr, const double *f, int use_subset, double t
     for (int j = 0; j < 12; ++j) gd[j] = (float)g[j];
     const float t = (float)threshold_sq;
     const int64_t rows = use_subset ? pr->subset_size : pr->n;
-    const int64_t width = use_subset ? (pr->width < pr->preverify_points ? pr->width : pr->preverify_points)
-                                     : pr->width;
     float total = 0.0f;
-    int64_t count = width - rows; /* padding rows score exactly 0: inliers of every model */
+    int64_t count = 0;
     for (int64_t i = 0; i < rows; ++i) {
         const int64_t r = use_subset ? pr->subset[i] : i;
         const float *a = pr->design32 + 9 * r, *q = pr->quadratic32 + 12 * r;
@@ -170,7 +167,7 @@ static double score(const Problem *pr, const double *f, int use_subset, double t
         total += d;
     }
     if (!ransac) return (double)total;
-    return (double)(total / t) / (double)(width + 1) - (double)count;
+    return (double)(total / t) / (double)(rows + 1) - (double)count;
 }
 
 /* ransac_scoring._sampson_sq of one model at row i: the float64 squared Sampson distance (normalised units) and its
@@ -692,9 +689,9 @@ static void read_settings(const double *values, Settings *st) {
 
 /* One pair from its valid rows to F in pixels and its inliers (ransac.estimate_fundamental_ransac after the
  * arguments are checked). */
-static void one_pair(const double *left, const double *right, const uint8_t *valid, int64_t K, int64_t width,
-                     uint64_t seed, const Settings *st, const double *mixing, Work *w, Problem *pr, double *f,
-                     uint8_t *found, int64_t *iterations, uint8_t *inliers) {
+static void one_pair(const double *left, const double *right, const uint8_t *valid, int64_t K, uint64_t seed,
+                     const Settings *st, const double *mixing, Work *w, Problem *pr, double *f, uint8_t *found,
+                     int64_t *iterations, uint8_t *inliers) {
     int64_t n = 0;
     for (int64_t k = 0; k < K; ++k)
         if (valid[k]) {
@@ -704,7 +701,6 @@ static void one_pair(const double *left, const double *right, const uint8_t *val
             w->right[2 * n + 1] = right[2 * k + 1];
             ++n;
         }
-    pr->width = width;
     pr->guard = st->guard;
     pr->preverify_points = st->preverify_points;
     prepare(w->left, w->right, n, st->threshold_px, pr);
@@ -744,12 +740,6 @@ int ransac_fundamental(const double *points_left, const double *points_right, co
     read_settings(settings, &st);
     double mixing[81];
     mixing_matrix(mixing);
-    int64_t width = 0; /* the widest pair's valid rows: the torch path pads every pair to it */
-    for (int64_t p = 0; p < B; ++p) {
-        int64_t n = 0;
-        for (int64_t k = 0; k < K; ++k) n += valid[p * K + k] != 0;
-        width = n > width ? n : width;
-    }
     const int64_t models = 3 * st.chunk_size;
     const int threads = thread_count(num_threads, B);
     int failed = 0;
@@ -771,7 +761,7 @@ int ransac_fundamental(const double *points_left, const double *points_right, co
 #pragma omp for schedule(dynamic, 1)
         for (int64_t p = 0; p < B; ++p) {
             if (!ready) continue;
-            one_pair(points_left + p * K * 2, points_right + p * K * 2, valid + p * K, K, width, (uint64_t)seeds[p],
+            one_pair(points_left + p * K * 2, points_right + p * K * 2, valid + p * K, K, (uint64_t)seeds[p],
                      &st, mixing, &w, &pr, F + 9 * p, found + p, iterations + p, inliers + p * K);
         }
         free(w.left), free(w.right), free(w.models), free(w.rough), free(w.keys), free(w.kept), free(w.usable);
