@@ -14,8 +14,8 @@ from ..core.checks import InputError, check_dtype, check_image, check_instance, 
 from ..core.kernels.checks import check_counts, check_image_hw, check_nonempty
 from ..core.mask_reductions import any_along
 from . import kernels
-from .cost_volume import (_box_sum, _cost_volume, _gather_crop, crop_box, prefilter_xsobel, quantize_levels,
-                          region_crop_boxes, wanted_pixels)
+from .cost_volume import (_box_sum, _cost_volume, _gather_crop, check_volume_size, crop_box, prefilter_xsobel,
+                          quantize_levels, region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
 from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
@@ -247,14 +247,14 @@ def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Ten
     return check_image_hw(image_hw, b, h, w)
 
 
-def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, b: int,
-                 device: torch.device) -> torch.Tensor:
+def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, left: torch.Tensor,
+                 left_right: bool) -> torch.Tensor:
     if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
         raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
-    minimum = torch.as_tensor(min_disparity_px, device=device)
-    if minimum.dim() == 0:
-        minimum = minimum.expand(b)
-    check_shape(minimum, "min_disparity_px", [b])
+    check_volume_size(num_disparities, left.shape[-2], left.shape[-1] + 2 * (num_disparities - 1) * left_right)
+    minimum = torch.as_tensor(min_disparity_px, device=left.device)
+    minimum = minimum.expand(left.shape[0]) if minimum.dim() == 0 else minimum
+    check_shape(minimum, "min_disparity_px", [left.shape[0]])
     check_dtype(minimum, "min_disparity_px", "int")
     # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
     if minimum.numel() and bool(((minimum >= 2**31) | (minimum <= -2**31)).any()):  # not abs(): abs(-2^63) < 0
@@ -293,7 +293,7 @@ def _match_whole(left: torch.Tensor, right: torch.Tensor, min_disparity_px: torc
     """:func:`block_match_sad` and every pixel's winning cost ``(B, H, W)`` (+inf: no candidate), which the
     fused kernel writes only when asked (``best_cost``; None otherwise) and the torch path always has."""
     b = _check_pair(left, right, config)
-    minimum = _check_range(min_disparity_px, num_disparities, b, left.device)
+    minimum = _check_range(min_disparity_px, num_disparities, left, config.lr_max_diff_px is not None)
     h, w = left.shape[-2:]
     image_hw = _check_sizes(image_hw, left)
     zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
@@ -361,7 +361,7 @@ def _over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, s
     b = _check_pair(left, right, config)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
-    minimum = _check_range(search.min_disparity_px, search.num_disparities, b, left.device)
+    minimum = _check_range(search.min_disparity_px, search.num_disparities, left, config.lr_max_diff_px is not None)
     if search.pair_num_disparities is not None:
         check_counts(search.pair_num_disparities, "search.pair_num_disparities", b, search.num_disparities)
     h, w = left.shape[-2:]

@@ -19,9 +19,10 @@ __all__ = [
 ]
 
 
-# One pair's cost volume past 2^31 float32 values (8 GB) is refused by name, not left to fail in torch's allocator
-# (65 534 disparities over a 64-px-wide pair asked 68 GB). No real pair comes near: 256 disparities over a
-# 1390x1110 Middlebury view are 5e8. A batch's memory is its size times that: the caller's choice.
+# One pair's cost volume past 2^31 float32 values (8 GB) is refused by name (checked before the fused kernel,
+# whose scratch grows with it, and the torch path), not left to an allocator: 65 534 disparities over a 64-px-wide
+# pair asked torch for 68 GB, the kernel for 34. No real pair comes near: 256 disparities over a 1390x1110
+# Middlebury view are 5e8. A batch's memory is its size times that: the caller's choice.
 MAX_VOLUME_VALUES = 2**31
 
 

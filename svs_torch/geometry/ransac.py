@@ -273,9 +273,8 @@ def estimate_fundamental_ransac(
         polish: refit the winning model a few more times (see the module docstring).
         min_inliers: a found model with fewer inliers gives ``TOO_FEW_INLIERS``. The default 8: any 7
             correspondences fit some F exactly, so only the 8th inlier is evidence.
-        generator: draws the per-pair seeds when ``pair_seeds`` is None (None: torch's global generator), one per
-            row in batch order: a pair's seed, hence its samples, then depend on its row. For results that do not
-            depend on the batch, pass ``pair_seeds`` (the pipeline passes ``PipelineConfig.seed`` to every pair).
+        generator: draws the per-pair seeds when ``pair_seeds`` is None (None: torch's global generator), in
+            batch order, so a pair's samples then depend on its row (``pair_seeds`` do not; the pipeline's).
         pair_seeds: optional ``(B,)`` int64 seeds, one per pair; pair b's result depends only on its own rows
             and ``pair_seeds[b]``, so ``estimate(points[b:b+1], …, pair_seeds=seeds[b:b+1])`` equals row b
             of the batched call.
