@@ -251,7 +251,7 @@ def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, lef
                  left_right: bool) -> torch.Tensor:
     if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
         raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
-    check_volume_size(num_disparities, left.shape[-2], left.shape[-1] + 2 * (num_disparities - 1) * left_right)
+    check_volume_size(num_disparities, 1, left.shape[-1] + 2 * (num_disparities - 1) * left_right, "image row")
     minimum = torch.as_tensor(min_disparity_px, device=left.device)
     minimum = minimum.expand(left.shape[0]) if minimum.dim() == 0 else minimum
     check_shape(minimum, "min_disparity_px", [left.shape[0]])

@@ -19,22 +19,24 @@ __all__ = [
 ]
 
 
-# One pair's cost volume past 2^31 float32 values (8 GB) is refused by name (checked before the fused kernel,
-# whose scratch grows with it, and the torch path), not left to an allocator: 65 534 disparities over a 64-px-wide
-# pair asked torch for 68 GB, the kernel for 34. No real pair comes near: 256 disparities over a 1390x1110
-# Middlebury view are 5e8. A batch's memory is its size times that: the caller's choice.
+# A cost volume past 2^31 float32 values (8 GB) for one pair, or one image row of it, is refused by name, not left
+# to an allocator: 65 534 disparities over a 64-px-wide pair asked torch for 68 GB and the fused kernel (whose
+# scratch is a row's volume, D x (W + 2 (D - 1))) for 34. No real pair comes near: 256 disparities over a
+# 1390x1110 Middlebury view are 5e8 values. A batch's memory is its size times that: the caller's choice.
 MAX_VOLUME_VALUES = 2**31
 
 
-def check_volume_size(num_disparities: int, height: int, width: int) -> None:
-    """InputError naming ``num_disparities`` when one pair's cost volume, ``num_disparities`` by ``height`` by
-    ``width`` (with the left–right check's extra columns), passes :data:`MAX_VOLUME_VALUES`."""
+def check_volume_size(num_disparities: int, height: int, width: int, per: str = "pair") -> None:
+    """InputError naming ``num_disparities`` when a cost volume of ``num_disparities`` by ``height`` by ``width``
+    values (with the left–right check's extra columns; ``per`` says of what: a pair, or an image row with
+    ``height`` 1) passes :data:`MAX_VOLUME_VALUES`."""
     values = num_disparities * height * width
     if values > MAX_VOLUME_VALUES:
+        shape = f"{num_disparities} x {width}" if per != "pair" else f"{num_disparities} x {height} x {width}"
         raise InputError(f"num_disparities: {num_disparities} disparities ask for a {values * 4 / 2**30:.0f} GB cost "
-                         f"volume per pair ({num_disparities} x {height} x {width} values, the left-right check's "
-                         f"columns included; at most {MAX_VOLUME_VALUES * 4 // 2**30} GB): a pair's disparities that "
-                         "can match a pixel are fewer than twice its width")
+                         f"volume per {per} ({shape} values, the left-right check's columns included; at most "
+                         f"{MAX_VOLUME_VALUES * 4 // 2**30} GB): a pair's disparities that can match a pixel are "
+                         "fewer than twice its width")
 
 
 def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:

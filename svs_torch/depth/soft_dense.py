@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from ..core.checks import InputError
 from .block_matching import _check_pair, _check_range
-from .cost_volume import _box_sum, _costs_in_cache, _crops, _prefilter
+from .cost_volume import _box_sum, _costs_in_cache, _crops, _prefilter, check_volume_size
 from .dense_config import DenseConfig
 
 __all__ = ["soft_block_match"]
@@ -43,6 +43,7 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     if not temperature > 0:
         raise InputError(f"temperature: expected a positive number, got {temperature!r}")
     h, w = left.shape[-2:]
+    check_volume_size(num_disparities, h, w)
     radius = config.window_size // 2
     zeros = torch.zeros(b, dtype=torch.int64, device=left.device)
     left_crop, right_crop = _crops(_prefilter(left, config), _prefilter(right, config), zeros, zeros, h, w, minimum,

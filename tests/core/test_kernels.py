@@ -1012,11 +1012,16 @@ def test_sizes_beyond_what_the_kernels_hold_are_refused():
     for factor in (0, 1000, -2):  # 1000 on a 4x4 image: 10 s and 820 MB of slices
         with pytest.raises(InputError, match="factor: expected an int from 1 to the images' smaller side 4"):
             mean_pool(torch.rand(1, 1, 4, 4), factor)
-    # 65 534 disparities over a 64x48 pair: a 68 GB allocation failed inside torch; 3 000 still run.
+    # 65 534 disparities over a 64x48 pair: torch asked 68 GB, the fused kernel 34; 3 000 still run.
+    from svs_torch.depth.cost_volume import _cost_volume
     from svs_torch.depth.soft_dense import soft_block_match
     small = torch.rand(1, 1, 48, 64)
-    with pytest.raises(InputError, match=r"num_disparities: 65534 disparities ask for a 1537 GB cost volume per pair"):
+    with pytest.raises(InputError, match=r"num_disparities: 65534 disparities ask for a 32 GB cost volume per image "
+                                         r"row \(65534 x 131130 values"):
         block_match_sad(small, small, 0, 65534)
+    zero = torch.zeros(1, dtype=torch.int64)
+    with pytest.raises(InputError, match=r"ask for a 9 GB cost volume per pair \(40000 x 900 x 64 values"):
+        _cost_volume(small, small, zero, zero, 900, 64, zero, 40000, torch.tensor([64]), DenseConfig())
     with pytest.raises(InputError, match=r"num_disparities: 40000 disparities ask for a 9 GB cost volume per pair"):
         soft_block_match(torch.rand(1, 1, 900, 64), torch.rand(1, 1, 900, 64), 0, 40000, 1.0)
     assert block_match_sad(small, small, 0, 3000).disparity_px.shape == small.shape
