@@ -37,6 +37,35 @@ def test_an_empty_batch_gives_empty_results(generator):
     assert soft_block_match(images, images, 0, 8, 0.1).shape == (0, 1, 12, 20)
     metrics = measure_stereo_metrics(images, images > 0, images, images > 0)
     assert metrics.bad_pct.shape == (0, 4) and metrics.density.shape == (0,)
+    # A layouts audit: four more took 'cannot reshape tensor of 0 elements' (reshape(b, -1) with b = 0).
+    from svs_torch.depth import PointDepths, estimate_depth, kept_region_lower_median, object_depths
+    from svs_torch.evaluation import disparity_map_errors
+    labels, kept = torch.zeros(0, 1, 8, 8, dtype=torch.int64), torch.zeros(0, 2, dtype=torch.int64)
+    points, known = torch.zeros(0, 5, 2), torch.zeros(0, 5, dtype=torch.bool)
+    assert object_depths(labels, kept, points, PointDepths(torch.zeros(0, 5), known)).depth_median_m.shape == (0, 2)
+    assert estimate_depth(points, points, known, 100.0, 0.1, labels=labels, region_labels=kept).objects.valid.shape \
+        == (0, 2)
+    maps, mask = torch.zeros(0, 1, 8, 8), torch.zeros(0, 1, 8, 8, dtype=torch.bool)
+    assert kept_region_lower_median(maps, mask, labels, kept)[0].shape == (0, 2)
+    assert disparity_map_errors(maps, mask, maps, mask, mask).count.shape == (0,)
+
+
+def test_stage_errors_name_the_argument_the_caller_passed():
+    """A layouts audit: a uint8 'valid' or 'truth_valid' was named 'mask' (the bool the caller gave right), a
+    uint8 'inliers' was named 'valid'; maps of no rows failed with an IndexError."""
+    from svs_torch.depth import estimate_depth
+    from svs_torch.evaluation import disparity_map_errors
+    maps, mask = torch.rand(1, 1, 4, 4), torch.ones(1, 1, 4, 4, dtype=torch.bool)
+    for name, args in (("valid", (maps, mask.byte(), maps, mask, mask)), ("truth_valid", (maps, mask, maps, mask.byte(),
+                                                                                         mask))):
+        with pytest.raises(InputError, match=f"^{name}: expected a bool tensor"):
+            disparity_map_errors(*args)
+    points = torch.rand(1, 5, 2)
+    with pytest.raises(InputError, match="^inliers: expected a bool tensor"):
+        estimate_depth(points, points, torch.ones(1, 5, dtype=torch.uint8), 100.0, 0.1)
+    empty, none = torch.rand(2, 1, 0, 16), torch.ones(2, 1, 0, 16, dtype=torch.bool)
+    with pytest.raises(InputError, match=r"disparity_px: expected maps of at least 1x1 pixels, got 16x0"):
+        measure_stereo_metrics(empty, none, empty, none)
 
 
 # ------------------------------------------------------------------------------------------------- wrong types

@@ -48,9 +48,9 @@ def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: 
         check_shape(tensor, name, list(values.shape))
     check_dtype(known, "known", "bool")
     check_shape(kept_labels, "kept_labels", [b, "N"])
-    region = ((labels.reshape(b, 1, -1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
-              & known.reshape(b, 1, -1))  # (B, N, H·W)
-    return masked_lower_median(values.reshape(b, 1, -1).expand_as(region), region)
+    region = ((labels.flatten(1).unsqueeze(1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
+              & known.flatten(1).unsqueeze(1))  # (B, N, H·W); flatten, not reshape(b, ...): B may be 0
+    return masked_lower_median(values.flatten(1).unsqueeze(1).expand_as(region), region)
 
 
 def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: int

@@ -139,7 +139,7 @@ def _point_slots(labels: torch.Tensor, region_labels: torch.Tensor, points: torc
     column, row = torch.round(points.detach()).long().unbind(-1)  # (B, K)
     inside = (column >= 0) & (row >= 0) & (column < image_hw[:, 1:]) & (row < image_hw[:, :1])
     flat = (row.clamp(0, height - 1) * width + column.clamp(0, width - 1))
-    under = labels.reshape(b, -1).gather(1, flat)
+    under = labels.flatten(1).gather(1, flat)  # (flatten: reshape(b, -1) fails for an empty batch)
     under = torch.where(inside, under, torch.zeros_like(under))  # 0: background, never a slot's label
     return (under.unsqueeze(-1) == region_labels.unsqueeze(1)) & (region_labels > 0).unsqueeze(1)
 
@@ -249,6 +249,7 @@ def estimate_depth(points_left: torch.Tensor, points_right: torch.Tensor, inlier
     docstring); masks, counts, slots and sides are not."""
     if (labels is None) != (region_labels is None):
         raise InputError("region_labels: expected it together with labels (both or neither)")
+    check_dtype(inliers, "inliers", "bool")  # (rectified_disparity would name it 'valid')
     disparities = rectified_disparity(points_left, points_right, inliers, H_left, H_right)
     depths = point_depths(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px)
     if statistics:

@@ -14,6 +14,7 @@ from ..core.checks import InputError, check_instance
 from ..core.types import StereoBatch
 from ..depth.quantiles import masked_lower_median
 from ..pipeline import PipelineResult
+from .stereo_metrics import _check_inputs
 
 __all__ = ["DisparityErrors", "check_result_of", "dense_disparity_errors", "disparity_map_errors", "map_in_left_pixels",
            "sparse_disparity_errors"]
@@ -59,9 +60,9 @@ def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_
     against the GT ``truth_px`` where ``mask``, the map's ``valid`` and ``truth_valid`` all hold (bool maps of
     the same shape). Only ``median_px`` carries gradients (to ``disparity_px`` and ``truth_px`` at the median
     pixel); the shares and counts are thresholds and sums of bools."""
-    b = disparity_px.shape[0]
+    _check_inputs(disparity_px, valid, truth_px, truth_valid, mask, None)  # each argument by its own name
     error = (disparity_px - truth_px.to(disparity_px.dtype)).abs()
-    return _errors(error.reshape(b, -1), (mask & valid & truth_valid).reshape(b, -1))
+    return _errors(error.flatten(1), (mask & valid & truth_valid).flatten(1))
 
 
 def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:

@@ -98,6 +98,8 @@ def _check_inputs(disparity_px: torch.Tensor, valid: torch.Tensor, truth_px: tor
     check_shape(disparity_px, "disparity_px", ["B", 1, "H", "W"])
     check_dtype(disparity_px, "disparity_px", "float")
     shape = list(disparity_px.shape)
+    if 0 in shape[-2:]:
+        raise InputError(f"disparity_px: expected maps of at least 1x1 pixels, got {shape[-1]}x{shape[-2]} (WxH)")
     check_shape(truth_px, "truth_px", shape)
     check_dtype(truth_px, "truth_px", "float")
     for name, value in (("valid", valid), ("truth_valid", truth_valid), ("mask", mask)):

@@ -325,7 +325,7 @@ def _check_inputs(F: torch.Tensor, points_left: torch.Tensor, points_right: torc
     check_dtype(image_hw, "image_hw", "int")
     if not bool((image_hw > 0).all()):
         raise InputError("image_hw: expected positive (height, width) per pair")
-    return image_hw
+    return image_hw.long()  # int64, the C kernel's (an int32 size ran the torch path: 1 ulp off the kernel's)
 
 
 def rectify_uncalibrated(F: torch.Tensor, points_left: torch.Tensor, points_right: torch.Tensor,
