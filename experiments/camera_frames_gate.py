@@ -31,7 +31,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import conditions, dimmed, load_scene, resample, run, scene_splits  # noqa: E402
-from run_metadata import default_data_dir, run_metadata, write_report  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata, write_report  # noqa: E402
 
 from svs_torch.depth.block_matching import block_match_sad_with_residual  # noqa: E402
 from svs_torch.depth.dense_config import DenseConfig  # noqa: E402
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         at_contrast = {k: v for k, v in splits.items() if k != "synthetic" or contrast == 1}
         if at_contrast:
             rows += compare(at_contrast, contrast)
-    command = "python experiments/camera_frames_gate.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line("experiments/camera_frames_gate.py", argv)
     table = markdown(rows, command)
     print(table)
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command,

@@ -64,7 +64,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
@@ -222,7 +222,7 @@ def header(argv: list[str], camera_frames: int | None = None) -> list[str]:
     frames = "" if camera_frames is None else (f", on camera frames (JPEG digit {camera_frames} with its sensor noise, "
                                                "both views; the truth is the clean left view's)")
     return [f"# Segmenters against the truth obstacles (issue 32){frames}", "", "Made by:", "",
-            "    python experiments/eval_segmentation.py " + " ".join(argv), "", LEGEND, ""]
+            "    " + command_line("experiments/eval_segmentation.py", argv), "", LEGEND, ""]
 
 
 def main(argv: list[str] | None = None) -> dict:

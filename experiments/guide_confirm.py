@@ -41,7 +41,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
 
 PAIRS_PER_S = 20.0
 WALK_SPEED_M_S = 1.4
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> dict:
                 report["still"] += [dict(split=split, digit=digit, confirm_frames=n, **score_still(streams, n))
                                     for n in counts]
                 progress.update()
-    text = markdown(report, "python experiments/guide_confirm.py " + " ".join(argv or sys.argv[1:]))
+    text = markdown(report, command_line("experiments/guide_confirm.py", argv or None))
     print(text)
     if args.markdown:
         Path(args.markdown).write_text(text)

@@ -109,7 +109,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
-from run_metadata import default_data_dir, run_metadata, write_report  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata, write_report  # noqa: E402
 
 #: Seeds of one noise draw (``--noise-seed``) lie this far from the next draw's: above every scene's range.
 NOISE_SEED_STRIDE = 1_000_000_000
@@ -548,7 +548,7 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.perf_counter()
     rows = run_draws(splits, config, args, seeds)
     summary = summarize(rows)
-    command = "python experiments/real_rig.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line("experiments/real_rig.py", argv)
     report = {"metadata": run_metadata(torch.get_num_threads(), command=command, overrides=args.set,
                                         time_s=time.perf_counter() - started),
               "summary": summary, "rows": rows}

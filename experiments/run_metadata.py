@@ -47,10 +47,12 @@ def write_report(report: dict, table: str, json_path: Path | None, markdown_path
 
 
 def command_line(script: str, argv: list[str] | None) -> str:
-    """How ``script`` (``experiments/NAME.py``) was run: with ``argv``, or this process's arguments."""
+    """How ``script`` (``experiments/NAME.py``) was run: with ``argv``, or this process's arguments, quoted for a
+    shell (``--conditions "jpeg q4"`` written unquoted failed when run again)."""
+    import shlex
     import sys
 
-    return f"python {script} " + " ".join(argv if argv is not None else sys.argv[1:])
+    return shlex.join(["python", script, *(argv if argv is not None else sys.argv[1:])])
 
 
 def report_rows(table: str, rows: list[dict], command: str, overrides: list[str], started_s: float,

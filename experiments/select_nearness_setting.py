@@ -42,7 +42,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacl
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import eval_segmentation  # noqa: E402
 import real_rig  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import command_line, default_data_dir  # noqa: E402
 
 SIZES = {"320": "320x240", "native": "native"}
 
@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         results = [score(args.data, weights_with(Path(folder), shipped, variant, number), variant, number, contrasts,
                          args.conditions, args.synthetic) for number, variant in enumerate(variants)]
     best = max(results, key=lambda r: round(r["score"], 4))  # max keeps the first of equal scores
-    command = "python experiments/select_nearness_setting.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line("experiments/select_nearness_setting.py", argv)
     report = table(results, best, command, args.conditions)
     print(report)
     if args.markdown:

@@ -44,7 +44,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import command_line, run_metadata  # noqa: E402
 from select_nearness_setting import parse_variant, weights_with  # noqa: E402
 
 SMALL_SCENES, SMALL_SEED, SMALL_WALL_M = 16, 31, 4.5
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
                 acc.update({f"digit {d}": nearest_accuracy(scenes, config, d) for d in DIGITS})
                 rows.append({"variant": text, "set": name, "acc": acc})
                 print(f"{text:32s} {name:10s} " + " ".join(f"{v:5.1f}" for v in acc.values()), flush=True)
-    text = markdown(rows, "python experiments/small_near_obstacles.py " + " ".join(argv or sys.argv[1:]))
+    text = markdown(rows, command_line("experiments/small_near_obstacles.py", argv or None))
     if args.markdown:
         Path(args.markdown).write_text(text)
     return {"metadata": run_metadata(torch.get_num_threads()), "rows": rows}

@@ -59,7 +59,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
                                 fine_tune_through_pipeline, mask_loss, real_pairs, train_scenes)
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> Path:
         "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
         "mask_history": history, "fine_tune_history": fine_tune, "run": run_metadata(args.threads),
         "num_parameters": sum(p.numel() for p in net.parameters()),
-        "command": "python experiments/train_nearness.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": command_line("experiments/train_nearness.py", argv),
     }
     save_obstacle_net(args.out, net, metadata)
     print(f"{len(pairs)} samples, {config.steps} + {config.fine_tune_steps} steps, {elapsed:.0f} s; weights written "

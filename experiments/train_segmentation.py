@@ -75,7 +75,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
 
 #: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
 HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
@@ -392,7 +392,7 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path
     with torch.no_grad():
         final, count, _ = pipeline_depth_loss(collate_stereo_batches(pairs), net)
     metadata = {"train": dataclasses.asdict(config), "mode": "through-pipeline", "init": args.init,
-                "command": "python experiments/train_segmentation.py " + " ".join(sys.argv[1:]),
+                "command": command_line("experiments/train_segmentation.py", None),
                 "region_weight": args.region_weight,
                 "pairs": [p.names[0] if p.names else "" for p in pairs], "size": args.size, "history": history,
                 "final_depth_loss_all_pairs": final.item(), "train_time_s": round(time.perf_counter() - started, 1),
@@ -409,15 +409,16 @@ def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[st
     names = [field.name for field in dataclasses.fields(defaults) if field.name not in skip]
     for name in names:
         value = getattr(defaults, name)
-        parser.add_argument("--" + name.replace("_", "-"), type=type(value), default=value)
+        parser.add_argument("--" + name.replace("_", "-"), type=type(value), default=value,
+                            help="(default: %(default)s)")
     return names
 
 
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--out", help="weights file (default: the shipped one, which this training reproduces; "
-                        "--through-pipeline needs one: a fine-tune on your pairs never replaces the shipped weights)")
+    parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults reproduce; any "
+                        "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")
     names = add_config_options(parser, TrainConfig())
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--through-pipeline", action="store_true",
@@ -442,6 +443,10 @@ def main(argv: list[str] | None = None) -> Path:
         if args.out is None:
             parser.error("--through-pipeline: expected --out FILE for the fine-tuned weights")
         return through_pipeline_main(args, config)
+    shipped = config == TrainConfig() and args.threads == 2 and args.data == default_data_dir()
+    if args.out is None and not shipped:  # a quick trial once replaced the shipped weights without a word
+        parser.error("--out: expected a file for weights that are not the shipped ones (those are the defaults' "
+                     "at --threads 2 on the shared data)")
     args.out = args.out or str(SHIPPED_WEIGHTS)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)
@@ -461,7 +466,7 @@ def main(argv: list[str] | None = None) -> Path:
         "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
         "final_losses": history[-1], "run": run_metadata(args.threads),
         "num_parameters": sum(p.numel() for p in net.parameters()),
-        "command": "python experiments/train_segmentation.py " + " ".join(sys.argv[1:]),
+        "command": command_line("experiments/train_segmentation.py", None),
     }
     save_obstacle_net(args.out, net, metadata)
     print(f"{len(pairs)} samples, {config.steps} steps, {elapsed:.0f} s; weights written to {args.out}")

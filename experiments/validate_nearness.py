@@ -54,7 +54,7 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
 from train_segmentation import add_config_options, random_crop, real_pairs, train_scenes  # noqa: E402
@@ -202,7 +202,7 @@ def main(argv: list[str] | None = None) -> dict:
     rule = f"; rule {summary[0]['score']:.3f}" if 0 in summary else ""
     verdict = (f"best (mean of IoU + Acc/100 over the whole validation views at both sizes): {candidate_name(best)} "
                f"(score {summary[best]['score']:.3f}{rule})")
-    command = "python experiments/validate_nearness.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line("experiments/validate_nearness.py", argv)
     report = {"summary": {str(s): m for s, m in summary.items()}, "best_steps": best, "rows": rows,
               "folds": fold_info, "skipped_views": skipped,
               "metadata": {"command": command, "train": dataclasses.asdict(config), "step_counts": step_counts,
