@@ -144,7 +144,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N): the "
                              "pixels each object's depth is measured over (a kept region's interior, without the "
                              "band the block matcher adds around a near object); lossless: .png, .bmp or .tif")
-    parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines)")
+    parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines), every key in "
+                        "every row (null where a value does not exist); with --pairs a row's time_s is its batch's "
+                        "time over the batch's pairs")
     add_disparity_export_options(parser)
     parser.set_defaults(func=run)
 

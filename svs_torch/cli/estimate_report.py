@@ -19,7 +19,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
             "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
-            "features_smoothed": False,
+            "features_smoothed": False, "verified": None, "num_agreeing_inliers": None, "num_measured_inliers": None,
             "dropped_unmeasured": 0,
             "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None}
 
@@ -88,6 +88,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     nearest = result.depth.nearest
     return {
         "status": PipelineStatus(int(result.status[index])).name,
+        "reason": None,  # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),

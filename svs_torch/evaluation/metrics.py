@@ -202,9 +202,11 @@ class PairEvaluation:
     ``status`` is the pipeline's (:class:`~svs_torch.pipeline.PipelineStatus` name) or, for a pair it did not
     run on, ``BAD_INPUT`` (unreadable entry), ``TOO_SMALL`` or ``ERROR`` (an exception, in ``reason``).
     Metric fields are None where they do not exist (no ground truth, paper rule without dense, failed pair).
-    ``objects`` lists the per-object scores (:class:`PairScore`). ``time_s`` is the pair's share of its batch's
-    pipeline time. ``calibrated``: the data's own calibration (False: scored with the nominal one);
-    ``calibration``: the values the metres use and their source (:func:`~svs_torch.data.calibration_record`).
+    ``objects`` lists the per-object scores (:class:`PairScore`); a pair without ground truth lists its ranged
+    objects, ``real_m`` and ``acc_pct`` None; ``num_objects`` counts the list. ``time_s`` is the pair's share of
+    its batch's pipeline time (the batch's time over its pairs, as ``estimate --pairs`` rows give it).
+    ``calibrated``: the data's own calibration (False: scored with the nominal one); ``calibration``: the values
+    the metres use and their source (:func:`~svs_torch.data.calibration_record`).
     """
 
     name: str
@@ -334,16 +336,19 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
     for i, (estimate, (matches, inliers, rectified)) in enumerate(zip(estimates, counts)):
         score = score_pair(truth_list(truth, i), estimate) if truth is not None else PairScore(None, None, None,
                                                                                                  None, None)
+        has_truth = has_gt and bool(batch.disparity_valid[i].any())
         objects = [dict(o, **metric_values(per_object[o["slot"]], i)) if per_object else o for o in score.objects]
+        if not has_truth:  # its ranged objects, unscored (a camera's pair read as having none: an audit)
+            objects = [{"slot": slot, "real_m": None, "estimated_m": depth, "acc_pct": None}
+                       for slot, depth in enumerate(estimate.objects_m) if depth is not None]
         if dropped is not None:  # scored as an object without a distance (stereo_metrics.measured_regions)
             objects = [dict(o, dropped=dropped[i][o["slot"]]) for o in objects]
-        has_truth = has_gt and bool(batch.disparity_valid[i].any())
         evaluations.append(PairEvaluation(
             name=batch.names[i] if batch.names else str(i), status=estimate.status,
             calibrated=None if calibrated is None else bool(calibrated[i]), has_truth=has_truth,
             r_min_m=estimate.r_min_m, r_max_m=estimate.r_max_m, real_r_min_m=score.real_r_min_m,
             real_r_max_m=score.real_r_max_m, acc_r_min_pct=score.acc_r_min_pct, acc_r_max_pct=score.acc_r_max_pct,
-            acc_objects_pct=score.acc_objects_pct, num_objects=score.num_objects,
+            acc_objects_pct=score.acc_objects_pct, num_objects=len(objects),
             dense_num_px=int(dense.count[i]) if dense is not None else 0,
             sparse_num_points=int(sparse.count[i]) if sparse is not None else 0,
             num_keypoints_left=keypoints[i][0], num_keypoints_right=keypoints[i][1], num_matches=matches,

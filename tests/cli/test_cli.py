@@ -331,6 +331,10 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
     code, reports, err = runs["2"]
     assert code == 2 and err.startswith("svs-depth estimate: error: pairs: 2 of 9 pairs are BAD_INPUT")
     assert [r["status"] for r in reports][1:6] == ["BAD_INPUT", "OK", "OK", "BAD_INPUT", "NO_OBJECTS"]
+    # Every row has every key, null where it does not exist (a JSON audit: an unread pair's lacked 'verified'
+    # and the inlier counts, a ranged pair's 'reason').
+    assert all(set(r) == set(reports[0]) for r in reports) and reports[2]["reason"] is None
+    assert reports[1]["verified"] is None and reports[1]["num_measured_inliers"] is None
     listing.write_bytes(b"a.png b.png\n" * 4 + b"\xff\xfe\n")
     code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--workers", "2")
     assert code == 2 and out == "" and len(err.splitlines()) == 1 and "pairs:" in err

@@ -467,6 +467,20 @@ def test_eval_command_json_summary_and_failures(data_dir, tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "unknown parameter 'segmentation.kernal_size'" in err[0]
 
 
+def test_a_pair_without_truth_lists_its_ranged_objects_unscored(data_dir, tmp_path, capsys):
+    """A JSON audit: a camera's pair (files, no ground truth) was an eval row with 'num_objects': 0 and no
+    objects, though ranged, so a script counting obstacles from eval, sweep or results rows read none."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
+    assert main(["eval", str(listing), "--size", "160x120", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert row["status"] == "OK" and not row["has_truth"] and row["acc_objects_pct"] is None
+    assert row["num_objects"] == len(row["objects"]) >= 1
+    assert all(o["real_m"] is None and o["acc_pct"] is None and 0.5 < o["estimated_m"] < 3 for o in row["objects"])
+    assert min(o["estimated_m"] for o in row["objects"]) == pytest.approx(row["r_min_m"])
+
+
 def test_a_pair_with_no_keypoint_at_all_is_scored_not_an_error(data_dir, capsys):
     """surf.max_keypoints=0 is a valid setting (the dense stage ranges without sparse inliers), yet scoring its
     empty inlier set failed in a median of nothing: every pair ERROR, and a sweep's resume re-ran them for ever."""
