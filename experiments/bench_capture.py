@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import run_metadata, size_list  # noqa: E402
 
 
 def start_emulator(frames: str, sizes: list[str]) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -69,7 +69,8 @@ def bench_size(urls: dict[str, str], size: str, runs: int, pairs: int) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", default="320x240,640x480")
+    parser.add_argument("--sizes", default="320x240,640x480", type=size_list("wxh"),
+                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--pairs", type=int, default=50)
     parser.add_argument("--frames", choices=("torch", "simple"), default="torch",

@@ -32,7 +32,7 @@ from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -85,4 +85,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -30,7 +30,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
 
@@ -86,7 +86,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     parser.add_argument("--peak-of", choices=["default", "otsu", "learned"], help=argparse.SUPPRESS)  # a fresh process
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -121,4 +121,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -26,7 +26,7 @@ from svs_torch.features.detector import SurfConfig
 from svs_torch.features.surf import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
 
@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--max-keypoints", type=int, default=512)
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -71,4 +71,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

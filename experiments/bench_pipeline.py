@@ -26,7 +26,7 @@ from svs_torch.features.detector import SurfConfig
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, opencv_segment, timed  # noqa: E402
 
 
@@ -49,7 +49,7 @@ def main() -> None:
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -78,4 +78,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

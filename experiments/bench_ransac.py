@@ -39,7 +39,7 @@ import torch  # noqa: E402
 from svs_torch.geometry.epipolar_distance import sampson_distance
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
 
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 
 SIZE_WH = (640, 480)
 THRESHOLD_PX = 1.0
@@ -160,7 +160,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median reported)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", metavar="FILE", help="also write the results and metadata as JSON")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -189,4 +189,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

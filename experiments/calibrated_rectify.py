@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -35,6 +36,9 @@ from svs_torch.data import collate_stereo_batches, load_image_pair
 from svs_torch.geometry.calibration import rectify_with_calibration
 from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, rectified_corners
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import output_path, run_script  # noqa: E402
 
 BOARD, SQUARE_M = (9, 6), 0.025
 
@@ -117,7 +121,7 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=8, help="synthetic scenes of the loose rig")
     parser.add_argument("--turn-deg", type=float, nargs=3, default=(1.5, 0.7, -0.5), metavar=("ROLL", "TILT", "PAN"),
                         help="the loose rig's right camera turn, degrees")
-    parser.add_argument("--json", help="write the rows here")
+    parser.add_argument("--json", type=output_path, help="write the rows here")
     args = parser.parse_args()
     out = measure(Path(args.data))
     print(f"calibration: RMS stereo {out['rms_stereo_px']:.3f} px, rectified row error "
@@ -147,4 +151,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

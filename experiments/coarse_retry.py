@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import real_rig  # noqa: E402
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script, size_list  # noqa: E402
 
 from svs_torch.core.files import write_bytes_atomic  # noqa: E402
 from svs_torch.pipeline import PipelineConfig  # noqa: E402
@@ -49,9 +49,10 @@ def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=default_data_dir())
     parser.add_argument("--shares", default="0.35,0.45,0.55")
-    parser.add_argument("--sizes", default="320x240,native")
+    parser.add_argument("--sizes", default="320x240,native", type=size_list("wxh"),
+                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--contrasts", default="1,0.5")
-    parser.add_argument("--markdown", type=Path)
+    parser.add_argument("--markdown", type=output_path)
     args = parser.parse_args(argv)
     try:
         shares = [None] + [float(s) for s in args.shares.split(",")]
@@ -75,4 +76,4 @@ def main(argv: list[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

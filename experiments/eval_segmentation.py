@@ -64,7 +64,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script, size_list  # noqa: E402
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
@@ -135,6 +135,10 @@ def method_configs(args) -> dict[str, PipelineConfig | str]:
         name, _, path = spec.partition("=")
         methods[name] = dataclasses.replace(default, segmentation=dataclasses.replace(
             default.segmentation, segmenter="nearness:" + path))
+    unknown = [name for name in args.methods.split(",") if name not in methods]
+    if unknown:  # (a KeyError traceback before)
+        raise SystemExit(f"eval_segmentation.py: error: --methods: unknown {', '.join(unknown)}; expected among "
+                         f"{', '.join(methods)} (a NAME of --nearness NAME=FILE too)")
     return {name: methods[name] for name in args.methods.split(",")}
 
 
@@ -246,12 +250,16 @@ def main(argv: list[str] | None = None) -> dict:
                         help="make each pair's views camera frames first: JPEG at the board's digit D (1-8) with its "
                              "sensor noise (experiments/real_rig.py)")
     parser.add_argument("--splits", default="held-out", help="comma-separated: held-out, tuned, kitti")
-    parser.add_argument("--sizes", default="320", help="comma-separated: a width in pixels, or native")
+    parser.add_argument("--sizes", type=size_list("width"), default="320",
+                        help="comma-separated: a width in pixels, or native")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--markdown", metavar="FILE")
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
+    unknown = sorted(set(args.splits.split(",")) - {"held-out", "tuned", "kitti"})
+    if unknown:
+        parser.error(f"--splits: unknown {', '.join(unknown)}; expected among held-out, tuned, kitti")
     torch.set_num_threads(args.threads)
     methods = method_configs(args)
     names = list(methods)
@@ -283,4 +291,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

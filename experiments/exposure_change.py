@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import default_data_dir, run_script, size_list  # noqa: E402
 
 from svs_torch.data import load_stereo_pair  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth  # noqa: E402
@@ -78,7 +78,8 @@ def count_retries(batch, min_change: float, max_residual_ratio: float | None) ->
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", default="320x240,native")
+    parser.add_argument("--sizes", default="320x240,native", type=size_list("wxh"),
+                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--count-retries", action="store_true")
     parser.add_argument("--limit", type=int, default=None, help="only the first N tuned scenes")
     args = parser.parse_args(argv)
@@ -112,4 +113,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

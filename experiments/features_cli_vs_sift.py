@@ -34,7 +34,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 
 SPLITS = {"tuned": ("middlebury_eval3_Q",), "held-out": ("middlebury_2005_2006_third", "middlebury_2003_quarter")}
 #: The image files of each layout: (left, right).
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--args", default="", help="extra options for the command, one shell-quoted string")
     parser.add_argument("--data", default=default_data_dir())
     parser.add_argument("--limit", type=int, help="first N pairs of each split (a quick look)")
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     extra = shlex.split(args.args)
     command = shlex.join(["python", "experiments/features_cli_vs_sift.py", *(sys.argv[1:] if argv is None else argv)])
@@ -154,4 +154,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -58,7 +58,7 @@ from svs_torch.geometry.matching import match_sad
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
 BOARD = (9, 6)
@@ -475,7 +475,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default: 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of svs_torch and OpenCV RANSAC")
     parser.add_argument("--chessboard-seeds", type=int, default=10, help="RANSAC repeats per chessboard pair")
-    parser.add_argument("--json", metavar="FILE", help="also write the results and metadata as JSON")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -506,4 +506,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -41,7 +41,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 
 PAIRS_PER_S = 20.0
 WALK_SPEED_M_S = 1.4
@@ -181,9 +181,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--splits", default="tuned,held-out")
     parser.add_argument("--confirm", default="1,2,3,5", help="the N compared")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json")
-    parser.add_argument("--markdown")
+    parser.add_argument("--json", type=output_path)
+    parser.add_argument("--markdown", type=output_path)
     args = parser.parse_args(argv)
+    known = list(split_scenes(Path(args.data)))
+    unknown = sorted({s for s in args.splits.split(",") if s} - set(known))
+    if unknown:  # before the walks (a KeyError after minutes of them before)
+        parser.error(f"--splits: unknown {', '.join(unknown)}; expected among {', '.join(known)}")
     config = PipelineConfig().for_guide()
     digits, counts = [int(d) for d in args.digits.split(",")], [int(n) for n in args.confirm.split(",")]
     splits = [s for s in args.splits.split(",") if s]
@@ -211,4 +215,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

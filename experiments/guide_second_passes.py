@@ -40,7 +40,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
 
 #: Each digit's sensor noise, 8-bit levels, as experiments/real_rig.py pairs them.
 NOISE_FOR_DIGIT = dict(JPEG_NOISE)
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the frames' JPEG quality digit (default: 4, the board's)")
     parser.add_argument("--repeats", type=int, default=3, help="calls a frame, their median kept (default: 3)")
     parser.add_argument("--limit", type=int, default=None, help="the first N shared pairs only")
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=output_path, default=None)
     args = parser.parse_args(argv)
     rows = interleaved_latency(args.data, configurations(), args.repeats, args.digit, args.limit)
     if not rows:
@@ -105,4 +105,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -28,6 +28,9 @@ sys.path.insert(0, str(REPO))
 
 from svs_torch.data import list_shared_pairs  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import run_script  # noqa: E402
+
 #: Fields that are measurements of the run, not results.
 TIMING = {"elapsed_s", "time_s", "ms", "elapsed_ms"}
 
@@ -117,4 +120,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

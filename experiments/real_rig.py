@@ -109,7 +109,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata, write_report  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+                          run_script, size_list, write_report)
 
 #: Seeds of one noise draw (``--noise-seed``) lie this far from the next draw's: above every scene's range.
 NOISE_SEED_STRIDE = 1_000_000_000
@@ -513,7 +514,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=default_data_dir())
     parser.add_argument("--splits", default="held-out")
-    parser.add_argument("--sizes", default="320x240")
+    parser.add_argument("--sizes", default="320x240", type=size_list("wxh"),
+                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")
@@ -531,9 +533,14 @@ def main(argv: list[str] | None = None) -> dict:
                         help="another draw of the camera frames' noise (default 0: the tables' own), or several, "
                              "each row then their mean with each draw's beside it; for selections and claims "
                              "that should not hang on one draw")
-    parser.add_argument("--json", type=Path)
-    parser.add_argument("--markdown", type=Path)
+    parser.add_argument("--json", type=output_path)
+    parser.add_argument("--markdown", type=output_path)
     args = parser.parse_args(argv)
+    known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
+    unknown = [c for c in (args.conditions or "").split(",") if c and not any(k.startswith(c) or c.startswith(k)
+                                                                                 for k in known)]
+    if unknown:  # (an empty table and exit 0 before)
+        parser.error(f"--conditions: no condition starts with {', '.join(unknown)}; the conditions: {', '.join(known)}")
     if args.loose_rig_digit is not None and (args.extremes or args.loose_rig_digit not in dict(JPEG_NOISE)):
         parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, got {args.loose_rig_digit}")
     seeds = _noise_seeds(args.noise_seed)
@@ -559,4 +566,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

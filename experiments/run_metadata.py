@@ -14,6 +14,53 @@ def default_data_dir() -> str:
     return os.environ.get("SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
+def output_path(text: str) -> Path:
+    """An ``argparse`` type for a report file (``--json``, ``--markdown``): refused when parsed, before any work,
+    where it names a folder or its folder is missing or not writable (a 3-minute run once ended in a
+    FileNotFoundError, its markdown unwritten)."""
+    import argparse
+
+    path = Path(text)
+    folder = path.parent
+    if not text or path.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file to write, got {text!r}")
+    if not folder.is_dir() or not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: its folder {str(folder)!r} is missing or not writable")
+    return path
+
+
+def size_list(form: str):
+    """An ``argparse`` type for ``--sizes``: comma-separated sizes, each ``native`` or, for ``form`` "wxh", WxH
+    (``320x240``), for "width", a width in pixels (``320``); the text is returned as given. Scripts differ (a size
+    in the other form once ended in a ValueError traceback), so the message says which this one takes."""
+    import argparse
+    import re
+
+    pattern = r"\d+x\d+" if form == "wxh" else r"\d+"
+    example = "320x240,native" if form == "wxh" else "320,native"
+
+    def parse(text: str) -> str:
+        bad = [part for part in text.split(",") if part != "native" and not re.fullmatch(pattern, part)]
+        if bad or not text:
+            raise argparse.ArgumentTypeError(f"expected comma-separated {'WxH sizes' if form == 'wxh' else 'widths'}"
+                                             f" or native (e.g. {example}), got {text!r}")
+        return text
+
+    return parse
+
+
+def run_script(main) -> None:
+    """Run an experiment's ``main()`` as a command: a refused input (``InputError``: a bad ``--set``, data folder,
+    option value) is one line on stderr and exit status 2, not a traceback."""
+    from svs_torch.core.errors import InputError
+
+    try:
+        main()
+    except InputError as error:
+        print(f"{Path(sys.argv[0]).name}: error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def run_metadata(threads: int, **extra) -> dict:
     """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count, thread count, OpenMP wait
     policy and load average at the time of the call, plus the experiment's own ``extra`` settings."""

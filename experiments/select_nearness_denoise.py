@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 import real_rig  # noqa: E402
 from real_rig import conditions  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
@@ -83,7 +83,7 @@ def views(data_dir: Path) -> list[tuple[str, str, object, object]]:
 def main(argv: list[str] | None = None) -> tuple[float, dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--markdown", metavar="FILE")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     data = views(args.data)
@@ -116,4 +116,4 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

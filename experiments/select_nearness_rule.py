@@ -29,7 +29,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import default_data_dir  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
 GRID = {"working_width_px": (160, 240, 320), "window_size": (7, 9, 13)}
@@ -54,7 +54,7 @@ def segmentation_scores(batch: StereoBatch, truth: ObstacleTruth, config: Segmen
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--markdown", metavar="FILE")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     scenes = []
@@ -94,4 +94,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -42,7 +42,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacl
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import eval_segmentation  # noqa: E402
 import real_rig  # noqa: E402
-from run_metadata import command_line, default_data_dir  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_script  # noqa: E402
 
 SIZES = {"320": "320x240", "native": "native"}
 
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
     parser.add_argument("--synthetic", action="store_true",
                         help="also score real_rig.py's rendered weakly textured scenes (--splits synthetic)")
-    parser.add_argument("--markdown", type=Path)
+    parser.add_argument("--markdown", type=output_path)
     args = parser.parse_args(argv)
     shipped = load_obstacle_net("nearness")  # read once: every variant is its weights with other settings
     variants = [parse_variant(text, shipped.config) for text in args.variants]
@@ -160,4 +160,4 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -44,7 +44,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
-from run_metadata import command_line, run_metadata  # noqa: E402
+from run_metadata import command_line, output_path, run_metadata, run_script  # noqa: E402
 from select_nearness_setting import parse_variant, weights_with  # noqa: E402
 
 SMALL_SCENES, SMALL_SEED, SMALL_WALL_M = 16, 31, 4.5
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]",
                         help="NearnessNetConfig fields set on the shipped weights, one variant each")
-    parser.add_argument("--markdown")
+    parser.add_argument("--markdown", type=output_path)
     args = parser.parse_args(argv)
     shipped = load_obstacle_net("nearness")
     variants = [parse_variant(text, shipped.config) for text in args.variants]
@@ -128,4 +128,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -42,7 +42,7 @@ from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_poin
 from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import run_metadata  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5
@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sift-mutual", action="store_true", help="also SIFT with a mutual nearest-neighbour check")
     parser.add_argument("--limit", type=int, default=0, help="only the first N pairs (0: all)")
     parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -261,4 +261,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -59,7 +59,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, run_metadata, run_script  # noqa: E402
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
                                 fine_tune_through_pipeline, mask_loss, real_pairs, train_scenes)
@@ -204,4 +204,4 @@ def _as_train_config(config: NearnessTrainConfig):
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -54,7 +54,7 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
 from train_segmentation import add_config_options, random_crop, real_pairs, train_scenes  # noqa: E402
@@ -162,8 +162,8 @@ def main(argv: list[str] | None = None) -> dict:
     train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),
                                       skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"))
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--markdown", metavar="FILE")
-    parser.add_argument("--json", metavar="FILE")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
@@ -257,4 +257,4 @@ def _markdown(report: dict, summary: dict, fold_info: list[dict], rows: list[dic
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

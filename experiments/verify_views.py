@@ -54,7 +54,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
-from run_metadata import default_data_dir, run_metadata  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
 #: DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing) or None,
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--limit", type=int, default=0, help="only the first N shared scenes (0: all)")
     parser.add_argument("--synthetic", type=int, default=64, help="synthetic scenes (each a positive and, with the "
                         "next one's right view, a negative)")
-    parser.add_argument("--json", metavar="FILE", help="write every pair's record and the run metadata as JSON")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write every pair's record and the run metadata as JSON")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = PipelineConfig()
@@ -207,4 +207,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -41,7 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
-from run_metadata import command_line, rendered_experiment_setup, report_rows  # noqa: E402
+from run_metadata import command_line, rendered_experiment_setup, report_rows, run_script  # noqa: E402
 from thin_obstacles import FRAMES, as_frames  # noqa: E402
 
 from svs_torch.data.synthetic import render_obstacle_scenes  # noqa: E402
@@ -173,4 +173,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)
