@@ -71,8 +71,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x240,640x480", type=size_list("wxh"),
                         help="comma-separated WxH sizes or native (default: %(default)s)")
-    parser.add_argument("--runs", type=int, default=5)
-    parser.add_argument("--pairs", type=int, default=50)
+    parser.add_argument("--runs", type=int, default=5, help="timed runs (default: %(default)s)")
+    parser.add_argument("--pairs", type=int, default=50, help="frame pairs read per run (default: %(default)s)")
     parser.add_argument("--frames", choices=("torch", "simple"), default="torch",
                         help="emulator frames: svs_torch's synthetic renderer (keyframes prepared first) or the "
                              "fast stand-in")

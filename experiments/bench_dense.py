@@ -44,11 +44,12 @@ def opencv_loop(lefts: list[np.ndarray], rights: list[np.ndarray], matcher) -> l
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--json", type=output_path, metavar="FILE")
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="timed runs of each; the median is reported (default: %(default)s)")
+    parser.add_argument("--batch", type=int, default=32, help="pairs per batched call (default: %(default)s)")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)

@@ -82,11 +82,12 @@ def peak_growth_mb(batch: StereoBatch, config: PipelineConfig, net) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--json", type=output_path, metavar="FILE")
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="timed runs of each; the median is reported (default: %(default)s)")
+    parser.add_argument("--batch", type=int, default=8, help="pairs per batched call (default: %(default)s)")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     parser.add_argument("--peak-of", choices=["default", "otsu", "learned"], help=argparse.SUPPRESS)  # a fresh process
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -154,12 +154,14 @@ def bench_scenario(data: dict, confidence: float, repeats: int, seed: int) -> di
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--pairs", type=int, default=64)
-    parser.add_argument("--matches", type=int, default=500)
-    parser.add_argument("--noise-px", type=float, default=0.5)
+    parser.add_argument("--pairs", type=int, default=64, help="synthetic pairs (default: %(default)s)")
+    parser.add_argument("--matches", type=int, default=500, help="matches per pair (default: %(default)s)")
+    parser.add_argument("--noise-px", type=float, default=0.5,
+                        help="Gaussian noise on the inliers, pixels (default: %(default)s)")
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median reported)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the synthetic matches and of RANSAC (default: %(default)s)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

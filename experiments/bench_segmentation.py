@@ -98,7 +98,8 @@ def bench(left: torch.Tensor, right: torch.Tensor, repeats: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
+                        help="the shared data folder (default: %(default)s)")
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
     parser.add_argument("--repeats", type=int, default=7, help="timed runs per measurement (median reported)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")

@@ -117,7 +117,8 @@ def loose_rig(num_scenes: int, turn_deg: tuple[float, float, float]) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"),
+                        help="the shared data folder (default: %(default)s)")
     parser.add_argument("--scenes", type=int, default=8, help="synthetic scenes of the loose rig")
     parser.add_argument("--turn-deg", type=float, nargs=3, default=(1.5, 0.7, -0.5), metavar=("ROLL", "TILT", "PAN"),
                         help="the loose rig's right camera turn, degrees")

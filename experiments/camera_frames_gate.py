@@ -91,12 +91,14 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--splits", default="tuned,synthetic")
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--splits", default="tuned,synthetic",
+                        help="comma-separated: tuned, synthetic (rendered) (default: %(default)s)")
     parser.add_argument("--contrasts", default="1,0.5", help="the shared splits at each contrast (rendered: 1)")
     parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
-    parser.add_argument("--json", type=output_path)
-    parser.add_argument("--markdown", type=output_path)
+    parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
+    parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     started = time.perf_counter()
     splits = scene_splits(args.data, args.splits.split(","), args.limit)

@@ -47,12 +47,16 @@ def measure(data: Path, share: float | None, sizes: list[str], contrasts: list[f
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--shares", default="0.35,0.45,0.55")
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--shares", default="0.35,0.45,0.55",
+                        help="comma-separated values of PipelineConfig.coarse_retry_below_share compared with off "
+                             "(default: %(default)s)")
     parser.add_argument("--sizes", default="320x240,native", type=size_list("wxh"),
                         help="comma-separated WxH sizes or native (default: %(default)s)")
-    parser.add_argument("--contrasts", default="1,0.5")
-    parser.add_argument("--markdown", type=output_path)
+    parser.add_argument("--contrasts", default="1,0.5",
+                        help="comma-separated contrast factors of the tuned split (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     try:
         shares = [None] + [float(s) for s in args.shares.split(",")]

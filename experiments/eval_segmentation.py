@@ -231,7 +231,7 @@ def header(argv: list[str], camera_frames: int | None = None) -> list[str]:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="the 'learned' method's weights file "
                         "(default: the shipped one)")
     parser.add_argument("--nearness", action="append", metavar="NAME=FILE",
@@ -253,9 +253,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sizes", type=size_list("width"), default="320",
                         help="comma-separated: a width in pixels, or native")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--markdown", type=output_path, metavar="FILE")
-    parser.add_argument("--json", type=output_path, metavar="FILE")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.splits.split(",")) - {"held-out", "tuned", "kitti"})
     if unknown:

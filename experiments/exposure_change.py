@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x240,native", type=size_list("wxh"),
                         help="comma-separated WxH sizes or native (default: %(default)s)")
-    parser.add_argument("--count-retries", action="store_true")
+    parser.add_argument("--count-retries", action="store_true", help="also count the pairs each retry reaches")
     parser.add_argument("--limit", type=int, default=None, help="only the first N tuned scenes")
     args = parser.parse_args(argv)
     scenes = real_rig.scene_splits(default_data_dir(), ["tuned"], args.limit)["tuned"]

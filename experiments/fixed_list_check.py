@@ -102,9 +102,11 @@ def _differences(before, after, where="") -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("action", choices=("record", "compare"))
+    parser.add_argument("action", choices=("record", "compare"),
+                        help="record the fixed list's results, or compare against a record")
     parser.add_argument("json", type=Path, help="the recorded results (written by record, read by compare)")
-    parser.add_argument("--workdir", type=Path, default=Path("/tmp/regroup_fixed"))
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/regroup_fixed"),
+                        help="where the record is kept (default: %(default)s)")
     args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = run_all(args.workdir)

@@ -466,8 +466,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", action="append", choices=sorted(PRESETS),
                         help="compare these svs_torch presets with SIFT + FM_RANSAC instead of the matrix")
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-    parser.add_argument("--features", choices=sorted(FEATURE_EXTRACTORS), default="sift")
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--features", choices=sorted(FEATURE_EXTRACTORS), default="sift",
+                        help="the features both estimators share (default: %(default)s)")
     parser.add_argument("--size", default="320x240", help="Middlebury resampling size WxH (default: SVS 320x240)")
     parser.add_argument("--max-keypoints", type=int, default=2000,
                         help="strongest keypoints kept per image (SIFT; and SURF without --config, whose presets"

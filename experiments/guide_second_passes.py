@@ -80,12 +80,13 @@ def interleaved_latency(data: Path, configs: dict[str, PipelineConfig], repeats:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir())
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
     parser.add_argument("--digit", type=int, default=4, choices=sorted(NOISE_FOR_DIGIT),
                         help="the frames' JPEG quality digit (default: 4, the board's)")
     parser.add_argument("--repeats", type=int, default=3, help="calls a frame, their median kept (default: 3)")
     parser.add_argument("--limit", type=int, default=None, help="the first N shared pairs only")
-    parser.add_argument("--json", type=output_path, default=None)
+    parser.add_argument("--json", type=output_path, default=None, help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     rows = interleaved_latency(args.data, configurations(), args.repeats, args.digit, args.limit)
     if not rows:

@@ -89,9 +89,10 @@ def differences(a, b, path: str = "") -> list[tuple[str, object, object]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
-    parser.add_argument("--size", default="320x240")
-    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--size", default="320x240", help="pairs resized to WxH (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=1, help="processes (default: %(default)s)")
     parser.add_argument("--torch", default="", help="kernels to turn off in the kernels' run, comma-separated")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:

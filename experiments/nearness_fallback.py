@@ -46,8 +46,8 @@ def accepted_share(left: torch.Tensor, right: torch.Tensor) -> float:
 
 def main(argv: list[str] | None = None) -> float:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--markdown", type=output_path, metavar="FILE")
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     paths = [p for p in list_shared_pairs(Path(args.data)) if not is_held_out(p)]

@@ -406,12 +406,12 @@ def disparity_summary(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--sizes", type=size_list("width"), default="320,native",
                         help="comma-separated: a width in pixels, or native")
     parser.add_argument("--splits", default="tuned,held-out", help="comma-separated: tuned, held-out")
     parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the tables as Markdown")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write rows and run metadata as JSON")
     args = parser.parse_args(argv)

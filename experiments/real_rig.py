@@ -512,8 +512,11 @@ def run_draws(splits: dict[str, list[Path | StereoBatch]], config: PipelineConfi
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--splits", default="held-out")
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--splits", default="held-out",
+                        help="comma-separated: held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
+                             "synthetic-border, synthetic-slant (default: %(default)s)")
     parser.add_argument("--sizes", default="320x240", type=size_list("wxh"),
                         help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
@@ -533,8 +536,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="another draw of the camera frames' noise (default 0: the tables' own), or several, "
                              "each row then their mean with each draw's beside it; for selections and claims "
                              "that should not hang on one draw")
-    parser.add_argument("--json", type=output_path)
-    parser.add_argument("--markdown", type=output_path)
+    parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
+    parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
     unknown = [c for c in (args.conditions or "").split(",") if c and not any(k.startswith(c) or c.startswith(k)

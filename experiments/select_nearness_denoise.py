@@ -82,8 +82,9 @@ def views(data_dir: Path) -> list[tuple[str, str, object, object]]:
 
 def main(argv: list[str] | None = None) -> tuple[float, dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--markdown", type=output_path, metavar="FILE")
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     data = views(args.data)

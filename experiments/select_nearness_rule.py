@@ -53,8 +53,8 @@ def segmentation_scores(batch: StereoBatch, truth: ObstacleTruth, config: Segmen
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--markdown", type=output_path, metavar="FILE")
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
     scenes = []

@@ -135,13 +135,15 @@ def table(results: list[dict], best: dict, command: str, conditions: str | None)
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=default_data_dir())
-    parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]")
+    parser.add_argument("--data", type=Path, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]",
+                        help="the settings compared, each NAME=VALUE[,NAME=VALUE] (--set keys)")
     parser.add_argument("--contrasts", default="1", help="comma-separated real_rig.py --contrast factors")
     parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
     parser.add_argument("--synthetic", action="store_true",
                         help="also score real_rig.py's rendered weakly textured scenes (--splits synthetic)")
-    parser.add_argument("--markdown", type=output_path)
+    parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     shipped = load_obstacle_net("nearness")  # read once: every variant is its weights with other settings
     variants = [parse_variant(text, shipped.config) for text in args.variants]

@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]",
                         help="NearnessNetConfig fields set on the shipped weights, one variant each")
-    parser.add_argument("--markdown", type=output_path)
+    parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     shipped = load_obstacle_net("nearness")
     variants = [parse_variant(text, shipped.config) for text in args.variants]

@@ -216,16 +216,18 @@ def setup_json(setup: FeatureSetup) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
+                        help="the shared data folder (default: %(default)s)")
     parser.add_argument("--config", action="append", choices=sorted(PRESETS),
                         help="svs_torch configuration(s) to evaluate (default: paper, product, recommended)")
     parser.add_argument("--max-keypoints", type=int, default=512, help="keypoints per image, SURF and SIFT")
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.8, 0.6], help="ratio rules, applied to all")
-    parser.add_argument("--resolutions", nargs="+", default=["320x240", "native"], choices=["320x240", "native"])
+    parser.add_argument("--resolutions", nargs="+", default=["320x240", "native"], choices=["320x240", "native"],
+                        help="320x240 and/or native (default: %(default)s)")
     parser.add_argument("--sift-mutual", action="store_true", help="also SIFT with a mutual nearest-neighbour check")
     parser.add_argument("--limit", type=int, default=0, help="only the first N pairs (0: all)")
     parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")
-    parser.add_argument("--json", type=output_path, metavar="FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)

@@ -150,11 +150,11 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
 
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults rewrite bit for "
                         "bit; a run with --steps or --fine-tune-steps needs one of its own)")
     names = add_config_options(parser, NearnessTrainConfig())
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = NearnessTrainConfig(**{name: getattr(args, name) for name in names})

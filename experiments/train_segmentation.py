@@ -416,11 +416,11 @@ def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[st
 
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults reproduce; any "
                         "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")
     names = add_config_options(parser, TrainConfig())
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
     parser.add_argument("--pairs", help="--through-pipeline: a pair list (default: the training scenes)")

@@ -152,8 +152,9 @@ def means_table(summary: dict[int, dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--folds", type=int, default=2)
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--folds", type=int, default=2,
+                        help="folds of the train scenes, a scene and its E/L variant in one (default: %(default)s)")
     parser.add_argument("--checkpoints", default="0,300,1200", help="step counts, comma-separated (0: the rule)")
     parser.add_argument("--val-crops", type=int, default=4, help="random 320x240 crops per validation scene")
     parser.add_argument("--limit", type=int, help="only the first N train scenes (sorted), for a quick run")
@@ -161,9 +162,9 @@ def main(argv: list[str] | None = None) -> dict:
     # train_nearness.py's stage-1 settings as options (steps come from --checkpoints), 160 synthetic pairs a fold.
     train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),
                                       skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"))
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--markdown", type=output_path, metavar="FILE")
-    parser.add_argument("--json", type=output_path, metavar="FILE")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
+    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     started = time.perf_counter()

@@ -187,12 +187,13 @@ def report(sets: dict[str, list[dict]], config: PipelineConfig) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir())
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=0, help="only the first N shared scenes (0: all)")
     parser.add_argument("--synthetic", type=int, default=64, help="synthetic scenes (each a positive and, with the "
                         "next one's right view, a negative)")
-    parser.add_argument("--json", type=output_path, metavar="FILE", help="write every pair's record and the run metadata as JSON")
+    parser.add_argument("--json", type=output_path, metavar="FILE",
+                        help="write every pair's record and the run metadata as JSON")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = PipelineConfig()
