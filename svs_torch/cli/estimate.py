@@ -253,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
         report = pair_report(result, 0, factors, time.perf_counter() - started)
         report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
                                   calibration_file_source(args, source) is not None)
+    # The pair's files first, as --pairs rows name them (a script reads one schema either way).
+    report = {"left": source.left, "right": source.right, **report}
     # The report first: an output that cannot be written (a full disk: exit 1, the option and the file named)
     # does not take the pair's distances with it.
     print(dumps_strict(report) if args.json else "\n".join(format_report(report)), flush=True)

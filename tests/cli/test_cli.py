@@ -247,6 +247,7 @@ def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path):
                 "num_inliers", "time_s", "nearest_m", "nearest_side"):
         assert key in report
     assert report["status"] == "OK" and 1.0 < report["r_min_m"] <= report["r_max_m"] < 3.0  # GT: 1.15-1.79 m
+    assert (report["left"], report["right"], report["reason"]) == (left, right, None)  # as --pairs rows
     assert report["objects"] and {"label", "area_px", "bbox_xyxy", "depth_m", "num_inliers"} <= set(report["objects"][0])
     labels = cv2.imread(str(masks), cv2.IMREAD_UNCHANGED)
     assert labels.dtype == np.uint8 and labels.shape == (375, 450)  # the input image's pixel grid
