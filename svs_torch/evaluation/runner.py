@@ -248,7 +248,8 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
                                                                       "acc_objects_pct")}},
         "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
         "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
-        "sparse_within_1px": mean_of("sparse_within_1px"), "inlier_precision": mean_of("inlier_precision"),
+        "sparse_within_1px": mean_of("sparse_within_1px"), "sparse_within_3px": mean_of("sparse_within_3px"),
+        "inlier_precision": mean_of("inlier_precision"),
         "pipeline_s_per_pair": pipeline_s / len(ran) if ran else None,
         "pairs_per_s": len(evaluations) / seconds if evaluations and seconds > 0 else None,
         "statuses": {status: sum(e.status == status for e in evaluations)
