@@ -32,7 +32,7 @@ from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import add_common_options, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
@@ -44,12 +44,8 @@ def opencv_loop(lefts: list[np.ndarray], rights: list[np.ndarray], matcher) -> l
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=5,
-                        help="timed runs of each; the median is reported (default: %(default)s)")
+    add_common_options(parser, threads=2, repeats=5, json=True)
     parser.add_argument("--batch", type=int, default=32, help="pairs per batched call (default: %(default)s)")
-    parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)

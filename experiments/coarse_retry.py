@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import real_rig  # noqa: E402
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script, size_list  # noqa: E402
+from run_metadata import add_common_options, output_path, run_script  # noqa: E402
 
 from svs_torch.core.files import write_bytes_atomic  # noqa: E402
 from svs_torch.pipeline import PipelineConfig  # noqa: E402
@@ -47,13 +47,10 @@ def measure(data: Path, share: float | None, sizes: list[str], contrasts: list[f
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_common_options(parser, data_type=Path, sizes="320x240,native")
     parser.add_argument("--shares", default="0.35,0.45,0.55",
                         help="comma-separated values of PipelineConfig.coarse_retry_below_share compared with off "
                              "(default: %(default)s)")
-    parser.add_argument("--sizes", default="320x240,native", type=size_list("wxh"),
-                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--contrasts", default="1,0.5",
                         help="comma-separated contrast factors of the tuned split (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")

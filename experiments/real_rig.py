@@ -109,8 +109,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, size_list, write_report)
+from run_metadata import (add_common_options, command_line, output_path, run_metadata, run_script,  # noqa: E402
+                          write_report)
 
 #: Seeds of one noise draw (``--noise-seed``) lie this far from the next draw's: above every scene's range.
 NOISE_SEED_STRIDE = 1_000_000_000
@@ -512,13 +512,10 @@ def run_draws(splits: dict[str, list[Path | StereoBatch]], config: PipelineConfi
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_common_options(parser, data_type=Path, sizes="320x240")
     parser.add_argument("--splits", default="held-out",
                         help="comma-separated: held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
                              "synthetic-border, synthetic-slant (default: %(default)s)")
-    parser.add_argument("--sizes", default="320x240", type=size_list("wxh"),
-                        help="comma-separated WxH sizes or native (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")

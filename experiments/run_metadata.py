@@ -49,6 +49,26 @@ def size_list(form: str):
     return parse
 
 
+def add_common_options(parser, *, data_type=str, threads: int | None = None, repeats: int | None = None,
+                       sizes: str | None = None, sizes_form: str = "wxh", json: bool = False) -> None:
+    """The options many experiments share, each with its help: ``--data`` (as ``data_type``), and where given
+    ``--threads`` / ``--repeats`` (their defaults), ``--sizes`` (its default, in ``sizes_form``: :func:`size_list`)
+    and ``--json``."""
+    parser.add_argument("--data", type=data_type, default=default_data_dir(),
+                        help="the shared data folder (default: %(default)s)")
+    if threads is not None:
+        parser.add_argument("--threads", type=int, default=threads, help="torch threads (default: %(default)s)")
+    if repeats is not None:
+        parser.add_argument("--repeats", type=int, default=repeats,
+                            help="timed runs of each; the median is reported (default: %(default)s)")
+    if sizes is not None:
+        kind = "WxH sizes" if sizes_form == "wxh" else "widths in pixels"
+        parser.add_argument("--sizes", default=sizes, type=size_list(sizes_form),
+                            help=f"comma-separated {kind} or native (default: %(default)s)")
+    if json:
+        parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
+
+
 def run_script(main) -> None:
     """Run an experiment's ``main()`` as a command: a refused input (``InputError``: a bad ``--set``, data folder,
     option value) is one line on stderr and exit status 2, not a traceback."""
