@@ -15,18 +15,19 @@ def default_data_dir() -> str:
 
 
 def output_path(text: str) -> Path:
-    """An ``argparse`` type for a report file (``--json``, ``--markdown``): refused when parsed, before any work,
-    where it names a folder or its folder is missing or not writable (a 3-minute run once ended in a
+    """An ``argparse`` type for a report file (``--json``, ``--markdown``): the checks every svs-depth output gets
+    (:func:`svs_torch.core.files.check_output_file`: a file name, not a folder or device, in an existing folder a
+    file can be written to), made when parsed, before any work (a 3-minute run once ended in a
     FileNotFoundError, its markdown unwritten)."""
     import argparse
 
-    path = Path(text)
-    folder = path.parent
-    if not text or path.is_dir():
-        raise argparse.ArgumentTypeError(f"expected a file to write, got {text!r}")
-    if not folder.is_dir() or not os.access(folder, os.W_OK):
-        raise argparse.ArgumentTypeError(f"{text!r}: its folder {str(folder)!r} is missing or not writable")
-    return path
+    from svs_torch.core.errors import InputError
+    from svs_torch.core.files import check_output_file
+
+    try:
+        return check_output_file(text, "file")
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("file: ")) from None
 
 
 def size_list(form: str):
