@@ -217,14 +217,11 @@ def claim_export_names(args: argparse.Namespace, sources) -> None:
     if not args.disparity_out:
         return
     from ..data.datasets import scene_name
-    from ..evaluation.export import export_name
 
     export = _export(args)
     for source in sources:
         # A pair whose files are missing never runs: it claims nothing (one whose file cannot be decoded still
         # does, and its name's later pair is skipped, warned).
         if source.problem is None and all(Path(p).exists() for p in (source.left, source.right) if p):
-            name = scene_name(source.left) if source.scene and source.label is None else source.name
-            key = export_name(name)
-            export._claimed.setdefault(key, name)  # the name the pair's batch will carry (data.load_pair_source)
-            export._claimed_ahead.add(key)
+            # The name the pair's batch will carry (data.load_pair_source).
+            export.claim_ahead(scene_name(source.left) if source.scene and source.label is None else source.name)

@@ -117,7 +117,7 @@ class DisparityExport:
     method: str = "SVSTorch"
     # Export name -> the pair written under it in this process, so a second pair of that name is not written (warned).
     _claimed: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
-    # Export names claimed from a whole list before any pair ran (worker processes: cli.estimate_report).
+    # Export names claimed from a whole list before any pair ran (claim_ahead: worker processes).
     _claimed_ahead: set[str] = field(default_factory=set, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -130,6 +130,14 @@ class DisparityExport:
         """Make the folder (before any work, so a bad name fails at once): see
         :func:`~svs_torch.core.files.make_output_folder`."""
         make_output_folder(self.directory, "--disparity-out")
+
+    def claim_ahead(self, pair_name: str) -> None:
+        """Give ``pair_name``'s export name to it before any pair is written, unless an earlier pair has it: worker
+        processes each see a part of a list, and every one claims from the whole list, so a later pair of a
+        shared name is skipped, warned, wherever it runs (:meth:`write`)."""
+        key = export_name(pair_name)
+        self._claimed.setdefault(key, pair_name)
+        self._claimed_ahead.add(key)
 
     def paths(self, pair_name: str) -> tuple[Path, Path | None]:
         """The map's file and (Middlebury) the time file of a pair."""
