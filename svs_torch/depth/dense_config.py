@@ -10,6 +10,7 @@ from typing import Literal, NamedTuple
 import torch
 
 from ..core.checks import InputError, check_count, check_percentiles, check_real
+from .kernels import MAX_WINDOW
 
 __all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
 
@@ -140,9 +141,10 @@ class DenseConfig:
     smoothing_intensity_weight: float = 0.25  # experiments/real_rig.md, "Featureless obstacles" (tuning sets)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.window_size, int) or not 1 <= self.window_size <= 511 or self.window_size % 2 == 0:
-            # depth.kernels.MAX_WINDOW (dense.working_window widens no further); 10001 took 1.8 GB on a 64x48 view
-            raise InputError(f"window_size: expected an odd int from 1 to 511, got {self.window_size!r}")
+        window = self.window_size
+        if not isinstance(window, int) or not 1 <= window <= MAX_WINDOW or window % 2 == 0:
+            # the kernel's bound (dense.working_window widens no further); 10001 took 1.8 GB on a 64x48 view
+            raise InputError(f"window_size: expected an odd int from 1 to {MAX_WINDOW}, got {self.window_size!r}")
         if not isinstance(self.scale_window, bool):
             raise InputError(f"scale_window: expected a bool, got {self.scale_window!r}")
         if self.range_source not in ("coarse", "inliers"):

@@ -48,9 +48,9 @@ from .stereo_metrics import StereoMetrics, measured_regions, metric_values, pair
 
 __all__ = [
     "DisparityErrors", "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "ObjectTruth", "PairEstimate", "PairEvaluation",
-    "PairScore", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors", "estimates_from_result",
-    "evaluate_result", "measured_regions", "object_truth", "score_pair", "sparse_disparity_errors",
-    "with_nominal_calibration"
+    "PairScore", "UNRUN_STATUSES", "accuracy_pct", "dense_disparity_errors", "disparity_map_errors",
+    "estimates_from_result", "evaluate_result", "measured_regions", "object_truth", "score_pair",
+    "sparse_disparity_errors", "with_nominal_calibration"
 ]
 
 
@@ -193,6 +193,11 @@ def truth_list(truth: ObjectTruth, index: int) -> list[tuple[int, float]]:
     """``[(slot, true distance m), ...]`` of pair ``index``, for :func:`score_pair`."""
     return [(slot, depth) for slot, (depth, ok) in
             enumerate(zip(truth.depth_m[index].tolist(), truth.valid[index].tolist())) if ok]
+
+
+#: Statuses of pairs the pipeline did not run on (their ``time_s`` is 0; a results store runs them again on
+#: resume: :data:`svs_torch.evaluation.store.RETRIED_STATUSES`): unreadable, too small, or a run that raised.
+UNRUN_STATUSES = ("BAD_INPUT", "TOO_SMALL", "ERROR")
 
 
 @dataclass(frozen=True)

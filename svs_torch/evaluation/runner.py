@@ -26,14 +26,11 @@ from ..data import (calibration_record, collate_stereo_batches, load_pair_source
 from ..data.pair_list import PairSource
 from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
-from .metrics import PairEvaluation, evaluate_result, with_nominal_calibration
+from .metrics import UNRUN_STATUSES, PairEvaluation, evaluate_result, with_nominal_calibration
 from .stereo_metrics import STEREO_FIELDS, STEREO_SCOPES
 
 __all__ = ["EvalSetup", "LoadedPair", "evaluate_block", "evaluate_pairs", "load_block", "run_loaded",
            "summarize", "MIN_SIDE_PX"]
-
-#: Statuses of pairs the pipeline did not run on (their ``time_s`` is 0).
-UNRUN_STATUSES = ("BAD_INPUT", "TOO_SMALL", "ERROR")
 
 #: The smallest side the feature stage handles (SURF's first octave needs 5 pixels for its 3×3×3 non-maximum
 #: suppression); the command line refuses smaller pairs with the same TOO_SMALL status.

@@ -56,7 +56,7 @@ from typing import Any
 
 from ..core.checks import InputError
 from ..core.files import check_writable_folder
-from .metrics import PairEvaluation
+from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
@@ -65,9 +65,9 @@ __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"
 SQLITE_IOERR, SQLITE_FULL = 10, 13
 
 SCHEMA_VERSION = 2
-#: Stored statuses a resumed run retries (evaluation.runner.UNRUN_STATUSES): a pipeline that raised, and a pair
-#: whose files could not be read or were too small when it ran (since added, mended or replaced, perhaps).
-RETRIED_STATUSES = ("ERROR", "BAD_INPUT", "TOO_SMALL")
+#: Stored statuses a resumed run retries, those of the pairs the pipeline did not run on (a pipeline that raised, and
+#: a pair whose files could not be read or were too small when it ran: since added, mended or replaced, perhaps).
+RETRIED_STATUSES = UNRUN_STATUSES
 _RETRIED_SQL = "(" + ", ".join(f"'{status}'" for status in RETRIED_STATUSES) + ")"
 
 _SQL_TYPES = {"str": "TEXT", "bool": "INTEGER", "int": "INTEGER", "float": "REAL", "list": "TEXT", "dict": "TEXT"}
