@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, display_path, path_kind, write_bytes_atomic
-from .common import non_negative_float, positive_float, positive_int, timeout_seconds
+from .common import non_negative_float, positive_int, timeout_seconds
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
@@ -92,8 +92,6 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
         raise InputError(f"--size: expected 160x120, 320x240, 640x480 or 1280x1024, got {args.size!r}") from None
     if args.count < 1:
         raise InputError(f"--count: expected a positive number of pairs, got {args.count}")
-    if not args.timeout > 0:
-        raise InputError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
     if args.emulator and (args.left is not None or args.right is not None):  # '' too: it was run as not given
