@@ -22,7 +22,10 @@ The segmenter's fallback to Otsu for views of two scenes (``min_measured_share``
 safety net for a misconnected camera (experiments/nearness_fallback.md), and with it a stricter matcher would be
 scored on Otsu's regions.
 
-    python experiments/select_nearness_denoise.py [--markdown FILE]
+    python experiments/select_nearness_denoise.py [--limit N] [--markdown FILE]
+
+``--limit N`` scores the first N train scenes and N synthetic scenes only: a quick look at the grid (the whole
+run takes minutes a combination), never a selection.
 """
 
 from __future__ import annotations
@@ -38,13 +41,15 @@ import torch
 
 from svs_torch.segmentation.learned import obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
+from svs_torch.cli.common import positive_int
+from svs_torch.core.files import write_bytes_atomic
 from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 import real_rig  # noqa: E402
 from real_rig import conditions  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_script  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
@@ -68,14 +73,14 @@ def _frames(size: str, batch, index: int) -> list[tuple[str, str, object, object
              truth) for name, left, right in conditions(batch, index) if name == "clean" or name.startswith("jpeg")]
 
 
-def views(data_dir: Path) -> list[tuple[str, str, object, object]]:
+def views(data_dir: Path, limit: int | None = None) -> list[tuple[str, str, object, object]]:
     """Every train scene at 320 px and native size, then the weak-texture synthetic scenes (size "320 weak"),
-    each clean and as the camera frames (:func:`_frames`)."""
+    each clean and as the camera frames (:func:`_frames`); the first ``limit`` of each when given."""
     out = []
     for size in ("320", "native"):
-        for index, path in enumerate(train_scenes(data_dir)):
+        for index, path in enumerate(train_scenes(data_dir)[:limit]):
             out += _frames(size, resample(load_scene(path), size), index)
-    for index, pair in enumerate(real_rig.synthetic_scenes()):
+    for index, pair in enumerate(real_rig.synthetic_scenes()[:limit]):
         out += _frames("320 weak", pair, index)
     return out
 
@@ -84,10 +89,12 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=default_data_dir(),
                         help="the shared data folder (default: %(default)s)")
+    parser.add_argument("--limit", type=positive_int, metavar="N",
+                        help="only the first N train and N synthetic scenes (a quick look, not a selection)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
-    data = views(args.data)
+    data = views(args.data, args.limit)
     keep = dataclasses.replace(PipelineConfig().segmentation, min_measured_share=0.0)  # (module docstring)
     groups = [(size, group) for size in ("320", "native", "320 weak") for group in ("clean", "camera")]
     scored = [g for g in groups if g[0] != "320 weak"]  # (module docstring)
@@ -109,10 +116,13 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
             best = (score, settings)
     lines.append(f"\nbest (mean of IoU + Acc/100 over both sizes of the train scenes, clean and camera frames): "
                  + ", ".join(f"{k} {v}" for k, v in best[1].items()) + f" (score {best[0]:.3f})")
+    if args.limit:
+        lines[-1] += f" -- on the first {args.limit} scenes of each set only (--limit): a quick look, not a selection"
     print(lines[-1])
     if args.markdown:
-        Path(args.markdown).write_text(f"`python experiments/select_nearness_denoise.py --markdown {args.markdown}`\n\n"
-                                       + f"{LEGEND}\n\n" + "\n".join(lines) + "\n")
+        command = command_line("experiments/select_nearness_denoise.py", argv)
+        text = f"`{command}`\n\n{LEGEND}\n\n" + "\n".join(lines) + "\n"
+        write_bytes_atomic(Path(args.markdown), text.encode("utf-8"))
     return best
 
 
