@@ -933,6 +933,35 @@ def test_an_image_declaring_too_many_pixels_is_refused_before_decoding(tmp_path)
         read_gray_image(path, "left")
 
 
+@pytest.mark.parametrize("kind", ["tiff", "webp", "bmp", "jpeg-with-profile"])
+def test_any_format_declaring_too_many_pixels_is_refused_before_decoding(tmp_path, kind):
+    """Was (an audit of hostile images): only PNG and JPEG headers were read, and a JPEG's only in its first
+    64 kB. A 1.3 MB deflated TIFF of 30000 x 30000 zeros decoded into 6.7 GB and ended in an internal
+    MemoryError (as one line of a pair list, the whole run); a JPEG whose 70 kB colour profile pushed its frame
+    header past 64 kB was decoded in full. Now every header Pillow reads is checked before decoding."""
+    from PIL import Image
+
+    path = tmp_path / f"big.{kind.split('-')[0]}"
+    if kind == "tiff":
+        Image.new("L", (30000, 30000)).save(path, compression="tiff_adobe_deflate")
+        declared = "900,000,000"
+    else:
+        Image.new("L", (9000, 9000)).save(path, **({"lossless": True} if kind == "webp" else {}),
+                                          **({"icc_profile": bytes(70000), "quality": 5} if "profile" in kind else {}))
+        declared = "9000x9000"
+    with pytest.raises(InputError, match=f"left: the file declares {declared} pixels, more than the 64 megapixels"):
+        read_gray_image(path, "left")
+    code, out, err = run_main(["estimate", str(path), str(path), "--json"])
+    assert code == 2 and out == "" and f"declares {declared} pixels" in err
+
+
+@pytest.mark.parametrize("path", [None, 3, b"left.png"])
+def test_load_image_pair_names_a_path_of_the_wrong_type(path):
+    """Was: a TypeError from pathlib ('expected str, bytes or os.PathLike object, not NoneType') naming neither."""
+    with pytest.raises(InputError, match=r"left: expected an image file name \(str or os.PathLike\), got "):
+        load_image_pair(path, "right.png")
+
+
 @pytest.mark.parametrize("call, message", [
     (lambda: estimate_obstacle_depth(None), "batch: expected a StereoBatch, got NoneType"),
     (lambda: estimate_obstacle_depth(_small_batch(), {"seed": 1}), "config: expected a PipelineConfig, got dict"),

@@ -145,8 +145,10 @@ def load_image_pair(
     if not number(doffs_px):
         raise InputError(f"doffs_px: expected a finite value, got {doffs_px!r}")
     for name, path in (("left", left_path), ("right", right_path)):
-        if isinstance(path, (str, os.PathLike)):  # before Path(), which makes "" the current folder
-            check_path_given(path, name, "an image file name")
+        if not isinstance(path, (str, os.PathLike)):  # None or bytes: a TypeError from pathlib named neither
+            raise InputError(f"{name}: expected an image file name (str or os.PathLike), got "
+                             f"{type(path).__name__} {path!r:.60}")
+        check_path_given(path, name, "an image file name")  # before Path(), which makes "" the current folder
     left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
