@@ -111,9 +111,16 @@ class ObstacleNet(ThreeLevelUNet):
         self.config = config
 
 
+#: The tallest working size, in working widths: a portrait image is brought to ``working_width_px`` wide but at
+#: most this many widths high (its aspect squeezed beyond). Why: a 10 x 8000 pair, scaled up to 160 px wide,
+#: became 160 x 128000 and took 24 GB and two minutes before torch.quantile refused it (an audit of hostile
+#: images); every shared and SVS frame is landscape, untouched by the bound.
+MAX_WORKING_HEIGHT_WIDTHS = 4
+
+
 def _working_size(image: torch.Tensor, width: int) -> tuple[int, int]:
     h, w = image.shape[-2:]
-    return max(1, round(h * width / w)), width
+    return min(max(1, round(h * width / w)), MAX_WORKING_HEIGHT_WIDTHS * width), width
 
 
 def _standardize(x: torch.Tensor) -> torch.Tensor:

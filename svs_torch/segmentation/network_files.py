@@ -36,6 +36,9 @@ _KINDS = {"learned": _FORMAT, "nearness": "svs_torch.nearness_net/1"}
 def weights_path(segmenter: str) -> Path:
     """The weights file of a ``SegmentationConfig.segmenter`` value: ``"learned"`` / ``"nearness"`` the shipped
     one, ``"learned:PATH"`` / ``"nearness:PATH"`` PATH."""
+    if not isinstance(segmenter, str):  # a Path of weights gave AttributeError: 'PosixPath' ... 'partition'
+        raise InputError(f"segmenter: expected learned, learned:PATH, nearness or nearness:PATH (a str), got "
+                         f"{type(segmenter).__name__} {str(segmenter)!r:.80}")
     kind, _, path = segmenter.partition(":")
     if kind in _KINDS and path:
         return Path(path).expanduser()

@@ -280,3 +280,23 @@ def test_cli_segment_with_the_learned_segmenter(tmp_path, capsys, svs_scene):
     assert abs(sum(o["area_px"] for o in report["left"]["objects"]) / truth.kept_mask.sum().item() - 1) < 0.3
     assert main(["segment", left, right, "--segmenter", "learned"]) == 0
     assert "learned segmenter, obstacle probability above 0.50" in capsys.readouterr().out
+
+
+def test_a_tall_narrow_pair_is_worked_on_at_a_bounded_size():
+    """Was (an audit of hostile images): the network's input was every image scaled to 160 px wide at its own
+    aspect, so a 10 x 8000 pair became 160 x 128000: 24 GB and two minutes, then 'quantile() input tensor is too
+    large' ended the run. Now at most four working widths high, and the logits still cover the whole image."""
+    from svs_torch.segmentation.network import MAX_WORKING_HEIGHT_WIDTHS, stereo_features
+
+    with pytest.raises(InputError, match=r"segmenter: expected learned, .* \(a str\), got PosixPath"):
+        load_obstacle_net(SHIPPED_WEIGHTS)  # was an AttributeError from str.partition
+    net = load_obstacle_net("learned")
+    left = torch.rand(1, 1, 2000, 10, generator=torch.Generator().manual_seed(0))
+    right = torch.roll(left, -2, dims=-1)
+    features, disparity = stereo_features(left, right, net.config)
+    width = net.config.working_width_px
+    assert features.shape[-2:] == disparity.shape[-2:] == (MAX_WORKING_HEIGHT_WIDTHS * width, width)
+    logits = predict_obstacle_logits(net, left, right)
+    assert logits.shape[-2:] == (2000, 10) and bool(torch.isfinite(logits).all())
+    wide = torch.rand(1, 1, 90, 400, generator=torch.Generator().manual_seed(1))
+    assert stereo_features(wide, wide, net.config)[0].shape[-2:] == (36, width)  # a landscape view as before
