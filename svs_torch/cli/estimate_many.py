@@ -62,27 +62,31 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
 
 def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
     """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk``."""
+    from ..core.size_groups import same_size_indices
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
     runnable = [loaded for _, _, loaded in entries if loaded is not None]
-    result, per_pair = None, 0.0
+    runs, where, per_pair = [], {}, 0.0  # where: runnable position -> (its run, its row there)
+    started = time.perf_counter()
+    for indices, _ in same_size_indices([b.size_hw for b, _ in runnable]):  # one batch a size, never padded
+        batch = collate_stereo_batches([runnable[i][0] for i in indices], mode="pad")
+        runs.append((batch, estimate_obstacle_depth(batch, config)))
+        where.update((index, (len(runs) - 1, row)) for row, index in enumerate(indices))
     if runnable:
-        # Pairs of different sizes are padded at the bottom/right: their pixel coordinates stay as they are.
-        batch = collate_stereo_batches([b for b, _ in runnable], mode="pad")
-        started = time.perf_counter()
-        result = estimate_obstacle_depth(batch, config)
         per_pair = (time.perf_counter() - started) / len(runnable)
+    for batch, result in runs:
         _write_disparity(args, batch, result, per_pair)
-    row, out = 0, []
+    position, out = 0, []
     for source, (status, reason, loaded) in zip(chunk, entries):
         if loaded is None:
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
         else:
+            (batch, result), row = runs[where[position][0]], where[position][1]
             report, bad = pair_report(result, row, loaded[1], per_pair), None
             report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args),
                                       calibration_file_source(args, source) is not None)
-            row += 1
+            position += 1
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out
 

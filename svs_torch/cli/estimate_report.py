@@ -209,16 +209,17 @@ def _export(args: argparse.Namespace):
                                                     args.method_name))
 
 
-def claim_export_names(args: argparse.Namespace, sources) -> None:
+def claim_export_names(args: argparse.Namespace, sources, export=None) -> None:
     """Give each export name to the first listed pair that has it, before any is written: worker processes each
     see a part of the list, and each wrote its own pair of a shared name (``eval3/Teddy`` and ``2003/Teddy``),
     one over the other, the survivor varying from run to run. Every worker claims from the whole list, so the
-    later pairs are skipped and warned wherever they run, as in one process."""
+    later pairs are skipped and warned wherever they run, as in one process (and in ``eval``, whose pairs of
+    each size run as one batch, whatever order the sizes run in). ``export``: this process's, by default."""
     if not args.disparity_out:
         return
     from ..data.datasets import scene_name
 
-    export = _export(args)
+    export = _export(args) if export is None else export
     for source in sources:
         # A pair whose files are missing never runs: it claims nothing (one whose file cannot be decoded still
         # does, and its name's later pair is skipped, warned).

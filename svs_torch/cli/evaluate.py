@@ -187,9 +187,10 @@ def _nominal_summary(nominal: dict | None) -> list[str]:
             f"objects {_number(nominal['acc_objects_pct'])} %"]
 
 
-def disparity_export(args: argparse.Namespace, config):
+def disparity_export(args: argparse.Namespace, config, sources=()):
     """The :class:`~svs_torch.evaluation.export.DisparityExport` of ``--disparity-out`` (its folder made, or
-    the error raised, before any work), or None without the option."""
+    the error raised, before any work), or None without the option. Its names are claimed from the whole list of
+    ``sources`` first (:func:`~svs_torch.cli.estimate_report.claim_export_names`)."""
     if not args.disparity_out:
         return None
     from pathlib import Path
@@ -200,8 +201,11 @@ def disparity_export(args: argparse.Namespace, config):
     if config.depth.rule != "dense":
         raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense map), "
                          f"got depth.rule={config.depth.rule}")
+    from .estimate_report import claim_export_names
+
     export = DisparityExport(Path(args.disparity_out), args.disparity_format, args.method_name)
     export.prepare()
+    claim_export_names(args, sources, export)
     return export
 
 
@@ -232,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
         names = ", ".join(dict.fromkeys(source.name for source in repeated))
         print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
     _check_no_option_calibration_in_store(args, sources)
-    export = disparity_export(args, config)  # its folder made once the arguments are known to be good
+    export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
     evaluations = []

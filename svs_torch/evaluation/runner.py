@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import InputError
+from ..core.size_groups import same_size_indices
 from ..core.types import StereoBatch
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
@@ -155,26 +156,27 @@ class _OutputFailed(Exception):
 
 def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
                on_result: OnResult | None = None) -> list[PairEvaluation]:
-    """Run the pipeline on the loaded pairs of a block as one batch and score them, in order (``on_result``:
-    see :data:`OnResult`; an exception it raises stops the run: a map export that cannot be written, a full disk,
+    """Run the pipeline on the loaded pairs of a block, those of each size as one batch
+    (:func:`~svs_torch.core.size_groups.same_size_indices`), and score them, in order (``on_result``: see
+    :data:`OnResult`; an exception it raises stops the run: a map export that cannot be written, a full disk,
     is not the pairs' failure, and scored as one it read as a 33 % accuracy)."""
     runnable = [p for p in pairs if p.batch is not None]
-    scored: list[PairEvaluation] = []
-    if runnable:
+    scored: dict[int, PairEvaluation] = {}
+    for indices, _ in same_size_indices([p.batch.size_hw for p in runnable]):
+        group = [runnable[i] for i in indices]
         try:
-            scored = _run_batch(runnable, config, on_result)
+            scored.update(zip(indices, _run_batch(group, config, on_result)))
         except _OutputFailed as failed:
             raise failed.error from None
         except Exception:  # noqa: BLE001 -- find the pair that raises: every other pair still gets its result
-            scored = []
-            for pair in runnable:
+            for index, pair in zip(indices, group):
                 try:
-                    scored += _run_batch([pair], config, on_result)
+                    scored[index] = _run_batch([pair], config, on_result)[0]
                 except _OutputFailed as failed:
                     raise failed.error from None
                 except Exception as error:  # noqa: BLE001 -- counted as ERROR with its message, never hidden
-                    scored.append(_unrun(pair, "ERROR", f"{type(error).__name__}: {' '.join(str(error).split())}"))
-    ran = iter(scored)
+                    scored[index] = _unrun(pair, "ERROR", f"{type(error).__name__}: {' '.join(str(error).split())}")
+    ran = iter(scored[index] for index in range(len(runnable)))
     return [next(ran) if p.batch is not None else _unrun(p) for p in pairs]
 
 

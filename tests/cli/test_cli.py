@@ -1069,3 +1069,43 @@ def test_guide_stopped_by_sigterm_says_what_it_recorded(tmp_path):
     assert process.returncode == 143
     assert "guide stopped after" in err and "svs-depth estimate --pairs" in err and "Traceback" not in err
     assert (record / "index.jsonl").read_text().count("\n") >= 1
+
+
+@pytest.mark.parametrize("command", ["estimate", "eval"])
+def test_listed_pairs_of_each_size_run_as_their_own_batch(capsys, tmp_path, monkeypatch, command):
+    """Was (an audit of hostile images): a block of listed pairs ran as one batch padded to its largest height
+    and width, so a 8000 x 10 and a 10 x 8000 pair took 7.9 GB and 28 s (0.3 GB and 0.6 s each alone), and in a
+    smaller memory the whole run ended with the good pairs unprinted. Now each size is its own batch, and every
+    pair's line is what it is alone (the pipeline crops each size anyway)."""
+    import svs_torch.pipeline as pipeline
+
+    rng = np.random.default_rng(0)
+    lines = []
+    for index, (height, width) in enumerate([(40, 64), (400, 12), (40, 64), (12, 400)]):
+        left = (rng.random((height, width)) * 255).astype(np.uint8)
+        paths = [tmp_path / f"p{index}_{side}.png" for side in "lr"]
+        cv2.imwrite(str(paths[0]), left)
+        cv2.imwrite(str(paths[1]), np.roll(left, -3, axis=1))
+        lines.append(f"{paths[0]} {paths[1]}")
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("\n".join(lines) + "\n")
+    original, batches = pipeline.estimate_obstacle_depth, []
+
+    def recording(batch, *args, **kwargs):
+        batches.append((batch.batch_size, batch.size_hw))
+        return original(batch, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording)
+    if command == "eval":
+        monkeypatch.setattr("svs_torch.evaluation.runner.estimate_obstacle_depth", recording)
+    argv = ["--pairs", str(listing), "--workers", "1"] if command == "estimate" else [str(listing)]
+    code, out, _ = run_cli(capsys, command, *argv, "--json", "--batch-size", "4")
+    assert code == 0 and batches == [(2, (40, 64)), (1, (400, 12)), (1, (12, 400))]
+    rows = [json.loads(line) for line in out.splitlines()][:4]
+    assert [(row["left"], row["status"]) for row in rows] == [(line.split()[0], rows[i]["status"])
+                                                            for i, line in enumerate(lines)]
+    batches.clear()
+    code, alone, _ = run_cli(capsys, command, *argv, "--json", "--batch-size", "1")
+    drop = {"time_s", "pairs_per_s", "seconds"}
+    assert [{k: v for k, v in json.loads(line).items() if k not in drop} for line in alone.splitlines()][:4] == \
+        [{k: v for k, v in row.items() if k not in drop} for row in rows]
