@@ -1109,3 +1109,43 @@ def test_listed_pairs_of_each_size_run_as_their_own_batch(capsys, tmp_path, monk
     drop = {"time_s", "pairs_per_s", "seconds"}
     assert [{k: v for k, v in json.loads(line).items() if k not in drop} for line in alone.splitlines()][:4] == \
         [{k: v for k, v in row.items() if k not in drop} for row in rows]
+
+
+def test_estimate_workers_keep_a_bounded_number_of_chunks(monkeypatch):
+    """Was (an audit of long runs): the parent submitted every chunk of the list at once and held every chunk's
+    result to the end, growing 3–4 kB a pair. Now at most 2 * workers + 1 chunks are ahead of the one printed and a
+    printed chunk's result is let go (the one being printed and five ahead, at two workers)."""
+    import argparse
+    import concurrent.futures
+    import gc
+    import weakref
+
+    from svs_torch.cli import estimate_many
+
+    class Lines(list):  # a list that can be weakly referenced
+        pass
+
+    submitted, outstanding, results = [], [], []
+
+    class Executor:
+        def submit(self, function, args, start, stop, decoded):
+            future = concurrent.futures.Future()
+            lines = Lines([f"line {index}" for index in range(start, stop)])
+            results.append(weakref.ref(lines))
+            future.set_result((lines, []))
+            submitted.append(start)
+            outstanding.append(len(submitted) - printed[0])
+            return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
+
+    monkeypatch.setattr("svs_torch.core.workers.stop_worker_server", lambda: None)
+    printed = [0]
+    args = argparse.Namespace(batch_size=2)
+    for lines in estimate_many._ordered_chunks(Executor(), args, 40, {}, workers=2):
+        printed[0] += 1
+        del lines
+        gc.collect()
+        assert sum(ref() is not None for ref in results) <= 6  # those ahead, and the one being printed
+    assert submitted == list(range(0, 40, 2)) and max(outstanding) <= 6
