@@ -197,12 +197,16 @@ def run(args: argparse.Namespace) -> int:
     pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
     views = collect_board_views(pairs, board, source)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
-    figure = None
-    if args.figure:  # drawn before anything is written: a figure that fails leaves no calibration file behind
+    if args.figure:  # drawn and written first: a figure that fails leaves no calibration file behind (one that
+        # could not be written on a full disk once replaced a rig's calibration and exited 1 without a report)
         figure = _figure(calibration, views, next(p for p in pairs if p[0] == views.names[0])[1:])
-    write_calibration(args.out, calibration)
-    if figure is not None:
-        write_image_atomic(args.figure, figure, args.figure_option)
+        written = write_image_atomic(args.figure, figure, args.figure_option)
+    try:
+        write_calibration(args.out, calibration)
+    except BaseException:
+        if args.figure:  # the figure of a calibration that was not written
+            written.unlink(missing_ok=True)
+        raise
     if args.json:
         print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "out": args.out}), flush=True)
     else:
