@@ -174,15 +174,21 @@ class DisparityExport:
                               f"command wrote; name another folder", RuntimeWarning, stacklevel=2)
                 continue
             disparity, valid = left_view_disparity(batch, result, index)
+            failing = target
             try:
                 if self.format == "kitti":
                     write_kitti_disparity(target, disparity, valid)
                 else:
+                    # The time file first, the map last: a map is never left without the time file the SDK
+                    # reads beside it (a full disk once refused the time file after the map, and the error
+                    # named the map, which was there).
                     target.parent.mkdir(exist_ok=True)
-                    write_pfm(target, np.where(valid, disparity, np.float32(np.inf)))
+                    failing = timing
                     write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
+                    failing = target
+                    write_pfm(target, np.where(valid, disparity, np.float32(np.inf)))
             except OSError as error:  # a full disk: the run stops (exit 1), the option and the file named
-                raise OSError(error.errno, f"--disparity-out: cannot write {target}: "
+                raise OSError(error.errno, f"--disparity-out: cannot write {failing}: "
                                            f"{error.strerror or error}") from None
             written.append(target)
         return written

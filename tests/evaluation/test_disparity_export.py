@@ -193,3 +193,24 @@ def test_estimate_pairs_on_workers_writes_the_first_listed_of_a_shared_name(data
         assert err.count("'2003/Teddy' not written: ") == 1 and "'eval3/Teddy'" in err, err
         maps[workers] = (out / "Teddy" / "disp0SVSTorch.pfm").read_bytes()
     assert maps["1"] == maps["2"]
+
+
+def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_time(data_dir, tmp_path, monkeypatch):
+    """Was (an audit of full disks): the map was written before its time file, and a disk that refused the time
+    file gave 'cannot write .../disp0SVSTorch.pfm' while that map was there, complete, without the time file the
+    SDK reads beside it. Now the time file comes first and the error names the file refused."""
+    import svs_torch.evaluation.export as export_module
+
+    batch = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch)
+
+    def full_disk(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export_module, "write_bytes_atomic", full_disk)
+    export = DisparityExport(tmp_path / "m")
+    export.prepare()
+    with pytest.raises(OSError, match=r"--disparity-out: cannot write .*timeSVSTorch\.txt: No space left on device"):
+        export.write(batch, result, 0.25)
+    assert list((tmp_path / "m" / "Teddy").iterdir()) == []
