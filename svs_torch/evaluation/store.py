@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError
-from ..core.files import check_writable_folder
+from ..core.files import check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
 
@@ -121,9 +121,11 @@ class ResultStore:
 
     def __init__(self, path: str | Path, create: bool = True) -> None:
         self.path = Path(path)
-        if not create and not self.path.is_file():
-            raise InputError(f"db: expected a results file, got {'a folder' if self.path.exists() else 'no file'}: "
-                             f"{self.path}")
+        kind = path_kind(self.path, "db")
+        if kind in ("folder", "other") or (kind == "missing" and not create):
+            # A device too: --db /dev/null failed only after sqlite had made /dev/null-journal.
+            got = {"folder": "a folder", "other": "a device or other special file", "missing": "no file"}[kind]
+            raise InputError(f"db: expected a results file, got {got}: {self.path}")
         if create and self.path.parent and not self.path.parent.is_dir():
             raise InputError(f"db: the folder {self.path.parent} does not exist")
         if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store

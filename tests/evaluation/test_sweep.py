@@ -580,3 +580,17 @@ def test_results_rank_every_configuration_over_one_group(reference, tmp_path, ca
     assert main(["results", str(db)]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines() if line[:16].strip() in summaries]
     assert rows[-1][0] == last and rows[-1][3:6] == ["0", "n", "-"]  # no nominal pair: last, its means '-'
+
+
+@pytest.mark.skipif(not Path("/dev/null").exists(), reason="needs /dev/null")
+@pytest.mark.parametrize("command", ["eval", "results"])
+def test_a_device_is_refused_as_a_results_store_before_sqlite_touches_it(data_dir, capsys, command):
+    """Was (an audit of bad outputs): --db /dev/null failed only after sqlite had made /dev/null-journal beside
+    it (as root, in /dev), and results called the device a folder. Now one line, before any file is made."""
+    journal = Path("/dev/null-journal")
+    existed = journal.exists()
+    argv = ["eval", str(data_dir / "middlebury_2001"), "--db", "/dev/null"] if command == "eval" else \
+        ["results", "/dev/null"]
+    assert main(argv) == 2
+    assert "db: expected a results file, got a device or other special file: /dev/null" in capsys.readouterr().err
+    assert journal.exists() == existed
