@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import sys
 
@@ -108,7 +107,7 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
     from ..evaluation.store import ResultStore
-    from ..core.files import atomic_output, check_output_file
+    from ..core.files import atomic_output, check_output_file, write_errors_named
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
     if args.csv == "-" and (args.json or args.summary):  # the summary's JSON was the table's last line, or lost
@@ -126,13 +125,15 @@ def run(args: argparse.Namespace) -> int:
     with ResultStore(args.db, create=False) as store:
         if args.csv:
             header, rows = csv_table(store)
-            with (contextlib.nullcontext(sys.stdout) if args.csv == "-"
-                  else atomic_output(args.csv, "w", newline="", encoding="utf-8")) as stream:  # never half a table
-                writer = csv.writer(stream)
-                writer.writerow(header)
-                writer.writerows(rows)
+            if args.csv == "-":
+                csv.writer(sys.stdout).writerows([header, *rows])
+            else:  # never half a table; a full disk named with the option and the file
+                with write_errors_named("--csv", args.csv), \
+                        atomic_output(args.csv, "w", newline="", encoding="utf-8") as stream:
+                    csv.writer(stream).writerows([header, *rows])
         if args.figure:
-            plot_results(store, args.figure)
+            with write_errors_named(args.figure_option, args.figure):
+                plot_results(store, args.figure)
             print(f"figure written to {args.figure}", file=sys.stderr)
         if args.summary or args.json or not (args.csv or args.figure):
             summaries = config_summaries(store)

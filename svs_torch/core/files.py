@@ -23,7 +23,7 @@ from .errors import InputError
 
 __all__ = ["atomic_output", "check_output_file", "check_path_given", "check_writable_folder", "display_path",
            "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
-           "write_bytes_atomic"]
+           "write_bytes_atomic", "write_errors_named"]
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120
@@ -125,6 +125,18 @@ def short_name(name: str, limit_bytes: int = 200) -> str:
     """At most ``limit_bytes`` of ``name`` as the file system encodes it, whole characters only: the stem of a
     temporary file beside ``name`` (any name a folder takes, 255 bytes, then leaves room for the temporary's)."""
     return os.fsencode(name)[:limit_bytes].decode(sys.getfilesystemencoding(), "ignore")
+
+
+@contextlib.contextmanager
+def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
+    """An :class:`OSError` in the ``with`` block (a full disk, an I/O error) raised again naming the option
+    ``name`` and the file ``path``: the command's failure (exit 1), told as ``--figure: cannot write 'f.png': No
+    space left on device`` instead of the bare "No space left on device" that named neither."""
+    try:
+        yield
+    except OSError as error:
+        raise OSError(error.errno, f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}"
+                      ) from None
 
 
 @contextlib.contextmanager

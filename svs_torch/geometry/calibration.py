@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError, check_instance
-from ..core.files import atomic_output, display_path, path_kind
+from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
 
 __all__ = ["FORMAT", "StereoCalibration", "read_calibration", "rectify_with_calibration", "rectification_grids",
@@ -138,12 +138,8 @@ def write_calibration(path: str | os.PathLike, calibration: StereoCalibration, n
     :class:`OSError` naming ``name`` and the file when it cannot be written."""
     check_instance(calibration, "calibration", StereoCalibration)
     text = json.dumps(_finite_or_none(calibration.to_json()), indent=1, allow_nan=False) + "\n"
-    try:
-        with atomic_output(path, "w", encoding="utf-8") as stream:
-            stream.write(text)
-    except OSError as error:
-        raise OSError(error.errno, f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}"
-                      ) from None
+    with write_errors_named(name, path), atomic_output(path, "w", encoding="utf-8") as stream:
+        stream.write(text)
 
 
 def _finite_or_none(value):

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError
-from ..core.files import check_output_file, display_path, write_bytes_atomic
+from ..core.files import check_output_file, write_bytes_atomic, write_errors_named
 from ..core.types import Segmentation
 
 __all__ = [
@@ -191,11 +191,8 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray, name: str = "
     ok, encoded = cv2.imencode(target.suffix.lower(), image)
     if not ok:
         raise InputError(f"{name}: OpenCV could not encode a {target.suffix} image")
-    try:
+    with write_errors_named(name, target):
         write_bytes_atomic(target, encoded.tobytes())
-    except OSError as error:
-        raise OSError(error.errno, f"{name}: cannot write {display_path(target)!r}: {error.strerror or error}"
-                      ) from None
     return target
 
 

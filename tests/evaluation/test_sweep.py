@@ -594,3 +594,26 @@ def test_a_device_is_refused_as_a_results_store_before_sqlite_touches_it(data_di
     assert main(argv) == 2
     assert "db: expected a results file, got a device or other special file: /dev/null" in capsys.readouterr().err
     assert journal.exists() == existed
+
+
+@pytest.mark.parametrize("option", ["--csv", "--figure"])
+def test_results_name_the_option_and_file_a_full_disk_refused(reference, tmp_path, capsys, monkeypatch, option):
+    """Was (an audit of full disks): 'svs-depth results: error: No space left on device', naming neither the
+    option nor the file, where estimate, eval, calibrate and sweep name both."""
+    import contextlib
+
+    import svs_torch.core.files as files
+    import svs_torch.evaluation.report as report
+
+    @contextlib.contextmanager
+    def full_disk(path, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+        yield  # noqa: unreachable -- a generator, as atomic_output is
+
+    monkeypatch.setattr(files, "atomic_output", full_disk)
+    monkeypatch.setattr(report, "atomic_output", full_disk)
+    _, db = reference
+    target = tmp_path / ("rows.csv" if option == "--csv" else "results.png")
+    assert main(["results", str(db), option, str(target)]) == 1
+    assert f"{option}: cannot write '{target}': No space left on device" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
