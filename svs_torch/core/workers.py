@@ -141,11 +141,32 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
         # Started here and now (its imports go on in the background): it inherits this process's descriptors as
         # they are at this moment, before the command line's decoding redirects descriptor 2 for a few ms at a
         # time (image_files collects decoder messages that way), which a later start could catch.
-        forkserver.ensure_running()
+        with _sigint_ignored_by_children():
+            forkserver.ensure_running()
     else:
         context = multiprocessing.get_context("spawn")
     return concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
                                                   initargs=(threads, warm_modules, os.getpid()))
+
+
+@contextlib.contextmanager
+def _sigint_ignored_by_children():
+    """SIGINT ignored in this process for the block, so that a server it starts ignores it from its first
+    instruction (an ignored signal stays ignored across exec, and Python then installs no handler of its own).
+    Why: the terminal sends Ctrl-C to the whole process group, and the forkserver, importing the pipeline for a
+    second or two before it ignores SIGINT itself, printed a 17–30 line KeyboardInterrupt traceback above this
+    process's one-line 'interrupted' (an audit of interrupts). A Ctrl-C in these few milliseconds is lost; the
+    main thread only (elsewhere Python keeps signals to itself)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def stop_worker_server() -> None:

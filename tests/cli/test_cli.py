@@ -400,6 +400,30 @@ def test_worker_pool_forks_from_a_server_that_imported_torch():
         os.kill(server, 0)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_the_worker_server_ignores_ctrl_c_while_it_imports():
+    """Was (an audit of interrupts): Ctrl-C, which the terminal sends to the whole process group, reached the
+    forkserver while it imported the pipeline, and it printed a KeyboardInterrupt traceback above the command's
+    one-line 'interrupted'. Now it ignores SIGINT from its start: its /proc status lists SIGINT (2) as ignored
+    while it is still importing, and this process's own handler is back."""
+    import signal
+    from multiprocessing import forkserver
+
+    from svs_torch.core.workers import stop_worker_server, worker_pool
+
+    before = signal.getsignal(signal.SIGINT)
+    executor = worker_pool(1, 1)
+    try:
+        pid = forkserver._forkserver._forkserver_pid
+        status = Path(f"/proc/{pid}/status").read_text()
+        ignored = int(re.search(r"^SigIgn:\s*([0-9a-f]+)", status, re.MULTILINE).group(1), 16)
+        assert ignored & (1 << (signal.SIGINT - 1))
+        assert signal.getsignal(signal.SIGINT) is before
+    finally:
+        executor.shutdown(wait=True)
+        stop_worker_server()
+
+
 def test_worker_preload_ends_early_only_in_the_forkserver():
     """The forkserver skips torch's teardown when it stops; any other process that imports the preload module
     exits as usual, with its own exit status and its output flushed."""
