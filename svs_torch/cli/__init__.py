@@ -15,6 +15,7 @@ import sys
 import warnings
 
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
+from .common import Terminated, terminated_on_sigterm
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -113,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
 
     Exit status: 0 done (a pair that cannot be ranged is a status in the output, not an error); 1 a capture or
     file error while running, or an unexpected internal error; 2 bad arguments or input (one line on stderr
-    naming the argument); 130 interrupted; 141 the reader of the output went away (e.g. ``| head``).
+    naming the argument); 130 interrupted (Ctrl-C); 141 the reader of the output went away (e.g. ``| head``);
+    143 terminated (SIGTERM: what was being written is removed, as on Ctrl-C).
     """
     parser = build_parser()
     args, extras = parser.parse_known_args(argv)
@@ -134,11 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # the commands run batch after batch (see there why)
     prog = f"svs-depth {args.command}"
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), terminated_on_sigterm():
             warnings.showwarning = _warning_printer(prog)
             code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, inside the handler, not at interpreter exit
         return code
+    except Terminated:
+        print(f"{prog}: terminated", file=sys.stderr)
+        return 143
     except (InputError, CliError) as error:
         print(f"{prog}: error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
@@ -157,15 +162,20 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
     except Exception as error:  # noqa: BLE001 -- the last line of defence: one line, never a traceback
-        # (concurrent.futures' BrokenProcessPool by name: importing it would slow every command's start.)
-        if type(error).__name__ == "BrokenProcessPool":  # a worker killed from outside (OOM killer): not a bug
-            print(f"{prog}: error: a worker process died (killed, or out of memory: try fewer --workers or a "
-                  "smaller batch); rows a --db store committed are kept, and the same command runs only what is "
-                  "missing", file=sys.stderr)
-            return 1
-        print(f"{prog}: internal error: {type(error).__name__}: {' '.join(str(error).split())[:300]} "
-              "(please report it)", file=sys.stderr)
+        return _unexpected(prog, error)
+
+
+def _unexpected(prog: str, error: Exception) -> int:
+    """Say in one line what :func:`main` did not expect; exit status 1."""
+    # (concurrent.futures' BrokenProcessPool by name: importing it would slow every command's start.)
+    if type(error).__name__ == "BrokenProcessPool":  # a worker killed from outside (OOM killer): not a bug
+        print(f"{prog}: error: a worker process died (killed, or out of memory: try fewer --workers or a "
+              "smaller batch); rows a --db store committed are kept, and the same command runs only what is "
+              "missing", file=sys.stderr)
         return 1
+    print(f"{prog}: internal error: {type(error).__name__}: {' '.join(str(error).split())[:300]} "
+          "(please report it)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

@@ -246,3 +246,32 @@ def _finite_or_none(value: Any) -> Any:
 def dumps_strict(value: Any) -> str:
     """JSON that strict parsers accept: NaN and ±inf become ``null`` (``json.dumps`` would write ``NaN``)."""
     return json.dumps(_finite_or_none(value), allow_nan=False)
+
+
+class Terminated(BaseException):  # not an Exception: no broad handler on the way swallows it
+    """SIGTERM arrived (``kill``, a service manager's stop), raised in the main thread by
+    :func:`terminated_on_sigterm`."""
+
+
+@contextlib.contextmanager
+def terminated_on_sigterm():
+    """SIGTERM raises :class:`Terminated` in the main thread meanwhile, so that a command stops as Ctrl-C stops it:
+    an output being written is removed (``core.files.atomic_output``), a compiler it waits for is stopped, and
+    ``main`` says so in one line (exit 143). Found by audits: ``guide`` ended at once and said nothing; ``results
+    --figure`` left its temporary ``.r.png.*.tmp`` behind, and a first run's kernel compile its ``.so``. The previous
+    handler is restored after; off the main thread (where Python keeps signals to itself), nothing."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

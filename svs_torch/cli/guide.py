@@ -7,7 +7,8 @@ import contextlib
 import sys
 import warnings
 
-from .common import non_negative_float, non_negative_int, positive_float, positive_int, timeout_seconds
+from .common import (Terminated, non_negative_float, non_negative_int, positive_float, positive_int,
+                     terminated_on_sigterm, timeout_seconds)
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -164,9 +165,9 @@ def run(args: argparse.Namespace) -> int:
             stack.enter_context(warnings.catch_warnings())
             warnings.showwarning = status_line.show_warning
             stack.callback(log.close)  # the pairs recorded so far stay listed, whatever stops the loop
-            stack.enter_context(_terminated_on_sigterm())
+            stack.enter_context(terminated_on_sigterm())  # main's too: here the summary is said first
             session.run()
-    except _Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
+    except Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
         return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 143)
     except KeyboardInterrupt:
         return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 130)
@@ -203,32 +204,6 @@ def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
                                            else rectify_with_calibration(batch, calibration), config)
 
     return ranged
-
-
-class _Terminated(BaseException):  # not an Exception: no broad handler on the way swallows it
-    """SIGTERM arrived: how a service manager stops guide."""
-
-
-@contextlib.contextmanager
-def _terminated_on_sigterm():
-    """SIGTERM raises :class:`_Terminated` in the main thread while guide runs, so that it stops as Ctrl-C does (the
-    status line closed, what was recorded and the replay command printed); it ended at once with exit 143 and
-    nothing said (found by an audit). The previous handler is restored after; off the main thread, nothing."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def terminate(signum, frame):
-        raise _Terminated()
-
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _stopped(status_line, log, text: str, code: int) -> int:

@@ -348,3 +348,30 @@ def test_outputs_never_replace_a_device_a_link_or_the_store_itself(data_dir, cap
         with pytest.raises(SystemExit):
             run_cli(capsys, "guide", "--emulator", option, "1e10")
         assert f"{option}: expected seconds over 0 and at most 86400" in capsys.readouterr().err
+
+
+def test_sigterm_stops_a_command_as_ctrl_c_does_and_removes_what_it_was_writing(data_dir, capsys, tmp_path,
+                                                                                 monkeypatch):
+    """Was (an audit of interrupts): SIGTERM ended every command but guide at once, with nothing said, and left the
+    temporary file of what it was writing (results --figure: '.r.png.b79dab86.tmp'). Now it stops as Ctrl-C does:
+    the half-written temporary removed, one line, exit 143; and the previous SIGTERM handler is back after."""
+    import signal
+
+    from svs_torch.core.files import atomic_output
+    from svs_torch.plotting import figures
+
+    def terminated_half_way(path, data):
+        with atomic_output(path) as stream:
+            stream.write(data[: len(data) // 2])
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs between bytecodes: it raises here
+                stream.write(b"")
+            stream.write(data[len(data) // 2:])
+
+    monkeypatch.setattr(figures, "write_bytes_atomic", terminated_half_way)
+    before = signal.getsignal(signal.SIGTERM)
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure",
+                             str(tmp_path / "fig.png"))
+    assert code == 143 and err.strip().endswith("svs-depth estimate: terminated")
+    assert list(tmp_path.iterdir()) == [] and signal.getsignal(signal.SIGTERM) is before

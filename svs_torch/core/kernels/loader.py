@@ -161,12 +161,14 @@ def _run(argv: list[str], timeout_s: float, check: bool = True) -> subprocess.Co
     with process:
         try:
             stdout, stderr = process.communicate(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
+        except BaseException as error:  # past the timeout, or Ctrl-C / SIGTERM (its own session: none reaches it)
             try:
                 os.killpg(process.pid, signal.SIGKILL)
             except (AttributeError, OSError):  # no process groups here, or the group is gone: the child alone
                 process.kill()
             process.communicate()
+            if not isinstance(error, subprocess.TimeoutExpired):  # the caller's finally removes the half-built file
+                raise
             if check:
                 shown = shlex.join(argv[:3]) + ("…" if len(argv) > 3 else "")
                 raise KernelsOff(f"{shown} did not finish within {timeout_s:g} s") from None
