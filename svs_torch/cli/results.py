@@ -105,9 +105,12 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
-    from ..evaluation.store import ResultStore
-    from ..core.files import atomic_output, check_output_file, write_errors_named
+    from ..core.workers import imports_without_collection
+
+    with imports_without_collection():  # see there: a Ctrl-C meanwhile is raised once they are done
+        from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
+        from ..evaluation.store import ResultStore
+        from ..core.files import atomic_output, check_output_file, write_errors_named
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
     if args.csv == "-" and (args.json or args.summary):  # the summary's JSON was the table's last line, or lost

@@ -85,7 +85,17 @@ def imports_without_collection() -> Iterator[None]:
     spent 0.19 s in the collector, now 0.004 s (512 real 320×240 pairs, whole process: 0.93 of the time).
 
     Only around imports: later objects are collected as usual (a long ``guide`` or ``sweep`` run never grows
-    from a switched-off collector)."""
+    from a switched-off collector).
+
+    In the main thread, Ctrl-C is also held back until the imports are done, then raised as usual: a
+    KeyboardInterrupt inside numpy's or torch's import left them half made, and what followed varied (an audit of
+    interrupts, about 100 tries in the first second: "internal error: AttributeError: module 'numpy' has no
+    attribute 'lib'", an abort from pybind11 with exit 134, or the interrupt lost and the command run to the end).
+    """
+    import signal
+
+    hold = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hold else None
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -94,6 +104,8 @@ def imports_without_collection() -> Iterator[None]:
         gc.freeze()
         if enabled:
             gc.enable()
+        if held is not None:  # a Ctrl-C that came meanwhile is delivered now: KeyboardInterrupt, from here
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def _alive(pid: int) -> bool:
