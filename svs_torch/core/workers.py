@@ -94,8 +94,10 @@ def imports_without_collection() -> Iterator[None]:
     """
     import signal
 
-    hold = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hold else None
+    caught: list[int] = []
+    # A handler that only notes the signal (not a blocked mask: any other thread may take a process's signal).
+    previous = (signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+                if threading.current_thread() is threading.main_thread() else None)
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -104,8 +106,10 @@ def imports_without_collection() -> Iterator[None]:
         gc.freeze()
         if enabled:
             gc.enable()
-        if held is not None:  # a Ctrl-C that came meanwhile is delivered now: KeyboardInterrupt, from here
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+            if caught and callable(previous):  # the usual handler raises KeyboardInterrupt, from here
+                previous(signal.SIGINT, None)
 
 
 def _alive(pid: int) -> bool:
