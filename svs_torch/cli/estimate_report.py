@@ -158,6 +158,10 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
                  if report.get(key)]
     if corrected:
         lines.append("  right camera: " + " and ".join(corrected))
+    if report.get("verified") is False and report["objects"]:  # the JSON said so; the text did not
+        lines.append(f"  geometry not verified: the dense map confirms {report['num_agreeing_inliers']} of "
+                     f"{report['num_inliers']} RANSAC inliers, so each object needed more of its region measured "
+                     f"(depth.min_object_valid_fraction_unverified)")
     if report.get("features_smoothed"):
         lines.append("  noisy frames: features found on smoothed views")
     if report.get("coarse_dense"):

@@ -218,3 +218,29 @@ def test_true_nearest_kept_but_not_ranged_nearest_and_ties():
     missed = _true_nearest(scenes, objects[:1], ranged_label=None)
     assert missed["object"] == 2 and not missed["kept"] and missed["kept_label"] is None
     assert missed["warning"].endswith("(true obstacle 2, 1.00 m) was not kept; no kept obstacle was ranged")
+
+
+def test_estimate_says_in_words_when_a_ranged_pair_is_not_verified(tmp_path, capsys):
+    """Was (an audit of hostile images): a pair too narrow for any feature (Teddy at 20 x 4000: 0 keypoints) was
+    ranged with status OK and 'verified': false in the JSON, while the text said nothing of it. Now a line says
+    so; here a 20 px wide textured pair with a nearer block."""
+    import cv2
+    import numpy as np
+
+    from svs_torch.cli import main
+
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((400, 60)) * 255).astype(np.uint8), (3, 3), 0)
+    texture[150:250, 10:50] = cv2.GaussianBlur((rng.random((100, 40)) * 255).astype(np.uint8), (3, 3), 0)
+    left, right = texture[:, 20:40], np.roll(texture, 2, axis=1)[:, 20:40]
+    right[150:250] = np.roll(texture, 5, axis=1)[150:250, 20:40]
+    paths = [tmp_path / "l.png", tmp_path / "r.png"]
+    for path, image in zip(paths, (left, right)):
+        cv2.imwrite(str(path), image)
+    assert main(["estimate", *map(str, paths), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert main(["estimate", *map(str, paths)]) == 0
+    text = capsys.readouterr().out
+    assert ("geometry not verified: the dense map confirms" in text) == (report["verified"] is False
+                                                                          and bool(report["objects"]))
+    assert report["verified"] is False and report["objects"]
