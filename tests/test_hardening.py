@@ -995,3 +995,20 @@ def test_two_and_five_channel_files(tmp_path, capfd, channels, outcome):
         with pytest.raises(InputError, match=f"left: not a readable image file .*{outcome}"):
             read_gray_image(path, "left")
     assert capfd.readouterr().err == ""
+
+
+def test_a_ground_truth_beyond_the_image_is_refused(data_dir, tmp_path, capsys):
+    """Was (an audit of hostile data): a Middlebury 2003 disp2.png saved as 16 bits was read as disparities up to
+    16 000 px and scored (0 % accuracy, median error 9 933 px) with no word. Now the pair is refused, naming the
+    truth: load_stereo_pair raises, eval gives the pair its BAD_INPUT line."""
+    import shutil
+
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_2003_quarter" / "Teddy", scene)
+    truth = cv2.imread(str(scene / "disp2.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(scene / "disp2.png"), truth.astype(np.uint16) * 257)
+    with pytest.raises(InputError, match=r"disparity: expected ground-truth disparities in \[0, 450\) px"):
+        load_stereo_pair(scene)
+    code, out, _ = run_main(["eval", str(scene), "--json"])
+    row = json.loads(out.splitlines()[0])
+    assert code == 0 and row["status"] == "BAD_INPUT" and "ground-truth disparities" in row["reason"]
