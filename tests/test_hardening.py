@@ -32,7 +32,7 @@ from svs_torch import (PipelineConfig, PipelineStatus, SegmentationConfig, Stere
 from svs_torch.cli import build_parser, main
 from svs_torch.core.errors import InputError
 from svs_torch.core.types import FundamentalStatus, SegmentationStatus
-from svs_torch.data import load_image_pair, load_stereo_pair
+from svs_torch.data import load_image_pair, load_stereo_pair, resize_stereo_batch
 from svs_torch.data.formats import read_gray_image, read_middlebury_calib, read_pfm
 from svs_torch.data.synthetic import random_obstacle_scenes
 
@@ -969,6 +969,11 @@ def test_load_image_pair_names_a_path_of_the_wrong_type(path):
     (lambda: extract_surf_features(torch.rand(1, 1, 8, 8), "default"), "config: expected a SurfConfig, got str"),
     (lambda: StereoBatch.from_images(np.zeros((1, 1, 8, 8)), None, 1.0, 1.0), "left: expected a torch.Tensor"),
     (lambda: PipelineConfig(seed=2**63), "seed: expected a 64-bit integer, got 9223372036854775808"),
+    # An audit of hostile images: a NotImplementedError from aminmax, and a 40 GB allocation in torch.
+    (lambda: StereoBatch.from_images(*[torch.rand(1, 1, 8, 8).to_sparse()] * 2, 1.0, 1.0),
+     "left: expected a dense image tensor, got layout torch.sparse_coo"),
+    (lambda: resize_stereo_batch(_small_batch(), (100000, 100000)),
+     "size_wh: expected a width and height of at most 8192 px, got (100000, 100000)"),
 ])
 def test_a_wrong_kind_of_argument_is_named(call, message):
     """Was: AttributeError / TypeError from deep inside ('NoneType' object has no attribute 'left')."""

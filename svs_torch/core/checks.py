@@ -92,6 +92,8 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     check_dtype(tensor, name, "float")
     if tensor.is_meta:  # shapes without values (a model traced on the meta device): nothing to range
         raise InputError(f"{name}: expected an image with values, got a tensor on the meta device")
+    if tensor.layout != torch.strided:  # a sparse image: aminmax raised NotImplementedError from deep inside
+        raise InputError(f"{name}: expected a dense image tensor, got layout {tensor.layout} (call .to_dense())")
     if check_range and tensor.numel() > 0:
         # One pass: aminmax propagates NaN, so a NaN anywhere shows in the extremes.
         lo, hi = (float(v) for v in torch.aminmax(tensor.detach()))

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from ..core.camera import MAX_SIZE_PX
 from ..core.checks import InputError, check_instance
 from ..core.types import StereoBatch
 
@@ -30,6 +31,8 @@ def _check_size_wh(size_wh: Sequence[int], name: str = "size_wh") -> tuple[int, 
         raise InputError(f"{name}: expected (width, height) as two ints, got {size_wh!r}") from None
     if width <= 0 or height <= 0:
         raise InputError(f"{name}: expected a positive width and height, got ({width}, {height})")
+    if max(width, height) > MAX_SIZE_PX:  # as --size: (100000, 100000) failed in torch's allocator (40 GB)
+        raise InputError(f"{name}: expected a width and height of at most {MAX_SIZE_PX} px, got ({width}, {height})")
     return width, height
 
 
