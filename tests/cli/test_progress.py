@@ -68,3 +68,19 @@ def test_progress_over_an_iterable_counts_each_item_and_shows_a_postfix():
     assert seen == [0, 1, 2, 3]
     assert stream.getvalue().splitlines() == ["train: 2/4 steps, 0.3 steps/s, ETA 6 s (loss 0.250)",
                                               "train: 4/4 steps in 12.0 s, 0.3 steps/s"]
+
+
+def test_the_eta_leaves_out_the_start_up():
+    """Was (an audit of long runs): the ETA divided by the rate since the command began, worker start-up
+    included, so a sweep's first line said 'ETA 78 s' of a run that ended 11.6 s after it. Now the ETA's rate is
+    counted from the first finished item, and none is shown before a second; the pairs/s is still the whole
+    run's."""
+    clock, stream = _Clock(), io.StringIO()
+    with Progress(20, "sweep", stream=stream, interval_s=5.0, clock=clock) as progress:
+        clock.now += 10.0  # the workers start
+        for _ in range(20):
+            clock.now += 1.0
+            progress.update(1)
+    lines = stream.getvalue().splitlines()
+    assert lines[:2] == ["sweep: 1/20 pairs, 0.1 pairs/s",  # one item: no rate of the running yet (was ETA 209 s)
+                         "sweep: 6/20 pairs, 0.4 pairs/s, ETA 14 s"]  # 1 pair/s once running (was ETA 33 s)
