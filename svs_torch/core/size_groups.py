@@ -46,7 +46,7 @@ def same_size_indices(sizes_hw: Sequence[Sequence[int]]) -> list[tuple[list[int]
 
     The command line batches listed pairs by it (``estimate --pairs``, ``eval``): pairs of one size are one batch,
     never padded to another's size. Why: the pipeline runs each size alone anyway, but the padded batch and the
-    result merged back to its size cost (largest height) x (largest width) a pair; a 8000 x 10 and a 10 x 8000
+    result merged back to its size cost (largest height) x (largest width) a pair; an 8000 x 10 and a 10 x 8000
     pair in one list took 7.9 GB and 28 s (0.3 GB and 0.6 s alone), and ended the run in a smaller memory."""
     order: dict[tuple[int, int], list[int]] = {}
     for index, hw in enumerate(sizes_hw):

@@ -96,8 +96,8 @@ def imports_without_collection() -> Iterator[None]:
 
     caught: list[int] = []
     # A handler that only notes the signal (not a blocked mask: any other thread may take a process's signal).
-    previous = (signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-                if threading.current_thread() is threading.main_thread() else None)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum)) if main else None
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -106,8 +106,8 @@ def imports_without_collection() -> Iterator[None]:
         gc.freeze()
         if enabled:
             gc.enable()
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        if main:  # None: a handler not set from Python, which Python cannot put back; the default then
+            signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
             if caught and callable(previous):  # the usual handler raises KeyboardInterrupt, from here
                 previous(signal.SIGINT, None)
 
@@ -182,7 +182,7 @@ def _sigint_ignored_by_children():
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
 
 
 def stop_worker_server() -> None:
