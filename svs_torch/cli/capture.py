@@ -12,7 +12,7 @@ Output, in ``--out-dir`` (alias ``--out``):
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them).
 
-Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted.
+Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def add_parser(subparsers: Any) -> None:
         "capture", help="grab stereo pairs from an SVS camera into a folder",
         description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus "
                     "an index.jsonl of timestamps. --emulator tries it without a device. Exit status: 0 done, "
-                    "1 capture or file error, 2 bad arguments, 130 interrupted.")
+                    "1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).")
     parser.add_argument("--left", metavar="URL",
                         help="left/master board: socket://HOST:10001 or a serial device such as /dev/ttyUSB0")
     parser.add_argument("--right", metavar="URL",
