@@ -758,3 +758,53 @@ def test_the_window_spans_the_same_share_of_the_view_at_every_working_width(tedd
         scaled = estimate_dense_disparity(pair.left, pair.right, mask, DenseConfig())
         fixed = estimate_dense_disparity(pair.left, pair.right, mask, DenseConfig(scale_window=False))
         assert torch.equal(scaled.disparity_px, fixed.disparity_px) != changed
+
+
+# Boundaries the float64 loop reference never meets on random images (a mutation audit: each comparison below
+# could be turned to its neighbour in both the torch path and the C kernel, and no test failed).
+def _stripes(period: int, shift: int, h: int = 12, w: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
+    row = torch.tensor([0.1, 0.3, 0.8, 0.5, 0.2, 0.9, 0.4, 0.6][:period]).repeat(w // period + 6)
+    left = row[2 * period: 2 * period + w].expand(h, w)
+    right = row[2 * period + shift: 2 * period + shift + w].expand(h, w)  # x_right = x - shift
+    return left[None, None].contiguous(), right[None, None].contiguous()
+
+
+@pytest.mark.parametrize("kernel", ["torch", "auto"])
+def test_uniqueness_rejects_a_rival_that_ties_the_best(kernel):
+    """A texture of period 4 shifted by 2 px: SAD is exactly 0 at d = 2, 6, 10, 14, so the rival equals the best;
+    StereoBM rejects every such pixel (a rival must be strictly above (1 + r) times the best)."""
+    left, right = _stripes(4, 2)
+    config = DenseConfig(window_size=5, uniqueness_ratio=0.1, lr_max_diff_px=None, texture_threshold=0.0,
+                         kernel=kernel)
+    assert not block_match_sad(left, right, 0, 16, config).valid[..., 3:-3, 20:-3].any()
+
+
+@pytest.mark.parametrize("kernel", ["torch", "auto"])
+def test_texture_exactly_at_the_threshold_is_kept(kernel):
+    """One step of 0.5 (over the prefilter cap 0.125): |x-Sobel| is the cap on the two columns beside it, so a 3x3
+    window over both sums 6 x 0.125 = 0.75 exactly; at texture_threshold 0.75 / 9 (per pixel) it is kept, as
+    StereoBM rejects only a sum below the threshold."""
+    image = torch.zeros(1, 1, 8, 24)
+    image[..., 12:] = 0.5
+    assert 0.75 / 9 * 9 == 0.75
+    config = DenseConfig(window_size=3, prefilter_cap=0.125, texture_threshold=0.75 / 9, uniqueness_ratio=0.0,
+                         lr_max_diff_px=None, kernel=kernel)
+    valid = block_match_sad(image, image, 0, 4, config).valid[0, 0, 2:-2]
+    assert valid[:, 11].all() and valid[:, 12].all()
+
+
+def test_the_row_fill_averages_neighbours_exactly_one_px_apart():
+    """Neighbours 1 px apart agree (the mean fills the gap); test_fill_invalid_rows met only 0.5 and 3.5."""
+    filled, _ = fill_invalid_rows(torch.tensor([[5.0, 0.0, 6.0]]), torch.tensor([[True, False, True]]))
+    assert filled[0, 1].item() == 5.5
+
+
+def test_the_search_range_holds_fractional_extremes():
+    """Without margins the range must still hold 10.5 and 20.25 px: its low end floored (10), its top ceiled
+    (21); a ceiled low end (11) dropped the nearest samples and the default 2 px margin hid it."""
+    disparity = torch.tensor([[10.5] * 10 + [20.25] * 10], dtype=torch.float64)
+    config = replace(DenseConfig(), range_margin_px=0.0, range_margin_fraction=0.0, range_percentiles=(0.0, 100.0))
+    found = disparity_search_range(disparity, torch.ones_like(disparity, dtype=torch.bool), torch.tensor([320]),
+                                   config, min_count=1)
+    assert found.min_disparity_px.tolist() == [10]
+    assert (found.min_disparity_px + found.pair_num_disparities - 1).tolist() == [21]

@@ -267,3 +267,70 @@ def test_a_huge_threshold_accepts_every_row_instead_of_overflowing():
     result = estimate_fundamental_ransac(left, right, valid, threshold_px=1.3407807929942597e154,
                                          pair_seeds=torch.tensor([0]))
     assert result.status.shape == (1,) and torch.isfinite(result.F).all()
+
+
+# Found by a mutation audit: every RANSAC test ran at threshold_px = 1 (where t = t²), met only 0–6 and 60 valid
+# rows, and checked the stopping rule only at its edges; the C-vs-torch comparisons cannot see a bug in both.
+def _rig(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` exact correspondences of a calibrated rig (f 500 px, a small turn, 0.3 baseline), float64 px."""
+    rng = np.random.default_rng(seed)
+    points = np.c_[rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(3, 12, n)]
+    k = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    rotation, _ = cv2.Rodrigues(np.array([0.02, -0.05, 0.01]))
+    left = (k @ points.T).T
+    right = (k @ ((rotation @ points.T).T + np.array([-0.3, 0.01, 0.02])).T).T
+    return left[:, :2] / left[:, 2:], right[:, :2] / right[:, 2:]
+
+
+def test_inliers_are_within_the_threshold_in_pixels_not_its_square():
+    """At threshold_px 3, points moved off their epipolar lines to Sampson distances 2.4 and 2.6 px are inliers,
+    3.6 and 3.9 px are not, and the inliers are exactly d <= 3 under the returned F."""
+    left, right = _rig(80, 0)
+    truth, _ = cv2.findFundamentalMat(left, right, cv2.FM_8POINT)
+    right = right.copy()
+    for k, distance in {0: 2.4, 1: 2.6, 2: 3.6, 3: 3.9}.items():
+        line, back = truth @ np.r_[left[k], 1.0], truth.T @ np.r_[right[k], 1.0]
+        normal = line[:2] / np.linalg.norm(line[:2])
+        # Along the line's normal the algebraic error grows by |l| a pixel; Sampson divides it by the gradients' norm.
+        right[k] += distance * np.sqrt(line[0] ** 2 + line[1] ** 2 + back[0] ** 2 + back[1] ** 2) \
+            / np.linalg.norm(line[:2]) * normal
+    left_t, right_t = torch.tensor(left)[None], torch.tensor(right)[None]
+    result = estimate_fundamental_ransac(left_t, right_t, torch.ones(1, 80, dtype=torch.bool), threshold_px=3.0,
+                                         pair_seeds=torch.tensor([7]))
+    distances = sampson_distance(left_t, right_t, result.F.to(left_t.dtype))[0]
+    assert result.inliers[0, :2].all() and not result.inliers[0, 2:4].any() and result.inliers[0, 4:].all()
+    assert torch.equal(result.inliers[0], distances <= 3.0)
+
+
+def test_the_adaptive_stop_counts_seven_point_samples():
+    """Samples needed for confidence p at inlier share w: log(1 − p) / log(1 − w⁷), in closed form and as the C
+    kernel stops (40 % inliers: about 2 400 such samples, where w⁸ would ask about 5 800)."""
+    import math
+
+    from svs_torch.geometry.ransac import _required_iterations
+
+    got = _required_iterations(torch.tensor([50, 80]), torch.tensor([100, 100]), 0.99, 10 ** 6)
+    assert got.tolist() == [math.ceil(math.log(0.01) / math.log(1 - w ** 7)) for w in (0.5, 0.8)] == [588, 20]
+    left, right = _rig(100, 3)
+    right = right.copy()
+    right[40:] = np.random.default_rng(4).uniform([0, 0], [640, 480], (60, 2))
+    result = estimate_fundamental_ransac(torch.tensor(left)[None], torch.tensor(right)[None],
+                                         torch.ones(1, 100, dtype=torch.bool), threshold_px=1.0, chunk_size=16,
+                                         max_iterations=100000, pair_seeds=torch.tensor([1]))
+    share = result.num_inliers.item() / 100
+    seven, eight = (math.log(0.01) / math.log(1 - share ** k) for k in (7, 8))
+    assert result.iterations.item() < (seven + eight) / 2
+
+
+def test_seven_matches_are_enough_and_six_too_few():
+    """The 7-point solver needs 7 matches: a pair with exactly 7 valid rows is estimated (OK, 7 inliers), one with
+    6 is TOO_FEW_MATCHES."""
+    left, right = _rig(8, 5)
+    valid = torch.ones(2, 8, dtype=torch.bool)
+    valid[0, 7:] = False
+    valid[1, 6:] = False
+    result = estimate_fundamental_ransac(torch.tensor(left)[None].expand(2, -1, -1),
+                                         torch.tensor(right)[None].expand(2, -1, -1), valid, min_inliers=7,
+                                         pair_seeds=torch.tensor([1, 1]))
+    assert result.status.tolist() == [FundamentalStatus.OK, FundamentalStatus.TOO_FEW_MATCHES]
+    assert result.num_inliers[0].item() == 7

@@ -294,3 +294,27 @@ def test_a_pair_failed_after_depth_reports_no_distance(data_dir, preset, size):
     assert not depth.range.valid.any() and not depth.objects.valid.any() and not depth.nearest.valid.any()
     assert float(depth.range.r_min_m.abs().sum() + depth.objects.depth_median_m.abs().sum()) == 0.0
     assert depth.nearest.slot.tolist() == [-1] and float(depth.nearest.depth_m.abs().sum()) == 0.0
+
+
+def test_a_stage_that_fails_first_names_the_pair_status():
+    """Earlier stages win: under the paper's rule a pair whose matching left too few matches is TOO_FEW_MATCHES,
+    not the RANSAC_FAILED every non-OK fundamental status also raises (a mutation audit swapped the two checks'
+    order and no test failed: no pipeline test makes a pair whose matching fails)."""
+    from types import SimpleNamespace
+
+    from svs_torch.core.types import FundamentalStatus, SegmentationStatus
+    from svs_torch.geometry.rectification import RectificationStatus
+    from svs_torch.pipeline.config import PipelineStatus
+    from svs_torch.pipeline.stages import _status
+
+    b = 3
+    kept = torch.ones(b, 2, dtype=torch.int64)
+    seg = SimpleNamespace(left=SimpleNamespace(kept_labels=kept), right=SimpleNamespace(kept_labels=kept),
+                          status=torch.full((b,), SegmentationStatus.OK))
+    fundamental = SimpleNamespace(status=torch.tensor([FundamentalStatus.OK, FundamentalStatus.TOO_FEW_MATCHES,
+                                                       FundamentalStatus.DEGENERATE]))
+    rectification = SimpleNamespace(status=torch.full((b,), RectificationStatus.OK))
+    depth = SimpleNamespace(range=SimpleNamespace(valid=torch.ones(b, dtype=torch.bool)))
+    status = _status(seg, torch.full((b, 2), 100), fundamental, rectification, depth, rectify="auto",
+                     dense_rule=False)
+    assert status.tolist() == [PipelineStatus.OK, PipelineStatus.TOO_FEW_MATCHES, PipelineStatus.RANSAC_FAILED]
