@@ -506,23 +506,15 @@ def test_in_view_top_of_each_object():
             DenseConfig(in_view_own_min_valid_share=share)
 
 
-@pytest.mark.parametrize("path", ["auto", "torch"])
-def test_own_in_view_top_needs_most_of_its_band_measured(monkeypatch, path):
-    """An object in view from its own top (8 px, below its pair's 20) keeps it where at least
-    ``min_own_view_valid_share`` of its pixels from column 8 on are valid (pair 0: all of them), and is in view from
-    its pair's top where fewer are (pair 1: 3 of 8 columns, 0.375 < 0.5): counted by hand, on both paths."""
+def _one_object_of_disparity_2(valid: torch.Tensor) -> tuple:
+    """Stand-ins for :func:`dense_object_depths`: label 1 over columns 0–15 of ``valid`` ``(B, 1, H, W)``, a dense
+    map of 2 px where valid (searched 0–20, in view from row 20, its own top at 8), and one kept object."""
     from svs_torch.depth.dense_config import DenseDisparity
-    from svs_torch.depth.dense_objects import dense_object_depths
     from svs_torch.depth.depth_types import ObjectDepths
 
-    if path == "torch":
-        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
-    b, h, w = 2, 10, 40
+    b, _, h, w = valid.shape
     labels = torch.zeros(b, 1, h, w, dtype=torch.int64)
     labels[..., :16] = 1
-    valid = torch.zeros(b, 1, h, w, dtype=torch.bool)
-    valid[0, ..., :16] = True
-    valid[1, ..., :5], valid[1, ..., 13:16] = True, True
     dense = DenseDisparity(torch.where(valid, 2.0, 0.0), valid, torch.zeros(b, dtype=torch.int64), 21,
                            torch.tensor([[0, 0, w, h]] * b), torch.full((b,), 21), torch.full((b,), 20),
                            torch.full((b, 1), 8))
@@ -530,6 +522,23 @@ def test_own_in_view_top_needs_most_of_its_band_measured(monkeypatch, path):
     objects = ObjectDepths(torch.ones(b, 1, dtype=torch.int64), torch.full((b, 1), 160), zeros,
                            torch.zeros(b, 1, dtype=torch.int64), torch.zeros(b, 1, dtype=torch.int64), zeros, zeros,
                            zeros, torch.zeros(b, 1, dtype=torch.bool), torch.zeros(b, 0, dtype=torch.int64))
+    return labels, dense, objects
+
+
+@pytest.mark.parametrize("path", ["auto", "torch"])
+def test_own_in_view_top_needs_most_of_its_band_measured(monkeypatch, path):
+    """An object in view from its own top (8 px, below its pair's 20) keeps it where at least
+    ``min_own_view_valid_share`` of its pixels from column 8 on are valid (pair 0: all of them), and is in view from
+    its pair's top where fewer are (pair 1: 3 of 8 columns, 0.375 < 0.5): counted by hand, on both paths."""
+    from svs_torch.depth.dense_objects import dense_object_depths
+
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    b, h, w = 2, 10, 40
+    valid = torch.zeros(b, 1, h, w, dtype=torch.bool)
+    valid[0, ..., :16] = True
+    valid[1, ..., :5], valid[1, ..., 13:16] = True, True
+    labels, dense, objects = _one_object_of_disparity_2(valid)
     counted = {share: dense_object_depths(dense, labels, objects, 100.0, 0.1, min_valid_px=1, fill_invalid=False,
                                           min_own_view_valid_share=share).num_in_view_px[:, 0].tolist()
                for share in (0.0, 0.375, 0.5)}
@@ -808,3 +817,18 @@ def test_the_search_range_holds_fractional_extremes():
                                    config, min_count=1)
     assert found.min_disparity_px.tolist() == [10]
     assert (found.min_disparity_px + found.pair_num_disparities - 1).tolist() == [21]
+
+
+@pytest.mark.parametrize("kernels", ["auto", "torch"])
+def test_dense_object_depth_adds_doffs(monkeypatch, kernels):
+    """Z = f·B / (d + doffs) over an object's dense disparities, in the C kernel and the torch path: a mutation
+    audit turned the sign of doffs in both and tests/depth passed (only a pipeline test noticed; the sparse
+    point_depths had their own check)."""
+    from svs_torch.depth.dense_objects import dense_object_depths
+
+    monkeypatch.setenv("SVS_TORCH_KERNELS", kernels)
+    valid = torch.zeros(1, 1, 10, 40, dtype=torch.bool)
+    valid[..., :16] = True
+    labels, dense, objects = _one_object_of_disparity_2(valid)
+    out = dense_object_depths(dense, labels, objects, 100.0, 0.1, doffs_px=3.0, min_valid_px=1, fill_invalid=False)
+    assert torch.allclose(out.depth_median_m[0, 0], torch.tensor(2.0))  # 100 · 0.1 / (2 + 3)

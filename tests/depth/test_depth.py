@@ -313,28 +313,3 @@ def test_without_statistics_only_the_depths_and_the_slots_geometry_are_made(gene
         assert torch.equal(getattr(full.objects, field), getattr(lean.objects, field))
     assert not lean.objects.valid.any() and not lean.range.valid.any() and not lean.nearest.valid.any()
     assert not lean.objects.depth_median_m.any() and not lean.range.r_min_m.any()
-
-
-@pytest.mark.parametrize("kernels", ["auto", "torch"])
-def test_dense_object_depth_adds_doffs(monkeypatch, kernels):
-    """Z = f·B / (d + doffs) over an object's dense disparities, in the C kernel and the torch path: a mutation
-    audit turned the sign of doffs in both and tests/depth passed (only a pipeline test noticed; the sparse
-    point_depths had their own check)."""
-    from svs_torch.depth.dense_config import DenseDisparity
-    from svs_torch.depth.dense_objects import dense_object_depths
-    from svs_torch.depth.depth_types import ObjectDepths
-
-    monkeypatch.setenv("SVS_TORCH_KERNELS", kernels)
-    b, h, w = 1, 10, 40
-    labels = torch.zeros(b, 1, h, w, dtype=torch.int64)
-    labels[..., :16] = 1
-    valid = labels == 1
-    dense = DenseDisparity(torch.where(valid, 2.0, 0.0), valid, torch.zeros(b, dtype=torch.int64), 21,
-                           torch.tensor([[0, 0, w, h]] * b), torch.full((b,), 21), torch.full((b,), 20),
-                           torch.full((b, 1), 8))
-    zeros = torch.zeros(b, 1)
-    objects = ObjectDepths(torch.ones(b, 1, dtype=torch.int64), torch.full((b, 1), 160), zeros,
-                           torch.zeros(b, 1, dtype=torch.int64), torch.zeros(b, 1, dtype=torch.int64), zeros, zeros,
-                           zeros, torch.zeros(b, 1, dtype=torch.bool), torch.zeros(b, 0, dtype=torch.int64))
-    out = dense_object_depths(dense, labels, objects, 100.0, 0.1, doffs_px=3.0, min_valid_px=1, fill_invalid=False)
-    assert torch.allclose(out.depth_median_m[0, 0], torch.tensor(2.0))  # 100 · 0.1 / (2 + 3)
