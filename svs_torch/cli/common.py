@@ -261,17 +261,11 @@ def terminated_on_sigterm():
     --figure`` left its temporary ``.r.png.*.tmp`` behind, and a first run's kernel compile its ``.so``. The previous
     handler is restored after; off the main thread (where Python keeps signals to itself), nothing."""
     import signal
-    import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    from ..core.workers import signal_handler
 
     def terminate(signum, frame):
         raise Terminated()
 
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
+    with signal_handler(signal.SIGTERM, terminate):
         yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)

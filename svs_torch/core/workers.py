@@ -16,8 +16,8 @@ import threading
 import time
 from collections.abc import Iterator
 
-__all__ = ["available_cores", "imports_without_collection", "keep_freed_memory", "start_worker", "stop_worker_server",
-           "thread_budget", "worker_pool"]
+__all__ = ["available_cores", "imports_without_collection", "keep_freed_memory", "signal_handler", "start_worker",
+           "stop_worker_server", "thread_budget", "worker_pool"]
 
 #: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
@@ -95,21 +95,39 @@ def imports_without_collection() -> Iterator[None]:
     import signal
 
     caught: list[int] = []
-    # A handler that only notes the signal (not a blocked mask: any other thread may take a process's signal).
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum)) if main else None
+    previous = None
     enabled = gc.isenabled()
     gc.disable()
     try:
-        yield
+        # A handler that only notes the signal (not a blocked mask: any other thread may take a process's signal).
+        with signal_handler(signal.SIGINT, lambda signum, frame: caught.append(signum)) as previous:
+            yield
     finally:
         gc.freeze()
         if enabled:
             gc.enable()
-        if main:  # None: a handler not set from Python, which Python cannot put back; the default then
-            signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
-            if caught and callable(previous):  # the usual handler raises KeyboardInterrupt, from here
-                previous(signal.SIGINT, None)
+        if caught and callable(previous):  # the usual handler raises KeyboardInterrupt, from here
+            previous(signal.SIGINT, None)
+
+
+@contextlib.contextmanager
+def signal_handler(signum: int, handler) -> Iterator[object]:
+    """``handler`` for signal ``signum`` in the block, the previous one put back after (Python's default where
+    the previous was not set from Python, which Python cannot put back); yields the previous handler. Off the main
+    thread nothing changes and None is yielded: Python takes signals in the main thread only."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield None
+        return
+    previous = signal.signal(signum, handler)
+    try:
+        yield previous
+    finally:
+        if previous is not None:
+            signal.signal(signum, previous)
+        else:
+            signal.signal(signum, signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL)
 
 
 def _alive(pid: int) -> bool:
@@ -148,6 +166,7 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
     CPU time: end it with :func:`stop_worker_server` once the pool has shut down."""
     import concurrent.futures  # here, not at the top: the command line imports this module for --help too
     import multiprocessing
+    import signal
 
     if "forkserver" in multiprocessing.get_all_start_methods():
         from multiprocessing import forkserver
@@ -157,32 +176,17 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
         # Started here and now (its imports go on in the background): it inherits this process's descriptors as
         # they are at this moment, before the command line's decoding redirects descriptor 2 for a few ms at a
         # time (image_files collects decoder messages that way), which a later start could catch.
-        with _sigint_ignored_by_children():
+        # SIGINT ignored meanwhile, so that the server ignores it from its first instruction (an ignored signal
+        # stays ignored across exec, and Python then installs no handler of its own). Why: the terminal sends
+        # Ctrl-C to the whole process group, and the forkserver, importing the pipeline for a second or two before
+        # it ignores SIGINT itself, printed a 27–35 line KeyboardInterrupt traceback above this process's one-line
+        # 'interrupted' (an audit of interrupts). A Ctrl-C in these few milliseconds is lost.
+        with signal_handler(signal.SIGINT, signal.SIG_IGN):
             forkserver.ensure_running()
     else:
         context = multiprocessing.get_context("spawn")
     return concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,
                                                   initargs=(threads, warm_modules, os.getpid()))
-
-
-@contextlib.contextmanager
-def _sigint_ignored_by_children():
-    """SIGINT ignored in this process for the block, so that a server it starts ignores it from its first
-    instruction (an ignored signal stays ignored across exec, and Python then installs no handler of its own).
-    Why: the terminal sends Ctrl-C to the whole process group, and the forkserver, importing the pipeline for a
-    second or two before it ignores SIGINT itself, printed a 17–30 line KeyboardInterrupt traceback above this
-    process's one-line 'interrupted' (an audit of interrupts). A Ctrl-C in these few milliseconds is lost; the
-    main thread only (elsewhere Python keeps signals to itself)."""
-    import signal
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None else previous)
 
 
 def stop_worker_server() -> None:

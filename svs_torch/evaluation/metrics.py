@@ -342,8 +342,10 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
         score = score_pair(truth_list(truth, i), estimate) if truth is not None else PairScore(None, None, None,
                                                                                                  None, None)
         has_truth = has_gt and bool(batch.disparity_valid[i].any())
-        objects = [dict(o, **metric_values(per_object[o["slot"]], i)) if per_object else o for o in score.objects]
-        if not has_truth:  # its ranged objects, unscored (a camera's pair read as having none: an audit)
+        if has_truth:
+            objects = [dict(o, **metric_values(per_object[o["slot"]], i)) if per_object else o
+                       for o in score.objects]
+        else:  # its ranged objects, unscored (a camera's pair read as having none: an audit)
             objects = [{"slot": slot, "real_m": None, "estimated_m": depth, "acc_pct": None}
                        for slot, depth in enumerate(estimate.objects_m) if depth is not None]
         if dropped is not None:  # scored as an object without a distance (stereo_metrics.measured_regions)

@@ -81,13 +81,15 @@ def _label(panel: np.ndarray, text: str, origin: tuple[int, int], colour: tuple[
 AREA_LABEL_ROWS = 16
 
 
+#: The padding of a depth label's box (``plots.LABEL_BOX``), points.
+LABEL_PAD_POINTS = 2
+
+
 def panel_scale(width_px: int) -> float:
     """How much larger the objects panel draws its labels and box lines in an image ``width_px`` wide: 1 up to
     320 px (the SVS's width), in proportion beyond, so that a figure, drawn at one size whatever the image's, shows
     them alike (at 1282 px a 1-pixel box and a 0.4 label were a hairline and an unreadable speck)."""
     return max(1.0, width_px / 320)
-#: The padding of a depth label's box (``plots.LABEL_BOX``), points.
-LABEL_PAD_POINTS = 2
 
 
 def depth_label_y(centroid_y: float, box_top: float, lines: int, size_hw: tuple[int, int], width_in: float) -> float:
@@ -108,6 +110,7 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
     panel = gray_to_bgr(gray * 0.35)
     base = gray_to_bgr(gray)
     labels = seg.labels[index, 0].cpu().numpy()
+    scale = panel_scale(panel.shape[1])
     for rank, label in enumerate(seg.kept_labels[index].tolist()):
         if label < 0:
             continue
@@ -116,7 +119,6 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
         panel[region] = (0.6 * base[region] + 0.4 * colour).astype(np.uint8)
         x0, y0, x1, y1 = seg.regions.bbox_xyxy[index, label - 1].tolist()
         area = int(seg.regions.area_px[index, label - 1])
-        scale = panel_scale(panel.shape[1])
         cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), round(scale))
         _label(panel, f"#{rank + 1} {area}px", (x0 + round(2 * scale), y0 + round(12 * scale)),
                tuple(int(c) for c in colour), 0.4 * scale)
