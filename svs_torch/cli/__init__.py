@@ -15,7 +15,7 @@ import sys
 import warnings
 
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
-from .common import Terminated, terminated_on_sigterm
+from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -136,10 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # the commands run batch after batch (see there why)
     prog = f"svs-depth {args.command}"
     try:
-        with warnings.catch_warnings(), terminated_on_sigterm():
+        with warnings.catch_warnings(), terminated_on_sigterm(), stdout_errors_named():
             warnings.showwarning = _warning_printer(prog)
             code = int(args.func(args) or 0)
-        sys.stdout.flush()  # a closed pipe shows here, inside the handler, not at interpreter exit
+            sys.stdout.flush()  # a closed pipe or a full disk shows here, inside the handler, not at interpreter exit
         return code
     except Terminated:
         print(f"{prog}: terminated", file=sys.stderr)
@@ -158,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     except OSError as error:
+        if error.filename == STANDARD_OUTPUT:
+            _silence_stdout()  # nothing more to say there, and the interpreter's last flush would fail again
         print(f"{prog}: error: {error.strerror or error}" + (f": {error.filename}" if error.filename else ""),
               file=sys.stderr)
         return 1

@@ -269,3 +269,50 @@ def terminated_on_sigterm():
 
     with signal_handler(signal.SIGTERM, terminate):
         yield
+
+
+STANDARD_OUTPUT = "standard output"
+
+
+class _StdoutNamingErrors:
+    """``sys.stdout`` whose write and flush errors name it (``OSError.filename``), everything else passed through."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as error:
+            raise _named_stdout(error) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as error:
+            raise _named_stdout(error) from None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def _named_stdout(error: OSError) -> OSError:
+    if error.filename is None:
+        error.filename = STANDARD_OUTPUT
+    return error
+
+
+@contextlib.contextmanager
+def stdout_errors_named():
+    """Meanwhile a failed write to standard output says so: ``svs-depth eval ... --json > rows.jsonl`` on a full
+    disk ends ``error: No space left on device: standard output``, not a bare ``No space left on device`` that
+    names nothing (an audit's find: the figure, CSV and calibration writers named their files, stdout did not).
+    ``sys.stdout`` is restored after."""
+    import sys
+
+    stream = sys.stdout
+    sys.stdout = _StdoutNamingErrors(stream)
+    try:
+        yield
+    finally:
+        sys.stdout = stream

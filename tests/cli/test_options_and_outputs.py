@@ -4,9 +4,13 @@ a KITTI folder, and a weights file that is not one."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import re
+import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -102,6 +106,44 @@ def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_d
     assert json.loads(out)["status"] == "OK"
     assert f"--figure: cannot write '{figure}': No space left on device" in err
     assert list(tmp_path.iterdir()) == []
+
+
+class _FullStream(io.StringIO):
+    """Standard output on a full disk: every write and flush refused as the kernel refuses them."""
+
+    def write(self, text: str) -> int:
+        raise OSError(28, "No space left on device")
+
+    flush = write
+
+
+def test_a_full_standard_output_is_named(capsys, monkeypatch, tmp_path):
+    """Left alone by an audit before: ``> /dev/full`` ended ``error: No space left on device`` naming nothing, while
+    the figure, CSV and calibration writers name their files. Now standard output is named (exit 1), and
+    ``sys.stdout`` is the caller's again after."""
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 80), 128, np.uint8))
+    full = _FullStream()
+    monkeypatch.setattr(sys, "stdout", full)
+    code = main(["fundamental", str(tmp_path / "left.png"), str(tmp_path / "right.png"), "--json"])
+    assert sys.stdout is full
+    monkeypatch.undo()
+    err = capsys.readouterr().err
+    assert code == 1 and err.strip() == "svs-depth fundamental: error: No space left on device: standard output"
+
+
+@pytest.mark.skipif(not (os.path.exists("/dev/full") and stat.S_ISCHR(os.stat("/dev/full").st_mode)),
+                    reason="needs the /dev/full device")
+def test_a_full_standard_output_is_named_as_the_process_meets_it(tmp_path):
+    """The same through the console's own process, standard output sent to /dev/full (the interpreter's last flush
+    says nothing more)."""
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 80), 128, np.uint8))
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "fundamental", str(tmp_path / "left.png"),
+                               str(tmp_path / "right.png"), "--json"], stdout=full, stderr=subprocess.PIPE, text=True)
+    assert done.returncode == 1
+    assert done.stderr.strip() == "svs-depth fundamental: error: No space left on device: standard output"
 
 
 def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
