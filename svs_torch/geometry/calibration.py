@@ -25,18 +25,25 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..core.camera import MAX_SIZE_PX
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
 
-__all__ = ["FORMAT", "StereoCalibration", "read_calibration", "rectify_with_calibration", "rectification_grids",
-           "write_calibration"]
+__all__ = ["BASELINE_RANGE_M", "FORMAT", "StereoCalibration", "check_baseline", "read_calibration",
+           "rectify_with_calibration", "rectification_grids", "write_calibration"]
 
 #: The file's ``format`` field: a JSON file without it is not a calibration of this package.
 FORMAT = "svs-depth stereo calibration"
 FORMAT_VERSION = 1
 #: Two sizes have the same aspect ratio (a resized image of the same view) within this relative difference.
 ASPECT_TOLERANCE = 0.01
+#: The baselines a calibration file may hold, metres: a stereo rig's cameras are millimetres to a metre or two apart.
+#: A file in millimetres (a board's square given as 25 for 0.025 to an older calibrate, or another tool's T in mm)
+#: reads as an 83 m baseline and put every distance 1000 times too far, in silence (an audit's find).
+BASELINE_RANGE_M = (0.001, 2.0)
+#: The largest calibration file read, bytes (one is about 4 kB; a 1 GB file was read whole, 2.3 GB, before refused).
+MAX_FILE_BYTES = 1 << 20
 _MATRICES = {"R": (3, 3), "R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
 
 
@@ -163,7 +170,7 @@ def _matrix(record: dict, key: str, shape: tuple[int, ...], where: str) -> np.nd
     value = record.get(key)
     try:
         array = np.asarray(value, dtype=np.float64) if _numbers_only(value) else None
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer of hundreds of digits
         array = None
     if array is None or array.shape != shape or not np.isfinite(array).all():
         raise InputError(f"{where}: expected '{key}' as {'x'.join(map(str, shape))} finite numbers")
@@ -174,7 +181,7 @@ def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
     value = record.get(key)
     try:
         array = np.asarray(value, dtype=np.float64).ravel() if _numbers_only(value) else None
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         array = None
     if array is None or array.size not in (4, 5, 8, 12, 14) or not np.isfinite(array).all():
         raise InputError(f"{where}: expected '{key}' as 4, 5, 8, 12 or 14 finite distortion coefficients")
@@ -183,7 +190,10 @@ def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
 
 def _number(record: dict, key: str) -> float:
     value = record.get(key)
-    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    try:
+        return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    except OverflowError:
+        return math.nan
 
 
 def _parse(record: object, where: str) -> StereoCalibration:
@@ -199,8 +209,9 @@ def _parse(record: object, where: str) -> StereoCalibration:
         raise InputError(f"{where}: expected 'pairs' as a list of the chessboard pairs' names")
     size = record.get("image_size_wh")
     if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                              and v > 0 for v in size)):
-        raise InputError(f"{where}: expected 'image_size_wh' as [width, height], two positive integers")
+                                                              and 0 < v <= MAX_SIZE_PX for v in size)):
+        raise InputError(f"{where}: expected 'image_size_wh' as [width, height], two positive integers of at most "
+                         f"{MAX_SIZE_PX} px")
     matrices = {key: _matrix(record, key, shape, where) for key, shape in _MATRICES.items()}
     K_left, K_right = (_matrix(record, key, (3, 3), where) for key in ("K_left", "K_right"))
     T = _matrix(record, "T_m", (3,), where)
@@ -219,8 +230,18 @@ def _parse(record: object, where: str) -> StereoCalibration:
     if not (calibration.focal_px > 0 and calibration.baseline_m > 0):
         raise InputError(f"{where}: expected P1, P2 of a left-right rig (positive focal P1[0][0] and baseline "
                          f"-P2[0][3]/P2[0][0]), got {calibration.focal_px:g} px and {calibration.baseline_m:g} m")
+    check_baseline(calibration.baseline_m, where)
     _check_one_rig(calibration, record, where)
     return calibration
+
+
+def check_baseline(baseline_m: float, where: str) -> None:
+    """Refuse a baseline outside :data:`BASELINE_RANGE_M` (a file in millimetres, or a rig no walker carries)."""
+    low, high = BASELINE_RANGE_M
+    if not low <= baseline_m <= high:
+        raise InputError(f"{where}: expected a baseline of {low * 1000:g} mm to {high:g} m, got {baseline_m:.6g} m: "
+                         "a calibration in millimetres (the board's square given in mm)? Calibrate again with "
+                         "--square-m in metres")
 
 
 def _implied_q(P1: np.ndarray, P2: np.ndarray) -> np.ndarray:
@@ -273,12 +294,25 @@ def read_calibration(path: str | os.PathLike, name: str = "--calibration") -> St
                          {"missing": "no such file", "folder": "a folder"}.get(kind, "a special file"))
     try:
         with open(path, "rb") as stream:
-            record = json.loads(stream.read().decode("utf-8"))
+            text = stream.read(MAX_FILE_BYTES + 1)
     except OSError as error:
         raise InputError(f"{where}: cannot read it: {error.strerror or error}") from None
+    if len(text) > MAX_FILE_BYTES:
+        raise InputError(f"{where}: expected a calibration file of at most {MAX_FILE_BYTES >> 20} MB (svs-depth "
+                         "calibrate writes about 4 kB)")
+    if text.lstrip().startswith((b"%YAML", b"<?xml", b"<opencv_storage")):
+        raise InputError(f"{where}: an OpenCV FileStorage file (YAML/XML) is not read: expected svs-depth "
+                         "calibrate's JSON (run it on the rig's chessboard pairs)")
+    try:
+        record = json.loads(text.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as error:
         raise InputError(f"{where}: expected a JSON calibration file ({' '.join(str(error).split())[:80]})") from None
-    return _parse(record, where)
+    except RecursionError:  # lists nested thousands deep
+        raise InputError(f"{where}: expected a JSON calibration file (nested too deep to be one)") from None
+    try:
+        return _parse(record, where)
+    except RecursionError:  # deep, yet within what the JSON parser took
+        raise InputError(f"{where}: expected a calibration's fields (lists nested too deep to be one)") from None
 
 
 def rectification_grids(calibration: StereoCalibration, size_wh: tuple[int, int], dtype: torch.dtype,

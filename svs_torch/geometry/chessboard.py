@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from ..core.checks import InputError
-from .calibration import StereoCalibration
+from .calibration import StereoCalibration, check_baseline
 
 __all__ = ["BoardViews", "MAX_SQUARE_M", "MIN_PAIRS", "board_image_u8", "calibrate_stereo_rig", "collect_board_views",
            "find_board_corners", "rectified_corners"]
@@ -178,6 +178,7 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
     if calibration.baseline_m <= 0:
         raise InputError(f"{name}: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
                          "RIGHT swapped?")
+    check_baseline(calibration.baseline_m, name)  # refused here, not by every later read of the file
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
     return _with_row_error(calibration, rows_apart)

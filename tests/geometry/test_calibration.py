@@ -4,6 +4,7 @@ pairs rectified with it (checked by finding the board again in the rectified ima
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -116,6 +117,25 @@ def test_file_round_trips(rig, tmp_path):
     assert record["baseline_m"] == pytest.approx(calibration.baseline_m) and record["created_utc"]
 
 
+def _in_millimetres(record: dict) -> dict:
+    """The rig's file as an older calibrate wrote it for a square given in millimetres: T, P2's baseline term and
+    Q's in mm (one rig, consistent)."""
+    P2 = [list(row) for row in record["P2"]]
+    P2[0][3] *= 1000
+    Q = [list(row) for row in record["Q"]]
+    Q[3][2], Q[3][3] = Q[3][2] / 1000, Q[3][3] / 1000
+    return {**record, "T_m": [v * 1000 for v in record["T_m"]], "P2": P2, "Q": Q, "baseline_m": None}
+
+
+def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
+    """A 400-digit RMS (nothing reads it to rectify) ended in 'internal error: OverflowError'."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    path.write_text(json.dumps({**json.loads(path.read_text()), "rms_left_px": 10 ** 400}))
+    assert math.isnan(read_calibration(path).rms_left_px)
+
+
 @pytest.mark.parametrize("change, message", [
     (lambda r: "not json {", "expected a JSON calibration file"),
     (lambda r: {**r, "format": "other"}, "expected a JSON object with \"format\""),
@@ -133,6 +153,15 @@ def test_file_round_trips(rig, tmp_path):
     (lambda r: {**r, "baseline_m": 0.09}, "'baseline_m' 0.09 is not the 0.0831805 its P1 and P2 give"),
     (lambda r: {**r, "format_version": 99}, "expected 'format_version' 1 to 1"),
     (lambda r: {**r, "K_left": [[str(v) for v in row] for row in r["K_left"]]}, "expected 'K_left' as 3x3 finite"),
+    # Found by an audit of the rig file: each gave wrong distances in silence, an internal error or a crash.
+    (lambda r: _in_millimetres(r), "expected a baseline of 1 mm to 2 m, got 83.1805 m: a calibration in millimetres"),
+    (lambda r: {**r, "K_left": [[r["K_left"][0][0], 10 ** 400, r["K_left"][0][2]], *r["K_left"][1:]]},
+     "expected 'K_left' as 3x3 finite"),
+    (lambda r: {**r, "image_size_wh": [6400000, 4800000]},
+     r"expected 'image_size_wh' as \[width, height\], two positive integers of at most 8192 px"),
+    (lambda r: "[" * 100000 + "]" * 100000, r"expected a JSON calibration file \(nested too deep to be one\)"),
+    (lambda r: "%YAML:1.0\n---\nK1: !!opencv-matrix\n", r"an OpenCV FileStorage file \(YAML/XML\) is not read"),
+    (lambda r: " " * (1 << 20) + json.dumps(r), "expected a calibration file of at most 1 MB"),
 ])
 def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
     calibration, _ = rig
@@ -219,6 +248,9 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
     assert code == 2 and "--square-m" in stderr and "none" not in stderr
     with pytest.raises(InputError, match="--square-m: expected the side of one square in metres, over 0 and at most 1"):
         calibrate_stereo_rig(None, 25.0, (9, 6), "test", "left")
+    # A square the option takes can still make a baseline no file may hold (1 m squares: 3.3 m): refused, not written.
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "1", "--out", str(out))
+    assert code == 2 and "expected a baseline of 1 mm to 2 m, got 3.3" in stderr and not out.exists()
 
 
 def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samples, tmp_path):
