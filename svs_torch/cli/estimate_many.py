@@ -37,11 +37,16 @@ def _load_source(source, args: argparse.Namespace):
 
 def _load_entry(source, args) -> tuple[str | None, str | None, object]:
     """(status, reason, loaded pair) of one list entry: a pair to run has status None. Scenes and pairs listed
-    with a calibration keep their own; the others take the command's (or the SVS model)."""
+    with a calibration keep their own (under ``--calibration`` such a line is BAD_INPUT: it is not the rig's pair);
+    the others take the command's (or the SVS model)."""
     from ..core.errors import InputError
 
     if source.problem:
         return "BAD_INPUT", source.problem, None
+    if getattr(args, "calibration", None) and source.focal_px is not None and not source.scene:
+        from ..data.pair_list import OWN_CALIBRATION_UNDER_RIG
+
+        return "BAD_INPUT", OWN_CALIBRATION_UNDER_RIG, None
     try:
         own = source.scene or source.focal_px is not None
         loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)

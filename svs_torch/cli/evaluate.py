@@ -9,7 +9,7 @@ import time
 from .common import (add_disparity_export_options, dumps_strict, finite_float, output_path, positive_float,
                      positive_int, resolve_export_options)
 from .progress import Progress
-from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration,
+from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration, rig_provenance,
                   with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
@@ -84,7 +84,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
     parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
-    add_calibration_option(parser, "listed file pairs without their own calibration")
+    add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)")
     parser.add_argument("--db", metavar="FILE.sqlite", type=output_path,
                         help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
@@ -238,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
     _check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
-    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration)
+    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
+                      rig_provenance(args.calibration or ""))
     evaluations = []
     if not args.json:
         print(HEADER)

@@ -63,6 +63,11 @@ def calibration_file_source(args: argparse.Namespace, source) -> str | None:
     path = getattr(args, "calibration", None)
     if not path or source.scene or source.focal_px is not None:
         return None
+    return rig_provenance(path)
+
+
+def rig_provenance(path: str) -> str:
+    """How a report names the calibration of a pair ``--calibration path`` rectified (estimate and eval alike)."""
     return f"--calibration {path} (the pair rectified by it)"
 
 

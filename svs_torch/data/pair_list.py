@@ -36,13 +36,19 @@ from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
                        list_shared_pairs, load_image_pair, load_stereo_pair, scene_name)
 
-__all__ = ["PairSource", "read_pair_list", "read_pair_sources", "load_pair_source", "unique_sources",
-           "with_distinct_names"]
+__all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "read_pair_list", "read_pair_sources", "load_pair_source",
+           "unique_sources", "with_distinct_names"]
 
 #: An index.jsonl line's calibration fields, in a list line's order.
 CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
 #: What a list line may hold, for error messages.
 LINE_FORMS = "'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]' or a scene folder"
+#: A list line with its own calibration in a run rectified by ``--calibration`` (estimate --pairs, eval): the rig's
+#: settings (no F rectification, a 2 px row band) are the run's, so another camera's pair would be ranged
+#: unrectified (an audit: 0.90 m for a board at 0.33 m, said nowhere). Its status is BAD_INPUT with this reason.
+OWN_CALIBRATION_UNDER_RIG = ("--calibration: the line gives its own FOCAL_PX BASELINE_M, so it is not the rig's pair, "
+                             "and the run's settings for the rig's rectified pairs would range it unrectified; list "
+                             "it in a run without --calibration")
 
 
 @dataclass(frozen=True)

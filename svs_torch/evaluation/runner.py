@@ -24,7 +24,7 @@ from ..core.size_groups import same_size_indices
 from ..core.types import StereoBatch
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
-from ..data.pair_list import PairSource
+from ..data.pair_list import OWN_CALIBRATION_UNDER_RIG, PairSource
 from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
 from .metrics import UNRUN_STATUSES, PairEvaluation, evaluate_result, with_nominal_calibration
@@ -48,8 +48,9 @@ class EvalSetup:
             different sizes are then padded into one batch, and the pipeline runs each size apart).
         focal_px, baseline_m, doffs_px: calibration of listed file pairs that carry none (None: the SVS model).
         calibration: a rig's :class:`~svs_torch.geometry.calibration.StereoCalibration` for those pairs instead:
-            they are rectified with it and take its focal, baseline and doffs (scenes and pairs listed with a
-            calibration keep their own).
+            they are rectified with it and take its focal, baseline and doffs (scenes keep their own; a pair
+            listed with a calibration is BAD_INPUT, ``OWN_CALIBRATION_UNDER_RIG``).
+        calibration_source: how the reports name that calibration (its file), for the pairs it rectified.
     """
 
     config: PipelineConfig = PipelineConfig()
@@ -58,6 +59,7 @@ class EvalSetup:
     baseline_m: float | None = None
     doffs_px: float = 0.0
     calibration: StereoCalibration | None = None
+    calibration_source: str = "a rig's calibration (the pair rectified by it)"
 
 
 @dataclass(frozen=True)
@@ -80,17 +82,20 @@ class LoadedPair:
 
 
 def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
+    if setup.calibration is not None and source.focal_px is not None and not source.scene:
+        return LoadedPair(source, None, "BAD_INPUT", OWN_CALIBRATION_UNDER_RIG)
     try:
         batch = load_pair_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
     except (InputError, OSError) as error:
         return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
-    if setup.calibration is not None and not source.scene and source.focal_px is None:
+    origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
+    if setup.calibration is not None and not source.scene:
         try:
             batch = rectify_with_calibration(batch, setup.calibration)
         except InputError as error:
             return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
+        origin = setup.calibration_source  # was "the SVS model assumed", beside the rig's own focal and baseline
     calibrated = bool(batch.calibrated[0])
-    origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
     given = not source.scene and (setup.focal_px is not None or setup.baseline_m is not None)
     if not calibrated and batch.disparity_px is not None and not given:
         # The truth needs some f·B to have a depth (Eq. (9) does not depend on which): say so, and why.

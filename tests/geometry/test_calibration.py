@@ -327,6 +327,33 @@ def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     code, stdout, _ = run_cli(capsys, "eval", str(tmp_path / "list.txt"), "--calibration", str(path), "--json")
     row = json.loads(stdout.splitlines()[0])
     assert code == 0 and row["calibrated"] is True and row["status"] == "OK"
+    # Found by an audit: eval named the rig's metres "the SVS model assumed".
+    assert row["calibration"]["source"] == f"--calibration {path} (the pair rectified by it)"
+
+
+def test_a_listed_pair_with_its_own_calibration_is_not_ranged_by_the_rigs_settings(capsys, rig, samples, tmp_path):
+    """Found by an audit: a list line with its own FOCAL_PX BASELINE_M is another camera's pair, yet under
+    --calibration it ran with the rig's settings (no rectification from F, a 2 px row band): unrectified, 0.90 m for
+    the board at 0.33 m, and nothing said. Now BAD_INPUT with the reason, in estimate --pairs and eval alike; the
+    rig's own pairs of the same list are ranged."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    left, right = str(samples / "left01.jpg"), str(samples / "right01.jpg")
+    listed = tmp_path / "list.txt"
+    listed.write_text(f"{left} {right} {calibration.focal_px} {calibration.baseline_m}\n{left} {right}\n")
+    for command in ("estimate", "eval"):
+        argv = ["--pairs", str(listed)] if command == "estimate" else [str(listed)]
+        code, stdout, stderr = run_cli(capsys, command, *argv, "--calibration", str(path), "--size", "320x240",
+                                       "--json")
+        own, rigs = (json.loads(line) for line in stdout.splitlines()[:2])
+        assert own["status"] == "BAD_INPUT" and rigs["status"] == "OK", command
+        # estimate --pairs ends a list with a bad entry as an error (every line printed first); eval scores it 0 %
+        assert code == (2 if command == "estimate" else 0) and ("1 of 2 pairs are BAD_INPUT" in stderr) == (code == 2)
+        assert own["reason"].startswith("--calibration: the line gives its own FOCAL_PX BASELINE_M"), command
+    # Without --calibration the same line is rectified from its F, as before.
+    code, stdout, _ = run_cli(capsys, "estimate", "--pairs", str(listed), "--size", "320x240", "--json")
+    assert code == 0 and json.loads(stdout.splitlines()[0])["status"] == "OK"
 
 
 def test_epipolar_lines_are_spread_over_the_rows():
