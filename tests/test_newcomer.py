@@ -59,6 +59,22 @@ def test_the_binary_panel_names_what_made_it(segmenter, method, words):
     assert title.startswith(words) and ("Otsu" in title) == (segmenter == "otsu" and method == "otsu")
 
 
+@pytest.mark.parametrize("segmenter", ["nearness", "otsu"])
+def test_the_right_binary_panel_of_the_nearness_segmenter_says_it_is_the_lefts_regions_moved(monkeypatch, segmenter):
+    """Found by an audit of the figures: the right view's mask, the left's kept regions shifted by their disparity,
+    was titled as a threshold of the right image ("binary (nearness segmenter, p > 0.50) + opening")."""
+    import svs_torch.plotting.figures as figures
+
+    titles = []
+    monkeypatch.setattr(figures, "titled_panel", lambda panel, title: titles.append(title) or panel)
+    batch = random_obstacle_scenes(1, 2, size_wh=(160, 120), generator=torch.Generator().manual_seed(3)).batch
+    stereo = segment_pair(batch, SegmentationConfig(segmenter=segmenter))
+    figures.segmentation_panels(batch.left, stereo.left, 0, "left", segmenter)
+    figures.segmentation_panels(batch.right, stereo.right, 0, "right", segmenter)
+    moved = "right mask: the left's kept regions moved by their disparity"
+    assert titles[1].startswith("left binary (") and (titles[4] == moved) == (segmenter == "nearness")
+
+
 def test_a_pair_named_only_by_its_view_takes_the_scene_folder_name():
     assert pair_name("/data/middlebury_eval3_Q/Teddy/im0.png") == "Teddy"
     assert pair_name("/data/middlebury_2003_quarter/Cones/imL.png") == "Cones"

@@ -142,9 +142,14 @@ def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side
     :func:`binary_title`), the kept objects."""
     mask = seg.opened[index, 0].to(image.dtype)
     num_kept = int((seg.kept_labels[index] >= 0).sum())
+    made = binary_title(seg, index, segmenter, method)
+    if side == "right" and segmenter.split(":", 1)[0] == "nearness":
+        # The nearness segmenter thresholds the left view only; the right's mask is the left's kept regions moved
+        # by their disparity (an audit: one region under a "binary ... + opening" title beside the left's four).
+        made = "mask: the left's kept regions moved by their disparity"
     return [
         titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
-        titled_panel(gray_to_bgr(mask), f"{side} {binary_title(seg, index, segmenter, method)}"),
+        titled_panel(gray_to_bgr(mask), f"{side} {made}"),
         titled_panel(objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
     ]
 
