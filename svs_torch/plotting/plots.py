@@ -124,8 +124,7 @@ def _true_object_depths(batch, seg, index: int) -> dict[int, float]:
 
 
 def _objects_axis(ax, batch, result, index: int, width_in: float) -> dict[int, float]:
-    """The kept objects tinted and boxed, each labelled with its median depth (and true depth). Returns the true
-    depths shown."""
+    """The kept objects tinted and boxed, each labelled with its median (and true) depth; returns the true depths."""
     height, width = (int(v) for v in batch.image_hw[index].tolist())
     seg = result.segmentation.left
     panel = objects_panel(batch.left, seg, index)[:height, :width]
@@ -289,21 +288,19 @@ def true_nearest_obstacle(batch, result, index: int) -> NearestTruth | None:
 def _nearest_summary(result, index: int, truth: dict[int, float], true_nearest: NearestTruth | None) -> list[str]:
     """The title's parts about the nearest obstacle. The one the pipeline ranges nearest is "the nearest obstacle"
     only where no truth says otherwise; where the truly nearest one is known to be another (or not known to be
-    it), it is "the nearest kept obstacle", and the true nearest distance follows, with whether it was kept."""
+    it), it is "the nearest kept obstacle", and the true nearest distance follows, with whether it was kept. Its
+    "true" is its own median (its label's); a truly nearer part its fatter region holds is named apart."""
     nearest = result.depth.nearest
     slot = int(nearest.slot[index]) if nearest is not None and bool(nearest.valid[index]) else None
     is_nearest = true_nearest is None or (slot is not None and true_nearest.kept_slot == slot)
     parts = []
     if slot is not None:
-        # The object's own true median, as its label gives it (an audit: the title gave the nearer truth region's
-        # 1.72 m inside an object labelled "true 2.00 m", a 16 % error that was not there).
         true_m = truth.get(slot, true_nearest.depth_m if true_nearest is not None and is_nearest else None)
         true = f", true {true_m:.2f} m" if true_m is not None else ""
         name = "nearest obstacle" if is_nearest else "nearest kept obstacle"
         parts.append(f"{name} {float(nearest.depth_m[index]):.2f} m{true} (nearest surface "
                      f"{float(nearest.surface_m[index]):.2f} m)")
-        if is_nearest and true_nearest is not None and true_m is not None and true_nearest.depth_m < true_m * (
-                1 - NEARER_MARGIN):  # the kept region is fatter than the truth's nearer obstacle, which it holds
+        if is_nearest and true_nearest is not None and true_nearest.depth_m < (true_m or 0) * (1 - NEARER_MARGIN):
             parts.append(f"the truly nearest part of it {true_nearest.depth_m:.2f} m")
     if not is_nearest:
         depth, kept_slot = true_nearest
@@ -360,10 +357,9 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
 
 
 def estimate_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None) -> np.ndarray:
-    """The pipeline on pair ``index`` as a uint8 BGR image: the kept objects with their median depths (and true
-    depths), the dense depth map with a colour bar in metres (and the ground truth on the same scale when the
-    batch has it), and the matches with a legend (RANSAC inliers green, outliers red). ``true_nearest``: as
-    :func:`pipeline_figure`'s."""
+    """The pipeline on pair ``index`` as a uint8 BGR image: the kept objects with their median (and true) depths,
+    the dense depth map with a colour bar in metres (the ground truth on the same scale where the batch has it), and
+    the matches with a legend (RANSAC inliers green, outliers red). ``true_nearest``: as :func:`pipeline_figure`'s."""
     return render(pipeline_figure(batch, result, index, true_nearest=true_nearest))
 
 
