@@ -38,10 +38,13 @@ FORMAT = "svs-depth stereo calibration"
 FORMAT_VERSION = 1
 #: Two sizes have the same aspect ratio (a resized image of the same view) within this relative difference.
 ASPECT_TOLERANCE = 0.01
-#: The baselines a calibration file may hold, metres: a stereo rig's cameras are millimetres to a metre or two apart.
-#: A file in millimetres (a board's square given as 25 for 0.025 to an older calibrate, or another tool's T in mm)
-#: reads as an 83 m baseline and put every distance 1000 times too far, in silence (an audit's find).
+#: The baselines a calibration file may hold, metres. A file in millimetres (a square given as 25 for 0.025 to an
+#: older calibrate) read as an 83 m baseline: every distance 1000 times too far, in silence (an audit's find).
 BASELINE_RANGE_M = (0.001, 2.0)
+#: The least share of each rectified view read inside its raw image. calibrate's (``cv2.stereoRectify``, alpha 0):
+#: 100 %; hand edits, in silence (an audit): a doubled image_size_wh 68 % (0.31 m for 0.39), k1 = 2 49 % (0.94 m),
+#: a huge distortion 0 % (black views: NO_OBJECTS, a clear path to a walker).
+MIN_IN_VIEW_SHARE = 0.9
 #: The largest calibration file read, bytes (one is about 4 kB; a 1 GB file was read whole, 2.3 GB, before refused).
 MAX_FILE_BYTES = 1 << 20
 _MATRICES = {"R": (3, 3), "R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
@@ -189,11 +192,9 @@ def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
 
 
 def _number(record: dict, key: str) -> float:
-    value = record.get(key)
-    try:
-        return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
-    except OverflowError:
-        return math.nan
+    value = record.get(key)  # an integer beyond a float's range (400 digits) is as unknown as a string
+    number = isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= 1e300
+    return float(value) if number else math.nan
 
 
 def _parse(record: object, where: str) -> StereoCalibration:
@@ -232,7 +233,32 @@ def _parse(record: object, where: str) -> StereoCalibration:
                          f"-P2[0][3]/P2[0][0]), got {calibration.focal_px:g} px and {calibration.baseline_m:g} m")
     check_baseline(calibration.baseline_m, where)
     _check_one_rig(calibration, record, where)
+    _check_maps_in_view(calibration, where)
     return calibration
+
+
+def _check_maps_in_view(calibration: StereoCalibration, where: str) -> None:
+    """Refuse a lens centre far from the image's, or maps reading under :data:`MIN_IN_VIEW_SHARE` inside it."""
+    import cv2
+
+    width, height = calibration.image_wh
+    for key in ("K_left", "K_right"):  # a lens's centre lies near the sensor's (an image size halved: at its corner)
+        cx, cy = getattr(calibration, key)[:2, 2]
+        if not (0.2 * width < cx < 0.8 * width and 0.2 * height < cy < 0.8 * height):
+            raise InputError(f"{where}: '{key}' puts the lens centre at ({cx:.0f}, {cy:.0f}) px, far from the middle "
+                             f"of its {width}x{height} image: a K or image_size_wh of another resolution?")
+    small = (320, max(1, round(320 * height / width)))
+    keeps_aspect = abs(small[1] * width / (small[0] * height) - 1) < ASPECT_TOLERANCE  # else the file's own size
+    checked = calibration.scaled_to(small) if width > small[0] and keeps_aspect else calibration
+    width, height = checked.image_wh
+    for side, K, dist, R, P in (("left", checked.K_left, checked.dist_left, checked.R1, checked.P1),
+                                ("right", checked.K_right, checked.dist_right, checked.R2, checked.P2)):
+        map_x, map_y = cv2.initUndistortRectifyMap(K, dist, R, P, (width, height), cv2.CV_32FC1)
+        inside = float(((map_x >= -0.5) & (map_x <= width - 0.5) & (map_y >= -0.5) & (map_y <= height - 0.5)).mean())
+        if not inside >= MIN_IN_VIEW_SHARE:
+            raise InputError(f"{where}: its {side} camera's K, distortion and image_size_wh rectify only "
+                             f"{100 * inside:.0f} % of the view from inside the image (calibrate's: all of it); "
+                             "calibrate again rather than edit them")
 
 
 def check_baseline(baseline_m: float, where: str) -> None:

@@ -162,6 +162,12 @@ def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
     (lambda r: "[" * 100000 + "]" * 100000, r"expected a JSON calibration file \(nested too deep to be one\)"),
     (lambda r: "%YAML:1.0\n---\nK1: !!opencv-matrix\n", r"an OpenCV FileStorage file \(YAML/XML\) is not read"),
     (lambda r: " " * (1 << 20) + json.dumps(r), "expected a calibration file of at most 1 MB"),
+    # Hand edits of K, the distortion or the image size, which no other part checks: wrong distances in silence.
+    (lambda r: {**r, "image_size_wh": [1280, 960]}, "its left camera's K, distortion and image_size_wh rectify only "
+                                                    "68 % of the view from inside the image"),
+    (lambda r: {**r, "dist_left": [2.0, *r["dist_left"][1:]]}, "its left camera's .* rectify only 49 %"),
+    (lambda r: {**r, "dist_right": [1e30, *r["dist_right"][1:]]}, "its right camera's .* rectify only 0 %"),
+    (lambda r: {**r, "image_size_wh": [320, 240]}, r"'K_left' puts the lens centre at \(342, 234\) px, far from"),
 ])
 def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
     calibration, _ = rig
