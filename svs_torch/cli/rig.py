@@ -43,6 +43,12 @@ def calibration_from_args(args: argparse.Namespace):
 
         cached = (path, read_calibration(path, "--calibration"))
         vars(args)["_calibration_read"] = cached
+        if getattr(args, "emulator", False):  # said once, as the file is read once (an audit: guide's obstacle gone)
+            import warnings
+
+            warnings.warn("--calibration with --emulator: the emulator renders an ideal SVS rig whose rows already "
+                          "align, and a real rig's rectification warps its frames: their distances mean nothing "
+                          "(the option is for the boards themselves)", stacklevel=2)
     return cached[1]
 
 

@@ -389,6 +389,9 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
                            str(out), "--calibration", str(path))  # the rig's aspect ratio at a quarter of its size
     assert code == 0 and "--calibration" in err
+    # Found by an audit: the emulator's ideal rig warped by a real rig's maps lost its obstacle, unsaid.
+    warning = "warning: --calibration with --emulator: the emulator renders an ideal SVS rig"
+    assert err.count(warning) == 1
     np.testing.assert_array_equal(read_calibration(out / "calibration.json").P2, calibration.P2)
     code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--out-dir", str(tmp_path / "other"),
                            "--size", "1280x1024", "--calibration", str(path))
@@ -398,6 +401,7 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
                                 "--json", "--calibration", str(path))
     line = json.loads(stdout.splitlines()[0])
     assert code == 0 and line["calibration_rectified"] is True and line["calibration"]["measured"] is True, err
+    assert err.count(warning) == 1
     # --record keeps the rig's calibration beside the pairs, as capture does, and the replay command names that
     # copy (found by an audit: the folder held only the pairs, the command the original's relative path).
     record = tmp_path / "walk"
