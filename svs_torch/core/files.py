@@ -71,6 +71,8 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
     folder must exist, the path must not be a folder, and with ``suffixes`` its ending must be one of them
     (``kinds`` says which in the message, e.g. ``"a .png, .pdf or .svg"``). Checked before any work starts."""
     check_path_given(path, name)
+    if str(path).endswith(("/", os.sep)):  # Path() drops it: 'x.png/' wrote x.png and was reported as 'x.png/'
+        raise InputError(f"{name}: expected a file name, got {display_path(path)!r}, which ends as a folder does")
     target = Path(path)
     kind = path_kind(target, name)
     if kind == "folder":

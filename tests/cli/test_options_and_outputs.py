@@ -146,6 +146,17 @@ def test_a_full_standard_output_is_named_as_the_process_meets_it(tmp_path):
     assert done.stderr.strip() == "svs-depth fundamental: error: No space left on device: standard output"
 
 
+def test_an_output_file_name_that_ends_as_a_folder_is_refused(capsys, tmp_path):
+    """Found by an audit of the figures: --figure x.png/ wrote x.png and reported 'written to x.png/'."""
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), np.full((64, 80), 128, np.uint8))
+    figure = f"{tmp_path / 'x.png'}/"
+    code, _, err = run_cli(capsys, "segment", str(tmp_path / "left.png"), str(tmp_path / "right.png"), "--figure",
+                           figure)
+    assert code == 2 and f"--figure: expected a file name, got '{figure}', which ends as a folder does" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["left.png", "right.png"]
+
+
 def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
     """A blank pair has no matches: its F is null (text: "no F"), not a zero matrix that reads as a result."""
     for name in ("left.png", "right.png"):
