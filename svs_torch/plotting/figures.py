@@ -38,14 +38,21 @@ def gray_to_bgr(gray: torch.Tensor) -> np.ndarray:
 
 
 def _wrap(text: str, width_px: int, scale: float) -> list[str]:
-    """Greedy word wrap of ``text`` so that each line is at most ``width_px`` wide at font ``scale``."""
+    """Greedy word wrap of ``text`` so that each line is at most ``width_px`` wide at font ``scale``; a word wider
+    than that is broken (a 24 px panel clipped 'image' to 'imag': an audit's find), down to one character a line."""
+    def fits(line: str) -> bool:
+        return cv2.getTextSize(line, _FONT, scale, 1)[0][0] <= width_px
+
     lines: list[str] = []
     for word in text.split():
-        candidate = f"{lines[-1]} {word}" if lines else word
-        if lines and cv2.getTextSize(candidate, _FONT, scale, 1)[0][0] <= width_px:
-            lines[-1] = candidate
-        else:
-            lines.append(word)
+        if lines and fits(f"{lines[-1]} {word}"):
+            lines[-1] = f"{lines[-1]} {word}"
+            continue
+        while len(word) > 1 and not fits(word):
+            cut = max([k for k in range(1, len(word)) if fits(word[:k])], default=1)
+            lines.append(word[:cut])
+            word = word[cut:]
+        lines.append(word)
     return lines or [""]
 
 

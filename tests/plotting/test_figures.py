@@ -145,6 +145,20 @@ def test_pipeline_figure_titles_fit_at_any_aspect(size_hw):
     assert max(render(figure).shape[:2]) <= 2000  # a tall or wide pair does not make a huge page
 
 
+@pytest.mark.parametrize("width", [24, 60, 320])
+def test_a_title_wider_than_a_tiny_panel_is_wrapped_and_broken_never_clipped(width):
+    """Found by an audit of the figures: at `demo --size 24x18` one-word lines were clipped mid-word ('imag',
+    'binar'). Every line of the strip now fits the panel, and the words read back whole in order."""
+    import svs_torch.plotting.figures as figures
+
+    title = "left binary (nearness segmenter, p > 0.50) + opening"
+    scale = 0.45 if width >= 160 else 0.35
+    lines = figures._wrap(title, width - 8, scale)
+    assert all(cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] <= width - 8 for line in lines)
+    assert "".join(lines).replace(" ", "") == title.replace(" ", "")
+    assert figures.titled_panel(np.zeros((18, width, 3), np.uint8), title).shape[1] == width
+
+
 def test_matches_figure_has_a_legend_for_inliers_and_outliers(scene):
     batch, result = scene
     keypoints = result.features_left.keypoints
