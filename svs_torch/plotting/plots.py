@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from .figures import LABEL_PAD_POINTS, depth_label_y, objects_panel
+from .figures import LABEL_PAD_POINTS, objects_panel, place_depth_labels
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
 
@@ -130,18 +130,17 @@ def _objects_axis(ax, batch, result, index: int, width_in: float) -> dict[int, f
     panel = objects_panel(batch.left, seg, index)[:height, :width]
     ax.imshow(cv2.cvtColor(panel, cv2.COLOR_BGR2RGB), interpolation="nearest")
     objects = result.depth.objects
-    truth = _true_object_depths(batch, seg, index)
+    truth, labels = _true_object_depths(batch, seg, index), []
     for slot, label in enumerate(seg.kept_labels[index].tolist()):
         if label < 0 or not (bool(objects.valid[index, slot]) or slot in truth):
             continue
         estimate = (f"{float(objects.depth_median_m[index, slot]):.2f} m" if bool(objects.valid[index, slot])
                     else "no depth")
         true = f"\ntrue {truth[slot]:.2f} m" if slot in truth else ""
-        cx, cy = seg.regions.centroid_xy[index, label - 1].tolist()
         top = float(seg.regions.bbox_xyxy[index, label - 1, 1])
-        ax.text(cx, depth_label_y(cy, top, 2 if true else 1, (height, width), width_in),
-                f"#{slot + 1}: {estimate}{true}", color="white", fontsize=9, ha="center", va="center",
-                bbox=LABEL_BOX, clip_on=True)
+        labels.append((*seg.regions.centroid_xy[index, label - 1].tolist(), top, f"#{slot + 1}: {estimate}{true}"))
+    for (x, y), (*_, text) in zip(place_depth_labels(labels, (height, width), width_in), labels):
+        ax.text(x, y, text, color="white", fontsize=9, ha="center", va="center", bbox=LABEL_BOX, clip_on=True)
     _title(ax, "left: kept objects, median depth" + (" (and true depth)" if truth else ""), width_in)
     ax.set_axis_off()
     return truth

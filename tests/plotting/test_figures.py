@@ -19,8 +19,8 @@ from svs_torch.cli import main
 from svs_torch.core.errors import InputError
 from svs_torch.core.files import atomic_output, path_kind, write_bytes_atomic
 from svs_torch.data.synthetic import random_obstacle_scenes
-from svs_torch.plotting.figures import (AREA_LABEL_ROWS, depth_label_y, labels_image, objects_panel,
-                                        write_image_atomic)
+from svs_torch.plotting.figures import (AREA_LABEL_ROWS, LABEL_PAD_POINTS, depth_label_y, labels_image,
+                                        objects_panel, write_image_atomic)
 from svs_torch.plotting.plots import matches_figure, pipeline_figure, render
 
 
@@ -125,6 +125,30 @@ def test_a_depth_label_leaves_the_area_label_of_a_short_region_readable():
     half = moved - (88.0 + AREA_LABEL_ROWS)
     assert 5.0 < half < 20.0  # two lines of 9 pt, about 27 px on a 320 px panel 4.2 in wide
     assert depth_label_y(235.0, 230.0, 2, size_hw, width_in) == pytest.approx(240 - half)  # kept inside
+
+
+def test_depth_labels_are_kept_apart_and_inside_the_panel():
+    """Found by an audit of the figures: two objects' labels at nearly one place covered each other (PianoL), and
+    a label at the left edge was cut ('e 2.60 m'). Boxes estimated as place_depth_labels does: none overlaps, each
+    inside the panel."""
+    from svs_torch.plotting.figures import place_depth_labels
+
+    size_hw, width_in = (240, 320), 4.2
+    labels = [(160.0, 120.0, 60.0, "#1: 1.94 m\ntrue 1.96 m"), (165.0, 125.0, 70.0, "#2: 1.89 m\ntrue 1.96 m"),
+              (2.0, 200.0, 190.0, "#3: no depth\ntrue 2.60 m"), (170.0, 118.0, 60.0, "#4: 3.10 m")]
+    centres = place_depth_labels(labels, size_hw, width_in)
+    points_to_px = 320 / (72 * width_in)
+    boxes = []
+    for (x, y), (*_, text) in zip(centres, labels):
+        rows = text.split("\n")
+        half_w = (max(map(len, rows)) * 9 * 0.6 + 2 * LABEL_PAD_POINTS) * points_to_px / 2
+        half_h = (len(rows) * 9 * 1.25 + 2 * LABEL_PAD_POINTS) * points_to_px / 2
+        assert half_w <= x <= 320 - half_w and half_h <= y <= 240 - half_h, text
+        boxes.append((x - half_w, y - half_h, x + half_w, y + half_h))
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)
+    assert centres[0] == (160.0, 120.0)  # the first stays on its centroid
 
 
 def test_pipeline_figure_without_ground_truth_has_no_truth_panel():
