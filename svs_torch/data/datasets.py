@@ -238,7 +238,7 @@ def scene_calibration_source(path: str | Path) -> str:
     if layout in ("2005_2006", "aloe"):
         return "Middlebury 2005/2006 nominal f and B assumed: no calibration shipped, dmin unknown"
     if layout == "2003" and path.name == "Teddy":
-        return "MiddEval3 trainingQ/Teddy/calib.txt, the same images"
+        return "MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view"
     if layout == "kitti":
         return "KITTI nominal values for the image width assumed: no calib file shipped"
     return "the SVS model assumed: no calibration shipped"

@@ -33,8 +33,9 @@ _MIDDLEBURY_2005_FULL_WIDTHS_PX = (1240, 1396)
 # Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
 # ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
 MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
-# MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same images and
-# scale as the 2003 quarter-size Teddy (its GT agrees with disp0GT.pfm to a median difference of 0 px).
+# MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same scene, view and
+# scale as the 2003 quarter-size Teddy (not the same files: 2 % of the pixels differ by over 5 levels; the GT agrees
+# with disp0GT.pfm to a median difference of 0 px, 0.5 % over 1 px).
 _TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0}
 
 
@@ -113,10 +114,10 @@ def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float
     """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
 
     No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
-    baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same images at the same 450×375
-    scale (the GT maps agree, median difference 0 px), so the values hold here; note they are Middlebury's own
-    round, nominal numbers, as trusted as eval3/Teddy's and no more. Other scenes (Cones) get the SVS nominal
-    focal and baseline and calibrated False.
+    baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same scene and view at the same
+    450×375 scale (the GT maps agree, median difference 0 px; the image files differ a little), so the values
+    hold here; note they are Middlebury's own round, nominal numbers, as trusted as eval3/Teddy's and no more.
+    Other scenes (Cones) get the SVS nominal focal and baseline and calibrated False.
     """
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
