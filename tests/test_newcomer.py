@@ -3,6 +3,8 @@ configuration, option aliases, one TOML format, normalised paths, an old results
 
 from __future__ import annotations
 
+import math
+
 import sqlite3
 import warnings
 from pathlib import Path
@@ -85,7 +87,8 @@ def test_a_pair_named_only_by_its_view_takes_the_scene_folder_name():
 
 def _store(path: Path, values_by_config: dict[str, list[float]], left: str = "scenes/x/../Teddy") -> ResultStore:
     store = ResultStore(path)
-    store.add_pairs([PairSource(left=f"{left}{i}", scene=True) for i in range(3)])
+    store.add_pairs([PairSource(left=f"{left}{i}", scene=True)
+                     for i in range(max(3, *map(len, values_by_config.values())))])
     run = store.start_run("test", "v", {}, "")
     for number, (label, values) in enumerate(values_by_config.items()):
         config = make_sweep_config("default", {"segmentation.kernel_size": 3 + 2 * number}, None, label)
@@ -121,6 +124,30 @@ def test_results_figure_zooms_keeps_the_legend_off_the_bars_and_leaves_no_empty_
         # One swept parameter and the bars: one row of two panels side by side, no third (blank) one.
         assert len(figure.axes) == 2 and bars.get_position().x0 > params.get_position().x1
         assert bars.get_position().y0 == pytest.approx(params.get_position().y0, abs=0.05)
+    finally:
+        plt.close(figure)
+
+
+def test_results_bars_of_many_scenes_take_a_row_as_wide_as_their_names_need(tmp_path):
+    """Found by an audit of the figures: a sweep over 40 scenes drew their 40 names over each other in a 5.2 in
+    panel beside the parameter's. Now the bars take a row of their own, at least 0.22 in a scene, and no two tick
+    labels overlap."""
+    import matplotlib.pyplot as plt
+
+    values = [90.0 + (i % 9) for i in range(40)]
+    with _store(tmp_path / "many.sqlite", {"a": values, "b": values[::-1]}) as store:
+        figure = results_figure(store)
+    try:
+        params, bars = figure.axes
+        assert bars.get_position().y1 < params.get_position().y0  # a row of its own, under the parameter's
+        assert bars.get_position().width * figure.get_figwidth() >= 0.22 * 40 - 0.5
+        figure.canvas.draw()
+        renderer = figure.canvas.get_renderer()
+        boxes = [label.get_window_extent(renderer) for label in bars.get_xticklabels()]
+        assert len(boxes) == 40
+        # 7 pt names turned 60° clear each other where their ends lie a text height / sin 60° apart along x
+        apart_px = 7 * figure.dpi / 72 / math.sin(math.radians(60))
+        assert all(b.x1 - a.x1 >= apart_px for a, b in zip(boxes, boxes[1:]))
     finally:
         plt.close(figure)
 
