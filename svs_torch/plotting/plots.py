@@ -8,8 +8,7 @@ scale, with each object's true median depth next to the estimated one. The title
 obstacle's distance where it is known (:func:`true_nearest_obstacle`, or the caller's :class:`NearestTruth`) and
 says when no kept region holds it: the obstacle the pipeline ranges nearest is then the "nearest kept obstacle".
 
-Figures are for people; nothing here feeds back into the pipeline or is differentiable. matplotlib is imported
-inside the functions so that ``svs-depth --help`` stays fast.
+Figures are for people: nothing here feeds the pipeline or is differentiable; matplotlib loads on first use.
 """
 
 from __future__ import annotations
@@ -132,7 +131,7 @@ def _objects_axis(ax, batch, result, index: int, width_in: float) -> dict[int, f
     objects = result.depth.objects
     truth, labels = _true_object_depths(batch, seg, index), []
     for slot, label in enumerate(seg.kept_labels[index].tolist()):
-        if label < 0 or not (bool(objects.valid[index, slot]) or slot in truth):
+        if label < 0:  # a kept object without depth or truth is labelled too (it was left bare: an audit)
             continue
         estimate = (f"{float(objects.depth_median_m[index, slot]):.2f} m" if bool(objects.valid[index, slot])
                     else "no depth")
@@ -348,7 +347,9 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
                   index, f"matches (the kept regions bright): {int(result.num_keypoints[index, 0])} + "
                          f"{int(result.num_keypoints[index, 1])} keypoints, {int(result.num_matches[index])} matches",
                   match_w)
-    status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule"
+    kept = result.verified is not None and bool((seg.left.kept_labels[index] > 0).any())  # the text's rule
+    status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule" + (
+        "; geometry not verified (the text says why)" if kept and not bool(result.verified[index]) else "")
     summary = "; ".join([*_nearest_summary(result, index, truth, true_nearest), status])
     name = batch.names[index] if batch.names else ""
     figure.suptitle(textwrap.fill(f"{name + ': ' if name else ''}{summary}", int(match_w * 11)), fontsize=11)

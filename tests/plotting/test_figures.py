@@ -311,3 +311,22 @@ def test_estimate_on_a_scene_folder_draws_its_ground_truth(data_dir, tmp_path, c
     assert main(["estimate", str(scene), "--focal-px", "300"]) == 2
     assert capsys.readouterr().err.endswith("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder "
                                             "brings its own calibration\n")
+
+
+def test_a_pair_left_unverified_says_so_and_labels_each_kept_object():
+    """Found by an audit of the figures: on mismatched views (RANSAC found no geometry) the title gave only the
+    status while the text said 'geometry not verified', and kept objects with neither a depth nor a truth were
+    left without a label. Now the title says it and each kept object reads '#k: no depth'."""
+    generator = torch.Generator().manual_seed(4)
+    first, second = (random_obstacle_scenes(1, n, size_wh=(320, 240), generator=generator).batch for n in (4, 2))
+    mismatched = dataclasses.replace(first, right=second.right, disparity_px=None, disparity_valid=None)
+    from svs_torch import PipelineConfig, SegmentationConfig
+
+    config = PipelineConfig(segmentation=SegmentationConfig(segmenter="otsu"))
+    result = estimate_obstacle_depth(mismatched, config)
+    assert not bool(result.verified[0]) and bool((result.segmentation.left.kept_labels[0] > 0).any())
+    figure = pipeline_figure(mismatched, result, 0)
+    assert "geometry not verified" in figure._suptitle.get_text().replace("\n", " ")
+    texts = [t.get_text() for t in figure.axes[0].texts]
+    kept = int((result.segmentation.left.kept_labels[0] > 0).sum())
+    assert len(texts) == kept and all(t.startswith(f"#{k + 1}: ") for k, t in enumerate(texts))
