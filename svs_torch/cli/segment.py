@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_figure_option, check_outputs_apart, dumps_strict, options_named, positive_int
+from .common import (add_figure_option, check_outputs_apart, dumps_strict, options_named, positive_int,
+                     too_small_reason)
 
 HELP = "segment the obstacles of a stereo pair (what estimate keeps; --preset paper: Otsu, largest regions)"
 
@@ -230,6 +231,8 @@ def image_report(seg, index: int) -> dict:
 
 def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]:
     """Human-readable lines for one image's report."""
+    if report["status"] == "TOO_SMALL":
+        return [f"{side}: status TOO_SMALL: {report['reason']}; nothing segmented"]
     rule = (f"Otsu threshold {report['threshold']}/255" if segmenter == "otsu"
             else f"{segmenter} segmenter, obstacle probability above {report['threshold'] / 255:.2f}")
     if report["status"] == "UNIFORM_IMAGE":  # its threshold and its one "region" (the whole image) mean nothing
@@ -261,14 +264,18 @@ def run(args: argparse.Namespace) -> int:
                             [("left image", args.left), ("right image", args.right)])
     batch = load_image_pair(args.left, args.right)
     started = time.perf_counter()
-    seg = segment_pair(batch, config)
+    reason = too_small_reason(batch.size_hw)  # as estimate and features: no segmentation of a 320x1 pair
+    seg = segment_pair(batch, config) if reason is None else None
     elapsed = time.perf_counter() - started
-    if args.figure:
+    if reason is not None:
+        left = right = {"threshold": None, "status": "TOO_SMALL", "reason": reason, "num_regions": 0, "objects": []}
+    elif args.figure:
         figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left", config.segmenter, config.method),
                                segmentation_panels(batch.right, seg.right, 0, "right", config.segmenter,
                                                    config.method)])
         write_image_atomic(args.figure, figure, args.figure_option)
-    left, right = image_report(seg.left, 0), image_report(seg.right, 0)
+    if seg is not None:
+        left, right = image_report(seg.left, 0), image_report(seg.right, 0)
     if args.json:
         height, width = batch.size_hw
         print(dumps_strict({
@@ -282,5 +289,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         for line in format_report("left", left, config.segmenter) + format_report("right", right, config.segmenter):
             print(line)
-        print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.figure}" if args.figure else ""))
+        print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.figure}" if args.figure and seg
+                                                        else "; no figure written" if args.figure else ""))
     return 0

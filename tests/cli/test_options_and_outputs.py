@@ -223,6 +223,24 @@ def test_a_blank_pair_keeps_no_region(capsys, tmp_path):
             "left: status UNIFORM_IMAGE, one level everywhere: nothing to segment", "  no object kept"]
 
 
+def test_segment_calls_a_pair_too_small_as_estimate_does(capsys, tmp_path):
+    """Found by an audit of the figures: segment 'found' obstacles in a 320x1 pair (status OK) and drew them, where
+    estimate and features say TOO_SMALL. Now segment says TOO_SMALL too and writes no figure (exit 0)."""
+    rng = np.random.default_rng(0)
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), rng.integers(0, 256, (1, 320), dtype=np.uint8))
+    left, right, figure = str(tmp_path / "left.png"), str(tmp_path / "right.png"), tmp_path / "fig.png"
+    code, out, _ = run_cli(capsys, "segment", left, right, "--json", "--figure", str(figure))
+    report = json.loads(out)
+    assert code == 0 and not figure.exists()
+    for side in ("left", "right"):
+        assert report[side]["status"] == "TOO_SMALL" and report[side]["objects"] == []
+        assert report[side]["reason"] == "image 320x1 is smaller than 5x5 pixels"
+    code, out, _ = run_cli(capsys, "segment", left, right)
+    assert code == 0 and out.splitlines()[0] == ("left: status TOO_SMALL: image 320x1 is smaller than 5x5 pixels; "
+                                                 "nothing segmented")
+
+
 def test_max_keypoints_option_states_its_own_range(capsys):
     """The parser writes the detector's cap out (it must not wait for torch): the two stay equal, and 0, which
     the option refuses, is not offered in its message."""
