@@ -4,9 +4,10 @@ runs.
 The warning rule follows the paper's use case (a walker warned of obstacles 1–2 m ahead): a distance inside
 the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
 obstacle) silence. A message is not repeated more often than every ``repeat_s`` seconds unless the distance
-moved to another class than the one last spoken (a return to it after a frame of silence is not a new class). A
-more urgent class is taken at once; a less urgent one only when the distance is past the edge by
-``hysteresis_m``, so a distance hovering on an edge does not flap. Each frame's distance is first
+moved to a more urgent class than the one last spoken (a return to it after a frame of silence is not a new
+class; after a confirmed clear spell of ``CLEAR_SPELL_S`` it is). A more urgent class is taken at once; a less
+urgent one only when the distance is past the edge by ``hysteresis_m``, so a distance hovering on an edge does
+not flap. Each frame's distance is first
 confirmed by the frames before it: the rule takes the median of the last ``confirm_frames`` (a frame with no
 obstacle counts as farther than any), so one camera frame ranged wrong by its noise neither raises a warning nor
 drops one, at the cost of a new obstacle being warned of ``confirm_frames // 2`` frames later
@@ -26,10 +27,11 @@ from typing import TextIO
 
 from ..core.checks import InputError
 from ..core.files import stream_is_terminal
+from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
 
-__all__ = ["CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once", "FpsMeter", "LiveGuide",
-           "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR", "WARN", "STOP",
-           "UNSEEN"]
+__all__ = ["CLEAR_SPELL_S", "CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once",
+           "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR",
+           "WARN", "STOP", "UNSEEN"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 #: What guide reports instead of ``clear`` for a pair it could not measure (no obstacle kept and no map of the
@@ -37,9 +39,9 @@ CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band
 UNSEEN = "unseen"
 _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
 
-#: The frames a distance is confirmed over (the median of the last 3): rendered walks toward a box as the board's
-#: camera frames at 20 frames/s, digits 4-8, and the shared scenes' frames held still (experiments/guide_confirm.md).
-CONFIRM_FRAMES = 3
+#: A confirmed clear way this long (or ``repeat_s``, if shorter), seconds, makes the next warning a new obstacle,
+#: said at once: one warned of 2 s before a 6 s clear spell went unsaid until --repeat-s ran out (an audit).
+CLEAR_SPELL_S = 1.0
 
 
 class WarningPolicy:
@@ -71,6 +73,12 @@ class WarningPolicy:
         self._recent: collections.deque[float] = collections.deque(maxlen=confirm_frames)
         self._last_spoken_s = -math.inf
         self._last_spoken_class: str | None = None
+        self._clear_since_s: float | None = None  # when the confirmed class last turned clear (None: not clear)
+
+    @property
+    def confirm_frames(self) -> int:
+        """The frames a distance is confirmed over (the constructor's ``confirm_frames``)."""
+        return int(self._recent.maxlen)
 
     def classify(self, distance_m: float | None) -> str:
         """Class of a distance without hysteresis: ``stop`` (below the band), ``warn`` (in it) or ``clear``."""
@@ -100,10 +108,18 @@ class WarningPolicy:
             new = relaxed if _SEVERITY[relaxed] < _SEVERITY[self.current] else self.current
         self.current = new
         if new == CLEAR:
+            self._clear_since_s = now_s if self._clear_since_s is None else self._clear_since_s
+            if now_s - self._clear_since_s >= min(self.repeat_s, CLEAR_SPELL_S):
+                self._last_spoken_class = None  # a clear way, then an obstacle: a new one, said at once
             return None
-        # Within repeat_s only a class other than the one last spoken is said: an obstacle seen every other frame
-        # (warn, clear, warn, ...) is said once, not at each return to the band, which cut the speech into pieces.
-        if new == self._last_spoken_class and now_s - self._last_spoken_s < self.repeat_s:
+        self._clear_since_s = None
+        # Within repeat_s only a more urgent class than the one last spoken is said: an obstacle seen every other
+        # frame (warn, clear, warn, ...) is said once, not at each return to the band, which cut the speech into
+        # pieces; and a walker swaying on the near edge heard "Stop" and "Obstacle ahead" by turns every 0.6 s (an
+        # audit), the second a relief it should not get. Escalation is said at once.
+        last = self._last_spoken_class
+        if (last is not None and _SEVERITY[new] <= _SEVERITY[last]
+                and now_s - self._last_spoken_s < self.repeat_s):
             return None
         self._last_spoken_s, self._last_spoken_class = now_s, new
         return self.message(new, distance_m)
@@ -116,6 +132,7 @@ class WarningPolicy:
         self._recent.clear()
         self._last_spoken_s = -math.inf
         self._last_spoken_class = None
+        self._clear_since_s = None
 
     @staticmethod
     def message(distance_class: str, distance_m: float) -> str:
@@ -202,41 +219,6 @@ class Speaker:
             except subprocess.TimeoutExpired:
                 self._stop_previous()
             self._process = None
-
-
-CANNOT_SEE = "Cannot see ahead. No warnings until it can."
-SEEING_AGAIN = "Seeing ahead again."
-
-
-class SightWatch:
-    """Whether the guide can see: silence must mean "nothing near", not "nothing measured".
-
-    A pair the pipeline could not see (a covered lens or the dark leave blank frames; noise that nothing verifies,
-    ``NO_DENSE_DEPTH``) gives no distance, which the :class:`WarningPolicy` takes as clear. When no pair has been
-    seen for ``blind_s`` seconds (from the start too), :meth:`update` returns :data:`CANNOT_SEE` once; the first
-    pair seen after that, :data:`SEEING_AGAIN`. A single pair not seen among seen ones says nothing. ``blind_s`` 0:
-    never. The caller says what was seen (``guide``: ranged, or a view whose disparity map found only floor).
-    """
-
-    def __init__(self, blind_s: float = 2.0, start_s: float | None = None) -> None:
-        if not (blind_s >= 0 and math.isfinite(blind_s)):
-            raise InputError(f"blind_s: expected a finite number of seconds >= 0, got {blind_s}")
-        self.blind_s = blind_s
-        self.last_seen_s = time.monotonic() if start_s is None else start_s
-        self.blind = False
-
-    def update(self, seen: bool, now_s: float) -> str | None:
-        """Take whether the pair at ``now_s`` was seen; the words to say, or None."""
-        if seen:
-            self.last_seen_s = now_s
-            if self.blind:
-                self.blind = False
-                return SEEING_AGAIN
-            return None
-        if self.blind_s and not self.blind and now_s - self.last_seen_s >= self.blind_s:
-            self.blind = True
-            return CANNOT_SEE
-        return None
 
 
 class FpsMeter:

@@ -19,7 +19,8 @@ Grab pairs from the SVS continuously, run the whole pipeline on the most recent 
 nearest obstacle's nearest visible surface (the 10th depth percentile of its dense disparities) is within
 the distance band (default 1-2 m, the range the system was designed for): a spoken message when espeak-ng
 is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
-seconds unless the distance class changes to another than the one last said). Each pair's distance is
+seconds unless the distance class turns more urgent than the one last said, or a new obstacle follows a clear
+way of a second). Each pair's distance is
 confirmed by the pairs before it: the band is judged on the median of the last --confirm-frames, so one noisy
 frame ranged wrong is not said. A status line shows frames per second, that distance and the nearest
 obstacle's side. The floor (the road)

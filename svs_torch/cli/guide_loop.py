@@ -80,7 +80,7 @@ class GuideSession:
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
                     if self.sight is None:
-                        self.sight = SightWatch(self.args.blind_s)
+                        self.sight = SightWatch(self.args.blind_s, confirm_frames=self.guide.policy.confirm_frames)
                     try:
                         lost = self._range_stream(camera)
                     finally:

@@ -35,7 +35,14 @@ def test_sight_watch_says_when_nothing_was_ranged_for_a_while():
     said = [watch.update(ranged, now) for now, ranged in
             [(0.5, True), (1.0, False), (2.4, False), (2.6, False), (3.0, False), (3.5, False), (4.0, True),
              (4.5, True), (5.0, False)]]
-    assert said == [None, None, None, CANNOT_SEE, None, None, SEEING_AGAIN, None, None]
+    # Seeing again takes a majority of the last 3 pairs seen, as a warning does (an audit: a covered lens's noise,
+    # ranged now and then, said "Seeing ahead again" at each such pair while the lens stayed covered).
+    assert said == [None, None, None, CANNOT_SEE, None, None, None, SEEING_AGAIN, None]
+    covered = SightWatch(blind_s=1.0, start_s=0.0)
+    seen = [False, False, True, False, False, True, False, False, False, True, False, True, True]
+    said = [covered.update(s, 0.5 * (i + 1)) for i, s in enumerate(seen)]
+    assert said.count(CANNOT_SEE) == 1 and said.count(SEEING_AGAIN) == 1 and said[-2] == SEEING_AGAIN
+    assert SightWatch(blind_s=1.0, start_s=0.0, confirm_frames=1).update(False, 1.0) == CANNOT_SEE
     assert SightWatch(blind_s=1.0, start_s=0.0).update(False, 1.0) == CANNOT_SEE  # never ranged since the start
     never = SightWatch(blind_s=0.0, start_s=0.0)
     assert [never.update(False, t) for t in (1.0, 100.0)] == [None, None]
@@ -57,10 +64,22 @@ def test_warns_in_band_and_rate_limits_repeats():
 
 
 def test_class_change_speaks_at_once():
+    """A more urgent class is said at once; a less urgent one waits for repeat_s (a walker swaying on the near edge
+    heard "Stop" and "Obstacle ahead" by turns every 0.6 s: an audit), unless a clear spell of CLEAR_SPELL_S came
+    between (then it is a new obstacle: one 6 s after a clear path went unsaid until repeat_s ran out)."""
     said = run_policy(WarningPolicy(repeat_s=10.0, confirm_frames=1),
-                      [(0.0, 1.5), (0.5, 0.8), (0.6, 0.7), (1.0, 3.0), (1.2, 1.8)])
-    assert said == ["Obstacle ahead, 1.5 metres", "Stop. Obstacle at 0.8 metres", None, None,
+                      [(0.0, 1.5), (0.5, 0.8), (0.6, 0.7), (1.0, 3.0), (1.2, 1.8), (10.6, 1.8)])
+    assert said == ["Obstacle ahead, 1.5 metres", "Stop. Obstacle at 0.8 metres", None, None, None,
                     "Obstacle ahead, 1.8 metres"]
+    sway = run_policy(WarningPolicy(confirm_frames=1), [(0.3 * i, 0.95 if i % 2 else 1.15) for i in range(1, 13)])
+    # 0.95 / 1.15 m by turns, 0.3 s apart: "Stop" at 0.3 s and again once repeat_s (3 s) ran out, nothing between
+    assert [(i, m) for i, m in enumerate(sway) if m] == [(0, "Stop. Obstacle at 0.9 metres"),
+                                                         (10, "Stop. Obstacle at 0.9 metres")]
+    new_obstacle = run_policy(WarningPolicy(repeat_s=10.0, confirm_frames=1),
+                              [(0.0, 1.9), (0.2, None), (1.0, None), (1.3, None), (8.0, 1.9)])
+    assert new_obstacle == ["Obstacle ahead, 1.9 metres", None, None, None, "Obstacle ahead, 1.9 metres"]
+    flicker = run_policy(WarningPolicy(repeat_s=10.0, confirm_frames=1), [(0.0, 1.9), (0.5, None), (1.0, 1.9)])
+    assert flicker == ["Obstacle ahead, 1.9 metres", None, None]  # under CLEAR_SPELL_S: the same obstacle
 
 
 def test_silent_beyond_band_and_without_obstacle():
@@ -204,10 +223,11 @@ def test_live_guide_with_fake_distances():
     stream = io.StringIO()
     guide = LiveGuide(WarningPolicy(repeat_s=2.0, confirm_frames=1), Speaker(None, stream=stream),
                       FpsMeter(window_s=5.0))
-    distances = [3.0, 2.5, 1.9, 1.8, 1.7, 1.2, 0.9, 0.9, None, 1.5]
+    distances = [3.0, 2.5, 1.9, 1.8, 1.7, 1.2, 0.9, 0.9, None, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5]
     said = [guide.update(d, now_s=0.25 * i) for i, d in enumerate(distances)]
+    # The relief after "Stop" waits for repeat_s (2 s after it, at 3.5 s), as a repeat would.
     assert said == [None, None, "Obstacle ahead, 1.9 metres", None, None, None, "Stop. Obstacle at 0.9 metres",
-                    None, None, "Obstacle ahead, 1.5 metres"]
+                    None, None, None, None, None, None, None, "Obstacle ahead, 1.5 metres"]
     assert stream.getvalue().splitlines() == [m for m in said if m]
     assert guide.meter.fps == pytest.approx(4.0)
     assert guide.status(1.5) == "  4.0 fps  nearest 1.5 m  warn"
