@@ -160,7 +160,7 @@ def load_image_pair(
 
 # Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair
 # with such a name is named after its folder, the scene.
-_GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
+GENERIC_LEFT_NAME = _GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
                                 re.IGNORECASE)
 
 

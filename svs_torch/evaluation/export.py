@@ -38,6 +38,7 @@ import torch
 from ..core.checks import InputError, check_instance
 from ..core.files import make_output_folder, write_bytes_atomic
 from ..core.types import StereoBatch
+from ..data.datasets import GENERIC_LEFT_NAME
 from ..data.formats import write_kitti_disparity, write_pfm
 from ..geometry.rectification import warp_rectified
 from ..pipeline import PipelineResult
@@ -56,9 +57,12 @@ def export_name(pair_name: str) -> str:
     :attr:`~svs_torch.data.PairSource.label`) keeps them: ``Teddy_x_a``."""
     labelled = re.fullmatch(r"(.*) \(([^()]+)\)", pair_name)
     base, folders = (labelled[1], labelled[2]) if labelled else (pair_name, "")
-    last = PurePosixPath(base.replace("\\", "/")).name or "pair"
-    if PurePosixPath(last).suffix.lower() in _IMAGE_SUFFIXES:
-        last = PurePosixPath(last).stem
+    path = PurePosixPath(base.replace("\\", "/"))
+    last = path.name or "pair"
+    if path.suffix.lower() in _IMAGE_SUFFIXES:
+        # A view's generic name (Piano/im0.png, a list line with its calibration) is its folder's, as a plain
+        # line's pair is named (data.datasets.pair_name): every MiddEval3 line was 'im0' and one map was kept.
+        last = path.parent.name if GENERIC_LEFT_NAME.fullmatch(path.stem) and path.parent.name else path.stem
     last += f"_{folders}" if folders else ""
     return re.sub(r"[^A-Za-z0-9_.-]", "_", last).lstrip(".") or "pair"
 

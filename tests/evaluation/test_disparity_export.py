@@ -76,6 +76,29 @@ def test_writers_and_reader_name_bad_input(tmp_path):
 def test_export_names():
     assert [export_name(n) for n in ("eval3/Teddy", "kitti2012/000000_10", "captured/left 01.png", "..")] == \
         ["Teddy", "000000_10", "left_01", "pair"]
+    # A view's generic name is its folder's, as a plain line's pair is named (data.datasets.pair_name).
+    assert [export_name(n) for n in ("Piano/im0.png", "rig/L.jpg", "im0.png", "captures/pair0007_left.png")] == \
+        ["Piano", "rig", "im0", "pair0007_left"]
+
+
+def test_listed_pairs_with_their_calibration_keep_a_map_each(data_dir, tmp_path, capsys):
+    """Found by an audit of the documented examples: every MiddEval3 line 'LEFT RIGHT FOCAL_PX BASELINE_M DOFFS_PX'
+    was exported as 'im0', so one map was kept and the others skipped with a warning, exit 0."""
+    listed = tmp_path / "cal.txt"
+    lines = []
+    for scene in ("Teddy", "Piano"):
+        calib = read_middlebury_calib(data_dir / "middlebury_eval3_Q" / scene / "calib.txt", "calib")
+        folder = data_dir / "middlebury_eval3_Q" / scene
+        lines.append(f"{folder / 'im0.png'} {folder / 'im1.png'} {calib['cam0'][0, 0]} "
+                     f"{calib['baseline'] / 1000} {calib['doffs']}\n")
+    listed.write_text("".join(lines))
+    out = tmp_path / "maps"
+    for command in (["estimate", "--pairs", str(listed)], ["eval", str(listed)]):
+        code = main([*command, "--size", "160x120", "--json", "--disparity-out", str(out), "--disparity-format",
+                     "kitti"])
+        err = capsys.readouterr().err
+        assert code == 0 and "not written" not in err, (command, err)
+        assert sorted(p.name for p in out.iterdir()) == ["Piano.png", "Teddy.png"], command
 
 
 def test_written_maps_equal_the_dense_map(data_dir, tmp_path):
