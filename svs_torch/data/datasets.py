@@ -160,8 +160,9 @@ def load_image_pair(
 
 # Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair
 # with such a name is named after its folder, the scene.
-GENERIC_LEFT_NAME = _GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
-                                re.IGNORECASE)
+GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
+                               re.IGNORECASE)
+_GENERIC_LEFT_NAME = GENERIC_LEFT_NAME
 
 
 def pair_name(left_path: str | Path) -> str:
