@@ -7,12 +7,11 @@ obstacle) silence. A message is not repeated more often than every ``repeat_s`` 
 moved to a more urgent class than the one last spoken (a return to it after a frame of silence is not a new
 class; after a confirmed clear spell of ``CLEAR_SPELL_S`` it is). A more urgent class is taken at once; a less
 urgent one only when the distance is past the edge by ``hysteresis_m``, so a distance hovering on an edge does
-not flap. Each frame's distance is first
-confirmed by the frames before it: the rule takes the median of the last ``confirm_frames`` (a frame with no
-obstacle counts as farther than any), so one camera frame ranged wrong by its noise neither raises a warning nor
-drops one, at the cost of a new obstacle being warned of ``confirm_frames // 2`` frames later
-(:data:`CONFIRM_FRAMES`). Nothing here needs a camera: the loop feeds distances in metres and clock readings in
-seconds.
+not flap. Each frame's distance is first confirmed by the frames before it: the rule takes the median of the last
+``confirm_frames`` (a frame with no obstacle counts as farther than any), so one camera frame ranged wrong by its
+noise neither raises a warning nor drops one, at the cost of a new obstacle being warned of ``confirm_frames // 2``
+frames later (:data:`CONFIRM_FRAMES`). Nothing here needs a camera: the loop feeds distances in metres and clock
+readings in seconds.
 """
 
 from __future__ import annotations
