@@ -162,14 +162,13 @@ def load_image_pair(
 # with such a name is named after its folder, the scene.
 GENERIC_LEFT_NAME = re.compile(r"(im[0-9lr]?|img[0-9lr]?|image_?[0-9]?|view[0-9]|left|right|[lr]|cam[0-9]?)",
                                re.IGNORECASE)
-_GENERIC_LEFT_NAME = GENERIC_LEFT_NAME
 
 
 def pair_name(left_path: str | Path) -> str:
     """A pair's name from its left file: the file's stem (``left01``), or its folder's name when the stem only
     says which view it is (``Teddy/im0.png`` → ``Teddy``)."""
     path = Path(left_path)
-    generic = _GENERIC_LEFT_NAME.fullmatch(path.stem) is not None
+    generic = GENERIC_LEFT_NAME.fullmatch(path.stem) is not None
     return path.resolve().parent.name or path.stem if generic else path.stem
 
 
