@@ -239,8 +239,6 @@ def _parse(record: object, where: str) -> StereoCalibration:
 
 def _check_maps_in_view(calibration: StereoCalibration, where: str) -> None:
     """Refuse a lens centre far from the image's, or maps reading under :data:`MIN_IN_VIEW_SHARE` inside it."""
-    import cv2
-
     width, height = calibration.image_wh
     for key in ("K_left", "K_right"):  # a lens's centre lies near the sensor's (an image size halved: at its corner)
         cx, cy = getattr(calibration, key)[:2, 2]
@@ -251,9 +249,7 @@ def _check_maps_in_view(calibration: StereoCalibration, where: str) -> None:
     keeps_aspect = abs(small[1] * width / (small[0] * height) - 1) < ASPECT_TOLERANCE  # else the file's own size
     checked = calibration.scaled_to(small) if width > small[0] and keeps_aspect else calibration
     width, height = checked.image_wh
-    for side, K, dist, R, P in (("left", checked.K_left, checked.dist_left, checked.R1, checked.P1),
-                                ("right", checked.K_right, checked.dist_right, checked.R2, checked.P2)):
-        map_x, map_y = cv2.initUndistortRectifyMap(K, dist, R, P, (width, height), cv2.CV_32FC1)
+    for side, (map_x, map_y) in zip(("left", "right"), _rectification_maps(checked)):
         inside = float(((map_x >= -0.5) & (map_x <= width - 0.5) & (map_y >= -0.5) & (map_y <= height - 0.5)).mean())
         if not inside >= MIN_IN_VIEW_SHARE:
             raise InputError(f"{where}: its {side} camera's K, distortion and image_size_wh rectify only "
@@ -346,18 +342,22 @@ def rectification_grids(calibration: StereoCalibration, size_wh: tuple[int, int]
     """``(2, H, W, 2)`` sampling grids (left, right) for ``F.grid_sample`` (``align_corners=True``): where each
     rectified pixel is read in the raw image, from ``cv2.initUndistortRectifyMap`` of the calibration scaled to
     ``size_wh``. Not differentiable (fixed maps)."""
-    import cv2
-
     scaled = calibration.scaled_to(size_wh)
     width, height = scaled.image_wh
-    grids = []
-    for K, dist, R, P in ((scaled.K_left, scaled.dist_left, scaled.R1, scaled.P1),
-                          (scaled.K_right, scaled.dist_right, scaled.R2, scaled.P2)):
-        map_x, map_y = cv2.initUndistortRectifyMap(K, dist, R, P, (width, height), cv2.CV_32FC1)
-        # align_corners=True: −1 and +1 are the centres of the first and last pixels, OpenCV's 0 and W − 1.
-        grid = np.stack([2 * map_x / max(width - 1, 1) - 1, 2 * map_y / max(height - 1, 1) - 1], axis=-1)
-        grids.append(torch.from_numpy(grid))
+    # align_corners=True: −1 and +1 are the centres of the first and last pixels, OpenCV's 0 and W − 1.
+    grids = [torch.from_numpy(np.stack([2 * map_x / max(width - 1, 1) - 1, 2 * map_y / max(height - 1, 1) - 1], -1))
+             for map_x, map_y in _rectification_maps(scaled)]
     return torch.stack(grids).to(device=device, dtype=dtype)
+
+
+def _rectification_maps(calibration: StereoCalibration) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(map_x, map_y) of the left and right views at the calibration's own size: where each rectified pixel is
+    read in the raw image (``cv2.initUndistortRectifyMap``, float32)."""
+    import cv2
+
+    return [cv2.initUndistortRectifyMap(K, dist, R, P, tuple(calibration.image_wh), cv2.CV_32FC1)
+            for K, dist, R, P in ((calibration.K_left, calibration.dist_left, calibration.R1, calibration.P1),
+                                  (calibration.K_right, calibration.dist_right, calibration.R2, calibration.P2))]
 
 
 def rectify_with_calibration(batch: StereoBatch, calibration: StereoCalibration,
