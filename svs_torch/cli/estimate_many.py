@@ -43,7 +43,7 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
 
     if source.problem:
         return "BAD_INPUT", source.problem, None
-    if getattr(args, "calibration", None) and source.focal_px is not None and not source.scene:
+    if getattr(args, "calibration", None) and source.calibration is not None:  # a listed line's own: not the rig's
         from ..data.pair_list import OWN_CALIBRATION_UNDER_RIG
 
         return "BAD_INPUT", OWN_CALIBRATION_UNDER_RIG, None

@@ -82,7 +82,7 @@ class LoadedPair:
 
 
 def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
-    if setup.calibration is not None and source.focal_px is not None and not source.scene:
+    if setup.calibration is not None and source.calibration is not None:  # a listed line's own: not the rig's
         return LoadedPair(source, None, "BAD_INPUT", OWN_CALIBRATION_UNDER_RIG)
     try:
         batch = load_pair_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
