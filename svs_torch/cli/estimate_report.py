@@ -20,7 +20,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
             "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
             "features_smoothed": False, "verified": None, "num_agreeing_inliers": None, "num_measured_inliers": None,
-            "dropped_unmeasured": 0,
+            "dropped_unmeasured": 0, "floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None,
             "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None}
 
 
@@ -47,6 +47,29 @@ def _number(value, valid) -> float | None:
     return round(float(value), 4) if bool(valid) else None
 
 
+def _floor_report(result, index: int) -> dict:
+    """The floor's keys of pair ``index``'s report: the camera over the floor the segmenter found
+    (:mod:`svs_torch.depth.floor_distance`) and the nearest obstacle's distance ahead along it, null where none."""
+    floor = result.floor
+    if floor is None or not bool(floor.floor.found[index]):
+        return {"floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None}
+    nearest = floor.nearest
+    return {"floor": {"camera_height_m": round(float(floor.floor.camera_height_m[index]), 4),
+                      "pitch_deg": round(float(floor.floor.pitch_deg[index]), 3)},
+            "nearest_ahead_m": _number(nearest.depth_m[index], nearest.valid[index]),
+            "nearest_ahead_surface_m": _number(nearest.surface_m[index], nearest.valid[index])}
+
+
+def _ahead(result, index: int, slot: int) -> dict:
+    """An object's distance ahead along the floor (median and low percentile), null where no floor was found."""
+    if result.floor is None:
+        return {"ahead_m": None, "ahead_p10_m": None}
+    objects = result.floor.objects
+    valid = objects.valid[index, slot]
+    return {"ahead_m": _number(objects.depth_median_m[index, slot], valid),
+            "ahead_p10_m": _number(objects.depth_low_m[index, slot], valid)}
+
+
 def _object_reports(result, index: int, factors: tuple[float, float]) -> list[dict]:
     """The kept objects of pair ``index``, in input pixels (``factors``: input over working pixels, x and y)."""
     from ..depth.depth_types import ObstacleSide
@@ -67,6 +90,8 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
             "depth_m": _number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
             "depth_p10_m": _number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
             "depth_p90_m": _number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
+            # where the floor was found: its distance ahead along it, what guide says (svs_torch.depth.floor_distance)
+            **_ahead(result, index, slot),
             "num_inliers": int(objects.num_inliers[index, slot]),
             "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
             "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
@@ -98,6 +123,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "nearest_m": _number(nearest.depth_m[index], nearest.valid[index]),
         "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
         "nearest_surface_m": _number(nearest.surface_m[index], nearest.valid[index]),
+        **_floor_report(result, index),
         "objects": report_objects,
         "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
         "num_matches": int(result.num_matches[index]),
@@ -189,6 +215,11 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
     if report["nearest_m"] is not None:
         lines.append(f"  {nearest_name}: {report['nearest_m']:.2f} m, {report['nearest_side']} "
                      f"(nearest surface {report['nearest_surface_m']:.2f} m)")
+    floor = report.get("floor")  # a report read back from an older JSON has no such key
+    if floor and report["nearest_ahead_m"] is not None:
+        lines.append(f"  along the floor (the camera {floor['camera_height_m']:.2f} m over it, pitched "
+                     f"{floor['pitch_deg']:.1f}° down): nearest obstacle {report['nearest_ahead_m']:.2f} m ahead, "
+                     f"its nearest part {report['nearest_ahead_surface_m']:.2f} m")
     return lines
 
 

@@ -32,7 +32,7 @@ from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "FLOOR_MEMORY_S", "FloorMemory", "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -42,6 +42,42 @@ CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
+
+
+#: Seconds ``guide`` reads its distances along the floor it last found, on pairs where its floor rule finds none:
+#: a camera frame's noise hides the floor from the rule on some pairs (rendered walker scenes as the board's digit
+#: 4 frames: found on 49 of 70, experiments/floor_distance.md), while the camera, worn on the walker's body, keeps
+#: its pose over the floor; a pair ranged along the camera's axis among pairs ranged along the floor moved the
+#: warned distance by 0.2-0.4 m from one pair to the next. Longer, a walker who bent or turned would be ranged
+#: along a floor no longer under the camera.
+FLOOR_MEMORY_S = 2.0
+
+
+class FloorMemory:
+    """Which distances ``guide`` warns on (:mod:`svs_torch.depth.floor_distance`): where the pair's floor rule found
+    the floor, the obstacle nearest ahead along it (a walker's camera is pitched down, and depth along its axis puts
+    what lies on the floor 0.2-0.4 m farther than it stands); on a pair where it found none, along the floor found
+    last, for ``memory_s`` seconds (:data:`FLOOR_MEMORY_S`); else along the camera's axis, as ``estimate`` ranges."""
+
+    def __init__(self, memory_s: float = FLOOR_MEMORY_S) -> None:
+        self.memory_s = memory_s
+        self.floor = None  # the FloorGeometry found last
+        self.found_s: float | None = None
+
+    def nearest(self, result, now_s: float) -> tuple:
+        """The nearest obstacle of a one-pair ``result`` to warn of, and the age in seconds of the floor its
+        distances run along (0: the pair's own; None: along the camera's axis)."""
+        distances = getattr(result, "floor", None)  # (a result of the paper's rule has no dense map, nor this)
+        if distances is not None and bool(distances.floor.found[0]):
+            self.floor, self.found_s = distances.floor, now_s
+            return distances.nearest, 0.0
+        if distances is not None and self.floor is not None and now_s - self.found_s <= self.memory_s:
+            from ..pipeline import result_along_floor
+
+            remembered = result_along_floor(result, self.floor)
+            if remembered is not None:
+                return remembered.nearest, now_s - self.found_s
+        return result.depth.nearest, None
 
 
 class GuideSession:
@@ -58,6 +94,7 @@ class GuideSession:
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
         self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
+        self.floor = FloorMemory()
 
     def run(self) -> None:
         """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
@@ -200,7 +237,7 @@ class GuideSession:
         self._come_back(now)
         seen = self._seen(result)
         self._watch_sight(seen, PipelineStatus(int(result.status[0])).name, now)
-        nearest = result.depth.nearest
+        nearest, floor_age_s = self.floor.nearest(result, now)
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
         distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
@@ -211,6 +248,8 @@ class GuideSession:
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
                   "confirmed_m": None if confirmed is None else round(confirmed, 4),
-                  "class": shown, "message": message}
+                  "along_floor": floor_age_s is not None,
+                  "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3), "class": shown,
+                  "message": message}
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
         self.processed += 1

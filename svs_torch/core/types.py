@@ -306,6 +306,11 @@ class StereoSegmentation:
             segmenter; False for a pair it segmented by Otsu instead, too little of its view measured): the
             pipeline measures them over their interior (:mod:`svs_torch.segmentation.interior`). None from
             segmenters without such a map.
+        floor_plane_px: ``(B, 3)`` the floor's plane ``a, b, c`` of ``d = a·x + b·y + c`` in input pixels (0 where
+            not found; :mod:`svs_torch.segmentation.ground_plane`): what the distances ahead along the floor read
+            (:mod:`svs_torch.depth.floor_distance`). None where the floor was not looked for
+            (``SegmentationConfig.ground``).
+        floor_found: ``(B,)`` bool, a floor was found; None with ``floor_plane_px``.
     """
 
     left: Segmentation
@@ -313,6 +318,8 @@ class StereoSegmentation:
     status: torch.Tensor
     split_retaken: torch.Tensor | None = None
     from_disparity: torch.Tensor | None = None
+    floor_plane_px: torch.Tensor | None = None
+    floor_found: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)

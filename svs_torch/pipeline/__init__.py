@@ -3,17 +3,19 @@
 ``config`` (:class:`PipelineConfig`, :class:`PipelineStatus`, :class:`PipelineResult`), ``stages`` (each stage
 as the pipeline calls it), ``ranging`` (the rectification choice and the dense depth with its retry), ``run``
 (:func:`estimate_obstacle_depth`: segmentation → features → matching → RANSAC → rectification → dense depth,
-each batch run as groups of one size), ``soft`` (the differentiable pass over the hard pass's decisions) and
-``preload`` (worker processes that import the pipeline before their first task).
+each batch run as groups of one size), ``along_floor`` (the objects' distances ahead along the floor), ``soft``
+(the differentiable pass over the hard pass's decisions) and ``preload`` (worker processes that import the
+pipeline before their first task).
 
 May import: ``svs_torch.core`` and every stage's public names. Only ``evaluation``, ``plotting`` and the CLI
 import the pipeline; a stage never does.
 """
 
 from ..segmentation.stereo import segment_pair
+from .along_floor import result_along_floor
 from .config import PipelineConfig, PipelineResult, PipelineStatus
 from .run import estimate_obstacle_depth
 from .stages import measured_labels
 
 __all__ = ["PipelineConfig", "PipelineResult", "PipelineStatus", "estimate_obstacle_depth", "measured_labels",
-           "segment_pair"]
+           "result_along_floor", "segment_pair"]

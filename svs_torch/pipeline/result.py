@@ -10,6 +10,7 @@ import torch
 from ..core.types import FundamentalResult, Matches, StereoSegmentation
 from ..depth.dense_config import DenseDisparity
 from ..depth.depth_types import DepthResult
+from ..depth.floor_distance import FloorDistances
 from ..features.surf import SurfFeatures
 from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification
@@ -78,6 +79,10 @@ class PipelineResult:
             (:func:`svs_torch.evaluation.measured_regions`); ``segmentation`` keeps the whole regions.
         near_surface: ``(B, N)`` bool, under the dense rule with ``PipelineConfig.measure_near_surface``: the objects
             whose region spanned two surfaces, ranged over the nearer; None otherwise.
+        floor: :class:`~svs_torch.depth.floor_distance.FloorDistances`, under the dense rule where the segmenter
+            looked for the floor (``SegmentationConfig.ground``, ``guide``'s default): the camera's height and pitch
+            over it and each object's distance ahead along it (what ``guide`` says where the floor was found);
+            None otherwise.
     """
 
     status: torch.Tensor
@@ -112,6 +117,7 @@ class PipelineResult:
     object_labels: torch.Tensor | None = None
     near_surface: torch.Tensor | None = None
     features_smoothed: torch.Tensor | None = None
+    floor: FloorDistances | None = None
 
     @property
     def dropped_objects(self) -> torch.Tensor | None:

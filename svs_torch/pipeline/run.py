@@ -28,6 +28,7 @@ from ..segmentation.network import check_finite_logits, predict_obstacle_logits
 from ..segmentation.segment import SegmentationConfig
 from ..segmentation.stereo import check_network, segment_same_size, segmenter_network
 from .config import PipelineConfig, PipelineResult
+from .along_floor import along_floor
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
 from .features_retry import features_smoothed, retry_with_smoothed_features
@@ -279,6 +280,7 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     status = _status(seg, num_keypoints, fundamental, rectification, depth, config.rectify, dense is not None)
     return PipelineResult(
         status=status, depth=without_failed_pairs(depth, status),
+        floor=along_floor(batch, seg, depth, status, dense, object_labels, rectified, H_left, config),
         segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
         fundamental=fundamental, num_keypoints=num_keypoints, rectification=rectification, rectified=rectified,
         dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),

@@ -45,6 +45,7 @@ from ..core.checks import check_generator
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
+from ..depth.floor_distance import refit_floor_plane
 from . import kernels
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
@@ -139,12 +140,15 @@ class GroundPlane(NamedTuple):
         camera_height_m: ``(B,)`` ``B / hypot(a, b)``: the camera's height over the plane over the cosine of its
             pitch (NaN where not found).
         mask: ``(B, 1, H, W)`` bool, the pixels on the plane (all False where not found).
+        refitted: ``(B, 3)`` the plane refitted for the camera's pose over it, which the distances ahead along the
+            floor read (:func:`svs_torch.depth.floor_distance.refit_floor_plane`; 0 where not found).
     """
 
     coefficients: torch.Tensor
     found: torch.Tensor
     camera_height_m: torch.Tensor
     mask: torch.Tensor
+    refitted: torch.Tensor | None = None
 
 
 def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
@@ -172,11 +176,12 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
         tolerance = torch.where(noisy.to(disparity.device), config.noisy_tolerance_px, tolerance)
     tolerance, min_span = tolerance.view(b, 1, 1) * working_factor, config.min_span_px * working_factor
     draws = _draws(config, generator).to(disparity.device)
-    fast = _fit_by_kernel(disparity, measured, baseline_m, tolerance.view(b), focal_px, draws, config, stride,
-                          min_span)
-    if fast is not None:
-        return fast
-    return _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config)
+    plane = _fit_by_kernel(disparity, measured, baseline_m, tolerance.view(b), focal_px, draws, config, stride,
+                           min_span)
+    if plane is None:
+        plane = _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config)
+    return plane._replace(refitted=refit_floor_plane(disparity, plane.mask & measured, plane.coefficients, plane.found,
+                                                     config.lower_rows_fraction, tolerance.view(b)))
 
 
 def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
@@ -243,7 +248,8 @@ def _no_plane(disparity: torch.Tensor) -> GroundPlane:
     gives then (zero coefficients, NaN heights, an empty mask)."""
     b = disparity.shape[0]
     return GroundPlane(disparity.new_zeros(b, 3), torch.zeros(b, dtype=torch.bool, device=disparity.device),
-                       disparity.new_full((b,), math.nan), torch.zeros_like(disparity, dtype=torch.bool))
+                       disparity.new_full((b,), math.nan), torch.zeros_like(disparity, dtype=torch.bool),
+                       disparity.new_zeros(b, 3))
 
 
 #: The default samples' uniforms by (seed, hypotheses): the same numbers every call (guide fits every frame).

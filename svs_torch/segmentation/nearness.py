@@ -58,9 +58,10 @@ from ..core.size_groups import merge_groups
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
 from .components import connected_components_with_stats, region_properties
-from .ground_plane import GroundPlaneConfig, fit_ground_plane
+from .ground_plane import GroundPlane, GroundPlaneConfig, fit_ground_plane
 from .morphology import open_binary, structuring_element
-from .nearness_denoise import check_denoise_settings, denoised_map, match_by_noise, soft_match_by_noise
+from .nearness_denoise import (check_denoise_settings, denoised_map, match_by_noise, reduced_to_width,
+                               soft_match_by_noise)
 from .nearness_regions import (_area_measured_in_view, _region_median_disparity, _without_clipped,
                                shift_regions_to_right)
 from .nearness_split import nearness_split
@@ -217,6 +218,7 @@ class NearnessDisparity:
             ``measured`` cannot tell them apart.
         ground: ``(B, 1, H, W)`` bool, the floor (:mod:`.ground_plane`), left out of the split and made far in
             ``relative``; None: not looked for.
+        ground_plane: the floor's :class:`~.ground_plane.GroundPlane` in these pixels; None: not looked for.
     """
 
     disparity_px: torch.Tensor
@@ -227,14 +229,7 @@ class NearnessDisparity:
     split_retaken: torch.Tensor
     matched_share: torch.Tensor
     ground: torch.Tensor | None = None
-
-
-def _reduce(image: torch.Tensor, width: int) -> torch.Tensor:
-    """``image`` ``(B, 1, H, W)`` area-averaged to ``width`` columns (the height in proportion) when wider."""
-    h, w = image.shape[-2:]
-    if w <= width:
-        return image
-    return F.interpolate(image, size=(max(1, round(h * width / w)), width), mode="area")
+    ground_plane: GroundPlane | None = None
 
 
 def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
@@ -255,7 +250,7 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
     if right.shape != left.shape:
         raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
     h, w = left.shape[-2:]
-    small_left, small_right = _reduce(left, config.working_width_px), _reduce(right, config.working_width_px)
+    small_left, small_right = (reduced_to_width(view, config.working_width_px) for view in (left, right))
     factor = w / small_left.shape[-1]  # working pixels to input pixels
     num_disparities = max(2, math.ceil(config.max_disparity_fraction * small_left.shape[-1]))
     if camera_frames and small_left.shape[-1] == w:  # not reduced, so its noise is not averaged away
@@ -275,15 +270,16 @@ def measure_nearness_disparity(left: torch.Tensor, right: torch.Tensor,
         same = matched is measured
         measured = F.interpolate(measured.to(left.dtype), size=(h, w), mode="nearest") > 0.5
         matched = measured if same else F.interpolate(matched.to(left.dtype), size=(h, w), mode="nearest") > 0.5
-    floor = None if ground is None else fit_ground_plane(disparity, measured, baseline_m, ground, factor,
-                                                         noisy=widened, focal_px=focal_px).mask
+    plane = None if ground is None else fit_ground_plane(disparity, measured, baseline_m, ground, factor,
+                                                         noisy=widened, focal_px=focal_px)
+    floor = None if plane is None else plane.mask
     split, spread, retaken = nearness_split(disparity, config.min_near_share, floor, config.max_retaken_near_share,
                                             config.min_retaken_gap)
     relative = (disparity - split.view(b, 1, 1, 1)) / spread.view(b, 1, 1, 1)
     if floor is not None:
         relative = relative.masked_fill(floor, -GROUND_RELATIVE)
     return NearnessDisparity(disparity, measured, split, spread, relative, retaken,
-                             matched.flatten(1).to(torch.float32).mean(1), floor)
+                             matched.flatten(1).to(torch.float32).mean(1), floor, plane)
 
 
 def _network_features(left: torch.Tensor, measured: NearnessDisparity, width: int) -> torch.Tensor:
@@ -345,10 +341,11 @@ def segment_stereo_nearness(batch: StereoBatch, config: SegmentationConfig, net:
     # Too little of the view measured (SegmentationConfig.min_measured_share): Otsu and the two largest regions.
     otsu = dataclasses.replace(config, segmenter="otsu", keep="largest", min_measured_share=0.0)
     low, rest = fallback.nonzero().flatten(), (~fallback).nonzero().flatten()
-    # Segmented by Otsu, their nearness split plays no part.
-    otsu_part = dataclasses.replace(segment_stereo(batch.select(low), otsu), split_retaken=torch.zeros(
-        len(low), dtype=torch.bool, device=batch.left.device), from_disparity=torch.zeros(
-        len(low), dtype=torch.bool, device=batch.left.device))
+    # Segmented by Otsu, their nearness split and floor play no part.
+    none = torch.zeros(len(low), dtype=torch.bool, device=batch.left.device)
+    floor = {} if config.ground is None else {"floor_plane_px": left_logits.new_zeros(len(low), 3), "floor_found": none}
+    otsu_part = dataclasses.replace(segment_stereo(batch.select(low), otsu), split_retaken=none,
+                                    from_disparity=none, **floor)
     parts, indices = [otsu_part], [low]
     if len(rest):
         parts.append(_segment_measured(batch.select(rest), config, net, left_logits[rest],
@@ -396,5 +393,8 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
                          status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
                                             status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))
     pair_status = torch.where(left.status != SegmentationStatus.OK, left.status, right.status)
+    plane = measured.ground_plane  # the floor's plane, in these pixels (svs_torch.depth.floor_distance reads it)
     return StereoSegmentation(left=left, right=right, status=pair_status, split_retaken=measured.split_retaken,
-                              from_disparity=torch.ones(b, dtype=torch.bool, device=image.device))
+                              from_disparity=torch.ones(b, dtype=torch.bool, device=image.device),
+                              floor_plane_px=None if plane is None else plane.refitted.to(image.dtype),
+                              floor_found=None if plane is None else plane.found)

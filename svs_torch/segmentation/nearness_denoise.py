@@ -70,7 +70,17 @@ from . import kernels
 if TYPE_CHECKING:
     from .nearness import NearnessNetConfig
 
-__all__ = ["check_denoise_settings", "denoised_map", "fillable_runs", "match_by_noise", "soft_match_by_noise"]
+__all__ = ["check_denoise_settings", "denoised_map", "fillable_runs", "match_by_noise", "reduced_to_width",
+           "soft_match_by_noise"]
+
+
+def reduced_to_width(image: torch.Tensor, width: int) -> torch.Tensor:
+    """``image`` ``(B, 1, H, W)`` area-averaged to ``width`` columns (the height in proportion) when wider: the
+    nearness map is matched at a working width (``NearnessNetConfig.working_width_px``)."""
+    h, w = image.shape[-2:]
+    if w <= width:
+        return image
+    return F.interpolate(image, size=(max(1, round(h * width / w)), width), mode="area")
 
 
 def check_denoise_settings(config: NearnessNetConfig) -> None:

@@ -483,3 +483,67 @@ def test_guide_ranges_its_warm_up_pair_before_the_camera_s_first_and_reports_onl
     assert names[0] == "warm-up" and names.count("warm-up") == 1 and len(names) == 3
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     assert len([line for line in lines if "event" not in line]) == 2
+
+
+def test_guide_says_how_far_ahead_along_the_floor_a_heap_lies(monkeypatch, capsys):
+    """A heap of rocks centred 1.0 m ahead on the emulator's floor (the camera 1.3 m up, pitched 20°): the axis depth
+    of its nearest visible part reads over 1.15 m, "Obstacle ahead"; along the floor the segmenter found, under
+    1 m, and guide says "Stop" (svs_torch.depth.floor_distance). With ``--floor off`` no floor is found and the
+    axis depth is what is said, as before."""
+    import json
+
+    from svs_torch.cli import main
+
+    command = ["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", "1.0", "--count", "2",
+               "--no-speech", "--json"]
+    assert main(command) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    pairs = [line for line in lines if "warning" in line]
+    assert len(pairs) == 2
+    for pair in pairs:
+        assert pair["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.08)
+        assert pair["floor"]["pitch_deg"] == pytest.approx(20.0, abs=3.0)
+        assert pair["nearest_surface_m"] > 1.15
+        assert pair["warning"]["along_floor"] is True
+        assert pair["warning"]["distance_m"] == pair["nearest_ahead_surface_m"] < 1.0
+        assert pair["warning"]["class"] == STOP
+        assert any(obj["ahead_p10_m"] == pair["nearest_ahead_surface_m"] for obj in pair["objects"])
+    assert pairs[0]["warning"]["message"].startswith("Stop.")
+    assert main([*command[:-4], "--floor", "off", *command[-4:]]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    for pair in (line for line in lines if "warning" in line):
+        assert pair["floor"] is None and pair["nearest_ahead_m"] is None and pair["warning"]["along_floor"] is False
+        assert pair["warning"]["distance_m"] == pair["nearest_surface_m"]
+        assert all(obj["ahead_m"] is None for obj in pair["objects"])
+
+
+def test_guide_ranges_along_the_floor_it_found_last_for_a_while():
+    """A pair whose floor rule found no floor is ranged along the floor found last, for FLOOR_MEMORY_S seconds
+    (what ``pipeline.result_along_floor`` measures on the pair's own maps), then along the camera's axis."""
+    import math
+
+    import torch
+
+    from svs_torch.cli.guide_loop import FLOOR_MEMORY_S, FloorMemory
+    from svs_torch.data.synthetic import render_obstacle_scenes
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, result_along_floor
+
+    scenes = render_obstacle_scenes(torch.tensor([[1.6]]), torch.tensor([[[0.5, 0.2]]]), torch.tensor([[[0.4, 0.5]]]),
+                                    generator=torch.Generator().manual_seed(3), floor_height_m=1.3,
+                                    camera_pitch_deg=20.0, heaps=torch.tensor([[-0.3, 1.2, 0.45, 0.35]]))
+    found = estimate_obstacle_depth(scenes.batch, PipelineConfig().for_guide())
+    assert bool(found.floor.floor.found[0])
+    again = result_along_floor(found, found.floor.floor)  # the same maps along the same floor: the same distances
+    assert torch.equal(again.nearest.surface_m, found.floor.nearest.surface_m)
+    floorless = dataclasses.replace(found, floor=dataclasses.replace(found.floor, floor=dataclasses.replace(
+        found.floor.floor, found=torch.tensor([False]))))
+    memory = FloorMemory()
+    assert memory.nearest(floorless, 0.0)[1] is None  # nothing found yet: along the camera's axis
+    nearest, age = memory.nearest(found, 10.0)
+    assert age == 0.0 and float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
+    nearest, age = memory.nearest(floorless, 10.0 + FLOOR_MEMORY_S / 2)
+    assert age == FLOOR_MEMORY_S / 2 and float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
+    axis = float(found.depth.nearest.surface_m[0])
+    assert not math.isclose(axis, float(nearest.surface_m[0]), rel_tol=0.1)
+    nearest, age = memory.nearest(floorless, 10.1 + FLOOR_MEMORY_S)
+    assert age is None and float(nearest.surface_m[0]) == axis

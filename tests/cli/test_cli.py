@@ -606,7 +606,9 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert len(lines) == 3 and ("Obstacle" in err or "obstacle" in err)  # the 1-5 m band: words, on stderr
     for line in lines:
         assert line["status"] == "OK" and line["nearest_m"] > 0 and line["objects"]
-        assert set(line["warning"]) == {"distance_m", "confirmed_m", "class", "message"}
+        assert set(line["warning"]) == {"distance_m", "confirmed_m", "along_floor", "floor_age_s", "class", "message"}
+        # no floor in the emulator's view: the distance along the camera's axis (svs_torch.depth.floor_distance)
+        assert line["floor"] is None and not line["warning"]["along_floor"] and line["warning"]["floor_age_s"] is None
         assert line["warning"]["distance_m"] == pytest.approx(line["nearest_surface_m"], abs=1e-4)
         assert line["dropped_pairs"] >= 0 and line["latency_s"] >= line["time_s"] > 0
         assert (record / line["left"]).read_bytes()[:2] == b"\xff\xd8" and (record / line["right"]).is_file()
@@ -622,7 +624,7 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert code == 0
     for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
         for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
-                    "objects", "calibration"):  # guide names the calibration its metres use, as estimate does
+                    "objects", "calibration", "floor", "nearest_ahead_m", "nearest_ahead_surface_m"):  # guide names the calibration its metres use, as estimate does
             assert offline[key] == live[key], key
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
@@ -1190,3 +1192,35 @@ def test_estimate_workers_keep_a_bounded_number_of_chunks(monkeypatch):
         gc.collect()
         assert sum(ref() is not None for ref in results) <= 6  # those ahead, and the one being printed
     assert submitted == list(range(0, 40, 2)) and max(outstanding) <= 6
+
+
+def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys, tmp_path):
+    """``estimate --floor on`` on a rendered walker's view (a camera 1.3 m up pitched 20°, a heap of rocks on the
+    floor): the JSON gives the camera's height and pitch over the floor and the distances ahead along it, nearer
+    than the axis's, and the text says them; without the floor rule they are null and unsaid."""
+    import torch
+
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    scenes = render_obstacle_scenes(torch.zeros(1, 0), torch.zeros(1, 0, 2), torch.zeros(1, 0, 2),
+                                    generator=torch.Generator().manual_seed(3), floor_height_m=1.3,
+                                    camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, 1.2, 0.45, 0.35]]))
+    paths = []
+    for side, image in (("left", scenes.batch.left), ("right", scenes.batch.right)):
+        paths.append(str(tmp_path / f"walker_{side}.png"))
+        cv2.imwrite(paths[-1], (image[0, 0].numpy() * 255).round().astype(np.uint8))
+    code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.08)
+    assert report["floor"]["pitch_deg"] == pytest.approx(20.0, abs=3.0)
+    assert report["nearest_ahead_surface_m"] < 0.9 * report["nearest_surface_m"]
+    assert any(obj["ahead_p10_m"] == report["nearest_ahead_surface_m"] for obj in report["objects"])
+    code, out, _ = run_cli(capsys, "estimate", *paths, "--floor", "on")
+    line = next(line for line in out.splitlines() if "along the floor" in line)
+    assert f"{report['nearest_ahead_m']:.2f} m ahead" in line and "pitched 2" in line
+    code, out, _ = run_cli(capsys, "estimate", *paths, "--json")
+    report = json.loads(out)
+    assert report["floor"] is None and report["nearest_ahead_m"] is None and report["nearest_ahead_surface_m"] is None
+    code, out, _ = run_cli(capsys, "estimate", *paths)
+    assert "along the floor" not in out
