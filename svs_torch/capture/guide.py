@@ -95,10 +95,11 @@ class WarningPolicy:
         median = ordered[len(ordered) // 2]  # the farther middle one of an even count: a warning needs a majority
         return median if math.isfinite(median) else None
 
-    def update(self, distance_m: float | None, now_s: float) -> str | None:
-        """Take one frame's nearest obstacle distance (metres, None = none) at ``now_s``; the message to say, or
-        None. The rule reads the confirmed distance (:meth:`confirm`, kept as ``confirmed_m``), which the message
-        speaks."""
+    def update(self, distance_m: float | None, now_s: float, side: str | None = None) -> str | None:
+        """Take one frame's nearest obstacle distance (metres, None = none) at ``now_s``, and its ``side`` (``left``,
+        ``centre``, ``right``; None: unsaid); the message to say, or None. The rule reads the confirmed distance
+        (:meth:`confirm`, kept as ``confirmed_m``), which the message speaks, with the side (a side alone never
+        makes a message)."""
         distance_m = self.confirmed_m = self.confirm(distance_m)
         new = self.classify(distance_m)
         if _SEVERITY[new] < _SEVERITY[self.current] and distance_m is not None and math.isfinite(distance_m):
@@ -121,7 +122,7 @@ class WarningPolicy:
                 and now_s - self._last_spoken_s < self.repeat_s):
             return None
         self._last_spoken_s, self._last_spoken_class = now_s, new
-        return self.message(new, distance_m)
+        return self.message(new, distance_m, side)
 
     def reset(self) -> None:
         """Forget the last class, message and distances (the camera was lost): the next distance in or below the
@@ -134,11 +135,16 @@ class WarningPolicy:
         self._clear_since_s = None
 
     @staticmethod
-    def message(distance_class: str, distance_m: float) -> str:
-        """The words for a class and distance, e.g. ``Obstacle ahead, 1.5 metres``."""
+    def message(distance_class: str, distance_m: float, side: str | None = None) -> str:
+        """The words for a class, distance and side, e.g. ``Obstacle ahead, 1.5 metres``, ``Obstacle on the left,
+        1.5 metres``, ``Stop. Obstacle at 0.9 metres`` (``side``: ``left`` / ``right`` said, ``centre`` or None
+        "ahead"). "Stop"'s distance is rounded down to the decimetre: 0.97 m said "1.0 metres" read as the band's
+        edge, not under it."""
+        aside = side in ("left", "right")
         if distance_class == STOP:
-            return f"Stop. Obstacle at {distance_m:.1f} metres"
-        return f"Obstacle ahead, {distance_m:.1f} metres"
+            down = math.floor(distance_m * 10 + 1e-9) / 10  # (0.7 * 10 is 6.999…: not 0.6)
+            return f"Stop. Obstacle {f'on the {side} ' if aside else ''}at {down:.1f} metres"
+        return f"Obstacle {f'on the {side}' if aside else 'ahead'}, {distance_m:.1f} metres"
 
 
 #: How to get the speech program, in the one notice given when it is missing.
@@ -253,8 +259,8 @@ class FpsMeter:
 class LiveGuide:
     """One step of a guide loop: count the frame, decide on a warning, say it.
 
-    ``update(nearest_m)`` is called once per processed pair with the nearest obstacle distance in metres (None when
-    nothing was found); it returns the message said, or None.
+    ``update(nearest_m, side=...)`` is called once per processed pair with the nearest obstacle distance in metres
+    (None when nothing was found) and its side; it returns the message said, or None.
     """
 
     def __init__(self, policy: WarningPolicy | None = None, speaker: Speaker | None = None,
@@ -263,10 +269,10 @@ class LiveGuide:
         self.speaker = speaker or Speaker()
         self.meter = meter or FpsMeter()
 
-    def update(self, nearest_m: float | None, now_s: float | None = None) -> str | None:
+    def update(self, nearest_m: float | None, now_s: float | None = None, side: str | None = None) -> str | None:
         now_s = time.monotonic() if now_s is None else now_s
         self.meter.tick(now_s)
-        message = self.policy.update(nearest_m, now_s)
+        message = self.policy.update(nearest_m, now_s, side)
         if message is not None:
             self.speaker.say(message)
         return message

@@ -19,7 +19,8 @@ Grab pairs from the SVS continuously, run the whole pipeline on the most recent 
 nearest obstacle's nearest visible surface (the 10th percentile of its distances) is within the distance band
 (default 1-2 m, the range the system was designed for), measured ahead along the floor where the floor was found
 (in the pair, or in the last 2 s: a camera pitched down sees what lies on the floor 0.2-0.4 m farther along its
-axis than it stands), else along the camera's axis: a spoken message when espeak-ng
+axis than it stands), else along the camera's axis: a spoken message, with the obstacle's side where it is not
+straight ahead ("Obstacle on the left, 1.5 metres"), when espeak-ng
 is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
 seconds unless the distance class turns more urgent than the one last said, or a new obstacle follows a clear
 way of a second). Each pair's distance is

@@ -241,9 +241,9 @@ class GuideSession:
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
         distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
-        message = self.guide.update(distance, now)
-        confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         side = ObstacleSide(int(nearest.side[0])).name.lower()
+        message = self.guide.update(distance, now, side)  # the side said too: a walker hears where to step aside
+        confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         shown = self._shown(seen)
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),

@@ -547,3 +547,24 @@ def test_guide_ranges_along_the_floor_it_found_last_for_a_while():
     assert not math.isclose(axis, float(nearest.surface_m[0]), rel_tol=0.1)
     nearest, age = memory.nearest(floorless, 10.1 + FLOOR_MEMORY_S)
     assert age is None and float(nearest.surface_m[0]) == axis
+
+
+@pytest.mark.parametrize("distance_class, distance, side, words", [
+    (WARN, 1.46, "left", "Obstacle on the left, 1.5 metres"),
+    (WARN, 1.46, "right", "Obstacle on the right, 1.5 metres"), (WARN, 1.46, "centre", "Obstacle ahead, 1.5 metres"),
+    (WARN, 1.46, None, "Obstacle ahead, 1.5 metres"), (STOP, 0.97, "centre", "Stop. Obstacle at 0.9 metres"),
+    (STOP, 0.7, "left", "Stop. Obstacle on the left at 0.7 metres"),
+    (STOP, 0.84, "right", "Stop. Obstacle on the right at 0.8 metres")])
+def test_a_warning_says_the_side_and_stop_never_reads_as_the_band_s_edge(distance_class, distance, side, words):
+    """The side is said where it is not straight ahead; "Stop"'s distance is rounded down (0.97 m was "1.0 metres",
+    the band's edge, and 0.7 m must not read 0.6 from 0.7·10 = 6.999…)."""
+    assert WarningPolicy.message(distance_class, distance, side) == words
+
+
+def test_the_side_is_said_with_the_warning_but_never_makes_one_alone():
+    policy = WarningPolicy(repeat_s=3.0, confirm_frames=1)
+    assert policy.update(1.5, 0.0, "left") == "Obstacle on the left, 1.5 metres"
+    assert policy.update(1.5, 0.5, "right") is None  # the same class within repeat_s: the side alone says nothing
+    assert policy.update(0.8, 1.0, "right") == "Stop. Obstacle on the right at 0.8 metres"
+    guide = LiveGuide(WarningPolicy(confirm_frames=1), Speaker(None, stream=None))
+    assert guide.update(1.2, 0.0, "right") == "Obstacle on the right, 1.2 metres"
