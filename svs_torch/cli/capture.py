@@ -107,7 +107,8 @@ _LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
 
 
 def check_board_urls(args: argparse.Namespace) -> None:
-    """``--left`` and ``--right`` as links pyserial can open, and two of them, before the camera is opened. Why:
+    """``--left`` and ``--right`` as links pyserial can open, and two of them, before the camera is opened, with no
+    ``--emulator-*`` option beside them. Why:
     ``socket://HOST`` without its port failed inside pyserial ("'<=' not supported between 'int' and
     'NoneType'"), ``http://...`` as a capture error (exit 1, not a bad argument), and one URL given twice as the
     link closing right after it opened."""
@@ -115,6 +116,13 @@ def check_board_urls(args: argparse.Namespace) -> None:
 
     if args.emulator:
         return
+    # The emulator's options describe its scene; beside real boards they were accepted and did nothing.
+    given = [option for option, name, unset in (("--emulator-noise", "emulator_noise", 0.0),
+                                                 ("--emulator-floor-m", "emulator_floor_m", None),
+                                                 ("--emulator-heap-m", "emulator_heap_m", None))
+             if getattr(args, name, unset) != unset]
+    if given:
+        raise InputError(f"{', '.join(given)}: only with --emulator (the boards at --left/--right send what they see)")
     for option, url in (("--left", args.left), ("--right", args.right)):
         if "://" not in url:
             continue  # a serial device

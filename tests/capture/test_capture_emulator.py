@@ -573,6 +573,9 @@ def test_cli_defaults_match_link_defaults():
     (["--left", "socket://127.0.0.1", "--right", "socket://127.0.0.1:10002"], "--left: expected socket://HOST:PORT"),
     (["--left", "http://x:1", "--right", "socket://x:2"], "--left: expected a serial device or socket://HOST:PORT"),
     (["--left", "socket://x:1", "--right", "socket://x:1"], "--left, --right: expected the two boards' links"),
+    # Was accepted and did nothing: the boards send what they see.
+    (["--left", "socket://x:1", "--right", "socket://x:2", "--emulator-noise", "4"],
+     "--emulator-noise: only with --emulator"),
 ])
 def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     from svs_torch.cli import main
@@ -635,3 +638,12 @@ def test_a_frame_the_source_cannot_make_is_no_reply_and_the_board_serves_on(caps
         with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST) as cam:
             pair = cam.grab_pair()
     assert pair.left.image.shape == (240, 320) and "no reply: images: cannot read gone.jpg" in capsys.readouterr().err
+
+
+def test_guide_refuses_the_emulator_s_scene_beside_real_boards(capsys):
+    """``guide --left URL --right URL --emulator-floor-m 1.3`` ran on the boards and ignored the floor, unsaid."""
+    from svs_torch.cli import main
+
+    assert main(["guide", "--left", "socket://127.0.0.1:1", "--right", "socket://127.0.0.1:2", "--emulator-floor-m",
+                 "1.3", "--emulator-heap-m", "1.5", "--no-speech"]) == 2
+    assert "--emulator-floor-m, --emulator-heap-m: only with --emulator" in capsys.readouterr().err
