@@ -20,7 +20,8 @@ from ..core.types import Segmentation
 
 __all__ = [
     "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "binary_title", "check_output_path", "compose_grid",
-    "gray_to_bgr", "labels_image", "objects_panel", "segmentation_panels", "titled_panel", "write_image_atomic",
+    "floor_summary", "gray_to_bgr", "labels_image", "objects_panel", "segmentation_panels", "titled_panel",
+    "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -137,6 +138,19 @@ def place_depth_labels(labels: list[tuple[float, float, float, str]], size_hw: t
         placed.append((x - half_w, y - half_h, x + half_w, y + half_h))
         centres.append((x, y))
     return centres
+
+
+def floor_summary(result, index: int) -> list[str]:
+    """The title's part about the floor where the floor rule found it (``--floor on``; ``guide`` records): the
+    camera's pose over it and the nearest obstacle's distance ahead along it, what ``guide`` says
+    (:mod:`svs_torch.depth.floor_distance`), which the depths drawn (along the camera's axis) are not."""
+    floor = getattr(result, "floor", None)
+    if floor is None or not bool(floor.floor.found[index]) or not bool(floor.nearest.valid[index]):
+        return []
+    return [f"along the floor (the camera {float(floor.floor.camera_height_m[index]):.2f} m over it, pitched "
+            f"{float(floor.floor.pitch_deg[index]):.1f}° down): #{int(floor.nearest.slot[index]) + 1} "
+            f"{float(floor.nearest.depth_m[index]):.2f} m ahead, its nearest part "
+            f"{float(floor.nearest.surface_m[index]):.2f} m"]
 
 
 def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:

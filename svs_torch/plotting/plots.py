@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from .figures import LABEL_PAD_POINTS, objects_panel, place_depth_labels
+from .figures import LABEL_PAD_POINTS, floor_summary, objects_panel, place_depth_labels
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
 
@@ -350,7 +350,7 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     kept = result.verified is not None and bool((seg.left.kept_labels[index] > 0).any())  # the text's rule
     status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule" + (
         "; geometry not verified (the text says why)" if kept and not bool(result.verified[index]) else "")
-    summary = "; ".join([*_nearest_summary(result, index, truth, true_nearest), status])
+    summary = "; ".join([*_nearest_summary(result, index, truth, true_nearest), *floor_summary(result, index), status])
     name = batch.names[index] if batch.names else ""
     figure.suptitle(textwrap.fill(f"{name + ': ' if name else ''}{summary}", int(match_w * 11)), fontsize=11)
     return figure

@@ -330,3 +330,23 @@ def test_a_pair_left_unverified_says_so_and_labels_each_kept_object():
     texts = [t.get_text() for t in figure.axes[0].texts]
     kept = int((result.segmentation.left.kept_labels[0] > 0).sum())
     assert len(texts) == kept and all(t.startswith(f"#{k + 1}: ") for k, t in enumerate(texts))
+
+
+def test_pipeline_figure_says_the_distance_ahead_along_the_floor_where_one_was_found():
+    """``estimate --floor on --figure`` (a guide record drawn): the depths drawn are along the camera's axis, and the
+    title says the nearest obstacle's distance ahead along the floor too, what guide said; without the floor rule,
+    nothing about a floor."""
+    from svs_torch.data.synthetic import render_obstacle_scenes
+    from svs_torch.pipeline import PipelineConfig
+
+    scenes = render_obstacle_scenes(torch.zeros(1, 0), torch.zeros(1, 0, 2), torch.zeros(1, 0, 2),
+                                    generator=torch.Generator().manual_seed(3), floor_height_m=1.3,
+                                    camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, 1.2, 0.45, 0.35]]))
+    result = estimate_obstacle_depth(scenes.batch, PipelineConfig().for_guide())
+    title = pipeline_figure(scenes.batch, result, 0, true_nearest=1.0)._suptitle.get_text().replace("\n", " ")
+    nearest = result.floor.nearest
+    assert (f"#{int(nearest.slot[0]) + 1} {float(nearest.depth_m[0]):.2f} m ahead, its nearest part "
+            f"{float(nearest.surface_m[0]):.2f} m") in title
+    assert "pitched 2" in title and "along the floor" in title
+    title = pipeline_figure(scenes.batch, estimate_obstacle_depth(scenes.batch), 0)._suptitle.get_text()
+    assert "floor" not in title
