@@ -107,6 +107,8 @@ def refit_floor_plane(disparity: torch.Tensor, on_plane: torch.Tensor, coefficie
     the floor in front of the feet, nearest and steepest in disparity, where few obstacles' feet lie.
     Not differentiable."""
     b, _, h, w = disparity.shape
+    if not bool(found.any()):  # (most frames of a scene without a floor: nothing to refit)
+        return coefficients
     # The lower rows only, on a grid about REFIT_GRID_COLUMNS wide: a plane needs no more (half the time).
     top, step = min(h - 1, max(0, math.ceil((1 - lower_rows_fraction) * h))), max(1, round(w / REFIT_GRID_COLUMNS))
     d = disparity.detach()[:, :, top::step, ::step].to(torch.float64)
@@ -198,17 +200,19 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
     in rectified pixels and their left homography. ``percentiles`` and ``fill_invalid``: as the depth's
     (``DepthConfig.object_percentiles``, ``DenseConfig.fill_invalid``). Not differentiable."""
     b = floor.found.shape[0]
-    disparity, valid = dense.disparity_px.detach(), dense.valid
-    per_depth = _ahead_per_depth(floor, focal_px, tuple(disparity.shape[-2:]), rectified, H_left)
-    doffs = doffs_px.detach().to(disparity.dtype).view(b, 1, 1, 1)
-    # f·B / (d' + doffs) = Z · (r · u): d' + doffs = (d + doffs) / (r · u).
-    ahead_disparity = (disparity + doffs) / per_depth.to(disparity.dtype) - doffs
-    ahead_map = dataclasses.replace(dense, disparity_px=torch.where(valid, ahead_disparity,
-                                                                    torch.zeros_like(disparity)))
+    disparity = dense.disparity_px.detach()
     slots = torch.where(objects.valid & floor.found.view(b, 1), objects.label, torch.full_like(objects.label, -1))
-    with torch.no_grad():
-        ahead = dense_object_depths(ahead_map, map_labels, dataclasses.replace(objects, label=slots), focal_px,
-                                    baseline_m, doffs_px, percentiles, min_valid_px=1, fill_invalid=fill_invalid)
+    ahead = objects  # no floor, or no object ranged on it: nothing to measure (all left not valid below)
+    if bool((slots > 0).any()):
+        per_depth = _ahead_per_depth(floor, focal_px, tuple(disparity.shape[-2:]), rectified, H_left)
+        doffs = doffs_px.detach().to(disparity.dtype).view(b, 1, 1, 1)
+        # f·B / (d' + doffs) = Z · (r · u): d' + doffs = (d + doffs) / (r · u).
+        ahead_disparity = (disparity + doffs) / per_depth.to(disparity.dtype) - doffs
+        ahead_map = dataclasses.replace(dense, disparity_px=torch.where(dense.valid, ahead_disparity,
+                                                                        torch.zeros_like(disparity)))
+        with torch.no_grad():
+            ahead = dense_object_depths(ahead_map, map_labels, dataclasses.replace(objects, label=slots), focal_px,
+                                        baseline_m, doffs_px, percentiles, min_valid_px=1, fill_invalid=fill_invalid)
     valid_ahead = ahead.valid & (slots > 0)
 
     def kept(values: torch.Tensor) -> torch.Tensor:

@@ -27,8 +27,8 @@ from ..geometry.soft import geometry_straight_through
 from ..segmentation.network import check_finite_logits, predict_obstacle_logits
 from ..segmentation.segment import SegmentationConfig
 from ..segmentation.stereo import check_network, segment_same_size, segmenter_network
-from .config import PipelineConfig, PipelineResult
 from .along_floor import along_floor
+from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
 from .features_retry import features_smoothed, retry_with_smoothed_features
