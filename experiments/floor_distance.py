@@ -86,13 +86,13 @@ def pair_rows(kind: str, scenes, index, cases, on: torch.Tensor, config, frame: 
         one = _one_pair(result, j)
         ok = int(result.status[j]) == PipelineStatus.OK
         axis = float(result.depth.nearest.surface_m[j]) if ok and bool(result.depth.nearest.valid[j]) else None
-        nearest, age_s = FloorMemory().nearest(one, 0.0)  # each pair alone: its own floor or the camera's axis
+        nearest, along, _ = FloorMemory().nearest(one, 0.0)  # each pair alone: its own floor or the camera's axis
         now = float(nearest.surface_m[0]) if ok and bool(nearest.valid[0]) else None
         floor = result.floor.floor
         found = bool(floor.found[j])
         rows.append({"setting": setting, "frame": frame, "kind": kind, "height_m": height_m, "pitch_deg": pitch_deg,
                      "case": list(cases[i]), "truth_ahead_m": truth, "axis_m": axis, "said_m": now,
-                     "along_floor": age_s is not None, "floor_found": found,
+                     "along_floor": along != "axis", "floor_found": found,
                      "floor_height_m": float(floor.camera_height_m[j]) if found else None,
                      "floor_pitch_deg": float(floor.pitch_deg[j]) if found else None,
                      "axis_acc": accuracy(axis, truth), "said_acc": accuracy(now, truth),
@@ -125,12 +125,12 @@ def walk_rows(config, setting: str) -> list[dict]:
         memory = FloorMemory()
         for j, truth in enumerate(truths):
             one = _one_pair(result, j)
-            alone, alone_age = FloorMemory().nearest(one, 0.0)
-            kept, kept_age = memory.nearest(one, j / PAIRS_PER_S)
+            alone, alone_along, _ = FloorMemory().nearest(one, 0.0)
+            kept, kept_along, _ = memory.nearest(one, j / PAIRS_PER_S)
             said = [float(n.surface_m[0]) if bool(n.valid[0]) else None for n in (alone, kept, one.depth.nearest)]
             rows.append({"setting": setting, "frame": "jpeg q4 + noise s4", "kind": "walk", "offset_m": offset_m,
                          "heap_ahead_m": ahead[j], "truth_ahead_m": truth, "alone_m": said[0], "memory_m": said[1],
-                         "alone_along_floor": alone_age is not None, "memory_along_floor": kept_age is not None,
+                         "alone_along_floor": alone_along != "axis", "memory_along_floor": kept_along != "axis",
                          "axis_m": said[2], "axis_along_floor": False, "axis_acc": accuracy(said[2], truth),
                          "axis_class": POLICY.classify(said[2]),
                          "alone_acc": accuracy(said[0], truth), "memory_acc": accuracy(said[1], truth),

@@ -7,7 +7,7 @@ import contextlib
 import sys
 import warnings
 
-from .common import (Terminated, non_negative_float, non_negative_int, positive_float, positive_int,
+from .common import (Terminated, finite_float, non_negative_float, non_negative_int, positive_float, positive_int,
                      terminated_on_sigterm, timeout_seconds)
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
@@ -19,7 +19,8 @@ Grab pairs from the SVS continuously, run the whole pipeline on the most recent 
 nearest obstacle's nearest visible surface (the 10th percentile of its distances) is within the distance band
 (default 1-2 m, the range the system was designed for), measured ahead along the floor where the floor was found
 (in the pair, or in the last 2 s: a camera pitched down sees what lies on the floor 0.2-0.4 m farther along its
-axis than it stands), else along the camera's axis: a spoken message, with the obstacle's side where it is not
+axis than it stands), else along a level floor under the camera as worn (--camera-pitch-deg) or along its axis:
+a spoken message, with the obstacle's side where it is not
 straight ahead ("Obstacle on the left, 1.5 metres"), when espeak-ng
 is installed, always a text line, rate-limited so it does not chatter (a message repeats after --repeat-s
 seconds unless the distance class turns more urgent than the one last said, or a new obstacle follows a clear
@@ -49,6 +50,7 @@ examples:
   svs-depth guide --emulator --emulator-floor-m 1.3           a walker's view: the floor ahead is not warned of
   svs-depth guide --emulator --emulator-floor-m 1.3 --floor off   the same view, the floor kept and warned of
   svs-depth guide --emulator --emulator-floor-m 1.3 --emulator-heap-m 1.5   a heap of rocks on the floor, warned of
+  svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --camera-pitch-deg 20   a rig worn pitched 20° down
   svs-depth guide --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
   svs-depth guide --emulator --count 50 --json --record walk/ > walk.jsonl   a walk kept, to range again
@@ -89,9 +91,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-heap-m", type=positive_float, metavar="M",
                         help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
                              "0.35 m high, which guide warns of (default: none)")
-    add_floor_option(parser, "on", "a walker's camera sees the floor ahead as the nearest surface; a heap seen "
-                                   "from above can read as a floor too: experiments/walker_floor.md")
-    parser.add_argument("--second-passes", choices=("on", "off"), default="on", help=SECOND_PASSES_HELP)
+    _add_walker_options(parser)
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
@@ -208,6 +208,26 @@ def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
                                            else rectify_with_calibration(batch, calibration), config)
 
     return ranged
+
+
+def _add_walker_options(parser: argparse.ArgumentParser) -> None:
+    """The options of the walker's view: the floor rule, the camera's pitch as worn, the second passes."""
+    add_floor_option(parser, "on", "a walker's camera sees the floor ahead as the nearest surface; a heap seen "
+                                   "from above can read as a floor too: experiments/walker_floor.md")
+    parser.add_argument("--camera-pitch-deg", type=camera_pitch_deg, metavar="DEG",
+                        help="the camera's pitch below the horizontal as worn, degrees (-45 to 60): where no floor "
+                             "was found in the pair or the last 2 s (camera frames at digit 8, a view without "
+                             "floor), distances run ahead along a level floor under a camera so pitched, not along "
+                             "its axis (default: along its axis there)")
+    parser.add_argument("--second-passes", choices=("on", "off"), default="on", help=SECOND_PASSES_HELP)
+
+
+def camera_pitch_deg(text: str) -> float:
+    """``--camera-pitch-deg``: degrees in [-45, 60] (a camera worn looking ahead, down to the feet)."""
+    value = finite_float(text)
+    if not -45 <= value <= 60:
+        raise argparse.ArgumentTypeError(f"expected degrees from -45 to 60 (positive: pitched down), got {text!r}")
+    return value
 
 
 def _stopped(status_line, log, text: str, code: int) -> int:

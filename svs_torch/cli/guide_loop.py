@@ -32,7 +32,7 @@ from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "FLOOR_MEMORY_S", "FloorMemory", "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -51,33 +51,51 @@ IDLE_TICK_S = 0.25
 #: warned distance by 0.2-0.4 m from one pair to the next. Longer, a walker who bent or turned would be ranged
 #: along a floor no longer under the camera.
 FLOOR_MEMORY_S = 2.0
+#: What a warning's distance runs along (``guide --json``'s ``warning.distance_along``): the floor found in the pair,
+#: the one found last (:data:`FLOOR_MEMORY_S`), a level floor under the camera as worn (``--camera-pitch-deg``), or
+#: the camera's axis.
+DISTANCE_ALONG = ("floor", "remembered_floor", "camera_pitch", "axis")
 
 
 class FloorMemory:
     """Which distances ``guide`` warns on (:mod:`svs_torch.depth.floor_distance`): where the pair's floor rule found
     the floor, the obstacle nearest ahead along it (a walker's camera is pitched down, and depth along its axis puts
     what lies on the floor 0.2-0.4 m farther than it stands); on a pair where it found none, along the floor found
-    last, for ``memory_s`` seconds (:data:`FLOOR_MEMORY_S`); else along the camera's axis, as ``estimate`` ranges."""
+    last, for ``memory_s`` seconds (:data:`FLOOR_MEMORY_S`); else along a level floor under the camera pitched
+    ``worn_pitch_deg`` (``--camera-pitch-deg``, the rig as worn) where given; else along the camera's axis, as
+    ``estimate`` ranges. :meth:`nearest` says which (:data:`DISTANCE_ALONG`)."""
 
-    def __init__(self, memory_s: float = FLOOR_MEMORY_S) -> None:
-        self.memory_s = memory_s
+    def __init__(self, memory_s: float = FLOOR_MEMORY_S, worn_pitch_deg: float | None = None) -> None:
+        self.memory_s, self.worn_pitch_deg = memory_s, worn_pitch_deg
         self.floor = None  # the FloorGeometry found last
         self.found_s: float | None = None
 
     def nearest(self, result, now_s: float) -> tuple:
-        """The nearest obstacle of a one-pair ``result`` to warn of, and the age in seconds of the floor its
-        distances run along (0: the pair's own; None: along the camera's axis)."""
+        """The nearest obstacle of a one-pair ``result`` to warn of, what its distances run along (one of
+        :data:`DISTANCE_ALONG`) and the age in seconds of the floor found that they run along (0: the pair's own;
+        None: not a floor found)."""
         distances = getattr(result, "floor", None)  # (a result of the paper's rule has no dense map, nor this)
         if distances is not None and bool(distances.floor.found[0]):
             self.floor, self.found_s = distances.floor, now_s
-            return distances.nearest, 0.0
-        if distances is not None and self.floor is not None and now_s - self.found_s <= self.memory_s:
-            from ..pipeline import result_along_floor
-
-            remembered = result_along_floor(result, self.floor)
+            return distances.nearest, "floor", 0.0
+        if self.floor is not None and now_s - self.found_s <= self.memory_s:
+            remembered = self._along(result, self.floor)
             if remembered is not None:
-                return remembered.nearest, now_s - self.found_s
-        return result.depth.nearest, None
+                return remembered.nearest, "remembered_floor", now_s - self.found_s
+        if self.worn_pitch_deg is not None:
+            from ..depth.floor_distance import pitched_camera
+
+            pitched = self._along(result, pitched_camera(self.worn_pitch_deg, 1, result.status.device))
+            if pitched is not None:
+                return pitched.nearest, "camera_pitch", None
+        return result.depth.nearest, "axis", None
+
+    @staticmethod
+    def _along(result, floor):
+        """``result``'s distances ahead along ``floor`` (None where it has no dense map)."""
+        from ..pipeline import result_along_floor
+
+        return result_along_floor(result, floor)
 
 
 class GuideSession:
@@ -94,7 +112,7 @@ class GuideSession:
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
         self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
-        self.floor = FloorMemory()
+        self.floor = FloorMemory(worn_pitch_deg=getattr(args, "camera_pitch_deg", None))
 
     def run(self) -> None:
         """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
@@ -237,7 +255,7 @@ class GuideSession:
         self._come_back(now)
         seen = self._seen(result)
         self._watch_sight(seen, PipelineStatus(int(result.status[0])).name, now)
-        nearest, floor_age_s = self.floor.nearest(result, now)
+        nearest, along, floor_age_s = self.floor.nearest(result, now)
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
         distance = float(nearest.surface_m[0]) if bool(nearest.valid[0]) else None
@@ -248,8 +266,7 @@ class GuideSession:
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
         warned = {"distance_m": None if distance is None else round(distance, 4),
                   "confirmed_m": None if confirmed is None else round(confirmed, 4),
-                  "along_floor": floor_age_s is not None,
-                  "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3), "class": shown,
-                  "message": message}
+                  "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
+                  "class": shown, "message": message}
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
         self.processed += 1

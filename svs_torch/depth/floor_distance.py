@@ -40,7 +40,8 @@ from .dense_objects import dense_object_depths
 from .depth_types import NearestObstacle, ObjectDepths
 from .sparse import nearest_obstacle
 
-__all__ = ["FloorDistances", "FloorGeometry", "floor_distances", "floor_geometry", "refit_floor_plane"]
+__all__ = ["FloorDistances", "FloorGeometry", "floor_distances", "floor_geometry", "pitched_camera",
+           "refit_floor_plane"]
 
 #: The least ``r · u`` a pixel's ray may have (a ray nearly at right angles to the way ahead: looking straight
 #: down, 87°): a distance ahead over 20 times its depth is not a warning's.
@@ -162,6 +163,17 @@ def floor_geometry(coefficients: torch.Tensor, found: torch.Tensor, focal_px: to
     pitch = torch.where(ok, torch.rad2deg(torch.asin(normal[:, 2].clamp(-1, 1))), 0.0)
     dtype = coefficients.dtype if coefficients.is_floating_point() else torch.float32
     return FloorGeometry(ok, height.to(dtype), pitch.to(dtype), ahead.to(dtype))
+
+
+def pitched_camera(pitch_deg: float, batch_size: int, device: torch.device | str = "cpu") -> FloorGeometry:
+    """The pose of a camera pitched ``pitch_deg`` below the horizontal (positive: down; unrolled) over a level
+    floor, for ``batch_size`` pairs: the way ahead ``(0, −sin θ, cos θ)``. Its height is unknown (0), which the
+    distances ahead do not need (``guide --camera-pitch-deg``: a rig's pitch as worn, where no floor is seen)."""
+    theta = math.radians(pitch_deg)
+    ahead = torch.tensor([0.0, -math.sin(theta), math.cos(theta)], device=device).expand(batch_size, 3)
+    return FloorGeometry(torch.ones(batch_size, dtype=torch.bool, device=device),
+                         torch.zeros(batch_size, device=device), torch.full((batch_size,), float(pitch_deg),
+                                                                            device=device), ahead.contiguous())
 
 
 def _ahead_per_depth(floor: FloorGeometry, focal_px: torch.Tensor, size_hw: tuple[int, int],

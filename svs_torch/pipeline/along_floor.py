@@ -23,13 +23,16 @@ def along_floor(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
                 dense: DenseDisparity | None, object_labels: torch.Tensor, rectified: torch.Tensor,
                 H_left: torch.Tensor, config: PipelineConfig) -> FloorDistances | None:
     """The objects of ``depth`` (measured on ``dense`` over ``object_labels``, input pixels; ``rectified`` pairs by
-    ``H_left``) ahead along the floor ``seg`` found, a pair whose ``status`` is not OK left unranged; None where the
-    segmenter did not look for one (``SegmentationConfig.ground``) or without a dense map."""
-    if seg.floor_found is None or dense is None or depth.objects is None:
+    ``H_left``) ahead along the floor ``seg`` found, a pair whose ``status`` is not OK left unranged (none found
+    where the segmenter did not look for one, ``SegmentationConfig.ground``: the rig is still recorded, which
+    :func:`result_along_floor` reads); None without a dense map."""
+    if dense is None or depth.objects is None:
         return None
     depth = without_failed_pairs(depth, status)
-    floor = floor_geometry(seg.floor_plane_px, seg.floor_found, batch.focal_px, batch.baseline_m, batch.doffs_px,
-                           batch.size_hw)
+    plane, found = seg.floor_plane_px, seg.floor_found
+    if found is None:
+        plane, found = batch.left.new_zeros(batch.batch_size, 3), torch.zeros_like(status, dtype=torch.bool)
+    floor = floor_geometry(plane, found, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.size_hw)
     return floor_distances(floor, dense, _in_map_pixels(object_labels, rectified, H_left), depth.objects,
                            batch.focal_px, batch.baseline_m, batch.doffs_px, rectified, H_left,
                            config.depth.object_percentiles, config.dense.fill_invalid)
@@ -39,7 +42,7 @@ def result_along_floor(result: PipelineResult, floor: FloorGeometry,
                        config: PipelineConfig = PipelineConfig()) -> FloorDistances | None:
     """``result``'s objects ahead along ``floor`` (a pose over the floor, e.g. found on an earlier pair of the same
     camera, with as many rows as ``result`` has pairs), with the rig its ``floor`` field recorded and ``config``'s
-    percentiles; None where ``result`` has no such field (the floor rule off, or no dense map)."""
+    percentiles; None where ``result`` has no such field (no dense map: the paper's rule)."""
     if result.floor is None or result.dense is None or result.object_labels is None:
         return None
     distances = result.floor

@@ -79,10 +79,10 @@ class PipelineResult:
             (:func:`svs_torch.evaluation.measured_regions`); ``segmentation`` keeps the whole regions.
         near_surface: ``(B, N)`` bool, under the dense rule with ``PipelineConfig.measure_near_surface``: the objects
             whose region spanned two surfaces, ranged over the nearer; None otherwise.
-        floor: :class:`~svs_torch.depth.floor_distance.FloorDistances`, under the dense rule where the segmenter
-            looked for the floor (``SegmentationConfig.ground``, ``guide``'s default): the camera's height and pitch
-            over it and each object's distance ahead along it (what ``guide`` says where the floor was found);
-            None otherwise.
+        floor: :class:`~svs_torch.depth.floor_distance.FloorDistances`, under the dense rule: where the segmenter
+            found the floor (``SegmentationConfig.ground``, ``guide``'s default), the camera's height and pitch over
+            it and each object's distance ahead along it (what ``guide`` says); none found where it did not look;
+            None under the ``"paper"`` rule.
     """
 
     status: torch.Tensor

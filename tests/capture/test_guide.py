@@ -504,7 +504,7 @@ def test_guide_says_how_far_ahead_along_the_floor_a_heap_lies(monkeypatch, capsy
         assert pair["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.08)
         assert pair["floor"]["pitch_deg"] == pytest.approx(20.0, abs=3.0)
         assert pair["nearest_surface_m"] > 1.15
-        assert pair["warning"]["along_floor"] is True
+        assert pair["warning"]["distance_along"] == "floor" and pair["warning"]["floor_age_s"] == 0.0
         assert pair["warning"]["distance_m"] == pair["nearest_ahead_surface_m"] < 1.0
         assert pair["warning"]["class"] == STOP
         assert any(obj["ahead_p10_m"] == pair["nearest_ahead_surface_m"] for obj in pair["objects"])
@@ -512,7 +512,7 @@ def test_guide_says_how_far_ahead_along_the_floor_a_heap_lies(monkeypatch, capsy
     assert main([*command[:-4], "--floor", "off", *command[-4:]]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     for pair in (line for line in lines if "warning" in line):
-        assert pair["floor"] is None and pair["nearest_ahead_m"] is None and pair["warning"]["along_floor"] is False
+        assert pair["floor"] is None and pair["nearest_ahead_m"] is None and pair["warning"]["distance_along"] == "axis"
         assert pair["warning"]["distance_m"] == pair["nearest_surface_m"]
         assert all(obj["ahead_m"] is None for obj in pair["objects"])
 
@@ -538,15 +538,21 @@ def test_guide_ranges_along_the_floor_it_found_last_for_a_while():
     floorless = dataclasses.replace(found, floor=dataclasses.replace(found.floor, floor=dataclasses.replace(
         found.floor.floor, found=torch.tensor([False]))))
     memory = FloorMemory()
-    assert memory.nearest(floorless, 0.0)[1] is None  # nothing found yet: along the camera's axis
-    nearest, age = memory.nearest(found, 10.0)
-    assert age == 0.0 and float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
-    nearest, age = memory.nearest(floorless, 10.0 + FLOOR_MEMORY_S / 2)
-    assert age == FLOOR_MEMORY_S / 2 and float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
+    assert memory.nearest(floorless, 0.0)[1:] == ("axis", None)  # nothing found yet: along the camera's axis
+    nearest, along, age = memory.nearest(found, 10.0)
+    assert (along, age) == ("floor", 0.0) and float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
+    nearest, along, age = memory.nearest(floorless, 10.0 + FLOOR_MEMORY_S / 2)
+    assert (along, age) == ("remembered_floor", FLOOR_MEMORY_S / 2)
+    assert float(nearest.surface_m[0]) == float(found.floor.nearest.surface_m[0])
     axis = float(found.depth.nearest.surface_m[0])
     assert not math.isclose(axis, float(nearest.surface_m[0]), rel_tol=0.1)
-    nearest, age = memory.nearest(floorless, 10.1 + FLOOR_MEMORY_S)
-    assert age is None and float(nearest.surface_m[0]) == axis
+    nearest, along, age = memory.nearest(floorless, 10.1 + FLOOR_MEMORY_S)
+    assert (along, age) == ("axis", None) and float(nearest.surface_m[0]) == axis
+    # the rig's pitch as worn, where no floor was seen lately: ahead along a level floor under it (20°, as rendered)
+    worn = FloorMemory(worn_pitch_deg=20.0)
+    nearest, along, age = worn.nearest(floorless, 0.0)
+    assert (along, age) == ("camera_pitch", None)
+    assert float(nearest.surface_m[0]) == pytest.approx(float(found.floor.nearest.surface_m[0]), rel=0.05)
 
 
 @pytest.mark.parametrize("distance_class, distance, side, words", [
@@ -568,3 +574,21 @@ def test_the_side_is_said_with_the_warning_but_never_makes_one_alone():
     assert policy.update(0.8, 1.0, "right") == "Stop. Obstacle on the right at 0.8 metres"
     guide = LiveGuide(WarningPolicy(confirm_frames=1), Speaker(None, stream=None))
     assert guide.update(1.2, 0.0, "right") == "Obstacle on the right, 1.2 metres"
+
+
+def test_guide_ranges_along_a_level_floor_under_the_camera_s_pitch_as_worn(capsys):
+    """``--camera-pitch-deg``: where no floor was found (here the floor rule is off), the distance runs ahead along a
+    level floor under the camera so pitched, nearer than along its axis; refused out of range."""
+    import json
+
+    from svs_torch.cli import main
+
+    command = ["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", "1.0", "--floor", "off",
+               "--count", "1", "--no-speech", "--json"]
+    assert main([*command, "--camera-pitch-deg", "20"]) == 0
+    pair = next(json.loads(line) for line in capsys.readouterr().out.splitlines() if '"warning"' in line)
+    assert pair["warning"]["distance_along"] == "camera_pitch" and pair["warning"]["floor_age_s"] is None
+    assert pair["warning"]["distance_m"] < 0.95 * pair["nearest_surface_m"]
+    with pytest.raises(SystemExit):
+        main([*command, "--camera-pitch-deg", "75"])
+    assert "--camera-pitch-deg: expected degrees from -45 to 60" in capsys.readouterr().err

@@ -606,9 +606,11 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert len(lines) == 3 and ("Obstacle" in err or "obstacle" in err)  # the 1-5 m band: words, on stderr
     for line in lines:
         assert line["status"] == "OK" and line["nearest_m"] > 0 and line["objects"]
-        assert set(line["warning"]) == {"distance_m", "confirmed_m", "along_floor", "floor_age_s", "class", "message"}
+        assert set(line["warning"]) == {"distance_m", "confirmed_m", "distance_along", "floor_age_s", "class",
+                                        "message"}
         # no floor in the emulator's view: the distance along the camera's axis (svs_torch.depth.floor_distance)
-        assert line["floor"] is None and not line["warning"]["along_floor"] and line["warning"]["floor_age_s"] is None
+        assert line["floor"] is None and line["warning"]["distance_along"] == "axis"
+        assert line["warning"]["floor_age_s"] is None
         assert line["warning"]["distance_m"] == pytest.approx(line["nearest_surface_m"], abs=1e-4)
         assert line["dropped_pairs"] >= 0 and line["latency_s"] >= line["time_s"] > 0
         assert (record / line["left"]).read_bytes()[:2] == b"\xff\xd8" and (record / line["right"]).is_file()

@@ -164,3 +164,12 @@ def test_the_pipeline_says_how_far_ahead_a_heap_on_a_rendered_floor_lies():
     on = result.object_labels == int(objects.label[0, heap_slot])
     assert float((on & scenes.heap_mask).sum()) > 0.9 * float(on.sum())  # the heap is nearest along the floor
     assert float(objects.depth_low_m[0, heap_slot]) > 1.25 * float(true_ahead[on].quantile(0.1))
+
+
+def test_a_camera_pitched_as_worn_looks_ahead_as_the_posed_one():
+    from svs_torch.depth.floor_distance import pitched_camera
+
+    _, ahead = posed_camera(1.3, 20.0, 0.0)
+    floor = pitched_camera(20.0, 2)
+    assert floor.found.tolist() == [True, True] and floor.pitch_deg.tolist() == [20.0, 20.0]
+    assert torch.allclose(floor.ahead.double(), ahead.expand(2, 3), atol=1e-6)
