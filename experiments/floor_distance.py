@@ -22,7 +22,9 @@ the part of it a walker reaches first. Per pair, the distance ``guide`` would sa
 nearest obstacle's nearest part; now: its distance ahead where the floor was found, else the axis depth) is
 scored by Eq. (9) against that truth, and its class (``stop`` under 1 m, ``warn`` to 2 m, else ``clear``:
 ``WarningPolicy``'s default band) against the truth's class. Also the floor's camera height and pitch against
-the rendered ones. No rival: OpenCV's matchers give depth along the axis and no floor.
+the rendered ones, and what ``guide --camera-pitch-deg`` gives where the pair is ranged along a level floor under
+the camera's pitch as worn (given exactly, and 5° too steep) once no floor is seen. No rival: OpenCV's matchers
+give depth along the axis and no floor.
 
 ``--set KEY=VALUE`` changes the pipeline. Tuning data only (our own renderings). About four minutes on a 2-core
 machine.
@@ -88,6 +90,9 @@ def pair_rows(kind: str, scenes, index, cases, on: torch.Tensor, config, frame: 
         axis = float(result.depth.nearest.surface_m[j]) if ok and bool(result.depth.nearest.valid[j]) else None
         nearest, along, _ = FloorMemory().nearest(one, 0.0)  # each pair alone: its own floor or the camera's axis
         now = float(nearest.surface_m[0]) if ok and bool(nearest.valid[0]) else None
+        # with guide --camera-pitch-deg: the rig's pitch as worn, given exactly and 5° too steep
+        worn = [FloorMemory(worn_pitch_deg=pitch_deg + error).nearest(one, 0.0)[0] for error in (0.0, 5.0)]
+        worn = [float(n.surface_m[0]) if ok and bool(n.valid[0]) else None for n in worn]
         floor = result.floor.floor
         found = bool(floor.found[j])
         rows.append({"setting": setting, "frame": frame, "kind": kind, "height_m": height_m, "pitch_deg": pitch_deg,
@@ -97,7 +102,9 @@ def pair_rows(kind: str, scenes, index, cases, on: torch.Tensor, config, frame: 
                      "floor_pitch_deg": float(floor.pitch_deg[j]) if found else None,
                      "axis_acc": accuracy(axis, truth), "said_acc": accuracy(now, truth),
                      "truth_class": POLICY.classify(truth), "axis_class": POLICY.classify(axis),
-                     "said_class": POLICY.classify(now)})
+                     "said_class": POLICY.classify(now), "worn_m": worn[0], "worn_acc": accuracy(worn[0], truth),
+                     "worn_class": POLICY.classify(worn[0]), "worn5_m": worn[1],
+                     "worn5_acc": accuracy(worn[1], truth), "worn5_class": POLICY.classify(worn[1])})
     return rows
 
 
@@ -158,8 +165,8 @@ def walk_markdown(rows: list[dict]) -> str:
 def markdown(rows: list[dict], command: str) -> str:
     """One line per frame kind and scene kind."""
     lines = [f"`{command}`", "", "| frames | scenes | pairs | floor found | camera height error, m | pitch error, ° "
-             "| said before (axis): Acc / class right | said now: Acc / class right |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| said before (axis): Acc / class right | said now: Acc / class right "
+             "| with --camera-pitch-deg: exact / 5° too steep |", "|---|---|---|---|---|---|---|---|---|"]
     for frame, kind in dict.fromkeys((r["frame"], r["kind"]) for r in rows):
         group = [r for r in rows if (r["frame"], r["kind"]) == (frame, kind)]
         found = [r for r in group if r["floor_found"]]
@@ -167,8 +174,10 @@ def markdown(rows: list[dict], command: str) -> str:
         height = sum(abs(r["floor_height_m"] - r["height_m"]) for r in found) / max(1, len(found))
         pitch = sum(abs(r["floor_pitch_deg"] - r["pitch_deg"]) for r in found) / max(1, len(found))
         said = [f"{sum(r[name + '_acc'] for r in group) / n:.1f} % / "
-                f"{sum(r[name + '_class'] == r['truth_class'] for r in group)}" for name in ("axis", "said")]
-        lines.append(f"| {frame} | {kind} | {n} | {len(found)} | {height:.3f} | {pitch:.2f} | {said[0]} | {said[1]} |")
+                f"{sum(r[name + '_class'] == r['truth_class'] for r in group)}"
+                for name in ("axis", "said", "worn", "worn5")]
+        lines.append(f"| {frame} | {kind} | {n} | {len(found)} | {height:.3f} | {pitch:.2f} | {said[0]} | {said[1]} "
+                     f"| {said[2]}; {said[3]} |")
     return "\n".join(lines) + "\n"
 
 
