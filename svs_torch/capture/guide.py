@@ -121,6 +121,10 @@ class WarningPolicy:
         if (last is not None and _SEVERITY[new] <= _SEVERITY[last]
                 and now_s - self._last_spoken_s < self.repeat_s):
             return None
+        if last == new and self.classify(distance_m) != new:
+            # Held by the hysteresis only, past the band's edge: not said again ("Obstacle ahead, 2.1 metres" with
+            # a 1-2 m band, every --repeat-s, an audit); said again once back inside, or a new class at once.
+            return None
         self._last_spoken_s, self._last_spoken_class = now_s, new
         return self.message(new, distance_m, side)
 

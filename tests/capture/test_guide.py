@@ -592,3 +592,13 @@ def test_guide_ranges_along_a_level_floor_under_the_camera_s_pitch_as_worn(capsy
     with pytest.raises(SystemExit):
         main([*command, "--camera-pitch-deg", "75"])
     assert "--camera-pitch-deg: expected degrees from -45 to 60" in capsys.readouterr().err
+
+
+def test_a_class_held_by_the_hysteresis_past_the_band_is_not_said_again():
+    """An obstacle at 2.08 m with a 1-2 m band stays "warn" (within the 0.1 m hysteresis) but is not repeated every
+    --repeat-s as "Obstacle ahead, 2.1 metres"; back inside the band it is said again after --repeat-s."""
+    policy = WarningPolicy(repeat_s=3.0, hysteresis_m=0.1, confirm_frames=1)
+    assert policy.update(1.9, 0.0) == "Obstacle ahead, 1.9 metres"
+    assert [policy.update(2.08, t) for t in (1.0, 4.0, 8.0)] == [None, None, None] and policy.current == WARN
+    assert policy.update(1.95, 9.0) == "Obstacle ahead, 1.9 metres"
+    assert policy.update(0.9, 9.5) == "Stop. Obstacle at 0.9 metres"  # more urgent: at once
