@@ -33,7 +33,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import check_shape
+from ..core.checks import check_count, check_dtype, check_instance, check_real, check_shape
+from ..core.errors import InputError
 from ..geometry.rectification import apply_homography
 from .dense_config import DenseDisparity
 from .dense_objects import dense_object_depths
@@ -93,6 +94,13 @@ class FloorDistances:
     doffs_px: torch.Tensor
 
 
+def _check_rows(values: dict[str, torch.Tensor], b: int, kinds: str = "float") -> None:
+    """Each of ``values`` (name: tensor) a ``(B,)`` tensor of ``kinds``."""
+    for name, value in values.items():
+        check_shape(value, name, [b])
+        check_dtype(value, name, kinds)
+
+
 def refit_floor_plane(disparity: torch.Tensor, on_plane: torch.Tensor, coefficients: torch.Tensor,
                       found: torch.Tensor, lower_rows_fraction: float, tolerance_px: torch.Tensor,
                       iterations: int = REFIT_ITERATIONS) -> torch.Tensor:
@@ -107,6 +115,16 @@ def refit_floor_plane(disparity: torch.Tensor, on_plane: torch.Tensor, coefficie
     by 0.18 m and its pitch by 5° on average, up to 0.76 m and 19° under a camera pitched 10°). The lower rows are
     the floor in front of the feet, nearest and steepest in disparity, where few obstacles' feet lie.
     Not differentiable."""
+    dims = check_shape(disparity, "disparity", ["B", 1, "H", "W"])
+    check_dtype(disparity, "disparity", "float")
+    check_shape(on_plane, "on_plane", list(disparity.shape))
+    check_dtype(on_plane, "on_plane", "bool")
+    check_shape(coefficients, "coefficients", [dims["B"], 3])
+    check_dtype(coefficients, "coefficients", "float")
+    _check_rows({"found": found}, dims["B"], "bool")
+    _check_rows({"tolerance_px": tolerance_px}, dims["B"])
+    check_real(lower_rows_fraction, "lower_rows_fraction", 0.0, 1.0, low_open=True)
+    check_count(iterations, "iterations", 1)
     b, _, h, w = disparity.shape
     if not bool(found.any()):  # (most frames of a scene without a floor: nothing to refit)
         return coefficients
@@ -143,8 +161,14 @@ def floor_geometry(coefficients: torch.Tensor, found: torch.Tensor, focal_px: to
     """The camera over the floor whose plane ``coefficients`` ``(B, 3)`` (``a, b, c`` of ``d = a·x + b·y + c`` in
     the pixels of ``image_hw``'s views, :class:`~svs_torch.segmentation.ground_plane.GroundPlane`) was ``found``
     ``(B,)``; the rigs' ``focal_px``, ``baseline_m`` and ``doffs_px`` ``(B,)`` at that size (module docstring)."""
-    b = found.shape[0]
+    b = check_shape(found, "found", ["B"])["B"]
+    check_dtype(found, "found", "bool")
     check_shape(coefficients, "coefficients", [b, 3])
+    check_dtype(coefficients, "coefficients", "float")
+    _check_rows({"focal_px": focal_px, "baseline_m": baseline_m, "doffs_px": doffs_px}, b)
+    if (not isinstance(image_hw, (tuple, list)) or len(image_hw) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in image_hw)):
+        raise InputError(f"image_hw: expected (height, width) in pixels, two positive ints, got {image_hw!r}")
     h, w = image_hw
     plane = coefficients.detach().to(torch.float64)
     focal, baseline = focal_px.detach().to(plane).view(b), baseline_m.detach().to(plane).view(b)
@@ -169,6 +193,8 @@ def pitched_camera(pitch_deg: float, batch_size: int, device: torch.device | str
     """The pose of a camera pitched ``pitch_deg`` below the horizontal (positive: down; unrolled) over a level
     floor, for ``batch_size`` pairs: the way ahead ``(0, −sin θ, cos θ)``. Its height is unknown (0), which the
     distances ahead do not need (``guide --camera-pitch-deg``: a rig's pitch as worn, where no floor is seen)."""
+    check_real(pitch_deg, "pitch_deg", -90.0, 90.0, low_open=True, high_open=True)
+    check_count(batch_size, "batch_size")
     theta = math.radians(pitch_deg)
     ahead = torch.tensor([0.0, -math.sin(theta), math.cos(theta)], device=device).expand(batch_size, 3)
     return FloorGeometry(torch.ones(batch_size, dtype=torch.bool, device=device),
@@ -211,7 +237,15 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
     ``baseline_m``, ``doffs_px`` ``(B,)``; ``rectified`` ``(B,)`` and ``H_left`` ``(B, 3, 3)``: the pairs measured
     in rectified pixels and their left homography. ``percentiles`` and ``fill_invalid``: as the depth's
     (``DepthConfig.object_percentiles``, ``DenseConfig.fill_invalid``). Not differentiable."""
+    check_instance(floor, "floor", FloorGeometry)
+    check_instance(dense, "dense", DenseDisparity)
+    check_instance(objects, "objects", ObjectDepths)
     b = floor.found.shape[0]
+    check_shape(dense.disparity_px, "dense.disparity_px", [b, 1, "H", "W"])
+    check_shape(objects.label, "objects.label", [b, "N"])
+    _check_rows({"focal_px": focal_px, "baseline_m": baseline_m, "doffs_px": doffs_px}, b)
+    _check_rows({"rectified": rectified}, b, "bool")
+    check_shape(H_left, "H_left", [b, 3, 3])
     disparity = dense.disparity_px.detach()
     slots = torch.where(objects.valid & floor.found.view(b, 1), objects.label, torch.full_like(objects.label, -1))
     ahead = objects  # no floor, or no object ranged on it: nothing to measure (all left not valid below)

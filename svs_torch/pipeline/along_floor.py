@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import check_instance
+from ..core.errors import InputError
 from ..core.types import StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseDisparity
 from ..depth.depth_types import DepthResult
@@ -43,8 +45,13 @@ def result_along_floor(result: PipelineResult, floor: FloorGeometry,
     """``result``'s objects ahead along ``floor`` (a pose over the floor, e.g. found on an earlier pair of the same
     camera, with as many rows as ``result`` has pairs), with the rig its ``floor`` field recorded and ``config``'s
     percentiles; None where ``result`` has no such field (no dense map: the paper's rule)."""
+    check_instance(result, "result", PipelineResult)
+    check_instance(floor, "floor", FloorGeometry)
     if result.floor is None or result.dense is None or result.object_labels is None:
         return None
+    if floor.found.shape != result.status.shape:
+        raise InputError(f"floor: expected one row per pair of result ({result.status.shape[0]}), got "
+                         f"{tuple(floor.found.shape)}")
     distances = result.floor
     return floor_distances(floor, result.dense, _in_map_pixels(result.object_labels, result.rectified,
                                                                result.H_left),

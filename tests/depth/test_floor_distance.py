@@ -173,3 +173,22 @@ def test_a_camera_pitched_as_worn_looks_ahead_as_the_posed_one():
     floor = pitched_camera(20.0, 2)
     assert floor.found.tolist() == [True, True] and floor.pitch_deg.tolist() == [20.0, 20.0]
     assert torch.allclose(floor.ahead.double(), ahead.expand(2, 3), atol=1e-6)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: floor_geometry(torch.zeros(2, 3), torch.ones(2), *rig(2), (H, W)), "found: expected a bool tensor"),
+    (lambda: floor_geometry(torch.zeros(2, 3), torch.ones(2, dtype=torch.bool), torch.ones(3), *rig(2)[1:], (H, W)),
+     "focal_px: expected (2)"),
+    (lambda: floor_geometry(torch.zeros(1, 3), torch.ones(1, dtype=torch.bool), *rig(), (H, -1)),
+     "image_hw: expected (height, width)"),
+    (lambda: __import__("svs_torch.depth.floor_distance", fromlist=["x"]).refit_floor_plane(
+        torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 5, dtype=torch.bool), torch.zeros(1, 3),
+        torch.ones(1, dtype=torch.bool), 0.4, torch.ones(1)), "on_plane: expected (1, 1, 4, 4)"),
+    (lambda: __import__("svs_torch.depth.floor_distance", fromlist=["x"]).pitched_camera(90.0, 1),
+     "pitch_deg: expected a finite number in (-90, 90)"),
+])
+def test_bad_arguments_are_refused_by_name(call, message):
+    from svs_torch.core.errors import InputError
+
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        call()
