@@ -20,7 +20,7 @@ median and percentiles are taken over those distances pixel by pixel, exactly as
 
 A pair rectified by homographies (``PipelineResult.rectified``) is measured in rectified pixels: each is taken back
 to its input pixel by ``H_left⁻¹`` for its ray (the floor was fitted on the input views); the rectified depth is
-read as the camera's (uncalibrated rectification turns a view by a fraction of a degree).
+read as the camera's (the rectifying homographies of a rig whose rows nearly agree are close to the identity).
 
 Not differentiable: the floor is a constant of the hard pass, as in the segmenter that found it.
 """
@@ -44,8 +44,8 @@ from .sparse import nearest_obstacle
 __all__ = ["FloorDistances", "FloorGeometry", "floor_distances", "floor_geometry", "pitched_camera",
            "refit_floor_plane"]
 
-#: The least ``r · u`` a pixel's ray may have (a ray nearly at right angles to the way ahead: looking straight
-#: down, 87°): a distance ahead over 20 times its depth is not a warning's.
+#: The least ``r · u`` a pixel's ray may have: a ray nearly at right angles to the way ahead (looking straight down,
+#: 87°) has almost none, and a point on it is taken at least a twentieth of its depth ahead, never at 0 or behind.
 _MIN_AHEAD_PER_DEPTH = 0.05
 #: Least-squares refits of the floor's plane for its geometry (:func:`refit_floor_plane`).
 REFIT_ITERATIONS = 4
