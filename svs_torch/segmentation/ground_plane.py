@@ -181,7 +181,7 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     if plane is None:
         plane = _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config)
     return plane._replace(refitted=refit_floor_plane(disparity, plane.mask & measured, plane.coefficients, plane.found,
-                                                     config.lower_rows_fraction, tolerance.view(b)))
+                                                     tolerance.view(b)))
 
 
 def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,

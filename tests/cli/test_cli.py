@@ -1220,7 +1220,7 @@ def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys,
     assert any(obj["ahead_p10_m"] == report["nearest_ahead_surface_m"] for obj in report["objects"])
     code, out, _ = run_cli(capsys, "estimate", *paths, "--floor", "on")
     line = next(line for line in out.splitlines() if "along the floor" in line)
-    assert f"{report['nearest_ahead_m']:.2f} m ahead" in line and "pitched 2" in line
+    assert f"{report['nearest_ahead_m']:.2f} m ahead" in line and f"pitched {report['floor']['pitch_deg']:.1f}°" in line
     code, out, _ = run_cli(capsys, "estimate", *paths, "--json")
     report = json.loads(out)
     assert report["floor"] is None and report["nearest_ahead_m"] is None and report["nearest_ahead_surface_m"] is None

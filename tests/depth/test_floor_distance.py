@@ -183,7 +183,7 @@ def test_a_camera_pitched_as_worn_looks_ahead_as_the_posed_one():
      "image_hw: expected (height, width)"),
     (lambda: __import__("svs_torch.depth.floor_distance", fromlist=["x"]).refit_floor_plane(
         torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 5, dtype=torch.bool), torch.zeros(1, 3),
-        torch.ones(1, dtype=torch.bool), 0.4, torch.ones(1)), "on_plane: expected (1, 1, 4, 4)"),
+        torch.ones(1, dtype=torch.bool), torch.ones(1)), "on_plane: expected (1, 1, 4, 4)"),
     (lambda: __import__("svs_torch.depth.floor_distance", fromlist=["x"]).pitched_camera(90.0, 1),
      "pitch_deg: expected a finite number in (-90, 90)"),
 ])

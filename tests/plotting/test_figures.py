@@ -347,6 +347,6 @@ def test_pipeline_figure_says_the_distance_ahead_along_the_floor_where_one_was_f
     nearest = result.floor.nearest
     assert (f"#{int(nearest.slot[0]) + 1} {float(nearest.depth_m[0]):.2f} m ahead, its nearest part "
             f"{float(nearest.surface_m[0]):.2f} m") in title
-    assert "pitched 2" in title and "along the floor" in title
+    assert f"pitched {float(result.floor.floor.pitch_deg[0]):.1f}° down" in title and "along the floor" in title
     title = pipeline_figure(scenes.batch, estimate_obstacle_depth(scenes.batch), 0)._suptitle.get_text()
     assert "floor" not in title
