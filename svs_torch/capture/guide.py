@@ -29,8 +29,8 @@ from ..core.files import stream_is_terminal
 from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
 
 __all__ = ["CLEAR_SPELL_S", "CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once",
-           "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE", "SEEING_AGAIN", "CLEAR",
-           "WARN", "STOP", "UNSEEN"]
+           "said_metres", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE",
+           "SEEING_AGAIN", "CLEAR", "WARN", "STOP", "UNSEEN"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 #: What guide reports instead of ``clear`` for a pair it could not measure (no obstacle kept and no map of the
@@ -146,9 +146,16 @@ class WarningPolicy:
         edge, not under it."""
         aside = side in ("left", "right")
         if distance_class == STOP:
-            down = math.floor(distance_m * 10 + 1e-9) / 10  # (0.7 * 10 is 6.999…: not 0.6)
-            return f"Stop. Obstacle {f'on the {side} ' if aside else ''}at {down:.1f} metres"
-        return f"Obstacle {f'on the {side}' if aside else 'ahead'}, {distance_m:.1f} metres"
+            return f"Stop. Obstacle {f'on the {side} ' if aside else ''}at {said_metres(STOP, distance_m)} metres"
+        return f"Obstacle {f'on the {side}' if aside else 'ahead'}, {said_metres(WARN, distance_m)} metres"
+
+
+def said_metres(distance_class: str, distance_m: float) -> str:
+    """A distance as said and shown, to the decimetre: rounded, and for ``stop`` rounded down (0.97 m said
+    "1.0" read as the band's edge, not under it)."""
+    if distance_class == STOP:
+        return f"{math.floor(distance_m * 10 + 1e-9) / 10:.1f}"  # (0.7 * 10 is 6.999…: not 0.6)
+    return f"{distance_m:.1f}"
 
 
 #: How to get the speech program, in the one notice given when it is missing.
@@ -284,10 +291,11 @@ class LiveGuide:
     def status(self, nearest_m: float | None, shown_class: str | None = None) -> str:
         """A one-line status, e.g. ``12.5 fps  nearest 1.4 m  warn`` (``shown_class``: the class to show instead of
         the policy's, e.g. :data:`UNSEEN`)."""
-        distance = "none" if nearest_m is None else f"{nearest_m:.1f} m"
+        shown = shown_class or self.policy.current
+        distance = "none" if nearest_m is None else f"{said_metres(shown, nearest_m)} m"  # as the message says it
         # Before a second frame there is no rate: "--", not a rate of 0 (guide --count 1 ended on "0.0 fps").
         rate = f"{self.meter.fps:5.1f}" if self.meter.measured else "   --"
-        return f"{rate} fps  nearest {distance}  {shown_class or self.policy.current}"
+        return f"{rate} fps  nearest {distance}  {shown}"
 
 
 class StatusLine:

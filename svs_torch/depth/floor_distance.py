@@ -106,6 +106,22 @@ def _check_rows(values: dict[str, torch.Tensor], b: int, kinds: str = "float") -
         check_dtype(value, name, kinds)
 
 
+def _check_floor(floor: FloorGeometry) -> int:
+    """``floor``'s fields checked (a pose made by hand, e.g. for ``result_along_floor``); returns its B. A way ahead
+    that is not a unit vector where found (all zeros read every object 0.1 m ahead: a false "Stop") is refused."""
+    check_instance(floor, "floor", FloorGeometry)
+    b = check_shape(floor.found, "floor.found", ["B"])["B"]
+    check_dtype(floor.found, "floor.found", "bool")
+    _check_rows({"floor.camera_height_m": floor.camera_height_m, "floor.pitch_deg": floor.pitch_deg}, b)
+    check_shape(floor.ahead, "floor.ahead", [b, 3])
+    check_dtype(floor.ahead, "floor.ahead", "float")
+    norm = floor.ahead.detach().to(torch.float64).norm(dim=1)
+    if not bool(((norm - 1).abs() < 1e-3)[floor.found].all()):
+        raise InputError(f"floor.ahead: expected unit vectors where floor.found, got lengths "
+                         f"{norm[floor.found].tolist()[:4]}")
+    return b
+
+
 def refit_floor_plane(disparity: torch.Tensor, on_plane: torch.Tensor, coefficients: torch.Tensor,
                       found: torch.Tensor, tolerance_px: torch.Tensor,
                       lower_rows_fraction: float = REFIT_LOWER_ROWS_FRACTION,
@@ -205,6 +221,10 @@ def pitched_camera(pitch_deg: float, batch_size: int, device: torch.device | str
     distances ahead do not need (``guide --camera-pitch-deg``: a rig's pitch as worn, where no floor is seen)."""
     check_real(pitch_deg, "pitch_deg", -90.0, 90.0, low_open=True, high_open=True)
     check_count(batch_size, "batch_size")
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise InputError(f"device: expected a torch device such as 'cpu', got {device!r} ({error})") from None
     theta = math.radians(pitch_deg)
     ahead = torch.tensor([0.0, -math.sin(theta), math.cos(theta)], device=device).expand(batch_size, 3)
     return FloorGeometry(torch.ones(batch_size, dtype=torch.bool, device=device),
@@ -247,10 +267,9 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
     ``baseline_m``, ``doffs_px`` ``(B,)``; ``rectified`` ``(B,)`` and ``H_left`` ``(B, 3, 3)``: the pairs measured
     in rectified pixels and their left homography. ``percentiles`` and ``fill_invalid``: as the depth's
     (``DepthConfig.object_percentiles``, ``DenseConfig.fill_invalid``). Not differentiable."""
-    check_instance(floor, "floor", FloorGeometry)
+    b = _check_floor(floor)
     check_instance(dense, "dense", DenseDisparity)
     check_instance(objects, "objects", ObjectDepths)
-    b = floor.found.shape[0]
     check_shape(dense.disparity_px, "dense.disparity_px", [b, 1, "H", "W"])
     check_shape(objects.label, "objects.label", [b, "N"])
     _check_rows({"focal_px": focal_px, "baseline_m": baseline_m, "doffs_px": doffs_px}, b)

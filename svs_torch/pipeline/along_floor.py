@@ -47,6 +47,7 @@ def result_along_floor(result: PipelineResult, floor: FloorGeometry,
     percentiles; None where ``result`` has no such field (no dense map: the paper's rule)."""
     check_instance(result, "result", PipelineResult)
     check_instance(floor, "floor", FloorGeometry)
+    check_instance(config, "config", PipelineConfig)
     if result.floor is None or result.dense is None or result.object_labels is None:
         return None
     if floor.found.shape != result.status.shape:

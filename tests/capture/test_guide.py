@@ -602,3 +602,11 @@ def test_a_class_held_by_the_hysteresis_past_the_band_is_not_said_again():
     assert [policy.update(2.08, t) for t in (1.0, 4.0, 8.0)] == [None, None, None] and policy.current == WARN
     assert policy.update(1.95, 9.0) == "Obstacle ahead, 1.9 metres"
     assert policy.update(0.9, 9.5) == "Stop. Obstacle at 0.9 metres"  # more urgent: at once
+
+
+def test_the_status_line_shows_stop_s_distance_as_it_is_said():
+    """"Stop. Obstacle at 0.9 metres" was followed by the status line "nearest 1.0 m  stop" (0.97 m rounded up)."""
+    guide = LiveGuide(WarningPolicy(confirm_frames=1), Speaker(None, stream=None))
+    assert guide.update(0.97, 0.0) == "Stop. Obstacle at 0.9 metres"
+    assert "nearest 0.9 m  stop" in guide.status(0.97)
+    assert "nearest 1.5 m  warn" in guide.status(1.46, WARN)
