@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
@@ -159,7 +160,11 @@ def _write_outputs(args, batch, result, factors) -> None:
     if args.figure:
         from ..plotting.rectified import pipeline_rectified_figure, stack_images
 
-        figure = estimate_figure(batch, result, 0)
+        from .estimate_report import square_pixels
+
+        # the floor's pose needs square pixels (the report says so): the figure does not draw it either
+        figure = estimate_figure(batch, result if square_pixels(factors) else dataclasses.replace(result, floor=None),
+                                 0)
         # A rectified pair also shows as rectified, with epipolar lines: the user sees that rectification worked.
         rectified = pipeline_rectified_figure(batch, result, 0, args.calibration)
         write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),

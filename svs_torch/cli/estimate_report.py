@@ -9,7 +9,8 @@ from pathlib import Path
 
 from .rig import calibration_file_source
 
-__all__ = ["format_report", "pair_report", "unranged_report", "with_calibration"]
+__all__ = ["ASPECT_CHANGED", "format_report", "pair_report", "square_pixels", "unranged_report",
+           "with_calibration"]
 
 
 def unranged_report(status: str, reason: str, range_rule: str) -> dict:
@@ -47,11 +48,31 @@ def _number(value, valid) -> float | None:
     return round(float(value), 4) if bool(valid) else None
 
 
-def _floor_report(result, index: int) -> dict:
+#: What a pair resized to another aspect ratio (``--size``) says of its floor, once a run.
+ASPECT_CHANGED = ("--size changes the images' aspect ratio, so their pixels are no longer square: the floor's pose "
+                  "and the distances ahead along it need square pixels and are not reported (give a size of the "
+                  "images' own aspect, e.g. 320 wide and the height in proportion)")
+
+
+def square_pixels(factors: tuple[float, float]) -> bool:
+    """The working pixels are square (``factors``: input over working pixels, x and y, within 1 %): what the
+    floor's pose needs (:mod:`svs_torch.depth.floor_distance` takes one focal length for both axes; a 707 × 481
+    pair at 320 × 240 read Piano's camera 1.41 m up, pitched 21.8°, and 1.32 m / 20.4° at 320 × 221)."""
+    return abs(factors[0] / factors[1] - 1) <= 0.01
+
+
+def _floor_report(result, index: int, factors: tuple[float, float]) -> dict:
     """The floor's keys of pair ``index``'s report: the camera over the floor the segmenter found
-    (:mod:`svs_torch.depth.floor_distance`) and the nearest obstacle's distance ahead along it, null where none."""
+    (:mod:`svs_torch.depth.floor_distance`) and the nearest obstacle's distance ahead along it, null where none (or
+    where the pixels are not square: :func:`square_pixels`, said once)."""
     floor = result.floor
-    if floor is None or not bool(floor.floor.found[index]):
+    found = floor is not None and bool(floor.floor.found[index])
+    if found and not square_pixels(factors):
+        import warnings
+
+        warnings.warn(ASPECT_CHANGED, RuntimeWarning, stacklevel=2)
+        found = False
+    if not found:
         return {"floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None}
     nearest = floor.nearest
     return {"floor": {"camera_height_m": round(float(floor.floor.camera_height_m[index]), 4),
@@ -60,9 +81,10 @@ def _floor_report(result, index: int) -> dict:
             "nearest_ahead_surface_m": _number(nearest.surface_m[index], nearest.valid[index])}
 
 
-def _ahead(result, index: int, slot: int) -> dict:
-    """An object's distance ahead along the floor (median and low percentile), null where no floor was found."""
-    if result.floor is None:
+def _ahead(result, index: int, slot: int, factors: tuple[float, float]) -> dict:
+    """An object's distance ahead along the floor (median and low percentile), null where no floor was found or
+    the pixels are not square."""
+    if result.floor is None or not square_pixels(factors):
         return {"ahead_m": None, "ahead_p10_m": None}
     objects = result.floor.objects
     valid = objects.valid[index, slot]
@@ -91,7 +113,7 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
             "depth_p10_m": _number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
             "depth_p90_m": _number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
             # where the floor was found: its distance ahead along it, what guide says (svs_torch.depth.floor_distance)
-            **_ahead(result, index, slot),
+            **_ahead(result, index, slot, factors),
             "num_inliers": int(objects.num_inliers[index, slot]),
             "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
             "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
@@ -123,7 +145,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         "nearest_m": _number(nearest.depth_m[index], nearest.valid[index]),
         "nearest_side": ObstacleSide(int(nearest.side[index])).name.lower(),
         "nearest_surface_m": _number(nearest.surface_m[index], nearest.valid[index]),
-        **_floor_report(result, index),
+        **_floor_report(result, index, factors),
         "objects": report_objects,
         "num_keypoints": [int(v) for v in result.num_keypoints[index].tolist()],
         "num_matches": int(result.num_matches[index]),

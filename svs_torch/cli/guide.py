@@ -41,7 +41,8 @@ guide with its error (exit 1), as does one lost for --give-up-s seconds if that 
 stop) ends it as Ctrl-C does, exit 143.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
-ranged, and at the end prints the estimate command that ranges them again to the same distances.
+ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair
+(a warning ranged along a floor remembered from an earlier pair, or along --camera-pitch-deg, is the walk's).
 """
 
 EPILOG = """\

@@ -1226,3 +1226,27 @@ def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys,
     assert report["floor"] is None and report["nearest_ahead_m"] is None and report["nearest_ahead_surface_m"] is None
     code, out, _ = run_cli(capsys, "estimate", *paths)
     assert "along the floor" not in out
+
+
+def test_estimate_reports_no_floor_pose_where_size_changes_the_pixels_aspect(capsys, tmp_path):
+    """The floor's pose needs square pixels (one focal length for both axes): a walker's 320x240 view resized to
+    320x320 is refused the floor's fields, with one warning saying why; resized in proportion it keeps them."""
+    import torch
+
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    scenes = render_obstacle_scenes(torch.zeros(1, 0), torch.zeros(1, 0, 2), torch.zeros(1, 0, 2),
+                                    generator=torch.Generator().manual_seed(3), floor_height_m=1.3,
+                                    camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, 1.2, 0.45, 0.35]]))
+    paths = []
+    for side, image in (("left", scenes.batch.left), ("right", scenes.batch.right)):
+        paths.append(str(tmp_path / f"walker_{side}.png"))
+        cv2.imwrite(paths[-1], (image[0, 0].numpy() * 255).round().astype(np.uint8))
+    code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json", "--size", "320x320")
+    report = json.loads(out)
+    assert code == 0 and report["floor"] is None and report["nearest_ahead_m"] is None
+    assert all(obj["ahead_m"] is None for obj in report["objects"])
+    assert err.count("changes the images' aspect ratio") == 1
+    code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json", "--size", "256x192")
+    report = json.loads(out)
+    assert report["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.1) and "aspect" not in err
