@@ -24,6 +24,8 @@ FrameSource = Callable[[str, int, int, float], np.ndarray]
 
 #: A walker's cameras over a floor (``ObstacleTrack.floor_height_m``), pitched down this many degrees unless told.
 WALKER_PITCH_DEG = 20.0
+#: The most :meth:`SyntheticSource.close` waits for the keyframe being rendered, seconds.
+RENDER_STOP_TIMEOUT_S = 120.0
 
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
 
@@ -192,12 +194,15 @@ class SyntheticSource:
             return self._wake.wait_for(done, timeout=timeout_s)
 
     def close(self) -> None:
-        """Stop the background renderer (it finishes the keyframe in hand)."""
+        """Stop the background renderer: it finishes the keyframe in hand, which is waited for (up to
+        :data:`RENDER_STOP_TIMEOUT_S`). Why: a 640x480 or 1280x1024 keyframe takes seconds on a loaded machine, and
+        a render thread still inside torch when the process exits aborted it after its work was done ("terminate
+        called without an active exception", exit 134: ``guide --emulator --size 640x480``, an audit)."""
         with self._wake:
             self._closed = True
             self._wake.notify_all()
         if self._thread is not None:
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=RENDER_STOP_TIMEOUT_S)
 
     def _complete(self, size_wh: tuple[int, int]) -> bool:
         return all((*size_wh, i) in self._torch for i in range(self.track.num_keyframes))
