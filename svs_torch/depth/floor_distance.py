@@ -295,5 +295,6 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
 
     ahead = dataclasses.replace(objects, depth_median_m=kept(ahead.depth_median_m), depth_low_m=kept(ahead.depth_low_m),
                                 depth_high_m=kept(ahead.depth_high_m), valid=valid_ahead)
-    rig = [value.detach().to(disparity.dtype).view(b) for value in (focal_px, baseline_m, doffs_px)]
+    # copies, not views of the caller's rig (a caller in inference mode gets inference tensors throughout)
+    rig = [value.detach().to(disparity.dtype).reshape(b).clone() for value in (focal_px, baseline_m, doffs_px)]
     return FloorDistances(floor, ahead, nearest_obstacle(ahead), *rig)
