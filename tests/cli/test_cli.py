@@ -1196,10 +1196,9 @@ def test_estimate_workers_keep_a_bounded_number_of_chunks(monkeypatch):
     assert submitted == list(range(0, 40, 2)) and max(outstanding) <= 6
 
 
-def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys, tmp_path):
-    """``estimate --floor on`` on a rendered walker's view (a camera 1.3 m up pitched 20°, a heap of rocks on the
-    floor): the JSON gives the camera's height and pitch over the floor and the distances ahead along it, nearer
-    than the axis's, and the text says them; without the floor rule they are null and unsaid."""
+def _walker_pair_files(folder) -> list[str]:
+    """A rendered walker's view (a camera 1.3 m over the floor pitched 20°, a heap of rocks 1.2 m ahead) written as
+    ``walker_left.png`` / ``walker_right.png`` in ``folder``; their paths."""
     import torch
 
     from svs_torch.data.synthetic import render_obstacle_scenes
@@ -1209,8 +1208,16 @@ def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys,
                                     camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, 1.2, 0.45, 0.35]]))
     paths = []
     for side, image in (("left", scenes.batch.left), ("right", scenes.batch.right)):
-        paths.append(str(tmp_path / f"walker_{side}.png"))
+        paths.append(str(folder / f"walker_{side}.png"))
         cv2.imwrite(paths[-1], (image[0, 0].numpy() * 255).round().astype(np.uint8))
+    return paths
+
+
+def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys, tmp_path):
+    """``estimate --floor on`` on a rendered walker's view (a camera 1.3 m up pitched 20°, a heap of rocks on the
+    floor): the JSON gives the camera's height and pitch over the floor and the distances ahead along it, nearer
+    than the axis's, and the text says them; without the floor rule they are null and unsaid."""
+    paths = _walker_pair_files(tmp_path)
     code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json")
     assert code == 0, err
     report = json.loads(out)
@@ -1231,17 +1238,7 @@ def test_estimate_with_the_floor_rule_says_how_far_ahead_along_the_floor(capsys,
 def test_estimate_reports_no_floor_pose_where_size_changes_the_pixels_aspect(capsys, tmp_path):
     """The floor's pose needs square pixels (one focal length for both axes): a walker's 320x240 view resized to
     320x320 is refused the floor's fields, with one warning saying why; resized in proportion it keeps them."""
-    import torch
-
-    from svs_torch.data.synthetic import render_obstacle_scenes
-
-    scenes = render_obstacle_scenes(torch.zeros(1, 0), torch.zeros(1, 0, 2), torch.zeros(1, 0, 2),
-                                    generator=torch.Generator().manual_seed(3), floor_height_m=1.3,
-                                    camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, 1.2, 0.45, 0.35]]))
-    paths = []
-    for side, image in (("left", scenes.batch.left), ("right", scenes.batch.right)):
-        paths.append(str(tmp_path / f"walker_{side}.png"))
-        cv2.imwrite(paths[-1], (image[0, 0].numpy() * 255).round().astype(np.uint8))
+    paths = _walker_pair_files(tmp_path)
     code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json", "--size", "320x320")
     report = json.loads(out)
     assert code == 0 and report["floor"] is None and report["nearest_ahead_m"] is None
