@@ -239,9 +239,10 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
                      f"(nearest surface {report['nearest_surface_m']:.2f} m)")
     floor = report.get("floor")  # a report read back from an older JSON has no such key
     if floor and report["nearest_ahead_m"] is not None:
-        lines.append(f"  along the floor (the camera {floor['camera_height_m']:.2f} m over it, pitched "
-                     f"{floor['pitch_deg']:.1f}° down): nearest obstacle {report['nearest_ahead_m']:.2f} m ahead, "
-                     f"its nearest part {report['nearest_ahead_surface_m']:.2f} m")
+        from ..depth.floor_distance import describe_floor
+
+        lines.append("  " + describe_floor(floor["camera_height_m"], floor["pitch_deg"], "nearest obstacle",
+                                           report["nearest_ahead_m"], report["nearest_ahead_surface_m"]))
     return lines
 
 

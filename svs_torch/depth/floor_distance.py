@@ -41,7 +41,7 @@ from .dense_objects import dense_object_depths
 from .depth_types import NearestObstacle, ObjectDepths
 from .sparse import nearest_obstacle
 
-__all__ = ["FloorDistances", "FloorGeometry", "floor_distances", "floor_geometry", "pitched_camera",
+__all__ = ["FloorDistances", "FloorGeometry", "describe_floor", "floor_distances", "floor_geometry", "pitched_camera",
            "refit_floor_plane"]
 
 #: The least ``r · u`` a pixel's ray may have: a ray nearly at right angles to the way ahead (looking straight down,
@@ -213,6 +213,14 @@ def floor_geometry(coefficients: torch.Tensor, found: torch.Tensor, focal_px: to
     pitch = torch.where(ok, torch.rad2deg(torch.asin(normal[:, 2].clamp(-1, 1))), 0.0)
     dtype = coefficients.dtype if coefficients.is_floating_point() else torch.float32
     return FloorGeometry(ok, height.to(dtype), pitch.to(dtype), ahead.to(dtype))
+
+
+def describe_floor(camera_height_m: float, pitch_deg: float, obstacle: str, ahead_m: float, surface_m: float) -> str:
+    """How the reports say a floor's pose and an ``obstacle``'s distance ahead along it (``estimate``'s text and
+    figure title), e.g. "along the floor (the camera 1.30 m over it, pitched 19.9° down): nearest obstacle 1.15 m
+    ahead, its nearest part 1.06 m"."""
+    return (f"along the floor (the camera {camera_height_m:.2f} m over it, pitched {pitch_deg:.1f}° down): {obstacle} "
+            f"{ahead_m:.2f} m ahead, its nearest part {surface_m:.2f} m")
 
 
 def pitched_camera(pitch_deg: float, batch_size: int, device: torch.device | str = "cpu") -> FloorGeometry:

@@ -147,10 +147,11 @@ def floor_summary(result, index: int) -> list[str]:
     floor = getattr(result, "floor", None)
     if floor is None or not bool(floor.floor.found[index]) or not bool(floor.nearest.valid[index]):
         return []
-    return [f"along the floor (the camera {float(floor.floor.camera_height_m[index]):.2f} m over it, pitched "
-            f"{float(floor.floor.pitch_deg[index]):.1f}° down): #{int(floor.nearest.slot[index]) + 1} "
-            f"{float(floor.nearest.depth_m[index]):.2f} m ahead, its nearest part "
-            f"{float(floor.nearest.surface_m[index]):.2f} m"]
+    from ..depth.floor_distance import describe_floor
+
+    return [describe_floor(float(floor.floor.camera_height_m[index]), float(floor.floor.pitch_deg[index]),
+                           f"#{int(floor.nearest.slot[index]) + 1}", float(floor.nearest.depth_m[index]),
+                           float(floor.nearest.surface_m[index]))]
 
 
 def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:
