@@ -28,7 +28,8 @@ from typing import Callable
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
 from ..depth.depth_types import ObstacleSide
-from ..pipeline import PipelineStatus
+from ..depth.floor_distance import pitched_camera
+from ..pipeline import PipelineStatus, result_along_floor
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
@@ -79,23 +80,14 @@ class FloorMemory:
             self.floor, self.found_s = distances.floor, now_s
             return distances.nearest, "floor", 0.0
         if self.floor is not None and now_s - self.found_s <= self.memory_s:
-            remembered = self._along(result, self.floor)
+            remembered = result_along_floor(result, self.floor)  # (None without a dense map)
             if remembered is not None:
                 return remembered.nearest, "remembered_floor", now_s - self.found_s
         if self.worn_pitch_deg is not None:
-            from ..depth.floor_distance import pitched_camera
-
-            pitched = self._along(result, pitched_camera(self.worn_pitch_deg, 1, result.status.device))
+            pitched = result_along_floor(result, pitched_camera(self.worn_pitch_deg, 1, result.status.device))
             if pitched is not None:
                 return pitched.nearest, "camera_pitch", None
         return result.depth.nearest, "axis", None
-
-    @staticmethod
-    def _along(result, floor):
-        """``result``'s distances ahead along ``floor`` (None where it has no dense map)."""
-        from ..pipeline import result_along_floor
-
-        return result_along_floor(result, floor)
 
 
 class GuideSession:
