@@ -35,6 +35,7 @@ import torch
 
 from ..core.checks import check_count, check_dtype, check_instance, check_real, check_shape
 from ..core.errors import InputError
+from ..core.kernels.checks import check_rows
 from ..geometry.rectification import apply_homography
 from .dense_config import DenseDisparity
 from .dense_objects import dense_object_depths
@@ -99,22 +100,20 @@ class FloorDistances:
     doffs_px: torch.Tensor
 
 
-def _check_rows(values: dict[str, torch.Tensor], b: int, kinds: str = "float") -> None:
-    """Each of ``values`` (name: tensor) a ``(B,)`` tensor of ``kinds``."""
-    for name, value in values.items():
-        check_shape(value, name, [b])
-        check_dtype(value, name, kinds)
+def _check_rig(focal_px: torch.Tensor, baseline_m: torch.Tensor, doffs_px: torch.Tensor, b: int) -> None:
+    """The rigs' ``focal_px``, ``baseline_m`` and ``doffs_px``, each ``(B,)`` float."""
+    for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
+        check_rows(value, name, b, kinds="float")
 
 
 def _check_floor(floor: FloorGeometry) -> int:
     """``floor``'s fields checked (a pose made by hand, e.g. for ``result_along_floor``); returns its B. A way ahead
     that is not a unit vector where found (all zeros read every object 0.1 m ahead: a false "Stop") is refused."""
     check_instance(floor, "floor", FloorGeometry)
-    b = check_shape(floor.found, "floor.found", ["B"])["B"]
-    check_dtype(floor.found, "floor.found", "bool")
-    _check_rows({"floor.camera_height_m": floor.camera_height_m, "floor.pitch_deg": floor.pitch_deg}, b)
-    check_shape(floor.ahead, "floor.ahead", [b, 3])
-    check_dtype(floor.ahead, "floor.ahead", "float")
+    b = check_rows(floor.found, "floor.found", "B", kinds="bool").shape[0]
+    check_rows(floor.camera_height_m, "floor.camera_height_m", b, kinds="float")
+    check_rows(floor.pitch_deg, "floor.pitch_deg", b, kinds="float")
+    check_rows(floor.ahead, "floor.ahead", b, 3, kinds="float")
     norm = floor.ahead.detach().to(torch.float64).norm(dim=1)
     if not bool(((norm - 1).abs() < 1e-3)[floor.found].all()):
         raise InputError(f"floor.ahead: expected unit vectors where floor.found, got lengths "
@@ -142,10 +141,9 @@ def refit_floor_plane(disparity: torch.Tensor, on_plane: torch.Tensor, coefficie
     check_dtype(disparity, "disparity", "float")
     check_shape(on_plane, "on_plane", list(disparity.shape))
     check_dtype(on_plane, "on_plane", "bool")
-    check_shape(coefficients, "coefficients", [dims["B"], 3])
-    check_dtype(coefficients, "coefficients", "float")
-    _check_rows({"found": found}, dims["B"], "bool")
-    _check_rows({"tolerance_px": tolerance_px}, dims["B"])
+    check_rows(coefficients, "coefficients", dims["B"], 3, kinds="float")
+    check_rows(found, "found", dims["B"], kinds="bool")
+    check_rows(tolerance_px, "tolerance_px", dims["B"], kinds="float")
     check_real(lower_rows_fraction, "lower_rows_fraction", 0.0, 1.0, low_open=True)
     if not isinstance(tolerance_shares, tuple) or not tolerance_shares:
         raise InputError(f"tolerance_shares: expected a tuple of shares > 0, got {tolerance_shares!r}")
@@ -187,11 +185,9 @@ def floor_geometry(coefficients: torch.Tensor, found: torch.Tensor, focal_px: to
     """The camera over the floor whose plane ``coefficients`` ``(B, 3)`` (``a, b, c`` of ``d = a·x + b·y + c`` in
     the pixels of ``image_hw``'s views, :class:`~svs_torch.segmentation.ground_plane.GroundPlane`) was ``found``
     ``(B,)``; the rigs' ``focal_px``, ``baseline_m`` and ``doffs_px`` ``(B,)`` at that size (module docstring)."""
-    b = check_shape(found, "found", ["B"])["B"]
-    check_dtype(found, "found", "bool")
-    check_shape(coefficients, "coefficients", [b, 3])
-    check_dtype(coefficients, "coefficients", "float")
-    _check_rows({"focal_px": focal_px, "baseline_m": baseline_m, "doffs_px": doffs_px}, b)
+    b = check_rows(found, "found", "B", kinds="bool").shape[0]
+    check_rows(coefficients, "coefficients", b, 3, kinds="float")
+    _check_rig(focal_px, baseline_m, doffs_px, b)
     if (not isinstance(image_hw, (tuple, list)) or len(image_hw) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in image_hw)):
         raise InputError(f"image_hw: expected (height, width) in pixels, two positive ints, got {image_hw!r}")
@@ -246,24 +242,19 @@ def _ahead_per_depth(floor: FloorGeometry, focal_px: torch.Tensor, size_hw: tupl
     pixels of a ``rectified`` pair taken back through ``H_left`` first."""
     b = floor.found.shape[0]
     h, w = size_hw
-    u = floor.ahead.to(torch.float64)
-    focal = focal_px.detach().to(torch.float64).view(b).clamp_min(1e-12)
-    if not bool(rectified.any()):
-        # affine in the pixel: a row term plus a column term, one pass over the map
-        xs = torch.arange(w, dtype=torch.float64, device=u.device) - (w - 1) / 2
-        ys = torch.arange(h, dtype=torch.float64, device=u.device) - (h - 1) / 2
-        columns = (u[:, 0] / focal).view(b, 1, 1, 1) * xs.view(1, 1, 1, w)
-        rows = ((u[:, 1] / focal).view(b, 1, 1, 1) * ys.view(1, 1, h, 1) + u[:, 2].view(b, 1, 1, 1))
-        return (columns.float() + rows.float()).clamp_min(_MIN_AHEAD_PER_DEPTH)
+    u = floor.ahead.to(torch.float64).view(b, 1, 1, 3)
+    focal = focal_px.detach().to(torch.float64).view(b, 1, 1).clamp_min(1e-12)
     options = {"dtype": torch.float64, "device": u.device}
-    ys, xs = torch.meshgrid(torch.arange(h, **options), torch.arange(w, **options), indexing="ij")
-    grid = torch.stack([xs, ys], -1).view(1, h * w, 2).expand(b, -1, -1)
-    # inv_ex: a rectified pair's homography is invertible; a hostile one must not stop the batch here.
-    back = apply_homography(torch.linalg.inv_ex(H_left.detach().to(torch.float64)).inverse, grid)
-    grid = torch.where(rectified.view(b, 1, 1) & back.valid.unsqueeze(-1), back.xy.to(grid), grid)
-    per_depth = ((u[:, :1] * (grid[..., 0] - (w - 1) / 2) + u[:, 1:2] * (grid[..., 1] - (h - 1) / 2))
-                 / focal.view(b, 1) + u[:, 2:])
-    return per_depth.clamp_min(_MIN_AHEAD_PER_DEPTH).view(b, 1, h, w).float()
+    xs, ys = torch.arange(w, **options).view(1, 1, w), torch.arange(h, **options).view(1, h, 1)
+    if bool(rectified.any()):
+        grid = torch.stack(torch.broadcast_tensors(xs, ys), -1).view(1, h * w, 2).expand(b, -1, -1)
+        # inv_ex: a rectified pair's homography is invertible; a hostile one must not stop the batch here.
+        back = apply_homography(torch.linalg.inv_ex(H_left.detach().to(torch.float64)).inverse, grid)
+        grid = torch.where(rectified.view(b, 1, 1) & back.valid.unsqueeze(-1), back.xy.to(grid), grid)
+        xs, ys = grid[..., 0].view(b, h, w), grid[..., 1].view(b, h, w)
+    # r · u, affine in the pixel: (B, H, W), or a row term plus a column term where no pair is rectified
+    per_depth = (u[..., 0] * (xs - (w - 1) / 2) + u[..., 1] * (ys - (h - 1) / 2)) / focal + u[..., 2]
+    return per_depth.float().clamp_min(_MIN_AHEAD_PER_DEPTH).view(b, 1, h, w)
 
 
 def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: torch.Tensor, objects: ObjectDepths,
@@ -280,8 +271,8 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
     check_instance(objects, "objects", ObjectDepths)
     check_shape(dense.disparity_px, "dense.disparity_px", [b, 1, "H", "W"])
     check_shape(objects.label, "objects.label", [b, "N"])
-    _check_rows({"focal_px": focal_px, "baseline_m": baseline_m, "doffs_px": doffs_px}, b)
-    _check_rows({"rectified": rectified}, b, "bool")
+    _check_rig(focal_px, baseline_m, doffs_px, b)
+    check_rows(rectified, "rectified", b, kinds="bool")
     check_shape(H_left, "H_left", [b, 3, 3])
     disparity = dense.disparity_px.detach()
     slots = torch.where(objects.valid & floor.found.view(b, 1), objects.label, torch.full_like(objects.label, -1))
