@@ -47,6 +47,7 @@ from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
 from ..depth.floor_distance import refit_floor_plane
 from . import kernels
+from .ground_plane_grid import fit_grid, sample_planes
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
 
@@ -87,6 +88,11 @@ class GroundPlaneConfig:
             At 1 / 1.5 / 2 px the walker scenes' boxes warned of at digit 4 were 30 / 33 / 35 of 36 and the false
             warnings without them 12 / 3 / 5; the tuned PianoL's per-object Acc at digit 4, 95.0 / 94.1 / 47.8 %
             (the floor taken out under its piano left a fragment ranged at 4 m).
+        noisy_cell_min_share: on a pair the noise gate widened, the three-point samples are drawn from its grid
+            cells' medians: each grid point the median of the measured pixels of its cell where at least this
+            share of the cell is measured, else not drawn (None: the grid pixels themselves; every test still
+            reads the grid pixels, :mod:`.ground_plane_grid`). Chosen on the rendered walker scenes
+            (``experiments/walker_floor.md``, "Samples from cell medians"): 0.18 is 12 of a 320-px map's 64.
         lower_rows_fraction: the samples are drawn from this lower share of the rows (the floor is at the bottom
             of a walker's view; drawing there makes a three-point sample land on it far more often).
         hypotheses: the number of three-point samples.
@@ -102,6 +108,7 @@ class GroundPlaneConfig:
     max_behind_share: float = 0.04
     min_span_px: float = 4.0
     noisy_tolerance_px: float = 1.5
+    noisy_cell_min_share: float | None = 0.18
     tolerance_px: float = 1.0
     tolerance_fraction: float = 0.05
     lower_rows_fraction: float = 0.4
@@ -129,6 +136,9 @@ class GroundPlaneConfig:
                 raise InputError(f"{name}: expected an int >= 8, got {value!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise InputError(f"seed: expected an int, got {self.seed!r}")
+        cell = self.noisy_cell_min_share
+        if cell is not None and (isinstance(cell, bool) or not isinstance(cell, (int, float)) or not 0 < cell <= 1):
+            raise InputError(f"noisy_cell_min_share: expected None or a share in (0, 1], got {cell!r}")
 
 
 class GroundPlane(NamedTuple):
@@ -161,8 +171,9 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     were measured on (the tolerance is in the latter). ``generator``: the samples' source (default: one seeded
     with ``config.seed``; either way the same samples serve every pair). ``noisy`` ``(B,)`` bool: the pairs whose
     map the nearness segmenter's noise gate matched with its wider window (a camera frame's noise), which take
-    ``config.noisy_tolerance_px``. ``focal_px`` ``(B,)``: the map's focal length in its pixels, which the pitch
-    limit reads (None: no pitch limit). Not differentiable. Each pair's fit runs as one C kernel where it can
+    ``config.noisy_tolerance_px`` and draw their samples from their cells' medians (``config.noisy_cell_min_share``).
+    ``focal_px`` ``(B,)``: the map's focal length in its pixels, which the pitch limit reads (None: no pitch
+    limit). Not differentiable. Each pair's fit runs as one C kernel where it can
     (``kernels/ground_plane_fit.c``: 3–6 → 0.7–1.2 ms a frame at B = 1); :func:`_fit_in_torch` is its reference."""
     b, _, h, w = disparity.shape
     _check_fit_arguments(disparity, measured, baseline_m)
@@ -176,19 +187,27 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
         tolerance = torch.where(noisy.to(disparity.device), config.noisy_tolerance_px, tolerance)
     tolerance, min_span = tolerance.view(b, 1, 1) * working_factor, config.min_span_px * working_factor
     draws = _draws(config, generator).to(disparity.device)
+    cells = None  # the noisy pairs, their samples drawn from their cells' medians (.ground_plane_grid)
+    if noisy is not None and config.noisy_cell_min_share is not None and bool(noisy.any()):
+        cells = noisy.to(disparity.device)
+    least = 0 if cells is None else math.ceil(config.noisy_cell_min_share * stride * stride - 1e-9)
     plane = _fit_by_kernel(disparity, measured, baseline_m, tolerance.view(b), focal_px, draws, config, stride,
-                           min_span)
+                           min_span, cells, least)
     if plane is None:
-        plane = _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config)
+        samples = None if cells is None else fit_grid(disparity, measured, stride, cells, least)
+        plane = _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config,
+                              samples)
     return plane._replace(refitted=refit_floor_plane(disparity, plane.mask & measured, plane.coefficients, plane.found,
                                                      tolerance.view(b)))
 
 
 def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
                   focal_px: torch.Tensor | None, tolerance: torch.Tensor, min_span: float, draws: torch.Tensor,
-                  stride: int, config: GroundPlaneConfig) -> GroundPlane:
+                  stride: int, config: GroundPlaneConfig,
+                  samples: tuple[torch.Tensor, torch.Tensor] | None = None) -> GroundPlane:
     """:func:`fit_ground_plane` in torch, the kernel's reference: its grid ``stride``, ``tolerance`` ``(B, 1, 1)``
-    and ``min_span`` in the map's pixels, the samples' ``draws`` ``(N, 5)``."""
+    and ``min_span`` in the map's pixels, the samples' ``draws`` ``(N, 5)``, drawn from the grid of ``samples``
+    (a map and its measured pixels, :func:`~.ground_plane_grid.fit_grid`'s) where given."""
     b, _, h, w = disparity.shape
     grid_d = disparity[:, 0, stride // 2::stride, stride // 2::stride]  # (B, gh, gw)
     grid_ok = measured[:, 0, stride // 2::stride, stride // 2::stride] & (grid_d > 0)
@@ -198,7 +217,11 @@ def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: t
     x, y = xs.view(1, -1).expand(gh, gw).reshape(-1), ys.view(-1, 1).expand(gh, gw).reshape(-1)
     points_d, points_ok = grid_d.reshape(b, -1), grid_ok.reshape(b, -1)
     lower = (ys >= (1 - config.lower_rows_fraction) * h).view(1, -1, 1)
-    hypotheses = _sample_planes(grid_d, grid_ok, grid_ok & lower, xs, ys, draws)
+    sample_d, sample_ok = grid_d, grid_ok
+    if samples is not None:
+        sample_d = samples[0][:, 0, stride // 2::stride, stride // 2::stride]
+        sample_ok = samples[1][:, 0, stride // 2::stride, stride // 2::stride] & (sample_d > 0)
+    hypotheses = sample_planes(sample_d, sample_ok, sample_ok & lower, xs, ys, draws)
     rig = _Rig(baseline_m, focal_px, (w - 1) / 2, (h - 1) / 2)
     plausible = _plausible(hypotheses, rig, config)
     if not bool(plausible.any()):
@@ -272,10 +295,11 @@ def _draws(config: GroundPlaneConfig, generator: torch.Generator | None) -> torc
 
 def _fit_by_kernel(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
                    tolerance_px: torch.Tensor, focal_px: torch.Tensor | None, draws: torch.Tensor,
-                   config: GroundPlaneConfig, stride: int, min_span_px: float) -> GroundPlane | None:
+                   config: GroundPlaneConfig, stride: int, min_span_px: float, cells: torch.Tensor | None = None,
+                   cell_min_px: int = 0) -> GroundPlane | None:
     """:func:`fit_ground_plane` by the C kernel (``kernels/ground_plane_fit.c``) from its grid ``stride``, the
-    samples' ``draws`` ``(N, 5)``, ``tolerance_px`` ``(B,)`` and ``min_span_px`` in the map's pixels; None where it
-    cannot run."""
+    samples' ``draws`` ``(N, 5)``, ``tolerance_px`` ``(B,)`` and ``min_span_px`` in the map's pixels, the pairs
+    ``cells`` ``(B,)`` sampled from their cells' medians over ``cell_min_px`` pixels; None where it cannot run."""
     h, w = disparity.shape[-2:]
     settings = {"stride": stride, "min_span_px": min_span_px, "tolerance_fraction": config.tolerance_fraction,
                 "lower_row": (1 - config.lower_rows_fraction) * h,
@@ -285,42 +309,8 @@ def _fit_by_kernel(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: 
                 "centre_y": (h - 1) / 2}
     focal = None if focal_px is None else focal_px.to(torch.float32)
     fast = kernels.ground_plane_fit(disparity, measured, baseline_m.to(torch.float32), tolerance_px, focal, draws,
-                                    settings)
+                                    settings, cells, cell_min_px)
     return None if fast is None else GroundPlane(*fast)
-
-
-def _sample_planes(d: torch.Tensor, measured: torch.Tensor, candidate: torch.Tensor, xs: torch.Tensor,
-                   ys: torch.Tensor, draws: torch.Tensor) -> torch.Tensor:
-    """``(B, N, 3)`` planes through three grid points of each pair (``d``, ``measured``, ``candidate`` ``(B, gh, gw)``,
-    the grid's pixel columns ``xs`` ``(gw,)`` and rows ``ys`` ``(gh,)``), picked by the uniform ``draws`` ``(N, 5)``
-    shared by all pairs: the first point is the pair's ``floor(u · count)``-th candidate; the other two lie within a
-    window of an eighth of the grid's width and a sixth of its height around it, so that a floor that fills a strip
-    of the view's bottom is sampled whole as often as it is hit (three points drawn over the lower rows all land on
-    a floor seen over a fifth of them once in 125 samples). A sample with a point off the grid or unmeasured, or
-    nearly collinear, gets NaN."""
-    b, gh, gw = d.shape
-    flat = candidate.flatten(1)
-    count = flat.sum(-1)  # (B,)
-    rank = (draws[:, 0].unsqueeze(0) * count.view(-1, 1)).long()  # (B, N)
-    order = flat.to(torch.int64).cumsum(-1)  # the k-th candidate is where the running count reaches k + 1
-    first = torch.searchsorted(order.contiguous(), rank + 1).clamp(max=gh * gw - 1)
-    reach = torch.tensor([max(1, gw // 8), max(1, gh // 6)] * 2, dtype=torch.float64, device=d.device)
-    offsets = ((draws[:, 1:] * 2 - 1) * reach).round().long().view(1, -1, 2, 2)  # (1, N, point, (dx, dy))
-    column, row = (first % gw).unsqueeze(-1), (first // gw).unsqueeze(-1)
-    column = torch.cat([column, column + offsets[..., 0]], -1)  # (B, N, 3)
-    row = torch.cat([row, row + offsets[..., 1]], -1)
-    inside = (column >= 0) & (column < gw) & (row >= 0) & (row < gh)  # (B, N, 3)
-    index = row.clamp(0, gh - 1) * gw + column.clamp(0, gw - 1)
-    seen = measured.flatten(1).gather(1, index.flatten(1)).view_as(index) & inside
-    pd = d.flatten(1).gather(1, index.flatten(1)).view_as(index)
-    px, py = xs[column.clamp(0, gw - 1)], ys[row.clamp(0, gh - 1)]
-    matrix = torch.stack([px, py, torch.ones_like(px)], -1).double()  # (B, N, 3, 3)
-    solution, info = torch.linalg.solve_ex(matrix, pd.double().unsqueeze(-1))
-    solution = solution.squeeze(-1).to(d.dtype)
-    # solve_ex reports exact singularity only; a near-collinear sample gives a wild plane, so test the area too.
-    area = torch.linalg.det(matrix).abs()
-    ok = (info == 0) & (area > 1.0) & (count.view(-1, 1) >= 1) & seen.all(-1) & torch.isfinite(solution).all(-1)
-    return torch.where(ok.unsqueeze(-1), solution, math.nan)
 
 
 class _Rig(NamedTuple):

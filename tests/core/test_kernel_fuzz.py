@@ -469,7 +469,7 @@ def test_region_interiors(size, n, radius, data):
 def test_fit_ground_plane(size, data):
     """The ground plane by the kernel or the torch path, bit for bit: maps smaller than the grid's stride, NaN,
     infinite and negative disparities, odd-byte masks, baselines that are NaN or 0, and with or without focal
-    lengths (some NaN) and the noisy tolerance."""
+    lengths (some NaN) and the noisy tolerance and cells' medians (some pairs or all)."""
     b, h, w = size
     disparity = data.draw(tensors((b, 1, h, w), low=-2.0, high=40.0, specials=0.05))
     ramp = torch.linspace(0, 30, h).view(1, 1, h, 1) if h else torch.zeros(1, 1, 0, 1)
@@ -478,7 +478,7 @@ def test_fit_ground_plane(size, data):
     measured = data.draw(masks((b, 1, h, w)))
     baseline = data.draw(st.sampled_from([torch.full((b,), 0.1), torch.tensor([0.1, math.nan, 0.0])[:b]]))
     focal = data.draw(st.sampled_from([None, torch.full((b,), 200.0), torch.tensor([200.0, math.nan, -1.0])[:b]]))
-    noisy = data.draw(st.sampled_from([None, torch.ones(b, dtype=torch.bool)]))
+    noisy = data.draw(st.sampled_from([None, torch.ones(b, dtype=torch.bool), torch.tensor([False, True, True])[:b]]))
     config = GroundPlaneConfig(grid_columns=data.draw(st.sampled_from([8, 40])))
     _both(fit_ground_plane, disparity, measured, baseline, config, focal_px=focal, noisy=noisy)
 

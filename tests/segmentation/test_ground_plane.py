@@ -86,6 +86,54 @@ def test_the_refit_is_numpys_least_squares_and_lies_on_the_floor():
     assert float(residual.median()) < 0.15
 
 
+def test_a_noisy_maps_grid_points_are_its_cells_medians():
+    """fit_grid against a loop over the cells in numpy: each grid pixel of a noisy pair the lower median of its
+    cell's measured pixels (unmeasured with fewer than the least count), the other pairs and pixels untouched."""
+    from svs_torch.segmentation.ground_plane_grid import fit_grid
+
+    generator = torch.Generator().manual_seed(3)
+    disparity = torch.rand(2, 1, 37, 45, generator=generator) * 30
+    measured = torch.rand(disparity.shape, generator=generator) < 0.3
+    stride, least = 6, 4
+    grid, seen = fit_grid(disparity, measured, stride, torch.tensor([True, False]), least)
+    assert torch.equal(grid[1], disparity[1]) and torch.equal(seen[1], measured[1])
+    d, m = disparity[0, 0].numpy(), measured[0, 0].numpy()
+    expected_d, expected_m = d.copy(), m.copy()
+    for y in range(stride // 2, 37, stride):
+        for x in range(stride // 2, 45, stride):
+            cell = d[y - y % stride:y - y % stride + stride, x - x % stride:x - x % stride + stride]
+            values = np.sort(cell[m[y - y % stride:y - y % stride + stride, x - x % stride:x - x % stride + stride]])
+            expected_m[y, x] = len(values) >= least
+            expected_d[y, x] = values[(len(values) - 1) // 2] if len(values) >= least else 0.0
+    assert np.array_equal(seen[0, 0].numpy(), expected_m) and np.array_equal(grid[0, 0].numpy(), expected_d)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_noisy_sparsely_measured_floor_is_found_on_its_cells_medians(seed):
+    """A camera frame's floor: a quarter of its pixels measured, each off by noise of 0.6 px (the noisy tolerance
+    is 1.5). Three nearby grid pixels seldom make a walker's slope (samples drawn from the pixels themselves find
+    no floor in any of these seeds); samples drawn from the cells' medians do. A noisy map of upright surfaces
+    still has none."""
+    disparity, is_floor = floor_scene(1.3, 20.0, noise_px=0.6, seed=seed)
+    measured = torch.rand(disparity.shape, generator=torch.Generator().manual_seed(100 + seed)) < 0.25
+    noisy = torch.tensor([True])
+    plane = fit_ground_plane(disparity, measured, torch.tensor([BASELINE_M]), GroundPlaneConfig(), noisy=noisy)
+    assert bool(plane.found[0])
+    expected = 1.3 / math.cos(math.radians(20.0))
+    # the plane refitted for the pose (the map's own pixels near it) within 5 %; the one the rule tests within 10
+    assert BASELINE_M / float(plane.refitted[0, :2].norm()) == pytest.approx(expected, rel=0.05)
+    assert float(plane.camera_height_m[0]) == pytest.approx(expected, rel=0.1)
+    assert float((plane.mask & is_floor).sum() / is_floor.sum()) > 0.85  # the map's own pixels, noise and all
+    raw = fit_ground_plane(disparity, measured, torch.tensor([BASELINE_M]),
+                           GroundPlaneConfig(noisy_cell_min_share=None), noisy=noisy)
+    assert not bool(raw.found[0])
+    upright = torch.full((1, 1, H, W), 8.0)
+    upright[..., 40:200, 40:140] = 20.0
+    upright = upright + 0.6 * torch.randn(upright.shape, generator=torch.Generator().manual_seed(seed))
+    assert not bool(fit_ground_plane(upright, measured, torch.tensor([BASELINE_M]), GroundPlaneConfig(),
+                                     noisy=noisy).found[0])
+
+
 def test_fronto_parallel_scenes_have_no_floor():
     ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     disparity = torch.full((1, 1, H, W), 8.0)
@@ -221,6 +269,8 @@ def test_bad_arguments_name_themselves():
         GroundPlaneConfig(hypotheses=2)
     with pytest.raises(InputError, match="max_behind_share"):
         GroundPlaneConfig(max_behind_share=0.0)
+    with pytest.raises(InputError, match="noisy_cell_min_share"):
+        GroundPlaneConfig(noisy_cell_min_share=0.0)
 
 
 def test_the_split_leaves_the_floor_out():

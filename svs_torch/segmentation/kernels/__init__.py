@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from ...core.checks import check_shape
+from ...core.checks import check_count, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows, settings_table
@@ -25,7 +25,7 @@ declare({
     "median_filter": ([POINTER] + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "shift_regions": ([POINTER] * 3 + [INT] * 4 + [POINTER, INT], ctypes.c_int),
     "region_interiors": ([POINTER] * 3 + [INT] * 5 + [FLOAT, POINTER, INT], ctypes.c_int),
-    "ground_plane_fit": ([POINTER] * 7 + [INT] * 4 + [POINTER] * 4 + [INT], ctypes.c_int),
+    "ground_plane_fit": ([POINTER] * 7 + [INT] * 4 + [POINTER] * 5 + [INT] * 2, ctypes.c_int),
     "nearness_split": ([POINTER] * 2 + [INT] * 2 + [POINTER] * 2 + [FLOAT, INT] + [POINTER] * 2 + [INT], ctypes.c_int),
 })
 
@@ -213,11 +213,14 @@ GROUND_PLANE_SETTINGS = ("stride", "min_span_px", "tolerance_fraction", "lower_r
 
 def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
                      tolerance_px: torch.Tensor, focal_px: torch.Tensor | None, draws: torch.Tensor,
-                     settings: dict[str, float]) -> tuple[torch.Tensor, ...] | None:
+                     settings: dict[str, float], cells: torch.Tensor | None = None,
+                     cell_min_px: int = 0) -> tuple[torch.Tensor, ...] | None:
     """:func:`svs_torch.segmentation.ground_plane.fit_ground_plane` a pair at a time (see the C source):
     ``disparity`` ``(B, 1, H, W)`` float32, ``measured`` ``(B, 1, H, W)`` bool; ``baseline_m`` and ``tolerance_px``
     (in the map's pixels) ``(B,)`` float32; ``focal_px`` ``(B,)`` float32 or None (no pitch limit); ``draws``
-    ``(N, 5)`` float64 uniforms, the samples; ``settings`` every name of :data:`GROUND_PLANE_SETTINGS`. Returns the
+    ``(N, 5)`` float64 uniforms, the samples; ``settings`` every name of :data:`GROUND_PLANE_SETTINGS`; ``cells``
+    ``(B,)`` bool or None: the pairs whose samples are drawn from their cells' medians over at least ``cell_min_px``
+    measured pixels (:func:`svs_torch.segmentation.ground_plane_grid.fit_grid`). Returns the
     plane's coefficients ``(B, 3)``, found ``(B,)`` bool, the camera height ``(B,)`` and the mask ``(B, 1, H, W)``
     bool; None when the kernel is not available or the inputs do not fit its contract (a NaN focal length)."""
     dims = check_shape(disparity, "disparity", ["B", 1, "H", "W"])
@@ -227,11 +230,15 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     check_rows(tolerance_px, "tolerance_px", b, kinds="float")
     if focal_px is not None:
         check_rows(focal_px, "focal_px", b, kinds="float")
+    if cells is not None:
+        check_rows(cells, "cells", b, kinds="bool")
+    check_count(cell_min_px, "cell_min_px")
     n = check_shape(draws, "draws", ["N", 5])["N"]
     table = settings_table(settings, GROUND_PLANE_SETTINGS, {"stride": 1})
     floats = (disparity, baseline_m, tolerance_px) + (() if focal_px is None else (focal_px,))
     if (not (on_cpu(torch.float32, *floats) and on_cpu(torch.bool, measured) and on_cpu(torch.float64, draws))
-            or focal_px is not None and bool(focal_px.isnan().any())):
+            or focal_px is not None and bool(focal_px.isnan().any())
+            or cells is not None and not on_cpu(torch.bool, cells)):
         return None
     library = load("ground_plane_fit")
     if library is None:
@@ -239,13 +246,15 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     disparity, measured, baseline_m, tolerance_px, draws = (
         t.contiguous() for t in (disparity, measured, baseline_m, tolerance_px, draws))
     focal = None if focal_px is None else focal_px.contiguous()
+    cells = None if cells is None else cells.contiguous().view(torch.uint8)
     plane, height = torch.empty(b, 3), torch.empty(b)
     found, mask = torch.empty(b, dtype=torch.bool), torch.empty(b, 1, h, w, dtype=torch.bool)
     status = library.ground_plane_fit(disparity.data_ptr(), measured.view(torch.uint8).data_ptr(),
                                       baseline_m.data_ptr(), tolerance_px.data_ptr(),
                                       0 if focal is None else focal.data_ptr(), draws.data_ptr(), table.data_ptr(),
                                       b, h, w, n, plane.data_ptr(), found.data_ptr(), height.data_ptr(),
-                                      mask.data_ptr(), torch.get_num_threads())
+                                      mask.data_ptr(), 0 if cells is None else cells.data_ptr(), cell_min_px,
+                                      torch.get_num_threads())
     return None if status != 0 else (plane, found, height, mask)
 
 

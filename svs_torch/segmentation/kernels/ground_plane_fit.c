@@ -146,20 +146,24 @@ static void sample_plane(const double *draw, const uint8_t *candidate, int64_t c
     for (int i = 0; i < 3; ++i) plane[i] = result[i];
 }
 
-/* The pair's fit (fit_ground_plane after its early exits): *found, plane (3,), its inlier scratch (3 P). */
-static int fit_pair(const Grid *g, int64_t gh, int64_t gw, const double *draws, int64_t hypotheses, float baseline,
-                    float focal, float tolerance, const double *s, uint8_t *scratch, float *plane) {
+/* The pair's fit (fit_ground_plane after its early exits): *found, plane (3,), its inlier scratch (3 P). The
+ * three-point samples are drawn from ``samples`` (the grid itself, or a noisy pair's cells' medians), every test
+ * and refit on ``g``. */
+static int fit_pair(const Grid *g, const Grid *samples, int64_t gh, int64_t gw, const double *draws,
+                    int64_t hypotheses, float baseline, float focal, float tolerance, const double *s,
+                    uint8_t *scratch, float *plane) {
     const int64_t P = g->count;
     uint8_t *candidate = scratch, *inliers = scratch + P, *chosen = scratch + 2 * P;
     const float lower_row = (float)s[LOWER_ROW], fraction = (float)s[TOLERANCE_FRACTION];
     const float min_span = (float)s[MIN_SPAN], max_behind = (float)s[MAX_BEHIND];
     int64_t candidates = 0;
-    for (int64_t p = 0; p < P; ++p) candidates += (candidate[p] = (uint8_t)(g->ok[p] && g->y[p] >= lower_row));
+    for (int64_t p = 0; p < P; ++p)
+        candidates += (candidate[p] = (uint8_t)(samples->ok[p] && samples->y[p] >= lower_row));
     float best_count = 0.0f, best_plane[3] = {NAN, NAN, NAN};
     int64_t best = -1;
     for (int64_t n = 0; n < hypotheses; ++n) {
         float sample[3];
-        sample_plane(draws + 5 * n, candidate, candidates, g, gh, gw, sample);
+        sample_plane(draws + 5 * n, candidate, candidates, samples, gh, gw, sample);
         float count = -1.0f;
         if (plausible(sample, baseline, focal, s)) {
             const float behind = plane_inliers(sample, g, tolerance, fraction, inliers);
@@ -191,27 +195,72 @@ static int fit_pair(const Grid *g, int64_t gh, int64_t gw, const double *draws, 
            && span(inliers, g) >= min_span;
 }
 
+/* The k-th least of values[0, n) (0 <= k < n), which it reorders: Hoare's selection (the value, not its position,
+ * so any order of equal values gives the same answer as a sort). */
+static float select_kth(float *values, int64_t n, int64_t k) {
+    int64_t lo = 0, hi = n - 1;
+    while (lo < hi) {
+        const float pivot = values[lo + (hi - lo) / 2];
+        int64_t i = lo, j = hi;
+        while (i <= j) {
+            while (values[i] < pivot) ++i;
+            while (values[j] > pivot) --j;
+            if (i <= j) {
+                const float t = values[i];
+                values[i++] = values[j];
+                values[j--] = t;
+            }
+        }
+        if (k <= j) hi = j;
+        else if (k >= i) lo = i;
+        else return values[k];
+    }
+    return values[k];
+}
+
+/* A noisy pair's sampled grid point (svs_torch/segmentation/ground_plane_grid.py, fit_grid): the lower median of the
+ * measured pixels of its cell, rows [row0, row0 + stride) and columns [col0, col0 + stride) inside the view, NaN
+ * ones left out of the median but counted (as torch's nanmedian over them); not measured (and 0) with fewer than
+ * cell_min measured. ``buffer`` holds stride * stride floats. */
+static void cell_median(const float *map, const uint8_t *seen, int64_t H, int64_t W, int64_t row0, int64_t col0,
+                        int64_t stride, int64_t cell_min, float *buffer, float *d, int *measured) {
+    int64_t count = 0, finite = 0;
+    for (int64_t y = row0; y < row0 + stride && y < H; ++y)
+        for (int64_t x = col0; x < col0 + stride && x < W; ++x)
+            if (seen[y * W + x]) {
+                ++count;
+                if (!isnan(map[y * W + x])) buffer[finite++] = map[y * W + x];
+            }
+    *measured = count >= cell_min;
+    *d = !*measured ? 0.0f : finite == 0 ? NAN : select_kth(buffer, finite, (finite - 1) / 2);
+}
+
 /* disparity (B, H, W) float32, measured (B, H, W) uint8; baseline (B,), tolerance (B,) float32 (in the map's
  * pixels); focal (B,) float32, not NaN, or NULL (no pitch limit); draws (N, 5) float64, the samples' uniforms; settings
- * (NUM_SETTINGS,) float64. Writes plane (B, 3) float32 (0 where not found), found (B,) uint8, height (B,) float32
- * (NaN where not found) and mask (B, H, W) uint8. Returns -1 when memory could not be had. */
+ * (NUM_SETTINGS,) float64; cells (B,) uint8 or NULL: the pairs whose samples are drawn from their cells' medians
+ * over at least cell_min measured pixels (cell_median). Writes plane (B, 3) float32 (0 where not found), found (B,)
+ * uint8, height (B,) float32 (NaN where not found) and mask (B, H, W) uint8. Returns -1 when memory could not be
+ * had. */
 int ground_plane_fit(const float *disparity, const uint8_t *measured, const float *baseline, const float *tolerance,
                      const float *focal, const double *draws, const double *settings, int64_t B, int64_t H, int64_t W,
                      int64_t hypotheses, float *plane, uint8_t *found, float *height, uint8_t *mask,
-                     int64_t num_threads) {
+                     const uint8_t *cells, int64_t cell_min, int64_t num_threads) {
     const int64_t stride = (int64_t)settings[STRIDE], offset = stride / 2;
     const int64_t gh = H > offset ? (H - offset + stride - 1) / stride : 0;
     const int64_t gw = W > offset ? (W - offset + stride - 1) / stride : 0, P = gh * gw;
     int failed = 0;
 #pragma omp parallel num_threads(thread_count(num_threads, B))
     {
-        float *values = scratch(3 * P, sizeof(float));
-        uint8_t *flags = scratch(4 * P, 1);
-        const int ready = scratch_ready(values != NULL && flags != NULL, &failed);
+        float *values = scratch(4 * P, sizeof(float));
+        uint8_t *flags = scratch(5 * P, 1);
+        float *cell = cells != NULL ? scratch(stride * stride, sizeof(float)) : NULL;
+        const int ready = scratch_ready(values != NULL && flags != NULL && (cells == NULL || cell != NULL), &failed);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < B; ++b) {
             if (!ready) continue;
-            float *d = values, *xs = values + P, *ys = values + 2 * P;
+            float *d = values, *xs = values + P, *ys = values + 2 * P, *medians = values + 3 * P;
+            uint8_t *medians_ok = flags + 4 * P;
+            const int medians_used = cells != NULL && cells[b];
             for (int64_t r = 0; r < gh; ++r) {  /* the grid: every stride-th pixel from stride // 2 */
                 for (int64_t c = 0; c < gw; ++c) {
                     const int64_t pixel = (b * H + offset + r * stride) * W + offset + c * stride, p = r * gw + c;
@@ -219,13 +268,19 @@ int ground_plane_fit(const float *disparity, const uint8_t *measured, const floa
                     flags[p] = measured[pixel] && d[p] > 0;
                     xs[p] = (float)(c * stride + offset);
                     ys[p] = (float)(r * stride + offset);
+                    if (medians_used) {
+                        int seen;
+                        cell_median(disparity + b * H * W, measured + b * H * W, H, W, r * stride, c * stride, stride,
+                                    cell_min, cell, medians + p, &seen);
+                        medians_ok[p] = seen && medians[p] > 0;
+                    }
                 }
             }
-            const Grid grid = {d, flags, xs, ys, P};
+            const Grid grid = {d, flags, xs, ys, P}, cell_grid = {medians, medians_ok, xs, ys, P};
             float *out = plane + 3 * b;
             const float f = focal != NULL ? focal[b] : NAN;  /* NaN: no pitch limit */
-            const int ok = P > 0 && fit_pair(&grid, gh, gw, draws, hypotheses, baseline[b], f, tolerance[b],
-                                             settings, flags + P, out);
+            const int ok = P > 0 && fit_pair(&grid, medians_used ? &cell_grid : &grid, gh, gw, draws, hypotheses,
+                                             baseline[b], f, tolerance[b], settings, flags + P, out);
             found[b] = (uint8_t)ok;
             height[b] = ok ? baseline[b] / fmaxf(hypotf(out[0], out[1]), 1e-12f) : NAN;
             if (!ok) out[0] = out[1] = out[2] = 0.0f;
@@ -243,6 +298,7 @@ int ground_plane_fit(const float *disparity, const uint8_t *measured, const floa
         }
         free(values);
         free(flags);
+        free(cell);
     }
     return failed ? -1 : 0;
 }
