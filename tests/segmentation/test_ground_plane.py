@@ -235,6 +235,28 @@ def test_the_kernel_gives_the_torch_paths_plane(monkeypatch, threads):
         torch.set_num_threads(before)
 
 
+@pytest.mark.parametrize("noise_px", [0.0, 0.6])
+def test_the_kernels_cell_medians_are_the_torch_paths_at_any_cell_size(monkeypatch, noise_px):
+    """A noisy pair's samples from its cells' medians, kernel against torch path bit for bit, on cells of 64 pixels
+    (320 px wide: ranks) and of 256 (640 px: Hoare's selection), with ties (a noiseless map's equal values)."""
+    from svs_torch.segmentation import kernels
+
+    if not kernels.available("ground_plane_fit"):
+        pytest.skip("no C compiler")
+    small, _ = floor_scene(1.3, 20.0, noise_px=noise_px, seed=1)
+    large = small.repeat_interleave(2, -1).repeat_interleave(2, -2)
+    for disparity in (small, large):
+        measured = torch.rand(disparity.shape, generator=torch.Generator().manual_seed(7)) < 0.3
+        options = dict(noisy=torch.tensor([True]), focal_px=torch.tensor([FOCAL_PX * disparity.shape[-1] / W]))
+        fused = fit_ground_plane(disparity, measured, torch.tensor([BASELINE_M]), GroundPlaneConfig(), **options)
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+        eager = fit_ground_plane(disparity, measured, torch.tensor([BASELINE_M]), GroundPlaneConfig(), **options)
+        monkeypatch.delenv("SVS_TORCH_KERNELS")
+        assert bool(fused.found[0])
+        for name in ("coefficients", "found", "camera_height_m", "mask", "refitted"):
+            assert torch.equal(getattr(fused, name).nan_to_num(-1.0), getattr(eager, name).nan_to_num(-1.0)), name
+
+
 @pytest.mark.parametrize("kernels_off", [False, True])
 def test_a_map_without_grid_points_has_no_plane(monkeypatch, kernels_off):
     """An empty map, or one no taller than half the grid's stride, has no plane (the torch path had indexed an
