@@ -44,13 +44,26 @@ DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal
 DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
 
+EPILOG = """\
+examples:
+  svs-depth capture --emulator --count 20 --out pairs/            try it without a device
+  svs-depth capture --emulator --emulator-noise 4 --quality 4 --out noisy/   the frames a real board sends
+  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --out pairs/
+  svs-depth capture --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002 --size 640x480 --out big/
+  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --calibration rig.json --out pairs/   (svs-depth calibrate)
+then range what was saved:
+  svs-depth estimate --pairs pairs/index.jsonl --json
+"""
+
+
 def add_parser(subparsers: Any) -> None:
     """Register the ``capture`` subcommand on an argparse subparsers object (sets ``func=run``)."""
     parser = subparsers.add_parser(
         "capture", help="grab stereo pairs from an SVS camera into a folder",
         description="Grab stereo pairs from a Surveyor SVS (two SRV-1 boards) and save each board's JPEG plus "
                     "an index.jsonl of timestamps. --emulator tries it without a device. Exit status: 0 done, "
-                    "1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).")
+                    "1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--left", metavar="URL",
                         help="left/master board: socket://HOST:10001 or a serial device such as /dev/ttyUSB0")
     parser.add_argument("--right", metavar="URL",

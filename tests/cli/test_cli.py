@@ -40,13 +40,24 @@ def test_help_teaches_every_command():
         assert word in result.stdout
 
 
+def test_capture_help_shows_commands_to_copy():
+    """capture --help ends with examples (a device, WiFi, the emulator, a calibration) and the estimate command that
+    ranges what it saved."""
+    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "capture", "--help"], capture_output=True,
+                            text=True, check=True)
+    for text in ("examples:", "capture --emulator", "socket://", "/dev/ttyUSB0", "--calibration rig.json",
+                 "svs-depth estimate --pairs pairs/index.jsonl"):
+        assert text in result.stdout
+
+
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
 #: pipeline commands as --calibration; sweep names eval's --set, results' --summary / --figure and a Dask worker's
 #: --nthreads; results reads eval's --db files; guide does what estimate's --camera-frames does, and its record is
 #: ranged again by estimate --pairs.
 OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
                           "results": {"--db"}, "guide": {"--camera-frames", "--pairs"},
-                          "estimate": {"--set"}}  # "dropped_unmeasured": eval's and sweep's --set, named as theirs
+                          "estimate": {"--set"},  # "dropped_unmeasured": eval's and sweep's --set, named as theirs
+                          "capture": {"--pairs", "--json"}}  # its examples end with the estimate command that ranges
 
 
 def test_every_option_a_commands_help_names_is_one_it_takes():
