@@ -9,7 +9,7 @@ from pathlib import Path
 
 from .rig import calibration_file_source
 
-__all__ = ["ASPECT_CHANGED", "format_report", "pair_report", "square_pixels", "unranged_report",
+__all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "square_pixels", "unranged_report",
            "with_calibration"]
 
 
@@ -54,6 +54,13 @@ ASPECT_CHANGED = ("--size changes the images' aspect ratio, so their pixels are 
                   "images' own aspect, e.g. 320 wide and the height in proportion)")
 
 
+#: What a pair ranged by the paper's rule says of its floor, once a run: the floor is left out of the obstacles, but
+#: its pose and the distances ahead along it are measured on the dense map, which that rule does not make.
+NO_DENSE_MAP = ("--floor on with --range paper: the floor is left out of the obstacles, but its pose and the "
+                "distances ahead along it are measured on the dense map, which --range paper does not make, so "
+                "they are reported null (--range dense reports them)")
+
+
 def square_pixels(factors: tuple[float, float]) -> bool:
     """The working pixels are square (``factors``: input over working pixels, x and y, within 1 %): what the
     floor's pose needs (:mod:`svs_torch.depth.floor_distance` takes one focal length for both axes; a 707 × 481
@@ -65,11 +72,13 @@ def _floor_report(result, index: int, factors: tuple[float, float]) -> dict:
     """The floor's keys of pair ``index``'s report: the camera over the floor the segmenter found
     (:mod:`svs_torch.depth.floor_distance`) and the nearest obstacle's distance ahead along it, null where none (or
     where the pixels are not square: :func:`square_pixels`, said once)."""
+    import warnings
+
     floor = result.floor
     found = floor is not None and bool(floor.floor.found[index])
+    if floor is None and result.segmentation.floor_found is not None:  # looked for, but not measured
+        warnings.warn(NO_DENSE_MAP, RuntimeWarning, stacklevel=2)
     if found and not square_pixels(factors):
-        import warnings
-
         warnings.warn(ASPECT_CHANGED, RuntimeWarning, stacklevel=2)
         found = False
     if not found:

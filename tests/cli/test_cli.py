@@ -1258,3 +1258,16 @@ def test_estimate_reports_no_floor_pose_where_size_changes_the_pixels_aspect(cap
     code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--json", "--size", "256x192")
     report = json.loads(out)
     assert report["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.1) and "aspect" not in err
+
+
+def test_estimate_says_why_the_paper_rule_reports_no_floor_pose(capsys, tmp_path):
+    """--range paper makes no dense map, which the floor's pose and the distances ahead are measured on: with
+    --floor on they are null, and one warning says why (a null read as "no floor found" otherwise); without
+    --floor on nothing is said."""
+    paths = _walker_pair_files(tmp_path)
+    code, out, err = run_cli(capsys, "estimate", *paths, "--floor", "on", "--range", "paper", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["range_rule"] == "paper" and report["floor"] is None
+    assert err.count("--range paper does not make") == 1
+    code, out, err = run_cli(capsys, "estimate", *paths, "--range", "paper", "--json")
+    assert code == 0 and "--range paper does not make" not in err
