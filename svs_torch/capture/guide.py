@@ -185,8 +185,10 @@ class Speaker:
         stream: where messages are printed (None: nowhere).
 
     Speech runs in a child process so the loop never waits for it; a newer message interrupts an older one still
-    being spoken (the newest warning matters most). With ``"auto"`` and no ``espeak-ng``, one notice
-    (:data:`SPEECH_MISSING`) says so and how to get it, once per process (:func:`notice_once`).
+    being spoken (the newest warning matters most), but the same message again lets it finish (a ``--repeat-s``
+    shorter than the sentence restarted it mid-word every time, and it was never heard whole). With ``"auto"`` and
+    no ``espeak-ng``, one notice (:data:`SPEECH_MISSING`) says so and how to get it, once per process
+    (:func:`notice_once`).
     """
 
     def __init__(self, executable: str | None = "auto", *, words_per_minute: int = 170,
@@ -195,6 +197,7 @@ class Speaker:
         self.words_per_minute = words_per_minute
         self.stream = stream
         self._process: subprocess.Popen | None = None
+        self._spoken = ""  # the text of self._process
         if executable == "auto" and self.executable is None:
             notice_once(SPEECH_MISSING, stream)
 
@@ -209,11 +212,14 @@ class Speaker:
             print(text, file=self.stream, flush=True)
         if self.executable is None:
             return
+        if text == self._spoken and self._process is not None and self._process.poll() is None:
+            return  # still being said
         self._stop_previous()
         try:
             self._process = subprocess.Popen([self.executable, "-s", str(self.words_per_minute), text],
                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                              stderr=subprocess.DEVNULL)
+            self._spoken = text
         except OSError as err:
             notice_once(f"speech disabled: cannot run {self.executable}: {err}", self.stream)
             self.executable = None

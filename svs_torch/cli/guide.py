@@ -103,7 +103,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="warning band start, metres (default: 1.0)")
     parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
-                        help="seconds before the same warning repeats (default: 3)")
+                        help="seconds before the same warning repeats; one still being spoken is let finish, "
+                             "not restarted (default: 3)")
     parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
                         help=CONFIRM_FRAMES_HELP)
     add_calibration_option(parser, "the frames")

@@ -7,6 +7,7 @@ import io
 import re
 import stat
 import sys
+import time
 import warnings
 
 import pytest
@@ -175,6 +176,39 @@ def test_speaker_runs_the_speech_program(tmp_path):
     speaker.say("Stop. Obstacle at 0.8 metres")
     speaker.close()
     assert record.read_text() == "-s 150 Stop. Obstacle at 0.8 metres\n"
+
+
+def test_a_repeated_message_still_being_said_is_not_cut_off(tmp_path):
+    """The same message again while it is still spoken lets it finish (a --repeat-s shorter than the sentence had
+    restarted it mid-word each time); a different one interrupts it at once; after it ends, a repeat is said."""
+    record = tmp_path / "spoken.txt"
+    fake = tmp_path / "slow-espeak"  # speaks for 2 s, writing what it started
+    fake.write_text(f"#!{sys.executable}\nimport sys, time\nopen({str(record)!r}, 'a').write(sys.argv[-1] + '\\n')\n"
+                    "time.sleep(2)\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    def started(count: int) -> None:  # the fake has begun its count-th sentence
+        deadline = time.monotonic() + 20
+        while not (record.exists() and len(record.read_text().splitlines()) >= count):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+
+    stream = io.StringIO()
+    speaker = Speaker(str(fake), stream=stream)
+    speaker.say("Obstacle ahead, 1.5 metres")
+    first = speaker._process
+    started(1)
+    speaker.say("Obstacle ahead, 1.5 metres")
+    assert speaker._process is first and first.poll() is None  # not restarted
+    speaker.say("Stop. Obstacle at 0.9 metres")
+    assert first.poll() is not None and speaker._process is not first  # a new message cuts in
+    started(2)
+    speaker._process.wait(timeout=10)
+    speaker.say("Stop. Obstacle at 0.9 metres")  # the last one has ended: said again
+    started(3)
+    speaker.close()
+    assert stream.getvalue().count("\n") == 4  # every message is still printed
+    assert record.read_text().splitlines() == ["Obstacle ahead, 1.5 metres", "Stop. Obstacle at 0.9 metres",
+                                               "Stop. Obstacle at 0.9 metres"]
 
 
 def test_speaker_falls_back_to_text_when_program_fails(tmp_path):
