@@ -126,9 +126,11 @@ class DisparityExport:
 
     def __post_init__(self) -> None:
         if self.format not in EXPORT_FORMATS:
-            raise InputError(f"--disparity-format: expected one of {', '.join(EXPORT_FORMATS)}, got {self.format!r}")
+            raise InputError(f"format (--disparity-format): expected one of {', '.join(EXPORT_FORMATS)}, got "
+                             f"{self.format!r}")
         if not isinstance(self.method, str) or not METHOD_NAME.fullmatch(self.method):
-            raise InputError(f"--method-name: expected 1-64 letters, digits, '_' or '-', got {self.method!r}")
+            raise InputError(f"method (--method-name): expected 1-64 letters, digits, '_' or '-', got "
+                             f"{self.method!r}")
 
     def prepare(self) -> None:
         """Make the folder (before any work, so a bad name fails at once): see
