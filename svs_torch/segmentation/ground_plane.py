@@ -47,7 +47,7 @@ from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
 from ..depth.floor_distance import refit_floor_plane
 from . import kernels
-from .ground_plane_grid import fit_grid, sample_planes
+from .ground_plane_grid import cell_medians, sample_planes
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
 
@@ -194,20 +194,19 @@ def fit_ground_plane(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     plane = _fit_by_kernel(disparity, measured, baseline_m, tolerance.view(b), focal_px, draws, config, stride,
                            min_span, cells, least)
     if plane is None:
-        samples = None if cells is None else fit_grid(disparity, measured, stride, cells, least)
         plane = _fit_in_torch(disparity, measured, baseline_m, focal_px, tolerance, min_span, draws, stride, config,
-                              samples)
+                              cells, least)
     return plane._replace(refitted=refit_floor_plane(disparity, plane.mask & measured, plane.coefficients, plane.found,
                                                      tolerance.view(b)))
 
 
 def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
                   focal_px: torch.Tensor | None, tolerance: torch.Tensor, min_span: float, draws: torch.Tensor,
-                  stride: int, config: GroundPlaneConfig,
-                  samples: tuple[torch.Tensor, torch.Tensor] | None = None) -> GroundPlane:
+                  stride: int, config: GroundPlaneConfig, cells: torch.Tensor | None = None,
+                  cell_min_px: int = 0) -> GroundPlane:
     """:func:`fit_ground_plane` in torch, the kernel's reference: its grid ``stride``, ``tolerance`` ``(B, 1, 1)``
-    and ``min_span`` in the map's pixels, the samples' ``draws`` ``(N, 5)``, drawn from the grid of ``samples``
-    (a map and its measured pixels, :func:`~.ground_plane_grid.fit_grid`'s) where given."""
+    and ``min_span`` in the map's pixels, the samples' ``draws`` ``(N, 5)``, drawn for the pairs ``cells`` ``(B,)``
+    from their cells' medians over ``cell_min_px`` pixels (:func:`~.ground_plane_grid.cell_medians`)."""
     b, _, h, w = disparity.shape
     grid_d = disparity[:, 0, stride // 2::stride, stride // 2::stride]  # (B, gh, gw)
     grid_ok = measured[:, 0, stride // 2::stride, stride // 2::stride] & (grid_d > 0)
@@ -218,9 +217,10 @@ def _fit_in_torch(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: t
     points_d, points_ok = grid_d.reshape(b, -1), grid_ok.reshape(b, -1)
     lower = (ys >= (1 - config.lower_rows_fraction) * h).view(1, -1, 1)
     sample_d, sample_ok = grid_d, grid_ok
-    if samples is not None:
-        sample_d = samples[0][:, 0, stride // 2::stride, stride // 2::stride]
-        sample_ok = samples[1][:, 0, stride // 2::stride, stride // 2::stride] & (sample_d > 0)
+    if cells is not None:
+        median, drawable = cell_medians(disparity, measured, stride, cell_min_px)
+        use = cells.view(b, 1, 1)
+        sample_d, sample_ok = torch.where(use, median, grid_d), torch.where(use, drawable, grid_ok)
     hypotheses = sample_planes(sample_d, sample_ok, sample_ok & lower, xs, ys, draws)
     rig = _Rig(baseline_m, focal_px, (w - 1) / 2, (h - 1) / 2)
     plausible = _plausible(hypotheses, rig, config)

@@ -6,7 +6,7 @@ the board's default JPEG digit 4 with noise σ 4, the floor was found in 32 of 3
 36 with it), and the floor left was warned of (``experiments/walker_floor.md``, "Samples from cell medians"). Three
 nearby grid pixels, each off by its own noise, seldom make a plane with a walker's slope: the slope of a sample
 spanning a few grid cells is as noisy as the floor's own is steep. On a noisy pair the samples are therefore drawn
-from the medians of the measured pixels of each grid cell, where enough of it is measured (:func:`fit_grid`): a
+from the medians of the measured pixels of each grid cell, where enough of it is measured (:func:`cell_medians`): a
 cell on the floor holds a few dozen pixels whose median is one of the floor's, and a cell where the floor meets an
 obstacle's foot takes the side most of its pixels lie on. Every test of a hypothesis, and the refits, still read
 the grid's own pixels, so the rule's tests are the ones chosen on clean maps (sampling and scoring on the medians
@@ -19,17 +19,18 @@ import math
 
 import torch
 
-__all__ = ["fit_grid", "sample_planes"]
+__all__ = ["cell_medians", "sample_planes"]
 
 
-def fit_grid(disparity: torch.Tensor, measured: torch.Tensor, stride: int, cells: torch.Tensor,
-             min_measured_px: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``disparity`` ``(B, 1, H, W)`` float and ``measured`` ``(B, 1, H, W)`` bool with, at every grid pixel (every
-    ``stride``-th from ``stride // 2``) of the pairs ``cells`` ``(B,)`` bool, the median of the measured pixels of its
-    cell (the ``stride`` × ``stride`` block holding it, rows and columns from a multiple of ``stride``), measured
-    where the cell holds at least ``min_measured_px`` of them; every other pixel as given. The grid pixels the fit
-    draws its samples from (:func:`svs_torch.segmentation.ground_plane.fit_ground_plane`: the torch path reads them
-    here, the kernel makes the same values itself). Not differentiable."""
+def cell_medians(disparity: torch.Tensor, measured: torch.Tensor, stride: int,
+                 min_measured_px: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B, gh, gw)`` for each grid pixel (every ``stride``-th of ``disparity`` ``(B, 1, H, W)`` from
+    ``stride // 2``) the lower median of the ``measured`` ``(B, 1, H, W)`` pixels of its cell (the ``stride`` ×
+    ``stride`` block holding it, rows and columns from a multiple of ``stride``; 0 where fewer than
+    ``min_measured_px``), and ``(B, gh, gw)`` bool whether a sample may be drawn there (that many measured, and a
+    positive median). What the fit draws a noisy pair's samples from
+    (:func:`svs_torch.segmentation.ground_plane.fit_ground_plane`: the torch path reads them here, the kernel makes
+    the same values itself). Not differentiable."""
     b, _, h, w = disparity.shape
     offset = stride // 2
     gh, gw = -(-(h - offset) // stride), -(-(w - offset) // stride)
@@ -41,12 +42,8 @@ def fit_grid(disparity: torch.Tensor, measured: torch.Tensor, stride: int, cells
     values, seen = blocks(values), blocks(seen)
     median = torch.where(seen, values, math.nan).nanmedian(-1).values  # the lower median: a pixel's own value
     enough = seen.sum(-1) >= min_measured_px
-    use = cells.view(b, 1, 1)
-    grid = (slice(None), 0, slice(offset, None, stride), slice(offset, None, stride))
-    disparity, measured = disparity.clone(), measured.clone()
-    disparity[grid] = torch.where(use, torch.where(enough, median, 0.0).to(disparity.dtype), disparity[grid])
-    measured[grid] = torch.where(use, enough, measured[grid])
-    return disparity, measured
+    median = torch.where(enough, median, 0.0).to(disparity.dtype)
+    return median, enough & (median > 0)
 
 
 def sample_planes(d: torch.Tensor, measured: torch.Tensor, candidate: torch.Tensor, xs: torch.Tensor,

@@ -87,25 +87,38 @@ def test_the_refit_is_numpys_least_squares_and_lies_on_the_floor():
 
 
 def test_a_noisy_maps_grid_points_are_its_cells_medians():
-    """fit_grid against a loop over the cells in numpy: each grid pixel of a noisy pair the lower median of its
-    cell's measured pixels (unmeasured with fewer than the least count), the other pairs and pixels untouched."""
-    from svs_torch.segmentation.ground_plane_grid import fit_grid
+    """cell_medians against a loop over the cells in numpy: each grid pixel the lower median of its cell's measured
+    pixels (0 and not drawn with fewer than the least count, or with a median not positive); and a noisy pair's
+    plane, its samples drawn from them, does not depend on the plain pair beside it in a batch."""
+    from svs_torch.segmentation.ground_plane_grid import cell_medians
 
     generator = torch.Generator().manual_seed(3)
-    disparity = torch.rand(2, 1, 37, 45, generator=generator) * 30
+    disparity = torch.rand(2, 1, 37, 45, generator=generator) * 30 - 2
     measured = torch.rand(disparity.shape, generator=generator) < 0.3
     stride, least = 6, 4
-    grid, seen = fit_grid(disparity, measured, stride, torch.tensor([True, False]), least)
-    assert torch.equal(grid[1], disparity[1]) and torch.equal(seen[1], measured[1])
-    d, m = disparity[0, 0].numpy(), measured[0, 0].numpy()
-    expected_d, expected_m = d.copy(), m.copy()
-    for y in range(stride // 2, 37, stride):
-        for x in range(stride // 2, 45, stride):
-            cell = d[y - y % stride:y - y % stride + stride, x - x % stride:x - x % stride + stride]
-            values = np.sort(cell[m[y - y % stride:y - y % stride + stride, x - x % stride:x - x % stride + stride]])
-            expected_m[y, x] = len(values) >= least
-            expected_d[y, x] = values[(len(values) - 1) // 2] if len(values) >= least else 0.0
-    assert np.array_equal(seen[0, 0].numpy(), expected_m) and np.array_equal(grid[0, 0].numpy(), expected_d)
+    median, drawable = cell_medians(disparity, measured, stride, least)
+    for pair in range(2):
+        d, m = disparity[pair, 0].numpy(), measured[pair, 0].numpy()
+        rows, columns = range(stride // 2, 37, stride), range(stride // 2, 45, stride)
+        expected_d = np.zeros((len(rows), len(columns)), np.float32)
+        expected_ok = np.zeros_like(expected_d, bool)
+        for i, y in enumerate(rows):
+            for j, x in enumerate(columns):
+                cell = (slice(y - y % stride, y - y % stride + stride), slice(x - x % stride, x - x % stride + stride))
+                values = np.sort(d[cell][m[cell]])
+                if len(values) >= least:
+                    expected_d[i, j] = values[(len(values) - 1) // 2]
+                    expected_ok[i, j] = expected_d[i, j] > 0
+        assert np.array_equal(median[pair].numpy(), expected_d) and np.array_equal(drawable[pair].numpy(), expected_ok)
+    maps = torch.cat([floor_scene(1.3, 20.0, noise_px=0.6, seed=1)[0], floor_scene(1.6, 25.0, noise_px=0.3)[0]])
+    seen = torch.rand(maps.shape, generator=generator) < 0.25
+    baseline = torch.full((2,), BASELINE_M)
+    together = fit_ground_plane(maps, seen, baseline, GroundPlaneConfig(), noisy=torch.tensor([True, False]))
+    for i, noisy in enumerate((True, False)):
+        alone = fit_ground_plane(maps[i:i + 1], seen[i:i + 1], baseline[:1], GroundPlaneConfig(),
+                                 noisy=torch.tensor([noisy]))
+        for name in ("coefficients", "found", "mask"):
+            assert torch.equal(getattr(together, name)[i:i + 1], getattr(alone, name)), (i, name)
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -220,7 +220,7 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
     (in the map's pixels) ``(B,)`` float32; ``focal_px`` ``(B,)`` float32 or None (no pitch limit); ``draws``
     ``(N, 5)`` float64 uniforms, the samples; ``settings`` every name of :data:`GROUND_PLANE_SETTINGS`; ``cells``
     ``(B,)`` bool or None: the pairs whose samples are drawn from their cells' medians over at least ``cell_min_px``
-    measured pixels (:func:`svs_torch.segmentation.ground_plane_grid.fit_grid`). Returns the
+    measured pixels (:func:`svs_torch.segmentation.ground_plane_grid.cell_medians`). Returns the
     plane's coefficients ``(B, 3)``, found ``(B,)`` bool, the camera height ``(B,)`` and the mask ``(B, 1, H, W)``
     bool; None when the kernel is not available or the inputs do not fit its contract (a NaN focal length)."""
     dims = check_shape(disparity, "disparity", ["B", 1, "H", "W"])

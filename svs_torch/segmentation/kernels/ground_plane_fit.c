@@ -234,7 +234,7 @@ static float rank_kth(const float *values, int64_t n, int64_t k) {
     return values[k];  /* not reached: some value is the k-th */
 }
 
-/* A noisy pair's sampled grid point (svs_torch/segmentation/ground_plane_grid.py, fit_grid): the lower median of the
+/* A noisy pair's sampled grid point (svs_torch/segmentation/ground_plane_grid.py, cell_medians): the lower median of the
  * measured pixels of its cell, rows [row0, row0 + stride) and columns [col0, col0 + stride) inside the view, NaN
  * ones left out of the median but counted (as torch's nanmedian over them); not measured (and 0) with fewer than
  * cell_min measured. ``buffer`` holds stride * stride floats. */
