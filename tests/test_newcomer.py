@@ -73,7 +73,7 @@ def test_the_right_binary_panel_of_the_nearness_segmenter_says_it_is_the_lefts_r
     stereo = segment_pair(batch, SegmentationConfig(segmenter=segmenter))
     figures.segmentation_panels(batch.left, stereo.left, 0, "left", segmenter)
     figures.segmentation_panels(batch.right, stereo.right, 0, "right", segmenter)
-    moved = "right mask: the left's kept regions moved by their disparity"
+    moved = "right mask: the left's regions moved by disparity"
     assert titles[1].startswith("left binary (") and (titles[4] == moved) == (segmenter == "nearness")
 
 

@@ -196,7 +196,7 @@ def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side
     if side == "right" and segmenter.split(":", 1)[0] == "nearness":
         # The nearness segmenter thresholds the left view only; the right's mask is the left's kept regions moved
         # by their disparity (an audit: one region under a "binary ... + opening" title beside the left's four).
-        made = "mask: the left's kept regions moved by their disparity"
+        made = "mask: the left's regions moved by disparity"  # one line, as its neighbours' titles
     return [
         titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
         titled_panel(gray_to_bgr(mask), f"{side} {made}"),
