@@ -19,27 +19,21 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from ..core.files import check_path_given, check_writable_folder, display_path, path_kind, write_bytes_atomic
 from .common import non_negative_float, positive_int, timeout_seconds
+from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
-if TYPE_CHECKING:
-    from ..capture.stereo import Frame, StereoPair
-
-__all__ = ["INDEX_NAME", "add_parser", "new_pairs_folder", "run", "save_pair"]
+__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "add_parser", "new_pairs_folder", "run", "save_pair"]
 
 PROG = "svs-depth capture"
-INDEX_NAME = "index.jsonl"
-CALIBRATION_NAME = "calibration.json"  # a copy of --calibration's file
 DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
 DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
@@ -153,22 +147,6 @@ def check_board_urls(args: argparse.Namespace) -> None:
         raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 
 
-def new_pairs_folder(value: str, option: str) -> Path:
-    """The folder ``value`` of ``option`` that pairs will be saved to (created later, if missing), checked before
-    the camera opens: a file there, or a folder already holding an ``index.jsonl``, is refused (nothing is ever
-    appended to another run's pairs)."""
-    check_path_given(value, option, "a folder name")  # '' saved the pairs into the current folder
-    out = Path(value)
-    kind = path_kind(out, option)
-    if kind not in ("missing", "folder"):
-        raise InputError(f"{option}: expected a folder, got a {kind}: {display_path(out)}")
-    if kind == "folder" and path_kind(out / INDEX_NAME, option) != "missing":
-        raise InputError(f"{option}: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
-    # The folder, or the nearest existing one it will be made in, must take files before the camera opens.
-    check_writable_folder(out if kind == "folder" else next(p for p in out.absolute().parents if p.is_dir()), option)
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     """Run ``capture``; returns the exit code (errors are one line on stderr)."""
     from ..capture.link_types import CaptureError
@@ -189,12 +167,10 @@ def run(args: argparse.Namespace) -> int:
                 from ..geometry.calibration import write_calibration
 
                 write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
-            index = stack.enter_context(open(out / INDEX_NAME, "x", encoding="utf-8"))
+            index = stack.enter_context(PairsIndex(out, "--out-dir"))
             progress = stack.enter_context(Progress(args.count, "capture"))
-            for _ in range(args.count):
-                record = save_pair(out, camera.grab_pair())
-                index.write(json.dumps(record) + "\n")
-                index.flush()
+            for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
+                index.append(save_pair(out, camera.grab_pair(), "--out-dir"))
                 done += 1
                 progress.update()
     except KeyboardInterrupt:
@@ -247,23 +223,3 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     return server.urls["left"], server.urls["right"]
 
 
-def save_pair(out: Path | None, pair: StereoPair) -> dict[str, Any]:
-    """Write both JPEGs as received into ``out`` (None: write nothing); the pair's index record (module
-    docstring; without ``left``/``right`` when nothing was written)."""
-    record: dict[str, Any] = {"index": pair.index}
-    for name, frame in (("left", pair.left), ("right", pair.right)):
-        if out is not None:
-            file_name = f"pair{pair.index:06d}_{name}.jpg"
-            write_bytes_atomic(out / file_name, frame.jpeg)
-            record[name] = file_name
-    record["width"], record["height"] = pair.left.size_wh
-    for name, frame in (("left", pair.left), ("right", pair.right)):
-        record.update(_frame_fields(name, frame))
-    record["time_between_frames_s"] = pair.time_between_frames_s
-    return record
-
-
-def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
-    return {f"{name}_bytes": len(frame.jpeg), f"{name}_request_monotonic_s": frame.request_monotonic_s,
-            f"{name}_arrival_monotonic_s": frame.arrival_monotonic_s,
-            f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}

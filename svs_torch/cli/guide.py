@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link_types import CaptureError
-        from .capture import new_pairs_folder
+        from .pairs_folder import new_pairs_folder
         from .guide_log import GuideLog
         from .guide_loop import GuideSession
         from .guide_warm_up import import_deferred_modules, warm_up

@@ -12,8 +12,9 @@ file (BAD_INPUT); damage libjpeg does not notice (a flipped bit that decodes to 
 Each line (on stdout with ``--json``, in the index with
 ``--record``) holds the capture fields (``capture``'s module docstring), the per-pair fields of ``estimate --json``
 (:func:`~svs_torch.cli.estimate_report.pair_report`) with the ``calibration`` its metres use, and guide's own:
-``warning`` (the pair's own distance ``distance_m``, the median of the last ``--confirm-frames`` pairs' that the
-class was judged on ``confirmed_m``, the class ``clear`` / ``warn`` / ``stop`` and the words said, if any),
+``warning`` (the pair's own distance ``distance_m`` and its obstacle's ``side``, the median of the last
+``--confirm-frames`` pairs' that the class was judged on ``confirmed_m`` and the side said with it
+``confirmed_side``, that median's pair's, the class ``clear`` / ``warn`` / ``stop`` and the words said, if any),
 ``dropped_pairs`` (pairs that arrived while the previous one was ranged and were never ranged), ``latency_s``
 (from the request of the left frame, when the board grabbed it, to the warning: its encoding and the link's transfer
 included). Only the pairs guide ranged are kept: the record is what the walker was told about.
@@ -23,12 +24,13 @@ from __future__ import annotations
 
 import json
 import shlex
+import sys
 import time
 from pathlib import Path
 from typing import Any, TextIO
 
 from ..core.files import display_path
-from .capture import CALIBRATION_NAME, INDEX_NAME, save_pair
+from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, save_pair
 from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
@@ -46,21 +48,22 @@ class GuideLog:
         self.replay = (floor, calibration)  # guide's settings that estimate needs to range the pairs alike
         self.rig = rig  # the StereoCalibration read from ``calibration`` (None: the SVS model)
         self._calibrations: dict[tuple[int, int], dict] = {}
-        self._index: TextIO | None = None
+        self._index: PairsIndex | None = None
         self.num_recorded = 0
+        self.record_error: str | None = None  # why the recording stopped (a full disk), None: it did not
 
     def open(self) -> None:
         """Create the record's folder and index (once: a camera opened again appends to the same index), and with
         ``--calibration`` a copy of the rig's calibration beside the pairs, as ``capture`` keeps it (the replay
         command names the copy: the original's relative path broke from another folder)."""
-        if self.record_dir is not None and self._index is None:
+        if self.record_dir is not None and self._index is None and self.record_error is None:
             self.record_dir.mkdir(parents=True, exist_ok=True)
             if self.rig is not None:
                 from ..geometry.calibration import write_calibration
 
                 write_calibration(self.record_dir / CALIBRATION_NAME, self.rig, "--record")
                 self.replay = (self.replay[0], str(self.record_dir / CALIBRATION_NAME))
-            self._index = open(self.record_dir / INDEX_NAME, "x", encoding="utf-8")
+            self._index = PairsIndex(self.record_dir, "--record")
 
     def write(self, pair, result, elapsed_s: float, warning: dict[str, Any], num_dropped: int) -> None:
         """Keep pair ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) and its one-pair ``result``,
@@ -69,18 +72,37 @@ class GuideLog:
         if self.stream is None and self._index is None:
             return
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
-        record = save_pair(self.record_dir if self._index is not None else None, pair)
+        record = self._saved(pair)
         record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration_rectified=self.rig is not None,
                       calibration=self._calibration(pair.left.size_wh))
         record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
-        line = json.dumps(record) + "\n"
         if self._index is not None:  # after both images are in place (save_pair)
-            self._index.write(line)
-            self._index.flush()
-            self.num_recorded += 1
+            try:
+                self._index.append(record)
+                self.num_recorded += 1
+            except OSError as error:  # its images removed (PairsIndex.append): the --json line names none
+                self._stop_recording(error)
+                record.pop("left"), record.pop("right")
         if self.stream is not None:
-            self.stream.write(line)
+            self.stream.write(json.dumps(record) + "\n")
             self.stream.flush()
+
+    def _saved(self, pair) -> dict[str, Any]:
+        """``pair``'s index record, its images written into the record while it is kept."""
+        if self._index is not None:
+            try:
+                return save_pair(self.record_dir, pair, "--record")
+            except OSError as error:  # neither image left (save_pair)
+                self._stop_recording(error)
+        return save_pair(None, pair)
+
+    def _stop_recording(self, error: OSError) -> None:
+        """Stop the record, not the guide: a walker still needs the warnings when the disk is full (it stopped
+        guide, exit 1, an audit). Said once on stderr, and in :meth:`summary`."""
+        self.close()
+        self.record_error = " ".join(str(error).split())
+        print(f"svs-depth guide: {self.record_error}; recording stopped after {_pairs(self.num_recorded)}, the "
+              f"warnings go on", file=sys.stderr, flush=True)
 
     def _calibration(self, size_wh: tuple[int, int]) -> dict:
         """The calibration the metres of a pair of ``size_wh`` use, as ``estimate --json`` names it
@@ -116,8 +138,13 @@ class GuideLog:
         """What was recorded and how to range it again (None: nothing recorded)."""
         if not self.num_recorded:
             return None
-        return (f"svs-depth guide: recorded {self.num_recorded} pairs in {display_path(self.record_dir)}; range "
-                f"them again with: {replay_command(self.record_dir, *self.replay)}")
+        stopped = "" if self.record_error is None else " (then the recording stopped: see above)"
+        return (f"svs-depth guide: recorded {_pairs(self.num_recorded)} in {display_path(self.record_dir)}{stopped}; "
+                f"range them again with: {replay_command(self.record_dir, *self.replay)}")
+
+
+def _pairs(count: int) -> str:
+    return f"{count} pair{'' if count == 1 else 's'}"
 
 
 def replay_command(record_dir: Path, floor: str = "on", calibration: str | None = None) -> str:

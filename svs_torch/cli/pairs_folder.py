@@ -1,0 +1,137 @@
+"""The folder of saved pairs that ``capture --out-dir`` and ``guide --record`` write (the layout of
+:mod:`svs_torch.cli.capture`'s docstring): each board's JPEG as received and ``index.jsonl``, a line per pair.
+
+A pair is in the folder whole or not at all. Why: on a full disk ``capture`` left a left image without its right
+one, and an index line cut short would stop ``estimate --pairs`` at that line; so a pair's images are removed when
+one of them, or its index line, cannot be written, and a line cut short is cut off the index again. Every error names
+the option and the file (``--record: cannot write 'walk/pair000003_right.jpg': No space left on device``).
+
+Only the standard library is imported: the folder is checked before torch loads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ..core.errors import InputError
+from ..core.files import check_path_given, check_writable_folder, display_path, path_kind, write_bytes_atomic, \
+    write_errors_named
+
+if TYPE_CHECKING:
+    from ..capture.stereo import Frame, StereoPair
+
+__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "PairsIndex", "new_pairs_folder", "save_pair"]
+
+INDEX_NAME = "index.jsonl"
+CALIBRATION_NAME = "calibration.json"  # a copy of --calibration's file
+#: The names of a pair's images: ``pair000000_left.jpg``.
+PAIR_FILE_PATTERN = "pair[0-9][0-9][0-9][0-9][0-9][0-9]_*.jpg"
+
+
+def new_pairs_folder(value: str, option: str) -> Path:
+    """The folder ``value`` of ``option`` that pairs will be saved to (created later, if missing), checked before
+    the camera opens: a file there or on the way to it, or a folder already holding an ``index.jsonl`` or pair
+    images, is refused (nothing is ever appended to, or written over, another run's pairs)."""
+    check_path_given(value, option, "a folder name")  # '' saved the pairs into the current folder
+    out = Path(value)
+    kind = path_kind(out, option)
+    if kind not in ("missing", "folder"):
+        raise InputError(f"{option}: expected a folder, got {'a file' if kind == 'file' else 'a device or socket'}: "
+                         f"{display_path(out)}")
+    if kind == "folder":
+        if path_kind(out / INDEX_NAME, option) != "missing":
+            raise InputError(f"{option}: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
+        held = next(out.glob(PAIR_FILE_PATTERN), None)
+        if held is not None:  # an index deleted, or another tool's pairs: they were written over without a word
+            raise InputError(f"{option}: {display_path(held)} already exists; choose a new folder")
+        check_writable_folder(out, option)
+        return out
+    # The nearest existing folder on the way must take files before the camera opens; a file on the way (a/b where
+    # a is a file) failed only at the first pair, as "[Errno 20] Not a directory".
+    ancestor = next(p for p in out.absolute().parents if path_kind(p, option) != "missing")
+    if path_kind(ancestor, option) != "folder":
+        raise InputError(f"{option}: expected a folder, but {display_path(ancestor)} on its path is not a folder")
+    check_writable_folder(ancestor, option)
+    return out
+
+
+def save_pair(out: Path | None, pair: StereoPair, option: str = "--out-dir") -> dict[str, Any]:
+    """Write both JPEGs as received into ``out`` (None: write nothing); the pair's index record (the module
+    docstring of :mod:`svs_torch.cli.capture`; without ``left``/``right`` when nothing was written).
+
+    Raises:
+        OSError: naming ``option`` and the file that could not be written; neither image of the pair is left.
+    """
+    record: dict[str, Any] = {"index": pair.index}
+    written: list[Path] = []
+    try:
+        for name, frame in (("left", pair.left), ("right", pair.right)):
+            if out is not None:
+                path = out / f"pair{pair.index:06d}_{name}.jpg"
+                with write_errors_named(option, path):
+                    write_bytes_atomic(path, frame.jpeg)
+                written.append(path)
+                record[name] = path.name
+    except OSError:
+        remove_files(written)
+        raise
+    record["width"], record["height"] = pair.left.size_wh
+    for name, frame in (("left", pair.left), ("right", pair.right)):
+        record.update(_frame_fields(name, frame))
+    record["time_between_frames_s"] = pair.time_between_frames_s
+    return record
+
+
+def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
+    return {f"{name}_bytes": len(frame.jpeg), f"{name}_request_monotonic_s": frame.request_monotonic_s,
+            f"{name}_arrival_monotonic_s": frame.arrival_monotonic_s,
+            f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}
+
+
+def remove_files(paths: list[Path]) -> None:
+    """Remove what of ``paths`` exists (a pair that could not be kept whole), ignoring what cannot be."""
+    for path in paths:
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+class PairsIndex:
+    """``folder``'s ``index.jsonl``, created new (``"x"``), a line per pair appended and on disk before
+    :meth:`append` returns; a line that cannot be written whole is cut off again and its pair's images removed.
+    A context manager (closes the file)."""
+
+    def __init__(self, folder: Path, option: str) -> None:
+        self.path, self.option = folder / INDEX_NAME, option
+        with write_errors_named(option, self.path):
+            self._file = open(self.path, "xb", buffering=0)
+        self._length = 0  # the index's bytes of whole lines
+
+    def append(self, record: dict[str, Any]) -> None:
+        """Write ``record`` as one line. Raises OSError naming the option and the index (then the index holds the
+        lines before it only, and the images ``record`` names are removed)."""
+        line = memoryview((json.dumps(record) + "\n").encode())
+        try:
+            with write_errors_named(self.option, self.path):
+                while line:  # an unbuffered write may take part of the line
+                    line = line[self._file.write(line):]
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._file.fileno(), self._length)
+                self._file.seek(self._length)
+            remove_files([self.path.parent / record[view] for view in ("left", "right") if view in record])
+            raise
+        self._length = self._file.tell()
+
+    def close(self) -> None:
+        """Close the file (safe to call twice)."""
+        self._file.close()
+
+    def __enter__(self) -> PairsIndex:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()

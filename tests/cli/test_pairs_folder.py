@@ -1,0 +1,105 @@
+"""The saved-pairs folder of ``capture --out-dir`` and ``guide --record`` (svs_torch.cli.pairs_folder): a pair is
+kept whole or not at all, and every refusal or failure names the option and the file. Found by an audit of the
+device-side commands."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import pytest
+
+import svs_torch.cli.pairs_folder as pairs_folder
+from svs_torch.cli import main
+from svs_torch.cli.pairs_folder import PairsIndex, new_pairs_folder, save_pair
+from svs_torch.core.errors import InputError
+
+
+def _pair(index: int) -> SimpleNamespace:
+    frame = SimpleNamespace(jpeg=b"\xff\xd8 a jpeg", size_wh=(320, 240), request_monotonic_s=1.0,
+                            arrival_monotonic_s=1.1, arrival_wall_s=2.0, attempts=1)
+    return SimpleNamespace(index=index, left=frame, right=frame, time_between_frames_s=0.01)
+
+
+def test_a_folder_below_a_file_is_refused_before_the_camera_opens(tmp_path):
+    """Was: "[Errno 20] Not a directory: 'afile/sub'", exit 1, after the emulator had started."""
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(InputError, match=r"--out-dir: expected a folder, but .*afile on its path is not a folder"):
+        new_pairs_folder(str(tmp_path / "afile" / "sub" / "deeper"), "--out-dir")
+    assert new_pairs_folder(str(tmp_path / "new" / "sub"), "--out-dir") == tmp_path / "new" / "sub"
+    with pytest.raises(InputError, match="--record: expected a folder, got a device or socket"):
+        new_pairs_folder("/dev/null", "--record")  # was "got a other"
+
+
+def test_a_folder_holding_pair_images_is_refused_without_an_index(tmp_path):
+    """Was: a folder of pairs whose index.jsonl had been removed was written over without a word."""
+    (tmp_path / "pair000001_right.jpg").write_bytes(b"mine")
+    with pytest.raises(InputError, match=r"--out-dir: .*pair000001_right\.jpg already exists; choose a new folder"):
+        new_pairs_folder(str(tmp_path), "--out-dir")
+    (tmp_path / "pair000001_right.jpg").rename(tmp_path / "notes.jpg")  # another name: not a saved pair
+    assert new_pairs_folder(str(tmp_path), "--out-dir") == tmp_path
+
+
+def test_a_pair_whose_right_image_cannot_be_written_leaves_no_left_image(monkeypatch, tmp_path):
+    written = []
+
+    def full_after_one(path, data):
+        if written:
+            raise OSError(28, "No space left on device")
+        written.append(path)
+        path.write_bytes(data)
+
+    monkeypatch.setattr(pairs_folder, "write_bytes_atomic", full_after_one)
+    with pytest.raises(OSError, match=r"--record: cannot write '.*pair000007_right\.jpg': No space left on device"):
+        save_pair(tmp_path, _pair(7), "--record")
+    assert written and list(tmp_path.iterdir()) == []
+
+
+def test_an_index_line_cut_short_is_cut_off_again_with_its_images(tmp_path):
+    """A full disk in the middle of a line left half a line, and ``estimate --pairs`` stops at a line it cannot
+    read; the pair's images went unlisted."""
+    index = PairsIndex(tmp_path, "--out-dir")
+    index.append(save_pair(tmp_path, _pair(0)))
+
+    class HalfThenFull:
+        def __init__(self, real):
+            self.real, self.calls = real, 0
+
+        def write(self, data):
+            self.calls += 1
+            if self.calls > 1:
+                raise OSError(28, "No space left on device")
+            return self.real.write(data[:len(data) // 2])
+
+        def __getattr__(self, name):
+            return getattr(self.real, name)
+
+    index._file = HalfThenFull(index._file)
+    record = save_pair(tmp_path, _pair(1))
+    with pytest.raises(OSError, match=r"--out-dir: cannot write '.*index\.jsonl': No space left on device"):
+        index.append(record)
+    index.close()
+    lines = (tmp_path / "index.jsonl").read_text().splitlines()
+    assert [json.loads(line)["index"] for line in lines] == [0]
+    assert sorted(p.name for p in tmp_path.glob("*.jpg")) == ["pair000000_left.jpg", "pair000000_right.jpg"]
+
+
+def test_capture_on_a_full_disk_keeps_whole_pairs_and_names_the_option_and_file(monkeypatch, capsys, tmp_path):
+    """Was: "[Errno 28] No space left on device (1 of 10 pairs saved …)", and a left image without its right."""
+    calls = []
+    real_write = pairs_folder.write_bytes_atomic
+
+    def full_at_the_second_right_image(path, data):
+        calls.append(path.name)
+        if len(calls) == 4:
+            raise OSError(28, "No space left on device")
+        real_write(path, data)
+
+    monkeypatch.setattr(pairs_folder, "write_bytes_atomic", full_at_the_second_right_image)
+    out = tmp_path / "pairs"
+    code = main(["capture", "--emulator", "--count", "3", "--out-dir", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and "--out-dir: cannot write" in err and "pair000001_right.jpg" in err
+    assert "1 of 3 pairs saved" in err
+    assert sorted(p.name for p in out.iterdir()) == ["index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg"]
+    assert len((out / "index.jsonl").read_text().splitlines()) == 1
