@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import collections
 import math
-import shutil
-import subprocess
 import sys
 import time
 from typing import TextIO
@@ -27,6 +25,7 @@ from typing import TextIO
 from ..core.checks import InputError
 from ..core.files import stream_is_terminal
 from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
+from .speech import SPEECH_MISSING, Speaker, notice_once  # (moved there; still importable from here)
 
 __all__ = ["CLEAR_SPELL_S", "CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once",
            "said_metres", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE",
@@ -69,7 +68,9 @@ class WarningPolicy:
         self.warn_below_band = warn_below_band
         self.current = CLEAR  # class of the last distance
         self.confirmed_m: float | None = None  # the distance the rule took last (the median), None: no obstacle
-        self._recent: collections.deque[float] = collections.deque(maxlen=confirm_frames)
+        self.confirmed_side: str | None = None  # the side of the frame whose distance is confirmed_m
+        # (distance, side) of the last frames: the side said is that of the obstacle whose distance is said
+        self._recent: collections.deque[tuple[float, str | None]] = collections.deque(maxlen=confirm_frames)
         self._last_spoken_s = -math.inf
         self._last_spoken_class: str | None = None
         self._clear_since_s: float | None = None  # when the confirmed class last turned clear (None: not clear)
@@ -87,12 +88,16 @@ class WarningPolicy:
             return STOP if self.warn_below_band else CLEAR
         return WARN
 
-    def confirm(self, distance_m: float | None) -> float | None:
-        """Add one frame's distance (metres, None = no obstacle); the median of the last ``confirm_frames``
-        (fewer at the start), None where that is no obstacle."""
-        self._recent.append(distance_m if distance_m is not None and math.isfinite(distance_m) else math.inf)
-        ordered = sorted(self._recent)
-        median = ordered[len(ordered) // 2]  # the farther middle one of an even count: a warning needs a majority
+    def confirm(self, distance_m: float | None, side: str | None = None) -> float | None:
+        """Add one frame's distance (metres, None = no obstacle) and its obstacle's ``side``; the median of the last
+        ``confirm_frames`` (fewer at the start), None where that is no obstacle. ``confirmed_side`` is then the
+        side of the frame that median came from: said with the current frame's side, a distance confirmed from an
+        earlier frame's obstacle on the left was said "on the right" of the one now nearest (an audit)."""
+        finite = distance_m is not None and math.isfinite(distance_m)
+        self._recent.append((distance_m if finite else math.inf, side if finite else None))
+        ordered = sorted(self._recent, key=lambda entry: entry[0])  # stable: of equal distances, the older first
+        # The farther middle one of an even count: a warning needs a majority.
+        median, self.confirmed_side = ordered[len(ordered) // 2]
         return median if math.isfinite(median) else None
 
     def update(self, distance_m: float | None, now_s: float, side: str | None = None) -> str | None:
@@ -100,7 +105,8 @@ class WarningPolicy:
         ``centre``, ``right``; None: unsaid); the message to say, or None. The rule reads the confirmed distance
         (:meth:`confirm`, kept as ``confirmed_m``), which the message speaks, with the side (a side alone never
         makes a message)."""
-        distance_m = self.confirmed_m = self.confirm(distance_m)
+        distance_m = self.confirmed_m = self.confirm(distance_m, side)
+        side = self.confirmed_side
         new = self.classify(distance_m)
         if _SEVERITY[new] < _SEVERITY[self.current] and distance_m is not None and math.isfinite(distance_m):
             # Escalate at once, relax only once the distance is past the edge by the hysteresis margin.
@@ -132,7 +138,7 @@ class WarningPolicy:
         """Forget the last class, message and distances (the camera was lost): the next distance in or below the
         band is warned of at once, confirmed by the frames from then on only."""
         self.current = CLEAR
-        self.confirmed_m = None
+        self.confirmed_m = self.confirmed_side = None
         self._recent.clear()
         self._last_spoken_s = -math.inf
         self._last_spoken_class = None
@@ -156,91 +162,6 @@ def said_metres(distance_class: str, distance_m: float) -> str:
     if distance_class == STOP:
         return f"{math.floor(distance_m * 10 + 1e-9) / 10:.1f}"  # (0.7 * 10 is 6.999…: not 0.6)
     return f"{distance_m:.1f}"
-
-
-#: How to get the speech program, in the one notice given when it is missing.
-SPEECH_MISSING = ("speech: espeak-ng is not installed, so warnings are text only (to hear them: "
-                  "sudo apt-get install espeak-ng; --no-speech silences this notice)")
-
-#: The notices already given in this process. Deliberately process-wide: a missing program is missing for every
-#: Speaker, and the user needs to read it once, not once per warning or per guide.
-_NOTICES_GIVEN: set[str] = set()
-
-
-def notice_once(text: str, stream: TextIO | None) -> bool:
-    """Print ``text`` to ``stream`` unless this process already printed it; True if printed now."""
-    if stream is None or text in _NOTICES_GIVEN:
-        return False
-    _NOTICES_GIVEN.add(text)
-    print(text, file=stream, flush=True)
-    return True
-
-
-class Speaker:
-    """Say messages with ``espeak-ng`` when it is installed, and print them as text.
-
-    Args:
-        executable: the speech program; ``"auto"`` finds ``espeak-ng`` with :func:`shutil.which`; None: text only.
-        words_per_minute: speech rate passed as ``-s``.
-        stream: where messages are printed (None: nowhere).
-
-    Speech runs in a child process so the loop never waits for it; a newer message interrupts an older one still
-    being spoken (the newest warning matters most), but the same message again lets it finish (a ``--repeat-s``
-    shorter than the sentence restarted it mid-word every time, and it was never heard whole). With ``"auto"`` and
-    no ``espeak-ng``, one notice (:data:`SPEECH_MISSING`) says so and how to get it, once per process
-    (:func:`notice_once`).
-    """
-
-    def __init__(self, executable: str | None = "auto", *, words_per_minute: int = 170,
-                 stream: TextIO | None = sys.stderr) -> None:
-        self.executable = shutil.which("espeak-ng") if executable == "auto" else executable
-        self.words_per_minute = words_per_minute
-        self.stream = stream
-        self._process: subprocess.Popen | None = None
-        self._spoken = ""  # the text of self._process
-        if executable == "auto" and self.executable is None:
-            notice_once(SPEECH_MISSING, stream)
-
-    @property
-    def speaks(self) -> bool:
-        """True when messages are spoken, not only printed."""
-        return self.executable is not None
-
-    def say(self, text: str) -> None:
-        """Print ``text`` and, if a speech program is available, speak it (interrupting the previous message)."""
-        if self.stream is not None:
-            print(text, file=self.stream, flush=True)
-        if self.executable is None:
-            return
-        if text == self._spoken and self._process is not None and self._process.poll() is None:
-            return  # still being said
-        self._stop_previous()
-        try:
-            self._process = subprocess.Popen([self.executable, "-s", str(self.words_per_minute), text],
-                                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                             stderr=subprocess.DEVNULL)
-            self._spoken = text
-        except OSError as err:
-            notice_once(f"speech disabled: cannot run {self.executable}: {err}", self.stream)
-            self.executable = None
-
-    def _stop_previous(self) -> None:
-        if self._process is not None and self._process.poll() is None:
-            self._process.terminate()
-            try:
-                self._process.wait(timeout=1.0)
-            except subprocess.TimeoutExpired:
-                self._process.kill()
-        self._process = None
-
-    def close(self) -> None:
-        """Let the last message finish (at most 5 s), then stop it."""
-        if self._process is not None:
-            try:
-                self._process.wait(timeout=5.0)
-            except subprocess.TimeoutExpired:
-                self._stop_previous()
-            self._process = None
 
 
 class FpsMeter:

@@ -254,10 +254,11 @@ class GuideSession:
         side = ObstacleSide(int(nearest.side[0])).name.lower()
         message = self.guide.update(distance, now, side)  # the side said too: a walker hears where to step aside
         confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
+        confirmed_side = self.guide.policy.confirmed_side  # the side of the frame that median came from
         shown = self._shown(seen)
-        self.status_line.show(f"{self.guide.status(confirmed, shown)}  {side}")
-        warned = {"distance_m": None if distance is None else round(distance, 4),
-                  "confirmed_m": None if confirmed is None else round(confirmed, 4),
+        self.status_line.show(f"{self.guide.status(confirmed, shown)}  {confirmed_side or side}")
+        warned = {"distance_m": None if distance is None else round(distance, 4), "side": side,
+                  "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
                   "class": shown, "message": message}
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)

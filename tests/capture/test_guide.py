@@ -228,18 +228,43 @@ def test_speaker_auto_finds_espeak(monkeypatch):
 
 def test_speaker_says_once_per_process_that_espeak_is_missing(monkeypatch):
     monkeypatch.setattr("shutil.which", lambda name: None)
-    monkeypatch.setattr("svs_torch.capture.guide._NOTICES_GIVEN", set())
+    monkeypatch.setattr("svs_torch.capture.speech._NOTICES_GIVEN", set())
     stream = io.StringIO()
-    first = Speaker(stream=stream)
+    first = Speaker(stream=stream, notices=stream)
     for _ in range(3):
         first.say("Obstacle ahead, 1.5 metres")
-    Speaker(stream=stream).say("Stop. Obstacle at 0.8 metres")  # a second speaker: no second notice
+    Speaker(stream=stream, notices=stream).say("Stop. Obstacle at 0.8 metres")  # a second speaker: no second notice
     lines = stream.getvalue().splitlines()
     assert lines[0] == SPEECH_MISSING and "apt-get install espeak-ng" in lines[0]
     assert lines.count(SPEECH_MISSING) == 1 and len(lines) == 5
     quiet = io.StringIO()
     Speaker(None, stream=quiet).say("hello")  # --no-speech: text only, and no notice
     assert quiet.getvalue() == "hello\n"
+
+
+def test_the_notice_that_espeak_is_missing_goes_to_stderr_not_among_the_warnings(monkeypatch, capsys):
+    """Found by an audit: in text mode guide prints its warnings on stdout, and the notice went there too, where a
+    program reading the warnings took it for one."""
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    monkeypatch.setattr("svs_torch.capture.speech._NOTICES_GIVEN", set())
+    warnings_out = io.StringIO()
+    Speaker(stream=warnings_out).say("Obstacle ahead, 1.5 metres")
+    assert warnings_out.getvalue() == "Obstacle ahead, 1.5 metres\n"
+    assert capsys.readouterr().err.strip() == SPEECH_MISSING
+
+
+def test_the_side_said_is_that_of_the_obstacle_whose_distance_is_said():
+    """Found by an audit of a guide walk: the distance is the median of the last frames', the side was the current
+    frame's, so "Stop. Obstacle on the right at 0.9 metres" named a 0.94 m obstacle on the left and the side of one at
+    0.80 m on the right."""
+    policy = WarningPolicy(near_m=1.0, far_m=2.0, confirm_frames=3, repeat_s=0.0)
+    said = [policy.update(d, now_s=i, side=s) for i, (d, s) in
+            enumerate([(1.5, "left"), (1.4, "left"), (0.94, "left"), (0.80, "right"), (0.85, "right")])]
+    assert said[2] == "Obstacle on the left, 1.4 metres"  # the median of 1.5, 1.4, 0.94 is the second frame's
+    assert said[3] == "Stop. Obstacle on the left at 0.9 metres"  # 0.94 m, the left obstacle's: not "on the right"
+    assert said[4] == "Stop. Obstacle on the right at 0.8 metres"  # 0.94, 0.80, 0.85: the right one's 0.85
+    policy.update(0.82, now_s=5, side="right")
+    assert (policy.confirmed_m, policy.confirmed_side) == (0.82, "right")  # 0.80, 0.85, 0.82: the median's side
 
 
 def test_fps_meter():

@@ -617,8 +617,9 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert len(lines) == 3 and ("Obstacle" in err or "obstacle" in err)  # the 1-5 m band: words, on stderr
     for line in lines:
         assert line["status"] == "OK" and line["nearest_m"] > 0 and line["objects"]
-        assert set(line["warning"]) == {"distance_m", "confirmed_m", "distance_along", "floor_age_s", "class",
-                                        "message"}
+        assert set(line["warning"]) == {"distance_m", "side", "confirmed_m", "confirmed_side", "distance_along",
+                                        "floor_age_s", "class", "message"}
+        assert line["warning"]["side"] in ("left", "centre", "right")
         # no floor in the emulator's view: the distance along the camera's axis (svs_torch.depth.floor_distance)
         assert line["floor"] is None and line["warning"]["distance_along"] == "axis"
         assert line["warning"]["floor_age_s"] is None
@@ -889,18 +890,32 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     assert ("frames_apart" in events) == (stream == "torn pairs") and "cannot_see" in events
 
 
-def test_guide_a_full_disk_is_an_error_not_a_lost_camera(monkeypatch, capsys, tmp_path):
-    """Only the camera's errors are a loss: a record that cannot be written ends guide (exit 1, the reason said),
-    and the walker is not told the camera was lost."""
-    import svs_torch.cli.guide_log as guide_log
+def test_guide_a_full_disk_stops_the_record_not_the_warnings(monkeypatch, capsys, tmp_path):
+    """Was (an audit): a record that could not be written ended guide (exit 1, "[Errno 28] No space left on device"),
+    and the walker heard nothing more. Now the recording stops, said once naming --record and the file, and every
+    pair is still ranged and warned of; a full disk is not a lost camera either."""
+    import svs_torch.cli.pairs_folder as pairs_folder
 
-    def full_disk(out, pair):
-        raise OSError(28, "No space left on device")
+    calls = []
 
-    monkeypatch.setattr(guide_log, "save_pair", full_disk)
-    code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "2", "--no-speech", "--record",
-                             str(tmp_path / "walk"))
-    assert code == 1 and "No space left on device" in err and "Camera lost" not in out + err
+    def full_disk_from_the_second_pair(path, data):
+        calls.append(path)
+        if len(calls) > 2:
+            raise OSError(28, "No space left on device")
+        return real_write(path, data)
+
+    real_write = pairs_folder.write_bytes_atomic
+    monkeypatch.setattr(pairs_folder, "write_bytes_atomic", full_disk_from_the_second_pair)
+    walk = tmp_path / "walk"
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record",
+                             str(walk))
+    lines = [json.loads(line) for line in out.splitlines()]
+    assert code == 0 and len(lines) == 3 and "Camera lost" not in out + err
+    assert err.count("recording stopped after") == 1 and "--record: cannot write" in err and "No space left" in err
+    assert "recorded 1 pair in" in err and "then the recording stopped" in err
+    assert sorted(f.name for f in walk.iterdir()) == ["index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg"]
+    assert len((walk / "index.jsonl").read_text().splitlines()) == 1  # the failed pair: no image, no line
+    assert "left" in lines[0] and "left" not in lines[1] and "left" not in lines[2]
 
 
 def test_guide_record_refuses_a_folder_that_holds_pairs(capsys, tmp_path):
