@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 
 from .common import add_figure_option, check_outputs_apart, dumps_strict, positive_float
 
@@ -21,6 +22,9 @@ focal length, baseline and doffs from it, instead of the paper's uncalibrated re
 
 Printed: the reprojection error (RMS, pixels) of each camera and of the stereo fit, and the rectified pair's
 row error on the chessboards: |y_left - y_right| of the matching corners after rectification (mean, max).
+A pair whose two views do not fit the others (the same view twice, two moments of a moving board) is left
+out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px is written with
+a warning.
 The baseline is in the unit of --square-m: measure the printed squares.
 """
 
@@ -80,6 +84,7 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
     import os
 
     from ..data import read_pair_list
+    from ..data.pair_list import LINE_FORMS
     from ..core.errors import InputError
     from ..core.files import check_path_given
 
@@ -92,8 +97,10 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
         sources = read_pair_list(args.pairs, "--pairs")
         bad = next((s for s in sources if s.problem or s.scene or s.right is None or s.focal_px is not None), None)
         if bad is not None:  # a focal length and baseline on a line are what calibrating finds, not an input
-            raise InputError(bad.problem or f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
-                                            f"{bad.listed_at or bad.left}")
+            # The list reader's message offers a calibration or a scene folder, which calibrate refuses (an audit).
+            raise InputError(bad.problem.replace(LINE_FORMS, "'LEFT RIGHT' (two chessboard images)")
+                             if bad.problem else f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
+                                                 f"{bad.listed_at or bad.left}")
         return _once_each([(s.left, s.right) for s in sources])
     lefts: list[str] = []
     for pattern in args.left:
@@ -131,7 +138,8 @@ def _once_each(pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
 def _text(calibration, views, out: str) -> list[str]:
     c = calibration
     board = c.board["inner_corners"]
-    lines = [f"calibrated from {len(views.names)} of {len(views.names) + len(views.skipped)} pairs "
+    given = len(views.names) + len(views.skipped) + len(views.misfits)
+    lines = [f"calibrated from {len(views.names)} of {given} pairs "
              f"({board[0]}x{board[1]} board, squares {c.board['square_m']:g} m), {c.image_wh[0]}x{c.image_wh[1]}",
              f"reprojection RMS: left {c.rms_left_px:.3f} px, right {c.rms_right_px:.3f} px, "
              f"stereo {c.rms_stereo_px:.3f} px",
@@ -140,6 +148,7 @@ def _text(calibration, views, out: str) -> list[str]:
              f"rectified: focal {c.focal_px:.2f} px, baseline {c.baseline_m:.4f} m, doffs {c.doffs_px:.2f} px"]
     if views.skipped:
         lines.append(f"left out (board not found in both views): {', '.join(views.skipped)}")
+    lines += [f"left out: {misfit}" for misfit in views.misfits]
     lines.append(f"wrote {out}")
     return lines
 
@@ -174,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
         import cv2
 
         from ..geometry.calibration import write_calibration
-        from ..geometry.chessboard import calibrate_stereo_rig, collect_board_views
+        from ..geometry.chessboard import GOOD_STEREO_RMS_PX, calibrate_stereo_rig, collect_board_views, \
+            drop_misfit_pairs
         from ..evaluation.sweep import code_version
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..core.files import check_output_file
@@ -195,8 +205,12 @@ def run(args: argparse.Namespace) -> int:
 
     source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
     pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
-    views = collect_board_views(pairs, board, source)
+    views = drop_misfit_pairs(collect_board_views(pairs, board, source), args.square_m, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
+    warnings = [] if calibration.rms_stereo_px <= GOOD_STEREO_RMS_PX else [
+        f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px, and no one pair explains it (a rig "
+        f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances from this file may be far off; check that each "
+        "pair's two images were taken at the same moment, and --board"]
     if args.figure:  # drawn and written first: a figure that fails leaves no calibration file behind (one that
         # could not be written on a full disk once replaced a rig's calibration and exited 1 without a report)
         figure = _figure(calibration, views, next(p for p in pairs if p[0] == views.names[0])[1:])
@@ -207,8 +221,11 @@ def run(args: argparse.Namespace) -> int:
         if args.figure:  # the figure of a calibration that was not written
             written.unlink(missing_ok=True)
         raise
+    for warning in warnings:
+        print(f"svs-depth calibrate: warning: {warning}", file=sys.stderr, flush=True)
     if args.json:
-        print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "out": args.out}), flush=True)
+        print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "misfits": list(views.misfits),
+                            "warnings": warnings, "out": args.out}), flush=True)
     else:
         print("\n".join(_text(calibration, views, args.out)), flush=True)
     return 0

@@ -43,6 +43,7 @@ def calibration_from_args(args: argparse.Namespace):
 
         cached = (path, read_calibration(path, "--calibration"))
         vars(args)["_calibration_read"] = cached
+        _warn_of_a_poor_fit(path, cached[1])
         if getattr(args, "emulator", False):  # said once, as the file is read once (an audit: guide's obstacle gone)
             import warnings
 
@@ -50,6 +51,19 @@ def calibration_from_args(args: argparse.Namespace):
                           "align, and a real rig's rectification warps its frames: their distances mean nothing "
                           "(the option is for the boards themselves)", stacklevel=2)
     return cached[1]
+
+
+def _warn_of_a_poor_fit(path: str, calibration) -> None:
+    """Once per file read: a calibration whose stereo fit is poor (one written before calibrate left out the pairs
+    that spoil it, or one it warned of) gives distances that may be far off (an audit: "Stop" at 0.9 m)."""
+    from ..geometry.chessboard import GOOD_STEREO_RMS_PX
+
+    if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX:  # (NaN: a file without its errors, not warned of)
+        import warnings
+
+        warnings.warn(f"--calibration: {path}'s stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px (a rig "
+                      f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances may be far off; calibrate again "
+                      "(svs-depth calibrate leaves out the pairs that spoil the fit)", stacklevel=3)
 
 
 def check_no_manual_calibration(args: argparse.Namespace) -> None:

@@ -80,12 +80,22 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
     if kind == "other":  # written whole and renamed over it, a device (/dev/null, /dev/full) became a plain file
         raise InputError(f"{name}: expected a regular file name, got {display_path(target)!r} (a device or other "
                          f"special file)")
-    if path_kind(target.parent, name) != "folder":
-        raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
+    _check_parent_folder(target, name)
     if suffixes and target.suffix.lower() not in suffixes:
         raise InputError(f"{name}: expected {kinds or ' or '.join(suffixes)} file name, got {display_path(target)!r}")
     check_writable_folder(target.parent, name)
     return target
+
+
+def _check_parent_folder(target: Path, name: str) -> None:
+    """:class:`InputError` naming ``name`` unless ``target``'s folder exists: one that is a file was said not to
+    exist (``--out afile/x.json``: "folder 'afile' does not exist", an audit)."""
+    kind = path_kind(target.parent, name)
+    if kind == "missing":
+        raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
+    if kind != "folder":
+        raise InputError(f"{name}: {display_path(target.parent)!r} is not a folder (it is "
+                         f"{'a file' if kind == 'file' else 'a device or other special file'})")
 
 
 def check_writable_folder(folder: str | os.PathLike, name: str) -> None:
@@ -113,8 +123,7 @@ def make_output_folder(path: str | os.PathLike, name: str) -> Path:
     if kind != "missing":
         raise InputError(f"{name}: expected a folder, got {'a file' if kind == 'file' else 'no usable path'}: "
                          f"{display_path(target)!r}")
-    if path_kind(target.parent, name) != "folder":
-        raise InputError(f"{name}: folder {display_path(target.parent)!r} does not exist")
+    _check_parent_folder(target, name)
     try:
         target.mkdir(exist_ok=True)
     except OSError as error:

@@ -225,6 +225,16 @@ def test_calibrate_counts_each_pair_once_and_refuses_listed_calibrations(capsys,
     code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out",
                               str(tmp_path / "rig.json"))
     assert code == 2 and "expected 'LEFT RIGHT' lines of chessboard images, got line 1 of" in stderr
+    # A line of one field: the message offered a calibration line or a scene folder, which calibrate refuses.
+    listed.write_text(f"{samples / 'left01.jpg'}\n")
+    code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"))
+    assert code == 2 and "expected 'LEFT RIGHT' (two chessboard images), got 1 field" in stderr
+    assert "scene folder" not in stderr and "FOCAL_PX" not in stderr
+    (tmp_path / "afile").write_text("")  # an --out below a file: it was said not to exist
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025", "--out",
+                              str(tmp_path / "afile" / "rig.json"))
+    assert code == 2 and "--out: " in stderr and "afile' is not a folder (it is a file)" in stderr
 
 
 def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_millimetres(capsys, samples, tmp_path):
@@ -259,6 +269,39 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
     assert code == 2 and "expected a baseline of 1 mm to 2 m, got 3.3" in stderr and not out.exists()
 
 
+def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_fit(capsys, samples, tmp_path):
+    """Found by an audit: six good pairs and a seventh holding the same right image twice wrote a stereo RMS of
+    13.6 px, a row error of 9 px and a 0.19 m baseline (0.083 m), exit 0 and no word; guide then said "Stop" at
+    0.9 m. Now that pair is left out and named, and the rig is the six pairs' alone."""
+    import shutil
+
+    boards = tmp_path / "boards"
+    boards.mkdir()
+    for number in range(1, 7):
+        for view in ("left", "right"):
+            shutil.copy(samples / f"{view}0{number}.jpg", boards / f"{view}0{number}.jpg")
+    shutil.copy(samples / "right01.jpg", boards / "left07.jpg")
+    shutil.copy(samples / "right01.jpg", boards / "right07.jpg")
+    out = tmp_path / "rig.json"
+    code, stdout, stderr = run_cli(capsys, "calibrate", str(boards / "left*.jpg"), "--square-m", "0.025", "--out",
+                                   str(out), "--json")
+    report = json.loads(stdout)
+    assert code == 0 and report["warnings"] == [] and "warning" not in stderr
+    assert len(report["misfits"]) == 1 and report["misfits"][0].startswith(f"{boards / 'left07.jpg'} (its views do not")
+    assert report["rms_stereo_px"] < 0.3 and read_calibration(out).baseline_m == pytest.approx(0.0831, abs=0.001)
+    assert str(boards / "left07.jpg") not in report["pairs"] and len(report["pairs"]) == 6
+    # Each right view of another pose: no one pair explains the poor fit, so it is written with a warning.
+    poor = tmp_path / "poor"
+    poor.mkdir()
+    for number in range(1, 5):
+        shutil.copy(samples / f"left0{number}.jpg", poor / f"left0{number}.jpg")
+        shutil.copy(samples / f"right0{number % 4 + 1}.jpg", poor / f"right0{number}.jpg")
+    code, stdout, stderr = run_cli(capsys, "calibrate", str(poor / "left*.jpg"), "--square-m", "0.025", "--out",
+                                   str(tmp_path / "poor.json"))
+    assert code == 0 and "svs-depth calibrate: warning: the stereo reprojection RMS is" in stderr
+    assert "no one pair explains it" in stderr and (tmp_path / "poor.json").is_file()
+
+
 def test_calibrate_draws_16_bit_boards_and_takes_a_long_figure_name(capsys, samples, tmp_path):
     for view in ("left", "right"):
         for number in (1, 2, 3, 4):
@@ -286,6 +329,21 @@ def test_calibrate_draws_float_boards(capsys, samples, tmp_path):
     code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.tif"), "--square-m", "0.025", "--out",
                               str(tmp_path / "rig.json"), "--figure", str(figure))
     assert code == 0 and cv2.imread(str(figure)).mean() > 20, stderr
+
+
+def test_a_calibration_of_a_poor_fit_is_warned_of_once_where_it_is_read(capsys, rig, samples, tmp_path):
+    """A file written before calibrate left out the pairs that spoil a fit (13.6 px) was read in silence."""
+    from dataclasses import replace
+
+    poor = tmp_path / "poor.json"
+    write_calibration(poor, replace(rig[0], rms_stereo_px=13.6))
+    code, _, stderr = run_cli(capsys, "estimate", str(samples / "left01.jpg"), str(samples / "right01.jpg"),
+                              "--calibration", str(poor), "--json")
+    assert code == 0 and stderr.count("stereo reprojection RMS is 13.60 px") == 1
+    write_calibration(poor, rig[0])
+    code, _, stderr = run_cli(capsys, "estimate", str(samples / "left01.jpg"), str(samples / "right01.jpg"),
+                              "--calibration", str(poor), "--json")
+    assert code == 0 and "reprojection" not in stderr
 
 
 def test_an_empty_calibration_path_is_refused(capsys, samples):
