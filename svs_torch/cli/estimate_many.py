@@ -5,6 +5,7 @@ worker processes (the parent decodes the first images ahead and only prints) or 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import sys
 import threading
@@ -52,6 +53,9 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
         loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)
     except (InputError, OSError) as error:
         return "BAD_INPUT", " ".join(str(error).split()), None
+    if not own:  # named as claim_export_names claims it: a/x.png and b/x.png were both 'x', and --disparity-out
+        # wrote the second's map over the first's in silence (an audit); load_pair_source names the others so
+        loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])
     reason = too_small_reason(loaded[0].size_hw)
     return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
 
@@ -269,6 +273,7 @@ def _run_many(args: argparse.Namespace) -> int:
             check_no_manual_calibration(args)
             calibration_from_args(args)
         pairs = _read_pair_list(args.pairs)
+        claim_export_names(args, pairs)  # the first listed pair of a name keeps it, as with workers
         total = len(pairs)
         results = (_estimate_chunk(pairs[start:start + args.batch_size], args, config)
                    for start in range(0, total, args.batch_size))

@@ -219,6 +219,26 @@ def test_estimate_pairs_on_workers_writes_the_first_listed_of_a_shared_name(data
     assert maps["1"] == maps["2"]
 
 
+def test_estimate_pairs_keeps_the_first_of_two_listed_files_of_one_name(data_dir, tmp_path, capsys):
+    """Found by an audit: a/x.png and b/x.png (two scenes' left files copied under one name) were both named 'x' by
+    estimate --pairs, so --disparity-out wrote the second's map over the first's without a word (eval warned)."""
+    import shutil
+
+    for folder, scene in (("a", "Teddy"), ("b", "Piano")):
+        (tmp_path / folder).mkdir()
+        for view, name in (("im0", "x"), ("im1", "y")):
+            shutil.copy(data_dir / "middlebury_eval3_Q" / scene / f"{view}.png", tmp_path / folder / f"{name}.png")
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("".join(f"{tmp_path / f / 'x.png'} {tmp_path / f / 'y.png'}\n" for f in ("a", "b")))
+    out = tmp_path / "maps"
+    assert main(["estimate", "--pairs", str(listing), "--json", "--workers", "1",
+                 "--disparity-out", str(out), "--disparity-format", "kitti"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("not written") == 1 and "'b/x.png' not written: its export name belongs to 'a/x.png'" in err
+    assert [p.name for p in out.iterdir()] == ["x.png"]
+    assert read_kitti_disparity(out / "x.png")[0].shape == (375, 450)  # Teddy's map (Piano's is 481 x 707)
+
+
 def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_time(data_dir, tmp_path, monkeypatch):
     """Was (an audit of full disks): the map was written before its time file, and a disk that refused the time
     file gave 'cannot write .../disp0SVSTorch.pfm' while that map was there, complete, without the time file the
