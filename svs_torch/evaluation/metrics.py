@@ -64,11 +64,14 @@ def with_nominal_calibration(batch: StereoBatch) -> StereoBatch:
     its ground truth has a depth; calibrated pairs are unchanged. The nominal one is Middlebury's (f 3740 / 3 px,
     B 0.160 m), but a KITTI pair (its name starts with ``kitti``) keeps the focal and baseline its loader gave
     (KITTI's rig, MANIFEST §4): its metres are then a street's, and a rule that reads the baseline in metres (the
-    ground plane's camera height, :mod:`svs_torch.segmentation.ground_plane`) sees a car's rig. doffs is 0 either
-    way. Apply it at the input size, before any resampling (which scales focal and doffs)."""
+    ground plane's camera height, :mod:`svs_torch.segmentation.ground_plane`) sees a car's rig. So does OpenCV's
+    full-size Aloe (``opencv/aloe``): its loader gives Middlebury's nominal rig at full size (f 3740 px), and the
+    third size's focal put it 3 times nearer than ``estimate`` and the third-size Aloe do (1.8 against 5.4 m, an
+    audit). doffs is 0 either way. Apply it at the input size, before any resampling (which scales focal and
+    doffs)."""
     check_instance(batch, "batch", StereoBatch)
     keep = batch.calibrated
-    own_rig = keep | torch.tensor([name.startswith("kitti") for name in batch.names], device=keep.device)
+    own_rig = keep | torch.tensor([name.startswith(("kitti", "opencv/")) for name in batch.names], device=keep.device)
     return dataclasses.replace(
         batch,
         focal_px=torch.where(own_rig, batch.focal_px, torch.full_like(batch.focal_px, NOMINAL_FOCAL_PX)),

@@ -125,6 +125,12 @@ def test_nominal_calibration_only_for_pairs_without_one(data_dir):
         pytest.approx(0.16)] and bool(nominal.calibrated[0])
     same = with_nominal_calibration(teddy)
     assert torch.equal(same.focal_px, teddy.focal_px) and torch.equal(same.doffs_px, teddy.doffs_px)
+    # OpenCV's full-size Aloe keeps its loader's full-size nominal rig (f 3740 px): the third size's focal put it
+    # three times nearer than estimate and the third-size Aloe (an audit: 1.8 against 5.4 m)
+    aloe = with_nominal_calibration(load_stereo_pair(data_dir / "opencv_samples"))
+    third = with_nominal_calibration(load_stereo_pair(data_dir / "middlebury_2005_2006_third" / "Aloe"))
+    assert aloe.focal_px.tolist() == [3740.0] and bool(aloe.calibrated[0])
+    assert aloe.focal_px[0] / aloe.size_hw[1] == pytest.approx(third.focal_px[0] / third.size_hw[1], rel=0.01)
 
 
 @pytest.mark.parametrize("scene", sorted(RECORDED_TRUTH))
