@@ -174,6 +174,12 @@ def _write_outputs(args, batch, result, factors) -> None:
 
         write_image_atomic(args.masks_out, labels_image(measured_regions(result), 0, factors), "--masks-out",
                            lossless=True)
+    # Said as demo, segment and features say it; not under --json, whose caller named the files (stdout is the
+    # JSON alone, stderr is for what went wrong).
+    written = [f"{kind} written to {path}" for kind, path in (("figure", args.figure), ("masks", args.masks_out))
+               if path]
+    if written and not args.json:
+        print("; ".join(written), flush=True)
 
 
 def _check_outputs_apart(args: argparse.Namespace) -> None:
@@ -216,8 +222,13 @@ def run(args: argparse.Namespace) -> int:
 
         args.batch_size = args.batch_size or 8
 
-        if args.left or args.right or args.figure or args.masks_out:
-            raise CliError("pairs: give either LEFT RIGHT or --pairs (--figure and --masks-out need one pair)")
+        if args.left or args.right:
+            raise CliError("pairs: give either LEFT RIGHT or --pairs, not both")
+        one_pair = [name for name, given in ((args.figure_option, args.figure), ("--masks-out", args.masks_out))
+                    if given]
+        if one_pair:  # was "give either LEFT RIGHT or --pairs", when no LEFT RIGHT was given (an audit)
+            raise CliError(f"{', '.join(one_pair)}: draws one pair, not a --pairs list: give LEFT RIGHT (or a scene "
+                           "folder) instead, or leave it out")
         _check_disparity_out(args, args.range_rule or ("paper" if getattr(args, "preset", None) == "paper"
                                                        else None))
         return _run_many(args)

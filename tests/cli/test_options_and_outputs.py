@@ -108,6 +108,18 @@ def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_d
     assert list(tmp_path.iterdir()) == []
 
 
+def test_estimate_says_where_it_wrote_its_figure_and_masks(data_dir, capsys, tmp_path):
+    """As demo, segment and features say it (an audit: estimate --figure said nothing of the file); not under
+    --json, whose stdout is the JSON alone."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure, masks = tmp_path / "fig.png", tmp_path / "masks.png"
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure),
+                           "--masks-out", str(masks))
+    assert code == 0 and out.splitlines()[-1] == f"figure written to {figure}; masks written to {masks}"
+    code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure), "--json")
+    assert code == 0 and json.loads(out)["status"] == "OK" and "written" not in out + err
+
+
 class _FullStream(io.StringIO):
     """Standard output on a full disk: every write and flush refused as the kernel refuses them."""
 
@@ -329,6 +341,9 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (["estimate", "{L}", "{R}", "--pairs", ""], "--pairs: expected a list file name, got ''"),
     (["capture", "--emulator", "--count", "1", "--out-dir", ""], "--out-dir: expected a folder name, got ''"),
     (["guide", "--emulator", "--left", "", "--count", "1"], "--left, --right: the boards' URLs, or --emulator, not both"),
+    # Found by an audit: "give either LEFT RIGHT or --pairs", when no LEFT RIGHT had been given.
+    (["estimate", "--pairs", "{L}", "--figure", "f.png"], "--figure: draws one pair, not a --pairs list"),
+    (["estimate", "--pairs", "{L}", "--masks-out", "m.png"], "--masks-out: draws one pair, not a --pairs list"),
 ])
 def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys, tmp_path, argv, message):
     """Found by an audit of the smaller commands: a figure named as an input was written over it (exit 0);
