@@ -182,6 +182,19 @@ def _write_outputs(args, batch, result, factors) -> None:
         print("; ".join(written), flush=True)
 
 
+def _say_which_frame(folder: str) -> None:
+    """A folder of several frames (a KITTI training folder) is ranged at its first frame: said, with how to range
+    another or all of them (an audit: one row named only by the folder, and eval ranges both frames)."""
+    from ..data.pair_list import read_pair_sources
+
+    frames = read_pair_sources([folder], "left")
+    if len(frames) > 1:
+        import warnings
+
+        warnings.warn(f"left: {folder} holds {len(frames)} frames; ranged {frames[0].name} alone (give a frame's left "
+                      f"image, e.g. {frames[1].left}, or range every frame with eval FOLDER)", stacklevel=2)
+
+
 def _check_outputs_apart(args: argparse.Namespace) -> None:
     """``--figure`` and ``--masks-out`` neither one file nor an input image. Why: ``--masks-out`` named as the left
     image wrote the labels over it (exit 0), and one name for both outputs kept only the labels."""
@@ -215,23 +228,25 @@ def _check_run_options(args: argparse.Namespace) -> None:
                        "many pairs); one pair runs in this process, as one batch")
 
 
+def _run_pairs(args: argparse.Namespace) -> int:
+    """``estimate --pairs``: checked before any heavy import (the workers may be started without torch here)."""
+    from . import CliError
+
+    args.batch_size = args.batch_size or 8
+    if args.left or args.right:
+        raise CliError("pairs: give either LEFT RIGHT or --pairs, not both")
+    one_pair = [name for name, given in ((args.figure_option, args.figure), ("--masks-out", args.masks_out)) if given]
+    if one_pair:  # was "give either LEFT RIGHT or --pairs", when no LEFT RIGHT was given (an audit)
+        raise CliError(f"{', '.join(one_pair)}: draws one pair, not a --pairs list: give LEFT RIGHT (or a scene "
+                       "folder) instead, or leave it out")
+    _check_disparity_out(args, args.range_rule or ("paper" if getattr(args, "preset", None) == "paper" else None))
+    return _run_many(args)
+
+
 def run(args: argparse.Namespace) -> int:
     _check_run_options(args)
-    if args.pairs:  # before any heavy import: the workers may be started without torch in this process
-        from . import CliError
-
-        args.batch_size = args.batch_size or 8
-
-        if args.left or args.right:
-            raise CliError("pairs: give either LEFT RIGHT or --pairs, not both")
-        one_pair = [name for name, given in ((args.figure_option, args.figure), ("--masks-out", args.masks_out))
-                    if given]
-        if one_pair:  # was "give either LEFT RIGHT or --pairs", when no LEFT RIGHT was given (an audit)
-            raise CliError(f"{', '.join(one_pair)}: draws one pair, not a --pairs list: give LEFT RIGHT (or a scene "
-                           "folder) instead, or leave it out")
-        _check_disparity_out(args, args.range_rule or ("paper" if getattr(args, "preset", None) == "paper"
-                                                       else None))
-        return _run_many(args)
+    if args.pairs:
+        return _run_pairs(args)
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
@@ -258,6 +273,7 @@ def run(args: argparse.Namespace) -> int:
     _check_disparity_out(args, config.depth.rule)
     source = PairSource(left=args.left, right=None if scene else args.right, scene=scene)
     if scene:
+        _say_which_frame(args.left)
         batch, factors = _load_source(source, args)
     else:
         batch, factors = load_pair(args.left, args.right, args)

@@ -206,6 +206,17 @@ def test_a_kitti_training_folder_lists_each_of_its_frames(data_dir):
     assert all(s.scene for s in sources)
 
 
+def test_estimate_on_a_folder_of_frames_says_which_frame_it_ranged(data_dir, capsys):
+    """Found by an audit: estimate on a KITTI training folder ranged its first frame in a row named by the folder
+    alone, and eval ranges every frame; now a warning names the frame and how to range another."""
+    folder = data_dir / "kitti" / "stereo2012_training"
+    code, out, err = run_cli(capsys, "estimate", str(folder), "--size", "320x97", "--json")
+    assert code == 0 and json.loads(out)["status"] in ("OK", "NO_DENSE_DEPTH", "TOO_FEW_MATCHES")
+    assert "holds 2 frames; ranged stereo2012_training/000000_10 alone" in err and "000001_10.png" in err
+    code, _, err = run_cli(capsys, "estimate", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--size", "160x120")
+    assert code == 0 and "frames" not in err
+
+
 def test_a_file_that_is_not_weights_is_named_without_torch_s_advice(data_dir, capsys, tmp_path):
     """torch.load's own text advises weights_only=False, which would run an untrusted file's code."""
     fake = tmp_path / "fake.pt"
