@@ -560,3 +560,23 @@ def test_a_list_line_mended_since_leaves_no_failed_pair_in_the_store(data_dir, t
     assert main(["results", str(db), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)["configs"][0]
     assert (summary["pairs"], summary["failed"]) == (3, 1)  # the other list's bad line stays; the mended one went
+
+
+def test_eval_table_keeps_its_columns_for_every_status():
+    """Found by an audit: DEGENERATE_RECTIFICATION overflowed the 17-character status column and shifted every
+    number after it."""
+    from svs_torch.cli.evaluate import HEADER, STATUS_WIDTH, format_row
+    from svs_torch.evaluation.metrics import UNRUN_STATUSES
+    from svs_torch.pipeline import PipelineStatus
+
+    statuses = [status.name for status in PipelineStatus] + list(UNRUN_STATUSES)
+    assert STATUS_WIDTH == max(map(len, statuses))
+    fields = {name: None for name in ("r_min_m", "real_r_min_m", "acc_r_min_pct", "r_max_m", "real_r_max_m",
+                                      "acc_r_max_pct", "acc_objects_pct", "dense_within_1px", "inlier_precision",
+                                      "kept_nocc_bad2_pct", "kept_all_bad2_pct", "kept_all_avgerr_px",
+                                      "kept_all_d1_pct", "kept_all_density")}
+    rows = [format_row(SimpleNamespace(name="eval3/Teddy", status=status, time_s=0.5, calibrated=True,
+                                           calibration=None, **fields))
+            for status in statuses]
+    time_at = HEADER.index("time s")
+    assert all(row[time_at:time_at + 6].strip() == "0.500" for row in rows)
