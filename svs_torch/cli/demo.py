@@ -128,7 +128,9 @@ def _print_text(args, camera: dict, truth: list[dict], report: dict, true_neares
     print("\n".join(format_report(report, "nearest obstacle" if ranged_is_nearest else "nearest kept obstacle")))
     for obj in report["objects"]:
         estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
-        print(f"  object {obj['label']} is true obstacle {obj['true_object']} (IoU {obj['iou']:.2f}): "
+        # true_object 0 is the wall behind the obstacles (the scene's label 0), not an obstacle numbered 0
+        what = f"true obstacle {obj['true_object']}" if obj["true_object"] else "the background wall"
+        print(f"  object {obj['label']} is {what} (IoU {obj['iou']:.2f}): "
               f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
     if true_nearest is None:
         print("  true nearest obstacle: none (no obstacle is visible)")

@@ -139,6 +139,8 @@ def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path):
     report, text = run_demo(capsys, tmp_path, "--objects", "0")
     assert report["true_nearest"] is None
     assert "true nearest obstacle: none" in text and "warning" not in text
+    # what is kept is the wall (the scene's label 0): an audit read "object 1 is true obstacle 0" beside "none"
+    assert "is the background wall" in text and "true obstacle 0" not in text
 
 
 @pytest.fixture(scope="module")
