@@ -192,7 +192,8 @@ def _scene_bars(axis, store: ResultStore, summary: dict) -> None:
     # Zoomed to the data: on a 0-100 scale, 96 % and 99 % look the same. The label says the axis is cut.
     low, high = min(everything), max(everything)
     margin = max(0.5, 0.15 * (high - low))
-    axis.set_ylim(max(0.0, low - margin), min(100.0, high) + margin)
+    # Never past 100 %, which no accuracy reaches (an axis to 104 % read as room above the best, an audit).
+    axis.set_ylim(max(0.0, min(low - margin, 100.0 - 2 * margin)), min(100.0, high + margin))
     axis.set_ylabel("Eq. (9) accuracy, % (axis zoomed to the data)", fontsize=8)
     axis.grid(axis="y", alpha=0.3)
     axis.set_title(textwrap.fill(f"per scene, best by object accuracy: {summary['label']}", 90), fontsize=8, pad=20)
