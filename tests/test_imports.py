@@ -15,6 +15,20 @@ def test_cli_help_does_not_import_torch():
     assert "HEAVY []" in out and "usage: svs-depth" in out
 
 
+def test_a_device_command_refuses_bad_arguments_without_loading_torch():
+    """Found by an audit: 'svs-depth capture --out-dir d' without board URLs took 3 s to be told, the time torch
+    takes to load: the capture package imported its torch modules up front. Its names now load on first use."""
+    code = ("import sys; from svs_torch.cli import main\n"
+            "import svs_torch.capture\n"
+            "assert main(['capture', '--out-dir', 'never-made']) == 2\n"
+            "from svs_torch.capture import CaptureError, WarningPolicy, Speaker\n"
+            "print('TORCH', 'torch' in sys.modules)\n"
+            "from svs_torch.capture import SVSStereoCamera\n"
+            "print('THEN', 'torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout and "THEN True" in run.stdout and "--left, --right" in run.stderr
+
+
 def test_public_names_load_on_first_use():
     import svs_torch
     from svs_torch.core.checks import InputError

@@ -5,14 +5,32 @@
 reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter); ``link_types`` what a
 link is configured with, counts and receives.
 
-May import: ``svs_torch.core`` only (pyserial, no torch at import). The CLI imports it.
+May import: ``svs_torch.core`` only (pyserial; torch only where ``stereo`` is used). The CLI imports it.
 """
 
-from .guide import FpsMeter, LiveGuide, Speaker, WarningPolicy
-from .link import CameraLink
-from .link_types import CaptureError, DamagedFrameError, LinkConfig, LinkStats, RawFrame
-from .protocol import FrameParser, ProtocolError, VersionInfo
-from .stereo import Frame, PairBatch, StereoPair, SVSStereoCamera, decode_frame, to_stereo_batch
+import importlib
+
+#: Each name's submodule, imported on first use (PEP 562): ``svs_torch.capture.protocol`` and ``link_types`` load
+#: without torch, so ``capture`` and ``guide`` check their arguments in a fraction of a second (an audit: a missing
+#: --left took 3 s to be told, the time torch takes to load, which ``stereo`` needs).
+_SUBMODULE = {
+    "FpsMeter": "guide", "LiveGuide": "guide", "Speaker": "speech", "WarningPolicy": "guide",
+    "CameraLink": "link",
+    "CaptureError": "link_types", "DamagedFrameError": "link_types", "LinkConfig": "link_types",
+    "LinkStats": "link_types", "RawFrame": "link_types",
+    "FrameParser": "protocol", "ProtocolError": "protocol", "VersionInfo": "protocol",
+    "Frame": "stereo", "PairBatch": "stereo", "StereoPair": "stereo", "SVSStereoCamera": "stereo",
+    "decode_frame": "stereo", "to_stereo_batch": "stereo",
+}
+
+
+def __getattr__(name: str):
+    if name not in _SUBMODULE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_SUBMODULE[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "CameraLink",

@@ -22,7 +22,7 @@ import sys
 import time
 from typing import TextIO
 
-from ..core.checks import InputError
+from ..core.errors import InputError
 from ..core.files import stream_is_terminal
 from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
 from .speech import SPEECH_MISSING, Speaker, notice_once  # (moved there; still importable from here)

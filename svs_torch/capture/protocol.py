@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..core.camera import SVS_RESOLUTIONS
-from ..core.checks import InputError
+from ..core.errors import InputError
 
 __all__ = [
     "ProtocolError",

@@ -10,7 +10,7 @@ import collections
 import math
 import time
 
-from ..core.checks import InputError
+from ..core.errors import InputError
 
 __all__ = ["CANNOT_SEE", "CONFIRM_FRAMES", "SEEING_AGAIN", "SightWatch"]
 
