@@ -286,7 +286,10 @@ def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_
     code, stdout, stderr = run_cli(capsys, "calibrate", str(boards / "left*.jpg"), "--square-m", "0.025", "--out",
                                    str(out), "--json")
     report = json.loads(stdout)
-    assert code == 0 and report["warnings"] == [] and "warning" not in stderr
+    assert code == 0 and "reprojection" not in stderr and not any("reprojection" in w for w in report["warnings"])
+    # six pairs used: fewer than the 10-20 the help asks for (three gave a focal length 12 % off, an audit)
+    assert report["warnings"] == ["calibrated from 6 pairs: 10-20 poses of the board across the field give a "
+                                  "steadier focal length and baseline"] and report["warnings"][0] in stderr
     assert len(report["misfits"]) == 1 and report["misfits"][0].startswith(f"{boards / 'left07.jpg'} (its views do not")
     assert report["rms_stereo_px"] < 0.3 and read_calibration(out).baseline_m == pytest.approx(0.0831, abs=0.001)
     assert str(boards / "left07.jpg") not in report["pairs"] and len(report["pairs"]) == 6
