@@ -26,7 +26,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from .common import non_negative_float, positive_int, timeout_seconds
+from .common import noise_levels, pair_count, positive_int, timeout_seconds
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -64,7 +64,7 @@ def add_parser(subparsers: Any) -> None:
                         help="right/slave board: socket://HOST:10002 or a serial device such as /dev/ttyUSB1")
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
-    parser.add_argument("--count", type=positive_int, default=10, help="number of pairs to grab (default: 10)")
+    parser.add_argument("--count", type=pair_count, default=10, help="number of pairs to grab (default: 10)")
     parser.add_argument("--out-dir", "--out", dest="out", required=True, metavar="DIR",
                         help="output folder, created if missing; it must not hold an index.jsonl (also --out)")
     parser.add_argument("--quality", type=int, default=None, metavar="1-8",
@@ -78,7 +78,7 @@ def add_parser(subparsers: Any) -> None:
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
-    parser.add_argument("--emulator-noise", type=non_negative_float, default=0.0, metavar="LEVELS",
+    parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
     parser.set_defaults(func=run)

@@ -81,6 +81,32 @@ def positive_int(text: str) -> int:
     return value
 
 
+#: The most pairs a capture or guide run takes (about 58 days at 20 pairs a second): a count of 10^20 was taken and
+#: the progress line promised an ETA of 6e18 s (an audit).
+MAX_PAIRS = 100_000_000
+
+
+def pair_count(text: str, least: int = 1) -> int:
+    """argparse type of ``--count``: a number of pairs, ``least`` to :data:`MAX_PAIRS`."""
+    value = _number(text, int)
+    if not least <= value <= MAX_PAIRS:
+        raise argparse.ArgumentTypeError(f"expected a number of pairs from {least} to {MAX_PAIRS}, got {text!r}")
+    return value
+
+
+def pair_count_or_zero(text: str) -> int:
+    """argparse type of guide's ``--count``: 0 (until interrupted) to :data:`MAX_PAIRS`."""
+    return pair_count(text, least=0)
+
+
+def noise_levels(text: str) -> float:
+    """argparse type of ``--emulator-noise``: a sensor noise σ in 8-bit levels, 0 to 255 (1e6 was taken, an audit)."""
+    value = _number(text, float)
+    if not 0 <= value <= 255:
+        raise argparse.ArgumentTypeError(f"expected a noise σ in 8-bit levels, 0 to 255, got {text!r}")
+    return value
+
+
 def non_negative_int(text: str) -> int:
     """argparse type: an integer of at least 0."""
     value = _number(text, int)

@@ -7,8 +7,8 @@ import contextlib
 import sys
 import warnings
 
-from .common import (Terminated, finite_float, non_negative_float, non_negative_int, positive_float, positive_int,
-                     terminated_on_sigterm, timeout_seconds)
+from .common import (Terminated, finite_float, noise_levels, non_negative_float, pair_count_or_zero, positive_float,
+                     positive_int, terminated_on_sigterm, timeout_seconds)
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -80,7 +80,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--left", metavar="URL", help="left (master) board: serial device or socket://HOST:10001")
     parser.add_argument("--right", metavar="URL", help="right (slave) board: serial device or socket://HOST:10002")
     parser.add_argument("--emulator", action="store_true", help="use an in-process SVS emulator on loopback")
-    parser.add_argument("--emulator-noise", type=non_negative_float, default=0.0, metavar="LEVELS",
+    parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
     parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
@@ -109,7 +109,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help=CONFIRM_FRAMES_HELP)
     add_calibration_option(parser, "the frames")
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
-    parser.add_argument("--count", type=non_negative_int, default=0,
+    parser.add_argument("--count", type=pair_count_or_zero, default=0,
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout for another program: estimate --json's fields "

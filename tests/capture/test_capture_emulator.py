@@ -564,7 +564,7 @@ def test_cli_defaults_match_link_defaults():
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--count", "0", "--emulator"], "--count: expected a positive integer, got '0'"),
+    (["--count", "0", "--emulator"], "--count: expected a number of pairs from 1 to 100000000, got '0'"),
     (["--size", "100x100", "--emulator"], "--size: expected 160x120"),
     (["--left", "socket://x:1", "--emulator"], "--left, --right: not used with --emulator"),
     (["--left", "socket://x:1"], "--left, --right: both board URLs are needed"),

@@ -729,14 +729,21 @@ def test_guide_record_goes_on_numbering_after_the_camera_is_lost(capsys, tmp_pat
 
 
 @pytest.mark.parametrize("command", ["capture", "guide"])
-def test_a_negative_emulator_noise_is_an_option_error(command, capsys, tmp_path):
+@pytest.mark.parametrize("option, value, message", [
+    ("--emulator-noise", "-1", "--emulator-noise: expected a noise σ in 8-bit levels, 0 to 255, got '-1'"),
+    # Found by an audit of the device side: taken, a noise of 1e6 levels and a count whose ETA read 6e18 s.
+    ("--emulator-noise", "1e6", "--emulator-noise: expected a noise σ in 8-bit levels, 0 to 255, got '1e6'"),
+    ("--count", "99999999999999999999", "--count: expected a number of pairs from "),
+])
+def test_an_emulator_noise_or_count_out_of_range_is_an_option_error(command, option, value, message, capsys,
+                                                                       tmp_path):
     """Found by a review of the capture side: capture checked --emulator-noise only once grabbing had begun and
     reported it as a capture failure (exit 1, '0 of 10 pairs saved')."""
     with pytest.raises(SystemExit) as exited:
-        main([command, "--emulator", "--emulator-noise", "-1", "--count", "1",
+        main([command, "--emulator", "--count", "1", option, value,
               *(["--out-dir", str(tmp_path / "pairs")] if command == "capture" else ["--no-speech"])])
     err = capsys.readouterr().err
-    assert exited.value.code == 2 and "--emulator-noise: expected a finite number >= 0, got '-1'" in err
+    assert exited.value.code == 2 and message in err
     assert not (tmp_path / "pairs").exists()
 
 
