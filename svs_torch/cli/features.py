@@ -264,8 +264,12 @@ def run(args: argparse.Namespace) -> int:
                             "refined": config.refine_matches is not None, **masked,
                             "settings": settings_json(config), "time_s": round(elapsed, 6)}))
         return 0
-    print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} matches "
-          f"({'segmented obstacles' if not args.no_segment else 'whole images'}), {elapsed * 1e3:.0f} ms")
+    # Said to be SAD matches: some are wrong (tens of pixels off the row), and nothing here has yet checked them
+    # against the epipolar geometry (an audit read the first lines as the pipeline's result; svs-depth fundamental
+    # gives RANSAC's inliers).
+    print(f"left: {len(left)} keypoints, right: {len(right)} keypoints, {len(pairs)} SAD matches before RANSAC "
+          f"({'segmented obstacles' if not args.no_segment else 'whole images'}; svs-depth fundamental keeps the "
+          f"epipolar inliers), {elapsed * 1e3:.0f} ms")
     for (i, _), (xl, yl, xr, yr) in zip(pairs[:10], matched_xy):
         print(f"  left ({xl:.1f}, {yl:.1f}) s {left[i]['scale']:.2f} -> right ({xr:.2f}, {yr:.2f}), disparity "
               f"{xl - xr:.2f} px")

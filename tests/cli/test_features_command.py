@@ -132,3 +132,12 @@ def test_segmented_features_lie_on_the_regions_segment_shows(data_dir, capsys):
         scale = np.array([point["scale"] for point in report["left"]])
         assert (distance_px(own, xy) <= 3.75 * scale + 1).all(), preset
         assert (distance_px(other, xy) > 3.75 * scale + 1).any(), preset  # the presets' regions differ on Teddy
+
+
+def test_features_text_says_its_matches_come_before_ransac(data_dir, capsys):
+    """Found by an audit: the text listed matches tens of pixels off their row first, with nothing saying they are
+    the SAD matches before RANSAC's epipolar check."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    code = main(["features", str(scene / "im0.png"), str(scene / "im1.png"), "--size", "320x267"])
+    head = capsys.readouterr().out.splitlines()[0]
+    assert code == 0 and "SAD matches before RANSAC" in head and "svs-depth fundamental" in head
