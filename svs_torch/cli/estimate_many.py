@@ -16,7 +16,7 @@ from pathlib import Path
 from .common import dumps_strict, too_small_reason
 from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, format_report, pair_report,
                               unranged_report, with_calibration)
-from .features import load_pair
+from .features import load_pair, warn_if_enlarged
 from .progress import Progress
 from .rig import (calibration_file_source, calibration_from_args, check_no_manual_calibration,
                   with_calibrated_rectification)
@@ -33,6 +33,7 @@ def _load_source(source, args: argparse.Namespace):
     if args.size is None:  # "" is an error (parse_size), not "native": --size "$SIZE" with SIZE unset
         return batch, (1.0, 1.0)
     (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "--size")
+    warn_if_enlarged((height, width), (new_w, new_h))
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
 
 

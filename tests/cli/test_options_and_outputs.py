@@ -472,3 +472,18 @@ def test_sigterm_stops_a_command_as_ctrl_c_does_and_removes_what_it_was_writing(
                              str(tmp_path / "fig.png"))
     assert code == 143 and err.strip().endswith("svs-depth estimate: terminated")
     assert list(tmp_path.iterdir()) == [] and signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_size_that_enlarges_a_pair_is_warned_of_once(data_dir, capsys, monkeypatch):
+    """Found by an audit: --size 5000x5000 on a 450x375 pair ran 71 s without a word."""
+    import svs_torch.cli.features as features
+
+    monkeypatch.setattr(features, "_ENLARGEMENT_WARNED", [])
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, _, err = run_cli(capsys, "estimate", left, right, "--size", "960x800", "--json")
+    assert code == 0 and "--size 960x800 enlarges the 450x375 pair 2.1 times: that adds no detail" in err
+    code, _, err = run_cli(capsys, "estimate", left, right, "--size", "1000x800", "--json")
+    assert code == 0 and "enlarges" not in err  # once a process
+    monkeypatch.setattr(features, "_ENLARGEMENT_WARNED", [])
+    code, _, err = run_cli(capsys, "estimate", left, right, "--size", "900x750", "--json")
+    assert code == 0 and "enlarges" not in err  # twice as large: not warned
