@@ -54,8 +54,8 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
         loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)
     except (InputError, OSError) as error:
         return "BAD_INPUT", " ".join(str(error).split()), None
-    if not own:  # named as claim_export_names claims it: a/x.png and b/x.png were both 'x', and --disparity-out
-        # wrote the second's map over the first's in silence (an audit); load_pair_source names the others so
+    if not own:  # named as claim_export_names claims it (and load_pair_source names the others): a/x.png and
+        # b/x.png were both 'x', and --disparity-out wrote the second's map over the first's in silence (an audit)
         loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])
     reason = too_small_reason(loaded[0].size_hw)
     return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
