@@ -134,6 +134,20 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
     return reports
 
 
+#: What a ranged pair whose views seem swapped is told (an audit: Teddy's views swapped, NO_DENSE_DEPTH after the
+#: whole run and no hint): its matches lie to the right of their left points, where a left view's lie to the left.
+SWAPPED_VIEWS = ("most matched points lie to the right in the right view (negative disparity): are LEFT and RIGHT "
+                 "swapped?")
+UNRANGED = ("NO_DENSE_DEPTH", "NO_POSITIVE_DISPARITY")
+
+
+def _views_swapped(result, index: int) -> bool:
+    """Whether at least three quarters of pair ``index``'s RANSAC inliers have a negative disparity."""
+    points, inliers = result.points, result.fundamental.inliers[index]
+    disparity = (points.left[index, :, 0] - points.right[index, :, 0])[inliers & points.valid[index]]
+    return disparity.numel() >= 8 and float((disparity < 0).float().mean()) >= 0.75
+
+
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
     """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
     from ..depth.depth_types import ObstacleSide
@@ -142,9 +156,11 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     rng = result.depth.range
     report_objects = _object_reports(result, index, factors)
     nearest = result.depth.nearest
+    status = PipelineStatus(int(result.status[index])).name
     return {
-        "status": PipelineStatus(int(result.status[index])).name,
-        "reason": None,  # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
+        "status": status,
+        # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
+        "reason": SWAPPED_VIEWS if status in UNRANGED and _views_swapped(result, index) else None,
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),
@@ -199,10 +215,12 @@ def _turn(result, index: int) -> list[float] | None:
 def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[str]:
     """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
     called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept)."""
-    if report.get("reason"):
+    if report.get("reason") and report.get("status") not in UNRANGED:  # a pair the pipeline did not run on
         return [f"status {report['status']}: {report['reason']}"]
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
              f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
+    if report.get("reason"):  # a ranged pair's hint (SWAPPED_VIEWS)
+        lines.append(f"  {report['reason']}")
     if report.get("calibration"):
         from ..data import format_calibration
 

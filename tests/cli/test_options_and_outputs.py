@@ -487,3 +487,16 @@ def test_a_size_that_enlarges_a_pair_is_warned_of_once(data_dir, capsys, monkeyp
     monkeypatch.setattr(features, "_ENLARGEMENT_WARNED", [])
     code, _, err = run_cli(capsys, "estimate", left, right, "--size", "900x750", "--json")
     assert code == 0 and "enlarges" not in err  # twice as large: not warned
+
+
+def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
+    """Found by an audit: Teddy's views given the wrong way round ended NO_DENSE_DEPTH after the whole run, with no
+    hint; its RANSAC inliers all lie to the right in the 'right' view (negative disparity)."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "estimate", right, left, "--size", "160x133", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "NO_DENSE_DEPTH" and "are LEFT and RIGHT swapped?" in report["reason"]
+    code, out, _ = run_cli(capsys, "estimate", right, left, "--size", "160x133")
+    assert out.splitlines()[1].strip().endswith("are LEFT and RIGHT swapped?") and "keypoints" in out.splitlines()[0]
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x133", "--json")
+    assert json.loads(out)["reason"] is None
