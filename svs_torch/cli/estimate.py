@@ -102,8 +102,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("right", nargs="?", help="right image file, the same size as the left")
     parser.add_argument("--pairs", metavar="LIST.txt",
                         help="run many pairs: a file with one 'LEFT RIGHT', 'LEFT RIGHT FOCAL_PX BASELINE_M "
-                             "[DOFFS_PX]' or scene folder per line (paths relative to the list's folder), or "
-                             "capture's index.jsonl; every pair gets "
+                             "[DOFFS_PX]' or scene folder per line (paths relative to the list's folder), "
+                             "capture's index.jsonl, or a folder of scenes (as eval takes it); every pair gets "
                              "its line, and the exit status is 2 if any listed pair is BAD_INPUT")
     # 8: whole process over 96 shared pairs at 320x240, 9.3 / 9.5-9.8 / 11.0-11.6 s at 8 / 16 / 32 (larger
     # batches pad more and leave the cache).

@@ -151,8 +151,12 @@ def _listed_lines(path: str) -> list[tuple[str, str] | None]:
     number of workers; the paths say which files to decode ahead. Neither decides a result: a list that cannot
     be read gives [] (the real reading reports why), and a line that turns into several entries only shifts
     which files are decoded ahead."""
+    import os
+
     from ..core.files import split_list_line
 
+    if os.path.isdir(path):  # a folder of scenes: about one pair a subfolder (the workers read the scenes)
+        return [None for entry in os.scandir(path) if entry.is_dir()] or [None]
     try:
         text = Path(path).read_text(encoding="utf-8", errors="replace")
     except OSError:
@@ -318,10 +322,15 @@ def pipeline_config_from_args(args: argparse.Namespace):
 
 def _read_pair_list(path: str):
     """The entries of a pair list (:func:`svs_torch.data.read_pair_list`): lines ``LEFT RIGHT``, ``LEFT RIGHT
-    FOCAL_PX BASELINE_M [DOFFS_PX]`` or a scene folder, or capture's ``index.jsonl``. An entry that is not a pair
-    keeps its ``problem``: it still gets its own output line."""
-    from ..data import read_pair_list
+    FOCAL_PX BASELINE_M [DOFFS_PX]`` or a scene folder, or capture's ``index.jsonl``; or the scenes of a folder
+    (:func:`svs_torch.data.read_pair_sources`, as eval reads one). An entry that is not a pair keeps its
+    ``problem``: it still gets its own output line."""
+    import os
 
+    from ..data import read_pair_list, read_pair_sources
+
+    if os.path.isdir(path):  # a folder of scenes, as eval takes it (an audit: "expected a list file, got a folder")
+        return read_pair_sources([path], "--pairs")
     return read_pair_list(path, "pairs")
 
 

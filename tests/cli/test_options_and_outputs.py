@@ -500,3 +500,20 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     assert out.splitlines()[1].strip().endswith("are LEFT and RIGHT swapped?") and "keypoints" in out.splitlines()[0]
     code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x133", "--json")
     assert json.loads(out)["reason"] is None
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_estimate_pairs_takes_a_folder_of_scenes_as_eval_does(data_dir, capsys, tmp_path, workers):
+    """Found by an audit: 'estimate --pairs FOLDER' was refused ("expected a list file, got a folder") where eval
+    takes the folder. Its rows equal a list naming each scene folder, in one process or on workers."""
+    folder = data_dir / "middlebury_eval3_Q"
+    scenes = sorted(p for p in folder.iterdir() if p.is_dir())
+    listing = tmp_path / "scenes.txt"
+    listing.write_text("".join(f"{scene}\n" for scene in scenes))
+    rows = {}
+    for source in (str(folder), str(listing)):
+        code, out, _ = run_cli(capsys, "estimate", "--pairs", source, "--size", "160x120", "--json", "--workers",
+                               workers)
+        assert code == 0
+        rows[source] = [{k: v for k, v in json.loads(line).items() if k != "time_s"} for line in out.splitlines()]
+    assert len(rows[str(folder)]) == len(scenes) and rows[str(folder)] == rows[str(listing)]
