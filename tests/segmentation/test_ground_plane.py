@@ -251,7 +251,7 @@ def test_the_kernel_gives_the_torch_paths_plane(monkeypatch, threads):
 @pytest.mark.parametrize("noise_px", [0.0, 0.6])
 def test_the_kernels_cell_medians_are_the_torch_paths_at_any_cell_size(monkeypatch, noise_px):
     """A noisy pair's samples from its cells' medians, kernel against torch path bit for bit, on cells of 64 pixels
-    (320 px wide: ranks) and of 256 (640 px: Hoare's selection), with ties (a noiseless map's equal values)."""
+    (320 px wide: ranks) and of 256 (640 px: quickselect, select_rank.h), with ties (a noiseless map's equal values)."""
     from svs_torch.segmentation import kernels
 
     if not kernels.available("ground_plane_fit"):

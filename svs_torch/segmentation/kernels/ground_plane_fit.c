@@ -21,6 +21,7 @@
 #include <stdlib.h>
 
 #include "common.h"
+#include "select_rank.h"
 #include "small_lu.h"
 
 /* The settings, in the order of svs_torch.segmentation.kernels.GROUND_PLANE_SETTINGS. */
@@ -195,32 +196,9 @@ static int fit_pair(const Grid *g, const Grid *samples, int64_t gh, int64_t gw, 
            && span(inliers, g) >= min_span;
 }
 
-/* The k-th least of values[0, n) (0 <= k < n), which it reorders: Hoare's selection (the value, not its position,
- * so any order of equal values gives the same answer as a sort). */
-static float select_kth(float *values, int64_t n, int64_t k) {
-    int64_t lo = 0, hi = n - 1;
-    while (lo < hi) {
-        const float pivot = values[lo + (hi - lo) / 2];
-        int64_t i = lo, j = hi;
-        while (i <= j) {
-            while (values[i] < pivot) ++i;
-            while (values[j] > pivot) --j;
-            if (i <= j) {
-                const float t = values[i];
-                values[i++] = values[j];
-                values[j--] = t;
-            }
-        }
-        if (k <= j) hi = j;
-        else if (k >= i) lo = i;
-        else return values[k];
-    }
-    return values[k];
-}
-
 /* The k-th least of values[0, n) (0 <= k < n, n <= 64, no NaN) by ranks: the first value with at most k below it
  * and more than k at most it. No branch on the data in the counting, which vectorises: on a 320-px map's cells of
- * 64 pixels, half the time of select_kth, whose partitions mispredict. */
+ * 64 pixels, half the time of quickselect (select_rank.h), whose partitions mispredict. */
 static float rank_kth(const float *values, int64_t n, int64_t k) {
     for (int64_t i = 0; i < n; ++i) {
         const float v = values[i];
@@ -249,8 +227,14 @@ static void cell_median(const float *map, const uint8_t *seen, int64_t H, int64_
             }
     *measured = count >= cell_min;
     const int64_t k = (finite - 1) / 2;
-    *d = !*measured ? 0.0f : finite == 0 ? NAN : finite <= 64 ? rank_kth(buffer, finite, k)
-                                                                : select_kth(buffer, finite, k);
+    if (!*measured || finite == 0) {
+        *d = !*measured ? 0.0f : NAN;
+    } else if (finite <= 64) {
+        *d = rank_kth(buffer, finite, k);
+    } else {
+        select_rank(buffer, 0, finite, k);  /* the value of rank k, as a sort gives it (select_rank.h) */
+        *d = buffer[k];
+    }
 }
 
 /* disparity (B, H, W) float32, measured (B, H, W) uint8; baseline (B,), tolerance (B,) float32 (in the map's
