@@ -15,6 +15,7 @@ names, the pipeline the stages, and only ``evaluation``, ``plotting`` and ``cli`
 """
 
 from . import moved
+from .core.lazy_names import lazy_names
 
 moved.install()
 
@@ -36,19 +37,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'svs_torch' has no attribute {name!r}")
-    from importlib import import_module
-
-    value = getattr(import_module(f".{module}", __name__), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_names(__name__, _EXPORTS)
 
 
 __version__ = "0.1.0"

@@ -8,7 +8,7 @@ link is configured with, counts and receives.
 May import: ``svs_torch.core`` only (pyserial; torch only where ``stereo`` is used). The CLI imports it.
 """
 
-import importlib
+from ..core.lazy_names import lazy_names
 
 #: Each name's submodule, imported on first use (PEP 562): ``svs_torch.capture.protocol`` and ``link_types`` load
 #: without torch, so ``capture`` and ``guide`` check their arguments in a fraction of a second (an audit: a missing
@@ -22,34 +22,5 @@ _SUBMODULE = {
     "Frame": "stereo", "PairBatch": "stereo", "StereoPair": "stereo", "SVSStereoCamera": "stereo",
     "decode_frame": "stereo", "to_stereo_batch": "stereo",
 }
-
-
-def __getattr__(name: str):
-    if name not in _SUBMODULE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{_SUBMODULE[name]}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-__all__ = [
-    "CameraLink",
-    "CaptureError",
-    "DamagedFrameError",
-    "FpsMeter",
-    "Frame",
-    "FrameParser",
-    "LinkConfig",
-    "LinkStats",
-    "LiveGuide",
-    "PairBatch",
-    "ProtocolError",
-    "RawFrame",
-    "SVSStereoCamera",
-    "Speaker",
-    "StereoPair",
-    "VersionInfo",
-    "WarningPolicy",
-    "decode_frame",
-    "to_stereo_batch",
-]
+__getattr__, __dir__ = lazy_names(__name__, _SUBMODULE)
+__all__ = sorted(_SUBMODULE)

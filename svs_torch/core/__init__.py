@@ -5,7 +5,8 @@
 (reading and writing image files), ``camera`` (the SVS camera model), ``ordering`` (stable sort orders),
 ``mask_reductions`` (fast ``any`` over bool masks), ``numerics`` (a square root with a finite gradient at 0),
 ``pair_trees`` and ``size_groups`` (taking the pairs of a batch out of a result and putting them back),
-``compiling`` (optional ``torch.compile``), ``workers`` (worker processes without torch in the parent), and
+``compiling`` (optional ``torch.compile``), ``workers`` (worker processes without torch in the parent),
+``lazy_names`` (a package's public names loaded on first use), and
 ``kernels/``, the one loader that builds, caches and opens every stage's C kernels.
 
 May import: the standard library, torch, numpy, OpenCV, and core itself. Nothing here imports a stage, the
