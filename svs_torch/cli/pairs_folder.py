@@ -52,8 +52,8 @@ def new_pairs_folder(value: str, option: str) -> Path:
         return out
     # The nearest existing folder on the way must take files before the camera opens; a file on the way (a/b where
     # a is a file) failed only at the first pair, as "[Errno 20] Not a directory".
-    ancestor = next(p for p in out.absolute().parents if path_kind(p, option) != "missing")
-    if path_kind(ancestor, option) != "folder":
+    ancestor, kind = next((p, kind) for p in out.absolute().parents if (kind := path_kind(p, option)) != "missing")
+    if kind != "folder":
         raise InputError(f"{option}: expected a folder, but {display_path(ancestor)} on its path is not a folder")
     check_writable_folder(ancestor, option)
     return out
