@@ -80,8 +80,9 @@ def right_name(left: str) -> str | None:
     return None
 
 
-def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
-    """The (left, right) files named by LEFT patterns or --pairs."""
+def pair_paths(args: argparse.Namespace) -> list[tuple[str, str, str]]:
+    """The (left, right) files named by LEFT patterns or --pairs, each with what named them in an error: ``left``,
+    or ``--pairs, line N of LIST``."""
     import glob
     import os
 
@@ -103,7 +104,7 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
             raise InputError(bad.problem.replace(LINE_FORMS, "'LEFT RIGHT' (two chessboard images)")
                              if bad.problem else f"--pairs: expected 'LEFT RIGHT' lines of chessboard images, got "
                                                  f"{bad.listed_at or bad.left}")
-        return _once_each([(s.left, s.right) for s in sources])
+        return _once_each([(s.left, s.right, f"--pairs, {s.listed_at}") for s in sources])
     lefts: list[str] = []
     for pattern in args.left:
         found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
@@ -118,11 +119,11 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str]]:
         right = right_name(left)
         if right is None:
             raise InputError(f"left: {left!r} has no 'left' in its name to find its right image (use --pairs)")
-        pairs.append((left, right))
+        pairs.append((left, right, "left"))
     return _once_each(pairs)
 
 
-def _once_each(pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+def _once_each(pairs: list[tuple[str, str, str]]) -> list[tuple[str, str, str]]:
     """Each pair once (patterns that overlap, a line listed twice): a view counted twice is no new view of the board,
     and three copies of one view leave the stereo fit degenerate."""
     import os
@@ -198,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.figure, args.figure_option)
     paths = pair_paths(args)
     inputs = [("--pairs list", args.pairs)] + [(f"{view} image of a pair", path) for pair in paths
-                                                for view, path in zip(("left", "right"), pair)]
+                                                for view, path in zip(("left", "right"), pair[:2])]
     check_outputs_apart([("--out", args.out), (args.figure_option, args.figure)], inputs)
 
     def gray(path: str, name: str):
@@ -206,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
     source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
-    pairs = [(left, gray(left, source), gray(right, source)) for left, right in paths]
+    pairs = [(left, gray(left, named_by), gray(right, named_by)) for left, right, named_by in paths]
     views = drop_misfit_pairs(collect_board_views(pairs, board, source), args.square_m, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
     warnings = [] if calibration.rms_stereo_px <= GOOD_STEREO_RMS_PX else [

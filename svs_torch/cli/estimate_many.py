@@ -53,7 +53,9 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
         own = source.scene or source.focal_px is not None
         loaded = _load_source(source, args) if own else load_pair(source.left, source.right, args)
     except (InputError, OSError) as error:
-        return "BAD_INPUT", " ".join(str(error).split()), None
+        reason = " ".join(str(error).split())
+        listed = source.listed_at and f"({source.listed_at})" not in reason  # (load_pair_source says it itself)
+        return "BAD_INPUT", f"{reason} ({source.listed_at})" if listed else reason, None
     if not own:  # named as claim_export_names claims it (and load_pair_source names the others): a/x.png and
         # b/x.png were both 'x', and --disparity-out wrote the second's map over the first's in silence (an audit)
         loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])

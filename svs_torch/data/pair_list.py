@@ -62,7 +62,8 @@ class PairSource:
         focal_px, baseline_m, doffs_px: the calibration listed with the pair (for its input image size); None
             where the list gives none (a scene's own, or the caller's default).
         problem: why the entry cannot be a pair (a one-line reason naming the list and line); None if it can.
-        listed_at: ``"line N of LIST"`` for a pair whose calibration its list line gives (for reports).
+        listed_at: ``"line N of LIST"`` for a file pair read from a list file's line (for reports, and errors
+            about its files).
         list_file: the list file (as its name was given) the entry was read from; None for a scene folder named
             itself. A results store forgets a bad line of this list that is no longer bad (mended or removed).
         label: the name to report the pair by where another listed pair would have its name (two folders both
@@ -188,7 +189,7 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
         return [_bad(where, "1 field", text)]
     if len(fields) in (2, 4, 5):
         if len(fields) == 2:
-            return [PairSource(left=paths[0], right=paths[1])]
+            return [PairSource(left=paths[0], right=paths[1], listed_at=where.split(": ", 1)[-1])]
         calibration = _calibration(fields[2:], where, text)
         if isinstance(calibration, PairSource):
             return [calibration]
@@ -379,9 +380,15 @@ def load_pair_source(source: PairSource, focal_px: float | None = None, baseline
         raise InputError(source.problem)
     if source.scene:
         batch = load_stereo_pair(source.left, dtype)
-    elif source.focal_px is not None:
-        batch = load_image_pair(source.left, source.right, source.focal_px, source.baseline_m,
-                                source.doffs_px or 0.0, dtype)
     else:
-        batch = load_image_pair(source.left, source.right, focal_px, baseline_m, doffs_px, dtype)
+        listed = source.focal_px is not None
+        try:
+            batch = load_image_pair(source.left, source.right, source.focal_px if listed else focal_px,
+                                    source.baseline_m if listed else baseline_m,
+                                    (source.doffs_px or 0.0) if listed else doffs_px, dtype)
+        except InputError as error:
+            if source.listed_at is None:
+                raise
+            # Which line of a long list named the file: "left: file not found: a/left1.jpg" alone did not say.
+            raise InputError(f"{error} ({source.listed_at})") from None
     return batch if source.scene and source.label is None else replace(batch, names=(source.name,))

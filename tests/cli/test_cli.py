@@ -349,6 +349,7 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
     # and the inlier counts, a ranged pair's 'reason').
     assert all(set(r) == set(reports[0]) for r in reports) and reports[2]["reason"] is None
     assert reports[1]["verified"] is None and reports[1]["num_measured_inliers"] is None
+    assert reports[4]["reason"].endswith(f"file not found: {tmp_path / 'missing.png'} (line 5 of {listing})")
     listing.write_bytes(b"a.png b.png\n" * 4 + b"\xff\xfe\n")
     code, out, err = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "2", "--workers", "2")
     assert code == 2 and out == "" and len(err.splitlines()) == 1 and "pairs:" in err

@@ -231,6 +231,12 @@ def test_calibrate_counts_each_pair_once_and_refuses_listed_calibrations(capsys,
                               str(tmp_path / "rig.json"))
     assert code == 2 and "expected 'LEFT RIGHT' (two chessboard images), got 1 field" in stderr
     assert "scene folder" not in stderr and "FOCAL_PX" not in stderr
+    # A missing image is named with its list line (a long list's "file not found" said neither before).
+    listed.write_text(f"{samples / 'left01.jpg'} {samples / 'right01.jpg'}\n{tmp_path / 'gone.jpg'} "
+                      f"{samples / 'right02.jpg'}\n")
+    code, _, stderr = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"))
+    assert code == 2 and f"--pairs, line 2 of {listed}: file not found: " in stderr
     (tmp_path / "afile").write_text("")  # an --out below a file: it was said not to exist
     code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025", "--out",
                               str(tmp_path / "afile" / "rig.json"))
