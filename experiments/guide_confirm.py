@@ -32,10 +32,11 @@ from pathlib import Path
 
 import torch
 
-from svs_torch.capture.guide import STOP, WARN, WarningPolicy
+from svs_torch.capture.guide import NEARER_ELSEWHERE_M, STOP, WARN, WarningPolicy
 from svs_torch.cli.progress import Progress
 from svs_torch.data import camera_frame_pairs
 from svs_torch.data.synthetic import render_obstacle_scenes
+from svs_torch.depth import ObstacleSide
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -55,9 +56,17 @@ STILL_INSIDE = 1.25  # held still, in the band: its far edge lies this factor be
 
 def distances(batch, config: PipelineConfig) -> list[float | None]:
     """guide's distance of each pair of ``batch`` (None: no obstacle ranged)."""
+    return ranged(batch, config)[0]
+
+
+def ranged(batch, config: PipelineConfig) -> tuple[list[float | None], list[str | None]]:
+    """guide's distance of each pair of ``batch`` (None: no obstacle ranged) and the side guide says with it."""
     with torch.inference_mode():
         nearest = estimate_obstacle_depth(batch, config).depth.nearest
-    return [float(nearest.surface_m[i]) if bool(nearest.valid[i]) else None for i in range(batch.batch_size)]
+    seen = [float(nearest.surface_m[i]) if bool(nearest.valid[i]) else None for i in range(batch.batch_size)]
+    sides = [ObstacleSide(int(nearest.side[i])).name.lower() if seen[i] is not None else None
+             for i in range(batch.batch_size)]
+    return seen, sides
 
 
 def walk(index: int, digit: int, seed: int, config: PipelineConfig) -> dict:
@@ -71,16 +80,21 @@ def walk(index: int, digit: int, seed: int, config: PipelineConfig) -> dict:
                                     torch.tensor([width_m, height_m]).expand(n, 1, 2), background_depth_m=WALL_M,
                                     texture_contrast=(1.0, 0.5)[index % 2], generator=g)
     frames = camera_frame_pairs(scenes.batch, digit, dict(JPEG_NOISE)[digit], g)
-    return {"truth_m": depth.flatten().tolist(), "seen_m": distances(frames, config)}
+    seen, sides = ranged(frames, config)
+    return {"truth_m": depth.flatten().tolist(), "seen_m": seen, "seen_side": sides}
 
 
-def replay(seen_m: list[float | None], confirm_frames: int, near_m: float = 1.0, far_m: float = 2.0
+def replay(seen_m: list[float | None], confirm_frames: int, near_m: float = 1.0, far_m: float = 2.0,
+           seen_side: list[str | None] | None = None, nearer_elsewhere_m: float = NEARER_ELSEWHERE_M
            ) -> list[tuple[str, str | None, float | None]]:
-    """Each pair's (class, message, confirmed distance) under guide's rule, pairs ``1 / PAIRS_PER_S`` apart."""
-    policy = WarningPolicy(near_m=near_m, far_m=far_m, confirm_frames=confirm_frames)
+    """Each pair's (class, message, confirmed distance) under guide's rule, pairs ``1 / PAIRS_PER_S`` apart (with
+    each pair's side where ``seen_side`` is given, as guide passes it)."""
+    policy = WarningPolicy(near_m=near_m, far_m=far_m, confirm_frames=confirm_frames,
+                           nearer_elsewhere_m=nearer_elsewhere_m)
+    sides = seen_side or [None] * len(seen_m)
     out = []
-    for i, distance in enumerate(seen_m):
-        message = policy.update(distance, i / PAIRS_PER_S)
+    for i, (distance, side) in enumerate(zip(seen_m, sides)):
+        message = policy.update(distance, i / PAIRS_PER_S, side)
         out.append((policy.current, message, policy.confirmed_m))
     return out
 
@@ -124,7 +138,8 @@ def still_streams(split: str, digit: int, frames: int, config: PipelineConfig, d
         clean = distances(batch, config)[0]
         stream = camera_frame_pairs(batch.select(torch.zeros(frames, dtype=torch.long)), digit,
                                     dict(JPEG_NOISE)[digit], torch.Generator().manual_seed(1000 * digit + index))
-        out.append({"scene": path.name, "clean_m": clean, "seen_m": distances(stream, config)})
+        seen, sides = ranged(stream, config)
+        out.append({"scene": path.name, "clean_m": clean, "seen_m": seen, "seen_side": sides})
     return out
 
 

@@ -7,6 +7,7 @@ import statistics
 import sys
 
 import pytest
+import torch
 
 from conftest import REPO_ROOT
 
@@ -579,3 +580,36 @@ def test_guide_second_passes_times_guide_with_and_without_them(data_dir, tmp_pat
     assert set(report["rows"]) == set(configs) and all(row["frames"] == 2 for row in report["rows"].values())
     assert "| neither | 2 |" in capsys.readouterr().out
 
+
+
+def test_guide_nearer_renders_a_second_box_stepping_in_and_scores_when_its_side_is_said(monkeypatch):
+    """experiments/guide_nearer.py: the stream's second box is rendered from its step on, on the other side and
+    nearer; replayed with the rule off (M = inf) it is said when repeat_s runs out, with M = 0.3 one pair after the
+    median of three takes it; the same box drifting into another third is no extra message."""
+    import guide_nearer
+
+    seen = {}
+
+    def truth(batch, config):  # each pair's nearest box as its ground truth gives it (no pipeline: CI time)
+        scale = (batch.focal_px * batch.baseline_m).view(-1, 1, 1, 1)
+        depth = torch.where(batch.disparity_valid, scale / batch.disparity_px.clamp_min(1e-3), torch.inf)
+        near = depth.flatten(1).min(dim=1).values
+        columns = (depth <= near.view(-1, 1, 1, 1) + 0.05).flatten(2).any(1).view(len(near), *depth.shape[2:])
+        centroid = [float(c.nonzero()[:, 1].float().mean()) for c in columns]
+        width = batch.size_hw[1]
+        seen["near"] = near.tolist()
+        return near.tolist(), ["left" if x < width / 3 else "right" if x > 2 * width / 3 else "centre"
+                               for x in centroid]
+
+    monkeypatch.setattr(guide_nearer, "ranged", truth)
+    stream = guide_nearer.step_in(0, 4, 0, None)
+    stepped = stream["stepped"]
+    assert seen["near"][stepped - 1] == pytest.approx(guide_nearer.STAND_M, abs=0.03)
+    assert seen["near"][stepped] == pytest.approx(guide_nearer.STAND_M - guide_nearer.STEP_IN_NEARER_M, abs=0.03)
+    assert stream["seen_side"][stepped - 1] != stream["second_side"] == stream["seen_side"][stepped]
+    before, rule = guide_nearer.score_step_in([stream], float("inf")), guide_nearer.score_step_in([stream], 0.3)
+    assert before["delay_ms_median"] > 2000 and rule["delay_ms_median"] == 50.0
+    assert rule["messages"] == rule["due"] == 2 and rule["missed"] == 0
+    drift = {"truth_m": [], "seen_m": [2.1 - 0.07 * i for i in range(14)],  # 2.1 to 1.19 m: one warning
+             "seen_side": ["centre"] * 8 + ["left"] * 6}
+    assert guide_nearer.chatter_walks([drift], 0.3)["messages"] == 1

@@ -5,7 +5,9 @@ The warning rule follows the paper's use case (a walker warned of obstacles 1–
 the band ``[near_m, far_m]`` gives a warning, a distance below it an urgent one, anything farther (or no
 obstacle) silence. A message is not repeated more often than every ``repeat_s`` seconds unless the distance
 moved to a more urgent class than the one last spoken (a return to it after a frame of silence is not a new
-class; after a confirmed clear spell of ``CLEAR_SPELL_S`` it is). A more urgent class is taken at once; a less
+class; after a confirmed clear spell of ``CLEAR_SPELL_S`` it is), or the nearest obstacle is now on another side
+and at once at least ``nearer_elsewhere_m`` nearer than the one last said (a person stepping in beside the obstacle
+warned of: it is the nearer one, and the walker hears where it is). A more urgent class is taken at once; a less
 urgent one only when the distance is past the edge by ``hysteresis_m``, so a distance hovering on an edge does
 not flap. Each frame's distance is first confirmed by the frames before it: the rule takes the median of the last
 ``confirm_frames`` (a frame with no obstacle counts as farther than any), so one camera frame ranged wrong by its
@@ -29,7 +31,7 @@ from .speech import SPEECH_MISSING, Speaker, notice_once  # (moved there; still 
 
 __all__ = ["CLEAR_SPELL_S", "CONFIRM_FRAMES", "SPEECH_MISSING", "WarningPolicy", "Speaker", "notice_once",
            "said_metres", "FpsMeter", "LiveGuide", "StatusLine", "LinesAbove", "SightWatch", "CANNOT_SEE",
-           "SEEING_AGAIN", "CLEAR", "WARN", "STOP", "UNSEEN"]
+           "SEEING_AGAIN", "CLEAR", "WARN", "STOP", "UNSEEN", "NEARER_ELSEWHERE_M"]
 
 CLEAR, WARN, STOP = "clear", "warn", "stop"  # distance classes: beyond the band, inside it, below it
 #: What guide reports instead of ``clear`` for a pair it could not measure (no obstacle kept and no map of the
@@ -40,6 +42,11 @@ _SEVERITY = {CLEAR: 0, WARN: 1, STOP: 2}
 #: A confirmed clear way this long (or ``repeat_s``, if shorter), seconds, makes the next warning a new obstacle,
 #: said at once: one warned of 2 s before a 6 s clear spell went unsaid until --repeat-s ran out (an audit).
 CLEAR_SPELL_S = 1.0
+
+#: A nearest obstacle on another side than the one last said, and at least this much nearer, metres, is said at
+#: once, within ``repeat_s``: one stepping in 0.5 m nearer beside an obstacle warned of was said only when
+#: ``repeat_s`` ran out (an audit). Chosen in ``experiments/guide_nearer.md``.
+NEARER_ELSEWHERE_M = 0.3
 
 
 class WarningPolicy:
@@ -53,19 +60,24 @@ class WarningPolicy:
         warn_below_band: also warn (urgently) below ``near_m``; if False such distances are silent.
         confirm_frames: the rule takes the median of the last this many frames' distances (module docstring;
             for an even count the farther of the two middle ones); 1: each frame's own.
+        nearer_elsewhere_m: within ``repeat_s``, a warning of the same class is said again when its side differs
+            from the one last said and its distance is at least this many metres nearer than the one said and
+            than the pair before's (``math.inf``: never).
     """
 
     def __init__(self, near_m: float = 1.0, far_m: float = 2.0, repeat_s: float = 3.0, hysteresis_m: float = 0.1,
-                 warn_below_band: bool = True, confirm_frames: int = CONFIRM_FRAMES) -> None:
+                 warn_below_band: bool = True, confirm_frames: int = CONFIRM_FRAMES,
+                 nearer_elsewhere_m: float = NEARER_ELSEWHERE_M) -> None:
         if not 0 <= near_m < far_m:
             raise InputError(f"near_m, far_m: expected 0 <= near_m < far_m, got {near_m}, {far_m}")
-        if repeat_s < 0 or hysteresis_m < 0:
-            raise InputError(f"repeat_s, hysteresis_m: expected non-negative values, got {repeat_s}, {hysteresis_m}")
+        if not (repeat_s >= 0 and hysteresis_m >= 0 and nearer_elsewhere_m >= 0):  # (NaN fails too)
+            raise InputError("repeat_s, hysteresis_m, nearer_elsewhere_m: expected non-negative values, got "
+                             f"{repeat_s}, {hysteresis_m}, {nearer_elsewhere_m}")
         if isinstance(confirm_frames, bool) or not isinstance(confirm_frames, int) or confirm_frames < 1:
             raise InputError(f"confirm_frames: expected a whole number of frames >= 1, got {confirm_frames!r}")
         self.near_m, self.far_m = near_m, far_m
         self.repeat_s, self.hysteresis_m = repeat_s, hysteresis_m
-        self.warn_below_band = warn_below_band
+        self.warn_below_band, self.nearer_elsewhere_m = warn_below_band, nearer_elsewhere_m
         self.current = CLEAR  # class of the last distance
         self.confirmed_m: float | None = None  # the distance the rule took last (the median), None: no obstacle
         self.confirmed_side: str | None = None  # the side of the frame whose distance is confirmed_m
@@ -73,6 +85,7 @@ class WarningPolicy:
         self._recent: collections.deque[tuple[float, str | None]] = collections.deque(maxlen=confirm_frames)
         self._last_spoken_s = -math.inf
         self._last_spoken_class: str | None = None
+        self._last_spoken_m, self._last_spoken_side = math.inf, None  # the distance and side last said
         self._clear_since_s: float | None = None  # when the confirmed class last turned clear (None: not clear)
 
     @property
@@ -105,6 +118,7 @@ class WarningPolicy:
         ``centre``, ``right``; None: unsaid); the message to say, or None. The rule reads the confirmed distance
         (:meth:`confirm`, kept as ``confirmed_m``), which the message speaks, with the side (a side alone never
         makes a message)."""
+        previous_m = math.inf if self.confirmed_m is None else self.confirmed_m
         distance_m = self.confirmed_m = self.confirm(distance_m, side)
         side = self.confirmed_side
         new = self.classify(distance_m)
@@ -124,15 +138,26 @@ class WarningPolicy:
         # pieces; and a walker swaying on the near edge heard "Stop" and "Obstacle ahead" by turns every 0.6 s (an
         # audit), the second a relief it should not get. Escalation is said at once.
         last = self._last_spoken_class
-        if (last is not None and _SEVERITY[new] <= _SEVERITY[last]
-                and now_s - self._last_spoken_s < self.repeat_s):
+        if (last is not None and _SEVERITY[new] <= _SEVERITY[last] and now_s - self._last_spoken_s < self.repeat_s
+                and not self._nearer_elsewhere(distance_m, side, previous_m)):
             return None
         if last == new and self.classify(distance_m) != new:
             # Held by the hysteresis only, past the band's edge: not said again ("Obstacle ahead, 2.1 metres" with
             # a 1-2 m band, every --repeat-s, an audit); said again once back inside, or a new class at once.
             return None
         self._last_spoken_s, self._last_spoken_class = now_s, new
+        self._last_spoken_m, self._last_spoken_side = distance_m, side
         return self.message(new, distance_m, side)
+
+    def _nearer_elsewhere(self, distance_m: float, side: str | None, previous_m: float) -> bool:
+        """Whether the confirmed obstacle is another one, nearer, said at once: on another side than the one last
+        said, and ``nearer_elsewhere_m`` nearer than both it and the pair before's confirmed distance. The jump
+        from the pair before tells another obstacle from the same one drifting across a third's edge as the walker
+        nears it (said again with its new side 5 times in 24 walks otherwise, once just before its "Stop":
+        experiments/guide_nearer.md)."""
+        nearer_by = min(self._last_spoken_m, previous_m) - distance_m
+        return (side is not None and self._last_spoken_side is not None and side != self._last_spoken_side
+                and nearer_by >= self.nearer_elsewhere_m)
 
     def reset(self) -> None:
         """Forget the last class, message and distances (the camera was lost): the next distance in or below the
@@ -142,6 +167,7 @@ class WarningPolicy:
         self._recent.clear()
         self._last_spoken_s = -math.inf
         self._last_spoken_class = None
+        self._last_spoken_m, self._last_spoken_side = math.inf, None
         self._clear_since_s = None
 
     @staticmethod

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import sys
 import warnings
 
@@ -22,10 +23,11 @@ pair, or in the last 2 s: a camera pitched down sees what lies on the floor 0.2-
 it stands), else along a level floor under the camera as worn (--camera-pitch-deg) or along its axis: a spoken
 message, with the obstacle's side where it is not straight ahead ("Obstacle on the left, 1.5 metres"), when
 espeak-ng is installed, always a text line, rate-limited so it does not chatter (a message repeats after
---repeat-s seconds unless the distance class turns more urgent than the one last said, or a new obstacle follows
-a clear way of a second). Each pair's distance is confirmed by the pairs before it: the band is judged on the
-median of the last --confirm-frames, so one noisy frame ranged wrong is not said. A status line shows frames per
-second, that distance and the nearest obstacle's side. The floor (the road) ahead, which a walker's camera sees
+--repeat-s seconds unless the distance class turns more urgent than the one last said, a new obstacle follows
+a clear way of a second, or the nearest obstacle is now on another side and --nearer-elsewhere-m nearer). Each
+pair's distance is confirmed by the pairs before it: the band is judged on the median of the last
+--confirm-frames, so one noisy frame ranged wrong is not said. A status line shows frames per second, that
+distance and the nearest obstacle's side. The floor (the road) ahead, which a walker's camera sees
 as its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
 obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
 
@@ -67,6 +69,8 @@ SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its 
 #: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that
 #: module imports torch, which ``--help`` must not wait for (a test holds the two equal).
 CONFIRM_FRAMES = 3
+#: ``--nearer-elsewhere-m``'s default: :data:`svs_torch.capture.guide.NEARER_ELSEWHERE_M` (as above).
+NEARER_ELSEWHERE_M = 0.3
 CONFIRM_FRAMES_HELP = ("warn on the median of the last N pairs' distances, so that one camera frame ranged wrong by "
                        "its noise neither raises a warning nor silences one; a new obstacle is warned of N // 2 pairs "
                        "later (about 50 ms at 20 pairs/s); 1: each pair alone (default: 3, "
@@ -99,14 +103,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="reply timeout per command, seconds (default: 2)")
     parser.add_argument("--quality", type=int, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")
-    parser.add_argument("--near-m", type=non_negative_float, default=1.0,
-                        help="warning band start, metres (default: 1.0)")
-    parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
-    parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
-                        help="seconds before the same warning repeats; one still being spoken is let finish, "
-                             "not restarted (default: 3)")
-    parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
-                        help=CONFIRM_FRAMES_HELP)
+    _add_warning_options(parser)
     add_calibration_option(parser, "the frames")
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
     parser.add_argument("--count", type=pair_count_or_zero, default=0,
@@ -134,6 +131,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run, out=".")
 
 
+def _add_warning_options(parser: argparse.ArgumentParser) -> None:
+    """The warning rule's options (``svs_torch.capture.guide.WarningPolicy``)."""
+    parser.add_argument("--near-m", type=non_negative_float, default=1.0,
+                        help="warning band start, metres (default: 1.0)")
+    parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
+    parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
+                        help="seconds before the same warning repeats; one still being spoken is let finish, "
+                             "not restarted (default: 3)")
+    parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
+                        help=CONFIRM_FRAMES_HELP)
+    parser.add_argument("--nearer-elsewhere-m", type=_metres_or_off, default=NEARER_ELSEWHERE_M, metavar="M",
+                        help="within --repeat-s, say a nearest obstacle on another side than the one last said at "
+                             "once when it is at least M metres nearer (someone stepping in beside what was warned "
+                             "of); off: wait for --repeat-s (default: 0.3, experiments/guide_nearer.md)")
+
+
+def _metres_or_off(text: str) -> float:
+    """argparse type of --nearer-elsewhere-m: metres >= 0, or ``off`` (infinity: never said before --repeat-s)."""
+    return math.inf if text.strip().lower() == "off" else non_negative_float(text)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -152,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
     warm_up(ranged, size)
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s,
-                           confirm_frames=args.confirm_frames)
+                           confirm_frames=args.confirm_frames, nearer_elsewhere_m=args.nearer_elsewhere_m)
     status_line = StatusLine(sys.stderr)
     # Everything else that prints while the status line shows goes above it, on a line of its own, and the status
     # is drawn again below: the spoken warnings (stdout), the speaker's own notices, Python warnings (a board in

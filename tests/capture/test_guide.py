@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 import re
 import stat
 import sys
@@ -143,6 +144,29 @@ def test_confirmed_distance_is_the_median_of_the_last_frames():
             WarningPolicy(confirm_frames=bad)
 
 
+def test_nearer_obstacle_on_another_side_is_said_within_repeat():
+    """Someone stepping in beside the obstacle warned of, nearer by nearer_elsewhere_m or more, is said at once
+    (it waited for repeat_s before, in the same class); a side change alone, a nearer distance on the same side,
+    the same obstacle drifting into another third as it nears, or a flicker back to the farther one is not."""
+    def said(samples, **kwargs):
+        policy = WarningPolicy(repeat_s=3.0, confirm_frames=1, **kwargs)
+        return [policy.update(distance, now, side) for now, distance, side in samples]
+
+    step_in = [(0.0, 1.8, "left"), (0.5, 1.3, "right"), (0.6, 1.8, "left"), (0.7, 1.3, "right")]
+    assert said(step_in) == ["Obstacle on the left, 1.8 metres", "Obstacle on the right, 1.3 metres", None, None]
+    assert said(step_in, nearer_elsewhere_m=math.inf) == ["Obstacle on the left, 1.8 metres", None, None, None]
+    assert said(step_in, nearer_elsewhere_m=0.6) == ["Obstacle on the left, 1.8 metres", None, None, None]
+    same_side = [(0.0, 1.8, "left"), (0.5, 1.3, "left")]
+    assert said(same_side) == ["Obstacle on the left, 1.8 metres", None]
+    # The same obstacle nearing, its centroid crossing into the centre third: not a jump from the pair before.
+    drift = [(0.05 * i, 1.8 - 0.07 * i, "left" if i < 3 else "centre") for i in range(10)]
+    assert said(drift) == ["Obstacle on the left, 1.8 metres"] + [None] * 9
+    # Below the band: "Stop" again for a nearer one elsewhere; the side unknown is never a new obstacle.
+    assert said([(0.0, 0.9, "left"), (0.5, 0.5, "right")])[1] == "Stop. Obstacle on the right at 0.5 metres"
+    assert said([(0.0, 1.8, None), (0.5, 1.3, "right"), (0.6, 1.2, None)]) == [
+        "Obstacle ahead, 1.8 metres", None, None]
+
+
 def test_no_warning_below_band_when_disabled():
     policy = WarningPolicy(warn_below_band=False)
     assert run_policy(policy, [(0.0, 0.5)]) == [None]
@@ -151,7 +175,9 @@ def test_no_warning_below_band_when_disabled():
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"near_m": 2.0, "far_m": 1.0}, "near_m, far_m: expected 0 <= near_m < far_m, got 2.0, 1.0"),
-    ({"repeat_s": -1.0}, "repeat_s, hysteresis_m: expected non-negative"),
+    ({"repeat_s": -1.0}, "repeat_s, hysteresis_m, nearer_elsewhere_m: expected non-negative"),
+    ({"nearer_elsewhere_m": -0.1}, "nearer_elsewhere_m: expected non-negative values, got 3.0, 0.1, -0.1"),
+    ({"nearer_elsewhere_m": float("nan")}, "nearer_elsewhere_m: expected non-negative"),
 ])
 def test_policy_rejects_bad_settings(kwargs, message):
     with pytest.raises(InputError, match=message):

@@ -652,6 +652,21 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
+def test_guide_nearer_elsewhere_option():
+    """--nearer-elsewhere-m defaults to the rule's NEARER_ELSEWHERE_M (written out in the parser), takes metres >= 0
+    or 'off' (never before --repeat-s), and refuses a negative distance naming the option."""
+    from svs_torch.capture.guide import NEARER_ELSEWHERE_M
+    from svs_torch.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(["guide", "--emulator"]).nearer_elsewhere_m == NEARER_ELSEWHERE_M
+    assert parse(["guide", "--emulator", "--nearer-elsewhere-m", "0.5"]).nearer_elsewhere_m == 0.5
+    assert parse(["guide", "--emulator", "--nearer-elsewhere-m", "off"]).nearer_elsewhere_m == math.inf
+    for bad in ("-0.2", "inf", "near"):
+        with pytest.raises(SystemExit):
+            parse(["guide", "--emulator", "--nearer-elsewhere-m", bad])
+
+
 def test_guide_confirm_frames_option():
     """--confirm-frames defaults to the warning rule's own CONFIRM_FRAMES (written out in the parser, which must not
     import torch) and takes a whole number of pairs >= 1."""
