@@ -149,7 +149,12 @@ def _add_warning_options(parser: argparse.ArgumentParser) -> None:
 
 def _metres_or_off(text: str) -> float:
     """argparse type of --nearer-elsewhere-m: metres >= 0, or ``off`` (infinity: never said before --repeat-s)."""
-    return math.inf if text.strip().lower() == "off" else non_negative_float(text)
+    if text.strip().lower() == "off":
+        return math.inf
+    try:
+        return non_negative_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected metres >= 0 or 'off', got {text!r}") from None
 
 
 def run(args: argparse.Namespace) -> int:

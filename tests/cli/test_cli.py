@@ -652,7 +652,7 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
-def test_guide_nearer_elsewhere_option():
+def test_guide_nearer_elsewhere_option(capsys):
     """--nearer-elsewhere-m defaults to the rule's NEARER_ELSEWHERE_M (written out in the parser), takes metres >= 0
     or 'off' (never before --repeat-s), and refuses a negative distance naming the option."""
     from svs_torch.capture.guide import NEARER_ELSEWHERE_M
@@ -665,6 +665,7 @@ def test_guide_nearer_elsewhere_option():
     for bad in ("-0.2", "inf", "near"):
         with pytest.raises(SystemExit):
             parse(["guide", "--emulator", "--nearer-elsewhere-m", bad])
+        assert f"--nearer-elsewhere-m: expected metres >= 0 or 'off', got '{bad}'" in capsys.readouterr().err
 
 
 def test_guide_confirm_frames_option():
