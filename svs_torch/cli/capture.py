@@ -109,6 +109,31 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
     return size, new_pairs_folder(args.out, "--out-dir")
 
 
+def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int]) -> None:
+    """``--emulator-heap-m`` where the emulator's cameras see the heap: not wholly below their view (``floor_m`` high,
+    pitched ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high. Either was accepted, and
+    guide then ran with no heap to warn of."""
+    from hw.frames import WALKER_PITCH_DEG
+    from ..core.camera import SVS_CAMERA
+    from ..data.heap_rendering import WALKER_HEAP_HEIGHT_M, WALKER_HEAP_RADIUS_M
+
+    roughness_m = 0.05  # render_obstacle_scenes's heap_roughness_m, which the emulator keeps
+    focal_px = SVS_CAMERA.focal_px(size_wh[0])
+    lowest_ray = math.radians(WALKER_PITCH_DEG) + math.atan(size_wh[1] / 2 / focal_px)  # the view's bottom edge
+    # Seen once some point of its far side, x beyond its centre, rises above the view's bottom edge: its dome
+    # (heap_rendering.make_heap_field) with the rocks' greatest rise on it.
+    def reach_needed_m(x_m: float) -> float:
+        rise_m = WALKER_HEAP_HEIGHT_M * (1 - (x_m / WALKER_HEAP_RADIUS_M) ** 2) ** 0.75 + roughness_m
+        return max(floor_m - rise_m, 0.0) / math.tan(lowest_ray) - x_m
+
+    nearest_m = max(min(reach_needed_m(WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)), 0.0)
+    farthest_m = WALKER_HEAP_HEIGHT_M * focal_px / 2
+    if not nearest_m <= heap_m <= farthest_m:
+        raise InputError(f"--emulator-heap-m: expected {nearest_m:.2f} to {farthest_m:.0f} metres, where cameras "
+                         f"{floor_m:g} m over the floor, pitched {WALKER_PITCH_DEG:g}° down, see the heap at "
+                         f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g}")
+
+
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
 _LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
 
@@ -122,6 +147,9 @@ def check_board_urls(args: argparse.Namespace) -> None:
     from urllib.parse import urlsplit
 
     if args.emulator:
+        floor, heap = getattr(args, "emulator_floor_m", None), getattr(args, "emulator_heap_m", None)
+        if floor is not None and heap is not None:
+            _check_heap_in_view(heap, floor, parse_size(args.size, "--size"))
         return
     # The emulator's options describe its scene; beside real boards they were accepted and did nothing.
     given = [option for option, name, unset in (("--emulator-noise", "emulator_noise", 0.0),

@@ -480,6 +480,38 @@ def test_guide_second_passes_off_runs_neither_retry(monkeypatch):
                                    exposure_retry=default.exposure_retry, segmentation=default.segmentation) == default
 
 
+@pytest.mark.parametrize("size", ["320x240", "160x120"])
+def test_guide_refuses_an_emulated_heap_out_of_view(capsys, size):
+    """A heap the emulator's cameras cannot see (below the view of cameras 1.3 m high pitched 20° down, or under
+    2 px high far off) is refused naming the distances seen: it was accepted, and guide ran with nothing to warn
+    of. The nearest bound holds against the renderer's own heap mask: pixels from there on, none 5 cm nearer."""
+    import re
+
+    import torch
+
+    from svs_torch.cli import main
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    for heap in ("0.5", "500"):
+        assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", heap, "--size", size,
+                     "--count", "1", "--no-speech"]) == 2
+        err = capsys.readouterr().err
+        found = re.search(r"--emulator-heap-m: expected (\S+) to (\S+) metres, where cameras 1.3 m over the floor, "
+                          rf"pitched 20° down, see the heap at {size}; got {heap}", err)
+        assert found, err
+    nearest_m = float(found.group(1))
+    width, height = map(int, size.split("x"))
+
+    def heap_pixels(ahead_m: float) -> int:
+        scenes = render_obstacle_scenes(torch.tensor([[2.0]]), torch.tensor([[[9.0, 0.0]]]),
+                                        torch.tensor([[[0.1, 0.1]]]), size_wh=(width, height), floor_height_m=1.3,
+                                        camera_pitch_deg=20.0, heaps=torch.tensor([[0.0, ahead_m, 0.45, 0.35]]),
+                                        generator=torch.Generator().manual_seed(0))
+        return int(scenes.heap_mask.sum())
+
+    assert heap_pixels(nearest_m + 0.02) > 0 and heap_pixels(nearest_m - 0.05) == 0
+
+
 def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
     """``--emulator-heap-m`` without ``--emulator-floor-m`` is refused before anything runs (a heap stands on the
     floor); with it, the emulator's track carries the heap."""
