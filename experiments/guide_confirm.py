@@ -25,7 +25,6 @@ Run: ``python experiments/guide_confirm.py --markdown experiments/guide_confirm.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -42,7 +41,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          write_report)
 
 PAIRS_PER_S = 20.0
 WALK_SPEED_M_S = 1.4
@@ -143,6 +143,14 @@ def still_streams(split: str, digit: int, frames: int, config: PipelineConfig, d
     return out
 
 
+def still_rows(split: str, digit: int, frames: int, config: PipelineConfig, data: Path, setting: str,
+               values: list, score) -> list[dict]:
+    """The rows of ``split``'s scenes held still at ``digit`` (:func:`still_streams`), one per value of ``setting``
+    (``score(streams, value)``'s columns)."""
+    streams = still_streams(split, digit, frames, config, data)
+    return [{"split": split, "digit": digit, setting: value, **score(streams, value)} for value in values]
+
+
 def score_still(streams: list[dict], confirm_frames: int) -> dict:
     """Over the streams held still: false messages with the band moved just nearer than each clean distance, and
     with it moved around it (far edge ``STILL_INSIDE`` × the distance), the messages beyond the one warning each
@@ -217,16 +225,12 @@ def main(argv: list[str] | None = None) -> dict:
                 progress.update()
             report["walks"] += [dict(digit=digit, confirm_frames=n, **score_walks(walks, n)) for n in counts]
             for split in splits:
-                streams = still_streams(split, digit, args.frames, config, Path(args.data))
-                report["still"] += [dict(split=split, digit=digit, confirm_frames=n, **score_still(streams, n))
-                                    for n in counts]
+                report["still"] += still_rows(split, digit, args.frames, config, Path(args.data), "confirm_frames",
+                                              counts, score_still)
                 progress.update()
     text = markdown(report, command_line("experiments/guide_confirm.py", argv or None))
     print(text)
-    if args.markdown:
-        Path(args.markdown).write_text(text)
-    if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1))
+    write_report(report, text, args.json, args.markdown)
     return report
 
 

@@ -23,7 +23,6 @@ Run: ``python experiments/guide_nearer.py --markdown experiments/guide_nearer.md
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -38,10 +37,11 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ranged, replay,  # noqa: E402
-                           still_streams, walk)
+                           still_rows, walk)
 from paper_table1 import split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          write_report)
 
 STAND_M = 1.8  # the first box's distance where the walker stops, metres
 STAND_S = 3.0  # seconds of the stream after the walker stops (guide's default repeat_s)
@@ -161,16 +161,12 @@ def main(argv: list[str] | None = None) -> dict:
                 report["step_in"].append(dict(digit=digit, margin_m=m, **score_step_in(streams, m)))
                 report["walks"].append(dict(digit=digit, margin_m=m, **chatter_walks(walks, m)))
             for split in splits:
-                still = still_streams(split, digit, args.frames, config, Path(args.data))
-                report["still"] += [dict(split=split, digit=digit, margin_m=m, **chatter_still(still, m))
-                                    for m in margins]
+                report["still"] += still_rows(split, digit, args.frames, config, Path(args.data), "margin_m",
+                                              margins, chatter_still)
                 progress.update()
     text = markdown(report, command_line("experiments/guide_nearer.py", argv or None))
     print(text)
-    if args.markdown:
-        Path(args.markdown).write_text(text)
-    if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1))
+    write_report(report, text, args.json, args.markdown)
     return report
 
 
