@@ -581,7 +581,6 @@ def test_guide_second_passes_times_guide_with_and_without_them(data_dir, tmp_pat
     assert "| neither | 2 |" in capsys.readouterr().out
 
 
-
 def test_guide_nearer_renders_a_second_box_stepping_in_and_scores_when_its_side_is_said(monkeypatch):
     """experiments/guide_nearer.py: the stream's second box is rendered from its step on, on the other side and
     nearer; replayed with the rule off (M = inf) it is not said within the stream's second (repeat_s runs on), with
@@ -595,8 +594,8 @@ def test_guide_nearer_renders_a_second_box_stepping_in_and_scores_when_its_side_
         scale = (batch.focal_px * batch.baseline_m).view(-1, 1, 1, 1)
         depth = torch.where(batch.disparity_valid, scale / batch.disparity_px.clamp_min(1e-3), torch.inf)
         near = depth.flatten(1).min(dim=1).values
-        columns = (depth <= near.view(-1, 1, 1, 1) + 0.05).flatten(2).any(1).view(len(near), *depth.shape[2:])
-        centroid = [float(c.nonzero()[:, 1].float().mean()) for c in columns]
+        nearest = (depth <= near.view(-1, 1, 1, 1) + 0.05)[:, 0]  # (B, H, W): the nearest box's pixels
+        centroid = [float(pixels.nonzero()[:, 1].float().mean()) for pixels in nearest]
         width = batch.size_hw[1]
         seen["near"] = near.tolist()
         return near.tolist(), ["left" if x < width / 3 else "right" if x > 2 * width / 3 else "centre"

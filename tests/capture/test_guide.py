@@ -485,8 +485,6 @@ def test_guide_refuses_an_emulated_heap_out_of_view(capsys, size):
     """A heap the emulator's cameras cannot see (below the view of cameras 1.3 m high pitched 20° down, or under
     2 px high far off) is refused naming the distances seen: it was accepted, and guide ran with nothing to warn
     of. The nearest bound holds against the renderer's own heap mask: pixels from there on, none 5 cm nearer."""
-    import re
-
     import torch
 
     from svs_torch.cli import main
