@@ -1,5 +1,5 @@
 /* Order statistics by quickselect, shared by labelled_select.c and object_depths.c (the dense depth stage's
- * per-object median and percentiles). Selection compares and moves values and does no arithmetic on them, so
+ * per-object median and percentiles) and ground_plane_fit.c (a large cell's median). Selection compares and moves values and does no arithmetic on them, so
  * the order statistics are the sorting torch path's exactly; NaN is not allowed (the callers exclude it). */
 #ifndef SVS_TORCH_KERNELS_SELECT_RANK_H
 #define SVS_TORCH_KERNELS_SELECT_RANK_H
