@@ -63,9 +63,9 @@ def _inlier_points(result, factors: tuple[float, float]) -> list[list[float]]:
     """``[x_left, y_left, x_right, y_right]`` of each RANSAC inlier in input pixels, at the points RANSAC judged
     (``result.points``: the right ones refined to sub-pixel), not the keypoints: reported at the keypoints, 8 of
     Teddy's 274 inliers lay up to 1.86 px from their epipolar lines, over the 1 px threshold (an audit)."""
-    points, inliers = result.points, result.fundamental.inliers
-    return [to_input_pixels(points.left[0, i], factors) + to_input_pixels(points.right[0, i], factors)
-            for i in range(points.valid.shape[1]) if bool(points.valid[0, i]) and bool(inliers[0, i])]
+    points = result.points
+    kept = (points.valid[0] & result.fundamental.inliers[0]).nonzero().flatten().tolist()  # one mask, not a test a slot
+    return [to_input_pixels(points.left[0, i], factors) + to_input_pixels(points.right[0, i], factors) for i in kept]
 
 
 def run(args: argparse.Namespace) -> int:
