@@ -27,9 +27,9 @@ from .block_matching import fill_invalid_rows
 from .cost_volume import crop_index
 from .dense_config import DenseDisparity
 from .depth_types import Disparities, ObjectDepths, RangeEstimate
-from .quantiles import _interpolate_ranks, labelled_quantile
+from .quantiles import Quantiles, _interpolate_ranks, labelled_quantile
 
-__all__ = ["count_agreeing_inliers", "dense_object_depths", "range_from_objects"]
+__all__ = ["count_agreeing_inliers", "dense_object_depths", "range_from_objects", "surface_pixels"]
 
 
 def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str) -> torch.Tensor:
@@ -75,18 +75,62 @@ def _check_boxes_in_frame(boxes: torch.Tensor, h: int, w: int) -> None:
 
 def _compiled_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, scale: torch.Tensor,
                          doffs: torch.Tensor, in_view_from: torch.Tensor, fill_invalid: bool, q: torch.Tensor
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+                         ) -> tuple[Quantiles, torch.Tensor, torch.Tensor] | None:
     """The compiled path (``depth/kernels/object_depths.c``): each pair read once at its own box, the same
     statistics bit for bit, where the torch path pads every pair to the batch's largest box (B = 128: twice the
-    time a pair of B = 32). Each object's (median, low, high) depths, valid and in-view counts; None where the
-    kernel does not run."""
+    time a pair of B = 32). Each object's (median, low, high) depths (and whether it had a member), valid and
+    in-view counts; None where the kernel does not run."""
     b = dense.disparity_px.shape[0]
     fused = kernels.object_depths(dense.disparity_px[:, 0], dense.valid[:, 0], labels[:, 0].long(), dense.crop_xywh,
                                   slots, scale.view(b), doffs.view(b), in_view_from, fill_invalid, q)
     if fused is None:
         return None
     members, count, in_view, below, above = fused
-    return _interpolate_ranks(below, above, members.unsqueeze(-1), q).values, count, in_view
+    return _interpolate_ranks(below, above, members.unsqueeze(-1), q), count, in_view
+
+
+def _statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
+                baseline: torch.Tensor, doffs: torch.Tensor, in_view_from: torch.Tensor, fill_invalid: bool,
+                q: torch.Tensor) -> tuple[Quantiles, torch.Tensor, torch.Tensor]:
+    """Each object's depth quantiles ``q`` over its pixels of ``dense`` (and whether it had any), its measured
+    count and those in view: compiled where no gradient is asked for, else in torch; the same numbers."""
+    gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (dense.disparity_px, focal, baseline, doffs))
+    if not gradients:
+        fused = _compiled_statistics(dense, labels, slots, focal * baseline, doffs, in_view_from, fill_invalid, q)
+        if fused is not None:
+            return fused
+    return _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid, in_view_from)
+
+
+def _surface_low(stats: torch.Tensor, dense: DenseDisparity, surface_valid: torch.Tensor, arguments: tuple,
+                 q: torch.Tensor) -> torch.Tensor:
+    """``stats`` ``(B, N, 3)`` with the low percentile ``q[1]`` taken again over ``surface_valid``'s pixels (filled
+    as ``dense.valid``'s are), for each object that has a measured pixel among them (the fill reaches across
+    objects: one with none would take its neighbours' depths) (:func:`_statistics`' ``arguments``)."""
+    check_shape(surface_valid, "surface_valid", list(dense.disparity_px.shape))
+    check_dtype(surface_valid, "surface_valid", "bool")
+    surface, measured, _ = _statistics(dataclasses.replace(dense, valid=surface_valid), *arguments, q[1:2])
+    low = torch.where(measured > 0, surface.values[..., 0], stats[..., 1])
+    return torch.stack([stats[..., 0], low, stats[..., 2]], dim=-1)
+
+
+def surface_pixels(dense: DenseDisparity) -> torch.Tensor | None:
+    """``(B, 1, H, W)`` bool: the valid pixels of ``dense`` an object's low depth percentile, its nearest visible
+    surface, is taken over (``DepthConfig.surface_within_in_view_top``): those at or below the pair's in-view top
+    ``dense.in_view_top_px`` (half a pixel above it allowed for the sub-pixel fit). None where the map has no such
+    top or no valid pixel lies above it: then every valid pixel counts.
+
+    Why: two noisy frames in a row widen a pair's search range (the coarse pass's detached near tail of wrong
+    matches, which the in-view top leaves out), and the dense map then holds wrong matches far above the object's
+    true disparity on over a tenth of its pixels. Its median stays right, its 10th depth percentile does not: a box
+    1.25 m away said at 0.96 and 0.69 m, a false "Stop" (experiments/guide_confirm.md, "The digit 8 walks' false
+    messages traced"). The median and the high percentile stay over every pixel: cut there too, the tuned scenes'
+    medians moved by up to 0.1 point of accuracy, both ways."""
+    if dense.in_view_top_px is None:
+        return None
+    top = dense.in_view_top_px.to(dense.disparity_px.dtype).view(-1, 1, 1, 1) + 0.5
+    surface = dense.valid & (dense.disparity_px.detach() <= top)
+    return None if torch.equal(surface, dense.valid) else surface
 
 
 def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: ObjectDepths,
@@ -94,7 +138,8 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
                         doffs_px: torch.Tensor | float = 0.0, percentiles: tuple[float, float] = (10.0, 90.0),
                         min_valid_px: int = 20, fill_invalid: bool = True,
                         min_valid_fraction: float | torch.Tensor = 0.0, min_in_view_px: int = 0,
-                        min_own_view_valid_share: float = 0.0) -> ObjectDepths:
+                        min_own_view_valid_share: float = 0.0, surface_valid: torch.Tensor | None = None
+                        ) -> ObjectDepths:
     """Per-object depth from dense disparity; differentiable w.r.t. ``dense.disparity_px`` and the calibration.
 
     Args:
@@ -117,6 +162,9 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
         fill_invalid: give the region's invalid pixels the disparity of their row neighbours
             (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`) before taking the statistics, so that the median
             is over the whole region, as the truth is, and not only over its well-textured part.
+        surface_valid: ``(B, 1, H, W)`` bool or None: the pixels the low percentile is taken over
+            (:func:`surface_pixels`), for each object with a measured pixel among them (filled as ``dense.valid`` is);
+            None: the valid ones, as the median.
 
     Returns:
         ``objects`` with ``depth_median_m``, ``depth_low_m``, ``depth_high_m``, ``valid`` from the dense pixels
@@ -130,15 +178,9 @@ def dense_object_depths(dense: DenseDisparity, labels: torch.Tensor, objects: Ob
     slots = objects.label  # (B, N), −1 padding
     q = torch.tensor([0.5, low / 100, high / 100], dtype=disparity.dtype, device=disparity.device)
     in_view_from = _trusted_from(dense, labels, slots, min_own_view_valid_share)
-    fused = None
-    gradients = torch.is_grad_enabled() and any(t.requires_grad for t in (disparity, focal, baseline, doffs))
-    if not gradients:
-        fused = _compiled_statistics(dense, labels, slots, focal * baseline, doffs, in_view_from, fill_invalid, q)
-    if fused is not None:
-        stats, count, in_view = fused
-    else:
-        stats, count, in_view = _torch_statistics(dense, labels, slots, focal, baseline, doffs, q, fill_invalid,
-                                                  in_view_from)
+    arguments = (labels, slots, focal, baseline, doffs, in_view_from, fill_invalid)
+    stats, count, in_view = _statistics(dense, *arguments, q)
+    stats = stats.values if surface_valid is None else _surface_low(stats.values, dense, surface_valid, arguments, q)
     count = torch.where(slots > 0, count, 0)
     in_view = torch.where(slots > 0, in_view, 0)
     fraction = _per_pair(min_valid_fraction, b, disparity, "min_valid_fraction").view(b, 1)
@@ -194,8 +236,8 @@ def _trusted_from(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tens
 
 def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor, focal: torch.Tensor,
                       baseline: torch.Tensor, doffs: torch.Tensor, q: torch.Tensor, fill_invalid: bool,
-                      in_view_from: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`dense_object_depths`' statistics ``(B, N, 3)``, measured counts ``(B, N)`` and those of them at
+                      in_view_from: torch.Tensor) -> tuple[Quantiles, torch.Tensor, torch.Tensor]:
+    """:func:`dense_object_depths`' statistics ``(B, N, Q)``, measured counts ``(B, N)`` and those of them at
     frame columns from ``in_view_from`` ``(B, N)`` on, in torch (the differentiable path): every pair cropped to
     the batch's largest box."""
     disparity = dense.disparity_px
@@ -220,8 +262,7 @@ def _torch_statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.
     # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
     crop_ok = crop_ok & torch.isfinite(depth) & (depth > 0)
     depth = torch.where(crop_ok, depth, torch.zeros_like(denominator))  # (B, P)
-    stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots,
-                              q).values
+    stats = labelled_quantile(depth, torch.where(crop_ok, crop_labels, torch.zeros_like(crop_labels)), slots, q)
     measured_labels = torch.where(crop_ok & measured, crop_labels, torch.zeros_like(crop_labels))
     # The frame column of each crop position (clamped, as the reads are): in view from in_view_from on.
     columns = (x0.view(-1, 1) + torch.arange(size_w, device=disparity.device)).clamp(0, disparity.shape[-1] - 1)

@@ -41,6 +41,10 @@ class DepthConfig:
             ``(low, high)`` percentiles in [0, 100] (e.g. ``(10, 90)``) as robust stand-ins (``"paper"`` rule).
         object_percentiles: the ``(low, high)`` percentiles of each object's depth, besides its median; the low
             one of the nearest object is its nearest visible surface (``NearestObstacle.surface_m``).
+        surface_within_in_view_top: take the low percentile over the dense pixels at or below the pair's in-view
+            top only (:func:`~svs_torch.depth.dense_objects.surface_pixels`: leaving out noise's wrong matches far
+            above every object's range, which pull the nearest surface near while the median stays right); the
+            median and the high percentile stay over every pixel (``"dense"`` rule).
         min_object_inliers: fewest valid inliers for an object's depth to count (``"paper"`` rule).
         min_object_pixels: fewest valid dense pixels for an object's depth to count (``"dense"`` rule).
         min_object_valid_fraction: least share of an object's region with valid dense disparities (``"dense"``
@@ -65,6 +69,7 @@ class DepthConfig:
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
     percentiles: tuple[float, float] | None = None  # Sec. 3.4, Eq. (5)–(6) when None
     object_percentiles: tuple[float, float] = (10.0, 90.0)
+    surface_within_in_view_top: bool = True  # guide_confirm.md, "The nearest surface within the in-view top"
     min_object_inliers: int = 1
     min_object_pixels: int = 20
     min_object_valid_fraction: float = 0.1
@@ -76,6 +81,8 @@ class DepthConfig:
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
+        if not isinstance(self.surface_within_in_view_top, bool):
+            raise InputError(f"surface_within_in_view_top: expected a bool, got {self.surface_within_in_view_top!r}")
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)

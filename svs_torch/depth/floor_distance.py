@@ -38,7 +38,7 @@ from ..core.errors import InputError
 from ..core.kernels.checks import check_rows
 from ..geometry.rectification import apply_homography
 from .dense_config import DenseDisparity
-from .dense_objects import dense_object_depths
+from .dense_objects import dense_object_depths, surface_pixels
 from .depth_types import NearestObstacle, ObjectDepths
 from .sparse import nearest_obstacle
 
@@ -260,12 +260,15 @@ def _ahead_per_depth(floor: FloorGeometry, focal_px: torch.Tensor, size_hw: tupl
 def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: torch.Tensor, objects: ObjectDepths,
                     focal_px: torch.Tensor, baseline_m: torch.Tensor, doffs_px: torch.Tensor, rectified: torch.Tensor,
                     H_left: torch.Tensor, percentiles: tuple[float, float] = (10.0, 90.0),
-                    fill_invalid: bool = True) -> FloorDistances:
+                    fill_invalid: bool = True, surface_within_in_view_top: bool = True) -> FloorDistances:
     """The distances ahead along the ``floor`` (:func:`floor_geometry`) of ``objects`` (the pipeline's, measured
     on the ``dense`` map over ``map_labels`` ``(B, 1, H, W)`` in its pixels), for the rigs' ``focal_px``,
     ``baseline_m``, ``doffs_px`` ``(B,)``; ``rectified`` ``(B,)`` and ``H_left`` ``(B, 3, 3)``: the pairs measured
-    in rectified pixels and their left homography. ``percentiles`` and ``fill_invalid``: as the depth's
-    (``DepthConfig.object_percentiles``, ``DenseConfig.fill_invalid``). Not differentiable."""
+    in rectified pixels and their left homography. ``percentiles``, ``fill_invalid`` and
+    ``surface_within_in_view_top``: as the depth's (``DepthConfig.object_percentiles``, ``DenseConfig.fill_invalid``,
+    ``DepthConfig.surface_within_in_view_top``: the low percentile over the pixels of
+    :func:`~svs_torch.depth.dense_objects.surface_pixels`, chosen on the map's own disparities). Not
+    differentiable."""
     b = _check_floor(floor)
     check_instance(dense, "dense", DenseDisparity)
     check_instance(objects, "objects", ObjectDepths)
@@ -284,9 +287,11 @@ def floor_distances(floor: FloorGeometry, dense: DenseDisparity, map_labels: tor
         ahead_disparity = (disparity + doffs) / per_depth.to(disparity.dtype) - doffs
         ahead_map = dataclasses.replace(dense, disparity_px=torch.where(dense.valid, ahead_disparity,
                                                                         torch.zeros_like(disparity)))
+        surface = surface_pixels(dense) if surface_within_in_view_top else None
         with torch.no_grad():
             ahead = dense_object_depths(ahead_map, map_labels, dataclasses.replace(objects, label=slots), focal_px,
-                                        baseline_m, doffs_px, percentiles, min_valid_px=1, fill_invalid=fill_invalid)
+                                        baseline_m, doffs_px, percentiles, min_valid_px=1, fill_invalid=fill_invalid,
+                                        surface_valid=surface)
     valid_ahead = ahead.valid & (slots > 0)
 
     def kept(values: torch.Tensor) -> torch.Tensor:

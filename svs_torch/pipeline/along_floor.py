@@ -37,7 +37,8 @@ def along_floor(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     floor = floor_geometry(plane, found, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.size_hw)
     return floor_distances(floor, dense, _in_map_pixels(object_labels, rectified, H_left), depth.objects,
                            batch.focal_px, batch.baseline_m, batch.doffs_px, rectified, H_left,
-                           config.depth.object_percentiles, config.dense.fill_invalid)
+                           config.depth.object_percentiles, config.dense.fill_invalid,
+                           config.depth.surface_within_in_view_top)
 
 
 def result_along_floor(result: PipelineResult, floor: FloorGeometry,
@@ -58,4 +59,4 @@ def result_along_floor(result: PipelineResult, floor: FloorGeometry,
                                                                result.H_left),
                            result.depth.objects, distances.focal_px, distances.baseline_m, distances.doffs_px,
                            result.rectified, result.H_left, config.depth.object_percentiles,
-                           config.dense.fill_invalid)
+                           config.dense.fill_invalid, config.depth.surface_within_in_view_top)

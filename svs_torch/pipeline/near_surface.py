@@ -41,6 +41,7 @@ from ..depth.sparse import nearest_obstacle
 from ..segmentation.components import connected_components_with_stats
 from ..segmentation.threshold import otsu_threshold_level
 from .config import PipelineConfig
+from .ranging import surface_pixels_of
 from .stages import warp_labels
 
 __all__ = []
@@ -105,7 +106,7 @@ def measure_near_surfaces(depth: DepthResult, dense: DenseDisparity, object_labe
     near = dense_object_depths(sub(dense), cut_labels(sub(cut)), sub(objects), sub(focal_px), sub(baseline_m),
                                sub(doffs_px), config.depth.object_percentiles, config.depth.min_object_pixels,
                                config.dense.fill_invalid, 0.0, config.depth.min_object_pixels_in_view,
-                               config.dense.in_view_own_min_valid_share)
+                               config.dense.in_view_own_min_valid_share, surface_pixels_of(sub(dense), config))
     # An object whose near surface cannot be ranged keeps its whole region and its depth.
     part = sub(cut) & near.valid
     if not bool(part.any()):

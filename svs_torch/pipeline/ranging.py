@@ -14,7 +14,8 @@ from ..core.pair_trees import put_pairs, take_pairs
 from ..core.types import FundamentalResult, StereoBatch, StereoSegmentation
 from ..depth.dense import estimate_dense_disparity, working_factor
 from ..depth.dense_config import DenseConfig, DenseDisparity
-from ..depth.dense_objects import count_agreeing_inliers, dense_object_depths, range_from_objects
+from ..depth.dense_objects import (count_agreeing_inliers, dense_object_depths, range_from_objects,
+                                   surface_pixels)
 from ..depth.depth_types import DepthResult, Disparities, ObjectDepths
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
@@ -111,10 +112,17 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     objects = dense_object_depths(dense, object_labels, sparse.objects, batch.focal_px, batch.baseline_m,
                                   batch.doffs_px, config.depth.object_percentiles, config.depth.min_object_pixels,
                                   config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view,
-                                  config.dense.in_view_own_min_valid_share)
+                                  config.dense.in_view_own_min_valid_share, surface_pixels_of(dense, config))
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
     return depth, dense, verified, agreeing, measured
+
+
+def surface_pixels_of(dense: DenseDisparity, config: PipelineConfig) -> torch.Tensor | None:
+    """The pixels each object's nearest surface is measured over
+    (:func:`~svs_torch.depth.dense_objects.surface_pixels`) where ``config.depth.surface_within_in_view_top`` asks
+    for them; else None (every valid pixel)."""
+    return surface_pixels(dense) if config.depth.surface_within_in_view_top else None
 
 
 def _vouched(num_inliers: torch.Tensor, agreeing: torch.Tensor, measured: torch.Tensor,

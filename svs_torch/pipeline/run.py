@@ -34,7 +34,7 @@ from .exposure_retry import retry_with_exposure
 from .features_retry import features_smoothed, retry_with_smoothed_features
 from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
-                      drop_unmeasured_objects)
+                      drop_unmeasured_objects, surface_pixels_of)
 from .soft import differentiable_depth
 from .stages import (_feature_images, _features, _match, _segment_row_aligned, _status, gaussian_smoothed,
                      measured_labels, without_failed_pairs)
@@ -150,7 +150,8 @@ def _estimate_once(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
     depth = differentiable_depth(
         left, right, result.object_labels, logits, result.rectified, H_left, H_right,
         result.dense, result.depth, batch.focal_px, batch.baseline_m, batch.doffs_px, batch.image_hw,
-        config.depth.object_percentiles, config.dense, result.coarse, coarse_config(config).dense)
+        config.depth.object_percentiles, config.dense, result.coarse, coarse_config(config).dense,
+        surface_pixels_of(result.dense, config))
     return dataclasses.replace(result, depth=depth, hard_depth=result.depth, H_left=H_left, H_right=H_right)
 
 

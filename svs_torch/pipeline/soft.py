@@ -18,11 +18,13 @@ continuous quantities from the images (and the segmenter's logits) given those d
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
    high percentile) is replaced by the weighted mean of the object's depths whose hard rank lies within
    ``BAND_HALF_WIDTH`` of it (always with the two order statistics it interpolates), so the gradient reaches
-   every pixel of that band rather than the one or two a median interpolates. The weights are the segmenter's
-   probabilities (sigmoid of its logits) over the hard kept regions, 1 for Otsu: the estimator is the same, and
-   gradients reach the network's weights. Measured on the 28 held-out scenes (320×240 and native, Otsu and
-   learned): every median within 0.41 % of the hard one; the 10th / 90th percentiles, over a long tail of far
-   pixels, within 0.5 % for 95–100 % / 87–95 % of the objects.
+   every pixel of that band rather than the one or two a median interpolates. The low percentile's band is
+   ranked over the pixels the hard stage took it over (``DepthConfig.surface_within_in_view_top``), filled from
+   them as the hard stage filled them. The weights are the segmenter's probabilities (sigmoid of its logits)
+   over the hard kept regions, 1 for Otsu: the estimator is the same, and gradients reach the network's weights.
+   Measured on the 28 held-out scenes (320×240 and native, Otsu and learned): every median within 0.41 % of the
+   hard one; the 10th / 90th percentiles, over a long tail of far pixels, within 0.5 % for 95–100 % / 87–95 % of
+   the objects.
 
 4. **Geometry**: pairs rectified from F are warped by the hard homographies carrying gradients to both images
    (:mod:`~svs_torch.geometry.soft`: the LK-refined matches, F refitted by the weighted 8-point on RANSAC's
@@ -223,18 +225,55 @@ def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:
     return needed | (counts > 0)
 
 
+def _ranked_bands(dense: DenseDisparity, valid: torch.Tensor, in_box: torch.Tensor, scale: torch.Tensor,
+                  doffs: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor
+                  ) -> tuple[torch.Tensor, ...]:
+    """Without gradients, from the hard map filled from its ``valid`` pixels ``(B, 1, H, W)``: the filled
+    disparity ``(B, 1, H, W)``, which pixels count ``(B, P)``, each slot's bands of quantiles ``q``
+    (:func:`_bands`, ``(B, N, Q, P)``), the pixels those depend on, fill sources included ``(B, 1, H, W)``, and
+    each slot's measured (not filled) pixels ``(B, N)``, as the hard statistics count them."""
+    with torch.no_grad():
+        filled, reachable = fill_invalid_rows(dense.disparity_px, valid)
+        ok = (reachable & in_box).flatten(1) & (filled.flatten(1) + doffs > 0)
+        depth = torch.where(ok, scale / torch.where(ok, filled.flatten(1) + doffs, 1.0), 0.0)
+        ok &= torch.isfinite(depth) & (depth > 0)
+        members = torch.where(ok, labels.flatten(1), torch.zeros_like(labels.flatten(1)))
+        bands = _bands(depth.to(torch.float64), members, slots, q)
+        needed = _fill_sources(valid, bands.any(dim=(1, 2)).view_as(valid))
+        measured = [((members == slots[:, n:n + 1]) & valid.flatten(1)).sum(1) for n in range(slots.shape[1])]
+        measured = torch.stack(measured, 1) if measured else torch.zeros_like(slots)
+    return filled, ok, bands, needed, measured
+
+
+def _band_means(disparity: torch.Tensor, dense: DenseDisparity, ranked: tuple, valid: torch.Tensor,
+                scale: torch.Tensor, doffs: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each band's weighted mean depth ``(B, N, Q)`` and whether it had weight, from the soft ``disparity``
+    filled from ``valid`` as the hard map was (``ranked``: :func:`_ranked_bands`' result for that mask)."""
+    filled, ok, bands = ranked[:3]
+    if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
+        filled, _ = fill_invalid_rows(disparity, valid)
+    soft_depth = scale / torch.where(ok, filled.flatten(1) + doffs, torch.ones_like(filled.flatten(1)))
+    soft_depth = torch.where(ok, soft_depth, torch.zeros_like(soft_depth))
+    means, some = band_mean(soft_depth, weights.flatten(1).to(soft_depth.dtype), bands.flatten(1, 2))
+    b, n, k = bands.shape[:3]
+    return means.view(b, n, k), some.view(b, n, k)
+
+
 def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor,
                      dense: DenseDisparity, hard: DepthResult, focal_px: torch.Tensor, baseline_m: torch.Tensor,
                      doffs_px: torch.Tensor, image_hw: torch.Tensor, percentiles: tuple[float, float],
                      config: DenseConfig, coarse: torch.Tensor | None = None,
-                     coarse_config: DenseConfig | None = None) -> DepthResult:
+                     coarse_config: DenseConfig | None = None, surface_valid: torch.Tensor | None = None
+                     ) -> DepthResult:
     """``hard`` (the dense rule's :class:`~svs_torch.depth.DepthResult`) with each object's median, low and high
     depth, the nearest obstacle and the range recomputed as the module docstring says, from images ``(B, 1, H,
     W)`` (rectified where the hard stage rectified), the left ``labels`` and pixel ``weights`` in the same
     pixels, and the hard ``dense`` map. Differentiable w.r.t. the images, ``weights`` and the calibration;
     validity and counts are the hard ones. The pairs ``coarse`` ``(B,)`` bool were measured under
     ``coarse_config`` (half the working width: ``PipelineConfig.coarse_retry_below_share``), the rest under
-    ``config``."""
+    ``config``. ``surface_valid`` ``(B, 1, H, W)`` bool (optional): the pixels the low percentile is taken over
+    where an object has one among them, as the hard stage took it
+    (:func:`~svs_torch.depth.dense_objects.dense_object_depths`)."""
     b = left.shape[0]
     # In the images' dtype, as the hard stage's depths are (a float64 calibration with float32 images made every
     # soft depth float64 beside the hard ones' float32); the cast keeps the calibration's gradients.
@@ -247,14 +286,11 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     scale = (focal_px * baseline_m).view(b, 1)
     doffs = doffs_px.view(b, 1)
     q = torch.tensor([0.5, percentiles[0] / 100, percentiles[1] / 100], dtype=torch.float64, device=left.device)
-    with torch.no_grad():  # the hard filled depths: which pixels count and the bands' order statistics
-        filled, reachable = fill_invalid_rows(dense.disparity_px, dense.valid)
-        ok = (reachable & in_box).flatten(1) & (filled.flatten(1) + doffs > 0)
-        depth = torch.where(ok, scale / torch.where(ok, filled.flatten(1) + doffs, 1.0), 0.0)
-        ok &= torch.isfinite(depth) & (depth > 0)
-        members = torch.where(ok, labels.flatten(1), torch.zeros_like(labels.flatten(1)))
-        bands = _bands(depth.to(torch.float64), members, slots, q)  # (B, N, 3, P)
-        needed = _fill_sources(dense.valid, bands.any(dim=(1, 2)).view_as(dense.valid))
+    ranked = _ranked_bands(dense, dense.valid, in_box, scale, doffs, labels, slots, q)
+    needed = ranked[3]
+    if surface_valid is not None:  # the nearest surface's band, over its own filled pixels
+        surface = _ranked_bands(dense, surface_valid, in_box, scale, doffs, labels, slots, q[1:2])
+        needed = needed | surface[3]
     if coarse is not None and bool(coarse.any()):  # each pair on the working grid its hard map was measured on
         disparity = dense.disparity_px
         for group, settings in ((~coarse, config), (coarse, coarse_config)):
@@ -264,16 +300,15 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
                 disparity = torch.where(group, part, disparity)
     else:
         disparity = _soft_disparity(left, right, dense, needed, image_hw, config)
-    if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
-        filled, _ = fill_invalid_rows(disparity, dense.valid)
-    soft_depth = scale / torch.where(ok, filled.flatten(1) + doffs, torch.ones_like(filled.flatten(1)))
-    soft_depth = torch.where(ok, soft_depth, torch.zeros_like(soft_depth))
-    means, some = band_mean(soft_depth, weights.flatten(1).to(soft_depth.dtype), bands.flatten(1, 2))
-    means = means.view(b, -1, 3)
-    objects = hard.objects
-    valid = objects.valid & some.view(b, -1, 3).all(dim=-1)
+    means, some = _band_means(disparity, dense, ranked, dense.valid, scale, doffs, weights)
+    valid = hard.objects.valid & some.all(dim=-1)
+    if surface_valid is not None:
+        surface_means, surface_some = _band_means(disparity, dense, surface, surface_valid, scale, doffs, weights)
+        # As the hard statistics: where the object has a measured pixel there (the fill reaches across objects).
+        low = torch.where(surface_some[..., 0] & (surface[4] > 0), surface_means[..., 0], means[..., 1])
+        means = torch.stack([means[..., 0], low, means[..., 2]], dim=-1)
     median, low, high = torch.where(valid.unsqueeze(-1), means, torch.zeros_like(means)).unbind(-1)
-    soft_objects: ObjectDepths = dataclasses.replace(objects, depth_median_m=median, depth_low_m=low,
+    soft_objects: ObjectDepths = dataclasses.replace(hard.objects, depth_median_m=median, depth_low_m=low,
                                                      depth_high_m=high, valid=valid)
     depth_range = range_from_objects(soft_objects, focal_px, baseline_m, doffs_px)
     return DepthResult(hard.disparities, hard.points, depth_range, soft_objects,
@@ -304,12 +339,14 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
                          H_right: torch.Tensor, dense: DenseDisparity, hard: DepthResult, focal_px: torch.Tensor,
                          baseline_m: torch.Tensor, doffs_px: torch.Tensor, image_hw: torch.Tensor,
                          percentiles: tuple[float, float], config: DenseConfig, coarse: torch.Tensor | None = None,
-                         coarse_config: DenseConfig | None = None) -> DepthResult:
+                         coarse_config: DenseConfig | None = None, surface_valid: torch.Tensor | None = None
+                         ) -> DepthResult:
     """:func:`soft_dense_depth` of a pipeline's batch: images ``(B, 1, H, W)``, the left ``labels`` and obstacle
     ``logits`` (None: every kept pixel weighs 1, the Otsu segmenter) in input pixels, warped by the hard homographies
     ``(B, 3, 3)`` where ``rectified`` ``(B,)`` (the hard stage's choice), as the dense stage warps them; the pairs
-    ``coarse`` on ``coarse_config``'s working grid. Differentiable w.r.t. both images, the logits, the calibration
-    and the homographies."""
+    ``coarse`` on ``coarse_config``'s working grid; ``surface_valid`` (optional): the map's pixels the low
+    percentile is taken over (:func:`soft_dense_depth`). Differentiable w.r.t. both images, the logits, the
+    calibration and the homographies."""
     weights = torch.ones_like(left) if logits is None else torch.sigmoid(logits).to(left.dtype)
     if bool(rectified.any()):
         pick = rectified.view(-1, 1, 1, 1)
@@ -319,4 +356,4 @@ def differentiable_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.
         weights = torch.where(pick, warp_rectified(weights, H_left), weights)
         labels = torch.where(pick, warp_labels(labels, H_left.detach()), labels)
     return soft_dense_depth(left, right, labels, weights, dense, hard, focal_px, baseline_m, doffs_px, image_hw,
-                            percentiles, config, coarse, coarse_config)
+                            percentiles, config, coarse, coarse_config, surface_valid)

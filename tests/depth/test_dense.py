@@ -832,3 +832,49 @@ def test_dense_object_depth_adds_doffs(monkeypatch, kernels):
     labels, dense, objects = _one_object_of_disparity_2(valid)
     out = dense_object_depths(dense, labels, objects, 100.0, 0.1, doffs_px=3.0, min_valid_px=1, fill_invalid=False)
     assert torch.allclose(out.depth_median_m[0, 0], torch.tensor(2.0))  # 100 · 0.1 / (2 + 3)
+
+
+@pytest.mark.parametrize("kernels", ["auto", "torch"])
+@pytest.mark.parametrize("fill", [True, False])
+def test_the_nearest_surface_leaves_out_matches_above_the_in_view_top(monkeypatch, kernels, fill):
+    """Noise's wrong matches far above every object's range pull an object's low depth percentile, the nearest
+    surface ``guide`` says, near while its median stays right (experiments/guide_confirm.md). Over
+    :func:`surface_pixels` (at or below the pair's in-view top) the low percentile is the true surface's; the median,
+    the high percentile and the counts stay over every pixel, and an object with no measured pixel there keeps its
+    own. The same numbers in the C kernel, the torch path and the torch path with gradients."""
+    from svs_torch.depth.dense_config import DenseDisparity
+    from svs_torch.depth.dense_objects import dense_object_depths, surface_pixels
+    from svs_torch.depth.depth_types import DepthConfig, ObjectDepths
+
+    monkeypatch.setenv("SVS_TORCH_KERNELS", kernels)
+    disparity = torch.full((1, 1, 10, 40), 10.0)
+    disparity[..., :3] = 40.0  # 15 % of object 1's pixels: wrong matches far above the top (20 px)
+    disparity[..., 24:] = 44.0  # object 2 is wholly above it
+    labels = torch.zeros(1, 1, 10, 40, dtype=torch.int64)
+    labels[..., :20], labels[..., 24:] = 1, 2
+    valid = labels > 0
+    dense = DenseDisparity(disparity, valid, torch.zeros(1, dtype=torch.int64), 48, torch.tensor([[0, 0, 40, 10]]),
+                           torch.tensor([48]), torch.tensor([20]))
+    zeros, none = torch.zeros(1, 2), torch.zeros(1, 2, dtype=torch.int64)
+    objects = ObjectDepths(torch.tensor([[1, 2]]), torch.tensor([[200, 160]]), zeros, none, none, zeros, zeros, zeros,
+                           torch.zeros(1, 2, dtype=torch.bool), torch.zeros(1, 0, dtype=torch.int64))
+    surface = surface_pixels(dense)
+    assert int((valid & ~surface).sum()) == 30 + 160
+    plain = dense_object_depths(dense, labels, objects, 100.0, 0.1, min_valid_px=1, fill_invalid=fill)
+    out = dense_object_depths(dense, labels, objects, 100.0, 0.1, min_valid_px=1, fill_invalid=fill,
+                              surface_valid=surface)
+    assert float(plain.depth_low_m[0, 0]) == pytest.approx(0.25)  # 10 / 40: the wrong matches
+    assert out.depth_low_m[0].tolist() == pytest.approx([1.0, 10 / 44])  # 10 / 10; object 2 keeps its own
+    for name in ("depth_median_m", "depth_high_m", "valid", "num_valid_px", "num_in_view_px"):
+        assert torch.equal(getattr(out, name), getattr(plain, name)), name
+    trained = disparity.clone().requires_grad_()
+    graded = dense_object_depths(replace(dense, disparity_px=trained), labels, objects, 100.0, 0.1,
+                                 min_valid_px=1, fill_invalid=fill, surface_valid=surface)
+    assert torch.allclose(graded.depth_low_m, out.depth_low_m)
+    graded.depth_low_m[0, 0].backward()
+    assert float(trained.grad[..., :3].abs().sum()) == 0 and float(trained.grad[..., 3:20].abs().sum()) > 0
+    # without a top, or with nothing above it, every valid pixel counts
+    assert surface_pixels(replace(dense, in_view_top_px=None)) is None
+    assert surface_pixels(replace(dense, in_view_top_px=torch.tensor([44]))) is None
+    with pytest.raises(InputError, match="surface_within_in_view_top: expected a bool"):
+        DepthConfig(surface_within_in_view_top="yes")

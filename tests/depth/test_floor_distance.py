@@ -192,3 +192,26 @@ def test_bad_arguments_are_refused_by_name(call, message):
 
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
         call()
+
+
+def test_the_nearest_part_ahead_leaves_out_matches_above_the_in_view_top():
+    """A wall 1.1 m ahead whose map holds noise's wrong matches far above the pair's in-view top on 15 % of its
+    pixels: its nearest part ahead is measured over the map's own pixels at or below that top (chosen on the map's
+    disparities, not the distances ahead), as the depth's is, so it stays 1.1 m; over every pixel it came near."""
+    normal, _ = posed_camera(1.3, 20.0, 0.0)
+    disparity = upright_wall(1.3, 20.0, 0.0, 1.1)
+    top = int(disparity.max().ceil())
+    disparity[..., 40:52] = 3 * top  # 12 of the object's 80 columns
+    labels = torch.zeros(1, 1, H, W, dtype=torch.int64)
+    labels[..., 10:110, 40:120] = 1
+    dense = DenseDisparity(disparity_px=disparity, valid=torch.ones_like(disparity, dtype=torch.bool),
+                           min_disparity_px=torch.zeros(1, dtype=torch.int64), num_disparities=4 * top,
+                           crop_xywh=torch.tensor([[0, 0, W, H]]), pair_num_disparities=torch.tensor([4 * top]),
+                           in_view_top_px=torch.tensor([top]))
+    focal, baseline, doffs = rig()
+    floor = floor_geometry(plane_coefficients(1.3, normal), torch.tensor([True]), focal, baseline, doffs, (H, W))
+    outs = [floor_distances(floor, dense, labels, one_object(labels), focal, baseline, doffs, torch.tensor([False]),
+                            torch.eye(3).unsqueeze(0), surface_within_in_view_top=within) for within in (True, False)]
+    assert float(outs[0].nearest.surface_m[0]) == pytest.approx(1.1, rel=2e-3)
+    assert float(outs[1].nearest.surface_m[0]) < 0.5
+    assert float(outs[0].objects.depth_median_m[0, 0]) == float(outs[1].objects.depth_median_m[0, 0])

@@ -8,6 +8,7 @@ import dataclasses
 import sys
 
 import pytest
+import torch
 from conftest import REPO_ROOT
 
 from svs_torch.evaluation import evaluate_result
@@ -17,16 +18,23 @@ sys.path.insert(0, str(REPO_ROOT / "experiments"))
 import real_rig  # noqa: E402
 
 
-def test_wrong_matches_far_above_the_scene_leave_a_border_object_in_view(data_dir):
+@pytest.fixture(scope="module")
+def playroom_frames(data_dir):
+    """The tuned MiddEval3 Playroom at 320×240 as JPEG digit 7 frames with σ 6 noise (experiments/real_rig.py; the
+    tuned split's scene 7, noise draw 0)."""
+    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Playroom"), "320x240")
+    views = [view for view in real_rig.conditions(scene, 7, noise_seed=0) if view[0] == "jpeg q7 + noise s6"]
+    return real_rig.stack_conditions(scene, views)
+
+
+def test_wrong_matches_far_above_the_scene_leave_a_border_object_in_view(playroom_frames):
     """The tuned MiddEval3 Playroom at 320×240, JPEG digit 7 with σ 6 (experiments/real_rig.py; the tuned split's
     scene 7, noise draw 0): a few percent of the coarse pass's matches land far above the scene's (the truth's 99th
     percentile: 32 px) and lift the range searched to 0–82 px. An object at x = 0–81 then had too few measured
     pixels at columns the whole range lands in view and went unranged (the pair at 49.9 %). The top without that
     detached tail (60 px) leaves 181 of them in view and the object ranged; the range searched, and so every
     disparity, is unchanged."""
-    scene = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Playroom"), "320x240")
-    views = [view for view in real_rig.conditions(scene, 7, noise_seed=0) if view[0] == "jpeg q7 + noise s6"]
-    pair = real_rig.stack_conditions(scene, views)
+    pair = playroom_frames
     default = PipelineConfig()
     assert default.dense.in_view_detached_tail_share == 0.1
     whole = dataclasses.replace(default, dense=dataclasses.replace(default.dense, in_view_detached_tail_share=None))
@@ -84,3 +92,26 @@ def test_a_far_object_on_the_left_border_is_in_view_from_its_own_top(data_dir):
     scores = evaluate_result(pair, before)[0], evaluate_result(pair, after)[0]
     assert [o["estimated_m"] is None for o in scores[0].objects] == [False, True]
     assert len(scores[1].objects) == 2 and all(o["acc_pct"] > 99 for o in scores[1].objects)
+
+
+def test_the_nearest_surface_leaves_out_the_detached_tail_in_both_passes(playroom_frames):
+    """The same Playroom frames: the range searched (0–82 px) holds noise's wrong matches above the in-view top
+    (57 px) on 626 of the map's 22 430 valid pixels, and they pulled the nearer object's 10th depth percentile, the
+    surface ``guide`` says, to 2.48 m against the truth's 2.51 m over its pixels. Taken over the pixels at or below
+    the top (``DepthConfig.surface_within_in_view_top``) it is within 0.5 % of the truth; every median and high
+    percentile, and so ``eval``'s accuracy, is unchanged; the differentiable pass takes it over the same pixels."""
+    pair = playroom_frames
+    default = PipelineConfig()
+    assert default.depth.surface_within_in_view_top
+    every = dataclasses.replace(default, depth=dataclasses.replace(default.depth, surface_within_in_view_top=False))
+    before, after = estimate_obstacle_depth(pair, every), estimate_obstacle_depth(pair, default)
+    for name in ("depth_median_m", "depth_high_m", "valid"):
+        assert torch.equal(getattr(after.depth.objects, name), getattr(before.depth.objects, name))
+    slot = int(after.depth.nearest.slot[0])
+    inside = (after.object_labels[0, 0] == after.depth.objects.label[0, slot]) & pair.disparity_valid[0, 0]
+    truth = float((pair.focal_px[0] * pair.baseline_m[0] / (pair.disparity_px[0, 0][inside] + pair.doffs_px[0]))
+                  .quantile(0.1))
+    assert float(before.depth.nearest.surface_m[0]) < 0.99 * truth
+    assert float(after.depth.nearest.surface_m[0]) == pytest.approx(truth, rel=0.005)
+    soft = estimate_obstacle_depth(pair, dataclasses.replace(default, differentiable=True))
+    assert torch.allclose(soft.depth.objects.depth_low_m, after.depth.objects.depth_low_m, rtol=0.003)
