@@ -173,6 +173,13 @@ def score_still(streams: list[dict], confirm_frames: int) -> dict:
             "extra_messages": extra, "silenced_pairs": silenced}
 
 
+def _delays(row: dict, kind: str) -> str:
+    """A walks row's ``kind`` (warn, stop) delays as "median / max" ms; "–" where no walk was warned (``--walks 0``,
+    or every walk missed: the table was lost after the whole run)."""
+    median, largest = row[f"{kind}_delay_ms_median"], row[f"{kind}_delay_ms_max"]
+    return "–" if median is None else f"{median:.0f} / {largest:.0f}"
+
+
 def markdown(report: dict, command: str) -> str:
     lines = ["# guide's warnings confirmed over the last N pairs (`experiments/guide_confirm.py`)", "",
              f"Made by `{command}`; the module docstring says what is scored.", "",
@@ -181,10 +188,9 @@ def markdown(report: dict, command: str) -> str:
              "messages | messages off > 10 % | messages | pairs silenced in the band |",
              "|---|---|---|---|---|---|---|---|---|"]
     for row in report["walks"]:
-        lines.append(f"| {row['digit']} | {row['confirm_frames']} | {row['warn_delay_ms_median']:.0f} / "
-                     f"{row['warn_delay_ms_max']:.0f} | {row['stop_delay_ms_median']:.0f} / "
-                     f"{row['stop_delay_ms_max']:.0f} | {row['missed']} | {row['false_messages']} | "
-                     f"{row['wrong_distance_messages']} | {row['messages']} | {row['silenced_pairs']} |")
+        lines.append(f"| {row['digit']} | {row['confirm_frames']} | {_delays(row, 'warn')} | {_delays(row, 'stop')} | "
+                     f"{row['missed']} | {row['false_messages']} | {row['wrong_distance_messages']} | "
+                     f"{row['messages']} | {row['silenced_pairs']} |")
     lines += ["", "## Real scenes held still at 320×240", "",
               "| split | digit | N | band nearer: false messages | frames | false per minute at 20 pairs/s | "
               "band around: messages after the first | pairs silenced |", "|---|---|---|---|---|---|---|---|"]

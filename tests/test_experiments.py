@@ -615,3 +615,15 @@ def test_guide_nearer_renders_a_second_box_stepping_in_and_scores_when_its_side_
     drift = {"truth_m": [], "seen_m": [2.1 - 0.07 * i for i in range(14)],  # 2.1 to 1.19 m: one warning
              "seen_side": ["centre"] * 8 + ["left"] * 6}
     assert guide_nearer.chatter_walks([drift], 0.3)["messages"] == 1
+
+
+def test_guide_confirm_tables_a_digit_whose_walks_were_never_warned():
+    """experiments/guide_confirm.py with ``--walks 0`` (only the scenes held still), or a digit whose every walk was
+    missed, has no delay to report: its table says "–" (it raised a TypeError after the whole run, writing nothing)."""
+    import guide_confirm
+
+    missed = {"truth_m": [3.0 - 0.07 * i for i in range(40)], "seen_m": [None] * 40}
+    row = dict(digit=8, confirm_frames=3, **guide_confirm.score_walks([missed], 3))
+    assert row["missed"] == 1 and row["warn_delay_ms_median"] is None
+    text = guide_confirm.markdown({"walks": [row], "still": []}, "cmd")
+    assert "| 8 | 3 | – | – | 1 | 0 |" in text
