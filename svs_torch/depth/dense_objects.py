@@ -128,6 +128,9 @@ def surface_pixels(dense: DenseDisparity) -> torch.Tensor | None:
     medians moved by up to 0.1 point of accuracy, both ways."""
     if dense.in_view_top_px is None:
         return None
+    b = check_shape(dense.disparity_px, "dense.disparity_px", ["B", 1, "H", "W"])["B"]
+    check_shape(dense.valid, "dense.valid", list(dense.disparity_px.shape))
+    check_rows(dense.in_view_top_px, "dense.in_view_top_px", b)
     top = dense.in_view_top_px.to(dense.disparity_px.dtype).view(-1, 1, 1, 1) + 0.5
     surface = dense.valid & (dense.disparity_px.detach() <= top)
     return None if torch.equal(surface, dense.valid) else surface

@@ -876,5 +876,7 @@ def test_the_nearest_surface_leaves_out_matches_above_the_in_view_top(monkeypatc
     # without a top, or with nothing above it, every valid pixel counts
     assert surface_pixels(replace(dense, in_view_top_px=None)) is None
     assert surface_pixels(replace(dense, in_view_top_px=torch.tensor([44]))) is None
+    with pytest.raises(InputError, match=r"dense.in_view_top_px: expected \(1\), got \(1, 2\)"):
+        surface_pixels(replace(dense, in_view_top_px=torch.tensor([[20, 20]])))
     with pytest.raises(InputError, match="surface_within_in_view_top: expected a bool"):
         DepthConfig(surface_within_in_view_top="yes")
