@@ -105,8 +105,8 @@ def _statistics(dense: DenseDisparity, labels: torch.Tensor, slots: torch.Tensor
 def _surface_low(stats: torch.Tensor, dense: DenseDisparity, surface_valid: torch.Tensor, arguments: tuple,
                  q: torch.Tensor) -> torch.Tensor:
     """``stats`` ``(B, N, 3)`` with the low percentile ``q[1]`` taken again over ``surface_valid``'s pixels (filled
-    as ``dense.valid``'s are), for each object that has a measured pixel among them (the fill reaches across
-    objects: one with none would take its neighbours' depths) (:func:`_statistics`' ``arguments``)."""
+    as ``dense.valid``'s are), for each object that has a measured pixel among them: the fill reaches across
+    objects, so one with none would take its neighbours' depths. ``arguments``: the rest of :func:`_statistics`'."""
     check_shape(surface_valid, "surface_valid", list(dense.disparity_px.shape))
     check_dtype(surface_valid, "surface_valid", "bool")
     surface, measured, _ = _statistics(dataclasses.replace(dense, valid=surface_valid), *arguments, q[1:2])

@@ -272,7 +272,7 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     validity and counts are the hard ones. The pairs ``coarse`` ``(B,)`` bool were measured under
     ``coarse_config`` (half the working width: ``PipelineConfig.coarse_retry_below_share``), the rest under
     ``config``. ``surface_valid`` ``(B, 1, H, W)`` bool (optional): the pixels the low percentile is taken over
-    where an object has one among them, as the hard stage took it
+    where an object has a measured pixel among them, as the hard stage took it
     (:func:`~svs_torch.depth.dense_objects.dense_object_depths`)."""
     b = left.shape[0]
     # In the images' dtype, as the hard stage's depths are (a float64 calibration with float32 images made every
