@@ -175,8 +175,7 @@ def test_real_rig_synthetic_plain_split_renders_featureless_boxes_before_a_textu
     """--splits synthetic-plain: seeded featureless boxes (a tenth of the default texture) before a fully textured
     wall at its distance; as digit 7 frames, pairs 1 and 2 are ranged at their boxes by the aggregated retry with the
     intensities' cost (DenseConfig.smoothing_intensity_weight; measured 99.9 and 99.4 %), where the x-Sobel costs
-    alone range them at the wall (0 and 0 %, experiments/real_rig.md, "Featureless obstacles"). (Both weights set:
-    the views are exposed alike, so the matched weight would apply, the next test.)"""
+    alone range them at the wall (0 and 0 %, experiments/real_rig.md, "Featureless obstacles")."""
     import torch
 
     first, again = real_rig.plain_scenes(), real_rig.plain_scenes()
@@ -190,31 +189,9 @@ def test_real_rig_synthetic_plain_split_renders_featureless_boxes_before_a_textu
     for weight in ("0.25", "0"):
         report = real_rig.main(["--data", str(data_dir), "--splits", "synthetic-plain", "--limit", "3",
                                 "--conditions", "jpeg q7", "--no-rival", "--set",
-                                f"dense.smoothing_intensity_weight={weight}", "--set",
-                                f"dense.smoothing_matched_intensity_weight={weight}"])
+                                f"dense.smoothing_intensity_weight={weight}"])
         rows[weight] = [r["acc_objects"] for r in report["rows"] if r["scene"] != "synthetic-0"]
     assert min(rows["0.25"]) > 98 and max(rows["0"]) < 50
-
-
-def test_a_featureless_box_on_frames_exposed_alike_takes_the_heavier_intensity_term():
-    """synthetic-plain pair 7 as digit 7 frames (draw 0): its boxes' interiors are flat noise in the x-Sobel, and
-    with a quarter of the intensities' SAD the aggregated retry ranged them at the wall (18.0 % per object). Its
-    views are exposed alike, so the intensities weigh DenseConfig.smoothing_matched_intensity_weight (1.0) and the
-    boxes are ranged at 98.6 % (experiments/real_rig.md, "The intensity term where the views are exposed alike")."""
-    import dataclasses
-
-    from svs_torch.evaluation import evaluate_result
-    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
-
-    scene = real_rig.plain_scenes()[7]
-    pair = real_rig.stack_conditions(scene, [v for v in real_rig.conditions(scene, 7) if v[0] == "jpeg q7 + noise s6"])
-    default = PipelineConfig()
-    assert default.dense.smoothing_matched_intensity_weight == 1.0
-    before = dataclasses.replace(default, dense=dataclasses.replace(default.dense,
-                                                                    smoothing_matched_intensity_weight=None))
-    scores = [evaluate_result(pair, estimate_obstacle_depth(pair, config))[0].acc_objects_pct
-              for config in (before, default)]
-    assert scores[0] < 50 and scores[1] > 98
 
 
 def test_real_rig_synthetic_border_split_ranges_a_far_box_on_the_left_border(data_dir):

@@ -17,7 +17,7 @@ from . import kernels
 from .cost_volume import (_box_sum, _cost_volume, _gather_crop, check_volume_size, crop_box, prefilter_xsobel,
                           quantize_levels, region_crop_boxes, wanted_pixels)
 from .dense_config import DenseConfig, DenseDisparity, DisparityRange
-from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner, weighted_levels
+from .semi_global import pair_residual_levels, semi_global_aggregate_with_winner
 from .winner import _WinnerStats, _left_right_consistent, _winner, _winner_neighbours, _winner_stats_torch
 
 __all__ = ["block_match_sad", "block_match_sad_with_residual", "dense_disparity_over_regions", "fill_invalid_rows",
@@ -45,7 +45,7 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     ``config.smoothing_min_residual_levels`` (:mod:`.semi_global`). Each noisy pair is aggregated over its own
     box only, widened by its own count − 1 columns (what its left–right check reads), so that its values never
     depend on its batch. ``intensity_costs``: the intensities' SAD volume of the pairs it is given the index of,
-    each pair's weighted (:func:`~.semi_global.intensity_weights`), added to theirs before the aggregation."""
+    added to theirs times ``config.smoothing_intensity_weight`` before the aggregation (its docstring)."""
     wanted, own = region
     core = slice(extra, costs.shape[-1] - extra)
     residual, noisy = _noisy_pairs(minimum[0][..., core], wanted, config)
@@ -64,7 +64,7 @@ def _smooth(costs: torch.Tensor, minimum: tuple[torch.Tensor, torch.Tensor], con
     if not bool(inside.all()):
         picked = picked.masked_fill(~inside.unsqueeze(1), torch.inf)
     if intensity_costs is not None:
-        picked = picked + intensity_costs(index)
+        picked = picked + config.smoothing_intensity_weight * intensity_costs(index)
         # The penalties in units of the summed costs' residual, over the same wanted pixels.
         residual = residual.index_copy(0, index, pair_residual_levels(
             picked.amin(dim=1)[..., core], wanted[index], config.window_size))
@@ -80,12 +80,12 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
                   width: int, min_disparity: torch.Tensor, num_disparities: int, image_w: torch.Tensor,
                   config: DenseConfig, counts: torch.Tensor, extra: int = 0,
                   region: tuple[torch.Tensor, torch.Tensor] | None = None,
-                  intensities: tuple[torch.Tensor, ...] | None = None) -> _WinnerStats:
+                  intensities: tuple[torch.Tensor, torch.Tensor] | None = None) -> _WinnerStats:
     """:class:`_WinnerStats` of the box at (x0, y0) from the torch cost volume. The box's first and last
     ``extra`` columns serve only the right view's winner: the left statistics are of the columns between
     (``right_best`` is of them all). With ``region`` and ``config.smoothing_penalties``, noisy pairs' costs
-    are aggregated first (:func:`_smooth`), with ``intensities`` (the views' 8-bit levels before the pre-filter
-    and each pair's weight ``(B,)``) their weighted SAD added."""
+    are aggregated first (:func:`_smooth`), with ``intensities`` (the views' 8-bit levels before the pre-filter)
+    their SAD added (``config.smoothing_intensity_weight``)."""
     uniqueness, right_check = config.uniqueness_ratio > 0, config.lr_max_diff_px is not None
     costs, _, minimum = _cost_volume(left, right, x0, y0, height, width, min_disparity, num_disparities, image_w,
                                      config, counts)
@@ -94,7 +94,7 @@ def _winner_stats(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0:
         # Without the counts: no winner, no +inf mask (the x-Sobel costs it is added to carry the +inf already).
         intensity_costs = None if intensities is None else (lambda index: _cost_volume(
             intensities[0][index], intensities[1][index], x0[index], y0[index], height, width, min_disparity[index],
-            num_disparities, image_w[index], config)[0] * intensities[2][index].view(-1, 1, 1, 1))
+            num_disparities, image_w[index], config)[0])
         costs, minimum = _smooth(costs, minimum, config, counts, extra, region, intensity_costs)
     stats = _winner_stats_torch(costs, minimum, uniqueness, right_check, compiled=config.kernel != "torch")
     if costs is not plain:
@@ -158,7 +158,8 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
     check) sees every candidate. ``region``: see :func:`_winner_stats`."""
     sobel = prefilter_xsobel(left, config.prefilter_cap)
     aggregated = region is not None and config.smoothing_penalties is not None
-    intensities = weighted_levels(left, right, image_hw, config) if aggregated else None
+    intensities = ((quantize_levels(left), quantize_levels(right))
+                   if aggregated and config.smoothing_intensity_weight > 0 and config.prefilter == "xsobel" else None)
     if config.prefilter == "xsobel":
         left, right = sobel, prefilter_xsobel(right, config.prefilter_cap)
     # StereoBM's levels: the matched values in whole 1/255 intensity steps (its pre-filter is uint8). The SAD

@@ -107,10 +107,6 @@ class DenseConfig:
             right edges, and the columns' paths carry the disparity of what lies above and below into it; its
             intensity step against the background holds it a window wide (``experiments/real_rig.md``,
             "Featureless obstacles"). 0: the x-Sobel costs alone.
-        smoothing_matched_intensity_weight: the weight instead for a pair whose views' mean levels agree within
-            ``semi_global.MATCHED_EXPOSURE_TOLERANCE`` (no exposure difference between the cameras), where the
-            heavier term costs nothing; None: ``smoothing_intensity_weight`` for every pair
-            (:func:`~svs_torch.depth.semi_global.intensity_weights`).
     """
 
     window_size: int = 9  # paper_table1.py, tuned split: 9 beat 5, 7, 11, 13, 15, 21 at 320 px wide
@@ -143,7 +139,6 @@ class DenseConfig:
     smoothing_min_residual_levels: float = 9.0
     smoothing_max_reduction: int = 2
     smoothing_intensity_weight: float = 0.25  # experiments/real_rig.md, "Featureless obstacles" (tuning sets)
-    smoothing_matched_intensity_weight: float | None = 1.0  # real_rig.md, "The intensity term where ... alike"
 
     def __post_init__(self) -> None:
         window = self.window_size
@@ -189,12 +184,9 @@ class DenseConfig:
                 raise InputError(f"{name}: expected None or (P1, P2) with 0 <= P1 <= P2, got {penalties!r}")
         if not isinstance(self.smoothing_max_reduction, int) or self.smoothing_max_reduction < 1:
             raise InputError(f"smoothing_max_reduction: expected an int >= 1, got {self.smoothing_max_reduction!r}")
-        for name in ("smoothing_intensity_weight", "smoothing_matched_intensity_weight"):
-            weight = getattr(self, name)
-            if weight is None and name == "smoothing_matched_intensity_weight":
-                continue
-            if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < float("inf"):
-                raise InputError(f"{name}: expected a finite value >= 0, got {weight!r}")
+        weight = self.smoothing_intensity_weight
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < float("inf"):
+            raise InputError(f"smoothing_intensity_weight: expected a finite value >= 0, got {weight!r}")
         if not self.smoothing_min_residual_levels >= 0:
             raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
                              f"{self.smoothing_min_residual_levels!r}")

@@ -24,16 +24,8 @@ import torch
 
 from ..core.checks import InputError, check_dtype, check_shape
 from . import kernels
-from .cost_volume import quantize_levels
-from .dense_config import DenseConfig
 
-__all__ = ["MATCHED_EXPOSURE_TOLERANCE", "intensity_weights", "pair_residual_levels", "semi_global_aggregate",
-           "semi_global_aggregate_with_winner", "weighted_levels"]
-
-#: How far the two views' mean levels may differ, as a share of the left's, for a pair to count as exposed alike
-#: (:func:`intensity_weights`): the loose rig's gains of ±30 % lie far outside, camera noise and the rig's other
-#: misalignments move the means by a few percent.
-MATCHED_EXPOSURE_TOLERANCE = 0.1
+__all__ = ["pair_residual_levels", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
 
 
 def _scan_columns_torch(costs: torch.Tensor, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor:
@@ -120,39 +112,3 @@ def pair_residual_levels(best_cost: torch.Tensor, wanted: torch.Tensor, window_s
     values = torch.where(finite, best_cost, torch.full_like(best_cost, torch.nan)).flatten(1)
     median = values.nanmedian(dim=1).values
     return torch.where(finite.flatten(1).any(1), median, torch.zeros_like(median)) / window_size ** 2
-
-
-def intensity_weights(left_levels: torch.Tensor, right_levels: torch.Tensor, image_hw: torch.Tensor,
-                      weight: float, matched_weight: float | None) -> torch.Tensor:
-    """Each pair's weight ``(B,)`` of the intensities' SAD in the aggregated pass (``DenseConfig.smoothing_
-    intensity_weight``, ``smoothing_matched_intensity_weight``): ``matched_weight`` where the views' mean levels
-    ``(B, 1, H, W)`` over the pair's own ``image_hw`` ``(B, 2)`` differ by at most
-    :data:`MATCHED_EXPOSURE_TOLERANCE` of the left's, else ``weight`` (``matched_weight`` None: ``weight`` for
-    every pair). Why: a heavier intensity term keeps a featureless box's interior at the box, but the intensities'
-    SAD is what an exposure difference between the cameras moves (experiments/real_rig.md, "Featureless boxes on
-    noisy frames" and "The intensity term where the views are exposed alike"). Not differentiable (a choice)."""
-    b, _, h, w = left_levels.shape
-    fallback = torch.full((b,), float(weight), dtype=left_levels.dtype, device=left_levels.device)
-    if matched_weight is None:
-        return fallback
-    rows = torch.arange(h, device=left_levels.device).view(1, 1, -1, 1) < image_hw[:, 0].view(-1, 1, 1, 1)
-    cols = torch.arange(w, device=left_levels.device).view(1, 1, 1, -1) < image_hw[:, 1].view(-1, 1, 1, 1)
-    inside = (rows & cols).to(left_levels.dtype)
-    count = inside.flatten(1).sum(1).clamp_min(1)
-    left_mean = (left_levels * inside).flatten(1).sum(1) / count
-    right_mean = (right_levels * inside).flatten(1).sum(1) / count
-    alike = (right_mean - left_mean).abs() <= MATCHED_EXPOSURE_TOLERANCE * left_mean
-    return torch.where(alike, torch.full_like(fallback, float(matched_weight)), fallback)
-
-
-def weighted_levels(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tensor, config: DenseConfig
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-    """The intensity term of the aggregated pass for images ``(B, 1, H, W)`` in [0, 1]: both views' 8-bit levels
-    and each pair's weight ``(B,)`` (:func:`intensity_weights`); None where it adds nothing (no x-Sobel pre-filter
-    for it to join, or every weight 0)."""
-    if config.prefilter != "xsobel":
-        return None
-    levels = quantize_levels(left), quantize_levels(right)
-    weights = intensity_weights(*levels, image_hw, config.smoothing_intensity_weight,
-                                config.smoothing_matched_intensity_weight)
-    return (*levels, weights) if bool((weights > 0).any()) else None

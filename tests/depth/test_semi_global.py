@@ -14,8 +14,8 @@ from svs_torch.core.errors import InputError
 from svs_torch.depth import kernels
 from svs_torch.depth.block_matching import block_match_sad, block_match_sad_with_residual, dense_disparity_over_regions
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
-from svs_torch.depth.semi_global import (MATCHED_EXPOSURE_TOLERANCE, _scan_columns_torch, intensity_weights,
-                                         pair_residual_levels, semi_global_aggregate, semi_global_aggregate_with_winner)
+from svs_torch.depth.semi_global import (_scan_columns_torch, pair_residual_levels, semi_global_aggregate,
+                                         semi_global_aggregate_with_winner)
 
 
 def _volume(generator: torch.Generator, b: int = 3, d: int = 7, h: int = 11, w: int = 70) -> torch.Tensor:
@@ -273,50 +273,22 @@ def _featureless_box(seed: int, sigma: float, h: int = 64, w: int = 112, box_px:
 def test_the_intensities_cost_holds_a_featureless_box_at_its_own_disparity():
     """On an aggregated pair the x-Sobel of a plain box is its noise alone, and the columns' paths carry the wall's
     disparity from above and below into it; the intensities' SAD (``smoothing_intensity_weight``, OpenCV SGBM's
-    quarter) holds the box's step against the wall, so more of the box is measured at its own disparity; a whole
-    weight (``smoothing_matched_intensity_weight``, taken by default where the views are exposed alike, as here)
-    holds nearly all of it."""
+    quarter) holds the box's step against the wall, so more of the box is measured at its own disparity."""
     left, right, mask = _featureless_box(seed=30, sigma=0.03)
     search = DisparityRange(torch.zeros(1, dtype=torch.int64), 24)
     shares = {}
-    for weight in (0.0, 0.25, 1.0):
+    for weight in (0.0, 0.25):
         config = DenseConfig(window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=0.0,
-                             smoothing_intensity_weight=weight, smoothing_matched_intensity_weight=None)
+                             smoothing_intensity_weight=weight)
         found = dense_disparity_over_regions(left, right, mask, search, config)
         on_box = found.valid & mask & ((found.disparity_px - 14).abs() <= 1)
         on_wall = found.valid & mask & ((found.disparity_px - 4).abs() <= 1)
         shares[weight] = (on_box.sum() / mask.sum()).item(), (on_wall.sum() / mask.sum()).item()
-    # Measured: box 0.000 -> 0.346 -> 0.853 of the mask, wall 0.871 -> 0.218 -> 0.005.
+    # Measured: box 0.000 -> 0.346 of the mask, wall 0.871 -> 0.218.
     assert shares[0.25][0] > shares[0.0][0] + 0.2 and shares[0.25][1] < shares[0.0][1] - 0.3, shares
-    assert shares[1.0][0] > shares[0.25][0] + 0.3 and shares[1.0][1] < 0.05, shares
-    # The default: these views are exposed alike, so the matched weight (1.0) applies.
-    assert DenseConfig().smoothing_matched_intensity_weight == 1.0
-    found = dense_disparity_over_regions(left, right, mask, search, DenseConfig(
-        window_size=5, smoothing_penalties=(4.0, 16.0), smoothing_min_residual_levels=0.0))
-    assert (found.valid & mask & ((found.disparity_px - 14).abs() <= 1)).sum() / mask.sum() == shares[1.0][0]
 
 
 @pytest.mark.parametrize("weight", [-0.1, float("inf"), float("nan"), True, "0.25"])
 def test_config_refuses_a_bad_intensity_weight(weight):
     with pytest.raises(InputError, match="^smoothing_intensity_weight: "):
         DenseConfig(smoothing_intensity_weight=weight)
-
-
-def test_the_intensity_term_weighs_more_where_the_views_are_exposed_alike(generator):
-    """Each pair's weight of the intensities' SAD: the heavier one where the views' mean levels over the pair's own
-    size agree within MATCHED_EXPOSURE_TOLERANCE, the plain one under a ±30 % gain (the loose rig's), whatever the
-    padding of its batch; None: the plain one for every pair. A bad setting is refused by name."""
-    left = torch.randint(40, 200, (1, 1, 24, 32), generator=generator).float()
-    noise = torch.randint(-4, 5, left.shape, generator=generator).float()
-    rights = [left + noise, (left * 1.3).round(), (left * 0.7).round(), left * (1 + 0.9 * MATCHED_EXPOSURE_TOLERANCE)]
-    lefts, rights = left.expand(4, -1, -1, -1), torch.cat(rights)
-    size = torch.tensor([[24, 32]] * 4)
-    assert intensity_weights(lefts, rights, size, 0.25, 1.0).tolist() == [1.0, 0.25, 0.25, 1.0]
-    assert intensity_weights(lefts, rights, size, 0.25, None).tolist() == [0.25] * 4
-    # padded with a bright border past the pair's own size: the same weights
-    padded = [torch.nn.functional.pad(t, (0, 8, 0, 6), value=255.0) for t in (lefts, rights)]
-    padded[0][..., 24:, :] = 0.0  # the left's padding dark, the right's bright
-    assert intensity_weights(*padded, size, 0.25, 1.0).tolist() == [1.0, 0.25, 0.25, 1.0]
-    with pytest.raises(InputError, match="smoothing_matched_intensity_weight: expected a finite value >= 0"):
-        DenseConfig(smoothing_matched_intensity_weight=-1.0)
-    assert DenseConfig(smoothing_matched_intensity_weight=None).smoothing_matched_intensity_weight is None
