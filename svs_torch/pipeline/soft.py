@@ -231,7 +231,7 @@ def _ranked_bands(dense: DenseDisparity, valid: torch.Tensor, in_box: torch.Tens
     """Without gradients, from the hard map filled from its ``valid`` pixels ``(B, 1, H, W)``: the filled
     disparity ``(B, 1, H, W)``, which pixels count ``(B, P)``, each slot's bands of quantiles ``q``
     (:func:`_bands`, ``(B, N, Q, P)``), the pixels those depend on, fill sources included ``(B, 1, H, W)``, and
-    each slot's measured (not filled) pixels ``(B, N)``, as the hard statistics count them."""
+    each pixel's slot label where it counts ``(B, P)`` (0 elsewhere)."""
     with torch.no_grad():
         filled, reachable = fill_invalid_rows(dense.disparity_px, valid)
         ok = (reachable & in_box).flatten(1) & (filled.flatten(1) + doffs > 0)
@@ -240,9 +240,14 @@ def _ranked_bands(dense: DenseDisparity, valid: torch.Tensor, in_box: torch.Tens
         members = torch.where(ok, labels.flatten(1), torch.zeros_like(labels.flatten(1)))
         bands = _bands(depth.to(torch.float64), members, slots, q)
         needed = _fill_sources(valid, bands.any(dim=(1, 2)).view_as(valid))
-        measured = [((members == slots[:, n:n + 1]) & valid.flatten(1)).sum(1) for n in range(slots.shape[1])]
-        measured = torch.stack(measured, 1) if measured else torch.zeros_like(slots)
-    return filled, ok, bands, needed, measured
+    return filled, ok, bands, needed, members
+
+
+def _measured_per_slot(members: torch.Tensor, valid: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+    """Each slot's measured (not filled) pixels ``(B, N)``, as the hard statistics count them: its ``members``
+    ``(B, P)`` (:func:`_ranked_bands`) that are ``valid`` ``(B, 1, H, W)``."""
+    measured = [((members == slots[:, n:n + 1]) & valid.flatten(1)).sum(1) for n in range(slots.shape[1])]
+    return torch.stack(measured, 1) if measured else torch.zeros_like(slots)
 
 
 def _band_means(disparity: torch.Tensor, dense: DenseDisparity, ranked: tuple, valid: torch.Tensor,
@@ -305,7 +310,8 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     if surface_valid is not None:
         surface_means, surface_some = _band_means(disparity, dense, surface, surface_valid, scale, doffs, weights)
         # As the hard statistics: where the object has a measured pixel there (the fill reaches across objects).
-        low = torch.where(surface_some[..., 0] & (surface[4] > 0), surface_means[..., 0], means[..., 1])
+        measured = _measured_per_slot(surface[4], surface_valid, slots)
+        low = torch.where(surface_some[..., 0] & (measured > 0), surface_means[..., 0], means[..., 1])
         means = torch.stack([means[..., 0], low, means[..., 2]], dim=-1)
     median, low, high = torch.where(valid.unsqueeze(-1), means, torch.zeros_like(means)).unbind(-1)
     soft_objects: ObjectDepths = dataclasses.replace(hard.objects, depth_median_m=median, depth_low_m=low,
