@@ -22,7 +22,8 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
             "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
             "features_smoothed": False, "verified": None, "num_agreeing_inliers": None, "num_measured_inliers": None,
             "dropped_unmeasured": 0, "floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None,
-            "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None}
+            "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None,
+            "image_size_px": None, "working_size_px": None}
 
 
 def _calibration_source(source, args) -> str:
@@ -37,11 +38,17 @@ def with_calibration(report: dict, batch, index: int, factors: tuple[float, floa
                      rectified_by_file: bool = False) -> dict:
     """``report`` with the calibration its metres use, for the INPUT image size, and where it came from
     (:func:`svs_torch.data.calibration_record`); ``calibration_rectified``: the pair was rectified by
-    ``--calibration``'s file before the pipeline (whose own ``rectified`` says it rectified the pair from its F)."""
+    ``--calibration``'s file before the pipeline (whose own ``rectified`` says it rectified the pair from its F);
+    and the two sizes its pixel counts are in, ``[width, height]`` each: ``image_size_px`` the input's (``area_px``,
+    ``bbox_xyxy``), ``working_size_px`` the image the pipeline ran on (``--size``: ``num_valid_px``,
+    ``dense_box_xywh``)."""
     from ..data import calibration_record
 
+    height, width = (int(v) for v in batch.image_hw[index].tolist())
     return {**report, "calibration_rectified": rectified_by_file,
-            "calibration": calibration_record(batch, index, source, factors[0])}
+            "calibration": calibration_record(batch, index, source, factors[0]),
+            "image_size_px": [int(round(width * factors[0])), int(round(height * factors[1]))],
+            "working_size_px": [width, height]}
 
 
 def _number(value, valid) -> float | None:
@@ -248,19 +255,7 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "
                      f"{report['range_rule']} rule")
-    for obj in report["objects"]:
-        depth = "no depth"
-        if obj["depth_m"] is not None:
-            depth = f"{obj['depth_m']:.3f} m (p10 {obj['depth_p10_m']:.3f}, p90 {obj['depth_p90_m']:.3f})"
-        support = f"{obj['num_inliers']} inliers"
-        if obj["num_valid_px"] is not None:
-            support = f"{obj['num_valid_px']} valid px"
-            if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
-                support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
-        if obj.get("near_surface"):  # a report read back from an older JSON has no such key
-            depth += f" over the near surface ({obj['measured_area_px']} px) of a region spanning two"
-        lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
-                     f"box {obj['bbox_xyxy']}")
+    lines += _object_lines(report)
     if report["nearest_m"] is not None:
         lines.append(f"  {nearest_name}: {report['nearest_m']:.2f} m, {report['nearest_side']} "
                      f"(nearest surface {report['nearest_surface_m']:.2f} m)")
@@ -270,6 +265,28 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[
 
         lines.append("  " + describe_floor(floor["camera_height_m"], floor["pitch_deg"], "nearest obstacle",
                                            report["nearest_ahead_m"], report["nearest_ahead_surface_m"]))
+    return lines
+
+
+def _object_lines(report: dict) -> list[str]:
+    """A text line for each of ``report``'s objects (:func:`format_report`)."""
+    lines = []
+    # The dense counts are of the image the pipeline ran on; the areas and boxes of the input (--size resamples).
+    sizes = report.get("image_size_px"), report.get("working_size_px")
+    working = f" at the working {sizes[1][0]}x{sizes[1][1]}" if sizes[1] and sizes[0] != sizes[1] else ""
+    for obj in report["objects"]:
+        depth = "no depth"
+        if obj["depth_m"] is not None:
+            depth = f"{obj['depth_m']:.3f} m (p10 {obj['depth_p10_m']:.3f}, p90 {obj['depth_p90_m']:.3f})"
+        support = f"{obj['num_inliers']} inliers"
+        if obj["num_valid_px"] is not None:
+            support = f"{obj['num_valid_px']} valid px{working}"
+            if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
+                support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
+        if obj.get("near_surface"):  # a report read back from an older JSON has no such key
+            depth += f" over the near surface ({obj['measured_area_px']} px) of a region spanning two"
+        lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
+                     f"box {obj['bbox_xyxy']}")
     return lines
 
 

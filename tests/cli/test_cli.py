@@ -1311,6 +1311,24 @@ def test_estimate_reports_no_floor_pose_where_size_changes_the_pixels_aspect(cap
     assert report["floor"]["camera_height_m"] == pytest.approx(1.3, rel=0.1) and "aspect" not in err
 
 
+def test_estimate_names_the_size_its_dense_pixel_counts_are_of(capsys, tmp_path):
+    """With --size the dense counts (num_valid_px) are of the resampled image and the areas and boxes of the input:
+    the JSON gives both sizes and the text line says which the counts are of; without --size it says nothing."""
+    from svs_torch.cli.estimate_report import format_report
+
+    paths = _walker_pair_files(tmp_path)
+    code, out, _ = run_cli(capsys, "estimate", *paths, "--json", "--size", "256x192")
+    report = json.loads(out)
+    assert code == 0 and report["image_size_px"] == [320, 240] and report["working_size_px"] == [256, 192]
+    assert report["objects"] and all(obj["num_valid_px"] <= 256 * 192 for obj in report["objects"])
+    lines = [line for line in format_report(report) if line.startswith("  object")]
+    assert lines and all("valid px at the working 256x192 " in line for line in lines)
+    code, out, _ = run_cli(capsys, "estimate", *paths, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["working_size_px"] == report["image_size_px"] == [320, 240]
+    assert "valid px" in "\n".join(format_report(report)) and "at the working" not in "\n".join(format_report(report))
+
+
 def test_estimate_says_why_the_paper_rule_reports_no_floor_pose(capsys, tmp_path):
     """--range paper makes no dense map, which the floor's pose and the distances ahead are measured on: with
     --floor on they are null, and one warning says why (a null read as "no floor found" otherwise); without
