@@ -10,7 +10,8 @@ Output, in ``--out-dir`` (alias ``--out``):
   ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, and ``time_between_frames_s``
   (right arrival − left arrival, seconds);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
-  ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them).
+  ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
+  the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given).
 
 Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).
 """
@@ -27,7 +28,7 @@ from typing import Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from .common import noise_levels, pair_count, positive_int, timeout_seconds
-from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, save_pair
+from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, replay_command, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
@@ -45,8 +46,8 @@ examples:
   svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --out pairs/
   svs-depth capture --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002 --size 640x480 --out big/
   svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --calibration rig.json --out pairs/   (svs-depth calibrate)
-then range what was saved:
-  svs-depth estimate --pairs pairs/index.jsonl --json
+then range what was saved (the command capture prints at the end):
+  svs-depth estimate --pairs pairs/index.jsonl --camera-frames --json
 """
 
 
@@ -206,10 +207,9 @@ def run(args: argparse.Namespace) -> int:
         return 130
     except (CaptureError, OSError, InputError) as err:
         return _fail(f"{err} ({done} of {args.count} pairs saved in {out})", 1)
-    print(f"{PROG}: saved {done} pairs to {out}", file=sys.stderr)
-    if calibration is not None:
-        print(f"{PROG}: rectify them with: svs-depth estimate --pairs {out / INDEX_NAME} --calibration "
-              f"{out / CALIBRATION_NAME}", file=sys.stderr)
+    # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
+    replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
+    print(f"{PROG}: saved {done} pairs to {out}; range them with: {replay}", file=sys.stderr)
     return 0
 
 

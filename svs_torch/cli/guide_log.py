@@ -23,14 +23,13 @@ included). Only the pairs guide ranged are kept: the record is what the walker w
 from __future__ import annotations
 
 import json
-import shlex
 import sys
 import time
 from pathlib import Path
 from typing import Any, TextIO
 
 from ..core.files import display_path
-from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, save_pair
+from .pairs_folder import CALIBRATION_NAME, PairsIndex, replay_command, save_pair
 from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
@@ -146,10 +145,3 @@ class GuideLog:
 def _pairs(count: int) -> str:
     return f"{count} pair{'' if count == 1 else 's'}"
 
-
-def replay_command(record_dir: Path, floor: str = "on", calibration: str | None = None) -> str:
-    """The ``estimate`` command that ranges a ``--record`` folder's pairs with guide's settings."""
-    options = f" --floor {floor} --camera-frames"
-    if calibration:
-        options += f" --calibration {shlex.quote(calibration)}"
-    return f"svs-depth estimate --pairs {shlex.quote(display_path(record_dir / INDEX_NAME))}{options} --json"

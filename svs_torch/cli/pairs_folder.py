@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,7 +25,7 @@ from ..core.files import check_path_given, check_writable_folder, display_path, 
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
 
-__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "PairsIndex", "new_pairs_folder", "save_pair"]
+__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "PairsIndex", "new_pairs_folder", "replay_command", "save_pair"]
 
 INDEX_NAME = "index.jsonl"
 CALIBRATION_NAME = "calibration.json"  # a copy of --calibration's file
@@ -135,3 +136,13 @@ class PairsIndex:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def replay_command(folder: Path, floor: str | None = None, calibration: str | None = None) -> str:
+    """The ``estimate`` command that ranges a pairs folder's pairs (``capture --out`` or ``guide --record``) as camera
+    frames (``--camera-frames``), with ``--floor`` (guide's setting; None: estimate's default) and ``--calibration``
+    (the rig's file kept beside them) where given."""
+    options = (f" --floor {floor}" if floor else "") + " --camera-frames"
+    if calibration:
+        options += f" --calibration {shlex.quote(calibration)}"
+    return f"svs-depth estimate --pairs {shlex.quote(display_path(folder / INDEX_NAME))}{options} --json"

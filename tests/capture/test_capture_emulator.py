@@ -530,7 +530,16 @@ def test_cli_capture_with_builtin_emulator(tmp_path, capsys):
         assert image.shape == (120, 160) and record["left_bytes"] == (tmp_path / "run" / record["left"]).stat().st_size
         assert record["time_between_frames_s"] == pytest.approx(
             record["right_arrival_monotonic_s"] - record["left_arrival_monotonic_s"])
-    assert "saved 3 pairs" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "saved 3 pairs" in err
+    # The last line gives the estimate command that ranges them as camera frames, as guide --record's summary does.
+    import shlex
+
+    from svs_torch.cli import build_parser
+
+    replay = shlex.split(err.strip().splitlines()[-1].split("range them with: ")[1])
+    args = build_parser().parse_args(replay[1:])
+    assert args.pairs == str(tmp_path / "run" / "index.jsonl") and args.camera_frames and args.json
     assert run_capture("--emulator", "--count", "1", "--out", str(tmp_path / "run")) == 2  # index exists
 
 

@@ -57,7 +57,7 @@ def test_capture_help_shows_commands_to_copy():
 OTHER_COMMANDS_OPTIONS = {"calibrate": {"--calibration"}, "sweep": {"--set", "--summary", "--figure", "--nthreads"},
                           "results": {"--db"}, "guide": {"--camera-frames", "--pairs"},
                           "estimate": {"--set"},  # "dropped_unmeasured": eval's and sweep's --set, named as theirs
-                          "capture": {"--pairs", "--json"}}  # its examples end with the estimate command that ranges
+                          "capture": {"--pairs", "--camera-frames", "--json"}}  # its examples end with the estimate command that ranges
 
 
 def test_every_option_a_commands_help_names_is_one_it_takes():
