@@ -1019,3 +1019,48 @@ def test_a_ground_truth_beyond_the_image_is_refused(data_dir, tmp_path, capsys):
     code, out, _ = run_main(["eval", str(scene), "--json"])
     row = json.loads(out.splitlines()[0])
     assert code == 0 and row["status"] == "BAD_INPUT" and "ground-truth disparities" in row["reason"]
+
+
+def test_sizes_and_counts_that_never_end_or_overflow_are_refused_by_name():
+    """Found by a fuzz of the public stages (stop 46): a descriptor border of 2^62 px crashed the process in the C
+    kernel (its table size overflowed), one of 70 000 px failed in a torch allocation, and 2^31 RANSAC samples at
+    confidence 1, 2^31 row-alignment hypotheses or 2^31 − 1 LK steps ran for minutes; None for a dense flag and a
+    penalty that is not a pair failed deep inside. Each is now an InputError naming the setting, before any work."""
+    import dataclasses
+
+    from svs_torch.depth.dense_config import DenseConfig
+    from svs_torch.features import kernels as feature_kernels
+    from svs_torch.features.integral import padded_integral_image
+    from svs_torch.geometry import kernels as geometry_kernels
+    from svs_torch.geometry.ransac import _kernel_settings
+    from svs_torch.geometry.row_alignment import RowAlignmentConfig
+
+    image, one = torch.rand(1, 1, 40, 50), torch.ones(1, 1, dtype=torch.bool)
+    for pad in (2**62, 2**31, 70_000):
+        with pytest.raises(InputError, match=f"pad: a border of {pad} px"):
+            feature_kernels.usurf_describe(image, pad, torch.full((1, 1, 2), 20.0), torch.full((1, 1), 2.0), one, False)
+        with pytest.raises(InputError, match="pad: a border"):
+            feature_kernels.padded_integral(image, torch.zeros(1), pad)
+        with pytest.raises(InputError, match="pad: a border"):
+            padded_integral_image(image, pad)
+    assert padded_integral_image(image, 3).table.shape == (1, 1, 47, 57)
+    points = torch.rand(1, 40, 2, dtype=torch.float64) * 100
+    with pytest.raises(InputError, match="max_iterations: expected an int from 1 to 1048576"):
+        estimate_fundamental_ransac(points.float(), points.float(), torch.ones(1, 40, dtype=torch.bool),
+                                    confidence=1.0, max_iterations=2**31)
+    settings = _kernel_settings({"threshold_px": 1.0, "confidence": 1.0, "max_iterations": 2**31, "chunk_size": 64,
+                                 "scoring": "msac"}, True, True, True)
+    with pytest.raises(InputError, match=r"settings\['max_iterations'\]: expected at most 1048576"):
+        geometry_kernels.ransac_fundamental(points, points, torch.ones(1, 40, dtype=torch.bool),
+                                            torch.zeros(1, dtype=torch.int64), settings)
+    with pytest.raises(InputError, match="ransac_max_iterations: expected an int from 1 to 1048576"):
+        dataclasses.replace(PipelineConfig(), ransac_max_iterations=2**31)
+    with pytest.raises(InputError, match="num_hypotheses: expected an int from 1 to 1048576"):
+        RowAlignmentConfig(num_hypotheses=2**31)
+    with pytest.raises(InputError, match="iterations: expected an int from 0 to 1000"):
+        geometry_kernels.lk_refine(image, image, torch.full((1, 1, 2), 20.0), torch.full((1, 1, 2), 20.0),
+                                   torch.full((1, 1), 3.0), one, 2**31 - 1, 1.0)
+    for field, value in (("fill_invalid", None), ("whole_range_in_view", None), ("smoothing_penalties", -1),
+                         ("retry_smoothing_penalties", ()), ("smoothing_penalties", (1.0, "2"))):
+        with pytest.raises(InputError, match=f"^{field}: expected"):
+            DenseConfig(**{field: value})

@@ -154,12 +154,13 @@ def check_flag(value: object, name: str) -> None:
         raise InputError(f"{name}: expected a bool, got {value!r}")
 
 
-def check_count(value: object, name: str, least: int = 0, optional: bool = False) -> None:
-    """A whole-number setting of at least ``least`` (``None`` allowed with ``optional``)."""
+def check_count(value: object, name: str, least: int = 0, optional: bool = False, most: int | None = None) -> None:
+    """A whole-number setting of at least ``least`` and at most ``most`` (``None`` allowed with ``optional``)."""
     if optional and value is None:
         return
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise InputError(f"{name}: expected an int >= {least}{' or None' if optional else ''}, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int) or value < least or (most is not None and value > most):
+        bound = f">= {least}" if most is None else f"from {least} to {most}"
+        raise InputError(f"{name}: expected an int {bound}{' or None' if optional else ''}, got {value!r}")
 
 
 def check_real(value: object, name: str, low: float = -math.inf, high: float = math.inf, low_open: bool = False,

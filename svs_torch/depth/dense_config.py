@@ -9,7 +9,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_count, check_percentiles, check_real
+from ..core.checks import InputError, check_count, check_flag, check_percentiles, check_real
 from .kernels import MAX_WINDOW
 
 __all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
@@ -145,8 +145,8 @@ class DenseConfig:
         if not isinstance(window, int) or not 1 <= window <= MAX_WINDOW or window % 2 == 0:
             # the kernel's bound (dense.working_window widens no further); 10001 took 1.8 GB on a 64x48 view
             raise InputError(f"window_size: expected an odd int from 1 to {MAX_WINDOW}, got {self.window_size!r}")
-        if not isinstance(self.scale_window, bool):
-            raise InputError(f"scale_window: expected a bool, got {self.scale_window!r}")
+        for name in ("scale_window", "in_view_per_object", "fill_invalid", "whole_range_in_view"):
+            check_flag(getattr(self, name), name)  # None reached a kernel's int() before
         if self.range_source not in ("coarse", "inliers"):
             raise InputError(f"range_source: expected 'coarse' or 'inliers', got {self.range_source!r}")
         if not isinstance(self.working_width_px, int) or self.working_width_px < 8:
@@ -167,8 +167,6 @@ class DenseConfig:
         if share is not None and (isinstance(share, bool) or not isinstance(share, (int, float))
                                   or not 0 <= share < 0.5):
             raise InputError(f"in_view_detached_tail_share: expected None or a share in [0, 0.5), got {share!r}")
-        if not isinstance(self.in_view_per_object, bool):
-            raise InputError(f"in_view_per_object: expected a bool, got {self.in_view_per_object!r}")
         share = self.in_view_own_min_valid_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
             raise InputError(f"in_view_own_min_valid_share: expected a share in [0, 1], got {share!r}")
@@ -180,7 +178,9 @@ class DenseConfig:
                 raise InputError(f"{name}: expected a value from 0 to 1e6, got {getattr(self, name)!r}")
         for name in ("smoothing_penalties", "retry_smoothing_penalties"):
             penalties = getattr(self, name)
-            if penalties is not None and not 0 <= penalties[0] <= penalties[1] < float("inf"):
+            pair = isinstance(penalties, (tuple, list)) and len(penalties) == 2 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in penalties)
+            if penalties is not None and not (pair and 0 <= penalties[0] <= penalties[1] < float("inf")):
                 raise InputError(f"{name}: expected None or (P1, P2) with 0 <= P1 <= P2, got {penalties!r}")
         if not isinstance(self.smoothing_max_reduction, int) or self.smoothing_max_reduction < 1:
             raise InputError(f"smoothing_max_reduction: expected an int >= 1, got {self.smoothing_max_reduction!r}")

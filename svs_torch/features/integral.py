@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check_image
+from .kernels import check_border
 
 __all__ = [
     "PaddedIntegral", "grid_box_corners", "grid_box_sums", "image_means", "integral_image", "integral_phases",
@@ -135,6 +136,7 @@ def padded_integral_image(image: torch.Tensor, pad: int, subtract_mean: bool = T
     a table summed from its own corner gave an image other float roundings, so other descriptors, in another batch
     (issue 29). Box sums, differences of four values, are those of the plain integral image."""
     check_image(image, "image", check_range=False)
+    check_border(pad, image.shape[-2], image.shape[-1])
     if subtract_mean:
         image = image - image_means(image).view(-1, 1, 1, 1)
     if pad > 0:

@@ -16,6 +16,7 @@ from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
 from . import kernels
+from .kernels import MAX_LK_ITERATIONS
 from .matched_points import MatchedPoints
 
 __all__ = ["LK_GRID_HALF_WIDTH", "MAX_LK_ITERATIONS", "MatchRefinementConfig", "refine_matched_points",
@@ -24,8 +25,6 @@ __all__ = ["LK_GRID_HALF_WIDTH", "MAX_LK_ITERATIONS", "MatchRefinementConfig", "
 
 #: Half-width, in samples, of the patch grid of :func:`refine_matches_lk` (a 13 × 13 grid).
 LK_GRID_HALF_WIDTH = 6
-#: The most Gauss–Newton steps a refinement may take (8 by default); a C int underneath, where 2^64 + 1 ran as 1.
-MAX_LK_ITERATIONS = 1000
 
 
 @dataclass(frozen=True)

@@ -178,7 +178,8 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
         check_dtype(pair_seeds, "pair_seeds", "int")
     rules = {"threshold_px": (lambda v: math.isfinite(v) and v > 0, "a finite positive number of pixels"),
              "confidence": (lambda v: 0 < v <= 1, "a probability in (0, 1]"),
-             "max_iterations": (lambda v: isinstance(v, int) and v >= 1, "an int ≥ 1"),
+             "max_iterations": (lambda v: isinstance(v, int) and 1 <= v <= kernels.MAX_HYPOTHESES,
+                                f"an int from 1 to {kernels.MAX_HYPOTHESES}"),
              "chunk_size": (lambda v: isinstance(v, int) and v >= 1, "an int ≥ 1"),
              "min_inliers": (lambda v: isinstance(v, int) and v >= 0, "an int ≥ 0"),
              "scoring": (lambda v: v in SCORINGS, f"one of {', '.join(SCORINGS)}")}

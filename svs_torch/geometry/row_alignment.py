@@ -102,8 +102,9 @@ class RowAlignmentConfig:
                 and self.max_shift_fraction > 0 and self.min_correction_px >= 0):
             raise InputError("RowAlignmentConfig: expected threshold_px, max_roll_deg, max_scale_change and "
                              "max_shift_fraction > 0 and min_correction_px >= 0")
-        if not (isinstance(self.num_hypotheses, int) and self.num_hypotheses >= 1):
-            raise InputError(f"num_hypotheses: expected an int >= 1, got {self.num_hypotheses!r}")
+        if not (isinstance(self.num_hypotheses, int) and 1 <= self.num_hypotheses <= kernels.MAX_HYPOTHESES):
+            raise InputError(f"num_hypotheses: expected an int from 1 to {kernels.MAX_HYPOTHESES}, got "
+                             f"{self.num_hypotheses!r}")
         if not (isinstance(self.min_inliers, int) and self.min_inliers >= _SAMPLE):
             raise InputError(f"min_inliers: expected an int >= {_SAMPLE}, got {self.min_inliers!r}")
         if not 0 <= self.min_inlier_share <= 1:

@@ -14,6 +14,7 @@ from ..core.checks import InputError, check_count, check_flag, check_real
 from ..depth.dense_config import DenseConfig
 from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
+from ..geometry.kernels import MAX_HYPOTHESES
 from ..geometry.lk_refinement import MatchRefinementConfig
 from ..geometry.rectification import RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
@@ -339,7 +340,7 @@ class PipelineConfig:
         check_real(self.epipolar_band_px, "epipolar_band_px", 0.0, optional=True)
         check_real(self.ransac_threshold_px, "ransac_threshold_px", 0.0, low_open=True)
         check_real(self.ransac_confidence, "ransac_confidence", 0.0, 1.0, low_open=True)
-        check_count(self.ransac_max_iterations, "ransac_max_iterations", 1)
+        check_count(self.ransac_max_iterations, "ransac_max_iterations", 1, most=MAX_HYPOTHESES)  # 2^31 never ended
         check_real(self.row_tolerance_px, "row_tolerance_px", 0.0)
         if not 0 <= self.verify_min_inlier_share <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "

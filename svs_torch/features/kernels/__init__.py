@@ -14,8 +14,8 @@ from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cp
 from ...core.kernels.checks import check_nonempty, check_rows
 
 __all__ = [
-    "available", "hessian_octave", "load", "local_maxima", "padded_integral", "refine_maxima", "strongest_maxima",
-    "usurf_describe"
+    "MAX_TABLE_VALUES", "available", "check_border", "hessian_octave", "load", "local_maxima", "padded_integral",
+    "refine_maxima", "strongest_maxima", "usurf_describe"
 ]
 
 declare({
@@ -68,15 +68,31 @@ def hessian_octave(padded: torch.Tensor, pad: int, step: int, sizes: list[int], 
     return True
 
 
+#: The most values a padded integral table may hold (8 GiB as float32; a 320×240 view's widest border is under
+#: 200 px): past it a border is an error, not a C size computation that overflows (a pad of 2^62 crashed the
+#: descriptor kernel) or a torch allocation failing deep inside.
+MAX_TABLE_VALUES = 2**31
+
+
+def check_border(pad: int, height: int, width: int) -> None:
+    """InputError naming ``pad`` unless it is a non-negative int whose ``(H + 1 + 2·pad) × (W + 1 + 2·pad)`` table
+    holds at most :data:`MAX_TABLE_VALUES` values."""
+    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
+        raise InputError(f"pad: expected a non-negative int, got {pad!r}")
+    values = (height + 1 + 2 * pad) * (width + 1 + 2 * pad)
+    if values > MAX_TABLE_VALUES:
+        raise InputError(f"pad: a border of {pad} px around a {height}x{width} image asks for an integral table of "
+                         f"{values} values (at most {MAX_TABLE_VALUES}); a keypoint's reach is far smaller")
+
+
 def padded_integral(image: torch.Tensor, means: torch.Tensor, pad: int) -> torch.Tensor | None:
     """``pad_integral(integral_image(image − means), pad)`` of ``svs_torch.features.hessian`` in one pass per image (see
     the C source), bit for bit: ``image`` ``(B, 1, H, W)`` float32, ``means`` ``(B,)`` float32 (each image's
     own, subtracted from its pixels). Returns the table ``(B, 1, H + 1 + 2·pad, W + 1 + 2·pad)``, or None when
     the kernel is not available or the inputs do not fit its contract."""
-    b = check_shape(image, "image", ["B", 1, "H", "W"])["B"]
-    check_shape(means, "means", [b])
-    if not isinstance(pad, int) or pad < 0:
-        raise InputError(f"pad: expected a non-negative int, got {pad!r}")
+    dims = check_shape(image, "image", ["B", 1, "H", "W"])
+    check_shape(means, "means", [dims["B"]])
+    check_border(pad, dims["H"], dims["W"])
     if not on_cpu(torch.float32, image, means):
         return None
     library = load("padded_integral")
@@ -223,8 +239,7 @@ def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch
     check_shape(scale, "scale", [b, k])
     check_rows(valid, "valid", b, k, kinds="bool")
     check_nonempty(image, "image")
-    if not isinstance(pad, int) or pad < 0:
-        raise InputError(f"pad: expected a non-negative int, got {pad!r}")
+    check_border(pad, h, w)
     if not (on_cpu(torch.float32, image, xy, scale) and on_cpu(torch.bool, valid)):
         return None
     # A NaN position would be cast to an index (undefined in C); ±inf and huge ones are clamped to the border.

@@ -13,8 +13,24 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_number, check_rows, settings_table
 
-__all__ = ["RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available", "lk_refine", "load", "ransac_fundamental",
-           "rectify_parallel", "row_alignment_cost", "row_alignment_fit", "sad_nearest"]
+#: The most samples a fit may draw for one pair (RANSAC's 7-point and the row alignment's 3-match hypotheses):
+#: 2^20 covers a 7-point fit at a fifth of inliers with confidence 0.999 (about 540 000); more is a number that
+#: never ends (2^31 with confidence 1 ran for minutes), refused instead.
+MAX_HYPOTHESES = 2**20
+#: The most Gauss–Newton steps a refinement may take (8 by default); a C int underneath, where 2^64 + 1 ran as 1,
+#: and 2^31 − 1 steps ran for minutes.
+MAX_LK_ITERATIONS = 1000
+
+
+def check_hypotheses(value: float, name: str) -> None:
+    """InputError naming ``name`` unless ``value`` is at most :data:`MAX_HYPOTHESES` (its lower bound and type are
+    checked with the other settings)."""
+    if value > MAX_HYPOTHESES:
+        raise InputError(f"{name}: expected at most {MAX_HYPOTHESES} (2^20) samples per pair, got {value!r}")
+
+__all__ = ["MAX_HYPOTHESES", "MAX_LK_ITERATIONS", "RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available",
+           "check_hypotheses", "lk_refine", "load", "ransac_fundamental", "rectify_parallel", "row_alignment_cost",
+           "row_alignment_fit", "sad_nearest"]
 
 declare({
     "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
@@ -44,8 +60,8 @@ def lk_refine(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, ri
     check_shape(radius, "radius", [b, k])
     check_rows(active, "active", b, k, kinds="bool")
     check_nonempty(left, "left")
-    if not isinstance(iterations, int) or not 0 <= iterations < 2**31:  # a C int: 2^64 + 1 ran as 1
-        raise InputError(f"iterations: expected an int from 0 to 2^31 - 1, got {iterations!r}")
+    if not isinstance(iterations, int) or not 0 <= iterations <= MAX_LK_ITERATIONS:  # a C int: 2^64 + 1 ran as 1
+        raise InputError(f"iterations: expected an int from 0 to {MAX_LK_ITERATIONS}, got {iterations!r}")
     check_number(max_shift_px, "max_shift_px", 0.0)
     if (not (on_cpu(torch.float32, *tensors) and on_cpu(torch.bool, active))
             or h * w >= 2**31):  # the kernel indexes an image with 32-bit offsets
@@ -206,6 +222,7 @@ def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, val
     if focal_px is not None:
         check_rows(focal_px, "focal_px", b, kinds="float")
     table = settings_table(settings, ROW_ALIGNMENT_SETTINGS, {"num_hypotheses": 1, "min_inliers": 0, "min_gain": 0})
+    check_hypotheses(settings["num_hypotheses"], "settings['num_hypotheses']")
     floats = (points_left, points_right) if focal_px is None else (points_left, points_right, focal_px)
     if (not (on_cpu(torch.float64, *floats) and on_cpu(torch.bool, valid) and on_cpu(torch.int64, image_hw, pair_seeds))
             or bool((image_hw < 1).any())):
@@ -254,6 +271,7 @@ def ransac_fundamental(points_left: torch.Tensor, points_right: torch.Tensor, va
     check_rows(valid, "valid", b, k, kinds="bool")
     check_rows(pair_seeds, "pair_seeds", b)
     values = settings_table(settings, RANSAC_SETTINGS, _RANSAC_COUNTS, low=0.0)
+    check_hypotheses(settings["max_iterations"], "settings['max_iterations']")
     if not (on_cpu(torch.float64, points_left, points_right) and on_cpu(torch.bool, valid)
             and on_cpu(torch.int64, pair_seeds)):
         return None
