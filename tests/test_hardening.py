@@ -1064,3 +1064,52 @@ def test_sizes_and_counts_that_never_end_or_overflow_are_refused_by_name():
                          ("retry_smoothing_penalties", ()), ("smoothing_penalties", (1.0, "2"))):
         with pytest.raises(InputError, match=f"^{field}: expected"):
             DenseConfig(**{field: value})
+
+
+def test_the_second_fuzz_of_the_stages_meets_errors_naming_the_argument():
+    """Found by a second fuzz (stop 46): huge counts reached allocators, a wrong mask shape, a negative count, a
+    string where bytes or a number belong, or a NaN padding point reached torch or numpy, and failed there (an
+    allocation, an index, a math domain, an eigen-solver). Each is now an InputError naming the argument; a padding
+    point (weight 0) of the 8-point fit no longer matters, whatever it holds."""
+    from svs_torch.capture import protocol
+    from svs_torch.depth import kernels as depth_kernels
+    from svs_torch.depth.quantiles import masked_quantile
+    from svs_torch.geometry.epipolar import fundamental_8point
+    from svs_torch.geometry.matching import max_sad_distance
+    from svs_torch.segmentation import kernels as segmentation_kernels
+    from svs_torch.segmentation.components import region_properties
+    from svs_torch.segmentation.morphology import structuring_element
+    from svs_torch.segmentation.segment import keep_largest_regions
+    from svs_torch.segmentation.threshold import gray_histogram
+
+    labels = torch.zeros(1, 1, 4, 4, dtype=torch.int64)
+    labels[0, 0, 1, 1] = 1
+    runs = torch.tensor([0])
+    calls = [
+        (lambda: gray_histogram(torch.zeros(2, 1, 4, 4, dtype=torch.uint8), torch.zeros(2, 1, 4, 5, dtype=torch.bool)),
+         "ignore: expected"),
+        (lambda: region_properties(labels, torch.tensor([-3])), "num_labels: expected label slot counts >= 0"),
+        (lambda: max_sad_distance(-5), "descriptor_length: expected a positive int"),
+        (lambda: masked_quantile(torch.rand(3), torch.ones(3, dtype=torch.bool), "ab"), "q: expected quantiles"),
+        (lambda: structuring_element("square", 2**31), "size: expected an integer from 1 to 4095"),
+        (lambda: keep_largest_regions(labels, region_properties(labels), 2**40), "num_keep: expected an int from 0"),
+        (lambda: depth_kernels.region_medians(torch.rand(1, 4), torch.zeros(1, 4, dtype=torch.int64), 2**31),
+         "num_labels: expected an int from 0 to 65536"),
+        (lambda: segmentation_kernels.label_runs(runs, runs, 1, 2**31, 2**31, 8), "expected a grid under 2"),
+        (lambda: depth_kernels.fill_invalid_rows([1.0, 2.0], None), "disparity: expected a Tensor"),
+        (lambda: depth_kernels.sad_volume(torch.zeros(1, 5, 9), torch.zeros(1, 5, 12), 3, 7, 3.7, None),
+         "window_size: expected an int >= 1"),
+        (lambda: protocol.FrameParser().feed("##IMJ"), "data: expected bytes"),
+        (lambda: protocol.encode_frame("Z", b"\xff\xd8\xff\xd9"), "size_code: expected one of"),
+    ]
+    for call, message in calls:
+        with pytest.raises(InputError, match=message):
+            call()
+    points = torch.rand(1, 10, 2, dtype=torch.float64) * 100
+    right, weights = points + torch.rand(1, 10, 2, dtype=torch.float64), torch.ones(1, 10, dtype=torch.float64)
+    weights[0, 3] = 0
+    padded = points.clone()
+    padded[0, 3] = torch.nan
+    assert torch.equal(fundamental_8point(padded, right, weights), fundamental_8point(points, right, weights))
+    with pytest.raises(InputError, match="expected finite coordinates where the weight is > 0"):
+        fundamental_8point(padded, right)

@@ -212,6 +212,7 @@ def max_jpeg_length(width: int, height: int) -> int:
 
 def parse_frame_header(header: bytes) -> FrameHeader:
     """Parse the 10-byte ``##IMJ`` header (§3): magic, size code, little-endian length with a zero fourth byte."""
+    _check_bytes(header, "header")
     if len(header) != FRAME_HEADER_LEN:
         raise ProtocolError(f"frame header: expected {FRAME_HEADER_LEN} bytes, got {describe_bytes(header)}")
     if header[:5] != FRAME_MAGIC:
@@ -242,10 +243,19 @@ def encode_frame(size_code: str, jpeg: bytes, announced_length: int | None = Non
 
     ``announced_length`` overrides the length written in the header (the emulator's wrong-length fault).
     """
+    if size_code not in SVS_RESOLUTIONS:  # 'Z' was encoded, a frame no board sends
+        raise InputError(f"size_code: expected one of {sorted(SVS_RESOLUTIONS)}, got {size_code!r}")
+    _check_bytes(jpeg, "jpeg")
     length = len(jpeg) if announced_length is None else announced_length
     if not 0 <= length < 2 ** 24:
         raise InputError(f"announced_length: expected 0 <= length < 2**24 (fourth byte 0), got {length}")
     return FRAME_MAGIC + size_code.encode("ascii") + length.to_bytes(4, "little") + jpeg
+
+
+def _check_bytes(data: object, name: str) -> None:
+    """InputError naming ``name`` unless ``data`` is bytes-like (a str was concatenated to the buffer deep inside)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise InputError(f"{name}: expected bytes read from the link, got {type(data).__name__}")
 
 
 def find_token(buffer: bytes, tokens: tuple[bytes, ...]) -> tuple[bytes, int] | None:
@@ -308,6 +318,7 @@ class FrameParser:
 
     def feed(self, data: bytes) -> list[ParsedFrame | BadFrame]:
         """Add bytes; return the frames (good or bad) completed by them, in order."""
+        _check_bytes(data, "data")
         self._buffer += data
         out: list[ParsedFrame | BadFrame] = []
         while True:

@@ -23,6 +23,18 @@ class Quantiles(NamedTuple):
     valid: torch.Tensor
 
 
+def _quantile_levels(q: Sequence[float] | torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``q`` as a flat tensor of ``values``' dtype and device, each in [0, 1] (InputError naming ``q`` otherwise: a
+    string failed in a torch constructor, NaN fails the bounds)."""
+    try:
+        levels = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(f"q: expected quantiles in [0, 1] (a number, a sequence or a tensor), got {q!r}") from None
+    if not bool(((levels >= 0) & (levels <= 1)).all()):  # written so that NaN fails too
+        raise InputError(f"q: expected quantiles in [0, 1], got {levels.tolist()}")
+    return levels
+
+
 def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
@@ -98,9 +110,7 @@ def row_quantile(values: torch.Tensor, q: Sequence[float]) -> torch.Tensor:
     if check_shape(values, "values", ["B", "P"])["P"] == 0:
         raise InputError("values: expected at least one value per row, got (B, 0)")
     check_dtype(values, "values", "float")
-    q_tensor = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
-    if not bool(((q_tensor >= 0) & (q_tensor <= 1)).all()):  # written so that NaN fails too
-        raise InputError(f"q: expected quantiles in [0, 1], got {q_tensor.tolist()}")
+    q_tensor = _quantile_levels(q, values)
     if not (values.requires_grad and torch.is_grad_enabled()):
         b = values.shape[0]
         ones = torch.ones(1, 1, dtype=torch.int64).expand(b, values.shape[1])
@@ -121,9 +131,7 @@ def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float
     if valid.shape != values.shape:
         raise InputError(f"valid: expected the shape of values {tuple(values.shape)}, got {tuple(valid.shape)}")
     check_dtype(valid, "valid", "bool")
-    q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
-    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too
-        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    q = _quantile_levels(q, values)
     count = valid.sum(dim=-1, keepdim=True)  # (..., 1)
     shape = (*values.shape[:-1], q.numel())
     if values.shape[-1] == 0:
@@ -151,9 +159,7 @@ def labelled_quantile(values: torch.Tensor, labels: torch.Tensor, slots: torch.T
     check_dtype(labels, "labels", "int")
     check_shape(slots, "slots", [values.shape[0], "N"])
     check_dtype(slots, "slots", "int")
-    q = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
-    if not bool(((q >= 0) & (q <= 1)).all()):  # written so that NaN fails too (the kernel casts it to a rank)
-        raise InputError(f"q: expected quantiles in [0, 1], got {q.tolist()}")
+    q = _quantile_levels(q, values)  # the kernel casts each to a rank
     b, p = values.shape
     shape = (b, slots.shape[1], q.numel())
     if p == 0 or slots.shape[1] == 0:

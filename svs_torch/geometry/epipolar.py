@@ -62,8 +62,16 @@ def fundamental_8point(points_left: torch.Tensor, points_right: torch.Tensor,
     work = torch.float64
     weights = torch.ones_like(points_left[..., 0]) if weights is None else weights
     weights = weights.to(work)
-    left, t_left = normalize_points_hartley(points_left.to(work), weights)
-    right, t_right = normalize_points_hartley(points_right.to(work), weights)
+    if not bool((weights >= 0).all()):  # NaN fails it too
+        raise InputError("weights: expected non-negative finite weights (NaN or a negative weight found)")
+    # A NaN point failed to converge deep in an eigen-solver: the points that count must be finite, and a
+    # padding point (weight 0) is read as 0 (0 · NaN is NaN; 0 · a finite row is the 0 it gave before).
+    counts = (weights > 0).unsqueeze(-1)
+    points_left, points_right = (torch.where(counts, points.to(work), 0.0) for points in (points_left, points_right))
+    if not bool(torch.cat([points_left, points_right], -1).isfinite().all()):
+        raise InputError("points_left, points_right: expected finite coordinates where the weight is > 0")
+    left, t_left = normalize_points_hartley(points_left, weights)
+    right, t_right = normalize_points_hartley(points_right, weights)
     fundamental = _denormalize(_eight_point_normalized(left, right, weights), t_left, t_right)
     return _fix_sign_and_scale(fundamental).to(dtype)
 

@@ -221,6 +221,9 @@ def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = No
         num_labels = labels.flatten(1).amax(dim=1).clamp(min=0) if labels.numel() else \
             torch.zeros(labels.shape[0], dtype=torch.int64, device=labels.device)
     check_shape(num_labels, "num_labels", [labels.shape[0]])
+    check_dtype(num_labels, "num_labels", "int")
+    if num_labels.numel() and int(num_labels.min()) < 0:  # -3 failed in an arange deep inside
+        raise InputError(f"num_labels: expected label slot counts >= 0, got {num_labels.tolist()}")
     most = max(labels.shape[-2] * labels.shape[-1], 65536)  # one slot per label: 2^24 took 2.6 GB
     if num_labels.numel() and int(num_labels.max()) > most:
         raise InputError(f"labels: expected labels 1..n with n at most {most} (an image's pixels, or 65536; number "

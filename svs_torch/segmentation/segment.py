@@ -196,7 +196,7 @@ def _check_keep(labels: torch.Tensor, regions: RegionProperties, num_keep: int, 
     check_dtype(labels, "labels", "int")
     check_instance(regions, "regions", RegionProperties)
     slots = check_shape(regions.area_px, "regions.area_px", [b, "L"])["L"]
-    check_count(num_keep, "num_keep")
+    check_count(num_keep, "num_keep", most=MAX_KEEP)  # 2^40 failed in an allocation
     if keep not in ("largest", "nearest", "nearest_first"):
         raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {keep!r}")
     if nearness is not None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import check_image
+from ..core.checks import check_image, check_shape
 from . import kernels
 
 __all__ = ["gray_levels", "gray_histogram", "gray_levels_and_histogram", "otsu_threshold_level", "otsu_threshold",
@@ -35,6 +35,8 @@ def gray_histogram(levels: torch.Tensor, ignore: torch.Tensor | None = None) -> 
     offsets: a quarter of the memory traffic of int64 for the same result). Not differentiable (counts).
     """
     b = levels.shape[0]
+    if ignore is not None:  # a mask of another size failed in an index deep inside
+        check_shape(ignore, "ignore", list(levels.shape))
     offsets = torch.arange(b, device=levels.device, dtype=torch.int32).view(b, 1) * NUM_LEVELS
     flat = (levels.reshape(b, -1).to(torch.int32) + offsets).flatten()
     if ignore is not None:

@@ -74,5 +74,5 @@ def test_errors_name_the_argument():
         dilate(torch.zeros(4, 4, dtype=torch.bool), element)
     with pytest.raises(InputError, match="shape: expected 'square', 'cross' or 'ellipse'"):
         structuring_element("disk", 3)
-    with pytest.raises(InputError, match="size: expected a positive integer"):
+    with pytest.raises(InputError, match="size: expected an integer from 1"):
         structuring_element("square", 0)

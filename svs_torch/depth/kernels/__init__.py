@@ -8,7 +8,7 @@ import ctypes
 
 import torch
 
-from ...core.checks import check_dtype, check_shape
+from ...core.checks import check_count, check_dtype, check_instance, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, check_image_hw, check_nonempty,
@@ -79,10 +79,10 @@ def block_match(left: torch.Tensor, right: torch.Tensor, texture: torch.Tensor |
     ``best_cost`` each computed pixel's winning SAD (kept or not; +inf: no candidate; NaN where not computed);
     None when the kernel is not available or the inputs do not fit its contract."""
     if source not in BLOCK_MATCH_SOURCES:
-        raise ValueError(f"source: expected one of {sorted(BLOCK_MATCH_SOURCES)}, got {source!r}")
+        raise InputError(f"source: expected one of {sorted(BLOCK_MATCH_SOURCES)}, got {source!r}")
     levels = source == "levels"
     if (texture is True) if levels else isinstance(texture, torch.Tensor):
-        raise ValueError("texture: expected a tensor or None with source 'levels', a bool with the raw sources")
+        raise InputError("texture: expected a tensor or None with source 'levels', a bool with the raw sources")
     tensors = (left, right, texture) if isinstance(texture, torch.Tensor) else (left, right)
     if not on_cpu(torch.float32, *tensors) or mask is not None and not on_cpu(torch.bool, mask):
         return None
@@ -132,7 +132,7 @@ def _check_block_match(left, right, texture, mask, window_size, boxes, min_dispa
         if isinstance(tensor, torch.Tensor):
             check_shape(tensor, name, [b, h, w])
     check_nonempty(left, "left")
-    if not isinstance(window_size, int) or not 1 <= window_size <= MAX_WINDOW or window_size % 2 == 0:
+    if type(window_size) is not int or not 1 <= window_size <= MAX_WINDOW or window_size % 2 == 0:  # True ran as 1
         raise InputError(f"window_size: expected an odd int from 1 to {MAX_WINDOW}, got {window_size!r}")
     check_boxes(boxes, b, h, w)
     check_rows(min_disparity, "min_disparity", b)
@@ -187,8 +187,7 @@ def region_medians(values: torch.Tensor, labels: torch.Tensor, num_labels: int
     dims = check_shape(values, "values", ["B", "P"])
     b, p = dims["B"], dims["P"]
     check_rows(labels, "labels", b, p)
-    if not (isinstance(num_labels, int) and num_labels >= 0):
-        raise InputError(f"num_labels: expected a non-negative int, got {num_labels!r}")
+    check_count(num_labels, "num_labels", 0, most=max(p, 65536))  # a slot a label, as region_properties: 2^31 failed
     if not (on_cpu(torch.float32, values) and on_cpu(torch.int64, labels)):
         return None
     if labels.numel() and not (int(labels.min()) >= 0 and int(labels.max()) <= num_labels):
@@ -211,6 +210,7 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     """:func:`svs_torch.depth.block_matching.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
     fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
+    check_instance(disparity, "disparity", torch.Tensor)
     if disparity.dim() < 1:
         raise InputError(f"disparity: expected (..., W), got {tuple(disparity.shape)}")
     check_shape(valid, "valid", list(disparity.shape))
@@ -309,9 +309,9 @@ def sad_volume(left: torch.Tensor, right: torch.Tensor, height: int, width: int,
     ``(B, D, 1, width)`` bool or None. Returns the costs ``(B, D, height, width)`` and, with ``outside``, the winner
     (min cost, first index) ``(B, height, width)`` each; None when the kernel is not available or the crops do not
     fit its contract: whole finite numbers whose window sums stay below 2**24 (exact in float32 in any order)."""
-    size = int(window_size)
-    if size < 1:
-        raise InputError(f"window_size: expected a positive int, got {window_size!r}")
+    for name, value, least in (("window_size", window_size, 1), ("height", height, 0), ("width", width, 0)):
+        check_count(value, name, least)  # 3.7 ran as 3, "5" failed late
+    size = window_size
     b = check_shape(left, "left", ["B", height + size - 1, width + size - 1])["B"]
     d = right.shape[-1] - (width + size - 1) + 1 if right.dim() == 3 else 0
     if d < 1:

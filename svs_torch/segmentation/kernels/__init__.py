@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from ...core.checks import check_count, check_shape
+from ...core.checks import check_count, check_instance, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows, settings_table
@@ -36,6 +36,7 @@ def find_runs(foreground: torch.Tensor, value: torch.Tensor | None = None
     end (inclusive) positions ``(R,)`` int64 of the runs of ``foreground`` ``(..., W)`` bool in raster order, a run also
     ending where ``value`` (int64, its shape) changes. None when the kernel is not available or the inputs do not
     fit its contract."""
+    check_instance(foreground, "foreground", torch.Tensor)
     if foreground.dim() < 1:
         raise InputError(f"foreground: expected (..., W), got {tuple(foreground.shape)}")
     if value is not None:
@@ -88,6 +89,8 @@ def _check_runs(start: torch.Tensor, end: torch.Tensor, batch: int, height: int,
         raise InputError(f"connectivity: expected 4 or 8, got {connectivity!r}")
     if not all(isinstance(v, int) and v >= 0 for v in (batch, height, width)):
         raise InputError(f"batch, height, width: expected non-negative ints, got {batch!r}, {height!r}, {width!r}")
+    if batch * height * width >= 2**40:  # the label image it allocates: 2^40 int64 labels is 8 TiB
+        raise InputError(f"batch, height, width: expected a grid under 2^40 pixels, got {batch} x {height} x {width}")
     r = check_shape(start, "start", ["R"])["R"]
     check_rows(end, "end", r)
     if r == 0 or not on_cpu(torch.int64, start, end):  # other dtypes are left to the torch path
