@@ -13,6 +13,10 @@ from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu
 from ...core.kernels.checks import check_nonempty, check_number, check_rows, settings_table
 
+__all__ = ["MAX_HYPOTHESES", "MAX_LK_ITERATIONS", "RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available",
+           "check_hypotheses", "lk_refine", "load", "ransac_fundamental", "rectify_parallel", "row_alignment_cost",
+           "row_alignment_fit", "sad_nearest"]
+
 #: The most samples a fit may draw for one pair (RANSAC's 7-point and the row alignment's 3-match hypotheses):
 #: 2^20 covers a 7-point fit at a fifth of inliers with confidence 0.999 (about 540 000); more is a number that
 #: never ends (2^31 with confidence 1 ran for minutes), refused instead.
@@ -28,9 +32,6 @@ def check_hypotheses(value: float, name: str) -> None:
     if value > MAX_HYPOTHESES:
         raise InputError(f"{name}: expected at most {MAX_HYPOTHESES} (2^20) samples per pair, got {value!r}")
 
-__all__ = ["MAX_HYPOTHESES", "MAX_LK_ITERATIONS", "RANSAC_SETTINGS", "ROW_ALIGNMENT_SETTINGS", "available",
-           "check_hypotheses", "lk_refine", "load", "ransac_fundamental", "rectify_parallel", "row_alignment_cost",
-           "row_alignment_fit", "sad_nearest"]
 
 declare({
     "lk_refine": ([POINTER, POINTER] + [INT] * 4 + [POINTER] * 4 + [INT, FLOAT, POINTER, POINTER, INT],
