@@ -1113,3 +1113,59 @@ def test_the_second_fuzz_of_the_stages_meets_errors_naming_the_argument():
     assert torch.equal(fundamental_8point(padded, right, weights), fundamental_8point(points, right, weights))
     with pytest.raises(InputError, match="expected finite coordinates where the weight is > 0"):
         fundamental_8point(padded, right)
+
+
+def test_the_third_fuzz_of_the_device_side_and_the_bulk_commands(tmp_path):
+    """Found by a third fuzz (stop 46): a camera frame whose JPEG header declared 30000x30000 (78 kB: it passes the
+    link's length and marker checks) was decoded first, 3.4 s and 2 GB, then refused; a NaN right point came back
+    from the LK refinement valid and NaN, and a point thousands of pixels outside the image valid from the torch path
+    only; a way ahead backwards, or a NaN camera height, read objects centimetres ahead (a false "Stop"); a sweep
+    grid of 10^4 points was checked for over a minute before its first line (6 of its 8 ms a point reading type
+    hints), and one of 10^6 would have run for weeks."""
+    import time
+
+    from svs_torch.capture.link_types import CaptureError, RawFrame
+    from svs_torch.capture.protocol import FrameHeader
+    from svs_torch.capture.stereo import decode_frame
+    from svs_torch.depth.floor_distance import FloorGeometry, floor_distances
+    from svs_torch.evaluation.overrides import expand_grid, parameter_types
+    from svs_torch.geometry.lk_refinement import refine_matches_lk
+    from svs_torch.geometry.matched_points import MatchedPoints
+
+    encoded = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (240, 320), dtype=np.uint8))[1].tobytes()
+    at = encoded.index(b"\xff\xc0")
+    bomb = encoded[:at + 5] + (30000).to_bytes(2, "big") * 2 + encoded[at + 9:]
+    started = time.perf_counter()
+    with pytest.raises(CaptureError, match="expected a JPEG of 320x240, got a header declaring 30000x30000"):
+        decode_frame(RawFrame(FrameHeader("5", 320, 240, len(bomb)), bomb, 0.0, 0.0, 0.0, 1, 0), "left", "frame")
+    assert time.perf_counter() - started < 0.5
+    png = cv2.imencode(".png", np.zeros((240, 320), np.uint8))[1].tobytes()
+    with pytest.raises(CaptureError, match="got no JPEG"):
+        decode_frame(RawFrame(FrameHeader("5", 320, 240, len(png)), png, 0.0, 0.0, 0.0, 1, 0), "left", "frame")
+    assert decode_frame(RawFrame(FrameHeader("5", 320, 240, len(encoded)), encoded, 0.0, 0.0, 0.0, 1, 0), "left",
+                        "frame").image.shape == (240, 320)
+
+    for dtype in (torch.float32, torch.float64):  # the C kernel, then the torch path
+        image = torch.rand(1, 1, 40, 50, generator=torch.Generator().manual_seed(1), dtype=dtype)
+        left = torch.tensor([[[20.0, 20.0], [10.0, 10.0]]], dtype=dtype)
+        valid = torch.ones(1, 2, dtype=torch.bool)
+        with pytest.raises(InputError, match="points: expected finite coordinates in valid rows"):
+            refine_matches_lk(image, image, MatchedPoints(left, torch.tensor([[[torch.nan, 20.0], [10.0, 10.0]]],
+                                                                             dtype=dtype), valid))
+        far = refine_matches_lk(image, image, MatchedPoints(left, torch.tensor([[[-5000.0, 5000.0], [10.0, 10.0]]],
+                                                                               dtype=dtype), valid))
+        assert far.valid.tolist() == [[False, True]] and far.right[0, 0].tolist() == [0.0, 0.0]
+
+    one = torch.ones(1, dtype=torch.bool)
+    for ahead, height, message in (((0.0, 0.0, -1.0), 1.3, r"floor.ahead: expected a way ahead in front"),
+                                   ((1.0, 0.0, 0.0), 1.3, r"floor.ahead: expected a way ahead in front"),
+                                   ((0.0, 0.0, 1.0), torch.nan, r"floor.camera_height_m: expected heights >= 0")):
+        floor = FloorGeometry(one, torch.tensor([height]), torch.zeros(1), torch.tensor([ahead]))
+        with pytest.raises(InputError, match=message):
+            floor_distances(floor, None, None, None, None, None, None, None, None)
+
+    with pytest.raises(InputError, match=r"grid: 10 x 10 x 10 x 10 x 2 = 20000 combinations, at most 10000"):
+        expand_grid({f"k{i}": list(range(10)) for i in range(4)} | {"k4": [1, 2]})
+    keys = parameter_types()
+    keys.clear()  # read once a process, handed out as a new dict each call
+    assert "dense.window_size" in parameter_types()

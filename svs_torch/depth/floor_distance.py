@@ -118,6 +118,14 @@ def _check_floor(floor: FloorGeometry) -> int:
     if not bool(((norm - 1).abs() < 1e-3)[floor.found].all()):
         raise InputError(f"floor.ahead: expected unit vectors where floor.found, got lengths "
                          f"{norm[floor.found].tolist()[:4]}")
+    # Backwards or sideways read a 0.6 m object 0.03 m ahead, the same false "Stop": the optical axis laid flat
+    # on a floor below a camera pitched under 90° points forward (z = cos pitch > 0).
+    if not bool((floor.ahead.detach()[:, 2] > 0)[floor.found].all()):
+        raise InputError(f"floor.ahead: expected a way ahead in front of the camera (z > 0) where floor.found, got "
+                         f"{floor.ahead.detach()[floor.found].tolist()[:4]}")
+    if not bool((floor.camera_height_m.detach() >= 0)[floor.found].all()):  # NaN fails too; 0: unknown
+        raise InputError(f"floor.camera_height_m: expected heights >= 0 (0: unknown) where floor.found, got "
+                         f"{floor.camera_height_m.detach()[floor.found].tolist()[:4]}")
     return b
 
 

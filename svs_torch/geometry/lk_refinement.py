@@ -51,9 +51,10 @@ class MatchRefinementConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.iterations, int) and 0 <= self.iterations <= MAX_LK_ITERATIONS):
             raise InputError(f"iterations: expected an integer from 0 to {MAX_LK_ITERATIONS}, got {self.iterations!r}")
-        if not (self.max_shift_px >= 0 and self.radius_scales > 0 and 0 < self.min_radius_px <= self.max_radius_px):
+        if not (self.max_shift_px >= 0 and self.radius_scales > 0
+                and 0 < self.min_radius_px <= self.max_radius_px < math.inf):
             raise InputError("MatchRefinementConfig: expected max_shift_px >= 0, radius_scales > 0 and "
-                             f"0 < min_radius_px <= max_radius_px, got {self.max_shift_px!r}, "
+                             f"0 < min_radius_px <= max_radius_px < inf, got {self.max_shift_px!r}, "
                              f"{self.radius_scales!r}, {self.min_radius_px!r}, {self.max_radius_px!r}")
         if not -1 <= self.min_correlation <= 1:
             raise InputError(f"min_correlation: expected a correlation in [-1, 1], got {self.min_correlation!r}")
@@ -118,7 +119,8 @@ def refine_matches_lk(
 
     Args:
         left, right: ``(B, 1, H, W)`` float images the points were found on.
-        points: :class:`MatchedPoints`: ``left``, ``right`` ``(B, K, 2)`` pixel-centre coordinates, ``valid (B, K)``.
+        points: :class:`MatchedPoints`: ``left``, ``right`` ``(B, K, 2)`` pixel-centre coordinates, ``valid (B, K)``;
+            finite in the valid rows. A valid row with a point more than a pixel outside the image is made invalid.
         scale: optional ``(B, K)`` scale of the left keypoints (SURF s); the patch radius is ``radius_scales · s``
             clamped to [``min_radius_px``, ``max_radius_px``]. None: ``min_radius_px`` for every point.
         radius_scales, min_radius_px, max_radius_px: the patch radius rule. Patches are sampled on a 13 × 13
@@ -144,12 +146,14 @@ def refine_matches_lk(
     if scale is not None:
         check_shape(scale, "scale", [dims["B"], k])
     if not (0 <= iterations <= MAX_LK_ITERATIONS and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px
-            and radius_scales > 0):
+            < math.inf and radius_scales > 0 and -1 <= min_correlation <= 1):  # NaN fails each
         raise InputError(f"refine_matches_lk: expected 0 <= iterations <= {MAX_LK_ITERATIONS}, max_shift_px >= 0, "
-                         f"radius_scales > 0 and 0 < min_radius_px <= max_radius_px, got {iterations}, {max_shift_px}, "
-                         f"{radius_scales}, {min_radius_px}, {max_radius_px}")
+                         f"radius_scales > 0, 0 < min_radius_px <= max_radius_px < inf and min_correlation in [-1, 1], "
+                         f"got {iterations}, {max_shift_px}, {radius_scales}, {min_radius_px}, {max_radius_px}, "
+                         f"{min_correlation}")
     if k == 0 or not bool(points.valid.any()):
         return points
+    points = _inside_only(points, dims["H"], dims["W"])
     # Work on the valid rows only: compacted to the front (a stable sort keeps their order) and cut at the
     # largest count over the batch, so padding costs nothing; scattered back at the end.
     order = torch.argsort((~points.valid).to(torch.int8), dim=1, stable=True)
@@ -167,6 +171,24 @@ def refine_matches_lk(
     mask = valid.unsqueeze(-1)
     return MatchedPoints(left=torch.where(mask, points.left, zero), right=torch.where(mask, right_xy, zero),
                          valid=valid)
+
+
+def _inside_only(points: MatchedPoints, height: int, width: int) -> MatchedPoints:
+    """``points`` with the valid rows whose left or right point lies more than a pixel outside the image made
+    invalid (their patches are all border: the C kernel and the torch path judged them apart); a non-finite
+    coordinate in a valid row is an InputError (a NaN right point came back valid, and NaN)."""
+    both = torch.cat([points.left, points.right], -1).detach()  # (B, K, 4): x, y, x, y
+    valid = points.valid
+    if not bool(torch.where(valid.unsqueeze(-1), both, 0.0).isfinite().all()):
+        raise InputError("points: expected finite coordinates in valid rows (NaN or inf found)")
+    limit = torch.tensor([width, height, width, height], dtype=both.dtype, device=both.device)
+    inside = ((both >= -1) & (both <= limit)).all(-1)
+    if bool((inside | ~valid).all()):
+        return points
+    keep = valid & inside
+    zero = torch.zeros((), dtype=points.left.dtype, device=points.left.device)
+    return MatchedPoints(left=torch.where(keep.unsqueeze(-1), points.left, zero),
+                         right=torch.where(keep.unsqueeze(-1), points.right, zero), valid=keep)
 
 
 def _refine_lk(left: torch.Tensor, right: torch.Tensor, points: MatchedPoints, scale: torch.Tensor | None,
