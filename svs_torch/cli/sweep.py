@@ -24,7 +24,7 @@ sweep file (TOML; paths relative to the file):
   batch_size = 8                                   pairs per task
   [set]                                            fixed settings for every configuration
   "dense.window_size" = 9
-  [grid]                                           every combination of these values
+  [grid]                                           every combination of these values (at most 10 000)
   "segmentation.kernel_size" = [3, 5, 7]
   "max_ratio" = [0.6, 0.8]
   [[configs]]                                      optional: a list of configurations (x the grid)
