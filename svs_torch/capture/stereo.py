@@ -87,20 +87,24 @@ class PairBatch:
 
 def decode_frame(raw: RawFrame, camera: str, where: str) -> Frame:
     """Decode a received JPEG to grayscale (as ``estimate`` reads a file); raises :class:`CaptureError` naming
-    ``where`` if it does not decode, and :class:`DamagedFrameError` if libjpeg says its image data was damaged
-    (it decodes, its lost blocks gray: ranged, a gray block is a wall that is not there)."""
+    ``where`` if it is not a JPEG, and :class:`DamagedFrameError` (the pair is grabbed again) if it does not decode
+    to the size its frame header announced, or libjpeg says its image data was damaged (it decodes, its lost
+    blocks gray: ranged, a gray block is a wall that is not there)."""
     want = (raw.header.height, raw.header.width)
-    # The size its header declares, before decoding: a frame whose SOF says 30000x30000 (78 kB, it passes the
-    # link's length and marker checks) took 3.4 s and 2 GB to decode before the size refused it.
-    declared = declared_size(raw.jpeg) if raw.jpeg[:2] == b"\xff\xd8" else (0, 0)
+    if raw.jpeg[:2] != b"\xff\xd8":
+        raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, got no JPEG in {len(raw.jpeg)} bytes")
+    # The size its JPEG header declares, before decoding: a frame whose SOF said 30000x30000 (78 kB, it passes the
+    # link's length and marker checks) took 3.4 s and 2 GB to decode before the size refused it. A size other
+    # than the announced one, as a frame that does not decode, is grabbed again (one such frame stopped capture).
+    declared = declared_size(raw.jpeg)
     if declared is not None and declared != want[::-1]:
-        got = "no JPEG" if declared == (0, 0) else f"a header declaring {declared[0]}x{declared[1]}"
-        raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, got {got} in {len(raw.jpeg)} bytes")
+        raise DamagedFrameError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, got a header declaring "
+                                f"{declared[0]}x{declared[1]} in {len(raw.jpeg)} bytes")
     image, complaints = decode_collecting(np.frombuffer(raw.jpeg, dtype=np.uint8), JPEG_GRAY_DECODE)
     if image is None or image.shape != want:
         got = "nothing" if image is None else f"{image.shape[1]}x{image.shape[0]}"
-        raise CaptureError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, decoded {got} "
-                           f"from {len(raw.jpeg)} bytes")
+        raise DamagedFrameError(f"{where}: expected a JPEG of {want[1]}x{want[0]}, decoded {got} "
+                                f"from {len(raw.jpeg)} bytes")
     damaged = damaged_jpeg(complaints)
     if damaged is not None:
         raise DamagedFrameError(f"{where}: a JPEG damaged on the link (libjpeg: {damaged}), {len(raw.jpeg)} bytes")
