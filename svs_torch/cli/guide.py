@@ -194,17 +194,17 @@ def run(args: argparse.Namespace) -> int:
             stack.enter_context(terminated_on_sigterm())  # main's too: here the summary is said first
             session.run()
     except Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
-        return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 143)
+        return _stopped(status_line, log, session.stopped_text(), 143)
     except KeyboardInterrupt:
-        return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 130)
+        return _stopped(status_line, log, session.stopped_text(), 130)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
-        _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 141)
+        _stopped(status_line, log, session.stopped_text(), 141)
         raise
     except (CaptureError, OSError) as error:
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
     finally:
         guide.speaker.close()
-    return _stopped(status_line, log, f"guide stopped after {session.processed} pairs", 0)
+    return _stopped(status_line, log, session.stopped_text(), 0)
 
 
 def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):

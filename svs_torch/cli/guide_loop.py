@@ -93,13 +93,14 @@ class FloorMemory:
 class GuideSession:
     """One ``guide`` run: ``ranged`` (the pipeline on a one-pair batch), ``guide`` (a
     :class:`~svs_torch.capture.guide.LiveGuide`), the ``status_line`` and the ``log`` (:class:`GuideLog`), over the
-    camera of ``args`` at ``size``. ``processed`` counts the pairs ranged."""
+    camera of ``args`` at ``size``. ``processed`` counts the pairs taken (``--count``'s), ``torn`` those of them not
+    ranged because their two frames came too far apart."""
 
     def __init__(self, args: argparse.Namespace, size: tuple[int, int], ranged: Callable, guide, status_line,
                  log: GuideLog) -> None:
         self.args, self.size, self.ranged = args, size, ranged
         self.guide, self.status_line, self.log = guide, status_line, log
-        self.processed = 0
+        self.processed = self.torn = 0
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
@@ -227,6 +228,15 @@ class GuideSession:
         self.log.event("frames_apart", pair=item.pairs[0].index, time_between_frames_s=round(gap_s, 3),
                        num_dropped=item.num_dropped)
         self.processed += 1
+        self.torn += 1
+
+    def stopped_text(self) -> str:
+        """What guide says when it stops: the pairs taken, and how many were not ranged (a right board 0.5 s late
+        on every frame ended "guide stopped after 5 pairs" with not one ranged, and nothing said of it)."""
+        text = f"guide stopped after {self.processed} pairs"
+        if self.torn:
+            text += f" ({self.processed - self.torn} ranged; {self.torn} not: their two frames came too far apart)"
+        return text
 
     def _come_back(self, now: float) -> None:
         """Say the camera is back at the first pair after a loss (not when the link merely opened)."""

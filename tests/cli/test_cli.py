@@ -921,9 +921,14 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     monkeypatch.setattr(log, "event", lambda name, **fields: events.append(name))
     guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
-    guide_loop.GuideSession(args, (320, 240), ranged.append, guide, StatusLine(None), log).run()
+    session = guide_loop.GuideSession(args, (320, 240), ranged.append, guide, StatusLine(None), log)
+    session.run()
     assert said == [CANNOT_SEE] and ranged == []
     assert ("frames_apart" in events) == (stream == "torn pairs") and "cannot_see" in events
+    # the last line says none of the pairs taken was ranged (it said "guide stopped after N pairs" alone)
+    torn = f" (0 ranged; {session.processed} not: their two frames came too far apart)"
+    assert session.stopped_text() == f"guide stopped after {session.processed} pairs" + (
+        torn if stream == "torn pairs" else "")
 
 
 def test_guide_a_full_disk_stops_the_record_not_the_warnings(monkeypatch, capsys, tmp_path):
