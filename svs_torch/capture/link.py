@@ -244,18 +244,20 @@ class CameraLink:
         parser = FrameParser()
         deadline = self._request_s + cfg.reply_timeout_s
         received = bytearray()
+        last_data_s = time.monotonic()
         while time.monotonic() < deadline:
             had_header = parser.header is not None
             data = self._read(parser.bytes_needed)
             if not data:
                 continue
+            last_data_s = time.monotonic()
             received += data[:64 - len(received)] if len(received) < 64 else b""
             for event in parser.feed(data):
                 return self._finish_frame(event, attempt)
             if parser.header is not None and not had_header:
                 deadline = time.monotonic() + cfg.transfer_timeout_s(parser.header.length)
         self.stats.stray_bytes += parser.skipped_bytes
-        return _Attempt(self._timeout_reason(parser, bytes(received)))
+        return _Attempt(self._timeout_reason(parser, bytes(received), time.monotonic() - last_data_s))
 
     def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int) -> RawFrame | _Attempt:
         now, wall = time.monotonic(), time.time()
@@ -272,15 +274,19 @@ class CameraLink:
                         arrival_monotonic_s=now, arrival_wall_s=wall, attempts=attempt,
                         skipped_bytes=event.skipped_bytes)
 
-    def _timeout_reason(self, parser: FrameParser, received: bytes) -> str:
+    def _timeout_reason(self, parser: FrameParser, received: bytes, silent_s: float = 0.0) -> str:
+        """Why an attempt got no frame; ``silent_s``: how long nothing had come when it timed out."""
         cfg = self.config
         if parser.header is not None:
             h = parser.header
+            window = cfg.transfer_timeout_s(h.length)
             # A board whose UART is slower than the link assumes (a 115,200-baud build behind the WiFi module too)
-            # sends too slowly for the transfer timeout: say which speed was assumed.
-            return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within "
-                    f"{cfg.transfer_timeout_s(h.length):.2f} s of its header, got {parser.buffered} (the timeout "
-                    f"assumes {cfg.bytes_per_s * 10:,.0f} baud: a slower board's --baud)")
+            # sends too slowly for the transfer timeout: say which speed was assumed. One that stopped sending
+            # (a frame cut on the link) is said so: a slower --baud would not help it.
+            why = (f"nothing came for the last {silent_s:.2f} s: the frame was cut short" if silent_s >= window / 2
+                   else f"the timeout assumes {cfg.bytes_per_s * 10:,.0f} baud: a slower board's --baud")
+            return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within {window:.2f} s of its "
+                    f"header, got {parser.buffered} ({why})")
         size = f" of {'x'.join(map(str, SVS_RESOLUTIONS[self.size_code]))}" if self.size_code else ""
         reason = (f"sent {CMD_GRAB!r}, expected a '##IMJ' frame{size} within {cfg.reply_timeout_s:g} s, "
                   f"got {describe_bytes(received)}")

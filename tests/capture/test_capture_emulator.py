@@ -383,7 +383,8 @@ def test_fault_recovers(emulator, camera, faults, attempts):
 
 @pytest.mark.parametrize("faults, message", [
     ({"silent_grabs": 10}, r"expected a '##IMJ' frame of 320x240 within 0.25 s, got 0 bytes"),
-    ({"truncated_frames": 10}, r"expected \d+ JPEG bytes of a 320x240 frame within"),
+    # a board that stopped sending is said so (it was pointed at a slower --baud, which cannot help)
+    ({"truncated_frames": 10}, r"expected \d+ JPEG bytes of a 320x240 frame within .*the frame was cut short\)"),
     ({"wrong_length_frames": 10, "wrong_length_delta": -100}, "expected it to end FF D9"),
     ({"drip_chunk_bytes": 500, "drip_delay_s": 0.03}, r"no valid frame after 3 attempts"),
 ], ids=["silent", "truncated", "wrong-length", "too-slow-drip"])
@@ -395,6 +396,20 @@ def test_persistent_fault_fails_clearly_in_time(emulator, camera, faults, messag
     assert time.monotonic() - start < attempt_bound_s()
     assert f"right camera ({emulator.urls['right']})" in str(info.value)
     assert "no valid frame after 3 attempts of b'I'" in str(info.value)
+
+
+def test_a_frame_cut_short_and_a_slow_board_are_told_apart():
+    """A frame whose bytes stopped coming was told "the timeout assumes 2,304,000 baud: a slower board's --baud",
+    which cannot help it; now the hint goes to a board that was still sending when its time ran out."""
+    from svs_torch.capture.link import CameraLink
+    from svs_torch.capture.protocol import FrameParser, encode_frame
+
+    link = CameraLink("socket://127.0.0.1:1", "right", FAST)
+    parser = FrameParser()
+    parser.feed(encode_frame("5", b"\xff\xd8" + bytes(2000) + b"\xff\xd9")[:500])
+    window = FAST.transfer_timeout_s(parser.header.length)
+    assert "the frame was cut short" in link._timeout_reason(parser, b"", silent_s=window)
+    assert "a slower board's --baud" in link._timeout_reason(parser, b"", silent_s=0.01)
 
 
 def test_a_frame_damaged_on_the_link_is_grabbed_again(data_dir):
