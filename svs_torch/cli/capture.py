@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
             calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
-    done = 0
+    done = apart = 0
     try:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
@@ -199,8 +199,11 @@ def run(args: argparse.Namespace) -> int:
             index = stack.enter_context(PairsIndex(out, "--out-dir"))
             progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
-                index.append(save_pair(out, camera.grab_pair(), "--out-dir"))
+                pair = camera.grab_pair()
+                index.append(save_pair(out, pair, "--out-dir"))
                 done += 1
+                # kept (the index says when each frame came), but counted: guide does not range such a pair
+                apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
                 progress.update()
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted after {done} pairs (index.jsonl lists them)", file=sys.stderr)
@@ -210,6 +213,10 @@ def run(args: argparse.Namespace) -> int:
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     print(f"{PROG}: saved {done} pairs to {out}; range them with: {replay}", file=sys.stderr)
+    if apart:  # a right board 0.5 s late on every frame was saved pair after pair without a word
+        print(f"{PROG}: warning: {apart} of {done} pairs' frames came over {camera.max_frame_gap_s:g} s apart after "
+              "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not range "
+              "such pairs", file=sys.stderr)
     return 0
 
 
