@@ -10,7 +10,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_count, check_percentiles, check_real
+from ..core.checks import InputError, check_count, check_flag, check_percentiles, check_real
 
 __all__ = [
     "Accuracy", "DepthConfig", "DepthResult", "Disparities", "NearestObstacle", "ObjectDepths", "ObstacleSide",
@@ -81,8 +81,7 @@ class DepthConfig:
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
-        if not isinstance(self.surface_within_in_view_top, bool):
-            raise InputError(f"surface_within_in_view_top: expected a bool, got {self.surface_within_in_view_top!r}")
+        check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)
