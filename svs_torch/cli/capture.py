@@ -27,7 +27,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from .common import noise_levels, pair_count, positive_int, timeout_seconds
+from .common import add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, replay_command, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -74,8 +74,9 @@ def add_parser(subparsers: Any) -> None:
                         help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
                              f"a frame's bytes may take (default: {DEFAULT_BAUD}; 115200 for a board built so)")
     parser.add_argument("--timeout", type=timeout_seconds, default=DEFAULT_TIMEOUT_S, metavar="S",
-                        help="seconds to wait for a reply (a frame's header) before re-sending, at most twice "
-                             f"(default: {DEFAULT_TIMEOUT_S:g})")
+                        help="seconds to wait for a reply (a frame's header) before re-sending, at most --retries "
+                             f"times (default: {DEFAULT_TIMEOUT_S:g})")
+    add_retries_option(parser)
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
@@ -228,7 +229,7 @@ def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: c
     from ..capture.stereo import SVSStereoCamera
 
     left, right = board_urls(args, size, stack)
-    config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout)
+    config = LinkConfig(baudrate=args.baud, reply_timeout_s=args.timeout, max_retries=args.retries)
     return stack.enter_context(SVSStereoCamera(left, right, size, quality=args.quality, config=config,
                                                first_index=first_index))
 

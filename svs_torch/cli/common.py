@@ -115,6 +115,30 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+#: The most re-sent ``I`` commands per frame (``--retries``): each waits up to a frame's whole timeout, so ten already
+#: let a dead board hold a run for tens of seconds before it is named.
+MAX_RETRIES = 10
+DEFAULT_RETRIES = 2  # LinkConfig.max_retries; a literal so --help needs no capture import
+
+
+def link_retries(text: str) -> int:
+    """argparse type of ``--retries``: re-sent grabs per frame, 0 to :data:`MAX_RETRIES`."""
+    value = _number(text, int)
+    if not 0 <= value <= MAX_RETRIES:
+        raise argparse.ArgumentTypeError(f"expected a number of retries from 0 to {MAX_RETRIES}, got {text!r}")
+    return value
+
+
+def add_retries_option(parser: argparse.ArgumentParser) -> None:
+    """``--retries N``: how often a board's grab is sent again after a silent or broken reply
+    (``LinkConfig.max_retries``)."""
+    parser.add_argument("--retries", type=link_retries, default=DEFAULT_RETRIES, metavar="N",
+                        help="times a board's grab is sent again after a silent or broken reply (no header, a frame "
+                             "cut short or failing its checks), "
+                             f"0 to {MAX_RETRIES}: more for a flaky radio link, 0 to hear of a lost frame at once "
+                             f"(default: {DEFAULT_RETRIES})")
+
+
 #: The largest seed: RANSAC seeds and torch generators are 64-bit signed integers.
 MAX_SEED = 2**63 - 1
 

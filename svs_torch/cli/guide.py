@@ -8,8 +8,8 @@ import math
 import sys
 import warnings
 
-from .common import (Terminated, finite_float, noise_levels, non_negative_float, pair_count_or_zero, positive_float,
-                     positive_int, terminated_on_sigterm, timeout_seconds)
+from .common import (Terminated, add_retries_option, finite_float, noise_levels, non_negative_float,
+                     pair_count_or_zero, positive_float, positive_int, terminated_on_sigterm, timeout_seconds)
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -101,6 +101,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "a frame's bytes may take (default: 2304000; 115200 for a board built so)")
     parser.add_argument("--timeout", type=timeout_seconds, default=2.0,
                         help="reply timeout per command, seconds (default: 2)")
+    add_retries_option(parser)
     parser.add_argument("--quality", type=int, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")
     _add_warning_options(parser)

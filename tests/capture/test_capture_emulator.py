@@ -581,6 +581,22 @@ def test_cli_capture_error_keeps_only_complete_pairs(tmp_path, capsys):
         "index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg", "pair000001_left.jpg", "pair000001_right.jpg"]
 
 
+@pytest.mark.parametrize("retries, code", [(0, 1), (1, 0)])
+def test_cli_capture_retries_sets_how_often_a_grab_is_sent_again(tmp_path, capsys, retries, code):
+    """capture and guide allowed a board three grabs a frame and no option to change that (LinkConfig.max_retries):
+    --retries N sends a silent board's grab again N times."""
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server:
+        server.set_faults("left", silent_grabs=1)
+        assert run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "1",
+                           "--timeout", "0.2", "--retries", str(retries), "--out", str(tmp_path / "run")) == code
+    err = capsys.readouterr().err
+    assert ("no valid frame after 1 attempts" in err) == (code == 1)
+    with pytest.raises(SystemExit) as refused:
+        run_capture("--emulator", "--retries", "11", "--out", str(tmp_path / "other"))
+    assert refused.value.code == 2 and "--retries: expected a number of retries from 0 to 10" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
+
+
 def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
     """Found by a fuzz of the device side: a right board late on every frame was saved pair after pair, each frame
     0.5 s from its partner, without a word (guide refuses such pairs). They are kept, the index says when each frame
@@ -601,7 +617,11 @@ def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
 def test_cli_defaults_match_link_defaults():
     from svs_torch.cli import capture
 
+    from svs_torch.cli import build_parser, common
+
     assert (capture.DEFAULT_BAUD, capture.DEFAULT_TIMEOUT_S) == (LinkConfig().baudrate, LinkConfig().reply_timeout_s)
+    assert common.DEFAULT_RETRIES == LinkConfig().max_retries
+    assert build_parser().parse_args(["guide", "--emulator", "--retries", "5"]).retries == 5
 
 
 @pytest.mark.parametrize("argv, message", [
