@@ -329,19 +329,27 @@ def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, dis
 
 
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,
-                       doffs_px: torch.Tensor | float = 0.0) -> RangeEstimate:
+                       doffs_px: torch.Tensor | float = 0.0, order_by: torch.Tensor | None = None) -> RangeEstimate:
     """R_min / R_max as the nearest / farthest valid object's median depth ``(B,)``; d_max / d_min their
     disparities ``f·B / R − doffs``; ``num_disparities`` the valid dense pixels (or inliers) that entered.
+    ``order_by`` ``(B, N)`` (optional): the depths that choose the nearest and farthest object, if not the medians
+    (the differentiable pass chooses on the hard ones, so that R_min is the object the hard pipeline named).
     Differentiable w.r.t. the nearest and farthest valid ``objects.depth_median_m`` and the calibration;
     ``num_disparities`` and ``valid`` are not."""
     median = objects.depth_median_m
     b = median.shape[0]
     valid = objects.valid
     present = valid.any(dim=1)
-    nearest = torch.where(valid, median, torch.full_like(median, torch.inf)).amin(dim=1) if median.shape[1] else \
-        median.new_zeros(b)
-    farthest = torch.where(valid, median, torch.full_like(median, -torch.inf)).amax(dim=1) if median.shape[1] else \
-        median.new_zeros(b)
+    if median.shape[1] == 0:
+        nearest = farthest = median.new_zeros(b)
+    elif order_by is None:
+        nearest = torch.where(valid, median, torch.full_like(median, torch.inf)).amin(dim=1)
+        farthest = torch.where(valid, median, torch.full_like(median, -torch.inf)).amax(dim=1)
+    else:
+        check_shape(order_by, "order_by", list(median.shape))
+        near_slot = torch.where(valid, order_by, torch.inf).argmin(dim=1, keepdim=True)
+        far_slot = torch.where(valid, order_by, -torch.inf).argmax(dim=1, keepdim=True)
+        nearest, farthest = median.gather(1, near_slot).squeeze(1), median.gather(1, far_slot).squeeze(1)
     r_min = torch.where(present, nearest, torch.zeros_like(nearest))
     r_max = torch.where(present, farthest, torch.zeros_like(farthest))
     scale = _per_pair(focal_px, b, median, "focal_px") * _per_pair(baseline_m, b, median, "baseline_m")

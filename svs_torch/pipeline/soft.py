@@ -44,7 +44,7 @@ from ..depth.cost_volume import prefilter_xsobel
 from ..depth.dense import working_factor, working_window
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import range_from_objects
-from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths
+from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths, RangeEstimate
 from ..depth.pooling import mean_pool
 from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified, warp_views
@@ -183,7 +183,9 @@ def band_mean(values: torch.Tensor, weights: torch.Tensor, band: torch.Tensor) -
     members = band.to(values.dtype) * weights.unsqueeze(1)
     total = members.sum(dim=-1)
     some = total > 0
-    mean = (members * values.unsqueeze(1)).sum(dim=-1) / torch.where(some, total, torch.ones_like(total))
+    # Only the band's values count: a NaN outside it made 0 · NaN = NaN (an audit).
+    inside = torch.where(band, values.unsqueeze(1), torch.zeros_like(members))
+    mean = (members * inside).sum(dim=-1) / torch.where(some, total, torch.ones_like(total))
     return mean, some
 
 
@@ -225,21 +227,28 @@ def _fill_sources(valid: torch.Tensor, needed: torch.Tensor) -> torch.Tensor:
     return needed | (counts > 0)
 
 
+def _filled(disparity: torch.Tensor, valid: torch.Tensor, fill: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """``disparity`` with its invalid pixels filled from their rows where ``fill`` (``DenseConfig.fill_invalid``,
+    as the hard statistics take them), and where it is defined."""
+    return fill_invalid_rows(disparity, valid) if fill else (disparity, valid)
+
+
 def _ranked_bands(dense: DenseDisparity, valid: torch.Tensor, in_box: torch.Tensor, scale: torch.Tensor,
-                  doffs: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor
+                  doffs: torch.Tensor, labels: torch.Tensor, slots: torch.Tensor, q: torch.Tensor, fill: bool
                   ) -> tuple[torch.Tensor, ...]:
-    """Without gradients, from the hard map filled from its ``valid`` pixels ``(B, 1, H, W)``: the filled
-    disparity ``(B, 1, H, W)``, which pixels count ``(B, P)``, each slot's bands of quantiles ``q``
+    """Without gradients, from the hard map filled from its ``valid`` pixels ``(B, 1, H, W)`` where ``fill``: the
+    filled disparity ``(B, 1, H, W)``, which pixels count ``(B, P)``, each slot's bands of quantiles ``q``
     (:func:`_bands`, ``(B, N, Q, P)``), the pixels those depend on, fill sources included ``(B, 1, H, W)``, and
     each pixel's slot label where it counts ``(B, P)`` (0 elsewhere)."""
     with torch.no_grad():
-        filled, reachable = fill_invalid_rows(dense.disparity_px, valid)
+        filled, reachable = _filled(dense.disparity_px, valid, fill)
         ok = (reachable & in_box).flatten(1) & (filled.flatten(1) + doffs > 0)
         depth = torch.where(ok, scale / torch.where(ok, filled.flatten(1) + doffs, 1.0), 0.0)
         ok &= torch.isfinite(depth) & (depth > 0)
         members = torch.where(ok, labels.flatten(1), torch.zeros_like(labels.flatten(1)))
         bands = _bands(depth.to(torch.float64), members, slots, q)
-        needed = _fill_sources(valid, bands.any(dim=(1, 2)).view_as(valid))
+        needed = bands.any(dim=(1, 2)).view_as(valid)
+        needed = _fill_sources(valid, needed) if fill else needed
     return filled, ok, bands, needed, members
 
 
@@ -251,12 +260,14 @@ def _measured_per_slot(members: torch.Tensor, valid: torch.Tensor, slots: torch.
 
 
 def _band_means(disparity: torch.Tensor, dense: DenseDisparity, ranked: tuple, valid: torch.Tensor,
-                scale: torch.Tensor, doffs: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                scale: torch.Tensor, doffs: torch.Tensor, weights: torch.Tensor, fill: bool
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Each band's weighted mean depth ``(B, N, Q)`` and whether it had weight, from the soft ``disparity``
-    filled from ``valid`` as the hard map was (``ranked``: :func:`_ranked_bands`' result for that mask)."""
+    filled from ``valid`` as the hard map was where ``fill`` (``ranked``: :func:`_ranked_bands`' result for that
+    mask)."""
     filled, ok, bands = ranked[:3]
     if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
-        filled, _ = fill_invalid_rows(disparity, valid)
+        filled, _ = _filled(disparity, valid, fill)
     soft_depth = scale / torch.where(ok, filled.flatten(1) + doffs, torch.ones_like(filled.flatten(1)))
     soft_depth = torch.where(ok, soft_depth, torch.zeros_like(soft_depth))
     means, some = band_mean(soft_depth, weights.flatten(1).to(soft_depth.dtype), bands.flatten(1, 2))
@@ -291,10 +302,11 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     scale = (focal_px * baseline_m).view(b, 1)
     doffs = doffs_px.view(b, 1)
     q = torch.tensor([0.5, percentiles[0] / 100, percentiles[1] / 100], dtype=torch.float64, device=left.device)
-    ranked = _ranked_bands(dense, dense.valid, in_box, scale, doffs, labels, slots, q)
+    fill = config.fill_invalid
+    ranked = _ranked_bands(dense, dense.valid, in_box, scale, doffs, labels, slots, q, fill)
     needed = ranked[3]
     if surface_valid is not None:  # the nearest surface's band, over its own filled pixels
-        surface = _ranked_bands(dense, surface_valid, in_box, scale, doffs, labels, slots, q[1:2])
+        surface = _ranked_bands(dense, surface_valid, in_box, scale, doffs, labels, slots, q[1:2], fill)
         needed = needed | surface[3]
     if coarse is not None and bool(coarse.any()):  # each pair on the working grid its hard map was measured on
         disparity = dense.disparity_px
@@ -305,10 +317,11 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
                 disparity = torch.where(group, part, disparity)
     else:
         disparity = _soft_disparity(left, right, dense, needed, image_hw, config)
-    means, some = _band_means(disparity, dense, ranked, dense.valid, scale, doffs, weights)
+    means, some = _band_means(disparity, dense, ranked, dense.valid, scale, doffs, weights, fill)
     valid = hard.objects.valid & some.all(dim=-1)
     if surface_valid is not None:
-        surface_means, surface_some = _band_means(disparity, dense, surface, surface_valid, scale, doffs, weights)
+        surface_means, surface_some = _band_means(disparity, dense, surface, surface_valid, scale, doffs, weights,
+                                                  fill)
         # As the hard statistics: where the object has a measured pixel there (the fill reaches across objects).
         measured = _measured_per_slot(surface[4], surface_valid, slots)
         low = torch.where(surface_some[..., 0] & (measured > 0), surface_means[..., 0], means[..., 1])
@@ -316,9 +329,22 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
     median, low, high = torch.where(valid.unsqueeze(-1), means, torch.zeros_like(means)).unbind(-1)
     soft_objects: ObjectDepths = dataclasses.replace(hard.objects, depth_median_m=median, depth_low_m=low,
                                                      depth_high_m=high, valid=valid)
-    depth_range = range_from_objects(soft_objects, focal_px, baseline_m, doffs_px)
-    return DepthResult(hard.disparities, hard.points, depth_range, soft_objects,
-                       nearest_at_hard_slot(hard.nearest, soft_objects))
+    return DepthResult(hard.disparities, hard.points, range_at_hard_slots(hard.objects, soft_objects, focal_px,
+                                                                           baseline_m, doffs_px),
+                       soft_objects, nearest_at_hard_slot(hard.nearest, soft_objects))
+
+
+def range_at_hard_slots(hard: ObjectDepths, objects: ObjectDepths, focal_px: torch.Tensor, baseline_m: torch.Tensor,
+                        doffs_px: torch.Tensor) -> RangeEstimate:
+    """R_min / R_max of the objects the hard pipeline ranged nearest and farthest (chosen on ``hard``'s medians and
+    validity), their depths taken from the soft ``objects`` where that object's bands have members (else the hard
+    ones, straight-through), as :func:`nearest_at_hard_slot` takes the nearest. Why: chosen again on the soft
+    medians, R_min named the other object of a near tie and its gradient trained it (found by an audit: 1.500153
+    against 1.500189 m, the slot the hard pipeline and ``nearest`` did not name)."""
+    median = torch.where(objects.valid, objects.depth_median_m, hard.depth_median_m.to(objects.depth_median_m.dtype))
+    taken = dataclasses.replace(objects, depth_median_m=median, valid=hard.valid,
+                                num_valid_px=hard.num_valid_px, num_inliers=hard.num_inliers)
+    return range_from_objects(taken, focal_px, baseline_m, doffs_px, order_by=hard.depth_median_m)
 
 
 def nearest_at_hard_slot(hard: NearestObstacle, objects: ObjectDepths) -> NearestObstacle:
