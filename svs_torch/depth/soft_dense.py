@@ -40,6 +40,8 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     minimum = _check_range(min_disparity_px, num_disparities, left, left_right=False)
     if isinstance(temperature, torch.Tensor) and temperature.requires_grad:
         raise InputError("temperature: expected a number; no gradient flows to it (got a tensor that requires grad)")
+    if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
+        raise InputError(f"temperature: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
     if not temperature > 0:
         raise InputError(f"temperature: expected a positive number, got {temperature!r}")
     h, w = left.shape[-2:]

@@ -230,7 +230,9 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
         the nearest object only).
     """
     dims = check_shape(logits, "logits", ["B", 1, "H", "W"])
+    check_dtype(logits, "logits", "float")
     check_shape(disparity_px, "disparity_px", list(logits.shape))
+    check_dtype(disparity_px, "disparity_px", "float")
     check_shape(segmentation.labels, "segmentation.labels", list(logits.shape))
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
         check_shape(value, name, [dims["B"]])  # a (3,) calibration for 2 pairs failed deep in a broadcast
@@ -241,10 +243,16 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
     b, n = dims["B"], segmentation.kept_labels.shape[1]
     kept = segmentation.kept_labels.view(b, n, 1, 1)
     region = (segmentation.labels == kept) & (kept > 0)  # (B, N, H, W)
+    # Only the kept regions' disparities count: a NaN or inf outside them (a caller's own map) made 0 · NaN = NaN, in
+    # every object of the pair and in the logits' gradient, so in a shared network's (an audit). Inside, refused.
+    inside = region.any(dim=1, keepdim=True)
+    if not bool(torch.isfinite(disparity_px.detach()[inside]).all()):
+        raise InputError("disparity_px: expected finite values over the kept regions, got NaN or inf")
+    values = torch.where(inside, disparity_px, torch.zeros_like(disparity_px))
     weights = torch.sigmoid(logits / mask_temperature) * region
     total = weights.flatten(2).sum(-1)  # (B, N)
     has = region.flatten(2).any(-1) & (total > 0)
-    mean = (weights * disparity_px).flatten(2).sum(-1) / torch.where(has, total, 1.0)
+    mean = (weights * values).flatten(2).sum(-1) / torch.where(has, total, 1.0)
     denominator = mean + doffs_px.view(b, 1)
     valid = has & (denominator > 0)
     depth = torch.where(valid, (focal_px * baseline_m).view(b, 1) / torch.where(valid, denominator, 1.0), 0.0)

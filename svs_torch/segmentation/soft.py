@@ -28,6 +28,8 @@ __all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegm
 
 
 def _check_temperature(temperature: float, name: str = "temperature") -> None:
+    if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
+        raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
     if not temperature > 0:
         raise InputError(f"{name}: expected a positive temperature, got {temperature!r}")
 
@@ -48,25 +50,32 @@ def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: fl
     check_dtype(threshold, "threshold", "float")
     check_finite(threshold, "threshold")  # a NaN gave NaN masks in silence (any finite value is a threshold)
     _check_temperature(temperature)
-    return torch.sigmoid((image - threshold.view(-1, 1, 1, 1)) / temperature)
+    # In the image's dtype: a float64 threshold made a float32 image's mask float64 (an audit).
+    return torch.sigmoid((image - threshold.to(image.dtype).view(-1, 1, 1, 1)) / temperature)
 
 
-def _soft_max_filter(x: torch.Tensor, element: torch.Tensor, temperature: float) -> torch.Tensor:
-    """``T·log(mean over in-image offsets of exp(x / T))``, the same offsets and anchor as the hard filter."""
+def _soft_max_filter(x: torch.Tensor, element: torch.Tensor, temperature: float, empty: float) -> torch.Tensor:
+    """``T·log(mean over in-image offsets of exp(x / T))``, the same offsets and anchor as the hard filter; ``empty``
+    where no offset lands in the image (an element off to one side of its anchor), as the hard filter gives there
+    (dilation 0, erosion 1: the max and min of nothing), where log(0 / 0) was NaN (an audit)."""
     h, w = x.shape[-2:]
     padded = F.pad(x, anchor_padding(element), value=float("-inf"))
     offsets = element.nonzero().tolist()
     windows = [padded[..., dy:dy + h, dx:dx + w] for dy, dx in offsets]
+    count = torch.zeros_like(x)
+    for window in windows:
+        count = count + torch.isfinite(window).to(x.dtype)
+    some = count > 0
     # Shift by the hard maximum for stability; the result's gradient does not depend on the shift.
     peak = windows[0].detach()
     for window in windows[1:]:
         peak = torch.maximum(peak, window.detach())
+    peak = torch.where(some, peak, torch.zeros_like(peak))
     total = torch.zeros_like(x)
-    count = torch.zeros_like(x)
     for window in windows:
         total = total + torch.exp((window - peak) / temperature)  # exp(−inf) = 0 outside the image
-        count = count + torch.isfinite(window).to(x.dtype)
-    return peak + temperature * torch.log(total / count)
+    ratio = torch.where(some, total / torch.where(some, count, 1.0), torch.ones_like(total))
+    return torch.where(some, peak + temperature * torch.log(ratio), torch.full_like(x, empty))
 
 
 def _check_soft(x: torch.Tensor, element: torch.Tensor, temperature: float) -> None:
@@ -85,19 +94,19 @@ def soft_dilate(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.0
     Differentiable with respect to ``x`` (softmax weights over each window).
     """
     _check_soft(x, element, temperature)
-    return _soft_max_filter(x, element, temperature)
+    return _soft_max_filter(x, element, temperature, empty=0.0)
 
 
 def soft_erode(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
     """Smooth erosion, ``−soft_dilate(−x)``; ``→ cv2.erode`` as ``T → 0``. Differentiable with respect to ``x``."""
     _check_soft(x, element, temperature)
-    return -_soft_max_filter(-x, element, temperature)
+    return -_soft_max_filter(-x, element, temperature, empty=-1.0)
 
 
 def soft_open(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
     """Smooth opening (erosion then dilation). Differentiable with respect to ``x``."""
     _check_soft(x, element, temperature)
-    return _soft_max_filter(-_soft_max_filter(-x, element, temperature), element, temperature)
+    return _soft_max_filter(-_soft_max_filter(-x, element, temperature, empty=-1.0), element, temperature, empty=0.0)
 
 
 @dataclass(frozen=True)

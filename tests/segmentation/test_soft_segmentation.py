@@ -106,3 +106,51 @@ def test_empty_batches_calibration_of_another_batch_and_nan_logits_are_named():
     with pytest.raises(InputError, match="^logits: expected numbers, got NaN$"):
         soft_object_depths(images * float("nan"), hard, images, ones, ones, zeros)
     assert soft_object_depths(images, hard, images, ones, ones, zeros).depth_m.shape[0] == 2
+    # A second audit: integer logits were taken, and one NaN disparity outside every kept region made the pair's
+    # objects invalid and the logits' gradient NaN (0 · NaN). Outside the regions it is now ignored, inside refused.
+    with pytest.raises(InputError, match="^logits: expected a float tensor"):
+        soft_object_depths(images.long(), hard, images, ones, ones, zeros)
+    images = blobs(2, 32, 4, torch.float64)
+    hard = segment_images(images)
+    assert hard.kept_mask.any() and not hard.kept_mask.all()
+    logits = images.clone().requires_grad_()
+    disparity = images + 1
+    clean = soft_object_depths(logits, hard, disparity, ones, ones, zeros)
+    outside = hard.kept_mask.logical_not().nonzero()[0].tolist()
+    disparity[tuple(outside)] = float("nan")
+    spoiled = soft_object_depths(logits, hard, disparity, ones, ones, zeros)
+    assert torch.equal(spoiled.depth_m, clean.depth_m) and torch.equal(spoiled.valid, clean.valid)
+    (grad,) = torch.autograd.grad(spoiled.depth_m.sum(), logits)
+    assert torch.isfinite(grad).all()
+    disparity[tuple(hard.kept_mask.nonzero()[0].tolist())] = float("inf")
+    with pytest.raises(InputError, match="^disparity_px: expected finite values over the kept regions, got NaN or inf$"):
+        soft_object_depths(logits, hard, disparity, ones, ones, zeros)
+
+
+def test_an_element_off_to_one_side_gives_the_hard_filters_value_where_it_sees_nothing():
+    """Found by an audit: where no offset of the element lands in the image (its only offset two columns left of
+    the anchor, at the first two columns) the soft filters gave NaN, log(0 / 0); the hard ones give the max and
+    min of nothing, 0 and 1. Now the same, with finite gradients."""
+    x = torch.rand(1, 1, 8, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    element = torch.zeros(1, 5, dtype=torch.bool)
+    element[0, 0] = True
+    mask = x.detach() > 0.5
+    for soft, hard in ((soft_dilate, dilate), (soft_erode, erode), (soft_open, open_binary)):
+        y = soft(x, element, 0.003)
+        assert torch.isfinite(y).all() and torch.equal(y > 0.5, hard(mask, element)), soft.__name__
+        (grad,) = torch.autograd.grad(y.sum(), x)
+        assert torch.isfinite(grad).all()
+    assert torch.autograd.gradcheck(lambda v: soft_open(v, element, 0.05), (x,))
+
+
+def test_a_temperature_of_one_per_pair_and_a_float64_threshold_are_handled():
+    """Found by an audit: a (B,) temperature failed in a bool() deep inside (a RuntimeError, not the argument
+    named), and a float64 threshold made a float32 image's soft mask float64."""
+    from svs_torch.depth.soft_dense import soft_block_match
+
+    image = torch.rand(2, 1, 8, 12)
+    with pytest.raises(InputError, match=r"^temperature: expected one positive number, got a tensor of shape \(2,\)$"):
+        soft_threshold(image, torch.zeros(2), torch.tensor([0.1, 0.2]))
+    with pytest.raises(InputError, match=r"^temperature: expected one positive number, got a tensor of shape \(2,\)$"):
+        soft_block_match(image, image, 0, 4, torch.tensor([0.1, 0.2]))
+    assert soft_threshold(image, torch.full((2,), 0.5, dtype=torch.float64), torch.tensor(0.1)).dtype == torch.float32
