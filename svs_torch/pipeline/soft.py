@@ -14,7 +14,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
    still on the plain costs; only where the winner recovered from the value is a neighbour (a fit saturated at
    ±0.5) is the hard value kept, straight-through.
 2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`,
-   whose torch path is differentiable), with the hard validity as the mask.
+   whose torch path is differentiable), with the hard validity as the mask; none where ``DenseConfig.fill_invalid``
+   is off, as none in the hard statistics.
 3. **Object depth** as a *band mean* (:func:`band_mean`): each quantile the hard stage reports (median, low and
    high percentile) is replaced by the weighted mean of the object's depths whose hard rank lies within
    ``BAND_HALF_WIDTH`` of it (always with the two order statistics it interpolates), so the gradient reaches
@@ -24,7 +25,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
    over the hard kept regions, 1 for Otsu: the estimator is the same, and gradients reach the network's weights.
    Measured on the 28 held-out scenes (320×240 and native, Otsu and learned): every median within 0.41 % of the
    hard one; the 10th / 90th percentiles, over a long tail of far pixels, within 0.5 % for 95–100 % / 87–95 % of
-   the objects.
+   the objects. The nearest obstacle and R_min / R_max are the objects the hard pipeline named, with these soft
+   values (a discrete choice this pass never makes again).
 
 4. **Geometry**: pairs rectified from F are warped by the hard homographies carrying gradients to both images
    (:mod:`~svs_torch.geometry.soft`: the LK-refined matches, F refitted by the weighted 8-point on RANSAC's
