@@ -122,7 +122,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--doffs-px", type=finite_float, default=0.0,
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
     add_calibration_option(parser, "LEFT RIGHT (and listed pairs; a list line with its own FOCAL_PX BASELINE_M is "
-                                   "BAD_INPUT)")
+                                   "BAD_INPUT)", kept_beside=True)
     add_pair_options(parser)
     add_segmentation_options(parser)
     add_segmenter_option(parser)

@@ -18,8 +18,8 @@ from .estimate_report import (_calibration_source, _write_disparity, claim_expor
                               unranged_report, with_calibration)
 from .features import load_pair, warn_if_enlarged
 from .progress import Progress
-from .rig import (calibration_file_source, calibration_from_args, check_no_manual_calibration,
-                  with_calibrated_rectification)
+from .rig import (calibration_file_source, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
+                  take_kept_calibration, with_calibrated_rectification)
 
 __all__ = []
 
@@ -270,6 +270,7 @@ def _run_many(args: argparse.Namespace) -> int:
     With more than one worker the batches run in worker processes and this process only prints."""
     from ..core.workers import imports_without_collection, thread_budget
 
+    take_kept_calibration(args, calibration_kept_beside(args, [args.pairs]), "estimate")  # (one list: one folder)
     budget = thread_budget()
     listed = _listed_lines(args.pairs)
     chunks = -(-len(listed) // args.batch_size)

@@ -9,8 +9,8 @@ import time
 from .common import (add_disparity_export_options, dumps_strict, finite_float, output_path, positive_float,
                      positive_int, resolve_export_options)
 from .progress import Progress
-from .rig import (add_calibration_option, calibration_from_args, check_no_manual_calibration, rig_provenance,
-                  with_calibrated_rectification)
+from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
+                  rig_provenance, take_kept_calibration, with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -84,7 +84,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
     parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
     parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
-    add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)")
+    add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)",
+                           kept_beside=True)
     parser.add_argument("--db", metavar="FILE.sqlite", type=output_path,
                         help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
@@ -211,6 +212,20 @@ def disparity_export(args: argparse.Namespace, config, sources=()):
     return export
 
 
+def _rig(args: argparse.Namespace, sources: list):
+    """The rig calibration of ``--calibration``, or the one kept beside the listed capture folders' index
+    (:func:`~svs_torch.cli.rig.calibration_kept_beside`, then set as ``args.calibration``), or None."""
+    from ..core.errors import InputError
+
+    kept = calibration_kept_beside(args, [source.list_file for source in sources
+                                          if not (source.scene or source.problem or source.focal_px is not None)])
+    if kept and args.db:  # as --calibration with --db
+        raise InputError(f"--db: the pairs were captured with a rig calibration ({kept}), which a results store "
+                         "does not record yet; run without --db")
+    take_kept_calibration(args, kept, "eval")
+    return calibration_from_args(args)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -229,11 +244,11 @@ def run(args: argparse.Namespace) -> int:
     check_no_manual_calibration(args)
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
-    calibration = calibration_from_args(args)
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
+    sources, repeated = unique_sources(read_pair_sources(args.paths, "path"))
+    calibration = _rig(args, sources)
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
-    sources, repeated = unique_sources(read_pair_sources(args.paths, "path"))
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
         names = ", ".join(dict.fromkeys(source.name for source in repeated))
         print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)

@@ -9,7 +9,7 @@ import argparse
 CALIBRATED_BAND_PX = 2.0
 
 __all__ = ["add_calibration_option", "calibration_file_source", "calibration_from_args", "check_no_manual_calibration",
-           "with_calibrated_rectification"]
+           "calibration_kept_beside", "take_kept_calibration", "with_calibrated_rectification"]
 
 
 def _calibration_path(text: str) -> str:
@@ -19,12 +19,16 @@ def _calibration_path(text: str) -> str:
     return text
 
 
-def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs") -> None:
+def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs",
+                           kept_beside: bool = False) -> None:
+    """``--calibration``; ``kept_beside``: the command takes a capture folder's kept copy without it
+    (:func:`calibration_kept_beside`)."""
+    kept = ", or for a capture folder's index.jsonl the calibration.json kept beside it" if kept_beside else ""
     parser.add_argument("--calibration", metavar="RIG.json", type=_calibration_path,
                         help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
                              "and take its focal length, baseline and doffs (scaled to their size; boxes and "
                              "figures are then in rectified pixels); without it the paper's uncalibrated "
-                             "rectification runs")
+                             f"rectification runs{kept}")
 
 
 def calibration_from_args(args: argparse.Namespace):
@@ -51,6 +55,52 @@ def calibration_from_args(args: argparse.Namespace):
                           "align, and a real rig's rectification warps its frames: their distances mean nothing "
                           "(the option is for the boards themselves)", stacklevel=2)
     return cached[1]
+
+
+def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | None]) -> str | None:
+    """Without ``--calibration`` (nor ``--focal-px``, ``--baseline-m`` or ``--doffs-px``): the rig calibration that
+    ``capture --calibration`` and ``guide --record`` keep beside their ``index.jsonl`` (``calibration.json``), which
+    the listed pairs are to be rectified with (:func:`take_kept_calibration`), or None. Why: such a folder ranged
+    again was ranged in the SVS model's metres, unrectified, without a word (an audit). ``list_files``: the list
+    file of each listed pair the option's calibration would apply to (None: not read from a list file).
+
+    Raises:
+        InputError: naming ``--calibration``, where those pairs were not all captured with one kept calibration.
+    """
+    from pathlib import Path
+
+    from ..core.errors import InputError
+    from .pairs_folder import CALIBRATION_NAME
+
+    manual = [getattr(args, option, None) is not None for option in ("focal_px", "baseline_m")]
+    if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
+        return None
+    kept: dict[str | None, Path | None] = {}
+    for list_file in dict.fromkeys(list_files):
+        saved = None if list_file is None or Path(list_file).suffix != ".jsonl" else Path(list_file).parent
+        kept[list_file] = saved / CALIBRATION_NAME if saved and (saved / CALIBRATION_NAME).is_file() else None
+    found = [path for path in kept.values() if path is not None]
+    if not found:
+        return None
+    without = [str(name) for name, path in kept.items() if path is None]
+    if without or len({path.read_bytes() for path in found}) > 1:
+        others = f"{', '.join(without)} without one" if without else "another with a different one"
+        raise InputError(f"--calibration: {found[0].parent} was captured with a rig calibration ({found[0].name} "
+                         f"beside its index), and {others}: range them apart, or name the rig's file with "
+                         "--calibration")
+    return str(found[0])
+
+
+def take_kept_calibration(args: argparse.Namespace, path: str | None, prog: str) -> None:
+    """``args.calibration`` set to :func:`calibration_kept_beside`'s ``path`` (nothing if None), said on standard
+    error."""
+    if path is None:
+        return
+    import sys
+
+    args.calibration = path
+    print(f"{prog}: the pairs were captured with a rig calibration: rectified with {path} (--calibration names "
+          "another)", file=sys.stderr)
 
 
 def _warn_of_a_poor_fit(path: str, calibration) -> None:

@@ -460,9 +460,20 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     warning = "warning: --calibration with --emulator: the emulator renders an ideal SVS rig"
     assert err.count(warning) == 1
     np.testing.assert_array_equal(read_calibration(out / "calibration.json").P2, calibration.P2)
+    # Ranged again without --calibration, the folder's pairs take the copy kept beside them (found by an audit: they
+    # were ranged in the SVS model's metres, unrectified, without a word); one captured without it is not mixed in.
+    for command in (["estimate", "--pairs", str(out / "index.jsonl")], ["eval", str(out / "index.jsonl")]):
+        code, stdout, err = run_cli(capsys, *command, "--json")
+        line = json.loads(stdout.splitlines()[0])
+        assert line["calibration"]["source"] == f"--calibration {out / 'calibration.json'} (the pair rectified by it)"
+        assert f"rectified with {out / 'calibration.json'}" in err and line["calibration"]["measured"] is True
     code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--out-dir", str(tmp_path / "other"),
                            "--size", "1280x1024", "--calibration", str(path))
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
+                           str(tmp_path / "plain"))
+    code, _, err = run_cli(capsys, "eval", str(out / "index.jsonl"), str(tmp_path / "plain" / "index.jsonl"))
+    assert code == 2 and f"and {tmp_path / 'plain' / 'index.jsonl'} without one: range them apart" in err
     # guide's JSON lines say the rig rectified each pair, as estimate's do.
     code, stdout, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120",
                                 "--json", "--calibration", str(path))
