@@ -658,7 +658,7 @@ def test_estimate_pairs_gives_every_listed_pair_one_line(data):
     reports = [json.loads(line) for line in out.splitlines()]
     assert all("status" in report and "left" in report for report in reports)
     if code == 2:
-        assert len(err.splitlines()) == 1 and re.match(r"^svs-depth estimate: error: pairs: ", err), err
+        assert len(err.splitlines()) == 1 and re.match(r"^svs-depth estimate: error: --pairs: ", err), err
         assert not reports or any(report["status"] == "BAD_INPUT" for report in reports)
     else:
         assert reports and not err
@@ -863,7 +863,7 @@ def test_no_keypoints_asked_for_leaves_the_dense_stage_to_range():
      "svs-depth estimate: error: --plot: not a usable path (File name too long)"),
     (["segment", "L", "R", "--out", "DIR/missing/seg.png"], "svs-depth segment: error: --out: folder"),
     (["estimate", "DIR/" + "y" * 300 + ".png", "R"], "svs-depth estimate: error: left: not a usable path"),
-    (["estimate", "--pairs", "DIR/" + "z" * 300], "svs-depth estimate: error: pairs: not a usable path"),
+    (["estimate", "--pairs", "DIR/" + "z" * 300], "svs-depth estimate: error: --pairs: not a usable path"),
     (["results", "DB", "--csv", "DIR/missing/rows.csv"], "svs-depth results: error: --csv: folder"),
     (["capture", "--left", "socket://x:1", "--out-dir", "DIR/pairs"], "svs-depth capture: error: --left, --right:"),
 ])

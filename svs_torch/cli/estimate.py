@@ -235,7 +235,7 @@ def _run_pairs(args: argparse.Namespace) -> int:
 
     args.batch_size = args.batch_size or 8
     if args.left or args.right:
-        raise CliError("pairs: give either LEFT RIGHT or --pairs, not both")
+        raise CliError("--pairs: give either LEFT RIGHT or --pairs, not both")
     one_pair = [name for name, given in ((args.figure_option, args.figure), ("--masks-out", args.masks_out)) if given]
     if one_pair:  # was "give either LEFT RIGHT or --pairs", when no LEFT RIGHT was given (an audit)
         raise CliError(f"{', '.join(one_pair)}: draws one pair, not a --pairs list: give LEFT RIGHT (or a scene "

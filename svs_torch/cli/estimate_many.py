@@ -191,7 +191,7 @@ def _decode_while(starting, lines: list[tuple[str, str] | None], batch_size: int
             break
         for path in pair or ():
             try:
-                array = read_image_array(path, "pairs", gray=True)  # as read_gray_image reads it
+                array = read_image_array(path, "--pairs", gray=True)  # as read_gray_image reads it
                 decoded.setdefault(index // batch_size, {})[preload_key(path)] = array
             except (InputError, OSError):
                 pass
@@ -298,7 +298,7 @@ def _run_many(args: argparse.Namespace) -> int:
                 progress.write(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report)]))
             progress.update(len(lines))
     if bad:
-        print(f"svs-depth estimate: error: pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
+        print(f"svs-depth estimate: error: --pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)
         return 2
     return 0
@@ -334,7 +334,7 @@ def _read_pair_list(path: str):
 
     if os.path.isdir(path):  # a folder of scenes, as eval takes it (an audit: "expected a list file, got a folder")
         return read_pair_sources([path], "--pairs")
-    return read_pair_list(path, "pairs")
+    return read_pair_list(path, "--pairs")
 
 
 #: This worker process's pair list and pipeline configuration, made once per list (every worker reads the list

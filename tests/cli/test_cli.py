@@ -343,7 +343,7 @@ def test_estimate_workers_give_the_same_lines(data_dir, capsys, tmp_path):
     code, reports, err = runs["2"]
     # (the blank 16x12 pair, enlarged to 160x120, is also warned of: estimate's --size enlargement warning)
     err = "".join(line for line in err.splitlines(True) if "warning: --size 160x120 enlarges" not in line)
-    assert code == 2 and err.startswith("svs-depth estimate: error: pairs: 2 of 9 pairs are BAD_INPUT")
+    assert code == 2 and err.startswith("svs-depth estimate: error: --pairs: 2 of 9 pairs are BAD_INPUT")
     assert [r["status"] for r in reports][1:6] == ["BAD_INPUT", "OK", "OK", "BAD_INPUT", "NO_OBJECTS"]
     # Every row has every key, null where it does not exist (a JSON audit: an unread pair's lacked 'verified'
     # and the inlier counts, a ranged pair's 'reason').

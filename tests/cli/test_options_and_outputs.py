@@ -355,6 +355,9 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     # Found by an audit: "give either LEFT RIGHT or --pairs", when no LEFT RIGHT had been given.
     (["estimate", "--pairs", "{L}", "--figure", "f.png"], "--figure: draws one pair, not a --pairs list"),
     (["estimate", "--pairs", "{L}", "--masks-out", "m.png"], "--masks-out: draws one pair, not a --pairs list"),
+    # Found by an audit of the command line: these named the option "pairs:", without its dashes.
+    (["estimate", "{L}", "{R}", "--pairs", "{L}"], "error: --pairs: give either LEFT RIGHT or --pairs, not both"),
+    (["estimate", "--pairs", "{L}.txt"], "error: --pairs: expected a list file, got no file: {L}.txt"),
 ])
 def test_options_a_command_would_ignore_or_misread_are_refused(data_dir, capsys, tmp_path, argv, message):
     """Found by an audit of the smaller commands: a figure named as an input was written over it (exit 0);
