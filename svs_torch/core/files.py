@@ -11,6 +11,7 @@ Only the standard library is imported, so that the command line can check file n
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shlex
 import sys
@@ -106,8 +107,10 @@ def check_writable_folder(folder: str | os.PathLike, name: str) -> None:
     try:
         os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     except OSError as error:
-        raise InputError(f"{name}: cannot write in folder {display_path(folder)!r} "
-                         f"({error.strerror or type(error).__name__})") from None
+        reason = error.strerror or type(error).__name__
+        if error.errno == errno.ENOENT and Path(folder).is_dir():  # /proc: "No such file or directory" (an audit)
+            reason = "it takes no new files"
+        raise InputError(f"{name}: cannot write in folder {display_path(folder)!r} ({reason})") from None
     with contextlib.suppress(OSError):
         probe.unlink()
 

@@ -87,6 +87,10 @@ def test_an_output_that_cannot_be_written_stops_the_run_before_anything_is_writt
         ResultStore(blocked / "results.sqlite")
     check_writable_folder(tmp_path, "--out")  # a writable folder: nothing raised, nothing left
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["read-only"]
+    # A folder that exists yet takes no file (/proc) was said "No such file or directory" (an audit).
+    if Path("/proc/self").is_dir():
+        with pytest.raises(InputError, match=r"^--figure: cannot write in folder '/proc' \(it takes no new files\)$"):
+            check_writable_folder("/proc", "--figure")
 
 
 def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_dir, capsys, tmp_path, monkeypatch):
