@@ -27,7 +27,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
-from .common import add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
+from .common import Terminated, add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, replay_command, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -209,8 +209,13 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted after {done} pairs (index.jsonl lists them)", file=sys.stderr)
         return 130
+    except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
+        print(f"{PROG}: terminated after {done} pairs (index.jsonl lists them)", file=sys.stderr)
+        return 143
     except (CaptureError, OSError, InputError) as err:
-        return _fail(f"{err} ({done} of {args.count} pairs saved in {out})", 1)
+        # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
+        saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
+        return _fail(f"{err} ({saved})", 1)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     print(f"{PROG}: saved {done} pairs to {out}; range them with: {replay}", file=sys.stderr)

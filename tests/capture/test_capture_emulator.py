@@ -597,6 +597,34 @@ def test_cli_capture_retries_sets_how_often_a_grab_is_sent_again(tmp_path, capsy
     assert not (tmp_path / "other").exists()
 
 
+def test_cli_capture_says_what_it_saved_when_terminated_or_when_no_camera_opened(tmp_path, capsys, monkeypatch):
+    """Found by an audit: SIGTERM ended capture with "terminated" only (Ctrl-C says how many pairs the index lists),
+    and a camera that never opened ended with "(0 of 2 pairs saved in DIR)" for a folder never made."""
+    from svs_torch.cli.common import Terminated
+
+    grab = SVSStereoCamera.grab_pair
+    calls = []
+
+    def terminated_at_the_third(camera):
+        calls.append(1)
+        if len(calls) == 3:
+            raise Terminated()
+        return grab(camera)
+
+    monkeypatch.setattr(SVSStereoCamera, "grab_pair", terminated_at_the_third)
+    assert run_capture("--emulator", "--count", "5", "--size", "160x120", "--out", str(tmp_path / "run")) == 143
+    assert capsys.readouterr().err.strip().endswith("capture: terminated after 2 pairs (index.jsonl lists them)")
+    assert len((tmp_path / "run" / "index.jsonl").read_text().splitlines()) == 2
+    monkeypatch.undo()
+    with socket.socket() as left, socket.socket() as right:  # ports nothing listens on
+        left.bind(("127.0.0.1", 0))
+        right.bind(("127.0.0.1", 0))
+        urls = [f"socket://127.0.0.1:{port.getsockname()[1]}" for port in (left, right)]
+    assert run_capture("--left", urls[0], "--right", urls[1], "--count", "2", "--timeout", "0.2",
+                       "--out", str(tmp_path / "none")) == 1
+    assert capsys.readouterr().err.strip().endswith("(nothing saved)") and not (tmp_path / "none").exists()
+
+
 def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
     """Found by a fuzz of the device side: a right board late on every frame was saved pair after pair, each frame
     0.5 s from its partner, without a word (guide refuses such pairs). They are kept, the index says when each frame
