@@ -239,13 +239,9 @@ def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: c
                                                first_index=first_index))
 
 
-def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:
-    """The board URLs: from the arguments, or from an in-process emulator started on free loopback ports."""
-    if not args.emulator:
-        return args.left, args.right
-    from hw.emulator import SVS_LINK_BYTES_PER_S, EmulatorServer
-    from hw.frames import WALKER_PITCH_DEG, ObstacleTrack, SyntheticSource
-
+def check_emulator_options(args: argparse.Namespace) -> None:
+    """The ``--emulator-*`` options, checked before anything starts (guide's speech notice came before their error,
+    an audit)."""
     noise = getattr(args, "emulator_noise", 0.0)
     if not (math.isfinite(noise) and noise >= 0):
         raise InputError(f"--emulator-noise: expected a σ >= 0 in 8-bit levels, got {noise!r}")
@@ -253,6 +249,18 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
     if heap is not None and floor is None:
         raise InputError(f"--emulator-heap-m: expected --emulator-floor-m too (a heap stands on the floor), got "
                          f"{heap!r} without it")
+
+
+def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack) -> tuple[str, str]:
+    """The board URLs: from the arguments, or from an in-process emulator started on free loopback ports."""
+    if not args.emulator:
+        return args.left, args.right
+    from hw.emulator import SVS_LINK_BYTES_PER_S, EmulatorServer
+    from hw.frames import WALKER_PITCH_DEG, ObstacleTrack, SyntheticSource
+
+    check_emulator_options(args)
+    noise = getattr(args, "emulator_noise", 0.0)
+    floor, heap = getattr(args, "emulator_floor_m", None), getattr(args, "emulator_heap_m", None)
     source = SyntheticSource(ObstacleTrack(floor_height_m=floor, camera_pitch_deg=WALKER_PITCH_DEG,
                                            heap_ahead_m=heap) if floor else None)
     # At the SVS's link rate: served faster, the in-process emulator renders and encodes pairs the grabber then

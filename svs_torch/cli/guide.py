@@ -277,9 +277,10 @@ def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
         raise InputError("--left, --right: the boards' URLs, or --emulator, not both")
     if not args.emulator and not (args.left and args.right):
         raise InputError("--left, --right: give both board URLs, or --emulator")
-    from .capture import check_board_urls
+    from .capture import check_board_urls, check_emulator_options
 
     check_board_urls(args)
+    check_emulator_options(args)
     if not 0 <= args.near_m < args.far_m:
         raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
     if args.quality is not None and not 1 <= args.quality <= 8:
