@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
@@ -183,6 +184,21 @@ def _write_outputs(args, batch, result, factors) -> None:
         print("; ".join(written), flush=True)
 
 
+def _say_what_the_folder_holds(folder: str) -> None:
+    """:class:`InputError` for a folder that is no scene: it holds none, or several (an audit: both were told
+    "expected two image files, or a scene folder")."""
+    from ..core.errors import InputError
+    from ..data.pair_list import read_pair_sources
+
+    try:
+        scenes = read_pair_sources([folder], "left")
+    except InputError:
+        raise InputError(f"left: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in the folder "
+                         f"{folder}; expected a scene folder, or two image files") from None
+    raise InputError(f"left: {folder} holds {len(scenes)} scenes; estimate ranges one scene (e.g. {scenes[0].left}), "
+                     f"eval {folder} ranges them all")
+
+
 def _say_which_frame(folder: str) -> None:
     """A folder of several frames (a KITTI training folder) is ranged at its first frame: said, with how to range
     another or all of them (an audit: one row named only by the folder, and eval ranges both frames)."""
@@ -259,6 +275,8 @@ def run(args: argparse.Namespace) -> int:
     config = pipeline_config_from_args(args)
     scene = bool(args.left) and not args.right and detect_stereo_layout(args.left) is not None
     if not (args.left and args.right) and not scene:
+        if args.left and not args.right and os.path.isdir(args.left):
+            _say_what_the_folder_holds(args.left)
         raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
     if scene and (args.focal_px or args.baseline_m or args.doffs_px or args.calibration):
         raise InputError("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder brings its own "

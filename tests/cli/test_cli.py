@@ -1345,3 +1345,15 @@ def test_estimate_says_why_the_paper_rule_reports_no_floor_pose(capsys, tmp_path
     assert err.count("--range paper does not make") == 1
     code, out, err = run_cli(capsys, "estimate", *paths, "--range", "paper", "--json")
     assert code == 0 and "--range paper does not make" not in err
+
+
+def test_estimate_of_a_folder_that_is_no_scene_says_what_it_holds(capsys, data_dir, tmp_path):
+    """Found by an audit: an empty folder and a folder of scenes were both told "expected two image files, or a
+    scene folder"; eval names what such a folder holds, and now estimate does too."""
+    code, _, err = run_cli(capsys, "estimate", str(tmp_path))
+    assert code == 2 and f"left: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in the " \
+                         f"folder {tmp_path}" in err
+    folder = data_dir / "middlebury_eval3_Q"
+    code, _, err = run_cli(capsys, "estimate", str(folder))
+    assert code == 2 and f"left: {folder} holds 10 scenes; estimate ranges one scene (e.g. {folder / 'ArtL'}), " \
+                         f"eval {folder} ranges them all" in err
