@@ -174,12 +174,21 @@ def format_summary(summary: dict) -> list[str]:
              f"inliers: median error {_number(summary['sparse_error_median_px'], 2)} px, precision "
              f"{_number(summary['inlier_precision'], 3)}",
              *_nominal_summary(summary.get("nominal_calibration")),
+             *_no_truth_line(summary, nominal),
              *_stereo_lines(summary),
              "statuses: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items())]
     for failure in summary["failures"]:
         lines.append(f"  failed: {failure['name']}: {failure['status']}"
                      + (f": {failure['reason']}" if failure["reason"] else ""))
     return lines
+
+
+def _no_truth_line(summary: dict, nominal: int) -> list[str]:
+    """Why nothing was scored, where pairs ran and none had ground truth (an audit: "0 scored", unexplained)."""
+    if summary["scored"] or nominal or summary["pairs"] <= summary["failed"]:
+        return []
+    return ["none of the ranged pairs has ground truth (listed file pairs and captured frames carry none; a scene "
+            "folder's disparity map is its truth): their distances are in the rows above, as estimate gives them"]
 
 
 def _nominal_summary(nominal: dict | None) -> list[str]:

@@ -1357,3 +1357,14 @@ def test_estimate_of_a_folder_that_is_no_scene_says_what_it_holds(capsys, data_d
     code, _, err = run_cli(capsys, "estimate", str(folder))
     assert code == 2 and f"left: {folder} holds 10 scenes; estimate ranges one scene (e.g. {folder / 'ArtL'}), " \
                          f"eval {folder} ranges them all" in err
+
+
+def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, data_dir, tmp_path):
+    """Found by an audit: "1 pairs, 0 failed, 0 scored against ground truth", and no word of why."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    (tmp_path / "list.txt").write_text(f"{scene / 'im0.png'} {scene / 'im1.png'}\n")
+    code, out, _ = run_cli(capsys, "eval", str(tmp_path / "list.txt"), "--size", "160x120")
+    assert code == 0 and "0 scored against ground truth" in out
+    assert "none of the ranged pairs has ground truth (listed file pairs and captured frames carry none" in out
+    code, out, _ = run_cli(capsys, "eval", str(scene), "--size", "160x120")
+    assert code == 0 and "1 scored against ground truth" in out and "none of the ranged pairs" not in out
