@@ -11,6 +11,7 @@ unchanged by the resize). Differentiable w.r.t. the images (bilinear); the GT re
 from __future__ import annotations
 
 import dataclasses
+import functools
 import operator
 from collections.abc import Sequence
 
@@ -123,13 +124,16 @@ def _pad_to(batch: StereoBatch, height: int, width: int) -> StereoBatch:
 
 
 def _concatenate(batches: Sequence[StereoBatch]) -> StereoBatch:
-    """Stack batches whose tensors share (H, W), in the first batch's dtype and device.
+    """Stack batches whose tensors share (H, W), in the widest of their dtypes and the first batch's device.
 
     A batch without ground truth gets disparity 0 and validity False when another batch has ground truth.
     Names are kept; a batch without names contributes empty strings when another batch has names.
     """
     first = batches[0]
-    batches = [b.to(device=first.left.device, dtype=first.left.dtype) for b in batches]
+    # The widest dtype of them all, whatever the order: in the first's, a float32 pair listed after a float64 one
+    # ran in float64 and listed before it in float32 (an audit: R_min 1.4008746147 against 1.400874714446969 m).
+    dtype = functools.reduce(torch.promote_types, (b.left.dtype for b in batches))
+    batches = [b.to(device=first.left.device, dtype=dtype) for b in batches]
 
     def cat(name: str) -> torch.Tensor:
         return torch.cat([getattr(b, name) for b in batches], dim=0)
@@ -159,7 +163,8 @@ def collate_stereo_batches(
     mode: str = "resize",
     size_wh: Sequence[int] | None = None,
 ) -> StereoBatch:
-    """Concatenate batches whose pairs may have different sizes into one batch, in the first batch's dtype.
+    """Concatenate batches whose pairs may have different sizes into one batch, in the widest of their dtypes
+    (float64 if any is), whatever their order.
 
     Modes:
         ``"resize"``: resample every pair to ``size_wh`` (default: the first batch's tensor size) with

@@ -207,6 +207,13 @@ def test_collate_pad_keeps_sizes_and_masks_padding(shared_pairs: dict, data_dir:
         assert not bool(batch.disparity_valid[i, :, h:].any() or batch.disparity_valid[i, :, :, w:].any())
     assert not bool(batch.disparity_valid[2].any())  # the pair without GT
     assert torch.equal(batch.disparity_px[0, :, :288, :384], parts[0].disparity_px[0])
+    # In the widest dtype, whatever the order (an audit: the first's, so a float32 pair listed after a float64 one
+    # ran in float64 and before it in float32).
+    wide = parts[1].to(dtype=torch.float64)
+    for order in ([parts[0], wide], [wide, parts[0]]):
+        for mode in ("pad", "resize"):
+            mixed = collate_stereo_batches(order, mode=mode)
+            assert mixed.left.dtype == mixed.focal_px.dtype == mixed.disparity_px.dtype == torch.float64, mode
 
 
 def test_collate_resize_and_resize_of_padded_batch(shared_pairs: dict[str, StereoBatch]) -> None:
