@@ -219,13 +219,15 @@ def _turn(result, index: int) -> list[float] | None:
     return [round(float(v), 3) for v in turn[index].tolist()]
 
 
-def format_report(report: dict, nearest_name: str = "nearest obstacle") -> list[str]:
+def format_report(report: dict, nearest_name: str = "nearest obstacle", batched: bool = False) -> list[str]:
     """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
-    called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept)."""
+    called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept).
+    ``batched``: its time is its batch's over the batch's pairs (``estimate --pairs``), and says so."""
     if report.get("reason") and report.get("status") not in UNRANGED:  # a pair the pipeline did not run on
         return [f"status {report['status']}: {report['reason']}"]
+    per = " a pair over its batch" if batched else ""  # every pair of a batch read the same ms unexplained (an audit)
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
-             f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms"]
+             f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms{per}"]
     if report.get("reason"):  # a ranged pair's hint (SWAPPED_VIEWS)
         lines.append(f"  {report['reason']}")
     if report.get("calibration"):

@@ -315,6 +315,10 @@ def test_estimate_many_pairs_in_batches(data_dir, capsys, tmp_path):
     lines = [json.loads(line) for line in out.strip().splitlines()]
     assert [Path(line["left"]).parent.name for line in lines] == ["Teddy", "ArtL", "Piano"]
     assert all(line["status"] == "OK" and line["range_rule"] == "dense" for line in lines)
+    # In text, a pair's time says it is its batch's over the batch's pairs, as --json's help does (an audit).
+    code, out, _ = run_cli(capsys, "estimate", "--pairs", str(listing), "--batch-size", "3", "--size", "160x120")
+    times = re.findall(r"inliers, (\d+) ms a pair over its batch\n", out)
+    assert code == 0 and len(times) == 3 and len(set(times)) == 1, out
     listing.write_text("only-one-path.png\n")
     code, _, err = run_cli(capsys, "estimate", "--pairs", str(listing))
     assert code == 2 and "pairs: line 1" in err
