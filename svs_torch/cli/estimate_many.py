@@ -295,7 +295,8 @@ def _run_many(args: argparse.Namespace) -> int:
                 if reason is not None:
                     bad.append(reason)
                 heading = f"{report['left']} {report['right'] or ''}".rstrip()
-                progress.write(dumps_strict(report) if args.json else "\n".join([heading, *format_report(report, batched=True)]))
+                text = None if args.json else "\n".join([heading, *format_report(report, batched=True)])
+                progress.write(dumps_strict(report) if args.json else text)
             progress.update(len(lines))
     if bad:
         print(f"svs-depth estimate: error: --pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
