@@ -72,6 +72,8 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``svs-depth`` argument parser with every subcommand (each parsed namespace's ``func`` runs it); for
+    scripts and tests that parse a command line without running it."""
     parser = OneLineParser(
         prog="svs-depth",
         description=DESCRIPTION,

@@ -3,6 +3,9 @@
 
 May import: ``svs_torch.core`` only. No stage, the pipeline, ``evaluation`` or the CLI imports are needed to read
 or make data; the stages never import it (they take a ``StereoBatch``).
+
+Every loader's ``dtype`` (float32 by default, or float64) is that of the batch it returns: its images (gray levels
+in [0, 1]), ground-truth disparities and calibration alike.
 """
 
 from .synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes

@@ -10,6 +10,7 @@ May import: ``svs_torch.core`` only. Never another stage, the pipeline, ``evalua
 The names below were the old ``svs_torch.features`` module's, and stay importable from here.
 """
 
+from .detector import SurfConfig
 from .surf import SurfFeatures, extract_surf_features
 
-__all__ = ["SurfFeatures", "extract_surf_features"]
+__all__ = ["SurfConfig", "SurfFeatures", "extract_surf_features"]

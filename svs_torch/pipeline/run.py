@@ -72,6 +72,11 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     Each pair is ranged on its own ``image_hw`` pixels only: pairs of different sizes padded into one batch run as
     groups of one size, each cropped to its size (:mod:`svs_torch.core.size_groups`), so a pair's result is the same
     whatever else shares its batch; the result's maps are padded back to the batch's size.
+
+    Raises:
+        InputError: naming the argument, for a batch of no pair (the stages take B = 0; a pipeline result of no
+            pair has nothing to report), a config or network of the wrong kind, or images and calibration the
+            stages refuse (a ``config`` with no differentiable path is refused when it is made).
     """
     check_instance(batch, "batch", StereoBatch)
     check_instance(config, "config", PipelineConfig)
