@@ -40,7 +40,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 
 #: Each digit's sensor noise, 8-bit levels, as experiments/real_rig.py pairs them.
 NOISE_FOR_DIGIT = dict(JPEG_NOISE)
@@ -99,7 +99,11 @@ def main(argv: list[str] | None = None) -> dict:
     for name, row in rows.items():
         print(f"| {name} | {row['frames']} | {row['median_ms']} | {row['p90_ms']} | {row['max_ms']} | "
               f"{row['over_goal']} |")
-    report = {"digit": args.digit, "threads": torch.get_num_threads(), "rows": rows}
+    # The machine and its load with the times (an audit: this report alone had no metadata block; times do not carry
+    # from machine to machine).
+    report = {"metadata": run_metadata(torch.get_num_threads(), digit=args.digit, repeats=args.repeats,
+                                       limit=args.limit),
+              "digit": args.digit, "threads": torch.get_num_threads(), "rows": rows}
     if args.json:
         args.json.write_text(json.dumps(report, indent=2))
     return report

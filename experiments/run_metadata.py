@@ -145,8 +145,8 @@ def add_rendered_experiment_options(parser) -> None:
 
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM")
-    parser.add_argument("--json", type=Path)
-    parser.add_argument("--markdown", type=Path)
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the rows and the run's metadata as JSON")
+    parser.add_argument("--markdown", type=Path, metavar="FILE", help="write the table as markdown")
 
 
 def rendered_experiment_setup(doc: str, argv: list[str] | None):

@@ -403,14 +403,30 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path
     return Path(args.out)
 
 
-def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[str, ...] = ()) -> list[str]:
+#: What each training setting is, for the training scripts' --help (an audit: they showed a default alone).
+SETTING_HELP = {
+    "steps": "optimiser steps", "batch_size": "pairs per step",
+    "learning_rate": "AdamW's learning rate, decayed to 0 on a cosine", "weight_decay": "AdamW's weight decay",
+    "depth_weight": "weight of the nearest obstacle's relative depth error in the loss, beside BCE + Dice",
+    "crops_per_scene": "random-scale 160x120 crops of each real training scene",
+    "views_per_scene": "whole views of each real training scene, each augmented anew",
+    "num_synthetic": "rendered synthetic SVS scenes", "seed": "seed of every random draw (torch.Generator)",
+    "fine_tune_steps": "steps through the differentiable pipeline after the mask steps (stage 2)",
+    "fine_tune_learning_rate": "the learning rate of those steps",
+}
+
+
+def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[str, ...] = (),
+                       said: dict[str, str] | None = None) -> list[str]:
     """One typed ``--option`` per field of the dataclass instance ``defaults`` but ``skip``, defaulting to its
-    value; returns the fields' names (the training scripts' settings as command-line options)."""
+    value, its help from :data:`SETTING_HELP` (and ``said``'s default text where the script chooses it later);
+    returns the fields' names (the training scripts' settings as command-line options)."""
     names = [field.name for field in dataclasses.fields(defaults) if field.name not in skip]
     for name in names:
         value = getattr(defaults, name)
+        default = (said or {}).get(name, "%(default)s")
         parser.add_argument("--" + name.replace("_", "-"), type=type(value), default=value,
-                            help="(default: %(default)s)")
+                            help=f"{SETTING_HELP.get(name, name.replace('_', ' '))} (default: {default})")
     return names
 
 
@@ -419,7 +435,10 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults reproduce; any "
                         "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")
-    names = add_config_options(parser, TrainConfig())
+    defaults = TrainConfig()
+    names = add_config_options(parser, defaults, said={
+        "steps": f"{defaults.steps}; 20 with --through-pipeline",
+        "learning_rate": f"{defaults.learning_rate:g}; 1e-4 with --through-pipeline"})
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
