@@ -166,7 +166,7 @@ def _write_outputs(args, batch, result, factors) -> None:
 
         # the floor's pose needs square pixels (the report says so): the figure does not draw it either
         figure = estimate_figure(batch, result if square_pixels(factors) else dataclasses.replace(result, floor=None),
-                                 0)
+                                 0, area_scale=factors[0] * factors[1])  # areas in input pixels, as the report
         # A rectified pair also shows as rectified, with epipolar lines: the user sees that rectification worked.
         rectified = pipeline_rectified_figure(batch, result, 0, args.calibration)
         write_image_atomic(args.figure, figure if rectified is None else stack_images(figure, rectified),

@@ -154,8 +154,10 @@ def floor_summary(result, index: int) -> list[str]:
                            float(floor.nearest.surface_m[index]))]
 
 
-def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndarray:
-    """The grayscale image dimmed outside the kept objects, each object tinted, boxed and numbered."""
+def objects_panel(image: torch.Tensor, seg: Segmentation, index: int, area_scale: float = 1.0) -> np.ndarray:
+    """The grayscale image dimmed outside the kept objects, each object tinted, boxed and numbered with its area in
+    input pixels: ``area_scale`` input pixels a pixel of ``image`` (a pair reduced by ``--size``: the report's
+    factors' product; an audit found the label at the working size beside the report's input count)."""
     gray = image[index, 0]
     panel = gray_to_bgr(gray * 0.35)
     base = gray_to_bgr(gray)
@@ -168,10 +170,15 @@ def objects_panel(image: torch.Tensor, seg: Segmentation, index: int) -> np.ndar
         region = labels == label
         panel[region] = (0.6 * base[region] + 0.4 * colour).astype(np.uint8)
         x0, y0, x1, y1 = seg.regions.bbox_xyxy[index, label - 1].tolist()
-        area = int(seg.regions.area_px[index, label - 1])
+        area = int(round(int(seg.regions.area_px[index, label - 1]) * area_scale))
         cv2.rectangle(panel, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), round(scale))
-        _label(panel, f"#{rank + 1} {area}px", (x0 + round(2 * scale), y0 + round(12 * scale)),
-               tuple(int(c) for c in colour), 0.4 * scale)
+        text = f"#{rank + 1} {area}px"
+        # Not where it would not fit across the view (an audit: in a 64x48 view the enlarged label was cut off and
+        # hid a third of it): its box and colour only.
+        (text_w, text_h), _ = cv2.getTextSize(text, _FONT, 0.4 * scale, 1)
+        if text_h + 3 + text_w + 2 <= 0.9 * panel.shape[1]:  # swatch, space, text, border (as _label draws it)
+            _label(panel, text, (x0 + round(2 * scale), y0 + round(12 * scale)), tuple(int(c) for c in colour),
+                   0.4 * scale)
     return panel
 
 

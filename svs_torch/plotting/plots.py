@@ -8,8 +8,7 @@ scale, with each object's true median depth next to the estimated one. The title
 obstacle's distance where it is known (:func:`true_nearest_obstacle`, or the caller's :class:`NearestTruth`) and
 says when no kept region holds it: the obstacle the pipeline ranges nearest is then the "nearest kept obstacle".
 
-Figures are for people: nothing here feeds the pipeline or is differentiable; matplotlib loads on first use.
-"""
+Figures are for people: nothing here feeds the pipeline or is differentiable; matplotlib loads on first use."""
 
 from __future__ import annotations
 
@@ -122,11 +121,11 @@ def _true_object_depths(batch, seg, index: int) -> dict[int, float]:
     return depths
 
 
-def _objects_axis(ax, batch, result, index: int, width_in: float) -> dict[int, float]:
-    """The kept objects tinted and boxed, each labelled with its median (and true) depth; returns the true depths."""
+def _objects_axis(ax, batch, result, index: int, width_in: float, area_scale: float = 1.0) -> dict[int, float]:
+    """The kept objects tinted, boxed and labelled with their median (and true) depths; returns the true depths."""
     height, width = (int(v) for v in batch.image_hw[index].tolist())
     seg = result.segmentation.left
-    panel = objects_panel(batch.left, seg, index)[:height, :width]
+    panel = objects_panel(batch.left, seg, index, area_scale)[:height, :width]
     ax.imshow(cv2.cvtColor(panel, cv2.COLOR_BGR2RGB), interpolation="nearest")
     objects = result.depth.objects
     truth, labels = _true_object_depths(batch, seg, index), []
@@ -311,12 +310,13 @@ def _nearest_summary(result, index: int, truth: dict[int, float], true_nearest: 
     return parts
 
 
-def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None):
+def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None,
+                    area_scale: float = 1.0):
     """The matplotlib :class:`~matplotlib.figure.Figure` of :func:`estimate_figure` (for tests and notebooks).
 
     ``true_nearest``: the truly nearest obstacle for the title, a :class:`NearestTruth` or only its distance in
     metres (the title then cannot say whether it was kept); None: :func:`true_nearest_obstacle` of the batch's
-    ground truth, where it has one.
+    ground truth, where it has one. ``area_scale``: input pixels a pixel of ``batch`` (areas said as the report's).
     """
     from matplotlib.figure import Figure
 
@@ -334,7 +334,7 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     match_h = min(match_w * height / (2 * width + max(4, width // 50)), PANEL_IN)
     figure = Figure(figsize=(match_w + 1.2, panel_h + match_h + 2.4), dpi=100, layout="constrained")
     grid = figure.add_gridspec(2, columns, height_ratios=[panel_h, match_h])
-    truth = _objects_axis(figure.add_subplot(grid[0, 0]), batch, result, index, panel_w)
+    truth = _objects_axis(figure.add_subplot(grid[0, 0]), batch, result, index, panel_w, area_scale)
     _depth_axes(figure, grid, maps, panel_w)
     seg = result.segmentation
     # The whole views, dimmed outside the kept regions: the default finds its features on the whole images, the
@@ -356,11 +356,11 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     return figure
 
 
-def estimate_figure(batch, result, index: int, *, true_nearest: NearestTruth | float | None = None) -> np.ndarray:
+def estimate_figure(batch, result, index: int, **keywords) -> np.ndarray:
     """The pipeline on pair ``index`` as a uint8 BGR image: the kept objects with their median (and true) depths,
     the dense depth map with a colour bar in metres (the ground truth on the same scale where the batch has it), and
-    the matches with a legend (RANSAC inliers green, outliers red). ``true_nearest``: as :func:`pipeline_figure`'s."""
-    return render(pipeline_figure(batch, result, index, true_nearest=true_nearest))
+    the matches with a legend (RANSAC inliers green, outliers red). ``keywords``: :func:`pipeline_figure`'s."""
+    return render(pipeline_figure(batch, result, index, **keywords))
 
 
 def matches_figure(left: torch.Tensor, right: torch.Tensor, keypoints, pairs: list[list[int]],

@@ -350,3 +350,22 @@ def test_pipeline_figure_says_the_distance_ahead_along_the_floor_where_one_was_f
     assert f"pitched {float(result.floor.floor.pitch_deg[0]):.1f}° down" in title and "along the floor" in title
     title = pipeline_figure(scenes.batch, estimate_obstacle_depth(scenes.batch), 0)._suptitle.get_text()
     assert "floor" not in title
+
+
+def test_objects_panel_says_areas_in_input_pixels_and_leaves_a_tiny_view_unlabelled(scene, monkeypatch):
+    """Found by an audit of the figures: the panel said the areas at the working size (Teddy reduced to 320x240:
+    "#1 42200px") beside the report's input count (92725 px); and in a 64x48 view the enlarged label hid a third
+    of it."""
+    import svs_torch.plotting.figures as figures
+
+    batch, result = scene
+    seg = result.segmentation.left
+    texts = []
+    monkeypatch.setattr(figures, "_label", lambda panel, text, *args: texts.append(text))
+    objects_panel(batch.left, seg, 0, area_scale=4.0)
+    label = int(seg.kept_labels[0, 0])
+    assert texts[0] == f"#1 {4 * int(seg.regions.area_px[0, label - 1])}px"
+    texts.clear()
+    tiny = dataclasses.replace(seg, labels=seg.labels[..., :12, :16])
+    objects_panel(batch.left[..., :12, :16], tiny, 0)
+    assert texts == []
