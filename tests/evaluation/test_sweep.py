@@ -618,3 +618,26 @@ def test_results_name_the_option_and_file_a_full_disk_refused(reference, tmp_pat
     assert main(["results", str(db), option, str(target)]) == 1
     assert f"{option}: cannot write '{target}': No space left on device" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_figure_says_a_tie_for_best_and_that_its_axes_are_zoomed(reference, tmp_path):
+    """Found by an audit of the figures: two configurations at the same 99.7 % were one "best" alone, and the
+    parameter panels' axis, fitted to a 0.03-point spread, did not say it was zoomed."""
+    import shutil
+
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "tied.sqlite"
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    with connection:
+        connection.execute("UPDATE results SET acc_objects_pct = 99.0 WHERE acc_objects_pct IS NOT NULL")
+    connection.close()
+    with ResultStore(db) as store:
+        figure = results_figure(store)
+        configs = len({row["config_id"] for row in store.results()})
+    assert configs > 1 and f"tied with {configs - 1} other" in figure.axes[-1].get_title()
+    assert all("zoomed" in axis.get_ylabel() for axis in figure.axes)
+    with ResultStore(reference[1]) as store:
+        assert "tied" not in results_figure(store).axes[-1].get_title()
