@@ -138,7 +138,7 @@ def _once_each(pairs: list[tuple[str, str, str]]) -> list[tuple[str, str, str]]:
     return unique
 
 
-def _text(calibration, views, out: str) -> list[str]:
+def _text(calibration, views, out: str, figure: str | None = None) -> list[str]:
     c = calibration
     board = c.board["inner_corners"]
     given = len(views.names) + len(views.skipped) + len(views.misfits)
@@ -152,7 +152,7 @@ def _text(calibration, views, out: str) -> list[str]:
     if views.skipped:
         lines.append(f"left out (board not found in both views): {', '.join(views.skipped)}")
     lines += [f"left out: {misfit}" for misfit in views.misfits]
-    lines.append(f"wrote {out}")
+    lines.append(f"wrote {out}" + (f"; figure written to {figure}" if figure else ""))  # as the others say it
     return lines
 
 
@@ -233,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
         print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "misfits": list(views.misfits),
                             "warnings": warnings, "out": args.out}), flush=True)
     else:
-        print("\n".join(_text(calibration, views, args.out)), flush=True)
+        print("\n".join(_text(calibration, views, args.out, args.figure)), flush=True)
     return 0
 
 

@@ -190,6 +190,7 @@ def test_calibrate_command(capsys, samples, tmp_path):
     assert "reprojection RMS: left 0.177 px, right 0.181 px, stereo 0.196 px" in stdout
     assert "rectified row error on the chessboards: mean 0.102 px, max 0.629 px" in stdout
     assert read_calibration(out).pairs[0].endswith("left01.jpg")
+    assert f"wrote {out}; figure written to {figure}" in stdout  # said as other commands say it (an audit)
     image = cv2.imread(str(figure))
     assert image is not None and image.shape[1] > 2 * 400
     code, stdout, _ = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025",
