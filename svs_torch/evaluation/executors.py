@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from ..core.checks import InputError
-from ..core.workers import available_cores, stop_worker_server, worker_pool
+from ..core.workers import abandon_pool, available_cores, stop_worker_server, worker_pool
 
 __all__ = ["available_cores", "connect_dask", "map_dask", "map_process_pool"]
 
@@ -38,9 +38,11 @@ def map_process_pool(function: Callable[[Any], Any], items: Iterable[Any], worke
         # parent growing so, 3–4 kB a pair).
         for future in concurrent.futures.as_completed([executor.submit(function, item) for item in items]):
             yield future.result()
-    finally:
-        executor.shutdown(wait=True, cancel_futures=True)
-        stop_worker_server()
+    except BaseException:  # Ctrl-C, SIGTERM, an error, the loop left early: nothing more is wanted, wait for none
+        abandon_pool(executor)
+        raise
+    executor.shutdown(wait=True)
+    stop_worker_server()
 
 
 def _worker_state() -> dict:
