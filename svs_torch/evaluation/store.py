@@ -212,6 +212,30 @@ class ResultStore:
 
     def close(self) -> None:
         self.connection.close()
+        claim = getattr(self, "_claim", None)
+        if claim is not None:  # its lock goes with it
+            claim.close()
+            self._claim = None
+
+    def claim_for_a_sweep(self) -> None:
+        """Hold the store for this process's sweep until it closes (an advisory ``flock`` on the file, which SQLite's
+        own locks do not use; the system drops it when the process ends, even killed). Why: two sweeps on one store
+        each ran every task, their rows right but the work done twice, without a word (an audit).
+
+        Raises:
+            InputError: naming ``db``, where another process holds it."""
+        try:
+            import fcntl
+        except ImportError:  # (Windows: no flock; nothing held)
+            return
+        claim = open(self.path, "rb")  # noqa: SIM115 (held open until close)
+        try:
+            fcntl.flock(claim.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            claim.close()
+            raise InputError(f"db: another sweep is writing {self.path}; run this one once it has ended (it then "
+                             "runs only what is missing), or give another store") from None
+        self._claim = claim
 
     def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> int | None:
         """Run ``statements`` as one transaction; the row id the last one inserted. SQLite's full disk or I/O

@@ -662,3 +662,21 @@ def test_a_pool_left_by_ctrl_c_waits_for_nothing_and_leaves_no_process():
     assert time.monotonic() - started < 10.0
     assert not [p for p in multiprocessing.active_children() if p.is_alive()]
     assert getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None) is None
+
+
+def test_a_second_sweep_on_a_store_being_written_is_refused(reference, tmp_path):
+    """Found by an audit of sweeps: two sweeps on one store each ran every task (the rows right, the work done
+    twice) without a word. The store is held while a sweep writes it; the hold goes with the process."""
+    import shutil
+
+    from svs_torch.evaluation.store import ResultStore
+    from svs_torch.evaluation.sweep import load_sweep, run_sweep
+
+    db = tmp_path / "held.sqlite"
+    shutil.copyfile(reference[1], db)
+    with ResultStore(db) as other:
+        other.claim_for_a_sweep()
+        with pytest.raises(InputError, match=f"^db: another sweep is writing {db}; run this one once it has ended"):
+            run_sweep(load_sweep(reference[0]), db, workers=0)
+    outcome = run_sweep(load_sweep(reference[0]), db, workers=0)  # released on close: nothing left to run
+    assert outcome.tasks == 0
