@@ -3,8 +3,10 @@ uninterrupted run; Dask gives the same rows as the local process pool; svs-depth
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -39,6 +41,18 @@ def write_sweep(folder: Path, data_dir: Path, text: str = SWEEP) -> Path:
     path = folder / "sweep.toml"
     path.write_text(text.format(paths=paths))
     return path
+
+
+@contextlib.contextmanager
+def edited_copy(reference, db: Path):
+    """The reference store copied to `db` and opened for edits in one transaction, closed on leaving."""
+    shutil.copyfile(reference[1], db)
+    connection = sqlite3.connect(db)
+    try:
+        with connection:
+            yield connection
+    finally:
+        connection.close()
 
 
 def stored_rows(db: Path) -> dict[tuple[str, str], dict]:
@@ -269,8 +283,6 @@ def test_native_size_rows_do_not_depend_on_the_batch_size(data_dir, tmp_path):
 
 def test_weights_content_is_part_of_the_configuration_id(tmp_path):
     """A learned segmenter's weights retrained in place are another configuration, not the same id."""
-    import shutil
-
     from svs_torch.evaluation.sweep import make_sweep_config
     from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS
 
@@ -285,18 +297,13 @@ def test_weights_content_is_part_of_the_configuration_id(tmp_path):
 
 
 def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_path, capsys):
-    import shutil
-
     db = tmp_path / "mixed.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         connection.execute("INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) "
                            "VALUES (0, 'sweep', '0.0.1+git.old', '{}', '')")
         old_run = connection.execute("SELECT max(run_id) FROM runs").fetchone()[0]
         connection.execute("UPDATE results SET run_id = ? WHERE rowid IN (SELECT rowid FROM results LIMIT 2)",
                            (old_run,))
-    connection.close()
     assert main(["results", str(db)]) == 0
     out = capsys.readouterr().out
     assert "rows come from 2 code versions" in out and "0.0.1+git.old" in out
@@ -311,16 +318,11 @@ def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_p
 def test_results_say_when_configurations_were_measured_on_different_pairs(reference, tmp_path, capsys):
     """Found by a review of the evaluation: after an interrupted sweep each configuration was summarised over the
     rows it had, and ranked against the others over different pairs without a word."""
-    import shutil
-
     db = tmp_path / "interrupted.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         config_id = connection.execute("SELECT config_id FROM results ORDER BY config_id LIMIT 1").fetchone()[0]
         connection.execute("DELETE FROM results WHERE rowid IN (SELECT rowid FROM results WHERE config_id = ? "
                            "LIMIT 2)", (config_id,))
-    connection.close()
     assert main(["results", str(db)]) == 0
     out = capsys.readouterr().out
     assert f"not all measured on the same pairs ({config_id} lacks 2)" in out
@@ -482,14 +484,9 @@ def test_an_error_row_is_run_again_on_resume_and_replaced(tmp_path):
 def test_results_rank_nominal_only_configurations_on_their_nominal_means(reference, tmp_path, capsys):
     """A sweep over scenes that ship no calibration has no headline accuracy (nominal pairs are reported apart):
     its configurations are still ranked, on their nominal means, and the summary says so."""
-    import shutil
-
     db = tmp_path / "nominal.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         connection.execute("UPDATE results SET calibrated = 0")
-    connection.close()
     assert main(["results", str(db), "--sort", "acc_objects_pct"]) == 0
     out = capsys.readouterr().out
     assert "nominal calibration" in out
@@ -519,15 +516,10 @@ def test_results_rank_over_the_larger_group_and_json_keeps_sort_and_top(referenc
     """Found by an audit of the bulk commands: over 26 Middlebury 2005/2006 scenes, one of which ships its own
     calibration, `results` ranked (and named best) by that one pair while the table said 26; and --json ignored
     --sort and --top."""
-    import shutil
-
     db = tmp_path / "mostly_nominal.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
         connection.execute("UPDATE results SET calibrated = 0 WHERE pair_id != ?", (first,))
-    connection.close()
     assert main(["results", str(db), "--json", "--top", "0"]) == 0
     summaries = json.loads(capsys.readouterr().out)["configs"]
     assert all(s["scored"] == 1 and s["nominal_calibration"]["scored"] == 3 for s in summaries)
@@ -563,17 +555,12 @@ def test_a_swept_optional_sub_setting_reads_as_its_swept_value():
 def test_results_rank_every_configuration_over_one_group(reference, tmp_path, capsys):
     """A review: each configuration chose its own group, so one measured on fewer pairs (its own-calibration mean)
     was ranked against the others' nominal means under one heading."""
-    import shutil
-
     db = tmp_path / "mixed.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
         last = connection.execute("SELECT max(config_id) FROM results").fetchone()[0]
         connection.execute("UPDATE results SET calibrated = 0 WHERE pair_id != ?", (first,))
         connection.execute("DELETE FROM results WHERE config_id = ? AND pair_id != ?", (last, first))
-    connection.close()
     assert main(["results", str(db), "--json"]) == 0
     summaries = {s["config_id"]: s for s in json.loads(capsys.readouterr().out)["configs"]}
     assert {s["ranked_group"] for s in summaries.values()} == {"nominal"}
@@ -623,17 +610,12 @@ def test_results_name_the_option_and_file_a_full_disk_refused(reference, tmp_pat
 def test_the_figure_says_a_tie_for_best_and_that_its_axes_are_zoomed(reference, tmp_path):
     """Found by an audit of the figures: two configurations at the same 99.7 % were one "best" alone, and the
     parameter panels' axis, fitted to a 0.03-point spread, did not say it was zoomed."""
-    import shutil
-
     from svs_torch.evaluation.report import results_figure
     from svs_torch.evaluation.store import ResultStore
 
     db = tmp_path / "tied.sqlite"
-    shutil.copyfile(reference[1], db)
-    connection = sqlite3.connect(db)
-    with connection:
+    with edited_copy(reference, db) as connection:
         connection.execute("UPDATE results SET acc_objects_pct = 99.0 WHERE acc_objects_pct IS NOT NULL")
-    connection.close()
     with ResultStore(db) as store:
         figure = results_figure(store)
         configs = len({row["config_id"] for row in store.results()})
@@ -667,8 +649,6 @@ def test_a_pool_left_by_ctrl_c_waits_for_nothing_and_leaves_no_process():
 def test_a_second_sweep_on_a_store_being_written_is_refused(reference, tmp_path):
     """Found by an audit of sweeps: two sweeps on one store each ran every task (the rows right, the work done
     twice) without a word. The store is held while a sweep writes it; the hold goes with the process."""
-    import shutil
-
     from svs_torch.evaluation.store import ResultStore
     from svs_torch.evaluation.sweep import load_sweep, run_sweep
 
