@@ -17,8 +17,7 @@ import time
 from collections.abc import Iterator
 
 __all__ = ["abandon_pool", "available_cores", "imports_without_collection", "keep_freed_memory", "signal_handler",
-           "start_worker",
-           "stop_worker_server", "thread_budget", "worker_pool"]
+           "start_worker", "stop_worker_server", "thread_budget", "worker_pool"]
 
 #: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
