@@ -60,6 +60,13 @@ def test_synthetic_obstacles_are_ranged_within_one_percent(scenes, preset, toler
         if preset == "default":  # R_min / R_max are the nearest / farthest object
             assert float(result.depth.range.r_min_m[i]) == pytest.approx(nearest, rel=tolerance)
             assert float(result.depth.range.r_max_m[i]) == pytest.approx(max(t for _, t in ranged), rel=tolerance)
+            # d_max / d_min are R_min's / R_max's disparities, Eq. (7)–(8) R = f·B / (d + doffs) (a mutation audit:
+            # the dense rule's two swapped, no test failed).
+            scale = float(scenes.batch.focal_px[i] * scenes.batch.baseline_m[i])
+            doffs, span = float(scenes.batch.doffs_px[i]), result.depth.range
+            assert float(span.d_min_px[i]) < float(span.d_max_px[i])
+            assert scale / (float(span.d_max_px[i]) + doffs) == pytest.approx(float(span.r_min_m[i]), rel=1e-5)
+            assert scale / (float(span.d_min_px[i]) + doffs) == pytest.approx(float(span.r_max_m[i]), rel=1e-5)
     assert set(result.timings_s) == {"segmentation", "features", "matching", "ransac", "rectification", "depth"}
     assert torch.all(result.num_inliers <= result.num_matches)
 
