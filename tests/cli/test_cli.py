@@ -245,12 +245,13 @@ def test_features_bad_size_is_one_line(data_dir, capsys):
     assert code == 2 and out == "" and "size: expected WIDTHxHEIGHT" in err and err.count("\n") == 1
 
 
-def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path):
+@pytest.mark.parametrize("size", ["320x267", "320x240"])  # the aspect kept, and not (x and y scaled apart)
+def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path, size):
     scene = data_dir / "middlebury_eval3_Q" / "Teddy"
     left, right = str(scene / "im0.png"), str(scene / "im1.png")
     masks, figure = tmp_path / "labels.png", tmp_path / "estimate.png"
     code, out, err = run_cli(capsys, "estimate", left, right, "--focal-px", "1500", "--baseline-m", "0.08",
-                             "--doffs-px", "52", "--size", "320x267", "--json", "--masks-out", str(masks),
+                             "--doffs-px", "52", "--size", size, "--json", "--masks-out", str(masks),
                              "--plot", str(figure))
     assert code == 0 and err == ""
     report = json.loads(out)
@@ -268,6 +269,7 @@ def test_estimate_json_masks_and_plot(data_dir, capsys, tmp_path):
     x0, y0, x1, y1 = report["objects"][0]["bbox_xyxy"]
     ys, xs = np.nonzero(labels == 1)
     assert 0 <= xs.min() - x0 <= 5 and 0 <= ys.min() - y0 <= 5 and 0 <= x1 - (xs.max() + 1) <= 5
+    assert 0 <= y1 - (ys.max() + 1) <= 5  # rows scaled by the height's factor (a mutation audit: by the width's)
     assert report["objects"][0]["measured_area_px"] == pytest.approx((labels == 1).sum(), rel=0.02)
     assert report["objects"][0]["measured_area_px"] < report["objects"][0]["area_px"]
     assert cv2.imread(str(figure)) is not None
