@@ -388,3 +388,23 @@ def test_a_huge_inlier_minimum_and_bad_limits(generator):
     for bad in (dict(max_area_scale=0.5), dict(max_rotation_deg=0.0), dict(min_inliers=-1), dict(x_alignment="x")):
         with pytest.raises(InputError, match=next(iter(bad))):
             RectificationConfig(**bad)
+
+
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_a_turn_either_way_and_the_fewest_inliers_on_both_paths(generator, monkeypatch, path):
+    """Found by a mutation audit: the torch path's rotation bound held one way only without its ``abs()``, and
+    ``min_inliers`` read as "more than" went unnoticed. A rig tilted 20° either way is DISTORTED under a 10° bound;
+    exactly ``min_inliers`` (the 7-point minimum) inliers rectify, one fewer do not."""
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    F, left, right, _ = make_rigs(1, 30, generator, max_angle_rad=0.0, baseline_jitter=0.0)
+    level = RectificationConfig(max_rotation_deg=10.0)
+    for turn in (0.35, -0.35):
+        tilted = _skew(torch.tensor([np.cos(turn), np.sin(turn), 0.0], dtype=F64)).unsqueeze(0)
+        assert rectify_uncalibrated(tilted, left, right, all_inliers(left), SIZE_HW).status.tolist() == [0]
+        status = rectify_uncalibrated(tilted, left, right, all_inliers(left), SIZE_HW, level).status
+        assert status.tolist() == [RectificationStatus.DISTORTED], turn
+    fewest = PARALLEL.min_inliers
+    for count, expected in ((fewest, RectificationStatus.OK), (fewest - 1, RectificationStatus.NOT_ENOUGH_INLIERS)):
+        inliers = torch.arange(30).unsqueeze(0) < count
+        assert rectify_uncalibrated(F, left, right, inliers, SIZE_HW).status.tolist() == [expected], count
