@@ -91,6 +91,19 @@ def test_ratio_test_single_candidate_and_ties():
     assert match_sad(left, right, valid, only_one).idx.tolist() == [[0, 0, 0]]
 
 
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_a_ratio_exactly_at_the_bound_is_kept(monkeypatch, path):
+    """MATLAB's ratio test keeps d1 / d2 ≤ MaxRatio: a ratio of exactly 0.5 passes max_ratio 0.5 on both paths, and
+    fails 0.49 (a mutation audit: '≤' read as '<' went unnoticed). Distances 2 and 4 are exact in float32."""
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    left = torch.tensor([[[0.0, 0.0, 0.0, 0.0]]])
+    right = torch.tensor([[[0.5, 0.5, 0.5, 0.5], [1.0, 1.0, 1.0, 1.0]]])  # SAD 2 and 4
+    ones = torch.ones(1, 1, dtype=torch.bool), torch.ones(1, 2, dtype=torch.bool)
+    assert match_sad(left, right, *ones, max_ratio=0.5).idx.tolist() == [[0]]
+    assert match_sad(left, right, *ones, max_ratio=0.49).idx.tolist() == [[-1]]
+
+
 def test_padding_never_matches_even_when_identical(generator):
     left, right, valid_left, valid_right = random_sets(generator, b=1)
     valid_right[:] = True
