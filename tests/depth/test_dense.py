@@ -880,3 +880,27 @@ def test_the_nearest_surface_leaves_out_matches_above_the_in_view_top(monkeypatc
         surface_pixels(replace(dense, in_view_top_px=torch.tensor([[20, 20]])))
     with pytest.raises(InputError, match="surface_within_in_view_top: expected a bool"):
         DepthConfig(surface_within_in_view_top="yes")
+
+
+@pytest.mark.parametrize("kernels", ["auto", "torch"])
+def test_an_object_with_exactly_the_fewest_pixels_is_ranged(monkeypatch, kernels):
+    """``min_valid_px`` and ``min_in_view_px`` are the fewest pixels an object is ranged with: exactly that many
+    range it, one fewer do not, in the C kernel and the torch path (a mutation audit read both '>=' as '>' and no
+    test failed)."""
+    from svs_torch.depth.dense_objects import dense_object_depths
+
+    monkeypatch.setenv("SVS_TORCH_KERNELS", kernels)
+    valid = torch.zeros(1, 1, 10, 40, dtype=torch.bool)
+    valid[..., :16] = True
+    labels, dense, objects = _one_object_of_disparity_2(valid)
+
+    def ranged(**fewest) -> bool:
+        out = dense_object_depths(dense, labels, objects, 100.0, 0.1, fill_invalid=False, **fewest)
+        return bool(out.valid[0, 0])
+
+    assert ranged(min_valid_px=160) and not ranged(min_valid_px=161)
+    in_view = int(dense_object_depths(dense, labels, objects, 100.0, 0.1, min_valid_px=1, fill_invalid=False,
+                                      min_own_view_valid_share=0.5).num_in_view_px[0, 0])
+    assert 0 < in_view < 160
+    assert ranged(min_valid_px=1, min_own_view_valid_share=0.5, min_in_view_px=in_view)
+    assert not ranged(min_valid_px=1, min_own_view_valid_share=0.5, min_in_view_px=in_view + 1)
