@@ -876,6 +876,12 @@ def test_the_nearest_surface_leaves_out_matches_above_the_in_view_top(monkeypatc
     # without a top, or with nothing above it, every valid pixel counts
     assert surface_pixels(replace(dense, in_view_top_px=None)) is None
     assert surface_pixels(replace(dense, in_view_top_px=torch.tensor([44]))) is None
+    # half a pixel above the top is allowed for the sub-pixel fit, not more
+    for above, left_out in ((0.25, 0), (0.5, 0), (0.501, 160)):
+        lifted = replace(dense, disparity_px=torch.where(labels == 2, 44.0 + above, disparity),
+                         in_view_top_px=torch.tensor([44]))
+        surface = surface_pixels(lifted)
+        assert (surface is None) if not left_out else int((valid & ~surface).sum()) == left_out, above
     with pytest.raises(InputError, match=r"dense.in_view_top_px: expected \(1\), got \(1, 2\)"):
         surface_pixels(replace(dense, in_view_top_px=torch.tensor([[20, 20]])))
     with pytest.raises(InputError, match="surface_within_in_view_top: expected a bool"):

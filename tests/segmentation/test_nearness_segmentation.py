@@ -4,6 +4,7 @@ shifted regions, gradients, the default pipeline and clear errors."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -109,6 +110,27 @@ def test_a_small_region_under_the_least_area_is_kept_only_where_it_is_the_neares
     # No region of the least area: the paper's two largest, the small near region not among them.
     assert keep_regions(labels, regions, 2, "nearest_first", 5000, nearness, near_min_area_px=20)[0].tolist() == [
         [1, 2], [1, 2]]
+
+
+def test_the_least_areas_hold_at_their_value_and_a_tie_in_nearness_is_not_nearer():
+    """The boundaries of the keep rule: a region of exactly ``min_area_px`` is a candidate, one of exactly
+    ``near_min_area_px`` is a small near candidate, and a small region only as near as the nearest candidate (a
+    tie) is not nearer than it, so it stays out."""
+    mask = torch.zeros(1, 1, 40, 80, dtype=torch.bool)
+    mask[..., 0:30, 0:40] = True  # a large region (label 1)
+    mask[..., 0:20, 50:75] = True  # a medium region (label 2)
+    mask[..., 34:39, 60:66] = True  # a small region (label 3, 30 px)
+    labels, _, regions = connected_components_with_stats(mask, 8)
+    assert regions.area_px[0, 2].item() == 30
+    nearest = torch.tensor([[3.0, 5.0, 20.0]])
+    assert keep_regions(labels, regions, 2, "nearest_first", 30, nearest)[0].tolist() == [[3, 1]]
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearest, near_min_area_px=30)[0].tolist() == [[3, 1]]
+    assert keep_regions(labels, regions, 2, "nearest_first", 31, nearest, near_min_area_px=30.5)[0].tolist() == [
+        [2, 1]]
+    tied = torch.tensor([[3.0, 5.0, 5.0]])  # as near as the medium region
+    assert keep_regions(labels, regions, 2, "nearest", 31, tied, near_min_area_px=20)[0].tolist() == [[2, 1]]
+    assert keep_regions(labels, regions, 2, "nearest", 31, tied + torch.tensor([[0, 0, 1e-6]]),
+                        near_min_area_px=20)[0].tolist() == [[3, 2]]
 
 
 def test_near_min_area_fraction_is_checked():
@@ -824,6 +846,21 @@ def test_a_network_that_outputs_nan_is_refused_not_read_as_no_obstacle(scenes, s
     config = PipelineConfig(segmentation=SegmentationConfig(segmenter=segmenter), differentiable=differentiable)
     with pytest.raises(InputError, match=r"network: expected finite obstacle logits, got NaN or inf for pair\(s\)"):
         estimate_obstacle_depth(scenes.batch, config, network=net)
+
+
+def test_a_pixel_is_an_obstacle_where_its_probability_exceeds_the_threshold(scenes):
+    """``NearnessNetConfig.probability_threshold``: the logit that is exactly the threshold's is not an obstacle,
+    one just above it is; a higher threshold moves that logit."""
+    batch = scenes.batch
+    for threshold in (0.5, 0.7):
+        net = NearnessNet(NearnessNetConfig(probability_threshold=threshold)).eval()
+        logit = math.log(threshold / (1 - threshold))
+        logits = torch.full_like(batch.left, -5.0)
+        logits[..., 10:30, 10:40] = logit
+        logits[..., 40:60, 50:90] = logit + 1e-4
+        binary = segment_stereo_nearness(batch, SegmentationConfig(), net, left_logits=logits).left.binary
+        assert not bool(binary[..., 10:30, 10:40].any()) and bool(binary[..., 40:60, 50:90].all())
+        assert int(binary.sum()) == batch.batch_size * 20 * 40
 
 
 def test_segment_pair_checks_its_network_its_batch_and_given_logits(scenes):
