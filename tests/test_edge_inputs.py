@@ -306,9 +306,21 @@ def test_the_library_calls_an_api_audit_found_unchecked():
     batch = StereoBatch.from_images(torch.rand(3, 1, 8, 8), torch.rand(3, 1, 8, 8), 276.0, 0.1075)
     image_hw = batch.image_hw.clone()
     image_hw[1] = 0
-    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) of at least 1 "
-                                                   "pixel, got [[0, 0]]")):
+    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) from 1 x 1 to "
+                                                   "the images' 8 x 8, got [[0, 0]] for pair(s) [1]")):
         dataclasses.replace(batch, image_hw=image_hw)  # a later stage blamed left's "0x0" images
+    image_hw[1] = torch.tensor([8, 9])
+    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) from 1 x 1 to "
+                                                   "the images' 8 x 8, got [[8, 9]] for pair(s) [1]")):
+        dataclasses.replace(batch, image_hw=image_hw)  # the paper's path ranged such a pair in silence
+    truth, known = torch.rand(3, 1, 8, 8), torch.ones(3, 1, 8, 8, dtype=torch.bool)
+    truth[2, 0, 3, 3], known[1, 0, 3, 3] = float("inf"), False
+    truth[1, 0, 3, 3] = float("nan")  # unknown: allowed
+    with pytest.raises(InputError, match=re.escape("disparity_px: expected finite values where disparity_valid holds, "
+                                                   "got NaN or inf for pair(s) [2] of 3")):
+        dataclasses.replace(batch, disparity_px=truth, disparity_valid=known)  # scoring blamed "truth_px"
+    known[2, 0, 3, 3] = False
+    assert dataclasses.replace(batch, disparity_px=truth, disparity_valid=known).disparity_px is truth
     broken = batch.left.clone()
     broken[2, 0, 1, 1] = float("nan")
     with pytest.raises(InputError, match=re.escape("left: expected values in [0, 1], got NaN (image 2 of 3)")):

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .checks import InputError, check_dtype, check_finite, check_image, check_same_shape, check_shape
+from .checks import (InputError, check_dtype, check_finite, check_finite_where, check_image, check_pair_sizes,
+                     check_same_shape, check_shape)
 
 __all__ = [
     "FundamentalResult",
@@ -87,9 +88,7 @@ class StereoBatch:
         check_dtype(self.calibrated, "calibrated", "bool")
         check_shape(self.image_hw, "image_hw", [b, 2])
         check_dtype(self.image_hw, "image_hw", "int")
-        if b and not bool((self.image_hw >= 1).all()):  # else a later stage blamed left's 0x0 "image"
-            raise InputError(f"image_hw: expected each pair's (height, width) of at least 1 pixel, got "
-                             f"{self.image_hw[~(self.image_hw >= 1).all(1)].tolist()[:4]}")
+        check_pair_sizes(self.image_hw, dims["H"], dims["W"])
         if (self.disparity_px is None) != (self.disparity_valid is None):
             raise InputError("disparity_valid: expected it together with disparity_px (both or neither)")
         if self.disparity_px is not None:
@@ -97,6 +96,7 @@ class StereoBatch:
             check_dtype(self.disparity_px, "disparity_px", "float")
             check_same_shape(self.left, "left", self.disparity_valid, "disparity_valid")
             check_dtype(self.disparity_valid, "disparity_valid", "bool")
+            check_finite_where(self.disparity_px, "disparity_px", self.disparity_valid, "disparity_valid")
         if self.disparity_nonoccluded is not None:
             if self.disparity_px is None:
                 raise InputError("disparity_nonoccluded: expected it only with disparity_px (a GT mask)")

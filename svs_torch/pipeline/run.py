@@ -74,8 +74,9 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     whatever else shares its batch; the result's maps are padded back to the batch's size.
 
     Raises:
-        InputError: naming the argument, for a batch of no pair (the stages take B = 0; a pipeline result of no
-            pair has nothing to report), a config or network of the wrong kind, or images and calibration the
+        InputError: naming the argument, for a batch of no pair (a pipeline result of no pair has nothing to
+            report; SURF, block matching and RANSAC take B = 0, segmentation and the dense stage refuse it by
+            name), a config or network of the wrong kind, or images and calibration the
             stages refuse (a ``config`` with no differentiable path is refused when it is made).
     """
     check_instance(batch, "batch", StereoBatch)
