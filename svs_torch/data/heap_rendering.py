@@ -35,6 +35,15 @@ _ROCKS, _ROCK_RADIUS_SHARE = 48, (0.06, 0.16)
 _MIN_HEIGHT_M = 0.003
 
 
+def draw(kind: str, shape: tuple[int, ...], generator: torch.Generator, dtype: torch.dtype,
+         device: torch.device | None = None) -> torch.Tensor:
+    """Uniform [0, 1) (``kind="rand"``) or standard normal (``"randn"``) numbers drawn in float32 and returned in
+    ``dtype``: a float64 draw reads other bits of the generator, so the same seed gave another scene in float64 (a
+    gradcheck's) than in float32. Every random draw of the rendered scenes goes through it."""
+    sample = torch.rand if kind == "rand" else torch.randn
+    return sample(shape, generator=generator, dtype=torch.float32, device=device).to(dtype)
+
+
 class HeapField(NamedTuple):
     """Each scene's height field (B heaps, at most one a scene).
 
@@ -62,11 +71,11 @@ def make_heap_field(heaps: torch.Tensor, roughness_m: float, generator: torch.Ge
     share = (lateral ** 2 + ahead ** 2) / radius.clamp_min(1e-9).view(b, 1, 1) ** 2
     dome = height.view(b, 1, 1) * (1 - share).clamp_min(0) ** 0.75
     # Rocks: uniform over the heap's disc, their radii and heights drawn, each a Gaussian bump.
-    angle = torch.rand(b, _ROCKS, generator=generator, **options) * (2 * math.pi)
-    reach = torch.rand(b, _ROCKS, generator=generator, **options).sqrt() * radius.view(b, 1)
+    angle = draw("rand", (b, _ROCKS), generator, **options) * (2 * math.pi)
+    reach = draw("rand", (b, _ROCKS), generator, **options).sqrt() * radius.view(b, 1)
     low, high = _ROCK_RADIUS_SHARE
-    size = (low + (high - low) * torch.rand(b, _ROCKS, generator=generator, **options)) * radius.view(b, 1)
-    rise = roughness_m * (0.5 + 0.5 * torch.rand(b, _ROCKS, generator=generator, **options))
+    size = (low + (high - low) * draw("rand", (b, _ROCKS), generator, **options)) * radius.view(b, 1)
+    rise = roughness_m * (0.5 + 0.5 * draw("rand", (b, _ROCKS), generator, **options))
     dx = lateral.unsqueeze(-1) - (reach * angle.cos()).view(b, 1, 1, -1)
     dy = ahead.unsqueeze(-1) - (reach * angle.sin()).view(b, 1, 1, -1)
     rocks = (rise.view(b, 1, 1, -1) * torch.exp(-(dx ** 2 + dy ** 2) / (2 * size.view(b, 1, 1, -1) ** 2))).sum(-1)

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from .heap_rendering import HeapField, heap_hits, rays_shape
+from .heap_rendering import HeapField, draw, heap_hits, rays_shape
 
 __all__ = []
 
@@ -143,8 +143,8 @@ def _make_tiles(tile_depth_m: torch.Tensor, tile_side_m: torch.Tensor, focal_px:
     b, s = tile_depth_m.shape
     g = _TILE_TEXELS
     dtype, device = tile_depth_m.dtype, tile_depth_m.device
-    noise = torch.randn(b, s, 2, g, g, generator=generator, dtype=dtype, device=device)
-    level = torch.rand(b, s, generator=generator, dtype=dtype, device=device)
+    noise = draw("randn", (b, s, 2, g, g), generator, dtype, device)
+    level = draw("rand", (b, s), generator, dtype, device)
     sigma_px = torch.tensor(_TEXTURE_SIGMA_PX, dtype=dtype, device=device)
     texel_m = tile_side_m / g
     # Sigma in texels; capped at G/4 so the lowest frequency survives and the normalisation below is sound.

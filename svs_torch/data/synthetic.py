@@ -25,7 +25,7 @@ import torch
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError, check_dtype, check_generator, check_shape
 from ..core.types import StereoBatch
-from .heap_rendering import make_heap_field
+from .heap_rendering import draw, make_heap_field
 from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
 __all__ = ["SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
@@ -252,7 +252,7 @@ def _front_slopes(yaw_deg: torch.Tensor, scene: _Scene, background_depth_m: floa
 def _with_noise(view: torch.Tensor, noise_std: float, generator: torch.Generator) -> torch.Tensor:
     """``view`` with additive Gaussian sensor noise of ``noise_std`` (drawn from ``generator``), held to [0, 1]."""
     if noise_std > 0:
-        view = view + noise_std * torch.randn(view.shape, generator=generator, dtype=view.dtype, device=view.device)
+        view = view + noise_std * draw("randn", tuple(view.shape), generator, view.dtype, view.device)
     return view.clamp(0.0, 1.0)
 
 
@@ -338,7 +338,7 @@ def _place_obstacles(batch_size: int, num_objects: int, size_wh: tuple[int, int]
     focal = camera.focal_px(width)
     cx, cy = camera.principal_point_px(width, height)
     near, far = depth_range_m
-    u = torch.rand(batch_size, num_objects, 5, generator=generator, dtype=dtype)
+    u = draw("rand", (batch_size, num_objects, 5), generator, dtype)
     depth = near + (far - near) * u[..., 0]
     border_x, gap = _BORDER_FRACTION * width, _GAP_FRACTION * width
     sector = (width - 2 * border_x) / max(num_objects, 1)  # K = 0: no sectors, nothing drawn
@@ -371,7 +371,8 @@ def random_obstacle_scenes(
     Obstacles 1–2 m away by default, as in the paper; widths 0.3–0.6 m and heights 0.4–1.0 m (box-sized;
     capped so each obstacle fits its sector of the view, see :func:`_place_obstacles`). ``render_kwargs`` go to
     :func:`render_obstacle_scenes` (``background_depth_m``, ``supersample``, ``noise_std``, ``floor_height_m``,
-    ``camera_pitch_deg``, ``object_yaw_deg``). The same generator state gives identical scenes. Not differentiable.
+    ``camera_pitch_deg``, ``object_yaw_deg``). The same generator state gives identical scenes, in float32 and float64
+    alike (to float32 precision). Not differentiable.
 
     Raises:
         InputError: naming ``batch_size``, ``num_objects`` (too many to fit side by side at ``near``),
