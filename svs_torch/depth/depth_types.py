@@ -46,6 +46,12 @@ class DepthConfig:
             above every object's range, which pull the nearest surface near while the median stays right); the
             median and the high percentile stay over every pixel (``"dense"`` rule).
         min_object_inliers: fewest valid inliers for an object's depth to count (``"paper"`` rule).
+        min_in_front_share: a pair is ranged by the ``"paper"`` rule only where more than this share of its
+            inliers lie in front of the rig (``d + doffs > 0``); else its views are swapped (or its ``doffs``
+            wrong) and the few in front are stray matches: swapped views were ranged at 0.20 m from one stray
+            inlier of 274, a false warning. 0 is the paper's letter (any inlier in front), which the paper preset
+            keeps; at 0.5 the shared pairs lose only Flowerpots at 320×240 under the paper preset, whose 8 inliers
+            are all wrong (3 in front).
         min_object_pixels: fewest valid dense pixels for an object's depth to count (``"dense"`` rule).
         min_object_valid_fraction: least share of an object's region with valid dense disparities (``"dense"``
             rule) where the pair's geometry is verified (``PipelineResult.verified``: RANSAC found F and the
@@ -71,6 +77,7 @@ class DepthConfig:
     object_percentiles: tuple[float, float] = (10.0, 90.0)
     surface_within_in_view_top: bool = True  # guide_confirm.md, "The nearest surface within the in-view top"
     min_object_inliers: int = 1
+    min_in_front_share: float = 0.5
     min_object_pixels: int = 20
     min_object_valid_fraction: float = 0.1
     min_object_valid_fraction_unverified: float = 0.4  # verify_views.py: 0.3 ranged 10 of 64 synthetic mismatches
@@ -82,7 +89,7 @@ class DepthConfig:
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
-        for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified"):
+        for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified", "min_in_front_share"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)
         check_percentiles(self.object_percentiles, "object_percentiles")

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_percentiles, check_shape
+from ..core.checks import InputError, check_dtype, check_percentiles, check_real, check_shape
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
                           PointDepths, RangeEstimate)
@@ -96,18 +96,23 @@ def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: floa
 
 def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: float | torch.Tensor,
                    baseline_m: float | torch.Tensor, doffs_px: float | torch.Tensor | None = None,
-                   percentiles: tuple[float, float] | None = None) -> RangeEstimate:
+                   percentiles: tuple[float, float] | None = None, min_in_front_share: float = 0.0
+                   ) -> RangeEstimate:
     """The paper's range of a pair from its inlier disparities ``(B, K)`` (Sec. 3.4, Eq. (5)–(8)).
 
     ``percentiles=None`` is the paper: d_max and d_min are the max and min (5)–(6). ``(low, high)`` uses those
-    percentiles instead (robust to a wrong same-row match). Disparities with ``d + doffs ≤ 0`` are left out.
+    percentiles instead (robust to a wrong same-row match). Disparities with ``d + doffs ≤ 0`` are left out, and a
+    pair with no more than ``min_in_front_share`` of its inliers in front of the rig is not ranged (``valid``
+    False; :class:`DepthConfig`: 0, the paper's letter, ranges from any one inlier in front).
     Differentiable w.r.t. ``disparity_px`` (the selected or interpolated ones) and, for the depths, the
     calibration; ``num_disparities`` and ``valid`` are not.
     """
     depths = point_depths(disparity_px, valid, focal_px, baseline_m, doffs_px)
     q = (0.0, 1.0) if percentiles is None else _quantile_levels(percentiles, "percentiles")
     d_min, d_max = masked_quantile(disparity_px, depths.valid, q).values.unbind(-1)  # Eq. (6), (5)
-    present = depths.valid.any(dim=1)
+    in_front = depths.valid.sum(dim=1)
+    check_real(min_in_front_share, "min_in_front_share", 0.0, 1.0)
+    present = (in_front > 0) & (in_front > min_in_front_share * valid.sum(dim=1))
     doffs = _per_pair(doffs_px, disparity_px, "doffs_px").squeeze(1)
     scale = (_per_pair(focal_px, disparity_px, "focal_px") * _per_pair(baseline_m, disparity_px, "baseline_m"))
     scale = scale.squeeze(1)
@@ -116,7 +121,7 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
         safe = torch.where(present, d + doffs, torch.ones_like(d))
         return torch.where(present, scale / safe, torch.zeros_like(d))
 
-    return RangeEstimate(d_min, d_max, depth(d_max), depth(d_min), depths.valid.sum(dim=1), present)
+    return RangeEstimate(d_min, d_max, depth(d_max), depth(d_min), in_front, present)
 
 
 def accuracy_percent(real_m: torch.Tensor, estimated_m: torch.Tensor) -> Accuracy:
@@ -254,7 +259,7 @@ def estimate_depth(points_left: torch.Tensor, points_right: torch.Tensor, inlier
     depths = point_depths(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px)
     if statistics:
         pair_range = estimate_range(disparities.disparity_px, disparities.valid, focal_px, baseline_m, doffs_px,
-                                    config.percentiles)
+                                    config.percentiles, config.min_in_front_share)
     else:
         zeros = depths.depth_m.new_zeros(depths.depth_m.shape[0])
         pair_range = RangeEstimate(zeros, zeros, zeros, zeros, torch.zeros_like(zeros, dtype=torch.int64),

@@ -38,7 +38,7 @@ class PipelineStatus(enum.IntEnum):
     TOO_FEW_MATCHES = 3  # fewer than 7 matches
     RANSAC_FAILED = 4  # every sample degenerate, or too few inliers
     DEGENERATE_RECTIFICATION = 5  # epipole in the image, singular F, or a wildly distorting homography
-    NO_POSITIVE_DISPARITY = 6  # no inlier with d + doffs > 0: nothing to range
+    NO_POSITIVE_DISPARITY = 6  # no inlier (DepthConfig.min_in_front_share: or too few) with d + doffs > 0
     NO_DENSE_DEPTH = 7  # dense rule: no kept object has enough valid dense disparities (flat, occluded)
 
 
@@ -388,7 +388,8 @@ class PipelineConfig:
         (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter: 27
         degenerate, 39.4 %."""
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
-                   refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper"), noisy_retry_sigma_px=None,
+                   refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper", min_in_front_share=0.0),
+                   noisy_retry_sigma_px=None,
                    noisy_features_retry_sigma_px=None, coarse_retry_below_share=None, drop_unmeasured_below_share=None,
                    drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None,
                    measure_near_surface=False)

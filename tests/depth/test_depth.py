@@ -48,6 +48,45 @@ def test_non_positive_disparities_are_masked_not_divided():
     assert torch.isfinite(result.r_min_m).all() and torch.isfinite(result.r_max_m).all()
 
 
+def test_a_pair_mostly_behind_the_rig_is_not_ranged_unless_the_papers_letter():
+    """``min_in_front_share``: swapped views put nearly every inlier at d + doffs ≤ 0, and the paper's rule then
+    ranged the pair from its few stray matches in front; over half must lie in front (the default setting), or
+    any one under the paper's letter (0, the paper preset's)."""
+    disparity = torch.tensor([[-9.0, -8.0, -7.0, 30.0, -6.0], [5.0, 6.0, -1.0, -2.0, 0.0],
+                              [5.0, 6.0, 7.0, -2.0, -3.0]], dtype=F64)
+    valid = torch.ones(3, 5, dtype=torch.bool)
+    valid[1, 4] = False  # two of four in front: exactly half
+    assert estimate_range(disparity, valid, 400.0, 0.1).valid.tolist() == [True, True, True]
+    guarded = estimate_range(disparity, valid, 400.0, 0.1, min_in_front_share=0.5)
+    assert guarded.valid.tolist() == [False, False, True] and guarded.r_min_m[:2].tolist() == [0.0, 0.0]
+    assert guarded.num_disparities.tolist() == [1, 2, 3]
+    assert estimate_range(disparity, valid, 400.0, 0.1, min_in_front_share=0.49).valid.tolist() == [False, True, True]
+    assert DepthConfig().min_in_front_share == 0.5
+    with pytest.raises(InputError, match="min_in_front_share"):
+        DepthConfig(min_in_front_share=1.5)
+    with pytest.raises(InputError, match="min_in_front_share"):
+        estimate_range(disparity, valid, 400.0, 0.1, min_in_front_share=-0.1)
+
+
+def test_swapped_views_are_not_ranged_by_the_paper_rule_unless_the_preset():
+    """The audit's case: the cameras' cables swapped. ``--range paper`` leaves the pair unranged; the paper preset
+    keeps the paper's letter and ranges it from a stray inlier, far nearer than the true obstacles."""
+    from svs_torch import PipelineConfig, PipelineStatus, StereoBatch, estimate_obstacle_depth
+    from dataclasses import replace
+
+    scenes = random_obstacle_scenes(1, 2, generator=torch.Generator().manual_seed(3))
+    batch = scenes.batch
+    swapped = StereoBatch.from_images(batch.right, batch.left, batch.focal_px, batch.baseline_m, calibrated=True)
+    paper = estimate_obstacle_depth(swapped, PipelineConfig.paper())
+    assert paper.status.tolist() == [PipelineStatus.OK]
+    assert float(paper.depth.nearest.depth_m[0]) < 0.5 * float(scenes.object_depth_m.min())
+    guarded = replace(PipelineConfig.paper(), depth=DepthConfig(rule="paper"))
+    result = estimate_obstacle_depth(swapped, guarded)
+    assert result.status.tolist() == [PipelineStatus.NO_POSITIVE_DISPARITY]
+    assert not bool(result.depth.nearest.valid.any())
+    assert estimate_obstacle_depth(batch, guarded).status.tolist() == [PipelineStatus.OK]
+
+
 def test_robust_percentiles_ignore_a_same_row_outlier(generator):
     """One wrong match on the right row (REFERENCE.md pitfall) sets the paper's d_max; the 10th/90th
     percentiles stay near the true range."""
