@@ -52,7 +52,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         choices=("acc_r_min_pct", "acc_r_max_pct", "acc_objects_pct", "dense_within_1px",
                                  "inlier_precision"), help="metric the summary ranks by (default: acc_objects_pct)")
     parser.add_argument("--json", action="store_true",
-                        help="the summary as one JSON object: configs (best first by --sort), sort, best")
+                        help="the summary as one JSON object: configs (best first by --sort, --top of them), "
+                             "sort, best (each metric's best configuration id over every stored configuration, "
+                             "listed or not)")
     parser.set_defaults(func=run)
 
 
@@ -142,9 +144,11 @@ def run(args: argparse.Namespace) -> int:
             summaries = config_summaries(store)
             best = best_by_metric(summaries)
             if args.json:
-                shown = ranked_summaries(summaries, args)  # "best" among them: every id it names is listed
-                print(dumps_strict({"configs": shown, "sort": args.sort,
-                                    "best": {key: s["config_id"] for key, _, s in best_by_metric(shown)}}))
+                # "best" over every configuration, as the text's: over the --top listed it named another (the best
+                # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
+                # the listing's order, not the text's.
+                print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
+                                    "best": {key: s["config_id"] for key, _, s in best}}))
             else:
                 _print_summary(summaries, best, args)
     return 0

@@ -537,7 +537,16 @@ def test_results_rank_over_the_larger_group_and_json_keeps_sort_and_top(referenc
     best_r_min = max(summaries, key=lambda s: s["nominal_calibration"]["acc_r_min_pct"])
     assert picked["sort"] == "acc_r_min_pct" and [s["config_id"] for s in picked["configs"]] == [
         best_r_min["config_id"]]
-    assert set(picked["best"].values()) == {best_r_min["config_id"]}  # "best" names only listed configurations
+    # "best" is over every configuration, as the text's "best by each metric" (it was over the --top listed, and
+    # named another configuration than the text: an audit)
+    from svs_torch.evaluation.report import METRICS, best_by_metric
+    assert picked["best"] == {key: pick["config_id"] for key, _, pick in best_by_metric(summaries)}
+    assert len(set(picked["best"].values())) > 1
+    assert main(["results", str(db), "--top", "1"]) == 0
+    text = capsys.readouterr().out.split("best by each metric:")[1].splitlines()
+    named = {key: line.strip()[len(label):].split()[1] for key, label, _ in METRICS for line in text
+             if line.strip().startswith(label)}
+    assert named == picked["best"]
 
 
 def test_a_swept_optional_sub_setting_reads_as_its_swept_value():
