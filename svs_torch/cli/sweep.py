@@ -56,9 +56,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--db", required=True, metavar="FILE.sqlite", type=output_path,
                         help="results file, created or resumed")
     parser.add_argument("--workers", type=non_negative_int, metavar="N",
-                        help="local worker processes (default: one per core; 0: in this process)")
+                        help="local worker processes (default: one per core, or per OMP_NUM_THREADS if that is "
+                             "fewer; 0: in this process)")
     parser.add_argument("--threads", type=positive_int, metavar="T",
-                        help="torch threads per worker (default: cores / workers; 1 on Dask)")
+                        help="torch threads per worker (default: cores, or OMP_NUM_THREADS if fewer, / workers; 1 "
+                             "on Dask)")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster at this address")
     parser.add_argument("--json", action="store_true", help="print one JSON summary line at the end")
     parser.set_defaults(func=run)

@@ -30,7 +30,8 @@ written in one transaction with ``INSERT OR IGNORE``. So a sweep killed at any m
 only what is missing and ends with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
 
 Executors (:mod:`.executors`): in the calling process (``workers=0``); a local process pool whose workers each
-run ``torch.set_num_threads(max(1, cores // workers))`` so that they do not oversubscribe the cores; or a Dask
+run ``torch.set_num_threads(max(1, cores // workers))`` (``OMP_NUM_THREADS`` in place of the cores where fewer)
+so that they do not oversubscribe the cores; or a Dask
 ``distributed`` cluster (``scheduler="tcp://HOST:PORT"``, ``pip install -e ".[dask]"``), where each task pins
 torch to one thread. Only this process writes the store: workers return rows.
 """
@@ -52,6 +53,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.checks import InputError
+from ..core.workers import thread_budget
 from ..data.pair_list import PairSource, read_pair_sources, unique_sources
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import weights_path
@@ -288,12 +290,13 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
     """Run the missing part of ``sweep`` into the store ``db`` (created if needed).
 
     Args:
-        workers: local worker processes (default: one per core, at most one per task); 0 runs the tasks in
-            this process. Ignored with ``scheduler``.
+        workers: local worker processes (default: one per core, or per ``OMP_NUM_THREADS`` if that is fewer, at
+            most one per task); 0 runs the tasks in this process. Ignored with ``scheduler``.
         scheduler: a Dask scheduler address: run the tasks on that cluster.
         on_task: called with each finished task's result after its rows are committed (progress).
         warn: receives one-line warnings (default: stderr).
-        threads: torch threads per worker (default: ``cores // workers`` locally, 1 on Dask).
+        threads: torch threads per worker (default: ``budget // workers`` locally, the budget being the cores
+            or ``OMP_NUM_THREADS`` if fewer; 1 on Dask).
         on_start: called once with (rows to run, rows already stored) before any task runs.
     """
     warn = warn or (lambda message: print(f"warning: {message}", file=sys.stderr))
@@ -310,12 +313,12 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
         if scheduler:
             executor, count, threads = "dask", 0, threads or 1
         else:
-            count = available_cores() if workers is None else workers
+            count = thread_budget() if workers is None else workers  # not the cores: OMP_NUM_THREADS was ignored
             executor = "in-process" if count == 0 else "local-processes"
         tasks = plan_tasks(sweep, done)
         if not scheduler and count:
             count = min(count, max(1, len(tasks)))
-            threads = threads or max(1, available_cores() // count)
+            threads = threads or max(1, thread_budget() // count)
         tasks = [dataclasses.replace(task, threads=threads) for task in tasks]
         client = connect_dask(scheduler, warn) if scheduler and tasks else None
         version = code_version()

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from svs_torch.cli import main
 from svs_torch.core.checks import InputError
@@ -202,6 +203,34 @@ def test_dask_cluster_gives_the_rows_of_the_local_pool(reference, tmp_path):
     assert stored_rows(db) == stored_rows(reference_db)
     environment = json.loads(sqlite3.connect(db).execute("SELECT environment FROM runs").fetchone()[0])
     assert environment["executor"] == "dask" and environment["threads_per_worker"] == 1
+
+
+@pytest.mark.parametrize("omp, expected", [("1", (1, 1)), ("", (2, 1)), ("8", (2, 1))])
+def test_a_sweep_keeps_to_omp_num_threads(reference, tmp_path, monkeypatch, omp, expected):
+    """Found by an audit of the command line: `sweep` took every core whatever OMP_NUM_THREADS said (`estimate
+    --pairs` honours it), so a job limited to one thread ran two workers, or one of two threads."""
+    from svs_torch.evaluation import sweep as sweep_module
+
+    pools = []
+
+    def in_this_process(function, items, workers, threads):  # the pool's arguments; its tasks run here
+        pools.append((workers, threads))
+        return map(function, items)
+
+    monkeypatch.setattr(sweep_module, "map_process_pool", in_this_process)
+    monkeypatch.setattr(sweep_module, "available_cores", lambda: 2)
+    monkeypatch.setattr("svs_torch.core.workers.available_cores", lambda: 2)
+    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    sweep_file, reference_db = reference
+    threads = torch.get_num_threads()
+    try:
+        outcome = run_sweep(load_sweep(sweep_file), tmp_path / "limited.sqlite", warn=pytest.fail)
+    finally:  # the tasks ran here, and set this process's threads to the pool's
+        torch.set_num_threads(threads)
+    assert pools == [expected] and outcome.rows_written == TOTAL_ROWS
+    environment = json.loads(sqlite3.connect(tmp_path / "limited.sqlite").execute(
+        "SELECT environment FROM runs").fetchone()[0])
+    assert (environment["workers"], environment["threads_per_worker"]) == expected
 
 
 def test_results_summary_csv_and_plot(reference, tmp_path, capsys):
