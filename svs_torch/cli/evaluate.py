@@ -6,8 +6,8 @@ import argparse
 import sys
 import time
 
-from .common import (add_disparity_export_options, dumps_strict, finite_float, output_path, positive_float,
-                     positive_int, resolve_export_options)
+from .common import (add_disparity_export_options, dumps_strict, finite_float, options_named, output_path,
+                     positive_float, positive_int, resolve_export_options)
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
                   rig_provenance, take_kept_calibration, with_calibrated_rectification)
@@ -323,7 +323,8 @@ def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -
     from ..evaluation.sweep import code_version, environment, make_sweep_config
 
     sweep_config = make_sweep_config(preset, overrides, size_wh)
-    store = ResultStore(args.db)
+    with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
+        store = ResultStore(args.db)
     store.add_configs([sweep_config.record()])
     store.add_pairs(sources)
     run_id = store.start_run("eval", code_version(), environment("in-process", 0, None), " ".join(sys.argv[1:]))

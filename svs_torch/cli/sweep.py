@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .common import dumps_strict, non_negative_int, output_path, positive_int
+from .common import dumps_strict, non_negative_int, options_named, output_path, positive_int
 from .progress import Progress
 
 HELP = "run a parameter sweep over many pairs into a resumable SQLite results file"
@@ -88,8 +88,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"svs-depth sweep: warning: {message}", file=sys.stderr)
 
     try:
-        outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler, threads=args.threads,
-                            on_task=lambda result: bar.update(len(result.rows)), warn=warn, on_start=start)
+        with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
+            outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler,
+                                threads=args.threads, on_task=lambda result: bar.update(len(result.rows)), warn=warn,
+                                on_start=start)
     except KeyboardInterrupt:
         print(f"svs-depth sweep: every finished task is stored in {args.db}; run the same command again to resume",
               file=sys.stderr)

@@ -622,6 +622,18 @@ def test_a_device_is_refused_as_a_results_store_before_sqlite_touches_it(data_di
     assert journal.exists() == existed
 
 
+def test_the_stores_errors_name_the_db_option(data_dir, tmp_path, monkeypatch, capsys):
+    """Found by an audit of the command line: `eval` and `sweep` said "db: the folder nodir does not exist", the
+    library's argument, where every other error names the option the user typed."""
+    monkeypatch.chdir(tmp_path)
+    sweep_file = write_sweep(tmp_path, data_dir)
+    for argv in (["eval", str(data_dir / "middlebury_2001"), "--db", "nodir/x.sqlite"],
+                 ["sweep", str(sweep_file), "--db", "nodir/x.sqlite", "--workers", "0"]):
+        assert main(argv) == 2
+        assert capsys.readouterr().err == f"svs-depth {argv[0]}: error: --db: the folder nodir does not exist\n"
+    assert not (tmp_path / "nodir").exists()
+
+
 @pytest.mark.parametrize("option", ["--csv", "--figure"])
 def test_results_name_the_option_and_file_a_full_disk_refused(reference, tmp_path, capsys, monkeypatch, option):
     """Was (an audit of full disks): 'svs-depth results: error: No space left on device', naming neither the
