@@ -40,7 +40,11 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_metadata, run_script, scene_limit  # noqa: E402
+
+# real_rig.py sets PASSIVE again on import, after torch loaded OpenMP: the runtime keeps its policy, but the report's
+# metadata read the variable and called this run PASSIVE (an audit).
+os.environ.pop("OMP_WAIT_POLICY", None)
 
 #: Each digit's sensor noise, 8-bit levels, as experiments/real_rig.py pairs them.
 NOISE_FOR_DIGIT = dict(JPEG_NOISE)
@@ -85,7 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--digit", type=int, default=4, choices=sorted(NOISE_FOR_DIGIT),
                         help="the frames' JPEG quality digit (default: 4, the board's)")
     parser.add_argument("--repeats", type=int, default=3, help="calls a frame, their median kept (default: 3)")
-    parser.add_argument("--limit", type=int, default=None, help="the first N shared pairs only")
+    parser.add_argument("--limit", type=scene_limit, help="the first N shared pairs only")
     parser.add_argument("--json", type=output_path, default=None, help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     rows = interleaved_latency(args.data, configurations(), args.repeats, args.digit, args.limit)

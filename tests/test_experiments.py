@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import sys
 
@@ -579,6 +580,15 @@ def test_guide_second_passes_times_guide_with_and_without_them(data_dir, tmp_pat
                                        "--json", str(tmp_path / "passes.json")])
     assert set(report["rows"]) == set(configs) and all(row["frames"] == 2 for row in report["rows"].values())
     assert "| neither | 2 |" in capsys.readouterr().out
+    # Timed with no wait policy, as guide's process; real_rig.py's import set PASSIVE again, which the record read
+    # (an audit). In a process of its own: this one may have imported real_rig.py already.
+    import subprocess
+
+    environment = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
+    subprocess.run([sys.executable, str(REPO_ROOT / "experiments" / "guide_second_passes.py"), "--data",
+                    str(data_dir), "--limit", "1", "--repeats", "1", "--json", str(tmp_path / "alone.json")],
+                   check=True, env=environment, capture_output=True, timeout=300)
+    assert json.loads((tmp_path / "alone.json").read_text())["metadata"]["omp_wait_policy"] is None
 
 
 def test_guide_nearer_renders_a_second_box_stepping_in_and_scores_when_its_side_is_said(monkeypatch):
