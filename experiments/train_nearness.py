@@ -25,10 +25,11 @@ straight-through disparity and the depth stage). The weights of the lowest loss 
     python experiments/train_nearness.py [--steps 0] [--fine-tune-steps 0] [--seed 0] [--out FILE]
 
 The shipped weights are the defaults (``--steps 0 --fine-tune-steps 0``), i.e. the rule alone: this command rewrites
-them bit for bit. Leave-scenes-out validation (experiments/validate_nearness.py) scored the rule above 300 and 1200
-mask steps; 6 fine-tuning steps from the rule, measured when the rule was chosen, lowered the per-object depth loss
-from 0.05994 to 0.05991 and moved the kept masks of the train scenes by at most 0.6 % of their pixels, not worth the
-network's pass on every pair (measured again on 2026-12-01, before the nearest-obstacle term: 0.00797 -> 0.00637,
+their tensors bit for bit (the file's record of its run, the command, commit, versions and load, is the new run's, so
+git shows the file changed). Leave-scenes-out validation (experiments/validate_nearness.py) scored the rule above 300
+and 1200 mask steps; 6 fine-tuning steps from the rule, measured when the rule was chosen, lowered the per-object depth
+loss from 0.05994 to 0.05991 and moved the kept masks of the train scenes by at most 0.6 % of their pixels, not worth
+the network's pass on every pair (measured again on 2026-12-01, before the nearest-obstacle term: 0.00797 -> 0.00637,
 because one of Pipes' objects stopped being ranged).
 """
 
@@ -151,8 +152,9 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults rewrite bit for "
-                        "bit; a run with --steps or --fine-tune-steps needs one of its own)")
+    parser.add_argument("--out", help="weights file (default: the shipped one, whose tensors the defaults rewrite "
+                        "bit for bit, its record of the run this one's; a run with --steps or --fine-tune-steps "
+                        "needs one of its own)")
     names = add_config_options(parser, NearnessTrainConfig())
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)

@@ -433,8 +433,9 @@ def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[st
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--out", help="weights file (default: the shipped one, which the defaults reproduce; any "
-                        "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")
+    parser.add_argument("--out", help="weights file (default: the shipped one, whose tensors the defaults reproduce, "
+                        "its record of the run this one's; any other run, and --through-pipeline, needs one: it "
+                        "never replaces the shipped weights)")
     defaults = TrainConfig()
     names = add_config_options(parser, defaults, said={
         "steps": f"{defaults.steps}; 20 with --through-pipeline",
