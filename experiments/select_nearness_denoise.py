@@ -39,6 +39,7 @@ from pathlib import Path
 
 import torch
 
+from svs_torch.core.workers import thread_budget
 from svs_torch.segmentation.learned import obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.cli.common import positive_int
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
                         help="only the first N train and N synthetic scenes (a quick look, not a selection)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
-    torch.set_num_threads(2)
+    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
     data = views(args.data, args.limit)
     keep = dataclasses.replace(PipelineConfig().segmentation, min_measured_share=0.0)  # (module docstring)
     groups = [(size, group) for size in ("320", "native", "320 weak") for group in ("clean", "camera")]

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from svs_torch.core.types import StereoBatch
+from svs_torch.core.workers import thread_budget
 from svs_torch.depth.quantiles import kept_region_lower_median
 from svs_torch.segmentation.learned import ObstacleTruth, mask_iou, obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig, segment_stereo_nearness
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
-    torch.set_num_threads(2)
+    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
     scenes = []
     for size in ("320", "native"):
         for path in train_scenes(Path(args.data)):
