@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
-from run_metadata import add_common_options, run_script  # noqa: E402
+from run_metadata import add_common_options, run_script, scene_limit  # noqa: E402
 
 from svs_torch.data import load_stereo_pair  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth  # noqa: E402
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_options(parser, data_type=Path, sizes="320x240,native")
     parser.add_argument("--count-retries", action="store_true", help="also count the pairs each retry reaches")
-    parser.add_argument("--limit", type=int, default=None, help="only the first N tuned scenes")
+    parser.add_argument("--limit", type=scene_limit, help="only the first N tuned scenes")
     args = parser.parse_args(argv)
     scenes = real_rig.scene_splits(args.data, ["tuned"], args.limit)["tuned"]
     out: dict = {}

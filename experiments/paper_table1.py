@@ -63,7 +63,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, output_path, run_metadata, run_script, size_list  # noqa: E402
+from run_metadata import (default_data_dir, output_path, run_metadata, run_script, scene_limit,  # noqa: E402
+                          size_list)
 
 #: The paper's own results (its Table 1, MATLAB on SVS images): the range it reports, for comparison.
 PAPER_REFERENCE = ("Paper (MATLAB, its own SVS images): accuracy 92.5-98.9 % for R_min and R_max, 1.2 s per pair; "
@@ -410,7 +411,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sizes", type=size_list("width"), default="320,native",
                         help="comma-separated: a width in pixels, or native")
     parser.add_argument("--splits", default="tuned,held-out", help="comma-separated: tuned, held-out")
-    parser.add_argument("--limit", type=int, default=0, help="only the first N scenes of each split (0: all)")
+    parser.add_argument("--limit", type=scene_limit, help="only the first N scenes of each split (0: all)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the tables as Markdown")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write rows and run metadata as JSON")

@@ -110,7 +110,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
 from run_metadata import (add_common_options, command_line, output_path, run_metadata, run_script,  # noqa: E402
-                          write_report)
+                          scene_limit, write_report)
 
 #: Seeds of one noise draw (``--noise-seed``) lie this far from the next draw's: above every scene's range.
 NOISE_SEED_STRIDE = 1_000_000_000
@@ -516,7 +516,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--splits", default="held-out",
                         help="comma-separated: held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
                              "synthetic-border, synthetic-slant (default: %(default)s)")
-    parser.add_argument("--limit", type=int, default=None, help="first N scenes of each split")
+    parser.add_argument("--limit", type=scene_limit, help="first N scenes of each split")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM (tuning runs)")

@@ -30,6 +30,21 @@ def output_path(text: str) -> Path:
         raise argparse.ArgumentTypeError(str(error).removeprefix("file: ")) from None
 
 
+def scene_limit(text: str) -> int | None:
+    """An ``argparse`` type for ``--limit``: a count of scenes (or pairs) of at least 1, or 0 for all (None).
+    Found by an audit: ``--limit -1`` ran all but the last scene in silence, and ``--limit 0`` meant "all" in some
+    experiments and an empty table, exit 0, in others."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a count of at least 1, or 0 for all, got {text!r}")
+    return value or None
+
+
 def size_list(form: str):
     """An ``argparse`` type for ``--sizes``: comma-separated sizes, each ``native`` or, for ``form`` "wxh", WxH
     (``320x240``), for "width", a width in pixels (``320``); the text is returned as given. Scripts differ (a size
@@ -90,12 +105,17 @@ def run_metadata(threads: int, **extra) -> dict:
     import numpy
     import torch
 
+    from svs_torch.evaluation.sweep import code_version
+
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
-    return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
+    # The library's version as a sweep's store records it, "-dirty" where its files differ from the commit: a
+    # table made on edited code read as one made at the commit (an audit).
+    return {"commit": commit, "code_version": code_version(), "torch": torch.__version__, "kornia": kornia.__version__,
+            "opencv": cv2.__version__,
             "numpy": numpy.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
             "cpus": os.cpu_count(), "threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
             "load_average": os.getloadavg(), **extra}
@@ -141,12 +161,12 @@ def report_rows(table: str, rows: list[dict], command: str, overrides: list[str]
 def add_rendered_experiment_options(parser) -> None:
     """The options of the rendered-scene experiments (thin_obstacles.py, walker_floor.py, walker_heaps.py): ``--set``
     (repeatable), ``--no-rival``, ``--json`` and ``--markdown``."""
-    from pathlib import Path
-
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="write the rows and the run's metadata as JSON")
-    parser.add_argument("--markdown", type=Path, metavar="FILE", help="write the table as markdown")
+    # Checked before the run, as every other experiment's (a 3-minute run ended in a FileNotFoundError: an audit)
+    parser.add_argument("--json", type=output_path, metavar="FILE",
+                        help="write the rows and the run's metadata as JSON")
+    parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as markdown")
 
 
 def rendered_experiment_setup(doc: str, argv: list[str] | None):

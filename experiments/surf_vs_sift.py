@@ -42,7 +42,7 @@ from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_poin
 from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5
@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--resolutions", nargs="+", default=["320x240", "native"], choices=["320x240", "native"],
                         help="320x240 and/or native (default: %(default)s)")
     parser.add_argument("--sift-mutual", action="store_true", help="also SIFT with a mutual nearest-neighbour check")
-    parser.add_argument("--limit", type=int, default=0, help="only the first N pairs (0: all)")
+    parser.add_argument("--limit", type=scene_limit, help="only the first N pairs (0: all)")
     parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)

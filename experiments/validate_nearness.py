@@ -54,7 +54,8 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          scene_limit)
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
 from train_segmentation import add_config_options, random_crop, real_pairs, train_scenes  # noqa: E402
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="folds of the train scenes, a scene and its E/L variant in one (default: %(default)s)")
     parser.add_argument("--checkpoints", default="0,300,1200", help="step counts, comma-separated (0: the rule)")
     parser.add_argument("--val-crops", type=int, default=4, help="random 320x240 crops per validation scene")
-    parser.add_argument("--limit", type=int, help="only the first N train scenes (sorted), for a quick run")
+    parser.add_argument("--limit", type=scene_limit, help="only the first N train scenes (sorted), for a quick run")
     parser.add_argument("--ungrouped", action="store_true", help="a scene's E/L variant is a unit of its own")
     # train_nearness.py's stage-1 settings as options (steps come from --checkpoints), 160 synthetic pairs a fold.
     train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),

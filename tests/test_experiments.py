@@ -545,6 +545,39 @@ def test_walker_heaps_counts_the_heap_warned_of_with_the_floor_left_out():
     assert "| floor out | clean | walker | 2 of 2 | 2 of 2 | 0 | " in walker_heaps.markdown(rows, "command")
 
 
+@pytest.mark.parametrize("script", ["thin_obstacles", "walker_floor", "walker_heaps", "floor_distance"])
+def test_rendered_experiments_refuse_a_report_they_cannot_write_before_the_run(script, tmp_path, capsys):
+    """Found by an audit of the experiments: these printed their whole table (about 3 minutes for floor_distance)
+    and then failed with a FileNotFoundError traceback where every other experiment refused the path at once."""
+    module = __import__(script)
+    with pytest.raises(SystemExit) as stop:
+        module.main(["--markdown", str(tmp_path / "nodir" / "table.md")])
+    assert stop.value.code == 2 and "argument --markdown: folder" in capsys.readouterr().err
+
+
+def test_limit_is_a_count_or_zero_for_all_in_every_experiment(capsys):
+    """Found by an audit: ``--limit -1`` ran all but the last scene in silence, and ``--limit 0`` meant "all" in
+    some experiments and an empty table, exit 0, in real_rig.py."""
+    from run_metadata import scene_limit
+
+    assert (scene_limit("3"), scene_limit("0")) == (3, None)
+    for module in (paper_table1, real_rig):
+        for bad in ("-1", "two"):
+            with pytest.raises(SystemExit) as stop:
+                module.main(["--limit", bad])
+            assert stop.value.code == 2 and "argument --limit: expected a count of at least 1, or 0 for all" in \
+                capsys.readouterr().err
+
+
+def test_run_metadata_records_the_librarys_version_and_edited_code():
+    """Found by an audit: a run on edited code recorded the bare commit only, as if made at that commit."""
+    from run_metadata import run_metadata
+    from svs_torch.evaluation.sweep import code_version
+
+    metadata = run_metadata(1)
+    assert metadata["code_version"] == code_version() and metadata["code_version"].startswith("0.")
+
+
 def test_camera_frames_gate_compares_the_gate_with_skipping_it(data_dir, capsys):
     """Every camera frame the gate widens gets the same result with ``camera_frames``; the clean pairs, which the
     gate leaves at the narrow window, are the ones that change."""
