@@ -145,6 +145,10 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
 #: whole run and no hint): its matches lie to the right of their left points, where a left view's lie to the left.
 SWAPPED_VIEWS = ("most matched points lie to the right in the right view (negative disparity): are LEFT and RIGHT "
                  "swapped?")
+#: What an unranged pair whose matches lie in front of the rig until its doffs is added is told (an audit: Teddy with
+#: its doffs negated, NO_DENSE_DEPTH, the status of a flat or occluded pair, and no hint).
+DOFFS_BEHIND = ("most matched points have a positive disparity d but d + doffs <= 0, behind the rig: is the doffs' "
+                "sign right (cx_right - cx_left, in pixels)?")
 UNRANGED = ("NO_DENSE_DEPTH", "NO_POSITIVE_DISPARITY")
 
 
@@ -153,6 +157,20 @@ def _views_swapped(result, index: int) -> bool:
     points, inliers = result.points, result.fundamental.inliers[index]
     disparity = (points.left[index, :, 0] - points.right[index, :, 0])[inliers & points.valid[index]]
     return disparity.numel() >= 8 and float((disparity < 0).float().mean()) >= 0.75
+
+
+def _unranged_reason(result, index: int) -> str | None:
+    """Why an unranged pair may be so, where its matches tell: views swapped, or a doffs that puts in front of the
+    rig (three quarters of its ranged inliers at d > 0) what it ranges behind it (three quarters at d + doffs <= 0)."""
+    if _views_swapped(result, index):
+        return SWAPPED_VIEWS
+    disparities, depths = result.depth.disparities, result.depth.points
+    valid = disparities.valid[index]
+    if int(valid.sum()) < 8:
+        return None
+    ahead = float((disparities.disparity_px[index][valid] > 0).float().mean())
+    behind = 1.0 - float(depths.valid[index][valid].float().mean())
+    return DOFFS_BEHIND if ahead >= 0.75 and behind >= 0.75 else None
 
 
 def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
@@ -167,7 +185,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     return {
         "status": status,
         # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
-        "reason": SWAPPED_VIEWS if status in UNRANGED and _views_swapped(result, index) else None,
+        "reason": _unranged_reason(result, index) if status in UNRANGED else None,
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),

@@ -509,6 +509,20 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_a_pair_whose_doffs_has_the_wrong_sign_is_told_so(data_dir, capsys):
+    """Found by an audit: Teddy with its doffs negated ended NO_DENSE_DEPTH, the status of a flat or occluded pair,
+    with no hint; its inliers have a positive disparity that the doffs takes behind the rig."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    rig = ["--focal-px", "1058", "--baseline-m", "0.23", "--size", "160x133", "--json"]
+    code, out, _ = run_cli(capsys, "estimate", left, right, *rig, "--doffs-px", "-52")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "NO_DENSE_DEPTH" and "is the doffs' sign right" in report["reason"]
+    code, out, _ = run_cli(capsys, "estimate", left, right, *rig, "--doffs-px", "52")
+    assert json.loads(out)["status"] == "OK" and json.loads(out)["reason"] is None
+    code, out, _ = run_cli(capsys, "estimate", right, left, *rig, "--doffs-px", "-52")
+    assert "are LEFT and RIGHT swapped?" in json.loads(out)["reason"]  # swapped views are said first
+
+
 def test_estimate_pairs_takes_a_folder_of_scenes_as_eval_does(data_dir, capsys, tmp_path):
     """Found by an audit: 'estimate --pairs FOLDER' was refused ("expected a list file, got a folder") where eval
     takes the folder. Its rows equal a list naming each scene folder. (On two workers the rows were checked equal
