@@ -303,8 +303,9 @@ def run(args: argparse.Namespace) -> int:
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
         report = pair_report(result, 0, factors, time.perf_counter() - started)
-        report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
-                                  calibration_file_source(args, source) is not None)
+    # A pair too small to range names its size and calibration too, as every result does (an audit: both null)
+    report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
+                              calibration_file_source(args, source) is not None)
     # The pair's files first, as --pairs rows name them (a script reads one schema either way).
     report = {"left": source.left, "right": source.right, **report}
     # The report first: an output that cannot be written (a full disk: exit 1, the option and the file named)

@@ -242,7 +242,10 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
     called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept).
     ``batched``: its time is its batch's over the batch's pairs (``estimate --pairs``), and says so."""
     if report.get("reason") and report.get("status") not in UNRANGED:  # a pair the pipeline did not run on
-        return [f"status {report['status']}: {report['reason']}"]
+        from ..data import format_calibration
+
+        return [f"status {report['status']}: {report['reason']}"] + (
+            [f"  {format_calibration(report['calibration'])}"] if report.get("calibration") else [])
     per = " a pair over its batch" if batched else ""  # every pair of a batch read the same ms unexplained (an audit)
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
              f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms{per}"]

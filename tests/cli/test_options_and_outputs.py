@@ -509,6 +509,19 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_a_pair_too_small_to_range_names_its_size_and_calibration(tmp_path, capsys):
+    """Found by an audit: a 4x4 pair's report had "calibration": null and "image_size_px": null, and its text no
+    calibration line, where every result names them."""
+    image = str(tmp_path / "tiny.png")
+    cv2.imwrite(image, np.full((4, 6), 128, np.uint8))
+    code, out, _ = run_cli(capsys, "estimate", image, image, "--baseline-m", "0.12", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "TOO_SMALL" and report["image_size_px"] == [6, 4]
+    assert report["calibration"]["baseline_m"] == 0.12 and report["calibration"]["source"].startswith("command-line")
+    code, out, _ = run_cli(capsys, "estimate", image, image)
+    assert out.splitlines()[1].startswith("  calibration: f ") and "(the SVS model assumed)" in out
+
+
 def test_a_pair_whose_doffs_has_the_wrong_sign_is_told_so(data_dir, capsys):
     """Found by an audit: Teddy with its doffs negated ended NO_DENSE_DEPTH, the status of a flat or occluded pair,
     with no hint; its inliers have a positive disparity that the doffs takes behind the rig."""
