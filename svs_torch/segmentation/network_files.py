@@ -79,6 +79,8 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
         settings = dict(stored["config"])
         net = network_class(config_class(**{**settings, "channels": tuple(settings["channels"])}))
         net.load_state_dict(stored["state_dict"])
+    except InputError as error:  # a setting out of its range (a hand-edited or foreign file): named without the file
+        raise InputError(f"segmenter: {str(path)!r}: its stored settings are refused ({error})") from None
     except (KeyError, TypeError, RuntimeError) as error:
         reason = " ".join(str(error).split())[:200]
         raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None

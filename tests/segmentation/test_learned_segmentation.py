@@ -113,6 +113,19 @@ def test_bad_weights_are_one_line_input_errors(tmp_path, content, message):
     assert "\n" not in str(error.value)
 
 
+def test_a_weights_file_whose_settings_are_out_of_range_is_named(tmp_path):
+    """Found by an audit of training: a file whose stored setting its configuration refuses said only
+    "working_width_px: expected an int >= 16, got 8", naming neither the file nor the option."""
+    path = tmp_path / "edited.pt"
+    save_obstacle_net(path, ObstacleNet(ObstacleNetConfig(channels=(8, 8, 8))), {"note": "test"})
+    stored = torch.load(path, weights_only=True)
+    stored["config"]["working_width_px"] = 8
+    torch.save(stored, path)
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': its stored settings are refused "
+                                         r"\(working_width_px: expected an int >= 16, got 8\)$"):
+        load_obstacle_net(f"learned:{path}")
+
+
 @pytest.mark.parametrize("segmenter", ["learned:", "Learned", "otsu:x", 3])
 def test_segmenter_choice_is_checked(segmenter):
     with pytest.raises(InputError, match="segmenter"):
