@@ -139,7 +139,7 @@ def segmenter_choice(text: str) -> str:
 
 def add_segmenter_option(parser: argparse.ArgumentParser) -> None:
     """``--segmenter``, for the commands that run the whole pipeline."""
-    parser.add_argument("--segmenter", type=segmenter_choice, metavar="nearness|otsu|learned[:PATH]",
+    parser.add_argument("--segmenter", type=segmenter_choice, metavar="nearness[:PATH]|otsu|learned[:PATH]",
                         help="how obstacles are found: 'nearness' (the pipeline's default: the near side of "
                              "the pair's measured disparity, the nearest region always kept), 'otsu' (the "
                              "paper's: the brightest large regions), "
