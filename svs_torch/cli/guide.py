@@ -99,8 +99,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baud", type=positive_int, default=2_304_000,
                         help="the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
                              "a frame's bytes may take (default: 2304000; 115200 for a board built so)")
-    parser.add_argument("--timeout", type=timeout_seconds, default=2.0,
-                        help="reply timeout per command, seconds (default: 2)")
+    # capture's 1 s: at 2 s one grab the board left unanswered (SVS_PROTOCOL.md §3) kept the walker unwarned 2.2 s,
+    # past --blind-s, and had "Cannot see ahead" and "Seeing ahead again" said for it (an audit of the device side)
+    parser.add_argument("--timeout", type=timeout_seconds, default=1.0, metavar="S",
+                        help="seconds to wait for a reply (a frame's header) before re-sending, at most --retries "
+                             "times (default: 1, as capture's)")
     add_retries_option(parser)
     parser.add_argument("--quality", type=int, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")

@@ -731,6 +731,21 @@ def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
         assert code == 1 and "camera lost for" in err and "--give-up-s 0.5" in err
 
 
+def test_one_unanswered_grab_is_not_said_as_blindness(capsys):
+    """Found by an audit of the device side: `I` sometimes returns nothing (SVS_PROTOCOL.md §3), and at guide's
+    old 2 s reply timeout one such grab kept the walker unwarned 2.2 s, past --blind-s (2 s): "Cannot see ahead"
+    and "Seeing ahead again" were said for it. At the default (1 s, as capture's) it passes unsaid."""
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple")) as server:
+        server.set_faults("right", silent_grabs=1)
+        code, out, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
+                                 "--count", "2", "--no-speech", "--json")
+    assert code == 0 and "guide stopped after 2 pairs" in err
+    assert [json.loads(line).get("event") for line in out.splitlines()] == [None, None]
+
+
 def test_guide_record_goes_on_numbering_after_the_camera_is_lost(capsys, tmp_path):
     """Found by a review of the capture side: the camera opened again after a loss counted its pairs from 0, so
     --record wrote pair000000 again over the first pair's files, and index.jsonl had two lines of index 0, the first
