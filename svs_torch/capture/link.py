@@ -190,12 +190,27 @@ class CameraLink:
     # ---------------------------------------------------------------------------------------------- frames
 
     def request_frame(self) -> None:
-        """Send ``I`` without reading; a write on a dropped link is remembered and handled by :meth:`read_frame`."""
+        """Send ``I`` without reading; a write on a dropped link is remembered and handled by :meth:`read_frame`.
+        Bytes already waiting are dropped first (:meth:`_discard_stale_input`)."""
         try:
             self._require_open()
+            self._discard_stale_input()
             self._send(CMD_GRAB)
         except _Dropped as err:
             self._pending_drop = str(err)
+
+    def _discard_stale_input(self) -> None:
+        """Drop whatever the board sent before this grab was asked for. Why: a reply that came late (to an ``I``
+        re-sent after its timeout, or a board answering twice) was read as the next grab's frame, one grab old, and
+        on a board with no hold-off every later frame stayed one behind; the pair's two frames then showed two
+        moments while its record said they came together (an audit of the device side: 13 px of skew on a moving
+        bar, a false disparity while the walker turns)."""
+        try:
+            if self._serial.in_waiting:
+                self.stats.stale_inputs += 1
+                self._serial.reset_input_buffer()
+        except (serial.SerialException, OSError) as err:
+            raise _Dropped(f"read: {err}") from None
 
     def read_frame(self) -> RawFrame:
         """Read the frame asked for by :meth:`request_frame`, re-sending ``I`` after a silent or broken reply.

@@ -66,6 +66,7 @@ class LinkStats:
     retries: int = 0  # commands re-sent after a silent or broken reply
     reconnects: int = 0  # links reopened after a drop
     stray_bytes: int = 0  # bytes skipped or drained that belonged to no expected reply
+    stale_inputs: int = 0  # grabs before which bytes already waiting (a late reply) were dropped
     failures: list[str] = field(default_factory=list)  # the last few failure descriptions, newest last
 
 

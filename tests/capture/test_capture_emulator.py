@@ -465,6 +465,23 @@ def test_a_pair_whose_frames_came_apart_is_grabbed_again(emulator, max_gap_s):
         SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], max_frame_gap_s=0)
 
 
+def test_a_reply_already_waiting_is_not_taken_for_the_next_grab(emulator, camera):
+    """Found by an audit of the device side: a reply that came late (to an I re-sent after its timeout, or a board
+    answering twice) was read as the next grab's frame, one grab old, and on a board with no hold-off every later
+    frame stayed one behind while the record said the pair's frames came together. Bytes already waiting are now
+    dropped before each I."""
+    link = camera.links["right"]
+    camera.grab_pair()
+    for _ in range(2):  # two replies nobody will read, each after the board's hold-off
+        link._serial.write(b"I")
+        time.sleep(0.3)
+    assert link._serial.in_waiting
+    frame = link.grab()
+    time.sleep(0.3)
+    assert not link._serial.in_waiting  # nothing left to be read as the next grab's frame
+    assert link.stats.stale_inputs == 1 and frame.attempts == 1
+
+
 def test_a_reset_or_reconnected_board_gets_every_setting_again(emulator):
     """Found by a review of the capture side: a board that came back at its power-on settings (a frame of another
     size) got its size again but not its quality, and a reconnected one its size and quality but not its flip."""
