@@ -285,6 +285,9 @@ class CameraLink:
             want = SVS_RESOLUTIONS[self.size_code]
             return _Attempt(f"expected size code {self.size_code!r} ({want[0]}x{want[1]}), got "
                             f"{header.size_code!r} ({header.width}x{header.height})", wrong_size=True)
+        if event.after_banner:  # reset at its power-on size: its quality and flip were lost without a word (an audit)
+            return _Attempt("the board sent its power-on banner before the frame: it was reset, so its settings are "
+                            "sent again", wrong_size=True)
         return RawFrame(header=header, jpeg=event.jpeg, request_monotonic_s=self._request_s,
                         arrival_monotonic_s=now, arrival_wall_s=wall, attempts=attempt,
                         skipped_bytes=event.skipped_bytes)

@@ -108,11 +108,13 @@ class FrameHeader:
 
 @dataclass(frozen=True)
 class ParsedFrame:
-    """A complete frame: its header, its JPEG bytes, and how many stray bytes preceded it."""
+    """A complete frame: its header, its JPEG bytes, how many stray bytes preceded it, and whether a ``##Version``
+    banner was among them (the board was reset: its frames are at its power-on settings)."""
 
     header: FrameHeader
     jpeg: bytes
     skipped_bytes: int
+    after_banner: bool = False
 
 
 @dataclass(frozen=True)
@@ -293,11 +295,14 @@ class FrameParser:
         self._header: FrameHeader | None = None
         self.skipped_bytes = 0  # stray bytes discarded before the current frame
         self.last_rejection: str | None = None  # why the last ``##IMJ`` candidate was not a header
+        self.saw_banner = False  # a ``##Version`` banner among the bytes skipped before the current frame
+        self._skipped_tail = b""  # the last skipped bytes, to find a banner split between two drops
 
     def reset(self) -> None:
         """Forget buffered bytes, any half-read frame and the counters."""
         self._buffer.clear()
         self._header, self.skipped_bytes, self.last_rejection = None, 0, None
+        self.saw_banner, self._skipped_tail = False, b""
 
     @property
     def header(self) -> FrameHeader | None:
@@ -353,14 +358,18 @@ class FrameParser:
         jpeg = bytes(self._buffer[:header.length])
         del self._buffer[:header.length]
         skipped, self.skipped_bytes, self._header = self.skipped_bytes, 0, None
+        banner, self.saw_banner, self._skipped_tail = self.saw_banner, False, b""
         try:
             check_jpeg(jpeg)
         except ProtocolError as err:
             return BadFrame(header=header, reason=str(err), skipped_bytes=skipped)
-        return ParsedFrame(header=header, jpeg=jpeg, skipped_bytes=skipped)
+        return ParsedFrame(header=header, jpeg=jpeg, skipped_bytes=skipped, after_banner=banner)
 
     def _drop(self, count: int) -> None:
         if count > 0:
+            window = self._skipped_tail + bytes(self._buffer[:count])
+            self.saw_banner = self.saw_banner or VERSION_PREFIX in window
+            self._skipped_tail = window[-(len(VERSION_PREFIX) - 1):]
             del self._buffer[:count]
             self.skipped_bytes += count
 

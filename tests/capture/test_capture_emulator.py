@@ -499,6 +499,23 @@ def test_a_reset_or_reconnected_board_gets_every_setting_again(emulator):
         assert cam.links["left"].stats.reconnects >= 1 and board.flipped and board.quality == 8
 
 
+def test_a_board_reset_at_its_power_on_size_gets_its_settings_again(emulator):
+    """Found by an audit of the device side: a board reset at the size it powers on at (320x240) sent its
+    ``##Version`` banner, which was skipped as stray bytes, and its frames went on at its power-on quality and flip
+    without a word (the settings came back only with a frame of another size). The banner before a frame now
+    counts as a reset: that frame is dropped and every setting sent again."""
+    with SVSStereoCamera(emulator.urls["left"], emulator.urls["right"], quality=8, flip=True, config=FAST,
+                         max_frame_gap_s=None) as cam:
+        board = emulator.cameras["left"]
+        cam.grab_pair()
+        board.quality, board.flipped = 4, False  # power-on settings at the same size
+        emulator.set_faults("left", garbage_frames=1, garbage=version_line("master"))
+        pair = cam.grab_pair()
+        assert (board.quality, board.flipped) == (8, True) and pair.left.attempts == 2
+        assert "power-on banner" in cam.links["left"].stats.failures[-1]
+        assert cam.grab_pair().left.attempts == 1
+
+
 def test_dropped_link_reconnects(emulator, camera):
     emulator.set_faults("left", drop_after_frames=1)
     camera.grab_pair()  # the link drops right after this frame
