@@ -72,8 +72,10 @@ class GuideLog:
             return
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         record = self._saved(pair)
+        # estimate --json's sizes too (an audit: the README promises its fields); guide ranges the frame as it came
+        size = list(pair.left.size_wh)
         record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration_rectified=self.rig is not None,
-                      calibration=self._calibration(pair.left.size_wh))
+                      calibration=self._calibration(pair.left.size_wh), image_size_px=size, working_size_px=size)
         record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
         if self._index is not None:  # after both images are in place (save_pair)
             try:

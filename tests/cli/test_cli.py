@@ -656,6 +656,9 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     code, again, _ = run_cli(capsys, *argv)
     assert code == 0
     for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
+        # estimate --json's fields, every one (an audit: the sizes were missing)
+        assert set(offline) <= set(live), set(offline) - set(live)
+        assert live["image_size_px"] == live["working_size_px"] == [live["width"], live["height"]]
         for key in ("status", "nearest_m", "nearest_surface_m", "r_min_m", "r_max_m", "num_inliers", "verified",
                     "objects", "calibration", "floor", "nearest_ahead_m", "nearest_ahead_surface_m"):  # guide names the calibration its metres use, as estimate does
             assert offline[key] == live[key], key
