@@ -130,8 +130,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "the dark: silence would mean the way is clear), and 'Seeing ahead again' when one is "
                              "(default: 2; 0: never)")
     parser.add_argument("--give-up-s", type=non_negative_float, default=0.0, metavar="S",
-                        help="stop (exit 1) once the camera has been lost for S seconds (default: 0, never: a "
-                             "walker's guide keeps trying)")
+                        help="stop (exit 1) once the camera has been lost for S seconds, checked after each try to "
+                             "open it again, so up to one try later (about --retries + 1 times --timeout; default: "
+                             "0, never: a walker's guide keeps trying)")
     parser.set_defaults(func=run, out=".")
 
 
