@@ -177,6 +177,12 @@ def check_board_urls(args: argparse.Namespace) -> None:
         raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 
 
+def _kept(done: int, out: Path) -> str:
+    """What an interrupted capture kept: its pairs and where they are listed, or that nothing was saved (stopped
+    before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)")."""
+    return f"{done} pairs (index.jsonl lists them)" if (out / "index.jsonl").is_file() else "0 pairs: nothing saved"
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``capture``; returns the exit code (errors are one line on stderr)."""
     from ..capture.link_types import CaptureError
@@ -207,10 +213,10 @@ def run(args: argparse.Namespace) -> int:
                 apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
                 progress.update()
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted after {done} pairs (index.jsonl lists them)", file=sys.stderr)
+        print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
         return 130
     except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
-        print(f"{PROG}: terminated after {done} pairs (index.jsonl lists them)", file=sys.stderr)
+        print(f"{PROG}: terminated after {_kept(done, out)}", file=sys.stderr)
         return 143
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).

@@ -650,6 +650,15 @@ def test_cli_capture_says_what_it_saved_when_terminated_or_when_no_camera_opened
     assert capsys.readouterr().err.strip().endswith("capture: terminated after 2 pairs (index.jsonl lists them)")
     assert len((tmp_path / "run" / "index.jsonl").read_text().splitlines()) == 2
     monkeypatch.undo()
+
+    def terminated_while_opening(camera):  # before the boards answered: no folder was made
+        raise Terminated()
+
+    monkeypatch.setattr(SVSStereoCamera, "__enter__", terminated_while_opening)
+    assert run_capture("--emulator", "--count", "5", "--size", "160x120", "--out", str(tmp_path / "early")) == 143
+    assert capsys.readouterr().err.strip().endswith("capture: terminated after 0 pairs: nothing saved")
+    assert not (tmp_path / "early").exists()  # it said "(index.jsonl lists them)" of a folder never made
+    monkeypatch.undo()
     with socket.socket() as left, socket.socket() as right:  # ports nothing listens on
         left.bind(("127.0.0.1", 0))
         right.bind(("127.0.0.1", 0))
