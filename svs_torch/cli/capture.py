@@ -27,6 +27,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
+from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, replay_command, save_pair
 from .progress import Progress
@@ -207,8 +208,9 @@ def run(args: argparse.Namespace) -> int:
             progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
                 pair = camera.grab_pair()
-                index.append(save_pair(out, pair, "--out-dir"))
-                done += 1
+                with signals_held():  # its images and its index line, both or neither (pairs_folder's docstring)
+                    index.append(save_pair(out, pair, "--out-dir"))
+                    done += 1
                 # kept (the index says when each frame came), but counted: guide does not range such a pair
                 apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
                 progress.update()

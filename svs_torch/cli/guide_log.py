@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from ..core.files import display_path
+from ..core.workers import signals_held
 from .pairs_folder import CALIBRATION_NAME, PairsIndex, replay_command, save_pair
 from .estimate_report import pair_report
 
@@ -71,19 +72,21 @@ class GuideLog:
         if self.stream is None and self._index is None:
             return
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
-        record = self._saved(pair)
         # estimate --json's sizes too (an audit: the README promises its fields); guide ranges the frame as it came
         size = list(pair.left.size_wh)
-        record.update(pair_report(result, 0, (1.0, 1.0), elapsed_s), calibration_rectified=self.rig is not None,
-                      calibration=self._calibration(pair.left.size_wh), image_size_px=size, working_size_px=size)
-        record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
-        if self._index is not None:  # after both images are in place (save_pair)
-            try:
-                self._index.append(record)
-                self.num_recorded += 1
-            except OSError as error:  # its images removed (PairsIndex.append): the --json line names none
-                self._stop_recording(error)
-                record.pop("left"), record.pop("right")
+        report = pair_report(result, 0, (1.0, 1.0), elapsed_s)
+        with signals_held():  # the pair's images and its index line, both or neither (pairs_folder's docstring)
+            record = self._saved(pair)
+            record.update(report, calibration_rectified=self.rig is not None,
+                          calibration=self._calibration(pair.left.size_wh), image_size_px=size, working_size_px=size)
+            record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6))
+            if self._index is not None:  # after both images are in place (save_pair)
+                try:
+                    self._index.append(record)
+                    self.num_recorded += 1
+                except OSError as error:  # its images removed (PairsIndex.append): the --json line names none
+                    self._stop_recording(error)
+                    record.pop("left"), record.pop("right")
         if self.stream is not None:
             self.stream.write(json.dumps(record) + "\n")
             self.stream.flush()

@@ -8,6 +8,7 @@ names the camera and URL, within the bound the link states. Real-device tests ar
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import socket
 import time
@@ -629,6 +630,35 @@ def test_cli_capture_retries_sets_how_often_a_grab_is_sent_again(tmp_path, capsy
         run_capture("--emulator", "--retries", "11", "--out", str(tmp_path / "other"))
     assert refused.value.code == 2 and "--retries: expected a number of retries from 0 to 10" in capsys.readouterr().err
     assert not (tmp_path / "other").exists()
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGINT"])
+def test_a_signal_while_a_pair_is_saved_leaves_it_listed_or_gone(tmp_path, capsys, monkeypatch, signum):
+    """Found by an audit of the device side: a SIGTERM between writing a pair's images and listing them left the
+    images unlisted in index.jsonl (1 run of 4 of guide --record). The two are now one step: the signal is held
+    until the line is written, then stops the command as before."""
+    import signal
+
+    import svs_torch.cli.capture as capture_command
+    from svs_torch.cli import main
+
+    save = capture_command.save_pair
+
+    def saved_then_signalled(out, pair, option):
+        record = save(out, pair, option)
+        if pair.index == 1:  # between the images and their index line
+            os.kill(os.getpid(), getattr(signal, signum))
+        return record
+
+    monkeypatch.setattr(capture_command, "save_pair", saved_then_signalled)
+    out = tmp_path / "run"
+    assert main(["capture", "--emulator", "--count", "4", "--size", "160x120", "--out", str(out)]) == (
+        143 if signum == "SIGTERM" else 130)
+    listed = [json.loads(line) for line in (out / "index.jsonl").read_text().splitlines()]
+    assert [line["index"] for line in listed] == [0, 1]
+    assert sorted(p.name for p in out.glob("pair*.jpg")) == sorted(line[view] for line in listed
+                                                                   for view in ("left", "right"))
+    assert "after 2 pairs" in capsys.readouterr().err
 
 
 def test_cli_capture_says_what_it_saved_when_terminated_or_when_no_camera_opened(tmp_path, capsys, monkeypatch):
