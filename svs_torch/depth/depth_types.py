@@ -51,7 +51,7 @@ class DepthConfig:
             wrong) and the few in front are stray matches: swapped views were ranged at 0.20 m from one stray
             inlier of 274, a false warning. 0 is the paper's letter (any inlier in front), which the paper preset
             keeps; at 0.5 the shared pairs lose only Flowerpots at 320×240 under the paper preset, whose 8 inliers
-            are all wrong (3 in front).
+            are all wrong (4 of them in front: not more than half).
         min_object_pixels: fewest valid dense pixels for an object's depth to count (``"dense"`` rule).
         min_object_valid_fraction: least share of an object's region with valid dense disparities (``"dense"``
             rule) where the pair's geometry is verified (``PipelineResult.verified``: RANSAC found F and the

@@ -103,7 +103,8 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
     ``percentiles=None`` is the paper: d_max and d_min are the max and min (5)–(6). ``(low, high)`` uses those
     percentiles instead (robust to a wrong same-row match). Disparities with ``d + doffs ≤ 0`` are left out, and a
     pair with no more than ``min_in_front_share`` of its inliers in front of the rig is not ranged (``valid``
-    False; :class:`DepthConfig`: 0, the paper's letter, ranges from any one inlier in front).
+    False). The default 0 is the paper's letter, any one inlier in front; the pipeline passes
+    ``DepthConfig.min_in_front_share`` (0.5 outside the paper preset).
     Differentiable w.r.t. ``disparity_px`` (the selected or interpolated ones) and, for the depths, the
     calibration; ``num_disparities`` and ``valid`` are not.
     """
