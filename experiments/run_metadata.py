@@ -115,10 +115,9 @@ def run_metadata(threads: int, **extra) -> dict:
     # The library's version as a sweep's store records it, "-dirty" where its files differ from the commit: a
     # table made on edited code read as one made at the commit (an audit).
     return {"commit": commit, "code_version": code_version(), "torch": torch.__version__, "kornia": kornia.__version__,
-            "opencv": cv2.__version__,
-            "numpy": numpy.__version__, "python": sys.version.split()[0], "machine": platform.machine(),
-            "cpus": os.cpu_count(), "threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-            "load_average": os.getloadavg(), **extra}
+            "opencv": cv2.__version__, "numpy": numpy.__version__, "python": sys.version.split()[0],
+            "machine": platform.machine(), "cpus": os.cpu_count(), "threads": threads,
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "load_average": os.getloadavg(), **extra}
 
 
 def write_report(report: dict, table: str, json_path: Path | None, markdown_path: Path | None) -> None:
