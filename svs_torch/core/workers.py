@@ -94,20 +94,15 @@ def imports_without_collection() -> Iterator[None]:
     """
     import signal
 
-    caught: list[int] = []
-    previous = None
     enabled = gc.isenabled()
     gc.disable()
     try:
-        # A handler that only notes the signal (not a blocked mask: any other thread may take a process's signal).
-        with signal_handler(signal.SIGINT, lambda signum, frame: caught.append(signum)) as previous:
+        with signals_held(signal.SIGINT):
             yield
     finally:
         gc.freeze()
         if enabled:
             gc.enable()
-        if caught and callable(previous):  # the usual handler raises KeyboardInterrupt, from here
-            previous(signal.SIGINT, None)
 
 
 @contextlib.contextmanager
@@ -131,24 +126,33 @@ def signal_handler(signum: int, handler) -> Iterator[object]:
 
 
 @contextlib.contextmanager
-def signals_held() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) and SIGTERM back in the block, then deliver them as their handlers would: for a step
-    that must not be cut in two, such as writing a pair's images and then listing them (an audit of the device
-    side: a SIGTERM between the two left a recorded pair's images unlisted in ``index.jsonl``, 1 run in 4). Off the
+def signals_held(*signums: int) -> Iterator[None]:
+    """Hold ``signums`` (default: Ctrl-C's SIGINT and SIGTERM) back in the block, then deliver them as their
+    handlers would, even when the block raised: for a step that must not be cut in two, such as a command's imports
+    (:func:`imports_without_collection`) or writing a pair's images and then listing them (an audit of the device
+    side: a SIGTERM between the two left a recorded pair's images unlisted in ``index.jsonl``, 1 run in 4). A
+    handler that only notes the signal, not a blocked mask: any other thread may take a process's signal. Off the
     main thread nothing is held (Python takes signals in the main thread only)."""
     import signal
 
     caught: list[int] = []
-    with contextlib.ExitStack() as stack:
-        previous = {signum: stack.enter_context(signal_handler(signum, lambda number, frame: caught.append(number)))
-                    for signum in (signal.SIGINT, signal.SIGTERM)}
-        yield
-    for signum in dict.fromkeys(caught):
-        handler = previous[signum]
-        if callable(handler):  # the handler in place before: KeyboardInterrupt, Terminated, ...
-            handler(signum, None)
-        elif handler == signal.SIG_DFL or handler is None:
-            os.kill(os.getpid(), signum)  # the default action, now that it is back in place
+    previous: dict[int, object] = {}
+
+    def note(number: int, frame) -> None:
+        caught.append(number)
+
+    try:
+        with contextlib.ExitStack() as stack:
+            for signum in signums or (signal.SIGINT, signal.SIGTERM):
+                previous[signum] = stack.enter_context(signal_handler(signum, note))
+            yield
+    finally:
+        for signum in dict.fromkeys(caught):
+            handler = previous[signum]
+            if callable(handler):  # the handler in place before: KeyboardInterrupt, Terminated, ...
+                handler(signum, None)
+            elif handler == signal.SIG_DFL or handler is None:
+                os.kill(os.getpid(), signum)  # the default action, now that it is back in place
 
 
 def _alive(pid: int) -> bool:

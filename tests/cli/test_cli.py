@@ -465,6 +465,21 @@ def test_ctrl_c_during_a_commands_imports_is_raised_once_they_are_done():
     assert steps == 10_000
 
 
+def test_a_held_signal_is_delivered_after_the_step_even_when_the_step_failed():
+    """``signals_held`` (a pair's images and its index line, a command's imports): a signal that came meanwhile is
+    delivered when the step ends, also when the step raised (a full disk while writing): it was lost then."""
+    import signal
+
+    from svs_torch.core.workers import signal_handler, signals_held
+
+    with signal_handler(signal.SIGINT, signal.default_int_handler):
+        with pytest.raises(KeyboardInterrupt):
+            with signals_held():
+                signal.raise_signal(signal.SIGINT)
+                raise OSError("No space left on device")  # reached: the signal was only noted
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_worker_preload_ends_early_only_in_the_forkserver():
     """The forkserver skips torch's teardown when it stops; any other process that imports the preload module
     exits as usual, with its own exit status and its output flushed."""
