@@ -306,12 +306,12 @@ def test_the_library_calls_an_api_audit_found_unchecked():
     batch = StereoBatch.from_images(torch.rand(3, 1, 8, 8), torch.rand(3, 1, 8, 8), 276.0, 0.1075)
     image_hw = batch.image_hw.clone()
     image_hw[1] = 0
-    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) from 1 x 1 to "
-                                                   "the images' 8 x 8, got [[0, 0]] for pair(s) [1]")):
+    with pytest.raises(InputError, match=re.escape("image_hw: expected (height, width) rows with 1 <= height <= 8 "
+                                                   "and 1 <= width <= 8 (the image tensors' size), got [0, 0]")):
         dataclasses.replace(batch, image_hw=image_hw)  # a later stage blamed left's "0x0" images
     image_hw[1] = torch.tensor([8, 9])
-    with pytest.raises(InputError, match=re.escape("image_hw: expected each pair's (height, width) from 1 x 1 to "
-                                                   "the images' 8 x 8, got [[8, 9]] for pair(s) [1]")):
+    with pytest.raises(InputError, match=re.escape("image_hw: expected (height, width) rows with 1 <= height <= 8 "
+                                                   "and 1 <= width <= 8 (the image tensors' size), got [8, 9]")):
         dataclasses.replace(batch, image_hw=image_hw)  # the paper's path ranged such a pair in silence
     truth, known = torch.rand(3, 1, 8, 8), torch.ones(3, 1, 8, 8, dtype=torch.bool)
     truth[2, 0, 3, 3], known[1, 0, 3, 3] = float("inf"), False

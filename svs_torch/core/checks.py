@@ -23,7 +23,6 @@ __all__ = [
     "check_same_shape",
     "check_finite",
     "check_finite_where",
-    "check_pair_sizes",
     "check_flag",
     "check_count",
     "check_real",
@@ -153,16 +152,6 @@ def check_finite_where(tensor: torch.Tensor, name: str, where: torch.Tensor, whe
     if bool(bad.any()):
         raise InputError(f"{name}: expected finite values where {where_name} holds, got NaN or inf for pair(s) "
                          f"{bad.nonzero().flatten().tolist()[:8]} of {bad.shape[0]}")
-
-
-def check_pair_sizes(image_hw: torch.Tensor, h: int, w: int) -> None:
-    """Check each pair's (height, width) ``(B, 2)`` before padding: at least one pixel (else a later stage blamed
-    the left view's 0×0 "image") and within the ``h × w`` tensors (a larger size was refused by the kernels'
-    callers but ranged by the paper's path in silence)."""
-    outside = (image_hw < 1).any(1) | (image_hw[:, 0] > h) | (image_hw[:, 1] > w)
-    if bool(outside.any()):
-        raise InputError(f"image_hw: expected each pair's (height, width) from 1 x 1 to the images' {h} x {w}, "
-                         f"got {image_hw[outside].tolist()[:4]} for pair(s) {outside.nonzero().flatten().tolist()[:8]}")
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .checks import (InputError, check_dtype, check_finite, check_finite_where, check_image, check_pair_sizes,
-                     check_same_shape, check_shape)
+from .checks import (InputError, check_dtype, check_finite, check_finite_where, check_image, check_same_shape,
+                     check_shape)
+from .kernels.checks import check_image_hw
 
 __all__ = [
     "FundamentalResult",
@@ -86,9 +87,9 @@ class StereoBatch:
             check_finite(value, name, positive=name != "doffs_px")
         check_shape(self.calibrated, "calibrated", [b])
         check_dtype(self.calibrated, "calibrated", "bool")
-        check_shape(self.image_hw, "image_hw", [b, 2])
-        check_dtype(self.image_hw, "image_hw", "int")
-        check_pair_sizes(self.image_hw, dims["H"], dims["W"])
+        # At least 1 pixel (else a later stage blamed left's 0x0 "image") and within the tensors (the paper's path
+        # ranged a larger size in silence): the kernels' own check of it.
+        check_image_hw(self.image_hw, b, dims["H"], dims["W"])
         if (self.disparity_px is None) != (self.disparity_valid is None):
             raise InputError("disparity_valid: expected it together with disparity_px (both or neither)")
         if self.disparity_px is not None:
