@@ -36,13 +36,12 @@ def scene_limit(text: str) -> int | None:
     experiments and an empty table, exit 0, in others."""
     import argparse
 
+    from svs_torch.cli.common import non_negative_int
+
     try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a count of at least 1, or 0 for all, got {text!r}")
-    return value or None
+        return non_negative_int(text) or None
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a count of at least 1, or 0 for all, got {text!r}") from None
 
 
 def size_list(form: str):
