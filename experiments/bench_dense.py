@@ -32,7 +32,7 @@ from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import add_common_options, run_metadata, run_script  # noqa: E402
+from run_metadata import command_line, add_common_options, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> dict:
         bm = results[key.split(" | ")[0] + " | OpenCV StereoBM loop"]["ms_per_pair"]
         print(f"  {key:52s} {value['ms_per_pair']:8.2f} ms/pair (min {value['min_ms'] / (value['median_ms'] / value['ms_per_pair']):.2f})"
               f"  x StereoBM time {value['ms_per_pair'] / bm:6.2f}")
-    report = {"metadata": run_metadata(args.threads, batch=args.batch, configs={k: repr(v) for k, v in CONFIGS.items()}),
+    report = {"metadata": run_metadata(args.threads, command=command_line("experiments/bench_dense.py", argv),
+                                       batch=args.batch, configs={k: repr(v) for k, v in CONFIGS.items()}),
               "results": results}
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))

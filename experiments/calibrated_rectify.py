@@ -38,7 +38,7 @@ from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_vi
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import output_path, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 
 BOARD, SQUARE_M = (9, 6), 0.025
 
@@ -147,6 +147,7 @@ def main() -> None:
         print(f"  {name:<24} object distance error: median {row['median_error_m']:.3f} m, max of those ranged "
               f"{worst}, unranged objects {row['unranged']}")
     out["loose_rig"] = loose
+    out["metadata"] = run_metadata(torch.get_num_threads())
     if args.json:
         write_bytes_atomic(args.json, json.dumps(out, indent=1).encode())
 

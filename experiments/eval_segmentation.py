@@ -267,7 +267,8 @@ def main(argv: list[str] | None = None) -> dict:
     old_net = load_obstacle_net("learned:" + args.weights) if args.reference else None
     scenes = split_scenes(Path(args.data))
     scenes["kitti"] = [p for p in list_shared_pairs(Path(args.data)) if "kitti" in str(p)]
-    report = {"metadata": {**run_metadata(args.threads), "methods": {n: str(c) for n, c in methods.items()}},
+    report = {"metadata": {**run_metadata(args.threads, command=command_line("experiments/eval_segmentation.py", argv)),
+                           "methods": {n: str(c) for n, c in methods.items()}},
               "tables": {}}
     text = []
     for split in args.splits.split(","):

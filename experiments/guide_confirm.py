@@ -221,7 +221,8 @@ def main(argv: list[str] | None = None) -> dict:
     config = PipelineConfig().for_guide()
     digits, counts = [int(d) for d in args.digits.split(",")], [int(n) for n in args.confirm.split(",")]
     splits = [s for s in args.splits.split(",") if s]
-    report = {"metadata": run_metadata(torch.get_num_threads(), seed=args.seed, walks=args.walks,
+    command = command_line("experiments/guide_confirm.py", argv or None)
+    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, seed=args.seed, walks=args.walks,
                                        frames=args.frames), "walks": [], "still": []}
     with Progress(len(digits) * (args.walks + len(splits)), "guide_confirm", unit="stream") as progress:
         for digit in digits:

@@ -149,7 +149,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--splits: expected among {', '.join(known)}, got {args.splits}")
     config = PipelineConfig().for_guide()
     digits, margins = [int(d) for d in args.digits.split(",")], [float(m) for m in args.margins.split(",")]
-    report = {"metadata": run_metadata(torch.get_num_threads(), seed=args.seed, streams=args.streams,
+    command = command_line("experiments/guide_nearer.py", argv or None)
+    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, seed=args.seed, streams=args.streams,
                                        walks=args.walks, frames=args.frames), "step_in": [], "walks": [], "still": []}
     with Progress(len(digits) * (args.streams + args.walks + len(splits)), "guide_nearer", unit="stream") as progress:
         for digit in digits:

@@ -40,7 +40,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          scene_limit)
 
 # real_rig.py sets PASSIVE again on import, after torch loaded OpenMP: the runtime keeps its policy, but the report's
 # metadata read the variable and called this run PASSIVE (an audit).
@@ -105,7 +106,8 @@ def main(argv: list[str] | None = None) -> dict:
               f"{row['over_goal']} |")
     # The machine and its load with the times (an audit: this report alone had no metadata block; times do not carry
     # from machine to machine).
-    report = {"metadata": run_metadata(torch.get_num_threads(), digit=args.digit, repeats=args.repeats,
+    command = command_line("experiments/guide_second_passes.py", argv)
+    report = {"metadata": run_metadata(torch.get_num_threads(), command=command, digit=args.digit, repeats=args.repeats,
                                        limit=args.limit),
               "digit": args.digit, "threads": torch.get_num_threads(), "rows": rows}
     if args.json:

@@ -63,8 +63,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import (default_data_dir, output_path, run_metadata, run_script, scene_limit,  # noqa: E402
-                          size_list)
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          scene_limit, size_list)
 
 #: The paper's own results (its Table 1, MATLAB on SVS images): the range it reports, for comparison.
 PAPER_REFERENCE = ("Paper (MATLAB, its own SVS images): accuracy 92.5-98.9 % for R_min and R_max, 1.2 s per pair; "
@@ -431,7 +431,9 @@ def main(argv: list[str] | None = None) -> dict:
             "surface guide warns on\n\n" + disparity_summary(rows)
             + "\n\n## Per scene\n\n" + markdown(rows) + "\n")
     print(text)
-    report = {"metadata": {**run_metadata(args.threads), "scenes": {k: [str(p) for p in v] for k, v in scenes.items()},
+    command = command_line("experiments/paper_table1.py", argv)
+    report = {"metadata": {**run_metadata(args.threads, command=command),
+                           "scenes": {k: [str(p) for p in v] for k, v in scenes.items()},
                            "sizes": args.sizes, "configs": {k: repr(v) for k, v in CONFIGS.items()}}, "rows": rows}
     if args.markdown:
         Path(args.markdown).write_text(text)

@@ -98,7 +98,8 @@ def run_script(main) -> None:
 
 def run_metadata(threads: int, **extra) -> dict:
     """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count, thread count, OpenMP wait
-    policy and load average at the time of the call, plus the experiment's own ``extra`` settings."""
+    policy and load average at the time of the call, the ``command`` (given, else :func:`script_command`), plus
+    the experiment's own ``extra`` settings."""
     import cv2
     import kornia
     import numpy
@@ -116,7 +117,19 @@ def run_metadata(threads: int, **extra) -> dict:
     return {"commit": commit, "code_version": code_version(), "torch": torch.__version__, "kornia": kornia.__version__,
             "opencv": cv2.__version__, "numpy": numpy.__version__, "python": sys.version.split()[0],
             "machine": platform.machine(), "cpus": os.cpu_count(), "threads": threads,
-            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "load_average": os.getloadavg(), **extra}
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "load_average": os.getloadavg(),
+            "command": extra.pop("command", None) or script_command(), **extra}
+
+
+def script_command() -> str | None:
+    """How this process was started, where it is an experiment run as a script (``python experiments/NAME.py
+    ...``), quoted for a shell; None where it is not (an experiment's ``main(argv)`` called in-process, whose
+    arguments are not this process's). An audit found 12 experiments whose JSON said neither what was run nor
+    with which options, a table that could not be made again from its own record."""
+    script = Path(sys.argv[0]) if sys.argv and sys.argv[0] else None
+    if script is None or script.suffix != ".py" or script.resolve().parent != Path(__file__).resolve().parent:
+        return None
+    return command_line(f"experiments/{script.name}", None)
 
 
 def write_report(report: dict, table: str, json_path: Path | None, markdown_path: Path | None) -> None:

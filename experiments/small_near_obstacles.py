@@ -124,7 +124,8 @@ def main(argv: list[str] | None = None) -> dict:
     text = markdown(rows, command_line("experiments/small_near_obstacles.py", argv or None))
     if args.markdown:
         Path(args.markdown).write_text(text)
-    return {"metadata": run_metadata(torch.get_num_threads()), "rows": rows}
+    command = command_line("experiments/small_near_obstacles.py", argv or None)
+    return {"metadata": run_metadata(torch.get_num_threads(), command=command), "rows": rows}
 
 
 if __name__ == "__main__":

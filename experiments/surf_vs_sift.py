@@ -42,7 +42,7 @@ from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_poin
 from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import command_line, output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5
@@ -236,7 +236,8 @@ def main(argv: list[str] | None = None) -> dict:
               for name in names}
     paths = [p for p in list_shared_pairs(Path(args.data)) if "middlebury" in str(p)]
     paths = paths[:args.limit] if args.limit else paths
-    report = {"metadata": {**run_metadata(args.threads), "max_keypoints": args.max_keypoints,
+    report = {"metadata": {**run_metadata(args.threads, command=command_line("experiments/surf_vs_sift.py", argv)),
+                           "max_keypoints": args.max_keypoints,
                            "configs": {n: setup_json(s) for n, s in setups.items()}}, "results": {}}
     print("mean over pairs; precision = share of ratio-test matches within 1 px of GT disparity; "
           "dy<=.5 = share of matches within 3 px with |y_l - y_r| <= 0.5 px")

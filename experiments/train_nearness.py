@@ -189,7 +189,8 @@ def main(argv: list[str] | None = None) -> Path:
         "num_samples": len(pairs), "train_scenes": [str(p.relative_to(args.data)) for p in scenes],
         "excluded_duplicates": HELD_OUT_DUPLICATES,
         "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
-        "mask_history": history, "fine_tune_history": fine_tune, "run": run_metadata(args.threads),
+        "mask_history": history, "fine_tune_history": fine_tune,
+        "run": run_metadata(args.threads, command=command_line("experiments/train_nearness.py", argv)),
         "num_parameters": sum(p.numel() for p in net.parameters()),
         "command": command_line("experiments/train_nearness.py", argv),
     }

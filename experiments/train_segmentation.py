@@ -366,7 +366,7 @@ def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, confi
     return history
 
 
-def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path:
+def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command: str) -> Path:
     generator = torch.Generator().manual_seed(config.seed)
     if args.pairs:
         sources = read_pair_list(args.pairs, "--pairs")
@@ -392,11 +392,10 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig) -> Path
     with torch.no_grad():
         final, count, _ = pipeline_depth_loss(collate_stereo_batches(pairs), net)
     metadata = {"train": dataclasses.asdict(config), "mode": "through-pipeline", "init": args.init,
-                "command": command_line("experiments/train_segmentation.py", None),
-                "region_weight": args.region_weight,
+                "command": command, "region_weight": args.region_weight,
                 "pairs": [p.names[0] if p.names else "" for p in pairs], "size": args.size, "history": history,
                 "final_depth_loss_all_pairs": final.item(), "train_time_s": round(time.perf_counter() - started, 1),
-                "run": run_metadata(args.threads)}
+                "run": run_metadata(args.threads, command=command)}
     save_obstacle_net(args.out, net, metadata)
     print(f"{len(pairs)} pairs, {config.steps} steps; depth loss over all pairs {final.item():.5f} ({count} "
           f"objects); weights written to {args.out}")
@@ -459,10 +458,11 @@ def main(argv: list[str] | None = None) -> Path:
         if getattr(args, name) is None:
             setattr(args, name, fine_tune.get(name, getattr(TrainConfig(), name)))
     config = TrainConfig(**{name: getattr(args, name) for name in names})
+    command = command_line("experiments/train_segmentation.py", argv)
     if args.through_pipeline:
         if args.out is None:
             parser.error("--through-pipeline: expected --out FILE for the fine-tuned weights")
-        return through_pipeline_main(args, config)
+        return through_pipeline_main(args, config, command)
     shipped = config == TrainConfig() and args.threads == 2 and args.data == default_data_dir()
     if args.out is None and not shipped:  # a quick trial once replaced the shipped weights without a word
         parser.error("--out: expected a file for weights that are not the shipped ones (those are the defaults' "
@@ -484,9 +484,9 @@ def main(argv: list[str] | None = None) -> Path:
         "train_scenes": [str(p.relative_to(args.data)) for p in scenes],
         "excluded_duplicates": HELD_OUT_DUPLICATES,
         "held_out_scenes": [str(p.relative_to(args.data)) for p in split["held-out"]],
-        "final_losses": history[-1], "run": run_metadata(args.threads),
+        "final_losses": history[-1], "run": run_metadata(args.threads, command=command),
         "num_parameters": sum(p.numel() for p in net.parameters()),
-        "command": command_line("experiments/train_segmentation.py", None),
+        "command": command,
     }
     save_obstacle_net(args.out, net, metadata)
     print(f"{len(pairs)} samples, {config.steps} steps, {elapsed:.0f} s; weights written to {args.out}")

@@ -207,10 +207,10 @@ def main(argv: list[str] | None = None) -> dict:
     command = command_line("experiments/validate_nearness.py", argv)
     report = {"summary": {str(s): m for s, m in summary.items()}, "best_steps": best, "rows": rows,
               "folds": fold_info, "skipped_views": skipped,
-              "metadata": {"command": command, "train": dataclasses.asdict(config), "step_counts": step_counts,
+              "metadata": {"train": dataclasses.asdict(config), "step_counts": step_counts,
                            "folds": args.folds, "grouped": not args.ungrouped, "val_crops": args.val_crops,
                            "limit": args.limit, "keep": dataclasses.asdict(KEEP), "time_s": round(elapsed, 1),
-                           **run_metadata(args.threads)}}
+                           **run_metadata(args.threads, command=command)}}
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=str) + "\n")
     if args.markdown:

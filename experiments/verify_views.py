@@ -54,7 +54,8 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+                          scene_limit)
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
 #: DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing) or None,
@@ -200,7 +201,8 @@ def main(argv: list[str] | None = None) -> dict:
     sets = collect(Path(args.data), config, args.limit, args.synthetic)
     text = report(sets, config)
     print(text)
-    out = {"metadata": run_metadata(args.threads, limit=args.limit, synthetic=args.synthetic), "sets": sets,
+    out = {"metadata": run_metadata(args.threads, command=command_line("experiments/verify_views.py", argv),
+                                    limit=args.limit, synthetic=args.synthetic), "sets": sets,
            "report": text}
     if args.json:
         Path(args.json).write_text(json.dumps(out))
