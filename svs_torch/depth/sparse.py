@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_percentiles, check_real, check_shape
+from ..core.checks import InputError, check_dtype, check_finite, check_percentiles, check_real, check_shape
+from ..core.kernels.checks import check_image_hw
 from ..geometry.rectification import map_points
 from .depth_types import (Accuracy, DepthConfig, DepthResult, Disparities, NearestObstacle, ObjectDepths, ObstacleSide,
                           PointDepths, RangeEstimate)
@@ -32,11 +33,15 @@ __all__ = [
 ]
 
 
-def _per_pair(value: float | torch.Tensor | None, like: torch.Tensor, name: str) -> torch.Tensor:
-    """A scalar or ``(B,)`` calibration value as a ``(B, 1)`` column in ``like``'s dtype (None → 0)."""
+def _per_pair(value: float | torch.Tensor | None, like: torch.Tensor, name: str,
+              positive: bool = False) -> torch.Tensor:
+    """A scalar or ``(B,)`` calibration value as a ``(B, 1)`` column in ``like``'s dtype (None → 0), finite and,
+    with ``positive``, above 0: a negative focal length times a negative baseline ranged a pair at a plausible
+    3.28 m, and a zero or NaN one left it unranged without a word (an audit; ``StereoBatch`` refuses both)."""
     value = torch.as_tensor(0.0 if value is None else value, dtype=like.dtype, device=like.device)
     if value.dim() == 1 and value.shape[0] != like.shape[0] or value.dim() > 1:
         raise InputError(f"{name}: expected a scalar or ({like.shape[0]},), got {tuple(value.shape)}")
+    check_finite(value, name, positive=positive)
     return value.expand(like.shape[0]).reshape(-1, 1)
 
 
@@ -71,6 +76,7 @@ def rectified_disparity(points_left: torch.Tensor, points_right: torch.Tensor, v
         if H is not None:
             check_shape(H, name, [points.shape[0], 3, 3])
             check_dtype(H, name, "float")
+            check_finite(H, name)  # a NaN one gave every row valid, of NaN disparity
             points, in_front = map_points(H.to(points.dtype), points)
             valid &= in_front
         mapped.append(points)
@@ -81,12 +87,14 @@ def rectified_disparity(points_left: torch.Tensor, points_right: torch.Tensor, v
 def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: float | torch.Tensor,
                  baseline_m: float | torch.Tensor, doffs_px: float | torch.Tensor | None = None) -> PointDepths:
     """Depth ``Z = f·B / (d + doffs)`` (Eq. (7)–(8) per point) of disparities ``(B, K)``; ``focal_px``,
-    ``baseline_m``, ``doffs_px`` scalars or ``(B,)`` (``StereoBatch`` fields; doffs 0 for the SVS).
+    ``baseline_m``, ``doffs_px`` scalars or ``(B,)`` (``StereoBatch`` fields; doffs 0 for the SVS), finite, focal
+    length and baseline above 0.
     Differentiable w.r.t. ``disparity_px`` and the calibration where valid; ``valid`` is not."""
     _check_values(disparity_px, "disparity_px", valid, "valid")
     denominator = disparity_px + _per_pair(doffs_px, disparity_px, "doffs_px")
     valid = valid & (denominator > 0)
-    scale = _per_pair(focal_px, disparity_px, "focal_px") * _per_pair(baseline_m, disparity_px, "baseline_m")
+    scale = (_per_pair(focal_px, disparity_px, "focal_px", positive=True)
+             * _per_pair(baseline_m, disparity_px, "baseline_m", positive=True))
     safe = torch.where(valid, denominator, torch.ones_like(denominator))
     depth = scale / safe
     # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
@@ -115,7 +123,8 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
     check_real(min_in_front_share, "min_in_front_share", 0.0, 1.0)
     present = (in_front > 0) & (in_front > min_in_front_share * valid.sum(dim=1))
     doffs = _per_pair(doffs_px, disparity_px, "doffs_px").squeeze(1)
-    scale = (_per_pair(focal_px, disparity_px, "focal_px") * _per_pair(baseline_m, disparity_px, "baseline_m"))
+    scale = (_per_pair(focal_px, disparity_px, "focal_px", positive=True)
+             * _per_pair(baseline_m, disparity_px, "baseline_m", positive=True))
     scale = scale.squeeze(1)
 
     def depth(d: torch.Tensor) -> torch.Tensor:  # d + doffs > 0 for every entered disparity, so for its stats
@@ -201,8 +210,8 @@ def object_depths(labels: torch.Tensor, region_labels: torch.Tensor, points_left
     check_shape(depths.depth_m, "depths.depth_m", list(points_left.shape[:2]))
     if image_hw is None:
         image_hw = torch.tensor([labels.shape[-2:]], device=labels.device).expand(labels.shape[0], 2)
-    check_shape(image_hw, "image_hw", [labels.shape[0], 2])
-    check_dtype(image_hw, "image_hw", "int")
+    # Within the label image: a size past it ranged an object from the labels' border pixels (an audit).
+    check_image_hw(image_hw, *labels.shape[:1], *labels.shape[-2:])
     labels, region_labels = labels.long(), region_labels.long()
     area, centroid, side = _region_geometry(labels, region_labels, image_hw, depths.depth_m.dtype)
     member = _point_slots(labels, region_labels, points_left, image_hw) & depths.valid.unsqueeze(-1)

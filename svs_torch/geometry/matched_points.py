@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import check_shape
+from ..core.checks import InputError, check_dtype, check_shape
 from ..core.types import Matches
 
 __all__ = ["MatchedPoints", "gather_matched_points"]
@@ -43,6 +43,13 @@ def gather_matched_points(xy_left: torch.Tensor, xy_right: torch.Tensor, matches
     dims = check_shape(xy_left, "xy_left", ["B", "K", 2])
     check_shape(xy_right, "xy_right", [dims["B"], "K2", 2])
     check_shape(matches.idx, "matches.idx", [dims["B"], dims["K"]])
+    check_dtype(matches.idx, "matches.idx", "int")
+    # An index past the right keypoints failed inside torch's gather, and with no right keypoints at all it
+    # matched the point (0, 0) in silence (an audit).
+    low, high = (int(v) for v in torch.aminmax(matches.idx)) if matches.idx.numel() else (-1, -1)
+    if not -1 <= low <= high < xy_right.shape[1]:
+        raise InputError(f"matches.idx: expected right keypoint indices in [0, {xy_right.shape[1]}) or -1 (no "
+                         f"match), got values in [{low}, {high}]")
     valid = matches.idx >= 0
     if xy_right.shape[1] == 0:
         right = torch.zeros_like(xy_left)

@@ -36,10 +36,9 @@ MAX_KERNEL_SIZE = 255
 #: The most regions kept per image: label images are uint8 (0 background, 1..255), as ``--masks-out`` writes.
 MAX_KEEP = 255
 #: A region under the least area kept because it is the nearest (``near_min_area_fraction``) must have at least this
-#: share of its pixels counted (the nearness segmenter: measured by its block matcher where the right camera sees
-#: them): on the tuning sets most small near regions that were wrong were rows filled in from their neighbours (the
-#: dense stage later measured 18–31 % of their pixels, and the poles of experiments/thin_obstacles.md 86 % or more;
-#: this share reads the segmenter's own count, which it has before the dense stage runs).
+#: share of its pixels counted (by the nearness segmenter's block matcher, where the right camera sees them): on the
+#: tuning sets most small near regions that were wrong were rows filled in from their neighbours (the dense stage
+#: measured 18–31 % of their pixels, the poles of experiments/thin_obstacles.md 86 % or more; read before it runs).
 NEAR_MIN_COUNTED_SHARE = 0.5
 
 
@@ -168,9 +167,8 @@ class SegmentationConfig:
         return replace(self.with_floor(floor_left_out), camera_frames=True)
 
 
-def keep_largest_regions(
-    labels: torch.Tensor, regions: RegionProperties, num_keep: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+def keep_largest_regions(labels: torch.Tensor, regions: RegionProperties,
+                         num_keep: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Labels of the ``num_keep`` largest regions and the mask of their union.
 
     Args:
@@ -196,6 +194,9 @@ def _check_keep(labels: torch.Tensor, regions: RegionProperties, num_keep: int, 
     check_dtype(labels, "labels", "int")
     check_instance(regions, "regions", RegionProperties)
     slots = check_shape(regions.area_px, "regions.area_px", [b, "L"])["L"]
+    low, high = (int(v) for v in torch.aminmax(labels)) if labels.numel() else (0, 0)
+    if not 0 <= low <= high <= slots:  # past the slots, it failed inside torch's gather (an audit)
+        raise InputError(f"labels: expected values in [0, {slots}] (0, or a slot of regions), got [{low}, {high}]")
     check_count(num_keep, "num_keep", most=MAX_KEEP)  # 2^40 failed in an allocation
     if keep not in ("largest", "nearest", "nearest_first"):
         raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {keep!r}")

@@ -1,0 +1,97 @@
+"""A stage called on its own with arguments no pipeline would pass: each is refused by name, not ranged in silence
+and not failed inside torch (an audit of the stages' public functions, 2026-12-03)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from svs_torch import InputError
+from svs_torch.core.types import Matches, RegionProperties
+from svs_torch.depth import estimate_depth, estimate_range, object_depths, point_depths, rectified_disparity
+from svs_torch.depth.depth_types import PointDepths
+from svs_torch.geometry.matched_points import gather_matched_points
+from svs_torch.segmentation.segment import keep_largest_regions, keep_regions
+
+
+def _disparities() -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.tensor([[20.0, 25.0, 30.0]]), torch.ones(1, 3, dtype=torch.bool)
+
+
+@pytest.mark.parametrize("name, focal_px, baseline_m, doffs_px, expected", [
+    # A negative focal length times a negative baseline ranged the pair at the positive one's distance.
+    ("focal_px", -500.0, -0.1, 0.0, "focal_px: expected finite positive values, got -500.0"),
+    ("focal_px", 0.0, 0.1, 0.0, "focal_px: expected finite positive values, got 0.0"),
+    ("focal_px", float("nan"), 0.1, 0.0, "focal_px: expected finite positive values, got nan"),
+    ("baseline_m", 500.0, -0.1, 0.0, "baseline_m: expected finite positive values, got -0.1"),
+    ("baseline_m", 500.0, torch.tensor([float("inf")]), 0.0, "baseline_m: expected finite positive values, got inf"),
+    ("doffs_px", 500.0, 0.1, float("nan"), "doffs_px: expected finite values, got nan"),
+])
+def test_depth_functions_refuse_a_calibration_no_rig_has(name, focal_px, baseline_m, doffs_px, expected):
+    disparity, valid = _disparities()
+    for call in (lambda: point_depths(disparity, valid, focal_px, baseline_m, doffs_px),
+                 lambda: estimate_range(disparity, valid, focal_px, baseline_m, doffs_px),
+                 lambda: estimate_depth(torch.zeros(1, 3, 2), torch.zeros(1, 3, 2), valid, focal_px, baseline_m,
+                                        doffs_px)):
+        with pytest.raises(InputError, match=expected.replace("(", r"\(")):
+            call()
+    # A negative doffs is a calibration (cameras turned towards each other), not an error.
+    assert bool(point_depths(disparity, valid, 500.0, 0.1, -5.0).valid.all())
+
+
+def test_object_depths_refuses_a_pair_size_past_its_label_image():
+    """Points past a 10 x 10 label image took its border labels: an object at 4.63 m from a map of the wrong size."""
+    labels = torch.ones(1, 1, 10, 10, dtype=torch.long)
+    points = torch.tensor([[[50.0, 60.0], [5.0, 5.0]]])
+    depths = PointDepths(torch.tensor([[4.0, 5.0]]), torch.ones(1, 2, dtype=torch.bool))
+    with pytest.raises(InputError, match=r"image_hw: expected \(height, width\) rows with 1 <= height <= 10"):
+        object_depths(labels, torch.tensor([[1]]), points, depths, image_hw=torch.tensor([[120, 160]]))
+    inside = object_depths(labels, torch.tensor([[1]]), points, depths, image_hw=torch.tensor([[10, 10]]))
+    assert inside.num_inliers.tolist() == [[1]] and inside.depth_median_m.tolist() == [[5.0]]
+
+
+def test_gather_matched_points_refuses_indices_past_the_right_keypoints():
+    xy_left, xy_right = torch.rand(1, 3, 2) * 50, torch.rand(1, 2, 2) * 50
+    for idx, got in ((torch.tensor([[0, 5, -1]]), "got values in \\[-1, 5\\]"),
+                     (torch.tensor([[0, -2, 1]]), "got values in \\[-2, 1\\]")):
+        with pytest.raises(InputError, match=r"matches.idx: expected right keypoint indices in \[0, 2\) or -1 .*" + got):
+            gather_matched_points(xy_left, xy_right, Matches(idx, torch.zeros(1, 3)))
+    # With no right keypoints, a match was to the point (0, 0).
+    with pytest.raises(InputError, match=r"indices in \[0, 0\) or -1"):
+        gather_matched_points(xy_left, torch.zeros(1, 0, 2), Matches(torch.tensor([[0, -1, -1]]), torch.zeros(1, 3)))
+    with pytest.raises(InputError, match="matches.idx: expected a int tensor, got torch.float32"):
+        gather_matched_points(xy_left, xy_right, Matches(torch.zeros(1, 3), torch.zeros(1, 3)))
+    points = gather_matched_points(xy_left, xy_right, Matches(torch.tensor([[1, -1, 0]]), torch.zeros(1, 3)))
+    assert points.valid.tolist() == [[True, False, True]] and torch.equal(points.right[0, 0], xy_right[0, 1])
+
+
+def _regions(slots: int) -> RegionProperties:
+    return RegionProperties(area_px=torch.full((1, slots), 4), bbox_xyxy=torch.zeros(1, slots, 4, dtype=torch.long),
+                            centroid_xy=torch.zeros(1, slots, 2), valid=torch.ones(1, slots, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("value, slots", [(10 ** 6, 2), (-7, 2), (1, 0)])
+def test_keep_functions_refuse_labels_past_the_region_slots(value, slots):
+    labels = torch.zeros(1, 1, 4, 4, dtype=torch.long)
+    labels[0, 0, 1, 1] = value
+    expected = rf"labels: expected values in \[0, {slots}\]"
+    with pytest.raises(InputError, match=expected):
+        keep_largest_regions(labels, _regions(slots), 1)
+    with pytest.raises(InputError, match=expected):
+        keep_regions(labels, _regions(slots), 1, keep="nearest", nearness=torch.zeros(1, slots))
+    labels[0, 0, 1, 1] = min(slots, 1)
+    assert keep_largest_regions(labels, _regions(slots), 1)[1].sum() == (slots > 0)
+
+
+def test_rectified_disparity_refuses_a_homography_of_nan():
+    """A NaN homography gave every row valid, of NaN disparity; None stays the identity (one view warped alone)."""
+    points = torch.tensor([[[40.0, 10.0], [60.0, 20.0]]])
+    valid = torch.ones(1, 2, dtype=torch.bool)
+    shift = torch.eye(3).unsqueeze(0)
+    shift[0, 0, 2] = 3.0
+    for H_left, H_right, name in ((shift, torch.full((1, 3, 3), float("nan")), "H_right"),
+                                  (torch.full((1, 3, 3), float("inf")), None, "H_left")):
+        with pytest.raises(InputError, match=f"{name}: expected finite values"):
+            rectified_disparity(points, points - 5, valid, H_left, H_right)
+    alone = rectified_disparity(points, points - 5, valid, H_left=shift)
+    assert alone.disparity_px.tolist() == [[8.0, 8.0]] and bool(alone.valid.all())
