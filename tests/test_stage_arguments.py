@@ -95,3 +95,56 @@ def test_rectified_disparity_refuses_a_homography_of_nan():
             rectified_disparity(points, points - 5, valid, H_left, H_right)
     alone = rectified_disparity(points, points - 5, valid, H_left=shift)
     assert alone.disparity_px.tolist() == [[8.0, 8.0]] and bool(alone.valid.all())
+
+
+def test_rectify_uncalibrated_refuses_a_size_that_is_not_two_ints():
+    """``image_hw`` as a tuple: 120.5 was cut to 120 in silence and NaN failed in torch's int conversion."""
+    from svs_torch.geometry.rectification import rectify_uncalibrated
+
+    F = torch.tensor([[[0.0, 0, 0], [0, 0, -1], [0, 1, 0]]])
+    points = torch.rand(1, 8, 2) * 100
+    for size in ((120.5, 160), (float("nan"), 160), (120, 160, 3), (True, 160)):
+        with pytest.raises(InputError, match=r"image_hw: expected \(height, width\) as two ints"):
+            rectify_uncalibrated(F, points, points - 3, torch.ones(1, 8, dtype=torch.bool), size)
+    rectified = rectify_uncalibrated(F, points, points - 3, torch.ones(1, 8, dtype=torch.bool), (120, 160))
+    assert torch.allclose(rectified.H_left, torch.eye(3).unsqueeze(0), atol=1e-6)
+
+
+def test_dense_stage_names_the_inlier_arguments_as_passed():
+    """Mismatched inlier arguments were refused as ``valid`` (or, under the default coarse range, not checked)."""
+    from svs_torch.depth.dense import DenseConfig, estimate_dense_disparity
+
+    left = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
+    right = torch.roll(left, -2, dims=-1)
+    mask = torch.ones(1, 1, 24, 32, dtype=torch.bool)
+    for config in (DenseConfig(), DenseConfig(range_source="inliers")):
+        with pytest.raises(InputError, match=r"inlier_valid: expected \(1, 3\)"):
+            estimate_dense_disparity(left, right, mask, config, None, torch.zeros(1, 3), torch.ones(1, 4, dtype=bool))
+        with pytest.raises(InputError, match="inlier_disparity_px: expected finite values where inlier_valid holds"):
+            estimate_dense_disparity(left, right, mask, config, None, torch.tensor([[2.0, float("nan")]]),
+                                     torch.ones(1, 2, dtype=torch.bool))
+        with pytest.raises(InputError, match="inlier_disparity_px, inlier_valid: expected both or neither"):
+            estimate_dense_disparity(left, right, mask, config, None, torch.zeros(1, 3))
+    # NaN where not valid is padding, not an error.
+    dense = estimate_dense_disparity(left, right, mask, DenseConfig(range_source="inliers"), None,
+                                     torch.tensor([[2.0, 2.0, 2.0, float("nan")]]),
+                                     torch.tensor([[True, True, True, False]]))
+    assert dense.valid.any()
+
+
+def test_row_alignment_refuses_nan_points_and_an_empty_size():
+    from svs_torch.geometry.row_alignment import fit_row_alignment
+
+    points = torch.rand(1, 12, 2, generator=torch.Generator().manual_seed(1)) * 100
+    valid = torch.ones(1, 12, dtype=torch.bool)
+    size = torch.tensor([[120, 160]])
+    bad = points.clone()
+    bad[0, 3, 1] = float("nan")
+    with pytest.raises(InputError, match="points_right: expected finite values where valid holds"):
+        fit_row_alignment(points, bad, valid, size)
+    with pytest.raises(InputError, match=r"image_hw: expected positive \(height, width\) per pair, got \[\[0, 0\]\]"):
+        fit_row_alignment(points, points, valid, torch.tensor([[0, 0]]))
+    with pytest.raises(InputError, match="image_hw: expected a int tensor"):
+        fit_row_alignment(points, points, valid, size.float())
+    valid[0, 3] = False  # a NaN point in a padding row is not looked at
+    assert fit_row_alignment(points, bad, valid, size) is not None

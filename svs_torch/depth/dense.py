@@ -37,7 +37,7 @@ from dataclasses import replace
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_finite_where, check_shape
 from . import kernels
 from .block_matching import _check_pair, _check_sizes, _compiled, block_match_sad, dense_disparity_over_regions
 from .cost_volume import crop_box, crop_index, prefilter_xsobel, quantize_levels, region_crop_boxes, wanted_pixels
@@ -132,11 +132,20 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     if objects is not None:
         check_shape(objects, "objects", [b, "N", *left.shape[-2:]])
         check_dtype(objects, "objects", "bool")
+    if inlier_disparity_px is not None or inlier_valid is not None:  # named as passed (an audit: as valid, and
+        # under the default coarse range source not checked at all)
+        if inlier_disparity_px is None or inlier_valid is None:
+            raise InputError("inlier_disparity_px, inlier_valid: expected both or neither")
+        check_shape(inlier_disparity_px, "inlier_disparity_px", [b, "K"])
+        check_dtype(inlier_disparity_px, "inlier_disparity_px", "float")
+        check_shape(inlier_valid, "inlier_valid", list(inlier_disparity_px.shape))
+        check_dtype(inlier_valid, "inlier_valid", "bool")
+        check_finite_where(inlier_disparity_px, "inlier_disparity_px", inlier_valid, "inlier_valid")
     height, width = left.shape[-2:]
     image_hw = _check_sizes(image_hw, left)
     factor = working_factor(width, config, height)
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
-    if config.range_source == "coarse" or inlier_disparity_px is None or inlier_valid is None:
+    if config.range_source == "coarse" or inlier_disparity_px is None:
         small_objects = None
         if objects is not None:
             small_objects = objects if factor == 1 else _any_pool(objects, factor)

@@ -37,15 +37,12 @@ from ..core.checks import InputError, check_dtype, check_image, check_shape
 from ..core.kernels.checks import canonical_bool
 from . import kernels
 
-__all__ = [
-    "MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "map_points", "apply_homography",
-    "rectify_uncalibrated", "warp_rectified", "warp_views"
-]
+__all__ = ["MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "apply_homography",
+           "map_points", "rectify_uncalibrated", "warp_rectified", "warp_views"]
 
 #: F is treated as rank < 2 (no epipole) when ``‖adj F‖ ≤`` this times ``‖F‖²`` (``‖adj F‖ = σ₁σ₂`` for rank 2).
 _RANK_TOLERANCE = 1e-9
-#: The affine least squares (``"hartley"``) is singular when its normal matrix's eigenvalue ratio is below this
-#: (fewer than three non-collinear inliers).
+#: The affine least squares (``"hartley"``) is singular below this eigenvalue ratio (< 3 non-collinear inliers).
 _LSTSQ_TOLERANCE = 1e-12
 
 
@@ -320,6 +317,9 @@ def _check_inputs(F: torch.Tensor, points_left: torch.Tensor, points_right: torc
     if config.x_alignment not in ("parallel", "hartley"):
         raise InputError(f"x_alignment: expected 'parallel' or 'hartley', got {config.x_alignment!r}")
     if not isinstance(image_hw, torch.Tensor):
+        # A float (120.5) was cut to an int and a NaN failed in torch's conversion (an audit).
+        if len(image_hw) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in image_hw):
+            raise InputError(f"image_hw: expected (height, width) as two ints, got {tuple(image_hw)!r}")
         image_hw = torch.tensor(list(image_hw), dtype=torch.int64, device=F.device).expand(dims["B"], 2)
     check_shape(image_hw, "image_hw", [dims["B"], 2])
     check_dtype(image_hw, "image_hw", "int")
