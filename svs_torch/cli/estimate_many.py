@@ -60,7 +60,7 @@ def _load_entry(source, args) -> tuple[str | None, str | None, object]:
         # b/x.png were both 'x', and --disparity-out wrote the second's map over the first's in silence (an audit)
         loaded = (dataclasses.replace(loaded[0], names=(source.name,)), *loaded[1:])
     reason = too_small_reason(loaded[0].size_hw)
-    return ("TOO_SMALL", reason, None) if reason else (None, None, loaded)
+    return ("TOO_SMALL", reason, loaded) if reason else (None, None, loaded)  # its size and calibration reported
 
 
 def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
@@ -79,7 +79,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
 
-    runnable = [loaded for _, _, loaded in entries if loaded is not None]
+    runnable = [loaded for status, _, loaded in entries if status is None]
     runs, where, per_pair = [], {}, 0.0  # where: runnable position -> (its run, its row there)
     started = time.perf_counter()
     for indices, _ in same_size_indices([b.size_hw for b, _ in runnable]):  # one batch a size, never padded
@@ -92,8 +92,11 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
         _write_disparity(args, batch, result, per_pair)
     position, out = 0, []
     for source, (status, reason, loaded) in zip(chunk, entries):
-        if loaded is None:
+        if status is not None:
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
+            if loaded is not None:  # too small: its size and calibration, as estimate of one pair says (an audit)
+                report = with_calibration(report, loaded[0], 0, loaded[1], _calibration_source(source, args),
+                                          calibration_file_source(args, source) is not None)
         else:
             (batch, result), row = runs[where[position][0]], where[position][1]
             report, bad = pair_report(result, row, loaded[1], per_pair), None

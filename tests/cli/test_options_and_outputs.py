@@ -520,6 +520,17 @@ def test_a_pair_too_small_to_range_names_its_size_and_calibration(tmp_path, caps
     assert report["calibration"]["baseline_m"] == 0.12 and report["calibration"]["source"].startswith("command-line")
     code, out, _ = run_cli(capsys, "estimate", image, image)
     assert out.splitlines()[1].startswith("  calibration: f ") and "(the SVS model assumed)" in out
+    # As a --pairs line too, beside a pair that is ranged (they were null there after the one-pair fix).
+    big = str(tmp_path / "big.png")
+    cv2.imwrite(big, (np.indices((60, 80)).sum(0) * 7 % 256).astype(np.uint8))
+    (tmp_path / "pairs.txt").write_text(f"{image} {image}\n{big} {big}\n")
+    code, out, _ = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "pairs.txt"), "--baseline-m", "0.12",
+                           "--json", "--workers", "1")
+    tiny, ranged = [json.loads(line) for line in out.splitlines()]
+    assert tiny["status"] == "TOO_SMALL" and tiny["image_size_px"] == [6, 4]
+    assert tiny["calibration"]["source"] == ranged["calibration"]["source"] and tiny["calibration"]["baseline_m"] == 0.12
+    # The SVS model's focal length at each pair's own width.
+    assert tiny["calibration"]["focal_px"] == pytest.approx(ranged["calibration"]["focal_px"] * 6 / 80, rel=1e-3)
 
 
 def test_a_pair_whose_doffs_has_the_wrong_sign_is_told_so(data_dir, capsys):
