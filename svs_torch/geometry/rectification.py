@@ -158,8 +158,9 @@ def map_points(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
 def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Warp images ``(B, 1, H, W)`` by ``homographies`` ``(B, 3, 3)`` (original to rectified pixels) into the same
     size, zeros outside (kornia ``warp_perspective``, pixel-centre convention as OpenCV's ``warpPerspective``).
-    ``mode="nearest"`` for label images, whose values must not be blended. Differentiable w.r.t. the images and
-    the homographies (bilinear)."""
+    ``mode="nearest"`` for label images, whose values must not be blended. A singular or non-finite homography
+    gives that pair NaN (the pipeline passes only invertible ones). Differentiable w.r.t. the images and the
+    homographies (bilinear)."""
     dims = check_image(images, "images", check_range=False)
     check_shape(homographies, "homographies", [dims["B"], 3, 3])
     check_dtype(homographies, "homographies", "float")
