@@ -47,24 +47,37 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _truth_of_objects(scenes, seg) -> list[dict]:
-    """For each kept left object: the true obstacle it covers most, its true depth, and the overlap (IoU)."""
+    """For each kept left object: the true obstacle it covers most, its true depth, the overlap (IoU), and the
+    true obstacles it holds: those it overlaps most of the kept objects, by at least ``MIN_NEAREST_OVERLAP`` of the
+    smaller of the two, as the figures' :func:`~svs_torch.plotting.plots.true_nearest_obstacle` rules (an audit:
+    a nearest obstacle merged into a larger kept region was said "not kept")."""
     import torch
+
+    from ..plotting.plots import MIN_NEAREST_OVERLAP
 
     found = []
     labels = seg.labels[0, 0]
     ids = scenes.object_ids[0, 0]
     depth = scenes.depth_m[0, 0]
-    for label in seg.kept_labels[0].tolist():
-        if label < 0:
-            continue
+    kept = [label for label in seg.kept_labels[0].tolist() if label > 0]
+    overlap = {}  # (label, true obstacle) -> shared pixels over the smaller of the two
+    for obstacle in (k for k in ids.unique().tolist() if k > 0):
+        truth = ids == obstacle
+        for label in kept:
+            region = labels == label
+            overlap[label, obstacle] = float((region & truth).sum()) / min(float(region.sum()), float(truth.sum()))
+    for label in kept:
         region = labels == label
         covered = ids[region]
         best = int(torch.mode(covered).values) if covered.numel() else 0
         truth = ids == best
         iou = float((region & truth).sum()) / float((region | truth).sum())
+        holds = [k for (held_by, k), share in overlap.items() if held_by == label and share >= MIN_NEAREST_OVERLAP
+                 and share == max(overlap[other, k] for other in kept)]
         found.append({
             "label": label,
             "true_object": best,
+            "holds_true_objects": sorted(holds),
             "iou": round(iou, 3),
             "median_true_depth_m": round(float(depth[region].median()), 3),
         })
@@ -75,8 +88,8 @@ def _true_nearest(scenes, objects: list[dict], ranged_label: int | None) -> dict
     """The truly nearest visible obstacle of the scene's exact truth and whether the pipeline kept it.
 
     Visible: a valid slot with pixels in the left view. Equal depths: the one ranged nearest first, then a kept
-    one, then the lowest slot. Kept: a kept left region covers it most (``objects``: the report's objects with
-    :func:`_truth_of_objects`' best-overlap ``true_object``). ``ranged_label``: the label of the object the
+    one, then the lowest slot. Kept: a kept left region holds it (``objects``: the report's objects with
+    :func:`_truth_of_objects`' ``holds_true_objects``). ``ranged_label``: the label of the object the
     pipeline ranges nearest (None: none). None when no obstacle is visible.
     """
     ids = scenes.object_ids[0, 0]
@@ -85,16 +98,17 @@ def _true_nearest(scenes, objects: list[dict], ranged_label: int | None) -> dict
     if not depths:
         return None
     nearest_m = min(depths.values())
-    kept_labels: dict[int, list[int]] = {}  # true obstacle -> labels of the kept objects that cover it most
+    kept_labels: dict[int, list[int]] = {}  # true obstacle -> labels of the kept objects that hold it
     for obj in objects:
-        kept_labels.setdefault(obj["true_object"], []).append(obj["label"])
-    ranged = next((obj["true_object"] for obj in objects if obj["label"] == ranged_label), None)
+        for held in obj["holds_true_objects"]:
+            kept_labels.setdefault(held, []).append(obj["label"])
+    ranged = next((set(obj["holds_true_objects"]) for obj in objects if obj["label"] == ranged_label), set())
     nearest = min((k for k, depth in depths.items() if depth == nearest_m),
-                  key=lambda k: (k != ranged, k not in kept_labels, k))
+                  key=lambda k: (k not in ranged, k not in kept_labels, k))
     labels = kept_labels.get(nearest, [])
     found = {"object": nearest, "depth_m": round(nearest_m, 3), "kept": bool(labels),
-             "kept_label": ranged_label if nearest == ranged else (labels[0] if labels else None),
-             "ranged_label": ranged_label, "ranged_is_nearest": nearest == ranged}
+             "kept_label": ranged_label if nearest in ranged else (labels[0] if labels else None),
+             "ranged_label": ranged_label, "ranged_is_nearest": nearest in ranged}
     return {**found, "warning": _nearest_warning(found, objects)}
 
 
@@ -130,6 +144,9 @@ def _print_text(args, camera: dict, truth: list[dict], report: dict, true_neares
         estimate = f"{obj['depth_m']:.3f} m" if obj["depth_m"] is not None else "no depth"
         # true_object 0 is the wall behind the obstacles (the scene's label 0), not an obstacle numbered 0
         what = f"true obstacle {obj['true_object']}" if obj["true_object"] else "the background wall"
+        merged = [str(k) for k in obj["holds_true_objects"] if k != obj["true_object"]]
+        if merged:  # a region over two obstacles: the other one is kept too, in it
+            what += f" with true obstacle{'s' * (len(merged) > 1)} {', '.join(merged)}"
         print(f"  object {obj['label']} is {what} (IoU {obj['iou']:.2f}): "
               f"true {obj['median_true_depth_m']:.3f} m, estimated {estimate}")
     if true_nearest is None:
