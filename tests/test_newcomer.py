@@ -128,6 +128,38 @@ def test_results_figure_zooms_keeps_the_legend_off_the_bars_and_leaves_no_empty_
         plt.close(figure)
 
 
+@pytest.mark.parametrize("swept", [1, 2])
+def test_results_figure_shows_the_best_configurations_whole_name(tmp_path, swept):
+    """Found by an audit: the per-scene title was wrapped at 90 characters, wider than its panel (the third, beside
+    two swept parameters' panels), and a long configuration name ran off the figure's edge ("... kernel_size=5 see")."""
+    import matplotlib.pyplot as plt
+
+    long = " ".join(f"key{i}={i}" for i in range(40))  # short words: lines fill to the wrap width
+    store = ResultStore(tmp_path / "long.sqlite")
+    store.add_pairs([PairSource(left=f"scenes/Teddy{i}", scene=True) for i in range(3)])
+    run = store.start_run("test", "v", {}, "")
+    for number in range(3):
+        overrides = {"segmentation.kernel_size": 3 + 2 * number, "seed": number % swept}
+        config = make_sweep_config("default", overrides, None, f"{long} | variant {number}")
+        store.add_configs([config.record()])
+        rows = [(PairSource(left=f"scenes/Teddy{i}", scene=True).pair_id,
+                 PairEvaluation(name=f"scene{i}", status="OK", calibrated=True, has_truth=True, acc_r_min_pct=v,
+                                acc_r_max_pct=v - 1, acc_objects_pct=v - 0.5))
+                for i, v in enumerate([96.0 + number, 98.5, 99.0])]
+        store.write_task(config.config_id, run, rows)
+    with store:
+        figure = results_figure(store)
+    try:
+        assert len(figure.axes) == swept + 1
+        figure.canvas.draw()
+        bars = figure.axes[-1]
+        title = bars.title.get_window_extent(figure.canvas.get_renderer())
+        assert title.x0 >= 0 and title.x1 <= figure.bbox.x1
+        assert bars.get_title().replace("\n", " ").endswith(f"{long} | variant 2")
+    finally:
+        plt.close(figure)
+
+
 def test_results_bars_of_many_scenes_take_a_row_as_wide_as_their_names_need(tmp_path):
     """Found by an audit of the figures: a sweep over 40 scenes drew their 40 names over each other in a 5.2 in
     panel beside the parameter's. Now the bars take a row of their own, at least 0.22 in a scene, and no two tick
