@@ -128,6 +128,13 @@ def test_results_figure_zooms_keeps_the_legend_off_the_bars_and_leaves_no_empty_
         plt.close(figure)
 
 
+def test_results_counts_one_configuration_in_the_singular(tmp_path, capsys):
+    with _store(tmp_path / "one.sqlite", {"a": [96.0, 98.5, 99.0]}):
+        pass
+    assert main(["results", str(tmp_path / "one.sqlite")]) == 0
+    assert capsys.readouterr().out.startswith("1 configuration; ranked by ")
+
+
 @pytest.mark.parametrize("swept", [1, 2])
 def test_results_figure_shows_the_best_configurations_whole_name(tmp_path, swept):
     """Found by an audit: the per-scene title was wrapped at 90 characters, wider than its panel (the third, beside

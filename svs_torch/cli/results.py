@@ -66,7 +66,7 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
-    print(f"{len(summaries)} configurations; ranked by {args.sort}"
+    print(f"{len(summaries)} configuration{'s' * (len(summaries) != 1)}; ranked by {args.sort}"
           + (f", the best {len(shown)}" if len(shown) < len(summaries) else ""))
     print(f"{'config':<16} {'pairs':>5} {'fail':>4} {'scored':>6} {'R_min %':>7} {'R_max %':>7} {'obj %':>6} "
           f"{'d<=1':>5} {'prec':>5} {'s/pair':>6}  label")

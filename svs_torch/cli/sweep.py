@@ -77,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
 
     def start(total: int, done: int) -> None:
         nonlocal bar
-        print(f"svs-depth sweep: {len(sweep.configs)} configurations x {len(sweep.sources)} pairs; "
-              f"{done} rows already in {args.db}, {total} to run", file=sys.stderr, flush=True)
+        configs, pairs = len(sweep.configs), len(sweep.sources)
+        print(f"svs-depth sweep: {configs} configuration{'s' * (configs != 1)} x {pairs} pair{'s' * (pairs != 1)}; "
+              f"{done} row{'s' * (done != 1)} already in {args.db}, {total} to run", file=sys.stderr, flush=True)
         bar = Progress(total, "sweep")
 
     def warn(message: str) -> None:

@@ -404,7 +404,8 @@ def test_rows_stored_counts_this_sweeps_rows_only(data_dir, tmp_path, capsys):
     out, err = capsys.readouterr()
     summary = json.loads(out.splitlines()[-1])
     assert (summary["rows_stored"], summary["rows_total"], summary["rows_written"]) == (1, 1, 0)
-    assert "1 rows already in" in err and "1 of 1 stored" in err
+    assert "1 row already in" in err and "1 of 1 stored" in err
+    assert "svs-depth sweep: 1 configuration x 1 pair; " in err  # not "1 configurations x 1 pairs"
 
 
 def test_a_scheduler_that_cannot_be_reached_leaves_no_store(data_dir, tmp_path, monkeypatch, capsys):
