@@ -102,9 +102,12 @@ def run(args: argparse.Namespace) -> int:
             bar.close()
     total = len(sweep.configs) * len(sweep.sources)
     print(f"svs-depth sweep: {outcome.rows_written} rows written by {outcome.tasks} tasks, "
-          f"{outcome.rows_stored} of {total} stored in {args.db}", file=sys.stderr)
+          f"{outcome.rows_stored} of {total} stored in {args.db}"
+          + (f" ({outcome.rows_to_retry} more failed there: BAD_INPUT, TOO_SMALL or ERROR rows, run again when the "
+             f"same command is run again)" if outcome.rows_to_retry else ""), file=sys.stderr)
     if args.json:
         print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "tasks": outcome.tasks,
                             "rows_written": outcome.rows_written, "rows_stored": outcome.rows_stored,
+                            "rows_to_retry": outcome.rows_to_retry,
                             "rows_total": total, "run_id": outcome.run_id}))
     return 0

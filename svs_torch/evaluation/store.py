@@ -300,12 +300,13 @@ class ResultStore:
     def code_versions(self) -> list[str]:
         return [row[0] for row in self.connection.execute("SELECT DISTINCT code_version FROM runs ORDER BY run_id")]
 
-    def done(self, config_ids: Sequence[str] | None = None) -> set[tuple[str, str]]:
+    def done(self, config_ids: Sequence[str] | None = None, retried: bool = False) -> set[tuple[str, str]]:
         """The (config_id, pair_id) keys already stored, but those of rows with a :data:`RETRIED_STATUSES`
         status: a run that raised (out of memory, a full disk under an export), or a pair whose files were
         missing, unreadable or too small then, is run again when a sweep resumes (and its new row replaces the
-        old one)."""
-        rows = self.connection.execute(f"SELECT config_id, pair_id FROM results WHERE status NOT IN {_RETRIED_SQL}")
+        old one). ``retried``: those keys instead."""
+        rows = self.connection.execute(f"SELECT config_id, pair_id FROM results WHERE status "
+                                       f"{'IN' if retried else 'NOT IN'} {_RETRIED_SQL}")
         wanted = None if config_ids is None else set(config_ids)
         canonical = _canonical_ids()
         return {(c, canonical(p)) for c, p in rows if wanted is None or c in wanted}

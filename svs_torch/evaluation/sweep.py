@@ -274,13 +274,15 @@ def environment(executor: str, workers: int, threads: int | None) -> dict:
 class SweepOutcome:
     """What a run did: tasks run, rows written, rows of this sweep that were already stored, the run's id, and the
     rows of this sweep stored at its end (rows of a RETRIED_STATUSES status not counted: a resume runs them again),
-    counted in the store: a sweep running beside it on the same store may have written some."""
+    counted in the store: a sweep running beside it on the same store may have written some; and the rows of this
+    sweep stored with such a status (an audit read "2 of 4 stored" of a file holding 4 rows)."""
 
     tasks: int
     rows_written: int
     rows_already_done: int
     run_id: int
     rows_stored: int = 0
+    rows_to_retry: int = 0
 
 
 def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, scheduler: str | None = None,
@@ -341,4 +343,5 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
             written += store.write_task(result.config_id, run_id, result.rows)
             if on_task is not None:
                 on_task(result)
-        return SweepOutcome(len(tasks), written, len(done), run_id, len(store.done(config_ids) & keys))
+        return SweepOutcome(len(tasks), written, len(done), run_id, len(store.done(config_ids) & keys),
+                            len(store.done(config_ids, retried=True) & keys))

@@ -408,6 +408,22 @@ def test_rows_stored_counts_this_sweeps_rows_only(data_dir, tmp_path, capsys):
     assert "svs-depth sweep: 1 configuration x 1 pair; " in err  # not "1 configurations x 1 pairs"
 
 
+def test_a_sweeps_count_says_the_failed_rows_it_stored(data_dir, tmp_path, capsys):
+    """Found by an audit: a list with a pair whose right image is missing ended "2 of 4 stored" (and rows_stored 2)
+    while the file held 4 rows, 2 of them BAD_INPUT, which a resume runs again; the line now says so."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'}\n{teddy / 'im0.png'} {tmp_path / 'gone.png'}\n")
+    sweep = tmp_path / "bad.toml"
+    sweep.write_text(f'paths = ["{pairs}"]\nsize = "128x96"\n[grid]\nseed = [0, 1]\n')
+    store = tmp_path / "s.sqlite"
+    assert main(["sweep", str(sweep), "--db", str(store), "--workers", "0", "--json"]) == 0
+    out, err = capsys.readouterr()
+    summary = json.loads(out.splitlines()[-1])
+    assert (summary["rows_stored"], summary["rows_to_retry"], summary["rows_total"]) == (2, 2, 4)
+    assert "2 of 4 stored in" in err and "(2 more failed there: BAD_INPUT, TOO_SMALL or ERROR rows" in err
+
+
 def test_a_scheduler_that_cannot_be_reached_leaves_no_store(data_dir, tmp_path, monkeypatch, capsys):
     """Found by an audit of sweep: --scheduler at an address with no scheduler (or no workers) failed after the
     store was made with its configurations and no row, which `results` then listed as "0 configurations"."""
