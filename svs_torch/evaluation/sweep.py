@@ -177,6 +177,9 @@ def load_sweep(path: str | Path) -> Sweep:
     fixed = merge_overrides(top_level, flatten_table(fixed))
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
     points = expand_grid(flatten_table(grid), f"{name}: grid")
+    both = sorted(set(fixed) & set(flatten_table(grid)))  # the grid's won in silence: the fixed value never ran
+    _expect(not both, f"{name}: {', '.join(both)}: set both as fixed for every configuration and in [grid]; expected "
+                      f"each in one of them")
     configs = []
     for number, entry in enumerate(entries, start=1):
         entry = flatten_table(entry)

@@ -100,6 +100,9 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     ('paths = ["."]\nsize = "320 by 240"\n', "size: expected WIDTHxHEIGHT"),
     ('paths = ["."]\npreset = "fast"\n', "preset: expected one of 'default', 'paper'"),
     ("paths = [\n", "not valid TOML"),
+    # An audit: the grid's values ran and the fixed 0.7 never did, without a word.
+    ('paths = ["."]\n[set]\nmax_ratio = 0.7\n[grid]\nmax_ratio = [0.6, 0.8]\n',
+     "max_ratio: set both as fixed for every configuration and in [grid]; expected each in one of them"),
 ])
 def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, message):
     sweep_file = tmp_path / "sweep.toml"
