@@ -3,6 +3,7 @@ configuration, option aliases, one TOML format, normalised paths, an old results
 
 from __future__ import annotations
 
+import json
 import math
 
 import sqlite3
@@ -133,6 +134,20 @@ def test_results_counts_one_configuration_in_the_singular(tmp_path, capsys):
         pass
     assert main(["results", str(tmp_path / "one.sqlite")]) == 0
     assert capsys.readouterr().out.startswith("1 configuration; ranked by ")
+
+
+def test_results_of_a_store_without_rows_says_so(tmp_path, capsys):
+    """Found by an audit: a sweep stopped before its first task left configurations and no rows; results printed
+    an empty table ("0 configurations") while results --figure said "holds no results yet"."""
+    store = ResultStore(tmp_path / "empty.sqlite")
+    store.add_configs([make_sweep_config("default", {"segmentation.kernel_size": k}, None, f"k{k}").record()
+                       for k in (3, 5)])
+    store.close()
+    assert main(["results", str(tmp_path / "empty.sqlite")]) == 0
+    assert capsys.readouterr().out == (f"{tmp_path / 'empty.sqlite'}: no results yet (2 configurations recorded, no "
+                                       "pair run); running the sweep's command again fills it\n")
+    assert main(["results", str(tmp_path / "empty.sqlite"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["configs"] == []
 
 
 @pytest.mark.parametrize("swept", [1, 2])

@@ -149,6 +149,10 @@ def run(args: argparse.Namespace) -> int:
                 # the listing's order, not the text's.
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best}}))
+            elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
+                recorded = len(store.configs())
+                print(f"{args.db}: no results yet ({recorded} configuration{'s' * (recorded != 1)} recorded, no pair "
+                      f"run); running the sweep's command again fills it")
             else:
                 _print_summary(summaries, best, args)
     return 0
