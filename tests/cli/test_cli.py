@@ -1249,6 +1249,7 @@ def test_listed_pairs_of_each_size_run_as_their_own_batch(capsys, tmp_path, monk
     monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording)
     if command == "eval":
         monkeypatch.setattr("svs_torch.evaluation.runner.estimate_obstacle_depth", recording)
+        monkeypatch.setattr("svs_torch.evaluation.runner._WARMED_UP", True)  # its one untimed pair is not a batch
     argv = ["--pairs", str(listing), "--workers", "1"] if command == "estimate" else [str(listing)]
     code, out, _ = run_cli(capsys, command, *argv, "--json", "--batch-size", "4")
     assert code == 0 and batches == [(2, (40, 64)), (1, (400, 12)), (1, (12, 400))]
