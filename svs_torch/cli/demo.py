@@ -65,7 +65,8 @@ def _truth_of_objects(scenes, seg) -> list[dict]:
         truth = ids == obstacle
         for label in kept:
             region = labels == label
-            overlap[label, obstacle] = float((region & truth).sum()) / min(float(region.sum()), float(truth.sum()))
+            smaller = min(float(region.sum()), float(truth.sum()))  # a kept label with no pixel holds nothing
+            overlap[label, obstacle] = float((region & truth).sum()) / smaller if smaller else 0.0
     for label in kept:
         region = labels == label
         covered = ids[region]
