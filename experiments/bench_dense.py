@@ -32,7 +32,7 @@ from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import command_line, add_common_options, run_metadata, run_script  # noqa: E402
+from run_metadata import add_common_options, command_line, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
