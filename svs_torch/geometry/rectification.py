@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_shape
-from ..core.kernels.checks import canonical_bool
+from ..core.kernels.checks import canonical_bool, check_positive_hw
 from . import kernels
 
 __all__ = ["MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "apply_homography",
@@ -322,11 +322,8 @@ def _check_inputs(F: torch.Tensor, points_left: torch.Tensor, points_right: torc
         if len(image_hw) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in image_hw):
             raise InputError(f"image_hw: expected (height, width) as two ints, got {tuple(image_hw)!r}")
         image_hw = torch.tensor(list(image_hw), dtype=torch.int64, device=F.device).expand(dims["B"], 2)
-    check_shape(image_hw, "image_hw", [dims["B"], 2])
-    check_dtype(image_hw, "image_hw", "int")
-    if not bool((image_hw > 0).all()):
-        raise InputError("image_hw: expected positive (height, width) per pair")
-    return image_hw.long()  # int64, the C kernel's (an int32 size ran the torch path: 1 ulp off the kernel's)
+    # int64, the C kernel's (an int32 size ran the torch path: 1 ulp off the kernel's)
+    return check_positive_hw(image_hw, dims["B"]).long()
 
 
 def rectify_uncalibrated(F: torch.Tensor, points_left: torch.Tensor, points_right: torch.Tensor,

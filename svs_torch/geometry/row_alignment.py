@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.checks import InputError, check_dtype, check_finite_where, check_shape
+from ..core.kernels.checks import check_positive_hw
 from . import kernels
 from .ransac_sampling import draw_minimal_samples
 from .row_alignment_keystone import keystone_homography, keystone_refit, mapped_row_residuals
@@ -220,17 +221,14 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     dims = check_shape(points_left, "points_left", ["B", "K", 2])
     check_shape(points_right, "points_right", [dims["B"], dims["K"], 2])
     check_shape(valid, "valid", [dims["B"], dims["K"]])
-    check_shape(image_hw, "image_hw", [dims["B"], 2])
+    check_positive_hw(image_hw, dims["B"])  # a 0 x 0 pair was taken (an audit)
     check_dtype(points_left, "points_left", "float")
     check_dtype(points_right, "points_right", "float")
     if valid.dtype != torch.bool:
         raise InputError(f"valid: expected a bool tensor, got {valid.dtype}")
-    # As RANSAC and the match refinement check them (an audit: NaN points and a 0 x 0 pair were taken).
+    # As RANSAC and the match refinement check them (an audit: NaN points in valid rows were taken).
     for name, points in (("points_left", points_left), ("points_right", points_right)):
         check_finite_where(points, name, valid.unsqueeze(-1), "valid")
-    check_dtype(image_hw, "image_hw", "int")
-    if not bool((image_hw > 0).all()):
-        raise InputError(f"image_hw: expected positive (height, width) per pair, got {image_hw.tolist()[:4]}")
     if focal_px is not None:
         check_shape(focal_px, "focal_px", [dims["B"]])
         if not bool(((focal_px > 0) & focal_px.isfinite()).all()):

@@ -14,7 +14,7 @@ from ..checks import check_dtype, check_shape
 from ..errors import InputError
 
 __all__ = ["canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty", "check_number",
-           "check_rows", "settings_table"]
+           "check_positive_hw", "check_rows", "settings_table"]
 
 
 def check_rows(tensor: torch.Tensor, name: str, rows: int, *tail: int | str, kinds: str = "int") -> torch.Tensor:
@@ -34,6 +34,15 @@ def check_image_hw(image_hw: torch.Tensor, b: int, h: int, w: int) -> torch.Tens
         if not (1 <= row[0] <= h and 1 <= row[1] <= w):
             raise InputError(f"image_hw: expected (height, width) rows with 1 <= height <= {h} and 1 <= width <= {w} "
                              f"(the image tensors' size), got {row}")
+    return image_hw
+
+
+def check_positive_hw(image_hw: torch.Tensor, b: int) -> torch.Tensor:
+    """Each pair's size ``(B, 2)`` int, at least 1, where no image tensor bounds it (a stage given points only:
+    rectification, row alignment; :func:`check_image_hw` where one does)."""
+    check_rows(image_hw, "image_hw", b, 2)
+    if image_hw.numel() and int(image_hw.min()) < 1:
+        raise InputError(f"image_hw: expected positive (height, width) per pair, got {image_hw.tolist()[:4]}")
     return image_hw
 
 
