@@ -27,14 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from svs_torch.core.workers import thread_budget
 from svs_torch.data import camera_frame_pairs, list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_disparity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from verify_views import SAME_SCENE  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
 
 # Steps of 0.025: with the denoised measurement (select_nearness_denoise.md) the gap between views of two scenes
 # and the worst camera frames is 0.04 wide.
@@ -50,7 +49,7 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
-    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
+    use_two_threads()
     paths = [p for p in list_shared_pairs(Path(args.data)) if not is_held_out(p)]
     pairs = [resize_stereo_batch(load_stereo_pair(p), (320, 240)) for p in paths]
     generator = torch.Generator().manual_seed(0)

@@ -30,6 +30,18 @@ def output_path(text: str) -> Path:
         raise argparse.ArgumentTypeError(str(error).removeprefix("file: ")) from None
 
 
+def use_two_threads() -> int:
+    """Run torch on two threads, or fewer where ``OMP_NUM_THREADS`` asks (``svs_torch.core.workers.thread_budget``),
+    for the scripts without ``--threads``; returns the count (an audit: they took two whatever the job was limited
+    to)."""
+    import torch
+
+    from svs_torch.core.workers import thread_budget
+
+    torch.set_num_threads(min(2, thread_budget()))
+    return torch.get_num_threads()
+
+
 def scene_limit(text: str) -> int | None:
     """An ``argparse`` type for ``--limit``: a count of scenes (or pairs) of at least 1, or 0 for all (None).
     Found by an audit: ``--limit -1`` ran all but the last scene in silence, and ``--limit 0`` meant "all" in some

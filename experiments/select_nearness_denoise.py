@@ -37,9 +37,6 @@ import statistics
 import sys
 from pathlib import Path
 
-import torch
-
-from svs_torch.core.workers import thread_budget
 from svs_torch.segmentation.learned import obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.cli.common import positive_int
@@ -50,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 import real_rig  # noqa: E402
 from real_rig import conditions  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
@@ -94,7 +91,7 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
                         help="only the first N train and N synthetic scenes (a quick look, not a selection)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
-    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
+    use_two_threads()
     data = views(args.data, args.limit)
     keep = dataclasses.replace(PipelineConfig().segmentation, min_measured_share=0.0)  # (module docstring)
     groups = [(size, group) for size in ("320", "native", "320 weak") for group in ("clean", "camera")]

@@ -22,7 +22,6 @@ from pathlib import Path
 import torch
 
 from svs_torch.core.types import StereoBatch
-from svs_torch.core.workers import thread_budget
 from svs_torch.depth.quantiles import kept_region_lower_median
 from svs_torch.segmentation.learned import ObstacleTruth, mask_iou, obstacle_truth
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig, segment_stereo_nearness
@@ -30,7 +29,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
 GRID = {"working_width_px": (160, 240, 320), "window_size": (7, 9, 13)}
@@ -57,7 +56,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
-    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
+    use_two_threads()
     scenes = []
     for size in ("320", "native"):
         for path in train_scenes(Path(args.data)):

@@ -32,18 +32,15 @@ import sys
 import tempfile
 from pathlib import Path
 
-import torch
-
 from svs_torch.core.errors import InputError
 from svs_torch.core.files import write_bytes_atomic
-from svs_torch.core.workers import thread_budget
 from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import eval_segmentation  # noqa: E402
 import real_rig  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_script  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
 
 SIZES = {"320": "320x240", "native": "native"}
 
@@ -149,7 +146,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     shipped = load_obstacle_net("nearness")  # read once: every variant is its weights with other settings
     variants = [parse_variant(text, shipped.config) for text in args.variants]
     contrasts = [float(text) for text in args.contrasts.split(",")]
-    torch.set_num_threads(min(2, thread_budget()))  # two, or fewer where OMP_NUM_THREADS asks (an audit)
+    use_two_threads()
     with tempfile.TemporaryDirectory() as folder:
         results = [score(args.data, weights_with(Path(folder), shipped, variant, number), variant, number, contrasts,
                          args.conditions, args.synthetic) for number, variant in enumerate(variants)]

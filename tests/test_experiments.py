@@ -597,6 +597,19 @@ def test_camera_frames_gate_compares_the_gate_with_skipping_it(data_dir, capsys)
     assert "pairs with another result" in capsys.readouterr().out
 
 
+def test_scripts_without_threads_run_two_or_fewer_where_the_job_asks(monkeypatch):
+    from run_metadata import use_two_threads
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert use_two_threads() == 1 == torch.get_num_threads()
+        monkeypatch.setenv("OMP_NUM_THREADS", "8")
+        assert use_two_threads() == min(2, len(os.sched_getaffinity(0)))
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_run_metadata_records_the_command_an_experiment_was_run_with(monkeypatch):
     """Found by an audit: 12 experiments' JSON said neither what was run nor with which options. A script run as a
     command records its own command line, quoted for a shell; a ``main(argv)`` called in-process records None
