@@ -53,6 +53,7 @@ def _truth_of_objects(scenes, seg) -> list[dict]:
     a nearest obstacle merged into a larger kept region was said "not kept")."""
     import torch
 
+    from ..core.mask_reductions import share_of_smaller
     from ..plotting.plots import MIN_NEAREST_OVERLAP
 
     found = []
@@ -60,25 +61,24 @@ def _truth_of_objects(scenes, seg) -> list[dict]:
     ids = scenes.object_ids[0, 0]
     depth = scenes.depth_m[0, 0]
     kept = [label for label in seg.kept_labels[0].tolist() if label > 0]
-    overlap = {}  # (label, true obstacle) -> shared pixels over the smaller of the two
-    for obstacle in (k for k in ids.unique().tolist() if k > 0):
+    regions = {label: labels == label for label in kept}
+    holds: dict[int, list[int]] = {label: [] for label in kept}  # kept label -> the true obstacles it holds
+    for obstacle in (k for k in ids.unique().tolist() if k > 0):  # ascending: each list comes sorted
         truth = ids == obstacle
-        for label in kept:
-            region = labels == label
-            smaller = min(float(region.sum()), float(truth.sum()))  # a kept label with no pixel holds nothing
-            overlap[label, obstacle] = float((region & truth).sum()) / smaller if smaller else 0.0
-    for label in kept:
-        region = labels == label
+        shares = {label: share_of_smaller(region, truth) for label, region in regions.items()}
+        most = max(shares.values(), default=0.0)
+        for label, share in shares.items():
+            if share >= MIN_NEAREST_OVERLAP and share == most:
+                holds[label].append(obstacle)
+    for label, region in regions.items():
         covered = ids[region]
         best = int(torch.mode(covered).values) if covered.numel() else 0
         truth = ids == best
         iou = float((region & truth).sum()) / float((region | truth).sum())
-        holds = [k for (held_by, k), share in overlap.items() if held_by == label and share >= MIN_NEAREST_OVERLAP
-                 and share == max(overlap[other, k] for other in kept)]
         found.append({
             "label": label,
             "true_object": best,
-            "holds_true_objects": sorted(holds),
+            "holds_true_objects": holds[label],
             "iou": round(iou, 3),
             "median_true_depth_m": round(float(depth[region].median()), 3),
         })

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["all_along", "any_along", "any_true", "all_true", "has_nan"]
+__all__ = ["all_along", "any_along", "any_true", "all_true", "has_nan", "share_of_smaller"]
 
 
 def any_along(mask: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
@@ -58,3 +58,10 @@ def has_nan(values: torch.Tensor) -> bool:
     if not values.is_floating_point() or values.numel() == 0:
         return bool(values.isnan().any())
     return bool(values.detach().max().isnan())
+
+
+def share_of_smaller(a: torch.Tensor, b: torch.Tensor) -> float:
+    """The pixels two bool masks share over the smaller one's count (0 where either is empty): how far one region
+    holds another, a small obstacle inside a large kept region counting whole (the figures' and the demo's rule)."""
+    smaller = min(int(a.sum()), int(b.sum()))
+    return int((a & b).sum()) / smaller if smaller else 0.0

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..core.mask_reductions import share_of_smaller
 from .figures import LABEL_PAD_POINTS, floor_summary, objects_panel, place_depth_labels
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
@@ -276,8 +277,7 @@ def true_nearest_obstacle(batch, result, index: int) -> NearestTruth | None:
     overlap = []
     for label in seg.kept_labels[index].tolist():
         kept = seg.labels[index, 0] == label
-        smaller = min(int(region.sum()), int(kept.sum())) if label > 0 else 0
-        overlap.append(int((region & kept).sum()) / smaller if smaller else 0.0)
+        overlap.append(share_of_smaller(region, kept) if label > 0 else 0.0)
     best = max(range(len(overlap)), key=overlap.__getitem__, default=-1)
     return NearestTruth(depth_m, best if best >= 0 and overlap[best] >= MIN_NEAREST_OVERLAP else -1)
 
