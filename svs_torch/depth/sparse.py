@@ -91,10 +91,21 @@ def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: floa
     length and baseline above 0.
     Differentiable w.r.t. ``disparity_px`` and the calibration where valid; ``valid`` is not."""
     _check_values(disparity_px, "disparity_px", valid, "valid")
-    denominator = disparity_px + _per_pair(doffs_px, disparity_px, "doffs_px")
-    valid = valid & (denominator > 0)
+    return _depths(disparity_px, valid, *_calibration(disparity_px, focal_px, baseline_m, doffs_px))
+
+
+def _calibration(disparity_px: torch.Tensor, focal_px: float | torch.Tensor, baseline_m: float | torch.Tensor,
+                 doffs_px: float | torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``f·B`` and ``doffs`` as ``(B, 1)`` columns, each value checked once (:func:`_per_pair`)."""
     scale = (_per_pair(focal_px, disparity_px, "focal_px", positive=True)
              * _per_pair(baseline_m, disparity_px, "baseline_m", positive=True))
+    return scale, _per_pair(doffs_px, disparity_px, "doffs_px")
+
+
+def _depths(disparity_px: torch.Tensor, valid: torch.Tensor, scale: torch.Tensor, doffs: torch.Tensor) -> PointDepths:
+    """:func:`point_depths` of checked arguments, with :func:`_calibration`'s columns."""
+    denominator = disparity_px + doffs
+    valid = valid & (denominator > 0)
     safe = torch.where(valid, denominator, torch.ones_like(denominator))
     depth = scale / safe
     # A depth that underflows to 0 or overflows to inf (an extreme but finite calibration) is no depth.
@@ -116,16 +127,15 @@ def estimate_range(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: fl
     Differentiable w.r.t. ``disparity_px`` (the selected or interpolated ones) and, for the depths, the
     calibration; ``num_disparities`` and ``valid`` are not.
     """
-    depths = point_depths(disparity_px, valid, focal_px, baseline_m, doffs_px)
+    _check_values(disparity_px, "disparity_px", valid, "valid")
+    scale, doffs = _calibration(disparity_px, focal_px, baseline_m, doffs_px)
+    depths = _depths(disparity_px, valid, scale, doffs)
     q = (0.0, 1.0) if percentiles is None else _quantile_levels(percentiles, "percentiles")
     d_min, d_max = masked_quantile(disparity_px, depths.valid, q).values.unbind(-1)  # Eq. (6), (5)
     in_front = depths.valid.sum(dim=1)
     check_real(min_in_front_share, "min_in_front_share", 0.0, 1.0)
     present = (in_front > 0) & (in_front > min_in_front_share * valid.sum(dim=1))
-    doffs = _per_pair(doffs_px, disparity_px, "doffs_px").squeeze(1)
-    scale = (_per_pair(focal_px, disparity_px, "focal_px", positive=True)
-             * _per_pair(baseline_m, disparity_px, "baseline_m", positive=True))
-    scale = scale.squeeze(1)
+    scale, doffs = scale.squeeze(1), doffs.squeeze(1)
 
     def depth(d: torch.Tensor) -> torch.Tensor:  # d + doffs > 0 for every entered disparity, so for its stats
         safe = torch.where(present, d + doffs, torch.ones_like(d))
