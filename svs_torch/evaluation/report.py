@@ -21,8 +21,8 @@ from .metrics import PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
-__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "plot_results", "ranked_group",
-           "ranked_value", "parameter_value", "results_figure", "swept_parameters"]
+__all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "distinct_labels", "plot_results",
+           "ranked_group", "ranked_value", "parameter_value", "results_figure", "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -64,11 +64,14 @@ def config_summaries(store: ResultStore) -> list[dict]:
             seen.append(row["code_version"])
     every_pair = set().union(*pairs.values())
     summaries = []
-    for config in store.configs():
+    configs = store.configs()
+    labels = distinct_labels(configs)
+    for config in configs:
         rows = by_config.get(config["config_id"])
         if rows:
             summary = summarize(rows)
-            summaries.append({key: config[key] for key in ("config_id", "label", "preset", "size", "overrides")}
+            summaries.append({key: config[key] for key in ("config_id", "preset", "size", "overrides")}
+                             | {"label": labels[config["config_id"]]}
                              | {"code_versions": versions[config["config_id"]],
                                 "pairs_missing": len(every_pair - pairs[config["config_id"]])} | summary)
     # One group for every configuration (ranked_group): each choosing its own, a configuration measured on fewer
@@ -78,6 +81,26 @@ def config_summaries(store: ResultStore) -> list[dict]:
     for s in summaries:
         s["ranked_group"] = "nominal" if nominal > own else "own"
     return summaries
+
+
+def distinct_labels(configs: Sequence[dict]) -> dict[str, str]:
+    """Each stored configuration's label, made to tell it from others of the same label, preset and size: two
+    sweeps into one store whose files differ only in their fixed ``[set]`` values label their configurations by the
+    grid alone ("segmentation.kernel_size=3" twice, with different results). Those labels gain the parameters that
+    differ within the group, as they ran (``"segmentation.kernel_size=3 max_ratio=0.7"``)."""
+    groups: dict[tuple[str, str, str], list[dict]] = {}
+    for config in configs:
+        groups.setdefault((config["label"], config["preset"], config["size"]), []).append(config)
+    labels = {config["config_id"]: config["label"] for config in configs}
+    for (label, _, _), group in groups.items():
+        keys: list[str] = []
+        for config in group:
+            keys += [key for key in config["overrides"] if key not in keys]
+        differing = [key for key in keys if len({repr(_value_that_ran(c, key)) for c in group}) > 1]
+        for config in group if differing else ():
+            labels[config["config_id"]] = f"{label} " + " ".join(
+                f"{key}={_value_that_ran(config, key)}" for key in differing)
+    return labels
 
 
 def ranked_group(summary: dict) -> tuple[str, int]:
@@ -137,6 +160,7 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
     result column, then the ``code_version`` of the run that wrote the row."""
     check_instance(store, "store", ResultStore)
     configs = {c["config_id"]: c for c in store.configs()}
+    labels = distinct_labels(list(configs.values()))
     swept = [key for key in swept_parameters(store) if key != "size"]  # the table has a size column of its own
     rest = [name for name, _ in RESULT_COLUMNS if name not in CSV_FIRST]
     header = [*CSV_FIRST, "label", "size", *(f"param:{key}" for key in swept), "pair_id", *rest, "code_version"]
@@ -149,8 +173,9 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
         paths = {key: os.path.normpath(row[key]) if row[key] else row[key] for key in ("left", "right")}
         values = {**row, **paths, "config": row["config_id"], "objects": json.dumps(row["objects"]),
                   "calibration": json.dumps(row["calibration"]) if row["calibration"] else None}
-        rows.append([values[c] for c in CSV_FIRST] + [config["label"], config["size"], *params, row["pair_id"]]
-                    + [values[name] for name in rest] + [row["code_version"]])
+        rows.append([values[c] for c in CSV_FIRST] + [labels[row["config_id"]], config["size"], *params,
+                                                      row["pair_id"]] + [values[name] for name in rest]
+                    + [row["code_version"]])
     return header, rows
 
 

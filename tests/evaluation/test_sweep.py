@@ -464,6 +464,45 @@ def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_pat
     assert labels == {default.config_id: "(preset) | max_ratio=0.8", other.config_id: "max_ratio=0.7"}
 
 
+def test_configurations_of_two_sweeps_differing_only_in_set_are_told_apart(data_dir, tmp_path, capsys):
+    """Left alone twice, then fixed: two sweep files into one store that differ only in their fixed ``[set]`` values
+    labelled their configurations by the grid alone, so `results` listed "segmentation.kernel_size=3" twice with
+    different numbers (and the CSV's label column, and the figure's title, could not tell them apart)."""
+    from svs_torch.data import PairSource
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.report import config_summaries, csv_table, distinct_labels
+    from svs_torch.evaluation.store import ResultStore
+
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    text = (f'paths = ["{scene}"]\nsize = "128x96"\n[set]\nmax_ratio = {{}}\n'
+            '[grid]\n"segmentation.kernel_size" = [3, 5]\n')
+    sweeps = []
+    for name, ratio in (("a", 0.7), ("b", 0.9)):
+        (tmp_path / f"{name}.toml").write_text(text.format(ratio))
+        sweeps.append(load_sweep(tmp_path / f"{name}.toml"))
+    pair = PairSource(left=str(scene), scene=True)
+    with ResultStore(tmp_path / "runs.sqlite") as store:
+        store.add_pairs([pair])
+        run = store.start_run("test", "v", {}, "")
+        for sweep in sweeps:
+            store.add_configs([c.record() for c in sweep.configs])
+            for number, config in enumerate(sweep.configs):
+                store.write_task(config.config_id, run, [(pair.pair_id, PairEvaluation("Teddy", "OK",
+                                                                                        acc_r_min_pct=90.0 + number))])
+        labels = [s["label"] for s in config_summaries(store)]
+        header, rows = csv_table(store)
+    assert labels == [f"segmentation.kernel_size={k} max_ratio={r}" for r in (0.7, 0.9) for k in (3, 5)]
+    assert sorted(row[header.index("label")] for row in rows) == sorted(labels)
+    assert main(["results", str(tmp_path / "runs.sqlite")]) == 0
+    assert "segmentation.kernel_size=3 max_ratio=0.9 (default, 128x96)" in capsys.readouterr().out
+    # Labels that already differ stay as they were: a single sweep's grid.
+    with ResultStore(tmp_path / "one.sqlite") as store:
+        store.add_configs([c.record() for c in sweeps[0].configs])
+        assert [c["label"] for c in store.configs()] == ["segmentation.kernel_size=3", "segmentation.kernel_size=5"]
+        assert list(distinct_labels(store.configs()).values()) == ["segmentation.kernel_size=3",
+                                                                   "segmentation.kernel_size=5"]
+
+
 def test_a_full_disk_is_the_runs_failure_naming_the_store(tmp_path, monkeypatch, capsys):
     """Found by filling a 1 MB tmpfs: a store that could not be made on a full disk was "not a results store" (a
     usage error, exit 2) and left its 4 KB file and journal behind; rows that could not be written were an
