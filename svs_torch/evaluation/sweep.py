@@ -24,10 +24,11 @@ A configuration's id is a hash of everything that can change a result: the whole
 The batch size is not in it: a pair's result does not depend on its batch (pairs of different sizes run as groups
 of one size, :mod:`svs_torch.core.size_groups`; RANSAC is seeded per pair;
 ``tests/pipeline/test_batch_independence.py``). The code version is recorded per run: a store whose rows come from
-several versions says so when a sweep adds to it and in every ``svs-depth results`` summary. Tasks are fixed blocks of
-the pair list; a block whose rows are all stored is skipped, any other block runs whole and its rows are
-written in one transaction with ``INSERT OR IGNORE``. So a sweep killed at any moment and started again runs
-only what is missing and ends with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
+several versions says so when a sweep adds to it and in every ``svs-depth results`` summary. Tasks are blocks of
+the pairs a configuration still lacks (stored pairs are never run again, whatever batch they ran in: a result
+does not depend on its batch), and a task's rows are written in one transaction with ``INSERT OR IGNORE``. So a
+sweep killed at any moment, or given a longer pair list, and started again runs only what is missing and ends
+with the rows an uninterrupted run would have (``time_s`` and ``run_id`` aside).
 
 Executors (:mod:`.executors`): in the calling process (``workers=0``); a local process pool whose workers each
 run ``torch.set_num_threads(max(1, cores // workers))`` (``OMP_NUM_THREADS`` in place of the cores where fewer)
@@ -235,14 +236,14 @@ def run_task(task: Task) -> TaskResult:
 
 
 def plan_tasks(sweep: Sweep, done: set[tuple[str, str]]) -> list[Task]:
-    """The tasks still to run: every block of ``batch_size`` pairs (fixed boundaries) of every configuration
-    with at least one (configuration, pair) row missing from ``done``."""
+    """The tasks still to run: for every configuration, the pairs whose (configuration, pair) row is missing from
+    ``done``, in the sweep's order, in blocks of ``batch_size``. Blocks of the whole list ran its stored pairs
+    again: a pair list grown by one scene, or one ERROR row, made a block of eight pairs run for one."""
     tasks = []
     for config in sweep.configs:
-        for start in range(0, len(sweep.sources), sweep.batch_size):
-            block = sweep.sources[start:start + sweep.batch_size]
-            if any((config.config_id, s.pair_id) not in done for s in block):
-                tasks.append(Task(config.config_id, config.config, sweep.size_wh, block))
+        missing = tuple(s for s in sweep.sources if (config.config_id, s.pair_id) not in done)
+        for start in range(0, len(missing), sweep.batch_size):
+            tasks.append(Task(config.config_id, config.config, sweep.size_wh, missing[start:start + sweep.batch_size]))
     return tasks
 
 
