@@ -58,8 +58,30 @@ class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line on stderr (exit 2), naming the option and what it
     expected, e.g. ``svs-depth estimate: error: argument --batch-size: expected a positive integer, got '0'``."""
 
+    _arguments: list[str] = []
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        # Kept for error(): a subcommand's parser is called with the rest of the command line.
+        self._arguments = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see '{self.prog} --help')\n")
+        message = " ".join(message.split())
+        if message.endswith(": expected one argument"):
+            message += self._value_read_as_option(message)
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+    def _value_read_as_option(self, message: str) -> str:
+        """`` , got '-5x10', read as an option (write --size=-5x10)``: argparse takes a value that starts with '-'
+        and is not a number for the next option, and said only "expected one argument" (an audit's find)."""
+        options = message.removeprefix("argument ").removesuffix(": expected one argument").split("/")
+        for option, value in zip(self._arguments, self._arguments[1:]):
+            name = value.split("=")[0]
+            known = any(o.startswith(name) for o in self._option_string_actions) if name.startswith("--") else (
+                name in self._option_string_actions)  # a value forgotten before the next option: said as it was
+            if option in options and value.startswith("-") and not known:
+                return f", got {value!r}, read as an option (write {option}={value} for a value that starts with '-')"
+        return ""
 
 
 def _version() -> str:

@@ -174,6 +174,23 @@ def test_usage_errors_exit_non_zero(capsys):
     assert main([]) == 2
 
 
+@pytest.mark.parametrize("argv, said", [
+    # Left alone at the last two stops: "argument --size: expected one argument", with no word of why.
+    (["eval", "scenes", "--size", "-5x10"], "got '-5x10', read as an option (write --size=-5x10 for a value"),
+    (["estimate", "a.png", "b.png", "--focal-px", "-x"], "(write --focal-px=-x for"),
+    # A value forgotten before the next option (or its abbreviation) is not told to be written as a value.
+    (["estimate", "a.png", "b.png", "--focal-px", "--json"], None),
+    (["estimate", "a.png", "b.png", "--focal-px", "--js"], None),
+    (["estimate", "a.png", "b.png", "--focal-px", "-h"], None),
+])
+def test_a_value_read_as_an_option_says_how_to_write_it(capsys, argv, said):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1 and ": expected one argument" in err
+    assert (said in err) if said else "read as an option" not in err
+
+
 def test_near_min_area_fraction_option(data_dir, capsys):
     """``--near-min-area-fraction`` reaches the segmentation, and a share out of range is refused by name."""
     from svs_torch.cli.segment import config_from_args
