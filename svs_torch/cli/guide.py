@@ -36,8 +36,9 @@ seconds (a covered lens, the dark, a link that froze, or pairs whose two frames 
 which are not ranged: the walker moved between them), "Cannot see ahead" is said, and "Seeing ahead again" when
 one is. A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened
 again every --reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends
-guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set. SIGTERM (a service's
-stop) ends it as Ctrl-C does, exit 143.
+guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set. Boards that answer in the
+wrong stereo roles (--left reaches the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as
+every distance is then wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair
@@ -117,7 +118,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "(with the calibration its metres use), the capture's times, 'warning' (the pair's and "
                              "the confirmed distance, the class clear / warn / stop, or unseen: nothing measured; the "
                              "words said), 'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is "
-                             "lost or back, or guide cannot see or sees again; the warnings' text goes to stderr")
+                             "lost or back, guide cannot see or sees again, or the boards answer in the wrong "
+                             "roles (cameras_swapped); the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "

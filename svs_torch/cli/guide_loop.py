@@ -41,6 +41,9 @@ _CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
+#: Said once when the boards answer in the wrong stereo roles (the left URL reaches the slave): every disparity,
+#: so every distance, is then wrong, and a printed warning is not read by a walker who cannot see the screen.
+CAMERAS_SWAPPED = "Check the cameras: they do not answer as left and right. Distances may be wrong."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
 
@@ -102,6 +105,7 @@ class GuideSession:
         self.guide, self.status_line, self.log = guide, status_line, log
         self.processed = self.torn = 0
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
+        self.roles_said = False
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
         self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
@@ -127,6 +131,7 @@ class GuideSession:
                 else:
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
+                    self._check_roles(camera)
                     if self.sight is None:
                         self.sight = SightWatch(self.args.blind_s, confirm_frames=self.guide.policy.confirm_frames)
                     try:
@@ -136,6 +141,18 @@ class GuideSession:
             if lost is None:
                 return
             self._lost(lost)
+
+    def _check_roles(self, camera) -> None:
+        """Say :data:`CAMERAS_SWAPPED` (once a run) when the left board answers as the slave or the right as the
+        master; the driver's warning is printed too. Boards of a build that names no role are not said."""
+        versions = getattr(camera, "versions", None)  # (a camera of another kind has no boards' version lines)
+        roles = {name: versions[name].role if versions else "unknown" for name in ("left", "right")}
+        if self.roles_said or roles["left"] not in ("slave", "master") or roles["right"] not in ("slave", "master"):
+            return
+        if roles != {"left": "master", "right": "slave"}:
+            self.roles_said = True
+            self.guide.speaker.say(CAMERAS_SWAPPED)
+            self.log.event("cameras_swapped", left_role=roles["left"], right_role=roles["right"])
 
     def _range_stream(self, camera) -> Exception | None:
         """Range the pairs ``camera`` streams until ``--count`` (None) or until it is lost (its error). Only the

@@ -727,3 +727,26 @@ def test_the_status_line_shows_stop_s_distance_as_it_is_said():
     assert guide.update(0.97, 0.0) == "Stop. Obstacle at 0.9 metres"
     assert "nearest 0.9 m  stop" in guide.status(0.97)
     assert "nearest 1.5 m  warn" in guide.status(1.46, WARN)
+
+
+@pytest.mark.parametrize("swapped", [True, False])
+def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys, swapped):
+    """Left alone at the last two stops, then fixed: --left and --right swapped (the left URL reaches the slave)
+    make every distance wrong, and guide only printed the driver's warning, which a walker does not read."""
+    import json
+
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+    from svs_torch.cli import main
+    from svs_torch.cli.guide_loop import CAMERAS_SWAPPED
+
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource()) as server:
+        left, right = (server.urls[name] for name in (("right", "left") if swapped else ("left", "right")))
+        assert main(["guide", "--left", left, "--right", right, "--count", "2", "--no-speech", "--json"]) == 0
+    out, err = capsys.readouterr()
+    events = [line for line in map(json.loads, out.splitlines()) if line.get("event") == "cameras_swapped"]
+    if swapped:
+        assert err.count(CAMERAS_SWAPPED) == 1 and "to be the stereo master" in err
+        assert [(e["left_role"], e["right_role"]) for e in events] == [("slave", "master")]
+    else:
+        assert CAMERAS_SWAPPED not in err and "stereo master" not in err and not events
