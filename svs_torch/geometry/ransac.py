@@ -168,6 +168,8 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
     check_dtype(points_left, "points_left", "float")
     check_shape(points_right, "points_right", [dims["B"], dims["K"], 2])
     check_dtype(points_right, "points_right", "float")
+    if points_right.dtype != points_left.dtype:  # taken before: F came in the promoted dtype, float32 points' F too
+        raise InputError(f"points_right: expected points_left's dtype {points_left.dtype}, got {points_right.dtype}")
     check_shape(valid, "valid", [dims["B"], dims["K"]])
     check_dtype(valid, "valid", "bool")
     check_generator(generator)
@@ -190,9 +192,9 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
             passed = False
         if not passed:
             raise InputError(f"{name}: expected {expected}, got {settings[name]!r}")
-    both = torch.cat([points_left, points_right], -1)
-    if not bool(torch.where(valid.unsqueeze(-1), both, 0.0).isfinite().all()):
-        raise InputError("points_left: expected finite coordinates in valid rows (NaN or inf found)")
+    for name, points in (("points_left", points_left), ("points_right", points_right)):
+        if not bool(torch.where(valid.unsqueeze(-1), points, 0.0).isfinite().all()):
+            raise InputError(f"{name}: expected finite coordinates in valid rows (NaN or inf found)")
 
 
 def _finish(problem: _Problem, points_left: torch.Tensor, points_right: torch.Tensor, valid: torch.Tensor,

@@ -240,6 +240,12 @@ def test_errors_name_the_argument():
     bad[0, 0, 0] = float("nan")
     with pytest.raises(InputError, match="points_left: expected finite coordinates in valid rows"):
         estimate_fundamental_ransac(bad, points, valid)
+    # Left alone at the last two stops: a NaN right point was blamed on points_left, and mixed float32 / float64
+    # points were taken (F in the promoted dtype).
+    with pytest.raises(InputError, match="points_right: expected finite coordinates in valid rows"):
+        estimate_fundamental_ransac(points, bad, valid)
+    with pytest.raises(InputError, match="points_right: expected points_left's dtype torch.float32, got torch.float64"):
+        estimate_fundamental_ransac(points.float(), points.double(), valid)
     valid[0, 0] = False
     estimate_fundamental_ransac(bad, points, valid, max_iterations=8)  # NaN in a padding row is fine
 
