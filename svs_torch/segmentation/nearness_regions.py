@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import check_dtype
 from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import region_lower_median
 from . import kernels
@@ -71,6 +72,10 @@ def shift_regions_to_right(labels: torch.Tensor, kept_labels: torch.Tensor, shif
     moved ``shift_px[:, n]`` pixels left (its median disparity, rounded); 0 elsewhere. Where two shifted regions
     overlap the nearer (larger shift) wins, as it occludes the other. Without gradients (it has none to give) the
     C kernel of :func:`svs_torch.segmentation.kernels.shift_regions` computes the same labels row by row."""
+    # Float labels were taken in silence (float labels out, the kernel skipped); the kernel checks the shapes.
+    check_dtype(labels, "labels", "int")
+    check_dtype(kept_labels, "kept_labels", "int")
+    check_dtype(shift_px, "shift_px", "float")
     compiled = kernels.shift_regions(labels, kept_labels, shift_px)
     if compiled is not None:
         return compiled

@@ -191,6 +191,12 @@ def test_shift_regions_to_right_moves_each_region_by_its_disparity():
     expected[..., 1:3, 6:16] = 1
     expected[..., 3:5, 16:22] = 2
     assert torch.equal(right, expected)
+    # Left alone at the last two stops: float labels were taken in silence (float labels out).
+    for args, name in (((labels.float(), torch.tensor([[1, 2]]), torch.tensor([[4.0, 6.4]])), "labels"),
+                       ((labels, torch.tensor([[1.0, 2.0]]), torch.tensor([[4.0, 6.4]])), "kept_labels"),
+                       ((labels, torch.tensor([[1, 2]]), torch.tensor([[4, 6]])), "shift_px")):
+        with pytest.raises(InputError, match=f"^{name}: expected a"):
+            shift_regions_to_right(*args)
 
 
 @pytest.mark.parametrize("threads", [1, 2])
