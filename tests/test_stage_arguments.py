@@ -132,6 +132,26 @@ def test_dense_stage_names_the_inlier_arguments_as_passed():
     assert dense.valid.any()
 
 
+def test_an_inlier_disparity_past_the_view_leaves_its_pair_unmatched_and_the_others_as_alone():
+    """Left alone at the last two stops: an inlier disparity of 1e30 px was refused as an internal
+    ``min_disparity_px`` out of int32 range, failing the whole batch. A range from past the view's width finds no
+    match (no right pixel lies there); the other pair's map is the one it gets alone."""
+    from svs_torch.depth.dense import DenseConfig, estimate_dense_disparity
+
+    left = torch.rand(2, 1, 24, 32, generator=torch.Generator().manual_seed(0))
+    right = torch.roll(left, -2, dims=-1)
+    mask = torch.ones(2, 1, 24, 32, dtype=torch.bool)
+    config = DenseConfig(range_source="inliers")
+    valid = torch.ones(2, 8, dtype=torch.bool)
+    alone = estimate_dense_disparity(left[1:], right[1:], mask[1:], config, None, torch.full((1, 8), 2.0), valid[1:])
+    for far in (1e30, 40.0):
+        disparity = torch.tensor([[far] * 8, [2.0] * 8])
+        dense = estimate_dense_disparity(left, right, mask, config, None, disparity, valid)
+        assert not dense.valid[0].any()
+        assert torch.equal(dense.valid[1], alone.valid[0])
+        assert torch.equal(dense.disparity_px[1][alone.valid[0]], alone.disparity_px[0][alone.valid[0]])
+
+
 def test_row_alignment_refuses_nan_points_and_an_empty_size():
     from svs_torch.geometry.row_alignment import fit_row_alignment
 

@@ -100,8 +100,8 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     high = torch.where(enough, (high + margin).ceil(), fallback_high.floor())
     high = torch.maximum(high, low + 1)
     span = (high - low + 1).clamp_max(config.max_num_disparities)
-    centre = (low + high) / 2
-    low = torch.where(high - low + 1 > span, (centre - span / 2).floor().clamp_min(0), low)
+    # Around the centre, never past the view's width: no match lies there (a 1e30 px sample overflowed int32).
+    low = torch.where(high - low + 1 > span, ((low + high) / 2 - span / 2).floor().clamp_min(0), low).minimum(image_w)
     span = span.clamp_min(2).long()
     num_disparities = int(span.max()) if span.numel() else 2
     in_view_top = object_tops = None
