@@ -131,6 +131,12 @@ class ResultStore:
         if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
             check_writable_folder(self.path.parent, "db")
         new = create and not self.path.exists()
+        size = self.path.stat().st_size if self.path.is_file() else None
+        # SQLite takes a file shorter than its 100-byte header for an empty database and writes the tables into it:
+        # a 1-byte text file named by --db became a store.
+        if size is not None and 0 < size < 100:
+            raise InputError(f"db: {self.path} is not a results store (not an SQLite file: {size} "
+                             f"byte{'' if size == 1 else 's'}){': name a new file' if create else ''}")
         try:
             self.connection = self._connect_to_write() if create else self._connect_to_read()
             version = self.connection.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
@@ -139,7 +145,12 @@ class ResultStore:
                 for leftover in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
                     leftover.unlink(missing_ok=True)
             _raise_if_disk_failed(error, self.path)
-            raise InputError(f"db: {self.path} is not a results store ({error})") from None
+            # In words of the store, the same for sweep, eval --db and results (sqlite's were "file is not a
+            # database", "no such table: meta").
+            reason = ("not an SQLite file" if "file is not a database" in str(error) else "an empty file" if size == 0
+                      else "an SQLite file without a results store's tables" if "no such table" in str(error)
+                      else str(error))
+            raise InputError(f"db: {self.path} is not a results store ({reason})") from None
         if version is not None and int(version[0]) == 1:  # version 1 lacks only the calibration column
             version = self._from_version_1(create)
         if version is None or int(version[0]) != SCHEMA_VERSION:
@@ -151,11 +162,6 @@ class ResultStore:
     def _connect_to_write(self) -> sqlite3.Connection:
         """The store opened to write, its tables made if it is new. Another program's SQLite file is refused before
         anything is written to it (a mistyped --db added the store's tables beside its own)."""
-        # SQLite takes a file shorter than its 100-byte header for an empty database and writes the tables into it:
-        # a 1-byte text file named by --db became a store.
-        if self.path.is_file() and 0 < self.path.stat().st_size < 100:
-            raise InputError(f"db: {self.path} is not a results store (a file of {self.path.stat().st_size} bytes, "
-                             f"not SQLite): name a new file")
         # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
         connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
         tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}

@@ -447,7 +447,17 @@ def test_outputs_never_replace_a_device_a_link_or_the_store_itself(data_dir, cap
     one = tmp_path / "one.txt"
     one.write_text("x")
     code, _, err = run_cli(capsys, "eval", str(scene), "--size", "160x120", "--db", str(one))
-    assert code == 2 and "is not a results store (a file of 1 bytes, not SQLite)" in err and one.read_text() == "x"
+    assert code == 2 and "is not a results store (not an SQLite file: 1 byte): name a new file" in err
+    assert one.read_text() == "x"
+    # results said it in sqlite's words ("no such table: meta", "file is not a database"), sweep and eval in their
+    # own (left alone at the last two stops).
+    empty, other = tmp_path / "empty.sqlite", tmp_path / "other.sqlite"
+    empty.write_bytes(b"")
+    other.write_bytes(b"SQLite format 3\0" + b"x" * 200)
+    for path, reason in ((one, "not an SQLite file: 1 byte"), (empty, "an empty file"),
+                         (other, "not an SQLite file")):
+        code, _, err = run_cli(capsys, "results", str(path))
+        assert code == 2 and err.strip().endswith(f"{path} is not a results store ({reason})"), err
     for option in ("--timeout", "--reconnect-s"):  # a thread join's and a sleep's: OverflowError at 1e10
         with pytest.raises(SystemExit):
             run_cli(capsys, "guide", "--emulator", option, "1e10")
