@@ -8,8 +8,8 @@ import os
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
-                     finite_float, output_path, positive_float, positive_int, resolve_export_options, seed_int,
-                     too_small_reason)
+                     finite_float, non_negative_int, output_path, positive_float, positive_int,
+                     resolve_export_options, seed_int, too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
@@ -113,9 +113,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     # One single-threaded worker per core: on this project's 2-core machine, 512 real pairs at 320x240 took
     # 24.8 s in one process of 2 torch threads and 17.2 s as two processes of one thread each (torch's
     # intra-op threads split ops too small to pay for it; separate processes also decode while computing).
-    parser.add_argument("--workers", type=positive_int, metavar="N",
+    parser.add_argument("--workers", type=non_negative_int, metavar="N",
                         help="with --pairs: worker processes, each with cores / N torch threads (default: one per "
-                             "core, or per OMP_NUM_THREADS if that is fewer; 1 runs in this process). The lines "
+                             "core, or per OMP_NUM_THREADS if that is fewer; 0 or 1: in this process). The lines "
                              "come out in list order whatever N is, and each pair's numbers do not depend on it")
     parser.add_argument("--focal-px", type=positive_float,
                         help="focal length of the input images, pixels (default: the SVS model for the width)")
