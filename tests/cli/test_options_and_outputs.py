@@ -575,3 +575,34 @@ def test_estimate_pairs_takes_a_folder_of_scenes_as_eval_does(data_dir, capsys, 
         assert code == 0
         rows[source] = [{k: v for k, v in json.loads(line).items() if k != "time_s"} for line in out.splitlines()]
     assert len(rows[str(folder)]) == len(scenes) and rows[str(folder)] == rows[str(listing)]
+
+
+def test_outputs_never_replace_a_scene_s_or_a_kitti_frame_s_files(data_dir, capsys, tmp_path):
+    """An audit of the files the commands write: estimate --figure / --masks-out named as a scene's ground truth or
+    mask wrote over it (exit 0; every later run refused the scene), and eval --disparity-out into a KITTI dataset's
+    disp_occ/ replaced its ground truth with 320x240 maps (a 16-bit PNG, taken for a map of its own). Each is now
+    refused before any work, the files untouched."""
+    import shutil
+
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    kitti = tmp_path / "kitti"
+    shutil.copytree(data_dir / "kitti" / "stereo2012_training", kitti)
+    truth = kitti / "disp_occ" / "000000_10.png"
+    before = {path: path.read_bytes() for path in (scene / "im0.png", scene / "mask0nocc.png", truth)}
+    views = [str(kitti / folder / "000000_10.png") for folder in ("colored_0", "colored_1")]
+    for argv, message in [
+        (["estimate", str(scene), "--figure", str(scene / "mask0nocc.png")], "is a file of the scene"),
+        (["estimate", str(scene), "--masks-out", str(scene / "mask0nocc.png")], "is a file of the scene"),
+        (["segment", *views, "--figure", str(truth)], "is KITTI frame 000000_10's disp_occ/ file"),
+        (["estimate", *views, "--figure", str(truth)], "is KITTI frame 000000_10's disp_occ/ file"),
+        (["eval", str(kitti), "--size", "160x120", "--disparity-out", str(kitti / "disp_occ"), "--disparity-format",
+          "kitti"], f"is a folder of the KITTI dataset {kitti} (beside its colored_0/)"),
+    ]:
+        code, out, err = run_cli(capsys, *argv)
+        assert code == 2 and out == "" and message in err and err.count("\n") == 1, (argv, err)
+    assert {path: path.read_bytes() for path in before} == before
+    # A new file beside a scene's is still written.
+    assert run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--figure", str(scene / "mine.png"))[0] == 0
+    assert (scene / "mine.png").is_file()
+
