@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..evaluation.benchmark import format_tables, run_benchmark
         from ..core.checks import InputError
-        from ..core.files import atomic_output, check_output_file, path_kind
+        from ..core.files import atomic_output, check_output_file, path_kind, write_errors_named
         from ..data import list_shared_pairs
         from .common import dumps_strict
 
@@ -65,13 +65,14 @@ def run(args: argparse.Namespace) -> int:
     if data_dir is not None and not list_shared_pairs(data_dir):  # else only the synthetic set ran, unsaid
         raise InputError(f"--data: no shared pair with ground truth in {args.data!r} (expected the shared data "
                          f"folder: middlebury_eval3_Q/, middlebury_2005_2006_third/, kitti/, ...)")
-    if args.json:
+    if args.json is not None:  # '' too: an empty name was skipped in silence (an audit)
         check_output_file(args.json, "--json")  # before minutes of work, not after
     report = run_benchmark(args.pairs, args.repeats, args.threads, data_dir,
                            progress=lambda text: print(text, file=sys.stderr, flush=True),
                            memory=not args.no_memory)
+    print(format_tables(report))  # first: a report that cannot be saved is still seen
     if args.json:
-        with atomic_output(args.json, "w", encoding="utf-8") as stream:  # never half a report
+        # A full disk named the option and the file, not a temporary file or neither (an audit).
+        with write_errors_named("--json", args.json), atomic_output(args.json, "w", encoding="utf-8") as stream:
             stream.write(dumps_strict(report) + "\n")
-    print(format_tables(report))
     return 0

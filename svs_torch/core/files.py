@@ -81,10 +81,16 @@ def check_output_file(path: str | os.PathLike, name: str, suffixes: tuple[str, .
     if kind == "other":  # written whole and renamed over it, a device (/dev/null, /dev/full) became a plain file
         raise InputError(f"{name}: expected a regular file name, got {display_path(target)!r} (a device or other "
                          f"special file)")
-    _check_parent_folder(target, name)
+    # A link is written through (atomic_output): its target's folder is where the file goes. A dangling link's
+    # missing folder failed only once the work was done (an audit).
+    written = Path(os.path.realpath(target)) if target.is_symlink() else target
+    if written is not target and path_kind(written.parent, name) == "missing":
+        raise InputError(f"{name}: {display_path(target)!r} is a link to {display_path(written)!r}, whose folder "
+                         f"does not exist")
+    _check_parent_folder(written, name)
     if suffixes and target.suffix.lower() not in suffixes:
         raise InputError(f"{name}: expected {kinds or ' or '.join(suffixes)} file name, got {display_path(target)!r}")
-    check_writable_folder(target.parent, name)
+    check_writable_folder(written.parent, name)
     return target
 
 

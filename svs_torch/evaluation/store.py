@@ -126,8 +126,11 @@ class ResultStore:
             # A device too: --db /dev/null failed only after sqlite had made /dev/null-journal.
             got = {"folder": "a folder", "other": "a device or other special file", "missing": "no file"}[kind]
             raise InputError(f"db: expected a results file, got {got}: {self.path}")
+        if self.path.is_symlink() and kind == "missing":  # its cleanup deleted the user's link (an audit)
+            raise InputError(f"db: {self.path} is a link to {os.path.realpath(self.path)}, which does not exist")
         if create and self.path.parent and not self.path.parent.is_dir():
-            raise InputError(f"db: the folder {self.path.parent} does not exist")
+            raise InputError(f"db: the folder {self.path.parent} does not exist" if not self.path.parent.exists()
+                             else f"db: {self.path.parent} is a file, not a folder")
         if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
             check_writable_folder(self.path.parent, "db")
         new = create and not self.path.exists()

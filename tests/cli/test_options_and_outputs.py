@@ -606,3 +606,34 @@ def test_outputs_never_replace_a_scene_s_or_a_kitti_frame_s_files(data_dir, caps
     assert run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--figure", str(scene / "mine.png"))[0] == 0
     assert (scene / "mine.png").is_file()
 
+
+def test_a_dangling_link_or_a_file_for_a_folder_is_refused_before_any_work(data_dir, capsys, tmp_path, monkeypatch):
+    """An audit: --figure at a link to a missing folder failed only once the work was done (exit 2, the JSON
+    already printed); bench --json at one lost the benchmark, naming an internal temporary file, and bench
+    --json '' was skipped in silence; eval --db at a dangling link deleted the user's link; --db afile/x.sqlite
+    said the folder afile did not exist."""
+    import svs_torch.pipeline as pipeline
+
+    def never(*args, **kwargs):
+        raise AssertionError("the work started")
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", never)
+    scene = str(data_dir / "middlebury_eval3_Q" / "Teddy")
+    dangling = tmp_path / "figure.png"
+    dangling.symlink_to(tmp_path / "nodir" / "x.png")
+    link_db = tmp_path / "runs.sqlite"
+    link_db.symlink_to(tmp_path / "nodir" / "runs.sqlite")
+    (tmp_path / "afile").write_text("")
+    for argv, message in [
+        (["estimate", scene, "--figure", str(dangling)], f"--figure: '{dangling}' is a link to '{tmp_path}/nodir/x.png'"
+                                                          ", whose folder does not exist"),
+        (["bench", "--json", str(dangling)], "--json: "),
+        (["bench", "--json", ""], "--json: expected a file name, got ''"),
+        (["eval", scene, "--db", str(link_db)], f"--db: {link_db} is a link to {tmp_path}/nodir/runs.sqlite, which "
+                                                "does not exist"),
+        (["eval", scene, "--db", str(tmp_path / "afile" / "x.sqlite")], f"--db: {tmp_path}/afile is a file, not a "
+                                                                         "folder"),
+    ]:
+        code, out, err = run_cli(capsys, *argv)
+        assert code == 2 and out == "" and message in err and err.count("\n") == 1, (argv, err)
+    assert link_db.is_symlink() and dangling.is_symlink()
