@@ -35,8 +35,9 @@ PAIR_FILE_PATTERN = "pair[0-9][0-9][0-9][0-9][0-9][0-9]_*.jpg"
 
 def new_pairs_folder(value: str, option: str) -> Path:
     """The folder ``value`` of ``option`` that pairs will be saved to (created later, if missing), checked before
-    the camera opens: a file there or on the way to it, or a folder already holding an ``index.jsonl`` or pair
-    images, is refused (nothing is ever appended to, or written over, another run's pairs)."""
+    the camera opens: a file there or on the way to it, or a folder already holding an ``index.jsonl``, a
+    ``calibration.json`` or pair images, is refused (nothing is ever appended to, or written over, another run's
+    pairs)."""
     check_path_given(value, option, "a folder name")  # '' saved the pairs into the current folder
     out = Path(value)
     kind = path_kind(out, option)
@@ -44,8 +45,11 @@ def new_pairs_folder(value: str, option: str) -> Path:
         raise InputError(f"{option}: expected a folder, got {'a file' if kind == 'file' else 'a device or socket'}: "
                          f"{display_path(out)}")
     if kind == "folder":
-        if path_kind(out / INDEX_NAME, option) != "missing":
-            raise InputError(f"{option}: {display_path(out / INDEX_NAME)} already exists; choose a new folder")
+        # A calibration.json too: written over by --calibration in silence (an audit), and without --calibration
+        # read by estimate --pairs as the new pairs' rig (calibration_kept_beside).
+        for name in (INDEX_NAME, CALIBRATION_NAME):
+            if path_kind(out / name, option) != "missing":
+                raise InputError(f"{option}: {display_path(out / name)} already exists; choose a new folder")
         held = next(out.glob(PAIR_FILE_PATTERN), None)
         if held is not None:  # an index deleted, or another tool's pairs: they were written over without a word
             raise InputError(f"{option}: {display_path(held)} already exists; choose a new folder")

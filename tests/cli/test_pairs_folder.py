@@ -40,6 +40,15 @@ def test_a_folder_holding_pair_images_is_refused_without_an_index(tmp_path):
     assert new_pairs_folder(str(tmp_path), "--out-dir") == tmp_path
 
 
+def test_a_folder_holding_a_calibration_is_refused(tmp_path):
+    """An audit: capture --calibration wrote over another run's calibration.json in silence; without --calibration,
+    estimate --pairs would read that file as the new pairs' rig."""
+    (tmp_path / "calibration.json").write_text("{}")
+    with pytest.raises(InputError, match=r"--record: .*calibration\.json already exists; choose a new folder"):
+        new_pairs_folder(str(tmp_path), "--record")
+    assert (tmp_path / "calibration.json").read_text() == "{}"
+
+
 def test_a_pair_whose_right_image_cannot_be_written_leaves_no_left_image(monkeypatch, tmp_path):
     written = []
 
