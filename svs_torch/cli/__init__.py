@@ -125,12 +125,25 @@ def _warning_printer(prog: str):
     source file or code line (they mean nothing to a user)."""
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = " ".join(str(message).split())
+        if text.startswith("--disparity-out: ") and " not written: " in text:  # (a worker's, too: forwarded as text)
+            show.maps_not_written += 1
         try:
-            print(f"{prog}: warning: {' '.join(str(message).split())}", file=file or sys.stderr, flush=True)
+            print(f"{prog}: warning: {text}", file=file or sys.stderr, flush=True)
         except (OSError, ValueError):
             pass
 
+    show.maps_not_written = 0  # type: ignore[attr-defined]
     return show
+
+
+def _maps_not_written(prog: str, count: int) -> int:
+    """Exit 1 after a run whose ``--disparity-out`` left maps unwritten rather than write over an input, a ground
+    truth or another pair's map (each warned as it happened): it said exit 0, so a script took every map as
+    written (an audit)."""
+    print(f"{prog}: error: --disparity-out: {count} map{'' if count == 1 else 's'} not written (warned above); "
+          f"every pair's results stand", file=sys.stderr)
+    return 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -161,10 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     prog = f"svs-depth {args.command}"
     try:
         with warnings.catch_warnings(), terminated_on_sigterm(), stdout_errors_named():
-            warnings.showwarning = _warning_printer(prog)
+            warnings.showwarning = show = _warning_printer(prog)
             code = int(args.func(args) or 0)
             sys.stdout.flush()  # a closed pipe or a full disk shows here, inside the handler, not at interpreter exit
-        return code
+        return _maps_not_written(prog, show.maps_not_written) if code == 0 and show.maps_not_written else code
     except Terminated:
         print(f"{prog}: terminated", file=sys.stderr)
         return 143

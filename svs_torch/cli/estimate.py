@@ -89,7 +89,8 @@ listed in "objects"; `svs-depth eval` still scores each as an object without a d
 exit status: 0 every pair has its line (whatever its status); 2 bad arguments, or a single pair that cannot be
 read, or (with --pairs, after every listed pair has its line, in order) at least one BAD_INPUT pair; 1 an output
 (--figure, --masks-out, --disparity-out) that cannot be written, a full disk: the option and the file named, the
-report printed before it.
+report printed before it; and a --disparity-out map left unwritten rather than write over an input image, a ground
+truth or another listed pair's map (each warned; the run goes on, and exits 1 at the end).
 """
 
 

@@ -169,7 +169,8 @@ class DisparityExport:
         ``2003/Teddy``, ``kitti2012/000000_10`` and ``kitti2015/000000_10``) is not written, with a
         ``RuntimeWarning`` naming both: a map is never overwritten in silence, and the pair's own results (its
         scores in ``eval``) stand. Export such pairs in separate runs. Likewise a target that is there and not a
-        map an export wrote (an input image, a ground truth: :func:`_not_an_export`) is left alone, warned. A
+        map an export wrote (an input image, a ground truth: :func:`_not_an_export`) is left alone, warned (the
+        command line then exits 1 at the end: ``svs_torch.cli._maps_not_written``). A
         write that fails (a full disk) raises ``OSError`` naming ``--disparity-out`` and the file.
         """
         written = []

@@ -317,13 +317,21 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (tmp_path / "list.txt").write_text("teddyL.png teddyR.png\n")
     code, _, err = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "list.txt"), "--size", "160x120",
                            "--workers", "1", "--disparity-out", str(tmp_path), "--disparity-format", "kitti")
-    assert code == 0 and "/teddyL.png' not written" in err and left.read_bytes() == before
+    # Each exits 1 at the end, as an output that cannot be written does (was 0: a script took every map as written).
+    assert code == 1 and "/teddyL.png' not written" in err and left.read_bytes() == before
+    assert err.endswith("svs-depth estimate: error: --disparity-out: 1 map not written (warned above); every pair's "
+                        "results stand\n")
     scene = tmp_path / "scenes" / "Teddy"
     shutil.copytree(teddy, scene)
     truth = (scene / "disp0GT.pfm").read_bytes()
     code, _, err = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--disparity-out",
                            str(tmp_path / "scenes"), "--method-name", "GT")
-    assert code == 0 and "a PFM without its time file" in err and (scene / "disp0GT.pfm").read_bytes() == truth
+    assert code == 1 and "a PFM without its time file" in err and (scene / "disp0GT.pfm").read_bytes() == truth
+    code, out, err = run_cli(capsys, "eval", str(scene), "--size", "160x120", "--disparity-out",
+                             str(tmp_path / "scenes"), "--method-name", "GT", "--json")
+    assert code == 1 and json.loads(out.splitlines()[-1])["pairs"] == 1  # evaluated, its summary printed
+    assert err.endswith("svs-depth eval: error: --disparity-out: 1 map not written (warned above); every pair's "
+                        "results stand\n") and (scene / "disp0GT.pfm").read_bytes() == truth
     out = tmp_path / "maps"  # a folder of its own: a run again replaces its own maps
     for _ in range(2):
         code, _, err = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--disparity-out", str(out))

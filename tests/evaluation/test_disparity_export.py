@@ -211,10 +211,14 @@ def test_estimate_pairs_on_workers_writes_the_first_listed_of_a_shared_name(data
     maps = {}
     for workers in ("1", "2"):
         out = tmp_path / f"maps{workers}"
+        # Exit 1 at the end, as for an output that cannot be written (it said 0: a script took every map as
+        # written; an audit of the files the commands write).
         assert main(["estimate", "--pairs", str(listing), "--size", "160x120", "--json", "--workers", workers,
-                     "--batch-size", "1", "--disparity-out", str(out)]) == 0
+                     "--batch-size", "1", "--disparity-out", str(out)]) == 1
         err = capsys.readouterr().err
         assert err.count("'2003/Teddy' not written: ") == 1 and "'eval3/Teddy'" in err, err
+        assert err.endswith("svs-depth estimate: error: --disparity-out: 1 map not written (warned above); every "
+                            "pair's results stand\n")
         maps[workers] = (out / "Teddy" / "disp0SVSTorch.pfm").read_bytes()
     assert maps["1"] == maps["2"]
 
@@ -232,9 +236,9 @@ def test_estimate_pairs_keeps_the_first_of_two_listed_files_of_one_name(data_dir
     listing.write_text("".join(f"{tmp_path / f / 'x.png'} {tmp_path / f / 'y.png'}\n" for f in ("a", "b")))
     out = tmp_path / "maps"
     assert main(["estimate", "--pairs", str(listing), "--json", "--workers", "1",
-                 "--disparity-out", str(out), "--disparity-format", "kitti"]) == 0
+                 "--disparity-out", str(out), "--disparity-format", "kitti"]) == 1
     err = capsys.readouterr().err
-    assert err.count("not written") == 1 and "'b/x.png' not written: its export name belongs to 'a/x.png'" in err
+    assert err.count("not written: ") == 1 and "'b/x.png' not written: its export name belongs to 'a/x.png'" in err
     assert [p.name for p in out.iterdir()] == ["x.png"]
     assert read_kitti_disparity(out / "x.png")[0].shape == (375, 450)  # Teddy's map (Piano's is 481 x 707)
 
