@@ -181,6 +181,7 @@ def check_outputs_apart(outputs: list[tuple[str, str | None]], inputs: list[tupl
     list; the next run read the figure as the image."""
     import os
 
+    from ..core.dataset_files import files_read_with
     from ..core.errors import InputError
 
     named = [(option, path) for option, path in outputs if path]
@@ -189,34 +190,9 @@ def check_outputs_apart(outputs: list[tuple[str, str | None]], inputs: list[tupl
             if os.path.realpath(path) == os.path.realpath(other):
                 raise InputError(f"{option}: the same file as {other_option} ({path}): name two files")
         for name, source in inputs:
-            for read, what in _files_read_with(source, name):
+            for read, what in files_read_with(source, name):
                 if os.path.exists(path) and os.path.samefile(path, read):
                     raise InputError(f"{option}: {path} is {what}: it would be written over")
-
-
-#: The folders of a KITTI frame's left view (:data:`svs_torch.data.datasets.KITTI_LEFT_FOLDERS`; here without
-#: importing torch).
-_KITTI_LEFT_FOLDERS = ("colored_0", "image_2")
-
-
-def _files_read_with(source: str | None, name: str) -> list[tuple[str, str]]:
-    """``(file, what it is)`` for every file an input ``source`` may be read from: an image itself; a scene folder's
-    files (its views, ground truth, masks, calibration); a KITTI frame's files in each folder of its dataset. Why:
-    ``estimate Art --figure Art/disp1.png`` wrote the figure over the scene's ground truth (exit 0), which every
-    later run refused as a 3-channel disparity image (an audit)."""
-    from pathlib import Path
-
-    if not source or not (path := Path(source)).exists():
-        return []
-    if path.is_file():
-        if path.parent.name not in _KITTI_LEFT_FOLDERS:
-            return [(source, f"the {name}")]
-        frame = path.parent.parent.glob(f"*/{path.name}")
-        return [(source, f"the {name}")] + [(str(f), f"KITTI frame {path.stem}'s {f.parent.name}/ file") for f in frame]
-    files = [f for f in path.iterdir() if f.is_file()]
-    if any((path / folder).is_dir() for folder in _KITTI_LEFT_FOLDERS):  # a KITTI dataset: its frames' files
-        files += [f for f in path.glob("*/*") if f.is_file()]
-    return [(str(f), f"a file of the scene {source}") for f in files]
 
 
 class _FigureAction(argparse.Action):

@@ -216,19 +216,22 @@ def _say_which_frame(folder: str) -> None:
 def _check_outputs_apart(args: argparse.Namespace) -> None:
     """``--figure`` and ``--masks-out`` neither one file nor an input image. Why: ``--masks-out`` named as the left
     image wrote the labels over it (exit 0), and one name for both outputs kept only the labels."""
-    check_outputs_apart([(args.figure_option, args.figure), ("--masks-out", args.masks_out)],
+    check_outputs_apart([(args.figure_option, args.figure), ("--masks-out", args.masks_out),
+                         ("--disparity-out", args.disparity_out)],
                         [("left image", args.left), ("right image", args.right)])
 
 
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:
     """``--disparity-out``'s folder made, or its error raised, before any work (standard library only)."""
     if args.disparity_out:
+        from ..core.dataset_files import check_not_in_kitti_dataset
         from ..core.errors import InputError
         from ..core.files import make_output_folder
 
         if range_rule == "paper":
             raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense "
                              "map), got --range paper")
+        check_not_in_kitti_dataset(args.disparity_out, "--disparity-out")
         make_output_folder(args.disparity_out, "--disparity-out")
 
 

@@ -26,6 +26,7 @@ import torch
 
 from ..core.camera import SVS_CAMERA
 from ..core.checks import InputError
+from ..core.dataset_files import KITTI_LAYOUTS, KITTI_LEFT_FOLDERS
 from ..core.files import check_path_given, path_kind
 from ..core.types import StereoBatch
 from .formats import read_kitti_disparity, read_scaled_disparity
@@ -56,11 +57,6 @@ __all__ = [
 # KITTI rectified-camera values inferred from the image width (MANIFEST §4; not verified per frame):
 # width → (focal px, baseline m). 1242: P_rect_02 of 2011_09_26, B = (44.857 + 339.524) / 721.538.
 _KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
-#: The KITTI training layouts, 2012 then 2015: (left, right, truth, non-occluded truth) folders and the name prefix.
-_KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"),
-                  ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "kitti2015"))
-#: The folders of a KITTI training folder's left images.
-KITTI_LEFT_FOLDERS = tuple(layout[0] for layout in _KITTI_LAYOUTS)
 
 
 @warnings_once_loaded()
@@ -75,7 +71,7 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
     calibrated False — use KITTI for disparity-level evaluation only.
     """
     root = check_scene_dir(root, "root")
-    layout = next((layout for layout in _KITTI_LAYOUTS if (root / layout[0]).is_dir()), None)
+    layout = next((layout for layout in KITTI_LAYOUTS if (root / layout[0]).is_dir()), None)
     if layout is None:
         raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
     *folders, noc, prefix = layout
@@ -95,7 +91,7 @@ def kitti_left_images(root: str | Path) -> list[Path]:
     download also holds ``_11``, the next frame of the flow benchmark, with no disparity, which :func:`load_kitti`
     cannot score); in a folder without any (a testing folder), every frame, loaded without truth."""
     root = Path(root)
-    for left, _, truth, _, _ in _KITTI_LAYOUTS:
+    for left, _, truth, _, _ in KITTI_LAYOUTS:
         if (root / left).is_dir():
             frames = sorted((root / left).glob("*.png"))
             scored = [path for path in frames if (root / truth / path.name).is_file()]
@@ -211,14 +207,14 @@ def scene_name(path: str | Path) -> str:
     """The name :func:`load_stereo_pair` gives the scene at ``path`` (``eval3/Teddy``, ``kitti2015/000000_10``,
     ``opencv/aloe``), from its file names alone; the folder's own name for a folder of no known layout."""
     path = Path(path)
-    prefixes = {layout[0]: layout[-1] for layout in _KITTI_LAYOUTS}
+    prefixes = {layout[0]: layout[-1] for layout in KITTI_LAYOUTS}
     if path.parent.name in prefixes and path.suffix:  # a KITTI left image
         return f"{prefixes[path.parent.name]}/{path.stem}"
     layout = detect_stereo_layout(path)
     if layout == "aloe":
         return "opencv/aloe"
     if layout == "kitti":
-        folder = next(layout[0] for layout in _KITTI_LAYOUTS if (path / layout[0]).is_dir())
+        folder = next(layout[0] for layout in KITTI_LAYOUTS if (path / layout[0]).is_dir())
         return f"{prefixes[folder]}/000000_10"
     return f"{layout}/{path.name}" if layout else path.name
 

@@ -27,7 +27,6 @@ agree with the JSON within its 0.1 mm rounding (tests/evaluation/test_disparity_
 
 from __future__ import annotations
 
-import os
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -37,9 +36,10 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError, check_instance
+from ..core.dataset_files import check_not_in_kitti_dataset
 from ..core.files import make_output_folder, write_bytes_atomic
 from ..core.types import StereoBatch
-from ..data.datasets import GENERIC_LEFT_NAME, KITTI_LEFT_FOLDERS
+from ..data.datasets import GENERIC_LEFT_NAME
 from ..data.formats import write_kitti_disparity, write_pfm
 from ..geometry.rectification import warp_rectified
 from ..pipeline import PipelineResult
@@ -138,12 +138,7 @@ class DisparityExport:
         :func:`~svs_torch.core.files.make_output_folder`. A folder of a KITTI dataset (beside its ``colored_0/`` or
         ``image_2/``) is refused: its ground truth is a 16-bit PNG named as the frame, which the export took for
         a map of its own and replaced (``eval kitti --disparity-out kitti/disp_occ``, an audit)."""
-        parent = Path(os.path.realpath(self.directory)).parent
-        beside = next((folder for folder in KITTI_LEFT_FOLDERS if (parent / folder).is_dir()), None)
-        if beside is not None:
-            raise InputError(f"--disparity-out: {self.directory} is a folder of the KITTI dataset {parent} (beside its "
-                             f"{beside}/): a map written there would replace a frame's ground truth or view; name a "
-                             f"folder outside it")
+        check_not_in_kitti_dataset(self.directory, "--disparity-out")
         make_output_folder(self.directory, "--disparity-out")
 
     def claim_ahead(self, pair_name: str) -> None:

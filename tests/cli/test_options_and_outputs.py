@@ -606,10 +606,15 @@ def test_outputs_never_replace_a_scene_s_or_a_kitti_frame_s_files(data_dir, caps
         (["estimate", *views, "--figure", str(truth)], "is KITTI frame 000000_10's disp_occ/ file"),
         (["eval", str(kitti), "--size", "160x120", "--disparity-out", str(kitti / "disp_occ"), "--disparity-format",
           "kitti"], f"is a folder of the KITTI dataset {kitti} (beside its colored_0/)"),
+        (["estimate", *views, "--disparity-out", str(kitti / "disp_occ"), "--disparity-format", "kitti"],
+         f"is a folder of the KITTI dataset {kitti} (beside its colored_0/)"),
+        # The figure's name as the export's folder: the folder was made, then the figure failed at the end.
+        (["estimate", str(scene), "--figure", str(tmp_path / "same.png"), "--disparity-out", str(tmp_path / "same.png")],
+         "--disparity-out: the same file as --figure"),
     ]:
         code, out, err = run_cli(capsys, *argv)
         assert code == 2 and out == "" and message in err and err.count("\n") == 1, (argv, err)
-    assert {path: path.read_bytes() for path in before} == before
+    assert {path: path.read_bytes() for path in before} == before and not (tmp_path / "same.png").exists()
     # A new file beside a scene's is still written.
     assert run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--figure", str(scene / "mine.png"))[0] == 0
     assert (scene / "mine.png").is_file()

@@ -1,0 +1,49 @@
+"""Which files a dataset's pair is read from, so that no output is written over one of them. Standard library only:
+the command line checks its outputs with it before torch loads.
+
+Why: ``estimate Art --figure Art/disp1.png`` wrote the figure over the scene's ground truth and ``eval kitti
+--disparity-out kitti/disp_occ --disparity-format kitti`` replaced KITTI's ground truth with its own maps (a 16-bit
+PNG named as the frame, taken for a map of its own), each with exit 0 (an audit of the files the commands write).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .errors import InputError
+
+__all__ = ["KITTI_LAYOUTS", "KITTI_LEFT_FOLDERS", "check_not_in_kitti_dataset", "files_read_with"]
+
+#: The KITTI training layouts, 2012 then 2015: (left, right, truth, non-occluded truth) folders and the name prefix.
+KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"),
+                 ("image_2", "image_3", "disp_occ_0", "disp_noc_0", "kitti2015"))
+#: The folders of a KITTI training folder's left images.
+KITTI_LEFT_FOLDERS = tuple(layout[0] for layout in KITTI_LAYOUTS)
+
+
+def files_read_with(source: str | None, name: str) -> list[tuple[str, str]]:
+    """``(file, what it is)`` for every file an input ``source`` named ``name`` may be read from: an image itself;
+    a scene folder's files (its views, ground truth, masks, calibration; a KITTI dataset's, every frame's); a KITTI
+    frame's left image and the frame's files in each folder of its dataset (its right view, its ground truth)."""
+    if not source or not (path := Path(source)).exists():
+        return []
+    if path.is_file():
+        if path.parent.name not in KITTI_LEFT_FOLDERS:
+            return [(source, f"the {name}")]
+        frame = path.parent.parent.glob(f"*/{path.name}")
+        return [(source, f"the {name}")] + [(str(f), f"KITTI frame {path.stem}'s {f.parent.name}/ file") for f in frame]
+    files = [f for f in path.iterdir() if f.is_file()]
+    if any((path / folder).is_dir() for folder in KITTI_LEFT_FOLDERS):
+        files += [f for f in path.glob("*/*") if f.is_file()]
+    return [(str(f), f"a file of the scene {source}") for f in files]
+
+
+def check_not_in_kitti_dataset(folder: str | os.PathLike, name: str) -> None:
+    """:class:`InputError` naming ``name`` when ``folder`` is one of a KITTI dataset's folders (beside its
+    ``colored_0/`` or ``image_2/``): a map named as a frame would replace its ground truth or a view."""
+    parent = Path(os.path.realpath(folder)).parent
+    beside = next((left for left in KITTI_LEFT_FOLDERS if (parent / left).is_dir()), None)
+    if beside is not None:
+        raise InputError(f"{name}: {folder} is a folder of the KITTI dataset {parent} (beside its {beside}/): a map "
+                         f"written there would replace a frame's ground truth or view; name a folder outside it")
