@@ -15,8 +15,8 @@ from typing import Any
 __all__ = [
     "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
     "check_outputs_apart", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named",
-    "output_path", "positive_float", "positive_int", "resolve_export_options", "seed_int", "timeout_seconds",
-    "too_small_reason", "unit_interval_float", "with_config_values",
+    "output_file", "output_folder", "positive_float", "positive_int", "resolve_export_options", "seed_int",
+    "timeout_seconds", "too_small_reason", "unit_interval_float", "with_config_values",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -164,13 +164,25 @@ def options_named(**options: str):
         if colon and field in options:
             raise InputError(f"{options[field]}:{reason}") from None
         raise
+    except OSError as error:  # a full disk under the store: "db: cannot write ..." named the argument too
+        field, colon, reason = (error.strerror or "").partition(":")
+        if colon and field in options and error.filename is None:
+            raise OSError(error.errno, f"{options[field]}:{reason}") from None
+        raise
 
 
-def output_path(text: str) -> str:
-    """argparse type: an output file or folder that is not empty. Why: ``--disparity-out "$OUT"`` with OUT unset
-    ran, wrote nothing and exited 0."""
+def output_file(text: str) -> str:
+    """argparse type: an output file name that is not empty. Why: ``--masks-out "$OUT"`` with OUT unset ran,
+    wrote nothing and exited 0."""
     if not text.strip():
-        raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a file name, got {text!r}")
+    return text
+
+
+def output_folder(text: str) -> str:
+    """argparse type: an output folder name that is not empty (``--disparity-out "$OUT"`` with OUT unset)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a folder name, got {text!r}")
     return text
 
 
@@ -227,7 +239,7 @@ def _method_name(text: str) -> str:
 def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
     """``--disparity-out DIR``, ``--disparity-format`` and ``--method-name`` of ``eval`` and ``estimate``."""
     group = parser.add_argument_group("disparity maps out (svs_torch/evaluation/export.py)")
-    group.add_argument("--disparity-out", metavar="DIR", type=output_path,
+    group.add_argument("--disparity-out", metavar="DIR", type=output_folder,
                        help="write each pair's dense disparity map into DIR (made if missing; its parent must "
                             "exist), at the size the pipeline ran on, unmeasured pixels unknown; a rectified pair's "
                             "map is brought back to the left image's pixels (needs the dense range rule)")

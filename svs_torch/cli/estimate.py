@@ -8,7 +8,7 @@ import os
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
-                     finite_float, non_negative_int, output_path, positive_float, positive_int,
+                     finite_float, non_negative_int, output_file, positive_float, positive_int,
                      resolve_export_options, seed_int, too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
@@ -145,7 +145,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_figure_option(parser, "figure: kept objects with depths, dense depth (and ground truth), matches, and a "
                       "rectified pair: its rectified views with epipolar lines",
                       "--plot", "--out")
-    parser.add_argument("--masks-out", metavar="LABELS.png", type=output_path,
+    parser.add_argument("--masks-out", metavar="LABELS.png", type=output_file,
                         help="kept objects of the left image as a uint8 label image (0 background, 1..N): the "
                              "pixels each object's depth is measured over (a kept region's interior, without the "
                              "band the block matcher adds around a near object); lossless: .png, .bmp or .tif")

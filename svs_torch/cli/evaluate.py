@@ -6,7 +6,7 @@ import argparse
 import sys
 import time
 
-from .common import (add_disparity_export_options, dumps_strict, finite_float, options_named, output_path,
+from .common import (add_disparity_export_options, dumps_strict, finite_float, options_named, output_file,
                      positive_float, positive_int, resolve_export_options)
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
@@ -87,7 +87,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
     add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)",
                            kept_beside=True)
-    parser.add_argument("--db", metavar="FILE.sqlite", type=output_path,
+    parser.add_argument("--db", metavar="FILE.sqlite", type=output_file,
                         help="also store every row in this results file")
     parser.add_argument("--json", action="store_true", help="JSON lines: one per pair, the summary last")
     add_disparity_export_options(parser)

@@ -6,7 +6,7 @@ import argparse
 import csv
 import sys
 
-from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, output_path
+from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, output_file
 
 HELP = "summarise, export (CSV) or plot a sweep's results file"
 
@@ -41,7 +41,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("db", metavar="FILE.sqlite", help="results file of svs-depth sweep or eval --db")
     parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
-    parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv", type=output_path,
+    parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv", type=output_file,
                         help="one row per (configuration, pair), to FILE.csv or standard output")
     add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",
                       kinds=".png, .pdf or .svg")

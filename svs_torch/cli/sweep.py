@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .common import dumps_strict, non_negative_int, options_named, output_path, positive_int
+from .common import dumps_strict, non_negative_int, options_named, output_file, positive_int
 from .progress import Progress
 
 HELP = "run a parameter sweep over many pairs into a resumable SQLite results file"
@@ -53,7 +53,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("sweep", help=HELP, description=DESCRIPTION, epilog=EPILOG,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_file", metavar="SWEEP.toml", help="the sweep file")
-    parser.add_argument("--db", required=True, metavar="FILE.sqlite", type=output_path,
+    parser.add_argument("--db", required=True, metavar="FILE.sqlite", type=output_file,
                         help="results file, created or resumed")
     parser.add_argument("--workers", type=non_negative_int, metavar="N",
                         help="local worker processes (default: one per core, or per OMP_NUM_THREADS if that is "

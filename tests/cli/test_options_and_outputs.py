@@ -287,15 +287,17 @@ def test_bench_refuses_a_data_folder_without_shared_pairs(capsys, tmp_path):
     assert code == 2 and out == "" and "--data: no shared pair with ground truth in" in err
 
 
-@pytest.mark.parametrize("argv", [["estimate", "TEDDY", "--figure", ""], ["estimate", "TEDDY", "--masks-out", " "],
-                                  ["estimate", "TEDDY", "--disparity-out", ""], ["eval", "TEDDY", "--db", ""],
-                                  ["results", "s.sqlite", "--csv", ""]])
-def test_an_empty_output_name_is_refused(data_dir, capsys, argv):
-    """Found by an audit of the outputs: `--disparity-out "$OUT"` with OUT unset ran, wrote nothing, exit 0."""
+@pytest.mark.parametrize("argv, expected", [
+    (["estimate", "TEDDY", "--figure", ""], "a file name"), (["estimate", "TEDDY", "--masks-out", " "], "a file name"),
+    (["estimate", "TEDDY", "--disparity-out", ""], "a folder name"), (["eval", "TEDDY", "--db", ""], "a file name"),
+    (["results", "s.sqlite", "--csv", ""], "a file name")])
+def test_an_empty_output_name_is_refused(data_dir, capsys, argv, expected):
+    """Found by an audit of the outputs: `--disparity-out "$OUT"` with OUT unset ran, wrote nothing, exit 0. Each
+    says what it expected (a later audit: "a file or folder name" for --db and --csv)."""
     argv = [str(data_dir / "middlebury_eval3_Q" / "Teddy") if a == "TEDDY" else a for a in argv]
     with pytest.raises(SystemExit) as exit_:
         main(argv)
-    assert exit_.value.code == 2 and re.search("expected a file (or folder )?name", capsys.readouterr().err)
+    assert exit_.value.code == 2 and f"expected {expected}, got " in capsys.readouterr().err
 
 
 def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
@@ -650,3 +652,19 @@ def test_a_dangling_link_or_a_file_for_a_folder_is_refused_before_any_work(data_
         code, out, err = run_cli(capsys, *argv)
         assert code == 2 and out == "" and message in err and err.count("\n") == 1, (argv, err)
     assert link_db.is_symlink() and dangling.is_symlink()
+
+
+def test_a_full_disk_under_the_store_names_the_option(data_dir, capsys, tmp_path, monkeypatch):
+    """An audit: eval --db on a full disk said "db: cannot write ...", the library's argument, not the option typed
+    (its other errors already named --db)."""
+    import sqlite3
+
+    def full(self):
+        error = sqlite3.OperationalError("database or disk is full")
+        error.sqlite_errorcode = 13
+        raise error
+
+    monkeypatch.setattr(ResultStore, "_connect_to_write", full)
+    store = tmp_path / "runs.sqlite"
+    code, _, err = run_cli(capsys, "eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--db", str(store))
+    assert code == 1 and err == f"svs-depth eval: error: --db: cannot write {store}: database or disk is full\n"
