@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--data: no shared pair with ground truth in {args.data!r} (expected the shared data "
                          f"folder: middlebury_eval3_Q/, middlebury_2005_2006_third/, kitti/, ...)")
     if args.json is not None:  # '' too: an empty name was skipped in silence (an audit)
-        check_output_file(args.json, "--json")  # before minutes of work, not after
+        check_output_file(args.json, "--json", (".json",), "a .json")  # before minutes of work, not after
     report = run_benchmark(args.pairs, args.repeats, args.threads, data_dir,
                            progress=lambda text: print(text, file=sys.stderr, flush=True),
                            memory=not args.no_memory)

@@ -58,7 +58,8 @@ examples:
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
   svs-depth estimate --pairs captured/index.jsonl --size 320x240
   svs-depth estimate ../shared/data/middlebury_eval3_Q/Teddy --disparity-out maps   (maps/Teddy/disp0SVSTorch.pfm)
-  svs-depth estimate --pairs list.txt --disparity-out maps --disparity-format kitti   (maps/<left name>.png)
+  svs-depth estimate --pairs list.txt --disparity-out maps --disparity-format kitti   (maps/<pair>.png: the
+      left file's name, or its folder's for a generic one such as im0.png, left.png or L.png)
 list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGHT FOCAL_PX BASELINE_M
 [DOFFS_PX]' (that pair's own), or a scene folder (MiddEval3, Middlebury, KITTI: its own calibration).
 

@@ -644,6 +644,7 @@ def test_a_dangling_link_or_a_file_for_a_folder_is_refused_before_any_work(data_
                                                           ", whose folder does not exist"),
         (["bench", "--json", str(dangling)], "--json: "),
         (["bench", "--json", ""], "--json: expected a file name, got ''"),
+        (["bench", "--json", str(tmp_path / "b.xyz")], "--json: expected a .json file name"),  # as calibrate --out
         (["eval", scene, "--db", str(link_db)], f"--db: {link_db} is a link to {tmp_path}/nodir/runs.sqlite, which "
                                                 "does not exist"),
         (["eval", scene, "--db", str(tmp_path / "afile" / "x.sqlite")], f"--db: {tmp_path}/afile is a file, not a "
