@@ -222,6 +222,17 @@ def disparity_export(args: argparse.Namespace, config, sources=()):
     return export
 
 
+def _store_beside_export(export, *args):
+    """:func:`_open_store` of ``args``; a refused ``--db`` leaves no ``--disparity-out`` folder that ``export`` made,
+    empty, behind."""
+    try:
+        return _open_store(*args)
+    except BaseException:
+        if export is not None:
+            export.remove_if_unused()
+        raise
+
+
 def _rig(args: argparse.Namespace, sources: list):
     """The rig calibration of ``--calibration``, or the one kept beside the listed capture folders' index
     (:func:`~svs_torch.cli.rig.calibration_kept_beside`, then set as ``args.calibration``), or None."""
@@ -264,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
     _check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
-    store, run_id, sweep_config = _open_store(args, preset, overrides, size_wh, sources)
+    store, run_id, sweep_config = _store_beside_export(export, args, preset, overrides, size_wh, sources)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
                       rig_provenance(args.calibration or ""))
     evaluations = []

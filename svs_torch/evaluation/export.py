@@ -27,6 +27,8 @@ agree with the JSON within its 0.1 mm rounding (tests/evaluation/test_disparity_
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -124,6 +126,8 @@ class DisparityExport:
     _claimed: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
     # Export names claimed from a whole list before any pair ran (claim_ahead: worker processes).
     _claimed_ahead: set[str] = field(default_factory=set, compare=False, repr=False)
+    # The folder, where prepare() made it.
+    _made: list[Path] = field(default_factory=list, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.format not in EXPORT_FORMATS:
@@ -139,7 +143,16 @@ class DisparityExport:
         ``image_2/``) is refused: its ground truth is a 16-bit PNG named as the frame, which the export took for
         a map of its own and replaced (``eval kitti --disparity-out kitti/disp_occ``, an audit)."""
         check_not_in_kitti_dataset(self.directory, "--disparity-out")
+        if not os.path.lexists(self.directory):
+            self._made.append(Path(self.directory))
         make_output_folder(self.directory, "--disparity-out")
+
+    def remove_if_unused(self) -> None:
+        """Remove the folder :meth:`prepare` made if nothing was written into it: a command that failed after it
+        (a refused ``--db``) left it behind, empty (an audit)."""
+        for folder in self._made:
+            with contextlib.suppress(OSError):  # not empty, or gone: kept as it is
+                folder.rmdir()
 
     def claim_ahead(self, pair_name: str) -> None:
         """Give ``pair_name``'s export name to it before any pair is written, unless an earlier pair has it: worker

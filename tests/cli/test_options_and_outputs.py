@@ -653,6 +653,12 @@ def test_a_dangling_link_or_a_file_for_a_folder_is_refused_before_any_work(data_
         code, out, err = run_cli(capsys, *argv)
         assert code == 2 and out == "" and message in err and err.count("\n") == 1, (argv, err)
     assert link_db.is_symlink() and dangling.is_symlink()
+    # A refused --db left eval's --disparity-out folder behind, empty; one that was there before stays.
+    for maps, kept in ((tmp_path / "new_maps", False), (tmp_path / "afile_maps", True)):
+        if kept:
+            maps.mkdir()
+        code, _, err = run_cli(capsys, "eval", scene, "--disparity-out", str(maps), "--db", str(link_db))
+        assert code == 2 and "which does not exist" in err and maps.is_dir() == kept
 
 
 def test_a_full_disk_under_the_store_names_the_option(data_dir, capsys, tmp_path, monkeypatch):
