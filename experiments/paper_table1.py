@@ -384,7 +384,8 @@ def measurable_summary(rows: list[dict]) -> str:
 def disparity_summary(rows: list[dict]) -> str:
     """The dense maps against the GT over the kept regions, mean over scenes per split, size and method
     (svs_torch's default and the OpenCV block matchers; a pair svs_torch rectified is left out)."""
-    lines = ["| split | size | method | pairs | density % | bad-1 % | bad-2 % | median error px | nearest surface Acc % |",
+    lines = ["| split | size | method | pairs | density % | bad-1 % | bad-2 % | median error px "
+             "| nearest surface Acc % |",
              "|" + "---|" * 9]
     keys = sorted({(r["split"], r["size"], r["method"]) for r in rows if r.get("disparity")},
                   key=lambda k: (k[0] != "tuned", k[1], METHODS.index(k[2])))

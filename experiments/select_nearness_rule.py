@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> None:
             # truth keeps the two largest regions, so it is favoured by construction.
             if keep != "largest" and (best is None or score > best[0]):
                 best = (score, width, window, keep, area)
-    lines.append(f"\nbest keeping by nearness (mean of IoU + Acc/100 over both sizes): working width {best[1]} px, window {best[2]}, "
-                 f"keep {best[3]}, least area {best[4]} (score {best[0]:.3f})")
+    lines.append(f"\nbest keeping by nearness (mean of IoU + Acc/100 over both sizes): working width {best[1]} px, "
+                 f"window {best[2]}, keep {best[3]}, least area {best[4]} (score {best[0]:.3f})")
     print(lines[-1])
     if args.markdown:
         Path(args.markdown).write_text("\n".join(lines) + "\n")

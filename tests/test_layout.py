@@ -171,7 +171,9 @@ def test_no_module_is_longer_than_400_lines():
 
 
 def test_no_line_is_longer_than_120_characters():
-    paths = [path for _, path in _modules()] + sorted((PACKAGE.parent / "hw").rglob("*.py"))
+    # The experiments too: four scripts had a line past it (found at two stops and left alone).
+    paths = [path for _, path in _modules()] + sorted(path for folder in ("hw", "experiments")
+                                                      for path in (PACKAGE.parent / folder).rglob("*.py"))
     long = [f"{path.relative_to(PACKAGE.parent)}:{number}: {len(line)} characters" for path in paths
             for number, line in enumerate(path.read_text().splitlines(), 1) if len(line) > MAX_LINE_CHARS]
     assert not long, "\n".join(long)
