@@ -342,6 +342,32 @@ def test_a_colour_jpeg_is_read_as_its_luma_as_guide_decodes_it(tmp_path: Path, d
     assert np.array_equal(decode_frame(raw, "left", "test").image, read)
 
 
+def _with_exif_orientation(jpeg: bytes, tag: int) -> bytes:
+    """``jpeg`` with an EXIF APP1 segment holding one Orientation (0x0112) entry, as a phone writes it."""
+    entry = b"\x01\x12\x00\x03\x00\x00\x00\x01" + tag.to_bytes(2, "big") + b"\x00\x00"
+    exif = b"Exif\x00\x00MM\x00\x2a\x00\x00\x00\x08\x00\x01" + entry + b"\x00\x00\x00\x00"
+    return jpeg[:2] + b"\xff\xe1" + (len(exif) + 2).to_bytes(2, "big") + exif + jpeg[2:]
+
+
+@pytest.mark.parametrize("tag, stored_as", [(6, cv2.ROTATE_90_COUNTERCLOCKWISE), (8, cv2.ROTATE_90_CLOCKWISE),
+                                            (3, cv2.ROTATE_180)])
+def test_a_jpeg_is_read_turned_by_its_exif_orientation(tmp_path: Path, data_dir: Path, tag, stored_as) -> None:
+    """An audit: a phone's portrait JPEG (pixels on their side, an Orientation tag) was read as stored, so a pair's
+    baseline ran along its columns and estimate ranged Teddy at 0.87 or 11.6 m instead of 1.25 m, status OK. It
+    is read as cv2.imread and every viewer show it, and as the same view stored upright."""
+    upright = cv2.imread(str(data_dir / "middlebury_eval3_Q/Teddy/im0.png"))
+    plain = tmp_path / "plain.jpg"
+    plain.write_bytes(cv2.imencode(".jpg", upright, [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes())
+    turned = tmp_path / "phone.jpg"
+    stored = cv2.imencode(".jpg", cv2.rotate(upright, stored_as), [cv2.IMWRITE_JPEG_QUALITY, 100])[1].tobytes()
+    turned.write_bytes(_with_exif_orientation(stored, tag))
+    read, expected = read_gray_image(turned), read_gray_image(plain)
+    assert read.shape == expected.shape == (1, 1, *upright.shape[:2])
+    assert float((read - expected).abs().mean()) < 1 / 255  # the same view, up to the two encodings' loss
+    assert np.array_equal((read[0, 0] * 255).round().to(torch.uint8).numpy(),
+                          cv2.imread(str(turned), cv2.IMREAD_GRAYSCALE))
+
+
 @pytest.mark.parametrize("little_endian", [True, False])
 def test_read_pfm_flips_rows_and_keeps_inf(tmp_path: Path, little_endian: bool) -> None:
     image = np.array([[1.5, np.inf, 3.0], [4.0, 5.0, -6.25]], dtype=np.float32)  # (H, W) top row first
