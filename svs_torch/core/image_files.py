@@ -34,6 +34,7 @@ PRELOADED: dict[str, np.ndarray] = {}
 #: pixels on their side with a tag; ignored, a pair's baseline ran along its columns, and estimate ranged Teddy at
 #: 0.87 m or 11.6 m instead of 1.25 m with status OK (an audit). The SVS's frames carry no tag.
 _JPEG_START = b"\xff\xd8\xff"
+_JPEG_END = b"\xff\xd9"
 JPEG_GRAY_DECODE = cv2.IMREAD_GRAYSCALE
 
 
@@ -211,8 +212,14 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     if declared is not None and declared[0] > MAX_DECODED_PIXELS:
         raise InputError(f"{name}: the file declares {declared[1]} pixels, more than the "
                          f"{MAX_DECODED_PIXELS // 2**20} megapixels read: {display_path(path)}")
-    array, complaints = decode_collecting(data, JPEG_GRAY_DECODE if gray and data[:3].tobytes() == _JPEG_START else
-                                          cv2.IMREAD_UNCHANGED)
+    jpeg = data[:3].tobytes() == _JPEG_START
+    flags = JPEG_GRAY_DECODE if gray and jpeg else cv2.IMREAD_UNCHANGED
+    array, complaints = decode_collecting(data, flags)
+    if array is None and jpeg and data[-2:].tobytes() != _JPEG_END:
+        # Without its end marker imdecode returns None and libjpeg says nothing, where imread reads a JPEG whole
+        # but for the marker: with it, such a file is read, and one cut short is a damaged JPEG with libjpeg's
+        # reason (both were "not a readable image file", with none; an audit).
+        array, complaints = decode_collecting(np.concatenate([data, np.frombuffer(_JPEG_END, np.uint8)]), flags)
     reason = f": {' '.join(complaints[0].split())[:160]}" if complaints else ""
     if array is None:
         kind = "an empty file" if not data.size else "not a readable image file"

@@ -133,6 +133,15 @@ def test_a_damaged_jpeg_is_refused_and_an_intact_one_read(tmp_path: Path, data_d
     expected = cv2.imread(str(data_dir / "opencv_samples" / "aloeL.jpg"), cv2.IMREAD_GRAYSCALE)
     assert (read_gray_image(data_dir / "opencv_samples" / "aloeL.jpg")[0, 0].mul(255).round().numpy()
             == expected).all()
+    # An audit: a JPEG whole but for its end marker (imread reads it) and one cut short were both "not a readable
+    # image file", with no reason. The first is read as imread reads it; the second is damaged, libjpeg's words.
+    whole = (data_dir / "opencv_samples" / "aloeL.jpg").read_bytes()
+    assert whole.endswith(b"\xff\xd9")
+    (tmp_path / "no_end.jpg").write_bytes(whole[:-2])
+    assert (read_gray_image(tmp_path / "no_end.jpg")[0, 0].mul(255).round().numpy() == expected).all()
+    (tmp_path / "cut.jpg").write_bytes(whole[:len(whole) // 2])
+    with pytest.raises(InputError, match=r"left: a damaged JPEG \(libjpeg: Corrupt JPEG data: premature end"):
+        read_gray_image(tmp_path / "cut.jpg", "left")
 
 
 def test_scenes_beside_the_data_sets_are_listed_too(tmp_path: Path, data_dir: Path) -> None:
