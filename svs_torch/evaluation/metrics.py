@@ -96,7 +96,9 @@ class ObjectTruth:
 
 
 def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
-    """True distances of the kept regions of ``segmentation`` (the left view of ``batch``), batched.
+    """True distances of the kept regions of ``segmentation`` (the left view of ``batch``), batched. No gradient:
+    a target (the README's training loss differentiated through it too, and the focal length's gradient cancelled,
+    0.015 → 5e-10; an audit).
 
     Raises:
         InputError: the batch has no ground truth.
@@ -104,7 +106,7 @@ def object_truth(batch: StereoBatch, segmentation: Segmentation) -> ObjectTruth:
     check_instance(batch, "batch", StereoBatch)
     check_instance(segmentation, "segmentation", Segmentation, ("labels", "kept_labels"))
     depth, known = batch.ground_truth_depth_m()  # (B, 1, H, W) each
-    median, count = kept_region_lower_median(depth, known, segmentation.labels, segmentation.kept_labels)
+    median, count = kept_region_lower_median(depth.detach(), known, segmentation.labels, segmentation.kept_labels)
     return ObjectTruth(depth_m=median, num_px=count, valid=count > 0)
 
 

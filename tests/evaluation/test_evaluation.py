@@ -3,6 +3,7 @@ experiments/paper_table1.py; configuration overrides; pair lists; the eval comma
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -79,6 +80,11 @@ def test_object_truth_is_the_lower_median_of_the_region_depth():
     single = object_truth(batch.select([1]), SimpleNamespace(labels=segmentation.labels[1:],
                                                              kept_labels=segmentation.kept_labels[1:]))
     assert torch.equal(single.depth_m, truth.depth_m[1:])  # batched equals per pair
+    # A target carries no gradient (an audit: a training loss differentiated through the truth too, and the focal
+    # length's gradient cancelled).
+    focal = torch.full((2,), 10.0, requires_grad=True)
+    graded = object_truth(dataclasses.replace(batch, focal_px=focal), segmentation)
+    assert torch.equal(graded.depth_m, truth.depth_m) and not graded.depth_m.requires_grad
 
 
 def test_disparity_errors_by_hand():
