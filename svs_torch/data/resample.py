@@ -92,7 +92,8 @@ def resize_stereo_batch(batch: StereoBatch, size_wh: Sequence[int]) -> StereoBat
     resized pair by pair from each pair's own ``image_hw`` region, so every pair fills the new size and has its
     own sx; ``image_hw`` becomes ``(height, width)`` for all.
 
-    Differentiable w.r.t. ``left`` and ``right``; not w.r.t. the ground truth (nearest sampling).
+    Differentiable w.r.t. ``left`` and ``right``; w.r.t. the ground truth only as nearest sampling copies it (each
+    output pixel's gradient goes to the one input pixel it copies, times ``sx``).
     """
     check_instance(batch, "batch", StereoBatch)
     width, height = _check_size_wh(size_wh)

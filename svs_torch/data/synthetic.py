@@ -11,8 +11,9 @@ Texture lives on the surfaces in world coordinates, so a surface point has the s
 ``L(x) ≈ R(x − d)`` up to sampling. Obstacles are bright, the wall dark, with no overlap of the two intensity
 ranges, so Otsu's threshold (Sec. 3.2) separates them; the speckle and blob texture gives SURF its features.
 
-Nothing here is differentiable: the z-buffer and the slot lookup are hard selections, and the outputs are
-ground-truth data, not a model. Every random draw goes through the ``generator`` argument.
+Not meant to be differentiated: the outputs are ground-truth data, not a model, and the z-buffer and the slot
+lookup are hard selections (parameters that require grad still pass a graph through the projections, piecewise).
+Every random draw goes through the ``generator`` argument.
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ def render_obstacle_scenes(
             ``object_depth_m`` is its depth at its centre. None: every front faces the cameras.
 
     Returns:
-        :class:`SyntheticScenes` on ``object_depth_m``'s device. Not differentiable (see module docstring).
+        :class:`SyntheticScenes` on ``object_depth_m``'s device. Not meant to be differentiated (module docstring).
     """
     object_valid = _check_render_args(object_depth_m, object_center_xy_m, object_size_m, object_valid,
                                       tuple(size_wh), background_depth_m, supersample, noise_std)

@@ -89,7 +89,10 @@ def point_depths(disparity_px: torch.Tensor, valid: torch.Tensor, focal_px: floa
     """Depth ``Z = f·B / (d + doffs)`` (Eq. (7)–(8) per point) of disparities ``(B, K)``; ``focal_px``,
     ``baseline_m``, ``doffs_px`` scalars or ``(B,)`` (``StereoBatch`` fields; doffs 0 for the SVS), finite, focal
     length and baseline above 0.
-    Differentiable w.r.t. ``disparity_px`` and the calibration where valid; ``valid`` is not."""
+    Differentiable w.r.t. ``disparity_px`` and the calibration where valid; ``valid`` is not. A point counts where
+    ``d + doffs > 0``, a hard selection: at doffs 0 (the SVS's) a point of d = 0 enters at any doffs above 0, so
+    a depth taken over the points (a median) steps there and its gradient w.r.t. doffs is that of the points
+    selected (an audit: gradcheck w.r.t. doffs fails exactly at 0)."""
     _check_values(disparity_px, "disparity_px", valid, "valid")
     return _depths(disparity_px, valid, *_calibration(disparity_px, focal_px, baseline_m, doffs_px))
 

@@ -310,7 +310,7 @@ def _object_masks(result: PipelineResult, raw: torch.Tensor) -> list[torch.Tenso
 def pair_map_metrics(batch: StereoBatch, result: PipelineResult, px_scale: torch.Tensor | None = None
                      ) -> tuple[dict[str, StereoMetrics], list[StereoMetrics]]:
     """:func:`dense_map_metrics` and :func:`object_map_metrics` together, with one sort of the errors. Gradients as
-    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
+    :func:`dense_map_metrics`' (the pipeline's dense map carries none)."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return {}, []
@@ -326,7 +326,9 @@ def dense_map_metrics(batch: StereoBatch, result: PipelineResult,
     """:func:`measure_stereo_metrics` of the pipeline's dense map in each of :data:`STEREO_SCOPES` the data
     has (``*_nocc`` only with ``batch.disparity_nonoccluded``); {} under the paper rule or without GT. A pair
     rectified from F evaluates no pixel (its metrics are null): its map is not in the GT's pixels. Gradients as
-    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
+    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``); the pipeline's ``result.dense`` is
+    its hard map, which carries none even with ``differentiable=True`` (the depths are recomputed with gradients
+    instead: :mod:`svs_torch.pipeline.soft`), so from a result only the GT and ``px_scale`` receive any."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return {}
@@ -340,7 +342,7 @@ def object_map_metrics(batch: StereoBatch, result: PipelineResult,
                        px_scale: torch.Tensor | None = None) -> list[StereoMetrics]:
     """:func:`measure_stereo_metrics` of the dense map over each kept object's region (all GT pixels), one
     per kept slot (slot n is ``kept_labels[:, n]``); [] where :func:`dense_map_metrics` is {}. Gradients as
-    :func:`measure_stereo_metrics`' (to the dense map, the GT and ``px_scale``)."""
+    :func:`dense_map_metrics`' (the pipeline's dense map carries none)."""
     raw = _raw_pixels(batch, result)
     if raw is None:
         return []

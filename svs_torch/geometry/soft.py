@@ -58,7 +58,9 @@ def _lk_grid(radius: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def lk_points_straight_through(left: torch.Tensor, right: torch.Tensor, xy_left: torch.Tensor,
                                xy_right: torch.Tensor, radius: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
     """The hard refined right points ``xy_right`` ``(B, K, 2)`` with the gradient of :func:`lk_step` from them
-    (module docstring, 1). Differentiable w.r.t. both images; the values are ``xy_right``'s."""
+    (module docstring, 1). Differentiable w.r.t. both images; the values are ``xy_right``'s. The step's
+    Gauss–Newton Hessian stands in for the full one: against finite differences of the refinement (Art at 160×120,
+    float64, converged) its gradient was off by 16–18 % (median relative error; an audit)."""
     return straight_through(xy_right, lk_step(left, right, xy_left, xy_right, radius, moved))
 
 
