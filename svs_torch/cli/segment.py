@@ -47,6 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="'default': the segmentation estimate runs (the nearness segmenter); 'paper': the "
                              "paper's Otsu threshold and N largest regions (Sec. 3.2); the options below change "
                              "either")
+    from .features import add_pair_options  # (features imports this module)
+
+    add_pair_options(parser)  # --size: and above 16 megapixels refused, as estimate's (an audit: 56 MP took 2.3 GB+)
     add_segmentation_options(parser)
     add_segmenter_option(parser)
     add_figure_option(parser, "write a figure: both images, their binary masks and the kept objects", "--out",
@@ -252,9 +255,9 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from ..data import load_image_pair
         from ..plotting.figures import check_output_path, compose_grid, segmentation_panels, write_image_atomic
         from ..pipeline import PipelineConfig, segment_pair
+        from .features import load_pair
 
     base = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
     config = config_from_args(args, base.segmentation)
@@ -262,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.figure, args.figure_option)
         check_outputs_apart([(args.figure_option, args.figure)],
                             [("left image", args.left), ("right image", args.right)])
-    batch = load_image_pair(args.left, args.right)
+    batch, _ = load_pair(args.left, args.right, args)  # resampled to --size; at most 16 megapixels
     started = time.perf_counter()
     reason = too_small_reason(batch.size_hw)  # as estimate and features: no segmentation of a 320x1 pair
     seg = segment_pair(batch, config) if reason is None else None

@@ -1426,3 +1426,18 @@ def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, dat
     assert "none of the ranged pairs has ground truth (listed file pairs and captured frames carry none" in out
     code, out, _ = run_cli(capsys, "eval", str(scene), "--size", "160x120")
     assert code == 0 and "1 scored against ground truth" in out and "none of the ranged pairs" not in out
+
+
+def test_segment_takes_size_and_refuses_what_estimate_refuses(data_dir, capsys, tmp_path):
+    """An audit of odd image inputs: segment had no --size and no pixel limit (a 56-megapixel pair passed 2.3 GB
+    before it was stopped), where estimate and features refuse over 16 megapixels and say to use --size."""
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), np.zeros((4000, 4200), np.uint8))
+    code, out, err = run_cli(capsys, "segment", str(big), str(big))
+    assert code == 2 and out == ""
+    assert "left: expected at most 16 megapixels, got 4200x4000 (resample it with --size)" in err
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "segment", left, right, "--size", "160x120", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["image_size_wh"] == [160, 120] and report["left"]["status"] == "OK"
+    assert all(o["bbox_xyxy"][2] <= 160 and o["bbox_xyxy"][3] <= 120 for o in report["left"]["objects"])
