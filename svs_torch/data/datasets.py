@@ -27,7 +27,7 @@ import torch
 from ..core.camera import SVS_CAMERA
 from ..core.checks import InputError
 from ..core.dataset_files import KITTI_LAYOUTS, KITTI_LEFT_FOLDERS
-from ..core.files import check_path_given, path_kind
+from ..core.files import check_path_given, display_path, path_kind
 from ..core.types import StereoBatch
 from .formats import read_kitti_disparity, read_scaled_disparity
 from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
@@ -146,6 +146,10 @@ def load_image_pair(
                              f"{type(path).__name__} {path!r:.60}")
         check_path_given(path, name, "an image file name")  # before Path(), which makes "" the current folder
     left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
+    if right.shape != left.shape:  # with the files: the pair's name is a folder's for a generic name (L.png)
+        (h, w), (rh, rw) = left.shape[-2:], right.shape[-2:]
+        raise InputError(f"right: expected the size of left {w}x{h} (WxH, {display_path(left_path)}), got {rw}x{rh} "
+                         f"({display_path(right_path)})")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
     return make_scene_batch(left, right, pair_name(left_path),

@@ -291,8 +291,11 @@ def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> Non
         read_gray_image(tiff, "image")
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.zeros((10, 12), np.uint8))
-    with pytest.raises(InputError, match=r"right: expected the size of left 384x288 \(WxH\), got 12x10"):
-        load_image_pair(data_dir / "middlebury_2001/Tsukuba/imL.png", small)
+    # With the two files (an audit: the pair's name stood in, a folder's for a generic left name such as L.png).
+    left = data_dir / "middlebury_2001/Tsukuba/imL.png"
+    with pytest.raises(InputError, match=rf"right: expected the size of left 384x288 \(WxH, {left}\), got 12x10 "
+                                         rf"\({small}\)"):
+        load_image_pair(left, small)
     with pytest.raises(InputError, match="right: file not found"):
         load_image_pair(data_dir / "middlebury_2001/Tsukuba/imL.png", tmp_path / "missing.png")
     with pytest.raises(InputError, match="size_wh: expected a positive width and height"):
