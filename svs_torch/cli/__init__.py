@@ -160,7 +160,11 @@ def main(argv: list[str] | None = None) -> int:
     if extras:
         # Name the command in the error, as its own options' errors do ("svs-depth segment: error: ...").
         subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-        subcommands.get(getattr(args, "command", None), parser).error(f"unrecognized arguments: {' '.join(extras)}")
+        # A file whose name starts with '-' reads as an option (an audit): say how to write it.
+        files = [extra for extra in extras if extra.startswith("-") and os.path.isfile(extra)]
+        hint = f" ({files[0]} reads as an option: write ./{files[0]})" if files else ""
+        subcommands.get(getattr(args, "command", None), parser).error(
+            f"unrecognized arguments: {' '.join(extras)}{hint}")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

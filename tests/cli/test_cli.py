@@ -191,6 +191,19 @@ def test_a_value_read_as_an_option_says_how_to_write_it(capsys, argv, said):
     assert (said in err) if said else "read as an option" not in err
 
 
+def test_a_file_named_like_an_option_says_how_to_write_it(capsys, tmp_path, monkeypatch):
+    """An audit: `estimate L.png -right.png` said only "unrecognized arguments: -right.png"."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "-right.png").write_bytes(b"")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["estimate", "L.png", "-right.png"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "(-right.png reads as an option: write ./-right.png)" in err
+    with pytest.raises(SystemExit):
+        main(["estimate", "L.png", "R.png", "-bogus"])  # no such file: no hint
+    assert "reads as an option" not in capsys.readouterr().err
+
+
 def test_near_min_area_fraction_option(data_dir, capsys):
     """``--near-min-area-fraction`` reaches the segmentation, and a share out of range is refused by name."""
     from svs_torch.cli.segment import config_from_args
