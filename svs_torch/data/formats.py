@@ -159,7 +159,9 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
         raise InputError(f"{name}: expected 1 (gray), 2 (gray + alpha), 3 (BGR) or 4 (BGRA) channels, "
                          f"got {channels}: {path}")
     if array.dtype not in _FULL_SCALE:
-        raise InputError(f"{name}: expected a uint8 or uint16 image, got {array.dtype}: {path}")
+        # Said how to mend it (an audit): a float image's scale, [0, 1] or [0, 255], is not in the file.
+        raise InputError(f"{name}: expected a uint8 or uint16 image, got {array.dtype} (save it as an 8- or 16-bit "
+                         f"image; a float image's scale is not known): {path}")
     if array.shape[0] < 1 or array.shape[1] < 1:
         raise InputError(f"{name}: expected an image of at least 1x1 pixels, got {array.shape[1]}x{array.shape[0]}")
     # The alpha channel of a gray + alpha or BGRA file is dropped: the camera sees the colour, not the mask.

@@ -287,7 +287,8 @@ def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> Non
                        torch.from_numpy(expected))
     tiff = tmp_path / "float.tiff"
     cv2.imwrite(str(tiff), np.zeros((4, 5), np.float32))
-    with pytest.raises(InputError, match="image: expected a uint8 or uint16 image, got float32"):
+    with pytest.raises(InputError, match=r"image: expected a uint8 or uint16 image, got float32 \(save it as an 8- "
+                                         r"or 16-bit image"):
         read_gray_image(tiff, "image")
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.zeros((10, 12), np.uint8))
