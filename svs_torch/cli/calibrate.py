@@ -54,7 +54,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "of the baseline)")
     parser.add_argument("--out", required=True, metavar="RIG.json", help="the calibration file to write")
     add_figure_option(parser, "figure: the first pair rectified, side by side, with its corners and epipolar lines")
-    parser.add_argument("--json", action="store_true", help="print the calibration file's content as one JSON line")
+    parser.add_argument("--json", action="store_true",
+                        help="print the calibration file's content as one JSON line, with the pairs left out "
+                             "('skipped': no board in both views; 'misfits': views that do not fit the others) "
+                             "and the 'warnings', which the file does not hold")
     parser.set_defaults(func=run)
 
 
