@@ -26,8 +26,9 @@ def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "t
     kept = ", or for a capture folder's index.jsonl the calibration.json kept beside it" if kept_beside else ""
     parser.add_argument("--calibration", metavar="RIG.json", type=_calibration_path,
                         help=f"a calibration file from 'svs-depth calibrate': {applies_to} are rectified with it "
-                             "and take its focal length, baseline and doffs (scaled to their size; boxes and "
-                             "figures are then in rectified pixels); without it the paper's uncalibrated "
+                             "and take its focal length, baseline and doffs (scaled to their size: a pair of "
+                             "another size is taken as the calibrated frames resampled, so never crop them; boxes "
+                             "and figures are then in rectified pixels); without it the paper's uncalibrated "
                              f"rectification runs{kept}")
 
 
