@@ -73,14 +73,15 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     from ..core.errors import InputError
     from .pairs_folder import CALIBRATION_NAME
 
-    manual = [getattr(args, option, None) is not None for option in ("focal_px", "baseline_m")]
-    if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
-        return None
     kept: dict[str | None, Path | None] = {}
     for list_file in dict.fromkeys(list_files):
         saved = None if list_file is None or Path(list_file).suffix != ".jsonl" else Path(list_file).parent
         kept[list_file] = saved / CALIBRATION_NAME if saved and (saved / CALIBRATION_NAME).is_file() else None
     found = [path for path in kept.values() if path is not None]
+    manual = [getattr(args, option, None) is not None for option in ("focal_px", "baseline_m")]
+    if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
+        _warn_if_another_rig(args, found)
+        return None
     if not found:
         return None
     without = [str(name) for name, path in kept.items() if path is None]
@@ -90,6 +91,21 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
                          f"beside its index), and {others}: range them apart, or name the rig's file with "
                          "--calibration")
     return str(found[0])
+
+
+def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:
+    """Warn where the calibration the options give is not the one kept beside the listed pairs' index: the pairs
+    were captured with that rig, and another file replaced it without a word (an audit of calibration use)."""
+    from pathlib import Path
+
+    given = getattr(args, "calibration", None)
+    differs = [path for path in kept if given is None or Path(given).read_bytes() != path.read_bytes()]
+    if differs:
+        import warnings
+
+        what = f"--calibration {given}" if given else "--focal-px / --baseline-m / --doffs-px"
+        warnings.warn(f"{what} used: the pairs were captured with the rig calibration {differs[0]}, which differs",
+                      stacklevel=3)
 
 
 def take_kept_calibration(args: argparse.Namespace, path: str | None, prog: str) -> None:

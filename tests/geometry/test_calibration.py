@@ -496,6 +496,14 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
         line = json.loads(stdout.splitlines()[0])
         assert line["calibration"]["source"] == f"--calibration {out / 'calibration.json'} (the pair rectified by it)"
         assert f"rectified with {out / 'calibration.json'}" in err and line["calibration"]["measured"] is True
+    # Another file named replaces the kept one, now said (an audit: it was used without a word); the same rig's
+    # copy is not.
+    other = tmp_path / "other_rig.json"
+    other.write_text(path.read_text().replace('"created_utc": "', '"created_utc": "edited '))
+    for given, said in ((other, True), (path, False)):
+        code, _, err = run_cli(capsys, "estimate", "--pairs", str(out / "index.jsonl"), "--calibration", str(given))
+        assert code == 0 and (f"the pairs were captured with the rig calibration {out / 'calibration.json'}, which "
+                              "differs" in err) == said, err
     code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--out-dir", str(tmp_path / "other"),
                            "--size", "1280x1024", "--calibration", str(path))
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
