@@ -197,14 +197,14 @@ def check_outputs_apart(outputs: list[tuple[str, str | None]], inputs: list[tupl
     from ..core.errors import InputError
 
     named = [(option, path) for option, path in outputs if path]
+    read = [file for name, source in inputs for file in files_read_with(source, name)] if named else []
     for number, (option, path) in enumerate(named):
         for other_option, other in named[:number]:
             if os.path.realpath(path) == os.path.realpath(other):
                 raise InputError(f"{option}: the same file as {other_option} ({path}): name two files")
-        for name, source in inputs:
-            for read, what in files_read_with(source, name):
-                if os.path.exists(path) and os.path.samefile(path, read):
-                    raise InputError(f"{option}: {path} is {what}: it would be written over")
+        for file, what in read if os.path.exists(path) else ():
+            if os.path.samefile(path, file):
+                raise InputError(f"{option}: {path} is {what}: it would be written over")
 
 
 class _FigureAction(argparse.Action):
