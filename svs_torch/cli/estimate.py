@@ -225,15 +225,13 @@ def _check_outputs_apart(args: argparse.Namespace) -> None:
 def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> None:
     """``--disparity-out``'s folder made, or its error raised, before any work (standard library only)."""
     if args.disparity_out:
-        from ..core.dataset_files import check_not_in_kitti_dataset
+        from ..core.dataset_files import make_export_folder
         from ..core.errors import InputError
-        from ..core.files import make_output_folder
 
         if range_rule == "paper":
             raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense "
                              "map), got --range paper")
-        check_not_in_kitti_dataset(args.disparity_out, "--disparity-out")
-        make_output_folder(args.disparity_out, "--disparity-out")
+        make_export_folder(args.disparity_out, "--disparity-out")
 
 
 def _check_run_options(args: argparse.Namespace) -> None:

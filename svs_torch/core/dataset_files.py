@@ -12,8 +12,9 @@ import os
 from pathlib import Path
 
 from .errors import InputError
+from .files import make_output_folder
 
-__all__ = ["KITTI_LAYOUTS", "KITTI_LEFT_FOLDERS", "check_not_in_kitti_dataset", "files_read_with"]
+__all__ = ["KITTI_LAYOUTS", "KITTI_LEFT_FOLDERS", "files_read_with", "make_export_folder"]
 
 #: The KITTI training layouts, 2012 then 2015: (left, right, truth, non-occluded truth) folders and the name prefix.
 KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"),
@@ -39,9 +40,19 @@ def files_read_with(source: str | None, name: str) -> list[tuple[str, str]]:
     return [(str(f), f"a file of the scene {source}") for f in files]
 
 
-def check_not_in_kitti_dataset(folder: str | os.PathLike, name: str) -> None:
-    """:class:`InputError` naming ``name`` when ``folder`` is one of a KITTI dataset's folders (beside its
-    ``colored_0/`` or ``image_2/``): a map named as a frame would replace its ground truth or a view."""
+def make_export_folder(folder: str | os.PathLike, name: str) -> bool:
+    """The folder of an export of disparity maps made if missing (:func:`~.files.make_output_folder`), or
+    :class:`InputError` naming ``name`` where it cannot be, or where it is a folder of a KITTI dataset (beside its
+    ``colored_0/`` or ``image_2/``: a map named as a frame would replace its ground truth or a view). True where
+    this call made it."""
+    _check_not_in_kitti_dataset(folder, name)
+    made = not os.path.lexists(folder)
+    make_output_folder(folder, name)
+    return made
+
+
+def _check_not_in_kitti_dataset(folder: str | os.PathLike, name: str) -> None:
+    """:class:`InputError` naming ``name`` when ``folder`` is one of a KITTI dataset's folders."""
     parent = Path(os.path.realpath(folder)).parent
     beside = next((left for left in KITTI_LEFT_FOLDERS if (parent / left).is_dir()), None)
     if beside is not None:

@@ -28,7 +28,6 @@ agree with the JSON within its 0.1 mm rounding (tests/evaluation/test_disparity_
 from __future__ import annotations
 
 import contextlib
-import os
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -38,8 +37,8 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError, check_instance
-from ..core.dataset_files import check_not_in_kitti_dataset
-from ..core.files import make_output_folder, write_bytes_atomic
+from ..core.dataset_files import make_export_folder
+from ..core.files import write_bytes_atomic
 from ..core.types import StereoBatch
 from ..data.datasets import GENERIC_LEFT_NAME
 from ..data.formats import write_kitti_disparity, write_pfm
@@ -139,13 +138,11 @@ class DisparityExport:
 
     def prepare(self) -> None:
         """Make the folder (before any work, so a bad name fails at once): see
-        :func:`~svs_torch.core.files.make_output_folder`. A folder of a KITTI dataset (beside its ``colored_0/`` or
-        ``image_2/``) is refused: its ground truth is a 16-bit PNG named as the frame, which the export took for
-        a map of its own and replaced (``eval kitti --disparity-out kitti/disp_occ``, an audit)."""
-        check_not_in_kitti_dataset(self.directory, "--disparity-out")
-        if not os.path.lexists(self.directory):
+        :func:`~svs_torch.core.dataset_files.make_export_folder`, which refuses a folder of a KITTI dataset: its
+        ground truth is a 16-bit PNG named as the frame, which the export took for a map of its own and replaced
+        (``eval kitti --disparity-out kitti/disp_occ``, an audit)."""
+        if make_export_folder(self.directory, "--disparity-out"):
             self._made.append(Path(self.directory))
-        make_output_folder(self.directory, "--disparity-out")
 
     def remove_if_unused(self) -> None:
         """Remove the folder :meth:`prepare` made if nothing was written into it: a command that failed after it
