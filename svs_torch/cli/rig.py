@@ -99,7 +99,8 @@ def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:
     from pathlib import Path
 
     given = getattr(args, "calibration", None)
-    differs = [path for path in kept if given is None or Path(given).read_bytes() != path.read_bytes()]
+    content = None if given is None else Path(given).read_bytes()
+    differs = [path for path in kept if content != path.read_bytes()]
     if differs:
         import warnings
 
