@@ -27,7 +27,10 @@ from .link import CameraLink
 from .link_types import CaptureError, DamagedFrameError, LinkConfig, RawFrame
 from .protocol import VersionInfo, size_code_for
 
-__all__ = ["Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]
+__all__ = ["STEREO_ROLES", "Frame", "StereoPair", "PairBatch", "SVSStereoCamera", "to_stereo_batch", "decode_frame"]
+
+#: Each board's role in a stereo build (its version line): the master is the left camera (port 10001).
+STEREO_ROLES = {"left": "master", "right": "slave"}
 
 T = TypeVar("T")
 _CONNECT_TIMEOUT_S = 5.0  # pyserial's fixed socket:// connect timeout
@@ -203,8 +206,8 @@ class SVSStereoCamera:
             link.set_flip(flip)
 
     def _check_roles(self, strict: bool) -> None:
-        roles = {name: self.versions[name].role for name in ("left", "right")}
-        if roles == {"left": "master", "right": "slave"}:
+        roles = {name: self.versions[name].role for name in STEREO_ROLES}
+        if roles == STEREO_ROLES:
             return
         message = (f"left/right: expected the left board ({self.links['left'].url}) to be the stereo master and the "
                    f"right ({self.links['right'].url}) the slave, got left {roles['left']}, right {roles['right']}; "

@@ -27,6 +27,7 @@ from typing import Callable
 
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
+from ..capture.stereo import STEREO_ROLES
 from ..depth.depth_types import ObstacleSide
 from ..depth.floor_distance import pitched_camera
 from ..pipeline import PipelineStatus, result_along_floor
@@ -146,10 +147,10 @@ class GuideSession:
         """Say :data:`CAMERAS_SWAPPED` (once a run) when the left board answers as the slave or the right as the
         master; the driver's warning is printed too. Boards of a build that names no role are not said."""
         versions = getattr(camera, "versions", None)  # (a camera of another kind has no boards' version lines)
-        roles = {name: versions[name].role if versions else "unknown" for name in ("left", "right")}
-        if self.roles_said or roles["left"] not in ("slave", "master") or roles["right"] not in ("slave", "master"):
+        roles = {name: versions[name].role if versions else "unknown" for name in STEREO_ROLES}
+        if self.roles_said or not set(roles.values()) <= set(STEREO_ROLES.values()):
             return
-        if roles != {"left": "master", "right": "slave"}:
+        if roles != STEREO_ROLES:
             self.roles_said = True
             self.guide.speaker.say(CAMERAS_SWAPPED)
             self.log.event("cameras_swapped", left_role=roles["left"], right_role=roles["right"])
