@@ -7,7 +7,8 @@ correspondence gives the row ``(x'x, x'y, x', y'x, y'y, y', x, y, 1)`` of the li
 
 Every function is batched over arbitrary leading dimensions ``(...)``. Solvers work in float64 internally and
 return the input's dtype. Returned fundamental matrices have unit Frobenius norm and a fixed sign (their
-largest-magnitude entry is positive), so equal models compare equal.
+largest-magnitude entry is positive; of entries tied within ``SIGN_TIE_TOLERANCE``, as a translation's skew-symmetric
+F's are, the first in row-major order), so equal models compare equal.
 
 Differentiable: :func:`fundamental_8point` (w.r.t. points and weights, through ``eigh`` and ``svd``; defined
 where the two smallest eigenvalues of ``AᵀWA`` and the singular values of F differ), :func:`enforce_rank2`,

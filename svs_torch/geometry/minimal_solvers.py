@@ -12,7 +12,7 @@ import torch
 
 from ..core.inference import outside_inference_mode
 
-__all__ = ["DEGENERATE_PIVOT_RATIO", "MAX_ROOT_DETERMINANT", "enforce_rank2", "real_cubic_roots"]
+__all__ = ["DEGENERATE_PIVOT_RATIO", "MAX_ROOT_DETERMINANT", "SIGN_TIE_TOLERANCE", "enforce_rank2", "real_cubic_roots"]
 
 
 #: A 7-point sample is degenerate when the smallest LU pivot of its (normalised) system is below this share of
@@ -25,6 +25,11 @@ MAX_ROOT_DETERMINANT = 1e-7
 #: The fast null-space solve is trusted when its 7×7 block's smallest LU pivot is above this share of the largest
 #: (the solution error grows like the inverse ratio); other samples take the fully pivoted path.
 _FAST_PIVOT_RATIO = 1e-3
+#: The entry that fixes F's sign is the first, in row-major order, within this share of the largest magnitude. The
+#: F of a rig that only translates (a parallel rig, a rectified pair) is skew-symmetric: its largest entries come in
+#: pairs of equal magnitude and opposite sign, and the strictly largest one was picked by rounding, so the same
+#: points in another order gave −F. Rounding moves an entry by ~1e-12 of F (float64), far below this tolerance.
+SIGN_TIE_TOLERANCE = 1e-6
 
 
 def _design_matrix(points_left: torch.Tensor, points_right: torch.Tensor) -> torch.Tensor:
@@ -36,11 +41,14 @@ def _design_matrix(points_left: torch.Tensor, points_right: torch.Tensor) -> tor
 
 
 def _fix_sign_and_scale(fundamental: torch.Tensor) -> torch.Tensor:
-    """Unit Frobenius norm and a positive largest-magnitude entry, ``(..., 3, 3)``; zero matrices stay zero."""
+    """Unit Frobenius norm and a positive largest-magnitude entry (the first of entries tied within
+    :data:`SIGN_TIE_TOLERANCE`), ``(..., 3, 3)``; zero matrices stay zero."""
     flat = fundamental.flatten(-2)
     norm = flat.norm(dim=-1, keepdim=True)
     nonzero = norm > 0
-    largest = flat.gather(-1, flat.abs().argmax(-1, keepdim=True))  # the sign is piecewise constant
+    magnitude = flat.abs()
+    tied = magnitude >= magnitude.amax(-1, keepdim=True) * (1.0 - SIGN_TIE_TOLERANCE)
+    largest = flat.gather(-1, tied.to(torch.uint8).argmax(-1, keepdim=True))  # argmax: the first of the ties
     sign = torch.where(largest < 0, -1.0, 1.0).to(flat.dtype)
     flat = torch.where(nonzero, flat * sign / torch.where(nonzero, norm, 1.0), 0.0)
     return flat.unflatten(-1, (3, 3))

@@ -56,8 +56,8 @@ from ..core.checks import InputError, check_dtype, check_generator, check_shape
 from ..core.types import FundamentalResult, FundamentalStatus
 from . import kernels
 from .epipolar_distance import _epipolar_terms, _safe_ratio
-from .minimal_solvers import (_FAST_PIVOT_RATIO, DEGENERATE_PIVOT_RATIO, MAX_ROOT_DETERMINANT, _denormalize,
-                              _fix_sign_and_scale)
+from .minimal_solvers import (_FAST_PIVOT_RATIO, DEGENERATE_PIVOT_RATIO, MAX_ROOT_DETERMINANT, SIGN_TIE_TOLERANCE,
+                              _denormalize, _fix_sign_and_scale)
 from .ransac_refine import (LOCAL_OPTIMIZATION_STEPS, LOCAL_OPTIMIZATION_TOLERANCE, LOCAL_OPTIMIZATION_WINDOW,
                             POLISH_STEPS, POLISH_WINDOW, _local_optimization, _polish)
 from .ransac_sampling import _SAMPLE_SIZE, PREVERIFY_POINTS, draw_minimal_samples
@@ -236,7 +236,7 @@ def _kernel_settings(settings: dict, local_optimization: bool, preverification: 
             "polish_steps": POLISH_STEPS, "polish_window": POLISH_WINDOW, "degenerate_pivot": DEGENERATE_PIVOT_RATIO,
             "fast_pivot": _FAST_PIVOT_RATIO, "max_root_determinant": MAX_ROOT_DETERMINANT,
             "guard": _DENOMINATOR_GUARD, "preverify_points": PREVERIFY_POINTS,
-            "preverify_keep_ratio": PREVERIFY_KEEP_RATIO}
+            "preverify_keep_ratio": PREVERIFY_KEEP_RATIO, "sign_tie": SIGN_TIE_TOLERANCE}
 
 
 def estimate_fundamental_ransac(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from svs_torch import InputError
+from svs_torch import InputError, estimate_fundamental_ransac
 from svs_torch.geometry.epipolar import fundamental_7point, fundamental_8point
 from svs_torch.geometry.epipolar_distance import sampson_distance, symmetric_epipolar_distance
 from svs_torch.geometry.minimal_solvers import enforce_rank2, real_cubic_roots
@@ -84,6 +84,23 @@ def test_8point_recovers_exact_f(motion, dtype, generator):
     singular = torch.linalg.svdvals(estimate.double())
     assert (singular[:, 2] / singular[:, 0]).max() < (1e-12 if dtype == torch.float64 else 1e-6)  # rank 2
     assert torch.allclose(estimate.double().flatten(1).norm(dim=1), torch.ones(16, dtype=torch.float64))
+
+
+def test_sign_of_a_translation_f_does_not_depend_on_the_order_of_the_points(generator):
+    # A rig that only translates (the SVS's parallel rig, a rectified pair) has a skew-symmetric F: its largest
+    # entries are tied in magnitude with opposite signs, and the "largest entry positive" rule used to pick one of
+    # them by rounding, so the same correspondences in another order (or RANSAC with another seed) gave -F.
+    left, right, _ = random_camera_pairs(1, 40, generator, "rectified")
+    first = fundamental_8point(left, right)
+    for seed in range(12):
+        order = torch.randperm(40, generator=torch.Generator().manual_seed(seed))
+        again = fundamental_8point(left[:, order], right[:, order])
+        assert (first - again).abs().max() < 1e-9, seed
+        found = estimate_fundamental_ransac(left, right, torch.ones(1, 40, dtype=torch.bool),
+                                            generator=torch.Generator().manual_seed(seed))
+        assert (first - found.F).abs().max() < 1e-6, seed
+    solutions, valid = fundamental_7point(left[:, :7], right[:, :7])
+    assert valid.any() and ((solutions[valid] - first).flatten(1).norm(dim=1).min() < 1e-6)
 
 
 def test_8point_weights_exclude_outliers_and_leading_dims_broadcast(generator):

@@ -251,7 +251,7 @@ def row_alignment_fit(points_left: torch.Tensor, points_right: torch.Tensor, val
 RANSAC_SETTINGS = ("threshold_px", "confidence", "max_iterations", "chunk_size", "scoring", "local_optimization",
                    "preverification", "polish", "lo_steps", "lo_window", "lo_tolerance", "polish_steps",
                    "polish_window", "degenerate_pivot", "fast_pivot", "max_root_determinant", "guard",
-                   "preverify_points", "preverify_keep_ratio")
+                   "preverify_points", "preverify_keep_ratio", "sign_tie")
 #: The settings that count something: whole numbers, at least 1 (the steps at least 0).
 _RANSAC_COUNTS = {"max_iterations": 1, "chunk_size": 1, "lo_steps": 0, "polish_steps": 0, "preverify_points": 1,
                   "preverify_keep_ratio": 1}

@@ -34,12 +34,12 @@
 enum {
     S_THRESHOLD_PX, S_CONFIDENCE, S_MAX_ITERATIONS, S_CHUNK_SIZE, S_SCORING, S_LOCAL_OPTIMIZATION, S_PREVERIFICATION,
     S_POLISH, S_LO_STEPS, S_LO_WINDOW, S_LO_TOLERANCE, S_POLISH_STEPS, S_POLISH_WINDOW, S_DEGENERATE_PIVOT,
-    S_FAST_PIVOT, S_MAX_ROOT_DETERMINANT, S_GUARD, S_PREVERIFY_POINTS, S_PREVERIFY_KEEP_RATIO, S_COUNT
+    S_FAST_PIVOT, S_MAX_ROOT_DETERMINANT, S_GUARD, S_PREVERIFY_POINTS, S_PREVERIFY_KEEP_RATIO, S_SIGN_TIE, S_COUNT
 };
 
 typedef struct {
     double threshold_px, confidence, lo_window, lo_tolerance, polish_window, degenerate_pivot, fast_pivot,
-        max_root_determinant, guard;
+        max_root_determinant, guard, sign_tie;
     int64_t max_iterations, chunk_size, lo_steps, polish_steps, preverify_points, keep_ratio;
     int ransac_scoring, local_optimization, preverification, polish;
 } Settings;
@@ -639,8 +639,10 @@ static double search(const Problem *pr, const Settings *st, Work *w, uint64_t se
     return best_loss;
 }
 
-/* ransac._finish's model: F = T_right^T F_n T_left, unit Frobenius norm, its largest-magnitude entry positive. */
-static void to_pixels(const Problem *pr, const double *fn, double *f) {
+/* ransac._finish's model: F = T_right^T F_n T_left, unit Frobenius norm, its largest-magnitude entry positive: the
+ * first, in row-major order, within sign_tie (minimal_solvers.SIGN_TIE_TOLERANCE) of the largest (a translation's
+ * F is skew-symmetric, its largest entries tied in magnitude and opposite in sign). */
+static void to_pixels(const Problem *pr, const double *fn, double sign_tie, double *f) {
     double tmp[9];
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) {
@@ -654,12 +656,13 @@ static void to_pixels(const Problem *pr, const double *fn, double *f) {
             for (int k = 0; k < 3; ++k) v += pr->t_right[k * 3 + i] * tmp[k * 3 + j];
             f[i * 3 + j] = v;
         }
-    double norm = 0.0;
-    int largest = 0;
+    double norm = 0.0, top = 0.0;
     for (int i = 0; i < 9; ++i) {
         norm += f[i] * f[i];
-        if (fabs(f[i]) > fabs(f[largest])) largest = i;
+        top = fabs(f[i]) > top ? fabs(f[i]) : top;
     }
+    int largest = 0;
+    while (largest < 8 && !(fabs(f[largest]) >= top * (1.0 - sign_tie))) ++largest;
     norm = sqrt(norm);
     const double sign = f[largest] < 0 ? -1.0 : 1.0;
     for (int i = 0; i < 9; ++i) f[i] = norm > 0 ? f[i] * sign / norm : 0.0;
@@ -685,6 +688,7 @@ static void read_settings(const double *values, Settings *st) {
     st->guard = values[S_GUARD];
     st->preverify_points = (int64_t)values[S_PREVERIFY_POINTS];
     st->keep_ratio = (int64_t)values[S_PREVERIFY_KEEP_RATIO];
+    st->sign_tie = values[S_SIGN_TIE];
 }
 
 /* One pair from its valid rows to F in pixels and its inliers (ransac.estimate_fundamental_ransac after the
@@ -711,7 +715,7 @@ static void one_pair(const double *left, const double *right, const uint8_t *val
         const double window_sq = st->polish_window * st->polish_window * pr->threshold_sq;
         refine(pr, st, best, score(pr, best, 0, window_sq, 0), st->polish_steps, st->polish_window, window_sq, 0, 1);
     }
-    to_pixels(pr, best, f);
+    to_pixels(pr, best, st->sign_tie, f);
     *found = isfinite(loss);
     const double threshold_sq = st->threshold_px * st->threshold_px;
     for (int64_t k = 0; k < K; ++k) { /* the exact float64 Sampson distance in pixels (_finish) */
