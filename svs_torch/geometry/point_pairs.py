@@ -43,7 +43,16 @@ def normalize_points_hartley(points: torch.Tensor,
         translates): such a set is degenerate for every solver and is flagged there.
 
     Differentiable w.r.t. ``points`` and ``weights`` (where the spread is non-zero).
+
+    Raises:
+        InputError: ``points`` not ``(..., K, 2)`` float32 / float64 (integer pixels gave an integer T, its scale
+            truncated to 0), ``weights`` not ``(..., K)`` float or bool.
     """
+    check_shape(points, "points", _point_spec(points, "K"))
+    check_dtype(points, "points", "float")
+    if weights is not None:
+        check_shape(weights, "weights", list(points.shape[:-1]))
+        check_dtype(weights, "weights", "float|bool")
     if weights is None:
         weights = torch.ones_like(points[..., 0])
     weights = weights.to(points.dtype)

@@ -267,3 +267,10 @@ def test_errors_name_the_argument():
         sampson_distance(points, points, torch.zeros(2, 4, 4))
     with pytest.raises(InputError, match="points_left: expected a float tensor, got torch.int64"):
         sampson_distance(points.long(), points, torch.zeros(2, 3, 3))
+    # Integer pixels gave a silently truncated integer T (scale 0.02 -> 0) and float32 points.
+    with pytest.raises(InputError, match="points: expected a float tensor, got torch.int64"):
+        normalize_points_hartley(torch.arange(20).view(10, 2) * 7)
+    with pytest.raises(InputError, match=r"points: expected \(K, 2\), got \(10, 3\)"):
+        normalize_points_hartley(torch.zeros(10, 3))
+    with pytest.raises(InputError, match="weights: expected a float or bool tensor, got torch.int64"):
+        normalize_points_hartley(points, torch.ones(2, 10, dtype=torch.long))
