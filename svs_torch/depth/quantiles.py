@@ -38,13 +38,17 @@ def _quantile_levels(q: Sequence[float] | torch.Tensor, values: torch.Tensor) ->
 def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
-    after the sort); the counts have none. An empty last dimension (no keypoint at all) gives 0 and 0."""
+    after the sort); the counts have none. An empty last dimension (no keypoint at all) gives 0 and 0. ``values``
+    float32, float64 or integer (as ``torch.median`` takes them); the medians have its dtype."""
+    check_dtype(values, "values", "float|int")
     check_shape(mask, "mask", list(values.shape))
     check_dtype(mask, "mask", "bool")
     count = mask.sum(-1)
     if values.shape[-1] == 0:
-        return values.sum(-1), count  # zeros, with a graph to values where there is one
-    ordered = sort_last(torch.where(mask, values, torch.full_like(values, torch.inf)))
+        return values.sum(-1).to(values.dtype), count  # zeros, with a graph to values where there is one
+    # Masked-out entries sort last: +inf, or an integer dtype's largest value (inf overflowed int64 in torch).
+    last = torch.inf if values.is_floating_point() else torch.iinfo(values.dtype).max
+    ordered = sort_last(torch.where(mask, values, torch.full_like(values, last)))
     median = ordered.gather(-1, ((count - 1).clamp(min=0) // 2).unsqueeze(-1)).squeeze(-1)
     return torch.where(count > 0, median, torch.zeros_like(median)), count
 

@@ -11,7 +11,7 @@ from svs_torch import InputError
 from svs_torch.core.ordering import argsort_last, sort_last
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth.depth_types import DepthConfig, ObstacleSide, PointDepths
-from svs_torch.depth.quantiles import labelled_quantile, masked_quantile
+from svs_torch.depth.quantiles import labelled_quantile, masked_lower_median, masked_quantile
 from svs_torch.depth.sparse import (accuracy_percent, estimate_depth, estimate_range, nearest_obstacle, object_depths,
                                     point_depths, rectified_disparity)
 
@@ -119,6 +119,23 @@ def test_masked_quantile_matches_numpy_per_row(generator):
     assert masked_quantile(values[..., :0], valid[..., :0], q).values.shape == (5, 3, 5)
     with pytest.raises(InputError, match="q: expected quantiles in"):
         masked_quantile(values, valid, [1.5])
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.uint8, torch.float32, F64])
+def test_masked_lower_median_is_torch_median_per_row_for_every_dtype_it_takes(generator, dtype):
+    # Integer values (a KITTI map's raw uint16 levels, pixel counts) raised "value cannot be converted to type
+    # int64_t without overflow" from deep inside: the masked entries were filled with inf.
+    values = (torch.rand(4, 9, generator=generator) * 200).to(dtype)
+    mask = torch.rand(4, 9, generator=generator) > 0.4
+    mask[0] = False
+    median, count = masked_lower_median(values, mask)
+    assert median.dtype == dtype and count.tolist() == mask.sum(1).tolist()
+    for row in range(4):
+        expected = values[row][mask[row]].median() if mask[row].any() else torch.zeros((), dtype=dtype)
+        assert median[row] == expected, row
+    assert masked_lower_median(values[:, :0], mask[:, :0])[0].dtype == dtype
+    with pytest.raises(InputError, match="values: expected a float32 or float64 tensor, got torch.float16"):
+        masked_lower_median(values.half(), mask)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
