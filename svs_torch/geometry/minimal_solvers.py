@@ -10,6 +10,7 @@ import math
 
 import torch
 
+from ..core.checks import check_dtype, check_shape
 from ..core.inference import outside_inference_mode
 
 __all__ = ["DEGENERATE_PIVOT_RATIO", "MAX_ROOT_DETERMINANT", "SIGN_TIE_TOLERANCE", "enforce_rank2", "real_cubic_roots"]
@@ -55,10 +56,21 @@ def _fix_sign_and_scale(fundamental: torch.Tensor) -> torch.Tensor:
 
 
 def enforce_rank2(fundamental: torch.Tensor) -> torch.Tensor:
-    """The closest rank-2 matrix in Frobenius norm (zero the smallest singular value), ``(..., 3, 3)``.
+    """The closest rank-2 matrix in Frobenius norm (zero the smallest singular value), ``(..., 3, 3)`` float32 or
+    float64, in its dtype.
 
     Differentiable where the singular values are distinct.
+
+    Raises:
+        InputError: ``fundamental`` of another shape or dtype (torch's SVD raised for an integer one, naming none).
     """
+    check_shape(fundamental, "fundamental", [*(f"N{i}" for i in range(max(fundamental.dim() - 2, 0))), 3, 3])
+    check_dtype(fundamental, "fundamental", "float")
+    return _rank2(fundamental)
+
+
+def _rank2(fundamental: torch.Tensor) -> torch.Tensor:
+    """:func:`enforce_rank2` without its checks, for the solvers' own float64 matrices."""
     u, s, vh = torch.linalg.svd(fundamental)
     s = torch.cat([s[..., :2], torch.zeros_like(s[..., 2:])], dim=-1)
     return u @ torch.diag_embed(s) @ vh
@@ -77,7 +89,7 @@ def _eight_point_from_design(design: torch.Tensor, weights: torch.Tensor) -> tor
     """
     normal = (design * weights.unsqueeze(-1)).transpose(-1, -2) @ design  # (..., 9, 9)
     _, vectors = torch.linalg.eigh(normal)
-    return enforce_rank2(vectors[..., :, 0].unflatten(-1, (3, 3)))
+    return _rank2(vectors[..., :, 0].unflatten(-1, (3, 3)))
 
 
 @functools.lru_cache(maxsize=8)

@@ -274,3 +274,8 @@ def test_errors_name_the_argument():
         normalize_points_hartley(torch.zeros(10, 3))
     with pytest.raises(InputError, match="weights: expected a float or bool tensor, got torch.int64"):
         normalize_points_hartley(points, torch.ones(2, 10, dtype=torch.long))
+    # torch's SVD raised "linalg.svd: Expected a floating point or complex tensor as input. Got Long".
+    with pytest.raises(InputError, match="fundamental: expected a float tensor, got torch.int64"):
+        enforce_rank2(torch.ones(2, 3, 3, dtype=torch.long))
+    with pytest.raises(InputError, match=r"fundamental: expected \(N0, 3, 3\), got \(2, 4, 4\)"):
+        enforce_rank2(torch.zeros(2, 4, 4))
