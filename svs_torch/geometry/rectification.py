@@ -158,7 +158,8 @@ def map_points(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
 def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Warp images ``(B, 1, H, W)`` by ``homographies`` ``(B, 3, 3)`` (original to rectified pixels) into the same
     size, zeros outside (kornia ``warp_perspective``, pixel-centre convention as OpenCV's ``warpPerspective``).
-    ``mode="nearest"`` for label images, whose values must not be blended. A singular or non-finite homography
+    ``mode="nearest"`` for label images, whose values must not be blended (passed as float, e.g.
+    ``labels.double()``, and rounded back: an integer tensor is refused). A singular or non-finite homography
     gives that pair NaN (the pipeline passes only invertible ones). Differentiable w.r.t. the images and the
     homographies (bilinear)."""
     dims = check_image(images, "images", check_range=False)
