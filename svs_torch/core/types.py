@@ -261,7 +261,8 @@ class Segmentation:
     """What the segmentation stage (paper Sec. 3.2, steps 1–6) produces for a batch of B images.
 
     Attributes:
-        threshold: Otsu threshold ``(B,)`` on the [0, 1] scale; a pixel is foreground where ``image > threshold``.
+        threshold: Otsu threshold ``(B,)`` on the [0, 1] scale; a pixel is foreground where its gray level
+            ``round(255·image) > threshold_level`` (``image > threshold`` only for images on the 1/255 grid).
         threshold_level: the same threshold as a 0–255 gray level ``(B,)`` int64 (OpenCV's return value).
         binary: thresholded image ``(B, 1, H, W)`` bool (the Canny edge map for the Canny method).
         opened: binary image after erosion then dilation ``(B, 1, H, W)`` bool (edges after dilation then

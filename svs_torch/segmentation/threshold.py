@@ -95,7 +95,9 @@ def otsu_threshold(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     Returns:
         ``threshold`` ``(B,)`` on the [0, 1] scale (level / 255, the image's dtype) and ``level`` ``(B,)`` int64
         on the 0–255 scale, equal to ``cv2.threshold(u8, 0, 255, THRESH_BINARY | THRESH_OTSU)[0]``.
-        Foreground is ``image > threshold``. Not differentiable: the threshold is a histogram argmax; see
+        Foreground is ``round(255·image) > level`` (:func:`threshold_binary`), which is ``image > threshold`` only
+        for images on the 1/255 grid: a resampled image's pixel at 106.2/255 is above threshold 106/255 but
+        background. Not differentiable: the threshold is a histogram argmax; see
         :func:`svs_torch.segmentation.soft.soft_threshold` for a differentiable binarisation.
     """
     check_image(image, "image")
