@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import check_image, check_shape
+from ..core.checks import check_dtype, check_image, check_shape
 from . import kernels
 
 __all__ = ["gray_levels", "gray_histogram", "gray_levels_and_histogram", "otsu_threshold_level", "otsu_threshold",
@@ -23,7 +23,9 @@ def gray_levels(image: torch.Tensor) -> torch.Tensor:
     """Quantise ``(B, 1, H, W)`` images in [0, 1] to uint8 gray levels 0..255 (``round(255·x)``).
 
     uint8 keeps the full-resolution passes that follow at one byte per pixel. Not differentiable (rounding).
+    ``image`` float32 or float64 (InputError otherwise: a uint8 image's ``255·x`` wrapped around modulo 256).
     """
+    check_dtype(image, "image", "float")
     return (image.detach() * (NUM_LEVELS - 1)).round_().clamp_(0, NUM_LEVELS - 1).to(torch.uint8)
 
 

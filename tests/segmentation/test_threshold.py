@@ -85,3 +85,15 @@ def test_errors_name_the_argument():
         otsu_threshold(torch.full((1, 1, 4, 4), 2.0))
     with pytest.raises(InputError, match="image: expected a float tensor"):
         otsu_threshold(torch.zeros(1, 1, 4, 4, dtype=torch.uint8))
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int64, torch.bool, torch.float16])
+def test_gray_levels_refuses_an_image_that_is_not_float32_or_float64(dtype):
+    # A uint8 image (0..255) came back wrapped modulo 256 (200 -> 56) and an int64 one clamped to 255, in silence;
+    # threshold_binary passed an int64 image on to it the same way.
+    image = torch.full((1, 1, 4, 4), 200).to(dtype)
+    with pytest.raises(InputError, match=f"image: expected a float.* tensor, got {dtype}"):
+        gray_levels(image)
+    if dtype != torch.uint8:  # threshold_binary takes uint8 as gray levels already
+        with pytest.raises(InputError, match=f"image: expected a float.* tensor, got {dtype}"):
+            threshold_binary(image, torch.tensor([100]))
