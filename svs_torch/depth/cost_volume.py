@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_dtype, check_shape
 from ..core.mask_reductions import any_along
 from . import kernels
 from .dense_config import DenseConfig
@@ -45,7 +45,10 @@ def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
 
     The six taps are added as shifted slices in the row-major order of the 3×3 kernel, which gives
     ``F.conv2d``'s values bit for bit (checked in ``tests/depth/test_dense.py``) at a tenth of its time on this
-    CPU (single-channel ``conv2d`` is not vectorised: 105 ms against 9 for 32 images of 320×240)."""
+    CPU (single-channel ``conv2d`` is not vectorised: 105 ms against 9 for 32 images of 320×240). ``image``
+    float32 or float64 (an integer one failed in torch's in-place sums, a bool one in its padding)."""
+    check_shape(image, "image", ["B", 1, "H", "W"])
+    check_dtype(image, "image", "float")
     padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
     h, w = image.shape[-2:]
 

@@ -314,6 +314,16 @@ def test_prefilter_matches_opencv_sobel(teddy):
     np.testing.assert_allclose(ours, theirs, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int64, torch.bool, torch.float16])
+def test_prefilter_names_an_image_that_is_not_float(dtype):
+    # uint8 / int64 raised torch's "result type Float can't be cast to the desired output type", bool a
+    # NotImplementedError of replication_pad2d.
+    with pytest.raises(InputError, match=f"image: expected a float.* tensor, got {dtype}"):
+        prefilter_xsobel(torch.ones(1, 1, 6, 8, dtype=dtype), 0.12)
+    with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\), got \(6, 8\)"):
+        prefilter_xsobel(torch.ones(6, 8), 0.12)
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"window_size": 4}, "window_size: expected an odd int from 1 to 511"),
     ({"prefilter": "census"}, "prefilter: expected 'xsobel' or 'none'"),
