@@ -257,7 +257,7 @@ def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, lef
     check_shape(minimum, "min_disparity_px", [left.shape[0]])
     check_dtype(minimum, "min_disparity_px", "int")
     # Column arithmetic in int64 (the kernel's and the torch path's index maths) must not overflow.
-    if minimum.numel() and bool(((minimum >= 2**31) | (minimum <= -2**31)).any()):  # not abs(): abs(-2^63) < 0
+    if minimum.numel() and bool(((minimum.long() >= 2**31) | (minimum.long() <= -2**31)).any()):  # (abs(-2^63) < 0)
         raise InputError(f"min_disparity_px: expected values in (-2^31, 2^31), got {minimum.tolist()}")
     return minimum.long()
 

@@ -314,6 +314,19 @@ def test_prefilter_matches_opencv_sobel(teddy):
     np.testing.assert_allclose(ours, theirs, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.int32, torch.int16, torch.uint8])
+def test_block_matching_takes_a_narrower_integer_minimum(generator, dtype):
+    # An int32 min_disparity_px of zeros was refused with "expected values in (-2^31, 2^31), got [0, 0]": the
+    # bound 2^31 wrapped around in the tensor's own dtype.
+    left = torch.rand(2, 1, 12, 30, generator=generator)
+    right = torch.roll(left, -2, dims=-1)
+    expected = block_match_sad(left, right, torch.tensor([0, 1]), 6)
+    found = block_match_sad(left, right, torch.tensor([0, 1], dtype=dtype), 6)
+    assert torch.equal(found.disparity_px, expected.disparity_px) and torch.equal(found.valid, expected.valid)
+    assert torch.equal(soft_block_match(left, right, torch.tensor([0, 1], dtype=dtype), 6, 0.05),
+                       soft_block_match(left, right, torch.tensor([0, 1]), 6, 0.05))
+
+
 @pytest.mark.parametrize("dtype", [torch.uint8, torch.int64, torch.bool, torch.float16])
 def test_prefilter_names_an_image_that_is_not_float(dtype):
     # uint8 / int64 raised torch's "result type Float can't be cast to the desired output type", bool a
