@@ -16,7 +16,7 @@ from svs_torch import InputError
 from svs_torch.core import kernels
 from svs_torch.data import load_middlebury_eval3, resize_stereo_batch
 from svs_torch.depth.block_matching import block_match_sad, dense_disparity_over_regions, fill_invalid_rows
-from svs_torch.depth.cost_volume import prefilter_xsobel, wanted_pixels
+from svs_torch.depth.cost_volume import prefilter_xsobel, quantize_levels, wanted_pixels
 from svs_torch.depth.dense import estimate_dense_disparity, working_window
 from svs_torch.depth.dense_config import DenseConfig, DisparityRange
 from svs_torch.depth.search_range import coarse_search_range, disparity_search_range
@@ -335,6 +335,14 @@ def test_prefilter_names_an_image_that_is_not_float(dtype):
         prefilter_xsobel(torch.ones(1, 1, 6, 8, dtype=dtype), 0.12)
     with pytest.raises(InputError, match=r"image: expected \(B, 1, H, W\), got \(6, 8\)"):
         prefilter_xsobel(torch.ones(6, 8), 0.12)
+
+
+def test_quantize_levels_refuses_an_integer_image():
+    # quantize_levels(uint8 200) gave 56 (255 * 200 wrapped modulo 256) in silence.
+    assert quantize_levels(torch.tensor([0.0, 0.5, 1.0])).tolist() == [0.0, 128.0, 255.0]
+    for dtype in (torch.uint8, torch.int64, torch.float16):
+        with pytest.raises(InputError, match=f"image: expected a float.* tensor, got {dtype}"):
+            quantize_levels(torch.full((1, 1, 2, 2), 200).to(dtype))
 
 
 @pytest.mark.parametrize("kwargs, message", [
