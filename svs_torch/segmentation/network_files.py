@@ -77,7 +77,10 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     network_class, config_class = _network_classes(kind)
     try:
         settings = dict(stored["config"])
-        net = network_class(config_class(**{**settings, "channels": tuple(settings["channels"])}))
+        # The layers' random initial weights are overwritten by the file's: drawn from a forked generator, so that
+        # loading (the first pipeline run of a process) leaves torch's global random state as the caller set it.
+        with torch.random.fork_rng(devices=[]):
+            net = network_class(config_class(**{**settings, "channels": tuple(settings["channels"])}))
         net.load_state_dict(stored["state_dict"])
     except InputError as error:  # a setting out of its range (a hand-edited or foreign file): named without the file
         raise InputError(f"segmenter: {str(path)!r}: its stored settings are refused ({error})") from None

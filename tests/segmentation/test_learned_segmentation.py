@@ -24,7 +24,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.learned import (mask_iou, obstacle_truth, segment_learned, segment_stereo_learned,
                                             soft_nearest_depth, soft_object_depths)
 from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits
-from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
+from svs_torch.segmentation.network_files import (NEARNESS_WEIGHTS, SHIPPED_WEIGHTS, load_obstacle_net,
+                                                  save_obstacle_net)
 from svs_torch.segmentation.segment import SegmentationConfig
 
 
@@ -85,6 +86,21 @@ def test_shipped_weights_load_and_are_package_data():
     stored = torch.load(SHIPPED_WEIGHTS, weights_only=True)
     assert stored["metadata"]["train_scenes"] and stored["metadata"]["held_out_scenes"]
     assert not set(stored["metadata"]["train_scenes"]) & set(stored["metadata"]["held_out_scenes"])
+
+
+@pytest.mark.parametrize("segmenter", ["learned", "nearness"])
+def test_loading_weights_leaves_the_global_random_state_alone(segmenter):
+    # Building the network drew its throw-away initial weights from torch's global generator: a user's
+    # torch.manual_seed(0); estimate_obstacle_depth(...); torch.rand(3) gave other numbers on a process's first
+    # call (when the shipped network is loaded) than on later ones.
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    net = load_obstacle_net(segmenter)
+    assert torch.equal(torch.rand(3), expected)
+    shipped = torch.load(SHIPPED_WEIGHTS if segmenter == "learned" else NEARNESS_WEIGHTS, weights_only=True)
+    shipped = shipped["state_dict"]
+    assert all(torch.equal(value, shipped[name]) for name, value in net.state_dict().items())
 
 
 def test_saved_weights_round_trip(tmp_path, scenes):
