@@ -246,7 +246,8 @@ class RegionProperties:
     Attributes:
         area_px: pixel count ``(B, L)`` int64 (MATLAB ``regionprops`` ``Area``; OpenCV ``CC_STAT_AREA``).
         bbox_xyxy: ``(B, L, 4)`` int64 ``x0, y0, x1, y1`` with x1, y1 exclusive (x = column).
-        centroid_xy: ``(B, L, 2)`` float, mean pixel position (x, y) in pixel-centre coordinates.
+        centroid_xy: ``(B, L, 2)`` float (the segmented image's dtype), mean pixel position (x, y) in pixel-centre
+            coordinates.
         valid: ``(B, L)`` bool, slots that hold a region of that image.
     """
 

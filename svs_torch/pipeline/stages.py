@@ -179,5 +179,5 @@ def _unwarped(seg: Segmentation, image: torch.Tensor, homographies: torch.Tensor
     labels = back(seg.labels)
     kept = back(seg.kept_mask) > 0  # (the learned segmenter's and Otsu's labels hold every region, kept or not)
     return dataclasses.replace(seg, binary=back(seg.binary) > 0, opened=back(seg.opened) > 0, labels=labels,
-                               regions=region_properties(labels, seg.num_regions), kept_mask=kept,
+                               regions=region_properties(labels, seg.num_regions, image.dtype), kept_mask=kept,
                                masked=image * kept.to(image.dtype))

@@ -134,7 +134,8 @@ def _paint(runs: _Runs, run_label: torch.Tensor) -> torch.Tensor:
     return marks.cumsum(0, dtype=torch.int32)[:size].view(runs.batch, 1, runs.height, runs.width).long()
 
 
-def _run_properties(runs: _Runs, run_label: torch.Tensor, num_labels: torch.Tensor) -> RegionProperties:
+def _run_properties(runs: _Runs, run_label: torch.Tensor, num_labels: torch.Tensor,
+                    dtype: torch.dtype | None) -> RegionProperties:
     """Region properties from runs: areas and coordinate sums add up, boxes take min / max over runs."""
     device = run_label.device
     b, h, w = runs.batch, runs.height, runs.width
@@ -160,7 +161,7 @@ def _run_properties(runs: _Runs, run_label: torch.Tensor, num_labels: torch.Tens
     return RegionProperties(
         area_px=area.view(b, slots),
         bbox_xyxy=torch.where(valid.unsqueeze(-1), box, torch.zeros_like(box)),
-        centroid_xy=centroid.to(torch.get_default_dtype()),
+        centroid_xy=centroid.to(dtype or torch.get_default_dtype()),
         valid=valid,
     )
 
@@ -176,13 +177,14 @@ def _check_mask(mask: torch.Tensor, connectivity: int) -> torch.Tensor:
 
 
 def connected_components_with_stats(
-    mask: torch.Tensor, connectivity: int = 8
+    mask: torch.Tensor, connectivity: int = 8, dtype: torch.dtype | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, RegionProperties]:
     """Label the connected foreground regions of each binary image and measure them, in one pass.
 
     Args:
         mask: ``(B, 1, H, W)`` bool.
         connectivity: 8 (MATLAB ``bwlabel``'s default and the paper's) or 4.
+        dtype: the centroids' float dtype, e.g. the segmented image's (None: torch's default dtype).
 
     Returns:
         ``labels`` ``(B, 1, H, W)`` int64 (0 background, 1..n per image, raster order of each region's first
@@ -192,7 +194,7 @@ def connected_components_with_stats(
     """
     mask = _check_mask(mask, connectivity)
     runs, run_label, num_labels, labels = _label_runs(mask, connectivity)
-    return labels, num_labels, _run_properties(runs, run_label, num_labels)
+    return labels, num_labels, _run_properties(runs, run_label, num_labels, dtype)
 
 
 def label_connected_components(mask: torch.Tensor, connectivity: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
@@ -203,12 +205,14 @@ def label_connected_components(mask: torch.Tensor, connectivity: int = 8) -> tup
     return labels, num_labels
 
 
-def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = None) -> RegionProperties:
+def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = None,
+                      dtype: torch.dtype | None = None) -> RegionProperties:
     """Area, bounding box and centroid of every label of a label image (MATLAB ``regionprops``), batched.
 
     Args:
         labels: ``(B, 1, H, W)`` int64, 0 background, 1..n; a label may cover several disconnected pieces.
         num_labels: ``(B,)`` int64 number of label slots per image; default: each image's largest label.
+        dtype: the centroids' float dtype (None: torch's default dtype).
 
     Returns:
         :class:`RegionProperties` with L = max(num_labels) slots; slot l holds label l + 1 (an unused label
@@ -235,4 +239,4 @@ def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = No
     # Labels beyond an image's slot count have no slot: leave them out rather than spill into the next image.
     inside = run_label <= num_labels[runs.start // (grid.shape[1] * grid.shape[2])]
     runs = _Runs(runs.start[inside], runs.end[inside], runs.batch, runs.height, runs.width)
-    return _run_properties(runs, run_label[inside], num_labels)
+    return _run_properties(runs, run_label[inside], num_labels, dtype)

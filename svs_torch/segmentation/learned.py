@@ -105,7 +105,7 @@ def obstacle_truth(batch: StereoBatch, config: SegmentationConfig = Segmentation
     near = valid & (levels > level.to(torch.uint8).view(-1, 1, 1, 1))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=near.device)
     opened = open_binary(near, element)
-    labels, _, regions = connected_components_with_stats(opened, config.connectivity)
+    labels, _, regions = connected_components_with_stats(opened, config.connectivity, batch.left.dtype)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     depth, known = batch.ground_truth_depth_m()
     region_depth, count = kept_region_lower_median(depth, known, labels, kept_labels)
@@ -143,7 +143,7 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
     binary = logits.detach() > math.log(probability_threshold / (1 - probability_threshold))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
     opened = open_binary(binary, element)
-    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
+    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity, image.dtype)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     uniform = (gray_levels_and_histogram(image)[1] > 0).sum(1) == 1
     threshold = torch.full((b,), probability_threshold, dtype=image.dtype, device=image.device)

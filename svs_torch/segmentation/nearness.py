@@ -362,7 +362,7 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
     binary = left_logits.detach() > math.log(threshold_value / (1 - threshold_value))
     element = structuring_element(config.kernel_shape, config.kernel_size, device=image.device)
     opened = open_binary(binary, element)
-    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
+    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity, image.dtype)
     disparity = measured.disparity_px.detach()
     region_disparity = _region_median_disparity(disparity, labels, num_regions)
     h, w = image.shape[-2:]
@@ -388,7 +388,7 @@ def _segment_measured(batch: StereoBatch, config: SegmentationConfig, net: Nearn
     right_mask = right_labels > 0
     right = Segmentation(threshold=threshold, threshold_level=level, binary=right_mask, opened=right_mask,
                          labels=right_labels, num_regions=num_regions,
-                         regions=region_properties(right_labels, num_regions), kept_labels=kept_labels,
+                         regions=region_properties(right_labels, num_regions, image.dtype), kept_labels=kept_labels,
                          kept_mask=right_mask, masked=batch.right * right_mask.to(image.dtype),
                          status=torch.where(right_mask.flatten(1).any(1) | (status != SegmentationStatus.OK),
                                             status, torch.full_like(status, SegmentationStatus.NO_FOREGROUND)))

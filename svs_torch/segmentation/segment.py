@@ -331,7 +331,7 @@ def segment_images(image: torch.Tensor, config: SegmentationConfig = Segmentatio
         if config.foreground == "dark":
             binary = ~binary
         opened = open_binary(binary, element)
-    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity)
+    labels, num_regions, regions = connected_components_with_stats(opened, config.connectivity, image.dtype)
     kept_labels, kept_mask = keep_largest_regions(labels, regions, config.num_keep)
     uniform = (histogram > 0).sum(dim=1) == 1  # one gray level: Otsu has no split
     kept_labels, kept_mask = without_kept_regions(uniform, kept_labels, kept_mask)

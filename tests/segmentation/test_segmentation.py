@@ -178,3 +178,25 @@ def test_segment_stereo_runs_the_segmenter_its_config_names(data_dir, segmenter)
     assert not torch.equal(ours.left.kept_mask, segment_stereo(batch, SegmentationConfig()).left.kept_mask)
     with pytest.raises(InputError, match=f"config: segment_images runs the Otsu segmenter .* {segmenter!r}"):
         segment_images(batch.left, config)
+
+
+@pytest.mark.parametrize("segmenter", ["otsu", "nearness", "learned"])
+def test_region_centroids_follow_the_image_dtype(data_dir, segmenter):
+    # The centroids were in torch's default dtype whatever the image's: float32 for a float64 batch (and float64
+    # for a float32 one under torch.set_default_dtype(torch.float64)), unlike every other float output.
+    batch, _, _ = stereo_batch(data_dir, (160, 120))
+    config = SegmentationConfig(segmenter=segmenter)
+    batch64 = dataclasses.replace(batch, left=batch.left.double(), right=batch.right.double())
+    for source, dtype in ((batch, torch.float32), (batch64, torch.float64)):
+        ours = segment_stereo(source, config)
+        assert ours.left.regions.centroid_xy.dtype == ours.right.regions.centroid_xy.dtype == dtype
+    reference = segment_stereo(batch, config).left.regions
+    centroids = segment_stereo(batch64, config).left.regions.centroid_xy
+    if segmenter == "otsu":
+        torch.testing.assert_close(centroids, reference.centroid_xy.double())
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        assert segment_images(batch.left).regions.centroid_xy.dtype == torch.float32
+    finally:
+        torch.set_default_dtype(default)
