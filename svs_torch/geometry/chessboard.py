@@ -71,7 +71,11 @@ class BoardViews:
 
 def find_board_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
     """The ``board = (columns, rows)`` inner corners of a chessboard in a uint8 gray ``image``, ``(N, 2)``
-    float32 refined to sub-pixel, or None when the whole board is not found."""
+    float32 refined to sub-pixel, or None when the whole board is not found (:func:`board_image_u8` converts
+    other captures). Raises InputError naming ``image`` for any other array (OpenCV's error named none)."""
+    if not (isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 2):
+        kind = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise InputError(f"image: expected a 2-D uint8 gray numpy array (board_image_u8 converts one), got {kind}")
     found, corners = cv2.findChessboardCorners(image, board,
                                                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
     if not found:

@@ -17,7 +17,8 @@ from svs_torch import InputError
 from svs_torch.cli import main
 from svs_torch.data import load_image_pair, resize_stereo_batch
 from svs_torch.geometry.calibration import read_calibration, rectify_with_calibration, write_calibration
-from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_views, find_board_corners
+from svs_torch.geometry.chessboard import (board_image_u8, calibrate_stereo_rig, collect_board_views,
+                                          find_board_corners)
 from svs_torch.plotting.rectified import spread_rows
 from svs_torch.segmentation.segment import SegmentationConfig
 
@@ -663,3 +664,17 @@ def test_calibrate_writes_both_files_or_neither_on_a_full_disk(capsys, samples, 
     assert code == 1 and "No space left on device" in err
     assert out.read_text() == "an earlier calibration" and not figure.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.json"]
+
+
+@pytest.mark.parametrize("convert", [lambda u8: u8.astype(np.float32) / 255, lambda u8: u8.astype(np.uint16) * 257,
+                                     lambda u8: np.stack([u8] * 3, -1), torch.from_numpy],
+                         ids=["float32", "uint16", "bgr", "tensor"])
+def test_find_board_corners_names_an_image_it_cannot_read(data_dir, convert):
+    # Each raised OpenCV's "Only 8-bit grayscale" / "src.channels() == 1" / overload error, naming no argument.
+    image = cv2.imread(str(data_dir / "opencv_samples" / "left01.jpg"), cv2.IMREAD_GRAYSCALE)
+    expected = find_board_corners(image, BOARD)
+    with pytest.raises(InputError, match="image: expected a 2-D uint8 gray numpy array .*, got "):
+        find_board_corners(convert(image), BOARD)
+    if convert is not torch.from_numpy:
+        found = find_board_corners(board_image_u8(convert(image)), BOARD)
+        assert found is not None and np.abs(found - expected).max() < 0.5
