@@ -134,7 +134,9 @@ def padded_integral_image(image: torch.Tensor, pad: int, subtract_mean: bool = T
     signed sum between that corner and its own, summed outward from the corner, so the values over the image and
     within any border do not depend on ``pad``. Why: a batch's border is as wide as its largest keypoint needs, and
     a table summed from its own corner gave an image other float roundings, so other descriptors, in another batch
-    (issue 29). Box sums, differences of four values, are those of the plain integral image."""
+    (issue 29). Box sums, differences of four values, are those of the plain integral image; with
+    ``subtract_mean`` (the default, as for the zero-sum Haar filters of the descriptor) those of the image less
+    its mean (:func:`image_means`), so :func:`sample_box_means` then reads each box's mean less the image's."""
     check_image(image, "image", check_range=False)
     check_border(pad, image.shape[-2], image.shape[-1])
     if subtract_mean:
@@ -189,7 +191,8 @@ def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -
 def sample_box_means(
     integral: PaddedIntegral, center_xy: torch.Tensor, half_width: torch.Tensor, half_height: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Mean intensity of axis-aligned boxes at real-valued centres.
+    """Mean intensity of axis-aligned boxes at real-valued centres (less the image's mean where ``integral`` was
+    made with ``subtract_mean``, :func:`padded_integral_image`'s default).
 
     Args:
         integral: :class:`PaddedIntegral`; boxes should stay within its border.
