@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check_image
+from ..core.checks import InputError, check_image, check_shape
 from .kernels import check_border
 
 __all__ = [
@@ -188,6 +188,15 @@ def _bilinear_read(integral: PaddedIntegral, x: torch.Tensor, y: torch.Tensor) -
     return torch.lerp(top, bottom, fy).view(x.shape)
 
 
+def _check_reads(integral: PaddedIntegral, **coordinates: torch.Tensor | None) -> None:
+    """Coordinates read from ``integral`` are tensors of its table's dtype (float64 centres on a float32 table
+    failed in ``torch.lerp`` with "expected dtype float for `weight` but got dtype double")."""
+    for name, value in coordinates.items():
+        if value is not None and (not isinstance(value, torch.Tensor) or value.dtype != integral.table.dtype):
+            got = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+            raise InputError(f"{name}: expected a tensor of the integral's dtype {integral.table.dtype}, got {got}")
+
+
 def sample_box_means(
     integral: PaddedIntegral, center_xy: torch.Tensor, half_width: torch.Tensor, half_height: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -203,6 +212,8 @@ def sample_box_means(
     Returns:
         ``(B, P)``. Differentiable with respect to the image (and the centres).
     """
+    check_shape(center_xy, "center_xy", [integral.table.shape[0], "P", 2])
+    _check_reads(integral, center_xy=center_xy, half_width=half_width, half_height=half_height)
     half_height = half_width if half_height is None else half_height
     x0, x1 = center_xy[..., 0] - half_width, center_xy[..., 0] + half_width
     y0, y1 = center_xy[..., 1] - half_height, center_xy[..., 1] + half_height
@@ -226,6 +237,7 @@ def sample_cell_means(integral: PaddedIntegral, image_index: torch.Tensor, x_edg
         lattice reads its own image's table only, so no padding keypoint is ever sampled. Differentiable with
         respect to the image.
     """
+    _check_reads(integral, x_edges=x_edges, y_edges=y_edges)
     table = integral.table
     b, _, height, width = table.shape
     x0, fx = _table_axis(x_edges, integral.pad, width)  # (P, N + 1)

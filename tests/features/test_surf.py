@@ -13,6 +13,7 @@ from svs_torch import InputError, Keypoints
 from svs_torch.features.descriptor import describe_surf, surf_orientation, with_orientation
 from svs_torch.features.detector import SurfConfig, detect_surf_keypoints, metric_threshold_01
 from svs_torch.features.hessian import filter_sizes, hessian_octaves
+from svs_torch.features.integral import padded_integral_image, sample_box_means, sample_cell_means
 from svs_torch.features.surf import extract_surf_features
 
 
@@ -335,6 +336,27 @@ def test_errors_name_the_argument():
     kp = make_keypoints([[1.0, 1.0]], [1.2])
     with pytest.raises(InputError, match=r"keypoints.xy: expected \(2, K, 2\)"):
         describe_surf(torch.rand(2, 1, 20, 20), kp)
+
+
+def test_box_and_cell_means_name_coordinates_of_another_dtype():
+    # float64 centres on a float32 table raised torch.lerp's "expected dtype float for `weight` but got dtype
+    # double"; a (B, P) centre tensor failed unpacking its last dimension.
+    image = torch.rand(2, 1, 20, 20, generator=torch.Generator().manual_seed(0))
+    integral = padded_integral_image(image, 4, subtract_mean=False)
+    centres, half = torch.full((2, 3, 2), 9.5), torch.full((2, 3), 2.0)
+    means = sample_box_means(integral, centres, half)
+    torch.testing.assert_close(means[:, 0], image[:, 0, 8:12, 8:12].mean(dim=(1, 2)))
+    with pytest.raises(InputError, match="center_xy: expected a tensor of the integral's dtype torch.float32, got "
+                                         "torch.float64"):
+        sample_box_means(integral, centres.double(), half.double())
+    with pytest.raises(InputError, match="half_width: expected a tensor of the integral's dtype torch.float32"):
+        sample_box_means(integral, centres, 2.0)
+    with pytest.raises(InputError, match=r"center_xy: expected \(2, P, 2\), got \(2, 3\)"):
+        sample_box_means(integral, half, half)
+    edges = torch.tensor([[7.5, 9.5, 11.5]])
+    with pytest.raises(InputError, match="x_edges: expected a tensor of the integral's dtype torch.float32"):
+        sample_cell_means(integral, torch.tensor([0]), edges.double(), edges)
+    assert sample_cell_means(integral, torch.tensor([0]), edges, edges).shape == (1, 2, 2)
 
 
 def test_real_pair_matches_mostly_at_the_true_disparity(data_dir):
