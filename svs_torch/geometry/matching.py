@@ -37,7 +37,7 @@ def max_sad_distance(descriptor_length: int) -> float:
 
     ``‖u − v‖₁ ≤ √D·‖u − v‖₂ ≤ 2√D`` (Cauchy–Schwarz, then the triangle inequality). MATLAB's
     ``matchFeatures`` normalises non-binary descriptors to unit L2 norm and expresses MatchThreshold as a percent
-    of this largest distance, so ``MatchThreshold = T`` means ``SAD ≤ T/100 · 2√D`` (1.28 for T = 10, D = 64).
+    of this largest distance, so ``MatchThreshold = T`` means ``SAD ≤ T/100 · 2√D`` (1.6 for T = 10, D = 64).
     """
     if isinstance(descriptor_length, bool) or not isinstance(descriptor_length, int) or descriptor_length < 1:
         raise InputError(f"descriptor_length: expected a positive int, got {descriptor_length!r}")  # -5: math domain
