@@ -39,7 +39,8 @@ def masked_lower_median(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch
     """Lower median (``torch.median``'s) over the last dimension where ``mask`` holds: ``(...,)`` values
     (0 where empty) and ``(...,)`` int64 counts. Gradients flow to ``values`` at each median element (a gather
     after the sort); the counts have none. An empty last dimension (no keypoint at all) gives 0 and 0. ``values``
-    float32, float64 or integer (as ``torch.median`` takes them); the medians have its dtype."""
+    float32, float64 or integer (as ``torch.median`` takes them); the medians have its dtype. A NaN where ``mask``
+    holds counts as the largest value (``torch.median`` would return NaN): mask NaN out."""
     check_dtype(values, "values", "float|int")
     check_shape(mask, "mask", list(values.shape))
     check_dtype(mask, "mask", "bool")
@@ -129,8 +130,10 @@ def row_quantile(values: torch.Tensor, q: Sequence[float]) -> torch.Tensor:
 
 def masked_quantile(values: torch.Tensor, valid: torch.Tensor, q: Sequence[float] | torch.Tensor) -> Quantiles:
     """Quantiles ``q`` (in [0, 1]) over the valid entries of the last dimension of ``values`` ``(..., K)``,
-    linear interpolation between order statistics (numpy's default, ``torch.quantile``'s ``"linear"``).
-    Differentiable w.r.t. ``values`` (the two neighbouring order statistics get the gradient)."""
+    linear interpolation between order statistics (numpy's default, ``torch.quantile``'s ``"linear"``). A NaN
+    among the valid entries sorts above every number (``torch.sort``), so the quantiles below it stay finite where
+    numpy and ``torch.quantile`` return NaN for all: mask NaN out with ``valid``. Differentiable w.r.t. ``values``
+    (the two neighbouring order statistics get the gradient)."""
     check_dtype(values, "values", "float")
     if valid.shape != values.shape:
         raise InputError(f"valid: expected the shape of values {tuple(values.shape)}, got {tuple(valid.shape)}")
