@@ -24,8 +24,9 @@ wall (--segmenter otsu is the same with the default's other settings).
 
 Prints, for the left and the right image, the threshold (Otsu's level, or the nearness segmenter's obstacle
 probability; in --json both as levels 0-255) and the kept objects in the order kept: area in pixels,
-bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in input-image pixels. The right view's
-regions are the left ones moved by their disparity under the nearness segmenter.
+bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in the pixels segmented: the input image's,
+or with --size the resampled pair's ("image_size_wh" in --json). The right view's regions are the left ones
+moved by their disparity under the nearness segmenter.
 """
 
 EPILOG = """\

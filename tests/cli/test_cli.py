@@ -1454,3 +1454,14 @@ def test_segment_takes_size_and_refuses_what_estimate_refuses(data_dir, capsys, 
     report = json.loads(out)
     assert code == 0 and report["image_size_wh"] == [160, 120] and report["left"]["status"] == "OK"
     assert all(o["bbox_xyxy"][2] <= 160 and o["bbox_xyxy"][3] <= 120 for o in report["left"]["objects"])
+
+
+def test_segment_help_says_which_pixels_its_boxes_are_in():
+    """segment --help said its areas, boxes and centroids were "in input-image pixels", but with --size they are
+    the resampled pair's (Teddy 450x375 at --size 320x240: a box [0, 62, 320, 240]; estimate's and features' are
+    the input's) (an audit)."""
+    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "segment", "--help"], capture_output=True,
+                            text=True, check=True)
+    text = " ".join(result.stdout.split())
+    assert "in input-image pixels" not in text
+    assert "with --size the resampled pair's" in text and "image_size_wh" in text
