@@ -13,26 +13,26 @@ HELP = "summarise, export (CSV) or plot a sweep's results file"
 DESCRIPTION = """\
 Read a results file of svs-depth sweep (or eval --db).
 
---summary (the default): each configuration's mean Eq. (9) accuracy of R_min, R_max and the objects (a failed
-pair counts 0 %) over the pairs scored with their own calibration, or, where more pairs were scored with a
-nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those (the 'scored' column says
-which, and how many); dense and inlier disparity quality, failures and time, best first (pairs_per_s here is
-over the pairs' summed pipeline time: a store keeps no wall time, so it reads higher than eval's, which counts
-loading too); then the best configuration by each metric. --csv: one row per (configuration, pair), columns
-config, left, right, status, r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's
-id), then its label, size, the swept parameters (param:KEY) and every other column, among them the stereo
-metrics of the dense map (<scope>_<metric>: scope map_all, map_nocc, kept_all or kept_nocc; metric density,
-bad0_5_pct ... bad4_pct, avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px; empty where a pair has none, as
-in rows stored before they existed); paths are shown normalised (no inner '..'; a leading one, relative to
-the folder it was run in, stays). --figure: mean accuracy against each swept parameter and per-scene bars of
-the best configuration.
+--summary (the default without --csv or --figure): each configuration's mean Eq. (9) accuracy of R_min, R_max
+and the objects (a failed pair counts 0 %) over the pairs scored with their own calibration, or, where more
+pairs were scored with a nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those
+(the 'scored' column says which, and how many); dense and inlier disparity quality, failures and time, best
+first (pairs_per_s here is over the pairs' summed pipeline time: a store keeps no wall time, so it reads
+higher than eval's, which counts loading too); then the best configuration by each metric. --csv: one row per
+(configuration, pair), columns config, left, right, status, r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct
+(config is the configuration's id), then its label, size, the swept parameters (param:KEY) and every other
+column, among them the stereo metrics of the dense map (<scope>_<metric>: scope map_all, map_nocc, kept_all or
+kept_nocc; metric density, bad0_5_pct ... bad4_pct, avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px;
+empty where a pair has none, as in rows stored before they existed); paths are shown normalised (no inner
+'..'; a leading one, relative to the folder it was run in, stays). --figure: mean accuracy against each swept
+parameter and per-scene bars of the best configuration.
 """
 
 EPILOG = """\
 examples:
   svs-depth results sweep.sqlite
   svs-depth results sweep.sqlite --csv > rows.csv
-  svs-depth results sweep.sqlite --figure sweep.png --top 5
+  svs-depth results sweep.sqlite --summary --top 5 --figure sweep.png
 """
 
 
@@ -40,7 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("results", help=HELP, description=DESCRIPTION, epilog=EPILOG,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("db", metavar="FILE.sqlite", help="results file of svs-depth sweep or eval --db")
-    parser.add_argument("--summary", action="store_true", help="best configurations by each metric (default)")
+    parser.add_argument("--summary", action="store_true", help="best configurations by each metric (the default "
+                        "without --csv or --figure)")
     parser.add_argument("--csv", nargs="?", const="-", metavar="FILE.csv", type=output_file,
                         help="one row per (configuration, pair), to FILE.csv or standard output")
     add_figure_option(parser, "figure: metrics against each swept parameter, scenes", "--plot", "--out",

@@ -1465,3 +1465,20 @@ def test_segment_help_says_which_pixels_its_boxes_are_in():
     text = " ".join(result.stdout.split())
     assert "in input-image pixels" not in text
     assert "with --size the resampled pair's" in text and "image_size_wh" in text
+
+
+def test_results_examples_list_the_summary_they_limit():
+    """results --help's example 'results sweep.sqlite --figure sweep.png --top 5' wrote only the figure: the
+    summary, which --top limits, is printed only by default (no --csv, no --figure) or with --summary / --json,
+    so --top 5 did nothing (an audit). Each example giving --top or --sort now asks for the summary too."""
+    from svs_torch.cli import build_parser, results
+
+    parser = build_parser()
+    examples = [shlex.split(line.split("svs-depth ", 1)[1].split(">")[0])
+                for line in results.EPILOG.splitlines() if "svs-depth results" in line]
+    assert examples
+    for argv in examples:
+        args = parser.parse_args(argv)
+        if "--top" in argv or "--sort" in argv:
+            assert args.summary or args.json, argv
+    assert "default without --csv or --figure" in " ".join(results.DESCRIPTION.split())
