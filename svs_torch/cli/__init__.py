@@ -70,6 +70,8 @@ class OneLineParser(argparse.ArgumentParser):
         message = " ".join(message.split())
         if message.endswith(": expected one argument"):
             message += self._value_read_as_option(message)
+        if message.startswith("argument COMMAND: invalid choice: "):
+            message += self._option_before_command()
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
     def _value_read_as_option(self, message: str) -> str:
@@ -83,6 +85,19 @@ class OneLineParser(argparse.ArgumentParser):
             if option in options and value.startswith("-") and not known:
                 return f", got {value!r}, read as an option (write {option}={value} for a value that starts with '-')"
         return ""
+
+    def _option_before_command(self) -> str:
+        """`` (--size: give a command's options after its name: svs-depth estimate ... --size 320x240)``: in
+        'svs-depth --size 320x240 estimate L R' argparse took the option's value for the command and said only
+        "invalid choice: '320x240'" (an audit)."""
+        commands = next(a for a in self._actions if isinstance(a, argparse._SubParsersAction)).choices
+        first = next((i for i, token in enumerate(self._arguments) if token in commands), None)
+        early = [i for i, token in enumerate(self._arguments[:first]) if token.startswith("-")]
+        if first is None or not early:
+            return ""
+        given = " ".join(self._arguments[early[0]:first])
+        return (f" ({self._arguments[early[0]].split('=')[0]}: give a command's options after its name: svs-depth "
+                f"{self._arguments[first]} ... {given})")
 
 
 def _version() -> str:
@@ -147,6 +162,25 @@ def _maps_not_written(prog: str, count: int) -> int:
     return 1
 
 
+def _refuse_extras(parser: argparse.ArgumentParser, args: argparse.Namespace, extras: list[str],
+                   argv: list[str]) -> None:
+    """Exit 2 on arguments no parser took, naming the command, as its own options' errors do ("svs-depth segment:
+    error: ..."). A file whose name starts with '-' reads as an option (an audit): say how to write it. A command's
+    option given before the command's name ('svs-depth --json estimate L R') was called unrecognized by the very
+    command whose --help lists it (an audit): say to give it after the name."""
+    subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    command = getattr(args, "command", None)
+    subparser = subcommands.get(command, parser)
+    before = argv[:argv.index(command)] if command in argv else []
+    early = [extra for extra in extras if extra in before and extra.split("=")[0] in subparser._option_string_actions]
+    if early:
+        subparser.error(f"{early[0]}: an option of 'svs-depth {command}': give it after the command's name "
+                        f"(svs-depth {command} ... {early[0]})")
+    files = [extra for extra in extras if extra.startswith("-") and os.path.isfile(extra)]
+    hint = f" ({files[0]} reads as an option: write ./{files[0]})" if files else ""
+    subparser.error(f"unrecognized arguments: {' '.join(extras)}{hint}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``svs-depth`` console script; returns the exit status.
 
@@ -158,13 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extras = parser.parse_known_args(argv)
     if extras:
-        # Name the command in the error, as its own options' errors do ("svs-depth segment: error: ...").
-        subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-        # A file whose name starts with '-' reads as an option (an audit): say how to write it.
-        files = [extra for extra in extras if extra.startswith("-") and os.path.isfile(extra)]
-        hint = f" ({files[0]} reads as an option: write ./{files[0]})" if files else ""
-        subcommands.get(getattr(args, "command", None), parser).error(
-            f"unrecognized arguments: {' '.join(extras)}{hint}")
+        _refuse_extras(parser, args, extras, list(sys.argv[1:] if argv is None else argv))
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

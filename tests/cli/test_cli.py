@@ -1482,3 +1482,26 @@ def test_results_examples_list_the_summary_they_limit():
         if "--top" in argv or "--sort" in argv:
             assert args.summary or args.json, argv
     assert "default without --csv or --figure" in " ".join(results.DESCRIPTION.split())
+
+
+@pytest.mark.parametrize("argv, said", [
+    # Was "svs-depth estimate: error: unrecognized arguments: --json (see 'svs-depth estimate --help')", whose
+    # --help lists --json.
+    (["--json", "estimate", "a.png", "b.png"],
+     "svs-depth estimate: error: --json: an option of 'svs-depth estimate': give it after the command's name"),
+    (["--size=320x240", "segment", "a.png", "b.png"], "--size=320x240: an option of 'svs-depth segment'"),
+    # Was only "argument COMMAND: invalid choice: '320x240'": the option's value taken for the command.
+    (["--size", "320x240", "estimate", "a.png", "b.png"],
+     "(--size: give a command's options after its name: svs-depth estimate ... --size 320x240)"),
+    (["--db", "x.sqlite", "eval", "scenes"], "svs-depth eval ... --db x.sqlite)"),
+])
+def test_a_commands_option_before_its_name_says_where_it_goes(capsys, argv, said):
+    """An audit: an option of a command given before the command's name was called unrecognized by that
+    command, or its value was taken for the command."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1 and said in err
+    with pytest.raises(SystemExit):
+        main(["--bogus", "estimate", "a.png", "b.png"])  # no command's option: as before
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
