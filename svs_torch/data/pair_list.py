@@ -315,6 +315,8 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
             sources.append(PairSource(left=str(path), scene=True))
         elif kind == "file":
             sources += read_pair_list(path, name)
+        elif kind == "other":  # (was "no such file or folder" for /dev/null: an audit)
+            raise InputError(f"{name}: expected a scene folder, a pair list or index.jsonl, got a special file: {path}")
         else:
             raise InputError(f"{name}: no such file or folder: {path}")
     return with_distinct_names(sources)

@@ -1505,3 +1505,12 @@ def test_a_commands_option_before_its_name_says_where_it_goes(capsys, argv, said
     with pytest.raises(SystemExit):
         main(["--bogus", "estimate", "a.png", "b.png"])  # no command's option: as before
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/null"), reason="needs /dev/null")
+def test_eval_calls_a_special_file_one_not_a_missing_one(capsys):
+    """An audit: 'svs-depth eval /dev/null' said "path: no such file or folder: /dev/null" of a path that exists
+    ('estimate --pairs /dev/null' says "got a special file")."""
+    code, out, err = run_cli(capsys, "eval", "/dev/null")
+    assert code == 2 and out == "" and "no such file" not in err
+    assert "path: expected a scene folder, a pair list or index.jsonl, got a special file: /dev/null" in err
