@@ -31,7 +31,9 @@ class SVSCamera:
     Attributes:
         baseline_m: distance between the optical centres, metres. Paper: 10.75 cm (4.25 in); Surveyor's
             firmware range formula uses 107 mm.
-        lens_focal_mm: lens focal length, millimetres (3.6 mm stock lens, 90° field of view).
+        lens_focal_mm: lens focal length, millimetres (the 3.6 mm stock lens). Surveyor quotes it as a 90° lens,
+            but with ``sensor_width_mm`` this model sees 2·atan(4.17 / 2 / 3.6) = 60° across: 90° is not the
+            horizontal angle. The distances take f / sensor width, never the angle.
         sensor_width_mm: active sensor width, millimetres (firmware range formula).
     """
 
