@@ -182,7 +182,25 @@ def _refuse_extras(parser: argparse.ArgumentParser, args: argparse.Namespace, ex
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``svs-depth`` console script; returns the exit status.
+    """Entry point of the ``svs-depth`` console script; returns the exit status (see :func:`_main`).
+
+    As the program (no ``argv``), a Ctrl-C once the command is over ends the process as the shell's Ctrl-C does
+    (status 130 to the shell, nothing printed): one while the interpreter shut down (torch's exit handlers take a
+    while) printed a KeyboardInterrupt traceback after the command's own last line (an audit of interrupts)."""
+    try:
+        return _main(argv)
+    finally:
+        if argv is None:
+            import signal
+
+            try:
+                signal.signal(signal.SIGINT, signal.SIG_DFL)
+            except ValueError:  # not the main thread: Python's handler stays
+                pass
+
+
+def _main(argv: list[str] | None) -> int:
+    """Run the command of ``argv`` (default: ``sys.argv``); returns the exit status.
 
     Exit status: 0 done (a pair that cannot be ranged is a status in the output, not an error); 1 a capture or
     file error while running, or an unexpected internal error; 2 bad arguments or input (one line on stderr
