@@ -6,8 +6,8 @@ import argparse
 import sys
 import time
 
-from .common import (add_disparity_export_options, dumps_strict, finite_float, options_named, output_file,
-                     positive_float, positive_int, resolve_export_options)
+from .common import (Terminated, add_disparity_export_options, dumps_strict, finite_float, options_named,
+                     output_file, positive_float, positive_int, resolve_export_options)
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
                   rig_provenance, take_kept_calibration, with_calibrated_rectification)
@@ -251,13 +251,13 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
-        from dataclasses import asdict, replace
+        from dataclasses import replace
 
         from ..core.camera import parse_size
         from ..data import read_pair_sources
         from ..data.pair_list import unique_sources
         from ..core.errors import InputError
-        from ..evaluation import EvalSetup, evaluate_pairs, summarize
+        from ..evaluation import EvalSetup, summarize
         from ..evaluation.overrides import resolve_config
 
     resolve_export_options(args)
@@ -276,15 +276,33 @@ def run(args: argparse.Namespace) -> int:
     _check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = _store_beside_export(export, args, preset, overrides, size_wh, sources)
-    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
-                      rig_provenance(args.calibration or ""))
-    evaluations = []
     if not args.json:
         print(HEADER)
+    setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
+                      rig_provenance(args.calibration or ""))
     started = time.perf_counter()
+    evaluations = _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config))
+    summary = summarize(evaluations, time.perf_counter() - started)
+    if args.json:
+        print(dumps_strict(summary), flush=True)
+    else:
+        print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
+    return 0
+
+
+def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple) -> list:
+    """Evaluate ``sources`` batch by batch, each row printed as it comes and each batch's rows committed to the
+    ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed after. Interrupted
+    (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell whether the
+    store kept the rows of the pairs done (an audit of interrupts)."""
+    from dataclasses import asdict
+
+    from ..evaluation import evaluate_pairs
+
+    store, run_id, sweep_config = stored_in
+    evaluations, block, rows = [], [], 0
     try:
         with Progress(len(sources), "eval") as bar:
-            block = []
             for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
                                                      export.write if export is not None else None):
                 evaluations.append(evaluation)
@@ -292,19 +310,28 @@ def run(args: argparse.Namespace) -> int:
                 if len(block) == args.batch_size or len(evaluations) == len(sources):
                     if store is not None:
                         store.write_task(sweep_config.config_id, run_id, block)
+                        rows += len(block)
                     block = []
                 line = (dumps_strict({"left": source.left, "right": source.right, **asdict(evaluation)})
                         if args.json else format_row(evaluation))
                 bar.write(line, file=sys.stdout)
+    except (KeyboardInterrupt, Terminated):
+        _say_saved(args, rows, len(evaluations), len(sources))
+        raise
     finally:
         if store is not None:
             store.close()
-    summary = summarize(evaluations, time.perf_counter() - started)
-    if args.json:
-        print(dumps_strict(summary), flush=True)
-    else:
-        print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
-    return 0
+    return evaluations
+
+
+def _say_saved(args: argparse.Namespace, rows: int, done: int, total: int) -> None:
+    """What an interrupted eval kept: the rows its ``--db`` store committed, the maps of ``--disparity-out``."""
+    if args.db:
+        print(f"svs-depth eval: {rows} of {total} pairs' rows are stored in {args.db}; the same command run again "
+              "keeps them and stores the rest", file=sys.stderr)
+    if args.disparity_out:
+        print(f"svs-depth eval: the maps written in {args.disparity_out} are whole ({done} of {total} pairs "
+              "evaluated)", file=sys.stderr)
 
 
 def _check_no_option_calibration_in_store(args: argparse.Namespace, sources) -> None:

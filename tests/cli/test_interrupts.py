@@ -44,3 +44,57 @@ def test_main_called_with_arguments_leaves_the_ctrl_c_handler_alone(tmp_path):
     before = signal.getsignal(signal.SIGINT)
     assert main(["results", str(tmp_path / "missing.sqlite")]) == 2
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def _interrupted(argv: list[str], cwd: Path, ready, signum: int) -> tuple[int, str, str]:
+    """Run ``svs-depth argv`` in ``cwd``, send ``signum`` once a line of its output satisfies ``ready(stream,
+    line)`` (so not timing-flaky: the command is known to be in its loop), and return (status, stdout, stderr)."""
+    import threading
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    process = subprocess.Popen([sys.executable, "-m", "svs_torch.cli", *argv], cwd=cwd, env=env, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    seen, lines = threading.Event(), {"out": [], "err": []}
+
+    def read(stream, name: str) -> None:
+        for line in stream:
+            lines[name].append(line)
+            if ready(name, line):
+                seen.set()
+
+    readers = [threading.Thread(target=read, args=(process.stdout, "out"), daemon=True),
+               threading.Thread(target=read, args=(process.stderr, "err"), daemon=True)]
+    for reader in readers:
+        reader.start()
+    try:
+        assert seen.wait(120), "".join(lines["err"])
+        process.send_signal(signum)
+        status = process.wait(60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    for reader in readers:
+        reader.join(10)
+    return status, "".join(lines["out"]), "".join(lines["err"])
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_eval_with_db_interrupted_says_what_the_store_kept(data_dir, tmp_path):
+    """Was: 'svs-depth eval DATA --db e.sqlite' stopped by Ctrl-C said only 'interrupted', and a user could not
+    tell that the rows of the pairs done were kept. Now it says how many, and where, and exits 130."""
+    import sqlite3
+
+    scenes = data_dir / "middlebury_2005_2006_third"
+    status, out, err = _interrupted(["eval", str(scenes), "--db", "e.sqlite", "--batch-size", "1", "--json"],
+                                    tmp_path, lambda stream, line: stream == "out", signal.SIGINT)
+    assert status == 130, err
+    assert "Traceback" not in err
+    said = [line for line in err.splitlines() if "rows are stored in e.sqlite" in line]
+    assert said, err
+    with sqlite3.connect(tmp_path / "e.sqlite") as db:
+        rows = db.execute("select count(*) from results").fetchone()[0]
+    assert said[0].startswith(f"svs-depth eval: {rows} of ")
+    assert rows >= 1 and rows <= out.count("\n")
+    assert err.rstrip().endswith("svs-depth eval: interrupted")
+
