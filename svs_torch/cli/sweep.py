@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .common import dumps_strict, non_negative_int, options_named, output_file, positive_int
+from .common import Terminated, dumps_strict, non_negative_int, options_named, output_file, positive_int
 from .progress import Progress
 
 HELP = "run a parameter sweep over many pairs into a resumable SQLite results file"
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
             outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler,
                                 threads=args.threads, on_task=lambda result: bar.update(len(result.rows)), warn=warn,
                                 on_start=start)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated):  # SIGTERM too: it said only "terminated" (an audit of interrupts)
         print(f"svs-depth sweep: every finished task is stored in {args.db}; run the same command again to resume",
               file=sys.stderr)
         raise

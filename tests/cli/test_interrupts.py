@@ -98,3 +98,15 @@ def test_eval_with_db_interrupted_says_what_the_store_kept(data_dir, tmp_path):
     assert rows >= 1 and rows <= out.count("\n")
     assert err.rstrip().endswith("svs-depth eval: interrupted")
 
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_sweep_terminated_says_the_store_resumes(data_dir, tmp_path):
+    """Was: a sweep stopped by Ctrl-C said 'every finished task is stored in ...; run the same command again to
+    resume', but stopped by SIGTERM (a service's stop, kill) only 'terminated'. Now both say it."""
+    (tmp_path / "s.toml").write_text(f'paths = ["{(data_dir / "middlebury_2005_2006_third").as_posix()}"]\n'
+                                     'size = "320x240"\nbatch_size = 2\n', encoding="utf-8")
+    status, _, err = _interrupted(["sweep", "s.toml", "--db", "s.sqlite", "--workers", "0"], tmp_path,
+                                  lambda stream, line: "to run" in line, signal.SIGTERM)
+    assert status == 143, err
+    assert "Traceback" not in err
+    assert "every finished task is stored in s.sqlite; run the same command again to resume" in err
