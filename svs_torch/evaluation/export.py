@@ -207,9 +207,21 @@ class DisparityExport:
                     failing = timing
                     write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
                     failing = target
-                    write_pfm(target, np.where(valid, disparity, np.float32(np.inf)))
+                    _write_map_beside(timing, target, np.where(valid, disparity, np.float32(np.inf)))
             except OSError as error:  # a full disk: the run stops (exit 1), the option and the file named
                 raise OSError(error.errno, f"--disparity-out: cannot write {failing}: "
                                            f"{error.strerror or error}") from None
             written.append(target)
         return written
+
+
+def _write_map_beside(timing: Path, target: Path, disparity: np.ndarray) -> None:
+    """Write ``target``'s map after its ``timing`` file; a map that is not written (Ctrl-C, SIGTERM, a full disk)
+    takes its new time file with it, unless an earlier map is there: an interrupted eval left a scene folder
+    with its time file and no map (an audit of interrupts), a pair the SDK reads as one, half there."""
+    try:
+        write_pfm(target, disparity)
+    except BaseException:
+        if not target.exists():
+            timing.unlink(missing_ok=True)
+        raise

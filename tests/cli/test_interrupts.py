@@ -110,3 +110,19 @@ def test_sweep_terminated_says_the_store_resumes(data_dir, tmp_path):
     assert status == 143, err
     assert "Traceback" not in err
     assert "every finished task is stored in s.sqlite; run the same command again to resume" in err
+
+
+def test_eval_disparity_out_interrupted_between_a_maps_two_files_leaves_neither(data_dir, tmp_path, monkeypatch):
+    """Was: 'svs-depth eval DATA --disparity-out maps' stopped by Ctrl-C left maps/Midd1/timeSVSTorch.txt with no
+    disp0SVSTorch.pfm beside it (the time file is written first): a scene folder half there. Now a map that is
+    not written takes its new time file with it. The Ctrl-C comes, deterministically, as the map is written."""
+    from svs_torch.cli import main
+    from svs_torch.evaluation import export
+
+    def interrupted(path, array):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export, "write_pfm", interrupted)
+    scene = data_dir / "middlebury_2001" / "Venus"
+    assert main(["eval", str(scene), "--size", "160x120", "--disparity-out", str(tmp_path / "maps")]) == 130
+    assert [path.name for path in (tmp_path / "maps").rglob("*") if path.is_file()] == []
