@@ -29,7 +29,8 @@ from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
-from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, new_pairs_folder, replay_command, save_pair
+from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, drop_unused_pairs_folder, new_pairs_folder, \
+    replay_command, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
@@ -178,9 +179,12 @@ def check_board_urls(args: argparse.Namespace) -> None:
         raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 
 
-def _kept(done: int, out: Path) -> str:
+def _kept(done: int, out: Path, made: bool) -> str:
     """What an interrupted capture kept: its pairs and where they are listed, or that nothing was saved (stopped
-    before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)")."""
+    before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)").
+    With no pair saved, what it wrote is removed first (:func:`~.pairs_folder.drop_unused_pairs_folder`)."""
+    if not done:
+        drop_unused_pairs_folder(out, made)
     return f"{done} pairs (index.jsonl lists them)" if (out / "index.jsonl").is_file() else "0 pairs: nothing saved"
 
 
@@ -195,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
             calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
-    done = apart = 0
+    done, apart, made = 0, 0, not out.exists()
     try:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
@@ -215,13 +219,15 @@ def run(args: argparse.Namespace) -> int:
                 apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
                 progress.update()
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
+        print(f"{PROG}: interrupted after {_kept(done, out, made)}", file=sys.stderr)
         return 130
     except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
-        print(f"{PROG}: terminated after {_kept(done, out)}", file=sys.stderr)
+        print(f"{PROG}: terminated after {_kept(done, out, made)}", file=sys.stderr)
         return 143
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
+        if not done:
+            drop_unused_pairs_folder(out, made)
         saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
         return _fail(f"{err} ({saved})", 1)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.

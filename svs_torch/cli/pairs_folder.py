@@ -150,3 +150,18 @@ def replay_command(folder: Path, floor: str | None = None, calibration: str | No
     if calibration:
         options += f" --calibration {shlex.quote(calibration)}"
     return f"svs-depth estimate --pairs {shlex.quote(display_path(folder / INDEX_NAME))}{options} --json"
+
+
+def drop_unused_pairs_folder(folder: Path, made: bool) -> None:
+    """Remove what a capture that saved no pair wrote in ``folder``: its empty ``index.jsonl``, its copy of
+    ``calibration.json``, and the folder if it made it. A capture stopped before its first pair said "interrupted
+    after 0 pairs (index.jsonl lists them)", and the same command again was refused: "index.jsonl already exists;
+    choose a new folder" (an audit of interrupts). An index that lists a pair is never touched."""
+    index = folder / INDEX_NAME
+    with contextlib.suppress(OSError):
+        if index.is_file() and index.stat().st_size:
+            return
+        index.unlink(missing_ok=True)
+        (folder / CALIBRATION_NAME).unlink(missing_ok=True)  # this run's: new_pairs_folder refused one already there
+        if made:
+            folder.rmdir()

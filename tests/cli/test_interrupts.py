@@ -126,3 +126,23 @@ def test_eval_disparity_out_interrupted_between_a_maps_two_files_leaves_neither(
     scene = data_dir / "middlebury_2001" / "Venus"
     assert main(["eval", str(scene), "--size", "160x120", "--disparity-out", str(tmp_path / "maps")]) == 130
     assert [path.name for path in (tmp_path / "maps").rglob("*") if path.is_file()] == []
+
+
+@pytest.mark.parametrize("folder_there", [False, True])
+def test_capture_interrupted_before_its_first_pair_leaves_nothing(tmp_path, monkeypatch, capsys, folder_there):
+    """Was: 'svs-depth capture --emulator --out-dir cap' stopped by Ctrl-C while its first pair came said
+    'interrupted after 0 pairs (index.jsonl lists them)', left cap/index.jsonl empty, and the same command again
+    was refused ('cap/index.jsonl already exists; choose a new folder'). Now what it wrote is removed, the folder
+    too if it made it, and it says nothing was saved. The Ctrl-C comes, deterministically, as the pair is saved."""
+    from svs_torch.cli import capture, main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(capture, "save_pair", interrupted)
+    out = tmp_path / "cap"
+    if folder_there:
+        out.mkdir()
+    assert main(["capture", "--emulator", "--count", "2", "--size", "160x120", "--out-dir", str(out)]) == 130
+    assert "interrupted after 0 pairs: nothing saved" in capsys.readouterr().err
+    assert (list(out.iterdir()) == []) if folder_there else not out.exists()
