@@ -30,7 +30,7 @@ from typing import Any, TextIO
 
 from ..core.files import display_path
 from ..core.workers import signals_held
-from .pairs_folder import CALIBRATION_NAME, PairsIndex, replay_command, save_pair
+from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, replay_command, save_pair
 from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
@@ -49,6 +49,7 @@ class GuideLog:
         self.rig = rig  # the StereoCalibration read from ``calibration`` (None: the SVS model)
         self._calibrations: dict[tuple[int, int], dict] = {}
         self._index: PairsIndex | None = None
+        self._made = False  # the record's folder was made by open()
         self.num_recorded = 0
         self.record_error: str | None = None  # why the recording stopped (a full disk), None: it did not
 
@@ -57,6 +58,7 @@ class GuideLog:
         ``--calibration`` a copy of the rig's calibration beside the pairs, as ``capture`` keeps it (the replay
         command names the copy: the original's relative path broke from another folder)."""
         if self.record_dir is not None and self._index is None and self.record_error is None:
+            self._made = not self.record_dir.exists()
             self.record_dir.mkdir(parents=True, exist_ok=True)
             if self.rig is not None:
                 from ..geometry.calibration import write_calibration
@@ -133,10 +135,14 @@ class GuideLog:
             self.stream.flush()
 
     def close(self) -> None:
-        """Close the index (safe to call twice)."""
+        """Close the index (safe to call twice). With no pair recorded, what open() wrote is removed: guide stopped
+        before its first pair left an empty index.jsonl, and the same command again was refused ("index.jsonl
+        already exists; choose a new folder", an audit of interrupts)."""
         if self._index is not None:
             self._index.close()
             self._index = None
+            if not self.num_recorded:
+                drop_unused_pairs_folder(self.record_dir, self._made)
 
     def summary(self) -> str | None:
         """What was recorded and how to range it again (None: nothing recorded)."""

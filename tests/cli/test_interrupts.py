@@ -146,3 +146,19 @@ def test_capture_interrupted_before_its_first_pair_leaves_nothing(tmp_path, monk
     assert main(["capture", "--emulator", "--count", "2", "--size", "160x120", "--out-dir", str(out)]) == 130
     assert "interrupted after 0 pairs: nothing saved" in capsys.readouterr().err
     assert (list(out.iterdir()) == []) if folder_there else not out.exists()
+
+
+def test_guide_record_interrupted_before_its_first_pair_leaves_nothing(tmp_path, monkeypatch, capsys):
+    """Was: 'svs-depth guide --emulator --record rec' stopped by Ctrl-C before a pair was recorded left rec/ with
+    an empty index.jsonl, and the same command again was refused ('rec/index.jsonl already exists'). Now the
+    folder it made is removed. The Ctrl-C comes, deterministically, as the first pair is recorded."""
+    from svs_torch.cli import guide_log, main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(guide_log, "save_pair", interrupted)
+    out = tmp_path / "rec"
+    argv = ["guide", "--emulator", "--no-speech", "--count", "2", "--size", "160x120", "--record", str(out)]
+    assert main(argv) == 130
+    assert not out.exists()
