@@ -48,6 +48,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from svs_torch.cli.common import positive_int
 from svs_torch.cli.progress import Progress
 from svs_torch.data import load_stereo_pair, resize_stereo_batch
 from svs_torch.data.synthetic import random_obstacle_scenes
@@ -63,7 +64,8 @@ from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import command_line, default_data_dir, run_metadata, run_script  # noqa: E402
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
-                                fine_tune_through_pipeline, mask_loss, real_pairs, train_scenes)
+                                fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
+                                train_scenes)
 
 SIZE_WH = (320, 240)
 
@@ -156,10 +158,13 @@ def main(argv: list[str] | None = None) -> Path:
                         "bit for bit, its record of the run this one's; a run with --steps or --fine-tune-steps "
                         "needs one of its own)")
     names = add_config_options(parser, NearnessTrainConfig())
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = NearnessTrainConfig(**{name: getattr(args, name) for name in names})
+    if config.steps and not samples_per_run(config):  # torch.cat([]) once the scenes were read
+        parser.error("--steps: expected samples to train on (--crops-per-scene, --views-per-scene or "
+                     "--num-synthetic above 0)")
     if args.out is None and (config.steps or config.fine_tune_steps):
         parser.error("--out: expected a file for weights that are not the shipped ones (--steps / --fine-tune-steps)")
     args.out = args.out or str(NEARNESS_WEIGHTS)

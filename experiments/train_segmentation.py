@@ -61,6 +61,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from svs_torch.cli.common import non_negative_float, positive_int
 from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
@@ -415,18 +416,37 @@ SETTING_HELP = {
 }
 
 
+def _setting_types() -> dict:
+    """Each training setting's argparse type: counts and rates in their ranges, refused when parsed (an audit:
+    ``--steps -5`` built 704 samples for 80 s and wrote weights recording -5 steps; ``--batch-size 0`` and
+    ``--learning-rate nan`` were taken; ``--threads 0`` was a traceback)."""
+    from svs_torch.cli.common import non_negative_float, non_negative_int, positive_float, positive_int, seed_int
+
+    return {"steps": non_negative_int, "fine_tune_steps": non_negative_int, "batch_size": positive_int,
+            "crops_per_scene": non_negative_int, "views_per_scene": non_negative_int,
+            "num_synthetic": non_negative_int, "seed": seed_int, "learning_rate": positive_float,
+            "fine_tune_learning_rate": positive_float, "weight_decay": non_negative_float,
+            "depth_weight": non_negative_float}
+
+
 def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[str, ...] = (),
                        said: dict[str, str] | None = None) -> list[str]:
     """One typed ``--option`` per field of the dataclass instance ``defaults`` but ``skip``, defaulting to its
     value, its help from :data:`SETTING_HELP` (and ``said``'s default text where the script chooses it later);
     returns the fields' names (the training scripts' settings as command-line options)."""
     names = [field.name for field in dataclasses.fields(defaults) if field.name not in skip]
+    types = _setting_types()
     for name in names:
         value = getattr(defaults, name)
         default = (said or {}).get(name, "%(default)s")
-        parser.add_argument("--" + name.replace("_", "-"), type=type(value), default=value,
+        parser.add_argument("--" + name.replace("_", "-"), type=types.get(name, type(value)), default=value,
                             help=f"{SETTING_HELP.get(name, name.replace('_', ' '))} (default: {default})")
     return names
+
+
+def samples_per_run(config) -> int:
+    """How many samples per real scene and synthetic ones a run with ``config`` builds (0: nothing to train on)."""
+    return config.crops_per_scene + config.views_per_scene + config.num_synthetic
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -439,15 +459,16 @@ def main(argv: list[str] | None = None) -> Path:
     names = add_config_options(parser, defaults, said={
         "steps": f"{defaults.steps}; 20 with --through-pipeline",
         "learning_rate": f"{defaults.learning_rate:g}; 1e-4 with --through-pipeline"})
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
     parser.add_argument("--pairs", help="--through-pipeline: a pair list (default: the training scenes)")
     parser.add_argument("--init", default="learned", help="--through-pipeline: starting weights, 'learned' or "
                         "'learned:PATH'")
     parser.add_argument("--size", default="320x240", help="--through-pipeline: pairs resized to WxH")
-    parser.add_argument("--region-weight", type=float, default=1.0, help="--through-pipeline: weight of the "
-                        "probability-weighted mean depth over each whole kept region in the loss (0: the median's)")
+    parser.add_argument("--region-weight", type=non_negative_float, default=1.0, help="--through-pipeline: weight "
+                        "of the probability-weighted mean depth over each whole kept region in the loss (0: the "
+                        "median's)")
     parser.set_defaults(steps=None, learning_rate=None)  # each mode's own (below)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -463,6 +484,9 @@ def main(argv: list[str] | None = None) -> Path:
         if args.out is None:
             parser.error("--through-pipeline: expected --out FILE for the fine-tuned weights")
         return through_pipeline_main(args, config, command)
+    if config.steps < 1 or not samples_per_run(config):  # history[-1] / torch.cat([]) once samples were built
+        parser.error("--steps, and --crops-per-scene, --views-per-scene or --num-synthetic: training from scratch "
+                     "expects at least 1 step on at least 1 sample")
     shipped = config == TrainConfig() and args.threads == 2 and args.data == default_data_dir()
     if args.out is None and not shipped:  # a quick trial once replaced the shipped weights without a word
         parser.error("--out: expected a file for weights that are not the shipped ones (those are the defaults' "

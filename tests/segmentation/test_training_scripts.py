@@ -1,0 +1,42 @@
+"""experiments/train_segmentation.py and train_nearness.py refuse bad arguments before any work (an audit of the
+shipped weights' reproducibility)."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+from conftest import REPO_ROOT
+
+sys.path.insert(0, str(REPO_ROOT / "experiments"))
+
+import train_nearness  # noqa: E402
+import train_segmentation  # noqa: E402
+
+
+@pytest.mark.parametrize("script", [train_nearness, train_segmentation], ids=["nearness", "segmentation"])
+@pytest.mark.parametrize("argv", [["--threads", "0"], ["--batch-size", "0"], ["--learning-rate", "nan"],
+                                  ["--seed", "-1"], ["--steps", "-5"], ["--weight-decay", "-1"]],
+                         ids=["threads", "batch", "rate", "seed", "steps", "decay"])
+def test_a_setting_out_of_its_range_is_refused_when_parsed(script, argv, tmp_path, capsys) -> None:
+    # They were taken: --steps -5 built 704 samples for 80 s and wrote weights saying -5 steps; --threads 0 was a
+    # traceback; --batch-size 0 and --learning-rate nan were written into the weights file's record.
+    out = tmp_path / "net.pt"
+    with pytest.raises(SystemExit) as exited:
+        script.main([*argv, "--out", str(out)])
+    assert exited.value.code == 2 and argv[0] in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_training_from_scratch_without_a_step_or_a_sample_is_refused(data_dir, tmp_path, capsys) -> None:
+    # --steps 0 ended in history[-1]'s IndexError, no samples in torch.cat([])'s error, after the scenes were read.
+    out = tmp_path / "net.pt"
+    empty = ["--crops-per-scene", "0", "--views-per-scene", "0", "--num-synthetic", "0"]
+    for argv in (["--steps", "0"], empty):
+        with pytest.raises(SystemExit) as exited:
+            train_segmentation.main([*argv, "--data", str(data_dir), "--out", str(out)])
+        assert exited.value.code == 2 and "at least 1 step on at least 1 sample" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exited:
+        train_nearness.main(["--steps", "1", *empty, "--data", str(data_dir), "--out", str(out)])
+    assert exited.value.code == 2 and "expected samples to train on" in capsys.readouterr().err
+    assert not out.exists()
