@@ -61,7 +61,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata, run_script  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
                                 fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
@@ -154,9 +154,9 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--out", help="weights file (default: the shipped one, whose tensors the defaults rewrite "
-                        "bit for bit, its record of the run this one's; a run with --steps or --fine-tune-steps "
-                        "needs one of its own)")
+    parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the shipped "
+                        "one, whose tensors the defaults rewrite bit for bit, its record of the run this one's; a run "
+                        "with --steps or --fine-tune-steps needs one of its own)")
     names = add_config_options(parser, NearnessTrainConfig())
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)

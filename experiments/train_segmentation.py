@@ -76,7 +76,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, run_metadata, run_script  # noqa: E402
+from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 
 #: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
 HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
@@ -452,9 +452,9 @@ def samples_per_run(config) -> int:
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--out", help="weights file (default: the shipped one, whose tensors the defaults reproduce, "
-                        "its record of the run this one's; any other run, and --through-pipeline, needs one: it "
-                        "never replaces the shipped weights)")
+    parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the "
+                        "shipped one, whose tensors the defaults reproduce, its record of the run this one's; any "
+                        "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")
     defaults = TrainConfig()
     names = add_config_options(parser, defaults, said={
         "steps": f"{defaults.steps}; 20 with --through-pipeline",

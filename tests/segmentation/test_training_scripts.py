@@ -40,3 +40,15 @@ def test_training_from_scratch_without_a_step_or_a_sample_is_refused(data_dir, t
         train_nearness.main(["--steps", "1", *empty, "--data", str(data_dir), "--out", str(out)])
     assert exited.value.code == 2 and "expected samples to train on" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("script", [train_nearness, train_segmentation], ids=["nearness", "segmentation"])
+def test_an_out_that_cannot_be_written_is_refused_before_any_work(script, data_dir, tmp_path, capsys) -> None:
+    # --out FOLDER was found only when the weights were written, after the whole run (about 4 minutes for
+    # train_segmentation.py): IsADirectoryError, a traceback, the run lost.
+    (tmp_path / "a_file").write_text("")
+    for out in (tmp_path, tmp_path / "a_file" / "net.pt"):
+        with pytest.raises(SystemExit) as exited:
+            script.main(["--steps", "1", "--crops-per-scene", "0", "--views-per-scene", "0", "--num-synthetic", "1",
+                         "--data", str(data_dir), "--out", str(out)])
+        assert exited.value.code == 2 and "--out" in capsys.readouterr().err
