@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the shipped "
                         "one, whose tensors the defaults rewrite bit for bit, its record of the run this one's; a run "
-                        "with --steps or --fine-tune-steps needs one of its own)")
+                        "with any other setting, --data or --threads needs one of its own)")
     names = add_config_options(parser, NearnessTrainConfig())
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)
@@ -165,8 +165,10 @@ def main(argv: list[str] | None = None) -> Path:
     if config.steps and not samples_per_run(config):  # torch.cat([]) once the scenes were read
         parser.error("--steps: expected samples to train on (--crops-per-scene, --views-per-scene or "
                      "--num-synthetic above 0)")
-    if args.out is None and (config.steps or config.fine_tune_steps):
-        parser.error("--out: expected a file for weights that are not the shipped ones (--steps / --fine-tune-steps)")
+    shipped = config == NearnessTrainConfig() and args.threads == 2 and args.data == default_data_dir()
+    if args.out is None and not shipped:  # --seed 1 rewrote the shipped tensors (and its record) without a word
+        parser.error("--out: expected a file for weights that are not the shipped ones (those are the defaults' at "
+                     "--threads 2 on the shared data)")
     args.out = args.out or str(NEARNESS_WEIGHTS)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)

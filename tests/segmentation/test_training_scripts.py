@@ -52,3 +52,24 @@ def test_an_out_that_cannot_be_written_is_refused_before_any_work(script, data_d
             script.main(["--steps", "1", "--crops-per-scene", "0", "--views-per-scene", "0", "--num-synthetic", "1",
                          "--data", str(data_dir), "--out", str(out)])
         assert exited.value.code == 2 and "--out" in capsys.readouterr().err
+
+
+def test_train_nearness_rewrites_the_shipped_weights_only_with_the_defaults(data_dir, tmp_path, monkeypatch,
+                                                                            capsys) -> None:
+    # --seed 1 (or another --data, --threads, --batch-size) without --out rewrote the shipped file: other tensors
+    # (the network's initial ones) and a record saying seed 1, without a word. train_segmentation.py refused it.
+    import torch
+
+    shipped = tmp_path / "nearness_net.pt"
+    monkeypatch.setattr(train_nearness, "NEARNESS_WEIGHTS", shipped)
+    monkeypatch.setenv("SVS_TORCH_DATA", str(data_dir))
+    for argv in (["--seed", "1"], ["--batch-size", "4"], ["--threads", "1"]):
+        with pytest.raises(SystemExit) as exited:
+            train_nearness.main(argv)
+        assert exited.value.code == 2 and "not the shipped ones" in capsys.readouterr().err
+        assert not shipped.exists()
+    train_nearness.main([])  # the defaults: the shipped file's tensors, bit for bit (the rule alone: no step)
+    made = torch.load(shipped, weights_only=True)["state_dict"]
+    original = torch.load(REPO_ROOT / "svs_torch/segmentation/weights/nearness_net.pt", weights_only=True)
+    assert made.keys() == original["state_dict"].keys()
+    assert all(torch.equal(made[k], original["state_dict"][k]) for k in made)
