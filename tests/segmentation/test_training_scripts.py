@@ -73,3 +73,12 @@ def test_train_nearness_rewrites_the_shipped_weights_only_with_the_defaults(data
     original = torch.load(REPO_ROOT / "svs_torch/segmentation/weights/nearness_net.pt", weights_only=True)
     assert made.keys() == original["state_dict"].keys()
     assert all(torch.equal(made[k], original["state_dict"][k]) for k in made)
+
+
+def test_a_run_records_the_cpu_instructions_its_bits_depend_on() -> None:
+    # The shipped obstacle_net.pt is not reproduced bit for bit on an AVX-512 machine, and restricting torch to AVX2
+    # moves a short run's weights: the vector instructions are part of what makes the bits, and were not recorded.
+    import torch
+    from run_metadata import run_metadata
+
+    assert run_metadata(2, command="x")["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
