@@ -110,9 +110,8 @@ def run_script(main) -> None:
 
 def run_metadata(threads: int, **extra) -> dict:
     """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count and vector instructions (torch's
-    CPU capability), thread count, OpenMP wait
-    policy and load average at the time of the call, the ``command`` (given, else :func:`script_command`), plus
-    the experiment's own ``extra`` settings."""
+    CPU capability), thread count, OpenMP wait policy and load average at the time of the call, the ``command``
+    (given, else :func:`script_command`), plus the experiment's own ``extra`` settings."""
     import cv2
     import kornia
     import numpy

@@ -61,7 +61,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from svs_torch.cli.common import non_negative_float, positive_int
+from svs_torch.cli.common import non_negative_float, non_negative_int, positive_float, positive_int, seed_int
 from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
@@ -420,8 +420,6 @@ def _setting_types() -> dict:
     """Each training setting's argparse type: counts and rates in their ranges, refused when parsed (an audit:
     ``--steps -5`` built 704 samples for 80 s and wrote weights recording -5 steps; ``--batch-size 0`` and
     ``--learning-rate nan`` were taken; ``--threads 0`` was a traceback)."""
-    from svs_torch.cli.common import non_negative_float, non_negative_int, positive_float, positive_int, seed_int
-
     return {"steps": non_negative_int, "fine_tune_steps": non_negative_int, "batch_size": positive_int,
             "crops_per_scene": non_negative_int, "views_per_scene": non_negative_int,
             "num_synthetic": non_negative_int, "seed": seed_int, "learning_rate": positive_float,
