@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 from svs_torch.core.camera import parse_size  # noqa: E402
 from svs_torch.capture import LinkConfig, SVSStereoCamera  # noqa: E402
 
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import run_metadata, size_list  # noqa: E402
 
 
@@ -71,12 +72,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x240,640x480", type=size_list("wxh"),
                         help="comma-separated WxH sizes or native (default: %(default)s)")
-    parser.add_argument("--runs", type=int, default=5, help="timed runs (default: %(default)s)")
-    parser.add_argument("--pairs", type=int, default=50, help="frame pairs read per run (default: %(default)s)")
+    parser.add_argument("--runs", type=positive_int, default=5, help="timed runs (default: %(default)s)")
+    parser.add_argument("--pairs", type=positive_int, default=50,
+                        help="frame pairs read per run (default: %(default)s)")
     parser.add_argument("--frames", choices=("torch", "simple"), default="torch",
                         help="emulator frames: svs_torch's synthetic renderer (keyframes prepared first) or the "
                              "fast stand-in")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads in this process")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads in this process")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     sizes = args.sizes.split(",")

@@ -32,6 +32,7 @@ from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import add_common_options, command_line, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
@@ -45,7 +46,7 @@ def opencv_loop(lefts: list[np.ndarray], rights: list[np.ndarray], matcher) -> l
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_options(parser, threads=2, repeats=5, json=True)
-    parser.add_argument("--batch", type=int, default=32, help="pairs per batched call (default: %(default)s)")
+    parser.add_argument("--batch", type=positive_int, default=32, help="pairs per batched call (default: %(default)s)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)

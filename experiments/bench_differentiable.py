@@ -30,6 +30,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import add_common_options, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
@@ -83,7 +84,7 @@ def peak_growth_mb(batch: StereoBatch, config: PipelineConfig, net) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_common_options(parser, threads=2, repeats=5, json=True)
-    parser.add_argument("--batch", type=int, default=8, help="pairs per batched call (default: %(default)s)")
+    parser.add_argument("--batch", type=positive_int, default=8, help="pairs per batched call (default: %(default)s)")
     parser.add_argument("--peak-of", choices=["default", "otsu", "learned"], help=argparse.SUPPRESS)  # a fresh process
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

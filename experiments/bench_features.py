@@ -26,6 +26,7 @@ from svs_torch.features.detector import SurfConfig
 from svs_torch.features.surf import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
@@ -34,10 +35,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
                         help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=5,
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--repeats", type=positive_int, default=5,
                         help="timed runs of each; the median is reported (default: %(default)s)")
-    parser.add_argument("--max-keypoints", type=int, default=512, help="keypoints per image (default: %(default)s)")
+    parser.add_argument("--max-keypoints", type=positive_int, default=512,
+                        help="keypoints per image (default: %(default)s)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -39,6 +39,7 @@ import torch  # noqa: E402
 from svs_torch.geometry.epipolar_distance import sampson_distance
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
 
+from svs_torch.cli.common import positive_int, non_negative_float, seed_int  # noqa: E402
 from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 
 SIZE_WH = (640, 480)
@@ -154,13 +155,13 @@ def bench_scenario(data: dict, confidence: float, repeats: int, seed: int) -> di
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--pairs", type=int, default=64, help="synthetic pairs (default: %(default)s)")
-    parser.add_argument("--matches", type=int, default=500, help="matches per pair (default: %(default)s)")
-    parser.add_argument("--noise-px", type=float, default=0.5,
+    parser.add_argument("--pairs", type=positive_int, default=64, help="synthetic pairs (default: %(default)s)")
+    parser.add_argument("--matches", type=positive_int, default=500, help="matches per pair (default: %(default)s)")
+    parser.add_argument("--noise-px", type=non_negative_float, default=0.5,
                         help="Gaussian noise on the inliers, pixels (default: %(default)s)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default: 2)")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median reported)")
-    parser.add_argument("--seed", type=int, default=0,
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch and OpenCV threads (default: 2)")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per measurement (median reported)")
+    parser.add_argument("--seed", type=seed_int, default=0,
                         help="seed of the synthetic matches and of RANSAC (default: %(default)s)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")
     args = parser.parse_args()

@@ -38,6 +38,7 @@ from svs_torch.geometry.chessboard import calibrate_stereo_rig, collect_board_vi
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int, finite_float  # noqa: E402
 from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 
 BOARD, SQUARE_M = (9, 6), 0.025
@@ -119,8 +120,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"),
                         help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--scenes", type=int, default=8, help="synthetic scenes of the loose rig")
-    parser.add_argument("--turn-deg", type=float, nargs=3, default=(1.5, 0.7, -0.5), metavar=("ROLL", "TILT", "PAN"),
+    parser.add_argument("--scenes", type=positive_int, default=8, help="synthetic scenes of the loose rig")
+    parser.add_argument("--turn-deg", type=finite_float, nargs=3, default=(1.5, 0.7, -0.5),
+                        metavar=("ROLL", "TILT", "PAN"),
                         help="the loose rig's right camera turn, degrees")
     parser.add_argument("--json", type=output_path, help="write the rows here")
     args = parser.parse_args()

@@ -64,6 +64,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, size_list)
 
@@ -254,7 +255,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sizes", type=size_list("width"), default="320",
                         help="comma-separated: a width in pixels, or native")
     parser.add_argument("--limit", type=scene_limit, help="only the first N scenes of each split (0: all)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)

@@ -58,6 +58,7 @@ from svs_torch.geometry.matching import match_sad
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
+from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
 from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
@@ -471,12 +472,12 @@ def main() -> None:
     parser.add_argument("--features", choices=sorted(FEATURE_EXTRACTORS), default="sift",
                         help="the features both estimators share (default: %(default)s)")
     parser.add_argument("--size", default="320x240", help="Middlebury resampling size WxH (default: SVS 320x240)")
-    parser.add_argument("--max-keypoints", type=int, default=2000,
+    parser.add_argument("--max-keypoints", type=positive_int, default=2000,
                         help="strongest keypoints kept per image (SIFT; and SURF without --config, whose presets"
                              " set their own)")
-    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default: 1)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of svs_torch and OpenCV RANSAC")
-    parser.add_argument("--chessboard-seeds", type=int, default=10, help="RANSAC repeats per chessboard pair")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch and OpenCV threads (default: 1)")
+    parser.add_argument("--seed", type=seed_int, default=0, help="seed of svs_torch and OpenCV RANSAC")
+    parser.add_argument("--chessboard-seeds", type=positive_int, default=10, help="RANSAC repeats per chessboard pair")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -41,6 +41,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
+from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           write_report)
 
@@ -204,13 +205,13 @@ def markdown(report: dict, command: str) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=str(default_data_dir()), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--walks", type=int, default=24, help="rendered walks per digit")
+    parser.add_argument("--walks", type=positive_int, default=24, help="rendered walks per digit")
     parser.add_argument("--digits", default="4,6,8", help="the board's JPEG digits (with their sensor noise)")
-    parser.add_argument("--frames", type=int, default=24, help="frames of each real scene held still")
+    parser.add_argument("--frames", type=positive_int, default=24, help="frames of each real scene held still")
     parser.add_argument("--splits", default="tuned,held-out",
                         help="comma-separated shared splits held still: tuned, held-out (default: %(default)s)")
     parser.add_argument("--confirm", default="1,2,3,5", help="the N compared")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the rendered walks (default: %(default)s)")
+    parser.add_argument("--seed", type=seed_int, default=0, help="seed of the rendered walks (default: %(default)s)")
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)

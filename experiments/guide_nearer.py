@@ -40,6 +40,7 @@ from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ran
                            still_rows, walk)
 from paper_table1 import split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
+from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           write_report)
 
@@ -133,13 +134,13 @@ def markdown(report: dict, command: str) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=str(default_data_dir()), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--streams", type=int, default=12, help="step-in streams per digit")
-    parser.add_argument("--walks", type=int, default=24, help="walks toward one box per digit")
+    parser.add_argument("--streams", type=positive_int, default=12, help="step-in streams per digit")
+    parser.add_argument("--walks", type=positive_int, default=24, help="walks toward one box per digit")
     parser.add_argument("--digits", default="4,6,8", help="the board's JPEG digits (with their sensor noise)")
-    parser.add_argument("--frames", type=int, default=24, help="frames of each real scene held still")
+    parser.add_argument("--frames", type=positive_int, default=24, help="frames of each real scene held still")
     parser.add_argument("--splits", default="tuned,held-out", help="shared splits held still (default: %(default)s)")
     parser.add_argument("--margins", default="inf,0.1,0.2,0.3,0.5", help="the M compared, metres")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the rendered streams (default: %(default)s)")
+    parser.add_argument("--seed", type=seed_int, default=0, help="seed of the rendered streams (default: %(default)s)")
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the tables as Markdown to FILE")
     args = parser.parse_args(argv)

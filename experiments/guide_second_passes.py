@@ -40,6 +40,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--digit", type=int, default=4, choices=sorted(NOISE_FOR_DIGIT),
                         help="the frames' JPEG quality digit (default: 4, the board's)")
-    parser.add_argument("--repeats", type=int, default=3, help="calls a frame, their median kept (default: 3)")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="calls a frame, their median kept (default: 3)")
     parser.add_argument("--limit", type=scene_limit, help="the first N shared pairs only")
     parser.add_argument("--json", type=output_path, default=None, help="write the report as JSON to FILE")
     args = parser.parse_args(argv)

@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPO))
 from svs_torch.data import list_shared_pairs  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import run_script  # noqa: E402
 
 #: Fields that are measurements of the run, not results.
@@ -92,7 +93,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--size", default="320x240", help="pairs resized to WxH (default: %(default)s)")
-    parser.add_argument("--workers", type=int, default=1, help="processes (default: %(default)s)")
+    parser.add_argument("--workers", type=positive_int, default=1, help="processes (default: %(default)s)")
     parser.add_argument("--torch", default="", help="kernels to turn off in the kernels' run, comma-separated")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:

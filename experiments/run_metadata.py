@@ -81,12 +81,16 @@ def add_common_options(parser, *, data_type=str, threads: int | None = None, rep
     """The options many experiments share, each with its help: ``--data`` (as ``data_type``), and where given
     ``--threads`` / ``--repeats`` (their defaults), ``--sizes`` (its default, in ``sizes_form``: :func:`size_list`)
     and ``--json``."""
+    from svs_torch.cli.common import positive_int  # (--threads 0 was a RuntimeError traceback, --repeats 0 one after
+    # the run's loading: an audit)
+
     parser.add_argument("--data", type=data_type, default=default_data_dir(),
                         help="the shared data folder (default: %(default)s)")
     if threads is not None:
-        parser.add_argument("--threads", type=int, default=threads, help="torch threads (default: %(default)s)")
+        parser.add_argument("--threads", type=positive_int, default=threads,
+                            help="torch threads (default: %(default)s)")
     if repeats is not None:
-        parser.add_argument("--repeats", type=int, default=repeats,
+        parser.add_argument("--repeats", type=positive_int, default=repeats,
                             help="timed runs of each; the median is reported (default: %(default)s)")
     if sizes is not None:
         kind = "WxH sizes" if sizes_form == "wxh" else "widths in pixels"

@@ -42,6 +42,7 @@ from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_poin
 from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from svs_torch.cli.common import positive_int, unit_interval_float  # noqa: E402
 from run_metadata import command_line, output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 TOLERANCE_PX = 1.5
@@ -220,13 +221,14 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--config", action="append", choices=sorted(PRESETS),
                         help="svs_torch configuration(s) to evaluate (default: paper, product, recommended)")
-    parser.add_argument("--max-keypoints", type=int, default=512, help="keypoints per image, SURF and SIFT")
-    parser.add_argument("--ratios", type=float, nargs="+", default=[0.8, 0.6], help="ratio rules, applied to all")
+    parser.add_argument("--max-keypoints", type=positive_int, default=512, help="keypoints per image, SURF and SIFT")
+    parser.add_argument("--ratios", type=unit_interval_float, nargs="+", default=[0.8, 0.6],
+                        help="ratio rules, applied to all")
     parser.add_argument("--resolutions", nargs="+", default=["320x240", "native"], choices=["320x240", "native"],
                         help="320x240 and/or native (default: %(default)s)")
     parser.add_argument("--sift-mutual", action="store_true", help="also SIFT with a mutual nearest-neighbour check")
     parser.add_argument("--limit", type=scene_limit, help="only the first N pairs (0: all)")
-    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch and OpenCV threads (default 1)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

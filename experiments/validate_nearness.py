@@ -54,6 +54,7 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 from select_nearness_rule import segmentation_scores  # noqa: E402
@@ -77,6 +78,15 @@ def scene_units(scenes: list[Path], grouped: bool = True) -> list[list[Path]]:
             else path.name
         units.setdefault(stem, []).append(path)
     return [units[stem] for stem in sorted(units)]
+
+
+def fold_count(text: str) -> int:
+    """An ``argparse`` type for ``--folds``: 2 or more (``--folds 1`` was refused only after the scenes were
+    loaded, exit 1; ``--folds 0`` a traceback: an audit)."""
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"expected 2 or more folds, got {text!r}")
+    return value
 
 
 def assign_folds(scenes: list[Path], folds: int, grouped: bool = True) -> list[list[Path]]:
@@ -154,16 +164,16 @@ def means_table(summary: dict[int, dict]) -> list[str]:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--folds", type=int, default=2,
+    parser.add_argument("--folds", type=fold_count, default=2,
                         help="folds of the train scenes, a scene and its E/L variant in one (default: %(default)s)")
     parser.add_argument("--checkpoints", default="0,300,1200", help="step counts, comma-separated (0: the rule)")
-    parser.add_argument("--val-crops", type=int, default=4, help="random 320x240 crops per validation scene")
+    parser.add_argument("--val-crops", type=positive_int, default=4, help="random 320x240 crops per validation scene")
     parser.add_argument("--limit", type=scene_limit, help="only the first N train scenes (sorted), for a quick run")
     parser.add_argument("--ungrouped", action="store_true", help="a scene's E/L variant is a unit of its own")
     # train_nearness.py's stage-1 settings as options (steps come from --checkpoints), 160 synthetic pairs a fold.
     train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),
                                       skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"))
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)

@@ -54,6 +54,7 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
+from svs_torch.cli.common import positive_int  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 
@@ -189,9 +190,10 @@ def report(sets: dict[str, list[dict]], config: PipelineConfig) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--limit", type=scene_limit, help="only the first N shared scenes (0: all)")
-    parser.add_argument("--synthetic", type=int, default=64, help="synthetic scenes (each a positive and, with the "
+    parser.add_argument("--synthetic", type=positive_int, default=64,
+                        help="synthetic scenes (each a positive and, with the "
                         "next one's right view, a negative)")
     parser.add_argument("--json", type=output_path, metavar="FILE",
                         help="write every pair's record and the run metadata as JSON")

@@ -1,0 +1,91 @@
+"""Every experiment refuses a bad option value when its arguments are parsed: one line naming the option and exit
+status 2, never a traceback, a run of minutes, or a record of a run with a value it could not have meant."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from conftest import REPO_ROOT
+
+# Each experiment is called in a fresh process whose parse_args stops the run once the arguments are parsed (the
+# value taken shows as "parsed"), so a value taken by mistake never starts the experiment.
+_RUNNER = r"""
+import argparse, contextlib, io, json, sys
+sys.path.insert(0, sys.argv[1] + "/experiments")
+original = argparse.ArgumentParser.parse_args
+
+class Parsed(Exception):
+    pass
+
+def parse_args(self, args=None, namespace=None):
+    result = original(self, args, namespace)
+    raise Parsed()
+
+argparse.ArgumentParser.parse_args = parse_args
+results = []
+for script, argv in json.loads(sys.argv[2]):
+    module = __import__(script)
+    err = io.StringIO()
+    sys.argv = [script + ".py", *argv]
+    try:
+        with contextlib.redirect_stderr(err):
+            module.main(argv) if "argv" in module.main.__code__.co_varnames else module.main()
+        outcome = "ran"
+    except Parsed:
+        outcome = "parsed"
+    except SystemExit as stop:
+        outcome = stop.code
+    except Exception as error:
+        outcome = type(error).__name__
+    results.append([outcome, err.getvalue().strip().splitlines()[-1:] or [""]])
+print(json.dumps(results))
+"""
+
+
+def refusals(cases: list[tuple[str, list[str]]]) -> list[tuple[object, str]]:
+    """How each experiment ``(script, argv)`` ended: its exit status (or "parsed") and its last line on stderr."""
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps(cases)], env=env,
+                          capture_output=True, text=True, timeout=300, check=True)
+    return [(code, line[0]) for code, line in json.loads(done.stdout)]
+
+
+def assert_refused(cases: list[tuple[str, list[str]]]) -> None:
+    for (script, argv), (code, line) in zip(cases, refusals(cases)):
+        assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
+
+
+COUNTS = [
+    ("bench_capture", ["--runs", "0"]), ("bench_capture", ["--pairs", "-1"]), ("bench_capture", ["--threads", "0"]),
+    ("bench_dense", ["--batch", "0"]), ("bench_dense", ["--threads", "0"]), ("bench_dense", ["--repeats", "0"]),
+    ("bench_differentiable", ["--batch", "-2"]),
+    ("bench_features", ["--max-keypoints", "0"]), ("bench_features", ["--repeats", "0"]),
+    ("bench_features", ["--threads", "0"]),
+    ("bench_pipeline", ["--threads", "-1"]), ("bench_pipeline", ["--repeats", "0"]),
+    ("bench_ransac", ["--pairs", "0"]), ("bench_ransac", ["--matches", "0"]), ("bench_ransac", ["--noise-px", "nan"]),
+    ("bench_ransac", ["--seed", "-1"]), ("bench_ransac", ["--threads", "0"]), ("bench_ransac", ["--repeats", "0"]),
+    ("bench_segmentation", ["--threads", "0"]), ("bench_segmentation", ["--repeats", "0"]),
+    ("calibrated_rectify", ["--scenes", "0"]), ("calibrated_rectify", ["--turn-deg", "nan", "0", "0"]),
+    ("differentiable_agreement", ["--threads", "0"]), ("eval_segmentation", ["--threads", "0"]),
+    ("fundamental_vs_opencv", ["--max-keypoints", "0"]), ("fundamental_vs_opencv", ["--threads", "0"]),
+    ("fundamental_vs_opencv", ["--seed", "-1"]), ("fundamental_vs_opencv", ["--chessboard-seeds", "0"]),
+    ("guide_confirm", ["--walks", "0"]), ("guide_confirm", ["--frames", "-1"]), ("guide_confirm", ["--seed", "-1"]),
+    ("guide_nearer", ["--streams", "0"]), ("guide_nearer", ["--walks", "-1"]), ("guide_nearer", ["--frames", "0"]),
+    ("guide_nearer", ["--seed", "-5"]), ("guide_second_passes", ["--repeats", "0"]),
+    ("kernel_parity", ["--workers", "0"]),
+    ("surf_vs_sift", ["--max-keypoints", "0"]), ("surf_vs_sift", ["--threads", "0"]),
+    ("surf_vs_sift", ["--ratios", "nan"]),
+    ("validate_nearness", ["--folds", "1"]), ("validate_nearness", ["--val-crops", "0"]),
+    ("validate_nearness", ["--threads", "0"]),
+    ("verify_views", ["--threads", "0"]), ("verify_views", ["--synthetic", "-1"]),
+]
+
+
+def test_counts_threads_seeds_and_numbers_are_refused_when_parsed():
+    """Found by an audit: ``--threads 0`` was a RuntimeError traceback, ``--repeats 0`` a StatisticsError after the
+    data was loaded, ``bench_ransac.py --pairs 0`` a traceback and ``--seed -1`` a run recording seed -1,
+    ``calibrated_rectify.py --scenes 0`` a refusal after the chessboard calibration had run."""
+    assert_refused(COUNTS)
