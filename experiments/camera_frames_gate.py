@@ -31,7 +31,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import conditions, dimmed, load_scene, resample, run, scene_splits  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+from svs_torch.cli.common import unit_interval_float  # noqa: E402
+from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script, scene_limit, write_report)
 
 from svs_torch.depth.block_matching import block_match_sad_with_residual  # noqa: E402
@@ -95,7 +96,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--splits", default="tuned,synthetic",
                         help="comma-separated: tuned, synthetic (rendered) (default: %(default)s)")
-    parser.add_argument("--contrasts", default="1,0.5", help="the shared splits at each contrast (rendered: 1)")
+    parser.add_argument("--contrasts", default="1,0.5", type=comma_list(unit_interval_float, "factors"),
+                        help="the shared splits at each contrast (rendered: 1)")
     parser.add_argument("--limit", type=scene_limit, help="first N scenes of each split")
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")

@@ -24,7 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import real_rig  # noqa: E402
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import add_common_options, output_path, run_script  # noqa: E402
+from svs_torch.cli.common import unit_interval_float  # noqa: E402
+from run_metadata import add_common_options, comma_list, output_path, run_script  # noqa: E402
 
 from svs_torch.core.files import write_bytes_atomic  # noqa: E402
 from svs_torch.pipeline import PipelineConfig  # noqa: E402
@@ -48,10 +49,10 @@ def measure(data: Path, share: float | None, sizes: list[str], contrasts: list[f
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_options(parser, data_type=Path, sizes="320x240,native")
-    parser.add_argument("--shares", default="0.35,0.45,0.55",
+    parser.add_argument("--shares", default="0.35,0.45,0.55", type=comma_list(unit_interval_float, "shares"),
                         help="comma-separated values of PipelineConfig.coarse_retry_below_share compared with off "
                              "(default: %(default)s)")
-    parser.add_argument("--contrasts", default="1,0.5",
+    parser.add_argument("--contrasts", default="1,0.5", type=comma_list(unit_interval_float, "factors"),
                         help="comma-separated contrast factors of the tuned split (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)

@@ -40,10 +40,10 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
-from real_rig import JPEG_NOISE  # noqa: E402
+from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
-                          write_report)
+from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+                          run_script, write_report)
 
 PAIRS_PER_S = 20.0
 WALK_SPEED_M_S = 1.4
@@ -206,11 +206,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=str(default_data_dir()), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--walks", type=positive_int, default=24, help="rendered walks per digit")
-    parser.add_argument("--digits", default="4,6,8", help="the board's JPEG digits (with their sensor noise)")
+    parser.add_argument("--digits", default="4,6,8", type=comma_list(jpeg_digit, "JPEG digits"),
+                        help="the board's JPEG digits (with their sensor noise)")
     parser.add_argument("--frames", type=positive_int, default=24, help="frames of each real scene held still")
     parser.add_argument("--splits", default="tuned,held-out",
                         help="comma-separated shared splits held still: tuned, held-out (default: %(default)s)")
-    parser.add_argument("--confirm", default="1,2,3,5", help="the N compared")
+    parser.add_argument("--confirm", default="1,2,3,5", type=comma_list(positive_int, "frame counts"),
+                        help="the N compared")
     parser.add_argument("--seed", type=seed_int, default=0, help="seed of the rendered walks (default: %(default)s)")
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")

@@ -39,10 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ranged, replay,  # noqa: E402
                            still_rows, walk)
 from paper_table1 import split_scenes  # noqa: E402
-from real_rig import JPEG_NOISE  # noqa: E402
+from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
-                          write_report)
+from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+                          run_script, write_report)
 
 STAND_M = 1.8  # the first box's distance where the walker stops, metres
 STAND_S = 3.0  # seconds of the stream after the walker stops (guide's default repeat_s)
@@ -68,6 +68,19 @@ def step_in(index: int, digit: int, seed: int, config: PipelineConfig) -> dict:
     frames = camera_frame_pairs(scenes.batch, digit, dict(JPEG_NOISE)[digit], g)
     seen, sides = ranged(frames, config)
     return {"stepped": stepped, "second_side": "left" if sign > 0 else "right", "seen_m": seen, "seen_side": sides}
+
+
+def margin_m(text: str) -> float:
+    """An ``argparse`` type for a margin M of ``--margins``: metres, 0 or more, or inf."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected metres >= 0 or inf, got {text!r}")
+    return value
 
 
 def score_step_in(streams: list[dict], margin_m: float) -> dict:
@@ -136,10 +149,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--data", default=str(default_data_dir()), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--streams", type=positive_int, default=12, help="step-in streams per digit")
     parser.add_argument("--walks", type=positive_int, default=24, help="walks toward one box per digit")
-    parser.add_argument("--digits", default="4,6,8", help="the board's JPEG digits (with their sensor noise)")
+    parser.add_argument("--digits", default="4,6,8", type=comma_list(jpeg_digit, "JPEG digits"),
+                        help="the board's JPEG digits (with their sensor noise)")
     parser.add_argument("--frames", type=positive_int, default=24, help="frames of each real scene held still")
     parser.add_argument("--splits", default="tuned,held-out", help="shared splits held still (default: %(default)s)")
-    parser.add_argument("--margins", default="inf,0.1,0.2,0.3,0.5", help="the M compared, metres")
+    parser.add_argument("--margins", default="inf,0.1,0.2,0.3,0.5", type=comma_list(margin_m, "margins"),
+                        help="the M compared, metres")
     parser.add_argument("--seed", type=seed_int, default=0, help="seed of the rendered streams (default: %(default)s)")
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the tables as Markdown to FILE")

@@ -119,6 +119,20 @@ NOISE_SEED_STRIDE = 1_000_000_000
 JPEG_NOISE = [(1, 2.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 4.0), (6, 6.0), (7, 6.0), (8, 8.0)]
 
 
+
+def jpeg_digit(text: str) -> int:
+    """An ``argparse`` type: a board's JPEG digit of :data:`JPEG_NOISE`."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value not in dict(JPEG_NOISE):
+        raise argparse.ArgumentTypeError(f"expected a JPEG digit 1-8, got {text!r}")
+    return value
+
+
 #: ``--splits synthetic`` (module docstring): how many rendered pairs, their texture contrast and their seed.
 SYNTHETIC_SCENES, SYNTHETIC_TEXTURE_CONTRAST, SYNTHETIC_SEED = 16, 0.3, 7
 #: ``--splits synthetic-wall`` (module docstring): how many rendered pairs, the plain wall's distance (m) and texture

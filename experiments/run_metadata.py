@@ -76,6 +76,23 @@ def size_list(form: str):
     return parse
 
 
+def comma_list(item, what: str):
+    """An ``argparse`` type for comma-separated values (``--contrasts 1,0.5``), each checked by the ``argparse``
+    type ``item`` and named ``what`` in the message; the text is returned as given. An audit: a bad value was a
+    ValueError or KeyError traceback after minutes of work, or (NaN) a run that went on."""
+    import argparse
+
+    def parse(text: str) -> str:
+        try:
+            for part in text.split(","):
+                item(part)
+        except argparse.ArgumentTypeError as error:
+            raise argparse.ArgumentTypeError(f"expected comma-separated {what}: {error}") from None
+        return text
+
+    return parse
+
+
 def add_common_options(parser, *, data_type=str, threads: int | None = None, repeats: int | None = None,
                        sizes: str | None = None, sizes_form: str = "wxh", json: bool = False) -> None:
     """The options many experiments share, each with its help: ``--data`` (as ``data_type``), and where given

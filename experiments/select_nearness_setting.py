@@ -40,7 +40,9 @@ from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacl
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import eval_segmentation  # noqa: E402
 import real_rig  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
+from svs_torch.cli.common import unit_interval_float  # noqa: E402
+from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_script,  # noqa: E402
+                          use_two_threads)
 
 SIZES = {"320": "320x240", "native": "native"}
 
@@ -137,7 +139,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]",
                         help="the settings compared, each NAME=VALUE[,NAME=VALUE] (--set keys)")
-    parser.add_argument("--contrasts", default="1", help="comma-separated real_rig.py --contrast factors")
+    parser.add_argument("--contrasts", default="1", type=comma_list(unit_interval_float, "factors"),
+                        help="comma-separated real_rig.py --contrast factors")
     parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
     parser.add_argument("--synthetic", action="store_true",
                         help="also score real_rig.py's rendered weakly textured scenes (--splits synthetic)")

@@ -54,8 +54,9 @@ from svs_torch.pipeline import PipelineConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
+from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+                          run_script,
                           scene_limit)
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
@@ -166,7 +167,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
     parser.add_argument("--folds", type=fold_count, default=2,
                         help="folds of the train scenes, a scene and its E/L variant in one (default: %(default)s)")
-    parser.add_argument("--checkpoints", default="0,300,1200", help="step counts, comma-separated (0: the rule)")
+    parser.add_argument("--checkpoints", default="0,300,1200", type=comma_list(non_negative_int, "step counts"),
+                        help="step counts, comma-separated (0: the rule)")
     parser.add_argument("--val-crops", type=positive_int, default=4, help="random 320x240 crops per validation scene")
     parser.add_argument("--limit", type=scene_limit, help="only the first N train scenes (sorted), for a quick run")
     parser.add_argument("--ungrouped", action="store_true", help="a scene's E/L variant is a unit of its own")

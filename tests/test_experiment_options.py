@@ -89,3 +89,22 @@ def test_counts_threads_seeds_and_numbers_are_refused_when_parsed():
     data was loaded, ``bench_ransac.py --pairs 0`` a traceback and ``--seed -1`` a run recording seed -1,
     ``calibrated_rectify.py --scenes 0`` a refusal after the chessboard calibration had run."""
     assert_refused(COUNTS)
+
+
+LISTS = [
+    ("guide_confirm", ["--digits", "4,x"]), ("guide_confirm", ["--digits", "9"]),
+    ("guide_confirm", ["--confirm", "0,2"]), ("guide_nearer", ["--digits", "9"]),
+    ("guide_nearer", ["--margins", "nan"]), ("guide_nearer", ["--margins", "0.1,-1"]),
+    ("coarse_retry", ["--shares", "nan"]), ("coarse_retry", ["--contrasts", "0"]),
+    ("camera_frames_gate", ["--contrasts", "x"]), ("select_nearness_setting", ["--contrasts", "nan"]),
+    ("validate_nearness", ["--checkpoints", "x,-3"]),
+]
+
+
+def test_comma_separated_values_are_refused_when_parsed():
+    """Found by an audit: ``guide_confirm.py --digits 9`` was a KeyError traceback after the first walks, ``--digits
+    4,x`` a ValueError one; ``guide_nearer.py --margins nan`` and ``coarse_retry.py --shares nan`` ran on;
+    ``coarse_retry.py --contrasts 0`` was a StatisticsError after a run, ``--checkpoints x`` a ValueError."""
+    assert_refused(LISTS)
+    assert refusals([("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])]) == \
+        [("parsed", ""), ("parsed", "")]
