@@ -65,6 +65,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
+from svs_torch.core.errors import InputError  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, size_list)
 
@@ -139,7 +140,7 @@ def method_configs(args) -> dict[str, PipelineConfig | str]:
             default.segmentation, segmenter="nearness:" + path))
     unknown = [name for name in args.methods.split(",") if name not in methods]
     if unknown:  # (a KeyError traceback before)
-        raise SystemExit(f"eval_segmentation.py: error: --methods: unknown {', '.join(unknown)}; expected among "
+        raise InputError(f"--methods: unknown {', '.join(unknown)}; expected among "
                          f"{', '.join(methods)} (a NAME of --nearness NAME=FILE too)")
     return {name: methods[name] for name in args.methods.split(",")}
 

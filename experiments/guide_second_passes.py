@@ -41,6 +41,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
+from svs_torch.core.errors import InputError  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 
@@ -96,7 +97,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     rows = interleaved_latency(args.data, configurations(), args.repeats, args.digit, args.limit)
     if not rows:
-        raise SystemExit(f"--data: no shared pair under {args.data}")
+        raise InputError(f"--data: no shared pair under {args.data}")
     print(f"guide frame by frame, shared real pairs at 320x240 as JPEG digit {args.digit} frames (noise σ "
           f"{NOISE_FOR_DIGIT[args.digit]:g}), B = 1, {torch.get_num_threads()} threads, OpenMP wait policy unset "
           f"(as guide's process); goal {GOAL_MS:g} ms")

@@ -103,6 +103,7 @@ from svs_torch.data import camera_frames, resize_stereo_batch
 from svs_torch.evaluation import evaluate_result, measured_regions, score_pair, PairEstimate
 from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.types import StereoBatch
+from svs_torch.core.errors import InputError
 from svs_torch.core.camera import SVS_CAMERA
 from svs_torch.data.synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
@@ -420,7 +421,7 @@ def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
                 "synthetic-border": border_scenes, "synthetic-slant": slant_scenes}
     unknown = [name for name in names if name not in (*shared, *rendered)]
     if unknown:
-        raise SystemExit(f"--splits: expected held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
+        raise InputError(f"--splits: expected held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
                          f"synthetic-border or synthetic-slant, got {', '.join(unknown)}")
     return {name: (rendered[name]() if name in rendered else shared[name])[:limit] for name in names}
 

@@ -54,15 +54,15 @@ def parse_variant(text: str, shipped: NearnessNetConfig) -> dict:
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name not in fields or not value:
-            raise SystemExit(f"--variants: expected NAME=VALUE with NAME a NearnessNetConfig field, got {item!r}")
+            raise InputError(f"--variants: expected NAME=VALUE with NAME a NearnessNetConfig field, got {item!r}")
         try:
             out[name] = fields[name](value)
         except (TypeError, ValueError):
-            raise SystemExit(f"--variants: {name}: expected a {fields[name].__name__}, got {value!r}") from None
+            raise InputError(f"--variants: {name}: expected a {fields[name].__name__}, got {value!r}") from None
     try:
         dataclasses.replace(shipped, **out)  # the config's own range checks, before any scene is measured
     except InputError as error:
-        raise SystemExit(f"--variants: {text!r}: {error}") from None
+        raise InputError(f"--variants: {text!r}: {error}") from None
     return out
 
 

@@ -55,6 +55,7 @@ from svs_torch.pipeline import PipelineConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
+from svs_torch.core.errors import InputError  # noqa: E402
 from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script,
                           scene_limit)
@@ -94,7 +95,7 @@ def assign_folds(scenes: list[Path], folds: int, grouped: bool = True) -> list[l
     """The validation scenes of each fold: unit i of :func:`scene_units` to fold ``i % folds``."""
     units = scene_units(scenes, grouped)
     if not 2 <= folds <= len(units):
-        raise SystemExit(f"--folds: expected 2..{len(units)} (units of scenes), got {folds}")
+        raise InputError(f"--folds: expected 2..{len(units)} (units of scenes), got {folds}")
     return [sorted((p for i, unit in enumerate(units) if i % folds == k for p in unit), key=lambda p: p.name)
             for k in range(folds)]
 

@@ -10,8 +10,9 @@ import sys
 
 from conftest import REPO_ROOT
 
-# Each experiment is called in a fresh process whose parse_args stops the run once the arguments are parsed (the
-# value taken shows as "parsed"), so a value taken by mistake never starts the experiment.
+# Each experiment is called as its command (run_script) in a fresh process whose parse_args stops the run once the
+# arguments are parsed (the value taken shows as "parsed"), so a value taken by mistake never starts the experiment;
+# unless the case asks to run on, for a refusal made after the parse, before any work.
 _RUNNER = r"""
 import argparse, contextlib, io, json, sys
 sys.path.insert(0, sys.argv[1] + "/experiments")
@@ -24,15 +25,16 @@ def parse_args(self, args=None, namespace=None):
     result = original(self, args, namespace)
     raise Parsed()
 
-argparse.ArgumentParser.parse_args = parse_args
+from run_metadata import run_script
 results = []
-for script, argv in json.loads(sys.argv[2]):
+for script, argv, stop in json.loads(sys.argv[2]):
+    argparse.ArgumentParser.parse_args = parse_args if stop else original
     module = __import__(script)
     err = io.StringIO()
     sys.argv = [script + ".py", *argv]
     try:
         with contextlib.redirect_stderr(err):
-            module.main(argv) if "argv" in module.main.__code__.co_varnames else module.main()
+            run_script(lambda: module.main(argv) if "argv" in module.main.__code__.co_varnames else module.main())
         outcome = "ran"
     except Parsed:
         outcome = "parsed"
@@ -45,10 +47,11 @@ print(json.dumps(results))
 """
 
 
-def refusals(cases: list[tuple[str, list[str]]]) -> list[tuple[object, str]]:
-    """How each experiment ``(script, argv)`` ended: its exit status (or "parsed") and its last line on stderr."""
+def refusals(cases: list[tuple[str, list[str]]], stop: bool = True) -> list[tuple[object, str]]:
+    """How each experiment ``(script, argv)`` ended: its exit status (or "parsed") and its last line on stderr;
+    ``stop``: once its arguments are parsed."""
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps(cases)], env=env,
+    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps([[*case, stop] for case in cases])], env=env,
                           capture_output=True, text=True, timeout=300, check=True)
     return [(code, line[0]) for code, line in json.loads(done.stdout)]
 
@@ -108,3 +111,15 @@ def test_comma_separated_values_are_refused_when_parsed():
     assert_refused(LISTS)
     assert refusals([("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])]) == \
         [("parsed", ""), ("parsed", "")]
+
+
+def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_path):
+    """Found by an audit: these refusals, one line and before any work, were exit status 1 (a SystemExit with the
+    message) where every other bad option is 2; a caller telling a usage error from a failed run could not."""
+    cases = [("eval_segmentation", ["--methods", "bogus"]), ("real_rig", ["--splits", "bogus"]),
+             ("camera_frames_gate", ["--splits", "bogus"]), ("select_nearness_setting", ["--variants", "a=1"]),
+             ("guide_second_passes", ["--data", str(tmp_path)]),
+             ("validate_nearness", ["--data", str(data_dir), "--limit", "2", "--folds", "9"])]
+    for (script, argv), (code, line) in zip(cases, refusals(cases, stop=False)):
+        option = "--data" if script == "guide_second_passes" else argv[-2]
+        assert code == 2 and line.startswith(f"{script}.py: error: {option}"), (script, argv, code, line)

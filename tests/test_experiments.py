@@ -150,7 +150,9 @@ def test_real_rig_synthetic_split_is_rendered_and_measured_once(data_dir):
     first, again = real_rig.synthetic_scenes(), real_rig.synthetic_scenes()
     assert len(first) == real_rig.SYNTHETIC_SCENES and first[0].size_hw == (240, 320)
     assert all(torch.equal(a.left, b.left) and torch.equal(a.right, b.right) for a, b in zip(first, again))
-    with pytest.raises(SystemExit, match="tuned-typo"):
+    from svs_torch.core.errors import InputError
+
+    with pytest.raises(InputError, match="tuned-typo"):  # one line and exit 2 from the command (run_script)
         real_rig.main(["--data", str(data_dir), "--splits", "tuned,tuned-typo", "--no-rival"])
 
 
