@@ -32,6 +32,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import conditions, dimmed, load_scene, resample, run, scene_splits  # noqa: E402
 from svs_torch.cli.common import unit_interval_float  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script, scene_limit, write_report)
 
@@ -102,6 +103,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     started = time.perf_counter()
     splits = scene_splits(args.data, args.splits.split(","), args.limit)
     rows = []

@@ -66,6 +66,7 @@ from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  #
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, size_list)
 
@@ -260,6 +261,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     unknown = sorted(set(args.splits.split(",")) - {"held-out", "tuned", "kitti"})
     if unknown:
         parser.error(f"--splits: unknown {', '.join(unknown)}; expected among held-out, tuned, kitti")

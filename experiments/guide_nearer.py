@@ -41,6 +41,7 @@ from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ran
 from paper_table1 import split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script, write_report)
 
@@ -159,6 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the tables as Markdown to FILE")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     known = list(split_scenes(Path(args.data)))
     splits = [s for s in args.splits.split(",") if s]
     if set(splits) - set(known):

@@ -63,6 +63,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, size_list)
 
@@ -417,6 +418,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the tables as Markdown")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write rows and run metadata as JSON")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     scenes = split_scenes(Path(args.data))

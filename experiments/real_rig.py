@@ -110,6 +110,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (add_common_options, command_line, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, write_report)
 
@@ -551,6 +552,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=output_path, help="write the report as JSON to FILE")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
     unknown = [c for c in (args.conditions or "").split(",") if c and not any(k.startswith(c) or c.startswith(k)
                                                                                  for k in known)]

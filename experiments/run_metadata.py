@@ -93,6 +93,15 @@ def comma_list(item, what: str):
     return parse
 
 
+def check_reports_apart(parser, args) -> None:
+    """Refuse, as ``parser``'s error, ``--json`` and ``--markdown`` at one file: the table was written over the
+    report (or the report over the table) after the whole run, exit 0 (an audit)."""
+    json_path, markdown_path = getattr(args, "json", None), getattr(args, "markdown", None)
+    if json_path and markdown_path and Path(json_path).resolve() == Path(markdown_path).resolve():
+        parser.error(f"argument --markdown: the file of --json, {str(markdown_path)!r}; the one would be written "
+                     "over the other")
+
+
 def add_common_options(parser, *, data_type=str, threads: int | None = None, repeats: int | None = None,
                        sizes: str | None = None, sizes_form: str = "wxh", json: bool = False) -> None:
     """The options many experiments share, each with its help: ``--data`` (as ``data_type``), and where given
@@ -232,6 +241,7 @@ def rendered_experiment_setup(doc: str, argv: list[str] | None):
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     add_rendered_experiment_options(parser)
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     try:
         config = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
     except InputError as error:

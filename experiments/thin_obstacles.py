@@ -41,6 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import add_rendered_experiment_options, command_line, report_rows, run_script  # noqa: E402
 
 from svs_torch.core.errors import InputError  # noqa: E402
@@ -159,6 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
                              "pipeline's)")
     add_rendered_experiment_options(parser)
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     try:
         settings = pipeline_settings(args.set, args.min_area)
     except (InputError, ValueError) as error:

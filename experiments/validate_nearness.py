@@ -56,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
+from run_metadata import check_reports_apart  # noqa: E402
 from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script,
                           scene_limit)
@@ -180,6 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     step_counts = sorted({int(s) for s in args.checkpoints.split(",")})

@@ -123,3 +123,21 @@ def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_p
     for (script, argv), (code, line) in zip(cases, refusals(cases, stop=False)):
         option = "--data" if script == "guide_second_passes" else argv[-2]
         assert code == 2 and line.startswith(f"{script}.py: error: {option}"), (script, argv, code, line)
+
+
+def test_json_and_markdown_at_one_file_are_refused_before_the_run(data_dir, tmp_path):
+    """Found by an audit: ``paper_table1.py --json t.md --markdown t.md`` (and every experiment with both) ran in
+    full, then wrote the table over the report, exit 0. (Each case also has a value refused later, before any work,
+    so that the code before the fix ends at once rather than running.)"""
+    both = ["--json", str(tmp_path / "t.md"), "--markdown", str(tmp_path / "." / "t.md")]
+    bad_set = ["--set", "segmentation.ground.min_camera_height_m=-1"]
+    later = {"camera_frames_gate": ["--splits", "bogus"], "eval_segmentation": ["--methods", "bogus"],
+             "guide_confirm": ["--splits", "bogus"], "guide_nearer": ["--splits", "bogus"],
+             "paper_table1": ["--splits", "bogus"], "real_rig": ["--splits", "bogus"],
+             "validate_nearness": ["--data", str(data_dir), "--limit", "2", "--folds", "9"],
+             "thin_obstacles": ["--min-area", "1.5"], "walker_floor": bad_set, "walker_heaps": bad_set,
+             "floor_distance": bad_set}
+    cases = [(script, both + argv) for script, argv in later.items()]
+    for (script, _), (code, line) in zip(cases, refusals(cases, stop=False)):
+        assert code == 2 and "argument --markdown: the file of --json" in line, (script, code, line)
+    assert not list(tmp_path.iterdir())
