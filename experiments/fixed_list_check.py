@@ -100,6 +100,22 @@ def _differences(before, after, where="") -> list[str]:
     return [] if before == after else [f"{where}: {before!r} -> {after!r}"]
 
 
+def _checked_record(parser: argparse.ArgumentParser, args: argparse.Namespace):
+    """Before the run: for record, a file ``json`` can be written as (:func:`run_metadata.output_path`); for
+    compare, the record read. An audit: a folder, a missing folder or a missing record failed only after every
+    pair of the list had been run, in a traceback."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from run_metadata import output_path
+
+    try:
+        if args.action == "record":
+            output_path(str(args.json))
+            return None
+        return json.loads(args.json.read_text())
+    except (argparse.ArgumentTypeError, OSError, ValueError) as error:
+        parser.error(f"argument json: {error}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("action", choices=("record", "compare"),
@@ -108,13 +124,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/regroup_fixed"),
                         help="where the record is kept (default: %(default)s)")
     args = parser.parse_args(argv)
+    recorded = _checked_record(parser, args)
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = run_all(args.workdir)
     if args.action == "record":
         args.json.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
         print(f"recorded {sum(map(len, results.values()))} results in {args.json}")
         return 0
-    differences = _differences(json.loads(args.json.read_text()), results)
+    differences = _differences(recorded, results)
     for line in differences[:20]:
         print(line)
     print(f"{len(differences)} differences over {sum(map(len, results.values()))} results")

@@ -141,3 +141,23 @@ def test_json_and_markdown_at_one_file_are_refused_before_the_run(data_dir, tmp_
     for (script, _), (code, line) in zip(cases, refusals(cases, stop=False)):
         assert code == 2 and "argument --markdown: the file of --json" in line, (script, code, line)
     assert not list(tmp_path.iterdir())
+
+
+def test_fixed_list_check_refuses_a_record_it_cannot_write_or_read_before_the_run(tmp_path, monkeypatch, capsys):
+    """Found by an audit: ``fixed_list_check.py record FOLDER`` (or under a missing folder) and ``compare`` with a
+    missing record ran every pair of the list first, then ended in a traceback."""
+    import pytest
+
+    sys.path.insert(0, str(REPO_ROOT / "experiments"))
+    import fixed_list_check
+
+    def ran(workdir):
+        raise AssertionError("the list was run")
+
+    monkeypatch.setattr(fixed_list_check, "run_all", ran)
+    (tmp_path / "broken.json").write_text("{")
+    for argv in (["record", str(tmp_path)], ["record", str(tmp_path / "nodir" / "r.json")],
+                 ["compare", str(tmp_path / "none.json")], ["compare", str(tmp_path / "broken.json")]):
+        with pytest.raises(SystemExit) as stop:
+            fixed_list_check.main([*argv, "--workdir", str(tmp_path / "work")])
+        assert stop.value.code == 2 and "error: argument json: " in capsys.readouterr().err, argv
