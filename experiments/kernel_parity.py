@@ -30,7 +30,7 @@ from svs_torch.data import list_shared_pairs  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import run_script  # noqa: E402
+from run_metadata import run_script, size_list  # noqa: E402
 
 #: Fields that are measurements of the run, not results.
 TIMING = {"elapsed_s", "time_s", "ms", "elapsed_ms"}
@@ -55,6 +55,17 @@ if os.environ.get("SVS_PARITY_TORCH_KERNELS"):
             if hasattr(_kernels, _name):
                 setattr(_kernels, _name, lambda *args, **kwargs: None)
 """
+
+
+def size_wxh(text: str) -> str:
+    """An ``argparse`` type for ``--size``: one WxH size (a bad one was "58 of 58 pairs were not read", exit 1,
+    after the runs: an audit)."""
+    try:
+        if text != "native" and "," not in text:
+            return size_list("wxh")(text)
+    except argparse.ArgumentTypeError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected one WxH size such as 320x240, each side 1 to 8192, got {text!r}")
 
 
 def run(pair_list: Path, size: str, workers: int, kernels: bool, torch_only: str = "") -> tuple[list[dict], float]:
@@ -92,7 +103,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
                         help="the shared data folder (default: %(default)s)")
-    parser.add_argument("--size", default="320x240", help="pairs resized to WxH (default: %(default)s)")
+    parser.add_argument("--size", default="320x240", type=size_wxh, help="pairs resized to WxH (default: %(default)s)")
     parser.add_argument("--workers", type=positive_int, default=1, help="processes (default: %(default)s)")
     parser.add_argument("--torch", default="", help="kernels to turn off in the kernels' run, comma-separated")
     args = parser.parse_args()

@@ -63,14 +63,19 @@ def size_list(form: str):
     import argparse
     import re
 
+    from svs_torch.core.camera import MAX_SIZE_PX
+
     pattern = r"\d+x\d+" if form == "wxh" else r"\d+"
     example = "320x240,native" if form == "wxh" else "320,native"
 
+    def fits(part: str) -> bool:  # no side of 0 (a traceback or a refusal after the run began: an audit) or huge
+        return bool(re.fullmatch(pattern, part)) and all(0 < int(side) <= MAX_SIZE_PX for side in part.split("x"))
+
     def parse(text: str) -> str:
-        bad = [part for part in text.split(",") if part != "native" and not re.fullmatch(pattern, part)]
+        bad = [part for part in text.split(",") if part != "native" and not fits(part)]
         if bad or not text:
             raise argparse.ArgumentTypeError(f"expected comma-separated {'WxH sizes' if form == 'wxh' else 'widths'}"
-                                             f" or native (e.g. {example}), got {text!r}")
+                                             f" or native (e.g. {example}; sides 1 to {MAX_SIZE_PX}), got {text!r}")
         return text
 
     return parse

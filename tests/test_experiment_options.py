@@ -161,3 +161,15 @@ def test_fixed_list_check_refuses_a_record_it_cannot_write_or_read_before_the_ru
         with pytest.raises(SystemExit) as stop:
             fixed_list_check.main([*argv, "--workdir", str(tmp_path / "work")])
         assert stop.value.code == 2 and "error: argument json: " in capsys.readouterr().err, argv
+
+
+def test_sizes_without_a_side_of_0_or_beyond_the_largest_are_taken():
+    """Found by an audit: ``--sizes 0`` and ``0x0`` were taken: ``bench_capture.py`` ended in a RuntimeError
+    traceback, ``paper_table1.py`` in a refusal naming a library field once the run began, ``kernel_parity.py
+    --size 0x0`` in "58 of 58 pairs were not read" after its runs, exit 1."""
+    cases = [("paper_table1", ["--sizes", "0"]), ("paper_table1", ["--sizes", "320,99999"]),
+             ("bench_capture", ["--sizes", "0x0"]), ("real_rig", ["--sizes", "320x240,320x0"]),
+             ("kernel_parity", ["--size", "0x0"]), ("kernel_parity", ["--size", "native"])]
+    assert_refused(cases)
+    assert refusals([("paper_table1", ["--sizes", "320,native"]), ("kernel_parity", ["--size", "640x480"])]) == \
+        [("parsed", ""), ("parsed", "")]
