@@ -261,7 +261,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)
-    check_reports_apart(parser, args)
+    check_reports_apart(parser, args, (("--weights", args.weights),
+                                       *(("--nearness", spec.partition("=")[2]) for spec in args.nearness or [])))
     unknown = sorted(set(args.splits.split(",")) - {"held-out", "tuned", "kitti"})
     if unknown:
         parser.error(f"--splits: unknown {', '.join(unknown)}; expected among held-out, tuned, kitti")

@@ -98,13 +98,18 @@ def comma_list(item, what: str):
     return parse
 
 
-def check_reports_apart(parser, args) -> None:
-    """Refuse, as ``parser``'s error, ``--json`` and ``--markdown`` at one file: the table was written over the
-    report (or the report over the table) after the whole run, exit 0 (an audit)."""
+def check_reports_apart(parser, args, inputs: tuple[tuple[str, str], ...] = ()) -> None:
+    """Refuse, as ``parser``'s error, ``--json`` and ``--markdown`` at one file, or either at one of the files
+    ``inputs`` (``(option, path)``) the run reads: the table was written over the report (or the report over the
+    table, or over the weights evaluated) after the whole run, exit 0 (an audit)."""
     json_path, markdown_path = getattr(args, "json", None), getattr(args, "markdown", None)
     if json_path and markdown_path and Path(json_path).resolve() == Path(markdown_path).resolve():
         parser.error(f"argument --markdown: the file of --json, {str(markdown_path)!r}; the one would be written "
                      "over the other")
+    for report_option, report in (("--json", json_path), ("--markdown", markdown_path)):
+        for option, path in inputs:
+            if report and path and Path(report).resolve() == Path(path).resolve():
+                parser.error(f"argument {report_option}: the file {option} reads, {str(report)!r}")
 
 
 def add_common_options(parser, *, data_type=str, threads: int | None = None, repeats: int | None = None,

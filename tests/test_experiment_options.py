@@ -173,3 +173,14 @@ def test_sizes_without_a_side_of_0_or_beyond_the_largest_are_taken():
     assert_refused(cases)
     assert refusals([("paper_table1", ["--sizes", "320,native"]), ("kernel_parity", ["--size", "640x480"])]) == \
         [("parsed", ""), ("parsed", "")]
+
+
+def test_eval_segmentation_refuses_a_report_over_the_weights_it_evaluates(tmp_path):
+    """Found by an audit: ``eval_segmentation.py --weights W --json W`` (or ``--nearness NAME=W --markdown W``)
+    evaluated W and then wrote the report over it, exit 0. (``--methods bogus``: refused later, before any work.)"""
+    weights = str(tmp_path / "net.pt")
+    cases = [("eval_segmentation", ["--weights", weights, "--json", weights, "--methods", "bogus"]),
+             ("eval_segmentation", ["--nearness", f"n={weights}", "--markdown", weights, "--methods", "bogus"])]
+    assert [(code, line.split(" reads")[0]) for code, line in refusals(cases, stop=False)] == [
+        (2, "eval_segmentation.py: error: argument --json: the file --weights"),
+        (2, "eval_segmentation.py: error: argument --markdown: the file --nearness")]
