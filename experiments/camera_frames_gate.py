@@ -32,9 +32,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import conditions, dimmed, load_scene, resample, run, scene_splits  # noqa: E402
 from svs_torch.cli.common import unit_interval_float  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, scene_limit, write_report)
+from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+                          run_metadata, run_script, scene_limit, write_report)
 
 from svs_torch.depth.block_matching import block_match_sad_with_residual  # noqa: E402
 from svs_torch.depth.dense_config import DenseConfig  # noqa: E402

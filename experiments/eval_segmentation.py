@@ -66,9 +66,8 @@ from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  #
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
-                          scene_limit, size_list)
+from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+                          run_script, scene_limit, size_list)
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:

@@ -42,9 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample, split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, write_report)
+from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+                          run_metadata, run_script, write_report)
 
 PAIRS_PER_S = 20.0
 WALK_SPEED_M_S = 1.4

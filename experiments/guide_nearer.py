@@ -41,9 +41,8 @@ from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ran
 from paper_table1 import split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, write_report)
+from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+                          run_metadata, run_script, write_report)
 
 STAND_M = 1.8  # the first box's distance where the walker stops, metres
 STAND_S = 3.0  # seconds of the stream after the walker stops (guide's default repeat_s)

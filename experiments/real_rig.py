@@ -110,9 +110,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, object_truth, opencv_dense_estimate, split_scenes  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import (add_common_options, command_line, output_path, run_metadata, run_script,  # noqa: E402
-                          scene_limit, write_report)
+from run_metadata import (add_common_options, check_reports_apart, command_line, output_path,  # noqa: E402
+                          run_metadata, run_script, scene_limit, write_report)
 
 #: Seeds of one noise draw (``--noise-seed``) lie this far from the next draw's: above every scene's range.
 NOISE_SEED_STRIDE = 1_000_000_000

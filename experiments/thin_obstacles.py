@@ -41,8 +41,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
-from run_metadata import check_reports_apart  # noqa: E402
-from run_metadata import add_rendered_experiment_options, command_line, report_rows, run_script  # noqa: E402
+from run_metadata import (add_rendered_experiment_options, check_reports_apart, command_line, report_rows,  # noqa: E402
+                          run_script)
 
 from svs_torch.core.errors import InputError  # noqa: E402
 from svs_torch.data import camera_frame_pairs  # noqa: E402
