@@ -179,12 +179,9 @@ def check_board_urls(args: argparse.Namespace) -> None:
         raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 
 
-def _kept(done: int, out: Path, made: bool) -> str:
+def _kept(done: int, out: Path) -> str:
     """What an interrupted capture kept: its pairs and where they are listed, or that nothing was saved (stopped
-    before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)").
-    With no pair saved, what it wrote is removed first (:func:`~.pairs_folder.drop_unused_pairs_folder`)."""
-    if not done:
-        drop_unused_pairs_folder(out, made)
+    before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)")."""
     return f"{done} pairs (index.jsonl lists them)" if (out / "index.jsonl").is_file() else "0 pairs: nothing saved"
 
 
@@ -204,6 +201,8 @@ def run(args: argparse.Namespace) -> int:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
             out.mkdir(parents=True, exist_ok=True)
+            # However the capture ends, one that saved no pair removes what it wrote (its index closed first).
+            stack.callback(lambda: None if done else drop_unused_pairs_folder(out, made))
             if calibration is not None:  # the frames stay as received; their rig's calibration goes beside them
                 from ..geometry.calibration import write_calibration
 
@@ -219,15 +218,13 @@ def run(args: argparse.Namespace) -> int:
                 apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
                 progress.update()
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted after {_kept(done, out, made)}", file=sys.stderr)
+        print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
         return 130
     except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
-        print(f"{PROG}: terminated after {_kept(done, out, made)}", file=sys.stderr)
+        print(f"{PROG}: terminated after {_kept(done, out)}", file=sys.stderr)
         return 143
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
-        if not done:
-            drop_unused_pairs_folder(out, made)
         saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
         return _fail(f"{err} ({saved})", 1)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
