@@ -86,11 +86,16 @@ class OneLineParser(argparse.ArgumentParser):
                 return f", got {value!r}, read as an option (write {option}={value} for a value that starts with '-')"
         return ""
 
+    def commands(self) -> dict[str, argparse.ArgumentParser]:
+        """The parsers of this parser's commands by name ({} for a parser without commands)."""
+        actions = [a for a in self._actions if isinstance(a, argparse._SubParsersAction)]
+        return dict(actions[0].choices) if actions else {}
+
     def _option_before_command(self) -> str:
         """`` (--size: give a command's options after its name: svs-depth estimate ... --size 320x240)``: in
         'svs-depth --size 320x240 estimate L R' argparse took the option's value for the command and said only
         "invalid choice: '320x240'" (an audit)."""
-        commands = next(a for a in self._actions if isinstance(a, argparse._SubParsersAction)).choices
+        commands = self.commands()
         first = next((i for i, token in enumerate(self._arguments) if token in commands), None)
         early = [i for i, token in enumerate(self._arguments[:first]) if token.startswith("-")]
         if first is None or not early:
@@ -109,7 +114,7 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> OneLineParser:
     """The ``svs-depth`` argument parser with every subcommand (each parsed namespace's ``func`` runs it); for
     scripts and tests that parse a command line without running it."""
     parser = OneLineParser(
@@ -162,15 +167,13 @@ def _maps_not_written(prog: str, count: int) -> int:
     return 1
 
 
-def _refuse_extras(parser: argparse.ArgumentParser, args: argparse.Namespace, extras: list[str],
-                   argv: list[str]) -> None:
+def _refuse_extras(parser: OneLineParser, args: argparse.Namespace, extras: list[str]) -> None:
     """Exit 2 on arguments no parser took, naming the command, as its own options' errors do ("svs-depth segment:
     error: ..."). A file whose name starts with '-' reads as an option (an audit): say how to write it. A command's
     option given before the command's name ('svs-depth --json estimate L R') was called unrecognized by the very
     command whose --help lists it (an audit): say to give it after the name."""
-    subcommands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-    command = getattr(args, "command", None)
-    subparser = subcommands.get(command, parser)
+    command, argv = getattr(args, "command", None), parser._arguments  # (the whole command line)
+    subparser = parser.commands().get(command, parser)
     before = argv[:argv.index(command)] if command in argv else []
     early = [extra for extra in extras if extra in before and extra.split("=")[0] in subparser._option_string_actions]
     if early:
@@ -210,7 +213,7 @@ def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args, extras = parser.parse_known_args(argv)
     if extras:
-        _refuse_extras(parser, args, extras, list(sys.argv[1:] if argv is None else argv))
+        _refuse_extras(parser, args, extras)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
