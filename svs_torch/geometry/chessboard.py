@@ -180,7 +180,7 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
                          f"(25 mm is 0.025), got {square_m:g}")
     columns, rows = board
     size = views.image_wh
-    rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T = _fit(views, square_m, board)
+    rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, _ = _fit(views, square_m, board)
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K_left, dist_left, K_right, dist_right, size, R, T,
                                                 flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
     calibration = StereoCalibration(
@@ -210,23 +210,19 @@ def _with_row_error(calibration: StereoCalibration, rows_apart: np.ndarray) -> S
 
 def _fit(views: BoardViews, square_m: float, board: tuple[int, int]) -> tuple:
     """Each camera's fit, then the pair's with those intrinsics fixed (the module docstring): ``(rms_left, K_left,
-    dist_left, rms_right, K_right, dist_right, rms_stereo, R, T)``."""
-    objects, (rms_left, K_left, dist_left), (rms_right, K_right, dist_right) = _camera_fits(views, square_m, board)
-    rms_stereo, K_left, dist_left, K_right, dist_right, R, T, _, _ = cv2.stereoCalibrate(
-        objects, views.left, views.right, K_left, dist_left, K_right, dist_right, views.image_wh,
-        criteria=_STEREO_CRITERIA, flags=cv2.CALIB_FIX_INTRINSIC)
-    return rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T
-
-
-def _camera_fits(views: BoardViews, square_m: float, board: tuple[int, int]) -> tuple:
-    """The board's corners in metres, one per pair, and each camera's own fit ``(rms, K, dist)``."""
+    dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors)``, ``pair_errors`` each pair's
+    reprojection error in the stereo fit, pixels (the larger of its two views')."""
     columns, rows = board
     grid = np.zeros((rows * columns, 3), np.float32)
     grid[:, :2] = np.mgrid[0:columns, 0:rows].T.reshape(-1, 2) * square_m  # the corners' order in OpenCV
     objects = [grid] * len(views.names)
-    fits = [cv2.calibrateCamera(objects, corners, views.image_wh, None, None)[:3] for corners in (views.left,
-                                                                                                 views.right)]
-    return objects, fits[0], fits[1]
+    (rms_left, K_left, dist_left), (rms_right, K_right, dist_right) = (
+        cv2.calibrateCamera(objects, corners, views.image_wh, None, None)[:3] for corners in (views.left, views.right))
+    rms_stereo, K_left, dist_left, K_right, dist_right, R, T, *_, per_view = cv2.stereoCalibrateExtended(
+        objects, views.left, views.right, K_left, dist_left, K_right, dist_right, views.image_wh, None, None,
+        criteria=_STEREO_CRITERIA, flags=cv2.CALIB_FIX_INTRINSIC)
+    pair_errors = np.asarray(per_view).reshape(len(views.names), 2).max(1)
+    return rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors
 
 
 def drop_misfit_pairs(views: BoardViews, square_m: float, board: tuple[int, int]) -> BoardViews:
@@ -236,35 +232,26 @@ def drop_misfit_pairs(views: BoardViews, square_m: float, board: tuple[int, int]
     :data:`MIN_PAIRS`. Where no single pair does, the pairs whose own reprojection error in the fit is over twice
     the median are left out together if that halves it. A fit neither explains is left as it is (then the command
     warns). Costs one fit per pair, only when the fit is poor."""
-    rms = _fit(views, square_m, board)[6]
+    fit = _fit(views, square_m, board)
+    rms, errors = fit[6], fit[9]
     while rms > GOOD_STEREO_RMS_PX and len(views.names) > MIN_PAIRS:
-        trials = [_fit(views.without({i: ""}), square_m, board)[6] for i in range(len(views.names))]
-        index = int(np.argmin(trials))
-        if trials[index] <= rms / 2:
+        trials = [_fit(views.without({i: ""}), square_m, board) for i in range(len(views.names))]
+        index = int(np.argmin([trial[6] for trial in trials]))
+        if trials[index][6] <= rms / 2:
             views = views.without({index: f"its views do not fit the other pairs: stereo RMS {rms:.2f} px with it, "
-                                          f"{trials[index]:.2f} px without"})
-            rms = trials[index]
+                                          f"{trials[index][6]:.2f} px without"})
+            rms, errors = trials[index][6], trials[index][9]
             continue
         # Two or more such pairs: none alone halves the RMS (two of 13 wrote a 0.23 m baseline for 0.083, an audit).
         # Each pair's own error in the fit singles them out: those over twice the median go together.
-        errors = _pair_errors(views, square_m, board)
         outliers = [i for i in range(len(views.names)) if errors[i] > max(2 * np.median(errors), GOOD_STEREO_RMS_PX)]
         if not outliers or len(views.names) - len(outliers) < MIN_PAIRS:
             break
-        without = _fit(views.without(dict.fromkeys(outliers, "")), square_m, board)[6]
-        if without > rms / 2:
+        fit = _fit(views.without(dict.fromkeys(outliers, "")), square_m, board)
+        if fit[6] > rms / 2:
             break
         views = views.without({i: f"its views do not fit the other pairs: its error {errors[i]:.2f} px, the pairs' "
                                   f"median {np.median(errors):.2f}; stereo RMS {rms:.2f} px with the {len(outliers)} "
-                                  f"such pairs, {without:.2f} px without" for i in outliers})
-        rms = without
+                                  f"such pairs, {fit[6]:.2f} px without" for i in outliers})
+        rms, errors = fit[6], fit[9]
     return views
-
-
-def _pair_errors(views: BoardViews, square_m: float, board: tuple[int, int]) -> np.ndarray:
-    """Each pair's reprojection error in the stereo fit of ``views``, pixels (the larger of its two views')."""
-    objects, (_, K_left, dist_left), (_, K_right, dist_right) = _camera_fits(views, square_m, board)
-    per_view = cv2.stereoCalibrateExtended(objects, views.left, views.right, K_left, dist_left, K_right, dist_right,
-                                           views.image_wh, None, None, criteria=_STEREO_CRITERIA,
-                                           flags=cv2.CALIB_FIX_INTRINSIC)[-1]
-    return np.asarray(per_view).reshape(len(views.names), 2).max(1)
