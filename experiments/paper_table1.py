@@ -54,7 +54,7 @@ import torch
 
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.depth.sparse import estimate_depth
-from svs_torch.evaluation import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, PairEstimate, accuracy_pct,
+from svs_torch.evaluation import (PairEstimate, accuracy_pct,
                                   disparity_map_errors, estimates_from_result, score_pair, truth_list,
                                   with_nominal_calibration)
 from svs_torch.evaluation import object_truth as object_truth_batched

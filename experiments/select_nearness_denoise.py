@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> tuple[float, dict]:
         print(lines[-1], flush=True)
         if best is None or score > best[0]:
             best = (score, settings)
-    lines.append(f"\nbest (mean of IoU + Acc/100 over both sizes of the train scenes, clean and camera frames): "
+    lines.append("\nbest (mean of IoU + Acc/100 over both sizes of the train scenes, clean and camera frames): "
                  + ", ".join(f"{k} {v}" for k, v in best[1].items()) + f" (score {best[0]:.3f})")
     if args.limit:
         lines[-1] += f" -- on the first {args.limit} scenes of each set only (--limit): a quick look, not a selection"

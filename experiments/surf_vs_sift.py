@@ -38,7 +38,7 @@ from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_ba
 from svs_torch.features.detector import SurfConfig  # noqa: E402
 from svs_torch.features.surf import extract_surf_features  # noqa: E402
 from svs_torch.geometry.lk_refinement import refine_matches_lk
-from svs_torch.geometry.matched_points import MatchedPoints, gather_matched_points
+from svs_torch.geometry.matched_points import gather_matched_points
 from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -15,9 +15,13 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 __all__ = ["abandon_pool", "available_cores", "imports_without_collection", "keep_freed_memory", "signal_handler",
            "signals_held", "start_worker", "stop_worker_server", "thread_budget", "worker_pool"]
+
+if TYPE_CHECKING:  # for the annotations only: the pool imports it when it is made
+    import concurrent.futures
 
 #: glibc ``mallopt`` parameters (``malloc.h``) and the values :func:`keep_freed_memory` sets.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3

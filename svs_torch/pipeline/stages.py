@@ -14,7 +14,7 @@ from torch import nn
 from ..core.size_groups import replace_pairs
 from ..core.types import (FundamentalResult, FundamentalStatus, Matches, Segmentation, SegmentationStatus,
                           StereoBatch, StereoSegmentation)
-from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths, ObstacleSide, RangeEstimate
+from ..depth.depth_types import DepthResult, NearestObstacle, ObstacleSide, RangeEstimate
 from ..features.surf import SurfFeatures, extract_surf_features
 from ..geometry.matching import match_sad
 from ..geometry.rectification import Rectification, RectificationStatus, warp_rectified, warp_views
