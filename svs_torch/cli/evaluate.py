@@ -65,6 +65,8 @@ exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a
 1 an output that cannot be written (--disparity-out or --db on a full disk: the option and the file named; the
 rows a --db store committed are kept), or a --disparity-out map left unwritten rather than write over a ground
 truth, an input image or another pair's map (each warned; every pair is still evaluated, exit 1 at the end).
+Ctrl-C or SIGTERM: exit 130 / 143, after the summary of the pairs done (in JSON with "interrupted": true and
+pairs_listed).
 """
 
 
@@ -280,19 +282,37 @@ def run(args: argparse.Namespace) -> int:
         print(HEADER)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
                       rig_provenance(args.calibration or ""))
-    started = time.perf_counter()
-    evaluations = _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config))
-    summary = summarize(evaluations, time.perf_counter() - started)
-    if args.json:
-        print(dumps_strict(summary), flush=True)
-    else:
-        print("\n".join(format_calibrations(evaluations) + format_summary(summary)), flush=True)
+    started, evaluations = time.perf_counter(), []
+    try:
+        _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations)
+    except (KeyboardInterrupt, Terminated):
+        if evaluations:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
+            _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), len(sources))
+        raise
+    _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started))
     return 0
 
 
-def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple) -> list:
-    """Evaluate ``sources`` batch by batch, each row printed as it comes and each batch's rows committed to the
-    ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed after. Interrupted
+def _print_summary(args: argparse.Namespace, evaluations: list, summary: dict, listed: int | None = None) -> None:
+    """The summary, last on stdout. Given ``listed`` (an interrupted run), it is of the pairs done, and says so:
+    ``interrupted`` and ``pairs_listed`` in JSON, a first line in text. Was: an interrupted ``--json`` run ended
+    without its summary line, and a script reading the last line took a pair's row for it."""
+    if listed is not None:
+        summary = {**summary, "interrupted": True, "pairs_listed": listed}
+    if args.json:
+        print(dumps_strict(summary), flush=True)
+        return
+    lines = format_calibrations(evaluations) + format_summary(summary)
+    if listed is not None:
+        lines.insert(0, f"interrupted: the summary of the {len(evaluations)} of {listed} pairs evaluated")
+    print("\n".join(lines), flush=True)
+
+
+def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple, evaluations: list
+                  ) -> None:
+    """Evaluate ``sources`` batch by batch into ``evaluations``, each row printed as it comes and each batch's rows
+    committed to the ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed after.
+    Interrupted
     (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell whether the
     store kept the rows of the pairs done (an audit of interrupts)."""
     from dataclasses import asdict
@@ -300,7 +320,7 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
     from ..evaluation import evaluate_pairs
 
     store, run_id, sweep_config = stored_in
-    evaluations, block, rows = [], [], 0
+    block, rows = [], 0
     try:
         with Progress(len(sources), "eval") as bar:
             for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
@@ -321,7 +341,6 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
     finally:
         if store is not None:
             store.close()
-    return evaluations
 
 
 def _say_saved(args: argparse.Namespace, rows: int, done: int, total: int) -> None:

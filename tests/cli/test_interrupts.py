@@ -162,3 +162,28 @@ def test_guide_record_interrupted_before_its_first_pair_leaves_nothing(tmp_path,
     argv = ["guide", "--emulator", "--no-speech", "--count", "2", "--size", "160x120", "--record", str(out)]
     assert main(argv) == 130
     assert not out.exists()
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+@pytest.mark.parametrize("json_lines", [True, False])
+def test_eval_interrupted_ends_with_the_summary_of_the_pairs_done(data_dir, tmp_path, json_lines):
+    """Was: 'svs-depth eval DATA --json' stopped by Ctrl-C ended on a pair's row, without the summary line a
+    script reads last (and the text output without its means). Now the summary of the pairs done comes last,
+    marked as a part of the list, and the exit status still says interrupted."""
+    import json
+
+    scenes = data_dir / "middlebury_2005_2006_third"
+    listed = sum(1 for path in scenes.iterdir() if path.is_dir())
+    argv = ["eval", str(scenes), "--batch-size", "1"] + (["--json"] if json_lines else [])
+    ready = (lambda stream, line: stream == "out") if json_lines else (lambda stream, line: "OK" in line)
+    status, out, err = _interrupted(argv, tmp_path, ready, signal.SIGINT)
+    assert status == 130, err
+    assert "Traceback" not in err
+    if json_lines:
+        *rows, last = [json.loads(line) for line in out.splitlines()]
+        assert last["interrupted"] is True and last["pairs_listed"] == listed
+        assert last["pairs"] == len(rows) >= 1 and "left" not in last
+    else:
+        said = [line for line in out.splitlines() if line.startswith("interrupted: the summary of the ")]
+        assert len(said) == 1 and said[0].endswith(f" of {listed} pairs evaluated"), out
+        assert "mean Acc (Eq. 9)" in out.split(said[0])[1]
