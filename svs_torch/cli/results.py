@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: a Ctrl-C meanwhile is raised once they are done
         from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
         from ..evaluation.store import ResultStore
+        from ..evaluation.store_access import sweep_is_writing
         from ..core.files import atomic_output, check_output_file, write_errors_named
 
     # Output files are checked before any work: a bad name fails at once, and nothing is half-written.
@@ -128,6 +129,9 @@ def run(args: argparse.Namespace) -> int:
     # `results DB --csv DB` wrote the table over the store
     check_outputs_apart([("--csv", None if args.csv == "-" else args.csv), (args.figure_option, args.figure)],
                         [("results file itself", args.db)])
+    if sweep_is_writing(args.db):  # (before the store is opened: see there) the table read as a finished one
+        print(f"svs-depth results: note: a sweep is writing {args.db} now; these are the rows stored so far",
+              file=sys.stderr)
     with ResultStore(args.db, create=False) as store:
         if args.csv:
             header, rows = csv_table(store)

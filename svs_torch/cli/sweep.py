@@ -16,6 +16,8 @@ one row per (configuration, pair) in a SQLite file. The work is split into tasks
 block of pairs, run by a local process pool (each worker's torch threads pinned to cores / workers) or, with
 --scheduler, a Dask cluster. Each task's rows are committed at once: kill the sweep at any moment (Ctrl-C, or
 even kill -9) and run the same command again, and it runs only what is missing.
+Sweeps of different configurations (other grids, a job array's parts) may write one --db at once; a sweep
+any of whose configurations another running sweep holds is refused at once (run it after: it resumes).
 
 sweep file (TOML; paths relative to the file):
   paths = ["../shared/data/middlebury_eval3_Q"]   scene folders, folders of scenes, pair lists, index.jsonl

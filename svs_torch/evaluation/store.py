@@ -2,8 +2,10 @@
 
 Why SQLite: in WAL mode, with one transaction per task and ``INSERT OR IGNORE`` on a unique (configuration,
 pair) key, a sweep killed at any moment (even SIGKILL) keeps every committed task and nothing half-written; a
-restart runs only the missing rows and can never duplicate one. Only the parent process writes (workers return
-rows), so there is one writer at a time; readers (``svs-depth results``) never block it.
+restart runs only the missing rows and can never duplicate one. Only a sweep's parent process writes (workers
+return rows); sweeps of different configurations (and ``eval --db``) may write one store at once, SQLite taking
+their short transactions in turn (each waits up to 60 s for another's); a sweep whose configurations another
+running sweep holds is refused (:mod:`.store_access`). Readers (``svs-depth results``) never block a writer.
 
 Schema (``schema_version`` 2: version 1 had no ``calibration`` column)::
 
@@ -58,6 +60,7 @@ from ..core.checks import InputError
 from ..core.files import check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
+from .store_access import claim_configs
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
@@ -226,25 +229,14 @@ class ResultStore:
             claim.close()
             self._claim = None
 
-    def claim_for_a_sweep(self) -> None:
-        """Hold the store for this process's sweep until it closes (an advisory ``flock`` on the file, which SQLite's
-        own locks do not use; the system drops it when the process ends, even killed). Why: two sweeps on one store
-        each ran every task, their rows right but the work done twice, without a word (an audit).
+    def claim_for_a_sweep(self, config_ids: Iterable[str]) -> None:
+        """Hold ``config_ids`` in the store for this process's sweep until it closes (:mod:`.store_access`): two
+        sweeps on one store each ran every task, their rows right but the work done twice, without a word (an
+        audit); two sweeps of different configurations run together.
 
         Raises:
-            InputError: naming ``db``, where another process holds it."""
-        try:
-            import fcntl
-        except ImportError:  # (Windows: no flock; nothing held)
-            return
-        claim = open(self.path, "rb")  # noqa: SIM115 (held open until close)
-        try:
-            fcntl.flock(claim.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            claim.close()
-            raise InputError(f"db: another sweep is writing {self.path}; run this one once it has ended (it then "
-                             "runs only what is missing), or give another store") from None
-        self._claim = claim
+            InputError: naming ``db``, where another process holds any of them."""
+        self._claim = claim_configs(self.path, config_ids)
 
     def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> int | None:
         """Run ``statements`` as one transaction; the row id the last one inserted. SQLite's full disk or I/O

@@ -309,7 +309,7 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
     if scheduler:  # reached (with workers) before the store is made: else a bad address left a store without rows
         connect_dask(scheduler, lambda message: None).close()
     with ResultStore(db) as store:
-        store.claim_for_a_sweep()
+        store.claim_for_a_sweep(c.config_id for c in sweep.configs)
         store.add_configs(c.record() for c in sweep.configs)
         store.add_pairs(sweep.sources)
         config_ids = [c.config_id for c in sweep.configs]

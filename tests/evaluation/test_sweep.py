@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+import svs_torch
 from svs_torch.cli import main
 from svs_torch.core.checks import InputError
 from svs_torch.evaluation.sweep import load_sweep, plan_tasks, run_sweep
@@ -758,15 +759,56 @@ def test_a_pool_left_by_ctrl_c_waits_for_nothing_and_leaves_no_process():
 
 def test_a_second_sweep_on_a_store_being_written_is_refused(reference, tmp_path):
     """Found by an audit of sweeps: two sweeps on one store each ran every task (the rows right, the work done
-    twice) without a word. The store is held while a sweep writes it; the hold goes with the process."""
+    twice) without a word. A sweep holds its configurations while it writes the store; the hold goes with the
+    process. Found by an audit of two processes at once: a sweep of other configurations (another grid, a job
+    array's other part) was refused too; it now runs beside it."""
     from svs_torch.evaluation.store import ResultStore
     from svs_torch.evaluation.sweep import load_sweep, run_sweep
 
     db = tmp_path / "held.sqlite"
     shutil.copyfile(reference[1], db)
+    sweep = load_sweep(reference[0])
     with ResultStore(db) as other:
-        other.claim_for_a_sweep()
-        with pytest.raises(InputError, match=f"^db: another sweep is writing {db}; run this one once it has ended"):
-            run_sweep(load_sweep(reference[0]), db, workers=0)
-    outcome = run_sweep(load_sweep(reference[0]), db, workers=0)  # released on close: nothing left to run
+        other.claim_for_a_sweep([sweep.configs[1].config_id, "another grid's"])
+        with pytest.raises(InputError, match=f"^db: another sweep is writing {db} and running 1 of this sweep's 3 "
+                                             "configurations; run this one once it has ended"):
+            run_sweep(sweep, db, workers=0)
+        with ResultStore(db) as beside:  # another grid: held beside it
+            beside.claim_for_a_sweep(["a third grid's"])
+    outcome = run_sweep(sweep, db, workers=0)  # released on close: nothing left to run
     assert outcome.tasks == 0
+
+
+HOLDER = """\
+import sys
+from svs_torch.evaluation.store_access import claim_configs
+held = claim_configs(sys.argv[1], sys.argv[2:])
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+@pytest.mark.skipif(not (os.name == "posix" and hasattr(__import__("fcntl"), "F_OFD_SETLK")),
+                    reason="needs open-file-description locks (Linux)")
+def test_a_sweep_held_by_another_process_is_refused_until_it_is_killed(reference, tmp_path, capsys):
+    """Another process holds the sweep's configurations: the sweep is refused with one line, results says a
+    sweep is writing; killed with SIGKILL, the hold is gone and the same sweep runs (nothing left to run)."""
+    sweep_file, stored = reference
+    db = tmp_path / "shared.sqlite"
+    shutil.copyfile(stored, db)
+    ids = [c.config_id for c in load_sweep(sweep_file).configs]
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(db), ids[0]], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(Path(svs_torch.__file__).parents[1])})
+    try:
+        assert holder.stdout.readline() == "held\n"
+        assert main(["sweep", str(sweep_file), "--db", str(db), "--workers", "0"]) == 2
+        assert "error: --db: another sweep is writing" in capsys.readouterr().err
+        assert main(["results", str(db), "--json"]) == 0
+        assert f"note: a sweep is writing {db} now; these are the rows stored so far" in capsys.readouterr().err
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)
+        holder.wait()
+    assert main(["sweep", str(sweep_file), "--db", str(db), "--workers", "0"]) == 0
+    assert "0 rows written by 0 tasks, 12 of 12 stored" in capsys.readouterr().err
+    assert main(["results", str(db), "--json"]) == 0
+    assert "a sweep is writing" not in capsys.readouterr().err

@@ -1,0 +1,100 @@
+"""Who may write a results store (:mod:`.store`): the claims of sweeps running at once.
+
+Claims: a sweep holds each of its configurations in the store while it runs, as a lock on one byte of the
+file far past SQLite's own lock bytes (an open-file-description lock, ``F_OFD_SETLK``: closing another handle
+of the file does not drop it, and the system drops it when the process ends, even killed). Two sweeps of
+different configurations (two grids, a job array) run together on one store; a sweep any of whose
+configurations another running sweep holds is refused before it runs anything (its tasks would have run
+twice). Where the system has no such locks (not Linux), a sweep holds the whole store (``flock``).
+The claims' handle is closed after the store's connection where the claims are taken (closing any handle of a
+file drops the process's own POSIX locks on it, SQLite's among them), and at once where they are refused (the
+store is then only closed).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import struct
+from collections.abc import Iterable
+from pathlib import Path
+from typing import IO
+
+from ..core.checks import InputError
+
+__all__ = ["claim_configs", "sweep_is_writing"]
+
+#: The first byte of the claims, far past SQLite's lock bytes (at 1 GiB) and any store's size; claims never read
+#: or write the file.
+_CLAIMS_START = 1 << 40
+#: The byte held while a sweep takes its claims, so that two sweeps starting at once do not each take a part.
+_CLAIMING_BYTE = _CLAIMS_START - 1
+
+
+def _byte_of(config_id: str) -> int:
+    return _CLAIMS_START + 1 + int.from_bytes(hashlib.sha256(config_id.encode()).digest()[:5], "big")
+
+
+def _lock(fcntl, handle: IO, command: int, offset: int, kind: int) -> bool:
+    """An open-file-description lock of one byte (``struct flock``: short, short, off_t, off_t, pid_t, the pid
+    0); False where another handle holds it."""
+    request = struct.pack("hhqqi4x", kind, 0, offset, 1, 0)
+    try:
+        fcntl.fcntl(handle.fileno(), command, request)
+    except OSError:
+        return False
+    return True
+
+
+def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
+    """Hold ``config_ids`` in the store ``path`` for this process (module docstring) until the returned handle is
+    closed (None where the system has no locks at all).
+
+    Raises:
+        InputError: naming ``db``, where another process holds any of them (the store, without OFD locks)."""
+    try:
+        import fcntl
+    except ImportError:  # (Windows: nothing held)
+        return None
+    wanted = sorted(set(config_ids))
+    # Opened to write (a write lock needs it), never written.
+    handle = open(path, "r+b")  # noqa: SIM115 (held open until the store closes)
+    ofd = getattr(fcntl, "F_OFD_SETLK", None) if struct.calcsize("q") == 8 else None
+    if ofd is None:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return handle
+        except OSError:
+            handle.close()
+            raise InputError(f"db: another sweep is writing {path}; run this one once it has ended (it then runs "
+                             "only what is missing), or give another store") from None
+    _lock(fcntl, handle, fcntl.F_OFD_SETLKW, _CLAIMING_BYTE, fcntl.F_WRLCK)  # waits for another's claiming only
+    held = [config_id for config_id in wanted if not _lock(fcntl, handle, ofd, _byte_of(config_id), fcntl.F_WRLCK)]
+    _lock(fcntl, handle, ofd, _CLAIMING_BYTE, fcntl.F_UNLCK)
+    if held:
+        handle.close()
+        raise InputError(f"db: another sweep is writing {path} and running {len(held)} of this sweep's "
+                         f"{len(wanted)} configuration{'s' * (len(wanted) != 1)}; run this one once it has ended "
+                         "(it then runs only what is missing), or give another store")
+    return handle
+
+
+def sweep_is_writing(path: str | Path) -> bool:
+    """Whether a sweep holds configurations in the store ``path`` now (False where that cannot be told: no OFD
+    locks, a file that cannot be opened). Call it before the store is opened in this process: closing a handle of
+    the file drops the process's own SQLite locks on it."""
+    try:
+        import fcntl
+
+        command = fcntl.F_OFD_GETLK
+    except (ImportError, AttributeError):
+        return False
+    if struct.calcsize("q") != 8 or not os.path.isfile(path):  # (a FIFO's open would wait for a writer)
+        return False
+    try:
+        with open(path, "rb") as handle:
+            answer = fcntl.fcntl(handle.fileno(), command, struct.pack("hhqqi4x", fcntl.F_RDLCK, 0, _CLAIMS_START,
+                                                                       1 << 41, 0))
+    except OSError:
+        return False
+    return struct.unpack("hhqqi4x", answer)[0] != fcntl.F_UNLCK
