@@ -60,7 +60,7 @@ from ..core.checks import InputError
 from ..core.files import check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
-from .store_access import claim_configs
+from .store_access import SQLITE_READONLY, check_schema_version, claim_configs, read_only_error
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
@@ -151,17 +151,17 @@ class ResultStore:
                 for leftover in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
                     leftover.unlink(missing_ok=True)
             _raise_if_disk_failed(error, self.path)
+            if getattr(error, "sqlite_errorcode", 0) & 0xFF == SQLITE_READONLY:
+                raise read_only_error(self.path) from None
             # In words of the store, the same for sweep, eval --db and results (sqlite's were "file is not a
             # database", "no such table: meta").
             reason = ("not an SQLite file" if "file is not a database" in str(error) else "an empty file" if size == 0
                       else "an SQLite file without a results store's tables" if "no such table" in str(error)
                       else str(error))
             raise InputError(f"db: {self.path} is not a results store ({reason})") from None
-        if version is not None and int(version[0]) == 1:  # version 1 lacks only the calibration column
+        if version is not None and str(version[0]).strip() == "1":  # version 1 lacks only the calibration column
             version = self._from_version_1(create)
-        if version is None or int(version[0]) != SCHEMA_VERSION:
-            raise InputError(f"db: {self.path} has schema version {version and version[0]}, expected "
-                             f"{SCHEMA_VERSION}")
+        check_schema_version(self.path, version and version[0], SCHEMA_VERSION)
         if create:
             self._add_missing_columns()
 

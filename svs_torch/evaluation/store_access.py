@@ -1,4 +1,5 @@
-"""Who may write a results store (:mod:`.store`): the claims of sweeps running at once.
+"""Who may write a results store (:mod:`.store`), and its refusals in words of the store: the claims of sweeps
+running at once, a store that is read-only, a schema this code does not read.
 
 Claims: a sweep holds each of its configurations in the store while it runs, as a lock on one byte of the
 file far past SQLite's own lock bytes (an open-file-description lock, ``F_OFD_SETLK``: closing another handle
@@ -22,8 +23,10 @@ from typing import IO
 
 from ..core.checks import InputError
 
-__all__ = ["claim_configs", "sweep_is_writing"]
+__all__ = ["SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error", "sweep_is_writing"]
 
+#: SQLite's primary result code for a write to a file it opened read-only (sqlite3.h).
+SQLITE_READONLY = 8
 #: The first byte of the claims, far past SQLite's lock bytes (at 1 GiB) and any store's size; claims never read
 #: or write the file.
 _CLAIMS_START = 1 << 40
@@ -98,3 +101,26 @@ def sweep_is_writing(path: str | Path) -> bool:
     except OSError:
         return False
     return struct.unpack("hhqqi4x", answer)[0] != fcntl.F_UNLCK
+
+
+def read_only_error(path: Path) -> InputError:
+    """The refusal of a store SQLite could not write as it is read-only (its permissions, an immutable file); it
+    was "not a results store (attempt to write a readonly database)"."""
+    return InputError(f"db: cannot write {path}: the file is read-only (svs-depth results reads it); make it "
+                      "writable, or copy it to a new file and name that")
+
+
+def check_schema_version(path: Path, version: str | None, expected: int) -> None:
+    """Raise :class:`InputError` naming ``db`` unless the store's ``version`` is ``expected``: a store of a newer
+    svs-depth says so (it was "has schema version 3, expected 2"), one without a version says so (it was "schema
+    version None"), and a version that is no number is refused (it was an internal error)."""
+    if version is not None and str(version).strip().isdigit() and int(version) == expected:
+        return
+    if version is None:
+        raise InputError(f"db: {path} is not a results store (its meta table has no schema_version)")
+    if not str(version).strip().isdigit():
+        raise InputError(f"db: {path} is not a results store (schema_version {version!r} is not a number)")
+    newer = int(version) > expected
+    raise InputError(f"db: {path} has schema version {int(version)}, expected {expected}"
+                     + ("; it was written by a newer svs-depth: update this one, or name another file" if newer
+                        else ""))

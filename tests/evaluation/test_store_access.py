@@ -1,9 +1,12 @@
 """The results store's access: sweeps of different configurations hold them together, one of the same is refused
-(tests/evaluation/test_sweep.py has it across processes)."""
+(tests/evaluation/test_sweep.py has it across processes); a read-only store and one of another schema are
+refused in words of the store."""
 
 from __future__ import annotations
 
 import os
+import sqlite3
+from pathlib import Path
 
 import pytest
 
@@ -27,3 +30,40 @@ def test_claims_of_other_configurations_are_taken_beside_and_the_same_refused(tm
         first.close()
         third.claim_for_a_sweep(["d", "b"])  # released with the store
     assert not sweep_is_writing(db)
+
+
+def test_a_read_only_store_is_named_read_only_not_another_file(tmp_path, monkeypatch):
+    """Found by an audit: a store SQLite may not write (its permissions; simulated, as root writes anywhere) was
+    "not a results store (attempt to write a readonly database)"."""
+    from svs_torch.evaluation import store as store_module
+
+    db = tmp_path / "kept.sqlite"
+    ResultStore(db).close()
+    connect = sqlite3.connect
+
+    def read_only(database, *args, **kwargs):
+        return connect(f"{Path(database).resolve().as_uri()}?mode=ro", *args, **{**kwargs, "uri": True})
+
+    monkeypatch.setattr(store_module.sqlite3, "connect", read_only)
+    with pytest.raises(InputError, match=f"^db: cannot write {db}: the file is read-only"):
+        ResultStore(db)
+
+
+@pytest.mark.parametrize("version, expected", [
+    ("two", r"is not a results store \(schema_version 'two' is not a number\)$"),
+    (None, r"is not a results store \(its meta table has no schema_version\)$"),
+    ("3", r"has schema version 3, expected 2; it was written by a newer svs-depth: update this one"),
+])
+def test_a_store_of_another_schema_is_refused_in_one_line(tmp_path, version, expected):
+    """Found by an audit: a version that is no number was an internal error (ValueError), a missing one read
+    "schema version None", a newer one did not say it was newer."""
+    db = tmp_path / "other.sqlite"
+    ResultStore(db).close()
+    with sqlite3.connect(db) as connection:
+        connection.execute("DELETE FROM meta")
+        if version is not None:
+            connection.execute("INSERT INTO meta VALUES ('schema_version', ?)", (version,))
+    connection.close()
+    for create in (False, True) if version is not None else (False,):  # (to write, a versionless one gets it)
+        with pytest.raises(InputError, match=f"^db: {db} " + expected):
+            ResultStore(db, create=create)
