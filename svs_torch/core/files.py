@@ -167,20 +167,54 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> I
     ``mode`` is ``"wb"`` or ``"w"`` (then ``open_kwargs`` such as ``encoding``, ``newline`` go to the text
     stream). The file is created with ``os.open(..., 0o666)``, so the umask (and a folder's default ACL) decides
     its permissions, as for any new file. A symbolic link is written through, its target replaced (renamed over,
-    the link itself became a plain file).
+    the link itself became a plain file). Where the system has them (Linux), the temporary file has no name
+    until it is complete (``O_TMPFILE``): a process killed while writing (SIGKILL, which no handler sees) leaves
+    nothing behind; it left a hidden half file (``.sweep.png.1a2b3c4d.tmp``).
     """
     if mode not in ("w", "wb"):
         raise InputError(f"mode: expected 'w' or 'wb', got {mode!r}")
     target = Path(os.path.realpath(path)) if os.path.islink(path) else Path(path)
     temporary = target.with_name(f".{short_name(target.name)}.{uuid.uuid4().hex[:8]}.tmp")
-    handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    handle, unnamed = _open_unnamed(target.parent)
+    if handle is None:
+        handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    named = not unnamed
     try:
         with os.fdopen(handle, mode, **open_kwargs) as stream:
             yield stream
+            if unnamed:  # named only now, complete (closed unnamed, it would be gone)
+                stream.flush()
+                _name_unnamed(handle, temporary)
+                named = True
         os.replace(temporary, target)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temporary)
+        if named:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+        raise
+
+
+def _name_unnamed(handle: int, name: Path) -> None:
+    """Give the unnamed file open as ``handle`` the name ``name`` (``linkat`` following ``/proc/self/fd``'s link:
+    ``os.link`` calls it only when given a folder's handle; plain ``link`` would link the link, across devices)."""
+    folder = os.open(name.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.link(f"/proc/self/fd/{handle}", name.name, dst_dir_fd=folder, follow_symlinks=True)
+    finally:
+        os.close(folder)
+
+
+def _open_unnamed(folder: Path) -> tuple[int | None, bool]:
+    """A file without a name in ``folder`` to write (``O_TMPFILE``, named later through ``/proc/self/fd``), or
+    ``(None, False)`` where the system or the file system has none."""
+    flag = getattr(os, "O_TMPFILE", 0)
+    if not flag or not os.path.isdir("/proc/self/fd"):
+        return None, False
+    try:
+        return os.open(folder, os.O_WRONLY | flag, 0o666), True
+    except OSError as error:
+        if error.errno in (errno.EISDIR, errno.EOPNOTSUPP, errno.EINVAL, errno.ENOENT, errno.ENOTSUP):
+            return None, False  # an older kernel, a file system without it: a named temporary file
         raise
 
 

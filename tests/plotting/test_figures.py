@@ -8,6 +8,7 @@ import contextlib
 import dataclasses
 import os
 import stat
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -369,3 +370,38 @@ def test_objects_panel_says_areas_in_input_pixels_and_leaves_a_tiny_view_unlabel
     tiny = dataclasses.replace(seg, labels=seg.labels[..., :12, :16])
     objects_panel(batch.left[..., :12, :16], tiny, 0)
     assert texts == []
+
+
+KILLED_WRITER = """\
+import sys
+from svs_torch.core.files import atomic_output
+with atomic_output(sys.argv[1]) as stream:
+    stream.write(b"half of a new file")
+    stream.flush()
+    print("writing", flush=True)
+    sys.stdin.read()
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "O_TMPFILE") or not os.path.isdir("/proc/self/fd"),
+                    reason="needs O_TMPFILE and /proc (Linux)")
+def test_a_writer_killed_mid_write_leaves_the_old_file_and_nothing_else(tmp_path):
+    """Found by an audit of two processes at once: a command killed with SIGKILL while writing a file (results
+    --figure renders into it for 0.4 s) left a hidden half file beside it ('.f.png.c20bc52e.tmp')."""
+    import signal
+    import subprocess
+    import sys
+
+    import svs_torch
+
+    target = tmp_path / "out.png"
+    target.write_bytes(b"old")
+    writer = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(target)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(Path(svs_torch.__file__).parents[1])})
+    try:
+        assert writer.stdout.readline() == "writing\n"
+    finally:
+        os.kill(writer.pid, signal.SIGKILL)
+        writer.wait()
+    assert [p.name for p in tmp_path.iterdir()] == ["out.png"] and target.read_bytes() == b"old"
