@@ -29,7 +29,7 @@ from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
-from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, PairsIndex, drop_unused_pairs_folder, new_pairs_folder, \
+from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
@@ -196,18 +196,20 @@ def run(args: argparse.Namespace) -> int:
             calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
-    done, apart, made = 0, 0, not out.exists()
+    done, apart = 0, 0
     try:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
-            out.mkdir(parents=True, exist_ok=True)
+            # The index first: made anew, it is this run's folder (another capture into it is refused there, and
+            # its clean-up removed this one's index and folder, an audit), then the calibration beside it.
+            index, made = open_pairs_index(out, "--out-dir")
             # However the capture ends, one that saved no pair removes what it wrote (its index closed first).
             stack.callback(lambda: None if done else drop_unused_pairs_folder(out, made))
+            stack.enter_context(index)
             if calibration is not None:  # the frames stay as received; their rig's calibration goes beside them
                 from ..geometry.calibration import write_calibration
 
                 write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
-            index = stack.enter_context(PairsIndex(out, "--out-dir"))
             progress = stack.enter_context(Progress(args.count, "capture"))
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
                 pair = camera.grab_pair()

@@ -30,7 +30,8 @@ from typing import Any, TextIO
 
 from ..core.files import display_path
 from ..core.workers import signals_held
-from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, replay_command, save_pair
+from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, open_pairs_index, replay_command, \
+    save_pair
 from .estimate_report import pair_report
 
 __all__ = ["GuideLog", "replay_command"]
@@ -58,14 +59,14 @@ class GuideLog:
         ``--calibration`` a copy of the rig's calibration beside the pairs, as ``capture`` keeps it (the replay
         command names the copy: the original's relative path broke from another folder)."""
         if self.record_dir is not None and self._index is None and self.record_error is None:
-            self._made = not self.record_dir.exists()
-            self.record_dir.mkdir(parents=True, exist_ok=True)
+            # The index first (only the run that made it cleans the folder up; another guide or capture into
+            # it is refused there), then the calibration beside it.
+            self._index, self._made = open_pairs_index(self.record_dir, "--record")
             if self.rig is not None:
                 from ..geometry.calibration import write_calibration
 
                 write_calibration(self.record_dir / CALIBRATION_NAME, self.rig, "--record")
                 self.replay = (self.replay[0], str(self.record_dir / CALIBRATION_NAME))
-            self._index = PairsIndex(self.record_dir, "--record")
 
     def write(self, pair, result, elapsed_s: float, warning: dict[str, Any], num_dropped: int) -> None:
         """Keep pair ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) and its one-pair ``result``,

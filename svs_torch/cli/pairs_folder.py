@@ -97,6 +97,27 @@ def _frame_fields(name: str, frame: Frame) -> dict[str, Any]:
             f"{name}_arrival_wall_s": frame.arrival_wall_s, f"{name}_attempts": frame.attempts}
 
 
+def open_pairs_index(folder: Path, option: str) -> tuple[PairsIndex, bool]:
+    """``folder``'s new index (:class:`PairsIndex`), the folder made if missing, and whether this call made it
+    (a folder it made is removed again where the index cannot be made). Only the run whose index this is may
+    clean the folder up (:func:`drop_unused_pairs_folder`): two runs into one folder, checked free by both,
+    cannot both make it."""
+    made = False
+    if not folder.is_dir():
+        try:
+            folder.mkdir(parents=True)
+            made = True
+        except FileExistsError:  # another run made it meanwhile
+            pass
+    try:
+        return PairsIndex(folder, option), made
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
 def remove_files(paths: list[Path]) -> None:
     """Remove what of ``paths`` exists (a pair that could not be kept whole), ignoring what cannot be."""
     for path in paths:
@@ -111,8 +132,13 @@ class PairsIndex:
 
     def __init__(self, folder: Path, option: str) -> None:
         self.path, self.option = folder / INDEX_NAME, option
-        with write_errors_named(option, self.path):
-            self._file = open(self.path, "xb", buffering=0)
+        try:
+            with write_errors_named(option, self.path):
+                self._file = open(self.path, "xb", buffering=0)
+        except FileExistsError:  # new_pairs_folder saw none: another run made it since (an audit: two captures
+            # into one folder; the refused one's clean-up removed the other's index and folder)
+            raise InputError(f"{option}: {display_path(self.path)} was made by another run since this one started "
+                             "(two runs writing one folder?); choose a new folder") from None
         self._length = 0  # the index's bytes of whole lines
 
     def append(self, record: dict[str, Any]) -> None:

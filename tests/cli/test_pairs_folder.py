@@ -112,3 +112,26 @@ def test_capture_on_a_full_disk_keeps_whole_pairs_and_names_the_option_and_file(
     assert "1 of 3 pairs saved" in err
     assert sorted(p.name for p in out.iterdir()) == ["index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg"]
     assert len((out / "index.jsonl").read_text().splitlines()) == 1
+
+
+def test_a_second_capture_into_one_folder_leaves_the_first_ones_index_and_folder(monkeypatch, capsys, tmp_path):
+    """Found by an audit of two processes at once: two captures started together into one new folder both found it
+    free; the second, refused at the index ("[Errno 17] ... File exists"), removed the first's still empty index and
+    the folder in its clean-up, and the first then failed too ("No such file or directory"), nothing saved. Now the
+    refused one says why in one line and touches nothing of the other's."""
+    import svs_torch.cli.capture as capture
+
+    out = tmp_path / "pairs"
+    real_open = capture.open_stereo_camera
+
+    def another_capture_starts(*args, **kwargs):
+        camera = real_open(*args, **kwargs)
+        out.mkdir()  # the other capture: its folder and its index, no pair yet
+        PairsIndex(out, "--out-dir").close()
+        return camera
+
+    monkeypatch.setattr(capture, "open_stereo_camera", another_capture_starts)
+    assert main(["capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"error: --out-dir: {out / 'index.jsonl'} was made by another run since this one started" in err
+    assert [p.name for p in out.iterdir()] == ["index.jsonl"]
