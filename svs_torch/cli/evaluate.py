@@ -62,9 +62,10 @@ the data's native pixels, at the published thresholds. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
 row, but an ERROR, BAD_INPUT or TOO_SMALL row, which is replaced), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set;
-1 an output that cannot be written (--disparity-out or --db on a full disk: the option and the file named; the
-rows a --db store committed are kept), or a --disparity-out map left unwritten rather than write over a ground
-truth, an input image or another pair's map (each warned; every pair is still evaluated, exit 1 at the end).
+1 an output that cannot be written (--disparity-out or --db on a full disk, or --db kept locked over 60 s by
+another program: the option and the file named; the rows a --db store committed are kept), or a --disparity-out
+map left unwritten rather than write over a ground truth, an input image or another pair's map (each warned;
+every pair is still evaluated, exit 1 at the end).
 Ctrl-C or SIGTERM: exit 130 / 143, after the summary of the pairs done (in JSON with "interrupted": true and
 pairs_listed).
 """

@@ -44,8 +44,9 @@ examples:
 
 Dask workers: start them with one thread each and without the nanny's MALLOC_TRIM_THRESHOLD_ (about 1.5x
 slower torch), e.g.  DASK_CONFIG=experiments/dask_workers.yaml dask worker tcp://HOST:8786 --nthreads 1
-exit status: 0 done (failed pairs are rows with their status); 2 bad arguments or sweep file; 1 the store cannot
-be written (a full disk) or a worker process died; 130 interrupted, 143 terminated (SIGTERM) (in every case what
+exit status: 0 done (failed pairs are rows with their status); 2 bad arguments or sweep file, or another running
+sweep holds some of its configurations; 1 the store cannot be written (a full disk, or another program kept it
+locked over 60 s) or a worker process died; 130 interrupted, 143 terminated (SIGTERM) (in every case what
 was committed stays; run again to resume: the rows missing and the ERROR, BAD_INPUT and TOO_SMALL rows are run
 again).
 """

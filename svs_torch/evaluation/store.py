@@ -64,8 +64,11 @@ from .store_access import SQLITE_READONLY, check_schema_version, claim_configs, 
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
-#: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL.
-SQLITE_IOERR, SQLITE_FULL = 10, 13
+#: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL; and for a store another
+#: connection kept locked past the wait: SQLITE_BUSY, SQLITE_LOCKED.
+SQLITE_IOERR, SQLITE_FULL, SQLITE_BUSY, SQLITE_LOCKED = 10, 13, 5, 6
+#: Seconds a connection waits for another's write to end before it gives up (SQLITE_BUSY).
+BUSY_TIMEOUT_S = 60.0
 
 SCHEMA_VERSION = 2
 #: Stored statuses a resumed run retries, those of the pairs the pipeline did not run on (a pipeline that raised, and
@@ -111,12 +114,17 @@ def _to_sql(value: Any) -> Any:
 
 
 def _raise_if_disk_failed(error: sqlite3.DatabaseError, path: Path) -> None:
-    """An :class:`OSError` naming the store for SQLite's full disk or I/O error (the run's failure, exit 1, as an
-    export's: a full disk read as "not a results store", a usage error, or as an internal error)."""
+    """An :class:`OSError` naming the store for SQLite's full disk or I/O error, or a lock another process kept
+    past :data:`BUSY_TIMEOUT_S` (the run's failure, exit 1, as an export's: a full disk read as "not a results
+    store", a usage error, or as an internal error)."""
     code = getattr(error, "sqlite_errorcode", 0) & 0xFF  # the primary code of an extended one
     if code in (SQLITE_FULL, SQLITE_IOERR):
         raise OSError(errno.ENOSPC if code == SQLITE_FULL else errno.EIO,
                       f"db: cannot write {path}: {error}") from None
+    if code in (SQLITE_BUSY, SQLITE_LOCKED):  # it was "not a results store (database is locked)", exit 2
+        raise OSError(errno.EBUSY, f"db: {path}: another process has kept it locked for over {BUSY_TIMEOUT_S:g} s (a "
+                                   "write it has not ended: another program with it open?); run again once that "
+                                   "has ended (what is stored is kept)") from None
 
 
 class ResultStore:
@@ -169,7 +177,7 @@ class ResultStore:
         """The store opened to write, its tables made if it is new. Another program's SQLite file is refused before
         anything is written to it (a mistyped --db added the store's tables beside its own)."""
         # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
-        connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
+        connection = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
         tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if tables and "meta" not in tables:
             connection.close()
@@ -190,7 +198,7 @@ class ResultStore:
         an immutable file. (Not ``mode=ro`` first: in a writable folder it would leave an empty ``-wal`` and a
         ``-shm`` file behind, which only a writer removes.)"""
         try:
-            connection = sqlite3.connect(self.path, timeout=60, isolation_level=None)
+            connection = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
             connection.execute("SELECT name FROM sqlite_master").fetchall()
             return connection
         except sqlite3.OperationalError:

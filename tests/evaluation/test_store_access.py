@@ -67,3 +67,31 @@ def test_a_store_of_another_schema_is_refused_in_one_line(tmp_path, version, exp
     for create in (False, True) if version is not None else (False,):  # (to write, a versionless one gets it)
         with pytest.raises(InputError, match=f"^db: {db} " + expected):
             ResultStore(db, create=create)
+
+
+def test_a_store_another_process_keeps_locked_is_named_busy_not_another_file(tmp_path, monkeypatch, capsys, data_dir):
+    """Found by an audit: a store another program kept in a write transaction for over the 60 s wait (a database
+    browser, a script) was "db: FILE is not a results store (database is locked)", exit 2, for sweep and eval
+    --db. (The wait is cut to 0.1 s here.)"""
+    from svs_torch.cli import main
+    from svs_torch.evaluation import store as store_module
+
+    db = tmp_path / "busy.sqlite"
+    ResultStore(db).close()
+    monkeypatch.setattr(store_module, "BUSY_TIMEOUT_S", 0.1)
+    other = sqlite3.connect(db, isolation_level=None)
+    try:
+        other.execute("BEGIN IMMEDIATE")
+        other.execute("DELETE FROM runs")
+        teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+        assert main(["eval", str(teddy), "--size", "160x120", "--db", str(db)]) == 1
+        assert capsys.readouterr().err.strip().endswith(
+            f"error: --db: {db}: another process has kept it locked for over 0.1 s (a write it has not ended: "
+            "another program with it open?); run again once that has ended (what is stored is kept)")
+        other.execute("ROLLBACK")
+        with ResultStore(db) as store:  # opened, then locked by the other mid-run: the write says so
+            other.execute("BEGIN IMMEDIATE")
+            with pytest.raises(OSError, match=f"db: {db}: another process has kept it locked for over 0.1 s"):
+                store.start_run("eval", "v", {}, "")
+    finally:
+        other.close()
