@@ -14,6 +14,7 @@ store is then only closed).
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import struct
@@ -40,12 +41,13 @@ def _byte_of(config_id: str) -> int:
 
 def _lock(fcntl, handle: IO, command: int, offset: int, kind: int) -> bool:
     """An open-file-description lock of one byte (``struct flock``: short, short, off_t, off_t, pid_t, the pid
-    0); False where another handle holds it."""
+    0); False where another handle holds it. A file system that takes no locks (``ENOLCK``, ``EINVAL``: some
+    network or FUSE mounts) holds nothing and refuses nothing: it was "another sweep is writing" with none."""
     request = struct.pack("hhqqi4x", kind, 0, offset, 1, 0)
     try:
         fcntl.fcntl(handle.fileno(), command, request)
-    except OSError:
-        return False
+    except OSError as error:
+        return error.errno not in (errno.EAGAIN, errno.EACCES)
     return True
 
 
@@ -67,8 +69,10 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             return handle
-        except OSError:
+        except OSError as error:
             handle.close()
+            if error.errno not in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):  # no locks there (see _lock)
+                return None
             raise InputError(f"db: another sweep is writing {path}; run this one once it has ended (it then runs "
                              "only what is missing), or give another store") from None
     _lock(fcntl, handle, fcntl.F_OFD_SETLKW, _CLAIMING_BYTE, fcntl.F_WRLCK)  # waits for another's claiming only

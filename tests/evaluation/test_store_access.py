@@ -95,3 +95,20 @@ def test_a_store_another_process_keeps_locked_is_named_busy_not_another_file(tmp
                 store.start_run("eval", "v", {}, "")
     finally:
         other.close()
+
+
+def test_a_store_on_a_file_system_without_locks_is_not_said_to_be_held(tmp_path, monkeypatch):
+    """A file system that takes no locks (ENOLCK: some network mounts) was "another sweep is writing FILE" with
+    no other sweep; now nothing is held there and nothing refused."""
+    import errno
+    import fcntl
+
+    def no_locks(*args):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "fcntl", no_locks)
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    db = tmp_path / "nfs.sqlite"
+    with ResultStore(db) as first, ResultStore(db) as second:
+        first.claim_for_a_sweep(["a"])
+        second.claim_for_a_sweep(["a"])
