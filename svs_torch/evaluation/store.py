@@ -143,7 +143,9 @@ class ResultStore:
             raise InputError(f"db: the folder {self.path.parent} does not exist" if not self.path.parent.exists()
                              else f"db: {self.path.parent} is a file, not a folder")
         if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
-            check_writable_folder(self.path.parent, "db")
+            # (beside a link's target: a link to a store on a read-only share was "unable to open", an audit)
+            check_writable_folder(Path(os.path.realpath(self.path)).parent if self.path.is_symlink()
+                                  else self.path.parent, "db")
         new = create and not self.path.exists()
         size = self.path.stat().st_size if self.path.is_file() else None
         # SQLite takes a file shorter than its 100-byte header for an empty database and writes the tables into it:

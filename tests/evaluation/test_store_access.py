@@ -112,3 +112,28 @@ def test_a_store_on_a_file_system_without_locks_is_not_said_to_be_held(tmp_path,
     with ResultStore(db) as first, ResultStore(db) as second:
         first.claim_for_a_sweep(["a"])
         second.claim_for_a_sweep(["a"])
+
+
+def test_a_link_to_a_store_in_a_folder_that_takes_no_files_names_that_folder(tmp_path, monkeypatch):
+    """Found by an audit: --db a link (in a writable folder) to a store on a read-only share was "db: LINK is not
+    a results store (unable to open database file)": SQLite keeps its journal beside the link's target. (The
+    read-only folder is simulated: root writes anywhere.)"""
+    from svs_torch.core import files
+
+    share = tmp_path / "share"
+    share.mkdir()
+    ResultStore(share / "store.sqlite").close()
+    link = tmp_path / "store.sqlite"
+    link.symlink_to(share / "store.sqlite")
+    real_open = os.open
+
+    def read_only_share(path, flags, *args, **kwargs):
+        if Path(path).parent == share and flags & os.O_CREAT:
+            raise OSError(30, "Read-only file system", str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(files.os, "open", read_only_share)
+    with pytest.raises(InputError, match=rf"^db: cannot write in folder '{share}' \(Read-only file system\)$"):
+        ResultStore(link)
+    with ResultStore(link, create=False) as store:  # read, it is as it was
+        assert store.configs() == []
