@@ -60,7 +60,8 @@ from ..core.checks import InputError
 from ..core.files import check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
-from .store_access import SQLITE_READONLY, check_schema_version, claim_configs, read_only_error
+from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, claim_configs, read_only_error,
+                           unreadable_beside_writer)
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
@@ -203,8 +204,10 @@ class ResultStore:
             connection = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
             connection.execute("SELECT name FROM sqlite_master").fetchall()
             return connection
-        except sqlite3.OperationalError:
+        except sqlite3.OperationalError as error:
             if Path(f"{self.path}-wal").exists():  # rows not yet in the file: immutable would not see them
+                if getattr(error, "sqlite_errorcode", SQLITE_CANTOPEN) & 0xFF in (SQLITE_CANTOPEN, SQLITE_READONLY):
+                    raise InputError(unreadable_beside_writer(self.path)) from None  # was "not a results store"
                 raise
         uri = f"{self.path.resolve().as_uri()}?mode=ro&immutable=1"
         return sqlite3.connect(uri, uri=True, isolation_level=None)

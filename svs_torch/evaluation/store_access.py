@@ -24,10 +24,11 @@ from typing import IO
 
 from ..core.checks import InputError
 
-__all__ = ["SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error", "sweep_is_writing"]
+__all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error",
+           "sweep_is_writing", "unreadable_beside_writer"]
 
-#: SQLite's primary result code for a write to a file it opened read-only (sqlite3.h).
-SQLITE_READONLY = 8
+#: SQLite's primary result codes for a write to a file it opened read-only, and a file it cannot open (sqlite3.h).
+SQLITE_READONLY, SQLITE_CANTOPEN = 8, 14
 #: The first byte of the claims, far past SQLite's lock bytes (at 1 GiB) and any store's size; claims never read
 #: or write the file.
 _CLAIMS_START = 1 << 40
@@ -112,6 +113,15 @@ def read_only_error(path: Path) -> InputError:
     was "not a results store (attempt to write a readonly database)"."""
     return InputError(f"db: cannot write {path}: the file is read-only (svs-depth results reads it); make it "
                       "writable, or copy it to a new file and name that")
+
+
+def unreadable_beside_writer(path: Path) -> str:
+    """Why a store with rows still in its ``-wal`` file cannot be read from a folder this user cannot write
+    (SQLite reads them through a shared-memory file it makes beside the store): it was "not a results store
+    (unable to open database file)" (an audit: a colleague's sweep writing a store on a share)."""
+    return (f"db: cannot read {path} from here yet: rows are still in {path.name}-wal (a sweep writing it, or one "
+            "killed), and reading them needs a file made in its folder, which this user cannot write; read it once "
+            "the writer has ended, or copy both files to a folder you can write")
 
 
 def check_schema_version(path: Path, version: str | None, expected: int) -> None:

@@ -137,3 +137,28 @@ def test_a_link_to_a_store_in_a_folder_that_takes_no_files_names_that_folder(tmp
         ResultStore(link)
     with ResultStore(link, create=False) as store:  # read, it is as it was
         assert store.configs() == []
+
+
+def test_a_store_being_written_read_from_a_folder_that_takes_no_files_says_why(tmp_path, monkeypatch, capsys):
+    """Found by an audit: a store with rows still in its -wal file (a colleague's sweep writing it on a share)
+    read from a folder this user cannot write was "db: FILE is not a results store (unable to open database
+    file)". (The refusal is simulated, as in test_sweep's read of a cleanly closed store: root writes anywhere.)"""
+    from svs_torch.cli import main
+    from svs_torch.evaluation import store as store_module
+
+    db = tmp_path / "shared.sqlite"
+    ResultStore(db).close()
+    Path(f"{db}-wal").write_bytes(b"")  # a writer's rows not yet in the file
+    connect = sqlite3.connect
+
+    def read_only_folder(database, *args, **kwargs):
+        if "immutable=1" not in str(database):
+            raise sqlite3.OperationalError("unable to open database file")
+        return connect(database, *args, **kwargs)
+
+    monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)
+    assert main(["results", str(db)]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        f"error: db: cannot read {db} from here yet: rows are still in shared.sqlite-wal (a sweep writing it, or "
+        "one killed), and reading them needs a file made in its folder, which this user cannot write; read it once "
+        "the writer has ended, or copy both files to a folder you can write")
