@@ -74,35 +74,39 @@ def _estimate_chunk(chunk, args: argparse.Namespace, config) -> list[tuple[dict,
 
 
 def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tuple[dict, str | None]]:
-    """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk``."""
+    """:func:`_estimate_chunk`'s reports of the loaded ``entries`` of ``chunk``. Each size's pairs run in
+    batches of at most the pipeline's chunk of pixels, each reported and let go before the next runs (each pair's
+    result is its own whatever its batch): the result of a whole ``--batch-size`` of large frames, held until
+    all were reported, took gigabytes (:func:`~svs_torch.core.size_groups.same_size_indices`)."""
     from ..core.size_groups import same_size_indices
     from ..data import collate_stereo_batches
     from ..pipeline import estimate_obstacle_depth
+    from ..pipeline.run import CHUNK_PIXELS
 
-    runnable = [loaded for status, _, loaded in entries if status is None]
-    runs, where, per_pair = [], {}, 0.0  # where: runnable position -> (its run, its row there)
-    started = time.perf_counter()
-    for indices, _ in same_size_indices([b.size_hw for b, _ in runnable]):  # one batch a size, never padded
-        batch = collate_stereo_batches([runnable[i][0] for i in indices], mode="pad")
-        runs.append((batch, estimate_obstacle_depth(batch, config)))
-        where.update((index, (len(runs) - 1, row)) for row, index in enumerate(indices))
-    if runnable:
-        per_pair = (time.perf_counter() - started) / len(runnable)
-    for batch, result in runs:
+    runnable = [(position, loaded) for position, (status, _, loaded) in enumerate(entries) if status is None]
+    ranged: dict[int, dict] = {}  # entry position -> its report
+    for indices, _ in same_size_indices([loaded[0].size_hw for _, loaded in runnable], CHUNK_PIXELS):
+        started = time.perf_counter()  # one batch a size (never padded), at most a chunk of pixels
+        batch = collate_stereo_batches([runnable[i][1][0] for i in indices], mode="pad")
+        result = estimate_obstacle_depth(batch, config)
+        per_pair = (time.perf_counter() - started) / len(indices)
         _write_disparity(args, batch, result, per_pair)
-    position, out = 0, []
-    for source, (status, reason, loaded) in zip(chunk, entries):
+        for row, index in enumerate(indices):
+            position, loaded = runnable[index]
+            source = chunk[position]
+            ranged[position] = with_calibration(pair_report(result, row, loaded[1], per_pair), batch, row, loaded[1],
+                                                _calibration_source(source, args),
+                                                calibration_file_source(args, source) is not None)
+        del batch, result  # before the next batch runs
+    out = []
+    for position, (source, (status, reason, loaded)) in enumerate(zip(chunk, entries)):
         if status is not None:
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
             if loaded is not None:  # too small: its size and calibration, as estimate of one pair says (an audit)
                 report = with_calibration(report, loaded[0], 0, loaded[1], _calibration_source(source, args),
                                           calibration_file_source(args, source) is not None)
         else:
-            (batch, result), row = runs[where[position][0]], where[position][1]
-            report, bad = pair_report(result, row, loaded[1], per_pair), None
-            report = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args),
-                                      calibration_file_source(args, source) is not None)
-            position += 1
+            report, bad = ranged[position], None
         out.append(({"left": source.left, "right": source.right, **report}, bad))
     return out
 

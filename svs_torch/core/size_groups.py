@@ -41,17 +41,28 @@ def size_groups(image_hw: torch.Tensor) -> list[tuple[torch.Tensor, tuple[int, i
             for indices, hw in same_size_indices(image_hw.tolist())]
 
 
-def same_size_indices(sizes_hw: Sequence[Sequence[int]]) -> list[tuple[list[int], tuple[int, int]]]:
-    """The positions of each distinct ``(height, width)`` among ``sizes_hw``, in order of first appearance.
+def same_size_indices(sizes_hw: Sequence[Sequence[int]], max_pixels: int | None = None
+                      ) -> list[tuple[list[int], tuple[int, int]]]:
+    """The positions of each distinct ``(height, width)`` among ``sizes_hw``, in order of first appearance; with
+    ``max_pixels``, each size's positions cut into consecutive runs of at most that many left-view pixels (at least
+    one pair a run).
 
     The command line batches listed pairs by it (``estimate --pairs``, ``eval``): pairs of one size are one batch,
     never padded to another's size. Why: the pipeline runs each size alone anyway, but the padded batch and the
     result merged back to its size cost (largest height) x (largest width) a pair; an 8000 x 10 and a 10 x 8000
-    pair in one list took 7.9 GB and 28 s (0.3 GB and 0.6 s alone), and ended the run in a smaller memory."""
+    pair in one list took 7.9 GB and 28 s (0.3 GB and 0.6 s alone), and ended the run in a smaller memory.
+    Why ``max_pixels`` (the pipeline's chunk): the pipeline runs a larger batch in chunks anyway, but returns one
+    result merged over all of them, its maps and masks held until every pair is reported: four 3000 x 2000 pairs
+    in one ``--batch-size`` took 2.9 GB, 1.7 GB more than one, and a batch of eight 12-megapixel camera frames
+    would take about 10 GB (an audit)."""
     order: dict[tuple[int, int], list[int]] = {}
     for index, hw in enumerate(sizes_hw):
         order.setdefault((int(hw[0]), int(hw[1])), []).append(index)
-    return [(indices, hw) for hw, indices in order.items()]
+    runs = []
+    for hw, indices in order.items():
+        step = _chunk_pairs(hw, max_pixels)
+        runs += [(indices[start:start + step], hw) for start in range(0, len(indices), step)]
+    return runs
 
 
 def crop_batch(batch: StereoBatch, height: int, width: int) -> StereoBatch:
