@@ -1,4 +1,4 @@
-"""A large ``--batch-size`` at a large size: ``estimate --pairs`` runs each size's pairs in batches of
+"""A large ``--batch-size`` at a large size: ``estimate --pairs`` and ``eval`` run each size's pairs in batches of
 at most the pipeline's chunk of pixels, and let each batch's result go before the next runs (an audit: the result
 of a whole batch, merged over the pipeline's chunks, was held until every pair was reported: four 3000 x 2000
 pairs took 2.9 GB where one took 1.2 GB). The lines printed do not change."""
@@ -14,7 +14,9 @@ from real_images import PAIRS
 
 import svs_torch.pipeline
 from svs_torch.cli import main
+from svs_torch.data import read_pair_sources
 from svs_torch.evaluation import runner
+from svs_torch.evaluation.runner import EvalSetup, evaluate_pairs
 from svs_torch.pipeline import run as pipeline_run
 
 SIZE_WH = (64, 48)
@@ -59,6 +61,20 @@ def test_estimate_pairs_runs_a_large_batch_a_chunk_at_a_time(data_dir, capsys, t
     spy = _spy(monkeypatch, svs_torch.pipeline)
     assert _estimate_lines(capsys, listing) == want
     assert spy.pairs == [2, 2, 1] and spy.held == 0
+
+
+def test_eval_runs_a_large_batch_a_chunk_at_a_time(data_dir, monkeypatch):
+    scenes = ["middlebury_eval3_Q/Teddy", "middlebury_eval3_Q/Piano", "middlebury_eval3_Q/ArtL"]
+    sources = read_pair_sources([data_dir / scene for scene in scenes])
+    setup = EvalSetup(size_wh=SIZE_WH)
+
+    def rows():
+        return [{k: v for k, v in vars(e).items() if k != "time_s"} for _, e in evaluate_pairs(sources, setup, 3)]
+
+    want = rows()
+    spy = _spy(monkeypatch, runner)
+    assert rows() == want
+    assert spy.pairs == [2, 1] and spy.held == 0
 
 
 @pytest.fixture(autouse=True)
