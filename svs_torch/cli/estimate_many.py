@@ -16,7 +16,7 @@ from pathlib import Path
 from .common import dumps_strict, too_small_reason
 from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, format_report, pair_report,
                               unranged_report, with_calibration)
-from .features import load_pair, warn_if_enlarged
+from .features import check_native_pixels, checked_size, load_pair, warn_if_enlarged
 from .progress import Progress
 from .rig import (calibration_file_source, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
                   take_kept_calibration, with_calibrated_rectification)
@@ -26,13 +26,13 @@ __all__ = []
 
 def _load_source(source, args: argparse.Namespace):
     """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does."""
-    from ..core.camera import parse_size
     from ..data import load_pair_source, resize_stereo_batch
 
     batch = load_pair_source(source)
-    if args.size is None:  # "" is an error (parse_size), not "native": --size "$SIZE" with SIZE unset
+    if args.size is None:  # "" is an error (checked_size), not "native": --size "$SIZE" with SIZE unset
+        check_native_pixels(batch.size_hw)  # as load_pair (a 6000x4000 scene ran here, at 3.7 GB: an audit)
         return batch, (1.0, 1.0)
-    (height, width), (new_w, new_h) = batch.size_hw, parse_size(args.size, "--size")
+    (height, width), (new_w, new_h) = batch.size_hw, checked_size(args.size)
     warn_if_enlarged((height, width), (new_w, new_h))
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
 
@@ -114,6 +114,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
 def _worker_setup(args: argparse.Namespace) -> tuple[list, object]:
     if args.pairs not in _WORKER_SETUP:
         config = pipeline_config_from_args(args)  # first, as in one process: a bad option is the error shown
+        checked_size(args.size)
         check_no_manual_calibration(args)
         calibration_from_args(args)
         _WORKER_SETUP[args.pairs] = _read_pair_list(args.pairs), config
@@ -285,6 +286,7 @@ def _run_many(args: argparse.Namespace) -> int:
     if workers == 1:
         with imports_without_collection():  # the pipeline's imports (see there)
             config = pipeline_config_from_args(args)
+            checked_size(args.size)  # once, not as every listed pair's BAD_INPUT
             check_no_manual_calibration(args)
             calibration_from_args(args)
         pairs = _read_pair_list(args.pairs)

@@ -8,6 +8,7 @@ import time
 
 from .common import (Terminated, add_disparity_export_options, dumps_strict, finite_float, options_named,
                      output_file, positive_float, positive_int, resolve_export_options)
+from .features import MAX_PIXELS, checked_size
 from .progress import Progress
 from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
                   rig_provenance, take_kept_calibration, with_calibrated_rectification)
@@ -75,7 +76,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("eval", help=HELP, description=DESCRIPTION, epilog=EPILOG,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", metavar="PATH", help="scene folder, folder of scenes, list, index.jsonl")
-    parser.add_argument("--size", metavar="WxH", help="resample every pair to this size first (e.g. 320x240)")
+    parser.add_argument("--size", metavar="WxH", help="resample every pair to this size first (e.g. 320x240; at most "
+                                                      "16 megapixels, and a pair over 16 megapixels needs it)")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--preset", choices=("default", "paper"), default="default",
                        help="'default': the best measured settings; 'paper': the paper's MATLAB defaults")
@@ -256,7 +258,6 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from dataclasses import replace
 
-        from ..core.camera import parse_size
         from ..data import read_pair_sources
         from ..data.pair_list import unique_sources
         from ..core.errors import InputError
@@ -264,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation.overrides import resolve_config
 
     resolve_export_options(args)
-    size_wh = parse_size(args.size, "--size") if args.size is not None else None  # "": an error, not native
+    size_wh = checked_size(args.size)  # over 16 megapixels refused, as estimate's (8192x8192 was taken: an audit)
     check_no_manual_calibration(args)
     if args.calibration and args.db:  # the store's pair and configuration ids do not record a rig yet
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
@@ -282,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         print(HEADER)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
-                      rig_provenance(args.calibration or ""))
+                      rig_provenance(args.calibration or ""), max_pixels=MAX_PIXELS)
     started, evaluations = time.perf_counter(), []
     try:
         _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations)

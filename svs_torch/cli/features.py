@@ -68,7 +68,8 @@ COMMAND_UPSAMPLE_MAX_PIXELS = 1024 * 1024
 
 def add_pair_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", metavar="WxH",
-                        help="resample the pair to this size first (e.g. 320x240, the SVS default)")
+                        help="resample the pair to this size first (e.g. 320x240, the SVS default; at most 16 "
+                             "megapixels, and a pair over 16 megapixels needs it)")
 
 
 #: ``SURFConfig``'s largest ``max_keypoints`` (``svs_torch.features.detector.MAX_KEYPOINTS``, written out here: the
@@ -178,15 +179,11 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
     """The pair ``left``/``right`` with the calibration options ``args`` carries (``focal_px``, ``baseline_m``,
     ``doffs_px``; SVS defaults otherwise; or rectified by ``--calibration``'s rig, before any resampling),
     resampled to ``--size`` if given; and the x, y factors that map working pixels back to input pixels."""
-    from ..core.camera import parse_size
     from ..data import load_image_pair, resize_stereo_batch
 
-    from ..core.checks import InputError
     from .rig import calibration_from_args
 
-    new_size = parse_size(args.size, "--size") if args.size is not None else None  # "": an error, not native
-    if new_size and new_size[0] * new_size[1] > MAX_PIXELS:
-        raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
+    new_size = checked_size(args.size)
     batch = load_image_pair(left, right, focal_px=getattr(args, "focal_px", None),
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     calibration = calibration_from_args(args)
@@ -196,13 +193,36 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
         batch = rectify_with_calibration(batch, calibration)
     height, width = batch.size_hw
     if new_size is None:
-        if height * width > MAX_PIXELS:
-            raise InputError(f"left: expected at most {MAX_PIXELS // 10**6} megapixels, got {width}x{height} "
-                             "(resample it with --size)")
+        check_native_pixels(batch.size_hw)
         return batch, (1.0, 1.0)
     new_w, new_h = new_size
     warn_if_enlarged((height, width), new_size)
     return resize_stereo_batch(batch, (new_w, new_h)), (width / new_w, height / new_h)
+
+
+def checked_size(text: str | None) -> tuple[int, int] | None:
+    """``--size`` as (width, height), None when not given; one of over :data:`MAX_PIXELS` refused
+    (:class:`~svs_torch.core.errors.InputError`). ``""`` is an error, not the native size (``--size "$SIZE"``)."""
+    from ..core.camera import parse_size
+    from ..core.errors import InputError
+
+    if text is None:
+        return None
+    new_size = parse_size(text, "--size")
+    if new_size[0] * new_size[1] > MAX_PIXELS:
+        raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {text!r}")
+    return new_size
+
+
+def check_native_pixels(size_hw: tuple[int, int], name: str = "left") -> None:
+    """Refuse (:class:`~svs_torch.core.errors.InputError`) a pair of this (H, W) over :data:`MAX_PIXELS`, run at
+    its own size."""
+    from ..core.errors import InputError
+
+    height, width = size_hw
+    if height * width > MAX_PIXELS:
+        raise InputError(f"{name}: expected at most {MAX_PIXELS // 10**6} megapixels, got {width}x{height} "
+                         "(resample it with --size)")
 
 
 def to_input_pixels(xy, factors: tuple[float, float]) -> list[float]:

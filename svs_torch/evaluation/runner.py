@@ -52,6 +52,8 @@ class EvalSetup:
             they are rectified with it and take its focal, baseline and doffs (scenes keep their own; a pair
             listed with a calibration is BAD_INPUT, ``OWN_CALIBRATION_UNDER_RIG``).
         calibration_source: how the reports name that calibration (its file), for the pairs it rectified.
+        max_pixels: a pair of more pixels run at its own size (``size_wh`` None) is ``BAD_INPUT`` (the command
+            line's 16 megapixels: a 6000x4000 pair took 3.9 GB, and memory grows with the pixels); None: any.
     """
 
     config: PipelineConfig = PipelineConfig()
@@ -61,6 +63,7 @@ class EvalSetup:
     doffs_px: float = 0.0
     calibration: StereoCalibration | None = None
     calibration_source: str = "a rig's calibration (the pair rectified by it)"
+    max_pixels: int | None = None
 
 
 @dataclass(frozen=True)
@@ -113,6 +116,10 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     height, width = batch.size_hw
     read = dict(calibrated=calibrated, calibration=calibration, name=batch.names[0] if batch.names else None,
                 has_truth=batch.disparity_px is not None and bool(batch.disparity_valid.any()))
+    if setup.size_wh is None and setup.max_pixels is not None and height * width > setup.max_pixels:
+        return LoadedPair(source, None, "BAD_INPUT", f"left: expected at most {setup.max_pixels // 10**6} "
+                                                     f"megapixels, got {width}x{height} (resample it with --size)",
+                          **read)
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
                                                      f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels", **read)

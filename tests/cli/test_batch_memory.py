@@ -81,3 +81,30 @@ def test_eval_runs_a_large_batch_a_chunk_at_a_time(data_dir, monkeypatch):
 def _no_warm_up(monkeypatch):
     """No untimed warm-up run among the calls counted."""
     monkeypatch.setattr(runner, "_WARMED_UP", True)
+
+
+def test_the_pixel_limit_holds_for_every_listed_pair_and_is_said_once(data_dir, capsys, tmp_path, monkeypatch):
+    """The 16-megapixel limit (lowered here to Teddy's size less one pixel) held for estimate's plain listed
+    pairs only: a scene folder or a line with its own calibration ran at any size (6000x4000: 3.7 GB), eval ran
+    every pair at any size (3.9 GB) and took --size 8192x8192, and estimate --pairs refused an over-size --size
+    once per listed pair, after the list's last line (an audit of large frames)."""
+    from svs_torch.cli import features
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy}\n{teddy / 'im0.png'} {teddy / 'im1.png'} 1000 0.1\n")
+    width, height = 450, 375
+    monkeypatch.setattr(features, "MAX_PIXELS", width * height - 1)
+    monkeypatch.setattr("svs_torch.cli.evaluate.MAX_PIXELS", width * height - 1, raising=False)
+    code = main(["estimate", "--pairs", str(listing), "--workers", "1", "--json"])
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    reason = f"left: expected at most 0 megapixels, got {width}x{height} (resample it with --size)"
+    assert code == 2 and [line["status"] for line in lines] == ["BAD_INPUT"] * 2
+    assert all(line["reason"].startswith(reason) for line in lines)
+    code = main(["eval", str(teddy), "--json"])
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert code == 0 and (row["status"], row["reason"]) == ("BAD_INPUT", reason)
+    for command in (["estimate", "--pairs", str(listing), "--workers", "1"], ["eval", str(teddy)]):
+        code = main([*command, "--size", "450x375"])
+        out, err = capsys.readouterr()
+        assert (code, out) == (2, "") and err.endswith("error: --size: expected at most 0 megapixels, got '450x375'\n")
