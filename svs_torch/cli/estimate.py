@@ -13,7 +13,7 @@ from .common import (add_disparity_export_options, add_figure_option, check_outp
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
-from .features import add_feature_options, add_pair_options, load_pair
+from .features import add_feature_options, add_pair_options, load_pair, warn_if_upsampled_large
 from .rig import (add_calibration_option, calibration_file_source, calibration_from_args,
                   check_no_manual_calibration)
 from .segment import add_segmentation_options, add_segmenter_option
@@ -300,6 +300,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)
+    warn_if_upsampled_large(config.surf.upsample, batch.size_hw)
     if reason:
         report = unranged_report("TOO_SMALL", reason + "; nothing to range, no file written", config.depth.rule)
     else:

@@ -143,18 +143,20 @@ def command_config(args: argparse.Namespace, size_hw: tuple[int, int]):
     set them) every keypoint up to :data:`COMMAND_MAX_KEYPOINTS` and ``upsample`` on pairs of at most
     :data:`COMMAND_UPSAMPLE_MAX_PIXELS` (``size_hw``: the working size). Its own defaults, not the pipeline's:
     a user of this command looks at the matches themselves, at native size, where the pipeline's cap (chosen for
-    320x240 and RANSAC's time) kept a third as many correct matches as plain SIFT."""
+    320x240 and RANSAC's time) kept a third as many correct matches as plain SIFT. An upsampled detection past
+    :data:`MAX_PIXELS` is warned of (:func:`warn_if_upsampled_large`)."""
     from dataclasses import replace
 
     config = preset_config(args)
-    if getattr(args, "preset", "default") != "default":
-        return config
-    changes = {}
-    if args.max_keypoints is None:
-        changes["max_keypoints"] = COMMAND_MAX_KEYPOINTS
-    if args.upsample is None:
-        changes["upsample"] = size_hw[0] * size_hw[1] <= COMMAND_UPSAMPLE_MAX_PIXELS
-    return replace(config, surf=replace(config.surf, **changes))
+    if getattr(args, "preset", "default") == "default":
+        changes = {}
+        if args.max_keypoints is None:
+            changes["max_keypoints"] = COMMAND_MAX_KEYPOINTS
+        if args.upsample is None:
+            changes["upsample"] = size_hw[0] * size_hw[1] <= COMMAND_UPSAMPLE_MAX_PIXELS
+        config = replace(config, surf=replace(config.surf, **changes))
+    warn_if_upsampled_large(config.surf.upsample, size_hw)
+    return config
 
 
 #: A --size that enlarges a pair more than this many times (either side) is warned of, once a process.
@@ -173,6 +175,23 @@ def warn_if_enlarged(size_hw: tuple[int, int], new_wh: tuple[int, int]) -> None:
         warnings.warn(f"--size {new_w}x{new_h} enlarges the {width}x{height} pair "
                       f"{max(new_w / width, new_h / height):.1f} times: that adds no detail, only time (the SVS "
                       "sends 320x240; leave --size out to range the pair as it is)", stacklevel=2)
+
+
+_UPSAMPLE_WARNED: list[bool] = []
+
+
+def warn_if_upsampled_large(upsample: bool, size_hw: tuple[int, int]) -> None:
+    """Say once that ``--upsample`` detects on a pair enlarged past :data:`MAX_PIXELS`: memory grows with the
+    enlarged pixels (an audit: 3000x2000 took 3.0 GB with it, 1.2 GB without; a 16-megapixel pair would take
+    about 7.7 GB, where the process was killed without a word on a smaller machine)."""
+    height, width = size_hw
+    if upsample and not _UPSAMPLE_WARNED and 4 * height * width > MAX_PIXELS:
+        import warnings
+
+        _UPSAMPLE_WARNED.append(True)
+        warnings.warn(f"--upsample detects on the {width}x{height} pair enlarged to {2 * width}x{2 * height}: "
+                      "about 2.5 times the memory without it (3 GB at 3000x2000); --no-upsample or a smaller "
+                      "--size keep it down", stacklevel=2)
 
 
 def load_pair(left: str, right: str, args: argparse.Namespace):
@@ -270,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
 
     _check_before_work(args, check_output_path)
     batch, factors = load_pair(args.left, args.right, args)
-    config = command_config(args, batch.size_hw)
+    config = command_config(args, batch.size_hw)  # (--upsample on a large pair warned of)
     reason = too_small_reason(batch.size_hw)
     # Whether, and by which segmenter, the views were masked (the same in every JSON answer).
     masked = {"segmented": not args.no_segment,

@@ -108,3 +108,23 @@ def test_the_pixel_limit_holds_for_every_listed_pair_and_is_said_once(data_dir, 
         code = main([*command, "--size", "450x375"])
         out, err = capsys.readouterr()
         assert (code, out) == (2, "") and err.endswith("error: --size: expected at most 0 megapixels, got '450x375'\n")
+
+
+def test_upsample_past_the_pixel_limit_is_warned_of_once(data_dir, capsys, monkeypatch):
+    """--upsample detects on the pair enlarged twice: 3000x2000 took 3.0 GB with it and 1.2 GB without, and a
+    16-megapixel pair about 7.7 GB, without a word before the process was killed (an audit). Over the limit (here
+    lowered to just under a 64x48 pair enlarged) it is said once, with the way out; not without --upsample."""
+    from svs_torch.cli import features
+
+    monkeypatch.setattr(features, "MAX_PIXELS", 4 * SIZE_WH[0] * SIZE_WH[1] - 1)
+    monkeypatch.setattr(features, "_UPSAMPLE_WARNED", [], raising=False)
+    left, right = (str(data_dir / p) for p in PAIRS[0])
+    size = ["--size", f"{SIZE_WH[0]}x{SIZE_WH[1]}"]
+    for command in (["features", left, right, "--no-segment", *size, "--json"], ["estimate", left, right, *size]):
+        assert main([*command, "--no-upsample"]) == 0
+        assert "--upsample" not in capsys.readouterr().err
+        assert main([*command, "--upsample"]) == 0
+        err = capsys.readouterr().err
+        assert err.count("warning: --upsample detects on the 64x48 pair enlarged to 128x96") == 1, err
+        assert "--no-upsample or a smaller --size keep it down" in err
+        monkeypatch.setattr(features, "_UPSAMPLE_WARNED", [])
