@@ -95,6 +95,11 @@ truth or another listed pair's map (each warned; the run goes on, and exits 1 at
 """
 
 
+BATCH_SIZE_HELP = ("pairs read at a time with --pairs, run at most 32 pairs of 320x240 (2.5 megapixels) at a time "
+                   "(default: 8, the fastest measured; a larger batch holds more images in memory, about 10 bytes a "
+                   "pixel)")
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "estimate", help=HELP, description=DESCRIPTION, epilog=EPILOG,
@@ -111,7 +116,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     # 8: whole process over 96 shared pairs at 320x240, 9.3 / 9.5-9.8 / 11.0-11.6 s at 8 / 16 / 32 (larger
     # batches pad more and leave the cache).
     parser.add_argument("--batch-size", type=positive_int,
-                        help="pairs per batch with --pairs (default: 8, the fastest measured)")
+                        help=BATCH_SIZE_HELP)
     # One single-threaded worker per core: on this project's 2-core machine, 512 real pairs at 320x240 took
     # 24.8 s in one process of 2 torch threads and 17.2 s as two processes of one thread each (torch's
     # intra-op threads split ops too small to pay for it; separate processes also decode while computing).

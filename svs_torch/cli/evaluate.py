@@ -85,7 +85,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
                         help="override one setting, e.g. segmentation.kernel_size=7 (repeatable)")
     parser.add_argument("--batch-size", type=positive_int, default=8,
-                        help="pairs per batch (default: 8, the fastest measured, see estimate)")
+                        help="pairs read at a time, run at most 32 pairs of 320x240 (2.5 megapixels) at a time "
+                             "(default: 8, the fastest measured, see estimate; a larger batch, and the next one "
+                             "read meanwhile, hold more pairs in memory)")
     parser.add_argument("--focal-px", type=positive_float,
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
     parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
