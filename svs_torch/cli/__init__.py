@@ -14,6 +14,7 @@ import os
 import sys
 import warnings
 
+from ..core.files import STDERR_LOCK
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 
@@ -150,7 +151,8 @@ def _warning_printer(prog: str):
         if text.startswith("--disparity-out: ") and " not written: " in text:  # (a worker's, too: forwarded as text)
             show.maps_not_written += 1
         try:
-            print(f"{prog}: warning: {text}", file=file or sys.stderr, flush=True)
+            with STDERR_LOCK:  # not into a decoder's window of another thread (see there)
+                print(f"{prog}: warning: {text}", file=file or sys.stderr, flush=True)
         except (OSError, ValueError):
             pass
 

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TextIO, TypeVar
 
-from ..core.files import stream_is_terminal
+from ..core.files import STDERR_LOCK, stream_is_terminal
 
 __all__ = ["Progress"]
 
@@ -67,7 +67,8 @@ class Progress:
         """``count`` more items are done."""
         self.done += count
         if self._bar is not None:
-            self._bar.update(count)
+            with STDERR_LOCK:  # (see there: a line written while another thread decodes was lost)
+                self._bar.update(count)
             return
         now = self.clock()
         if self._first is None:
@@ -78,8 +79,9 @@ class Progress:
             eta = f", ETA {(self.total - self.done) / eta_rate:.0f} s" if eta_rate else ""
             speed = f", {rate:.1f} {self.unit}s/s" if rate else ""
             postfix = f" ({self._postfix})" if self._postfix else ""
-            print(f"{self.desc}: {self.done}/{self.total} {self.unit}s{speed}{eta}{postfix}", file=self.stream,
-                  flush=True)
+            with STDERR_LOCK:
+                print(f"{self.desc}: {self.done}/{self.total} {self.unit}s{speed}{eta}{postfix}", file=self.stream,
+                      flush=True)
 
     def over(self, iterable: Iterable[T]) -> Iterator[T]:
         """The items of ``iterable``, each counted done when the next is asked for; the summary after the last
@@ -98,10 +100,11 @@ class Progress:
     def write(self, line: str, file: TextIO | None = None) -> None:
         """Print a result line to ``file`` (standard output) without breaking the bar."""
         file = sys.stdout if file is None else file
-        if self._bar is not None:
-            self._bar.write(line, file=file)
-        else:
-            print(line, file=file, flush=True)
+        with STDERR_LOCK:  # (the bar is redrawn on the progress stream)
+            if self._bar is not None:
+                self._bar.write(line, file=file)
+            else:
+                print(line, file=file, flush=True)
 
     def warn(self, line: str) -> None:
         """Print a line on the progress stream (a warning) without breaking the bar."""
@@ -112,13 +115,14 @@ class Progress:
         if self._closed:
             return
         self._closed = True
-        if self._bar is not None:
-            self._bar.close()
-            return
-        elapsed = self.clock() - self.started
-        rate = self._rate(elapsed)
-        print(f"{self.desc}: {self.done}/{self.total} {self.unit}s in {elapsed:.1f} s"
-              + (f", {rate:.1f} {self.unit}s/s" if rate else ""), file=self.stream, flush=True)
+        with STDERR_LOCK:
+            if self._bar is not None:
+                self._bar.close()
+                return
+            elapsed = self.clock() - self.started
+            rate = self._rate(elapsed)
+            print(f"{self.desc}: {self.done}/{self.total} {self.unit}s in {elapsed:.1f} s"
+                  + (f", {rate:.1f} {self.unit}s/s" if rate else ""), file=self.stream, flush=True)
 
     def __enter__(self) -> Progress:
         return self

@@ -15,6 +15,7 @@ import errno
 import os
 import shlex
 import sys
+import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,9 +23,15 @@ from typing import IO
 
 from .errors import InputError
 
-__all__ = ["atomic_output", "check_output_file", "check_path_given", "check_writable_folder", "display_path",
-           "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
+__all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
+           "display_path", "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
            "write_bytes_atomic", "write_errors_named"]
+
+#: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
+#: command line's own lines on standard error (progress, warnings), so that none of them is written into that
+#: window from another thread and lost: eval decodes its next block in a thread, and a log of a 1000-pair eval
+#: kept 2 of its 10-odd progress lines (an audit).
+STDERR_LOCK = threading.RLock()
 
 #: The longest path shown in an error message; longer ones are cut in the middle.
 MAX_SHOWN_CHARS = 120

@@ -12,14 +12,13 @@ import contextlib
 import os
 import re
 import tempfile
-import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from .errors import InputError
-from .files import check_path_given, display_path, path_kind
+from .files import STDERR_LOCK, check_path_given, display_path, path_kind
 
 __all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_pixels",
            "declared_size", "decode_collecting", "preload_key", "read_image_array"]
@@ -54,7 +53,6 @@ def check_file(path: str | Path, name: str) -> Path:
     return Path(path)
 
 
-_NATIVE_STDERR_LOCK = threading.Lock()
 # OpenCV's log prefix ("[ERROR:0@2.476] global grfmt_tiff.cpp:117 ") and libtiff's tag, cut from decoder messages.
 _NATIVE_PREFIX = re.compile(r"^\[\s*\w+:\d+@[\d.]+\]\s*(global\s+\S+\s+)?(\w+\s+)?(TIFF_Error\s+)?")
 
@@ -65,9 +63,10 @@ def _native_stderr_collected(lines: list[str]):
     descriptor 2 meanwhile: a corrupt file then gives one :class:`InputError` line, not their noise.
 
     Python's ``sys.stderr`` is untouched, but anything another thread writes to descriptor 2 in the window
-    (a decode, milliseconds) lands in ``lines`` too; a lock keeps two windows from interleaving.
+    (a decode, milliseconds) lands in ``lines`` too, but for the command line's own lines, which wait for
+    :data:`~svs_torch.core.files.STDERR_LOCK`; the lock also keeps two windows from interleaving.
     """
-    with _NATIVE_STDERR_LOCK:
+    with STDERR_LOCK:
         try:
             saved = os.dup(2)
         except OSError:  # no descriptor 2 (a daemon): nothing to keep quiet

@@ -84,3 +84,34 @@ def test_the_eta_leaves_out_the_start_up():
     lines = stream.getvalue().splitlines()
     assert lines[:2] == ["sweep: 1/20 pairs, 0.1 pairs/s",  # one item: no rate of the running yet (was ETA 209 s)
                          "sweep: 6/20 pairs, 0.4 pairs/s, ETA 14 s"]  # 1 pair/s once running (was ETA 33 s)
+
+
+def test_a_progress_line_waits_for_another_threads_decoder_window(capfd):
+    """While a thread lends descriptor 2 to a C decoder to collect its complaints (eval decodes its next block in a
+    thread), a progress line printed meanwhile went into that window and was lost: a log of a 1000-pair eval kept
+    2 of its 10-odd lines (an audit). It now waits the window out (milliseconds) and reaches standard error."""
+    import threading
+    import time
+
+    from svs_torch.core.image_files import _native_stderr_collected
+
+    collected: list[str] = []
+    opened, release = threading.Event(), threading.Event()
+
+    def decode() -> None:
+        with _native_stderr_collected(collected):
+            opened.set()
+            release.wait(5)
+
+    decoder = threading.Thread(target=decode)
+    decoder.start()
+    assert opened.wait(5)
+    with open(2, "w", closefd=False) as descriptor_2:  # sys.stderr, as the command line has it (not pytest's)
+        progress = Progress(4, "eval", stream=descriptor_2, tty=False, interval_s=0.0)
+        writer = threading.Thread(target=progress.update, args=(2,))
+        writer.start()
+        time.sleep(0.05)
+        release.set()
+        decoder.join()
+        writer.join()
+    assert collected == [] and "eval: 2/4 pairs" in capfd.readouterr().err
