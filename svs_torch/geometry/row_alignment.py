@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_finite_where, check_shape
+from ..core.checks import InputError, check_count, check_dtype, check_finite_where, check_real, check_shape
 from ..core.kernels.checks import check_positive_hw
 from . import kernels
 from .ransac_sampling import draw_minimal_samples
@@ -53,6 +53,8 @@ from .row_alignment_keystone import keystone_homography, keystone_refit, mapped_
 __all__ = ["RowAlignment", "RowAlignmentConfig", "fit_row_alignment", "row_alignment_homography"]
 
 _SAMPLE = 3  # matches per minimal sample: one row equation each, three unknowns (a, b, t_y)
+#: The largest count setting (the kernel reads its settings as float64: whole numbers below 2^53).
+MAX_COUNT = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -99,17 +101,18 @@ class RowAlignmentConfig:
     keystone_max_deg: float = 3.0
 
     def __post_init__(self) -> None:
-        if not (self.threshold_px > 0 and self.max_roll_deg > 0 and self.max_scale_change > 0
-                and self.max_shift_fraction > 0 and self.min_correction_px >= 0):
-            raise InputError("RowAlignmentConfig: expected threshold_px, max_roll_deg, max_scale_change and "
-                             "max_shift_fraction > 0 and min_correction_px >= 0")
-        if not (isinstance(self.num_hypotheses, int) and 1 <= self.num_hypotheses <= kernels.MAX_HYPOTHESES):
-            raise InputError(f"num_hypotheses: expected an int from 1 to {kernels.MAX_HYPOTHESES}, got "
-                             f"{self.num_hypotheses!r}")
-        if not (isinstance(self.min_inliers, int) and self.min_inliers >= _SAMPLE):
-            raise InputError(f"min_inliers: expected an int >= {_SAMPLE}, got {self.min_inliers!r}")
-        if not 0 <= self.min_inlier_share <= 1:
-            raise InputError(f"min_inlier_share: expected a share in [0, 1], got {self.min_inlier_share!r}")
+        # Each field named: min_gain, min_gain_share and the keystone's were not checked (a string or -1 ran), and a
+        # huge count or an inf failed in the kernel as "settings['min_inliers']", not as the field (an audit).
+        for name in ("threshold_px", "max_roll_deg", "max_scale_change", "max_shift_fraction", "keystone_max_deg"):
+            check_real(getattr(self, name), name, 0.0, low_open=True)
+        for name in ("min_correction_px", "keystone_min_t"):
+            check_real(getattr(self, name), name, 0.0)
+        check_real(self.keystone_min_deg, "keystone_min_deg", 0.0, optional=True)
+        check_real(self.min_inlier_share, "min_inlier_share", 0.0, 1.0)
+        check_real(self.min_gain_share, "min_gain_share", 0.0, 1e6)  # a gain of more matches than the raw rows hold
+        check_count(self.num_hypotheses, "num_hypotheses", 1, most=kernels.MAX_HYPOTHESES)
+        for name, least in (("min_inliers", _SAMPLE), ("min_gain", 0), ("keystone_min_inliers", 0)):
+            check_count(getattr(self, name), name, least, most=MAX_COUNT)
 
 
 @dataclass(frozen=True)

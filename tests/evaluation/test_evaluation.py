@@ -271,6 +271,13 @@ def test_overrides_set_nested_fields_with_their_types():
     ({"depth.object_percentiles": [5]}, "depth.object_percentiles: expected a list of 2 numbers"),
     ({"segmentation": 3}, "segmentation: expected its fields as dotted keys"),
     ({"refine_matches": 3}, "refine_matches: expected true or false"),
+    # An audit of hostile values: these ran, or failed late inside a kernel or torch without naming the key.
+    ({"row_alignment.min_gain": -1}, "row_alignment.min_gain = -1: min_gain: expected an int from 0"),
+    ({"row_alignment.min_inliers": 2**63}, "row_alignment.min_inliers = 9223372036854775808: min_inliers: expected"),
+    ({"row_alignment.keystone_min_t": -1.0}, "row_alignment.keystone_min_t = -1.0: keystone_min_t: expected a finite"),
+    ({"row_alignment.keystone_max_deg": 0}, "row_alignment.keystone_max_deg = 0: keystone_max_deg: expected"),
+    ({"row_alignment.keystone_min_inliers": -1}, "keystone_min_inliers: expected an int from 0"),
+    ({"row_alignment.min_gain_share": 1e9}, "min_gain_share: expected a finite number in [0, 1e+06]"),
 ])
 def test_bad_overrides_name_the_key(overrides, message):
     with pytest.raises(InputError) as error:
