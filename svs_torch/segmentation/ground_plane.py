@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import check_generator
+from ..core.checks import check_count, check_generator, check_real
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
@@ -50,6 +50,9 @@ from . import kernels
 from .ground_plane_grid import cell_medians, sample_planes
 
 __all__ = ["GroundPlane", "GroundPlaneConfig", "fit_ground_plane"]
+
+#: The most three-point samples (``GroundPlaneConfig.hypotheses``).
+MAX_HYPOTHESES = 2**20
 
 
 @dataclass(frozen=True)
@@ -130,12 +133,12 @@ class GroundPlaneConfig:
             raise InputError(f"tolerance_px, noisy_tolerance_px, tolerance_fraction: expected > 0, > 0 and a share in "
                              f"[0, 1), got {self.tolerance_px!r}, {self.noisy_tolerance_px!r}, "
                              f"{self.tolerance_fraction!r}")
-        for name in ("hypotheses", "grid_columns"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 8:
-                raise InputError(f"{name}: expected an int >= 8, got {value!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise InputError(f"seed: expected an int, got {self.seed!r}")
+        # An audit: 2^31 samples tried to allocate 86 GB, a 2^63 count or seed failed inside torch, a string or -1 as
+        # min_span_px ran (2^20 samples fit a 320x240 map in 0.7 s; a generator's seed is a 64-bit number).
+        check_count(self.hypotheses, "hypotheses", 8, most=MAX_HYPOTHESES)
+        check_count(self.grid_columns, "grid_columns", 8)
+        check_count(self.seed, "seed", -2**63, most=2**64 - 1)
+        check_real(self.min_span_px, "min_span_px", 0.0)
         cell = self.noisy_cell_min_share
         if cell is not None and (isinstance(cell, bool) or not isinstance(cell, (int, float)) or not 0 < cell <= 1):
             raise InputError(f"noisy_cell_min_share: expected None or a share in (0, 1], got {cell!r}")

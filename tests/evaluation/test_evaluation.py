@@ -278,6 +278,9 @@ def test_overrides_set_nested_fields_with_their_types():
     ({"row_alignment.keystone_max_deg": 0}, "row_alignment.keystone_max_deg = 0: keystone_max_deg: expected"),
     ({"row_alignment.keystone_min_inliers": -1}, "keystone_min_inliers: expected an int from 0"),
     ({"row_alignment.min_gain_share": 1e9}, "min_gain_share: expected a finite number in [0, 1e+06]"),
+    ({"segmentation.ground.hypotheses": 2**31}, "hypotheses: expected an int from 8 to 1048576, got 2147483648"),
+    ({"segmentation.ground.seed": 10**30}, "segmentation.ground.seed = " + str(10**30) + ": seed: expected an int"),
+    ({"segmentation.ground.min_span_px": -1.0}, "min_span_px: expected a finite number in [0, inf)"),
 ])
 def test_bad_overrides_name_the_key(overrides, message):
     with pytest.raises(InputError) as error:
