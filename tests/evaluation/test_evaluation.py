@@ -281,6 +281,9 @@ def test_overrides_set_nested_fields_with_their_types():
     ({"segmentation.ground.hypotheses": 2**31}, "hypotheses: expected an int from 8 to 1048576, got 2147483648"),
     ({"segmentation.ground.seed": 10**30}, "segmentation.ground.seed = " + str(10**30) + ": seed: expected an int"),
     ({"segmentation.ground.min_span_px": -1.0}, "min_span_px: expected a finite number in [0, inf)"),
+    ({"feature_smoothing_sigma_px": 1e9}, "feature_smoothing_sigma_px: expected a σ in (0, 1000] pixels or None"),
+    ({"noisy_retry_sigma_px": 1e6}, "noisy_retry_sigma_px: expected a σ in (0, 1000] pixels or None"),
+    ({"noisy_features_retry_sigma_px": 2**63}, "noisy_features_retry_sigma_px: expected a σ in (0, 1000]"),
 ])
 def test_bad_overrides_name_the_key(overrides, message):
     with pytest.raises(InputError) as error:
