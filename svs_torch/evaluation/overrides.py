@@ -45,8 +45,8 @@ from ..pipeline import PipelineConfig
 
 __all__ = [
     "LABEL_SEPARATOR", "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid",
-    "flatten_table", "load_config_file", "merge_labels", "merge_overrides", "parameter_types", "parse_assignment",
-    "preset_config", "resolve_config",
+    "flatten_table", "load_config_file", "merge_fixed", "merge_labels", "merge_overrides", "parameter_types",
+    "parse_assignment", "preset_config", "resolve_config",
 ]
 
 #: The named starting points: the product's best measured defaults and the paper's steps as published.
@@ -245,15 +245,29 @@ def parse_assignment(text: str, source: str = "--set") -> tuple[str, Any]:
     return key, value
 
 
-def flatten_table(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """A TOML table with nested tables (``[segmentation] kernel_size = 7``) as dotted keys."""
+def flatten_table(table: Mapping[str, Any], prefix: str = "", source: str = "table") -> dict[str, Any]:
+    """A TOML table with nested tables (``[segmentation] kernel_size = 7``) as dotted keys. An empty table stays a
+    value (``[exposure]`` alone: an error naming it, not silently nothing), and a parameter given twice, as a quoted
+    dotted key and in a table, is an InputError starting with ``source`` (one of the two was silently dropped)."""
     flat: dict[str, Any] = {}
     for key, value in table.items():
-        if isinstance(value, Mapping):
-            flat.update(flatten_table(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
+        nested = isinstance(value, Mapping) and value
+        for name, item in (flatten_table(value, f"{prefix}{key}.", source).items() if nested
+                           else [(prefix + key, dict(value) if isinstance(value, Mapping) else value)]):
+            if name in flat:
+                raise InputError(f"{source}: {name}: given twice (a quoted dotted key and a table's key name the "
+                                 f"same parameter); expected it once")
+            flat[name] = item
     return flat
+
+
+def merge_fixed(top_level: Mapping[str, Any], fixed: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """A file's top-level parameters, then its ``[set]``: one parameter in both is an InputError (``[set]`` won in
+    silence)."""
+    both = sorted(set(top_level) & set(fixed))
+    if both:
+        raise InputError(f"{source}: {', '.join(both)}: given both at the top level and in [set]; expected each once")
+    return merge_overrides(top_level, fixed)
 
 
 def read_toml(path: str | Path, name: str) -> dict[str, Any]:
@@ -297,7 +311,9 @@ def load_config_file(path: str | Path, name: str = "--config") -> tuple[str, dic
     if unused:  # said, not silently dropped: the command's own PATH and options decide these
         warnings.warn(f"{name}: {path}: the sweep's {', '.join(unused)} not used (this command's PATH, --size and "
                       f"--batch-size apply)", stacklevel=2)
-    return preset, merge_overrides(flatten_table(table), flatten_table(fixed))
+    source = f"{name}: {path}"
+    return preset, merge_fixed(flatten_table(table, source=source), flatten_table(fixed, source=f"{source}: set"),
+                               source)
 
 
 def resolve_config(preset: str = "default", config_file: str | Path | None = None,

@@ -61,7 +61,7 @@ from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
 from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        merge_labels, merge_overrides, parameter_types, preset_config, read_toml)
+                        merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config, read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -149,7 +149,7 @@ def load_sweep(path: str | Path) -> Sweep:
     name = str(path)
     table = read_toml(path, name)
     # Other top-level keys are parameters, fixed for every configuration, as in a --config file (one format).
-    top_level = flatten_table({key: value for key, value in table.items() if key not in SWEEP_KEYS})
+    top_level = flatten_table({key: value for key, value in table.items() if key not in SWEEP_KEYS}, source=name)
     known = parameter_types()
     for key in top_level:
         _expect(key in known, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)}, or a parameter "
@@ -175,17 +175,18 @@ def load_sweep(path: str | Path) -> Sweep:
     entries = table.get("configs", [{}])
     _expect(isinstance(entries, list) and entries and all(isinstance(e, dict) for e in entries),
             f"{name}: configs: expected [[configs]] tables, got {entries!r}")
-    fixed = merge_overrides(top_level, flatten_table(fixed))
+    fixed = merge_fixed(top_level, flatten_table(fixed, source=f"{name}: set"), name)
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
-    points = expand_grid(flatten_table(grid), f"{name}: grid")
-    both = sorted(set(fixed) & set(flatten_table(grid)))  # the grid's won in silence: the fixed value never ran
+    grid = flatten_table(grid, source=f"{name}: grid")
+    points = expand_grid(grid, f"{name}: grid")
+    both = sorted(set(fixed) & set(grid))  # the grid's won in silence: the fixed value never ran
     _expect(not both, f"{name}: {', '.join(both)}: set both as fixed for every configuration and in [grid]; expected "
                       f"each in one of them")
     configs = []
     for number, entry in enumerate(entries, start=1):
-        entry = flatten_table(entry)
-        entry_preset = entry.pop("preset", preset)
         source = f"{name}: configs[{number}]"
+        entry = flatten_table(entry, source=source)
+        entry_preset = entry.pop("preset", preset)
         _expect(entry_preset in PRESETS, f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got "
                                          f"{entry_preset!r}")
         make_sweep_config(entry_preset, merge_overrides(fixed, entry), size_wh, source=source)

@@ -624,3 +624,23 @@ def test_eval_table_keeps_its_columns_for_every_status():
             for status in statuses]
     time_at = HEADER.index("time s")
     assert all(row[time_at:time_at + 6].strip() == "0.500" for row in rows)
+
+
+def test_a_config_file_names_a_parameter_given_twice_or_an_empty_table(tmp_path):
+    """An audit of hostile configuration files: `"segmentation.kernel_size" = 5` beside `[segmentation]
+    kernel_size = 7` ran with one of them in silence, and `[exposure]` alone (the exposure map on, a user would read)
+    ran with it off."""
+    path = tmp_path / "config.toml"
+    path.write_text('"segmentation.kernel_size" = 5\n[segmentation]\nkernel_size = 7\n')
+    with pytest.raises(InputError, match=r"config\.toml: segmentation\.kernel_size: given twice"):
+        resolve_config(config_file=path)
+    path.write_text('max_ratio = 0.7\n[set]\nmax_ratio = 0.6\n')
+    with pytest.raises(InputError, match=r"config\.toml: max_ratio: given both at the top level and in \[set\]"):
+        resolve_config(config_file=path)
+    path.write_text("[exposure]\n")
+    with pytest.raises(InputError, match=r"config\.toml: exposure: expected true or false .*, got \{\}"):
+        resolve_config(config_file=path)
+    path.write_text("[exposure]\nmin_change = 0.2\n[segmentation]\nkernel_size = 3\n")  # tables with keys still work
+    config, _, overrides = resolve_config(config_file=path)
+    assert config.exposure.min_change == 0.2 and overrides == {"exposure.min_change": 0.2,
+                                                               "segmentation.kernel_size": 3}

@@ -104,6 +104,14 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     # An audit: the grid's values ran and the fixed 0.7 never did, without a word.
     ('paths = ["."]\n[set]\nmax_ratio = 0.7\n[grid]\nmax_ratio = [0.6, 0.8]\n',
      "max_ratio: set both as fixed for every configuration and in [grid]; expected each in one of them"),
+    # An audit of hostile files: each of these ran with one of the two values, or none, without a word.
+    ('paths = ["."]\n[grid]\n"segmentation.kernel_size" = [7]\n[grid.segmentation]\nkernel_size = [3, 5]\n',
+     "grid: segmentation.kernel_size: given twice (a quoted dotted key and a table's key name the same parameter)"),
+    ('paths = ["."]\n"max_ratio" = 0.7\n[set]\nmax_ratio = 0.6\n',
+     "max_ratio: given both at the top level and in [set]; expected each once"),
+    ('paths = ["."]\n[set.exposure]\n', "set: exposure: expected true or false (on with its defaults, or off), got {}"),
+    ('paths = ["."]\n[[configs]]\n"dense.window_size" = 5\n[configs.dense]\nwindow_size = 7\n',
+     "configs[1]: dense.window_size: given twice"),
 ])
 def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, message):
     sweep_file = tmp_path / "sweep.toml"
