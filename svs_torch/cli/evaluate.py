@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
         from ..data.pair_list import unique_sources
         from ..core.errors import InputError
         from ..evaluation import EvalSetup, summarize
-        from ..evaluation.overrides import resolve_config
+        from ..evaluation.overrides import config_to_dict, resolve_config
 
     resolve_export_options(args)
     size_wh = checked_size(args.size)  # over 16 megapixels refused, as estimate's (8192x8192 was taken: an audit)
@@ -286,25 +286,31 @@ def run(args: argparse.Namespace) -> int:
         print(HEADER)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,
                       rig_provenance(args.calibration or ""), max_pixels=MAX_PIXELS)
+    # What ran, on the JSON summary: the summary line alone did not say (an audit of configuration values).
+    ran = {"preset": preset, "overrides": overrides,
+           "size": "native" if size_wh is None else f"{size_wh[0]}x{size_wh[1]}", "config": config_to_dict(config)}
     started, evaluations = time.perf_counter(), []
     try:
         _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations)
     except (KeyboardInterrupt, Terminated):
         if evaluations:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
-            _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), len(sources))
+            _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), ran,
+                           len(sources))
         raise
-    _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started))
+    _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), ran)
     return 0
 
 
-def _print_summary(args: argparse.Namespace, evaluations: list, summary: dict, listed: int | None = None) -> None:
-    """The summary, last on stdout. Given ``listed`` (an interrupted run), it is of the pairs done, and says so:
-    ``interrupted`` and ``pairs_listed`` in JSON, a first line in text. Was: an interrupted ``--json`` run ended
-    without its summary line, and a script reading the last line took a pair's row for it."""
+def _print_summary(args: argparse.Namespace, evaluations: list, summary: dict, ran: dict, listed: int | None = None
+                   ) -> None:
+    """The summary, last on stdout; in JSON with ``ran`` (preset, overrides, size, config). Given ``listed`` (an
+    interrupted run), it is of the pairs done, and says so: ``interrupted`` and ``pairs_listed`` in JSON, a first
+    line in text. Was: an interrupted ``--json`` run ended without its summary line, and a script reading the last
+    line took a pair's row for it."""
     if listed is not None:
         summary = {**summary, "interrupted": True, "pairs_listed": listed}
     if args.json:
-        print(dumps_strict(summary), flush=True)
+        print(dumps_strict({**summary, **ran}), flush=True)
         return
     lines = format_calibrations(evaluations) + format_summary(summary)
     if listed is not None:

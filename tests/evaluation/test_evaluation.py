@@ -21,7 +21,7 @@ from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, r
 from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors, disparity_map_errors,
                                   evaluate_block, object_truth, score_pair, sparse_disparity_errors, summarize,
                                   with_nominal_calibration)
-from svs_torch.evaluation.overrides import apply_overrides, parse_assignment, resolve_config
+from svs_torch.evaluation.overrides import apply_overrides, config_to_dict, parse_assignment, resolve_config
 from svs_torch.geometry.lk_refinement import MatchRefinementConfig
 from svs_torch.pipeline import PipelineConfig
 
@@ -644,3 +644,17 @@ def test_a_config_file_names_a_parameter_given_twice_or_an_empty_table(tmp_path)
     config, _, overrides = resolve_config(config_file=path)
     assert config.exposure.min_change == 0.2 and overrides == {"exposure.min_change": 0.2,
                                                                "segmentation.kernel_size": 3}
+
+
+def test_the_json_summary_records_the_configuration_that_ran(data_dir, tmp_path, capsys):
+    """An audit: eval --json's summary line named no preset, override, size or value, so a line kept from a run
+    could not be reproduced; it now carries them, and the whole configuration in effect."""
+    path = tmp_path / "config.toml"
+    path.write_text('preset = "paper"\n[dense]\nwindow_size = 7\n')
+    code = main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--size", "160x120", "--json",
+                 "--config", str(path), "--set", "max_ratio=0.7"])
+    summary = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert code == 0 and summary["pairs"] == 1 and summary["preset"] == "paper" and summary["size"] == "160x120"
+    assert summary["overrides"] == {"dense.window_size": 7, "max_ratio": 0.7}
+    ran = apply_overrides(PipelineConfig.paper(), summary["overrides"])
+    assert summary["config"] == json.loads(json.dumps(config_to_dict(ran)))
