@@ -4,11 +4,11 @@
 A key is the path of a field through the nested frozen dataclasses, e.g. ``segmentation.kernel_size``,
 ``surf.metric_threshold``, ``max_ratio``, ``dense.window_size``, ``refine_matches.min_correlation``. Each value is
 checked against the field's declared type (bool, int, float — finite —, str, ``Literal`` choices, optional
-values, ``tuple[float, float]``) and then by the dataclass itself (its ``__post_init__``), so a bad key or value
-is an :class:`~svs_torch.core.checks.InputError` naming the key before any work starts. A field that holds an
-optional configuration (``refine_matches``) takes ``false`` / ``"none"`` (off) or ``true`` (its defaults), and
-setting one of its sub-fields turns it on from its defaults. New configurations are built with
-``dataclasses.replace``; the presets are never modified.
+values, ``tuple[float, float]``) and then by the dataclass itself (its ``__post_init__``, once, with its final
+values: :mod:`.config_tree`), so a bad key or value is an :class:`~svs_torch.core.checks.InputError` naming the key
+before any work starts. A field that holds an optional configuration (``refine_matches``) takes ``false`` /
+``"none"`` (off) or ``true`` (its defaults), and setting one of its sub-fields turns it on from its defaults. New
+configurations are new dataclasses; the presets are never modified.
 
 Configuration file (TOML)::
 
@@ -42,6 +42,7 @@ from typing import Any
 
 from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
+from .config_tree import ON, ConfigBuildError, build_config, dataclass_of
 
 __all__ = [
     "LABEL_SEPARATOR", "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid",
@@ -64,16 +65,6 @@ def preset_config(name: str, source: str = "preset") -> PipelineConfig:
     return PRESETS[name]()
 
 
-def _dataclass_of(hint: Any) -> type | None:
-    """The dataclass a field holds (also through ``X | None``), or None."""
-    if dataclasses.is_dataclass(hint):
-        return hint
-    for arg in typing.get_args(hint):
-        if dataclasses.is_dataclass(arg):
-            return arg
-    return None
-
-
 def _is_optional(hint: Any) -> bool:
     return typing.get_origin(hint) in (typing.Union, types.UnionType) and type(None) in typing.get_args(hint)
 
@@ -92,7 +83,7 @@ def _parameter_types(cls: type, prefix: str) -> dict[str, Any]:
     for field in dataclasses.fields(cls):
         key, hint = prefix + field.name, hints[field.name]
         keys[key] = hint
-        nested = _dataclass_of(hint)
+        nested = dataclass_of(hint)
         if nested is not None:
             keys.update(_parameter_types(nested, key + "."))
     return keys
@@ -100,7 +91,7 @@ def _parameter_types(cls: type, prefix: str) -> dict[str, Any]:
 
 def _describe_type(hint: Any) -> str:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if _dataclass_of(hint) is not None:
+    if dataclass_of(hint) is not None:
         return ("true or false (on with its defaults, or off)" if _is_optional(hint)
                 else "its fields as dotted keys (section.field = value)")
     if origin is typing.Literal:
@@ -176,20 +167,9 @@ def _unknown_key(key: str, source: str) -> InputError:
     return InputError(f"{source}: unknown parameter {key!r}{hint}")
 
 
-def _set_field(config: Any, path: list[str], value: Any, hint: Any) -> Any:
-    """``config`` with the field at ``path`` replaced (nested dataclasses rebuilt with ``replace``)."""
-    name = path[0]
-    if len(path) == 1:
-        return dataclasses.replace(config, **{name: value})
-    inner = getattr(config, name)
-    if inner is None:  # an optional configuration that is off: a sub-field turns it on from its defaults
-        inner = _dataclass_of(typing.get_type_hints(type(config))[name])()
-    return dataclasses.replace(config, **{name: _set_field(inner, path[1:], value, hint)})
-
-
-def _leaf_value(config: PipelineConfig, key: str, value: Any, hint: Any) -> Any:
-    """The checked value of ``key``; an optional configuration takes true / false / none."""
-    nested = _dataclass_of(hint)
+def _leaf_value(key: str, value: Any, hint: Any) -> Any:
+    """The checked value of ``key``; an optional configuration takes true (:data:`ON`) / false / none."""
+    nested = dataclass_of(hint)
     if nested is None:
         return _coerce(value, hint)
     if isinstance(value, str):
@@ -200,35 +180,35 @@ def _leaf_value(config: PipelineConfig, key: str, value: Any, hint: Any) -> Any:
             raise _Mismatch
         return None
     if value is True:
-        current = config
-        for name in key.split("."):
-            current = getattr(current, name) if current is not None else None
-        return current if current is not None else nested()
+        return ON
     raise _Mismatch
 
 
 def apply_overrides(config: PipelineConfig, overrides: Mapping[str, Any], source: str = "set") -> PipelineConfig:
-    """``config`` with each dotted ``key: value`` of ``overrides`` applied in order.
+    """``config`` with each dotted ``key: value`` of ``overrides`` set in order, each nested configuration then
+    checked once with its final values (:mod:`.config_tree`: the order of two keys a check relates never matters).
 
     Raises:
         InputError: ``source: unknown parameter 'key'`` (with close matches), or ``source: key: expected
-            <type>, got <value>``, or the dataclass's own check of the new value, named by its key.
+            <type>, got <value>``, or the dataclass's own check of its final values, named by the keys that set them.
     """
     check_instance(config, "config", PipelineConfig)
     known = parameter_types()
+    checked = []
     for key, value in overrides.items():
         if key not in known:
             raise _unknown_key(key, source)
-        hint = known[key]
         try:
-            checked = _leaf_value(config, key, value, hint)
+            checked.append((key, _leaf_value(key, value, known[key])))
         except _Mismatch:
-            raise InputError(f"{source}: {key}: expected {_describe_type(hint)}, got {value!r}") from None
-        try:
-            config = _set_field(config, key.split("."), checked, hint)
-        except (InputError, ValueError, TypeError) as error:
-            raise InputError(f"{source}: {key} = {value!r}: {error}") from None
-    return config
+            raise InputError(f"{source}: {key}: expected {_describe_type(known[key])}, got {value!r}") from None
+    try:
+        return build_config(config, checked)
+    except ConfigBuildError as failed:
+        own = [key for key in overrides if (key.rpartition(".")[0] + "." if "." in key else "") == failed.prefix]
+        named = own or [key for key in overrides if key.startswith(failed.prefix)]  # a check across sections
+        keys = ", ".join(f"{key} = {overrides[key]!r}" for key in named)
+        raise InputError(f"{source}: {keys}: {failed.error}") from None
 
 
 def parse_assignment(text: str, source: str = "--set") -> tuple[str, Any]:

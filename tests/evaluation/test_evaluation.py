@@ -658,3 +658,25 @@ def test_the_json_summary_records_the_configuration_that_ran(data_dir, tmp_path,
     assert summary["overrides"] == {"dense.window_size": 7, "max_ratio": 0.7}
     ran = apply_overrides(PipelineConfig.paper(), summary["overrides"])
     assert summary["config"] == json.loads(json.dumps(config_to_dict(ran)))
+
+
+def test_each_section_is_checked_with_its_final_values_whatever_the_order_of_its_keys(tmp_path):
+    """An audit: overrides were applied one at a time, each dataclass checked on the way, so `--set
+    segmentation.ground.min_camera_height_m=4 --set segmentation.ground.max_camera_height_m=5` (and the same two keys
+    in a file's [segmentation.ground]) failed as "expected 0 < min < max, got 4.0, 3.0", 3 the default maximum the
+    second key replaced; only the reverse order ran. `--preset paper --set differentiable=true --set depth.rule=dense`
+    likewise."""
+    config, _, _ = resolve_config(assignments=["segmentation.ground.min_camera_height_m=4",
+                                               "segmentation.ground.max_camera_height_m=5"])
+    assert (config.segmentation.ground.min_camera_height_m, config.segmentation.ground.max_camera_height_m) == (4, 5)
+    path = tmp_path / "config.toml"
+    path.write_text("[segmentation.ground]\nmin_camera_height_m = 4.0\nmax_camera_height_m = 5.0\n")
+    assert resolve_config(config_file=path)[0] == config
+    config, _, _ = resolve_config("paper", assignments=["differentiable=true", "depth.rule=dense"])
+    assert config.differentiable and config.depth.rule == "dense"
+    with pytest.raises(InputError, match=r"^--set: segmentation\.ground\.min_camera_height_m = 4, segmentation\.ground"
+                                         r"\.max_camera_height_m = 2: min_camera_height_m, .* got 4\.0, 2\.0$"):
+        resolve_config(assignments=["segmentation.ground.min_camera_height_m=4",
+                                    "segmentation.ground.max_camera_height_m=2"])
+    with pytest.raises(InputError, match=r"^--set: differentiable = True: differentiable: needs depth\.rule 'dense'"):
+        resolve_config("paper", assignments=["depth.rule=dense", "differentiable=true", "depth.rule=paper"])
