@@ -28,6 +28,7 @@ __all__ = [
     "check_real",
     "check_generator",
     "check_percentiles",
+    "real_or_nan",
 ]
 
 
@@ -187,6 +188,13 @@ def check_real(value: object, name: str, low: float = -math.inf, high: float = m
         interval = f"{opening}{low:g}, {high:g}{')' if high_open or math.isinf(high) else ']'}"
         raise InputError(f"{name}: expected a finite number in {interval}{' or None' if optional else ''}, "
                          f"got {value!r}")
+
+
+def real_or_nan(value: object) -> float:
+    """``value`` where it is a real number (not a bool), else NaN, for a setting's range check: every comparison
+    with NaN fails, so the setting's own message names it (a string compared raised a TypeError, "'<=' not supported
+    between instances of 'int' and 'str'", that named no field: an audit of hostile configuration values)."""
+    return value if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
 
 
 def check_percentiles(value: object, name: str, optional: bool = False) -> None:

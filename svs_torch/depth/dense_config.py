@@ -9,7 +9,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
-from ..core.checks import InputError, check_count, check_flag, check_percentiles, check_real
+from ..core.checks import InputError, check_count, check_flag, check_percentiles, check_real, real_or_nan
 from .kernels import MAX_WINDOW
 
 __all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
@@ -157,9 +157,9 @@ class DenseConfig:
             raise InputError(f"kernel: expected 'auto', 'c' or 'torch', got {self.kernel!r}")
         if self.prefilter not in ("xsobel", "none"):
             raise InputError(f"prefilter: expected 'xsobel' or 'none', got {self.prefilter!r}")
-        if not 0 <= self.uniqueness_ratio < 10:
+        if not 0 <= real_or_nan(self.uniqueness_ratio) < 10:
             raise InputError(f"uniqueness_ratio: expected a value in [0, 10), got {self.uniqueness_ratio!r}")
-        if self.lr_max_diff_px is not None and not self.lr_max_diff_px >= 0:
+        if self.lr_max_diff_px is not None and not real_or_nan(self.lr_max_diff_px) >= 0:
             raise InputError(f"lr_max_diff_px: expected None or a value >= 0, got {self.lr_max_diff_px!r}")
         if not isinstance(self.max_num_disparities, int) or self.max_num_disparities < 2:
             raise InputError(f"max_num_disparities: expected an int >= 2, got {self.max_num_disparities!r}")
@@ -174,7 +174,8 @@ class DenseConfig:
             raise InputError(f"in_view_margin: expected 'object' or 'pair', got {self.in_view_margin!r}")
         check_percentiles(self.range_percentiles, "range_percentiles")
         for name in ("prefilter_cap", "texture_threshold", "range_margin_px", "range_margin_fraction"):
-            if not 0 <= getattr(self, name) <= 1e6:  # 1e308 failed late, an overflow of the kernel's texture_min
+            # 1e308 failed late, an overflow of the kernel's texture_min
+            if not 0 <= real_or_nan(getattr(self, name)) <= 1e6:
                 raise InputError(f"{name}: expected a value from 0 to 1e6, got {getattr(self, name)!r}")
         for name in ("smoothing_penalties", "retry_smoothing_penalties"):
             penalties = getattr(self, name)
@@ -187,7 +188,7 @@ class DenseConfig:
         weight = self.smoothing_intensity_weight
         if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < float("inf"):
             raise InputError(f"smoothing_intensity_weight: expected a finite value >= 0, got {weight!r}")
-        if not self.smoothing_min_residual_levels >= 0:
+        if not real_or_nan(self.smoothing_min_residual_levels) >= 0:
             raise InputError(f"smoothing_min_residual_levels: expected a value >= 0, got "
                              f"{self.smoothing_min_residual_levels!r}")
         if not isinstance(self.margin_px, int) or not 0 <= self.margin_px < 2**31:

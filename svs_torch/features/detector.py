@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_flag, check_image, check_instance, check_real, check_shape
+from ..core.checks import (InputError, check_dtype, check_flag, check_image, check_instance, check_real, check_shape,
+                           real_or_nan)
 from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
 from . import kernels
@@ -65,7 +66,7 @@ class SurfConfig:
     compiled: bool = False
 
     def __post_init__(self) -> None:
-        if not self.metric_threshold >= 0:
+        if not real_or_nan(self.metric_threshold) >= 0:
             raise InputError(f"metric_threshold: expected a non-negative number, got {self.metric_threshold!r}")
         if not isinstance(self.num_octaves, int) or not 1 <= self.num_octaves <= MAX_OCTAVES:
             raise InputError(f"num_octaves: expected an integer from 1 to {MAX_OCTAVES}, got {self.num_octaves!r}")

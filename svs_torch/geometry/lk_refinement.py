@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_shape, real_or_nan
 from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
@@ -51,12 +51,13 @@ class MatchRefinementConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.iterations, int) and 0 <= self.iterations <= MAX_LK_ITERATIONS):
             raise InputError(f"iterations: expected an integer from 0 to {MAX_LK_ITERATIONS}, got {self.iterations!r}")
-        if not (self.max_shift_px >= 0 and self.radius_scales > 0
-                and 0 < self.min_radius_px <= self.max_radius_px < math.inf):
+        shift, scales, low, high = (real_or_nan(getattr(self, name)) for name in (
+            "max_shift_px", "radius_scales", "min_radius_px", "max_radius_px"))
+        if not (shift >= 0 and scales > 0 and 0 < low <= high < math.inf):
             raise InputError("MatchRefinementConfig: expected max_shift_px >= 0, radius_scales > 0 and "
                              f"0 < min_radius_px <= max_radius_px < inf, got {self.max_shift_px!r}, "
                              f"{self.radius_scales!r}, {self.min_radius_px!r}, {self.max_radius_px!r}")
-        if not -1 <= self.min_correlation <= 1:
+        if not -1 <= real_or_nan(self.min_correlation) <= 1:
             raise InputError(f"min_correlation: expected a correlation in [-1, 1], got {self.min_correlation!r}")
 
 

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
-from ..core.checks import InputError, check_count, check_flag, check_real
+from ..core.checks import InputError, check_count, check_flag, check_real, real_or_nan
 from ..depth.dense_config import DenseConfig
 from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
@@ -344,7 +344,7 @@ class PipelineConfig:
         check_real(self.ransac_confidence, "ransac_confidence", 0.0, 1.0, low_open=True)
         check_count(self.ransac_max_iterations, "ransac_max_iterations", 1, most=MAX_HYPOTHESES)  # 2^31 never ended
         check_real(self.row_tolerance_px, "row_tolerance_px", 0.0)
-        if not 0 <= self.verify_min_inlier_share <= 1:
+        if not 0 <= real_or_nan(self.verify_min_inlier_share) <= 1:
             raise InputError(f"verify_min_inlier_share: expected a share in [0, 1], got "
                              f"{self.verify_min_inlier_share!r}")
 

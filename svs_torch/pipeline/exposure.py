@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_shape
+from ..core.checks import InputError, check_shape, real_or_nan
 from ..core.levels import CLIPPED_LEVEL
 from ..depth.quantiles import row_quantile
 
@@ -84,7 +84,7 @@ class ExposureConfig:
         low, high = self.quantiles
         if not 0 < low < high < 1:
             raise InputError(f"quantiles: expected two quantiles 0 < low < high < 1, got {self.quantiles!r}")
-        if not self.min_change >= 0:
+        if not real_or_nan(self.min_change) >= 0:
             raise InputError(f"min_change: expected a number >= 0, got {self.min_change!r}")
         share = self.min_right_clipped_share
         if share is not None and not (type(share) in (int, float) and 0 < share <= 1):

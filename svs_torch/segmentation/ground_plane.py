@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..core.checks import check_count, check_generator, check_real
+from ..core.checks import check_count, check_generator, check_real, real_or_nan
 from ..core.errors import InputError
 from ..core.kernels.checks import canonical_bool
 from ..core.mask_reductions import any_along
@@ -120,16 +120,17 @@ class GroundPlaneConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if not 0 < self.min_camera_height_m < self.max_camera_height_m < math.inf:
+        if not 0 < real_or_nan(self.min_camera_height_m) < real_or_nan(self.max_camera_height_m) < math.inf:
             raise InputError(f"min_camera_height_m, max_camera_height_m: expected 0 < min < max, finite metres, got "
                              f"{self.min_camera_height_m!r}, {self.max_camera_height_m!r}")
         for name in ("max_roll_deg", "max_pitch_deg"):
-            if not 0 <= getattr(self, name) < 90:
+            if not 0 <= real_or_nan(getattr(self, name)) < 90:
                 raise InputError(f"{name}: expected degrees in [0, 90), got {getattr(self, name)!r}")
         for name in ("min_share", "lower_rows_fraction", "max_behind_share"):
-            if not 0 < getattr(self, name) <= 1:
+            if not 0 < real_or_nan(getattr(self, name)) <= 1:
                 raise InputError(f"{name}: expected a share in (0, 1], got {getattr(self, name)!r}")
-        if not (self.tolerance_px > 0 and self.noisy_tolerance_px > 0 and 0 <= self.tolerance_fraction < 1):
+        if not (real_or_nan(self.tolerance_px) > 0 and real_or_nan(self.noisy_tolerance_px) > 0
+                and 0 <= real_or_nan(self.tolerance_fraction) < 1):
             raise InputError(f"tolerance_px, noisy_tolerance_px, tolerance_fraction: expected > 0, > 0 and a share in "
                              f"[0, 1), got {self.tolerance_px!r}, {self.noisy_tolerance_px!r}, "
                              f"{self.tolerance_fraction!r}")

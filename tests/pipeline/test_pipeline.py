@@ -325,3 +325,31 @@ def test_a_stage_that_fails_first_names_the_pair_status():
     status = _status(seg, torch.full((b, 2), 100), fundamental, rectification, depth, rectify="auto",
                      dense_rule=False)
     assert status.tolist() == [PipelineStatus.OK, PipelineStatus.TOO_FEW_MATCHES, PipelineStatus.RANSAC_FAILED]
+
+
+def _numeric_leaves() -> list[tuple[str, type, str]]:
+    """(dotted key, the dataclass holding it, its field name) of every int or float setting of the configuration."""
+    import typing
+
+    from svs_torch.evaluation.config_tree import dataclass_of
+    from svs_torch.evaluation.overrides import parameter_types
+
+    known = parameter_types()
+    leaves = []
+    for key, hint in known.items():
+        if {int, float} & ({hint} | set(typing.get_args(hint))) and "." in key:
+            parent = dataclass_of(known[key.rpartition(".")[0]])
+            leaves.append((key, parent, key.rpartition(".")[2]))
+        elif {int, float} & ({hint} | set(typing.get_args(hint))):
+            leaves.append((key, PipelineConfig, key))
+    return leaves
+
+
+@pytest.mark.parametrize("key, kind, name", _numeric_leaves(), ids=[leaf[0] for leaf in _numeric_leaves()])
+def test_every_numeric_setting_refuses_a_string_by_name(key, kind, name):
+    """An audit of hostile values through the Python API: 27 settings (dense.uniqueness_ratio, surf.metric_threshold,
+    the ground plane's and the match refinement's limits, ...) compared a string with a number and raised
+    "TypeError: '<=' not supported between instances of 'int' and 'str'", naming no field. Each is an InputError
+    naming the field now."""
+    with pytest.raises(InputError, match=name):
+        kind(**{name: "0.5"})
