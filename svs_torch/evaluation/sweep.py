@@ -167,7 +167,8 @@ def load_sweep(path: str | Path) -> Sweep:
     _expect(isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1,
             f"{name}: batch_size: expected a positive integer, got {batch_size!r}")
     preset = table.get("preset", "default")
-    _expect(preset in PRESETS, f"{name}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
+    _expect(isinstance(preset, str) and preset in PRESETS,  # a list here failed as "unhashable type"
+            f"{name}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
     fixed = table.get("set", {})
     _expect(isinstance(fixed, dict), f"{name}: set: expected a table of parameters, got {fixed!r}")
     grid = table.get("grid", {})
@@ -185,10 +186,11 @@ def load_sweep(path: str | Path) -> Sweep:
     configs = []
     for number, entry in enumerate(entries, start=1):
         source = f"{name}: configs[{number}]"
+        entry = dict(entry)
+        entry_preset = entry.pop("preset", preset)  # before flattening: a table here is a bad preset, not keys
+        _expect(isinstance(entry_preset, str) and entry_preset in PRESETS,
+                f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {entry_preset!r}")
         entry = flatten_table(entry, source=source)
-        entry_preset = entry.pop("preset", preset)
-        _expect(entry_preset in PRESETS, f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got "
-                                         f"{entry_preset!r}")
         make_sweep_config(entry_preset, merge_overrides(fixed, entry), size_wh, source=source)
         for point in points:
             varying = merge_overrides(entry, point)

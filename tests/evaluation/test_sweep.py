@@ -112,6 +112,10 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     ('paths = ["."]\n[set.exposure]\n', "set: exposure: expected true or false (on with its defaults, or off), got {}"),
     ('paths = ["."]\n[[configs]]\n"dense.window_size" = 5\n[configs.dense]\nwindow_size = 7\n',
      "configs[1]: dense.window_size: given twice"),
+    # An audit: a preset that is a list or a table failed as "internal error: TypeError: unhashable type".
+    ('paths = ["."]\npreset = ["paper"]\n', "preset: expected one of 'default', 'paper', got ['paper']"),
+    ('paths = ["."]\n[[configs]]\npreset = {name = "paper"}\n',
+     "configs[1]: preset: expected one of 'default', 'paper', got {'name': 'paper'}"),
 ])
 def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, message):
     sweep_file = tmp_path / "sweep.toml"
