@@ -40,6 +40,7 @@ torch to one thread. Only this process writes the store: workers return rows.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import hashlib
 import json
 import os
@@ -151,9 +152,10 @@ def load_sweep(path: str | Path) -> Sweep:
     # Other top-level keys are parameters, fixed for every configuration, as in a --config file (one format).
     top_level = flatten_table({key: value for key, value in table.items() if key not in SWEEP_KEYS}, source=name)
     known = parameter_types()
-    for key in top_level:
-        _expect(key in known, f"{name}: unknown key {key!r} (expected {', '.join(SWEEP_KEYS)}, or a parameter "
-                              f"such as segmentation.kernel_size)")
+    for key in top_level:  # the near names first, as --set and --config give them ('prest': did you mean preset?)
+        close = difflib.get_close_matches(key, [*SWEEP_KEYS, *known], n=3, cutoff=0.6)
+        _expect(key in known, f"{name}: unknown key {key!r} (" + (f"did you mean {', '.join(close)}? " if close else "")
+                + f"expected {', '.join(SWEEP_KEYS)}, or a parameter such as segmentation.kernel_size)")
     paths = table.get("paths")
     paths = [paths] if isinstance(paths, str) else paths
     _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),

@@ -90,7 +90,8 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
 
 
 @pytest.mark.parametrize("text, message", [
-    ('paths = ["."]\nsizes = "320x240"\n', "unknown key 'sizes'"),
+    ('paths = ["."]\nsizes = "320x240"\n', "unknown key 'sizes' (did you mean size?"),
+    ('paths = ["."]\nmax_ratoi = 0.7\n', "unknown key 'max_ratoi' (did you mean max_ratio? expected paths, size,"),
     ('paths = ["."]\n[grid]\n"segmentation.kernal_size" = [3]\n', "grid: unknown parameter 'segmentation.kernal_size'"),
     ('paths = ["."]\n[grid]\n"segmentation.kernel_size" = [3, 0]\n',
      "grid: segmentation.kernel_size = 0: kernel_size: expected a positive integer"),
