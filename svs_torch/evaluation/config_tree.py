@@ -8,11 +8,12 @@ maximum the next key replaced), and only the reverse order ran (an audit of host
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["ON", "ConfigBuildError", "build_config", "dataclass_of"]
+__all__ = ["ON", "ConfigBuildError", "build_config", "dataclass_of", "refused_keys"]
 
 #: The value that turns an optional configuration on: kept as it is where on, its defaults where off.
 ON = object()
@@ -84,3 +85,14 @@ def build_config(config: Any, assignments: Sequence[tuple[str, Any]]) -> Any:
     for key, value in assignments:
         _set(root, key.split("."), value)
     return _build(root, "")
+
+
+def refused_keys(keys: Sequence[str], failed: ConfigBuildError) -> list[str]:
+    """The keys a refusal is about: those under the refusing dataclass that its message names (relative to it, as
+    its checks name fields: ``differentiable: needs depth.rule 'dense'`` names ``depth.rule``), else every key under
+    it (``--set max_ratio=0.7 --set depth.rule=paper`` on a differentiable configuration names depth.rule, not
+    max_ratio)."""
+    under = [key for key in keys if key.startswith(failed.prefix)]
+    message = str(failed.error)
+    named = [key for key in under if re.search(rf"(?<![\w.]){re.escape(key[len(failed.prefix):])}(?!\w)", message)]
+    return named or under

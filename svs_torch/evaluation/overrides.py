@@ -42,7 +42,7 @@ from typing import Any
 
 from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
-from .config_tree import ON, ConfigBuildError, build_config, dataclass_of
+from .config_tree import ON, ConfigBuildError, build_config, dataclass_of, refused_keys
 
 __all__ = [
     "LABEL_SEPARATOR", "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid",
@@ -205,9 +205,7 @@ def apply_overrides(config: PipelineConfig, overrides: Mapping[str, Any], source
     try:
         return build_config(config, checked)
     except ConfigBuildError as failed:
-        own = [key for key in overrides if (key.rpartition(".")[0] + "." if "." in key else "") == failed.prefix]
-        named = own or [key for key in overrides if key.startswith(failed.prefix)]  # a check across sections
-        keys = ", ".join(f"{key} = {overrides[key]!r}" for key in named)
+        keys = ", ".join(f"{key} = {overrides[key]!r}" for key in refused_keys(overrides, failed))
         raise InputError(f"{source}: {keys}: {failed.error}") from None
 
 

@@ -678,5 +678,15 @@ def test_each_section_is_checked_with_its_final_values_whatever_the_order_of_its
                                          r"\.max_camera_height_m = 2: min_camera_height_m, .* got 4\.0, 2\.0$"):
         resolve_config(assignments=["segmentation.ground.min_camera_height_m=4",
                                     "segmentation.ground.max_camera_height_m=2"])
-    with pytest.raises(InputError, match=r"^--set: differentiable = True: differentiable: needs depth\.rule 'dense'"):
+    with pytest.raises(InputError, match=r"^--set: differentiable = True, depth\.rule = 'paper': differentiable: needs"):
         resolve_config("paper", assignments=["depth.rule=dense", "differentiable=true", "depth.rule=paper"])
+
+
+def test_a_refused_combination_names_the_keys_its_message_is_about():
+    """A refusal by the whole configuration names the keys its check names, not every key set at its level: on a
+    differentiable configuration, max_ratio=0.7 with depth.rule=paper is refused for depth.rule."""
+    differentiable = dataclasses.replace(PipelineConfig(), differentiable=True)
+    with pytest.raises(InputError, match=r"^--set: depth\.rule = 'paper': differentiable: needs depth\.rule"):
+        apply_overrides(differentiable, {"max_ratio": 0.7, "depth.rule": "paper"}, "--set")
+    with pytest.raises(InputError, match=r"^grid: max_ratio = 2: max_ratio: expected a ratio in \(0, 1\]"):
+        apply_overrides(PipelineConfig(), {"dense.window_size": 9, "max_ratio": 2}, "grid")
