@@ -250,6 +250,8 @@ def _check_matches(left: torch.Tensor, right: torch.Tensor, image_hw: torch.Tens
 def _residual_ratio(left: torch.Tensor, right: torch.Tensor, left_xy: torch.Tensor, right_xy: torch.Tensor,
                     valid: torch.Tensor, fit: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """:func:`matched_residual_ratio` of detached views under :func:`_fit`'s map ``fit``."""
+    if valid.shape[1] == 0:  # no match at all (surf.max_keypoints=0): too few, NaN; a median of nothing raised
+        return torch.full(valid.shape[:1], torch.nan, dtype=left.dtype, device=left.device)
     before = [_patch_means(view, xy.detach()).unsqueeze(1).unsqueeze(1) for view, xy in ((left, left_xy),
                                                                                       (right, right_xy))]
     after = _mapped(*before, *fit)[:2]

@@ -539,6 +539,11 @@ def test_the_map_brings_the_matched_points_of_a_gain_together_not_of_two_lamps(g
     assert float(ratio[0]) < 0.1 and float(ratio[1]) > 0.8
     with pytest.raises(InputError, match=r"^right_xy: expected"):
         matched_residual_ratio(left, rights["gain"], image_hw[:1], left_xy[None], right_xy[None, :3], valid[None])
+    # An audit: no match at all (eval --set surf.max_keypoints=0 on views the exposure retry reaches) failed in a
+    # median of nothing, every such pair an ERROR row; too few matches to tell is NaN.
+    none = matched_residual_ratio(left, rights["gain"], image_hw[:1], left_xy[None, :0], right_xy[None, :0],
+                                  valid[None, :0])
+    assert none.shape == (1,) and bool(none.isnan().all())
 
 
 def test_the_pairs_to_match_are_those_that_differ_and_whose_map_brings_their_matches_together(generator):
