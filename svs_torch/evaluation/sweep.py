@@ -61,8 +61,9 @@ from ..pipeline import PipelineConfig
 from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .metrics import PairEvaluation
-from .overrides import (PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid, flatten_table,
-                        merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config, read_toml)
+from .overrides import (MAX_GRID_POINTS, PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid,
+                        flatten_table, merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config,
+                        read_toml)
 from .runner import EvalSetup, evaluate_block
 from .store import ResultStore
 
@@ -144,6 +145,18 @@ def _expect(condition: bool, message: str) -> None:
         raise InputError(message)
 
 
+def _check_preset(preset: Any, source: str) -> None:
+    _expect(isinstance(preset, str) and preset in PRESETS,  # a list here failed as "unhashable type"
+            f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
+
+
+def _too_many(name: str, entries: int, points: int) -> str:
+    """The error of a sweep whose [[configs]] entries, each run over the whole grid, make too many configurations
+    (the grid's own limit let 3 entries x 10 000 points through)."""
+    return (f"{name}: configs: {entries} [[configs]] x {points} grid points = {entries * points} configurations, at "
+            f"most {MAX_GRID_POINTS}; list fewer, or split them into several sweeps")
+
+
 def load_sweep(path: str | Path) -> Sweep:
     """Read and check a sweep file (module docstring); every error is one InputError naming the file."""
     path = Path(path)
@@ -169,8 +182,7 @@ def load_sweep(path: str | Path) -> Sweep:
     _expect(isinstance(batch_size, int) and not isinstance(batch_size, bool) and batch_size >= 1,
             f"{name}: batch_size: expected a positive integer, got {batch_size!r}")
     preset = table.get("preset", "default")
-    _expect(isinstance(preset, str) and preset in PRESETS,  # a list here failed as "unhashable type"
-            f"{name}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
+    _check_preset(preset, name)
     fixed = table.get("set", {})
     _expect(isinstance(fixed, dict), f"{name}: set: expected a table of parameters, got {fixed!r}")
     grid = table.get("grid", {})
@@ -182,6 +194,7 @@ def load_sweep(path: str | Path) -> Sweep:
     make_sweep_config(preset, fixed, size_wh, source=f"{name}: set")  # its errors name [set], not the grid
     grid = flatten_table(grid, source=f"{name}: grid")
     points = expand_grid(grid, f"{name}: grid")
+    _expect(len(entries) * len(points) <= MAX_GRID_POINTS, _too_many(name, len(entries), len(points)))
     both = sorted(set(fixed) & set(grid))  # the grid's won in silence: the fixed value never ran
     _expect(not both, f"{name}: {', '.join(both)}: set both as fixed for every configuration and in [grid]; expected "
                       f"each in one of them")
@@ -190,8 +203,7 @@ def load_sweep(path: str | Path) -> Sweep:
         source = f"{name}: configs[{number}]"
         entry = dict(entry)
         entry_preset = entry.pop("preset", preset)  # before flattening: a table here is a bad preset, not keys
-        _expect(isinstance(entry_preset, str) and entry_preset in PRESETS,
-                f"{source}: preset: expected one of {', '.join(map(repr, PRESETS))}, got {entry_preset!r}")
+        _check_preset(entry_preset, source)
         entry = flatten_table(entry, source=source)
         make_sweep_config(entry_preset, merge_overrides(fixed, entry), size_wh, source=source)
         for point in points:

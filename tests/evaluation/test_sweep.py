@@ -113,6 +113,10 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     ('paths = ["."]\n[set.exposure]\n', "set: exposure: expected true or false (on with its defaults, or off), got {}"),
     ('paths = ["."]\n[[configs]]\n"dense.window_size" = 5\n[configs.dense]\nwindow_size = 7\n',
      "configs[1]: dense.window_size: given twice"),
+    # An audit: 2 [[configs]] over a grid of 5001 points made 10 002 configurations, past the grid's own limit.
+    ('paths = ["."]\n[grid]\nseed = [' + ", ".join(map(str, range(5001)))
+     + ']\n[[configs]]\n[[configs]]\nmax_ratio = 0.7\n',
+     "configs: 2 [[configs]] x 5001 grid points = 10002 configurations, at most 10000"),
     # An audit: a preset that is a list or a table failed as "internal error: TypeError: unhashable type".
     ('paths = ["."]\npreset = ["paper"]\n', "preset: expected one of 'default', 'paper', got ['paper']"),
     ('paths = ["."]\n[[configs]]\npreset = {name = "paper"}\n',
