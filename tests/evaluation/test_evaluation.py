@@ -678,7 +678,7 @@ def test_each_section_is_checked_with_its_final_values_whatever_the_order_of_its
                                          r"\.max_camera_height_m = 2: min_camera_height_m, .* got 4\.0, 2\.0$"):
         resolve_config(assignments=["segmentation.ground.min_camera_height_m=4",
                                     "segmentation.ground.max_camera_height_m=2"])
-    with pytest.raises(InputError, match=r"^--set: differentiable = True, depth\.rule = 'paper': differentiable: needs"):
+    with pytest.raises(InputError, match=r"^--set: differentiable = True, depth\.rule = 'paper': differentiable: "):
         resolve_config("paper", assignments=["depth.rule=dense", "differentiable=true", "depth.rule=paper"])
 
 
