@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -269,3 +270,25 @@ def test_an_unloadable_library_is_said_once_and_rebuilt(cache, tmp_path, monkeyp
     _new_process(monkeypatch)
     assert kernels.load(KERNEL) is None and len(_compiles(garbage)) == 2
     _one_notice(capsys, "built but did not load")
+
+
+
+def test_the_loader_lines_wait_for_the_stderr_lock(cache, monkeypatch):
+    """The loader's lines are written holding STDERR_LOCK: eval's reader thread lends descriptor 2 to image
+    decoders under it, and "C kernels off" written meanwhile was lost (2 runs in 3)."""
+    from svs_torch.core.files import STDERR_LOCK
+
+    held = []
+
+    class Recorder:
+        def write(self, text):
+            held.append(STDERR_LOCK._is_owned())
+            return len(text)
+
+        def flush(self):
+            pass
+
+    monkeypatch.setenv("CC", str(tmp_path_missing := cache.parent / "no-such-cc"))
+    monkeypatch.setattr(sys, "stderr", Recorder())
+    assert kernels.load(KERNEL) is None and not tmp_path_missing.exists()
+    assert held and all(held), held

@@ -29,7 +29,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from ..files import display_path, write_bytes_atomic
+from ..files import STDERR_LOCK, display_path, write_bytes_atomic
 
 __all__ = ["FLAGS", "HEADERS", "SOURCES", "cache_dir", "open_library"]
 
@@ -247,6 +247,13 @@ def _trusted_library(library: Path) -> ctypes.CDLL:
     return ctypes.CDLL(str(library))
 
 
+def _say(line: str) -> None:
+    """One line on stderr, under :data:`~svs_torch.core.files.STDERR_LOCK`: written while ``eval``'s reader thread
+    lent descriptor 2 to an image decoder, "C kernels off" was lost (2 runs in 3, an audit)."""
+    with STDERR_LOCK:
+        print(line, file=sys.stderr, flush=True)
+
+
 class _BuildFailed(Exception):
     """A kernel did not build or load: the message's first line is the reason, the rest the compiler's output;
     ``hung``: the compiler did not finish (no other flags are tried)."""
@@ -260,8 +267,8 @@ def _announce(folder: Path) -> None:
     """One line per process and cache folder, before its first compile."""
     if str(folder) not in _ANNOUNCED:
         _ANNOUNCED.add(str(folder))
-        print(f"svs_torch: compiling the C kernels for this machine into {display_path(folder)} as they are first "
-              "needed (once, a few seconds each; later runs reuse them)", file=sys.stderr)
+        _say(f"svs_torch: compiling the C kernels for this machine into {display_path(folder)} as they are first "
+             "needed (once, a few seconds each; later runs reuse them)")
 
 
 def _compile(name: str, command: list[str], flags: list[str], target: Path) -> None:
@@ -312,8 +319,7 @@ def _built(name: str, command: list[str], flags: list[str], target: Path) -> cty
         except OSError as error:
             if fresh:
                 raise _BuildFailed(f"the {name} kernel built but did not load ({error})") from None
-            print(f"svs_torch: the cached {display_path(target)} did not load ({error}); building it again",
-                  file=sys.stderr)
+            _say(f"svs_torch: the cached {display_path(target)} did not load ({error}); building it again")
         target.unlink()
         _compile(name, command, flags, target)
         try:
@@ -372,6 +378,6 @@ def open_library(name: str) -> ctypes.CDLL | None:
         return _open(name)
     except (KernelsOff, OSError) as reason:
         _OFF[state] = str(reason)
-        print(f"svs_torch: C kernels off ({reason}); running the torch paths (slower). Set SVS_TORCH_KERNELS=torch "
-              "to silence.", file=sys.stderr)
+        _say(f"svs_torch: C kernels off ({reason}); running the torch paths (slower). Set SVS_TORCH_KERNELS=torch "
+             "to silence.")
         return None
