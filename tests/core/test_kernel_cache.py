@@ -273,6 +273,34 @@ def test_an_unloadable_library_is_said_once_and_rebuilt(cache, tmp_path, monkeyp
 
 
 
+def _build_elsewhere(tmp_path: Path) -> bytes:
+    """:data:`KERNEL` built by the system compiler with the loader's flags, outside the cache: its bytes."""
+    output = tmp_path / "whole.so"
+    subprocess.run([REAL_CC, *loader.build_flags(), "-I", str(loader._INCLUDE), str(loader.SOURCES[KERNEL]),
+                    "-o", str(output), "-lm"], check=True)
+    return output.read_bytes()
+
+
+@needs_cc
+def test_a_cut_short_library_is_rebuilt_not_mapped(cache, tmp_path):
+    """A cached library cut short (a copy of the cache that ran out of space) was mapped as it was and the process
+    ended with SIGBUS, saying nothing; it is now said in one line and built again. In a new process: nothing here
+    has loaded that file."""
+    cache.mkdir(mode=0o700)
+    whole = _build_elsewhere(tmp_path)
+    target = _predictable_path()
+    target.write_bytes(whole[: len(whole) * 2 // 3])
+    target.chmod(0o755)
+    code = f"from svs_torch.core.kernels import load\nprint(load({KERNEL!r}) is not None, load({KERNEL!r}).{KERNEL})"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    assert done.stdout.startswith("True") and "cut short" in done.stderr and "building it again" in done.stderr
+    assert target.read_bytes() != whole[: len(whole) * 2 // 3]
+    assert loader.cut_short(tmp_path / "whole.so") is None and loader.cut_short(target) is None
+    target.write_bytes(whole[:100])
+    assert "cut short" in loader.cut_short(target)
+
+
 def test_the_loader_lines_wait_for_the_stderr_lock(cache, monkeypatch):
     """The loader's lines are written holding STDERR_LOCK: eval's reader thread lends descriptor 2 to image
     decoders under it, and "C kernels off" written meanwhile was lost (2 runs in 3)."""

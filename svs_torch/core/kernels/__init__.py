@@ -4,7 +4,8 @@ Each stage keeps its kernels beside its torch code, in its own ``kernels/`` fold
 ``kernels/__init__.py`` of wrappers (``svs_torch.segmentation.kernels``, ``svs_torch.features.kernels``,
 ``svs_torch.geometry.kernels``, ``svs_torch.depth.kernels``); each wrapper module declares its kernels'
 signatures (:func:`declare`) and calls them through :func:`load`. This folder holds what they share: the loader
-(``loader.py``: build, cache, open), the argument checks (``checks.py``) and the header every source includes
+(``loader.py``: build, cache, open; ``elf.py``: a cached library cut short is built again, never mapped),
+the argument checks (``checks.py``) and the header every source includes
 (``common.h``: thread count, scratch allocation), the quickselect the stages' order statistics share
 (``select_rank.h``) and the LU of their small linear systems (``small_lu.h``).
 

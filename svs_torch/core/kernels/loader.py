@@ -30,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 from ..files import STDERR_LOCK, display_path, write_bytes_atomic
+from .elf import cut_short
 
 __all__ = ["FLAGS", "HEADERS", "SOURCES", "cache_dir", "open_library"]
 
@@ -240,10 +241,13 @@ def _first_line(marker: Path) -> str:
 
 
 def _trusted_library(library: Path) -> ctypes.CDLL:
-    """``library`` loaded, :class:`KernelsOff` if it is not ours alone (OSError if it does not load)."""
+    """``library`` loaded, :class:`KernelsOff` if it is not ours alone (OSError if it does not load or is cut short)."""
     reason = _untrusted(library)
     if reason is not None:
         raise KernelsOff(reason)
+    short = cut_short(library)
+    if short is not None:
+        raise OSError(f"{display_path(library)}: {short}")
     return ctypes.CDLL(str(library))
 
 
