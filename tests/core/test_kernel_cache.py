@@ -6,6 +6,7 @@ scripts that log their calls and hand the work to the system's ``cc``."""
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import subprocess
@@ -299,6 +300,29 @@ def test_a_cut_short_library_is_rebuilt_not_mapped(cache, tmp_path):
     assert loader.cut_short(tmp_path / "whole.so") is None and loader.cut_short(target) is None
     target.write_bytes(whole[:100])
     assert "cut short" in loader.cut_short(target)
+
+
+@needs_cc
+def test_a_read_only_cache_that_holds_the_library_is_used(cache, tmp_path, monkeypatch, capsys):
+    """A cache folder that cannot be written (a read-only home, one filled beforehand) but holds the library: it
+    is loaded, without its lock file; the kernels were off ("Permission denied: '...lock'"). A kernel it lacks:
+    one line that says the folder cannot be written."""
+    cache.mkdir(mode=0o700)
+    target = _predictable_path()
+    target.write_bytes(_build_elsewhere(tmp_path))
+    target.chmod(0o755)
+    real_open = os.open
+
+    def no_new_files(path, flags, *args, **kwargs):  # as root, a folder's mode does not stop us: refuse O_CREAT
+        if flags & os.O_CREAT:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", no_new_files)
+    assert kernels.load(KERNEL) is not None and capsys.readouterr().err == ""
+    assert kernels.load("gray_levels") is None
+    _one_notice(capsys, "cannot be written", "gray_levels")
+    assert not list(cache.glob("*.lock"))
 
 
 def test_the_loader_lines_wait_for_the_stderr_lock(cache, monkeypatch):

@@ -311,7 +311,13 @@ def _built(name: str, command: list[str], flags: list[str], target: Path) -> cty
         import fcntl
     except ImportError:  # not POSIX: concurrent builds stay correct (atomic rename), only repeated
         fcntl = None
-    handle = os.open(target.with_suffix(".lock"), os.O_WRONLY | os.O_CREAT, 0o600)
+    try:
+        handle = os.open(target.with_suffix(".lock"), os.O_WRONLY | os.O_CREAT, 0o600)
+    except OSError as error:  # a read-only cache: a library there is whole (renamed in complete), loaded as it is
+        if not target.exists():  # (the missing lock turned the kernels off though every library was there)
+            raise KernelsOff(f"cache folder {display_path(target.parent)} cannot be written ({error.strerror}) "
+                             f"and holds no {name} kernel for this compiler and CPU") from None
+        return _trusted_library(target)
     try:
         if fcntl is not None:
             fcntl.flock(handle, fcntl.LOCK_EX)
