@@ -273,7 +273,6 @@ def test_an_unloadable_library_is_said_once_and_rebuilt(cache, tmp_path, monkeyp
     _one_notice(capsys, "built but did not load")
 
 
-
 def _build_elsewhere(tmp_path: Path) -> bytes:
     """:data:`KERNEL` built by the system compiler with the loader's flags, outside the cache: its bytes."""
     output = tmp_path / "whole.so"
@@ -323,6 +322,21 @@ def test_a_read_only_cache_that_holds_the_library_is_used(cache, tmp_path, monke
     assert kernels.load("gray_levels") is None
     _one_notice(capsys, "cannot be written", "gray_levels")
     assert not list(cache.glob("*.lock"))
+
+
+def test_a_full_disk_is_not_remembered_as_a_failed_build(cache, tmp_path, monkeypatch, capsys):
+    """The linker out of space was remembered as a broken compiler under its last line ("collect2: error: ld
+    returned 1"): the kernels stayed off after space was freed, the serial build was tried for nothing. Now: one
+    line naming the lack of space, nothing remembered, the next process compiles again."""
+    script = _fake_compiler(tmp_path / "full-cc", 'echo "/usr/bin/ld: final link failed: No space left on device" >&2\n'
+                                                 'echo "collect2: error: ld returned 1 exit status" >&2; exit 1')
+    monkeypatch.setenv("CC", str(script))
+    assert kernels.load(KERNEL) is None
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2 and "C kernels off" in lines[1] and "No space left on device" in lines[1], lines
+    assert len(_compiles(script)) == 1 and not list(cache.glob("failed-*"))
+    _new_process(monkeypatch)
+    assert kernels.load(KERNEL) is None and len(_compiles(script)) == 2
 
 
 def test_the_loader_lines_wait_for_the_stderr_lock(cache, monkeypatch):

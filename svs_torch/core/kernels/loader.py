@@ -16,6 +16,7 @@ CPU changes; the kernels are then off in the process, with one line on stderr sa
 from __future__ import annotations
 
 import ctypes
+import errno
 import functools
 import hashlib
 import os
@@ -65,6 +66,8 @@ COMPILE_TIMEOUT_S = 60
 _CPU_KEYS = frozenset({"flags", "features", "model name", "vendor_id", "cpu family", "model", "cpu implementer",
                        "cpu architecture", "cpu variant", "cpu part", "cpu", "isa", "uarch", "mvendorid", "marchid",
                        "mimpid", "machine", "platform"})
+#: What a compiler says when the cache folder or ``TMPDIR`` is full: a passing state, not a failure to remember.
+_NO_SPACE = (os.strerror(errno.ENOSPC), os.strerror(errno.EDQUOT), "No space left on device", "Disk quota exceeded")
 #: Why the kernels are off in this process, by (cache folder, ``CC``): each said once.
 _OFF: dict[tuple[str, str], str] = {}
 #: The cache folders this process has announced compiling into.
@@ -292,6 +295,10 @@ def _compile(name: str, command: list[str], flags: list[str], target: Path) -> N
             raise _BuildFailed(f"{shlex.join(command)} could not be started")
         if done.returncode != 0:
             output = done.stderr.decode(errors="replace").strip().splitlines()
+            full = next((line.strip() for line in output if any(text in line for text in _NO_SPACE)), None)
+            if full is not None:  # not the compiler's fault: not remembered (it turned the kernels off for good)
+                raise KernelsOff(f"compiling the {name} kernel ran out of disk space ({full}); the next run tries "
+                                 "again")
             first = next((line for line in output if "error" in line), output[0] if output else "")
             reason = first or f"exit status {done.returncode}"
             raise _BuildFailed("\n".join([f"the {name} kernel did not compile with {shlex.join(command)}: {reason}",
