@@ -192,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     As the program (no ``argv``), a Ctrl-C once the command is over ends the process as the shell's Ctrl-C does
     (status 130 to the shell, nothing printed): one while the interpreter shut down (torch's exit handlers take a
     while) printed a KeyboardInterrupt traceback after the command's own last line (an audit of interrupts)."""
+    if argv is None:
+        _unencodable_escaped()
     try:
         return _main(argv)
     finally:
@@ -202,6 +204,31 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.SIG_DFL)
             except ValueError:  # not the main thread: Python's handler stays
                 pass
+
+
+def _unencodable_escaped() -> None:
+    """Characters standard output's encoding lacks written as escapes (``\\u2013``), as Python writes them on
+    stderr; a file name's undecodable bytes (``surrogateescape``) still written as they were. Under ``LC_ALL=C``
+    with UTF-8 mode off (``PYTHONUTF8=0``), or ``PYTHONIOENCODING=ascii``, ``svs-depth --help`` ended in a
+    UnicodeEncodeError traceback on the '–' of its first line (an audit)."""
+    if getattr(sys.stdout, "errors", None) in ("strict", "surrogateescape") and hasattr(sys.stdout, "reconfigure"):
+        import codecs
+
+        codecs.register_error("svs_torch.escape", _escape)
+        try:
+            sys.stdout.reconfigure(errors="svs_torch.escape")
+        except (ValueError, OSError):  # a stream that cannot change now: left as it is
+            pass
+
+
+def _escape(error: UnicodeError) -> tuple[str | bytes, int]:
+    """The encode error handler of :func:`_unencodable_escaped`."""
+    import codecs
+
+    chunk = error.object[error.start:error.end]
+    if isinstance(error, UnicodeEncodeError) and all(0xDC80 <= ord(char) <= 0xDCFF for char in chunk):
+        return bytes(ord(char) - 0xDC00 for char in chunk), error.end
+    return codecs.backslashreplace_errors(error)
 
 
 def _main(argv: list[str] | None) -> int:
