@@ -34,7 +34,8 @@ from ..core.checks import InputError
 from ..core.files import check_path_given, display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
-                       list_shared_pairs, load_image_pair, load_stereo_pair, scene_name)
+                       list_shared_pairs, load_image_pair, load_stereo_pair, scene_name, unreadable_reason,
+                       warn_unreadable)
 
 __all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "read_pair_list", "read_pair_sources", "load_pair_source",
            "unique_sources", "with_distinct_names"]
@@ -144,7 +145,7 @@ def _scenes_in(folder: Path) -> list[PairSource]:
         return _scene_sources(folder)
     shared = [PairSource(left=str(path), scene=True) for path in list_shared_pairs(folder)]
     try:
-        children = sorted(child for child in folder.iterdir() if child.is_dir())
+        children = warn_unreadable(sorted(child for child in folder.iterdir() if child.is_dir()))
     except OSError:  # a folder that cannot be listed holds no scene we can read
         return shared
     if shared:  # the data sets' folders gave their pairs; a scene beside them is one more (not one instead)
@@ -306,6 +307,8 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
     for path in map(Path, paths):
         kind = path_kind(path, name)
         if kind == "folder":
+            if unreadable_reason(path):  # ("Permission denied: PATH/middlebury_eval3_Q", naming no argument)
+                raise InputError(f"{name}: cannot read the folder {path} ({unreadable_reason(path)})")
             found = _scenes_in(path)
             if not found:
                 raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "

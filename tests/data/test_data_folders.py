@@ -180,3 +180,32 @@ def test_a_pair_list_saved_with_a_byte_order_mark_reads(tmp_path: Path, data_dir
     listed = tmp_path / "pairs.txt"
     listed.write_bytes(f"\ufeff# my pairs\r\n{teddy / 'im0.png'} {teddy / 'im1.png'}\r\n".encode("utf-8"))
     assert [source.problem for source in read_pair_list(listed)] == [None]
+
+
+def _unlistable(monkeypatch, *folders: Path) -> None:
+    """List ``folders`` as a non-root user lists a folder it may not read (as root, a mode of 000 does not stop us)."""
+    import errno
+    import os
+
+    refused = {str(folder) for folder in folders}
+    real_scandir, real_listdir = os.scandir, os.listdir
+
+    def check(path):
+        if os.fspath(path) in refused:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), os.fspath(path))
+
+    monkeypatch.setattr(os, "scandir", lambda path=".": check(path) or real_scandir(path))
+    monkeypatch.setattr(os, "listdir", lambda path=".": check(path) or real_listdir(path))
+
+
+def test_a_scene_folder_that_cannot_be_read_is_warned_of(tmp_path: Path, data_dir: Path, monkeypatch) -> None:
+    """A scene folder of a data set the user may not read was skipped without a word (eval: "1 pairs, 0 failed",
+    exit 0); a PATH folder itself that cannot be read was "error: Permission denied: PATH/middlebury_eval3_Q"."""
+    for scene in ("Art", "Books"):
+        shutil.copytree(data_dir / "middlebury_2005_2006_third" / scene, tmp_path / "sets" / scene)
+    _unlistable(monkeypatch, tmp_path / "sets" / "Books")
+    with pytest.warns(RuntimeWarning, match=r"Books: a folder that cannot be read \(Permission denied\): skipped"):
+        assert [Path(source.left).name for source in read_pair_sources([tmp_path / "sets"])] == ["Art"]
+    _unlistable(monkeypatch, tmp_path / "sets")
+    with pytest.raises(InputError, match=r"^path: cannot read the folder .*sets \(Permission denied\)$"):
+        read_pair_sources([tmp_path / "sets"])
