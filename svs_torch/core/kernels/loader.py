@@ -95,7 +95,8 @@ def _private_folder(folder: Path) -> None:
     except FileExistsError:
         pass
     except OSError as error:
-        raise KernelsOff(f"cache folder {display_path(folder)} cannot be made ({error.strerror})") from None
+        raise KernelsOff(f"cache folder {display_path(folder)} cannot be made ({error.strerror}); SVS_TORCH_CACHE=DIR "
+                         "names another") from None
     link, status = os.lstat(folder), os.stat(folder)
     if stat.S_ISLNK(link.st_mode) and link.st_uid not in (os.getuid(), 0):
         raise KernelsOff(f"cache folder {display_path(folder)} is a symlink owned by uid {link.st_uid}: refused")
@@ -255,8 +256,7 @@ def _trusted_library(library: Path) -> ctypes.CDLL:
 
 
 def _say(line: str) -> None:
-    """One line on stderr, under :data:`~svs_torch.core.files.STDERR_LOCK`: written while ``eval``'s reader thread
-    lent descriptor 2 to an image decoder, "C kernels off" was lost (2 runs in 3, an audit)."""
+    """One line on stderr, under STDERR_LOCK: ``eval``'s decoder thread lends descriptor 2 under it (a line lost)."""
     with STDERR_LOCK:
         print(line, file=sys.stderr, flush=True)
 
@@ -323,7 +323,7 @@ def _built(name: str, command: list[str], flags: list[str], target: Path) -> cty
     except OSError as error:  # a read-only cache: a library there is whole (renamed in complete), loaded as it is
         if not target.exists():  # (the missing lock turned the kernels off though every library was there)
             raise KernelsOff(f"cache folder {display_path(target.parent)} cannot be written ({error.strerror}) "
-                             f"and holds no {name} kernel for this compiler and CPU") from None
+                             f"and holds no {name} kernel; SVS_TORCH_CACHE=DIR names another") from None
         return _trusted_library(target)
     try:
         if fcntl is not None:
