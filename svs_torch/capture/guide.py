@@ -141,9 +141,12 @@ class WarningPolicy:
         if (last is not None and _SEVERITY[new] <= _SEVERITY[last] and now_s - self._last_spoken_s < self.repeat_s
                 and not self._nearer_elsewhere(distance_m, side, previous_m)):
             return None
-        if last == new and self.classify(distance_m) != new:
+        own = self.classify(distance_m)
+        if own != new and (last == new or own == CLEAR):
             # Held by the hysteresis only, past the band's edge: not said again ("Obstacle ahead, 2.1 metres" with
-            # a 1-2 m band, every --repeat-s, an audit); said again once back inside, or a new class at once.
+            # a 1-2 m band, every --repeat-s, an audit); said again once back inside, or a new class at once. Beyond
+            # the band it is never said, whatever was said last: after a "Stop" the way receding to 2.08 m was said
+            # "Obstacle ahead, 2.1 metres" once --repeat-s ran out (an audit).
             return None
         self._last_spoken_s, self._last_spoken_class = now_s, new
         self._last_spoken_m, self._last_spoken_side = distance_m, side

@@ -750,3 +750,12 @@ def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys,
         assert [(e["left_role"], e["right_role"]) for e in events] == [("slave", "master")]
     else:
         assert CAMERAS_SWAPPED not in err and "stereo master" not in err and not events
+
+
+def test_a_warning_held_by_the_hysteresis_beyond_the_band_is_not_said_after_a_stop():
+    """After "Stop", the obstacle gone and a wall left at 2.08 m (a 1-2 m band; "warn" held by the 0.1 m
+    hysteresis) was said "Obstacle ahead, 2.1 metres" once --repeat-s ran out: beyond the band is silence."""
+    policy = WarningPolicy(repeat_s=3.0, hysteresis_m=0.1, confirm_frames=1)
+    assert policy.update(0.9, 0.0) == "Stop. Obstacle at 0.9 metres"
+    assert [policy.update(2.08, t) for t in (1.0, 3.1, 6.5)] == [None, None, None] and policy.current == WARN
+    assert policy.update(1.5, 7.0) == "Obstacle ahead, 1.5 metres"  # back inside the band: said
