@@ -36,7 +36,8 @@ seconds (a covered lens, the dark, a link that froze, or pairs whose two frames 
 which are not ranged: the walker moved between them), "Cannot see ahead" is said, and "Seeing ahead again" when
 one is. A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened
 again every --reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends
-guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set. Boards that answer in the
+guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set, and "Guide stopped. No more
+warnings." is said. Boards that answer in the
 wrong stereo roles (--left reaches the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as
 every distance is then wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
 
@@ -172,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         from ..capture.link_types import CaptureError
         from .pairs_folder import new_pairs_folder
         from .guide_log import GuideLog
-        from .guide_loop import GuideSession
+        from .guide_loop import GUIDE_STOPPED, GuideSession
         from .guide_warm_up import import_deferred_modules, warm_up
 
         size = _checked_size(args)
@@ -208,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
         _stopped(status_line, log, session.stopped_text(), 141)
         raise
     except (CaptureError, OSError) as error:
+        guide.speaker.say(GUIDE_STOPPED)  # spoken too: the walker does not read the error, and silence means clear
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
     finally:
         guide.speaker.close()

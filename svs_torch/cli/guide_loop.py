@@ -34,7 +34,8 @@ from ..pipeline import PipelineStatus, result_along_floor
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GUIDE_STOPPED",
+           "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -42,6 +43,10 @@ _CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
+#: Said when guide ends on an error (a camera that never answered, one lost for --give-up-s): the error line is on a
+#: screen the walker does not see, and the silence after it read as a clear way (after "Camera lost. No warnings
+#: until it is back.", a promise of more).
+GUIDE_STOPPED = "Guide stopped. No more warnings."
 #: Said once when the boards answer in the wrong stereo roles (the left URL reaches the slave): every disparity,
 #: so every distance, is then wrong, and a printed warning is not read by a walker who cannot see the screen.
 CAMERAS_SWAPPED = "Check the cameras: they do not answer as left and right. Distances may be wrong."

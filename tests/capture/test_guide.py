@@ -759,3 +759,22 @@ def test_a_warning_held_by_the_hysteresis_beyond_the_band_is_not_said_after_a_st
     assert policy.update(0.9, 0.0) == "Stop. Obstacle at 0.9 metres"
     assert [policy.update(2.08, t) for t in (1.0, 3.1, 6.5)] == [None, None, None] and policy.current == WARN
     assert policy.update(1.5, 7.0) == "Obstacle ahead, 1.5 metres"  # back inside the band: said
+
+
+def test_guide_says_aloud_that_it_stopped_on_an_error(capsys):
+    """A camera that never answered (here: links refused) ended guide with an error line only, on a screen the
+    walker does not see, and the silence after it read as a clear way: it is said as a warning is."""
+    import socket
+
+    from svs_torch.cli import main
+    from svs_torch.cli.guide_loop import GUIDE_STOPPED
+
+    ports = []
+    for _ in range(2):  # two ports nothing listens on
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            ports.append(probe.getsockname()[1])
+    assert main(["guide", "--left", f"socket://127.0.0.1:{ports[0]}", "--right", f"socket://127.0.0.1:{ports[1]}",
+                 "--timeout", "0.2", "--retries", "0", "--no-speech"]) == 1
+    out, err = capsys.readouterr()
+    assert out.splitlines() == [GUIDE_STOPPED] and "svs-depth guide: error: left camera" in err
