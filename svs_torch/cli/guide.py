@@ -142,8 +142,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def _add_warning_options(parser: argparse.ArgumentParser) -> None:
     """The warning rule's options (``svs_torch.capture.guide.WarningPolicy``)."""
     parser.add_argument("--near-m", type=non_negative_float, default=1.0,
-                        help="warning band start, metres (default: 1.0)")
-    parser.add_argument("--far-m", type=positive_float, default=2.0, help="warning band end, metres (default: 2.0)")
+                        help="warning band start, metres; nearer is said urgently, \"Stop. Obstacle at 0.9 "
+                             "metres\" (default: 1.0)")
+    parser.add_argument("--far-m", type=positive_float, default=2.0,
+                        help="warning band end, metres; farther is not said (default: 2.0)")
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
                         help="seconds before the same warning repeats; one still being spoken is let finish, "
                              "not restarted (default: 3)")

@@ -48,8 +48,10 @@ CAMERA_BACK = "Camera back."
 #: until it is back.", a promise of more).
 GUIDE_STOPPED = "Guide stopped. No more warnings."
 #: Said once when the boards answer in the wrong stereo roles (the left URL reaches the slave): every disparity,
-#: so every distance, is then wrong, and a printed warning is not read by a walker who cannot see the screen.
-CAMERAS_SWAPPED = "Check the cameras: they do not answer as left and right. Distances may be wrong."
+#: so every distance, is then wrong, and a printed warning is not read by a walker who cannot see the screen. Short:
+#: the 15 words it had take about 5 s at 170 words a minute, and with the URLs swapped "Cannot see ahead" comes
+#: 2 s after it and cuts it off (an audit); the printed warning says what to check.
+CAMERAS_SWAPPED = "Check the cameras. Distances may be wrong."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
 
