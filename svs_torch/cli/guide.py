@@ -211,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
         _stopped(status_line, log, session.stopped_text(), 141)
         raise
     except (CaptureError, OSError) as error:
+        status_line.close()  # (its last line before the words, in a log too)
         guide.speaker.say(GUIDE_STOPPED)  # spoken too: the walker does not read the error, and silence means clear
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
     finally:
