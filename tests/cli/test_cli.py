@@ -727,6 +727,28 @@ def test_guide_nearer_elsewhere_option(capsys):
         assert f"--nearer-elsewhere-m: expected metres >= 0 or 'off', got '{bad}'" in capsys.readouterr().err
 
 
+def test_guide_words_per_minute_reaches_the_speech_program(capsys, monkeypatch, tmp_path):
+    """A walker at 1.4 m/s covers 3.9 m while "Obstacle on the left, 1.5 metres" is said at the fixed 170 words a
+    minute, and users of screen readers often listen at twice that (an audit of what a walker hears): the rate is
+    --words-per-minute, espeak-ng's -s, within its 80-450; the default stays 170."""
+    import stat
+
+    from svs_torch.cli import build_parser
+
+    assert build_parser().parse_args(["guide", "--emulator"]).words_per_minute == 170
+    for bad in ("79", "451", "2.5", "fast"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["guide", "--emulator", "--words-per-minute", bad])
+        assert "--words-per-minute" in capsys.readouterr().err
+    record, fake = tmp_path / "spoken.txt", tmp_path / "espeak-ng"
+    fake.write_text(f"#!{sys.executable}\nimport sys\nopen({str(record)!r}, 'a').write(sys.argv[2] + '\\n')\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    monkeypatch.setattr("shutil.which", lambda name: str(fake) if name == "espeak-ng" else None)
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "4", "--far-m", "5.0", "--words-per-minute", "320")
+    assert code == 0 and "bstacle" in out
+    assert set(record.read_text().split()) == {"320"}
+
+
 def test_guide_confirm_frames_option():
     """--confirm-frames defaults to the warning rule's own CONFIRM_FRAMES (written out in the parser, which must not
     import torch) and takes a whole number of pairs >= 1."""
