@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -44,6 +45,9 @@ from .network import (ObstacleNet, ObstacleNetConfig, _disparity_levels, check_f
 from .network_files import SHIPPED_WEIGHTS, cached_obstacle_net, load_obstacle_net, save_obstacle_net
 from .segment import SegmentationConfig, _status, keep_largest_regions
 from .threshold import gray_histogram, gray_levels_and_histogram, otsu_threshold_level
+
+if TYPE_CHECKING:  # (nearness imports this module)
+    from .nearness import NearnessNet
 
 __all__ = [
     "ObstacleNet", "ObstacleNetConfig", "ObstacleTruth", "SHIPPED_WEIGHTS", "SoftObjectDepths", "cached_obstacle_net",
@@ -154,7 +158,7 @@ def segment_learned(image: torch.Tensor, logits: torch.Tensor, config: Segmentat
 
 
 def segment_stereo_learned(batch: StereoBatch, config: SegmentationConfig = SegmentationConfig(segmenter="learned"),
-                           net: ObstacleNet | None = None, left_logits: torch.Tensor | None = None
+                           net: ObstacleNet | NearnessNet | None = None, left_logits: torch.Tensor | None = None
                            ) -> StereoSegmentation:
     """Segment both views of every pair with the network: the drop-in for
     :func:`~svs_torch.segmentation.segment_stereo` (same structure, same ``config`` fields).

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -16,6 +17,9 @@ from ..core.checks import InputError, check_image
 from ..depth.soft_dense import soft_block_match
 from .ground_plane import GroundPlaneConfig
 from .threshold import gray_histogram, gray_levels, otsu_threshold_level
+
+if TYPE_CHECKING:  # (nearness imports this module)
+    from .nearness import NearnessNet
 
 __all__ = ["NUM_FEATURES", "ObstacleNet", "ObstacleNetConfig", "ThreeLevelUNet", "check_finite_logits",
            "predict_obstacle_logits", "stereo_features"]
@@ -176,7 +180,7 @@ def check_finite_logits(logits: torch.Tensor, name: str) -> None:
                          f"{bad.nonzero().flatten().tolist()} (a diverged or corrupted network?)")
 
 
-def predict_obstacle_logits(net: ObstacleNet, left: torch.Tensor, right: torch.Tensor,
+def predict_obstacle_logits(net: ObstacleNet | NearnessNet, left: torch.Tensor, right: torch.Tensor,
                             ground: GroundPlaneConfig | None = None,
                             baseline_m: torch.Tensor | None = None, focal_px: torch.Tensor | None = None,
                             camera_frames: bool = False) -> torch.Tensor:

@@ -17,9 +17,10 @@ __all__ = ["canonical_bool", "check_boxes", "check_counts", "check_image_hw", "c
            "check_positive_hw", "check_rows", "settings_table"]
 
 
-def check_rows(tensor: torch.Tensor, name: str, rows: int, *tail: int | str, kinds: str = "int") -> torch.Tensor:
+def check_rows(tensor: torch.Tensor, name: str, rows: int | str, *tail: int | str, kinds: str = "int"
+               ) -> torch.Tensor:
     """``tensor`` as ``(rows, *tail)`` of dtype family ``kinds`` (exactly one row per pair), e.g.
-    ``image_hw: expected (4, 2), got (1, 2)``."""
+    ``image_hw: expected (4, 2), got (1, 2)``; ``rows`` a letter (``"B"``) takes the first size as the B."""
     check_shape(tensor, name, [rows, *tail])
     check_dtype(tensor, name, kinds)
     return tensor
