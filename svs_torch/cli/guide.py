@@ -31,7 +31,8 @@ distance and the nearest obstacle's side. The floor (the road) ahead, which a wa
 as its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
 obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
 
-Silence means nothing is near, never that nothing was measured: when no pair could be ranged for --blind-s
+Silence means nothing is near, never that nothing was measured (nor a guide still starting: "Guide ready" is
+said once, when the camera first answers): when no pair could be ranged for --blind-s
 seconds (a covered lens, the dark, a link that froze, or pairs whose two frames came more than 0.25 s apart,
 which are not ranged: the walker moved between them), "Cannot see ahead" is said, and "Seeing ahead again" when
 one is. A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened

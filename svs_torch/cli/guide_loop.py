@@ -34,8 +34,8 @@ from ..pipeline import PipelineStatus, result_along_floor
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GUIDE_STOPPED",
-           "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GUIDE_READY",
+           "GUIDE_STOPPED", "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -43,6 +43,10 @@ _CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
+#: Said once, when the camera first answers: the warm-up and the camera's opening take seconds, and with a clear way
+#: nothing was said after them, so the walker could not tell a guide that sees nothing near from one still starting
+#: (an audit of what a walker hears).
+GUIDE_READY = "Guide ready."
 #: Said when guide ends on an error (a camera that never answered, one lost for --give-up-s): the error line is on a
 #: screen the walker does not see, and the silence after it read as a clear way (after "Camera lost. No warnings
 #: until it is back.", a promise of more).
@@ -137,6 +141,8 @@ class GuideSession:
                         raise
                     lost = error
                 else:
+                    if not self.opened:  # silence from here means a clear way, not a guide still starting
+                        self.guide.speaker.say(GUIDE_READY)
                     self.opened = True
                     self.log.open()  # only once a camera answered: a refused one leaves no folder
                     self._check_roles(camera)

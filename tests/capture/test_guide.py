@@ -416,7 +416,8 @@ def test_guide_prints_warnings_above_its_status_line(monkeypatch):
     assert "warning: a library warning while ranging" in screen
     status = [line for line in screen if "fps" in line]
     assert status and all(re.fullmatch(r"\s*[\d.]+ fps  nearest (none|[\d.]+ m)  \w+  \w+", line) for line in status)
-    assert all(line.startswith(("svs-depth: emulator on", "warning: ", "Obstacle", "Stop", "guide stopped"))
+    assert all(line.startswith(("svs-depth: emulator on", "Guide ready.", "warning: ", "Obstacle", "Stop",
+                                "guide stopped"))
                for line in screen if "fps" not in line), screen
 
 

@@ -657,6 +657,19 @@ def test_guide_runs_live_against_the_emulator(capsys):
     assert "Obstacle" in out or "obstacle" in out
 
 
+def test_guide_says_once_that_it_is_ready_when_the_camera_first_answers(capsys):
+    """Was: the warm-up and the camera's opening took seconds, and with the way clear nothing was said after them:
+    a walker could not tell a guide that sees nothing near from one still starting (an audit of what a walker
+    hears). Now "Guide ready." is said once, when the camera first answers, before any warning."""
+    from svs_torch.cli.guide_loop import GUIDE_READY
+
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--near-m", "0.2",
+                             "--far-m", "0.5")
+    assert code == 0 and out.splitlines() == [GUIDE_READY]
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--far-m", "5.0")
+    assert code == 0 and out.splitlines()[0] == GUIDE_READY and out.count(GUIDE_READY) == 1 and "bstacle" in out
+
+
 def test_guide_warns_on_a_noisy_emulator(capsys):
     """The emulator's boards with σ 8 sensor noise each, JPEG at the worst digit 8: the guide still ranges the
     obstacles and speaks; a negative σ is refused."""
@@ -940,7 +953,7 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
     guide_loop.GuideSession(args, (320, 240), lambda batch: blank, guide, StatusLine(None),
                             guide_loop.GuideLog(None, None)).run()
-    assert said == [CANNOT_SEE, guide_loop.CAMERA_LOST, guide_loop.CAMERA_BACK, CANNOT_SEE]
+    assert said == [guide_loop.GUIDE_READY, CANNOT_SEE, guide_loop.CAMERA_LOST, guide_loop.CAMERA_BACK, CANNOT_SEE]
 
 
 def test_guide_sees_a_view_of_floor_only():
@@ -1015,7 +1028,7 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
     session = guide_loop.GuideSession(args, (320, 240), ranged.append, guide, StatusLine(None), log)
     session.run()
-    assert said == [CANNOT_SEE] and ranged == []
+    assert said == [guide_loop.GUIDE_READY, CANNOT_SEE] and ranged == []
     assert ("frames_apart" in events) == (stream == "torn pairs") and "cannot_see" in events
     # the last line says none of the pairs taken was ranged (it said "guide stopped after N pairs" alone)
     torn = f" (0 ranged; {session.processed} not: their two frames came too far apart)"
