@@ -87,3 +87,41 @@ def seven_by_seven_nearness():
     from svs_torch.segmentation.nearness import NearnessNet, NearnessNetConfig
 
     return NearnessNet(NearnessNetConfig(noisy_window_size=7)).eval()
+
+
+@pytest.fixture
+def refuse_creating_in(monkeypatch):
+    """``refuse(folder, code, reason)``: ``os.open`` (as ``svs_torch.core.files`` calls it) refusing to create files
+    in ``folder`` with that OSError, as a read-only mount does, whoever runs the test (root writes anywhere)."""
+    from svs_torch.core import files
+
+    real_open = os.open
+
+    def refuse(folder: Path, code: int = 13, reason: str = "Permission denied") -> None:
+        def refusing_open(path, flags, *args, **kwargs):
+            if Path(path).parent == folder and flags & os.O_CREAT:
+                raise OSError(code, reason, str(path))
+            return real_open(path, flags, *args, **kwargs)
+
+        monkeypatch.setattr(files.os, "open", refusing_open)
+
+    return refuse
+
+
+@pytest.fixture
+def store_folder_not_writable(monkeypatch):
+    """``refuse()``: from then on the results store's ``sqlite3.connect`` fails as in a folder this user cannot
+    write, but for a read as an immutable file (its shared-memory file cannot be made there; root writes anywhere,
+    so it is simulated)."""
+    import sqlite3
+
+    from svs_torch.evaluation import store as store_module
+
+    connect = sqlite3.connect
+
+    def read_only_folder(database, *args, **kwargs):
+        if "immutable=1" not in str(database):
+            raise sqlite3.OperationalError("unable to open database file")
+        return connect(database, *args, **kwargs)
+
+    return lambda: monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import re
 import stat
 import subprocess
 import sys
@@ -18,7 +17,6 @@ import numpy as np
 import pytest
 from real_images import PAIRS
 
-import svs_torch.core.files as files
 from svs_torch import InputError
 from svs_torch.cli import main
 from svs_torch.core.files import check_writable_folder
@@ -58,25 +56,13 @@ def test_the_options_work_with_the_otsu_segmenter(data_dir, capsys):
     assert code == 0 and json.loads(dark)["left"] != json.loads(bright)["left"]
 
 
-def _blocking(monkeypatch, blocked: Path) -> None:
-    """``os.open`` refusing to create files in ``blocked`` (as a read-only mount does, whoever runs the test)."""
-    real_open = os.open
-
-    def fake_open(path, flags, *args, **kwargs):
-        if Path(path).parent == blocked and flags & os.O_CREAT:
-            raise PermissionError(13, "Permission denied", str(path))
-        return real_open(path, flags, *args, **kwargs)
-
-    monkeypatch.setattr(files.os, "open", fake_open)
-
-
 def test_an_output_that_cannot_be_written_stops_the_run_before_anything_is_written(data_dir, capsys, tmp_path,
-                                                                                   monkeypatch):
+                                                                                   refuse_creating_in):
     """Every output is tried before the pipeline runs: a figure is not left behind when the masks' folder
     refuses files (it used to be written, then the run failed on the masks and printed no result)."""
     blocked = tmp_path / "read-only"
     blocked.mkdir()
-    _blocking(monkeypatch, blocked)
+    refuse_creating_in(blocked)
     left, right = (str(data_dir / p) for p in TEDDY)
     code, out, err = run_cli(capsys, "estimate", left, right, "--figure", str(tmp_path / "fig.png"),
                              "--masks-out", str(blocked / "masks.png"), "--json")

@@ -114,49 +114,33 @@ def test_a_store_on_a_file_system_without_locks_is_not_said_to_be_held(tmp_path,
         second.claim_for_a_sweep(["a"])
 
 
-def test_a_link_to_a_store_in_a_folder_that_takes_no_files_names_that_folder(tmp_path, monkeypatch):
+def test_a_link_to_a_store_in_a_folder_that_takes_no_files_names_that_folder(tmp_path, refuse_creating_in):
     """Found by an audit: --db a link (in a writable folder) to a store on a read-only share was "db: LINK is not
     a results store (unable to open database file)": SQLite keeps its journal beside the link's target. (The
     read-only folder is simulated: root writes anywhere.)"""
-    from svs_torch.core import files
-
     share = tmp_path / "share"
     share.mkdir()
     ResultStore(share / "store.sqlite").close()
     link = tmp_path / "store.sqlite"
     link.symlink_to(share / "store.sqlite")
-    real_open = os.open
-
-    def read_only_share(path, flags, *args, **kwargs):
-        if Path(path).parent == share and flags & os.O_CREAT:
-            raise OSError(30, "Read-only file system", str(path))
-        return real_open(path, flags, *args, **kwargs)
-
-    monkeypatch.setattr(files.os, "open", read_only_share)
+    refuse_creating_in(share, 30, "Read-only file system")
     with pytest.raises(InputError, match=rf"^db: cannot write in folder '{share}' \(Read-only file system\)$"):
         ResultStore(link)
     with ResultStore(link, create=False) as store:  # read, it is as it was
         assert store.configs() == []
 
 
-def test_a_store_being_written_read_from_a_folder_that_takes_no_files_says_why(tmp_path, monkeypatch, capsys):
+def test_a_store_being_written_read_from_a_folder_that_takes_no_files_says_why(tmp_path, capsys,
+                                                                                store_folder_not_writable):
     """Found by an audit: a store with rows still in its -wal file (a colleague's sweep writing it on a share)
     read from a folder this user cannot write was "db: FILE is not a results store (unable to open database
     file)". (The refusal is simulated, as in test_sweep's read of a cleanly closed store: root writes anywhere.)"""
     from svs_torch.cli import main
-    from svs_torch.evaluation import store as store_module
 
     db = tmp_path / "shared.sqlite"
     ResultStore(db).close()
     Path(f"{db}-wal").write_bytes(b"")  # a writer's rows not yet in the file
-    connect = sqlite3.connect
-
-    def read_only_folder(database, *args, **kwargs):
-        if "immutable=1" not in str(database):
-            raise sqlite3.OperationalError("unable to open database file")
-        return connect(database, *args, **kwargs)
-
-    monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)
+    store_folder_not_writable()
     assert main(["results", str(db)]) == 2
     assert capsys.readouterr().err.strip().endswith(
         f"error: db: cannot read {db} from here yet: rows are still in shared.sqlite-wal (a sweep writing it, or "

@@ -299,22 +299,14 @@ def test_results_leave_other_files_alone_and_sweeps_refuse_them(reference, data_
     assert before[other] == hashlib.sha256(other.read_bytes()).hexdigest()
 
 
-def test_results_read_a_store_in_a_folder_they_cannot_write(reference, monkeypatch, capsys):
+def test_results_read_a_store_in_a_folder_they_cannot_write(reference, monkeypatch, capsys,
+                                                            store_folder_not_writable):
     """Found by an audit of the results store: a WAL store needs its folder writable even to be read (its
     shared-memory file), so a colleague's store on a read-only share was "not a results store (unable to open
     database file)". A store closed cleanly is then read as an immutable file (the refusal is simulated: root
     writes anywhere)."""
-    from svs_torch.evaluation import store as store_module
-
     _, db = reference
-    connect = sqlite3.connect
-
-    def read_only_folder(database, *args, **kwargs):
-        if "immutable=1" not in str(database):
-            raise sqlite3.OperationalError("unable to open database file")
-        return connect(database, *args, **kwargs)
-
-    monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)
+    store_folder_not_writable()
     assert main(["results", str(db), "--json"]) == 0
     assert len(json.loads(capsys.readouterr().out)["configs"]) == 3
     monkeypatch.undo()
