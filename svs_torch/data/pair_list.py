@@ -123,15 +123,15 @@ def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | t
     """(focal, baseline, doffs) from the numbers of a line, or a bad entry naming the first bad one."""
     names = ("FOCAL_PX", "BASELINE_M", "DOFFS_PX")
     values = []
-    for name, field in zip(names, fields):
+    for name, number in zip(names, fields):
         try:
-            value = float(field)
+            value = float(number)
         except ValueError:
             value = math.nan
         positive = name != "DOFFS_PX"
         if not math.isfinite(value) or (positive and value <= 0):
             need = "a finite positive number" if positive else "a finite number"
-            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {need}, got {field!r}")
+            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {need}, got {number!r}")
         values.append(value)
     if len(values) == 2:
         values.append(0.0)
