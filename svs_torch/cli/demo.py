@@ -137,8 +137,9 @@ def _print_text(args, camera: dict, truth: list[dict], report: dict, true_neares
     width, height = camera["image_size_wh"]
     print(f"synthetic SVS scene (seed {args.seed}): {width}x{height}, focal {camera['focal_px']} px, "
           f"baseline {camera['baseline_m'] * 100:.2f} cm")
-    for obj in truth:
-        print(f"  true obstacle {obj['object']}: {obj['depth_m']:.2f} m, box {obj['bbox_xyxy']}")
+    for obj in truth:  # hidden: narrower than a pixel at a tiny --size, it covers no pixel centre
+        where = f"box {obj['bbox_xyxy']}" if obj["visible"] else f"not visible (covers no pixel at {width}x{height})"
+        print(f"  true obstacle {obj['object']}: {obj['depth_m']:.2f} m, {where}")
     ranged_is_nearest = true_nearest is not None and true_nearest["ranged_is_nearest"]
     print("\n".join(format_report(report, "nearest obstacle" if ranged_is_nearest else "nearest kept obstacle")))
     for obj in report["objects"]:
@@ -154,8 +155,9 @@ def _print_text(args, camera: dict, truth: list[dict], report: dict, true_neares
         print("  true nearest obstacle: none (no obstacle is visible)")
     else:
         kept = f"kept as object {true_nearest['kept_label']}" if true_nearest["kept"] else "not kept"
-        print(f"  true nearest obstacle: true obstacle {true_nearest['object']} at {true_nearest['depth_m']:.2f} m, "
-              f"{kept}")
+        hidden = any(not obj["visible"] and obj["depth_m"] < true_nearest["depth_m"] for obj in truth)
+        print(f"  true nearest {'visible ' * hidden}obstacle: true obstacle {true_nearest['object']} at "
+              f"{true_nearest['depth_m']:.2f} m, {kept}")
         if true_nearest["warning"]:
             print(true_nearest["warning"])
     print(f"figure written to {args.figure}")
@@ -223,7 +225,8 @@ def run(args: argparse.Namespace) -> int:
                               "the SVS model: the synthetic scene's own camera")
     truth = [
         {"object": k + 1, "depth_m": round(float(scenes.object_depth_m[0, k]), 3),
-         "bbox_xyxy": [int(v) for v in scenes.object_bbox_xyxy[0, k].tolist()]}
+         "bbox_xyxy": [int(v) for v in scenes.object_bbox_xyxy[0, k].tolist()],
+         "visible": bool((scenes.object_ids[0, 0] == k + 1).any())}
         for k in range(scenes.object_depth_m.shape[1]) if bool(scenes.object_valid[0, k])
     ]
     for obj, match in zip(report["objects"], _truth_of_objects(scenes, result.segmentation.left)):

@@ -159,6 +159,18 @@ def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path):
     assert "is the background wall" in text and "true obstacle 0" not in text
 
 
+
+def test_demo_says_an_obstacle_under_a_pixel_is_not_visible(capsys, tmp_path):
+    # An audit: at 5x5 the two nearest of four obstacles fall between pixel centres; the text listed them with
+    # "box [0, 0, 0, 0]" and then named the 1.45 m one "true nearest obstacle" below a 1.00 m one.
+    report, text = run_demo(capsys, tmp_path, "--objects", "4", "--seed", "3", "--size", "5x5")
+    assert [t["visible"] for t in report["truth"]] == [False, False, True, True]
+    assert report["true_nearest"]["object"] == 3
+    assert "true obstacle 1: 1.00 m, not visible (covers no pixel at 5x5)" in text and "box [0, 0, 0, 0]" not in text
+    assert "true nearest visible obstacle: true obstacle 3 at 1.45 m, not kept" in text
+    report, text = run_demo(capsys, tmp_path, *KEPT_SCENE)  # every obstacle in view: the lines as they were
+    assert all(t["visible"] for t in report["truth"]) and "true nearest obstacle: true obstacle 1" in text
+
 @pytest.fixture(scope="module")
 def missed_scene():
     """The demo's known scene and Otsu's result on it (true obstacle 1 at 1.00 m not kept)."""
