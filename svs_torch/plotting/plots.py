@@ -146,13 +146,13 @@ def _objects_axis(ax, batch, result, index: int, width_in: float, area_scale: fl
 
 
 def _depth_axes(figure, grid, maps, width_in: float) -> None:
-    """The depth maps side by side on one colour scale (2nd to 98th percentile), one colour bar in metres."""
+    """The depth maps side by side on one colour scale (2nd to 98th percentile, 10 cm at least), a bar in metres."""
     import matplotlib
 
     colours = matplotlib.colormaps["turbo_r"].with_extremes(bad=NO_DEPTH_GRAY)
     finite = np.concatenate([m[np.isfinite(m)] for _, m in maps]) if maps else np.zeros(0)
     low, high = (float(v) for v in np.percentile(finite, [2, 98])) if finite.size else (0.0, 1.0)
-    high = max(high, low + 1e-3)
+    low, high = min(low, (low + high) / 2 - 0.05), max(high, (low + high) / 2 + 0.05)  # a lone wall: not 4-4.001 m
     axes, image = [], None
     for column, (title, depth) in enumerate(maps, start=1):
         ax = figure.add_subplot(grid[0, column])

@@ -20,6 +20,7 @@ from svs_torch.cli import main
 from svs_torch.core.errors import InputError
 from svs_torch.core.files import atomic_output, path_kind, write_bytes_atomic
 from svs_torch.data.synthetic import random_obstacle_scenes
+from svs_torch.pipeline import PipelineConfig
 from svs_torch.plotting.figures import (AREA_LABEL_ROWS, LABEL_PAD_POINTS, depth_label_y, labels_image,
                                         objects_panel, write_image_atomic)
 from svs_torch.plotting.plots import matches_figure, pipeline_figure, render
@@ -160,6 +161,16 @@ def test_pipeline_figure_without_ground_truth_has_no_truth_panel():
     assert "true" not in figure._suptitle.get_text()
     assert_every_text_inside(figure)
 
+
+
+def test_depth_colour_bar_of_a_lone_wall_spans_10_cm_around_it():
+    # An audit: `demo --objects 0 --preset paper` (a wall at 4 m, nothing else, no dense map) drew a bar from 4.000
+    # to 4.001 m, read as "+4" over ticks 0.0000-0.0008, with the wall at the bar's very end.
+    scenes = random_obstacle_scenes(1, 0, size_wh=(64, 48), generator=torch.Generator().manual_seed(0))
+    figure = pipeline_figure(scenes.batch, estimate_obstacle_depth(scenes.batch, PipelineConfig.paper()), 0)
+    bar = next(ax for ax in figure.axes if ax.get_ylabel() == "depth (m)")
+    low, high = sorted(bar.get_ylim())
+    assert high - low >= 0.1 - 1e-9 and low < 4.0 < high
 
 @pytest.mark.parametrize("size_hw", [(1, 1), (5, 5), (6, 64), (64, 6), (200, 20)])
 def test_pipeline_figure_titles_fit_at_any_aspect(size_hw):
