@@ -194,17 +194,13 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         import torch
 
-        from ..core.camera import parse_size
-        from ..core.checks import InputError
         from ..data.synthetic import random_obstacle_scenes
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from .estimate_report import format_report, pair_report, unranged_report, with_calibration
-        from .features import MAX_PIXELS
+        from .features import checked_size
 
-    width, height = parse_size(args.size, "--size")
-    if width * height > MAX_PIXELS:
-        raise InputError(f"--size: expected at most {MAX_PIXELS // 10**6} megapixels, got {args.size!r}")
+    width, height = checked_size(args.size)
     check_output_path(args.figure, args.figure_option)
     reason = too_small_reason((height, width))
     if reason:

@@ -236,12 +236,12 @@ def checked_size(text: str | None) -> tuple[int, int] | None:
 def check_native_pixels(size_hw: tuple[int, int], name: str = "left") -> None:
     """Refuse (:class:`~svs_torch.core.errors.InputError`) a pair of this (H, W) over :data:`MAX_PIXELS`, run at
     its own size."""
+    from ..core.camera import too_many_pixels
     from ..core.errors import InputError
 
-    height, width = size_hw
-    if height * width > MAX_PIXELS:
-        raise InputError(f"{name}: expected at most {MAX_PIXELS // 10**6} megapixels, got {width}x{height} "
-                         "(resample it with --size)")
+    reason = too_many_pixels(size_hw, MAX_PIXELS, name)
+    if reason:
+        raise InputError(reason)
 
 
 def to_input_pixels(xy, factors: tuple[float, float]) -> list[float]:

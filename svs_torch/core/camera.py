@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-__all__ = ["MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size"]
+__all__ = ["MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size", "too_many_pixels"]
 
 #: The frame sizes the SVS firmware can grab, keyed by the size code in its ``##IMJ`` header
 #: (SVS_PROTOCOL.md §3): ``'3'`` 160×120, ``'5'`` 320×240 (power-on default), ``'7'`` 640×480, ``'9'`` 1280×1024.
@@ -87,3 +87,12 @@ def parse_size(text: str, name: str = "size") -> tuple[int, int]:
     if max(width, height) > MAX_SIZE_PX:  # 100000x100000 stopped a whole eval run failing to allocate 40 GB
         raise InputError(f"{name}: expected a width and height of at most {MAX_SIZE_PX} px, got {text!r}")
     return width, height
+
+
+def too_many_pixels(size_hw: tuple[int, int], max_pixels: int, name: str = "left") -> str | None:
+    """Why a pair of this (H, W), run at its own size, is refused over ``max_pixels`` (None: it is not): the one
+    message of ``estimate``, ``estimate --pairs`` and ``eval`` (``svs_torch.cli.features.MAX_PIXELS``)."""
+    height, width = size_hw
+    if height * width <= max_pixels:
+        return None
+    return f"{name}: expected at most {max_pixels // 10**6} megapixels, got {width}x{height} (resample it with --size)"

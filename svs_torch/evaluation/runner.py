@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..core.camera import too_many_pixels
 from ..core.checks import InputError
 from ..core.size_groups import same_size_indices
 from ..core.types import StereoBatch
@@ -116,10 +117,10 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     height, width = batch.size_hw
     read = dict(calibrated=calibrated, calibration=calibration, name=batch.names[0] if batch.names else None,
                 has_truth=batch.disparity_px is not None and bool(batch.disparity_valid.any()))
-    if setup.size_wh is None and setup.max_pixels is not None and height * width > setup.max_pixels:
-        return LoadedPair(source, None, "BAD_INPUT", f"left: expected at most {setup.max_pixels // 10**6} "
-                                                     f"megapixels, got {width}x{height} (resample it with --size)",
-                          **read)
+    too_many = None if setup.size_wh is not None or setup.max_pixels is None else too_many_pixels(
+        (height, width), setup.max_pixels)
+    if too_many:
+        return LoadedPair(source, None, "BAD_INPUT", too_many, **read)
     if min(height, width) < MIN_SIDE_PX:
         return LoadedPair(source, None, "TOO_SMALL", f"image {width}x{height} is smaller than "
                                                      f"{MIN_SIDE_PX}x{MIN_SIDE_PX} pixels", **read)
