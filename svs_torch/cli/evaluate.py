@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
         from ..data import read_pair_sources
         from ..data.pair_list import unique_sources
         from ..core.errors import InputError
-        from ..evaluation import EvalSetup, summarize
+        from ..evaluation import EvalSetup
         from ..evaluation.overrides import config_to_dict, resolve_config
 
     resolve_export_options(args)
@@ -295,19 +295,20 @@ def run(args: argparse.Namespace) -> int:
         _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations)
     except (KeyboardInterrupt, Terminated):
         if evaluations:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
-            _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), ran,
-                           len(sources))
+            _print_summary(args, evaluations, started, ran, len(sources))
         raise
-    _print_summary(args, evaluations, summarize(evaluations, time.perf_counter() - started), ran)
+    _print_summary(args, evaluations, started, ran)
     return 0
 
 
-def _print_summary(args: argparse.Namespace, evaluations: list, summary: dict, ran: dict, listed: int | None = None
+def _print_summary(args: argparse.Namespace, evaluations: list, started: float, ran: dict, listed: int | None = None
                    ) -> None:
-    """The summary, last on stdout; in JSON with ``ran`` (preset, overrides, size, config). Given ``listed`` (an
-    interrupted run), it is of the pairs done, and says so: ``interrupted`` and ``pairs_listed`` in JSON, a first
-    line in text. Was: an interrupted ``--json`` run ended without its summary line, and a script reading the last
-    line took a pair's row for it."""
+    """The summary of ``evaluations`` (begun at ``started``, a perf_counter), last on stdout, in JSON with ``ran``
+    (preset, overrides, size, config). With ``listed`` (interrupted), of the pairs done, said so: ``interrupted`` and
+    ``pairs_listed`` in JSON, a first line in text (an interrupted --json run ended on a pair's row)."""
+    from ..evaluation import summarize
+
+    summary = summarize(evaluations, time.perf_counter() - started)
     if listed is not None:
         summary = {**summary, "interrupted": True, "pairs_listed": listed}
     if args.json:
@@ -323,9 +324,8 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
                   ) -> None:
     """Evaluate ``sources`` batch by batch into ``evaluations``, each row printed as it comes and each batch's rows
     committed to the ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed after.
-    Interrupted
-    (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell whether the
-    store kept the rows of the pairs done (an audit of interrupts)."""
+    Interrupted (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell
+    whether the store kept the rows of the pairs done (an audit of interrupts)."""
     from dataclasses import asdict
 
     from ..evaluation import evaluate_pairs
