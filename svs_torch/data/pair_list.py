@@ -307,8 +307,8 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
     for path in map(Path, paths):
         kind = path_kind(path, name)
         if kind == "folder":
-            if unreadable_reason(path):  # ("Permission denied: PATH/middlebury_eval3_Q", naming no argument)
-                raise InputError(f"{name}: cannot read the folder {path} ({unreadable_reason(path)})")
+            if reason := unreadable_reason(path):  # ("Permission denied: PATH/middlebury_eval3_Q", naming no argument)
+                raise InputError(f"{name}: cannot read the folder {path} ({reason})")
             found = _scenes_in(path)
             if not found:
                 raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "
