@@ -34,6 +34,8 @@ SQLITE_READONLY, SQLITE_CANTOPEN = 8, 14
 _CLAIMS_START = 1 << 40
 #: The byte held while a sweep takes its claims, so that two sweeps starting at once do not each take a part.
 _CLAIMING_BYTE = _CLAIMS_START - 1
+#: ``struct flock`` on 64-bit Linux: l_type, l_whence (short), l_start, l_len (off_t), l_pid (pid_t), padding.
+_FLOCK = "hhqqi4x"
 
 
 def _byte_of(config_id: str) -> int:
@@ -41,10 +43,10 @@ def _byte_of(config_id: str) -> int:
 
 
 def _lock(fcntl, handle: IO, command: int, offset: int, kind: int) -> bool:
-    """An open-file-description lock of one byte (``struct flock``: short, short, off_t, off_t, pid_t, the pid
-    0); False where another handle holds it. A file system that takes no locks (``ENOLCK``, ``EINVAL``: some
-    network or FUSE mounts) holds nothing and refuses nothing: it was "another sweep is writing" with none."""
-    request = struct.pack("hhqqi4x", kind, 0, offset, 1, 0)
+    """An open-file-description lock of one byte (:data:`_FLOCK`, the pid 0); False where another handle holds
+    it. A file system that takes no locks (``ENOLCK``, ``EINVAL``: some network or FUSE mounts) holds nothing and
+    refuses nothing: it was "another sweep is writing" with none."""
+    request = struct.pack(_FLOCK, kind, 0, offset, 1, 0)
     try:
         fcntl.fcntl(handle.fileno(), command, request)
     except OSError as error:
@@ -101,11 +103,11 @@ def sweep_is_writing(path: str | Path) -> bool:
         return False
     try:
         with open(path, "rb") as handle:
-            answer = fcntl.fcntl(handle.fileno(), command, struct.pack("hhqqi4x", fcntl.F_RDLCK, 0, _CLAIMS_START,
+            answer = fcntl.fcntl(handle.fileno(), command, struct.pack(_FLOCK, fcntl.F_RDLCK, 0, _CLAIMS_START,
                                                                        1 << 41, 0))
     except OSError:
         return False
-    return struct.unpack("hhqqi4x", answer)[0] != fcntl.F_UNLCK
+    return struct.unpack(_FLOCK, answer)[0] != fcntl.F_UNLCK
 
 
 def read_only_error(path: Path) -> InputError:
