@@ -37,10 +37,10 @@ seconds (a covered lens, the dark, a link that froze, or pairs whose two frames 
 which are not ranged: the walker moved between them), "Cannot see ahead" is said, and "Seeing ahead again" when
 one is. A camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened
 again every --reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends
-guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set, and "Guide stopped. No more
-warnings." is said. Boards that answer in the
-wrong stereo roles (--left reaches the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as
-every distance is then wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
+guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set. Whatever ends it (an error,
+--count, Ctrl-C, a service's stop), "Guide stopped. No more warnings." is said. Boards that answer in the wrong
+stereo roles (--left reaches the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as every
+distance is then wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair
@@ -197,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         from ..capture.link_types import CaptureError
         from .pairs_folder import new_pairs_folder
         from .guide_log import GuideLog
-        from .guide_loop import GUIDE_STOPPED, GuideSession
+        from .guide_loop import GuideSession
         from .guide_warm_up import import_deferred_modules, warm_up
 
         size = _checked_size(args)
@@ -226,20 +226,19 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(log.close)  # the pairs recorded so far stay listed, whatever stops the loop
             stack.enter_context(terminated_on_sigterm())  # main's too: here the summary is said first
             session.run()
+        return _stopped(status_line, log, session.stopped_text(), 0, guide.speaker)  # (before the speaker closes)
     except Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
-        return _stopped(status_line, log, session.stopped_text(), 143)
+        return _stopped(status_line, log, session.stopped_text(), 143, guide.speaker)
     except KeyboardInterrupt:
-        return _stopped(status_line, log, session.stopped_text(), 130)
+        return _stopped(status_line, log, session.stopped_text(), 130, guide.speaker)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
         _stopped(status_line, log, session.stopped_text(), 141)
         raise
     except (CaptureError, OSError) as error:
-        status_line.close()  # (its last line before the words, in a log too)
-        guide.speaker.say(GUIDE_STOPPED)  # spoken too: the walker does not read the error, and silence means clear
-        return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1)
+        return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1,
+                        guide.speaker)
     finally:
         guide.speaker.close()
-    return _stopped(status_line, log, session.stopped_text(), 0)
 
 
 def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
@@ -287,9 +286,19 @@ def camera_pitch_deg(text: str) -> float:
     return value
 
 
-def _stopped(status_line, log, text: str, code: int) -> int:
-    """End the status line, then say ``text`` and what was recorded on stderr; returns ``code``."""
-    status_line.close()
+def _stopped(status_line, log, text: str, code: int, speaker=None) -> int:
+    """End the status line, say :data:`~.guide_loop.GUIDE_STOPPED` with ``speaker``, then print ``text`` and what
+    was recorded on stderr; returns ``code``.
+
+    Spoken at every end, not only an error's: the walker does not read the screen, and the silence after a guide
+    that ended (``--count`` reached, Ctrl-C, a service's stop: a battery running low, a system update) read as a
+    clear way, as after an error it did (an audit of what a walker hears). Not on a broken pipe: the words'
+    stream is what broke."""
+    status_line.close()  # (its last line before the words, in a log too)
+    if speaker is not None:
+        from .guide_loop import GUIDE_STOPPED
+
+        speaker.say(GUIDE_STOPPED)
     print(text, file=sys.stderr)
     if (summary := log.summary()) is not None:
         print(summary, file=sys.stderr)

@@ -417,7 +417,7 @@ def test_guide_prints_warnings_above_its_status_line(monkeypatch):
     status = [line for line in screen if "fps" in line]
     assert status and all(re.fullmatch(r"\s*[\d.]+ fps  nearest (none|[\d.]+ m)  \w+  \w+", line) for line in status)
     assert all(line.startswith(("svs-depth: emulator on", "Guide ready.", "warning: ", "Obstacle", "Stop",
-                                "guide stopped"))
+                                "Guide stopped.", "guide stopped"))
                for line in screen if "fps" not in line), screen
 
 

@@ -661,13 +661,38 @@ def test_guide_says_once_that_it_is_ready_when_the_camera_first_answers(capsys):
     """Was: the warm-up and the camera's opening took seconds, and with the way clear nothing was said after them:
     a walker could not tell a guide that sees nothing near from one still starting (an audit of what a walker
     hears). Now "Guide ready." is said once, when the camera first answers, before any warning."""
-    from svs_torch.cli.guide_loop import GUIDE_READY
+    from svs_torch.cli.guide_loop import GUIDE_READY, GUIDE_STOPPED
 
     code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--near-m", "0.2",
                              "--far-m", "0.5")
-    assert code == 0 and out.splitlines() == [GUIDE_READY]
+    assert code == 0 and out.splitlines() == [GUIDE_READY, GUIDE_STOPPED]
     code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--far-m", "5.0")
     assert code == 0 and out.splitlines()[0] == GUIDE_READY and out.count(GUIDE_READY) == 1 and "bstacle" in out
+
+
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143)])
+def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop, code):
+    """Was: "Guide stopped. No more warnings." was said only when guide ended on an error; ended by Ctrl-C, by a
+    service's stop (SIGTERM: a battery running low, a system update) or by --count, it fell silent, and a walker who
+    does not read the screen took the silence for a clear way (an audit of what a walker hears). Now every end says
+    it, after the warnings (--count's: the test above)."""
+    from svs_torch.cli import guide_loop
+    from svs_torch.cli.common import Terminated
+
+    real = guide_loop.GuideSession._range
+    ranged = []
+
+    def range_then_stop(session, item):
+        if ranged:  # the second pair: stopped as it comes
+            raise KeyboardInterrupt if stop is KeyboardInterrupt else Terminated()
+        ranged.append(real(session, item))
+
+    monkeypatch.setattr(guide_loop.GuideSession, "_range", range_then_stop)
+    result, out, err = run_cli(capsys, "guide", "--emulator", "--no-speech", "--far-m", "5.0")
+    lines = out.splitlines()
+    assert result == code and lines[0] == guide_loop.GUIDE_READY and len(lines) >= 2
+    assert lines[-1] == guide_loop.GUIDE_STOPPED and lines.count(guide_loop.GUIDE_STOPPED) == 1
+    assert "guide stopped after 1 pairs" in err
 
 
 def test_guide_warns_on_a_noisy_emulator(capsys):
