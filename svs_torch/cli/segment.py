@@ -26,7 +26,7 @@ Prints, for the left and the right image, the threshold (Otsu's level, or the ne
 probability; in --json both as levels 0-255) and the kept objects in the order kept: area in pixels,
 bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in the pixels segmented: the input image's,
 or with --size the resampled pair's ("image_size_wh" in --json). The right view's regions are the left ones
-moved by their disparity under the nearness segmenter.
+moved by their disparity under the nearness segmenter (its region count: those that land in the right view).
 """
 
 EPILOG = """\
@@ -228,7 +228,9 @@ def image_report(seg, index: int) -> dict:
     return {
         "threshold": int(seg.threshold_level[index]),
         "status": SegmentationStatus(int(seg.status[index])).name,
-        "num_regions": int(seg.num_regions[index]),
+        # The regions in this view's labels: under the nearness segmenter the right's are only the left's kept ones
+        # moved there (its num_regions is the left's count, which the right's line printed as its own).
+        "num_regions": int((seg.regions.area_px[index] > 0).sum()),
         "objects": objects,
     }
 

@@ -119,6 +119,26 @@ def test_segment_shows_the_regions_estimate_keeps(data_dir, capsys):
     assert otsu["left"]["objects"] == json.loads(out)["left"]["objects"] != kept
 
 
+def test_segment_counts_the_regions_each_view_holds(data_dir, capsys):
+    """Was: under the nearness segmenter the right view's line said the left's region count (Piano: "right: ...,
+    5 regions" with one region in the right's labels: only the left's kept regions are moved there). Now each view
+    counts the regions of its own labels, checked with scikit-image on the library's label images."""
+    from argparse import Namespace
+
+    from skimage.measure import regionprops
+
+    from svs_torch.cli.features import load_pair
+    from svs_torch.pipeline import PipelineConfig, segment_pair
+
+    left, right = (str(data_dir / p) for p in PAIRS[1])  # Piano: 5 regions on the left, 1 kept
+    code, out, _ = run_cli(capsys, "segment", left, right, "--json")
+    report = json.loads(out)
+    seg = segment_pair(load_pair(left, right, Namespace(size=None))[0], PipelineConfig().segmentation)
+    for side, view in (("left", seg.left), ("right", seg.right)):
+        assert report[side]["num_regions"] == len(regionprops(view.labels[0, 0].numpy())), side
+    assert report["right"]["num_regions"] == len(report["right"]["objects"]) < report["left"]["num_regions"]
+
+
 def test_segment_text_and_figure(data_dir, capsys, tmp_path):
     left, right = (str(data_dir / p) for p in TEDDY)
     figure = tmp_path / "seg.png"
