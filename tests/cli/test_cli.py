@@ -670,6 +670,24 @@ def test_fundamental_json_satisfies_the_epipolar_constraint(data_dir, capsys):
     assert json.loads(again)["F"] == report["F"]
 
 
+def test_fundamental_help_says_which_pixels_its_threshold_is_in(data_dir, capsys):
+    """fundamental --help gave --threshold-px as "px" in a command whose F and inliers are in input pixels, but with
+    --size RANSAC judges the resampled pair: Piano (707x481) at --size 320x240 with --threshold-px 1 kept inliers
+    1.78 input px (Sampson) off F (an audit). The help now says whose pixels the threshold is in."""
+    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "fundamental", "--help"], capture_output=True,
+                            text=True, check=True)
+    text = " ".join(result.stdout.split())
+    assert "pixels of the pair RANSAC runs on: with --size the resampled pair's" in text
+    left, right = (str(data_dir / p) for p in PAIRS[1])
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--size", "320x240", "--threshold-px", "1", "--json")
+    report = json.loads(out)
+    F, points = np.array(report["F"]), np.array(report["inliers"])
+    xl, xr = np.c_[points[:, :2], np.ones(len(points))], np.c_[points[:, 2:], np.ones(len(points))]
+    lines, from_right = xl @ F.T, xr @ F
+    sampson = np.abs((xr * lines).sum(1)) / np.sqrt((lines[:, :2] ** 2).sum(1) + (from_right[:, :2] ** 2).sum(1))
+    assert 1.0 < sampson.max() <= 707 / 320 + 1e-3  # over 1 input px, within 1 px of the resampled pair
+
+
 def test_guide_runs_live_against_the_emulator(capsys):
     code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "4", "--no-speech", "--far-m", "5.0")
     assert code == 0 and "fps" in err and "guide stopped after 4 pairs" in err
