@@ -688,6 +688,27 @@ def test_fundamental_help_says_which_pixels_its_threshold_is_in(data_dir, capsys
     assert 1.0 < sampson.max() <= 707 / 320 + 1e-3  # over 1 input px, within 1 px of the resampled pair
 
 
+def test_fundamental_warns_when_its_inliers_do_not_determine_f(data_dir, capsys, tmp_path):
+    """A pair whose right view is the left one shifted by 12 px (a wall facing the camera) gave status OK, 478 of
+    478 inliers and an F whose epipolar lines stood at 68 degrees: every F = [e']x H fits matches that one
+    homography H relates, and nothing said so (an audit). Now the JSON gives the share of the inliers one
+    homography explains (as cv2.findHomography counts it) and the text warns from 0.9; a real pair reads far less."""
+    gray = cv2.imread(str(data_dir / TEDDY[0]), cv2.IMREAD_GRAYSCALE)
+    left, right = tmp_path / "left.png", tmp_path / "right.png"
+    cv2.imwrite(str(left), gray[:, 20:420])
+    cv2.imwrite(str(right), gray[:, 32:432])  # x_right = x_left - 12 everywhere
+    code, out, _ = run_cli(capsys, "fundamental", str(left), str(right), "--json")
+    report = json.loads(out)
+    assert code == 0 and report["num_inliers"] > 100
+    points = np.array(report["inliers"])
+    _, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, 1.0)
+    assert report["homography_share"] == pytest.approx(mask.mean(), abs=0.02) and report["homography_share"] > 0.95
+    code, out, _ = run_cli(capsys, "fundamental", str(left), str(right))
+    assert "of the inliers fit one homography" in out and "do not determine F" in out
+    code, out, _ = run_cli(capsys, "fundamental", *(str(data_dir / p) for p in TEDDY), "--json")
+    assert json.loads(out)["homography_share"] < 0.5
+
+
 def test_guide_runs_live_against_the_emulator(capsys):
     code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "4", "--no-speech", "--far-m", "5.0")
     assert code == 0 and "fps" in err and "guide stopped after 4 pairs" in err
