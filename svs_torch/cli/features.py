@@ -291,9 +291,10 @@ def run(args: argparse.Namespace) -> int:
     batch, factors = load_pair(args.left, args.right, args)
     config = command_config(args, batch.size_hw)  # (--upsample on a large pair warned of)
     reason = too_small_reason(batch.size_hw)
-    # Whether, and by which segmenter, the views were masked (the same in every JSON answer).
-    masked = {"segmented": not args.no_segment,
-              "segmenter": None if args.no_segment else config.segmentation.segmenter}
+    # What ran: refinement, masking (by which segmenter) and settings, in every JSON answer, TOO_SMALL's too.
+    masked = {"refined": config.refine_matches is not None, "segmented": not args.no_segment,
+              "segmenter": None if args.no_segment else config.segmentation.segmenter,
+              "settings": settings_json(config)}
     if reason:
         if args.json:
             print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
@@ -319,8 +320,7 @@ def run(args: argparse.Namespace) -> int:
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
         print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
-                            "refined": config.refine_matches is not None, **masked,
-                            "settings": settings_json(config), "time_s": round(elapsed, 6)}))
+                            **masked, "time_s": round(elapsed, 6)}))
         return 0
     # Said to be SAD matches: some are wrong (tens of pixels off the row), and nothing here has yet checked them
     # against the epipolar geometry (an audit read the first lines as the pipeline's result; svs-depth fundamental

@@ -61,6 +61,18 @@ def test_json_fields_and_settings(data_dir, capsys):
     assert len(capped["left"]) <= 200
 
 
+def test_a_too_small_answer_has_the_fields_of_an_ok_one(capsys, tmp_path):
+    """Was: a pair under 5x5 pixels answered without "refined" and "settings", which every other answer has, so a
+    script reading them met a KeyError on it (an audit). Now both answers have the same fields."""
+    path = tmp_path / "thin.png"
+    cv2.imwrite(str(path), np.full((3, 160), 90, np.uint8))
+    report = features_json(capsys, str(path), str(path))
+    assert report["status"] == "TOO_SMALL"
+    assert set(report) == {"status", "reason", "left", "right", "matches", "matched_xy", "refined", "segmented",
+                           "segmenter", "settings", "time_s"}
+    assert report["refined"] and report["settings"]["max_keypoints"] == MAX_KEYPOINTS
+
+
 def ground_truth_precision(matched: np.ndarray, disparity: np.ndarray) -> tuple[float, int]:
     """Share (and count) of matches within 1 px of the GT disparity in x and 1 px in y, among those with GT."""
     rows = np.clip(np.round(matched[:, 1]).astype(int), 0, disparity.shape[0] - 1)
