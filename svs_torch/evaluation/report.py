@@ -17,7 +17,7 @@ from typing import Any
 
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output
-from .metrics import PairEvaluation
+from .metrics import UNRUN_STATUSES, PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
@@ -202,16 +202,28 @@ def _value_that_ran(config: dict, key: str) -> Any:
     return value
 
 
+def _scene_name(row: dict, counted: bool) -> str:
+    """A per-scene bar's tick: the pair's name, marked where its bars are not a measured accuracy (failed: its
+    status, 0 % bars where it has ground truth; without: no bars, "no truth") or not in the headline means (a
+    nominal calibration: its data ship none)."""
+    marks = [row["status"]] if row["status"] != "OK" else []
+    marks += ["no truth"] if not counted and row["status"] not in UNRUN_STATUSES else []  # unread: truth unknown
+    marks += ["nominal"] if counted and row["calibrated"] == 0 else []
+    return row["name"] + (f" ({', '.join(marks)})" if marks else "")
+
+
 def _scene_bars(axis, store: ResultStore, summary: dict, tied: int = 0) -> None:
     rows = [r for r in store.results() if r["config_id"] == summary["config_id"]]
-    # A scene scored with a nominal calibration (none shipped) is not in the headline means: its bars say so.
-    names = [r["name"] + (" (nominal)" if r["calibrated"] == 0 else "") for r in rows]
+    # The summary's rules (runner.summarize): a pair without ground truth has no accuracy, and no bar (its 0 % bars
+    # read as a measured 0 and set the axis to 0-100, an audit); a failed pair with it counts 0 %, and says why.
+    scored = [r["acc_r_min_pct"] is not None or (bool(r["has_truth"]) and r["status"] != "OK") for r in rows]
+    names = [_scene_name(r, counted) for r, counted in zip(rows, scored)]
     width = 0.27
     everything = []
     for offset, (key, label) in enumerate((("acc_r_min_pct", "R_min"), ("acc_r_max_pct", "R_max"),
                                            ("acc_objects_pct", "objects"))):
-        values = [r[key] or 0.0 for r in rows]
-        everything += values
+        values = [(r[key] or 0.0) if counted else float("nan") for r, counted in zip(rows, scored)]
+        everything += [v for v in values if v == v] or [0.0]
         axis.bar([i + (offset - 1) * width for i in range(len(rows))], values, width, label=label)
     axis.set_xticks(range(len(rows)), names, rotation=60, ha="right", fontsize=7)
     # Zoomed to the data: on a 0-100 scale, 96 % and 99 % look the same. The label says the axis is cut.

@@ -745,6 +745,32 @@ def test_the_figure_says_a_tie_for_best_and_that_its_axes_are_zoomed(reference, 
         assert "tied" not in results_figure(store).axes[-1].get_title()
 
 
+def test_the_scene_bars_follow_the_summarys_rules_for_pairs_without_truth_and_failed_ones(reference, tmp_path):
+    """Found by an audit of the results' numbers: a pair without ground truth (a listed pair, in no mean of the
+    summary) was drawn as 0 % bars, read as a measured 0, and its zeros set the zoomed axis to 0-100."""
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "no_truth.sqlite"
+    with edited_copy(reference, db) as connection:
+        first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE results SET has_truth = 0, status = 'NO_DENSE_DEPTH', acc_r_min_pct = NULL, "
+                           "acc_r_max_pct = NULL, acc_objects_pct = NULL WHERE pair_id = ?", (first,))
+    with ResultStore(db) as store:
+        axis = results_figure(store).axes[-1]
+    ticks = [label.get_text() for label in axis.get_xticklabels()]
+    heights = np.array([[bar.get_height() for bar in bars] for bars in axis.containers])
+    assert sum(tick.endswith(" (NO_DENSE_DEPTH, no truth)") for tick in ticks) == 1
+    assert np.isnan(heights).sum() == 3 and np.nanmin(heights) > 50 and axis.get_ylim()[0] > 50
+    with edited_copy(reference, db) as connection:  # a failed pair with ground truth counts 0 %, and says why
+        connection.execute("UPDATE results SET status = 'ERROR', acc_r_min_pct = NULL, acc_r_max_pct = NULL, "
+                           "acc_objects_pct = NULL WHERE pair_id = ?", (first,))
+    with ResultStore(db) as store:
+        axis = results_figure(store).axes[-1]
+    assert sum(label.get_text().endswith(" (ERROR)") for label in axis.get_xticklabels()) == 1
+    assert sorted(bar.get_height() for bars in axis.containers for bar in bars)[:3] == [0.0] * 3
+
+
 def test_a_pool_left_by_ctrl_c_waits_for_nothing_and_leaves_no_process():
     """Found by an audit of sweeps: a first Ctrl-C or SIGTERM, often one that came while the pool was starting, left
     `sweep` hung until a second one (10 of 14 signals), in the orderly shutdown's waits for the workers and the
