@@ -94,7 +94,11 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     print("best by each metric:")
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1
-        print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}")
+        # An exact tie is said, as the figure's (an audit: the first stored of two equal configurations was named
+        # best alone, the other's equal value hidden by the rounding).
+        tied = sum(ranked_value(other, key) == ranked_value(s, key) for other in summaries) - 1
+        print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}"
+              + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
 
 
 def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[dict]:

@@ -745,6 +745,19 @@ def test_the_figure_says_a_tie_for_best_and_that_its_axes_are_zoomed(reference, 
         assert "tied" not in results_figure(store).axes[-1].get_title()
 
 
+def test_the_summarys_best_by_each_metric_says_an_exact_tie(reference, tmp_path, capsys):
+    """Found by an audit of the results' numbers: two configurations of the same means (a parameter the pipeline
+    did not use) were "best by each metric" the first stored alone, the other's equal value unsaid."""
+    db = tmp_path / "tied.sqlite"
+    with edited_copy(reference, db) as connection:
+        connection.execute("UPDATE results SET acc_objects_pct = 99.0 WHERE acc_objects_pct IS NOT NULL")
+    assert main(["results", str(db)]) == 0
+    lines = capsys.readouterr().out.split("best by each metric:")[1].splitlines()
+    line = next(line for line in lines if line.strip().startswith("Acc objects %"))
+    assert line.endswith("(tied with 2 others)")
+    assert not any("tied" in line for line in lines if line.strip().startswith("s per pair"))
+
+
 def test_the_scene_bars_follow_the_summarys_rules_for_pairs_without_truth_and_failed_ones(reference, tmp_path):
     """Found by an audit of the results' numbers: a pair without ground truth (a listed pair, in no mean of the
     summary) was drawn as 0 % bars, read as a measured 0, and its zeros set the zoomed axis to 0-100."""
