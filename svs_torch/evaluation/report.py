@@ -258,6 +258,9 @@ def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], k
             group = [v for s in summaries if repr(value(s)) == level and (v := ranked_value(s, metric)) is not None]
             means.append(sum(group) / len(group) if group else float("nan"))
         axis.plot(range(len(levels)), means, marker="o", label=label)
+    # Never past 100 %, as the scene bars: equal means (a parameter without effect) were autoscaled to 94-105 %.
+    low, high = axis.get_ylim()
+    axis.set_ylim(low, min(high, 100.0))
     axis.set_xticks(range(len(levels)), [level.strip("'") for level in levels], fontsize=8)
     axis.set_xlabel(key, fontsize=9)
     axis.set_ylabel("mean Acc %, over the other parameters (axis zoomed to the data)", fontsize=8)

@@ -758,6 +758,20 @@ def test_the_summarys_best_by_each_metric_says_an_exact_tie(reference, tmp_path,
     assert not any("tied" in line for line in lines if line.strip().startswith("s per pair"))
 
 
+def test_the_parameter_panels_never_pass_100_pct(reference, tmp_path):
+    """Found by an audit of the results' numbers: a swept parameter without effect (equal means at 99.8 %) had its
+    panel autoscaled to 94-105 %, room above the best that no accuracy has."""
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    db = tmp_path / "flat.sqlite"
+    with edited_copy(reference, db) as connection:
+        connection.execute("UPDATE results SET acc_r_min_pct = 99.8, acc_r_max_pct = 99.8, acc_objects_pct = 99.8")
+    with ResultStore(db) as store:
+        panels = [axis for axis in results_figure(store).axes if axis.get_ylabel().startswith("mean Acc")]
+    assert panels and all(axis.get_ylim()[1] <= 100.0 and axis.get_ylim()[0] < 99.8 for axis in panels)
+
+
 def test_the_scene_bars_follow_the_summarys_rules_for_pairs_without_truth_and_failed_ones(reference, tmp_path):
     """Found by an audit of the results' numbers: a pair without ground truth (a listed pair, in no mean of the
     summary) was drawn as 0 % bars, read as a measured 0, and its zeros set the zoomed axis to 0-100."""
