@@ -16,9 +16,10 @@ Read a results file of svs-depth sweep (or eval --db).
 --summary (the default without --csv or --figure): each configuration's mean Eq. (9) accuracy of R_min, R_max
 and the objects (a failed pair counts 0 %) over the pairs scored with their own calibration, or, where more
 pairs were scored with a nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those
-(the 'scored' column says which, and how many); dense and inlier disparity quality, failures and time, best
-first (pairs_per_s here is over the pairs' summed pipeline time: a store keeps no wall time, so it reads
-higher than eval's, which counts loading too); then the best configuration by each metric. --csv: one row per
+(the 'scored' column says which, and how many); dense and inlier disparity quality (means over the pairs that
+have them: a note says where that is fewer for some configuration), failures and time, best first (pairs_per_s
+here is over the pairs' summed pipeline time: a store keeps no wall time, so it reads higher than eval's, which
+counts loading too); then the best configuration by each metric. --csv: one row per
 (configuration, pair), columns config, left, right, status, r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct
 (config is the configuration's id), then its label, size, the swept parameters (param:KEY) and every other
 column, among them the stereo metrics of the dense map (<scope>_<metric>: scope map_all, map_nocc, kept_all or
@@ -87,6 +88,9 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
         print("note: the configurations were not all measured on the same pairs ("
               + ", ".join(f"{s['config_id']} lacks {s['pairs_missing']}" for s in missing)
               + "): their means are over different pairs; resume the sweep (or rerun) to compare like with like")
+    uneven = _uneven_counts_note(summaries)
+    if uneven:
+        print(uneven)
     for s in summaries:
         if len(s["code_versions"]) > 1:
             print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
@@ -99,6 +103,28 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
         tied = sum(ranked_value(other, key) == ranked_value(s, key) for other in summaries) - 1
         print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}"
               + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
+
+
+#: ``(column, count key)`` of the table's means over only the pairs that have them (a failed pair has none).
+_MEASURED_COUNTS = (("d<=1", "dense_pairs"), ("prec", "inlier_pairs"), ("bad-2/D1", "kept_all_pairs"))
+
+
+def _uneven_counts_note(summaries: list[dict]) -> str | None:
+    """A note where a configuration's disparity means are over fewer pairs than another's (an audit: one that failed
+    on the hard pairs ranked best by d<=1 or bad-2 over the easy ones it kept, unsaid), or None; a mean over none
+    shows '-' already."""
+    most = {key: max((s[key] for s in summaries if s.get(key) is not None), default=None)
+            for _, key in _MEASURED_COUNTS}
+    fewer = [(s, [(column, key) for column, key in _MEASURED_COUNTS if 0 < (s.get(key) or 0) < most[key]])
+             for s in summaries]
+    fewer = [(s, short) for s, short in fewer if short]
+    if not fewer:
+        return None
+    listed = "; ".join(f"{s['config_id']} " + ", ".join(f"{column} over {s[key]} of {most[key]}"
+                                                        for column, key in short) for s, short in fewer[:5])
+    return (f"note: d<=1, prec, bad-2 and D1 are means over the pairs that have them (a failed pair has none; the "
+            f"accuracies count it 0 %), not over the same number for every configuration ({listed}"
+            f"{f'; and {len(fewer) - 5} more' if len(fewer) > 5 else ''}): compare them with care")
 
 
 def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[dict]:

@@ -50,8 +50,10 @@ def _evaluation(row: dict) -> PairEvaluation:
 def config_summaries(store: ResultStore) -> list[dict]:
     """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
     ``overrides``, the ``code_versions`` its rows were computed by and ``pairs_missing``, how many of the pairs
-    any configuration was measured on it lacks: an interrupted sweep's means are over different pairs), in the
-    order the configurations were stored; configurations without rows are left out."""
+    any configuration was measured on it lacks: an interrupted sweep's means are over different pairs; and
+    ``dense_pairs`` / ``inlier_pairs``, the pairs its dense and inlier disparity means are over, as the stereo
+    metrics' ``<scope>_pairs``: a failed pair has none), in the order the configurations were stored;
+    configurations without rows are left out."""
     check_instance(store, "store", ResultStore)
     by_config: dict[str, list[PairEvaluation]] = {}
     versions: dict[str, list[str]] = {}
@@ -73,7 +75,9 @@ def config_summaries(store: ResultStore) -> list[dict]:
             summaries.append({key: config[key] for key in ("config_id", "preset", "size", "overrides")}
                              | {"label": labels[config["config_id"]]}
                              | {"code_versions": versions[config["config_id"]],
-                                "pairs_missing": len(every_pair - pairs[config["config_id"]])} | summary)
+                                "pairs_missing": len(every_pair - pairs[config["config_id"]])} | summary
+                             | {"dense_pairs": sum(e.dense_within_1px is not None for e in rows),
+                                "inlier_pairs": sum(e.inlier_precision is not None for e in rows)})
     # One group for every configuration (ranked_group): each choosing its own, a configuration measured on fewer
     # pairs was ranked by its own-calibration mean against the others' nominal ones, under one heading.
     own = sum(s.get("scored") or 0 for s in summaries)

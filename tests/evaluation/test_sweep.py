@@ -758,6 +758,26 @@ def test_the_summarys_best_by_each_metric_says_an_exact_tie(reference, tmp_path,
     assert not any("tied" in line for line in lines if line.strip().startswith("s per pair"))
 
 
+def test_results_say_when_disparity_means_are_over_fewer_pairs(reference, tmp_path, capsys):
+    """Found by an audit of the results' numbers: the accuracies count a failed pair 0 %, but d<=1, prec, bad-2 and
+    D1 are means over the pairs that have them; a configuration that failed on a pair was ranked on them over the
+    others it kept, without a word."""
+    db = tmp_path / "fewer.sqlite"
+    with edited_copy(reference, db) as connection:
+        first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
+        last = connection.execute("SELECT max(config_id) FROM results").fetchone()[0]
+        kept = [name for (name,) in connection.execute("SELECT name FROM pragma_table_info('results')")
+                if name.startswith("kept_all_")]
+        connection.execute("UPDATE results SET status = 'NO_DENSE_DEPTH', dense_within_1px = NULL, inlier_precision "
+                           f"= NULL, {', '.join(f'{name} = NULL' for name in kept)} WHERE config_id = ? AND "
+                           "pair_id = ?", (last, first))
+    assert main(["results", str(db)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note: d<=1")]
+    assert len(notes) == 1 and f"({last} d<=1 over 3 of 4, prec over 3 of 4, bad-2/D1 over 3 of 4)" in notes[0]
+    assert main(["results", str(reference[1])]) == 0
+    assert "note: d<=1" not in capsys.readouterr().out
+
+
 def test_the_parameter_panels_never_pass_100_pct(reference, tmp_path):
     """Found by an audit of the results' numbers: a swept parameter without effect (equal means at 99.8 %) had its
     panel autoscaled to 94-105 %, room above the best that no accuracy has."""
