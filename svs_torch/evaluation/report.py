@@ -265,7 +265,9 @@ def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], k
     # Never past 100 %, as the scene bars: equal means (a parameter without effect) were autoscaled to 94-105 %.
     low, high = axis.get_ylim()
     axis.set_ylim(low, min(high, 100.0))
-    axis.set_xticks(range(len(levels)), [level.strip("'") for level in levels], fontsize=8)
+    # The values as the CSV's cells (a repr's quotes and escapes stripped by hand left a path with an apostrophe
+    # or a backslash quoted or doubled, an audit).
+    axis.set_xticks(range(len(levels)), [str(values[level]) for level in levels], fontsize=8)
     axis.set_xlabel(key, fontsize=9)
     axis.set_ylabel("mean Acc %, over the other parameters (axis zoomed to the data)", fontsize=8)
     axis.grid(alpha=0.3)

@@ -778,6 +778,24 @@ def test_results_say_when_disparity_means_are_over_fewer_pairs(reference, tmp_pa
     assert "note: d<=1" not in capsys.readouterr().out
 
 
+def test_the_parameter_panels_ticks_are_the_values_as_the_csv_has_them(reference, tmp_path):
+    """Found by an audit of the results' numbers: a swept text value (a weights path, learned:PATH) was ticked by
+    its repr with the quotes stripped, so an apostrophe kept the quotes and a backslash was doubled."""
+    from svs_torch.evaluation.report import results_figure
+    from svs_torch.evaluation.store import ResultStore
+
+    db, odd = tmp_path / "odd.sqlite", "learned:/w/o'brien\\net, é.pt"
+    with edited_copy(reference, db) as connection:
+        last = connection.execute("SELECT max(config_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE configs SET config = json_set(config, '$.segmentation.kernel_size', ?) WHERE "
+                           "config_id = ?", (odd, last))
+    with ResultStore(db) as store:
+        panel = next(axis for axis in results_figure(store).axes if axis.get_ylabel().startswith("mean Acc"))
+    assert odd in [label.get_text() for label in panel.get_xticklabels()]
+    assert main(["results", str(db), "--csv", str(tmp_path / "odd.csv")]) == 0
+    assert odd in (tmp_path / "odd.csv").read_text(encoding="utf-8")
+
+
 def test_the_parameter_panels_never_pass_100_pct(reference, tmp_path):
     """Found by an audit of the results' numbers: a swept parameter without effect (equal means at 99.8 %) had its
     panel autoscaled to 94-105 %, room above the best that no accuracy has."""
