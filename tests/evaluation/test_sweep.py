@@ -758,6 +758,20 @@ def test_the_summarys_best_by_each_metric_says_an_exact_tie(reference, tmp_path,
     assert not any("tied" in line for line in lines if line.strip().startswith("s per pair"))
 
 
+def test_results_say_the_nominal_pairs_kept_apart_from_the_means(reference, tmp_path, capsys):
+    """Found by an audit of the results' numbers: a sweep over 5 scenes, one shipping no calibration (Middlebury
+    2005/2006 Books), read 'scored 4' with no word of the fifth; eval says it is scored apart, below."""
+    db = tmp_path / "one_nominal.sqlite"
+    with edited_copy(reference, db) as connection:
+        first = connection.execute("SELECT min(pair_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE results SET calibrated = 0 WHERE pair_id = ?", (first,))
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert "1 more per configuration were scored with a nominal one" in out and "nominal_calibration" in out
+    assert main(["results", str(reference[1])]) == 0
+    assert "nominal" not in capsys.readouterr().out
+
+
 def test_results_say_when_disparity_means_are_over_fewer_pairs(reference, tmp_path, capsys):
     """Found by an audit of the results' numbers: the accuracies count a failed pair 0 %, but d<=1, prec, bad-2 and
     D1 are means over the pairs that have them; a configuration that failed on a pair was ranked on them over the
