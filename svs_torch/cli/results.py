@@ -70,6 +70,9 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     shown = ranked_summaries(summaries, args)
     print(f"{len(summaries)} configuration{'s' * (len(summaries) != 1)}; ranked by {args.sort}"
           + (f", the best {len(shown)}" if len(shown) < len(summaries) else ""))
+    common = _common_settings(summaries)
+    if common:
+        print(f"every configuration also ran with (not in its label): {common}")
     print(f"{'config':<16} {'pairs':>5} {'fail':>4} {'scored':>6} {'R_min %':>7} {'R_max %':>7} {'obj %':>6} "
           f"{'d<=1':>5} {'prec':>5} {'s/pair':>6}  label")
     for s in shown:
@@ -105,6 +108,18 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
         tied = sum(ranked_value(other, key) == ranked_value(s, key) for other in summaries) - 1
         print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}"
               + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
+
+
+def _common_settings(summaries: list[dict]) -> str:
+    """The overrides every configuration ran with, at one value, that some label leaves out: a sweep's [set] (its
+    labels name the grid alone), so a sweep whose only setting was [set] read as "(preset)" and two stores of
+    sweeps differing in [set] alone read the same (an audit)."""
+    first = summaries[0]["overrides"] if summaries else {}
+    common = {key: value for key, value in first.items()
+              if all(key in s["overrides"] and s["overrides"][key] == value for s in summaries)}
+    unnamed = [key for key in common
+               if any(not any(part.startswith(f"{key}=") for part in s["label"].split()) for s in summaries)]
+    return " ".join(f"{key}={common[key]}" for key in unnamed)
 
 
 def _print_nominal_apart(shown: list[dict]) -> None:

@@ -758,6 +758,20 @@ def test_the_summarys_best_by_each_metric_says_an_exact_tie(reference, tmp_path,
     assert not any("tied" in line for line in lines if line.strip().startswith("s per pair"))
 
 
+def test_results_name_the_settings_every_configuration_ran_with_beyond_its_label(reference, tmp_path, capsys):
+    """Found by an audit of the results' numbers: a sweep's [set] values (dense.window_size = 7 for every
+    configuration) were in no label, so its summary read as one of the preset's window, and a sweep whose only
+    setting was [set] read "(preset)"."""
+    db = tmp_path / "fixed.sqlite"
+    with edited_copy(reference, db) as connection:
+        connection.execute("UPDATE configs SET overrides = json_set(overrides, '$.\"dense.window_size\"', 7)")
+    assert main(["results", str(db)]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == ("every configuration also ran with (not in its label): "
+                                                       "dense.window_size=7")
+    assert main(["results", str(reference[1])]) == 0
+    assert "also ran with" not in capsys.readouterr().out
+
+
 def test_results_say_the_nominal_pairs_kept_apart_from_the_means(reference, tmp_path, capsys):
     """Found by an audit of the results' numbers: a sweep over 5 scenes, one shipping no calibration (Middlebury
     2005/2006 Books), read 'scored 4' with no word of the fifth; eval says it is scored apart, below."""
