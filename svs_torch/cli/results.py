@@ -13,20 +13,20 @@ HELP = "summarise, export (CSV) or plot a sweep's results file"
 DESCRIPTION = """\
 Read a results file of svs-depth sweep (or eval --db).
 
---summary (the default without --csv or --figure): each configuration's mean Eq. (9) accuracy of R_min, R_max
-and the objects (a failed pair counts 0 %) over the pairs scored with their own calibration, or, where more
-pairs were scored with a nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those
-(the 'scored' column says which, and how many); dense and inlier disparity quality (means over the pairs that
-have them: a note says where that is fewer for some configuration), failures and time, best first (pairs_per_s
-here is over the pairs' summed pipeline time: a store keeps no wall time, so it reads higher than eval's, which
-counts loading too); then the best configuration by each metric. --csv: one row per
-(configuration, pair), columns config, left, right, status, r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct
-(config is the configuration's id), then its label, size, the swept parameters (param:KEY) and every other
-column, among them the stereo metrics of the dense map (<scope>_<metric>: scope map_all, map_nocc, kept_all or
-kept_nocc; metric density, bad0_5_pct ... bad4_pct, avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px;
-empty where a pair has none, as in rows stored before they existed); paths are shown normalised (no inner
-'..'; a leading one, relative to the folder it was run in, stays). --figure: mean accuracy against each swept
-parameter and per-scene bars of the best configuration.
+--summary (the default without --csv or --figure): each configuration's mean Eq. (9) accuracy of R_min, R_max and
+the objects (a failed pair counts 0 %) over the pairs scored with their own calibration, or, where more pairs were
+scored with a nominal one (data that ship none, as most Middlebury 2005/2006 scenes), over those (the 'scored'
+column says which, and how many); dense and inlier disparity quality (means over the pairs that have them: a note
+says where that is fewer for some configuration), failures and time, best first (pairs_per_s here is over the
+pairs' summed pipeline time: a store keeps no wall time, so it reads higher than eval's, which counts loading
+too); configurations of the same results on every pair (a swept setting that changed nothing) are named together;
+then the best configuration by each metric. --csv: one row per (configuration, pair), columns config, left, right,
+status, r_min_m, r_max_m, acc_r_min_pct, acc_r_max_pct (config is the configuration's id), then its label, size,
+the swept parameters (param:KEY) and every other column, among them the stereo metrics of the dense map
+(<scope>_<metric>: scope map_all, map_nocc, kept_all or kept_nocc; metric density, bad0_5_pct ... bad4_pct,
+avgerr_px, rms_px, a50_px ... a99_px, d1_pct, num_px; empty where a pair has none, as in rows stored before they
+existed); paths are shown normalised (no inner '..'; a leading one, relative to the folder it was run in, stays).
+--figure: mean accuracy against each swept parameter and per-scene bars of the best configuration.
 """
 
 EPILOG = """\
@@ -56,7 +56,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", action="store_true",
                         help="the summary as one JSON object: configs (best first by --sort, --top of them), "
                              "sort, best (each metric's best configuration id over every stored configuration, "
-                             "listed or not)")
+                             "listed or not), same_results (groups of configuration ids whose rows are the same on "
+                             "every pair, times aside)")
     parser.set_defaults(func=run)
 
 
@@ -64,7 +65,7 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> None:
+def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]]) -> None:
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
@@ -96,6 +97,11 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace) -> Non
     uneven = _uneven_counts_note(summaries)
     if uneven:
         print(uneven)
+    labels = {s["config_id"]: s["label"] for s in summaries}
+    for group in same:
+        print(f"note: {' = '.join(f'{c} ({labels[c]})' for c in group)}: the same results on every pair, times "
+              f"aside: what differs between them changed nothing here (as a setting that the configuration in use "
+              f"never reads does, e.g. one of another segmenter)")
     for s in summaries:
         if len(s["code_versions"]) > 1:
             print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
@@ -170,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: a Ctrl-C meanwhile is raised once they are done
-        from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results
+        from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results, same_results
         from ..evaluation.store import ResultStore
         from ..evaluation.store_access import sweep_is_writing
         from ..core.files import atomic_output, check_output_file, write_errors_named
@@ -212,11 +218,12 @@ def run(args: argparse.Namespace) -> int:
                 # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
                 # the listing's order, not the text's.
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
-                                    "best": {key: s["config_id"] for key, _, s in best}}))
+                                    "best": {key: s["config_id"] for key, _, s in best},
+                                    "same_results": same_results(store)}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 recorded = len(store.configs())
                 print(f"{args.db}: no results yet ({recorded} configuration{'s' * (recorded != 1)} recorded, no pair "
                       f"run); running the sweep's command again fills it")
             else:
-                _print_summary(summaries, best, args)
+                _print_summary(summaries, best, args, same_results(store))
     return 0

@@ -22,7 +22,7 @@ from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
 __all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "distinct_labels", "plot_results",
-           "ranked_group", "ranked_value", "parameter_value", "results_figure", "swept_parameters"]
+           "ranked_group", "ranked_value", "parameter_value", "results_figure", "same_results", "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -136,6 +136,28 @@ def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
             pick = (max if higher else min)(candidates, key=lambda s: ranked_value(s, key))
             best.append((key, label, pick))
     return best
+
+
+#: A stored row's columns that say when, by which code and how fast it ran, not what it measured.
+_NOT_MEASURED = frozenset({"config_id", "run_id", "code_version", "time_s"})
+
+
+def same_results(store: ResultStore) -> list[list[str]]:
+    """The groups (of two or more, in the order stored) of configurations whose stored rows are the same on every
+    pair, times aside, each group measured on the same pairs: what differs between them changed nothing there.
+
+    Why: a sweep over a setting that the configuration in use never reads (``segmentation.foreground`` under the
+    nearness segmenter, which takes no Otsu split of the intensities) ran its values as so many configurations,
+    each ranked, one named best, and nothing said they were one (an audit of the results' numbers)."""
+    check_instance(store, "store", ResultStore)
+    rows: dict[str, list[dict]] = {}
+    for row in store.results():  # (ordered by configuration, then pair)
+        rows.setdefault(row["config_id"], []).append({k: v for k, v in row.items() if k not in _NOT_MEASURED})
+    groups: dict[str, list[str]] = {}
+    for config_id, measured in rows.items():
+        groups.setdefault(json.dumps(measured, sort_keys=True, default=str), []).append(config_id)
+    order = {c["config_id"]: i for i, c in enumerate(store.configs())}
+    return sorted((sorted(g, key=order.get) for g in groups.values() if len(g) > 1), key=lambda g: order[g[0]])
 
 
 def swept_parameters(store: ResultStore) -> list[str]:

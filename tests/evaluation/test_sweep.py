@@ -772,6 +772,32 @@ def test_results_name_the_settings_every_configuration_ran_with_beyond_its_label
     assert "also ran with" not in capsys.readouterr().out
 
 
+def test_results_say_which_configurations_gave_the_same_results(reference, tmp_path, capsys):
+    """Found by an audit of the results' numbers: a sweep over a setting the configuration in use never reads
+    (segmentation.foreground under the nearness segmenter) ran its values as configurations of identical rows,
+    ranked apart and one named best, and nothing said they were one. Here the second configuration's rows are
+    made the first's, times and run aside."""
+    db = tmp_path / "same.sqlite"
+    with edited_copy(reference, db) as connection:
+        first, second, third = [c for (c,) in connection.execute("SELECT config_id FROM configs ORDER BY rowid")]
+        columns = [name for (name,) in connection.execute("SELECT name FROM pragma_table_info('results')")]
+        copied = [dict(zip(columns, row)) for row in
+                  connection.execute("SELECT * FROM results WHERE config_id = ?", (first,))]
+        connection.execute("DELETE FROM results WHERE config_id = ?", (second,))
+        for row in copied:
+            row.update(config_id=second, time_s=row["time_s"] * 1.5, run_id=None)
+            connection.execute(f"INSERT INTO results ({', '.join(map(repr, columns))}) VALUES "
+                               f"({', '.join('?' * len(columns))})", list(row.values()))
+    assert main(["results", str(db)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "the same results on every pair" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"note: {first} (") and f" = {second} (" in notes[0]
+    assert third not in notes[0]
+    assert main(["results", str(db), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["same_results"] == [[first, second]]
+    assert main(["results", str(reference[1]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["same_results"] == []
+
+
 def test_results_say_the_nominal_pairs_kept_apart_from_the_means(reference, tmp_path, capsys):
     """Found by an audit of the results' numbers: a sweep over 5 scenes, one shipping no calibration (Middlebury
     2005/2006 Books), read 'scored 4' with no word of the fifth; eval says it is scored apart, below."""
