@@ -55,9 +55,11 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
     Args:
         batch: :class:`~svs_torch.core.types.StereoBatch` (calibration: ``focal_px``, ``baseline_m``, ``doffs_px``).
         config: :class:`PipelineConfig`.
-        network: the learned segmenter's network (an :class:`~svs_torch.segmentation.learned.ObstacleNet`, e.g.
-            from :func:`~svs_torch.segmentation.learned.load_obstacle_net`) on the batch's device, used when
-            ``config.segmentation.segmenter`` is learned; None: the weights that setting names.
+        network: the segmenter's network on the batch's device, of the kind ``config.segmentation.segmenter``
+            runs: a :class:`~svs_torch.segmentation.nearness.NearnessNet` for ``"nearness"`` (the default) or an
+            :class:`~svs_torch.segmentation.learned.ObstacleNet` for ``"learned"``, e.g. from
+            :func:`~svs_torch.segmentation.learned.load_obstacle_net`; refused under ``"otsu"``. None: the weights
+            that setting names.
 
     Returns:
         :class:`PipelineResult`. With ``config.differentiable`` (False by default) the hard pipeline runs
