@@ -203,6 +203,8 @@ def render_obstacle_scenes(
             (``P · (0, cos θ, sin θ) = floor_height_m`` in the camera's frame) and the heaps.
         heaps: ``(B, 4)`` a heap on each floor: centre X, distance ahead, radius, height, metres (radius 0: none);
             a dome with rocks of ``heap_roughness_m`` on it, textured as an obstacle (:mod:`.heap_rendering`).
+        heap_roughness_m: the largest height of the heaps' rocks, metres (each rock's drawn between half that and
+            that), ≥ 0; 0: smooth domes.
         object_yaw_deg: ``(B, K)`` each rectangle turned about its vertical axis through its centre by this many
             degrees in [−60, 60] (positive: its right side farther), so that its depth and disparity change across
             it as a real surface's do; its width is then measured along X (as seen from above) and

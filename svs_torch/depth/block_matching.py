@@ -344,7 +344,7 @@ def dense_disparity_over_regions(left: torch.Tensor, right: torch.Tensor, mask: 
     Args:
         left, right: ``(B, 1, H, W)`` images (rectified, or a rig whose rows already agree).
         mask: where depth is wanted (``Segmentation.kept_mask`` of the left view).
-        search: :class:`DisparityRange`, e.g. from :func:`disparity_search_range`.
+        search: :class:`DisparityRange`, e.g. from :func:`disparity_search_range`; config: the :class:`DenseConfig`.
         image_hw: ``(B, 2)`` each pair's size before padding.
 
     Returns:

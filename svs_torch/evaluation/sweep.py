@@ -310,7 +310,7 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
               on_task: Callable[[TaskResult], None] | None = None, warn: Callable[[str], None] | None = None,
               command: str = "sweep", threads: int | None = None,
               on_start: Callable[[int, int], None] | None = None) -> SweepOutcome:
-    """Run the missing part of ``sweep`` into the store ``db`` (created if needed).
+    """Run the missing part of ``sweep`` into the store ``db`` (created if needed), as a run named ``command``.
 
     Args:
         workers: local worker processes (default: one per core, or per ``OMP_NUM_THREADS`` if that is fewer, at
