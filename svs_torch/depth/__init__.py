@@ -4,10 +4,12 @@
 and labels), ``sparse`` (the paper's rule, Eq. (5)–(8): depth from the RANSAC inliers' disparities, per object
 and over the pair); the dense stage: ``dense_config`` (its options and results), ``cost_volume`` (pre-filter,
 crops, window sums), ``winner`` (winner takes all, rejections, the right view's winner and the left-right
-check), ``block_matching`` (the hard matcher and the row fill), ``soft_dense`` (its differentiable
+check), ``semi_global`` (semi-global aggregation of the cost volume, for noisy pairs), ``block_matching`` (the
+hard matcher and the row fill), ``soft_dense`` (its differentiable
 soft-argmin), ``pooling``, ``search_range`` (each pair's disparity range), ``dense`` (the working resolution and
 :func:`~svs_torch.depth.dense.estimate_dense_disparity`), ``dense_objects`` (each object's depth from the dense
-map, and the verification that both views show one scene); ``kernels/`` holds the C kernels of the block
+map, and the verification that both views show one scene), ``floor_distance`` (how far ahead along the floor,
+where the floor was found); ``kernels/`` holds the C kernels of the block
 matching, the row fill, the order statistics by label and the objects' statistics, beside their torch paths.
 
 May import: ``svs_torch.core`` and ``geometry``'s public names (homographies). Never segmentation, the

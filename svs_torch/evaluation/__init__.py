@@ -6,13 +6,15 @@ pipeline and that the pipeline never imports.
 * :mod:`.stereo_metrics`: the Middlebury SDK's and KITTI's metrics of dense disparity maps (bad-t, avgerr,
   rms, A50–A99, D1, with their density), on all and non-occluded GT, batched;
 * :mod:`.runner`: batched evaluation of a list of pairs, and its summary;
-* :mod:`.overrides`: presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`;
-* :mod:`.store`: the SQLite results store (schema in its docstring);
+* :mod:`.overrides`: presets and dotted-path overrides of :class:`~svs_torch.pipeline.PipelineConfig`, applied
+  to the configuration as a whole by :mod:`.config_tree`;
+* :mod:`.store`: the SQLite results store (schema in its docstring); :mod:`.store_access`: who may write one;
 * :mod:`.sweep`: sweep files, tasks and runs; :mod:`.executors`: the local process pool and Dask;
 * :mod:`.report`: summaries, CSV and plots of a results store;
 * :mod:`.disparity_errors`: disparity errors of the dense map and of the sparse inliers against the truth;
 * :mod:`.export`: dense disparity maps written in the Middlebury and KITTI formats;
-* :mod:`.benchmark`, :mod:`.bench_rivals`: ``svs-depth bench`` (pairs a second) and its rivals.
+* :mod:`.benchmark`, :mod:`.bench_rivals`: ``svs-depth bench`` (pairs a second) and its rivals;
+  :mod:`.frame_latency`: ``guide``'s one-frame latency on real scenes, frame by frame.
 
 May import: ``svs_torch.core``, the stages' public names, the pipeline and ``data``. Only the CLI and the
 experiments import it.

@@ -5,7 +5,8 @@
 matrix, on ``point_pairs``' checks and normalisation and ``minimal_solvers``' linear algebra),
 ``epipolar_distance`` (Sampson and symmetric distances), ``ransac`` (the batched RANSAC / MSAC / LMedS search,
 with ``ransac_sampling``, ``ransac_scoring`` and ``ransac_refine``), ``rectification`` (the paper's uncalibrated
-rectification), ``row_alignment`` (a similarity that aligns the rows when rectifying would not help), ``soft`` (their
+rectification), ``row_alignment`` (a similarity that aligns the rows when rectifying would not help, with
+``row_alignment_keystone``, its model of a right camera turned about its y or x axis), ``soft`` (their
 differentiable versions), ``calibration`` and ``chessboard`` (a calibrated rig: its file, its rectification, and
 calibrating it from chessboards); ``kernels/`` holds the C kernels of the matching and the refinement.
 
