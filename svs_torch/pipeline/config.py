@@ -377,7 +377,10 @@ class PipelineConfig:
     @classmethod
     def paper(cls) -> PipelineConfig:
         """The paper's pipeline as published (Sec. 3.2–3.4): Otsu and the two largest regions, MATLAB's SURF,
-        matching and RANSAC defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8)).
+        matching and RANSAC defaults, and R_min / R_max as the extremes over the RANSAC inliers (Eq. (5)–(8)). Not
+        MATLAB's but this package's: U-SURF (MATLAB's ``Upright`` is false), at most 512 keypoints an image, no
+        ``MatchThreshold`` (MATLAB's 1.0), a 1 px Sampson threshold (MATLAB's 0.01 is on its square: 0.1 px) and at
+        most 1024 RANSAC samples (MATLAB's ``NumTrials`` 500).
 
         Two departures, kept because the letter fails where the paper's own rig would not: RANSAC keeps the
         hypothesis of least truncated Sampson cost (``ransac_scoring="msac"``) rather than the most inliers
