@@ -25,7 +25,7 @@ import time
 from typing import TextIO
 
 from ..core.errors import InputError
-from ..core.files import stream_is_terminal
+from ..core.files import redraws_in_place
 from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
 from .speech import SPEECH_MISSING, Speaker, notice_once  # (moved there; still importable from here)
 
@@ -267,14 +267,15 @@ class StatusLine:
     Args:
         stream: where the status goes (None: nowhere).
         interval_s: seconds between plain status lines when ``stream`` is not a terminal.
-        tty: force terminal (True) or plain (False) mode; None asks ``stream.isatty()``.
+        tty: force terminal (True) or plain (False) mode; None: a terminal not ``TERM=dumb`` (an Emacs shell
+            buffer: see :func:`~svs_torch.core.files.redraws_in_place`).
         clock: seconds, monotonic (tests pass their own).
     """
 
     def __init__(self, stream: TextIO | None = sys.stderr, interval_s: float = 5.0, tty: bool | None = None,
                  clock=time.monotonic) -> None:
         self.stream, self.interval_s, self.clock = stream, interval_s, clock
-        self.tty = stream_is_terminal(stream) if tty is None else bool(tty)
+        self.tty = redraws_in_place(stream) if tty is None else bool(tty)
         self._shown = ""
         # Plain mode: when the last status line was printed. The first waits an interval too, so it reports a rate
         # measured over some frames, not the 0 fps of the first.

@@ -1,7 +1,8 @@
 """Progress of a long command (``eval``, ``sweep``, ``estimate --pairs``, ``capture``) on standard error.
 
-On a terminal: a tqdm bar, redrawn in place. Into a file or a pipe (a log, ``2> run.log``, a CI job): no
-carriage-return redraws, which a log shows as one unreadable line; instead a plain line every few seconds
+On a terminal: a tqdm bar, redrawn in place. Into a file or a pipe (a log, ``2> run.log``, a CI job), or on a
+``TERM=dumb`` terminal (an Emacs shell buffer): no carriage-return redraws, which a log shows as one unreadable
+line; instead a plain line every few seconds
 (``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary line at the end.
 """
 
@@ -12,7 +13,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TextIO, TypeVar
 
-from ..core.files import STDERR_LOCK, stream_is_terminal
+from ..core.files import STDERR_LOCK, redraws_in_place
 
 __all__ = ["Progress"]
 
@@ -28,7 +29,8 @@ class Progress:
         unit: what an item is (``"pair"``); lines say ``pairs``.
         stream: where progress goes (None: standard error).
         interval_s: seconds between plain lines when ``stream`` is not a terminal.
-        tty: force terminal (True) or plain (False) mode; None asks ``stream.isatty()``.
+        tty: force terminal (True) or plain (False) mode; None: a terminal not ``TERM=dumb``
+            (:func:`~svs_torch.core.files.redraws_in_place`).
         clock: seconds, monotonic (tests pass their own).
     """
 
@@ -42,7 +44,7 @@ class Progress:
         self.started = self._last = clock()
         self._first: tuple[float, int] | None = None  # (time, count) of the first update
         if tty is None:
-            tty = stream_is_terminal(self.stream)
+            tty = redraws_in_place(self.stream)
         self._bar = None
         if tty:
             from tqdm import tqdm

@@ -25,7 +25,7 @@ from .errors import InputError
 
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
            "display_path", "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
-           "write_bytes_atomic", "write_errors_named"]
+           "redraws_in_place", "write_bytes_atomic", "write_errors_named"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -261,3 +261,11 @@ def stream_is_terminal(stream: IO | None) -> bool:
         return stream is not None and stream.isatty()
     except (AttributeError, ValueError):  # a stream without a terminal behind it, or closed
         return False
+
+
+def redraws_in_place(stream: IO | None) -> bool:
+    """Whether progress on ``stream`` may be a bar or a status line redrawn in place (``\\r``): a terminal, but not
+    one that says ``TERM=dumb`` (an Emacs shell buffer, emacspeak's, an editor's or a runner's pseudo-terminal),
+    which shows each redraw as more text on one line and reads every one aloud; there, as into a file or a pipe,
+    progress is a plain line every few seconds."""
+    return stream_is_terminal(stream) and os.environ.get("TERM", "").strip().lower() != "dumb"

@@ -386,6 +386,28 @@ def test_status_line_into_a_log_is_a_plain_line_every_interval():
     ]
 
 
+def test_status_line_on_a_dumb_terminal_is_not_redrawn(monkeypatch):
+    """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb) guide's status, redrawn with carriage
+    returns some 8 times a second, grew one line for the whole walk, each redraw read aloud. Now it is plain lines
+    there, as in a log."""
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    monkeypatch.setenv("TERM", "xterm")
+    assert StatusLine(Terminal()).tty
+    monkeypatch.setenv("TERM", "dumb")
+    terminal, now = Terminal(), [0.0]
+    status_line = StatusLine(terminal, interval_s=5.0, clock=lambda: now[0])
+    for step in range(7):
+        now[0] = float(step)
+        status_line.show(f"{step:5.1f} fps  nearest 1.4 m  warn  left")
+    status_line.close()
+    assert not status_line.tty and "\r" not in terminal.getvalue()
+    assert terminal.getvalue().splitlines() == ["  5.0 fps  nearest 1.4 m  warn  left",
+                                                "  6.0 fps  nearest 1.4 m  warn  left"]
+
+
 def test_status_line_close_prints_nothing_twice():
     log = io.StringIO()
     status_line = StatusLine(log, tty=False)

@@ -37,7 +37,8 @@ def test_progress_into_a_pipe_is_plain_lines_every_few_seconds_and_a_summary():
     assert out.getvalue().splitlines() == [f"row {n}" for n in range(10)]
 
 
-def test_progress_on_a_terminal_is_a_bar_and_keeps_result_lines_apart():
+def test_progress_on_a_terminal_is_a_bar_and_keeps_result_lines_apart(monkeypatch):
+    monkeypatch.setenv("TERM", "xterm")
     stream, out = _Terminal(), io.StringIO()
     with Progress(4, "sweep", stream=stream) as progress:
         for number in range(4):
@@ -47,6 +48,21 @@ def test_progress_on_a_terminal_is_a_bar_and_keeps_result_lines_apart():
     assert "\r" in drawn and "sweep" in drawn and "4/4" in drawn  # tqdm's bar, redrawn in place
     assert not re.search(r"pairs in \d", drawn)  # no plain summary line on a terminal
     assert out.getvalue().splitlines() == [f"row {n}" for n in range(4)]
+
+
+def test_progress_on_a_dumb_terminal_is_plain_lines(monkeypatch):
+    """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb, a terminal to the program) the bar's
+    carriage-return redraws piled up on one line, each read aloud by emacspeak. Now such a terminal gets the plain
+    lines a log gets."""
+    monkeypatch.setenv("TERM", "dumb")
+    clock, stream = _Clock(), _Terminal()
+    with Progress(4, "eval", stream=stream, interval_s=5.0, clock=clock) as progress:
+        for _ in range(4):
+            clock.now += 3.0
+            progress.update(1)
+    assert "\r" not in stream.getvalue() and "\x1b" not in stream.getvalue()
+    assert stream.getvalue().splitlines() == ["eval: 2/4 pairs, 0.3 pairs/s, ETA 6 s",
+                                              "eval: 4/4 pairs in 12.0 s, 0.3 pairs/s"]
 
 
 def test_eval_into_a_pipe_has_no_carriage_returns(data_dir):
