@@ -25,7 +25,7 @@ import time
 from typing import TextIO
 
 from ..core.errors import InputError
-from ..core.files import redraws_in_place
+from ..core.files import progress_setting, redraws_in_place
 from .sight import CANNOT_SEE, CONFIRM_FRAMES, SEEING_AGAIN, SightWatch
 from .speech import SPEECH_MISSING, Speaker, notice_once  # (moved there; still importable from here)
 
@@ -262,7 +262,9 @@ class StatusLine:
     when both streams reach the same terminal. Into a file or a pipe (``guide 2> walk.log``, a service's journal)
     there is no redrawing, which a log shows as one line growing for the whole walk: the status is a plain line
     every ``interval_s`` seconds, and the last one shown is printed at :meth:`close` (as
-    :class:`svs_torch.cli.progress.Progress` does for the long commands).
+    :class:`svs_torch.cli.progress.Progress` does for the long commands). ``SVS_TORCH_PROGRESS=plain`` makes it
+    those plain lines on a terminal too, ``SVS_TORCH_PROGRESS=off`` silences it
+    (:func:`~svs_torch.core.files.progress_setting`).
 
     Args:
         stream: where the status goes (None: nowhere).
@@ -276,6 +278,7 @@ class StatusLine:
                  clock=time.monotonic) -> None:
         self.stream, self.interval_s, self.clock = stream, interval_s, clock
         self.tty = redraws_in_place(stream) if tty is None else bool(tty)
+        self.silent = progress_setting() == "off"  # SVS_TORCH_PROGRESS=off: no status; messages still print
         self._shown = ""
         # Plain mode: when the last status line was printed. The first waits an interval too, so it reports a rate
         # measured over some frames, not the 0 fps of the first.
@@ -285,7 +288,7 @@ class StatusLine:
     def show(self, text: str) -> None:
         """Replace the status line with ``text`` (padded so no tail of a longer old status is left); in plain
         mode, print it as a line when ``interval_s`` has passed since the last one."""
-        if self.stream is None:
+        if self.stream is None or self.silent:
             return
         if not self.tty:
             now = self.clock()

@@ -14,7 +14,7 @@ import os
 import sys
 import warnings
 
-from ..core.files import STDERR_LOCK
+from ..core.files import PROGRESS_HELP, STDERR_LOCK
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 
@@ -48,6 +48,7 @@ examples:
 Real data: any left/right image files work (gray or color; 8 or 16 bit; a JPEG turned by its EXIF orientation,
 as a viewer shows it). Without calibration the SVS model is assumed: 3.6 mm lens, 4.17 mm sensor, 10.75 cm
 baseline (focal 276 px at 320x240).
+""" + PROGRESS_HELP + """
 Run 'svs-depth COMMAND --help' for each command's options.
 """
 

@@ -8,6 +8,7 @@ import math
 import sys
 import warnings
 
+from ..core.files import PROGRESS_HELP
 from .common import (Terminated, add_retries_option, finite_float, noise_levels, non_negative_float,
                      pair_count_or_zero, positive_float, positive_int, terminated_on_sigterm, timeout_seconds)
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
@@ -58,7 +59,7 @@ examples:
   svs-depth guide --left /dev/ttyUSB0 --right /dev/ttyUSB1 --near-m 0.8 --far-m 1.5 --no-speech
   svs-depth guide --emulator --count 50 --json --record walk/ > walk.jsonl   a walk kept, to range again
 Stop with Ctrl-C.
-"""
+""" + PROGRESS_HELP + "\n"
 
 
 #: ``--second-passes``: what each choice does and costs (PipelineConfig.for_guide).

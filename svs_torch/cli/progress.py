@@ -3,7 +3,9 @@
 On a terminal: a tqdm bar, redrawn in place. Into a file or a pipe (a log, ``2> run.log``, a CI job), or on a
 ``TERM=dumb`` terminal (an Emacs shell buffer): no carriage-return redraws, which a log shows as one unreadable
 line; instead a plain line every few seconds
-(``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary line at the end.
+(``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary line at the end. ``SVS_TORCH_PROGRESS=plain``
+gives a terminal those plain lines too (a screen reader, a braille display), ``SVS_TORCH_PROGRESS=off`` none at all
+(:func:`~svs_torch.core.files.progress_setting`).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TextIO, TypeVar
 
-from ..core.files import STDERR_LOCK, redraws_in_place
+from ..core.files import STDERR_LOCK, progress_setting, redraws_in_place
 
 __all__ = ["Progress"]
 
@@ -43,6 +45,7 @@ class Progress:
         self.done, self._closed, self._postfix = 0, False, ""
         self.started = self._last = clock()
         self._first: tuple[float, int] | None = None  # (time, count) of the first update
+        self._silent = progress_setting() == "off"  # no progress lines; write() and warn() still print
         if tty is None:
             tty = redraws_in_place(self.stream)
         self._bar = None
@@ -71,6 +74,8 @@ class Progress:
         if self._bar is not None:
             with STDERR_LOCK:  # (see there: a line written while another thread decodes was lost)
                 self._bar.update(count)
+            return
+        if self._silent:
             return
         now = self.clock()
         if self._first is None:
@@ -120,6 +125,8 @@ class Progress:
         with STDERR_LOCK:
             if self._bar is not None:
                 self._bar.close()
+                return
+            if self._silent:
                 return
             elapsed = self.clock() - self.started
             rate = self._rate(elapsed)

@@ -25,7 +25,7 @@ from .errors import InputError
 
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
            "display_path", "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
-           "redraws_in_place", "write_bytes_atomic", "write_errors_named"]
+           "PROGRESS_HELP", "progress_setting", "redraws_in_place", "write_bytes_atomic", "write_errors_named"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -263,9 +263,26 @@ def stream_is_terminal(stream: IO | None) -> bool:
         return False
 
 
+#: What ``svs-depth --help`` says of :func:`progress_setting`.
+PROGRESS_HELP = """\
+Progress bars and guide's status line: SVS_TORCH_PROGRESS=plain makes them a plain line every 5 s on a terminal
+too (for a screen reader or a braille display), SVS_TORCH_PROGRESS=off silences them (results, warnings and spoken
+messages still print); into a file or a pipe, or on a TERM=dumb terminal, they are plain lines."""
+
+
+def progress_setting() -> str:
+    """``SVS_TORCH_PROGRESS``: ``"plain"`` (a plain line every few seconds even on a terminal: a screen reader or a
+    braille display follows lines, not a bar redrawn several times a second), ``"off"`` (no progress nor status
+    lines at all; results, warnings and messages still print) or ``"auto"`` (unset, or any other value)."""
+    setting = os.environ.get("SVS_TORCH_PROGRESS", "").strip().lower()
+    return setting if setting in ("plain", "off") else "auto"
+
+
 def redraws_in_place(stream: IO | None) -> bool:
     """Whether progress on ``stream`` may be a bar or a status line redrawn in place (``\\r``): a terminal, but not
     one that says ``TERM=dumb`` (an Emacs shell buffer, emacspeak's, an editor's or a runner's pseudo-terminal),
-    which shows each redraw as more text on one line and reads every one aloud; there, as into a file or a pipe,
-    progress is a plain line every few seconds."""
-    return stream_is_terminal(stream) and os.environ.get("TERM", "").strip().lower() != "dumb"
+    which shows each redraw as more text on one line and reads every one aloud, nor when
+    :func:`progress_setting` is not ``"auto"``; there, as into a file or a pipe, progress is a plain line every
+    few seconds (or none)."""
+    return (stream_is_terminal(stream) and os.environ.get("TERM", "").strip().lower() != "dumb"
+            and progress_setting() == "auto")

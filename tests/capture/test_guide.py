@@ -408,6 +408,29 @@ def test_status_line_on_a_dumb_terminal_is_not_redrawn(monkeypatch):
                                                 "  6.0 fps  nearest 1.4 m  warn  left"]
 
 
+def test_status_line_plain_or_off_with_svs_torch_progress(monkeypatch):
+    """Was (an audit of terminal output): a walker's screen reader read guide's status line at every redraw, some 8
+    a second, over the spoken warnings, with no way to stop it. SVS_TORCH_PROGRESS=plain makes it a plain line
+    every interval on a terminal; =off silences it, and the warnings still get their lines."""
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.setenv("SVS_TORCH_PROGRESS", "plain")
+    assert not StatusLine(Terminal()).tty
+    monkeypatch.setenv("SVS_TORCH_PROGRESS", "off")
+    terminal, now = Terminal(), [0.0]
+    status_line = StatusLine(terminal, interval_s=5.0, clock=lambda: now[0])
+    for step in range(12):
+        now[0] = float(step)
+        status_line.show(f"{step:5.1f} fps  nearest 1.4 m  warn  left")
+        if step == 3:
+            status_line.message("Obstacle ahead, 1.4 metres")
+    status_line.close()
+    assert terminal.getvalue() == "Obstacle ahead, 1.4 metres\n"
+
+
 def test_status_line_close_prints_nothing_twice():
     log = io.StringIO()
     status_line = StatusLine(log, tty=False)

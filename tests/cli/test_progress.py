@@ -65,6 +65,34 @@ def test_progress_on_a_dumb_terminal_is_plain_lines(monkeypatch):
                                               "eval: 4/4 pairs in 12.0 s, 0.3 pairs/s"]
 
 
+def test_svs_torch_progress_plain_or_off_for_a_screen_reader(monkeypatch):
+    """Was (an audit of terminal output): a screen-reader or braille user had no way to stop the bar redrawn on
+    their terminal (read again at every redraw), nor to silence progress. SVS_TORCH_PROGRESS=plain gives a
+    terminal the plain lines of a log; =off prints no progress, but the results and warnings still."""
+    monkeypatch.setenv("TERM", "xterm")
+    for setting, expected in (("plain", ["eval: 2/4 pairs, 0.3 pairs/s, ETA 6 s",
+                                         "eval: 4/4 pairs in 12.0 s, 0.3 pairs/s"]), ("off", [])):
+        monkeypatch.setenv("SVS_TORCH_PROGRESS", setting)
+        clock, stream, out = _Clock(), _Terminal(), io.StringIO()
+        with Progress(4, "eval", stream=stream, interval_s=5.0, clock=clock) as progress:
+            for number in range(4):
+                clock.now += 3.0
+                progress.write(f"row {number}", out)
+                progress.update(1)
+            progress.warn("eval: warning: a pair was skipped")
+        assert "\r" not in stream.getvalue()
+        assert [line for line in stream.getvalue().splitlines() if "warning" not in line] == expected
+        assert "eval: warning: a pair was skipped" in stream.getvalue().splitlines()
+        assert out.getvalue().splitlines() == [f"row {n}" for n in range(4)]
+
+
+def test_the_help_names_svs_torch_progress():
+    from svs_torch.cli import build_parser
+
+    assert "SVS_TORCH_PROGRESS=off" in build_parser().format_help()
+    assert "SVS_TORCH_PROGRESS=off" in build_parser().commands()["guide"].format_help()
+
+
 def test_eval_into_a_pipe_has_no_carriage_returns(data_dir):
     scene = data_dir / "middlebury_2001" / "Tsukuba"
     done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "eval", str(scene), "--size", "160x120"],
