@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TextIO, TypeVar
 
-from ..core.files import STDERR_LOCK, progress_setting, redraws_in_place
+from ..core.files import STDERR_LOCK, progress_setting, redraws_in_place, stream_is_terminal
 
 __all__ = ["Progress"]
 
@@ -105,10 +105,13 @@ class Progress:
             self._bar.set_postfix(values, refresh=False)
 
     def write(self, line: str, file: TextIO | None = None) -> None:
-        """Print a result line to ``file`` (standard output) without breaking the bar."""
+        """Print a result line to ``file`` (standard output) without breaking the bar: the bar is wiped and drawn
+        again below the line where ``file`` is a terminal too; a line into a file or a pipe leaves it alone (it was
+        wiped and redrawn for every row of ``eval > rows.txt``, 45 times for 45 pairs, each redraw a screen reader's
+        to read again)."""
         file = sys.stdout if file is None else file
         with STDERR_LOCK:  # (the bar is redrawn on the progress stream)
-            if self._bar is not None:
+            if self._bar is not None and stream_is_terminal(file):
                 self._bar.write(line, file=file)
             else:
                 print(line, file=file, flush=True)

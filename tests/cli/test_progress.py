@@ -50,6 +50,23 @@ def test_progress_on_a_terminal_is_a_bar_and_keeps_result_lines_apart(monkeypatc
     assert out.getvalue().splitlines() == [f"row {n}" for n in range(4)]
 
 
+def test_rows_into_a_file_leave_the_bar_on_the_terminal_alone(monkeypatch):
+    """Was (an audit of terminal output): with ``eval > rows.txt`` every row wiped the bar on the terminal and drew
+    it again (52 bar drawings, 12.5 kB for 45 pairs), each a screen reader's to read again. Rows into a file now
+    leave it alone (7 drawings, 1.4 kB)."""
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.delenv("SVS_TORCH_PROGRESS", raising=False)
+    terminal, rows = _Terminal(), io.StringIO()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    monkeypatch.setattr(sys, "stdout", rows)
+    with Progress(20, "eval") as progress:
+        for number in range(20):
+            progress.write(f"row {number}")
+            progress.update(1)
+    assert rows.getvalue().splitlines() == [f"row {n}" for n in range(20)]
+    assert terminal.getvalue().count("eval:") <= 3  # the first drawing, maybe one more, the last (was one a row: 22)
+
+
 def test_progress_on_a_dumb_terminal_is_plain_lines(monkeypatch):
     """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb, a terminal to the program) the bar's
     carriage-return redraws piled up on one line, each read aloud by emacspeak. Now such a terminal gets the plain
