@@ -17,6 +17,7 @@ import warnings
 from ..core.files import PROGRESS_HELP, STDERR_LOCK
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
+from .progress import print_above_bar
 
 __all__ = ["main", "build_parser", "CliError"]
 
@@ -153,7 +154,7 @@ def _warning_printer(prog: str):
             show.maps_not_written += 1
         try:
             with STDERR_LOCK:  # not into a decoder's window of another thread (see there)
-                print(f"{prog}: warning: {text}", file=file or sys.stderr, flush=True)
+                print_above_bar(f"{prog}: warning: {text}", file or sys.stderr)  # a line of its own, not on a bar
         except (OSError, ValueError):
             pass
 

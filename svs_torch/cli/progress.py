@@ -17,9 +17,23 @@ from typing import TextIO, TypeVar
 
 from ..core.files import STDERR_LOCK, progress_setting, redraws_in_place, stream_is_terminal
 
-__all__ = ["Progress"]
+__all__ = ["Progress", "print_above_bar"]
 
 T = TypeVar("T")
+
+#: The bar drawn on the terminal now, if any (:func:`print_above_bar`).
+_drawn: list[Progress] = []
+
+
+def print_above_bar(line: str, file: TextIO) -> None:
+    """Print ``line`` on ``file``, above the bar of a running :class:`Progress` if one is drawn: a warning printed
+    on standard error while a bar was drawn there began on the bar's own line (``estimate:   0%|...| 0/6
+    [00:00<?, ?pair/s]svs-depth estimate: warning: ...``, an audit of terminal output)."""
+    with STDERR_LOCK:
+        if _drawn:
+            _drawn[-1].write(line, file)
+        else:
+            print(line, file=file, flush=True)
 
 
 class Progress:
@@ -54,6 +68,7 @@ class Progress:
 
             self._bar = tqdm(total=total, unit=unit, file=self.stream, desc=desc, dynamic_ncols=True,
                              mininterval=0.5)
+            _drawn.append(self)
 
     def _rate(self, elapsed_s: float) -> float | None:
         return self.done / elapsed_s if elapsed_s > 0 else None
@@ -127,6 +142,8 @@ class Progress:
         self._closed = True
         with STDERR_LOCK:
             if self._bar is not None:
+                if self in _drawn:
+                    _drawn.remove(self)
                 self._bar.close()
                 return
             if self._silent:

@@ -67,6 +67,28 @@ def test_rows_into_a_file_leave_the_bar_on_the_terminal_alone(monkeypatch):
     assert terminal.getvalue().count("eval:") <= 3  # the first drawing, maybe one more, the last (was one a row: 22)
 
 
+def test_a_warning_during_a_bar_gets_a_line_of_its_own(monkeypatch):
+    """Was (an audit of terminal output): a warning raised while the bar was drawn (estimate --pairs --size that
+    enlarges) was printed onto the bar's line, ``| 0/6 [00:00<?, ?pair/s]svs-depth estimate: warning: ...``, and
+    read aloud as one with it. The bar is now wiped first, the warning printed on its own line, the bar drawn below."""
+    import warnings
+
+    from svs_torch.cli import _warning_printer
+
+    monkeypatch.setenv("TERM", "xterm")
+    monkeypatch.delenv("SVS_TORCH_PROGRESS", raising=False)
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    with Progress(6, "estimate") as progress, warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = _warning_printer("svs-depth estimate")
+        warnings.warn("--size 960x720 enlarges the 463x370 pair 2.1 times")
+        progress.update(6)
+    drawn = terminal.getvalue()
+    assert "\rsvs-depth estimate: warning: --size 960x720 enlarges the 463x370 pair 2.1 times\n" in drawn
+    assert "]svs-depth" not in drawn
+
+
 def test_progress_on_a_dumb_terminal_is_plain_lines(monkeypatch):
     """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb, a terminal to the program) the bar's
     carriage-return redraws piled up on one line, each read aloud by emacspeak. Now such a terminal gets the plain
