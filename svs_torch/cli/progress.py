@@ -2,10 +2,9 @@
 
 On a terminal: a tqdm bar, redrawn in place. Into a file or a pipe (a log, ``2> run.log``, a CI job), or on a
 ``TERM=dumb`` terminal (an Emacs shell buffer): no carriage-return redraws, which a log shows as one unreadable
-line; instead a plain line every few seconds
-(``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary line at the end. ``SVS_TORCH_PROGRESS=plain``
-gives a terminal those plain lines too (a screen reader, a braille display), ``SVS_TORCH_PROGRESS=off`` none at all
-(:func:`~svs_torch.core.files.progress_setting`).
+line; instead a plain line every few seconds (``eval: 120/512 pairs, 14.2 pairs/s, ETA 27 s``) and one summary
+line at the end. ``SVS_TORCH_PROGRESS=plain`` gives a terminal those plain lines too (a screen reader, a braille
+display), ``SVS_TORCH_PROGRESS=off`` none at all (:func:`~svs_torch.core.files.progress_setting`).
 """
 
 from __future__ import annotations
