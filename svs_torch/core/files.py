@@ -17,6 +17,7 @@ import shlex
 import sys
 import threading
 import uuid
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -273,9 +274,20 @@ messages still print); into a file or a pipe, or on a TERM=dumb terminal, they a
 def progress_setting() -> str:
     """``SVS_TORCH_PROGRESS``: ``"plain"`` (a plain line every few seconds even on a terminal: a screen reader or a
     braille display follows lines, not a bar redrawn several times a second), ``"off"`` (no progress nor status
-    lines at all; results, warnings and messages still print) or ``"auto"`` (unset, or any other value)."""
+    lines at all; results, warnings and messages still print) or ``"auto"`` (unset, empty or ``auto``); any other
+    value is warned of once a process and taken as ``"auto"`` (a mistyped ``quiet`` went unsaid)."""
     setting = os.environ.get("SVS_TORCH_PROGRESS", "").strip().lower()
-    return setting if setting in ("plain", "off") else "auto"
+    if setting not in ("plain", "off", "auto", ""):
+        if setting not in _PROGRESS_WARNED:
+            _PROGRESS_WARNED.add(setting)
+            warnings.warn(f"SVS_TORCH_PROGRESS={setting!r}: expected plain or off (or auto, the default); "
+                          f"progress is shown as without it", stacklevel=2)
+        return "auto"
+    return setting or "auto"
+
+
+#: The unknown ``SVS_TORCH_PROGRESS`` values warned of already (once each a process).
+_PROGRESS_WARNED: set[str] = set()
 
 
 def redraws_in_place(stream: IO | None) -> bool:

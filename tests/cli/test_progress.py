@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 import re
 import subprocess
 import sys
@@ -130,6 +131,19 @@ def test_the_help_names_svs_torch_progress():
 
     assert "SVS_TORCH_PROGRESS=off" in build_parser().format_help()
     assert "SVS_TORCH_PROGRESS=off" in build_parser().commands()["guide"].format_help()
+
+
+def test_an_unknown_svs_torch_progress_is_warned_of_once(data_dir):
+    """A mistyped SVS_TORCH_PROGRESS (quiet) was taken as unset without a word: the user who asked for silence got
+    the bar and no reason. Now one warning says what it expects."""
+    scene = data_dir / "middlebury_2001" / "Tsukuba"
+    done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "eval", str(scene), str(scene), "--size",
+                           "160x120"], capture_output=True, text=True,
+                          env={**os.environ, "SVS_TORCH_PROGRESS": "Quiet"})
+    assert done.returncode == 0, done.stderr
+    warned = [line for line in done.stderr.splitlines() if "SVS_TORCH_PROGRESS" in line]
+    assert warned == ["svs-depth eval: warning: SVS_TORCH_PROGRESS='quiet': expected plain or off (or auto, the "
+                      "default); progress is shown as without it"], done.stderr
 
 
 def test_eval_into_a_pipe_has_no_carriage_returns(data_dir):
