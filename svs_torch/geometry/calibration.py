@@ -258,12 +258,13 @@ def _check_maps_in_view(calibration: StereoCalibration, where: str) -> None:
 
 
 def check_baseline(baseline_m: float, where: str) -> None:
-    """Refuse a baseline outside :data:`BASELINE_RANGE_M` (a file in millimetres, or a rig no walker carries)."""
+    """Refuse a baseline outside :data:`BASELINE_RANGE_M` (a file in millimetres, a square typed too small)."""
     low, high = BASELINE_RANGE_M
     if not low <= baseline_m <= high:
+        cause = "in millimetres (the board's square in mm)" if baseline_m > high else "of a square given too small"
         raise InputError(f"{where}: expected a baseline of {low * 1000:g} mm to {high:g} m, got {baseline_m:.6g} m: "
-                         "a calibration in millimetres (the board's square given in mm)? Calibrate again with "
-                         "--square-m in metres")
+                         f"a calibration {cause}? Calibrate again with --square-m the side of one square in metres "
+                         "(25 mm is 0.025)")
 
 
 def _implied_q(P1: np.ndarray, P2: np.ndarray) -> np.ndarray:

@@ -198,7 +198,8 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
                 f"at different moments?") if rms_stereo > GOOD_STEREO_RMS_PX else ""
         raise InputError(f"{name}: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
                          f"RIGHT swapped?{poor}")
-    check_baseline(calibration.baseline_m, name)  # refused here, not by every later read of the file
+    # Refused here, not by every later read of the file; a good fit's baseline is out of range by its --square-m.
+    check_baseline(calibration.baseline_m, "--square-m" if rms_stereo <= GOOD_STEREO_RMS_PX else name)
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
     return _with_row_error(calibration, rows_apart)

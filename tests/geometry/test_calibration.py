@@ -287,6 +287,11 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
     # A square the option takes can still make a baseline no file may hold (1 m squares: 3.3 m): refused, not written.
     code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "1", "--out", str(out))
     assert code == 2 and "expected a baseline of 1 mm to 2 m, got 3.3" in stderr and not out.exists()
+    # A square typed too small (10 um: a 33 um baseline) was blamed on 'left' and called a calibration in millimetres.
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "1e-5", "--out",
+                              str(out))
+    assert code == 2 and stderr.count("\n") == 1 and not out.exists()
+    assert "--square-m: expected a baseline of 1 mm to 2 m, got 3.3" in stderr and "square given too small" in stderr
 
 
 def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_fit(capsys, samples, tmp_path):
