@@ -327,7 +327,7 @@ def read_calibration(path: str | os.PathLike, name: str = "--calibration") -> St
         raise InputError(f"{where}: an OpenCV FileStorage file (YAML/XML) is not read: expected svs-depth "
                          "calibrate's JSON (run it on the rig's chessboard pairs)")
     try:
-        record = json.loads(text.decode("utf-8"))
+        record = json.loads(text)  # bytes: UTF-8, and the BOMs of UTF-8 and UTF-16 that Windows editors write
     except (UnicodeDecodeError, ValueError) as error:
         raise InputError(f"{where}: expected a JSON calibration file ({' '.join(str(error).split())[:80]})") from None
     except RecursionError:  # lists nested thousands deep

@@ -127,6 +127,10 @@ def test_file_round_trips(rig, tmp_path):
     assert again.image_wh == (640, 480) and again.rms_stereo_px == calibration.rms_stereo_px
     record = json.loads(path.read_text())
     assert record["board"] == {"inner_corners": [9, 6], "square_m": SQUARE_M} and record["num_pairs"] == 13
+    # Saved again by Notepad or Windows PowerShell (a UTF-8 or UTF-16 BOM): refused as not JSON before (an audit).
+    for encoding in ("utf-8-sig", "utf-16"):
+        (tmp_path / "saved.json").write_text(path.read_text(), encoding=encoding)
+        np.testing.assert_array_equal(read_calibration(tmp_path / "saved.json").P2, calibration.P2)
     assert record["baseline_m"] == pytest.approx(calibration.baseline_m) and record["created_utc"]
 
 
