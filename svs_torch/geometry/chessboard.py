@@ -111,6 +111,7 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
             :data:`MIN_PAIRS` pairs with the board in both views.
     """
     left, right, names, skipped, size = [], [], [], [], None
+    seen = [0, 0]  # views with the board, left and right
     for pair_name, image_left, image_right in pairs:
         image_left, image_right = board_image_u8(image_left), board_image_u8(image_right)
         wh = (image_left.shape[1], image_left.shape[0])
@@ -121,6 +122,7 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
                 raise InputError(f"{name}: expected every image at {size[0]}x{size[1]} (one rig, one size), got "
                                  f"{image.shape[1]}x{image.shape[0]} in the {view} view of {pair_name}")
         corners = (find_board_corners(image_left, board), find_board_corners(image_right, board))
+        seen = [count + (found is not None) for count, found in zip(seen, corners)]
         if corners[0] is None or corners[1] is None:
             skipped.append(pair_name)
             continue
@@ -128,7 +130,9 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
         right.append(corners[1])
         names.append(pair_name)
     if len(names) < MIN_PAIRS:
-        hint = " (check --board: inner corners, columns x rows)" if skipped else ""
+        # The board in enough views of one camera: not --board but the other camera (covered, dark, aimed aside).
+        hint = f": it is in {seen[0]} left and {seen[1]} right views, and both cameras must see the whole board" \
+            if max(seen) >= MIN_PAIRS else " (check --board: inner corners, columns x rows)" if skipped else ""
         raise InputError(f"{name}: the {board[0]}x{board[1]} board was found in both views of {len(names)} of "
                          f"{len(names) + len(skipped)} pairs; expected at least {MIN_PAIRS}{hint}")
     _check_views_differ(left, right, names, name)

@@ -421,6 +421,17 @@ def test_calibrate_names_the_view_of_another_size_and_neither_source(capsys, tmp
     assert code == 2 and "give left images (files or patterns) or --pairs LIST.txt, got neither" in stderr
 
 
+def test_boards_seen_by_one_camera_alone_name_the_other_camera_not_the_board_size(samples):
+    """Found by an audit: with the right camera covered (the board in every left view, in no right one) the error
+    said "check --board", though the board size was right."""
+    blank = np.full((480, 640), 128, np.uint8)
+    pairs = [(f"pair{n}", cv2.imread(str(samples / f"left0{n}.jpg"), 0), blank) for n in (1, 2, 3, 4)]
+    with pytest.raises(InputError, match="found in both views of 0 of 4 pairs; expected at least 3: it is in 4 left "
+                                         "and 0 right views, and both cameras must see the whole board") as raised:
+        collect_board_views(pairs, BOARD, "left")
+    assert "--board" not in str(raised.value)
+
+
 def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     calibration, _ = rig
     path = tmp_path / "rig.json"
