@@ -99,6 +99,8 @@ def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:
     from pathlib import Path
 
     given = getattr(args, "calibration", None)
+    if given is not None:  # a calibration file first: a missing one was named by no option, a FIFO hung (an audit)
+        calibration_from_args(args)
     content = None if given is None else Path(given).read_bytes()
     differs = [path for path in kept if content != path.read_bytes()]
     if differs:

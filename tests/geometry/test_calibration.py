@@ -466,6 +466,18 @@ def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     assert row["calibration"]["source"] == f"--calibration {path} (the pair rectified by it)"
 
 
+@pytest.mark.parametrize("command", ["estimate", "eval"])
+def test_a_listed_pairs_calibration_that_is_no_file_is_named_by_its_option(capsys, samples, tmp_path, command):
+    """Found by an audit: with a pair list, a missing --calibration said "error: No such file or directory" (no
+    option named), a folder "Is a directory", and a FIFO hung: the file was read for another check first."""
+    listed = tmp_path / "list.txt"
+    listed.write_text(f"{samples / 'left01.jpg'} {samples / 'right01.jpg'}\n")
+    pairs = ["--pairs", str(listed)] if command == "estimate" else [str(listed)]
+    for given, kind in ((tmp_path / "missing.json", "no such file"), (tmp_path, "a folder")):
+        code, _, stderr = run_cli(capsys, command, *pairs, "--calibration", str(given))
+        assert code == 2 and f"--calibration: {given}: expected a calibration file, got {kind}" in stderr
+
+
 def test_a_listed_pair_with_its_own_calibration_is_not_ranged_by_the_rigs_settings(capsys, rig, samples, tmp_path):
     """Found by an audit: a list line with its own FOCAL_PX BASELINE_M is another camera's pair, yet under
     --calibration it ran with the rig's settings (no rectification from F, a 2 px row band): unrectified, 0.90 m for
