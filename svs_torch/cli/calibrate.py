@@ -11,6 +11,7 @@ from .common import add_figure_option, check_outputs_apart, dumps_strict, positi
 #: Fewer pairs than this used in the fit are warned of (the help asks for 10-20).
 FEW_PAIRS = 10
 MAX_SQUARE_M = 1.0  # geometry.chessboard.MAX_SQUARE_M (not imported: a parser must not import torch or cv2)
+MIN_SQUARE_M = 0.001  # geometry.chessboard.MIN_SQUARE_M
 
 HELP = "calibrate a stereo rig from chessboard pairs; writes the file for --calibration"
 
@@ -50,7 +51,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--board", default="9x6", metavar="COLSxROWS",
                         help="inner corners of the chessboard, columns x rows (default: 9x6, OpenCV's sample)")
     parser.add_argument("--square-m", type=square_metres, required=True,
-                        help="side of one square of the board, metres, at most 1 (25 mm is 0.025; sets the scale "
+                        help="side of one square of the board, metres, 0.001 to 1 (25 mm is 0.025; sets the scale "
                              "of the baseline)")
     parser.add_argument("--out", required=True, metavar="RIG.json", help="the calibration file to write")
     add_figure_option(parser, "figure: the first pair rectified, side by side, with its corners and epipolar lines")
@@ -241,8 +242,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def square_metres(text: str) -> float:
-    """argparse type of --square-m: over 0 and at most MAX_SQUARE_M, refused before any chessboard is read."""
+    """argparse type of --square-m: MIN_SQUARE_M to MAX_SQUARE_M, refused before any chessboard is read."""
     value = positive_float(text)
+    if value < MIN_SQUARE_M:
+        raise argparse.ArgumentTypeError(f"expected the side of one square in metres, at least {MIN_SQUARE_M:g} "
+                                         f"(1 mm; 25 mm is 0.025), got {text!r}")
     if value > MAX_SQUARE_M:
         raise argparse.ArgumentTypeError(f"expected the side of one square in metres, at most {MAX_SQUARE_M:g} "
                                          f"(25 mm is 0.025), got {text!r}")

@@ -38,6 +38,8 @@ MIN_PAIRS = 3
 #: The largest square side taken, metres: a board of larger squares is no printed chessboard, and a side in
 #: millimetres typed as metres (25 for 0.025) gave an 83 m baseline in silence.
 MAX_SQUARE_M = 1.0
+#: The smallest: a 9x6 board of 1 mm squares is 1 cm wide; 1e-20 m squares ended in an OpenCV assertion (an audit).
+MIN_SQUARE_M = 0.001
 #: A stereo fit whose reprojection RMS is above this, pixels, is looked at pair by pair (:func:`drop_misfit_pairs`):
 #: OpenCV's sample pairs fit to 0.2 px, while one pair whose views are not one moment of one board (the same view
 #: twice, a view of another pose) ruined the whole fit (13.6 px, a 0.19 m baseline for 0.083) and was written in
@@ -181,8 +183,8 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         software: the version string recorded in the file.
         name: the argument the pairs came from, for errors.
     """
-    if not (math.isfinite(square_m) and 0 < square_m <= MAX_SQUARE_M):
-        raise InputError(f"--square-m: expected the side of one square in metres, over 0 and at most {MAX_SQUARE_M:g} "
+    if not (math.isfinite(square_m) and MIN_SQUARE_M <= square_m <= MAX_SQUARE_M):
+        raise InputError(f"--square-m: expected the side of one square in metres, {MIN_SQUARE_M:g} to {MAX_SQUARE_M:g} "
                          f"(25 mm is 0.025), got {square_m:g}")
     columns, rows = board
     size = views.image_wh

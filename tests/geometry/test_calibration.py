@@ -134,14 +134,14 @@ def test_file_round_trips(rig, tmp_path):
     assert record["baseline_m"] == pytest.approx(calibration.baseline_m) and record["created_utc"]
 
 
-def _in_millimetres(record: dict) -> dict:
+def _in_millimetres(record: dict, factor: float = 1000) -> dict:
     """The rig's file as an older calibrate wrote it for a square given in millimetres: T, P2's baseline term and
-    Q's in mm (one rig, consistent)."""
+    Q's in mm (one rig, consistent); another ``factor``, in other units."""
     P2 = [list(row) for row in record["P2"]]
-    P2[0][3] *= 1000
+    P2[0][3] *= factor
     Q = [list(row) for row in record["Q"]]
-    Q[3][2], Q[3][3] = Q[3][2] / 1000, Q[3][3] / 1000
-    return {**record, "T_m": [v * 1000 for v in record["T_m"]], "P2": P2, "Q": Q, "baseline_m": None}
+    Q[3][2], Q[3][3] = Q[3][2] / factor, Q[3][3] / factor
+    return {**record, "T_m": [v * factor for v in record["T_m"]], "P2": P2, "Q": Q, "baseline_m": None}
 
 
 def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
@@ -172,6 +172,9 @@ def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
     (lambda r: {**r, "K_left": [[str(v) for v in row] for row in r["K_left"]]}, "expected 'K_left' as 3x3 finite"),
     # Found by an audit of the rig file: each gave wrong distances in silence, an internal error or a crash.
     (lambda r: _in_millimetres(r), "expected a baseline of 1 mm to 2 m, got 83.1805 m: a calibration in millimetres"),
+    # ... and one whose baseline is under 1 mm was called one in millimetres too.
+    (lambda r: _in_millimetres(r, 0.01), "expected a baseline of 1 mm to 2 m, got 0.000831805 m: a calibration of a "
+                                         "square given too small"),
     (lambda r: {**r, "K_left": [[r["K_left"][0][0], 10 ** 400, r["K_left"][0][2]], *r["K_left"][1:]]},
      "expected 'K_left' as 3x3 finite"),
     (lambda r: {**r, "image_size_wh": [6400000, 4800000]},
@@ -286,16 +289,16 @@ def test_calibrate_names_copies_of_one_pose_one_image_twice_and_a_square_in_mill
     code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "none" / "left*.jpg"), "--square-m", "25",
                               "--out", str(out))
     assert code == 2 and "--square-m" in stderr and "none" not in stderr
-    with pytest.raises(InputError, match="--square-m: expected the side of one square in metres, over 0 and at most 1"):
+    with pytest.raises(InputError, match="--square-m: expected the side of one square in metres, 0.001 to 1"):
         calibrate_stereo_rig(None, 25.0, (9, 6), "test", "left")
     # A square the option takes can still make a baseline no file may hold (1 m squares: 3.3 m): refused, not written.
     code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "1", "--out", str(out))
-    assert code == 2 and "expected a baseline of 1 mm to 2 m, got 3.3" in stderr and not out.exists()
-    # A square typed too small (10 um: a 33 um baseline) was blamed on 'left' and called a calibration in millimetres.
-    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "1e-5", "--out",
-                              str(out))
-    assert code == 2 and stderr.count("\n") == 1 and not out.exists()
-    assert "--square-m: expected a baseline of 1 mm to 2 m, got 3.3" in stderr and "square given too small" in stderr
+    assert code == 2 and "--square-m: expected a baseline of 1 mm to 2 m, got 3.3" in stderr and not out.exists()
+    # Squares under 1 mm are refused as they are parsed: 1e-20 ended in an OpenCV assertion ('internal error').
+    for tiny in ("1e-20", "0.0005"):
+        code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "none" / "left*.jpg"), "--square-m", tiny,
+                                  "--out", str(out))
+        assert code == 2 and "--square-m: expected the side of one square in metres, at least 0.001 (1 mm" in stderr
 
 
 def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_fit(capsys, samples, tmp_path):
