@@ -27,7 +27,7 @@ Printed: the reprojection error (RMS, pixels) of each camera and of the stereo f
 row error on the chessboards: |y_left - y_right| of the matching corners after rectification (mean, max).
 A pair whose two views do not fit the others (the same view twice, two moments of a moving board) is left
 out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px is written with
-a warning.
+a warning, and one that does not rectify its own chessboards (a board never tilted) is refused.
 The baseline is in the unit of --square-m: measure the printed squares.
 """
 

@@ -325,13 +325,26 @@ def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_
     assert len(report["misfits"]) == 1 and report["misfits"][0].startswith(f"{boards / 'left07.jpg'} (its views do not")
     assert report["rms_stereo_px"] < 0.3 and read_calibration(out).baseline_m == pytest.approx(0.0831, abs=0.001)
     assert str(boards / "left07.jpg") not in report["pairs"] and len(report["pairs"]) == 6
-    # Each right view of another pose: no one pair explains the poor fit, so it is written with a warning.
+    # Each right view of another pose: no one pair explains the poor fit (52.6 px), and its file would rectify none
+    # of a view (every command refused it as edited): refused, the poor fit named.
     poor = tmp_path / "poor"
     poor.mkdir()
     for number in range(1, 5):
         shutil.copy(samples / f"left0{number}.jpg", poor / f"left0{number}.jpg")
         shutil.copy(samples / f"right0{number % 4 + 1}.jpg", poor / f"right0{number}.jpg")
     code, stdout, stderr = run_cli(capsys, "calibrate", str(poor / "left*.jpg"), "--square-m", "0.025", "--out",
+                                   str(tmp_path / "poor.json"))
+    assert code == 2 and "left: the fit does not rectify its own views" in stderr
+    assert "the fit is poor (stereo RMS 52.6 px): check that each pair's two images were taken" in stderr
+    assert not (tmp_path / "poor.json").exists()
+    # Right views 3 px up or down by turns: a poor fit (1.5 px) that still rectifies is written with a warning.
+    for number in range(1, 7):
+        image = cv2.imread(str(samples / f"right0{number}.jpg"), 0)
+        move = np.float32([[1, 0, 0], [0, 1, 3 * (-1) ** number]])
+        cv2.imwrite(str(boards / f"right0{number}.jpg"), cv2.warpAffine(image, move, (640, 480),
+                                                                         borderMode=cv2.BORDER_REPLICATE))
+    (boards / "left07.jpg").unlink()
+    code, stdout, stderr = run_cli(capsys, "calibrate", str(boards / "left*.jpg"), "--square-m", "0.025", "--out",
                                    str(tmp_path / "poor.json"))
     assert code == 0 and "svs-depth calibrate: warning: the stereo reprojection RMS is" in stderr
     assert "no one pair explains it" in stderr and (tmp_path / "poor.json").is_file()
@@ -422,6 +435,21 @@ def test_calibrate_names_the_view_of_another_size_and_neither_source(capsys, tmp
         collect_board_views([("a", large, large), ("b", large, small)], (9, 6))
     code, _, stderr = run_cli(capsys, "calibrate", "--square-m", "0.025", "--out", str(tmp_path / "rig.json"))
     assert code == 2 and "give left images (files or patterns) or --pairs LIST.txt, got neither" in stderr
+
+
+def test_boards_moved_but_never_tilted_are_refused_not_written(capsys, samples, tmp_path):
+    """Found by an audit: four pairs of one pose moved across the field (no tilt) wrote a file at 0.34 px stereo RMS
+    with focal 3868 px (516) and a 0.14 m baseline (0.083), exit 0, which every command then refused as edited."""
+    for number, shift in enumerate((0, 15, 30, 45)):
+        move = np.float32([[1, 0, shift], [0, 1, shift / 3]])
+        for view in ("left", "right"):
+            image = cv2.imread(str(samples / f"{view}01.jpg"), 0)
+            cv2.imwrite(str(tmp_path / f"{view}0{number}.png"),
+                        cv2.warpAffine(image, move, (640, 480), borderMode=cv2.BORDER_REPLICATE))
+    out = tmp_path / "rig.json"
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out", str(out))
+    assert code == 2 and "left: the fit does not rectify its own views (focal " in stderr and "tilt it" in stderr
+    assert stderr.count("\n") == 1 and not out.exists()
 
 
 def test_boards_seen_by_one_camera_alone_name_the_other_camera_not_the_board_size(samples):
