@@ -183,6 +183,25 @@ def _figure(calibration, views, images):
                                    f"{calibration.row_error_mean_px:.2f} px", point_label="corner")
 
 
+def _warnings(calibration, views) -> list[str]:
+    """What the calibration written may get wrong: a poor fit, rows of its boards left apart, few pairs."""
+    from ..geometry.chessboard import GOOD_ROW_ERROR_PX, GOOD_STEREO_RMS_PX
+
+    warnings = [] if calibration.rms_stereo_px <= GOOD_STEREO_RMS_PX else [
+        f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px, and no one pair explains it (a rig "
+        f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances from this file may be far off; check that each "
+        "pair's two images were taken at the same moment, and --board"]
+    good_rows = GOOD_ROW_ERROR_PX * max(1.0, calibration.image_wh[0] / 640)
+    if not warnings and calibration.row_error_mean_px > good_rows:  # (a poor fit's rows are said with it)
+        warnings.append(f"the chessboards' rows lie {calibration.row_error_mean_px:.2f} px apart after "
+                        f"rectification (a rig's within {good_rows:g} px): the focal length and baseline may be far "
+                        "off; tilt the board toward and away from the cameras between pairs, not only move it")
+    if len(views.names) < FEW_PAIRS:  # 3 of the shared pairs: focal 576 px, against 516 from all 13 (an audit)
+        warnings.append(f"calibrated from {len(views.names)} pairs: {FEW_PAIRS}-20 poses of the board across the "
+                        "field give a steadier focal length and baseline")
+    return warnings
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -190,8 +209,7 @@ def run(args: argparse.Namespace) -> int:
         import cv2
 
         from ..geometry.calibration import write_calibration
-        from ..geometry.chessboard import GOOD_STEREO_RMS_PX, calibrate_stereo_rig, collect_board_views, \
-            drop_misfit_pairs
+        from ..geometry.chessboard import calibrate_stereo_rig, collect_board_views, drop_misfit_pairs
         from ..evaluation.sweep import code_version
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..core.files import check_output_file
@@ -214,13 +232,7 @@ def run(args: argparse.Namespace) -> int:
     pairs = [(left, gray(left, named_by), gray(right, named_by)) for left, right, named_by in paths]
     views = drop_misfit_pairs(collect_board_views(pairs, board, source), args.square_m, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
-    warnings = [] if calibration.rms_stereo_px <= GOOD_STEREO_RMS_PX else [
-        f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px, and no one pair explains it (a rig "
-        f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances from this file may be far off; check that each "
-        "pair's two images were taken at the same moment, and --board"]
-    if len(views.names) < FEW_PAIRS:  # 3 of the shared pairs: focal 576 px, against 516 from all 13 (an audit)
-        warnings.append(f"calibrated from {len(views.names)} pairs: {FEW_PAIRS}-20 poses of the board across the "
-                        "field give a steadier focal length and baseline")
+    warnings = _warnings(calibration, views)
     if args.figure:  # drawn and written first: a figure that fails leaves no calibration file behind (one that
         # could not be written on a full disk once replaced a rig's calibration and exited 1 without a report)
         figure = _figure(calibration, views, next(p for p in pairs if p[0] == views.names[0])[1:])

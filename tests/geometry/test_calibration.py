@@ -450,6 +450,17 @@ def test_boards_moved_but_never_tilted_are_refused_not_written(capsys, samples, 
     code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out", str(out))
     assert code == 2 and "left: the fit does not rectify its own views (focal " in stderr and "tilt it" in stderr
     assert stderr.count("\n") == 1 and not out.exists()
+    # A tilted pose moved alone: focal 877 px (516), a 0.092 m baseline, rows 0.95 px apart: written as before,
+    # but no longer with the few pairs as the one warning.
+    for number, (dx, dy) in enumerate(((0, 0), (20, -10), (-25, 12), (10, 25), (-15, -20))):
+        for view in ("left", "right"):
+            image = cv2.imread(str(samples / f"{view}03.jpg"), 0)
+            cv2.imwrite(str(tmp_path / f"{view}0{number}.png"), cv2.warpAffine(
+                image, np.float32([[1, 0, dx], [0, 1, dy]]), (640, 480), borderMode=cv2.BORDER_REPLICATE))
+    code, stdout, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out",
+                                   str(out), "--json")
+    assert code == 0 and out.is_file() and "the chessboards' rows lie 0.95 px apart after rectification" in stderr
+    assert "tilt the board toward and away" in json.loads(stdout)["warnings"][0]
 
 
 def test_boards_seen_by_one_camera_alone_name_the_other_camera_not_the_board_size(samples):
