@@ -19,7 +19,7 @@ from .estimate_report import (_calibration_source, _write_disparity, claim_expor
 from .features import check_native_pixels, checked_size, load_pair, warn_if_enlarged
 from .progress import Progress
 from .rig import (calibration_file_source, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
-                  take_kept_calibration, with_calibrated_rectification)
+                  take_kept_calibration, warn_scenes_keep_their_own, with_calibrated_rectification)
 
 __all__ = []
 
@@ -296,17 +296,20 @@ def _run_many(args: argparse.Namespace) -> int:
                    for start in range(0, total, args.batch_size))
     else:
         total, results = _worker_results(args, listed, workers, max(1, budget // workers))
-    bad = []
+    bad, unrectified = [], []
     # A bar for a person watching; in a log or a pipe, a plain line every few seconds and a summary.
     with Progress(total, "estimate") as progress:
         for lines in results:
             for report, reason in lines:
                 if reason is not None:
                     bad.append(reason)
+                elif report.get("calibration") and not report["calibration_rectified"]:  # (under --calibration:
+                    unrectified.append(report["left"])  # a scene folder, ranged with its own calibration)
                 heading = f"{report['left']} {report['right'] or ''}".rstrip()
                 text = None if args.json else "\n".join([heading, *format_report(report, batched=True)])
                 progress.write(dumps_strict(report) if args.json else text)
             progress.update(len(lines))
+    warn_scenes_keep_their_own(args, unrectified)
     if bad:
         print(f"svs-depth estimate: error: --pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)

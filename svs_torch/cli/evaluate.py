@@ -10,8 +10,8 @@ from .common import (Terminated, add_disparity_export_options, dumps_strict, fin
                      output_file, positive_float, positive_int, resolve_export_options)
 from .features import MAX_PIXELS, checked_size
 from .progress import Progress
-from .rig import (add_calibration_option, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
-                  rig_provenance, take_kept_calibration, with_calibrated_rectification)
+from .rig import (add_calibration_option, check_no_manual_calibration, eval_rig_calibration, rig_provenance,
+                  with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -241,20 +241,6 @@ def _store_beside_export(export, *args):
         raise
 
 
-def _rig(args: argparse.Namespace, sources: list):
-    """The rig calibration of ``--calibration``, or the one kept beside the listed capture folders' index
-    (:func:`~svs_torch.cli.rig.calibration_kept_beside`, then set as ``args.calibration``), or None."""
-    from ..core.errors import InputError
-
-    kept = calibration_kept_beside(args, [source.list_file for source in sources
-                                          if not (source.scene or source.problem or source.focal_px is not None)])
-    if kept and args.db:  # as --calibration with --db
-        raise InputError(f"--db: the pairs were captured with a rig calibration ({kept}), which a results store "
-                         "does not record yet; run without --db")
-    take_kept_calibration(args, kept, "eval")
-    return calibration_from_args(args)
-
-
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -274,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--calibration, --db: a results store does not record the calibration; run without --db")
     config, preset, overrides = resolve_config(args.preset, args.config, args.sets)
     sources, repeated = unique_sources(read_pair_sources(args.paths, "path"))
-    calibration = _rig(args, sources)
+    calibration = eval_rig_calibration(args, sources)
     calibrated = with_calibrated_rectification(config, args)  # a --set rectify=... still wins
     config = replace(calibrated, rectify=config.rectify) if "rectify" in overrides else calibrated
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means

@@ -156,6 +156,37 @@ def calibration_file_source(args: argparse.Namespace, source) -> str | None:
     return rig_provenance(path)
 
 
+def warn_scenes_keep_their_own(args: argparse.Namespace, scenes: list[str]) -> None:
+    """Warn that ``--calibration`` was not applied to the pairs named ``scenes`` (scene folders: a dataset's pair,
+    not the rig's). Why: ``eval`` and ``estimate --pairs`` of scene folders with ``--calibration rig.json`` ranged
+    them with their own calibration or, where a scene ships none, the SVS model, and nothing said the file given
+    was not used (an audit of calibration use)."""
+    path = getattr(args, "calibration", None)
+    if path and scenes:
+        import warnings
+
+        listed = ", ".join(scenes[:3]) + (f" and {len(scenes) - 3} more" if len(scenes) > 3 else "")
+        warnings.warn(f"--calibration {path}: not applied to {len(scenes)} scene folder{'s' * (len(scenes) > 1)} "
+                      f"({listed}): a scene is not the rig's pair, and keeps its own calibration (the SVS model "
+                      "where it ships none); the file rectifies listed image pairs and captures", stacklevel=3)
+
+
+def eval_rig_calibration(args: argparse.Namespace, sources: list):
+    """``eval``'s rig calibration over its pair ``sources``: the one of ``--calibration`` (scene folders keep their
+    own: warned of), or the one kept beside the listed capture folders' index (:func:`calibration_kept_beside`,
+    then set as ``args.calibration``), or None."""
+    from ..core.errors import InputError
+
+    kept = calibration_kept_beside(args, [source.list_file for source in sources
+                                          if not (source.scene or source.problem or source.focal_px is not None)])
+    if kept and args.db:  # as --calibration with --db
+        raise InputError(f"--db: the pairs were captured with a rig calibration ({kept}), which a results store "
+                         "does not record yet; run without --db")
+    take_kept_calibration(args, kept, "eval")
+    warn_scenes_keep_their_own(args, [source.name for source in sources if source.scene and not source.problem])
+    return calibration_from_args(args)
+
+
 def rig_provenance(path: str) -> str:
     """How a report names the calibration of a pair ``--calibration path`` rectified (estimate and eval alike)."""
     return f"--calibration {path} (the pair rectified by it)"

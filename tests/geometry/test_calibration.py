@@ -545,6 +545,30 @@ def test_a_listed_pair_with_its_own_calibration_is_not_ranged_by_the_rigs_settin
     assert code == 0 and json.loads(stdout.splitlines()[0])["status"] == "OK"
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_scene_folders_under_a_rig_calibration_are_said_to_keep_their_own(capsys, rig, samples, data_dir, tmp_path,
+                                                                          workers):
+    """Found by an audit of calibration use: eval and estimate --pairs of scene folders with --calibration rig.json
+    ranged them with their own calibration, or the SVS model where a scene ships none (Cones), and nothing said the
+    file given was not used. Now one warning names them; the rig's own pairs of the same list are not named."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    scenes = data_dir / "middlebury_2003_quarter"
+    listed = tmp_path / "list.txt"
+    listed.write_text(f"{scenes / 'Cones'}\n{samples / 'left01.jpg'} {samples / 'right01.jpg'}\n{scenes / 'Teddy'}\n")
+    for argv in (["estimate", "--pairs", str(listed), "--workers", workers], ["eval", str(listed)]):
+        code, stdout, stderr = run_cli(capsys, *argv, "--calibration", str(path), "--size", "320x240", "--json")
+        warned = [line for line in stderr.splitlines() if "not applied to" in line]
+        assert code == 0 and len(warned) == 1, (argv, stderr)
+        assert f"--calibration {path}: not applied to 2 scene folders (" in warned[0]
+        assert "Cones" in warned[0] and "Teddy" in warned[0] and "left01" not in warned[0]
+        rows = [json.loads(line) for line in stdout.splitlines()[:3]]
+        assert [row["status"] for row in rows] == ["OK"] * 3
+    code, _, stderr = run_cli(capsys, "eval", str(scenes / "Teddy"), "--size", "320x240")  # no file, no warning
+    assert code == 0 and "not applied" not in stderr
+
+
 def test_epipolar_lines_are_spread_over_the_rows():
     y = np.array([5.0, 100.0, 6.0, 50.0, 7.0])
     assert spread_rows(y, 3).tolist() == [0, 4, 1]  # rows 5, 7, 100: lowest, middle, highest rank
