@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         configs, pairs = len(sweep.configs), len(sweep.sources)
         print(f"svs-depth sweep: {configs} configuration{'s' * (configs != 1)} x {pairs} pair{'s' * (pairs != 1)}; "
               f"{done} row{'s' * (done != 1)} already in {args.db}, {total} to run", file=sys.stderr, flush=True)
-        bar = Progress(total, "sweep")
+        bar = Progress(total, "sweep", unit="row")  # (configuration, pair) rows: "20/20 pairs" for 10 pairs read odd
 
     def warn(message: str) -> None:
         if bar is not None:

@@ -422,6 +422,18 @@ def test_rows_stored_counts_this_sweeps_rows_only(data_dir, tmp_path, capsys):
     assert "svs-depth sweep: 1 configuration x 1 pair; " in err  # not "1 configurations x 1 pairs"
 
 
+def test_a_sweeps_progress_counts_rows_not_pairs(data_dir, tmp_path, capsys):
+    """Found by an audit of the results' numbers: a sweep of 2 configurations over 10 pairs said 'sweep: 20/20
+    pairs', its items being (configuration, pair) rows, as its first line counts them."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    sweep_file = tmp_path / "two.toml"
+    sweep_file.write_text(f'paths = ["{teddy}"]\nsize = "128x96"\n[grid]\n"segmentation.kernel_size" = [3, 5]\n')
+    assert main(["sweep", str(sweep_file), "--db", str(tmp_path / "s.sqlite"), "--workers", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "svs-depth sweep: 2 configurations x 1 pair; 0 rows already in" in err and "2 to run" in err
+    assert "sweep: 2/2 rows in " in err and "/2 pairs" not in err
+
+
 def test_a_sweeps_count_says_the_failed_rows_it_stored(data_dir, tmp_path, capsys):
     """Found by an audit: a list with a pair whose right image is missing ended "2 of 4 stored" (and rows_stored 2)
     while the file held 4 rows, 2 of them BAD_INPUT, which a resume runs again; the line now says so."""
