@@ -209,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         import cv2
 
         from ..geometry.calibration import write_calibration
-        from ..geometry.chessboard import calibrate_stereo_rig, collect_board_views, drop_misfit_pairs
+        from ..geometry.chessboard import calibrate_stereo_rig, drop_misfit_pairs
         from ..evaluation.sweep import code_version
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..core.files import check_output_file
@@ -229,13 +229,13 @@ def run(args: argparse.Namespace) -> int:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
     source = "--pairs" if args.pairs else "left"  # the argument that named the files (a right one's too)
-    pairs = [(left, gray(left, named_by), gray(right, named_by)) for left, right, named_by in paths]
-    views = drop_misfit_pairs(collect_board_views(pairs, board, source), args.square_m, board)
+    views = drop_misfit_pairs(_board_views(paths, board, source, gray), args.square_m, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
     warnings = _warnings(calibration, views)
     if args.figure:  # drawn and written first: a figure that fails leaves no calibration file behind (one that
         # could not be written on a full disk once replaced a rig's calibration and exited 1 without a report)
-        figure = _figure(calibration, views, next(p for p in pairs if p[0] == views.names[0])[1:])
+        first = next(pair for pair in paths if pair[0] == views.names[0])
+        figure = _figure(calibration, views, (gray(first[0], first[2]), gray(first[1], first[2])))
         written = write_image_atomic(args.figure, figure, args.figure_option)
     try:
         write_calibration(args.out, calibration)
@@ -251,6 +251,27 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("\n".join(_text(calibration, views, args.out, args.figure)), flush=True)
     return 0
+
+
+def _board_views(paths: list, board: tuple[int, int], source: str, gray):
+    """The board's views in the ``(left, right, named_by)`` image ``paths`` (``gray`` reads one), with a progress
+    bar: 20 pairs of a 12-MP camera take minutes, and were searched without a word (an audit of calibrate). One
+    pair in memory at a time, counted once its boards were looked for; no summary line (the report says how many
+    pairs were used, and an error's one line is all it says)."""
+    from ..geometry.chessboard import collect_board_views
+    from .progress import Progress
+
+    progress = Progress(len(paths), "calibrate")
+
+    def decoded():
+        for left, right, named_by in paths:
+            yield left, gray(left, named_by), gray(right, named_by)
+            progress.update(1)
+
+    try:
+        return collect_board_views(decoded(), board, source)
+    finally:
+        progress.close(summary=False)
 
 
 def square_metres(text: str) -> float:

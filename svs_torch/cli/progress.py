@@ -134,8 +134,9 @@ class Progress:
         """Print a line on the progress stream (a warning) without breaking the bar."""
         self.write(line, self.stream)
 
-    def close(self) -> None:
-        """End the bar; in plain mode, the summary line (count, seconds, rate). Once."""
+    def close(self, summary: bool = True) -> None:
+        """End the bar; in plain mode, the summary line (count, seconds, rate) unless ``summary`` is False (a
+        command ending on an error whose one line is all it says). Once."""
         if self._closed:
             return
         self._closed = True
@@ -145,7 +146,7 @@ class Progress:
                     _drawn.remove(self)
                 self._bar.close()
                 return
-            if self._silent:
+            if self._silent or not summary:
                 return
             elapsed = self.clock() - self.started
             rate = self._rate(elapsed)

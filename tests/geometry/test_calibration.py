@@ -224,6 +224,22 @@ def test_calibrate_command(capsys, samples, tmp_path):
                                                                                 "left07.jpg"]
 
 
+def test_calibrate_shows_its_progress_over_the_pairs(capsys, samples, tmp_path, monkeypatch):
+    """Was: calibrate decoded every image, then searched each for the board, without a word: 20 pairs of a 12-MP
+    camera took minutes of silence (an audit of calibrate). Now a progress bar (plain lines into a log) counts the
+    pairs as their boards are looked for, each pair decoded only then."""
+    from svs_torch.cli import progress
+
+    counted = []
+    real_update = progress.Progress.update
+    monkeypatch.setattr(progress.Progress, "update",
+                        lambda self, count=1: (real_update(self, count), counted.append((self.desc, self.done))))
+    code, _, stderr = run_cli(capsys, "calibrate", str(samples / "left0[1-5].jpg"), "--square-m", "0.025",
+                              "--out", str(tmp_path / "rig.json"))
+    assert code == 0 and counted == [("calibrate", n) for n in range(1, 6)]
+    assert "calibrate: 5/5" not in stderr  # no summary line: the report says how many pairs were used
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--board", "9"], "--board: expected inner corners as COLSxROWS"),
     (["--board", "2x6"], "--board: expected inner corners as COLSxROWS, each 3 to 100"),  # OpenCV's own limit
