@@ -31,7 +31,8 @@ def _calibration_source(source, args) -> str:
     command's options, or the SVS model."""
     from ..data import pair_calibration_source
 
-    return calibration_file_source(args, source) or pair_calibration_source(source, args.focal_px, args.baseline_m)
+    return calibration_file_source(args, source) or pair_calibration_source(source, args.focal_px, args.baseline_m,
+                                                                            args.doffs_px)
 
 
 def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str,

@@ -20,25 +20,29 @@ __all__ = ["SVS_MODEL_ASSUMED", "calibration_fields", "calibration_record", "for
 SVS_MODEL_ASSUMED = "the SVS model assumed"
 
 
-def options_calibration_source(focal_px: float | None, baseline_m: float | None) -> str:
-    """The source of a plain pair's calibration from the command's ``--focal-px`` / ``--baseline-m``."""
+def options_calibration_source(focal_px: float | None, baseline_m: float | None, doffs_px: float = 0.0) -> str:
+    """The source of a plain pair's calibration from the command's ``--focal-px`` / ``--baseline-m`` /
+    ``--doffs-px`` (0: not given, its default). Why the doffs: ``--doffs-px 52`` alone was reported as "the SVS
+    model assumed", beside the 52 px it had put into every distance (an audit)."""
     given = [name for name, value in (("--focal-px", focal_px), ("--baseline-m", baseline_m)) if value is not None]
-    if len(given) == 2:
+    given += ["--doffs-px"] if doffs_px else []
+    if len(given) >= 2 and given[:2] == ["--focal-px", "--baseline-m"]:
         return "command-line options"
     if given:
-        return f"command-line option {given[0]}, the SVS model assumed for the rest"
+        return (f"command-line option{'s' if len(given) > 1 else ''} {' and '.join(given)}, the SVS model assumed "
+                "for the rest")
     return SVS_MODEL_ASSUMED
 
 
 def pair_calibration_source(source: PairSource, focal_px: float | None = None,
-                            baseline_m: float | None = None) -> str:
+                            baseline_m: float | None = None, doffs_px: float = 0.0) -> str:
     """Where :func:`~svs_torch.data.load_pair_source` takes ``source``'s calibration from, given the command's
-    options ``focal_px`` / ``baseline_m`` (None: not given)."""
+    options ``focal_px`` / ``baseline_m`` (None: not given) and ``doffs_px`` (0: not given)."""
     if source.scene:
         return scene_calibration_source(source.left)
     if source.focal_px is not None:
         return f"the pair list, {source.listed_at}" if source.listed_at else "the pair list"
-    return options_calibration_source(focal_px, baseline_m)
+    return options_calibration_source(focal_px, baseline_m, doffs_px)
 
 
 def calibration_record(batch: StereoBatch, index: int, source: str, width_scale: float = 1.0) -> dict:

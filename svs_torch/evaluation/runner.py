@@ -93,7 +93,7 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
         batch = load_pair_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
     except (InputError, OSError) as error:
         return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
-    origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m)
+    origin = pair_calibration_source(source, setup.focal_px, setup.baseline_m, setup.doffs_px)
     if setup.calibration is not None and not source.scene:
         try:
             batch = rectify_with_calibration(batch, setup.calibration)

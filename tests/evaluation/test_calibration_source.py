@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from svs_torch.data import load_stereo_pair, pair_calibration_source, read_pair_list
+from svs_torch.data import PairSource, load_stereo_pair, pair_calibration_source, read_pair_list
 from svs_torch.data.calibration import calibration_record, format_calibration
 from svs_torch.data.datasets import scene_calibration_source
 from svs_torch.evaluation import PairEvaluation, summarize
@@ -62,6 +62,18 @@ def test_a_listed_calibration_names_its_line_and_options_name_themselves(tmp_pat
     assert pair_calibration_source(plain) == "the SVS model assumed"
     assert pair_calibration_source(plain, 700.0, 0.12) == "command-line options"
     assert pair_calibration_source(plain, 700.0).startswith("command-line option --focal-px, the SVS model")
+
+
+def test_a_doffs_given_alone_is_named_as_the_options_source(data_dir, capsys):
+    """``--doffs-px 52`` alone put 52 px into every distance and was reported as "the SVS model assumed"."""
+    assert pair_calibration_source(PairSource("a.png", "b.png"), None, None, 52.0) == (
+        "command-line option --doffs-px, the SVS model assumed for the rest")
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    code, out, _ = run_cli(capsys, "estimate", str(scene / "im0.png"), str(scene / "im1.png"), "--size", "160x120",
+                           "--focal-px", "1500", "--doffs-px", "52", "--json")
+    record = json.loads(out)["calibration"]
+    assert code == 0 and record["doffs_px"] == 52.0
+    assert record["source"] == "command-line options --focal-px and --doffs-px, the SVS model assumed for the rest"
 
 
 def test_calibration_record_reports_the_input_size(data_dir):
