@@ -151,6 +151,12 @@ SWAPPED_VIEWS = ("most matched points lie to the right in the right view (negati
 DOFFS_BEHIND = ("most matched points have a positive disparity d but d + doffs <= 0, behind the rig: is the doffs' "
                 "sign right (cx_right - cx_left, in pixels)?")
 UNRANGED = ("NO_DENSE_DEPTH", "NO_POSITIVE_DISPARITY")
+#: What a pair whose two views are one image is told, whatever stage stopped it (an audit: Teddy's left image given
+#: twice read "status NO_OBJECTS", what a pair with nothing near reads, and no hint).
+IDENTICAL_VIEWS = ("every matched point lies at the same place in both views (zero disparity, no depth anywhere): "
+                   "are LEFT and RIGHT the same image, one camera's frame given twice?")
+#: The statuses of a pair the pipeline did not run on (:func:`unranged_report`).
+NOT_RUN = ("TOO_SMALL", "BAD_INPUT")
 
 
 def _views_swapped(result, index: int) -> bool:
@@ -158,6 +164,15 @@ def _views_swapped(result, index: int) -> bool:
     points, inliers = result.points, result.fundamental.inliers[index]
     disparity = (points.left[index, :, 0] - points.right[index, :, 0])[inliers & points.valid[index]]
     return disparity.numel() >= 8 and float((disparity < 0).float().mean()) >= 0.75
+
+
+def _views_identical(result, index: int) -> bool:
+    """Whether nine in ten of pair ``index``'s matches (at least 8) lie within 0.05 px of the same place in both
+    views: a real pair's sub-pixel keypoints never do, even at infinity (its rows and noise differ)."""
+    points = result.points
+    valid = points.valid[index]
+    offsets = (points.left[index] - points.right[index])[valid].abs().amax(dim=-1)
+    return offsets.numel() >= 8 and float((offsets <= 0.05).float().mean()) >= 0.9
 
 
 def _unranged_reason(result, index: int) -> str | None:
@@ -186,7 +201,8 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     return {
         "status": status,
         # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
-        "reason": _unranged_reason(result, index) if status in UNRANGED else None,
+        "reason": (IDENTICAL_VIEWS if status != "OK" and _views_identical(result, index)
+                   else _unranged_reason(result, index) if status in UNRANGED else None),
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),
@@ -242,7 +258,7 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
     """The text lines of :func:`pair_report`'s ``report``. ``nearest_name``: what the obstacle ranged nearest is
     called (``demo`` says "nearest kept obstacle" when its ground truth holds a nearer one that was not kept).
     ``batched``: its time is its batch's over the batch's pairs (``estimate --pairs``), and says so."""
-    if report.get("reason") and report.get("status") not in UNRANGED:  # a pair the pipeline did not run on
+    if report.get("reason") and report.get("status") in NOT_RUN:  # a pair the pipeline did not run on
         from ..data import format_calibration
 
         return [f"status {report['status']}: {report['reason']}"] + (
@@ -250,7 +266,7 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
     per = " a pair over its batch" if batched else ""  # every pair of a batch read the same ms unexplained (an audit)
     lines = [f"status {report['status']}: {report['num_keypoints'][0]}+{report['num_keypoints'][1]} keypoints, "
              f"{report['num_matches']} matches, {report['num_inliers']} inliers, {report['time_s'] * 1e3:.0f} ms{per}"]
-    if report.get("reason"):  # a ranged pair's hint (SWAPPED_VIEWS)
+    if report.get("reason"):  # a ranged pair's hint (SWAPPED_VIEWS, IDENTICAL_VIEWS)
         lines.append(f"  {report['reason']}")
     if report.get("calibration"):
         from ..data import format_calibration

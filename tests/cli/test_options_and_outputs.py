@@ -515,6 +515,22 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_a_pair_of_one_image_twice_is_told_so_not_only_that_nothing_is_near(data_dir, capsys):
+    """Found by an audit: Teddy's left image given as both views read "status NO_OBJECTS" (RANSAC_FAILED with the
+    paper's preset), what a pair with nothing near reads, with no hint: every match lies at zero disparity."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    for preset in ([], ["--preset", "paper"]):
+        code, out, _ = run_cli(capsys, "estimate", left, left, "--size", "160x133", "--json", *preset)
+        report = json.loads(out)
+        assert code == 0 and report["status"] != "OK" and report["nearest_m"] is None
+        assert "are LEFT and RIGHT the same image" in report["reason"]
+    code, out, _ = run_cli(capsys, "estimate", left, left, "--size", "160x133")
+    lines = out.splitlines()
+    assert "keypoints" in lines[0] and lines[1].strip().endswith("one camera's frame given twice?")
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x133", "--json")
+    assert json.loads(out)["reason"] is None
+
+
 def test_a_pair_too_small_to_range_names_its_size_and_calibration(tmp_path, capsys):
     """Found by an audit: a 4x4 pair's report had "calibration": null and "image_size_px": null, and its text no
     calibration line, where every result names them."""
