@@ -142,8 +142,8 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
     return reports
 
 
-#: What a ranged pair whose views seem swapped is told (an audit: Teddy's views swapped, NO_DENSE_DEPTH after the
-#: whole run and no hint): its matches lie to the right of their left points, where a left view's lie to the left.
+#: What a pair whose views seem swapped is told, ranged or not (an audit: Teddy's views swapped, NO_DENSE_DEPTH after
+#: the whole run and no hint): its matches lie to the right of their left points, where a left view's lie to the left.
 SWAPPED_VIEWS = ("most matched points lie to the right in the right view (negative disparity): are LEFT and RIGHT "
                  "swapped?")
 #: What an unranged pair whose matches lie in front of the rig until its doffs is added is told (an audit: Teddy with
@@ -175,11 +175,20 @@ def _views_identical(result, index: int) -> bool:
     return offsets.numel() >= 8 and float((offsets <= 0.05).float().mean()) >= 0.9
 
 
-def _unranged_reason(result, index: int) -> str | None:
-    """Why an unranged pair may be so, where its matches tell: views swapped, or a doffs that puts in front of the
-    rig (three quarters of its ranged inliers at d > 0) what it ranges behind it (three quarters at d + doffs <= 0)."""
+def _reason(result, index: int, status: str) -> str | None:
+    """What pair ``index``'s matches tell of its views, whatever it was ranged: one image twice (a pair that
+    stopped), views swapped (ranged or not: swapped KITTI, Pipes, Books, Aloe and Cloth1 pairs were ranged, "OK",
+    at 0.7-1.7 m, "verified", without a word; an audit), or for an unranged pair a doffs of the wrong sign."""
+    if status != "OK" and _views_identical(result, index):
+        return IDENTICAL_VIEWS
     if _views_swapped(result, index):
         return SWAPPED_VIEWS
+    return _unranged_reason(result, index) if status in UNRANGED else None
+
+
+def _unranged_reason(result, index: int) -> str | None:
+    """Why an unranged pair may be so, where its matches tell: a doffs that puts in front of the rig (three
+    quarters of its ranged inliers at d > 0) what it ranges behind it (three quarters at d + doffs <= 0)."""
     disparities, depths = result.depth.disparities, result.depth.points
     valid = disparities.valid[index]
     if int(valid.sum()) < 8:
@@ -201,8 +210,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     return {
         "status": status,
         # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
-        "reason": (IDENTICAL_VIEWS if status != "OK" and _views_identical(result, index)
-                   else _unranged_reason(result, index) if status in UNRANGED else None),
+        "reason": _reason(result, index, status),
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),

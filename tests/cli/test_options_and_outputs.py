@@ -515,6 +515,21 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_a_swapped_pair_that_is_ranged_anyway_is_told_so(data_dir, capsys):
+    """Found by an audit: Cloth1's (and Aloe's, Books', Pipes', KITTI's) views swapped were ranged "OK" at
+    0.6-1.7 m and "verified", with no hint: the hint was given only where the swap left the pair unranged."""
+    scene = data_dir / "middlebury_2005_2006_third" / "Cloth1"
+    left, right = str(scene / "view1.png"), str(scene / "view5.png")
+    code, out, _ = run_cli(capsys, "estimate", right, left, "--size", "160x128", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "OK" and report["nearest_m"] is not None
+    assert report["reason"].endswith("are LEFT and RIGHT swapped?")
+    code, out, _ = run_cli(capsys, "estimate", right, left, "--size", "160x128")
+    assert out.splitlines()[1].strip().endswith("are LEFT and RIGHT swapped?") and "nearest obstacle" in out
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x128", "--json")
+    assert json.loads(out)["reason"] is None
+
+
 def test_a_pair_of_one_image_twice_is_told_so_not_only_that_nothing_is_near(data_dir, capsys):
     """Found by an audit: Teddy's left image given as both views read "status NO_OBJECTS" (RANSAC_FAILED with the
     paper's preset), what a pair with nothing near reads, with no hint: every match lies at zero disparity."""
