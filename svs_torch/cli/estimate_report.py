@@ -288,6 +288,8 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
                  if report.get(key)]
     if corrected:
         lines.append("  right camera: " + " and ".join(corrected))
+    if report.get("rectified") and not report.get("row_aligned"):  # the JSON and the figure said so, the text not
+        lines.append("  pair rectified from its fundamental matrix (uncalibrated, Sec. 3.4): depth measured on it")
     if report.get("verified") is False and report["objects"]:  # the JSON said so; the text did not
         lines.append(f"  geometry not verified: the dense map confirms {report['num_agreeing_inliers']} of "
                      f"{report['num_inliers']} RANSAC inliers, so each object needed more of its region measured "

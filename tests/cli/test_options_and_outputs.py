@@ -530,6 +530,18 @@ def test_a_swapped_pair_that_is_ranged_anyway_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_the_text_says_when_the_pair_was_rectified_from_its_fundamental_matrix():
+    """Found by an audit: a pair whose rows disagreed was rectified from F ("rectified": true in the JSON, the
+    figure's rectified pair), and its text said nothing of it (it says a row alignment and a calibration's)."""
+    from svs_torch.cli.estimate_report import format_report, unranged_report
+
+    report = {**unranged_report("OK", None, "dense"), "num_keypoints": [494, 493], "num_matches": 232,
+              "num_inliers": 220, "rectified": True}
+    assert any("rectified from its fundamental matrix" in line for line in format_report(report))
+    for aligned in ({"rectified": False}, {"row_aligned": True}):
+        assert not any("fundamental matrix" in line for line in format_report({**report, **aligned}))
+
+
 def test_a_pair_of_one_image_twice_is_told_so_not_only_that_nothing_is_near(data_dir, capsys):
     """Found by an audit: Teddy's left image given as both views read "status NO_OBJECTS" (RANSAC_FAILED with the
     paper's preset), what a pair with nothing near reads, with no hint: every match lies at zero disparity."""
