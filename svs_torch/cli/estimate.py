@@ -30,7 +30,9 @@ RANSAC, rectification, then range the obstacles.
 
 By default (--range dense) a dense SAD block matcher measures the disparity at every pixel of the kept
 regions (on the rectified pair, or the raw one when its rows already agree); each object's distance is the
-median depth over its region's interior, with its 10th/90th percentiles and the count of valid pixels;
+median depth over its region's interior, with its 10th/90th percentiles and the count of valid pixels (a
+pixel the matcher left unmeasured takes its row's nearest measured neighbours' disparity first, so the
+median is over the whole region: --disparity-out's map leaves it unknown; DenseConfig.fill_invalid);
 R_min / R_max are the nearest / farthest object, and the nearest object's 10th percentile is its nearest
 visible surface. An object with fewer than 20 valid pixels where the right view holds every searched
 disparity (a near strip on the left border) gets no depth ("num_in_view_px" in the JSON). On the shared

@@ -1203,6 +1203,9 @@ def test_estimate_help_states_the_verification_defaults():
             f"{config.depth.min_object_valid_fraction:.0%}").replace("%", " %") in estimate.EPILOG.replace("\n", " ")
     assert config.drop_unmeasured_below_share is None
     assert '"dropped_unmeasured": 0 by default, which lists every kept region' in estimate.EPILOG.replace("\n", " ")
+    # Found by an audit: KITTI 2012 000001's nearest object read 3.778 m, and the median of --disparity-out's map
+    # over its --masks-out pixels 3.506 m: the help did not say that unmeasured pixels are filled before the median.
+    assert config.dense.fill_invalid and "row's nearest measured neighbours'" in estimate.DESCRIPTION.replace("\n", " ")
 
 
 def test_estimate_text_names_pixels_out_of_view_only_where_some_are():
