@@ -68,8 +68,9 @@ list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGH
 status: "OK" when the obstacles were ranged; otherwise the stage that stopped (NO_OBJECTS, TOO_FEW_KEYPOINTS,
 TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
 a pair whose files cannot be read, with the reason in "reason" (also set for a pair, ranged or not, whose
-matches lie to the right in the right view: are LEFT and RIGHT swapped?, and for one whose matches lie at the same
-place in both views: LEFT and RIGHT one image). Numbers that do not exist are null.
+matches lie to the right in the right view: are LEFT and RIGHT swapped?, and for one whose matches lie at the
+same place in both views: LEFT and RIGHT one image, or whose views share almost no feature: two scenes).
+Numbers that do not exist are null.
 "verified": at least 5 RANSAC inliers have the disparity the dense map measures at their pixel, or RANSAC
 kept 60 inliers and the map confirms 1 (a clipped or noisy view confirms few), or kept 20 and the map confirms
 every one it measured, at least 3, so both views show one scene; where not (a swapped, frozen or unplugged

@@ -155,6 +155,10 @@ UNRANGED = ("NO_DENSE_DEPTH", "NO_POSITIVE_DISPARITY")
 #: twice read "status NO_OBJECTS", what a pair with nothing near reads, and no hint).
 IDENTICAL_VIEWS = ("every matched point lies at the same place in both views (zero disparity, no depth anywhere): "
                    "are LEFT and RIGHT the same image, one camera's frame given twice?")
+#: What a pair that stopped though both views hold features, almost none of them shared, is told (an audit: Teddy's
+#: left view beside Piano's right read NO_DENSE_DEPTH, two noise frames NO_OBJECTS, with no hint).
+UNRELATED_VIEWS = ("the views share almost no feature (fewer than 7 matches of 100 or more keypoints each): do both "
+                   "cameras see the same scene?")
 #: The statuses of a pair the pipeline did not run on (:func:`unranged_report`).
 NOT_RUN = ("TOO_SMALL", "BAD_INPUT")
 
@@ -176,11 +180,15 @@ def _views_identical(result, index: int) -> bool:
 
 
 def _reason(result, index: int, status: str) -> str | None:
-    """What pair ``index``'s matches tell of its views, whatever it was ranged: one image twice (a pair that
-    stopped), views swapped (ranged or not: swapped KITTI, Pipes, Books, Aloe and Cloth1 pairs were ranged, "OK",
-    at 0.7-1.7 m, "verified", without a word; an audit), or for an unranged pair a doffs of the wrong sign."""
+    """What pair ``index``'s matches tell of its views, whatever it was ranged: one image twice or two unrelated
+    views (a pair that stopped), views swapped (ranged or not: swapped KITTI, Pipes, Books, Aloe and Cloth1 pairs
+    were ranged, "OK", at 0.7-1.7 m, "verified", without a word; an audit), or for an unranged pair a doffs of the
+    wrong sign."""
     if status != "OK" and _views_identical(result, index):
         return IDENTICAL_VIEWS
+    few_shared = int(result.num_matches[index]) < 7 and int(result.num_keypoints[index].min()) >= 100
+    if status != "OK" and few_shared:
+        return UNRELATED_VIEWS
     if _views_swapped(result, index):
         return SWAPPED_VIEWS
     return _unranged_reason(result, index) if status in UNRANGED else None

@@ -558,6 +558,24 @@ def test_a_pair_of_one_image_twice_is_told_so_not_only_that_nothing_is_near(data
     assert json.loads(out)["reason"] is None
 
 
+def test_two_views_of_different_scenes_are_told_so(data_dir, capsys, tmp_path):
+    """Found by an audit: Teddy's left view beside Piano's right read NO_DENSE_DEPTH, and two frames of noise
+    NO_OBJECTS (what a pair with nothing near reads), with no hint: their hundreds of features share under 7."""
+    noise = np.random.default_rng(0)
+    for name in ("left.png", "right.png"):
+        cv2.imwrite(str(tmp_path / name), (noise.random((240, 320)) * 255).astype(np.uint8))
+    piano = data_dir / "middlebury_eval3_Q" / "Piano" / "im1.png"
+    cv2.imwrite(str(tmp_path / "piano.png"), cv2.resize(cv2.imread(str(piano)), (450, 375)))
+    teddy = str(data_dir / TEDDY[0])
+    for left, right in ((tmp_path / "left.png", tmp_path / "right.png"), (teddy, tmp_path / "piano.png")):
+        code, out, _ = run_cli(capsys, "estimate", str(left), str(right), "--json")
+        report = json.loads(out)
+        assert code == 0 and report["status"] != "OK" and report["num_matches"] < 7
+        assert report["reason"].endswith("do both cameras see the same scene?")
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "left.png"), str(tmp_path / "right.png"))
+    assert out.splitlines()[1].strip().endswith("do both cameras see the same scene?")
+
+
 def test_a_pair_too_small_to_range_names_its_size_and_calibration(tmp_path, capsys):
     """Found by an audit: a 4x4 pair's report had "calibration": null and "image_size_px": null, and its text no
     calibration line, where every result names them."""
