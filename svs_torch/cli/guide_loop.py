@@ -73,6 +73,15 @@ FLOOR_MEMORY_S = 2.0
 DISTANCE_ALONG = ("floor", "remembered_floor", "camera_pitch", "axis")
 
 
+def _one_image_twice(batch) -> bool:
+    """Whether a grabbed pair's left and right frames are the same image, pixel for pixel, and not a flat one: two
+    cameras' frames of a scene never are (each sensor has its own noise), one frame sent for both always is. Two
+    flat frames (both lenses covered, black or clipped) may be equal and are the pipeline's to find blank."""
+    if batch is None or batch.left.shape != batch.right.shape or not bool((batch.left == batch.right).all()):
+        return False
+    return bool(batch.left.amax() > batch.left.amin())
+
+
 class FloorMemory:
     """Which distances ``guide`` warns on (:mod:`svs_torch.depth.floor_distance`): where the pair's floor rule found
     the floor, the obstacle nearest ahead along it (a walker's camera is pitched down, and depth along its axis puts
@@ -115,7 +124,7 @@ class GuideSession:
                  log: GuideLog) -> None:
         self.args, self.size, self.ranged = args, size, ranged
         self.guide, self.status_line, self.log = guide, status_line, log
-        self.processed = self.torn = 0
+        self.processed = self.torn = self.one_image = 0
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
         self.roles_said = False
         self.lost_at_s: float | None = None
@@ -190,6 +199,8 @@ class GuideSession:
                     self._waiting(time.monotonic())
                 elif gap_limit_s is not None and abs(item.pairs[0].time_between_frames_s) > gap_limit_s:
                     self._torn(item)
+                elif _one_image_twice(item.batch):
+                    self._one_image(item)
                 else:
                     self._range(item)
 
@@ -261,12 +272,26 @@ class GuideSession:
         self.processed += 1
         self.torn += 1
 
+    def _one_image(self, item) -> None:
+        """A pair whose two frames are one image, pixel for pixel (a driver or a relay that sent one board's frame
+        for both): not ranged, not seen. Ranged, it measured a view with nothing near (every disparity 0), "seen",
+        so guide stayed silent, which the walker hears as a clear way (an audit of estimate's numbers)."""
+        now = time.monotonic()
+        self._come_back(now)
+        self._watch_sight(False, "IDENTICAL_VIEWS", now)
+        self._show_not_seen("the two cameras sent one image: not ranged")
+        self.log.event("identical_views", pair=item.pairs[0].index)
+        self.processed += 1
+        self.one_image += 1
+
     def stopped_text(self) -> str:
         """What guide says when it stops: the pairs taken, and how many were not ranged (a right board 0.5 s late
         on every frame ended "guide stopped after 5 pairs" with not one ranged, and nothing said of it)."""
         text = f"guide stopped after {self.processed} pairs"
-        if self.torn:
-            text += f" ({self.processed - self.torn} ranged; {self.torn} not: their two frames came too far apart)"
+        why = ([f"{self.torn} not: their two frames came too far apart"] if self.torn else []) + (
+            [f"{self.one_image} not: their two frames were one image"] if self.one_image else [])
+        if why:
+            text += f" ({self.processed - self.torn - self.one_image} ranged; {'; '.join(why)})"
         return text
 
     def _come_back(self, now: float) -> None:

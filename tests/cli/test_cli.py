@@ -1120,6 +1120,55 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
         torn if stream == "torn pairs" else "")
 
 
+def test_guide_does_not_take_one_image_sent_for_both_cameras_as_a_clear_way(monkeypatch):
+    """Found by an audit of estimate's numbers: a pair whose two frames are one image (a driver or a relay sending
+    one board's frame for both) was ranged: its map measured every disparity 0, nothing near, "seen", and guide
+    stayed silent, which a walker hears as a clear way. Now such a pair is not ranged and not seen: "Cannot see
+    ahead" after --blind-s, an identical_views event, and the last line counts it."""
+    import argparse
+    import time
+    from types import SimpleNamespace
+
+    import torch
+
+    import svs_torch.cli.guide_loop as guide_loop
+    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
+    from svs_torch.core.types import StereoBatch
+
+    frame = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
+    said, events, ranged = [], [], []
+
+    class Camera:  # one image sent for both views, a pair every 20 ms for 0.5 s
+        next_index, max_frame_gap_s = 0, 0.25
+
+        def stream_batches(self, batch_size, num_batches=None, idle_s=None):
+            end = time.monotonic() + 0.5
+            while time.monotonic() < end:
+                time.sleep(0.02)
+                yield SimpleNamespace(batch=StereoBatch.from_images(frame, frame.clone(), 276.0, 0.1075),
+                                      pairs=[SimpleNamespace(index=0, time_between_frames_s=0.01)], num_dropped=0)
+
+    class Words:
+        def write(self, text):
+            said.extend(line for line in text.split("\n") if line)
+            return len(text)
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
+    log = guide_loop.GuideLog(None, None)
+    monkeypatch.setattr(log, "event", lambda name, **fields: events.append(name))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
+    session = guide_loop.GuideSession(args, (32, 24), ranged.append, guide, StatusLine(None), log)
+    session.run()
+    assert said == [guide_loop.GUIDE_READY, CANNOT_SEE] and ranged == []
+    assert "identical_views" in events and "cannot_see" in events
+    assert session.stopped_text().endswith(f"(0 ranged; {session.processed} not: their two frames were one image)")
+    assert not guide_loop._one_image_twice(StereoBatch.from_images(frame, frame.flip(-1), 276.0, 0.1075))
+
+
 def test_guide_a_full_disk_stops_the_record_not_the_warnings(monkeypatch, capsys, tmp_path):
     """Was (an audit): a record that could not be written ended guide (exit 1, "[Errno 28] No space left on device"),
     and the walker heard nothing more. Now the recording stops, said once naming --record and the file, and every
