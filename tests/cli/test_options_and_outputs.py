@@ -542,6 +542,23 @@ def test_the_text_says_when_the_pair_was_rectified_from_its_fundamental_matrix()
         assert not any("fundamental matrix" in line for line in format_report({**report, **aligned}))
 
 
+def test_images_of_a_scene_folder_ranged_with_the_svs_model_are_told_of_the_scenes_calibration(data_dir, capsys):
+    """Found by an audit of estimate's numbers: 'estimate Teddy/im0.png Teddy/im1.png' ranged 1.25 m with the SVS
+    model beside Teddy/calib.txt, whose calibration gives the true 1.40 m, and only the calibration line told. Not
+    warned: the options given, or a folder whose scene ships no calibration (2003 Cones: the SVS model either way)."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    pair = [str(teddy / "im0.png"), str(teddy / "im1.png")]
+    code, _, err = run_cli(capsys, "estimate", *pair, "--size", "160x120")
+    warned = [line for line in err.splitlines() if "warning:" in line]
+    assert code == 0 and len(warned) == 1 and "its own calibration (Teddy/calib.txt)" in warned[0]
+    assert f"'svs-depth estimate {teddy}'" in warned[0]
+    code, _, err = run_cli(capsys, "estimate", *pair, "--size", "160x120", "--focal-px", "1500", "--baseline-m", "0.08")
+    assert code == 0 and "warning:" not in err
+    cones = data_dir / "middlebury_2003_quarter" / "Cones"
+    code, _, err = run_cli(capsys, "estimate", str(cones / "imL.png"), str(cones / "imR.png"), "--size", "160x120")
+    assert code == 0 and "warning:" not in err
+
+
 def test_a_pair_of_one_image_twice_is_told_so_not_only_that_nothing_is_near(data_dir, capsys):
     """Found by an audit: Teddy's left image given as both views read "status NO_OBJECTS" (RANSAC_FAILED with the
     paper's preset), what a pair with nothing near reads, with no hint: every match lies at zero disparity."""
