@@ -86,7 +86,8 @@ class OneLineParser(argparse.ArgumentParser):
             known = any(o.startswith(name) for o in self._option_string_actions) if name.startswith("--") else (
                 name in self._option_string_actions)  # a value forgotten before the next option: said as it was
             if option in options and value.startswith("-") and not known:
-                return f", got {value!r}, read as an option (write {option}={value} for a value that starts with '-')"
+                typed = value if value.isprintable() else repr(value)  # a control character kept the error one line
+                return f", got {value!r}, read as an option (write {option}={typed} for a value that starts with '-')"
         return ""
 
     def commands(self) -> dict[str, argparse.ArgumentParser]:

@@ -198,6 +198,8 @@ def test_usage_errors_exit_non_zero(capsys):
     # Left alone at the last two stops: "argument --size: expected one argument", with no word of why.
     (["eval", "scenes", "--size", "-5x10"], "got '-5x10', read as an option (write --size=-5x10 for a value"),
     (["estimate", "a.png", "b.png", "--focal-px", "-x"], "(write --focal-px=-x for"),
+    # Found by the fuzz of demo: a carriage return in the value split the error over two lines.
+    (["demo", "--size", "-1x\r"], "(write --size='-1x\\r' for"),
     # A value forgotten before the next option (or its abbreviation) is not told to be written as a value.
     (["estimate", "a.png", "b.png", "--focal-px", "--json"], None),
     (["estimate", "a.png", "b.png", "--focal-px", "--js"], None),
