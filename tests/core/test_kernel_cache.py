@@ -358,3 +358,13 @@ def test_the_loader_lines_wait_for_the_stderr_lock(cache, monkeypatch):
     monkeypatch.setattr(sys, "stderr", Recorder())
     assert kernels.load(KERNEL) is None and not tmp_path_missing.exists()
     assert held and all(held), held
+
+
+def test_without_posix_owners_the_kernels_are_off_in_one_line(cache, monkeypatch, capsys):
+    """Windows has no ``os.getuid``: the cache folder's check raised AttributeError, an internal error at the first
+    kernel of every command. Now the folder cannot be checked, so the kernels are off, said in one line, nothing
+    made."""
+    monkeypatch.delattr(os, "getuid")
+    assert kernels.load(KERNEL) is None
+    _one_notice(capsys, "cannot be checked")
+    assert not cache.exists()

@@ -46,14 +46,13 @@ SOURCES = {path.stem: path for path in sorted(_PACKAGE.glob("*/kernels/*.c"))}
 HEADERS = tuple(sorted(_PACKAGE.glob("*/kernels/*.h"), key=lambda path: path.name))
 #: Where ``#include "common.h"`` finds the shared header (a source's own folder is searched first).
 _INCLUDE = Path(__file__).resolve().parent
-#: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image.
-#: -fopenmp, not threads of our own: the library then needs ``libgomp.so.1``, which the torch wheel has already
-#: loaded, so the kernels' parallel loops run on torch's OpenMP workers. Threads of their own had to share the
-#: two cores with those workers, which spin for a while after every torch op: the Hessian kernel on 8 images
-#: took 42–66 ms with 2 pthreads, 30 ms with one, 22 ms with 2 OpenMP threads. A compiler without OpenMP
-#: builds the same source serially (the pragmas are ignored), under its own name.
-#: ``SVS_TORCH_CFLAGS_EXTRA`` (e.g. ``-fsanitize=address,undefined``, by ``tests/sanitize/run.sh``) appends flags;
-#: being part of FLAGS they are part of every cache key, so such builds never replace the normal ones.
+#: No -ffast-math: it could assume away the +inf costs that mark disparities outside the image. -fopenmp, not threads of
+#: our own: the library then needs ``libgomp.so.1``, which the torch wheel has already loaded, so the kernels' parallel
+#: loops run on torch's OpenMP workers. Threads of their own had to share the two cores with those workers, which spin
+#: for a while after every torch op: the Hessian kernel on 8 images took 42–66 ms with 2 pthreads, 30 ms with one, 22 ms
+#: with 2 OpenMP threads. A compiler without OpenMP builds the same source serially (the pragmas are ignored), under its
+#: own name. ``SVS_TORCH_CFLAGS_EXTRA`` (e.g. ``-fsanitize=address,undefined``, by ``tests/sanitize/run.sh``) appends
+#: flags; being part of FLAGS they are part of every cache key, so such builds never replace the normal ones.
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fopenmp",
          *os.environ.get("SVS_TORCH_CFLAGS_EXTRA", "").split()]
 #: ``CC --version`` answers in a few milliseconds; one that does not answer in this time is taken as hanging.
@@ -89,6 +88,8 @@ def cache_dir() -> Path:
 def _private_folder(folder: Path) -> None:
     """Create ``folder`` with mode 0700 if missing; :class:`KernelsOff` unless it (and a symlink naming it) is
     ours and only we can write to it: anyone else who can put a library there runs code in this process."""
+    if not hasattr(os, "getuid"):  # Windows: no POSIX owner nor mode to check it by (it was an internal error)
+        raise KernelsOff(f"cache folder {display_path(folder)}: its owner cannot be checked on this system")
     try:
         os.makedirs(folder, mode=0o700)
         os.chmod(folder, 0o700)  # the umask may have taken bits off (never adds them): the folder stays usable
@@ -198,10 +199,9 @@ def compiler_command() -> list[str]:
 
 @functools.cache
 def compiler_identity(command: tuple[str, ...]) -> str:
-    """What names the compiler ``command`` in the cache key: the command, its program's real path, size and
-    modification time, and its ``--version``, asked once per process at its first kernel (gcc answers a bare
-    Python in 3 ms, one with torch loaded in 10–23 ms: the cost of starting a process from it). :class:`KernelsOff`
-    when the probe hangs."""
+    """What names the compiler ``command`` in the cache key: the command, its program's real path, size and modification
+    time, and its ``--version``, asked once per process at its first kernel (gcc answers a bare Python in 3 ms, one with
+    torch loaded in 10–23 ms: the cost of starting a process from it). :class:`KernelsOff` when the probe hangs."""
     program = os.stat(command[0])
     done = _run([*command, "--version"], PROBE_TIMEOUT_S)
     version = done.stdout.decode(errors="replace") if done is not None and done.returncode == 0 else "(no --version)"
