@@ -171,13 +171,21 @@ def _watch_parent(parent: int) -> None:
     """End this worker when the process ``parent`` ends (even by SIGKILL): no orphan keeps computing or holding
     memory. ``parent`` is the process that made the pool, not necessarily this one's direct parent (a forkserver
     outlives it while its workers hold its 'alive' pipe). A pidfd (Linux ≥ 5.3) wakes at the parent's exit and
-    cannot be fooled by a reused process number; elsewhere the number is polled."""
+    cannot be fooled by a reused process number; on Windows the spawned worker waits on its handle of the parent;
+    elsewhere the number is polled."""
     try:
         handle = os.pidfd_open(parent)
     except (AttributeError, OSError):  # no pidfd here, or the parent is already gone
         handle = None
     if handle is not None:
         select.select([handle], [], [])
+    elif sys.platform == "win32":  # there os.kill(pid, 0) asks nothing: it ends the parent (TerminateProcess)
+        import multiprocessing
+
+        known = multiprocessing.parent_process()  # spawned: its sentinel is a handle on the parent process
+        if known is None or known.pid != parent:
+            return
+        known.join()
     else:
         while _alive(parent):
             time.sleep(0.5)

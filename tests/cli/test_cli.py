@@ -533,6 +533,40 @@ def test_a_held_signal_is_delivered_after_the_step_even_when_the_step_failed():
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_a_worker_on_windows_watches_its_parent_without_os_kill(monkeypatch):
+    """On Windows ``os.kill(pid, 0)`` is no question whether ``pid`` lives: it ends that process (TerminateProcess,
+    exit code 0). A spawned worker without a pidfd polled its parent so, and ended the command that started it as
+    soon as it was ready. Now it waits on the handle of its parent that spawning gave it."""
+    import multiprocessing
+
+    from svs_torch.core import workers
+
+    calls = []
+
+    class Parent:
+        pid = 4321
+
+        def join(self):
+            calls.append("join")
+
+    def kill(pid, signum):
+        calls.append(("kill", pid, signum))
+        raise ProcessLookupError(pid)
+
+    def exit_(code):
+        calls.append(("exit", code))
+        raise SystemExit(code)
+
+    monkeypatch.delattr(os, "pidfd_open", raising=False)
+    monkeypatch.setattr(sys, "platform", "win32")
+    monkeypatch.setattr(os, "kill", kill)
+    monkeypatch.setattr(os, "_exit", exit_)
+    monkeypatch.setattr(multiprocessing, "parent_process", lambda: Parent())
+    with pytest.raises(SystemExit):
+        workers._watch_parent(4321)
+    assert calls == ["join", ("exit", 1)]
+
+
 def test_worker_preload_ends_early_only_in_the_forkserver():
     """The forkserver skips torch's teardown when it stops; any other process that imports the preload module
     exits as usual, with its own exit status and its output flushed."""
