@@ -235,16 +235,19 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
 def split_list_line(line: str) -> list[str]:
     """A list file's line as its fields, split as a POSIX shell splits words: quotes and backslashes group, and
     ``#`` starts a comment only at the start of a word (``take#2/left.png`` is a path; ``shlex.split`` with
-    ``comments=True`` cut it at the ``#``). Raises ValueError for unbalanced quotes, as ``shlex.split`` does."""
+    ``comments=True`` cut it at the ``#``). Raises ValueError for unbalanced quotes, as ``shlex.split`` does. On
+    Windows a backslash is the path separator, not an escape (``C:\\data\\left.png``; it was ``C:dataleft.png``, no
+    such file): only quotes group there, as in its own shells."""
+    literal = sys.platform == "win32"
     quote, word_starts, index = None, True, 0
     while index < len(line):
         char = line[index]
         if quote is not None:
             if char == quote:
                 quote = None
-            elif char == "\\" and quote == '"':
+            elif char == "\\" and quote == '"' and not literal:
                 index += 1  # an escaped character inside double quotes
-        elif char == "\\":
+        elif char == "\\" and not literal:
             index += 1  # an escaped character: never a comment or a quote
         elif char in "'\"":
             quote = char
@@ -253,7 +256,11 @@ def split_list_line(line: str) -> list[str]:
             break
         word_starts = quote is None and char.isspace()
         index += 1
-    return shlex.split(line, comments=False)
+    lexer = shlex.shlex(line, posix=True)
+    lexer.whitespace_split, lexer.commenters = True, ""
+    if literal:
+        lexer.escape = ""
+    return list(lexer)
 
 
 def stream_is_terminal(stream: IO | None) -> bool:

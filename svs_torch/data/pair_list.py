@@ -13,7 +13,8 @@ A pair comes from one of:
   :func:`~svs_torch.data.list_shared_pairs`), a list file or an ``index.jsonl``.
 
 List files take ``#`` comments and shell quoting (paths with spaces), as a shell reads them (a ``#`` inside a word, as
-in ``take#2/left.png``, is part of it); relative paths are relative to the list.
+in ``take#2/left.png``, is part of it; on Windows a backslash is a path's separator, not an escape); relative paths are
+relative to the list.
 Every pair keeps its own calibration. An entry that cannot be a pair (wrong field count, a bad number, a folder
 that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so that it gets its own line and
 status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole is an :class:`InputError`.

@@ -416,6 +416,22 @@ def test_a_hash_inside_a_listed_path_is_part_of_it(data_dir, tmp_path):
     assert source.problem is None and source.left == str(folder / "left.png")
 
 
+def test_a_windows_list_keeps_its_backslashes(tmp_path, monkeypatch):
+    """A list written on Windows names its files with backslashes (``C:\\data\\left.png``): read as a POSIX shell's
+    escapes they vanished, and every pair was a file not found (``C:dataleft.png``). On Windows they stay; quotes
+    still group a path with spaces, and ``#`` still starts a comment."""
+    from svs_torch.core.files import split_list_line
+
+    monkeypatch.setattr(sys, "platform", "win32")
+    assert split_list_line(r"C:\data\left.png C:\data\right.png  # a pair") == [r"C:\data\left.png",
+                                                                                  r"C:\data\right.png"]
+    assert split_list_line(r'"D:\my pairs\l.png" sub\r.png') == [r"D:\my pairs\l.png", r"sub\r.png"]
+    listing = tmp_path / "pairs.txt"
+    listing.write_bytes(b"take\\left.png take\\right.png\r\n")
+    (source,) = read_pair_list(listing)
+    assert source.left == str(tmp_path / "take\\left.png")
+
+
 def test_a_kitti_download_lists_its_frames_with_truth_only(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a KITTI training folder as downloaded holds frames _10 and _11, and only
     _10 has disparity truth; every _11 frame was listed and became a failed pair (BAD_INPUT, no disp_occ)."""
