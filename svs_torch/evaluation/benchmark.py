@@ -34,7 +34,6 @@ import dataclasses
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -338,7 +337,7 @@ def _metadata(threads: int, **extra) -> dict:
         pass
     return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
             "numpy": numpy.__version__, "python": sys.version.split()[0], "cpu": cpu, "cpus": os.cpu_count(),
-            "threads": threads, "load_average": os.getloadavg(), **extra}
+            "threads": threads, "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None, **extra}
 
 
 def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_dir: Path | None = None,
@@ -352,12 +351,17 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
         progress("in-process: stages, batch scaling, latency, kornia")
     report["in_process"] = in_process(repeats, threads, data_dir)
     report["help_s"] = help_time(repeats)
-    if memory:
+    if memory and os.path.isfile("/proc/self/status"):  # the children's peak is read there: not on macOS, Windows
         if progress:
             progress("peak memory per batch size")
         report["memory"] = [_child_peak_memory(b) for b in SCALING_BATCHES]
+    try:
+        import resource  # (not on Windows)
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)
+    except ImportError:
+        rss = None
     report["metadata"] = _metadata(threads, num_pairs=num_pairs, repeats=repeats,
-                                   max_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1))
+                                   max_rss_mb=None if rss is None else round(rss, 1))  # macOS counts bytes, Linux KiB
     return report
 
 

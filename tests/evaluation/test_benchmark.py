@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from svs_torch.evaluation.benchmark import RIVAL_COMMAND, _work_summary, format_tables, whole_process, write_inputs
 
 
@@ -177,3 +179,28 @@ def test_guides_latency_on_real_frames_is_reported_frame_by_frame(data_dir):
         "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}})
     assert "guide frame by frame on the shared real pairs as camera frames" in text
     assert "| nearness | 45 | 38.2 | 71.0 | 104.5 | 9 |" in text
+
+
+def test_bench_finishes_without_linux_only_features(monkeypatch, tmp_path):
+    """On Windows (no ``resource``, no ``os.getloadavg``) ``svs-depth bench`` was an internal error at once, and on
+    macOS (no ``/proc/self/status`` for the memory children) one after minutes of timing. Now those parts are left
+    out there, as --no-memory leaves the children out; macOS's peak resident memory, counted in bytes, is in MB."""
+    import os
+    from types import SimpleNamespace
+
+    import svs_torch.evaluation.benchmark as benchmark
+
+    for name, stub in [("write_inputs", lambda *a: {}), ("whole_process", lambda *a: []),
+                       ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1),
+                       ("_child_peak_memory", lambda b: pytest.fail("/proc/self/status is not there to read"))]:
+        monkeypatch.setattr(benchmark, name, stub)
+    real_isfile = os.path.isfile
+    monkeypatch.setattr(os.path, "isfile", lambda path: not str(path).startswith("/proc") and real_isfile(path))
+    monkeypatch.delattr(os, "getloadavg")
+    monkeypatch.setitem(sys.modules, "resource", None)
+    metadata = benchmark.run_benchmark(1, 1, memory=True)["metadata"]
+    assert metadata["max_rss_mb"] is None and metadata["load_average"] is None
+    monkeypatch.setattr(sys, "platform", "darwin")
+    usage = SimpleNamespace(ru_maxrss=300 * 1024 * 1024)
+    monkeypatch.setitem(sys.modules, "resource", SimpleNamespace(RUSAGE_SELF=0, getrusage=lambda who: usage))
+    assert benchmark.run_benchmark(1, 1, memory=True)["metadata"]["max_rss_mb"] == 300.0
