@@ -20,7 +20,6 @@ import socket
 import sys
 import threading
 import time
-import tty
 
 from .emulator_args import faults_from_args, parse_args
 from .emulator_state import CameraState, Faults, Reply
@@ -59,6 +58,8 @@ class _BoardPort(threading.Thread):
         self.pty_path: str | None = None
         if use_pty:
             # The emulator keeps the slave end open, so the master never sees EIO when the driver closes it.
+            import tty  # here, not at the top: Windows has no tty (termios), and --emulator then failed to import
+
             self.pty_master, self.pty_slave = os.openpty()
             tty.setraw(self.pty_slave)
             os.set_blocking(self.pty_master, False)

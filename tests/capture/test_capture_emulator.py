@@ -566,6 +566,25 @@ def run_capture(*argv: str) -> int:
     return args.func(args)
 
 
+def test_the_builtin_emulator_runs_without_termios(tmp_path):
+    """Windows has no ``termios``: the emulator imported ``tty`` (for its optional --pty) at the top, and ``capture
+    --emulator`` and ``guide --emulator`` were an internal error there. Now only --pty needs it."""
+    import subprocess
+    import sys
+
+    from conftest import REPO_ROOT
+
+    # (pyserial first: off Windows its backend needs termios; on Windows it has its own)
+    code = ("import sys, serial; sys.modules['termios'] = sys.modules['tty'] = None\n"
+            "from svs_torch.cli import main\n"
+            f"sys.exit(main(['capture', '--emulator', '--count', '1', '--size', '160x120', '--out', "
+            f"{str(tmp_path)!r}]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT,
+                          env={**os.environ, "PYTHONPATH": str(REPO_ROOT), "SVS_TORCH_KERNELS": "torch"})
+    assert done.returncode == 0, done.stderr
+    assert len((tmp_path / "index.jsonl").read_text().splitlines()) == 1
+
+
 def test_cli_capture_with_builtin_emulator(tmp_path, capsys):
     import cv2
     import json
