@@ -185,7 +185,8 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", **open_kwargs) -> I
     temporary = target.with_name(f".{short_name(target.name)}.{uuid.uuid4().hex[:8]}.tmp")
     handle, unnamed = _open_unnamed(target.parent)
     if handle is None:
-        handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        # O_BINARY: on Windows a descriptor opens in text mode without it, every \n written as \r\n (a PNG broken)
+        handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     named = not unnamed
     try:
         with os.fdopen(handle, mode, **open_kwargs) as stream:

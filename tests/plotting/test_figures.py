@@ -383,6 +383,28 @@ def test_objects_panel_says_areas_in_input_pixels_and_leaves_a_tiny_view_unlabel
     assert texts == []
 
 
+@pytest.mark.parametrize("mode, data", [("wb", b"\x89PNG\r\n\x1a\n"), ("w", "a,b\n")])
+def test_an_output_without_o_tmpfile_is_opened_binary(tmp_path, monkeypatch, mode, data):
+    """Off Linux (no O_TMPFILE) the output's temporary file was opened by ``os.open`` without ``O_BINARY``: on
+    Windows such a descriptor is in text mode, each \\n written as \\r\\n (a PNG broken from its signature on, a
+    CSV's lines ended \\r\\r\\n). Now it is opened binary wherever the flag exists (here a stand-in flag, recorded)."""
+    from svs_torch.core.files import atomic_output
+
+    monkeypatch.delattr(os, "O_TMPFILE", raising=False)
+    monkeypatch.setattr(os, "O_BINARY", 1 << 29, raising=False)
+    real_open, flags = os.open, []
+
+    def recording_open(path, flag, *args, **kwargs):
+        flags.append(flag)
+        return real_open(path, flag & ~(1 << 29), *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", recording_open)
+    with atomic_output(tmp_path / "out", mode) as stream:
+        stream.write(data)
+    assert flags and all(flag & (1 << 29) for flag in flags)
+    assert (tmp_path / "out").read_bytes() == (data if mode == "wb" else data.encode())
+
+
 KILLED_WRITER = """\
 import sys
 from svs_torch.core.files import atomic_output
