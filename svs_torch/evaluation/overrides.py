@@ -256,7 +256,7 @@ def read_toml(path: str | Path, name: str) -> dict[str, Any]:
     if not path.is_file():
         raise InputError(f"{label}: expected a TOML file, got {'a folder' if path.exists() else 'no file'}")
     try:
-        return tomllib.loads(path.read_bytes().decode("utf-8"))
+        return tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # a Windows editor's byte-order mark: no text
     except UnicodeDecodeError:
         raise InputError(f"{label}: expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as error:

@@ -134,6 +134,15 @@ def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, 
     assert not db.exists()  # nothing started
 
 
+def test_a_sweep_file_saved_by_a_windows_editor_is_read(data_dir, tmp_path):
+    """A byte-order mark and CRLF line ends (Notepad's UTF-8): the mark made it "not valid TOML: Invalid statement
+    (at line 1, column 1)", where a pair list saved so was read (its own "utf-8-sig")."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_bytes(b"\xef\xbb\xbf" + f'paths = ["{teddy}"]\r\n[grid]\r\n"max_ratio" = [0.6, 0.8]\r\n'.encode())
+    assert len(load_sweep(sweep_file).configs) == 2
+
+
 def test_plan_skips_blocks_that_are_stored(data_dir, tmp_path):
     sweep = load_sweep(write_sweep(tmp_path, data_dir, SWEEP.replace("batch_size = 1", "batch_size = 3")))
     assert [len(t.sources) for t in plan_tasks(sweep, set())] == [3, 1] * 3
