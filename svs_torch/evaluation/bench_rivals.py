@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 #: The SVS camera at 320×240 (3.6 mm lens on a 4.17 mm wide sensor), scaled with the width like svs_torch does.
@@ -114,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with open(args.pairs, encoding="utf-8") as handle:
         lines = handle.read().splitlines()
+    os.chdir(os.path.dirname(os.path.abspath(args.pairs)))  # relative paths are the list's, as svs-depth reads them
     if args.workers <= 0:
         sys.stdout.writelines(_run_lines(lines, args.detector, args.threads, args.baseline_m, args.focal_px))
         return 0

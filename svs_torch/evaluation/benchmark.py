@@ -99,8 +99,9 @@ def write_inputs(workdir: Path, num_pairs: int, data_dir: Path | None, seed: int
     return sets
 
 
-def _write_list(pairs: list[tuple[str, str]], path: Path) -> Path:
-    path.write_text("".join(f"{left} {right}\n" for left, right in pairs))
+def _write_list(pairs: list[tuple[str, str]], path: Path) -> Path:  # each file named relative to the list
+    path.write_text("".join(f"{os.path.relpath(left, path.parent)} {os.path.relpath(right, path.parent)}\n"
+                            for left, right in pairs))  # (a temporary folder's path may hold a space: C:\Users\Jo Li)
     return path
 
 

@@ -204,3 +204,19 @@ def test_bench_finishes_without_linux_only_features(monkeypatch, tmp_path):
     usage = SimpleNamespace(ru_maxrss=300 * 1024 * 1024)
     monkeypatch.setitem(sys.modules, "resource", SimpleNamespace(RUSAGE_SELF=0, getrusage=lambda who: usage))
     assert benchmark.run_benchmark(1, 1, memory=True)["metadata"]["max_rss_mb"] == 300.0
+
+
+def test_whole_process_lists_survive_a_space_in_the_temporary_folder(tmp_path):
+    """bench writes its inputs under the temporary folder, whose path may hold a space (Windows' ``C:\\Users\\Jo Li
+    \\AppData\\Local\\Temp``, a TMPDIR): each list line was split in four, and svs-depth and the OpenCV loops ranged
+    no pair (every one BAD_INPUT). The lists now name the files relative to themselves, as both read them."""
+    from svs_torch.data.pair_list import read_pair_list
+    from svs_torch.evaluation.benchmark import _write_list
+
+    workdir = tmp_path / "Jo Li é"
+    pairs = write_inputs(workdir, 2, None, seed=2)["synthetic 320x240"]
+    listing = _write_list(pairs, workdir / "synthetic_320x240.txt")
+    assert [(s.problem, s.left) for s in read_pair_list(listing)] == [(None, left) for left, _ in pairs]
+    out = subprocess.run([*RIVAL_COMMAND, "orb", str(listing)], capture_output=True, text=True, check=True,
+                         cwd=tmp_path).stdout.splitlines()
+    assert [json.loads(line)["status"] for line in out] == ["OK", "OK"]
