@@ -6,7 +6,8 @@ file far past SQLite's own lock bytes (an open-file-description lock, ``F_OFD_SE
 of the file does not drop it, and the system drops it when the process ends, even killed). Two sweeps of
 different configurations (two grids, a job array) run together on one store; a sweep any of whose
 configurations another running sweep holds is refused before it runs anything (its tasks would have run
-twice). Where the system has no such locks (not Linux), a sweep holds the whole store (``flock``).
+twice). Where the system has no such locks (not Linux), a sweep holds the whole store (``flock`` on a
+``.sweep-lock`` file beside it).
 The claims' handle is closed after the store's connection where the claims are taken (closing any handle of a
 file drops the process's own POSIX locks on it, SQLite's among them), and at once where they are refused (the
 store is then only closed).
@@ -65,10 +66,14 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
     except ImportError:  # (Windows: nothing held)
         return None
     wanted = sorted(set(config_ids))
-    # Opened to write (a write lock needs it), never written.
-    handle = open(path, "r+b")  # noqa: SIM115 (held open until the store closes)
     ofd = getattr(fcntl, "F_OFD_SETLK", None) if struct.calcsize("q") == 8 else None
     if ofd is None:
+        # On a file beside the store: on the BSDs (macOS) flock and the record locks SQLite holds on the store itself
+        # are one list, and this connection's own shared lock made every sweep "another sweep is writing".
+        try:
+            handle = open(f"{os.path.realpath(path)}.sweep-lock", "ab")  # noqa: SIM115 (held until the store closes)
+        except OSError:  # a folder that takes no new file: nothing held (as where no locks are taken)
+            return None
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             return handle
@@ -78,6 +83,8 @@ def claim_configs(path: Path, config_ids: Iterable[str]) -> IO | None:
                 return None
             raise InputError(f"db: another sweep is writing {path}; run this one once it has ended (it then runs "
                              "only what is missing), or give another store") from None
+    # Opened to write (a write lock needs it), never written.
+    handle = open(path, "r+b")  # noqa: SIM115 (held open until the store closes)
     _lock(fcntl, handle, fcntl.F_OFD_SETLKW, _CLAIMING_BYTE, fcntl.F_WRLCK)  # waits for another's claiming only
     held = [config_id for config_id in wanted if not _lock(fcntl, handle, ofd, _byte_of(config_id), fcntl.F_WRLCK)]
     _lock(fcntl, handle, ofd, _CLAIMING_BYTE, fcntl.F_UNLCK)

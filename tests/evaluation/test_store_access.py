@@ -32,6 +32,34 @@ def test_claims_of_other_configurations_are_taken_beside_and_the_same_refused(tm
     assert not sweep_is_writing(db)
 
 
+@pytest.mark.skipif(not OFD_LOCKS, reason="emulates the BSDs' flock with open-file-description locks (Linux)")
+def test_without_ofd_locks_one_sweep_holds_the_store_and_its_own_sqlite_locks_do_not_refuse_it(tmp_path, monkeypatch):
+    """Without OFD locks (macOS) a sweep held the whole store with ``flock`` on the store itself. On the BSDs flock
+    and SQLite's record locks on a file are one list (Linux keeps them apart, so it is emulated here by a
+    whole-file OFD lock, which conflicts with record locks as a BSD flock does): the store's own open connection
+    refused every sweep as "another sweep is writing". Now the claim is a flock on a file beside the store."""
+    import fcntl
+    import struct
+
+    setlk, setlkw = fcntl.F_OFD_SETLK, fcntl.F_OFD_SETLKW
+
+    def bsd_flock(fd, operation):
+        kind = fcntl.F_UNLCK if operation & fcntl.LOCK_UN else fcntl.F_WRLCK
+        command = setlk if operation & (fcntl.LOCK_NB | fcntl.LOCK_UN) else setlkw
+        fcntl.fcntl(fd, command, struct.pack("hhqqi4x", kind, 0, 0, 0, 0))
+
+    monkeypatch.setattr(fcntl, "flock", bsd_flock)
+    monkeypatch.delattr(fcntl, "F_OFD_SETLK")
+    db = tmp_path / "store.sqlite"
+    with ResultStore(db) as first, ResultStore(db) as second:
+        first.claim_for_a_sweep(["a"])
+        first.start_run("sweep", "v", {}, "")  # its own writes go on
+        with pytest.raises(InputError, match=f"^db: another sweep is writing {db}; run this one once it has ended"):
+            second.claim_for_a_sweep(["b"])
+        first.close()
+        second.claim_for_a_sweep(["b"])  # released with the store
+
+
 def test_a_read_only_store_is_named_read_only_not_another_file(tmp_path, monkeypatch):
     """Found by an audit: a store SQLite may not write (its permissions; simulated, as root writes anywhere) was
     "not a results store (attempt to write a readonly database)"."""
