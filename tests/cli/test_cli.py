@@ -1106,21 +1106,36 @@ def test_guide_sees_a_view_of_floor_only():
         assert (said == [CANNOT_SEE]) == blind, (status, from_map)
 
 
-@pytest.mark.parametrize("stream", ["torn pairs", "no pairs"])
+@pytest.mark.parametrize("stream", ["torn pairs", "no pairs", "one image"])
 def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatch, stream):
     """Found by an audit against the emulator: a pair whose right frame came 2 s after the left (one board kept
     missing its grab, past the camera's regrabs) was ranged - a 0.8 m obstacle "clear", a 2 m one "Stop" at 0.5 m;
     and a frozen link was 5 s of silence (sight was judged only when a pair came) before "Camera lost". Now such a
     pair is not ranged and not seen, a stream that brings nothing ticks, and "Cannot see ahead" comes after
-    --blind-s either way."""
+    --blind-s either way. And (an audit of estimate's numbers) a pair whose two frames are one image, a driver or a
+    relay sending one board's frame for both, was ranged as a view with nothing near, "seen": guide stayed silent,
+    which a walker hears as a clear way. Now it is not ranged nor seen either."""
     import argparse
     import time
     from types import SimpleNamespace
 
+    import torch
+
     from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
     from svs_torch.cli import guide_loop
+    from svs_torch.core.types import StereoBatch
 
     said, events, ranged = [], [], []
+    frame = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
+
+    def grabbed():
+        if stream == "torn pairs":
+            return SimpleNamespace(batch=None, pairs=[SimpleNamespace(index=3, time_between_frames_s=2.06)],
+                                   num_dropped=0)
+        if stream == "one image":
+            return SimpleNamespace(batch=StereoBatch.from_images(frame, frame.clone(), 276.0, 0.1075),
+                                   pairs=[SimpleNamespace(index=0, time_between_frames_s=0.01)], num_dropped=0)
+        return None
 
     class Camera:
         next_index, max_frame_gap_s = 0, 0.25
@@ -1130,8 +1145,7 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
             end = time.monotonic() + 0.4
             while time.monotonic() < end:
                 time.sleep(0.02)
-                torn = SimpleNamespace(index=3, time_between_frames_s=2.06)
-                yield SimpleNamespace(batch=None, pairs=[torn], num_dropped=0) if stream == "torn pairs" else None
+                yield grabbed()
 
     class Words:
         def write(self, text):
@@ -1150,58 +1164,11 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     session.run()
     assert said == [guide_loop.GUIDE_READY, CANNOT_SEE] and ranged == []
     assert ("frames_apart" in events) == (stream == "torn pairs") and "cannot_see" in events
+    assert ("identical_views" in events) == (stream == "one image")
     # the last line says none of the pairs taken was ranged (it said "guide stopped after N pairs" alone)
-    torn = f" (0 ranged; {session.processed} not: their two frames came too far apart)"
+    why = {"torn pairs": "their two frames came too far apart", "one image": "their two frames were one image"}
     assert session.stopped_text() == f"guide stopped after {session.processed} pairs" + (
-        torn if stream == "torn pairs" else "")
-
-
-def test_guide_does_not_take_one_image_sent_for_both_cameras_as_a_clear_way(monkeypatch):
-    """Found by an audit of estimate's numbers: a pair whose two frames are one image (a driver or a relay sending
-    one board's frame for both) was ranged: its map measured every disparity 0, nothing near, "seen", and guide
-    stayed silent, which a walker hears as a clear way. Now such a pair is not ranged and not seen: "Cannot see
-    ahead" after --blind-s, an identical_views event, and the last line counts it."""
-    import argparse
-    import time
-    from types import SimpleNamespace
-
-    import torch
-
-    import svs_torch.cli.guide_loop as guide_loop
-    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
-    from svs_torch.core.types import StereoBatch
-
-    frame = torch.rand(1, 1, 24, 32, generator=torch.Generator().manual_seed(0))
-    said, events, ranged = [], [], []
-
-    class Camera:  # one image sent for both views, a pair every 20 ms for 0.5 s
-        next_index, max_frame_gap_s = 0, 0.25
-
-        def stream_batches(self, batch_size, num_batches=None, idle_s=None):
-            end = time.monotonic() + 0.5
-            while time.monotonic() < end:
-                time.sleep(0.02)
-                yield SimpleNamespace(batch=StereoBatch.from_images(frame, frame.clone(), 276.0, 0.1075),
-                                      pairs=[SimpleNamespace(index=0, time_between_frames_s=0.01)], num_dropped=0)
-
-    class Words:
-        def write(self, text):
-            said.extend(line for line in text.split("\n") if line)
-            return len(text)
-
-        def flush(self):
-            pass
-
-    monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
-    log = guide_loop.GuideLog(None, None)
-    monkeypatch.setattr(log, "event", lambda name, **fields: events.append(name))
-    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
-    args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
-    session = guide_loop.GuideSession(args, (32, 24), ranged.append, guide, StatusLine(None), log)
-    session.run()
-    assert said == [guide_loop.GUIDE_READY, CANNOT_SEE] and ranged == []
-    assert "identical_views" in events and "cannot_see" in events
-    assert session.stopped_text().endswith(f"(0 ranged; {session.processed} not: their two frames were one image)")
+        f" (0 ranged; {session.processed} not: {why[stream]})" if stream in why else "")
     assert not guide_loop._one_image_twice(StereoBatch.from_images(frame, frame.flip(-1), 276.0, 0.1075))
 
 
