@@ -13,6 +13,7 @@ from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, non_negative_float, non_negative_int, positive_float
 from svs_torch.core.camera import parse_size
+from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG
 
 __all__ = ["faults_from_args", "parse_args"]
 
@@ -45,7 +46,7 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
                         "(default: no floor)")
     p.add_argument("--camera-pitch-deg", type=finite_float, default=WALKER_PITCH_DEG, metavar="DEG",
-                   help="with --floor-height-m: the cameras pitched down DEG degrees (default %(default)s)")
+                   help="with --floor-height-m: the cameras pitched down DEG degrees, -30 to 60 (default %(default)s)")
     p.add_argument("--heap-ahead-m", type=positive_float, default=None, metavar="M",
                    help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
                         "high (an obstacle; default: none)")
@@ -71,8 +72,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="grab + encode time, seconds")
     args = p.parse_args(argv)
     # Checked here, not in the threads that use them: a bad value there killed a board's thread mid-run.
-    if not -90 < args.camera_pitch_deg < 90:
-        p.error(f"--camera-pitch-deg: expected degrees in (-90, 90), got {args.camera_pitch_deg:g}")
+    # The synthetic renderer's range: outside it the render thread died and every frame was the stand-in's, no floor.
+    low, high = CAMERA_PITCH_RANGE_DEG
+    if not low <= args.camera_pitch_deg <= high:
+        p.error(f"--camera-pitch-deg: expected degrees in [{low:g}, {high:g}], got {args.camera_pitch_deg:g}")
     if args.heap_ahead_m is not None and args.floor_height_m is None:
         p.error("--heap-ahead-m: expected --floor-height-m too (a heap stands on the floor)")
     try:

@@ -29,7 +29,7 @@ from ..core.types import StereoBatch
 from .heap_rendering import draw, make_heap_field
 from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
-__all__ = ["SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
+__all__ = ["CAMERA_PITCH_RANGE_DEG", "SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
 
 
 # random_obstacle_scenes layout, as fractions of the image size: a border kept free of obstacles and a gap
@@ -37,6 +37,9 @@ __all__ = ["SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"
 _BORDER_FRACTION = 0.03
 _GAP_FRACTION = 0.02
 _MIN_SECTOR_WIDTH_M = 0.1  # narrowest obstacle random_obstacle_scenes accepts to fit into a sector
+#: The camera pitches (degrees down, negative: up) :func:`render_obstacle_scenes` renders; the SVS emulator's
+#: ``--camera-pitch-deg`` is held to them (outside, its render thread died and the floor was never drawn).
+CAMERA_PITCH_RANGE_DEG = (-30.0, 60.0)
 
 
 @dataclass(frozen=True)
@@ -99,8 +102,9 @@ def _check_look_args(texture_contrast: float, floor_height_m: float | None, came
              f"wall_texture_contrast: expected None or a finite number >= 0, got {wall_texture_contrast!r}")
     _require(floor_height_m is None or (real(floor_height_m) and floor_height_m > 0),
              f"floor_height_m: expected None or a positive finite height in metres, got {floor_height_m!r}")
-    _require(real(camera_pitch_deg) and -30 <= camera_pitch_deg <= 60,
-             f"camera_pitch_deg: expected degrees in [-30, 60], got {camera_pitch_deg!r}")
+    low, high = CAMERA_PITCH_RANGE_DEG
+    _require(real(camera_pitch_deg) and low <= camera_pitch_deg <= high,
+             f"camera_pitch_deg: expected degrees in [{low:g}, {high:g}], got {camera_pitch_deg!r}")
 
 
 def _check_heaps(heaps: torch.Tensor | None, batch_size: int, floor_height_m: float | None, roughness_m: float) -> None:

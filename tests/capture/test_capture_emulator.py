@@ -780,7 +780,11 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     (["--prepare", "abc"], "--prepare: expected WIDTHxHEIGHT"),
     (["--heap-ahead-m", "1.5"], "--heap-ahead-m: expected --floor-height-m too"),
     (["--noise-sigma", "-1"], "argument --noise-sigma: expected a finite number >= 0"),
-    (["--camera-pitch-deg", "95"], "--camera-pitch-deg: expected degrees in (-90, 90)"),
+    (["--camera-pitch-deg", "95"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
+    # Accepted up to ±90 before, but the renderer refuses what is outside [-30, 60]: its thread died at the first
+    # keyframe and every frame was the stand-in's, with no floor (an audit of the synthetic truth).
+    (["--floor-height-m", "1.3", "--camera-pitch-deg", "70"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
+    (["--floor-height-m", "1.3", "--camera-pitch-deg", "-45"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
 ])
 def test_emulator_refuses_values_that_killed_a_board_thread(capsys, argv, message):
     """Found by an audit: these ran, and a board's thread died at its first grab (a ZeroDivisionError, the frame
