@@ -78,6 +78,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         p.error(f"--camera-pitch-deg: expected degrees in [{low:g}, {high:g}], got {args.camera_pitch_deg:g}")
     if args.heap_ahead_m is not None and args.floor_height_m is None:
         p.error("--heap-ahead-m: expected --floor-height-m too (a heap stands on the floor)")
+    if args.floor_height_m is not None and (args.images or args.simple_frames):
+        # The floor was ignored: the frames showed none, and nothing said so.
+        p.error("--floor-height-m: only the synthetic frames of svs_torch's renderer have a floor, not "
+                f"{'--images' if args.images else '--simple-frames'}")
     try:
         args.prepare_sizes = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
     except ValueError as err:  # svs_torch's InputError is a ValueError

@@ -785,6 +785,9 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     # keyframe and every frame was the stand-in's, with no floor (an audit of the synthetic truth).
     (["--floor-height-m", "1.3", "--camera-pitch-deg", "70"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
     (["--floor-height-m", "1.3", "--camera-pitch-deg", "-45"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
+    # The stand-in renderer and an image folder draw no floor: the option was ignored without a word (an audit).
+    (["--floor-height-m", "1.3", "--simple-frames"], "--floor-height-m: only the synthetic frames"),
+    (["--floor-height-m", "1.3", "--images", "."], "--floor-height-m: only the synthetic frames"),
 ])
 def test_emulator_refuses_values_that_killed_a_board_thread(capsys, argv, message):
     """Found by an audit: these ran, and a board's thread died at its first grab (a ZeroDivisionError, the frame
