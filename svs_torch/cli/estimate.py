@@ -138,12 +138,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_pair_options(parser)
     add_segmentation_options(parser)
     add_segmenter_option(parser)
-    parser.add_argument("--camera-frames", action="store_true",
-                        help="the pairs are a camera's JPEG frames with sensor noise (svs-depth capture's): the "
-                             "nearness map of a pair up to 320 px wide is matched with its wider noise window at "
-                             "once, without the gate that measures the noise first; a ninth less time a frame, the "
-                             "same results at the board's digits 3-8 (experiments/camera_frames_gate.md). guide "
-                             "always does this")
+    _add_camera_frames_options(parser)
     parser.add_argument("--canny", action="store_true",
                         help="segment with Canny edges (the paper's comparison row; with --segmenter otsu or "
                              "--preset paper)")
@@ -164,6 +159,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "time over the batch's pairs")
     add_disparity_export_options(parser)
     parser.set_defaults(func=run)
+
+
+def _add_camera_frames_options(parser: argparse.ArgumentParser) -> None:
+    """``--camera-frames`` and ``--second-passes``: the pairs are a camera's, ranged as guide ranges them."""
+    parser.add_argument("--camera-frames", action="store_true",
+                        help="the pairs are a camera's JPEG frames with sensor noise (svs-depth capture's): the "
+                             "nearness map of a pair up to 320 px wide is matched with its wider noise window at "
+                             "once, without the gate that measures the noise first; a ninth less time a frame, the "
+                             "same results at the board's digits 3-8 (experiments/camera_frames_gate.md). guide "
+                             "always does this")
+    parser.add_argument("--second-passes", choices=("on", "off"), default="on",
+                        help="'off': a pair is never measured again (on a coarser grid, or with its cameras' "
+                             "exposures matched), as guide --second-passes off ranges its frames, whose record "
+                             "this ranges alike (default: on)")
 
 
 def _write_outputs(args, batch, result, factors) -> None:

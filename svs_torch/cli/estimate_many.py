@@ -318,8 +318,8 @@ def _run_many(args: argparse.Namespace) -> int:
 
 
 def pipeline_config_from_args(args: argparse.Namespace):
-    """``--preset`` with every option the user gave (``--range``, ``--canny``, ``--camera-frames``, features,
-    segmentation)."""
+    """``--preset`` with every option the user gave (``--range``, ``--canny``, ``--camera-frames``,
+    ``--second-passes``, features, segmentation)."""
     from dataclasses import replace
 
     from .features import preset_config
@@ -333,6 +333,8 @@ def pipeline_config_from_args(args: argparse.Namespace):
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))
     if getattr(args, "camera_frames", False):
         config = replace(config, segmentation=replace(config.segmentation, camera_frames=True))
+    if getattr(args, "second_passes", "on") == "off":  # as guide --second-passes off (PipelineConfig.for_guide)
+        config = replace(config, coarse_retry_below_share=None, exposure_retry=None)
     return with_calibrated_rectification(config, args)
 
 

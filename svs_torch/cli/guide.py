@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=args.words_per_minute,
                                       stream=words))
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
-                   calibration_from_args(args))
+                   calibration_from_args(args), args.second_passes)
     session = GuideSession(args, size, ranged, guide, status_line, log)
     try:
         with contextlib.ExitStack() as stack:

@@ -41,12 +41,13 @@ class GuideLog:
     """The ``--json`` lines (to ``stream``; None: none) and the ``--record`` folder (``record_dir``, checked by
     :func:`~svs_torch.cli.capture.new_pairs_folder`; None: none) of one guide run, whose ``--floor`` and
     ``--calibration`` were ``floor`` and ``calibration``. :meth:`open` before the first pair, :meth:`close` after
-    the last; :meth:`summary` then says what was recorded."""
+    the last; :meth:`summary` then says what was recorded. ``second_passes`` is guide's ``--second-passes``."""
 
     def __init__(self, stream: TextIO | None, record_dir: Path | None, floor: str = "on",
-                 calibration: str | None = None, rig=None) -> None:
+                 calibration: str | None = None, rig=None, second_passes: str = "on") -> None:
         self.stream, self.record_dir = stream, record_dir
-        self.replay = (floor, calibration)  # guide's settings that estimate needs to range the pairs alike
+        # guide's settings that estimate needs to range the pairs alike (replay_command's)
+        self.replay = (floor, calibration, second_passes)
         self.rig = rig  # the StereoCalibration read from ``calibration`` (None: the SVS model)
         self._calibrations: dict[tuple[int, int], dict] = {}
         self._index: PairsIndex | None = None
@@ -66,7 +67,7 @@ class GuideLog:
                 from ..geometry.calibration import write_calibration
 
                 write_calibration(self.record_dir / CALIBRATION_NAME, self.rig, "--record")
-                self.replay = (self.replay[0], str(self.record_dir / CALIBRATION_NAME))
+                self.replay = (self.replay[0], str(self.record_dir / CALIBRATION_NAME), self.replay[2])
 
     def write(self, pair, result, elapsed_s: float, warning: dict[str, Any], num_dropped: int) -> None:
         """Keep pair ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) and its one-pair ``result``,

@@ -168,11 +168,15 @@ class PairsIndex:
         self.close()
 
 
-def replay_command(folder: Path, floor: str | None = None, calibration: str | None = None) -> str:
+def replay_command(folder: Path, floor: str | None = None, calibration: str | None = None,
+                   second_passes: str = "on") -> str:
     """The ``estimate`` command that ranges a pairs folder's pairs (``capture --out`` or ``guide --record``) as camera
     frames (``--camera-frames``), with ``--floor`` (guide's setting; None: estimate's default) and ``--calibration``
-    (the rig's file kept beside them) where given."""
+    (the rig's file kept beside them) where given, and guide's ``--second-passes off`` (without it, estimate measured
+    again the noisy pairs that guide ranged once: other distances, an audit)."""
     options = (f" --floor {floor}" if floor else "") + " --camera-frames"
+    if second_passes == "off":
+        options += " --second-passes off"
     if calibration:
         options += f" --calibration {shlex.quote(calibration)}"
     return f"svs-depth estimate --pairs {shlex.quote(display_path(folder / INDEX_NAME))}{options} --json"

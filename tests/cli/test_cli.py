@@ -844,6 +844,24 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
+def test_guide_record_with_second_passes_off_is_ranged_again_without_them(capsys, tmp_path):
+    """``guide --second-passes off --record DIR``: the replay command it prints says ``--second-passes off`` too, and
+    ranges the pairs as guide did. Without it (an audit), estimate measured the noisiest frames again on a coarser
+    grid and with smoothed features: OK pairs with distances where guide's were NO_DENSE_DEPTH, pair by pair."""
+    record = tmp_path / "walk"
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--emulator-noise", "60", "--quality", "8", "--count",
+                             "2", "--no-speech", "--second-passes", "off", "--json", "--record", str(record))
+    assert code == 0
+    lines = [json.loads(line) for line in out.splitlines()]
+    replay = next(line for line in err.splitlines() if "range them again with: " in line).split("with: ")[1]
+    assert replay.endswith("--floor on --camera-frames --second-passes off --json")
+    code, again, _ = run_cli(capsys, *shlex.split(replay)[1:], "--workers", "1")
+    assert code == 0
+    for live, offline in zip(lines, (json.loads(line) for line in again.splitlines()), strict=True):
+        for key in ("status", "nearest_m", "nearest_surface_m", "objects", "coarse_dense", "features_smoothed"):
+            assert offline[key] == live[key], key
+
+
 def test_guide_nearer_elsewhere_option(capsys):
     """--nearer-elsewhere-m defaults to the rule's NEARER_ELSEWHERE_M (written out in the parser), takes metres >= 0
     or 'off' (never before --repeat-s), and refuses a negative distance naming the option."""
