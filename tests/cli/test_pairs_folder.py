@@ -5,6 +5,7 @@ device-side commands."""
 from __future__ import annotations
 
 import json
+import shlex
 from types import SimpleNamespace
 
 import pytest
@@ -135,3 +136,15 @@ def test_a_second_capture_into_one_folder_leaves_the_first_ones_index_and_folder
     err = capsys.readouterr().err
     assert f"error: --out-dir: {out / 'index.jsonl'} was made by another run since this one started" in err
     assert [p.name for p in out.iterdir()] == ["index.jsonl"]
+
+
+def test_the_printed_estimate_command_names_a_long_folder_whole(capsys, tmp_path):
+    """Found by an audit of replays: a folder path past 120 characters was shortened in the printed command as in a
+    message ('.../walk_record…ay_morning/...'), and that command then read no file. Now it ranges the pairs."""
+    out = tmp_path / ("a_rather_long_folder_name_for_a_walk_recorded_on_a_tuesday_morning_" * 2) / "walk"
+    assert main(["capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir", str(out)]) == 0
+    command = capsys.readouterr().err.split("range them with: ")[1].strip()
+    argv = shlex.split(command)
+    assert argv[argv.index("--pairs") + 1] == str(out / "index.jsonl")
+    assert main([*argv[1:], "--workers", "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["left"] == str(out / "pair000000_left.jpg")
