@@ -178,16 +178,18 @@ def replay_command(folder: Path, floor: str | None = None, calibration: str | No
     if second_passes == "off":
         options += " --second-passes off"
     if calibration:
-        options += f" --calibration {_shell_word(calibration)}"
-    return f"svs-depth estimate --pairs {_shell_word(folder / INDEX_NAME)}{options} --json"
+        options += f" {_path_option('--calibration', calibration)}"
+    return f"svs-depth estimate {_path_option('--pairs', folder / INDEX_NAME)}{options} --json"
 
 
-def _shell_word(path: str | Path) -> str:
-    """``path`` whole, quoted for a shell: :func:`display_path` shortened a long one with an ellipsis, and the
-    printed command then named no file (an audit). Escaped as display_path does only where it holds a control
-    character, which a command on one line cannot."""
+def _path_option(option: str, path: str | Path) -> str:
+    """``option`` with ``path`` whole, quoted for a shell: :func:`display_path` shortened a long one with an
+    ellipsis, and the printed command then named no file (an audit). Escaped as display_path does only where it
+    holds a control character, which a command on one line cannot. A path that starts with '-' (``--record=-walk``)
+    is joined with '=': estimate took ``--pairs -walk/index.jsonl`` for two options."""
     text = str(path)
-    return shlex.quote(text if text.isprintable() else display_path(text))
+    word = shlex.quote(text if text.isprintable() else display_path(text))
+    return f"{option}={word}" if text.startswith("-") else f"{option} {word}"
 
 
 def drop_unused_pairs_folder(folder: Path, made: bool) -> None:

@@ -148,3 +148,14 @@ def test_the_printed_estimate_command_names_a_long_folder_whole(capsys, tmp_path
     assert argv[argv.index("--pairs") + 1] == str(out / "index.jsonl")
     assert main([*argv[1:], "--workers", "1"]) == 0
     assert json.loads(capsys.readouterr().out)["left"] == str(out / "pair000000_left.jpg")
+
+
+def test_the_printed_estimate_command_takes_a_folder_named_with_a_dash(capsys, tmp_path, monkeypatch):
+    """Found by an audit of replays: ``capture --out=-walk`` (or ``guide --record=-walk``) printed
+    ``estimate --pairs -walk/index.jsonl``, which estimate refused as an option without its value."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["capture", "--emulator", "--count", "1", "--size", "160x120", "--out=-walk"]) == 0
+    argv = shlex.split(capsys.readouterr().err.split("range them with: ")[1].strip())
+    assert "--pairs=-walk/index.jsonl" in argv
+    assert main([*argv[1:], "--workers", "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["status"]
