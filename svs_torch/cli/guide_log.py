@@ -5,7 +5,8 @@ Why: an assistive-technology developer needs to know, after the walk, what the g
 came late, or one about the wrong thing, is found in the record and ranged again offline. ``--record`` writes
 ``capture``'s layout (each board's JPEG exactly as received, and ``index.jsonl``, a line per pair flushed only
 after both its images are in place), so ``svs-depth estimate --pairs DIR/index.jsonl --floor on --camera-frames``
-ranges the same pairs with guide's settings and gives the same results: both decode a JPEG to its luma the same way
+(and guide's ``--second-passes off``, ``--calibration``: :func:`replay_command`) ranges the same pairs with guide's
+settings and gives the same results: both decode a JPEG to its luma the same way
 (:data:`svs_torch.core.image_files.JPEG_GRAY_DECODE`). A frame libjpeg finds damaged on the link is never
 ranged: the pair is grabbed again (:class:`~svs_torch.capture.DamagedFrameError`), as ``estimate`` refuses such a
 file (BAD_INPUT); damage libjpeg does not notice (a flipped bit that decodes to other values) is ranged by both.
