@@ -14,7 +14,7 @@ import os
 import sys
 import warnings
 
-from ..core.files import PROGRESS_HELP, STDERR_LOCK
+from ..core.files import PROGRESS_HELP
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 from .progress import print_above_bar
@@ -154,8 +154,8 @@ def _warning_printer(prog: str):
         if text.startswith("--disparity-out: ") and " not written: " in text:  # (a worker's, too: forwarded as text)
             show.maps_not_written += 1
         try:
-            with STDERR_LOCK:  # not into a decoder's window of another thread (see there)
-                print_above_bar(f"{prog}: warning: {text}", file or sys.stderr)  # a line of its own, not on a bar
+            # A line of its own, not on a bar, under STDERR_LOCK (not into a decoder's window of another thread)
+            print_above_bar(f"{prog}: warning: {text}", file or sys.stderr)
         except (OSError, ValueError):
             pass
 

@@ -262,27 +262,27 @@ class GuideSession:
         """A pair whose two frames came further apart than the camera's ``max_frame_gap_s`` after its own regrabs
         (one board kept missing its grab): not ranged, not seen. Why: the walker and the scene move between the
         frames, and such pairs were ranged (a 0.8 m obstacle said "clear" at 2-3 m, a 2 m one "Stop" at 0.5 m)."""
-        now = time.monotonic()
-        self._come_back(now)
         gap_s = item.pairs[0].time_between_frames_s
-        self._watch_sight(False, "FRAMES_APART", now)
-        self._show_not_seen(f"frames {abs(gap_s):.2f} s apart: not ranged")
-        self.log.event("frames_apart", pair=item.pairs[0].index, time_between_frames_s=round(gap_s, 3),
-                       num_dropped=item.num_dropped)
-        self.processed += 1
+        self._not_ranged(item, "FRAMES_APART", f"frames {abs(gap_s):.2f} s apart: not ranged", "frames_apart",
+                         time_between_frames_s=round(gap_s, 3), num_dropped=item.num_dropped)
         self.torn += 1
 
     def _one_image(self, item) -> None:
         """A pair whose two frames are one image, pixel for pixel (a driver or a relay that sent one board's frame
         for both): not ranged, not seen. Ranged, it measured a view with nothing near (every disparity 0), "seen",
         so guide stayed silent, which the walker hears as a clear way (an audit of estimate's numbers)."""
+        self._not_ranged(item, "IDENTICAL_VIEWS", "the two cameras sent one image: not ranged", "identical_views")
+        self.one_image += 1
+
+    def _not_ranged(self, item, status: str, detail: str, event: str, **fields) -> None:
+        """A grabbed pair left unranged (``status`` in the sight's JSON event, ``detail`` on the status line): not
+        seen, its own ``event`` logged with ``fields``, and taken (``--count``'s)."""
         now = time.monotonic()
         self._come_back(now)
-        self._watch_sight(False, "IDENTICAL_VIEWS", now)
-        self._show_not_seen("the two cameras sent one image: not ranged")
-        self.log.event("identical_views", pair=item.pairs[0].index)
+        self._watch_sight(False, status, now)
+        self._show_not_seen(detail)
+        self.log.event(event, pair=item.pairs[0].index, **fields)
         self.processed += 1
-        self.one_image += 1
 
     def stopped_text(self) -> str:
         """What guide says when it stops: the pairs taken, and how many were not ranged (a right board 0.5 s late
