@@ -211,7 +211,8 @@ def run(args: argparse.Namespace) -> int:
                 plot_results(store, args.figure)
             print(f"figure written to {args.figure}", file=sys.stderr)
         if args.summary or args.json or not (args.csv or args.figure):
-            summaries = config_summaries(store)
+            rows = store.results()  # read once, for both
+            summaries = config_summaries(store, rows)
             best = best_by_metric(summaries)
             if args.json:
                 # "best" over every configuration, as the text's: over the --top listed it named another (the best
@@ -219,11 +220,11 @@ def run(args: argparse.Namespace) -> int:
                 # the listing's order, not the text's.
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best},
-                                    "same_results": same_results(store)}))
+                                    "same_results": same_results(store, rows)}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 recorded = len(store.configs())
                 print(f"{args.db}: no results yet ({recorded} configuration{'s' * (recorded != 1)} recorded, no pair "
                       f"run); running the sweep's command again fills it")
             else:
-                _print_summary(summaries, best, args, same_results(store))
+                _print_summary(summaries, best, args, same_results(store, rows))
     return 0

@@ -47,18 +47,18 @@ def _evaluation(row: dict) -> PairEvaluation:
     return PairEvaluation(**values)
 
 
-def config_summaries(store: ResultStore) -> list[dict]:
+def config_summaries(store: ResultStore, rows: list[dict] | None = None) -> list[dict]:
     """One summary per stored configuration (with its ``config_id``, ``label``, ``preset``, ``size``,
     ``overrides``, the ``code_versions`` its rows were computed by and ``pairs_missing``, how many of the pairs
     any configuration was measured on it lacks: an interrupted sweep's means are over different pairs; and
     ``dense_pairs`` / ``inlier_pairs``, the pairs its dense and inlier disparity means are over, as the stereo
     metrics' ``<scope>_pairs``: a failed pair has none), in the order the configurations were stored;
-    configurations without rows are left out."""
+    configurations without rows are left out. ``rows``: ``store.results()``, where the caller read them already."""
     check_instance(store, "store", ResultStore)
     by_config: dict[str, list[PairEvaluation]] = {}
     versions: dict[str, list[str]] = {}
     pairs: dict[str, set[str]] = {}
-    for row in store.results():
+    for row in store.results() if rows is None else rows:
         by_config.setdefault(row["config_id"], []).append(_evaluation(row))
         pairs.setdefault(row["config_id"], set()).add(row["pair_id"])
         seen = versions.setdefault(row["config_id"], [])
@@ -142,19 +142,20 @@ def best_by_metric(summaries: Sequence[dict]) -> list[tuple[str, str, dict]]:
 _NOT_MEASURED = frozenset({"config_id", "run_id", "code_version", "time_s"})
 
 
-def same_results(store: ResultStore) -> list[list[str]]:
+def same_results(store: ResultStore, rows: list[dict] | None = None) -> list[list[str]]:
     """The groups (of two or more, in the order stored) of configurations whose stored rows are the same on every
     pair, times aside, each group measured on the same pairs: what differs between them changed nothing there.
 
     Why: a sweep over a setting that the configuration in use never reads (``segmentation.foreground`` under the
     nearness segmenter, which takes no Otsu split of the intensities) ran its values as so many configurations,
-    each ranked, one named best, and nothing said they were one (an audit of the results' numbers)."""
+    each ranked, one named best, and nothing said they were one (an audit of the results' numbers). ``rows``:
+    ``store.results()``, where the caller read them already."""
     check_instance(store, "store", ResultStore)
-    rows: dict[str, list[dict]] = {}
-    for row in store.results():  # (ordered by configuration, then pair)
-        rows.setdefault(row["config_id"], []).append({k: v for k, v in row.items() if k not in _NOT_MEASURED})
+    by_config: dict[str, list[dict]] = {}
+    for row in store.results() if rows is None else rows:  # (ordered by configuration, then pair)
+        by_config.setdefault(row["config_id"], []).append({k: v for k, v in row.items() if k not in _NOT_MEASURED})
     groups: dict[str, list[str]] = {}
-    for config_id, measured in rows.items():
+    for config_id, measured in by_config.items():
         groups.setdefault(json.dumps(measured, sort_keys=True, default=str), []).append(config_id)
     order = {c["config_id"]: i for i, c in enumerate(store.configs())}
     return sorted((sorted(g, key=order.get) for g in groups.values() if len(g) > 1), key=lambda g: order[g[0]])
