@@ -386,18 +386,21 @@ def test_status_line_into_a_log_is_a_plain_line_every_interval():
     ]
 
 
+class _Terminal(io.StringIO):
+    """A stream with a terminal behind it."""
+
+    def isatty(self) -> bool:
+        return True
+
+
 def test_status_line_on_a_dumb_terminal_is_not_redrawn(monkeypatch):
     """Was (an audit of terminal output): in an Emacs shell buffer (TERM=dumb) guide's status, redrawn with carriage
     returns some 8 times a second, grew one line for the whole walk, each redraw read aloud. Now it is plain lines
     there, as in a log."""
-    class Terminal(io.StringIO):
-        def isatty(self) -> bool:
-            return True
-
     monkeypatch.setenv("TERM", "xterm")
-    assert StatusLine(Terminal()).tty
+    assert StatusLine(_Terminal()).tty
     monkeypatch.setenv("TERM", "dumb")
-    terminal, now = Terminal(), [0.0]
+    terminal, now = _Terminal(), [0.0]
     status_line = StatusLine(terminal, interval_s=5.0, clock=lambda: now[0])
     for step in range(7):
         now[0] = float(step)
@@ -412,15 +415,11 @@ def test_status_line_plain_or_off_with_svs_torch_progress(monkeypatch):
     """Was (an audit of terminal output): a walker's screen reader read guide's status line at every redraw, some 8
     a second, over the spoken warnings, with no way to stop it. SVS_TORCH_PROGRESS=plain makes it a plain line
     every interval on a terminal; =off silences it, and the warnings still get their lines."""
-    class Terminal(io.StringIO):
-        def isatty(self) -> bool:
-            return True
-
     monkeypatch.setenv("TERM", "xterm")
     monkeypatch.setenv("SVS_TORCH_PROGRESS", "plain")
-    assert not StatusLine(Terminal()).tty
+    assert not StatusLine(_Terminal()).tty
     monkeypatch.setenv("SVS_TORCH_PROGRESS", "off")
-    terminal, now = Terminal(), [0.0]
+    terminal, now = _Terminal(), [0.0]
     status_line = StatusLine(terminal, interval_s=5.0, clock=lambda: now[0])
     for step in range(12):
         now[0] = float(step)
