@@ -33,6 +33,9 @@ _MIDDLEBURY_2005_FULL_WIDTHS_PX = (1240, 1396)
 # Full-size dmin (= doffs) of the 2005/2006 scenes where it is known: Art's 200 px is implied by MiddEval3
 # ArtL's calib.txt (quarter size: doffs 50, f 935 = 3740 / 4). The other dmin.txt files are not shipped (§4).
 MIDDLEBURY_2005_DMIN_FULL_PX = {"Art": 200.0}
+#: The left view's ground truth of a calib.txt scene: MiddEval3's GT archive, else a Middlebury 2014 data set's own.
+#: (No export of ours is named ``disp0.pfm``: ``--method-name`` takes at least one character.)
+_EVAL3_TRUTH_FILES = ("disp0GT.pfm", "disp0.pfm")
 # MiddEval3 trainingQ/Teddy/calib.txt: f 1500 px, baseline 80 mm, doffs 52 px at 450×375, the same scene, view and
 # scale as the 2003 quarter-size Teddy (not the same files: 2 % of the pixels differ by over 5 levels; the GT agrees
 # with disp0GT.pfm to a median difference of 0 px, 0.5 % over 1 px).
@@ -47,19 +50,22 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
     focal = ``cam0[0, 0]`` px, baseline mm → m, doffs px; calibrated. A ``calib.txt`` written for another image
     width (the views resized, MANIFEST §1, the file kept) has its focal and doffs scaled by the views' width over
     its ``width``, as the disparities are. GT valid where the PFM is finite; ``disparity_nonoccluded`` where
-    ``mask0nocc.png`` (if the folder has it) is 255 (128 = occluded, 0 = no GT). A scene without ``disp0GT.pfm`` (a
-    test scene, or the data unpacked without the GT archive) loads without ground truth.
+    ``mask0nocc.png`` (if the folder has it) is 255 (128 = occluded, 0 = no GT). A Middlebury 2014 scene (the
+    same ``calib.txt`` and views) names its ground truth ``disp0.pfm``, the same format: read when there is no
+    ``disp0GT.pfm`` (it loaded without truth, and ``eval`` said none of its pairs had any: an audit). A scene with
+    neither (a test scene, or the data unpacked without the GT archive) loads without ground truth.
     """
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
     left, right = read_view_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
     scale = _calib_width_scale(calib, left.shape[-1])
     truth: dict[str, np.ndarray] = {}
-    if (scene_dir / "disp0GT.pfm").exists():
-        gt = read_pfm(scene_dir / "disp0GT.pfm", "disparity")
+    truth_file = next((scene_dir / name for name in _EVAL3_TRUTH_FILES if (scene_dir / name).exists()), None)
+    if truth_file is not None:
+        gt = read_pfm(truth_file, "disparity")
         if gt.ndim != 2:
             raise InputError(f"disparity: expected a 1-channel PFM ('Pf'), got {gt.shape[2]} channels ('PF'): "
-                             f"{display_path(scene_dir / 'disp0GT.pfm')}")
+                             f"{display_path(truth_file)}")
         valid = np.isfinite(gt)
         truth = {"disparity": np.where(valid, gt, 0.0), "valid": valid}
         if (scene_dir / "mask0nocc.png").is_file():

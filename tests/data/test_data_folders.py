@@ -10,6 +10,7 @@ from pathlib import Path, PureWindowsPath
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from svs_torch import InputError
 from svs_torch.data import (load_middlebury_2005_2006, load_middlebury_eval3, load_opencv_aloe, load_stereo_pair,
@@ -74,6 +75,22 @@ def test_a_calib_txt_kept_beside_resized_views_is_scaled_to_them(tmp_path: Path,
     assert _median_depth_m(batch) == pytest.approx(_median_depth_m(truth), rel=0.01)
     assert scene_calibration_source(scene) == "Teddy225/calib.txt, scaled from its 450 px wide to the views' 225"
     assert scene_calibration_source(original) == "Teddy/calib.txt"
+
+
+def test_a_middlebury_2014_scene_reads_its_disp0_pfm_as_truth(tmp_path: Path, data_dir: Path) -> None:
+    # Middlebury 2014's data sets ship calib.txt, im0/im1.png and disp0.pfm (MiddEval3's GT archive: disp0GT.pfm).
+    # It loaded without truth, and eval scored none of its pairs (an audit).
+    original = data_dir / "middlebury_eval3_Q" / "Teddy"
+    scene = tmp_path / "Teddy-perfect"
+    scene.mkdir()
+    for name in ("im0.png", "im1.png", "calib.txt"):
+        shutil.copy(original / name, scene / name)
+    shutil.copy(original / "disp0GT.pfm", scene / "disp0.pfm")
+    truth, batch = load_middlebury_eval3(original), load_stereo_pair(scene)
+    assert batch.disparity_px is not None and batch.disparity_nonoccluded is None
+    assert torch.equal(batch.disparity_valid, truth.disparity_valid)
+    assert torch.equal(batch.disparity_px, truth.disparity_px)
+    assert _median_depth_m(batch) == pytest.approx(_median_depth_m(truth))
 
 
 def test_scenes_without_ground_truth_load_without_it(tmp_path: Path, data_dir: Path) -> None:
