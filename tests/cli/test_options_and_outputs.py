@@ -207,6 +207,18 @@ def test_estimate_on_a_folder_of_frames_says_which_frame_it_ranged(data_dir, cap
     assert code == 0 and "frames" not in err
 
 
+def test_estimate_ranges_the_kitti_frame_its_warning_advises(data_dir, capsys):
+    """Found by an audit: the warning above says to give a frame's left image, and estimate refused one alone
+    ("left, right: expected two image files, or a scene folder"); eval took it. It is the frame's scene: its right
+    view and the KITTI nominal calibration, said so."""
+    frame = data_dir / "kitti" / "stereo2012_training" / "colored_0" / "000001_10.png"
+    code, out, err = run_cli(capsys, "estimate", str(frame), "--size", "320x97", "--json")
+    assert code == 0 and err == "", err
+    report = json.loads(out)
+    assert report["left"] == str(frame) and report["status"] in ("OK", "NO_DENSE_DEPTH", "TOO_FEW_MATCHES")
+    assert report["calibration"]["source"].startswith("KITTI nominal values")
+
+
 def test_a_file_that_is_not_weights_is_named_without_torch_s_advice(data_dir, capsys, tmp_path):
     """torch.load's own text advises weights_only=False, which would run an untrusted file's code."""
     fake = tmp_path / "fake.pt"
