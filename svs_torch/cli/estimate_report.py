@@ -57,9 +57,10 @@ def _number(value, valid) -> float | None:
 
 
 #: What a pair resized to another aspect ratio (``--size``) says of its floor, once a run.
-ASPECT_CHANGED = ("--size changes the images' aspect ratio, so their pixels are no longer square: the floor's pose "
-                  "and the distances ahead along it need square pixels and are not reported (give a size of the "
-                  "images' own aspect, e.g. 320 wide and the height in proportion)")
+ASPECT_CHANGED = ("--size changes the images' aspect ratio, so their pixels are no longer square: the floor is looked "
+                  "for as if they were (a camera height or pitch read wrong can miss it, and a missed floor is kept "
+                  "as an obstacle), and its pose and the distances ahead along it are not reported (give a size of "
+                  "the images' own aspect, e.g. 320 wide and the height in proportion)")
 
 
 #: What a pair ranged by the paper's rule says of its floor, once a run: the floor is left out of the obstacles, but
@@ -86,7 +87,9 @@ def _floor_report(result, index: int, factors: tuple[float, float]) -> dict:
     found = floor is not None and bool(floor.floor.found[index])
     if floor is None and result.segmentation.floor_found is not None:  # looked for, but not measured
         warnings.warn(NO_DENSE_MAP, RuntimeWarning, stacklevel=2)
-    if found and not square_pixels(factors):
+    # Said wherever the floor was looked for, found or not: KITTI at 320x240 (rows stretched 2.5 times) read the road
+    # 2.5 times too far below the camera, missed it, and kept it as the nearest obstacle without a word (an audit).
+    if result.segmentation.floor_found is not None and not square_pixels(factors):
         warnings.warn(ASPECT_CHANGED, RuntimeWarning, stacklevel=2)
         found = False
     if not found:

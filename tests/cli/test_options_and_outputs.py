@@ -219,6 +219,20 @@ def test_estimate_ranges_the_kitti_frame_its_warning_advises(data_dir, capsys):
     assert report["calibration"]["source"].startswith("KITTI nominal values")
 
 
+def test_a_floor_missed_at_another_aspect_ratio_is_said(data_dir, capsys):
+    """Found by an audit: KITTI at 320x240 stretches its rows 2.5 times, the floor test (one focal length for both
+    axes) read the road 2.5 times too far below the camera and missed it, and --floor on then kept the road as the
+    nearest obstacle without a word (the warning came only for a floor found). Resized in proportion it is found."""
+    frame = str(data_dir / "kitti" / "stereo2015_training" / "image_2" / "000000_10.png")
+    code, out, err = run_cli(capsys, "estimate", frame, "--size", "320x240", "--floor", "on", "--json")
+    assert code == 0 and json.loads(out)["floor"] is None
+    assert err.count("changes the images' aspect ratio") == 1 and "can miss it" in err, err
+    code, out, err = run_cli(capsys, "estimate", frame, "--size", "320x97", "--floor", "on", "--json")
+    assert code == 0 and json.loads(out)["floor"] is not None and "aspect" not in err
+    code, out, err = run_cli(capsys, "estimate", frame, "--size", "320x240", "--json")  # no floor looked for
+    assert code == 0 and "aspect" not in err
+
+
 def test_a_file_that_is_not_weights_is_named_without_torch_s_advice(data_dir, capsys, tmp_path):
     """torch.load's own text advises weights_only=False, which would run an untrusted file's code."""
     fake = tmp_path / "fake.pt"
