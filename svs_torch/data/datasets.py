@@ -33,7 +33,7 @@ from ..core.types import StereoBatch
 from .formats import read_kitti_disparity, read_scaled_disparity
 from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
                          eval3_calibration_source, load_middlebury_2001, load_middlebury_2003,
-                         load_middlebury_2005_2006, load_middlebury_eval3)
+                         load_middlebury_2005_2006, load_middlebury_eval3, teddy_2003_calibration_source)
 from .scene_batch import check_scene_dir, make_scene_batch, read_view_pair, warnings_once_loaded
 
 __all__ = [
@@ -239,7 +239,7 @@ def scene_calibration_source(path: str | Path) -> str:
     if layout in ("2005_2006", "aloe"):
         return "Middlebury 2005/2006 nominal f and B assumed: no calibration shipped, dmin unknown"
     if layout == "2003" and path.name == "Teddy":
-        return "MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view"
+        return teddy_2003_calibration_source(path)
     if layout == "kitti":
         return "KITTI nominal values for the image width assumed: no calib file shipped"
     return "the SVS model assumed: no calibration shipped"

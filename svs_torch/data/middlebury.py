@@ -22,7 +22,7 @@ from .scene_batch import check_scene_dir, make_scene_batch, read_mask_image, rea
 
 __all__ = ["MIDDLEBURY_2005_BASELINE_M", "MIDDLEBURY_2005_DMIN_FULL_PX", "MIDDLEBURY_2005_FOCAL_FULL_PX",
            "eval3_calibration_source", "load_middlebury_2001", "load_middlebury_2003", "load_middlebury_2005_2006",
-           "load_middlebury_eval3"]
+           "load_middlebury_eval3", "teddy_2003_calibration_source"]
 
 # Middlebury 2005/2006 (Scharstein & Pal 2007): nominal full-size focal length 3740 px and baseline 160 mm
 # (MANIFEST §1–2); half- and third-size images divide focal and dmin by 2 and 3.
@@ -40,6 +40,8 @@ _EVAL3_TRUTH_FILES = ("disp0GT.pfm", "disp0.pfm")
 # scale as the 2003 quarter-size Teddy (not the same files: 2 % of the pixels differ by over 5 levels; the GT agrees
 # with disp0GT.pfm to a median difference of 0 px, 0.5 % over 1 px).
 _TEDDY_2003_QUARTER = {"focal_px": 1500.0, "baseline_m": 0.080, "doffs_px": 52.0}
+#: The width those values are for (that calib.txt's ``width``).
+_TEDDY_2003_QUARTER_WIDTH_PX = 450
 
 
 @warnings_once_loaded()
@@ -122,14 +124,20 @@ def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float
     No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
     baseline 0.080 m, doffs 52 px; calibrated True): that file describes the same scene and view at the same
     450×375 scale (the GT maps agree, median difference 0 px; the image files differ a little), so the values
-    hold here; note they are Middlebury's own round, nominal numbers, as trusted as eval3/Teddy's and no more.
+    hold here; note they are Middlebury's own round, nominal numbers, as trusted as eval3/Teddy's and no more. Views
+    of another width scale focal and doffs by their width over 450, as :func:`load_middlebury_eval3` scales a
+    ``calib.txt`` (``disp2.png`` is still read as 4·d).
     Other scenes (Cones) get the SVS nominal focal and baseline and calibrated False.
     """
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
     disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity")
     if scene_dir.name == "Teddy":
-        camera = dict(_TEDDY_2003_QUARTER, calibrated=True)
+        # In the pixels of its 450 px width: views of another width scale focal and doffs as eval3's calib.txt does
+        # (a 225 px copy read f 1500 px, and its median true depth 1.78 m for 1.45 m: an audit).
+        scale = left.shape[-1] / _TEDDY_2003_QUARTER_WIDTH_PX
+        camera = dict(_TEDDY_2003_QUARTER, calibrated=True, focal_px=_TEDDY_2003_QUARTER["focal_px"] * scale,
+                      doffs_px=_TEDDY_2003_QUARTER["doffs_px"] * scale)
     else:
         camera = {"focal_px": SVS_CAMERA.focal_px(left.shape[-1]), "baseline_m": SVS_CAMERA.baseline_m}
     return make_scene_batch(left, right, f"2003/{scene_dir.name}", disparity=disparity, valid=valid, **camera)
@@ -148,6 +156,20 @@ def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float
         disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
     return make_scene_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
                             baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
+
+
+def teddy_2003_calibration_source(scene_dir: Path) -> str:
+    """Where :func:`load_middlebury_2003` takes Teddy's calibration from, and how it was scaled where the views are
+    not 450 px wide; read from the PNG's header alone."""
+    source = "MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view"
+    try:
+        with (scene_dir / "imL.png").open("rb") as handle:
+            size = declared_size(handle.read(64))
+    except OSError:  # the loader says what is wrong with it
+        return source
+    if size is None or size[0] == _TEDDY_2003_QUARTER_WIDTH_PX:
+        return source
+    return f"{source}, scaled from its {_TEDDY_2003_QUARTER_WIDTH_PX} px wide to the views' {size[0]}"
 
 
 def eval3_calibration_source(scene_dir: Path) -> str:

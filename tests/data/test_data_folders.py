@@ -77,6 +77,26 @@ def test_a_calib_txt_kept_beside_resized_views_is_scaled_to_them(tmp_path: Path,
     assert scene_calibration_source(original) == "Teddy/calib.txt"
 
 
+def test_a_2003_teddy_of_another_width_scales_its_calibration(tmp_path: Path, data_dir: Path) -> None:
+    # Teddy's 2003 calibration is MiddEval3's calib.txt for 450 px: a copy resized to 225 px (disp2.png still 4·d)
+    # kept f 1500 px and doffs 52 px, and its median true depth read 1.78 m for 1.45 m (an audit).
+    original = data_dir / "middlebury_2003_quarter" / "Teddy"
+    scene = tmp_path / "Teddy"
+    scene.mkdir()
+    for name in ("imL.png", "imR.png"):
+        cv2.imwrite(str(scene / name), cv2.resize(cv2.imread(str(original / name)), (225, 188),
+                                                  interpolation=cv2.INTER_AREA))
+    stored = cv2.resize(cv2.imread(str(original / "disp2.png"), cv2.IMREAD_UNCHANGED), (225, 188),
+                        interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(scene / "disp2.png"), np.where(stored > 0, np.maximum(1, np.rint(stored / 2)), 0).astype(np.uint8))
+    truth, batch = load_stereo_pair(original), load_stereo_pair(scene)
+    assert float(batch.focal_px[0]) == pytest.approx(750.0) and float(batch.doffs_px[0]) == pytest.approx(26.0)
+    assert _median_depth_m(batch) == pytest.approx(_median_depth_m(truth), rel=0.01)
+    assert scene_calibration_source(scene).endswith(", scaled from its 450 px wide to the views' 225")
+    assert float(truth.focal_px[0]) == 1500.0 and float(truth.doffs_px[0]) == 52.0
+    assert scene_calibration_source(original) == "MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view"
+
+
 def test_a_middlebury_2014_scene_reads_its_disp0_pfm_as_truth(tmp_path: Path, data_dir: Path) -> None:
     # Middlebury 2014's data sets ship calib.txt, im0/im1.png and disp0.pfm (MiddEval3's GT archive: disp0GT.pfm).
     # It loaded without truth, and eval scored none of its pairs (an audit).
