@@ -67,9 +67,9 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
     GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid); where the folder also has the non-occluded
     GT (``disp_noc`` / ``disp_noc_0``), its known pixels are ``disparity_nonoccluded`` (the shared copies have
     only the all-pixel ``disp_occ``). A frame without a GT file (a testing frame, an ``_11`` frame) loads without
-    ground truth. No calib files are shipped: focal and
-    baseline are the nominal values for the image width (MANIFEST §4; nearest listed width otherwise),
-    calibrated False — use KITTI for disparity-level evaluation only.
+    ground truth. No calib files are shipped: focal and baseline are the nominal values for the image width
+    (MANIFEST §4; the nearest listed width otherwise, its focal scaled by the width over that one's for a resized
+    copy), calibrated False — use KITTI for disparity-level evaluation only.
     """
     root = check_scene_dir(root, "root")
     layout = next((layout for layout in KITTI_LAYOUTS if (root / layout[0]).is_dir()), None)
@@ -82,9 +82,20 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
         truth["disparity"], truth["valid"] = read_kitti_disparity(root / folders[2] / f"{frame}.png", "disparity")
         if (root / noc / f"{frame}.png").is_file():
             truth["nonoccluded"] = read_kitti_disparity(root / noc / f"{frame}.png", "disparity_noc")[1]
-    width = left.shape[-1]
-    focal_px, baseline_m = _KITTI_NOMINAL[min(_KITTI_NOMINAL, key=lambda w: abs(w - width))]
+    focal_px, baseline_m = _kitti_nominal_camera(left.shape[-1])
     return make_scene_batch(left, right, f"{prefix}/{frame}", focal_px=focal_px, baseline_m=baseline_m, **truth)
+
+
+def _kitti_nominal_camera(width_px: int) -> tuple[float, float]:
+    """Focal length (px) and baseline (m) for a KITTI frame ``width_px`` wide: the nearest listed width's values,
+    the focal scaled by the width over that one's where it is not within 2 % of it (a copy resized by a user: a
+    half-size frame kept the native focal and read every distance twice too far, an audit). The native widths of
+    the KITTI sequences (1224–1242 px) take their listed values unscaled."""
+    listed = min(_KITTI_NOMINAL, key=lambda w: abs(math.log(width_px / w)))
+    focal_px, baseline_m = _KITTI_NOMINAL[listed]
+    if abs(width_px / listed - 1.0) > 0.02:
+        focal_px *= width_px / listed
+    return focal_px, baseline_m
 
 
 def kitti_left_images(root: str | Path) -> list[Path]:

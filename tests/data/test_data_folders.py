@@ -127,6 +127,29 @@ def test_scenes_without_ground_truth_load_without_it(tmp_path: Path, data_dir: P
     assert [source.name for source in read_pair_sources([kitti])] == ["kitti/000000_10", "kitti/000001_10"]
 
 
+def test_a_half_size_kitti_copy_keeps_its_distances(tmp_path: Path, data_dir: Path) -> None:
+    """A KITTI frame resized by its user (views and truth halved, the truth's values too) reads the same metres as
+    the native frame: its focal is the listed width's scaled by the width, not the native 721.5 px kept (which read
+    every distance twice too far)."""
+    native = load_kitti(data_dir / "kitti" / "stereo2015_training")
+    half = tmp_path / "kitti"
+    for folder in ("image_2", "image_3", "disp_occ_0"):
+        (half / folder).mkdir(parents=True)
+        image = cv2.imread(str(data_dir / "kitti" / "stereo2015_training" / folder / "000000_10.png"),
+                           cv2.IMREAD_UNCHANGED)
+        size = (image.shape[1] // 2, image.shape[0] // 2)
+        if folder == "disp_occ_0":  # nearest keeps the 0 = unknown pixels; the disparity halves with the width
+            image = (cv2.resize(image, size, interpolation=cv2.INTER_NEAREST) // 2).astype(np.uint16)
+        else:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(half / folder / "000000_10.png"), image)
+    batch = load_kitti(half)
+    # the 2012 and 2015 listed cameras differ by under 1 % in focal per pixel of width
+    assert float(batch.focal_px[0]) == pytest.approx(float(native.focal_px[0]) * 621 / 1242, rel=0.01)
+    assert _median_depth_m(batch) == pytest.approx(_median_depth_m(native), rel=0.02)
+    assert float(native.focal_px[0]) == pytest.approx(721.5377)  # the native width keeps its listed values
+
+
 def test_kitti_truth_must_be_16_bit(tmp_path: Path, data_dir: Path) -> None:
     kitti = tmp_path / "kitti"
     shutil.copytree(data_dir / "kitti" / "stereo2015_training", kitti)
