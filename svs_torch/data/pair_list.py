@@ -37,6 +37,7 @@ from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
                        list_shared_pairs, load_image_pair, load_stereo_pair, scene_name, unreadable_reason,
                        warn_unreadable)
+from .pair_names import pair_identity, with_distinct_names
 
 __all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "read_pair_list", "read_pair_sources", "load_pair_source",
            "unique_sources", "with_distinct_names"]
@@ -259,7 +260,7 @@ def unique_sources(sources: Sequence[PairSource]) -> tuple[list[PairSource], lis
     seen: set = set()
     unique, repeated = [], []
     for source in sources:
-        key = source.pair_id if source.problem is not None else _identity(source)
+        key = source.pair_id if source.problem is not None else pair_identity(source)
         (repeated if key in seen else unique).append(source)
         seen.add(key)
     return unique, repeated
@@ -324,51 +325,6 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
         else:
             raise InputError(f"{name}: no such file or folder: {path}")
     return with_distinct_names(sources)
-
-
-def _loaded_name(source: PairSource) -> str:
-    """The name :func:`load_pair_source` gives ``source`` without a label."""
-    return scene_name(source.left) if source.scene else replace(source, label=None).name
-
-
-def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:
-    """``sources``, each pair that would share its name with another pair (not the same pair listed again) labelled
-    with the folders that tell them apart: ``eval3/Teddy (a)`` and ``eval3/Teddy (b)`` for ``a/Teddy`` and
-    ``b/Teddy``. Reports, stores and exported maps then keep them apart (an export is named after the pair)."""
-    identities = [None if source.problem is not None else _identity(source) for source in sources]
-    groups: dict[str, dict[tuple, Path]] = {}
-    for source, identity in zip(sources, identities):
-        if identity is not None:
-            groups.setdefault(_loaded_name(source), {})[identity] = Path(os.path.abspath(source.left))
-    labels = {}
-    for name, paths in groups.items():
-        if len(paths) > 1:
-            labels.update(zip(paths, (f"{name} ({tail})" for tail in _telling_folders(list(paths.values())))))
-    return [source if identity is None else replace(source, label=labels.get(identity))
-            for source, identity in zip(sources, identities)]
-
-
-def _identity(source: PairSource) -> tuple:
-    """The files a pair reads, links resolved, and its listed calibration: one scene reached through a symbolic
-    link is the same pair, not one to tell apart."""
-    return (os.path.realpath(source.left), source.right and os.path.realpath(source.right), source.focal_px,
-            source.baseline_m, source.doffs_px)
-
-
-def _telling_folders(paths: list[Path]) -> list[str]:
-    """For each path, the fewest of its parent folders, nearest first, that no other path shares once the parent
-    folders all of them end with are left out; numbers where the folders are the same (the same files listed with
-    two calibrations)."""
-    parents = [path.parent.parts[1 if path.anchor else 0:] for path in paths]  # no root or drive: not a name
-    common = 0
-    while all(len(parts) > common for parts in parents) and len({parts[-1 - common] for parts in parents}) == 1:
-        common += 1
-    trimmed = [parts[:len(parts) - common] for parts in parents]
-    for count in range(1, max(map(len, trimmed), default=0) + 1):
-        tails = ["/".join(parts[-count:]) for parts in trimmed]
-        if len(set(tails)) == len(tails) and all(tails):
-            return tails
-    return [str(number) for number in range(1, len(paths) + 1)]
 
 
 def load_pair_source(source: PairSource, focal_px: float | None = None, baseline_m: float | None = None,

@@ -17,7 +17,8 @@ from svs_torch.data import (load_middlebury_2005_2006, load_middlebury_eval3, lo
                             read_gray_image, read_middlebury_calib, read_pair_list, read_pair_sources,
                             write_pfm)
 from svs_torch.data.datasets import load_kitti, scene_calibration_source
-from svs_torch.data.pair_list import _telling_folders, load_pair_source
+from svs_torch.data.pair_list import load_pair_source
+from svs_torch.data.pair_names import _telling_folders
 from svs_torch.evaluation.export import export_name
 
 
@@ -233,6 +234,25 @@ def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -
     assert names == ["eval3/Teddy (x/a)", "eval3/Teddy (y/a)", "eval3/Teddy (x/b)"]
     assert [export_name(name) for name in names] == ["Teddy_x_a", "Teddy_y_a", "Teddy_x_b"]
     assert _telling_folders([PureWindowsPath("C:/data/Teddy"), PureWindowsPath("D:/data/Teddy")]) == ["1", "2"]
+
+
+def test_a_pair_listed_again_through_a_link_keeps_the_name_it_runs_under(tmp_path: Path, data_dir: Path) -> None:
+    # Two Teddy/im0.png pairs told apart by their folders, then the first listed again through a link to its folder:
+    # eval runs the first spelling and drops the repeat, but the repeat's folder renamed it ("Teddy/im0.png (link)"
+    # in the JSON, the store and the --disparity-out folder) where the list without the repeat said "(a)".
+    for folder, scene in (("a", "Teddy"), ("b", "Piano")):
+        (tmp_path / folder / "Teddy").mkdir(parents=True)
+        for view in ("im0.png", "im1.png"):
+            shutil.copy(data_dir / "middlebury_eval3_Q" / scene / view, tmp_path / folder / "Teddy" / view)
+    (tmp_path / "link").symlink_to(tmp_path / "a")
+    lines = "a/Teddy/im0.png a/Teddy/im1.png\nb/Teddy/im0.png b/Teddy/im1.png\n"
+    (tmp_path / "pairs.txt").write_text(lines)
+    (tmp_path / "again.txt").write_text(lines + "link/Teddy/im0.png link/Teddy/im1.png\n")
+    once = [source.name for source in read_pair_sources([tmp_path / "pairs.txt"])]
+    again = [source.name for source in read_pair_sources([tmp_path / "again.txt"])]
+    assert once == ["Teddy/im0.png (a)", "Teddy/im0.png (b)"]
+    assert again == [*once, "Teddy/im0.png (a)"]
+    assert [source.name for source in read_pair_list(tmp_path / "again.txt")] == again
 
 
 def test_a_pair_list_saved_with_a_byte_order_mark_reads(tmp_path: Path, data_dir: Path) -> None:
