@@ -38,8 +38,10 @@ JPEG_GRAY_DECODE = cv2.IMREAD_GRAYSCALE
 
 
 def preload_key(path: str | Path) -> str:
-    """The key of ``path`` in :data:`PRELOADED`: its absolute path, without touching the file system."""
-    return os.path.abspath(os.fspath(path))
+    """The key of ``path`` in :data:`PRELOADED`: the file it opens, links resolved. Not its absolute path: that
+    drops ``lnk/..`` by its letters, and ``lnk/../L.png`` (the file beside ``lnk``'s target) and ``L.png`` had one
+    key, so ``estimate --pairs`` in workers ranged one pair on the other's images (an audit)."""
+    return os.path.realpath(os.fspath(path))
 
 
 def check_file(path: str | Path, name: str) -> Path:

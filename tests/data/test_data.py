@@ -427,3 +427,25 @@ def test_preloaded_arrays_are_not_read_again(tmp_path):
         PRELOADED.clear()
     with pytest.raises(InputError, match="left: file not found"):
         read_image_array(elsewhere, "left")
+
+
+def test_a_preloaded_array_is_never_taken_for_another_file(tmp_path):
+    """Two spellings that name two files: ``lnk/../L.png`` (``lnk`` a link into another folder: the file beside its
+    target) and ``L.png``. Keyed by their lexical absolute path, both were one key, and ``estimate --pairs
+    --workers 2 --batch-size 2`` ranged the first pair on the second's images (r_min 1.247 m, Teddy's, for a Pipes
+    pair ranged at 1.536 m by one worker): an audit of results against the number of workers."""
+    from svs_torch.core.image_files import PRELOADED, preload_key, read_image_array
+
+    (tmp_path / "here").mkdir()
+    (tmp_path / "there" / "deep").mkdir(parents=True)
+    for folder, value in (("here", 1), ("there", 2)):
+        cv2.imwrite(str(tmp_path / folder / "L.png"), np.full((3, 4), value, np.uint8))
+    (tmp_path / "here" / "lnk").symlink_to(tmp_path / "there" / "deep")
+    plain, through = str(tmp_path / "here" / "L.png"), str(tmp_path / "here" / "lnk" / ".." / "L.png")
+    assert preload_key(plain) != preload_key(through)
+    PRELOADED[preload_key(plain)] = read_image_array(plain, "left")
+    try:
+        assert read_image_array(through, "left")[0, 0] == 2  # the file the system opens, not the preloaded one
+        assert read_image_array(plain, "left")[0, 0] == 1
+    finally:
+        PRELOADED.clear()
