@@ -23,8 +23,8 @@ from .files import STDERR_LOCK, check_path_given, display_path, path_kind
 __all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_pixels",
            "declared_size", "decode_collecting", "preload_key", "read_image_array"]
 
-#: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is taken
-#: (and removed) by the first read of that file.
+#: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is returned for
+#: every read of that file until its owner clears the dict (an ``estimate --pairs`` worker, after each batch).
 PRELOADED: dict[str, np.ndarray] = {}
 
 #: A JPEG file's first bytes (start of image, then a marker), and how ``gray`` (and the live stream,
