@@ -143,6 +143,25 @@ def test_a_sweep_file_saved_by_a_windows_editor_is_read(data_dir, tmp_path):
     assert len(load_sweep(sweep_file).configs) == 2
 
 
+def test_a_sweep_files_relative_path_names_what_eval_opens_through_a_linked_folder(data_dir, tmp_path):
+    """The paths of a sweep file reached through a linked folder (a checkout reached by a link, as ~/svs ->
+    /work/main): "../lists/pairs.txt" is beside the link's target, as eval, ls and the system open it. The path
+    was normalised by its letters first (link/.. taken as the link's own folder), and the sweep refused the file
+    eval ran ("paths: no such file or folder"), or would have run another folder of that name."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    (tmp_path / "real" / "exp").mkdir(parents=True)
+    (tmp_path / "real" / "lists").mkdir()
+    (tmp_path / "real" / "lists" / "pairs.txt").write_text(f"{teddy}\n")
+    (tmp_path / "real" / "exp" / "sweep.toml").write_text('paths = ["../lists/pairs.txt"]\n')
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "exp").symlink_to(tmp_path / "real" / "exp")
+    sweep = load_sweep(tmp_path / "other" / "exp" / "sweep.toml")
+    assert [os.path.realpath(source.left) for source in sweep.sources] == [os.path.realpath(teddy)]
+    # Where the letters and the system agree, the path is still shown without its inner "..".
+    plain = load_sweep(tmp_path / "real" / "exp" / "sweep.toml")
+    assert [source.list_file for source in plain.sources] == [str(tmp_path / "real" / "lists" / "pairs.txt")]
+
+
 def test_plan_skips_blocks_that_are_stored(data_dir, tmp_path):
     sweep = load_sweep(write_sweep(tmp_path, data_dir, SWEEP.replace("batch_size = 1", "batch_size = 3")))
     assert [len(t.sources) for t in plan_tasks(sweep, set())] == [3, 1] * 3
