@@ -26,7 +26,8 @@ from .errors import InputError
 
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
            "display_path", "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
-           "PROGRESS_HELP", "progress_setting", "redraws_in_place", "write_bytes_atomic", "write_errors_named"]
+           "PROGRESS_HELP", "progress_setting", "redraws_in_place", "tidy_path", "write_bytes_atomic",
+           "write_errors_named"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -45,6 +46,14 @@ def display_path(path: str | os.PathLike) -> str:
         half = MAX_SHOWN_CHARS // 2 - 1
         text = f"{text[:half]}…{text[-half:]}"
     return text if text.isprintable() else repr(text)[1:-1]
+
+
+def tidy_path(path: str | os.PathLike) -> str:
+    """``path`` without its inner ``..`` ("experiments/../../shared" → "../shared") where that names what the system
+    opens; else as it is: through a linked folder ``link/..`` is the folder above the link's target, not the link's
+    own, so dropping it by its letters named another file (a sweep refused a path eval ran: an audit)."""
+    tidy = os.path.normpath(path)
+    return tidy if os.path.realpath(tidy) == os.path.realpath(path) else os.fspath(path)
 
 
 def path_kind(path: str | os.PathLike, name: str) -> str:

@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError, check_instance
-from ..core.files import atomic_output
+from ..core.files import atomic_output, tidy_path
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
@@ -196,8 +195,9 @@ def csv_table(store: ResultStore) -> tuple[list[str], list[list[Any]]]:
         config = configs[row["config_id"]]
         params = [parameter_value(config, key) for key in swept]
         # Paths as a person would write them: a sweep file's "../../shared/data" joined to its folder reads
-        # "experiments/../../shared/..." until normalised (the same file; ids keep the absolute path).
-        paths = {key: os.path.normpath(row[key]) if row[key] else row[key] for key in ("left", "right")}
+        # "experiments/../../shared/..." until normalised (the same file; ids keep the absolute path). Not where a
+        # link makes "link/.." another folder: that shows a file that is not the pair's (tidy_path).
+        paths = {key: tidy_path(row[key]) if row[key] else row[key] for key in ("left", "right")}
         values = {**row, **paths, "config": row["config_id"], "objects": json.dumps(row["objects"]),
                   "calibration": json.dumps(row["calibration"]) if row["calibration"] else None}
         rows.append([values[c] for c in CSV_FIRST] + [labels[row["config_id"]], config["size"], *params,

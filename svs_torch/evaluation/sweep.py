@@ -43,7 +43,6 @@ import dataclasses
 import difflib
 import hashlib
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -55,6 +54,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.checks import InputError
+from ..core.files import tidy_path
 from ..core.workers import thread_budget
 from ..data.pair_list import PairSource, read_pair_sources, unique_sources
 from ..pipeline import PipelineConfig
@@ -157,15 +157,6 @@ def _too_many(name: str, entries: int, points: int) -> str:
             f"most {MAX_GRID_POINTS}; list fewer, or split them into several sweeps")
 
 
-def _beside(sweep_file: Path, given: str) -> str:
-    """``given``, relative to ``sweep_file``'s folder, normalised ("experiments/../../shared" → "../shared") where
-    that names what the system opens: through a linked folder ``link/..`` is the folder above the link's target, not
-    the link's own (a checkout reached by a link ran eval on the path and refused it in a sweep: an audit)."""
-    joined = str(sweep_file.parent / given)
-    tidy = os.path.normpath(joined)
-    return tidy if os.path.realpath(tidy) == os.path.realpath(joined) else joined
-
-
 def load_sweep(path: str | Path) -> Sweep:
     """Read and check a sweep file (module docstring); every error is one InputError naming the file."""
     path = Path(path)
@@ -182,7 +173,7 @@ def load_sweep(path: str | Path) -> Sweep:
     paths = [paths] if isinstance(paths, str) else paths
     _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),
             f"{name}: paths: expected a list of scene folders or pair lists, got {table.get('paths')!r}")
-    resolved = [p if Path(p).is_absolute() else _beside(path, p) for p in paths]
+    resolved = [p if Path(p).is_absolute() else tidy_path(path.parent / p) for p in paths]  # (see there: links)
     size = table.get("size", "native")
     _expect(isinstance(size, str), f"{name}: size: expected 'WxH' such as '320x240', or 'native', got {size!r}")
     size_wh = None if size == "native" else parse_size(size, f"{name}: size")

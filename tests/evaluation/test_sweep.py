@@ -147,16 +147,30 @@ def test_a_sweep_files_relative_path_names_what_eval_opens_through_a_linked_fold
     """The paths of a sweep file reached through a linked folder (a checkout reached by a link, as ~/svs ->
     /work/main): "../lists/pairs.txt" is beside the link's target, as eval, ls and the system open it. The path
     was normalised by its letters first (link/.. taken as the link's own folder), and the sweep refused the file
-    eval ran ("paths: no such file or folder"), or would have run another folder of that name."""
+    eval ran ("paths: no such file or folder"), or would have run another folder of that name; results --csv
+    showed such a pair's path so normalised, a file that is not the pair's."""
+    from svs_torch.evaluation import PairEvaluation
+    from svs_torch.evaluation.report import csv_table
+    from svs_torch.evaluation.store import ResultStore
+
     teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
-    (tmp_path / "real" / "exp").mkdir(parents=True)
-    (tmp_path / "real" / "lists").mkdir()
-    (tmp_path / "real" / "lists" / "pairs.txt").write_text(f"{teddy}\n")
+    for folder in ("exp", "lists", "scenes"):
+        (tmp_path / "real" / folder).mkdir(parents=True)
+    (tmp_path / "real" / "scenes" / "Teddy").symlink_to(teddy)
+    (tmp_path / "real" / "lists" / "pairs.txt").write_text("../scenes/Teddy\n")
     (tmp_path / "real" / "exp" / "sweep.toml").write_text('paths = ["../lists/pairs.txt"]\n')
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "exp").symlink_to(tmp_path / "real" / "exp")
     sweep = load_sweep(tmp_path / "other" / "exp" / "sweep.toml")
     assert [os.path.realpath(source.left) for source in sweep.sources] == [os.path.realpath(teddy)]
+    with ResultStore(tmp_path / "runs.sqlite") as store:
+        store.add_pairs(sweep.sources)
+        store.add_configs([c.record() for c in sweep.configs])
+        row = PairEvaluation("Teddy", "OK", acc_r_min_pct=99.0)
+        store.write_task(sweep.configs[0].config_id, store.start_run("test", "v", {}, ""),
+                         [(sweep.sources[0].pair_id, row)])
+        header, rows = csv_table(store)
+    assert os.path.realpath(rows[0][header.index("left")]) == os.path.realpath(teddy)
     # Where the letters and the system agree, the path is still shown without its inner "..".
     plain = load_sweep(tmp_path / "real" / "exp" / "sweep.toml")
     assert [source.list_file for source in plain.sources] == [str(tmp_path / "real" / "lists" / "pairs.txt")]
