@@ -87,6 +87,12 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     except (KeyError, TypeError, RuntimeError) as error:
         reason = " ".join(str(error).split())[:200]
         raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None
+    # A diverged run's NaN loaded in silence: in a layer under the shipped zero head the pass was skipped and the file
+    # passed for the rule; elsewhere every pair of an eval or a sweep became an ERROR row naming no file (an audit).
+    bad = [name for name, value in net.state_dict().items() if not bool(torch.isfinite(value).all())]
+    if bad:
+        raise InputError(f"segmenter: {str(path)!r}: its weights hold NaN or inf ({', '.join(bad[:3])}"
+                         f"{', ...' if len(bad) > 3 else ''}: a diverged training run?)")
     return net.float().eval()
 
 

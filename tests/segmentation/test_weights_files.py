@@ -1,0 +1,32 @@
+"""The learned segmenters' weights files (svs_torch.segmentation.network_files): what a file that cannot be used
+gets, in one line naming it, and when."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from svs_torch.core.checks import InputError
+from svs_torch.segmentation.nearness import NearnessNet
+from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
+
+
+def _nearness_file(tmp_path, edit=None, name="net.pt"):
+    """A nearness weights file as train_nearness.py writes one (its head zero: the rule alone), edited by ``edit``."""
+    path = tmp_path / name
+    save_obstacle_net(path, NearnessNet(), {"note": "test"})
+    if edit is not None:
+        stored = torch.load(path, weights_only=True)
+        edit(stored)
+        torch.save(stored, path)
+    return path
+
+
+@pytest.mark.parametrize("layer, value", [("down1.0.weight", float("nan")), ("head.bias", float("inf"))])
+def test_weights_holding_nan_or_inf_are_refused_naming_the_file(tmp_path, layer, value):
+    """Found by an audit: a NaN in a hidden layer under the zero head loaded in silence (the network's pass is
+    skipped, so a corrupted file passed for the rule); a NaN elsewhere made every pair an ERROR row naming no file."""
+    path = _nearness_file(tmp_path, lambda stored: stored["state_dict"][layer].view(-1).__setitem__(0, value))
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': its weights hold NaN or inf \\({layer}: ") as error:
+        load_obstacle_net(f"nearness:{path}")
+    assert "\n" not in str(error.value)
