@@ -71,7 +71,11 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     kind = segmenter.partition(":")[0]
     expected = _KINDS[kind]
     if not isinstance(stored, dict) or stored.get("format") != expected:
-        found = f", found {stored.get('format')!r}" if isinstance(stored, dict) and "format" in stored else ""
+        found = stored.get("format") if isinstance(stored, dict) else None
+        if isinstance(found, str) and found.partition("/")[0] == expected.partition("/")[0]:
+            raise InputError(f"segmenter: {str(path)!r} is in format {found}, which this svs_torch does not read (it "
+                             f"reads {expected}; written by another version of svs_torch?)")
+        found = f", found {found!r}" if isinstance(stored, dict) and "format" in stored else ""
         raise InputError(f"segmenter: {str(path)!r} is not a svs_torch {kind} network file (format {expected}"
                          f"{found})")
     network_class, config_class = _network_classes(kind)

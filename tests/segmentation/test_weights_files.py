@@ -30,3 +30,10 @@ def test_weights_holding_nan_or_inf_are_refused_naming_the_file(tmp_path, layer,
     with pytest.raises(InputError, match=f"^segmenter: '{path}': its weights hold NaN or inf \\({layer}: ") as error:
         load_obstacle_net(f"nearness:{path}")
     assert "\n" not in str(error.value)
+
+
+def test_a_file_of_a_newer_format_says_so(tmp_path):
+    path = _nearness_file(tmp_path, lambda stored: stored.__setitem__("format", "svs_torch.nearness_net/2"))
+    with pytest.raises(InputError, match=f"^segmenter: '{path}' is in format svs_torch.nearness_net/2, which this "
+                                         "svs_torch does not read \\(it reads svs_torch.nearness_net/1"):
+        load_obstacle_net(f"nearness:{path}")
