@@ -129,13 +129,17 @@ def with_floor(config, choice: str | None):
 
 
 def segmenter_choice(text: str) -> str:
-    """argparse type: ``otsu``, ``learned`` or ``learned:PATH`` naming an existing weights file, checked by
-    :class:`~svs_torch.segmentation.SegmentationConfig` itself (imported only when the option is given)."""
+    """argparse type: ``otsu``, ``nearness``, ``learned``, or ``nearness:PATH`` / ``learned:PATH`` naming a weights
+    file of that kind, checked by :class:`~svs_torch.segmentation.SegmentationConfig` itself and read (imported only
+    when the option is given): a truncated or foreign file was refused only once the run reached it, after the
+    pairs of a ``--pairs`` list were read and the workers started (an audit)."""
     from ..core.errors import InputError
+    from ..segmentation.network_files import check_weights_file
     from ..segmentation.segment import SegmentationConfig
 
     try:
         SegmentationConfig(segmenter=text)
+        check_weights_file(text)
     except InputError as error:
         raise argparse.ArgumentTypeError(str(error).removeprefix("segmenter: ")) from None
     return text

@@ -42,6 +42,7 @@ from typing import Any
 
 from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
+from ..segmentation.network_files import check_weights_file
 from .config_tree import ON, ConfigBuildError, build_config, dataclass_of, refused_keys
 
 __all__ = [
@@ -203,10 +204,18 @@ def apply_overrides(config: PipelineConfig, overrides: Mapping[str, Any], source
         except _Mismatch:
             raise InputError(f"{source}: {key}: expected {_describe_type(known[key])}, got {value!r}") from None
     try:
-        return build_config(config, checked)
+        built = build_config(config, checked)
     except ConfigBuildError as failed:
         keys = ", ".join(f"{key} = {overrides[key]!r}" for key in refused_keys(overrides, failed))
         raise InputError(f"{source}: {keys}: {failed.error}") from None
+    if "segmentation.segmenter" in overrides:
+        # Read now: a bad weights file made every pair of an eval or a sweep an ERROR row, exit status 0 (an audit).
+        try:
+            check_weights_file(built.segmentation.segmenter)
+        except InputError as error:
+            raise InputError(f"{source}: segmentation.segmenter = {overrides['segmentation.segmenter']!r}: "
+                             f"{error}") from None
+    return built
 
 
 def parse_assignment(text: str, source: str = "--set") -> tuple[str, Any]:

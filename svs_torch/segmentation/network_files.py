@@ -19,8 +19,8 @@ from ..core.inference import outside_inference_mode
 from .network import ObstacleNet, ObstacleNetConfig
 
 __all__ = [
-    "NEARNESS_WEIGHTS", "SHIPPED_WEIGHTS", "cached_obstacle_net", "load_obstacle_net", "save_obstacle_net",
-    "weights_path"
+    "NEARNESS_WEIGHTS", "SHIPPED_WEIGHTS", "cached_obstacle_net", "check_weights_file", "load_obstacle_net",
+    "save_obstacle_net", "weights_path"
 ]
 
 
@@ -117,6 +117,25 @@ def cached_obstacle_net(segmenter: str) -> nn.Module:
         _NET_CACHE.clear()  # one network at a time: a sweep over weights files does not pile them up
         _NET_CACHE[key] = load_obstacle_net(segmenter)
     return _NET_CACHE[key]
+
+
+_CHECKED: set[tuple[str, str, int, int]] = set()
+
+
+def check_weights_file(segmenter: str) -> None:
+    """Read the weights file a ``"learned:PATH"`` / ``"nearness:PATH"`` names into its network, once per file and
+    version in a process, so that a command refuses a bad file when it checks its arguments, before any work
+    (:func:`load_obstacle_net`'s one-line error); the shipped weights and ``"otsu"`` are not read."""
+    if not isinstance(segmenter, str) or ":" not in segmenter:
+        return
+    path = weights_path(segmenter)
+    if not path.is_file():
+        load_obstacle_net(segmenter)  # its one-line error
+    stat = path.stat()
+    key = (segmenter.partition(":")[0], str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _CHECKED:
+        cached_obstacle_net(segmenter)  # the run that follows in this process reads the network from the cache
+        _CHECKED.add(key)
 
 
 def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = None) -> None:

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from svs_torch.core.checks import InputError
+from svs_torch.segmentation import network_files
 from svs_torch.segmentation.nearness import NearnessNet
 from svs_torch.segmentation.network_files import load_obstacle_net, save_obstacle_net
 
@@ -37,3 +38,20 @@ def test_a_file_of_a_newer_format_says_so(tmp_path):
     with pytest.raises(InputError, match=f"^segmenter: '{path}' is in format svs_torch.nearness_net/2, which this "
                                          "svs_torch does not read \\(it reads svs_torch.nearness_net/1"):
         load_obstacle_net(f"nearness:{path}")
+
+
+def test_check_weights_file_reads_each_version_once(tmp_path, monkeypatch):
+    path = _nearness_file(tmp_path)
+    reads, real = [], network_files.load_obstacle_net
+    monkeypatch.setattr(network_files, "load_obstacle_net", lambda segmenter: reads.append(segmenter) or real(segmenter))
+    monkeypatch.setattr(network_files, "_NET_CACHE", {})
+    monkeypatch.setattr(network_files, "_CHECKED", set())
+    check_weights_file = network_files.check_weights_file
+    for _ in range(3):
+        check_weights_file(f"nearness:{path}")
+    check_weights_file("nearness")  # the shipped weights are not read here
+    check_weights_file("otsu")
+    assert reads == [f"nearness:{path}"]
+    path.write_bytes(b"rewritten, not weights")
+    with pytest.raises(InputError, match="is not a weights file"):
+        check_weights_file(f"nearness:{path}")
