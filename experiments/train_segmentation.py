@@ -62,6 +62,8 @@ import torch
 import torch.nn.functional as F
 
 from svs_torch.cli.common import non_negative_float, non_negative_int, positive_float, positive_int, seed_int
+from svs_torch.cli.features import checked_size
+from svs_torch.core.errors import InputError
 from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
@@ -69,7 +71,8 @@ from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stere
 from svs_torch.evaluation import measured_regions, object_truth, with_nominal_calibration
 from svs_torch.segmentation.learned import obstacle_truth, segment_learned, soft_object_depths
 from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits, stereo_features
-from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
+from svs_torch.segmentation.network_files import (SHIPPED_WEIGHTS, check_weights_file, load_obstacle_net,
+                                                  save_obstacle_net)
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 from svs_torch.core.types import StereoBatch
@@ -385,8 +388,7 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command
                              "folder with its disparity); nothing to train on")
     else:
         pairs = [with_nominal_calibration(load_stereo_pair(path)) for path in train_scenes(Path(args.data))]
-    width, height = (int(v) for v in args.size.split("x"))
-    pairs = [resize_stereo_batch(pair, (width, height)) for pair in pairs]
+    pairs = [resize_stereo_batch(pair, checked_size(args.size)) for pair in pairs]
     net = load_obstacle_net(args.init)
     started = time.perf_counter()
     history = fine_tune_through_pipeline(pairs, net, config, generator, args.region_weight)
@@ -447,6 +449,31 @@ def samples_per_run(config) -> int:
     return config.crops_per_scene + config.views_per_scene + config.num_synthetic
 
 
+def init_weights(text: str) -> str:
+    """argparse type of ``--init``: ``learned`` or ``learned:PATH`` naming obstacle-network weights, read now. Found
+    by an audit: ``--init nearness`` failed after the pairs were read with "network: expected an ObstacleNet for
+    segmenter 'learned'", and a bad file's line named "segmenter", not --init."""
+    if text.partition(":")[0] != "learned":
+        raise argparse.ArgumentTypeError(f"expected 'learned' or 'learned:PATH' (obstacle-network weights; nearness "
+                                         f"weights are trained by train_nearness.py), got {text!r}")
+    try:
+        SegmentationConfig(segmenter=text)
+        check_weights_file(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("segmenter: ")) from None
+    return text
+
+
+def size_text(text: str) -> str:
+    """argparse type of ``--size``: ``WxH`` as svs-depth's --size takes it (``--size 320`` was a ValueError
+    traceback once the pairs were read: an audit)."""
+    try:
+        checked_size(text)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("--size: ")) from None
+    return text
+
+
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
@@ -461,9 +488,9 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")
     parser.add_argument("--pairs", help="--through-pipeline: a pair list (default: the training scenes)")
-    parser.add_argument("--init", default="learned", help="--through-pipeline: starting weights, 'learned' or "
-                        "'learned:PATH'")
-    parser.add_argument("--size", default="320x240", help="--through-pipeline: pairs resized to WxH")
+    parser.add_argument("--init", default="learned", type=init_weights, help="--through-pipeline: starting weights, "
+                        "'learned' or 'learned:PATH' (read when the option is checked)")
+    parser.add_argument("--size", default="320x240", type=size_text, help="--through-pipeline: pairs resized to WxH")
     parser.add_argument("--region-weight", type=non_negative_float, default=1.0, help="--through-pipeline: weight "
                         "of the probability-weighted mean depth over each whole kept region in the loss (0: the "
                         "median's)")

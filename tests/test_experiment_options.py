@@ -184,3 +184,17 @@ def test_eval_segmentation_refuses_a_report_over_the_weights_it_evaluates(tmp_pa
     assert [(code, line.split(" reads")[0]) for code, line in refusals(cases, stop=False)] == [
         (2, "eval_segmentation.py: error: argument --json: the file --weights"),
         (2, "eval_segmentation.py: error: argument --markdown: the file --nearness")]
+
+
+def test_train_segmentation_checks_its_starting_weights_and_size_when_parsed(tmp_path):
+    """Found by an audit: ``train_segmentation.py --through-pipeline --init nearness`` failed once the pairs were read
+    with "network: expected an ObstacleNet for segmenter 'learned'", a truncated ``--init learned:FILE`` with a line
+    naming "segmenter" and not --init, and ``--size 320`` was a ValueError traceback."""
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes((REPO_ROOT / "svs_torch" / "segmentation" / "weights" / "obstacle_net.pt").read_bytes()[:1000])
+    cases = [("train_segmentation", ["--init", "nearness"]), ("train_segmentation", ["--init", f"learned:{cut}"]),
+             ("train_segmentation", ["--size", "320"]), ("train_segmentation", ["--size", "0x240"])]
+    assert_refused(cases)
+    lines = [line for _, line in refusals(cases[:2])]
+    assert "nearness weights are trained by train_nearness.py" in lines[0] and f"'{cut}' is not a weights" in lines[1]
+    assert refusals([("train_segmentation", ["--init", "learned", "--size", "160x120"])]) == [("parsed", "")]
