@@ -57,7 +57,7 @@ from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.segmentation.ground_plane import GroundPlaneConfig
 from svs_torch.segmentation.learned import mask_iou, obstacle_truth
 from svs_torch.segmentation.network import stereo_features
-from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net
+from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, check_weights_file, load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 
@@ -142,7 +142,16 @@ def method_configs(args) -> dict[str, PipelineConfig | str]:
     if unknown:  # (a KeyError traceback before)
         raise InputError(f"--methods: unknown {', '.join(unknown)}; expected among "
                          f"{', '.join(methods)} (a NAME of --nearness NAME=FILE too)")
-    return {name: methods[name] for name in args.methods.split(",")}
+    chosen = {name: methods[name] for name in args.methods.split(",")}
+    # Each weights file read now: a bad one was refused after the first scene's work, naming "segmenter" (an audit).
+    options = {"learned": "--weights", **{spec.partition("=")[0]: "--nearness" for spec in args.nearness or []}}
+    for name, config in chosen.items():
+        if name in options:
+            try:
+                check_weights_file(config.segmentation.segmenter)
+            except InputError as error:
+                raise InputError(f"{options[name]}: {str(error).removeprefix('segmenter: ')}") from None
+    return chosen
 
 
 def evaluate_scene(path: Path, size: str, methods: dict, old_net, floor: GroundPlaneConfig | None = None,

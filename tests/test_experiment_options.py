@@ -198,3 +198,15 @@ def test_train_segmentation_checks_its_starting_weights_and_size_when_parsed(tmp
     lines = [line for _, line in refusals(cases[:2])]
     assert "nearness weights are trained by train_nearness.py" in lines[0] and f"'{cut}' is not a weights" in lines[1]
     assert refusals([("train_segmentation", ["--init", "learned", "--size", "160x120"])]) == [("parsed", "")]
+
+
+def test_eval_segmentation_reads_its_weights_files_before_any_scene(data_dir, tmp_path):
+    """Found by an audit: a truncated ``--weights`` or ``--nearness NAME=FILE`` was refused only after the first
+    scene's work, in a line naming "segmenter", not the option."""
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes((REPO_ROOT / "svs_torch" / "segmentation" / "weights" / "nearness_net.pt").read_bytes()[:1000])
+    data = ["--data", str(data_dir), "--limit", "1"]
+    cases = [("eval_segmentation", [*data, "--weights", str(cut), "--methods", "learned"]),
+             ("eval_segmentation", [*data, "--nearness", f"n={cut}", "--methods", "default,n"])]
+    assert [(code, line.split(" is not")[0]) for code, line in refusals(cases, stop=False)] == [
+        (2, f"eval_segmentation.py: error: --weights: '{cut}'"), (2, f"eval_segmentation.py: error: --nearness: '{cut}'")]
