@@ -6,15 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from ..core.checks import InputError
-from ..core.files import short_name
+from ..core.files import atomic_output
 from ..core.inference import outside_inference_mode
 from .network import ObstacleNet, ObstacleNetConfig
 
@@ -148,12 +146,8 @@ def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = 
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},
               "metadata": json.loads(json.dumps(metadata or {}, default=str))}
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{short_name(path.name)}.", suffix=".tmp")
-    os.close(handle)
-    try:
-        torch.save(stored, temporary)
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+    # Through the house's atomic writer: a temporary file of its own (mkstemp) was left beside the weights by a run
+    # killed while writing, and torch.save, given its path, named the file's records after it, so the same weights
+    # and record made different bytes on every run (an audit). Given a stream, the records are "archive/...".
+    with atomic_output(path) as stream:
+        torch.save(stored, stream)

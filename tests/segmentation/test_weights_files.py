@@ -55,3 +55,44 @@ def test_check_weights_file_reads_each_version_once(tmp_path, monkeypatch):
     path.write_bytes(b"rewritten, not weights")
     with pytest.raises(InputError, match="is not a weights file"):
         check_weights_file(f"nearness:{path}")
+
+
+def test_the_same_network_and_record_give_the_same_bytes(tmp_path):
+    """Found by an audit: each file held its random temporary name (``.net.pt.azl2wex2/data.pkl``) as the prefix of
+    its records, so a rerun with the same seed and record was another file, and git saw the shipped one change."""
+    torch.manual_seed(0)
+    net = NearnessNet()
+    first, second = tmp_path / "a.pt", tmp_path / "b.pt"
+    save_obstacle_net(first, net, {"seed": 0})
+    save_obstacle_net(second, net, {"seed": 0})
+    assert first.read_bytes() == second.read_bytes()
+    assert isinstance(load_obstacle_net(f"nearness:{second}"), NearnessNet)
+
+
+def test_a_save_killed_midway_leaves_the_old_file_and_nothing_else(tmp_path):
+    """Found by an audit: a training run killed (SIGKILL) while writing left a hidden temporary file beside the
+    weights (in the package's weights/ folder, for the shipped ones); the old file itself was kept, and still is."""
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import REPO_ROOT
+
+    path = _nearness_file(tmp_path)
+    before = path.read_bytes()
+    script = ("import sys, time, torch\n"
+              "from svs_torch.segmentation.nearness import NearnessNet\n"
+              "from svs_torch.segmentation.network_files import save_obstacle_net\n"
+              "real = torch.save\n"
+              "def stalled(obj, f, *args, **kwargs):\n"
+              "    real(obj, f, *args, **kwargs); print('written', flush=True); time.sleep(60)\n"
+              "torch.save = stalled\n"
+              "save_obstacle_net(sys.argv[1], NearnessNet(), {'note': 'killed'})\n")
+    child = subprocess.Popen([sys.executable, "-c", script, str(path)], stdout=subprocess.PIPE, text=True,
+                             env={**__import__("os").environ, "PYTHONPATH": str(REPO_ROOT)})
+    try:
+        assert child.stdout.readline().strip() == "written"
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name] and path.read_bytes() == before
