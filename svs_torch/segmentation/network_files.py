@@ -79,6 +79,9 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     network_class, config_class = _network_classes(kind)
     try:
         settings = dict(stored["config"])
+        unknown = sorted(map(str, set(settings) - {field.name for field in dataclasses.fields(config_class)}))
+        if unknown:  # a setting added after this version (the format is kept: older files take the defaults)
+            raise InputError(f"{', '.join(unknown)}: not a setting of this svs_torch (written by a newer one?)")
         # The layers' random initial weights are overwritten by the file's: drawn from a forked generator, so that
         # loading (the first pipeline run of a process) leaves torch's global random state as the caller set it.
         with torch.random.fork_rng(devices=[]):

@@ -40,6 +40,15 @@ def test_a_file_of_a_newer_format_says_so(tmp_path):
         load_obstacle_net(f"nearness:{path}")
 
 
+def test_a_setting_from_a_newer_version_is_named(tmp_path):
+    """A newer svs_torch adds settings without a new format (older files take the defaults): such a file was refused
+    with Python's "NearnessNetConfig.__init__() got an unexpected keyword argument 'bogus'"."""
+    path = _nearness_file(tmp_path, lambda stored: stored["config"].__setitem__("bogus", 1))
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': its stored settings are refused \(bogus: not a "
+                                         "setting of this svs_torch \(written by a newer one\?\)\)$"):
+        load_obstacle_net(f"nearness:{path}")
+
+
 def test_check_weights_file_reads_each_version_once(tmp_path, monkeypatch):
     path = _nearness_file(tmp_path)
     reads, real = [], network_files.load_obstacle_net
