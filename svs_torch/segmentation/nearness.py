@@ -168,8 +168,8 @@ class NearnessNetConfig:
             raise InputError(f"max_disparity_fraction: expected a value in (0, 1), got {self.max_disparity_fraction!r}")
         if len(self.channels) != 3 or any(not isinstance(c, int) or c < 4 or c % 4 for c in self.channels):
             raise InputError(f"channels: expected three multiples of 4, got {self.channels!r}")
-        if not self.rule_gain > 0 or not self.disparity_temperature > 0:
-            raise InputError(f"rule_gain, disparity_temperature: expected positive values, got "
+        if not (0 < self.rule_gain < math.inf and 0 < self.disparity_temperature < math.inf):  # inf: NaN logits
+            raise InputError(f"rule_gain, disparity_temperature: expected positive finite values, got "
                              f"{self.rule_gain!r}, {self.disparity_temperature!r}")
         if not 0 < self.probability_threshold < 1:
             raise InputError(f"probability_threshold: expected a value in (0, 1), got {self.probability_threshold!r}")

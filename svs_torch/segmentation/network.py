@@ -66,8 +66,9 @@ class ObstacleNetConfig:
             raise InputError(f"working_width_px: expected an int >= 16, got {self.working_width_px!r}")
         if not 0 < self.max_disparity_fraction < 1:
             raise InputError(f"max_disparity_fraction: expected a value in (0, 1), got {self.max_disparity_fraction!r}")
-        if not self.disparity_temperature > 0:
-            raise InputError(f"disparity_temperature: expected a positive value, got {self.disparity_temperature!r}")
+        if not 0 < self.disparity_temperature < math.inf:
+            raise InputError(f"disparity_temperature: expected a positive finite value, got "
+                             f"{self.disparity_temperature!r}")
         if len(self.channels) != 3 or any(not isinstance(c, int) or c < 4 for c in self.channels):
             raise InputError(f"channels: expected three ints >= 4, got {self.channels!r}")
         if not 0 < self.probability_threshold < 1:

@@ -44,9 +44,27 @@ def test_a_setting_from_a_newer_version_is_named(tmp_path):
     """A newer svs_torch adds settings without a new format (older files take the defaults): such a file was refused
     with Python's "NearnessNetConfig.__init__() got an unexpected keyword argument 'bogus'"."""
     path = _nearness_file(tmp_path, lambda stored: stored["config"].__setitem__("bogus", 1))
-    with pytest.raises(InputError, match=f"^segmenter: '{path}': its stored settings are refused \(bogus: not a "
-                                         "setting of this svs_torch \(written by a newer one\?\)\)$"):
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': its stored settings are refused \\(bogus: not a "
+                                         "setting of this svs_torch \\(written by a newer one\\?\\)\\)$"):
         load_obstacle_net(f"nearness:{path}")
+
+
+@pytest.mark.parametrize("kind, setting", [("nearness", "rule_gain"), ("nearness", "disparity_temperature"),
+                                           ("learned", "disparity_temperature")])
+def test_an_infinite_stored_setting_is_refused(tmp_path, kind, setting):
+    """Found by an audit: a file whose rule_gain was inf gave NaN logits on every pair ("network: expected finite
+    obstacle logits", naming no file); an infinite disparity_temperature made the stereo features a flat mean and
+    the run went on."""
+    from svs_torch.segmentation.network import ObstacleNet
+
+    path = tmp_path / "net.pt"
+    save_obstacle_net(path, NearnessNet() if kind == "nearness" else ObstacleNet(), {})
+    stored = torch.load(path, weights_only=True)
+    stored["config"][setting] = float("inf")
+    torch.save(stored, path)
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': its stored settings are refused \\(.*"
+                                         "disparity_temperature: expected (a )?positive finite value"):
+        load_obstacle_net(f"{kind}:{path}")
 
 
 def test_check_weights_file_reads_each_version_once(tmp_path, monkeypatch):
