@@ -70,6 +70,10 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
     expected = _KINDS[kind]
     if not isinstance(stored, dict) or stored.get("format") != expected:
         found = stored.get("format") if isinstance(stored, dict) else None
+        other = next((name for name, tag in _KINDS.items() if tag == found), None)
+        if other is not None:  # the kinds' files swapped: the fix is the prefix
+            raise InputError(f"segmenter: {str(path)!r} is a {other} network file, not a {kind} one (give it as "
+                             f"{other}:PATH)")
         if isinstance(found, str) and found.partition("/")[0] == expected.partition("/")[0]:
             raise InputError(f"segmenter: {str(path)!r} is in format {found}, which this svs_torch does not read (it "
                              f"reads {expected}; written by another version of svs_torch?)")

@@ -279,7 +279,7 @@ def test_clear_errors(tmp_path):
     old = tmp_path / "old.pt"
     from svs_torch.segmentation.network import ObstacleNet
     save_obstacle_net(old, ObstacleNet())
-    with pytest.raises(InputError, match="not a svs_torch nearness network file"):
+    with pytest.raises(InputError, match="is a learned network file, not a nearness one \\(give it as learned:PATH\\)"):
         load_obstacle_net(f"nearness:{old}")
     new = tmp_path / "new.pt"
     save_obstacle_net(new, NearnessNet())
