@@ -238,8 +238,10 @@ def test_a_file_that_is_not_weights_is_named_without_torch_s_advice(data_dir, ca
     fake = tmp_path / "fake.pt"
     fake.write_bytes(b"not a weights file")
     left, right = (str(data_dir / p) for p in TEDDY)
-    code, _, err = run_cli(capsys, "estimate", left, right, "--segmenter", f"nearness:{fake}")
-    assert code == 2 and "is not a weights file (not tensors saved by torch.save" in err
+    with pytest.raises(SystemExit) as stop:  # refused by --segmenter's argparse type, when the option is checked
+        run_cli(capsys, "estimate", left, right, "--segmenter", f"nearness:{fake}")
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "is not a weights file (not tensors saved by torch.save" in err
     assert "weights_only" not in err
 
 
