@@ -138,7 +138,9 @@ def add_common_options(parser, *, data_type=str, threads: int | None = None, rep
 
 def run_script(main) -> None:
     """Run an experiment's ``main()`` as a command: a refused input (``InputError``: a bad ``--set``, data folder,
-    option value) is one line on stderr and exit status 2, not a traceback."""
+    option value) is one line on stderr and exit status 2, not a traceback; Ctrl-C one line and exit status 130,
+    as the command line's (a traceback from wherever the run was, an audit; each experiment writes its outputs
+    whole or not at all)."""
     from svs_torch.core.errors import InputError
 
     try:
@@ -146,6 +148,9 @@ def run_script(main) -> None:
     except InputError as error:
         print(f"{Path(sys.argv[0]).name}: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"{Path(sys.argv[0]).name}: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 def run_metadata(threads: int, **extra) -> dict:

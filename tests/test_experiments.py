@@ -738,3 +738,24 @@ def test_guide_confirm_tables_a_digit_whose_walks_were_never_warned():
     assert row["missed"] == 1 and row["warn_delay_ms_median"] is None
     text = guide_confirm.markdown({"walks": [row], "still": []}, "cmd")
     assert "| 8 | 3 | – | – | 1 | 0 |" in text
+
+
+def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir):
+    """Found by an audit: Ctrl-C in a training run ended in a traceback from wherever it was. Now one line and exit
+    status 130, as the command line's, and no weights file written half-way."""
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "net.pt"
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    run = subprocess.Popen([sys.executable, str(REPO_ROOT / "experiments" / "train_nearness.py"), "--data",
+                            str(data_dir), "--out", str(out), "--steps", "100000", "--num-synthetic", "4",
+                            "--crops-per-scene", "1", "--views-per-scene", "1", "--threads", "1"],
+                           env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(8)  # well into reading or training: torch's import alone takes about 2 s
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "train_nearness.py: interrupted"
+    assert list(tmp_path.iterdir()) == []
