@@ -14,7 +14,7 @@ pipeline and that the pipeline never imports.
 * :mod:`.disparity_errors`: disparity errors of the dense map and of the sparse inliers against the truth;
 * :mod:`.export`: dense disparity maps written in the Middlebury and KITTI formats;
 * :mod:`.benchmark`, :mod:`.bench_rivals`: ``svs-depth bench`` (pairs a second) and its rivals; :mod:`.bench_inputs`
-  its input pairs;
+  its input pairs; :mod:`.bench_processes` its child processes, none left behind when it is interrupted;
   :mod:`.frame_latency`: ``guide``'s one-frame latency on real scenes, frame by frame.
 
 May import: ``svs_torch.core``, the stages' public names, the pipeline and ``data``. Only the CLI and the

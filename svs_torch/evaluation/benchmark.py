@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 
 from .bench_inputs import _write_list, write_inputs
+from .bench_processes import run_child
 from .frame_latency import GOAL_MS, real_frame_latency
 
 __all__ = ["run_benchmark", "format_tables"]
@@ -64,7 +65,7 @@ WALKER_FLOOR_HEIGHT_M, WALKER_PITCH_DEG = 1.5, 20.0
 
 def _run_process(command: list[str], env: dict[str, str]) -> tuple[float, list[dict]]:
     started = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True, env=env)
+    done = run_child(command, env)
     elapsed = time.perf_counter() - started
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(command[:4])} …: exit {done.returncode}: {done.stderr.strip()[-300:]}")
@@ -156,7 +157,7 @@ def _child_peak_memory(batch_size: int) -> dict:
             "base = peak_mb()\n"
             "estimate_obstacle_depth(batch)\n"
             "print(json.dumps({'base_mb': base, 'peak_mb': peak_mb()}))\n")
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        done = run_child([sys.executable, "-c", code], check=True)
     values = json.loads(done.stdout.strip().splitlines()[-1])
     return {"B": batch_size, "peak_mb": round(values["peak_mb"], 1),
             "per_pair_mb": round((values["peak_mb"] - values["base_mb"]) / batch_size, 2)}
@@ -269,7 +270,7 @@ def help_time(repeats: int) -> float:
     runs = []
     for _ in range(repeats):
         started = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "svs_torch.cli", "--help"], capture_output=True, check=True)
+        run_child([sys.executable, "-m", "svs_torch.cli", "--help"], check=True)
         runs.append(time.perf_counter() - started)
     return round(statistics.median(runs), 3)
 

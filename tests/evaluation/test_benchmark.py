@@ -220,3 +220,48 @@ def test_whole_process_lists_survive_a_space_in_the_temporary_folder(tmp_path):
     out = subprocess.run([*RIVAL_COMMAND, "orb", str(listing)], capture_output=True, text=True, check=True,
                          cwd=tmp_path).stdout.splitlines()
     assert [json.loads(line)["status"] for line in out] == ["OK", "OK"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_an_interrupted_rival_leaves_no_process_of_its_own_behind(tmp_path):
+    """A SIGINT sent to the benchmark alone (``timeout -s INT``, ``kill -INT PID``) while the OpenCV pool ran:
+    ``svs-depth bench`` said "interrupted" and exited 130, and the pool's spawned workers and their resource
+    tracker went on running as orphans (an audit). The rival's whole process group is now ended."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from svs_torch.evaluation import benchmark
+
+    pid_file = tmp_path / "grandchild.pid"
+    code = ("import subprocess, sys, time\n"
+            "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+            f"open({str(pid_file)!r}, 'w').write(str(child.pid))\n"
+            "time.sleep(60)\n")
+    main = threading.main_thread().ident
+
+    def interrupt():
+        while not pid_file.exists() or not pid_file.read_text():
+            time.sleep(0.05)
+        signal.pthread_kill(main, signal.SIGINT)
+
+    threading.Thread(target=interrupt, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        benchmark._run_process([sys.executable, "-c", code], dict(os.environ))
+    grandchild = int(pid_file.read_text())
+
+    def running(pid):
+        try:
+            with open(f"/proc/{pid}/stat") as handle:
+                return handle.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 10
+    while running(grandchild) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = running(grandchild)
+    if alive:
+        os.kill(grandchild, signal.SIGKILL)
+    assert not alive
