@@ -43,10 +43,28 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "always runs its 128 synthetic pairs, B = 1 to 128 (about 3 GB at its peak)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per rival; the median is reported "
                                                                         "(default: 3)")
-    parser.add_argument("--threads", type=positive_int, default=2, help="threads for every rival (default: 2)")
+    parser.add_argument("--threads", type=positive_int, help="threads for every rival, at most the cores this "
+                                                             "process may run on (default: 2, or those cores if "
+                                                             "fewer)")
     parser.add_argument("--no-memory", action="store_true", help="skip the peak-memory child processes")
     parser.add_argument("--json", metavar="FILE", help="also write the full report with its metadata as JSON")
     parser.set_defaults(func=run)
+
+
+def checked_threads(threads: int | None) -> int:
+    """``--threads``, or its default of 2 (fewer on a machine with fewer cores), refused above the cores this process
+    may run on. Why: ``svs-depth estimate`` takes no more threads than those cores, while the OpenCV loop took
+    ``cv2.setNumThreads(999)``, its pool spawned up to 999 processes, the in-process part ran 999 torch threads on 2
+    cores, and the report recorded 'threads 999' for all of them (an audit)."""
+    from ..core.checks import InputError
+    from ..core.workers import available_cores
+
+    cores = available_cores()
+    if threads is None:
+        return min(2, cores)
+    if threads > cores:
+        raise InputError(f"--threads: expected 1 to {cores} (the cores this process may run on), got {threads}")
+    return threads
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         from ..data import list_shared_pairs
         from .common import dumps_strict
 
+    args.threads = checked_threads(args.threads)
     data_dir = Path(args.data) if args.data else None
     if data_dir is not None and path_kind(data_dir, "--data") != "folder":
         raise InputError(f"--data: expected a folder, got {args.data!r}")

@@ -128,10 +128,10 @@ def whole_process(sets: dict[str, list], workdir: Path, repeats: int, threads: i
     return rows
 
 
-def _child_peak_memory(batch_size: int) -> dict:
-    """Peak resident memory of a child process running the default pipeline on B synthetic pairs, above the
-    child's peak once torch is imported and the input batch is loaded (written by this process, so rendering the
-    scenes does not set the peak)."""
+def _child_peak_memory(batch_size: int, threads: int) -> dict:
+    """Peak resident memory of a child process running the default pipeline on B synthetic pairs with ``threads``
+    torch threads, above the child's peak once torch is imported and the input batch is loaded (written by this
+    process, so rendering the scenes does not set the peak)."""
     import torch
 
     from ..data.synthetic import random_obstacle_scenes
@@ -157,7 +157,8 @@ def _child_peak_memory(batch_size: int) -> dict:
             "base = peak_mb()\n"
             "estimate_obstacle_depth(batch)\n"
             "print(json.dumps({'base_mb': base, 'peak_mb': peak_mb()}))\n")
-        done = run_child([sys.executable, "-c", code], check=True)
+        # The report's thread count, not the caller's OMP_NUM_THREADS (or every core) as the child found them.
+        done = run_child([sys.executable, "-c", code], {**os.environ, "OMP_NUM_THREADS": str(threads)}, check=True)
     values = json.loads(done.stdout.strip().splitlines()[-1])
     return {"B": batch_size, "peak_mb": round(values["peak_mb"], 1),
             "per_pair_mb": round((values["peak_mb"] - values["base_mb"]) / batch_size, 2)}
@@ -313,7 +314,7 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
     if memory and os.path.isfile("/proc/self/status"):  # the children's peak is read there: not on macOS, Windows
         if progress:
             progress("peak memory per batch size")
-        report["memory"] = [_child_peak_memory(b) for b in SCALING_BATCHES]
+        report["memory"] = [_child_peak_memory(b, threads) for b in SCALING_BATCHES]
     try:
         import resource  # (not on Windows)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)

@@ -192,7 +192,7 @@ def test_bench_finishes_without_linux_only_features(monkeypatch, tmp_path):
 
     for name, stub in [("write_inputs", lambda *a: {}), ("whole_process", lambda *a: []),
                        ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1),
-                       ("_child_peak_memory", lambda b: pytest.fail("/proc/self/status is not there to read"))]:
+                       ("_child_peak_memory", lambda *a: pytest.fail("/proc/self/status is not there to read"))]:
         monkeypatch.setattr(benchmark, name, stub)
     real_isfile = os.path.isfile
     monkeypatch.setattr(os.path, "isfile", lambda path: not str(path).startswith("/proc") and real_isfile(path))
@@ -265,3 +265,42 @@ def test_an_interrupted_rival_leaves_no_process_of_its_own_behind(tmp_path):
     if alive:
         os.kill(grandchild, signal.SIGKILL)
     assert not alive
+
+
+def test_threads_above_the_cores_are_refused_before_any_work(capsys, monkeypatch):
+    """``--threads 999`` on 2 cores was taken: svs-depth estimate ran on its 2 cores, the OpenCV loop asked for 999
+    threads, its pool spawned up to 999 processes, and the report said 'threads 999' for all of them."""
+    from svs_torch.cli import main
+    from svs_torch.core import workers
+    from svs_torch.evaluation import benchmark
+
+    monkeypatch.setattr(workers, "available_cores", lambda: 2)
+    monkeypatch.setattr(benchmark, "run_benchmark", lambda *a, **k: pytest.fail("work started"))
+    assert main(["bench", "--threads", "999"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--threads: expected 1 to 2 (the cores this process may run on), got 999" in err
+    from svs_torch.cli.bench import checked_threads
+
+    assert (checked_threads(None), checked_threads(1)) == (2, 1)
+    monkeypatch.setattr(workers, "available_cores", lambda: 1)
+    assert checked_threads(None) == 1  # the default on a 1-core machine: what svs-depth estimate takes there
+
+
+def test_the_memory_children_run_the_reported_thread_count(monkeypatch):
+    """The peak-memory children inherited the caller's OMP_NUM_THREADS (or ran a thread per core), not --threads,
+    which the report records as the thread count of every part."""
+    import subprocess
+
+    from svs_torch.evaluation import bench_processes, benchmark
+
+    seen = []
+
+    def child(command, env=None, check=False):
+        seen.append((env or {}).get("OMP_NUM_THREADS"))
+        return subprocess.CompletedProcess(command, 0, '{"base_mb": 100.0, "peak_mb": 108.0}\n', "")
+
+    monkeypatch.setattr(benchmark, "run_child", child)
+    monkeypatch.setattr(bench_processes, "run_child", child)
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    row = benchmark._child_peak_memory(2, 1)
+    assert seen == ["1"] and row == {"B": 2, "peak_mb": 108.0, "per_pair_mb": 4.0}
