@@ -33,13 +33,28 @@ examples:
 """
 
 
+#: The most pairs an input set takes (--pairs): 8x the README's 512-pair run, about 0.6 MB of temporary PNG files a
+#: pair with the shared data and hours of runs. 10^9 was taken and failed after the imports, an internal error
+#: trying to allocate 40 GB for the synthetic scenes at once (an audit).
+MAX_BENCH_PAIRS = 4096
+
+
+def bench_pairs(text: str) -> int:
+    """argparse type of ``--pairs``: 1 to :data:`MAX_BENCH_PAIRS`."""
+    value = positive_int(text)
+    if value > MAX_BENCH_PAIRS:
+        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_BENCH_PAIRS} pairs, got {text!r}")
+    return value
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("bench", help=HELP, description=DESCRIPTION, epilog=EPILOG,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", metavar="DIR", help="the shared data folder for real pairs (default: none, "
                                                       "synthetic pairs only)")
-    parser.add_argument("--pairs", type=positive_int, default=64, metavar="N",
-                        help="pairs per input set of the whole-process runs (default: 64); the in-process part "
+    parser.add_argument("--pairs", type=bench_pairs, default=64, metavar="N",
+                        help=f"pairs per input set of the whole-process runs, 1 to {MAX_BENCH_PAIRS} (default: 64); "
+                             "the in-process part "
                              "always runs its 128 synthetic pairs, B = 1 to 128 (about 3 GB at its peak)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per rival; the median is reported "
                                                                         "(default: 3)")

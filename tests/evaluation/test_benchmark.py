@@ -304,3 +304,35 @@ def test_the_memory_children_run_the_reported_thread_count(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "7")
     row = benchmark._child_peak_memory(2, 1)
     assert seen == ["1"] and row == {"B": 2, "peak_mb": 108.0, "per_pair_mb": 4.0}
+
+
+def test_bench_pairs_beyond_the_cap_are_refused_before_any_work(capsys, monkeypatch):
+    """``--pairs 1000000000`` was taken: after the imports, an internal error trying to allocate 40 GB at once."""
+    from svs_torch.cli import main
+    from svs_torch.evaluation import benchmark
+
+    monkeypatch.setattr(benchmark, "run_benchmark", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "--pairs", "1000000000"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1
+    assert "argument --pairs: expected 1 to 4096 pairs, got '1000000000'" in err
+
+
+def test_inputs_are_rendered_a_chunk_at_a_time(tmp_path, monkeypatch):
+    """All of --pairs' synthetic scenes were rendered at once, about 20 MB each while rendered: --pairs 512 (the
+    README's run) peaked near 10 GB. Now a chunk at a time, from one generator, so the first chunk (the whole
+    default run) is the scenes it was, and every pair still gets a file of its own."""
+    import cv2
+
+    import svs_torch.data.synthetic as synthetic
+    from svs_torch.evaluation import bench_inputs
+
+    sizes, render = [], synthetic.random_obstacle_scenes
+    monkeypatch.setattr(synthetic, "random_obstacle_scenes", lambda n, *a, **k: sizes.append(n) or render(n, *a, **k))
+    monkeypatch.setattr(bench_inputs, "CHUNK_PAIRS", 2, raising=False)
+    pairs = bench_inputs.write_inputs(tmp_path / "chunked", 5, None)["synthetic 320x240"]
+    assert sizes == [2, 2, 1] and len({left for left, _ in pairs}) == 5
+    whole = bench_inputs.write_inputs(tmp_path / "whole", 2, None)["synthetic 320x240"]
+    for (left, right), (left_0, right_0) in zip(pairs[:2], whole):
+        assert (cv2.imread(left) == cv2.imread(left_0)).all() and (cv2.imread(right) == cv2.imread(right_0)).all()
