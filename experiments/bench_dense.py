@@ -33,6 +33,7 @@ from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
+from svs_torch.core.files import write_bytes_atomic  # noqa: E402
 from run_metadata import add_common_options, command_line, run_metadata, run_script  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
                                        batch=args.batch, configs={k: repr(v) for k, v in CONFIGS.items()}),
               "results": results}
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2))
+        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())  # whole or not at all
     return report
 
 

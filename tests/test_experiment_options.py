@@ -210,3 +210,11 @@ def test_eval_segmentation_reads_its_weights_files_before_any_scene(data_dir, tm
              ("eval_segmentation", [*data, "--nearness", f"n={cut}", "--methods", "default,n"])]
     assert [(code, line.split(" is not")[0]) for code, line in refusals(cases, stop=False)] == [
         (2, f"eval_segmentation.py: error: --weights: '{cut}'"), (2, f"eval_segmentation.py: error: --nearness: '{cut}'")]
+
+
+def test_the_bench_experiments_write_their_json_whole():
+    """bench_dense/features/pipeline/ransac/segmentation wrote --json with Path.write_text: a full disk or a
+    Ctrl-C while writing left a truncated report where a whole one (or none) was expected; an earlier report at
+    that name was lost first. They now write it whole or not at all (write_bytes_atomic), as bench.py does."""
+    for path in sorted((REPO_ROOT / "experiments").glob("bench*.py")):
+        assert ".write_text(json.dumps" not in path.read_text(), path.name
