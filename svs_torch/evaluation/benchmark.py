@@ -283,8 +283,13 @@ def _metadata(threads: int, **extra) -> dict:
     import torch
 
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
+        git = ["git", "-C", str(Path(__file__).parent)]
+        commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                check=True).stdout.strip()
+        # A run of uncommitted code said only its commit, which a reader took for the code that ran (an audit).
+        changed = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"],
+                                 capture_output=True, text=True, check=True).stdout.strip()
+        commit += "-dirty" if changed else ""
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
     cpu = platform.processor() or "unknown"
@@ -303,6 +308,9 @@ def _metadata(threads: int, **extra) -> dict:
 def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_dir: Path | None = None,
                   progress=None, memory: bool = True) -> dict:
     """Everything above; returns a JSON-ready report (see the module docstring)."""
+    # The load before this run adds its own: what says whether other jobs shared the machine (the one taken at the
+    # end counts the benchmark's own threads).
+    load_at_start = os.getloadavg() if hasattr(os, "getloadavg") else None
     with tempfile.TemporaryDirectory(prefix="svs_bench_") as tmp:
         workdir = Path(tmp)
         sets = write_inputs(workdir, num_pairs, data_dir)
@@ -320,7 +328,7 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)
     except ImportError:
         rss = None
-    report["metadata"] = _metadata(threads, num_pairs=num_pairs, repeats=repeats,
+    report["metadata"] = _metadata(threads, num_pairs=num_pairs, repeats=repeats, load_average_at_start=load_at_start,
                                    max_rss_mb=None if rss is None else round(rss, 1))  # macOS counts bytes, Linux KiB
     return report
 

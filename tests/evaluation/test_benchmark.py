@@ -200,6 +200,7 @@ def test_bench_finishes_without_linux_only_features(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "resource", None)
     metadata = benchmark.run_benchmark(1, 1, memory=True)["metadata"]
     assert metadata["max_rss_mb"] is None and metadata["load_average"] is None
+    assert metadata["load_average_at_start"] is None
     monkeypatch.setattr(sys, "platform", "darwin")
     usage = SimpleNamespace(ru_maxrss=300 * 1024 * 1024)
     monkeypatch.setitem(sys.modules, "resource", SimpleNamespace(RUSAGE_SELF=0, getrusage=lambda who: usage))
@@ -336,3 +337,34 @@ def test_inputs_are_rendered_a_chunk_at_a_time(tmp_path, monkeypatch):
     whole = bench_inputs.write_inputs(tmp_path / "whole", 2, None)["synthetic 320x240"]
     for (left, right), (left_0, right_0) in zip(pairs[:2], whole):
         assert (cv2.imread(left) == cv2.imread(left_0)).all() and (cv2.imread(right) == cv2.imread(right_0)).all()
+
+
+def test_the_recorded_commit_says_when_the_code_that_ran_was_not_committed(monkeypatch):
+    """The report's commit was ``git rev-parse --short HEAD`` alone: a run of edited code was recorded, and its rows
+    quoted, as that commit's. Uncommitted changes to tracked files now show as ``-dirty``, as sweeps record them."""
+    import subprocess
+
+    from svs_torch.evaluation import benchmark
+
+    def git(command, **kwargs):
+        out = "abc1234\n" if "rev-parse" in command else " M svs_torch/pipeline/core.py\n"
+        return subprocess.CompletedProcess(command, 0, out, "")
+
+    monkeypatch.setattr(benchmark.subprocess, "run", git)
+    assert benchmark._metadata(2)["commit"] == "abc1234-dirty"
+
+
+def test_the_load_before_the_run_is_recorded_beside_the_load_after_it(monkeypatch):
+    """The report's load average was taken at the end, when the benchmark's own threads had raised it: it could not
+    say whether other jobs shared the machine. The load before the run is now recorded too."""
+    import os
+
+    from svs_torch.evaluation import benchmark
+
+    for name, stub in [("write_inputs", lambda *a: {}), ("whole_process", lambda *a: []),
+                       ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1)]:
+        monkeypatch.setattr(benchmark, name, stub)
+    loads = iter([(0.5, 0.4, 0.3), (2.0, 1.0, 0.5)])
+    monkeypatch.setattr(os, "getloadavg", lambda: next(loads))
+    metadata = benchmark.run_benchmark(1, 1, memory=False)["metadata"]
+    assert metadata["load_average_at_start"] == (0.5, 0.4, 0.3) and metadata["load_average"] == (2.0, 1.0, 0.5)
