@@ -53,14 +53,18 @@ def test_work_summary_and_tables():
     rows = [{"status": "OK", "num_keypoints": [10, 20], "num_matches": 8, "num_inliers": 6, "r_min_m": 1.5},
             {"status": "NO_OBJECTS", "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "r_min_m": None}]
     summary = _work_summary(rows)
-    assert summary == {"pairs": 2, "ok": 1, "keypoints": 7.5, "matches": 4.0, "inliers": 3.0, "median_r_min_m": 1.5}
-    report = {"whole_process": [{"inputs": "x", "rival": "y", "pairs_per_s": 1.0, "svs_speedup": 1.0,
+    assert summary == {"pairs": 2, "ok": 1, "ranged": 1, "keypoints": 7.5, "matches": 4.0, "inliers": 3.0,
+                       "median_r_min_m": 1.5}
+    # The OpenCV loop says OK for a pair it could not range: 'ranged' counts the pairs given an R_min.
+    assert _work_summary([{"status": "OK", "keypoints": [3, 5], "matches": 0, "inliers": 0, "r_min_m": None}])[
+        "ranged"] == 0
+    report = {"whole_process": [{"inputs": "x", "rival": "y", "pairs": 2, "pairs_per_s": 1.0, "svs_speedup": 1.0,
                                  **{f"work_{k}": v for k, v in summary.items()}}],
               "in_process": {"stages_ms_per_pair_B32": {"features": 1.0}, "scaling": [{"B": 1, "ms_per_pair": 2.0}],
                              "latency_ms_B1": 2.0, "kornia_ms_per_pair": 3.0},
               "memory": [{"B": 1, "per_pair_mb": 4.0}], "help_s": 0.1, "metadata": {"threads": 2, "commit": "abc"}}
     text = format_tables(report)
-    assert "| x | y | 1.0 | 1.0 | 7.5 | 4.0 | 3.0 | 1.5 |" in text and "| 1 | 2.0 | 4.0 |" in text
+    assert "| x | y | 1.0 | 1.0 | 1 of 2 | 7.5 | 4.0 | 3.0 | 1.5 |" in text and "| 1 | 2.0 | 4.0 |" in text
 
 
 def test_bench_help_and_bad_data(capsys):
@@ -368,3 +372,14 @@ def test_the_load_before_the_run_is_recorded_beside_the_load_after_it(monkeypatc
     monkeypatch.setattr(os, "getloadavg", lambda: next(loads))
     metadata = benchmark.run_benchmark(1, 1, memory=False)["metadata"]
     assert metadata["load_average_at_start"] == (0.5, 0.4, 0.3) and metadata["load_average"] == (2.0, 1.0, 0.5)
+
+
+def test_a_rival_that_answers_for_fewer_pairs_than_listed_is_not_timed_as_if_it_did_them_all(tmp_path, monkeypatch):
+    """pairs/s is the listed pairs over the run's time: a rival that printed results for fewer pairs (a list line it
+    skipped) was credited with every listed pair, unsaid."""
+    from svs_torch.evaluation import benchmark
+
+    row = {"status": "OK", "keypoints": [1, 1], "matches": 0, "inliers": 0, "r_min_m": 1.0}
+    monkeypatch.setattr(benchmark, "_run_process", lambda command, env: (1.0, [row]))
+    with pytest.raises(RuntimeError, match=r"svs-depth estimate --pairs: 1 result lines for 2 pairs"):
+        benchmark.whole_process({"s": [("a.png", "b.png"), ("c.png", "d.png")]}, tmp_path, 1, 1)
