@@ -94,8 +94,10 @@ def run(args: argparse.Namespace) -> int:
 
     args.threads = checked_threads(args.threads)
     data_dir = Path(args.data) if args.data else None
-    if data_dir is not None and path_kind(data_dir, "--data") != "folder":
-        raise InputError(f"--data: expected a folder, got {args.data!r}")
+    kind = path_kind(data_dir, "--data") if data_dir is not None else "folder"
+    if kind != "folder":
+        said = {"missing": "which does not exist", "file": "which is a file"}.get(kind, "a device or special file")
+        raise InputError(f"--data: expected a folder, got {args.data!r}, {said}")
     if data_dir is not None and not list_shared_pairs(data_dir):  # else only the synthetic set ran, unsaid
         raise InputError(f"--data: no shared pair with ground truth in {args.data!r} (expected the shared data "
                          f"folder: middlebury_eval3_Q/, middlebury_2005_2006_third/, kitti/, ...)")
