@@ -280,12 +280,8 @@ def help_time(repeats: int) -> float:
     return round(statistics.median(runs), 3)
 
 
-def _metadata(threads: int, **extra) -> dict:
-    import cv2
-    import kornia
-    import numpy
-    import torch
-
+def _commit() -> str:
+    """The checkout's short commit, ``-dirty`` with uncommitted changes to tracked files, or ``unknown``."""
     try:
         git = ["git", "-C", str(Path(__file__).parent)]
         commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -296,6 +292,15 @@ def _metadata(threads: int, **extra) -> dict:
         commit += "-dirty" if changed else ""
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
+    return commit
+
+
+def _metadata(threads: int, commit: str, **extra) -> dict:
+    import cv2
+    import kornia
+    import numpy
+    import torch
+
     cpu = platform.processor() or "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -315,6 +320,7 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
     # The load before this run adds its own: what says whether other jobs shared the machine (the one taken at the
     # end counts the benchmark's own threads).
     load_at_start = os.getloadavg() if hasattr(os, "getloadavg") else None
+    commit = _commit()  # the code this run imports: a checkout changed during the run was recorded instead
     with tempfile.TemporaryDirectory(prefix="svs_bench_") as tmp:
         workdir = Path(tmp)
         sets = write_inputs(workdir, num_pairs, data_dir)
@@ -332,7 +338,8 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 * 1024 if sys.platform == "darwin" else 1024)
     except ImportError:
         rss = None
-    report["metadata"] = _metadata(threads, num_pairs=num_pairs, repeats=repeats, load_average_at_start=load_at_start,
+    report["metadata"] = _metadata(threads, commit, num_pairs=num_pairs, repeats=repeats,
+                                   load_average_at_start=load_at_start,
                                    max_rss_mb=None if rss is None else round(rss, 1))  # macOS counts bytes, Linux KiB
     return report
 

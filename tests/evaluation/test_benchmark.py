@@ -355,7 +355,7 @@ def test_the_recorded_commit_says_when_the_code_that_ran_was_not_committed(monke
         return subprocess.CompletedProcess(command, 0, out, "")
 
     monkeypatch.setattr(benchmark.subprocess, "run", git)
-    assert benchmark._metadata(2)["commit"] == "abc1234-dirty"
+    assert benchmark._commit() == "abc1234-dirty"
 
 
 def test_the_load_before_the_run_is_recorded_beside_the_load_after_it(monkeypatch):
@@ -383,3 +383,16 @@ def test_a_rival_that_answers_for_fewer_pairs_than_listed_is_not_timed_as_if_it_
     monkeypatch.setattr(benchmark, "_run_process", lambda command, env: (1.0, [row]))
     with pytest.raises(RuntimeError, match=r"svs-depth estimate --pairs: 1 result lines for 2 pairs"):
         benchmark.whole_process({"s": [("a.png", "b.png"), ("c.png", "d.png")]}, tmp_path, 1, 1)
+
+
+def test_the_recorded_commit_is_the_one_checked_out_when_the_run_started(monkeypatch):
+    """The commit was read after minutes of timing: a checkout changed meanwhile (another branch, a pull) was
+    recorded as the code that ran, though the run had imported the code of the start."""
+    from svs_torch.evaluation import benchmark
+
+    commits = iter(["aaaaaaa", "bbbbbbb"])
+    monkeypatch.setattr(benchmark, "_commit", lambda: next(commits), raising=False)
+    for name, stub in [("write_inputs", lambda *a: {}), ("whole_process", lambda *a: []),
+                       ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1)]:
+        monkeypatch.setattr(benchmark, name, stub)
+    assert benchmark.run_benchmark(1, 1, memory=False)["metadata"]["commit"] == "aaaaaaa"
