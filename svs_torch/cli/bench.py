@@ -55,7 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--pairs", type=bench_pairs, default=64, metavar="N",
                         help=f"pairs per input set of the whole-process runs, 1 to {MAX_BENCH_PAIRS} (default: 64); "
                              "the in-process part "
-                             "always runs its 128 synthetic pairs, B = 1 to 128 (about 3 GB at its peak)")
+                             "always runs its 128 synthetic pairs, B = 1 to 128 (about 4 GB at its peak)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="runs per rival; the median is reported "
                                                                         "(default: 3)")
     parser.add_argument("--threads", type=positive_int, help="threads for every rival, at most the cores this "
