@@ -128,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = run_all(args.workdir)
     if args.action == "record":
-        args.json.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+        from run_metadata import write_text_whole  # (the path is set above)
+
+        write_text_whole(args.json, json.dumps(results, indent=1, sort_keys=True) + "\n")
         print(f"recorded {sum(map(len, results.values()))} results in {args.json}")
         return 0
     differences = _differences(recorded, results)

@@ -59,6 +59,7 @@ from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import output_path, run_metadata, run_script  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
@@ -493,7 +494,7 @@ def main() -> None:
         if args.json:
             report["metadata"] = run_metadata(args.threads, seed=args.seed, max_keypoints=args.max_keypoints,
                                               configs={n: setup_json(s) for n, s in setups.items()})
-            Path(args.json).write_text(json.dumps(report, indent=2))
+            write_text_whole(args.json, json.dumps(report, indent=2))
         return
     chessboard = run_chessboards(data_dir, args.features, args.max_keypoints,
                                  list(range(args.seed, args.seed + args.chessboard_seeds)))
@@ -505,7 +506,7 @@ def main() -> None:
                                            confidence=CONFIDENCE, max_iterations=MAX_ITERATIONS,
                                            max_ratio=MAX_RATIO),
                   "chessboard": chessboard, "middlebury": middlebury}
-        Path(args.json).write_text(json.dumps(report, indent=2))
+        write_text_whole(args.json, json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 
@@ -113,7 +114,7 @@ def main(argv: list[str] | None = None) -> dict:
                                        limit=args.limit),
               "digit": args.digit, "threads": torch.get_num_threads(), "rows": rows}
     if args.json:
-        args.json.write_text(json.dumps(report, indent=2))
+        write_text_whole(args.json, json.dumps(report, indent=2))
     return report
 
 

@@ -63,6 +63,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
                           run_script, scene_limit, size_list)
 
@@ -438,9 +439,9 @@ def main(argv: list[str] | None = None) -> dict:
                            "scenes": {k: [str(p) for p in v] for k, v in scenes.items()},
                            "sizes": args.sizes, "configs": {k: repr(v) for k, v in CONFIGS.items()}}, "rows": rows}
     if args.markdown:
-        Path(args.markdown).write_text(text)
+        write_text_whole(args.markdown, text)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2))
+        write_text_whole(args.json, json.dumps(report, indent=2))
     return report
 
 

@@ -153,6 +153,15 @@ def run_script(main) -> None:
         raise SystemExit(130) from None
 
 
+def write_text_whole(path: str | Path, text: str) -> None:
+    """Write an experiment's report file (``--json``, ``--markdown``) whole, in UTF-8, or not at all, as
+    :func:`write_report` writes both: ``Path.write_text`` emptied an earlier report of that name first, a full disk
+    or a Ctrl-C while writing left it cut short, and it wrote "×" and "±" in the locale's encoding (an audit)."""
+    from svs_torch.core.files import write_bytes_atomic
+
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
 def run_metadata(threads: int, **extra) -> dict:
     """Commit, versions (torch, kornia, OpenCV, numpy, Python), machine, CPU count and vector instructions (torch's
     CPU capability), thread count, OpenMP wait policy and load average at the time of the call, the ``command``
@@ -198,12 +207,10 @@ def write_report(report: dict, table: str, json_path: Path | None, markdown_path
     or not at all."""
     import json
 
-    from svs_torch.core.files import write_bytes_atomic
-
     if json_path:
-        write_bytes_atomic(json_path, json.dumps(report, indent=1).encode("utf-8"))
+        write_text_whole(json_path, json.dumps(report, indent=1))
     if markdown_path:
-        write_bytes_atomic(markdown_path, table.encode("utf-8"))
+        write_text_whole(markdown_path, table)
 
 
 def command_line(script: str, argv: list[str] | None) -> str:

@@ -29,6 +29,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
@@ -90,7 +91,7 @@ def main(argv: list[str] | None = None) -> None:
                  f"window {best[2]}, keep {best[3]}, least area {best[4]} (score {best[0]:.3f})")
     print(lines[-1])
     if args.markdown:
-        Path(args.markdown).write_text("\n".join(lines) + "\n")
+        write_text_whole(args.markdown, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

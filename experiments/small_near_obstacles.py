@@ -44,6 +44,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import command_line, output_path, run_metadata, run_script  # noqa: E402
 from select_nearness_setting import parse_variant, weights_with  # noqa: E402
 
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
                 print(f"{text:32s} {name:10s} " + " ".join(f"{v:5.1f}" for v in acc.values()), flush=True)
     text = markdown(rows, command_line("experiments/small_near_obstacles.py", argv or None))
     if args.markdown:
-        Path(args.markdown).write_text(text)
+        write_text_whole(args.markdown, text)
     command = command_line("experiments/small_near_obstacles.py", argv or None)
     return {"metadata": run_metadata(torch.get_num_threads(), command=command), "rows": rows}
 

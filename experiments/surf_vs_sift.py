@@ -43,6 +43,7 @@ from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int, unit_interval_float  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import command_line, output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 TOLERANCE_PX = 1.5
@@ -261,7 +262,7 @@ def main(argv: list[str] | None = None) -> dict:
                       f"precision {summarise(rows, 'precision'):.3f}  correct {summarise(rows, 'correct_matches'):6.1f}"
                       f"  dy<=.5 {summarise(rows, 'dy_within_half'):.3f}", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2))
+        write_text_whole(args.json, json.dumps(report, indent=2))
     return report
 
 

@@ -56,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
                           run_metadata, run_script, scene_limit)
 from select_nearness_rule import segmentation_scores  # noqa: E402
@@ -225,9 +226,9 @@ def main(argv: list[str] | None = None) -> dict:
                            "limit": args.limit, "keep": dataclasses.asdict(KEEP), "time_s": round(elapsed, 1),
                            **run_metadata(args.threads, command=command)}}
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1, default=str) + "\n")
+        write_text_whole(args.json, json.dumps(report, indent=1, default=str) + "\n")
     if args.markdown:
-        Path(args.markdown).write_text(_markdown(report, summary, fold_info, rows, step_counts, verdict))
+        write_text_whole(args.markdown, _markdown(report, summary, fold_info, rows, step_counts, verdict))
     print("\n".join(means_table(summary)))
     print(f"{elapsed:.0f} s")
     print(verdict)

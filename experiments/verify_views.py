@@ -55,6 +55,7 @@ from svs_torch.core.types import StereoBatch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
+from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit)
 
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
                                     limit=args.limit, synthetic=args.synthetic), "sets": sets,
            "report": text}
     if args.json:
-        Path(args.json).write_text(json.dumps(out))
+        write_text_whole(args.json, json.dumps(out))
     return out
 
 

@@ -218,3 +218,20 @@ def test_the_bench_experiments_write_their_json_whole():
     that name was lost first. They now write it whole or not at all (write_bytes_atomic), as bench.py does."""
     for path in sorted((REPO_ROOT / "experiments").glob("bench*.py")):
         assert ".write_text(json.dumps" not in path.read_text(), path.name
+
+
+def test_every_experiment_writes_its_reports_whole(tmp_path):
+    """As the bench experiments' --json (the test above): paper_table1, eval_segmentation, validate_nearness and the
+    others wrote their --json and --markdown with Path.write_text, which empties an earlier report first and leaves
+    a cut one on a full disk or a Ctrl-C; and in the locale's encoding, where a report holds "×" and "±"."""
+    import re
+
+    for path in sorted((REPO_ROOT / "experiments").glob("*.py")):
+        assert not re.search(r"(Path\(args\.\w+\)|args\.json)\.write_text\(", path.read_text()), path.name
+    sys.path.insert(0, str(REPO_ROOT / "experiments"))
+    from run_metadata import write_text_whole
+
+    report = tmp_path / "table.md"
+    write_text_whole(report, "320×240 ± 0.5 %\n")
+    assert report.read_bytes() == "320×240 ± 0.5 %\n".encode("utf-8") and [p.name for p in tmp_path.iterdir()] == [
+        "table.md"]
