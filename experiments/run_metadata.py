@@ -171,6 +171,7 @@ def run_metadata(threads: int, **extra) -> dict:
     import numpy
     import torch
 
+    from svs_torch.core.workers import available_cores
     from svs_torch.evaluation.sweep import code_version
 
     try:
@@ -182,7 +183,8 @@ def run_metadata(threads: int, **extra) -> dict:
     # table made on edited code read as one made at the commit (an audit).
     return {"commit": commit, "code_version": code_version(), "torch": torch.__version__, "kornia": kornia.__version__,
             "opencv": cv2.__version__, "numpy": numpy.__version__, "python": sys.version.split()[0],
-            "machine": platform.machine(), "cpus": os.cpu_count(), "threads": threads,
+            "machine": platform.machine(), "cpus": os.cpu_count(), "cores_available": available_cores(),
+            "threads": threads,
             # The vector instructions torch's CPU kernels use: a training run is bit for bit only on the same ones
             # (ATEN_CPU_CAPABILITY=avx2 on an AVX-512 machine moved train_segmentation.py's weights by 7.7e-4 in
             # 40 steps); the shipped obstacle_net.pt, which did not record them, is not reproduced here (an audit).

@@ -301,6 +301,8 @@ def _metadata(threads: int, commit: str, **extra) -> dict:
     import numpy
     import torch
 
+    from ..core.workers import available_cores
+
     cpu = platform.processor() or "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -311,7 +313,9 @@ def _metadata(threads: int, commit: str, **extra) -> dict:
         pass
     return {"commit": commit, "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
             "numpy": numpy.__version__, "python": sys.version.split()[0], "cpu": cpu, "cpus": os.cpu_count(),
-            "threads": threads, "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None, **extra}
+            # the cores this run could use (a container's or taskset's share), which "cpus" (the machine's) is not
+            "cores_available": available_cores(), "threads": threads,
+            "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None, **extra}
 
 
 def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_dir: Path | None = None,

@@ -396,3 +396,18 @@ def test_the_recorded_commit_is_the_one_checked_out_when_the_run_started(monkeyp
                        ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1)]:
         monkeypatch.setattr(benchmark, name, stub)
     assert benchmark.run_benchmark(1, 1, memory=False)["metadata"]["commit"] == "aaaaaaa"
+
+
+def test_the_metadata_records_the_cores_this_run_could_use():
+    """Found by an audit: only ``os.cpu_count()`` (the machine's) was recorded, not the cores a container or
+    ``taskset`` left this run, which is what its times and its ``--threads`` cap rest on."""
+    from svs_torch.core.workers import available_cores
+    from svs_torch.evaluation.benchmark import _metadata
+
+    assert _metadata(1, "abc1234")["cores_available"] == available_cores()
+    from conftest import REPO_ROOT
+
+    sys.path.insert(0, str(REPO_ROOT / "experiments"))
+    from run_metadata import run_metadata
+
+    assert run_metadata(1)["cores_available"] == available_cores()
