@@ -239,16 +239,22 @@ class TaskResult:
 
 
 def run_task(task: Task) -> TaskResult:
-    """Run one task (in a worker): load, run and score its block of pairs."""
-    if task.threads is not None:
-        import torch
+    """Run one task (in a worker, or in this process): load, run and score its block of pairs, on ``task.threads``
+    torch threads. The caller's thread count is put back after: run in this process (``run_sweep(workers=0,
+    threads=T)``), a task left a notebook's torch on T threads (an audit of the API's effect on its caller)."""
+    import torch
 
-        if torch.get_num_threads() != task.threads:
-            torch.set_num_threads(task.threads)
-    started = time.perf_counter()
-    evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh))
-    return TaskResult(task.config_id, [(s.pair_id, e) for s, e in zip(task.sources, evaluations)],
-                      time.perf_counter() - started)
+    previous = torch.get_num_threads()
+    if task.threads is not None and previous != task.threads:
+        torch.set_num_threads(task.threads)
+    try:
+        started = time.perf_counter()
+        evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh))
+        return TaskResult(task.config_id, [(s.pair_id, e) for s, e in zip(task.sources, evaluations)],
+                          time.perf_counter() - started)
+    finally:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
 
 
 def plan_tasks(sweep: Sweep, done: set[tuple[str, str]]) -> list[Task]:

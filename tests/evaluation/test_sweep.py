@@ -289,7 +289,7 @@ def test_a_sweep_keeps_to_omp_num_threads(reference, tmp_path, monkeypatch, omp,
     threads = torch.get_num_threads()
     try:
         outcome = run_sweep(load_sweep(sweep_file), tmp_path / "limited.sqlite", warn=pytest.fail)
-    finally:  # the tasks ran here, and set this process's threads to the pool's
+    finally:  # the tasks ran here (run_task gives the threads back; kept should it not)
         torch.set_num_threads(threads)
     assert pools == [expected] and outcome.rows_written == TOTAL_ROWS
     environment = json.loads(sqlite3.connect(tmp_path / "limited.sqlite").execute(
@@ -1020,3 +1020,20 @@ def test_a_sweep_held_by_another_process_is_refused_until_it_is_killed(reference
     assert "0 rows written by 0 tasks, 12 of 12 stored" in capsys.readouterr().err
     assert main(["results", str(db), "--json"]) == 0
     assert "a sweep is writing" not in capsys.readouterr().err
+
+
+def test_a_sweep_in_this_process_gives_back_the_callers_torch_threads(data_dir, tmp_path):
+    """Found by an audit of the API's effect on its caller: `run_sweep(..., workers=0, threads=T)` ran its tasks in
+    the calling process and left torch there on T threads: a notebook's training after a small sweep ran on one
+    thread of its machine's cores, without a word."""
+    path = tmp_path / "one.toml"
+    path.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "160x120"\n')
+    before = torch.get_num_threads()
+    asked = 2 if before == 1 else 1
+    try:
+        outcome = run_sweep(load_sweep(path), tmp_path / "one.sqlite", workers=0, threads=asked, warn=pytest.fail)
+        after = torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
+    assert outcome.rows_written == 1
+    assert after == before
