@@ -209,6 +209,7 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
         from multiprocessing import forkserver
 
         context = multiprocessing.get_context("forkserver")
+        callers = getattr(forkserver._forkserver, "_preload_modules", None)  # no public getter
         context.set_forkserver_preload(["svs_torch.pipeline.preload", *warm_modules])
         # Started here and now (its imports go on in the background): it inherits this process's descriptors as
         # they are at this moment, before the command line's decoding redirects descriptor 2 for a few ms at a
@@ -220,6 +221,11 @@ def worker_pool(workers: int, threads: int, warm_modules: tuple[str, ...] = ()
         # 'interrupted' (an audit of interrupts). A Ctrl-C in these few milliseconds is lost.
         with signal_handler(signal.SIGINT, signal.SIG_IGN):
             forkserver.ensure_running()
+        # The server has its list (it is read only at its start): the caller's own is put back. Left set, a caller's
+        # own forkserver pool, later in the process, started from a server that imported torch and the pipeline,
+        # and every worker of it ran numpy on one OpenBLAS thread (an audit of the API's effect on its caller).
+        if callers is not None:
+            context.set_forkserver_preload(callers)
     else:
         context = multiprocessing.get_context("spawn")
     return concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=start_worker,

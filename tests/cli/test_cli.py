@@ -497,6 +497,38 @@ def test_the_worker_server_ignores_ctrl_c_while_it_imports():
         stop_worker_server()
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="no forkserver")
+def test_a_worker_pool_gives_back_the_callers_forkserver_preload(monkeypatch):
+    """Found by an audit of the API's effect on its caller: after a sweep (`run_sweep(workers=2)`) the process's
+    forkserver preload stayed svs_torch's, and a caller's own forkserver pool later in the process started from a
+    server that imported torch and the pipeline: each of its workers had the collector frozen over 170 000 objects
+    and OPENBLAS_NUM_THREADS=1 (numpy on one thread). The pool's own workers still come from its warmed server."""
+    import gc
+    import multiprocessing
+    from multiprocessing import forkserver
+
+    from svs_torch.core.workers import stop_worker_server, worker_pool
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    context = multiprocessing.get_context("forkserver")
+    callers = list(forkserver._forkserver._preload_modules)
+    context.set_forkserver_preload(["json"])
+    try:
+        executor = worker_pool(1, 1)
+        try:
+            assert executor.submit(gc.get_freeze_count).result(timeout=300) > 100_000
+        finally:
+            executor.shutdown(wait=True)
+            stop_worker_server()
+        assert forkserver._forkserver._preload_modules == ["json"]
+        with context.Pool(1) as pool:
+            assert pool.apply(os.getenv, ("OPENBLAS_NUM_THREADS",)) is None
+            assert pool.apply(gc.get_freeze_count) < 100_000
+    finally:
+        context.set_forkserver_preload(callers)
+        stop_worker_server()
+
+
 def test_ctrl_c_during_a_commands_imports_is_raised_once_they_are_done():
     """Was (an audit of interrupts): a Ctrl-C inside numpy's or torch's import left them half made, and in about
     one try in ten what followed was an internal error, an abort (exit 134) or the interrupt lost. Now it is held
