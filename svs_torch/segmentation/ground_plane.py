@@ -279,8 +279,11 @@ def _no_plane(disparity: torch.Tensor) -> GroundPlane:
                        disparity.new_zeros(b, 3))
 
 
-#: The default samples' uniforms by (seed, hypotheses): the same numbers every call (guide fits every frame).
+#: The default samples' uniforms by (seed, hypotheses): the same numbers every call (guide fits every frame). At most
+#: :data:`_MAX_DRAWS` tables, the oldest dropped first: unbounded, a sweep over seeds kept every table for the life of
+#: the process, 40 MB each at MAX_HYPOTHESES (12 seeds: 226 → 709 MB; an audit of the API's effect on its caller).
 _DRAWS: dict[tuple[int, int], torch.Tensor] = {}
+_MAX_DRAWS = 4
 
 
 def _draws(config: GroundPlaneConfig, generator: torch.Generator | None) -> torch.Tensor:
@@ -290,11 +293,15 @@ def _draws(config: GroundPlaneConfig, generator: torch.Generator | None) -> torc
     if generator is not None:
         return torch.rand(config.hypotheses, 5, generator=generator, dtype=torch.float64)
     key = (config.seed, config.hypotheses)
-    if key not in _DRAWS:
+    table = _DRAWS.get(key)
+    if table is None:
         with torch.inference_mode(False):  # a normal tensor, whichever mode the first call ran in
-            _DRAWS[key] = torch.rand(config.hypotheses, 5, generator=torch.Generator().manual_seed(config.seed),
-                                     dtype=torch.float64)
-    return _DRAWS[key]
+            table = torch.rand(config.hypotheses, 5, generator=torch.Generator().manual_seed(config.seed),
+                               dtype=torch.float64)
+        while len(_DRAWS) >= _MAX_DRAWS:  # each step safe should another thread drop one meanwhile
+            _DRAWS.pop(next(iter(_DRAWS), None), None)
+        _DRAWS[key] = table
+    return table
 
 
 def _fit_by_kernel(disparity: torch.Tensor, measured: torch.Tensor, baseline_m: torch.Tensor,
