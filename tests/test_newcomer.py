@@ -101,6 +101,26 @@ def _store(path: Path, values_by_config: dict[str, list[float]], left: str = "sc
     return store
 
 
+def test_results_figure_leaves_the_callers_matplotlib_as_it_was(tmp_path):
+    """Found by an audit of the API's effect on its caller: results_figure ran ``matplotlib.use("Agg")`` and drew
+    through pyplot, so a notebook's inline backend was switched off for the rest of its session and every call left
+    one more figure open in pyplot. Now the backend and pyplot's figures are as they were, and the figure still
+    draws and saves (its own Agg canvas)."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    previous = matplotlib.get_backend()
+    matplotlib.use("svg")  # a backend of the caller's that is not Agg
+    try:
+        figures = plt.get_fignums()
+        with _store(tmp_path / "one.sqlite", {"a": [96.0, 98.5, 99.0]}) as store:
+            figure = results_figure(store)
+        figure.canvas.draw()
+        assert (matplotlib.get_backend(), plt.get_fignums()) == ("svg", figures)
+    finally:
+        matplotlib.use(previous)
+
+
 def test_results_figure_zooms_keeps_the_legend_off_the_bars_and_leaves_no_empty_panel(tmp_path):
     import matplotlib.pyplot as plt
 

@@ -300,15 +300,10 @@ def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], k
 def plot_results(store: ResultStore, path: str | Path) -> Path:
     """Write :func:`results_figure` to ``path``, under a temporary name and renamed, never half-written."""
     check_instance(store, "store", ResultStore)
-    import matplotlib.pyplot as plt
-
     path = Path(path)
     figure = results_figure(store)
-    try:
-        with atomic_output(path) as stream:
-            figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
-    finally:
-        plt.close(figure)
+    with atomic_output(path) as stream:
+        figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
     return path
 
 
@@ -316,12 +311,12 @@ def results_figure(store: ResultStore):
     """The results figure (a matplotlib Figure): one panel per swept parameter (mean Eq. (9) accuracy of R_min,
     R_max and objects at each value, averaged over the other parameters) and, filling the rest of the last row (or a
     row of its own, as wide as its scenes need), per-scene bars of the best configuration by object accuracy, zoomed
-    to the data, its legend above them."""
+    to the data, its legend above them. An Agg canvas of its own, no pyplot: the caller's backend and pyplot's
+    figures are left as they were (an audit of the API's effect on its caller: ``matplotlib.use("Agg")`` here turned a
+    notebook's inline plots off for the rest of its session, and each call left one more figure open in pyplot)."""
     check_instance(store, "store", ResultStore)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     summaries = config_summaries(store)
     if not summaries:
@@ -336,7 +331,8 @@ def results_figure(store: ResultStore):
     scenes_in = 0.22 * sum(r["config_id"] == best["config_id"] for r in store.results()) + 1.5
     if column and 5.2 * (columns - column) < scenes_in:
         row, column = row + 1, 0
-    figure = plt.figure(figsize=(max(5.2 * columns, scenes_in), 4.4 * (row + 1)))
+    figure = Figure(figsize=(max(5.2 * columns, scenes_in), 4.4 * (row + 1)))
+    FigureCanvasAgg(figure)
     grid = figure.add_gridspec(row + 1, columns)
     configs = {c["config_id"]: c for c in store.configs()}
     for number, key in enumerate(swept):
