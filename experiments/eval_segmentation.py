@@ -66,9 +66,8 @@ from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  #
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, scene_limit, size_list)
+                          run_script, scene_limit, size_list, write_text_whole)
 
 
 def disparity_otsu_mask(batch, net_config) -> torch.Tensor:
@@ -299,8 +298,8 @@ def main(argv: list[str] | None = None) -> dict:
         report["tables"][split] = {"rows": rows, "skipped": skipped}
     print("\n".join(text))
     if args.markdown:
-        write_text_whole(args.markdown, "\n".join(header(argv if argv is not None else sys.argv[1:], args.camera_frames)
-                                                 + text))
+        write_text_whole(args.markdown, "\n".join(header(argv if argv is not None else sys.argv[1:],
+                                                         args.camera_frames) + text))
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2, default=str))
     return report

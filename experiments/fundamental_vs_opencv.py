@@ -59,8 +59,7 @@ from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
 BOARD = (9, 6)

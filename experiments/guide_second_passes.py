@@ -42,9 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
-                          scene_limit)
+                          scene_limit, write_text_whole)
 
 # real_rig.py sets PASSIVE again on import, after torch loaded OpenMP: the runtime keeps its policy, but the report's
 # metadata read the variable and called this run PASSIVE (an audit).

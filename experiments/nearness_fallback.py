@@ -33,8 +33,7 @@ from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from verify_views import SAME_SCENE  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
 
 # Steps of 0.025: with the denoised measurement (select_nearness_denoise.md) the gap between views of two scenes
 # and the worst camera frames is 0.04 wide.

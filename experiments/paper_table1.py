@@ -63,9 +63,8 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
-                          run_script, scene_limit, size_list)
+                          run_script, scene_limit, size_list, write_text_whole)
 
 #: The paper's own results (its Table 1, MATLAB on SVS images): the range it reports, for comparison.
 PAPER_REFERENCE = ("Paper (MATLAB, its own SVS images): accuracy 92.5-98.9 % for R_min and R_max, 1.2 s per pair; "

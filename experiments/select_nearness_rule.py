@@ -29,8 +29,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
+from run_metadata import default_data_dir, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
 GRID = {"working_width_px": (160, 240, 320), "window_size": (7, 9, 13)}

@@ -44,8 +44,7 @@ from svs_torch.segmentation.network_files import load_obstacle_net
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_rig  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
-from run_metadata import command_line, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import command_line, output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 from select_nearness_setting import parse_variant, weights_with  # noqa: E402
 
 SMALL_SCENES, SMALL_SEED, SMALL_WALL_M = 16, 31, 4.5

@@ -43,8 +43,8 @@ from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int, unit_interval_float  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
-from run_metadata import command_line, output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import (command_line, output_path, run_metadata, run_script, scene_limit,  # noqa: E402
+                          write_text_whole)
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5

@@ -56,9 +56,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
-                          run_metadata, run_script, scene_limit)
+                          run_metadata, run_script, scene_limit, write_text_whole)
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
 from train_segmentation import add_config_options, random_crop, real_pairs, train_scenes  # noqa: E402

@@ -55,9 +55,8 @@ from svs_torch.core.types import StereoBatch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import write_text_whole  # noqa: E402
 from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
-                          scene_limit)
+                          scene_limit, write_text_whole)
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
 #: DepthConfig.min_object_valid_fraction_unverified, (verify_many_inliers, verify_many_inliers_min_agreeing) or None,
