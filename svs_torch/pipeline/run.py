@@ -70,7 +70,9 @@ def estimate_obstacle_depth(batch: StereoBatch, config: PipelineConfig = Pipelin
         the calibration and the parameters of ``network`` (:mod:`svs_torch.pipeline.soft`); ``.valid`` masks
         are the hard ones, and ``result.hard_depth`` holds the hard values. The image gradient is a surrogate:
         the recomputation reads the images rounded to 1/255 levels with the gradient of the unrounded ones
-        (straight-through), so finite differences below a level see none. Called in ``torch.inference_mode()``,
+        (straight-through), so finite differences below a level see none. Under ``torch.no_grad()`` (a validation
+        loss) ``result.depth`` holds the same recomputed values, bit for bit, not the hard ones (band means: medians
+        within 0.5 % of them, :mod:`svs_torch.pipeline.soft`). Called in ``torch.inference_mode()``,
         the hard result's tensors are inference tensors (:mod:`svs_torch.core.inference`); otherwise ordinary ones.
 
     Each pair is ranged on its own ``image_hw`` pixels only: pairs of different sizes padded into one batch run as
