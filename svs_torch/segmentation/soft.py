@@ -73,7 +73,11 @@ def _soft_max_filter(x: torch.Tensor, element: torch.Tensor, temperature: float,
     peak = torch.where(some, peak, torch.zeros_like(peak))
     total = torch.zeros_like(x)
     for window in windows:
-        total = total + torch.exp((window - peak) / temperature)  # exp(−inf) = 0 outside the image
+        # 0 outside the image. Not as exp(−inf / T): its gradient w.r.t. a temperature given as a tensor was
+        # 0 · inf = NaN at every pixel whose window reaches past the border (an audit).
+        inside = torch.isfinite(window)
+        shifted = torch.where(inside, window - peak, torch.zeros_like(window))
+        total = total + torch.where(inside, torch.exp(shifted / temperature), torch.zeros_like(window))
     ratio = torch.where(some, total / torch.where(some, count, 1.0), torch.ones_like(total))
     return torch.where(some, peak + temperature * torch.log(ratio), torch.full_like(x, empty))
 
@@ -91,7 +95,7 @@ def _check_soft(x: torch.Tensor, element: torch.Tensor, temperature: float) -> N
 def soft_dilate(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
     """Smooth dilation of ``x (B, 1, H, W)`` float by ``element (kh, kw)`` bool; ``→ cv2.dilate`` as ``T → 0``.
 
-    Differentiable with respect to ``x`` (softmax weights over each window).
+    Differentiable with respect to ``x`` (softmax weights over each window) and a ``temperature`` given as a tensor.
     """
     _check_soft(x, element, temperature)
     return _soft_max_filter(x, element, temperature, empty=0.0)

@@ -154,3 +154,24 @@ def test_a_temperature_of_one_per_pair_and_a_float64_threshold_are_handled():
     with pytest.raises(InputError, match=r"^temperature: expected one positive number, got a tensor of shape \(2,\)$"):
         soft_block_match(image, image, 0, 4, torch.tensor([0.1, 0.2]))
     assert soft_threshold(image, torch.full((2,), 0.5, dtype=torch.float64), torch.tensor(0.1)).dtype == torch.float32
+
+
+def test_gradcheck_temperatures_given_as_tensors():
+    """Found by an audit: a morphology temperature given as a tensor that requires grad (a user learning it) got a
+    NaN gradient (0 · inf from the border's −inf padding in exp(−inf / T)); the values were right. The threshold's
+    temperature was fine."""
+    image = blobs(2, 7, 2)
+    threshold = torch.tensor([0.45, 0.55], dtype=torch.float64)
+    element = structuring_element("square", 3)
+    threshold_t = torch.tensor(0.1, dtype=torch.float64, requires_grad=True)
+    morphology_t = torch.tensor(0.05, dtype=torch.float64, requires_grad=True)
+
+    def forward(threshold_t, morphology_t):
+        return soft_open(soft_threshold(image, threshold, threshold_t), element, morphology_t)
+
+    assert torch.autograd.gradcheck(forward, (threshold_t, morphology_t))
+    for op in (soft_dilate, soft_erode):
+        gradient, = torch.autograd.grad(op(image, element, morphology_t).sum(), morphology_t)
+        assert bool(torch.isfinite(gradient))
+    with torch.no_grad():  # the same values as a plain number's
+        assert torch.equal(forward(threshold_t, morphology_t), forward(0.1, 0.05))
