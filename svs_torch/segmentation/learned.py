@@ -242,8 +242,7 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
         check_shape(value, name, [dims["B"]])  # a (3,) calibration for 2 pairs failed deep in a broadcast
     if bool(torch.isnan(logits).any()):  # NaN logits left every object invalid in silence
         raise InputError("logits: expected numbers, got NaN")
-    if not mask_temperature > 0:
-        raise InputError(f"mask_temperature: expected a positive number, got {mask_temperature!r}")
+    _check_mask_temperature(mask_temperature)
     b, n = dims["B"], segmentation.kept_labels.shape[1]
     kept = segmentation.kept_labels.view(b, n, 1, 1)
     region = (segmentation.labels == kept) & (kept > 0)  # (B, N, H, W)
@@ -264,6 +263,15 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
     nearest_valid = torch.isfinite(nearest)
     return SoftObjectDepths(weights, torch.where(valid, mean, 0.0), depth, valid,
                             torch.where(nearest_valid, nearest, 0.0), nearest_valid)
+
+
+def _check_mask_temperature(value: object) -> None:
+    """One positive number (a 0-d tensor too). A (B,) tensor raised "Boolean value of Tensor with more than one value
+    is ambiguous" and a string a TypeError, neither naming the argument (an audit)."""
+    if isinstance(value, torch.Tensor) and value.numel() != 1:
+        raise InputError(f"mask_temperature: expected one positive number, got a tensor of shape {tuple(value.shape)}")
+    if not (isinstance(value, (int, float, torch.Tensor)) and not isinstance(value, bool) and value > 0):
+        raise InputError(f"mask_temperature: expected a positive number, got {value!r}")
 
 
 def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: Segmentation, num_disparities: int,

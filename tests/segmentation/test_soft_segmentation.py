@@ -175,3 +175,23 @@ def test_gradcheck_temperatures_given_as_tensors():
         assert bool(torch.isfinite(gradient))
     with torch.no_grad():  # the same values as a plain number's
         assert torch.equal(forward(threshold_t, morphology_t), forward(0.1, 0.05))
+
+
+@pytest.mark.parametrize("temperature, message", [
+    (torch.tensor([1.0, 2.0]), r"^mask_temperature: expected one positive number, got a tensor of shape \(2,\)$"),
+    ("1", r"^mask_temperature: expected a positive number, got '1'$"),
+    (0.0, r"^mask_temperature: expected a positive number, got 0.0$")])
+def test_a_mask_temperature_that_is_not_one_positive_number_is_named(temperature, message):
+    """Found by an audit: soft_object_depths' mask_temperature of one per pair raised "Boolean value of Tensor with
+    more than one value is ambiguous" and a string a TypeError, neither naming it (soft_threshold's and
+    soft_block_match's temperatures were already checked so); a 0-d tensor that requires grad is taken."""
+    from svs_torch.segmentation import segment_images
+    from svs_torch.segmentation.learned import soft_object_depths
+
+    images = blobs(2, 16, 5)
+    hard, ones, zeros = segment_images(images), torch.ones(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64)
+    with pytest.raises(InputError, match=message):
+        soft_object_depths(images, hard, images + 1, ones, ones, zeros, temperature)
+    learned = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+    depths = soft_object_depths(images, hard, images + 1, ones, ones, zeros, learned)
+    assert bool(torch.isfinite(torch.autograd.grad(depths.depth_m.sum(), learned)[0]))
