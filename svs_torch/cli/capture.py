@@ -7,8 +7,9 @@ Output, in ``--out-dir`` (alias ``--out``):
 * ``index.jsonl``: one JSON object per pair, appended and flushed only after both of its images are in place, so
   after an error or Ctrl-C it lists exactly the complete pairs. Fields: ``index``, ``left``/``right`` (file
   names), ``width``, ``height``, ``left_bytes``/``right_bytes``, per camera ``*_request_monotonic_s``,
-  ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, and ``time_between_frames_s``
-  (right arrival − left arrival, seconds);
+  ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, ``time_between_frames_s``
+  (right arrival − left arrival, seconds), and ``quality`` (the ``--quality`` digit both boards were set to; null
+  without it: the board's own setting, 4 at power-up, which no command reads back);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
   the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given).
@@ -214,7 +215,11 @@ def run(args: argparse.Namespace) -> int:
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
                 pair = camera.grab_pair()
                 with signals_held():  # its images and its index line, both or neither (pairs_folder's docstring)
-                    index.append(save_pair(out, pair, "--out-dir"))
+                    record = save_pair(out, pair, "--out-dir")
+                    # Which JPEG quality the frames were sent at: a folder did not say, and a board keeps a digit set
+                    # by an earlier run. None: --quality not given (the protocol has no command that reads it back).
+                    record["quality"] = args.quality
+                    index.append(record)
                     done += 1
                 # kept (the index says when each frame came), but counted: guide does not range such a pair
                 apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s

@@ -717,6 +717,19 @@ def test_cli_capture_says_what_it_saved_when_terminated_or_when_no_camera_opened
     assert capsys.readouterr().err.strip().endswith("(nothing saved)") and not (tmp_path / "none").exists()
 
 
+def test_cli_capture_index_says_the_jpeg_quality(tmp_path):
+    """Found by an audit: index.jsonl did not say at which --quality its frames were sent, and a board keeps the
+    digit an earlier run set, so a folder's JPEG quality could not be told. Now each line has it (null: not set)."""
+    def qualities(out):
+        return [json.loads(line)["quality"] for line in (out / "index.jsonl").read_text().splitlines()]
+
+    assert run_capture("--emulator", "--count", "2", "--size", "160x120", "--quality", "7",
+                       "--out", str(tmp_path / "q7")) == 0
+    assert qualities(tmp_path / "q7") == [7, 7]
+    assert run_capture("--emulator", "--count", "1", "--size", "160x120", "--out", str(tmp_path / "own")) == 0
+    assert qualities(tmp_path / "own") == [None]
+
+
 def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
     """Found by a fuzz of the device side: a right board late on every frame was saved pair after pair, each frame
     0.5 s from its partner, without a word (guide refuses such pairs). They are kept, the index says when each frame
