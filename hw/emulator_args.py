@@ -51,7 +51,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
                         "high (an obstacle; default: none)")
     f = p.add_argument_group("faults (replies to I)")
-    f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both")
+    f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both",
+                   help="the board whose replies the faults below change (default: both)")
     f.add_argument("--silent", type=non_negative_int, default=0, metavar="N", help="no reply to the next N grabs")
     f.add_argument("--garbage", type=non_negative_int, default=0, metavar="N",
                    help="stray bytes before the next N frames")
