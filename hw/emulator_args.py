@@ -12,7 +12,7 @@ import argparse
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, non_negative_float, non_negative_int, positive_float
-from svs_torch.core.camera import parse_size
+from svs_torch.core.camera import SVS_RESOLUTIONS, parse_size
 from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG
 
 __all__ = ["faults_from_args", "parse_args"]
@@ -87,6 +87,13 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         args.prepare_sizes = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
     except ValueError as err:  # svs_torch's InputError is a ValueError
         p.error(str(err))
+    # Only the sizes a board sends (§3): 321x240 was taken and its keyframes rendered, a size nothing asks for,
+    # while the 320x240 meant was served by the stand-in renderer until its own keyframes were ready.
+    odd = next((size for size in args.prepare_sizes if size not in SVS_RESOLUTIONS.values()), None)
+    if odd is not None:
+        sizes = ", ".join(f"{w}x{h}" for w, h in SVS_RESOLUTIONS.values())
+        p.error(f"--prepare: expected {sizes.replace(', 1280', ' or 1280')} (the sizes a board sends), got "
+                f"{odd[0]}x{odd[1]}")
     return args
 
 

@@ -813,6 +813,20 @@ def test_emulator_refuses_values_that_killed_a_board_thread(capsys, argv, messag
     assert stopped.value.code == 2 and message in capsys.readouterr().err
 
 
+def test_emulator_prepares_only_the_sizes_a_board_sends(capsys):
+    """Found by an audit of capture: ``--prepare 321x240`` was taken and its keyframes rendered, a size no board
+    sends, while the 320x240 meant was served by the stand-in renderer. A usage error now (exit 2). Through
+    parse_args: the emulator itself, given a size it takes, would serve until stopped."""
+    from hw.emulator_args import parse_args
+
+    assert parse_args(["--prepare", "320x240,160x120"], "", 1.0).prepare_sizes == [(320, 240), (160, 120)]
+    with pytest.raises(SystemExit) as stopped:
+        parse_args(["--prepare", "320x240,321x240"], "", 1.0)
+    assert stopped.value.code == 2
+    assert "--prepare: expected 160x120, 320x240, 640x480 or 1280x1024 (the sizes a board sends), got 321x240" in (
+        capsys.readouterr().err)
+
+
 def test_emulator_refuses_an_image_folder_with_a_file_it_cannot_read(capsys, tmp_path, data_dir):
     import shutil
 
