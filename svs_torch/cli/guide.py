@@ -120,7 +120,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="a JSON line per pair ranged on stdout for another program: estimate --json's fields "
                              "(with the calibration its metres use), the capture's times, 'warning' (the pair's and "
                              "the confirmed distance, the class clear / warn / stop, or unseen: nothing measured; the "
-                             "words said), 'dropped_pairs', 'latency_s'; a line {\"event\": ...} when the camera is "
+                             "words said), 'dropped_pairs', 'latency_s', 'quality' (--quality's digit); a line "
+                             "{\"event\": ...} when the camera is "
                              "lost or back, guide cannot see or sees again, or the boards answer in the wrong "
                              "roles (cameras_swapped); the warnings' text goes to stderr")
     parser.add_argument("--record", metavar="DIR",
@@ -218,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=args.words_per_minute,
                                       stream=words))
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
-                   calibration_from_args(args), args.second_passes)
+                   calibration_from_args(args), args.second_passes, args.quality)
     session = GuideSession(args, size, ranged, guide, status_line, log)
     try:
         with contextlib.ExitStack() as stack:

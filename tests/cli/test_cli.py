@@ -876,6 +876,16 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
+def test_guide_record_says_the_jpeg_quality_as_capture_does(capsys, tmp_path):
+    """capture's index records the --quality digit its frames were sent at (a board keeps a digit an earlier run
+    set, and none can be read back); guide --record's did not."""
+    record = tmp_path / "walk"
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120",
+                           "--quality", "6", "--json", "--record", str(record))
+    assert code == 0 and json.loads(out.splitlines()[0])["quality"] == 6
+    assert [json.loads(line)["quality"] for line in (record / "index.jsonl").read_text().splitlines()] == [6]
+
+
 def test_guide_record_with_second_passes_off_is_ranged_again_without_them(capsys, tmp_path):
     """``guide --second-passes off --record DIR``: the replay command it prints says ``--second-passes off`` too, and
     ranges the pairs as guide did. Without it (an audit), estimate measured the noisiest frames again on a coarser
