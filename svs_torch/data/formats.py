@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import re
+import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -136,6 +138,25 @@ def _check_calib_values(calib: dict, name: str, path: Path) -> None:
             raise InputError(f"{name}: expected {need} for '{key}', got {value:g}: {display_path(path)}")
 
 
+#: The warnings held in this thread by :func:`~svs_torch.data.scene_batch.warnings_once_loaded`: a stack, one list
+#: of (message, category, filename, lineno) per loader running. Thread-local, not ``warnings.catch_warnings``: that
+#: swaps the process's filters, and ``eval``'s loader thread, inside it while the caller's thread entered and left
+#: its own, left the caller's filter (an ``ignore``) in force for good (an audit of the API's effect on its caller).
+HELD_WARNINGS = threading.local()
+
+
+def warn_when_loaded(message: str, category: type[Warning] = RuntimeWarning, stacklevel: int = 2) -> None:
+    """``warnings.warn(message, category)`` from the caller of the function that calls this (``stacklevel`` counts
+    as warnings.warn's does, from that function), or held until the loader running in this thread has read its whole
+    pair (:func:`~svs_torch.data.scene_batch.warnings_once_loaded`)."""
+    stack = getattr(HELD_WARNINGS, "stack", None)
+    if not stack:
+        warnings.warn(message, category, stacklevel=stacklevel + 1)
+        return
+    frame = sys._getframe(stacklevel)  # where warnings.warn would say it came from
+    stack[-1].append((message, category, frame.f_code.co_filename, frame.f_lineno))
+
+
 def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Read an 8- or 16-bit gray or colour image (alpha ignored) as a gray tensor ``(1, 1, H, W)`` in [0, 1].
 
@@ -172,9 +193,8 @@ def read_gray_image(path: str | Path, name: str = "path", dtype: torch.dtype = t
     full_scale = _FULL_SCALE[array.dtype]
     brightest = int(array.max())
     if array.dtype == np.uint16 and 0 < brightest < _FEW_BITS_LEVEL:
-        warnings.warn(f"{name}: a 16-bit image whose brightest level is {brightest} of 65535, read as nearly black; "
-                      f"if it holds 10- or 12-bit data, scale it to the full 16-bit range: {path}", RuntimeWarning,
-                      stacklevel=2)
+        warn_when_loaded(f"{name}: a 16-bit image whose brightest level is {brightest} of 65535, read as nearly "
+                         f"black; if it holds 10- or 12-bit data, scale it to the full 16-bit range: {path}")
     # Divide in float64 then cast: k / 255 rounded once to float32 lies within half an ulp of the exact value,
     # so multiplying by 255 and rounding recovers k exactly.
     gray = torch.from_numpy(array.astype(np.float64) / full_scale).to(dtype)

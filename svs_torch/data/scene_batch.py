@@ -17,7 +17,7 @@ from ..core.checks import InputError
 from ..core.files import display_path, path_kind
 from ..core.image_files import read_image_array
 from ..core.types import StereoBatch
-from .formats import read_gray_image
+from .formats import HELD_WARNINGS, read_gray_image
 
 __all__ = ["check_scene_dir", "make_scene_batch", "read_mask_image", "read_view_pair", "warnings_once_loaded"]
 
@@ -82,15 +82,25 @@ def _check_truth_range(disparity: np.ndarray, valid: np.ndarray, width: int, nam
 
 @contextlib.contextmanager
 def warnings_once_loaded() -> Iterator[None]:
-    """The warnings raised inside (a 16-bit file read as nearly black), given only when the block completes: a pair
-    that then fails (its right view missing, of another size, its ground truth unreadable) gets its one error, not
-    a warning about a view first. Each loader of :mod:`.datasets` and :mod:`.middlebury` is wrapped in it whole (a
-    context manager made by ``contextmanager`` is also a decorator)."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    """The loaders' own warnings given inside (:func:`~.formats.warn_when_loaded`: a 16-bit file read as nearly
+    black), given only when the block completes: a pair that then fails (its right view missing, of another size,
+    its ground truth unreadable) gets its one error, not a warning about a view first. Each loader of
+    :mod:`.datasets` and :mod:`.middlebury` is wrapped in it whole (a context manager made by ``contextmanager`` is
+    also a decorator)."""
+    # Held per thread (formats.HELD_WARNINGS), not by warnings.catch_warnings: that swaps the process's filters, which
+    # eval's loader thread did while the caller's thread ran (an audit: a caller's filter left in force for good).
+    stack = HELD_WARNINGS.__dict__.setdefault("stack", [])
+    held: list = []
+    stack.append(held)
+    try:
         yield
-    for warning in caught:
-        warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+    finally:
+        stack.pop()
+    for message, category, filename, lineno in held:  # to the enclosing loader's block, if any, else given now
+        if stack:
+            stack[-1].append((message, category, filename, lineno))
+        else:
+            warnings.warn_explicit(message, category, filename, lineno)
 
 
 def read_view_pair(left_path: Path, right_path: Path, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:

@@ -449,3 +449,46 @@ def test_a_preloaded_array_is_never_taken_for_another_file(tmp_path):
         assert read_image_array(plain, "left")[0, 0] == 1
     finally:
         PRELOADED.clear()
+
+
+def test_a_loader_in_another_thread_leaves_the_callers_warning_filters_alone(tmp_path, recwarn):
+    """Found by an audit of the API's effect on its caller: eval's loader thread held a pair's warnings with
+    ``warnings.catch_warnings``, which swaps the process's filters; a caller whose own ``catch_warnings`` block
+    (an ``ignore``) ended while a load ran had that ``ignore`` put back for good when the load ended. The warnings
+    are now held per thread, and still given once the pair is read whole, in the loading thread."""
+    import threading
+    import warnings
+
+    from svs_torch.data.scene_batch import warnings_once_loaded
+
+    dim = tmp_path / "dim.png"
+    cv2.imwrite(str(dim), np.full((4, 4), 1000, np.uint16))
+    before = list(warnings.filters)
+    inside, release, caught = threading.Event(), threading.Event(), []
+
+    def load():
+        with warnings_once_loaded():
+            inside.set()
+            release.wait(10)
+            read_gray_image(dim, "left", torch.float32)
+            caught.append("read")
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        loader = threading.Thread(target=load)
+        loader.start()
+        inside.wait(10)
+    release.set()
+    loader.join(10)
+    assert caught == ["read"] and warnings.filters == before
+    assert [str(w.message).split(",")[0] for w in recwarn] == [
+        "left: a 16-bit image whose brightest level is 1000 of 65535"]  # given once the pair was read
+    # the loader's warning is still given, from its thread, once the pair is read
+    caught.clear(), inside.clear(), release.set()
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        loader = threading.Thread(target=load)
+        loader.start()
+        loader.join(10)
+    assert caught == ["read"] and [str(w.message).split(",")[0] for w in shown] == [
+        "left: a 16-bit image whose brightest level is 1000 of 65535"]
