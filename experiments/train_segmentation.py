@@ -63,6 +63,7 @@ import torch.nn.functional as F
 
 from svs_torch.cli.common import non_negative_float, non_negative_int, positive_float, positive_int, seed_int
 from svs_torch.cli.features import checked_size
+from svs_torch.cli.segment import segmenter_choice
 from svs_torch.core.errors import InputError
 from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
@@ -71,8 +72,7 @@ from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stere
 from svs_torch.evaluation import measured_regions, object_truth, with_nominal_calibration
 from svs_torch.segmentation.learned import obstacle_truth, segment_learned, soft_object_depths
 from svs_torch.segmentation.network import ObstacleNet, ObstacleNetConfig, predict_obstacle_logits, stereo_features
-from svs_torch.segmentation.network_files import (SHIPPED_WEIGHTS, check_weights_file, load_obstacle_net,
-                                                  save_obstacle_net)
+from svs_torch.segmentation.network_files import SHIPPED_WEIGHTS, load_obstacle_net, save_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 from svs_torch.core.types import StereoBatch
@@ -456,12 +456,7 @@ def init_weights(text: str) -> str:
     if text.partition(":")[0] != "learned":
         raise argparse.ArgumentTypeError(f"expected 'learned' or 'learned:PATH' (obstacle-network weights; nearness "
                                          f"weights are trained by train_nearness.py), got {text!r}")
-    try:
-        SegmentationConfig(segmenter=text)
-        check_weights_file(text)
-    except InputError as error:
-        raise argparse.ArgumentTypeError(str(error).removeprefix("segmenter: ")) from None
-    return text
+    return segmenter_choice(text)  # svs-depth's --segmenter check: the file read, its error one line
 
 
 def size_text(text: str) -> str:
