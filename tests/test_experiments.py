@@ -752,10 +752,13 @@ def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir)
     run = subprocess.Popen([sys.executable, str(REPO_ROOT / "experiments" / "train_nearness.py"), "--data",
                             str(data_dir), "--out", str(out), "--steps", "100000", "--num-synthetic", "4",
                             "--crops-per-scene", "1", "--views-per-scene", "1", "--threads", "1"],
-                           env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    time.sleep(8)  # well into reading or training: torch's import alone takes about 2 s
+                           env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, bufsize=0)
+    # Stopped once it says anything on stderr (its progress: main() has begun), not after a fixed time: a Ctrl-C
+    # during the imports, before run_script, is Python's own traceback. (Unbuffered: the byte read is all taken.)
+    first = run.stderr.read(1)
+    time.sleep(0.5)
     run.send_signal(signal.SIGINT)
-    _, err = run.communicate(timeout=60)
+    err = (first + run.communicate(timeout=60)[1]).decode()
     assert run.returncode == 130, err[-2000:]
     assert "Traceback" not in err and err.strip().splitlines()[-1] == "train_nearness.py: interrupted"
     assert list(tmp_path.iterdir()) == []
