@@ -136,7 +136,9 @@ def test_nominal_calibration_only_for_pairs_without_one(data_dir):
     aloe = with_nominal_calibration(load_stereo_pair(data_dir / "opencv_samples"))
     third = with_nominal_calibration(load_stereo_pair(data_dir / "middlebury_2005_2006_third" / "Aloe"))
     assert aloe.focal_px.tolist() == [3740.0] and bool(aloe.calibrated[0])
-    assert aloe.focal_px[0] / aloe.size_hw[1] == pytest.approx(third.focal_px[0] / third.size_hw[1], rel=0.01)
+    # floats: pytest 9.2's approx iterates a 0-d tensor and fails (TypeError), as a fresh install met it
+    full_focal_per_px, third_focal_per_px = (float(b.focal_px[0] / b.size_hw[1]) for b in (aloe, third))
+    assert full_focal_per_px == pytest.approx(third_focal_per_px, rel=0.01)
 
 
 @pytest.mark.parametrize("scene", sorted(RECORDED_TRUTH))
