@@ -219,14 +219,6 @@ def _say_what_the_folder_holds(folder: str) -> None:
                      f"eval {folder} ranges them all")
 
 
-def _is_kitti_frame(path: str) -> bool:
-    """A KITTI frame's left image (``image_2/000001_10.png``), which ranges as its frame's scene, as in eval. Why: the
-    warning of a KITTI folder says to give one, and it was refused ("expected two image files", an audit)."""
-    from ..core.dataset_files import KITTI_LEFT_FOLDERS
-
-    return os.path.isfile(path) and os.path.basename(os.path.dirname(os.path.abspath(path))) in KITTI_LEFT_FOLDERS
-
-
 def _say_which_frame(folder: str) -> None:
     """A folder of several frames (a KITTI training folder) is ranged at its first frame: said, with how to range
     another or all of them (an audit: one row named only by the folder, and eval ranges both frames)."""
@@ -320,12 +312,14 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..core.errors import InputError
         from ..data import PairSource, detect_stereo_layout
+        from ..data.pair_list import is_kitti_left_image
         from ..plotting.figures import check_output_path
         from ..pipeline import estimate_obstacle_depth
 
     config = pipeline_config_from_args(args)
+    # A KITTI frame's left image is its frame's scene, as in eval (a KITTI folder's warning says to give one)
     scene = bool(args.left) and not args.right and (detect_stereo_layout(args.left) is not None
-                                                    or _is_kitti_frame(args.left))
+                                                    or is_kitti_left_image(args.left))
     if not (args.left and args.right) and not scene:
         if args.left and not args.right and os.path.isdir(args.left):
             _say_what_the_folder_holds(args.left)

@@ -39,8 +39,8 @@ from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_la
                        warn_unreadable)
 from .pair_names import pair_identity, with_distinct_names
 
-__all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "read_pair_list", "read_pair_sources", "load_pair_source",
-           "unique_sources", "with_distinct_names"]
+__all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "is_kitti_left_image", "read_pair_list",
+           "read_pair_sources", "load_pair_source", "unique_sources", "with_distinct_names"]
 
 #: An index.jsonl line's calibration fields, in a list line's order.
 CALIBRATION_KEYS = ("focal_px", "baseline_m", "doffs_px")
@@ -174,7 +174,10 @@ def _kind(path: Path) -> str:
         return "unusable"
 
 
-def _is_kitti_left(path: Path) -> bool:
+def is_kitti_left_image(path: str | Path) -> bool:
+    """Whether ``path`` is a KITTI frame's left image (``image_2/000001_10.png``), which stands for its frame's scene
+    (:func:`~svs_torch.data.load_stereo_pair` loads it so)."""
+    path = Path(path)
     return _kind(path) == "file" and path.parent.name in KITTI_LEFT_FOLDERS
 
 
@@ -187,7 +190,7 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
             scenes = _scenes_in(path)
             return scenes or [PairSource(left=text.strip(), problem=f"{where}: no stereo scene in the folder "
                                                                     f"{path}")]
-        if _is_kitti_left(path):
+        if is_kitti_left_image(path):
             return [PairSource(left=str(path), scene=True)]
         return [_bad(where, "1 field", text)]
     if len(fields) in (2, 4, 5):
@@ -316,7 +319,7 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
                 raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "
                                  f"in the folder {path}")
             sources += found
-        elif _is_kitti_left(path):
+        elif is_kitti_left_image(path):
             sources.append(PairSource(left=str(path), scene=True))
         elif kind == "file":
             sources += read_pair_list(path, name)
