@@ -33,8 +33,7 @@ from svs_torch.segmentation.segment import segment_stereo
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from svs_torch.core.files import write_bytes_atomic  # noqa: E402
-from run_metadata import add_common_options, command_line, run_metadata, run_script  # noqa: E402
+from run_metadata import add_common_options, command_line, run_metadata, run_script, write_text_whole  # noqa: E402
 from bench_segmentation import load_pairs, timed, to_u8  # noqa: E402
 
 CONFIGS = {"default": DenseConfig(), "working 160 px": DenseConfig(working_width_px=160, coarse_width_px=80)}
@@ -81,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
                                        batch=args.batch, configs={k: repr(v) for k, v in CONFIGS.items()}),
               "results": results}
     if args.json:
-        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())  # whole or not at all
+        write_text_whole(args.json, json.dumps(report, indent=2))
     return report
 
 

@@ -24,14 +24,13 @@ from pathlib import Path
 import torch
 
 from svs_torch import StereoBatch
-from svs_torch.core.files import write_bytes_atomic
 from svs_torch.segmentation.network_files import load_obstacle_net
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import add_common_options, run_metadata, run_script  # noqa: E402
+from run_metadata import add_common_options, run_metadata, run_script, write_text_whole  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
 
@@ -115,7 +114,7 @@ def main() -> None:
             print(f"  {key:34s} {value:9.1f} MB")
     if args.json:
         report = {"metadata": run_metadata(args.threads, batch=args.batch), "results": results}
-        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())
+        write_text_whole(args.json, json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

@@ -27,8 +27,7 @@ from svs_torch.features.surf import extract_surf_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from svs_torch.core.files import write_bytes_atomic  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 from bench_segmentation import load_pairs, timed  # noqa: E402
 
 
@@ -72,7 +71,7 @@ def main() -> None:
               f"(run min {value['min_ms']:.1f}, max {value['max_ms']:.1f} ms)")
     if args.json:
         report = {"metadata": run_metadata(args.threads), "results": results}
-        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())  # whole or not at all
+        write_text_whole(args.json, json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

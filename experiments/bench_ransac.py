@@ -40,8 +40,7 @@ from svs_torch.geometry.epipolar_distance import sampson_distance
 from svs_torch.geometry.ransac import estimate_fundamental_ransac
 
 from svs_torch.cli.common import positive_int, non_negative_float, seed_int  # noqa: E402
-from svs_torch.core.files import write_bytes_atomic  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 
 SIZE_WH = (640, 480)
 THRESHOLD_PX = 1.0
@@ -189,7 +188,7 @@ def main() -> None:
                   f"{row['recall']:7.4f} {row['gt_sampson_mean_px']:9.3f}")
         print(f"{'':9s} svs_torch mean hypotheses per pair: {results['svs_torch_batched']['mean_hypotheses']:.0f}")
     if args.json:
-        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())  # whole or not at all
+        write_text_whole(args.json, json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":

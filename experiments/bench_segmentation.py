@@ -31,8 +31,7 @@ from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_ba
 from svs_torch.segmentation.segment import SegmentationConfig, segment_stereo
 
 from svs_torch.cli.common import positive_int
-from svs_torch.core.files import write_bytes_atomic  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script
+from run_metadata import output_path, run_metadata, run_script, write_text_whole
 
 SIZE_WH = (320, 240)
 
@@ -129,7 +128,7 @@ def main() -> None:
               f"{kornia_ms / ours:6.1f}")
     report = {"metadata": run_metadata(args.threads, size_wh=list(SIZE_WH)), "results": results}
     if args.json:
-        write_bytes_atomic(args.json, json.dumps(report, indent=2).encode())  # whole or not at all
+        write_text_whole(args.json, json.dumps(report, indent=2))
 
 
 if __name__ == "__main__":
