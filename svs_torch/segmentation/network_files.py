@@ -124,23 +124,13 @@ def cached_obstacle_net(segmenter: str) -> nn.Module:
     return _NET_CACHE[key]
 
 
-_CHECKED: set[tuple[str, str, int, int]] = set()
-
-
 def check_weights_file(segmenter: str) -> None:
-    """Read the weights file a ``"learned:PATH"`` / ``"nearness:PATH"`` names into its network, once per file and
-    version in a process, so that a command refuses a bad file when it checks its arguments, before any work
-    (:func:`load_obstacle_net`'s one-line error); the shipped weights and ``"otsu"`` are not read."""
-    if not isinstance(segmenter, str) or ":" not in segmenter:
-        return
-    path = weights_path(segmenter)
-    if not path.is_file():
-        load_obstacle_net(segmenter)  # its one-line error
-    stat = path.stat()
-    key = (segmenter.partition(":")[0], str(path.resolve()), stat.st_mtime_ns, stat.st_size)
-    if key not in _CHECKED:
-        cached_obstacle_net(segmenter)  # the run that follows in this process reads the network from the cache
-        _CHECKED.add(key)
+    """Read the weights file a ``"learned:PATH"`` / ``"nearness:PATH"`` names into its network through
+    :func:`cached_obstacle_net` (once per file and version; the run that follows takes it from there), so that a
+    command refuses a bad file when it checks its arguments, before any work (:func:`load_obstacle_net`'s one-line
+    error); the shipped weights and ``"otsu"`` are not read."""
+    if isinstance(segmenter, str) and ":" in segmenter:
+        cached_obstacle_net(segmenter)
 
 
 def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = None) -> None:

@@ -72,7 +72,6 @@ def test_check_weights_file_reads_each_version_once(tmp_path, monkeypatch):
     reads, real = [], network_files.load_obstacle_net
     monkeypatch.setattr(network_files, "load_obstacle_net", lambda segmenter: reads.append(segmenter) or real(segmenter))
     monkeypatch.setattr(network_files, "_NET_CACHE", {})
-    monkeypatch.setattr(network_files, "_CHECKED", set())
     check_weights_file = network_files.check_weights_file
     for _ in range(3):
         check_weights_file(f"nearness:{path}")
