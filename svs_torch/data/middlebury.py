@@ -161,15 +161,8 @@ def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float
 def teddy_2003_calibration_source(scene_dir: Path) -> str:
     """Where :func:`load_middlebury_2003` takes Teddy's calibration from, and how it was scaled where the views are
     not 450 px wide; read from the PNG's header alone."""
-    source = "MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view"
-    try:
-        with (scene_dir / "imL.png").open("rb") as handle:
-            size = declared_size(handle.read(64))
-    except OSError:  # the loader says what is wrong with it
-        return source
-    if size is None or size[0] == _TEDDY_2003_QUARTER_WIDTH_PX:
-        return source
-    return f"{source}, scaled from its {_TEDDY_2003_QUARTER_WIDTH_PX} px wide to the views' {size[0]}"
+    return _scaled_source("MiddEval3 trainingQ/Teddy/calib.txt, the same scene and view", scene_dir / "imL.png",
+                          _TEDDY_2003_QUARTER_WIDTH_PX)
 
 
 def eval3_calibration_source(scene_dir: Path) -> str:
@@ -178,9 +171,18 @@ def eval3_calibration_source(scene_dir: Path) -> str:
     source = f"{scene_dir.name}/calib.txt"
     try:
         calib_width = read_middlebury_calib(scene_dir / "calib.txt", "calib").get("width")
-        with (scene_dir / "im0.png").open("rb") as handle:
+    except (InputError, OSError):  # the loader says what is wrong with it
+        return source
+    return _scaled_source(source, scene_dir / "im0.png", calib_width)
+
+
+def _scaled_source(source: str, view: Path, calib_width: float | None) -> str:
+    """``source``, and that its focal and doffs were scaled where the left view ``view`` is not ``calib_width`` px
+    wide (None: the calibration does not say); read from the PNG's header alone."""
+    try:
+        with view.open("rb") as handle:
             size = declared_size(handle.read(64))
-    except (InputError, OSError):  # the loader says what is wrong with them
+    except (InputError, OSError):  # the loader says what is wrong with it
         return source
     if calib_width is None or size is None or size[0] == calib_width:
         return source
