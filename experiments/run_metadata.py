@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import platform
-import subprocess
 import sys
 from pathlib import Path
 
@@ -172,17 +171,13 @@ def run_metadata(threads: int, **extra) -> dict:
     import torch
 
     from svs_torch.core.workers import available_cores
-    from svs_torch.evaluation.sweep import code_version
+    from svs_torch.core.checkout import code_version, short_commit
 
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    # The library's version as a sweep's store records it, "-dirty" where its files differ from the commit: a
-    # table made on edited code read as one made at the commit (an audit).
-    return {"commit": commit, "code_version": code_version(), "torch": torch.__version__, "kornia": kornia.__version__,
-            "opencv": cv2.__version__, "numpy": numpy.__version__, "python": sys.version.split()[0],
+    # The library's checkout as a sweep's store and the benchmark record it, "-dirty" where its files differ from
+    # the commit: a table made on edited code read as one made at the commit (an audit).
+    return {"commit": short_commit(), "code_version": code_version(), "torch": torch.__version__,
+            "kornia": kornia.__version__, "opencv": cv2.__version__, "numpy": numpy.__version__,
+            "python": sys.version.split()[0],
             "machine": platform.machine(), "cpus": os.cpu_count(), "cores_available": available_cores(),
             "threads": threads,
             # The vector instructions torch's CPU kernels use: a training run is bit for bit only on the same ones

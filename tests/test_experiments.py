@@ -576,7 +576,7 @@ def test_limit_is_a_count_or_zero_for_all_in_every_experiment(capsys):
 def test_run_metadata_records_the_librarys_version_and_edited_code():
     """Found by an audit: a run on edited code recorded the bare commit only, as if made at that commit."""
     from run_metadata import run_metadata
-    from svs_torch.evaluation.sweep import code_version
+    from svs_torch.core.checkout import code_version
 
     metadata = run_metadata(1)
     assert metadata["code_version"] == code_version() and metadata["code_version"].startswith("0.")

@@ -210,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
 
         from ..geometry.calibration import write_calibration
         from ..geometry.chessboard import calibrate_stereo_rig, drop_misfit_pairs
-        from ..evaluation.sweep import code_version
+        from ..core.checkout import code_version
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..core.files import check_output_file
         from ..core.image_files import read_image_array

@@ -375,7 +375,8 @@ def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -
     if not args.db:
         return None, None, None
     from ..evaluation.store import ResultStore
-    from ..evaluation.sweep import code_version, environment, make_sweep_config
+    from ..core.checkout import code_version
+    from ..evaluation.sweep import environment, make_sweep_config
 
     sweep_config = make_sweep_config(preset, overrides, size_wh)
     with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)

@@ -35,12 +35,12 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from ..core.checkout import short_commit
 from .bench_inputs import _write_list, write_inputs
 from .bench_processes import run_child
 from .frame_latency import GOAL_MS, real_frame_latency
@@ -280,21 +280,6 @@ def help_time(repeats: int) -> float:
     return round(statistics.median(runs), 3)
 
 
-def _commit() -> str:
-    """The checkout's short commit, ``-dirty`` with uncommitted changes to tracked files, or ``unknown``."""
-    try:
-        git = ["git", "-C", str(Path(__file__).parent)]
-        commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                check=True).stdout.strip()
-        # A run of uncommitted code said only its commit, which a reader took for the code that ran (an audit).
-        changed = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"],
-                                 capture_output=True, text=True, check=True).stdout.strip()
-        commit += "-dirty" if changed else ""
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    return commit
-
-
 def _metadata(threads: int, commit: str, **extra) -> dict:
     import cv2
     import kornia
@@ -324,7 +309,7 @@ def run_benchmark(num_pairs: int = 64, repeats: int = 3, threads: int = 2, data_
     # The load before this run adds its own: what says whether other jobs shared the machine (the one taken at the
     # end counts the benchmark's own threads).
     load_at_start = os.getloadavg() if hasattr(os, "getloadavg") else None
-    commit = _commit()  # the code this run imports: a checkout changed during the run was recorded instead
+    commit = short_commit()  # the code this run imports: a checkout changed during the run was recorded instead
     with tempfile.TemporaryDirectory(prefix="svs_bench_") as tmp:
         workdir = Path(tmp)
         sets = write_inputs(workdir, num_pairs, data_dir)

@@ -44,7 +44,6 @@ import difflib
 import hashlib
 import json
 import platform
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -53,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.camera import parse_size
+from ..core.checkout import code_version
 from ..core.checks import InputError
 from ..core.files import tidy_path
 from ..core.workers import thread_budget
@@ -267,21 +267,6 @@ def plan_tasks(sweep: Sweep, done: set[tuple[str, str]]) -> list[Task]:
         for start in range(0, len(missing), sweep.batch_size):
             tasks.append(Task(config.config_id, config.config, sweep.size_wh, missing[start:start + sweep.batch_size]))
     return tasks
-
-
-def code_version() -> str:
-    """``<package version>+git.<commit>[-dirty]`` where the package is a git checkout, else the version."""
-    from .. import __version__
-
-    root = Path(__file__).resolve().parents[2]
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return __version__
-    return f"{__version__}+git.{commit[:12]}{'-dirty' if dirty else ''}"
 
 
 def environment(executor: str, workers: int, threads: int | None) -> dict:

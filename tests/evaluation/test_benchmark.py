@@ -348,14 +348,14 @@ def test_the_recorded_commit_says_when_the_code_that_ran_was_not_committed(monke
     quoted, as that commit's. Uncommitted changes to tracked files now show as ``-dirty``, as sweeps record them."""
     import subprocess
 
-    from svs_torch.evaluation import benchmark
+    from svs_torch.core import checkout
 
     def git(command, **kwargs):
         out = "abc1234\n" if "rev-parse" in command else " M svs_torch/pipeline/core.py\n"
         return subprocess.CompletedProcess(command, 0, out, "")
 
-    monkeypatch.setattr(benchmark.subprocess, "run", git)
-    assert benchmark._commit() == "abc1234-dirty"
+    monkeypatch.setattr(checkout.subprocess, "run", git)
+    assert checkout.short_commit() == "abc1234-dirty"
 
 
 def test_the_load_before_the_run_is_recorded_beside_the_load_after_it(monkeypatch):
@@ -391,7 +391,7 @@ def test_the_recorded_commit_is_the_one_checked_out_when_the_run_started(monkeyp
     from svs_torch.evaluation import benchmark
 
     commits = iter(["aaaaaaa", "bbbbbbb"])
-    monkeypatch.setattr(benchmark, "_commit", lambda: next(commits), raising=False)
+    monkeypatch.setattr(benchmark, "short_commit", lambda: next(commits))
     for name, stub in [("write_inputs", lambda *a: {}), ("whole_process", lambda *a: []),
                        ("in_process", lambda *a: {}), ("help_time", lambda *a: 0.1)]:
         monkeypatch.setattr(benchmark, name, stub)
