@@ -217,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
     config = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
     result = estimate_obstacle_depth(batch, config)
     elapsed = time.perf_counter() - started
-    report = with_calibration(pair_report(result, 0, (1.0, 1.0), elapsed), batch, 0, (1.0, 1.0),
+    report = with_calibration(pair_report(result, 0, (1.0, 1.0), elapsed, (height, width)), batch, 0, (1.0, 1.0),
                               "the SVS model: the synthetic scene's own camera")
     truth = [
         {"object": k + 1, "depth_m": round(float(scenes.object_depth_m[0, k]), 3),

@@ -77,8 +77,10 @@ every one it measured, at least 3, so both views show one scene; where not (a sw
 camera), an object needs 40 % of its region measured instead of 10 % ("num_agreeing_inliers",
 "num_measured_inliers", "num_inliers"; experiments/verify_views.py).
 "row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
-the pair segmented again on them); "right_camera_turn_deg": [about y, about x], the turn of that camera its
-rows showed (a keystone, undone with the alignment), or null; "exposure_matched": a pair left unranged whose
+the pair segmented again on them); "right_camera_roll_deg" (positive: clockwise on the screen),
+"right_camera_shift_y_px" (positive: lower) and "right_camera_scale_pct", how far that camera's view is off (what
+to remount it by), and "right_camera_turn_deg": [about y, about x], the turn its rows showed (a keystone), all
+undone with the alignment, or null; "exposure_matched": a pair left unranged whose
 right camera is brighter or darker was run again with the two exposures matched, the darker view mapped onto
 the brighter one's so that both clip the same highlights, where that map brings the views together at the
 matched features (a gain, not a second lamp; PipelineConfig.exposure_retry). "coarse_dense": the
@@ -350,7 +352,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         started = time.perf_counter()
         result = estimate_obstacle_depth(batch, config)
-        report = pair_report(result, 0, factors, time.perf_counter() - started)
+        report = pair_report(result, 0, factors, time.perf_counter() - started, tuple(batch.image_hw[0].tolist()))
     # A pair too small to range names its size and calibration too, as every result does (an audit: both null)
     report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
                               calibration_file_source(args, source) is not None)

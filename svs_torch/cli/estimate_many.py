@@ -94,8 +94,8 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
         for row, index in enumerate(indices):
             position, loaded = runnable[index]
             source = chunk[position]
-            ranged[position] = with_calibration(pair_report(result, row, loaded[1], per_pair), batch, row, loaded[1],
-                                                _calibration_source(source, args),
+            report = pair_report(result, row, loaded[1], per_pair, tuple(batch.image_hw[row].tolist()))
+            ranged[position] = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args),
                                                 calibration_file_source(args, source) is not None)
         del batch, result  # before the next batch runs
     out = []

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_report
 from .rig import calibration_file_source
 
 __all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "square_pixels", "unranged_report",
@@ -19,7 +20,7 @@ def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
             "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "row_aligned": False, "right_camera_turn_deg": None, "exposure_matched": False, "coarse_dense": False,
+            "row_aligned": False, **dict.fromkeys(RIGHT_CAMERA_KEYS), "exposure_matched": False, "coarse_dense": False,
             "features_smoothed": False, "verified": None, "num_agreeing_inliers": None, "num_measured_inliers": None,
             "dropped_unmeasured": 0, "floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None,
             "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None,
@@ -209,8 +210,10 @@ def _unranged_reason(result, index: int) -> str | None:
     return DOFFS_BEHIND if ahead >= 0.75 and behind >= 0.75 else None
 
 
-def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float) -> dict:
-    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`."""
+def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: float,
+                image_hw: tuple[int, int]) -> dict:
+    """JSON-ready summary of pair ``index`` of a :class:`~svs_torch.pipeline.PipelineResult`, run at ``image_hw``
+    (the pair's own size, pipeline pixels; ``factors``: input pixels per pipeline pixel, x and y)."""
     from ..depth.depth_types import ObstacleSide
     from ..pipeline import PipelineStatus
 
@@ -245,7 +248,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
         # A loosely mounted right camera: its rows aligned to the left's; its gain or exposure matched. Noisy
         # frames: the dense map measured at half the working width (PipelineConfig.coarse_retry_below_share).
         "row_aligned": bool(result.row_aligned[index]) if result.row_aligned is not None else False,
-        "right_camera_turn_deg": _turn(result, index),
+        **right_camera_report(result, index, factors, image_hw),
         "exposure_matched": bool(result.exposure_matched[index]) if result.exposure_matched is not None else False,
         "coarse_dense": bool(result.coarse[index]) if result.coarse is not None else False,
         # Noisy frames: SURF run again on smoothed views (PipelineConfig.noisy_features_retry_sigma_px).
@@ -262,15 +265,6 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
                            else None),
         "time_s": round(elapsed_s, 6),
     }
-
-
-def _turn(result, index: int) -> list[float] | None:
-    """The right camera's turn about its y and x axes the row alignment undid (its keystone), degrees; None where
-    it undid none."""
-    turn = result.row_alignment_turn_deg
-    if turn is None or not bool((turn[index] != 0).any()):
-        return None
-    return [round(float(v), 3) for v in turn[index].tolist()]
 
 
 def format_report(report: dict, nearest_name: str = "nearest obstacle", batched: bool = False) -> list[str]:
@@ -291,10 +285,7 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
         from ..data import format_calibration
 
         lines.append(f"  {format_calibration(report['calibration'])}")
-    turn = report.get("right_camera_turn_deg")
-    aligned = "its rows aligned to the left camera's" + (
-        f" (turned {turn[0]:+.1f}° about y, {turn[1]:+.1f}° about x: undone)" if turn else "")
-    corrected = [text for key, text in (("row_aligned", aligned),
+    corrected = [text for key, text in (("row_aligned", right_camera_line(report)),
                                         ("exposure_matched", "its exposure matched to the left camera's"))
                  if report.get(key)]
     if corrected:

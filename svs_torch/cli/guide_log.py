@@ -83,7 +83,7 @@ class GuideLog:
         latency_s = time.monotonic() - pair.left.request_monotonic_s  # before the files are written
         # estimate --json's sizes too (an audit: the README promises its fields); guide ranges the frame as it came
         size = list(pair.left.size_wh)
-        report = pair_report(result, 0, (1.0, 1.0), elapsed_s)
+        report = pair_report(result, 0, (1.0, 1.0), elapsed_s, tuple(reversed(size)))
         with signals_held():  # the pair's images and its index line, both or neither (pairs_folder's docstring)
             record = self._saved(pair)
             record.update(report, calibration_rectified=self.rig is not None,

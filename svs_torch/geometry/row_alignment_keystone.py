@@ -1,8 +1,9 @@
 """The keystone model of :mod:`svs_torch.geometry.row_alignment` (its module docstring, "Keystone"): a right camera
 turned about its y or x axis moves a right pixel ``(u, v)`` from the image centre to the left row
 ``a·v + b·u + t + p·u·v/f + q·v²/f``; its least-squares fit over given inliers, the homography that undoes the turn
-and then the similarity, and the row residuals under a homography. Differentiable w.r.t. the points given the
-inliers (the differentiable pass refits through :func:`keystone_refit`)."""
+and then the similarity, the row residuals under a homography, and what an alignment says of the right camera
+(:func:`right_camera_deviation`). Differentiable w.r.t. the points given the inliers (the differentiable pass
+refits through :func:`keystone_refit`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import torch
 
 from ..core.numerics import safe_sqrt
 
-__all__ = ["keystone_design", "keystone_homography", "keystone_refit", "mapped_row_residuals"]
+__all__ = ["keystone_design", "keystone_homography", "keystone_refit", "mapped_row_residuals", "right_camera_deviation"]
 
 
 def keystone_design(right: torch.Tensor, image_hw: torch.Tensor, focal_px: torch.Tensor,
@@ -64,3 +65,23 @@ def mapped_row_residuals(homography: torch.Tensor, left: torch.Tensor, right: to
     ``homography`` and both points (not at a zero residual, a kink)."""
     mapped = torch.cat([right, torch.ones_like(right[..., :1])], -1) @ homography.transpose(1, 2)
     return (mapped[..., 1] / mapped[..., 2] - left[..., 1]).abs()
+
+
+def right_camera_deviation(H_right: torch.Tensor, image_hw: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What a row alignment ``H_right`` ``(B, 3, 3)`` (right pixels to aligned ones) says of the right camera, in the
+    terms ``experiments/real_rig.py`` misaligns it with: its roll about the optical axis (degrees; positive turns
+    the view as ``cv2.getRotationMatrix2D`` with a negative angle does: clockwise on the screen), the vertical shift of
+    its image centre (pixels; positive: the view lower) and its scale (1: none), each ``(B,)`` float64. Read from the
+    inverse map (the ideal view's pixels to the camera's) at the image centre ``(image_hw − 1) / 2``, where the
+    keystone's unturn is the identity to first order: what a developer remounting the right board turns it back by.
+    The identity reads 0, 0 and 1. Differentiable w.r.t. ``H_right``."""
+    camera = torch.linalg.inv(H_right.to(torch.float64))
+    cy, cx = ((image_hw.to(torch.float64) - 1) / 2).unbind(-1)
+    mapped = (camera @ torch.stack([cx, cy, torch.ones_like(cx)], -1)[..., None]).squeeze(-1)
+    w = mapped[:, 2, None, None]
+    # The projective map's Jacobian at the centre, (A·w − q·hᵀ) / w² (A its upper-left 2×2, h its last row's first
+    # two, q and w the centre mapped): the similarity's rotation and scale.
+    jacobian = (camera[:, :2, :2] * w - mapped[:, :2, None] * camera[:, None, 2, :2]) / w ** 2
+    roll_deg = torch.rad2deg(torch.atan2(jacobian[:, 1, 0], jacobian[:, 0, 0]))
+    return roll_deg, mapped[:, 1] / mapped[:, 2] - cy, torch.hypot(jacobian[:, 1, 0], jacobian[:, 0, 0])

@@ -1297,7 +1297,7 @@ def test_estimate_lists_a_region_it_barely_measured_and_says_when_one_was_droppe
     assert code == 0 and "could not measure" not in out
     noisy = real_rig.stack_conditions(scene, [("jpeg", *views["jpeg q1 + noise s2"])])
     dropping = estimate_obstacle_depth(noisy, PipelineConfig(drop_unmeasured_below_share=0.45))
-    report = pair_report(dropping, 0, (1.0, 1.0), 0.0)
+    report = pair_report(dropping, 0, (1.0, 1.0), 0.0, tuple(noisy.image_hw[0].tolist()))
     assert report["dropped_unmeasured"] == 1 and len(report["objects"]) == 1
     assert "  1 kept region the dense map could not measure: dropped" in format_report(report)
 
@@ -1350,6 +1350,35 @@ def _estimate_pairs_json(capsys, tmp_path, pairs: dict) -> list[dict]:
     return [json.loads(line) for line in out.splitlines()]
 
 
+def test_estimate_says_how_far_the_right_camera_is_rolled_shifted_and_scaled(data_dir, capsys, tmp_path):
+    """A developer remounting a loose right board needs to know how far it is off: the report said only that its
+    rows were aligned. Now the roll, the vertical shift and the scale the alignment undid are given, read back on
+    real_rig's misalignments at the issue's extremes (roll ±2°, shift ±3 % of the height, scale ±2 %), which an
+    independent warp (OpenCV's, with real_rig's homography) made; an untouched pair reports none."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+    import real_rig
+
+    moved = {"rolled": real_rig.Misalignment(roll_deg=2, shift_y_fraction=0.03, scale=0.02),
+             "rolled_back": real_rig.Misalignment(roll_deg=-2, shift_y_fraction=-0.03, scale=-0.02), "still": None}
+    batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "Pipes"), "320x240")
+    pairs = {name: (batch.left, batch.right if m is None else
+                    real_rig.misalign_right(batch.right, m, float(batch.focal_px[0]))) for name, m in moved.items()}
+    reports = _estimate_pairs_json(capsys, tmp_path, pairs)
+    for report, m in zip(reports, moved.values()):
+        read = [report[k] for k in ("right_camera_roll_deg", "right_camera_shift_y_px", "right_camera_scale_pct")]
+        if m is None:
+            assert not report["row_aligned"] and read == [None] * 3
+            continue
+        assert report["row_aligned"] and report["status"] == "OK"
+        assert read[0] == pytest.approx(m.roll_deg, abs=0.1) and read[1] == pytest.approx(m.shift_y_fraction * 240,
+                                                                                          abs=0.5)
+        assert read[2] == pytest.approx(m.scale * 100, abs=0.3)
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "rolled_back_left.png"),
+                           str(tmp_path / "rolled_back_right.png"))
+    assert code == 0 and re.search(r"\(its view rolled (1\.9|2\.0|2\.1)° anticlockwise, 7\.\d px higher, "
+                                   r"(1\.[7-9]|2\.[0-3]) % smaller: undone\)", out), out
+
+
 def test_estimate_says_when_it_corrected_the_right_camera(data_dir, capsys, tmp_path):
     """A loosely mounted right camera rolled 2°, one 30 % brighter, and one turned −1° about its y axis
     (experiments/real_rig.py's conditions on MiddEval3 Pipes, Piano and Motorcycle at 320×240): the JSON says which
@@ -1375,7 +1404,8 @@ def test_estimate_says_when_it_corrected_the_right_camera(data_dir, capsys, tmp_
     assert -1.2 < reports[3]["right_camera_turn_deg"][0] < -0.3 and reports[3]["right_camera_turn_deg"][1] == 0
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "Motorcycle_left.png"),
                            str(tmp_path / "Motorcycle_right.png"))
-    assert code == 0 and "right camera: its rows aligned to the left camera's (turned -0.6° about y" in out
+    assert code == 0 and "right camera: its rows aligned to the left camera's (its view rolled " in out
+    assert "; turned -0.6° about y, +0.0° about x: undone)" in out
     code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "Piano_left.png"), str(tmp_path / "Piano_right.png"))
     assert code == 0 and "right camera: its exposure matched to the left camera's" in out
 

@@ -21,6 +21,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 #: segmenter under a rolled camera is measured in experiments/real_rig.py.
 OTSU = SegmentationConfig()
 from svs_torch.geometry.row_alignment import RowAlignmentConfig, fit_row_alignment, row_alignment_homography
+from svs_torch.geometry.row_alignment_keystone import right_camera_deviation
 
 sys.path.insert(0, str(REPO_ROOT / "experiments"))
 
@@ -71,6 +72,27 @@ def test_a_turned_right_camera_is_unturned_columns_and_rows(m, generator):
     assert int(alignment.inliers[0, 15:].sum()) == 185 and int(alignment.inliers[0, :15].sum()) <= 3
     similarity_only = fit_row_alignment(left, right, valid, image_hw)
     assert not bool(similarity_only.keystone[0]) and bool((similarity_only.keystone_deg == 0).all())
+
+
+@pytest.mark.parametrize("m", [real_rig.Misalignment(roll_deg=2), real_rig.Misalignment(roll_deg=-2, scale=0.02),
+                               real_rig.Misalignment(shift_y_fraction=-0.03, scale=-0.02),
+                               real_rig.Misalignment(roll_deg=1, tilt_x_deg=-1, tilt_y_deg=1, shift_y_fraction=0.03)])
+def test_the_alignment_reads_back_how_far_the_right_camera_is_off(m, generator):
+    """right_camera_deviation: the roll, vertical shift and scale of a right camera misaligned by the experiment's
+    homography (an independent construction, K R K⁻¹ with a re-centring), read from the alignment fitted to its
+    matches in real_rig's own terms (its sign of the roll, the shift as a share of the height times it); exact on
+    the homography's own inverse, a turned camera's keystone aside."""
+    left, right, image_hw = _misaligned_points(m, outliers=15, generator=generator, count=200)
+    alignment = fit_row_alignment(left, right, torch.ones(left.shape[:2], dtype=torch.bool), image_hw,
+                                  focal_px=FOCAL_PX)
+    truth = [m.roll_deg, m.shift_y_fraction * 240, 1 + m.scale]
+    read = [float(v) for v in right_camera_deviation(alignment.H_right, image_hw)]
+    assert read == pytest.approx(truth, abs=0.03 if m.tilt_x_deg else 0.01)
+    exact = torch.linalg.inv(torch.from_numpy(real_rig.misalignment_homography(m, 240, 320, 300.0)))[None]
+    read = [float(v) for v in right_camera_deviation(exact, image_hw)]
+    # Turned about both axes, the camera is rolled by their product too (rz·ry·rx: 1° × 1° adds 0.017°).
+    assert read == pytest.approx(truth, abs=0.03 if m.tilt_x_deg else 1e-9)
+    assert [float(v) for v in right_camera_deviation(torch.eye(3)[None], image_hw)] == [0.0, 0.0, 1.0]
 
 
 def test_a_straight_rig_with_noisy_rows_reads_no_turn(generator):
