@@ -44,17 +44,39 @@ def pair_lines(data_dir: Path) -> list[str]:
     return lines
 
 
+#: The stages whose ``kernels`` module :data:`SITECUSTOMIZE` reaches.
+STAGES = ("segmentation", "features", "geometry", "depth")
 #: Loaded at start-up by every process of a run (``sitecustomize``): the kernels named in
 #: ``SVS_PARITY_TORCH_KERNELS`` (in their stage's ``kernels`` module) answer None, so their torch paths run.
-SITECUSTOMIZE = """import os
+SITECUSTOMIZE = f"""import os
 if os.environ.get("SVS_PARITY_TORCH_KERNELS"):
     import importlib
     for _name in os.environ["SVS_PARITY_TORCH_KERNELS"].split(","):
-        for _stage in ("segmentation", "features", "geometry", "depth"):
-            _kernels = importlib.import_module(f"svs_torch.{_stage}.kernels")
+        for _stage in {STAGES!r}:
+            _kernels = importlib.import_module(f"svs_torch.{{_stage}}.kernels")
             if hasattr(_kernels, _name):
                 setattr(_kernels, _name, lambda *args, **kwargs: None)
 """
+
+
+def kernel_names(text: str) -> str:
+    """An ``argparse`` type for ``--torch``: names of kernels, comma-separated, each a function of a stage's
+    ``kernels`` module that answers None (or False) when it did not run, so that its caller runs the torch path. A
+    name of none (a typo, a renamed kernel) turned nothing off, and the run was reported as "kernels (but NAME)"
+    with every kernel on (an audit)."""
+    import importlib
+    import inspect
+
+    modules = [importlib.import_module(f"svs_torch.{stage}.kernels") for stage in STAGES]
+    known = sorted(name for module in modules for name, value in vars(module).items()
+                   if inspect.isfunction(value) and value.__module__ == module.__name__ and not name.startswith("_")
+                   and (str(value.__annotations__.get("return")).endswith("| None")
+                        or value.__annotations__.get("return") == "bool"))
+    unknown = [name for name in text.split(",") if name not in known]
+    if text and unknown:
+        raise argparse.ArgumentTypeError(f"expected kernel names among {', '.join(known)}, comma-separated, got "
+                                         f"{', '.join(repr(name) for name in unknown)}")
+    return text
 
 
 def size_wxh(text: str) -> str:
@@ -105,7 +127,8 @@ def main() -> None:
                         help="the shared data folder (default: %(default)s)")
     parser.add_argument("--size", default="320x240", type=size_wxh, help="pairs resized to WxH (default: %(default)s)")
     parser.add_argument("--workers", type=positive_int, default=1, help="processes (default: %(default)s)")
-    parser.add_argument("--torch", default="", help="kernels to turn off in the kernels' run, comma-separated")
+    parser.add_argument("--torch", default="", type=kernel_names,
+                        help="kernels to turn off in the kernels' run, comma-separated")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         pair_list = Path(folder) / "pairs.txt"

@@ -113,6 +113,16 @@ def test_comma_separated_values_are_refused_when_parsed():
         [("parsed", ""), ("parsed", "")]
 
 
+def test_kernel_parity_refuses_a_kernel_name_no_stage_has_when_parsed():
+    """Found by an audit: ``kernel_parity.py --torch NAME`` turned off only the names it found in the stages' kernels
+    modules and passed over the others, so a typo or a renamed kernel (the docstring's own ``--torch
+    lk_refine,usurf_describe``) ran a parity of every kernel reported as "kernels (but NAME)"."""
+    assert_refused([("kernel_parity", ["--torch", "lk_refined"]), ("kernel_parity", ["--torch", "lk_refine,bogus"]),
+                    ("kernel_parity", ["--torch", "check_border"])])
+    assert refusals([("kernel_parity", ["--torch", "lk_refine,usurf_describe"]), ("kernel_parity", [])]) == \
+        [("parsed", ""), ("parsed", "")]
+
+
 def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_path):
     """Found by an audit: these refusals, one line and before any work, were exit status 1 (a SystemExit with the
     message) where every other bad option is 2; a caller telling a usage error from a failed run could not."""
