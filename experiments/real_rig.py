@@ -525,6 +525,18 @@ def run_draws(splits: dict[str, list[Path | StereoBatch]], config: PipelineConfi
     return rows
 
 
+def condition_prefixes(text: str) -> str:
+    """An ``argparse`` type for ``--conditions`` (here and in select_nearness_setting.py): name prefixes,
+    comma-separated, each of a condition (an empty table and exit 0 before; select_nearness_setting.py refused one
+    only once its first variant had been scored)."""
+    known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
+    unknown = [c for c in text.split(",") if c and not any(k.startswith(c) or c.startswith(k) for k in known)]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"no condition starts with {', '.join(unknown)}; the conditions: "
+                                         f"{', '.join(known)}")
+    return text
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_options(parser, data_type=Path, sizes="320x240")
@@ -533,7 +545,8 @@ def main(argv: list[str] | None = None) -> dict:
                              "synthetic-border, synthetic-slant (default: %(default)s)")
     parser.add_argument("--limit", type=scene_limit, help="first N scenes of each split")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
-    parser.add_argument("--conditions", default=None, help="comma-separated name prefixes (default: all)")
+    parser.add_argument("--conditions", default=None, type=condition_prefixes,
+                        help="comma-separated name prefixes (default: all)")
     parser.add_argument("--no-rival", action="store_true", help="skip StereoSGBM (tuning runs)")
     parser.add_argument("--contrast", type=float, default=1.0,
                         help="scale both views' contrast about the left view's mean first (0 < C <= 1; default 1)")
@@ -552,11 +565,6 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     check_reports_apart(parser, args)
-    known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
-    unknown = [c for c in (args.conditions or "").split(",") if c and not any(k.startswith(c) or c.startswith(k)
-                                                                                 for k in known)]
-    if unknown:  # (an empty table and exit 0 before)
-        parser.error(f"--conditions: no condition starts with {', '.join(unknown)}; the conditions: {', '.join(known)}")
     if args.loose_rig_digit is not None and (args.extremes or args.loose_rig_digit not in dict(JPEG_NOISE)):
         parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, got {args.loose_rig_digit}")
     seeds = _noise_seeds(args.noise_seed)

@@ -141,7 +141,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="the settings compared, each NAME=VALUE[,NAME=VALUE] (--set keys)")
     parser.add_argument("--contrasts", default="1", type=comma_list(unit_interval_float, "factors"),
                         help="comma-separated real_rig.py --contrast factors")
-    parser.add_argument("--conditions", default=None, help="real_rig.py --conditions (default: every one)")
+    parser.add_argument("--conditions", default=None, type=real_rig.condition_prefixes,
+                        help="real_rig.py --conditions (default: every one)")
     parser.add_argument("--synthetic", action="store_true",
                         help="also score real_rig.py's rendered weakly textured scenes (--splits synthetic)")
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")

@@ -123,6 +123,16 @@ def test_kernel_parity_refuses_a_kernel_name_no_stage_has_when_parsed():
         [("parsed", ""), ("parsed", "")]
 
 
+def test_a_condition_no_prefix_names_is_refused_when_parsed():
+    """Found by an audit: ``select_nearness_setting.py --conditions jpg`` scored its first variant (35 s) before
+    real_rig.py, which it calls, refused the prefix under its own usage; real_rig.py refused it after its parse."""
+    assert_refused([("real_rig", ["--conditions", "jpg"]),
+                    ("select_nearness_setting", ["--conditions", "clean,jpg", "--variants", "min_near_share=0"])])
+    assert refusals([("real_rig", ["--conditions", "jpeg q4,roll"]),
+                     ("select_nearness_setting", ["--conditions", "clean,jpeg", "--variants", "min_near_share=0"])]) \
+        == [("parsed", ""), ("parsed", "")]
+
+
 def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_path):
     """Found by an audit: these refusals, one line and before any work, were exit status 1 (a SystemExit with the
     message) where every other bad option is 2; a caller telling a usage error from a failed run could not."""
