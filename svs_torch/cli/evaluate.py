@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 
 from .common import (Terminated, add_disparity_export_options, dumps_strict, finite_float, options_named,
                      output_file, positive_float, positive_int, resolve_export_options)
@@ -251,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
         from ..data.pair_list import unique_sources
         from ..core.errors import InputError
         from ..evaluation import EvalSetup
+        from ..evaluation.export import resized_maps_note
         from ..evaluation.overrides import config_to_dict, resolve_config
 
     resolve_export_options(args)
@@ -269,6 +271,8 @@ def run(args: argparse.Namespace) -> int:
     _check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
     store, run_id, sweep_config = _store_beside_export(export, args, preset, overrides, size_wh, sources)
+    if export is not None and size_wh is not None:  # maps the official tools refuse, said (export.resized_maps_note)
+        warnings.warn(resized_maps_note(size_wh), RuntimeWarning, stacklevel=1)
     if not args.json:
         print(HEADER)
     setup = EvalSetup(config, size_wh, args.focal_px, args.baseline_m, args.doffs_px, calibration,

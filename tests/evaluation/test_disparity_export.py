@@ -262,3 +262,29 @@ def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_tim
     with pytest.raises(OSError, match=r"--disparity-out: cannot write .*timeSVSTorch\.txt: No space left on device"):
         export.write(batch, result, 0.25)
     assert list((tmp_path / "m" / "Teddy").iterdir()) == []
+
+
+def _evaldisp_size_ok(map_hw: tuple[int, int], truth_hw: tuple[int, int]) -> bool:
+    """The MiddEval3 SDK's evaldisp size rule, read from its source: the GT must be exactly 1, 2 or 4 times the
+    map's size ("GT disp size must be exactly 1, 2, or 4 * disp size")."""
+    return any(truth_hw == (k * map_hw[0], k * map_hw[1]) for k in (1, 2, 4))
+
+
+def test_eval_warns_that_maps_at_a_size_are_not_the_official_tools(data_dir, tmp_path, capsys):
+    """Found by an audit of the export: the README's example 'eval middlebury_eval3_Q --size 320x240 --disparity-out
+    maps' wrote 320x240 maps that the SDK's evaldisp refuses (Teddy's GT is 450x375) and the KITTI devkit too
+    (only its own size), exit 0 and nothing said. The maps stay at the size the pipeline ran at (estimate's boxes
+    are in its pixels); eval now says so, once, and at the scene's own size it says nothing."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    truth_hw = read_pfm(scene / "disp0GT.pfm").shape
+    for size, warned in (("160x120", True), (None, False)):
+        out = tmp_path / f"maps_{size}"
+        argv = ["eval", str(scene), "--json", "--disparity-out", str(out)] + (["--size", size] if size else [])
+        assert main(argv) == 0
+        err = capsys.readouterr().err
+        map_hw = read_pfm(out / "Teddy" / "disp0SVSTorch.pfm").shape
+        assert _evaldisp_size_ok(map_hw, truth_hw) is not warned, (size, map_hw)
+        assert err.count("the MiddEval3 SDK scores a map only at") == int(warned), err
+        if warned:
+            assert "--disparity-out: the maps are 160x120, the --size the pipeline ran at" in err
+            assert "not written" not in err  # a note, not a map left out: exit 0
