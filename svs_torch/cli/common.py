@@ -249,18 +249,23 @@ def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
                             "time<NAME>.txt (seconds), the MiddEval3 SDK's layout (default); 'kitti': "
                             "DIR/<pair>.png, uint16 = disparity x 256, 0 unknown, the KITTI devkit's")
     group.add_argument("--method-name", metavar="NAME", type=_method_name,
-                       help="NAME in Middlebury's file names (letters, digits, _ and -; default: SVSTorch)")
+                       help="NAME in Middlebury's file names (letters, digits, _ and -; default: SVSTorch); "
+                            "the KITTI layout's have none")
 
 
 def resolve_export_options(args: argparse.Namespace) -> None:
     """``--disparity-format`` and ``--method-name`` given without ``--disparity-out`` are refused (they ran
-    without effect, exit 0); their defaults filled in where it is given."""
+    without effect, exit 0), and ``--method-name`` with the KITTI layout, whose names hold none; their defaults
+    filled in where it is given."""
     from ..core.errors import InputError
 
     given = [name for name, value in (("--disparity-format", args.disparity_format),
                                       ("--method-name", args.method_name)) if value is not None]
     if given and not args.disparity_out:
         raise InputError(f"{given[0]}: given without --disparity-out, whose files it names")
+    if args.method_name is not None and args.disparity_format == "kitti":  # DIR/<pair>.png: it ran without effect
+        raise InputError("--method-name: given with --disparity-format kitti, whose file names (DIR/<pair>.png) "
+                         "carry no method name; drop it, or write the Middlebury layout")
     args.disparity_format = args.disparity_format or "middlebury"
     args.method_name = args.method_name or "SVSTorch"
 

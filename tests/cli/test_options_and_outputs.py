@@ -374,6 +374,11 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (["eval", "{L}", "{R}", "--method-name", "X"], "--method-name: given without --disparity-out, whose files it names"),
     (["estimate", "{L}", "{R}", "--disparity-format", "kitti"],
      "--disparity-format: given without --disparity-out, whose files it names"),
+    # Found by an audit of eval's export options: KITTI's file names hold no method name; it ran without effect.
+    (["eval", "{L}", "{R}", "--disparity-out", "{L}_maps", "--disparity-format", "kitti", "--method-name", "X"],
+     "--method-name: given with --disparity-format kitti, whose file names (DIR/<pair>.png) carry no method name"),
+    (["estimate", "{L}", "{R}", "--disparity-out", "{L}_maps", "--disparity-format", "kitti", "--method-name", "X"],
+     "--method-name: given with --disparity-format kitti, whose file names (DIR/<pair>.png) carry no method name"),
     (["estimate", "{L}", "{R}", "--workers", "2"], "--workers: only with --pairs (a run of many pairs)"),
     (["estimate", "{L}", "{R}", "--batch-size", "4"], "--batch-size: only with --pairs (a run of many pairs)"),
     # Found by fuzzing the command line: an empty value ran as if the option were not given.
