@@ -242,8 +242,9 @@ def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--disparity-out", metavar="DIR", type=output_folder,
                        help="write each pair's dense disparity map into DIR (made if missing; its parent must "
                             "exist), at the size the pipeline ran on (with --size, a size the SDK and the KITTI "
-                            "devkit do not score), unmeasured pixels unknown; a rectified pair's map is brought "
-                            "back to the left image's pixels (needs the dense range rule)")
+                            "devkit do not score), unmeasured pixels unknown; a pair the pipeline rectified has its "
+                            "map brought back to the left image's pixels (one --calibration rectified stays in "
+                            "rectified pixels); needs the dense range rule")
     group.add_argument("--disparity-format", choices=("middlebury", "kitti"),
                        help="'middlebury': DIR/<scene>/disp0<NAME>.pfm (float32, +inf unknown) and "
                             "time<NAME>.txt (seconds), the MiddEval3 SDK's layout (default); 'kitti': "

@@ -17,8 +17,9 @@ reading, not for them (``eval`` warns: :func:`resized_maps_note`). Pixels the de
 the kept regions' crop, or rejected) are unknown. A rectified pair's map is in rectified pixels; it is brought
 back to the left image's grid by nearest sampling of the rectified map at ``H_left · x`` (unknown where that falls
 outside), its values still rectified disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the
-horizontal offsets of the raw images differ by the rectification). Files go through the atomic writer
-(:mod:`svs_torch.core.files`).
+horizontal offsets of the raw images differ by the rectification). A pair rectified before the pipeline by a
+rig's calibration (``--calibration``) is the pipeline's input as it is: its map stays in the rectified pixels.
+Files go through the atomic writer (:mod:`svs_torch.core.files`).
 
 Reading a map back to the reported depths: an object's median (and percentiles) in ``estimate``'s JSON is over
 its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
