@@ -82,9 +82,9 @@ def resized_maps_note(size_wh: tuple[int, int]) -> str:
     exactly 1/2 or 1/4 of it (it refuses others: "GT disp size must be exactly 1, 2, or 4 * disp size"), the KITTI
     devkit only at its size; the README's example at 320x240 wrote maps both refuse, exit 0, nothing said (an
     audit of the export)."""
-    return (f"--disparity-out: the maps are {size_wh[0]}x{size_wh[1]}, the --size the pipeline ran at, not each "
-            "pair's own size: the MiddEval3 SDK scores a map only at its ground truth's size or exactly 1/2 or 1/4 "
-            "of it, the KITTI devkit only at its size; for maps they score, run without --size")
+    return (f"--disparity-out: the maps are {size_wh[0]}x{size_wh[1]}, the --size the pipeline ran at, whatever "
+            "each pair's own size: the MiddEval3 SDK scores a map only at its ground truth's size or exactly 1/2 or "
+            "1/4 of it, the KITTI devkit only at its size; for maps they score, run without --size")
 
 
 def _not_an_export(target: Path, timing: Path | None) -> str | None:
