@@ -248,8 +248,8 @@ def add_disparity_export_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--disparity-format", choices=("middlebury", "kitti"),
                        help="'middlebury': DIR/<scene>/disp0<NAME>.pfm (float32, +inf unknown) and "
                             "time<NAME>.txt (seconds), the MiddEval3 SDK's layout (default; the maps are sparse, "
-                            "which Middlebury's upload names disp0<NAME>_s.pfm: rename them so to upload); 'kitti': "
-                            "DIR/<pair>.png, uint16 = disparity x 256, 0 unknown, the KITTI devkit's")
+                            "and Middlebury names a sparse result disp0<NAME>_s.pfm: --method-name SVSTorch_s); "
+                            "'kitti': DIR/<pair>.png, uint16 = disparity x 256, 0 unknown, the KITTI devkit's")
     group.add_argument("--method-name", metavar="NAME", type=_method_name,
                        help="NAME in Middlebury's file names (letters, digits, _ and -; default: SVSTorch); "
                             "the KITTI layout's have none")

@@ -4,8 +4,10 @@
 * ``middlebury`` (MiddEval3 SDK): ``DIR/<scene>/disp0<METHOD>.pfm``, float32, ``+inf`` = unknown, and
   ``DIR/<scene>/time<METHOD>.txt``, the pair's pipeline seconds. The maps are sparse (unknown outside the kept
   regions), and Middlebury's upload format (vision.middlebury.edu/stereo/submit3/upload-format.html) keeps
-  ``disp0<METHOD>.pfm`` for dense maps without unknown values and names a sparse one ``disp0<METHOD>_s.pfm``:
-  rename them so before an upload (the local SDK's ``evaldisp`` reads either, ``+inf`` as unknown);
+  ``disp0<METHOD>.pfm`` for dense maps without unknown values and names a sparse one ``disp0<METHOD>_s.pfm``
+  (the MiddEval3 training data ship ``disp0SGM.pfm`` and ``disp0SGM_s.pfm`` so): ``--method-name SVSTorch_s``
+  writes that name (with ``timeSVSTorch_s.txt`` beside it; an upload takes one ``time<METHOD>.txt``). The
+  local ``evaldisp`` reads either, ``+inf`` as unknown;
 * ``kitti`` (devkit): ``DIR/<pair>.png``, uint16, disparity × 256, 0 = unknown.
 
 ``<scene>`` / ``<pair>`` is the last part of the pair's name without an image suffix (``eval3/Teddy`` → ``Teddy``,
