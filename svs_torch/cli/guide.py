@@ -234,7 +234,8 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return _stopped(status_line, log, session.stopped_text(), 130, guide.speaker)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
-        _stopped(status_line, log, session.stopped_text(), 141)
+        # With --json the words go to stderr and the speaker, both whole: the walker still hears that it stopped
+        _stopped(status_line, log, session.stopped_text(), 141, guide.speaker if args.json else None)
         raise
     except (CaptureError, OSError) as error:
         return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1,
@@ -294,8 +295,8 @@ def _stopped(status_line, log, text: str, code: int, speaker=None) -> int:
 
     Spoken at every end, not only an error's: the walker does not read the screen, and the silence after a guide
     that ended (``--count`` reached, Ctrl-C, a service's stop: a battery running low, a system update) read as a
-    clear way, as after an error it did (an audit of what a walker hears). Not on a broken pipe: the words'
-    stream is what broke."""
+    clear way, as after an error it did (an audit of what a walker hears). Not on a broken pipe of stdout without
+    --json: the words' stream is what broke (with --json only the JSON lines' reader went away)."""
     status_line.close()  # (its last line before the words, in a log too)
     if speaker is not None:
         from .guide_loop import GUIDE_STOPPED

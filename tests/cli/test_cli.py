@@ -969,6 +969,25 @@ def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys)
     assert "guide stopped after 0 pairs" in err and "error" not in err
 
 
+def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsys):
+    """Was: with --json the warnings' words go to stderr (and to the speech program), yet when the JSON lines'
+    reader went away (a belt's program that crashed, ``| head -1``) guide ended without "Guide stopped. No more
+    warnings.", as if the words' own stream had broken: the walker heard silence, a clear way (an audit of guide's
+    options). Now it is said there."""
+    from svs_torch.cli.guide_loop import GUIDE_STOPPED
+
+    class ClosedPipe(io.StringIO):
+        def write(self, text: str) -> int:
+            if text.startswith("{"):
+                raise BrokenPipeError(32, "Broken pipe")
+            return super().write(text)
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
+    err = capsys.readouterr().err
+    assert err.count(GUIDE_STOPPED) == 1 and "error" not in err
+
+
 def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
     """The left board stops answering grabs in the middle of a walk (here from the first grab, after the camera
     opened): guide says "Camera lost" once, opens the camera again every --reconnect-s seconds, says "Camera back"
