@@ -327,5 +327,5 @@ class GuideSession:
                   "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
                   "class": shown, "message": message}
+        self.processed += 1  # taken (ranged, warned of) before it is kept: a --json line that broke is still counted
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
-        self.processed += 1

@@ -966,10 +966,10 @@ def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys)
     monkeypatch.setattr(sys, "stdout", ClosedPipe())
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
     err = capsys.readouterr().err
-    assert "guide stopped after 0 pairs" in err and "error" not in err
+    assert "guide stopped after 1 pairs" in err and "error" not in err  # (the pair whose line broke: taken)
 
 
-def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsys):
+def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsys, tmp_path):
     """Was: with --json the warnings' words go to stderr (and to the speech program), yet when the JSON lines'
     reader went away (a belt's program that crashed, ``| head -1``) guide ended without "Guide stopped. No more
     warnings.", as if the words' own stream had broken: the walker heard silence, a clear way (an audit of guide's
@@ -986,6 +986,12 @@ def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsy
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
     err = capsys.readouterr().err
     assert err.count(GUIDE_STOPPED) == 1 and "error" not in err
+    # The pair whose line broke was ranged, warned of and recorded: "stopped after 0 pairs" beside "recorded 1 pair"
+    # contradicted itself (an audit); it is counted as taken.
+    record = tmp_path / "walk"
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record", str(record)]) == 141
+    err = capsys.readouterr().err
+    assert "guide stopped after 1 pairs" in err and "recorded 1 pair in" in err
 
 
 def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
