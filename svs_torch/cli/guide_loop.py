@@ -205,7 +205,8 @@ class GuideSession:
                     self._range(item)
 
     def _lost(self, error: Exception) -> None:
-        """Say the camera is lost (once a loss), give up after ``--give-up-s``, and wait ``--reconnect-s``."""
+        """Say the camera is lost (once a loss), give up after ``--give-up-s``, and wait ``--reconnect-s`` (at most
+        until ``--give-up-s``)."""
         now = time.monotonic()
         if self.lost_at_s is None:
             self.lost_at_s = now
@@ -217,7 +218,10 @@ class GuideSession:
             raise CaptureError(f"camera lost for {lost_s:.0f} s (--give-up-s {self.args.give_up_s:g}): "
                                f"{' '.join(str(error).split())}")
         self.status_line.show(f"camera lost {lost_s:.0f} s ago: opening it again")
-        time.sleep(self.args.reconnect_s)
+        # The last wait ends at --give-up-s (one more try, then give up): a whole --reconnect-s 8 after --give-up-s 1
+        # ended guide 9 s after the loss (an audit)
+        time.sleep(min(self.args.reconnect_s, self.args.give_up_s - lost_s) if self.args.give_up_s
+                   else self.args.reconnect_s)
 
     @staticmethod
     def _seen(result) -> bool:

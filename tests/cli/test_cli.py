@@ -1161,6 +1161,38 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     assert said == [guide_loop.GUIDE_READY, CANNOT_SEE, guide_loop.CAMERA_LOST, guide_loop.CAMERA_BACK, CANNOT_SEE]
 
 
+@pytest.mark.parametrize("give_up_s, waits_s", [(1.0, [1.0]), (0.0, [8.0])])
+def test_guide_gives_up_at_give_up_s_not_a_whole_reconnect_wait_later(monkeypatch, give_up_s, waits_s):
+    """Found by an audit of guide's options: --give-up-s 1 with --reconnect-s 8 ended guide 9 s after the camera
+    was lost ("camera lost for 8 s (--give-up-s 1)"), though --help promises it "up to one try later": the wait
+    before the next try ran whole, past the limit. Now the last wait ends at the limit, the camera is tried once
+    more, and guide gives up; without --give-up-s (0, never) every wait is --reconnect-s."""
+    import argparse
+    from types import SimpleNamespace
+
+    import svs_torch.cli.guide_loop as guide_loop
+    from svs_torch.capture import CaptureError
+    from svs_torch.capture.guide import WarningPolicy
+
+    clock_s, slept_s = [100.0], []
+
+    def sleep(seconds):
+        slept_s.append(seconds)
+        clock_s[0] += seconds
+
+    monkeypatch.setattr(guide_loop, "time", SimpleNamespace(monotonic=lambda: clock_s[0], sleep=sleep))
+    guide = SimpleNamespace(speaker=SimpleNamespace(say=lambda text: None), policy=WarningPolicy())
+    session = guide_loop.GuideSession(argparse.Namespace(give_up_s=give_up_s, reconnect_s=8.0), (320, 240), None,
+                                      guide, SimpleNamespace(show=lambda text: None),
+                                      SimpleNamespace(event=lambda name, **fields: None))
+    error = CaptureError("left camera: link dropped")
+    session._lost(error)  # lost now
+    assert slept_s == waits_s
+    if give_up_s:
+        with pytest.raises(CaptureError, match="camera lost for 1 s"):
+            session._lost(error)  # the try after that wait failed too
+
+
 def test_guide_sees_a_view_of_floor_only():
     """Not seen: blank frames, which are too flat for a disparity map (Otsu segmented them) and keep nothing, and a
     pair whose kept regions could not be ranged. Seen: a view whose map measured it and kept nothing, a camera
