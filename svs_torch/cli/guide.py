@@ -114,7 +114,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_warning_options(parser)
     add_calibration_option(parser, "the frames")
     _add_speech_options(parser)
-    parser.add_argument("--count", type=pair_count_or_zero, default=0,
+    parser.add_argument("--count", type=pair_count_or_zero, default=0, metavar="N",
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
     parser.add_argument("--json", action="store_true",
                         help="a JSON line per pair ranged on stdout for another program: estimate --json's fields "
@@ -127,7 +127,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
-                             "them again alike; DIR is created, and must not hold an index.jsonl")
+                             "them again alike; DIR is created, and must not hold another run's index.jsonl, "
+                             "calibration.json or pair images")
     parser.add_argument("--reconnect-s", type=timeout_seconds, default=2.0, metavar="S",
                         help="a camera that stops answering in the middle of a walk is said to be lost (spoken) "
                              "and opened again every S seconds until it answers (default: 2)")
@@ -165,12 +166,12 @@ def _add_speech_options(parser: argparse.ArgumentParser) -> None:
 
 def _add_warning_options(parser: argparse.ArgumentParser) -> None:
     """The warning rule's options (``svs_torch.capture.guide.WarningPolicy``)."""
-    parser.add_argument("--near-m", type=non_negative_float, default=1.0,
+    parser.add_argument("--near-m", type=non_negative_float, default=1.0, metavar="M",
                         help="warning band start, metres; nearer is said urgently, \"Stop. Obstacle at 0.9 "
                              "metres\" (default: 1.0)")
-    parser.add_argument("--far-m", type=positive_float, default=2.0,
+    parser.add_argument("--far-m", type=positive_float, default=2.0, metavar="M",
                         help="warning band end, metres; farther is not said (default: 2.0)")
-    parser.add_argument("--repeat-s", type=non_negative_float, default=3.0,
+    parser.add_argument("--repeat-s", type=non_negative_float, default=3.0, metavar="S",
                         help="seconds before the same warning repeats; one still being spoken is let finish, "
                              "not restarted (default: 3)")
     parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
