@@ -70,6 +70,15 @@ SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its 
                       "about 40 -> 19 ms; digit 8: 98 -> 35 ms) but noisy frames are ranged worse (held-out digit 4 "
                       "frames: 98.0 -> 95.3 %% per object): experiments/guide_second_passes.md (default: on)")
 
+#: ``--json``: what its lines hold.
+JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimate --json's fields (with the "
+             "calibration its metres use), the capture's times, 'warning' (the pair's and the confirmed distance, the "
+             "class clear / warn / stop, or unseen: nothing measured; the words said), 'dropped_pairs', 'latency_s', "
+             "'quality' (--quality's digit); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
+             "or sees again, a pair is not ranged (frames_apart, identical_views), or the boards answer in the wrong "
+             "roles (cameras_swapped); the warnings' text goes to stderr")
+
+
 #: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that
 #: module imports torch, which ``--help`` must not wait for (a test holds the two equal).
 CONFIRM_FRAMES = 3
@@ -116,14 +125,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_speech_options(parser)
     parser.add_argument("--count", type=pair_count_or_zero, default=0, metavar="N",
                         help="stop after N pairs (default: 0, run until Ctrl-C)")
-    parser.add_argument("--json", action="store_true",
-                        help="a JSON line per pair ranged on stdout for another program: estimate --json's fields "
-                             "(with the calibration its metres use), the capture's times, 'warning' (the pair's and "
-                             "the confirmed distance, the class clear / warn / stop, or unseen: nothing measured; the "
-                             "words said), 'dropped_pairs', 'latency_s', 'quality' (--quality's digit); a line "
-                             "{\"event\": ...} when the camera is "
-                             "lost or back, guide cannot see or sees again, or the boards answer in the wrong "
-                             "roles (cameras_swapped); the warnings' text goes to stderr")
+    parser.add_argument("--json", action="store_true", help=JSON_HELP)
     parser.add_argument("--record", metavar="DIR",
                         help="keep every pair ranged in DIR, as capture does (each board's JPEG as received, "
                              "index.jsonl with --json's lines), so that estimate --pairs DIR/index.jsonl ranges "
