@@ -196,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     (status 130 to the shell, nothing printed): one while the interpreter shut down (torch's exit handlers take a
     while) printed a KeyboardInterrupt traceback after the command's own last line (an audit of interrupts)."""
     if argv is None:
+        _closed_streams_on_the_null_device()
         _unencodable_escaped()
     try:
         return _main(argv)
@@ -207,6 +208,25 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.SIG_DFL)
             except ValueError:  # not the main thread: Python's handler stays
                 pass
+
+
+def _closed_streams_on_the_null_device() -> None:
+    """A standard stream the shell closed (``>&-``, ``2>&-``, ``<&-``: Python then has ``sys.stdout`` None) opened
+    on the null device, its descriptor taken: every command but ``--help`` ended in "internal error:
+    AttributeError: 'NoneType' object has no attribute 'write'" (an audit of guide), and a file opened later (a
+    record's JPEG, an exported map) would have been given descriptor 1 or 2, where OpenCV's and torch's own messages
+    then land. What was to be written there goes nowhere, as the closing asked; a guide started so still speaks."""
+    import os
+
+    for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
+        if getattr(sys, name) is not None:
+            continue
+        null = os.open(os.devnull, os.O_RDONLY if fd == 0 else os.O_WRONLY)
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+        setattr(sys, name, open(fd, "r" if fd == 0 else "w", encoding="utf-8", errors="backslashreplace",
+                                closefd=False))
 
 
 def _unencodable_escaped() -> None:

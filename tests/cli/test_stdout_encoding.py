@@ -1,5 +1,7 @@
-"""``svs-depth`` where standard output cannot encode every character (a C locale with Python's UTF-8 mode off,
-``PYTHONIOENCODING=ascii``): the help texts' '–', '×', 'σ', '°' are written as escapes, never a traceback."""
+"""``svs-depth``'s standard streams: where standard output cannot encode every character (a C locale with
+Python's UTF-8 mode off, ``PYTHONIOENCODING=ascii``) the help texts' '–', '×', 'σ', '°' are written as escapes,
+never a traceback; where the shell closed one (``>&-``, ``2>&-``) the command runs as if it were the null
+device."""
 
 from __future__ import annotations
 
@@ -28,3 +30,34 @@ def test_undecodable_bytes_of_a_file_name_are_written_as_they_were():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60,
                           env={**env, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"})
     assert done.stdout == b"a\xc3\xb6b \\u03c3\n", done
+
+
+def _pair(tmp_path) -> list[str]:
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    left = (rng.random((120, 160)) * 255).astype(np.uint8)
+    paths = [str(tmp_path / "left.png"), str(tmp_path / "right.png")]
+    cv2.imwrite(paths[0], left)
+    cv2.imwrite(paths[1], np.roll(left, -6, axis=1))
+    return paths
+
+
+@pytest.mark.parametrize("closed", [1, 2])
+def test_a_command_runs_with_a_standard_stream_closed(tmp_path, closed):
+    """``svs-depth estimate L R >&-`` (a service started with its output closed) ended in "internal error:
+    AttributeError: 'NoneType' object has no attribute 'write'" and exit 1 (an audit of guide): Python has no
+    ``sys.stdout`` then. It now runs as if the stream were the null device; with stderr closed, a bad argument still
+    exits 2, and its error line is not written into the results (print's ``file=None`` is standard output)."""
+    left, right = _pair(tmp_path)
+    kept = 2 if closed == 1 else 1
+    for argv, code in (([left, right, "--json"], 0), ([left, str(tmp_path / "missing.png")], 2)):
+        done = subprocess.run([sys.executable, "-m", "svs_torch.cli", "estimate", *argv], timeout=120,
+                              stdout=subprocess.PIPE if kept == 1 else None,
+                              stderr=subprocess.PIPE if kept == 2 else None,
+                              preexec_fn=lambda: os.close(closed))
+        said = (done.stdout if kept == 1 else done.stderr).decode(errors="replace")
+        assert done.returncode == code and "internal error" not in said, said[-300:]
+        if code and kept == 1:  # the error line is not written into the results instead
+            assert said == "", said
