@@ -23,8 +23,11 @@ T (metres), R1, R2, P1, P2, Q, the image size, the errors, the board, the date a
 estimate, eval, capture and guide as --calibration FILE: their pairs are then rectified with it and take their
 focal length, baseline and doffs from it, instead of the paper's uncalibrated rectification and the SVS model.
 
-Printed: the reprojection error (RMS, pixels) of each camera and of the stereo fit, and the rectified pair's
-row error on the chessboards: |y_left - y_right| of the matching corners after rectification (mean, max).
+Printed: the reprojection error (RMS, pixels) of each camera and of the stereo fit, the rectified pair's
+row error on the chessboards: |y_left - y_right| of the matching corners after rectification (mean, max), and
+the right camera's pose against the left's, what to remount a loose board by: its roll and its turns about its
+y and x axes (degrees, as estimate --json's right_camera_roll_deg and right_camera_turn_deg read them from a
+pair's rows) and where it sits (millimetres right, lower, ahead; --json: right_camera_offset_m).
 A pair whose two views do not fit the others (the same view twice, two moments of a moving board) is left
 out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px is written with
 a warning, and one that does not rectify its own chessboards (a board never tilted) is refused.
@@ -152,12 +155,43 @@ def _text(calibration, views, out: str, figure: str | None = None) -> list[str]:
              f"stereo {c.rms_stereo_px:.3f} px",
              f"rectified row error on the chessboards: mean {c.row_error_mean_px:.3f} px, max "
              f"{c.row_error_max_px:.3f} px ({board[0] * board[1]} corners x {len(views.names)} pairs)",
-             f"rectified: focal {c.focal_px:.2f} px, baseline {c.baseline_m:.4f} m, doffs {c.doffs_px:.2f} px"]
+             f"rectified: focal {c.focal_px:.2f} px, baseline {c.baseline_m:.4f} m, doffs {c.doffs_px:.2f} px",
+             _pose_line(right_camera_pose(c.R, c.T))]
     if views.skipped:
         lines.append(f"left out (board not found in both views): {', '.join(views.skipped)}")
     lines += [f"left out: {misfit}" for misfit in views.misfits]
     lines.append(f"wrote {out}" + (f"; figure written to {figure}" if figure else ""))  # as the others say it
     return lines
+
+
+def right_camera_pose(R, T) -> dict:
+    """The right camera against the left (``x_right = R·x_left + T``, OpenCV's ``stereoCalibrate``):
+    ``right_camera_roll_deg`` and ``right_camera_turn_deg`` [about y, about x] with ``R = Rz(roll)·Ry(y)·Rx(x)``, the
+    turns ``experiments/real_rig.py`` misaligns a right camera by (``K·R·K⁻¹`` takes an ideal right view's pixels
+    to the camera's), so a positive roll turns its view clockwise on the screen, as estimate reads it from a pair's
+    rows; and ``right_camera_offset_m``, its centre ``−Rᵀ·T`` in the left camera's axes (x right, y down, z ahead),
+    metres."""
+    import math
+
+    import numpy as np
+
+    R, T = np.asarray(R, dtype=np.float64), np.ravel(np.asarray(T, dtype=np.float64))
+    about_y = -math.degrees(math.asin(max(-1.0, min(1.0, float(R[2, 0])))))
+    about_x = math.degrees(math.atan2(R[2, 1], R[2, 2]))
+    return {"right_camera_roll_deg": round(math.degrees(math.atan2(R[1, 0], R[0, 0])), 3),
+            "right_camera_turn_deg": [round(about_y, 3), round(about_x, 3)],
+            "right_camera_offset_m": [round(float(v), 5) for v in -R.T @ T]}
+
+
+def _pose_line(pose: dict) -> str:
+    """The text of :func:`right_camera_pose`: "right camera: its view rolled 0.2° anticlockwise, turned +0.2°
+    about y, +0.4° about x; 83.2 mm right, 1.0 mm lower, 0.3 mm ahead of the left"."""
+    roll, (about_y, about_x) = pose["right_camera_roll_deg"], pose["right_camera_turn_deg"]
+    x, y, z = (v * 1000 for v in pose["right_camera_offset_m"])
+    return (f"right camera: its view rolled {abs(roll):.1f}° {'clockwise' if roll >= 0 else 'anticlockwise'}, "
+            f"turned {about_y:+.1f}° about y, {about_x:+.1f}° about x; {abs(x):.1f} mm "
+            f"{'right' if x >= 0 else 'left'}, {abs(y):.1f} mm {'lower' if y >= 0 else 'higher'}, {abs(z):.1f} mm "
+            f"{'ahead' if z >= 0 else 'behind'} of the left")
 
 
 def _figure(calibration, views, images):
@@ -246,7 +280,8 @@ def run(args: argparse.Namespace) -> int:
     for warning in warnings:
         print(f"svs-depth calibrate: warning: {warning}", file=sys.stderr, flush=True)
     if args.json:
-        print(dumps_strict({**calibration.to_json(), "skipped": views.skipped, "misfits": list(views.misfits),
+        print(dumps_strict({**calibration.to_json(), **right_camera_pose(calibration.R, calibration.T),
+                            "skipped": views.skipped, "misfits": list(views.misfits),
                             "warnings": warnings, "out": args.out}), flush=True)
     else:
         print("\n".join(_text(calibration, views, args.out, args.figure)), flush=True)

@@ -76,14 +76,15 @@ kept 60 inliers and the map confirms 1 (a clipped or noisy view confirms few), o
 every one it measured, at least 3, so both views show one scene; where not (a swapped, frozen or unplugged
 camera), an object needs 40 % of its region measured instead of 10 % ("num_agreeing_inliers",
 "num_measured_inliers", "num_inliers"; experiments/verify_views.py).
-"row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and
-the pair segmented again on them); "right_camera_roll_deg" (positive: clockwise on the screen),
-"right_camera_shift_y_px" (positive: lower) and "right_camera_scale_pct", how far that camera's view is off (what
-to remount it by), and "right_camera_turn_deg": [about y, about x], the turn its rows showed (a keystone), all
-undone with the alignment, or null; "exposure_matched": a pair left unranged whose
-right camera is brighter or darker was run again with the two exposures matched, the darker view mapped onto
-the brighter one's so that both clip the same highlights, where that map brings the views together at the
-matched features (a gain, not a second lamp; PipelineConfig.exposure_retry). "coarse_dense": the
+"row_aligned": a loosely mounted right camera's rows were aligned to the left's before depth was measured (and the
+pair segmented again on them); "right_camera_roll_deg" (positive: clockwise on the screen),
+"right_camera_shift_y_px" (positive: lower) and "right_camera_scale_pct", what the alignment undid of that
+camera's view (a rig's roll, height and zoom difference, read from the rows, where a wide lens's distortion and a
+near scene add their own; calibrate measures the pose itself), and "right_camera_turn_deg": [about y, about x],
+the turn its rows showed (a keystone), all undone with the alignment, or null; "exposure_matched": a pair left
+unranged whose right camera is brighter or darker was run again with the two exposures matched, the darker view
+mapped onto the brighter one's so that both clip the same highlights, where that map brings the views together at
+the matched features (a gain, not a second lamp; PipelineConfig.exposure_retry). "coarse_dense": the
 dense map measured too little of the kept regions (noisy or heavily compressed frames) and the depth was
 measured again at half the working width, where each pixel averages four times as many
 (PipelineConfig.coarse_retry_below_share). "features_smoothed": a pair left unverified (noisy or heavily

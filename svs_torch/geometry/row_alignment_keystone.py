@@ -74,7 +74,8 @@ def right_camera_deviation(H_right: torch.Tensor, image_hw: torch.Tensor
     the view as ``cv2.getRotationMatrix2D`` with a negative angle does: clockwise on the screen), the vertical shift of
     its image centre (pixels; positive: the view lower) and its scale (1: none), each ``(B,)`` float64. Read from the
     inverse map (the ideal view's pixels to the camera's) at the image centre ``(image_hw − 1) / 2``, where the
-    keystone's unturn is the identity to first order: what a developer remounting the right board turns it back by.
+    keystone's unturn is the identity to first order (a rig's roll, height and zoom difference read back; a wide
+    lens's distortion and a near scene's vertical disparities, which the alignment absorbs too, add their own).
     The identity reads 0, 0 and 1. Differentiable w.r.t. ``H_right``."""
     camera = torch.linalg.inv(H_right.to(torch.float64))
     cy, cx = ((image_hw.to(torch.float64) - 1) / 2).unbind(-1)

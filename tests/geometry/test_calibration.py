@@ -209,6 +209,8 @@ def test_calibrate_command(capsys, samples, tmp_path):
     assert code == 0
     assert "reprojection RMS: left 0.177 px, right 0.181 px, stereo 0.196 px" in stdout
     assert "rectified row error on the chessboards: mean 0.102 px, max 0.629 px" in stdout
+    assert ("right camera: its view rolled 0.2° anticlockwise, turned +0.2° about y, +0.4° about x; 83.2 mm right, "
+            "0.7 mm higher, 0.1 mm ahead of the left") in stdout
     assert read_calibration(out).pairs[0].endswith("left01.jpg")
     assert f"wrote {out}; figure written to {figure}" in stdout  # said as other commands say it (an audit)
     image = cv2.imread(str(figure))
@@ -216,6 +218,15 @@ def test_calibrate_command(capsys, samples, tmp_path):
     code, stdout, _ = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025",
                               "--out", str(out), "--json")
     assert code == 0 and json.loads(stdout)["num_pairs"] == 4
+    # The right camera's pose against the left's, what a developer remounts a loose board by (an addition):
+    # R = Rz(roll)·Ry(y)·Rx(x) recomposed from what is said, and its centre as far from the left's as the baseline.
+    said, written = json.loads(stdout), read_calibration(out)
+    roll, about_y, about_x = (math.radians(v) for v in (said["right_camera_roll_deg"], *said["right_camera_turn_deg"]))
+    turns = [cv2.Rodrigues(np.array(axis, dtype=np.float64) * angle)[0]
+             for axis, angle in (([0, 0, 1], roll), ([0, 1, 0], about_y), ([1, 0, 0], about_x))]
+    assert np.abs(turns[0] @ turns[1] @ turns[2] - written.R).max() < 1e-4
+    assert np.linalg.norm(said["right_camera_offset_m"]) == pytest.approx(written.baseline_m, abs=1e-4)
+    assert said["right_camera_offset_m"][0] > 0.08  # the right camera is to the right
     listed = tmp_path / "boards.txt"
     listed.write_text("".join(f"{samples / f'left0{n}.jpg'} {samples / f'right0{n}.jpg'}\n" for n in (5, 6, 7)))
     code, stdout, _ = run_cli(capsys, "calibrate", "--pairs", str(listed), "--square-m", "0.025", "--out", str(out),
