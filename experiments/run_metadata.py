@@ -170,8 +170,8 @@ def run_metadata(threads: int, **extra) -> dict:
     import numpy
     import torch
 
-    from svs_torch.core.workers import available_cores
     from svs_torch.core.checkout import code_version, short_commit
+    from svs_torch.core.workers import available_cores
 
     # The library's checkout as a sweep's store and the benchmark record it, "-dirty" where its files differ from
     # the commit: a table made on edited code read as one made at the commit (an audit).
