@@ -955,15 +955,18 @@ def test_guide_confirm_frames_option():
             build_parser().parse_args(["guide", "--emulator", "--confirm-frames", bad])
 
 
+class _JsonReaderGone(io.StringIO):
+    """guide's stdout under ``--json | head -1``: the first JSON line breaks the pipe."""
+
+    def write(self, text: str) -> int:
+        if text.startswith("{"):
+            raise BrokenPipeError(32, "Broken pipe")
+        return super().write(text)
+
+
 def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys):
     """``guide --json | head -1``: the reader closes the pipe; guide stops with every command's 141, no error."""
-    class ClosedPipe(io.StringIO):
-        def write(self, text: str) -> int:
-            if text.startswith("{"):
-                raise BrokenPipeError(32, "Broken pipe")
-            return super().write(text)
-
-    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    monkeypatch.setattr(sys, "stdout", _JsonReaderGone())
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
     err = capsys.readouterr().err
     assert "guide stopped after 1 pairs" in err and "error" not in err  # (the pair whose line broke: taken)
@@ -976,13 +979,7 @@ def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsy
     options). Now it is said there."""
     from svs_torch.cli.guide_loop import GUIDE_STOPPED
 
-    class ClosedPipe(io.StringIO):
-        def write(self, text: str) -> int:
-            if text.startswith("{"):
-                raise BrokenPipeError(32, "Broken pipe")
-            return super().write(text)
-
-    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    monkeypatch.setattr(sys, "stdout", _JsonReaderGone())
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
     err = capsys.readouterr().err
     assert err.count(GUIDE_STOPPED) == 1 and "error" not in err
