@@ -23,7 +23,11 @@ included). Only the pairs guide ranged are kept: the record is what the walker w
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import json
+import os
+import stat
 import sys
 import time
 from pathlib import Path
@@ -59,6 +63,10 @@ class GuideLog:
         self._made = False  # the record's folder was made by open()
         self.num_recorded = 0
         self.record_error: str | None = None  # why the recording stopped (a full disk), None: it did not
+        self.json_error: str | None = None  # why the --json lines stopped (stdout's disk full), None: they did not
+        # Where stdout's file ends after each of the last lines ([None]: not a regular file). A flush may say
+        # nothing of a line the file took only part of (a full disk), and fail at the next line instead.
+        self._line_ends: collections.deque[int | None] = collections.deque(maxlen=64)
 
     def open(self) -> None:
         """Create the record's folder and index (once: a camera opened again appends to the same index), and with
@@ -97,9 +105,7 @@ class GuideLog:
                 except OSError as error:  # its images removed (PairsIndex.append): the --json line names none
                     self._stop_recording(error)
                     record.pop("left"), record.pop("right")
-        if self.stream is not None:
-            self.stream.write(json.dumps(record) + "\n")
-            self.stream.flush()
+        self._emit(record)
 
     def _saved(self, pair) -> dict[str, Any]:
         """``pair``'s index record, its images written into the record while it is kept."""
@@ -138,9 +144,31 @@ class GuideLog:
     def event(self, name: str, **fields: Any) -> None:
         """A ``--json`` line ``{"event": name, "wall_s": ..., **fields}`` (the camera lost or back, guide unable
         to see or seeing again); never in the record, whose lines are pairs that ``estimate --pairs`` reads."""
-        if self.stream is not None:
-            self.stream.write(json.dumps({"event": name, "wall_s": round(time.time(), 3), **fields}) + "\n")
+        self._emit({"event": name, "wall_s": round(time.time(), 3), **fields})
+
+    def _emit(self, line: dict[str, Any]) -> None:
+        """Write one ``--json`` line. One that cannot be written (a full disk under ``--json > walk.jsonl``) stops
+        the lines, not the guide (:func:`_stop_lines`): the record's full disk was kept from ending the walk, and the
+        help's own ``--json --record walk/ > walk.jsonl`` then ended it on stdout's (exit 1, an audit of long
+        walks). A closed pipe (BrokenPipeError) still ends guide, as for every command."""
+        if self.stream is None:
+            return
+        text = json.dumps(line) + "\n"  # (ASCII: as many bytes as characters)
+        if not self._line_ends:
+            self._line_ends.append(_file_offset(self.stream))
+        try:
+            self.stream.write(text)
             self.stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as error:
+            stream, self.stream = self.stream, None
+            self.json_error = _stop_lines(stream, error, self._line_ends)
+            print(f"svs-depth guide: {self.json_error}; the --json lines stopped (the last one written whole is "
+                  "kept), the warnings go on", file=sys.stderr, flush=True)
+            return
+        if self._line_ends[-1] is not None:
+            self._line_ends.append(self._line_ends[-1] + len(text))
 
     def close(self) -> None:
         """Close the index (safe to call twice). With no pair recorded, what open() wrote is removed: guide stopped
@@ -159,6 +187,35 @@ class GuideLog:
         stopped = "" if self.record_error is None else " (then the recording stopped: see above)"
         return (f"svs-depth guide: recorded {_pairs(self.num_recorded)} in {display_path(self.record_dir)}{stopped}; "
                 f"range them again with: {replay_command(self.record_dir, *self.replay)}")
+
+
+def _file_offset(stream) -> int | None:
+    """Where ``stream``'s regular file stands after its last flush (None: a pipe, a terminal, no file)."""
+    try:
+        fd = stream.fileno()
+        return os.lseek(fd, 0, os.SEEK_CUR) if stat.S_ISREG(os.fstat(fd).st_mode) else None
+    except (OSError, ValueError, AttributeError):  # (io.UnsupportedOperation is both)
+        return None
+
+
+def _stop_lines(stream, error: OSError, line_ends) -> str:
+    """Stop writing to ``stream`` after ``error``: its file is cut back to the last of ``line_ends`` (where its
+    lines ended, in order) that it holds whole (nothing written half-way), and what ``stream`` still buffers, and
+    anything after, goes to /dev/null (the interpreter's last flush failed again, exit 1 after a whole walk).
+    Returns ``error`` on one line."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):  # (io.UnsupportedOperation is both)
+        fd = stream.fileno()
+        size = os.fstat(fd).st_size
+        whole = [end for end in line_ends if end is not None and end <= size]
+        if whole:
+            os.ftruncate(fd, whole[-1])
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, fd)
+        finally:
+            os.close(devnull)
+        stream.flush()
+    return " ".join(str(error).split())
 
 
 def _pairs(count: int) -> str:
