@@ -65,7 +65,7 @@ class PipelineConfig:
             ``"image"`` (the default) uses the whole images (no segmentation gate).
         max_ratio: SAD ratio test, Sec. 3.3 (2): 0.8 (Lowe's); MATLAB ``matchFeatures`` MaxRatio 0.6 in ``paper()``.
         mutual: keep only mutual nearest neighbours (MATLAB ``Unique``).
-        laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3).
+        laplacian_gate: match only keypoints with the same Laplacian sign (Bay et al. Sec. 4.3; not MATLAB's).
         epipolar_band_px: optional |y_left − y_right| limit on candidates, pixels (a nearly rectified rig).
         refine_matches: :class:`~svs_torch.geometry.lk_refinement.MatchRefinementConfig`: sub-pixel Lucas–Kanade
             refinement of each matched right point on the images the features were found on, with a correlation
@@ -385,16 +385,16 @@ class PipelineConfig:
         Two departures, kept because the letter fails where the paper's own rig would not: RANSAC keeps the
         hypothesis of least truncated Sampson cost (``ransac_scoring="msac"``) rather than the most inliers
         (``"ransac"``; `svs-depth eval ../shared/data --size 320x240 --preset paper`: R_min / R_max / per object
-        87.8 / 65.0 / 84.4 % against 92.4 / 67.6 / 84.2 with ``"ransac"``, the 12 pairs with a calibration), and a
+        85.6 / 69.8 / 85.3 % against 90.1 / 72.4 / 85.1 with ``"ransac"``, the 12 pairs with a calibration), and a
         pair whose inliers already lie on the same rows is ranged on its raw points (``rectify="auto"``) rather
         than rectified from F whatever it is (``"required"``): an F fitted to a few nearly planar obstacles is
-        degenerate for rectification on 28 of the 45 shared pairs at 320×240, each then a failed pair (per object
-        47.9 % over the same 12). ``replace(PipelineConfig.paper(), ransac_scoring="ransac", rectify="required")``
-        (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter: 27
-        degenerate, 39.4 %."""
+        degenerate for rectification on 29 of the 45 shared pairs at 320×240, each then a failed pair (per object
+        44.5 % over the same 12). ``replace(PipelineConfig.paper(), ransac_scoring="ransac", rectify="required")``
+        (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter: 28
+        degenerate, 36.1 %."""
         return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
-                   refine_matches=None, row_alignment=None, depth=DepthConfig(rule="paper", min_in_front_share=0.0),
-                   noisy_retry_sigma_px=None,
+                   laplacian_gate=False, refine_matches=None, row_alignment=None,
+                   depth=DepthConfig(rule="paper", min_in_front_share=0.0), noisy_retry_sigma_px=None,
                    noisy_features_retry_sigma_px=None, coarse_retry_below_share=None, drop_unmeasured_below_share=None,
                    drop_unmeasured_nearer_below_share=None, exposure_retry=None, region_interior_working_px=None,
                    measure_near_surface=False)
