@@ -43,7 +43,7 @@ too (R_min / R_max / each object at 320 px: 99.0 / 98.8 / 98.9 %, OpenCV StereoS
 inliers (Eq. (5)-(8)), and each object's median inlier depth. --preset paper runs the paper's steps (MATLAB
 defaults, --range paper) but for two: MSAC scoring, and a pair whose rows already agree ranged unrectified
 (the letter is eval's --preset paper --set ransac_scoring=ransac --set rectify=required, whose rectification is
-degenerate on 28 of the 45 shared pairs at 320x240; PipelineConfig.paper() says why). The JSON says which rule
+degenerate on 30 of the 45 shared pairs at 320x240; PipelineConfig.paper() says why). The JSON says which rule
 produced the numbers ("range_rule").
 
 Without calibration options the SVS camera model is assumed: 3.6 mm lens on a 4.17 mm sensor (focal 276 px at

@@ -70,17 +70,21 @@ def test_a_pair_mostly_behind_the_rig_is_not_ranged_unless_the_papers_letter():
 
 def test_swapped_views_are_not_ranged_by_the_paper_rule_unless_the_preset():
     """The audit's case: the cameras' cables swapped. ``--range paper`` leaves the pair unranged; the paper preset
-    keeps the paper's letter and ranges it from a stray inlier, far nearer than the true obstacles."""
+    keeps the paper's letter (any one inlier in front) and, with a 1 px Sampson threshold, ranges it from a stray
+    inlier, far nearer than the true obstacles. MATLAB's 0.1 px (the preset's) keeps no inlier in front here."""
     from svs_torch import PipelineConfig, PipelineStatus, StereoBatch, estimate_obstacle_depth
     from dataclasses import replace
 
     scenes = random_obstacle_scenes(1, 2, generator=torch.Generator().manual_seed(3))
     batch = scenes.batch
     swapped = StereoBatch.from_images(batch.right, batch.left, batch.focal_px, batch.baseline_m, calibrated=True)
-    paper = estimate_obstacle_depth(swapped, PipelineConfig.paper())
+    assert estimate_obstacle_depth(swapped, PipelineConfig.paper()).status.tolist() == [
+        PipelineStatus.NO_POSITIVE_DISPARITY]
+    loose = replace(PipelineConfig.paper(), ransac_threshold_px=1.0)
+    paper = estimate_obstacle_depth(swapped, loose)
     assert paper.status.tolist() == [PipelineStatus.OK]
     assert float(paper.depth.nearest.depth_m[0]) < 0.5 * float(scenes.object_depth_m.min())
-    guarded = replace(PipelineConfig.paper(), depth=DepthConfig(rule="paper"))
+    guarded = replace(loose, depth=DepthConfig(rule="paper"))
     result = estimate_obstacle_depth(swapped, guarded)
     assert result.status.tolist() == [PipelineStatus.NO_POSITIVE_DISPARITY]
     assert not bool(result.depth.nearest.valid.any())

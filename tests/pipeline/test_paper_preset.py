@@ -53,3 +53,21 @@ def test_the_paper_preset_matches_as_matlab_matchfeatures(data_dir, scene):
     expected = np.where(expected >= 0, right_rows[np.maximum(expected, 0)], -1)
     assert (expected >= 0).sum() >= 7
     np.testing.assert_array_equal(result.matches.idx[0][valid_left].numpy(), expected)
+
+
+@pytest.mark.parametrize("scene", ["ArtL", "Teddy"])
+def test_the_paper_preset_keeps_matlabs_ransac_inliers_and_trials(data_dir, scene):
+    """Sec. 3.3 (3): ``estimateFundamentalMatrix``'s DistanceThreshold 0.01 bounds the squared Sampson distance in
+    pixels² (``findInliers``: d ≤ 0.01, i.e. 0.1 px; it was 1 px here, 100× that square), and NumTrials 500 bounds
+    the samples. The inliers are exactly the matched points within it under the F returned (ArtL at 320×240 drew
+    1024 samples before)."""
+    result = _paper_result(data_dir, scene)
+    assert int(result.status[0]) == PipelineStatus.OK
+    valid = result.points.valid[0].numpy()
+    distance_sq = matlab_sampson_sq(result.fundamental.F[0].double().numpy(),
+                                    result.points.left[0][valid].double().numpy(),
+                                    result.points.right[0][valid].double().numpy())
+    inliers = result.fundamental.inliers[0].numpy()[valid]
+    assert inliers.sum() >= 7
+    np.testing.assert_array_equal(inliers, distance_sq <= 0.01 * (1 + 1e-4))  # float32 scores: a hair of slack
+    assert 0 < int(result.fundamental.iterations[0]) <= 500

@@ -135,8 +135,8 @@ def test_real_teddy_inliers_sit_at_the_true_disparity(data_dir):
     cols, rows = xy[:, 0].round().long(), xy[:, 1].round().long()
     known = batch.disparity_valid[0, 0, rows, cols]
     error = (disparities.disparity_px[0][rows_used] - batch.disparity_px[0, 0, rows, cols])[known].abs()
-    assert int(known.sum()) >= 20
-    assert float((error <= 1.0).float().mean()) >= 0.55  # measured 0.64 on this pair (median error 0.4 px)
+    assert int(known.sum()) >= 15  # 19 within MATLAB's 0.1 px Sampson threshold (36 within 1 px)
+    assert float((error <= 1.0).float().mean()) >= 0.55  # measured 0.79 on this pair (median error 0.14 px)
     # Object depths follow from those disparities: within 15 % of the GT depth at the same keypoints (a
     # few same-row mismatches move the median of a small object; the measured gap is about 11 %).
     depth, valid = batch.ground_truth_depth_m()
