@@ -15,7 +15,8 @@ DESCRIPTION = """\
 Detect SURF keypoints (box-filter Hessian, upright 64-D descriptors) on both images of a pair, by default on
 the segmented obstacle images as the paper does (Sec. 3.3 (1)): the regions 'svs-depth segment' shows, the
 nearness segmenter's (Otsu's two largest under --preset paper). Match them by SAD with a ratio test
-(--max-ratio; MATLAB's MaxRatio in --preset paper) and SURF's Laplacian-sign check (Sec. 3.3 (2)).
+(--max-ratio; MATLAB's MaxRatio in --preset paper) and SURF's Laplacian-sign check (Sec. 3.3 (2); not
+under --preset paper: MATLAB's matchFeatures sees only the descriptors).
 
 Under --preset default this command keeps every keypoint the detector finds (up to 10000 per image, as
 cv2.SIFT_create() keeps all) and detects on the image enlarged twice for pairs up to 1 megapixel, unless
