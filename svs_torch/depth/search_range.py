@@ -219,6 +219,24 @@ def _detached_tail_ceiling(values: torch.Tensor, inside: torch.Tensor, bin_px: f
     return torch.where(high_bin < num_bins, high_bin.to(torch.float64) * bin_px, torch.inf)
 
 
+def _unique_where_checked(inside: torch.Tensor, full: DisparityRange, min_count: int) -> torch.Tensor:
+    """The coarse samples ``inside`` ``(B, 1, h, w)`` bool of a pass over ``full``, flattened ``(B, h·w)``; none
+    for a pair with fewer than ``min_count`` of them, or under a quarter of them, where the right view holds every
+    disparity searched (column ≥ the range's top). Left of that the border hides the candidates past the column,
+    so a repeated pattern (a chessboard, tiles, a fence) that the uniqueness check rejects everywhere else is
+    unique there at its farthest alias: a board shifted 8 px with a 32 px period, pixel for pixel the pair shifted
+    40 px, was searched over [2, 14) only and ranged at 3.7 m, "OK", where 0.74 m fits it as well (smoothed by the
+    retries, its right border's blur passed 128 of 1280 coarse pixels; an audit). Such a pair searches the fallback
+    range, which the in-view rule leaves its left band out of. A real pair's left band holds about a quarter of
+    the columns, not its samples' majority (none of the shared pairs at 320 px or native size changed)."""
+    top = (full.min_disparity_px + (full.num_disparities if full.pair_num_disparities is None
+                                    else full.pair_num_disparities) - 1)
+    columns = torch.arange(inside.shape[-1], device=inside.device)
+    checked = (inside & (columns >= top.view(-1, 1, 1, 1))).flatten(1).sum(1, keepdim=True)
+    inside = inside.flatten(1)
+    return inside & (checked >= min_count) & (4 * checked >= inside.sum(1, keepdim=True))
+
+
 def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, image_hw: torch.Tensor,
                         config: DenseConfig = DenseConfig(), objects: torch.Tensor | None = None
                         ) -> DisparityRange:
@@ -249,7 +267,7 @@ def coarse_search_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Ten
     plain = replace(config, whole_range_in_view=False, smoothing_penalties=None)
     coarse = dense_disparity_over_regions(left, right, mask, full, plain, small_hw)
     samples = (coarse.disparity_px * factor).flatten(1)
-    inside = (coarse.valid & mask).flatten(1)
+    inside = _unique_where_checked(coarse.valid & mask, full, config.min_range_pixels)
     groups = None if objects is None else objects.flatten(2)
     return disparity_search_range(samples, inside, image_hw[:, 1], config, extra_margin_px=factor,
                                   min_count=config.min_range_pixels, groups=groups, tail_bin_px=factor)
