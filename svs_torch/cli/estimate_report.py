@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .one_homography import one_homography_reason
 from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_report
 from .rig import calibration_file_source
 
@@ -183,11 +184,11 @@ def _views_identical(result, index: int) -> bool:
     return offsets.numel() >= 8 and float((offsets <= 0.05).float().mean()) >= 0.9
 
 
-def _reason(result, index: int, status: str) -> str | None:
+def _reason(result, index: int, status: str, width_px: int) -> str | None:
     """What pair ``index``'s matches tell of its views, whatever it was ranged: one image twice or two unrelated
     views (a pair that stopped), views swapped (ranged or not: swapped KITTI, Pipes, Books, Aloe and Cloth1 pairs
-    were ranged, "OK", at 0.7-1.7 m, "verified", without a word; an audit), or for an unranged pair a doffs of the
-    wrong sign."""
+    were ranged, "OK", at 0.7-1.7 m, "verified", without a word; an audit), for a ranged pair its matches on one
+    homography (:mod:`.one_homography`), or for an unranged pair a doffs of the wrong sign."""
     if status != "OK" and _views_identical(result, index):
         return IDENTICAL_VIEWS
     few_shared = int(result.num_matches[index]) < 7 and int(result.num_keypoints[index].min()) >= 100
@@ -195,6 +196,8 @@ def _reason(result, index: int, status: str) -> str | None:
         return UNRELATED_VIEWS
     if _views_swapped(result, index):
         return SWAPPED_VIEWS
+    if status == "OK":
+        return one_homography_reason(result, index, width_px)
     return _unranged_reason(result, index) if status in UNRANGED else None
 
 
@@ -224,7 +227,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     return {
         "status": status,
         # (a pair the pipeline did not run on has one: unranged_report; eval's rows alike)
-        "reason": _reason(result, index, status),
+        "reason": _reason(result, index, status, image_hw[1]),
         "range_rule": result.range_rule,
         "r_min_m": _number(rng.r_min_m[index], rng.valid[index]),
         "r_max_m": _number(rng.r_max_m[index], rng.valid[index]),

@@ -563,6 +563,30 @@ def test_a_swapped_pair_that_is_ranged_anyway_is_told_so(data_dir, capsys):
     assert json.loads(out)["reason"] is None
 
 
+def test_a_pair_whose_matches_all_fit_one_homography_is_told_its_distance_needs_a_flat_scene(data_dir, capsys,
+                                                                                              tmp_path):
+    """Found by an audit of degenerate geometry: Teddy's left view turned 3 degrees about the camera's y axis, no
+    baseline (a pure rotation holds no depth), was ranged "OK" and "verified" at 1.71 m without a word: its matches
+    all fit one homography, which a wall facing the cameras gives as well, so it is ranged and told so."""
+    gray = cv2.resize(cv2.imread(str(data_dir / TEDDY[0]), cv2.IMREAD_GRAYSCALE), (320, 267))[13:253]
+    focal, yaw = 276.0, np.radians(-3.0)
+    camera = np.array([[focal, 0, 160], [0, focal, 120], [0, 0, 1]])
+    turn = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    turned = cv2.warpPerspective(gray, camera @ turn @ np.linalg.inv(camera), (320, 240),
+                                 borderMode=cv2.BORDER_REFLECT)
+    left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
+    cv2.imwrite(left, gray)
+    cv2.imwrite(right, turned)
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "OK"
+    assert "fit one homography" in report["reason"] and "no distance holds" in report["reason"]
+    code, out, _ = run_cli(capsys, "estimate", left, right)
+    assert "fit one homography" in out.splitlines()[1]
+    code, out, _ = run_cli(capsys, "estimate", *(str(data_dir / p) for p in TEDDY), "--size", "320x267", "--json")
+    assert json.loads(out)["reason"] is None
+
+
 def test_the_text_says_when_the_pair_was_rectified_from_its_fundamental_matrix():
     """Found by an audit: a pair whose rows disagreed was rectified from F ("rectified": true in the JSON, the
     figure's rectified pair), and its text said nothing of it (it says a row alignment and a calibration's)."""
