@@ -23,6 +23,7 @@ from ..geometry.matched_points import MatchedPoints
 from ..geometry.rectification import Rectification, RectificationStatus, warp_views
 from ..geometry.row_alignment import fit_row_alignment
 from ..segmentation.segment import kept_regions_mask
+from .beyond_range import unrange_objects_beyond_search
 from .config import PipelineConfig
 from .stages import gaussian_smoothed, warp_labels
 
@@ -113,6 +114,7 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                                   batch.doffs_px, config.depth.object_percentiles, config.depth.min_object_pixels,
                                   config.dense.fill_invalid, fraction, config.depth.min_object_pixels_in_view,
                                   config.dense.in_view_own_min_valid_share, surface_pixels_of(dense, config))
+    objects = unrange_objects_beyond_search(objects, sparse.objects.point_slot, sparse.disparities, inliers, dense)
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
     return depth, dense, verified, agreeing, measured

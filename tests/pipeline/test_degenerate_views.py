@@ -1,9 +1,11 @@
-"""Pairs whose geometry cannot give a distance are not ranged: a repeated pattern (a chessboard, tiles, a fence)
-shifted by d is pixel for pixel the pair shifted by d plus its period, so no disparity of it can be told (an audit
-of degenerate geometry)."""
+"""Pairs whose geometry cannot give a distance are not ranged (an audit of degenerate geometry): a repeated pattern
+(a chessboard, tiles, a fence) shifted by d is pixel for pixel the pair shifted by d plus its period, so no
+disparity of it can be told; an obstacle nearer than the dense stage searches has no true match in its range."""
 
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import torch
 
 from svs_torch.core.types import StereoBatch
@@ -46,3 +48,20 @@ def test_repeated_pattern_is_not_ranged() -> None:
     result = estimate_obstacle_depth(batch, PipelineConfig())
     assert (result.status != PipelineStatus.OK).all(), result.status.tolist()
     assert not result.depth.objects.valid.any()
+
+
+def test_an_obstacle_nearer_than_the_range_searched_is_not_ranged_at_the_background(data_dir):
+    # Before: a textured box 110 px of disparity away (0.27 m by the SVS model) before Teddy's view shifted 20 px
+    # was ranged "OK" at 1.45 m, the background's distance, over a range searched up to 95 px, while every RANSAC
+    # inlier on its kept regions read 110 px.
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    gray = cv2.resize(cv2.imread(str(teddy / "im0.png"), cv2.IMREAD_GRAYSCALE), (320, 267))[13:253]
+    patch = cv2.resize(cv2.imread(str(teddy / "im1.png"), cv2.IMREAD_GRAYSCALE), (320, 267))[53:173, 60:200]
+    right = cv2.warpAffine(gray, np.float32([[1, 0, -20], [0, 1, 0]]), (320, 240), borderMode=cv2.BORDER_REFLECT)
+    left = gray.copy()
+    left[60:180, 150:290] = patch
+    right[60:180, 40:180] = patch
+    views = [torch.from_numpy(view).to(torch.float32)[None, None] / 255 for view in (left, right)]
+    result = estimate_obstacle_depth(StereoBatch.from_images(*views, focal_px=276.0, baseline_m=0.1075))
+    ranged = result.depth.objects.depth_median_m[result.depth.objects.valid]
+    assert not (ranged > 0.5).any(), ranged.tolist()
