@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from .one_homography import one_homography_reason
+from .too_near import too_near_reason
 from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_report
 from .rig import calibration_file_source
 
@@ -188,7 +189,8 @@ def _reason(result, index: int, status: str, width_px: int) -> str | None:
     """What pair ``index``'s matches tell of its views, whatever it was ranged: one image twice or two unrelated
     views (a pair that stopped), views swapped (ranged or not: swapped KITTI, Pipes, Books, Aloe and Cloth1 pairs
     were ranged, "OK", at 0.7-1.7 m, "verified", without a word; an audit), for a ranged pair its matches on one
-    homography (:mod:`.one_homography`), or for an unranged pair a doffs of the wrong sign."""
+    homography (:mod:`.one_homography`), or for an unranged pair its matches nearer than the range searched
+    (:mod:`.too_near`) or a doffs of the wrong sign."""
     if status != "OK" and _views_identical(result, index):
         return IDENTICAL_VIEWS
     few_shared = int(result.num_matches[index]) < 7 and int(result.num_keypoints[index].min()) >= 100
@@ -198,7 +200,7 @@ def _reason(result, index: int, status: str, width_px: int) -> str | None:
         return SWAPPED_VIEWS
     if status == "OK":
         return one_homography_reason(result, index, width_px)
-    return _unranged_reason(result, index) if status in UNRANGED else None
+    return (too_near_reason(result, index) or _unranged_reason(result, index)) if status in UNRANGED else None
 
 
 def _unranged_reason(result, index: int) -> str | None:

@@ -587,6 +587,24 @@ def test_a_pair_whose_matches_all_fit_one_homography_is_told_its_distance_needs_
     assert json.loads(out)["reason"] is None
 
 
+def test_a_pair_unranged_for_an_obstacle_nearer_than_the_range_searched_is_told_so(data_dir, capsys, tmp_path):
+    """Found by an audit of degenerate geometry: a textured box 0.27 m away (110 px by the SVS model) before Teddy's
+    view shifted 20 px read NO_DENSE_DEPTH, the status of a flat or occluded pair, with no hint that something is
+    nearer than the dense stage searches (95 px), where its RANSAC inliers lie."""
+    gray = cv2.resize(cv2.imread(str(data_dir / TEDDY[0]), cv2.IMREAD_GRAYSCALE), (320, 267))[13:253]
+    patch = cv2.resize(cv2.imread(str(data_dir / TEDDY[1]), cv2.IMREAD_GRAYSCALE), (320, 267))[53:173, 60:200]
+    right = cv2.warpAffine(gray, np.float32([[1, 0, -20], [0, 1, 0]]), (320, 240), borderMode=cv2.BORDER_REFLECT)
+    left = gray.copy()
+    left[60:180, 150:290] = patch
+    right[60:180, 40:180] = patch
+    cv2.imwrite(str(tmp_path / "left.png"), left)
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "left.png"), str(tmp_path / "right.png"), "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "NO_DENSE_DEPTH" and report["nearest_m"] is None
+    assert "nearer than the dense stage searched (their median 0.2" in report["reason"]
+
+
 def test_the_text_says_when_the_pair_was_rectified_from_its_fundamental_matrix():
     """Found by an audit: a pair whose rows disagreed was rectified from F ("rectified": true in the JSON, the
     figure's rectified pair), and its text said nothing of it (it says a row alignment and a calibration's)."""
