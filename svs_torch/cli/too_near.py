@@ -3,7 +3,11 @@ searched (:mod:`svs_torch.pipeline.beyond_range`): an obstacle that near is in v
 
 from __future__ import annotations
 
-__all__ = ["TOO_NEAR", "too_near_reason"]
+__all__ = ["MIN_POINTS", "TOO_NEAR", "too_near_reason"]
+
+#: Fewest inliers beyond the range that tell of a near obstacle (RANSAC's fewest for an F): Teddy's left view beside
+#: its mirror image kept 9 chance inliers, 3 of them beyond the range, and was told of an obstacle at 0.3 m.
+MIN_POINTS = 8
 
 #: What such a pair is told (an audit: a box 0.27 m away before a wall read NO_DENSE_DEPTH, the status of a flat or
 #: occluded pair, with no hint; its 65 inliers read 110 px, over the 95 px searched).
@@ -12,14 +16,14 @@ TOO_NEAR = ("{count} matched points lie nearer than the dense stage searched (th
 
 
 def too_near_reason(result, index: int) -> str | None:
-    """:data:`TOO_NEAR` for pair ``index`` of a dense-rule pipeline result where at least 3 of its RANSAC inliers
-    lie beyond the range its dense stage searched, else None."""
+    """:data:`TOO_NEAR` for pair ``index`` of a dense-rule pipeline result where at least :data:`MIN_POINTS` of its
+    RANSAC inliers lie beyond the range its dense stage searched, else None."""
     dense, disparities, depths = result.dense, result.depth.disparities, result.depth.points
     if dense is None:
         return None
     top = int(dense.min_disparity_px[index] + dense.pair_num_disparities[index])
     inliers = result.fundamental.inliers[index] & disparities.valid[index] & depths.valid[index]
     beyond = inliers & (disparities.disparity_px[index] > top)
-    if int(beyond.sum()) < 3:
+    if int(beyond.sum()) < MIN_POINTS:
         return None
     return TOO_NEAR.format(count=int(beyond.sum()), depth=float(depths.depth_m[index][beyond].median()))

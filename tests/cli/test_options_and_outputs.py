@@ -603,6 +603,10 @@ def test_a_pair_unranged_for_an_obstacle_nearer_than_the_range_searched_is_told_
     report = json.loads(out)
     assert code == 0 and report["status"] == "NO_DENSE_DEPTH" and report["nearest_m"] is None
     assert "nearer than the dense stage searched (their median 0.2" in report["reason"]
+    # Not told of a few chance inliers: Teddy beside its mirror image kept 9, 3 beyond the range (0.3 m).
+    cv2.imwrite(str(tmp_path / "mirror.png"), cv2.flip(gray, 1))
+    code, out, _ = run_cli(capsys, "estimate", str(tmp_path / "left.png"), str(tmp_path / "mirror.png"), "--json")
+    assert "nearer than" not in (json.loads(out)["reason"] or "")
 
 
 def test_the_text_says_when_the_pair_was_rectified_from_its_fundamental_matrix():
