@@ -8,9 +8,9 @@ import argparse
 from pathlib import Path
 
 from .one_homography import one_homography_reason
-from .too_near import too_near_reason
 from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_report
 from .rig import calibration_file_source
+from .too_near import too_near_reason
 
 __all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "square_pixels", "unranged_report",
            "with_calibration"]
