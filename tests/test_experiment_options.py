@@ -61,6 +61,15 @@ def assert_refused(cases: list[tuple[str, list[str]]]) -> None:
         assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
 
 
+def _assert_refused_then_parsed(refused: list[tuple[str, list[str]]], parsed: list[tuple[str, list[str]]]) -> None:
+    """``refused`` each refused as :func:`assert_refused` says and ``parsed`` each parsed, in one process (each
+    process costs about 2 s of imports)."""
+    ended = refusals(refused + parsed)
+    for (script, argv), (code, line) in zip(refused, ended):
+        assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
+    assert ended[len(refused):] == [("parsed", "")] * len(parsed)
+
+
 COUNTS = [
     ("bench_capture", ["--runs", "0"]), ("bench_capture", ["--pairs", "-1"]), ("bench_capture", ["--threads", "0"]),
     ("bench_dense", ["--batch", "0"]), ("bench_dense", ["--threads", "0"]), ("bench_dense", ["--repeats", "0"]),
@@ -108,29 +117,27 @@ def test_comma_separated_values_are_refused_when_parsed():
     """Found by an audit: ``guide_confirm.py --digits 9`` was a KeyError traceback after the first walks, ``--digits
     4,x`` a ValueError one; ``guide_nearer.py --margins nan`` and ``coarse_retry.py --shares nan`` ran on;
     ``coarse_retry.py --contrasts 0`` was a StatisticsError after a run, ``--checkpoints x`` a ValueError."""
-    assert_refused(LISTS)
-    assert refusals([("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])]) == \
-        [("parsed", ""), ("parsed", "")]
+    _assert_refused_then_parsed(LISTS, [("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])])
 
 
 def test_kernel_parity_refuses_a_kernel_name_no_stage_has_when_parsed():
     """Found by an audit: ``kernel_parity.py --torch NAME`` turned off only the names it found in the stages' kernels
     modules and passed over the others, so a typo or a renamed kernel (the docstring's own ``--torch
     lk_refine,usurf_describe``) ran a parity of every kernel reported as "kernels (but NAME)"."""
-    assert_refused([("kernel_parity", ["--torch", "lk_refined"]), ("kernel_parity", ["--torch", "lk_refine,bogus"]),
-                    ("kernel_parity", ["--torch", "check_border"])])
-    assert refusals([("kernel_parity", ["--torch", "lk_refine,usurf_describe"]), ("kernel_parity", [])]) == \
-        [("parsed", ""), ("parsed", "")]
+    refused = [("kernel_parity", ["--torch", "lk_refined"]), ("kernel_parity", ["--torch", "lk_refine,bogus"]),
+               ("kernel_parity", ["--torch", "check_border"])]
+    _assert_refused_then_parsed(refused, [("kernel_parity", ["--torch", "lk_refine,usurf_describe"]),
+                                          ("kernel_parity", [])])
 
 
 def test_a_condition_no_prefix_names_is_refused_when_parsed():
     """Found by an audit: ``select_nearness_setting.py --conditions jpg`` scored its first variant (35 s) before
     real_rig.py, which it calls, refused the prefix under its own usage; real_rig.py refused it after its parse."""
-    assert_refused([("real_rig", ["--conditions", "jpg"]),
-                    ("select_nearness_setting", ["--conditions", "clean,jpg", "--variants", "min_near_share=0"])])
-    assert refusals([("real_rig", ["--conditions", "jpeg q4,roll"]),
-                     ("select_nearness_setting", ["--conditions", "clean,jpeg", "--variants", "min_near_share=0"])]) \
-        == [("parsed", ""), ("parsed", "")]
+    _assert_refused_then_parsed(
+        [("real_rig", ["--conditions", "jpg"]),
+         ("select_nearness_setting", ["--conditions", "clean,jpg", "--variants", "min_near_share=0"])],
+        [("real_rig", ["--conditions", "jpeg q4,roll"]),
+         ("select_nearness_setting", ["--conditions", "clean,jpeg", "--variants", "min_near_share=0"])])
 
 
 def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_path):
@@ -190,9 +197,8 @@ def test_sizes_without_a_side_of_0_or_beyond_the_largest_are_taken():
     cases = [("paper_table1", ["--sizes", "0"]), ("paper_table1", ["--sizes", "320,99999"]),
              ("bench_capture", ["--sizes", "0x0"]), ("real_rig", ["--sizes", "320x240,320x0"]),
              ("kernel_parity", ["--size", "0x0"]), ("kernel_parity", ["--size", "native"])]
-    assert_refused(cases)
-    assert refusals([("paper_table1", ["--sizes", "320,native"]), ("kernel_parity", ["--size", "640x480"])]) == \
-        [("parsed", ""), ("parsed", "")]
+    _assert_refused_then_parsed(cases, [("paper_table1", ["--sizes", "320,native"]),
+                                        ("kernel_parity", ["--size", "640x480"])])
 
 
 def test_eval_segmentation_refuses_a_report_over_the_weights_it_evaluates(tmp_path):
@@ -214,10 +220,12 @@ def test_train_segmentation_checks_its_starting_weights_and_size_when_parsed(tmp
     cut.write_bytes((REPO_ROOT / "svs_torch" / "segmentation" / "weights" / "obstacle_net.pt").read_bytes()[:1000])
     cases = [("train_segmentation", ["--init", "nearness"]), ("train_segmentation", ["--init", f"learned:{cut}"]),
              ("train_segmentation", ["--size", "320"]), ("train_segmentation", ["--size", "0x240"])]
-    assert_refused(cases)
-    lines = [line for _, line in refusals(cases[:2])]
+    ended = refusals([*cases, ("train_segmentation", ["--init", "learned", "--size", "160x120"])])
+    for (script, argv), (code, line) in zip(cases, ended):
+        assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
+    lines = [line for _, line in ended[:2]]
     assert "nearness weights are trained by train_nearness.py" in lines[0] and f"'{cut}' is not a weights" in lines[1]
-    assert refusals([("train_segmentation", ["--init", "learned", "--size", "160x120"])]) == [("parsed", "")]
+    assert ended[-1] == ("parsed", "")
 
 
 def test_eval_segmentation_reads_its_weights_files_before_any_scene(data_dir, tmp_path):
