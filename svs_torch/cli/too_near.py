@@ -18,12 +18,13 @@ TOO_NEAR = ("{count} matched points lie nearer than the dense stage searched (th
 def too_near_reason(result, index: int) -> str | None:
     """:data:`TOO_NEAR` for pair ``index`` of a dense-rule pipeline result where at least :data:`MIN_POINTS` of its
     RANSAC inliers lie beyond the range its dense stage searched, else None."""
-    dense, disparities, depths = result.dense, result.depth.disparities, result.depth.points
-    if dense is None:
+    from ..pipeline.beyond_range import inliers_beyond_search
+
+    if result.dense is None:
         return None
-    top = int(dense.min_disparity_px[index] + dense.pair_num_disparities[index])
-    inliers = result.fundamental.inliers[index] & disparities.valid[index] & depths.valid[index]
-    beyond = inliers & (disparities.disparity_px[index] > top)
+    depths = result.depth.points
+    beyond = inliers_beyond_search(result.depth.disparities, result.fundamental.inliers,
+                                   result.dense)[index] & depths.valid[index]
     if int(beyond.sum()) < MIN_POINTS:
         return None
     return TOO_NEAR.format(count=int(beyond.sum()), depth=float(depths.depth_m[index][beyond].median()))

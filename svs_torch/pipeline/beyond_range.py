@@ -16,10 +16,18 @@ import torch
 from ..depth.dense_config import DenseDisparity
 from ..depth.depth_types import Disparities, ObjectDepths
 
-__all__ = ["MIN_BEYOND_INLIERS", "unrange_objects_beyond_search"]
+__all__ = ["MIN_BEYOND_INLIERS", "inliers_beyond_search", "unrange_objects_beyond_search"]
 
 #: Fewest inliers beyond the range searched, and at least half of an object's, that leave it without a depth.
 MIN_BEYOND_INLIERS = 3
+
+
+def inliers_beyond_search(disparities: Disparities, inliers: torch.Tensor, dense: DenseDisparity) -> torch.Tensor:
+    """``(B, K)`` bool: the ``inliers`` with a valid disparity (``disparities``, the frame the dense map was measured
+    in) past the range ``dense`` searched, ``[min, min + count)``; what this rule and ``estimate``'s report of a
+    too-near obstacle (``svs_torch.cli.too_near``) both count."""
+    top = (dense.min_disparity_px + dense.pair_num_disparities).to(disparities.disparity_px.dtype)
+    return inliers & disparities.valid & (disparities.disparity_px > top[:, None])
 
 
 def unrange_objects_beyond_search(objects: ObjectDepths, point_slot: torch.Tensor, disparities: Disparities,
@@ -28,9 +36,8 @@ def unrange_objects_beyond_search(objects: ObjectDepths, point_slot: torch.Tenso
     half of its inliers, whose disparity (``disparities``, the frame the dense map was measured in) exceeds the
     range ``dense`` searched made invalid, its depths 0. ``point_slot`` ``(B, K)``: each correspondence's object
     slot (−1 none); ``inliers`` ``(B, K)`` bool. Not differentiable (a discrete decision)."""
-    top = (dense.min_disparity_px + dense.pair_num_disparities).to(disparities.disparity_px.dtype)
     usable = inliers & disparities.valid & (point_slot >= 0)
-    beyond = usable & (disparities.disparity_px > top[:, None])
+    beyond = inliers_beyond_search(disparities, inliers, dense) & (point_slot >= 0)
     member = point_slot.unsqueeze(-1) == torch.arange(objects.valid.shape[1], device=point_slot.device)
     count = (member & usable.unsqueeze(-1)).sum(1)
     far = (member & beyond.unsqueeze(-1)).sum(1)
