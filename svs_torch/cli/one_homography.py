@@ -27,8 +27,9 @@ def one_homography_reason(result, index: int, width_px: int) -> str | None:
     """:data:`ONE_HOMOGRAPHY` for pair ``index`` of a pipeline result, ``width_px`` wide (its working pixels), where
     at least :data:`PLANAR_SHARE` of its RANSAC inliers (8 or more) fit one homography within :data:`THRESHOLD_PX`
     (scaled), else None."""
-    points, inliers = result.points, result.fundamental.inliers[index]
-    kept = (points.valid[index] & inliers).nonzero().flatten()
-    rows = [points.left[index, i].tolist() + points.right[index, i].tolist() for i in kept.tolist()]
+    points = result.points
+    kept = points.valid[index] & result.fundamental.inliers[index]
+    # A tensor op a side, not two a point: guide --json reports every pair it ranges.
+    rows = [left + right for left, right in zip(points.left[index][kept].tolist(), points.right[index][kept].tolist())]
     share = homography_share(rows, THRESHOLD_PX * min(1.0, width_px / 320))
     return None if share is None or share < PLANAR_SHARE else ONE_HOMOGRAPHY.format(share=share)
