@@ -14,7 +14,7 @@ import os
 import sys
 import warnings
 
-from ..core.files import PROGRESS_HELP
+from ..core.files import PROGRESS_HELP, null_device_on
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 from .progress import print_above_bar
@@ -216,15 +216,10 @@ def _closed_streams_on_the_null_device() -> None:
     AttributeError: 'NoneType' object has no attribute 'write'" (an audit of guide), and a file opened later (a
     record's JPEG, an exported map) would have been given descriptor 1 or 2, where OpenCV's and torch's own messages
     then land. What was to be written there goes nowhere, as the closing asked; a guide started so still speaks."""
-    import os
-
     for fd, name in ((0, "stdin"), (1, "stdout"), (2, "stderr")):
         if getattr(sys, name) is not None:
             continue
-        null = os.open(os.devnull, os.O_RDONLY if fd == 0 else os.O_WRONLY)
-        if null != fd:
-            os.dup2(null, fd)
-            os.close(null)
+        null_device_on(fd)
         setattr(sys, name, open(fd, "r" if fd == 0 else "w", encoding="utf-8", errors="backslashreplace",
                                 closefd=False))
 

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from ..core.files import display_path
+from ..core.files import display_path, null_device_on
 from ..core.workers import signals_held
 from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, open_pairs_index, replay_command, \
     save_pair
@@ -209,11 +209,7 @@ def _stop_lines(stream, error: OSError, line_ends) -> str:
         whole = [end for end in line_ends if end is not None and end <= size]
         if whole:
             os.ftruncate(fd, whole[-1])
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        try:
-            os.dup2(devnull, fd)
-        finally:
-            os.close(devnull)
+        null_device_on(fd)
         stream.flush()
     return " ".join(str(error).split())
 

@@ -25,9 +25,9 @@ from typing import IO
 from .errors import InputError
 
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
-           "display_path", "make_output_folder", "path_kind", "short_name", "split_list_line", "stream_is_terminal",
-           "PROGRESS_HELP", "progress_setting", "redraws_in_place", "tidy_path", "write_bytes_atomic",
-           "write_errors_named"]
+           "display_path", "make_output_folder", "null_device_on", "path_kind", "short_name", "split_list_line",
+           "stream_is_terminal", "PROGRESS_HELP", "progress_setting", "redraws_in_place", "tidy_path",
+           "write_bytes_atomic", "write_errors_named"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -271,6 +271,18 @@ def split_list_line(line: str) -> list[str]:
     if literal:
         lexer.escape = ""
     return list(lexer)
+
+
+def null_device_on(fd: int) -> None:
+    """Descriptor ``fd`` (open or closed) made the null device, read-only for 0, write-only otherwise: what a
+    closed standard stream becomes (``svs_torch.cli.main``), and guide's ``--json`` stream once its disk is full
+    (``svs_torch.cli.guide_log``). Held on ``fd`` itself, so that no file opened later is given it."""
+    null = os.open(os.devnull, os.O_RDONLY if fd == 0 else os.O_WRONLY)
+    if null != fd:
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
 
 
 def stream_is_terminal(stream: IO | None) -> bool:
