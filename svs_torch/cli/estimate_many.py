@@ -14,8 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from .common import dumps_strict, too_small_reason
-from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, format_report, pair_report,
-                              unranged_report, with_calibration)
+from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, forget_unrun_map,
+                              format_report, pair_report, unranged_report, with_calibration)
 from .features import check_native_pixels, checked_size, load_pair, warn_if_enlarged
 from .progress import Progress
 from .rig import (calibration_file_source, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
@@ -102,6 +102,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
     for position, (source, (status, reason, loaded)) in enumerate(zip(chunk, entries)):
         if status is not None:
             report, bad = unranged_report(status, reason, config.depth.rule), reason if status == "BAD_INPUT" else None
+            forget_unrun_map(args, source, status)
             if loaded is not None:  # too small: its size and calibration, as estimate of one pair says (an audit)
                 report = with_calibration(report, loaded[0], 0, loaded[1], _calibration_source(source, args),
                                           calibration_file_source(args, source) is not None)

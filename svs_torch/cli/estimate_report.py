@@ -376,12 +376,25 @@ def claim_export_names(args: argparse.Namespace, sources, export=None) -> None:
     each size run as one batch, whatever order the sizes run in). ``export``: this process's, by default."""
     if not args.disparity_out:
         return
-    from ..data.datasets import scene_name
-
-    export = _export(args) if export is None else export
+    if export is None:  # a run starts: a new export (main() called again in one process kept the last run's names)
+        _EXPORTS.pop((args.disparity_out, args.disparity_format, args.method_name), None)
+        export = _export(args)
     for source in sources:
         # A pair whose files are missing never runs: it claims nothing (one whose file cannot be decoded still
         # does, and its name's later pair is skipped, warned).
         if source.problem is None and all(Path(p).exists() for p in (source.left, source.right) if p):
-            # The name the pair's batch will carry (data.load_pair_source).
-            export.claim_ahead(scene_name(source.left) if source.scene and source.label is None else source.name)
+            export.claim_ahead(export_pair_name(source))
+
+
+def export_pair_name(source) -> str:
+    """The name a listed pair's batch carries (``data.load_pair_source``), which names its exported map."""
+    from ..data.datasets import scene_name
+
+    return scene_name(source.left) if source.scene and source.label is None else source.name
+
+
+def forget_unrun_map(args: argparse.Namespace, source, status: str, export=None) -> None:
+    """A listed pair this run could not range (``status``) loses the map an earlier run left in ``--disparity-out``
+    (:meth:`~svs_torch.evaluation.export.DisparityExport.forget_unrun`); ``export``: this process's, by default."""
+    if args.disparity_out:
+        (_export(args) if export is None else export).forget_unrun(export_pair_name(source), status)

@@ -319,6 +319,8 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
     from dataclasses import asdict
 
     from ..evaluation import evaluate_pairs
+    from ..evaluation.metrics import UNRUN_STATUSES
+    from .estimate_report import forget_unrun_map
 
     store, run_id, sweep_config = stored_in
     block, rows = [], 0
@@ -328,6 +330,8 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
                                                      export.write if export is not None else None):
                 evaluations.append(evaluation)
                 block.append((source.pair_id, evaluation))
+                if export is not None and evaluation.status in UNRUN_STATUSES:
+                    forget_unrun_map(args, source, evaluation.status, export)
                 if len(block) == args.batch_size or len(evaluations) == len(sources):
                     if store is not None:
                         store.write_task(sweep_config.config_id, run_id, block)

@@ -24,7 +24,9 @@ back to the left image's grid by nearest sampling of the rectified map at ``H_le
 outside), its values still rectified disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the
 horizontal offsets of the raw images differ by the rectification). A pair rectified before the pipeline by a
 rig's calibration (``--calibration``) is the pipeline's input as it is: its map stays in the rectified pixels.
-Files go through the atomic writer (:mod:`svs_torch.core.files`).
+Files go through the atomic writer (:mod:`svs_torch.core.files`). A pair a run could not range (unreadable,
+too small, or its run raised) gets no map, and the map an earlier run left for it is removed, warned
+(:meth:`DisparityExport.forget_unrun`): the folder holds this run's maps only.
 
 Reading a map back to the reported depths: an object's median (and percentiles) in ``estimate``'s JSON is over
 its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
@@ -147,6 +149,8 @@ class DisparityExport:
     _claimed_ahead: set[str] = field(default_factory=set, compare=False, repr=False)
     # The folder, where prepare() made it.
     _made: list[Path] = field(default_factory=list, compare=False, repr=False)
+    # Export names this process wrote a map under (forget_unrun leaves them).
+    _written: set[str] = field(default_factory=set, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.format not in EXPORT_FORMATS:
@@ -232,7 +236,34 @@ class DisparityExport:
                 raise OSError(error.errno, f"--disparity-out: cannot write {failing}: "
                                            f"{error.strerror or error}") from None
             written.append(target)
+            self._written.add(key)
         return written
+
+    def forget_unrun(self, pair_name: str, status: str) -> Path | None:
+        """Remove the map (and time file) an earlier run left for ``pair_name``, a pair this run could not range
+        (``status``: ``BAD_INPUT``, ``TOO_SMALL``, ``ERROR``), with a ``RuntimeWarning``; returns the map removed.
+
+        Why: a pair whose image had become unreadable kept the map of the run before, beside this run's maps of
+        the others, and the SDK scored it as this run's (an audit of the export). Only a map an export wrote is
+        removed (:func:`_not_an_export`), never one of this process's, nor one under a name another pair has.
+        """
+        key = export_name(pair_name)
+        if key in self._written or self._claimed.get(key, pair_name) != pair_name:
+            return None
+        target, timing = self.paths(pair_name)
+        if not target.is_file() or _not_an_export(target, timing):
+            return None
+        try:
+            target.unlink()
+            if timing is not None:
+                timing.unlink(missing_ok=True)
+        except OSError as error:  # read-only, gone meanwhile: the run's results stand, the map is named
+            warnings.warn(f"--disparity-out: {pair_name!r} not run ({status}); the map an earlier run left, "
+                          f"{target}, could not be removed: {error.strerror or error}", RuntimeWarning, stacklevel=2)
+            return None
+        warnings.warn(f"--disparity-out: {pair_name!r} not run ({status}): the map an earlier run left, {target}, "
+                      "removed", RuntimeWarning, stacklevel=2)
+        return target
 
 
 def _write_map_beside(timing: Path, target: Path, disparity: np.ndarray) -> None:

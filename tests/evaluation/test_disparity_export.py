@@ -288,3 +288,54 @@ def test_eval_warns_that_maps_at_a_size_are_not_the_official_tools(data_dir, tmp
         if warned:
             assert "--disparity-out: the maps are 160x120, the --size the pipeline ran at" in err
             assert "not written" not in err  # a note, not a map left out: exit 0
+
+
+def test_a_pair_not_run_again_loses_the_map_an_earlier_run_left(data_dir, tmp_path, capsys):
+    """Found by an audit of the export: a scene whose image had become unreadable was BAD_INPUT on the second run
+    into the same folder, and its map from the first run stayed beside the second run's maps, where the SDK scored
+    it as this run's. Now eval and estimate --pairs remove it, warned; the other scene's map is the new run's."""
+    import shutil
+
+    scenes = tmp_path / "scenes"
+    for name in ("Teddy", "Other"):
+        shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scenes / name)
+    listing = tmp_path / "pairs.txt"
+    listing.write_text("".join(f"{scenes / n / 'im0.png'} {scenes / n / 'im1.png'}\n" for n in ("Teddy", "Other")))
+    runs = {"eval": ["eval", str(scenes)], "estimate": ["estimate", "--pairs", str(listing)]}
+    for command, argv in runs.items():
+        out, bad_image = tmp_path / f"maps_{command}", scenes / "Other" / "im1.png"
+        shutil.copy(scenes / "Teddy" / "im1.png", bad_image)
+        assert main([*argv, "--size", "160x120", "--json", "--disparity-out", str(out)]) == 0
+        assert sorted(p.name for p in out.iterdir()) == ["Other", "Teddy"]
+        bad_image.write_bytes(b"not an image")
+        assert main([*argv, "--size", "160x120", "--json", "--disparity-out", str(out)]) == (0 if command == "eval"
+                                                                                             else 2)
+        err = capsys.readouterr().err
+        assert err.count("not run (BAD_INPUT): the map an earlier run left") == 1, err
+        assert f"{out / 'Other' / 'disp0SVSTorch.pfm'}, removed" in err
+        assert sorted(p.name for p in (out / "Other").iterdir()) == [], command
+        assert sorted(p.name for p in (out / "Teddy").iterdir()) == ["disp0SVSTorch.pfm", "timeSVSTorch.txt"]
+
+
+def test_forget_unrun_keeps_what_is_not_an_earlier_export(data_dir, tmp_path):
+    """:meth:`DisparityExport.forget_unrun` removes only a map an export wrote before: never a ground truth (a PFM
+    without its time file), a map this process wrote (a pair scored as ERROR after its map was written), nor the
+    map of another pair that has the name."""
+    batch = load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy")
+    with torch.no_grad():
+        result = estimate_obstacle_depth(batch)
+    export = DisparityExport(tmp_path / "m")
+    export.prepare()
+    (map_file,) = export.write(batch, result, 0.25)
+    assert export.forget_unrun(batch.names[0], "ERROR") is None and map_file.exists()
+    later = DisparityExport(tmp_path / "m")
+    later.claim_ahead("2003/Teddy")
+    assert later.forget_unrun("eval3/Teddy", "BAD_INPUT") is None and map_file.exists()
+    truth = tmp_path / "gt"
+    (truth / "Teddy").mkdir(parents=True)
+    (truth / "Teddy" / "disp0GT.pfm").write_bytes(map_file.read_bytes())
+    assert DisparityExport(truth, method="GT").forget_unrun("Teddy", "BAD_INPUT") is None
+    assert (truth / "Teddy" / "disp0GT.pfm").exists()
+    with pytest.warns(RuntimeWarning, match="not run \\(BAD_INPUT\\): the map an earlier run left"):
+        assert DisparityExport(tmp_path / "m").forget_unrun("eval3/Teddy", "BAD_INPUT") == map_file
+    assert not map_file.exists() and not (map_file.parent / "timeSVSTorch.txt").exists()
