@@ -14,15 +14,16 @@ Configuration file (TOML)::
 
     preset = "paper"          # optional: "default" (PipelineConfig()) or "paper" (PipelineConfig.paper())
     max_ratio = 0.7           # top-level keys, quoted dotted keys and tables are all dotted paths:
-    "dense.window_size" = 7
+    "surf.num_octaves" = 3
     [segmentation]
     kernel_size = 7
     [set]                     # a sweep file's fixed settings are read the same way (one format for both)
-    "dense.uniqueness_ratio" = 0.1
+    "ransac_threshold_px" = 0.5
 
 A sweep file (:mod:`.sweep`) works as a configuration file: its ``preset`` and ``[set]`` apply, its ``paths``,
 ``size`` and ``batch_size`` are named as not used, and a ``[grid]`` or ``[[configs]]`` (several configurations)
-is an error. A sweep file likewise takes top-level parameters as fixed settings.
+is an error. A sweep file likewise takes top-level parameters as fixed settings. A setting only the dense range
+rule reads, given under the paper's rule, is said to have no effect (:mod:`.inert_settings`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from ..core.checks import InputError, check_instance
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import check_weights_file
 from .config_tree import ON, ConfigBuildError, build_config, dataclass_of, refused_keys
+from .inert_settings import warn_inert_overrides
 
 __all__ = [
     "LABEL_SEPARATOR", "PRESETS", "apply_overrides", "config_to_dict", "describe_overrides", "expand_grid",
@@ -319,6 +321,8 @@ def resolve_config(preset: str = "default", config_file: str | Path | None = Non
         base = preset_config(preset, "--preset")
     sets = merge_overrides(*({key: value} for key, value in map(parse_assignment, assignments)))
     config = apply_overrides(base, sets, "--set")
+    for source, given in ((f"--config: {config_file}", overrides), ("--set", sets)):
+        warn_inert_overrides([(config, given)], source)  # judged on the configuration that runs
     return config, preset, merge_overrides(overrides, sets)
 
 

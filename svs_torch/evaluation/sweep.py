@@ -60,6 +60,7 @@ from ..data.pair_list import PairSource, read_pair_sources, unique_sources
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
+from .inert_settings import warn_inert_overrides
 from .metrics import PairEvaluation
 from .overrides import (MAX_GRID_POINTS, PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid,
                         flatten_table, merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config,
@@ -212,6 +213,7 @@ def load_sweep(path: str | Path) -> Sweep:
                 label = f"preset={entry_preset}" if not varying else f"preset={entry_preset} {label}"
             configs.append(make_sweep_config(entry_preset, merge_overrides(fixed, varying), size_wh, label,
                                              f"{name}: grid"))
+    warn_inert_overrides([(c.config, c.overrides) for c in configs], name)  # one line, not one a configuration
     sources = read_pair_sources(resolved, f"{name}: paths")
     return make_sweep(sources, configs, size_wh, batch_size, path.read_text(encoding="utf-8"))
 

@@ -296,7 +296,8 @@ def test_bad_overrides_name_the_key(overrides, message):
 def test_config_file_then_set(tmp_path):
     path = tmp_path / "config.toml"
     path.write_text('preset = "paper"\nmax_ratio = 0.7\n"dense.window_size" = 7\n[segmentation]\nkernel_size = 3\n')
-    config, preset, overrides = resolve_config(config_file=path, assignments=["max_ratio=0.75"])
+    with pytest.warns(UserWarning, match="dense.window_size: no effect under the paper range rule"):
+        config, preset, overrides = resolve_config(config_file=path, assignments=["max_ratio=0.75"])
     assert preset == "paper" and config.depth.rule == "paper" and config.refine_matches is None
     assert config.max_ratio == 0.75 and config.dense.window_size == 7 and config.segmentation.kernel_size == 3
     assert overrides == {"max_ratio": 0.75, "dense.window_size": 7, "segmentation.kernel_size": 3}

@@ -1,0 +1,54 @@
+"""Settings a configuration never reads: ``--set dense.window_size=9`` under the paper's range rule.
+
+Why: the dense SAD stage and everything built on its map (the verification of the views, the second passes, the
+dropped regions, the near surfaces, the exposure retry) run only under the dense range rule
+(``depth.rule = "dense"``; :func:`~svs_torch.pipeline.estimate_obstacle_depth`). Under the paper's rule (Eq. (5)–(8)
+over the RANSAC inliers, ``--preset paper``) such a setting changes nothing, and a sweep over it stored one result
+under as many configurations, read as "this setting does not matter" (an audit of ``--set``). It is said, not
+refused: a configuration file shared between both rules is fine.
+
+``tests/evaluation/test_inert_settings.py`` runs the paper preset with each of these set to another value and
+finds every result the same, bit for bit.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from typing import Any
+
+from ..pipeline import PipelineConfig
+
+__all__ = ["DENSE_RULE_ONLY", "inert_overrides", "warn_inert_overrides"]
+
+#: The top-level fields (and ``dense``, with every ``dense.*``) that only the dense range rule reads
+#: (``PipelineConfig``'s docstring: "under the dense rule").
+DENSE_RULE_ONLY = (
+    "dense", "verify_min_inliers", "verify_min_inlier_share", "verify_min_agreeing_inliers", "verify_many_inliers",
+    "verify_many_inliers_min_agreeing", "verify_unanimous_min_inliers", "verify_unanimous_min_agreeing",
+    "verify_whole_view", "noisy_retry_sigma_px", "noisy_features_retry_sigma_px", "coarse_retry_below_share",
+    "drop_unmeasured_below_share", "drop_unmeasured_nearer_below_share", "region_interior_working_px",
+    "measure_near_surface", "exposure_retry", "exposure_retry_max_residual_ratio",
+)
+
+
+def inert_overrides(config: PipelineConfig, overrides: Mapping[str, Any]) -> list[str]:
+    """The keys of ``overrides`` (dotted, as ``--set`` takes them) that ``config``, the configuration they built,
+    never reads: those of :data:`DENSE_RULE_ONLY` under the paper range rule. In the order given."""
+    if config.depth.rule == "dense":
+        return []
+    return [key for key in overrides if key.split(".", 1)[0] in DENSE_RULE_ONLY]
+
+
+def warn_inert_overrides(configs: list[tuple[PipelineConfig, Mapping[str, Any]]], source: str) -> None:
+    """One ``UserWarning`` starting with ``source`` that names the keys :func:`inert_overrides` finds in any of
+    ``configs`` (each a configuration and the overrides that built it: a sweep's, or one command's), if any."""
+    inert = [inert_overrides(config, overrides) for config, overrides in configs]
+    keys = list(dict.fromkeys(key for found in inert for key in found))
+    if not keys:
+        return
+    count = sum(1 for found in inert if found)
+    where = "" if len(configs) == 1 else f" in {count} of {len(configs)} configurations"
+    them = "it" if len(keys) == 1 else "them"
+    warnings.warn(f"{source}: {', '.join(keys)}: no effect under the paper range rule (depth.rule = 'paper'){where}: "
+                  f"only the dense rule reads {them}", stacklevel=3)
