@@ -71,6 +71,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="drop the TCP link after N frames")
     f.add_argument("--grab-delay", type=non_negative_float, default=0.0, metavar="S",
                    help="grab + encode time, seconds")
+    f.add_argument("--freeze", type=non_negative_int, default=0, metavar="N",
+                   help="answer the next N grabs with the last frame's JPEG bytes again (a stalled sensor)")
     args = p.parse_args(argv)
     # Checked here, not in the threads that use them: a bad value there killed a board's thread mid-run.
     # The synthetic renderer's range: outside it the render thread died and every frame was the stand-in's, no floor.
@@ -123,4 +125,4 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   damaged_frames=args.damage, wrong_length_frames=args.wrong_length,
                   wrong_length_delta=args.wrong_length_delta,
                   drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
-                  drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay)
+                  drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay, frozen_grabs=args.freeze)

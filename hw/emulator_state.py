@@ -57,6 +57,8 @@ class Faults:
         drip_delay_s: ...with this pause between chunks, seconds.
         drop_after_frames: close the connection right after sending this many more frames (TCP only), once.
         grab_delay_s: time the board takes to grab and encode a frame before replying, seconds.
+        frozen_grabs: the next n ``I`` are answered with the JPEG bytes of the board's last frame again (a stalled
+            sensor whose firmware keeps sending the same frame buffer; a board that sent none yet sends one first).
     """
 
     silent_grabs: int = 0
@@ -70,6 +72,7 @@ class Faults:
     drip_delay_s: float = 0.0
     drop_after_frames: int | None = None
     grab_delay_s: float = 0.0
+    frozen_grabs: int = 0
 
 
 @dataclass(frozen=True)
@@ -126,6 +129,7 @@ class CameraState:
         self.overlay = False
         self.frames_sent = 0
         self.discarded_bytes = 0
+        self._last_jpeg: tuple[str, bytes] | None = None  # (size code, JPEG) of the last frame, for frozen_grabs
         self._pending_q = False
         self._busy_until_s = float("-inf")
         self._lock = threading.Lock()
@@ -221,7 +225,12 @@ class CameraState:
         if f.silent_grabs > 0:
             f.silent_grabs -= 1
             return None
-        jpeg = self.encode_jpeg(now_s)
+        if f.frozen_grabs > 0 and self._last_jpeg is not None and self._last_jpeg[0] == self.size_code:
+            f.frozen_grabs -= 1
+            jpeg = self._last_jpeg[1]  # the same bytes: the stalled sensor's buffer, sent again
+        else:
+            jpeg = self.encode_jpeg(now_s)
+            self._last_jpeg = (self.size_code, jpeg)
         announced = len(jpeg)
         if f.wrong_length_frames > 0:
             f.wrong_length_frames -= 1

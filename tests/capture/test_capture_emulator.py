@@ -139,6 +139,25 @@ def test_board_faults_count_down():
     assert isinstance(event, ParsedFrame) and event.skipped_bytes == 0
 
 
+def test_the_emulators_freeze_fault_sends_the_last_frames_bytes_again():
+    """A stalled sensor: the board answers each grab with its last frame's buffer again (``--freeze N``)."""
+    from hw.emulator_args import faults_from_args, parse_args
+
+    def source(camera, width, height, time_s):
+        return np.random.default_rng(int(time_s * 1000)).integers(0, 255, (height, width), dtype=np.uint8)
+
+    board = CameraState("left", "master", source, holdoff_s=0.0, faults=Faults(frozen_grabs=2))
+    jpegs = [FrameParser().feed(board.feed(b"I", float(grab)).data)[0].jpeg for grab in range(4)]
+    assert jpegs[0] == jpegs[1] == jpegs[2] != jpegs[3] and board.faults.frozen_grabs == 0
+    board.set_faults(frozen_grabs=1)
+    board.feed(b"a", 5.0)  # 160x120: a frame of the old size is not sent under the new size's header
+    (event,) = FrameParser().feed(board.feed(b"I", 6.0).data)
+    assert event.jpeg != jpegs[3] and cv2.imdecode(np.frombuffer(event.jpeg, np.uint8), 0).shape == (120, 160)
+    assert board.faults.frozen_grabs == 1
+    args = parse_args(["--freeze", "3", "--fault-camera", "right"], "emulator", 1.0)
+    assert faults_from_args(args).frozen_grabs == 3
+
+
 def test_synthetic_source_depths_oscillate_in_range():
     track = ObstacleTrack()
     depths = np.stack([track.depths_m(i) for i in range(track.num_keyframes)])
