@@ -3,8 +3,9 @@
 ``protocol`` is pure (bytes in, values out); ``link`` speaks it over pyserial (UART or ``socket://``);
 ``stereo`` grabs timestamped pairs and turns them into :class:`~svs_torch.core.types.StereoBatch`; ``guide`` holds the
 reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rate meter), with ``speech``
-(``espeak-ng`` when installed, the text always) and ``sight`` (whether guide can see: silence must never mean
-"nothing measured"); ``link_types`` what a link is configured with, counts and receives.
+(``espeak-ng`` when installed, the text always), ``sight`` (whether guide can see: silence must never mean
+"nothing measured") and ``frozen`` (whether one board keeps sending one frame); ``link_types`` what a link is
+configured with, counts and receives.
 
 May import: ``svs_torch.core`` only (pyserial; torch only where ``stereo`` is used). The CLI imports it.
 """

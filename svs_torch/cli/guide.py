@@ -32,16 +32,18 @@ distance and the nearest obstacle's side. The floor (the road) ahead, which a wa
 as its nearest surface, is not an obstacle (--floor). The frames are a camera's (JPEG with sensor noise), so the
 obstacles' disparity map is matched with its wider noise window at once, as estimate --camera-frames does.
 
-Silence means nothing is near, never that nothing was measured (nor a guide still starting: "Guide ready" is
-said once, when the camera first answers): when no pair could be ranged for --blind-s seconds (a covered lens,
-the dark, a link that froze, pairs whose two frames came more than 0.25 s apart, which are not ranged: the walker
-moved between them, or one image sent for both cameras, not ranged either), "Cannot see ahead" is said, and
-"Seeing ahead again" when one is. A camera that stops answering in the middle of a walk (a WiFi drop) is said to
-be lost, aloud, and opened again every --reconnect-s seconds; its return is said too, and the warnings go on. One
-that never answered ends guide with its error (exit 1), as does one lost for --give-up-s seconds if that is set.
-Whatever ends it (an error, --count, Ctrl-C, a service's stop), "Guide stopped. No more warnings." is said.
-Boards that answer in the wrong stereo roles (--left reaches the slave: the URLs swapped) are said once, aloud
-("Check the cameras"), as every distance is then wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
+Silence means nothing is near, never that nothing was measured (nor a guide still starting: "Guide ready" is said
+once, when the camera first answers): when no pair could be ranged for --blind-s seconds (a covered lens, the dark,
+a link that froze, pairs whose two frames came more than 0.25 s apart, which are not ranged: the walker moved
+between them, one image sent for both cameras, or one camera's frame sent again while the other's changed, a stalled
+board: not ranged either), "Cannot see ahead" is said, and "Seeing ahead again" when one is; after a stalled board's
+pairs, "Cannot see ahead" goes on "Check the left camera" (or right), once a run. A camera that stops answering in
+the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened again every --reconnect-s seconds; its
+return is said too, and the warnings go on. One that never answered ends guide with its error (exit 1), as does one
+lost for --give-up-s seconds if that is set. Whatever ends it (an error, --count, Ctrl-C, a service's stop), "Guide
+stopped. No more warnings." is said. Boards that answer in the wrong stereo roles (--left reaches the slave: the
+URLs swapped) are said once, aloud ("Check the cameras"), as every distance is then wrong. SIGTERM (a service's
+stop) ends it as Ctrl-C does, exit 143.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair
@@ -75,8 +77,8 @@ JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimat
              "calibration its metres use), the capture's times, 'warning' (the pair's and the confirmed distance, the "
              "class clear / warn / stop, or unseen: nothing measured; the words said), 'dropped_pairs', 'latency_s', "
              "'quality' (--quality's digit); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
-             "or sees again, a pair is not ranged (frames_apart, identical_views), or the boards answer in the wrong "
-             "roles (cameras_swapped); the warnings' text goes to stderr")
+             "or sees again, a pair is not ranged (frames_apart, identical_views, camera_frozen with its 'camera'), "
+             "or the boards answer in the wrong roles (cameras_swapped); the warnings' text goes to stderr")
 
 
 #: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that

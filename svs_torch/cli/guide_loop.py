@@ -15,7 +15,8 @@ one lost for ``--give-up-s`` seconds, if set. With ``--json`` each loss and retu
 Sight is judged on time, not only on the pairs that come: a link that froze while the driver retries brings no
 pair for seconds, and the stream ticks (``IDLE_TICK_S``) so that "Cannot see ahead" comes after ``--blind-s``;
 and a pair whose two frames came further apart than the camera's ``max_frame_gap_s`` after its regrabs is not
-ranged (``{"event": "frames_apart"}``) and counts as not seen.
+ranged (``{"event": "frames_apart"}``) and counts as not seen; so does a pair in which one camera's frame came again
+(:class:`~svs_torch.capture.frozen.FrozenCameraWatch`, ``{"event": "camera_frozen", "camera": ...}``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import contextlib
 import time
 from typing import Callable
 
+from ..capture.frozen import FrozenCameraWatch, varies
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
 from ..capture.stereo import STEREO_ROLES
@@ -34,8 +36,8 @@ from ..pipeline import PipelineStatus, result_along_floor
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory", "GUIDE_READY",
-           "GUIDE_STOPPED", "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "CHECK_CAMERA", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory",
+           "GUIDE_READY", "GUIDE_STOPPED", "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -56,6 +58,10 @@ GUIDE_STOPPED = "Guide stopped. No more warnings."
 #: the 15 words it had take about 5 s at 170 words a minute, and with the URLs swapped "Cannot see ahead" comes
 #: 2 s after it and cuts it off (an audit); the printed warning says what to check.
 CAMERAS_SWAPPED = "Check the cameras. Distances may be wrong."
+#: Said after "Cannot see ahead" (one sentence: a newer message cuts off an older one) when the pairs were not ranged
+#: because one camera keeps sending one frame (a stalled board), once a run for each camera: the walker can do
+#: something about it (restart that board), and short for the reason given at CAMERAS_SWAPPED.
+CHECK_CAMERA = "Check the {} camera."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
 
@@ -79,7 +85,7 @@ def _one_image_twice(batch) -> bool:
     flat frames (both lenses covered, black or clipped) may be equal and are the pipeline's to find blank."""
     if batch is None or batch.left.shape != batch.right.shape or not bool((batch.left == batch.right).all()):
         return False
-    return bool(batch.left.amax() > batch.left.amin())
+    return varies(batch.left)
 
 
 class FloorMemory:
@@ -124,7 +130,9 @@ class GuideSession:
                  log: GuideLog) -> None:
         self.args, self.size, self.ranged = args, size, ranged
         self.guide, self.status_line, self.log = guide, status_line, log
-        self.processed = self.torn = self.one_image = 0
+        self.processed = self.torn = self.one_image = self.frozen_pairs = 0
+        self.frozen_watch = FrozenCameraWatch()  # compares each pair's frames with the previous pair's
+        self.cameras_checked: set[str] = set()  # the cameras CHECK_CAMERA was said of
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
         self.roles_said = False
         self.lost_at_s: float | None = None
@@ -157,6 +165,7 @@ class GuideSession:
                     self._check_roles(camera)
                     if self.sight is None:
                         self.sight = SightWatch(self.args.blind_s, confirm_frames=self.guide.policy.confirm_frames)
+                    self.frozen_watch.reset()  # a frame from before a loss is no frame to compare with
                     try:
                         lost = self._range_stream(camera)
                     finally:
@@ -197,10 +206,14 @@ class GuideSession:
                     return error
                 if item is None:
                     self._waiting(time.monotonic())
-                elif gap_limit_s is not None and abs(item.pairs[0].time_between_frames_s) > gap_limit_s:
+                    continue
+                frozen = self.frozen_watch.update(item.batch)  # every pair: a camera's previous frame is its last
+                if gap_limit_s is not None and abs(item.pairs[0].time_between_frames_s) > gap_limit_s:
                     self._torn(item)
                 elif _one_image_twice(item.batch):
                     self._one_image(item)
+                elif frozen is not None:
+                    self._frozen_camera(item, frozen)
                 else:
                     self._range(item)
 
@@ -234,14 +247,14 @@ class GuideSession:
         return status == PipelineStatus.OK or (status == PipelineStatus.NO_OBJECTS and from_map is not None
                                                and bool(from_map[0]))
 
-    def _watch_sight(self, seen: bool, status: str, now_s: float) -> str | None:
+    def _watch_sight(self, seen: bool, status: str, now_s: float, then: str | None = None) -> str | None:
         """Say when nothing has been seen for ``--blind-s`` seconds, and when something is again
         (:class:`~svs_torch.capture.guide.SightWatch`): silence would otherwise tell the walker the way is clear.
-        ``status``: why, in the JSON event (the pipeline's status, or what kept the pair from being ranged).
-        Returns the words said, or None."""
+        ``status``: why, in the JSON event (the pipeline's status, or what kept the pair from being ranged);
+        ``then``: words said after :data:`CANNOT_SEE`, in the same breath. Returns the sight's words, or None."""
         said = self.sight.update(seen, now_s)
         if said is not None:
-            self.guide.speaker.say(said)
+            self.guide.speaker.say(f"{said} {then}" if then and said == CANNOT_SEE else said)
             if said == CANNOT_SEE:
                 self.guide.policy.reset()  # an obstacle seen again is warned of at once
             self.log.event("cannot_see" if said == CANNOT_SEE else "seeing_again", status=status)
@@ -278,24 +291,41 @@ class GuideSession:
         self._not_ranged(item, "IDENTICAL_VIEWS", "the two cameras sent one image: not ranged", "identical_views")
         self.one_image += 1
 
-    def _not_ranged(self, item, status: str, detail: str, event: str, **fields) -> None:
+    def _frozen_camera(self, item, camera: str) -> None:
+        """A pair whose ``camera`` frame came again, pixel for pixel, while the other camera's frames changed
+        (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`): not ranged, not seen. Ranged, a stalled board's old
+        frame beside the other's new one gave distances of where obstacles were (the emulator's --freeze: 2.1 m
+        then 4.1 m while both boxes moved), and a walker was warned of that. When it leaves guide blind,
+        :data:`CHECK_CAMERA` is said with "Cannot see ahead", once a run for each camera."""
+        check = None if camera in self.cameras_checked else CHECK_CAMERA.format(camera)
+        said = self._not_ranged(item, "CAMERA_FROZEN", f"the {camera} camera sends one frame again: not ranged",
+                                "camera_frozen", then=check, camera=camera)
+        if said == CANNOT_SEE:
+            self.cameras_checked.add(camera)
+        self.frozen_pairs += 1
+
+    def _not_ranged(self, item, status: str, detail: str, event: str, then: str | None = None,
+                    **fields) -> str | None:
         """A grabbed pair left unranged (``status`` in the sight's JSON event, ``detail`` on the status line): not
-        seen, its own ``event`` logged with ``fields``, and taken (``--count``'s)."""
+        seen, its own ``event`` logged with ``fields``, and taken (``--count``'s). ``then``: words said after
+        "Cannot see ahead" if it is said now. Returns the sight's words, or None."""
         now = time.monotonic()
         self._come_back(now)
-        self._watch_sight(False, status, now)
+        said = self._watch_sight(False, status, now, then)
         self._show_not_seen(detail)
         self.log.event(event, pair=item.pairs[0].index, **fields)
         self.processed += 1
+        return said
 
     def stopped_text(self) -> str:
         """What guide says when it stops: the pairs taken, and how many were not ranged (a right board 0.5 s late
         on every frame ended "guide stopped after 5 pairs" with not one ranged, and nothing said of it)."""
         text = f"guide stopped after {self.processed} pairs"
-        why = ([f"{self.torn} not: their two frames came too far apart"] if self.torn else []) + (
-            [f"{self.one_image} not: their two frames were one image"] if self.one_image else [])
+        why = [f"{count} not: {reason}" for count, reason in (
+            (self.torn, "their two frames came too far apart"), (self.one_image, "their two frames were one image"),
+            (self.frozen_pairs, "one camera sent its last frame again")) if count]
         if why:
-            text += f" ({self.processed - self.torn - self.one_image} ranged; {'; '.join(why)})"
+            text += f" ({self.processed - self.torn - self.one_image - self.frozen_pairs} ranged; {'; '.join(why)})"
         return text
 
     def _come_back(self, now: float) -> None:

@@ -797,6 +797,34 @@ def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys,
         assert CAMERAS_SWAPPED not in err and "stereo master" not in err and not events
 
 
+def test_guide_does_not_range_the_pairs_of_a_board_that_sends_one_frame_again(capsys):
+    """Found by an audit of the device side: with the right board's sensor stalled (the emulator's --freeze: each
+    grab answered with its last frame's bytes again) guide ranged every pair, the right frame old, the left new
+    (distances 2.1 m then 4.1 m while both boxes moved), without a word. Now those pairs are not ranged, each is a
+    camera_frozen event naming the right camera, and "Cannot see ahead" comes with "Check the right camera."."""
+    import json
+
+    from hw.emulator import EmulatorServer
+    from hw.emulator_state import Faults
+    from hw.frames import SyntheticSource
+    from svs_torch.cli import main
+    from svs_torch.cli.guide_loop import CHECK_CAMERA
+
+    # noise: the left board's frames change from grab to grab, as a real sensor's do; 5 ms a grab: 38 not ranged
+    # take more than --blind-s
+    faults = {"left": Faults(grab_delay_s=0.005), "right": Faults(grab_delay_s=0.005, frozen_grabs=10**6)}
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
+                        faults=faults) as server:
+        assert main(["guide", "--left", server.urls["left"], "--right", server.urls["right"], "--count", "40",
+                     "--blind-s", "0.1", "--no-speech", "--json", "--second-passes", "off"]) == 0
+    out, err = capsys.readouterr()
+    lines = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    frozen = [line["camera"] for line in lines if line.get("event") == "camera_frozen"]
+    assert frozen == ["right"] * 38 and sum("event" not in line for line in lines) == 2
+    assert err.count(f"{CANNOT_SEE} {CHECK_CAMERA.format('right')}") == 1
+    assert "(2 ranged; 38 not: one camera sent its last frame again)" in err
+
+
 def test_a_warning_held_by_the_hysteresis_beyond_the_band_is_not_said_after_a_stop():
     """After "Stop", the obstacle gone and a wall left at 2.08 m (a 1-2 m band; "warn" held by the 0.1 m
     hysteresis) was said "Obstacle ahead, 2.1 metres" once --repeat-s ran out: beyond the band is silence."""

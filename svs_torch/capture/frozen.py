@@ -1,0 +1,63 @@
+"""Whether one camera of the pair froze (:class:`FrozenCameraWatch`): its board keeps sending one frame while the other
+board's frames go on, so a pair joins a stale view with a fresh one.
+
+Why: the SVS is two SRV-1 boards, and a board whose sensor stalls can keep answering each grab with the same frame
+buffer. Ranged, such a pair is two frames from different times (as a pair whose frames came apart, which ``guide``
+refuses), and a walker is warned of where obstacles were, not where they are. A real sensor's noise makes two of
+its frames of a scene differ somewhere (the argument of ``guide``'s test of one image sent for both views), so a
+frame equal to that camera's previous one, pixel for pixel, is a sent-again buffer, unless it is flat (a covered
+lens, the dark, a clipped sky: the pipeline's to find blank).
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "varies"]
+
+#: Pairs in a row in which one camera's frame came again while the other's changed before that camera is judged
+#: frozen. Not 1: where frames carry no noise (the emulator's default) a scene that steps (its keyframes, an image
+#: folder's pairs) between the two boards' grabs of one pair makes one camera's frame look unchanged beside the
+#: other's changed one, and the next pair then shows the other way round; a frozen camera stays unchanged. The one
+#: pair ranged first joins frames one pair taken apart (0.1-0.2 s at guide's 5-10 pairs a second), about what guide
+#: still ranges of a pair whose two frames came apart (``max_frame_gap_s``, 0.25 s).
+FROZEN_PAIRS = 2
+
+
+def varies(image: torch.Tensor) -> bool:
+    """Whether ``image`` is not flat: some pixel differs from another. Not differentiable (a comparison)."""
+    return bool(image.amax() > image.amin())
+
+
+class FrozenCameraWatch:
+    """Which camera of a stream of one-pair batches is frozen: :meth:`update` takes each pair grabbed, in order,
+    and returns ``"left"`` or ``"right"`` when that camera's frame has been equal to its previous one, pixel for
+    pixel and not flat, while the other camera's frame changed, on :data:`FROZEN_PAIRS` pairs in a row; else None.
+    Both frames unchanged (a still scene without noise) is no sign of either. It keeps the previous pair's two
+    frames (references, not copies); :meth:`reset` forgets them (a camera opened again after a loss).
+    """
+
+    def __init__(self, frozen_pairs: int = FROZEN_PAIRS) -> None:
+        self.frozen_pairs = frozen_pairs
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous frames: the next pair is compared with nothing."""
+        self._previous: dict[str, torch.Tensor] | None = None
+        self._unchanged = {"left": 0, "right": 0}  # pairs in a row: this camera's frame came again, the other's not
+
+    def update(self, batch) -> str | None:
+        """Take a grabbed pair (a :class:`~svs_torch.core.types.StereoBatch` of one, ``left``/``right``
+        ``(1, 1, H, W)``; None: nothing to compare, the state kept); the camera judged frozen, or None."""
+        if batch is None:
+            return None
+        frames = {"left": batch.left, "right": batch.right}
+        previous, self._previous = self._previous, frames
+        if previous is None or any(frames[name].shape != previous[name].shape for name in frames):
+            self._unchanged = {"left": 0, "right": 0}
+            return None
+        same = {name: torch.equal(frames[name], previous[name]) for name in frames}  # (one pass, no copy)
+        for name, other in (("left", "right"), ("right", "left")):
+            frozen = same[name] and not same[other] and varies(frames[name])
+            self._unchanged[name] = self._unchanged[name] + 1 if frozen else 0
+        return next((name for name, count in self._unchanged.items() if count >= self.frozen_pairs), None)

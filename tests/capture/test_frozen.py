@@ -1,0 +1,130 @@
+"""A frozen camera: one board that sends its last frame again while the other's frames go on (the rule, and
+``guide``'s handling of it with a fake camera; the emulator's ``--freeze`` fault in
+``tests/capture/test_capture_emulator.py``, guide against it in ``tests/capture/test_guide.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from svs_torch.capture.frozen import FROZEN_PAIRS, FrozenCameraWatch
+from svs_torch.core.types import StereoBatch
+
+
+def frames(count: int, seed: int = 0) -> list[torch.Tensor]:
+    """``count`` different textured (1, 1, 24, 32) frames."""
+    generator = torch.Generator().manual_seed(seed)
+    return [torch.rand(1, 1, 24, 32, generator=generator) for _ in range(count)]
+
+
+def pair(left: torch.Tensor, right: torch.Tensor) -> StereoBatch:
+    return StereoBatch.from_images(left, right, 276.0, 0.1075)
+
+
+def watched(pairs: list[StereoBatch], watch: FrozenCameraWatch | None = None) -> list[str | None]:
+    watch = watch or FrozenCameraWatch()
+    return [watch.update(batch) for batch in pairs]
+
+
+@pytest.mark.parametrize("camera", ["left", "right"])
+def test_a_camera_whose_frame_comes_again_while_the_others_change_is_frozen(camera):
+    stale, fresh = frames(1, seed=1)[0], frames(5)
+    pairs = [pair(stale, new) if camera == "left" else pair(new, stale) for new in fresh]
+    # the first pair has nothing to compare with; the first repeat alone could be a scene's step between the grabs
+    assert watched(pairs) == [None] * FROZEN_PAIRS + [camera] * (5 - FROZEN_PAIRS)
+    # pixel for pixel, not the same tensor: a frame decoded again from the same bytes is a new tensor
+    copies = [pair(stale.clone(), new) if camera == "left" else pair(new, stale.clone()) for new in fresh]
+    assert watched(copies) == watched(pairs)
+
+
+def test_frames_unchanged_in_both_cameras_are_a_still_scene_not_a_frozen_camera():
+    """The emulator's frames have no noise by default: of a still scene, both cameras send one frame again."""
+    left, right = frames(2)
+    assert watched([pair(left, right)] * 6) == [None] * 6
+
+
+def test_a_scene_that_steps_between_the_two_boards_grabs_is_not_a_frozen_camera():
+    """Frames without noise (the emulator's keyframes, an image folder's pairs): a step that lands between the left
+    and the right grab of one pair leaves the left frame as it was and the right one new; the next pair, the left
+    is new and the right as it was. Neither camera is frozen."""
+    a_left, a_right, b_left, b_right, c_left, c_right = frames(6)
+    steps = [pair(a_left, a_right), pair(a_left, b_right), pair(b_left, b_right), pair(b_left, b_right),
+             pair(b_left, c_right), pair(c_left, c_right)]
+    assert watched(steps) == [None] * 6
+
+
+def test_a_flat_frame_sent_again_is_not_a_frozen_camera():
+    """A covered lens, the dark or a clipped sky gives one flat frame after another: the pipeline finds it blank."""
+    black = torch.zeros(1, 1, 24, 32)
+    assert watched([pair(black.clone(), new) for new in frames(5)]) == [None] * 5
+    assert watched([pair(new, torch.ones(1, 1, 24, 32)) for new in frames(5)]) == [None] * 5
+
+
+def test_frames_from_before_a_reset_are_not_compared_with():
+    stale, fresh = frames(1, seed=1)[0], frames(4)
+    watch = FrozenCameraWatch()
+    assert watched([pair(stale, new) for new in fresh[:2]], watch) == [None, None]
+    watch.reset()  # (guide: the camera opened again after a loss)
+    assert watched([pair(stale, new) for new in fresh[2:]], watch) == [None, None]
+    assert watch.update(None) is None  # no pair: nothing compared, nothing forgotten
+    assert watch.update(pair(stale, frames(1, seed=2)[0])) == "left"
+
+
+def test_guide_does_not_range_a_frozen_cameras_pairs_and_says_which_to_check_once(monkeypatch):
+    """guide ranged a stalled board's old frame beside the other board's new one: distances of where obstacles
+    were. Now such pairs are not ranged nor seen ({"event": "camera_frozen", "camera": "left"}), "Cannot see ahead"
+    comes after --blind-s with "Check the left camera." (once a run), and a frame from before a loss is not
+    compared with one after it."""
+    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
+    from svs_torch.capture.link_types import CaptureError
+    from svs_torch.cli import guide_loop
+
+    said, events, ranged = [], [], []
+    stale = frames(1, seed=1)[0]
+    fresh = iter(frames(200))
+    opened = []
+
+    class Camera:
+        next_index, max_frame_gap_s = 0, 0.25
+
+        def stream_batches(self, batch_size, num_batches=None, idle_s=None):
+            opened.append(True)
+            for index in range(2 if len(opened) == 1 else 40):  # lost after 2 pairs, then 40 more
+                time.sleep(0.01)
+                yield SimpleNamespace(batch=pair(stale, next(fresh)), num_dropped=0,
+                                      pairs=[SimpleNamespace(index=index, time_between_frames_s=0.0)])
+            if len(opened) == 1:
+                raise CaptureError("left camera: no reply")
+
+    class Words:
+        def write(self, text):
+            said.extend(line for line in text.split("\n") if line)
+            return len(text)
+
+        def flush(self):
+            pass
+
+    def ranging(batch):
+        ranged.append(batch)
+        return SimpleNamespace(status=torch.tensor([0]), segmentation=SimpleNamespace(from_disparity=None),
+                               depth=SimpleNamespace(nearest=SimpleNamespace(valid=torch.tensor([False]),
+                                                                            surface_m=torch.tensor([0.0]),
+                                                                            side=torch.tensor([0]))))
+
+    monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
+    log = guide_loop.GuideLog(None, None)
+    monkeypatch.setattr(log, "event", lambda name, **fields: events.append((name, fields.get("camera"))))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    args = argparse.Namespace(count=42, blind_s=0.15, give_up_s=0, reconnect_s=0.01)
+    session = guide_loop.GuideSession(args, (32, 24), ranging, guide, StatusLine(None), log)
+    session.run()
+    frozen = [camera for name, camera in events if name == "camera_frozen"]
+    # 2 pairs before the loss, then 2 after it (not compared with those before it) are ranged; the rest are not
+    assert len(ranged) == 2 + FROZEN_PAIRS and frozen == ["left"] * (40 - FROZEN_PAIRS)
+    assert said.count(f"{CANNOT_SEE} {guide_loop.CHECK_CAMERA.format('left')}") == 1
+    assert said.count(CANNOT_SEE) == 0 and ("cannot_see", None) in events
+    assert session.stopped_text().endswith(f"(4 ranged; {len(frozen)} not: one camera sent its last frame again)")
