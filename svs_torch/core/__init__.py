@@ -8,8 +8,9 @@
 ``compiling`` (optional ``torch.compile``), ``workers`` (worker processes without torch in the parent),
 ``lazy_names`` (a package's public names loaded on first use), ``dataset_files`` (the files a dataset's pair is
 read from, which no output may overwrite), ``inference`` (the hard pipeline under ``torch.inference_mode``, unseen by
-its callers), ``levels`` (the intensity levels every stage reads alike), and ``kernels/``, the one loader that
-builds, caches and opens every stage's C kernels.
+its callers), ``levels`` (the intensity levels every stage reads alike), ``checkout`` (the commit and version that
+reports record: ``code_version``), and ``kernels/``, the one loader that builds, caches and opens every stage's C
+kernels.
 
 May import: the standard library, torch, numpy, OpenCV, and core itself. Nothing here imports a stage, the
 pipeline, ``data``, ``evaluation``, ``plotting``, ``capture`` or the CLI.

@@ -5,9 +5,10 @@
 retry), ``run`` (:func:`estimate_obstacle_depth`: segmentation → features → matching → RANSAC → rectification →
 dense depth, each batch run as groups of one size), ``exposure`` (the two views' exposures matched),
 ``exposure_retry`` and ``features_retry`` (second runs, with the exposures matched or SURF on smoothed views, of the
-pairs the first run left unranged or unverified), ``near_surface`` (an object spanning two surfaces ranged over the
-nearer), ``along_floor`` (the objects' distances ahead along the floor), ``soft`` (the differentiable pass over the
-hard pass's decisions) and ``preload`` (worker processes that import the pipeline before their first task).
+pairs the first run left unranged or unverified), ``beyond_range`` (an object whose inliers lie nearer than the
+dense range searched left unranged), ``near_surface`` (an object spanning two surfaces ranged over the nearer),
+``along_floor`` (the objects' distances ahead along the floor), ``soft`` (the differentiable pass over the hard
+pass's decisions) and ``preload`` (worker processes that import the pipeline before their first task).
 
 May import: ``svs_torch.core`` and every stage's public names. Only ``evaluation``, ``plotting`` and the CLI
 import the pipeline; a stage never does.

@@ -25,7 +25,7 @@ MIN_BEYOND_INLIERS = 3
 def inliers_beyond_search(disparities: Disparities, inliers: torch.Tensor, dense: DenseDisparity) -> torch.Tensor:
     """``(B, K)`` bool: the ``inliers`` with a valid disparity (``disparities``, the frame the dense map was measured
     in) past the range ``dense`` searched, ``[min, min + count)``; what this rule and ``estimate``'s report of a
-    too-near obstacle (``svs_torch.cli.too_near``) both count."""
+    too-near obstacle (``svs_torch.cli.too_near``) both count. Not differentiable (a bool mask)."""
     top = (dense.min_disparity_px + dense.pair_num_disparities).to(disparities.disparity_px.dtype)
     return inliers & disparities.valid & (disparities.disparity_px > top[:, None])
 

@@ -70,9 +70,9 @@ class PipelineConfig:
         refine_matches: :class:`~svs_torch.geometry.lk_refinement.MatchRefinementConfig`: sub-pixel Lucas–Kanade
             refinement of each matched right point on the images the features were found on, with a correlation
             gate; None: the keypoints as detected (the paper).
-        ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3).
+        ransac_threshold_px: Sampson-distance inlier threshold, pixels, Sec. 3.3 (3); MATLAB's 0.1 in ``paper()``.
         ransac_confidence: stop when an all-inlier 7-point sample was drawn with this probability.
-        ransac_max_iterations: 7-point samples per pair at most.
+        ransac_max_iterations: 7-point samples per pair at most; 500 in ``paper()`` (MATLAB's NumTrials).
         ransac_scoring: ``"ransac"`` keeps the model with the most inliers (the paper's rule), ``"msac"`` the
             lowest truncated Sampson cost (more accurate on the same samples; the default), ``"lmeds"`` the least
             median (MATLAB's default method).
@@ -218,7 +218,7 @@ class PipelineConfig:
     features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
     max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
-    laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3
+    laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3; off in paper() (MATLAB matchFeatures)
     epipolar_band_px: float | None = None  # pixels; None: no band
     refine_matches: MatchRefinementConfig | None = field(default_factory=MatchRefinementConfig)
     ransac_threshold_px: float = 1.0  # pixels, Sampson distance

@@ -61,7 +61,10 @@ class PipelineResult:
             rectification; row_alignment_inliers ``(B, K)`` bool, the matches the row alignment's similarity fits
             (where ``row_aligned``; all False without a row alignment); row_alignment_turn_deg ``(B, 2)``, the right
             camera's turn about its y and x axes the alignment undid, degrees (its keystone,
-            :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none).
+            :class:`~svs_torch.geometry.row_alignment.RowAlignment`'s ``keystone_deg``; 0 where none). A
+            ``row_aligned`` pair's roll, vertical shift and scale undone: ``right_camera_deviation(result.H_right,
+            batch.image_hw)`` (:func:`~svs_torch.geometry.row_alignment_keystone.right_camera_deviation`), as
+            ``estimate`` prints them.
         dropped_labels: ``(B, N)`` int64, under the dense rule: the left label each kept slot dropped as
             unmeasured held (``PipelineConfig.drop_unmeasured_below_share``; its ``kept_labels`` entry is now −1),
             −1 elsewhere, so that an evaluation scores a dropped region as an object left without a distance
