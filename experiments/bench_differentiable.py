@@ -1,8 +1,9 @@
-"""Benchmark (issue 31): ``estimate_obstacle_depth(..., differentiable=True)`` forward + backward on B = 8 real pairs
-at 320×240, against the hard pipeline's forward on the same batch in the same run: the default (the nearness
-segmenter), the paper's Otsu and the learned segmenter (gradients to both images, and to the network's weights for
-the learned one). Median and spread of several runs, peak memory of one forward + backward (how far the peak resident
-set rises above the resident set before it, in a fresh process), thread count and load recorded.
+"""Benchmark (issue 31): ``estimate_obstacle_depth`` under ``PipelineConfig(differentiable=True)``, forward +
+backward on B = 8 real pairs at 320×240, against the hard pipeline's forward on the same batch in the same run: the
+default (the nearness segmenter), the paper's Otsu and the learned segmenter (gradients to both images, and to the
+network's weights for the learned one). Median and spread of several runs, peak memory of one forward + backward
+(how far the peak resident set rises above the resident set before it, in a fresh process), thread count and load
+recorded.
 
     python experiments/bench_differentiable.py [--threads 2] [--repeats 5] [--batch 8] [--json out.json]
 """

@@ -1,9 +1,9 @@
-"""Measurement (issue 31, item 2): each object's depth from ``estimate_obstacle_depth(..., differentiable=True)``
-against the hard pipeline's in the same call (``result.hard_depth``), on the 28 held-out shared scenes
-(middlebury_2005_2006_third and middlebury_2003_quarter, ``paper_table1.split_scenes``) at 320×240 and at native
-size, for the default (the nearness segmenter), the paper's Otsu and the learned segmenter. Prints, per setting, the
-share of ranged objects whose differentiable median depth is within 0.5 % of the hard one, and the quantiles of
-|relative difference| (median, low and high percentile, the nearest obstacle's depth).
+"""Measurement (issue 31, item 2): each object's depth from ``estimate_obstacle_depth`` under
+``PipelineConfig(differentiable=True)`` against the hard pipeline's in the same call (``result.hard_depth``), on the
+28 held-out shared scenes (middlebury_2005_2006_third and middlebury_2003_quarter, ``paper_table1.split_scenes``) at
+320×240 and at native size, for the default (the nearness segmenter), the paper's Otsu and the learned segmenter.
+Prints, per setting, the share of ranged objects whose differentiable median depth is within 0.5 % of the hard one,
+and the quantiles of |relative difference| (median, low and high percentile, the nearest obstacle's depth).
 
     python experiments/differentiable_agreement.py [--threads 2] [--json out.json]
 """

@@ -15,12 +15,13 @@ nearness_logits`: the measured disparity's rule plus the network), against the o
 :func:`~svs_torch.segmentation.learned.obstacle_truth`, BCE + Dice. The measured disparity does not depend on the
 network, so it is measured once per sample.
 
-Stage 2 (through the pipeline, ``--fine-tune-steps``): ``estimate_obstacle_depth(..., differentiable=True)`` with
-the network on whole training scenes at 320×240, the loss of ``train_segmentation.pipeline_depth_loss``: each ranged
-object's differentiable depth against the median ground-truth depth over its kept region, and each pair's nearest
-ranged obstacle against the true nearest; images require grad (the gradient reaches them through the segmenter's
-straight-through disparity and the depth stage). The weights of the lowest loss are kept. A fine-tune needs an
-``--out`` of its own: its weights never replace the shipped ones.
+Stage 2 (through the pipeline, ``--fine-tune-steps``): ``estimate_obstacle_depth`` under
+``PipelineConfig(differentiable=True)`` with the network on whole training scenes at 320×240, the loss of
+``train_segmentation.pipeline_depth_loss``: each ranged object's differentiable depth against the median
+ground-truth depth over its kept region, and each pair's nearest ranged obstacle against the true nearest; images
+require grad (the gradient reaches them through the segmenter's straight-through disparity and the depth stage). The
+weights of the lowest loss are kept. A fine-tune needs an ``--out`` of its own: its weights never replace the
+shipped ones.
 
     python experiments/train_nearness.py [--steps 0] [--fine-tune-steps 0] [--seed 0] [--out FILE]
 
