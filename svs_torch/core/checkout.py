@@ -16,8 +16,11 @@ SHORT_COMMIT_CHARS = 12
 
 def checkout_commit() -> tuple[str, bool] | None:
     """The full commit of the git checkout holding the package and whether tracked files differ from it; None
-    where the package is not in a checkout (an installed wheel) or git is missing or does not answer in 10 s."""
+    where the package is not at the top of a checkout (an installed wheel, also in a virtual environment inside
+    another project's checkout) or git is missing or does not answer in 10 s."""
     root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():  # an installed copy: git would answer for any checkout around it (a venv's)
+        return None
     git = ["git", "-C", str(root)]
     try:
         commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,

@@ -38,3 +38,25 @@ def test_outside_a_checkout_the_version_alone_is_recorded(monkeypatch):
         monkeypatch.setattr(checkout.subprocess, "run", run)
         assert checkout.checkout_commit() is None
         assert checkout.short_commit() == "unknown" and checkout.code_version() == __version__
+
+
+def test_a_package_installed_inside_another_checkout_records_no_commit(tmp_path):
+    """An installed copy (site-packages in a virtual environment inside a user's own git project) is not a checkout
+    of svs_torch: git answered from the enclosing project, and reports recorded that project's commit, and its
+    edits as ``-dirty``, as the code that ran."""
+    import importlib.util
+    import shutil
+
+    project = tmp_path / "project"
+    installed = project / ".venv" / "site-packages" / "svs_torch" / "core"
+    installed.mkdir(parents=True)
+    shutil.copy(checkout.__file__, installed / "checkout.py")
+    git = ["git", "-C", str(project), "-c", "user.name=a", "-c", "user.email=a@b.c"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (project / "notes.txt").write_text("a user's project\n")
+    subprocess.run([*git, "add", "notes.txt"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "theirs"], check=True)
+    spec = importlib.util.spec_from_file_location("installed_checkout", installed / "checkout.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.checkout_commit() is None
