@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import check_dtype, check_shape
 from ..core.numerics import safe_sqrt
 
 __all__ = ["keystone_design", "keystone_homography", "keystone_refit", "mapped_row_residuals", "right_camera_deviation"]
@@ -76,7 +77,11 @@ def right_camera_deviation(H_right: torch.Tensor, image_hw: torch.Tensor
     inverse map (the ideal view's pixels to the camera's) at the image centre ``(image_hw − 1) / 2``, where the
     keystone's unturn is the identity to first order (a rig's roll, height and zoom difference read back; a wide
     lens's distortion and a near scene's vertical disparities, which the alignment absorbs too, add their own).
-    The identity reads 0, 0 and 1. Differentiable w.r.t. ``H_right``."""
+    The identity reads 0, 0 and 1. ``image_hw`` ``(B, 2)``: each pair's (height, width), as
+    ``StereoBatch.image_hw``. Differentiable w.r.t. ``H_right``."""
+    b = check_shape(H_right, "H_right", ["B", 3, 3])["B"]
+    check_dtype(H_right, "H_right", "float")
+    check_shape(image_hw, "image_hw", [b, 2])
     camera = torch.linalg.inv(H_right.to(torch.float64))
     cy, cx = ((image_hw.to(torch.float64) - 1) / 2).unbind(-1)
     mapped = (camera @ torch.stack([cx, cy, torch.ones_like(cx)], -1)[..., None]).squeeze(-1)
