@@ -20,8 +20,8 @@ pipeline and that the pipeline never imports.
 May import: ``svs_torch.core``, the stages' public names, the pipeline and ``data``. Only the CLI and the
 experiments import it.
 
-Only :mod:`.metrics`, :mod:`.stereo_metrics` and :mod:`.runner` are imported here; the others load when
-named.
+Only :mod:`.metrics`, :mod:`.stereo_metrics`, :mod:`.disparity_errors` and :mod:`.runner` are imported here; the
+others load when named.
 """
 
 from .disparity_errors import DisparityErrors, dense_disparity_errors, disparity_map_errors, sparse_disparity_errors

@@ -1,7 +1,7 @@
 """Stage 2, features: SURF keypoints and descriptors.
 
 ``integral`` (integral images), ``hessian`` (the box-filter Hessian's scale space), ``detector`` (its maxima, refined
-into keypoints; :class:`SurfConfig`), ``descriptor`` (upright SURF descriptors), ``surf`` (both together:
+into keypoints; :class:`SurfConfig`), ``descriptor`` (SURF descriptors, upright or oriented), ``surf`` (both together:
 :func:`extract_surf_features`); ``kernels/`` holds the C kernels of the Hessian, its maxima, their refinement and
 the descriptor, beside the torch code that stays their reference.
 
