@@ -35,7 +35,8 @@ def unrange_objects_beyond_search(objects: ObjectDepths, point_slot: torch.Tenso
     """``objects`` ``(B, N)`` with every object that holds at least :data:`MIN_BEYOND_INLIERS` inliers, and at least
     half of its inliers, whose disparity (``disparities``, the frame the dense map was measured in) exceeds the
     range ``dense`` searched made invalid, its depths 0. ``point_slot`` ``(B, K)``: each correspondence's object
-    slot (−1 none); ``inliers`` ``(B, K)`` bool. Not differentiable (a discrete decision)."""
+    slot (−1 none); ``inliers`` ``(B, K)`` bool. Gradients pass through to the depths of the objects kept; the
+    decision itself has none."""
     usable = inliers & disparities.valid & (point_slot >= 0)
     beyond = inliers_beyond_search(disparities, inliers, dense) & (point_slot >= 0)
     member = point_slot.unsqueeze(-1) == torch.arange(objects.valid.shape[1], device=point_slot.device)
