@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import json
 import os
 import stat
 import sys
@@ -35,6 +34,7 @@ from typing import Any, TextIO
 
 from ..core.files import display_path, null_device_on
 from ..core.workers import signals_held
+from .common import dumps_strict
 from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, open_pairs_index, replay_command, \
     save_pair
 from .estimate_report import pair_report
@@ -153,7 +153,7 @@ class GuideLog:
         walks). A closed pipe (BrokenPipeError) still ends guide, as for every command."""
         if self.stream is None:
             return
-        text = json.dumps(line) + "\n"  # (ASCII: as many bytes as characters)
+        text = dumps_strict(line) + "\n"  # (ASCII: as many bytes as characters; NaN, inf: null, as estimate --json)
         if not self._line_ends:
             self._line_ends.append(_file_offset(self.stream))
         try:

@@ -12,7 +12,6 @@ Only the standard library is imported: the folder is checked before torch loads.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shlex
 from pathlib import Path
@@ -21,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, display_path, path_kind, write_bytes_atomic, \
     write_errors_named
+from .common import dumps_strict
 
 if TYPE_CHECKING:
     from ..capture.stereo import Frame, StereoPair
@@ -144,7 +144,9 @@ class PairsIndex:
     def append(self, record: dict[str, Any]) -> None:
         """Write ``record`` as one line. Raises OSError naming the option and the index (then the index holds the
         lines before it only, and the images ``record`` names are removed)."""
-        line = memoryview((json.dumps(record) + "\n").encode())
+        # Strict JSON (NaN, inf: null), as every other JSON line of svs-depth: json.dumps wrote NaN, which strict
+        # readers (jq, JavaScript's JSON.parse) refuse
+        line = memoryview((dumps_strict(record) + "\n").encode())
         try:
             with write_errors_named(self.option, self.path):
                 while line:  # an unbuffered write may take part of the line

@@ -159,3 +159,28 @@ def test_the_printed_estimate_command_takes_a_folder_named_with_a_dash(capsys, t
     assert "--pairs=-walk/index.jsonl" in argv
     assert main([*argv[1:], "--workers", "1"]) == 0
     assert json.loads(capsys.readouterr().out)["status"]
+
+
+def _strict_json(text: str) -> dict:
+    """``text`` as JSON that strict readers (jq, JavaScript's JSON.parse) take: NaN and Infinity refused."""
+    def refuse(token: str):
+        raise ValueError(f"not strict JSON: {token}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_index_and_guide_json_lines_are_strict_json(tmp_path):
+    """Found by an audit of JSON writers: capture's and guide's index.jsonl and guide's --json lines were written by
+    json.dumps, which turns a NaN or inf into the tokens NaN / Infinity that strict readers refuse; every other JSON
+    line of svs-depth (estimate, eval, bench, sweep: dumps_strict) writes null there."""
+    import io
+
+    from svs_torch.cli.guide_log import GuideLog
+
+    record = {"index": 0, "nearest_m": float("nan"), "warning": {"confirmed_m": float("inf")}}
+    with PairsIndex(tmp_path, "--record") as index:
+        index.append(record)
+    line = _strict_json((tmp_path / "index.jsonl").read_text())
+    assert line["nearest_m"] is None and line["warning"]["confirmed_m"] is None
+    stream = io.StringIO()
+    GuideLog(stream, None).event("camera_back", lost_s=float("-inf"))
+    assert _strict_json(stream.getvalue())["lost_s"] is None
