@@ -8,14 +8,13 @@ import os
 import time
 
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
-                     finite_float, non_negative_int, output_file, positive_float, positive_int,
-                     resolve_export_options, seed_int, too_small_reason)
+                     non_negative_int, output_file, positive_int, resolve_export_options, seed_int, too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
 from .features import add_feature_options, add_pair_options, load_pair, warn_if_upsampled_large
-from .rig import (add_calibration_option, calibration_file_source, calibration_from_args,
-                  check_no_manual_calibration)
+from .rig import (add_calibration_option, baseline_m_value, calibration_file_source, calibration_from_args,
+                  check_no_manual_calibration, doffs_px_value, focal_px_value)
 from .segment import add_segmentation_options, add_segmenter_option
 
 __all__ = []
@@ -131,10 +130,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="with --pairs: worker processes, each with cores / N torch threads (default: one per "
                              "core, or per OMP_NUM_THREADS if that is fewer; 0 or 1: in this process). The lines "
                              "come out in list order whatever N is, and each pair's numbers do not depend on it")
-    parser.add_argument("--focal-px", type=positive_float,
+    parser.add_argument("--focal-px", type=focal_px_value,
                         help="focal length of the input images, pixels (default: the SVS model for the width)")
-    parser.add_argument("--baseline-m", type=positive_float, help="stereo baseline, metres (default: SVS 0.1075)")
-    parser.add_argument("--doffs-px", type=finite_float, default=0.0,
+    parser.add_argument("--baseline-m", type=baseline_m_value, help="stereo baseline, metres (default: SVS 0.1075)")
+    parser.add_argument("--doffs-px", type=doffs_px_value, default=0.0,
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
     add_calibration_option(parser, "LEFT RIGHT (and listed pairs; a list line with its own FOCAL_PX BASELINE_M is "
                                    "BAD_INPUT)", kept_beside=True)

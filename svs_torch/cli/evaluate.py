@@ -7,12 +7,12 @@ import sys
 import time
 import warnings
 
-from .common import (Terminated, add_disparity_export_options, dumps_strict, finite_float, options_named,
-                     output_file, positive_float, positive_int, resolve_export_options)
+from .common import (Terminated, add_disparity_export_options, dumps_strict, options_named, output_file,
+                     positive_int, resolve_export_options)
 from .features import MAX_PIXELS, checked_size
 from .progress import Progress
-from .rig import (add_calibration_option, check_no_manual_calibration, eval_rig_calibration, rig_provenance,
-                  with_calibrated_rectification)
+from .rig import (add_calibration_option, baseline_m_value, check_no_manual_calibration, doffs_px_value,
+                  eval_rig_calibration, focal_px_value, rig_provenance, with_calibrated_rectification)
 
 HELP = "score the pipeline against ground truth over many pairs (scene folders, lists)"
 
@@ -90,10 +90,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="pairs read at a time, run at most 32 pairs of 320x240 (2.5 megapixels) at a time "
                              "(default: 8, the fastest measured, see estimate; a larger batch, and the next one "
                              "read meanwhile, hold more pairs in memory)")
-    parser.add_argument("--focal-px", type=positive_float,
+    parser.add_argument("--focal-px", type=focal_px_value,
                         help="focal length of listed file pairs without one, pixels (default: the SVS model)")
-    parser.add_argument("--baseline-m", type=positive_float, help="baseline of those pairs, metres (default: SVS)")
-    parser.add_argument("--doffs-px", type=finite_float, default=0.0, help="doffs of those pairs, pixels")
+    parser.add_argument("--baseline-m", type=baseline_m_value, help="baseline of those pairs, metres (default: SVS)")
+    parser.add_argument("--doffs-px", type=doffs_px_value, default=0.0, help="doffs of those pairs, pixels")
     add_calibration_option(parser, "listed file pairs (one with its own FOCAL_PX BASELINE_M is BAD_INPUT)",
                            kept_beside=True)
     parser.add_argument("--db", metavar="FILE.sqlite", type=output_file,

@@ -4,12 +4,25 @@ from __future__ import annotations
 
 import argparse
 
+from .common import _number
+
 #: Rows of a pair rectified by a calibration agree within this many pixels (matching candidates farther apart are
 #: not considered): 3x the largest row error of the shared chessboards' corners (0.63 px), for a rig's drift.
 CALIBRATED_BAND_PX = 2.0
 
-__all__ = ["add_calibration_option", "calibration_file_source", "calibration_from_args", "check_no_manual_calibration",
-           "calibration_kept_beside", "take_kept_calibration", "with_calibrated_rectification"]
+#: The largest ``--focal-px`` and ``--doffs-px`` (either way) taken, pixels: a 1000 mm lens on 1 µm pixels, 250
+#: times the longest focal of the shared data (MiddEval3 at full size, 4000 px). ``--focal-px 1e30`` ranged Teddy at
+#: 3e27 m with the status OK, 1e39 was refused as "focal_px: ... got inf" (float32), and ``--doffs-px 1e30`` put
+#: every object at 0.000 m (an audit of option bounds).
+MAX_FOCAL_PX = 1e6
+#: The longest ``--baseline-m`` taken, metres: a rig holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m);
+#: with the focal's bound f·B stays under 1e8, far inside float32 (``--focal-px 1e20 --baseline-m 1e20`` left
+#: every object without a depth, its disparity read as "noisy frames").
+MAX_BASELINE_M = 100.0
+
+__all__ = ["add_calibration_option", "baseline_m_value", "calibration_file_source", "calibration_from_args",
+           "calibration_kept_beside", "check_no_manual_calibration", "doffs_px_value", "focal_px_value",
+           "take_kept_calibration", "with_calibrated_rectification"]
 
 
 def _calibration_path(text: str) -> str:
@@ -17,6 +30,33 @@ def _calibration_path(text: str) -> str:
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected a calibration file from 'svs-depth calibrate', got {text!r}")
     return text
+
+
+def focal_px_value(text: str) -> float:
+    """argparse type of ``--focal-px``: pixels over 0 and at most :data:`MAX_FOCAL_PX`."""
+    value = _number(text, float)
+    if not 0 < value <= MAX_FOCAL_PX:
+        raise argparse.ArgumentTypeError(f"expected a focal length in pixels over 0 and at most "
+                                         f"{MAX_FOCAL_PX:,.0f}, got {text!r}")
+    return value
+
+
+def baseline_m_value(text: str) -> float:
+    """argparse type of ``--baseline-m``: metres over 0 and at most :data:`MAX_BASELINE_M`."""
+    value = _number(text, float)
+    if not 0 < value <= MAX_BASELINE_M:
+        raise argparse.ArgumentTypeError(f"expected a baseline in metres over 0 and at most {MAX_BASELINE_M:g}, "
+                                         f"got {text!r}")
+    return value
+
+
+def doffs_px_value(text: str) -> float:
+    """argparse type of ``--doffs-px``: pixels, at most :data:`MAX_FOCAL_PX` either way."""
+    value = _number(text, float)
+    if not abs(value) <= MAX_FOCAL_PX:
+        raise argparse.ArgumentTypeError(f"expected pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}, "
+                                         f"got {text!r}")
+    return value
 
 
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs",
