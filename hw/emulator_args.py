@@ -11,7 +11,7 @@ import argparse
 
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
-from svs_torch.cli.common import finite_float, non_negative_float, non_negative_int, positive_float
+from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
 from svs_torch.core.camera import SVS_RESOLUTIONS, parse_size
 from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG
 
@@ -39,8 +39,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
                         "UART sends them (default %(default)s); 0: as fast as the socket takes them")
     p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
-    p.add_argument("--noise-sigma", type=non_negative_float, default=0.0, metavar="LEVELS",
-                   help="independent Gaussian sensor noise in each camera, 8-bit levels (default %(default)s)")
+    # 0 to 255, as svs-depth's --emulator-noise: 1e9 was taken and every pixel came out 0 or 255, no scene left.
+    p.add_argument("--noise-sigma", type=noise_levels, default=0.0, metavar="LEVELS",
+                   help="independent Gaussian sensor noise in each camera, 8-bit levels, 0 to 255 (default "
+                        "%(default)s)")
     p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
     p.add_argument("--floor-height-m", type=positive_float, default=None, metavar="M",
                    help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "

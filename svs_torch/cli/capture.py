@@ -29,7 +29,8 @@ from typing import Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.workers import signals_held
-from .common import Terminated, add_retries_option, noise_levels, pair_count, positive_int, timeout_seconds
+from .common import Terminated, add_retries_option, noise_levels, pair_count, timeout_seconds
+from .link_options import baud_rate
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
 from .progress import Progress
@@ -73,9 +74,10 @@ def add_parser(subparsers: Any) -> None:
                         help="output folder, created if missing; it must not hold an index.jsonl (also --out)")
     parser.add_argument("--quality", type=int, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
-    parser.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD,
+    parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD,
                         help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
-                             f"a frame's bytes may take (default: {DEFAULT_BAUD}; 115200 for a board built so)")
+                             f"a frame's bytes may take, 9600 to 12000000 (default: {DEFAULT_BAUD}; 115200 for a board "
+                             "built so)")
     parser.add_argument("--timeout", type=timeout_seconds, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most --retries "
                              f"times (default: {DEFAULT_TIMEOUT_S:g})")

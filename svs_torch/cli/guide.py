@@ -11,6 +11,7 @@ import warnings
 from ..core.files import PROGRESS_HELP
 from .common import (Terminated, add_retries_option, finite_float, noise_levels, non_negative_float,
                      pair_count_or_zero, positive_float, positive_int, terminated_on_sigterm, timeout_seconds)
+from .link_options import baud_rate
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -86,10 +87,36 @@ JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimat
 CONFIRM_FRAMES = 3
 #: ``--nearer-elsewhere-m``'s default: :data:`svs_torch.capture.guide.NEARER_ELSEWHERE_M` (as above).
 NEARER_ELSEWHERE_M = 0.3
+#: The most ``--confirm-frames``: a new obstacle is warned of N // 2 pairs later, here 10, half a second at 20 pairs/s
+#: and over a second at the 8 pairs/s guide ranges at on 2 cores, while a walker at 1.4 m/s crosses the default
+#: warning band (1 to 2 m) in 0.7 s. 10**9 was taken: after 1000 pairs of a clear way, a new obstacle went unwarned
+#: for 1001 pairs (after a clear hour, another hour), and each pair sorted all the distances kept so far.
+MAX_CONFIRM_FRAMES = 21
 CONFIRM_FRAMES_HELP = ("warn on the median of the last N pairs' distances, so that one camera frame ranged wrong by "
                        "its noise neither raises a warning nor silences one; a new obstacle is warned of N // 2 pairs "
-                       "later (about 50 ms at 20 pairs/s); 1: each pair alone (default: 3, "
-                       "experiments/guide_confirm.md)")
+                       f"later (about 50 ms at 20 pairs/s); 1: each pair alone, at most {MAX_CONFIRM_FRAMES} (default: "
+                       "3, experiments/guide_confirm.md)")
+#: The highest ``--emulator-floor-m``: the emulator's wall stands 4 m ahead, and from 3 m up its cameras, pitched
+#: 20° down, see no floor before it at 320x240 (none of 76,800 pixels; at 2.9 m 2,240). 1e9 was taken and guide
+#: ran with no floor in view, unsaid.
+MAX_EMULATOR_FLOOR_M = 3.0
+
+
+def _confirm_frames(text: str) -> int:
+    """argparse type of ``--confirm-frames``: 1 to :data:`MAX_CONFIRM_FRAMES` pairs."""
+    value = positive_int(text)
+    if value > MAX_CONFIRM_FRAMES:
+        raise argparse.ArgumentTypeError(f"expected a number of pairs from 1 to {MAX_CONFIRM_FRAMES}, got {text!r}")
+    return value
+
+
+def _emulator_floor_m(text: str) -> float:
+    """argparse type of ``--emulator-floor-m``: metres over 0 and under :data:`MAX_EMULATOR_FLOOR_M`."""
+    value = positive_float(text)
+    if not value < MAX_EMULATOR_FLOOR_M:
+        raise argparse.ArgumentTypeError(f"expected metres over 0 and under {MAX_EMULATOR_FLOOR_M:g} (higher, the "
+                                         f"emulator's cameras see no floor before its wall 4 m ahead), got {text!r}")
+    return value
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -102,18 +129,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
-    parser.add_argument("--emulator-floor-m", type=positive_float, metavar="M",
+    parser.add_argument("--emulator-floor-m", type=_emulator_floor_m, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
-                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them (default: no floor)")
+                             "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, under 3 (default: no floor)")
     parser.add_argument("--emulator-heap-m", type=positive_float, metavar="M",
                         help="with --emulator-floor-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and "
                              "0.35 m high, which guide warns of (default: none)")
     _add_walker_options(parser)
     parser.add_argument("--size", default="320x240", metavar="WxH",
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
-    parser.add_argument("--baud", type=positive_int, default=2_304_000,
+    parser.add_argument("--baud", type=baud_rate, default=2_304_000,
                         help="the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "
-                             "a frame's bytes may take (default: 2304000; 115200 for a board built so)")
+                             "a frame's bytes may take, 9600 to 12000000 (default: 2304000; 115200 for a board built "
+                             "so)")
     # capture's 1 s: at 2 s one grab the board left unanswered (SVS_PROTOCOL.md §3) kept the walker unwarned 2.2 s,
     # past --blind-s, and had "Cannot see ahead" and "Seeing ahead again" said for it (an audit of the device side)
     parser.add_argument("--timeout", type=timeout_seconds, default=1.0, metavar="S",
@@ -178,7 +206,7 @@ def _add_warning_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat-s", type=non_negative_float, default=3.0, metavar="S",
                         help="seconds before the same warning repeats; one still being spoken is let finish, "
                              "not restarted (default: 3)")
-    parser.add_argument("--confirm-frames", type=positive_int, default=CONFIRM_FRAMES, metavar="N",
+    parser.add_argument("--confirm-frames", type=_confirm_frames, default=CONFIRM_FRAMES, metavar="N",
                         help=CONFIRM_FRAMES_HELP)
     parser.add_argument("--nearer-elsewhere-m", type=_metres_or_off, default=NEARER_ELSEWHERE_M, metavar="M",
                         help="within --repeat-s, say a nearest obstacle on another side than the one last said at "

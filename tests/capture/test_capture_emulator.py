@@ -811,7 +811,7 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     (["--left-port", "70000"], "argument --left-port: expected a TCP port 0..65535"),
     (["--prepare", "abc"], "--prepare: expected WIDTHxHEIGHT"),
     (["--heap-ahead-m", "1.5"], "--heap-ahead-m: expected --floor-height-m too"),
-    (["--noise-sigma", "-1"], "argument --noise-sigma: expected a finite number >= 0"),
+    (["--noise-sigma", "-1"], "argument --noise-sigma: expected a noise σ in 8-bit levels, 0 to 255"),
     (["--camera-pitch-deg", "95"], "--camera-pitch-deg: expected degrees in [-30, 60]"),
     # Accepted up to ±90 before, but the renderer refuses what is outside [-30, 60]: its thread died at the first
     # keyframe and every frame was the stand-in's, with no floor (an audit of the synthetic truth).

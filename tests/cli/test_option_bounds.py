@@ -39,3 +39,53 @@ def test_calibration_options_of_real_rigs_are_taken():
     assert focal_px_value("1e6") == 1e6 and focal_px_value("721.5") == 721.5
     assert baseline_m_value("100") == 100 and baseline_m_value("0.54") == 0.54
     assert doffs_px_value("-1e6") == -1e6 and doffs_px_value("131.111") == 131.111
+
+
+@pytest.mark.parametrize("command", ["capture", "guide"])
+@pytest.mark.parametrize("value", ["1", "9599", "12000001", "10000000000000"])
+def test_baud_outside_serial_speeds_is_refused(capsys, tmp_path, command, value):
+    """``--baud 1`` allowed each frame attempt 40 days (a board that stopped mid-frame held the run, silent), and
+    ``--baud 1e13`` allowed every frame 2 s whatever its size."""
+    # (--count 1: what the old code ran, ended)
+    argv = [command, "--emulator", "--count", "1", f"--baud={value}"] + (
+        ["--out", str(tmp_path / "x")] if command == "capture" else ["--no-speech"])
+    assert f"argument --baud: expected a UART speed from 9600 to 12000000 baud, got '{value}'" in _refused(capsys, argv)
+    assert not (tmp_path / "x").exists()
+
+
+def test_baud_of_real_boards_is_taken():
+    from svs_torch.cli import build_parser
+
+    for baud in (9600, 115200, 2304000, 12000000):
+        assert build_parser().parse_args(["capture", "--out", "x", "--baud", str(baud)]).baud == baud
+
+
+@pytest.mark.parametrize("argv, message", [
+    # 10**9: after 1000 pairs of a clear way a new obstacle went unwarned for 1001 pairs
+    (["--confirm-frames", "22"], "argument --confirm-frames: expected a number of pairs from 1 to 21, got '22'"),
+    (["--confirm-frames", "1000000000"], "expected a number of pairs from 1 to 21"),
+    # 1e9: no floor in view, unsaid (none of its pixels seen from 3 m up at 320x240)
+    (["--emulator-floor-m", "3"], "argument --emulator-floor-m: expected metres over 0 and under 3 (higher, the "
+                                  "emulator's cameras see no floor before its wall 4 m ahead), got '3'"),
+    (["--emulator-floor-m", "1e9"], "argument --emulator-floor-m: expected metres over 0 and under 3"),
+])
+def test_guide_values_past_their_meaning_are_refused(capsys, argv, message):
+    assert message in _refused(capsys, ["guide", "--emulator", "--no-speech", "--count", "1", *argv])
+
+
+def test_guide_values_in_range_are_taken():
+    from svs_torch.cli import build_parser
+
+    args = build_parser().parse_args(["guide", "--emulator", "--confirm-frames", "21", "--emulator-floor-m", "2.9"])
+    assert (args.confirm_frames, args.emulator_floor_m) == (21, 2.9)
+
+
+def test_emulator_noise_sigma_is_bounded_as_svs_depths_emulator_noise(capsys):
+    """``python -m hw.emulator --noise-sigma 1e9`` served frames of pixels all 0 or 255 (no scene left); the σ now
+    takes 0 to 255 8-bit levels, as ``svs-depth guide/capture --emulator-noise``."""
+    from hw.emulator import main as emulator_main
+
+    with pytest.raises(SystemExit) as stopped:
+        emulator_main(["--noise-sigma", "1e9", "--left-port", "0", "--right-port", "0"])
+    err = capsys.readouterr().err
+    assert stopped.value.code == 2 and "argument --noise-sigma: expected a noise σ in 8-bit levels, 0 to 255" in err
