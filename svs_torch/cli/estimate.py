@@ -12,7 +12,8 @@ from .common import (add_disparity_export_options, add_figure_option, check_outp
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
 from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
                               with_calibration)
-from .features import add_feature_options, add_pair_options, load_pair, warn_if_upsampled_large
+from .features import (add_feature_options, add_pair_options, checked_size, load_pair,
+                       warn_if_upsampled_large)
 from .rig import (add_calibration_option, baseline_m_value, calibration_file_source, calibration_from_args,
                   check_no_manual_calibration, doffs_px_value, focal_px_value)
 from .segment import add_segmentation_options, add_segmenter_option
@@ -251,7 +252,14 @@ def _check_disparity_out(args: argparse.Namespace, range_rule: str | None) -> No
         if range_rule == "paper":
             raise InputError("--disparity-out: expected the dense range rule (the paper's rule measures no dense "
                              "map), got --range paper")
+        size_wh = checked_size(args.size) if args.size else None  # (a bad size refused before the folder is made)
         make_export_folder(args.disparity_out, "--disparity-out")
+        if size_wh is not None:  # maps the official tools refuse, said as eval says it (estimate wrote them unsaid)
+            import warnings
+
+            from ..core.dataset_files import resized_maps_note
+
+            warnings.warn(resized_maps_note(size_wh), RuntimeWarning, stacklevel=2)
 
 
 def _check_run_options(args: argparse.Namespace) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from .errors import InputError
 from .files import make_output_folder
 
-__all__ = ["KITTI_LAYOUTS", "KITTI_LEFT_FOLDERS", "files_read_with", "make_export_folder"]
+__all__ = ["KITTI_LAYOUTS", "KITTI_LEFT_FOLDERS", "files_read_with", "make_export_folder", "resized_maps_note"]
 
 #: The KITTI training layouts, 2012 then 2015: (left, right, truth, non-occluded truth) folders and the name prefix.
 KITTI_LAYOUTS = (("colored_0", "colored_1", "disp_occ", "disp_noc", "kitti2012"),
@@ -58,3 +58,14 @@ def _check_not_in_kitti_dataset(folder: str | os.PathLike, name: str) -> None:
     if beside is not None:
         raise InputError(f"{name}: {folder} is a folder of the KITTI dataset {parent} (beside its {beside}/): a map "
                          f"written there would replace a frame's ground truth or view; name a folder outside it")
+
+
+def resized_maps_note(size_wh: tuple[int, int]) -> str:
+    """What ``eval`` or ``estimate`` with ``--size WxH --disparity-out`` is told: its maps are at the size the pipeline
+    ran at, which the official tools do not score. The MiddEval3 SDK's ``evaldisp`` reads a map only at its ground
+    truth's size or exactly 1/2 or 1/4 of it (it refuses others: "GT disp size must be exactly 1, 2, or 4 * disp size"),
+    the KITTI devkit only at its size; the README's example at 320x240 wrote maps both refuse, exit 0, nothing said (an
+    audit of the export; estimate wrote them in silence after eval warned, another audit)."""
+    return (f"--disparity-out: the maps are {size_wh[0]}x{size_wh[1]}, the --size the pipeline ran at, whatever "
+            "each pair's own size: the MiddEval3 SDK scores a map only at its ground truth's size or exactly 1/2 or "
+            "1/4 of it, the KITTI devkit only at its size; for maps they score, run without --size")

@@ -15,18 +15,18 @@
 name keeps the label's folders, ``eval3/Teddy (x/a)`` → ``Teddy_x_a``).
 
 Each map is the pair's dense disparity (:attr:`~svs_torch.pipeline.PipelineResult.dense`) in the pixel grid and
-disparity units of the image the pipeline ran on: the pair's own size, or the ``--size`` it was resized to,
-padding cut off. The official tools score a map only at its ground truth's size (the MiddEval3 SDK also at exactly
-1/2 or 1/4 of it, scaling its disparities itself; the KITTI devkit not), so a map at another ``--size`` is for
-reading, not for them (``eval`` warns: :func:`resized_maps_note`). Pixels the dense stage did not measure (outside
-the kept regions' crop, or rejected) are unknown. A rectified pair's map is in rectified pixels; it is brought
-back to the left image's grid by nearest sampling of the rectified map at ``H_left · x`` (unknown where that falls
-outside), its values still rectified disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the
-horizontal offsets of the raw images differ by the rectification). A pair rectified before the pipeline by a
-rig's calibration (``--calibration``) is the pipeline's input as it is: its map stays in the rectified pixels.
-Files go through the atomic writer (:mod:`svs_torch.core.files`). A pair a run could not range (unreadable,
-too small, or its run raised) gets no map, and the map an earlier run left for it is removed, warned
-(:meth:`DisparityExport.forget_unrun`): the folder holds this run's maps only.
+disparity units of the image the pipeline ran on: the pair's own size, or the ``--size`` it was resized to, padding cut
+off. The official tools score a map only at its ground truth's size (the MiddEval3 SDK also at exactly 1/2 or 1/4 of it,
+scaling its disparities itself; the KITTI devkit not), so a map at another ``--size`` is for reading, not for them
+(``eval`` and ``estimate`` warn: :func:`resized_maps_note`). Pixels the dense stage did not measure (outside the kept
+regions' crop, or rejected) are unknown. A rectified pair's map is in rectified pixels; it is brought back to the left
+image's grid by nearest sampling of the rectified map at ``H_left · x`` (unknown where that falls outside), its values
+still rectified disparities (``Z = f·B / (d + doffs)`` holds for them as for the GT; the horizontal offsets of the raw
+images differ by the rectification). A pair rectified before the pipeline by a rig's calibration (``--calibration``) is
+the pipeline's input as it is: its map stays in the rectified pixels. Files go through the atomic writer
+(:mod:`svs_torch.core.files`). A pair a run could not range (unreadable, too small, or its run raised) gets no
+map, and the map an earlier run left for it is removed, warned (:meth:`DisparityExport.forget_unrun`): the folder
+holds this run's maps only.
 
 Reading a map back to the reported depths: an object's median (and percentiles) in ``estimate``'s JSON is over
 its region's pixels inside the searched box (``dense_box_xywh``) after each unknown pixel takes its row's
@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError, check_instance
-from ..core.dataset_files import make_export_folder
+from ..core.dataset_files import make_export_folder, resized_maps_note
 from ..core.files import write_bytes_atomic
 from ..core.types import StereoBatch
 from ..data.datasets import GENERIC_LEFT_NAME
@@ -78,17 +78,6 @@ def export_name(pair_name: str) -> str:
         last = path.parent.name if GENERIC_LEFT_NAME.fullmatch(path.stem) and path.parent.name else path.stem
     last += f"_{folders}" if folders else ""
     return re.sub(r"[^A-Za-z0-9_.-]", "_", last).lstrip(".") or "pair"
-
-
-def resized_maps_note(size_wh: tuple[int, int]) -> str:
-    """What ``eval --size WxH --disparity-out`` is told: its maps are at the size the pipeline ran at, which the
-    official tools do not score. The MiddEval3 SDK's ``evaldisp`` reads a map only at its ground truth's size or
-    exactly 1/2 or 1/4 of it (it refuses others: "GT disp size must be exactly 1, 2, or 4 * disp size"), the KITTI
-    devkit only at its size; the README's example at 320x240 wrote maps both refuse, exit 0, nothing said (an
-    audit of the export)."""
-    return (f"--disparity-out: the maps are {size_wh[0]}x{size_wh[1]}, the --size the pipeline ran at, whatever "
-            "each pair's own size: the MiddEval3 SDK scores a map only at its ground truth's size or exactly 1/2 or "
-            "1/4 of it, the KITTI devkit only at its size; for maps they score, run without --size")
 
 
 def _not_an_export(target: Path, timing: Path | None) -> str | None:

@@ -339,3 +339,25 @@ def test_forget_unrun_keeps_what_is_not_an_earlier_export(data_dir, tmp_path):
     with pytest.warns(RuntimeWarning, match="not run \\(BAD_INPUT\\): the map an earlier run left"):
         assert DisparityExport(tmp_path / "m").forget_unrun("eval3/Teddy", "BAD_INPUT") == map_file
     assert not map_file.exists() and not (map_file.parent / "timeSVSTorch.txt").exists()
+
+
+@pytest.mark.parametrize("pairs", [False, True])
+def test_estimate_warns_that_maps_at_a_size_are_not_the_official_tools(data_dir, tmp_path, capsys, pairs):
+    """Found by an audit of option gaps: 'estimate Teddy --size 320x267 --disparity-out maps' wrote a 320x267
+    disp0SVSTorch.pfm (Teddy's GT is 450x375: evaldisp refuses it) with exit 0 and nothing said, where eval with the
+    same options warns; its maps are the same files for the same tools (the shared --disparity-out help). Now the
+    same note, once, one pair or a --pairs list alike; at the scene's own size nothing."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    truth_hw = read_pfm(scene / "disp0GT.pfm").shape
+    (tmp_path / "list.txt").write_text(f"{scene}\n")
+    source = ["--pairs", str(tmp_path / "list.txt"), "--workers", "1"] if pairs else [str(scene)]
+    for size, warned in (("160x120", True), (None, False)):
+        out = tmp_path / f"maps_{size}"
+        argv = ["estimate", *source, "--json", "--disparity-out", str(out)] + (["--size", size] if size else [])
+        assert main(argv) == 0
+        err = capsys.readouterr().err
+        map_hw = read_pfm(out / "Teddy" / "disp0SVSTorch.pfm").shape
+        assert _evaldisp_size_ok(map_hw, truth_hw) is not warned, (size, map_hw)
+        assert err.count("the MiddEval3 SDK scores a map only at") == int(warned), err
+        if warned:
+            assert "--disparity-out: the maps are 160x120, the --size the pipeline ran at" in err
