@@ -185,7 +185,9 @@ def check_board_urls(args: argparse.Namespace) -> None:
 def _kept(done: int, out: Path) -> str:
     """What an interrupted capture kept: its pairs and where they are listed, or that nothing was saved (stopped
     before the boards answered, no folder was made: an audit found "after 0 pairs (index.jsonl lists them)")."""
-    return f"{done} pairs (index.jsonl lists them)" if (out / "index.jsonl").is_file() else "0 pairs: nothing saved"
+    if not (out / "index.jsonl").is_file():
+        return "0 pairs: nothing saved"
+    return f"{done} pair{'' if done == 1 else 's'} (index.jsonl lists them)"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -238,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{err} ({saved})", 1)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
-    print(f"{PROG}: saved {done} pairs to {out}; range them with: {replay}", file=sys.stderr)
+    print(f"{PROG}: saved {done} pair{'' if done == 1 else 's'} to {out}; range them with: {replay}", file=sys.stderr)
     if apart:  # a right board 0.5 s late on every frame was saved pair after pair without a word
         print(f"{PROG}: warning: {apart} of {done} pairs' frames came over {camera.max_frame_gap_s:g} s apart after "
               "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not range "

@@ -173,10 +173,12 @@ def _stereo_lines(summary: dict) -> list[str]:
 
 def format_summary(summary: dict) -> list[str]:
     nominal = (summary.get("nominal_calibration") or {}).get("scored") or 0
-    lines = [f"{summary['pairs']} pairs, {summary['failed']} failed, {summary['scored']} scored against ground "
+    pairs = f"{summary['pairs']} pair{'' if summary['pairs'] == 1 else 's'}"
+    lines = [f"{pairs}, {summary['failed']} failed, {summary['scored']} scored against ground "
              f"truth with their own calibration" + (f" and {nominal} with a NOMINAL one (apart, below)" if nominal
                                                     else "") + f"; {_number(summary['pairs_per_s'], 2)} pairs/s",
-             f"mean Acc (Eq. 9) over {summary['scored']} pairs with their own calibration: R_min "
+             f"mean Acc (Eq. 9) over {summary['scored']} pair{'' if summary['scored'] == 1 else 's'} with their own "
+             "calibration: R_min "
              f"{_number(summary['acc_r_min_pct'])} %, R_max "
              f"{_number(summary['acc_r_max_pct'])} %, objects {_number(summary['acc_objects_pct'])} %",
              f"dense disparity: median error {_number(summary['dense_error_median_px'], 2)} px, within 1 px "

@@ -320,7 +320,7 @@ class GuideSession:
     def stopped_text(self) -> str:
         """What guide says when it stops: the pairs taken, and how many were not ranged (a right board 0.5 s late
         on every frame ended "guide stopped after 5 pairs" with not one ranged, and nothing said of it)."""
-        text = f"guide stopped after {self.processed} pairs"
+        text = f"guide stopped after {self.processed} pair{'' if self.processed == 1 else 's'}"  # (not "1 pairs")
         why = [f"{count} not: {reason}" for count, reason in (
             (self.torn, "their two frames came too far apart"), (self.one_image, "their two frames were one image"),
             (self.frozen_pairs, "one camera sent its last frame again")) if count]

@@ -104,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
     total = len(sweep.configs) * len(sweep.sources)
-    print(f"svs-depth sweep: {outcome.rows_written} rows written by {outcome.tasks} tasks, "
+    rows, tasks = outcome.rows_written, outcome.tasks
+    print(f"svs-depth sweep: {rows} row{'s' * (rows != 1)} written by {tasks} task{'s' * (tasks != 1)}, "
           f"{outcome.rows_stored} of {total} stored in {args.db}"
           + (f" ({outcome.rows_to_retry} more failed there: BAD_INPUT, TOO_SMALL or ERROR rows, run again when the "
              f"same command is run again)" if outcome.rows_to_retry else ""), file=sys.stderr)

@@ -760,7 +760,7 @@ def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
         code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "1",
                            "--out", str(tmp_path / "run"))
     err = capsys.readouterr().err
-    assert code == 0 and "saved 1 pairs" in err
+    assert code == 0 and "saved 1 pair to" in err  # (was "saved 1 pairs")
     assert "warning: 1 of 1 pairs' frames came over 0.25 s apart after their regrabs" in err
     record = json.loads((tmp_path / "run" / "index.jsonl").read_text())
     assert record["time_between_frames_s"] > 0.25

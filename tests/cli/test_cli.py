@@ -819,7 +819,7 @@ def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop,
     lines = out.splitlines()
     assert result == code and lines[0] == guide_loop.GUIDE_READY and len(lines) >= 2
     assert lines[-1] == guide_loop.GUIDE_STOPPED and lines.count(guide_loop.GUIDE_STOPPED) == 1
-    assert "guide stopped after 1 pairs" in err
+    assert "guide stopped after 1 pair\n" in err  # (was "1 pairs")
 
 
 def test_guide_warns_on_a_noisy_emulator(capsys):
@@ -969,7 +969,7 @@ def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys)
     monkeypatch.setattr(sys, "stdout", _JsonReaderGone())
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
     err = capsys.readouterr().err
-    assert "guide stopped after 1 pairs" in err and "error" not in err  # (the pair whose line broke: taken)
+    assert "guide stopped after 1 pair\n" in err and "error" not in err  # (the pair whose line broke: taken)
 
 
 def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsys, tmp_path):
@@ -988,7 +988,7 @@ def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsy
     record = tmp_path / "walk"
     assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record", str(record)]) == 141
     err = capsys.readouterr().err
-    assert "guide stopped after 1 pairs" in err and "recorded 1 pair in" in err
+    assert "guide stopped after 1 pair\n" in err and "recorded 1 pair in" in err
 
 
 def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
@@ -1281,7 +1281,8 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
     assert ("identical_views" in events) == (stream == "one image")
     # the last line says none of the pairs taken was ranged (it said "guide stopped after N pairs" alone)
     why = {"torn pairs": "their two frames came too far apart", "one image": "their two frames were one image"}
-    assert session.stopped_text() == f"guide stopped after {session.processed} pairs" + (
+    plural = "" if session.processed == 1 else "s"
+    assert session.stopped_text() == f"guide stopped after {session.processed} pair{plural}" + (
         f" (0 ranged; {session.processed} not: {why[stream]})" if stream in why else "")
     assert not guide_loop._one_image_twice(StereoBatch.from_images(frame, frame.flip(-1), 276.0, 0.1075))
 

@@ -105,7 +105,7 @@ def test_eval_marks_nominal_scenes_and_lists_each_calibration(data_dir, capsys):
     assert code == 0 and rows["2003/Cones"].rstrip().endswith("NOMINAL") and rows["2003/Teddy"].rstrip().endswith("own")
     assert ("2003/Cones: calibration: f 1246.7 px, B 0.16 m, doffs 0.0 px (nominal, for scoring only: no calibration "
             "shipped or given)") in out
-    assert "mean Acc (Eq. 9) over 1 pairs with their own calibration" in out
+    assert "mean Acc (Eq. 9) over 1 pair with their own calibration" in out  # (was "1 pairs")
     assert "apart, 1 scored with a NOMINAL calibration" in out
     assert "2 pairs, 0 failed, 1 scored against ground truth with their own calibration and 1 with a NOMINAL one" in out
     code, out, _ = run_cli(capsys, "eval", *map(str, scenes), "--size", "160x120", "--json")
