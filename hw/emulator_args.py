@@ -8,11 +8,12 @@ emulator looked alive.
 from __future__ import annotations
 
 import argparse
+import math
 
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
-from svs_torch.core.camera import SVS_RESOLUTIONS, parse_size
+from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
 from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG
 
 __all__ = ["faults_from_args", "parse_args"]
@@ -81,6 +82,7 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     low, high = CAMERA_PITCH_RANGE_DEG
     if not low <= args.camera_pitch_deg <= high:
         p.error(f"--camera-pitch-deg: expected degrees in [{low:g}, {high:g}], got {args.camera_pitch_deg:g}")
+    _check_floor_in_view(p, args)
     if args.heap_ahead_m is not None and args.floor_height_m is None:
         p.error("--heap-ahead-m: expected --floor-height-m too (a heap stands on the floor)")
     if args.floor_height_m is not None and (args.images or args.simple_frames):
@@ -99,6 +101,32 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         p.error(f"--prepare: expected {sizes.replace(', 1280', ' or 1280')} (the sizes a board sends), got "
                 f"{odd[0]}x{odd[1]}")
     return args
+
+
+#: The synthetic frames' wall, metres ahead (render_obstacle_scenes' background_depth_m, which the emulator keeps).
+WALL_DEPTH_M = 4.0
+
+
+def _highest_floor_seen_m(pitch_deg: float) -> float:
+    """The height over the floor from which cameras pitched ``pitch_deg`` down see none of it before the wall, at
+    the tallest view of the sizes a board sends (the view's bottom ray meets the floor at the wall's depth). Why:
+    ``--floor-height-m 1e9`` was taken and every frame showed no floor, unsaid (at 20 degrees 320x240 sees none
+    from 3.00 m up, 1280x1024 from 3.11 m; at -30 degrees no height shows any)."""
+    half_rad = max(math.atan(h / 2 / SVS_CAMERA.focal_px(w)) for w, h in SVS_RESOLUTIONS.values())
+    return WALL_DEPTH_M * math.sin(math.radians(pitch_deg) + half_rad) / math.cos(half_rad)
+
+
+def _check_floor_in_view(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--floor-height-m`` low enough for the cameras, pitched ``--camera-pitch-deg``, to see the floor."""
+    if args.floor_height_m is None:
+        return
+    highest_m, pitch = _highest_floor_seen_m(args.camera_pitch_deg), f"--camera-pitch-deg {args.camera_pitch_deg:g}"
+    if highest_m <= 0:
+        p.error(f"--floor-height-m: cameras at {pitch} see no floor at any height before the wall {WALL_DEPTH_M:g} m "
+                "ahead; pitch them further down")
+    if not args.floor_height_m < highest_m:
+        p.error(f"--floor-height-m: expected under {highest_m:.2f} m with {pitch} (higher, no size a board sends "
+                f"shows any floor before the wall {WALL_DEPTH_M:g} m ahead), got {args.floor_height_m:g}")
 
 
 def _port(text: str) -> int:

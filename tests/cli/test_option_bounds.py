@@ -89,3 +89,41 @@ def test_emulator_noise_sigma_is_bounded_as_svs_depths_emulator_noise(capsys):
         emulator_main(["--noise-sigma", "1e9", "--left-port", "0", "--right-port", "0"])
     err = capsys.readouterr().err
     assert stopped.value.code == 2 and "argument --noise-sigma: expected a noise σ in 8-bit levels, 0 to 255" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    # 1e9 served frames with no floor in them, unsaid; 1280x1024 pitched 20 degrees sees none from 3.11 m up
+    (["--floor-height-m", "1e9"], "--floor-height-m: expected under 3.11 m with --camera-pitch-deg 20 (higher, no "
+                                  "size a board sends shows any floor before the wall 4 m ahead), got 1e+09"),
+    (["--floor-height-m", "1.3", "--camera-pitch-deg", "-30"],
+     "--floor-height-m: cameras at --camera-pitch-deg -30 see no floor at any height"),
+])
+def test_emulator_floor_out_of_view_is_refused(capsys, argv, message):
+    """``python -m hw.emulator --floor-height-m`` above what its cameras see of the floor before the synthetic wall
+    (checked against the renderer: at pitch 0, 20, 60 and -20 degrees, 5 cm below the bound some floor pixels, 5 cm
+    above none)."""
+    from hw.emulator_args import parse_args
+
+    with pytest.raises(SystemExit) as stopped:
+        parse_args(argv, "emulator", 230400.0)
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert parse_args(["--floor-height-m", "3.1"], "emulator", 230400.0).floor_height_m == 3.1
+
+
+def test_emulator_floor_bound_is_where_the_renderer_stops_drawing_floor():
+    import math
+
+    import torch
+
+    from hw.emulator_args import _highest_floor_seen_m
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    for pitch_deg in (0.0, 20.0):
+        highest_m = _highest_floor_seen_m(pitch_deg)
+        assert math.isclose(highest_m, {0.0: 1.853, 20.0: 3.110}[pitch_deg], abs_tol=1e-3)
+        seen = [int(render_obstacle_scenes(torch.tensor([[2.0]]), torch.tensor([[[5.0, 0.0]]]),
+                                           torch.tensor([[[0.1, 0.1]]]), size_wh=(1280, 1024), supersample=1,
+                                           generator=torch.Generator().manual_seed(0), floor_height_m=height_m,
+                                           camera_pitch_deg=pitch_deg).floor_mask.sum())
+                for height_m in (highest_m - 0.05, highest_m + 0.05)]
+        assert seen[0] > 0 and seen[1] == 0, (pitch_deg, seen)
