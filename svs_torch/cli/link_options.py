@@ -16,7 +16,7 @@ __all__ = ["MAX_BAUD", "MIN_BAUD", "baud_rate"]
 #: attempt 40 days: a board that stopped half-way through a frame held capture or guide, silent, for that long.
 MIN_BAUD = 9_600
 #: The fastest ``--baud`` taken: the fastest USB serial adapters (12 Mbaud; the SVS's own UART runs at 2,304,000).
-#: Above it the frames' timeouts no longer follow the link (``--baud 1e12`` allowed every frame 2 s, whatever its
+#: Above it the frames' timeouts no longer follow the link (``--baud 10**12`` allowed every frame 2 s, whatever its
 #: size), so a slower link's frames were cut as broken.
 MAX_BAUD = 12_000_000
 
