@@ -32,31 +32,29 @@ def _calibration_path(text: str) -> str:
     return text
 
 
+def _float_within(text: str, low: float, high: float, expected: str, include_low: bool = False) -> float:
+    """argparse: a finite number over ``low`` (from it, ``include_low``) and at most ``high``; else the error
+    "expected ``expected``"."""
+    value = _number(text, float)
+    if not (low <= value if include_low else low < value) or not value <= high:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+    return value
+
+
 def focal_px_value(text: str) -> float:
     """argparse type of ``--focal-px``: pixels over 0 and at most :data:`MAX_FOCAL_PX`."""
-    value = _number(text, float)
-    if not 0 < value <= MAX_FOCAL_PX:
-        raise argparse.ArgumentTypeError(f"expected a focal length in pixels over 0 and at most "
-                                         f"{MAX_FOCAL_PX:,.0f}, got {text!r}")
-    return value
+    return _float_within(text, 0, MAX_FOCAL_PX, f"a focal length in pixels over 0 and at most {MAX_FOCAL_PX:,.0f}")
 
 
 def baseline_m_value(text: str) -> float:
     """argparse type of ``--baseline-m``: metres over 0 and at most :data:`MAX_BASELINE_M`."""
-    value = _number(text, float)
-    if not 0 < value <= MAX_BASELINE_M:
-        raise argparse.ArgumentTypeError(f"expected a baseline in metres over 0 and at most {MAX_BASELINE_M:g}, "
-                                         f"got {text!r}")
-    return value
+    return _float_within(text, 0, MAX_BASELINE_M, f"a baseline in metres over 0 and at most {MAX_BASELINE_M:g}")
 
 
 def doffs_px_value(text: str) -> float:
     """argparse type of ``--doffs-px``: pixels, at most :data:`MAX_FOCAL_PX` either way."""
-    value = _number(text, float)
-    if not abs(value) <= MAX_FOCAL_PX:
-        raise argparse.ArgumentTypeError(f"expected pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}, "
-                                         f"got {text!r}")
-    return value
+    return _float_within(text, -MAX_FOCAL_PX, MAX_FOCAL_PX,
+                         f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}", include_low=True)
 
 
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs",
