@@ -8,8 +8,11 @@ Output, in ``--out-dir`` (alias ``--out``):
   after an error or Ctrl-C it lists exactly the complete pairs. Fields: ``index``, ``left``/``right`` (file
   names), ``width``, ``height``, ``left_bytes``/``right_bytes``, per camera ``*_request_monotonic_s``,
   ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, ``time_between_frames_s``
-  (right arrival − left arrival, seconds), and ``quality`` (the ``--quality`` digit both boards were set to; null
-  without it: the board's own setting, 4 at power-up, which no command reads back);
+  (right arrival − left arrival, seconds), ``quality`` (the ``--quality`` digit both boards were set to; null
+  without it: the board's own setting, 4 at power-up, which no command reads back) and ``frozen_camera``
+  (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed, by
+  ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else null; an older index has no such
+  key);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
   the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given).
@@ -24,6 +27,7 @@ import contextlib
 import math
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from ..core.camera import parse_size
@@ -201,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
             calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
-    done, apart = 0, 0
+    done, checks = 0, None
     try:
         with contextlib.ExitStack() as stack:
             camera = open_stereo_camera(args, size, stack)
@@ -216,17 +220,18 @@ def run(args: argparse.Namespace) -> int:
 
                 write_calibration(out / CALIBRATION_NAME, calibration, "--out-dir")
             progress = stack.enter_context(Progress(args.count, "capture"))
+            checks = _PairChecks(camera.max_frame_gap_s)
             for _ in range(args.count):  # a pair kept whole or not at all (pairs_folder's docstring)
                 pair = camera.grab_pair()
+                frozen = checks.frozen_camera(pair)
                 with signals_held():  # its images and its index line, both or neither (pairs_folder's docstring)
                     record = save_pair(out, pair, "--out-dir")
                     # Which JPEG quality the frames were sent at: a folder did not say, and a board keeps a digit set
                     # by an earlier run. None: --quality not given (the protocol has no command that reads it back).
-                    record["quality"] = args.quality
+                    record.update(quality=args.quality, frozen_camera=frozen)
                     index.append(record)
                     done += 1
-                # kept (the index says when each frame came), but counted: guide does not range such a pair
-                apart += camera.max_frame_gap_s is not None and abs(pair.time_between_frames_s) > camera.max_frame_gap_s
+                checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted
                 progress.update()
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
@@ -241,11 +246,54 @@ def run(args: argparse.Namespace) -> int:
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     print(f"{PROG}: saved {done} pair{'' if done == 1 else 's'} to {out}; range them with: {replay}", file=sys.stderr)
-    if apart:  # a right board 0.5 s late on every frame was saved pair after pair without a word
-        print(f"{PROG}: warning: {apart} of {done} pairs' frames came over {camera.max_frame_gap_s:g} s apart after "
-              "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not range "
-              "such pairs", file=sys.stderr)
+    for warning in checks.warnings(done):
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
     return 0
+
+
+class _PairChecks:
+    """What capture counts of the pairs it keeps, as guide refuses them: pairs whose two frames came more than
+    ``max_frame_gap_s`` apart after their regrabs (a right board 0.5 s late on every frame was saved pair after pair
+    without a word), and pairs in which one camera sent its last frame again while the other's changed
+    (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`: a stalled board's pairs were saved without a word, an old
+    view beside a new one in a data set). Both are kept: capture records what the boards sent, and the index says
+    which they are."""
+
+    def __init__(self, max_frame_gap_s: float | None) -> None:
+        from ..capture.frozen import FrozenCameraWatch
+
+        self.max_frame_gap_s, self.watch = max_frame_gap_s, FrozenCameraWatch()
+        self.apart, self.frozen = 0, {"left": 0, "right": 0}
+
+    def frozen_camera(self, pair) -> str | None:
+        """The camera of ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) judged frozen, or None; each
+        pair in the order grabbed (compared with the one before it)."""
+        import torch
+
+        frames = SimpleNamespace(left=torch.from_numpy(pair.left.image), right=torch.from_numpy(pair.right.image))
+        return self.watch.update(frames)  # (the decoded grayscale frames, guide's, without a copy)
+
+    def count(self, pair, frozen: str | None) -> None:
+        """Count a kept ``pair``, ``frozen`` its :meth:`frozen_camera`."""
+        gap_s = self.max_frame_gap_s
+        self.apart += gap_s is not None and abs(pair.time_between_frames_s) > gap_s
+        if frozen is not None:
+            self.frozen[frozen] += 1
+
+    def warnings(self, done: int) -> list[str]:
+        """The warnings of a capture that kept ``done`` pairs: one line each, none when all pairs were sound."""
+        said = []
+        if self.apart:
+            said.append(f"{self.apart} of {done} pairs' frames came over {self.max_frame_gap_s:g} s apart after "
+                        "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not "
+                        "range such pairs")
+        for camera, count in self.frozen.items():
+            if count:
+                other = "right" if camera == "left" else "left"
+                said.append(f"{count} of {done} pairs have the {camera} camera's frame sent again, pixel for pixel, "
+                            f"while the {other} one's changed (frozen_camera in index.jsonl): a stalled board, an old "
+                            f"view beside a new one; check the {camera} camera; guide does not range such pairs")
+        return said
 
 
 def open_stereo_camera(args: argparse.Namespace, size: tuple[int, int], stack: contextlib.ExitStack,

@@ -766,6 +766,31 @@ def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
     assert record["time_between_frames_s"] > 0.25
 
 
+@pytest.mark.parametrize("camera", ["left", "right"])
+def test_cli_capture_warns_of_and_marks_the_pairs_of_a_board_that_sends_one_frame_again(tmp_path, capsys, camera):
+    """Found by an audit of capture: with one board's sensor stalled (the emulator's --freeze: each grab answered
+    with its last frame's bytes again) capture saved every pair, an old view beside a new one, without a word, into
+    a researcher's data set. They are kept (capture records what the boards sent), each index line says which camera
+    was frozen (guide's rule: from the second such pair in a row), and the last lines count them."""
+    faults = {camera: Faults(frozen_grabs=10**6)}
+    # noise: the other board's frames change from grab to grab, as a real sensor's do
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
+                        faults=faults) as server:
+        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "5",
+                           "--size", "160x120", "--out", str(tmp_path / "run"))
+    err = capsys.readouterr().err
+    records = [json.loads(line) for line in (tmp_path / "run" / "index.jsonl").read_text().splitlines()]
+    assert code == 0 and "saved 5 pairs" in err
+    assert [record["frozen_camera"] for record in records] == [None, None, camera, camera, camera]
+    assert f"warning: 3 of 5 pairs have the {camera} camera's frame sent again, pixel for pixel" in err
+    assert f"check the {camera} camera" in err and "came over" not in err
+    # a sound capture says nothing of it, and its lines say null
+    assert run_capture("--emulator", "--count", "2", "--size", "160x120", "--out", str(tmp_path / "sound")) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert [json.loads(line)["frozen_camera"] for line in (tmp_path / "sound" / "index.jsonl").read_text().split(
+        "\n") if line] == [None, None]
+
+
 def test_cli_defaults_match_link_defaults():
     from svs_torch.cli import capture
 
