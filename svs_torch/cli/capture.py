@@ -231,24 +231,32 @@ def run(args: argparse.Namespace) -> int:
                     record.update(quality=args.quality, frozen_camera=frozen)
                     index.append(record)
                     done += 1
-                checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted
+                    checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted
                 progress.update()
+    # The pairs kept are warned of however the capture ended: a long one is ended with Ctrl-C, and it said nothing
+    # of the frozen or torn pairs it kept (an audit).
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
-        return 130
+        return _warned(130, checks, done)
     except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
         print(f"{PROG}: terminated after {_kept(done, out)}", file=sys.stderr)
-        return 143
+        return _warned(143, checks, done)
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
         saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
-        return _fail(f"{err} ({saved})", 1)
+        return _warned(_fail(f"{err} ({saved})", 1), checks, done)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     print(f"{PROG}: saved {done} pair{'' if done == 1 else 's'} to {out}; range them with: {replay}", file=sys.stderr)
-    for warning in checks.warnings(done):
+    return _warned(0, checks, done)
+
+
+def _warned(code: int, checks: _PairChecks | None, done: int) -> int:
+    """Print the warnings of the ``done`` pairs kept (:meth:`_PairChecks.warnings`; None: no pair was grabbed);
+    returns ``code``."""
+    for warning in checks.warnings(done) if checks is not None else ():
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
-    return 0
+    return code
 
 
 class _PairChecks:

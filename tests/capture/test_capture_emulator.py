@@ -791,6 +791,30 @@ def test_cli_capture_warns_of_and_marks_the_pairs_of_a_board_that_sends_one_fram
         "\n") if line] == [None, None]
 
 
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("Terminated", 143)])
+def test_a_capture_stopped_early_still_warns_of_the_pairs_it_kept(tmp_path, capsys, monkeypatch, stop, code):
+    """Found by an audit of capture: a long capture is ended with Ctrl-C (or a service's SIGTERM), and then it said
+    nothing of the frozen or torn pairs it had kept; the warnings came only after --count pairs."""
+    from svs_torch.cli.common import Terminated
+
+    grab, calls = SVSStereoCamera.grab_pair, []
+
+    def stopped_at_the_fifth(camera):
+        calls.append(1)
+        if len(calls) == 5:
+            raise Terminated() if stop == "Terminated" else stop()
+        return grab(camera)
+
+    monkeypatch.setattr(SVSStereoCamera, "grab_pair", stopped_at_the_fifth)
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
+                        faults={"right": Faults(frozen_grabs=10**6)}) as server:
+        assert run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "100",
+                           "--size", "160x120", "--out", str(tmp_path / "run")) == code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-2].endswith("after 4 pairs (index.jsonl lists them)")
+    assert "warning: 2 of 4 pairs have the right camera's frame sent again" in err[-1]
+
+
 def test_cli_defaults_match_link_defaults():
     from svs_torch.cli import capture
 
