@@ -59,8 +59,9 @@ GUIDE_STOPPED = "Guide stopped. No more warnings."
 #: 2 s after it and cuts it off (an audit); the printed warning says what to check.
 CAMERAS_SWAPPED = "Check the cameras. Distances may be wrong."
 #: Said after "Cannot see ahead" (one sentence: a newer message cuts off an older one) when the pairs were not ranged
-#: because one camera keeps sending one frame (a stalled board), once a run for each camera: the walker can do
-#: something about it (restart that board), and short for the reason given at CAMERAS_SWAPPED.
+#: because one camera keeps sending one frame (a stalled board), once a run for each camera, or with it said again
+#: where guide was blind already: the walker can do something about it (restart that board), and short for the
+#: reason given at CAMERAS_SWAPPED.
 CHECK_CAMERA = "Check the {} camera."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
@@ -296,10 +297,17 @@ class GuideSession:
         (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`): not ranged, not seen. Ranged, a stalled board's old
         frame beside the other's new one gave distances of where obstacles were (the emulator's --freeze: 2.1 m
         then 4.1 m while both boxes moved), and a walker was warned of that. When it leaves guide blind,
-        :data:`CHECK_CAMERA` is said with "Cannot see ahead", once a run for each camera."""
+        :data:`CHECK_CAMERA` is said with "Cannot see ahead", once a run for each camera; where guide was blind
+        already (its link froze first, then the board sent its last frame again), "Cannot see ahead" had been said
+        without it, and the walker never heard which camera to check (an audit): both are said again then. Not
+        with --blind-s 0, which asks for no word of being blind."""
         check = None if camera in self.cameras_checked else CHECK_CAMERA.format(camera)
         said = self._not_ranged(item, "CAMERA_FROZEN", f"the {camera} camera sends one frame again: not ranged",
                                 "camera_frozen", then=check, camera=camera)
+        if said is None and check and self.sight.blind:
+            # Whole, not the check alone: it may cut off "Cannot see ahead" said moments ago, which it then repeats.
+            self.guide.speaker.say(f"{CANNOT_SEE} {check}")
+            said = CANNOT_SEE
         if said == CANNOT_SEE:
             self.cameras_checked.add(camera)
         self.frozen_pairs += 1

@@ -74,30 +74,26 @@ def test_frames_from_before_a_reset_are_not_compared_with():
     assert watch.update(pair(stale, frames(1, seed=2)[0])) == "left"
 
 
-def test_guide_does_not_range_a_frozen_cameras_pairs_and_says_which_to_check_once(monkeypatch):
-    """guide ranged a stalled board's old frame beside the other board's new one: distances of where obstacles
-    were. Now such pairs are not ranged nor seen ({"event": "camera_frozen", "camera": "left"}), "Cannot see ahead"
-    comes after --blind-s with "Check the left camera." (once a run), and a frame from before a loss is not
-    compared with one after it."""
-    from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
+def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count: int, blind_s: float = 0.15):
+    """``guide``'s session over a fake camera: each open streams the next of ``streams`` (pairs and their frames'
+    gaps in seconds, or None for a tick without a pair, 10 ms apart), lost after each but the last. Returns the session, the lines said, the logged
+    events (name, camera) and the pairs ranged (each seen)."""
+    from svs_torch.capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
     from svs_torch.capture.link_types import CaptureError
     from svs_torch.cli import guide_loop
 
-    said, events, ranged = [], [], []
-    stale = frames(1, seed=1)[0]
-    fresh = iter(frames(200))
-    opened = []
+    said, events, ranged, opened = [], [], [], []
 
     class Camera:
         next_index, max_frame_gap_s = 0, 0.25
 
         def stream_batches(self, batch_size, num_batches=None, idle_s=None):
             opened.append(True)
-            for index in range(2 if len(opened) == 1 else 40):  # lost after 2 pairs, then 40 more
+            for index, item in enumerate(streams[len(opened) - 1]):
                 time.sleep(0.01)
-                yield SimpleNamespace(batch=pair(stale, next(fresh)), num_dropped=0,
-                                      pairs=[SimpleNamespace(index=index, time_between_frames_s=0.0)])
-            if len(opened) == 1:
+                yield None if item is None else SimpleNamespace(  # None: a tick, no pair came
+                    batch=item[0], num_dropped=0, pairs=[SimpleNamespace(index=index, time_between_frames_s=item[1])])
+            if len(opened) < len(streams):
                 raise CaptureError("left camera: no reply")
 
     class Words:
@@ -119,12 +115,46 @@ def test_guide_does_not_range_a_frozen_cameras_pairs_and_says_which_to_check_onc
     log = guide_loop.GuideLog(None, None)
     monkeypatch.setattr(log, "event", lambda name, **fields: events.append((name, fields.get("camera"))))
     guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
-    args = argparse.Namespace(count=42, blind_s=0.15, give_up_s=0, reconnect_s=0.01)
+    args = argparse.Namespace(count=count, blind_s=blind_s, give_up_s=0, reconnect_s=0.01)
     session = guide_loop.GuideSession(args, (32, 24), ranging, guide, StatusLine(None), log)
     session.run()
+    return session, said, events, ranged
+
+
+def test_guide_does_not_range_a_frozen_cameras_pairs_and_says_which_to_check_once(monkeypatch):
+    """guide ranged a stalled board's old frame beside the other board's new one: distances of where obstacles
+    were. Now such pairs are not ranged nor seen ({"event": "camera_frozen", "camera": "left"}), "Cannot see ahead"
+    comes after --blind-s with "Check the left camera." (once a run), and a frame from before a loss is not
+    compared with one after it."""
+    from svs_torch.capture.guide import CANNOT_SEE
+    from svs_torch.cli import guide_loop
+
+    stale = frames(1, seed=1)[0]
+    fresh = iter(frames(200))
+    streams = [[(pair(stale, next(fresh)), 0.0) for _ in range(count)] for count in (2, 40)]  # lost after 2 pairs
+    session, said, events, ranged = run_guide(monkeypatch, streams, count=42)
     frozen = [camera for name, camera in events if name == "camera_frozen"]
     # 2 pairs before the loss, then 2 after it (not compared with those before it) are ranged; the rest are not
     assert len(ranged) == 2 + FROZEN_PAIRS and frozen == ["left"] * (40 - FROZEN_PAIRS)
     assert said.count(f"{CANNOT_SEE} {guide_loop.CHECK_CAMERA.format('left')}") == 1
     assert said.count(CANNOT_SEE) == 0 and ("cannot_see", None) in events
     assert session.stopped_text().endswith(f"(4 ranged; {len(frozen)} not: one camera sent its last frame again)")
+
+
+def test_a_camera_that_freezes_while_guide_is_already_blind_is_still_named(monkeypatch):
+    """Found by an audit: "Check the left camera." was said only with "Cannot see ahead", so a board that stalled
+    while guide was already blind was never named: its link first froze (no pair for longer than --blind-s:
+    "Cannot see ahead"), then it answered with its last frame again and again, and the walker never heard which
+    camera to check. Now it is said then, with "Cannot see ahead" again before it (a newer message cuts off an older
+    one: nothing of that one is lost), once a run."""
+    from svs_torch.capture.guide import CANNOT_SEE
+    from svs_torch.cli import guide_loop
+
+    stale, fresh = frames(1, seed=1)[0], iter(frames(200))
+    # a pair ranged, 0.3 s of ticks without a pair (the link froze), then the left board's last frame again
+    stream = [(pair(stale, next(fresh)), 0.0)] + [None] * 30 + [(pair(stale, next(fresh)), 0.0) for _ in range(30)]
+    session, said, events, ranged = run_guide(monkeypatch, [stream], count=31)
+    check = f"{CANNOT_SEE} {guide_loop.CHECK_CAMERA.format('left')}"
+    assert said == [guide_loop.GUIDE_READY, CANNOT_SEE, check]
+    # the first pair after the freeze is compared with the one before it: one repeat alone is no freeze
+    assert len(ranged) == FROZEN_PAIRS and [name for name, _ in events].count("camera_frozen") == 31 - FROZEN_PAIRS
