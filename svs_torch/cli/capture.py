@@ -33,7 +33,7 @@ from typing import Any
 from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.workers import signals_held
-from .common import Terminated, add_retries_option, noise_levels, pair_count, timeout_seconds
+from .common import Terminated, add_retries_option, noise_levels, pair_count, quality_digit, timeout_seconds
 from .link_options import baud_rate
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
@@ -76,7 +76,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--count", type=pair_count, default=10, help="number of pairs to grab (default: 10)")
     parser.add_argument("--out-dir", "--out", dest="out", required=True, metavar="DIR",
                         help="output folder, created if missing; it must not hold an index.jsonl (also --out)")
-    parser.add_argument("--quality", type=int, default=None, metavar="1-8",
+    parser.add_argument("--quality", type=quality_digit, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
     parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD,
                         help=f"the boards' UART speed, serial devices and WiFi (socket://) alike: it sets how long "

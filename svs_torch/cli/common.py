@@ -129,6 +129,15 @@ def link_retries(text: str) -> int:
     return value
 
 
+def quality_digit(text: str) -> int:
+    """argparse type of ``--quality``: the boards' JPEG quality digit, 1 (best) to 8 (worst) (``int`` said only
+    "invalid int value: '4.5'", not what was expected: an audit)."""
+    value = int(text) if text.strip().lstrip("+").isdecimal() else 0
+    if not 1 <= value <= 8:
+        raise argparse.ArgumentTypeError(f"expected a JPEG quality digit, 1 (best) to 8 (worst), got {text!r}")
+    return value
+
+
 def add_retries_option(parser: argparse.ArgumentParser) -> None:
     """``--retries N``: how often a board's grab is sent again after a silent or broken reply
     (``LinkConfig.max_retries``)."""

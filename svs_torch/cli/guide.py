@@ -10,7 +10,8 @@ import warnings
 
 from ..core.files import PROGRESS_HELP
 from .common import (Terminated, add_retries_option, finite_float, noise_levels, non_negative_float,
-                     pair_count_or_zero, positive_float, positive_int, terminated_on_sigterm, timeout_seconds)
+                     pair_count_or_zero, positive_float, positive_int, quality_digit, terminated_on_sigterm,
+                     timeout_seconds)
 from .link_options import baud_rate
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
@@ -148,7 +149,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="seconds to wait for a reply (a frame's header) before re-sending, at most --retries "
                              "times (default: 1, as capture's)")
     add_retries_option(parser)
-    parser.add_argument("--quality", type=int, metavar="1-8",
+    parser.add_argument("--quality", type=quality_digit, metavar="1-8",
                         help="JPEG quality 1 (best) to 8 (worst) (default: the board's own)")
     _add_warning_options(parser)
     add_calibration_option(parser, "the frames")

@@ -828,6 +828,10 @@ def test_cli_defaults_match_link_defaults():
 @pytest.mark.parametrize("argv, message", [
     (["--count", "0", "--emulator"], "--count: expected a number of pairs from 1 to 100000000, got '0'"),
     (["--size", "100x100", "--emulator"], "--size: expected 160x120"),
+    # Were "argument --quality: invalid int value: '4.5'", which said nothing of what was expected.
+    (["--quality", "4.5", "--emulator"], "--quality: expected a JPEG quality digit, 1 (best) to 8 (worst), got '4.5'"),
+    (["--quality", "best", "--emulator"], "--quality: expected a JPEG quality digit, 1 (best) to 8 (worst), got"),
+    (["--quality", "9", "--emulator"], "--quality: expected a JPEG quality digit, 1 (best) to 8 (worst), got '9'"),
     (["--left", "socket://x:1", "--emulator"], "--left, --right: not used with --emulator"),
     (["--left", "socket://x:1"], "--left, --right: both board URLs are needed"),
     # Were: pyserial's "'<=' not supported between instances of 'int' and 'NoneType'" (no port), a capture error
@@ -921,6 +925,17 @@ def test_a_frame_the_source_cannot_make_is_no_reply_and_the_board_serves_on(caps
         with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST) as cam:
             pair = cam.grab_pair()
     assert pair.left.image.shape == (240, 320) and "no reply: images: cannot read gone.jpg" in capsys.readouterr().err
+
+
+def test_guide_says_what_quality_it_expected(capsys):
+    """Found by an audit of capture: ``--quality 4.5`` was "invalid int value: '4.5'" in capture and guide alike."""
+    from svs_torch.cli import main
+
+    with pytest.raises(SystemExit) as refused:
+        main(["guide", "--emulator", "--quality", "4.5", "--no-speech"])
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and err.count("\n") == 1
+    assert "argument --quality: expected a JPEG quality digit, 1 (best) to 8 (worst), got '4.5'" in err
 
 
 def test_guide_refuses_the_emulator_s_scene_beside_real_boards(capsys):
