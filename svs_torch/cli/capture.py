@@ -32,6 +32,7 @@ from typing import Any
 
 from ..core.camera import parse_size
 from ..core.errors import InputError
+from ..core.files import error_text
 from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, noise_levels, pair_count, quality_digit, timeout_seconds
 from .link_options import baud_rate
@@ -244,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
         saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
-        return _warned(_fail(f"{err} ({saved})", 1), checks, done)
+        return _warned(_fail(f"{error_text(err)} ({saved})", 1), checks, done)
     # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
     replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     print(f"{PROG}: saved {done} pair{'' if done == 1 else 's'} to {out}; range them with: {replay}", file=sys.stderr)

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from ..core.files import display_path, null_device_on
+from ..core.files import display_path, error_text, null_device_on
 from ..core.workers import signals_held
 from .common import dumps_strict
 from .pairs_folder import CALIBRATION_NAME, PairsIndex, drop_unused_pairs_folder, open_pairs_index, replay_command, \
@@ -120,7 +120,7 @@ class GuideLog:
         """Stop the record, not the guide: a walker still needs the warnings when the disk is full (it stopped
         guide, exit 1, an audit). Said once on stderr, and in :meth:`summary`."""
         self.close()
-        self.record_error = " ".join(str(error).split())
+        self.record_error = error_text(error)
         print(f"svs-depth guide: {self.record_error}; recording stopped after {_pairs(self.num_recorded)}, the "
               f"warnings go on", file=sys.stderr, flush=True)
 

@@ -27,7 +27,7 @@ from .errors import InputError
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
            "display_path", "make_output_folder", "null_device_on", "path_kind", "short_name", "split_list_line",
            "stream_is_terminal", "PROGRESS_HELP", "progress_setting", "redraws_in_place", "tidy_path",
-           "write_bytes_atomic", "write_errors_named"]
+           "write_bytes_atomic", "write_errors_named", "error_text"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -174,6 +174,17 @@ def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
     except OSError as error:
         raise OSError(error.errno, f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}"
                       ) from None
+
+
+def error_text(error: BaseException) -> str:
+    """``error`` as one line for a command's message: an :class:`OSError`'s reason and file without Python's
+    ``[Errno 28]`` (capture ended "error: [Errno 28] --out-dir: cannot write ...", the option no longer first, an
+    audit), as the command line's own handler says it; any other error as its text."""
+    if isinstance(error, OSError) and error.strerror:
+        text = error.strerror + (f": {error.filename}" if error.filename else "")
+    else:
+        text = str(error)
+    return " ".join(text.split())
 
 
 @contextlib.contextmanager
