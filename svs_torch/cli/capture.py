@@ -15,7 +15,8 @@ Output, in ``--out-dir`` (alias ``--out``):
   key);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
-  the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given).
+  the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given), after
+  Ctrl-C, SIGTERM or an error too when it kept any, and a warning of each kind of pair guide would not range.
 
 Exit codes: 0 done, 1 capture or file error, 2 bad arguments, 130 interrupted, 143 terminated (SIGTERM).
 """
@@ -206,6 +207,8 @@ def run(args: argparse.Namespace) -> int:
             calibration.scaled_to(size, "--calibration")  # the rig's aspect ratio must be the frames'
     except InputError as err:
         return _fail(str(err), 2)
+    # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
+    replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
     done, checks = 0, None
     try:
         with contextlib.ExitStack() as stack:
@@ -234,27 +237,27 @@ def run(args: argparse.Namespace) -> int:
                     done += 1
                     checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted
                 progress.update()
-    # The pairs kept are warned of however the capture ended: a long one is ended with Ctrl-C, and it said nothing
-    # of the frozen or torn pairs it kept (an audit).
+    # However the capture ended, the pairs kept are warned of, and one that ended early says how to range them (as
+    # guide --record does at every end): a long capture is ended with Ctrl-C, and it said neither (an audit).
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted after {_kept(done, out)}", file=sys.stderr)
-        return _warned(130, checks, done)
+        return _ended(130, checks, done, replay)
     except Terminated:  # SIGTERM (svs_torch.cli.common.terminated_on_sigterm), said as Ctrl-C is
         print(f"{PROG}: terminated after {_kept(done, out)}", file=sys.stderr)
-        return _warned(143, checks, done)
+        return _ended(143, checks, done, replay)
     except (CaptureError, OSError, InputError) as err:
         # A camera that never opened left no folder to name (an audit: "0 of 2 pairs saved in cap7", never made).
         saved = f"{done} of {args.count} pairs saved in {out}" if out.is_dir() else "nothing saved"
-        return _warned(_fail(f"{error_text(err)} ({saved})", 1), checks, done)
-    # The command that ranges them, as guide --record's summary gives it: camera frames, rectified by the rig's file.
-    replay = replay_command(out, calibration=None if calibration is None else str(out / CALIBRATION_NAME))
+        return _ended(_fail(f"{error_text(err)} ({saved})", 1), checks, done, replay)
     print(f"{PROG}: saved {done} pair{'' if done == 1 else 's'} to {out}; range them with: {replay}", file=sys.stderr)
-    return _warned(0, checks, done)
+    return _ended(0, checks, done)
 
 
-def _warned(code: int, checks: _PairChecks | None, done: int) -> int:
-    """Print the warnings of the ``done`` pairs kept (:meth:`_PairChecks.warnings`; None: no pair was grabbed);
-    returns ``code``."""
+def _ended(code: int, checks: _PairChecks | None, done: int, replay: str | None = None) -> int:
+    """Print the command that ranges the ``done`` pairs kept (``replay``, of a capture that ended early; None:
+    said already) and their warnings (:meth:`_PairChecks.warnings`; None: no pair was grabbed); returns ``code``."""
+    if replay is not None and done:
+        print(f"{PROG}: range the pairs kept with: {replay}", file=sys.stderr)
     for warning in checks.warnings(done) if checks is not None else ():
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
     return code

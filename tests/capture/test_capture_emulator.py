@@ -645,8 +645,8 @@ def test_cli_capture_error_keeps_only_complete_pairs(tmp_path, capsys):
         code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "5",
                            "--timeout", "0.2", "--out", str(tmp_path / "run"))
         assert time.monotonic() - start < 5.0
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert code == 1
+    err, replay = capsys.readouterr().err.strip().splitlines()[-2:]
+    assert code == 1 and replay.startswith("svs-depth capture: range the pairs kept with: svs-depth estimate --pairs")
     assert err.startswith("svs-depth capture: error: right camera (socket://127.0.0.1:")
     assert "(2 of 5 pairs saved in" in err
     assert len((tmp_path / "run" / "index.jsonl").read_text().splitlines()) == 2
@@ -715,7 +715,8 @@ def test_cli_capture_says_what_it_saved_when_terminated_or_when_no_camera_opened
 
     monkeypatch.setattr(SVSStereoCamera, "grab_pair", terminated_at_the_third)
     assert run_capture("--emulator", "--count", "5", "--size", "160x120", "--out", str(tmp_path / "run")) == 143
-    assert capsys.readouterr().err.strip().endswith("capture: terminated after 2 pairs (index.jsonl lists them)")
+    assert capsys.readouterr().err.strip().splitlines()[-2].endswith(
+        "capture: terminated after 2 pairs (index.jsonl lists them)")  # (then the command that ranges them)
     assert len((tmp_path / "run" / "index.jsonl").read_text().splitlines()) == 2
     monkeypatch.undo()
 
@@ -794,7 +795,8 @@ def test_cli_capture_warns_of_and_marks_the_pairs_of_a_board_that_sends_one_fram
 @pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("Terminated", 143)])
 def test_a_capture_stopped_early_still_warns_of_the_pairs_it_kept(tmp_path, capsys, monkeypatch, stop, code):
     """Found by an audit of capture: a long capture is ended with Ctrl-C (or a service's SIGTERM), and then it said
-    nothing of the frozen or torn pairs it had kept; the warnings came only after --count pairs."""
+    nothing of the frozen or torn pairs it had kept, nor how to range them (guide --record says it at every end);
+    both came only after --count pairs."""
     from svs_torch.cli.common import Terminated
 
     grab, calls = SVSStereoCamera.grab_pair, []
@@ -811,7 +813,9 @@ def test_a_capture_stopped_early_still_warns_of_the_pairs_it_kept(tmp_path, caps
         assert run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "100",
                            "--size", "160x120", "--out", str(tmp_path / "run")) == code
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-2].endswith("after 4 pairs (index.jsonl lists them)")
+    assert err[-3].endswith("after 4 pairs (index.jsonl lists them)")
+    assert err[-2] == f"svs-depth capture: range the pairs kept with: svs-depth estimate --pairs {tmp_path}/run/" \
+                      "index.jsonl --camera-frames --json"
     assert "warning: 2 of 4 pairs have the right camera's frame sent again" in err[-1]
 
 

@@ -112,6 +112,9 @@ def test_capture_on_a_full_disk_keeps_whole_pairs_and_names_the_option_and_file(
     # the option first, as the pairs_folder docstring promises: it read "error: [Errno 28] --out-dir: cannot write"
     assert code == 1 and "capture: error: --out-dir: cannot write" in err and "pair000001_right.jpg" in err
     assert "1 of 3 pairs saved" in err
+    # the pair kept is ranged by the command printed, as after a whole capture
+    argv = shlex.split(err.split("range the pairs kept with: ")[1].strip())
+    assert main([*argv[1:], "--workers", "1"]) == 0 and len(capsys.readouterr().out.splitlines()) == 1
     assert sorted(p.name for p in out.iterdir()) == ["index.jsonl", "pair000000_left.jpg", "pair000000_right.jpg"]
     assert len((out / "index.jsonl").read_text().splitlines()) == 1
 
