@@ -14,7 +14,7 @@ import os
 import sys
 import warnings
 
-from ..core.files import PROGRESS_HELP, null_device_on
+from ..core.files import PROGRESS_HELP, error_text, null_device_on
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
 from .progress import print_above_bar
@@ -292,14 +292,12 @@ def _main(argv: list[str] | None) -> int:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as error:
-        print(f"{prog}: error: {error.strerror or error}" + (f": {error.filename}" if error.filename else ""),
-              file=sys.stderr)
+        print(f"{prog}: error: {error_text(error)}", file=sys.stderr)
         return 2
     except OSError as error:
         if error.filename == STANDARD_OUTPUT:
             _silence_stdout()  # nothing more to say there, and the interpreter's last flush would fail again
-        print(f"{prog}: error: {error.strerror or error}" + (f": {error.filename}" if error.filename else ""),
-              file=sys.stderr)
+        print(f"{prog}: error: {error_text(error)}", file=sys.stderr)
         return 1
     except Exception as error:  # noqa: BLE001 -- the last line of defence: one line, never a traceback
         return _unexpected(prog, error)

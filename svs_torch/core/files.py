@@ -179,9 +179,9 @@ def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
 def error_text(error: BaseException) -> str:
     """``error`` as one line for a command's message: an :class:`OSError`'s reason and file without Python's
     ``[Errno 28]`` (capture ended "error: [Errno 28] --out-dir: cannot write ...", the option no longer first, an
-    audit), as the command line's own handler says it; any other error as its text."""
-    if isinstance(error, OSError) and error.strerror:
-        text = error.strerror + (f": {error.filename}" if error.filename else "")
+    audit), as the command line's own handler says it (``svs_torch.cli.main``); any other error as its text."""
+    if isinstance(error, OSError):
+        text = f"{error.strerror or error}" + (f": {error.filename}" if error.filename else "")
     else:
         text = str(error)
     return " ".join(text.split())
