@@ -7,7 +7,8 @@ reusable pieces of a live warning loop (rate-limited warnings, speech, frame-rat
 "nothing measured") and ``frozen`` (whether one board keeps sending one frame); ``link_types`` what a link is
 configured with, counts and receives.
 
-May import: ``svs_torch.core`` only (pyserial; torch only where ``stereo`` is used). The CLI imports it.
+May import: ``svs_torch.core`` only (pyserial; torch only where ``stereo`` and ``frozen`` are used). The CLI imports
+it.
 """
 
 from ..core.lazy_names import lazy_names
