@@ -13,6 +13,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from .capture_marks import capture_fields, capture_warning, warn_capture_marks
 from .common import dumps_strict, too_small_reason
 from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, forget_unrun_map,
                               format_report, pair_report, unranged_report, with_calibration)
@@ -108,7 +109,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
                                           calibration_file_source(args, source) is not None)
         else:
             report, bad = ranged[position], None
-        out.append(({"left": source.left, "right": source.right, **report}, bad))
+        out.append(({"left": source.left, "right": source.right, **capture_fields(source), **report}, bad))
     return out
 
 
@@ -297,7 +298,7 @@ def _run_many(args: argparse.Namespace) -> int:
                    for start in range(0, total, args.batch_size))
     else:
         total, results = _worker_results(args, listed, workers, max(1, budget // workers))
-    bad, unrectified = [], []
+    bad, unrectified, marked = [], [], []
     # A bar for a person watching; in a log or a pipe, a plain line every few seconds and a summary.
     with Progress(total, "estimate") as progress:
         for lines in results:
@@ -306,11 +307,15 @@ def _run_many(args: argparse.Namespace) -> int:
                     bad.append(reason)
                 elif report.get("calibration") and not report["calibration_rectified"]:  # (under --calibration:
                     unrectified.append(report["left"])  # a scene folder, ranged with its own calibration)
-                heading = f"{report['left']} {report['right'] or ''}".rstrip()
-                text = None if args.json else "\n".join([heading, *format_report(report, batched=True)])
+                heading, warning = f"{report['left']} {report['right'] or ''}".rstrip(), capture_warning(report)
+                if warning:  # an index's frozen camera or frames apart: ranged, said (its marks kept, not its line)
+                    marked.append({key: report[key] for key in ("frozen_camera", "frames_apart_s")})
+                text = None if args.json else "\n".join([heading, *format_report(report, batched=True),
+                                                          *[f"  {warning}"] * bool(warning)])
                 progress.write(dumps_strict(report) if args.json else text)
             progress.update(len(lines))
     warn_scenes_keep_their_own(args, unrectified)
+    warn_capture_marks(marked, total)
     if bad:
         print(f"svs-depth estimate: error: --pairs: {len(bad)} of {total} pairs are BAD_INPUT (first: {bad[0]})",
               file=sys.stderr)

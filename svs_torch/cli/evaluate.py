@@ -7,6 +7,7 @@ import sys
 import time
 import warnings
 
+from .capture_marks import capture_fields, warn_capture_marks
 from .common import (Terminated, add_disparity_export_options, dumps_strict, options_named, output_file,
                      positive_int, resolve_export_options)
 from .features import MAX_PIXELS, checked_size
@@ -290,6 +291,7 @@ def run(args: argparse.Namespace) -> int:
             _print_summary(args, evaluations, started, ran, len(sources))
         raise
     _print_summary(args, evaluations, started, ran)
+    warn_capture_marks([capture_fields(source) for source in sources], len(sources))  # (as estimate --pairs)
     return 0
 
 
@@ -339,7 +341,8 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
                         store.write_task(sweep_config.config_id, run_id, block)
                         rows += len(block)
                     block = []
-                line = (dumps_strict({"left": source.left, "right": source.right, **asdict(evaluation)})
+                line = (dumps_strict({"left": source.left, "right": source.right, **capture_fields(source),
+                                      **asdict(evaluation)})
                         if args.json else format_row(evaluation))
                 bar.write(line, file=sys.stdout)
     except (KeyboardInterrupt, Terminated):

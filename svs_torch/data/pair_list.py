@@ -72,6 +72,9 @@ class PairSource:
         label: the name to report the pair by where another listed pair would have its name (two folders both
             called ``Teddy``): the name with the folders that tell them apart, ``eval3/Teddy (a)``. None: its
             own name.
+        frozen_camera, time_between_frames_s: what an ``index.jsonl`` line records of the pair's frames (capture's
+            docstring): the camera whose frame came again (``"left"``/``"right"``) and how far apart, in seconds,
+            the two frames arrived; None where the line says nothing (or is no index line).
     """
 
     left: str
@@ -84,6 +87,8 @@ class PairSource:
     listed_at: str | None = None
     list_file: str | None = field(default=None, compare=False)  # where it was read, not what it is
     label: str | None = None
+    frozen_camera: str | None = field(default=None, compare=False)  # what capture saw of it, not what it is
+    time_between_frames_s: float | None = field(default=None, compare=False)
 
     @property
     def pair_id(self) -> str:
@@ -218,6 +223,15 @@ def _read_text(path: Path, name: str) -> str:
         raise InputError(f"{name}: cannot read {path}: {error.strerror or error}") from None
 
 
+def _capture_marks(record: dict) -> dict:
+    """The :class:`PairSource` fields of what an index line records of its frames (None where it holds no such
+    value): ``estimate --pairs`` and ``eval`` say which listed pairs are not one stereo moment, as capture did."""
+    frozen, gap_s = record.get("frozen_camera"), record.get("time_between_frames_s")
+    finite = isinstance(gap_s, (int, float)) and not isinstance(gap_s, bool) and math.isfinite(gap_s)
+    return {"frozen_camera": frozen if frozen in ("left", "right") else None,
+            "time_between_frames_s": float(gap_s) if finite else None}
+
+
 def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
     """The pairs of ``svs-depth capture``'s ``index.jsonl`` (file names relative to its folder)."""
     sources = []
@@ -236,9 +250,9 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             continue
         left, right = (str(p if Path(p).is_absolute() else path.parent / p)
                        for p in (record["left"], record["right"]))
-        numbers = [record.get(key) for key in CALIBRATION_KEYS]
+        numbers, marks = [record.get(key) for key in CALIBRATION_KEYS], _capture_marks(record)
         if all(number is None for number in numbers):
-            sources.append(PairSource(left=left, right=right))
+            sources.append(PairSource(left=left, right=right, **marks))
             continue
         if None in numbers[:2]:  # checked first: a doffs_px without both would be read in baseline_m's place
             given = ", ".join(key for key, number in zip(CALIBRATION_KEYS, numbers) if number is not None)
@@ -250,7 +264,7 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             sources.append(calibration)
             continue
         sources.append(PairSource(left=left, right=right, focal_px=calibration[0], baseline_m=calibration[1],
-                                  doffs_px=calibration[2], listed_at=where.split(": ", 1)[-1]))
+                                  doffs_px=calibration[2], listed_at=where.split(": ", 1)[-1], **marks))
     if not sources:
         raise InputError(f"{name}: no pair listed in {path}")
     return sources
