@@ -178,10 +178,12 @@ def _demo_figure(batch, result, true_nearest: dict | None, segmentation):
                                true_nearest["kept_label"] - 1 if true_nearest["kept"] else -1)
     # Four 320-wide panels fill the pipeline figure's width (which shows the true depth beside the estimate),
     # where two left a third of the row blank; the row is scaled to that width.
-    made_by = (segmentation.segmenter, segmentation.method)
+    pipeline = estimate_figure(batch, result, 0, true_nearest=nearest)
+    # A tiny --size: each panel enlarged to 160 px (the width titled_panel's titles are made for) before its title
+    # is wrapped, not after (segmentation_panels); 160 px and wider as they were.
+    made_by = (segmentation.segmenter, segmentation.method, 160)
     left_image, left_binary, _ = segmentation_panels(batch.left, result.segmentation.left, 0, "left", *made_by)
     right_image, right_binary, _ = segmentation_panels(batch.right, result.segmentation.right, 0, "right", *made_by)
-    pipeline = estimate_figure(batch, result, 0, true_nearest=nearest)
     top = compose_grid([[left_image], [right_image], [left_binary], [right_binary]])
     top = cv2.resize(top, (pipeline.shape[1], round(top.shape[0] * pipeline.shape[1] / top.shape[1])),
                      interpolation=cv2.INTER_AREA if top.shape[1] > pipeline.shape[1] else cv2.INTER_CUBIC)

@@ -194,9 +194,12 @@ def binary_title(seg: Segmentation, index: int, segmenter: str = "otsu", method:
 
 
 def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side: str, segmenter: str = "otsu",
-                        method: str = "otsu") -> list[np.ndarray]:
+                        method: str = "otsu", min_width_px: int = 0) -> list[np.ndarray]:
     """Three titled panels of one image: the input, the opened binary mask (titled by what made it:
-    :func:`binary_title`), the kept objects."""
+    :func:`binary_title`), the kept objects. A panel narrower than ``min_width_px`` is first enlarged by a whole
+    factor, pixels kept square (nearest neighbour), for a caller that scales the row up to a wide figure after:
+    its title was wrapped a letter a line at the image's width, and ``demo --size 16x12``'s figure was 10 473 px
+    tall (an audit)."""
     mask = seg.opened[index, 0].to(image.dtype)
     num_kept = int((seg.kept_labels[index] >= 0).sum())
     made = binary_title(seg, index, segmenter, method)
@@ -204,10 +207,16 @@ def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side
         # The nearness segmenter thresholds the left view only; the right's mask is the left's kept regions moved
         # by their disparity (an audit: one region under a "binary ... + opening" title beside the left's four).
         made = "mask: the left's regions moved by disparity"  # one line, as its neighbours' titles
+    def titled(panel: np.ndarray, title: str) -> np.ndarray:
+        factor = -(-min_width_px // panel.shape[1])
+        if factor > 1:
+            panel = cv2.resize(panel, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST)
+        return titled_panel(panel, title)
+
     return [
-        titled_panel(gray_to_bgr(image[index, 0]), f"{side} image"),
-        titled_panel(gray_to_bgr(mask), f"{side} {made}"),
-        titled_panel(objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
+        titled(gray_to_bgr(image[index, 0]), f"{side} image"),
+        titled(gray_to_bgr(mask), f"{side} {made}"),
+        titled(objects_panel(image, seg, index), f"{side}: {num_kept} kept"),
     ]
 
 

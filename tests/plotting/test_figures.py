@@ -181,6 +181,15 @@ def test_pipeline_figure_titles_fit_at_any_aspect(size_hw):
     assert max(render(figure).shape[:2]) <= 2000  # a tall or wide pair does not make a huge page
 
 
+def test_demo_figure_at_a_tiny_size_is_not_a_column_of_title_letters(tmp_path, capsys):
+    """Found by an audit: `demo --size 16x12` wrote a 1380x10473 figure, its top row's titles wrapped a letter a
+    line at the 16 px panels and then scaled up 15 times with them. The panels are enlarged before their titles."""
+    assert main(["demo", "--size", "16x12", "--seed", "14", "--figure", str(tmp_path / "tiny.png")]) == 0
+    capsys.readouterr()
+    height, width = cv2.imread(str(tmp_path / "tiny.png")).shape[:2]
+    assert height < 1.5 * width  # (was 7.6 times its width)
+
+
 @pytest.mark.parametrize("width", [24, 60, 320])
 def test_a_title_wider_than_a_tiny_panel_is_wrapped_and_broken_never_clipped(width):
     """Found by an audit of the figures: at `demo --size 24x18` one-word lines were clipped mid-word ('imag',
