@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         from ..evaluation.sweep import load_sweep, run_sweep
+        from .capture_marks import capture_fields, warn_capture_marks
 
     sweep = load_sweep(args.sweep_file)
     bar = None
@@ -103,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
+    # as estimate --pairs and eval: the pairs a capture's index marks as no stereo moment, counted (an audit)
+    warn_capture_marks([capture_fields(source) for source in sweep.sources], len(sweep.sources))
     total = len(sweep.configs) * len(sweep.sources)
     rows, tasks = outcome.rows_written, outcome.tasks
     print(f"svs-depth sweep: {rows} row{'s' * (rows != 1)} written by {tasks} task{'s' * (tasks != 1)}, "

@@ -54,3 +54,9 @@ def test_eval_of_an_index_marks_and_warns_of_frozen_and_torn_pairs(tmp_path, cap
     rows = [json.loads(line) for line in out.splitlines()[:-1]]  # the last line is the summary
     assert [row.get("frozen_camera", "-") for row in rows] == ["-", "left", None, "right", "-"]
     _said(err)
+
+
+def test_sweep_of_an_index_warns_of_frozen_and_torn_pairs(tmp_path, capsys):
+    (tmp_path / "sweep.toml").write_text(f'paths = ["{_index(tmp_path)}"]\n[grid]\n"segmentation.kernel_size" = [5]\n')
+    assert main(["sweep", str(tmp_path / "sweep.toml"), "--db", str(tmp_path / "sweep.sqlite"), "--workers", "0"]) == 0
+    _said(capsys.readouterr().err)
