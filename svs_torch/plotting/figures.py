@@ -207,6 +207,7 @@ def segmentation_panels(image: torch.Tensor, seg: Segmentation, index: int, side
         # The nearness segmenter thresholds the left view only; the right's mask is the left's kept regions moved
         # by their disparity (an audit: one region under a "binary ... + opening" title beside the left's four).
         made = "mask: the left's regions moved by disparity"  # one line, as its neighbours' titles
+
     def titled(panel: np.ndarray, title: str) -> np.ndarray:
         factor = -(-min_width_px // panel.shape[1])
         if factor > 1:
