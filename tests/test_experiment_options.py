@@ -7,7 +7,9 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
+import pytest
 from conftest import REPO_ROOT
 
 # Each experiment is called as its command (run_script) in a fresh process whose parse_args stops the run once the
@@ -47,27 +49,69 @@ print(json.dumps(results))
 """
 
 
-def refusals(cases: list[tuple[str, list[str]]], stop: bool = True) -> list[tuple[object, str]]:
-    """How each experiment ``(script, argv)`` ended: its exit status (or "parsed") and its last line on stderr;
-    ``stop``: once its arguments are parsed."""
+def _run_cases(cases: list[tuple[str, list[str], bool]]) -> list[tuple[object, str]]:
+    """How each experiment ``(script, argv, stop)`` ended, all in one fresh process (each process costs about 2 s
+    of imports): its exit status (or "parsed") and its last line on stderr; ``stop``: once its arguments are
+    parsed."""
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps([[*case, stop] for case in cases])], env=env,
-                          capture_output=True, text=True, timeout=300, check=True)
+    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps([list(case) for case in cases])],
+                          env=env, capture_output=True, text=True, timeout=300, check=True)
     return [(code, line[0]) for code, line in json.loads(done.stdout)]
 
 
-def assert_refused(cases: list[tuple[str, list[str]]]) -> None:
-    for (script, argv), (code, line) in zip(cases, refusals(cases)):
+def _assert_refused(cases: list[tuple[str, list[str]]], ended: list[tuple[object, str]]) -> None:
+    """Each of ``cases`` ended (``ended``, in order) in exit status 2 with a line naming its first option."""
+    for (script, argv), (code, line) in zip(cases, ended, strict=True):
         assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
 
 
-def _assert_refused_then_parsed(refused: list[tuple[str, list[str]]], parsed: list[tuple[str, list[str]]]) -> None:
-    """``refused`` each refused as :func:`assert_refused` says and ``parsed`` each parsed, in one process (each
-    process costs about 2 s of imports)."""
-    ended = refusals(refused + parsed)
-    for (script, argv), (code, line) in zip(refused, ended):
-        assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
-    assert ended[len(refused):] == [("parsed", "")] * len(parsed)
+def _case_table(data_dir: Path, folder: Path) -> dict[str, list[tuple[str, list[str], bool]]]:
+    """Every test's experiment calls, ``(script, argv, stop once parsed)``, by test; files under ``folder``."""
+    shipped = REPO_ROOT / "svs_torch" / "segmentation" / "weights"
+    for name, weights in (("cut_learned.pt", "obstacle_net.pt"), ("cut_nearness.pt", "nearness_net.pt")):
+        (folder / name).write_bytes((shipped / weights).read_bytes()[:1000])  # a weights file cut short
+    (folder / "empty").mkdir()
+    (folder / "both").mkdir()
+    validate = ["--data", str(data_dir), "--limit", "2", "--folds", "9"]
+    both = ["--json", str(folder / "both" / "t.md"), "--markdown", str(folder / "both" / "." / "t.md")]
+    bad_set = ["--set", "segmentation.ground.min_camera_height_m=-1"]
+    later = {"camera_frames_gate": ["--splits", "bogus"], "eval_segmentation": ["--methods", "bogus"],
+             "guide_confirm": ["--splits", "bogus"], "guide_nearer": ["--splits", "bogus"],
+             "paper_table1": ["--splits", "bogus"], "real_rig": ["--splits", "bogus"], "validate_nearness": validate,
+             "thin_obstacles": ["--min-area", "1.5"], "walker_floor": bad_set, "walker_heaps": bad_set,
+             "floor_distance": bad_set}
+    weights, data = str(folder / "net.pt"), ["--data", str(data_dir), "--limit", "1"]
+    stop = {"counts": COUNTS, "lists": LISTS + LISTS_PARSED, "kernel_parity": KERNELS + KERNELS_PARSED,
+            "conditions": CONDITIONS + CONDITIONS_PARSED, "sizes": SIZES + SIZES_PARSED,
+            "train_segmentation": [("train_segmentation", ["--init", "nearness"]),
+                                   ("train_segmentation", ["--init", f"learned:{folder / 'cut_learned.pt'}"]),
+                                   ("train_segmentation", ["--size", "320"]),
+                                   ("train_segmentation", ["--size", "0x240"]),
+                                   ("train_segmentation", ["--init", "learned", "--size", "160x120"])]}
+    run_on = {  # refused after the parse, before any work: run on until then
+        "after_parse": [("eval_segmentation", ["--methods", "bogus"]), ("real_rig", ["--splits", "bogus"]),
+                        ("camera_frames_gate", ["--splits", "bogus"]),
+                        ("select_nearness_setting", ["--variants", "a=1"]),
+                        ("guide_second_passes", ["--data", str(folder / "empty")]), ("validate_nearness", validate)],
+        "json_and_markdown": [(script, both + argv) for script, argv in later.items()],
+        "report_over_weights": [
+            ("eval_segmentation", ["--weights", weights, "--json", weights, "--methods", "bogus"]),
+            ("eval_segmentation", ["--nearness", f"n={weights}", "--markdown", weights, "--methods", "bogus"])],
+        "weights_read_first": [
+            ("eval_segmentation", [*data, "--weights", str(folder / "cut_learned.pt"), "--methods", "learned"]),
+            ("eval_segmentation", [*data, "--nearness", f"n={folder / 'cut_nearness.pt'}", "--methods", "default,n"])]}
+    return {**{name: [(*case, True) for case in cases] for name, cases in stop.items()},
+            **{name: [(*case, False) for case in cases] for name, cases in run_on.items()}}
+
+
+@pytest.fixture(scope="module")
+def ended(data_dir, tmp_path_factory) -> dict[str, list[tuple[object, str]]]:
+    """How each test's experiment calls ended (:func:`_case_table`), all run in one process: one process a test
+    cost about 2.5 s each of imports; ``"folder"``: where their files are."""
+    folder = tmp_path_factory.mktemp("experiment_options")
+    table = _case_table(data_dir, folder)
+    outcomes = iter(_run_cases([case for cases in table.values() for case in cases]))
+    return {"folder": folder, **{name: [next(outcomes) for _ in cases] for name, cases in table.items()}}
 
 
 COUNTS = [
@@ -96,11 +140,11 @@ COUNTS = [
 ]
 
 
-def test_counts_threads_seeds_and_numbers_are_refused_when_parsed():
+def test_counts_threads_seeds_and_numbers_are_refused_when_parsed(ended):
     """Found by an audit: ``--threads 0`` was a RuntimeError traceback, ``--repeats 0`` a StatisticsError after the
     data was loaded, ``bench_ransac.py --pairs 0`` a traceback and ``--seed -1`` a run recording seed -1,
     ``calibrated_rectify.py --scenes 0`` a refusal after the chessboard calibration had run."""
-    assert_refused(COUNTS)
+    _assert_refused(COUNTS, ended["counts"])
 
 
 LISTS = [
@@ -113,68 +157,66 @@ LISTS = [
 ]
 
 
-def test_comma_separated_values_are_refused_when_parsed():
+LISTS_PARSED = [("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])]
+
+
+def test_comma_separated_values_are_refused_when_parsed(ended):
     """Found by an audit: ``guide_confirm.py --digits 9`` was a KeyError traceback after the first walks, ``--digits
     4,x`` a ValueError one; ``guide_nearer.py --margins nan`` and ``coarse_retry.py --shares nan`` ran on;
     ``coarse_retry.py --contrasts 0`` was a StatisticsError after a run, ``--checkpoints x`` a ValueError."""
-    _assert_refused_then_parsed(LISTS, [("guide_nearer", ["--margins", "inf,0"]), ("coarse_retry", ["--shares", "1"])])
+    _assert_refused(LISTS, ended["lists"][:len(LISTS)])
+    assert ended["lists"][len(LISTS):] == [("parsed", "")] * len(LISTS_PARSED)
 
 
-def test_kernel_parity_refuses_a_kernel_name_no_stage_has_when_parsed():
+KERNELS = [("kernel_parity", ["--torch", "lk_refined"]), ("kernel_parity", ["--torch", "lk_refine,bogus"]),
+           ("kernel_parity", ["--torch", "check_border"])]
+KERNELS_PARSED = [("kernel_parity", ["--torch", "lk_refine,usurf_describe"]), ("kernel_parity", [])]
+
+
+def test_kernel_parity_refuses_a_kernel_name_no_stage_has_when_parsed(ended):
     """Found by an audit: ``kernel_parity.py --torch NAME`` turned off only the names it found in the stages' kernels
     modules and passed over the others, so a typo or a renamed kernel (the docstring's own ``--torch
     lk_refine,usurf_describe``) ran a parity of every kernel reported as "kernels (but NAME)"."""
-    refused = [("kernel_parity", ["--torch", "lk_refined"]), ("kernel_parity", ["--torch", "lk_refine,bogus"]),
-               ("kernel_parity", ["--torch", "check_border"])]
-    _assert_refused_then_parsed(refused, [("kernel_parity", ["--torch", "lk_refine,usurf_describe"]),
-                                          ("kernel_parity", [])])
+    _assert_refused(KERNELS, ended["kernel_parity"][:len(KERNELS)])
+    assert ended["kernel_parity"][len(KERNELS):] == [("parsed", "")] * len(KERNELS_PARSED)
 
 
-def test_a_condition_no_prefix_names_is_refused_when_parsed():
+CONDITIONS = [("real_rig", ["--conditions", "jpg"]),
+              ("select_nearness_setting", ["--conditions", "clean,jpg", "--variants", "min_near_share=0"])]
+CONDITIONS_PARSED = [("real_rig", ["--conditions", "jpeg q4,roll"]),
+                     ("select_nearness_setting", ["--conditions", "clean,jpeg", "--variants", "min_near_share=0"])]
+
+
+def test_a_condition_no_prefix_names_is_refused_when_parsed(ended):
     """Found by an audit: ``select_nearness_setting.py --conditions jpg`` scored its first variant (35 s) before
     real_rig.py, which it calls, refused the prefix under its own usage; real_rig.py refused it after its parse."""
-    _assert_refused_then_parsed(
-        [("real_rig", ["--conditions", "jpg"]),
-         ("select_nearness_setting", ["--conditions", "clean,jpg", "--variants", "min_near_share=0"])],
-        [("real_rig", ["--conditions", "jpeg q4,roll"]),
-         ("select_nearness_setting", ["--conditions", "clean,jpeg", "--variants", "min_near_share=0"])])
+    _assert_refused(CONDITIONS, ended["conditions"][:len(CONDITIONS)])
+    assert ended["conditions"][len(CONDITIONS):] == [("parsed", "")] * len(CONDITIONS_PARSED)
 
 
-def test_option_values_refused_after_the_parse_are_exit_status_2(data_dir, tmp_path):
+def test_option_values_refused_after_the_parse_are_exit_status_2(ended):
     """Found by an audit: these refusals, one line and before any work, were exit status 1 (a SystemExit with the
     message) where every other bad option is 2; a caller telling a usage error from a failed run could not."""
-    cases = [("eval_segmentation", ["--methods", "bogus"]), ("real_rig", ["--splits", "bogus"]),
-             ("camera_frames_gate", ["--splits", "bogus"]), ("select_nearness_setting", ["--variants", "a=1"]),
-             ("guide_second_passes", ["--data", str(tmp_path)]),
-             ("validate_nearness", ["--data", str(data_dir), "--limit", "2", "--folds", "9"])]
-    for (script, argv), (code, line) in zip(cases, refusals(cases, stop=False)):
-        option = "--data" if script == "guide_second_passes" else argv[-2]
-        assert code == 2 and line.startswith(f"{script}.py: error: {option}"), (script, argv, code, line)
+    scripts = ["eval_segmentation", "real_rig", "camera_frames_gate", "select_nearness_setting", "guide_second_passes",
+               "validate_nearness"]
+    options = ["--methods", "--splits", "--splits", "--variants", "--data", "--folds"]
+    for script, option, (code, line) in zip(scripts, options, ended["after_parse"], strict=True):
+        assert code == 2 and line.startswith(f"{script}.py: error: {option}"), (script, code, line)
 
 
-def test_json_and_markdown_at_one_file_are_refused_before_the_run(data_dir, tmp_path):
+def test_json_and_markdown_at_one_file_are_refused_before_the_run(ended):
     """Found by an audit: ``paper_table1.py --json t.md --markdown t.md`` (and every experiment with both) ran in
     full, then wrote the table over the report, exit 0. (Each case also has a value refused later, before any work,
     so that the code before the fix ends at once rather than running.)"""
-    both = ["--json", str(tmp_path / "t.md"), "--markdown", str(tmp_path / "." / "t.md")]
-    bad_set = ["--set", "segmentation.ground.min_camera_height_m=-1"]
-    later = {"camera_frames_gate": ["--splits", "bogus"], "eval_segmentation": ["--methods", "bogus"],
-             "guide_confirm": ["--splits", "bogus"], "guide_nearer": ["--splits", "bogus"],
-             "paper_table1": ["--splits", "bogus"], "real_rig": ["--splits", "bogus"],
-             "validate_nearness": ["--data", str(data_dir), "--limit", "2", "--folds", "9"],
-             "thin_obstacles": ["--min-area", "1.5"], "walker_floor": bad_set, "walker_heaps": bad_set,
-             "floor_distance": bad_set}
-    cases = [(script, both + argv) for script, argv in later.items()]
-    for (script, _), (code, line) in zip(cases, refusals(cases, stop=False)):
-        assert code == 2 and "argument --markdown: the file of --json" in line, (script, code, line)
-    assert not list(tmp_path.iterdir())
+    assert len(ended["json_and_markdown"]) == 11
+    for code, line in ended["json_and_markdown"]:
+        assert code == 2 and "argument --markdown: the file of --json" in line, (code, line)
+    assert not list((ended["folder"] / "both").iterdir())
 
 
 def test_fixed_list_check_refuses_a_record_it_cannot_write_or_read_before_the_run(tmp_path, monkeypatch, capsys):
     """Found by an audit: ``fixed_list_check.py record FOLDER`` (or under a missing folder) and ``compare`` with a
     missing record ran every pair of the list first, then ended in a traceback."""
-    import pytest
-
     sys.path.insert(0, str(REPO_ROOT / "experiments"))
     import fixed_list_check
 
@@ -190,54 +232,48 @@ def test_fixed_list_check_refuses_a_record_it_cannot_write_or_read_before_the_ru
         assert stop.value.code == 2 and "error: argument json: " in capsys.readouterr().err, argv
 
 
-def test_sizes_without_a_side_of_0_or_beyond_the_largest_are_taken():
+SIZES = [("paper_table1", ["--sizes", "0"]), ("paper_table1", ["--sizes", "320,99999"]),
+         ("bench_capture", ["--sizes", "0x0"]), ("real_rig", ["--sizes", "320x240,320x0"]),
+         ("kernel_parity", ["--size", "0x0"]), ("kernel_parity", ["--size", "native"])]
+SIZES_PARSED = [("paper_table1", ["--sizes", "320,native"]), ("kernel_parity", ["--size", "640x480"])]
+
+
+def test_sizes_without_a_side_of_0_or_beyond_the_largest_are_taken(ended):
     """Found by an audit: ``--sizes 0`` and ``0x0`` were taken: ``bench_capture.py`` ended in a RuntimeError
     traceback, ``paper_table1.py`` in a refusal naming a library field once the run began, ``kernel_parity.py
     --size 0x0`` in "58 of 58 pairs were not read" after its runs, exit 1."""
-    cases = [("paper_table1", ["--sizes", "0"]), ("paper_table1", ["--sizes", "320,99999"]),
-             ("bench_capture", ["--sizes", "0x0"]), ("real_rig", ["--sizes", "320x240,320x0"]),
-             ("kernel_parity", ["--size", "0x0"]), ("kernel_parity", ["--size", "native"])]
-    _assert_refused_then_parsed(cases, [("paper_table1", ["--sizes", "320,native"]),
-                                        ("kernel_parity", ["--size", "640x480"])])
+    _assert_refused(SIZES, ended["sizes"][:len(SIZES)])
+    assert ended["sizes"][len(SIZES):] == [("parsed", "")] * len(SIZES_PARSED)
 
 
-def test_eval_segmentation_refuses_a_report_over_the_weights_it_evaluates(tmp_path):
+def test_eval_segmentation_refuses_a_report_over_the_weights_it_evaluates(ended):
     """Found by an audit: ``eval_segmentation.py --weights W --json W`` (or ``--nearness NAME=W --markdown W``)
     evaluated W and then wrote the report over it, exit 0. (``--methods bogus``: refused later, before any work.)"""
-    weights = str(tmp_path / "net.pt")
-    cases = [("eval_segmentation", ["--weights", weights, "--json", weights, "--methods", "bogus"]),
-             ("eval_segmentation", ["--nearness", f"n={weights}", "--markdown", weights, "--methods", "bogus"])]
-    assert [(code, line.split(" reads")[0]) for code, line in refusals(cases, stop=False)] == [
+    assert [(code, line.split(" reads")[0]) for code, line in ended["report_over_weights"]] == [
         (2, "eval_segmentation.py: error: argument --json: the file --weights"),
         (2, "eval_segmentation.py: error: argument --markdown: the file --nearness")]
 
 
-def test_train_segmentation_checks_its_starting_weights_and_size_when_parsed(tmp_path):
+def test_train_segmentation_checks_its_starting_weights_and_size_when_parsed(ended):
     """Found by an audit: ``train_segmentation.py --through-pipeline --init nearness`` failed once the pairs were read
     with "network: expected an ObstacleNet for segmenter 'learned'", a truncated ``--init learned:FILE`` with a line
     naming "segmenter" and not --init, and ``--size 320`` was a ValueError traceback."""
-    cut = tmp_path / "cut.pt"
-    cut.write_bytes((REPO_ROOT / "svs_torch" / "segmentation" / "weights" / "obstacle_net.pt").read_bytes()[:1000])
-    cases = [("train_segmentation", ["--init", "nearness"]), ("train_segmentation", ["--init", f"learned:{cut}"]),
-             ("train_segmentation", ["--size", "320"]), ("train_segmentation", ["--size", "0x240"])]
-    ended = refusals([*cases, ("train_segmentation", ["--init", "learned", "--size", "160x120"])])
-    for (script, argv), (code, line) in zip(cases, ended):
-        assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
-    lines = [line for _, line in ended[:2]]
-    assert "nearness weights are trained by train_nearness.py" in lines[0] and f"'{cut}' is not a weights" in lines[1]
-    assert ended[-1] == ("parsed", "")
+    *refused, parsed = ended["train_segmentation"]
+    for option, (code, line) in zip(["--init", "--init", "--size", "--size"], refused, strict=True):
+        assert code == 2 and f"argument {option}" in line, (option, code, line)
+    cut = ended["folder"] / "cut_learned.pt"
+    assert "nearness weights are trained by train_nearness.py" in refused[0][1] and f"'{cut}' is not a weights" in \
+        refused[1][1]
+    assert parsed == ("parsed", "")
 
 
-def test_eval_segmentation_reads_its_weights_files_before_any_scene(data_dir, tmp_path):
+def test_eval_segmentation_reads_its_weights_files_before_any_scene(ended):
     """Found by an audit: a truncated ``--weights`` or ``--nearness NAME=FILE`` was refused only after the first
     scene's work, in a line naming "segmenter", not the option."""
-    cut = tmp_path / "cut.pt"
-    cut.write_bytes((REPO_ROOT / "svs_torch" / "segmentation" / "weights" / "nearness_net.pt").read_bytes()[:1000])
-    data = ["--data", str(data_dir), "--limit", "1"]
-    cases = [("eval_segmentation", [*data, "--weights", str(cut), "--methods", "learned"]),
-             ("eval_segmentation", [*data, "--nearness", f"n={cut}", "--methods", "default,n"])]
-    assert [(code, line.split(" is not")[0]) for code, line in refusals(cases, stop=False)] == [
-        (2, f"eval_segmentation.py: error: --weights: '{cut}'"), (2, f"eval_segmentation.py: error: --nearness: '{cut}'")]
+    folder = ended["folder"]
+    assert [(code, line.split(" is not")[0]) for code, line in ended["weights_read_first"]] == [
+        (2, f"eval_segmentation.py: error: --weights: '{folder / 'cut_learned.pt'}'"),
+        (2, f"eval_segmentation.py: error: --nearness: '{folder / 'cut_nearness.pt'}'")]
 
 
 def test_the_bench_experiments_write_their_json_whole():
