@@ -5,10 +5,11 @@ dropped regions, the near surfaces, the exposure retry) run only under the dense
 (``depth.rule = "dense"``; :func:`~svs_torch.pipeline.estimate_obstacle_depth`). Under the paper's rule (Eq. (5)–(8)
 over the RANSAC inliers, ``--preset paper``) such a setting changes nothing, and a sweep over it stored one result
 under as many configurations, read as "this setting does not matter" (an audit of ``--set``). It is said, not
-refused: a configuration file shared between both rules is fine.
+refused: a configuration file shared between both rules is fine. Likewise the nearness segmenter's own settings (its
+floor, its share of the view measured, its clipped regions) under Otsu (the paper's) or the learned segmenter.
 
-``tests/evaluation/test_inert_settings.py`` runs the paper preset with each of these set to another value and
-finds every result the same, bit for bit.
+``tests/evaluation/test_inert_settings.py`` runs the paper preset (and the learned segmenter) with each of these set
+to another value and finds every result the same, bit for bit.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 
 from ..pipeline import PipelineConfig
 
-__all__ = ["DENSE_RULE_ONLY", "inert_overrides", "warn_inert_overrides"]
+__all__ = ["DENSE_RULE_ONLY", "NEARNESS_SEGMENTER_ONLY", "inert_overrides", "warn_inert_overrides"]
 
 #: The top-level fields (and ``dense``, with every ``dense.*``) that only the dense range rule reads
 #: (``PipelineConfig``'s docstring: "under the dense rule").
@@ -30,25 +31,41 @@ DENSE_RULE_ONLY = (
     "drop_unmeasured_below_share", "drop_unmeasured_nearer_below_share", "region_interior_working_px",
     "measure_near_surface", "exposure_retry", "exposure_retry_max_residual_ratio",
 )
+#: The segmentation fields only the nearness segmenter reads (``SegmentationConfig``'s docstring: its floor, its
+#: share of the view measured, its clipped regions; "the other segmenters never look").
+NEARNESS_SEGMENTER_ONLY = ("segmentation.ground", "segmentation.min_measured_share", "segmentation.max_clipped_share")
 
 
-def inert_overrides(config: PipelineConfig, overrides: Mapping[str, Any]) -> list[str]:
+def _unread(config: PipelineConfig) -> list[tuple[tuple[str, ...], str]]:
+    """The settings ``config`` never reads, as (dotted prefixes, why) pairs."""
+    unread = []
+    if config.depth.rule != "dense":
+        unread.append((DENSE_RULE_ONLY, "under the paper range rule (depth.rule = 'paper'): only the dense rule reads"))
+    segmenter = config.segmentation.segmenter
+    if not segmenter.startswith("nearness"):
+        unread.append((NEARNESS_SEGMENTER_ONLY, f"under the {segmenter.partition(':')[0]} segmenter "
+                                                f"(segmentation.segmenter): only the nearness segmenter reads"))
+    return unread
+
+
+def inert_overrides(config: PipelineConfig, overrides: Mapping[str, Any]) -> dict[str, str]:
     """The keys of ``overrides`` (dotted, as ``--set`` takes them) that ``config``, the configuration they built,
-    never reads: those of :data:`DENSE_RULE_ONLY` under the paper range rule. In the order given."""
-    if config.depth.rule == "dense":
-        return []
-    return [key for key in overrides if key.split(".", 1)[0] in DENSE_RULE_ONLY]
+    never reads (:data:`DENSE_RULE_ONLY` under the paper range rule, :data:`NEARNESS_SEGMENTER_ONLY` under another
+    segmenter than the nearness one), each with why. In the order given."""
+    unread = _unread(config)
+    return {key: why for key in overrides for prefixes, why in unread
+            if any(key == prefix or key.startswith(prefix + ".") for prefix in prefixes)}
 
 
 def warn_inert_overrides(configs: list[tuple[PipelineConfig, Mapping[str, Any]]], source: str) -> None:
-    """One ``UserWarning`` starting with ``source`` that names the keys :func:`inert_overrides` finds in any of
-    ``configs`` (each a configuration and the overrides that built it: a sweep's, or one command's), if any."""
+    """A ``UserWarning`` starting with ``source`` for each reason :func:`inert_overrides` finds in any of
+    ``configs`` (each a configuration and the overrides that built it: a sweep's, or one command's), naming its
+    keys and, for several configurations, in how many."""
     inert = [inert_overrides(config, overrides) for config, overrides in configs]
-    keys = list(dict.fromkeys(key for found in inert for key in found))
-    if not keys:
-        return
-    count = sum(1 for found in inert if found)
-    where = "" if len(configs) == 1 else f" in {count} of {len(configs)} configurations"
-    them = "it" if len(keys) == 1 else "them"
-    warnings.warn(f"{source}: {', '.join(keys)}: no effect under the paper range rule (depth.rule = 'paper'){where}: "
-                  f"only the dense rule reads {them}", stacklevel=3)
+    for why in dict.fromkeys(why for found in inert for why in found.values()):
+        keys = list(dict.fromkeys(key for found in inert for key, reason in found.items() if reason == why))
+        count = sum(1 for found in inert if why in found.values())
+        where = "" if len(configs) == 1 else f" in {count} of {len(configs)} configurations"
+        head, _, tail = why.partition(": ")
+        them = "it" if len(keys) == 1 else "them"
+        warnings.warn(f"{source}: {', '.join(keys)}: no effect {head}{where}: {tail} {them}", stacklevel=3)

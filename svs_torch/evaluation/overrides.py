@@ -23,7 +23,8 @@ Configuration file (TOML)::
 A sweep file (:mod:`.sweep`) works as a configuration file: its ``preset`` and ``[set]`` apply, its ``paths``,
 ``size`` and ``batch_size`` are named as not used, and a ``[grid]`` or ``[[configs]]`` (several configurations)
 is an error. A sweep file likewise takes top-level parameters as fixed settings. A setting only the dense range
-rule reads, given under the paper's rule, is said to have no effect (:mod:`.inert_settings`).
+rule reads, given under the paper's rule, or only the nearness segmenter, under another, is said to have no effect
+(:mod:`.inert_settings`).
 """
 
 from __future__ import annotations

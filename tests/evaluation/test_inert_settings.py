@@ -13,7 +13,7 @@ import torch
 
 from svs_torch.cli import main
 from svs_torch.data import load_stereo_pair, resize_stereo_batch
-from svs_torch.evaluation.inert_settings import DENSE_RULE_ONLY, inert_overrides
+from svs_torch.evaluation.inert_settings import DENSE_RULE_ONLY, NEARNESS_SEGMENTER_ONLY, inert_overrides
 from svs_torch.evaluation.overrides import apply_overrides
 from svs_torch.evaluation.sweep import load_sweep
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
@@ -50,10 +50,32 @@ def test_every_dense_rule_setting_changes_nothing_under_the_paper_rule(data_dir)
     assert {key.split(".")[0] for key in CHANGED} == set(DENSE_RULE_ONLY)
     paper = PipelineConfig.paper()
     changed = apply_overrides(paper, CHANGED)
-    assert inert_overrides(changed, CHANGED) == list(CHANGED)
-    assert inert_overrides(apply_overrides(PipelineConfig(), CHANGED), CHANGED) == []  # the dense rule reads them
+    assert list(inert_overrides(changed, CHANGED)) == list(CHANGED)
+    assert inert_overrides(apply_overrides(PipelineConfig(), CHANGED), CHANGED) == {}  # the dense rule reads them
     for batch in _pairs(data_dir):
         before, after = (_outcome(estimate_obstacle_depth(batch, config)) for config in (paper, changed))
+        for one, other in zip(before, after):
+            np.testing.assert_array_equal(one, other)
+
+
+#: Each field of NEARNESS_SEGMENTER_ONLY set away from the default (the floor turned on, with a setting of its own).
+NEARNESS_CHANGED = {"segmentation.ground.min_camera_height_m": 0.5, "segmentation.min_measured_share": 0.9,
+                    "segmentation.max_clipped_share": 0.01}
+
+
+@pytest.mark.parametrize("segmenter", ["otsu", "learned"])
+def test_the_nearness_segmenters_settings_change_nothing_under_another(data_dir, segmenter):
+    """The floor, the share of the view measured and the clipped regions are the nearness segmenter's alone: under
+    Otsu (the paper preset's) and the learned segmenter the results are the same, bit for bit; under the nearness
+    segmenter (the default) they are read."""
+    assert {".".join(key.split(".")[:2]) for key in NEARNESS_CHANGED} == set(NEARNESS_SEGMENTER_ONLY)
+    base = PipelineConfig.paper() if segmenter == "otsu" else apply_overrides(
+        PipelineConfig(), {"segmentation.segmenter": "learned", "segmentation.keep": "largest"})
+    changed = apply_overrides(base, NEARNESS_CHANGED)
+    assert list(inert_overrides(changed, NEARNESS_CHANGED)) == list(NEARNESS_CHANGED)
+    assert inert_overrides(apply_overrides(PipelineConfig(), NEARNESS_CHANGED), NEARNESS_CHANGED) == {}
+    for batch in _pairs(data_dir):
+        before, after = (_outcome(estimate_obstacle_depth(batch, config)) for config in (base, changed))
         for one, other in zip(before, after):
             np.testing.assert_array_equal(one, other)
 
@@ -70,11 +92,15 @@ def test_eval_says_which_settings_do_nothing(data_dir, tmp_path, capsys):
             (["--config", str(config)], f"--config: {config}: verify_min_inliers: no effect under the paper range"),
             (["--set", "dense.window_size=7", "--set", "depth.rule=paper", "--set", "measure_near_surface=true"],
              "--set: dense.window_size, measure_near_surface: no effect"),
-            (["--config", str(config), "--set", "depth.rule=dense"], None)]
+            (["--config", str(config), "--set", "depth.rule=dense"], None),
+            (["--preset", "paper", "--set", "segmentation.max_clipped_share=0.2"],
+             "--set: segmentation.max_clipped_share: no effect under the otsu segmenter (segmentation.segmenter): only "
+             "the nearness segmenter reads it"),
+            (["--set", "segmentation.max_clipped_share=0.2"], None)]
     for options, warned in runs:
         assert main(["eval", teddy, "--size", "160x120", "--json", *options]) == 0
         err = capsys.readouterr().err
-        assert err.count("no effect under the paper range rule") == (warned is not None), (options, err)
+        assert err.count("no effect under the") == (warned is not None), (options, err)
         assert warned is None or warned in err, err
 
 
