@@ -50,6 +50,21 @@ def dtype(request) -> torch.dtype:
     return request.param
 
 
+class SpokenLines:
+    """A speaker's stream (``Speaker(None, stream=SpokenLines(said))``) that appends each line it is given to
+    ``said``: what a walker hears, for guide's tests."""
+
+    def __init__(self, said: list[str]) -> None:
+        self.said = said
+
+    def write(self, text: str) -> int:
+        self.said.extend(line for line in text.split("\n") if line)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
 def render_border_strip_scene(on_border: bool = True, near_m: float = 0.8, strip_px: int = 20):
     """A synthetic 320×240 SVS pair: a wide object 1.5 m away and a strip ``near_m`` away, ``strip_px`` wide. With
     ``on_border`` the strip's left edge is the image's (its disparity, 37 px at 0.8 m, is wider than it: none of

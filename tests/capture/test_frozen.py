@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from conftest import SpokenLines
 
 from svs_torch.capture.frozen import FROZEN_PAIRS, FrozenCameraWatch
 from svs_torch.core.types import StereoBatch
@@ -96,14 +97,6 @@ def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count
             if len(opened) < len(streams):
                 raise CaptureError("left camera: no reply")
 
-    class Words:
-        def write(self, text):
-            said.extend(line for line in text.split("\n") if line)
-            return len(text)
-
-        def flush(self):
-            pass
-
     def ranging(batch):
         ranged.append(batch)
         return SimpleNamespace(status=torch.tensor([0]), segmentation=SimpleNamespace(from_disparity=None),
@@ -114,7 +107,7 @@ def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count
     monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
     log = guide_loop.GuideLog(None, None)
     monkeypatch.setattr(log, "event", lambda name, **fields: events.append((name, fields.get("camera"))))
-    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     args = argparse.Namespace(count=count, blind_s=blind_s, give_up_s=0, reconnect_s=0.01)
     session = guide_loop.GuideSession(args, (32, 24), ranging, guide, StatusLine(None), log)
     session.run()

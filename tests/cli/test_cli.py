@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import SpokenLines
 from real_images import PAIRS
 
 from svs_torch.cli import main
@@ -1122,15 +1123,7 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     from svs_torch.capture import CaptureError
     from svs_torch.capture.guide import CANNOT_SEE, LiveGuide, Speaker, StatusLine, WarningPolicy
 
-    said = []
-
-    class Words:  # what the walker hears
-        def write(self, text):
-            said.extend(line for line in text.split("\n") if line)
-            return len(text)
-
-        def flush(self):
-            pass
+    said = []  # what the walker hears
 
     class BlankCamera:  # a covered lens: a pair every 20 ms for `seconds`, then (the first) a dropped link
         next_index, max_frame_gap_s = 0, 0.25
@@ -1152,7 +1145,7 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     blank = SimpleNamespace(status=torch.tensor([7]), segmentation=SimpleNamespace(from_disparity=None),
                             depth=SimpleNamespace(nearest=nearest))
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
-    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     guide_loop.GuideSession(args, (320, 240), lambda batch: blank, guide, StatusLine(None),
                             guide_loop.GuideLog(None, None)).run()
     assert said == [guide_loop.GUIDE_READY, CANNOT_SEE, guide_loop.CAMERA_LOST, guide_loop.CAMERA_BACK, CANNOT_SEE]
@@ -1261,18 +1254,10 @@ def test_guide_cannot_see_on_pairs_seconds_apart_nor_on_a_frozen_link(monkeypatc
                 time.sleep(0.02)
                 yield grabbed()
 
-    class Words:
-        def write(self, text):
-            said.extend(line for line in text.split("\n") if line)
-            return len(text)
-
-        def flush(self):
-            pass
-
     monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
     log = guide_loop.GuideLog(None, None)
     monkeypatch.setattr(log, "event", lambda name, **fields: events.append(name))
-    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=Words()))
+    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
     session = guide_loop.GuideSession(args, (320, 240), ranged.append, guide, StatusLine(None), log)
     session.run()
