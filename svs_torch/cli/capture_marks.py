@@ -23,7 +23,7 @@ def capture_fields(source) -> dict:
     ``"right"``) and ``frames_apart_s``, how far apart its two frames came where that is over
     :data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S` (null: within it); {} for a pair the index does not mark,
     and for any other entry (a sound pair's line is as it was: guide's record lines are all sound pairs)."""
-    if source.problem is not None or not str(source.list_file or "").endswith(".jsonl"):
+    if source.problem is not None:  # (only an index line carries the marks: a plain list's pair has neither)
         return {}
     from ..capture.stereo import MAX_FRAME_GAP_S
 
