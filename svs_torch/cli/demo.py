@@ -196,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
     with imports_without_collection():  # see there: the imports' objects are frozen
         import torch
 
+        from ..core.camera import SVS_CAMERA
         from ..data.synthetic import random_obstacle_scenes
         from ..plotting.figures import check_output_path, write_image_atomic
         from ..pipeline import PipelineConfig, estimate_obstacle_depth
@@ -204,10 +205,15 @@ def run(args: argparse.Namespace) -> int:
 
     width, height = checked_size(args.size)
     check_output_path(args.figure, args.figure_option)
+    # The SVS model's camera at this size (the scene's own, random_obstacle_scenes' default), also where no scene
+    # is rendered: a TOO_SMALL --json object lacked "preset" and "camera", which every other one holds.
+    camera = {"focal_px": round(SVS_CAMERA.focal_px(width), 2), "baseline_m": SVS_CAMERA.baseline_m,
+              "image_size_wh": [width, height]}
     reason = too_small_reason((height, width))
     if reason:
         report = unranged_report("TOO_SMALL", reason + "; no scene rendered, no figure written", "dense")
-        print(dumps_strict({"seed": args.seed, "truth": [], "true_nearest": None, **report, "figure": None})
+        print(dumps_strict({"seed": args.seed, "preset": args.preset, "camera": camera, "truth": [],
+                            "true_nearest": None, **report, "figure": None})
               if args.json
               else "\n".join(format_report(report)))
         return 0
@@ -234,8 +240,6 @@ def run(args: argparse.Namespace) -> int:
     true_nearest = _true_nearest(scenes, report["objects"], ranged_label)
     write_image_atomic(args.figure, _demo_figure(batch, result, true_nearest, config.segmentation),
                        args.figure_option)
-    camera = {"focal_px": round(float(batch.focal_px[0]), 2), "baseline_m": float(batch.baseline_m[0]),
-              "image_size_wh": [width, height]}
     if args.json:
         print(dumps_strict({"seed": args.seed, "preset": args.preset, "camera": camera, "truth": truth,
                             "true_nearest": true_nearest, **report, "figure": args.figure}))

@@ -18,15 +18,15 @@ __all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "sq
 
 def unranged_report(status: str, reason: str, range_rule: str) -> dict:
     """The report of a pair the pipeline did not run on (``TOO_SMALL``, ``BAD_INPUT``): the keys of
-    :func:`pair_report`, with null numbers, and the reason."""
+    :func:`pair_report` in its order (then :func:`with_calibration`'s), with null numbers, and the reason."""
     return {"status": status, "reason": reason, "range_rule": range_rule, "r_min_m": None, "r_max_m": None,
             "d_min_px": None, "d_max_px": None, "nearest_m": None, "nearest_side": "none", "nearest_surface_m": None,
-            "objects": [], "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "rectified": False,
-            "row_aligned": False, **dict.fromkeys(RIGHT_CAMERA_KEYS), "exposure_matched": False, "coarse_dense": False,
-            "features_smoothed": False, "verified": None, "num_agreeing_inliers": None, "num_measured_inliers": None,
-            "dropped_unmeasured": 0, "floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None,
-            "dense_box_xywh": None, "time_s": 0.0, "calibration_rectified": False, "calibration": None,
-            "image_size_px": None, "working_size_px": None}
+            "floor": None, "nearest_ahead_m": None, "nearest_ahead_surface_m": None, "objects": [],
+            "num_keypoints": [0, 0], "num_matches": 0, "num_inliers": 0, "num_agreeing_inliers": None,
+            "num_measured_inliers": None, "verified": None, "rectified": False, "row_aligned": False,
+            **dict.fromkeys(RIGHT_CAMERA_KEYS), "exposure_matched": False, "coarse_dense": False,
+            "features_smoothed": False, "dropped_unmeasured": 0, "dense_box_xywh": None, "time_s": 0.0,
+            "calibration_rectified": False, "calibration": None, "image_size_px": None, "working_size_px": None}
 
 
 def _calibration_source(source, args) -> str:

@@ -261,6 +261,27 @@ def test_demo_ranges_the_synthetic_obstacles(capsys, tmp_path):
     assert code == 0 and "true obstacle 1" in out and "estimated" in out and "nearest obstacle" in out
 
 
+def test_demo_too_small_json_has_the_keys_of_a_ranged_one(capsys, tmp_path):
+    """A TOO_SMALL demo --json object lacked "preset" and "camera" (a script reading them failed on it only)."""
+    code, out, _ = run_cli(capsys, "demo", "--out", str(tmp_path / "demo.png"), "--json", "--size", "64x48")
+    ranged = json.loads(out)
+    code_small, out, _ = run_cli(capsys, "demo", "--json", "--size", "4x4", "--preset", "paper")
+    small = json.loads(out)
+    assert code == code_small == 0 and small["status"] == "TOO_SMALL" and list(small) == list(ranged)
+    assert small["preset"] == "paper" and small["camera"]["image_size_wh"] == [4, 4]
+    assert small["camera"]["baseline_m"] == ranged["camera"]["baseline_m"] == 0.1075  # not float32's 0.10750000178…
+
+
+def test_estimate_bad_input_line_has_an_ok_lines_keys_in_order(data_dir, capsys, tmp_path):
+    """A BAD_INPUT --json line held the OK line's keys in another order (a script writing CSV rows by order)."""
+    left, right = (data_dir / p for p in TEDDY)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{left} {right}\n{tmp_path / 'missing.png'} {right}\n")
+    code, out, _ = run_cli(capsys, "estimate", "--pairs", str(pairs), "--size", "160x120", "--json")
+    ok, bad = (json.loads(line) for line in out.splitlines())
+    assert code == 2 and (ok["status"], bad["status"]) == ("OK", "BAD_INPUT") and list(bad) == list(ok)
+
+
 def test_features_json_in_input_pixels_and_plot(data_dir, capsys, tmp_path):
     left, right = (str(data_dir / p) for p in TEDDY)
     figure = tmp_path / "matches.png"
