@@ -14,7 +14,7 @@ from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
-from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG
+from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG, WALL_DEPTH_M
 
 __all__ = ["faults_from_args", "parse_args"]
 
@@ -101,10 +101,6 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         p.error(f"--prepare: expected {sizes.replace(', 1280', ' or 1280')} (the sizes a board sends), got "
                 f"{odd[0]}x{odd[1]}")
     return args
-
-
-#: The synthetic frames' wall, metres ahead (render_obstacle_scenes' background_depth_m, which the emulator keeps).
-WALL_DEPTH_M = 4.0
 
 
 def _highest_floor_seen_m(pitch_deg: float) -> float:

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from svs_torch.core.camera import SVS_CAMERA, SVSCamera
+from svs_torch.data.synthetic import WALL_DEPTH_M
 
 __all__ = ["FrameSource", "ObstacleTrack", "SyntheticSource", "ImageFolderSource", "render_simple_pair"]
 
@@ -71,7 +72,7 @@ class ObstacleTrack:
 
 
 def render_simple_pair(depths_m: np.ndarray, center_xy_m: np.ndarray, size_m: np.ndarray, size_wh: tuple[int, int],
-                       camera: SVSCamera = SVS_CAMERA, background_depth_m: float = 4.0,
+                       camera: SVSCamera = SVS_CAMERA, background_depth_m: float = WALL_DEPTH_M,
                        seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """A fast stand-in renderer: bright textured rectangles over a dark textured wall, each shifted by its disparity.
 

@@ -29,7 +29,8 @@ from ..core.types import StereoBatch
 from .heap_rendering import draw, make_heap_field
 from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
-__all__ = ["CAMERA_PITCH_RANGE_DEG", "SyntheticScenes", "random_obstacle_scenes", "render_obstacle_scenes"]
+__all__ = ["CAMERA_PITCH_RANGE_DEG", "WALL_DEPTH_M", "SyntheticScenes", "random_obstacle_scenes",
+           "render_obstacle_scenes"]
 
 
 # random_obstacle_scenes layout, as fractions of the image size: a border kept free of obstacles and a gap
@@ -40,6 +41,9 @@ _MIN_SECTOR_WIDTH_M = 0.1  # narrowest obstacle random_obstacle_scenes accepts t
 #: The camera pitches (degrees down, negative: up) :func:`render_obstacle_scenes` renders; the SVS emulator's
 #: ``--camera-pitch-deg`` is held to them (outside, its render thread died and the floor was never drawn).
 CAMERA_PITCH_RANGE_DEG = (-30.0, 60.0)
+#: The wall behind the obstacles, metres ahead: :func:`render_obstacle_scenes`' default ``background_depth_m``, which
+#: the SVS emulator's frames keep (its fast renderer and its floor-height bounds read it from here).
+WALL_DEPTH_M = 4.0
 
 
 @dataclass(frozen=True)
@@ -168,7 +172,7 @@ def render_obstacle_scenes(
     *,
     size_wh: tuple[int, int] = (320, 240),
     camera: SVSCamera = SVS_CAMERA,
-    background_depth_m: float = 4.0,
+    background_depth_m: float = WALL_DEPTH_M,
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
     supersample: int = 2,
@@ -386,7 +390,7 @@ def random_obstacle_scenes(
             ``size_wh`` or ``depth_range_m`` (not ``0 < near <= far < background_depth_m``).
     """
     size_wh = tuple(size_wh)
-    background_depth_m = render_kwargs.get("background_depth_m", 4.0)
+    background_depth_m = render_kwargs.get("background_depth_m", WALL_DEPTH_M)
     _check_random_args(batch_size, num_objects, size_wh, tuple(depth_range_m), background_depth_m, camera)
     generator = _resolve_generator(generator, torch.device("cpu"))
     depth, center, size = _place_obstacles(batch_size, num_objects, size_wh, tuple(depth_range_m), camera,
