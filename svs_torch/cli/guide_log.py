@@ -202,7 +202,8 @@ def _stop_lines(stream, error: OSError, line_ends) -> str:
     """Stop writing to ``stream`` after ``error``: its file is cut back to the last of ``line_ends`` (where its
     lines ended, in order) that it holds whole (nothing written half-way), and what ``stream`` still buffers, and
     anything after, goes to /dev/null (the interpreter's last flush failed again, exit 1 after a whole walk).
-    Returns ``error`` on one line."""
+    Returns ``error`` worded as the record's is (:func:`~svs_torch.core.files.error_text`: "No space left on
+    device: standard output", not Python's "[Errno 28] ... 'standard output'", an audit)."""
     with contextlib.suppress(OSError, ValueError, AttributeError):  # (io.UnsupportedOperation is both)
         fd = stream.fileno()
         size = os.fstat(fd).st_size
@@ -211,7 +212,7 @@ def _stop_lines(stream, error: OSError, line_ends) -> str:
             os.ftruncate(fd, whole[-1])
         null_device_on(fd)
         stream.flush()
-    return " ".join(str(error).split())
+    return error_text(error)
 
 
 def _pairs(count: int) -> str:

@@ -44,7 +44,10 @@ def test_guide_a_full_disk_under_its_json_lines_stops_the_lines_not_the_warnings
     stdout.file.close()
     err = capsys.readouterr().err
     assert code == 0, err
-    assert err.count("the --json lines stopped") == 1 and "No space left on device" in err
+    assert err.count("the --json lines stopped") == 1
+    # worded as the record's stop and the error handler word it (error_text): was "[Errno 28] No space left on
+    # device: 'standard output'; the --json lines stopped ..." (an audit)
+    assert "svs-depth guide: No space left on device: standard output; the --json lines stopped" in err, err
     assert "guide stopped after 5 pairs" in err and "error" not in err
     text = walk.read_text()
     assert text.endswith("\n") and [json.loads(line)["index"] >= 0 for line in text.splitlines()] == [True, True]
