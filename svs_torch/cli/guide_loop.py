@@ -60,8 +60,8 @@ GUIDE_STOPPED = "Guide stopped. No more warnings."
 CAMERAS_SWAPPED = "Check the cameras. Distances may be wrong."
 #: Said after "Cannot see ahead" (one sentence: a newer message cuts off an older one) when the pairs were not ranged
 #: because one camera keeps sending one frame (a stalled board), once a run for each camera, or with it said again
-#: where guide was blind already: the walker can do something about it (restart that board), and short for the
-#: reason given at CAMERAS_SWAPPED.
+#: where guide was blind already (alone with --blind-s 0): the walker can do something about it (restart that board),
+#: and short for the reason given at CAMERAS_SWAPPED.
 CHECK_CAMERA = "Check the {} camera."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
@@ -299,14 +299,15 @@ class GuideSession:
         then 4.1 m while both boxes moved), and a walker was warned of that. When it leaves guide blind,
         :data:`CHECK_CAMERA` is said with "Cannot see ahead", once a run for each camera; where guide was blind
         already (its link froze first, then the board sent its last frame again), "Cannot see ahead" had been said
-        without it, and the walker never heard which camera to check (an audit): both are said again then. Not
-        with --blind-s 0, which asks for no word of being blind."""
+        without it, and the walker never heard which camera to check (an audit): both are said again then. With
+        --blind-s 0, which asks for no word of being blind, the check alone, at once: a stalled board then left
+        guide silent, every pair unranged, which the walker hears as a clear way (an audit)."""
         check = None if camera in self.cameras_checked else CHECK_CAMERA.format(camera)
         said = self._not_ranged(item, "CAMERA_FROZEN", f"the {camera} camera sends one frame again: not ranged",
                                 "camera_frozen", then=check, camera=camera)
-        if said is None and check and self.sight.blind:
+        if said is None and check and (self.sight.blind or not self.sight.blind_s):
             # Whole, not the check alone: it may cut off "Cannot see ahead" said moments ago, which it then repeats.
-            self.guide.speaker.say(f"{CANNOT_SEE} {check}")
+            self.guide.speaker.say(f"{CANNOT_SEE} {check}" if self.sight.blind else check)
             said = CANNOT_SEE
         if said == CANNOT_SEE:
             self.cameras_checked.add(camera)

@@ -151,3 +151,17 @@ def test_a_camera_that_freezes_while_guide_is_already_blind_is_still_named(monke
     assert said == [guide_loop.GUIDE_READY, CANNOT_SEE, check]
     # the first pair after the freeze is compared with the one before it: one repeat alone is no freeze
     assert len(ranged) == FROZEN_PAIRS and [name for name, _ in events].count("camera_frozen") == 31 - FROZEN_PAIRS
+
+
+def test_with_blind_s_0_a_frozen_camera_is_still_named(monkeypatch):
+    """Found by an audit: "Check the left camera." was said only with "Cannot see ahead", which --blind-s 0 turns
+    off, so under it a stalled board's pairs went unranged in silence (38 of 40 here, only "Guide ready." said): the
+    walker heard a clear way. Now the check is said alone once the camera is judged frozen, once a run, and still no
+    "Cannot see ahead"."""
+    from svs_torch.cli import guide_loop
+
+    stale, fresh = frames(1, seed=1)[0], iter(frames(200))
+    stream = [(pair(stale, next(fresh)), 0.0) for _ in range(40)]
+    session, said, events, ranged = run_guide(monkeypatch, [stream], count=40, blind_s=0.0)
+    assert said == [guide_loop.GUIDE_READY, guide_loop.CHECK_CAMERA.format("left")]
+    assert len(ranged) == FROZEN_PAIRS and ("cannot_see", None) not in events
