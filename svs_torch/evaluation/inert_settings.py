@@ -6,7 +6,8 @@ dropped regions, the near surfaces, the exposure retry) run only under the dense
 over the RANSAC inliers, ``--preset paper``) such a setting changes nothing, and a sweep over it stored one result
 under as many configurations, read as "this setting does not matter" (an audit of ``--set``). It is said, not
 refused: a configuration file shared between both rules is fine. Likewise the nearness segmenter's own settings (its
-floor, its share of the view measured, its clipped regions) under Otsu (the paper's) or the learned segmenter.
+floor, its share of the view measured, its clipped regions, its keep rule and that rule's least areas) under Otsu
+(the paper's) or the learned segmenter, which always keep the largest regions.
 
 ``tests/evaluation/test_inert_settings.py`` runs the paper preset (and the learned segmenter) with each of these set
 to another value and finds every result the same, bit for bit.
@@ -32,8 +33,13 @@ DENSE_RULE_ONLY = (
     "measure_near_surface", "exposure_retry", "exposure_retry_max_residual_ratio",
 )
 #: The segmentation fields only the nearness segmenter reads (``SegmentationConfig``'s docstring: its floor, its
-#: share of the view measured, its clipped regions; "the other segmenters never look").
-NEARNESS_SEGMENTER_ONLY = ("segmentation.ground", "segmentation.min_measured_share", "segmentation.max_clipped_share")
+#: share of the view measured, its clipped regions; "the other segmenters never look"). Its keep rule too, with the
+#: rule's least areas: Otsu and the learned segmenter keep the largest regions whatever ``keep`` says
+#: (``keep_largest_regions``; "nearest", which would need a disparity, is refused there), so
+#: ``--preset paper --set segmentation.keep=nearest_first`` ran the paper's rule in silence (an audit).
+NEARNESS_SEGMENTER_ONLY = ("segmentation.ground", "segmentation.min_measured_share", "segmentation.max_clipped_share",
+                           "segmentation.keep", "segmentation.min_area_fraction",
+                           "segmentation.near_min_area_fraction")
 
 
 def _unread(config: PipelineConfig) -> list[tuple[tuple[str, ...], str]]:

@@ -60,14 +60,16 @@ def test_every_dense_rule_setting_changes_nothing_under_the_paper_rule(data_dir)
 
 #: Each field of NEARNESS_SEGMENTER_ONLY set away from the default (the floor turned on, with a setting of its own).
 NEARNESS_CHANGED = {"segmentation.ground.min_camera_height_m": 0.5, "segmentation.min_measured_share": 0.9,
-                    "segmentation.max_clipped_share": 0.01}
+                    "segmentation.max_clipped_share": 0.01, "segmentation.keep": "nearest_first",
+                    "segmentation.min_area_fraction": 0.2, "segmentation.near_min_area_fraction": 0.1}
 
 
 @pytest.mark.parametrize("segmenter", ["otsu", "learned"])
 def test_the_nearness_segmenters_settings_change_nothing_under_another(data_dir, segmenter):
-    """The floor, the share of the view measured and the clipped regions are the nearness segmenter's alone: under
-    Otsu (the paper preset's) and the learned segmenter the results are the same, bit for bit; under the nearness
-    segmenter (the default) they are read."""
+    """The floor, the share of the view measured, the clipped regions and the keep rule with its least areas are the
+    nearness segmenter's alone: under Otsu (the paper preset's) and the learned segmenter (both keep="largest" here,
+    changed to "nearest_first") the results are the same, bit for bit; under the nearness segmenter (the default)
+    they are read."""
     assert {".".join(key.split(".")[:2]) for key in NEARNESS_CHANGED} == set(NEARNESS_SEGMENTER_ONLY)
     base = PipelineConfig.paper() if segmenter == "otsu" else apply_overrides(
         PipelineConfig(), {"segmentation.segmenter": "learned", "segmentation.keep": "largest"})
@@ -96,7 +98,12 @@ def test_eval_says_which_settings_do_nothing(data_dir, tmp_path, capsys):
             (["--preset", "paper", "--set", "segmentation.max_clipped_share=0.2"],
              "--set: segmentation.max_clipped_share: no effect under the otsu segmenter (segmentation.segmenter): only "
              "the nearness segmenter reads it"),
-            (["--set", "segmentation.max_clipped_share=0.2"], None)]
+            (["--set", "segmentation.max_clipped_share=0.2"], None),
+            # was silent (an audit): Otsu keeps the largest regions whatever the keep rule says
+            (["--preset", "paper", "--set", "segmentation.keep=nearest_first"],
+             "--set: segmentation.keep: no effect under the otsu segmenter (segmentation.segmenter): only the nearness "
+             "segmenter reads it"),
+            (["--set", "segmentation.keep=largest"], None)]
     for options, warned in runs:
         assert main(["eval", teddy, "--size", "160x120", "--json", *options]) == 0
         err = capsys.readouterr().err
