@@ -4,21 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from ..core.camera import calibration_value_expected
 from .common import _number
 
 #: Rows of a pair rectified by a calibration agree within this many pixels (matching candidates farther apart are
 #: not considered): 3x the largest row error of the shared chessboards' corners (0.63 px), for a rig's drift.
 CALIBRATED_BAND_PX = 2.0
-
-#: The largest ``--focal-px`` and ``--doffs-px`` (either way) taken, pixels: a 1000 mm lens on 1 µm pixels, 250
-#: times the longest focal of the shared data (MiddEval3 at full size, 4000 px). ``--focal-px 1e30`` ranged Teddy at
-#: 3e27 m with the status OK, 1e39 was refused as "focal_px: ... got inf" (float32), and ``--doffs-px 1e30`` put
-#: every object at 0.000 m (an audit of option bounds).
-MAX_FOCAL_PX = 1e6
-#: The longest ``--baseline-m`` taken, metres: a rig holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m);
-#: with the focal's bound f·B stays under 1e8, far inside float32 (``--focal-px 1e20 --baseline-m 1e20`` left
-#: every object without a depth, its disparity read as "noisy frames").
-MAX_BASELINE_M = 100.0
 
 __all__ = ["add_calibration_option", "baseline_m_value", "calibration_file_source", "calibration_from_args",
            "calibration_kept_beside", "check_no_manual_calibration", "doffs_px_value", "focal_px_value",
@@ -32,29 +23,29 @@ def _calibration_path(text: str) -> str:
     return text
 
 
-def _float_within(text: str, low: float, high: float, expected: str, include_low: bool = False) -> float:
-    """argparse: a finite number over ``low`` (from it, ``include_low``) and at most ``high``; else the error
-    "expected ``expected``"."""
+def _calibration_value(text: str, key: str) -> float:
+    """argparse: a finite number in ``key``'s range (:data:`svs_torch.core.camera.CALIBRATION_RANGES`, the one a
+    pair list's line, ``index.jsonl`` and a ``calib.txt`` are held to); else the error "expected ..."."""
     value = _number(text, float)
-    if not (low <= value if include_low else low < value) or not value <= high:
+    expected = calibration_value_expected(key, value)
+    if expected is not None:
         raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
 
 
 def focal_px_value(text: str) -> float:
-    """argparse type of ``--focal-px``: pixels over 0 and at most :data:`MAX_FOCAL_PX`."""
-    return _float_within(text, 0, MAX_FOCAL_PX, f"a focal length in pixels over 0 and at most {MAX_FOCAL_PX:,.0f}")
+    """argparse type of ``--focal-px``: pixels over 0 and at most :data:`~svs_torch.core.camera.MAX_FOCAL_PX`."""
+    return _calibration_value(text, "focal_px")
 
 
 def baseline_m_value(text: str) -> float:
-    """argparse type of ``--baseline-m``: metres over 0 and at most :data:`MAX_BASELINE_M`."""
-    return _float_within(text, 0, MAX_BASELINE_M, f"a baseline in metres over 0 and at most {MAX_BASELINE_M:g}")
+    """argparse type of ``--baseline-m``: metres over 0 and at most :data:`~svs_torch.core.camera.MAX_BASELINE_M`."""
+    return _calibration_value(text, "baseline_m")
 
 
 def doffs_px_value(text: str) -> float:
-    """argparse type of ``--doffs-px``: pixels, at most :data:`MAX_FOCAL_PX` either way."""
-    return _float_within(text, -MAX_FOCAL_PX, MAX_FOCAL_PX,
-                         f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}", include_low=True)
+    """argparse type of ``--doffs-px``: pixels, at most :data:`~svs_torch.core.camera.MAX_FOCAL_PX` either way."""
+    return _calibration_value(text, "doffs_px")
 
 
 def add_calibration_option(parser: argparse.ArgumentParser, applies_to: str = "the pairs",

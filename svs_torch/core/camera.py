@@ -8,11 +8,40 @@ calibrated; these values are what the paper's depth equations (5)–(8) use with
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from .errors import InputError
 
-__all__ = ["MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "parse_size", "too_many_pixels"]
+__all__ = ["CALIBRATION_RANGES", "MAX_BASELINE_M", "MAX_FOCAL_PX", "MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS",
+           "SVS_CAMERA", "calibration_value_expected", "parse_size", "too_many_pixels"]
+
+#: The largest focal length and doffs (either way) any rig may have, pixels: a 1000 mm lens on 1 µm pixels, 250
+#: times the longest focal of the shared data (MiddEval3 at full size, 4000 px). ``--focal-px 1e30`` ranged Teddy at
+#: 3e27 m with the status OK, 1e39 was refused as "focal_px: ... got inf" (float32), and ``--doffs-px 1e30`` put
+#: every object at 0.000 m (an audit of option bounds); a pair list's line, an ``index.jsonl`` line and a
+#: ``calib.txt`` did the same until they were held to these bounds too (an audit of numbers read from files).
+MAX_FOCAL_PX = 1e6
+#: The longest baseline any rig may have, metres: one holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m);
+#: with the focal's bound f·B stays under 1e8, far inside float32 (``--focal-px 1e20 --baseline-m 1e20`` left
+#: every object without a depth, its disparity read as "noisy frames").
+MAX_BASELINE_M = 100.0
+#: Each calibration number's range, wherever it is read (the command's options, a pair list's line, capture's
+#: ``index.jsonl``, a ``calib.txt``): (lowest, highest, whether the lowest itself is taken, what is expected).
+CALIBRATION_RANGES: dict[str, tuple[float, float, bool, str]] = {
+    "focal_px": (0.0, MAX_FOCAL_PX, False, f"a focal length in pixels over 0 and at most {MAX_FOCAL_PX:,.0f}"),
+    "baseline_m": (0.0, MAX_BASELINE_M, False, f"a baseline in metres over 0 and at most {MAX_BASELINE_M:g}"),
+    "doffs_px": (-MAX_FOCAL_PX, MAX_FOCAL_PX, True, f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}"),
+}
+
+
+def calibration_value_expected(key: str, value: float) -> str | None:
+    """None where ``value`` is a finite number in ``key``'s :data:`CALIBRATION_RANGES` (``"focal_px"``,
+    ``"baseline_m"``, ``"doffs_px"``); else what is expected of it, for an error's "expected ..." (the caller names
+    the option, file or line)."""
+    low, high, include_low, expected = CALIBRATION_RANGES[key]
+    taken = math.isfinite(value) and (low <= value if include_low else low < value) and value <= high
+    return None if taken else expected
 
 #: The frame sizes the SVS firmware can grab, keyed by the size code in its ``##IMJ`` header
 #: (SVS_PROTOCOL.md §3): ``'3'`` 160×120, ``'5'`` 320×240 (power-on default), ``'7'`` 640×480, ``'9'`` 1280×1024.
