@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from ..core.camera import calibration_value_expected
 from ..core.checks import InputError
 from ..core.files import check_path_given, display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
@@ -128,17 +129,20 @@ def _bad(where: str, problem: str, text: str) -> PairSource:
 
 def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | tuple[float, float, float]:
     """(focal, baseline, doffs) from the numbers of a line, or a bad entry naming the first bad one."""
-    names = ("FOCAL_PX", "BASELINE_M", "DOFFS_PX")
     values = []
-    for name, number in zip(names, fields):
+    for key, number in zip(CALIBRATION_KEYS, fields):
         try:
             value = float(number)
         except ValueError:
             value = math.nan
-        positive = name != "DOFFS_PX"
+        positive, name = key != "doffs_px", key.upper()
         if not math.isfinite(value) or (positive and value <= 0):
             need = "a finite positive number" if positive else "a finite number"
             return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {need}, got {number!r}")
+        # The options' bounds: a line's baseline of 1e9 ranged Teddy at 4.5e10 m and a focal of 1e30 at 2e27 m, with
+        # the status OK; a focal of 1e300 was refused as "focal_px: ... got inf", naming no line (an audit).
+        if (expected := calibration_value_expected(key, value)) is not None:
+            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {expected}, got {number!r}")
         values.append(value)
     if len(values) == 2:
         values.append(0.0)

@@ -1,0 +1,61 @@
+"""A calibration read from a file (a pair list's line, capture's ``index.jsonl``, a scene's ``calib.txt``) is held to
+the ranges of the options ``--focal-px``, ``--baseline-m`` and ``--doffs-px`` (one definition:
+:data:`svs_torch.core.camera.CALIBRATION_RANGES`). An audit of numbers read from files: a list line's baseline of
+1e9 ranged Teddy at 4.5e10 m and a focal of 1e30 at 2e27 m, status OK; a calib.txt's baseline of 1e9 mm, focal or
+doffs of 1e30 and width of 0.0001 were ranged and scored, status OK."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from svs_torch.cli import main
+from svs_torch.core.camera import CALIBRATION_RANGES, MAX_BASELINE_M, MAX_FOCAL_PX
+from svs_torch.data.pair_list import read_pair_list
+
+FOCAL = "a focal length in pixels over 0 and at most 1,000,000"
+BASELINE = "a baseline in metres over 0 and at most 100"
+DOFFS = "pixels from -1,000,000 to 1,000,000"
+
+
+@pytest.mark.parametrize("numbers, message", [
+    ("1e30 0.08", f"FOCAL_PX: expected {FOCAL}, got '1e30'"),
+    ("1e300 0.08", f"FOCAL_PX: expected {FOCAL}, got '1e300'"),  # was "focal_px: ... got inf", naming no line
+    ("1500 1e9", f"BASELINE_M: expected {BASELINE}, got '1e9'"),
+    ("1500 0.08 1e30", f"DOFFS_PX: expected {DOFFS}, got '1e30'"),
+    ("1500 0.08 -1e30", f"DOFFS_PX: expected {DOFFS}, got '-1e30'"),  # NO_DENSE_DEPTH, blaming the doffs' sign
+])
+def test_a_list_lines_calibration_out_of_any_rig_is_that_lines_problem(tmp_path, numbers, message):
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"l.png r.png 1500 0.08 52\nl.png r.png {numbers}\n")
+    good, bad = read_pair_list(listing, "--pairs")
+    assert good.problem is None and bad.problem == f"--pairs: line 2 of {listing}: {message}"
+    index = tmp_path / "index.jsonl"
+    focal, baseline, *doffs = (float(v) for v in numbers.split())
+    index.write_text(json.dumps({"left": "l.png", "right": "r.png", "focal_px": focal, "baseline_m": baseline,
+                                 **({"doffs_px": doffs[0]} if doffs else {})}) + "\n")
+    (entry,) = read_pair_list(index, "--pairs")
+    assert entry.problem is not None and f"line 1 of {index}: {message.split(':')[0]}: expected" in entry.problem
+
+
+def test_the_bounds_themselves_are_taken_from_a_list_as_from_the_options(tmp_path):
+    from svs_torch.cli.rig import baseline_m_value, doffs_px_value, focal_px_value
+
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"l.png r.png {MAX_FOCAL_PX:g} {MAX_BASELINE_M:g} {-MAX_FOCAL_PX:g}\n")
+    (source,) = read_pair_list(listing)
+    assert (source.problem, source.focal_px, source.baseline_m, source.doffs_px) == (None, 1e6, 100.0, -1e6)
+    assert (focal_px_value("1e6"), baseline_m_value("100"), doffs_px_value("-1e6")) == (1e6, 100.0, -1e6)
+    assert CALIBRATION_RANGES["focal_px"][1] == MAX_FOCAL_PX
+
+
+def test_one_bad_lines_calibration_fails_that_pair_and_the_others_are_ranged(capsys, data_dir, tmp_path):
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy / 'im0.png'} {teddy / 'im1.png'} 1500 1e9 52\n"
+                       f"{teddy / 'im0.png'} {teddy / 'im1.png'} 1500 0.08 52\n")
+    main(["estimate", "--pairs", str(listing), "--size", "225x188"])
+    out = capsys.readouterr().out
+    assert f"status BAD_INPUT: --pairs: line 1 of {listing}: BASELINE_M: expected {BASELINE}, got '1e9'" in out
+    assert out.count("status OK") == 1 and "e+09 m" not in out and "B 1e+09" not in out
