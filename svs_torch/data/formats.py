@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..core.camera import MAX_SIZE_PX, calibration_value_expected
 from ..core.checks import FLOAT_DTYPES, InputError, check_real
 from ..core.files import display_path, write_bytes_atomic
 from ..core.image_files import check_file as _check_file
@@ -98,7 +99,9 @@ def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, flo
     Raises:
         InputError: naming ``name``, the key and the file, for a key given twice or without a value, a value that
             is not a number (or a 3×3 matrix for ``cam0`` / ``cam1``), a baseline, width, height or focal length
-            that is not finite and positive, or a doffs that is not finite.
+            that is not finite and positive, or a doffs that is not finite; a focal, doffs or baseline out of the
+            range of any rig (the options' bounds, :data:`~svs_torch.core.camera.CALIBRATION_RANGES`), or a width
+            or height that is not a whole number of pixels up to :data:`~svs_torch.core.camera.MAX_SIZE_PX`.
     """
     path = _check_file(path, name)
     text = path.read_text(encoding="ascii", errors="replace")
@@ -136,6 +139,25 @@ def _check_calib_values(calib: dict, name: str, path: Path) -> None:
         if isinstance(value, float) and not (math.isfinite(value) and (key == "doffs" or value > 0)):
             need = "a finite number" if key == "doffs" else "a finite positive number"
             raise InputError(f"{name}: expected {need} for '{key}', got {value:g}: {display_path(path)}")
+    _check_calib_ranges(calib, name, path)
+
+
+def _check_calib_ranges(calib: dict, name: str, path: Path) -> None:
+    """The values in the ranges any rig's take (:data:`svs_torch.core.camera.CALIBRATION_RANGES`, as the options
+    ``--focal-px``, ``--baseline-m``, ``--doffs-px``), and whole pixel counts for the size. Why: a baseline of 1e9 mm,
+    a focal or doffs of 1e30 px and a width of 0.0001 px (Teddy's focal scaled to 6.75e9 px) were each ranged and
+    scored, status OK (an audit of numbers read from files)."""
+    values = [(f"{key}'s focal", "focal_px", calib[key][0, 0], 1.0, "px") for key in ("cam0", "cam1")]
+    values += [("doffs", "doffs_px", calib["doffs"], 1.0, "px"),
+               ("baseline", "baseline_m", calib["baseline"], 1e-3, "mm")]
+    for label, kind, value, to_range_unit, unit in values:  # (the file's baseline in mm, the range's in metres)
+        if (expected := calibration_value_expected(kind, float(value) * to_range_unit)) is not None:
+            raise InputError(f"{name}: '{label}' {value:g} {unit}: expected {expected}: {display_path(path)}")
+    for key in ("width", "height"):
+        value = calib.get(key)
+        if isinstance(value, float) and not (value.is_integer() and value <= MAX_SIZE_PX):
+            raise InputError(f"{name}: expected a whole number of pixels from 1 to {MAX_SIZE_PX} for '{key}', got "
+                             f"{value:g}: {display_path(path)}")
 
 
 #: The warnings held in this thread by :func:`~svs_torch.data.scene_batch.warnings_once_loaded`: a stack, one list

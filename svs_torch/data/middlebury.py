@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.camera import SVS_CAMERA
+from ..core.camera import SVS_CAMERA, calibration_value_expected
 from ..core.checks import InputError
 from ..core.files import display_path
 from ..core.image_files import declared_size
@@ -72,9 +72,13 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
         truth = {"disparity": np.where(valid, gt, 0.0), "valid": valid}
         if (scene_dir / "mask0nocc.png").is_file():
             truth["nonoccluded"] = read_mask_image(scene_dir / "mask0nocc.png", "mask0nocc") == 255
-    return make_scene_batch(left, right, f"eval3/{scene_dir.name}", focal_px=float(calib["cam0"][0, 0]) * scale,
-                            baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=float(calib["doffs"]) * scale,
-                            calibrated=True, **truth)
+    focal_px, doffs_px = float(calib["cam0"][0, 0]) * scale, float(calib["doffs"]) * scale
+    for key, value in (("focal_px", focal_px), ("doffs_px", doffs_px)):  # each in range, but scaled out of it
+        if (expected := calibration_value_expected(key, value)) is not None:
+            raise InputError(f"calib: {key} {value:g} once scaled from its width {calib['width']:g} px to the views' "
+                             f"{left.shape[-1]}: expected {expected}: {display_path(scene_dir / 'calib.txt')}")
+    return make_scene_batch(left, right, f"eval3/{scene_dir.name}", focal_px=focal_px,
+                            baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=doffs_px, calibrated=True, **truth)
 
 
 def _calib_width_scale(calib: dict, width_px: int) -> float:

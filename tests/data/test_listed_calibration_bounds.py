@@ -7,11 +7,15 @@ doffs of 1e30 and width of 0.0001 were ranged and scored, status OK."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
+from svs_torch import InputError
 from svs_torch.cli import main
 from svs_torch.core.camera import CALIBRATION_RANGES, MAX_BASELINE_M, MAX_FOCAL_PX
+from svs_torch.data.formats import read_middlebury_calib
+from svs_torch.data.middlebury import load_middlebury_eval3
 from svs_torch.data.pair_list import read_pair_list
 
 FOCAL = "a focal length in pixels over 0 and at most 1,000,000"
@@ -59,3 +63,48 @@ def test_one_bad_lines_calibration_fails_that_pair_and_the_others_are_ranged(cap
     out = capsys.readouterr().out
     assert f"status BAD_INPUT: --pairs: line 1 of {listing}: BASELINE_M: expected {BASELINE}, got '1e9'" in out
     assert out.count("status OK") == 1 and "e+09 m" not in out and "B 1e+09" not in out
+
+
+def _teddy_with(tmp_path: Path, data_dir: Path, key: str, value: str) -> Path:
+    scene = tmp_path / "Teddy"
+    if not scene.exists():
+        scene.mkdir()
+        for name in ("im0.png", "im1.png", "disp0GT.pfm"):
+            (scene / name).write_bytes((data_dir / "middlebury_eval3_Q" / "Teddy" / name).read_bytes())
+    text = (data_dir / "middlebury_eval3_Q" / "Teddy" / "calib.txt").read_text()
+    lines = [f"{key}={value}" if line.strip().startswith(f"{key}=") else line for line in text.splitlines()]
+    (scene / "calib.txt").write_text("\n".join(lines) + "\n")
+    return scene
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("baseline", "1e9", f"'baseline' 1e+09 mm: expected {BASELINE}"),
+    ("doffs", "1e30", f"'doffs' 1e+30 px: expected {DOFFS}"),
+    ("cam0", "[1e30 0 199; 0 1e30 187; 0 0 1]", f"'cam0's focal' 1e+30 px: expected {FOCAL}"),
+    ("cam1", "[-5 0 251; 0 1500 187; 0 0 1]", "expected cam1 finite with a positive focal length"),  # (already)
+    ("width", "0.0001", "expected a whole number of pixels from 1 to 8192 for 'width', got 0.0001"),
+    ("height", "1e9", "expected a whole number of pixels from 1 to 8192 for 'height', got 1e+09"),
+])
+def test_a_calib_txt_out_of_any_rig_is_refused_naming_the_key_and_the_file(tmp_path, data_dir, key, value, message):
+    scene = _teddy_with(tmp_path, data_dir, key, value)
+    with pytest.raises(InputError) as raised:
+        read_middlebury_calib(scene / "calib.txt", "calib")
+    assert str(raised.value).startswith("calib: ") and message in str(raised.value)
+    assert str(raised.value).endswith(str(scene / "calib.txt"))
+    with pytest.raises(InputError):
+        load_middlebury_eval3(scene)
+
+
+def test_a_calib_txt_focal_scaled_out_of_range_is_refused(tmp_path, data_dir):
+    """Each value in range, but the width it was written for (1 px) scales the focal of 1e6 px by 450."""
+    scene = _teddy_with(tmp_path, data_dir, "width", "1")
+    (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("1500 0 199", "1e6 0 199"))
+    with pytest.raises(InputError, match=rf"calib: focal_px 4.5e\+08 once scaled .*: expected {FOCAL}"):
+        load_middlebury_eval3(scene)
+
+
+def test_eval_of_a_scene_whose_calib_txt_is_out_of_range_gives_it_bad_input(capsys, tmp_path, data_dir):
+    scene = _teddy_with(tmp_path, data_dir, "baseline", "1e9")
+    main(["eval", str(scene)])
+    out = capsys.readouterr().out
+    assert "BAD_INPUT: calib: 'baseline' 1e+09 mm: expected" in out and "Traceback" not in out
