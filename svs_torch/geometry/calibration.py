@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.camera import MAX_SIZE_PX
+from ..core.camera import MAX_FOCAL_PX, MAX_SIZE_PX, calibration_value_expected
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
@@ -224,13 +224,13 @@ def _parse(record: object, where: str) -> StereoCalibration:
         board=record.get("board") if isinstance(record.get("board"), dict) else {},
         pairs=tuple(record.get("pairs", [])),
         created_utc=str(record.get("created_utc", "")), software=str(record.get("software", "")))
-    for key in ("K_left", "K_right"):
-        K = getattr(calibration, key)
+    for key, K in (("K_left", K_left), ("K_right", K_right)):
         if not (K[0, 0] > 0 and K[1, 1] > 0):
             raise InputError(f"{where}: expected '{key}' with positive focal lengths, got {K[0, 0]} and {K[1, 1]}")
-    if not (calibration.focal_px > 0 and calibration.baseline_m > 0):
-        raise InputError(f"{where}: expected P1, P2 of a left-right rig (positive focal P1[0][0] and baseline "
-                         f"-P2[0][3]/P2[0][0]), got {calibration.focal_px:g} px and {calibration.baseline_m:g} m")
+    focal, baseline = calibration.focal_px, calibration.baseline_m  # (a focal of 1e30: views of one raw pixel each)
+    if not (calibration_value_expected("focal_px", focal) is None and baseline > 0):
+        raise InputError(f"{where}: expected P1, P2 of a left-right rig (focal P1[0][0] in (0, {MAX_FOCAL_PX:g}] px, "
+                         f"baseline -P2[0][3]/P2[0][0] over 0), got {focal:g} px, {baseline:g} m")
     check_baseline(calibration.baseline_m, where)
     _check_one_rig(calibration, record, where)
     _check_maps_in_view(calibration, where)

@@ -144,6 +144,19 @@ def _in_millimetres(record: dict, factor: float = 1000) -> dict:
     return {**record, "T_m": [v * factor for v in record["T_m"]], "P2": P2, "Q": Q, "baseline_m": None}
 
 
+def _rectified_focal(record: dict, focal_px: float) -> dict:
+    """The rig's file with P1, P2 and Q of another rectified focal length (the baseline kept): one rig, consistent,
+    whose rectified views magnify the raw image's centre."""
+    from svs_torch.geometry.calibration import _implied_q
+
+    P1, P2 = np.array(record["P1"]), np.array(record["P2"])
+    baseline_m = -P2[0, 3] / P2[0, 0]
+    P1[0, 0] = P1[1, 1] = P2[0, 0] = P2[1, 1] = focal_px
+    P2[0, 3] = -focal_px * baseline_m
+    summary = {key: None for key in ("focal_px", "baseline_m", "doffs_px")}
+    return {**record, **summary, "P1": P1.tolist(), "P2": P2.tolist(), "Q": _implied_q(P1, P2).tolist()}
+
+
 def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
     """A 400-digit RMS (nothing reads it to rectify) ended in 'internal error: OverflowError'."""
     calibration, _ = rig
@@ -188,6 +201,12 @@ def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
     (lambda r: {**r, "dist_left": [2.0, *r["dist_left"][1:]]}, "its left camera's .* rectify only 49 %"),
     (lambda r: {**r, "dist_right": [1e30, *r["dist_right"][1:]]}, "its right camera's .* rectify only 0 %"),
     (lambda r: {**r, "image_size_wh": [320, 240]}, r"'K_left' puts the lens centre at \(342, 234\) px, far from"),
+    # An audit of numbers read from files: rectified views of a raw pixel or two each (NO_OBJECTS, a clear path)
+    # and a focal of 1e30 px in the reports; now the bound of --focal-px.
+    (lambda r: _rectified_focal(r, 1e7),
+     r"expected P1, P2 of a left-right rig \(focal P1\[0\]\[0\] in \(0, 1e\+06\] px, baseline "
+     r"-P2\[0\]\[3\]/P2\[0\]\[0\] over 0\), got 1e\+07 px, 0.0831805 m"),
+    (lambda r: _rectified_focal(r, 1e30), r"expected P1, P2 of a left-right rig .*got 1e\+30 px"),
 ])
 def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
     calibration, _ = rig
