@@ -127,15 +127,17 @@ def _bad(where: str, problem: str, text: str) -> PairSource:
                                                  f"{text.strip()[:80]!r}")
 
 
-def _calibration(fields: Sequence[str], where: str, text: str) -> PairSource | tuple[float, float, float]:
-    """(focal, baseline, doffs) from the numbers of a line, or a bad entry naming the first bad one."""
+def _calibration(fields: Sequence[str], where: str, text: str,
+                 named_as_columns: bool = True) -> PairSource | tuple[float, float, float]:
+    """(focal, baseline, doffs) from the numbers of a line, or a bad entry naming the first bad one: as a list line's
+    column (``FOCAL_PX``), or ``named_as_columns`` False, as an index line's key (``focal_px``)."""
     values = []
     for key, number in zip(CALIBRATION_KEYS, fields):
         try:
             value = float(number)
         except ValueError:
             value = math.nan
-        positive, name = key != "doffs_px", key.upper()
+        positive, name = key != "doffs_px", key.upper() if named_as_columns else key
         if not math.isfinite(value) or (positive and value <= 0):
             need = "a finite positive number" if positive else "a finite number"
             return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {need}, got {number!r}")
@@ -263,7 +265,13 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected both focal_px and "
                                                                       f"baseline_m in a calibration, got {given}"))
             continue
-        calibration = _calibration([str(v) for v in numbers if v is not None], where, line)
+        wrong = [key for key, number in zip(CALIBRATION_KEYS, numbers) if number is not None
+                 and not (isinstance(number, (int, float)) and not isinstance(number, bool))]
+        if wrong:  # JSON numbers, as capture writes them: "500" was taken as 500 (a calibration file refuses it)
+            sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: {wrong[0]}: expected a JSON number, "
+                                                                      f"got {json.dumps(record[wrong[0]])[:40]}"))
+            continue
+        calibration = _calibration([str(v) for v in numbers if v is not None], where, line, named_as_columns=False)
         if isinstance(calibration, PairSource):
             sources.append(calibration)
             continue

@@ -40,7 +40,20 @@ def test_a_list_lines_calibration_out_of_any_rig_is_that_lines_problem(tmp_path,
     index.write_text(json.dumps({"left": "l.png", "right": "r.png", "focal_px": focal, "baseline_m": baseline,
                                  **({"doffs_px": doffs[0]} if doffs else {})}) + "\n")
     (entry,) = read_pair_list(index, "--pairs")
-    assert entry.problem is not None and f"line 1 of {index}: {message.split(':')[0]}: expected" in entry.problem
+    key, expected = message.split(": ", 1)  # named by its JSON key there ('focal_px'), not a list's column
+    assert entry.problem.startswith(f"--pairs: line 1 of {index}: {key.lower()}: {expected.split(', got')[0]}")
+
+
+@pytest.mark.parametrize("value", ['"500"', "true", "[500]", '{"px": 500}'])
+def test_an_index_lines_calibration_that_is_no_json_number_is_that_lines_problem(tmp_path, value):
+    """A string "500" was taken as 500 (a calibration file refuses it); true and [500] were refused as 'FOCAL_PX:
+    expected a finite positive number, got 'True'', naming a column an index line does not have."""
+    index = tmp_path / "index.jsonl"
+    index.write_text(f'{{"left": "l.png", "right": "r.png", "focal_px": {value}, "baseline_m": 0.1}}\n'
+                     '{"left": "l.png", "right": "r.png", "focal_px": 500, "baseline_m": 0.1}\n')
+    bad, good = read_pair_list(index, "--pairs")
+    assert bad.problem == f"--pairs: line 1 of {index}: focal_px: expected a JSON number, got {value}"
+    assert (good.problem, good.focal_px, good.baseline_m) == (None, 500.0, 0.1)
 
 
 def test_the_bounds_themselves_are_taken_from_a_list_as_from_the_options(tmp_path):
