@@ -34,12 +34,12 @@ def _calibration_value(text: str, key: str) -> float:
 
 
 def focal_px_value(text: str) -> float:
-    """argparse type of ``--focal-px``: pixels over 0 and at most :data:`~svs_torch.core.camera.MAX_FOCAL_PX`."""
+    """argparse type of ``--focal-px``: pixels, :data:`~svs_torch.core.camera.MIN_FOCAL_PX` to its MAX."""
     return _calibration_value(text, "focal_px")
 
 
 def baseline_m_value(text: str) -> float:
-    """argparse type of ``--baseline-m``: metres over 0 and at most :data:`~svs_torch.core.camera.MAX_BASELINE_M`."""
+    """argparse type of ``--baseline-m``: metres, :data:`~svs_torch.core.camera.MIN_BASELINE_M` to its MAX."""
     return _calibration_value(text, "baseline_m")
 
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-__all__ = ["CALIBRATION_RANGES", "MAX_BASELINE_M", "MAX_FOCAL_PX", "MAX_SIZE_PX", "SVSCamera", "SVS_RESOLUTIONS",
-           "SVS_CAMERA", "calibration_value_expected", "parse_size", "too_many_pixels"]
+__all__ = ["CALIBRATION_RANGES", "MAX_BASELINE_M", "MAX_FOCAL_PX", "MAX_SIZE_PX", "MIN_BASELINE_M", "MIN_FOCAL_PX",
+           "SVSCamera", "SVS_RESOLUTIONS", "SVS_CAMERA", "calibration_value_expected", "parse_size", "too_many_pixels"]
 
 #: The largest focal length and doffs (either way) any rig may have, pixels: a 1000 mm lens on 1 µm pixels, 250
 #: times the longest focal of the shared data (MiddEval3 at full size, 4000 px). ``--focal-px 1e30`` ranged Teddy at
@@ -22,16 +22,23 @@ __all__ = ["CALIBRATION_RANGES", "MAX_BASELINE_M", "MAX_FOCAL_PX", "MAX_SIZE_PX"
 #: every object at 0.000 m (an audit of option bounds); a pair list's line, an ``index.jsonl`` line and a
 #: ``calib.txt`` did the same until they were held to these bounds too (an audit of numbers read from files).
 MAX_FOCAL_PX = 1e6
+#: The shortest focal length, pixels: at 1 px even the smallest pair the pipeline ranges (5 px wide) spans 136°, and
+#: ``--focal-px 1e-30`` (or a list line's) put every object at 0.000 m with the status OK (an audit).
+MIN_FOCAL_PX = 1.0
 #: The longest baseline any rig may have, metres: one holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m);
 #: with the focal's bound f·B stays under 1e8, far inside float32 (``--focal-px 1e20 --baseline-m 1e20`` left
 #: every object without a depth, its disparity read as "noisy frames").
 MAX_BASELINE_M = 100.0
+#: The shortest baseline, metres, as a calibration file's (``BASELINE_RANGE_M``): ``--baseline-m 1e-30`` put every
+#: object at 0.000 m with the status OK (an audit).
+MIN_BASELINE_M = 0.001
 #: Each calibration number's range, wherever it is read (the command's options, a pair list's line, capture's
-#: ``index.jsonl``, a ``calib.txt``): (lowest, highest, whether the lowest itself is taken, what is expected).
-CALIBRATION_RANGES: dict[str, tuple[float, float, bool, str]] = {
-    "focal_px": (0.0, MAX_FOCAL_PX, False, f"a focal length in pixels over 0 and at most {MAX_FOCAL_PX:,.0f}"),
-    "baseline_m": (0.0, MAX_BASELINE_M, False, f"a baseline in metres over 0 and at most {MAX_BASELINE_M:g}"),
-    "doffs_px": (-MAX_FOCAL_PX, MAX_FOCAL_PX, True, f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}"),
+#: ``index.jsonl``, a ``calib.txt``, a rig's calibration file): (lowest, highest, what is expected).
+CALIBRATION_RANGES: dict[str, tuple[float, float, str]] = {
+    "focal_px": (MIN_FOCAL_PX, MAX_FOCAL_PX, f"a focal length in pixels from {MIN_FOCAL_PX:g} to {MAX_FOCAL_PX:,.0f}"),
+    "baseline_m": (MIN_BASELINE_M, MAX_BASELINE_M,
+                   f"a baseline in metres from {MIN_BASELINE_M:g} to {MAX_BASELINE_M:g}"),
+    "doffs_px": (-MAX_FOCAL_PX, MAX_FOCAL_PX, f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}"),
 }
 
 
@@ -39,9 +46,9 @@ def calibration_value_expected(key: str, value: float) -> str | None:
     """None where ``value`` is a finite number in ``key``'s :data:`CALIBRATION_RANGES` (``"focal_px"``,
     ``"baseline_m"``, ``"doffs_px"``); else what is expected of it, for an error's "expected ..." (the caller names
     the option, file or line)."""
-    low, high, include_low, expected = CALIBRATION_RANGES[key]
-    taken = math.isfinite(value) and (low <= value if include_low else low < value) and value <= high
-    return None if taken else expected
+    low, high, expected = CALIBRATION_RANGES[key]
+    return None if math.isfinite(value) and low <= value <= high else expected
+
 
 #: The frame sizes the SVS firmware can grab, keyed by the size code in its ``##IMJ`` header
 #: (SVS_PROTOCOL.md §3): ``'3'`` 160×120, ``'5'`` 320×240 (power-on default), ``'7'`` 640×480, ``'9'`` 1280×1024.

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.camera import MAX_FOCAL_PX, MAX_SIZE_PX, calibration_value_expected
+from ..core.camera import CALIBRATION_RANGES, MAX_SIZE_PX, MIN_BASELINE_M, calibration_value_expected
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
@@ -40,7 +40,7 @@ FORMAT_VERSION = 1
 ASPECT_TOLERANCE = 0.01
 #: The baselines a calibration file may hold, metres. A file in millimetres (a square given as 25 for 0.025 to an
 #: older calibrate) read as an 83 m baseline: every distance 1000 times too far, in silence (an audit's find).
-BASELINE_RANGE_M = (0.001, 2.0)
+BASELINE_RANGE_M = (MIN_BASELINE_M, 2.0)
 #: The least share of each rectified view read inside its raw image. calibrate's (``cv2.stereoRectify``, alpha 0):
 #: 100 %; hand edits, in silence (an audit): a doubled image_size_wh 68 % (0.31 m for 0.39), k1 = 2 49 % (0.94 m),
 #: a huge distortion 0 % (black views: NO_OBJECTS, a clear path to a walker).
@@ -229,7 +229,7 @@ def _parse(record: object, where: str) -> StereoCalibration:
             raise InputError(f"{where}: expected '{key}' with positive focal lengths, got {K[0, 0]} and {K[1, 1]}")
     focal, baseline = calibration.focal_px, calibration.baseline_m  # (a focal of 1e30: views of one raw pixel each)
     if not (calibration_value_expected("focal_px", focal) is None and baseline > 0):
-        raise InputError(f"{where}: expected P1, P2 of a left-right rig (focal P1[0][0] in (0, {MAX_FOCAL_PX:g}] px, "
+        raise InputError(f"{where}: expected P1, P2 of a left-right rig (P1[0][0] {CALIBRATION_RANGES['focal_px'][2]}, "
                          f"baseline -P2[0][3]/P2[0][0] over 0), got {focal:g} px, {baseline:g} m")
     check_baseline(calibration.baseline_m, where)
     _check_one_rig(calibration, record, where)

@@ -19,9 +19,12 @@ def _refused(capsys, argv: list[str]) -> str:
 @pytest.mark.parametrize("command", ["estimate", "eval"])
 @pytest.mark.parametrize("option, value, expected", [
     # 1e30 ranged Teddy at 3e27 m with the status OK; 1e39 overflowed float32 ("focal_px: ... got inf")
-    ("--focal-px", "1e30", "a focal length in pixels over 0 and at most 1,000,000"),
-    ("--focal-px", "1e39", "a focal length in pixels over 0 and at most 1,000,000"),
-    ("--baseline-m", "1e20", "a baseline in metres over 0 and at most 100"),
+    ("--focal-px", "1e30", "a focal length in pixels from 1 to 1,000,000"),
+    ("--focal-px", "1e39", "a focal length in pixels from 1 to 1,000,000"),
+    ("--baseline-m", "1e20", "a baseline in metres from 0.001 to 100"),
+    # every object at 0.000 m, status OK (an audit of numbers read from files, whose bounds these are too)
+    ("--focal-px", "1e-30", "a focal length in pixels from 1 to 1,000,000"),
+    ("--baseline-m", "1e-30", "a baseline in metres from 0.001 to 100"),
     # every object at 0.000 m, status OK
     ("--doffs-px", "1e30", "pixels from -1,000,000 to 1,000,000"),
 ])
@@ -36,8 +39,8 @@ def test_calibration_options_of_real_rigs_are_taken():
     """The bounds' own values and the shared data's rigs (KITTI's focal and baseline, MiddEval3's doffs) parse."""
     from svs_torch.cli.rig import baseline_m_value, doffs_px_value, focal_px_value
 
-    assert focal_px_value("1e6") == 1e6 and focal_px_value("721.5") == 721.5
-    assert baseline_m_value("100") == 100 and baseline_m_value("0.54") == 0.54
+    assert focal_px_value("1e6") == 1e6 and focal_px_value("721.5") == 721.5 and focal_px_value("1") == 1
+    assert baseline_m_value("100") == 100 and baseline_m_value("0.54") == 0.54 and baseline_m_value("0.001") == 0.001
     assert doffs_px_value("-1e6") == -1e6 and doffs_px_value("131.111") == 131.111
 
 

@@ -13,13 +13,13 @@ import pytest
 
 from svs_torch import InputError
 from svs_torch.cli import main
-from svs_torch.core.camera import CALIBRATION_RANGES, MAX_BASELINE_M, MAX_FOCAL_PX
+from svs_torch.core.camera import CALIBRATION_RANGES, MAX_BASELINE_M, MAX_FOCAL_PX, MIN_BASELINE_M, MIN_FOCAL_PX
 from svs_torch.data.formats import read_middlebury_calib
 from svs_torch.data.middlebury import load_middlebury_eval3
 from svs_torch.data.pair_list import read_pair_list
 
-FOCAL = "a focal length in pixels over 0 and at most 1,000,000"
-BASELINE = "a baseline in metres over 0 and at most 100"
+FOCAL = "a focal length in pixels from 1 to 1,000,000"
+BASELINE = "a baseline in metres from 0.001 to 100"
 DOFFS = "pixels from -1,000,000 to 1,000,000"
 
 
@@ -29,6 +29,8 @@ DOFFS = "pixels from -1,000,000 to 1,000,000"
     ("1500 1e9", f"BASELINE_M: expected {BASELINE}, got '1e9'"),
     ("1500 0.08 1e30", f"DOFFS_PX: expected {DOFFS}, got '1e30'"),
     ("1500 0.08 -1e30", f"DOFFS_PX: expected {DOFFS}, got '-1e30'"),  # NO_DENSE_DEPTH, blaming the doffs' sign
+    ("1e-30 0.08", f"FOCAL_PX: expected {FOCAL}, got '1e-30'"),  # every object at 0.000 m, status OK
+    ("1500 1e-30", f"BASELINE_M: expected {BASELINE}, got '1e-30'"),  # likewise
 ])
 def test_a_list_lines_calibration_out_of_any_rig_is_that_lines_problem(tmp_path, numbers, message):
     listing = tmp_path / "pairs.txt"
@@ -60,9 +62,11 @@ def test_the_bounds_themselves_are_taken_from_a_list_as_from_the_options(tmp_pat
     from svs_torch.cli.rig import baseline_m_value, doffs_px_value, focal_px_value
 
     listing = tmp_path / "pairs.txt"
-    listing.write_text(f"l.png r.png {MAX_FOCAL_PX:g} {MAX_BASELINE_M:g} {-MAX_FOCAL_PX:g}\n")
-    (source,) = read_pair_list(listing)
-    assert (source.problem, source.focal_px, source.baseline_m, source.doffs_px) == (None, 1e6, 100.0, -1e6)
+    listing.write_text(f"l.png r.png {MAX_FOCAL_PX:g} {MAX_BASELINE_M:g} {-MAX_FOCAL_PX:g}\n"
+                       f"l.png r.png {MIN_FOCAL_PX:g} {MIN_BASELINE_M:g} {MAX_FOCAL_PX:g}\n")
+    highest, lowest = read_pair_list(listing)
+    assert (highest.problem, highest.focal_px, highest.baseline_m, highest.doffs_px) == (None, 1e6, 100.0, -1e6)
+    assert (lowest.problem, lowest.focal_px, lowest.baseline_m, lowest.doffs_px) == (None, 1.0, 0.001, 1e6)
     assert (focal_px_value("1e6"), baseline_m_value("100"), doffs_px_value("-1e6")) == (1e6, 100.0, -1e6)
     assert CALIBRATION_RANGES["focal_px"][1] == MAX_FOCAL_PX
 
@@ -92,6 +96,8 @@ def _teddy_with(tmp_path: Path, data_dir: Path, key: str, value: str) -> Path:
 
 @pytest.mark.parametrize("key, value, message", [
     ("baseline", "1e9", f"'baseline' 1e+09 mm: expected {BASELINE}"),
+    ("baseline", "1e-27", f"'baseline' 1e-27 mm: expected {BASELINE}"),
+    ("cam0", "[1e-30 0 199; 0 1e-30 187; 0 0 1]", f"'cam0's focal' 1e-30 px: expected {FOCAL}"),
     ("doffs", "1e30", f"'doffs' 1e+30 px: expected {DOFFS}"),
     ("cam0", "[1e30 0 199; 0 1e30 187; 0 0 1]", f"'cam0's focal' 1e+30 px: expected {FOCAL}"),
     ("cam1", "[-5 0 251; 0 1500 187; 0 0 1]", "expected cam1 finite with a positive focal length"),  # (already)

@@ -204,8 +204,8 @@ def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
     # An audit of numbers read from files: rectified views of a raw pixel or two each (NO_OBJECTS, a clear path)
     # and a focal of 1e30 px in the reports; now the bound of --focal-px.
     (lambda r: _rectified_focal(r, 1e7),
-     r"expected P1, P2 of a left-right rig \(focal P1\[0\]\[0\] in \(0, 1e\+06\] px, baseline "
-     r"-P2\[0\]\[3\]/P2\[0\]\[0\] over 0\), got 1e\+07 px, 0.0831805 m"),
+     r"expected P1, P2 of a left-right rig \(P1\[0\]\[0\] a focal length in pixels from 1 to 1,000,000, "
+     r"baseline -P2\[0\]\[3\]/P2\[0\]\[0\] over 0\), got 1e\+07 px, 0.0831805 m"),
     (lambda r: _rectified_focal(r, 1e30), r"expected P1, P2 of a left-right rig .*got 1e\+30 px"),
 ])
 def test_bad_files_give_one_line_errors(rig, tmp_path, change, message):
