@@ -465,8 +465,9 @@ def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
     problems = [s.problem for s in sources]
     assert problems[:3] == [None] * 3 and problems[6:] == [None] * 2
     assert "line 5" in problems[3] and "got 3 fields" in problems[3]
-    assert "line 6" in problems[4] and "FOCAL_PX: expected a finite positive number, got 'abc'" in problems[4]
-    assert "BASELINE_M: expected a finite positive number, got '-1'" in problems[5]
+    assert "line 6" in problems[4] and "FOCAL_PX: expected a focal length in pixels from 1 to 1,000,000, got 'abc'" \
+        in problems[4]
+    assert "BASELINE_M: expected a baseline in metres from 0.001 to 100, got '-1'" in problems[5]
     scene, plain, calibrated = (load_pair_source(s) for s in sources[:3])
     assert scene.focal_px.tolist() == pytest.approx([1500.0]) and scene.disparity_px is not None
     assert not bool(plain.calibrated[0]) and plain.focal_px.tolist() != pytest.approx([1500.0])  # the SVS model
