@@ -136,6 +136,8 @@ def _check_calib_values(calib: dict, name: str, path: Path) -> None:
                              f"{display_path(path)}")
     for key in ("doffs", *_CALIB_POSITIVE):
         value = calib.get(key)
+        if isinstance(value, np.ndarray):  # "doffs=[1 2]": an internal TypeError stopped the whole eval run (an audit)
+            raise InputError(f"{name}: expected a number for '{key}', got a matrix: {display_path(path)}")
         if isinstance(value, float) and not (math.isfinite(value) and (key == "doffs" or value > 0)):
             need = "a finite number" if key == "doffs" else "a finite positive number"
             raise InputError(f"{name}: expected {need} for '{key}', got {value:g}: {display_path(path)}")

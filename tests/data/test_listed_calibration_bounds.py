@@ -127,3 +127,17 @@ def test_eval_of_a_scene_whose_calib_txt_is_out_of_range_gives_it_bad_input(caps
     main(["eval", str(scene)])
     out = capsys.readouterr().out
     assert "BAD_INPUT: calib: 'baseline' 1e+09 mm: expected" in out and "Traceback" not in out
+
+
+@pytest.mark.parametrize("key, value", [("doffs", "[1 2; 3 4]"), ("baseline", "[80 1]"), ("width", "[450]")])
+def test_a_calib_txt_number_given_as_a_matrix_is_that_scenes_bad_input(capsys, tmp_path, data_dir, key, value):
+    """'doffs=[1 2; 3 4]' stopped the whole eval run: 'internal error: TypeError: only 0-dimensional arrays can be
+    converted to Python scalars'."""
+    scene = _teddy_with(tmp_path, data_dir, key, value)
+    with pytest.raises(InputError, match=f"^calib: expected a number for '{key}', got a matrix: .*calib.txt$"):
+        read_middlebury_calib(scene / "calib.txt", "calib")
+    listing = tmp_path / "scenes.txt"
+    listing.write_text(f"{scene}\n{data_dir / 'middlebury_eval3_Q' / 'ArtL'}\n")
+    main(["eval", str(listing), "--size", "174x139"])
+    out = capsys.readouterr().out
+    assert f"BAD_INPUT: calib: expected a number for '{key}', got a matrix" in out and "statuses: BAD_INPUT 1, OK 1" in out
