@@ -84,6 +84,9 @@ def read_pfm(path: str | Path, name: str = "path") -> np.ndarray:
 _CALIB_ENTRY = re.compile(r"(\w+)[ \t]*=[ \t]*(\[[^\]]*\]|[^\s\[\]]*)")
 #: calib.txt's values that must be finite and positive (focal lengths and sizes), or only finite.
 _CALIB_POSITIVE = ("baseline", "width", "height")
+#: How far a calib.txt's doffs may lie from cam1's cx − cam0's cx, pixels: the files print 3 decimals (the shared
+#: copies agree within 0.001 px).
+_DOFFS_AGREE_PX = 0.01
 
 
 def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, float | np.ndarray]:
@@ -142,6 +145,22 @@ def _check_calib_values(calib: dict, name: str, path: Path) -> None:
             need = "a finite number" if key == "doffs" else "a finite positive number"
             raise InputError(f"{name}: expected {need} for '{key}', got {value:g}: {display_path(path)}")
     _check_calib_ranges(calib, name, path)
+    _check_calib_agrees(calib, name, path)
+
+
+def _check_calib_agrees(calib: dict, name: str, path: Path) -> None:
+    """cam0 and cam1 of rectified views (one focal length) and doffs their principal points' x apart, as the format
+    defines it (``doffs = cx1 − cx0``; within :data:`_DOFFS_AGREE_PX`). Why: Teddy's file edited to 'doffs= 500' (its
+    cams say 52) ranged it at 0.225 m for 1.405 m, and eval scored it 99.9 % (the truth's depth read the same doffs);
+    a cam1 of another focal was never read (an audit of numbers read from files)."""
+    cam0, cam1 = calib["cam0"], calib["cam1"]
+    if not math.isclose(cam0[0, 0], cam1[0, 0], rel_tol=1e-6):
+        raise InputError(f"{name}: expected cam0 and cam1 with one focal length (rectified views), got {cam0[0, 0]:g} "
+                         f"and {cam1[0, 0]:g} px: {display_path(path)}")
+    apart_px = cam1[0, 2] - cam0[0, 2]
+    if not abs(calib["doffs"] - apart_px) <= _DOFFS_AGREE_PX:
+        raise InputError(f"{name}: expected 'doffs' = cam1's cx - cam0's cx ({apart_px:g} px, the format's definition),"
+                         f" got {calib['doffs']:g}: {display_path(path)}")
 
 
 def _check_calib_ranges(calib: dict, name: str, path: Path) -> None:

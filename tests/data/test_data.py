@@ -397,10 +397,10 @@ def test_read_scaled_disparity_needs_a_positive_scale(data_dir: Path, scale) -> 
 
 def test_read_middlebury_calib_tolerates_odd_whitespace(tmp_path: Path, data_dir: Path) -> None:
     path = tmp_path / "calib.txt"
-    path.write_text("  cam0=[ 10 0 4 ;0 10 3; 0 0 1 ] \n cam1 =[10 0 6; 0 10 3; 0 0 1]\n"
+    path.write_text("  cam0=[ 10 0 4 ;0 10 3; 0 0 1 ] \n cam1 =[10 0 57.271; 0 10 3; 0 0 1]\n"
                     " doffs= 53.271 \nbaseline= 80\n")
     calib = read_middlebury_calib(path)
-    assert calib["cam1"][0, 2] == 6 and calib["doffs"] == 53.271 and calib["baseline"] == 80
+    assert calib["cam1"][0, 2] == 57.271 and calib["doffs"] == 53.271 and calib["baseline"] == 80
     motorcycle = read_middlebury_calib(data_dir / "middlebury_eval3_Q/Motorcycle/calib.txt")
     assert motorcycle["cam0"][0, 0] == 999.421 and motorcycle["doffs"] == 32.778 and motorcycle["width"] == 741
     path.write_text("cam0=[1 0 0; 0 1 0; 0 0 1]\n")

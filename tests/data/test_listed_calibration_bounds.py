@@ -117,7 +117,7 @@ def test_a_calib_txt_out_of_any_rig_is_refused_naming_the_key_and_the_file(tmp_p
 def test_a_calib_txt_focal_scaled_out_of_range_is_refused(tmp_path, data_dir):
     """Each value in range, but the width it was written for (1 px) scales the focal of 1e6 px by 450."""
     scene = _teddy_with(tmp_path, data_dir, "width", "1")
-    (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("1500 0 199", "1e6 0 199"))
+    (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("1500", "1e6"))  # (both cams)
     with pytest.raises(InputError, match=rf"calib: focal_px 4.5e\+08 once scaled .*: expected {FOCAL}"):
         load_middlebury_eval3(scene)
 
@@ -141,3 +141,20 @@ def test_a_calib_txt_number_given_as_a_matrix_is_that_scenes_bad_input(capsys, t
     main(["eval", str(listing), "--size", "174x139"])
     out = capsys.readouterr().out
     assert f"BAD_INPUT: calib: expected a number for '{key}', got a matrix" in out and "statuses: BAD_INPUT 1, OK 1" in out
+
+
+@pytest.mark.parametrize("key, value, message", [
+    # ranged at 0.225 m for 1.405 m, scored 99.9 % (the truth's depth read the same doffs)
+    ("doffs", "500", r"expected 'doffs' = cam1's cx - cam0's cx \(52 px, the format's definition\), got 500"),
+    ("cam1", "[3000 0 251; 0 3000 187; 0 0 1]", "expected cam0 and cam1 with one focal length .*, got 1500 and 3000"),
+])
+def test_a_calib_txt_that_contradicts_itself_is_refused(tmp_path, data_dir, key, value, message):
+    scene = _teddy_with(tmp_path, data_dir, key, value)
+    with pytest.raises(InputError, match=f"^calib: {message}") as raised:
+        load_middlebury_eval3(scene)
+    assert str(raised.value).endswith(str(scene / "calib.txt"))
+
+
+def test_every_shared_calib_txt_agrees_with_itself(data_dir):
+    for path in sorted((data_dir / "middlebury_eval3_Q").glob("*/calib.txt")):
+        read_middlebury_calib(path, "calib")
