@@ -8,16 +8,19 @@ A pair comes from one of:
   :func:`~svs_torch.data.load_stereo_pair` detects it; the scene's own calibration and ground truth), or a
   folder of scene folders;
 * ``svs-depth capture``'s ``index.jsonl`` (one JSON object per pair with ``left`` and ``right`` file names, and
-  optionally ``focal_px``, ``baseline_m``, ``doffs_px``);
+  optionally ``focal_px``, ``baseline_m``, ``doffs_px`` as JSON numbers);
 * a PATH argument: a scene folder, a folder of scene folders, the shared data folder (every pair of
   :func:`~svs_torch.data.list_shared_pairs`), a list file or an ``index.jsonl``.
 
 List files take ``#`` comments and shell quoting (paths with spaces), as a shell reads them (a ``#`` inside a word, as
 in ``take#2/left.png``, is part of it; on Windows a backslash is a path's separator, not an escape); relative paths are
 relative to the list.
-Every pair keeps its own calibration. An entry that cannot be a pair (wrong field count, a bad number, a folder
-that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so that it gets its own line and
-status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole is an :class:`InputError`.
+Every pair keeps its own calibration, each number in the range its command-line option takes (``--focal-px`` 1 to
+1e6 px, ``--baseline-m`` 0.001 to 100 m, ``--doffs-px`` within ±1e6 px:
+:data:`svs_torch.core.camera.CALIBRATION_RANGES`). An entry that cannot be a pair (wrong field count, a bad number,
+a number out of its range, a folder that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so
+that it gets its own line and status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole
+is an :class:`InputError`.
 """
 
 from __future__ import annotations
