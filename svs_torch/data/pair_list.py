@@ -144,7 +144,8 @@ def _calibration(fields: Sequence[str], where: str, text: str,
         # The options' bounds: a line's baseline of 1e9 ranged Teddy at 4.5e10 m and a focal of 1e30 at 2e27 m, with
         # the status OK; a focal of 1e300 was refused as "focal_px: ... got inf", naming no line (an audit).
         if (expected := calibration_value_expected(key, value)) is not None:
-            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {expected}, got {number!r}")
+            shown = number if len(number) <= 40 else number[:37] + "..."  # (not a number 400 digits long, in full)
+            return PairSource(left=text.strip(), problem=f"{where}: {name}: expected {expected}, got {shown!r}")
         values.append(value)
     if len(values) == 2:
         values.append(0.0)
