@@ -85,8 +85,9 @@ _CALIB_ENTRY = re.compile(r"(\w+)[ \t]*=[ \t]*(\[[^\]]*\]|[^\s\[\]]*)")
 #: calib.txt's values that must be finite and positive (focal lengths and sizes), or only finite.
 _CALIB_POSITIVE = ("baseline", "width", "height")
 #: How far a calib.txt's doffs may lie from cam1's cx − cam0's cx, pixels: the files print 3 decimals (the shared
-#: copies agree within 0.001 px).
-_DOFFS_AGREE_PX = 0.01
+#: copies agree within 0.001 px); a tenth of a pixel leaves room for a file rounded otherwise (a scene refused is
+#: lost to a whole evaluation) and still catches a contradiction (doffs 500 for cams 52 px apart).
+_DOFFS_AGREE_PX = 0.1
 
 
 def read_middlebury_calib(path: str | Path, name: str = "path") -> dict[str, float | np.ndarray]:
@@ -154,7 +155,7 @@ def _check_calib_agrees(calib: dict, name: str, path: Path) -> None:
     cams say 52) ranged it at 0.225 m for 1.405 m, and eval scored it 99.9 % (the truth's depth read the same doffs);
     a cam1 of another focal was never read (an audit of numbers read from files)."""
     cam0, cam1 = calib["cam0"], calib["cam1"]
-    if not math.isclose(cam0[0, 0], cam1[0, 0], rel_tol=1e-6):
+    if not math.isclose(cam0[0, 0], cam1[0, 0], rel_tol=1e-4):  # (room for rounding, as the doffs')
         raise InputError(f"{name}: expected cam0 and cam1 with one focal length (rectified views), got {cam0[0, 0]:g} "
                          f"and {cam1[0, 0]:g} px: {display_path(path)}")
     apart_px = cam1[0, 2] - cam0[0, 2]
