@@ -58,6 +58,9 @@ rendered set has fronto-parallel boxes.
 
 ``--extremes`` measures the clean pair and the corners of the envelope instead: two of the deviations above at their
 limits at once (:data:`EXTREMES`), which the issue's "test the extremes" asks for and the single ones miss.
+``--beyond`` measures the clean pair and deviations past the issue's envelope instead (:data:`BEYOND`: roll to 15°,
+tilts to 5°, shifts to 25 % of the height, scales to ±30 %): two cameras mounted by hand, or a lens of another
+focal length, and the limits of the row alignment (``RowAlignmentConfig``) chosen on them.
 
 ``--loose-rig-digit D`` measures both at once, as a loosely mounted SVS sends its frames: the aligned pair and each
 misalignment above, each pair's views then made the cameras' frames at JPEG digit D with its sensor noise
@@ -76,7 +79,7 @@ named with its draw.
                                              synthetic-slant]
                                    [--sizes 320x240,native]
                                    [--limit N]
-                                   [--contrast C] [--brightness K] [--extremes | --loose-rig-digit D]
+                                   [--contrast C] [--brightness K] [--extremes | --beyond | --loose-rig-digit D]
                                    [--noise-seed N[,N...]]
                                    [--set KEY=VALUE ...] [--json out.json] [--markdown table.md]
 """
@@ -186,6 +189,20 @@ EXTREMES = {
     "tilt y -1° gain +30%": Misalignment(tilt_y_deg=-1, gain=0.3),
 }
 
+#: ``--beyond``: single deviations past the issue's envelope (roll ±2°, tilts ±1°, shift ±3 %, scale ±2 %), on
+#: which the row alignment's limits were chosen (experiments/real_rig.md, "Beyond the envelope").
+BEYOND = {
+    **{f"roll {sign}{deg}°": Misalignment(roll_deg=float(f"{sign}{deg}")) for deg in (5, 10, 15) for sign in "+-"},
+    **{f"tilt {axis} {sign}{deg}°": Misalignment(**{f"tilt_{axis}_deg": float(f"{sign}{deg}")})
+       for axis in "xy" for deg in (3, 5) for sign in "+-"},
+    **{f"shift {sign}{pct}%": Misalignment(shift_y_fraction=float(f"{sign}{pct}") / 100)
+       for pct in (6, 12, 25) for sign in "+-"},
+    **{f"scale {sign}{pct}%": Misalignment(scale=float(f"{sign}{pct}") / 100)
+       for pct in (5, 10, 20, 30) for sign in "+-"},
+}
+#: The deviations each ``deviations`` of :func:`conditions` measures.
+DEVIATIONS = {"envelope": MISALIGNMENTS, "extremes": EXTREMES, "beyond": BEYOND}
+
 
 def misalignment_homography(m: Misalignment, height: int, width: int, focal_px: float) -> np.ndarray:
     """The 3×3 homography taking an ideal right view's pixels to the misaligned camera's (x = column)."""
@@ -214,15 +231,16 @@ def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> tor
     return torch.from_numpy(np.clip(warped * (1 + m.gain), 0, 1)).to(image.dtype)[None, None]
 
 
-def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False, noise_seed: int = 0,
+def conditions(batch: StereoBatch, scene_index: int, deviations: str = "envelope", noise_seed: int = 0,
                loose_rig_digit: int | None = None) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
     """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views; with
-    ``extremes``, the clean pair and :data:`EXTREMES` instead; with ``loose_rig_digit``, the clean pair and
+    ``deviations`` ``"extremes"`` or ``"beyond"``, the clean pair and :data:`EXTREMES` or :data:`BEYOND` instead
+    (:data:`DEVIATIONS`); with ``loose_rig_digit``, the clean pair and
     :func:`loose_rig_conditions`. ``noise_seed``: which draw of the camera frames' noise (0: the tables' own)."""
     out = [("clean", batch.left, batch.right)]
     if loose_rig_digit is not None:
         return out + loose_rig_conditions(batch, scene_index, loose_rig_digit, noise_seed)
-    for number, (digit, sigma) in enumerate(() if extremes else JPEG_NOISE):
+    for number, (digit, sigma) in enumerate(JPEG_NOISE if deviations == "envelope" else ()):
         views = []
         for view, image in enumerate((batch.left, batch.right)):
             generator = torch.Generator().manual_seed(NOISE_SEED_STRIDE * noise_seed + 1_000_000 * scene_index
@@ -230,7 +248,7 @@ def conditions(batch: StereoBatch, scene_index: int, extremes: bool = False, noi
             views.append(camera_frames(image, digit, sigma, generator))
         out.append((f"jpeg q{digit} + noise s{sigma:g}", *views))
     focal = float(batch.focal_px[0])
-    for name, m in (EXTREMES if extremes else MISALIGNMENTS).items():
+    for name, m in DEVIATIONS[deviations].items():
         out.append((name, batch.left, misalign_right(batch.right, m, focal)))
     return out
 
@@ -282,11 +300,11 @@ def _pick(batch: StereoBatch, i: int) -> StereoBatch:
 
 
 def run_scene(batch: StereoBatch, scene_index: int, config: PipelineConfig, rival: bool = True,
-              only: tuple[str, ...] | None = None, extremes: bool = False, noise_seed: int = 0,
+              only: tuple[str, ...] | None = None, deviations: str = "envelope", noise_seed: int = 0,
               loose_rig_digit: int | None = None, frames_only: bool = False) -> list[dict]:
     """Rows (one per condition, or those whose name starts with one of ``only``; with ``frames_only`` only the
     camera frames, whose noise a draw changes) of one scene: svs_torch's default and StereoSGBM on the same pairs."""
-    views = [v for v in conditions(batch, scene_index, extremes, noise_seed, loose_rig_digit)
+    views = [v for v in conditions(batch, scene_index, deviations, noise_seed, loose_rig_digit)
              if (only is None or v[0].startswith(only)) and (not frames_only or "jpeg" in v[0])]
     if not views:
         return []
@@ -428,7 +446,7 @@ def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
 
 def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: PipelineConfig, rival: bool = True,
         only: tuple[str, ...] | None = None, progress: bool = True, contrast: float = 1.0,
-        extremes: bool = False, brightness: float = 1.0, noise_seed: int = 0,
+        deviations: str = "envelope", brightness: float = 1.0, noise_seed: int = 0,
         loose_rig_digit: int | None = None, frames_only: bool = False) -> list[dict]:
     """Rows of every scene of ``splits`` at each of ``sizes`` (:func:`run_scene`), each tagged with its split, size
     and ``noise_seed``."""
@@ -445,7 +463,7 @@ def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: P
         batch = brightened(dimmed(scene if rendered else resample(load_scene(scene), size), contrast), brightness)
         label = f"{batch.size_hw[1]}x{batch.size_hw[0]}" if rendered else size
         rows += [{"split": split, "size": label, **row, "noise_seed": noise_seed}
-                 for row in run_scene(batch, index, config, rival, only, extremes, noise_seed, loose_rig_digit,
+                 for row in run_scene(batch, index, config, rival, only, deviations, noise_seed, loose_rig_digit,
                                       frames_only)]
     if progress:
         print(file=sys.stderr)
@@ -517,10 +535,10 @@ def run_draws(splits: dict[str, list[Path | StereoBatch]], config: PipelineConfi
     only = None if args.conditions is None else tuple(args.conditions.split(","))
     rows = []
     for draw, seed in enumerate(seeds):
-        if draw and args.extremes:  # no camera frame among them
+        if draw and args.deviations != "envelope":  # no camera frame among them
             break
         rows += run(splits, args.sizes.split(","), config, rival=not args.no_rival, only=only,
-                    contrast=args.contrast, brightness=args.brightness, extremes=args.extremes, noise_seed=seed,
+                    contrast=args.contrast, brightness=args.brightness, deviations=args.deviations, noise_seed=seed,
                     loose_rig_digit=args.loose_rig_digit, frames_only=draw > 0)
     return rows
 
@@ -529,7 +547,8 @@ def condition_prefixes(text: str) -> str:
     """An ``argparse`` type for ``--conditions`` (here and in select_nearness_setting.py): name prefixes,
     comma-separated, each of a condition (an empty table and exit 0 before; select_nearness_setting.py refused one
     only once its first variant had been scored)."""
-    known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, "aligned"]
+    known = ["clean", *(f"jpeg q{d} + noise s{s:g}" for d, s in JPEG_NOISE), *MISALIGNMENTS, *EXTREMES, *BEYOND,
+             "aligned"]
     unknown = [c for c in text.split(",") if c and not any(k.startswith(c) or c.startswith(k) for k in known)]
     if unknown:
         raise argparse.ArgumentTypeError(f"no condition starts with {', '.join(unknown)}; the conditions: "
@@ -552,8 +571,12 @@ def main(argv: list[str] | None = None) -> dict:
                         help="scale both views' contrast about the left view's mean first (0 < C <= 1; default 1)")
     parser.add_argument("--brightness", type=float, default=1.0,
                         help="scale both views by K first, clipped (K >= 1; default 1): a bright scene")
-    parser.add_argument("--extremes", action="store_true",
-                        help="the clean pair and two misalignments at their limits at once (EXTREMES) instead")
+    deviations = parser.add_mutually_exclusive_group()
+    deviations.add_argument("--extremes", action="store_const", const="extremes", dest="deviations",
+                            default="envelope",
+                            help="the clean pair and two misalignments at their limits at once (EXTREMES) instead")
+    deviations.add_argument("--beyond", action="store_const", const="beyond", dest="deviations",
+                            help="the clean pair and single misalignments past the issue's envelope (BEYOND) instead")
     parser.add_argument("--loose-rig-digit", type=int, default=None, metavar="D",
                         help="the clean pair, then the aligned pair and each misalignment as camera frames at JPEG "
                              "digit D (1-8) with its sensor noise: a loosely mounted SVS")
@@ -565,8 +588,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--markdown", type=output_path, help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     check_reports_apart(parser, args)
-    if args.loose_rig_digit is not None and (args.extremes or args.loose_rig_digit not in dict(JPEG_NOISE)):
-        parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, got {args.loose_rig_digit}")
+    if args.loose_rig_digit is not None and (args.deviations != "envelope"
+                                             or args.loose_rig_digit not in dict(JPEG_NOISE)):
+        parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes or --beyond, got "
+                     f"{args.loose_rig_digit}")
     seeds = _noise_seeds(args.noise_seed)
     if seeds is None:
         parser.error(f"--noise-seed: expected distinct ints >= 0 separated by commas, got {args.noise_seed!r}")

@@ -343,8 +343,9 @@ def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     import torch
 
     batch = real_rig.resample(real_rig.load_scene(data_dir / "middlebury_eval3_Q" / "ArtL"), "320x240")
-    views = real_rig.conditions(batch, 0, extremes=True)
+    views = real_rig.conditions(batch, 0, deviations="extremes")
     assert [name for name, _, _ in views] == ["clean", *real_rig.EXTREMES]
+    assert [name for name, _, _ in real_rig.conditions(batch, 0, deviations="beyond")] == ["clean", *real_rig.BEYOND]
     name, left, right = views[1]
     assert torch.equal(left, batch.left) and torch.equal(right, real_rig.misalign_right(
         batch.right, real_rig.EXTREMES[name], float(batch.focal_px[0])))
@@ -372,7 +373,8 @@ def test_real_rig_loose_rig_digit_makes_each_misaligned_pair_camera_frames(data_
     assert not torch.equal(views[1][1], views[2][1])  # the left view's noise is drawn again for every pair
     again = real_rig.conditions(batch, 0, loose_rig_digit=4)
     assert all(torch.equal(a[2], b[2]) for a, b in zip(views, again))
-    for bad in (["--loose-rig-digit", "9"], ["--loose-rig-digit", "4", "--extremes"]):
+    for bad in (["--loose-rig-digit", "9"], ["--loose-rig-digit", "4", "--extremes"],
+                ["--loose-rig-digit", "4", "--beyond"], ["--extremes", "--beyond"]):
         with pytest.raises(SystemExit):
             real_rig.main(["--data", str(data_dir), *bad])
 
