@@ -303,10 +303,10 @@ def _nearest_summary(result, index: int, truth: dict[int, float], true_nearest: 
         depth, kept_slot = true_nearest
         if kept_slot is None:
             parts.append(f"true nearest obstacle {depth:.2f} m")
-        elif kept_slot < 0:
-            parts.append(f"the nearest obstacle, true {depth:.2f} m, was not kept")
-        else:  # held by #k's region, whose own median (its label's) may be farther: what lies nearest is in it
-            parts.append(f"the nearest obstacle, true {depth:.2f} m, lies in #{kept_slot + 1}, not ranged nearest")
+        else:  # #k's region holds it, whose own median (its label's) may be farther; nothing ranged: #k unranged
+            where = ("was not kept" if kept_slot < 0 else f"lies in #{kept_slot + 1}, "
+                     + ("not ranged nearest" if slot is not None else "which got no distance"))
+            parts.append(f"the nearest obstacle, true {depth:.2f} m, {where}")
     return parts
 
 

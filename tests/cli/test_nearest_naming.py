@@ -197,6 +197,11 @@ def test_figure_title_from_the_callers_truth(missed_scene):
     assert kept.startswith("synthetic-0: nearest obstacle 1.06 m, true 1.06 m") and "not kept" not in kept
     other = pipeline_figure(scenes.batch, result, 0, true_nearest=NearestTruth(1.0, 1 - slot))._suptitle.get_text()
     assert f"the nearest obstacle, true 1.00 m, lies in #{2 - slot}, not ranged" in other.replace("\n", " ")
+    # Nothing ranged: #k got no distance, and "not ranged nearest" said otherwise (an audit of demo's figures).
+    nearest = dataclasses.replace(result.depth.nearest, valid=torch.zeros_like(result.depth.nearest.valid))
+    unranged = dataclasses.replace(result, depth=dataclasses.replace(result.depth, nearest=nearest))
+    none = pipeline_figure(scenes.batch, unranged, 0, true_nearest=NearestTruth(1.0, slot))._suptitle.get_text()
+    assert f"lies in #{slot + 1}, which got no distance" in none.replace("\n", " ") and "ranged nearest" not in none
     # The truth's nearest obstacle inside the ranged one, nearer than its own median (its region is the fatter): the
     # title gives the object's own truth, as its label does, and the part apart. Found by an audit (eval3 Piano:
     # "nearest obstacle 1.99 m, true 1.72 m" over an object labelled "true 2.00 m").
