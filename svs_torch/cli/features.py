@@ -27,7 +27,8 @@ keeps its own settings, and detects on the whole images unless --preset paper.
 
 Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first. In --json,
 "matches" pairs keypoint indices (their detected positions) and "matched_xy" gives each match's points as the
-pipeline uses them, the right point refined to sub-pixel: score matched_xy, not the keypoints.
+pipeline uses them, the right point refined to sub-pixel: score matched_xy, not the keypoints. Where the
+segmentation keeps no region in a view, the status is NO_OBJECTS (as estimate's), with the reason.
 """
 
 EPILOG = """\
@@ -266,6 +267,19 @@ def settings_json(config) -> dict:
             "laplacian_gate": config.laplacian_gate}
 
 
+def nothing_kept_reason(seg, segmenter: str) -> str | None:
+    """Why a segmented run has nothing to match, or None: no region kept in the left or the right view, estimate's
+    NO_OBJECTS (an audit: Otsu on noise kept nothing, and the answer read "status OK", "0 keypoints", as if SURF
+    found nothing on a textured pair)."""
+    from ..core.types import SegmentationStatus
+
+    if bool((seg.left.kept_labels[0] >= 0).any()) and bool((seg.right.kept_labels[0] >= 0).any()):
+        return None
+    left, right = (SegmentationStatus(int(side.status[0])).name for side in (seg.left, seg.right))
+    return (f"the {segmenter.partition(':')[0]} segmenter kept no region (left {left}, right {right}); --no-segment "
+            "detects on the whole images")
+
+
 def _check_before_work(args: argparse.Namespace, check_output_path) -> None:
     """The options no image is needed to refuse: segmentation options a whole-image run would ignore, and a figure
     that cannot be written or would be written over an input."""
@@ -304,10 +318,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
         return 0
     started = time.perf_counter()
-    left_image, right_image = batch.left, batch.right
+    left_image, right_image, empty = batch.left, batch.right, None
     if not args.no_segment:
         seg = segment_pair(batch, config.segmentation)  # the preset's segmenter, as segment runs it
         left_image, right_image = seg.left.masked, seg.right.masked
+        empty = nothing_kept_reason(seg, config.segmentation.segmenter)
     both = extract_surf_features(torch.cat([left_image, right_image]), config.surf)
     kp = both.keypoints
     points, matches = _match_features(both, left_image, right_image, config)
@@ -320,9 +335,20 @@ def run(args: argparse.Namespace) -> int:
                            args.figure_option)
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
-        print(dumps_strict({"status": "OK", "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
+        status = {"status": "OK"} if empty is None else {"status": "NO_OBJECTS", "reason": empty}
+        print(dumps_strict({**status, "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
                             **masked, "time_s": round(elapsed, 6)}))
         return 0
+    _print_text(left, right, pairs, matched_xy, elapsed, args, empty)
+    return 0
+
+
+def _print_text(left: list, right: list, pairs: list, matched_xy: list, elapsed: float, args: argparse.Namespace,
+                empty: str | None) -> None:
+    """The text answer: the counts, the first ten matches and the figure written; first, where the segmentation kept
+    nothing (``empty``, :func:`nothing_kept_reason`), the status that says so."""
+    if empty is not None:
+        print(f"status NO_OBJECTS: {empty}")
     # Said to be SAD matches: some are wrong (tens of pixels off the row), and nothing here has yet checked them
     # against the epipolar geometry (an audit read the first lines as the pipeline's result; svs-depth fundamental
     # gives RANSAC's inliers).
@@ -336,7 +362,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  … {len(pairs) - 10} more (--json for all)")
     if args.figure:
         print(f"figure written to {args.figure}")
-    return 0
 
 
 def _match_features(both, left_image, right_image, config) -> tuple:

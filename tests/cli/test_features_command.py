@@ -153,3 +153,23 @@ def test_features_text_says_its_matches_come_before_ransac(data_dir, capsys):
     code = main(["features", str(scene / "im0.png"), str(scene / "im1.png"), "--size", "320x267"])
     head = capsys.readouterr().out.splitlines()[0]
     assert code == 0 and "SAD matches before RANSAC" in head and "svs-depth fundamental" in head
+
+
+def test_a_pair_whose_segmentation_keeps_nothing_is_not_ok(capsys, tmp_path):
+    """Was: where the segmentation kept no region (here Otsu on noise: no foreground survives the opening), features
+    answered "status OK" and "0 keypoints" without a word of why, as if SURF found nothing on a textured pair
+    (estimate says NO_OBJECTS; an audit). Now the status is estimate's, with the reason and the way out."""
+    noise = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
+    left, right = tmp_path / "left.png", tmp_path / "right.png"
+    cv2.imwrite(str(left), noise)
+    cv2.imwrite(str(right), np.roll(noise, -5, axis=1))
+    report = features_json(capsys, str(left), str(right), "--preset", "paper")
+    assert report["status"] == "NO_OBJECTS" and report["left"] == [] and report["matches"] == []
+    assert report["reason"] == ("the otsu segmenter kept no region (left NO_FOREGROUND, right NO_FOREGROUND); "
+                                "--no-segment detects on the whole images")
+    assert main(["features", str(left), str(right), "--preset", "paper"]) == 0
+    assert capsys.readouterr().out.startswith("status NO_OBJECTS: the otsu segmenter kept no region (left "
+                                              "NO_FOREGROUND, right NO_FOREGROUND); --no-segment detects on the "
+                                              "whole images\nleft: 0 keypoints")
+    whole = features_json(capsys, str(left), str(right), "--preset", "paper", "--no-segment")
+    assert whole["status"] == "OK" and "reason" not in whole and len(whole["matches"]) > 50
