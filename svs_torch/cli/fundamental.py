@@ -93,6 +93,15 @@ def homography_share(inliers: list[list[float]], threshold_px: float) -> float |
     return None if mask is None else round(float(mask.mean()), 3)
 
 
+def _refuse_segmentation_options(args: argparse.Namespace) -> None:
+    """Refuse a segmentation option given to a run that finds F from the whole images, naming the cause to drop:
+    under --preset paper it is --no-segment ("use --preset paper" was the advice to a run with --preset paper; an
+    audit)."""
+    how, fix = (("--no-segment", " or --no-segment") if args.no_segment else
+                ("as --preset default does", ", or use --preset paper (the segmented obstacles)"))
+    refuse_unused_segmentation_options(args, f"this run finds F from the whole images' features ({how})", fix)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -106,9 +115,7 @@ def run(args: argparse.Namespace) -> int:
 
     preset = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
     if args.no_segment or preset.features_on == "image":  # F from the whole images: segmentation changes nothing
-        how = "--no-segment" if args.no_segment else "as --preset default does"
-        refuse_unused_segmentation_options(args, f"this run finds F from the whole images' features ({how})",
-                                           ", or use --preset paper (the segmented obstacles)")
+        _refuse_segmentation_options(args)
     batch, factors = load_pair(args.left, args.right, args)
     reason = too_small_reason(batch.size_hw)
     if reason:

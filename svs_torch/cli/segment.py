@@ -161,9 +161,16 @@ def config_from_args(args: argparse.Namespace, base=None):
 
     from ..segmentation.segment import SegmentationConfig
 
+    base = base or SegmentationConfig()
+    # First, before the configuration checks itself: '--segmenter otsu --keep-rule nearest' read "keep: ... (use
+    # segmenter='nearness')", the library's words, where 'nearest_first' got this command line's (an audit).
+    check_segmenter_options(getattr(args, "segmenter", None) or base.segmenter, dark_objects=args.dark_objects,
+                            floor=getattr(args, "floor", None), segmenter_option=hasattr(args, "segmenter"),
+                            keep_rule=getattr(args, "keep_rule", None),
+                            area_options=[option for option, field in SEGMENTATION_OPTIONS
+                                          if field.endswith("area_fraction") and getattr(args, field) is not None])
     with options_named(kernel_size="--kernel-size", num_keep="--keep", segmenter="--segmenter", keep="--keep-rule",
                        min_area_fraction="--min-area-fraction", near_min_area_fraction="--near-min-area-fraction"):
-        base = base or SegmentationConfig()
         config = replace(base, kernel_size=base.kernel_size if args.kernel_size is None else args.kernel_size,
                          num_keep=base.num_keep if args.keep is None else args.keep,
                          connectivity=base.connectivity if args.connectivity is None else args.connectivity,
@@ -179,10 +186,6 @@ def config_from_args(args: argparse.Namespace, base=None):
         if getattr(args, "near_min_area_fraction", None) is not None:
             config = replace(config, near_min_area_fraction=args.near_min_area_fraction)
         config = with_floor(config, getattr(args, "floor", None))
-    check_segmenter_options(config.segmenter, dark_objects=args.dark_objects, floor=getattr(args, "floor", None),
-                            segmenter_option=hasattr(args, "segmenter"), keep_rule=getattr(args, "keep_rule", None),
-                            area_options=[option for option, field in SEGMENTATION_OPTIONS
-                                          if field.endswith("area_fraction") and getattr(args, field) is not None])
     return config
 
 

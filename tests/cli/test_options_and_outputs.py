@@ -367,6 +367,14 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
      "with 'otsu'; drop it or use --segmenter nearness"),
     (["features", "{L}", "{R}", "--preset", "paper", "--min-area-fraction", "0.5"],
      "--min-area-fraction: only the nearness segmenter ranks regions by disparity"),
+    # Found by an audit of the stage commands: 'nearest' got the library's words ("keep: ... (use
+    # segmenter='nearness')"), and a run with --preset paper was told to use --preset paper.
+    (["segment", "{L}", "{R}", "--segmenter", "otsu", "--keep-rule", "nearest"],
+     "--keep-rule nearest: only the nearness segmenter ranks regions by disparity, and this run segments with "
+     "'otsu'; drop it or use --segmenter nearness"),
+    (["fundamental", "{L}", "{R}", "--preset", "paper", "--no-segment", "--keep", "3"],
+     "--keep: this run finds F from the whole images' features (--no-segment), which no segmentation option changes; "
+     "drop --keep or --no-segment"),
     (["features", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
     (["fundamental", "{L}", "{R}", "--size", ""], "--size: expected WIDTHxHEIGHT such as 320x240, got ''"),
     (["segment", "{L}", ""], "right: expected an image file name, got ''"),
