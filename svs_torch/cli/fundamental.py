@@ -6,7 +6,7 @@ import argparse
 import time
 
 from .common import dumps_strict, positive_float, seed_int, too_small_reason
-from .features import add_feature_options, add_pair_options, load_pair, to_input_pixels
+from .features import add_feature_options, add_pair_options, load_pair, nothing_kept_reason, to_input_pixels
 from .segment import add_segmentation_options, refuse_unused_segmentation_options
 
 HELP = "fundamental matrix of a stereo pair from SURF matches by RANSAC"
@@ -22,7 +22,8 @@ JSON "inliers": one [x_left, y_left, x_right, y_right] per inlier match, the poi
 refined to sub-pixel, as estimate ranges it), input-image pixels (pixel centres at whole numbers).
 "homography_share": the share of the inliers that one homography maps onto the right view within the threshold;
 near 1 they lie on one plane, or the views differ by a shift (a wall facing the camera), and F is not determined
-by them: every F = [e']x H fits them whatever its epipole (text: a warning from 0.9).
+by them: every F = [e']x H fits them whatever its epipole (text: a warning from 0.9). "reason" (only then): the
+segmentation kept no region in a view, so the segmented obstacles held nothing to match.
 """
 
 EPILOG = """\
@@ -144,14 +145,24 @@ def run(args: argparse.Namespace) -> int:
         "homography_share": homography_share(inliers, config.ransac_threshold_px * max(factors)),
         "time_s": round(elapsed, 6),
     }
+    if config.features_on != "image":  # matched on the segmented obstacles: were there any?
+        empty = nothing_kept_reason(result.segmentation, config.segmentation.segmenter)
+        report.update({"reason": empty} if empty else {})
     if args.json:
         print(dumps_strict(report))
         return 0
+    _print_text(report, elapsed)
+    return 0
+
+
+def _print_text(report: dict, elapsed: float) -> None:
+    """The text answer: the status and counts, then F, or why there is none (the segmentation kept no region,
+    the JSON's "reason", or no sample gave a model)."""
     print(f"status {report['status']}: {report['num_inliers']} inliers of {report['num_matches']} matches, "
           f"{report['iterations']} samples, {elapsed * 1e3:.0f} ms")
     if report["F"] is None:
-        print("no F: no sample of seven matches gave a model")
-        return 0
+        print(f"no F: {report.get('reason') or 'no sample of seven matches gave a model'}")
+        return
     print("F (x_right^T F x_left = 0, input pixels):")
     for row in report["F"]:
         print("  " + "  ".join(f"{v: .6e}" for v in row))
@@ -159,4 +170,3 @@ def run(args: argparse.Namespace) -> int:
     if share is not None and share >= PLANAR_SHARE:
         print(f"warning: {share:.0%} of the inliers fit one homography (one plane, or the view shifted): they do not "
               "determine F, whose epipolar lines may be far from the true ones")
-    return 0

@@ -171,6 +171,25 @@ def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
     assert code == 0 and "no F" in out
 
 
+def test_fundamental_says_when_its_segmentation_kept_nothing(capsys, tmp_path):
+    """Found by an audit of the stage commands: under --preset paper, Otsu on a textured noise pair keeps no region,
+    and fundamental read "0 inliers of 0 matches ... no F: no sample of seven matches gave a model", as if the pair
+    had no features (estimate: NO_OBJECTS). Now the answer says the segmentation kept nothing, and the way out."""
+    noise = np.random.default_rng(0).integers(0, 256, (120, 160), dtype=np.uint8)
+    left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
+    cv2.imwrite(left, noise)
+    cv2.imwrite(right, np.roll(noise, -5, axis=1))
+    why = ("the otsu segmenter kept no region (left NO_FOREGROUND, right NO_FOREGROUND); --no-segment detects on the "
+           "whole images")
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] == "TOO_FEW_MATCHES" and report["F"] is None and report["reason"] == why
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper")
+    assert code == 0 and f"no F: {why}" in out
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper", "--no-segment", "--json")
+    assert json.loads(out)["F"] is not None and "reason" not in json.loads(out)
+
+
 def test_eval_ranges_a_pair_without_truth_in_the_metres_estimate_gives(data_dir, capsys, tmp_path):
     """A listed file pair has no ground truth: eval reports it in the metres estimate reports (the SVS model, or
     the options given), not in the nominal calibration it scores pairs with truth by; a lone --focal-px counts."""
