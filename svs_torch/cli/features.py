@@ -273,11 +273,14 @@ def nothing_kept_reason(seg, segmenter: str) -> str | None:
     found nothing on a textured pair)."""
     from ..core.types import SegmentationStatus
 
-    if bool((seg.left.kept_labels[0] >= 0).any()) and bool((seg.right.kept_labels[0] >= 0).any()):
+    empty = [name for name, side in (("left", seg.left), ("right", seg.right))
+             if not bool((side.kept_labels[0] >= 0).any()) or int(side.status[0]) != SegmentationStatus.OK]
+    if not empty:
         return None
+    where = "either view" if len(empty) == 2 else f"the {empty[0]} view"
     left, right = (SegmentationStatus(int(side.status[0])).name for side in (seg.left, seg.right))
-    return (f"the {segmenter.partition(':')[0]} segmenter kept no region (left {left}, right {right}); --no-segment "
-            "detects on the whole images")
+    return (f"the {segmenter.partition(':')[0]} segmenter kept no region in {where} (left {left}, right {right}); "
+            "--no-segment detects on the whole images")
 
 
 def _check_before_work(args: argparse.Namespace, check_output_path) -> None:

@@ -165,11 +165,18 @@ def test_a_pair_whose_segmentation_keeps_nothing_is_not_ok(capsys, tmp_path):
     cv2.imwrite(str(right), np.roll(noise, -5, axis=1))
     report = features_json(capsys, str(left), str(right), "--preset", "paper")
     assert report["status"] == "NO_OBJECTS" and report["left"] == [] and report["matches"] == []
-    assert report["reason"] == ("the otsu segmenter kept no region (left NO_FOREGROUND, right NO_FOREGROUND); "
-                                "--no-segment detects on the whole images")
+    why = ("the otsu segmenter kept no region in either view (left NO_FOREGROUND, right NO_FOREGROUND); "
+           "--no-segment detects on the whole images")
+    assert report["reason"] == why
     assert main(["features", str(left), str(right), "--preset", "paper"]) == 0
-    assert capsys.readouterr().out.startswith("status NO_OBJECTS: the otsu segmenter kept no region (left "
-                                              "NO_FOREGROUND, right NO_FOREGROUND); --no-segment detects on the "
-                                              "whole images\nleft: 0 keypoints")
+    assert capsys.readouterr().out.startswith(f"status NO_OBJECTS: {why}\nleft: 0 keypoints")
+    blank, square = tmp_path / "blank.png", np.zeros((120, 160), np.uint8)  # one view without a region: no match
+    cv2.imwrite(str(blank), square)  # either (estimate: NO_OBJECTS)
+    square[30:90, 40:120] = noise[30:90, 40:120] // 2 + 128  # a bright textured object, kept by Otsu
+    cv2.imwrite(str(right), square)
+    one = features_json(capsys, str(blank), str(right), "--preset", "paper")
+    assert one["status"] == "NO_OBJECTS" and one["reason"].startswith("the otsu segmenter kept no region in the left "
+                                                                      "view (left UNIFORM_IMAGE, right OK)")
+    cv2.imwrite(str(right), np.roll(noise, -5, axis=1))
     whole = features_json(capsys, str(left), str(right), "--preset", "paper", "--no-segment")
     assert whole["status"] == "OK" and "reason" not in whole and len(whole["matches"]) > 50

@@ -179,8 +179,8 @@ def test_fundamental_says_when_its_segmentation_kept_nothing(capsys, tmp_path):
     left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
     cv2.imwrite(left, noise)
     cv2.imwrite(right, np.roll(noise, -5, axis=1))
-    why = ("the otsu segmenter kept no region (left NO_FOREGROUND, right NO_FOREGROUND); --no-segment detects on the "
-           "whole images")
+    why = ("the otsu segmenter kept no region in either view (left NO_FOREGROUND, right NO_FOREGROUND); --no-segment "
+           "detects on the whole images")
     code, out, _ = run_cli(capsys, "fundamental", left, right, "--preset", "paper", "--json")
     report = json.loads(out)
     assert code == 0 and report["status"] == "TOO_FEW_MATCHES" and report["F"] is None and report["reason"] == why
