@@ -23,7 +23,9 @@ cv2.SIFT_create() keeps all) and detects on the image enlarged twice for pairs u
 --max-keypoints / --no-upsample say otherwise: on the shared real pairs at native size with --no-segment,
 0.84-0.92 of its matched points lie within 1 px of the ground truth, against 0.77-0.86 for a plain OpenCV SIFT
 loop, with 3-5x as many correct matches (experiments/features_cli_vs_sift.py). The pipeline (estimate, eval)
-keeps its own settings, and detects on the whole images unless --preset paper.
+keeps its own settings, and detects on the whole images unless --preset paper: --no-segment --max-keypoints 512
+--no-upsample shows the keypoints and matches estimate counts (num_keypoints, num_matches); --preset paper
+already matches estimate --preset paper.
 
 Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first. In --json,
 "matches" pairs keypoint indices (their detected positions) and "matched_xy" gives each match's points as the

@@ -180,3 +180,17 @@ def test_a_pair_whose_segmentation_keeps_nothing_is_not_ok(capsys, tmp_path):
     cv2.imwrite(str(right), np.roll(noise, -5, axis=1))
     whole = features_json(capsys, str(left), str(right), "--preset", "paper", "--no-segment")
     assert whole["status"] == "OK" and "reason" not in whole and len(whole["matches"]) > 50
+
+
+def test_the_help_names_the_options_that_show_what_estimate_counts(data_dir, capsys):
+    """features --help says --no-segment --max-keypoints 512 --no-upsample shows estimate's keypoints and matches,
+    and --preset paper estimate --preset paper's (both held on the shared pairs by an audit of the stage commands)."""
+    scene = data_dir / TEDDY_2003
+    pair = [str(scene / "imL.png"), str(scene / "imR.png")]
+    for options, preset in ((["--no-segment", "--max-keypoints", "512", "--no-upsample"], []),
+                            (["--preset", "paper"], ["--preset", "paper"])):
+        report = features_json(capsys, *pair, *options)
+        assert main(["estimate", *pair, "--json", *preset]) == 0
+        estimated = json.loads(capsys.readouterr().out)
+        assert estimated["num_keypoints"] == [len(report["left"]), len(report["right"])]
+        assert estimated["num_matches"] == len(report["matches"]) > 50
