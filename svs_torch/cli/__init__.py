@@ -75,6 +75,11 @@ class OneLineParser(argparse.ArgumentParser):
             message += self._value_read_as_option(message)
         if message.startswith("argument COMMAND: invalid choice: "):
             message += self._option_before_command()
+        if message.startswith("the following arguments are required: "):
+            # 'segment -left.png right.png': the file read as an option, and the error named the right image missing
+            # (an audit); the same hint as for an unrecognized one (_refuse_extras).
+            files = [token for token in self._arguments if token.startswith("-") and os.path.isfile(token)]
+            message += f" ({files[0]} reads as an option: write ./{files[0]})" if files else ""
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
     def _value_read_as_option(self, message: str) -> str:

@@ -227,6 +227,23 @@ def test_a_file_named_like_an_option_says_how_to_write_it(capsys, tmp_path, monk
     assert "reads as an option" not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["segment", "features", "fundamental"])
+def test_a_file_named_like_an_option_says_how_to_write_it_where_right_is_required(capsys, tmp_path, monkeypatch,
+                                                                                  command):
+    """An audit of the stage commands: `segment -left.png right.png` said only "the following arguments are
+    required: right", as the right image had been left out (their right is required: no extras hint was reached)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "-left.png").write_bytes(b"")
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "-left.png", "right.png"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1
+    assert "required: right (-left.png reads as an option: write ./-left.png)" in err
+    with pytest.raises(SystemExit):
+        main([command, "left.png"])  # a right image truly left out: no hint
+    assert "reads as an option" not in capsys.readouterr().err
+
+
 def test_near_min_area_fraction_option(data_dir, capsys):
     """``--near-min-area-fraction`` reaches the segmentation, and a share out of range is refused by name."""
     from svs_torch.cli.segment import config_from_args
