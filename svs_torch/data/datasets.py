@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.camera import SVS_CAMERA
+from ..core.camera import SVS_CAMERA, calibration_value_expected
 from ..core.checks import InputError
 from ..core.dataset_files import KITTI_LAYOUTS, KITTI_LEFT_FOLDERS
 from ..core.files import check_path_given, display_path, path_kind
@@ -139,19 +139,19 @@ def load_image_pair(
     ``SVS_CAMERA.baseline_m``); calibrated is True only when both ``focal_px`` and ``baseline_m`` are given.
 
     Raises:
-        InputError: for an unreadable file (naming ``left`` or ``right``), a focal or baseline that is not
-            finite and positive, a non-finite doffs, or
+        InputError: for an unreadable file (naming ``left`` or ``right``), a focal, baseline or doffs out of
+            the range any rig takes (:data:`~svs_torch.core.camera.CALIBRATION_RANGES`, as the options'), or
             left and right of different sizes (naming ``right`` and both sizes).
     """
     # Numbers only: a str from a script raised TypeError from math.isfinite, and True was taken as a focal of 1 px.
     def number(value: object) -> bool:
         return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
 
-    for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m)):
-        if value is not None and not (number(value) and value > 0):
-            raise InputError(f"{name}: expected a finite positive value, got {value!r}")
-    if not number(doffs_px):
-        raise InputError(f"doffs_px: expected a finite value, got {doffs_px!r}")
+    # The ranges the options and a pair list's line are held to (CALIBRATION_RANGES): focal_px=1e30 from a script
+    # ranged Teddy at 3e27 m, status OK, where --focal-px 1e30 was refused.
+    for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
+        if value is not None and not (number(value) and calibration_value_expected(name, value) is None):
+            raise InputError(f"{name}: expected {calibration_value_expected(name, math.nan)}, got {value!r}")
     for name, path in (("left", left_path), ("right", right_path)):
         if not isinstance(path, (str, os.PathLike)):  # None or bytes: a TypeError from pathlib named neither
             raise InputError(f"{name}: expected an image file name (str or os.PathLike), got "

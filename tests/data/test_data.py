@@ -258,10 +258,16 @@ def test_load_image_pair_calibration(data_dir: Path) -> None:
     assert bool(given.calibrated) and float(given.doffs_px) == 3.0
 
 
+FOCAL_RANGE = "a focal length in pixels from 1 to 1,000,000"
+
+
 @pytest.mark.parametrize("calibration, message", [
-    ({"focal_px": "500", "baseline_m": 0.1}, "focal_px: expected a finite positive value, got '500'"),
-    ({"focal_px": True, "baseline_m": 0.1}, "focal_px: expected a finite positive value, got True"),
-    ({"doffs_px": "3"}, "doffs_px: expected a finite value, got '3'"),
+    ({"focal_px": "500", "baseline_m": 0.1}, f"focal_px: expected {FOCAL_RANGE}, got '500'"),
+    ({"focal_px": True, "baseline_m": 0.1}, f"focal_px: expected {FOCAL_RANGE}, got True"),
+    ({"doffs_px": "3"}, "doffs_px: expected pixels from -1,000,000 to 1,000,000, got '3'"),
+    # The options' ranges (CALIBRATION_RANGES): a focal of 1e30 from a script ranged Teddy at 3e27 m, status OK.
+    ({"focal_px": 1e30, "baseline_m": 0.1}, rf"focal_px: expected {FOCAL_RANGE}, got 1e\+30"),
+    ({"baseline_m": 1e-30}, "baseline_m: expected a baseline in metres from 0.001 to 100, got 1e-30"),
 ])
 def test_load_image_pair_takes_numbers_only(tmp_path: Path, data_dir: Path, calibration, message) -> None:
     """Was: TypeError 'must be real number, not str' from math.isfinite, and True taken as a focal of 1 px. The
