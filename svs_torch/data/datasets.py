@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.camera import SVS_CAMERA, calibration_value_expected
+from ..core.camera import CALIBRATION_RANGES, SVS_CAMERA, calibration_value_expected
 from ..core.checks import InputError
 from ..core.dataset_files import KITTI_LAYOUTS, KITTI_LEFT_FOLDERS
 from ..core.files import check_path_given, display_path, path_kind
@@ -151,7 +151,7 @@ def load_image_pair(
     # ranged Teddy at 3e27 m, status OK, where --focal-px 1e30 was refused.
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
         if value is not None and not (number(value) and calibration_value_expected(name, value) is None):
-            raise InputError(f"{name}: expected {calibration_value_expected(name, math.nan)}, got {value!r}")
+            raise InputError(f"{name}: expected {CALIBRATION_RANGES[name][2]}, got {value!r}")
     for name, path in (("left", left_path), ("right", right_path)):
         if not isinstance(path, (str, os.PathLike)):  # None or bytes: a TypeError from pathlib named neither
             raise InputError(f"{name}: expected an image file name (str or os.PathLike), got "
