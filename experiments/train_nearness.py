@@ -64,7 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
 from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
 import train_segmentation  # noqa: E402
-from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, add_config_options,  # noqa: E402
+from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, adamw, add_config_options,  # noqa: E402
                                 fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
                                 train_scenes)
 
@@ -130,7 +130,7 @@ def build_pool(pairs: list[StereoBatch], net_config: NearnessNetConfig, generato
 
 
 def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, generator: torch.Generator) -> list[dict]:
-    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    optimizer = adamw(net, config)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
     history = []
     net.train()

@@ -65,6 +65,7 @@ from svs_torch.cli.common import non_negative_float, non_negative_int, positive_
 from svs_torch.cli.features import checked_size
 from svs_torch.cli.segment import segmenter_choice
 from svs_torch.core.errors import InputError
+from svs_torch.core.workers import signals_held
 from svs_torch.cli.progress import Progress
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.data import (collate_stereo_batches, load_pair_source, load_stereo_pair, read_pair_list,
@@ -248,8 +249,18 @@ def depth_loss(logits: torch.Tensor, pool: Pool, index: torch.Tensor) -> torch.T
     return error.sum() / both.sum().clamp(min=1)
 
 
+def adamw(net: torch.nn.Module, config) -> torch.optim.AdamW:
+    """AdamW over ``net``'s parameters at ``config``'s ``learning_rate`` and ``weight_decay``, made with Ctrl-C held
+    back until it is made (:func:`~svs_torch.core.workers.signals_held`). Why: torch's first optimizer imports
+    torch._dynamo, hence sympy and mpmath, and mpmath's bare ``except:`` around its import of gmpy swallowed a
+    Ctrl-C that arrived then; the run trained on as if never interrupted (seen once in CI, then reproduced by
+    signalling during that import)."""
+    with signals_held():
+        return torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+
+
 def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Generator) -> list[dict]:
-    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    optimizer = adamw(net, config)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
     history = []
     net.train()
@@ -348,7 +359,7 @@ def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, confi
     The hard masks move with the weights and the gradient does not see them, so a step can raise the loss: with a
     full batch the weights left in ``net`` are those of the lowest loss seen (the loss printed at a step is that
     of the weights before it; one more forward scores the last step's weights)."""
-    optimizer = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    optimizer = adamw(net, config)
     full_batch = config.batch_size >= len(pairs)
     history, best = [], (math.inf, None, -1)
     for step in range(config.steps + full_batch):

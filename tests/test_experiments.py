@@ -742,6 +742,28 @@ def test_guide_confirm_tables_a_digit_whose_walks_were_never_warned():
     assert "| 8 | 3 | – | – | 1 | 0 |" in text
 
 
+def test_a_ctrl_c_while_the_first_optimizer_is_made_is_not_swallowed():
+    """CI saw a training run go on after its Ctrl-C: torch's first optimizer imports torch._dynamo, hence sympy and
+    mpmath, whose bare ``except:`` around importing gmpy swallowed a Ctrl-C that arrived then. Here the Ctrl-C is
+    sent during that import (by an import finder), in a fresh process (the import happens once): it ends the run."""
+    import subprocess
+
+    script = ("import os, signal, sys\n"
+              "class Signal:\n"
+              "    def find_spec(self, name, path=None, target=None):\n"
+              "        if name == 'gmpy2':  # absent, as here, whether or not it is installed\n"
+              "            raise ModuleNotFoundError(name)\n"
+              "        if name == 'gmpy':  # mpmath's next try, inside its bare except\n"
+              "            os.kill(os.getpid(), signal.SIGINT)\n"
+              "sys.meta_path.insert(0, Signal())\n"
+              "import torch, train_segmentation\n"
+              "train_segmentation.adamw(torch.nn.Linear(2, 2), train_segmentation.TrainConfig())\n"
+              "print('trained on')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), str(REPO_ROOT / "experiments")])}
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert "trained on" not in run.stdout and "KeyboardInterrupt" in run.stderr, run.stderr[-2000:]
+
+
 def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir):
     """Found by an audit: Ctrl-C in a training run ended in a traceback from wherever it was. Now one line and exit
     status 130, as the command line's, and no weights file written half-way."""
