@@ -14,9 +14,10 @@ from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
+from svs_torch.data.rig_deviation import RigDeviation
 from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG, WALL_DEPTH_M
 
-__all__ = ["faults_from_args", "parse_args"]
+__all__ = ["faults_from_args", "parse_args", "right_deviation_from_args"]
 
 
 def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float) -> argparse.Namespace:
@@ -53,6 +54,19 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     p.add_argument("--heap-ahead-m", type=positive_float, default=None, metavar="M",
                    help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
                         "high (an obstacle; default: none)")
+    r = p.add_argument_group("a loosely mounted right camera (what it sees, before the noise)")
+    r.add_argument("--right-roll-deg", type=finite_float, default=0.0, metavar="DEG",
+                   help="turned DEG degrees about its optical axis (default 0)")
+    r.add_argument("--right-tilt-x-deg", type=finite_float, default=0.0, metavar="DEG",
+                   help="turned DEG degrees about its x axis, up or down (a keystone; default 0)")
+    r.add_argument("--right-tilt-y-deg", type=finite_float, default=0.0, metavar="DEG",
+                   help="turned DEG degrees about its y axis, inwards or outwards (a keystone; default 0)")
+    r.add_argument("--right-shift-percent", type=finite_float, default=0.0, metavar="P",
+                   help="moved P %% of the image height down (negative: up; default 0)")
+    r.add_argument("--right-scale-percent", type=finite_float, default=0.0, metavar="P",
+                   help="its view P %% larger (another lens; negative: smaller; default 0)")
+    r.add_argument("--right-gain-percent", type=finite_float, default=0.0, metavar="P",
+                   help="its frames P %% brighter (another exposure; negative: darker; default 0)")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both",
                    help="the board whose replies the faults below change (default: both)")
@@ -89,6 +103,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         # The floor was ignored: the frames showed none, and nothing said so.
         p.error("--floor-height-m: only the synthetic frames of svs_torch's renderer have a floor, not "
                 f"{'--images' if args.images else '--simple-frames'}")
+    try:
+        args.right_deviation = right_deviation_from_args(args)
+    except ValueError as err:  # RigDeviation's field, named as its option
+        p.error(str(err))
     try:
         args.prepare_sizes = [parse_size(size, "--prepare") for size in filter(None, args.prepare.split(","))]
     except ValueError as err:  # svs_torch's InputError is a ValueError
@@ -152,3 +170,29 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   wrong_length_delta=args.wrong_length_delta,
                   drip_chunk_bytes=args.drip_chunk, drip_delay_s=args.drip_delay,
                   drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay, frozen_grabs=args.freeze)
+
+
+#: The right camera's options: the :class:`RigDeviation` field each sets, its factor (a percentage is a share) and its
+#: range in the option's own unit (the field's, scaled: each end open where the field's is).
+_DEVIATION_OPTIONS = (("--right-roll-deg", "roll_deg", 1.0, "(-90, 90) degrees"),
+                      ("--right-tilt-x-deg", "tilt_x_deg", 1.0, "(-90, 90) degrees"),
+                      ("--right-tilt-y-deg", "tilt_y_deg", 1.0, "(-90, 90) degrees"),
+                      ("--right-shift-percent", "shift_y_fraction", 0.01, "[-100, 100] % of the height"),
+                      ("--right-scale-percent", "scale", 0.01, "(-100, 10000] %"),
+                      ("--right-gain-percent", "gain", 0.01, "(-100, 10000] %"))
+
+
+def right_deviation_from_args(args: argparse.Namespace) -> RigDeviation | None:
+    """The right camera's deviation the ``--right-*`` options ask for; None for the ideal rig. A value out of its
+    range is an error naming the option (a roll of 90° or more, a shift past the whole height, a scale or gain of
+    -100 % or less)."""
+    fields = {}
+    for option, field, factor, interval in _DEVIATION_OPTIONS:
+        value = getattr(args, option[2:].replace("-", "_"))
+        fields[field] = value * factor
+        try:
+            RigDeviation(**{field: fields[field]})
+        except ValueError:  # svs_torch's InputError, naming the field
+            raise ValueError(f"{option}: expected {interval}, got {value:g}") from None
+    deviation = RigDeviation(**fields)
+    return None if deviation.is_identity else deviation

@@ -24,7 +24,8 @@ import torch
 from .frames import FrameSource
 from svs_torch.capture.protocol import encode_frame
 from svs_torch.data.camera_frames import JPEG_QUALITY_FOR_DIGIT
-from svs_torch.core.camera import SVS_RESOLUTIONS
+from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS
+from svs_torch.data.rig_deviation import RigDeviation, deviate_view
 
 __all__ = ["Faults", "Reply", "CameraState", "JPEG_QUALITY_FOR_DIGIT", "version_line"]
 
@@ -107,13 +108,19 @@ class CameraState:
             noise, independent in each camera); 0: none.
         noise_seed: seed of this board's noise (``torch.Generator``); the two boards of a server get different
             seeds so their noise is independent.
+        deviation: how this board's camera deviates from the ideal rig (a loosely mounted right board,
+            :class:`~svs_torch.data.rig_deviation.RigDeviation`): each frame is seen through it, at the SVS lens's
+            focal length for its size, before the noise; None: the ideal camera.
     """
 
     def __init__(self, camera: str, role: str, source: FrameSource, *, holdoff_s: float = 0.001,
                  start_s: float = 0.0, faults: Faults | None = None, low_battery: bool = False,
-                 noise_sigma: float = 0.0, noise_seed: int = 0) -> None:
+                 noise_sigma: float = 0.0, noise_seed: int = 0, deviation: RigDeviation | None = None) -> None:
         if not (np.isfinite(noise_sigma) and noise_sigma >= 0):
             raise ValueError(f"noise_sigma: expected a finite σ >= 0 in 8-bit levels, got {noise_sigma!r}")
+        if deviation is not None and not isinstance(deviation, RigDeviation):
+            raise ValueError(f"deviation: expected a RigDeviation or None, got {type(deviation).__name__}")
+        self.deviation = None if deviation is None or deviation.is_identity else deviation
         self.noise_sigma = float(noise_sigma)
         self._noise = torch.Generator().manual_seed(noise_seed)
         self.camera = camera
@@ -204,6 +211,8 @@ class CameraState:
         image = np.ascontiguousarray(self.source(self.camera, width, height, now_s - self.start_s))
         if image.shape != (height, width):
             raise ValueError(f"source: expected a ({height}, {width}) image, got {image.shape}")
+        if self.deviation is not None:  # what the loosely mounted camera sees, then its sensor's noise
+            image = deviate_view(image.astype(np.uint8), self.deviation, SVS_CAMERA.focal_px(width))
         if self.noise_sigma > 0:
             noise = torch.randn(image.shape, generator=self._noise, dtype=torch.float64).numpy() * self.noise_sigma
             image = np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)

@@ -94,6 +94,10 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
                         help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
                              "(default 0)")
+    parser.add_argument("--emulator-loose-rig", action="store_true",
+                        help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
+                             "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
+                             "lower, 1 %% larger, 20 %% darker (hw.emulator --right-* sets each)")
     parser.set_defaults(func=run)
 
 
@@ -166,6 +170,7 @@ def check_board_urls(args: argparse.Namespace) -> None:
         return
     # The emulator's options describe its scene; beside real boards they were accepted and did nothing.
     given = [option for option, name, unset in (("--emulator-noise", "emulator_noise", 0.0),
+                                                 ("--emulator-loose-rig", "emulator_loose_rig", False),
                                                  ("--emulator-floor-m", "emulator_floor_m", None),
                                                  ("--emulator-heap-m", "emulator_heap_m", None))
              if getattr(args, name, unset) != unset]
@@ -339,6 +344,7 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
         return args.left, args.right
     from hw.emulator import SVS_LINK_BYTES_PER_S, EmulatorServer
     from hw.frames import WALKER_PITCH_DEG, ObstacleTrack, SyntheticSource
+    from ..data.rig_deviation import LOOSE_RIG
 
     check_emulator_options(args)
     noise = getattr(args, "emulator_noise", 0.0)
@@ -347,8 +353,9 @@ def board_urls(args: argparse.Namespace, size: tuple[int, int], stack: contextli
                                            heap_ahead_m=heap) if floor else None)
     # At the SVS's link rate: served faster, the in-process emulator renders and encodes pairs the grabber then
     # drops, on the cores the pipeline runs on (guide at 320x240: 158 ms a pair ranged, against 70 ms paced).
+    loose = LOOSE_RIG if getattr(args, "emulator_loose_rig", False) else None
     server = stack.enter_context(EmulatorServer(left_port=0, right_port=0, source=source, noise_sigma=noise,
-                                                link_bytes_per_s=SVS_LINK_BYTES_PER_S))
+                                                link_bytes_per_s=SVS_LINK_BYTES_PER_S, right_deviation=loose))
     source.prepare(size, timeout_s=30.0, complete=False)  # the first rendered keyframe, not the stand-in
     print(f"svs-depth: emulator on {server.urls['left']} (left) and {server.urls['right']} (right)", file=sys.stderr)
     return server.urls["left"], server.urls["right"]

@@ -118,6 +118,44 @@ def test_board_sensor_noise_is_gaussian_seeded_and_independent():
         make_board(noise_sigma=-1.0)
 
 
+def test_a_loosely_mounted_right_board_is_seen_through_its_deviation_and_ranged_as_the_ideal_rig():
+    """hw.emulator --right-roll-deg ... / svs-depth guide --emulator --emulator-loose-rig: the right board's frame is
+    what deviate_view makes of the ideal camera's view (before its JPEG), the left board's is untouched, and the
+    pipeline aligns the loose pair and ranges it as the ideal rig's (the same obstacle within 1 %)."""
+    from hw.emulator_args import parse_args
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.data.rig_deviation import LOOSE_RIG, RigDeviation, deviate_view
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    source = SyntheticSource(renderer="simple")
+
+    def frame(board: CameraState) -> np.ndarray:
+        board.feed(b"q1", 3.0)  # the best quality: the frame is the view to a level or two
+        (event,) = FrameParser().feed(board.feed(b"I", 3.5).data)
+        return cv2.imdecode(np.frombuffer(event.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+    left = frame(CameraState("left", "master", source, holdoff_s=0.0))
+    ideal = frame(CameraState("right", "slave", source, holdoff_s=0.0))
+    loose = frame(CameraState("right", "slave", source, holdoff_s=0.0, deviation=LOOSE_RIG))
+    seen = deviate_view(source("right", 320, 240, 3.5), LOOSE_RIG, SVS_CAMERA.focal_px(320))
+    assert float(np.abs(loose.astype(float) - seen).mean()) < 2 < float(np.abs(loose.astype(float) - ideal).mean())
+    views = lambda frames: torch.from_numpy(np.stack(frames))[:, None].float() / 255  # noqa: E731
+    batch = StereoBatch.from_images(views([left, left]), views([ideal, loose]), focal_px=SVS_CAMERA.focal_px(320),
+                                    baseline_m=SVS_CAMERA.baseline_m)
+    result = estimate_obstacle_depth(batch, PipelineConfig())
+    assert result.status.tolist() == [0, 0] and result.row_aligned.tolist() == [False, True]
+    ideal_m, loose_m = result.depth.nearest.depth_m.tolist()
+    assert loose_m == pytest.approx(ideal_m, rel=0.01)
+    # The emulator's options: only the right board deviates; no option, no deviation; a roll of 90° refused.
+    args = parse_args(["--right-roll-deg", "1", "--right-shift-percent", "-2", "--right-gain-percent", "-20"], "", 1.0)
+    assert args.right_deviation == RigDeviation(roll_deg=1.0, shift_y_fraction=-0.02, gain=-0.2)
+    assert parse_args([], "", 1.0).right_deviation is None
+    with pytest.raises(SystemExit):
+        parse_args(["--right-roll-deg", "90"], "", 1.0)
+    with EmulatorServer(left_port=0, right_port=0, source=source, right_deviation=LOOSE_RIG) as server:
+        assert server.cameras["left"].deviation is None and server.cameras["right"].deviation == LOOSE_RIG
+
+
 def test_board_discards_input_while_busy():
     board = make_board(holdoff_s=0.01)
     assert board.feed(b"VV", 0.0).data == version_line("master")  # the second V arrived while busy
@@ -846,6 +884,8 @@ def test_cli_defaults_match_link_defaults():
     # Was accepted and did nothing: the boards send what they see.
     (["--left", "socket://x:1", "--right", "socket://x:2", "--emulator-noise", "4"],
      "--emulator-noise: only with --emulator"),
+    (["--left", "socket://x:1", "--right", "socket://x:2", "--emulator-loose-rig"],
+     "--emulator-loose-rig: only with --emulator"),
 ])
 def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     from svs_torch.cli import main

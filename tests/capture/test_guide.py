@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import math
 import re
 import stat
@@ -463,6 +464,28 @@ def test_guide_prints_warnings_above_its_status_line(monkeypatch):
     assert all(line.startswith(("svs-depth: emulator on", "Guide ready.", "warning: ", "Obstacle", "Stop",
                                 "Guide stopped.", "guide stopped"))
                for line in screen if "fps" not in line), screen
+
+
+def test_guide_on_an_emulated_loose_rig_aligns_each_pair_and_ranges_it(monkeypatch, capsys):
+    """``guide --emulator --emulator-loose-rig``: the right board rolled, tilted, shifted, scaled and darker (the
+    issue's envelope at once); every pair guide grabs is ranged, its views aligned by the row alignment."""
+    import svs_torch.pipeline as pipeline
+    from svs_torch.cli import main
+
+    real, aligned = pipeline.estimate_obstacle_depth, []
+
+    def recording_pipeline(*args, **kwargs):
+        result = real(*args, **kwargs)
+        aligned.extend(result.row_aligned.tolist())
+        return result
+
+    monkeypatch.setattr(pipeline, "estimate_obstacle_depth", recording_pipeline)
+    assert main(["guide", "--emulator", "--emulator-loose-rig", "--count", "3", "--no-speech", "--json",
+                 "--second-passes", "off"]) == 0
+    pairs = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    pairs = [pair for pair in pairs if "event" not in pair]
+    assert len(pairs) == 3 and all(pair["status"] == "OK" for pair in pairs), pairs
+    assert len(aligned) == 4 and all(aligned[1:])  # the first: guide's warm-up pair, before the camera opens
 
 
 def test_guide_on_an_emulated_floor_leaves_the_floor_out_by_default(monkeypatch):
