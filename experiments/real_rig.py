@@ -60,7 +60,9 @@ rendered set has fronto-parallel boxes.
 limits at once (:data:`EXTREMES`), which the issue's "test the extremes" asks for and the single ones miss.
 ``--beyond`` measures the clean pair and deviations past the issue's envelope instead (:data:`BEYOND`: roll to 15°,
 tilts to 5°, shifts to 25 % of the height, scales to ±30 %): two cameras mounted by hand, or a lens of another
-focal length, and the limits of the row alignment (``RowAlignmentConfig``) chosen on them.
+focal length, and the limits of the row alignment (``RowAlignmentConfig``) chosen on them. ``--far`` measures
+deviations past those (:data:`FAR`: rolls of 20° and 30°, shifts of 35 % and 45 %, scales of ±40 % and ±45 %), on
+which the limits were widened again.
 
 ``--loose-rig-digit D`` measures both at once, as a loosely mounted SVS sends its frames: the aligned pair and each
 misalignment above, each pair's views then made the cameras' frames at JPEG digit D with its sensor noise
@@ -79,7 +81,8 @@ named with its draw.
                                              synthetic-slant]
                                    [--sizes 320x240,native]
                                    [--limit N]
-                                   [--contrast C] [--brightness K] [--extremes | --beyond | --loose-rig-digit D]
+                                   [--contrast C] [--brightness K] [--extremes | --beyond | --far |
+                                    --loose-rig-digit D]
                                    [--noise-seed N[,N...]]
                                    [--set KEY=VALUE ...] [--json out.json] [--markdown table.md]
 """
@@ -200,8 +203,16 @@ BEYOND = {
     **{f"scale {sign}{pct}%": Misalignment(scale=float(f"{sign}{pct}") / 100)
        for pct in (5, 10, 20, 30) for sign in "+-"},
 }
+#: ``--far``: single deviations past :data:`BEYOND` (and past the row alignment's limits chosen on it, 25°, ±35 %,
+#: 30 %), on which those limits were widened (experiments/real_rig.md, "Farther").
+FAR = {
+    **{f"roll {sign}{deg}°": Misalignment(roll_deg=float(f"{sign}{deg}")) for deg in (20, 30) for sign in "+-"},
+    **{f"shift {sign}{pct}%": Misalignment(shift_y_fraction=float(f"{sign}{pct}") / 100)
+       for pct in (35, 45) for sign in "+-"},
+    **{f"scale {sign}{pct}%": Misalignment(scale=float(f"{sign}{pct}") / 100) for pct in (40, 45) for sign in "+-"},
+}
 #: The deviations each ``deviations`` of :func:`conditions` measures.
-DEVIATIONS = {"envelope": MISALIGNMENTS, "extremes": EXTREMES, "beyond": BEYOND}
+DEVIATIONS = {"envelope": MISALIGNMENTS, "extremes": EXTREMES, "beyond": BEYOND, "far": FAR}
 
 
 def misalignment_homography(m: Misalignment, height: int, width: int, focal_px: float) -> np.ndarray:
@@ -234,8 +245,8 @@ def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> tor
 def conditions(batch: StereoBatch, scene_index: int, deviations: str = "envelope", noise_seed: int = 0,
                loose_rig_digit: int | None = None) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
     """Every condition of one single-pair batch: ``(name, left, right)`` with ``(1, 1, H, W)`` views; with
-    ``deviations`` ``"extremes"`` or ``"beyond"``, the clean pair and :data:`EXTREMES` or :data:`BEYOND` instead
-    (:data:`DEVIATIONS`); with ``loose_rig_digit``, the clean pair and
+    ``deviations`` ``"extremes"``, ``"beyond"`` or ``"far"``, the clean pair and :data:`EXTREMES`, :data:`BEYOND` or
+    :data:`FAR` instead (:data:`DEVIATIONS`); with ``loose_rig_digit``, the clean pair and
     :func:`loose_rig_conditions`. ``noise_seed``: which draw of the camera frames' noise (0: the tables' own)."""
     out = [("clean", batch.left, batch.right)]
     if loose_rig_digit is not None:
@@ -577,6 +588,8 @@ def main(argv: list[str] | None = None) -> dict:
                             help="the clean pair and two misalignments at their limits at once (EXTREMES) instead")
     deviations.add_argument("--beyond", action="store_const", const="beyond", dest="deviations",
                             help="the clean pair and single misalignments past the issue's envelope (BEYOND) instead")
+    deviations.add_argument("--far", action="store_const", const="far", dest="deviations",
+                            help="the clean pair and single misalignments past BEYOND (FAR) instead")
     parser.add_argument("--loose-rig-digit", type=int, default=None, metavar="D",
                         help="the clean pair, then the aligned pair and each misalignment as camera frames at JPEG "
                              "digit D (1-8) with its sensor noise: a loosely mounted SVS")
@@ -590,7 +603,7 @@ def main(argv: list[str] | None = None) -> dict:
     check_reports_apart(parser, args)
     if args.loose_rig_digit is not None and (args.deviations != "envelope"
                                              or args.loose_rig_digit not in dict(JPEG_NOISE)):
-        parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes or --beyond, got "
+        parser.error(f"--loose-rig-digit: expected a JPEG digit 1-8 without --extremes, --beyond or --far, got "
                      f"{args.loose_rig_digit}")
     seeds = _noise_seeds(args.noise_seed)
     if seeds is None:

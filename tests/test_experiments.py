@@ -346,6 +346,7 @@ def test_real_rig_extremes_measure_two_deviations_at_once(data_dir):
     views = real_rig.conditions(batch, 0, deviations="extremes")
     assert [name for name, _, _ in views] == ["clean", *real_rig.EXTREMES]
     assert [name for name, _, _ in real_rig.conditions(batch, 0, deviations="beyond")] == ["clean", *real_rig.BEYOND]
+    assert [name for name, _, _ in real_rig.conditions(batch, 0, deviations="far")] == ["clean", *real_rig.FAR]
     name, left, right = views[1]
     assert torch.equal(left, batch.left) and torch.equal(right, real_rig.misalign_right(
         batch.right, real_rig.EXTREMES[name], float(batch.focal_px[0])))
@@ -374,7 +375,8 @@ def test_real_rig_loose_rig_digit_makes_each_misaligned_pair_camera_frames(data_
     again = real_rig.conditions(batch, 0, loose_rig_digit=4)
     assert all(torch.equal(a[2], b[2]) for a, b in zip(views, again))
     for bad in (["--loose-rig-digit", "9"], ["--loose-rig-digit", "4", "--extremes"],
-                ["--loose-rig-digit", "4", "--beyond"], ["--extremes", "--beyond"]):
+                ["--loose-rig-digit", "4", "--beyond"], ["--loose-rig-digit", "4", "--far"], ["--extremes", "--beyond"],
+                ["--beyond", "--far"]):
         with pytest.raises(SystemExit):
             real_rig.main(["--data", str(data_dir), *bad])
 
