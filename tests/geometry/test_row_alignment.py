@@ -247,6 +247,26 @@ def test_a_right_camera_past_the_envelope_is_aligned_and_ranged_as_the_aligned_p
         assert status == "OK" and accuracy > clean - 0.5 and aligned, (name, accuracy)
 
 
+def test_a_right_camera_far_past_the_envelope_is_aligned_not_ranged_wrong(teddy):
+    """Farther (experiments/real_rig.py --far): with the limits of roll 25°, scale ±35 % and shift 30 %, Teddy's
+    right view shifted 35 % of the height was rectified from F and ranged at about half its distance with the status
+    OK (49.9 % per object against 99.7 %), -45 % at 93.1 %, and scaled -40 % left on its raw rows (46.9 %). Now each
+    is aligned: the shifts within 0.5 point of the aligned pair, the smaller right view (fewer matches, blurred)
+    above 97 %."""
+    focal = float(teddy.focal_px[0])
+    names = ("shift +35%", "shift -45%", "scale -40%")
+    views = [("clean", teddy.left, teddy.right)] + [
+        (name, teddy.left, real_rig.misalign_right(teddy.right, real_rig.FAR[name], focal)) for name in names]
+    stacked = real_rig.stack_conditions(teddy, views)
+    result = estimate_obstacle_depth(stacked, PipelineConfig())
+    scores = [(e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)]
+    clean = scores[0][1]
+    assert clean > 99
+    for name, (status, accuracy), aligned in zip(names, scores[1:], result.row_aligned[1:].tolist()):
+        least = clean - 0.5 if name.startswith("shift") else 97.0
+        assert status == "OK" and accuracy > least and aligned, (name, accuracy)
+
+
 def test_jpeg_digit_8_with_noise_is_ranged_not_dropped(data_dir):
     """MiddEval3 ArtL at 320×240, JPEG at the board's worst digit with σ 8 sensor noise in each view: the pair
     was left without depth (NO_DENSE_DEPTH, unverified); the smoothed second dense pass ranges both objects
