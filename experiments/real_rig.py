@@ -101,7 +101,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -111,6 +110,7 @@ from svs_torch.evaluation.overrides import apply_overrides, parse_assignment
 from svs_torch.core.types import StereoBatch
 from svs_torch.core.errors import InputError
 from svs_torch.core.camera import SVS_CAMERA
+from svs_torch.data.rig_deviation import LOOSE_RIG, RigDeviation, deviate_view
 from svs_torch.data.synthetic import SyntheticScenes, random_obstacle_scenes, render_obstacle_scenes
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
@@ -156,18 +156,9 @@ BORDER_SCENES, BORDER_SEED, BORDER_EDGE_PX = 16, 21, (20.0, 40.0)
 SLANT_SCENES, SLANT_TEXTURE_CONTRAST, SLANT_SEED, SLANT_YAW_DEG = 16, 0.2, 23, (25.0, 50.0)
 
 
-@dataclasses.dataclass(frozen=True)
-class Misalignment:
-    """A right camera's deviation from the ideal rig: roll, tilts (degrees), vertical shift (share of the height),
-    scale and gain (relative: 0.02 is 2 % larger / brighter)."""
-
-    roll_deg: float = 0.0
-    tilt_x_deg: float = 0.0
-    tilt_y_deg: float = 0.0
-    shift_y_fraction: float = 0.0
-    scale: float = 0.0
-    gain: float = 0.0
-
+#: A right camera's deviation from the ideal rig: roll, tilts (degrees), vertical shift (share of the height), scale
+#: and gain (relative: 0.02 is 2 % larger / brighter). The emulator's right board sees through the same one.
+Misalignment = RigDeviation
 
 MISALIGNMENTS = {
     "roll +2°": Misalignment(roll_deg=2), "roll -2°": Misalignment(roll_deg=-2),
@@ -176,8 +167,7 @@ MISALIGNMENTS = {
     "shift +3%": Misalignment(shift_y_fraction=0.03), "shift -3%": Misalignment(shift_y_fraction=-0.03),
     "scale +2%": Misalignment(scale=0.02), "scale -2%": Misalignment(scale=-0.02),
     "gain +30%": Misalignment(gain=0.3), "gain -30%": Misalignment(gain=-0.3),
-    "combined": Misalignment(roll_deg=1, tilt_x_deg=0.5, tilt_y_deg=-0.5, shift_y_fraction=0.02, scale=0.01,
-                             gain=-0.2),
+    "combined": LOOSE_RIG,  # every deviation at once within the envelope (guide --emulator --emulator-loose-rig)
 }
 #: ``--extremes``: two deviations of the envelope at their limits at once. The single ones above miss what only a
 #: pair of them does (a right view 2 % larger and 30 % brighter, rectified, stopped its batch until 2026-11-25).
@@ -215,31 +205,11 @@ FAR = {
 DEVIATIONS = {"envelope": MISALIGNMENTS, "extremes": EXTREMES, "beyond": BEYOND, "far": FAR}
 
 
-def misalignment_homography(m: Misalignment, height: int, width: int, focal_px: float) -> np.ndarray:
-    """The 3×3 homography taking an ideal right view's pixels to the misaligned camera's (x = column)."""
-    cx, cy = (width - 1) / 2, (height - 1) / 2
-    k = np.array([[focal_px, 0, cx], [0, focal_px, cy], [0, 0, 1]])
-    ax, ay, az = (math.radians(a) for a in (m.tilt_x_deg, m.tilt_y_deg, m.roll_deg))
-    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
-    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
-    rz = np.array([[math.cos(az), -math.sin(az), 0], [math.sin(az), math.cos(az), 0], [0, 0, 1]])
-    h = k @ rz @ ry @ rx @ np.linalg.inv(k)
-    centre = h @ np.array([cx, cy, 1.0])
-    # Re-centre: the turn's keystone stays, its shift of the whole view (f·tan θ) does not (module docstring).
-    recentre = np.array([[1, 0, cx - centre[0] / centre[2]], [0, 1, cy - centre[1] / centre[2]], [0, 0, 1]])
-    s = 1 + m.scale
-    scale = np.array([[s, 0, cx * (1 - s)], [0, s, cy * (1 - s)], [0, 0, 1]])
-    shift = np.array([[1, 0, 0], [0, 1, m.shift_y_fraction * height], [0, 0, 1]])
-    return shift @ scale @ recentre @ h
-
-
 def misalign_right(image: torch.Tensor, m: Misalignment, focal_px: float) -> torch.Tensor:
-    """One right view ``(1, 1, H, W)`` in [0, 1] as the misaligned camera sees it."""
-    gray = image[0, 0].numpy().astype(np.float32)
-    height, width = gray.shape
-    h = misalignment_homography(m, height, width, focal_px)
-    warped = cv2.warpPerspective(gray, h, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    return torch.from_numpy(np.clip(warped * (1 + m.gain), 0, 1)).to(image.dtype)[None, None]
+    """One right view ``(1, 1, H, W)`` in [0, 1] as the misaligned camera sees it
+    (:func:`svs_torch.data.rig_deviation.deviate_view`)."""
+    seen = deviate_view(image[0, 0].numpy().astype(np.float32), m, focal_px)
+    return torch.from_numpy(seen).to(image.dtype)[None, None]
 
 
 def conditions(batch: StereoBatch, scene_index: int, deviations: str = "envelope", noise_seed: int = 0,

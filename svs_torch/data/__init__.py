@@ -1,5 +1,5 @@
-"""Real stereo data sets of the shared folder, SVS resampling and collation, and synthetic SVS scenes
-(``synthetic``, rendered by ``scene_rendering``).
+"""Real stereo data sets of the shared folder, SVS resampling and collation, synthetic SVS scenes
+(``synthetic``, rendered by ``scene_rendering``), and a loosely mounted right camera's view (``rig_deviation``).
 
 May import: ``svs_torch.core`` only. No stage, the pipeline, ``evaluation`` or the CLI imports are needed to read
 or make data; the stages never import it (they take a ``StereoBatch``).
@@ -27,9 +27,11 @@ from .resample import collate_stereo_batches, resize_stereo_batch
 from .pair_list import PairSource, load_pair_source, read_pair_list, read_pair_sources
 from .calibration import calibration_record, format_calibration, pair_calibration_source
 from .camera_frames import JPEG_QUALITY_FOR_DIGIT, camera_frame_pairs, camera_frames
+from .rig_deviation import LOOSE_RIG, RigDeviation, deviate_view, deviation_homography
 
 __all__ = [
-    "JPEG_QUALITY_FOR_DIGIT", "PairSource", "SyntheticScenes", "calibration_record", "camera_frame_pairs",
+    "JPEG_QUALITY_FOR_DIGIT", "LOOSE_RIG", "PairSource", "RigDeviation", "SyntheticScenes", "calibration_record",
+    "camera_frame_pairs", "deviate_view", "deviation_homography",
     "camera_frames",
     "collate_stereo_batches", "detect_stereo_layout",
     "format_calibration",

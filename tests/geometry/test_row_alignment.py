@@ -13,6 +13,7 @@ from conftest import REPO_ROOT, assert_differentiable_depths_are_the_hard_ones
 
 from svs_torch import InputError
 from svs_torch.data import camera_frames
+from svs_torch.data.rig_deviation import deviation_homography
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 from svs_torch.segmentation.segment import SegmentationConfig
@@ -37,7 +38,7 @@ def _misaligned_points(m: real_rig.Misalignment, outliers: int, generator: torch
     left = torch.rand(count, 2, generator=generator, dtype=torch.float64) * torch.tensor([width - 1, height - 1.0])
     ideal = left - torch.stack([4 + 30 * torch.rand(count, generator=generator, dtype=torch.float64),
                                 torch.zeros(count, dtype=torch.float64)], 1)
-    h = torch.from_numpy(real_rig.misalignment_homography(m, height, width, 300.0))
+    h = torch.from_numpy(deviation_homography(m, height, width, 300.0))
     moved = torch.cat([ideal, torch.ones(count, 1, dtype=torch.float64)], 1) @ h.T
     right = moved[:, :2] / moved[:, 2:]
     right[:outliers] = torch.rand(outliers, 2, generator=generator, dtype=torch.float64) * torch.tensor(
@@ -88,7 +89,7 @@ def test_the_alignment_reads_back_how_far_the_right_camera_is_off(m, generator):
     truth = [m.roll_deg, m.shift_y_fraction * 240, 1 + m.scale]
     read = [float(v) for v in right_camera_deviation(alignment.H_right, image_hw)]
     assert read == pytest.approx(truth, abs=0.03 if m.tilt_x_deg else 0.01)
-    exact = torch.linalg.inv(torch.from_numpy(real_rig.misalignment_homography(m, 240, 320, 300.0)))[None]
+    exact = torch.linalg.inv(torch.from_numpy(deviation_homography(m, 240, 320, 300.0)))[None]
     read = [float(v) for v in right_camera_deviation(exact, image_hw)]
     # Turned about both axes, the camera is rolled by their product too (rz·ry·rx: 1° × 1° adds 0.017°).
     assert read == pytest.approx(truth, abs=0.03 if m.tilt_x_deg else 1e-9)
