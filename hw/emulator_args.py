@@ -55,18 +55,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
                         "high (an obstacle; default: none)")
     r = p.add_argument_group("a loosely mounted right camera (what it sees, before the noise)")
-    r.add_argument("--right-roll-deg", type=finite_float, default=0.0, metavar="DEG",
-                   help="turned DEG degrees about its optical axis (default 0)")
-    r.add_argument("--right-tilt-x-deg", type=finite_float, default=0.0, metavar="DEG",
-                   help="turned DEG degrees about its x axis, up or down (a keystone; default 0)")
-    r.add_argument("--right-tilt-y-deg", type=finite_float, default=0.0, metavar="DEG",
-                   help="turned DEG degrees about its y axis, inwards or outwards (a keystone; default 0)")
-    r.add_argument("--right-shift-percent", type=finite_float, default=0.0, metavar="P",
-                   help="moved P %% of the image height down (negative: up; default 0)")
-    r.add_argument("--right-scale-percent", type=finite_float, default=0.0, metavar="P",
-                   help="its view P %% larger (another lens; negative: smaller; default 0)")
-    r.add_argument("--right-gain-percent", type=finite_float, default=0.0, metavar="P",
-                   help="its frames P %% brighter (another exposure; negative: darker; default 0)")
+    for option, _, _, _, metavar, meaning in _DEVIATION_OPTIONS:
+        r.add_argument(option, type=finite_float, default=0.0, metavar=metavar, help=f"{meaning}; default 0")
     f = p.add_argument_group("faults (replies to I)")
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both",
                    help="the board whose replies the faults below change (default: both)")
@@ -172,14 +162,21 @@ def faults_from_args(args: argparse.Namespace) -> Faults:
                   drop_after_frames=args.drop_after, grab_delay_s=args.grab_delay, frozen_grabs=args.freeze)
 
 
-#: The right camera's options: the :class:`RigDeviation` field each sets, its factor (a percentage is a share) and its
-#: range in the option's own unit (the field's, scaled: each end open where the field's is).
-_DEVIATION_OPTIONS = (("--right-roll-deg", "roll_deg", 1.0, "(-90, 90) degrees"),
-                      ("--right-tilt-x-deg", "tilt_x_deg", 1.0, "(-90, 90) degrees"),
-                      ("--right-tilt-y-deg", "tilt_y_deg", 1.0, "(-90, 90) degrees"),
-                      ("--right-shift-percent", "shift_y_fraction", 0.01, "[-100, 100] % of the height"),
-                      ("--right-scale-percent", "scale", 0.01, "(-100, 10000] %"),
-                      ("--right-gain-percent", "gain", 0.01, "(-100, 10000] %"))
+#: The right camera's options: the :class:`RigDeviation` field each sets, its factor (a percentage is a share), its
+#: range in the option's own unit (the field's, scaled: each end open where the field's is), metavar and help.
+_DEVIATION_OPTIONS = (
+    ("--right-roll-deg", "roll_deg", 1.0, "(-90, 90) degrees", "DEG", "turned DEG degrees about its optical axis"),
+    ("--right-tilt-x-deg", "tilt_x_deg", 1.0, "(-90, 90) degrees", "DEG",
+     "turned DEG degrees about its x axis, up or down, a keystone"),
+    ("--right-tilt-y-deg", "tilt_y_deg", 1.0, "(-90, 90) degrees", "DEG",
+     "turned DEG degrees about its y axis, inwards or outwards, a keystone"),
+    ("--right-shift-percent", "shift_y_fraction", 0.01, "[-100, 100] % of the height", "P",
+     "moved P %% of the image height down, negative: up"),
+    ("--right-scale-percent", "scale", 0.01, "(-100, 10000] %", "P",
+     "its view P %% larger, another lens; negative: smaller"),
+    ("--right-gain-percent", "gain", 0.01, "(-100, 10000] %", "P",
+     "its frames P %% brighter, another exposure; negative: darker"),
+)
 
 
 def right_deviation_from_args(args: argparse.Namespace) -> RigDeviation | None:
@@ -187,7 +184,7 @@ def right_deviation_from_args(args: argparse.Namespace) -> RigDeviation | None:
     range is an error naming the option (a roll of 90° or more, a shift past the whole height, a scale or gain of
     -100 % or less)."""
     fields = {}
-    for option, field, factor, interval in _DEVIATION_OPTIONS:
+    for option, field, factor, interval, _, _ in _DEVIATION_OPTIONS:
         value = getattr(args, option[2:].replace("-", "_"))
         fields[field] = value * factor
         try:

@@ -229,6 +229,20 @@ def test_misaligned_right_camera_extremes_are_ranged_as_the_aligned_pair(teddy):
     assert all(bool(result.rectified[names.index(n)]) for n in ("roll +2°", "roll -2°", "shift +3%", "shift -3%"))
 
 
+def _ranged_deviations(pair, deviations: dict, names: tuple[str, ...]) -> tuple[float, list[tuple]]:
+    """The aligned ``pair``'s per-object accuracy (asserted above 99 %), and (name, status, accuracy, row-aligned) of
+    each of ``names`` of ``deviations`` applied to its right view, all under the default pipeline in one batch."""
+    focal = float(pair.focal_px[0])
+    views = [("clean", pair.left, pair.right)] + [
+        (name, pair.left, real_rig.misalign_right(pair.right, deviations[name], focal)) for name in names]
+    stacked = real_rig.stack_conditions(pair, views)
+    result = estimate_obstacle_depth(stacked, PipelineConfig())
+    scores = [(e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)]
+    assert scores[0][1] > 99
+    return scores[0][1], [(name, *score, aligned)
+                          for name, score, aligned in zip(names, scores[1:], result.row_aligned[1:].tolist())]
+
+
 @pytest.mark.parametrize("names", [("roll +10°", "roll -15°", "tilt y -5°", "tilt x +5°"),
                                    ("shift +12%", "shift -25%", "scale +20%", "scale -30%")])
 def test_a_right_camera_past_the_envelope_is_aligned_and_ranged_as_the_aligned_pair(teddy, names):
@@ -236,15 +250,8 @@ def test_a_right_camera_past_the_envelope_is_aligned_and_ranged_as_the_aligned_p
     focal length), under the default pipeline: every object within 0.5 point of the aligned pair's, the views
     aligned. The row alignment's limits were 5°, 10 % of the height, ±10 % in scale and 3° of keystone: beyond
     them the pair was ranged from its raw rows with the status OK (measured 46.9-98.1 % against 99.7 %)."""
-    focal = float(teddy.focal_px[0])
-    views = [("clean", teddy.left, teddy.right)] + [
-        (name, teddy.left, real_rig.misalign_right(teddy.right, real_rig.BEYOND[name], focal)) for name in names]
-    stacked = real_rig.stack_conditions(teddy, views)
-    result = estimate_obstacle_depth(stacked, PipelineConfig())
-    scores = [(e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)]
-    clean = scores[0][1]
-    assert clean > 99
-    for name, (status, accuracy), aligned in zip(names, scores[1:], result.row_aligned[1:].tolist()):
+    clean, ranged = _ranged_deviations(teddy, real_rig.BEYOND, names)
+    for name, status, accuracy, aligned in ranged:
         assert status == "OK" and accuracy > clean - 0.5 and aligned, (name, accuracy)
 
 
@@ -254,16 +261,8 @@ def test_a_right_camera_far_past_the_envelope_is_aligned_not_ranged_wrong(teddy)
     OK (49.9 % per object against 99.7 %), -45 % at 93.1 %, and scaled -40 % left on its raw rows (46.9 %). Now each
     is aligned: the shifts within 0.5 point of the aligned pair, the smaller right view (fewer matches, blurred)
     above 97 %."""
-    focal = float(teddy.focal_px[0])
-    names = ("shift +35%", "shift -45%", "scale -40%")
-    views = [("clean", teddy.left, teddy.right)] + [
-        (name, teddy.left, real_rig.misalign_right(teddy.right, real_rig.FAR[name], focal)) for name in names]
-    stacked = real_rig.stack_conditions(teddy, views)
-    result = estimate_obstacle_depth(stacked, PipelineConfig())
-    scores = [(e.status, e.acc_objects_pct) for e in evaluate_result(stacked, result)]
-    clean = scores[0][1]
-    assert clean > 99
-    for name, (status, accuracy), aligned in zip(names, scores[1:], result.row_aligned[1:].tolist()):
+    clean, ranged = _ranged_deviations(teddy, real_rig.FAR, ("shift +35%", "shift -45%", "scale -40%"))
+    for name, status, accuracy, aligned in ranged:
         least = clean - 0.5 if name.startswith("shift") else 97.0
         assert status == "OK" and accuracy > least and aligned, (name, accuracy)
 
