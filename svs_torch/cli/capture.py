@@ -97,7 +97,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument("--emulator-loose-rig", action="store_true",
                         help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
                              "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
-                             "lower, 1 %% larger, 20 %% darker (hw.emulator --right-* sets each)")
+                             "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
     parser.set_defaults(func=run)
 
 

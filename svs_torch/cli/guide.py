@@ -133,7 +133,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--emulator-loose-rig", action="store_true",
                         help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
                              "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
-                             "lower, 1 %% larger, 20 %% darker (hw.emulator --right-* sets each)")
+                             "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
     parser.add_argument("--emulator-floor-m", type=_emulator_floor_m, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
                              "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, under 3 (default: no floor)")
