@@ -35,8 +35,8 @@ from ..core.camera import parse_size
 from ..core.errors import InputError
 from ..core.files import error_text
 from ..core.workers import signals_held
-from .common import Terminated, add_retries_option, noise_levels, pair_count, quality_digit, timeout_seconds
-from .link_options import baud_rate
+from .common import Terminated, add_retries_option, pair_count, quality_digit, timeout_seconds
+from .link_options import add_emulator_frame_options, baud_rate
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
 from .progress import Progress
@@ -91,13 +91,7 @@ def add_parser(subparsers: Any) -> None:
     add_calibration_option(parser, "the saved pairs (estimate/eval --calibration OUT/calibration.json)")
     parser.add_argument("--emulator", action="store_true",
                         help="start an in-process emulator on free loopback ports and capture from it")
-    parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
-                        help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
-                             "(default 0)")
-    parser.add_argument("--emulator-loose-rig", action="store_true",
-                        help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
-                             "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
-                             "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
+    add_emulator_frame_options(parser)
     parser.set_defaults(func=run)
 
 

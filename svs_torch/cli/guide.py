@@ -9,10 +9,10 @@ import sys
 import warnings
 
 from ..core.files import PROGRESS_HELP
-from .common import (Terminated, add_retries_option, finite_float, noise_levels, non_negative_float,
+from .common import (Terminated, add_retries_option, finite_float, non_negative_float,
                      pair_count_or_zero, positive_float, positive_int, quality_digit, terminated_on_sigterm,
                      timeout_seconds)
-from .link_options import baud_rate
+from .link_options import add_emulator_frame_options, baud_rate
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -127,13 +127,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--left", metavar="URL", help="left (master) board: serial device or socket://HOST:10001")
     parser.add_argument("--right", metavar="URL", help="right (slave) board: serial device or socket://HOST:10002")
     parser.add_argument("--emulator", action="store_true", help="use an in-process SVS emulator on loopback")
-    parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
-                        help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
-                             "(default 0)")
-    parser.add_argument("--emulator-loose-rig", action="store_true",
-                        help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
-                             "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
-                             "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
+    add_emulator_frame_options(parser)
     parser.add_argument("--emulator-floor-m", type=_emulator_floor_m, metavar="M",
                         help="with --emulator: the cameras M metres over a textured floor, pitched down 20 degrees "
                              "(hw.frames.WALKER_PITCH_DEG) as a walker wears them, under 3 (default: no floor)")

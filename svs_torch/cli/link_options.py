@@ -1,4 +1,5 @@
-"""``--baud`` of ``capture`` and ``guide``: the boards' UART speed, which sets how long a frame's bytes may take.
+"""Options ``capture`` and ``guide`` share: ``--baud``, the boards' UART speed, which sets how long a frame's bytes
+may take, and what the in-process emulator's frames are like (``--emulator-noise``, ``--emulator-loose-rig``).
 
 Only the standard library is imported (``--help`` must not wait for torch).
 """
@@ -7,9 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-from .common import _number
+from .common import _number, noise_levels
 
-__all__ = ["MAX_BAUD", "MIN_BAUD", "baud_rate"]
+__all__ = ["MAX_BAUD", "MIN_BAUD", "add_emulator_frame_options", "baud_rate"]
 
 #: The slowest ``--baud`` taken: 9600, the slowest standard rate a serial camera is run at, already allows a
 #: 320x240 frame up to 6 minutes (LinkConfig.frame_attempt_timeout_s). ``--baud 1`` was taken, and allowed each
@@ -27,3 +28,14 @@ def baud_rate(text: str) -> int:
     if not MIN_BAUD <= value <= MAX_BAUD:
         raise argparse.ArgumentTypeError(f"expected a UART speed from {MIN_BAUD} to {MAX_BAUD} baud, got {text!r}")
     return value
+
+
+def add_emulator_frame_options(parser: argparse.ArgumentParser) -> None:
+    """``--emulator-noise`` and ``--emulator-loose-rig``: the frames of ``--emulator``'s boards, as a real rig's."""
+    parser.add_argument("--emulator-noise", type=noise_levels, default=0.0, metavar="LEVELS",
+                        help="with --emulator: independent Gaussian sensor noise in each camera, 8-bit levels "
+                             "(default 0)")
+    parser.add_argument("--emulator-loose-rig", action="store_true",
+                        help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
+                             "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
+                             "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
