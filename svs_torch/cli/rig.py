@@ -125,19 +125,36 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
 def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:
     """Warn where the calibration the options give is not the one kept beside the listed pairs' index: the pairs
     were captured with that rig, and another file replaced it without a word (an audit of calibration use)."""
-    from pathlib import Path
-
     given = getattr(args, "calibration", None)
-    if given is not None:  # a calibration file first: a missing one was named by no option, a FIFO hung (an audit)
-        calibration_from_args(args)
-    content = None if given is None else Path(given).read_bytes()
-    differs = [path for path in kept if content != path.read_bytes()]
+    # A calibration file first: a missing one was named by no option, a FIFO hung (an audit).
+    content = None if given is None else _rig_content(calibration_from_args(args))
+    differs = [path for path in kept if content != _kept_rig_content(path)]
     if differs:
         import warnings
 
         what = f"--calibration {given}" if given else "--focal-px / --baseline-m / --doffs-px"
         warnings.warn(f"{what} used: the pairs were captured with the rig calibration {differs[0]}, which differs",
                       stacklevel=3)
+
+
+def _rig_content(calibration) -> str:
+    """What a calibration holds, not how its file is laid out: capture and guide --record keep the file they read
+    written anew, so the same rig's file with other line ends or indentation was said to differ (an audit)."""
+    import json
+
+    return json.dumps(calibration.to_json(), sort_keys=True)  # (NaN written alike on both sides)
+
+
+def _kept_rig_content(path) -> str:
+    """:func:`_rig_content` of the calibration kept at ``path``, or "" where it is no calibration: it differs from
+    any file given and from no file (--focal-px alone)."""
+    from ..core.errors import InputError
+    from ..geometry.calibration import read_calibration
+
+    try:
+        return _rig_content(read_calibration(path, "--calibration"))
+    except InputError:
+        return ""
 
 
 def take_kept_calibration(args: argparse.Namespace, path: str | None, prog: str) -> None:

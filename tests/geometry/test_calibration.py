@@ -687,6 +687,25 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
 
 
+def test_the_rig_capture_kept_given_in_another_layout_is_not_said_to_differ(capsys, rig, tmp_path):
+    """Found by an audit: capture keeps the file it read written anew, and the warning compared bytes; the same rig's
+    file with other line ends or indentation (a Windows checkout, an editor's format on save, a script's json.dump)
+    given to estimate over the capture was said to be a calibration 'which differs'."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    out = tmp_path / "pairs"
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
+                           str(out), "--calibration", str(path))
+    assert code == 0, err
+    compact, crlf = tmp_path / "compact.json", tmp_path / "crlf.json"
+    compact.write_text(json.dumps(json.loads(path.read_text())))
+    crlf.write_bytes(path.read_bytes().replace(b"\n", b"\r\n"))
+    for given in (compact, crlf):
+        code, _, err = run_cli(capsys, "estimate", "--pairs", str(out / "index.jsonl"), "--calibration", str(given))
+        assert code == 0 and "which differs" not in err, err
+
+
 def test_estimate_figure_shows_the_pair_as_rectified(monkeypatch):
     """The rectified views and the inliers mapped by the pipeline's homographies; nothing for an unrectified pair."""
     from types import SimpleNamespace
