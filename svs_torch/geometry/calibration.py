@@ -296,10 +296,9 @@ def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> 
         raise InputError(f"{where}: expected |T_m| = the baseline of P2 ({calibration.baseline_m:.6g} m), got "
                          f"{float(np.linalg.norm(calibration.T)):.6g} m")
     for key in ("focal_px", "baseline_m", "doffs_px"):
-        value, implied = record.get(key), getattr(calibration, key)
-        if value is not None and not (isinstance(value, (int, float)) and math.isclose(value, implied, rel_tol=1e-6,
-                                                                                       abs_tol=1e-9)):
-            raise InputError(f"{where}: '{key}' {value!r} is not the {implied:.6g} its P1 and P2 give (they are "
+        value, implied = record.get(key), getattr(calibration, key)  # _number: a 400-digit integer is no float
+        if value is not None and not math.isclose(_number(record, key), implied, rel_tol=1e-6, abs_tol=1e-9):
+            raise InputError(f"{where}: '{key}' {value!r:.30} is not the {implied:.6g} its P1 and P2 give (they are "
                              "what rectifies; calibrate again rather than edit one value)")
 
 
