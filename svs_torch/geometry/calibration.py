@@ -19,7 +19,6 @@ import dataclasses
 import json
 import math
 import os
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -50,7 +49,7 @@ MAX_FILE_BYTES = 1 << 20
 _MATRICES = {"R": (3, 3), "R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class StereoCalibration:
     """A calibrated stereo rig (OpenCV's conventions: pixel centres at integers, x right, y down).
 
@@ -82,7 +81,7 @@ class StereoCalibration:
     rms_stereo_px: float = math.nan
     row_error_mean_px: float = math.nan
     row_error_max_px: float = math.nan
-    board: dict = field(default_factory=dict)
+    board: dict = dataclasses.field(default_factory=dict)
     pairs: tuple[str, ...] = ()
     created_utc: str = ""
     software: str = ""
@@ -283,11 +282,13 @@ def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> 
         R = getattr(calibration, key)
         if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
             raise InputError(f"{where}: expected '{key}' as a rotation (orthonormal, determinant +1)")
-    same = [math.isclose(calibration.P1[row, column], calibration.P2[row, column], rel_tol=1e-9)
-            for row, column in ((0, 0), (1, 1), (1, 2))]  # fx, fy and cy: one rectified camera, moved along x
-    if not all(same):
-        raise InputError(f"{where}: expected P1 and P2 with one focal length and one row centre (rectified views), "
-                         f"got focal {calibration.P1[0, 0]:g} and {calibration.P2[0, 0]:g} px")
+    P1, P2 = calibration.P1, calibration.P2  # stereoRectify's form: else maps OpenCV refused (an internal error)
+    zeros = [P[i, j] for P in (P1, P2) for i, j in ((0, 1), (1, 0), (1, 3), (2, 0), (2, 1), (2, 3))] + [P1[0, 3]]
+    if not (all(v == 0 for v in zeros) and P1[2, 2] == P2[2, 2] == 1 and P1[1, 1] > 0 and all(
+            math.isclose(P1[i, j], P2[i, j], rel_tol=1e-9) for i, j in ((0, 0), (1, 1), (1, 2)))):
+        raise InputError(f"{where}: expected P1 and P2 with one focal length and one row centre (rectified views: "
+                         f"[[f, 0, cx, 0 or -f*B], [0, f, cy, 0], [0, 0, 1, 0]]), got focal {P1[0, 0]:g} and "
+                         f"{P2[0, 0]:g} px")
     Q, implied = calibration.Q, _implied_q(calibration.P1, calibration.P2)  # homogeneous: equal up to a scale
     if Q[2, 3] == 0 or not np.allclose(Q * (implied[2, 3] / Q[2, 3]), implied, rtol=1e-6, atol=1e-9):
         raise InputError(f"{where}: expected 'Q' as the reprojection matrix P1 and P2 give (OpenCV's "

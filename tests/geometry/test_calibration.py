@@ -207,6 +207,11 @@ def test_a_huge_number_in_a_summary_value_is_read_as_unknown(rig, tmp_path):
      r"expected P1, P2 of a left-right rig \(P1\[0\]\[0\] a focal length in pixels from 1 to 1,000,000, "
      r"baseline -P2\[0\]\[3\]/P2\[0\]\[0\] over 0\), got 1e\+07 px, 0.0831805 m"),
     (lambda r: _rectified_focal(r, 1e30), r"expected P1, P2 of a left-right rig .*got 1e\+30 px"),
+    # P1 and P2 not in stereoRectify's form, whose maps OpenCV cannot make: an internal error (an audit).
+    (lambda r: {**r, "P1": [*r["P1"][:2], [0, 0, 0, 0]]}, r"expected P1 and P2 with one focal length and one row "
+                                                          r"centre \(rectified views: \[\[f, 0, cx, 0 or -f"),
+    (lambda r: {**r, "P1": [r["P1"][0], [0, 0, *r["P1"][1][2:]], r["P1"][2]],
+                "P2": [r["P2"][0], [0, 0, *r["P2"][1][2:]], r["P2"][2]]}, "expected P1 and P2 with one focal length"),
     # A 400-digit summary value, which is no float: an internal error (OverflowError), and not 400 digits said.
     (lambda r: {**r, "focal_px": 10 ** 400}, r"'focal_px' 10{29} is not the 516.2"),
     (lambda r: {**r, "doffs_px": "0"}, r"'doffs_px' '0' is not the 0 its P1 and P2 give"),
