@@ -206,13 +206,29 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         # swapped cameras (an audit).
         poor = (f" Or, the fit being poor (stereo RMS {rms_stereo:.1f} px), do some pairs' two views show the board "
                 f"at different moments?") if rms_stereo > GOOD_STEREO_RMS_PX else ""
-        raise InputError(f"{name}: the right camera is to the left of the left one (P2[0][3] > 0): are LEFT and "
-                         f"RIGHT swapped?{poor}")
+        other_rig = None if poor else _not_left_right(R, T)  # (a poor fit's pose says as little)
+        raise InputError(f"{name}: {other_rig}" if other_rig else f"{name}: the right camera is to the left of the "
+                         f"left one (P2[0][3] > 0): are LEFT and RIGHT swapped?{poor}")
     # Refused here, not by every later read of the file; a good fit's baseline is out of range by its --square-m.
     check_baseline(calibration.baseline_m, "--square-m" if rms_stereo <= GOOD_STEREO_RMS_PX else name)
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
     return _rectifying(_with_row_error(calibration, rows_apart), name)
+
+
+def _not_left_right(R: np.ndarray, T: np.ndarray) -> str | None:
+    """What a good fit with no left-right baseline found, from the right camera's pose against the left's (that of
+    calibrate's report), or None where its right camera sits to the left: swapped images. Why: a right camera
+    mounted upside down and a rig mounted on its side (a vertical baseline) were both called swapped (an audit)."""
+    roll = math.degrees(math.atan2(R[1, 0], R[0, 0]))
+    x, y, _ = (-R.T @ np.ravel(T)) * 1000  # its centre in the left camera's axes (x right, y down), millimetres
+    if abs(roll) > 90:  # stereoRectify splits the roll between the views, and past 90° the baseline turns vertical
+        return (f"the right camera's view is rolled {abs(roll):.0f}° against the left's (mounted upside down?): "
+                "mount both cameras the same way up")
+    if abs(y) > abs(x):
+        return (f"the right camera sits {abs(y):.0f} mm {'below' if y > 0 else 'above'} the left, {abs(x):.0f} mm "
+                "beside it: expected the cameras side by side (is the rig mounted on its side?)")
+    return None
 
 
 def _rectifying(calibration: StereoCalibration, name: str) -> StereoCalibration:

@@ -404,6 +404,26 @@ def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_
     assert "no one pair explains it" in stderr and (tmp_path / "poor.json").is_file()
 
 
+@pytest.mark.parametrize("turn, message", [
+    # Found by an audit: a good fit (0.19 px) of a right camera mounted upside down, 83 mm right of the left, and of
+    # a rig mounted on its side (the right camera 83 mm below the left) were both blamed on swapped cameras.
+    ({"right": cv2.ROTATE_180}, "the right camera's view is rolled 180° against the left's (mounted upside down?)"),
+    ({"left": cv2.ROTATE_90_CLOCKWISE, "right": cv2.ROTATE_90_CLOCKWISE},
+     "the right camera sits 83 mm below the left, 1 mm beside it: expected the cameras side by side (is the rig "
+     "mounted on its side?)"),
+])
+def test_a_rig_that_is_not_left_right_is_not_called_swapped(capsys, samples, tmp_path, turn, message):
+    for number in range(1, 7):
+        for view in ("left", "right"):
+            image = cv2.imread(str(samples / f"{view}0{number}.jpg"))
+            cv2.imwrite(str(tmp_path / f"{view}0{number}.png"), cv2.rotate(image, turn[view]) if view in turn
+                        else image)
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left*.png"), "--square-m", "0.025", "--out",
+                              str(tmp_path / "rig.json"))
+    assert code == 2 and f"left: {message}" in stderr and "swapped" not in stderr, stderr
+    assert not (tmp_path / "rig.json").exists()
+
+
 def test_two_pairs_of_mismatched_views_are_left_out_together_or_named_as_a_poor_fit(capsys, samples, tmp_path):
     """An audit: two pairs of 13 whose right views were another pose's wrote a 0.23 m baseline for 0.083 (stereo RMS
     24.6 px, rows 42 px apart) with exit 0, no one pair halving the RMS; two such of five were blamed on swapped
