@@ -191,7 +191,7 @@ def _pose_line(pose: dict) -> str:
     return (f"right camera: its view rolled {abs(roll):.1f}° {'clockwise' if roll >= 0 else 'anticlockwise'}, "
             f"turned {about_y:+.1f}° about y, {about_x:+.1f}° about x; {abs(x):.1f} mm "
             f"{'right' if x >= 0 else 'left'}, {abs(y):.1f} mm {'lower' if y >= 0 else 'higher'}, {abs(z):.1f} mm "
-            f"{'ahead' if z >= 0 else 'behind'} of the left")
+            f"{'ahead of' if z >= 0 else 'behind'} the left")
 
 
 def _figure(calibration, views, images):

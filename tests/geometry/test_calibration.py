@@ -404,6 +404,16 @@ def test_calibrate_leaves_out_a_pair_whose_views_do_not_fit_and_warns_of_a_poor_
     assert "no one pair explains it" in stderr and (tmp_path / "poor.json").is_file()
 
 
+def test_a_right_camera_behind_the_left_is_said_in_english():
+    """calibrate's pose line said "0.5 mm behind of the left" (the shared set's first four pairs calibrate to such
+    a pose)."""
+    from svs_torch.cli.calibrate import _pose_line
+
+    line = _pose_line({"right_camera_roll_deg": 0.2, "right_camera_turn_deg": [0.1, 0.3],
+                       "right_camera_offset_m": [0.0832, -0.0006, -0.0005]})
+    assert line.endswith("83.2 mm right, 0.6 mm higher, 0.5 mm behind the left"), line
+
+
 @pytest.mark.parametrize("turn, message", [
     # Found by an audit: a good fit (0.19 px) of a right camera mounted upside down, 83 mm right of the left, and of
     # a rig mounted on its side (the right camera 83 mm below the left) were both blamed on swapped cameras.
