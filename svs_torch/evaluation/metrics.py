@@ -365,7 +365,8 @@ def evaluate_result(batch: StereoBatch, result: PipelineResult, time_s: float = 
             sparse_num_points=int(sparse.count[i]) if sparse is not None else 0,
             num_keypoints_left=keypoints[i][0], num_keypoints_right=keypoints[i][1], num_matches=matches,
             num_inliers=inliers, rectified=bool(rectified), time_s=time_s, objects=objects,
-            metric_px_scale=(1.0 if px_scale is None else float(px_scale[i])) if scopes else None,
+            # Per pair, not per batch: a pair without truth had a scale when batched with a scene (an audit)
+            metric_px_scale=(1.0 if px_scale is None else float(px_scale[i])) if scopes and has_truth else None,
             **_error_fields(dense, i, "dense"), **_error_fields(sparse, i, "sparse"), **_stereo_fields(scopes, i)))
     return evaluations
 

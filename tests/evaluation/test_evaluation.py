@@ -551,6 +551,22 @@ def test_a_pair_without_truth_lists_its_ranged_objects_unscored(data_dir, tmp_pa
     assert min(o["estimated_m"] for o in row["objects"]) == pytest.approx(row["r_min_m"])
 
 
+def test_a_pair_without_truth_has_the_same_row_whatever_scene_shares_its_batch(data_dir, tmp_path, capsys):
+    """An audit of batch sizes: a file pair without ground truth had no metric_px_scale run alone (--batch-size 1)
+    and 1.0 batched with a scene of the same size, so one pair's --json row and stored row changed with its batch."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{teddy}\n{teddy / 'im0.png'} {teddy / 'im1.png'}\n")
+    rows = {}
+    for batch_size in ("1", "2"):
+        assert main(["eval", str(listing), "--size", "160x120", "--json", "--batch-size", batch_size]) == 0
+        rows[batch_size] = [json.loads(line) for line in capsys.readouterr().out.splitlines()[:-1]]
+        for row in rows[batch_size]:
+            row.pop("time_s")
+    assert not rows["1"][1]["has_truth"] and rows["1"][1]["metric_px_scale"] is None
+    assert rows["1"] == rows["2"]
+
+
 def test_a_pair_with_no_keypoint_at_all_is_scored_not_an_error(data_dir, capsys):
     """surf.max_keypoints=0 is a valid setting (the dense stage ranges without sparse inliers), yet scoring its
     empty inlier set failed in a median of nothing: every pair ERROR, and a sweep's resume re-ran them for ever."""
