@@ -508,6 +508,28 @@ def test_a_scheduler_that_cannot_be_reached_leaves_no_store(data_dir, tmp_path, 
     assert "cannot reach a Dask scheduler" in capsys.readouterr().err and not store.exists()
 
 
+def test_a_capture_folder_kept_with_its_rig_calibration_is_refused_not_ranged_in_the_svs_model(data_dir, tmp_path,
+                                                                                                   capsys):
+    """Found by an audit of sweep: a capture folder's index.jsonl with the calibration.json that capture
+    --calibration keeps beside it was swept unrectified in the SVS model's metres and stored without a word, where
+    eval and estimate --pairs rectify its pairs with that copy (and eval --db refuses it)."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    captured = tmp_path / "walk"
+    captured.mkdir()
+    (captured / "index.jsonl").write_text(json.dumps({"left": str(teddy / "im0.png"),
+                                                      "right": str(teddy / "im1.png")}) + "\n")
+    sweep_file = tmp_path / "one.toml"
+    sweep_file.write_text('paths = ["walk/index.jsonl"]\nsize = "128x96"\n')
+    store = tmp_path / "s.sqlite"
+    (captured / "calibration.json").write_text("{}")
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{sweep_file}: paths: {captured / 'index.jsonl'} was captured with a rig calibration" \
+        in err[0] and not store.exists(), err
+    (captured / "calibration.json").unlink()  # a folder captured without one is swept as before
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 0
+
+
 def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_path):
     """Found by an audit: a configuration stored by one sweep and reached again by another under another description
     (``max_ratio=0.8`` is the default's value) was summarised under the first sweep's label alone, so the second
