@@ -21,7 +21,7 @@ any of whose configurations another running sweep holds is refused at once (run 
 
 sweep file (TOML; paths relative to the file):
   paths = ["../shared/data/middlebury_eval3_Q"]   scene folders, folders of scenes, pair lists, index.jsonl
-  size = "320x240"                                 or "native" (default)
+  size = "320x240"                                 or "native" (default); at most 16 megapixels, as eval
   preset = "default"                               or "paper"
   batch_size = 8                                   pairs per task
   [set]                                            fixed settings for every configuration
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         from ..evaluation.sweep import load_sweep, run_sweep
         from .capture_marks import capture_fields, warn_capture_marks
 
-    sweep = load_sweep(args.sweep_file)
+    sweep = _within_pixel_limit(load_sweep(args.sweep_file), args.sweep_file)
     _check_no_kept_calibration(sweep, args.sweep_file)
     bar = None
 
@@ -139,3 +139,18 @@ def _check_no_kept_calibration(sweep, sweep_file: str) -> None:
             raise InputError(f"{sweep_file}: paths: {listed} was captured with a rig calibration ({kept}), which a "
                              "sweep does not apply and a results store does not record yet; range those pairs with "
                              "svs-depth eval or estimate --pairs, which rectify them with it")
+
+
+def _within_pixel_limit(sweep, sweep_file: str):
+    """``sweep`` held to eval's pixel limit (:data:`~svs_torch.cli.features.MAX_PIXELS`): its size over it refused,
+    and at the native size a pair over it BAD_INPUT. Why: a sweep took size = "8192x8192" and ran a 6000x4000 pair
+    at 3.9 GB in every worker, where eval refuses both (an audit)."""
+    import dataclasses
+
+    from ..core.errors import InputError
+    from . import features
+
+    if sweep.size_wh is not None and sweep.size_wh[0] * sweep.size_wh[1] > features.MAX_PIXELS:
+        raise InputError(f"{sweep_file}: size: expected at most {features.MAX_PIXELS // 10**6} megapixels, got "
+                         f"'{sweep.size_wh[0]}x{sweep.size_wh[1]}'")
+    return dataclasses.replace(sweep, max_pixels=features.MAX_PIXELS)

@@ -94,13 +94,15 @@ class SweepConfig:
 
 @dataclass(frozen=True)
 class Sweep:
-    """A checked sweep: pairs (deduplicated, in order), configurations, size, pairs per task, and its text."""
+    """A checked sweep: pairs (deduplicated, in order), configurations, size, pairs per task, and its text;
+    ``max_pixels``: a pair of more pixels run at its native size is ``BAD_INPUT`` (:class:`.runner.EvalSetup`)."""
 
     sources: tuple[PairSource, ...]
     configs: tuple[SweepConfig, ...]
     size_wh: tuple[int, int] | None
     batch_size: int = DEFAULT_BATCH_SIZE
     text: str = ""
+    max_pixels: int | None = None
 
 
 def _size_text(size_wh: tuple[int, int] | None) -> str:
@@ -222,13 +224,14 @@ def load_sweep(path: str | Path) -> Sweep:
 class Task:
     """One unit of work: a configuration and a block of pairs, run as one batch.
 
-    ``threads``: torch threads in the worker (None: leave the process's setting)."""
+    ``threads``: torch threads in the worker (None: leave the process's setting); ``max_pixels``: the sweep's."""
 
     config_id: str
     config: PipelineConfig
     size_wh: tuple[int, int] | None
     sources: tuple[PairSource, ...]
     threads: int | None = None
+    max_pixels: int | None = None
 
 
 @dataclass(frozen=True)
@@ -251,7 +254,7 @@ def run_task(task: Task) -> TaskResult:
         torch.set_num_threads(task.threads)
     try:
         started = time.perf_counter()
-        evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh))
+        evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh, max_pixels=task.max_pixels))
         return TaskResult(task.config_id, [(s.pair_id, e) for s, e in zip(task.sources, evaluations)],
                           time.perf_counter() - started)
     finally:
@@ -267,7 +270,8 @@ def plan_tasks(sweep: Sweep, done: set[tuple[str, str]]) -> list[Task]:
     for config in sweep.configs:
         missing = tuple(s for s in sweep.sources if (config.config_id, s.pair_id) not in done)
         for start in range(0, len(missing), sweep.batch_size):
-            tasks.append(Task(config.config_id, config.config, sweep.size_wh, missing[start:start + sweep.batch_size]))
+            tasks.append(Task(config.config_id, config.config, sweep.size_wh, missing[start:start + sweep.batch_size],
+                              max_pixels=sweep.max_pixels))
     return tasks
 
 

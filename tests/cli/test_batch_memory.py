@@ -110,6 +110,33 @@ def test_the_pixel_limit_holds_for_every_listed_pair_and_is_said_once(data_dir, 
         assert (code, out) == (2, "") and err.endswith("error: --size: expected at most 0 megapixels, got '450x375'\n")
 
 
+def test_a_sweep_keeps_the_pixel_limit_of_eval(data_dir, capsys, tmp_path, monkeypatch):
+    """An audit of sweep: the limit above (lowered the same way) did not hold for sweep: its file's size =
+    "8192x8192" was taken, and at the native size a pair over the limit ran at any size (3.9 GB a 6000x4000 pair, in
+    every worker). Now that size fails before any work, and such a pair is BAD_INPUT, as in eval."""
+    import csv
+    import io
+
+    from svs_torch.cli import features
+
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    width, height = 450, 375
+    monkeypatch.setattr(features, "MAX_PIXELS", width * height - 1)
+    sweep_file, store = tmp_path / "sweep.toml", tmp_path / "s.sqlite"
+    sweep_file.write_text(f'paths = ["{teddy}"]\nsize = "450x375"\n')
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"{sweep_file}: size: expected at most 0 megapixels, got '450x375'")
+    assert not store.exists()
+    sweep_file.write_text(f'paths = ["{teddy}"]\n')  # its native size
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 0
+    capsys.readouterr()
+    assert main(["results", str(store), "--csv"]) == 0
+    row = next(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert (row["status"], row["reason"]) == ("BAD_INPUT", f"left: expected at most 0 megapixels, got {width}x{height} "
+                                                           "(resample it with --size)")
+
+
 def test_upsample_past_the_pixel_limit_is_warned_of_once(data_dir, capsys, monkeypatch):
     """--upsample detects on the pair enlarged twice: 3000x2000 took 3.0 GB with it and 1.2 GB without, and a
     16-megapixel pair about 7.7 GB, without a word before the process was killed (an audit). Over the limit (here
