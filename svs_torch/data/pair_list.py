@@ -250,8 +250,8 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             record = json.loads(line)
         except ValueError:
             record = None
-        if not (isinstance(record, dict) and isinstance(record.get("left"), str)
-                and isinstance(record.get("right"), str)):
+        if not (isinstance(record, dict) and isinstance(record.get("left"), str) and record["left"]
+                and isinstance(record.get("right"), str) and record["right"]):  # ("": the index's folder)
             sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected a JSON object with "
                                                                       f"'left' and 'right' file names"))
             continue
@@ -320,6 +320,9 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
             continue
         if "\0" in line:
             sources.append(_bad(where, "a NUL character", line.replace("\0", "")))
+            continue
+        if "" in fields[:2]:  # ('"" R.png') read as the list's folder: "expected a file, got a directory" (an audit)
+            sources.append(_bad(where, "an empty file name", line))
             continue
         sources.extend(_line_sources(fields, path.parent, where, line))
     if not sources:

@@ -262,6 +262,21 @@ def test_a_pair_list_saved_with_a_byte_order_mark_reads(tmp_path: Path, data_dir
     assert [source.problem for source in read_pair_list(listed)] == [None]
 
 
+def test_an_empty_file_name_is_that_lines_problem_not_the_lists_folder(tmp_path: Path) -> None:
+    """An audit of hand-edited lists: a quoted empty name ('"" R.png') or an index line's "right": "" was read as the
+    list's own folder, and the pair failed as "expected a file, got a directory: <the folder>" (a line '""' alone
+    stood for every scene in that folder)."""
+    import json
+
+    listed, index = tmp_path / "pairs.txt", tmp_path / "index.jsonl"
+    listed.write_text('"" R.png\nL.png ""\n""\n')
+    index.write_text(json.dumps({"left": "L.png", "right": ""}) + "\n")
+    problems = [source.problem for source in read_pair_list(listed) + read_pair_list(index)]
+    assert len(problems) == 4 and all(problem and "got a directory" not in problem for problem in problems)
+    assert all("got an empty file name" in problem for problem in problems[:3])
+    assert "expected a JSON object with 'left' and 'right' file names" in problems[3]
+
+
 def _unlistable(monkeypatch, *folders: Path) -> None:
     """List ``folders`` as a non-root user lists a folder it may not read (as root, a mode of 000 does not stop us)."""
     import errno
