@@ -339,7 +339,9 @@ def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[P
             or an unreadable list.
     """
     sources: list[PairSource] = []
-    for path in map(Path, paths):
+    for given in paths:
+        check_path_given(given, name, "a scene folder, a pair list or index.jsonl")  # ('' is '.': eval "$UNSET")
+        path = Path(given)
         kind = path_kind(path, name)
         if kind == "folder":
             if reason := unreadable_reason(path):  # ("Permission denied: PATH/middlebury_eval3_Q", naming no argument)

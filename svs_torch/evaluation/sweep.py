@@ -174,7 +174,7 @@ def load_sweep(path: str | Path) -> Sweep:
                 + f"expected {', '.join(SWEEP_KEYS)}, or a parameter such as segmentation.kernel_size)")
     paths = table.get("paths")
     paths = [paths] if isinstance(paths, str) else paths
-    _expect(isinstance(paths, list) and paths and all(isinstance(p, str) for p in paths),
+    _expect(isinstance(paths, list) and paths and all(isinstance(p, str) and p.strip() for p in paths),  # ('': '.')
             f"{name}: paths: expected a list of scene folders or pair lists, got {table.get('paths')!r}")
     resolved = [p if Path(p).is_absolute() else tidy_path(path.parent / p) for p in paths]  # (see there: links)
     size = table.get("size", "native")

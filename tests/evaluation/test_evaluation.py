@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -338,6 +339,17 @@ def test_eval_db_refuses_a_calibration_given_as_an_option_for_file_pairs(data_di
     assert main(["eval", str(teddy), "--size", "160x120", "--db", str(store), "--json"]) == 0
     # A scene carries its own calibration: the option, which it would not take, is refused (it was ignored).
     assert main(["eval", str(teddy), "--size", "160x120", "--focal-px", "500", "--db", str(store), "--json"]) == 2
+
+
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(data_dir, tmp_path, monkeypatch, capsys):
+    """An audit of careless arguments: 'svs-depth eval "$DATA"' with DATA unset evaluated every scene of the
+    current folder (an empty path is '.'), where every other path option refuses an empty name."""
+    shutil.copytree(data_dir / "middlebury_2001" / "Tsukuba", tmp_path / "Tsukuba")
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "", "--size", "160x120", "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.strip().splitlines() == ["svs-depth eval: error: path: expected a scene folder, a pair "
+                                                      "list or index.jsonl, got ''"]
 
 
 def test_eval_runs_a_pair_listed_twice_once(data_dir, capsys):

@@ -99,6 +99,8 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     ('paths = ["."]\n[grid]\n"max_ratio" = 0.6\n', "grid: max_ratio: expected a non-empty list of values"),
     ('paths = ["."]\n[set]\n"dense.window_size" = 8\n', "set: dense.window_size = 8: window_size: expected an odd"),
     ('paths = ["no/such/folder"]\n', "paths: no such file or folder"),
+    # An audit: an empty path was the sweep file's own folder, swept for scenes.
+    ('paths = [""]\n', "paths: expected a list of scene folders or pair lists, got ['']"),
     ('paths = ["."]\nsize = "320 by 240"\n', "size: expected WIDTHxHEIGHT"),
     ('paths = ["."]\npreset = "fast"\n', "preset: expected one of 'default', 'paper'"),
     ("paths = [\n", "not valid TOML"),
