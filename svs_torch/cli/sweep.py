@@ -73,9 +73,11 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
+        from ..core.files import check_path_given
         from ..evaluation.sweep import load_sweep, run_sweep
         from .capture_marks import capture_fields, warn_capture_marks
 
+    check_path_given(args.sweep_file, "SWEEP.toml", "a sweep file name")  # ('' is '.': ".: expected a TOML file")
     sweep = _within_pixel_limit(load_sweep(args.sweep_file), args.sweep_file)
     _check_no_kept_calibration(sweep, args.sweep_file)
     bar = None

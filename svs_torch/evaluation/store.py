@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError
-from ..core.files import check_writable_folder, path_kind
+from ..core.files import check_path_given, check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
 from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, claim_configs, read_only_error,
@@ -132,6 +132,7 @@ class ResultStore:
     """An open results store (see the module docstring); a context manager that closes it."""
 
     def __init__(self, path: str | Path, create: bool = True) -> None:
+        check_path_given(path, "db", "a results file name")  # ('' is '.': "got a folder: .", an audit)
         self.path = Path(path)
         kind = path_kind(self.path, "db")
         if kind in ("folder", "other") or (kind == "missing" and not create):

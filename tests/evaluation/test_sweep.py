@@ -770,6 +770,20 @@ def test_a_device_is_refused_as_a_results_store_before_sqlite_touches_it(data_di
     assert journal.exists() == existed
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["results", ""], "svs-depth results: error: db: expected a results file name, got ''"),
+    (["sweep", "", "--db", "s.sqlite"], "svs-depth sweep: error: SWEEP.toml: expected a sweep file name, got ''"),
+])
+def test_an_empty_file_name_is_refused_as_such_not_as_the_current_folder(tmp_path, monkeypatch, capsys, argv,
+                                                                          message):
+    """An audit of careless arguments: 'results "$DB"' with DB unset said "expected a results file, got a folder: ."
+    and 'sweep "$FILE"' ".: expected a TOML file, got a folder", naming a folder nobody gave."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [message]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_the_stores_errors_name_the_db_option(data_dir, tmp_path, monkeypatch, capsys):
     """Found by an audit of the command line: `eval` and `sweep` said "db: the folder nodir does not exist", the
     library's argument, where every other error names the option the user typed."""
