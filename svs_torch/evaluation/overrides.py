@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError, check_instance
+from ..core.files import check_path_given
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import check_weights_file
 from .config_tree import ON, ConfigBuildError, build_config, dataclass_of, refused_keys
@@ -284,6 +285,7 @@ SWEEP_RUN_KEYS = ("paths", "size", "batch_size")
 
 def load_config_file(path: str | Path, name: str = "--config") -> tuple[str, dict[str, Any]]:
     """``(preset name, dotted overrides)`` of a configuration file (module docstring); not yet applied."""
+    check_path_given(path, name, "a configuration file name")  # ('' is '.': "got a folder", an audit)
     table = read_toml(path, name)
     preset = table.pop("preset", "default")
     if not isinstance(preset, str):

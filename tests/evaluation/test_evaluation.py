@@ -309,6 +309,13 @@ def test_config_file_then_set(tmp_path):
         parse_assignment("max_ratio")
 
 
+def test_an_empty_config_file_name_is_refused_as_such():
+    """An audit of careless arguments: eval --config "$CONFIG" with CONFIG unset said "--config: .: expected a TOML
+    file, got a folder", naming a folder nobody gave."""
+    with pytest.raises(InputError, match="^--config: expected a configuration file name, got ''$"):
+        resolve_config(config_file="")
+
+
 def test_a_later_assignment_wins_and_the_stored_overrides_replay_what_ran(tmp_path):
     """Found by a review of the evaluation: overrides were kept in a plain dict, so a key assigned again kept its
     first place. `--set a.b=0.5 --set a=none --set a.b=0.6` applied a.b before a (refinement off, not on at 0.6),
