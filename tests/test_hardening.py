@@ -978,6 +978,9 @@ def test_load_image_pair_names_a_path_of_the_wrong_type(path):
      "left: expected a dense image tensor, got layout torch.sparse_coo"),
     (lambda: resize_stereo_batch(_small_batch(), (100000, 100000)),
      "size_wh: expected a width and height of at most 8192 px, got (100000, 100000)"),
+    # Over 8 images SURF runs in blocks of 8, whose own check named the block's shape, not the batch's.
+    (lambda: extract_surf_features(torch.rand(9, 1, 16, 16), mask=torch.ones(3, 1, 16, 16, dtype=torch.bool)),
+     "mask: expected (9, 1, 16, 16), got (3, 1, 16, 16)"),
 ])
 def test_a_wrong_kind_of_argument_is_named(call, message):
     """Was: AttributeError / TypeError from deep inside ('NoneType' object has no attribute 'left')."""

@@ -7,7 +7,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ..core.checks import check_shape
+from ..core.checks import check_dtype, check_shape
 from ..core.types import Keypoints
 from .descriptor import describe_surf, surf_orientation, with_orientation
 from .detector import SurfConfig, detect_surf_keypoints
@@ -47,7 +47,11 @@ def extract_surf_features(
     # A strided view (a crop, a channel of a colour batch) is summed in another order by the integral image and
     # gave slightly different keypoints than the same pixels copied: one layout, one answer.
     image = image.contiguous()
-    if isinstance(mask, torch.Tensor):  # anything else is named by the detector's own check
+    if mask is not None:
+        # Checked against the whole batch before the blocks slice it: a block's check named the block's shape,
+        # "expected (8, 1, H, W)" for a mask of the wrong size beside 9 images.
+        check_shape(mask, "mask", [image.shape[0], 1, image.shape[2], image.shape[3]])
+        check_dtype(mask, "mask", "bool")
         mask = mask.contiguous()
     if image.shape[0] > BLOCK_IMAGES:
         # Blocks of images, each batched, then padded to one K: the integral images and box-filter responses of
