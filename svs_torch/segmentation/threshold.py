@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 
 from ..core.checks import check_dtype, check_image, check_shape
+from ..core.errors import InputError
 from . import kernels
 
 __all__ = ["gray_levels", "gray_histogram", "gray_levels_and_histogram", "otsu_threshold_level", "otsu_threshold",
@@ -115,7 +116,17 @@ def threshold_binary(image: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
     differentiable (rounding and a comparison).
     """
     levels = image if image.dtype == torch.uint8 else gray_levels(image)
+    _check_level(level, levels.shape[0])
     # min(levels, level) differs from levels exactly where levels > level. The same mask, but torch compares
     # a tensor with a per-image scalar elementwise without its vector loop: for 16 images of 320×240, 1.5 ms
     # for ``levels > level`` against 0.15 for this minimum and same-shape comparison.
     return torch.minimum(levels, level.to(torch.uint8).view(-1, 1, 1, 1)) != levels
+
+
+def _check_level(level: torch.Tensor, batch_size: int) -> None:
+    """``level`` ``(B,)`` int in 0..255. Unchecked, the float threshold :func:`otsu_threshold` returns first (0.42)
+    became level 0 and every pixel foreground, and a level of 300 wrapped to 44 in uint8, each in silence."""
+    check_shape(level, "level", [batch_size])
+    check_dtype(level, "level", "int")
+    if level.numel() and not (0 <= int(level.min()) and int(level.max()) < NUM_LEVELS):
+        raise InputError(f"level: expected gray levels from 0 to {NUM_LEVELS - 1}, got {level.tolist()[:8]}")

@@ -97,3 +97,18 @@ def test_gray_levels_refuses_an_image_that_is_not_float32_or_float64(dtype):
     if dtype != torch.uint8:  # threshold_binary takes uint8 as gray levels already
         with pytest.raises(InputError, match=f"image: expected a float.* tensor, got {dtype}"):
             threshold_binary(image, torch.tensor([100]))
+
+
+def test_threshold_binary_refuses_a_level_outside_the_gray_levels():
+    """Was silent: otsu_threshold's first value, the threshold in [0, 1], became level 0 (every pixel foreground),
+    and 300 wrapped to 44 in uint8."""
+    image = torch.rand(1, 1, 8, 8, generator=torch.Generator().manual_seed(0))
+    threshold, level = otsu_threshold(image)
+    assert 0 < threshold_binary(image, level).sum() < 64
+    with pytest.raises(InputError, match="level: expected a int tensor, got torch.float32"):
+        threshold_binary(image, threshold)
+    for bad in (300, -1):
+        with pytest.raises(InputError, match=rf"level: expected gray levels from 0 to 255, got \[{bad}\]"):
+            threshold_binary(image, torch.tensor([bad]))
+    with pytest.raises(InputError, match=r"level: expected \(1\), got \(2\)"):
+        threshold_binary(image, torch.tensor([100, 100]))
