@@ -15,7 +15,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import check_image
+from ..core.checks import check_dtype, check_finite, check_image, check_real, check_shape
 from .components import label_connected_components
 
 __all__ = ["canny_edges"]
@@ -23,6 +23,7 @@ __all__ = ["canny_edges"]
 _PERCENT_NOT_EDGES = 0.7  # MATLAB edge(I, 'canny') default
 _LOW_RATIO = 0.4  # MATLAB default: low = 0.4 · high
 _SIGMA = math.sqrt(2.0)  # MATLAB default
+MAX_SIGMA_PX = 100.0
 
 
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -59,14 +60,21 @@ def canny_edges(image: torch.Tensor, sigma: float = _SIGMA, high_threshold: torc
 
     Args:
         image: ``(B, 1, H, W)`` float in [0, 1].
-        sigma: Gaussian smoothing, pixels (MATLAB default √2).
+        sigma: Gaussian smoothing, pixels, in (0, 100] (MATLAB default √2).
         high_threshold: optional ``(B,)`` gradient-magnitude thresholds; default: per image, the magnitude
             that leaves 70 % of the pixels below it (MATLAB). The low threshold is 0.4 × the high one.
 
     Returns:
         ``(B, 1, H, W)`` bool edge maps. Not differentiable.
     """
-    check_image(image, "image")
+    b = check_image(image, "image")["B"]
+    # A NaN sigma raised ValueError from math.ceil, a negative one a RuntimeError from arange, 0 blurred with a
+    # NaN kernel (no edges, in silence) and 1e6 asked for terabytes: refused by name. 100 px: a blur 600 px wide.
+    check_real(sigma, "sigma", 0.0, MAX_SIGMA_PX, low_open=True)
+    if high_threshold is not None:
+        check_shape(high_threshold, "high_threshold", [b])
+        check_dtype(high_threshold, "high_threshold", "float")
+        check_finite(high_threshold, "high_threshold")
     blurred = _gaussian_blur(image.detach(), sigma)
     padded = F.pad(blurred, (1, 1, 1, 1), mode="replicate")
     gx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / 2
@@ -82,7 +90,6 @@ def canny_edges(image: torch.Tensor, sigma: float = _SIGMA, high_threshold: torc
     strong = thin & (magnitude > high)
     # Hysteresis: a weak-edge component survives if any of its pixels is strong.
     labels, num = label_connected_components(weak, connectivity=8)
-    b = image.shape[0]
     slots = int(num.max()) + 1 if b else 1
     has_strong = torch.zeros(b, slots, dtype=torch.bool, device=image.device)
     has_strong.scatter_(1, (labels * strong).flatten(1), True)

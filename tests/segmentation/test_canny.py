@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
+from svs_torch import InputError
 from svs_torch.segmentation.canny import canny_edges
 from svs_torch.segmentation.segment import SegmentationConfig, segment_images
 
@@ -47,3 +49,18 @@ def test_canny_segmentation_keeps_the_closed_outline():
     x0, y0, x1, y1 = seg.regions.bbox_xyxy[0, seg.kept_labels[0, 0] - 1].tolist()
     assert abs(x0 - 14) <= 2 and abs(y0 - 9) <= 2 and abs(x1 - 36) <= 2 and abs(y1 - 31) <= 2
     assert seg.status.tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("sigma", [float("nan"), -1.0, 0.0, 1e6])
+def test_a_sigma_that_blurs_nothing_or_everything_is_refused(sigma):
+    """Was: ValueError (NaN), RuntimeError (negative), no edges from a NaN kernel in silence (0), a terabyte
+    allocation (1e6)."""
+    with pytest.raises(InputError, match=r"sigma: expected a finite number in \(0, 100\]"):
+        canny_edges(square_image(), sigma=sigma)
+
+
+def test_a_high_threshold_of_the_wrong_shape_or_value_is_refused():
+    with pytest.raises(InputError, match=r"high_threshold: expected \(2\), got \(3\)"):
+        canny_edges(square_image(2), high_threshold=torch.full((3,), 0.1))
+    with pytest.raises(InputError, match="high_threshold: expected finite values, got nan"):
+        canny_edges(square_image(), high_threshold=torch.tensor([float("nan")]))
