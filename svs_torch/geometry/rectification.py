@@ -319,9 +319,11 @@ def _check_inputs(F: torch.Tensor, points_left: torch.Tensor, points_right: torc
     if config.x_alignment not in ("parallel", "hartley"):
         raise InputError(f"x_alignment: expected 'parallel' or 'hartley', got {config.x_alignment!r}")
     if not isinstance(image_hw, torch.Tensor):
-        # A float (120.5) was cut to an int and a NaN failed in torch's conversion (an audit).
-        if len(image_hw) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in image_hw):
-            raise InputError(f"image_hw: expected (height, width) as two ints, got {tuple(image_hw)!r}")
+        # A float (120.5) was cut to an int, a NaN failed in torch's conversion, an int or None in len() (audits).
+        if (not isinstance(image_hw, (tuple, list)) or len(image_hw) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in image_hw)):
+            shown = tuple(image_hw) if isinstance(image_hw, (tuple, list)) else image_hw
+            raise InputError(f"image_hw: expected (height, width) as two ints or a (B, 2) int tensor, got {shown!r}")
         image_hw = torch.tensor(list(image_hw), dtype=torch.int64, device=F.device).expand(dims["B"], 2)
     # int64, the C kernel's (an int32 size ran the torch path: 1 ulp off the kernel's)
     return check_positive_hw(image_hw, dims["B"]).long()

@@ -281,6 +281,9 @@ def test_empty_and_input_errors(generator):
         rectify_uncalibrated(F, left, right, all_inliers(left), SIZE_HW, RectificationConfig(x_alignment="x"))
     with pytest.raises(InputError, match="image_hw"):
         rectify_uncalibrated(F, left, right, all_inliers(left), (0, 640))
+    for size in (480, None):  # was: TypeError from len(), naming no argument
+        with pytest.raises(InputError, match=rf"image_hw: expected \(height, width\) as two ints .*, got {size}$"):
+            rectify_uncalibrated(F, left, right, all_inliers(left), size)
 
 
 def test_gradcheck(generator):
