@@ -49,6 +49,10 @@ def _check_keypoints(image: torch.Tensor, keypoints: Keypoints) -> None:
     check_shape(keypoints.valid, "keypoints.valid", [b, k])
     check_dtype(keypoints.valid, "keypoints.valid", "bool")
     check_nonempty(image, "image")
+    # Any float range is taken (masked or filtered images), but not NaN or inf: surf_orientation cast a NaN angle
+    # to an index and failed in scatter_add, naming nothing, and describe_surf gave all-zero descriptors.
+    if not bool(torch.isfinite(image.detach()).all()):
+        raise InputError("image: expected finite values (NaN or inf found)")
     # A NaN position has no pixel to sample (the kernel would cast it to an index, the torch path give NaN).
     if bool((keypoints.xy.detach().isnan().any(-1) & keypoints.valid).any()):
         raise InputError("keypoints.xy: expected no NaN at valid keypoints")

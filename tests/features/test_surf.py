@@ -340,6 +340,18 @@ def test_errors_name_the_argument():
         describe_surf(torch.rand(2, 1, 20, 20), kp)
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_orientation_and_descriptors_refuse_a_non_finite_image(bad):
+    """Was: surf_orientation failed in scatter_add ("index -9223372036854775808 is out of bounds"), and
+    describe_surf gave every valid keypoint an all-zero descriptor, in silence."""
+    image = torch.rand(1, 1, 20, 20, generator=torch.Generator().manual_seed(0))
+    image[0, 0, 3, 4] = bad
+    kp = make_keypoints([[10.0, 10.0]], [1.2])
+    for describe in (surf_orientation, describe_surf):
+        with pytest.raises(InputError, match=r"image: expected finite values \(NaN or inf found\)"):
+            describe(image, kp)
+
+
 def test_box_and_cell_means_name_coordinates_of_another_dtype():
     # float64 centres on a float32 table raised torch.lerp's "expected dtype float for `weight` but got dtype
     # double"; a (B, P) centre tensor failed unpacking its last dimension.
