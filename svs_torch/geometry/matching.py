@@ -12,10 +12,11 @@ Shapes: B pairs, K left and K2 right keypoints (padded), D descriptor length.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_dtype, check_flag, check_shape
 from ..core.types import Matches
 from . import kernels
 from .lk_refinement import MatchRefinementConfig, refine_matched_points, refine_matches_lk
@@ -65,6 +66,12 @@ def _check_match_args(desc_left: torch.Tensor, desc_right: torch.Tensor, valid_l
     return dims
 
 
+def _real(value: object) -> float:
+    """``value`` as a float where it is a real number (numpy's too; not a bool, a string or a tensor), else NaN,
+    which every range check refuses."""
+    return float(value) if isinstance(value, numbers.Real) and not isinstance(value, bool) else math.nan
+
+
 def _check_gates(dims: dict[str, int], laplacian_left: torch.Tensor | None, laplacian_right: torch.Tensor | None,
                  xy_left: torch.Tensor | None, xy_right: torch.Tensor | None,
                  epipolar_band_px: float | None) -> None:
@@ -77,12 +84,15 @@ def _check_gates(dims: dict[str, int], laplacian_left: torch.Tensor | None, lapl
         check_dtype(laplacian_right, "laplacian_right", "int")
     if epipolar_band_px is None:
         return
-    if not epipolar_band_px >= 0:
-        raise InputError(f"epipolar_band_px: expected a non-negative number of pixels, got {epipolar_band_px}")
+    # A string or a tensor raised from the comparison or a slice, and inf was refused as the kernel's "band_px".
+    if not 0 <= _real(epipolar_band_px) < math.inf:
+        raise InputError(f"epipolar_band_px: expected a finite non-negative number of pixels, got {epipolar_band_px!r}")
     if xy_left is None or xy_right is None:
         raise InputError("xy_left: expected xy_left and xy_right with epipolar_band_px")
     check_shape(xy_left, "xy_left", [dims["B"], dims["K"], 2])
     check_shape(xy_right, "xy_right", [dims["B"], dims["K2"], 2])
+    check_dtype(xy_left, "xy_left", "float")  # the kernel's own check named its y_left, no argument of this call
+    check_dtype(xy_right, "xy_right", "float")
 
 
 def _allowed(valid_left: torch.Tensor, valid_right: torch.Tensor, laplacian_left: torch.Tensor | None,
@@ -180,6 +190,7 @@ def match_sad(
         (subgradient of |·|); ``idx`` is not (argmin).
     """
     dims = _check_match_args(desc_left, desc_right, valid_left, valid_right)
+    check_flag(mutual, "mutual")  # 'no' was truthy: a mutual check in silence
     _check_gates(dims, laplacian_left, laplacian_right, xy_left, xy_right, epipolar_band_px)
     max_cost = _max_cost(max_ratio, match_threshold, dims["D"])
     b, k, k2 = dims["B"], dims["K"], dims["K2"]
@@ -207,10 +218,11 @@ def match_sad(
 
 def _max_cost(max_ratio: float, match_threshold: float | None, descriptor_length: int) -> float | None:
     """The largest SAD a match may have (None: any), after checking the ratio test's and the threshold's values."""
-    if not 0 < max_ratio <= 1:
-        raise InputError(f"max_ratio: expected a value in (0, 1], got {max_ratio}")
-    if match_threshold is not None and not 0 < match_threshold <= 100:
-        raise InputError(f"match_threshold: expected a percent in (0, 100], got {match_threshold}")
+    # _real: a string ('0.8', as read from a file) raised TypeError from the comparison, naming nothing.
+    if not 0 < _real(max_ratio) <= 1:
+        raise InputError(f"max_ratio: expected a value in (0, 1], got {max_ratio!r}")
+    if match_threshold is not None and not 0 < _real(match_threshold) <= 100:
+        raise InputError(f"match_threshold: expected a percent in (0, 100], got {match_threshold!r}")
     return None if match_threshold is None else match_threshold / 100.0 * max_sad_distance(descriptor_length)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -234,6 +235,24 @@ def test_errors_name_the_argument():
     with pytest.raises(InputError, match=r"xy_right: expected \(2, 5, 2\), got \(2, 4, 2\)"):
         match_sad(desc, desc, valid, valid, xy_left=torch.rand(2, 5, 2), xy_right=torch.rand(2, 4, 2),
                   epipolar_band_px=2.0)
+
+
+@pytest.mark.parametrize("setting, message", [
+    ({"max_ratio": "0.8"}, "max_ratio: expected a value in (0, 1], got '0.8'"),  # was TypeError from '<'
+    ({"match_threshold": "5"}, "match_threshold: expected a percent in (0, 100], got '5'"),
+    ({"mutual": "no"}, "mutual: expected a bool, got 'no'"),  # was truthy: a mutual check in silence
+    ({"epipolar_band_px": "1"}, "epipolar_band_px: expected a finite non-negative number of pixels, got '1'"),
+    ({"epipolar_band_px": torch.tensor([1.0, 2.0])}, "epipolar_band_px: expected a finite"),  # was RuntimeError
+    ({"epipolar_band_px": math.inf}, "epipolar_band_px: expected a finite"),  # was named 'band_px', the kernel's
+    ({"epipolar_band_px": 1.0, "xy_left": torch.ones(2, 5, 2, dtype=torch.int64)},
+     "xy_left: expected a float tensor, got torch.int64"),  # was named 'y_left', the kernel's
+])
+def test_settings_of_the_wrong_kind_are_named(setting, message):
+    desc, valid = torch.rand(2, 5, 8), torch.ones(2, 5, dtype=torch.bool)
+    gates = {"xy_left": torch.rand(2, 5, 2), "xy_right": torch.rand(2, 5, 2)} | setting
+    with pytest.raises(InputError, match=re.escape(message)):
+        match_sad(desc, desc, valid, valid, **gates)
+    assert (match_sad(desc, desc, valid, valid, max_ratio=np.float32(0.8)).idx >= 0).any()  # numpy's reals stay
 
 
 # --- refine_matches_lk: sub-pixel refinement of matched points --------------------------------------------------
