@@ -13,11 +13,20 @@ import math
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
 from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
+from svs_torch.cli.link_options import MIN_BAUD
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
 from svs_torch.data.rig_deviation import RigDeviation
 from svs_torch.data.synthetic import CAMERA_PITCH_RANGE_DEG, WALL_DEPTH_M
 
-__all__ = ["faults_from_args", "parse_args", "right_deviation_from_args"]
+__all__ = ["MAX_DELAY_S", "MIN_LINK_BYTES_PER_S", "faults_from_args", "parse_args", "right_deviation_from_args"]
+
+#: The longest --grab-delay and --drip-delay, seconds (a day, as svs-depth's --timeout). Why: 1e300 was taken, and
+#: a board's thread died at its first grab (OverflowError: past the platform's longest wait, threading.TIMEOUT_MAX),
+#: its port closed while the emulator looked alive; the driver then said "Connection refused".
+MAX_DELAY_S = 86400.0
+#: The slowest --link-rate other than 0, bytes a second: 9600 baud, 8N1, the slowest --baud svs-depth takes. Why:
+#: 1e-300 was taken, and the first reply's pacing wait killed the board's thread as a huge delay did.
+MIN_LINK_BYTES_PER_S = MIN_BAUD // 10
 
 
 def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float) -> argparse.Namespace:
@@ -37,9 +46,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
                    help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
     p.add_argument("--holdoff-ms", type=non_negative_float, default=1.0, help="input discarded after a reply, ms")
-    p.add_argument("--link-rate", type=non_negative_float, default=link_bytes_per_s, metavar="BYTES/S",
+    p.add_argument("--link-rate", type=_link_rate, default=link_bytes_per_s, metavar="BYTES/S",
                    help="each board's replies paced to this many bytes a second, as the SVS's 2,304,000-baud "
-                        "UART sends them (default %(default)s); 0: as fast as the socket takes them")
+                        f"UART sends them, at least {MIN_LINK_BYTES_PER_S} (default %(default)s); 0: as fast as the "
+                        "socket takes them")
     p.add_argument("--json", action="store_true", help="print the URLs as one JSON line (for scripts)")
     # 0 to 255, as svs-depth's --emulator-noise: 1e9 was taken and every pixel came out 0 or 255, no scene left.
     p.add_argument("--noise-sigma", type=noise_levels, default=0.0, metavar="LEVELS",
@@ -72,12 +82,12 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="bytes added to the announced length, -65536..65536 (default %(default)s)")
     f.add_argument("--drip-chunk", type=non_negative_int, default=0, metavar="BYTES",
                    help="send replies in chunks of BYTES")
-    f.add_argument("--drip-delay", type=non_negative_float, default=0.0, metavar="S",
-                   help="pause between chunks, seconds")
+    f.add_argument("--drip-delay", type=_delay_seconds, default=0.0, metavar="S",
+                   help=f"pause between chunks, seconds, at most {MAX_DELAY_S:g}")
     f.add_argument("--drop-after", type=non_negative_int, default=None, metavar="N",
                    help="drop the TCP link after N frames")
-    f.add_argument("--grab-delay", type=non_negative_float, default=0.0, metavar="S",
-                   help="grab + encode time, seconds")
+    f.add_argument("--grab-delay", type=_delay_seconds, default=0.0, metavar="S",
+                   help=f"grab + encode time, seconds, at most {MAX_DELAY_S:g}")
     f.add_argument("--freeze", type=non_negative_int, default=0, metavar="N",
                    help="answer the next N grabs with the last frame's JPEG bytes again (a stalled sensor)")
     args = p.parse_args(argv)
@@ -139,6 +149,23 @@ def _port(text: str) -> int:
     if port > 65535:
         raise argparse.ArgumentTypeError(f"expected a TCP port 0..65535, got {text!r}")
     return port
+
+
+def _delay_seconds(text: str) -> float:
+    """argparse type of a fault's delay: 0 to :data:`MAX_DELAY_S` seconds."""
+    value = non_negative_float(text)
+    if value > MAX_DELAY_S:
+        raise argparse.ArgumentTypeError(f"expected seconds from 0 to {MAX_DELAY_S:g} (a day), got {text!r}")
+    return value
+
+
+def _link_rate(text: str) -> float:
+    """argparse type of ``--link-rate``: 0 (unpaced) or :data:`MIN_LINK_BYTES_PER_S` bytes a second or more."""
+    value = non_negative_float(text)
+    if 0 < value < MIN_LINK_BYTES_PER_S:
+        raise argparse.ArgumentTypeError(f"expected 0 (unpaced) or at least {MIN_LINK_BYTES_PER_S} bytes a second "
+                                         f"(9600 baud), got {text!r}")
+    return value
 
 
 def _length_delta(text: str) -> int:

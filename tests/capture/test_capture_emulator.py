@@ -943,6 +943,24 @@ def test_emulator_prepares_only_the_sizes_a_board_sends(capsys):
         capsys.readouterr().err)
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["--grab-delay", "1e300"], "argument --grab-delay: expected seconds from 0 to 86400 (a day), got '1e300'"),
+    (["--drip-delay", "1e300"], "argument --drip-delay: expected seconds from 0 to 86400 (a day), got '1e300'"),
+    (["--link-rate", "1e-300"], "argument --link-rate: expected 0 (unpaced) or at least 960 bytes a second"),
+])
+def test_emulator_refuses_waits_past_the_platforms_longest(capsys, argv, message):
+    """Found by an audit of the device side: these were taken, and each board's thread died at its first grab
+    (OverflowError: timestamp out of range for platform time_t), its port closed while the emulator looked alive;
+    the driver then said "Connection refused". Through parse_args: the emulator itself would serve until stopped."""
+    from hw.emulator_args import parse_args
+
+    assert parse_args(["--grab-delay", "86400", "--link-rate", "960"], "", 1.0).grab_delay == 86400
+    assert parse_args(["--link-rate", "0"], "", 1.0).link_rate == 0
+    with pytest.raises(SystemExit) as stopped:
+        parse_args(argv, "", 1.0)
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_emulator_refuses_an_image_folder_with_a_file_it_cannot_read(capsys, tmp_path, data_dir):
     import shutil
 
