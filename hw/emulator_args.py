@@ -12,7 +12,8 @@ import math
 
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
-from svs_torch.cli.common import finite_float, noise_levels, non_negative_float, non_negative_int, positive_float
+from svs_torch.cli.common import MAX_SEED, finite_float, noise_levels, non_negative_float, non_negative_int, \
+    positive_float, seed_int
 from svs_torch.cli.link_options import MIN_BAUD
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
 from svs_torch.data.rig_deviation import RigDeviation
@@ -55,7 +56,10 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     p.add_argument("--noise-sigma", type=noise_levels, default=0.0, metavar="LEVELS",
                    help="independent Gaussian sensor noise in each camera, 8-bit levels, 0 to 255 (default "
                         "%(default)s)")
-    p.add_argument("--noise-seed", type=int, default=0, help="seed of the noise (default %(default)s)")
+    # A seed torch takes: 2**64 was refused inside torch as "Overflow when unpacking long long", naming no option.
+    p.add_argument("--noise-seed", type=seed_int, default=0, metavar="N",
+                   help=f"seed of the left camera's noise, 0 to {MAX_SEED}; the right's is the next (default "
+                        "%(default)s)")
     p.add_argument("--floor-height-m", type=positive_float, default=None, metavar="M",
                    help="synthetic frames: the cameras M metres over a textured floor, as a walker wears them "
                         "(default: no floor)")

@@ -961,6 +961,19 @@ def test_emulator_refuses_waits_past_the_platforms_longest(capsys, argv, message
     assert stopped.value.code == 2 and message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("seed", ["18446744073709551616", "-1"])
+def test_emulator_noise_seed_is_one_torch_takes(capsys, seed):
+    """Found by an audit of the device side: ``--noise-seed 2**64`` ended "hw.emulator: error: Overflow when
+    unpacking long long", naming no option (torch's words); -1 was taken while svs-depth's seeds refuse it."""
+    from hw.emulator_args import parse_args
+
+    assert parse_args(["--noise-seed", str(2**63 - 1)], "", 1.0).noise_seed == 2**63 - 1  # the right's 2**63: taken
+    with pytest.raises(SystemExit) as stopped:
+        parse_args(["--noise-seed", seed], "", 1.0)
+    assert stopped.value.code == 2
+    assert f"argument --noise-seed: expected an integer from 0 to {2**63 - 1}, got '{seed}'" in capsys.readouterr().err
+
+
 def test_emulator_refuses_an_image_folder_with_a_file_it_cannot_read(capsys, tmp_path, data_dir):
     import shutil
 
