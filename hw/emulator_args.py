@@ -96,6 +96,9 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="answer the next N grabs with the last frame's JPEG bytes again (a stalled sensor)")
     args = p.parse_args(argv)
     # Checked here, not in the threads that use them: a bad value there killed a board's thread mid-run.
+    # One port given twice was said as "Address already in use" (exit 1), though no other program held it.
+    if args.left_port == args.right_port != 0:
+        p.error(f"--left-port, --right-port: expected two ports (one per board), got {args.left_port} for both")
     # The synthetic renderer's range: outside it the render thread died and every frame was the stand-in's, no floor.
     low, high = CAMERA_PITCH_RANGE_DEG
     if not low <= args.camera_pitch_deg <= high:

@@ -906,6 +906,9 @@ def test_cli_capture_bad_arguments(tmp_path, capsys, argv, message):
     (["--wrong-length-delta", "20000000"], "argument --wrong-length-delta: expected -65536..65536 bytes"),
     (["--floor-height-m", "-1"], "argument --floor-height-m: expected a finite positive number"),
     (["--left-port", "70000"], "argument --left-port: expected a TCP port 0..65535"),
+    # Was exit 1, "Address already in use", with no other program on the port (an audit of the device side).
+    (["--left-port", "10007", "--right-port", "10007"], "--left-port, --right-port: expected two ports (one per "
+                                                       "board), got 10007 for both"),
     (["--prepare", "abc"], "--prepare: expected WIDTHxHEIGHT"),
     (["--heap-ahead-m", "1.5"], "--heap-ahead-m: expected --floor-height-m too"),
     (["--noise-sigma", "-1"], "argument --noise-sigma: expected a noise σ in 8-bit levels, 0 to 255"),
