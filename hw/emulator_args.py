@@ -71,7 +71,14 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     r = p.add_argument_group("a loosely mounted right camera (what it sees, before the noise)")
     for option, _, _, _, metavar, meaning in _DEVIATION_OPTIONS:
         r.add_argument(option, type=finite_float, default=0.0, metavar=metavar, help=f"{meaning}; default 0")
-    f = p.add_argument_group("faults (replies to I)")
+    _add_fault_options(p.add_argument_group("faults (replies to I)"))
+    args = p.parse_args(argv)
+    _check_values(p, args)
+    return args
+
+
+def _add_fault_options(f: argparse._ArgumentGroup) -> None:
+    """The fault options (:func:`faults_from_args`), added to the group ``f``."""
     f.add_argument("--fault-camera", choices=("left", "right", "both"), default="both",
                    help="the board whose replies the faults below change (default: both)")
     f.add_argument("--silent", type=non_negative_int, default=0, metavar="N", help="no reply to the next N grabs")
@@ -94,7 +101,11 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help=f"grab + encode time, seconds, at most {MAX_DELAY_S:g}")
     f.add_argument("--freeze", type=non_negative_int, default=0, metavar="N",
                    help="answer the next N grabs with the last frame's JPEG bytes again (a stalled sensor)")
-    args = p.parse_args(argv)
+
+
+def _check_values(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Check the parsed values together, and add ``right_deviation`` and ``prepare_sizes``; ``p.error`` on a bad
+    one."""
     # Checked here, not in the threads that use them: a bad value there killed a board's thread mid-run.
     # One port given twice was said as "Address already in use" (exit 1), though no other program held it.
     if args.left_port == args.right_port != 0:
@@ -125,7 +136,6 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
         sizes = ", ".join(f"{w}x{h}" for w, h in SVS_RESOLUTIONS.values())
         p.error(f"--prepare: expected {sizes.replace(', 1280', ' or 1280')} (the sizes a board sends), got "
                 f"{odd[0]}x{odd[1]}")
-    return args
 
 
 def _highest_floor_seen_m(pitch_deg: float) -> float:
