@@ -220,6 +220,7 @@ class CameraLink:
                 :meth:`LinkConfig.frame_attempt_timeout_s`) or ``max_reconnects`` reopenings.
         """
         attempts, attempt, reconnects = self.config.max_retries + 1, 0, 0
+        first_reason = ""
         start = time.monotonic()
         while True:
             try:
@@ -240,9 +241,11 @@ class CameraLink:
                 self.stats.frames += 1
                 return outcome
             self._note_failure(outcome.reason)
+            first_reason = first_reason or outcome.reason
             if attempt >= attempts:
-                raise CaptureError(f"{self.where}: no valid frame after {attempts} attempts of {CMD_GRAB!r} in "
-                                   f"{time.monotonic() - start:.2f} s; last attempt: {outcome.reason}")
+                raise CaptureError(f"{self.where}: no valid frame after {attempts} attempt"
+                                   f"{'s' if attempts > 1 else ''} of {CMD_GRAB!r} in {time.monotonic() - start:.2f} s;"
+                                   f" {_attempt_reasons(first_reason, outcome.reason)}")
             self.stats.retries += 1
             self._drain_quietly()
             if outcome.wrong_size:  # a board reset to its power-on settings: every one this link set
@@ -379,3 +382,10 @@ class CameraLink:
 
     def _note_failure(self, reason: str) -> None:
         self.stats.failures = (self.stats.failures + [reason])[-8:]
+
+
+def _attempt_reasons(first: str, last: str) -> str:
+    """The failed attempts' reasons a link's error gives: the first one's too where the last differs. Why: a board
+    slower than --baud assumes timed out first with that hint, and its retries then met the rest of that frame's
+    JPEG bytes, so the error gave only "expected a '##IMJ' frame ..., got 64 bytes b'!..." (an audit)."""
+    return f"last attempt: {last}" if first == last else f"first attempt: {first}; last attempt: {last}"

@@ -470,6 +470,18 @@ def test_a_frame_cut_short_and_a_slow_board_are_told_apart():
     assert "a slower board's --baud" in link._timeout_reason(parser, b"", silent_s=0.01)
 
 
+def test_a_board_slower_than_the_baud_assumed_is_told_so_whatever_its_retries_met(emulator, camera):
+    """A board sending slower than --baud assumes timed out with that hint, and its retries then read the rest of
+    that frame's JPEG bytes: the error gave only the last attempt's "got 64 bytes b'...'". Now the first attempt's
+    reason comes too, where it differs from the last."""
+    camera.grab_pair()
+    emulator.set_faults("right", drip_chunk_bytes=500, drip_delay_s=0.03)
+    with pytest.raises(CaptureError, match=r"after 3 attempts of b'I' in [\d.]+ s; first attempt: expected \d+ JPEG "
+                                           r"bytes .*a slower board's --baud\); last attempt: ") as info:
+        camera.grab_pair()
+    assert str(info.value).count("a slower board's --baud") == 1
+
+
 def test_a_frame_damaged_on_the_link_is_grabbed_again(data_dir):
     """Was: a frame whose JPEG data was damaged on the link (its length right) decoded with its lost blocks gray,
     and guide ranged it: a gray block is a wall that is not there. Now the pair is grabbed again, both boards, and
@@ -701,7 +713,7 @@ def test_cli_capture_retries_sets_how_often_a_grab_is_sent_again(tmp_path, capsy
         assert run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "1",
                            "--timeout", "0.2", "--retries", str(retries), "--out", str(tmp_path / "run")) == code
     err = capsys.readouterr().err
-    assert ("no valid frame after 1 attempts" in err) == (code == 1)
+    assert ("no valid frame after 1 attempt of" in err) == (code == 1)
     with pytest.raises(SystemExit) as refused:
         run_capture("--emulator", "--retries", "11", "--out", str(tmp_path / "other"))
     assert refused.value.code == 2 and "--retries: expected a number of retries from 0 to 10" in capsys.readouterr().err
