@@ -176,7 +176,7 @@ def _views_swapped(result, index: int) -> bool:
     return disparity.numel() >= 8 and float((disparity < 0).float().mean()) >= 0.75
 
 
-def _views_identical(result, index: int) -> bool:
+def views_identical(result, index: int) -> bool:
     """Whether nine in ten of pair ``index``'s matches (at least 8) lie within 0.05 px of the same place in both
     views: a real pair's sub-pixel keypoints never do, even at infinity (its rows and noise differ)."""
     points = result.points
@@ -191,7 +191,7 @@ def _reason(result, index: int, status: str, width_px: int) -> str | None:
     were ranged, "OK", at 0.7-1.7 m, "verified", without a word; an audit), for a ranged pair its matches on one
     homography (:mod:`.one_homography`), or for an unranged pair its matches nearer than the range searched
     (:mod:`.too_near`) or a doffs of the wrong sign."""
-    if status != "OK" and _views_identical(result, index):
+    if status != "OK" and views_identical(result, index):
         return IDENTICAL_VIEWS
     few_shared = int(result.num_matches[index]) < 7 and int(result.num_keypoints[index].min()) >= 100
     if status != "OK" and few_shared:

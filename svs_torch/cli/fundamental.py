@@ -112,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         from ..depth.depth_types import DepthConfig
         from ..pipeline import PipelineConfig, estimate_obstacle_depth
         from ..core.types import FundamentalStatus
+        from .estimate_report import IDENTICAL_VIEWS, views_identical
         from .features import preset_config
 
     preset = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
@@ -148,6 +149,10 @@ def run(args: argparse.Namespace) -> int:
     if config.features_on != "image":  # matched on the segmented obstacles: were there any?
         empty = nothing_kept_reason(result.segmentation, config.segmentation.segmenter)
         report.update({"reason": empty} if empty else {})
+    if report["status"] != "OK" and "reason" not in report and views_identical(result, 0):
+        # One image given twice read "DEGENERATE ... no sample of seven matches gave a model", where estimate says
+        # what it is (an audit).
+        report["reason"] = IDENTICAL_VIEWS
     if args.json:
         print(dumps_strict(report))
         return 0

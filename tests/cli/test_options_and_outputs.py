@@ -19,6 +19,7 @@ from real_images import PAIRS
 
 from svs_torch import InputError
 from svs_torch.cli import main
+from svs_torch.cli.estimate_report import IDENTICAL_VIEWS
 from svs_torch.core.files import check_writable_folder
 from svs_torch.data import read_pair_sources
 from svs_torch.evaluation.store import ResultStore
@@ -169,6 +170,23 @@ def test_fundamental_without_a_model_reports_no_matrix(capsys, tmp_path):
     assert code == 0 and report["status"] == "TOO_FEW_MATCHES" and report["F"] is None
     code, out, _ = run_cli(capsys, "fundamental", left, right)
     assert code == 0 and "no F" in out
+
+
+def test_fundamental_says_when_one_image_was_given_twice(capsys, tmp_path):
+    """Found by an audit of the single-pair commands: one view given as both read "DEGENERATE ... no F: no sample of
+    seven matches gave a model", where estimate says what it is. Now fundamental says it too; a real pair has none."""
+    noise = np.random.default_rng(1).integers(0, 256, (120, 160), dtype=np.uint8)
+    left, right = str(tmp_path / "left.png"), str(tmp_path / "right.png")
+    cv2.imwrite(left, noise)
+    cv2.imwrite(right, np.roll(noise, -5, axis=1))
+    code, out, _ = run_cli(capsys, "fundamental", left, left, "--no-segment", "--json")
+    report = json.loads(out)
+    assert code == 0 and report["status"] != "OK" and report["F"] is None
+    assert report["reason"] == IDENTICAL_VIEWS
+    code, out, _ = run_cli(capsys, "fundamental", left, left, "--no-segment")
+    assert code == 0 and f"no F: {IDENTICAL_VIEWS}" in out
+    code, out, _ = run_cli(capsys, "fundamental", left, right, "--no-segment", "--json")
+    assert "reason" not in json.loads(out)
 
 
 def test_fundamental_says_when_its_segmentation_kept_nothing(capsys, tmp_path):
