@@ -115,6 +115,8 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str, str]]:
     lefts: list[str] = []
     for pattern in args.left:
         found = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if not found and os.path.isfile(pattern):  # 'left[1].jpg': a file's own name, read as a pattern (an audit)
+            found = [pattern]
         if os.path.isdir(pattern):
             raise InputError(f"left: {pattern!r} is a folder: expected left images, e.g. "
                              f"{os.path.join(pattern, 'left*.jpg')!r} (quoted), or --pairs LIST.txt")

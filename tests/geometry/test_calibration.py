@@ -891,3 +891,19 @@ def test_find_board_corners_names_an_image_it_cannot_read(data_dir, convert):
     if convert is not torch.from_numpy:
         found = find_board_corners(board_image_u8(convert(image)), BOARD)
         assert found is not None and np.abs(found - expected).max() < 0.5
+
+
+def test_a_left_image_whose_name_holds_brackets_is_read_as_that_file(tmp_path):
+    """Found by an audit of calibrate: 'left[1].jpg' was read as a pattern (a set of characters), matched nothing
+    and was refused as "no file matches", though the file was there. A pattern still expands as before."""
+    import argparse
+
+    from svs_torch.cli.calibrate import pair_paths
+
+    for name in ("left[1].jpg", "right[1].jpg", "left2.jpg", "right2.jpg"):
+        (tmp_path / name).write_bytes(b"")
+    literal = str(tmp_path / "left[1].jpg")
+    assert pair_paths(argparse.Namespace(left=[literal], pairs=None)) == [
+        (literal, str(tmp_path / "right[1].jpg"), "left")]
+    assert [p[0] for p in pair_paths(argparse.Namespace(left=[str(tmp_path / "left[2].jpg")], pairs=None))] == [
+        str(tmp_path / "left2.jpg")]
