@@ -259,7 +259,8 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
                        for p in (record["left"], record["right"]))
         numbers, marks = [record.get(key) for key in CALIBRATION_KEYS], _capture_marks(record)
         if all(number is None for number in numbers):
-            sources.append(PairSource(left=left, right=right, **marks))
+            # listed_at: a frame that fails to load names its line, as a list's line does (an audit: it did not)
+            sources.append(PairSource(left=left, right=right, listed_at=where.split(": ", 1)[-1], **marks))
             continue
         if None in numbers[:2]:  # checked first: a doffs_px without both would be read in baseline_m's place
             given = ", ".join(key for key, number in zip(CALIBRATION_KEYS, numbers) if number is not None)

@@ -304,3 +304,17 @@ def test_a_scene_folder_that_cannot_be_read_is_warned_of(tmp_path: Path, data_di
     _unlistable(monkeypatch, tmp_path / "sets")
     with pytest.raises(InputError, match=r"^path: cannot read the folder .*sets \(Permission denied\)$"):
         read_pair_sources([tmp_path / "sets"])
+
+
+def test_a_capture_index_line_whose_frame_fails_to_load_is_named(tmp_path):
+    """Found by an audit of the bulk commands: a list file's pair that failed to load named its line, an
+    ``index.jsonl``'s did not ("left: file not found: gone.png" alone, in an index of thousands of frames)."""
+    from svs_torch.data.pair_list import load_pair_source
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((24, 32), 90, np.uint8))
+    index = tmp_path / "index.jsonl"
+    index.write_text('{"left": "a.png", "right": "a.png"}\n{"left": "gone.png", "right": "a.png"}\n')
+    present, missing = read_pair_list(index)
+    assert load_pair_source(present, 500.0, 0.1).left.shape == (1, 1, 24, 32)
+    with pytest.raises(InputError, match=rf"file not found: .*gone\.png \(line 2 of {index}\)$"):
+        load_pair_source(missing, 500.0, 0.1)
