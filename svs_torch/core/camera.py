@@ -125,10 +125,13 @@ def parse_size(text: str, name: str = "size") -> tuple[int, int]:
     return width, height
 
 
-def too_many_pixels(size_hw: tuple[int, int], max_pixels: int, name: str = "left") -> str | None:
+def too_many_pixels(size_hw: tuple[int, int], max_pixels: int, name: str = "left", resize_with: str = "--size"
+                    ) -> str | None:
     """Why a pair of this (H, W), run at its own size, is refused over ``max_pixels`` (None: it is not): the one
-    message of ``estimate``, ``estimate --pairs`` and ``eval`` (``svs_torch.cli.features.MAX_PIXELS``)."""
+    message of ``estimate``, ``estimate --pairs``, ``eval`` and ``sweep`` (``svs_torch.cli.features.MAX_PIXELS``);
+    ``resize_with``: the setting that resamples it, named in the message."""
     height, width = size_hw
     if height * width <= max_pixels:
         return None
-    return f"{name}: expected at most {max_pixels // 10**6} megapixels, got {width}x{height} (resample it with --size)"
+    return (f"{name}: expected at most {max_pixels // 10**6} megapixels, got {width}x{height} (resample it with "
+            f"{resize_with})")

@@ -55,6 +55,7 @@ class EvalSetup:
         calibration_source: how the reports name that calibration (its file), for the pairs it rectified.
         max_pixels: a pair of more pixels run at its own size (``size_wh`` None) is ``BAD_INPUT`` (the command
             line's 16 megapixels: a 6000x4000 pair took 3.9 GB, and memory grows with the pixels); None: any.
+        resize_with: the setting the reason of such a pair names to resample it (a sweep's is its file's size).
     """
 
     config: PipelineConfig = PipelineConfig()
@@ -65,6 +66,7 @@ class EvalSetup:
     calibration: StereoCalibration | None = None
     calibration_source: str = "a rig's calibration (the pair rectified by it)"
     max_pixels: int | None = None
+    resize_with: str = "--size"
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,7 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
     read = dict(calibrated=calibrated, calibration=calibration, name=batch.names[0] if batch.names else None,
                 has_truth=batch.disparity_px is not None and bool(batch.disparity_valid.any()))
     too_many = None if setup.size_wh is not None or setup.max_pixels is None else too_many_pixels(
-        (height, width), setup.max_pixels)
+        (height, width), setup.max_pixels, resize_with=setup.resize_with)
     if too_many:
         return LoadedPair(source, None, "BAD_INPUT", too_many, **read)
     if min(height, width) < MIN_SIDE_PX:

@@ -73,6 +73,9 @@ __all__ = ["Sweep", "SweepConfig", "SweepOutcome", "Task", "TaskResult", "code_v
 
 SWEEP_KEYS = ("paths", "size", "preset", "batch_size", "set", "grid", "configs")
 DEFAULT_BATCH_SIZE = 8
+#: What a pair over the pixel limit is told to resample it with in a sweep: its file's key, not eval's --size, an
+#: option sweep does not take (an audit).
+SWEEP_RESIZE_WITH = 'the sweep file\'s size = "WxH"'
 
 
 @dataclass(frozen=True)
@@ -254,7 +257,8 @@ def run_task(task: Task) -> TaskResult:
         torch.set_num_threads(task.threads)
     try:
         started = time.perf_counter()
-        evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh, max_pixels=task.max_pixels))
+        evaluations = evaluate_block(task.sources, EvalSetup(task.config, task.size_wh, max_pixels=task.max_pixels,
+                                                                 resize_with=SWEEP_RESIZE_WITH))
         return TaskResult(task.config_id, [(s.pair_id, e) for s, e in zip(task.sources, evaluations)],
                           time.perf_counter() - started)
     finally:

@@ -133,8 +133,9 @@ def test_a_sweep_keeps_the_pixel_limit_of_eval(data_dir, capsys, tmp_path, monke
     capsys.readouterr()
     assert main(["results", str(store), "--csv"]) == 0
     row = next(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    # The sweep's own setting named, not eval's --size, which sweep does not take (an audit).
     assert (row["status"], row["reason"]) == ("BAD_INPUT", f"left: expected at most 0 megapixels, got {width}x{height} "
-                                                           "(resample it with --size)")
+                                                           "(resample it with the sweep file's size = \"WxH\")")
 
 
 def test_upsample_past_the_pixel_limit_is_warned_of_once(data_dir, capsys, monkeypatch):
