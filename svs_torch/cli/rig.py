@@ -13,7 +13,7 @@ CALIBRATED_BAND_PX = 2.0
 
 __all__ = ["add_calibration_option", "baseline_m_value", "calibration_file_source", "calibration_from_args",
            "calibration_kept_beside", "check_no_manual_calibration", "doffs_px_value", "focal_px_value",
-           "take_kept_calibration", "with_calibrated_rectification"]
+           "kept_calibrations", "rig_list_files", "take_kept_calibration", "with_calibrated_rectification"]
 
 
 def _calibration_path(text: str) -> str:
@@ -87,6 +87,28 @@ def calibration_from_args(args: argparse.Namespace):
     return cached[1]
 
 
+def rig_list_files(sources: list) -> list[str | None]:
+    """The list file of each pair ``source`` a rig calibration applies to: listed image pairs, not scene folders,
+    pairs listed with their own calibration, nor lines that are a problem (those keep their own)."""
+    return [source.list_file for source in sources
+            if not (source.scene or source.problem or source.focal_px is not None)]
+
+
+def kept_calibrations(list_files: list[str | None]) -> dict:
+    """Each of ``list_files`` once (None: not read from a list file), with the ``calibration.json`` kept beside it
+    where it is a capture folder's ``index.jsonl`` that has one (``capture --calibration``, ``guide --record``),
+    else None."""
+    from pathlib import Path
+
+    from .pairs_folder import CALIBRATION_NAME
+
+    kept: dict = {}
+    for list_file in dict.fromkeys(list_files):
+        saved = None if list_file is None or Path(list_file).suffix != ".jsonl" else Path(list_file).parent
+        kept[list_file] = saved / CALIBRATION_NAME if saved and (saved / CALIBRATION_NAME).is_file() else None
+    return kept
+
+
 def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | None]) -> str | None:
     """Without ``--calibration`` (nor ``--focal-px``, ``--baseline-m`` or ``--doffs-px``): the rig calibration that
     ``capture --calibration`` and ``guide --record`` keep beside their ``index.jsonl`` (``calibration.json``), which
@@ -97,15 +119,9 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     Raises:
         InputError: naming ``--calibration``, where those pairs were not all captured with one kept calibration.
     """
-    from pathlib import Path
-
     from ..core.errors import InputError
-    from .pairs_folder import CALIBRATION_NAME
 
-    kept: dict[str | None, Path | None] = {}
-    for list_file in dict.fromkeys(list_files):
-        saved = None if list_file is None or Path(list_file).suffix != ".jsonl" else Path(list_file).parent
-        kept[list_file] = saved / CALIBRATION_NAME if saved and (saved / CALIBRATION_NAME).is_file() else None
+    kept = kept_calibrations(list_files)
     found = [path for path in kept.values() if path is not None]
     manual = [getattr(args, option, None) is not None for option in ("focal_px", "baseline_m")]
     if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
@@ -223,8 +239,7 @@ def eval_rig_calibration(args: argparse.Namespace, sources: list):
     then set as ``args.calibration``), or None."""
     from ..core.errors import InputError
 
-    kept = calibration_kept_beside(args, [source.list_file for source in sources
-                                          if not (source.scene or source.problem or source.focal_px is not None)])
+    kept = calibration_kept_beside(args, rig_list_files(sources))
     if kept and args.db:  # as --calibration with --db
         raise InputError(f"--db: the pairs were captured with a rig calibration ({kept}), which a results store "
                          "does not record yet; run without --db")

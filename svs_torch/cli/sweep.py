@@ -128,16 +128,11 @@ def _check_no_kept_calibration(sweep, sweep_file: str) -> None:
     ``guide --record`` keep beside it, as ``eval --db`` refuses it. Why: a sweep applies no rig calibration, so its
     pairs were stored ranged unrectified in the SVS model's metres without a word (an audit), where eval and
     estimate --pairs rectify them with that copy."""
-    from pathlib import Path
-
     from ..core.errors import InputError
-    from .pairs_folder import CALIBRATION_NAME
+    from .rig import kept_calibrations, rig_list_files
 
-    takers = [source.list_file for source in sweep.sources
-              if not (source.scene or source.problem or source.focal_px is not None)]  # (the others keep their own)
-    for listed in dict.fromkeys(takers):
-        kept = Path(listed).parent / CALIBRATION_NAME if listed and Path(listed).suffix == ".jsonl" else None
-        if kept is not None and kept.is_file():
+    for listed, kept in kept_calibrations(rig_list_files(sweep.sources)).items():
+        if kept is not None:
             raise InputError(f"{sweep_file}: paths: {listed} was captured with a rig calibration ({kept}), which a "
                              "sweep does not apply and a results store does not record yet; range those pairs with "
                              "svs-depth eval or estimate --pairs, which rectify them with it")
