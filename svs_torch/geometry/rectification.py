@@ -102,7 +102,7 @@ class Rectification:
         H_right: ``(B, 3, 3)``, the same for the right image. Rectified, matching points share a row and
             ``x_left − x_right`` is the disparity (positive in front for ``"parallel"``).
         status: :class:`RectificationStatus` per pair ``(B,)`` int64.
-        num_inliers: ``(B,)`` int64, inliers used.
+        num_inliers: ``(B,)`` int64, inliers used (those at finite points in both views).
         epipole_left, epipole_right: ``(B, 3)`` unit homogeneous epipoles in pixels (``F e = 0``, ``e'ᵀ F = 0``;
             third entry 0 at infinity, as for a rectified rig); zeros where F has rank < 2.
         rms_row_error_px: ``(B,)``, RMS of ``y_left − y_right`` over the inliers under the returned homographies
@@ -130,8 +130,7 @@ def apply_homography(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
     """Map points by homographies: ``(x', y') = (H (x, y, 1)ᵀ)₁,₂ / w``.
 
     Args:
-        H: ``(B, 3, 3)``.
-        points: ``(B, K, 2)`` pixels.
+        H: ``(B, 3, 3)``; points: ``(B, K, 2)`` pixels.
 
     Returns:
         :class:`MappedPoints` in the dtype of ``points``. Differentiable w.r.t. ``H`` and ``points`` where valid;
@@ -337,7 +336,7 @@ def rectify_uncalibrated(F: torch.Tensor, points_left: torch.Tensor, points_righ
     Args:
         F: ``(B, 3, 3)`` with ``x_rightᵀ F x_left = 0`` in pixels (``FundamentalResult.F``), any scale.
         points_left, points_right: ``(B, K, 2)`` correspondences in pixels (x = column).
-        inliers: ``(B, K)`` bool (``FundamentalResult.inliers``); only these are used.
+        inliers: ``(B, K)`` bool (``FundamentalResult.inliers``); only these, at finite points, are used.
         image_hw: each pair's ``(height, width)``, ``(B, 2)`` int (``StereoBatch.image_hw``) or one tuple.
         config: :class:`RectificationConfig`.
 
@@ -351,6 +350,7 @@ def rectify_uncalibrated(F: torch.Tensor, points_left: torch.Tensor, points_righ
     """
     image_hw = _check_inputs(F, points_left, points_right, inliers, image_hw, config)
     inliers = canonical_bool(inliers)  # a mask viewed from other bytes: nonzero is True, on both paths
+    inliers = inliers & torch.isfinite(points_left).all(-1) & torch.isfinite(points_right).all(-1)  # (skipped)
     if config.x_alignment == "parallel" and not (torch.is_grad_enabled() and any(
             t.requires_grad for t in (F, points_left, points_right))):
         fast = kernels.rectify_parallel(F, points_left, points_right, inliers, image_hw, config.min_inliers,

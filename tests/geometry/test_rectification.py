@@ -411,3 +411,26 @@ def test_a_turn_either_way_and_the_fewest_inliers_on_both_paths(generator, monke
     for count, expected in ((fewest, RectificationStatus.OK), (fewest - 1, RectificationStatus.NOT_ENOUGH_INLIERS)):
         inliers = torch.arange(30).unsqueeze(0) < count
         assert rectify_uncalibrated(F, left, right, inliers, SIZE_HW).status.tolist() == [expected], count
+
+
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_an_inlier_at_a_nan_point_is_neither_used_nor_counted(generator, monkeypatch, path):
+    """Found by an audit: an inlier whose point is NaN (or inf) in either view was skipped by both paths yet counted
+    in ``num_inliers``, so that ``min_inliers`` − 1 usable inliers and one NaN passed as enough. It counts as the
+    inlier it is not: the pair's rectification is that of its finite inliers alone."""
+    if path == "torch":
+        monkeypatch.setenv("SVS_TORCH_KERNELS", "torch")
+    F, left, right, _ = make_rigs(1, 30, generator)
+    fewest = PARALLEL.min_inliers
+    inliers = torch.arange(30).unsqueeze(0) < fewest
+    finite = rectify_uncalibrated(F, left, right, inliers, SIZE_HW)
+    for view, bad in (("left", float("nan")), ("right", float("inf"))):
+        points = {"left": left.clone(), "right": right.clone()}
+        points[view][0, 0, 1] = bad
+        spoilt = rectify_uncalibrated(F, points["left"], points["right"], inliers, SIZE_HW)
+        assert spoilt.num_inliers.tolist() == [fewest - 1], view
+        assert spoilt.status.tolist() == [RectificationStatus.NOT_ENOUGH_INLIERS], view
+        wide = torch.arange(30).unsqueeze(0) < fewest + 1
+        with_one_more = rectify_uncalibrated(F, points["left"], points["right"], wide, SIZE_HW)
+        assert with_one_more.num_inliers.tolist() == [fewest] and with_one_more.status.tolist() == [0], view
+    assert finite.num_inliers.tolist() == [fewest] and finite.status.tolist() == [0]
