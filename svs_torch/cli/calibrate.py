@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 import sys
 
@@ -247,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
         from ..geometry.calibration import write_calibration
         from ..geometry.chessboard import calibrate_stereo_rig, drop_misfit_pairs
         from ..core.checkout import code_version
-        from ..plotting.figures import check_output_path, write_image_atomic
+        from ..plotting.figures import check_output_path, image_written_after
         from ..core.files import check_output_file
         from ..core.image_files import read_image_array
 
@@ -268,17 +269,16 @@ def run(args: argparse.Namespace) -> int:
     views = drop_misfit_pairs(_board_views(paths, board, source, gray), args.square_m, board)
     calibration = calibrate_stereo_rig(views, args.square_m, board, f"svs_torch {code_version()}", source)
     warnings = _warnings(calibration, views)
-    if args.figure:  # drawn and written first: a figure that fails leaves no calibration file behind (one that
-        # could not be written on a full disk once replaced a rig's calibration and exited 1 without a report)
+    # Both files or neither: the figure is written first, so one the disk refuses leaves no calibration behind (one
+    # that could not be written once replaced a rig's calibration and exited 1 without a report), but takes its
+    # name only once the calibration is written, so a calibration that fails leaves an earlier figure as it was.
+    staged = contextlib.nullcontext()
+    if args.figure:
         first = next(pair for pair in paths if pair[0] == views.names[0])
         figure = _figure(calibration, views, (gray(first[0], first[2]), gray(first[1], first[2])))
-        written = write_image_atomic(args.figure, figure, args.figure_option)
-    try:
+        staged = image_written_after(args.figure, figure, args.figure_option)
+    with staged:
         write_calibration(args.out, calibration)
-    except BaseException:
-        if args.figure:  # the figure of a calibration that was not written
-            written.unlink(missing_ok=True)
-        raise
     for warning in warnings:
         print(f"svs-depth calibrate: warning: {warning}", file=sys.stderr, flush=True)
     if args.json:

@@ -7,7 +7,9 @@ beside the target, then a rename, :mod:`svs_torch.core.files`) with the permissi
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -15,13 +17,13 @@ import numpy as np
 import torch
 
 from ..core.checks import InputError
-from ..core.files import check_output_file, write_bytes_atomic, write_errors_named
+from ..core.files import atomic_output, check_output_file, write_bytes_atomic, write_errors_named
 from ..core.types import Segmentation
 
 __all__ = [
     "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "binary_title", "check_output_path", "compose_grid",
-    "floor_summary", "gray_to_bgr", "labels_image", "objects_panel", "segmentation_panels", "titled_panel",
-    "write_image_atomic",
+    "floor_summary", "gray_to_bgr", "image_written_after", "labels_image", "objects_panel", "segmentation_panels",
+    "titled_panel", "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -262,12 +264,43 @@ def write_image_atomic(path: str | os.PathLike, image: np.ndarray, name: str = "
     command's failure, exit 1, as ``--disparity-out``'s).
     """
     target = check_output_path(path, name, lossless)
+    with write_errors_named(name, target):
+        write_bytes_atomic(target, _encoded(target, image, name))
+    return target
+
+
+def _encoded(target: Path, image: np.ndarray, name: str) -> bytes:
     ok, encoded = cv2.imencode(target.suffix.lower(), image)
     if not ok:
         raise InputError(f"{name}: OpenCV could not encode a {target.suffix} image")
-    with write_errors_named(name, target):
-        write_bytes_atomic(target, encoded.tobytes())
-    return target
+    return encoded.tobytes()
+
+
+class _Abandoned(Exception):
+    """The block of :func:`image_written_after` raised: its image is dropped and that error raised as it was."""
+
+
+@contextlib.contextmanager
+def image_written_after(path: str | os.PathLike, image: np.ndarray, name: str = "figure",
+                        lossless: bool = False) -> Iterator[Path]:
+    """:func:`write_image_atomic` in two steps, for a figure that must not outlive another file: the image is
+    written in full before the ``with`` block runs (a full disk refuses it there, the block never runs), but
+    takes the name ``path`` only when the block ends normally. A block that raises leaves ``path`` as it was,
+    an earlier figure there kept (``calibrate``: a calibration that could not be written removed the figure it
+    had just replaced). Errors as :func:`write_image_atomic`'s; the block's own are raised unchanged."""
+    target = check_output_path(path, name, lossless)
+    data, failure = _encoded(target, image, name), None
+    try:
+        with write_errors_named(name, target), atomic_output(target) as stream:
+            stream.write(data)
+            stream.flush()  # the image's own write errors are raised here, named, before the block runs
+            try:
+                yield target
+            except BaseException as error:  # not the figure's: kept out of write_errors_named's naming
+                failure = error
+                raise _Abandoned from None
+    except _Abandoned:
+        raise failure  # noqa: B904 (the block's exception, its traceback kept)
 
 
 def labels_image(seg: Segmentation, index: int, factors: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:

@@ -846,28 +846,34 @@ def test_a_loose_rig_with_its_calibration_ranges_as_a_perfect_rig():
     torch.testing.assert_close(found.depth_median_m.sort(dim=1).values, true_depth, atol=0.02, rtol=0)
 
 
+@pytest.mark.parametrize("earlier_figure", [False, True], ids=["new-figure", "earlier-figure"])
 @pytest.mark.parametrize("failing", ["figure", "out"])
-def test_calibrate_writes_both_files_or_neither_on_a_full_disk(capsys, samples, tmp_path, monkeypatch, failing):
+def test_calibrate_writes_both_files_or_neither_on_a_full_disk(capsys, samples, tmp_path, monkeypatch, failing,
+                                                               earlier_figure):
     """Was (an audit of interrupts and full disks): the calibration was written first, so a --figure the disk
     refused exited 1 without a report, yet had replaced the rig's earlier calibration. Now the figure comes first
-    and a calibration that cannot be written takes its new figure with it: the earlier calibration stays."""
+    and a calibration that cannot be written takes its new figure with it: the earlier calibration stays. Was
+    (later): the new figure had replaced an earlier one before the calibration failed, and was then removed, so
+    the earlier figure was lost too; it is kept."""
     import svs_torch.core.files as files
     import svs_torch.geometry.calibration as calibration_module
     from svs_torch.plotting import figures
 
     out, figure = tmp_path / "rig.json", tmp_path / "rig.png"
     out.write_text("an earlier calibration")
-    real = files.write_bytes_atomic
+    if earlier_figure:
+        figure.write_bytes(b"an earlier figure")
+    real = files.atomic_output
 
     def full_disk_for(name):
-        def write(path, data, *args, **kwargs):
+        def output(path, *args, **kwargs):
             if Path(path).name == name:
                 raise OSError(28, "No space left on device")
-            return real(path, data, *args, **kwargs)
-        return write
+            return real(path, *args, **kwargs)
+        return output
 
     if failing == "figure":
-        monkeypatch.setattr(figures, "write_bytes_atomic", full_disk_for("rig.png"))
+        monkeypatch.setattr(figures, "atomic_output", full_disk_for("rig.png"))
     else:
         def refused(path, calibration):
             raise OSError(28, "No space left on device")
@@ -875,8 +881,9 @@ def test_calibrate_writes_both_files_or_neither_on_a_full_disk(capsys, samples, 
     code, _, err = run_cli(capsys, "calibrate", str(samples / "left0[1-4].jpg"), "--square-m", "0.025", "--out",
                            str(out), "--figure", str(figure))
     assert code == 1 and "No space left on device" in err
-    assert out.read_text() == "an earlier calibration" and not figure.exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.json"]
+    assert out.read_text() == "an earlier calibration"
+    assert figure.read_bytes() == b"an earlier figure" if earlier_figure else not figure.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.json"] + ["rig.png"] * earlier_figure
 
 
 @pytest.mark.parametrize("convert", [lambda u8: u8.astype(np.float32) / 255, lambda u8: u8.astype(np.uint16) * 257,

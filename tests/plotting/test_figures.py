@@ -447,3 +447,24 @@ def test_a_writer_killed_mid_write_leaves_the_old_file_and_nothing_else(tmp_path
         os.kill(writer.pid, signal.SIGKILL)
         writer.wait()
     assert [p.name for p in tmp_path.iterdir()] == ["out.png"] and target.read_bytes() == b"old"
+
+
+def test_an_image_written_after_a_block_takes_its_name_only_when_the_block_ends_normally(tmp_path):
+    """:func:`image_written_after` (calibrate's figure beside its calibration): the image is complete before the
+    block runs, takes its name at the block's normal end, and a block that raises leaves an earlier file as it was
+    and its own error unchanged (an OSError of the block is not named as the figure's)."""
+    from svs_torch.plotting.figures import image_written_after
+
+    image = np.full((8, 8, 3), 200, np.uint8)
+    path = tmp_path / "rig.png"
+    path.write_bytes(b"an earlier figure")
+    for error in (OSError(28, "No space left on device"), KeyboardInterrupt()):
+        with pytest.raises(type(error)) as raised:
+            with image_written_after(path, image, "--figure") as target:
+                assert target == path and path.read_bytes() == b"an earlier figure"
+                raise error
+        assert raised.value is error and "--figure" not in str(raised.value)
+        assert path.read_bytes() == b"an earlier figure" and sorted(tmp_path.iterdir()) == [path]
+    with image_written_after(path, image, "--figure"):
+        pass
+    assert cv2.imread(str(path)).tolist() == image.tolist() and sorted(tmp_path.iterdir()) == [path]
