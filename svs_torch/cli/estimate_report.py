@@ -388,9 +388,7 @@ def claim_export_names(args: argparse.Namespace, sources, export=None) -> None:
 
 def export_pair_name(source) -> str:
     """The name a listed pair's batch carries (``data.load_pair_source``), which names its exported map."""
-    from ..data.datasets import scene_name
-
-    return scene_name(source.left) if source.scene and source.label is None else source.name
+    return source.loaded_name
 
 
 def forget_unrun_map(args: argparse.Namespace, source, status: str, export=None) -> None:

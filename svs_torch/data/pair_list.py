@@ -118,6 +118,14 @@ class PairSource:
         return f"{path.resolve().parent.name}/{path.name}"  # "L.png" listed alone: its folder's name, not "/L.png"
 
     @property
+    def loaded_name(self) -> str:
+        """The name :func:`load_pair_source` gives the pair's batch, known without loading it: the :attr:`label`,
+        else a scene's as its loader names it from its file names alone (:func:`~svs_torch.data.scene_name`:
+        ``eval3/Teddy``, not the folders' ``middlebury_eval3_Q/Teddy``), else :attr:`name`. What a pair's rows are
+        named by whether it loads or not."""
+        return scene_name(self.left) if self.scene and self.label is None and self.problem is None else self.name
+
+    @property
     def calibration(self) -> dict | None:
         """The listed calibration as a dict, or None."""
         if self.focal_px is None:

@@ -11,8 +11,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .datasets import scene_name
-
 if TYPE_CHECKING:
     from .pair_list import PairSource
 
@@ -21,7 +19,7 @@ __all__ = ["pair_identity", "with_distinct_names"]
 
 def _loaded_name(source: PairSource) -> str:
     """The name :func:`~svs_torch.data.pair_list.load_pair_source` gives ``source`` without a label."""
-    return scene_name(source.left) if source.scene else replace(source, label=None).name
+    return replace(source, label=None).loaded_name
 
 
 def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:

@@ -137,7 +137,7 @@ def load_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[LoadedPa
 def _unrun(pair: LoadedPair, status: str | None = None, reason: str | None = None) -> PairEvaluation:
     """A pair the pipeline gave no result for: one it could not load, or ``status`` ``ERROR``. Once read, it keeps
     its name, calibration and whether it has truth, so a failure with truth counts 0 % as the pipeline's do."""
-    return PairEvaluation(name=pair.name or pair.source.name, status=status or pair.status,
+    return PairEvaluation(name=pair.name or pair.source.loaded_name, status=status or pair.status,
                           reason=reason or pair.reason, calibrated=pair.calibrated if pair.name else None,
                           calibration=pair.calibration, has_truth=pair.has_truth)
 

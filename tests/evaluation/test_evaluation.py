@@ -745,3 +745,25 @@ def test_a_refused_combination_names_the_keys_its_message_is_about():
         apply_overrides(differentiable, {"max_ratio": 0.7, "depth.rule": "paper"}, "--set")
     with pytest.raises(InputError, match=r"^grid: max_ratio = 2: max_ratio: expected a ratio in \(0, 1\]"):
         apply_overrides(PipelineConfig(), {"dense.window_size": 9, "max_ratio": 2}, "grid")
+
+
+def test_a_scene_that_cannot_be_loaded_is_named_as_a_loaded_one(data_dir, tmp_path, capsys):
+    """Found by an audit of eval on one's own data: a scene folder whose truth file was cut short was reported as
+    ``tmp/Teddy`` (its folders), the same scene loaded as ``eval3/Teddy`` (its loader's name), so one pair had two
+    names across runs; a KITTI frame alike (``stereo2015_training/...`` against ``kitti2015/...``). Each failed
+    row is named as the pair would be loaded, as ``estimate --pairs`` names its exported map."""
+    import json
+    import shutil
+
+    broken, whole = tmp_path / "broken" / "Teddy", tmp_path / "whole" / "ArtL"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", broken)
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "ArtL", whole)
+    kitti = tmp_path / "stereo2015_training"
+    shutil.copytree(data_dir / "kitti" / "stereo2015_training", kitti)
+    for truth in (broken / "disp0GT.pfm", kitti / "disp_occ_0" / "000000_10.png"):
+        truth.write_bytes(truth.read_bytes()[:200])
+    assert main(["eval", str(broken), str(whole), str(kitti / "image_2" / "000000_10.png"), "--size", "160x120",
+                 "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()][:-1]
+    assert [(row["name"], row["status"]) for row in rows] == [
+        ("eval3/Teddy", "BAD_INPUT"), ("eval3/ArtL", "OK"), ("kitti2015/000000_10", "BAD_INPUT")]
