@@ -222,10 +222,11 @@ def _value_that_ran(config: dict, key: str) -> Any:
         value = value[part]
     if isinstance(value, dict) or (value is None and key in config["overrides"]):
         # An optional sub-setting (refine_matches, row_alignment, exposure, ...): switched on, its whole settings
-        # dict made an unreadable CSV cell and figure tick; it reads as the value it was swept with, or "on".
+        # dict made an unreadable CSV cell and figure tick; it reads as the value it was swept with, or True where
+        # its preset switched it on (it read "on", a tick apart from the same setting swept as true: an audit).
         override = config["overrides"].get(key)
         return override if override is not None and not isinstance(override, dict) else (
-            "on" if isinstance(value, dict) else None)
+            True if isinstance(value, dict) else None)
     return value
 
 

@@ -728,13 +728,14 @@ def test_results_rank_over_the_larger_group_and_json_keeps_sort_and_top(referenc
 
 def test_a_swept_optional_sub_setting_reads_as_its_swept_value():
     """Found by an audit of the bulk commands: `refine_matches = [true, false]` came out in the CSV and the figure's
-    ticks as the whole settings dict (a Python repr) and an empty cell."""
+    ticks as the whole settings dict (a Python repr) and an empty cell. Later: the preset's own setting, switched
+    on, read "on", so results --figure drew it as a tick apart from the same setting swept as true; it reads True."""
     from svs_torch.evaluation.report import parameter_value
 
     on = {"overrides": {"refine_matches": True}, "config": {"refine_matches": {"radius_scales": 1.5}, "seed": 0}}
     off = {"overrides": {"refine_matches": False}, "config": {"refine_matches": None, "seed": 0}}
     default = {"overrides": {}, "config": {"refine_matches": {"radius_scales": 1.5}, "seed": 0}}
-    assert [parameter_value(c, "refine_matches") for c in (on, off, default)] == [True, False, "on"]
+    assert [parameter_value(c, "refine_matches") for c in (on, off, default)] == [True, False, True]
     assert parameter_value({"overrides": {}, "config": {"dense": {"window_size": 9}}}, "dense.window_size") == 9
 
 
