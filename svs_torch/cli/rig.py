@@ -130,7 +130,7 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     if not found:
         return None
     without = [str(name) for name, path in kept.items() if path is None]
-    if without or len({path.read_bytes() for path in found}) > 1:
+    if without or len({_kept_rig_content(path) for path in found}) > 1:  # what they hold, not their bytes
         others = f"{', '.join(without)} without one" if without else "another with a different one"
         raise InputError(f"--calibration: {found[0].parent} was captured with a rig calibration ({found[0].name} "
                          f"beside its index), and {others}: range them apart, or name the rig's file with "

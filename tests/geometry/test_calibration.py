@@ -914,3 +914,29 @@ def test_a_left_image_whose_name_holds_brackets_is_read_as_that_file(tmp_path):
         (literal, str(tmp_path / "right[1].jpg"), "left")]
     assert [p[0] for p in pair_paths(argparse.Namespace(left=[str(tmp_path / "left[2].jpg")], pairs=None))] == [
         str(tmp_path / "left2.jpg")]
+
+
+def test_folders_kept_with_one_rig_in_two_layouts_are_ranged_together(capsys, rig, tmp_path):
+    """Found on re-reading the kept-calibration lookup: two capture folders listed together were compared by their
+    kept files' bytes, so the same rig's file written with other indentation refused the pair of folders as
+    captured with two rigs. They are compared by what the calibration holds; another rig is still refused."""
+    import shutil
+
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    first = tmp_path / "first"
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
+                           str(first), "--calibration", str(path))
+    assert code == 0, err
+    second = tmp_path / "second"
+    shutil.copytree(first, second)
+    (second / "index.jsonl").write_text((first / "index.jsonl").read_text().replace(str(first), str(second)))
+    kept = second / "calibration.json"
+    kept.write_text(json.dumps(json.loads(kept.read_text()), indent=7) + "\n")
+    assert kept.read_bytes() != (first / "calibration.json").read_bytes()
+    code, _, err = run_cli(capsys, "eval", str(first / "index.jsonl"), str(second / "index.jsonl"))
+    assert code == 0 and f"rectified with {first / 'calibration.json'}" in err, err
+    kept.write_text(kept.read_text().replace('"created_utc": "', '"created_utc": "another rig '))
+    code, _, err = run_cli(capsys, "eval", str(first / "index.jsonl"), str(second / "index.jsonl"))
+    assert code == 2 and "and another with a different one: range them apart" in err
