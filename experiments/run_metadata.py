@@ -111,6 +111,16 @@ def check_reports_apart(parser, args, inputs: tuple[tuple[str, str], ...] = ()) 
                 parser.error(f"argument {report_option}: the file {option} reads, {str(report)!r}")
 
 
+def refuse_unread_options(parser, args, dests: list[str], when: str) -> None:
+    """Refuse, as ``parser``'s error, the options of ``dests`` given a value other than their default in a run that
+    does not read them (``when``: the runs that do). An audit: 'train_segmentation.py --pairs mine.txt' trained from
+    scratch on the shared scenes, and 'train_nearness.py --num-synthetic 9' (no --steps) wrote the rule's weights,
+    each recording the option as if it had been used."""
+    given = ["--" + dest.replace("_", "-") for dest in dests if getattr(args, dest) != parser.get_default(dest)]
+    if given:
+        parser.error(f"{', '.join(given)}: only {when}; this run would not read {'them' if given[1:] else 'it'}")
+
+
 def add_common_options(parser, *, data_type=str, threads: int | None = None, repeats: int | None = None,
                        sizes: str | None = None, sizes_form: str = "wxh", json: bool = False) -> None:
     """The options many experiments share, each with its help: ``--data`` (as ``data_type``), and where given

@@ -62,7 +62,8 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, refuse_unread_options,  # noqa: E402
+                          run_metadata, run_script)
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, adamw, add_config_options,  # noqa: E402
                                 fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
@@ -170,6 +171,13 @@ def main(argv: list[str] | None = None) -> Path:
     if args.out is None and not shipped:  # --seed 1 rewrote the shipped tensors (and its record) without a word
         parser.error("--out: expected a file for weights that are not the shipped ones (those are the defaults' at "
                      "--threads 2 on the shared data)")
+    if not config.steps:
+        refuse_unread_options(parser, args, ["batch_size", "learning_rate", "crops_per_scene", "views_per_scene",
+                                             "num_synthetic"], "with --steps above 0 (the mask steps)")
+    if not config.fine_tune_steps:
+        refuse_unread_options(parser, args, ["fine_tune_learning_rate"], "with --fine-tune-steps above 0")
+    if not config.steps and not config.fine_tune_steps:
+        refuse_unread_options(parser, args, ["weight_decay"], "with --steps or --fine-tune-steps above 0")
     args.out = args.out or str(NEARNESS_WEIGHTS)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)  # the network's initial weights (nn.Module draws from the global generator)

@@ -80,7 +80,8 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import (command_line, default_data_dir, output_path, refuse_unread_options,  # noqa: E402
+                          run_metadata, run_script)
 
 #: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
 HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
@@ -511,6 +512,13 @@ def main(argv: list[str] | None = None) -> Path:
             setattr(args, name, fine_tune.get(name, getattr(TrainConfig(), name)))
     config = TrainConfig(**{name: getattr(args, name) for name in names})
     command = command_line("experiments/train_segmentation.py", argv)
+    if args.through_pipeline:
+        refuse_unread_options(parser, args, ["crops_per_scene", "views_per_scene", "num_synthetic", "depth_weight"],
+                              "training from scratch (without --through-pipeline)")
+        if args.pairs:
+            refuse_unread_options(parser, args, ["data"], "without --pairs (the pairs of the training scenes)")
+    else:
+        refuse_unread_options(parser, args, ["pairs", "init", "size", "region_weight"], "with --through-pipeline")
     if args.through_pipeline:
         if args.out is None:
             parser.error("--through-pipeline: expected --out FILE for the fine-tuned weights")

@@ -82,3 +82,25 @@ def test_a_run_records_the_cpu_instructions_its_bits_depend_on() -> None:
     from run_metadata import run_metadata
 
     assert run_metadata(2, command="x")["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+
+
+@pytest.mark.parametrize("script, argv, options", [
+    (train_segmentation, ["--pairs", "mine.txt"], "--pairs"),
+    (train_segmentation, ["--size", "160x120", "--region-weight", "0"], "--size, --region-weight"),
+    (train_segmentation, ["--through-pipeline", "--num-synthetic", "9", "--depth-weight", "2"],
+     "--num-synthetic, --depth-weight"),
+    (train_segmentation, ["--through-pipeline", "--pairs", "mine.txt", "--data", "elsewhere"], "--data"),
+    (train_nearness, ["--batch-size", "4", "--num-synthetic", "9"], "--batch-size, --num-synthetic"),
+    (train_nearness, ["--steps", "1", "--fine-tune-learning-rate", "0.1"], "--fine-tune-learning-rate"),
+    (train_nearness, ["--weight-decay", "0.1"], "--weight-decay")],
+    ids=["pairs", "size", "scratch-only", "data", "steps-0", "fine-tune-0", "no-step"])
+def test_an_option_the_run_would_not_read_is_refused(script, argv, options, tmp_path, monkeypatch, capsys) -> None:
+    # Taken and ignored: 'train_segmentation.py --pairs mine.txt' trained from scratch on the shared scenes,
+    # 'train_nearness.py --num-synthetic 9 --out F' (no --steps) wrote the rule's weights, both without a word.
+    monkeypatch.setenv("SVS_TORCH_DATA", str(tmp_path / "no data"))  # a run that starts stops at once
+    out = tmp_path / "net.pt"
+    with pytest.raises(SystemExit) as exited:
+        script.main([*argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and f"error: {options}: only " in err, err
+    assert not out.exists()
