@@ -98,11 +98,16 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
         raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None
     # A diverged run's NaN loaded in silence: in a layer under the shipped zero head the pass was skipped and the file
     # passed for the rule; elsewhere every pair of an eval or a sweep became an ERROR row naming no file (an audit).
-    bad = [name for name, value in net.state_dict().items() if not bool(torch.isfinite(value).all())]
+    bad = _non_finite_weights(net)
     if bad:
-        raise InputError(f"segmenter: {str(path)!r}: its weights hold NaN or inf ({', '.join(bad[:3])}"
-                         f"{', ...' if len(bad) > 3 else ''}: a diverged training run?)")
+        raise InputError(f"segmenter: {str(path)!r}: its weights hold NaN or inf ({bad}: a diverged training run?)")
     return net.float().eval()
+
+
+def _non_finite_weights(net: nn.Module) -> str:
+    """The names of ``net``'s tensors holding a NaN or an infinity (the first three), or ``""``."""
+    bad = [name for name, value in net.state_dict().items() if not bool(torch.isfinite(value).all())]
+    return ", ".join(bad[:3]) + (", ..." if len(bad) > 3 else "")
 
 
 _NET_CACHE: dict[tuple[str, str, int, int], nn.Module] = {}
@@ -136,8 +141,17 @@ def check_weights_file(segmenter: str) -> None:
 def save_obstacle_net(path: str | Path, net: nn.Module, metadata: dict | None = None) -> None:
     """Write ``net``'s weights, its configuration and ``metadata`` (training settings, split) atomically, in a
     file :func:`load_obstacle_net` reads. ``metadata`` is stored as its JSON form (strings for anything else),
-    so the file holds only tensors and plain values and loads with ``weights_only``."""
+    so the file holds only tensors and plain values and loads with ``weights_only``.
+
+    Raises:
+        InputError: ``net``'s weights hold a NaN or an infinity (nothing is written)."""
     path = Path(path)
+    # A diverged training run (train_nearness.py --learning-rate 1e30) wrote its NaN weights over the good file at
+    # --out, one that load_obstacle_net refuses (an audit): refused here, the file left as it was.
+    bad = _non_finite_weights(net)
+    if bad:
+        raise InputError(f"network: its weights hold NaN or inf ({bad}: a diverged training run?); {str(path)!r} not "
+                         "written")
     kind = "learned" if isinstance(net, ObstacleNet) else "nearness"
     stored = {"format": _KINDS[kind], "config": dataclasses.asdict(net.config),
               "state_dict": {k: v.detach().cpu().float() for k, v in net.state_dict().items()},

@@ -122,3 +122,17 @@ def test_a_save_killed_midway_leaves_the_old_file_and_nothing_else(tmp_path):
         child.send_signal(signal.SIGKILL)
         child.wait()
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name] and path.read_bytes() == before
+
+
+def test_a_diverged_network_is_not_written_over_good_weights(tmp_path):
+    """Found by an audit: 'train_nearness.py --learning-rate 1e30 --out GOOD.pt' diverged and wrote its NaN weights
+    over GOOD.pt ("weights written"), a file load_obstacle_net then refuses: the good weights were lost."""
+    path = _nearness_file(tmp_path)
+    before = path.read_bytes()
+    net = NearnessNet()
+    with torch.no_grad():
+        net.head.weight.fill_(float("nan"))
+    with pytest.raises(InputError, match=f"^network: its weights hold NaN or inf \\(head.weight: a diverged training "
+                                         f"run\\?\\); '{path}' not written$"):
+        save_obstacle_net(path, net, {"note": "diverged"})
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
