@@ -93,7 +93,8 @@ def load_obstacle_net(segmenter: str = "learned") -> nn.Module:
         net.load_state_dict(stored["state_dict"])
     except InputError as error:  # a setting out of its range (a hand-edited or foreign file): named without the file
         raise InputError(f"segmenter: {str(path)!r}: its stored settings are refused ({error})") from None
-    except (KeyError, TypeError, RuntimeError) as error:
+    except (KeyError, TypeError, RuntimeError, ValueError, AttributeError) as error:  # the last two: a file's settings
+        # as text (dict("...")) and tensors under numbers (torch's load_state_dict), each a traceback once (an audit)
         reason = " ".join(str(error).split())[:200]
         raise InputError(f"segmenter: {str(path)!r}: the weights do not fit the network ({reason})") from None
     # A diverged run's NaN loaded in silence: in a layer under the shipped zero head the pass was skipped and the file

@@ -136,3 +136,14 @@ def test_a_diverged_network_is_not_written_over_good_weights(tmp_path):
                                          f"run\\?\\); '{path}' not written$"):
         save_obstacle_net(path, net, {"note": "diverged"})
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+@pytest.mark.parametrize("key, value", [("config", "channels=(8, 16, 16)"), ("state_dict", {0: torch.zeros(1)})],
+                         ids=["config-text", "state-dict-numbered"])
+def test_a_file_of_the_right_format_with_foreign_parts_is_refused_in_one_line(tmp_path, key, value):
+    """Found by an audit: a settings text for the settings was Python's ValueError ("dictionary update sequence
+    element #0 has length 1; 2 is required"; in svs-depth, "invalid segmenter_choice value"), and tensors under
+    numbers an AttributeError traceback from inside torch's load_state_dict."""
+    path = _nearness_file(tmp_path, lambda stored: stored.__setitem__(key, value))
+    with pytest.raises(InputError, match=f"^segmenter: '{path}': the weights do not fit the network \\("):
+        load_obstacle_net(f"nearness:{path}")
