@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the shipped "
                         "one, whose tensors the defaults rewrite bit for bit, its record of the run this one's; a run "
                         "with any other setting, --data or --threads needs one of its own)")
-    names = add_config_options(parser, NearnessTrainConfig())
+    names = add_config_options(parser, NearnessTrainConfig(), crop_wh=SIZE_WH)  # its crops: the SVS's size
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -422,7 +422,7 @@ SETTING_HELP = {
     "steps": "optimiser steps", "batch_size": "pairs per step",
     "learning_rate": "AdamW's learning rate, decayed to 0 on a cosine", "weight_decay": "AdamW's weight decay",
     "depth_weight": "weight of the nearest obstacle's relative depth error in the loss, beside BCE + Dice",
-    "crops_per_scene": "random-scale 160x120 crops of each real training scene",
+    "crops_per_scene": "random-scale {crop} crops of each real training scene",
     "views_per_scene": "whole views of each real training scene, each augmented anew",
     "num_synthetic": "rendered synthetic SVS scenes", "seed": "seed of every random draw (torch.Generator)",
     "fine_tune_steps": "steps through the differentiable pipeline after the mask steps (stage 2)",
@@ -442,17 +442,19 @@ def _setting_types() -> dict:
 
 
 def add_config_options(parser: argparse.ArgumentParser, defaults, skip: tuple[str, ...] = (),
-                       said: dict[str, str] | None = None) -> list[str]:
+                       said: dict[str, str] | None = None, crop_wh: tuple[int, int] = CROP_WH) -> list[str]:
     """One typed ``--option`` per field of the dataclass instance ``defaults`` but ``skip``, defaulting to its
-    value, its help from :data:`SETTING_HELP` (and ``said``'s default text where the script chooses it later);
-    returns the fields' names (the training scripts' settings as command-line options)."""
+    value, its help from :data:`SETTING_HELP` (and ``said``'s default text where the script chooses it later;
+    ``crop_wh``: the size of the script's crops); returns the fields' names (the training scripts' settings as
+    command-line options)."""
     names = [field.name for field in dataclasses.fields(defaults) if field.name not in skip]
     types = _setting_types()
     for name in names:
         value = getattr(defaults, name)
         default = (said or {}).get(name, "%(default)s")
         parser.add_argument("--" + name.replace("_", "-"), type=types.get(name, type(value)), default=value,
-                            help=f"{SETTING_HELP.get(name, name.replace('_', ' '))} (default: {default})")
+                            help=f"{SETTING_HELP.get(name, name.replace('_', ' '))} (default: {default})".replace(
+                                "{crop}", "x".join(map(str, crop_wh))))
     return names
 
 

@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--ungrouped", action="store_true", help="a scene's E/L variant is a unit of its own")
     # train_nearness.py's stage-1 settings as options (steps come from --checkpoints), 160 synthetic pairs a fold.
     train_fields = add_config_options(parser, dataclasses.replace(NearnessTrainConfig(), num_synthetic=160),
-                                      skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"))
+                                      skip=("steps", "fine_tune_steps", "fine_tune_learning_rate"), crop_wh=SIZE_WH)
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")

@@ -104,3 +104,15 @@ def test_an_option_the_run_would_not_read_is_refused(script, argv, options, tmp_
     err = capsys.readouterr().err
     assert exited.value.code == 2 and f"error: {options}: only " in err, err
     assert not out.exists()
+
+
+def test_each_script_helps_with_the_size_of_its_own_crops(capsys) -> None:
+    # train_nearness.py --help said "random-scale 160x120 crops" (train_segmentation.py's size): it crops 320x240.
+    helps = {}
+    for script in (train_nearness, train_segmentation):
+        with pytest.raises(SystemExit):
+            script.main(["--help"])
+        helps[script] = " ".join(capsys.readouterr().out.split())
+    assert "random-scale 320x240 crops of each real training scene" in helps[train_nearness]
+    assert "160x120" not in helps[train_nearness]
+    assert "random-scale 160x120 crops of each real training scene" in helps[train_segmentation]
