@@ -492,7 +492,8 @@ def main(argv: list[str] | None = None) -> Path:
     defaults = TrainConfig()
     names = add_config_options(parser, defaults, said={
         "steps": f"{defaults.steps}; 20 with --through-pipeline",
-        "learning_rate": f"{defaults.learning_rate:g}; 1e-4 with --through-pipeline"})
+        # (fine_tune_through_pipeline has no schedule: its rate stays as given)
+        "learning_rate": f"{defaults.learning_rate:g}; 1e-4 and constant with --through-pipeline"})
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--through-pipeline", action="store_true",
                         help="fine-tune through estimate_obstacle_depth(..., differentiable=True) (docstring)")

@@ -106,8 +106,9 @@ def test_an_option_the_run_would_not_read_is_refused(script, argv, options, tmp_
     assert not out.exists()
 
 
-def test_each_script_helps_with_the_size_of_its_own_crops(capsys) -> None:
+def test_each_script_helps_with_the_size_of_its_own_crops(capsys, monkeypatch) -> None:
     # train_nearness.py --help said "random-scale 160x120 crops" (train_segmentation.py's size): it crops 320x240.
+    monkeypatch.setenv("COLUMNS", "400")  # no line broken inside "--through-pipeline"
     helps = {}
     for script in (train_nearness, train_segmentation):
         with pytest.raises(SystemExit):
@@ -116,3 +117,6 @@ def test_each_script_helps_with_the_size_of_its_own_crops(capsys) -> None:
     assert "random-scale 320x240 crops of each real training scene" in helps[train_nearness]
     assert "160x120" not in helps[train_nearness]
     assert "random-scale 160x120 crops of each real training scene" in helps[train_segmentation]
+    # It said every rate decays to 0 on a cosine; the fine-tune through the pipeline holds its rate constant.
+    assert "decayed to 0 on a cosine (default: 0.003; 1e-4 and constant with --through-pipeline)" in helps[
+        train_segmentation]
