@@ -104,8 +104,15 @@ class TrainConfig:
 
 
 def train_scenes(data_dir: Path) -> list[Path]:
-    """The tuned split without the scenes that duplicate held-out ones."""
-    return [path for path in split_scenes(data_dir)["tuned"] if path.name not in HELD_OUT_DUPLICATES]
+    """The tuned split without the scenes that duplicate held-out ones.
+
+    Raises:
+        InputError: ``data_dir`` holds none of them."""
+    scenes = [path for path in split_scenes(data_dir)["tuned"] if path.name not in HELD_OUT_DUPLICATES]
+    if not scenes:  # '--data /work/shared' (one level off) trained on synthetic scenes alone, recording none (an audit)
+        raise InputError(f"--data: no training scene (middlebury_eval3_Q/*) in {str(data_dir)!r}; expected the shared "
+                         "data folder (its MANIFEST.md)")
+    return scenes
 
 
 def _uniform(generator: torch.Generator, low: float, high: float) -> float:

@@ -120,3 +120,21 @@ def test_each_script_helps_with_the_size_of_its_own_crops(capsys, monkeypatch) -
     # It said every rate decays to 0 on a cosine; the fine-tune through the pipeline holds its rate constant.
     assert "decayed to 0 on a cosine (default: 0.003; 1e-4 and constant with --through-pipeline)" in helps[
         train_segmentation]
+
+
+@pytest.mark.parametrize("script, argv", [
+    (train_segmentation, ["--steps", "1"]), (train_segmentation, ["--through-pipeline", "--steps", "1"]),
+    (train_nearness, ["--steps", "1"]), (train_nearness, ["--fine-tune-steps", "1"])],
+    ids=["segmentation", "through-pipeline", "nearness", "fine-tune"])
+def test_a_data_folder_without_the_training_scenes_is_refused(script, argv, tmp_path) -> None:
+    # '--data /work/shared' (one level off) trained on the synthetic scenes alone and wrote weights recording no
+    # train scene; a fine-tune ended in "batches: expected a sequence of at least one StereoBatch, got none".
+    from svs_torch.core.errors import InputError
+
+    out, tiny = tmp_path / "net.pt", ["--crops-per-scene", "0", "--views-per-scene", "1", "--num-synthetic", "1"]
+    tiny = tiny if "--steps" in argv and "--through-pipeline" not in argv else []
+    (tmp_path / "data").mkdir()
+    with pytest.raises(InputError, match=f"^--data: no training scene \\(middlebury_eval3_Q/\\*\\) in "
+                                         f"'{tmp_path / 'data'}'"):
+        script.main([*argv, *tiny, "--data", str(tmp_path / "data"), "--out", str(out)])
+    assert not out.exists()
