@@ -338,6 +338,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
     if args.range_rule:
         config = replace(config, depth=replace(config.depth, rule=args.range_rule))
     if getattr(args, "camera_frames", False):
+        check_segmenter_options(config.segmentation.segmenter, camera_frames=True)
         config = replace(config, segmentation=replace(config.segmentation, camera_frames=True))
     if getattr(args, "second_passes", "on") == "off":  # as guide --second-passes off (PipelineConfig.for_guide)
         config = replace(config, coarse_retry_below_share=None, exposure_retry=None)

@@ -191,13 +191,13 @@ def config_from_args(args: argparse.Namespace, base=None):
 
 def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: str | None = None,
                             canny: bool = False, segmenter_option: bool = True, keep_rule: str | None = None,
-                            area_options: list[str] | tuple[str, ...] = ()) -> None:
+                            area_options: list[str] | tuple[str, ...] = (), camera_frames: bool = False) -> None:
     """Reject an option that the chosen ``segmenter`` would silently ignore: ``--dark-objects`` and ``--canny``
     change the brightness threshold, which only the Otsu segmenter has; ``--floor on`` leaves out a plane found
     in the measured disparity, which only the nearness segmenter measures; so do a nearness ``keep_rule``
     (``--keep-rule nearest_first`` kept the largest regions under Otsu, and the JSON named the rule) and the
-    nearness rules' area options (``area_options``, the names given). ``segmenter_option``: the command takes
-    ``--segmenter`` (the message then names it)."""
+    nearness rules' area options (``area_options``, the names given) and ``--camera-frames`` (only the nearness
+    map has a noise window). ``segmenter_option``: the command takes ``--segmenter`` (the message then names it)."""
     from ..core.errors import InputError
 
     kind = segmenter.partition(":")[0]
@@ -211,6 +211,9 @@ def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: s
         raise InputError(f"{option}: only the nearness segmenter ranks regions by disparity, and this run segments "
                          f"with {segmenter!r}; drop it or use "
                          + ("--segmenter nearness" if segmenter_option else "--preset default"))
+    if camera_frames and kind != "nearness":  # the learned and Otsu runs were the ones without it, in silence
+        raise InputError(f"--camera-frames: only the nearness segmenter matches a camera frame's noise with its wider "
+                         f"window, and this run segments with {segmenter!r}; drop it or use --segmenter nearness")
     if floor == "on" and kind != "nearness":
         raise InputError(f"--floor: 'on' leaves out the floor the nearness segmenter finds in the measured "
                          f"disparity, and this run segments with {segmenter!r}; drop --floor or use --segmenter "

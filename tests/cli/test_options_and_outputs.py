@@ -41,6 +41,10 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
     (("features", "--dark-objects"), "segments with 'nearness'; add --preset paper"),  # features has no --segmenter
     (("estimate", "--floor", "on", "--segmenter", "otsu"), "--floor: 'on' leaves out the floor the nearness "
                                                            "segmenter finds"),
+    # Found by an audit of the learned segmenter: its run with --camera-frames was the one without, in silence.
+    (("estimate", "--camera-frames", "--segmenter", "learned"), "--camera-frames: only the nearness segmenter "
+                                                                "matches a camera frame's noise"),
+    (("estimate", "--camera-frames", "--preset", "paper"), "this run segments with 'otsu'"),
 ])
 def test_an_option_the_segmenter_would_ignore_is_refused(data_dir, capsys, argv, message):
     """``--canny`` and ``--dark-objects`` change Otsu's threshold, which the default nearness segmenter does not
