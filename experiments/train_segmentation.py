@@ -394,8 +394,9 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command
     if args.pairs:
         sources = read_pair_list(args.pairs, "--pairs")
         bad = [source.problem for source in sources if source.problem]
+        # InputError, as run_script ends every refused input (exit status 2; SystemExit of the text was status 1)
         if bad:  # a traceback from inside before
-            raise SystemExit(f"train_segmentation.py: error: {bad[0]}")
+            raise InputError(bad[0])
         pairs = [load_pair_source(source) for source in sources]
         without = [p.names[0] if p.names else "?" for p in pairs if p.disparity_px is None]
         pairs = [p for p in pairs if p.disparity_px is not None]
@@ -403,8 +404,8 @@ def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command
             print(f"--pairs: {len(without)} pair(s) without ground truth left out: {', '.join(without[:5])}",
                   file=sys.stderr)
         if not pairs:
-            raise SystemExit("train_segmentation.py: error: --pairs: no listed pair has ground truth (a scene "
-                             "folder with its disparity); nothing to train on")
+            raise InputError("--pairs: no listed pair has ground truth (a scene folder with its disparity); nothing "
+                             "to train on")
     else:
         pairs = [with_nominal_calibration(load_stereo_pair(path)) for path in train_scenes(Path(args.data))]
     pairs = [resize_stereo_batch(pair, checked_size(args.size)) for pair in pairs]

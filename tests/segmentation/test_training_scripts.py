@@ -138,3 +138,21 @@ def test_a_data_folder_without_the_training_scenes_is_refused(script, argv, tmp_
                                          f"'{tmp_path / 'data'}'"):
         script.main([*argv, *tiny, "--data", str(tmp_path / "data"), "--out", str(out)])
     assert not out.exists()
+
+
+def test_a_pair_list_without_ground_truth_is_refused_with_the_status_of_a_refused_input(tmp_path, capsys) -> None:
+    # It ended with exit status 1 (SystemExit of its text), where every other refused input of the training scripts
+    # (and of svs-depth) is status 2.
+    import cv2
+    import numpy as np
+    from run_metadata import run_script
+
+    for side in ("left", "right"):
+        cv2.imwrite(str(tmp_path / f"{side}.png"), np.zeros((24, 32), np.uint8))
+    (tmp_path / "pairs.txt").write_text("left.png right.png\n")
+    out = tmp_path / "net.pt"
+    with pytest.raises(SystemExit) as exited:
+        run_script(lambda: train_segmentation.main(["--through-pipeline", "--pairs", str(tmp_path / "pairs.txt"),
+                                                    "--out", str(out)]))
+    assert exited.value.code == 2 and "no listed pair has ground truth" in capsys.readouterr().err
+    assert not out.exists()
