@@ -66,7 +66,7 @@ from run_metadata import (command_line, default_data_dir, output_path, refuse_un
                           run_metadata, run_script)
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, adamw, add_config_options,  # noqa: E402
-                                fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
+                                check_not_diverged, fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
                                 train_scenes)
 
 SIZE_WH = (320, 240)
@@ -142,6 +142,7 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
                                    align_corners=False)
         logits = net.config.rule_gain * pool.relative[index] + correction
         loss = mask_loss(logits, pool.target[index])
+        check_not_diverged(loss, step, "mask")
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

@@ -267,6 +267,14 @@ def adamw(net: torch.nn.Module, config) -> torch.optim.AdamW:
         return torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
 
 
+def check_not_diverged(loss: torch.Tensor, step: int, name: str) -> None:
+    """Refuse a NaN or infinite ``loss`` at ``step``, saying the run diverged. Why: '--learning-rate 1e30' ended in
+    "logits: expected numbers, got NaN", the soft depth's check of its input, as if an input were broken (an audit)."""
+    if not bool(torch.isfinite(loss.detach())):
+        raise InputError(f"--learning-rate: the training diverged at step {step} ({name} loss {loss.item()}); nothing "
+                         "written: try a lower rate")
+
+
 def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Generator) -> list[dict]:
     optimizer = adamw(net, config)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, config.steps)
@@ -282,6 +290,7 @@ def train(pool: Pool, net: ObstacleNet, config: TrainConfig, generator: torch.Ge
             features, target = features.flip(-2), target.flip(-2)
         logits = net(features)
         masks = mask_loss(logits, target)
+        check_not_diverged(masks, step, "mask")
         depth = depth_loss(logits.flip(-2) if flipped else logits, pool, index)
         loss = masks + config.depth_weight * depth
         optimizer.zero_grad()

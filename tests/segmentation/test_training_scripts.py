@@ -156,3 +156,16 @@ def test_a_pair_list_without_ground_truth_is_refused_with_the_status_of_a_refuse
                                                     "--out", str(out)]))
     assert exited.value.code == 2 and "no listed pair has ground truth" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_diverged_training_run_says_so(data_dir, tmp_path) -> None:
+    # '--learning-rate 1e30' ended in "logits: expected numbers, got NaN" (the soft depth's check of its input), as if
+    # an input were broken; nothing said the run had diverged, nor which setting to change.
+    from svs_torch.core.errors import InputError
+
+    out = tmp_path / "net.pt"
+    tiny = ["--steps", "3", "--crops-per-scene", "0", "--views-per-scene", "1", "--num-synthetic", "1",
+            "--batch-size", "2", "--threads", "1"]
+    with pytest.raises(InputError, match="^--learning-rate: the training diverged at step [0-9]+ \\(mask loss nan\\)"):
+        train_segmentation.main([*tiny, "--learning-rate", "1e30", "--data", str(data_dir), "--out", str(out)])
+    assert not out.exists()
