@@ -143,6 +143,14 @@ def method_configs(args) -> dict[str, PipelineConfig | str]:
         raise InputError(f"--methods: unknown {', '.join(unknown)}; expected among "
                          f"{', '.join(methods)} (a NAME of --nearness NAME=FILE too)")
     chosen = {name: methods[name] for name in args.methods.split(",")}
+    # Given for a method not run: '--weights my_net.pt --methods default,otsu' scored no learned method, and the
+    # report named my_net.pt nowhere (an audit). --reference reads --weights too.
+    unused = [option for option, given, name in (
+        ("--weights", args.weights != str(SHIPPED_WEIGHTS) and not args.reference, "learned"),
+        ("--otsu-preset", args.otsu_preset != "default", "otsu")) if given and name not in chosen]
+    unused += [f"--nearness {spec}" for spec in args.nearness or [] if spec.partition("=")[0] not in chosen]
+    if unused:
+        raise InputError(f"{unused[0]}: its method is not in --methods ({args.methods}); add it, or drop the option")
     # Each weights file read now: a bad one was refused after the first scene's work, naming "segmenter" (an audit).
     options = {"learned": "--weights", **{spec.partition("=")[0]: "--nearness" for spec in args.nearness or []}}
     for name, config in chosen.items():
