@@ -400,7 +400,7 @@ def fine_tune_through_pipeline(pairs: list[StereoBatch], net: ObstacleNet, confi
 
 def through_pipeline_main(args: argparse.Namespace, config: TrainConfig, command: str) -> Path:
     generator = torch.Generator().manual_seed(config.seed)
-    if args.pairs:
+    if args.pairs is not None:  # "" is a list file name to refuse, not the training scenes (an audit)
         sources = read_pair_list(args.pairs, "--pairs")
         bad = [source.problem for source in sources if source.problem]
         # InputError, as run_script ends every refused input (exit status 2; SystemExit of the text was status 1)
@@ -535,7 +535,7 @@ def main(argv: list[str] | None = None) -> Path:
     if args.through_pipeline:
         refuse_unread_options(parser, args, ["crops_per_scene", "views_per_scene", "num_synthetic", "depth_weight"],
                               "training from scratch (without --through-pipeline)")
-        if args.pairs:
+        if args.pairs is not None:
             refuse_unread_options(parser, args, ["data"], "without --pairs (the pairs of the training scenes)")
     else:
         refuse_unread_options(parser, args, ["pairs", "init", "size", "region_weight"], "with --through-pipeline")

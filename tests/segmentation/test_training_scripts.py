@@ -169,3 +169,14 @@ def test_a_diverged_training_run_says_so(data_dir, tmp_path) -> None:
     with pytest.raises(InputError, match="^--learning-rate: the training diverged at step [0-9]+ \\(mask loss nan\\)"):
         train_segmentation.main([*tiny, "--learning-rate", "1e30", "--data", str(data_dir), "--out", str(out)])
     assert not out.exists()
+
+
+def test_an_empty_pair_list_name_is_refused_not_taken_as_the_training_scenes(tmp_path) -> None:
+    # Found by an audit of the learned segmenter: '--through-pipeline --pairs ""' fine-tuned on the training scenes,
+    # as if no list had been named; an empty name is refused as svs-depth refuses it.
+    from svs_torch.core.errors import InputError
+
+    out = tmp_path / "net.pt"
+    with pytest.raises(InputError, match="^--pairs: expected a list file name, got ''"):
+        train_segmentation.main(["--through-pipeline", "--pairs", "", "--out", str(out)])
+    assert not out.exists()
