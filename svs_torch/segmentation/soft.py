@@ -143,7 +143,8 @@ def soft_segment_images(
 
     Args:
         image: ``(B, 1, H, W)`` float in [0, 1].
-        threshold: ``(B,)`` threshold on the [0, 1] scale; default: Otsu's (then no gradient reaches it).
+        threshold: ``(B,)`` threshold on the [0, 1] scale; default: Otsu's where the hard stage's rounding to gray
+            levels puts it, ``(level + 0.5) / 255`` (then no gradient reaches it).
         config: the hard stage's :class:`SegmentationConfig` (element, connectivity, kept regions).
         threshold_temperature: sigmoid width of :func:`soft_threshold`.
         morphology_temperature: temperature of the smooth min / max filters.
@@ -159,7 +160,10 @@ def soft_segment_images(
                          f"{config.method!r}")
     hard = segment_images(image, config)
     if threshold is None:
-        threshold = hard.threshold
+        # Halfway to the next level: the hard stage keeps round(255 · x) > level, so a pixel at Otsu's level itself
+        # (every 8-bit image has some) stayed at 0.5 at any temperature, and a dark foreground's kept mask held 0.5
+        # there, not 1 (an audit: 714 pixels of Teddy's). Now both tend to the hard masks.
+        threshold = (hard.threshold_level.to(image.dtype) + 0.5) / 255
     soft_binary = soft_threshold(image, threshold, threshold_temperature)
     if config.foreground == "dark":
         soft_binary = 1 - soft_binary

@@ -195,3 +195,18 @@ def test_a_mask_temperature_that_is_not_one_positive_number_is_named(temperature
     learned = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
     depths = soft_object_depths(images, hard, images + 1, ones, ones, zeros, learned)
     assert bool(torch.isfinite(torch.autograd.grad(depths.depth_m.sum(), learned)[0]))
+
+
+@pytest.mark.parametrize("foreground", ["bright", "dark"])
+def test_an_8_bit_image_tends_to_the_hard_masks_at_otsus_level_too(foreground):
+    """Found by an audit: the default threshold was Otsu's level / 255, where the hard stage keeps round(255 · x) >
+    level; a pixel of an 8-bit image at that level stayed at 0.5 at any temperature, and with a dark foreground
+    the kept mask held 0.5 there, not 1. Now the threshold sits halfway to the next level."""
+    image = torch.round(blobs(2, 48, 2) * 255) / 255  # on the 1/255 grid, as a loaded image is
+    config = SegmentationConfig(foreground=foreground)
+    hard = segment_images(image, config)
+    at_level = torch.round(image * 255) == hard.threshold_level.view(-1, 1, 1, 1)
+    assert int(at_level.sum()) > 0 and bool((at_level & hard.kept_mask).any()) == (foreground == "dark")
+    soft = soft_segment_images(image, config=config, threshold_temperature=1e-4, morphology_temperature=1e-4)
+    torch.testing.assert_close(soft.soft_binary, hard.binary.to(image.dtype), atol=1e-3, rtol=0)
+    torch.testing.assert_close(soft.soft_mask, hard.kept_mask.to(image.dtype), atol=1e-3, rtol=0)
