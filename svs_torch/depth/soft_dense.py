@@ -42,7 +42,9 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
         raise InputError("temperature: expected a number; no gradient flows to it (got a tensor that requires grad)")
     if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
         raise InputError(f"temperature: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
-    if not temperature > 0:
+    # A string or None raised a TypeError from the comparison, a meta tensor a RuntimeError (an audit).
+    number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
+    if not (number or isinstance(temperature, torch.Tensor) and not temperature.is_meta) or not temperature > 0:
         raise InputError(f"temperature: expected a positive number, got {temperature!r}")
     h, w = left.shape[-2:]
     check_volume_size(num_disparities, h, w)

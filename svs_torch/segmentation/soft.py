@@ -30,7 +30,10 @@ __all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegm
 def _check_temperature(temperature: float, name: str = "temperature") -> None:
     if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
         raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
-    if not temperature > 0:
+    # A number or a tensor with a value: a string or None raised a TypeError from the comparison, and a meta tensor a
+    # RuntimeError from its bool(), neither naming the argument (an audit); a bool is a flag passed in the wrong place.
+    number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
+    if not (number or isinstance(temperature, torch.Tensor) and not temperature.is_meta) or not temperature > 0:
         raise InputError(f"{name}: expected a positive temperature, got {temperature!r}")
 
 
@@ -158,6 +161,9 @@ def soft_segment_images(
         # It returned a relaxation of Otsu gated by Canny's regions: 87.5 % agreement with the hard mask.
         raise InputError(f"config.method: the soft segmentation relaxes Otsu's threshold ('otsu'), got "
                          f"{config.method!r}")
+    # By the names passed here: soft_threshold and the filters call theirs "temperature" (an audit).
+    _check_temperature(threshold_temperature, "threshold_temperature")
+    _check_temperature(morphology_temperature, "morphology_temperature")
     hard = segment_images(image, config)
     if threshold is None:
         # Halfway to the next level: the hard stage keeps round(255 · x) > level, so a pixel at Otsu's level itself

@@ -210,3 +210,23 @@ def test_an_8_bit_image_tends_to_the_hard_masks_at_otsus_level_too(foreground):
     soft = soft_segment_images(image, config=config, threshold_temperature=1e-4, morphology_temperature=1e-4)
     torch.testing.assert_close(soft.soft_binary, hard.binary.to(image.dtype), atol=1e-3, rtol=0)
     torch.testing.assert_close(soft.soft_mask, hard.kept_mask.to(image.dtype), atol=1e-3, rtol=0)
+
+
+@pytest.mark.parametrize("temperature", ["0.1", None, True, torch.tensor(0.1, device="meta")],
+                         ids=["string", "None", "bool", "meta"])
+def test_a_temperature_that_is_not_a_number_is_named(temperature):
+    """Found by an audit: a string or None temperature raised a TypeError from a comparison, and a meta tensor a
+    RuntimeError from its bool(), neither naming the argument (soft_object_depths' mask_temperature was already
+    checked so); True was taken as 1. soft_segment_images' temperatures are named as it names them."""
+    from svs_torch.depth.soft_dense import soft_block_match
+
+    image, element = torch.rand(2, 1, 8, 12), structuring_element("square", 3)
+    for call in (lambda: soft_threshold(image, torch.full((2,), 0.5), temperature),
+                 lambda: soft_dilate(image, element, temperature), lambda: soft_open(image, element, temperature)):
+        with pytest.raises(InputError, match=r"^temperature: expected a positive temperature, got "):
+            call()
+    for name in ("threshold_temperature", "morphology_temperature"):
+        with pytest.raises(InputError, match=rf"^{name}: expected a positive temperature, got "):
+            soft_segment_images(image, **{name: temperature})
+    with pytest.raises(InputError, match=r"^temperature: expected a positive number, got "):
+        soft_block_match(image, image, 0, 4, temperature)
