@@ -27,7 +27,10 @@ from .segment import SegmentationConfig, segment_images
 __all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegmentation", "soft_segment_images"]
 
 
-def _check_temperature(temperature: float, name: str = "temperature") -> None:
+def _check_temperature(temperature: float, name: str = "temperature", dtype: torch.dtype | None = None) -> None:
+    """One positive number (a 0-d tensor too), and with ``dtype`` (the smooth filters') finite in it: their
+    ``T·log(mean exp(x / T))`` was inf · 0 = NaN at every pixel for an inf temperature or one past the dtype's
+    largest number (1e39 with float32), where the threshold's sigmoid takes its limit, 0.5 (an audit)."""
     if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
         raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
     # A number or a tensor with a value: a string or None raised a TypeError from the comparison, and a meta tensor a
@@ -35,6 +38,10 @@ def _check_temperature(temperature: float, name: str = "temperature") -> None:
     number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
     if not (number or isinstance(temperature, torch.Tensor) and not temperature.is_meta) or not temperature > 0:
         raise InputError(f"{name}: expected a positive temperature, got {temperature!r}")
+    value = float(temperature.detach()) if isinstance(temperature, torch.Tensor) else temperature
+    if dtype is not None and not value <= torch.finfo(dtype).max:
+        raise InputError(f"{name}: expected a finite positive temperature (at most {torch.finfo(dtype).max:.3g} in "
+                         f"{dtype}), got {temperature!r}")
 
 
 def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: float = 0.02) -> torch.Tensor:
@@ -92,7 +99,7 @@ def _check_soft(x: torch.Tensor, element: torch.Tensor, temperature: float) -> N
     check_dtype(element, "element", "bool")
     if not bool(element.any()):
         raise InputError("element: expected at least one True offset")
-    _check_temperature(temperature)
+    _check_temperature(temperature, dtype=x.dtype)
 
 
 def soft_dilate(x: torch.Tensor, element: torch.Tensor, temperature: float = 0.05) -> torch.Tensor:
@@ -161,10 +168,10 @@ def soft_segment_images(
         # It returned a relaxation of Otsu gated by Canny's regions: 87.5 % agreement with the hard mask.
         raise InputError(f"config.method: the soft segmentation relaxes Otsu's threshold ('otsu'), got "
                          f"{config.method!r}")
+    hard = segment_images(image, config)
     # By the names passed here: soft_threshold and the filters call theirs "temperature" (an audit).
     _check_temperature(threshold_temperature, "threshold_temperature")
-    _check_temperature(morphology_temperature, "morphology_temperature")
-    hard = segment_images(image, config)
+    _check_temperature(morphology_temperature, "morphology_temperature", image.dtype)
     if threshold is None:
         # Halfway to the next level: the hard stage keeps round(255 · x) > level, so a pixel at Otsu's level itself
         # (every 8-bit image has some) stayed at 0.5 at any temperature, and a dark foreground's kept mask held 0.5

@@ -230,3 +230,17 @@ def test_a_temperature_that_is_not_a_number_is_named(temperature):
             soft_segment_images(image, **{name: temperature})
     with pytest.raises(InputError, match=r"^temperature: expected a positive number, got "):
         soft_block_match(image, image, 0, 4, temperature)
+
+
+@pytest.mark.parametrize("temperature", [float("inf"), torch.tensor(float("inf")), 1e39], ids=["inf", "tensor", "1e39"])
+def test_a_morphology_temperature_past_the_dtypes_range_is_named(temperature):
+    """Found by an audit: an inf temperature, or one past float32's largest number, gave NaN at every pixel of the
+    smooth filters (inf · log 1) in silence, where soft_threshold takes the sigmoid's limit, 0.5."""
+    image, element = torch.rand(2, 1, 8, 12), structuring_element("square", 3)
+    for op in (soft_dilate, soft_erode, soft_open):
+        with pytest.raises(InputError, match=r"^temperature: expected a finite positive temperature \(at most 3.4e\+38"):
+            op(image, element, temperature)
+    with pytest.raises(InputError, match=r"^morphology_temperature: expected a finite positive temperature"):
+        soft_segment_images(image, morphology_temperature=temperature)
+    assert bool(torch.isfinite(soft_dilate(image.double(), element, 1e39)).all())  # within float64's range
+    assert torch.equal(soft_threshold(image, torch.full((2,), 0.5), temperature), torch.full_like(image, 0.5))
