@@ -58,6 +58,8 @@ def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: fl
     check_image(image, "image")
     check_shape(threshold, "threshold", [image.shape[0]])
     check_dtype(threshold, "threshold", "float")
+    if threshold.device != image.device:  # a meta one failed in a bool() deep in check_finite, another in the sum
+        raise InputError(f"threshold: expected a tensor on the image's device {image.device}, got {threshold.device}")
     check_finite(threshold, "threshold")  # a NaN gave NaN masks in silence (any finite value is a threshold)
     _check_temperature(temperature)
     # In the image's dtype: a float64 threshold made a float32 image's mask float64 (an audit).
@@ -97,6 +99,8 @@ def _check_soft(x: torch.Tensor, element: torch.Tensor, temperature: float) -> N
     check_dtype(x, "x", "float")
     check_shape(element, "element", ["kh", "kw"])
     check_dtype(element, "element", "bool")
+    if element.is_meta:  # its offsets are read on the host (any device with values serves): a meta one failed deep
+        raise InputError("element: expected a tensor with values, got one on the meta device")
     if not bool(element.any()):
         raise InputError("element: expected at least one True offset")
     _check_temperature(temperature, dtype=x.dtype)
