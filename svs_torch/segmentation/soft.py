@@ -166,12 +166,16 @@ def soft_segment_images(
     Returns:
         :class:`SoftSegmentation`. Gradients of ``soft_mask`` and ``masked`` reach ``image`` and ``threshold``;
         which regions are kept is decided by the hard pipeline and carries no gradient. Otsu's threshold only:
-        Canny's edges (``method="canny"``) have no soft counterpart here.
+        Canny's edges (``method="canny"``) and the networks' segmenters have no soft counterpart here.
     """
     if isinstance(config, SegmentationConfig) and config.method != "otsu":
         # It returned a relaxation of Otsu gated by Canny's regions: 87.5 % agreement with the hard mask.
         raise InputError(f"config.method: the soft segmentation relaxes Otsu's threshold ('otsu'), got "
                          f"{config.method!r}")
+    if isinstance(config, SegmentationConfig) and config.segmenter != "otsu":
+        # segment_images' refusal pointed to segment_stereo, which has no soft counterpart (an audit).
+        raise InputError(f"config.segmenter: the soft segmentation relaxes the Otsu segmenter ('otsu'), got "
+                         f"{config.segmenter!r} (its soft path: estimate_obstacle_depth with differentiable=True)")
     hard = segment_images(image, config)
     # By the names passed here: soft_threshold and the filters call theirs "temperature" (an audit).
     _check_temperature(threshold_temperature, "threshold_temperature")

@@ -257,3 +257,15 @@ def test_a_threshold_or_element_on_another_device_is_named():
     for op in (soft_dilate, soft_erode, soft_open):
         with pytest.raises(InputError, match=r"^element: expected a tensor with values, got one on the meta device$"):
             op(image, structuring_element("square", 3).to("meta"))
+
+
+@pytest.mark.parametrize("segmenter", ["nearness", "learned"])
+def test_a_network_segmenter_is_refused_as_the_soft_segmentation_names_it(segmenter):
+    """Found by an audit: the pipeline's own segmentation settings (segmenter 'nearness') were refused by
+    segment_images' words, 'use segment_stereo', a hard function with no soft counterpart."""
+    import dataclasses
+
+    config = dataclasses.replace(SegmentationConfig(), segmenter=segmenter)
+    with pytest.raises(InputError, match=rf"^config.segmenter: the soft segmentation relaxes the Otsu segmenter "
+                                         rf"\('otsu'\), got '{segmenter}' \(its soft path: estimate_obstacle_depth"):
+        soft_segment_images(torch.rand(1, 1, 16, 16), config=config)
