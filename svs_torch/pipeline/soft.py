@@ -41,6 +41,7 @@ import dataclasses
 
 import torch
 
+from ..core.checks import check_dtype
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
 from ..depth.dense import working_factor, working_window
@@ -66,7 +67,9 @@ BAND_HALF_WIDTH = 0.01
 def quantize_straight_through(image: torch.Tensor) -> torch.Tensor:
     """``round(255 · image)`` (the hard stage's :func:`~svs_torch.depth.dense.quantize_levels`, the same values bit for
     bit) with the gradient of ``255 · image``: a straight-through rounding, so the costs built on it pass
-    gradients to the images."""
+    gradients to the images. ``image`` float32 or float64, as the hard stage's: a uint8 one's ``255 · image`` wrapped
+    around modulo 256 in silence (2 became 254), a bool one's was 0 / 255 (an audit)."""
+    check_dtype(image, "image", "float")
     scaled = image * 255
     return torch.round(scaled).detach() + (scaled - scaled.detach())
 

@@ -45,6 +45,18 @@ def test_quantize_straight_through_rounds_and_passes_the_gradient(generator):
     assert torch.equal(image.grad, torch.full_like(image, 255.0))
 
 
+def test_quantize_straight_through_refuses_what_the_hard_levels_refuse():
+    """Found by an audit: a uint8 image's 255 · image wrapped around modulo 256 in silence (2 became 254) and a bool
+    one became 0 / 255, where the hard stage's quantize_levels, whose values it claims bit for bit, refuses both."""
+    from svs_torch.depth.cost_volume import quantize_levels
+
+    for image in (torch.tensor([[0, 1, 2]], dtype=torch.uint8), torch.tensor([[False, True]]),
+                  torch.tensor([[3]]), torch.tensor([[0.5]], dtype=torch.float16)):
+        for quantize in (quantize_levels, quantize_straight_through):
+            with pytest.raises(InputError, match=r"^image: expected a (float|float32 or float64) tensor, got "):
+                quantize(image)
+
+
 def test_window_costs_equal_a_naive_loop_with_clamped_reads(generator):
     left = torch.rand(2, 1, 7, 11, generator=generator, dtype=torch.float64)
     right = torch.rand(2, 1, 7, 11, generator=generator, dtype=torch.float64)
