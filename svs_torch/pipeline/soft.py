@@ -11,8 +11,8 @@ continuous quantities from the images (and the segmenter's logits) given those d
    identity gradient), then the same equiangular sub-pixel fit (:func:`subpixel_disparity`). The values are
    the hard stage's, bit for bit; the gradient reaches both images through the costs. Where the hard winner
    came from a semi-globally aggregated volume (:mod:`svs_torch.depth.semi_global`), its sub-pixel fit is
-   still on the plain costs; only where the winner recovered from the value is a neighbour (a fit saturated at
-   ±0.5) is the hard value kept, straight-through.
+   still on the plain costs; where that fit's value is not the hard one (a fit saturated at ±0.5), the hard value
+   is kept, straight-through.
 2. **Row fill** of invalid pixels as the hard stage does (:func:`~svs_torch.depth.block_matching.fill_invalid_rows`,
    whose torch path is differentiable), with the hard validity as the mask; none where ``DenseConfig.fill_invalid``
    is off, as none in the hard statistics.
@@ -167,12 +167,13 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
     counts = torch.div(dense.pair_num_disparities, factor, rounding_mode="floor")
     values = hard[:, 0][pixels.unbind(1)]
     soft = _fit_at_winners(left, right, pixels, values, minimum, counts, small_w, working_window(width, config))
-    # The recomputed values equal the hard ones (bit for bit in float32) except where the winner came from an
-    # aggregated volume (DenseConfig.retry_smoothing_penalties) and its plain fit saturates at ±0.5: the winner
-    # recovered from the value may then be its neighbour, a step of about a pixel. There alone the hard value is
-    # kept, straight-through (elsewhere the recomputed value itself is returned, as before).
-    hidden = (soft.detach() - values.to(soft.dtype)).abs() > 1e-3
-    soft = torch.where(hidden, soft + (values.to(soft.dtype) - soft).detach(), soft)
+    # The recomputed values equal the hard ones (bit for bit) except where the winner came from an aggregated volume
+    # (DenseConfig.retry_smoothing_penalties) and its plain fit saturates at ±0.5: the winner recovered from the
+    # value may then be its neighbour, a step of about a pixel, or the same winner a fraction of a thousandth off.
+    # There the hard value is kept, straight-through, as hard + (soft − soft): exactly it. A tolerance of 1e-3 let
+    # the latter through, and the depths then differed from those under no_grad, which read the hard map (an audit).
+    values = values.to(soft.dtype)
+    soft = torch.where(soft.detach() != values, values + (soft - soft.detach()), soft)
     flat = hard.detach().to(soft.dtype).flatten()
     index = (pixels[:, 0] * h + pixels[:, 1]) * w + pixels[:, 2]
     small = flat.index_put((index,), soft).view(-1, 1, h, w)
