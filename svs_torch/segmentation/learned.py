@@ -270,7 +270,9 @@ def _check_mask_temperature(value: object) -> None:
     is ambiguous" and a string a TypeError, neither naming the argument (an audit)."""
     if isinstance(value, torch.Tensor) and value.numel() != 1:
         raise InputError(f"mask_temperature: expected one positive number, got a tensor of shape {tuple(value.shape)}")
-    if not (isinstance(value, (int, float, torch.Tensor)) and not isinstance(value, bool) and value > 0):
+    # A meta tensor raised a RuntimeError from its bool() (a second audit).
+    meta = isinstance(value, torch.Tensor) and value.is_meta
+    if not (isinstance(value, (int, float, torch.Tensor)) and not isinstance(value, bool) and not meta and value > 0):
         raise InputError(f"mask_temperature: expected a positive number, got {value!r}")
 
 

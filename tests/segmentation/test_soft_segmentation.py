@@ -180,11 +180,13 @@ def test_gradcheck_temperatures_given_as_tensors():
 @pytest.mark.parametrize("temperature, message", [
     (torch.tensor([1.0, 2.0]), r"^mask_temperature: expected one positive number, got a tensor of shape \(2,\)$"),
     ("1", r"^mask_temperature: expected a positive number, got '1'$"),
-    (0.0, r"^mask_temperature: expected a positive number, got 0.0$")])
+    (0.0, r"^mask_temperature: expected a positive number, got 0.0$"),
+    (torch.tensor(0.5, device="meta"), r"^mask_temperature: expected a positive number, got tensor\(\.\.\., device='meta'")])
 def test_a_mask_temperature_that_is_not_one_positive_number_is_named(temperature, message):
     """Found by an audit: soft_object_depths' mask_temperature of one per pair raised "Boolean value of Tensor with
     more than one value is ambiguous" and a string a TypeError, neither naming it (soft_threshold's and
-    soft_block_match's temperatures were already checked so); a 0-d tensor that requires grad is taken."""
+    soft_block_match's temperatures were already checked so); a 0-d tensor that requires grad is taken. A second
+    audit: a meta-device one raised a RuntimeError from its bool()."""
     from svs_torch.segmentation import segment_images
     from svs_torch.segmentation.learned import soft_object_depths
 
