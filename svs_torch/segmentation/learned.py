@@ -265,15 +265,15 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
                             torch.where(nearest_valid, nearest, 0.0), nearest_valid)
 
 
-def _check_mask_temperature(value: object) -> None:
+def _check_mask_temperature(value: object, name: str = "mask_temperature") -> None:
     """One positive number (a 0-d tensor too). A (B,) tensor raised "Boolean value of Tensor with more than one value
     is ambiguous" and a string a TypeError, neither naming the argument (an audit)."""
     if isinstance(value, torch.Tensor) and value.numel() != 1:
-        raise InputError(f"mask_temperature: expected one positive number, got a tensor of shape {tuple(value.shape)}")
+        raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(value.shape)}")
     # A meta tensor raised a RuntimeError from its bool() (a second audit).
     meta = isinstance(value, torch.Tensor) and value.is_meta
     if not (isinstance(value, (int, float, torch.Tensor)) and not isinstance(value, bool) and not meta and value > 0):
-        raise InputError(f"mask_temperature: expected a positive number, got {value!r}")
+        raise InputError(f"{name}: expected a positive number, got {value!r}")
 
 
 def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: Segmentation, num_disparities: int,
@@ -284,6 +284,8 @@ def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: S
     as both temperatures ``→ 0`` it tends to the mean winner-takes-all disparity over each hard kept region."""
     check_instance(batch, "batch", StereoBatch)
     check_instance(segmentation, "segmentation", Segmentation)
+    # By its name here: soft_block_match's refusal named its own "temperature" (an audit).
+    _check_mask_temperature(disparity_temperature, "disparity_temperature")
     disparity = soft_block_match(batch.left, batch.right, 0, num_disparities, disparity_temperature, dense)
     return soft_object_depths(logits, segmentation, disparity, batch.focal_px, batch.baseline_m, batch.doffs_px,
                               mask_temperature)

@@ -217,6 +217,16 @@ def test_soft_path_gradcheck_float64():
     assert torch.autograd.gradcheck(depths, inputs, eps=1e-6, atol=1e-5)
 
 
+@pytest.mark.parametrize("temperature", ["0.05", 0.0, torch.tensor([0.1, 0.2])], ids=["string", "zero", "per-pair"])
+def test_a_disparity_temperature_that_is_not_one_positive_number_is_named(scenes, temperature):
+    """Found by an audit: soft_nearest_depth's disparity_temperature was refused as soft_block_match's
+    'temperature', an argument its caller never passed."""
+    batch = scenes.batch
+    hard = segment_learned(batch.left, torch.ones_like(batch.left))
+    with pytest.raises(InputError, match=r"^disparity_temperature: expected (a|one) positive number, got "):
+        soft_nearest_depth(batch, torch.ones_like(batch.left), hard, 8, disparity_temperature=temperature)
+
+
 def test_soft_path_tends_to_the_hard_one_at_low_temperature(scenes):
     batch, truth = scenes.batch, obstacle_truth(scenes.batch)
     logits = truth_logits(truth.kept_mask, torch.Generator().manual_seed(1), noise=2.0)
