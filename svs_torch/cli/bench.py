@@ -93,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
         from .common import dumps_strict
 
     args.threads = checked_threads(args.threads)
-    data_dir = Path(args.data) if args.data else None
+    if args.data is not None and not args.data.strip():  # '' ran the synthetic set alone, unsaid (an audit)
+        raise InputError(f"--data: expected a folder name, got {args.data!r}")
+    data_dir = Path(args.data) if args.data is not None else None
     kind = path_kind(data_dir, "--data") if data_dir is not None else "folder"
     if kind != "folder":
         said = {"missing": "which does not exist", "file": "which is a file"}.get(kind, "a device or special file")

@@ -342,6 +342,16 @@ def test_bench_refuses_a_data_folder_without_shared_pairs(capsys, tmp_path):
     assert code == 2 and out == "" and "--data: no shared pair with ground truth in" in err
 
 
+@pytest.mark.parametrize("name", ["", " "])
+def test_bench_refuses_an_empty_data_folder_name(capsys, monkeypatch, name):
+    """``--data ''`` was read as no --data: the synthetic set ran alone, unsaid, as if the real sets were measured."""
+    from svs_torch.evaluation import benchmark
+
+    monkeypatch.setattr(benchmark, "run_benchmark", lambda *a, **k: pytest.fail("work started"))
+    code, out, err = run_cli(capsys, "bench", "--data", name, "--pairs", "2", "--repeats", "1")
+    assert code == 2 and out == "" and f"--data: expected a folder name, got {name!r}" in err
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["estimate", "TEDDY", "--figure", ""], "a file name"), (["estimate", "TEDDY", "--masks-out", " "], "a file name"),
     (["estimate", "TEDDY", "--disparity-out", ""], "a folder name"), (["eval", "TEDDY", "--db", ""], "a file name"),
