@@ -122,27 +122,42 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
 
 def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int]) -> None:
     """``--emulator-heap-m`` where the emulator's cameras see the heap: not wholly below their view (``floor_m`` high,
-    pitched ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high. Either was accepted, and
-    guide then ran with no heap to warn of."""
+    pitched ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high or behind the emulator's wall.
+    Each was accepted, and guide then ran with no heap to warn of (behind the wall: 4.5 to 48 m at 1.3 m high, not a
+    pixel of it rendered, the error's own range said 48, an audit). The bounds said are those applied: 0.78 was
+    refused as outside "0.78 to 48", the bound rounded for the message."""
     from hw.frames import WALKER_PITCH_DEG
     from ..core.camera import SVS_CAMERA
     from ..data.heap_rendering import WALKER_HEAP_HEIGHT_M, WALKER_HEAP_RADIUS_M
+    from ..data.synthetic import WALL_DEPTH_M
 
     roughness_m = 0.05  # render_obstacle_scenes's heap_roughness_m, which the emulator keeps
     focal_px = SVS_CAMERA.focal_px(size_wh[0])
-    lowest_ray = math.radians(WALKER_PITCH_DEG) + math.atan(size_wh[1] / 2 / focal_px)  # the view's bottom edge
-    # Seen once some point of its far side, x beyond its centre, rises above the view's bottom edge: its dome
-    # (heap_rendering.make_heap_field) with the rocks' greatest rise on it.
+    pitch = math.radians(WALKER_PITCH_DEG)
+    lowest_ray = pitch + math.atan(size_wh[1] / 2 / focal_px)  # the view's bottom edge
+
+    def rise_m(x_m: float) -> float:  # its dome (heap_rendering.make_heap_field) with the rocks' greatest rise on it
+        return WALKER_HEAP_HEIGHT_M * (1 - (x_m / WALKER_HEAP_RADIUS_M) ** 2) ** 0.75 + roughness_m
+
+    # Seen once some point of its far side, x beyond its centre, rises above the view's bottom edge
     def reach_needed_m(x_m: float) -> float:
-        rise_m = WALKER_HEAP_HEIGHT_M * (1 - (x_m / WALKER_HEAP_RADIUS_M) ** 2) ** 0.75 + roughness_m
-        return max(floor_m - rise_m, 0.0) / math.tan(lowest_ray) - x_m
+        return max(floor_m - rise_m(x_m), 0.0) / math.tan(lowest_ray) - x_m
+
+    # and while some point of its near side, x before its centre, lies nearer along the cameras' axis than the
+    # wall, a plane WALL_DEPTH_M along it (the pitch moves only the floor): (ahead + x)·cos p + (floor − rise)·sin p.
+    # Its dome alone: the rocks' greatest rise, at its rim, put the bound 2-4 cm past its last rendered pixel.
+    def hidden_from_m(x_m: float) -> float:
+        return (WALL_DEPTH_M - (floor_m - rise_m(x_m) + roughness_m) * math.sin(pitch)) / math.cos(pitch) - x_m
 
     nearest_m = max(min(reach_needed_m(WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)), 0.0)
-    farthest_m = WALKER_HEAP_HEIGHT_M * focal_px / 2
+    farthest_m = min(WALKER_HEAP_HEIGHT_M * focal_px / 2,
+                     max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)))
+    nearest_m, farthest_m = math.ceil(nearest_m * 100) / 100, math.floor(farthest_m * 100) / 100  # (as said)
     if not nearest_m <= heap_m <= farthest_m:
-        raise InputError(f"--emulator-heap-m: expected {nearest_m:.2f} to {farthest_m:.0f} metres, where cameras "
+        raise InputError(f"--emulator-heap-m: expected {nearest_m:.2f} to {farthest_m:.2f} metres, where cameras "
                          f"{floor_m:g} m over the floor, pitched {WALKER_PITCH_DEG:g}° down, see the heap at "
-                         f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g}")
+                         f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g} (farther, it stands behind the emulator's wall, "
+                         f"{WALL_DEPTH_M:g} m along their axis)")
 
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).

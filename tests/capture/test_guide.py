@@ -578,6 +578,38 @@ def test_guide_refuses_an_emulated_heap_out_of_view(capsys, size):
     assert heap_pixels(nearest_m + 0.02) > 0 and heap_pixels(nearest_m - 0.05) == 0
 
 
+def test_guide_refuses_an_emulated_heap_behind_the_wall(capsys):
+    """A heap behind the emulator's wall (4 m along the cameras' axis) renders not a pixel: 4.5 to 48 m ahead of
+    cameras 1.3 m high were taken, the error's own range said "0.78 to 48", and 0.78 itself was refused (the bound
+    rounded for the message). The far bound holds against the renderer's heap mask (pixels at it, none 5 cm
+    farther), and both bounds said are taken."""
+    import torch
+
+    from svs_torch.cli import main
+    from svs_torch.cli.capture import _check_heap_in_view
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    for heap in ("4.5", "48"):
+        assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--emulator-heap-m", heap, "--count", "1",
+                     "--no-speech"]) == 2
+        err = capsys.readouterr().err
+        found = re.search(rf"--emulator-heap-m: expected (\S+) to (\S+) metres, .*; got {heap} \(farther, it stands "
+                          r"behind the emulator's wall, 4 m along their axis\)", err)
+        assert found, err
+    nearest_m, farthest_m = (float(bound) for bound in found.groups())
+
+    def heap_pixels(ahead_m: float) -> int:
+        scenes = render_obstacle_scenes(torch.tensor([[2.0]]), torch.tensor([[[9.0, 0.0]]]),
+                                        torch.tensor([[[0.1, 0.1]]]), floor_height_m=1.3, camera_pitch_deg=20.0,
+                                        heaps=torch.tensor([[0.0, ahead_m, 0.45, 0.35]]),
+                                        generator=torch.Generator().manual_seed(0))
+        return int(scenes.heap_mask.sum())
+
+    assert heap_pixels(farthest_m) > 0 and heap_pixels(farthest_m + 0.05) == 0
+    for heap_m in (nearest_m, farthest_m):
+        _check_heap_in_view(heap_m, 1.3, (320, 240))  # the bounds said are the bounds applied
+
+
 def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
     """``--emulator-heap-m`` without ``--emulator-floor-m`` is refused before anything runs (a heap stands on the
     floor); with it, the emulator's track carries the heap."""
