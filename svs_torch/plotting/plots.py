@@ -45,7 +45,7 @@ class NearestTruth(NamedTuple):
     """The truly nearest obstacle of one pair, for :func:`pipeline_figure`'s title.
 
     Attributes:
-        depth_m: its true distance, metres.
+        depth_m: its true distance, metres; inf: the truth holds no obstacle in view (only a wall, say).
         kept_slot: the kept slot (column of ``result.segmentation.left.kept_labels``) whose region holds it; −1:
             no kept region does (the pipeline missed it); None: not known (only the distance was given).
     """
@@ -302,7 +302,7 @@ def _nearest_summary(result, index: int, truth: dict[int, float], true_nearest: 
     if not is_nearest:
         depth, kept_slot = true_nearest
         if kept_slot is None:
-            parts.append(f"true nearest obstacle {depth:.2f} m")
+            parts.append(f"true nearest obstacle {depth:.2f} m" if np.isfinite(depth) else "no true obstacle in view")
         else:  # #k's region holds it, whose own median (its label's) may be farther; nothing ranged: #k unranged
             where = ("was not kept" if kept_slot < 0 else f"lies in #{kept_slot + 1}, "
                      + ("not ranged nearest" if slot is not None else "which got no distance"))

@@ -151,12 +151,17 @@ def test_demo_without_a_missed_obstacle_has_no_warning(capsys, tmp_path, segment
     assert all("not kept" not in t and "nearest kept" not in t for t in figure_titles)
 
 
-def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path):
+def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path, figure_titles):
     report, text = run_demo(capsys, tmp_path, "--objects", "0")
     assert report["true_nearest"] is None
     assert "true nearest obstacle: none" in text and "warning" not in text
     # what is kept is the wall (the scene's label 0): an audit read "object 1 is true obstacle 0" beside "none"
     assert "is the background wall" in text and "true obstacle 0" not in text
+    # The figure's title as the text: the wall is the nearest kept region, not "nearest obstacle 4.00 m" (an audit)
+    assert "  nearest kept obstacle: 4.00 m" in text and len(figure_titles) == 2
+    for title in figure_titles:
+        assert title.startswith("synthetic-0: nearest kept obstacle 4.00 m, true 4.00 m") and "inf" not in title
+        assert "; no true obstacle in view;" in title
 
 
 
