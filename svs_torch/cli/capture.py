@@ -150,14 +150,19 @@ def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int])
         return (WALL_DEPTH_M - (floor_m - rise_m(x_m) + roughness_m) * math.sin(pitch)) / math.cos(pitch) - x_m
 
     nearest_m = max(min(reach_needed_m(WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)), 0.0)
-    farthest_m = min(WALKER_HEAP_HEIGHT_M * focal_px / 2,
-                     max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)))
+    two_pixels_m = WALKER_HEAP_HEIGHT_M * focal_px / 2
+    farthest_m = min(two_pixels_m, max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)))
     nearest_m, farthest_m = math.ceil(nearest_m * 100) / 100, math.floor(farthest_m * 100) / 100  # (as said)
     if not nearest_m <= heap_m <= farthest_m:
-        raise InputError(f"--emulator-heap-m: expected {nearest_m:.2f} to {farthest_m:.2f} metres, where cameras "
+        # The side and the bound it missed ("behind the wall" was said of a heap too near, or too small to see, as
+        # well). A bound of 0 is said as "more than 0": the option takes positive distances only.
+        why = "nearer, it lies below their view" if heap_m < nearest_m else (
+            "farther, it is under 2 pixels high" if farthest_m == math.floor(two_pixels_m * 100) / 100 else
+            f"farther, it stands behind the emulator's wall, {WALL_DEPTH_M:g} m along their axis")
+        lowest = f"{nearest_m:.2f}" if nearest_m > 0 else "more than 0"
+        raise InputError(f"--emulator-heap-m: expected {lowest} to {farthest_m:.2f} metres, where cameras "
                          f"{floor_m:g} m over the floor, pitched {WALKER_PITCH_DEG:g}° down, see the heap at "
-                         f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g} (farther, it stands behind the emulator's wall, "
-                         f"{WALL_DEPTH_M:g} m along their axis)")
+                         f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g} ({why})")
 
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).

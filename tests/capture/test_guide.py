@@ -563,8 +563,9 @@ def test_guide_refuses_an_emulated_heap_out_of_view(capsys, size):
                      "--count", "1", "--no-speech"]) == 2
         err = capsys.readouterr().err
         found = re.search(r"--emulator-heap-m: expected (\S+) to (\S+) metres, where cameras 1.3 m over the floor, "
-                          rf"pitched 20° down, see the heap at {size}; got {heap}", err)
-        assert found, err
+                          rf"pitched 20° down, see the heap at {size}; got {heap} \((\w+),", err)
+        # The side it missed, said (a heap too near was told it stood behind the emulator's wall).
+        assert found and found.group(3) == ("nearer" if heap == "0.5" else "farther"), err
     nearest_m = float(found.group(1))
     width, height = map(int, size.split("x"))
 
@@ -906,3 +907,17 @@ def test_guide_says_aloud_that_it_stopped_on_an_error(capsys):
                  "--timeout", "0.2", "--retries", "0", "--no-speech"]) == 1
     out, err = capsys.readouterr()
     assert out.splitlines() == [GUIDE_STOPPED] and "svs-depth guide: error: left camera" in err
+
+
+def test_the_emulated_heaps_bounds_say_which_one_a_heap_missed():
+    """The reason given with the bounds is the bound missed: below the view (too near), under 2 pixels high (a small
+    view) or behind the emulator's wall; a nearest bound of 0 is said as "more than 0" (0 itself is refused: it said
+    "expected 0.00 to ...")."""
+    from svs_torch.cli.capture import _check_heap_in_view
+
+    for floor_m, heap_m, size_wh, said in (
+            (1.3, 0.5, (320, 240), r"expected 0\.\d\d to 4\.\d\d metres.*\(nearer, it lies below their view\)"),
+            (1.3, 5.0, (320, 240), r"\(farther, it stands behind the emulator's wall, 4 m along their axis\)"),
+            (0.5, 3.9, (16, 12), r"expected more than 0 to 2\.\d\d metres.*\(farther, it is under 2 pixels high\)")):
+        with pytest.raises(InputError, match=f"^--emulator-heap-m: {said}" if said.startswith("expected") else said):
+            _check_heap_in_view(heap_m, floor_m, size_wh)
