@@ -11,7 +11,7 @@ from dataclasses import replace
 import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
-from ..core.kernels.checks import check_counts, check_image_hw, check_nonempty
+from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty
 from ..core.mask_reductions import any_along
 from . import kernels
 from .cost_volume import (_box_sum, _cost_volume, _gather_crop, check_volume_size, crop_box, prefilter_xsobel,
@@ -252,7 +252,7 @@ def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, lef
     if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
         raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
     check_volume_size(num_disparities, 1, left.shape[-1] + 2 * (num_disparities - 1) * left_right, "image row")
-    minimum = torch.as_tensor(min_disparity_px, device=left.device)
+    minimum = as_integer_tensor(min_disparity_px, "min_disparity_px", left.device)
     minimum = minimum.expand(left.shape[0]) if minimum.dim() == 0 else minimum
     check_shape(minimum, "min_disparity_px", [left.shape[0]])
     check_dtype(minimum, "min_disparity_px", "int")

@@ -367,6 +367,15 @@ def test_argument_errors():
         block_match_sad(image, image, 0, 0)
     with pytest.raises(InputError, match=r"min_disparity_px: expected \(1\)"):
         block_match_sad(image, image, torch.tensor([0, 1]), 4)
+    # Found by an audit of the differentiable API: these failed inside torch.as_tensor or a meta tensor's copy.
+    for bad, shown in (("a", "'a'"), (None, "None"), (torch.tensor([0], device="meta"), "a meta-device tensor")):
+        for match in (lambda m: block_match_sad(image, image, m, 4), lambda m: soft_block_match(image, image, m, 4, 1.0),
+                      lambda m: dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 8, dtype=torch.bool),
+                                                             DisparityRange(m, 4))):
+            with pytest.raises(InputError, match=f"^min_disparity_px: expected an int or an int tensor \\(one per "
+                                                 f"pair\\), got {shown}$"):
+                match(bad)
+    assert block_match_sad(image, image, [0], 4).min_disparity_px.tolist() == [0]  # a list of ints, as before
     with pytest.raises(InputError, match="temperature: expected a positive number"):
         soft_block_match(image, image, 0, 4, 0.0)
     with pytest.raises(InputError, match=r"mask: expected \(1, 1, 8, 8\)"):

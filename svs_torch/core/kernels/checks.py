@@ -13,8 +13,8 @@ import torch
 from ..checks import check_dtype, check_shape
 from ..errors import InputError
 
-__all__ = ["canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty", "check_number",
-           "check_positive_hw", "check_rows", "settings_table"]
+__all__ = ["as_integer_tensor", "canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty",
+           "check_number", "check_positive_hw", "check_rows", "settings_table"]
 
 
 def check_rows(tensor: torch.Tensor, name: str, rows: int | str, *tail: int | str, kinds: str = "int"
@@ -64,6 +64,18 @@ def check_counts(counts: torch.Tensor, name: str, b: int, upper: int) -> torch.T
         if not 1 <= count <= upper:
             raise InputError(f"{name}: expected values in [1, {upper}], got {count}")
     return counts
+
+
+def as_integer_tensor(value: object, name: str, device: torch.device) -> torch.Tensor:
+    """``value``, an int, a list of ints or an int tensor, as a tensor on ``device`` (the dtype is checked by the
+    caller, which names what it expects). Why: a string or None failed inside ``torch.as_tensor``, and a meta-device
+    tensor in a copy ("Cannot copy out of meta tensor"), naming no argument (an audit of the differentiable API)."""
+    if isinstance(value, torch.Tensor) and value.is_meta:
+        raise InputError(f"{name}: expected an int or an int tensor (one per pair), got a meta-device tensor")
+    try:
+        return torch.as_tensor(value, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise InputError(f"{name}: expected an int or an int tensor (one per pair), got {repr(value)[:60]}") from None
 
 
 def check_nonempty(image: torch.Tensor, name: str) -> None:
