@@ -725,17 +725,22 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     assert code == 2 and "--calibration: made at 640x480, the pair is 1280x1024" in err
 
 
+def _rig_file_and_capture(capsys, rig, tmp_path, folder: str) -> tuple[Path, Path]:
+    """The rig's calibration written to ``rig.json`` and one emulated pair captured with it into ``folder``."""
+    path = tmp_path / "rig.json"
+    write_calibration(path, rig[0])
+    out = tmp_path / folder
+    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
+                           str(out), "--calibration", str(path))
+    assert code == 0, err
+    return path, out
+
+
 def test_the_rig_capture_kept_given_in_another_layout_is_not_said_to_differ(capsys, rig, tmp_path):
     """Found by an audit: capture keeps the file it read written anew, and the warning compared bytes; the same rig's
     file with other line ends or indentation (a Windows checkout, an editor's format on save, a script's json.dump)
     given to estimate over the capture was said to be a calibration 'which differs'."""
-    calibration, _ = rig
-    path = tmp_path / "rig.json"
-    write_calibration(path, calibration)
-    out = tmp_path / "pairs"
-    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
-                           str(out), "--calibration", str(path))
-    assert code == 0, err
+    path, out = _rig_file_and_capture(capsys, rig, tmp_path, "pairs")
     compact, crlf = tmp_path / "compact.json", tmp_path / "crlf.json"
     compact.write_text(json.dumps(json.loads(path.read_text())))
     crlf.write_bytes(path.read_bytes().replace(b"\n", b"\r\n"))
@@ -922,13 +927,7 @@ def test_folders_kept_with_one_rig_in_two_layouts_are_ranged_together(capsys, ri
     captured with two rigs. They are compared by what the calibration holds; another rig is still refused."""
     import shutil
 
-    calibration, _ = rig
-    path = tmp_path / "rig.json"
-    write_calibration(path, calibration)
-    first = tmp_path / "first"
-    code, _, err = run_cli(capsys, "capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir",
-                           str(first), "--calibration", str(path))
-    assert code == 0, err
+    _, first = _rig_file_and_capture(capsys, rig, tmp_path, "first")
     second = tmp_path / "second"
     shutil.copytree(first, second)
     (second / "index.jsonl").write_text((first / "index.jsonl").read_text().replace(str(first), str(second)))
