@@ -31,7 +31,7 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     0`` it tends to the winner-takes-all disparity of those unrounded costs (without the rejections and sub-pixel
     fit), which is :func:`block_match_sad`'s at all but a few pixels (0.2–0.6 % of the valid ones on three real
     scenes at 160×120, where the rounding turns a near tie; an audit). Candidates whose right pixel leaves the image
-    gets no weight; a pixel with none at all gets ``min_disparity_px``.
+    get no weight; a pixel with none at all gets ``min_disparity_px``.
 
     Gradients flow to both images (through the pre-filter, the absolute differences and the softmax) and are
     defined wherever no difference is exactly zero (there the absolute value's gradient is taken as 0, as
