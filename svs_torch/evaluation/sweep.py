@@ -138,6 +138,8 @@ def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], si
                batch_size: int = DEFAULT_BATCH_SIZE, text: str = "") -> Sweep:
     """A sweep from pairs and configurations made in code (the same configuration twice counts once, labelled by
     every description that reached it: :func:`~.overrides.merge_labels`)."""
+    _check_list(sources, PairSource, "sources", "PairSource (read_pair_sources)")
+    _check_list(configs, SweepConfig, "configs", "SweepConfig (make_sweep_config)")
     unique: dict[str, SweepConfig] = {}
     for c in configs:
         first = unique.setdefault(c.config_id, c)
@@ -149,6 +151,33 @@ def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], si
 def _expect(condition: bool, message: str) -> None:
     if not condition:
         raise InputError(message)
+
+
+def _check_list(parts: Any, kind: type, name: str, expected: str) -> None:
+    """A sweep's pairs or configurations made in code: a folder's name given for the pairs was read letter by
+    letter, to "'str' object has no attribute 'problem'" (an audit)."""
+    bad = parts if not isinstance(parts, (list, tuple)) else next((p for p in parts if not isinstance(p, kind)), None)
+    _expect(bad is None, f"sweep: {name}: expected a list of {expected}, got {bad!r:.80}")
+
+
+def _check_run(sweep: Any, workers: Any = None, threads: Any = None) -> None:
+    """Refuse a sweep built by hand with odd values, or odd ``workers``/``threads``, by name before a store is made
+    (an audit: a batch_size of 0 failed in range() and one of -1 ran nothing and said it was done, a size of
+    (0, 120) failed in the resampler, workers=-1 in the process pool, each after the store held the run)."""
+    _expect(isinstance(sweep, Sweep), f"sweep: expected a Sweep (load_sweep, make_sweep), got {type(sweep).__name__}")
+    _check_list(sweep.sources, PairSource, "sources", "PairSource (read_pair_sources)")
+    _check_list(sweep.configs, SweepConfig, "configs", "SweepConfig (make_sweep_config)")
+    count = lambda value, least: type(value) is int and value >= least  # noqa: E731 -- (True is no count)
+    size = sweep.size_wh
+    _expect(size is None or (isinstance(size, (tuple, list)) and len(size) == 2 and all(count(n, 1) for n in size)),
+            f"sweep: size_wh: expected None or (width, height), two positive ints, got {size!r}")
+    for config in sweep.configs:  # its rows would be stored under the id of a configuration of another size
+        _expect(config.size == _size_text(size), f"sweep: configs: {config.label!r} was made for the size "
+                                                 f"{config.size}, the sweep's is {_size_text(size)}")
+    for name, value, least in (("batch_size", sweep.batch_size, 1), ("max_pixels", sweep.max_pixels, 1),
+                               ("workers", workers, 0), ("threads", threads, 1)):
+        _expect((value is None and name != "batch_size") or count(value, least),
+                f"sweep: {name}: expected an integer of at least {least}, got {value!r}")
 
 
 def _check_preset(preset: Any, source: str) -> None:
@@ -318,11 +347,11 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
         scheduler: a Dask scheduler address: run the tasks on that cluster.
         on_task: called with each finished task's result after its rows are committed (progress).
         warn: receives one-line warnings (default: stderr).
-        threads: torch threads per worker (default: ``budget // workers`` locally, the budget being the cores
-            or ``OMP_NUM_THREADS`` if fewer; 1 on Dask).
+        threads: torch threads per worker (default: the cores, or OMP_NUM_THREADS if fewer, // workers; Dask: 1).
         on_start: called once with (rows to run, rows already stored) before any task runs.
     """
     warn = warn or (lambda message: print(f"warning: {message}", file=sys.stderr))
+    _check_run(sweep, workers, threads)
     if scheduler:  # reached (with workers) before the store is made: else a bad address left a store without rows
         connect_dask(scheduler, lambda message: None).close()
     with ResultStore(db) as store:

@@ -4,6 +4,7 @@ uninterrupted run; Dask gives the same rows as the local process pool; svs-depth
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
@@ -1076,3 +1077,44 @@ def test_a_sweep_in_this_process_gives_back_the_callers_torch_threads(data_dir, 
         torch.set_num_threads(before)
     assert outcome.rows_written == 1
     assert after == before
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(batch_size=0), "sweep: batch_size: expected an integer of at least 1, got 0"),
+    (dict(batch_size=-1), "sweep: batch_size: expected an integer of at least 1, got -1"),
+    (dict(batch_size="2"), "sweep: batch_size: expected an integer of at least 1, got '2'"),
+    (dict(size_wh=(0, 120)), "sweep: size_wh: expected None or (width, height), two positive ints, got (0, 120)"),
+    (dict(size_wh=None), "sweep: configs: '(preset)' was made for the size 160x120, the sweep's is native"),
+    (dict(sources="Teddy"), "sweep: sources: expected a list of PairSource (read_pair_sources), got 'Teddy'"),
+    (dict(workers=-1), "sweep: workers: expected an integer of at least 0, got -1"),
+    (dict(threads=0), "sweep: threads: expected an integer of at least 1, got 0"),
+])
+def test_a_sweep_built_by_hand_with_odd_values_is_refused_by_name_before_a_store_is_made(data_dir, tmp_path, change,
+                                                                                          message):
+    """Found by an audit of the Python API: a Sweep built in code with a batch_size of 0 failed in range() (one of
+    -1 ran nothing and reported success), a size of (0, 120) in the resampler, workers=-1 in the process pool,
+    each after the store had been made and held the run."""
+    from svs_torch.data import read_pair_sources
+    from svs_torch.evaluation.sweep import make_sweep, make_sweep_config
+
+    sources = read_pair_sources([data_dir / "middlebury_eval3_Q" / "Teddy"])
+    sweep = make_sweep(sources, [make_sweep_config("default", {}, (160, 120))], (160, 120))
+    options = {key: change.pop(key) for key in ("workers", "threads") if key in change}
+    db = tmp_path / "odd.sqlite"
+    with pytest.raises(InputError) as error:
+        run_sweep(dataclasses.replace(sweep, **change), db, workers=options.get("workers", 0),
+                  threads=options.get("threads"))
+    assert str(error.value).startswith(message)
+    assert not db.exists()
+
+
+def test_a_sweep_made_in_code_from_a_folders_name_is_refused_by_name(data_dir):
+    """Found by an audit of the Python API: make_sweep given a folder's name for its pairs read it letter by letter,
+    to "'str' object has no attribute 'problem'"."""
+    from svs_torch.evaluation.sweep import make_sweep, make_sweep_config
+
+    config = make_sweep_config("default", {}, None)
+    with pytest.raises(InputError, match="sweep: sources: expected a list of PairSource"):
+        make_sweep(str(data_dir / "middlebury_eval3_Q"), [config], None)
+    with pytest.raises(InputError, match="sweep: configs: expected a list of SweepConfig"):
+        make_sweep([], [config.record()], None)
