@@ -78,7 +78,10 @@ def path_kind(path: str | os.PathLike, name: str) -> str:
 def check_path_given(path: str | os.PathLike, name: str, what: str = "a file name") -> None:
     """Refuse an empty (or blank) path, naming ``name`` and ``what`` was expected. Why: ``Path("")`` is the current
     folder, so an empty name (``--out "$OUT"`` with OUT unset) was reported as "the folder '.'" or "a directory".
-    Checked before the name becomes a :class:`Path`."""
+    Checked before the name becomes a :class:`Path`. A name of another type (None, a number) is refused too: it
+    was a TypeError from ``os.fspath`` naming neither the argument nor what it wanted (an audit of the API)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"{name}: expected {what} (str or os.PathLike), got {type(path).__name__}")
     if not os.fspath(path).strip():
         raise InputError(f"{name}: expected {what}, got {os.fspath(path)!r}")
 

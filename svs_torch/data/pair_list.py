@@ -339,14 +339,14 @@ def read_pair_list(path: str | Path, name: str = "pairs") -> list[PairSource]:
     return [replace(source, list_file=str(path)) for source in with_distinct_names(sources)]
 
 
-def read_pair_sources(paths: Sequence[str | Path], name: str = "path") -> list[PairSource]:
+def read_pair_sources(paths: Sequence[str | Path] | str | Path, name: str = "path") -> list[PairSource]:
     """The pairs of PATH arguments: scene folders, folders of scene folders, the shared data folder, list files
-    and ``index.jsonl`` files, in order.
+    and ``index.jsonl`` files, in order. One path alone is a list of one: its letters were read as paths, to
+    "no stereo scene in the folder /" (an audit); None, or an entry of another type, is refused by name.
 
     Raises:
-        InputError: naming ``name`` and the path, for a path that does not exist, a folder without any scene,
-            or an unreadable list.
-    """
+        InputError: naming ``name`` and the path: a path that does not exist, a folder without a scene, a bad list."""
+    paths = [paths] if isinstance(paths, (str, os.PathLike)) or paths is None else paths
     sources: list[PairSource] = []
     for given in paths:
         check_path_given(given, name, "a scene folder, a pair list or index.jsonl")  # ('' is '.': eval "$UNSET")

@@ -318,3 +318,17 @@ def test_a_capture_index_line_whose_frame_fails_to_load_is_named(tmp_path):
     assert load_pair_source(present, 500.0, 0.1).left.shape == (1, 1, 24, 32)
     with pytest.raises(InputError, match=rf"file not found: .*gone\.png \(line 2 of {index}\)$"):
         load_pair_source(missing, 500.0, 0.1)
+
+
+def test_read_pair_sources_takes_one_path_alone_and_names_a_path_of_the_wrong_type(data_dir):
+    """Found by an audit of the Python API: read_pair_sources("…/middlebury_2003_quarter") read the name letter by
+    letter, to "no stereo scene ... in the folder /"; None, or None in the list, was a TypeError from os.fspath."""
+    folder = data_dir / "middlebury_2003_quarter"
+    listed = read_pair_sources([folder])
+    assert read_pair_sources(str(folder)) == listed and read_pair_sources(folder) == listed
+    for paths in (None, [None], [folder, 3]):
+        with pytest.raises(InputError, match=r"path: expected a scene folder, a pair list or index.jsonl \(str or "
+                                             r"os.PathLike\), got (NoneType|int)"):
+            read_pair_sources(paths)
+    with pytest.raises(InputError, match=r"pairs: expected a list file name \(str or os.PathLike\), got NoneType"):
+        read_pair_list(None)
