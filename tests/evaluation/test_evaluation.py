@@ -19,9 +19,10 @@ from svs_torch.cli import main
 from svs_torch.core.checks import InputError
 from svs_torch.core.types import StereoBatch
 from svs_torch.data import load_pair_source, load_stereo_pair, read_pair_list, read_pair_sources
+from svs_torch.data.pair_list import PairSource
 from svs_torch.evaluation import (EvalSetup, PairEstimate, accuracy_pct, dense_disparity_errors, disparity_map_errors,
-                                  evaluate_block, object_truth, score_pair, sparse_disparity_errors, summarize,
-                                  with_nominal_calibration)
+                                  evaluate_block, evaluate_pairs, object_truth, score_pair, sparse_disparity_errors,
+                                  summarize, with_nominal_calibration)
 from svs_torch.evaluation.overrides import apply_overrides, config_to_dict, parse_assignment, resolve_config
 from svs_torch.geometry.lk_refinement import MatchRefinementConfig
 from svs_torch.pipeline import PipelineConfig
@@ -767,3 +768,32 @@ def test_a_scene_that_cannot_be_loaded_is_named_as_a_loaded_one(data_dir, tmp_pa
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()][:-1]
     assert [(row["name"], row["status"]) for row in rows] == [
         ("eval3/Teddy", "BAD_INPUT"), ("eval3/ArtL", "OK"), ("kitti2015/000000_10", "BAD_INPUT")]
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda sources: evaluate_block(str(sources[0].left), EvalSetup()), "sources: expected a list of PairSource"),
+    (lambda sources: evaluate_block(sources[0], EvalSetup()), "sources: expected a list of PairSource"),
+    (lambda sources: evaluate_block(sources, None), "setup: expected an EvalSetup, got NoneType"),
+    (lambda sources: evaluate_block(sources, EvalSetup(config={})),
+     "setup.config: expected a PipelineConfig, got dict"),
+    (lambda sources: evaluate_block(sources, EvalSetup(max_pixels="9")),
+     "setup.max_pixels: expected an integer of at least 1, got '9'"),
+    (lambda sources: evaluate_block(sources, EvalSetup(doffs_px=None)), "setup.doffs_px: expected a number, got None"),
+    (lambda sources: evaluate_block(sources, EvalSetup(focal_px=-5)), "setup.focal_px: expected a focal length"),
+    (lambda sources: evaluate_block(sources, EvalSetup(calibration="rig.json")),
+     "setup.calibration: expected a StereoCalibration, got str"),
+    (lambda sources: list(evaluate_pairs(sources, EvalSetup(), batch_size=-1)),
+     "batch_size: expected an integer of at least 1, got -1"),
+    (lambda sources: list(evaluate_pairs(sources, EvalSetup(), batch_size=0)),
+     "batch_size: expected an integer of at least 1, got 0"),
+])
+def test_a_bad_argument_of_the_evaluation_api_is_refused_by_name_before_any_pair_runs(data_dir, call, message):
+    """Found by an audit of the Python API: a folder's name for the pairs was an AttributeError from the loader, a
+    dict for the configuration made every pair ERROR, a batch_size of -1 evaluated nothing without a word (0 failed
+    in range()), a max_pixels or doffs_px of another type was a TypeError from deep inside, and a negative focal_px
+    made every listed pair BAD_INPUT where the command line refuses the option."""
+    folder = data_dir / "opencv_samples"
+    sources = [PairSource(str(folder / "left01.jpg"), str(folder / "right01.jpg"))]
+    with pytest.raises(InputError) as error:
+        call(sources)
+    assert str(error.value).startswith(message)
