@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError, check_instance
-from ..core.files import atomic_output, tidy_path
+from ..core.files import atomic_output, check_output_file, tidy_path
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
@@ -299,9 +299,15 @@ def _parameter_axis(axis, summaries: Sequence[dict], configs: dict[str, dict], k
 
 
 def plot_results(store: ResultStore, path: str | Path) -> Path:
-    """Write :func:`results_figure` to ``path``, under a temporary name and renamed, never half-written."""
+    """Write :func:`results_figure` to ``path`` (any image format matplotlib writes), under a temporary name and
+    renamed, never half-written. A bad ``path`` is refused by name before the figure is drawn (an audit: a folder
+    or a .txt was matplotlib's "Format '' is not supported", a missing folder a FileNotFoundError naming the
+    temporary file, None a TypeError)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     check_instance(store, "store", ResultStore)
-    path = Path(path)
+    suffixes = tuple(f".{kind}" for kind in sorted(FigureCanvasAgg.get_supported_filetypes()))
+    path = check_output_file(path, "path", suffixes, f"an image ({', '.join(suffixes)})")
     figure = results_figure(store)
     with atomic_output(path) as stream:
         figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)

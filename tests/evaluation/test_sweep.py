@@ -1118,3 +1118,21 @@ def test_a_sweep_made_in_code_from_a_folders_name_is_refused_by_name(data_dir):
         make_sweep(str(data_dir / "middlebury_eval3_Q"), [config], None)
     with pytest.raises(InputError, match="sweep: configs: expected a list of SweepConfig"):
         make_sweep([], [config.record()], None)
+
+
+def test_plot_results_refuses_a_bad_path_by_name_before_drawing(reference, tmp_path):
+    """Found by an audit of the Python API: plot_results to a folder or a .txt was matplotlib's "Format '' is not
+    supported", to a missing folder a FileNotFoundError naming its temporary file, to None a TypeError; a .jpg,
+    which matplotlib writes, is still written."""
+    from svs_torch.evaluation.report import plot_results
+    from svs_torch.evaluation.store import ResultStore
+
+    with ResultStore(reference[1], create=False) as store:
+        for path, message in [(tmp_path, "path: expected a file name, got the folder"),
+                              (tmp_path / "plot.txt", r"path: expected an image \(.*\.png.*\) file name"),
+                              (tmp_path / "none" / "plot.png", "path: folder .* does not exist"),
+                              (None, r"path: expected a file name \(str or os.PathLike\), got NoneType")]:
+            with pytest.raises(InputError, match=message):
+                plot_results(store, path)
+        assert plot_results(store, tmp_path / "plot.jpg").stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plot.jpg"]
