@@ -150,7 +150,9 @@ def load_image_pair(
     # The ranges the options and a pair list's line are held to (CALIBRATION_RANGES): focal_px=1e30 from a script
     # ranged Teddy at 3e27 m, status OK, where --focal-px 1e30 was refused.
     for name, value in (("focal_px", focal_px), ("baseline_m", baseline_m), ("doffs_px", doffs_px)):
-        if value is not None and not (number(value) and calibration_value_expected(name, value) is None):
+        # (a doffs of None is not "not given": it was float(None)'s TypeError, from load_pair_source too)
+        given = value is not None or name == "doffs_px"
+        if given and not (number(value) and calibration_value_expected(name, value) is None):
             raise InputError(f"{name}: expected {CALIBRATION_RANGES[name][2]}, got {value!r}")
     for name, path in (("left", left_path), ("right", right_path)):
         if not isinstance(path, (str, os.PathLike)):  # None or bytes: a TypeError from pathlib named neither

@@ -498,3 +498,16 @@ def test_a_loader_in_another_thread_leaves_the_callers_warning_filters_alone(tmp
         loader.join(10)
     assert caught == ["read"] and [str(w.message).split(",")[0] for w in shown] == [
         "left: a 16-bit image whose brightest level is 1000 of 65535"]
+
+
+def test_a_doffs_of_none_is_refused_by_name(data_dir):
+    """Found by an audit of the Python API: load_pair_source(source, doffs_px=None), as EvalSetup(doffs_px=None)
+    passed it, was a TypeError from float(None) deep in load_image_pair, naming neither the argument nor the pair."""
+    from svs_torch.data.pair_list import PairSource, load_pair_source
+
+    folder = data_dir / "opencv_samples"
+    source = PairSource(str(folder / "left01.jpg"), str(folder / "right01.jpg"))
+    with pytest.raises(InputError, match=r"doffs_px: expected .*, got None"):
+        load_pair_source(source, doffs_px=None)
+    with pytest.raises(InputError, match=r"doffs_px: expected .*, got None"):
+        load_image_pair(source.left, source.right, doffs_px=None)
