@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 from ..core.camera import calibration_value_expected
-from ..core.checks import InputError
+from ..core.checks import InputError, check_instance
 from ..core.files import check_path_given, display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
@@ -376,12 +376,12 @@ def load_pair_source(source: PairSource, focal_px: float | None = None, baseline
     """Load one listed pair as a B = 1 batch named ``source.name``, at its input size.
 
     A scene keeps its own calibration and ground truth; a file pair takes its listed calibration, else
-    ``focal_px`` / ``baseline_m`` / ``doffs_px`` (None: the SVS model; see
-    :func:`~svs_torch.data.load_image_pair`).
+    ``focal_px`` / ``baseline_m`` / ``doffs_px`` (None: the SVS model; :func:`~svs_torch.data.load_image_pair`).
 
     Raises:
-        InputError: the entry's ``problem``, or why its files cannot be read.
+        InputError: the entry's ``problem``, why its files cannot be read, or a ``source`` that is no PairSource.
     """
+    check_instance(source, "source", PairSource)  # a folder's name: "'str' object has no attribute 'problem'"
     if source.problem is not None:
         raise InputError(source.problem)
     if source.scene:

@@ -332,3 +332,10 @@ def test_read_pair_sources_takes_one_path_alone_and_names_a_path_of_the_wrong_ty
             read_pair_sources(paths)
     with pytest.raises(InputError, match=r"pairs: expected a list file name \(str or os.PathLike\), got NoneType"):
         read_pair_list(None)
+
+
+def test_load_pair_source_names_a_source_that_is_no_pair_source(data_dir):
+    """Found by an audit of the Python API: load_pair_source("…/Teddy") was an AttributeError ('str' object has no
+    attribute 'problem')."""
+    with pytest.raises(InputError, match="source: expected a PairSource, got str"):
+        load_pair_source(str(data_dir / "middlebury_2003_quarter" / "Teddy"))
