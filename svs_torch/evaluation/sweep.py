@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..core.camera import parse_size
+from ..core.camera import MAX_SIZE_PX, parse_size
 from ..core.checkout import code_version
 from ..core.checks import InputError
 from ..core.files import tidy_path
@@ -168,9 +168,9 @@ def _check_run(sweep: Any, workers: Any = None, threads: Any = None) -> None:
     _check_list(sweep.sources, PairSource, "sources", "PairSource (read_pair_sources)")
     _check_list(sweep.configs, SweepConfig, "configs", "SweepConfig (make_sweep_config)")
     count = lambda value, least: type(value) is int and value >= least  # noqa: E731 -- (True is no count)
-    size = sweep.size_wh
-    _expect(size is None or (isinstance(size, (tuple, list)) and len(size) == 2 and all(count(n, 1) for n in size)),
-            f"sweep: size_wh: expected None or (width, height), two positive ints, got {size!r}")
+    size, side = sweep.size_wh, lambda n: count(n, 1) and n <= MAX_SIZE_PX  # noqa: E731 -- (a file's size's bound)
+    _expect(size is None or (isinstance(size, (tuple, list)) and len(size) == 2 and all(side(n) for n in size)),
+            f"sweep: size_wh: expected None or (width, height), two ints from 1 to {MAX_SIZE_PX}, got {size!r}")
     for config in sweep.configs:  # its rows would be stored under the id of a configuration of another size
         _expect(config.size == _size_text(size), f"sweep: configs: {config.label!r} was made for the size "
                                                  f"{config.size}, the sweep's is {_size_text(size)}")
