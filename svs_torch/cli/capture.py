@@ -120,12 +120,14 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
     return size, new_pairs_folder(args.out, "--out-dir")
 
 
-def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int]) -> None:
+def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int], pitch_deg: float | None = None,
+                        option: str = "--emulator-heap-m") -> None:
     """``--emulator-heap-m`` where the emulator's cameras see the heap: not wholly below their view (``floor_m`` high,
-    pitched ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high or behind the emulator's wall.
-    Each was accepted, and guide then ran with no heap to warn of (behind the wall: 4.5 to 48 m at 1.3 m high, not a
-    pixel of it rendered, the error's own range said 48, an audit). The bounds said are those applied: 0.78 was
-    refused as outside "0.78 to 48", the bound rounded for the message."""
+    pitched ``pitch_deg``, default ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high or
+    behind the emulator's wall. Each was accepted, and guide then ran with no heap to warn of (behind the wall: 4.5
+    to 48 m at 1.3 m high, not a pixel of it rendered, the error's own range said 48, an audit). The bounds said are
+    those applied: 0.78 was refused as outside "0.78 to 48", the bound rounded for the message. ``option``: the name
+    the error gives the heap (the standalone emulator's ``--heap-ahead-m`` means the same)."""
     from hw.frames import WALKER_PITCH_DEG
     from ..core.camera import SVS_CAMERA
     from ..data.heap_rendering import WALKER_HEAP_HEIGHT_M, WALKER_HEAP_RADIUS_M
@@ -133,7 +135,8 @@ def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int])
 
     roughness_m = 0.05  # render_obstacle_scenes's heap_roughness_m, which the emulator keeps
     focal_px = SVS_CAMERA.focal_px(size_wh[0])
-    pitch = math.radians(WALKER_PITCH_DEG)
+    pitch_deg = WALKER_PITCH_DEG if pitch_deg is None else pitch_deg
+    pitch = math.radians(pitch_deg)
     lowest_ray = pitch + math.atan(size_wh[1] / 2 / focal_px)  # the view's bottom edge
 
     def rise_m(x_m: float) -> float:  # its dome (heap_rendering.make_heap_field) with the rocks' greatest rise on it
@@ -149,19 +152,25 @@ def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int])
     def hidden_from_m(x_m: float) -> float:
         return (WALL_DEPTH_M - (floor_m - rise_m(x_m) + roughness_m) * math.sin(pitch)) / math.cos(pitch) - x_m
 
+    # Pitched further down than half the view (the standalone emulator's --camera-pitch-deg 60), its top edge
+    # meets the floor too: a heap whose near rim lies past it is above the view (3 m ahead at 60° down, 1.3 m high,
+    # had no pixel). Its dome without the rocks: a ray under the top edge meets the first rise of its near rim.
+    top_ray = pitch - math.atan(size_wh[1] / 2 / focal_px)
+    above_from_m = max((floor_m - rise_m(-x_m) + roughness_m) / math.tan(top_ray) + x_m for x_m in (
+        WALKER_HEAP_RADIUS_M * i / 100 for i in range(100))) if top_ray > 0 else math.inf
     nearest_m = max(min(reach_needed_m(WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)), 0.0)
-    two_pixels_m = WALKER_HEAP_HEIGHT_M * focal_px / 2
-    farthest_m = min(two_pixels_m, max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)))
-    nearest_m, farthest_m = math.ceil(nearest_m * 100) / 100, math.floor(farthest_m * 100) / 100  # (as said)
+    farthest = {"it is under 2 pixels high": WALKER_HEAP_HEIGHT_M * focal_px / 2, "it lies above their view":
+                above_from_m, f"it stands behind the emulator's wall, {WALL_DEPTH_M:g} m along their axis":
+                max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100))}
+    far_why = min(farthest, key=farthest.get)
+    nearest_m, farthest_m = math.ceil(nearest_m * 100) / 100, math.floor(farthest[far_why] * 100) / 100  # (as said)
     if not nearest_m <= heap_m <= farthest_m:
         # The side and the bound it missed ("behind the wall" was said of a heap too near, or too small to see, as
         # well). A bound of 0 is said as "more than 0": the option takes positive distances only.
-        why = "nearer, it lies below their view" if heap_m < nearest_m else (
-            "farther, it is under 2 pixels high" if farthest_m == math.floor(two_pixels_m * 100) / 100 else
-            f"farther, it stands behind the emulator's wall, {WALL_DEPTH_M:g} m along their axis")
+        why = "nearer, it lies below their view" if heap_m < nearest_m else f"farther, {far_why}"
         lowest = f"{nearest_m:.2f}" if nearest_m > 0 else "more than 0"
-        raise InputError(f"--emulator-heap-m: expected {lowest} to {farthest_m:.2f} metres, where cameras "
-                         f"{floor_m:g} m over the floor, pitched {WALKER_PITCH_DEG:g}° down, see the heap at "
+        raise InputError(f"{option}: expected {lowest} to {farthest_m:.2f} metres, where cameras "
+                         f"{floor_m:g} m over the floor, pitched {pitch_deg:g}° down, see the heap at "
                          f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g} ({why})")
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import socket
 import time
 
@@ -1035,3 +1036,36 @@ def test_guide_refuses_the_emulator_s_scene_beside_real_boards(capsys):
     assert main(["guide", "--left", "socket://127.0.0.1:1", "--right", "socket://127.0.0.1:2", "--emulator-floor-m",
                  "1.3", "--emulator-heap-m", "1.5", "--no-speech"]) == 2
     assert "--emulator-floor-m, --emulator-heap-m: only with --emulator" in capsys.readouterr().err
+
+
+def test_emulator_refuses_a_heap_it_would_not_show(capsys):
+    """Found by an audit: ``--heap-ahead-m`` had no far bound (svs-depth's --emulator-heap-m had), so a heap behind
+    the wall (100 m at 1.3 m high) was taken and not a pixel of it rendered, unsaid; and pitched 60° down, a heap 3 m
+    ahead lay above the view. Both are usage errors now, with svs-depth's bounds at the emulator's own pitch, held
+    at 1280x1024 (the loosest size a board sends) against the renderer's heap mask."""
+    import torch
+
+    from hw.emulator_args import parse_args
+    from svs_torch.data.synthetic import render_obstacle_scenes
+
+    assert parse_args(["--floor-height-m", "1.3", "--heap-ahead-m", "1.5"], "", 1.0).heap_ahead_m == 1.5
+    for argv, why in ((["--heap-ahead-m", "100"], r"behind the emulator's wall, 4 m along their axis"),
+                      (["--camera-pitch-deg", "60", "--heap-ahead-m", "3"], "above their view")):
+        with pytest.raises(SystemExit) as stopped:
+            parse_args(["--floor-height-m", "1.3", *argv], "", 1.0)
+        err = capsys.readouterr().err
+        found = re.search(r"--heap-ahead-m: expected .+ to (\S+) metres, .* at 1280x1024; got \S+ \(farther, .*"
+                          + why, err)
+        assert stopped.value.code == 2 and found, err
+    farthest_m = float(found.group(1))
+    assert parse_args(["--floor-height-m", "1.3", "--camera-pitch-deg", "60", "--heap-ahead-m", str(farthest_m)], "",
+                      1.0).heap_ahead_m == farthest_m
+
+    def heap_pixels(ahead_m: float) -> int:
+        scenes = render_obstacle_scenes(torch.tensor([[2.0]]), torch.tensor([[[9.0, 0.0]]]),
+                                        torch.tensor([[[0.1, 0.1]]]), size_wh=(1280, 1024), floor_height_m=1.3,
+                                        camera_pitch_deg=60.0, heaps=torch.tensor([[0.0, ahead_m, 0.45, 0.35]]),
+                                        generator=torch.Generator().manual_seed(0))
+        return int(scenes.heap_mask.sum())
+
+    assert heap_pixels(farthest_m) > 0 and heap_pixels(farthest_m + 0.05) == 0
