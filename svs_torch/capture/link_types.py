@@ -4,9 +4,11 @@ receives (:class:`RawFrame`), and how it fails (:class:`CaptureError`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
 
 from ..core.camera import SVS_RESOLUTIONS
+from ..core.errors import InputError
 from .protocol import FrameHeader, max_jpeg_length
 
 __all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame"]
@@ -41,6 +43,23 @@ class LinkConfig:
     drain_max_s: float = 0.5  # ...or for at most this long
     poll_s: float = 0.02  # pyserial read timeout; deadlines are honoured to within it
     write_timeout_s: float = 1.0  # pyserial write timeout (a UART stalled by RTS/CTS)
+
+    def __post_init__(self) -> None:
+        """Each field a value the link can wait by, refused by name. Why: a reply_timeout_s of 0, -1 or NaN was taken
+        and opening said the boards did not answer 'V' "within nan s"; poll_s -1 failed inside pyserial ("Not a valid
+        timeout"); max_retries -1 "sent b'V' 0 times"; link_bytes_per_s -1 gave every frame a negative time."""
+        for item in fields(self):
+            value, name = getattr(self, item.name), item.name
+            if name == "rtscts" or (name == "link_bytes_per_s" and value is None):
+                continue
+            whole = name in ("baudrate", "max_retries", "max_reconnects")
+            number = not isinstance(value, bool) and isinstance(value, int if whole else (int, float))
+            # A wait of 0 never reads a reply, an endless one hangs on a silent board; pauses may be 0.
+            positive = name in ("baudrate", "reply_timeout_s", "transfer_slack", "poll_s", "write_timeout_s")
+            if not (number and math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                seconds = name.endswith("_s") and name != "link_bytes_per_s"
+                kind = "an integer" if whole else "a finite number of seconds" if seconds else "a finite number"
+                raise InputError(f"LinkConfig.{name}: expected {kind} {'> 0' if positive else '>= 0'}, got {value!r}")
 
     @property
     def bytes_per_s(self) -> float:

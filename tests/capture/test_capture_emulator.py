@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 import socket
@@ -1069,3 +1070,22 @@ def test_emulator_refuses_a_heap_it_would_not_show(capsys):
         return int(scenes.heap_mask.sum())
 
     assert heap_pixels(farthest_m) > 0 and heap_pixels(farthest_m + 0.05) == 0
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("reply_timeout_s", 0, "a finite number of seconds > 0"), ("reply_timeout_s", -1, "a finite number of seconds > 0"),
+    ("reply_timeout_s", math.nan, "a finite number of seconds > 0"),
+    ("reply_timeout_s", math.inf, "a finite number of seconds > 0"), ("poll_s", -1, "a finite number of seconds > 0"),
+    ("max_retries", -1, "an integer >= 0"), ("max_reconnects", 1.5, "an integer >= 0"),
+    ("link_bytes_per_s", -1, "a finite number >= 0"), ("baudrate", True, "an integer > 0"),
+    ("drain_max_s", "1", "a finite number of seconds >= 0"),
+])
+def test_link_config_refuses_a_value_it_cannot_wait_by(field, value, expected):
+    """Found by an audit of the capture API: these were taken, and opening the camera failed far from the cause
+    (the boards "did not answer 'V' within nan s", "sent b'V' 0 times", pyserial's "Not a valid timeout: -1"), or
+    an endless reply timeout would hang on a silent board. Each is refused by its field's name now; 0 stays the
+    pause it means where a pause may be none, and None the baud rate's throughput."""
+    LinkConfig(link_bytes_per_s=0, command_gap_s=0, reconnect_delay_s=0, max_retries=0, max_reconnects=0)
+    LinkConfig(link_bytes_per_s=None)
+    with pytest.raises(InputError, match=f"^LinkConfig.{field}: expected {expected}, got {value!r}"):
+        LinkConfig(**{field: value})
