@@ -24,13 +24,13 @@ from typing import Callable
 import serial
 
 from ..core.camera import SVS_RESOLUTIONS
-from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped
+from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, check_link_url
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, VersionInfo, describe_bytes, find_line,
                        find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply, parse_version_line,
                        quality_command, size_acks, size_command)
 
-__all__ = ["CameraLink", "CaptureError", "LinkConfig", "LinkStats", "RawFrame"]
+__all__ = ["CameraLink", "CaptureError", "LinkConfig", "LinkStats", "RawFrame", "check_link_url"]
 
 
 Matcher = Callable[[bytes], "tuple[bytes, int] | None"]

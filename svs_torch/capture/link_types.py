@@ -11,7 +11,32 @@ from ..core.camera import SVS_RESOLUTIONS
 from ..core.errors import InputError
 from .protocol import FrameHeader, max_jpeg_length
 
-__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame"]
+__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "check_link_url"]
+
+#: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
+LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
+
+
+def check_link_url(url: object, name: str) -> None:
+    """``url`` (named ``name`` in the error) as a link pyserial can open: a serial device path or a URL of one of
+    :data:`LINK_SCHEMES`, ``socket://`` with its host and port. Why: ``""``, ``None`` and ``socket://HOST`` failed
+    inside pyserial ("could not open port :", "Port must be configured", "'<=' not supported between 'int' and
+    'NoneType'"), and ``http://...`` as a capture error, not a bad argument."""
+    from urllib.parse import urlsplit
+
+    if not isinstance(url, str) or not url.strip():
+        raise InputError(f"{name}: expected a serial device or socket://HOST:PORT, got {url!r}")
+    if "://" not in url:
+        return  # a serial device
+    parts = urlsplit(url)
+    if parts.scheme not in LINK_SCHEMES:
+        raise InputError(f"{name}: expected a serial device or socket://HOST:PORT, got {url!r}")
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme == "socket" and not (parts.hostname and port):
+        raise InputError(f"{name}: expected socket://HOST:PORT (the left board 10001, the right 10002), got {url!r}")
 
 
 class CaptureError(RuntimeError):

@@ -23,7 +23,7 @@ from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
 from ..core.image_files import JPEG_GRAY_DECODE, damaged_jpeg, declared_size, decode_collecting
 from ..core.types import StereoBatch
-from .link import CameraLink
+from .link import CameraLink, check_link_url
 from .link_types import CaptureError, DamagedFrameError, LinkConfig, RawFrame
 from .protocol import VersionInfo, size_code_for
 
@@ -177,6 +177,8 @@ class SVSStereoCamera:
                  strict_roles: bool = False, first_index: int = 0, max_frame_gap_s: float | None = MAX_FRAME_GAP_S
                  ) -> None:
         self._size_code = size_code_for(tuple(size_wh))
+        check_link_url(left_url, "left_url")
+        check_link_url(right_url, "right_url")
         if max_frame_gap_s is not None and not (isinstance(max_frame_gap_s, (int, float)) and max_frame_gap_s > 0):
             raise InputError(f"max_frame_gap_s: expected seconds > 0 or None, got {max_frame_gap_s!r}")
         self.max_frame_gap_s = max_frame_gap_s

@@ -174,17 +174,13 @@ def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int],
                          f"{size_wh[0]}x{size_wh[1]}; got {heap_m:g} ({why})")
 
 
-#: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
-_LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
-
-
 def check_board_urls(args: argparse.Namespace) -> None:
     """``--left`` and ``--right`` as links pyserial can open, and two of them, before the camera is opened, with no
     ``--emulator-*`` option beside them. Why:
     ``socket://HOST`` without its port failed inside pyserial ("'<=' not supported between 'int' and
     'NoneType'"), ``http://...`` as a capture error (exit 1, not a bad argument), and one URL given twice as the
     link closing right after it opened."""
-    from urllib.parse import urlsplit
+    from ..capture.link_types import check_link_url
 
     if args.emulator:
         floor, heap = getattr(args, "emulator_floor_m", None), getattr(args, "emulator_heap_m", None)
@@ -200,18 +196,7 @@ def check_board_urls(args: argparse.Namespace) -> None:
     if given:
         raise InputError(f"{', '.join(given)}: only with --emulator (the boards at --left/--right send what they see)")
     for option, url in (("--left", args.left), ("--right", args.right)):
-        if "://" not in url:
-            continue  # a serial device
-        parts = urlsplit(url)
-        if parts.scheme not in _LINK_SCHEMES:
-            raise InputError(f"{option}: expected a serial device or socket://HOST:PORT, got {url!r}")
-        try:
-            port = parts.port
-        except ValueError:
-            port = None
-        if parts.scheme == "socket" and not (parts.hostname and port):
-            raise InputError(f"{option}: expected socket://HOST:PORT (the left board 10001, the right 10002), got "
-                             f"{url!r}")
+        check_link_url(url, option)
     if args.left == args.right:
         raise InputError(f"--left, --right: expected the two boards' links, got {args.left!r} for both")
 

@@ -1089,3 +1089,20 @@ def test_link_config_refuses_a_value_it_cannot_wait_by(field, value, expected):
     LinkConfig(link_bytes_per_s=None)
     with pytest.raises(InputError, match=f"^LinkConfig.{field}: expected {expected}, got {value!r}"):
         LinkConfig(**{field: value})
+
+
+@pytest.mark.parametrize("url, expected", [
+    ("", "expected a serial device or socket://HOST:PORT, got ''"),
+    (None, "expected a serial device or socket://HOST:PORT, got None"),
+    ("socket://", "expected socket://HOST:PORT (the left board 10001, the right 10002), got 'socket://'"),
+    ("socket://127.0.0.1", "expected socket://HOST:PORT"), ("http://x:1", "expected a serial device or socket://"),
+])
+def test_camera_refuses_a_url_pyserial_cannot_open(url, expected):
+    """Found by an audit of the capture API: SVSStereoCamera took these and failed opening them, inside pyserial
+    ("could not open port :", "Port must be configured before it can be used", "'<=' not supported between
+    instances of 'int' and 'NoneType'"), a CaptureError naming no argument. Refused now by the argument's name,
+    before any link opens, as capture's --left/--right were."""
+    with pytest.raises(InputError, match=f"^left_url: {re.escape(expected)}"):
+        SVSStereoCamera(url, "socket://127.0.0.1:10002")
+    with pytest.raises(InputError, match=f"^right_url: {re.escape(expected)}"):
+        SVSStereoCamera("socket://127.0.0.1:10001", url)
