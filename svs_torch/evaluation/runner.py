@@ -215,33 +215,39 @@ def run_loaded(pairs: Sequence[LoadedPair], config: PipelineConfig,
     return [next(ran) if p.batch is not None else _unrun(p) for p in pairs]
 
 
+def _expect(condition: bool, message: str) -> None:
+    if not condition:
+        raise InputError(message)
+
+
+def _check_list(parts: object, kind: type, name: str, expected: str) -> None:
+    """``parts`` a list (or tuple) of ``kind``, from a script: a folder's name given for the pairs was read letter by
+    letter, to "'str' object has no attribute 'problem'" (an audit). Shared with :mod:`.sweep`."""
+    bad = parts if not isinstance(parts, (list, tuple)) else next((p for p in parts if not isinstance(p, kind)), None)
+    _expect(bad is None, f"{name}: expected a list of {expected}, got {bad!r:.80}")
+
+
 def _check_call(sources: Sequence[PairSource], setup: EvalSetup, batch_size: int = 1) -> None:
     """Refuse a bad argument of :func:`evaluate_block` or :func:`evaluate_pairs` by name, before any pair is loaded
     (an audit of the API: a folder's name for ``sources`` was an AttributeError from the loader; a dict for the
     configuration made every pair ERROR; a ``batch_size`` of -1 evaluated nothing, without a word; a ``max_pixels``
     or ``doffs_px`` of another type was a TypeError from deep inside; a negative ``focal_px`` every pair's
     BAD_INPUT, where the command line refuses its option)."""
-    def expect(condition: bool, message: str) -> None:
-        if not condition:
-            raise InputError(message)
-
-    bad = sources if not isinstance(sources, (list, tuple)) else next(
-        (s for s in sources if not isinstance(s, PairSource)), None)
-    expect(bad is None, f"sources: expected a list of PairSource (read_pair_sources), got {bad!r:.80}")
-    expect(isinstance(setup, EvalSetup), f"setup: expected an EvalSetup, got {type(setup).__name__}")
-    expect(isinstance(setup.config, PipelineConfig),
-           f"setup.config: expected a PipelineConfig, got {type(setup.config).__name__}")
+    _check_list(sources, PairSource, "sources", "PairSource (read_pair_sources)")
+    _expect(isinstance(setup, EvalSetup), f"setup: expected an EvalSetup, got {type(setup).__name__}")
+    _expect(isinstance(setup.config, PipelineConfig),
+            f"setup.config: expected a PipelineConfig, got {type(setup.config).__name__}")
     for name, value, least in (("batch_size", batch_size, 1), ("setup.max_pixels", setup.max_pixels, 1)):
-        expect(value is None and name != "batch_size" or type(value) is int and value >= least,
-               f"{name}: expected an integer of at least {least}, got {value!r}")
+        _expect(value is None and name != "batch_size" or type(value) is int and value >= least,
+                f"{name}: expected an integer of at least {least}, got {value!r}")
     for key in ("focal_px", "baseline_m", "doffs_px"):
         value = getattr(setup, key)
         number = isinstance(value, (int, float)) and not isinstance(value, bool)
         expected = (calibration_value_expected(key, value) if number  # (doffs 0.0 is none: None is no number)
                     else "a number" if value is not None or key == "doffs_px" else None)
-        expect(expected is None, f"setup.{key}: expected {expected}, got {value!r}")
-    expect(setup.calibration is None or isinstance(setup.calibration, StereoCalibration),
-           f"setup.calibration: expected a StereoCalibration, got {type(setup.calibration).__name__}")
+        _expect(expected is None, f"setup.{key}: expected {expected}, got {value!r}")
+    _expect(setup.calibration is None or isinstance(setup.calibration, StereoCalibration),
+            f"setup.calibration: expected a StereoCalibration, got {type(setup.calibration).__name__}")
 
 
 def evaluate_block(sources: Sequence[PairSource], setup: EvalSetup) -> list[PairEvaluation]:

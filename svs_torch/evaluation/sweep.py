@@ -65,7 +65,7 @@ from .metrics import PairEvaluation
 from .overrides import (MAX_GRID_POINTS, PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid,
                         flatten_table, merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config,
                         read_toml)
-from .runner import EvalSetup, evaluate_block
+from .runner import EvalSetup, _check_list, _expect, evaluate_block
 from .store import ResultStore
 
 __all__ = ["Sweep", "SweepConfig", "SweepOutcome", "Task", "TaskResult", "code_version", "load_sweep",
@@ -138,8 +138,8 @@ def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], si
                batch_size: int = DEFAULT_BATCH_SIZE, text: str = "") -> Sweep:
     """A sweep from pairs and configurations made in code (the same configuration twice counts once, labelled by
     every description that reached it: :func:`~.overrides.merge_labels`)."""
-    _check_list(sources, PairSource, "sources", "PairSource (read_pair_sources)")
-    _check_list(configs, SweepConfig, "configs", "SweepConfig (make_sweep_config)")
+    _check_list(sources, PairSource, "sweep: sources", "PairSource (read_pair_sources)")
+    _check_list(configs, SweepConfig, "sweep: configs", "SweepConfig (make_sweep_config)")
     unique: dict[str, SweepConfig] = {}
     for c in configs:
         first = unique.setdefault(c.config_id, c)
@@ -148,25 +148,13 @@ def make_sweep(sources: Sequence[PairSource], configs: Sequence[SweepConfig], si
     return Sweep(_dedupe(sources), tuple(unique.values()), size_wh, batch_size, text)
 
 
-def _expect(condition: bool, message: str) -> None:
-    if not condition:
-        raise InputError(message)
-
-
-def _check_list(parts: Any, kind: type, name: str, expected: str) -> None:
-    """A sweep's pairs or configurations made in code: a folder's name given for the pairs was read letter by
-    letter, to "'str' object has no attribute 'problem'" (an audit)."""
-    bad = parts if not isinstance(parts, (list, tuple)) else next((p for p in parts if not isinstance(p, kind)), None)
-    _expect(bad is None, f"sweep: {name}: expected a list of {expected}, got {bad!r:.80}")
-
-
 def _check_run(sweep: Any, workers: Any = None, threads: Any = None) -> None:
     """Refuse a sweep built by hand with odd values, or odd ``workers``/``threads``, by name before a store is made
     (an audit: a batch_size of 0 failed in range() and one of -1 ran nothing and said it was done, a size of
     (0, 120) failed in the resampler, workers=-1 in the process pool, each after the store held the run)."""
     _expect(isinstance(sweep, Sweep), f"sweep: expected a Sweep (load_sweep, make_sweep), got {type(sweep).__name__}")
-    _check_list(sweep.sources, PairSource, "sources", "PairSource (read_pair_sources)")
-    _check_list(sweep.configs, SweepConfig, "configs", "SweepConfig (make_sweep_config)")
+    _check_list(sweep.sources, PairSource, "sweep: sources", "PairSource (read_pair_sources)")
+    _check_list(sweep.configs, SweepConfig, "sweep: configs", "SweepConfig (make_sweep_config)")
     count = lambda value, least: type(value) is int and value >= least  # noqa: E731 -- (True is no count)
     size, side = sweep.size_wh, lambda n: count(n, 1) and n <= MAX_SIZE_PX  # noqa: E731 -- (a file's size's bound)
     _expect(size is None or (isinstance(size, (tuple, list)) and len(size) == 2 and all(side(n) for n in size)),
