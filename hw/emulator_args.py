@@ -12,7 +12,7 @@ import math
 
 from .emulator_state import Faults
 from .frames import WALKER_PITCH_DEG
-from svs_torch.cli.capture import _check_heap_in_view
+from svs_torch.cli.capture import check_heap_in_view
 from svs_torch.cli.common import MAX_SEED, finite_float, noise_levels, non_negative_float, non_negative_int, \
     positive_float, seed_int
 from svs_torch.cli.link_options import MIN_BAUD
@@ -122,8 +122,8 @@ def _check_values(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         # svs-depth's --emulator-heap-m bounds, at this pitch: 100 m was taken and no frame showed a pixel of heap
         # (behind the wall), unsaid. At 1280x1024, the tallest and sharpest view a board sends: the loosest bounds.
         try:
-            _check_heap_in_view(args.heap_ahead_m, args.floor_height_m, (1280, 1024), args.camera_pitch_deg,
-                                "--heap-ahead-m")
+            check_heap_in_view(args.heap_ahead_m, args.floor_height_m, (1280, 1024), args.camera_pitch_deg,
+                               "--heap-ahead-m")
         except ValueError as err:  # svs_torch's InputError is a ValueError
             p.error(str(err))
     if args.floor_height_m is not None and (args.images or args.simple_frames):

@@ -42,7 +42,7 @@ from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder
 from .progress import Progress
 from .rig import add_calibration_option, calibration_from_args
 
-__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "add_parser", "new_pairs_folder", "run", "save_pair"]
+__all__ = ["CALIBRATION_NAME", "INDEX_NAME", "add_parser", "check_heap_in_view", "new_pairs_folder", "run", "save_pair"]
 
 PROG = "svs-depth capture"
 DEFAULT_BAUD = 2_304_000  # LinkConfig.baudrate (SVS_PROTOCOL.md §1); a literal so --help needs no capture import
@@ -120,8 +120,8 @@ def _check_args(args: argparse.Namespace) -> tuple[tuple[int, int], Path]:
     return size, new_pairs_folder(args.out, "--out-dir")
 
 
-def _check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int], pitch_deg: float | None = None,
-                        option: str = "--emulator-heap-m") -> None:
+def check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int], pitch_deg: float | None = None,
+                       option: str = "--emulator-heap-m") -> None:
     """``--emulator-heap-m`` where the emulator's cameras see the heap: not wholly below their view (``floor_m`` high,
     pitched ``pitch_deg``, default ``hw.frames.WALKER_PITCH_DEG``), nor so far that it is under 2 pixels high or
     behind the emulator's wall. Each was accepted, and guide then ran with no heap to warn of (behind the wall: 4.5
@@ -185,7 +185,7 @@ def check_board_urls(args: argparse.Namespace) -> None:
     if args.emulator:
         floor, heap = getattr(args, "emulator_floor_m", None), getattr(args, "emulator_heap_m", None)
         if floor is not None and heap is not None:
-            _check_heap_in_view(heap, floor, parse_size(args.size, "--size"))
+            check_heap_in_view(heap, floor, parse_size(args.size, "--size"))
         return
     # The emulator's options describe its scene; beside real boards they were accepted and did nothing.
     given = [option for option, name, unset in (("--emulator-noise", "emulator_noise", 0.0),

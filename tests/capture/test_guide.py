@@ -587,7 +587,7 @@ def test_guide_refuses_an_emulated_heap_behind_the_wall(capsys):
     import torch
 
     from svs_torch.cli import main
-    from svs_torch.cli.capture import _check_heap_in_view
+    from svs_torch.cli.capture import check_heap_in_view
     from svs_torch.data.synthetic import render_obstacle_scenes
 
     for heap in ("4.5", "48"):
@@ -608,7 +608,7 @@ def test_guide_refuses_an_emulated_heap_behind_the_wall(capsys):
 
     assert heap_pixels(farthest_m) > 0 and heap_pixels(farthest_m + 0.05) == 0
     for heap_m in (nearest_m, farthest_m):
-        _check_heap_in_view(heap_m, 1.3, (320, 240))  # the bounds said are the bounds applied
+        check_heap_in_view(heap_m, 1.3, (320, 240))  # the bounds said are the bounds applied
 
 
 def test_guide_puts_a_heap_only_on_an_emulated_floor(monkeypatch, capsys):
@@ -913,11 +913,11 @@ def test_the_emulated_heaps_bounds_say_which_one_a_heap_missed():
     """The reason given with the bounds is the bound missed: below the view (too near), under 2 pixels high (a small
     view) or behind the emulator's wall; a nearest bound of 0 is said as "more than 0" (0 itself is refused: it said
     "expected 0.00 to ...")."""
-    from svs_torch.cli.capture import _check_heap_in_view
+    from svs_torch.cli.capture import check_heap_in_view
 
     for floor_m, heap_m, size_wh, said in (
             (1.3, 0.5, (320, 240), r"expected 0\.\d\d to 4\.\d\d metres.*\(nearer, it lies below their view\)"),
             (1.3, 5.0, (320, 240), r"\(farther, it stands behind the emulator's wall, 4 m along their axis\)"),
             (0.5, 3.9, (16, 12), r"expected more than 0 to 2\.\d\d metres.*\(farther, it is under 2 pixels high\)")):
         with pytest.raises(InputError, match=f"^--emulator-heap-m: {said}" if said.startswith("expected") else said):
-            _check_heap_in_view(heap_m, floor_m, size_wh)
+            check_heap_in_view(heap_m, floor_m, size_wh)
