@@ -28,6 +28,7 @@ __all__ = [
     "check_real",
     "check_generator",
     "check_percentiles",
+    "check_positive_scalar",
     "real_or_nan",
 ]
 
@@ -188,6 +189,19 @@ def check_real(value: object, name: str, low: float = -math.inf, high: float = m
         interval = f"{opening}{low:g}, {high:g}{')' if high_open or math.isinf(high) else ']'}"
         raise InputError(f"{name}: expected a finite number in {interval}{' or None' if optional else ''}, "
                          f"got {value!r}")
+
+
+def check_positive_scalar(value: object, name: str, noun: str = "number") -> None:
+    """One positive number: an int or float (not a bool) or a one-element tensor with a value (not on the meta
+    device), e.g. a soft function's temperature. Why: a (B,) tensor raised "Boolean value of Tensor with more than
+    one value is ambiguous", a string or None a TypeError from the comparison and a meta tensor a RuntimeError from
+    its bool(), none naming the argument (audits); a bool is a flag passed in the wrong place. ``noun``: what the
+    message calls the value (``expected a positive {noun}``)."""
+    if isinstance(value, torch.Tensor) and value.numel() != 1:
+        raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(value.shape)}")
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number or isinstance(value, torch.Tensor) and not value.is_meta) or not value > 0:
+        raise InputError(f"{name}: expected a positive {noun}, got {value!r}")
 
 
 def real_or_nan(value: object) -> float:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError
+from ..core.checks import InputError, check_positive_scalar
 from .block_matching import _check_pair, _check_range
 from .cost_volume import _box_sum, _costs_in_cache, _crops, _prefilter, check_volume_size
 from .dense_config import DenseConfig
@@ -43,12 +43,7 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     minimum = _check_range(min_disparity_px, num_disparities, left, left_right=False)
     if isinstance(temperature, torch.Tensor) and temperature.requires_grad:
         raise InputError("temperature: expected a number; no gradient flows to it (got a tensor that requires grad)")
-    if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
-        raise InputError(f"temperature: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
-    # A string or None raised a TypeError from the comparison, a meta tensor a RuntimeError (an audit).
-    number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
-    if not (number or isinstance(temperature, torch.Tensor) and not temperature.is_meta) or not temperature > 0:
-        raise InputError(f"temperature: expected a positive number, got {temperature!r}")
+    check_positive_scalar(temperature, "temperature")
     h, w = left.shape[-2:]
     check_volume_size(num_disparities, h, w)
     radius = config.window_size // 2

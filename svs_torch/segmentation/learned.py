@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_positive_scalar, check_shape
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
 from ..depth.quantiles import kept_region_lower_median
@@ -242,7 +242,7 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
         check_shape(value, name, [dims["B"]])  # a (3,) calibration for 2 pairs failed deep in a broadcast
     if bool(torch.isnan(logits).any()):  # NaN logits left every object invalid in silence
         raise InputError("logits: expected numbers, got NaN")
-    _check_mask_temperature(mask_temperature)
+    check_positive_scalar(mask_temperature, "mask_temperature")
     b, n = dims["B"], segmentation.kept_labels.shape[1]
     kept = segmentation.kept_labels.view(b, n, 1, 1)
     region = (segmentation.labels == kept) & (kept > 0)  # (B, N, H, W)
@@ -265,17 +265,6 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
                             torch.where(nearest_valid, nearest, 0.0), nearest_valid)
 
 
-def _check_mask_temperature(value: object, name: str = "mask_temperature") -> None:
-    """One positive number (a 0-d tensor too). A (B,) tensor raised "Boolean value of Tensor with more than one value
-    is ambiguous" and a string a TypeError, neither naming the argument (an audit)."""
-    if isinstance(value, torch.Tensor) and value.numel() != 1:
-        raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(value.shape)}")
-    # A meta tensor raised a RuntimeError from its bool() (a second audit).
-    meta = isinstance(value, torch.Tensor) and value.is_meta
-    if not (isinstance(value, (int, float, torch.Tensor)) and not isinstance(value, bool) and not meta and value > 0):
-        raise InputError(f"{name}: expected a positive number, got {value!r}")
-
-
 def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: Segmentation, num_disparities: int,
                        mask_temperature: float = 1.0, disparity_temperature: float = 0.003,
                        dense: DenseConfig = DenseConfig()) -> SoftObjectDepths:
@@ -285,7 +274,7 @@ def soft_nearest_depth(batch: StereoBatch, logits: torch.Tensor, segmentation: S
     check_instance(batch, "batch", StereoBatch)
     check_instance(segmentation, "segmentation", Segmentation)
     # By its name here: soft_block_match's refusal named its own "temperature" (an audit).
-    _check_mask_temperature(disparity_temperature, "disparity_temperature")
+    check_positive_scalar(disparity_temperature, "disparity_temperature")
     disparity = soft_block_match(batch.left, batch.right, 0, num_disparities, disparity_temperature, dense)
     return soft_object_depths(logits, segmentation, disparity, batch.focal_px, batch.baseline_m, batch.doffs_px,
                               mask_temperature)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_finite, check_image, check_shape
+from ..core.checks import InputError, check_dtype, check_finite, check_image, check_positive_scalar, check_shape
 from ..core.types import Segmentation
 from .morphology import anchor_padding, structuring_element
 from .segment import SegmentationConfig, segment_images
@@ -28,16 +28,11 @@ __all__ = ["soft_threshold", "soft_dilate", "soft_erode", "soft_open", "SoftSegm
 
 
 def _check_temperature(temperature: float, name: str = "temperature", dtype: torch.dtype | None = None) -> None:
-    """One positive number (a 0-d tensor too), and with ``dtype`` (the smooth filters') finite in it: their
-    ``T·log(mean exp(x / T))`` was inf · 0 = NaN at every pixel for an inf temperature or one past the dtype's
-    largest number (1e39 with float32), where the threshold's sigmoid takes its limit, 0.5 (an audit)."""
-    if isinstance(temperature, torch.Tensor) and temperature.numel() != 1:  # a (B,) tensor failed in a bool()
-        raise InputError(f"{name}: expected one positive number, got a tensor of shape {tuple(temperature.shape)}")
-    # A number or a tensor with a value: a string or None raised a TypeError from the comparison, and a meta tensor a
-    # RuntimeError from its bool(), neither naming the argument (an audit); a bool is a flag passed in the wrong place.
-    number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
-    if not (number or isinstance(temperature, torch.Tensor) and not temperature.is_meta) or not temperature > 0:
-        raise InputError(f"{name}: expected a positive temperature, got {temperature!r}")
+    """One positive number (:func:`~svs_torch.core.checks.check_positive_scalar`), and with ``dtype`` (the smooth
+    filters') finite in it: their ``T·log(mean exp(x / T))`` was inf · 0 = NaN at every pixel for an inf temperature
+    or one past the dtype's largest number (1e39 with float32), where the threshold's sigmoid takes its limit, 0.5
+    (an audit)."""
+    check_positive_scalar(temperature, name, "temperature")
     value = float(temperature.detach()) if isinstance(temperature, torch.Tensor) else temperature
     if dtype is not None and not value <= torch.finfo(dtype).max:
         raise InputError(f"{name}: expected a finite positive temperature (at most {torch.finfo(dtype).max:.3g} in "
