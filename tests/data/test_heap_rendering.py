@@ -92,3 +92,48 @@ def test_heap_argument_errors(kwargs: dict, message: str) -> None:
     with pytest.raises(InputError, match=message):
         render_obstacle_scenes(torch.tensor([[2.0]]), torch.tensor([[[0.0, 0.0]]]), torch.tensor([[[0.5, 0.5]]]),
                                size_wh=SMALL, **kwargs)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_marching_only_the_rays_that_can_meet_the_heap_gives_every_rays_depth(seed):
+    """``heap_hits`` marches only the rows and columns where a ray can meet the heap (all of a 1280x1024 view took
+    12 s); over random heaps, pitches, camera heights and an empty scene it gives exactly what marching every ray
+    (``_march`` over the whole view) gives, and for the walker's heap it marches under three quarters of the view."""
+    from svs_torch.data import heap_rendering
+
+    g = torch.Generator().manual_seed(seed)
+    heaps = torch.stack([torch.rand(2, generator=g) * 2 - 1, torch.rand(2, generator=g) * 3 - 0.3,
+                         torch.rand(2, generator=g) * 0.6, torch.rand(2, generator=g) * 0.6], 1)
+    heaps[1] *= seed % 2  # odd seeds: one scene without a heap
+    field = make_heap_field(heaps, ROCKS_M, torch.Generator().manual_seed(seed))
+    (w, h), f, (cx, cy) = SMALL, 150.0, (80.0, 60.0)
+    x = torch.arange(w, dtype=torch.float32).view(1, 1, 1, w) + 0.25
+    y = torch.arange(h, dtype=torch.float32).view(1, 1, h, 1) + 0.25
+    pitch, height, camera_x = math.radians(-5 + 70 * float(torch.rand(1, generator=g))), 0.2 + 1.5 * float(
+        torch.rand(1, generator=g)), 0.1075 * (seed % 2)
+    marched = []
+    real_march = heap_rendering._march
+
+    def counting_march(across, *args):
+        marched.append(across.numel())
+        return real_march(across, *args)
+
+    hits = heap_rendering.heap_hits(x, y, camera_x, f, (cx, cy), height, pitch, field)
+    across, down = ((x - cx) / f).expand(2, 1, h, w), ((y - cy) / f).expand(2, 1, h, w)
+    toward, forward = down * math.cos(pitch) + math.sin(pitch), math.cos(pitch) - math.sin(pitch) * down
+    ahead0, side = field.origin_m[:, 1].view(-1, 1, 1, 1), field.side_m.view(-1, 1, 1, 1)
+    reachable = forward > 1e-6
+    near = torch.where(reachable, ahead0.clamp_min(0) / forward.clamp_min(1e-6), 0.0)
+    far = torch.where(reachable, (ahead0 + side).clamp_min(0) / forward.clamp_min(1e-6), 0.0)
+    every_ray = heap_rendering._march(across, toward, forward, near, far, reachable, camera_x, height, field)
+    assert torch.equal(hits.nan_to_num(posinf=-1), every_ray.nan_to_num(posinf=-1))
+
+    monkeypatched = pytest.MonkeyPatch()
+    monkeypatched.setattr(heap_rendering, "_march", counting_march)
+    try:
+        walker = make_heap_field(torch.tensor([HEAP]), ROCKS_M, torch.Generator().manual_seed(seed))
+        assert torch.isfinite(heap_rendering.heap_hits(x, y, 0.0, f, (cx, cy), HEIGHT_M, math.radians(PITCH_DEG),
+                                                       walker)).any()
+    finally:
+        monkeypatched.undo()
+    assert 0 < marched[0] < w * h * 3 / 4
