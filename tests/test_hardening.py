@@ -937,6 +937,37 @@ def test_an_image_declaring_too_many_pixels_is_refused_before_decoding(tmp_path)
         read_gray_image(path, "left")
 
 
+def _deflated_tiff(width: int, height: int, rows_per_strip: int = 100) -> bytes:
+    """A gray 8-bit TIFF of ``width`` x ``height`` zeros in strips deflated as Pillow's ``tiff_adobe_deflate``
+    writes them (which Pillow and OpenCV decode to zeros), each strip deflated once here: Pillow first fills and
+    then deflates the whole image, 4-7 s at 30000 x 30000."""
+    import struct
+    import zlib
+
+    heights = [min(rows_per_strip, height - top) for top in range(0, height, rows_per_strip)]
+    deflated = {rows: zlib.compress(bytes(width * rows)) for rows in set(heights)}
+    tags = 9
+    arrays = 8 + 2 + 12 * tags + 4  # the strips' offsets, then their byte counts, then the strips
+    counts = [len(deflated[rows]) for rows in heights]
+    offsets = [arrays + 8 * len(heights) + sum(counts[:i]) for i in range(len(heights))]
+
+    def entry(tag: int, kind: int, values: list[int], at: int = 0) -> bytes:
+        if len(values) > 1:
+            return struct.pack("<HHII", tag, kind, len(values), at)
+        return struct.pack("<HHIHH" if kind == 3 else "<HHII", tag, kind, 1, *values, *([0] if kind == 3 else []))
+
+    ifd = b"".join([entry(256, 4, [width]), entry(257, 4, [height]), entry(258, 3, [8]), entry(259, 3, [8]),
+                    entry(262, 3, [1]), entry(273, 4, offsets, arrays), entry(277, 3, [1]),
+                    entry(278, 4, [rows_per_strip]), entry(279, 4, counts, arrays + 4 * len(heights))])
+    return (b"II*\x00" + struct.pack("<IH", 8, tags) + ifd + struct.pack("<I", 0)
+            + struct.pack(f"<{2 * len(heights)}I", *offsets, *counts) + b"".join(deflated[rows] for rows in heights))
+
+
+#: The WebP Pillow writes for ``Image.new("L", (9000, 9000)).save(path, lossless=True, method=0)``, which Pillow
+#: decodes to 9000 x 9000 zeros; its encoding takes 2 s (the image is converted to RGBA first).
+WEBP_9000_ZEROS = bytes.fromhex("524946461a000000574542505650384c0e0000002f27e3c908071011fd0f4444ff03")
+
+
 @pytest.mark.parametrize("kind", ["tiff", "webp", "bmp", "jpeg-with-profile"])
 def test_any_format_declaring_too_many_pixels_is_refused_before_decoding(tmp_path, kind):
     """Was (an audit of hostile images): only PNG and JPEG headers were read, and a JPEG's only in its first
@@ -947,11 +978,17 @@ def test_any_format_declaring_too_many_pixels_is_refused_before_decoding(tmp_pat
 
     path = tmp_path / f"big.{kind.split('-')[0]}"
     if kind == "tiff":
-        Image.new("L", (30000, 30000)).save(path, compression="tiff_adobe_deflate")
+        path.write_bytes(_deflated_tiff(30000, 30000))
         declared = "900,000,000"
+        small = tmp_path / "small.tiff"  # the same file at 300 x 250 is an image of zeros
+        small.write_bytes(_deflated_tiff(300, 250))
+        assert torch.equal(read_gray_image(small, "left"), torch.zeros(1, 1, 250, 300))
+    elif kind == "webp":
+        path.write_bytes(WEBP_9000_ZEROS)
+        declared = "9000x9000"
     else:
-        Image.new("L", (9000, 9000)).save(path, **({"lossless": True} if kind == "webp" else {}),
-                                          **({"icc_profile": bytes(70000), "quality": 5} if "profile" in kind else {}))
+        Image.new("L", (9000, 9000)).save(path, **({"icc_profile": bytes(70000), "quality": 5} if "profile" in kind
+                                                    else {}))
         declared = "9000x9000"
     with pytest.raises(InputError, match=f"left: the file declares {declared} pixels, more than the 64 megapixels"):
         read_gray_image(path, "left")
