@@ -20,16 +20,24 @@ pipeline and that the pipeline never imports.
 May import: ``svs_torch.core``, the stages' public names, the pipeline and ``data``. Only the CLI and the
 experiments import it.
 
-Only :mod:`.metrics`, :mod:`.stereo_metrics`, :mod:`.disparity_errors` and :mod:`.runner` are imported here; the
-others load when named.
+Every name here is imported from its submodule on first use (PEP 562), as ``svs_torch.capture``'s are: a submodule
+that needs no torch (:mod:`.store_access`) loads without it, e.g. in a process that only holds a store's
+configurations.
 """
 
-from .disparity_errors import DisparityErrors, dense_disparity_errors, disparity_map_errors, sparse_disparity_errors
-from .metrics import (NOMINAL_BASELINE_M, NOMINAL_FOCAL_PX, ObjectTruth, PairEstimate, PairEvaluation, PairScore,
-                      accuracy_pct, estimates_from_result, evaluate_result, measured_regions, object_truth,
-                      score_pair, truth_list, with_nominal_calibration)
-from .runner import EvalSetup, evaluate_block, evaluate_pairs, summarize
-from .stereo_metrics import STEREO_SCOPES, StereoMetrics, dense_map_metrics, measure_stereo_metrics, object_map_metrics
+from ..core.lazy_names import lazy_names
+
+_SUBMODULE = {
+    **dict.fromkeys(("DisparityErrors", "dense_disparity_errors", "disparity_map_errors", "sparse_disparity_errors"),
+                    "disparity_errors"),
+    **dict.fromkeys(("NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "ObjectTruth", "PairEstimate", "PairEvaluation",
+                     "PairScore", "accuracy_pct", "estimates_from_result", "evaluate_result", "measured_regions",
+                     "object_truth", "score_pair", "truth_list", "with_nominal_calibration"), "metrics"),
+    **dict.fromkeys(("EvalSetup", "evaluate_block", "evaluate_pairs", "summarize"), "runner"),
+    **dict.fromkeys(("STEREO_SCOPES", "StereoMetrics", "dense_map_metrics", "measure_stereo_metrics",
+                     "object_map_metrics"), "stereo_metrics"),
+}
+__getattr__, __dir__ = lazy_names(__name__, _SUBMODULE)
 
 __all__ = [
     "NOMINAL_BASELINE_M", "NOMINAL_FOCAL_PX", "DisparityErrors", "EvalSetup", "ObjectTruth", "PairEstimate",

@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import IO
 
-from ..core.checks import InputError
+from ..core.errors import InputError
 
 __all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error",
            "sweep_is_writing", "unreadable_beside_writer"]
