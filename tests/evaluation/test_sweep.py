@@ -428,7 +428,7 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
     sweep_file.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "160x120"\n'
                           '[[configs]]\n[[configs]]\nmax_ratio = 0.7\n[[configs]]\npreset = "paper"\n')
     store = tmp_path / "s.sqlite"
-    assert main(["sweep", str(sweep_file), "--db", str(store)]) == 0
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 0
     capsys.readouterr()
     assert main(["results", str(store), "--csv", "-"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
@@ -441,7 +441,7 @@ def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, caps
     from svs_torch.evaluation.store import ResultStore
 
     sweep_file.write_text(f'paths = ["{data_dir / "middlebury_eval3_Q" / "Teddy"}"]\nsize = "128x96"\n')
-    assert main(["sweep", str(sweep_file), "--db", str(store)]) == 0
+    assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 0
     with ResultStore(store, create=False) as opened:
         figure = results_figure(opened)
     panels = {axis.get_xlabel(): [tick.get_text() for tick in axis.get_xticklabels()] for axis in figure.axes}
