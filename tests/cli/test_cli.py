@@ -741,7 +741,7 @@ def test_command_keeps_numpy_blas_to_one_thread_unless_asked(data_dir):
     code = ("import os, sys\n"
             "from svs_torch.cli import main\n"
             "assert 'numpy' not in sys.modules  # the setting comes before numpy's import\n"
-            f"assert main(['segment', {left!r}, {right!r}, '--json']) == 0\n"
+            f"assert main(['segment', {left!r}, {right!r}, '--size', '160x120', '--json']) == 0\n"
             "assert 'numpy' in sys.modules\n"
             "print(os.environ['OPENBLAS_NUM_THREADS'])\n")
     env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
