@@ -16,7 +16,7 @@ warped by K·R·K⁻¹, and its calibration is what ``cv2.stereoRectify`` makes 
 object's distance on the perfect rig, on the raw pairs by the uncalibrated path (the paper's), and on the raw pairs
 rectified by the calibration (what ``--calibration`` runs), against the truth.
 
-    python experiments/calibrated_rectify.py [--data DIR] [--scenes 8] [--json out.json]
+    python experiments/calibrated_rectify.py [--data DIR] [--scenes 8] [--limit N] [--json out.json]
 """
 
 from __future__ import annotations
@@ -39,18 +39,21 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int, finite_float  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 BOARD, SQUARE_M = (9, 6), 0.025
 
 
-def measure(data: Path) -> dict:
+def measure(data: Path, limit: int | None = None) -> dict:
+    """The calibration of all the chessboard pairs, and the first ``limit`` of them (None: all) ranged under each
+    setting."""
     lefts = sorted((data / "opencv_samples").glob("left*.jpg"))
     rights = [left.with_name(left.name.replace("left", "right")) for left in lefts]
     pairs = [(str(left), cv2.imread(str(left), 0), cv2.imread(str(right), 0)) for left, right in zip(lefts, rights)]
     views = collect_board_views(pairs, BOARD)
     rig = calibrate_stereo_rig(views, SQUARE_M, BOARD, "experiment")
     corners_left, corners_right = rectified_corners(rig, views)
+    lefts, rights = lefts[:limit], rights[:limit]
     batch = collate_stereo_batches([rectify_with_calibration(load_image_pair(left, right), rig)
                                     for left, right in zip(lefts, rights)])
     out = {"rms_stereo_px": rig.rms_stereo_px, "row_error_mean_px": rig.row_error_mean_px, "settings": {}}
@@ -124,9 +127,11 @@ def main() -> None:
     parser.add_argument("--turn-deg", type=finite_float, nargs=3, default=(1.5, 0.7, -0.5),
                         metavar=("ROLL", "TILT", "PAN"),
                         help="the loose rig's right camera turn, degrees")
+    parser.add_argument("--limit", type=scene_limit,
+                        help="range only the first N chessboard pairs (0: all); the calibration uses them all")
     parser.add_argument("--json", type=output_path, help="write the rows here")
     args = parser.parse_args()
-    out = measure(Path(args.data))
+    out = measure(Path(args.data), args.limit)
     print(f"calibration: RMS stereo {out['rms_stereo_px']:.3f} px, rectified row error "
           f"{out['row_error_mean_px']:.3f} px")
     for mode, rows in out["settings"].items():
