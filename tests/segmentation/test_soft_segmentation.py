@@ -38,8 +38,10 @@ def test_gradcheck_morphology_with_asymmetric_element(op):
 
 
 def test_gradcheck_soft_segmentation_through_kept_regions():
-    image = blobs(2, 16, 2)
-    image[:, :, 4:12, 4:12] += 0.5  # a bright square that the hard stage keeps
+    # 12 x 12, not 16 x 16: gradcheck runs the whole segmentation twice per input pixel (7.5 s at 16 x 16); the
+    # square is kept and the rest left out as before.
+    image = blobs(2, 12, 2)
+    image[:, :, 3:9, 3:9] += 0.5  # a bright square that the hard stage keeps
     image = (0.95 * image / image.amax()).requires_grad_()
     threshold = torch.tensor([0.5, 0.5], dtype=torch.float64, requires_grad=True)
     config = SegmentationConfig(kernel_size=3)
@@ -52,6 +54,7 @@ def test_gradcheck_soft_segmentation_through_kept_regions():
     result.masked.sum().backward()
     assert image.grad.abs().sum() > 0 and threshold.grad.abs().sum() > 0
     assert torch.all(result.soft_mask[~result.hard.kept_mask] == 0)
+    assert result.hard.kept_mask[:, :, 3:9, 3:9].all() and result.hard.kept_mask.sum() == 2 * 6 * 6
 
 
 def test_small_temperature_gives_the_hard_stage():
