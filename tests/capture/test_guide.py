@@ -209,9 +209,12 @@ def test_a_repeated_message_still_being_said_is_not_cut_off(tmp_path):
     """The same message again while it is still spoken lets it finish (a --repeat-s shorter than the sentence had
     restarted it mid-word each time); a different one interrupts it at once; after it ends, a repeat is said."""
     record = tmp_path / "spoken.txt"
-    fake = tmp_path / "slow-espeak"  # speaks for 2 s, writing what it started
+    # Speaks the first message for 2 s (it must still be speaking when it is said again), the other for 0.2 s (its
+    # end is waited for twice, before it is said again and at close: 2 s each made the test 4 s), writing what it
+    # started.
+    fake = tmp_path / "slow-espeak"
     fake.write_text(f"#!{sys.executable}\nimport sys, time\nopen({str(record)!r}, 'a').write(sys.argv[-1] + '\\n')\n"
-                    "time.sleep(2)\n")
+                    "time.sleep(2 if sys.argv[-1].startswith('Obstacle ahead') else 0.2)\n")
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
     def started(count: int) -> None:  # the fake has begun its count-th sentence
         deadline = time.monotonic() + 20
