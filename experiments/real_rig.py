@@ -422,7 +422,20 @@ def scene_splits(data_dir: Path, names: list[str], limit: int | None = None
     if unknown:
         raise InputError(f"--splits: expected held-out, tuned, synthetic, synthetic-wall, synthetic-plain, "
                          f"synthetic-border or synthetic-slant, got {', '.join(unknown)}")
-    return {name: (rendered[name]() if name in rendered else shared[name])[:limit] for name in names}
+    return {name: (_rendered_once(name, rendered[name]) if name in rendered else shared[name])[:limit]
+            for name in names}
+
+
+_RENDERED: dict[str, list[StereoBatch]] = {}
+
+
+def _rendered_once(name: str, render) -> list[StereoBatch]:
+    """The rendered split ``name``'s pairs, rendered once a process: seeded, they are the same every call, and the
+    runs only read them. :func:`main` called again in one process (select_nearness_setting.py once a setting and a
+    contrast, the tests) rendered all 16 pairs each time, about a second, for a ``--limit`` of one or two."""
+    if name not in _RENDERED:
+        _RENDERED[name] = render()
+    return _RENDERED[name]
 
 
 def run(splits: dict[str, list[Path | StereoBatch]], sizes: list[str], config: PipelineConfig, rival: bool = True,
