@@ -187,11 +187,11 @@ def test_region_centroids_follow_the_image_dtype(data_dir, segmenter):
     batch, _, _ = stereo_batch(data_dir, (160, 120))
     config = SegmentationConfig(segmenter=segmenter)
     batch64 = dataclasses.replace(batch, left=batch.left.double(), right=batch.right.double())
+    found = []  # each batch segmented once (the learned segmenter in float64: a second each)
     for source, dtype in ((batch, torch.float32), (batch64, torch.float64)):
-        ours = segment_stereo(source, config)
-        assert ours.left.regions.centroid_xy.dtype == ours.right.regions.centroid_xy.dtype == dtype
-    reference = segment_stereo(batch, config).left.regions
-    centroids = segment_stereo(batch64, config).left.regions.centroid_xy
+        found.append(segment_stereo(source, config))
+        assert found[-1].left.regions.centroid_xy.dtype == found[-1].right.regions.centroid_xy.dtype == dtype
+    reference, centroids = found[0].left.regions, found[1].left.regions.centroid_xy
     if segmenter == "otsu":
         torch.testing.assert_close(centroids, reference.centroid_xy.double())
     default = torch.get_default_dtype()
