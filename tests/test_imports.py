@@ -30,6 +30,20 @@ def test_a_device_command_refuses_bad_arguments_without_loading_torch():
     assert capture.SVSStereoCamera.__module__ == "svs_torch.capture.stereo"
 
 
+def test_estimate_says_a_pair_list_it_cannot_read_without_loading_torch(tmp_path):
+    """Found by an audit: 'estimate --pairs missing.txt' loaded the pipeline (2.5 s) before saying the list was not
+    there (a list that cannot be read gave no lines to choose workers by, so it took the in-process path); a folder
+    of scenes or a device likewise. Said at once now, as the list's reading says it."""
+    code = ("import sys; from svs_torch.cli import main\n"
+            f"assert main(['estimate', '--pairs', {str(tmp_path / 'missing.txt')!r}]) == 2\n"
+            "assert main(['estimate', '--pairs', '/dev/null']) == 2\n"
+            "print('TORCH', 'torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout
+    assert f"--pairs: expected a list file, got no file: {tmp_path / 'missing.txt'}" in run.stderr
+    assert "--pairs: expected a list file, got a special file: /dev/null" in run.stderr
+
+
 def test_public_names_load_on_first_use():
     import svs_torch
     from svs_torch.core.checks import InputError

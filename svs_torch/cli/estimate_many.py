@@ -278,8 +278,13 @@ def _ordered_chunks(executor, args: argparse.Namespace, total: int, decoded: dic
 def _run_many(args: argparse.Namespace) -> int:
     """Every listed pair gets exactly one line, in list order; exit 2 (after all lines) if any was BAD_INPUT.
     With more than one worker the batches run in worker processes and this process only prints."""
+    import os
+
+    from ..core.files import check_list_file
     from ..core.workers import imports_without_collection, thread_budget
 
+    if not os.path.isdir(args.pairs):  # a list that is not there is said at once, not after the pipeline's imports
+        check_list_file(args.pairs, "--pairs")
     take_kept_calibration(args, calibration_kept_beside(args, [args.pairs]), "estimate")  # (one list: one folder)
     budget = thread_budget()
     listed = _listed_lines(args.pairs)

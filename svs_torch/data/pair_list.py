@@ -36,7 +36,7 @@ import torch
 
 from ..core.camera import calibration_value_expected
 from ..core.checks import InputError, check_instance
-from ..core.files import check_path_given, display_path, path_kind, split_list_line
+from ..core.files import check_list_file, check_path_given, path_kind, split_list_line
 from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
                        list_shared_pairs, load_image_pair, load_stereo_pair, scene_name, unreadable_reason,
@@ -226,10 +226,7 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
 
 
 def _read_text(path: Path, name: str) -> str:
-    kind = path_kind(path, name)
-    if kind != "file":
-        got = {"folder": "a folder", "missing": "no file"}.get(kind, "a special file")
-        raise InputError(f"{name}: expected a list file, got {got}: {display_path(path)}")
+    check_list_file(path, name)
     try:
         return path.read_bytes().decode("utf-8-sig")  # "-sig": a Windows editor's byte-order mark is not text
     except UnicodeDecodeError:
