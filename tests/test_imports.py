@@ -44,6 +44,16 @@ def test_estimate_says_a_pair_list_it_cannot_read_without_loading_torch(tmp_path
     assert "--pairs: expected a list file, got a special file: /dev/null" in run.stderr
 
 
+def test_guide_says_a_missing_board_url_without_loading_torch():
+    """Found by an audit: 'guide --left ""' (a URL left out by a script) loaded the pipeline (2.5 s) before saying
+    that both board URLs are needed; as capture, it says so at once now."""
+    code = ("import sys; from svs_torch.cli import main\n"
+            "assert main(['guide', '--left', '', '--right', 'socket://board:10001', '--no-speech']) == 2\n"
+            "print('TORCH', 'torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout and "--left, --right: give both board URLs, or --emulator" in run.stderr
+
+
 def test_public_names_load_on_first_use():
     import svs_torch
     from svs_torch.core.checks import InputError

@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
+        size = _checked_size(args)  # first: a missing board URL was said after torch's import (2.5 s)
         from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
         from ..capture.link_types import CaptureError
         from .pairs_folder import new_pairs_folder
@@ -234,7 +235,6 @@ def run(args: argparse.Namespace) -> int:
         from .guide_loop import GuideSession
         from .guide_warm_up import import_deferred_modules, warm_up
 
-        size = _checked_size(args)
         record_dir = None if args.record is None else new_pairs_folder(args.record, "--record")
         ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
         import_deferred_modules()
@@ -344,7 +344,7 @@ def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
     """The SVS frame size of ``--size``, after checking it and the other options before the camera opens."""
     from ..capture.protocol import size_code_for
     from ..core.camera import parse_size
-    from ..core.checks import InputError
+    from ..core.errors import InputError
 
     size = parse_size(args.size, "--size")
     try:
