@@ -156,12 +156,13 @@ def check_heap_in_view(heap_m: float, floor_m: float, size_wh: tuple[int, int], 
     # meets the floor too: a heap whose near rim lies past it is above the view (3 m ahead at 60° down, 1.3 m high,
     # had no pixel). Its dome without the rocks: a ray under the top edge meets the first rise of its near rim.
     top_ray = pitch - math.atan(size_wh[1] / 2 / focal_px)
-    above_from_m = max((floor_m - rise_m(-x_m) + roughness_m) / math.tan(top_ray) + x_m for x_m in (
-        WALKER_HEAP_RADIUS_M * i / 100 for i in range(100))) if top_ray > 0 else math.inf
-    nearest_m = max(min(reach_needed_m(WALKER_HEAP_RADIUS_M * i / 100) for i in range(100)), 0.0)
+    offsets_m = [WALKER_HEAP_RADIUS_M * i / 100 for i in range(100)]  # from its centre towards its rim
+    above_from_m = max((floor_m - rise_m(-x_m) + roughness_m) / math.tan(top_ray) + x_m for x_m in offsets_m) \
+        if top_ray > 0 else math.inf
+    nearest_m = max(min(reach_needed_m(x_m) for x_m in offsets_m), 0.0)
     farthest = {"it is under 2 pixels high": WALKER_HEAP_HEIGHT_M * focal_px / 2, "it lies above their view":
                 above_from_m, f"it stands behind the emulator's wall, {WALL_DEPTH_M:g} m along their axis":
-                max(hidden_from_m(-WALKER_HEAP_RADIUS_M * i / 100) for i in range(100))}
+                max(hidden_from_m(-x_m) for x_m in offsets_m)}
     far_why = min(farthest, key=farthest.get)
     nearest_m, farthest_m = math.ceil(nearest_m * 100) / 100, math.floor(farthest[far_why] * 100) / 100  # (as said)
     if not nearest_m <= heap_m <= farthest_m:
