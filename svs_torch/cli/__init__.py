@@ -123,6 +123,19 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: prints ``svs-depth <version>`` and exits. The version is looked up only when asked: reading
+    the installed package's metadata took 3 ms, a fifth of building the whole parser, on every command run."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show program's version number and exit"):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser._print_message(f"{parser.prog} {_version()}\n", sys.stdout)
+        parser.exit()
+
+
 def build_parser() -> OneLineParser:
     """The ``svs-depth`` argument parser with every subcommand (each parsed namespace's ``func`` runs it); for
     scripts and tests that parse a command line without running it."""
@@ -132,7 +145,7 @@ def build_parser() -> OneLineParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in (demo, estimate, segment, features, fundamental, calibrate, capture, guide, bench, evaluate,
                    sweep, results):
