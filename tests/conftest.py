@@ -18,6 +18,24 @@ def find_shared_data() -> Path | None:
     return path if (path / "MANIFEST.md").is_file() else None
 
 
+def pytest_sessionstart(session) -> None:
+    """Compile ``svs_torch``, ``hw`` and ``experiments`` to bytecode once, before the tests start their child
+    processes (command lines, worker pools, experiments): where ``PYTHONDONTWRITEBYTECODE`` is set (as on the CI
+    machine), each child compiled the modules it imports from source again, up to 0.85 s a child, about 20 s of the
+    suite. The files go where Python puts them (``__pycache__``, which git ignores); a read-only install is left
+    as it is."""
+    import compileall
+    import importlib.util
+
+    folders = [REPO_ROOT / "experiments"]
+    for package in ("svs_torch", "hw"):
+        spec = importlib.util.find_spec(package)
+        folders += [Path(folder) for folder in (spec.submodule_search_locations or [])] if spec else []
+    for folder in folders:
+        if folder.is_dir() and os.access(folder, os.W_OK):
+            compileall.compile_dir(folder, quiet=2)
+
+
 def pytest_report_header(config) -> str:
     """Which shared data the run reads, first thing: a clone outside the workspace skipped its real-data tests with a
     line per test at the end only (found by a newcomer's run)."""
