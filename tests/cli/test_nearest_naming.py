@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -62,6 +63,19 @@ def figure_titles(monkeypatch) -> list[str]:
     return titles
 
 
+@pytest.fixture
+def undrawn_figures(monkeypatch) -> None:
+    """The demo's figures built (their titles are what these tests read) but not drawn: drawing one is most of a
+    demo's time (0.45 s of 0.6), and its pixels are checked by test_cli's demo test, not here. The tests of
+    pipeline_figure itself draw with ``render`` as imported."""
+
+    def undrawn(figure) -> np.ndarray:
+        assert figure._suptitle is not None  # a figure pipeline_figure made, as render would have drawn
+        return np.zeros((240, 320, 3), np.uint8)
+
+    monkeypatch.setattr(svs_torch.plotting.plots, "render", undrawn)
+
+
 def run_demo(capsys, tmp_path, *argv: str) -> tuple[dict, str]:
     """The demo's JSON report and its text for the same scene."""
     figure = str(tmp_path / "demo.png")
@@ -100,6 +114,7 @@ def check_consistent(report: dict, text: str) -> dict:
     return nearest
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_reports_the_true_nearest_and_whether_it_was_kept(capsys, tmp_path, segmenter, figure_titles):
     report, text = run_demo(capsys, tmp_path, *MISSED_SCENE)
     nearest = check_consistent(report, text)
@@ -117,6 +132,7 @@ def test_demo_reports_the_true_nearest_and_whether_it_was_kept(capsys, tmp_path,
             assert ("the nearest obstacle, true 1.00 m, was not kept" in title) == (not nearest["kept"])
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_says_a_nearest_obstacle_merged_into_a_larger_region_was_kept(capsys, tmp_path):
     """Found by an audit: at 160x120 the default keeps one region over all three obstacles of ``--objects 3 --seed
     3``, whose pixels are mostly the second's; the nearest (1.00 m) lies wholly inside it, yet the demo said "was not
@@ -130,6 +146,7 @@ def test_demo_says_a_nearest_obstacle_merged_into_a_larger_region_was_kept(capsy
     assert "true nearest obstacle: true obstacle 1 at 1.00 m, kept as object 1" in text
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_keeps_the_nearest_and_the_paper_preset_misses_it(capsys, tmp_path):
     """The README's example: by default the narrow nearest obstacle of ``--objects 4 --seed 3`` is kept and ranged
     nearest; the paper's preset (Otsu's two largest regions) misses it and says so."""
@@ -143,6 +160,7 @@ def test_demo_keeps_the_nearest_and_the_paper_preset_misses_it(capsys, tmp_path)
     assert "the nearest kept one is object 1 (true obstacle 2, 1.06 m)" in nearest["warning"]
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_without_a_missed_obstacle_has_no_warning(capsys, tmp_path, segmenter, figure_titles):
     report, text = run_demo(capsys, tmp_path, *KEPT_SCENE)
     nearest = check_consistent(report, text)
@@ -151,6 +169,7 @@ def test_demo_without_a_missed_obstacle_has_no_warning(capsys, tmp_path, segment
     assert all("not kept" not in t and "nearest kept" not in t for t in figure_titles)
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path, figure_titles):
     report, text = run_demo(capsys, tmp_path, "--objects", "0")
     assert report["true_nearest"] is None
@@ -165,6 +184,7 @@ def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path, figure_tit
 
 
 
+@pytest.mark.usefixtures("undrawn_figures")
 def test_demo_says_an_obstacle_under_a_pixel_is_not_visible(capsys, tmp_path):
     # An audit: at 5x5 the two nearest of four obstacles fall between pixel centres; the text listed them with
     # "box [0, 0, 0, 0]" and then named the 1.45 m one "true nearest obstacle" below a 1.00 m one.
