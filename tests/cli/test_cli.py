@@ -829,10 +829,11 @@ def test_guide_says_once_that_it_is_ready_when_the_camera_first_answers(capsys):
     hears). Now "Guide ready." is said once, when the camera first answers, before any warning."""
     from svs_torch.cli.guide_loop import GUIDE_READY, GUIDE_STOPPED
 
+    small = ("--size", "160x120")  # what is said, not what is ranged: a quarter of the default's pixels, 0.2 s a pair
     code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--near-m", "0.2",
-                             "--far-m", "0.5")
+                             "--far-m", "0.5", *small)
     assert code == 0 and out.splitlines() == [GUIDE_READY, GUIDE_STOPPED]
-    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--far-m", "5.0")
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--far-m", "5.0", *small)
     assert code == 0 and out.splitlines()[0] == GUIDE_READY and out.count(GUIDE_READY) == 1 and "bstacle" in out
 
 
@@ -854,7 +855,8 @@ def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop,
         ranged.append(real(session, item))
 
     monkeypatch.setattr(guide_loop.GuideSession, "_range", range_then_stop)
-    result, out, err = run_cli(capsys, "guide", "--emulator", "--no-speech", "--far-m", "5.0")
+    # (--size: what is said as it stops, not what is ranged; a quarter of the default's pixels, 0.2 s a pair less)
+    result, out, err = run_cli(capsys, "guide", "--emulator", "--no-speech", "--far-m", "5.0", "--size", "160x120")
     lines = out.splitlines()
     assert result == code and lines[0] == guide_loop.GUIDE_READY and len(lines) >= 2
     assert lines[-1] == guide_loop.GUIDE_STOPPED and lines.count(guide_loop.GUIDE_STOPPED) == 1
@@ -976,7 +978,9 @@ def test_guide_words_per_minute_reaches_the_speech_program(capsys, monkeypatch, 
     fake.write_text(f"#!{sys.executable}\nimport sys\nopen({str(record)!r}, 'a').write(sys.argv[2] + '\\n')\n")
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
     monkeypatch.setattr("shutil.which", lambda name: str(fake) if name == "espeak-ng" else None)
-    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "4", "--far-m", "5.0", "--words-per-minute", "320")
+    # (--size: the rate given to the speech program, not what is ranged; 0.2 s a pair less than the default's)
+    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "4", "--far-m", "5.0", "--words-per-minute",
+                           "320", "--size", "160x120")
     assert code == 0 and "bstacle" in out
     assert set(record.read_text().split()) == {"320"}
 
@@ -1006,7 +1010,8 @@ class _JsonReaderGone(io.StringIO):
 def test_guide_json_stops_quietly_when_its_reader_goes_away(monkeypatch, capsys):
     """``guide --json | head -1``: the reader closes the pipe; guide stops with every command's 141, no error."""
     monkeypatch.setattr(sys, "stdout", _JsonReaderGone())
-    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
+    # (--size: how it stops, not what is ranged; 0.2 s a pair less than the default's)
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json", "--size", "160x120"]) == 141
     err = capsys.readouterr().err
     assert "guide stopped after 1 pair\n" in err and "error" not in err  # (the pair whose line broke: taken)
 
@@ -1019,13 +1024,15 @@ def test_guide_json_reader_gone_still_says_that_guide_stopped(monkeypatch, capsy
     from svs_torch.cli.guide_loop import GUIDE_STOPPED
 
     monkeypatch.setattr(sys, "stdout", _JsonReaderGone())
-    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json"]) == 141
+    small = ("--size", "160x120")  # what is said as it stops, not what is ranged: 0.2 s a pair less than the default
+    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json", *small]) == 141
     err = capsys.readouterr().err
     assert err.count(GUIDE_STOPPED) == 1 and "error" not in err
     # The pair whose line broke was ranged, warned of and recorded: "stopped after 0 pairs" beside "recorded 1 pair"
     # contradicted itself (an audit); it is counted as taken.
     record = tmp_path / "walk"
-    assert main(["guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record", str(record)]) == 141
+    argv = ["guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record", str(record), *small]
+    assert main(argv) == 141
     err = capsys.readouterr().err
     assert "guide stopped after 1 pair\n" in err and "recorded 1 pair in" in err
 
@@ -1582,8 +1589,9 @@ def test_guide_stopped_by_sigterm_says_what_it_recorded(tmp_path):
     import signal
 
     record = tmp_path / "walk"
+    # (--size: how it stops, not what is ranged; the first pair, which the signal waits for, comes sooner)
     command = [sys.executable, "-m", "svs_torch.cli", "guide", "--emulator", "--no-speech", "--json", "--record",
-               str(record)]
+               str(record), "--size", "160x120"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         process.stdout.readline()  # a pair was ranged: the camera is open and the loop runs
