@@ -698,28 +698,67 @@ def test_allocator_keeps_freed_memory_in_a_fresh_process():
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
-def test_worker_start_up_freezes_its_imports_and_keeps_collecting():
+#: One fresh process started as a one-thread worker, OPENBLAS_NUM_THREADS unset, for the checks of the two tests
+#: below (a child's 2 s of imports once, not once for each): what the worker's start-up leaves of the collector, then
+#: of numpy's threads (numpy imported after the start-up, as the pipeline's first use imports it), then that the
+#: collector still frees a cycle and leaves off a collector that was off. Each part prints "<name> ok" when it held.
+_FRESH_WORKER = """\
+import gc, os, sys, traceback, weakref
+from svs_torch.core.workers import imports_without_collection, start_worker
+start_worker(1, ('svs_torch.pipeline',))
+failed = []
+def check(name, part):
+    try:
+        part()
+    except BaseException:
+        traceback.print_exc()
+        failed.append(name)
+def frozen():
+    assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()
+def blas():
+    import numpy
+    assert os.environ['OPENBLAS_NUM_THREADS'] == os.environ.get('EXPECTED', '1')
+    threads = len(os.listdir('/proc/self/task'))
+    # this thread and OpenBLAS's N - 1 helpers, and the watch on the parent
+    assert threads == int(os.environ.get('EXPECTED', '1')) + 1, threads
+def collecting():
+    class Node: pass
+    a, b = Node(), Node(); a.other, b.other = b, a; gone = weakref.ref(a); del a, b
+    gc.collect(); assert gone() is None
+    gc.disable()
+    with imports_without_collection():
+        import json
+    assert not gc.isenabled()
+check('frozen', frozen)
+if sys.platform.startswith('linux'):  # counts threads in /proc
+    check('blas', blas)
+check('collecting', collecting)
+for name in ('frozen', 'blas', 'collecting'):
+    print(name, 'failed' if name in failed else 'ok')
+"""
+
+
+@pytest.fixture(scope="module")
+def fresh_worker() -> subprocess.CompletedProcess:
+    """:data:`_FRESH_WORKER` run once for this module's tests of a worker's start-up."""
+    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
+    return subprocess.run([sys.executable, "-c", _FRESH_WORKER], capture_output=True, text=True, timeout=300,
+                          env=env)
+
+
+def test_worker_start_up_freezes_its_imports_and_keeps_collecting(fresh_worker):
     """A worker imports torch and the pipeline with the collector off and then freezes those objects (they live
     as long as the worker): afterwards the collector is on again, skips them, and still frees a new cycle. A
     collector that was off stays off."""
-    code = ("import gc, weakref\n"
-            "from svs_torch.core.workers import imports_without_collection, start_worker\n"
-            "start_worker(1, ('svs_torch.pipeline',))\n"
-            "assert gc.isenabled() and gc.get_freeze_count() > 100_000, gc.get_freeze_count()\n"
-            "class Node: pass\n"
-            "a, b = Node(), Node(); a.other, b.other = b, a; gone = weakref.ref(a); del a, b\n"
-            "gc.collect(); assert gone() is None\n"
-            "gc.disable()\n"
-            "with imports_without_collection():\n"
-            "    import json\n"
-            "assert not gc.isenabled()\n")
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+    said = fresh_worker.stdout.splitlines()
+    assert fresh_worker.returncode == 0 and "frozen ok" in said and "collecting ok" in said, fresh_worker.stderr
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="counts threads in /proc")
-def test_worker_start_up_keeps_numpy_blas_to_its_threads():
+def test_worker_start_up_keeps_numpy_blas_to_its_threads(fresh_worker):
     """A one-thread worker gets no OpenBLAS threads from numpy's import (they spin and take the other workers'
-    cores), unless the user asked for a number."""
+    cores), unless the user asked for a number (a process of its own: the number is read as it starts)."""
+    assert fresh_worker.returncode == 0 and "blas ok" in fresh_worker.stdout.splitlines(), fresh_worker.stderr
     code = ("import os\n"
             "from svs_torch.core.workers import start_worker\n"
             "start_worker(1, ('svs_torch.pipeline',))\n"
@@ -729,7 +768,6 @@ def test_worker_start_up_keeps_numpy_blas_to_its_threads():
             # this thread and OpenBLAS's N - 1 helpers, and the watch on the parent
             "assert threads == int(os.environ.get('EXPECTED', '1')) + 1, threads\n")
     env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=300, env=env)
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300,
                    env={**env, "OPENBLAS_NUM_THREADS": "2", "EXPECTED": "2"})
 
