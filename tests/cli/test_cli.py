@@ -1085,9 +1085,12 @@ def test_guide_says_when_the_camera_is_lost_and_back_and_keeps_warning(capsys):
 
     from svs_torch.cli.guide_loop import CAMERA_BACK, CAMERA_LOST
 
-    fast = ["--no-speech", "--timeout", "0.2", "--reconnect-s", "0.05", "--json"]
+    # (--size: what is said of the camera, not what is ranged; 0.2 s a pair less than the default's 320x240)
+    fast = ["--no-speech", "--timeout", "0.2", "--reconnect-s", "0.05", "--json", "--size", "160x120"]
     with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple")) as server:
-        server.set_faults("left", silent_grabs=8)
+        # 3 unanswered grabs are a loss (the link's 2 retries after the first), 2 are not: 5 is a loss with 2 to
+        # spare, each 0.2 s of --timeout shorter than the 8 it was
+        server.set_faults("left", silent_grabs=5)
         code, out, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
                                  "--count", "2", *fast)
         assert code == 0 and "guide stopped after 2 pairs" in err
@@ -1110,8 +1113,9 @@ def test_one_unanswered_grab_is_not_said_as_blindness(capsys):
 
     with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple")) as server:
         server.set_faults("right", silent_grabs=1)
+        # (--size: what is said of a grab's wait, not what is ranged; 0.2 s a pair less than the default's)
         code, out, err = run_cli(capsys, "guide", "--left", server.urls["left"], "--right", server.urls["right"],
-                                 "--count", "2", "--no-speech", "--json")
+                                 "--count", "2", "--no-speech", "--json", "--size", "160x120")
     assert code == 0 and "guide stopped after 2 pairs" in err
     assert [json.loads(line).get("event") for line in out.splitlines()] == [None, None]
 
