@@ -30,25 +30,33 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
     return code, captured.out, captured.err
 
 
-def test_help_teaches_every_command():
-    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "--help"], capture_output=True, text=True,
-                            check=True)
+def help_text(capsys, monkeypatch, *argv: str) -> str:
+    """``svs-depth ARGV --help`` as a pipe gets it, read in this process (a child costs 0.4 s a help): as wide as
+    argparse makes it for a stream that is no terminal (COLUMNS, else 80), whatever this run's terminal is."""
+    monkeypatch.setenv("COLUMNS", os.environ.get("COLUMNS", "80"))
+    with pytest.raises(SystemExit) as exited:
+        main([*argv, "--help"])
+    captured = capsys.readouterr()
+    assert exited.value.code == 0 and captured.err == "", captured.err
+    return captured.out
+
+
+def test_help_teaches_every_command(capsys, monkeypatch):
+    text = help_text(capsys, monkeypatch)
     for word in ("demo", "segment", "examples:", "10.75 cm"):
-        assert word in result.stdout
-    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "segment", "--help"], capture_output=True,
-                            text=True, check=True)
+        assert word in text
+    text = help_text(capsys, monkeypatch, "segment")
     for word in ("--kernel-size", "--keep", "--connectivity", "--json", "--out", "exclusive"):
-        assert word in result.stdout
+        assert word in text
 
 
-def test_capture_help_shows_commands_to_copy():
+def test_capture_help_shows_commands_to_copy(capsys, monkeypatch):
     """capture --help ends with examples (a device, WiFi, the emulator, a calibration) and the estimate command that
     ranges what it saved."""
-    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "capture", "--help"], capture_output=True,
-                            text=True, check=True)
+    help_of_capture = help_text(capsys, monkeypatch, "capture")
     for text in ("examples:", "capture --emulator", "socket://", "/dev/ttyUSB0", "--calibration rig.json",
                  "svs-depth estimate --pairs pairs/index.jsonl"):
-        assert text in result.stdout
+        assert text in help_of_capture
 
 
 #: Options a command's help names that belong to another command it points to: calibrate's file is given to the
@@ -1849,13 +1857,11 @@ def test_segment_takes_size_and_refuses_what_estimate_refuses(data_dir, capsys, 
     assert all(o["bbox_xyxy"][2] <= 160 and o["bbox_xyxy"][3] <= 120 for o in report["left"]["objects"])
 
 
-def test_segment_help_says_which_pixels_its_boxes_are_in():
+def test_segment_help_says_which_pixels_its_boxes_are_in(capsys, monkeypatch):
     """segment --help said its areas, boxes and centroids were "in input-image pixels", but with --size they are
     the resampled pair's (Teddy 450x375 at --size 320x240: a box [0, 62, 320, 240]; estimate's and features' are
     the input's) (an audit)."""
-    result = subprocess.run([sys.executable, "-m", "svs_torch.cli", "segment", "--help"], capture_output=True,
-                            text=True, check=True)
-    text = " ".join(result.stdout.split())
+    text = " ".join(help_text(capsys, monkeypatch, "segment").split())
     assert "in input-image pixels" not in text
     assert "with --size the resampled pair's" in text and "image_size_wh" in text
 
