@@ -495,17 +495,43 @@ def test_estimate_parent_decodes_listed_images_while_workers_start(tmp_path):
     assert _decode_while(finished, lines, 2) == {}
 
 
-def test_worker_pool_forks_from_a_server_that_imported_torch():
+@pytest.fixture(scope="module")
+def started_worker_pool():
+    """A worker pool of one started once for the two tests below (its server's start imports torch and the
+    pipeline: 2.5 s each): this process's children's usage and Ctrl-C handler before it, the server's /proc status
+    read as soon as the pool is made (the server still importing) and the handler after. The test of the
+    server's end shuts the pool and the server down; this fixture does it too, if that test did not run."""
+    import resource
+    import signal
+    from multiprocessing import forkserver
+    from types import SimpleNamespace
+
+    from svs_torch.core.workers import stop_worker_server, worker_pool
+
+    children_before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    handler_before = signal.getsignal(signal.SIGINT)
+    executor = worker_pool(1, 1)
+    try:
+        status = None
+        if sys.platform.startswith("linux"):
+            status = Path(f"/proc/{forkserver._forkserver._forkserver_pid}/status").read_text()
+        yield SimpleNamespace(executor=executor, children_before=children_before, status=status,
+                              handler_before=handler_before, handler_after=signal.getsignal(signal.SIGINT))
+    finally:
+        executor.shutdown(wait=True)
+        stop_worker_server()
+
+
+def test_worker_pool_forks_from_a_server_that_imported_torch(started_worker_pool):
     """Workers come from a forkserver that imported torch and the pipeline (frozen for the collector), not from
     this process; once it is stopped, their CPU time counts among this process's children, and the server is
     gone."""
     import gc
     import resource
 
-    from svs_torch.core.workers import stop_worker_server, worker_pool
+    from svs_torch.core.workers import stop_worker_server
 
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    executor = worker_pool(1, 1)
+    before, executor = started_worker_pool.children_before, started_worker_pool.executor
     try:
         server = executor.submit(os.getppid).result(timeout=300)
         frozen = executor.submit(gc.get_freeze_count).result(timeout=60)
@@ -521,27 +547,17 @@ def test_worker_pool_forks_from_a_server_that_imported_torch():
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-def test_the_worker_server_ignores_ctrl_c_while_it_imports():
+def test_the_worker_server_ignores_ctrl_c_while_it_imports(started_worker_pool):
     """Was (an audit of interrupts): Ctrl-C, which the terminal sends to the whole process group, reached the
     forkserver while it imported the pipeline, and it printed a KeyboardInterrupt traceback above the command's
     one-line 'interrupted'. Now it ignores SIGINT from its start: its /proc status lists SIGINT (2) as ignored
     while it is still importing, and this process's own handler is back."""
     import signal
-    from multiprocessing import forkserver
 
-    from svs_torch.core.workers import stop_worker_server, worker_pool
-
-    before = signal.getsignal(signal.SIGINT)
-    executor = worker_pool(1, 1)
-    try:
-        pid = forkserver._forkserver._forkserver_pid
-        status = Path(f"/proc/{pid}/status").read_text()
-        ignored = int(re.search(r"^SigIgn:\s*([0-9a-f]+)", status, re.MULTILINE).group(1), 16)
-        assert ignored & (1 << (signal.SIGINT - 1))
-        assert signal.getsignal(signal.SIGINT) is before
-    finally:
-        executor.shutdown(wait=True)
-        stop_worker_server()
+    status = started_worker_pool.status
+    ignored = int(re.search(r"^SigIgn:\s*([0-9a-f]+)", status, re.MULTILINE).group(1), 16)
+    assert ignored & (1 << (signal.SIGINT - 1))
+    assert started_worker_pool.handler_after is started_worker_pool.handler_before
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="no forkserver")
