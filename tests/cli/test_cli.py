@@ -1410,8 +1410,9 @@ def test_guide_a_full_disk_stops_the_record_not_the_warnings(monkeypatch, capsys
     real_write = pairs_folder.write_bytes_atomic
     monkeypatch.setattr(pairs_folder, "write_bytes_atomic", full_disk_from_the_second_pair)
     walk = tmp_path / "walk"
+    # (--size: what a full disk stops, not what is ranged; 0.2 s a pair less than the default's 320x240)
     code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "3", "--no-speech", "--json", "--record",
-                             str(walk))
+                             str(walk), "--size", "160x120")
     lines = [json.loads(line) for line in out.splitlines()]
     assert code == 0 and len(lines) == 3 and "Camera lost" not in out + err
     assert err.count("recording stopped after") == 1 and "No space left" in err

@@ -40,7 +40,8 @@ def test_guide_a_full_disk_under_its_json_lines_stops_the_lines_not_the_warnings
     walk = tmp_path / "walk.jsonl"
     stdout = _DiskFullAfter(walk, full_at=3)
     monkeypatch.setattr(sys, "stdout", stdout)
-    code = main(["guide", "--emulator", "--count", "5", "--no-speech", "--json"])
+    # (--size: what a full disk stops, not what is ranged; 0.2 s a pair less than the default's 320x240)
+    code = main(["guide", "--emulator", "--count", "5", "--no-speech", "--json", "--size", "160x120"])
     stdout.file.close()
     err = capsys.readouterr().err
     assert code == 0, err
