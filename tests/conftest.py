@@ -166,3 +166,49 @@ def store_folder_not_writable(monkeypatch):
         return connect(database, *args, **kwargs)
 
     return lambda: monkeypatch.setattr(store_module.sqlite3, "connect", read_only_folder)
+
+
+# Runs each ``(runner, argv)`` given on stdin (a test module's script of experiment calls, ``-c`` style, with its
+# ``sys.argv[1:]``) in turn, each with argparse's own parse_args to wrap, and prints their outputs as one JSON list.
+_EXPERIMENT_CALLS_CHILD = r"""
+import argparse, contextlib, io, json, sys
+parse_args, outputs = argparse.ArgumentParser.parse_args, []
+for runner, argv in json.load(sys.stdin):
+    argparse.ArgumentParser.parse_args = parse_args
+    sys.argv, out = ["-c", *argv], io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(runner, "<runner>", "exec"), {"__name__": "__main__"})
+    outputs.append(out.getvalue())
+print(json.dumps(outputs))
+"""
+
+
+@pytest.fixture(scope="session")
+def experiment_calls(tmp_path_factory) -> dict[str, tuple]:
+    """The experiment calls of test_experiment_commands.py (``"commands"``: its cases and their problems) and of
+    test_experiment_options.py (``"options"``: its folder, case table and outcomes; absent without the shared data,
+    where its tests skip), both modules' runners in one fresh process: a process each cost about 5 s, half of it
+    torch's import."""
+    import json
+    import subprocess
+    import sys
+
+    import test_experiment_commands as commands
+    import test_experiment_options as options
+
+    command_cases = commands.parse_cases(str(tmp_path_factory.mktemp("reports")))
+    jobs = [(commands.RUNNER, [json.dumps([case[1:] for case in command_cases])])]
+    data = find_shared_data()
+    if data is not None:
+        folder = tmp_path_factory.mktemp("experiment_options")
+        table = options.case_table(data, folder)
+        cases = [list(case) for cases in table.values() for case in cases]
+        jobs.append((options.RUNNER, [str(REPO_ROOT), json.dumps(cases)]))
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", _EXPERIMENT_CALLS_CHILD], input=json.dumps(jobs), cwd=REPO_ROOT,
+                          env=env, capture_output=True, text=True, timeout=400, check=True)
+    outputs = [json.loads(output) for output in json.loads(done.stdout)]
+    calls = {"commands": (command_cases, outputs[0])}
+    if data is not None:
+        calls["options"] = (folder, table, outputs[1])
+    return calls

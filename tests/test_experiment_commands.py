@@ -9,12 +9,9 @@ gets a note "(since renamed: --new)" beside the old line, and the line itself th
 from __future__ import annotations
 
 import itertools
-import json
 import os
 import re
 import shlex
-import subprocess
-import sys
 
 import pytest
 from conftest import REPO_ROOT
@@ -86,7 +83,9 @@ def concrete(tokens: list[str], folder: str) -> list[str]:
     return argv
 
 
-_RUNNER = r"""
+#: What is wrong with each ``(script, argv)`` of ``sys.argv[1]`` (JSON; "svs-depth" for the command line): nothing
+#: when it parses with every option written out in full. Run in a fresh process by conftest.experiment_calls.
+RUNNER = r"""
 import argparse, contextlib, io, json, sys
 sys.path.insert(0, "experiments")
 original = argparse.ArgumentParser.parse_args
@@ -127,15 +126,6 @@ print(json.dumps(results))
 """
 
 
-def problems(cases: list[tuple[str, list[str]]]) -> list[list[str]]:
-    """What is wrong with each ``(script, argv)`` ("svs-depth" for the command line): nothing when it parses with
-    every option written out in full."""
-    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _RUNNER, json.dumps(cases)], cwd=REPO_ROOT, env=env,
-                          capture_output=True, text=True, timeout=120, check=True)
-    return json.loads(done.stdout)
-
-
 def cases_of(commands: list[tuple[str, str]], folder: str) -> list[tuple[str, str, list[str]]]:
     cases = []
     for where, command in commands:
@@ -158,14 +148,20 @@ STALE = [("doc.md:1", "python experiments/camera_frames_gate.py --splits held-ou
          ("doc.md:4", "python experiments/eval_segmentation.py [--weights FILE] [--sizes 320]")]
 
 
-@pytest.fixture(scope="module")
-def checked(tmp_path_factory) -> dict[str, list]:
-    """``where`` -> ``(command, problems)`` of each quoted command and of :data:`STALE` (one process for all)."""
+def parse_cases(folder: str) -> list[tuple[str, str, list[str]]]:
+    """``(where, script, argv)`` of each quoted command and of :data:`STALE`, reports under ``folder``."""
     commands = quoted_commands()
     assert len([c for c in commands if "experiments/real_rig.py" in c[1]]) > 20  # (the extraction sees them)
-    cases = cases_of(commands + STALE, str(tmp_path_factory.mktemp("reports")))
+    return cases_of(commands + STALE, folder)
+
+
+@pytest.fixture(scope="module")
+def checked(experiment_calls) -> dict[str, list]:
+    """``where`` -> ``(command, problems)`` of each quoted command and of :data:`STALE` (one process for all, shared
+    with test_experiment_options.py's calls: conftest.experiment_calls)."""
+    cases, found_all = experiment_calls["commands"]
     out: dict[str, list] = {}
-    for (where, script, argv), found in zip(cases, problems([case[1:] for case in cases])):
+    for (where, script, argv), found in zip(cases, found_all, strict=True):
         out.setdefault(where, []).append((shlex.join([script, *argv]), found))
     return out
 

@@ -3,9 +3,6 @@ status 2, never a traceback, a run of minutes, or a record of a run with a value
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -14,8 +11,9 @@ from conftest import REPO_ROOT
 
 # Each experiment is called as its command (run_script) in a fresh process whose parse_args stops the run once the
 # arguments are parsed (the value taken shows as "parsed"), so a value taken by mistake never starts the experiment;
-# unless the case asks to run on, for a refusal made after the parse, before any work.
-_RUNNER = r"""
+# unless the case asks to run on, for a refusal made after the parse, before any work. One fresh process for all
+# (conftest.experiment_calls, with test_experiment_commands.py's calls): a process cost about 2.5 s of imports.
+RUNNER = r"""
 import argparse, contextlib, io, json, sys
 sys.path.insert(0, sys.argv[1] + "/experiments")
 original = argparse.ArgumentParser.parse_args
@@ -49,23 +47,13 @@ print(json.dumps(results))
 """
 
 
-def _run_cases(cases: list[tuple[str, list[str], bool]]) -> list[tuple[object, str]]:
-    """How each experiment ``(script, argv, stop)`` ended, all in one fresh process (each process costs about 2 s
-    of imports): its exit status (or "parsed") and its last line on stderr; ``stop``: once its arguments are
-    parsed."""
-    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-c", _RUNNER, str(REPO_ROOT), json.dumps([list(case) for case in cases])],
-                          env=env, capture_output=True, text=True, timeout=300, check=True)
-    return [(code, line[0]) for code, line in json.loads(done.stdout)]
-
-
 def _assert_refused(cases: list[tuple[str, list[str]]], ended: list[tuple[object, str]]) -> None:
     """Each of ``cases`` ended (``ended``, in order) in exit status 2 with a line naming its first option."""
     for (script, argv), (code, line) in zip(cases, ended, strict=True):
         assert code == 2 and f"argument {argv[0]}" in line, (script, argv, code, line)
 
 
-def _case_table(data_dir: Path, folder: Path) -> dict[str, list[tuple[str, list[str], bool]]]:
+def case_table(data_dir: Path, folder: Path) -> dict[str, list[tuple[str, list[str], bool]]]:
     """Every test's experiment calls, ``(script, argv, stop once parsed)``, by test; files under ``folder``."""
     shipped = REPO_ROOT / "svs_torch" / "segmentation" / "weights"
     for name, weights in (("cut_learned.pt", "obstacle_net.pt"), ("cut_nearness.pt", "nearness_net.pt")):
@@ -105,12 +93,11 @@ def _case_table(data_dir: Path, folder: Path) -> dict[str, list[tuple[str, list[
 
 
 @pytest.fixture(scope="module")
-def ended(data_dir, tmp_path_factory) -> dict[str, list[tuple[object, str]]]:
-    """How each test's experiment calls ended (:func:`_case_table`), all run in one process: one process a test
-    cost about 2.5 s each of imports; ``"folder"``: where their files are."""
-    folder = tmp_path_factory.mktemp("experiment_options")
-    table = _case_table(data_dir, folder)
-    outcomes = iter(_run_cases([case for cases in table.values() for case in cases]))
+def ended(data_dir, experiment_calls) -> dict[str, list[tuple[object, str]]]:
+    """How each test's experiment calls ended (:func:`case_table`), all run in one process (conftest.experiment_calls):
+    one process a test cost about 2.5 s each of imports; ``"folder"``: where their files are."""
+    folder, table, results = experiment_calls["options"]
+    outcomes = iter([(code, line[0]) for code, line in results])
     return {"folder": folder, **{name: [next(outcomes) for _ in cases] for name, cases in table.items()}}
 
 
