@@ -6,15 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
-
-# The tests' own process with OpenMP's threads asleep between parallel regions (PASSIVE), as the child processes of a
-# whole run already were (collecting test_experiments.py imports experiments that set it): spinning threads on a
-# loaded machine (CI's; two test runs on two cores) made tests/capture/test_guide.py take 80 s against 33 s. OpenMP
-# reads it when torch loads, hence before the import below; a test that needs it unset drops it from its child's
-# environment (test_experiments.py's guide_second_passes, the benchmark's whole-process runs).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import torch  # noqa: E402
+import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
