@@ -204,3 +204,18 @@ def experiment_calls(tmp_path_factory) -> dict[str, tuple]:
     if data is not None:
         calls["options"] = (folder, table, outputs[1])
     return calls
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _socket_links_close_at_once():
+    """pyserial's ``socket://`` close sleeps 0.3 s ("in case of quick reconnects, give the server some time"); a
+    real board's bridge may need it, the emulator of these tests does not (it takes each new connection as it
+    comes)."""
+    import types
+
+    import serial.urlhandler.protocol_socket as socket_protocol
+
+    real_time = socket_protocol.time
+    socket_protocol.time = types.SimpleNamespace(sleep=lambda seconds: None)
+    yield
+    socket_protocol.time = real_time
