@@ -190,9 +190,9 @@ def _add_speech_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-speech", action="store_true", help="text only, even if espeak-ng is installed")
     # A walker at 1.4 m/s covers 3.9 m while "Obstacle on the left, 1.5 metres" is said at 170 words a minute (an
     # audit of what a walker hears); users of screen readers often listen at twice that.
-    parser.add_argument("--words-per-minute", type=_speech_rate, default=SPEECH_WPM, metavar="N",
+    parser.add_argument("--words-per-minute", type=_speech_rate, metavar="N",
                         help=f"speech rate, {MIN_WPM}-{MAX_WPM} (espeak-ng's range; default: {SPEECH_WPM}); "
-                             "a faster one says a warning in less of the walk")
+                             "a faster one says a warning in less of the walk; not with --no-speech")
 
 
 def _add_warning_options(parser: argparse.ArgumentParser) -> None:
@@ -248,8 +248,8 @@ def run(args: argparse.Namespace) -> int:
     # the wrong stereo role, a library's deprecation).
     # With --json, stdout holds the JSON lines alone, and the warnings' text goes above the status line on stderr.
     words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
-    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=args.words_per_minute,
-                                      stream=words))
+    rate = SPEECH_WPM if args.words_per_minute is None else args.words_per_minute
+    guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=rate, stream=words))
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
                    calibration_from_args(args), args.second_passes, args.quality)
     session = GuideSession(args, size, ranged, guide, status_line, log)
@@ -363,4 +363,6 @@ def _checked_size(args: argparse.Namespace) -> tuple[int, int]:
         raise InputError(f"--near-m, --far-m: expected 0 <= near < far, got {args.near_m} and {args.far_m}")
     if args.quality is not None and not 1 <= args.quality <= 8:
         raise InputError(f"--quality: expected 1 (best) to 8 (worst), got {args.quality}")
+    if args.no_speech and args.words_per_minute is not None:  # a rate asked for and never heard: said, not ignored
+        raise InputError("--words-per-minute: a speech rate, and --no-speech says nothing aloud: give one of them")
     return size

@@ -1036,12 +1036,16 @@ def test_guide_nearer_elsewhere_option(capsys):
 def test_guide_words_per_minute_reaches_the_speech_program(capsys, monkeypatch, tmp_path):
     """A walker at 1.4 m/s covers 3.9 m while "Obstacle on the left, 1.5 metres" is said at the fixed 170 words a
     minute, and users of screen readers often listen at twice that (an audit of what a walker hears): the rate is
-    --words-per-minute, espeak-ng's -s, within its 80-450; the default stays 170."""
+    --words-per-minute, espeak-ng's -s, within its 80-450; the default stays 170. With --no-speech a rate given was
+    ignored without a word: refused, in one line."""
     import stat
 
     from svs_torch.cli import build_parser
 
-    assert build_parser().parse_args(["guide", "--emulator"]).words_per_minute == 170
+    assert build_parser().parse_args(["guide", "--emulator"]).words_per_minute is None  # not given: 170 (below)
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--no-speech", "--words-per-minute", "200")
+    assert (code, out) == (2, "") and err.count("\n") == 1, err
+    assert "--words-per-minute: a speech rate, and --no-speech says nothing aloud: give one of them" in err
     for bad in ("79", "451", "2.5", "fast"):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["guide", "--emulator", "--words-per-minute", bad])
@@ -1051,10 +1055,12 @@ def test_guide_words_per_minute_reaches_the_speech_program(capsys, monkeypatch, 
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
     monkeypatch.setattr("shutil.which", lambda name: str(fake) if name == "espeak-ng" else None)
     # (--size: the rate given to the speech program, not what is ranged; 0.2 s a pair less than the default's)
-    code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "4", "--far-m", "5.0", "--words-per-minute",
-                           "320", "--size", "160x120")
-    assert code == 0 and "bstacle" in out
-    assert set(record.read_text().split()) == {"320"}
+    for given, rate in (([], "170"), (["--words-per-minute", "320"], "320")):
+        code, out, _ = run_cli(capsys, "guide", "--emulator", "--count", "4", "--far-m", "5.0", *given, "--size",
+                               "160x120")
+        assert code == 0 and "bstacle" in out
+        assert set(record.read_text().split()) == {rate}
+        record.unlink()
 
 
 def test_guide_confirm_frames_option():
