@@ -37,6 +37,9 @@ examples:
 #: pair with the shared data and hours of runs. 10^9 was taken and failed after the imports, an internal error
 #: trying to allocate 40 GB for the synthetic scenes at once (an audit).
 MAX_BENCH_PAIRS = 4096
+# Each repeat runs every rival over every input set as whole processes (minutes at the default --pairs): a mistyped
+# --repeats 300 was taken, 300 rounds of them.
+MAX_BENCH_REPEATS = 100
 
 
 def bench_pairs(text: str) -> int:
@@ -44,6 +47,14 @@ def bench_pairs(text: str) -> int:
     value = positive_int(text)
     if value > MAX_BENCH_PAIRS:
         raise argparse.ArgumentTypeError(f"expected 1 to {MAX_BENCH_PAIRS} pairs, got {text!r}")
+    return value
+
+
+def bench_repeats(text: str) -> int:
+    """argparse type of ``--repeats``: 1 to :data:`MAX_BENCH_REPEATS`."""
+    value = positive_int(text)
+    if value > MAX_BENCH_REPEATS:
+        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_BENCH_REPEATS} runs, got {text!r}")
     return value
 
 
@@ -56,8 +67,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help=f"pairs per input set of the whole-process runs, 1 to {MAX_BENCH_PAIRS} (default: 64); "
                              "the in-process part "
                              "always runs its 128 synthetic pairs, B = 1 to 128 (about 4 GB at its peak)")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="runs per rival; the median is reported "
-                                                                        "(default: 3)")
+    parser.add_argument("--repeats", type=bench_repeats, default=3, metavar="N",
+                        help=f"runs per rival, 1 to {MAX_BENCH_REPEATS}; the median is reported (default: 3)")
     parser.add_argument("--threads", type=positive_int, help="threads for every rival, at most the cores this "
                                                              "process may run on (default: 2, or those cores if "
                                                              "fewer)")

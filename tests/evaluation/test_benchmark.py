@@ -322,6 +322,12 @@ def test_bench_pairs_beyond_the_cap_are_refused_before_any_work(capsys, monkeypa
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1
     assert "argument --pairs: expected 1 to 4096 pairs, got '1000000000'" in err
+    # --repeats had no cap: each repeat runs every rival's whole processes again (minutes each).
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "--repeats", "300"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1
+    assert "argument --repeats: expected 1 to 100 runs, got '300'" in err
 
 
 def test_inputs_are_rendered_a_chunk_at_a_time(tmp_path, monkeypatch):
