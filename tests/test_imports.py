@@ -54,6 +54,19 @@ def test_guide_says_a_missing_board_url_without_loading_torch():
     assert "TORCH False" in run.stdout and "--left, --right: give both board URLs, or --emulator" in run.stderr
 
 
+def test_results_says_a_store_it_cannot_read_without_loading_torch(tmp_path):
+    """'svs-depth results missing.sqlite' loaded torch (2 s) before saying there was no such file (left alone in an
+    earlier stop); a folder likewise. Said at once now, in the words the store itself uses."""
+    code = ("import sys; from svs_torch.cli import main\n"
+            f"assert main(['results', {str(tmp_path / 'missing.sqlite')!r}]) == 2\n"
+            f"assert main(['results', {str(tmp_path)!r}]) == 2\n"
+            "print('TORCH', 'torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout
+    assert f"db: expected a results file, got no file: {tmp_path / 'missing.sqlite'}" in run.stderr
+    assert f"db: expected a results file, got a folder: {tmp_path}" in run.stderr
+
+
 def test_public_names_load_on_first_use():
     import svs_torch
     from svs_torch.core.checks import InputError

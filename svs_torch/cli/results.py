@@ -174,7 +174,9 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
 
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
+    from ..evaluation.store_access import check_store_path
 
+    check_store_path(args.db, create=False)  # first: a mistyped name was said after torch's import (2 s)
     with imports_without_collection():  # see there: a Ctrl-C meanwhile is raised once they are done
         from ..evaluation.report import best_by_metric, config_summaries, csv_table, plot_results, same_results
         from ..evaluation.store import ResultStore

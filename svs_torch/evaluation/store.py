@@ -57,11 +57,10 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError
-from ..core.files import check_path_given, check_writable_folder, path_kind
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
-from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, claim_configs, read_only_error,
-                           unreadable_beside_writer)
+from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, check_store_path, claim_configs,
+                           read_only_error, unreadable_beside_writer)
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
 
@@ -132,22 +131,7 @@ class ResultStore:
     """An open results store (see the module docstring); a context manager that closes it."""
 
     def __init__(self, path: str | Path, create: bool = True) -> None:
-        check_path_given(path, "db", "a results file name")  # ('' is '.': "got a folder: .", an audit)
-        self.path = Path(path)
-        kind = path_kind(self.path, "db")
-        if kind in ("folder", "other") or (kind == "missing" and not create):
-            # A device too: --db /dev/null failed only after sqlite had made /dev/null-journal.
-            got = {"folder": "a folder", "other": "a device or other special file", "missing": "no file"}[kind]
-            raise InputError(f"db: expected a results file, got {got}: {self.path}")
-        if self.path.is_symlink() and kind == "missing":  # its cleanup deleted the user's link (an audit)
-            raise InputError(f"db: {self.path} is a link to {os.path.realpath(self.path)}, which does not exist")
-        if create and self.path.parent and not self.path.parent.is_dir():
-            raise InputError(f"db: the folder {self.path.parent} does not exist" if not self.path.parent.exists()
-                             else f"db: {self.path.parent} is a file, not a folder")
-        if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
-            # (beside a link's target: a link to a store on a read-only share was "unable to open", an audit)
-            check_writable_folder(Path(os.path.realpath(self.path)).parent if self.path.is_symlink()
-                                  else self.path.parent, "db")
+        self.path = check_store_path(path, create)
         new = create and not self.path.exists()
         size = self.path.stat().st_size if self.path.is_file() else None
         # SQLite takes a file shorter than its 100-byte header for an empty database and writes the tables into it:

@@ -147,3 +147,26 @@ def check_schema_version(path: Path, version: str | None, expected: int) -> None
     raise InputError(f"db: {path} has schema version {int(version)}, expected {expected}"
                      + ("; it was written by a newer svs-depth: update this one, or name another file" if newer
                         else ""))
+
+
+def check_store_path(path: str | Path, create: bool) -> Path:
+    """``path`` as a results store's file (``create``: one that may be made), checked by its name alone, before
+    sqlite or any import of the pipeline (``svs-depth results missing.sqlite`` said so after torch's 2 s import)."""
+    from ..core.files import check_path_given, check_writable_folder, path_kind
+
+    check_path_given(path, "db", "a results file name")  # ('' is '.': "got a folder: .", an audit)
+    path = Path(path)
+    kind = path_kind(path, "db")
+    if kind in ("folder", "other") or (kind == "missing" and not create):
+        # A device too: --db /dev/null failed only after sqlite had made /dev/null-journal.
+        got = {"folder": "a folder", "other": "a device or other special file", "missing": "no file"}[kind]
+        raise InputError(f"db: expected a results file, got {got}: {path}")
+    if path.is_symlink() and kind == "missing":  # its cleanup deleted the user's link (an audit)
+        raise InputError(f"db: {path} is a link to {os.path.realpath(path)}, which does not exist")
+    if create and path.parent and not path.parent.is_dir():
+        raise InputError(f"db: the folder {path.parent} does not exist" if not path.parent.exists()
+                         else f"db: {path.parent} is a file, not a folder")
+    if create:  # WAL keeps its journal beside the file: else sqlite's "unable to open" would call it no store
+        # (beside a link's target: a link to a store on a read-only share was "unable to open", an audit)
+        check_writable_folder(Path(os.path.realpath(path)).parent if path.is_symlink() else path.parent, "db")
+    return path
