@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import IO
 
 from ..core.errors import InputError
+from ..core.files import check_path_given, check_writable_folder, path_kind
 
 __all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error",
            "sweep_is_writing", "unreadable_beside_writer"]
@@ -152,8 +153,6 @@ def check_schema_version(path: Path, version: str | None, expected: int) -> None
 def check_store_path(path: str | Path, create: bool) -> Path:
     """``path`` as a results store's file (``create``: one that may be made), checked by its name alone, before
     sqlite or any import of the pipeline (``svs-depth results missing.sqlite`` said so after torch's 2 s import)."""
-    from ..core.files import check_path_given, check_writable_folder, path_kind
-
     check_path_given(path, "db", "a results file name")  # ('' is '.': "got a folder: .", an audit)
     path = Path(path)
     kind = path_kind(path, "db")
