@@ -83,6 +83,20 @@ class SpokenLines:
         pass
 
 
+def draw_no_figures(monkeypatch) -> None:
+    """Pipeline figures built but not drawn, for runs whose figure a test does not look at (their titles can
+    still be read): drawing one was most of a demo's time (0.45 s of 0.6). Tests that look at the pixels draw."""
+    import numpy as np
+
+    import svs_torch.plotting.plots
+
+    def undrawn(figure) -> np.ndarray:
+        assert figure._suptitle is not None  # a figure pipeline_figure made, as render would have drawn
+        return np.zeros((240, 320, 3), np.uint8)
+
+    monkeypatch.setattr(svs_torch.plotting.plots, "render", undrawn)
+
+
 def render_border_strip_scene(on_border: bool = True, near_m: float = 0.8, strip_px: int = 20):
     """A synthetic 320×240 SVS pair: a wide object 1.5 m away and a strip ``near_m`` away, ``strip_px`` wide. With
     ``on_border`` the strip's left edge is the image's (its disparity, 37 px at 0.8 m, is wider than it: none of

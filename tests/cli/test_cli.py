@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import SpokenLines
+from conftest import SpokenLines, draw_no_figures
 from real_images import PAIRS
 
 from svs_torch.cli import main
@@ -266,14 +266,6 @@ def test_near_min_area_fraction_option(data_dir, capsys):
     assert code == 2 and out == "" and err.count("\n") == 1 and "--near-min-area-fraction" in err
 
 
-def undrawn_figures(monkeypatch) -> None:
-    """Figures built but not drawn, for a demo run whose figure a test does not look at: drawing it is 0.45 s of
-    a demo's 0.6 (the figure's file is checked where a test looks at it)."""
-    import svs_torch.plotting.plots
-
-    monkeypatch.setattr(svs_torch.plotting.plots, "render", lambda figure: np.zeros((240, 320, 3), np.uint8))
-
-
 def test_demo_ranges_the_synthetic_obstacles(capsys, tmp_path, monkeypatch):
     figure = tmp_path / "demo.png"
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure), "--json", "--seed", "3")
@@ -290,14 +282,14 @@ def test_demo_ranges_the_synthetic_obstacles(capsys, tmp_path, monkeypatch):
         assert obj["median_true_depth_m"] == pytest.approx(truth[obj["true_object"]], abs=0.01)
         assert obj["depth_m"] == pytest.approx(obj["median_true_depth_m"], rel=0.02)
     assert report["nearest_m"] == pytest.approx(min(truth.values()), rel=0.02)
-    undrawn_figures(monkeypatch)  # the text alone is checked below
+    draw_no_figures(monkeypatch)  # the text alone is checked below
     code, out, _ = run_cli(capsys, "demo", "--out", str(figure))
     assert code == 0 and "true obstacle 1" in out and "estimated" in out and "nearest obstacle" in out
 
 
 def test_demo_too_small_json_has_the_keys_of_a_ranged_one(capsys, tmp_path, monkeypatch):
     """A TOO_SMALL demo --json object lacked "preset" and "camera" (a script reading them failed on it only)."""
-    undrawn_figures(monkeypatch)  # the JSON's keys alone are checked
+    draw_no_figures(monkeypatch)  # the JSON's keys alone are checked
     code, out, _ = run_cli(capsys, "demo", "--out", str(tmp_path / "demo.png"), "--json", "--size", "64x48")
     ranged = json.loads(out)
     code_small, out, _ = run_cli(capsys, "demo", "--json", "--size", "4x4", "--preset", "paper")
@@ -772,12 +764,17 @@ for name in ('frozen', 'blas', 'collecting'):
 """
 
 
+def run_fresh_worker(**environment: str) -> subprocess.CompletedProcess:
+    """:data:`_FRESH_WORKER` in a fresh process, OPENBLAS_NUM_THREADS unset unless ``environment`` gives it."""
+    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
+    return subprocess.run([sys.executable, "-c", _FRESH_WORKER], capture_output=True, text=True, timeout=300,
+                          env={**env, **environment})
+
+
 @pytest.fixture(scope="module")
 def fresh_worker() -> subprocess.CompletedProcess:
     """:data:`_FRESH_WORKER` run once for this module's tests of a worker's start-up."""
-    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
-    return subprocess.run([sys.executable, "-c", _FRESH_WORKER], capture_output=True, text=True, timeout=300,
-                          env=env)
+    return run_fresh_worker()
 
 
 def test_worker_start_up_freezes_its_imports_and_keeps_collecting(fresh_worker):
@@ -792,18 +789,8 @@ def test_worker_start_up_freezes_its_imports_and_keeps_collecting(fresh_worker):
 def test_worker_start_up_keeps_numpy_blas_to_its_threads(fresh_worker):
     """A one-thread worker gets no OpenBLAS threads from numpy's import (they spin and take the other workers'
     cores), unless the user asked for a number (a process of its own: the number is read as it starts)."""
-    assert fresh_worker.returncode == 0 and "blas ok" in fresh_worker.stdout.splitlines(), fresh_worker.stderr
-    code = ("import os\n"
-            "from svs_torch.core.workers import start_worker\n"
-            "start_worker(1, ('svs_torch.pipeline',))\n"
-            "import numpy\n"
-            "assert os.environ['OPENBLAS_NUM_THREADS'] == os.environ.get('EXPECTED', '1')\n"
-            "threads = len(os.listdir('/proc/self/task'))\n"
-            # this thread and OpenBLAS's N - 1 helpers, and the watch on the parent
-            "assert threads == int(os.environ.get('EXPECTED', '1')) + 1, threads\n")
-    env = {name: value for name, value in os.environ.items() if name != "OPENBLAS_NUM_THREADS"}
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=300,
-                   env={**env, "OPENBLAS_NUM_THREADS": "2", "EXPECTED": "2"})
+    for worker in (fresh_worker, run_fresh_worker(OPENBLAS_NUM_THREADS="2", EXPECTED="2")):
+        assert worker.returncode == 0 and "blas ok" in worker.stdout.splitlines(), worker.stderr
 
 
 def test_command_keeps_numpy_blas_to_one_thread_unless_asked(data_dir):

@@ -13,9 +13,9 @@ from __future__ import annotations
 import dataclasses
 import json
 
-import numpy as np
 import pytest
 import torch
+from conftest import draw_no_figures
 
 import svs_torch.pipeline
 import svs_torch.plotting.plots
@@ -65,15 +65,9 @@ def figure_titles(monkeypatch) -> list[str]:
 
 @pytest.fixture
 def undrawn_figures(monkeypatch) -> None:
-    """The demo's figures built (their titles are what these tests read) but not drawn: drawing one is most of a
-    demo's time (0.45 s of 0.6), and its pixels are checked by test_cli's demo test, not here. The tests of
-    pipeline_figure itself draw with ``render`` as imported."""
-
-    def undrawn(figure) -> np.ndarray:
-        assert figure._suptitle is not None  # a figure pipeline_figure made, as render would have drawn
-        return np.zeros((240, 320, 3), np.uint8)
-
-    monkeypatch.setattr(svs_torch.plotting.plots, "render", undrawn)
+    """The demo's figures built (their titles are what these tests read) but not drawn (conftest.draw_no_figures).
+    The tests of pipeline_figure itself draw with ``render`` as imported."""
+    draw_no_figures(monkeypatch)
 
 
 def run_demo(capsys, tmp_path, *argv: str) -> tuple[dict, str]:
