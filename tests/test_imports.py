@@ -15,16 +15,22 @@ def test_cli_help_does_not_import_torch():
     assert "HEAVY []" in out and "usage: svs-depth" in out
 
 
+def stderr_without_torch(*lines: str) -> str:
+    """The standard error of ``lines`` (Python calling the CLI's ``main``) run in a fresh process, after checking
+    that they left torch unloaded."""
+    code = "\n".join(["import sys; from svs_torch.cli import main", *lines, "print('TORCH', 'torch' in sys.modules)"])
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout, run.stderr
+    return run.stderr
+
+
 def test_a_device_command_refuses_bad_arguments_without_loading_torch():
     """Found by an audit: 'svs-depth capture --out-dir d' without board URLs took 3 s to be told, the time torch
     takes to load: the capture package imported its torch modules up front. Its names now load on first use."""
-    code = ("import sys; from svs_torch.cli import main\n"
-            "import svs_torch.capture\n"
-            "assert main(['capture', '--out-dir', 'never-made']) == 2\n"
-            "from svs_torch.capture import CaptureError, WarningPolicy, Speaker\n"
-            "print('TORCH', 'torch' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert "TORCH False" in run.stdout and "--left, --right" in run.stderr
+    stderr = stderr_without_torch("import svs_torch.capture",
+                                  "assert main(['capture', '--out-dir', 'never-made']) == 2",
+                                  "from svs_torch.capture import CaptureError, WarningPolicy, Speaker")
+    assert "--left, --right" in stderr
     import svs_torch.capture as capture  # its torch-side names still load, on first use
 
     assert capture.SVSStereoCamera.__module__ == "svs_torch.capture.stereo"
@@ -34,37 +40,27 @@ def test_estimate_says_a_pair_list_it_cannot_read_without_loading_torch(tmp_path
     """Found by an audit: 'estimate --pairs missing.txt' loaded the pipeline (2.5 s) before saying the list was not
     there (a list that cannot be read gave no lines to choose workers by, so it took the in-process path); a folder
     of scenes or a device likewise. Said at once now, as the list's reading says it."""
-    code = ("import sys; from svs_torch.cli import main\n"
-            f"assert main(['estimate', '--pairs', {str(tmp_path / 'missing.txt')!r}]) == 2\n"
-            "assert main(['estimate', '--pairs', '/dev/null']) == 2\n"
-            "print('TORCH', 'torch' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert "TORCH False" in run.stdout
-    assert f"--pairs: expected a list file, got no file: {tmp_path / 'missing.txt'}" in run.stderr
-    assert "--pairs: expected a list file, got a special file: /dev/null" in run.stderr
+    stderr = stderr_without_torch(f"assert main(['estimate', '--pairs', {str(tmp_path / 'missing.txt')!r}]) == 2",
+                                  "assert main(['estimate', '--pairs', '/dev/null']) == 2")
+    assert f"--pairs: expected a list file, got no file: {tmp_path / 'missing.txt'}" in stderr
+    assert "--pairs: expected a list file, got a special file: /dev/null" in stderr
 
 
 def test_guide_says_a_missing_board_url_without_loading_torch():
     """Found by an audit: 'guide --left ""' (a URL left out by a script) loaded the pipeline (2.5 s) before saying
     that both board URLs are needed; as capture, it says so at once now."""
-    code = ("import sys; from svs_torch.cli import main\n"
-            "assert main(['guide', '--left', '', '--right', 'socket://board:10001', '--no-speech']) == 2\n"
-            "print('TORCH', 'torch' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert "TORCH False" in run.stdout and "--left, --right: give both board URLs, or --emulator" in run.stderr
+    stderr = stderr_without_torch(
+        "assert main(['guide', '--left', '', '--right', 'socket://board:10001', '--no-speech']) == 2")
+    assert "--left, --right: give both board URLs, or --emulator" in stderr
 
 
 def test_results_says_a_store_it_cannot_read_without_loading_torch(tmp_path):
     """'svs-depth results missing.sqlite' loaded torch (2 s) before saying there was no such file (left alone in an
     earlier stop); a folder likewise. Said at once now, in the words the store itself uses."""
-    code = ("import sys; from svs_torch.cli import main\n"
-            f"assert main(['results', {str(tmp_path / 'missing.sqlite')!r}]) == 2\n"
-            f"assert main(['results', {str(tmp_path)!r}]) == 2\n"
-            "print('TORCH', 'torch' in sys.modules)")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert "TORCH False" in run.stdout
-    assert f"db: expected a results file, got no file: {tmp_path / 'missing.sqlite'}" in run.stderr
-    assert f"db: expected a results file, got a folder: {tmp_path}" in run.stderr
+    stderr = stderr_without_torch(f"assert main(['results', {str(tmp_path / 'missing.sqlite')!r}]) == 2",
+                                  f"assert main(['results', {str(tmp_path)!r}]) == 2")
+    assert f"db: expected a results file, got no file: {tmp_path / 'missing.sqlite'}" in stderr
+    assert f"db: expected a results file, got a folder: {tmp_path}" in stderr
 
 
 def test_public_names_load_on_first_use():

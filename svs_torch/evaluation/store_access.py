@@ -26,8 +26,8 @@ from typing import IO
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, path_kind
 
-__all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "claim_configs", "read_only_error",
-           "sweep_is_writing", "unreadable_beside_writer"]
+__all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "check_store_path", "claim_configs",
+           "read_only_error", "sweep_is_writing", "unreadable_beside_writer"]
 
 #: SQLite's primary result codes for a write to a file it opened read-only, and a file it cannot open (sqlite3.h).
 SQLITE_READONLY, SQLITE_CANTOPEN = 8, 14
