@@ -99,3 +99,25 @@ def test_rays_shape_is_the_broadcast_shape():
     x, y = torch.zeros(1, 1, 1, 7), torch.zeros(1, 1, 5, 1)
     assert rays_shape(3, x, y) == (3, 1, *torch.broadcast_shapes(x.shape, y.shape)[-2:]) == (3, 1, 5, 7)
     assert rays_shape(2, torch.zeros(2, 1, 4, 6), torch.zeros(6)) == (2, 1, 4, 6)
+
+
+def test_the_pipeline_commands_help_quotes_the_configuration_without_loading_torch():
+    """'svs-depth estimate --help' (and features', fundamental's) loaded torch, 2.3-3.0 s, to read two defaults from
+    PipelineConfig (left alone in earlier stops). The configuration and the help now take them from torch-free modules
+    (``features.limits``, ``geometry.match_ratios``); the help still quotes the configuration's values."""
+    from svs_torch.cli.features import COMMAND_MAX_KEYPOINTS
+    from svs_torch.pipeline import PipelineConfig
+
+    config, paper = PipelineConfig(), PipelineConfig.paper()
+    for command in ("estimate", "features", "fundamental"):
+        code = ("import contextlib, io, sys\nfrom svs_torch.cli import main\nout = io.StringIO()\n"
+                f"with contextlib.redirect_stdout(out):\n    try:\n        main([{command!r}, '--help'])\n"
+                "    except SystemExit:\n        pass\nprint(out.getvalue())\nprint('TORCH', 'torch' in sys.modules)")
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        assert "TORCH False" in run.stdout, (command, run.stderr)
+        text = " ".join(run.stdout.split())
+        assert (f"ratio test of the matching (default: {config.max_ratio}; --preset paper: {paper.max_ratio}, "
+                "MATLAB's MaxRatio)") in text, command
+        cap = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: {paper.surf.max_keypoints}"
+               if command == "features" else f"{config.surf.max_keypoints}")
+        assert f"strongest keypoints kept per image (default: {cap})" in text, command

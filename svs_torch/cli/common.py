@@ -13,10 +13,10 @@ import math
 from typing import Any
 
 __all__ = [
-    "MAX_SEED", "MIN_SIDE_PX", "ConfigValue", "add_disparity_export_options", "add_figure_option",
-    "check_outputs_apart", "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named",
-    "output_file", "output_folder", "positive_float", "positive_int", "resolve_export_options", "seed_int",
-    "timeout_seconds", "too_small_reason", "unit_interval_float", "with_config_values",
+    "MAX_SEED", "MIN_SIDE_PX", "add_disparity_export_options", "add_figure_option", "check_outputs_apart",
+    "dumps_strict", "finite_float", "non_negative_float", "non_negative_int", "options_named", "output_file",
+    "output_folder", "positive_float", "positive_int", "resolve_export_options", "seed_int", "timeout_seconds",
+    "too_small_reason", "unit_interval_float",
 ]
 
 #: The smallest width and height the feature stage handles: SURF's first octave needs 5 pixels per side for its
@@ -279,31 +279,6 @@ def resolve_export_options(args: argparse.Namespace) -> None:
                          "carry no method name; drop it, or write the Middlebury layout")
     args.disparity_format = args.disparity_format or "middlebury"
     args.method_name = args.method_name or "SVSTorch"
-
-
-class ConfigValue:
-    """A value of the pipeline configuration for ``--help`` (``%(name)s`` in an option's help, set on the action
-    by :func:`with_config_values`): read from :class:`~svs_torch.pipeline.PipelineConfig` only when the help is
-    printed, so a help text never disagrees with the configuration and building the parser never loads torch."""
-
-    def __init__(self, field: str, preset: str = "default") -> None:
-        self.field, self.preset = field, preset
-
-    def __str__(self) -> str:
-        from ..pipeline import PipelineConfig
-
-        value: Any = PipelineConfig.paper() if self.preset == "paper" else PipelineConfig()
-        for part in self.field.split("."):
-            value = getattr(value, part)
-        return str(value)
-
-
-def with_config_values(action: argparse.Action, **values: ConfigValue) -> argparse.Action:
-    """``action`` with the :class:`ConfigValue` s its help names as ``%(name)s`` (argparse fills them in from
-    the action's attributes when it prints the help)."""
-    for name, value in values.items():
-        setattr(action, name, value)
-    return action
 
 
 def too_small_reason(size_hw: tuple[int, int]) -> str | None:

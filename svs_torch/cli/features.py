@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import (ConfigValue, _number, add_figure_option, check_outputs_apart, dumps_strict, non_negative_float,
-                     options_named, too_small_reason, unit_interval_float, with_config_values)
+from ..features.limits import DEFAULT_MAX_KEYPOINTS, MAX_KEYPOINTS
+from ..geometry.match_ratios import LOWE_MAX_RATIO, MATLAB_MAX_RATIO
+from .common import (_number, add_figure_option, check_outputs_apart, dumps_strict, non_negative_float, options_named,
+                     too_small_reason, unit_interval_float)
 from .segment import add_segmentation_options, refuse_unused_segmentation_options
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
@@ -60,10 +62,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 #: The largest pair the command line works on (a 4096 x 4096 frame); larger ones are resampled with --size.
 MAX_PIXELS = 4096 * 4096
 #: ``features``' own keypoint cap under ``--preset default``: the detector's limit
-#: (:data:`svs_torch.features.detector.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The
+#: (:data:`svs_torch.features.limits.MAX_KEYPOINTS`), i.e. no cap in practice, as ``cv2.SIFT_create()``. The
 #: pipeline's 512 suits 320x240 and RANSAC; at native size it kept a third of SIFT's correct matches
 #: (``experiments/features_cli_vs_sift.py``, tuned split: 0.36 of SIFT's; 4.6x with this default and x2 detection).
-COMMAND_MAX_KEYPOINTS = 10_000
+COMMAND_MAX_KEYPOINTS = MAX_KEYPOINTS
 #: ``features`` detects on the image enlarged twice (``--upsample``) up to this many pixels by default (more and
 #: better-placed keypoints: precision 0.79 -> 0.84 on the tuned split); larger frames have keypoints enough, and
 #: their enlarged scale space would cost gigabytes.
@@ -74,11 +76,6 @@ def add_pair_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", metavar="WxH",
                         help="resample the pair to this size first (e.g. 320x240, the SVS default; at most 16 "
                              "megapixels, and a pair over 16 megapixels needs it)")
-
-
-#: ``SURFConfig``'s largest ``max_keypoints`` (``svs_torch.features.detector.MAX_KEYPOINTS``, written out here: the
-#: parser must not wait for torch; a test holds the two equal).
-MAX_KEYPOINTS = 10_000
 
 
 def keypoint_count(text: str) -> int:
@@ -96,11 +93,12 @@ def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool 
                         help="'default': svs_torch's best measured settings (dense depth over the obstacles); "
                              "'paper': the paper's steps, MATLAB's defaults and R = f*B/d over the RANSAC "
                              "inliers (Eq. 5-8)")
-    keypoints_default = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: %(preset_value)s"
-                         if command_defaults else "%(preset_value)s")
-    with_config_values(parser.add_argument("--max-keypoints", type=keypoint_count, metavar="K",
-                                           help=f"strongest keypoints kept per image (default: {keypoints_default})"),
-                       preset_value=ConfigValue("surf.max_keypoints"))
+    # The configuration's own defaults (SurfConfig, PipelineConfig), from the modules they take them from: without
+    # torch, so that '--help' answers at once (2.3-3.0 s when it read them from PipelineConfig).
+    keypoints_default = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: {DEFAULT_MAX_KEYPOINTS}"
+                         if command_defaults else f"{DEFAULT_MAX_KEYPOINTS}")
+    parser.add_argument("--max-keypoints", type=keypoint_count, metavar="K",
+                        help=f"strongest keypoints kept per image (default: {keypoints_default})")
     parser.add_argument("--metric-threshold", type=non_negative_float, metavar="T",
                         help="SURF det(H) threshold on 0-255 intensities (MATLAB MetricThreshold; paper 1000)")
     parser.add_argument("--upsample", action=argparse.BooleanOptionalAction,
@@ -108,10 +106,9 @@ def add_feature_options(parser: argparse.ArgumentParser, command_defaults: bool 
                              "keypoints on small frames, about 4x slower detection" + (
                                  f" (default: on up to {COMMAND_UPSAMPLE_MAX_PIXELS // 2**20} megapixel; "
                                  "--preset paper: off)" if command_defaults else ""))
-    with_config_values(parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
-                                           help="ratio test of the matching (default: %(preset_value)s; "
-                                                "--preset paper: %(paper_value)s, MATLAB's MaxRatio)"),
-                       preset_value=ConfigValue("max_ratio"), paper_value=ConfigValue("max_ratio", "paper"))
+    parser.add_argument("--max-ratio", type=unit_interval_float, metavar="R",
+                        help=f"ratio test of the matching (default: {LOWE_MAX_RATIO}; --preset paper: "
+                             f"{MATLAB_MAX_RATIO}, MATLAB's MaxRatio)")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction,
                         help="refine each matched point to sub-pixel (Lucas-Kanade on the patches) and drop "
                              "matches whose patches disagree (preset default: on; paper: off)")

@@ -18,19 +18,12 @@ from ..core.kernels.checks import check_nonempty
 from ..core.types import Keypoints
 from . import kernels
 from .hessian import HessianOctave, hessian_octaves, local_maxima_scores, maxima_support
+from .limits import DEFAULT_MAX_KEYPOINTS, MAX_KEYPOINTS, MAX_OCTAVES, MAX_SCALE_LEVELS  # noqa: F401 (re-exported)
 
 __all__ = ["SurfConfig", "detect_surf_keypoints", "metric_threshold_01"]
 
 #: Gray levels of the uint8 scale that MATLAB's MetricThreshold refers to.
 _U8 = 255.0
-
-
-#: Limits that keep a mistyped setting from asking for gigabytes (MATLAB recommends 1-4 octaves and 3-6 levels): the
-#: largest filter, 3 + 6·2⁵·8 = 1539 px at 6 octaves of 8 levels, pads the integral image by half its size; the SAD
-#: matching compares every pair of keypoints (10⁸ at 10⁴ per image).
-MAX_OCTAVES = 6
-MAX_SCALE_LEVELS = 8
-MAX_KEYPOINTS = 10_000
 
 
 @dataclass(frozen=True)
@@ -58,7 +51,7 @@ class SurfConfig:
     metric_threshold: float = 1000.0  # MATLAB detectSURFFeatures default
     num_octaves: int = 3  # MATLAB default
     num_scale_levels: int = 4  # MATLAB default
-    max_keypoints: int = 512
+    max_keypoints: int = DEFAULT_MAX_KEYPOINTS
     upright: bool = True  # Sec. 3.3 (1): fixed stereo rig, no roll
     extended: bool = False  # MATLAB FeatureSize 64
     max_offset: float = 1.0

@@ -20,6 +20,7 @@ from ..core.checks import InputError, check_dtype, check_flag, check_shape
 from ..core.types import Matches
 from . import kernels
 from .lk_refinement import MatchRefinementConfig, refine_matched_points, refine_matches_lk
+from .match_ratios import MATLAB_MAX_RATIO
 from .matched_points import MatchedPoints, gather_matched_points
 
 __all__ = [
@@ -155,7 +156,7 @@ def match_sad(
     valid_left: torch.Tensor,
     valid_right: torch.Tensor,
     *,
-    max_ratio: float = 0.6,
+    max_ratio: float = MATLAB_MAX_RATIO,
     match_threshold: float | None = None,
     mutual: bool = False,
     laplacian_left: torch.Tensor | None = None,

@@ -1,6 +1,5 @@
 """The pipeline's options (:class:`PipelineConfig`: one config per stage and the choices between them) and its
-per-pair status (:class:`PipelineStatus`: the stage that stopped); its result, :class:`PipelineResult`, is in
-:mod:`.result` and re-exported here.
+per-pair status (:class:`PipelineStatus`: the stage that stopped); its result is in :mod:`.result`, re-exported.
 """
 
 from __future__ import annotations
@@ -16,6 +15,7 @@ from ..depth.depth_types import DepthConfig
 from ..features.detector import SurfConfig
 from ..geometry.kernels import MAX_HYPOTHESES
 from ..geometry.lk_refinement import MatchRefinementConfig
+from ..geometry.match_ratios import LOWE_MAX_RATIO, MATLAB_MAX_RATIO
 from ..geometry.rectification import RectificationConfig
 from ..geometry.row_alignment import RowAlignmentConfig
 from ..segmentation.segment import SegmentationConfig
@@ -216,7 +216,7 @@ class PipelineConfig:
     # the left ones moved by their disparity, which such a camera moves elsewhere: whole images kept or raised every
     # condition (roll 2 deg: 46 / 19 -> 81 / 84 %, shift 3 %: 26 / 39 -> 83 / 83 %, clean and JPEG unchanged).
     features_on: Literal["masked", "mask", "image"] = "image"  # the paper (Sec. 3.3 (1)): "masked"
-    max_ratio: float = 0.8  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
+    max_ratio: float = LOWE_MAX_RATIO  # Lowe's ratio; MATLAB matchFeatures MaxRatio is 0.6 (the paper preset)
     mutual: bool = False  # MATLAB matchFeatures Unique = false
     laplacian_gate: bool = True  # SURF's sign check, Bay et al. Sec. 4.3; off in paper() (MATLAB matchFeatures)
     epipolar_band_px: float | None = None  # pixels; None: no band
@@ -392,8 +392,8 @@ class PipelineConfig:
         failed pair (27.8 %). ``replace(PipelineConfig.paper(), ransac_scoring="ransac", rectify="required")``
         (``--preset paper --set ransac_scoring=ransac --set rectify=required``) is the paper's letter: 30
         degenerate, 27.9 %."""
-        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", max_ratio=0.6,
-                   laplacian_gate=False, refine_matches=None, ransac_threshold_px=0.1, ransac_max_iterations=500,
+        return cls(segmentation=SegmentationConfig(), surf=SurfConfig(), features_on="masked", laplacian_gate=False,
+                   max_ratio=MATLAB_MAX_RATIO, refine_matches=None, ransac_threshold_px=0.1, ransac_max_iterations=500,
                    row_alignment=None, depth=DepthConfig(rule="paper", min_in_front_share=0.0),
                    noisy_retry_sigma_px=None, noisy_features_retry_sigma_px=None, coarse_retry_below_share=None,
                    drop_unmeasured_below_share=None, drop_unmeasured_nearer_below_share=None, exposure_retry=None,

@@ -324,8 +324,8 @@ def test_segment_calls_a_pair_too_small_as_estimate_does(capsys, tmp_path):
 
 
 def test_max_keypoints_option_states_its_own_range(capsys):
-    """The parser writes the detector's cap out (it must not wait for torch): the two stay equal, and 0, which
-    the option refuses, is not offered in its message."""
+    """The parser takes the detector's cap from the module the detector takes it from (``features.limits``, without
+    torch): the two stay equal, and 0, which the option refuses, is not offered in its message."""
     from svs_torch.cli.features import MAX_KEYPOINTS
     from svs_torch.features.detector import MAX_KEYPOINTS as DETECTOR_MAX_KEYPOINTS
 
