@@ -101,23 +101,28 @@ def test_rays_shape_is_the_broadcast_shape():
     assert rays_shape(2, torch.zeros(2, 1, 4, 6), torch.zeros(6)) == (2, 1, 4, 6)
 
 
-def test_the_pipeline_commands_help_quotes_the_configuration_without_loading_torch():
+def test_every_command_help_answers_without_torch_and_quotes_the_configuration():
     """'svs-depth estimate --help' (and features', fundamental's) loaded torch, 2.3-3.0 s, to read two defaults from
     PipelineConfig (left alone in earlier stops). The configuration and the help now take them from torch-free modules
-    (``features.limits``, ``geometry.match_ratios``); the help still quotes the configuration's values."""
+    (``features.limits``, ``geometry.match_ratios``); the help still quotes the configuration's values. Every other
+    command's help answered without torch already, and must go on doing so."""
+    from svs_torch.cli import build_parser
     from svs_torch.cli.features import COMMAND_MAX_KEYPOINTS
     from svs_torch.pipeline import PipelineConfig
 
+    commands = sorted(build_parser()._subparsers._group_actions[0].choices)
+    code = ("import contextlib, io, sys\nfrom svs_torch.cli import main\n"
+            f"for command in {commands!r}:\n    out = io.StringIO()\n    with contextlib.redirect_stdout(out):\n"
+            "        try:\n            main([command, '--help'])\n        except SystemExit:\n            pass\n"
+            "    print('COMMAND', command, ' '.join(out.getvalue().split()))\nprint('TORCH', 'torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "TORCH False" in run.stdout, run.stderr
+    helps = dict(line.split(" ", 2)[1:] for line in run.stdout.splitlines() if line.startswith("COMMAND "))
+    assert {"estimate", "features", "fundamental", "guide", "eval"} <= set(helps) == set(commands)
     config, paper = PipelineConfig(), PipelineConfig.paper()
     for command in ("estimate", "features", "fundamental"):
-        code = ("import contextlib, io, sys\nfrom svs_torch.cli import main\nout = io.StringIO()\n"
-                f"with contextlib.redirect_stdout(out):\n    try:\n        main([{command!r}, '--help'])\n"
-                "    except SystemExit:\n        pass\nprint(out.getvalue())\nprint('TORCH', 'torch' in sys.modules)")
-        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-        assert "TORCH False" in run.stdout, (command, run.stderr)
-        text = " ".join(run.stdout.split())
         assert (f"ratio test of the matching (default: {config.max_ratio}; --preset paper: {paper.max_ratio}, "
-                "MATLAB's MaxRatio)") in text, command
+                "MATLAB's MaxRatio)") in helps[command], command
         cap = (f"{COMMAND_MAX_KEYPOINTS}, every keypoint found; --preset paper: {paper.surf.max_keypoints}"
                if command == "features" else f"{config.surf.max_keypoints}")
-        assert f"strongest keypoints kept per image (default: {cap})" in text, command
+        assert f"strongest keypoints kept per image (default: {cap})" in helps[command], command
