@@ -83,8 +83,15 @@ def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2:
     ``torch.no_grad``; the index is int64)."""
     dims = check_shape(costs, "costs", ["B", "D", "H", "W"])
     check_dtype(costs, "costs", "float")  # int64 costs failed converting +inf deep inside
+    if costs.is_meta:  # its minimum is read on the host: a RuntimeError from a meta item() (an audit)
+        raise InputError("costs: expected a tensor with values, got one on the meta device")
     for name, value in (("p1", p1), ("p2", p2)):
         check_shape(value, name, [dims["B"]])
+        # A complex one raised NotImplementedError from the comparison below, a meta one a RuntimeError from its
+        # bool(), and a bool one was taken as 1 in silence (an audit).
+        check_dtype(value, name, "int|float")
+        if value.device != costs.device:
+            raise InputError(f"{name}: expected a tensor on the costs' device {costs.device}, got {value.device}")
     if costs.numel() and not bool(costs.min() >= 0):  # one pass: the minimum is NaN where any cost is
         raise InputError("costs: expected SAD costs >= 0 (or +inf where not searched), got NaN or negative values")
     if not (bool((p1 >= 0).all()) and bool((p2 >= p1).all())):

@@ -110,6 +110,18 @@ def test_bad_input_is_refused_by_name(costs, p1, p2, name):
         semi_global_aggregate(costs, p1, p2)
 
 
+@pytest.mark.parametrize("p1, p2, name, expected", [
+    (torch.ones(1, dtype=torch.complex64), torch.ones(1), "p1", "int or float tensor"),  # NotImplementedError (ge_cpu)
+    (torch.ones(1), torch.ones(1, dtype=torch.bool), "p2", "int or float tensor"),  # True taken as 1 in silence
+    (torch.ones(1, device="meta"), torch.ones(1), "p1", "costs' device"),  # RuntimeError from a meta item()
+])
+def test_penalties_of_another_kind_or_device_are_refused_by_name(p1, p2, name, expected):
+    with pytest.raises(InputError, match=f"^{name}: expected .*{expected}"):
+        semi_global_aggregate(torch.ones(1, 2, 3, 3), p1, p2)
+    with pytest.raises(InputError, match="^costs: expected a tensor with values"):  # both on meta, as the costs
+        semi_global_aggregate(torch.ones(1, 2, 3, 3, device="meta"), p1.to("meta"), p2.to("meta"))
+
+
 @pytest.mark.parametrize("penalties", [(-1.0, 2.0), (3.0, 2.0), (1.0, float("inf"))])
 def test_config_refuses_bad_penalties(penalties):
     with pytest.raises(InputError, match="^smoothing_penalties: "):
