@@ -11,7 +11,7 @@ from dataclasses import replace
 import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
-from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty
+from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty, check_row_fill
 from ..core.mask_reductions import any_along
 from . import kernels
 from .cost_volume import (_box_sum, _cost_volume, _gather_crop, check_volume_size, crop_box, prefilter_xsobel,
@@ -192,12 +192,12 @@ def _match_box(left: torch.Tensor, right: torch.Tensor, x0: torch.Tensor, y0: to
 
 
 def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fill each invalid pixel of ``(..., W)`` rows from the nearest valid pixels to its left and right: their
-    mean where they agree within 1 px (a textureless patch inside one surface), otherwise the smaller
-    disparity (an occlusion is background: Hirschmüller 2008, Sec. 3.5); one side only where the other has
-    none. Returns the filled disparity and where a fill was possible (``valid`` or a valid pixel in the row).
-    Differentiable w.r.t. ``disparity``; without gradients a compiled kernel gives the same values in two
-    passes per row (:mod:`svs_torch.depth.kernels`)."""
+    """Fill each invalid pixel of ``(..., W)`` rows (float or int; ``valid`` of its shape, bool) from the nearest
+    valid pixels to its left and right: their mean where they agree within 1 px (a textureless patch inside one
+    surface), otherwise the smaller disparity (an occlusion is background: Hirschmüller 2008, Sec. 3.5); one side
+    only where the other has none. Returns the filled disparity and where a fill was possible (``valid`` or a valid
+    pixel in the row). Differentiable w.r.t. ``disparity``; without gradients a C kernel: the same values."""
+    check_row_fill(disparity, valid)
     if not (disparity.requires_grad and torch.is_grad_enabled()):
         done = kernels.fill_invalid_rows(disparity, valid)
         if done is not None:

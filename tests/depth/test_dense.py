@@ -226,6 +226,22 @@ def test_fill_invalid_rows():
     assert not none.any() and not empty.any()
 
 
+@pytest.mark.parametrize("grad", [False, True], ids=["kernel", "torch"])
+@pytest.mark.parametrize("disparity, valid, expected", [
+    (torch.ones(1, 3), torch.ones(1, 3), "^valid: expected a bool tensor"),  # where(): "expected ... boolean"
+    (torch.ones(1, 3), torch.ones(1, 1, dtype=torch.bool), r"^valid: expected \(1, 3\)"),  # broadcast in silence
+    (torch.ones(1, 3, dtype=torch.complex64), torch.ones(1, 3, dtype=torch.bool), "^disparity: expected"),
+    (torch.ones(1, 3, dtype=torch.bool), torch.ones(1, 3, dtype=torch.bool), "^disparity: expected"),
+])
+def test_fill_invalid_rows_names_a_bad_argument_on_both_paths(disparity, valid, expected, grad):
+    """Its checks were the C kernel's alone: the torch path (a disparity that requires grad, or a dtype the kernel
+    does not take) raised from deep inside torch or broadcast a valid of another shape."""
+    if grad and disparity.is_floating_point():
+        disparity = disparity.clone().requires_grad_()
+    with pytest.raises(InputError, match=expected):
+        fill_invalid_rows(disparity, valid)
+
+
 def test_soft_block_match_gradcheck_and_low_temperature_limit(generator):
     left = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)
     right = torch.rand(1, 1, 6, 10, generator=generator, dtype=F64, requires_grad=True)

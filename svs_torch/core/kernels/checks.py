@@ -10,11 +10,11 @@ import math
 
 import torch
 
-from ..checks import check_dtype, check_shape
+from ..checks import check_dtype, check_instance, check_shape
 from ..errors import InputError
 
 __all__ = ["as_integer_tensor", "canonical_bool", "check_boxes", "check_counts", "check_image_hw", "check_nonempty",
-           "check_number", "check_positive_hw", "check_rows", "settings_table"]
+           "check_number", "check_positive_hw", "check_row_fill", "check_rows", "settings_table"]
 
 
 def check_rows(tensor: torch.Tensor, name: str, rows: int | str, *tail: int | str, kinds: str = "int"
@@ -24,6 +24,19 @@ def check_rows(tensor: torch.Tensor, name: str, rows: int | str, *tail: int | st
     check_shape(tensor, name, [rows, *tail])
     check_dtype(tensor, name, kinds)
     return tensor
+
+
+def check_row_fill(disparity: torch.Tensor, valid: torch.Tensor) -> None:
+    """The arguments of ``fill_invalid_rows`` (:mod:`svs_torch.depth.block_matching`), on its torch path as on its
+    kernel's: ``disparity`` ``(..., W)`` float or int, ``valid`` of its shape, bool. They were the kernel's alone:
+    on the torch path (a disparity that requires grad) a float valid raised from deep inside torch, one of another
+    shape was broadcast in silence, and a bool or complex disparity failed in its sums (an audit)."""
+    check_instance(disparity, "disparity", torch.Tensor)
+    if disparity.dim() < 1:
+        raise InputError(f"disparity: expected (..., W), got {tuple(disparity.shape)}")
+    check_dtype(disparity, "disparity", "float|int")
+    check_shape(valid, "valid", list(disparity.shape))
+    check_dtype(valid, "valid", "bool")
 
 
 def check_image_hw(image_hw: torch.Tensor, b: int, h: int, w: int) -> torch.Tensor:

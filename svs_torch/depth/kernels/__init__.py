@@ -8,11 +8,11 @@ import ctypes
 
 import torch
 
-from ...core.checks import check_count, check_dtype, check_instance, check_shape
+from ...core.checks import check_count, check_dtype, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import (canonical_bool, check_boxes, check_counts, check_image_hw, check_nonempty,
-                                   check_number, check_rows)
+                                   check_number, check_row_fill, check_rows)
 from ...core.mask_reductions import has_nan
 
 __all__ = ["available", "block_match", "fill_invalid_rows", "labelled_select", "load", "object_depths",
@@ -210,10 +210,7 @@ def fill_invalid_rows(disparity: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     """:func:`svs_torch.depth.block_matching.fill_invalid_rows` in two passes per row (see the C source), bit for bit:
     ``disparity`` ``(..., W)`` float32, ``valid`` of its shape, bool. Returns the filled disparity and where a
     fill was possible; None when the kernel is not available or the inputs do not fit its contract."""
-    check_instance(disparity, "disparity", torch.Tensor)
-    if disparity.dim() < 1:
-        raise InputError(f"disparity: expected (..., W), got {tuple(disparity.shape)}")
-    check_shape(valid, "valid", list(disparity.shape))
+    check_row_fill(disparity, valid)
     if not (on_cpu(torch.float32, disparity) and on_cpu(torch.bool, valid)):
         return None
     library = load("fill_invalid_rows")
