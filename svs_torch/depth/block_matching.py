@@ -249,7 +249,7 @@ def _check_sizes(image_hw: torch.Tensor | None, left: torch.Tensor) -> torch.Ten
 
 def _check_range(min_disparity_px: torch.Tensor | int, num_disparities: int, left: torch.Tensor,
                  left_right: bool) -> torch.Tensor:
-    if not isinstance(num_disparities, int) or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:
+    if type(num_disparities) is not int or not 1 <= num_disparities <= kernels.MAX_DISPARITIES:  # not a bool
         raise InputError(f"num_disparities: expected an int in [1, {kernels.MAX_DISPARITIES}], got {num_disparities!r}")
     check_volume_size(num_disparities, 1, left.shape[-1] + 2 * (num_disparities - 1) * left_right, "image row")
     minimum = as_integer_tensor(min_disparity_px, "min_disparity_px", left.device)

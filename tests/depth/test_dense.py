@@ -377,6 +377,16 @@ def test_config_errors(kwargs, message):
         DenseConfig(**kwargs)
 
 
+def test_a_bool_number_of_disparities_is_refused():
+    """True is an int to isinstance: block_match_sad and soft_block_match searched one disparity in silence."""
+    image = torch.rand(1, 1, 8, 8)
+    for match in (lambda n: block_match_sad(image, image, 0, n), lambda n: soft_block_match(image, image, 0, n, 1.0),
+                  lambda n: dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 8, dtype=torch.bool),
+                                                         DisparityRange(torch.tensor([0]), n))):
+        with pytest.raises(InputError, match=r"^num_disparities: expected an int in \[1, 65534\], got True$"):
+            match(True)
+
+
 def test_argument_errors():
     image = torch.rand(1, 1, 8, 8)
     with pytest.raises(InputError, match=r"right: expected the shape of left"):
