@@ -257,6 +257,23 @@ def test_soft_block_match_gradcheck_and_low_temperature_limit(generator):
     torch.testing.assert_close(cold[hard.valid & integer], hard.disparity_px[hard.valid & integer])
 
 
+def test_soft_block_match_gives_a_pair_alone_its_value_in_a_batch(generator):
+    """torch.softmax over the disparities (dim 1) splits B·H·W into vectorised runs and a scalar tail whose
+    exp rounds differently, so at some sizes (here 9 × 14) a pair's disparity and gradient moved by an ulp with
+    the other pairs of its batch (an audit): now each pair's softmax is its own call."""
+    left = torch.rand(4, 1, 9, 14, generator=generator, requires_grad=True)
+    right = torch.rand(4, 1, 9, 14, generator=generator, requires_grad=True)
+    config = DenseConfig(window_size=3)
+    batched = soft_block_match(left, right, 0, 4, 0.5, config)
+    grads = torch.autograd.grad(batched.sum(), (left, right), create_graph=True)
+    for index in range(4):
+        one = (left[index:index + 1], right[index:index + 1])
+        alone = soft_block_match(*one, 0, 4, 0.5, config)
+        assert torch.equal(alone, batched[index:index + 1])
+        for got, want in zip(torch.autograd.grad(alone.sum(), one, create_graph=True), grads):
+            assert torch.equal(got, want[index:index + 1])
+
+
 def test_soft_block_match_second_derivatives_are_the_true_ones(generator):
     """Found by an audit: the hand-written backward ran without a graph, so create_graph=True gave a second
     derivative of zero in silence (a gradient penalty through the soft-argmin trained on nothing). With
