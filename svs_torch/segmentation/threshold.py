@@ -37,9 +37,14 @@ def gray_histogram(levels: torch.Tensor, ignore: torch.Tensor | None = None) -> 
     One ``bincount`` over the whole batch, with each image's levels offset into its own 256 bins (int32
     offsets: a quarter of the memory traffic of int64 for the same result). Not differentiable (counts).
     """
+    # Other dtypes were taken in silence (an audit): an int level past 255 counted in the next image's bins, a float
+    # one truncated, and an int ignore inverted bit by bit (~0 = -1) into indices.
+    if not isinstance(levels, torch.Tensor) or levels.dtype != torch.uint8:
+        raise InputError(f"levels: expected a uint8 tensor of gray levels, got {getattr(levels, 'dtype', levels)!r}")
     b = levels.shape[0]
     if ignore is not None:  # a mask of another size failed in an index deep inside
         check_shape(ignore, "ignore", list(levels.shape))
+        check_dtype(ignore, "ignore", "bool")
     offsets = torch.arange(b, device=levels.device, dtype=torch.int32).view(b, 1) * NUM_LEVELS
     flat = (levels.reshape(b, -1).to(torch.int32) + offsets).flatten()
     if ignore is not None:

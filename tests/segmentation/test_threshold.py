@@ -66,6 +66,20 @@ def test_histogram_counts_every_pixel():
     assert histogram.shape == (3, 256) and torch.equal(histogram.sum(1), torch.full((3,), 35))
 
 
+@pytest.mark.parametrize("levels, ignore, expected", [
+    # An int64 level past 255 was counted in the next image's bins (its 300 in image 1's level 44), in silence.
+    (torch.tensor([300, 0, 0, 0, 0, 0, 0, 0]).view(2, 1, 2, 2), None, "^levels: expected a uint8 tensor"),
+    (torch.full((1, 1, 2, 2), 0.9), None, "^levels: expected a uint8 tensor"),  # truncated to level 0
+    # An int ignore was inverted bit by bit (~0 = -1) and taken as indices: image 0 counted nothing, image 1 twice.
+    (torch.zeros(2, 1, 2, 2, dtype=torch.uint8), torch.zeros(2, 1, 2, 2, dtype=torch.int64),
+     "^ignore: expected a bool tensor"),
+    (torch.zeros(2, 1, 2, 2, dtype=torch.uint8), torch.zeros(2, 1, 2, 2), "^ignore: expected a bool tensor"),
+])
+def test_histogram_refuses_levels_and_ignore_of_another_dtype(levels, ignore, expected):
+    with pytest.raises(InputError, match=expected):
+        gray_histogram(levels, ignore)
+
+
 def test_histogram_leaves_out_the_ignored_pixels_whatever_their_level():
     """``ignore``: each image's histogram is that of its other pixels alone (numpy's, per image)."""
     generator = torch.Generator().manual_seed(5)
