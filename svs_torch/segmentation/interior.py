@@ -45,6 +45,12 @@ def region_interiors(labels: torch.Tensor, kept_labels: torch.Tensor, radius_px:
     b = dims["B"]
     check_shape(kept_labels, "kept_labels", [b, "N"])
     check_shape(pairs, "pairs", [b])
+    # Their dtypes and the share were the kernel's contract alone: elsewhere a complex or float kept_labels, a
+    # float or int pairs and a string share raised from deep inside torch or were taken in silence (an audit).
+    check_dtype(kept_labels, "kept_labels", "int")
+    check_dtype(pairs, "pairs", "bool")
+    if isinstance(min_share, bool) or not isinstance(min_share, (int, float)):  # NaN or ±inf: none or every one
+        raise InputError(f"min_share: expected a real number, got {min_share!r}")
     if isinstance(radius_px, bool) or not isinstance(radius_px, int) or radius_px < 0:
         raise InputError(f"radius_px: expected an int >= 0, got {radius_px!r}")
     pairs = canonical_bool(pairs)  # a mask viewed from other bytes: nonzero is True, on both paths

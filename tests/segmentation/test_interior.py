@@ -76,6 +76,20 @@ def test_bad_labels_are_refused_by_name():
         region_interiors(labels, kept, 2, torch.tensor([True]))
 
 
+@pytest.mark.parametrize("kept_dtype, pairs_dtype, min_share, name", [
+    (torch.complex64, torch.bool, 0.5, "kept_labels"),  # NotImplementedError from a comparison deep inside
+    (torch.float32, torch.bool, 0.5, "kept_labels"),  # taken by the torch path, the kernel passed over
+    (torch.int64, torch.float32, 0.5, "pairs"),  # NotImplementedError ("bitwise_and_cpu" for Float)
+    (torch.int64, torch.int64, 0.5, "pairs"),  # taken as a mask of 0 / 1 in silence
+    (torch.int64, torch.bool, "0.5", "min_share"),  # TypeError from the torch path's product
+    (torch.int64, torch.bool, True, "min_share"),  # a flag in the wrong place, taken as 1
+])
+def test_kept_labels_pairs_and_share_of_another_kind_are_refused_by_name(kept_dtype, pairs_dtype, min_share, name):
+    labels, kept = _scene()
+    with pytest.raises(InputError, match=f"^{name}: expected"):
+        region_interiors(labels, kept.to(kept_dtype), 2, torch.tensor([True, True], dtype=pairs_dtype), min_share)
+
+
 @pytest.mark.parametrize("threads", [1, 3])
 def test_the_kernel_gives_the_torch_paths_labels(generator, monkeypatch, threads):
     """The C kernel (each pair read once) against the torch path: random blocky labels with a thin band, slots
