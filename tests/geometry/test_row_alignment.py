@@ -200,6 +200,18 @@ def test_alignment_rejects_bad_input():
         RowAlignmentConfig(min_inliers=2)
 
 
+@pytest.mark.parametrize("focal_px, expected", [
+    (torch.full((1,), 300.0 + 0j), "int or float tensor"),  # NotImplementedError ("gt_cpu") from deep inside
+    (torch.ones(1, dtype=torch.bool), "int or float tensor"),  # a focal length of 1 px, in silence
+    (torch.full((1,), 300.0, device="meta"), "the points' device"),  # RuntimeError from a meta item()
+])
+def test_alignment_names_a_focal_length_of_another_kind(focal_px, expected):
+    points = torch.rand(1, 8, 2) * 100
+    with pytest.raises(InputError, match=f"^focal_px: expected .*{expected}"):
+        fit_row_alignment(points, points, torch.ones(1, 8, dtype=torch.bool), torch.tensor([[240, 320]]),
+                          focal_px=focal_px)
+
+
 @pytest.fixture(scope="module")
 def teddy(data_dir):
     """Middlebury 2003 Teddy (held-out split) at 320×240 with its nominal calibration."""
