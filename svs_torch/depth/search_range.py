@@ -54,6 +54,21 @@ def _select_nearest_ranks(values: torch.Tensor, labels: torch.Tensor, slots: tor
     return count, list(chosen.unbind(-1))
 
 
+def _checked_samples(disparity_px: torch.Tensor, valid: torch.Tensor, image_w: torch.Tensor) -> torch.Tensor:
+    """:func:`disparity_search_range`'s checks; the samples in float64, detached."""
+    b = check_shape(disparity_px, "disparity_px", ["B", "P"])["B"]
+    check_shape(valid, "valid", list(disparity_px.shape))
+    check_dtype(valid, "valid", "bool")
+    # Unchecked before (an audit): a (B, 1) width gave (B, B) ranges in silence, a complex one failed deep inside,
+    # complex samples lost their imaginary part with a warning.
+    check_dtype(disparity_px, "disparity_px", "float|int")
+    check_shape(image_w, "image_w", [b])
+    check_dtype(image_w, "image_w", "int")
+    values = disparity_px.detach().to(torch.float64)
+    check_finite(values[valid], "disparity_px")  # where valid: an inf sample made a range from -2^63
+    return values
+
+
 def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, image_w: torch.Tensor,
                            config: DenseConfig = DenseConfig(), extra_margin_px: float = 0.0,
                            min_count: int | None = None, groups: torch.Tensor | None = None,
@@ -76,11 +91,7 @@ def disparity_search_range(disparity_px: torch.Tensor, valid: torch.Tensor, imag
     (:func:`_detached_tail_ceiling`) and, with ``config.in_view_margin="object"``, each group's margin from its own
     span (:func:`_in_view_tops`), and with ``config.in_view_per_object`` and ``groups`` each group's own top too
     (``object_in_view_top_px``); the range searched keeps every sample. Not differentiable (integer ranges)."""
-    check_shape(disparity_px, "disparity_px", ["B", "P"])
-    check_shape(valid, "valid", list(disparity_px.shape))
-    check_dtype(valid, "valid", "bool")
-    values = disparity_px.detach().to(torch.float64)
-    check_finite(values[valid], "disparity_px")  # where valid: an inf sample made a range from -2^63
+    values = _checked_samples(disparity_px, valid, image_w)
     enough_count = config.min_range_inliers if min_count is None else min_count
     percentiles = (config.range_percentiles[0] / 100, config.range_percentiles[1] / 100)
     share = config.in_view_detached_tail_share if tail_bin_px is not None else None

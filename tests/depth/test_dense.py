@@ -216,6 +216,17 @@ def test_search_range_from_samples():
     assert search.num_disparities == 81
 
 
+@pytest.mark.parametrize("disparity, image_w, expected", [
+    # A (B, 1) width broadcast the pair's range to (B, B) in silence.
+    (torch.full((2, 5), 4.0), torch.tensor([[320], [320]]), r"^image_w: expected \(2\), got \(2, 1\)"),
+    (torch.full((2, 5), 4.0), torch.full((2,), 320 + 0j), "^image_w: expected an? int"),  # deep RuntimeError
+    (torch.full((2, 5), 4.0 + 0j), torch.tensor([320, 320]), "^disparity_px: expected"),  # imaginary part dropped
+])
+def test_the_search_range_names_a_width_or_samples_of_another_kind(disparity, image_w, expected):
+    with pytest.raises(InputError, match=expected):
+        disparity_search_range(disparity, torch.ones(disparity.shape, dtype=torch.bool), image_w)
+
+
 def test_fill_invalid_rows():
     disparity = torch.tensor([[5.0, 0.0, 5.5, 0.0, 0.0, 9.0, 0.0]])
     valid = torch.tensor([[True, False, True, False, False, True, False]])
