@@ -125,6 +125,8 @@ def mask_iou(mask: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     differentiable (counts of bool masks)."""
     check_shape(mask, "mask", ["B", 1, "H", "W"])
     check_shape(truth, "truth", list(mask.shape))
+    check_dtype(mask, "mask", "bool")  # a float one failed deep inside, an int one was met bit by bit (an audit)
+    check_dtype(truth, "truth", "bool")
     inter = (mask & truth).flatten(1).sum(1)
     union = (mask | truth).flatten(1).sum(1)
     return torch.where(union > 0, inter / union.clamp(min=1), 1.0)

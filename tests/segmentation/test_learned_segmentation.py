@@ -76,6 +76,16 @@ def test_mask_iou_values():
     torch.testing.assert_close(mask_iou(a, b), torch.tensor([1 / 3, 0.0, 1.0]))
 
 
+@pytest.mark.parametrize("dtype, name", [(torch.float32, "mask"), (torch.int64, "truth")])
+def test_mask_iou_names_a_mask_that_is_not_bool(dtype, name):
+    """A float mask raised NotImplementedError ("bitwise_and_cpu") from deep inside; an int one was taken
+    bit by bit in silence (a mask of 2s and 1s met nowhere: IoU 0)."""
+    mask = torch.ones(1, 1, 2, 2, dtype=torch.bool)
+    other = (mask * 2 if dtype == torch.int64 else mask).to(dtype)
+    with pytest.raises(InputError, match=f"^{name}: expected a bool tensor"):
+        mask_iou(other, mask) if name == "mask" else mask_iou(mask, other)
+
+
 # -------------------------------------------------------------------------------------------- network, weights
 def test_shipped_weights_load_and_are_package_data():
     net = load_obstacle_net("learned")
