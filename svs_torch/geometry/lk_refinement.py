@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_image, check_shape, real_or_nan
+from ..core.checks import InputError, check_dtype, check_finite_where, check_image, check_shape, real_or_nan
 from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
@@ -94,6 +94,19 @@ def _centre(values: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, t
     return centred, safe_sqrt(mean_square).clamp(min=1e-6)
 
 
+def _check_scale(scale: torch.Tensor | None, valid: torch.Tensor) -> None:
+    """``scale`` None or ``(B, K)`` like ``valid``: real, finite in the valid rows, on their device. Only its shape was
+    checked (an audit): a NaN scale made a NaN patch radius and moved the points in silence, a bool one was taken
+    as 1, a complex one lost its imaginary part with a warning, and a meta one failed deep inside."""
+    if scale is None:
+        return
+    check_shape(scale, "scale", list(valid.shape))
+    check_dtype(scale, "scale", "float|int")
+    if scale.device != valid.device:
+        raise InputError(f"scale: expected a tensor on the points' device {valid.device}, got {scale.device}")
+    check_finite_where(scale, "scale", valid, "points.valid")
+
+
 def refine_matches_lk(
     left: torch.Tensor,
     right: torch.Tensor,
@@ -144,8 +157,7 @@ def refine_matches_lk(
     check_shape(points.valid, "points.valid", [dims["B"], k])
     check_dtype(points.valid, "points.valid", "bool")
     check_nonempty(left, "left")
-    if scale is not None:
-        check_shape(scale, "scale", [dims["B"], k])
+    _check_scale(scale, points.valid)
     if not (0 <= iterations <= MAX_LK_ITERATIONS and max_shift_px >= 0 and 0 < min_radius_px <= max_radius_px
             < math.inf and radius_scales > 0 and -1 <= min_correlation <= 1):  # NaN fails each
         raise InputError(f"refine_matches_lk: expected 0 <= iterations <= {MAX_LK_ITERATIONS}, max_shift_px >= 0, "
