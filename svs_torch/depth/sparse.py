@@ -38,7 +38,18 @@ def _per_pair(value: float | torch.Tensor | None, like: torch.Tensor, name: str,
     """A scalar or ``(B,)`` calibration value as a ``(B, 1)`` column in ``like``'s dtype (None → 0), finite and,
     with ``positive``, above 0: a negative focal length times a negative baseline ranged a pair at a plausible
     3.28 m, and a zero or NaN one left it unranged without a word (an audit; ``StereoBatch`` refuses both)."""
-    value = torch.as_tensor(0.0 if value is None else value, dtype=like.dtype, device=like.device)
+    # A string, a complex or a meta tensor raised from torch.as_tensor, a bool (tensor) was taken as 1 and a complex
+    # tensor lost its imaginary part, none naming the argument (an audit).
+    refused = isinstance(value, bool) or isinstance(value, torch.Tensor) and (
+        value.dtype == torch.bool or value.dtype.is_complex or value.is_meta)
+    try:
+        column = None if refused else torch.as_tensor(0.0 if value is None else value, dtype=like.dtype,
+                                                      device=like.device)
+    except (TypeError, ValueError, RuntimeError):
+        column = None
+    if column is None:
+        raise InputError(f"{name}: expected a real number or a ({like.shape[0]},) real tensor, got {value!r}")
+    value = column
     if value.dim() == 1 and value.shape[0] != like.shape[0] or value.dim() > 1:
         raise InputError(f"{name}: expected a scalar or ({like.shape[0]},), got {tuple(value.shape)}")
     check_finite(value, name, positive=positive)

@@ -337,6 +337,20 @@ def test_empty_sets():
     assert no_slots.range.r_min_m.tolist() == [12.5]
 
 
+@pytest.mark.parametrize("name, value", [
+    ("focal_px", "300"),  # TypeError "new(): invalid data type 'str'" from torch.as_tensor
+    ("focal_px", 300 + 0j),  # TypeError "must be real number, not complex"
+    ("focal_px", True),  # a focal length of 1 px, in silence
+    ("baseline_m", torch.ones(2, dtype=torch.bool)),  # a baseline of 1 m, in silence
+    ("baseline_m", torch.full((2,), 0.1 + 0j)),  # imaginary part dropped with a warning
+    ("doffs_px", torch.zeros(2, device="meta")),  # NotImplementedError "Cannot copy out of meta tensor"
+])
+def test_a_calibration_value_that_is_not_real_is_named(name, value):
+    calibration = {"focal_px": 300.0, "baseline_m": 0.1, "doffs_px": 0.0, name: value}
+    with pytest.raises(InputError, match=f"^{name}: expected a real number or a \\(2,\\) real tensor"):
+        point_depths(torch.ones(2, 5), torch.ones(2, 5, dtype=torch.bool), **calibration)
+
+
 def test_input_errors():
     points = torch.zeros(2, 5, 2)
     with pytest.raises(InputError, match=r"points_right: expected \(B, K, 2\), got \(2, 5, 3\)"):
