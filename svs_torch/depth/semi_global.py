@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_count, check_dtype, check_shape
 from . import kernels
 
 __all__ = ["pair_residual_levels", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
@@ -115,6 +115,12 @@ def pair_residual_levels(best_cost: torch.Tensor, wanted: torch.Tensor, window_s
     """Each pair's matching residual ``(B,)``: the median over ``wanted`` ``(B, H, W)`` bool of the finite
     winner costs ``best_cost`` ``(B, H, W)`` (window SADs of whole levels), per window pixel; 0 where a pair has
     no such pixel. Differentiable w.r.t. ``best_cost`` (``nanmedian``: the median pixel gets the gradient)."""
+    # Unchecked before (an audit): a wanted of another shape was broadcast, a float one or int costs failed deep
+    # inside, a window of 0 gave residuals of inf and True a window of 1.
+    check_shape(wanted, "wanted", list(check_shape(best_cost, "best_cost", ["B", "H", "W"]).values()))
+    check_dtype(best_cost, "best_cost", "float")
+    check_dtype(wanted, "wanted", "bool")
+    check_count(window_size, "window_size", least=1)
     finite = wanted & torch.isfinite(best_cost)
     values = torch.where(finite, best_cost, torch.full_like(best_cost, torch.nan)).flatten(1)
     median = values.nanmedian(dim=1).values

@@ -137,6 +137,19 @@ def test_residual_is_the_median_winner_cost_per_window_pixel():
     assert pair_residual_levels(best, torch.zeros_like(wanted), 3).tolist() == [0.0]
 
 
+@pytest.mark.parametrize("best, wanted, window_size, name", [
+    (torch.ones(2, 5, 6), torch.ones(2, 1, 6, dtype=torch.bool), 3, "wanted"),  # broadcast in silence
+    (torch.ones(2, 5, 6), torch.ones(2, 5, 6), 3, "wanted"),  # NotImplementedError ("bitwise_and_cpu")
+    (torch.ones(2, 5, 6, dtype=torch.int64), torch.ones(2, 5, 6, dtype=torch.bool), 3, "best_cost"),  # overflow
+    (torch.ones(2, 30), torch.ones(2, 30, dtype=torch.bool), 3, "best_cost"),  # not (B, H, W), taken
+    (torch.ones(2, 5, 6), torch.ones(2, 5, 6, dtype=torch.bool), 0, "window_size"),  # residuals of inf
+    (torch.ones(2, 5, 6), torch.ones(2, 5, 6, dtype=torch.bool), True, "window_size"),  # a window of 1
+])
+def test_residual_names_a_bad_argument(best, wanted, window_size, name):
+    with pytest.raises(InputError, match=f"^{name}: expected"):
+        pair_residual_levels(best, wanted, window_size)
+
+
 def test_whole_view_residual_is_the_fused_kernels_and_the_torch_paths():
     """:func:`block_match_sad_with_residual` (the nearness segmenter's noise gate): the map is
     :func:`block_match_sad`'s and the residual the median winning cost per window pixel, the same from the fused
