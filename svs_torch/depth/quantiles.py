@@ -65,6 +65,10 @@ def kept_region_lower_median(values: torch.Tensor, known: torch.Tensor, labels: 
         check_shape(tensor, name, list(values.shape))
     check_dtype(known, "known", "bool")
     check_shape(kept_labels, "kept_labels", [b, "N"])
+    # Int labels only (an audit): a bool kept_labels was read as label 1, a complex one failed deep inside, and a
+    # float labels image was taken, a fractional label matching no slot.
+    check_dtype(labels, "labels", "int")
+    check_dtype(kept_labels, "kept_labels", "int")
     region = ((labels.flatten(1).unsqueeze(1) == kept_labels.unsqueeze(-1)) & (kept_labels > 0).unsqueeze(-1)
               & known.flatten(1).unsqueeze(1))  # (B, N, H·W); flatten, not reshape(b, ...): B may be 0
     return masked_lower_median(values.flatten(1).unsqueeze(1).expand_as(region), region)
@@ -78,6 +82,7 @@ def region_lower_median(values: torch.Tensor, labels: torch.Tensor, num_labels: 
     which sorts each pair's values and then stably its labels, so each region's values lie together in ascending
     order (two sorts of ``(B, P)`` rather than one of ``(B, num_labels, P)``). Not differentiable."""
     check_shape(values, "values", ["B", "P"])
+    check_dtype(values, "values", "float|int")  # a complex one failed in the sort, a bool one was taken (an audit)
     check_shape(labels, "labels", list(values.shape))
     check_dtype(labels, "labels", "int")
     most = max(values.shape[1], 65536)  # one slot per label in the outputs: 2^40 asked for 8.8 TB

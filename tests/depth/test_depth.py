@@ -11,7 +11,8 @@ from svs_torch import InputError
 from svs_torch.core.ordering import argsort_last, sort_last
 from svs_torch.data.synthetic import random_obstacle_scenes
 from svs_torch.depth.depth_types import DepthConfig, ObstacleSide, PointDepths
-from svs_torch.depth.quantiles import labelled_quantile, masked_lower_median, masked_quantile
+from svs_torch.depth.quantiles import (kept_region_lower_median, labelled_quantile, masked_lower_median,
+                                       masked_quantile, region_lower_median)
 from svs_torch.depth.sparse import (accuracy_percent, estimate_depth, estimate_range, nearest_obstacle, object_depths,
                                     point_depths, rectified_disparity)
 
@@ -123,6 +124,25 @@ def test_masked_quantile_matches_numpy_per_row(generator):
     assert masked_quantile(values[..., :0], valid[..., :0], q).values.shape == (5, 3, 5)
     with pytest.raises(InputError, match="q: expected quantiles in"):
         masked_quantile(values, valid, [1.5])
+
+
+@pytest.mark.parametrize("labels_dtype, kept_dtype, name", [
+    (torch.int64, torch.bool, "kept_labels"),  # True read as label 1: slots of other regions, in silence
+    (torch.int64, torch.complex64, "kept_labels"),  # NotImplementedError ("gt_cpu") from deep inside
+    (torch.float32, torch.int64, "labels"),  # taken; a fractional label matched no slot, in silence
+])
+def test_kept_region_lower_median_names_labels_that_are_not_int(labels_dtype, kept_dtype, name):
+    labels = torch.tensor([[1, 2], [2, 0]]).view(1, 1, 2, 2)
+    with pytest.raises(InputError, match=f"^{name}: expected a int tensor"):
+        kept_region_lower_median(torch.rand(1, 1, 2, 2), torch.ones(1, 1, 2, 2, dtype=torch.bool),
+                                 labels.to(labels_dtype), torch.tensor([[2, 1]]).to(kept_dtype))
+
+
+def test_region_lower_median_names_values_that_are_not_real():
+    labels = torch.ones(1, 4, dtype=torch.int64)
+    for values in (torch.ones(1, 4, dtype=torch.complex64), torch.ones(1, 4, dtype=torch.bool)):  # sort failed; taken
+        with pytest.raises(InputError, match="^values: expected a float or int tensor"):
+            region_lower_median(values, labels, 1)
 
 
 @pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.uint8, torch.float32, F64])
