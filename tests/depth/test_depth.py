@@ -371,6 +371,14 @@ def test_a_calibration_value_that_is_not_real_is_named(name, value):
         point_depths(torch.ones(2, 5), torch.ones(2, 5, dtype=torch.bool), **calibration)
 
 
+def test_object_depths_names_complex_points():
+    """They raised NotImplementedError ("round_vml_cpu" not implemented for 'ComplexFloat') from deep inside."""
+    labels = torch.ones(1, 1, 4, 4, dtype=torch.int64)
+    depths = PointDepths(torch.ones(1, 2), torch.ones(1, 2, dtype=torch.bool))
+    with pytest.raises(InputError, match="^points_left: expected a float or int tensor"):
+        object_depths(labels, torch.tensor([[1]]), torch.ones(1, 2, 2, dtype=torch.complex64), depths)
+
+
 def test_input_errors():
     points = torch.zeros(2, 5, 2)
     with pytest.raises(InputError, match=r"points_right: expected \(B, K, 2\), got \(2, 5, 3\)"):
