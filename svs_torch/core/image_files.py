@@ -184,6 +184,33 @@ def damaged_jpeg(complaints: list[str]) -> str | None:
     return None if damaged is None else ' '.join(damaged.split())[:120]
 
 
+#: How to turn an array stored under each EXIF Orientation tag (2-8) upright, as viewers and cv2.imread do.
+_UPRIGHT = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+            5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a[::-1, ::-1].swapaxes(0, 1),
+            8: lambda a: np.rot90(a, 1)}
+
+
+def _turned_upright(array: np.ndarray, raw: bytes) -> np.ndarray:
+    """A PNG's or WebP's ``array`` turned by the file's EXIF Orientation tag: ``IMREAD_UNCHANGED`` ignores it there
+    (a JPEG's gray decode and a TIFF's turn it). Why: a phone's portrait photo converted to PNG keeps its pixels on
+    their side with the tag, and estimate ranged such a Teddy pair at 0.93 m instead of 1.24 m, status OK (an
+    audit). Pillow reads the tag, only for a file whose bytes hold an EXIF chunk's name."""
+    png, webp = raw[:8] == b"\x89PNG\r\n\x1a\n", raw[:4] == b"RIFF" and raw[8:12] == b"WEBP"
+    if not ((png and b"eXIf" in raw) or (webp and b"EXIF" in raw)):
+        return array
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(raw)) as image:
+            exif = image.getexif()
+    except Exception:  # noqa: BLE001 -- a header Pillow cannot read: as OpenCV decoded it
+        return array
+    turn = _UPRIGHT.get(exif.get(0x0112))
+    return array if turn is None else np.ascontiguousarray(turn(array))
+
+
 def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndarray:
     """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`.
 
@@ -192,7 +219,8 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     :func:`svs_torch.capture.stereo.decode_frame`), not to colour first: a colour JPEG's chroma is stored at half
     width (the SVS's 4:2:2), and BGR upsampled from it and weighted back to gray moves 8 % of a street frame's
     pixels by up to 18 levels, so ``estimate`` on a frame ``capture`` saved would not see what ``guide`` saw.
-    Other formats, and JPEGs without ``gray``, come unchanged.
+    With ``gray`` a PNG or WebP is turned by its EXIF orientation too (:func:`_turned_upright`). Other formats, and
+    JPEGs without ``gray``, come unchanged.
 
     The file's bytes are read by Python and decoded from memory: any file name works, a truncated file is
     refused (reading from a file, OpenCV would fill a truncated JPEG's missing rows with gray), and the
@@ -228,6 +256,8 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     damaged = damaged_jpeg(complaints)
     if damaged is not None:  # libjpeg decoded what it could and filled the rest: an image, but not the scene's
         raise InputError(f"{name}: a damaged JPEG (libjpeg: {damaged}): {display_path(path)}")
+    if gray and not jpeg:
+        array = _turned_upright(array, raw)
     # Otherwise a file that decodes is taken as it is: what the decoders said about it (an unknown TIFF tag, a PNG
     # colour profile, bytes between a JPEG's segments) is not worth a line.
     return array
