@@ -387,13 +387,13 @@ def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -
     and its sweep configuration; (None, None, None) without."""
     if not args.db:
         return None, None, None
-    from ..evaluation.store import ResultStore
+    from ..evaluation.store import ResultStore, check_storable
     from ..core.checkout import code_version
     from ..evaluation.sweep import environment, make_sweep_config
 
     sweep_config = make_sweep_config(preset, overrides, size_wh)
     with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
-        store = ResultStore(args.db)
+        store = ResultStore(check_storable(args.db, sources))  # paths a store cannot keep refused before it is made
     store.add_configs([sweep_config.record()])
     store.add_pairs(sources)
     run_id = store.start_run("eval", code_version(), environment("in-process", 0, None), " ".join(sys.argv[1:]))

@@ -62,7 +62,7 @@ from .overrides import merge_labels
 from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, check_store_path, claim_configs,
                            read_only_error, unreadable_beside_writer)
 
-__all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore"]
+__all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore", "check_storable"]
 
 #: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL; and for a store another
 #: connection kept locked past the wait: SQLITE_BUSY, SQLITE_LOCKED.
@@ -125,6 +125,23 @@ def _raise_if_disk_failed(error: sqlite3.DatabaseError, path: Path) -> None:
         raise OSError(errno.EBUSY, f"db: {path}: another process has kept it locked for over {BUSY_TIMEOUT_S:g} s (a "
                                    "write it has not ended: another program with it open?); run again once that "
                                    "has ended (what is stored is kept)") from None
+
+
+def check_storable(db: str | os.PathLike, sources: Iterable[Any]) -> str | os.PathLike:
+    """``db`` once every pair of ``sources`` has paths a store can keep: UTF-8 text, which SQLite's text is. Why: a
+    scene folder whose name holds bytes of another encoding (Latin-1, read as surrogates) ended eval --db in "internal
+    error: UnicodeEncodeError", the store made and holding no pair (an audit). Checked before the store is opened."""
+    from ..core.files import display_path
+
+    for source in sources:
+        for text in (source.left, source.right, source.name, source.pair_id):
+            try:
+                (text or "").encode("utf-8")
+            except UnicodeEncodeError:
+                raise InputError(f"db: cannot record {display_path(text)}: a results store keeps paths as UTF-8 "
+                                 "text, and this name holds bytes of another encoding; rename it, or run without "
+                                 "a store") from None
+    return db
 
 
 class ResultStore:
@@ -292,6 +309,9 @@ class ResultStore:
 
     def start_run(self, command: str, code_version: str, environment: dict, sweep: str) -> int:
         """Record a run; returns its ``run_id``."""
+        # A command line's bytes of another encoding (surrogates) escaped, as messages show them: SQLite's text is
+        # UTF-8, and 'eval ... --db $'r\\xff.sqlite'' ended in an internal UnicodeEncodeError (an audit).
+        command, sweep = (text.encode("utf-8", "backslashreplace").decode("utf-8") for text in (command, sweep))
         return int(self._transaction([(
             "INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) VALUES (?, ?, ?, ?, ?)",
             (time.time(), command, code_version, json.dumps(environment), sweep))]))

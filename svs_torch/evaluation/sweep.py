@@ -66,7 +66,7 @@ from .overrides import (MAX_GRID_POINTS, PRESETS, apply_overrides, config_to_dic
                         flatten_table, merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config,
                         read_toml)
 from .runner import EvalSetup, _check_list, _expect, evaluate_block
-from .store import ResultStore
+from .store import ResultStore, check_storable
 
 __all__ = ["Sweep", "SweepConfig", "SweepOutcome", "Task", "TaskResult", "code_version", "load_sweep",
            "make_sweep", "make_sweep_config", "plan_tasks", "run_sweep", "run_task"]
@@ -342,7 +342,7 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
     _check_run(sweep, workers, threads)
     if scheduler:  # reached (with workers) before the store is made: else a bad address left a store without rows
         connect_dask(scheduler, lambda message: None).close()
-    with ResultStore(db) as store:
+    with ResultStore(check_storable(db, sweep.sources)) as store:
         store.claim_for_a_sweep(c.config_id for c in sweep.configs)
         store.add_configs(c.record() for c in sweep.configs)
         store.add_pairs(sweep.sources)

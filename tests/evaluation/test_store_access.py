@@ -174,3 +174,29 @@ def test_a_store_being_written_read_from_a_folder_that_takes_no_files_says_why(t
         f"error: db: cannot read {db} from here yet: rows are still in shared.sqlite-wal (a sweep writing it, or "
         "one killed), and reading them needs a file made in its folder, which this user cannot write; read it once "
         "the writer has ended, or copy both files to a folder you can write")
+
+
+def test_a_pair_whose_path_is_not_utf8_is_refused_by_eval_db_before_the_store_is_made(tmp_path, capsys, data_dir):
+    """An audit: 'eval SCENE --db FILE' where the scene folder's name holds bytes of another encoding (Latin-1, read
+    as surrogates) ended in "internal error: UnicodeEncodeError ... surrogates not allowed", exit 1, with FILE made
+    and holding no pair. A store keeps paths as UTF-8 text: now one line naming the path, exit 2, no FILE."""
+    import shutil
+
+    from svs_torch.cli import main
+
+    scene = tmp_path / os.fsdecode(b"Ted\xffdy")
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    db = tmp_path / "r.sqlite"
+    assert main(["eval", str(scene), "--size", "80x60", "--db", str(db)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("svs-depth eval: error: --db: ") and "Ted\\udcffdy" in error and "UTF-8" in error
+    assert "\n" not in error and not db.exists()
+
+
+def test_a_command_line_that_is_not_utf8_is_recorded_escaped(tmp_path):
+    """An audit: 'eval SCENE --db $'r\\xff.sqlite'' ended in an internal UnicodeEncodeError when the store recorded
+    the command line; the record escapes the bytes, as the messages show them."""
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        run_id = store.start_run("eval", "v", {}, "eval x --db r\udcff.sqlite")
+        assert store.connection.execute("SELECT sweep FROM runs WHERE run_id = ?", (run_id,)).fetchone() == (
+            "eval x --db r\\udcff.sqlite",)
