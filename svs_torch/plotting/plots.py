@@ -351,7 +351,7 @@ def pipeline_figure(batch, result, index: int, *, true_nearest: NearestTruth | f
     status = f"status {PipelineStatus(int(result.status[index])).name}, {result.range_rule} rule" + (
         "; geometry not verified (the text says why)" if kept and not bool(result.verified[index]) else "")
     summary = "; ".join([*_nearest_summary(result, index, truth, true_nearest), *floor_summary(result, index), status])
-    name = batch.names[index] if batch.names else ""
+    name = batch.names[index].encode("utf-8", "backslashreplace").decode() if batch.names else ""  # (surrogates)
     figure.suptitle(textwrap.fill(f"{name + ': ' if name else ''}{summary}", int(match_w * 11)), fontsize=11)
     return figure
 

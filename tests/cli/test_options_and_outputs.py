@@ -115,6 +115,21 @@ def test_estimate_says_where_it_wrote_its_figure_and_masks(data_dir, capsys, tmp
     assert code == 0 and json.loads(out)["status"] == "OK" and "written" not in out + err
 
 
+def test_estimate_draws_the_figure_of_a_pair_whose_file_names_are_not_utf8(data_dir, capsys, tmp_path):
+    """An audit: a pair whose file names hold bytes of another encoding (Latin-1, read as surrogates) was ranged,
+    then '--figure' ended in "internal error: TypeError: set_text(): incompatible function arguments", exit 1, no
+    figure: its title named the pair as it was. The title shows the bytes escaped, as the messages do."""
+    import shutil
+
+    views = [tmp_path / os.fsdecode(b"teddy\xe9_" + side) for side in (b"l.png", b"r.png")]
+    for view, source in zip(views, TEDDY):
+        shutil.copyfile(data_dir / source, view)
+    figure = tmp_path / "fig.png"
+    code, out, err = run_cli(capsys, "estimate", *map(str, views), "--size", "160x120", "--figure", str(figure))
+    assert code == 0 and out.splitlines()[-1] == f"figure written to {figure}" and err == ""
+    assert cv2.imread(str(figure)) is not None
+
+
 class _FullStream(io.StringIO):
     """Standard output on a full disk: every write and flush refused as the kernel refuses them."""
 
