@@ -260,6 +260,9 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected a JSON object with "
                                                                       f"'left' and 'right' file names"))
             continue
+        if "\0" in record["left"] + record["right"]:  # (valid JSON; it was an internal ValueError in eval: an audit)
+            sources.append(PairSource(left=line[:80], problem=f"{where}: expected file names, got a NUL character"))
+            continue
         left, right = (str(p if Path(p).is_absolute() else path.parent / p)
                        for p in (record["left"], record["right"]))
         numbers, marks = [record.get(key) for key in CALIBRATION_KEYS], _capture_marks(record)
