@@ -41,7 +41,7 @@ from ..core.types import StereoBatch
 from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
                        list_shared_pairs, load_image_pair, load_stereo_pair, scene_name, unreadable_reason,
                        warn_unreadable)
-from .pair_names import pair_identity, with_distinct_names
+from .pair_names import pair_identity, unusable_name, with_distinct_names
 
 __all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "is_kitti_left_image", "read_pair_list",
            "read_pair_sources", "load_pair_source", "unique_sources", "with_distinct_names"]
@@ -260,8 +260,8 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
             sources.append(PairSource(left=line.strip()[:80], problem=f"{where}: expected a JSON object with "
                                                                       f"'left' and 'right' file names"))
             continue
-        if "\0" in record["left"] + record["right"]:  # (valid JSON; it was an internal ValueError in eval: an audit)
-            sources.append(PairSource(left=line[:80], problem=f"{where}: expected file names, got a NUL character"))
+        if unusable_name(record["left"] + record["right"]):  # a NUL, a lone surrogate: valid JSON, no file's name
+            sources.append(PairSource(left=line[:80], problem=f"{where}: a NUL or surrogate in a file name"))
             continue
         left, right = (str(p if Path(p).is_absolute() else path.parent / p)
                        for p in (record["left"], record["right"]))

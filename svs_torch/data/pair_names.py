@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .pair_list import PairSource
 
-__all__ = ["pair_identity", "with_distinct_names"]
+__all__ = ["pair_identity", "unusable_name", "with_distinct_names"]
 
 
 def _loaded_name(source: PairSource) -> str:
@@ -39,6 +39,14 @@ def with_distinct_names(sources: Sequence[PairSource]) -> list[PairSource]:
             labels.update(zip(paths, (f"{name} ({tail})" for tail in _telling_folders(list(paths.values())))))
     return [source if identity is None else replace(source, label=labels.get(identity))
             for source, identity in zip(sources, identities)]
+
+
+def unusable_name(text: str) -> bool:
+    """Whether ``text`` holds a character no file's name can: a NUL, or a lone surrogate other than the escapes of
+    undecodable bytes (U+DC80-U+DCFF, :func:`os.fsencode`'s ``surrogateescape``). An index.jsonl line (valid JSON,
+    ``"L.png\\u0000"`` or ``"\\ud800"``) naming one ended eval in an internal ValueError or UnicodeEncodeError
+    from :func:`pair_identity`'s ``realpath`` (an audit)."""
+    return any(char == "\0" or "\ud800" <= char <= "\udfff" and not "\udc80" <= char <= "\udcff" for char in text)
 
 
 def pair_identity(source: PairSource) -> tuple:

@@ -324,16 +324,17 @@ def test_a_capture_index_line_whose_frame_fails_to_load_is_named(tmp_path):
 def test_a_capture_index_line_naming_a_file_with_a_nul_character_is_a_bad_line(tmp_path, capsys):
     """An audit: an index.jsonl line whose "left" held a NUL ("L.png\\u0000", valid JSON; no file can have the
     name) ended 'svs-depth eval index.jsonl' in "internal error: ValueError: embedded null byte", exit 1 (estimate
-    --pairs found it BAD_INPUT only when loading). It is a bad line, named as a list file's NUL is."""
+    --pairs found it BAD_INPUT only when loading), and a lone surrogate ("\\ud800") in a UnicodeEncodeError. It is a
+    bad line, as a list file's NUL is."""
     from svs_torch.cli import main
 
     cv2.imwrite(str(tmp_path / "a.png"), np.full((24, 32), 90, np.uint8))
     index = tmp_path / "index.jsonl"
-    index.write_text('{"left": "a.png\\u0000x", "right": "a.png"}\n')
-    (source,) = read_pair_sources([index])
-    assert source.problem == f"path: line 1 of {index}: expected file names, got a NUL character"
+    index.write_text('{"left": "a.png\\u0000x", "right": "a.png"}\n{"left": "a.png", "right": "a\\ud800.png"}\n')
+    for source in read_pair_sources([index]):
+        assert source.problem.endswith(f"of {index}: a NUL or surrogate in a file name")
     assert main(["eval", str(index), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out.splitlines()[0])["status"] == "BAD_INPUT"
+    assert [json.loads(line)["status"] for line in capsys.readouterr().out.splitlines()[:2]] == ["BAD_INPUT"] * 2
 
 
 def test_read_pair_sources_takes_one_path_alone_and_names_a_path_of_the_wrong_type(data_dir):
