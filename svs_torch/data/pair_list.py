@@ -253,7 +253,7 @@ def _index_sources(text: str, path: Path, name: str) -> list[PairSource]:
         where = f"{name}: line {number} of {path}"
         try:
             record = json.loads(line)
-        except ValueError:
+        except (ValueError, RecursionError):  # (nested too deep: an internal RecursionError, an audit)
             record = None
         if not (isinstance(record, dict) and isinstance(record.get("left"), str) and record["left"]
                 and isinstance(record.get("right"), str) and record["right"]):  # ("": the index's folder)

@@ -337,6 +337,18 @@ def test_a_capture_index_line_naming_a_file_with_a_nul_character_is_a_bad_line(t
     assert [json.loads(line)["status"] for line in capsys.readouterr().out.splitlines()[:2]] == ["BAD_INPUT"] * 2
 
 
+def test_a_capture_index_line_nested_too_deep_is_a_bad_line(tmp_path):
+    """An audit: an index.jsonl line of 100 000 nested brackets ended 'svs-depth eval index.jsonl' and 'estimate
+    --pairs' in "internal error: RecursionError: maximum recursion depth exceeded while decoding a JSON array",
+    exit 1, before any pair ran. It is a bad line, as one that is not JSON is, and the other lines are read."""
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((24, 32), 90, np.uint8))
+    index = tmp_path / "index.jsonl"
+    index.write_text("[" * 100_000 + "]" * 100_000 + '\n{"left": "a.png", "right": "a.png"}\n')
+    deep, good = read_pair_sources([index])
+    assert deep.problem == f"path: line 1 of {index}: expected a JSON object with 'left' and 'right' file names"
+    assert good.problem is None
+
+
 def test_read_pair_sources_takes_one_path_alone_and_names_a_path_of_the_wrong_type(data_dir):
     """Found by an audit of the Python API: read_pair_sources("…/middlebury_2003_quarter") read the name letter by
     letter, to "no stereo scene ... in the folder /"; None, or None in the list, was a TypeError from os.fspath."""
