@@ -16,6 +16,7 @@ from .errors import InputError
 
 __all__ = [
     "InputError",
+    "nesting_depth",
     "check_shape",
     "check_dtype",
     "check_image",
@@ -228,3 +229,14 @@ def check_generator(generator: object, name: str = "generator") -> None:
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"{name}: expected a torch.Generator or None (seed one with manual_seed), got "
                          f"{type(generator).__name__}")
+
+
+def nesting_depth(value: object) -> int:
+    """How many levels of non-empty dicts and lists nest in ``value`` (a parsed TOML or JSON document), counted a
+    level at a time, without recursion: a recursive walk of a file nested thousands deep ended in a RecursionError,
+    "internal error" on the command line (an audit)."""
+    depth, level = 0, [value]
+    while level := [item for node in level if isinstance(node, (dict, list))
+                    for item in (node.values() if isinstance(node, dict) else node)]:
+        depth += 1
+    return depth

@@ -42,7 +42,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from ..core.checks import InputError, check_instance
+from ..core.checks import InputError, check_instance, nesting_depth
 from ..core.files import check_path_given
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import check_weights_file
@@ -269,13 +269,18 @@ def read_toml(path: str | Path, name: str) -> dict[str, Any]:
     if not path.is_file():
         raise InputError(f"{label}: expected a TOML file, got {'a folder' if path.exists() else 'no file'}")
     try:
-        return tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # a Windows editor's byte-order mark: no text
+        table = tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # a Windows editor's byte-order mark: no text
     except UnicodeDecodeError:
         raise InputError(f"{label}: expected a UTF-8 TOML file") from None
     except tomllib.TOMLDecodeError as error:
         raise InputError(f"{label}: not valid TOML: {error}") from None
+    except RecursionError:  # arrays or inline tables nested thousands deep: the parser's (an audit)
+        table = None
     except OSError as error:
         raise InputError(f"{label}: cannot read it: {error.strerror or error}") from None
+    if table is None or nesting_depth(table) > 32:  # (a header [a.a.a...] of thousands: flatten_table's recursion)
+        raise InputError(f"{label}: tables or arrays nested too deep to be a configuration (over 32 levels)")
+    return table
 
 
 #: The keys of a sweep file that say what to run on, not how: a configuration file may carry them (one TOML

@@ -124,6 +124,10 @@ def reference(data_dir, tmp_path_factory) -> tuple[Path, Path]:
     ('paths = ["."]\npreset = ["paper"]\n', "preset: expected one of 'default', 'paper', got ['paper']"),
     ('paths = ["."]\n[[configs]]\npreset = {name = "paper"}\n',
      "configs[1]: preset: expected one of 'default', 'paper', got {'name': 'paper'}"),
+    # An audit: arrays (or inline tables) nested 100 000 deep, or a table header of 5000 dotted parts, ended in
+    # "internal error: RecursionError: maximum recursion depth exceeded" (the parser's, then flatten_table's).
+    pytest.param('paths = ["."]\nseed = ' + "[" * 100_000 + "]" * 100_000 + "\n", "nested too deep", id="deep-arrays"),
+    pytest.param('paths = ["."]\n[' + ".".join(["a"] * 5000) + "]\n", "nested too deep", id="deep-header"),
 ])
 def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, message):
     sweep_file = tmp_path / "sweep.toml"
@@ -135,6 +139,17 @@ def test_bad_sweep_files_fail_before_any_work(data_dir, tmp_path, capsys, text, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0], err
     assert not db.exists()  # nothing started
+
+
+@pytest.mark.parametrize("text", ["max_ratio = " + "{a = " * 5000 + "1" + "}" * 5000,
+                                  "[" + ".".join(["a"] * 5000) + "]"], ids=["deep-inline-tables", "deep-header"])
+def test_eval_config_nested_too_deep_is_refused_in_one_line(data_dir, tmp_path, capsys, text):
+    """An audit: 'eval SCENE --config deep.toml' ended in "internal error: RecursionError", exit 1."""
+    config = tmp_path / "deep.toml"
+    config.write_text(text + "\n")
+    assert main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--config", str(config)]) == 2
+    assert capsys.readouterr().err.strip() == (f"svs-depth eval: error: --config: {config}: tables or arrays nested "
+                                               "too deep to be a configuration (over 32 levels)")
 
 
 def test_a_sweep_file_saved_by_a_windows_editor_is_read(data_dir, tmp_path):
