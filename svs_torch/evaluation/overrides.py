@@ -233,6 +233,8 @@ def parse_assignment(text: str, source: str = "--set") -> tuple[str, Any]:
         value = tomllib.loads(f"value = {raw}")["value"]
     except tomllib.TOMLDecodeError:
         value = raw
+    except RecursionError:  # (nested thousands deep: an internal RecursionError, an audit)
+        raise InputError(f"{source}: {key}: expected a setting's value, got one nested too deep") from None
     return key, value
 
 

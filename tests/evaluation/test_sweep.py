@@ -152,6 +152,15 @@ def test_eval_config_nested_too_deep_is_refused_in_one_line(data_dir, tmp_path, 
                                                "too deep to be a configuration (over 32 levels)")
 
 
+@pytest.mark.parametrize("value", ["[" * 50_000 + "]" * 50_000, "{a = " * 5000 + "1" + "}" * 5000],
+                         ids=["deep-array", "deep-inline-table"])
+def test_eval_set_nested_too_deep_is_refused_in_one_line(data_dir, capsys, value):
+    """An audit: 'eval SCENE --set seed=[[[[...]]]]' (50 000 deep) ended in "internal error: RecursionError"."""
+    assert main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--set", f"seed={value}"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "svs-depth eval: error: --set: seed: expected a setting's value, got one nested too deep")
+
+
 def test_a_sweep_file_saved_by_a_windows_editor_is_read(data_dir, tmp_path):
     """A byte-order mark and CRLF line ends (Notepad's UTF-8): the mark made it "not valid TOML: Invalid statement
     (at line 1, column 1)", where a pair list saved so was read (its own "utf-8-sig")."""
