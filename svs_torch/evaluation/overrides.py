@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.checks import InputError, check_instance, nesting_depth
-from ..core.files import check_path_given
+from ..core.files import check_path_given, path_kind
 from ..pipeline import PipelineConfig
 from ..segmentation.network_files import check_weights_file
 from .config_tree import ON, ConfigBuildError, build_config, dataclass_of, refused_keys
@@ -264,12 +264,12 @@ def merge_fixed(top_level: Mapping[str, Any], fixed: Mapping[str, Any], source: 
 
 
 def read_toml(path: str | Path, name: str) -> dict[str, Any]:
-    """A TOML file as a dict; a missing, unreadable or malformed file is one InputError that starts with
-    ``name`` (and names the file)."""
+    """A TOML file as a dict; a missing, unreadable or malformed file is an InputError naming ``name`` and it."""
     path = Path(path)
     label = name if name == str(path) else f"{name}: {path}"
-    if not path.is_file():
-        raise InputError(f"{label}: expected a TOML file, got {'a folder' if path.exists() else 'no file'}")
+    if (kind := path_kind(path, name)) != "file":  # (a name too long: "File name too long" alone, exit 1; an audit)
+        got = {"folder": "a folder", "other": "a special file"}.get(kind, "no file")
+        raise InputError(f"{label}: expected a TOML file, got {got}")
     try:
         table = tomllib.loads(path.read_bytes().decode("utf-8-sig"))  # a Windows editor's byte-order mark: no text
     except UnicodeDecodeError:

@@ -152,6 +152,17 @@ def test_eval_config_nested_too_deep_is_refused_in_one_line(data_dir, tmp_path, 
                                                "too deep to be a configuration (over 32 levels)")
 
 
+@pytest.mark.parametrize("name, message", [
+    ("x" * 300 + ".toml", "--config: not a usable path (File name too long): "),
+    ("/dev/null", "--config: /dev/null: expected a TOML file, got a special file")], ids=["too-long", "device"])
+def test_eval_config_that_no_file_can_be_is_named_by_its_option(data_dir, tmp_path, capsys, name, message):
+    """An audit: 'eval SCENE --config NAME' with a name over the file system's limit ended 'error: File name too
+    long: NAME', exit 1, the option unnamed; /dev/null was 'expected a TOML file, got a folder'."""
+    assert main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--config", str(tmp_path / name)
+                 if not name.startswith("/") else name]) == 2
+    assert capsys.readouterr().err.strip().startswith("svs-depth eval: error: " + message)
+
+
 @pytest.mark.parametrize("value", ["[" * 50_000 + "]" * 50_000, "{a = " * 5000 + "1" + "}" * 5000],
                          ids=["deep-array", "deep-inline-table"])
 def test_eval_set_nested_too_deep_is_refused_in_one_line(data_dir, capsys, value):
