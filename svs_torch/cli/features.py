@@ -332,23 +332,25 @@ def run(args: argparse.Namespace) -> int:
     pairs = [[i, int(j)] for i, j in enumerate(matches.idx[0].tolist()) if j >= 0]
     matched_xy = [to_input_pixels(points.left[0, i], factors) + to_input_pixels(points.right[0, i], factors)
                   for i, _ in pairs]
-    if args.figure:
-        write_image_atomic(args.figure, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs),
-                           args.figure_option)
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
         status = {"status": "OK"} if empty is None else {"status": "NO_OBJECTS", "reason": empty}
         print(dumps_strict({**status, "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
                             **masked, "time_s": round(elapsed, 6)}))
-        return 0
-    _print_text(left, right, pairs, matched_xy, elapsed, args, empty)
+    else:
+        _print_text(left, right, pairs, matched_xy, elapsed, args, empty)
+    if args.figure:  # after the answer, as estimate's: a disk that refuses the figure keeps it (an audit)
+        write_image_atomic(args.figure, matches_figure(left_image[0, 0], right_image[0, 0], kp, pairs),
+                           args.figure_option)
+        if not args.json:
+            print(f"figure written to {args.figure}")
     return 0
 
 
 def _print_text(left: list, right: list, pairs: list, matched_xy: list, elapsed: float, args: argparse.Namespace,
                 empty: str | None) -> None:
-    """The text answer: the counts, the first ten matches and the figure written; first, where the segmentation kept
-    nothing (``empty``, :func:`nothing_kept_reason`), the status that says so."""
+    """The text answer: the counts and the first ten matches (the figure's line follows); first, where the
+    segmentation kept nothing (``empty``, :func:`nothing_kept_reason`), the status that says so."""
     if empty is not None:
         print(f"status NO_OBJECTS: {empty}")
     # Said to be SAD matches: some are wrong (tens of pixels off the row), and nothing here has yet checked them
@@ -362,8 +364,6 @@ def _print_text(left: list, right: list, pairs: list, matched_xy: list, elapsed:
               f"{xl - xr:.2f} px")
     if len(pairs) > 10:
         print(f"  … {len(pairs) - 10} more (--json for all)")
-    if args.figure:
-        print(f"figure written to {args.figure}")
 
 
 def _match_features(both, left_image, right_image, config) -> tuple:

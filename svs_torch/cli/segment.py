@@ -285,11 +285,6 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - started
     if reason is not None:
         left = right = {"threshold": None, "status": "TOO_SMALL", "reason": reason, "num_regions": 0, "objects": []}
-    elif args.figure:
-        figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left", config.segmenter, config.method),
-                               segmentation_panels(batch.right, seg.right, 0, "right", config.segmenter,
-                                                   config.method)])
-        write_image_atomic(args.figure, figure, args.figure_option)
     if seg is not None:
         left, right = image_report(seg.left, 0), image_report(seg.right, 0)
     if args.json:
@@ -305,6 +300,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         for line in format_report("left", left, config.segmenter) + format_report("right", right, config.segmenter):
             print(line)
+    if seg is not None and args.figure:  # after the report, as estimate's: a disk that refuses it keeps the report
+        figure = compose_grid([segmentation_panels(batch.left, seg.left, 0, "left", config.segmenter, config.method),
+                               segmentation_panels(batch.right, seg.right, 0, "right", config.segmenter,
+                                                   config.method)])
+        write_image_atomic(args.figure, figure, args.figure_option)
+    if not args.json:
         print(f"segmented in {elapsed * 1e3:.1f} ms" + (f"; figure written to {args.figure}" if args.figure and seg
                                                         else "; no figure written" if args.figure else ""))
     return 0

@@ -103,6 +103,31 @@ def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_d
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("command", ["segment", "features"])
+@pytest.mark.parametrize("as_json", [True, False])
+def test_segment_and_features_keep_their_answer_when_a_full_disk_refuses_the_figure(data_dir, capsys, tmp_path,
+                                                                                   monkeypatch, command, as_json):
+    """An audit: 'segment L R --figure f.png' (and features) on a full disk printed nothing, its regions (or
+    keypoints and matches) lost, where estimate prints its report first. Now the answer comes first, then the
+    figure's failure (exit 1, the option and the file named); no 'figure written' line, no figure."""
+    from svs_torch.plotting import figures
+
+    def full_disk(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(figures, "write_bytes_atomic", full_disk)
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure = tmp_path / "fig.png"
+    code, out, err = run_cli(capsys, command, left, right, "--size", "160x120", "--figure", str(figure),
+                             *(["--json"] if as_json else []))
+    assert code == 1 and f"--figure: cannot write '{figure}': No space left on device" in err
+    if as_json:
+        assert json.loads(out)["left"]
+    else:
+        assert out.startswith("left") and "written" not in out
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_estimate_says_where_it_wrote_its_figure_and_masks(data_dir, capsys, tmp_path):
     """As demo, segment and features say it (an audit: estimate --figure said nothing of the file); not under
     --json, whose stdout is the JSON alone."""
