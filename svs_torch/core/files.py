@@ -184,8 +184,11 @@ def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
     try:
         yield
     except OSError as error:
-        raise OSError(error.errno, f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}"
-                      ) from None
+        # Not OSError(errno, ...): EPERM or EACCES made that a PermissionError, taken as a bad argument (exit 2)
+        # once the work was done (an audit); the errno is kept as an attribute.
+        failure = OSError(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}")
+        failure.errno = error.errno
+        raise failure from None
 
 
 def error_text(error: BaseException) -> str:

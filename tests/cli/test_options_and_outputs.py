@@ -103,6 +103,24 @@ def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_d
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_output_refused_for_permission_after_the_work_is_the_commands_failure(data_dir, capsys, tmp_path,
+                                                                                monkeypatch):
+    """An audit: a figure the system refused once written (EPERM/EACCES: a file of another user in the sticky /tmp,
+    an immutable file) ended exit 2, a usage error, where a full disk is exit 1 as the help says of an output that
+    cannot be written: the option's error was rebuilt as OSError(13, ...), which Python makes a PermissionError."""
+    from svs_torch.plotting import figures
+
+    def refused(path, data):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(figures, "write_bytes_atomic", refused)
+    left, right = (str(data_dir / p) for p in TEDDY)
+    figure = tmp_path / "fig.png"
+    code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure), "--json")
+    assert code == 1 and json.loads(out)["status"] == "OK"
+    assert err.strip().endswith(f"\nsvs-depth estimate: error: --figure: cannot write '{figure}': Permission denied")
+
+
 @pytest.mark.parametrize("command", ["segment", "features"])
 @pytest.mark.parametrize("as_json", [True, False])
 def test_segment_and_features_keep_their_answer_when_a_full_disk_refuses_the_figure(data_dir, capsys, tmp_path,
