@@ -222,8 +222,10 @@ class DisparityExport:
                     failing = target
                     _write_map_beside(timing, target, np.where(valid, disparity, np.float32(np.inf)))
             except OSError as error:  # a full disk: the run stops (exit 1), the option and the file named
-                raise OSError(error.errno, f"--disparity-out: cannot write {failing}: "
-                                           f"{error.strerror or error}") from None
+                # (not OSError(errno, ...): EPERM or EACCES made it a PermissionError, exit 2; an audit)
+                failure = OSError(f"--disparity-out: cannot write {failing}: {error.strerror or error}")
+                failure.errno = error.errno
+                raise failure from None
             written.append(target)
             self._written.add(key)
         return written

@@ -264,6 +264,22 @@ def test_a_full_disk_names_the_file_it_refused_and_leaves_no_map_without_its_tim
     assert list((tmp_path / "m" / "Teddy").iterdir()) == []
 
 
+def test_a_map_refused_for_permission_is_the_runs_failure_not_a_usage_error(data_dir, tmp_path, monkeypatch, capsys):
+    """An audit: 'eval SCENE --disparity-out DIR' where a map could not be replaced (EPERM: an immutable file, another
+    user's in a sticky folder) stopped with exit 2, a usage error, where a full disk is exit 1, the help's status for
+    an output that cannot be written: the error was rebuilt as OSError(1, ...), which Python makes a
+    PermissionError."""
+    import svs_torch.evaluation.export as export_module
+    from svs_torch.cli import main
+
+    def refused(path, data):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(export_module, "write_bytes_atomic", refused)
+    assert main(["eval", str(data_dir / "middlebury_eval3_Q" / "Teddy"), "--disparity-out", str(tmp_path / "m")]) == 1
+    assert "--disparity-out: cannot write " in capsys.readouterr().err
+
+
 def _evaldisp_size_ok(map_hw: tuple[int, int], truth_hw: tuple[int, int]) -> bool:
     """The MiddEval3 SDK's evaldisp size rule, read from its source: the GT must be exactly 1, 2 or 4 times the
     map's size ("GT disp size must be exactly 1, 2, or 4 * disp size")."""
