@@ -34,7 +34,7 @@ from .formats import read_kitti_disparity, read_scaled_disparity
 from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
                          eval3_calibration_source, load_middlebury_2001, load_middlebury_2003,
                          load_middlebury_2005_2006, load_middlebury_eval3, teddy_2003_calibration_source)
-from .scene_batch import check_scene_dir, make_scene_batch, read_view_pair, warnings_once_loaded
+from .scene_batch import check_scene_dir, make_scene_batch, named_folder, read_view_pair, warnings_once_loaded
 
 __all__ = [
     "load_middlebury_eval3",
@@ -224,7 +224,7 @@ def detect_stereo_layout(path: str | Path) -> str | None:
 def scene_name(path: str | Path) -> str:
     """The name :func:`load_stereo_pair` gives the scene at ``path`` (``eval3/Teddy``, ``kitti2015/000000_10``,
     ``opencv/aloe``), from its file names alone; the folder's own name for a folder of no known layout."""
-    path = Path(path)
+    path = named_folder(path)  # ('.': its folder's name, not "")
     prefixes = {layout[0]: layout[-1] for layout in KITTI_LAYOUTS}
     if path.parent.name in prefixes and path.suffix:  # a KITTI left image
         return f"{prefixes[path.parent.name]}/{path.stem}"
@@ -241,7 +241,7 @@ def scene_calibration_source(path: str | Path) -> str:
     """Where the calibration :func:`load_stereo_pair` gives the scene at ``path`` comes from, in words: the file
     it was read from, or the nominal values assumed where the data set ships none (the loaders' own rules;
     ``calibrated`` is False exactly where this says "assumed")."""
-    path = Path(path)
+    path = named_folder(path)  # ('.': its folder's name, which the rules below read)
     if path_kind(path, "path") == "file":  # a KITTI left image
         return "KITTI nominal values for the image width assumed: no calib file shipped"
     layout = detect_stereo_layout(path)

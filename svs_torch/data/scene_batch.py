@@ -6,6 +6,7 @@ and the warnings of a load given only once it has succeeded. Nothing here is dif
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,16 +20,25 @@ from ..core.image_files import read_image_array
 from ..core.types import StereoBatch
 from .formats import HELD_WARNINGS, read_gray_image
 
-__all__ = ["check_scene_dir", "make_scene_batch", "read_mask_image", "read_view_pair", "warnings_once_loaded"]
+__all__ = ["check_scene_dir", "make_scene_batch", "named_folder", "read_mask_image", "read_view_pair",
+           "warnings_once_loaded"]
+
+
+def named_folder(path: str | Path) -> Path:
+    """``path`` as a :class:`Path` whose last part is the folder's name: ``.`` and ``..`` (and ``a/..``) resolved,
+    whose :attr:`Path.name` is empty or ``..``. Why: ``cd Teddy && svs-depth estimate .`` named the scene "eval3/",
+    its calibration "/calib.txt", and wrote its map to maps/eval3/ instead of maps/Teddy/ (an audit)."""
+    return Path(os.path.realpath(path)) if Path(path).name in ("", "..") else Path(path)
 
 
 def check_scene_dir(path: str | Path, name: str) -> Path:
-    """``path`` as a :class:`Path`; :class:`InputError` naming ``name`` unless it is a folder."""
+    """``path`` as a :class:`Path` (:func:`named_folder`); :class:`InputError` naming ``name`` unless it is a
+    folder."""
     kind = path_kind(path, name)
     if kind != "folder":
         raise InputError(f"{name}: expected a folder, got {'no such path' if kind == 'missing' else 'a file'}: "
                          f"{display_path(path)}")
-    return Path(path)
+    return named_folder(path)
 
 
 def make_scene_batch(

@@ -349,6 +349,28 @@ def test_a_capture_index_line_nested_too_deep_is_a_bad_line(tmp_path):
     assert good.problem is None
 
 
+def test_a_scene_given_as_dot_is_named_after_its_folder(data_dir, tmp_path, monkeypatch, capsys):
+    """An audit: 'cd Teddy && svs-depth estimate . --disparity-out maps' named the scene "eval3/" (Path('.').name is
+    empty): the calibration line read "(/calib.txt)", eval's row "eval3/", and the map went to maps/eval3/, not
+    maps/Teddy/ where the MiddEval3 SDK looks; 'cd Art && estimate .' lost Art's dmin (looked up by the folder's
+    name) and ranged it at 3.49 m, not 1.61 m. '.' and '..' are named after the folder they are."""
+    from svs_torch.cli import main
+    from svs_torch.data import load_stereo_pair
+
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    monkeypatch.chdir(scene)
+    assert load_stereo_pair(".").names == ("eval3/Teddy",)
+    (source,) = read_pair_sources(["."])
+    assert source.loaded_name == "eval3/Teddy"
+    assert main(["estimate", ".", "--size", "160x133", "--disparity-out", str(tmp_path / "maps")]) == 0
+    assert "(Teddy/calib.txt)" in capsys.readouterr().out
+    assert (tmp_path / "maps" / "Teddy" / "disp0SVSTorch.pfm").is_file()
+    monkeypatch.chdir(data_dir / "middlebury_2005_2006_third" / "Art")
+    art = load_stereo_pair(".")
+    assert art.names == ("2005_2006/Art",) and float(art.doffs_px[0]) == pytest.approx(200 / 3)
+
+
 def test_read_pair_sources_takes_one_path_alone_and_names_a_path_of_the_wrong_type(data_dir):
     """Found by an audit of the Python API: read_pair_sources("…/middlebury_2003_quarter") read the name letter by
     letter, to "no stereo scene ... in the folder /"; None, or None in the list, was a TypeError from os.fspath."""
