@@ -84,41 +84,26 @@ def test_an_output_that_cannot_be_written_stops_the_run_before_anything_is_writt
             check_writable_folder("/proc", "--figure")
 
 
-def test_an_output_a_full_disk_refuses_fails_the_run_and_keeps_the_report(data_dir, capsys, tmp_path, monkeypatch):
-    """Found by an audit: a figure a full disk refused was a usage error (exit 2) and the pair's distances were
-    never printed. The report comes first; the write's failure is the command's (exit 1), naming the option and the
-    file; no figure is left behind, whole or in part."""
-    from svs_torch.plotting import figures
-
-    def full_disk(path, data):
-        raise OSError(28, "No space left on device")
-
-    monkeypatch.setattr(figures, "write_bytes_atomic", full_disk)
-    left, right = (str(data_dir / p) for p in TEDDY)
-    figure = tmp_path / "fig.png"
-    code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure), "--json")
-    assert code == 1
-    assert json.loads(out)["status"] == "OK"
-    assert f"--figure: cannot write '{figure}': No space left on device" in err
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_an_output_refused_for_permission_after_the_work_is_the_commands_failure(data_dir, capsys, tmp_path,
-                                                                                monkeypatch):
-    """An audit: a figure the system refused once written (EPERM/EACCES: a file of another user in the sticky /tmp,
-    an immutable file) ended exit 2, a usage error, where a full disk is exit 1 as the help says of an output that
-    cannot be written: the option's error was rebuilt as OSError(13, ...), which Python makes a PermissionError."""
+@pytest.mark.parametrize("error", [OSError(28, "No space left on device"), PermissionError(13, "Permission denied")])
+def test_an_output_the_system_refuses_fails_the_run_and_keeps_the_report(data_dir, capsys, tmp_path, monkeypatch,
+                                                                         error):
+    """Found by audits: a figure a full disk refused was a usage error (exit 2) and the pair's distances were never
+    printed; one the system refused for permission (EPERM/EACCES: a file of another user in the sticky /tmp, an
+    immutable file) still ended exit 2, as the option's error was rebuilt as OSError(13, ...), which Python makes a
+    PermissionError. The report comes first; the write's failure is the command's (exit 1, as the help says of an
+    output that cannot be written), naming the option and the file; no figure is left behind, whole or in part."""
     from svs_torch.plotting import figures
 
     def refused(path, data):
-        raise PermissionError(13, "Permission denied")
+        raise error
 
     monkeypatch.setattr(figures, "write_bytes_atomic", refused)
     left, right = (str(data_dir / p) for p in TEDDY)
     figure = tmp_path / "fig.png"
     code, out, err = run_cli(capsys, "estimate", left, right, "--size", "160x120", "--figure", str(figure), "--json")
     assert code == 1 and json.loads(out)["status"] == "OK"
-    assert err.strip().endswith(f"\nsvs-depth estimate: error: --figure: cannot write '{figure}': Permission denied")
+    assert err.strip().endswith(f"svs-depth estimate: error: --figure: cannot write '{figure}': {error.strerror}")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("command", ["segment", "features"])
