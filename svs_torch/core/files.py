@@ -184,9 +184,11 @@ def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
     try:
         yield
     except OSError as error:
-        # Not OSError(errno, ...): EPERM or EACCES made that a PermissionError, taken as a bad argument (exit 2)
-        # once the work was done (an audit); the errno is kept as an attribute.
-        failure = OSError(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}")
+        # Of the error's own kind (a caller tells a FileExistsError from the rest: another run's index), but a
+        # PermissionError as a plain OSError: taken as a bad argument (exit 2) once the work was done (an audit).
+        # Not OSError(errno, ...), which makes EPERM or EACCES a PermissionError again; the errno is kept.
+        kind = OSError if isinstance(error, PermissionError) or type(error).__module__ != "builtins" else type(error)
+        failure = kind(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}")
         failure.errno = error.errno
         raise failure from None
 
