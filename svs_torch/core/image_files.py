@@ -20,8 +20,8 @@ import numpy as np
 from .errors import InputError
 from .files import STDERR_LOCK, check_path_given, display_path, path_kind
 
-__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_pixels",
-           "declared_size", "decode_collecting", "preload_key", "read_image_array"]
+__all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_file_size",
+           "declared_pixels", "declared_size", "decode_collecting", "preload_key", "read_image_array"]
 
 #: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is returned for
 #: every read of that file until its owner clears the dict (an ``estimate --pairs`` worker, after each batch).
@@ -129,6 +129,19 @@ def declared_size(data: bytes) -> tuple[int, int] | None:
             return None
         position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
     return None
+
+
+def declared_file_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) that the PNG or JPEG header of the regular file ``path`` declares, read before decoding;
+    None where the header does not say, or ``path`` is no regular file or cannot be read (a FIFO's read would
+    block; the loader then says why)."""
+    if not os.path.isfile(path):
+        return None
+    try:
+        with open(path, "rb") as file:
+            return declared_size(file.read(1 << 20))  # a JPEG's frame header follows its metadata, under 1 MB
+    except OSError:
+        return None
 
 
 def declared_pixels(data: bytes) -> tuple[int, str] | None:

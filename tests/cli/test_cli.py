@@ -1862,6 +1862,22 @@ def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, dat
     assert code == 0 and "1 scored against ground truth" in out and "none of the ranged pairs" not in out
 
 
+def test_a_pair_too_large_to_run_at_its_size_is_refused_before_it_is_decoded(capsys, tmp_path, monkeypatch):
+    """An audit: a 5000 x 5000 16-bit RGBA PNG (200 kB) was decoded into 740 MB over 4.7 s, then refused for its 25
+    megapixels. The left file's header says its size: refused before any decoding, in the same words."""
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), np.zeros((5000, 5000), np.uint8))
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", no_decoding)
+    for command in ("estimate", "features", "segment"):
+        code, out, err = run_cli(capsys, command, str(big), str(big))
+        assert (code, out) == (2, "") and err.endswith(
+            f"{command}: error: left: expected at most 16 megapixels, got 5000x5000 (resample it with --size)\n")
+
+
 def test_segment_takes_size_and_refuses_what_estimate_refuses(data_dir, capsys, tmp_path):
     """An audit of odd image inputs: segment had no --size and no pixel limit (a 56-megapixel pair passed 2.3 GB
     before it was stopped), where estimate and features refuse over 16 megapixels and say to use --size."""
