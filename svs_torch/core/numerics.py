@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
-__all__ = ["safe_sqrt", "sigmoid_per_pair"]
+__all__ = ["per_pair", "safe_sqrt"]
 
 
 def safe_sqrt(value: torch.Tensor) -> torch.Tensor:
@@ -15,11 +17,12 @@ def safe_sqrt(value: torch.Tensor) -> torch.Tensor:
     return torch.where(positive, torch.where(positive, value, 1.0).sqrt(), 0.0)
 
 
-def sigmoid_per_pair(value: torch.Tensor) -> torch.Tensor:
-    """``torch.sigmoid`` of ``(B, ...)``, one pair at a time: torch computes a tensor's vectorised runs and its
-    scalar tail differently (3-4 % of values an ulp apart), and the tail falls on other elements in a batch than
-    alone, so a pair's values moved with the pairs batched with it (an audit). A pair alone (B = 1) is computed as
-    before. Differentiable w.r.t. ``value``."""
+def per_pair(function: Callable[[torch.Tensor], torch.Tensor], value: torch.Tensor) -> torch.Tensor:
+    """``function`` (an elementwise op, or one along a dim other than 0: ``torch.sigmoid``, a softmax over dim 1) of
+    ``(B, ...)``, one pair at a time: torch computes a tensor's vectorised runs and its scalar tail differently
+    (a sigmoid's or an exp's values an ulp apart), and the tail falls on other elements in a batch than alone, so a
+    pair's values moved with the pairs batched with it (an audit). A pair alone (B = 1) is computed as before.
+    Differentiable as ``function`` is."""
     if value.dim() == 0 or value.shape[0] <= 1:
-        return torch.sigmoid(value)
-    return torch.cat([torch.sigmoid(part) for part in value.split(1)])
+        return function(value)
+    return torch.cat([function(part) for part in value.split(1)])

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError, check_positive_scalar
+from ..core.numerics import per_pair
 from .block_matching import _check_pair, _check_range
 from .cost_volume import _box_sum, _costs_in_cache, _crops, _prefilter, check_volume_size
 from .dense_config import DenseConfig
@@ -59,13 +60,10 @@ def soft_block_match(left: torch.Tensor, right: torch.Tensor, min_disparity_px: 
     return torch.where(any_inside, expected, values[:, :1].view(b, 1, 1, 1).expand_as(expected))
 
 
-def _softmax_per_pair(logits: torch.Tensor) -> torch.Tensor:
-    """``softmax(logits, dim=1)`` of ``(B, D, H, W)``, one call per pair: one call over the batch splits B·H·W into
-    vectorised runs and a scalar tail whose exp rounds differently, so at some sizes (9 × 14, 157 × 117) a pair's
-    weights moved by an ulp with the other pairs of its batch (an audit). Alone, a pair's values are unchanged."""
-    if logits.shape[0] <= 1:
-        return torch.softmax(logits, dim=1)
-    return torch.cat([torch.softmax(part, dim=1) for part in logits.split(1)])
+def _softmax_over_disparities(logits: torch.Tensor) -> torch.Tensor:
+    """``softmax(logits, dim=1)`` of ``(B, D, H, W)``; taken :func:`per_pair`: one call over the batch rounded a pair's
+    weights by an ulp differently with the other pairs of its batch (9 × 14, 157 × 117: an audit)."""
+    return torch.softmax(logits, dim=1)
 
 
 class _SoftArgminSAD(torch.autograd.Function):
@@ -83,7 +81,7 @@ class _SoftArgminSAD(torch.autograd.Function):
             # −(C / K²) / T in the order the op-by-op version computed it, so the values are the same bit for bit.
             logits = costs.div_(size * size).div_(temperature).neg_().masked_fill_(~inside, -torch.inf)
             logits.masked_fill_(~inside.any(dim=1, keepdim=True), 0.0)  # no candidate: uniform, replaced later
-            weights = _softmax_per_pair(logits)
+            weights = per_pair(_softmax_over_disparities, logits)
             expected = (weights * values.view(b, d, 1, 1)).sum(dim=1, keepdim=True)
         ctx.save_for_backward(left_crop, right_crop, weights, values, expected, inside)
         ctx.size, ctx.temperature = size, temperature
@@ -126,6 +124,7 @@ def _differentiable_backward(ctx, grad: torch.Tensor, left_crop: torch.Tensor, r
                                         stride=1) for i in range(d)], dim=1)
         logits = (-means / temperature).masked_fill(~inside, -torch.inf)
         logits = logits.masked_fill(~inside.any(dim=1, keepdim=True), 0.0)
-        expected = (_softmax_per_pair(logits) * values.view(b, d, 1, 1)).sum(dim=1, keepdim=True)
+        weights = per_pair(_softmax_over_disparities, logits)
+        expected = (weights * values.view(b, d, 1, 1)).sum(dim=1, keepdim=True)
         found = iter(torch.autograd.grad(expected, wanted, grad, create_graph=True))
     return tuple(next(found) if needed else None for needed in ctx.needs_input_grad[:2])

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_instance, check_positive_scalar, check_shape
-from ..core.numerics import sigmoid_per_pair
+from ..core.numerics import per_pair
 from ..core.types import Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from ..depth.dense_config import DenseConfig
 from ..depth.quantiles import kept_region_lower_median
@@ -255,7 +255,7 @@ def soft_object_depths(logits: torch.Tensor, segmentation: Segmentation, dispari
     if not bool(torch.isfinite(disparity_px.detach()[inside]).all()):
         raise InputError("disparity_px: expected finite values over the kept regions, got NaN or inf")
     values = torch.where(inside, disparity_px, torch.zeros_like(disparity_px))
-    weights = sigmoid_per_pair(logits / mask_temperature) * region  # batched as alone
+    weights = per_pair(torch.sigmoid, logits / mask_temperature) * region  # batched as alone
     total = weights.flatten(2).sum(-1)  # (B, N)
     has = region.flatten(2).any(-1) & (total > 0)
     mean = (weights * values).flatten(2).sum(-1) / torch.where(has, total, 1.0)

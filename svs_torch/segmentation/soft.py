@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import InputError, check_dtype, check_finite, check_image, check_positive_scalar, check_shape
-from ..core.numerics import sigmoid_per_pair
+from ..core.numerics import per_pair
 from ..core.types import Segmentation
 from .morphology import anchor_padding, structuring_element
 from .segment import SegmentationConfig, segment_images
@@ -59,7 +59,7 @@ def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: fl
     check_finite(threshold, "threshold")  # a NaN gave NaN masks in silence (any finite value is a threshold)
     _check_temperature(temperature)
     # In the image's dtype: a float64 threshold made a float32 image's mask float64 (an audit).
-    return sigmoid_per_pair((image - threshold.to(image.dtype).view(-1, 1, 1, 1)) / temperature)
+    return per_pair(torch.sigmoid, (image - threshold.to(image.dtype).view(-1, 1, 1, 1)) / temperature)
 
 
 def _soft_max_filter(x: torch.Tensor, element: torch.Tensor, temperature: float, empty: float) -> torch.Tensor:
