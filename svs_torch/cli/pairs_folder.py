@@ -132,13 +132,13 @@ class PairsIndex:
 
     def __init__(self, folder: Path, option: str) -> None:
         self.path, self.option = folder / INDEX_NAME, option
-        try:
-            with write_errors_named(option, self.path):
+        with write_errors_named(option, self.path):
+            try:
                 self._file = open(self.path, "xb", buffering=0)
-        except FileExistsError:  # new_pairs_folder saw none: another run made it since (an audit: two captures
-            # into one folder; the refused one's clean-up removed the other's index and folder)
-            raise InputError(f"{option}: {display_path(self.path)} was made by another run since this one started "
-                             "(two runs writing one folder?); choose a new folder") from None
+            except FileExistsError:  # new_pairs_folder saw none: another run made it since (an audit: two captures
+                # into one folder; the refused one's clean-up removed the other's index and folder)
+                raise InputError(f"{option}: {display_path(self.path)} was made by another run since this one "
+                                 "started (two runs writing one folder?); choose a new folder") from None
         self._length = 0  # the index's bytes of whole lines
 
     def append(self, record: dict[str, Any]) -> None:

@@ -27,7 +27,7 @@ from .errors import InputError
 __all__ = ["STDERR_LOCK", "atomic_output", "check_output_file", "check_path_given", "check_writable_folder",
            "display_path", "make_output_folder", "null_device_on", "path_kind", "short_name", "split_list_line",
            "stream_is_terminal", "PROGRESS_HELP", "progress_setting", "redraws_in_place", "tidy_path",
-           "write_bytes_atomic", "write_errors_named", "error_text"]
+           "write_bytes_atomic", "write_errors_named", "write_failure", "error_text"]
 
 #: Held while descriptor 2 is lent to C decoders to collect what they write (``core.image_files``), and by the
 #: command line's own lines on standard error (progress, warnings), so that none of them is written into that
@@ -184,13 +184,18 @@ def write_errors_named(name: str, path: str | os.PathLike) -> Iterator[None]:
     try:
         yield
     except OSError as error:
-        # Of the error's own kind (a caller tells a FileExistsError from the rest: another run's index), but a
-        # PermissionError as a plain OSError: taken as a bad argument (exit 2) once the work was done (an audit).
-        # Not OSError(errno, ...), which makes EPERM or EACCES a PermissionError again; the errno is kept.
-        kind = OSError if isinstance(error, PermissionError) or type(error).__module__ != "builtins" else type(error)
-        failure = kind(f"{name}: cannot write {display_path(path)!r}: {error.strerror or error}")
-        failure.errno = error.errno
-        raise failure from None
+        raise write_failure(f"{name}: cannot write {display_path(path)!r}", error) from None
+
+
+def write_failure(what: str, error: OSError) -> OSError:
+    """``error`` of a write said as ``what: <its reason>``: a plain :class:`OSError` keeping its errno, which the
+    command line takes as the command's failure (exit 1). Not ``OSError(errno, ...)``: Python makes that a
+    PermissionError for EPERM or EACCES (and a FileNotFoundError, ... for others), which it takes as a bad argument
+    (exit 2) once the work was done (an audit). A caller that tells an error's kind apart (a FileExistsError) does
+    so inside the write, before it is said this way."""
+    failure = OSError(f"{what}: {error.strerror or error}")
+    failure.errno = error.errno
+    return failure
 
 
 def error_text(error: BaseException) -> str:

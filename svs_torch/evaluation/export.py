@@ -48,7 +48,7 @@ import torch
 
 from ..core.checks import InputError, check_instance
 from ..core.dataset_files import make_export_folder, resized_maps_note
-from ..core.files import write_bytes_atomic
+from ..core.files import write_bytes_atomic, write_failure
 from ..core.types import StereoBatch
 from ..data.datasets import GENERIC_LEFT_NAME
 from ..data.formats import write_kitti_disparity, write_pfm
@@ -221,11 +221,8 @@ class DisparityExport:
                     write_bytes_atomic(timing, f"{time_s:.6f}\n".encode("ascii"))
                     failing = target
                     _write_map_beside(timing, target, np.where(valid, disparity, np.float32(np.inf)))
-            except OSError as error:  # a full disk: the run stops (exit 1), the option and the file named
-                # (not OSError(errno, ...): EPERM or EACCES made it a PermissionError, exit 2; an audit)
-                failure = OSError(f"--disparity-out: cannot write {failing}: {error.strerror or error}")
-                failure.errno = error.errno
-                raise failure from None
+            except OSError as error:  # a full disk, EPERM: the run stops (exit 1), the option and the file named
+                raise write_failure(f"--disparity-out: cannot write {failing}", error) from None
             written.append(target)
             self._written.add(key)
         return written
