@@ -17,6 +17,7 @@ from .errors import InputError
 __all__ = [
     "InputError",
     "nesting_depth",
+    "check_device",
     "check_shape",
     "check_dtype",
     "check_image",
@@ -145,6 +146,13 @@ def check_finite(tensor: torch.Tensor, name: str, positive: bool = False) -> Non
     if bool(bad.any()):
         first = float(values[bad].flatten()[0])
         raise InputError(f"{name}: expected finite{' positive' if positive else ''} values, got {first}")
+
+
+def check_device(tensor: torch.Tensor, name: str, like: torch.Tensor, whose: str) -> None:
+    """Check that ``tensor`` is on ``like``'s device (``whose``: how the message names it, e.g. ``"the image's"``): one
+    on another device, or the meta device, failed deep inside torch at its first use or ``bool()``."""
+    if tensor.device != like.device:
+        raise InputError(f"{name}: expected a tensor on {whose} device {like.device}, got {tensor.device}")
 
 
 def check_finite_where(tensor: torch.Tensor, name: str, where: torch.Tensor, where_name: str) -> None:

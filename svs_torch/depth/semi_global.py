@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import InputError, check_count, check_dtype, check_shape
+from ..core.checks import InputError, check_count, check_device, check_dtype, check_shape
 from . import kernels
 
 __all__ = ["pair_residual_levels", "semi_global_aggregate", "semi_global_aggregate_with_winner"]
@@ -90,8 +90,7 @@ def semi_global_aggregate_with_winner(costs: torch.Tensor, p1: torch.Tensor, p2:
         # A complex one raised NotImplementedError from the comparison below, a meta one a RuntimeError from its
         # bool(), and a bool one was taken as 1 in silence (an audit).
         check_dtype(value, name, "int|float")
-        if value.device != costs.device:
-            raise InputError(f"{name}: expected a tensor on the costs' device {costs.device}, got {value.device}")
+        check_device(value, name, costs, "the costs'")
     if costs.numel() and not bool(costs.min() >= 0):  # one pass: the minimum is NaN where any cost is
         raise InputError("costs: expected SAD costs >= 0 (or +inf where not searched), got NaN or negative values")
     if not (bool((p1 >= 0).all()) and bool((p2 >= p1).all())):

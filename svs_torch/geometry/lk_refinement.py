@@ -11,7 +11,8 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_finite_where, check_image, check_shape, real_or_nan
+from ..core.checks import (InputError, check_device, check_dtype, check_finite_where, check_image, check_shape,
+                           real_or_nan)
 from ..core.kernels.checks import check_nonempty
 from ..core.numerics import safe_sqrt
 from ..core.types import Matches
@@ -102,8 +103,7 @@ def _check_scale(scale: torch.Tensor | None, valid: torch.Tensor) -> None:
         return
     check_shape(scale, "scale", list(valid.shape))
     check_dtype(scale, "scale", "float|int")
-    if scale.device != valid.device:
-        raise InputError(f"scale: expected a tensor on the points' device {valid.device}, got {scale.device}")
+    check_device(scale, "scale", valid, "the points'")
     check_finite_where(scale, "scale", valid, "points.valid")
 
 

@@ -44,7 +44,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_count, check_dtype, check_finite_where, check_real, check_shape
+from ..core.checks import (InputError, check_count, check_device, check_dtype, check_finite_where, check_real,
+                           check_shape)
 from ..core.kernels.checks import check_positive_hw
 from . import kernels
 from .ransac_sampling import draw_minimal_samples
@@ -243,9 +244,7 @@ def fit_row_alignment(points_left: torch.Tensor, points_right: torch.Tensor, val
     if focal_px is not None:
         check_shape(focal_px, "focal_px", [dims["B"]])
         check_dtype(focal_px, "focal_px", "int|float")  # complex: deep NotImplementedError; bool: 1 px (an audit)
-        if focal_px.device != points_left.device:  # a meta one: a RuntimeError from its bool()
-            raise InputError(f"focal_px: expected a tensor on the points' device {points_left.device}, got "
-                             f"{focal_px.device}")
+        check_device(focal_px, "focal_px", points_left, "the points'")  # (a meta one: a RuntimeError from its bool())
         if not bool(((focal_px > 0) & focal_px.isfinite()).all()):
             raise InputError("focal_px: expected finite focal lengths > 0, pixels")
     left, right = points_left.to(torch.float64), points_right.to(torch.float64)

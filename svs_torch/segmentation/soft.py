@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..core.checks import InputError, check_dtype, check_finite, check_image, check_positive_scalar, check_shape
+from ..core.checks import (InputError, check_device, check_dtype, check_finite, check_image, check_positive_scalar,
+                           check_shape)
 from ..core.numerics import per_pair
 from ..core.types import Segmentation
 from .morphology import anchor_padding, structuring_element
@@ -54,8 +55,7 @@ def soft_threshold(image: torch.Tensor, threshold: torch.Tensor, temperature: fl
     check_image(image, "image")
     check_shape(threshold, "threshold", [image.shape[0]])
     check_dtype(threshold, "threshold", "float")
-    if threshold.device != image.device:  # a meta one failed in a bool() deep in check_finite, another in the sum
-        raise InputError(f"threshold: expected a tensor on the image's device {image.device}, got {threshold.device}")
+    check_device(threshold, "threshold", image, "the image's")  # (a meta one failed in check_finite's bool())
     check_finite(threshold, "threshold")  # a NaN gave NaN masks in silence (any finite value is a threshold)
     _check_temperature(temperature)
     # In the image's dtype: a float64 threshold made a float32 image's mask float64 (an audit).
