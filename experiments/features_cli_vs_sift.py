@@ -2,7 +2,7 @@
 their native size, the way a user meets both (issue 33, item 4).
 
 The command runs in-process through :func:`svs_torch.cli.main` (the same code path as the console script,
-without a Python start-up per pair) on the image files themselves; its ``matched_xy`` rows are scored against the
+without a Python start-up per pair) on the image files themselves; its ``matched_xy_px`` rows are scored against the
 ground truth. The rival is what a user writes from OpenCV's tutorial: ``cv2.SIFT_create()`` (no keypoint cap) on
 the grayscale files, ``BFMatcher().knnMatch(k=2)`` and Lowe's ratio 0.8. A match is correct when its disparity
 ``x_left − x_right`` is within 1 px of the GT disparity at the (rounded) left point AND ``|y_left − y_right|`` ≤
@@ -69,7 +69,7 @@ def command_matches(left: Path, right: Path, extra: list[str]) -> tuple[np.ndarr
     if status != 0:
         raise RuntimeError(f"svs-depth features exited {status} on {left}")
     report = json.loads(out.getvalue())
-    return np.asarray(report["matched_xy"], np.float64).reshape(-1, 4), report
+    return np.asarray(report["matched_xy_px"], np.float64).reshape(-1, 4), report
 
 
 def sift_matches(left: Path, right: Path) -> np.ndarray:

@@ -30,9 +30,10 @@ keeps its own settings, and detects on the whole images unless --preset paper: -
 already matches estimate --preset paper.
 
 Keypoint positions and scales are in input-image pixels, also when --size resamples the pair first. In --json,
-"matches" pairs keypoint indices (their detected positions) and "matched_xy" gives each match's points as the
-pipeline uses them, the right point refined to sub-pixel: score matched_xy, not the keypoints. Where the
-segmentation keeps no region in a view, the status is NO_OBJECTS (as estimate's), with the reason.
+each keypoint has "xy_px" and "scale_px", "matches" pairs keypoint indices (their detected positions) and
+"matched_xy_px" gives each match's points as the pipeline uses them, the right point refined to sub-pixel: score
+matched_xy_px, not the keypoints. Where the segmentation keeps no region in a view, the status is NO_OBJECTS (as
+estimate's), with the reason.
 """
 
 EPILOG = """\
@@ -260,7 +261,8 @@ def to_input_pixels(xy, factors: tuple[float, float]) -> list[float]:
 def keypoint_list(keypoints, index: int, factors: tuple[float, float]) -> list[dict]:
     valid = keypoints.valid[index]
     scale_factor = (factors[0] + factors[1]) / 2
-    return [{"xy": to_input_pixels(xy, factors), "scale": round(float(s) * scale_factor, 3), "score": float(r)}
+    return [{"xy_px": to_input_pixels(xy, factors), "scale_px": round(float(s) * scale_factor, 3),
+             "score": float(r)}
             for xy, s, r in zip(keypoints.xy[index][valid], keypoints.scale[index][valid],
                                 keypoints.score[index][valid])]
 
@@ -321,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
     if reason:
         if args.json:
             print(dumps_strict({"status": "TOO_SMALL", "reason": reason, "left": [], "right": [], "matches": [],
-                                "matched_xy": [], **masked, "time_s": 0.0}))
+                                "matched_xy_px": [], **masked, "time_s": 0.0}))
         else:
             print(f"status TOO_SMALL: {reason}; no keypoints, no file written")
         return 0
@@ -341,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
     left, right = keypoint_list(kp, 0, factors), keypoint_list(kp, 1, factors)
     if args.json:
         status = {"status": "OK"} if empty is None else {"status": "NO_OBJECTS", "reason": empty}
-        print(dumps_strict({**status, "left": left, "right": right, "matches": pairs, "matched_xy": matched_xy,
+        print(dumps_strict({**status, "left": left, "right": right, "matches": pairs, "matched_xy_px": matched_xy,
                             **masked, "time_s": round(elapsed, 6)}))
     else:
         _print_text(left, right, pairs, matched_xy, elapsed, args, empty)
@@ -366,7 +368,7 @@ def _print_text(left: list, right: list, pairs: list, matched_xy: list, elapsed:
           f"({'segmented obstacles' if not args.no_segment else 'whole images'}; svs-depth fundamental keeps the "
           f"epipolar inliers), {elapsed * 1e3:.0f} ms")
     for (i, _), (xl, yl, xr, yr) in zip(pairs[:10], matched_xy):
-        print(f"  left ({xl:.1f}, {yl:.1f}) s {left[i]['scale']:.2f} -> right ({xr:.2f}, {yr:.2f}), disparity "
+        print(f"  left ({xl:.1f}, {yl:.1f}) s {left[i]['scale_px']:.2f} -> right ({xr:.2f}, {yr:.2f}), disparity "
               f"{xl - xr:.2f} px")
     if len(pairs) > 10:
         print(f"  … {len(pairs) - 10} more (--json for all)")

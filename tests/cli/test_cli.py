@@ -319,19 +319,19 @@ def test_features_json_in_input_pixels_and_plot(data_dir, capsys, tmp_path):
     assert len(report["left"]) > 20 and len(report["matches"]) > 10
     width, height = 450, 375  # Teddy's input size: coordinates come back in input pixels
     for point in report["left"] + report["right"]:
-        assert -0.5 <= point["xy"][0] <= width - 0.5 and -0.5 <= point["xy"][1] <= height - 0.5
-        assert point["scale"] > 0 and point["score"] > 0
+        assert -0.5 <= point["xy_px"][0] <= width - 0.5 and -0.5 <= point["xy_px"][1] <= height - 0.5
+        assert point["scale_px"] > 0 and point["score"] > 0
     # Matches on a rectified pair lie on (nearly) the same row, at positive disparity.
-    rows = [abs(report["left"][i]["xy"][1] - report["right"][j]["xy"][1]) for i, j in report["matches"]]
-    disparities = [report["left"][i]["xy"][0] - report["right"][j]["xy"][0] for i, j in report["matches"]]
+    rows = [abs(report["left"][i]["xy_px"][1] - report["right"][j]["xy_px"][1]) for i, j in report["matches"]]
+    disparities = [report["left"][i]["xy_px"][0] - report["right"][j]["xy_px"][0] for i, j in report["matches"]]
     assert np.median(rows) < 1.5 and np.median(disparities) > 5
     # The refined matched points: the left point is the keypoint, the right one moved by at most 2 px, and the
     # refined rows agree better (the pair is rectified: the true dy is 0).
-    assert report["refined"] and len(report["matched_xy"]) == len(report["matches"])
-    for (i, j), (xl, yl, xr, yr) in zip(report["matches"], report["matched_xy"]):
-        assert [xl, yl] == report["left"][i]["xy"]
-        assert math.dist([xr, yr], report["right"][j]["xy"]) <= 2.0 * 375 / 240 + 1e-6  # 2 px, largest factor
-    refined_rows = [abs(yl - yr) for _, yl, _, yr in report["matched_xy"]]
+    assert report["refined"] and len(report["matched_xy_px"]) == len(report["matches"])
+    for (i, j), (xl, yl, xr, yr) in zip(report["matches"], report["matched_xy_px"]):
+        assert [xl, yl] == report["left"][i]["xy_px"]
+        assert math.dist([xr, yr], report["right"][j]["xy_px"]) <= 2.0 * 375 / 240 + 1e-6  # 2 px, largest factor
+    refined_rows = [abs(yl - yr) for _, yl, _, yr in report["matched_xy_px"]]
     assert np.mean(np.array(refined_rows) <= 0.5) > np.mean(np.array(rows) <= 0.5)
     code, out, _ = run_cli(capsys, "features", left, right, "--no-refine", "--json")
     plain = json.loads(out)

@@ -45,15 +45,15 @@ def test_command_defaults_are_its_own_and_options_win():
 def test_json_fields_and_settings(data_dir, capsys):
     scene = data_dir / TEDDY_2003
     report = features_json(capsys, str(scene / "imL.png"), str(scene / "imR.png"), "--no-segment")
-    assert set(report) == {"status", "left", "right", "matches", "matched_xy", "refined", "segmented", "segmenter",
+    assert set(report) == {"status", "left", "right", "matches", "matched_xy_px", "refined", "segmented", "segmenter",
                            "settings", "time_s"}
     assert report["status"] == "OK" and report["refined"] and not report["segmented"] and report["time_s"] > 0
     assert report["segmenter"] is None
     assert report["settings"] == {"max_keypoints": MAX_KEYPOINTS, "metric_threshold": 100.0, "upsample": True,
                                   "max_ratio": 0.8, "mutual": False, "laplacian_gate": True}
     assert 512 < len(report["left"]) <= MAX_KEYPOINTS  # more than the pipeline's cap: no cap in practice
-    assert len(report["matched_xy"]) == len(report["matches"])
-    for (i, j), row in zip(report["matches"], report["matched_xy"]):
+    assert len(report["matched_xy_px"]) == len(report["matches"])
+    for (i, j), row in zip(report["matches"], report["matched_xy_px"]):
         assert 0 <= i < len(report["left"]) and 0 <= j < len(report["right"]) and len(row) == 4
     capped = features_json(capsys, str(scene / "imL.png"), str(scene / "imR.png"), "--no-segment",
                            "--max-keypoints", "200", "--no-upsample")
@@ -68,7 +68,7 @@ def test_a_too_small_answer_has_the_fields_of_an_ok_one(capsys, tmp_path):
     cv2.imwrite(str(path), np.full((3, 160), 90, np.uint8))
     report = features_json(capsys, str(path), str(path))
     assert report["status"] == "TOO_SMALL"
-    assert set(report) == {"status", "reason", "left", "right", "matches", "matched_xy", "refined", "segmented",
+    assert set(report) == {"status", "reason", "left", "right", "matches", "matched_xy_px", "refined", "segmented",
                            "segmenter", "settings", "time_s"}
     assert report["refined"] and report["settings"]["max_keypoints"] == MAX_KEYPOINTS
 
@@ -90,7 +90,7 @@ def test_precision_on_a_real_pair_at_least_sift(data_dir, capsys):
     left, right = str(scene / "imL.png"), str(scene / "imR.png")
     disparity = cv2.imread(str(scene / "disp2.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / 4
     report = features_json(capsys, left, right, "--no-segment")
-    precision, correct = ground_truth_precision(np.asarray(report["matched_xy"], np.float64), disparity)
+    precision, correct = ground_truth_precision(np.asarray(report["matched_xy_px"], np.float64), disparity)
     sift = cv2.SIFT_create()
     kl, dl = sift.detectAndCompute(cv2.imread(left, cv2.IMREAD_GRAYSCALE), None)
     kr, dr = sift.detectAndCompute(cv2.imread(right, cv2.IMREAD_GRAYSCALE), None)
@@ -100,8 +100,8 @@ def test_precision_on_a_real_pair_at_least_sift(data_dir, capsys):
     # Measured: 0.871 of 1756 (1530 correct) against SIFT's 0.802 of 353 (283).
     assert precision >= sift_precision and precision > 0.8
     assert correct >= sift_correct / 2 and correct > 1000
-    # The keypoints' own (unrefined) positions are less precise: score matched_xy.
-    keypoints = np.asarray([report["left"][i]["xy"] + report["right"][j]["xy"] for i, j in report["matches"]])
+    # The keypoints' own (unrefined) positions are less precise: score matched_xy_px.
+    keypoints = np.asarray([report["left"][i]["xy_px"] + report["right"][j]["xy_px"] for i, j in report["matches"]])
     assert ground_truth_precision(keypoints, disparity)[0] < precision
 
 
@@ -140,8 +140,8 @@ def test_segmented_features_lie_on_the_regions_segment_shows(data_dir, capsys):
                                ("paper", PipelineConfig.paper(), PipelineConfig())):
         report = features_json(capsys, left, right, "--preset", preset)
         assert report["segmented"] and report["segmenter"] == own.segmentation.segmenter and len(report["left"]) > 100
-        xy = np.array([point["xy"] for point in report["left"]]).round().astype(int)
-        scale = np.array([point["scale"] for point in report["left"]])
+        xy = np.array([point["xy_px"] for point in report["left"]]).round().astype(int)
+        scale = np.array([point["scale_px"] for point in report["left"]])
         assert (distance_px(own, xy) <= 3.75 * scale + 1).all(), preset
         assert (distance_px(other, xy) > 3.75 * scale + 1).any(), preset  # the presets' regions differ on Teddy
 
