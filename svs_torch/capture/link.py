@@ -67,10 +67,14 @@ class CameraLink:
         """Open the link and discard anything already waiting (the master's power-up banner, §2)."""
         cfg = self.config
         try:
+            # exclusive: a serial device another program (or this one's other camera, by another path to it) holds
+            # is refused ("Could not exclusively lock port"). Why: without the lock both opened it, each read part
+            # of the other's replies, and both failed on frames "cut short" or "expected it to end FF D9" (an
+            # audit). Ignored by socket://, where the WiFi module serves one client at a time.
             self._serial = serial.serial_for_url(
                 self.url, baudrate=cfg.baudrate, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
                 stopbits=serial.STOPBITS_ONE, rtscts=cfg.rtscts, timeout=cfg.poll_s,
-                write_timeout=cfg.write_timeout_s)
+                write_timeout=cfg.write_timeout_s, exclusive=True)
         except (serial.SerialException, ValueError, OSError) as err:
             raise CaptureError(f"{self.where}: could not open the link: {err}") from err
         self._pending_drop = None
