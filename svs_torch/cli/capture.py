@@ -282,14 +282,15 @@ class _PairChecks:
     ``max_frame_gap_s`` apart after their regrabs (a right board 0.5 s late on every frame was saved pair after pair
     without a word), and pairs in which one camera sent its last frame again while the other's changed
     (:class:`~svs_torch.capture.frozen.FrozenCameraWatch`: a stalled board's pairs were saved without a word, an old
-    view beside a new one in a data set). Both are kept: capture records what the boards sent, and the index says
-    which they are."""
+    view beside a new one in a data set), and pairs whose two frames are one image (guide's identical_views, warned
+    of only). All are kept: capture records what the boards sent, and the index says which of the first two they
+    are."""
 
     def __init__(self, max_frame_gap_s: float | None) -> None:
         from ..capture.frozen import FrozenCameraWatch
 
         self.max_frame_gap_s, self.watch = max_frame_gap_s, FrozenCameraWatch()
-        self.apart, self.frozen = 0, {"left": 0, "right": 0}
+        self.apart, self.frozen, self.one_image = 0, {"left": 0, "right": 0}, 0
 
     def frozen_camera(self, pair) -> str | None:
         """The camera of ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) judged frozen, or None; each
@@ -305,6 +306,10 @@ class _PairChecks:
         self.apart += gap_s is not None and abs(pair.time_between_frames_s) > gap_s
         if frozen is not None:
             self.frozen[frozen] += 1
+        # One image for both cameras, pixel for pixel and not flat (guide's identical_views): two sensors' frames of
+        # a scene never are. Such pairs were saved without a word, though guide refuses them (an audit).
+        left, right = pair.left.image, pair.right.image
+        self.one_image += left.shape == right.shape and bool((left == right).all()) and bool(left.max() > left.min())
 
     def warnings(self, done: int) -> list[str]:
         """The warnings of a capture that kept ``done`` pairs: one line each, none when all pairs were sound."""
@@ -319,6 +324,10 @@ class _PairChecks:
                 said.append(f"{count} of {done} pairs have the {camera} camera's frame sent again, pixel for pixel, "
                             f"while the {other} one's changed (frozen_camera in index.jsonl): a stalled board, an old "
                             f"view beside a new one; check the {camera} camera; guide does not range such pairs")
+        if self.one_image:
+            said.append(f"{self.one_image} of {done} pairs have one image for both cameras, pixel for pixel: one "
+                        "board's frame sent for both (check --left and --right reach two boards); guide does not "
+                        "range such pairs")
         return said
 
 

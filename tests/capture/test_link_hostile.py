@@ -32,3 +32,27 @@ def test_a_serial_device_another_link_holds_is_refused_not_shared():
             first.close()
         second.open()  # free again once closed
         second.close()
+
+
+def test_cli_capture_warns_of_pairs_whose_two_frames_are_one_image(tmp_path, capsys):
+    # guide refuses a pair whose two frames are one image (identical_views: a relay or a URL that sent one board's
+    # frame for both); capture saved such pairs without a word, though it warns of each kind guide refuses.
+    import argparse
+
+    from svs_torch.cli.capture import add_parser
+
+    def run_capture(*argv: str) -> int:
+        parser = argparse.ArgumentParser(prog="svs-depth")
+        add_parser(parser.add_subparsers(dest="command", required=True))
+        args = parser.parse_args(["capture", *argv])
+        return args.func(args)
+
+    for source, warned in ((flat_source, True), (lambda camera, *rest: flat_source(camera, *rest) // 2 + (
+            camera == "left"), False)):
+        out = tmp_path / str(warned)
+        with EmulatorServer(left_port=0, right_port=0, source=source) as server:
+            code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "2",
+                               "--size", "160x120", "--out", str(out))
+        err = capsys.readouterr().err
+        assert code == 0 and "saved 2 pairs" in err
+        assert ("warning: 2 of 2 pairs have one image for both cameras, pixel for pixel" in err) == warned, err
