@@ -243,8 +243,10 @@ class EmulatorServer:
 
     @property
     def urls(self) -> dict[str, str]:
-        """``socket://`` URL of each camera, keyed ``"left"`` and ``"right"``."""
-        return {name: f"socket://{self.host}:{port.port}" for name, port in self._ports.items()}
+        """``socket://`` URL of each camera, keyed ``"left"`` and ``"right"``. An IPv6 address is bracketed: the
+        ``socket://::1:10001`` printed for ``--host ::1`` was refused by the driver (its port unreadable)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return {name: f"socket://{host}:{port.port}" for name, port in self._ports.items()}
 
     @property
     def pty_paths(self) -> dict[str, str]:

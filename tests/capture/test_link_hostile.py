@@ -56,3 +56,20 @@ def test_cli_capture_warns_of_pairs_whose_two_frames_are_one_image(tmp_path, cap
         err = capsys.readouterr().err
         assert code == 0 and "saved 2 pairs" in err
         assert ("warning: 2 of 2 pairs have one image for both cameras, pixel for pixel" in err) == warned, err
+
+
+def test_the_emulators_urls_on_an_ipv6_host_are_ones_the_driver_opens():
+    # python -m hw.emulator --host ::1 printed socket://::1:10001, which the driver refused ("expected
+    # socket://HOST:PORT"): an IPv6 address in a URL is bracketed. (The host is set after binding: a machine without
+    # IPv6 cannot bind ::1, and only the URL is in question.)
+    from svs_torch.capture.link_types import check_link_url
+
+    server = EmulatorServer(left_port=0, right_port=0, source=flat_source)
+    try:
+        server.host = "::1"
+        urls = server.urls
+        for name, url in urls.items():
+            check_link_url(url, name)
+        assert urls["left"].startswith("socket://[::1]:")
+    finally:
+        server.stop()
