@@ -11,7 +11,7 @@ import argparse
 import math
 
 from .emulator_state import Faults
-from .frames import WALKER_PITCH_DEG
+from .frames import MIN_IMAGE_STEP_S, WALKER_PITCH_DEG
 from svs_torch.cli.capture import check_heap_in_view
 from svs_torch.cli.common import MAX_SEED, finite_float, noise_levels, non_negative_float, non_negative_int, \
     positive_float, seed_int
@@ -42,8 +42,8 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
                    help="right/slave TCP port, 0 = free (default %(default)s)")
     p.add_argument("--pty", action="store_true", help="also serve each board on a pseudo-terminal")
     p.add_argument("--images", metavar="DIR", help="left/right image folder (default: synthetic obstacles)")
-    p.add_argument("--image-step", type=positive_float, default=1.0,
-                   help="seconds per image pair (default %(default)s)")
+    p.add_argument("--image-step", type=_image_step, default=1.0,
+                   help=f"seconds per image pair, at least {MIN_IMAGE_STEP_S:g} (default %(default)s)")
     p.add_argument("--simple-frames", action="store_true", help="fast stand-in renderer instead of svs_torch's")
     p.add_argument("--prepare", metavar="WxH[,WxH]", default="",
                    help="render every synthetic keyframe at these sizes before serving (exact depths from the start)")
@@ -175,6 +175,14 @@ def _port(text: str) -> int:
     if port > 65535:
         raise argparse.ArgumentTypeError(f"expected a TCP port 0..65535, got {text!r}")
     return port
+
+
+def _image_step(text: str) -> float:
+    """argparse type of ``--image-step``: at least :data:`~hw.frames.MIN_IMAGE_STEP_S` seconds."""
+    value = positive_float(text)
+    if value < MIN_IMAGE_STEP_S:
+        raise argparse.ArgumentTypeError(f"expected seconds from {MIN_IMAGE_STEP_S:g}, got {text!r}")
+    return value
 
 
 def _delay_seconds(text: str) -> float:

@@ -19,7 +19,8 @@ import numpy as np
 from svs_torch.core.camera import SVS_CAMERA, SVSCamera
 from svs_torch.data.synthetic import WALL_DEPTH_M
 
-__all__ = ["FrameSource", "ObstacleTrack", "SyntheticSource", "ImageFolderSource", "render_simple_pair"]
+__all__ = ["FrameSource", "MIN_IMAGE_STEP_S", "ObstacleTrack", "SyntheticSource", "ImageFolderSource",
+           "render_simple_pair"]
 
 FrameSource = Callable[[str, int, int, float], np.ndarray]
 
@@ -27,6 +28,10 @@ FrameSource = Callable[[str, int, int, float], np.ndarray]
 WALKER_PITCH_DEG = 20.0
 #: The most :meth:`SyntheticSource.close` waits for the keyframe being rendered, seconds.
 RENDER_STOP_TIMEOUT_S = 120.0
+#: The shortest time an image folder's pair is shown (:class:`ImageFolderSource`), seconds: shorter, each grab shows
+#: another pair all the same. Why: 5e-324 was taken as "positive", and the clock over it overflowed at every grab
+#: ("cannot convert float infinity to integer"), so neither board ever sent a frame.
+MIN_IMAGE_STEP_S = 1e-6
 
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff"}
 
@@ -281,8 +286,8 @@ class ImageFolderSource:
         unreadable = next((path for pair in self.pairs for path in pair if not cv2.haveImageReader(str(path))), None)
         if unreadable is not None:
             raise ValueError(f"images: {unreadable} is not an image OpenCV can read")
-        if not (step_s > 0 and math.isfinite(step_s)):
-            raise ValueError(f"step_s: expected a positive number of seconds, got {step_s!r}")
+        if not (step_s >= MIN_IMAGE_STEP_S and math.isfinite(step_s)):
+            raise ValueError(f"step_s: expected a finite number of seconds >= {MIN_IMAGE_STEP_S:g}, got {step_s!r}")
         self.step_s = step_s
         self._lock = threading.Lock()
         self._cache: dict[tuple[int, int, int, str], np.ndarray] = {}

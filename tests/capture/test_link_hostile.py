@@ -73,3 +73,19 @@ def test_the_emulators_urls_on_an_ipv6_host_are_ones_the_driver_opens():
         assert urls["left"].startswith("socket://[::1]:")
     finally:
         server.stop()
+
+
+def test_the_emulator_refuses_an_image_step_its_clock_overflows(data_dir, capsys):
+    # --image-step 5e-324 was taken (positive), and each grab's pair index overflowed ("cannot convert float
+    # infinity to integer"): neither board sent a frame, the emulator looking alive.
+    from hw.emulator_args import parse_args
+    from hw.frames import ImageFolderSource
+
+    with pytest.raises(SystemExit):
+        parse_args(["--image-step", "5e-324"], "", 1.0)
+    assert "--image-step: expected seconds from 1e-06, got '5e-324'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="step_s"):
+        ImageFolderSource(data_dir / "opencv_samples", step_s=5e-324)
+    assert parse_args(["--image-step", "0.001"], "", 1.0).image_step == 0.001
+    source = ImageFolderSource(data_dir / "opencv_samples", step_s=1e-6)
+    assert source("left", 160, 120, 1000.0).shape == (120, 160)
