@@ -14,7 +14,7 @@ from .emulator_state import Faults
 from .frames import MIN_IMAGE_STEP_S, WALKER_PITCH_DEG
 from svs_torch.cli.capture import check_heap_in_view
 from svs_torch.cli.common import MAX_SEED, finite_float, noise_levels, non_negative_float, non_negative_int, \
-    positive_float, seed_int
+    positive_float, positive_int, seed_int
 from svs_torch.cli.link_options import MIN_BAUD
 from svs_torch.core.camera import SVS_CAMERA, SVS_RESOLUTIONS, parse_size
 from svs_torch.data.rig_deviation import RigDeviation
@@ -96,8 +96,9 @@ def _add_fault_options(f: argparse._ArgumentGroup) -> None:
                    help="send replies in chunks of BYTES")
     f.add_argument("--drip-delay", type=_delay_seconds, default=0.0, metavar="S",
                    help=f"pause between chunks, seconds, at most {MAX_DELAY_S:g}")
-    f.add_argument("--drop-after", type=non_negative_int, default=None, metavar="N",
-                   help="drop the TCP link after N frames")
+    # At least 1: 0 was taken and the link dropped after the first frame, as with 1 (the count is of frames sent).
+    f.add_argument("--drop-after", type=positive_int, default=None, metavar="N",
+                   help="drop the TCP link after N frames, N >= 1")
     f.add_argument("--grab-delay", type=_delay_seconds, default=0.0, metavar="S",
                    help=f"grab + encode time, seconds, at most {MAX_DELAY_S:g}")
     f.add_argument("--freeze", type=non_negative_int, default=0, metavar="N",

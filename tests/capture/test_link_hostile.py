@@ -89,3 +89,13 @@ def test_the_emulator_refuses_an_image_step_its_clock_overflows(data_dir, capsys
     assert parse_args(["--image-step", "0.001"], "", 1.0).image_step == 0.001
     source = ImageFolderSource(data_dir / "opencv_samples", step_s=1e-6)
     assert source("left", 160, 120, 1000.0).shape == (120, 160)
+
+
+def test_the_emulators_drop_after_counts_frames_from_one(capsys):
+    # --drop-after 0 was taken and dropped the link after the first frame, as --drop-after 1 does: refused.
+    from hw.emulator_args import faults_from_args, parse_args
+
+    with pytest.raises(SystemExit):
+        parse_args(["--drop-after", "0"], "", 1.0)
+    assert "argument --drop-after: expected a positive integer, got '0'" in capsys.readouterr().err
+    assert faults_from_args(parse_args(["--drop-after", "1"], "", 1.0)).drop_after_frames == 1
