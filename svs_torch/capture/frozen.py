@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.errors import InputError
+
 __all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "varies"]
 
 #: Pairs in a row in which one camera's frame came again while the other's changed before that camera is judged
@@ -38,6 +40,9 @@ class FrozenCameraWatch:
     """
 
     def __init__(self, frozen_pairs: int = FROZEN_PAIRS) -> None:
+        # Why: 0 (or -1) was taken, and every pair then named the left camera frozen, the first one too.
+        if isinstance(frozen_pairs, bool) or not isinstance(frozen_pairs, int) or frozen_pairs < 1:
+            raise InputError(f"frozen_pairs: expected a whole number of pairs >= 1, got {frozen_pairs!r}")
         self.frozen_pairs = frozen_pairs
         self.reset()
 

@@ -165,3 +165,14 @@ def test_with_blind_s_0_a_frozen_camera_is_still_named(monkeypatch):
     session, said, events, ranged = run_guide(monkeypatch, [stream], count=40, blind_s=0.0)
     assert said == [guide_loop.GUIDE_READY, guide_loop.CHECK_CAMERA.format("left")]
     assert len(ranged) == FROZEN_PAIRS and ("cannot_see", None) not in events
+
+
+@pytest.mark.parametrize("frozen_pairs", [0, -1, 1.5, True, None])
+def test_the_watch_refuses_a_count_it_cannot_judge_by(frozen_pairs):
+    # 0 was taken, and every pair, the first one too, named the left camera frozen.
+    from svs_torch.core.errors import InputError
+
+    with pytest.raises(InputError, match=r"frozen_pairs: expected a whole number of pairs >= 1"):
+        FrozenCameraWatch(frozen_pairs)
+    left, right = frames(2)
+    assert FrozenCameraWatch(1).update(pair(left, right)) is None
