@@ -197,8 +197,10 @@ class FpsMeter:
     """Frames per second over the last ``window_s`` seconds of ticks."""
 
     def __init__(self, window_s: float = 2.0) -> None:
-        if window_s <= 0:
-            raise InputError(f"window_s: expected a positive window in seconds, got {window_s}")
+        # Finite too: NaN or inf was taken and no tick ever left the window, which grew a tick a frame for the whole
+        # walk (and the rate was over all of it).
+        if not (window_s > 0 and math.isfinite(window_s)):
+            raise InputError(f"window_s: expected a positive finite window in seconds, got {window_s}")
         self.window_s = window_s
         self._ticks: collections.deque[float] = collections.deque()
 

@@ -306,6 +306,9 @@ def test_fps_meter():
     assert meter.tick(5.0) == 0.0  # the old ticks left the window
     with pytest.raises(InputError, match="window_s"):
         FpsMeter(window_s=0.0)
+    for endless in (math.nan, math.inf):  # taken before: no tick ever left the window, which grew all the walk long
+        with pytest.raises(InputError, match="window_s: expected a positive finite window"):
+            FpsMeter(window_s=endless)
 
 
 def test_live_guide_with_fake_distances():
