@@ -264,6 +264,7 @@ class SVSStereoCamera:
                     raise
                 damage_regrabs += 1  # both boards again: a pair is two frames of one moment
                 continue
+            _check_pair_size(left, right, self.size_wh)
             gap_s = right.arrival_monotonic_s - left.arrival_monotonic_s
             if self.max_frame_gap_s is None or abs(gap_s) <= self.max_frame_gap_s or gap_regrabs == REGRABS_FOR_GAP:
                 break
@@ -351,6 +352,17 @@ class SVSStereoCamera:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _check_pair_size(left: Frame, right: Frame, size_wh: tuple[int, int]) -> None:
+    """CaptureError unless both frames are at the camera's ``size_wh``. Why: a :meth:`SVSStereoCamera.set_size` that
+    one board refused left the other at the new size, and each link checks only its own: the pairs grabbed after it
+    joined a 640x480 left frame with a 320x240 right one, and capture's index gave the left one's size for both."""
+    if left.size_wh == right.size_wh == tuple(size_wh):
+        return
+    raise CaptureError(f"left/right: expected both frames at {size_wh[0]}x{size_wh[1]}, got left "
+                       f"{left.size_wh[0]}x{left.size_wh[1]}, right {right.size_wh[0]}x{right.size_wh[1]} (a size "
+                       "change one board refused: set the size again)")
 
 
 class _Stream:

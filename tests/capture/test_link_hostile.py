@@ -99,3 +99,22 @@ def test_the_emulators_drop_after_counts_frames_from_one(capsys):
         parse_args(["--drop-after", "0"], "", 1.0)
     assert "argument --drop-after: expected a positive integer, got '0'" in capsys.readouterr().err
     assert faults_from_args(parse_args(["--drop-after", "1"], "", 1.0)).drop_after_frames == 1
+
+
+def test_a_size_change_one_board_refused_gives_no_pair_of_two_sizes(monkeypatch):
+    # set_size on both boards, the right one refusing: the left link was left at 640x480, and each link checks only
+    # its own frames, so the next pairs joined a 640x480 left frame with a 320x240 right one, silently.
+    from svs_torch.capture import SVSStereoCamera
+
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server, \
+            SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as camera:
+        right = camera.links["right"]
+        refused = CaptureError("right camera: sent b'c' 3 times, expected b'#c'")
+        monkeypatch.setattr(right, "set_size", lambda code, **kwargs: (_ for _ in ()).throw(refused))
+        with pytest.raises(CaptureError, match="expected b'#c'"):
+            camera.set_size((640, 480))
+        with pytest.raises(CaptureError, match=r"expected both frames at 320x240, got left 640x480, right 320x240"):
+            camera.grab_pair()
+        monkeypatch.undo()
+        camera.set_size((640, 480))  # set again: whole pairs at the new size
+        assert camera.grab_pair().right.size_wh == (640, 480)
