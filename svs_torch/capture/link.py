@@ -26,9 +26,9 @@ import serial
 from ..core.camera import SVS_RESOLUTIONS
 from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, check_link_url
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
-                       VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, VersionInfo, describe_bytes, find_line,
-                       find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply, parse_version_line,
-                       quality_command, size_acks, size_command)
+                       VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
+                       find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
+                       parse_version_line, quality_command, size_acks, size_command)
 
 __all__ = ["CameraLink", "CaptureError", "LinkConfig", "LinkStats", "RawFrame", "check_link_url"]
 
@@ -174,7 +174,10 @@ class CameraLink:
     def set_quality(self, quality: int, *, allow_reconnect: bool = True) -> None:
         """Set the JPEG quality digit, 1 (best) … 8 (worst); checks the board's ``##quality`` echo."""
         line = self.command_line(quality_command(quality), QUALITY_PREFIX, allow_reconnect=allow_reconnect)
-        echoed = parse_quality_reply(line)
+        try:
+            echoed = parse_quality_reply(line)
+        except ProtocolError:  # a garbled digit (no checksums, §2): the board's failure, not an internal error
+            echoed = None
         if echoed != quality:
             raise CaptureError(f"{self.where}: sent quality {quality}, the board replied {line!r}")
         self.quality = quality

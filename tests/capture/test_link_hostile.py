@@ -118,3 +118,18 @@ def test_a_size_change_one_board_refused_gives_no_pair_of_two_sizes(monkeypatch)
         monkeypatch.undo()
         camera.set_size((640, 480))  # set again: whole pairs at the new size
         assert camera.grab_pair().right.size_wh == (640, 480)
+
+
+def test_a_garbled_quality_echo_is_the_cameras_error_not_an_internal_one(monkeypatch):
+    # A board whose '##quality - ' echo came garbled ('x' for the digit: the protocol has no checksums) ended
+    # capture with "internal error: ProtocolError ... (please report it)": a CaptureError naming the camera now.
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server:
+        link = CameraLink(server.urls["right"], "right", FAST)
+        link.open()
+        try:
+            monkeypatch.setattr(link, "command_line", lambda *args, **kwargs: b"##quality - x\r\n")
+            with pytest.raises(CaptureError, match=r"right camera \(socket://.*\): sent quality 4, the board replied"):
+                link.set_quality(4)
+            assert link.quality is None
+        finally:
+            link.close()
