@@ -135,11 +135,15 @@ def describe_bytes(data: bytes, limit: int = 40) -> str:
 
 def size_code_for(size_wh: tuple[int, int]) -> str:
     """The ASCII size code of a frame size ``(width, height)`` in pixels; raises ``InputError`` if it has none."""
+    try:
+        got = tuple(size_wh)
+    except TypeError:  # None or 320 is a bad size too: it was "TypeError: 'NoneType' object is not iterable"
+        got = size_wh
     for code, wh in SVS_RESOLUTIONS.items():
-        if tuple(size_wh) == wh:
+        if got == wh:
             return code
     allowed = ", ".join(f"{w}x{h}" for w, h in SVS_RESOLUTIONS.values())
-    raise InputError(f"size_wh: expected one of {allowed}, got {tuple(size_wh)}")
+    raise InputError(f"size_wh: expected one of {allowed}, got {got!r}")
 
 
 def size_command(size_code: str) -> bytes:

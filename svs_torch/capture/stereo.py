@@ -176,7 +176,7 @@ class SVSStereoCamera:
                  quality: int | None = None, flip: bool | None = None, config: LinkConfig | None = None,
                  strict_roles: bool = False, first_index: int = 0, max_frame_gap_s: float | None = MAX_FRAME_GAP_S
                  ) -> None:
-        self._size_code = size_code_for(tuple(size_wh))
+        self._size_code = size_code_for(size_wh)
         check_link_url(left_url, "left_url")
         check_link_url(right_url, "right_url")
         if max_frame_gap_s is not None and not (isinstance(max_frame_gap_s, (int, float)) and max_frame_gap_s > 0):
@@ -234,7 +234,7 @@ class SVSStereoCamera:
 
     def set_size(self, size_wh: tuple[int, int]) -> None:
         """Change the frame size on both boards."""
-        code = size_code_for(tuple(size_wh))
+        code = size_code_for(size_wh)
         self._both(lambda link: link.set_size(code))
         self._size_code, self.size_wh = code, tuple(size_wh)
 

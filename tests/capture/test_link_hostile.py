@@ -133,3 +133,16 @@ def test_a_garbled_quality_echo_is_the_cameras_error_not_an_internal_one(monkeyp
             assert link.quality is None
         finally:
             link.close()
+
+
+@pytest.mark.parametrize("size_wh", [None, 320, (320,), (320, 240, 1), "320x240"])
+def test_a_camera_size_that_is_not_a_pair_of_pixels_is_refused_by_name(size_wh):
+    # SVSStereoCamera(..., size_wh=None) failed with "TypeError: 'NoneType' object is not iterable", naming nothing.
+    from svs_torch.capture import SVSStereoCamera
+    from svs_torch.core.errors import InputError
+
+    with pytest.raises(InputError, match=r"size_wh: expected one of 160x120, 320x240, 640x480, 1280x1024, got"):
+        SVSStereoCamera("socket://127.0.0.1:1", "socket://127.0.0.1:2", size_wh)
+    from svs_torch.capture.protocol import size_code_for
+
+    assert size_code_for(np.array([320, 240])) == "5"  # a sequence of another kind is still read
