@@ -278,9 +278,11 @@ class EmulatorServer:
             self._camera(name).set_faults(**changes)
 
     def drop_connection(self, camera: str) -> None:
-        """Close the current TCP client of ``camera`` now (as a WiFi drop would)."""
-        self._camera(camera)
-        self._ports[camera].drop_requested.set()
+        """Close the current TCP client of ``camera`` (``"left"``/``"right"``/``"both"``: the WiFi module dropping,
+        both ports at once) now, as a WiFi drop would. ``"both"`` was refused, though the error offered it."""
+        for name in (("left", "right") if camera == "both" else (camera,)):
+            self._camera(name)
+            self._ports[name].drop_requested.set()
 
     def _camera(self, name: str) -> CameraState:
         if name not in self.cameras:

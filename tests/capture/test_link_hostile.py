@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from hw.emulator import EmulatorServer
@@ -146,3 +148,19 @@ def test_a_camera_size_that_is_not_a_pair_of_pixels_is_refused_by_name(size_wh):
     from svs_torch.capture.protocol import size_code_for
 
     assert size_code_for(np.array([320, 240])) == "5"  # a sequence of another kind is still read
+
+
+def test_the_emulator_drops_both_boards_links_at_once_and_the_camera_reconnects_both():
+    # The WiFi module dropping takes both ports: drop_connection("both") was refused ("expected 'left', 'right'
+    # (or 'both')"), though set_faults takes it and the error offered it.
+    from svs_torch.capture import SVSStereoCamera
+
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server, \
+            SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as camera:
+        camera.grab_pair()
+        server.drop_connection("both")
+        time.sleep(0.2)  # (the boards' threads close their clients within their poll)
+        camera.grab_pair()
+        assert [link.stats.reconnects for link in camera.links.values()] == [1, 1]
+        with pytest.raises(ValueError, match="camera: expected 'left', 'right'"):
+            server.drop_connection("middle")
