@@ -35,6 +35,7 @@ import torch
 
 from ..core.checks import InputError, check_dtype, check_image, check_shape
 from ..core.kernels.checks import canonical_bool, check_positive_hw
+from ..core.numerics import per_pair
 from . import kernels
 
 __all__ = ["MappedPoints", "Rectification", "RectificationConfig", "RectificationStatus", "apply_homography",
@@ -157,10 +158,10 @@ def map_points(H: torch.Tensor, points: torch.Tensor) -> MappedPoints:
 def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Warp images ``(B, 1, H, W)`` by ``homographies`` ``(B, 3, 3)`` (original to rectified pixels) into the same
     size, zeros outside (kornia ``warp_perspective``, pixel-centre convention as OpenCV's ``warpPerspective``).
-    ``mode="nearest"`` for label images, whose values must not be blended (passed as float, e.g.
-    ``labels.double()``, and rounded back: an integer tensor is refused). A singular or non-finite homography
-    gives that pair NaN (the pipeline passes only invertible ones). Differentiable w.r.t. the images and the
-    homographies (bilinear)."""
+    ``mode="nearest"`` for label images, whose values must not be blended (passed as float, e.g. ``labels.double()``,
+    and rounded back: an integer tensor is refused). A singular or non-finite homography gives that pair NaN (the
+    pipeline passes only invertible ones). Differentiable w.r.t. the images and the homographies (bilinear), pair by
+    pair where these take a gradient: batched, its sum over pixels moved with the other pairs (an audit)."""
     dims = check_image(images, "images", check_range=False)
     check_shape(homographies, "homographies", [dims["B"], 3, 3])
     check_dtype(homographies, "homographies", "float")
@@ -169,9 +170,8 @@ def warp_rectified(images: torch.Tensor, homographies: torch.Tensor, mode: str =
     # Imported here: kornia takes 0.27 s to import, a tenth of a worker's start-up, and most batches of
     # aligned pairs (rectify="auto") never warp.
     from kornia.geometry.transform import warp_perspective
-
-    return warp_perspective(images, homographies.to(images.dtype), (dims["H"], dims["W"]), mode=mode,
-                            align_corners=True)
+    return per_pair(lambda image, homography: warp_perspective(image, homography, (dims["H"], dims["W"]), mode=mode,
+                    align_corners=True), images, homographies.to(images.dtype), split=homographies.requires_grad)
 
 
 def warp_views(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
