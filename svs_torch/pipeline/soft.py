@@ -42,6 +42,7 @@ import dataclasses
 import torch
 
 from ..core.checks import check_dtype
+from ..core.numerics import per_pair
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
 from ..depth.dense import working_factor, working_window
@@ -275,9 +276,11 @@ def _band_means(disparity: torch.Tensor, dense: DenseDisparity, ranked: tuple, v
     filled, ok, bands = ranked[:3]
     if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
         filled, _ = _filled(disparity, valid, fill)
-    soft_depth = scale / torch.where(ok, filled.flatten(1) + doffs, torch.ones_like(filled.flatten(1)))
-    soft_depth = torch.where(ok, soft_depth, torch.zeros_like(soft_depth))
-    means, some = band_mean(soft_depth, weights.flatten(1).to(soft_depth.dtype), bands.flatten(1, 2))
+    # Pair by pair: batched, a sum over a pair's pixels (a band's, the calibration's gradient) was split among the
+    # threads by the batch's size, and a pair's values and gradients moved with the pairs beside it (an audit).
+    means, some = per_pair(lambda s, d, f, o, w, band: band_mean(torch.where(o, s / torch.where(o, f + d, 1.0), 0.0),
+                                                                 w.to(s.dtype), band),
+                           scale, doffs, filled.flatten(1), ok, weights.flatten(1), bands.flatten(1, 2))
     b, n, k = bands.shape[:3]
     return means.view(b, n, k), some.view(b, n, k)
 
