@@ -187,7 +187,8 @@ def _soft_disparity(left: torch.Tensor, right: torch.Tensor, dense: DenseDispari
 def band_mean(values: torch.Tensor, weights: torch.Tensor, band: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted mean of ``values`` ``(B, P)`` over each band ``(B, M, P)`` bool with ``weights`` ``(B, P)``:
     ``(B, M)`` and whether the band had any weight. Differentiable w.r.t. values and weights (the band is a
-    constant)."""
+    constant). ``values`` float32 or float64: float16's sums overflowed (20 000 depths of 8 m: a mean of inf)."""
+    check_dtype(values, "values", "float")
     members = band.to(values.dtype) * weights.unsqueeze(1)
     total = members.sum(dim=-1)
     some = total > 0
@@ -276,8 +277,7 @@ def _band_means(disparity: torch.Tensor, dense: DenseDisparity, ranked: tuple, v
     filled, ok, bands = ranked[:3]
     if disparity.requires_grad or disparity.dtype != dense.disparity_px.dtype:
         filled, _ = _filled(disparity, valid, fill)
-    # Pair by pair: batched, a sum over a pair's pixels (a band's, the calibration's gradient) was split among the
-    # threads by the batch's size, and a pair's values and gradients moved with the pairs beside it (an audit).
+    # Pair by pair: batched, a pair's sums over its pixels (bands, calibration gradients) moved with the batch's size.
     means, some = per_pair(lambda s, d, f, o, w, band: band_mean(torch.where(o, s / torch.where(o, f + d, 1.0), 0.0),
                                                                  w.to(s.dtype), band),
                            scale, doffs, filled.flatten(1), ok, weights.flatten(1), bands.flatten(1, 2))

@@ -108,6 +108,15 @@ def test_band_mean_gradcheck_and_values(generator):
     assert mean.tolist() == [[0.0]] and some.tolist() == [[True]]
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.int64])
+def test_band_mean_refuses_values_it_cannot_sum(dtype):
+    """float16 values summed to inf (20 000 depths of 8 m, a mean of inf, in silence; an audit): refused by name."""
+    values, band = torch.full((1, 20000), 8.0).to(dtype), torch.ones(1, 1, 20000, dtype=torch.bool)
+    with pytest.raises(InputError, match="values: expected a float32 or float64 tensor|values: expected a float"):
+        band_mean(values, torch.ones(1, 20000), band)
+    assert band_mean(values.float(), torch.ones(1, 20000), band)[0].tolist() == [[8.0]]
+
+
 def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
     """A 30-member object: the median interpolates ranks 14 and 15, a 1 % band around it by value would be empty."""
     depth = torch.rand(1, 40, generator=generator, dtype=torch.float64)
