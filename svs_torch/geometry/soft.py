@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import torch
 
+from ..core.checks import check_dtype
 from .epipolar import fundamental_8point
 from .lk_refinement import LK_GRID_HALF_WIDTH, _centre, _sample_patches
 from .rectification import RectificationConfig, rectify_uncalibrated
@@ -69,7 +70,14 @@ def lk_step(left: torch.Tensor, right: torch.Tensor, xy_left: torch.Tensor, xy_r
     """One inverse-compositional Gauss–Newton step ``(B, K, 2)`` of the hard refinement from the right points
     ``xy_right`` ``(B, K, 2)``: images ``(B, 1, H, W)``, left keypoints ``xy_left`` ``(B, K, 2)`` (constants), patch
     radii ``radius`` ``(B, K)`` pixels, and ``moved`` ``(B, K)`` bool, the rows the hard refinement moved (elsewhere
-    the point is a keypoint's position: step 0, no gradient). Differentiable w.r.t. both images."""
+    the point is a keypoint's position: step 0, no gradient). Differentiable w.r.t. both images.
+
+    Raises:
+        InputError: images not float32 / float64 (float16's Hessian solve raised NotImplementedError from inside
+            torch), or ``moved`` not bool."""
+    check_dtype(left, "left", "float")
+    check_dtype(right, "right", "float")
+    check_dtype(moved, "moved", "bool")
     dtype = left.dtype
     offsets, weight = _lk_grid(radius.detach().to(dtype))
     xy_left, xy_right = xy_left.detach().to(dtype), xy_right.detach().to(dtype)

@@ -7,6 +7,7 @@ import pytest
 import torch
 from test_rectification import make_rigs
 
+from svs_torch import InputError
 from svs_torch.geometry.epipolar import fundamental_8point
 from svs_torch.geometry.lk_refinement import _refine_lk_torch
 from svs_torch.geometry.matched_points import MatchedPoints
@@ -86,6 +87,20 @@ def test_lk_step_gradcheck_and_rows_not_moved_carry_no_gradient():
     soft = lk_points_straight_through(left, right, xy_left, start, radius, moved)
     grads = torch.autograd.grad(soft[0, 1].sum(), (left, right), allow_unused=True)
     assert all(g is None or not bool(g.any()) for g in grads)
+
+
+@pytest.mark.parametrize("change", ["float16", "bfloat16", "moved_float"])
+def test_lk_step_refuses_what_its_solve_cannot_take(change):
+    """float16 images and a float ``moved`` raised NotImplementedError from inside torch ('"lu_cpu" not
+    implemented for 'Half'', '"bitwise_and_cpu" not implemented for 'Float''; an audit): refused by name."""
+    left, right, xy_left, start, radius, _ = _lk_setup()
+    moved = torch.ones(xy_left.shape[:2], dtype=torch.bool)
+    if change == "moved_float":
+        moved, name = moved.float(), "moved"
+    else:
+        left, right, name = left.to(getattr(torch, change)), right.to(getattr(torch, change)), "left"
+    with pytest.raises(InputError, match=f"{name}: expected a"):
+        lk_step(left, right, xy_left, start, radius, moved)
 
 
 def test_refit_fundamental_keeps_ransacs_values_with_the_8point_gradient(generator):
