@@ -44,6 +44,7 @@ import torch.nn.functional as F
 
 from ..core.checks import InputError, check_shape, real_or_nan
 from ..core.levels import CLIPPED_LEVEL
+from ..core.numerics import per_pair
 from ..depth.quantiles import row_quantile
 
 __all__ = ["CLIPPED_LEVEL", "RETRY_MIN_CHANGE", "ExposureConfig", "exposure_change", "exposures_differ",
@@ -141,6 +142,10 @@ def _mapped(left: torch.Tensor, right: torch.Tensor, scale: torch.Tensor, offset
     """:func:`match_exposure`'s views and ``changed`` from :func:`_fit`'s map."""
     if not bool(changed.any()):
         return left, right, changed
+    if torch.is_grad_enabled() and (scale.requires_grad or offset.requires_grad) and left.shape[0] > 1:
+        # Pair by pair: the gradient to a pair's scale and offset sums over its pixels, and batched that sum was split
+        # among the threads by the batch's size, so a pair's image gradients moved with its batch (5e-8; an audit).
+        return per_pair(_mapped, left, right, scale, offset, changed, right_darker)
     scale, offset = scale.view(-1, 1, 1, 1), offset.view(-1, 1, 1, 1)
     darker_right = (changed & right_darker).view(-1, 1, 1, 1)
     darker_left = (changed & ~right_darker).view(-1, 1, 1, 1)
