@@ -337,11 +337,10 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
         low = torch.where(surface_some[..., 0] & (measured > 0), surface_means[..., 0], means[..., 1])
         means = torch.stack([means[..., 0], low, means[..., 2]], dim=-1)
     median, low, high = torch.where(valid.unsqueeze(-1), means, torch.zeros_like(means)).unbind(-1)
-    soft_objects: ObjectDepths = keep_inlier_ranged(hard.objects, dataclasses.replace(  # (straight-through)
+    soft: ObjectDepths = keep_inlier_ranged(hard.objects, dataclasses.replace(  # (straight-through)
         hard.objects, depth_median_m=median, depth_low_m=low, depth_high_m=high, valid=valid))
-    return DepthResult(hard.disparities, hard.points, range_at_hard_slots(hard.objects, soft_objects, focal_px,
-                                                                           baseline_m, doffs_px),
-                       soft_objects, nearest_at_hard_slot(hard.nearest, soft_objects))
+    ranged = range_at_hard_slots(hard.objects, soft, focal_px, baseline_m, doffs_px)
+    return DepthResult(hard.disparities, hard.points, ranged, soft, nearest_at_hard_slot(hard.nearest, soft))
 
 
 def range_at_hard_slots(hard: ObjectDepths, objects: ObjectDepths, focal_px: torch.Tensor, baseline_m: torch.Tensor,
