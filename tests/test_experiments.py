@@ -7,6 +7,7 @@ import os
 import statistics
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -553,7 +554,29 @@ def test_walker_heaps_counts_the_heap_warned_of_with_the_floor_left_out():
     assert "| floor out | clean | walker | 2 of 2 | 2 of 2 | 0 | " in walker_heaps.markdown(rows, "command")
 
 
-@pytest.mark.parametrize("script", ["thin_obstacles", "walker_floor", "walker_heaps", "floor_distance"])
+def test_repeated_patterns_renders_panels_an_independent_matcher_ranges_and_counts_the_outcomes():
+    """experiments/repeated_patterns.py: OpenCV's StereoSGBM, given each rendered panel's mask, reads its disparity
+    within half a pixel on the pairs as rendered where it measures it (the renderer's disparities are right); and
+    its counts and table say what the rows hold."""
+    import repeated_patterns as rp
+
+    lefts, rights, disparities, masks = rp.render_pairs()
+    assert lefts.shape == rights.shape == masks.shape == (36, rp.HEIGHT, rp.WIDTH) and lefts.dtype == np.float32
+    np.testing.assert_allclose(disparities, rp.focal_px() * rp.BASELINE_M / np.array([z for *_, z in rp.cases()]))
+    clean = rp.condition_batch(lefts, rights, rp.RigDeviation(), 0, 0.0)
+    read = [np.median(paper_table1.opencv_disparity(clean.select([i]), "sgbm")[masks[i]]) for i in range(len(masks))]
+    measured = np.asarray(read) > 0  # SGBM's uniqueness rejects most of the finest bars and checkers at 1 m
+    assert measured.sum() >= 30
+    np.testing.assert_allclose(np.asarray(read)[measured], disparities[measured], atol=0.5)
+    rows = [rp.outcome("s", "c", ("bars", 8, 1.5), 1.52, True), rp.outcome("s", "c", ("grate", 8, 1.5), 2.5, True),
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False)]
+    assert [(r["ranged"], r["wrong"], r["unranged"]) for r in rows] == [(True, False, False), (False, True, False),
+                                                                      (False, False, True)]
+    assert "| s | c | 1 | 1 | 1 | 44.00 | 0 | 0 | 1 |" in rp.markdown(rows, "command")
+
+
+@pytest.mark.parametrize("script", ["thin_obstacles", "walker_floor", "walker_heaps", "floor_distance",
+                                    "repeated_patterns"])
 def test_rendered_experiments_refuse_a_report_they_cannot_write_before_the_run(script, tmp_path, capsys):
     """Found by an audit of the experiments: these printed their whole table (about 3 minutes for floor_distance)
     and then failed with a FileNotFoundError traceback where every other experiment refused the path at once."""

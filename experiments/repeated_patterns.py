@@ -1,0 +1,215 @@
+"""Are repeated patterns (a fence, a railing, a grate) ranged right on a real rig's pairs? (issue 33, items 1-2)
+
+A pattern that repeats along the rows gives the block matcher a cost minimum at the true disparity and one a period
+away on either side. Rendered here at the SVS's 320×240 (276 px focal length, 10.75 cm baseline): a 0.6 × 0.8 m
+panel facing the rig at Z ∈ {1.0, 1.5, 2.0} m, painted with vertical bars, a checkerboard or a grate (crossing
+bars) of period P ∈ {8, 12, 16, 24} px (7-17 cm at 1.5 m), with a faint texture of its own (3 % of its contrast),
+before a textured wall at 4 m: 36 pairs, seeded, the true disparity fractional (each view sampled from the same
+continuous pattern, 4× supersampled). Each pair as rendered, then with the right camera deviating as a loose rig's
+does (:class:`svs_torch.data.rig_deviation.RigDeviation`: roll 0.5° and 1.5°, scale +2 %, a shift of 3 % of the
+height, 30 % more gain), as the board's camera frames (JPEG digit 4 with sensor noise σ 4), and as a loose rig's
+camera frames (:data:`~svs_torch.data.rig_deviation.LOOSE_RIG` at digit 4).
+
+Per pair the panel counts as **ranged** where the nearest obstacle's median depth lies within 5 % of the panel's
+distance, **wrong** where a status-OK nearest obstacle lies farther off than that (what a walker is told
+wrongly), **unranged** where the pair has no distance. Acc is Eq. (9) of the nearest distance (0 where none).
+The settings: the default, and the default without its inlier rule (``--set depth.inliers_overrule_aliased=false``:
+:mod:`svs_torch.pipeline.inlier_consensus`). The rival: OpenCV StereoSGBM's disparity through the truth's own
+procedure (``eval_segmentation.sgbm_rival``). Rendered data only: no shared scene is read. About 1 minute on a
+2-core machine.
+
+    python experiments/repeated_patterns.py [--set KEY=VALUE ...] [--no-rival] [--json F] [--markdown F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from eval_segmentation import sgbm_rival  # noqa: E402
+from run_metadata import (add_rendered_experiment_options, check_reports_apart, command_line, report_rows,  # noqa: E402
+                          run_script)
+
+from svs_torch.core.camera import SVS_CAMERA  # noqa: E402
+from svs_torch.core.errors import InputError  # noqa: E402
+from svs_torch.core.types import StereoBatch  # noqa: E402
+from svs_torch.data import camera_frame_pairs  # noqa: E402
+from svs_torch.data.rig_deviation import LOOSE_RIG, RigDeviation, deviate_view  # noqa: E402
+from svs_torch.evaluation.overrides import apply_overrides, parse_assignment  # noqa: E402
+from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth  # noqa: E402
+
+HEIGHT, WIDTH = 240, 320
+BASELINE_M = 0.1075
+KINDS, PERIODS_PX, DEPTHS_M = ("bars", "checker", "grate"), (8, 12, 16, 24), (1.0, 1.5, 2.0)
+PANEL_W_M, PANEL_H_M, WALL_M = 0.6, 0.8, 4.0
+#: A distance within this share of the panel's counts as the panel.
+TOLERANCE = 0.05
+SEED = 7
+#: The conditions: name, the right camera's deviation, JPEG digit (0: none) and sensor noise in 8-bit levels.
+CONDITIONS = (("as rendered", RigDeviation(), 0, 0.0), ("roll 0.5°", RigDeviation(roll_deg=0.5), 0, 0.0),
+              ("roll 1.5°", RigDeviation(roll_deg=1.5), 0, 0.0), ("scale +2 %", RigDeviation(scale=0.02), 0, 0.0),
+              ("shift 3 %", RigDeviation(shift_y_fraction=0.03), 0, 0.0),
+              ("gain +30 %", RigDeviation(gain=0.3), 0, 0.0),
+              ("camera frames (digit 4, σ 4)", RigDeviation(), 4, 4.0),
+              ("loose rig's camera frames (digit 4)", LOOSE_RIG, 4, 4.0))
+
+
+def focal_px() -> float:
+    return float(SVS_CAMERA.focal_px(WIDTH))
+
+
+def pattern(kind: str, period: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The panel's paint in [0, 1] at panel coordinates ``u``, ``v`` (left-view pixels at the panel's depth)."""
+    bar_u = (np.floor(u / (period / 2)) % 2).astype(np.float32)
+    if kind == "bars":
+        return bar_u
+    bar_v = (np.floor(v / (period / 2)) % 2).astype(np.float32)
+    if kind == "checker":
+        return (bar_u + bar_v) % 2
+    return np.maximum((u % period < period / 3), (v % period < period / 3)).astype(np.float32)
+
+
+def smooth_texture(rng: np.random.Generator, height: int, width: int, sigma: float) -> np.ndarray:
+    import cv2
+
+    noise = cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), sigma)
+    return (noise - noise.min()) / max(float(noise.max() - noise.min()), 1e-6)
+
+
+def render_view(kind: str, period: int, disparity: float, wall_d: float, textures: tuple, shift: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """One view (``shift`` 0: the left; 1: the right, every surface moved left by its disparity) and the panel's
+    mask, 4× supersampled along the rows."""
+    wall, own = textures
+    columns = (np.arange(WIDTH * 4) + 0.5) / 4 - 0.5
+    xs, ys = np.meshgrid(columns, np.arange(HEIGHT, dtype=np.float64))
+    f = focal_px()
+    z = f * BASELINE_M / disparity
+    pw, ph = PANEL_W_M * f / z, PANEL_H_M * f / z  # the panel's size in pixels at its depth
+    u = xs + shift * disparity - (WIDTH - 1) / 2 + pw / 2
+    v = ys - (HEIGHT - 1) / 2 + ph / 2
+    inside = (u >= 0) & (u < pw) & (v >= 0) & (v < ph)
+    # The wall's texture at half-pixel steps, so that its fractional disparity moves it too.
+    wall_x = np.clip(np.round((xs + shift * wall_d) * 2).astype(int) + 40, 0, wall.shape[1] - 1)
+    background = 0.25 + 0.5 * wall[ys.astype(int), wall_x]
+    own_x = np.clip(np.round(u * 2).astype(int), 0, own.shape[1] - 1)
+    own_y = np.clip(np.round(v).astype(int), 0, own.shape[0] - 1)
+    paint = 0.15 + 0.7 * pattern(kind, period, u, v) + 0.03 * own[own_y, own_x]
+    image = np.where(inside, paint, background).reshape(HEIGHT, WIDTH, 4).mean(-1)
+    return image.astype(np.float32), inside.reshape(HEIGHT, WIDTH, 4).any(-1)
+
+
+def cases() -> list[tuple[str, int, float]]:
+    return [(k, p, z) for k in KINDS for p in PERIODS_PX for z in DEPTHS_M]
+
+
+def render_pairs() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Left and right views ``(N, H, W)`` float32 in [0, 1] of every case, the panels' disparities ``(N,)`` and
+    their masks in the left view ``(N, H, W)`` bool."""
+    rng = np.random.default_rng(SEED)
+    f = focal_px()
+    lefts, rights, disparities, masks = [], [], [], []
+    for kind, period, z in cases():
+        textures = (smooth_texture(rng, HEIGHT, WIDTH * 2 + 160, 3.0), smooth_texture(rng, HEIGHT, WIDTH * 2, 0.7))
+        d, wall_d = f * BASELINE_M / z, f * BASELINE_M / WALL_M
+        left, mask = render_view(kind, period, d, wall_d, textures, 0.0)
+        lefts.append(left)
+        masks.append(mask)
+        rights.append(render_view(kind, period, d, wall_d, textures, 1.0)[0])
+        disparities.append(d)
+    return np.stack(lefts), np.stack(rights), np.asarray(disparities), np.stack(masks)
+
+
+def condition_batch(lefts: np.ndarray, rights: np.ndarray, deviation: RigDeviation, digit: int, sigma: float
+                    ) -> StereoBatch:
+    """The rendered pairs with the right camera deviating by ``deviation``, as camera frames where ``digit``."""
+    f = focal_px()
+    seen = np.stack([deviate_view(r, deviation, f) for r in rights]) if not deviation.is_identity else rights
+    n = len(lefts)
+    batch = StereoBatch(torch.from_numpy(lefts).unsqueeze(1), torch.from_numpy(seen).unsqueeze(1),
+                        torch.full((n,), f), torch.full((n,), BASELINE_M), torch.zeros(n), torch.ones(n, dtype=bool),
+                        torch.tensor([[HEIGHT, WIDTH]] * n))
+    if digit == 0:
+        return batch
+    return camera_frame_pairs(batch, digit, sigma, torch.Generator().manual_seed(SEED + digit))
+
+
+def outcome(setting: str, condition: str, case: tuple, nearest_m: float | None, ok: bool) -> dict:
+    kind, period, z = case
+    ranged = nearest_m is not None and abs(nearest_m - z) <= TOLERANCE * z
+    return {"setting": setting, "condition": condition, "kind": kind, "period_px": period, "depth_m": z,
+            "nearest_m": nearest_m, "ranged": ranged, "wrong": ok and nearest_m is not None and not ranged,
+            "unranged": nearest_m is None,
+            "acc_pct": 0.0 if nearest_m is None else max(0.0, 100 * (1 - abs(z - nearest_m) / z))}
+
+
+def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, condition: str) -> list[dict]:
+    result = estimate_obstacle_depth(batch, config)
+    nearest, rows = result.depth.nearest, []
+    for i, case in enumerate(cases()):
+        ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
+        rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok))
+    return rows
+
+
+def rival_rows(batch: StereoBatch, condition: str) -> list[dict]:
+    """StereoSGBM's nearest obstacle per pair (module docstring); a loop over pairs, as OpenCV runs."""
+    rows = []
+    for i, case in enumerate(cases()):
+        nearest = sgbm_rival(batch.select([i]))[1]
+        rows.append(outcome("OpenCV SGBM", condition, case, nearest, nearest is not None))
+    return rows
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    """One line per setting and condition: panels ranged, wrong, unranged (of 36), mean Acc, and wrong by kind."""
+    lines = [f"`{command}`", "",
+             "| setting | condition | ranged | wrong, status OK | unranged | mean Acc % | "
+             + " | ".join(f"wrong: {k}" for k in KINDS) + " |", "|---|---|---|---|---|---|" + "---|" * len(KINDS)]
+    for setting, condition in dict.fromkeys((r["setting"], r["condition"]) for r in rows):
+        group = [r for r in rows if (r["setting"], r["condition"]) == (setting, condition)]
+        kinds = " | ".join(str(sum(r["wrong"] for r in group if r["kind"] == k)) for k in KINDS)
+        mean = sum(r["acc_pct"] for r in group) / len(group)
+        lines.append(f"| {setting} | {condition} | {sum(r['ranged'] for r in group)} | "
+                     f"{sum(r['wrong'] for r in group)} | {sum(r['unranged'] for r in group)} | {mean:.2f} | {kinds} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_rendered_experiment_options(parser)
+    args = parser.parse_args(argv)
+    check_reports_apart(parser, args)
+    try:
+        base = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
+        without = apply_overrides(base, {"depth.inliers_overrule_aliased": False})
+    except (InputError, ValueError) as error:
+        parser.error(str(error))
+    settings = {"default" if not args.set else "default with --set": base, "without the inlier rule": without}
+    if not base.depth.inliers_overrule_aliased:
+        settings = {"without the inlier rule": without}
+    started = time.perf_counter()
+    lefts, rights, *_ = render_pairs()
+    rows = []
+    with torch.inference_mode():
+        for condition, deviation, digit, sigma in CONDITIONS:
+            batch = condition_batch(lefts, rights, deviation, digit, sigma)
+            for setting, config in settings.items():
+                rows += pipeline_rows(batch, config, setting, condition)
+            if not args.no_rival:
+                rows += rival_rows(batch, condition)
+    command = command_line("experiments/repeated_patterns.py", argv)
+    order = list(dict.fromkeys(r["setting"] for r in rows))
+    table = markdown(sorted(rows, key=lambda r: order.index(r["setting"])), command)
+    return report_rows(table, rows, command, args.set, started, args.json, args.markdown)
+
+
+if __name__ == "__main__":
+    run_script(main)
