@@ -13,8 +13,7 @@ camera frames (:data:`~svs_torch.data.rig_deviation.LOOSE_RIG` at digit 4).
 Per pair the panel counts as **ranged** where the nearest obstacle's median depth lies within 5 % of the panel's
 distance, **wrong** where a status-OK nearest obstacle lies farther off than that (what a walker is told
 wrongly), **unranged** where the pair has no distance. Acc is Eq. (9) of the nearest distance (0 where none).
-The settings: the default, and the default without its inlier rule (``--set depth.inliers_overrule_aliased=false``:
-:mod:`svs_torch.pipeline.inlier_consensus`). The rival: OpenCV StereoSGBM's disparity through the truth's own
+The setting: the default (``--set`` changes it). The rival: OpenCV StereoSGBM's disparity through the truth's own
 procedure (``eval_segmentation.sgbm_rival``). Rendered data only: no shared scene is read. About 1 minute on a
 2-core machine.
 
@@ -189,12 +188,9 @@ def main(argv: list[str] | None = None) -> dict:
     check_reports_apart(parser, args)
     try:
         base = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
-        without = apply_overrides(base, {"depth.inliers_overrule_aliased": False})
     except (InputError, ValueError) as error:
         parser.error(str(error))
-    settings = {"default" if not args.set else "default with --set": base, "without the inlier rule": without}
-    if not base.depth.inliers_overrule_aliased:
-        settings = {"without the inlier rule": without}
+    settings = {"default" if not args.set else "default with --set": base}
     started = time.perf_counter()
     lefts, rights, *_ = render_pairs()
     rows = []

@@ -119,7 +119,9 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
     """The kept objects of pair ``index``, in input pixels (``factors``: input over working pixels, x and y)."""
     from ..depth.depth_types import ObstacleSide
 
-    objects, regions, (fx, fy), reports = result.depth.objects, result.segmentation.left.regions, factors, []
+    objects, regions = result.depth.objects, result.segmentation.left.regions
+    fx, fy = factors
+    reports = []
     for slot, label in enumerate(result.segmentation.left.kept_labels[index].tolist()):
         if label < 0:
             continue
@@ -136,13 +138,12 @@ def _object_reports(result, index: int, factors: tuple[float, float]) -> list[di
             # where the floor was found: its distance ahead along it, what guide says (svs_torch.depth.floor_distance)
             **_ahead(result, index, slot, factors),
             "num_inliers": int(objects.num_inliers[index, slot]),
-            **{name: None if getattr(objects, name) is None else int(getattr(objects, name)[index, slot])
-               for name in ("num_valid_px", "num_in_view_px")},
+            "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
+            "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
+                               else None),
             "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
             # its region spanned two surfaces far apart: ranged over the nearer (PipelineConfig.measure_near_surface)
             "near_surface": bool(result.near_surface[index, slot]) if result.near_surface is not None else False,
-            # its inliers overruled a dense map that aliased a repeated pattern (svs_torch.pipeline.inlier_consensus)
-            "ranged_by_inliers": objects.ranged_by_inliers is not None and bool(objects.ranged_by_inliers[index, slot]),
         })
     return reports
 
@@ -341,8 +342,6 @@ def _object_lines(report: dict) -> list[str]:
                 support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
         if obj.get("near_surface"):  # a report read back from an older JSON has no such key
             depth += f" over the near surface ({obj['measured_area_px']} px) of a region spanning two"
-        if obj.get("ranged_by_inliers"):
-            depth += " by its inliers (its dense map read a repeated pattern a period off)"
         lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
                      f"box {obj['bbox_xyxy']}")
     return lines

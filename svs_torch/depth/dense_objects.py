@@ -29,9 +29,7 @@ from .dense_config import DenseDisparity
 from .depth_types import Disparities, ObjectDepths, RangeEstimate
 from .quantiles import Quantiles, _interpolate_ranks, labelled_quantile
 
-__all__ = [
-    "count_agreeing_inliers", "dense_object_depths", "inlier_agreement", "range_from_objects", "surface_pixels",
-]
+__all__ = ["count_agreeing_inliers", "dense_object_depths", "range_from_objects", "surface_pixels"]
 
 
 def _per_pair(value: torch.Tensor | float, b: int, like: torch.Tensor, name: str) -> torch.Tensor:
@@ -310,15 +308,6 @@ def count_agreeing_inliers(dense: DenseDisparity, points_left: torch.Tensor, dis
 
     Not differentiable (a count).
     """
-    agree, measured = inlier_agreement(dense, points_left, disparities, inliers, H_left, tolerance_px)
-    return (agree.sum(dim=1), measured.sum(dim=1)) if return_measured else agree.sum(dim=1)
-
-
-def inlier_agreement(dense: DenseDisparity, points_left: torch.Tensor, disparities: Disparities,
-                     inliers: torch.Tensor, H_left: torch.Tensor | None = None,
-                     tolerance_px: float | torch.Tensor = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each inlier's verdict of :func:`count_agreeing_inliers` (the same arguments): whether the dense map confirms
-    it and whether it lies at a pixel the map measured, ``(B, K)`` bool each. Not differentiable."""
     check_shape(points_left, "points_left", ["B", "K", 2])
     check_shape(inliers, "inliers", list(points_left.shape[:2]))
     check_dtype(inliers, "inliers", "bool")
@@ -336,7 +325,7 @@ def inlier_agreement(dense: DenseDisparity, points_left: torch.Tensor, dispariti
     measured = dense.valid.flatten(1).gather(1, index) & usable
     tolerance = _per_pair(tolerance_px, b, disparity, "tolerance_px").view(b, 1)
     agree = measured & ((dense_d - disparities.disparity_px.to(dense_d.dtype)).abs() <= tolerance)
-    return agree, measured
+    return (agree.sum(dim=1), measured.sum(dim=1)) if return_measured else agree.sum(dim=1)
 
 
 def range_from_objects(objects: ObjectDepths, focal_px: torch.Tensor | float, baseline_m: torch.Tensor | float,

@@ -70,9 +70,6 @@ class DepthConfig:
             of noise's wrong coarse matches (``DenseConfig.in_view_detached_tail_share``). 0 turns the check off. Unlike
             ``DenseConfig.whole_range_in_view`` it drops no pixel: an object with enough pixels in view keeps
             its median over all of them.
-        inliers_overrule_aliased: range an object by its own RANSAC inliers where many of them agree with each
-            other and contradict its dense median by several pixels: a repeated pattern (a fence, a grate) that the
-            dense map aliased a period off (:mod:`svs_torch.pipeline.inlier_consensus`; ``"dense"`` rule).
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -85,7 +82,6 @@ class DepthConfig:
     min_object_valid_fraction: float = 0.1
     min_object_valid_fraction_unverified: float = 0.4  # verify_views.py: 0.3 ranged 10 of 64 synthetic mismatches
     min_object_pixels_in_view: int = 20  # paper_table1.py: changes only held-out Laundry at 320 px (R_max 0 -> 99 %)
-    inliers_overrule_aliased: bool = True  # experiments/repeated_patterns.md
 
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
@@ -93,7 +89,6 @@ class DepthConfig:
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
-        check_flag(self.inliers_overrule_aliased, "inliers_overrule_aliased")
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified", "min_in_front_share"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)
@@ -173,8 +168,6 @@ class ObjectDepths:
             dense stage (:func:`svs_torch.depth.dense_objects.dense_object_depths`); None for the sparse rule.
         num_in_view_px: ``(B, N)`` int64, those of them at columns where the pair's whole disparity range lands
             inside the right image (``DepthConfig.min_object_pixels_in_view``); None for the sparse rule.
-        ranged_by_inliers: ``(B, N)`` bool, objects the dense rule ranged by their own RANSAC inliers, which
-            contradict its map (``DepthConfig.inliers_overrule_aliased``); None where that rule did not run.
     """
 
     label: torch.Tensor
@@ -189,7 +182,6 @@ class ObjectDepths:
     point_slot: torch.Tensor
     num_valid_px: torch.Tensor | None = None
     num_in_view_px: torch.Tensor | None = None
-    ranged_by_inliers: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,6 @@ from ..core.inference import plain_tensors
 from ..core.size_groups import run_by_size
 from ..core.types import FundamentalResult, FundamentalStatus, Matches, StereoBatch, StereoSegmentation
 from ..depth.depth_types import DepthResult
-from ..depth.dense import working_factor
 from ..depth.sparse import estimate_depth
 from ..geometry.lk_refinement import refine_matched_points
 from ..geometry.matched_points import gather_matched_points
@@ -32,7 +31,6 @@ from .along_floor import along_floor
 from .config import PipelineConfig, PipelineResult
 from .exposure import match_exposure
 from .exposure_retry import retry_with_exposure
-from .inlier_consensus import range_contradicted_by_inliers
 from .features_retry import features_smoothed, retry_with_smoothed_features
 from .near_surface import measure_near_surfaces
 from .ranging import (_dense_depth_with_retry, _rectifying_homographies, _smoothed, coarse_config,
@@ -240,11 +238,6 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     if config.measure_near_surface:
         depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, H_left, inliers,
                                                            batch.focal_px, batch.baseline_m, batch.doffs_px, config)
-    if config.depth.inliers_overrule_aliased:  # last: the near surface of an aliased map is aliased too
-        height, width = dense.disparity_px.shape[-2:]
-        depth = range_contradicted_by_inliers(depth, dense, points_left, inliers, H_left, batch.focal_px,
-                                              batch.baseline_m, batch.doffs_px,
-                                              float(working_factor(width, config.dense, height)))
     return seg, depth, object_labels, dense, verified, agreeing, measured, smoothed, coarse, dropped, near
 
 

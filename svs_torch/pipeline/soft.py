@@ -26,7 +26,7 @@ continuous quantities from the images (and the segmenter's logits) given those d
    Measured on the 28 held-out scenes (320×240 and native, Otsu and learned): every median within 0.41 % of the
    hard one; the 10th / 90th percentiles, over a long tail of far pixels, within 0.5 % for 95–100 % / 87–95 % of
    the objects. The nearest obstacle and R_min / R_max are the objects the hard pipeline named, with these soft
-   values (a discrete choice this pass never makes again). An object its inliers ranged keeps the hard depths.
+   values (a discrete choice this pass never makes again).
 
 4. **Geometry**: pairs rectified from F are warped by the hard homographies carrying gradients to both images
    (:mod:`~svs_torch.geometry.soft`: the LK-refined matches, F refitted by the weighted 8-point on RANSAC's
@@ -52,7 +52,6 @@ from ..depth.depth_types import DepthResult, NearestObstacle, ObjectDepths, Rang
 from ..depth.pooling import mean_pool
 from ..depth.winner import equiangular_offset
 from ..geometry.rectification import warp_rectified, warp_views
-from .inlier_consensus import keep_inlier_ranged
 from .stages import warp_labels
 
 __all__ = ["BAND_HALF_WIDTH", "band_mean", "differentiable_depth", "quantize_straight_through", "soft_dense_depth",
@@ -337,8 +336,8 @@ def soft_dense_depth(left: torch.Tensor, right: torch.Tensor, labels: torch.Tens
         low = torch.where(surface_some[..., 0] & (measured > 0), surface_means[..., 0], means[..., 1])
         means = torch.stack([means[..., 0], low, means[..., 2]], dim=-1)
     median, low, high = torch.where(valid.unsqueeze(-1), means, torch.zeros_like(means)).unbind(-1)
-    soft: ObjectDepths = keep_inlier_ranged(hard.objects, dataclasses.replace(  # (straight-through)
-        hard.objects, depth_median_m=median, depth_low_m=low, depth_high_m=high, valid=valid))
+    soft: ObjectDepths = dataclasses.replace(hard.objects, depth_median_m=median, depth_low_m=low, depth_high_m=high,
+                                             valid=valid)
     ranged = range_at_hard_slots(hard.objects, soft, focal_px, baseline_m, doffs_px)
     return DepthResult(hard.disparities, hard.points, ranged, soft, nearest_at_hard_slot(hard.nearest, soft))
 
