@@ -13,7 +13,9 @@ camera frames (:data:`~svs_torch.data.rig_deviation.LOOSE_RIG` at digit 4).
 Per pair the panel counts as **ranged** where the nearest obstacle's median depth lies within 5 % of the panel's
 distance, **wrong** where a status-OK nearest obstacle lies farther off than that (what a walker is told
 wrongly), **unranged** where the pair has no distance. Acc is Eq. (9) of the nearest distance (0 where none).
-The setting: the default (``--set`` changes it). The rival: OpenCV StereoSGBM's disparity through the truth's own
+The settings: the default, and the default with every pair allowed onto the coarse grid
+(``--set depth.coarse_retry_max_period_peak=none``: :mod:`svs_torch.depth.periodicity` keeps a repeated pattern
+off it by default). The rival: OpenCV StereoSGBM's disparity through the truth's own
 procedure (``eval_segmentation.sgbm_rival``). Rendered data only: no shared scene is read. About 1 minute on a
 2-core machine.
 
@@ -188,9 +190,12 @@ def main(argv: list[str] | None = None) -> dict:
     check_reports_apart(parser, args)
     try:
         base = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
+        ungated = apply_overrides(base, {"depth.coarse_retry_max_period_peak": None})
     except (InputError, ValueError) as error:
         parser.error(str(error))
-    settings = {"default" if not args.set else "default with --set": base}
+    settings = {"default" if not args.set else "default with --set": base, "coarse retry for every pair": ungated}
+    if base.depth.coarse_retry_max_period_peak is None:
+        settings = {"coarse retry for every pair": ungated}
     started = time.perf_counter()
     lefts, rights, *_ = render_pairs()
     rows = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import statistics
@@ -573,6 +574,29 @@ def test_repeated_patterns_renders_panels_an_independent_matcher_ranges_and_coun
     assert [(r["ranged"], r["wrong"], r["unranged"]) for r in rows] == [(True, False, False), (False, True, False),
                                                                       (False, False, True)]
     assert "| s | c | 1 | 1 | 1 | 44.00 | 0 | 0 | 1 |" in rp.markdown(rows, "command")
+
+
+def test_a_repeated_pattern_is_not_measured_again_on_the_coarse_grid():
+    """Was: the rendered 8 and 24 px checkers at 2.0 m as the board's camera frames measured too little at the
+    working width, were measured again on the coarse grid, where their period halves, and ranged "OK" at 1.36 and
+    1.85 m; the first pass had them at 1.96 m. depth.periodicity now keeps such a pair off the coarse grid."""
+    import repeated_patterns as rp
+
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    lefts, rights, _, _ = rp.render_pairs()
+    frames = rp.condition_batch(lefts, rights, rp.RigDeviation(), 4, 4.0)
+    index = [rp.cases().index(("checker", 8, 2.0)), rp.cases().index(("checker", 24, 2.0))]
+    batch = frames.select(index)
+    with torch.inference_mode():
+        result = estimate_obstacle_depth(batch, PipelineConfig())
+        config = PipelineConfig()
+        ungated = dataclasses.replace(config, depth=dataclasses.replace(config.depth,
+                                                                          coarse_retry_max_period_peak=None))
+        before = estimate_obstacle_depth(batch, ungated)
+    assert not result.coarse.any() and before.coarse.all()
+    assert ((result.depth.nearest.depth_m - 2.0).abs() < 0.05 * 2.0).all()
+    assert ((before.depth.nearest.depth_m - 2.0).abs() > 0.05 * 2.0).all()
 
 
 @pytest.mark.parametrize("script", ["thin_obstacles", "walker_floor", "walker_heaps", "floor_distance",

@@ -70,6 +70,10 @@ class DepthConfig:
             of noise's wrong coarse matches (``DenseConfig.in_view_detached_tail_share``). 0 turns the check off. Unlike
             ``DenseConfig.whole_range_in_view`` it drops no pixel: an object with enough pixels in view keeps
             its median over all of them.
+        coarse_retry_max_period_peak: a pair whose kept regions repeat themselves along the rows (their row
+            autocorrelation rises again to a peak of at least this, :mod:`svs_torch.depth.periodicity`) is not
+            measured again on the coarse grid (``PipelineConfig.coarse_retry_below_share``), where the pattern's
+            period halves and aliases; None: every pair may be (``"dense"`` rule).
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -82,6 +86,7 @@ class DepthConfig:
     min_object_valid_fraction: float = 0.1
     min_object_valid_fraction_unverified: float = 0.4  # verify_views.py: 0.3 ranged 10 of 64 synthetic mismatches
     min_object_pixels_in_view: int = 20  # paper_table1.py: changes only held-out Laundry at 320 px (R_max 0 -> 99 %)
+    coarse_retry_max_period_peak: float | None = 0.5  # experiments/repeated_patterns.md
 
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
@@ -89,6 +94,8 @@ class DepthConfig:
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
+        if self.coarse_retry_max_period_peak is not None:
+            check_real(self.coarse_retry_max_period_peak, "coarse_retry_max_period_peak", 0.0, 1.0)
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified", "min_in_front_share"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)

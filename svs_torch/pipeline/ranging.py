@@ -17,6 +17,7 @@ from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import (count_agreeing_inliers, dense_object_depths, range_from_objects,
                                    surface_pixels)
 from ..depth.depth_types import DepthResult, Disparities, ObjectDepths
+from ..depth.periodicity import repeated_at_working_width
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
@@ -347,6 +348,10 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
             and working_factor(width, settings.dense, height) > working_factor(width, config.dense, height)):
         objects = current[0].objects
         low = (measured_share(objects) < config.coarse_retry_below_share) & (objects.area_px.sum(1) > 0)
+        if config.depth.coarse_retry_max_period_peak is not None and bool(low.any()):
+            # A repeated pattern aliases on the coarse grid, where its period halves (depth.periodicity).
+            low = low & ~repeated_at_working_width(batch.left, seg.left.kept_mask,
+                                                   config.depth.coarse_retry_max_period_peak, config.dense)
         if bool(low.any()):
             current, replaced = _second_pass(current, low.nonzero().flatten(), settings, None, coarse_is_better,
                                              *passes)

@@ -1,0 +1,70 @@
+"""depth.periodicity: a region that repeats itself along the rows, told from a natural texture."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from svs_torch.core.errors import InputError
+from svs_torch.depth.periodicity import repeated_along_rows, repeated_at_working_width, row_autocorrelation
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from real_images import PAIRS, read_gray  # noqa: E402
+
+
+def as_batch(*images: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.stack(images).astype(np.float32)).unsqueeze(1)
+
+
+def test_row_autocorrelation_is_numpy_corrcoef_over_the_masked_pairs():
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur(rng.random((30, 50)).astype(np.float32), (0, 0), 1.5)
+    mask = rng.random((30, 50)) > 0.3
+    r = row_autocorrelation(as_batch(image), torch.from_numpy(mask)[None, None], max_lag_px=6)[0].numpy()
+    image = image.astype(np.float64)
+    centred = np.where(mask, image - image[mask].mean(), 0.0)
+    for lag in range(1, 7):
+        both = mask[:, :-lag] & mask[:, lag:]
+        a, b = centred[:, :-lag][both], centred[:, lag:][both]
+        assert r[lag - 1] == pytest.approx(float(a @ b / np.sqrt((a @ a) * (b @ b))), abs=1e-9)
+
+
+def test_bars_and_grates_repeat_and_a_natural_texture_does_not():
+    rows, cols = np.mgrid[0:60, 0:120]
+    bars = ((cols // 5) % 2).astype(np.float32)  # a 10 px period
+    grate = (((cols % 12) < 4) | ((rows % 12) < 4)).astype(np.float32)  # never below 0.1: its rows of bar
+    texture = cv2.GaussianBlur(np.random.default_rng(1).random((60, 120)).astype(np.float32), (0, 0), 2.0)
+    whole = torch.ones(3, 1, 60, 120, dtype=torch.bool)
+    assert repeated_along_rows(as_batch(bars, grate, texture), whole, 0.5).tolist() == [True, True, False]
+    r = row_autocorrelation(as_batch(bars), whole[:1])[0]
+    assert float(r[9]) == pytest.approx(1.0, abs=0.02) and float(r[4]) == pytest.approx(-1.0, abs=0.02)
+    # A period past the lags looked at is not found.
+    assert not bool(repeated_along_rows(as_batch(bars), whole[:1], 0.5, max_lag_px=8)[0])
+
+
+def test_real_scenes_do_not_repeat_and_a_real_chessboard_does(data_dir):
+    """The shared scenes' whole left views at 320 × 240 are natural textures; OpenCV's sample chessboard over the
+    hull of the corners OpenCV finds on it repeats with its two squares' period (34 px there: past the
+    default's 32, found with lags up to 64)."""
+    scenes = [read_gray(data_dir, left, (320, 240)) for left, _ in PAIRS if "opencv_samples" not in left]
+    whole = torch.ones(len(scenes), 1, 240, 320, dtype=torch.bool)
+    assert not repeated_at_working_width(as_batch(*scenes) / 255, whole, 0.5).any()
+    board = read_gray(data_dir, "opencv_samples/left01.jpg", (320, 240))
+    found, corners = cv2.findChessboardCorners(board, (9, 6))
+    assert found
+    hull = np.zeros_like(board)
+    cv2.fillConvexPoly(hull, cv2.convexHull(corners.astype(np.int32)), 1)
+    assert bool(repeated_along_rows(as_batch(board) / 255, torch.from_numpy(hull > 0)[None, None], 0.5, 64)[0])
+
+
+def test_a_mask_of_another_shape_or_dtype_is_refused_by_name():
+    image = torch.zeros(1, 1, 8, 8)
+    with pytest.raises(InputError, match="mask"):
+        row_autocorrelation(image, torch.ones(1, 1, 8, 9, dtype=torch.bool))
+    with pytest.raises(InputError, match="mask"):
+        repeated_at_working_width(image, torch.ones(1, 1, 8, 8), 0.5)
