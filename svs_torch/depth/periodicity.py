@@ -31,24 +31,27 @@ MIN_RISE = 0.4
 def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int = MAX_PERIOD_PX) -> torch.Tensor:
     """``(B, max_lag_px)``: the normalised autocorrelation of ``image`` ``(B, 1, H, W)`` along its rows at lags
     1 … ``max_lag_px`` pixels, over the pixel pairs both inside ``mask`` ``(B, 1, H, W)`` bool, each pair's values
-    centred on their mean over the mask; 0 at a lag with no such pair. Not differentiable (a test)."""
+    centred on their mean over the mask; 0 at a lag with no such pair. Not differentiable (a test).
+
+    Three row correlations by FFT, zero-padded past the longest lag so that none wraps: the centred values with
+    themselves, and their squares with the mask both ways (each lag's norm over its own pairs). Shifted products
+    of the whole image, lag by lag, took 14 ms a 320 × 240 pair; this takes about 2."""
     check_image(image, "image")
     check_shape(mask, "mask", list(image.shape))
     check_dtype(mask, "mask", "bool")
-    x = image.detach().to(torch.float64)
-    count = mask.sum((1, 2, 3)).clamp_min(1).view(-1, 1, 1, 1)
-    centred = torch.where(mask, x - (x * mask).sum((1, 2, 3), keepdim=True) / count, 0.0)
-    lags = []
-    for lag in range(1, max_lag_px + 1):  # a few dozen shifted products of the whole batch, not a loop over pairs
-        if lag >= x.shape[-1]:
-            lags.append(x.new_zeros(x.shape[0]))
-            continue
-        a, b = centred[..., :-lag], centred[..., lag:]
-        both = mask[..., :-lag] & mask[..., lag:]
-        a, b = torch.where(both, a, 0.0), torch.where(both, b, 0.0)
-        norm = ((a * a).sum((1, 2, 3)) * (b * b).sum((1, 2, 3))).sqrt()
-        lags.append(torch.where(norm > 0, (a * b).sum((1, 2, 3)) / norm.clamp_min(1e-30), 0.0))
-    return torch.stack(lags, dim=1)
+    x, inside = image.detach().to(torch.float64), mask.to(torch.float64)
+    count = inside.sum((1, 2, 3), keepdim=True).clamp_min(1)
+    centred = (x - (x * inside).sum((1, 2, 3), keepdim=True) / count) * inside
+    length = x.shape[-1] + max_lag_px
+
+    def correlated(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # Σ over rows and i of a[i] · b[i + lag]
+        spectrum = torch.fft.rfft(a, n=length).conj() * torch.fft.rfft(b, n=length)
+        return torch.fft.irfft(spectrum, n=length)[..., 1:max_lag_px + 1].sum((1, 2))
+
+    squares = centred * centred
+    products = correlated(centred, centred)
+    norm = (correlated(squares, inside) * correlated(inside, squares)).clamp_min(0).sqrt()
+    return torch.where(norm > 1e-12, products / norm.clamp_min(1e-12), 0.0)
 
 
 def repeated_along_rows(image: torch.Tensor, mask: torch.Tensor, min_peak: float, max_lag_px: int = MAX_PERIOD_PX
