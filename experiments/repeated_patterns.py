@@ -24,10 +24,7 @@ procedure (``eval_segmentation.sgbm_rival``). Rendered data only: no shared scen
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,15 +32,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
-from run_metadata import (add_rendered_experiment_options, check_reports_apart, command_line, report_rows,  # noqa: E402
-                          run_script)
+from run_metadata import command_line, rendered_experiment_setup, report_rows, run_script  # noqa: E402
 
 from svs_torch.core.camera import SVS_CAMERA  # noqa: E402
-from svs_torch.core.errors import InputError  # noqa: E402
 from svs_torch.core.types import StereoBatch  # noqa: E402
 from svs_torch.data import camera_frame_pairs  # noqa: E402
 from svs_torch.data.rig_deviation import LOOSE_RIG, RigDeviation, deviate_view  # noqa: E402
-from svs_torch.evaluation.overrides import apply_overrides, parse_assignment  # noqa: E402
+from svs_torch.evaluation.overrides import apply_overrides  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth  # noqa: E402
 
 HEIGHT, WIDTH = 240, 320
@@ -184,19 +179,11 @@ def markdown(rows: list[dict], command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_rendered_experiment_options(parser)
-    args = parser.parse_args(argv)
-    check_reports_apart(parser, args)
-    try:
-        base = apply_overrides(PipelineConfig(), dict(parse_assignment(text) for text in args.set))
-        ungated = apply_overrides(base, {"depth.coarse_retry_max_period_peak": None})
-    except (InputError, ValueError) as error:
-        parser.error(str(error))
-    settings = {"default" if not args.set else "default with --set": base, "coarse retry for every pair": ungated}
+    args, base, name, started = rendered_experiment_setup(__doc__, argv)
+    ungated = apply_overrides(base, {"depth.coarse_retry_max_period_peak": None})
+    settings = {name: base, "coarse retry for every pair": ungated}
     if base.depth.coarse_retry_max_period_peak is None:
         settings = {"coarse retry for every pair": ungated}
-    started = time.perf_counter()
     lefts, rights, *_ = render_pairs()
     rows = []
     with torch.inference_mode():
