@@ -20,6 +20,7 @@ __all__ = [
     "check_device",
     "check_shape",
     "check_dtype",
+    "check_dtypes",
     "check_image",
     "check_instance",
     "check_same_shape",
@@ -86,6 +87,13 @@ def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
         raise InputError(f"{name}: expected a float32 or float64 tensor, got {dtype}")
     if family not in allowed:
         raise InputError(f"{name}: expected a {' or '.join(allowed)} tensor, got {dtype}")
+
+
+def check_dtypes(**arguments: tuple[torch.Tensor, str]) -> None:
+    """:func:`check_dtype` of each argument given as ``name=(tensor, kinds)``, in order: one line for a function's
+    arguments."""
+    for name, (tensor, kinds) in arguments.items():
+        check_dtype(tensor, name, kinds)
 
 
 def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> dict[str, int]:

@@ -41,7 +41,7 @@ import dataclasses
 
 import torch
 
-from ..core.checks import check_dtype
+from ..core.checks import check_dtype, check_dtypes
 from ..core.numerics import per_pair
 from ..depth.block_matching import fill_invalid_rows
 from ..depth.cost_volume import prefilter_xsobel
@@ -113,6 +113,7 @@ def subpixel_disparity(left: torch.Tensor, right: torch.Tensor, pixels: torch.Te
     ``(P, 3)``); offset 0 where the hard stage has no interior fit (the winner at its pair's ``min_disparity_px``
     ``(B,)``, or a neighbour's right pixel outside the pair's width ``image_w`` ``(B,)``). Differentiable w.r.t.
     both images (the winner is a constant)."""
+    check_dtypes(left=(left, "float"), right=(right, "float"), pixels=(pixels, "int"), winner=(winner, "int"))
     if costs is None:
         costs = _window_costs(left, right, pixels, winner.unsqueeze(1) + torch.arange(-1, 2, device=left.device),
                               window_size)

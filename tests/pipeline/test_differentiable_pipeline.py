@@ -117,6 +117,20 @@ def test_band_mean_refuses_values_it_cannot_sum(dtype):
     assert band_mean(values.float(), torch.ones(1, 20000), band)[0].tolist() == [[8.0]]
 
 
+@pytest.mark.parametrize("argument", ["half images", "float winner", "float pixels"])
+def test_subpixel_disparity_refuses_what_it_cannot_index_or_fit(argument):
+    """Was: float16 images were fitted in silence (float16 disparities), and a float winner or pixel index failed
+    deep inside torch ('index_select(): Expected dtype int32 or int64'; an audit). Refused by name."""
+    left, right = torch.rand(1, 1, 20, 30), torch.rand(1, 1, 20, 30)
+    pixels, winner, bounds = torch.tensor([[0, 10, 20]]), torch.tensor([5]), (torch.tensor([0]), torch.tensor([30]))
+    name, *call = {"half images": ("left", left.half(), right.half(), pixels, winner),
+                   "float winner": ("winner", left, right, pixels, winner.float()),
+                   "float pixels": ("pixels", left, right, pixels.float(), winner)}[argument]
+    with pytest.raises(InputError, match=f"^{name}: expected"):
+        subpixel_disparity(*call, *bounds, 5)
+    assert subpixel_disparity(left, right, pixels, winner, *bounds, 5).dtype == torch.float32
+
+
 def test_bands_hold_the_order_statistics_the_quantile_interpolates(generator):
     """A 30-member object: the median interpolates ranks 14 and 15, a 1 % band around it by value would be empty."""
     depth = torch.rand(1, 40, generator=generator, dtype=torch.float64)
