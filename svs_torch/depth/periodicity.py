@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import check_dtype, check_image, check_shape
+from ..core.checks import check_count, check_dtype, check_image, check_real, check_shape
 from .dense import working_factor
 from .dense_config import DenseConfig
 from .pooling import mean_pool
@@ -35,10 +35,11 @@ def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
 
     Three row correlations by FFT, zero-padded past the longest lag so that none wraps: the centred values with
     themselves, and their squares with the mask both ways (each lag's norm over its own pairs). Shifted products
-    of the whole image, lag by lag, took 14 ms a 320 × 240 pair; this takes about 2."""
+    of the whole image, lag by lag, took 14 ms a 320 × 240 pair; this takes about 3."""
     check_image(image, "image")
     check_shape(mask, "mask", list(image.shape))
     check_dtype(mask, "mask", "bool")
+    check_count(max_lag_px, "max_lag_px", 1)
     x, inside = image.detach().to(torch.float64), mask.to(torch.float64)
     count = inside.sum((1, 2, 3), keepdim=True).clamp_min(1)
     centred = (x - (x * inside).sum((1, 2, 3), keepdim=True) / count) * inside
@@ -59,6 +60,7 @@ def repeated_along_rows(image: torch.Tensor, mask: torch.Tensor, min_peak: float
     """``(B,)`` bool: the pairs whose ``image`` ``(B, 1, H, W)`` repeats itself along the rows over ``mask``: its
     :func:`row_autocorrelation` rises again, by :data:`MIN_RISE` or more from its least value at a shorter lag, to a
     local peak of at least ``min_peak`` at a lag of 3 pixels or more. Not differentiable."""
+    check_real(min_peak, "min_peak", 0.0, 1.0)
     r = row_autocorrelation(image, mask, max_lag_px)
     if r.shape[1] < 4:
         return torch.zeros(r.shape[0], dtype=torch.bool, device=r.device)

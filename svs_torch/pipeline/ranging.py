@@ -349,9 +349,12 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
         objects = current[0].objects
         low = (measured_share(objects) < config.coarse_retry_below_share) & (objects.area_px.sum(1) > 0)
         if config.depth.coarse_retry_max_period_peak is not None and bool(low.any()):
-            # A repeated pattern aliases on the coarse grid, where its period halves (depth.periodicity).
-            low = low & ~repeated_at_working_width(batch.left, seg.left.kept_mask,
-                                                   config.depth.coarse_retry_max_period_peak, config.dense)
+            # A repeated pattern aliases on the coarse grid, where its period halves (depth.periodicity); only the
+            # pairs to retry are looked at (3 ms each at 320 x 240).
+            index = low.nonzero().flatten()
+            repeated = repeated_at_working_width(batch.left[index], seg.left.kept_mask[index],
+                                                 config.depth.coarse_retry_max_period_peak, config.dense)
+            low = low.index_put((index,), ~repeated)
         if bool(low.any()):
             current, replaced = _second_pass(current, low.nonzero().flatten(), settings, None, coarse_is_better,
                                              *passes)

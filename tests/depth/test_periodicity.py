@@ -62,9 +62,13 @@ def test_real_scenes_do_not_repeat_and_a_real_chessboard_does(data_dir):
     assert bool(repeated_along_rows(as_batch(board) / 255, torch.from_numpy(hull > 0)[None, None], 0.5, 64)[0])
 
 
-def test_a_mask_of_another_shape_or_dtype_is_refused_by_name():
+def test_a_mask_of_another_shape_or_dtype_and_settings_out_of_range_are_refused_by_name():
     image = torch.zeros(1, 1, 8, 8)
     with pytest.raises(InputError, match="mask"):
         row_autocorrelation(image, torch.ones(1, 1, 8, 9, dtype=torch.bool))
     with pytest.raises(InputError, match="mask"):
         repeated_at_working_width(image, torch.ones(1, 1, 8, 8), 0.5)
+    with pytest.raises(InputError, match="max_lag_px"):
+        row_autocorrelation(image, torch.ones(1, 1, 8, 8, dtype=torch.bool), max_lag_px=0)
+    with pytest.raises(InputError, match="min_peak"):
+        repeated_along_rows(image, torch.ones(1, 1, 8, 8, dtype=torch.bool), 1.5)
