@@ -15,7 +15,7 @@ import torch
 
 from ..core.errors import InputError
 
-__all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "varies"]
+__all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "one_image_twice", "varies"]
 
 #: Pairs in a row in which one camera's frame came again while the other's changed before that camera is judged
 #: frozen. Not 1: where frames carry no noise (the emulator's default) a scene that steps (its keyframes, an image
@@ -29,6 +29,14 @@ FROZEN_PAIRS = 2
 def varies(image: torch.Tensor) -> bool:
     """Whether ``image`` is not flat: some pixel differs from another. Not differentiable (a comparison)."""
     return bool(image.amax() > image.amin())
+
+
+def one_image_twice(left: torch.Tensor, right: torch.Tensor) -> bool:
+    """Whether a pair's ``left`` and ``right`` frames are the same image, pixel for pixel, and not a flat one: two
+    cameras' frames of a scene never are (each sensor has its own noise), one frame sent for both always is. Two flat
+    frames (both lenses covered, black or clipped) may be equal and are the pipeline's to find blank. What guide
+    refuses to range and capture warns of. Not differentiable (a comparison)."""
+    return left.shape == right.shape and bool((left == right).all()) and varies(left)
 
 
 class FrozenCameraWatch:

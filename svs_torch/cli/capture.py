@@ -295,21 +295,27 @@ class _PairChecks:
     def frozen_camera(self, pair) -> str | None:
         """The camera of ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) judged frozen, or None; each
         pair in the order grabbed (compared with the one before it)."""
+        left, right = self._frames(pair)
+        return self.watch.update(SimpleNamespace(left=left, right=right))
+
+    @staticmethod
+    def _frames(pair) -> tuple:
+        """The decoded grayscale frames of ``pair`` as tensors, guide's, without a copy."""
         import torch
 
-        frames = SimpleNamespace(left=torch.from_numpy(pair.left.image), right=torch.from_numpy(pair.right.image))
-        return self.watch.update(frames)  # (the decoded grayscale frames, guide's, without a copy)
+        return torch.from_numpy(pair.left.image), torch.from_numpy(pair.right.image)
 
     def count(self, pair, frozen: str | None) -> None:
         """Count a kept ``pair``, ``frozen`` its :meth:`frozen_camera`."""
+        from ..capture.frozen import one_image_twice
+
         gap_s = self.max_frame_gap_s
         self.apart += gap_s is not None and abs(pair.time_between_frames_s) > gap_s
         if frozen is not None:
             self.frozen[frozen] += 1
-        # One image for both cameras, pixel for pixel and not flat (guide's identical_views): two sensors' frames of
-        # a scene never are. Such pairs were saved without a word, though guide refuses them (an audit).
-        left, right = pair.left.image, pair.right.image
-        self.one_image += left.shape == right.shape and bool((left == right).all()) and bool(left.max() > left.min())
+        # One image for both cameras (guide's identical_views): such pairs were saved without a word, though guide
+        # refuses them (an audit).
+        self.one_image += one_image_twice(*self._frames(pair))
 
     def warnings(self, done: int) -> list[str]:
         """The warnings of a capture that kept ``done`` pairs: one line each, none when all pairs were sound."""

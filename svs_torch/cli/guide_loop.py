@@ -26,7 +26,7 @@ import contextlib
 import time
 from typing import Callable
 
-from ..capture.frozen import FrozenCameraWatch, varies
+from ..capture.frozen import FrozenCameraWatch, one_image_twice
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
 from ..capture.stereo import STEREO_ROLES
@@ -81,12 +81,8 @@ DISTANCE_ALONG = ("floor", "remembered_floor", "camera_pitch", "axis")
 
 
 def _one_image_twice(batch) -> bool:
-    """Whether a grabbed pair's left and right frames are the same image, pixel for pixel, and not a flat one: two
-    cameras' frames of a scene never are (each sensor has its own noise), one frame sent for both always is. Two
-    flat frames (both lenses covered, black or clipped) may be equal and are the pipeline's to find blank."""
-    if batch is None or batch.left.shape != batch.right.shape or not bool((batch.left == batch.right).all()):
-        return False
-    return varies(batch.left)
+    """Whether a grabbed pair's two frames are one image (:func:`~svs_torch.capture.frozen.one_image_twice`)."""
+    return batch is not None and one_image_twice(batch.left, batch.right)
 
 
 class FloorMemory:
