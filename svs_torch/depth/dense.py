@@ -49,7 +49,8 @@ from .winner import equiangular_offset
 
 __all__ = [
     "DenseConfig", "DenseDisparity", "DisparityRange", "block_match_sad", "coarse_search_range", "crop_box",
-    "crop_index", "dense_disparity_over_regions", "disparity_search_range", "equiangular_offset",
+    "crop_index", "dense_disparity_in_range", "dense_disparity_over_regions", "disparity_search_range",
+    "equiangular_offset",
     "estimate_dense_disparity", "mean_pool", "prefilter_xsobel", "quantize_levels", "region_crop_boxes",
     "soft_block_match", "wanted_pixels", "working_factor", "working_window"
 ]
@@ -159,6 +160,35 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
     if search.in_view_top_px is not None:
         dense = replace(dense, in_view_top_px=search.in_view_top_px, object_in_view_top_px=search.object_in_view_top_px)
     return _enlarge(dense, factor, height, width)
+
+
+def dense_disparity_in_range(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor,
+                             min_disparity_px: torch.Tensor, num_disparities: torch.Tensor,
+                             config: DenseConfig = DenseConfig(), image_hw: torch.Tensor | None = None
+                             ) -> DenseDisparity:
+    """:func:`estimate_dense_disparity` over a range given rather than found: each pair's ``[min_disparity_px,
+    min_disparity_px + num_disparities)`` ``(B,)`` int64, input pixels (widened to whole working pixels). A
+    range narrower than a repeated pattern's period holds one alias only (:mod:`~svs_torch.depth.alias_choice`).
+    Not differentiable."""
+    b = _check_pair(left, right, config)
+    check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
+    check_dtype(mask, "mask", "bool")
+    for value, name in ((min_disparity_px, "min_disparity_px"), (num_disparities, "num_disparities")):
+        check_shape(value, name, [b])
+        check_dtype(value, name, "int")
+    height, width = left.shape[-2:]
+    image_hw = _check_sizes(image_hw, left)
+    factor = working_factor(width, config, height)
+    small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
+    low = torch.div(min_disparity_px.clamp_min(0), factor, rounding_mode="floor")
+    top = torch.div(min_disparity_px + num_disparities + factor - 1, factor, rounding_mode="floor")
+    counts = (top - low).clamp_min(1)
+    if factor > config.smoothing_max_reduction:
+        config = replace(config, smoothing_penalties=None)
+    config = replace(config, window_size=working_window(width, config))
+    search = DisparityRange(low, int(counts.max()) if b else 1, counts)
+    return _enlarge(_match_in_groups(small_left, small_right, small_mask, search, config, small_hw), factor,
+                    height, width)
 
 
 def _match_in_groups(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
