@@ -74,6 +74,11 @@ class DepthConfig:
             autocorrelation rises again to a peak of at least this, :mod:`svs_torch.depth.periodicity`) is not
             measured again on the coarse grid (``PipelineConfig.coarse_retry_below_share``), where the pattern's
             period halves and aliases; None: every pair may be (``"dense"`` rule).
+        alias_check_min_period_peak: a kept object that repeats itself along the rows (a peak of at least this,
+            as above) is measured again over one period about the alias its whole region matches best where its
+            windows' median lies there, and loses its pixels where the two disagree
+            (:func:`svs_torch.depth.alias_choice.settle_aliases`); None: every object as measured (``"dense"``
+            rule).
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -87,6 +92,7 @@ class DepthConfig:
     min_object_valid_fraction_unverified: float = 0.4  # verify_views.py: 0.3 ranged 10 of 64 synthetic mismatches
     min_object_pixels_in_view: int = 20  # paper_table1.py: changes only held-out Laundry at 320 px (R_max 0 -> 99 %)
     coarse_retry_max_period_peak: float | None = 0.5  # experiments/repeated_patterns.md
+    alias_check_min_period_peak: float | None = 0.5  # experiments/repeated_patterns.md, "The whole object's alias"
 
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
@@ -94,8 +100,9 @@ class DepthConfig:
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
-        if self.coarse_retry_max_period_peak is not None:
-            check_real(self.coarse_retry_max_period_peak, "coarse_retry_max_period_peak", 0.0, 1.0)
+        for name in ("coarse_retry_max_period_peak", "alias_check_min_period_peak"):
+            if getattr(self, name) is not None:
+                check_real(getattr(self, name), name, 0.0, 1.0)
         for name in ("min_object_valid_fraction", "min_object_valid_fraction_unverified", "min_in_front_share"):
             check_real(getattr(self, name), name, 0.0, 1.0)
         check_percentiles(self.percentiles, "percentiles", optional=True)
