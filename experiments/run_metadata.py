@@ -255,9 +255,10 @@ def add_rendered_experiment_options(parser) -> None:
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as markdown")
 
 
-def rendered_experiment_setup(doc: str, argv: list[str] | None):
+def rendered_experiment_setup(doc: str, argv: list[str] | None, extra_options=None):
     """A rendered-scene experiment's start (walker_floor.py, walker_heaps.py): its options parsed from ``argv``
-    (:func:`add_rendered_experiment_options`; ``doc``'s first paragraph the description), the pipeline's
+    (:func:`add_rendered_experiment_options`, then ``extra_options(parser)`` where given; ``doc``'s first
+    paragraph the description), the pipeline's
     configuration with ``--set``'s overrides (a bad one is the parser's error), the setting's name for the table,
     and the start time on ``time.perf_counter``."""
     import argparse
@@ -269,6 +270,8 @@ def rendered_experiment_setup(doc: str, argv: list[str] | None):
 
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     add_rendered_experiment_options(parser)
+    if extra_options is not None:
+        extra_options(parser)
     args = parser.parse_args(argv)
     check_reports_apart(parser, args)
     try:
