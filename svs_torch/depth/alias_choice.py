@@ -11,7 +11,8 @@ view (a fragment of a panel has none, and its least shift is as much a matter of
 measurements of the alias, then: where the median of the object's windows lies within half a period of the whole
 object's shift, they agree, and the object is matched again over that period, where no other alias lies and the
 uniqueness rule passes the windows it rejected for their aliases; where they disagree, neither is trusted and the
-object's pixels are dropped: a walker is told no distance rather than a wrong one.
+object's pixels are dropped: a walker is told no distance rather than a wrong one. So are they where no end tells
+the whole object's alias from the others (a board filling both views fits every alias alike).
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ import torch
 import torch.nn.functional as F
 
 from ..core.checks import check_dtype, check_shape
-from .quantiles import masked_quantile
 from .cost_volume import prefilter_xsobel
 from .dense import dense_disparity_in_range, working_factor
 from .dense_config import DenseConfig, DenseDisparity
 from .pooling import mean_pool
+from .quantiles import masked_quantile
 
 __all__ = ["remeasure_on_alias", "settle_aliases", "whole_object_disparity"]
 
@@ -200,10 +201,13 @@ def settle_aliases(left: torch.Tensor, right: torch.Tensor, objects: torch.Tenso
     check_shape(disparity_px, "disparity_px", list(objects.shape[:2]))
     check_shape(valid, "valid", list(objects.shape[:2]))
     check_shape(period_px, "period_px", list(objects.shape[:2]))
-    inside = objects.flatten(2) & dense.valid.flatten(2)
-    values = dense.disparity_px.flatten(2).expand(-1, objects.shape[1], -1)
-    median = masked_quantile(values, inside, [0.5])
-    agree = valid & median.valid & ((median.values[..., 0] - disparity_px).abs() < period_px / 2)
+    # The windows' median of the repeated pairs' objects only: a batch of native-size pairs sorted whole would
+    # hold every pixel of every object.
+    index = (period_px > 0).any(dim=1).nonzero().flatten()
+    inside = objects[index].flatten(2) & dense.valid[index].flatten(2)
+    median = masked_quantile(dense.disparity_px[index].flatten(2).expand(-1, objects.shape[1], -1), inside, [0.5])
+    near = median.valid & ((median.values[..., 0] - disparity_px[index]).abs() < period_px[index] / 2)
+    agree = valid & torch.zeros_like(valid).index_put((index,), near)
     disagree = ((period_px > 0) & ~agree).view(*objects.shape[:2], 1, 1)
     dropped = (objects & disagree).any(dim=1, keepdim=True)
     dense = dataclasses.replace(dense, valid=dense.valid & ~dropped,
