@@ -126,7 +126,7 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
 def _on_whole_object_alias(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, objects: torch.Tensor,
                            dense: DenseDisparity, image_hw: torch.Tensor, config: PipelineConfig) -> DenseDisparity:
     """``dense`` with each kept object that repeats itself along the rows settled on the alias its whole region
-    matches best, or dropped where its pixels' median lies on another
+    matches best, or dropped where its windows' median lies on another or no end tells that alias from the others
     (:func:`~svs_torch.depth.alias_choice.settle_aliases`; ``DepthConfig.alias_check_min_period_peak``). The
     period test costs about 1.5 ms a 320 × 240 pair; each object of a repeated pair is then tested on its own, and
     only the repeated objects are matched again."""
