@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from ..core.checks import check_dtype, check_shape
 from .cost_volume import prefilter_xsobel
-from .dense import dense_disparity_in_range, working_factor
+from .dense import dense_disparity_in_range, working_factor, working_range
 from .dense_config import DenseConfig, DenseDisparity
 from .pooling import mean_pool
 from .quantiles import masked_quantile
@@ -130,8 +130,7 @@ def whole_object_disparity(left: torch.Tensor, right: torch.Tensor, objects: tor
         left, right, masks = mean_pool(left, factor), mean_pool(right, factor), mean_pool(masks, factor)
     check_shape(min_disparity_px, "min_disparity_px", [left.shape[0]])
     check_shape(num_disparities, "num_disparities", [left.shape[0]])
-    low = torch.div(min_disparity_px, factor, rounding_mode="floor")
-    top = torch.div(min_disparity_px + num_disparities + factor - 1, factor, rounding_mode="floor")
+    low, top = working_range(min_disparity_px, num_disparities, factor)
     # Rivals are looked for past the range searched too, over the dense stage's whole fallback range: a range
     # narrowed to one alias (the coarse pass's, over a pattern with no end in view) holds no rival.
     fallback = int(config.fallback_max_disparity_fraction * left.shape[-1])

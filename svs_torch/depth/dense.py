@@ -52,7 +52,7 @@ __all__ = [
     "crop_index", "dense_disparity_in_range", "dense_disparity_over_regions", "disparity_search_range",
     "equiangular_offset",
     "estimate_dense_disparity", "mean_pool", "prefilter_xsobel", "quantize_levels", "region_crop_boxes",
-    "soft_block_match", "wanted_pixels", "working_factor", "working_window"
+    "soft_block_match", "wanted_pixels", "working_factor", "working_range", "working_window"
 ]
 
 
@@ -153,10 +153,7 @@ def estimate_dense_disparity(left: torch.Tensor, right: torch.Tensor, mask: torc
         search = coarse_search_range(small_left, small_right, small_mask, small_hw, config, small_objects)
     else:
         search = disparity_search_range(inlier_disparity_px / factor, inlier_valid, small_hw[:, 1], config)
-    if factor > config.smoothing_max_reduction:  # the box average has already averaged the noise
-        config = replace(config, smoothing_penalties=None)
-    config = replace(config, window_size=working_window(width, config))  # after the coarse pass: its own width
-    dense = _match_in_groups(small_left, small_right, small_mask, search, config, small_hw)
+    dense = _match_at_working_width(small_left, small_right, small_mask, search, config, small_hw, width, factor)
     if search.in_view_top_px is not None:
         dense = replace(dense, in_view_top_px=search.in_view_top_px, object_in_view_top_px=search.object_in_view_top_px)
     return _enlarge(dense, factor, height, width)
@@ -180,15 +177,31 @@ def dense_disparity_in_range(left: torch.Tensor, right: torch.Tensor, mask: torc
     image_hw = _check_sizes(image_hw, left)
     factor = working_factor(width, config, height)
     small_left, small_right, small_mask, small_hw = _reduce(left, right, mask, image_hw, factor)
-    low = torch.div(min_disparity_px.clamp_min(0), factor, rounding_mode="floor")
-    top = torch.div(min_disparity_px + num_disparities + factor - 1, factor, rounding_mode="floor")
+    low, top = working_range(min_disparity_px, num_disparities, factor)
     counts = (top - low).clamp_min(1)
+    search = DisparityRange(low, int(counts.max()) if b else 1, counts)
+    return _enlarge(_match_at_working_width(small_left, small_right, small_mask, search, config, small_hw, width,
+                                            factor), factor, height, width)
+
+
+def working_range(min_disparity_px: torch.Tensor, num_disparities: torch.Tensor, factor: int
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """A range of input pixels ``[min, min + num)`` ``(B,)`` each as whole working pixels ``[low, top)``, widened
+    to cover it: ``low = ⌊max(min, 0) / factor⌋``, ``top = ⌈(min + num) / factor⌉``."""
+    low = torch.div(min_disparity_px.clamp_min(0), factor, rounding_mode="floor")
+    return low, torch.div(min_disparity_px + num_disparities + factor - 1, factor, rounding_mode="floor")
+
+
+def _match_at_working_width(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
+                            config: DenseConfig, image_hw: torch.Tensor, width: int, factor: int) -> DenseDisparity:
+    """:func:`_match_in_groups` of the reduced views with the settings of the working width for views ``width``
+    input pixels wide reduced ``factor`` times: no semi-global aggregation past ``config.smoothing_max_reduction``
+    (the box average has already averaged the noise), and :func:`working_window`'s window (after any coarse pass,
+    which matches with its own)."""
     if factor > config.smoothing_max_reduction:
         config = replace(config, smoothing_penalties=None)
     config = replace(config, window_size=working_window(width, config))
-    search = DisparityRange(low, int(counts.max()) if b else 1, counts)
-    return _enlarge(_match_in_groups(small_left, small_right, small_mask, search, config, small_hw), factor,
-                    height, width)
+    return _match_in_groups(left, right, mask, search, config, image_hw)
 
 
 def _match_in_groups(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, search: DisparityRange,
