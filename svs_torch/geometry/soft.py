@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core.checks import check_dtype
+from ..core.checks import check_dtypes
 from .epipolar import fundamental_8point
 from .lk_refinement import LK_GRID_HALF_WIDTH, _centre, _sample_patches
 from .rectification import RectificationConfig, rectify_uncalibrated
@@ -75,9 +75,7 @@ def lk_step(left: torch.Tensor, right: torch.Tensor, xy_left: torch.Tensor, xy_r
     Raises:
         InputError: images not float32 / float64 (float16's Hessian solve raised NotImplementedError from inside
             torch), or ``moved`` not bool."""
-    check_dtype(left, "left", "float")
-    check_dtype(right, "right", "float")
-    check_dtype(moved, "moved", "bool")
+    check_dtypes(left=(left, "float"), right=(right, "float"), moved=(moved, "bool"))
     dtype = left.dtype
     offsets, weight = _lk_grid(radius.detach().to(dtype))
     xy_left, xy_right = xy_left.detach().to(dtype), xy_right.detach().to(dtype)
