@@ -42,13 +42,13 @@ MIN_IN_VIEW_SHARE = 0.5
 MIN_ALIAS_MARGIN = 0.002
 
 
-def _shift_costs(left: torch.Tensor, right: torch.Tensor, objects: torch.Tensor, num_shifts: int,
-                 common: bool = False) -> torch.Tensor:
-    """``(B, N, num_shifts)``: the mean ``|left(x) − right(x − d)|`` over each object's pixels whose match lies in
-    view, for d = 0 … num_shifts − 1; inf where fewer than :data:`MIN_IN_VIEW_SHARE` of them do. ``common``: over
-    the pixels whose match lies in view at every shift (columns ≥ num_shifts − 1) instead, the same pixels for
-    all, where a pattern's aliases cost alike to the rounding; inf where an object has none. ``left``, ``right``
-    ``(B, H, W)``; ``objects`` ``(B, N, H, W)`` float (1 inside).
+def _shift_costs(left: torch.Tensor, right: torch.Tensor, objects: torch.Tensor, num_shifts: int
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two ``(B, N, num_shifts)`` costs from one difference volume, for d = 0 … num_shifts − 1: the mean
+    ``|left(x) − right(x − d)|`` over each object's pixels whose match lies in view, inf where fewer than
+    :data:`MIN_IN_VIEW_SHARE` of them do; and the same over the pixels whose match lies in view at every shift
+    (columns ≥ num_shifts − 1), the same pixels for all, where a pattern's aliases cost alike to the rounding, inf
+    where an object has none. ``left``, ``right`` ``(B, H, W)``; ``objects`` ``(B, N, H, W)`` float (1 inside).
 
     Over the box holding every object only, the right view's shifted copies read as one strided view
     (``unfold``), not gathered: a panel's box is a fifth of a 320 × 240 view, and the gather had cost 25 ms."""
@@ -57,7 +57,7 @@ def _shift_costs(left: torch.Tensor, right: torch.Tensor, objects: torch.Tensor,
     occupied = objects.sum(dim=(0, 1)) > 0
     rows, columns = occupied.any(dim=1).nonzero().flatten(), occupied.any(dim=0).nonzero().flatten()
     if num_shifts == 0 or len(rows) == 0:
-        return left.new_full((b, n, num_shifts), torch.inf)
+        return left.new_full((b, n, num_shifts), torch.inf), left.new_full((b, n, num_shifts), torch.inf)
     top, bottom, first, end = int(rows[0]), int(rows[-1]) + 1, int(columns[0]), int(columns[-1]) + 1
     left, objects = left[:, top:bottom, first:end], objects[:, :, top:bottom, first:end]
     # The right view's columns first − (num_shifts − 1) … end − 1, zero left of the image (masked below): window j
@@ -67,31 +67,33 @@ def _shift_costs(left: torch.Tensor, right: torch.Tensor, objects: torch.Tensor,
     windows = band.unfold(-1, end - first, 1).flip(2).transpose(1, 2)  # (B, num_shifts, h, w): shift d at d
     source = torch.arange(first, end, device=left.device).view(1, -1) - torch.arange(num_shifts, device=left.device
                                                                                     ).view(-1, 1)
-    in_view = (source >= 0) if not common else (source[-1:] >= 0).expand(num_shifts, -1)
-    in_view = in_view.to(left.dtype)  # (num_shifts, w)
-    flat_objects = objects.flatten(2)
-    costs = []
+    in_view = (source >= 0).to(left.dtype)  # (num_shifts, w)
+    # The columns in view at every shift: there in_view is 1, and the volume's products are the same.
+    in_common = objects * in_view[-1]
+    flat_objects, flat_common, common_count = objects.flatten(2), in_common.flatten(2), in_common.sum((2, 3))
+    every, common = [], []
     for slot in range(0, num_shifts, SHIFTS_PER_SLICE):  # slices of the volume, not a loop over pairs
         part = slice(slot, min(num_shifts, slot + SHIFTS_PER_SLICE))
-        difference = (left.unsqueeze(1) - windows[:, part]).abs() * in_view[part].unsqueeze(1)  # (B, S, h, w)
-        total = torch.bmm(flat_objects, difference.flatten(2).transpose(1, 2))  # (B, N, S)
+        difference = ((left.unsqueeze(1) - windows[:, part]).abs() * in_view[part].unsqueeze(1)).flatten(2)
+        total = torch.bmm(flat_objects, difference.transpose(1, 2))  # (B, N, S)
         count = torch.einsum("bnhw,sw->bns", objects, in_view[part])
-        cost = total / count.clamp_min(1)
-        enough = (count > 0) if common else (count >= MIN_IN_VIEW_SHARE * area.unsqueeze(2))
-        costs.append(torch.where(enough, cost, torch.inf))
-    return torch.cat(costs, dim=2)
+        enough = count >= MIN_IN_VIEW_SHARE * area.unsqueeze(2)
+        every.append(torch.where(enough, total / count.clamp_min(1), torch.inf))
+        total = torch.bmm(flat_common, difference.transpose(1, 2))
+        common.append(torch.where(common_count.unsqueeze(2) > 0, total / common_count.clamp_min(1).unsqueeze(2),
+                                  torch.inf))
+    return torch.cat(every, dim=2), torch.cat(common, dim=2)
 
 
-def _told_from_aliases(left: torch.Tensor, right: torch.Tensor, masks: torch.Tensor, best: torch.Tensor,
-                       period: torch.Tensor, num_shifts: int) -> torch.Tensor:
+def _told_from_aliases(common: torch.Tensor, left: torch.Tensor, masks: torch.Tensor, best: torch.Tensor,
+                       period: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` bool: each object's ``best`` shift ``(B, N)`` costs less, by :data:`MIN_ALIAS_MARGIN` of the
-    object's mean |x-Sobel|, than every shift of ``0 … num_shifts − 1`` half a ``period`` ``(B, N)`` or more away
-    (working pixels; the pre-filtered ``left``, ``right`` ``(B, h, w)``, ``masks`` ``(B, N, h, w)``). Both are
-    summed over the pixels in view at every shift, so that a rolled board's aliases do not differ by the columns
-    each leaves in view (0.3-0.7 % of its energy), and weighed against the object's energy, not its best cost,
-    which a pattern matched exactly has about 0 at every alias."""
-    common = _shift_costs(left, right, masks, num_shifts, common=True)
-    shifts = torch.arange(num_shifts, device=left.device).view(1, 1, -1)
+    object's mean |x-Sobel|, than every shift half a ``period`` ``(B, N)`` or more away (working pixels; the
+    pre-filtered ``left`` ``(B, h, w)``, ``masks`` ``(B, N, h, w)``). Both costs are ``common``'s ``(B, N, D)``,
+    summed over the pixels in view at every shift (:func:`_shift_costs`), so that a rolled board's aliases do not
+    differ by the columns each leaves in view (0.3-0.7 % of its energy), and weighed against the object's energy,
+    not its best cost, which a pattern matched exactly has about 0 at every alias."""
+    shifts = torch.arange(common.shape[2], device=left.device).view(1, 1, -1)
     rival = torch.where((shifts - best.unsqueeze(2)).abs() >= period.unsqueeze(2) / 2, common, torch.inf).amin(2)
     own = common.gather(2, best.unsqueeze(2)).squeeze(2)
     energy = (masks * left.abs().unsqueeze(1)).sum((2, 3)) / masks.sum((2, 3)).clamp_min(1e-12)
@@ -137,7 +139,7 @@ def whole_object_disparity(left: torch.Tensor, right: torch.Tensor, objects: tor
     num_shifts = max(int(top.max()), fallback) if top.numel() else 0
     left_f = prefilter_xsobel(left, config.prefilter_cap)[:, 0]
     right_f = prefilter_xsobel(right, config.prefilter_cap)[:, 0]
-    every = _shift_costs(left_f, right_f, masks, num_shifts)
+    every, common = _shift_costs(left_f, right_f, masks, num_shifts)
     shifts = torch.arange(num_shifts, device=left.device)
     searched = (shifts >= low.view(-1, 1)) & (shifts < top.view(-1, 1))
     costs = torch.where(searched.unsqueeze(1), every, torch.inf)
@@ -147,8 +149,7 @@ def whole_object_disparity(left: torch.Tensor, right: torch.Tensor, objects: tor
     valid = torch.isfinite(best.values) & (masks.sum((2, 3)) > 0)
     if period_px is not None:
         check_shape(period_px, "period_px", list(objects.shape[:2]))
-        valid &= (period_px <= 0) | _told_from_aliases(left_f, right_f, masks, best.indices, period_px / factor,
-                                                       num_shifts)
+        valid &= (period_px <= 0) | _told_from_aliases(common, left_f, masks, best.indices, period_px / factor)
     return (best.indices * factor).to(left.dtype), valid
 
 
