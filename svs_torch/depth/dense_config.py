@@ -12,7 +12,7 @@ import torch
 from ..core.checks import InputError, check_count, check_flag, check_percentiles, check_real, real_or_nan
 from .kernels import MAX_WINDOW
 
-__all__ = ["DenseConfig", "DenseDisparity", "DisparityRange"]
+__all__ = ["DenseConfig", "DenseDisparity", "DisparityRange", "RepeatedObjects"]
 
 
 @dataclass(frozen=True)
@@ -215,6 +215,35 @@ class DisparityRange(NamedTuple):
 
 
 @dataclass(frozen=True)
+class RepeatedObjects:
+    """The kept objects that repeat themselves along the rows (a fence, a railing, a grate) and whether each was
+    settled on one alias (:mod:`svs_torch.depth.alias_choice`).
+
+    Attributes:
+        period_px: ``(B, N)`` int64, each object's period along the rows, input pixels; 0: it does not repeat (or
+            its pair was not tested).
+        disparity_px: ``(B, N)`` float, the shift its whole region fits best within the range searched, input
+            pixels, where ``fitted`` (0 elsewhere). Its aliases lie whole periods from it.
+        fitted: ``(B, N)`` bool, the objects whose whole region fits a shift (not: no pixel, or none in view).
+        settled: ``(B, N)`` bool, the repeated objects measured again over the one period about that shift; a
+            repeated object not settled lost its pixels (its alias was not told, or its windows lay on another).
+    """
+
+    period_px: torch.Tensor
+    disparity_px: torch.Tensor
+    fitted: torch.Tensor
+    settled: torch.Tensor
+
+    @staticmethod
+    def none(objects: torch.Tensor) -> RepeatedObjects:
+        """No object of ``objects`` ``(B, N, H, W)`` repeats."""
+        shape, device = objects.shape[:2], objects.device
+        none = torch.zeros(shape, dtype=torch.bool, device=device)
+        return RepeatedObjects(torch.zeros(shape, dtype=torch.int64, device=device), torch.zeros(shape, device=device),
+                               none, none)
+
+
+@dataclass(frozen=True)
 class DenseDisparity:
     """Dense disparity of the left view, ``x_right = x_left − d``.
 
@@ -230,6 +259,8 @@ class DenseDisparity:
             (``DisparityRange.in_view_top_px``); None: the top of the range searched.
         object_in_view_top_px: ``(B, N)`` int64 or None: each kept object's own, in the order of the objects the
             range was found for (``DenseConfig.in_view_per_object``); None: ``in_view_top_px`` for every object.
+        repeated: :class:`RepeatedObjects` of the kept objects where the whole-object alias check ran
+            (``DepthConfig.alias_check_min_period_peak``); None where it did not.
     """
 
     disparity_px: torch.Tensor
@@ -240,3 +271,4 @@ class DenseDisparity:
     pair_num_disparities: torch.Tensor
     in_view_top_px: torch.Tensor | None = None
     object_in_view_top_px: torch.Tensor | None = None
+    repeated: RepeatedObjects | None = None

@@ -12,13 +12,13 @@ import torch
 from ..core.mask_reductions import any_along
 from ..core.pair_trees import put_pairs, take_pairs
 from ..core.types import FundamentalResult, StereoBatch, StereoSegmentation
-from ..depth.alias_choice import settle_aliases, whole_object_disparity
+from ..depth.alias_choice import settle_repeated_objects
 from ..depth.dense import estimate_dense_disparity, working_factor
 from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import (count_agreeing_inliers, dense_object_depths, range_from_objects,
                                    surface_pixels)
 from ..depth.depth_types import DepthResult, Disparities, ObjectDepths
-from ..depth.periodicity import period_at_working_width, repeated_at_working_width
+from ..depth.periodicity import repeated_at_working_width
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
@@ -103,7 +103,9 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     mask = any_along(objects, dim=1, keepdim=True)
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
-    dense = _on_whole_object_alias(left, right, mask, objects, dense, batch.image_hw, config)
+    if config.depth.alias_check_min_period_peak is not None:  # a fence, railing or grate ranged on its own alias
+        dense = settle_repeated_objects(left, right, mask, objects, dense, config.depth.alias_check_min_period_peak,
+                                        config.dense, batch.image_hw)
     agreeing, measured = _confirmed_inliers(dense, points_left, sparse.disparities, inliers, H_left, config)
     verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     if config.verify_whole_view:
@@ -121,32 +123,6 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     depth_range = range_from_objects(objects, batch.focal_px, batch.baseline_m, batch.doffs_px)
     depth = DepthResult(sparse.disparities, sparse.points, depth_range, objects, nearest_obstacle(objects))
     return depth, dense, verified, agreeing, measured
-
-
-def _on_whole_object_alias(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, objects: torch.Tensor,
-                           dense: DenseDisparity, image_hw: torch.Tensor, config: PipelineConfig) -> DenseDisparity:
-    """``dense`` with each kept object that repeats itself along the rows settled on the alias its whole region
-    matches best, or dropped where its windows' median lies on another or no end tells that alias from the others
-    (:func:`~svs_torch.depth.alias_choice.settle_aliases`; ``DepthConfig.alias_check_min_period_peak``). The
-    period test costs about 1.5 ms a 320 × 240 pair; each object of a repeated pair is then tested on its own, and
-    only the repeated objects are matched again."""
-    peak = config.depth.alias_check_min_period_peak
-    if peak is None:
-        return dense
-    index = (period_at_working_width(left, mask, peak, config.dense) > 0).nonzero().flatten()
-    if len(index) == 0:
-        return dense
-    n, (height, width) = objects.shape[1], objects.shape[-2:]
-    each = objects[index].reshape(-1, 1, height, width)
-    views = left[index].unsqueeze(1).expand(-1, n, -1, -1, -1).reshape(-1, 1, height, width)
-    period = period_at_working_width(views, each, peak, config.dense).view(-1, n)
-    found, told = whole_object_disparity(left[index], right[index], objects[index], dense.min_disparity_px[index],
-                                         dense.pair_num_disparities[index], config.dense, period)
-    shape = objects.shape[:2]
-    periods = torch.zeros(shape, dtype=torch.int64, device=objects.device).index_put((index,), period)
-    centres = torch.zeros(shape, dtype=found.dtype, device=found.device).index_put((index,), found)
-    valid = torch.zeros(shape, dtype=torch.bool, device=objects.device).index_put((index,), told)
-    return settle_aliases(left, right, objects, dense, centres, valid, periods, config.dense, image_hw)
 
 
 def surface_pixels_of(dense: DenseDisparity, config: PipelineConfig) -> torch.Tensor | None:
@@ -290,11 +266,14 @@ def coarse_is_better(verified_first: torch.Tensor, ranged_first: torch.Tensor, v
 
 
 def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
-                            below_share: float | None, nearer_below_share: float | None = None
+                            below_share: float | None, nearer_below_share: float | None = None,
+                            repeated: torch.Tensor | None = None
                             ) -> tuple[StereoSegmentation, DepthResult, torch.Tensor]:
     """The kept left regions whose dense map measured less than ``below_share`` of their pixels, dropped where
     another kept region of the pair was ranged on at least that share and their few pixels range them no nearer
-    than it (or not at all) (``PipelineConfig.drop_unmeasured_below_share``).
+    than it (or not at all) (``PipelineConfig.drop_unmeasured_below_share``). The slots ``repeated`` ``(B, N)`` bool
+    marks (None: none; the repeated objects left unranged) are never dropped: a fence whose alias could not be told
+    was seen, and stays listed with its aliases' distances (``DenseDisparity.repeated``).
 
     Returns ``seg`` with those slots of the left ``kept_labels`` set to −1 and the left ``kept_mask`` / ``masked``
     without them (the right view's segmentation, which the features were found on, is left as it was), ``depth``
@@ -333,6 +312,8 @@ def drop_unmeasured_objects(batch: StereoBatch, seg: StereoSegmentation, depth: 
     # An unranged region goes however much was measured: one in the band the right camera may not see
     # (DepthConfig.min_object_pixels_in_view), or too small to count.
     dropped = kept & (((share < below_share) & droppable) | ~objects.valid) & measured.any(1, keepdim=True)
+    if repeated is not None:
+        dropped &= ~repeated
     if not bool(dropped.any()):
         return seg, depth, none
     kept_labels = torch.where(dropped, none, seg.left.kept_labels)

@@ -86,6 +86,9 @@ class PipelineResult:
             found the floor (``SegmentationConfig.ground``, ``guide``'s default), the camera's height and pitch over
             it and each object's distance ahead along it (what ``guide`` says); none found where it did not look;
             None under the ``"paper"`` rule.
+        focal_px, baseline_m, doffs_px: ``(B,)``, the calibration the depths were computed with (the batch's), so
+            that a disparity of the result can be read as a distance (``dense.repeated``'s aliases,
+            :func:`~svs_torch.depth.alias_choice.alias_depths_m`).
     """
 
     status: torch.Tensor
@@ -121,9 +124,22 @@ class PipelineResult:
     near_surface: torch.Tensor | None = None
     features_smoothed: torch.Tensor | None = None
     floor: FloorDistances | None = None
+    focal_px: torch.Tensor | None = None
+    baseline_m: torch.Tensor | None = None
+    doffs_px: torch.Tensor | None = None
 
     @property
     def dropped_objects(self) -> torch.Tensor | None:
         """``(B, N)`` bool: the kept left slots dropped as unmeasured (:attr:`dropped_labels` ≥ 0); None under the
         ``"paper"`` rule."""
         return None if self.dropped_labels is None else self.dropped_labels >= 0
+
+    @property
+    def unranged_repeated(self) -> torch.Tensor | None:
+        """``(B, N)`` bool: the kept objects that repeat themselves along the rows (a fence, a grate) and were left
+        without a distance, their alias not told (``dense.repeated``; the distances their aliases would give:
+        :func:`~svs_torch.depth.alias_choice.alias_depths_m`); None where the check did not run."""
+        if self.dense is None or self.dense.repeated is None:
+            return None
+        kept = self.segmentation.left.kept_labels >= 0
+        return kept & (self.dense.repeated.period_px > 0) & ~self.depth.objects.valid

@@ -232,8 +232,10 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     those names)."""
     depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
         batch, seg, depth, fundamental_ok, points_left, inliers, rectified, H_left, H_right, object_labels, config)
+    # a fence left unranged as its alias was not told stays listed (depth.alias_choice.alias_depths_m)
+    repeated = None if dense.repeated is None else (dense.repeated.period_px > 0) & ~depth.objects.valid
     seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
-                                                  config.drop_unmeasured_nearer_below_share)
+                                                  config.drop_unmeasured_nearer_below_share, repeated)
     near = None
     if config.measure_near_surface:
         depth, object_labels, near = measure_near_surfaces(depth, dense, object_labels, rectified, H_left, inliers,
@@ -296,8 +298,8 @@ def _estimate_hard(batch: StereoBatch, config: PipelineConfig, network: nn.Modul
         floor=along_floor(batch, seg, depth, status, dense, object_labels, rectified, H_left, config),
         segmentation=seg, features_left=left, features_right=right, matches=matches, points=points,
         fundamental=fundamental, num_keypoints=num_keypoints, rectification=rectification, rectified=rectified,
-        dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1),
+        dense=dense, range_rule=config.depth.rule, num_matches=matches.valid.sum(1), near_surface=near,
         num_inliers=fundamental.num_inliers, timings_s=timings, verified=verified, num_agreeing_inliers=agreeing,
         num_measured_inliers=measured, H_left=H_left, H_right=H_right, smoothed=smoothed, row_aligned=row_aligned,
         row_alignment_inliers=row_inliers, row_alignment_turn_deg=turn, coarse=coarse, dropped_labels=dropped,
-        object_labels=object_labels, near_surface=near)
+        object_labels=object_labels, focal_px=batch.focal_px, baseline_m=batch.baseline_m, doffs_px=batch.doffs_px)

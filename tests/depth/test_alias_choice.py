@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import cv2
 import numpy as np
 import pytest
 import torch
 
 from svs_torch.core.errors import InputError
-from svs_torch.depth.alias_choice import remeasure_on_alias, settle_aliases, whole_object_disparity
+from svs_torch.depth.alias_choice import alias_depths_m, remeasure_on_alias, settle_aliases, whole_object_disparity
 from svs_torch.depth.dense import dense_disparity_in_range
-from svs_torch.depth.dense_config import DenseConfig, DenseDisparity
+from svs_torch.depth.dense_config import DenseConfig, DenseDisparity, RepeatedObjects
 
 HEIGHT, WIDTH = 120, 200
 TOLD = torch.tensor([[True]])  # the whole object's alias told apart
@@ -60,9 +61,9 @@ def test_the_whole_panel_matches_best_at_its_own_disparity_not_a_period_off():
     found, valid = whole_object_disparity(left, right, torch.cat([mask, wall], 1), torch.tensor([0]),
                                           torch.tensor([48]), config)
     assert found[0].tolist() == [20.0, 5.0] and valid.all()
-    # An empty object is not valid.
+    # An empty object is not valid, and has no shift at all (NaN, not a shift of 0 its aliases would be counted from).
     found, valid = whole_object_disparity(left, right, torch.zeros_like(mask), torch.tensor([0]), torch.tensor([48]))
-    assert not valid.any()
+    assert not valid.any() and bool(found.isnan().all())
 
 
 def test_a_pattern_with_no_end_in_view_has_no_alias_told():
@@ -96,6 +97,27 @@ def test_an_object_whose_windows_agree_with_its_whole_region_is_measured_again_o
     assert measured.sum() > 0.6 * mask.sum()
     assert float(settled.disparity_px[measured].median()) == pytest.approx(20.0, abs=0.25)
     assert not (settled.valid & ~mask).any()  # nothing outside the object is added
+    assert settled.repeated.settled.tolist() == [[True]]
+
+
+def test_the_distances_an_unsettled_objects_aliases_give_lie_whole_periods_apart_nearest_first():
+    """A shift of 20 px, period 8, searched over [4, 44): the aliases 36, 28, 20, 12 and 4 px, read as distances
+    f·B / (d + doffs); an object that does not repeat, or whose whole region fitted no shift, has none."""
+    dense = dataclasses.replace(dense_map(torch.zeros(1, 1, HEIGHT, WIDTH), torch.zeros(1, 1, HEIGHT, WIDTH,
+                                                                                         dtype=torch.bool), 4, 40),
+                                repeated=RepeatedObjects(torch.tensor([[8, 0, 8]]), torch.tensor([[20.0, 9.0, 0.0]]),
+                                                         torch.tensor([[True, True, False]]),
+                                                         torch.tensor([[False, False, False]])))
+    depth_m, valid = alias_depths_m(dense, torch.tensor([100.0]), torch.tensor([0.1]), torch.tensor([2.0]))
+    assert valid.tolist() == [[[True] * 5, [False] * 5, [False] * 5]]
+    assert depth_m[0, 0].tolist() == pytest.approx([10.0 / (d + 2) for d in (36, 28, 20, 12, 4)])
+    # A negative doffs puts the aliases nearest the range's bottom behind the rig: not a distance.
+    _, valid = alias_depths_m(dense, torch.tensor([100.0]), torch.tensor([0.1]), torch.tensor([-13.0]))
+    assert valid[0, 0].tolist() == [True, True, True, False, False]
+    # Without the check (no ``repeated``), no object has any.
+    depth_m, valid = alias_depths_m(dense_map(torch.zeros(1, 1, HEIGHT, WIDTH), dense.valid), torch.tensor([100.0]),
+                                    torch.tensor([0.1]))
+    assert valid.shape == (1, 0, 0)
 
 
 def test_an_object_whose_windows_lie_on_another_alias_is_dropped_and_the_rest_kept():
@@ -105,6 +127,9 @@ def test_an_object_whose_windows_lie_on_another_alias_is_dropped_and_the_rest_ke
     dense = dense_map(torch.full(mask.shape, 28.0), mask | outside)
     settled = settle_aliases(left, right, mask, dense, torch.tensor([[20.0]]), TOLD, torch.tensor([[8]]))
     assert not (settled.valid & mask).any() and bool((settled.valid == outside).all())
+    # What was settled is kept: the period, the whole object's shift, and that it was not settled.
+    assert settled.repeated.period_px.tolist() == [[8]] and settled.repeated.disparity_px.tolist() == [[20.0]]
+    assert settled.repeated.fitted.tolist() == [[True]] and settled.repeated.settled.tolist() == [[False]]
     # Windows on the whole object's alias, but that alias not told apart from the others: dropped too.
     on_alias = dense_map(torch.full(mask.shape, 20.0), mask | outside)
     untold = settle_aliases(left, right, mask, on_alias, torch.tensor([[20.0]]), ~TOLD, torch.tensor([[8]]))
@@ -157,6 +182,8 @@ def test_dense_disparity_in_range_measures_only_the_range_given():
                                     torch.zeros(1, 1)), "disparity_px"),
     (lambda l, r, m: whole_object_disparity(l, r, m, torch.tensor([0]), torch.tensor([9]), DenseConfig(),
                                             torch.zeros(2, 1)), "period_px"),
+    (lambda l, r, m: alias_depths_m(dense_map(torch.zeros(m.shape), m), torch.tensor([1.0, 2.0]), torch.tensor([0.1])),
+     "focal_px"),
 ])
 def test_bad_arguments_are_named(call, name):
     left, right, mask = panel_pair()
