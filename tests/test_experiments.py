@@ -600,20 +600,27 @@ def test_a_repeated_pattern_is_not_measured_again_on_the_coarse_grid():
     assert ((before.depth.nearest.depth_m - 2.0).abs() > 0.05 * 2.0).all()
 
 
-def test_a_repeated_pattern_is_ranged_on_the_alias_its_whole_panel_matches():
+@pytest.fixture(scope="module")
+def loose_rig_panels():
+    """The rendered panels of experiments/repeated_patterns.py (seed 7) as a loose rig's camera frames (every
+    deviation at once, JPEG digit 4), and a function picking the pairs of some (kind, period, depth) cases."""
+    import repeated_patterns as rp
+
+    lefts, rights, _, _ = rp.render_pairs()
+    frames = rp.condition_batch(lefts, rights, rp.LOOSE_RIG, 4, 4.0)
+    return (lambda cases: frames.select([rp.cases().index(case) for case in cases]))
+
+
+def test_a_repeated_pattern_is_ranged_on_the_alias_its_whole_panel_matches(loose_rig_panels):
     """Was: on a loose rig's camera frames (every deviation at once, JPEG digit 4) the rendered 12 px bars at 1.0 m
     were ranged "OK" at 5.91 m, the 8 px grate at 1.5 m at 0.68 m, the 12 px checker at 1.5 m at 3.82 m and the
     8 px bars at 1.5 m at 0.50 m: their windows' median lay periods off. depth.alias_choice now measures each such
     panel again over one period about the shift its whole region matches best, and drops one whose windows and
     whole region disagree (the 8 px bars: no distance rather than a wrong one)."""
-    import repeated_patterns as rp
-
     from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
-    lefts, rights, _, _ = rp.render_pairs()
-    frames = rp.condition_batch(lefts, rights, rp.LOOSE_RIG, 4, 4.0)
     cases = [("bars", 12, 1.0), ("grate", 8, 1.5), ("checker", 12, 1.5), ("bars", 8, 1.5)]
-    batch = frames.select([rp.cases().index(case) for case in cases])
+    batch = loose_rig_panels(cases)
     truth = torch.tensor([z for *_, z in cases])
     config = PipelineConfig()
     with torch.inference_mode():
@@ -623,6 +630,52 @@ def test_a_repeated_pattern_is_ranged_on_the_alias_its_whole_panel_matches():
     assert result.valid.tolist() == [True, True, True, False]
     assert ((result.depth_m[:3] - truth[:3]).abs() < 0.05 * truth[:3]).all()
     assert before.valid.all() and ((before.depth_m - truth).abs() > 0.05 * truth).all()
+
+
+def _estimate_files(batch, index: int, tmp_path, capsys, *options: str) -> str:
+    """``svs-depth estimate`` on pair ``index`` of ``batch`` written as two PNG files: what it prints."""
+    import cv2
+
+    from svs_torch.cli import main
+
+    names = []
+    for side, views in (("left", batch.left), ("right", batch.right)):
+        names.append(str(tmp_path / f"{index}_{side}.png"))
+        cv2.imwrite(names[-1], (views[index, 0].numpy() * 255).round().astype(np.uint8))
+    capsys.readouterr()
+    assert main(["estimate", *names, "--focal-px", str(float(batch.focal_px[index])), *options]) == 0
+    return capsys.readouterr().out
+
+
+def test_a_repeated_pattern_left_unranged_is_listed_with_its_aliases_distances(loose_rig_panels, tmp_path, capsys):
+    """Was: the 8 px bars at 1.5 m, whose alias no end of the panel tells, and the part of the 8 px grate at 1.5 m
+    left unranged beside its ranged part, read "no depth, 0 valid px" like a region nothing could be measured on;
+    the grate's pair named its nearest obstacle with no hint, and with ``drop_unmeasured_below_share`` set the
+    unranged part was dropped from the list. Now each says it repeats, and the distances its aliases give (the
+    truth among them)."""
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    batch = loose_rig_panels([("bars", 8, 1.5), ("grate", 8, 1.5)])
+    bars = json.loads(_estimate_files(batch, 0, tmp_path, capsys, "--json"))
+    assert bars["status"] == "NO_DENSE_DEPTH" and bars["objects"]
+    for obj in bars["objects"]:
+        assert obj["depth_m"] is None and obj["period_px"] == 8.0
+        assert obj["alias_depths_m"] == sorted(obj["alias_depths_m"])
+        assert min(abs(z - 1.5) for z in obj["alias_depths_m"]) < 0.05 * 1.5
+    grate = json.loads(_estimate_files(batch, 1, tmp_path, capsys, "--json"))
+    ranged = [obj for obj in grate["objects"] if obj["depth_m"] is not None]
+    unranged = [obj for obj in grate["objects"] if obj["depth_m"] is None]
+    assert grate["nearest_m"] == pytest.approx(1.5, rel=0.05) and ranged[0]["alias_depths_m"] is None
+    assert unranged and unranged[0]["period_px"] == 8.0 and unranged[0]["alias_depths_m"]
+    text = _estimate_files(batch, 1, tmp_path, capsys)
+    assert "repeats every 8 px along the rows, its alias not told" in text
+    assert "a repeated pattern seen but not ranged; the nearest obstacle said is of the ranged ones only" in text
+    # Dropping unmeasured regions (a setting) keeps it: it was seen.
+    config = PipelineConfig(drop_unmeasured_below_share=0.5)
+    result = estimate_obstacle_depth(batch.select([1]), config)
+    slot = unranged[0]["label"] - 1
+    assert int(result.segmentation.left.kept_labels[0, slot]) >= 0 and not bool(result.dropped_objects[0, slot])
+    assert result.unranged_repeated[0].tolist() == [obj["label"] - 1 == slot for obj in grate["objects"]]
 
 
 @pytest.mark.parametrize("script", ["thin_obstacles", "walker_floor", "walker_heaps", "floor_distance",

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .object_report import object_lines, object_reports, unranged_repeated_note
+from .object_report import report_number as _number
 from .one_homography import one_homography_reason
 from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_report
 from .rig import calibration_file_source
@@ -55,10 +57,6 @@ def with_calibration(report: dict, batch, index: int, factors: tuple[float, floa
             "working_size_px": [width, height]}
 
 
-def _number(value, valid) -> float | None:
-    return round(float(value), 4) if bool(valid) else None
-
-
 #: What a pair resized to another aspect ratio (``--size``) says of its floor, once a run.
 ASPECT_CHANGED = ("--size changes the images' aspect ratio, so their pixels are no longer square: the floor is looked "
                   "for as if they were (a camera height or pitch read wrong can miss it, and a missed floor is kept "
@@ -102,50 +100,6 @@ def _floor_report(result, index: int, factors: tuple[float, float]) -> dict:
                       "pitch_deg": round(float(floor.floor.pitch_deg[index]), 3)},
             "nearest_ahead_m": _number(nearest.depth_m[index], nearest.valid[index]),
             "nearest_ahead_surface_m": _number(nearest.surface_m[index], nearest.valid[index])}
-
-
-def _ahead(result, index: int, slot: int, factors: tuple[float, float]) -> dict:
-    """An object's distance ahead along the floor (median and low percentile), null where no floor was found or
-    the pixels are not square."""
-    if result.floor is None or not square_pixels(factors):
-        return {"ahead_m": None, "ahead_p10_m": None}
-    objects = result.floor.objects
-    valid = objects.valid[index, slot]
-    return {"ahead_m": _number(objects.depth_median_m[index, slot], valid),
-            "ahead_p10_m": _number(objects.depth_low_m[index, slot], valid)}
-
-
-def _object_reports(result, index: int, factors: tuple[float, float]) -> list[dict]:
-    """The kept objects of pair ``index``, in input pixels (``factors``: input over working pixels, x and y)."""
-    from ..depth.depth_types import ObstacleSide
-
-    objects, regions = result.depth.objects, result.segmentation.left.regions
-    fx, fy = factors
-    reports = []
-    for slot, label in enumerate(result.segmentation.left.kept_labels[index].tolist()):
-        if label < 0:
-            continue
-        x0, y0, x1, y1 = regions.bbox_xyxy[index, label - 1].tolist()
-        reports.append({
-            "label": slot + 1,
-            "area_px": int(round(int(regions.area_px[index, label - 1]) * fx * fy)),
-            "bbox_xyxy": [int(round(x0 * fx)), int(round(y0 * fy)), int(round(x1 * fx)), int(round(y1 * fy))],
-            # the pixels its depth is measured over: the region's interior (PipelineResult.object_labels)
-            "measured_area_px": int(round(int(objects.area_px[index, slot]) * fx * fy)),
-            "depth_m": _number(objects.depth_median_m[index, slot], objects.valid[index, slot]),
-            "depth_p10_m": _number(objects.depth_low_m[index, slot], objects.valid[index, slot]),
-            "depth_p90_m": _number(objects.depth_high_m[index, slot], objects.valid[index, slot]),
-            # where the floor was found: its distance ahead along it, what guide says (svs_torch.depth.floor_distance)
-            **_ahead(result, index, slot, factors),
-            "num_inliers": int(objects.num_inliers[index, slot]),
-            "num_valid_px": (int(objects.num_valid_px[index, slot]) if objects.num_valid_px is not None else None),
-            "num_in_view_px": (int(objects.num_in_view_px[index, slot]) if objects.num_in_view_px is not None
-                               else None),
-            "side": ObstacleSide(int(objects.side[index, slot])).name.lower(),
-            # its region spanned two surfaces far apart: ranged over the nearer (PipelineConfig.measure_near_surface)
-            "near_surface": bool(result.near_surface[index, slot]) if result.near_surface is not None else False,
-        })
-    return reports
 
 
 #: What a pair whose views seem swapped is told, ranged or not (an audit: Teddy's views swapped, NO_DENSE_DEPTH after
@@ -223,7 +177,7 @@ def pair_report(result, index: int, factors: tuple[float, float], elapsed_s: flo
     from ..pipeline import PipelineStatus
 
     rng = result.depth.range
-    report_objects = _object_reports(result, index, factors)
+    report_objects = object_reports(result, index, factors, square_pixels(factors))
     nearest = result.depth.nearest
     status = PipelineStatus(int(result.status[index])).name
     return {
@@ -312,38 +266,17 @@ def format_report(report: dict, nearest_name: str = "nearest obstacle", batched:
         lines.append(f"  R_min {report['r_min_m']:.3f} m (d_max {report['d_max_px']:.2f} px), "
                      f"R_max {report['r_max_m']:.3f} m (d_min {report['d_min_px']:.2f} px), "
                      f"{report['range_rule']} rule")
-    lines += _object_lines(report)
+    lines += object_lines(report)
     if report["nearest_m"] is not None:
         lines.append(f"  {nearest_name}: {report['nearest_m']:.2f} m, {report['nearest_side']} "
                      f"(nearest surface {report['nearest_surface_m']:.2f} m)")
+    lines += [note for note in [unranged_repeated_note(report)] if note]
     floor = report.get("floor")  # a report read back from an older JSON has no such key
     if floor and report["nearest_ahead_m"] is not None:
         from ..depth.floor_distance import describe_floor
 
         lines.append("  " + describe_floor(floor["camera_height_m"], floor["pitch_deg"], "nearest obstacle",
                                            report["nearest_ahead_m"], report["nearest_ahead_surface_m"]))
-    return lines
-
-
-def _object_lines(report: dict) -> list[str]:
-    """A text line for each of ``report``'s objects (:func:`format_report`)."""
-    lines = []
-    # The dense counts are of the image the pipeline ran on; the areas and boxes of the input (--size resamples).
-    sizes = report.get("image_size_px"), report.get("working_size_px")
-    working = f" at the working {sizes[1][0]}x{sizes[1][1]}" if sizes[1] and sizes[0] != sizes[1] else ""
-    for obj in report["objects"]:
-        depth = "no depth"
-        if obj["depth_m"] is not None:
-            depth = f"{obj['depth_m']:.3f} m (p10 {obj['depth_p10_m']:.3f}, p90 {obj['depth_p90_m']:.3f})"
-        support = f"{obj['num_inliers']} inliers"
-        if obj["num_valid_px"] is not None:
-            support = f"{obj['num_valid_px']} valid px{working}"
-            if obj["num_in_view_px"] < obj["num_valid_px"]:  # some near the left border, where a match may be lost
-                support += f" ({obj['num_in_view_px']} where the right view holds every searched disparity)"
-        if obj.get("near_surface"):  # a report read back from an older JSON has no such key
-            depth += f" over the near surface ({obj['measured_area_px']} px) of a region spanning two"
-        lines.append(f"  object {obj['label']}: {depth}, {support}, {obj['side']}, {obj['area_px']} px, "
-                     f"box {obj['bbox_xyxy']}")
     return lines
 
 

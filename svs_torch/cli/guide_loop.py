@@ -361,7 +361,9 @@ class GuideSession:
         confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         confirmed_side = self.guide.policy.confirmed_side  # the side of the frame that median came from
         shown = self._shown(seen)
-        self.status_line.show(f"{self.guide.status(confirmed, shown)}  {confirmed_side or side}")
+        pattern = result.unranged_repeated is not None and bool(result.unranged_repeated.any())  # a fence, unranged
+        self.status_line.show(f"{self.guide.status(confirmed, shown)}  {confirmed_side or side}"
+                              + ("  a repeated pattern seen, not ranged" if pattern else ""))
         warned = {"distance_m": None if distance is None else round(distance, 4), "side": side,
                   "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
