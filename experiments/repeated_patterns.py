@@ -12,7 +12,10 @@ camera frames (:data:`~svs_torch.data.rig_deviation.LOOSE_RIG` at digit 4).
 
 Per pair the panel counts as **ranged** where the nearest obstacle's median depth lies within 5 % of the panel's
 distance, **wrong** where a status-OK nearest obstacle lies farther off than that (what a walker is told
-wrongly), **unranged** where the pair has no distance. Acc is Eq. (9) of the nearest distance (0 where none).
+wrongly), **unranged** where the pair has no distance; of those, **said to repeat** where a kept object is
+reported as a repeated pattern seen but not ranged (``PipelineResult.unranged_repeated``), with the panel's distance
+among the distances its aliases give (within 5 %, :func:`svs_torch.depth.alias_choice.alias_depths_m`) in brackets.
+Acc is Eq. (9) of the nearest distance (0 where none).
 The settings: the default, and the default with every pair allowed onto the coarse grid
 (``--set depth.coarse_retry_max_period_peak=none``: :mod:`svs_torch.depth.periodicity` keeps a repeated pattern
 off it by default). The rival: OpenCV StereoSGBM's disparity through the truth's own
@@ -38,6 +41,7 @@ from svs_torch.core.camera import SVS_CAMERA  # noqa: E402
 from svs_torch.core.types import StereoBatch  # noqa: E402
 from svs_torch.data import camera_frame_pairs  # noqa: E402
 from svs_torch.data.rig_deviation import LOOSE_RIG, RigDeviation, deviate_view  # noqa: E402
+from svs_torch.depth.alias_choice import alias_depths_m  # noqa: E402
 from svs_torch.evaluation.overrides import apply_overrides  # noqa: E402
 from svs_torch.pipeline import PipelineConfig, PipelineStatus, estimate_obstacle_depth  # noqa: E402
 
@@ -140,21 +144,32 @@ def condition_batch(lefts: np.ndarray, rights: np.ndarray, deviation: RigDeviati
     return camera_frame_pairs(batch, digit, sigma, torch.Generator().manual_seed(seed + digit))
 
 
-def outcome(setting: str, condition: str, case: tuple, nearest_m: float | None, ok: bool) -> dict:
+def outcome(setting: str, condition: str, case: tuple, nearest_m: float | None, ok: bool,
+            aliases_m: list[float] | None = None) -> dict:
+    """One panel's row; ``aliases_m``: the distances of the aliases of its objects reported as a repeated pattern
+    left unranged (None: none is)."""
     kind, period, z = case
     ranged = nearest_m is not None and abs(nearest_m - z) <= TOLERANCE * z
+    said = nearest_m is None and aliases_m is not None
     return {"setting": setting, "condition": condition, "kind": kind, "period_px": period, "depth_m": z,
             "nearest_m": nearest_m, "ranged": ranged, "wrong": ok and nearest_m is not None and not ranged,
-            "unranged": nearest_m is None,
+            "unranged": nearest_m is None, "said_repeated": said,
+            "truth_among_aliases": said and any(abs(a - z) <= TOLERANCE * z for a in aliases_m),
             "acc_pct": 0.0 if nearest_m is None else max(0.0, 100 * (1 - abs(z - nearest_m) / z))}
 
 
 def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, condition: str) -> list[dict]:
     result = estimate_obstacle_depth(batch, config)
     nearest, rows = result.depth.nearest, []
+    marked = result.unranged_repeated
+    if marked is not None:
+        depth_m, valid = alias_depths_m(result.dense, batch.focal_px, batch.baseline_m, batch.doffs_px)
+        valid &= marked.unsqueeze(-1)
     for i, case in enumerate(cases()):
         ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
-        rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok))
+        said = marked is not None and bool(marked[i].any())
+        aliases = depth_m[i][valid[i]].tolist() if said else None
+        rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok, aliases))
     return rows
 
 
@@ -168,16 +183,20 @@ def rival_rows(batch: StereoBatch, condition: str) -> list[dict]:
 
 
 def markdown(rows: list[dict], command: str) -> str:
-    """One line per setting and condition: panels ranged, wrong, unranged (of 36), mean Acc, and wrong by kind."""
+    """One line per setting and condition: panels ranged, wrong, unranged (of 36; those said to repeat, and with the
+    truth among their aliases), mean Acc, and wrong by kind."""
     lines = [f"`{command}`", "",
-             "| setting | condition | ranged | wrong, status OK | unranged | mean Acc % | "
-             + " | ".join(f"wrong: {k}" for k in KINDS) + " |", "|---|---|---|---|---|---|" + "---|" * len(KINDS)]
+             "| setting | condition | ranged | wrong, status OK | unranged | said to repeat (truth among aliases) | "
+             "mean Acc % | " + " | ".join(f"wrong: {k}" for k in KINDS) + " |",
+             "|---|---|---|---|---|---|---|" + "---|" * len(KINDS)]
     for setting, condition in dict.fromkeys((r["setting"], r["condition"]) for r in rows):
         group = [r for r in rows if (r["setting"], r["condition"]) == (setting, condition)]
         kinds = " | ".join(str(sum(r["wrong"] for r in group if r["kind"] == k)) for k in KINDS)
         mean = sum(r["acc_pct"] for r in group) / len(group)
+        said = f"{sum(r['said_repeated'] for r in group)} ({sum(r['truth_among_aliases'] for r in group)})"
         lines.append(f"| {setting} | {condition} | {sum(r['ranged'] for r in group)} | "
-                     f"{sum(r['wrong'] for r in group)} | {sum(r['unranged'] for r in group)} | {mean:.2f} | {kinds} |")
+                     f"{sum(r['wrong'] for r in group)} | {sum(r['unranged'] for r in group)} | {said} | {mean:.2f} | "
+                     f"{kinds} |")
     return "\n".join(lines) + "\n"
 
 

@@ -570,10 +570,16 @@ def test_repeated_patterns_renders_panels_an_independent_matcher_ranges_and_coun
     assert measured.sum() >= 30
     np.testing.assert_allclose(np.asarray(read)[measured], disparities[measured], atol=0.5)
     rows = [rp.outcome("s", "c", ("bars", 8, 1.5), 1.52, True), rp.outcome("s", "c", ("grate", 8, 1.5), 2.5, True),
-            rp.outcome("s", "c", ("bars", 8, 1.5), None, False)]
-    assert [(r["ranged"], r["wrong"], r["unranged"]) for r in rows] == [(True, False, False), (False, True, False),
-                                                                      (False, False, True)]
-    assert "| s | c | 1 | 1 | 1 | 44.00 | 0 | 0 | 1 |" in rp.markdown(rows, "command")
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False),
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [0.75, 1.5, 3.0]),
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [0.75, 3.0]),
+            rp.outcome("s", "c", ("bars", 8, 1.5), 1.5, True, [0.75, 3.0])]  # ranged: its other object's aliases
+    assert [(r["ranged"], r["wrong"], r["unranged"]) for r in rows] == [
+        (True, False, False), (False, True, False), (False, False, True), (False, False, True), (False, False, True),
+        (True, False, False)]
+    assert [(r["said_repeated"], r["truth_among_aliases"]) for r in rows] == [(False, False)] * 3 + [
+        (True, True), (True, False), (False, False)]
+    assert "| s | c | 2 | 1 | 3 | 2 (1) | 38.67 | 0 | 0 | 1 |" in rp.markdown(rows, "command")
 
 
 def test_a_repeated_pattern_is_not_measured_again_on_the_coarse_grid():
