@@ -28,7 +28,7 @@ from ..core.checks import check_dtype, check_shape
 from .cost_volume import prefilter_xsobel
 from .dense import dense_disparity_in_range, working_factor, working_range
 from .dense_config import DenseConfig, DenseDisparity, RepeatedObjects
-from .periodicity import period_at_working_width
+from .periodicity import MAX_PERIOD_PX, object_periods
 from .pooling import mean_pool
 from .quantiles import masked_quantile
 
@@ -227,26 +227,23 @@ def settle_aliases(left: torch.Tensor, right: torch.Tensor, objects: torch.Tenso
                               image_hw)
 
 
-def settle_repeated_objects(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, objects: torch.Tensor,
-                            dense: DenseDisparity, min_period_peak: float, config: DenseConfig = DenseConfig(),
-                            image_hw: torch.Tensor | None = None) -> DenseDisparity:
-    """``dense`` with each kept object (``objects`` ``(B, N, H, W)`` bool; ``mask`` ``(B, 1, H, W)`` their union)
-    that repeats itself along the rows (a peak of at least ``min_period_peak``,
-    :func:`~svs_torch.depth.periodicity.period_at_working_width`) settled on its alias or dropped
-    (:func:`settle_aliases`); ``repeated`` set for every pair. The period test costs about 1.5 ms a 320 × 240
-    pair; each object of a repeated pair is then tested on its own, and only the repeated objects are matched
-    again. ``left``, ``right``: ``(B, 1, H, W)``, the views ``dense`` was measured on. Not differentiable."""
-    index = (period_at_working_width(left, mask, min_period_peak, config) > 0).nonzero().flatten()
-    if len(index) == 0:
-        return dataclasses.replace(dense, repeated=RepeatedObjects.none(objects))
-    n, (height, width) = objects.shape[1], objects.shape[-2:]
-    each = objects[index].reshape(-1, 1, height, width)
-    views = left[index].unsqueeze(1).expand(-1, n, -1, -1, -1).reshape(-1, 1, height, width)
-    period = period_at_working_width(views, each, min_period_peak, config).view(-1, n)
-    found, told = whole_object_disparity(left[index], right[index], objects[index], dense.min_disparity_px[index],
-                                         dense.pair_num_disparities[index], config, period)
+def settle_repeated_objects(left: torch.Tensor, right: torch.Tensor, objects: torch.Tensor, dense: DenseDisparity,
+                            min_period_peak: float, config: DenseConfig = DenseConfig(),
+                            image_hw: torch.Tensor | None = None, max_period_px: int = MAX_PERIOD_PX
+                            ) -> DenseDisparity:
+    """``dense`` with each kept object (``objects`` ``(B, N, H, W)`` bool) that repeats itself along the rows (a
+    peak of at least ``min_period_peak``, a period under ``max_period_px`` working pixels,
+    :func:`~svs_torch.depth.periodicity.object_periods`) settled on its alias or dropped (:func:`settle_aliases`);
+    ``repeated`` set for every pair. The period test costs about 1.5 ms a 320 × 240 pair; each object of a
+    repeated pair is then tested on its own, and only the repeated objects are matched again. ``left``,
+    ``right``: ``(B, 1, H, W)``, the views ``dense`` was measured on. Not differentiable."""
+    periods = object_periods(left, objects, min_period_peak, config, max_period_px)
+    index = (periods > 0).any(dim=1).nonzero().flatten()
     none = RepeatedObjects.none(objects)
-    periods = none.period_px.index_put((index,), period)
+    if len(index) == 0:
+        return dataclasses.replace(dense, repeated=none)
+    found, told = whole_object_disparity(left[index], right[index], objects[index], dense.min_disparity_px[index],
+                                         dense.pair_num_disparities[index], config, periods[index])
     # NaN: no shift fitted (whole_object_disparity), as for the pairs not tested.
     centres = found.new_full(objects.shape[:2], torch.nan).index_put((index,), found)
     valid = none.settled.index_put((index,), told)

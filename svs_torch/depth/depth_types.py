@@ -79,6 +79,9 @@ class DepthConfig:
             windows' median lies there, and loses its pixels where the two disagree
             (:func:`svs_torch.depth.alias_choice.settle_aliases`); None: every object as measured (``"dense"``
             rule).
+        max_period_px: the longest period both tests above look for, pixels at the dense stage's working width
+            (the row autocorrelation's longest lag; a period up to one less is found); the coarse pass looks over
+            the same stretch of the image, half as many of its pixels.
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -93,12 +96,14 @@ class DepthConfig:
     min_object_pixels_in_view: int = 20  # paper_table1.py: changes only held-out Laundry at 320 px (R_max 0 -> 99 %)
     coarse_retry_max_period_peak: float | None = 0.5  # experiments/repeated_patterns.md
     alias_check_min_period_peak: float | None = 0.5  # experiments/repeated_patterns.md, "The whole object's alias"
+    max_period_px: int = 64  # experiments/repeated_patterns.md, "A railing near the walker"
 
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
+        check_count(self.max_period_px, "max_period_px", 4)
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
         for name in ("coarse_retry_max_period_peak", "alias_check_min_period_peak"):
             if getattr(self, name) is not None:

@@ -18,7 +18,7 @@ from ..depth.dense_config import DenseConfig, DenseDisparity
 from ..depth.dense_objects import (count_agreeing_inliers, dense_object_depths, range_from_objects,
                                    surface_pixels)
 from ..depth.depth_types import DepthResult, Disparities, ObjectDepths
-from ..depth.periodicity import repeated_at_working_width
+from ..depth.periodicity import object_periods
 from ..depth.quantiles import masked_quantile
 from ..depth.sparse import nearest_obstacle, slot_labels
 from ..geometry.matched_points import MatchedPoints
@@ -104,8 +104,8 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
     dense = estimate_dense_disparity(left, right, mask, config.dense, batch.image_hw,
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     if config.depth.alias_check_min_period_peak is not None:  # a fence, railing or grate ranged on its own alias
-        dense = settle_repeated_objects(left, right, mask, objects, dense, config.depth.alias_check_min_period_peak,
-                                        config.dense, batch.image_hw)
+        dense = settle_repeated_objects(left, right, objects, dense, config.depth.alias_check_min_period_peak,
+                                        config.dense, batch.image_hw, config.depth.max_period_px)
     agreeing, measured = _confirmed_inliers(dense, points_left, sparse.disparities, inliers, H_left, config)
     verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     if config.verify_whole_view:
@@ -220,10 +220,15 @@ def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tens
 
 def coarse_config(config: PipelineConfig) -> PipelineConfig:
     """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``),
-    aggregated with ``DenseConfig.retry_smoothing_penalties``."""
-    return dataclasses.replace(config, dense=dataclasses.replace(
-        config.dense, working_width_px=max(8, config.dense.working_width_px // 2),
-        smoothing_penalties=config.dense.retry_smoothing_penalties))
+    aggregated with ``DenseConfig.retry_smoothing_penalties``, and periods looked for over the same stretch of
+    the image (``DepthConfig.max_period_px`` halved with the pixels: the lags a period test at the working width
+    left out find a natural texture's chance peak, a rendered scene's 104 px, on the coarse grid)."""
+    width = max(8, config.dense.working_width_px // 2)
+    max_period_px = max(4, config.depth.max_period_px * width // config.dense.working_width_px)
+    return dataclasses.replace(
+        config, depth=dataclasses.replace(config.depth, max_period_px=max_period_px),
+        dense=dataclasses.replace(config.dense, working_width_px=width,
+                                  smoothing_penalties=config.dense.retry_smoothing_penalties))
 
 
 def measured_share(objects: ObjectDepths) -> torch.Tensor:
@@ -359,11 +364,12 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
         low = (measured_share(objects) < config.coarse_retry_below_share) & (objects.area_px.sum(1) > 0)
         if config.depth.coarse_retry_max_period_peak is not None and bool(low.any()):
             # A repeated pattern aliases on the coarse grid, where its period halves (depth.periodicity); only the
-            # pairs to retry are looked at.
+            # pairs to retry are looked at, object by object.
             index = low.nonzero().flatten()
-            repeated = repeated_at_working_width(batch.left[index], seg.left.kept_mask[index],
-                                                 config.depth.coarse_retry_max_period_peak, config.dense)
-            low = low.index_put((index,), ~repeated)
+            kept = seg.left.labels[index] == slot_labels(seg.left.kept_labels[index]).unsqueeze(-1).unsqueeze(-1)
+            periods = object_periods(batch.left[index], kept, config.depth.coarse_retry_max_period_peak,
+                                     config.dense, config.depth.max_period_px)
+            low = low.index_put((index,), (periods == 0).all(dim=1))
         if bool(low.any()):
             current, replaced = _second_pass(current, low.nonzero().flatten(), settings, None, coarse_is_better,
                                              *passes)

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from svs_torch.core.errors import InputError
-from svs_torch.depth.periodicity import (period_along_rows, period_at_working_width, repeated_along_rows,
-                                        repeated_at_working_width, row_autocorrelation)
+from svs_torch.depth.periodicity import (object_periods, period_along_rows, period_at_working_width,
+                                        repeated_along_rows, repeated_at_working_width, row_autocorrelation)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from real_images import PAIRS, read_gray  # noqa: E402
@@ -62,6 +62,35 @@ def test_the_period_is_the_first_peak_in_the_pixels_given():
     assert period.tolist() == [20] and period.dtype == torch.int64
 
 
+def test_a_railings_period_past_32_px_is_found_up_to_the_default_longest_lag():
+    """A railing near the walker: bars every 40 px at the working width (12 cm apart at 0.8 m). Lags up to 32 px
+    (the default before) did not reach it; DepthConfig.max_period_px, the periodicity functions' default, does."""
+    bars = ((np.mgrid[0:120, 0:320][1] // 20) % 2).astype(np.float32)
+    whole = torch.ones(1, 1, 120, 320, dtype=torch.bool)
+    assert period_along_rows(as_batch(bars), whole, 0.5, 32).tolist() == [0]
+    assert period_at_working_width(as_batch(bars), whole, 0.5).tolist() == [40]
+
+
+def test_two_like_regions_side_by_side_do_not_repeat_though_their_union_does():
+    """Was: the coarse grid's gate tested the kept regions' union, which correlates at the lag separating two like
+    regions (the tuned Piano at half contrast as JPEG digit 8 frames: two regions 48 px apart read a period of 48,
+    and the pair lost its coarse retry, 91.5 -> 72.3 % per object). Each object is tested on its own."""
+    texture = cv2.GaussianBlur(np.random.default_rng(2).random((100, 40)).astype(np.float32), (0, 0), 1.5)
+    image = np.full((100, 320), 0.5, dtype=np.float32)
+    image[:, 100:140] = texture
+    image[:, 148:188] = texture  # the same patch 48 px further right
+    bars = ((np.mgrid[0:100, 0:60][1] // 5) % 2).astype(np.float32)
+    image[:, 240:300] = bars  # and a third object that does repeat, every 10 px
+    objects = torch.zeros(2, 2, 100, 320, dtype=torch.bool)
+    objects[:, 0, :, 100:140] = True
+    objects[:, 1, :, 148:188] = True
+    objects[1, 1] = False
+    objects[1, 1, :, 240:300] = True
+    views = as_batch(image, image)
+    assert period_at_working_width(views[:1], objects[:1].any(1, keepdim=True), 0.5, max_lag_px=64).tolist() == [48]
+    assert object_periods(views, objects, 0.5, max_lag_px=64).tolist() == [[0, 0], [0, 10]]
+
+
 def test_real_scenes_do_not_repeat_and_a_real_chessboard_does(data_dir):
     """The shared scenes' whole left views at 320 × 240 are natural textures; OpenCV's sample chessboard over the
     hull of the corners OpenCV finds on it repeats with its two squares' period (34 px there: past the
@@ -87,3 +116,7 @@ def test_a_mask_of_another_shape_or_dtype_and_settings_out_of_range_are_refused_
         row_autocorrelation(image, torch.ones(1, 1, 8, 8, dtype=torch.bool), max_lag_px=0)
     with pytest.raises(InputError, match="min_peak"):
         repeated_along_rows(image, torch.ones(1, 1, 8, 8, dtype=torch.bool), 1.5)
+    with pytest.raises(InputError, match="objects"):
+        object_periods(image, torch.ones(1, 2, 8, 8), 0.5)
+    with pytest.raises(InputError, match="objects"):
+        object_periods(image, torch.ones(2, 2, 8, 8, dtype=torch.bool), 0.5)

@@ -122,6 +122,10 @@ def test_coarse_rule_never_adds_unverified_depths():
 def test_coarse_config_halves_the_working_width_and_settings_are_checked():
     config = PipelineConfig()
     assert coarse_config(config).dense.working_width_px == config.dense.working_width_px // 2
+    # Periods are looked for over the same stretch of the image: half as many coarse pixels. Was: the whole
+    # DepthConfig.max_period_px on the coarse grid, where a rendered scene's natural texture (synthetic-7 as JPEG
+    # digit 8 frames) read a period of 104 input pixels and its object was measured again over it.
+    assert coarse_config(config).depth.max_period_px == config.depth.max_period_px // 2
     assert PipelineConfig.paper().coarse_retry_below_share is None
     for bad in (0, 1.5, -0.1, True, "0.4"):
         with pytest.raises(InputError, match="coarse_retry_below_share"):
