@@ -108,17 +108,19 @@ def render_view(kind: str, period: int, disparity: float, wall_d: float, texture
     return image.astype(np.float32), inside.reshape(HEIGHT, WIDTH, 4).any(-1)
 
 
-def cases() -> list[tuple[str, int, float]]:
-    return [(k, p, z) for k in KINDS for p in PERIODS_PX for z in DEPTHS_M]
+def cases(periods: tuple[int, ...] = PERIODS_PX) -> list[tuple[str, int, float]]:
+    return [(k, p, z) for k in KINDS for p in periods for z in DEPTHS_M]
 
 
-def render_pairs(seed: int = SEED) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Left and right views ``(N, H, W)`` float32 in [0, 1] of every case, the panels' disparities ``(N,)`` and
-    their masks in the left view ``(N, H, W)`` bool; ``seed`` draws the wall's and the panels' textures."""
+def render_pairs(seed: int = SEED, periods: tuple[int, ...] = PERIODS_PX
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Left and right views ``(N, H, W)`` float32 in [0, 1] of every case (of ``periods``), the panels' disparities
+    ``(N,)`` and their masks in the left view ``(N, H, W)`` bool; ``seed`` draws the wall's and the panels'
+    textures."""
     rng = np.random.default_rng(seed)
     f = focal_px()
     lefts, rights, disparities, masks = [], [], [], []
-    for kind, period, z in cases():
+    for kind, period, z in cases(periods):
         textures = (smooth_texture(rng, HEIGHT, WIDTH * 2 + 160, 3.0), smooth_texture(rng, HEIGHT, WIDTH * 2, 0.7))
         d, wall_d = f * BASELINE_M / z, f * BASELINE_M / WALL_M
         left, mask = render_view(kind, period, d, wall_d, textures, 0.0)
@@ -158,14 +160,15 @@ def outcome(setting: str, condition: str, case: tuple, nearest_m: float | None, 
             "acc_pct": 0.0 if nearest_m is None else max(0.0, 100 * (1 - abs(z - nearest_m) / z))}
 
 
-def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, condition: str) -> list[dict]:
+def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, condition: str,
+                  periods: tuple[int, ...] = PERIODS_PX) -> list[dict]:
     result = estimate_obstacle_depth(batch, config)
     nearest, rows = result.depth.nearest, []
     marked = result.unranged_repeated
     if marked is not None:
         depth_m, valid = alias_depths_m(result.dense, batch.focal_px, batch.baseline_m, batch.doffs_px)
         valid &= marked.unsqueeze(-1)
-    for i, case in enumerate(cases()):
+    for i, case in enumerate(cases(periods)):
         ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
         said = marked is not None and bool(marked[i].any())
         aliases = depth_m[i][valid[i]].tolist() if said else None
@@ -173,10 +176,10 @@ def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, cond
     return rows
 
 
-def rival_rows(batch: StereoBatch, condition: str) -> list[dict]:
+def rival_rows(batch: StereoBatch, condition: str, periods: tuple[int, ...] = PERIODS_PX) -> list[dict]:
     """StereoSGBM's nearest obstacle per pair (module docstring); a loop over pairs, as OpenCV runs."""
     rows = []
-    for i, case in enumerate(cases()):
+    for i, case in enumerate(cases(periods)):
         nearest = sgbm_rival(batch.select([i]))[1]
         rows.append(outcome("OpenCV SGBM", condition, case, nearest, nearest is not None))
     return rows
@@ -200,26 +203,41 @@ def markdown(rows: list[dict], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _seed_option(parser) -> None:
+def _periods(text: str) -> tuple[int, ...]:
+    import argparse
+
+    try:
+        periods = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        periods = ()
+    if not periods or not all(4 <= p <= 96 for p in periods):
+        raise argparse.ArgumentTypeError(f"expected whole periods of 4 to 96 px, comma-separated; got {text!r}")
+    return periods
+
+
+def _options(parser) -> None:
     parser.add_argument("--seed", type=int, default=SEED,
                         help=f"the rendered set: textures and sensor noise (default {SEED}, the rules' own)")
+    parser.add_argument("--periods", type=_periods, default=PERIODS_PX, metavar="P,P,...",
+                        help="the patterns' periods, pixels at 320x240 (default "
+                        + ",".join(map(str, PERIODS_PX)) + "; 32,40,48: a railing near the walker)")
 
 
 def main(argv: list[str] | None = None) -> dict:
-    args, base, name, started = rendered_experiment_setup(__doc__, argv, _seed_option)
+    args, base, name, started = rendered_experiment_setup(__doc__, argv, _options)
     ungated = apply_overrides(base, {"depth.coarse_retry_max_period_peak": None})
     settings = {name: base, "coarse retry for every pair": ungated}
     if base.depth.coarse_retry_max_period_peak is None:
         settings = {"coarse retry for every pair": ungated}
-    lefts, rights, *_ = render_pairs(args.seed)
+    lefts, rights, *_ = render_pairs(args.seed, args.periods)
     rows = []
     with torch.inference_mode():
         for condition, deviation, digit, sigma in CONDITIONS:
             batch = condition_batch(lefts, rights, deviation, digit, sigma, args.seed)
             for setting, config in settings.items():
-                rows += pipeline_rows(batch, config, setting, condition)
+                rows += pipeline_rows(batch, config, setting, condition, args.periods)
             if not args.no_rival:
-                rows += rival_rows(batch, condition)
+                rows += rival_rows(batch, condition, args.periods)
     command = command_line("experiments/repeated_patterns.py", argv)
     order = list(dict.fromkeys(r["setting"] for r in rows))
     table = markdown(sorted(rows, key=lambda r: order.index(r["setting"])), command)
