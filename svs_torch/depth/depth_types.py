@@ -80,8 +80,8 @@ class DepthConfig:
             (:func:`svs_torch.depth.alias_choice.settle_aliases`); None: every object as measured (``"dense"``
             rule).
         max_period_px: the longest period both tests above look for, pixels at the dense stage's working width
-            (the row autocorrelation's longest lag; a period up to one less is found); the coarse pass looks over
-            the same stretch of the image, half as many of its pixels.
+            (the row autocorrelation's longest lag, 4 to 1024; a period up to one less is found); the coarse pass
+            looks over the same stretch of the image, half as many of its pixels.
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -103,7 +103,7 @@ class DepthConfig:
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
-        check_count(self.max_period_px, "max_period_px", 4)
+        check_count(self.max_period_px, "max_period_px", 4, most=1024)  # a lag past the working width finds nothing
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
         for name in ("coarse_retry_max_period_peak", "alias_check_min_period_peak"):
             if getattr(self, name) is not None:

@@ -221,8 +221,9 @@ def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tens
 def coarse_config(config: PipelineConfig) -> PipelineConfig:
     """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``),
     aggregated with ``DenseConfig.retry_smoothing_penalties``, and periods looked for over the same stretch of
-    the image (``DepthConfig.max_period_px`` halved with the pixels: the lags a period test at the working width
-    left out find a natural texture's chance peak, a rendered scene's 104 px, on the coarse grid)."""
+    the image (``DepthConfig.max_period_px`` halved with the pixels: its whole count of coarse pixels spans twice
+    the image, where a rendered scene's texture, synthetic-7 as JPEG digit 8 frames, read a period of 104 input
+    pixels)."""
     width = max(8, config.dense.working_width_px // 2)
     max_period_px = max(4, config.depth.max_period_px * width // config.dense.working_width_px)
     return dataclasses.replace(

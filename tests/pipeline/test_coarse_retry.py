@@ -17,6 +17,7 @@ from conftest import REPO_ROOT
 
 from svs_torch import InputError
 from svs_torch.core.pair_trees import take_pairs
+from svs_torch.depth import DepthConfig
 from svs_torch.depth.dense_config import DenseConfig
 from svs_torch.evaluation import evaluate_result
 from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
@@ -126,6 +127,9 @@ def test_coarse_config_halves_the_working_width_and_settings_are_checked():
     # DepthConfig.max_period_px on the coarse grid, where a rendered scene's natural texture (synthetic-7 as JPEG
     # digit 8 frames) read a period of 104 input pixels and its object was measured again over it.
     assert coarse_config(config).depth.max_period_px == config.depth.max_period_px // 2
+    for bad in (3, 1025, True, 64.0):  # the lag past which nothing is looked for, named when out of range
+        with pytest.raises(InputError, match="max_period_px"):
+            DepthConfig(max_period_px=bad)
     assert PipelineConfig.paper().coarse_retry_below_share is None
     for bad in (0, 1.5, -0.1, True, "0.4"):
         with pytest.raises(InputError, match="coarse_retry_below_share"):
