@@ -697,7 +697,7 @@ def test_a_repeated_pattern_left_unranged_is_listed_with_its_aliases_distances(l
     assert grate["nearest_m"] == pytest.approx(1.5, rel=0.05) and ranged[0]["alias_depths_m"] is None
     assert unranged and unranged[0]["period_px"] == 8.0 and unranged[0]["alias_depths_m"]
     text = _estimate_files(batch, 1, tmp_path, capsys)
-    assert "repeats every 8 px along the rows, its alias not told" in text
+    assert "no depth: a pattern repeating every 8 px along the rows (it fits any of" in text
     assert "a repeated pattern seen but not ranged; the nearest obstacle said is of the ranged ones only" in text
     # Dropping unmeasured regions (a setting) keeps it: it was seen.
     config = PipelineConfig(drop_unmeasured_below_share=0.5)

@@ -123,7 +123,7 @@ def repeated_words(obj: dict) -> str | None:
     aliases = obj.get("alias_depths_m")
     if obj.get("depth_m") is not None or obj.get("period_px") is None or aliases is None:
         return None
-    words = f"no depth: repeats every {obj['period_px']:g} px along the rows, its alias not told"
+    words = f"no depth: a pattern repeating every {obj['period_px']:g} px along the rows"
     if len(aliases) > MAX_ALIASES_SAID:
         return f"{words} (it fits any of {len(aliases)} distances, {aliases[0]:.2f}-{aliases[-1]:.2f} m)"
     if len(aliases) > 1:

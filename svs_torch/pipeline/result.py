@@ -137,8 +137,8 @@ class PipelineResult:
     @property
     def unranged_repeated(self) -> torch.Tensor | None:
         """``(B, N)`` bool: the kept objects that repeat themselves along the rows (a fence, a grate) and were left
-        without a distance, their alias not told (``dense.repeated``; the distances their aliases would give:
-        :func:`~svs_torch.depth.alias_choice.alias_depths_m`); None where the check did not run."""
+        without a distance, mostly as their alias was not told (``dense.repeated``; the distances their aliases
+        would give: :func:`~svs_torch.depth.alias_choice.alias_depths_m`); None where the check did not run."""
         if self.dense is None or self.dense.repeated is None:
             return None
         kept = self.segmentation.left.kept_labels >= 0
