@@ -641,8 +641,8 @@ def test_a_repeated_pattern_is_ranged_on_the_alias_its_whole_panel_matches(loose
 def test_a_railing_with_a_period_past_32_px_is_kept_off_the_coarse_grid_and_ranged():
     """Was: rendered panels with periods of 32-48 px (a railing near the walker) as the board's camera frames
     (seed 7): the period test looked at lags up to 32 px only, so these pairs went onto the coarse grid, where the
-    period halves, and five panels at 2.0 m were told 1.86-1.90 m (7 % near). DepthConfig.max_period_px (64) finds
-    their periods: no wrong distance."""
+    period halves, and five panels at 2.0 m were told 1.86-1.90 m (7 % near). The gate now looks up to 64 px
+    (DepthConfig.coarse_retry_max_period_px): no wrong distance."""
     import repeated_patterns as rp
 
     from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
@@ -656,7 +656,7 @@ def test_a_railing_with_a_period_past_32_px_is_kept_off_the_coarse_grid_and_rang
     with torch.inference_mode():
         result = estimate_obstacle_depth(batch, config).depth.nearest
         before = estimate_obstacle_depth(batch, dataclasses.replace(
-            config, depth=dataclasses.replace(config.depth, max_period_px=32))).depth.nearest
+            config, depth=dataclasses.replace(config.depth, coarse_retry_max_period_px=32))).depth.nearest
     assert result.valid.all() and ((result.depth_m - 2.0).abs() < 0.05 * 2.0).all(), result.depth_m.tolist()
     assert before.valid.all() and ((before.depth_m - 2.0).abs() > 0.05 * 2.0).all(), before.depth_m.tolist()
 

@@ -79,9 +79,12 @@ class DepthConfig:
             windows' median lies there, and loses its pixels where the two disagree
             (:func:`svs_torch.depth.alias_choice.settle_aliases`); None: every object as measured (``"dense"``
             rule).
-        max_period_px: the longest period both tests above look for, pixels at the dense stage's working width
-            (the row autocorrelation's longest lag, 4 to 1024; a period up to one less is found); the coarse pass
-            looks over the same stretch of the image, half as many of its pixels.
+        coarse_retry_max_period_px, alias_check_max_period_px: the longest period each test above looks for,
+            pixels at the dense stage's working width (the row autocorrelation's longest lag, 4 to 1024; a period
+            up to one less is found); the coarse pass looks over the same stretch of the image, half as many of its
+            pixels. A railing near the walker (bars 12 cm apart are 41 px apart at 0.8 m) is kept off the coarse
+            grid; the alias check does not look past 31 px, where the shared chessboard at 0.38 m (a 33 px period,
+            running off the view) had its whole-object shift on the wrong alias and was dropped.
     """
 
     rule: Literal["dense", "paper"] = "dense"  # paper_table1.py: dense 98-99 % vs sparse extremes 74-84 %
@@ -96,14 +99,16 @@ class DepthConfig:
     min_object_pixels_in_view: int = 20  # paper_table1.py: changes only held-out Laundry at 320 px (R_max 0 -> 99 %)
     coarse_retry_max_period_peak: float | None = 0.5  # experiments/repeated_patterns.md
     alias_check_min_period_peak: float | None = 0.5  # experiments/repeated_patterns.md, "The whole object's alias"
-    max_period_px: int = 64  # experiments/repeated_patterns.md, "A railing near the walker"
+    coarse_retry_max_period_px: int = 64  # experiments/repeated_patterns.md, "A railing near the walker"
+    alias_check_max_period_px: int = 32  # the same section: the shared chessboard
 
     def __post_init__(self) -> None:
         if self.rule not in ("dense", "paper"):
             raise InputError(f"rule: expected 'dense' or 'paper', got {self.rule!r}")
         for name in ("min_object_inliers", "min_object_pixels", "min_object_pixels_in_view"):
             check_count(getattr(self, name), name)
-        check_count(self.max_period_px, "max_period_px", 4, most=1024)  # a lag past the working width finds nothing
+        for name in ("coarse_retry_max_period_px", "alias_check_max_period_px"):
+            check_count(getattr(self, name), name, 4, most=1024)  # a lag past the working width finds nothing
         check_flag(self.surface_within_in_view_top, "surface_within_in_view_top")
         for name in ("coarse_retry_max_period_peak", "alias_check_min_period_peak"):
             if getattr(self, name) is not None:

@@ -23,8 +23,9 @@ from .pooling import mean_pool
 __all__ = ["MAX_PERIOD_PX", "object_periods", "period_along_rows", "period_at_working_width", "repeated_along_rows",
            "repeated_at_working_width", "row_autocorrelation"]
 
-#: Longest period looked for, pixels of the image given (the pipeline's: ``DepthConfig.max_period_px``).
-MAX_PERIOD_PX = DepthConfig.max_period_px
+#: Longest period looked for by default, pixels of the image given (the pipeline's alias check's:
+#: ``DepthConfig.alias_check_max_period_px``; its coarse grid's gate looks further).
+MAX_PERIOD_PX = DepthConfig.alias_check_max_period_px
 #: How far the correlation must rise again from its least value at a shorter lag to count as a period's peak: a
 #: grate's horizontal bars keep it above 0 at every lag (0.1 between its peaks of 0.99).
 MIN_RISE = 0.4

@@ -105,7 +105,7 @@ def _dense_depth(batch: StereoBatch, seg: StereoSegmentation, sparse: DepthResul
                                      sparse.disparities.disparity_px, sparse.disparities.valid, objects)
     if config.depth.alias_check_min_period_peak is not None:  # a fence, railing or grate ranged on its own alias
         dense = settle_repeated_objects(left, right, objects, dense, config.depth.alias_check_min_period_peak,
-                                        config.dense, batch.image_hw, config.depth.max_period_px)
+                                        config.dense, batch.image_hw, config.depth.alias_check_max_period_px)
     agreeing, measured = _confirmed_inliers(dense, points_left, sparse.disparities, inliers, H_left, config)
     verified = fundamental_ok & _vouched(inliers.sum(1), agreeing, measured, config)
     if config.verify_whole_view:
@@ -221,13 +221,14 @@ def second_pass_is_better(verified_first: torch.Tensor, ranged_first: torch.Tens
 def coarse_config(config: PipelineConfig) -> PipelineConfig:
     """``config`` with the dense stage at half its working width (``PipelineConfig.coarse_retry_below_share``),
     aggregated with ``DenseConfig.retry_smoothing_penalties``, and periods looked for over the same stretch of
-    the image (``DepthConfig.max_period_px`` halved with the pixels: its whole count of coarse pixels spans twice
-    the image, where a rendered scene's texture, synthetic-7 as JPEG digit 8 frames, read a period of 104 input
-    pixels)."""
+    the image (``DepthConfig``'s longest periods halved with the pixels: their whole count of coarse pixels spans
+    twice the image, where a rendered scene's texture, synthetic-7 as JPEG digit 8 frames, read a period of 104
+    input pixels)."""
     width = max(8, config.dense.working_width_px // 2)
-    max_period_px = max(4, config.depth.max_period_px * width // config.dense.working_width_px)
+    shorter = {name: max(4, getattr(config.depth, name) * width // config.dense.working_width_px)
+               for name in ("coarse_retry_max_period_px", "alias_check_max_period_px")}
     return dataclasses.replace(
-        config, depth=dataclasses.replace(config.depth, max_period_px=max_period_px),
+        config, depth=dataclasses.replace(config.depth, **shorter),
         dense=dataclasses.replace(config.dense, working_width_px=width,
                                   smoothing_penalties=config.dense.retry_smoothing_penalties))
 
@@ -369,7 +370,7 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
             index = low.nonzero().flatten()
             kept = seg.left.labels[index] == slot_labels(seg.left.kept_labels[index]).unsqueeze(-1).unsqueeze(-1)
             periods = object_periods(batch.left[index], kept, config.depth.coarse_retry_max_period_peak,
-                                     config.dense, config.depth.max_period_px)
+                                     config.dense, config.depth.coarse_retry_max_period_px)
             low = low.index_put((index,), (periods == 0).all(dim=1))
         if bool(low.any()):
             current, replaced = _second_pass(current, low.nonzero().flatten(), settings, None, coarse_is_better,

@@ -64,11 +64,12 @@ def test_the_period_is_the_first_peak_in_the_pixels_given():
 
 def test_a_railings_period_past_32_px_is_found_up_to_the_default_longest_lag():
     """A railing near the walker: bars every 40 px at the working width (12 cm apart at 0.8 m). Lags up to 32 px
-    (the default before) did not reach it; DepthConfig.max_period_px, the periodicity functions' default, does."""
+    (the functions' default) do not reach it; the coarse grid's gate's, up to 64
+    (DepthConfig.coarse_retry_max_period_px), does."""
     bars = ((np.mgrid[0:120, 0:320][1] // 20) % 2).astype(np.float32)
     whole = torch.ones(1, 1, 120, 320, dtype=torch.bool)
     assert period_along_rows(as_batch(bars), whole, 0.5, 32).tolist() == [0]
-    assert period_at_working_width(as_batch(bars), whole, 0.5).tolist() == [40]
+    assert period_at_working_width(as_batch(bars), whole, 0.5, max_lag_px=64).tolist() == [40]
 
 
 def test_two_like_regions_side_by_side_do_not_repeat_though_their_union_does():

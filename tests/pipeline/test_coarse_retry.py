@@ -124,12 +124,13 @@ def test_coarse_config_halves_the_working_width_and_settings_are_checked():
     config = PipelineConfig()
     assert coarse_config(config).dense.working_width_px == config.dense.working_width_px // 2
     # Periods are looked for over the same stretch of the image: half as many coarse pixels. Was: the whole
-    # DepthConfig.max_period_px on the coarse grid, where a rendered scene's natural texture (synthetic-7 as JPEG
-    # digit 8 frames) read a period of 104 input pixels and its object was measured again over it.
-    assert coarse_config(config).depth.max_period_px == config.depth.max_period_px // 2
-    for bad in (3, 1025, True, 64.0):  # the lag past which nothing is looked for, named when out of range
-        with pytest.raises(InputError, match="max_period_px"):
-            DepthConfig(max_period_px=bad)
+    # longest period on the coarse grid, where a rendered scene's natural texture (synthetic-7 as JPEG digit 8
+    # frames) read a period of 104 input pixels and its object was measured again over it.
+    for name in ("coarse_retry_max_period_px", "alias_check_max_period_px"):
+        assert getattr(coarse_config(config).depth, name) == getattr(config.depth, name) // 2
+        for bad in (3, 1025, True, 64.0):  # the lag past which nothing is looked for, named when out of range
+            with pytest.raises(InputError, match=name):
+                DepthConfig(**{name: bad})
     assert PipelineConfig.paper().coarse_retry_below_share is None
     for bad in (0, 1.5, -0.1, True, "0.4"):
         with pytest.raises(InputError, match="coarse_retry_below_share"):
