@@ -70,10 +70,11 @@ class DepthConfig:
             of noise's wrong coarse matches (``DenseConfig.in_view_detached_tail_share``). 0 turns the check off. Unlike
             ``DenseConfig.whole_range_in_view`` it drops no pixel: an object with enough pixels in view keeps
             its median over all of them.
-        coarse_retry_max_period_peak: a pair whose kept regions repeat themselves along the rows (their row
-            autocorrelation rises again to a peak of at least this, :mod:`svs_torch.depth.periodicity`) is not
-            measured again on the coarse grid (``PipelineConfig.coarse_retry_below_share``), where the pattern's
-            period halves and aliases; None: every pair may be (``"dense"`` rule).
+        coarse_retry_max_period_peak: a pair one of whose kept regions repeats itself along the rows (its row
+            autocorrelation rises again to a peak of at least this; each region tested on its own,
+            :func:`svs_torch.depth.periodicity.object_periods`) is not measured again on the coarse grid
+            (``PipelineConfig.coarse_retry_below_share``), where the pattern's period halves and aliases; None:
+            every pair may be (``"dense"`` rule).
         alias_check_min_period_peak: a kept object that repeats itself along the rows (a peak of at least this,
             as above) is measured again over one period about the alias its whole region matches best where its
             windows' median lies there, and loses its pixels where the two disagree
