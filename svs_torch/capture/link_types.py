@@ -21,11 +21,16 @@ def check_link_url(url: object, name: str) -> None:
     """``url`` (named ``name`` in the error) as a link pyserial can open: a serial device path or a URL of one of
     :data:`LINK_SCHEMES`, ``socket://`` with its host and port. Why: ``""``, ``None`` and ``socket://HOST`` failed
     inside pyserial ("could not open port :", "Port must be configured", "'<=' not supported between 'int' and
-    'NoneType'"), and ``http://...`` as a capture error, not a bad argument."""
+    'NoneType'"), and ``http://...`` as a capture error, not a bad argument. A link with a space before or after
+    it (pasted) is refused too: ``" socket://..."`` passed ``urlsplit``, which strips it, and failed in pyserial
+    ("protocol ' socket' not known"), a capture error with exit 1."""
     from urllib.parse import urlsplit
 
     if not isinstance(url, str) or not url.strip():
         raise InputError(f"{name}: expected a serial device or socket://HOST:PORT, got {url!r}")
+    if url != url.strip():
+        raise InputError(f"{name}: expected a serial device or socket://HOST:PORT with no space before or after "
+                         f"it, got {url!r}")
     if "://" not in url:
         return  # a serial device
     parts = urlsplit(url)

@@ -895,6 +895,10 @@ def test_cli_defaults_match_link_defaults():
     (["--left", "socket://127.0.0.1", "--right", "socket://127.0.0.1:10002"], "--left: expected socket://HOST:PORT"),
     (["--left", "http://x:1", "--right", "socket://x:2"], "--left: expected a serial device or socket://HOST:PORT"),
     (["--left", "socket://x:1", "--right", "socket://x:1"], "--left, --right: expected the two boards' links"),
+    # Was: a capture error, exit 1 ("protocol ' socket' not known"): urlsplit strips the space, pyserial does not.
+    (["--left", " socket://x:1", "--right", "socket://x:2"], "--left: expected a serial device or socket://HOST:PORT "
+     "with no space before or after it, got ' socket://x:1'"),
+    (["--left", "socket://x:1", "--right", "/dev/ttyUSB1\n"], "--right: expected a serial device or socket://"),
     # Was accepted and did nothing: the boards send what they see.
     (["--left", "socket://x:1", "--right", "socket://x:2", "--emulator-noise", "4"],
      "--emulator-noise: only with --emulator"),
@@ -1096,6 +1100,7 @@ def test_link_config_refuses_a_value_it_cannot_wait_by(field, value, expected):
     (None, "expected a serial device or socket://HOST:PORT, got None"),
     ("socket://", "expected socket://HOST:PORT (the left board 10001, the right 10002), got 'socket://'"),
     ("socket://127.0.0.1", "expected socket://HOST:PORT"), ("http://x:1", "expected a serial device or socket://"),
+    (" socket://127.0.0.1:10001", "expected a serial device or socket://HOST:PORT with no space before or after it"),
 ])
 def test_camera_refuses_a_url_pyserial_cannot_open(url, expected):
     """Found by an audit of the capture API: SVSStereoCamera took these and failed opening them, inside pyserial

@@ -487,6 +487,9 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (["estimate", "{L}", "{R}", "--pairs", ""], "--pairs: expected a list file name, got ''"),
     (["capture", "--emulator", "--count", "1", "--out-dir", ""], "--out-dir: expected a folder name, got ''"),
     (["guide", "--emulator", "--left", "", "--count", "1"], "--left, --right: the boards' URLs, or --emulator, not both"),
+    # Found by an audit: a pasted URL's leading space was a capture error after the links were tried (exit 1).
+    (["guide", "--left", " socket://x:1", "--right", "socket://x:2", "--count", "1"],
+     "--left: expected a serial device or socket://HOST:PORT with no space before or after it"),
     # Found by an audit: "give either LEFT RIGHT or --pairs", when no LEFT RIGHT had been given.
     (["estimate", "--pairs", "{L}", "--figure", "f.png"], "--figure: draws one pair, not a --pairs list"),
     (["estimate", "--pairs", "{L}", "--masks-out", "m.png"], "--masks-out: draws one pair, not a --pairs list"),
