@@ -234,6 +234,10 @@ class RepeatedObjects:
     fitted: torch.Tensor
     settled: torch.Tensor
 
+    def unranged(self, ranged: torch.Tensor) -> torch.Tensor:
+        """``(B, N)`` bool: the repeated objects not ``ranged`` ``(B, N)`` bool (an object's depth ``valid``)."""
+        return (self.period_px > 0) & ~ranged
+
     @staticmethod
     def none(objects: torch.Tensor) -> RepeatedObjects:
         """No object of ``objects`` ``(B, N, H, W)`` repeats."""

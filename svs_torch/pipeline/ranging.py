@@ -368,7 +368,8 @@ def _dense_depth_with_retry(batch: StereoBatch, seg: StereoSegmentation, sparse:
             # A repeated pattern aliases on the coarse grid, where its period halves (depth.periodicity); only the
             # pairs to retry are looked at, object by object.
             index = low.nonzero().flatten()
-            kept = seg.left.labels[index] == slot_labels(seg.left.kept_labels[index]).unsqueeze(-1).unsqueeze(-1)
+            kept_labels = seg.left.kept_labels[index]
+            kept = seg.left.labels[index] == slot_labels(kept_labels).view(*kept_labels.shape, 1, 1)
             periods = object_periods(batch.left[index], kept, config.depth.coarse_retry_max_period_peak,
                                      config.dense, config.depth.coarse_retry_max_period_px)
             low = low.index_put((index,), (periods == 0).all(dim=1))

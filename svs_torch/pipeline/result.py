@@ -141,5 +141,4 @@ class PipelineResult:
         would give: :func:`~svs_torch.depth.alias_choice.alias_depths_m`); None where the check did not run."""
         if self.dense is None or self.dense.repeated is None:
             return None
-        kept = self.segmentation.left.kept_labels >= 0
-        return kept & (self.dense.repeated.period_px > 0) & ~self.depth.objects.valid
+        return (self.segmentation.left.kept_labels >= 0) & self.dense.repeated.unranged(self.depth.objects.valid)

@@ -233,7 +233,7 @@ def _dense_rule(batch: StereoBatch, seg: StereoSegmentation, depth: DepthResult,
     depth, dense, verified, agreeing, measured, smoothed, coarse = _dense_depth_with_retry(
         batch, seg, depth, fundamental_ok, points_left, inliers, rectified, H_left, H_right, object_labels, config)
     # a fence left unranged as its alias was not told stays listed (depth.alias_choice.alias_depths_m)
-    repeated = None if dense.repeated is None else (dense.repeated.period_px > 0) & ~depth.objects.valid
+    repeated = None if dense.repeated is None else dense.repeated.unranged(depth.objects.valid)
     seg, depth, dropped = drop_unmeasured_objects(batch, seg, depth, config.drop_unmeasured_below_share,
                                                   config.drop_unmeasured_nearer_below_share, repeated)
     near = None
