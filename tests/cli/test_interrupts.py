@@ -53,7 +53,8 @@ def _interrupted(argv: list[str], cwd: Path, ready, signum: int) -> tuple[int, s
     line)`` (so not timing-flaky: the command is known to be in its loop), and return (status, stdout, stderr)."""
     import threading
 
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # faulthandler on: a command that does not end is sent SIGABRT, and the failure shows where each thread was
+    env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONFAULTHANDLER="1")
     process = subprocess.Popen([sys.executable, "-m", "svs_torch.cli", *argv], cwd=cwd, env=env, text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     seen, lines = threading.Event(), {"out": [], "err": []}
@@ -72,6 +73,13 @@ def _interrupted(argv: list[str], cwd: Path, ready, signum: int) -> tuple[int, s
         assert seen.wait(120), "".join(lines["err"])
         process.send_signal(signum)
         status = process.wait(60)
+    except subprocess.TimeoutExpired:  # (once, in CI: no sign of where it was; now its threads' stacks are said)
+        process.send_signal(signal.SIGABRT)
+        process.wait(30)
+        for reader in readers:
+            reader.join(10)
+        pytest.fail(f"svs-depth {argv[0]} did not end within 60 s of signal {signum}; its stderr:\n"
+                    + "".join(lines["err"])[-6000:])
     finally:
         if process.poll() is None:
             process.kill()
