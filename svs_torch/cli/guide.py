@@ -80,7 +80,8 @@ JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimat
              "class clear / warn / stop, or unseen: nothing measured; the words said), 'dropped_pairs', 'latency_s', "
              "'quality' (--quality's digit); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
              "or sees again, a pair is not ranged (frames_apart, identical_views, camera_frozen with its 'camera'), "
-             "or the boards answer in the wrong roles (cameras_swapped); the warnings' text goes to stderr")
+             "the boards answer in the wrong roles (cameras_swapped), or a repeated pattern not ranged is said "
+             "(repeated_pattern, with the nearest distance it may be at); the warnings' text goes to stderr")
 
 
 #: ``--confirm-frames``'s default: :data:`svs_torch.capture.guide.CONFIRM_FRAMES`, written out here because that

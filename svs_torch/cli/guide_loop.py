@@ -29,6 +29,7 @@ from typing import Callable
 from ..capture.frozen import FrozenCameraWatch, one_image_twice
 from ..capture.guide import CANNOT_SEE, CLEAR, UNSEEN, SightWatch
 from ..capture.link_types import CaptureError
+from ..capture.pattern_notice import PatternNotice
 from ..capture.stereo import STEREO_ROLES
 from ..depth.depth_types import ObstacleSide
 from ..depth.floor_distance import pitched_camera
@@ -136,6 +137,8 @@ class GuideSession:
         self.sight = None  # a SightWatch, from when the camera first answers
         self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
         self.floor = FloorMemory(worn_pitch_deg=getattr(args, "camera_pitch_deg", None))
+        policy = guide.policy
+        self.pattern = PatternNotice(policy.far_m, policy.repeat_s, policy.confirm_frames)  # a fence not ranged
 
     def run(self) -> None:
         """Range pairs until ``--count`` (0: until interrupted), opening the camera again while it is lost.
@@ -222,6 +225,7 @@ class GuideSession:
             self.lost_at_s = now
             self.guide.speaker.say(CAMERA_LOST)
             self.guide.policy.reset()  # an obstacle seen when it is back is warned of at once
+            self.pattern.reset()
             self.log.event("camera_lost", error=" ".join(str(error).split()))
         lost_s = now - self.lost_at_s
         if self.args.give_up_s and lost_s >= self.args.give_up_s:
@@ -350,8 +354,10 @@ class GuideSession:
         elapsed_s = time.perf_counter() - started
         now = time.monotonic()
         self._come_back(now)
-        seen = self._seen(result)
-        self._watch_sight(seen, PipelineStatus(int(result.status[0])).name, now)
+        nearest_alias = result.nearest_unranged_alias_m  # an unranged fence may be this near: seen, and said
+        pattern_m = None if nearest_alias is None or bool(nearest_alias[0].isnan()) else float(nearest_alias[0])
+        seen = self._seen(result) or self.pattern.counts(pattern_m)
+        sight_said = self._watch_sight(seen, PipelineStatus(int(result.status[0])).name, now)
         nearest, along, floor_age_s = self.floor.nearest(result, now)
         # Warn on the nearest obstacle's nearest visible surface (its low depth percentile): the part a walker
         # reaches first, not the median of an object that may recede.
@@ -360,6 +366,12 @@ class GuideSession:
         message = self.guide.update(distance, now, side)  # the side said too: a walker hears where to step aside
         confirmed = self.guide.policy.confirmed_m  # the median of the last frames' distances, which was judged
         confirmed_side = self.guide.policy.confirmed_side  # the side of the frame that median came from
+        quiet = message is None and sight_said is None and self.guide.policy.current == CLEAR  # silence otherwise
+        notice = self.pattern.update(pattern_m, now, quiet)
+        if notice is not None:
+            self.guide.speaker.say(notice)
+            self.log.event("repeated_pattern", pair=item.pairs[0].index,
+                           nearest_alias_m=round(self.pattern.nearest_m, 3))
         shown = self._shown(seen)
         pattern = result.unranged_repeated is not None and bool(result.unranged_repeated.any())  # a fence, unranged
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {confirmed_side or side}"

@@ -32,7 +32,7 @@ from .periodicity import MAX_PERIOD_PX, object_periods
 from .pooling import mean_pool
 from .quantiles import masked_quantile
 
-__all__ = ["alias_depths_m", "remeasure_on_alias", "settle_aliases", "settle_repeated_objects",
+__all__ = ["alias_depths_m", "nearest_alias_depth_m", "remeasure_on_alias", "settle_aliases", "settle_repeated_objects",
            "whole_object_disparity"]
 
 #: Shifts per slice of the difference volume: ``B × H × SHIFTS_PER_SLICE × W`` floats at a time.
@@ -290,3 +290,17 @@ def alias_depths_m(dense: DenseDisparity, focal_px: torch.Tensor, baseline_m: to
     valid = usable.unsqueeze(-1) & (disparity >= low.unsqueeze(-1)) & (total > 0)
     depth = (focal_px.to(torch.float64) * baseline_m.to(torch.float64)).view(-1, 1, 1) / torch.where(valid, total, 1.0)
     return torch.where(valid, depth, 0.0).to(focal_px.dtype), valid
+
+
+def nearest_alias_depth_m(dense: DenseDisparity, unranged: torch.Tensor, focal_px: torch.Tensor,
+                          baseline_m: torch.Tensor, doffs_px: torch.Tensor | None = None) -> torch.Tensor:
+    """How near each pair's ``unranged`` repeated objects (``(B, N)`` bool) may be: the nearest of their aliases'
+    distances (:func:`alias_depths_m`, same arguments), 0 where one has no alias to bound it (its shift was not
+    found: it may be anywhere), NaN where a pair has none. ``(B,)``; not differentiable."""
+    depth_m, valid = alias_depths_m(dense, focal_px, baseline_m, doffs_px)
+    check_shape(unranged, "unranged", [dense.valid.shape[0], depth_m.shape[1]])
+    per_object = torch.where(valid, depth_m, torch.inf).amin(-1) if depth_m.shape[-1] else depth_m.sum(-1)
+    per_object = torch.where(valid.any(-1), per_object, 0.0)
+    nearest = torch.where(unranged.to(torch.bool), per_object, torch.inf).amin(-1) if unranged.shape[1] else \
+        per_object.new_full((unranged.shape[0],), torch.inf)
+    return torch.where(torch.isinf(nearest), torch.nan, nearest)

@@ -142,3 +142,16 @@ class PipelineResult:
         if self.dense is None or self.dense.repeated is None:
             return None
         return (self.segmentation.left.kept_labels >= 0) & self.dense.repeated.unranged(self.depth.objects.valid)
+
+    @property
+    def nearest_unranged_alias_m(self) -> torch.Tensor | None:
+        """``(B,)``: how near each pair's :attr:`unranged_repeated` objects may be, by the nearest of their aliases'
+        distances (0: one no alias bounds; NaN: the pair has none;
+        :func:`~svs_torch.depth.alias_choice.nearest_alias_depth_m`); None where the check did not run. ``guide``
+        says such a pattern aloud when it may lie within the warning band."""
+        unranged = self.unranged_repeated
+        if unranged is None:
+            return None
+        from ..depth.alias_choice import nearest_alias_depth_m
+
+        return nearest_alias_depth_m(self.dense, unranged, self.focal_px, self.baseline_m, self.doffs_px)

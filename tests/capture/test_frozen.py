@@ -77,11 +77,13 @@ def test_frames_from_before_a_reset_are_not_compared_with():
 
 
 def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count: int, blind_s: float = 0.15,
-              unranged_repeated: torch.Tensor | None = None, status_stream=None):
+              unranged_repeated: torch.Tensor | None = None, status_stream=None, result=None, policy=None):
     """``guide``'s session over a fake camera: each open streams the next of ``streams`` (pairs and their frames'
-    gaps in seconds, or None for a tick without a pair, 10 ms apart), lost after each but the last. Returns the session, the lines said, the logged
-    events (name, camera) and the pairs ranged (each seen). Each pair's result has no obstacle, and the kept
-    objects ``unranged_repeated`` marks; the status line goes to ``status_stream`` (None: nowhere)."""
+    gaps in seconds, or None for a tick without a pair, 10 ms apart), lost after each but the last. Returns the
+    session, the lines said, the logged events (name, camera or nearest_alias_m) and the pairs ranged (each seen). Each pair's result
+    is ``result`` (a PipelineResult of one pair), or has no obstacle, and no kept object but those
+    ``unranged_repeated`` marks (not one, or None); the status line goes to ``status_stream`` (None: nowhere);
+    ``policy``: the WarningPolicy (default its own)."""
     from svs_torch.capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
     from svs_torch.capture.link_types import CaptureError
     from svs_torch.cli import guide_loop
@@ -102,32 +104,25 @@ def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count
 
     def ranging(batch):
         ranged.append(batch)
+        if result is not None:
+            return result
         return SimpleNamespace(status=torch.tensor([0]), segmentation=SimpleNamespace(from_disparity=None),
                                depth=SimpleNamespace(nearest=SimpleNamespace(valid=torch.tensor([False]),
                                                                             surface_m=torch.tensor([0.0]),
                                                                             side=torch.tensor([0]))),
-                               unranged_repeated=unranged_repeated)
+                               unranged_repeated=unranged_repeated, nearest_unranged_alias_m=None)
 
     monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
     log = guide_loop.GuideLog(None, None)
-    monkeypatch.setattr(log, "event", lambda name, **fields: events.append((name, fields.get("camera"))))
-    guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
+    # (name, its camera, or its nearest_alias_m)
+    monkeypatch.setattr(log, "event", lambda name, **fields: events.append(
+        (name, fields.get("camera", fields.get("nearest_alias_m")))))
+    guide = LiveGuide(policy or WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     args = argparse.Namespace(count=count, blind_s=blind_s, give_up_s=0, reconnect_s=0.01)
     status_line = StatusLine(status_stream, interval_s=0.0, tty=False)
     session = guide_loop.GuideSession(args, (32, 24), ranging, guide, status_line, log)
     session.run()
     return session, said, events, ranged
-
-
-def test_guide_shows_a_repeated_pattern_it_saw_but_could_not_range(monkeypatch):
-    """Was: a fence ahead whose alias the views could not tell (svs_torch.depth.alias_choice) left guide's status
-    line at "nearest none", like a clear path. Now the line says a repeated pattern was seen and not ranged."""
-    streams = [[(pair(*frames(2, seed=3)), 0.0)]]
-    for marked, expected in ((torch.tensor([[True, False]]), 1), (torch.tensor([[False, False]]), 0), (None, 0)):
-        shown = io.StringIO()
-        run_guide(monkeypatch, streams, count=1, unranged_repeated=marked, status_stream=shown)
-        lines = shown.getvalue().splitlines()
-        assert lines and sum("a repeated pattern seen, not ranged" in line for line in lines) == expected, lines
 
 
 def test_guide_does_not_range_a_frozen_cameras_pairs_and_says_which_to_check_once(monkeypatch):

@@ -1257,7 +1257,8 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: next(cameras))
     nearest = SimpleNamespace(valid=torch.tensor([False]), surface_m=torch.tensor([0.0]), side=torch.tensor([0]))
     blank = SimpleNamespace(status=torch.tensor([7]), segmentation=SimpleNamespace(from_disparity=None),
-                            depth=SimpleNamespace(nearest=nearest), unranged_repeated=None)
+                            depth=SimpleNamespace(nearest=nearest), unranged_repeated=None,
+                            nearest_unranged_alias_m=None)
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
     guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     guide_loop.GuideSession(args, (320, 240), lambda batch: blank, guide, StatusLine(None),
