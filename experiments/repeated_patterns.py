@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_segmentation import sgbm_rival  # noqa: E402
 from run_metadata import command_line, rendered_experiment_setup, report_rows, run_script  # noqa: E402
 
+from svs_torch.capture.guide import WarningPolicy  # noqa: E402
 from svs_torch.core.camera import SVS_CAMERA  # noqa: E402
 from svs_torch.core.types import StereoBatch  # noqa: E402
 from svs_torch.data import camera_frame_pairs  # noqa: E402
@@ -54,6 +55,8 @@ TOLERANCE = 0.05
 #: The rendered set the alias rule was chosen on (``--seed``: the panels' textures and the sensor noise); 8 and 9
 #: were only reported (repeated_patterns.md, "The whole object's alias").
 SEED = 7
+#: guide's default warning band's far edge, metres (a pattern that may lie within it is said aloud).
+GUIDE_FAR_M = WarningPolicy().far_m
 #: The conditions: name, the right camera's deviation, JPEG digit (0: none) and sensor noise in 8-bit levels.
 CONDITIONS = (("as rendered", RigDeviation(), 0, 0.0), ("roll 0.5°", RigDeviation(roll_deg=0.5), 0, 0.0),
               ("roll 1.5°", RigDeviation(roll_deg=1.5), 0, 0.0), ("scale +2 %", RigDeviation(scale=0.02), 0, 0.0),
@@ -147,15 +150,18 @@ def condition_batch(lefts: np.ndarray, rights: np.ndarray, deviation: RigDeviati
 
 
 def outcome(setting: str, condition: str, case: tuple, nearest_m: float | None, ok: bool,
-            aliases_m: list[float] | None = None) -> dict:
+            aliases_m: list[float] | None = None, may_be_within_m: float | None = None) -> dict:
     """One panel's row; ``aliases_m``: the distances of the aliases of its objects reported as a repeated pattern
-    left unranged (None: none is)."""
+    left unranged (None: none is); ``may_be_within_m``: how near they may be (``nearest_unranged_alias_m``), which
+    ``said_aloud`` compares with guide's default warning band (``guide`` says such a pattern aloud where it may
+    lie within the band, :class:`~svs_torch.capture.pattern_notice.PatternNotice`)."""
     kind, period, z = case
     ranged = nearest_m is not None and abs(nearest_m - z) <= TOLERANCE * z
     said = nearest_m is None and aliases_m is not None
     return {"setting": setting, "condition": condition, "kind": kind, "period_px": period, "depth_m": z,
             "nearest_m": nearest_m, "ranged": ranged, "wrong": ok and nearest_m is not None and not ranged,
             "unranged": nearest_m is None, "said_repeated": said,
+            "said_aloud": nearest_m is None and may_be_within_m is not None and may_be_within_m <= GUIDE_FAR_M,
             "truth_among_aliases": said and any(abs(a - z) <= TOLERANCE * z for a in aliases_m),
             "acc_pct": 0.0 if nearest_m is None else max(0.0, 100 * (1 - abs(z - nearest_m) / z))}
 
@@ -172,7 +178,8 @@ def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, cond
         ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
         said = marked is not None and bool(marked[i].any())
         aliases = depth_m[i][valid[i]].tolist() if said else None
-        rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok, aliases))
+        within = float(result.nearest_unranged_alias_m[i]) if said else None
+        rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok, aliases, within))
     return rows
 
 

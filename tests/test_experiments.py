@@ -571,14 +571,14 @@ def test_repeated_patterns_renders_panels_an_independent_matcher_ranges_and_coun
     np.testing.assert_allclose(np.asarray(read)[measured], disparities[measured], atol=0.5)
     rows = [rp.outcome("s", "c", ("bars", 8, 1.5), 1.52, True), rp.outcome("s", "c", ("grate", 8, 1.5), 2.5, True),
             rp.outcome("s", "c", ("bars", 8, 1.5), None, False),
-            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [0.75, 1.5, 3.0]),
-            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [0.75, 3.0]),
-            rp.outcome("s", "c", ("bars", 8, 1.5), 1.5, True, [0.75, 3.0])]  # ranged: its other object's aliases
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [0.75, 1.5, 3.0], 0.75),
+            rp.outcome("s", "c", ("bars", 8, 1.5), None, False, [2.5, 3.0], 2.5),  # beyond guide's band: not aloud
+            rp.outcome("s", "c", ("bars", 8, 1.5), 1.5, True, [0.75, 3.0], 0.75)]  # ranged: its other object's
     assert [(r["ranged"], r["wrong"], r["unranged"]) for r in rows] == [
         (True, False, False), (False, True, False), (False, False, True), (False, False, True), (False, False, True),
         (True, False, False)]
-    assert [(r["said_repeated"], r["truth_among_aliases"]) for r in rows] == [(False, False)] * 3 + [
-        (True, True), (True, False), (False, False)]
+    assert [(r["said_repeated"], r["truth_among_aliases"], r["said_aloud"]) for r in rows] == [
+        (False, False, False)] * 3 + [(True, True, True), (True, False, False), (False, False, False)]
     assert "| s | c | 2 | 1 | 3 | 2 (1) | 38.67 | 0 | 0 | 1 |" in rp.markdown(rows, "command")
 
 
