@@ -14,8 +14,8 @@ import torch
 from test_frozen import frames, pair, run_guide
 
 from svs_torch.capture.guide import CANNOT_SEE, WarningPolicy
-from svs_torch.cli.guide_loop import GUIDE_READY
 from svs_torch.capture.pattern_notice import REPEATED_PATTERN, PatternNotice
+from svs_torch.cli.guide_loop import GUIDE_READY
 from svs_torch.core.errors import InputError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
