@@ -73,8 +73,7 @@ def _panel_size_in(height: int, width: int) -> tuple[float, float]:
 
 def _title(ax, text: str, width_in: float, fontsize: float = 10) -> None:
     """A title wrapped to the panel's width, so that it never runs past the panel or the page."""
-    ax.set_title(textwrap.fill(text, max(int(width_in * TITLE_CHARS_PER_IN * 10 / fontsize), 12)),
-                 fontsize=fontsize)
+    ax.set_title(textwrap.fill(text, max(int(width_in * TITLE_CHARS_PER_IN * 10 / fontsize), 12)), fontsize=fontsize)
 
 
 def _depth_map(disparity: torch.Tensor, valid: torch.Tensor, focal_px: float, baseline_m: float,
@@ -123,18 +122,19 @@ def _true_object_depths(batch, seg, index: int) -> dict[int, float]:
 
 
 def _objects_axis(ax, batch, result, index: int, width_in: float, area_scale: float = 1.0) -> dict[int, float]:
-    """The kept objects tinted, boxed and labelled with their median (and true) depths; returns the true depths."""
+    """The kept objects tinted, boxed and labelled with their median (and true) depths; returns the true depths. An
+    unranged repeated pattern reads "no depth: it repeats" (as estimate says; a bare "no depth" read as unmeasured)."""
     height, width = (int(v) for v in batch.image_hw[index].tolist())
     seg = result.segmentation.left
     panel = objects_panel(batch.left, seg, index, area_scale)[:height, :width]
     ax.imshow(cv2.cvtColor(panel, cv2.COLOR_BGR2RGB), interpolation="nearest")
-    objects = result.depth.objects
-    truth, labels = _true_object_depths(batch, seg, index), []
+    objects, repeats, truth, labels = result.depth.objects, result.unranged_repeated, _true_object_depths(
+        batch, seg, index), []
     for slot, label in enumerate(seg.kept_labels[index].tolist()):
         if label < 0:  # a kept object without depth or truth is labelled too (it was left bare: an audit)
             continue
         estimate = (f"{float(objects.depth_median_m[index, slot]):.2f} m" if bool(objects.valid[index, slot])
-                    else "no depth")
+                    else "no depth: it repeats" if repeats is not None and bool(repeats[index, slot]) else "no depth")
         true = f"\ntrue {truth[slot]:.2f} m" if slot in truth else ""
         top = float(seg.regions.bbox_xyxy[index, label - 1, 1])
         labels.append((*seg.regions.centroid_xy[index, label - 1].tolist(), top, f"#{slot + 1}: {estimate}{true}"))

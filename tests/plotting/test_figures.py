@@ -83,6 +83,25 @@ def test_pipeline_figure_shows_ground_truth_beside_the_estimate(scene):
     assert_every_text_inside(figure)
 
 
+def test_pipeline_figure_says_an_unranged_object_repeats(scene):
+    """Was: a fence whose alias the views could not tell (the rendered 8 px bars at 1.5 m of
+    experiments/repeated_patterns.py as a loose rig's frames) was labelled "no depth", like a region nothing could be
+    measured on, where estimate's text says it repeats. Now its label says so; a ranged object's is as before."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
+    import repeated_patterns as rp
+
+    lefts, rights, _, _ = rp.render_pairs(periods=(8,))
+    bars = rp.condition_batch(lefts, rights, rp.LOOSE_RIG, 4, 4.0).select([rp.cases((8,)).index(("bars", 8, 1.5))])
+    with torch.inference_mode():
+        result = estimate_obstacle_depth(bars, PipelineConfig())
+    assert bool(result.unranged_repeated[0].all())
+    labels = sorted(t.get_text() for ax in pipeline_figure(bars, result, 0).axes for t in ax.texts)
+    assert labels == ["#1: no depth: it repeats", "#2: no depth: it repeats"]
+    assert not any("repeats" in t.get_text() for ax in pipeline_figure(*scene, 0).axes for t in ax.texts)
+
+
 def test_pipeline_figure_labels_are_white_on_dark_boxes_and_lines_have_a_legend(scene):
     batch, result = scene
     figure = pipeline_figure(batch, result, 0)
