@@ -379,6 +379,6 @@ class GuideSession:
         warned = {"distance_m": None if distance is None else round(distance, 4), "side": side,
                   "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
-                  "class": shown, "message": message}
+                  "class": shown, "message": message or notice}  # the words said on this pair (at most one)
         self.processed += 1  # taken (ranged, warned of) before it is kept: a --json line that broke is still counted
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)

@@ -117,6 +117,8 @@ def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count
     # (name, its camera, or its nearest_alias_m)
     monkeypatch.setattr(log, "event", lambda name, **fields: events.append(
         (name, fields.get("camera", fields.get("nearest_alias_m")))))
+    log.warnings = []  # each ranged pair's 'warning', as --json writes it
+    monkeypatch.setattr(log, "write", lambda pair, result, elapsed_s, warning, dropped: log.warnings.append(warning))
     guide = LiveGuide(policy or WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     args = argparse.Namespace(count=count, blind_s=blind_s, give_up_s=0, reconnect_s=0.01)
     status_line = StatusLine(status_stream, interval_s=0.0, tty=False)

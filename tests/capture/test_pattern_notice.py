@@ -93,6 +93,8 @@ def test_guide_says_an_unranged_pattern_that_may_be_near_where_it_was_silent(mon
         [line for line in said if line == REPEATED_PATTERN])
     assert "cannot_see" not in [name for name, _ in events]
     assert "a repeated pattern seen, not ranged" in shown.getvalue()
+    # --json's per-pair 'warning' holds the words said on the pair, as for a warning
+    assert [w["message"] for w in session.log.warnings if w["message"]] == said[1:]
 
 
 def test_guide_says_no_pattern_beyond_the_band_nor_one_beside_a_warning(monkeypatch, panels):
