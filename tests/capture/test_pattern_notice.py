@@ -142,3 +142,24 @@ def test_guide_shows_a_repeated_pattern_it_saw_but_could_not_range(monkeypatch, 
         run_guide(monkeypatch, streams, count=1, unranged_repeated=marked, status_stream=shown, result=result)
         lines = shown.getvalue().splitlines()
         assert lines and sum("a repeated pattern seen, not ranged" in line for line in lines) == expected, lines
+
+
+def test_a_covered_lens_or_unrelated_views_make_no_pattern_to_speak_of():
+    """Noise is no fence: a covered lens's dark noise and two unrelated random views, as the board's digit 4 frames
+    through guide's configuration, have no unranged repeated object, so guide never says REPEATED_PATTERN for them
+    (nor counts them as seen). With the period test's least peak at 0.05 instead of its default, the first noise
+    pair here reads as a pattern at 0.38 m."""
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.data import camera_frame_pairs
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    generator = torch.Generator().manual_seed(0)
+    left = 0.08 + 0.02 * torch.randn(6, 1, 240, 320, generator=generator)
+    right = 0.08 + 0.02 * torch.randn(6, 1, 240, 320, generator=generator)
+    left[3:], right[3:] = torch.rand(3, 1, 240, 320, generator=generator), torch.rand(3, 1, 240, 320,
+                                                                                      generator=generator)
+    frames = camera_frame_pairs(StereoBatch.from_images(left.clamp(0, 1), right.clamp(0, 1), 276.0, 0.1075), 4, 4.0,
+                                torch.Generator().manual_seed(1))
+    with torch.inference_mode():
+        result = estimate_obstacle_depth(frames, PipelineConfig().for_guide())
+    assert bool(result.nearest_unranged_alias_m.isnan().all()), result.nearest_unranged_alias_m
