@@ -174,11 +174,12 @@ def pipeline_rows(batch: StereoBatch, config: PipelineConfig, setting: str, cond
     if marked is not None:
         depth_m, valid = alias_depths_m(result.dense, batch.focal_px, batch.baseline_m, batch.doffs_px)
         valid &= marked.unsqueeze(-1)
+        nearest_alias = result.nearest_unranged_alias_m.tolist()  # once for the batch, not a pair at a time
     for i, case in enumerate(cases(periods)):
         ok = int(result.status[i]) == PipelineStatus.OK and bool(nearest.valid[i])
         said = marked is not None and bool(marked[i].any())
         aliases = depth_m[i][valid[i]].tolist() if said else None
-        within = float(result.nearest_unranged_alias_m[i]) if said else None
+        within = nearest_alias[i] if said else None
         rows.append(outcome(setting, condition, case, float(nearest.depth_m[i]) if ok else None, ok, aliases, within))
     return rows
 

@@ -373,9 +373,8 @@ class GuideSession:
             self.log.event("repeated_pattern", pair=item.pairs[0].index,
                            nearest_alias_m=round(self.pattern.nearest_m, 3))
         shown = self._shown(seen)
-        pattern = result.unranged_repeated is not None and bool(result.unranged_repeated.any())  # a fence, unranged
         self.status_line.show(f"{self.guide.status(confirmed, shown)}  {confirmed_side or side}"
-                              + ("  a repeated pattern seen, not ranged" if pattern else ""))
+                              + ("  a repeated pattern seen, not ranged" if pattern_m is not None else ""))
         warned = {"distance_m": None if distance is None else round(distance, 4), "side": side,
                   "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
