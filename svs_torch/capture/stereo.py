@@ -12,7 +12,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -21,6 +20,7 @@ import torch
 
 from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError
+from ..core.daemon_task import DaemonTask
 from ..core.image_files import JPEG_GRAY_DECODE, damaged_jpeg, declared_size, decode_collecting
 from ..core.types import StereoBatch
 from .link import CameraLink, check_link_url
@@ -189,7 +189,7 @@ class SVSStereoCamera:
         self.links = {"left": CameraLink(left_url, "left", config), "right": CameraLink(right_url, "right", config)}
         self.size_wh = tuple(size_wh)
         self.versions: dict[str, VersionInfo] = {}
-        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="svs-capture")
+        self._closed = False
         self._next_index = first_index
         try:
             self._both(lambda link: self._setup(link, quality, flip))
@@ -325,27 +325,26 @@ class SVSStereoCamera:
             state.fail(err)
 
     def close(self) -> None:
-        """Close both links (concurrently: pyserial's socket close sleeps 0.3 s each); safe to call twice."""
-        pool = self._pool
-        if pool is None:
-            return
-        list(pool.map(lambda link: link.close(), self.links.values()))
-        pool.shutdown(wait=True)
-        self._pool = None
+        """Close both links (concurrently: pyserial's socket close sleeps 0.3 s each); safe to call twice (a close
+        that a Ctrl-C cut short closes what is left when called again)."""
+        self._closed = True
+        for task in [DaemonTask(link.close, name=f"svs-close-{link.name}") for link in self.links.values()]:
+            task.result()
 
     def _both(self, work: Callable[[CameraLink], T]) -> tuple[T, T]:
-        """Run ``work`` on the left and right links concurrently; re-raise a failure after both finished."""
-        if self._pool is None:
+        """Run ``work`` on the left and right links concurrently, each in a daemon thread (not a pool: a Ctrl-C must
+        never wait on a board; ``core.daemon_task`` says why); re-raise a failure after both finished."""
+        if self._closed:
             raise CaptureError("SVSStereoCamera: the camera is closed")
-        futures = [self._pool.submit(work, self.links[name]) for name in ("left", "right")]
-        errors = [f.exception() for f in futures]
+        tasks = [DaemonTask(work, self.links[name], name=f"svs-capture-{name}") for name in ("left", "right")]
+        errors = [task.exception() for task in tasks]
         failed = [e for e in errors if e is not None]
         if len(failed) == 2 and all(isinstance(e, CaptureError) for e in failed):
             both_damaged = all(isinstance(e, DamagedFrameError) for e in failed)
             raise (DamagedFrameError if both_damaged else CaptureError)(f"{failed[0]}; and {failed[1]}") from failed[0]
         if failed:
             raise failed[0]
-        return futures[0].result(), futures[1].result()
+        return tasks[0].result(), tasks[1].result()
 
     def __enter__(self) -> SVSStereoCamera:
         return self

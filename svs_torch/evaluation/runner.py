@@ -10,7 +10,6 @@ in another order with equal results (``tests/pipeline/test_batch_independence.py
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import statistics
 import time
@@ -21,6 +20,7 @@ import torch
 
 from ..core.camera import calibration_value_expected, too_many_pixels
 from ..core.checks import InputError
+from ..core.daemon_task import DaemonTask
 from ..core.size_groups import same_size_indices
 from ..core.types import StereoBatch
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
@@ -266,15 +266,15 @@ def evaluate_pairs(sources: Sequence[PairSource], setup: EvalSetup, batch_size: 
     blocks = [list(sources[i:i + batch_size]) for i in range(0, len(sources), batch_size)]
     if not blocks:
         return
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as loader:
-        pending = loader.submit(load_block, blocks[0], setup)
-        for number, block in enumerate(blocks):
-            loaded = pending.result()
-            if number + 1 < len(blocks):
-                pending = loader.submit(load_block, blocks[number + 1], setup)
-            yield from zip(block, run_loaded(loaded, setup.config, on_result))
-            if on_block is not None:
-                on_block(len(block))
+    # A daemon thread, not an executor: a Ctrl-C must never wait on the decoding (core.daemon_task says why)
+    pending = DaemonTask(load_block, blocks[0], setup, name="svs-decode-ahead")
+    for number, block in enumerate(blocks):
+        loaded = pending.result()
+        if number + 1 < len(blocks):
+            pending = DaemonTask(load_block, blocks[number + 1], setup, name="svs-decode-ahead")
+        yield from zip(block, run_loaded(loaded, setup.config, on_result))
+        if on_block is not None:
+            on_block(len(block))
 
 
 def _mean(values: list[float]) -> float | None:

@@ -1,0 +1,165 @@
+"""DaemonTask, and the Ctrl-C that once hung ``svs-depth eval`` in CI (core/daemon_task.py says how).
+
+The hang needs a signal to land in the few bytecodes between a lock's acquire and the ``with`` block that releases
+it, so no number of real Ctrl-Cs makes it happen on demand (187 runs here did not). These tests make it land
+there every time: a trace function raises KeyboardInterrupt as ``threading.Condition.__enter__`` returns with its
+lock taken, which is what Python's own signal check does at that point, once at each such place in turn.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+
+import pytest
+from conftest import REPO_ROOT
+
+from svs_torch.core.daemon_task import DaemonTask
+
+# Shared by both child processes: interrupt(run) calls run() with KeyboardInterrupt raised as the k-th
+# Condition.__enter__ of this thread returns, for k = 1, 2, ... until run() ends without one; it prints each place.
+_INTERRUPT_EACH_PLACE = '''
+import sys, threading
+
+def interrupt(run, after=lambda: None):
+    for k in range(1, 50):
+        entered = [0]
+        def tracer(frame, event, arg):
+            return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
+        def local(frame, event, arg):
+            if event == "return":
+                entered[0] += 1
+                if entered[0] == k:
+                    sys.settrace(None)
+                    caller = frame.f_back
+                    print("interrupted in", caller.f_code.co_name, "<-", caller.f_back.f_code.co_name, flush=True)
+                    raise KeyboardInterrupt
+            return local
+        sys.settrace(tracer)
+        try:
+            run()
+        except KeyboardInterrupt:
+            after()
+            continue
+        finally:
+            sys.settrace(None)
+        print("ended with no interrupt after", k - 1, flush=True)
+        return
+'''
+
+_EVAL_CHILD = _INTERRUPT_EACH_PLACE + '''
+from svs_torch.data import read_pair_sources
+from svs_torch.evaluation import EvalSetup, evaluate_pairs
+
+scenes = [sys.argv[1] + "/middlebury_eval3_Q/" + name for name in ("Teddy", "ArtL", "Motorcycle")]
+sources, setup = read_pair_sources(scenes), EvalSetup(size_wh=(96, 72))
+def run():
+    rows = evaluate_pairs(sources, setup, batch_size=1)
+    next(rows)  # the decode-ahead has started on the next block
+    for _ in rows:
+        pass
+interrupt(run)
+'''
+
+_CAPTURE_CHILD = _INTERRUPT_EACH_PLACE + '''
+from hw.emulator import EmulatorServer
+from svs_torch.capture import LinkConfig, SVSStereoCamera
+import numpy as np
+
+fast = LinkConfig(reply_timeout_s=0.25, transfer_margin_s=0.1, reconnect_delay_s=0.05, drain_quiet_s=0.02,
+                  drain_max_s=0.2, poll_s=0.01)
+noise = np.random.default_rng(0).integers(0, 200, (120, 160), dtype=np.uint8)
+with EmulatorServer(left_port=0, right_port=0, source=lambda camera, w, h, t: noise[:h, :w]) as server:
+    cameras = []
+    def run():
+        cameras.append(SVSStereoCamera(server.urls["left"], server.urls["right"], size_wh=(160, 120), config=fast,
+                                       max_frame_gap_s=None))
+        cameras[-1].grab_pair()
+        cameras[-1].close()
+    def after():  # what guide does on Ctrl-C: close the camera (it must not wait for the interrupted grab)
+        if cameras:
+            cameras[-1].close()
+    interrupt(run, after)
+'''
+
+
+def _run_child(code: str, *args: str) -> list[str]:
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), PYTHONFAULTHANDLER="1")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, *args], cwd=REPO_ROOT, env=env, capture_output=True,
+                              text=True, timeout=60)
+    except subprocess.TimeoutExpired as hung:
+        pytest.fail("a Ctrl-C left the process waiting for good after:\n" + (hung.stdout or b"").decode()[-3000:])
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    assert lines and lines[-1].startswith("ended with no interrupt"), done.stdout
+    return lines
+
+
+def test_a_task_gives_its_value_or_raises_its_error_in_the_caller():
+    assert DaemonTask(sum, [1, 2, 3]).result() == 6
+    failing = DaemonTask(int, "seven")
+    with pytest.raises(ValueError, match="seven"):
+        failing.result()
+    assert isinstance(failing.exception(), ValueError) and failing.done()
+    release = threading.Event()
+    waiting = DaemonTask(release.wait, name="svs-test-wait")
+    assert not waiting.done() and waiting._thread.daemon and waiting._thread.name == "svs-test-wait"
+    release.set()
+    assert waiting.result() is True
+
+
+_EXIT_CHILD = """
+import sys, threading, time
+from svs_torch.core.daemon_task import DaemonTask
+
+def slow_write(path):
+    time.sleep(0.5)
+    with open(path, "w") as done:
+        done.write("the call ended")
+
+if sys.argv[2] == "interrupted start":  # a Ctrl-C while start() waits for the thread to begin (as eval's did)
+    def tracer(frame, event, arg):
+        return local if event == "call" and frame.f_code is threading.Condition.wait.__code__ else None
+    def local(frame, event, arg):
+        if event == "return":
+            sys.settrace(None)
+            raise KeyboardInterrupt
+        return local
+    sys.settrace(tracer)
+    try:
+        DaemonTask(slow_write, sys.argv[1])
+    except KeyboardInterrupt:
+        sys.settrace(None)
+        print("interrupted", flush=True)
+else:
+    DaemonTask(slow_write, sys.argv[1])
+"""
+
+
+@pytest.mark.parametrize("how", ["plain", "interrupted start"])
+def test_pythons_exit_lets_a_running_call_end(tmp_path, how):
+    """Was: the exit went on while eval's decode-ahead was inside OpenCV, and Python's ending of that thread
+    aborted the process (SIGABRT in 6 Ctrl-Cs of 6); with the call counted only after start() returned, a Ctrl-C
+    in start() left it uncounted and so unwaited for."""
+    done = subprocess.run([sys.executable, "-c", _EXIT_CHILD, str(tmp_path / "done.txt"), how], cwd=REPO_ROOT,
+                          env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == ("interrupted\n" if how == "interrupted start" else "")
+    assert (tmp_path / "done.txt").read_text() == "the call ended"
+
+
+def test_eval_ends_after_a_ctrl_c_wherever_it_lands_in_the_decode_ahead(data_dir):
+    """The CI failure: Ctrl-C as ``submit`` took the executor's semaphore left its worker waiting on it, and
+    the executor's exit waiting on the worker (the threads' stacks said so)."""
+    lines = _run_child(_EVAL_CHILD, str(data_dir))
+    assert sum(line.startswith("interrupted in") for line in lines) >= 1, lines
+
+
+def test_a_camera_closes_after_a_ctrl_c_wherever_it_lands_in_a_grab():
+    """The same pool was a stereo camera's two boards: Ctrl-C in a grab's ``submit`` left close() (which submitted
+    the boards' closing) waiting on the semaphore its own thread held."""
+    lines = _run_child(_CAPTURE_CHILD)
+    assert sum(line.startswith("interrupted in") for line in lines) >= 2, lines
