@@ -39,6 +39,35 @@ def test_ctrl_c_while_the_interpreter_shuts_down_prints_no_traceback(tmp_path):
     assert result.stderr.startswith("svs-depth capture: error:")  # the command's own line, said before
 
 
+def test_a_line_said_while_another_thread_decodes_is_not_lost(tmp_path):
+    """Was: eval decodes its next block in a thread, which lends descriptor 2 to the C decoders meanwhile
+    (core.image_files), and a line the program wrote to stderr then went with their messages: eval stopped by
+    Ctrl-C lost "interrupted" and what its store kept. The program's stderr now waits for the decoder's window."""
+    code = ("import sys, threading, time\n"
+            "from svs_torch.cli import main\n"
+            "from svs_torch.core.image_files import _native_stderr_collected\n"
+            "sys.argv = ['svs-depth', '--version']\n"
+            "try:\n"
+            "    main()\n"  # the program's set-up, as the console script runs it
+            "except SystemExit:\n"
+            "    pass\n"
+            "lent, collected = threading.Event(), []\n"
+            "def decode():\n"
+            "    with _native_stderr_collected(collected):\n"
+            "        lent.set()\n"
+            "        time.sleep(0.3)\n"
+            "decoder = threading.Thread(target=decode)\n"
+            "decoder.start()\n"
+            "lent.wait()\n"
+            "print('svs-depth eval: interrupted', file=sys.stderr, flush=True)\n"
+            "decoder.join()\n"
+            "print('collected', collected)\n")
+    result = _python(code, tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == "svs-depth eval: interrupted\n"
+    assert result.stdout.endswith("collected []\n")
+
+
 def test_main_called_with_arguments_leaves_the_ctrl_c_handler_alone(tmp_path):
     """A script or test that calls main(argv) keeps its own Ctrl-C handling."""
     from svs_torch.cli import main
