@@ -8,7 +8,8 @@ condition held by the main thread for good; the worker then waited on it, and th
 own, which joins every pool worker) waited on the worker: ``svs-depth eval`` hung after Ctrl-C (once in CI; the
 threads' stacks showed ``_idle_semaphore.release`` and ``shutdown``; ``tests/core/test_daemon_task.py`` makes the
 interrupt land there on purpose). A daemon thread is joined by nothing but :meth:`DaemonTask.result`, whose wait
-(``Thread.join``) releases what an interrupt leaves behind, and Python's exit does not wait for it.
+(``Thread.join``) releases what an interrupt leaves behind, and by Python's exit for a bounded time only
+(:data:`AT_EXIT_WAIT_S`).
 """
 
 from __future__ import annotations
