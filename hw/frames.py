@@ -8,8 +8,10 @@ for long: the synthetic source renders in a background thread and serves a cheap
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -28,6 +30,8 @@ FrameSource = Callable[[str, int, int, float], np.ndarray]
 WALKER_PITCH_DEG = 20.0
 #: The most :meth:`SyntheticSource.close` waits for the keyframe being rendered, seconds.
 RENDER_STOP_TIMEOUT_S = 120.0
+#: How often SyntheticSource.prepare looks whether the keyframes it waits for are rendered.
+PREPARE_POLL_S = 0.02
 #: The shortest time an image folder's pair is shown (:class:`ImageFolderSource`), seconds: shorter, each grab shows
 #: another pair all the same. Why: 5e-324 was taken as "positive", and the clock over it overflowed at every grab
 #: ("cannot convert float infinity to integer"), so neither board ever sent a frame.
@@ -195,20 +199,30 @@ class SyntheticSource:
                 return self._complete(size_wh)
             return any(key[:2] == size_wh for key in self._torch)
 
-        with self._wake:
-            self._want(size_wh)
-            return self._wake.wait_for(done, timeout=timeout_s)
+        # Polled under the plain lock, not waited on the Condition: a Ctrl-C that landed as the Condition's
+        # __enter__ (Python) took the lock left it held, and close() then waited on it for good (guide --emulator,
+        # an audit that interrupted each place in turn: tests/cli/test_interrupts).
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                self._want(size_wh)
+                if done():
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(PREPARE_POLL_S)
 
     def close(self) -> None:
         """Stop the background renderer: it finishes the keyframe in hand, which is waited for (up to
         :data:`RENDER_STOP_TIMEOUT_S`). Why: a 640x480 or 1280x1024 keyframe takes seconds on a loaded machine, and
         a render thread still inside torch when the process exits aborted it after its work was done ("terminate
         called without an active exception", exit 134: ``guide --emulator --size 640x480``, an audit)."""
-        with self._wake:
+        with self._lock:  # (not the Condition: see prepare)
             self._closed = True
             self._wake.notify_all()
         if self._thread is not None:
-            self._thread.join(timeout=RENDER_STOP_TIMEOUT_S)
+            with contextlib.suppress(RuntimeError):  # a start() that a Ctrl-C cut short: the thread never began
+                self._thread.join(timeout=RENDER_STOP_TIMEOUT_S)
 
     def _complete(self, size_wh: tuple[int, int]) -> bool:
         return all((*size_wh, i) in self._torch for i in range(self.track.num_keyframes))

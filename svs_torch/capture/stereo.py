@@ -8,6 +8,7 @@ arrives; :attr:`StereoPair.time_between_frames_s` says how far apart the two fra
 from __future__ import annotations
 
 import collections
+import queue
 import threading
 import time
 import warnings
@@ -314,15 +315,15 @@ class SVSStereoCamera:
                 yield PairBatch(to_stereo_batch(pairs, dtype=dtype, device=device), pairs, dropped)
                 produced += 1
         finally:
-            state.stop.set()
+            state.stopped = True
             thread.join(timeout=self.pair_timeout_s())
 
     def _stream_loop(self, state: _Stream) -> None:
         try:
-            while not state.stop.is_set():
-                state.put(self.grab_pair())
+            while not state.stopped:
+                state.arrived.put(self.grab_pair())
         except Exception as err:  # handed to the consumer, which raises it
-            state.fail(err)
+            state.arrived.put(err)
 
     def close(self) -> None:
         """Close both links (concurrently: pyserial's socket close sleeps 0.3 s each); safe to call twice (a close
@@ -365,35 +366,33 @@ def _check_pair_size(left: Frame, right: Frame, size_wh: tuple[int, int]) -> Non
 
 
 class _Stream:
-    """Shared state of :meth:`SVSStereoCamera.stream_batches`: a ring of the latest pairs and a new-pair count."""
+    """What :meth:`SVSStereoCamera.stream_batches` shares with its grabbing thread: a C queue of pairs (or the
+    thread's error), and a stop flag. No Condition or Event: a Ctrl-C that landed as the consumer took one's lock
+    left it held, and the grabbing thread waited on it for good while the consumer waited for that thread (guide
+    hung after Ctrl-C at 4 places of 16, an audit that interrupted each place in turn: tests/cli/test_interrupts)."""
 
     def __init__(self, batch_size: int) -> None:
-        self.ring: collections.deque[StereoPair] = collections.deque(maxlen=batch_size)
+        self.recent: collections.deque[StereoPair] = collections.deque(maxlen=batch_size)
         self.batch_size = batch_size
-        self.new = 0
-        self.error: BaseException | None = None
-        self.stop = threading.Event()
-        self.cond = threading.Condition()
-
-    def put(self, pair: StereoPair) -> None:
-        with self.cond:
-            self.ring.append(pair)
-            self.new += 1
-            self.cond.notify_all()
-
-    def fail(self, err: BaseException) -> None:
-        with self.cond:
-            self.error = err
-            self.cond.notify_all()
+        self.new = 0  # pairs taken off the queue since the last batch (the consumer's alone)
+        self.arrived: queue.SimpleQueue[StereoPair | BaseException] = queue.SimpleQueue()  # (or the error)
+        self.stopped = False
 
     def take(self, timeout_s: float) -> tuple[tuple[StereoPair, ...], int] | None:
         """The latest pairs and how many were dropped, once ``batch_size`` new ones came; None after ``timeout_s``
         without them; the grabbing thread's error raised."""
-        with self.cond:
-            ready = self.cond.wait_for(lambda: self.error is not None or self.new >= self.batch_size, timeout_s)
-            if self.error is not None:
-                raise self.error
-            if not ready:
-                return None
-            dropped, self.new = self.new - self.batch_size, 0
-            return tuple(self.ring), dropped
+        deadline = time.monotonic() + timeout_s
+        while True:
+            waiting = self.new < self.batch_size
+            try:
+                item = (self.arrived.get(timeout=max(0.0, deadline - time.monotonic())) if waiting
+                        else self.arrived.get_nowait())
+            except queue.Empty:
+                if waiting:
+                    return None
+                dropped, self.new = self.new - self.batch_size, 0
+                return tuple(self.recent), dropped
+            if isinstance(item, BaseException):
+                raise item
+            self.recent.append(item)
+            self.new += 1

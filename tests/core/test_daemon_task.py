@@ -1,10 +1,5 @@
-"""DaemonTask, and the Ctrl-C that once hung ``svs-depth eval`` in CI (core/daemon_task.py says how).
-
-The hang needs a signal to land in the few bytecodes between a lock's acquire and the ``with`` block that releases
-it, so no number of real Ctrl-Cs makes it happen on demand (187 runs here did not). These tests make it land
-there every time: a trace function raises KeyboardInterrupt as ``threading.Condition.__enter__`` returns with its
-lock taken, which is what Python's own signal check does at that point, once at each such place in turn.
-"""
+"""DaemonTask, and the Ctrl-C that once hung ``svs-depth eval`` in CI (core/daemon_task.py says how), made to land
+at each place it can (tests/interrupt_places.py)."""
 
 from __future__ import annotations
 
@@ -15,41 +10,13 @@ import threading
 
 import pytest
 from conftest import REPO_ROOT
+from interrupt_places import run_child
 
 from svs_torch.core.daemon_task import DaemonTask
 
-# Shared by both child processes: interrupt(run) calls run() with KeyboardInterrupt raised as the k-th
-# Condition.__enter__ of this thread returns, for k = 1, 2, ... until run() ends without one; it prints each place.
-_INTERRUPT_EACH_PLACE = '''
-import sys, threading
-
-def interrupt(run, after=lambda: None):
-    for k in range(1, 50):
-        entered = [0]
-        def tracer(frame, event, arg):
-            return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
-        def local(frame, event, arg):
-            if event == "return":
-                entered[0] += 1
-                if entered[0] == k:
-                    sys.settrace(None)
-                    caller = frame.f_back
-                    print("interrupted in", caller.f_code.co_name, "<-", caller.f_back.f_code.co_name, flush=True)
-                    raise KeyboardInterrupt
-            return local
-        sys.settrace(tracer)
-        try:
-            run()
-        except KeyboardInterrupt:
-            after()
-            continue
-        finally:
-            sys.settrace(None)
-        print("ended with no interrupt after", k - 1, flush=True)
-        return
-'''
-
-_EVAL_CHILD = _INTERRUPT_EACH_PLACE + '''
+_EVAL_CHILD = '''
+import sys
+from interrupt_places import interrupt_each_place
 from svs_torch.data import read_pair_sources
 from svs_torch.evaluation import EvalSetup, evaluate_pairs
 
@@ -60,10 +27,11 @@ def run():
     next(rows)  # the decode-ahead has started on the next block
     for _ in rows:
         pass
-interrupt(run)
+interrupt_each_place(run)
 '''
 
-_CAPTURE_CHILD = _INTERRUPT_EACH_PLACE + '''
+_CAPTURE_CHILD = '''
+from interrupt_places import interrupt_each_place
 from hw.emulator import EmulatorServer
 from svs_torch.capture import LinkConfig, SVSStereoCamera
 import numpy as np
@@ -77,25 +45,14 @@ with EmulatorServer(left_port=0, right_port=0, source=lambda camera, w, h, t: no
         cameras.append(SVSStereoCamera(server.urls["left"], server.urls["right"], size_wh=(160, 120), config=fast,
                                        max_frame_gap_s=None))
         cameras[-1].grab_pair()
+        for _ in cameras[-1].stream_batches(1, num_batches=2):  # its grabbing thread hands the pairs over
+            pass
         cameras[-1].close()
     def after():  # what guide does on Ctrl-C: close the camera (it must not wait for the interrupted grab)
         if cameras:
             cameras[-1].close()
-    interrupt(run, after)
+    interrupt_each_place(run, after)
 '''
-
-
-def _run_child(code: str, *args: str) -> list[str]:
-    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), PYTHONFAULTHANDLER="1")
-    try:
-        done = subprocess.run([sys.executable, "-c", code, *args], cwd=REPO_ROOT, env=env, capture_output=True,
-                              text=True, timeout=60)
-    except subprocess.TimeoutExpired as hung:
-        pytest.fail("a Ctrl-C left the process waiting for good after:\n" + (hung.stdout or b"").decode()[-3000:])
-    assert done.returncode == 0, done.stderr[-3000:]
-    lines = done.stdout.splitlines()
-    assert lines and lines[-1].startswith("ended with no interrupt"), done.stdout
-    return lines
 
 
 def test_a_task_gives_its_value_or_raises_its_error_in_the_caller():
@@ -154,12 +111,13 @@ def test_pythons_exit_lets_a_running_call_end(tmp_path, how):
 def test_eval_ends_after_a_ctrl_c_wherever_it_lands_in_the_decode_ahead(data_dir):
     """The CI failure: Ctrl-C as ``submit`` took the executor's semaphore left its worker waiting on it, and
     the executor's exit waiting on the worker (the threads' stacks said so)."""
-    lines = _run_child(_EVAL_CHILD, str(data_dir))
+    lines = run_child(_EVAL_CHILD, str(data_dir))
     assert sum(line.startswith("interrupted in") for line in lines) >= 1, lines
 
 
-def test_a_camera_closes_after_a_ctrl_c_wherever_it_lands_in_a_grab():
+def test_a_camera_closes_after_a_ctrl_c_wherever_it_lands_in_a_grab_or_a_stream():
     """The same pool was a stereo camera's two boards: Ctrl-C in a grab's ``submit`` left close() (which submitted
-    the boards' closing) waiting on the semaphore its own thread held."""
-    lines = _run_child(_CAPTURE_CHILD)
+    the boards' closing) waiting on the semaphore its own thread held. A stream's Condition, taken by the consumer
+    as the Ctrl-C came, left its grabbing thread waiting and the consumer's join waiting on that thread."""
+    lines = run_child(_CAPTURE_CHILD)
     assert sum(line.startswith("interrupted in") for line in lines) >= 2, lines
