@@ -58,6 +58,28 @@ def interrupt_each_place(run: Callable[[], object], after: Callable[[], object] 
     raise AssertionError("interrupt_each_place: more than 200 places")
 
 
+def interrupt_where(callers: tuple[str, ...]) -> None:
+    """From now on in this thread, raise KeyboardInterrupt as the first ``threading.Condition.__enter__`` whose
+    callers' function names, innermost first, begin with ``callers`` returns with its lock taken (once)."""
+
+    def tracer(frame, event, arg):
+        return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
+
+    def local(frame, event, arg):
+        if event == "return":
+            names, caller = [], frame.f_back
+            while caller is not None and len(names) < len(callers):
+                names.append(caller.f_code.co_name)
+                caller = caller.f_back
+            if tuple(names) == callers:
+                sys.settrace(None)
+                print("interrupted in", " <- ".join(names), flush=True)
+                raise KeyboardInterrupt
+        return local
+
+    sys.settrace(tracer)
+
+
 def run_child(code: str, *args: str, timeout_s: float = 60) -> list[str]:
     """Run ``code`` (which calls :func:`interrupt_each_place`) in a child Python with the repository and ``tests/``
     importable; fail with what it printed when it does not end within ``timeout_s`` or does not end cleanly.

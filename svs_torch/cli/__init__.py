@@ -14,9 +14,10 @@ import os
 import sys
 import warnings
 
-from ..core.files import PROGRESS_HELP, STDERR_LOCK, error_text, null_device_on
+from ..core.files import PROGRESS_HELP, error_text, null_device_on
 from . import bench, calibrate, capture, demo, estimate, evaluate, features, fundamental, guide, results, segment, sweep
 from .common import STANDARD_OUTPUT, Terminated, stdout_errors_named, terminated_on_sigterm
+from .interrupts import StderrAfterDecoders, end_interrupted
 from .progress import print_above_bar
 
 __all__ = ["main", "build_parser", "CliError"]
@@ -216,9 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:
         _closed_streams_on_the_null_device()
         _unencodable_escaped()
-        sys.stderr = _StderrAfterDecoders(sys.stderr)
+        sys.stderr = StderrAfterDecoders(sys.stderr)
     try:
-        return _main(argv)
+        status = _main(argv)
     finally:
         if argv is None:
             import signal
@@ -227,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
                 signal.signal(signal.SIGINT, signal.SIG_DFL)
             except ValueError:  # not the main thread: Python's handler stays
                 pass
+    if argv is None and status in (130, 143):
+        end_interrupted(status)
+    return status
 
 
 def _closed_streams_on_the_null_device() -> None:
@@ -241,31 +245,6 @@ def _closed_streams_on_the_null_device() -> None:
         null_device_on(fd)
         setattr(sys, name, open(fd, "r" if fd == 0 else "w", encoding="utf-8", errors="backslashreplace",
                                 closefd=False))
-
-
-class _StderrAfterDecoders:
-    """The program's ``sys.stderr``: each write under :data:`~svs_torch.core.files.STDERR_LOCK`, so that no line of
-    any thread goes into the window in which another thread lends descriptor 2 to a C decoder (``core.image_files``)
-    and is lost. Progress and warnings took the lock already; the rest did not: eval stopped by Ctrl-C while it
-    decoded its next block lost "interrupted" and what its store kept (an audit of the interrupt)."""
-
-    def __init__(self, stream) -> None:
-        self._stream = stream
-
-    def write(self, text: str) -> int:
-        with STDERR_LOCK:
-            return self._stream.write(text)
-
-    def writelines(self, lines) -> None:
-        with STDERR_LOCK:
-            self._stream.writelines(lines)
-
-    def flush(self) -> None:
-        with STDERR_LOCK:
-            self._stream.flush()
-
-    def __getattr__(self, name: str):
-        return getattr(self._stream, name)
 
 
 def _unencodable_escaped() -> None:

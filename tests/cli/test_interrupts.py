@@ -64,6 +64,47 @@ def test_guide_ends_after_a_ctrl_c_wherever_it_lands_among_its_threads():
     lines = run_child(_GUIDE_CHILD)
     assert sum(line.startswith("interrupted in") for line in lines) >= 5, lines
 
+_POOL_CHILD = """
+import sys
+from interrupt_places import interrupt_where
+from svs_torch.cli import main
+
+if __name__ == "__main__":  # (the pool's workers import this module again)
+    callers = tuple(sys.argv[1].split(","))
+    sys.argv = ["svs-depth", *sys.argv[2:]]
+    interrupt_where(callers)
+    sys.exit(main())
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a forkserver pool")
+@pytest.mark.parametrize("command, callers", [
+    ("estimate", ("put", "submit")),  # the queue of work ids, which the pool's manager thread then waits on
+    ("sweep", ("wait", "start", "_start_executor_manager_thread")),  # the manager thread, which never begins
+])
+def test_a_command_with_a_pool_ends_after_a_ctrl_c_that_left_a_pool_thread_stuck(data_dir, tmp_path, command,
+                                                                                   callers):
+    """Was: 'svs-depth estimate --pairs LIST --workers 2' said 'interrupted' and then never ended (5 of its 12
+    places a Ctrl-C can leave a lock held; sweep: 1 of 7): Python's exit joined the pool's manager thread, which
+    waited on that lock. Now an interrupted program waits up to 3 s for such threads, then ends without them."""
+    scenes = [data_dir / "middlebury_eval3_Q" / name for name in ("Teddy", "ArtL", "Motorcycle", "Piano")]
+    (tmp_path / "pairs.txt").write_text("".join(f"{scene.as_posix()}\n" for scene in scenes), encoding="utf-8")
+    paths = ", ".join(f'"{scene.as_posix()}"' for scene in scenes[:2])
+    (tmp_path / "s.toml").write_text(f'paths = [{paths}]\nsize = "160x120"\nbatch_size = 2\n', encoding="utf-8")
+    argv = (["estimate", "--pairs", "pairs.txt", "--workers", "2", "--batch-size", "1", "--size", "160x120"]
+            if command == "estimate" else ["sweep", "s.toml", "--db", "s.sqlite", "--workers", "1"])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests")]))
+    child = tmp_path / "child.py"
+    child.write_text(_POOL_CHILD, encoding="utf-8")
+    try:
+        done = subprocess.run([sys.executable, str(child), ",".join(callers), *argv], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"svs-depth {command} did not end after the Ctrl-C")
+    assert done.stdout.startswith(f"interrupted in {' <- '.join(callers)}\n"), done.stdout
+    assert done.returncode == 130, done.stderr
+    assert f"svs-depth {command}: interrupted" in done.stderr
+
 def test_a_line_said_while_another_thread_decodes_is_not_lost(tmp_path):
     """Was: eval decodes its next block in a thread, which lends descriptor 2 to the C decoders meanwhile
     (core.image_files), and a line the program wrote to stderr then went with their messages: eval stopped by
