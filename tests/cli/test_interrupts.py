@@ -64,6 +64,7 @@ def test_guide_ends_after_a_ctrl_c_wherever_it_lands_among_its_threads():
     lines = run_child(_GUIDE_CHILD)
     assert sum(line.startswith("interrupted in") for line in lines) >= 5, lines
 
+
 _POOL_CHILD = """
 import sys
 from interrupt_places import interrupt_where
@@ -104,6 +105,7 @@ def test_a_command_with_a_pool_ends_after_a_ctrl_c_that_left_a_pool_thread_stuck
     assert done.stdout.startswith(f"interrupted in {' <- '.join(callers)}\n"), done.stdout
     assert done.returncode == 130, done.stderr
     assert f"svs-depth {command}: interrupted" in done.stderr
+
 
 def test_a_line_said_while_another_thread_decodes_is_not_lost(tmp_path):
     """Was: eval decodes its next block in a thread, which lends descriptor 2 to the C decoders meanwhile
