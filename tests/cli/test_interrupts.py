@@ -207,6 +207,34 @@ def test_eval_with_db_interrupted_says_what_the_store_kept(data_dir, tmp_path):
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_estimate_workers_interrupted_in_a_long_chunk_end_at_once(data_dir, tmp_path):
+    """Was: 'estimate --pairs LIST --workers 2' stopped by Ctrl-C while its workers ranged chunks of many large
+    pairs waited for those chunks (Python's exit joined the pool's manager thread), and then, past the program's
+    3 s bound, ended with a warning of leaked semaphores from multiprocessing. Now the workers are killed at once."""
+    import time
+
+    scenes = sorted(path for path in (data_dir / "middlebury_eval3_Q").iterdir() if path.is_dir())
+    (tmp_path / "pairs.txt").write_text("".join(f"{scene.as_posix()}\n" for scene in scenes * 6), encoding="utf-8")
+    argv = ["estimate", "--pairs", "pairs.txt", "--workers", "2", "--batch-size", "40", "--size", "1280x960"]
+    process = subprocess.Popen([sys.executable, "-m", "svs_torch.cli", *argv], cwd=tmp_path, text=True,
+                               env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE)
+    try:
+        time.sleep(4)  # the pool started (about 1.5 s), its first chunks begun: each takes seconds at this size
+        process.send_signal(signal.SIGINT)
+        sent = time.monotonic()
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, err
+    assert "leaked" not in err and "Traceback" not in err, err
+    assert err.rstrip().endswith("svs-depth estimate: interrupted")
+    assert time.monotonic() - sent < 20, "the chunks were waited for"
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 def test_sweep_terminated_says_the_store_resumes(data_dir, tmp_path):
     """Was: a sweep stopped by Ctrl-C said 'every finished task is stored in ...; run the same command again to
     resume', but stopped by SIGTERM (a service's stop, kill) only 'terminated'. Now both say it."""
