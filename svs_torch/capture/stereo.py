@@ -193,7 +193,7 @@ class SVSStereoCamera:
         self._closed = False
         self._next_index = first_index
         try:
-            self._both(lambda link: self._setup(link, quality, flip))
+            self._both(lambda link: self._setup(link, quality, flip), wait_at_exit=False)
             self._check_roles(strict_roles)
         except BaseException:
             self.close()
@@ -236,7 +236,7 @@ class SVSStereoCamera:
     def set_size(self, size_wh: tuple[int, int]) -> None:
         """Change the frame size on both boards."""
         code = size_code_for(size_wh)
-        self._both(lambda link: link.set_size(code))
+        self._both(lambda link: link.set_size(code), wait_at_exit=False)
         self._size_code, self.size_wh = code, tuple(size_wh)
 
     @property
@@ -329,15 +329,17 @@ class SVSStereoCamera:
         """Close both links (concurrently: pyserial's socket close sleeps 0.3 s each); safe to call twice (a close
         that a Ctrl-C cut short closes what is left when called again)."""
         self._closed = True
-        for task in [DaemonTask(link.close, name=f"svs-close-{link.name}") for link in self.links.values()]:
+        for task in [DaemonTask(link.close, name=f"svs-close-{link.name}", wait_at_exit=False)
+                     for link in self.links.values()]:
             task.result()
 
-    def _both(self, work: Callable[[CameraLink], T]) -> tuple[T, T]:
+    def _both(self, work: Callable[[CameraLink], T], wait_at_exit: bool = True) -> tuple[T, T]:
         """Run ``work`` on the left and right links concurrently, each in a daemon thread (not a pool: a Ctrl-C must
-        never wait on a board; ``core.daemon_task`` says why); re-raise a failure after both finished."""
+        never wait on a board; ``core.daemon_task`` says why); re-raise a failure after both finished. The exit
+        waits only for a decoding ``work`` (OpenCV): a Ctrl-C as an unreachable board was opened waited 4.1 s."""
         if self._closed:
             raise CaptureError("SVSStereoCamera: the camera is closed")
-        tasks = [DaemonTask(work, self.links[name], name=f"svs-capture-{name}") for name in ("left", "right")]
+        tasks = [DaemonTask(work, self.links[n], name=f"svs-{n}", wait_at_exit=wait_at_exit) for n in STEREO_ROLES]
         errors = [task.exception() for task in tasks]
         failed = [e for e in errors if e is not None]
         if len(failed) == 2 and all(isinstance(e, CaptureError) for e in failed):

@@ -45,24 +45,27 @@ class DaemonTask(Generic[T]):
     """``function(*args)`` started at once in a daemon thread named ``name``. :meth:`result` waits for it and
     returns its value or raises what it raised (:meth:`exception` returns it). Nothing else waits for it: a caller
     interrupted (Ctrl-C) before calling :meth:`result` leaves it to finish on its own, and Python's exit waits for
-    it at most :data:`AT_EXIT_WAIT_S` seconds.
+    it at most :data:`AT_EXIT_WAIT_S` seconds; with ``wait_at_exit=False`` not at all, for a call that runs no
+    C++ (whose thread Python may end as it exits) and may take long, such as opening a link.
 
     Example:
         >>> DaemonTask(sum, [1, 2, 3]).result()
         6
     """
 
-    def __init__(self, function: Callable[..., T], *args: object, name: str = "svs-daemon-task") -> None:
+    def __init__(self, function: Callable[..., T], *args: object, name: str = "svs-daemon-task",
+                 wait_at_exit: bool = True) -> None:
         self._value: T | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(function, args), name=name, daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(function, args, wait_at_exit), name=name, daemon=True)
         self._thread.start()
 
-    def _run(self, function: Callable[..., T], args: tuple) -> None:
+    def _run(self, function: Callable[..., T], args: tuple, wait_at_exit: bool) -> None:
         # Counted here, not by the caller after start(): a Ctrl-C in start() (which waits for the thread to begin)
         # skipped that, and the call ran on uncounted, into the exit (eval's SIGABRT). A thread that an interrupt
         # left waiting for a lock before it got here never runs the call, and is rightly not waited for.
-        _RUNNING.add(threading.current_thread())
+        if wait_at_exit:
+            _RUNNING.add(threading.current_thread())
         try:
             self._value = function(*args)
         except BaseException as error:  # handed to result(), in the caller's thread

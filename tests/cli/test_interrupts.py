@@ -107,6 +107,46 @@ def test_a_command_with_a_pool_ends_after_a_ctrl_c_that_left_a_pool_thread_stuck
     assert f"svs-depth {command}: interrupted" in done.stderr
 
 
+_OPENING_CHILD = """
+import signal, sys, threading, time
+import svs_torch.capture.link as link
+from svs_torch.cli import main
+
+link.CameraLink.open = lambda self: time.sleep(6)  # a board that does not answer the connect (a WiFi camera away)
+
+def ctrl_c():
+    time.sleep(1.0)
+    print("sent", flush=True)
+    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+threading.Thread(target=ctrl_c, daemon=True).start()
+sys.argv = ["svs-depth", "guide", "--left", "socket://127.0.0.1:9", "--right", "socket://127.0.0.1:7", "--no-speech"]
+sys.exit(main())
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_guide_interrupted_while_it_opens_an_unreachable_board_ends_at_once(tmp_path):
+    """Was: a Ctrl-C while guide opened a board that did not answer (a WiFi camera out of reach) ended only when
+    the connect gave up (4.1 s on this machine; the exit waited for the thread opening it). Opening a link runs
+    no C++, so the exit no longer waits for it."""
+    import time
+
+    process = subprocess.Popen([sys.executable, "-c", _OPENING_CHILD], cwd=tmp_path, text=True,
+                               env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE)
+    try:
+        assert process.stdout.readline() == "sent\n"
+        sent = time.monotonic()
+        _, err = process.communicate(timeout=60)
+        ended_s = time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, err
+    assert ended_s < 3.0, f"ended {ended_s:.1f} s after the Ctrl-C (a board's opening takes 6 s here)"
+
 def test_a_line_said_while_another_thread_decodes_is_not_lost(tmp_path):
     """Was: eval decodes its next block in a thread, which lends descriptor 2 to the C decoders meanwhile
     (core.image_files), and a line the program wrote to stderr then went with their messages: eval stopped by
