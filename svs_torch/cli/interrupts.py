@@ -23,6 +23,9 @@ class StderrAfterDecoders:
 
     def __init__(self, stream) -> None:
         self._stream = stream
+        #: The stream itself, for tqdm: :class:`~svs_torch.cli.progress.Progress` takes the lock around its bar's
+        #: writes, and tqdm's monitor thread writes holding tqdm's lock, so taking ours there too would deadlock.
+        self.unlocked = stream
 
     def write(self, text: str) -> int:
         with STDERR_LOCK:

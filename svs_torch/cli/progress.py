@@ -65,8 +65,11 @@ class Progress:
         if tty:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total, unit=unit, file=self.stream, desc=desc, dynamic_ncols=True,
-                             mininterval=0.5)
+            # The program's stderr unwrapped (cli.interrupts.StderrAfterDecoders): tqdm's monitor thread redraws a
+            # bar idle for 10 s holding tqdm's lock, while update() takes STDERR_LOCK and then tqdm's: the wrapper
+            # taking STDERR_LOCK under tqdm's lock inverted the order, a deadlock on a terminal.
+            self._bar = tqdm(total=total, unit=unit, file=getattr(self.stream, "unlocked", self.stream),
+                             desc=desc, dynamic_ncols=True, mininterval=0.5)
             _drawn.append(self)
 
     def _rate(self, elapsed_s: float) -> float | None:

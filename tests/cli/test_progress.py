@@ -219,3 +219,53 @@ def test_a_progress_line_waits_for_another_threads_decoder_window(capfd):
         decoder.join()
         writer.join()
     assert collected == [] and "eval: 2/4 pairs" in capfd.readouterr().err
+
+
+_MONITOR_CHILD = """
+import io, threading, time
+from tqdm import tqdm
+from svs_torch.cli.interrupts import StderrAfterDecoders
+from svs_torch.cli.progress import Progress
+from svs_torch.core.files import STDERR_LOCK
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+progress = Progress(10, "eval", stream=StderrAfterDecoders(Terminal()), tty=True)
+holding, monitor_has_its_lock = threading.Event(), threading.Event()
+
+def main_thread():  # Progress.update: STDERR_LOCK, then tqdm's lock (to redraw the bar)
+    with STDERR_LOCK:
+        holding.set()
+        monitor_has_its_lock.wait()
+        time.sleep(0.6)  # past the bar's mininterval, so that update() redraws
+        progress.update(1)
+
+def monitor():  # as tqdm's TMonitor redraws a bar idle for 10 s: under tqdm's lock
+    holding.wait()
+    with tqdm.get_lock():
+        monitor_has_its_lock.set()
+        progress._bar.refresh(nolock=True)
+
+threads = [threading.Thread(target=main_thread, daemon=True), threading.Thread(target=monitor, daemon=True)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join(10)
+print("deadlocked" if any(thread.is_alive() for thread in threads) else "both ended", flush=True)
+"""
+
+
+def test_a_bar_redrawn_by_tqdms_monitor_while_the_program_updates_it_does_not_deadlock():
+    """Was: the program's stderr took STDERR_LOCK for every write, tqdm's monitor thread writes holding tqdm's
+    lock, and Progress.update takes STDERR_LOCK and then tqdm's: a bar idle for 10 s on a terminal (a long batch)
+    redrawn as the batch ended deadlocked the command. The bar writes to the stream unwrapped."""
+    import os
+    import subprocess
+
+    from conftest import REPO_ROOT
+
+    done = subprocess.run([sys.executable, "-c", _MONITOR_CHILD], cwd=REPO_ROOT, capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)), timeout=60)
+    assert done.stdout == "both ended\n", done.stderr
