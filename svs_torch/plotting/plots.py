@@ -128,8 +128,8 @@ def _objects_axis(ax, batch, result, index: int, width_in: float, area_scale: fl
     seg = result.segmentation.left
     panel = objects_panel(batch.left, seg, index, area_scale)[:height, :width]
     ax.imshow(cv2.cvtColor(panel, cv2.COLOR_BGR2RGB), interpolation="nearest")
-    objects, repeats, truth, labels = result.depth.objects, result.unranged_repeated, _true_object_depths(
-        batch, seg, index), []
+    objects, repeats = result.depth.objects, result.unranged_repeated
+    truth, labels = _true_object_depths(batch, seg, index), []
     for slot, label in enumerate(seg.kept_labels[index].tolist()):
         if label < 0:  # a kept object without depth or truth is labelled too (it was left bare: an audit)
             continue
