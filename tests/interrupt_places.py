@@ -17,10 +17,31 @@ import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from types import FrameType
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _interrupt_as_entered(place_to_interrupt: Callable[[FrameType], str | None]) -> None:
+    """Trace this thread: as each ``threading.Condition.__enter__`` returns with its lock taken,
+    ``place_to_interrupt(its caller's frame)`` names the place to raise KeyboardInterrupt at (printed, and the
+    trace ends), or gives None to go on."""
+
+    def tracer(frame, event, arg):
+        return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
+
+    def local(frame, event, arg):
+        if event == "return":
+            place = place_to_interrupt(frame.f_back)
+            if place is not None:
+                sys.settrace(None)
+                print("interrupted in", place, flush=True)
+                raise KeyboardInterrupt
+        return local
+
+    sys.settrace(tracer)
 
 
 def interrupt_each_place(run: Callable[[], object], after: Callable[[], object] = lambda: None) -> list[str]:
@@ -31,21 +52,14 @@ def interrupt_each_place(run: Callable[[], object], after: Callable[[], object] 
     for k in range(1, 200):
         entered = [0]
 
-        def tracer(frame, event, arg):
-            return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
+        def kth(caller: FrameType, k: int = k, entered: list[int] = entered) -> str | None:
+            entered[0] += 1
+            if entered[0] != k:
+                return None
+            places.append(f"{caller.f_code.co_name} <- {caller.f_back.f_code.co_name}")
+            return places[-1]
 
-        def local(frame, event, arg, k=k, entered=entered):
-            if event == "return":
-                entered[0] += 1
-                if entered[0] == k:
-                    sys.settrace(None)
-                    caller = frame.f_back
-                    places.append(f"{caller.f_code.co_name} <- {caller.f_back.f_code.co_name}")
-                    print("interrupted in", places[-1], flush=True)
-                    raise KeyboardInterrupt
-            return local
-
-        sys.settrace(tracer)
+        _interrupt_as_entered(kth)
         try:
             run()
         except KeyboardInterrupt:
@@ -62,22 +76,14 @@ def interrupt_where(callers: tuple[str, ...]) -> None:
     """From now on in this thread, raise KeyboardInterrupt as the first ``threading.Condition.__enter__`` whose
     callers' function names, innermost first, begin with ``callers`` returns with its lock taken (once)."""
 
-    def tracer(frame, event, arg):
-        return local if event == "call" and frame.f_code is threading.Condition.__enter__.__code__ else None
+    def matching(caller: FrameType) -> str | None:
+        names = []
+        while caller is not None and len(names) < len(callers):
+            names.append(caller.f_code.co_name)
+            caller = caller.f_back
+        return " <- ".join(names) if tuple(names) == callers else None
 
-    def local(frame, event, arg):
-        if event == "return":
-            names, caller = [], frame.f_back
-            while caller is not None and len(names) < len(callers):
-                names.append(caller.f_code.co_name)
-                caller = caller.f_back
-            if tuple(names) == callers:
-                sys.settrace(None)
-                print("interrupted in", " <- ".join(names), flush=True)
-                raise KeyboardInterrupt
-        return local
-
-    sys.settrace(tracer)
+    _interrupt_as_entered(matching)
 
 
 def run_child(code: str, *args: str, timeout_s: float = 60) -> list[str]:
