@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-__all__ = ["AT_EXIT_WAIT_S", "DaemonTask"]
+__all__ = ["AT_EXIT_WAIT_S", "BEGIN_WAIT_S", "DaemonTask"]
 
 T = TypeVar("T")
 
@@ -30,15 +30,21 @@ T = TypeVar("T")
 #: the next block ended in SIGABRT, 6 runs in 6). Why a bound: a call that cannot end must not hold the exit.
 AT_EXIT_WAIT_S = 10.0
 
-#: The threads running a call now (each adds itself as it begins the call, and leaves as it ends).
-_RUNNING: set[threading.Thread] = set()
+#: How long the exit waits for a counted call's thread to begin it, seconds (:func:`_let_running_calls_end`).
+BEGIN_WAIT_S = 1.0
+
+#: The calls Python's exit waits for: each counted before its thread starts, let go as its call ends.
+_RUNNING: set[DaemonTask] = set()
 
 
 @atexit.register
 def _let_running_calls_end() -> None:
     deadline = time.monotonic() + AT_EXIT_WAIT_S
-    for thread in list(_RUNNING):
-        thread.join(max(0.0, deadline - time.monotonic()))
+    for task in list(_RUNNING):
+        # A thread whose start() a Ctrl-C cut short may never begin (a lock the interrupt left held): that one is
+        # waited for BEGIN_WAIT_S only
+        if task._began.wait(max(0.0, min(BEGIN_WAIT_S, deadline - time.monotonic()))):
+            task._thread.join(max(0.0, deadline - time.monotonic()))
 
 
 class DaemonTask(Generic[T]):
@@ -57,21 +63,23 @@ class DaemonTask(Generic[T]):
                  wait_at_exit: bool = True) -> None:
         self._value: T | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(function, args, wait_at_exit), name=name, daemon=True)
+        self._began = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(function, args), name=name, daemon=True)
+        # Counted before start(), not after it, nor by the thread: a Ctrl-C in start() (which waits for the thread
+        # to begin) skipped a count after it, and one by the thread came after the exit had looked (eval's SIGABRT
+        # after Ctrl-C, 1 run in 20: the exit began while the next block's thread had not yet got the GIL)
+        if wait_at_exit:
+            _RUNNING.add(self)
         self._thread.start()
 
-    def _run(self, function: Callable[..., T], args: tuple, wait_at_exit: bool) -> None:
-        # Counted here, not by the caller after start(): a Ctrl-C in start() (which waits for the thread to begin)
-        # skipped that, and the call ran on uncounted, into the exit (eval's SIGABRT). A thread that an interrupt
-        # left waiting for a lock before it got here never runs the call, and is rightly not waited for.
-        if wait_at_exit:
-            _RUNNING.add(threading.current_thread())
+    def _run(self, function: Callable[..., T], args: tuple) -> None:
+        self._began.set()
         try:
             self._value = function(*args)
         except BaseException as error:  # handed to result(), in the caller's thread
             self._error = error
         finally:
-            _RUNNING.discard(threading.current_thread())
+            _RUNNING.discard(self)
 
     def done(self) -> bool:
         """Whether the call has returned or raised."""
