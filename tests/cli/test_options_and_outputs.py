@@ -19,7 +19,7 @@ from real_images import PAIRS
 
 from svs_torch import InputError
 from svs_torch.cli import main
-from svs_torch.cli.estimate_report import IDENTICAL_VIEWS
+from svs_torch.cli.estimate_report import IDENTICAL_VIEWS, TURNED_RIG
 from svs_torch.core.files import check_writable_folder
 from svs_torch.data import read_pair_sources
 from svs_torch.evaluation.store import ResultStore
@@ -650,6 +650,24 @@ def test_a_pair_whose_views_are_swapped_is_told_so(data_dir, capsys):
     code, out, _ = run_cli(capsys, "estimate", right, left, "--size", "160x133")
     assert out.splitlines()[1].strip().endswith("are LEFT and RIGHT swapped?") and "keypoints" in out.splitlines()[0]
     code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "160x133", "--json")
+    assert json.loads(out)["reason"] is None
+
+
+@pytest.mark.parametrize("quarter_turns", [1, -1], ids=["counter-clockwise", "clockwise"])
+def test_a_pair_whose_cameras_stood_one_above_the_other_is_told_so(data_dir, capsys, tmp_path, quarter_turns):
+    """Found by an audit: Teddy's views each turned 90° (a camera held on its side writes them so, with no
+    orientation tag) were ranged "OK", "verified", at 1.08 m (0.67 and 0.86 m the other way) for 1.25 m, without a
+    word: the row alignment took the parallax along the columns for a shift and a roll it undid."""
+    files = []
+    for name, path in zip(("left", "right"), TEDDY):
+        files.append(str(tmp_path / f"{name}.png"))
+        cv2.imwrite(files[-1], np.rot90(cv2.imread(str(data_dir / path)), quarter_turns))
+    code, out, _ = run_cli(capsys, "estimate", *files, "--size", "200x240", "--json")
+    assert code == 0 and json.loads(out)["reason"] == TURNED_RIG
+    code, out, _ = run_cli(capsys, "estimate", *files, "--size", "200x240")
+    assert out.splitlines()[1].strip() == TURNED_RIG
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "240x200", "--json")
     assert json.loads(out)["reason"] is None
 
 
