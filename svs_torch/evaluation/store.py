@@ -47,7 +47,6 @@ Everything but ``time_s`` and ``run_id`` is deterministic: a resumed sweep's row
 from __future__ import annotations
 
 import dataclasses
-import errno
 import json
 import os
 import sqlite3
@@ -59,16 +58,11 @@ from typing import Any
 from ..core.checks import InputError
 from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
+from . import store_access
 from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, check_store_path, claim_configs,
-                           read_only_error, unreadable_beside_writer)
+                           raise_if_disk_failed, read_only_error, unreadable_beside_writer, while_locked)
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore", "check_storable"]
-
-#: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL; and for a store another
-#: connection kept locked past the wait: SQLITE_BUSY, SQLITE_LOCKED.
-SQLITE_IOERR, SQLITE_FULL, SQLITE_BUSY, SQLITE_LOCKED = 10, 13, 5, 6
-#: Seconds a connection waits for another's write to end before it gives up (SQLITE_BUSY).
-BUSY_TIMEOUT_S = 60.0
 
 SCHEMA_VERSION = 2
 #: Stored statuses a resumed run retries, those of the pairs the pipeline did not run on (a pipeline that raised, and
@@ -113,20 +107,6 @@ def _to_sql(value: Any) -> Any:
     return value
 
 
-def _raise_if_disk_failed(error: sqlite3.DatabaseError, path: Path) -> None:
-    """An :class:`OSError` naming the store for SQLite's full disk or I/O error, or a lock another process kept
-    past :data:`BUSY_TIMEOUT_S` (the run's failure, exit 1, as an export's: a full disk read as "not a results
-    store", a usage error, or as an internal error)."""
-    code = getattr(error, "sqlite_errorcode", 0) & 0xFF  # the primary code of an extended one
-    if code in (SQLITE_FULL, SQLITE_IOERR):
-        raise OSError(errno.ENOSPC if code == SQLITE_FULL else errno.EIO,
-                      f"db: cannot write {path}: {error}") from None
-    if code in (SQLITE_BUSY, SQLITE_LOCKED):  # it was "not a results store (database is locked)", exit 2
-        raise OSError(errno.EBUSY, f"db: {path}: another process has kept it locked for over {BUSY_TIMEOUT_S:g} s (a "
-                                   "write it has not ended: another program with it open?); run again once that "
-                                   "has ended (what is stored is kept)") from None
-
-
 def check_storable(db: str | os.PathLike, sources: Iterable[Any]) -> str | os.PathLike:
     """``db`` once every pair of ``sources`` has paths a store can keep: UTF-8 text, which SQLite's text is. Why: a
     scene folder whose name holds bytes of another encoding (Latin-1, read as surrogates) ended eval --db in "internal
@@ -163,7 +143,7 @@ class ResultStore:
             if new:  # a store that could not be made is not left behind, nor its journal
                 for leftover in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
                     leftover.unlink(missing_ok=True)
-            _raise_if_disk_failed(error, self.path)
+            raise_if_disk_failed(error, self.path)
             if getattr(error, "sqlite_errorcode", 0) & 0xFF == SQLITE_READONLY:
                 raise read_only_error(self.path) from None
             # In words of the store, the same for sweep, eval --db and results (sqlite's were "file is not a
@@ -182,18 +162,26 @@ class ResultStore:
         """The store opened to write, its tables made if it is new. Another program's SQLite file is refused before
         anything is written to it (a mistyped --db added the store's tables beside its own)."""
         # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
-        connection = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+        connection = sqlite3.connect(self.path, timeout=store_access.BUSY_TIMEOUT_S, isolation_level=None)
         tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if tables and "meta" not in tables:
             connection.close()
             raise InputError(f"db: {self.path} is another program's SQLite file (tables {', '.join(sorted(tables))}),"
                              f" not a results store: name a new file")
-        connection.execute("PRAGMA journal_mode=WAL")
-        # NORMAL in WAL mode: a committed transaction survives a crash of the process (only a power cut may lose
-        # the last ones), at a fraction of FULL's fsyncs.
-        connection.execute("PRAGMA synchronous=NORMAL")
-        connection.executescript(_SCHEMA)
-        connection.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+
+        def make() -> None:  # each statement changes nothing run twice (a wait on another's lock runs it again)
+            connection.execute("PRAGMA journal_mode=WAL")
+            # NORMAL in WAL mode: a committed transaction survives a crash of the process (only a power cut may lose
+            # the last ones), at a fraction of FULL's fsyncs.
+            connection.execute("PRAGMA synchronous=NORMAL")
+            connection.executescript(_SCHEMA)
+            connection.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+
+        try:
+            while_locked(connection, self.path, make)
+        except BaseException:
+            connection.close()
+            raise
         return connection
 
     def _connect_to_read(self) -> sqlite3.Connection:
@@ -203,7 +191,7 @@ class ResultStore:
         an immutable file. (Not ``mode=ro`` first: in a writable folder it would leave an empty ``-wal`` and a
         ``-shm`` file behind, which only a writer removes.)"""
         try:
-            connection = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+            connection = sqlite3.connect(self.path, timeout=store_access.BUSY_TIMEOUT_S, isolation_level=None)
             connection.execute("SELECT name FROM sqlite_master").fetchall()
             return connection
         except sqlite3.OperationalError as error:
@@ -258,7 +246,7 @@ class ResultStore:
         error is an :class:`OSError` naming the store (:func:`_raise_if_disk_failed`)."""
         cursor = self.connection.cursor()
         try:
-            cursor.execute("BEGIN IMMEDIATE")
+            while_locked(self.connection, self.path, lambda: cursor.execute("BEGIN IMMEDIATE"))
             for sql, values in statements:
                 cursor.execute(sql, values)
             row_id = cursor.lastrowid
@@ -268,7 +256,7 @@ class ResultStore:
             if self.connection.in_transaction:  # a full disk may have ended it already
                 cursor.execute("ROLLBACK")
             if isinstance(error, sqlite3.DatabaseError):
-                _raise_if_disk_failed(error, self.path)
+                raise_if_disk_failed(error, self.path)
             raise
 
     def add_configs(self, configs: Iterable[dict]) -> None:

@@ -11,6 +11,9 @@ twice). Where the system has no such locks (not Linux), a sweep holds the whole 
 The claims' handle is closed after the store's connection where the claims are taken (closing any handle of a
 file drops the process's own POSIX locks on it, SQLite's among them), and at once where they are refused (the
 store is then only closed).
+
+Writes wait for another connection's write (:func:`while_locked`) in short slices of SQLite's own wait with Python's
+in between, where Ctrl-C and SIGTERM land at once.
 """
 
 from __future__ import annotations
@@ -18,19 +21,36 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import sqlite3
 import struct
-from collections.abc import Iterable
+import time
+import warnings
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import IO
+from typing import IO, TypeVar
 
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, path_kind
 
-__all__ = ["SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "check_store_path", "claim_configs",
-           "read_only_error", "sweep_is_writing", "unreadable_beside_writer"]
+__all__ = ["BUSY_TIMEOUT_S", "SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "check_store_path",
+           "claim_configs", "raise_if_disk_failed", "read_only_error", "sweep_is_writing", "unreadable_beside_writer",
+           "while_locked"]
 
 #: SQLite's primary result codes for a write to a file it opened read-only, and a file it cannot open (sqlite3.h).
 SQLITE_READONLY, SQLITE_CANTOPEN = 8, 14
+#: SQLite's primary result codes for a failed write (sqlite3.h): SQLITE_IOERR, SQLITE_FULL; and for a store another
+#: connection kept locked past the wait: SQLITE_BUSY, SQLITE_LOCKED.
+SQLITE_IOERR, SQLITE_FULL, SQLITE_BUSY, SQLITE_LOCKED = 10, 13, 5, 6
+#: Seconds a connection waits for another's write to end before it gives up (SQLITE_BUSY).
+BUSY_TIMEOUT_S = 60.0
+#: Seconds of each of SQLite's own waits for a write lock (:func:`while_locked`). SQLite waits in C, where Python's
+#: signal handlers wait for it to return: eval --db and sweep stopped only when another program let go of the lock
+#: they waited for, 15-38 s after a Ctrl-C (an audit).
+BUSY_SLICE_S = 0.05
+#: Seconds of waiting for a write lock after which the wait is said (a warning): a run held by it looked hung.
+BUSY_NOTICE_S = 2.0
+
+_Result = TypeVar("_Result")
 #: The first byte of the claims, far past SQLite's lock bytes (at 1 GiB) and any store's size; claims never read
 #: or write the file.
 _CLAIMS_START = 1 << 40
@@ -169,3 +189,44 @@ def check_store_path(path: str | Path, create: bool) -> Path:
         # (beside a link's target: a link to a store on a read-only share was "unable to open", an audit)
         check_writable_folder(Path(os.path.realpath(path)).parent if path.is_symlink() else path.parent, "db")
     return path
+
+
+def raise_if_disk_failed(error: sqlite3.DatabaseError, path: Path) -> None:
+    """An :class:`OSError` naming the store for SQLite's full disk or I/O error, or a lock another process kept
+    past :data:`BUSY_TIMEOUT_S` (the run's failure, exit 1, as an export's: a full disk read as "not a results
+    store", a usage error, or as an internal error)."""
+    code = getattr(error, "sqlite_errorcode", 0) & 0xFF  # the primary code of an extended one
+    if code in (SQLITE_FULL, SQLITE_IOERR):
+        raise OSError(errno.ENOSPC if code == SQLITE_FULL else errno.EIO,
+                      f"db: cannot write {path}: {error}") from None
+    if code in (SQLITE_BUSY, SQLITE_LOCKED):  # it was "not a results store (database is locked)", exit 2
+        raise OSError(errno.EBUSY, f"db: {path}: another process has kept it locked for over {BUSY_TIMEOUT_S:g} s (a "
+                                   "write it has not ended: another program with it open?); run again once that "
+                                   "has ended (what is stored is kept)") from None
+
+
+def while_locked(connection: sqlite3.Connection, path: Path, step: Callable[[], _Result]) -> _Result:
+    """``step()`` (statements on ``connection`` that take the write lock of the store ``path``), tried again while
+    another connection holds it, up to :data:`BUSY_TIMEOUT_S` in all; then SQLite's SQLITE_BUSY error is raised
+    (:func:`raise_if_disk_failed` names it). SQLite waits :data:`BUSY_SLICE_S` at a time, this function sleeps in
+    between, so a Ctrl-C or SIGTERM ends the wait at once; past :data:`BUSY_NOTICE_S` the wait is said once (a
+    RuntimeWarning). ``step`` must be safe to run again after it failed on the lock (a transaction's first
+    statement, or statements that change nothing twice)."""
+    started, said = time.monotonic(), False
+    connection.execute(f"PRAGMA busy_timeout = {round(BUSY_SLICE_S * 1000)}")
+    try:
+        while True:
+            try:
+                return step()
+            except sqlite3.OperationalError as error:
+                waited = time.monotonic() - started
+                if getattr(error, "sqlite_errorcode", 0) & 0xFF not in (SQLITE_BUSY, SQLITE_LOCKED) \
+                        or waited + BUSY_SLICE_S >= BUSY_TIMEOUT_S:
+                    raise
+                if not said and waited >= BUSY_NOTICE_S:
+                    said = True
+                    warnings.warn(f"db: {path} is locked by another process's write; waiting up to "
+                                  f"{BUSY_TIMEOUT_S:g} s for it to end", RuntimeWarning, stacklevel=2)
+                time.sleep(BUSY_SLICE_S)
+    finally:
+        connection.execute(f"PRAGMA busy_timeout = {round(BUSY_TIMEOUT_S * 1000)}")

@@ -247,6 +247,31 @@ def test_eval_with_db_interrupted_says_what_the_store_kept(data_dir, tmp_path):
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_eval_waiting_for_a_store_another_program_keeps_locked_says_so_and_ends_on_ctrl_c(data_dir, tmp_path):
+    """Found by an audit: 'eval --db' (and sweep) on a store another program held in a write waited in SQLite's C
+    busy handler, silent, and a Ctrl-C took effect only when the other let go (15-38 s later). Now the wait is said
+    after a couple of seconds, and Ctrl-C ends it: exit 130, the other program's write untouched."""
+    import sqlite3
+
+    from svs_torch.evaluation.store import ResultStore
+
+    ResultStore(tmp_path / "e.sqlite").close()
+    other = sqlite3.connect(tmp_path / "e.sqlite", isolation_level=None)
+    try:
+        other.execute("BEGIN IMMEDIATE")
+        other.execute("DELETE FROM meta")
+        teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+        status, _, err = _interrupted(["eval", str(teddy), "--size", "160x120", "--db", "e.sqlite"], tmp_path,
+                                      lambda stream, line: "is locked by another process's write" in line,
+                                      signal.SIGINT)
+        assert status == 130 and "Traceback" not in err, err
+        assert "warning: db: e.sqlite is locked by another process's write; waiting up to 60 s" in err
+        other.execute("ROLLBACK")
+    finally:
+        other.close()
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 def test_estimate_workers_interrupted_in_a_long_chunk_end_at_once(data_dir, tmp_path):
     """Was: 'estimate --pairs LIST --workers 2' stopped by Ctrl-C while its workers ranged chunks of many large
     pairs waited for those chunks (Python's exit joined the pool's manager thread), and then, past the program's

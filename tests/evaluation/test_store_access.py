@@ -102,11 +102,11 @@ def test_a_store_another_process_keeps_locked_is_named_busy_not_another_file(tmp
     browser, a script) was "db: FILE is not a results store (database is locked)", exit 2, for sweep and eval
     --db. (The wait is cut to 0.1 s here.)"""
     from svs_torch.cli import main
-    from svs_torch.evaluation import store as store_module
+    from svs_torch.evaluation import store_access
 
     db = tmp_path / "busy.sqlite"
     ResultStore(db).close()
-    monkeypatch.setattr(store_module, "BUSY_TIMEOUT_S", 0.1)
+    monkeypatch.setattr(store_access, "BUSY_TIMEOUT_S", 0.1)
     other = sqlite3.connect(db, isolation_level=None)
     try:
         other.execute("BEGIN IMMEDIATE")
