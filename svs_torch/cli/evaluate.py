@@ -8,6 +8,8 @@ import time
 import warnings
 
 from .capture_marks import capture_fields, warn_capture_marks
+from .eval_store import (check_no_option_calibration_in_store, kept_rows_note, rows_stored_before, say_saved,
+                         store_beside_export)
 from .common import (Terminated, add_disparity_export_options, dumps_strict, options_named, output_file,
                      positive_int, resolve_export_options)
 from .features import MAX_PIXELS, checked_size
@@ -64,7 +66,8 @@ overrides, size and config (every setting in effect). Pixels: the
 dense_* and sparse_* errors are in the pixels the pipeline ran at (--size), the map_* and kept_* metrics in
 the data's native pixels, at the published thresholds. --db adds the
 rows to a results store (as svs-depth sweep does; a pair already stored for the same configuration keeps its
-row, but an ERROR, BAD_INPUT or TOO_SMALL row, which is replaced), for svs-depth results.
+row, but an ERROR, BAD_INPUT or TOO_SMALL row, which is replaced: said at the end, with how many of the rows kept
+differ from this run's, and in JSON as db_rows_kept, db_rows_kept_differing), for svs-depth results.
 exit status: 0 done (failed pairs are counted in the output); 2 bad arguments, a missing PATH, or a bad --set;
 1 an output that cannot be written (--disparity-out or --db on a full disk, or --db kept locked over 60 s by
 another program: the option and the file named; the rows a --db store committed are kept), or a --disparity-out
@@ -234,17 +237,6 @@ def disparity_export(args: argparse.Namespace, config, sources=()):
     return export
 
 
-def _store_beside_export(export, *args):
-    """:func:`_open_store` of ``args``; a refused ``--db`` leaves no ``--disparity-out`` folder that ``export`` made,
-    empty, behind."""
-    try:
-        return _open_store(*args)
-    except BaseException:
-        if export is not None:
-            export.remove_if_unused()
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
@@ -271,9 +263,9 @@ def run(args: argparse.Namespace) -> int:
     if repeated:  # once each, as a sweep and a results store count them: a repeat would weigh twice in the means
         names = ", ".join(dict.fromkeys(source.name for source in repeated))
         print(f"eval: listed more than once, evaluated once: {names}", file=sys.stderr)
-    _check_no_option_calibration_in_store(args, sources)
+    check_no_option_calibration_in_store(args, sources)
     export = disparity_export(args, config, sources)  # its folder made once the arguments are known to be good
-    store, run_id, sweep_config = _store_beside_export(export, args, preset, overrides, size_wh, sources)
+    store, run_id, sweep_config = store_beside_export(export, args, preset, overrides, size_wh, sources)
     if export is not None and size_wh is not None:  # maps the official tools refuse, said (export.resized_maps_note)
         warnings.warn(resized_maps_note(size_wh), RuntimeWarning, stacklevel=1)
     if not args.json:
@@ -283,14 +275,18 @@ def run(args: argparse.Namespace) -> int:
     # What ran, on the JSON summary: the summary line alone did not say (an audit of configuration values).
     ran = {"preset": preset, "overrides": overrides,
            "size": "native" if size_wh is None else f"{size_wh[0]}x{size_wh[1]}", "config": config_to_dict(config)}
-    started, evaluations = time.perf_counter(), []
+    before = rows_stored_before((store, run_id, sweep_config))
+    started, evaluations, pair_ids = time.perf_counter(), [], []
     try:
-        _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations)
+        _evaluate_all(args, sources, setup, export, (store, run_id, sweep_config), evaluations, pair_ids)
     except (KeyboardInterrupt, Terminated):
         if evaluations:  # the pairs done are summarized, said to be a part: a long run stopped still tells its means
             _print_summary(args, evaluations, started, ran, len(sources))
         raise
-    _print_summary(args, evaluations, started, ran)
+    counts, note = kept_rows_note(args, before, list(zip(pair_ids, evaluations)))
+    _print_summary(args, evaluations, started, {**ran, **counts})
+    if note:  # after the summary, where a user reads last
+        print(note, file=sys.stderr)
     warn_capture_marks([capture_fields(source) for source in sources], len(sources))  # (as estimate --pairs)
     return 0
 
@@ -314,10 +310,11 @@ def _print_summary(args: argparse.Namespace, evaluations: list, started: float, 
     print("\n".join(lines), flush=True)
 
 
-def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple, evaluations: list
-                  ) -> None:
-    """Evaluate ``sources`` batch by batch into ``evaluations``, each row printed as it comes and each batch's rows
-    committed to the ``--db`` store of ``stored_in`` (store, run id, sweep configuration), which is closed after.
+def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored_in: tuple, evaluations: list,
+                  pair_ids: list) -> None:
+    """Evaluate ``sources`` batch by batch into ``evaluations`` (their pairs' ids into ``pair_ids``), each row
+    printed as it comes and each batch's rows committed to the ``--db`` store of ``stored_in`` (store, run id, sweep
+    configuration), which is closed after.
     Interrupted (Ctrl-C, SIGTERM), it says what was saved: it said only "interrupted", and a user could not tell
     whether the store kept the rows of the pairs done (an audit of interrupts)."""
     from dataclasses import asdict
@@ -333,6 +330,7 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
             for source, evaluation in evaluate_pairs(sources, setup, args.batch_size, bar.update,
                                                      export.write if export is not None else None):
                 evaluations.append(evaluation)
+                pair_ids.append(source.pair_id)
                 block.append((source.pair_id, evaluation))
                 if export is not None and evaluation.status in UNRUN_STATUSES:
                     forget_unrun_map(args, source, evaluation.status, export)
@@ -346,55 +344,8 @@ def _evaluate_all(args: argparse.Namespace, sources: list, setup, export, stored
                         if args.json else format_row(evaluation))
                 bar.write(line, file=sys.stdout)
     except (KeyboardInterrupt, Terminated):
-        _say_saved(args, rows, len(evaluations), len(sources))
+        say_saved(args, rows, len(evaluations), len(sources))
         raise
     finally:
         if store is not None:
             store.close()
-
-
-def _say_saved(args: argparse.Namespace, rows: int, done: int, total: int) -> None:
-    """What an interrupted eval kept: the rows its ``--db`` store committed, the maps of ``--disparity-out``."""
-    if args.db:
-        print(f"svs-depth eval: {rows} of {total} pairs' rows are stored in {args.db}; the same command run again "
-              "keeps them and stores the rest", file=sys.stderr)
-    if args.disparity_out:
-        print(f"svs-depth eval: the maps written in {args.disparity_out} are whole ({done} of {total} pairs "
-              "evaluated)", file=sys.stderr)
-
-
-def _check_no_option_calibration_in_store(args: argparse.Namespace, sources) -> None:
-    """A results store keys a file pair by its files and the calibration its list line gives: rows ranged with
-    --focal-px, --baseline-m or --doffs-px would be filed under the same keys as the SVS model's (and a later run
-    with other values silently kept the first's rows)."""
-    from ..core.errors import InputError
-
-    options = [name for name, value, default in (("--focal-px", args.focal_px, None), ("--baseline-m",
-               args.baseline_m, None), ("--doffs-px", args.doffs_px, 0.0)) if value != default]
-    takers = [source for source in sources if not source.scene and source.focal_px is None and not source.problem]
-    if options and sources and not takers and not any(source.problem for source in sources):  # it ran as if not given
-        raise InputError(f"{', '.join(options)}: every listed pair is a scene folder (its data's calibration, or a "
-                         f"nominal one for scoring where it ships none) or a list line that gives one, which the "
-                         f"option does not change; drop it")
-    if args.db and options and takers:
-        raise InputError(f"{', '.join(options)}, --db: a results store does not record a calibration given as an "
-                         f"option; give it on the pairs' list lines ('LEFT RIGHT FOCAL_PX BASELINE_M [DOFFS_PX]') or "
-                         f"run without --db")
-
-
-def _open_store(args: argparse.Namespace, preset, overrides, size_wh, sources) -> tuple:
-    """With ``--db``: the results store, opened with this run's configuration and pairs recorded, the run's id
-    and its sweep configuration; (None, None, None) without."""
-    if not args.db:
-        return None, None, None
-    from ..evaluation.store import ResultStore, check_storable
-    from ..core.checkout import code_version
-    from ..evaluation.sweep import environment, make_sweep_config
-
-    sweep_config = make_sweep_config(preset, overrides, size_wh)
-    with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
-        store = ResultStore(check_storable(args.db, sources))  # paths a store cannot keep refused before it is made
-    store.add_configs([sweep_config.record()])
-    store.add_pairs(sources)
-    run_id = store.start_run("eval", code_version(), environment("in-process", 0, None), " ".join(sys.argv[1:]))
-    return store, run_id, sweep_config

@@ -318,6 +318,17 @@ class ResultStore:
         canonical = _canonical_ids()
         return {(c, canonical(p)) for c, p in rows if wanted is None or c in wanted}
 
+    def stored_values(self, config_id: str, columns: Sequence[str]) -> dict[str, tuple]:
+        """``{pair_id: (the row's values of columns)}`` of every row stored for ``config_id``; ``columns``: names
+        of :data:`RESULT_COLUMNS` (a bool read back as 0 or 1)."""
+        unknown = set(columns) - {name for name, _ in RESULT_COLUMNS}
+        if unknown:
+            raise ValueError(f"columns: expected result columns, got {sorted(unknown)}")
+        names = ", ".join(f'"{name}"' for name in columns)
+        canonical = _canonical_ids()
+        rows = self.connection.execute(f"SELECT pair_id, {names} FROM results WHERE config_id = ?", (config_id,))
+        return {canonical(pair_id): tuple(values) for pair_id, *values in rows}
+
     def write_task(self, config_id: str, run_id: int, rows: Sequence[tuple[str, PairEvaluation]]) -> int:
         """Store one task's ``(pair_id, evaluation)`` rows in one transaction; rows already present are kept as
         they are, but a row of a :data:`RETRIED_STATUSES` status, which a new result replaces. Returns the number

@@ -623,6 +623,42 @@ def test_a_pair_unreadable_then_mended_is_run_again_into_the_store(data_dir, tmp
     capsys.readouterr()
 
 
+def test_eval_into_a_store_that_keeps_earlier_rows_says_so_and_whether_they_differ(data_dir, tmp_path, capsys):
+    """Found by an audit of the bulk commands: a second 'eval --db' after a view was changed printed the new result
+    (92.3 %) and exited 0, while the store kept the first run's row (99.7 %), which 'results' reads, without a word.
+    Now the run says how many rows the store kept and how many of them differ from what it printed (JSON:
+    db_rows_kept, db_rows_kept_differing)."""
+    import shutil
+    import sqlite3
+
+    import cv2
+
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    db = tmp_path / "s.sqlite"
+    args = ["eval", str(scene), "--size", "160x120", "--db", str(db), "--json"]
+
+    def run() -> tuple[dict, float, str]:  # the summary, the pair's objects Acc, stderr
+        assert main(args) == 0
+        out, err = capsys.readouterr()
+        lines = [json.loads(line) for line in out.splitlines()]
+        return lines[-1], lines[0]["acc_objects_pct"], err
+
+    summary, first, err = run()
+    assert "db_rows_kept" not in summary and "had rows in" not in err
+    summary, _, err = run()  # the same pair, the same settings: the same row
+    assert (summary["db_rows_kept"], summary["db_rows_kept_differing"]) == (1, 0)
+    assert err.rstrip().endswith(f"1 of 1 pairs had rows in {db} for this configuration, the same as this run's: kept")
+    right = cv2.imread(str(scene / "im1.png"))
+    cv2.imwrite(str(scene / "im1.png"), np.roll(right, 12, axis=1))
+    summary, now, err = run()
+    assert (summary["db_rows_kept"], summary["db_rows_kept_differing"]) == (1, 1)
+    assert abs(now - first) > 1
+    assert f"the store keeps those, not this run's: 1 of them differs (first eval3/Teddy" in err
+    with sqlite3.connect(db) as connection:
+        assert connection.execute("SELECT acc_objects_pct FROM results").fetchall() == [(first,)]
+
+
 def test_a_calibration_option_no_listed_pair_takes_is_refused(data_dir, tmp_path, capsys):
     """Found by an audit of the bulk commands: eval --focal-px / --baseline-m over scene folders (which carry their
     own calibration) ran as if not given, exit 0; estimate refused the same."""
