@@ -65,12 +65,18 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]]) -> None:
+def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]], unrun: int = 0
+                   ) -> None:
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
     print(f"{len(summaries)} configuration{'s' * (len(summaries) != 1)}; ranked by {args.sort}"
           + (f", the best {len(shown)}" if len(shown) < len(summaries) else ""))
+    if unrun:  # an interrupted sweep's table read as a finished one (an audit: 40 of 1000 run, "best" of the 40)
+        many = unrun != 1
+        print(f"note: {unrun} more configuration{'s' * many} recorded in {args.db} {'have' if many else 'has'} no "
+              f"row yet (a sweep stopped before {'them' if many else 'it'}?): the ranking and the best are of the "
+              f"{len(summaries)} run; the sweep's command run again fills the rest")
     common = _common_settings(summaries)
     if common:
         print(f"every configuration also ran with (not in its label): {common}")
@@ -216,17 +222,18 @@ def run(args: argparse.Namespace) -> int:
             rows = store.results()  # read once, for both
             summaries = config_summaries(store, rows)
             best = best_by_metric(summaries)
+            unrun = len({c["config_id"] for c in store.configs()} - {s["config_id"] for s in summaries})
             if args.json:
                 # "best" over every configuration, as the text's: over the --top listed it named another (the best
                 # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
                 # the listing's order, not the text's.
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best},
-                                    "same_results": same_results(store, rows)}))
+                                    "same_results": same_results(store, rows), "configs_without_rows": unrun}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 recorded = len(store.configs())
                 print(f"{args.db}: no results yet ({recorded} configuration{'s' * (recorded != 1)} recorded, no pair "
                       f"run); running the sweep's command again fills it")
             else:
-                _print_summary(summaries, best, args, same_results(store, rows))
+                _print_summary(summaries, best, args, same_results(store, rows), unrun)
     return 0

@@ -458,6 +458,29 @@ def test_results_say_when_configurations_were_measured_on_different_pairs(refere
     assert "same pairs" not in capsys.readouterr().out
 
 
+def test_results_say_the_configurations_a_stopped_sweep_never_ran(reference, tmp_path, capsys):
+    """Found by an audit of the bulk commands: a sweep stopped after 40 of its 1000 configurations read as a finished
+    one ("40 configurations", the best of them), since each configuration had all its pairs or none: the note of
+    pairs missing never fired. Now the configurations recorded without a row are counted, said and in JSON."""
+    db = tmp_path / "stopped.sqlite"
+    with edited_copy(reference, db) as connection:
+        config_id = connection.execute("SELECT config_id FROM results ORDER BY config_id LIMIT 1").fetchone()[0]
+        connection.execute("DELETE FROM results WHERE config_id = ?", (config_id,))
+        recorded = connection.execute("SELECT count(*) FROM configs").fetchone()[0]
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith(f"{recorded - 1} configurations; ranked by")
+    assert out.splitlines()[1] == (f"note: 1 more configuration recorded in {db} has no row yet (a sweep stopped "
+                                   f"before it?): the ranking and the best are of the {recorded - 1} run; the sweep's "
+                                   "command run again fills the rest")
+    assert main(["results", str(db), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["configs_without_rows"] == 1
+    assert main(["results", str(reference[1]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["configs_without_rows"] == 0
+    assert main(["results", str(reference[1])]) == 0
+    assert "no row yet" not in capsys.readouterr().out
+
+
 def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a param: column held the override, so a configuration that kept its
     preset's value showed an empty cell (the default's max_ratio 0.8, the paper preset's 0.6)."""
