@@ -65,7 +65,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="torch threads per worker (default: cores, or OMP_NUM_THREADS if fewer, / workers; 1 "
                              "on Dask)")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster at this address")
-    parser.add_argument("--json", action="store_true", help="print one JSON summary line at the end")
+    parser.add_argument("--json", action="store_true",
+                        help='print one JSON summary line at the end (stopped by Ctrl-C or SIGTERM too: the rows this '
+                             'run wrote, "interrupted": true)')
     parser.set_defaults(func=run)
 
 
@@ -80,7 +82,11 @@ def run(args: argparse.Namespace) -> int:
     check_path_given(args.sweep_file, "SWEEP.toml", "a sweep file name")  # ('' is '.': ".: expected a TOML file")
     sweep = _within_pixel_limit(load_sweep(args.sweep_file), args.sweep_file)
     _check_no_kept_calibration(sweep, args.sweep_file)
-    bar = None
+    bar, written = None, [0]  # the rows this run's finished tasks wrote (said, and in JSON, when interrupted)
+
+    def stored(result) -> None:
+        written[0] += len(result.rows)
+        bar.update(len(result.rows))
 
     def start(total: int, done: int) -> None:
         nonlocal bar
@@ -98,11 +104,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         with options_named(db="--db"):  # the store's errors named its argument, "db:", not the option (an audit)
             outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler,
-                                threads=args.threads, on_task=lambda result: bar.update(len(result.rows)), warn=warn,
-                                on_start=start)
+                                threads=args.threads, on_task=stored, warn=warn, on_start=start)
     except (KeyboardInterrupt, Terminated):  # SIGTERM too: it said only "terminated" (an audit of interrupts)
-        print(f"svs-depth sweep: every finished task is stored in {args.db}; run the same command again to resume",
-              file=sys.stderr)
+        print(f"svs-depth sweep: every finished task is stored in {args.db} ({written[0]} row"
+              f"{'s' * (written[0] != 1)} written by this run); run the same command again to resume", file=sys.stderr)
+        if args.json:  # a script read nothing on stdout (an audit of interrupts); eval --json says "interrupted" so
+            print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "rows_written": written[0],
+                                "rows_total": len(sweep.configs) * len(sweep.sources), "interrupted": True}),
+                  flush=True)
         raise
     finally:
         if bar is not None:

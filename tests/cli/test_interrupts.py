@@ -302,14 +302,23 @@ def test_estimate_workers_interrupted_in_a_long_chunk_end_at_once(data_dir, tmp_
 @pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 def test_sweep_terminated_says_the_store_resumes(data_dir, tmp_path):
     """Was: a sweep stopped by Ctrl-C said 'every finished task is stored in ...; run the same command again to
-    resume', but stopped by SIGTERM (a service's stop, kill) only 'terminated'. Now both say it."""
+    resume', but stopped by SIGTERM (a service's stop, kill) only 'terminated'. Now both say it, with the rows this
+    run wrote; and 'sweep --json', which printed nothing on stdout (an audit), prints them, "interrupted": true."""
+    import json
+    import sqlite3
+
     (tmp_path / "s.toml").write_text(f'paths = ["{(data_dir / "middlebury_2005_2006_third").as_posix()}"]\n'
                                      'size = "320x240"\nbatch_size = 2\n', encoding="utf-8")
-    status, _, err = _interrupted(["sweep", "s.toml", "--db", "s.sqlite", "--workers", "0"], tmp_path,
-                                  lambda stream, line: "to run" in line, signal.SIGTERM)
+    status, out, err = _interrupted(["sweep", "s.toml", "--db", "s.sqlite", "--workers", "0", "--json"], tmp_path,
+                                    lambda stream, line: "to run" in line, signal.SIGTERM)
     assert status == 143, err
     assert "Traceback" not in err
-    assert "every finished task is stored in s.sqlite; run the same command again to resume" in err
+    with sqlite3.connect(tmp_path / "s.sqlite") as db:
+        rows = db.execute("select count(*) from results").fetchone()[0]
+    assert (f"every finished task is stored in s.sqlite ({rows} row{'s' * (rows != 1)} written by this run); run the "
+            "same command again to resume") in err
+    summary = json.loads(out.splitlines()[-1])
+    assert summary["interrupted"] is True and summary["rows_written"] == rows and summary["rows_total"] == 26
 
 
 def test_eval_disparity_out_interrupted_between_a_maps_two_files_leaves_neither(data_dir, tmp_path, monkeypatch):
