@@ -292,17 +292,20 @@ def _run_pairs(args: argparse.Namespace) -> int:
 
 
 def _warn_of_a_scenes_own_calibration(args: argparse.Namespace) -> None:
-    """Warn where LEFT and RIGHT lie in a scene folder that brings a calibration while the SVS model ranges them (no
-    calibration option): 'estimate Teddy/im0.png Teddy/im1.png' gave 1.25 m beside Teddy/calib.txt, whose own
-    calibration gives the true 1.40 m, and only the calibration line told (an audit of estimate's numbers)."""
+    """Warn where LEFT is a scene folder's own left view, RIGHT beside it, ranged with the SVS model although the
+    folder brings a calibration (no calibration option): 'estimate Teddy/im0.png Teddy/im1.png' gave 1.25 m beside
+    Teddy/calib.txt, whose own calibration gives the true 1.40 m, and only the calibration line told (an audit of
+    estimate's numbers). Other images in such a folder are not its scene: OpenCV's chessboard pairs beside its Aloe
+    were told to range the folder, which ranges Aloe (an audit of odd inputs)."""
     from pathlib import Path
 
-    from ..data import detect_stereo_layout
+    from ..data.datasets import SCENE_LEFT_VIEWS, detect_stereo_layout
     from ..data.calibration import SVS_MODEL_ASSUMED, scene_calibration_source
 
     folder = Path(args.left).parent
     if any(getattr(args, name, None) for name in ("focal_px", "baseline_m", "doffs_px", "calibration")) or \
-            Path(args.right).parent != folder or detect_stereo_layout(folder) is None:
+            Path(args.right).parent != folder or \
+            Path(args.left).name not in SCENE_LEFT_VIEWS.get(detect_stereo_layout(folder), ()):
         return
     own = scene_calibration_source(folder)
     if not own.startswith(SVS_MODEL_ASSUMED):

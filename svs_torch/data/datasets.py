@@ -50,6 +50,7 @@ __all__ = [
     "list_shared_pairs",
     "SHARED_DATA_FOLDERS",
     "detect_stereo_layout",
+    "SCENE_LEFT_VIEWS",
     "pair_name",
     "scene_name",
     "scene_calibration_source",
@@ -267,6 +268,10 @@ _LAYOUT_MARKERS = (
     ("aloe", [("aloeL.jpg",)]),
     ("kitti", [(folder,) for folder in KITTI_LEFT_FOLDERS]),
 )
+#: The left view file each layout's loader reads (both 2001 scenes' names): the images that a scene folder's own
+#: calibration and ground truth describe.
+SCENE_LEFT_VIEWS = {"eval3": ("im0.png",), "2005_2006": ("view1.png",), "2003": ("imL.png",),
+                    "2001": ("imL.png", "im2.ppm"), "aloe": ("aloeL.jpg",)}
 _LOADERS = {"eval3": load_middlebury_eval3, "2005_2006": load_middlebury_2005_2006, "2003": load_middlebury_2003,
             "2001": load_middlebury_2001, "aloe": load_opencv_aloe}
 

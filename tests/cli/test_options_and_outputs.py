@@ -671,6 +671,21 @@ def test_a_pair_whose_cameras_stood_one_above_the_other_is_told_so(data_dir, cap
     assert json.loads(out)["reason"] is None
 
 
+def test_a_scene_folders_own_views_ranged_with_the_svs_model_are_warned_other_images_there_not(data_dir, capsys):
+    """A scene's own views given as files are ranged with the SVS model, not the calibration beside them: warned.
+    Found by an audit of odd inputs: OpenCV's chessboard pairs, in the folder that also holds its Aloe scene, were
+    warned too and told to range the folder, which ranges Aloe, another pair."""
+    said = "is a scene folder with its own calibration"
+    teddy, samples = data_dir / "middlebury_eval3_Q" / "Teddy", data_dir / "opencv_samples"
+    for left, right, warned in ((teddy / "im0.png", teddy / "im1.png", True),
+                                (samples / "aloeL.jpg", samples / "aloeR.jpg", True),
+                                (samples / "left01.jpg", samples / "right01.jpg", False)):
+        code, _, err = run_cli(capsys, "estimate", str(left), str(right), "--size", "160x120", "--json")
+        assert code == 0 and (said in err) == warned, (left, err)
+        code, _, err = run_cli(capsys, "estimate", str(left), str(right), "--size", "160x120", "--focal-px", "300")
+        assert code == 0 and said not in err
+
+
 def test_a_swapped_pair_that_is_ranged_anyway_is_told_so(data_dir, capsys):
     """Found by an audit: Cloth1's (and Aloe's, Books', Pipes', KITTI's) views swapped were ranged "OK" at
     0.6-1.7 m and "verified", with no hint: the hint was given only where the swap left the pair unranged."""
