@@ -68,7 +68,8 @@ list lines: 'LEFT RIGHT' (the calibration options, or the SVS model), 'LEFT RIGH
 status: "OK" when the obstacles were ranged; otherwise the stage that stopped (NO_OBJECTS, TOO_FEW_KEYPOINTS,
 TOO_FEW_MATCHES, RANSAC_FAILED, ...), TOO_SMALL for a pair under 5x5 pixels, or (with --pairs) BAD_INPUT for
 a pair whose files cannot be read, with the reason in "reason" (also set for a pair, ranged or not, whose
-matches lie to the right in the right view: are LEFT and RIGHT swapped?, and for one whose matches lie at the
+matches lie to the right in the right view: are LEFT and RIGHT swapped?, for one whose matches move up or down,
+not along the rows: cameras one above the other (a camera held on its side), for one whose matches lie at the
 same place in both views: LEFT and RIGHT one image, or whose views share almost no feature: two scenes).
 Numbers that do not exist are null.
 "verified": at least 5 RANSAC inliers have the disparity the dense map measures at their pixel, or RANSAC
