@@ -243,7 +243,8 @@ class ResultStore:
 
     def _transaction(self, statements: Iterable[tuple[str, Sequence[Any]]]) -> int | None:
         """Run ``statements`` as one transaction; the row id the last one inserted. SQLite's full disk or I/O
-        error is an :class:`OSError` naming the store (:func:`_raise_if_disk_failed`)."""
+        error is an :class:`OSError` naming the store (:func:`~.store_access.raise_if_disk_failed`); the wait for
+        another connection's write is :func:`~.store_access.while_locked`'s."""
         cursor = self.connection.cursor()
         try:
             while_locked(self.connection, self.path, lambda: cursor.execute("BEGIN IMMEDIATE"))

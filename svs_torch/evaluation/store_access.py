@@ -51,6 +51,7 @@ BUSY_SLICE_S = 0.05
 BUSY_NOTICE_S = 2.0
 
 _Result = TypeVar("_Result")
+
 #: The first byte of the claims, far past SQLite's lock bytes (at 1 GiB) and any store's size; claims never read
 #: or write the file.
 _CLAIMS_START = 1 << 40
