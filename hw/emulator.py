@@ -211,13 +211,16 @@ class EmulatorServer:
             (:data:`SVS_LINK_BYTES_PER_S`: the SVS's UART); None: as fast as the socket takes them.
         right_deviation: the right (slave) camera mounted loosely
             (:class:`~svs_torch.data.rig_deviation.RigDeviation`, ``--right-roll-deg`` ...); None: the ideal rig.
+        boards_swapped: the two boards mounted in each other's place (``--boards-swapped``): the left (master)
+            board sends the right view and the right (slave) board the left one, their roles and ports as wired.
     """
 
     def __init__(self, host: str = "127.0.0.1", left_port: int = 10001, right_port: int = 10002, *,
                  source: FrameSource | None = None, use_pty: bool = False,
                  faults: dict[str, Faults] | None = None, holdoff_s: float = 0.001, banner: bool = True,
                  send_timeout_s: float = 2.0, noise_sigma: float = 0.0, noise_seed: int = 0,
-                 link_bytes_per_s: float | None = None, right_deviation: RigDeviation | None = None) -> None:
+                 link_bytes_per_s: float | None = None, right_deviation: RigDeviation | None = None,
+                 boards_swapped: bool = False) -> None:
         if link_bytes_per_s is not None and not link_bytes_per_s > 0:
             raise ValueError(f"link_bytes_per_s: expected a positive rate or None, got {link_bytes_per_s!r}")
         self.source = source if source is not None else SyntheticSource()
@@ -226,7 +229,8 @@ class EmulatorServer:
         self.cameras = {name: CameraState(name, role, self.source, holdoff_s=holdoff_s, start_s=start,
                                           faults=faults.get(name), noise_sigma=noise_sigma,
                                           noise_seed=noise_seed + index,
-                                          deviation=right_deviation if name == "right" else None)
+                                          deviation=right_deviation if name == "right" else None,
+                                          view=("right" if name == "left" else "left") if boards_swapped else None)
                         for index, (name, role) in enumerate((("left", "master"), ("right", "slave")))}
         self._stop = threading.Event()
         self._ports: dict[str, _BoardPort] = {}
@@ -311,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         server = EmulatorServer(args.host, args.left_port, args.right_port, source=source, use_pty=args.pty,
                                 faults={name: faults for name in chosen}, holdoff_s=args.holdoff_ms / 1000,
                                 noise_sigma=args.noise_sigma, noise_seed=args.noise_seed,
-                                link_bytes_per_s=args.link_rate or None, right_deviation=args.right_deviation)
+                                link_bytes_per_s=args.link_rate or None, right_deviation=args.right_deviation,
+                                boards_swapped=args.boards_swapped)
     except ValueError as err:  # the image folder (no pairs, an image that does not decode)
         print(f"hw.emulator: error: {err}", file=sys.stderr)
         return 2

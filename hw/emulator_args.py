@@ -69,6 +69,9 @@ def parse_args(argv: list[str] | None, description: str, link_bytes_per_s: float
     p.add_argument("--heap-ahead-m", type=positive_float, default=None, metavar="M",
                    help="with --floor-height-m: a heap of rocks on the floor M metres ahead, 0.9 m wide and 0.35 m "
                         "high (an obstacle; default: none)")
+    p.add_argument("--boards-swapped", action="store_true",
+                   help="the two boards mounted in each other's place: the left (master) board sends the right "
+                        "view, the right (slave) board the left one, their roles and ports as wired")
     r = p.add_argument_group("a loosely mounted right camera (what it sees, before the noise)")
     for option, _, _, _, metavar, meaning in _DEVIATION_OPTIONS:
         r.add_argument(option, type=finite_float, default=0.0, metavar=metavar, help=f"{meaning}; default 0")

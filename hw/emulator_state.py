@@ -111,11 +111,14 @@ class CameraState:
         deviation: how this board's camera deviates from the ideal rig (a loosely mounted right board,
             :class:`~svs_torch.data.rig_deviation.RigDeviation`): each frame is seen through it, at the SVS lens's
             focal length for its size, before the noise; None: the ideal camera.
+        view: the camera position whose view this board's sensor sends (``"left"`` or ``"right"``); None: its own,
+            ``camera``. The other's: the two boards mounted in each other's place, their roles and links as wired.
     """
 
     def __init__(self, camera: str, role: str, source: FrameSource, *, holdoff_s: float = 0.001,
                  start_s: float = 0.0, faults: Faults | None = None, low_battery: bool = False,
-                 noise_sigma: float = 0.0, noise_seed: int = 0, deviation: RigDeviation | None = None) -> None:
+                 noise_sigma: float = 0.0, noise_seed: int = 0, deviation: RigDeviation | None = None,
+                 view: str | None = None) -> None:
         if not (np.isfinite(noise_sigma) and noise_sigma >= 0):
             raise ValueError(f"noise_sigma: expected a finite σ >= 0 in 8-bit levels, got {noise_sigma!r}")
         if deviation is not None and not isinstance(deviation, RigDeviation):
@@ -124,6 +127,7 @@ class CameraState:
         self.noise_sigma = float(noise_sigma)
         self._noise = torch.Generator().manual_seed(noise_seed)
         self.camera = camera
+        self.view = camera if view is None else view
         self.role = role
         self.source = source
         self.holdoff_s = holdoff_s
@@ -208,7 +212,7 @@ class CameraState:
     def encode_jpeg(self, now_s: float) -> bytes:
         """The current view as the board would encode it: current size, flip, overlay and quality."""
         width, height = SVS_RESOLUTIONS[self.size_code]
-        image = np.ascontiguousarray(self.source(self.camera, width, height, now_s - self.start_s))
+        image = np.ascontiguousarray(self.source(self.view, width, height, now_s - self.start_s))
         if image.shape != (height, width):
             raise ValueError(f"source: expected a ({height}, {width}) image, got {image.shape}")
         if self.deviation is not None:  # what the loosely mounted camera sees, then its sensor's noise

@@ -125,6 +125,16 @@ def assert_differentiable_depths_are_the_hard_ones(result, left: torch.Tensor, r
     assert int((left.grad != 0).sum()) > 100 and int((right.grad != 0).sum()) > 100
 
 
+def unmatched_pair_fields() -> dict:
+    """The ``points`` and ``fundamental`` of a one-pair pipeline result without a match, for the stand-in results of
+    the guide tests: guide's ViewsWatch reads a ranged pair's matches (no match: no verdict)."""
+    from types import SimpleNamespace
+
+    none = torch.zeros(1, 0, dtype=torch.bool)
+    return {"points": SimpleNamespace(left=torch.zeros(1, 0, 2), right=torch.zeros(1, 0, 2), valid=none),
+            "fundamental": SimpleNamespace(F=torch.zeros(1, 3, 3), inliers=none)}
+
+
 def seven_by_seven_nearness():
     """The default nearness segmenter as it was before a noisy pair's map was matched with a wider window
     (``NearnessNetConfig.noisy_window_size=7``): the camera frames of the tests that pass it were chosen for what

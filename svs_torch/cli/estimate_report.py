@@ -129,14 +129,14 @@ TURNED_RIG = ("the matched points move up or down between the views, not along t
 NOT_RUN = ("TOO_SMALL", "BAD_INPUT")
 
 
-def _views_swapped(result, index: int) -> bool:
+def views_swapped(result, index: int) -> bool:
     """Whether at least three quarters of pair ``index``'s RANSAC inliers have a negative disparity."""
     points, inliers = result.points, result.fundamental.inliers[index]
     disparity = (points.left[index, :, 0] - points.right[index, :, 0])[inliers & points.valid[index]]
     return disparity.numel() >= 8 and float((disparity < 0).float().mean()) >= 0.75
 
 
-def _rig_turned(result, index: int) -> bool:
+def rig_turned(result, index: int) -> bool:
     """Whether pair ``index``'s cameras stood one above the other, by two tests on its RANSAC inliers (8 or more):
     under its F, at least three quarters of them have an epipolar line steeper than 45° in the right view; and
     the right view's columns follow the left view's points by one affine map far better than its rows do (median
@@ -181,9 +181,9 @@ def _reason(result, index: int, status: str, width_px: int) -> str | None:
     few_shared = int(result.num_matches[index]) < 7 and int(result.num_keypoints[index].min()) >= 100
     if status != "OK" and few_shared:
         return UNRELATED_VIEWS
-    if _views_swapped(result, index):
+    if views_swapped(result, index):
         return SWAPPED_VIEWS
-    if _rig_turned(result, index):
+    if rig_turned(result, index):
         return TURNED_RIG
     if status == "OK":
         return one_homography_reason(result, index, width_px)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import time
+import warnings
 from typing import Callable
 
 from ..capture.frozen import FrozenCameraWatch, one_image_twice
@@ -36,6 +37,7 @@ from ..depth.floor_distance import pitched_camera
 from ..pipeline import PipelineStatus, result_along_floor
 from .capture import open_stereo_camera
 from .guide_log import GuideLog
+from .guide_views import ViewsWatch
 
 __all__ = ["CAMERA_BACK", "CAMERA_LOST", "CHECK_CAMERA", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory",
            "GUIDE_READY", "GUIDE_STOPPED", "GuideSession"]
@@ -132,7 +134,8 @@ class GuideSession:
         self.frozen_watch = FrozenCameraWatch()  # compares each pair's frames with the previous pair's
         self.cameras_checked: set[str] = set()  # the cameras CHECK_CAMERA was said of
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
-        self.roles_said = False
+        self.roles_said = False  # CAMERAS_SWAPPED said (the boards' roles, or the views: self.views)
+        self.views = ViewsWatch()
         self.lost_at_s: float | None = None
         self.sight = None  # a SightWatch, from when the camera first answers
         self.next_pair_index = 0  # the index of the next pair grabbed, over every time the camera is opened
@@ -379,5 +382,17 @@ class GuideSession:
                   "confirmed_m": None if confirmed is None else round(confirmed, 4), "confirmed_side": confirmed_side,
                   "distance_along": along, "floor_age_s": None if floor_age_s is None else round(floor_age_s, 3),
                   "class": shown, "message": message or notice}  # the words said on this pair (at most one)
+        self._check_views(result, item)  # last: its words may cut off this pair's, which it says are wrong
         self.processed += 1  # taken (ranged, warned of) before it is kept: a --json line that broke is still counted
         self.log.write(item.pairs[0], result, elapsed_s, warned, item.num_dropped)
+
+    def _check_views(self, result, item) -> None:
+        """Say :data:`CAMERAS_SWAPPED` (once a run, as for the roles) when the pairs' matches show the boards in each
+        other's place or the rig on its side (:class:`~svs_torch.cli.guide_views.ViewsWatch`), printed and logged."""
+        verdict = self.views.update(result)
+        if verdict is not None:
+            warnings.warn(ViewsWatch.line(verdict), stacklevel=1)
+            self.log.event("cameras_mounted_wrong", pair=item.pairs[0].index, views=verdict)
+            if not self.roles_said:
+                self.roles_said = True
+                self.guide.speaker.say(CAMERAS_SWAPPED)

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import SpokenLines
+from conftest import SpokenLines, unmatched_pair_fields
 
 from svs_torch.capture.frozen import FROZEN_PAIRS, FrozenCameraWatch
 from svs_torch.core.types import StereoBatch
@@ -110,7 +110,8 @@ def run_guide(monkeypatch, streams: list[list[tuple[StereoBatch, float]]], count
                                depth=SimpleNamespace(nearest=SimpleNamespace(valid=torch.tensor([False]),
                                                                             surface_m=torch.tensor([0.0]),
                                                                             side=torch.tensor([0]))),
-                               unranged_repeated=unranged_repeated, nearest_unranged_alias_m=None)
+                               unranged_repeated=unranged_repeated, nearest_unranged_alias_m=None,
+                               **unmatched_pair_fields())
 
     monkeypatch.setattr(guide_loop, "open_stereo_camera", lambda *args, **kwargs: Camera())
     log = guide_loop.GuideLog(None, None)

@@ -859,6 +859,55 @@ def test_guide_says_aloud_once_that_the_boards_answer_in_the_wrong_roles(capsys,
         assert CAMERAS_SWAPPED not in err and "stereo master" not in err and not events
 
 
+@pytest.mark.parametrize("swapped", [True, False])
+def test_guide_says_aloud_once_that_the_boards_sit_in_each_others_place(capsys, swapped):
+    """Found by an audit: boards remounted in each other's place answer in their right roles, so guide said nothing,
+    while every left view was the right camera's and the pairs were ranged, wrongly. Now the pairs' matches, lying
+    to the right in the right view, make guide say "Check the cameras" once, print why and log it."""
+    import json
+
+    from hw.emulator import EmulatorServer
+    from hw.frames import SyntheticSource
+    from svs_torch.cli import main
+    from svs_torch.cli.guide_loop import CAMERAS_SWAPPED
+
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(), boards_swapped=swapped) as server:
+        argv = ["guide", "--left", server.urls["left"], "--right", server.urls["right"], "--count", "6",
+                "--no-speech", "--json"]
+        assert main(argv) == 0
+    out, err = capsys.readouterr()
+    events = [line for line in map(json.loads, out.splitlines()) if line.get("event") == "cameras_mounted_wrong"]
+    if swapped:
+        assert err.count(CAMERAS_SWAPPED) == 1 and "the two boards mounted in each other's place" in err
+        assert [e["views"] for e in events] == ["swapped"] and "stereo master" not in err
+    else:
+        assert CAMERAS_SWAPPED not in err and not events
+
+
+def test_the_views_watch_tells_a_rig_on_its_side_once_a_majority_of_pairs_show_it(data_dir):
+    """guide's ViewsWatch on Teddy's pair turned a quarter (a rig worn on its side): the third of five pairs makes
+    the majority, said once a run; the upright pair never."""
+    import torch
+
+    from svs_torch.cli.guide_views import ViewsWatch
+    from svs_torch.data import load_stereo_pair, resize_stereo_batch
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    upright = resize_stereo_batch(load_stereo_pair(data_dir / "middlebury_eval3_Q" / "Teddy"), (240, 200))
+    turned = dataclasses.replace(upright, left=upright.left.rot90(1, (2, 3)).contiguous(),
+                                 right=upright.right.rot90(1, (2, 3)).contiguous(),
+                                 image_hw=upright.image_hw.flip(1), disparity_px=None, disparity_valid=None,
+                                 disparity_nonoccluded=None)
+    with torch.inference_mode():
+        results = {name: estimate_obstacle_depth(batch, PipelineConfig())
+                   for name, batch in (("upright", upright), ("turned", turned))}
+    watch = ViewsWatch()
+    assert [watch.update(results["turned"]) for _ in range(5)] == [None, None, "turned", None, None]
+    assert "the rig worn on its side" in ViewsWatch.line("turned")
+    watch = ViewsWatch()
+    assert [watch.update(results["upright"]) for _ in range(5)] == [None] * 5
+
+
 def test_guide_does_not_range_the_pairs_of_a_board_that_sends_one_frame_again(capsys):
     """Found by an audit of the device side: with the right board's sensor stalled (the emulator's --freeze: each
     grab answered with its last frame's bytes again) guide ranged every pair, the right frame old, the left new

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import SpokenLines, draw_no_figures
+from conftest import SpokenLines, draw_no_figures, unmatched_pair_fields
 from real_images import PAIRS
 
 from svs_torch.cli import main
@@ -1258,7 +1258,7 @@ def test_guide_says_again_that_it_cannot_see_after_the_camera_is_back(monkeypatc
     nearest = SimpleNamespace(valid=torch.tensor([False]), surface_m=torch.tensor([0.0]), side=torch.tensor([0]))
     blank = SimpleNamespace(status=torch.tensor([7]), segmentation=SimpleNamespace(from_disparity=None),
                             depth=SimpleNamespace(nearest=nearest), unranged_repeated=None,
-                            nearest_unranged_alias_m=None)
+                            nearest_unranged_alias_m=None, **unmatched_pair_fields())
     args = argparse.Namespace(count=0, blind_s=0.15, give_up_s=0, reconnect_s=0.02)
     guide = LiveGuide(WarningPolicy(), Speaker(None, stream=SpokenLines(said)))
     guide_loop.GuideSession(args, (320, 240), lambda batch: blank, guide, StatusLine(None),
