@@ -168,3 +168,63 @@ def test_row_alignment_refuses_nan_points_and_an_empty_size():
         fit_row_alignment(points, points, valid, size.float())
     valid[0, 3] = False  # a NaN point in a padding row is not looked at
     assert fit_row_alignment(points, bad, valid, size) is not None
+
+
+def _three_regions():
+    from svs_torch.segmentation import segment_images
+
+    image = torch.zeros(1, 1, 60, 80)
+    image[..., 5:25, 5:30] = image[..., 35:55, 40:75] = image[..., 30:40, 10:20] = 1  # areas 500, 700, 100
+    return segment_images(image)
+
+
+@pytest.mark.parametrize("arguments, expected", [
+    # A (B, 1) candidate area was broadcast, and the 100-pixel region under min_area_px was kept (an audit).
+    ({"candidate_area_px": torch.full((1, 1), 1000.0)}, r"candidate_area_px: expected \(1, 3\), got \(1, 1\)"),
+    ({"candidate_area_px": torch.ones(1, 8)}, r"candidate_area_px: expected \(1, 3\), got \(1, 8\)"),
+    ({"min_area_px": float("nan")}, r"min_area_px: expected a finite number in \[0, inf\), got nan"),  # kept none
+    ({"min_area_px": "x"}, "min_area_px: expected a finite number"),
+    ({"near_min_area_px": -1.0}, "near_min_area_px: expected a finite number"),
+])
+def test_keep_regions_refuses_areas_that_are_not_one_per_region(arguments, expected):
+    seg = _three_regions()
+    nearness = torch.tensor([[2.0, 1.0, 0.0]])
+    assert keep_regions(seg.labels, seg.regions, 2, "nearest", 200.0, nearness)[0].tolist() == [[1, 3]]
+    with pytest.raises(InputError, match=expected):
+        keep_regions(seg.labels, seg.regions, 2, "nearest", nearness=nearness, **({"min_area_px": 200.0} | arguments))
+
+
+@pytest.mark.parametrize("valid, expected", [(lambda v: v[:, :1], r"regions.valid: expected \(1, 3\), got \(1, 1\)"),
+                                             (lambda v: v.float(), "regions.valid: expected a bool tensor")])
+def test_keep_functions_refuse_a_validity_that_is_not_one_bool_per_region(valid, expected):
+    """A short regions.valid failed inside torch's gather, a float one in torch.where (an audit)."""
+    import dataclasses
+
+    seg = _three_regions()
+    regions = dataclasses.replace(seg.regions, valid=valid(seg.regions.valid))
+    for call in (lambda: keep_largest_regions(seg.labels, regions, 2),
+                 lambda: keep_regions(seg.labels, regions, 2, "nearest", nearness=torch.zeros(1, 3))):
+        with pytest.raises(InputError, match=expected):
+            call()
+
+
+@pytest.mark.parametrize("name, value", [("min_inliers", 10 ** 30), ("min_inliers", True), ("max_iterations", True),
+                                         ("chunk_size", True)])
+def test_ransac_refuses_counts_it_cannot_compare_or_that_are_flags(name, value):
+    """min_inliers=10**30 raised OverflowError inside torch; True was taken as 1 (an audit)."""
+    from svs_torch.geometry.ransac import estimate_fundamental_ransac
+
+    left = torch.rand(1, 30, 2, generator=torch.Generator().manual_seed(0)) * 100
+    with pytest.raises(InputError, match=f"{name}: expected an int"):
+        estimate_fundamental_ransac(left, left - torch.tensor([5.0, 0.0]), torch.ones(1, 30, dtype=torch.bool),
+                                    pair_seeds=torch.tensor([1]), **{name: value})
+
+
+def test_accuracy_refuses_shapes_that_do_not_broadcast():
+    """Eq. (9) of a (2,) truth and a (3,) estimate failed in torch's broadcast_tensors, naming neither (an audit)."""
+    from svs_torch.depth import accuracy_percent
+
+    assert accuracy_percent(torch.tensor([1.0, 2.0]), torch.tensor(2.0)).percent.tolist() == [0.0, 100.0]
+    with pytest.raises(InputError, match=r"estimated_m: expected a shape that broadcasts with real_m's \(2,\), got "
+                                         r"\(3,\)"):
+        accuracy_percent(torch.tensor([1.0, 2.0]), torch.tensor([1.1, 2.0, 3.0]))

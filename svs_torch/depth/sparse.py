@@ -163,7 +163,12 @@ def accuracy_percent(real_m: torch.Tensor, estimated_m: torch.Tensor) -> Accurac
     are finite. Not floored: an estimate over twice the truth is below 0 (a loss that keeps its gradient), where
     the evaluation's :func:`svs_torch.evaluation.accuracy_pct` counts it 0 %, as it counts a missing one.
     Differentiable w.r.t. both where valid (not at ``real = est``, a kink)."""
-    real_m, estimated_m = torch.broadcast_tensors(torch.as_tensor(real_m), torch.as_tensor(estimated_m))
+    real_m, estimated_m = torch.as_tensor(real_m), torch.as_tensor(estimated_m)
+    try:
+        real_m, estimated_m = torch.broadcast_tensors(real_m, estimated_m)
+    except RuntimeError:  # torch's "The size of tensor a (2) must match ..." named neither (an audit)
+        raise InputError(f"estimated_m: expected a shape that broadcasts with real_m's {tuple(real_m.shape)}, got "
+                         f"{tuple(estimated_m.shape)}") from None
     valid = (real_m > 0) & torch.isfinite(real_m) & torch.isfinite(estimated_m)
     safe_real = torch.where(valid, real_m, torch.ones_like(real_m))
     safe_est = torch.where(valid, estimated_m, torch.ones_like(estimated_m))

@@ -72,6 +72,13 @@ __all__ = ["SCORINGS", "draw_minimal_samples", "estimate_fundamental_ransac"]
 #: default method; inliers are then those within the threshold, as MATLAB's DistanceThreshold).
 SCORINGS = ("ransac", "msac", "lmeds")
 PREVERIFY_KEEP_RATIO = 8
+#: The largest ``min_inliers``: inlier counts are int64.
+MAX_MIN_INLIERS = 2**62
+
+
+def _whole(value: object) -> bool:
+    """An int setting, not a bool (True was taken as 1 hypothesis or 1 inlier: an audit)."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _best_of_chunk(problem: _Problem, models: torch.Tensor, usable: torch.Tensor, scoring: str,
@@ -180,10 +187,11 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
         check_dtype(pair_seeds, "pair_seeds", "int")
     rules = {"threshold_px": (lambda v: math.isfinite(v) and v > 0, "a finite positive number of pixels"),
              "confidence": (lambda v: 0 < v <= 1, "a probability in (0, 1]"),
-             "max_iterations": (lambda v: isinstance(v, int) and 1 <= v <= kernels.MAX_HYPOTHESES,
+             "max_iterations": (lambda v: _whole(v) and 1 <= v <= kernels.MAX_HYPOTHESES,
                                 f"an int from 1 to {kernels.MAX_HYPOTHESES}"),
-             "chunk_size": (lambda v: isinstance(v, int) and v >= 1, "an int ≥ 1"),
-             "min_inliers": (lambda v: isinstance(v, int) and v >= 0, "an int ≥ 0"),
+             "chunk_size": (lambda v: _whole(v) and v >= 1, "an int ≥ 1"),
+             # Bounded as the counts it is compared with (int64): 10**30 raised OverflowError inside torch (an audit).
+             "min_inliers": (lambda v: _whole(v) and 0 <= v <= MAX_MIN_INLIERS, f"an int from 0 to {MAX_MIN_INLIERS}"),
              "scoring": (lambda v: v in SCORINGS, f"one of {', '.join(SCORINGS)}")}
     for name, (ok, expected) in rules.items():
         try:

@@ -24,12 +24,16 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_shape
+from ..core.checks import InputError, check_count, check_dtype, check_instance, check_real, check_shape
 from ..core.kernels.checks import canonical_bool
 from ..core.types import RegionProperties
 from . import kernels
 
-__all__ = ["label_connected_components", "connected_components_with_stats", "region_properties"]
+__all__ = ["MAX_KEEP", "check_keep_arguments", "label_connected_components", "connected_components_with_stats",
+           "region_properties"]
+
+#: The most regions kept per image: label images are uint8 (0 background, 1..255), as ``--masks-out`` writes.
+MAX_KEEP = 255
 
 
 @dataclass(frozen=True)
@@ -240,3 +244,30 @@ def region_properties(labels: torch.Tensor, num_labels: torch.Tensor | None = No
     inside = run_label <= num_labels[runs.start // (grid.shape[1] * grid.shape[2])]
     runs = _Runs(runs.start[inside], runs.end[inside], runs.batch, runs.height, runs.width)
     return _run_properties(runs, run_label[inside], num_labels, dtype)
+
+
+def check_keep_arguments(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
+                         nearness: torch.Tensor | None = None, min_area_px: float = 0.0,
+                         candidate_area_px: torch.Tensor | None = None, near_min_area_px: float = 0.0) -> None:
+    """The arguments of :func:`~svs_torch.segmentation.keep_regions` and ``keep_largest_regions``. Audits found:
+    ``keep="Largest"`` run as ``"nearest_first"``, ``num_keep=-1`` keep all but one region, float labels fail in a
+    gather; a ``(B, 1)`` ``candidate_area_px`` broadcast, keeping a region under ``min_area_px``; ``min_area_px``
+    NaN keep nothing; a short ``regions.valid`` fail inside torch's gather."""
+    b = check_shape(labels, "labels", ["B", 1, "H", "W"])["B"]
+    check_dtype(labels, "labels", "int")
+    check_instance(regions, "regions", RegionProperties)
+    slots = check_shape(regions.area_px, "regions.area_px", [b, "L"])["L"]
+    check_shape(regions.valid, "regions.valid", [b, slots])
+    check_dtype(regions.valid, "regions.valid", "bool")
+    low, high = (int(v) for v in torch.aminmax(labels)) if labels.numel() else (0, 0)
+    if not 0 <= low <= high <= slots:  # past the slots, it failed inside torch's gather (an audit)
+        raise InputError(f"labels: expected values in [0, {slots}] (0, or a slot of regions), got [{low}, {high}]")
+    check_count(num_keep, "num_keep", most=MAX_KEEP)  # 2^40 failed in an allocation
+    if keep not in ("largest", "nearest", "nearest_first"):
+        raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {keep!r}")
+    for name, value in (("nearness", nearness), ("candidate_area_px", candidate_area_px)):
+        if value is not None:
+            check_shape(value, name, [b, slots])
+            check_dtype(value, name, "float|int")
+    check_real(min_area_px, "min_area_px", 0.0)
+    check_real(near_min_area_px, "near_min_area_px", 0.0)

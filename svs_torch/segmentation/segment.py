@@ -16,12 +16,12 @@ from typing import Literal
 
 import torch
 
-from ..core.checks import InputError, check_count, check_dtype, check_image, check_instance, check_shape
+from ..core.checks import InputError, check_image, check_instance
 from ..core.mask_reductions import any_along
 from ..core.size_groups import run_by_size
 from ..core.types import RegionProperties, Segmentation, SegmentationStatus, StereoBatch, StereoSegmentation
 from .canny import canny_edges
-from .components import connected_components_with_stats
+from .components import MAX_KEEP, check_keep_arguments, connected_components_with_stats
 from .ground_plane import GroundPlaneConfig
 from .morphology import dilate, erode, open_binary, structuring_element
 from .threshold import gray_levels_and_histogram, otsu_threshold_level, threshold_binary
@@ -33,8 +33,6 @@ __all__ = ["SegmentationConfig", "segment_images", "segment_stereo", "segment_st
 #: The widest structuring element, pixels: the opening pads the image by the element and passes over it once per
 #: row and column of it, so a mistyped 99999 would need gigabytes; 255 is far beyond any obstacle's speckle.
 MAX_KERNEL_SIZE = 255
-#: The most regions kept per image: label images are uint8 (0 background, 1..255), as ``--masks-out`` writes.
-MAX_KEEP = 255
 #: A region under the least area kept because it is the nearest (``near_min_area_fraction``) must have at least this
 #: share of its pixels counted (by the nearness segmenter's block matcher, where the right camera sees them): on the
 #: tuning sets most small near regions that were wrong were rows filled in from their neighbours (the dense stage
@@ -180,28 +178,10 @@ def keep_largest_regions(labels: torch.Tensor, regions: RegionProperties,
         ``kept_labels`` ``(B, N)`` int64, largest area first, ties by label (raster) order, −1 where an image
         has fewer than N regions; ``kept_mask`` ``(B, 1, H, W)`` bool. Not differentiable.
     """
-    _check_keep(labels, regions, num_keep)
+    check_keep_arguments(labels, regions, num_keep)
     area = torch.where(regions.valid, regions.area_px, torch.full_like(regions.area_px, -1))
     order = torch.sort(area, dim=1, descending=True, stable=True).indices  # (B, L)
     return _keep_in_order(labels, regions, order, num_keep)
-
-
-def _check_keep(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
-                nearness: torch.Tensor | None = None) -> None:
-    """The keep functions' arguments (an audit: ``keep="Largest"`` ran as ``"nearest_first"``, ``num_keep=-1`` kept
-    all but one region, float labels failed in a gather)."""
-    b = check_shape(labels, "labels", ["B", 1, "H", "W"])["B"]
-    check_dtype(labels, "labels", "int")
-    check_instance(regions, "regions", RegionProperties)
-    slots = check_shape(regions.area_px, "regions.area_px", [b, "L"])["L"]
-    low, high = (int(v) for v in torch.aminmax(labels)) if labels.numel() else (0, 0)
-    if not 0 <= low <= high <= slots:  # past the slots, it failed inside torch's gather (an audit)
-        raise InputError(f"labels: expected values in [0, {slots}] (0, or a slot of regions), got [{low}, {high}]")
-    check_count(num_keep, "num_keep", most=MAX_KEEP)  # 2^40 failed in an allocation
-    if keep not in ("largest", "nearest", "nearest_first"):
-        raise InputError(f"keep: expected 'largest', 'nearest' or 'nearest_first', got {keep!r}")
-    if nearness is not None:
-        check_shape(nearness, "nearness", [b, slots])
 
 
 def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int, keep: str = "largest",
@@ -219,7 +199,8 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     at least ``near_min_area_px`` (below ``min_area_px``) is a candidate too where it is nearer than every region
     of ``min_area_px`` and that count holds at least :data:`NEAR_MIN_COUNTED_SHARE` of its pixels, so ranked
     first. Not differentiable."""
-    _check_keep(labels, regions, num_keep, keep, nearness)
+    check_keep_arguments(labels, regions, num_keep, keep, nearness, min_area_px, candidate_area_px,
+                         near_min_area_px)
     if keep == "largest":
         return keep_largest_regions(labels, regions, num_keep)
     if nearness is None:
