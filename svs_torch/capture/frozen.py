@@ -15,7 +15,7 @@ import torch
 
 from ..core.errors import InputError
 
-__all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "one_image_twice", "varies"]
+__all__ = ["BOTH_FROZEN_S", "FROZEN_PAIRS", "FrozenCameraWatch", "one_image_twice", "varies"]
 
 #: Pairs in a row in which one camera's frame came again while the other's changed before that camera is judged
 #: frozen. Not 1: where frames carry no noise (the emulator's default) a scene that steps (its keyframes, an image
@@ -24,6 +24,12 @@ __all__ = ["FROZEN_PAIRS", "FrozenCameraWatch", "one_image_twice", "varies"]
 #: pair ranged first joins frames one pair taken apart (0.1-0.2 s at guide's 5-10 pairs a second), about what guide
 #: still ranges of a pair whose two frames came apart (``max_frame_gap_s``, 0.25 s).
 FROZEN_PAIRS = 2
+#: Seconds both cameras' frames must stay equal to their previous ones, pixel for pixel and not flat, before both are
+#: judged frozen. Not a pair or two: frames without noise (the emulator's default) of a scene that holds still between
+#: its steps (its keyframes 0.5 s apart, an image folder's pairs 1 s) repeat on both boards, where a real sensor's
+#: noise never repeats. Found by an audit: both boards frozen (the emulator's --freeze, noise σ 4) left guide ranging
+#: one old pair for good, "Obstacle ahead, 1.9 metres" every 3 s while the scene moved.
+BOTH_FROZEN_S = 3.0
 
 
 def varies(image: torch.Tensor) -> bool:
@@ -42,35 +48,44 @@ def one_image_twice(left: torch.Tensor, right: torch.Tensor) -> bool:
 class FrozenCameraWatch:
     """Which camera of a stream of one-pair batches is frozen: :meth:`update` takes each pair grabbed, in order,
     and returns ``"left"`` or ``"right"`` when that camera's frame has been equal to its previous one, pixel for
-    pixel and not flat, while the other camera's frame changed, on :data:`FROZEN_PAIRS` pairs in a row; else None.
-    Both frames unchanged (a still scene without noise) is no sign of either. It keeps the previous pair's two
-    frames (references, not copies); :meth:`reset` forgets them (a camera opened again after a loss).
+    pixel and not flat, while the other camera's frame changed, on :data:`FROZEN_PAIRS` pairs in a row;
+    ``"both"`` when both frames have stayed so for ``both_frozen_s`` seconds (:data:`BOTH_FROZEN_S`; judged where
+    :meth:`update` is given the time); else None. It keeps the previous pair's two frames (references, not copies);
+    :meth:`reset` forgets them (a camera opened again after a loss).
     """
 
-    def __init__(self, frozen_pairs: int = FROZEN_PAIRS) -> None:
+    def __init__(self, frozen_pairs: int = FROZEN_PAIRS, both_frozen_s: float = BOTH_FROZEN_S) -> None:
         # Why: 0 (or -1) was taken, and every pair then named the left camera frozen, the first one too.
         if isinstance(frozen_pairs, bool) or not isinstance(frozen_pairs, int) or frozen_pairs < 1:
             raise InputError(f"frozen_pairs: expected a whole number of pairs >= 1, got {frozen_pairs!r}")
-        self.frozen_pairs = frozen_pairs
+        if isinstance(both_frozen_s, bool) or not isinstance(both_frozen_s, (int, float)) or not both_frozen_s >= 0:
+            raise InputError(f"both_frozen_s: expected seconds >= 0, got {both_frozen_s!r}")
+        self.frozen_pairs, self.both_frozen_s = frozen_pairs, float(both_frozen_s)
         self.reset()
 
     def reset(self) -> None:
         """Forget the previous frames: the next pair is compared with nothing."""
         self._previous: dict[str, torch.Tensor] | None = None
         self._unchanged = {"left": 0, "right": 0}  # pairs in a row: this camera's frame came again, the other's not
+        self._both_since_s: float | None = None  # since when both frames have come again, not flat
 
-    def update(self, batch) -> str | None:
+    def update(self, batch, now_s: float | None = None) -> str | None:
         """Take a grabbed pair (a :class:`~svs_torch.core.types.StereoBatch` of one, ``left``/``right``
-        ``(1, 1, H, W)``; None: nothing to compare, the state kept); the camera judged frozen, or None."""
+        ``(1, 1, H, W)``; None: nothing to compare, the state kept) grabbed at ``now_s`` (seconds, monotonic; None:
+        both cameras are not judged); the camera judged frozen (``"both"`` for both), or None."""
         if batch is None:
             return None
         frames = {"left": batch.left, "right": batch.right}
         previous, self._previous = self._previous, frames
         if previous is None or any(frames[name].shape != previous[name].shape for name in frames):
-            self._unchanged = {"left": 0, "right": 0}
+            self._unchanged, self._both_since_s = {"left": 0, "right": 0}, None
             return None
         same = {name: torch.equal(frames[name], previous[name]) for name in frames}  # (one pass, no copy)
         for name, other in (("left", "right"), ("right", "left")):
             frozen = same[name] and not same[other] and varies(frames[name])
             self._unchanged[name] = self._unchanged[name] + 1 if frozen else 0
+        both = now_s is not None and all(same.values()) and all(varies(frame) for frame in frames.values())
+        self._both_since_s = (self._both_since_s if self._both_since_s is not None else now_s) if both else None
+        if both and now_s - self._both_since_s >= self.both_frozen_s:
+            return "both"
         return next((name for name, count in self._unchanged.items() if count >= self.frozen_pairs), None)

@@ -33,14 +33,14 @@ from ..capture.link_types import CaptureError
 from ..capture.pattern_notice import PatternNotice
 from ..capture.stereo import STEREO_ROLES
 from ..depth.depth_types import ObstacleSide
-from ..depth.floor_distance import pitched_camera
-from ..pipeline import PipelineStatus, result_along_floor
+from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
+from .guide_floor import DISTANCE_ALONG, FLOOR_MEMORY_S, FloorMemory
 from .guide_log import GuideLog
 from .guide_views import ViewsWatch
 
-__all__ = ["CAMERA_BACK", "CAMERA_LOST", "CHECK_CAMERA", "DISTANCE_ALONG", "FLOOR_MEMORY_S", "FloorMemory",
-           "GUIDE_READY", "GUIDE_STOPPED", "GuideSession"]
+__all__ = ["CAMERA_BACK", "CAMERA_LOST", "CHECK_CAMERA", "CHECK_CAMERAS", "DISTANCE_ALONG", "FLOOR_MEMORY_S",
+           "FloorMemory", "GUIDE_READY", "GUIDE_STOPPED", "GuideSession"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
@@ -66,58 +66,15 @@ CAMERAS_SWAPPED = "Check the cameras. Distances may be wrong."
 #: where guide was blind already (alone with --blind-s 0): the walker can do something about it (restart that board),
 #: and short for the reason given at CAMERAS_SWAPPED.
 CHECK_CAMERA = "Check the {} camera."
+#: :data:`CHECK_CAMERA` where both boards keep sending one frame each (:data:`~svs_torch.capture.frozen.BOTH_FROZEN_S`).
+CHECK_CAMERAS = "Check the cameras."
 #: Seconds between the ticks of a stream that brings no pair (:meth:`SVSStereoCamera.stream_batches`'s ``idle_s``).
 IDLE_TICK_S = 0.25
-
-
-#: Seconds ``guide`` reads its distances along the floor it last found, on pairs where its floor rule finds none:
-#: a camera frame's noise hides the floor from the rule on some pairs (rendered walker scenes as the board's digit
-#: 4 frames: found on 49 of 70, experiments/floor_distance.md), while the camera, worn on the walker's body, keeps
-#: its pose over the floor; a pair ranged along the camera's axis among pairs ranged along the floor moved the
-#: warned distance by 0.2-0.4 m from one pair to the next. Longer, a walker who bent or turned would be ranged
-#: along a floor no longer under the camera.
-FLOOR_MEMORY_S = 2.0
-#: What a warning's distance runs along (``guide --json``'s ``warning.distance_along``): the floor found in the pair,
-#: the one found last (:data:`FLOOR_MEMORY_S`), a level floor under the camera as worn (``--camera-pitch-deg``), or
-#: the camera's axis.
-DISTANCE_ALONG = ("floor", "remembered_floor", "camera_pitch", "axis")
 
 
 def _one_image_twice(batch) -> bool:
     """Whether a grabbed pair's two frames are one image (:func:`~svs_torch.capture.frozen.one_image_twice`)."""
     return batch is not None and one_image_twice(batch.left, batch.right)
-
-
-class FloorMemory:
-    """Which distances ``guide`` warns on (:mod:`svs_torch.depth.floor_distance`): where the pair's floor rule found
-    the floor, the obstacle nearest ahead along it (a walker's camera is pitched down, and depth along its axis puts
-    what lies on the floor 0.2-0.4 m farther than it stands); on a pair where it found none, along the floor found
-    last, for ``memory_s`` seconds (:data:`FLOOR_MEMORY_S`); else along a level floor under the camera pitched
-    ``worn_pitch_deg`` (``--camera-pitch-deg``, the rig as worn) where given; else along the camera's axis, as
-    ``estimate`` ranges. :meth:`nearest` says which (:data:`DISTANCE_ALONG`)."""
-
-    def __init__(self, memory_s: float = FLOOR_MEMORY_S, worn_pitch_deg: float | None = None) -> None:
-        self.memory_s, self.worn_pitch_deg = memory_s, worn_pitch_deg
-        self.floor = None  # the FloorGeometry found last
-        self.found_s: float | None = None
-
-    def nearest(self, result, now_s: float) -> tuple:
-        """The nearest obstacle of a one-pair ``result`` to warn of, what its distances run along (one of
-        :data:`DISTANCE_ALONG`) and the age in seconds of the floor found that they run along (0: the pair's own;
-        None: not a floor found)."""
-        distances = getattr(result, "floor", None)  # (a result of the paper's rule has no dense map, nor this)
-        if distances is not None and bool(distances.floor.found[0]):
-            self.floor, self.found_s = distances.floor, now_s
-            return distances.nearest, "floor", 0.0
-        if self.floor is not None and now_s - self.found_s <= self.memory_s:
-            remembered = result_along_floor(result, self.floor)  # (None without a dense map)
-            if remembered is not None:
-                return remembered.nearest, "remembered_floor", now_s - self.found_s
-        if self.worn_pitch_deg is not None:
-            pitched = result_along_floor(result, pitched_camera(self.worn_pitch_deg, 1, result.status.device))
-            if pitched is not None:
-                return pitched.nearest, "camera_pitch", None
-        return result.depth.nearest, "axis", None
 
 
 class GuideSession:
@@ -210,7 +167,8 @@ class GuideSession:
                 if item is None:
                     self._waiting(time.monotonic())
                     continue
-                frozen = self.frozen_watch.update(item.batch)  # every pair: a camera's previous frame is its last
+                # Every pair: a camera's previous frame is its last.
+                frozen = self.frozen_watch.update(item.batch, time.monotonic())
                 if gap_limit_s is not None and abs(item.pairs[0].time_between_frames_s) > gap_limit_s:
                     self._torn(item)
                 elif _one_image_twice(item.batch):
@@ -305,9 +263,11 @@ class GuideSession:
         without it, and the walker never heard which camera to check (an audit): both are said again then. With
         --blind-s 0, which asks for no word of being blind, the check alone, at once: a stalled board then left
         guide silent, every pair unranged, which the walker hears as a clear way (an audit)."""
-        check = None if camera in self.cameras_checked else CHECK_CAMERA.format(camera)
-        said = self._not_ranged(item, "CAMERA_FROZEN", f"the {camera} camera sends one frame again: not ranged",
-                                "camera_frozen", then=check, camera=camera)
+        both = camera == "both"  # both boards stalled (FrozenCameraWatch's "both"): "Check the cameras."
+        check = None if camera in self.cameras_checked else CHECK_CAMERAS if both else CHECK_CAMERA.format(camera)
+        detail = "both cameras send one frame again" if both else f"the {camera} camera sends one frame again"
+        said = self._not_ranged(item, "CAMERA_FROZEN", f"{detail}: not ranged", "camera_frozen", then=check,
+                                camera=camera)
         if said is None and check and (self.sight.blind or not self.sight.blind_s):
             # Whole, not the check alone: it may cut off "Cannot see ahead" said moments ago, which it then repeats.
             self.guide.speaker.say(f"{CANNOT_SEE} {check}" if self.sight.blind else check)

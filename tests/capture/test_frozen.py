@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import SpokenLines, unmatched_pair_fields
 
-from svs_torch.capture.frozen import FROZEN_PAIRS, FrozenCameraWatch
+from svs_torch.capture.frozen import BOTH_FROZEN_S, FROZEN_PAIRS, FrozenCameraWatch
 from svs_torch.core.types import StereoBatch
 
 
@@ -47,6 +47,21 @@ def test_frames_unchanged_in_both_cameras_are_a_still_scene_not_a_frozen_camera(
     """The emulator's frames have no noise by default: of a still scene, both cameras send one frame again."""
     left, right = frames(2)
     assert watched([pair(left, right)] * 6) == [None] * 6
+
+
+def test_both_cameras_unchanged_for_seconds_are_both_frozen():
+    """Found by an audit: both boards frozen (the emulator's --freeze, noise σ 4) gave one old pair again and again,
+    and guide ranged it for good. Both frames unchanged is a still noise-free scene for a while (an image folder's
+    pair lasts 1 s), never for BOTH_FROZEN_S seconds of a real sensor's frames: then "both"."""
+    left, right = frames(2)
+    watch = FrozenCameraWatch()
+    # the first repeat, at 0.5 s, starts the clock
+    times = [0.0, 0.5, 1.0, BOTH_FROZEN_S + 0.49, BOTH_FROZEN_S + 0.5, BOTH_FROZEN_S + 0.6]
+    assert [watch.update(pair(left, right), now_s) for now_s in times] == [None] * 4 + ["both"] * 2
+    assert watch.update(pair(*frames(2, seed=3)), 9.0) is None  # new frames: the count starts again
+    assert watched([pair(left, right)] * 6) == [None] * 6  # not judged without the time (capture's index)
+    flat = torch.zeros(1, 1, 24, 32)
+    assert [watch.update(pair(flat, flat), t) for t in (10.0, 20.0, 30.0)] == [None] * 3  # dark: the pipeline's
 
 
 def test_a_scene_that_steps_between_the_two_boards_grabs_is_not_a_frozen_camera():
@@ -179,6 +194,19 @@ def test_with_blind_s_0_a_frozen_camera_is_still_named(monkeypatch):
     session, said, events, ranged = run_guide(monkeypatch, [stream], count=40, blind_s=0.0)
     assert said == [guide_loop.GUIDE_READY, guide_loop.CHECK_CAMERA.format("left")]
     assert len(ranged) == FROZEN_PAIRS and ("cannot_see", None) not in events
+
+
+def test_guide_does_not_range_the_pairs_of_two_frozen_boards_and_says_to_check_the_cameras(monkeypatch):
+    """Both boards sending their last frames again: after the seconds the watch waits (cut to 0 here) the pairs are
+    not ranged, "camera_frozen" names both, and "Cannot see ahead" comes with "Check the cameras." once."""
+    from svs_torch.capture.guide import CANNOT_SEE
+    from svs_torch.cli import guide_loop
+
+    monkeypatch.setattr(guide_loop, "FrozenCameraWatch", lambda: FrozenCameraWatch(both_frozen_s=0.0))
+    stale = pair(*frames(2, seed=1))
+    session, said, events, ranged = run_guide(monkeypatch, [[(stale, 0.0)] * 40], count=40)
+    assert len(ranged) == 1 and [camera for name, camera in events if name == "camera_frozen"] == ["both"] * 39
+    assert said.count(f"{CANNOT_SEE} {guide_loop.CHECK_CAMERAS}") == 1
 
 
 @pytest.mark.parametrize("frozen_pairs", [0, -1, 1.5, True, None])
