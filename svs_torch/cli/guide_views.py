@@ -1,7 +1,7 @@
 """What ``guide`` tells of cameras mounted wrong, from what the pairs' matches show (:class:`ViewsWatch`): the two
 boards in each other's place, or the rig on its side.
 
-Why: the boards' roles (:meth:`~svs_torch.cli.guide_loop.GuideLoop._check_roles`) tell only links that are swapped.
+Why: the boards' roles (:meth:`~svs_torch.cli.guide_loop.GuideSession._check_roles`) tell only links that are swapped.
 Boards remounted in each other's place answer in their right roles, yet every left view is the right camera's: the
 matches lie to the right in the right view, and the pipeline ranged such pairs "OK", "verified", at 0.6-1.7 m (the
 swapped shared pairs of ``estimate``'s audit), so a walker heard distances that were wrong. A rig worn on its side
