@@ -52,7 +52,7 @@ import math
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_generator, check_shape
+from ..core.checks import InputError, check_count, check_dtype, check_generator, check_shape
 from ..core.types import FundamentalResult, FundamentalStatus
 from . import kernels
 from .epipolar_distance import _epipolar_terms, _safe_ratio
@@ -74,11 +74,6 @@ SCORINGS = ("ransac", "msac", "lmeds")
 PREVERIFY_KEEP_RATIO = 8
 #: The largest ``min_inliers``: inlier counts are int64.
 MAX_MIN_INLIERS = 2**62
-
-
-def _whole(value: object) -> bool:
-    """An int setting, not a bool (True was taken as 1 hypothesis or 1 inlier: an audit)."""
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _best_of_chunk(problem: _Problem, models: torch.Tensor, usable: torch.Tensor, scoring: str,
@@ -187,11 +182,6 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
         check_dtype(pair_seeds, "pair_seeds", "int")
     rules = {"threshold_px": (lambda v: math.isfinite(v) and v > 0, "a finite positive number of pixels"),
              "confidence": (lambda v: 0 < v <= 1, "a probability in (0, 1]"),
-             "max_iterations": (lambda v: _whole(v) and 1 <= v <= kernels.MAX_HYPOTHESES,
-                                f"an int from 1 to {kernels.MAX_HYPOTHESES}"),
-             "chunk_size": (lambda v: _whole(v) and v >= 1, "an int ≥ 1"),
-             # Bounded as the counts it is compared with (int64): 10**30 raised OverflowError inside torch (an audit).
-             "min_inliers": (lambda v: _whole(v) and 0 <= v <= MAX_MIN_INLIERS, f"an int from 0 to {MAX_MIN_INLIERS}"),
              "scoring": (lambda v: v in SCORINGS, f"one of {', '.join(SCORINGS)}")}
     for name, (ok, expected) in rules.items():
         try:
@@ -200,6 +190,11 @@ def _check_arguments(points_left: torch.Tensor, points_right: torch.Tensor, vali
             passed = False
         if not passed:
             raise InputError(f"{name}: expected {expected}, got {settings[name]!r}")
+    # Whole numbers, not bools (True was taken as 1); min_inliers bounded as the int64 counts it is compared with
+    # (10**30 raised OverflowError inside torch): an audit.
+    check_count(settings["max_iterations"], "max_iterations", 1, most=kernels.MAX_HYPOTHESES)
+    check_count(settings["chunk_size"], "chunk_size", 1)
+    check_count(settings["min_inliers"], "min_inliers", 0, most=MAX_MIN_INLIERS)
     for name, points in (("points_left", points_left), ("points_right", points_right)):
         if not bool(torch.where(valid.unsqueeze(-1), points, 0.0).isfinite().all()):
             raise InputError(f"{name}: expected finite coordinates in valid rows (NaN or inf found)")
