@@ -42,12 +42,13 @@ def rows_stored_before(stored_in: tuple) -> dict[str, tuple]:
     """``{pair_id: values of COMPARED_FIELDS}`` of the rows the ``--db`` store of ``stored_in`` (store, run id,
     sweep configuration) held for this run's configuration before it ran, those it keeps whatever this run measures
     (a row of a retried status, which a new result replaces, is not among them); {} without a store."""
+    from ..evaluation.store import RETRIED_STATUSES
+
     store, _, sweep_config = stored_in
     if store is None:
         return {}
-    kept = {pair_id for _, pair_id in store.done([sweep_config.config_id])}
-    values = store.stored_values(sweep_config.config_id, COMPARED_FIELDS)
-    return {pair_id: row for pair_id, row in values.items() if pair_id in kept}
+    values = store.stored_values(sweep_config.config_id, COMPARED_FIELDS)  # (status first)
+    return {pair_id: row for pair_id, row in values.items() if row[0] not in RETRIED_STATUSES}
 
 
 def kept_rows_note(args: argparse.Namespace, before: dict[str, tuple], evaluated: list[tuple[str, object]]
