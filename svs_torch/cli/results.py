@@ -222,7 +222,8 @@ def run(args: argparse.Namespace) -> int:
             rows = store.results()  # read once, for both
             summaries = config_summaries(store, rows)
             best = best_by_metric(summaries)
-            unrun = len({c["config_id"] for c in store.configs()} - {s["config_id"] for s in summaries})
+            recorded = {c["config_id"] for c in store.configs()}
+            unrun = len(recorded - {s["config_id"] for s in summaries})
             if args.json:
                 # "best" over every configuration, as the text's: over the --top listed it named another (the best
                 # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
@@ -231,9 +232,8 @@ def run(args: argparse.Namespace) -> int:
                                     "best": {key: s["config_id"] for key, _, s in best},
                                     "same_results": same_results(store, rows), "configs_without_rows": unrun}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
-                recorded = len(store.configs())
-                print(f"{args.db}: no results yet ({recorded} configuration{'s' * (recorded != 1)} recorded, no pair "
-                      f"run); running the sweep's command again fills it")
+                print(f"{args.db}: no results yet ({len(recorded)} configuration{'s' * (len(recorded) != 1)} recorded, "
+                      f"no pair run); running the sweep's command again fills it")
             else:
                 _print_summary(summaries, best, args, same_results(store, rows), unrun)
     return 0
