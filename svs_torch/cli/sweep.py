@@ -82,10 +82,11 @@ def run(args: argparse.Namespace) -> int:
     check_path_given(args.sweep_file, "SWEEP.toml", "a sweep file name")  # ('' is '.': ".: expected a TOML file")
     sweep = _within_pixel_limit(load_sweep(args.sweep_file), args.sweep_file)
     _check_no_kept_calibration(sweep, args.sweep_file)
-    bar, written = None, [0]  # the rows this run's finished tasks wrote (said, and in JSON, when interrupted)
+    bar, written = None, 0  # written: the rows this run's finished tasks wrote (said, and in JSON, when interrupted)
 
     def stored(result) -> None:
-        written[0] += len(result.rows)
+        nonlocal written
+        written += len(result.rows)
         bar.update(len(result.rows))
 
     def start(total: int, done: int) -> None:
@@ -106,10 +107,10 @@ def run(args: argparse.Namespace) -> int:
             outcome = run_sweep(sweep, args.db, workers=args.workers, scheduler=args.scheduler,
                                 threads=args.threads, on_task=stored, warn=warn, on_start=start)
     except (KeyboardInterrupt, Terminated):  # SIGTERM too: it said only "terminated" (an audit of interrupts)
-        print(f"svs-depth sweep: every finished task is stored in {args.db} ({written[0]} row"
-              f"{'s' * (written[0] != 1)} written by this run); run the same command again to resume", file=sys.stderr)
+        print(f"svs-depth sweep: every finished task is stored in {args.db} ({written} row"
+              f"{'s' * (written != 1)} written by this run); run the same command again to resume", file=sys.stderr)
         if args.json:  # a script read nothing on stdout (an audit of interrupts); eval --json says "interrupted" so
-            print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "rows_written": written[0],
+            print(dumps_strict({"configs": len(sweep.configs), "pairs": len(sweep.sources), "rows_written": written,
                                 "rows_total": len(sweep.configs) * len(sweep.sources), "interrupted": True}),
                   flush=True)
         raise
