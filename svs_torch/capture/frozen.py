@@ -85,7 +85,11 @@ class FrozenCameraWatch:
             frozen = same[name] and not same[other] and varies(frames[name])
             self._unchanged[name] = self._unchanged[name] + 1 if frozen else 0
         both = now_s is not None and all(same.values()) and all(varies(frame) for frame in frames.values())
-        self._both_since_s = (self._both_since_s if self._both_since_s is not None else now_s) if both else None
-        if both and now_s - self._both_since_s >= self.both_frozen_s:
-            return "both"
+        if not both:
+            self._both_since_s = None
+        else:
+            if self._both_since_s is None:
+                self._both_since_s = now_s
+            if now_s - self._both_since_s >= self.both_frozen_s:
+                return "both"
         return next((name for name, count in self._unchanged.items() if count >= self.frozen_pairs), None)
