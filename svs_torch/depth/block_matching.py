@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import torch
 
-from ..core.checks import InputError, check_dtype, check_image, check_instance, check_shape
+from ..core.checks import InputError, check_dtype, check_image, check_instance, check_same_shape, check_shape
 from ..core.kernels.checks import as_integer_tensor, check_counts, check_image_hw, check_nonempty, check_row_fill
 from ..core.mask_reductions import any_along
 from . import kernels
@@ -232,8 +232,7 @@ def _check_pair(left: torch.Tensor, right: torch.Tensor, config: DenseConfig) ->
     # inf − inf or round-off of the running sums where the box sums give another value. One aminmax per image.
     dims = check_image(left, "left")
     check_image(right, "right")
-    if left.shape != right.shape:
-        raise InputError(f"right: expected the shape of left {tuple(left.shape)}, got {tuple(right.shape)}")
+    check_same_shape(left, "left", right, "right")
     check_nonempty(left, "left")
     check_instance(config, "config", DenseConfig)
     return dims["B"]
@@ -361,6 +360,7 @@ def _over_regions(left: torch.Tensor, right: torch.Tensor, mask: torch.Tensor, s
     b = _check_pair(left, right, config)
     check_shape(mask, "mask", [b, 1, *left.shape[-2:]])
     check_dtype(mask, "mask", "bool")
+    check_instance(search, "search", DisparityRange)
     minimum = _check_range(search.min_disparity_px, search.num_disparities, left, config.lr_max_diff_px is not None)
     if search.pair_num_disparities is not None:
         check_counts(search.pair_num_disparities, "search.pair_num_disparities", b, search.num_disparities)

@@ -437,6 +437,9 @@ def test_argument_errors():
     with pytest.raises(InputError, match=r"mask: expected \(1, 1, 8, 8\)"):
         dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 9, dtype=torch.bool),
                                      DisparityRange(torch.tensor([0]), 4))
+    # Found by an audit: a plain (min, count) tuple failed with "'tuple' object has no attribute ...".
+    with pytest.raises(InputError, match=r"^search: expected a DisparityRange, got tuple$"):
+        dense_disparity_over_regions(image, image, torch.ones(1, 1, 8, 8, dtype=torch.bool), (0, 4))
 
 
 def test_search_range_per_object_keeps_a_small_far_object():
