@@ -74,6 +74,11 @@ def read_pfm(path: str | Path, name: str = "path") -> np.ndarray:
     count = width * height * channels
     if len(payload) < 4 * count:
         raise InputError(f"{name}: truncated PFM: expected {4 * count} bytes of data, got {len(payload)}: {path}")
+    # More data than the header's size (another size, or 3 channels under 'Pf') was read as its first W x H values
+    # and the scene scored as OK (an audit); a stray line end after the data is no such file.
+    if len(payload) - 4 * count >= 4 or payload[4 * count:].strip():
+        raise InputError(f"{name}: expected {4 * count} bytes of data for {width} x {height} x {channels} "
+                         f"({header.decode()}), got {len(payload)}: its header's size does not match its data: {path}")
     dtype = np.dtype("<f4") if scale < 0 else np.dtype(">f4")
     data = np.frombuffer(payload, dtype=dtype, count=count)
     shape = (height, width) if channels == 1 else (height, width, 3)

@@ -415,6 +415,15 @@ def test_read_pfm_flips_rows_and_keeps_inf(tmp_path: Path, little_endian: bool) 
     path.write_bytes(b"P6\n3 2\n255\n")
     with pytest.raises(InputError, match="disparity: not a PFM file"):
         read_pfm(path, "disparity")
+    # Found by an audit: more data than the header's size was read as its first values, the scene scored OK.
+    data = np.flipud(image).astype(order + "f4").tobytes()
+    path.write_bytes(header + data + b"\n")  # a stray line end after the data is still the file
+    assert np.array_equal(read_pfm(path), image)
+    for extra in (data[:4], b"\n\n\n\n", np.zeros(12, "f4").tobytes()):  # another size; 3 channels under 'Pf'
+        path.write_bytes(header + data + extra)
+        with pytest.raises(InputError, match=r"^disparity: expected 24 bytes of data for 3 x 2 x 1 \(Pf\), got "
+                                             r"\d+: its header's size does not match its data"):
+            read_pfm(path, "disparity")
 
 
 @pytest.mark.parametrize("scale", [0.0, -4.0, float("nan"), "3"])
