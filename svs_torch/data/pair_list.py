@@ -18,9 +18,9 @@ relative to the list.
 Every pair keeps its own calibration, each number in the range its command-line option takes (``--focal-px`` 1 to
 1e6 px, ``--baseline-m`` 0.001 to 100 m, ``--doffs-px`` within ±1e6 px:
 :data:`svs_torch.core.camera.CALIBRATION_RANGES`). An entry that cannot be a pair (wrong field count, a bad number,
-a number out of its range, a folder that holds no scene) is kept as a :class:`PairSource` with ``problem`` set, so
-that it gets its own line and status (``BAD_INPUT``) while the others run; a missing or unreadable list as a whole
-is an :class:`InputError`.
+a number out of its range, a folder that holds no scene or only part of one's files) is kept as a
+:class:`PairSource` with ``problem`` set, so that it gets its own line and status (``BAD_INPUT``) while the others
+run; a missing or unreadable list as a whole is an :class:`InputError`.
 """
 
 from __future__ import annotations
@@ -36,12 +36,11 @@ import torch
 
 from ..core.camera import calibration_value_expected
 from ..core.checks import InputError, check_instance
-from ..core.files import check_list_file, check_path_given, path_kind, split_list_line
+from ..core.files import check_list_file, check_path_given, display_path, path_kind, split_list_line
 from ..core.types import StereoBatch
-from .datasets import (KITTI_LEFT_FOLDERS, SHARED_DATA_FOLDERS, detect_stereo_layout, kitti_left_images,
-                       list_shared_pairs, load_image_pair, load_stereo_pair, scene_name, unreadable_reason,
-                       warn_unreadable)
+from .datasets import KITTI_LEFT_FOLDERS, load_image_pair, load_stereo_pair, scene_name, unreadable_reason
 from .pair_names import pair_identity, unusable_name, with_distinct_names
+from .scene_folders import folder_scenes
 
 __all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "is_kitti_left_image", "read_pair_list",
            "read_pair_sources", "load_pair_source", "unique_sources", "with_distinct_names"]
@@ -161,28 +160,10 @@ def _calibration(fields: Sequence[str], where: str, text: str,
 
 
 def _scenes_in(folder: Path) -> list[PairSource]:
-    """The scenes a folder stands for: itself, or its scene sub-folders, where the shared data folder's data sets
-    (:data:`~svs_torch.data.datasets.SHARED_DATA_FOLDERS`) give their pairs and any other sub-folder its own."""
-    if detect_stereo_layout(folder):
-        return _scene_sources(folder)
-    shared = [PairSource(left=str(path), scene=True) for path in list_shared_pairs(folder)]
-    try:
-        children = warn_unreadable(sorted(child for child in folder.iterdir() if child.is_dir()))
-    except OSError:  # a folder that cannot be listed holds no scene we can read
-        return shared
-    if shared:  # the data sets' folders gave their pairs; a scene beside them is one more (not one instead)
-        children = [child for child in children if child.name not in SHARED_DATA_FOLDERS]
-    return shared + [source for child in children if detect_stereo_layout(child) for source in _scene_sources(child)]
-
-
-def _scene_sources(folder: Path) -> list[PairSource]:
-    """A scene folder's pairs: itself, or each frame of a KITTI training folder (its left images), as the shared
-    data folder lists them: ``load_stereo_pair`` on the folder alone reads only frame 000000_10."""
-    if detect_stereo_layout(folder) == "kitti":
-        lefts = kitti_left_images(folder)  # the frames with truth: a download's _11 frames have none
-        if lefts:
-            return [PairSource(left=str(path), scene=True) for path in lefts]
-    return [PairSource(left=str(folder), scene=True)]
+    """The scenes a folder stands for (:func:`~svs_torch.data.scene_folders.folder_scenes`), a folder that holds
+    part of a scene's files as a bad entry saying what it lacks."""
+    return [PairSource(left=path, scene=True) if problem is None else PairSource(left=path, problem=problem)
+            for path, problem in folder_scenes(folder)]
 
 
 def _kind(path: Path) -> str:
@@ -212,6 +193,9 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
                                                                     f"{path}")]
         if is_kitti_left_image(path):
             return [PairSource(left=str(path), scene=True)]
+        if _kind(path) == "missing":  # a scene folder not there: "expected 'LEFT RIGHT', ... got 1 field" (an audit)
+            problem = f"{where}: no such file or folder (one field names a scene folder): {display_path(path)}"
+            return [PairSource(left=text.strip(), problem=problem)]
         return [_bad(where, "1 field", text)]
     if len(fields) in (2, 4, 5):
         if len(fields) == 2:

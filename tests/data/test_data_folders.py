@@ -214,6 +214,36 @@ def test_scenes_beside_the_data_sets_are_listed_too(tmp_path: Path, data_dir: Pa
                                                                          f"{tmp_path.name}/MyTeddy"]
 
 
+def test_a_scene_folder_lacking_a_file_is_a_bad_entry_not_left_out(tmp_path: Path, data_dir: Path) -> None:
+    """Found by an audit: a folder of scenes left out a scene without calib.txt, or with IM0.PNG, without a word."""
+    shared = tmp_path / "shared"
+    (shared / "middlebury_eval3_Q").mkdir(parents=True)
+    for name, drop, rename in (("Whole", None, None), ("NoCalib", "calib.txt", None), ("Upper", None, "im0.png")):
+        for target in (tmp_path / "scenes" / name, shared / "middlebury_eval3_Q" / name):
+            shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", target)
+            if drop:
+                (target / drop).unlink()
+            if rename:
+                (target / rename).rename(target / rename.upper())
+    (tmp_path / "scenes" / "plots").mkdir()  # a folder with no scene's file in it is no scene, and not one bad
+    for folder in (tmp_path / "scenes", shared):
+        sources = read_pair_sources([folder])
+        assert sorted((Path(source.left).name, source.problem is None) for source in sources) == [
+            ("NoCalib", False), ("Upper", False), ("Whole", True)]
+        problems = sorted(source.problem for source in sources if source.problem)
+        assert problems[0].endswith("NoCalib: a MiddEval3 scene folder without calib.txt")
+        assert problems[1].endswith("Upper: a MiddEval3 scene folder without im0.png (IM0.PNG is there: file names "
+                                    "are case-sensitive)")
+    # One such folder named alone is a bad entry too; loading it names what it lacks.
+    assert [source.problem is None for source in read_pair_sources([tmp_path / "scenes" / "NoCalib"])] == [False]
+    with pytest.raises(InputError, match=r"in \S+NoCalib: a MiddEval3 scene folder without calib.txt$"):
+        load_stereo_pair(tmp_path / "scenes" / "NoCalib")
+    # A list's line naming a folder that is not there says so, not "expected 'LEFT RIGHT' ..., got 1 field".
+    (tmp_path / "pairs.txt").write_text("scenes/Whole\nscenes/Gone\n")
+    assert read_pair_list(tmp_path / "pairs.txt")[1].problem.startswith(
+        f"pairs: line 2 of {tmp_path / 'pairs.txt'}: no such file or folder (one field names a scene folder): ")
+
+
 def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -> None:
     for folder, scene in (("a", "Teddy"), ("b", "Piano")):
         shutil.copytree(data_dir / "middlebury_eval3_Q" / scene, tmp_path / folder / "Teddy")
