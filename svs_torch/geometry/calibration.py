@@ -28,6 +28,7 @@ from ..core.camera import CALIBRATION_RANGES, MAX_SIZE_PX, MIN_BASELINE_M, calib
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
+from .calibration_fields import coefficients_field, finite_or_none, matrix_field, number_field
 
 __all__ = ["BASELINE_RANGE_M", "FORMAT", "StereoCalibration", "check_baseline", "read_calibration",
            "rectify_with_calibration", "rectification_grids", "write_calibration"]
@@ -146,54 +147,9 @@ def write_calibration(path: str | os.PathLike, calibration: StereoCalibration, n
     """Write ``calibration`` as JSON to ``path`` whole (:func:`svs_torch.core.files.atomic_output`); an
     :class:`OSError` naming ``name`` and the file when it cannot be written."""
     check_instance(calibration, "calibration", StereoCalibration)
-    text = json.dumps(_finite_or_none(calibration.to_json()), indent=1, allow_nan=False) + "\n"
+    text = json.dumps(finite_or_none(calibration.to_json()), indent=1, allow_nan=False) + "\n"
     with write_errors_named(name, path), atomic_output(path, "w", encoding="utf-8") as stream:
         stream.write(text)
-
-
-def _finite_or_none(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite_or_none(v) for v in value]
-    return value
-
-
-def _numbers_only(value) -> bool:
-    """Nested lists of JSON numbers (numpy would take ``"500"`` as 500)."""
-    if isinstance(value, list):
-        return all(_numbers_only(v) for v in value)
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _matrix(record: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
-    value = record.get(key)
-    try:
-        array = np.asarray(value, dtype=np.float64) if _numbers_only(value) else None
-    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer of hundreds of digits
-        array = None
-    if array is None or array.shape != shape or not np.isfinite(array).all():
-        raise InputError(f"{where}: expected '{key}' as {'x'.join(map(str, shape))} finite numbers")
-    return array
-
-
-def _coefficients(record: dict, key: str, where: str) -> np.ndarray:
-    value = record.get(key)
-    try:
-        array = np.asarray(value, dtype=np.float64).ravel() if _numbers_only(value) else None
-    except (TypeError, ValueError, OverflowError):
-        array = None
-    if array is None or array.size not in (4, 5, 8, 12, 14) or not np.isfinite(array).all():
-        raise InputError(f"{where}: expected '{key}' as 4, 5, 8, 12 or 14 finite distortion coefficients")
-    return array
-
-
-def _number(record: dict, key: str) -> float:
-    value = record.get(key)  # an integer beyond a float's range (400 digits) is as unknown as a string
-    number = isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= 1e300
-    return float(value) if number else math.nan
 
 
 def _parse(record: object, where: str) -> StereoCalibration:
@@ -212,13 +168,13 @@ def _parse(record: object, where: str) -> StereoCalibration:
                                                               and 0 < v <= MAX_SIZE_PX for v in size)):
         raise InputError(f"{where}: expected 'image_size_wh' as [width, height], two positive integers of at most "
                          f"{MAX_SIZE_PX} px")
-    matrices = {key: _matrix(record, key, shape, where) for key, shape in _MATRICES.items()}
-    K_left, K_right = (_matrix(record, key, (3, 3), where) for key in ("K_left", "K_right"))
-    T = _matrix(record, "T_m", (3,), where)
+    matrices = {key: matrix_field(record, key, shape, where) for key, shape in _MATRICES.items()}
+    K_left, K_right = (matrix_field(record, key, (3, 3), where) for key in ("K_left", "K_right"))
+    T = matrix_field(record, "T_m", (3,), where)
     calibration = StereoCalibration(
-        image_wh=(size[0], size[1]), K_left=K_left, dist_left=_coefficients(record, "dist_left", where),
-        K_right=K_right, dist_right=_coefficients(record, "dist_right", where), T=T, **matrices,
-        **{key: _number(record, key) for key in ("rms_left_px", "rms_right_px", "rms_stereo_px",
+        image_wh=(size[0], size[1]), K_left=K_left, dist_left=coefficients_field(record, "dist_left", where),
+        K_right=K_right, dist_right=coefficients_field(record, "dist_right", where), T=T, **matrices,
+        **{key: number_field(record, key) for key in ("rms_left_px", "rms_right_px", "rms_stereo_px",
                                                  "row_error_mean_px", "row_error_max_px")},
         board=record.get("board") if isinstance(record.get("board"), dict) else {},
         pairs=tuple(record.get("pairs", [])),
@@ -298,7 +254,7 @@ def _check_one_rig(calibration: StereoCalibration, record: dict, where: str) -> 
                          f"{float(np.linalg.norm(calibration.T)):.6g} m")
     for key in ("focal_px", "baseline_m", "doffs_px"):
         value, implied = record.get(key), getattr(calibration, key)  # _number: a 400-digit integer is no float
-        if value is not None and not math.isclose(_number(record, key), implied, rel_tol=1e-6, abs_tol=1e-9):
+        if value is not None and not math.isclose(number_field(record, key), implied, rel_tol=1e-6, abs_tol=1e-9):
             raise InputError(f"{where}: '{key}' {value!r:.30} is not the {implied:.6g} its P1 and P2 give (they are "
                              "what rectifies; calibrate again rather than edit one value)")
 
