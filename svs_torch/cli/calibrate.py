@@ -30,8 +30,10 @@ the right camera's pose against the left's, what to remount a loose board by: it
 y and x axes (degrees, as estimate --json's right_camera_roll_deg and right_camera_turn_deg read them from a
 pair's rows) and where it sits (millimetres right, lower, ahead; --json: right_camera_offset_m).
 A pair whose two views do not fit the others (the same view twice, two moments of a moving board) is left
-out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px is written with
-a warning, and one that does not rectify its own chessboards (a board never tilted) is refused.
+out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px, or whose poses pin
+the focal length down only to over ±3 % (OpenCV's standard deviation of fx), is written with a warning, and one
+that does not rectify its own chessboards or leaves the focal length loose by over ±10 % (a board never tilted,
+or tilted a few degrees) is refused: tilt the board 15-30 degrees toward and away from the cameras between pairs.
 The baseline is in the unit of --square-m: measure the printed squares.
 """
 
@@ -155,7 +157,7 @@ def _text(calibration, views, out: str, figure: str | None = None) -> list[str]:
     lines = [f"calibrated from {len(views.names)} of {given} pairs "
              f"({board[0]}x{board[1]} board, squares {c.board['square_m']:g} m), {c.image_wh[0]}x{c.image_wh[1]}",
              f"reprojection RMS: left {c.rms_left_px:.3f} px, right {c.rms_right_px:.3f} px, "
-             f"stereo {c.rms_stereo_px:.3f} px",
+             f"stereo {c.rms_stereo_px:.3f} px; the poses pin each focal length down to ±{c.focal_sd_pct:.1f} %",
              f"rectified row error on the chessboards: mean {c.row_error_mean_px:.3f} px, max "
              f"{c.row_error_max_px:.3f} px ({board[0] * board[1]} corners x {len(views.names)} pairs)",
              f"rectified: focal {c.focal_px:.2f} px, baseline {c.baseline_m:.4f} m, doffs {c.doffs_px:.2f} px",
@@ -221,18 +223,16 @@ def _figure(calibration, views, images):
 
 
 def _warnings(calibration, views) -> list[str]:
-    """What the calibration written may get wrong: a poor fit, rows of its boards left apart, few pairs."""
-    from ..geometry.chessboard import GOOD_ROW_ERROR_PX, GOOD_STEREO_RMS_PX
+    """What the calibration written may get wrong: a poor fit, rows of its boards left apart, a focal length the
+    poses leave loose (:func:`~svs_torch.geometry.chessboard.fit_doubts`), few pairs."""
+    from ..geometry.chessboard import GOOD_STEREO_RMS_PX, fit_doubts
 
-    warnings = [] if calibration.rms_stereo_px <= GOOD_STEREO_RMS_PX else [
-        f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px, and no one pair explains it (a rig "
-        f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances from this file may be far off; check that each "
-        "pair's two images were taken at the same moment, and --board"]
-    good_rows = GOOD_ROW_ERROR_PX * max(1.0, calibration.image_wh[0] / 640)
-    if not warnings and calibration.row_error_mean_px > good_rows:  # (a poor fit's rows are said with it)
-        warnings.append(f"the chessboards' rows lie {calibration.row_error_mean_px:.2f} px apart after "
-                        f"rectification (a rig's within {good_rows:g} px): the focal length and baseline may be far "
-                        "off; tilt the board toward and away from the cameras between pairs, not only move it")
+    warnings = []
+    if doubts := fit_doubts(calibration):
+        advice = ("no one pair explains it; check that each pair's two images were taken at the same moment, and "
+                  "--board") if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX else (
+            "tilt the board toward and away from the cameras between pairs, not only move it")
+        warnings.append(f"{'; '.join(doubts)}: distances from this file may be far off; {advice}")
     if len(views.names) < FEW_PAIRS:  # 3 of the shared pairs: focal 576 px, against 516 from all 13 (an audit)
         warnings.append(f"calibrated from {len(views.names)} pairs: {FEW_PAIRS}-20 poses of the board across the "
                         "field give a steadier focal length and baseline")

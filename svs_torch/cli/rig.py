@@ -186,16 +186,17 @@ def take_kept_calibration(args: argparse.Namespace, path: str | None, prog: str)
 
 
 def _warn_of_a_poor_fit(path: str, calibration) -> None:
-    """Once per file read: a calibration whose stereo fit is poor (one written before calibrate left out the pairs
-    that spoil it, or one it warned of) gives distances that may be far off (an audit: "Stop" at 0.9 m)."""
-    from ..geometry.chessboard import GOOD_STEREO_RMS_PX
+    """Once per file read: a calibration whose fit calibrate doubted (:func:`~svs_torch.geometry.chessboard.fit_doubts`;
+    one written before calibrate left out the pairs that spoil it, or one it warned of) gives distances that may be
+    far off (audits: "Stop" at 0.9 m; an obstacle at 0.80 m ranged 1.65 m, "OK", rows 2.2 px apart said nowhere)."""
+    from ..geometry.chessboard import fit_doubts
 
-    if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX:  # (NaN: a file without its errors, not warned of)
+    if doubts := fit_doubts(calibration):
         import warnings
 
-        warnings.warn(f"--calibration: {path}'s stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px (a rig "
-                      f"calibrates under {GOOD_STEREO_RMS_PX:g} px): distances may be far off; calibrate again "
-                      "(svs-depth calibrate leaves out the pairs that spoil the fit)", stacklevel=3)
+        warnings.warn(f"--calibration: {path}: {'; '.join(doubts)}: distances may be far off; calibrate again "
+                      "(svs-depth calibrate leaves out the pairs that spoil the fit; tilt the board between pairs)",
+                      stacklevel=3)
 
 
 def check_no_manual_calibration(args: argparse.Namespace) -> None:

@@ -8,9 +8,10 @@ length, the baseline and the principal-point offset the depth needs: ``focal_px 
 (``StereoBatch``'s convention, cx_right − cx_left; OpenCV's Q gives Z = f·B / (d + cx_right − cx_left)).
 
 The file is JSON (easy to read from users' scripts): both cameras' K and distortion, R, T (metres), R1, R2, P1,
-P2, Q, the image size it was made at, the reprojection errors and the rectified row error, the board, the date
-and the software version. A pair of another size with the same aspect ratio (a rig calibrated at 640×480 and run
-at 320×240) is rectified with the matrices scaled to it (:meth:`StereoCalibration.scaled_to`).
+P2, Q, the image size it was made at, the reprojection errors, the rectified row error and how far the focal
+length is pinned down, the board, the date and the software version. A pair of another size with the same aspect
+ratio (a rig calibrated at 640×480 and run at 320×240) is rectified with the matrices scaled to it
+(:meth:`StereoCalibration.scaled_to`).
 """
 
 from __future__ import annotations
@@ -61,6 +62,8 @@ class StereoCalibration:
         R1, R2: ``(3, 3)`` rectifying rotations; P1, P2: ``(3, 4)`` rectified projections; Q: ``(4, 4)``.
         rms_left_px, rms_right_px, rms_stereo_px: reprojection RMS of each camera's and the stereo calibration.
         row_error_mean_px, row_error_max_px: |y_left − y_right| of the matching corners after rectification.
+        focal_sd_pct: how far the board's poses pin the focal length down: OpenCV's standard deviation of fx, % of
+            fx, the larger camera's (NaN: a file written before it was recorded).
         board: the chessboard (``inner_corners`` [columns, rows], ``square_m``); pairs: the pairs used;
         created_utc, software: when and by what it was made.
     """
@@ -82,6 +85,7 @@ class StereoCalibration:
     rms_stereo_px: float = math.nan
     row_error_mean_px: float = math.nan
     row_error_max_px: float = math.nan
+    focal_sd_pct: float = math.nan
     board: dict = dataclasses.field(default_factory=dict)
     pairs: tuple[str, ...] = ()
     created_utc: str = ""
@@ -134,6 +138,7 @@ class StereoCalibration:
             "focal_px": self.focal_px, "baseline_m": self.baseline_m, "doffs_px": self.doffs_px,
             "rms_left_px": self.rms_left_px, "rms_right_px": self.rms_right_px, "rms_stereo_px": self.rms_stereo_px,
             "row_error_mean_px": self.row_error_mean_px, "row_error_max_px": self.row_error_max_px,
+            "focal_sd_pct": self.focal_sd_pct,
             "board": self.board, "num_pairs": len(self.pairs), "pairs": list(self.pairs),
             "K_left": listed(self.K_left), "dist_left": listed(np.ravel(self.dist_left)),
             "K_right": listed(self.K_right), "dist_right": listed(np.ravel(self.dist_right)),
@@ -175,7 +180,7 @@ def _parse(record: object, where: str) -> StereoCalibration:
         image_wh=(size[0], size[1]), K_left=K_left, dist_left=coefficients_field(record, "dist_left", where),
         K_right=K_right, dist_right=coefficients_field(record, "dist_right", where), T=T, **matrices,
         **{key: number_field(record, key) for key in ("rms_left_px", "rms_right_px", "rms_stereo_px",
-                                                 "row_error_mean_px", "row_error_max_px")},
+                                                 "row_error_mean_px", "row_error_max_px", "focal_sd_pct")},
         board=record.get("board") if isinstance(record.get("board"), dict) else {},
         pairs=tuple(record.get("pairs", [])),
         created_utc=str(record.get("created_utc", "")), software=str(record.get("software", "")))

@@ -29,8 +29,9 @@ import numpy as np
 from ..core.checks import InputError
 from .calibration import StereoCalibration, _check_maps_in_view, check_baseline
 
-__all__ = ["BoardViews", "GOOD_STEREO_RMS_PX", "MAX_SQUARE_M", "MIN_PAIRS", "board_image_u8", "calibrate_stereo_rig",
-           "collect_board_views", "drop_misfit_pairs", "find_board_corners", "rectified_corners"]
+__all__ = ["BoardViews", "GOOD_FOCAL_SD_PCT", "GOOD_STEREO_RMS_PX", "MAX_FOCAL_SD_PCT", "MAX_SQUARE_M", "MIN_PAIRS",
+           "board_image_u8", "calibrate_stereo_rig", "collect_board_views", "drop_misfit_pairs", "find_board_corners",
+           "fit_doubts", "good_row_error_px", "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
 #: warns below 3; a usable calibration wants 10–20 views across the field.
@@ -49,6 +50,13 @@ GOOD_STEREO_RMS_PX = 1.0
 #: warned of: the shared set's and its subsets' calibrations 0.06-0.14 px; five pairs of one pose moved across the
 #: field, never tilted, 0.70-0.95 px with focal 870 px for 516 and baselines up to 0.124 m for 0.083 (an audit).
 GOOD_ROW_ERROR_PX = 0.5
+#: A fit whose focal length the board's poses pin down only to more than this, % (OpenCV's standard deviation of fx,
+#: :attr:`StereoCalibration.focal_sd_pct`), is warned of; over :data:`MAX_FOCAL_SD_PCT` refused. Measured: the shared
+#: set 0.2 %, any 3-5 of its pairs under 1.3 %; twelve synthetic poses tilted up to ±11° 1.8 % (focal within 1 %), up
+#: to ±6° 5.9 % (8 % off: 0.864 m for 0.80), up to ±3° 19 % (rectified focal 1707 px for 612: 1.65 m for 0.80, "OK",
+#: an audit), rows and RMS not telling the first at all.
+GOOD_FOCAL_SD_PCT = 3.0
+MAX_FOCAL_SD_PCT = 10.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
 _STEREO_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-6)
 
@@ -192,13 +200,14 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
                          f"(25 mm is 0.025), got {square_m:g}")
     columns, rows = board
     size = views.image_wh
-    rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, _ = _fit(views, square_m, board)
+    rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, _, focal_sd_pct = _fit(
+        views, square_m, board)
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K_left, dist_left, K_right, dist_right, size, R, T,
                                                 flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
     calibration = StereoCalibration(
         image_wh=size, K_left=K_left, dist_left=dist_left.ravel(), K_right=K_right, dist_right=dist_right.ravel(),
         R=R, T=T.ravel(), R1=R1, R2=R2, P1=P1, P2=P2, Q=Q, rms_left_px=float(rms_left),
-        rms_right_px=float(rms_right), rms_stereo_px=float(rms_stereo),
+        rms_right_px=float(rms_right), rms_stereo_px=float(rms_stereo), focal_sd_pct=focal_sd_pct,
         board={"inner_corners": [columns, rows], "square_m": square_m}, pairs=tuple(views.names),
         created_utc=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), software=software)
     if calibration.baseline_m <= 0:
@@ -213,7 +222,12 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
     check_baseline(calibration.baseline_m, "--square-m" if rms_stereo <= GOOD_STEREO_RMS_PX else name)
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
-    return _rectifying(_with_row_error(calibration, rows_apart), name)
+    calibration = _rectifying(_with_row_error(calibration, rows_apart), name)
+    if calibration.focal_sd_pct > MAX_FOCAL_SD_PCT:
+        raise InputError(f"{name}: the board's poses leave the focal length undetermined (±{focal_sd_pct:.0f} %, focal "
+                         f"{calibration.focal_px:.0f} px): tilt the board toward and away from the cameras between "
+                         "pairs, by 15-30 degrees, not only move it across the field")
+    return calibration
 
 
 def _not_left_right(R: np.ndarray, T: np.ndarray) -> str | None:
@@ -239,13 +253,37 @@ def _rectifying(calibration: StereoCalibration, name: str) -> StereoCalibration:
         _check_maps_in_view(calibration, name)
     except InputError:
         poor = calibration.rms_stereo_px > GOOD_STEREO_RMS_PX  # (then written with a warning, yet read by nothing)
+        # (Poses never tilted fit poorly too: twelve tilted up to ±1° to 3.2 px, the advice blaming sync alone.)
         why = (f"the fit is poor (stereo RMS {calibration.rms_stereo_px:.1f} px): check that each pair's two images "
-               "were taken at the same moment, and --board") if poor else (
+               "were taken at the same moment, --board, and that the board is tilted toward and away from the "
+               "cameras between pairs") if poor else (
             "the poses of the board leave the cameras undetermined; tilt it toward and away from the cameras between "
             "pairs, not only move it across the field")
         raise InputError(f"{name}: the fit does not rectify its own views (focal {calibration.focal_px:.0f} px, rows "
                          f"{calibration.row_error_mean_px:.1f} px apart on the boards): {why}") from None
     return calibration
+
+
+def good_row_error_px(calibration: StereoCalibration) -> float:
+    """:data:`GOOD_ROW_ERROR_PX` for the calibration's image width (pixels per 640 of width, at least that)."""
+    return GOOD_ROW_ERROR_PX * max(1.0, calibration.image_wh[0] / 640)
+
+
+def fit_doubts(calibration: StereoCalibration) -> list[str]:
+    """Why distances from ``calibration`` may be far off, each a clause naming its measure: a stereo reprojection
+    RMS over :data:`GOOD_STEREO_RMS_PX`, rectified rows apart over :func:`good_row_error_px`, a focal length pinned
+    down only to over :data:`GOOD_FOCAL_SD_PCT`. Empty for a good fit (and for a measure a file does not hold)."""
+    doubts = []
+    if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX:  # (NaN: not recorded, not doubted)
+        doubts.append(f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px (a rig calibrates under "
+                      f"{GOOD_STEREO_RMS_PX:g} px)")
+    if calibration.row_error_mean_px > good_row_error_px(calibration):
+        doubts.append(f"the chessboards' rows lie {calibration.row_error_mean_px:.2f} px apart after rectification "
+                      f"(a rig's within {good_row_error_px(calibration):g} px)")
+    if calibration.focal_sd_pct > GOOD_FOCAL_SD_PCT:
+        doubts.append(f"the board's poses pin the focal length down only to ±{calibration.focal_sd_pct:.1f} % (a "
+                      f"rig's within {GOOD_FOCAL_SD_PCT:g} %)")
+    return doubts
 
 
 def _with_row_error(calibration: StereoCalibration, rows_apart: np.ndarray) -> StereoCalibration:
@@ -256,19 +294,23 @@ def _with_row_error(calibration: StereoCalibration, rows_apart: np.ndarray) -> S
 
 def _fit(views: BoardViews, square_m: float, board: tuple[int, int]) -> tuple:
     """Each camera's fit, then the pair's with those intrinsics fixed (the module docstring): ``(rms_left, K_left,
-    dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors)``, ``pair_errors`` each pair's
-    reprojection error in the stereo fit, pixels (the larger of its two views')."""
+    dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors, focal_sd_pct)``, ``pair_errors`` each
+    pair's reprojection error in the stereo fit, pixels (the larger of its two views'), ``focal_sd_pct`` that of
+    :attr:`~svs_torch.geometry.calibration.StereoCalibration.focal_sd_pct`."""
     columns, rows = board
     grid = np.zeros((rows * columns, 3), np.float32)
     grid[:, :2] = np.mgrid[0:columns, 0:rows].T.reshape(-1, 2) * square_m  # the corners' order in OpenCV
     objects = [grid] * len(views.names)
-    (rms_left, K_left, dist_left), (rms_right, K_right, dist_right) = (
-        cv2.calibrateCamera(objects, corners, views.image_wh, None, None)[:3] for corners in (views.left, views.right))
+    (rms_left, K_left, dist_left, *_, sd_left, _, _), (rms_right, K_right, dist_right, *_, sd_right, _, _) = (
+        cv2.calibrateCameraExtended(objects, corners, views.image_wh, None, None)
+        for corners in (views.left, views.right))
+    # fx's standard deviation, % of fx, the larger camera's: how far the poses pin the focal length down.
+    focal_sd_pct = 100 * max(float(sd[0, 0]) / float(K[0, 0]) for sd, K in ((sd_left, K_left), (sd_right, K_right)))
     rms_stereo, K_left, dist_left, K_right, dist_right, R, T, *_, per_view = cv2.stereoCalibrateExtended(
         objects, views.left, views.right, K_left, dist_left, K_right, dist_right, views.image_wh, None, None,
         criteria=_STEREO_CRITERIA, flags=cv2.CALIB_FIX_INTRINSIC)
     pair_errors = np.asarray(per_view).reshape(len(views.names), 2).max(1)
-    return rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors
+    return rms_left, K_left, dist_left, rms_right, K_right, dist_right, rms_stereo, R, T, pair_errors, focal_sd_pct
 
 
 def drop_misfit_pairs(views: BoardViews, square_m: float, board: tuple[int, int]) -> BoardViews:
