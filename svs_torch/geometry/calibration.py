@@ -164,8 +164,9 @@ def _parse(record: object, where: str) -> StereoCalibration:
                          "output)")
     version = record.get("format_version", FORMAT_VERSION)
     if not (isinstance(version, int) and not isinstance(version, bool) and 1 <= version <= FORMAT_VERSION):
+        newer = isinstance(version, int) and not isinstance(version, bool) and version > FORMAT_VERSION
         raise InputError(f"{where}: expected 'format_version' 1 to {FORMAT_VERSION} (this svs_torch's), got "
-                         f"{version!r}: written by a newer svs_torch?")
+                         f"{version!r}" + (": written by a newer svs_torch?" if newer else ""))
     if not (isinstance(record.get("pairs", []), list) and all(isinstance(p, str) for p in record.get("pairs", []))):
         raise InputError(f"{where}: expected 'pairs' as a list of the chessboard pairs' names")
     size = record.get("image_size_wh")

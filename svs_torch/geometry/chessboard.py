@@ -41,6 +41,9 @@ MIN_PAIRS = 3
 MAX_SQUARE_M = 1.0
 #: The smallest: a 9x6 board of 1 mm squares is 1 cm wide; 1e-20 m squares ended in an OpenCV assertion (an audit).
 MIN_SQUARE_M = 0.001
+#: The fewest pixels along a square's side in which the board is looked for: OpenCV's finder asserts on a 16x12
+#: image, and finds no 9x6 board at 24x18.
+MIN_SQUARE_PX = 4
 #: A stereo fit whose reprojection RMS is above this, pixels, is looked at pair by pair (:func:`drop_misfit_pairs`):
 #: OpenCV's sample pairs fit to 0.2 px, while one pair whose views are not one moment of one board (the same view
 #: twice, a view of another pose) ruined the whole fit (13.6 px, a 0.19 m baseline for 0.083) and was written in
@@ -90,6 +93,8 @@ def find_board_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray 
     if not (isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 2):
         kind = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
         raise InputError(f"image: expected a 2-D uint8 gray numpy array (board_image_u8 converts one), got {kind}")
+    if min(image.shape) < (min(board) + 1) * MIN_SQUARE_PX or max(image.shape) < (max(board) + 1) * MIN_SQUARE_PX:
+        return None  # no board fits (and OpenCV's finder asserts on a 16x12 image)
     found, corners = cv2.findChessboardCorners(image, board,
                                                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
     if not found:
@@ -131,6 +136,11 @@ def collect_board_views(pairs: Sequence[tuple[str, np.ndarray, np.ndarray]], boa
         wh = (image_left.shape[1], image_left.shape[0])
         if size is None:
             size = wh
+            least = ((board[0] + 1) * MIN_SQUARE_PX, (board[1] + 1) * MIN_SQUARE_PX)  # (either way round)
+            if min(size) < min(least) or max(size) < max(least):  # (16x12: an OpenCV assertion, an audit)
+                raise InputError(f"{name}: {pair_name} is {size[0]}x{size[1]} px, too small to find a {board[0]}x"
+                                 f"{board[1]} board in: expected at least {max(least)}x{min(least)} px "
+                                 f"({MIN_SQUARE_PX} px a square)")
         for view, image in (("left", image_left), ("right", image_right)):
             if (image.shape[1], image.shape[0]) != size:
                 raise InputError(f"{name}: expected every image at {size[0]}x{size[1]} (one rig, one size), got "

@@ -103,3 +103,24 @@ def test_a_file_whose_rows_lie_apart_is_warned_of_where_it_is_read(capsys, data_
     assert main(["estimate", *pair, "--calibration", str(path), "--json"]) == 0
     assert "warning" not in capsys.readouterr().err
 
+
+def test_boards_too_small_to_hold_the_board_are_named_and_an_old_version_is_not_called_newer(tmp_path):
+    """Found by an audit: 16x12 boards ended in OpenCV's "internal error" (an assertion in adaptiveThreshold), and a
+    file's format_version 0 or "1" was asked whether a newer svs_torch wrote it."""
+    from svs_torch.geometry.calibration import read_calibration
+    from svs_torch.geometry.chessboard import find_board_corners
+
+    small = [(name, cv2.resize(left, (16, 12), interpolation=cv2.INTER_AREA),
+              cv2.resize(right, (16, 12), interpolation=cv2.INTER_AREA)) for name, left, right in _board_pairs(0.4, 4)]
+    assert find_board_corners(small[0][1], BOARD) is None
+    with pytest.raises(InputError, match=r"^left: pose00 is 16x12 px, too small to find a 9x6 board in: expected at "
+                                         r"least 40x28 px \(4 px a square\)$"):
+        collect_board_views(small, BOARD, "left")
+    path = tmp_path / "rig.json"
+    write_calibration(path, _calibrate(0.4))
+    record = json.loads(path.read_text())
+    for version, newer in ((0, False), ("1", False), (2, True)):
+        path.write_text(json.dumps({**record, "format_version": version}))
+        with pytest.raises(InputError, match=r"expected 'format_version' 1 to 1 \(this svs_torch's\), got ") as raised:
+            read_calibration(path)
+        assert str(raised.value).endswith("written by a newer svs_torch?") == newer
