@@ -206,18 +206,18 @@ def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: s
         if given and kind != "otsu":
             raise InputError(f"{option}: only the Otsu segmenter thresholds brightness, and this run segments with "
                              f"{segmenter!r}; {fix}")
+    # (features and fundamental have no --segmenter: "use --segmenter nearness" failed as an unknown option, an audit)
+    nearness = "--segmenter nearness" if segmenter_option else "--preset default"
     if kind != "nearness" and (keep_rule in ("nearest", "nearest_first") or area_options):
         option = f"--keep-rule {keep_rule}" if keep_rule in ("nearest", "nearest_first") else area_options[0]
         raise InputError(f"{option}: only the nearness segmenter ranks regions by disparity, and this run segments "
-                         f"with {segmenter!r}; drop it or use "
-                         + ("--segmenter nearness" if segmenter_option else "--preset default"))
+                         f"with {segmenter!r}; drop it or use {nearness}")
     if camera_frames and kind != "nearness":  # the learned and Otsu runs were the ones without it, in silence
         raise InputError(f"--camera-frames: only the nearness segmenter matches a camera frame's noise with its wider "
-                         f"window, and this run segments with {segmenter!r}; drop it or use --segmenter nearness")
+                         f"window, and this run segments with {segmenter!r}; drop it or use {nearness}")
     if floor == "on" and kind != "nearness":
         raise InputError(f"--floor: 'on' leaves out the floor the nearness segmenter finds in the measured "
-                         f"disparity, and this run segments with {segmenter!r}; drop --floor or use --segmenter "
-                         f"nearness")
+                         f"disparity, and this run segments with {segmenter!r}; drop --floor or use {nearness}")
 
 
 def image_report(seg, index: int) -> dict:

@@ -466,6 +466,11 @@ def test_outputs_never_write_over_the_inputs(data_dir, capsys, tmp_path):
     (["segment", "{L}", "{R}", "--segmenter", "otsu", "--keep-rule", "nearest"],
      "--keep-rule nearest: only the nearness segmenter ranks regions by disparity, and this run segments with "
      "'otsu'; drop it or use --segmenter nearness"),
+    # Found by an audit: features and fundamental, which have no --segmenter, were told to use it.
+    (["features", "{L}", "{R}", "--preset", "paper", "--floor", "on"],
+     "--floor: 'on' leaves out the floor the nearness segmenter finds in the measured disparity, and this run "
+     "segments with 'otsu'; drop --floor or use --preset default"),
+    (["fundamental", "{L}", "{R}", "--preset", "paper", "--floor", "on"], "drop --floor or use --preset default"),
     (["fundamental", "{L}", "{R}", "--preset", "paper", "--no-segment", "--keep", "3"],
      "--keep: this run finds F from the whole images' features (--no-segment), which no segmentation option changes; "
      "drop --keep or --no-segment"),
