@@ -22,7 +22,7 @@ JSON "inliers": one [x_left, y_left, x_right, y_right] per inlier match, the poi
 refined to sub-pixel, as estimate ranges it), input-image pixels (pixel centres at whole numbers).
 "homography_share": the share of the inliers that one homography maps onto the right view within the threshold;
 near 1 they lie on one plane, or the views differ by a shift (a wall facing the camera), and F is not determined
-by them: every F = [e']x H fits them whatever its epipole (text: a warning from 0.9). "reason" (only then): the
+by them: every F = [e']x H fits them whatever its epipole (a warning from 0.9, on stderr). "reason" (only then): the
 segmentation kept no region in a view, so the segmented obstacles held nothing to match.
 """
 
@@ -153,11 +153,23 @@ def run(args: argparse.Namespace) -> int:
         # One image given twice read "DEGENERATE ... no sample of seven matches gave a model", where estimate says
         # what it is (an audit).
         report["reason"] = IDENTICAL_VIEWS
+    _warn_if_planar(report)
     if args.json:
         print(dumps_strict(report))
         return 0
     _print_text(report, elapsed)
     return 0
+
+
+def _warn_if_planar(report: dict) -> None:
+    """A warning on stderr, as the other commands' are, when one homography fits the inliers (from
+    :data:`PLANAR_SHARE`): it was a line of the text answer, and --json said nothing (an audit)."""
+    share = report["homography_share"]
+    if report["F"] is not None and share is not None and share >= PLANAR_SHARE:
+        import warnings
+
+        warnings.warn(f"{share:.0%} of the inliers fit one homography (one plane, or the view shifted): they do not "
+                      "determine F, whose epipolar lines may be far from the true ones", stacklevel=3)
 
 
 def _print_text(report: dict, elapsed: float) -> None:
@@ -171,7 +183,3 @@ def _print_text(report: dict, elapsed: float) -> None:
     print("F (x_right^T F x_left = 0, input pixels):")
     for row in report["F"]:
         print("  " + "  ".join(f"{v: .6e}" for v in row))
-    share = report["homography_share"]
-    if share is not None and share >= PLANAR_SHARE:
-        print(f"warning: {share:.0%} of the inliers fit one homography (one plane, or the view shifted): they do not "
-              "determine F, whose epipolar lines may be far from the true ones")

@@ -863,14 +863,15 @@ def test_fundamental_warns_when_its_inliers_do_not_determine_f(data_dir, capsys,
     left, right = tmp_path / "left.png", tmp_path / "right.png"
     cv2.imwrite(str(left), gray[:, 20:420])
     cv2.imwrite(str(right), gray[:, 32:432])  # x_right = x_left - 12 everywhere
-    code, out, _ = run_cli(capsys, "fundamental", str(left), str(right), "--json")
+    code, out, err = run_cli(capsys, "fundamental", str(left), str(right), "--json")
     report = json.loads(out)
     assert code == 0 and report["num_inliers"] > 100
+    assert "warning: 100% of the inliers fit one homography" in err  # (--json said nothing, an audit)
     points = np.array(report["inliers"])
     _, mask = cv2.findHomography(points[:, :2], points[:, 2:], cv2.RANSAC, 1.0)
     assert report["homography_share"] == pytest.approx(mask.mean(), abs=0.02) and report["homography_share"] > 0.95
-    code, out, _ = run_cli(capsys, "fundamental", str(left), str(right))
-    assert "of the inliers fit one homography" in out and "do not determine F" in out
+    code, out, err = run_cli(capsys, "fundamental", str(left), str(right))
+    assert "of the inliers fit one homography" in err and "do not determine F" in err and "homography" not in out
     code, out, _ = run_cli(capsys, "fundamental", *(str(data_dir / p) for p in TEDDY), "--json")
     assert json.loads(out)["homography_share"] < 0.5
 
