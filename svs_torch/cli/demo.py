@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
 
@@ -238,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
     generator = torch.Generator().manual_seed(args.seed)
     with options_named(num_objects="--objects", size_wh="--size"):  # e.g. more obstacles than fit side by side
         scenes = random_obstacle_scenes(1, args.objects, size_wh=(width, height), generator=generator)
-    batch = scenes.batch
+    batch = dataclasses.replace(scenes.batch, names=(f"synthetic seed {args.seed}",))  # ("synthetic-0" for any seed)
     started = time.perf_counter()
     config = PipelineConfig.paper() if args.preset == "paper" else PipelineConfig()
     result = estimate_obstacle_depth(batch, config)

@@ -121,9 +121,10 @@ def test_demo_reports_the_true_nearest_and_whether_it_was_kept(capsys, tmp_path,
     assert len(figure_titles) == 2
     for title in figure_titles:
         if nearest["ranged_is_nearest"]:
-            assert title.startswith("synthetic-0: nearest obstacle ") and "true 1.00 m" in title
+            # (named by its seed: "synthetic-0" whatever the seed, an audit)
+            assert title.startswith("synthetic seed 3: nearest obstacle ") and "true 1.00 m" in title
         else:
-            assert "nearest kept obstacle" in title
+            assert title.startswith("synthetic seed 3: ") and "nearest kept obstacle" in title
             assert ("the nearest obstacle, true 1.00 m, was not kept" in title) == (not nearest["kept"])
 
 
@@ -188,7 +189,7 @@ def test_demo_without_obstacles_has_no_true_nearest(capsys, tmp_path, figure_tit
     # The figure's title as the text: the wall is the nearest kept region, not "nearest obstacle 4.00 m" (an audit)
     assert "  nearest kept obstacle: 4.00 m" in text and len(figure_titles) == 2
     for title in figure_titles:
-        assert title.startswith("synthetic-0: nearest kept obstacle 4.00 m, true 4.00 m") and "inf" not in title
+        assert title.startswith("synthetic seed 7: nearest kept obstacle 4.00 m, true 4.00 m") and "inf" not in title
         assert "; no true obstacle in view;" in title
 
 
