@@ -200,7 +200,14 @@ def format_summary(summary: dict) -> list[str]:
 
 
 def _no_truth_line(summary: dict, nominal: int) -> list[str]:
-    """Why nothing was scored, where pairs ran and none had ground truth (an audit: "0 scored", unexplained)."""
+    """Why nothing was scored, where pairs ran and none had ground truth (an audit: "0 scored", unexplained); which
+    ranged pairs were not scored, where others were (a scene whose truth had gone missing read as an OK row)."""
+    unscored = summary.get("unscored") or {"count": 0, "names": []}
+    if (summary["scored"] or nominal) and unscored["count"]:
+        names, count = unscored["names"], unscored["count"]
+        shown = ", ".join(names[:5]) + (f" and {count - 5} more" if count > 5 else "")
+        return [f"{count} ranged pair{'' if count == 1 else 's'} not scored (no ground truth, or none where "
+                f"{'it was' if count == 1 else 'they were'} ranged; not in the means): {shown}"]
     if summary["scored"] or nominal or summary["pairs"] <= summary["failed"]:
         return []
     return ["none of the ranged pairs has ground truth (listed file pairs and captured frames carry none; a scene "

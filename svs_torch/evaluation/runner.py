@@ -293,13 +293,16 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     ``wall_s`` (the whole run: loading included) when given, else over the summed pipeline time;
     ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics
     (:data:`~svs_torch.evaluation.stereo_metrics.STEREO_FIELDS`) are means over the pairs that have them;
-    ``<scope>_pairs`` counts those pairs for each scope.
+    ``<scope>_pairs`` counts those pairs for each scope. ``unscored``: the pairs ranged (status OK) but not scored
+    (no ground truth, or none where they were ranged), their count and names: a scene whose truth had gone missing
+    (a KITTI folder without ``disp_occ``, a PFM of unknown values only) read as one more OK row (an audit).
     """
     failures = [e for e in evaluations if not e.ok]
     with_truth = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
     # Scenes whose data ship no calibration are scored with a nominal one: reported apart, never in the headline.
     scored = [e for e in with_truth if e.calibrated is not False]
     nominal = [e for e in with_truth if e.calibrated is False]
+    unscored = sorted(e.name for e in evaluations if e.ok and e.acc_r_min_pct is None)
 
     def acc(key: str, group: Sequence[PairEvaluation] = scored) -> float | None:
         return _mean([getattr(e, key) or 0.0 for e in group])
@@ -317,6 +320,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "nominal_calibration": {"scored": len(nominal), "names": sorted(e.name for e in nominal),
                                 **{key: acc(key, nominal) for key in ("acc_r_min_pct", "acc_r_max_pct",
                                                                       "acc_objects_pct")}},
+        "unscored": {"count": len(unscored), "names": unscored},
         "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
         "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
         "sparse_within_1px": mean_of("sparse_within_1px"), "sparse_within_3px": mean_of("sparse_within_3px"),

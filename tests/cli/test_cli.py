@@ -9,6 +9,7 @@ import os
 import platform
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -1862,6 +1863,24 @@ def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, dat
     assert "none of the ranged pairs has ground truth (listed file pairs and captured frames carry none" in out
     code, out, _ = run_cli(capsys, "eval", str(scene), "--size", "160x120")
     assert code == 0 and "1 scored against ground truth" in out and "none of the ranged pairs" not in out
+
+
+def test_eval_names_the_ranged_pairs_it_could_not_score_beside_those_it_did(capsys, data_dir, tmp_path):
+    """Found by an audit: a scene whose truth holds no known value (or a KITTI folder whose disp_occ had gone) was
+    one more OK row of dashes under "4 pairs, 0 failed, 1 scored", named nowhere."""
+    from svs_torch.data import read_pfm, write_pfm
+
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    unknown = tmp_path / "Unknown"
+    shutil.copytree(scene, unknown)
+    write_pfm(unknown / "disp0GT.pfm", np.full_like(read_pfm(scene / "disp0GT.pfm"), np.inf))
+    (tmp_path / "list.txt").write_text(f"{scene / 'im0.png'} {scene / 'im1.png'}\n")
+    code, out, _ = run_cli(capsys, "eval", str(scene), str(unknown), str(tmp_path / "list.txt"), "--size", "160x120")
+    assert code == 0 and "3 pairs, 0 failed, 1 scored against ground truth" in out
+    assert ("2 ranged pairs not scored (no ground truth, or none where they were ranged; not in the means): "
+            "Teddy/im0.png, eval3/Unknown") in out
+    code, out, _ = run_cli(capsys, "eval", str(scene), str(unknown), "--size", "160x120", "--json")
+    assert json.loads(out.splitlines()[-1])["unscored"] == {"count": 1, "names": ["eval3/Unknown"]}
 
 
 def test_a_pair_too_large_to_run_at_its_size_is_refused_before_it_is_decoded(capsys, tmp_path, monkeypatch):
