@@ -219,7 +219,10 @@ def _say_what_the_folder_holds(folder: str) -> None:
     except InputError:
         raise InputError(f"left: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in the folder "
                          f"{folder}; expected a scene folder, or two image files") from None
-    raise InputError(f"left: {folder} holds {len(scenes)} scenes; estimate ranges one scene (e.g. {scenes[0].left}), "
+    whole = [scene for scene in scenes if not scene.problem]  # (not the folders of part of a scene's files)
+    if not whole:  # what the folder lacks, not "holds 1 scenes; estimate ranges one scene (e.g. itself)"
+        raise InputError(f"left: {scenes[0].problem}")
+    raise InputError(f"left: {folder} holds {len(whole)} scenes; estimate ranges one scene (e.g. {whole[0].left}), "
                      f"eval {folder} ranges them all")
 
 

@@ -26,10 +26,22 @@ __all__ = []
 
 
 def _load_source(source, args: argparse.Namespace):
-    """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does."""
+    """A scene folder or a pair with its own calibration, resampled to ``--size`` as :func:`load_pair` does. A scene
+    whose ground truth cannot be read is ranged without it, and a warning says why: a distance needs none (an audit:
+    a truncated disp0GT.pfm refused the pair)."""
+    from ..core.errors import InputError
     from ..data import load_pair_source, resize_stereo_batch
 
-    batch = load_pair_source(source)
+    try:
+        batch = load_pair_source(source)
+    except InputError as error:
+        if not source.scene:
+            raise
+        batch = load_pair_source(source, truth=False)  # the views' or calibration's own error, where it is theirs
+        import warnings
+
+        warnings.warn(f"{source.loaded_name}: its ground truth cannot be read ({error}): ranged without it",
+                      stacklevel=2)
     if args.size is None:  # "" is an error (checked_size), not "native": --size "$SIZE" with SIZE unset
         check_native_pixels(batch.size_hw)  # as load_pair (a 6000x4000 scene ran here, at 3.7 GB: an audit)
         return batch, (1.0, 1.0)

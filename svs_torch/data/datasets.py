@@ -63,7 +63,8 @@ _KITTI_NOMINAL = {1226: (707.09, 0.537), 1242: (721.5377, 0.5327)}
 
 
 @warnings_once_loaded()
-def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = torch.float32,
+               truth: bool = True) -> StereoBatch:
     """KITTI stereo 2012 (``colored_0/1``, ``disp_occ``) or 2015 (``image_2/3``, ``disp_occ_0``) training frame.
 
     GT is uint16 / 256, 0 = unknown (sparse LiDAR, 19–36 % valid); where the folder also has the non-occluded
@@ -79,8 +80,8 @@ def load_kitti(root: str | Path, frame: str = "000000_10", dtype: torch.dtype = 
         raise InputError(f"root: expected a KITTI training folder with colored_0/ (2012) or image_2/ (2015): {root}")
     *folders, noc, prefix = layout
     left, right = read_view_pair(root / folders[0] / f"{frame}.png", root / folders[1] / f"{frame}.png", dtype)
-    truth: dict[str, np.ndarray] = {}
-    if (root / folders[2] / f"{frame}.png").exists():  # a testing frame, or an _11 frame, has none
+    read_truth, truth = truth, {}  # (truth=False: the views alone, as the Middlebury loaders read them)
+    if read_truth and (root / folders[2] / f"{frame}.png").exists():  # a testing frame, or an _11 frame, has none
         truth["disparity"], truth["valid"] = read_kitti_disparity(root / folders[2] / f"{frame}.png", "disparity")
         if (root / noc / f"{frame}.png").is_file():
             truth["nonoccluded"] = read_kitti_disparity(root / noc / f"{frame}.png", "disparity_noc")[1]
@@ -114,14 +115,14 @@ def kitti_left_images(root: str | Path) -> list[Path]:
 
 
 @warnings_once_loaded()
-def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_opencv_aloe(directory: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True) -> StereoBatch:
     """OpenCV sample Aloe (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png`` = d, 0 = unknown), full size 1282×1110.
 
     Middlebury 2006 nominal full-size focal 3740 px and baseline 0.160 m; dmin unknown → calibrated False.
     """
     directory = check_scene_dir(directory, "directory")
     left, right = read_view_pair(directory / "aloeL.jpg", directory / "aloeR.jpg", dtype)
-    disparity, valid = read_scaled_disparity(directory / "aloeGT.png", 1.0, "disparity")
+    disparity, valid = read_scaled_disparity(directory / "aloeGT.png", 1.0, "disparity") if truth else (None, None)
     return make_scene_batch(left, right, "opencv/aloe", focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX,
                             baseline_m=MIDDLEBURY_2005_BASELINE_M, disparity=disparity, valid=valid)
 
@@ -189,16 +190,16 @@ def pair_name(left_path: str | Path) -> str:
 
 
 @warnings_once_loaded()
-def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True) -> StereoBatch:
     """Load one pair, detecting the format from a folder's contents.
 
     ``path`` is a scene folder (MiddEval3, 2005/2006, 2003, 2001), the OpenCV samples folder (Aloe), a KITTI
     training folder (frame 000000_10) or a KITTI left image ``colored_0/<frame>.png`` / ``image_2/<frame>.png``
-    (the entries of :func:`list_shared_pairs`).
+    (the entries of :func:`list_shared_pairs`). ``truth`` False: the views and calibration alone, no ground truth.
     """
     path = Path(path)
     if path_kind(path, "path") == "file" and path.parent.name in KITTI_LEFT_FOLDERS:
-        return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype)
+        return load_kitti(path.parent.parent, frame=path.stem, dtype=dtype, truth=truth)
     path = check_scene_dir(path, "path")
     layout = detect_stereo_layout(path)
     if layout is None:
@@ -206,8 +207,8 @@ def load_stereo_pair(path: str | Path, dtype: torch.dtype = torch.float32) -> St
         raise InputError(f"path: no known stereo layout (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in "
                          f"{path}" + (f": {partial}" if partial else ""))
     if layout == "kitti":
-        return load_kitti(path, dtype=dtype)
-    return _LOADERS[layout](path, dtype)
+        return load_kitti(path, dtype=dtype, truth=truth)
+    return _LOADERS[layout](path, dtype, truth=truth)
 
 
 def detect_stereo_layout(path: str | Path) -> str | None:

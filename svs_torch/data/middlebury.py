@@ -2,7 +2,8 @@
 §1–2), each a B = 1 :class:`~svs_torch.core.types.StereoBatch` (see :mod:`svs_torch.data.datasets`).
 
 Convention for all: a left pixel x sees the right pixel x − d (verified photometrically, MANIFEST §3). Nothing here
-is differentiable: these are file readers.
+is differentiable: these are file readers. ``truth=False`` reads the views and the calibration alone, no ground
+truth (``estimate`` ranges a scene whose truth file is damaged so, and says why).
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ _TEDDY_2003_QUARTER_WIDTH_PX = 450
 
 
 @warnings_once_loaded()
-def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True
+                          ) -> StereoBatch:
     """MiddEval3 scene folder (``im0.png``, ``im1.png``, ``calib.txt``, ``disp0GT.pfm`` where the scene has a
     ground truth), e.g. trainingQ/Teddy.
 
@@ -61,9 +63,9 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
     calib = read_middlebury_calib(scene_dir / "calib.txt", "calib")
     left, right = read_view_pair(scene_dir / "im0.png", scene_dir / "im1.png", dtype)
     scale = _calib_width_scale(calib, left.shape[-1])
-    truth: dict[str, np.ndarray] = {}
+    read_truth, truth = truth, {}  # (the views' truth, as read: none where not asked for)
     truth_file = next((scene_dir / name for name in _EVAL3_TRUTH_FILES if (scene_dir / name).exists()), None)
-    if truth_file is not None:
+    if truth_file is not None and read_truth:
         gt = read_pfm(truth_file, "disparity")
         if gt.ndim != 2:
             raise InputError(f"disparity: expected a 1-channel PFM ('Pf'), got {gt.shape[2]} channels ('PF'): "
@@ -89,7 +91,8 @@ def _calib_width_scale(calib: dict, width_px: int) -> float:
 
 
 @warnings_once_loaded()
-def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True
+                              ) -> StereoBatch:
     """Middlebury 2005/2006 scene (``view1.png`` left, ``view5.png`` right, ``disp1.png``) at any of the data set's
     three sizes: full (1240–1396 px wide), half or third (the shared copies, 413–465 px).
 
@@ -102,7 +105,7 @@ def load_middlebury_2005_2006(scene_dir: str | Path, dtype: torch.dtype = torch.
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     left, right = read_view_pair(scene_dir / "view1.png", scene_dir / "view5.png", dtype)
     divisor = _middlebury_2005_divisor(left.shape[-1], scene_dir / "view1.png")
-    disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", divisor, "disparity")
+    disparity, valid = read_scaled_disparity(scene_dir / "disp1.png", divisor, "disparity") if truth else (None, None)
     dmin_full = MIDDLEBURY_2005_DMIN_FULL_PX.get(scene_dir.name)
     return make_scene_batch(left, right, f"2005_2006/{scene_dir.name}",
                             focal_px=MIDDLEBURY_2005_FOCAL_FULL_PX / divisor, baseline_m=MIDDLEBURY_2005_BASELINE_M,
@@ -122,7 +125,8 @@ def _middlebury_2005_divisor(width_px: int, path: Path) -> float:
 
 
 @warnings_once_loaded()
-def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True
+                         ) -> StereoBatch:
     """Middlebury 2003 quarter-size scene (``imL.png``, ``imR.png``, ``disp2.png`` = 4·d), Teddy or Cones.
 
     No calibration is shipped. Teddy takes MiddEval3 trainingQ/Teddy's ``calib.txt`` values (f 1500 px,
@@ -135,7 +139,7 @@ def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float
     """
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
-    disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity")
+    disparity, valid = read_scaled_disparity(scene_dir / "disp2.png", 4.0, "disparity") if truth else (None, None)
     if scene_dir.name == "Teddy":
         # In the pixels of its 450 px width: views of another width scale focal and doffs as eval3's calib.txt does
         # (a 225 px copy read f 1500 px, and its median true depth 1.78 m for 1.45 m: an audit).
@@ -148,16 +152,18 @@ def load_middlebury_2003(scene_dir: str | Path, dtype: torch.dtype = torch.float
 
 
 @warnings_once_loaded()
-def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32) -> StereoBatch:
+def load_middlebury_2001(scene_dir: str | Path, dtype: torch.dtype = torch.float32, truth: bool = True
+                         ) -> StereoBatch:
     """Middlebury 2001 scene: Tsukuba (``imL/imR.png``, ``truedisp.pgm`` = 16·d) or Venus (``im2/im6.ppm``,
     ``disp2.pgm`` = 8·d); 0 = unknown. No calibration: SVS nominal focal and baseline, calibrated False."""
     scene_dir = check_scene_dir(scene_dir, "scene_dir")
     if (scene_dir / "truedisp.pgm").is_file():
         left, right = read_view_pair(scene_dir / "imL.png", scene_dir / "imR.png", dtype)
-        disparity, valid = read_scaled_disparity(scene_dir / "truedisp.pgm", 16.0, "disparity")
+        truth_file, scale = scene_dir / "truedisp.pgm", 16.0
     else:
         left, right = read_view_pair(scene_dir / "im2.ppm", scene_dir / "im6.ppm", dtype)
-        disparity, valid = read_scaled_disparity(scene_dir / "disp2.pgm", 8.0, "disparity")
+        truth_file, scale = scene_dir / "disp2.pgm", 8.0
+    disparity, valid = read_scaled_disparity(truth_file, scale, "disparity") if truth else (None, None)
     return make_scene_batch(left, right, f"2001/{scene_dir.name}", focal_px=SVS_CAMERA.focal_px(left.shape[-1]),
                             baseline_m=SVS_CAMERA.baseline_m, disparity=disparity, valid=valid)
 

@@ -356,11 +356,12 @@ def read_pair_sources(paths: Sequence[str | Path] | str | Path, name: str = "pat
 
 
 def load_pair_source(source: PairSource, focal_px: float | None = None, baseline_m: float | None = None,
-                     doffs_px: float = 0.0, dtype: torch.dtype = torch.float32) -> StereoBatch:
+                     doffs_px: float = 0.0, dtype: torch.dtype = torch.float32, truth: bool = True) -> StereoBatch:
     """Load one listed pair as a B = 1 batch named ``source.name``, at its input size.
 
-    A scene keeps its own calibration and ground truth; a file pair takes its listed calibration, else
-    ``focal_px`` / ``baseline_m`` / ``doffs_px`` (None: the SVS model; :func:`~svs_torch.data.load_image_pair`).
+    A scene keeps its own calibration and ground truth (``truth`` False: none read); a file pair takes its listed
+    calibration, else ``focal_px`` / ``baseline_m`` / ``doffs_px`` (None: the SVS model;
+    :func:`~svs_torch.data.load_image_pair`).
 
     Raises:
         InputError: the entry's ``problem``, why its files cannot be read, or a ``source`` that is no PairSource.
@@ -369,7 +370,7 @@ def load_pair_source(source: PairSource, focal_px: float | None = None, baseline
     if source.problem is not None:
         raise InputError(source.problem)
     if source.scene:
-        batch = load_stereo_pair(source.left, dtype)
+        batch = load_stereo_pair(source.left, dtype, truth)
     else:
         listed = source.focal_px is not None
         try:

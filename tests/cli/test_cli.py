@@ -1854,6 +1854,26 @@ def test_estimate_of_a_folder_that_is_no_scene_says_what_it_holds(capsys, data_d
                          f"eval {folder} ranges them all" in err
 
 
+def test_estimate_ranges_a_scene_whose_truth_is_damaged_and_names_one_lacking_a_file(capsys, data_dir, tmp_path):
+    """Found by an audit: a truncated disp0GT.pfm refused `estimate` of the scene, which needs no truth; a scene
+    folder without im0.png was said to hold "1 scenes" and to be ranged as itself."""
+    scene = data_dir / "middlebury_eval3_Q" / "Teddy"
+    damaged = tmp_path / "Damaged"
+    shutil.copytree(scene, damaged)
+    truth = (damaged / "disp0GT.pfm").read_bytes()
+    (damaged / "disp0GT.pfm").write_bytes(truth[:len(truth) // 2])
+    code, out, err = run_cli(capsys, "estimate", str(damaged), "--size", "160x120", "--json")
+    assert code == 0 and "warning: eval3/Damaged: its ground truth cannot be read (disparity: truncated PFM" in err
+    code, intact, _ = run_cli(capsys, "estimate", str(scene), "--size", "160x120", "--json")
+    assert json.loads(out)["objects"] == json.loads(intact)["objects"] and json.loads(out)["status"] == "OK"
+    (tmp_path / "list.txt").write_text(f"{damaged}\n")  # listed too
+    code, out, err = run_cli(capsys, "estimate", "--pairs", str(tmp_path / "list.txt"), "--size", "160x120", "--json")
+    assert code == 0 and json.loads(out.splitlines()[0])["status"] == "OK" and "ground truth cannot be read" in err
+    (damaged / "im0.png").unlink()  # the views' own error stays the error
+    code, _, err = run_cli(capsys, "estimate", str(damaged))
+    assert code == 2 and err.endswith(f"left: {damaged}: a MiddEval3 scene folder without im0.png\n")
+
+
 def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, data_dir, tmp_path):
     """Found by an audit: "1 pairs, 0 failed, 0 scored against ground truth", and no word of why."""
     scene = data_dir / "middlebury_eval3_Q" / "Teddy"

@@ -244,6 +244,18 @@ def test_a_scene_folder_lacking_a_file_is_a_bad_entry_not_left_out(tmp_path: Pat
         f"pairs: line 2 of {tmp_path / 'pairs.txt'}: no such file or folder (one field names a scene folder): ")
 
 
+@pytest.mark.parametrize("scene", ["middlebury_eval3_Q/Teddy", "middlebury_2005_2006_third/Art",
+                                   "middlebury_2003_quarter/Teddy", "middlebury_2001/Venus", "middlebury_2001/Tsukuba",
+                                   "opencv_samples", "kitti/stereo2015_training"])
+def test_every_layout_loads_its_views_and_calibration_without_its_truth(data_dir: Path, scene: str) -> None:
+    """truth=False (estimate of a scene whose truth file is damaged): the same views and camera, no truth read."""
+    whole, alone = (load_stereo_pair(data_dir / scene, truth=truth) for truth in (True, False))
+    assert whole.disparity_px is not None and alone.disparity_px is None and alone.disparity_valid is None
+    assert torch.equal(whole.left, alone.left) and torch.equal(whole.right, alone.right)
+    assert (whole.focal_px, whole.baseline_m, whole.doffs_px, whole.names) == (
+        alone.focal_px, alone.baseline_m, alone.doffs_px, alone.names)
+
+
 def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -> None:
     for folder, scene in (("a", "Teddy"), ("b", "Piano")):
         shutil.copytree(data_dir / "middlebury_eval3_Q" / scene, tmp_path / folder / "Teddy")
