@@ -73,7 +73,7 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
         valid = np.isfinite(gt)
         truth = {"disparity": np.where(valid, gt, 0.0), "valid": valid}
         if (scene_dir / "mask0nocc.png").is_file():
-            truth["nonoccluded"] = read_mask_image(scene_dir / "mask0nocc.png", "mask0nocc") == 255
+            truth["nonoccluded"] = _nonoccluded(scene_dir / "mask0nocc.png")
     focal_px, doffs_px = float(calib["cam0"][0, 0]) * scale, float(calib["doffs"]) * scale
     for key, value in (("focal_px", focal_px), ("doffs_px", doffs_px)):  # each in range, but scaled out of it
         if (expected := calibration_value_expected(key, value)) is not None:
@@ -81,6 +81,18 @@ def load_middlebury_eval3(scene_dir: str | Path, dtype: torch.dtype = torch.floa
                              f"{left.shape[-1]}: expected {expected}: {display_path(scene_dir / 'calib.txt')}")
     return make_scene_batch(left, right, f"eval3/{scene_dir.name}", focal_px=focal_px,
                             baseline_m=float(calib["baseline"]) / 1000.0, doffs_px=doffs_px, calibrated=True, **truth)
+
+
+def _nonoccluded(path: Path) -> np.ndarray:
+    """MiddEval3's ``mask0nocc.png`` as a bool mask of the non-occluded pixels (255; 128 occluded, 0 unknown). Another
+    mask (0 and 1) read as no pixel non-occluded, and its metrics were left out in silence (an audit)."""
+    mask = read_mask_image(path, "mask0nocc")
+    levels = np.unique(mask)
+    if not np.isin(levels, (0, 128, 255)).all():
+        shown = ", ".join(str(int(level)) for level in levels[:6]) + (", ..." if len(levels) > 6 else "")
+        raise InputError(f"mask0nocc: expected MiddEval3's levels 255 (non-occluded), 128 (occluded) and 0 (unknown), "
+                         f"got {shown}: {display_path(path)}")
+    return mask == 255
 
 
 def _calib_width_scale(calib: dict, width_px: int) -> float:

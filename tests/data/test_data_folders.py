@@ -256,6 +256,18 @@ def test_every_layout_loads_its_views_and_calibration_without_its_truth(data_dir
         alone.focal_px, alone.baseline_m, alone.doffs_px, alone.names)
 
 
+def test_a_nonoccluded_mask_of_other_levels_is_refused_not_read_as_empty(tmp_path: Path, data_dir: Path) -> None:
+    """Found by an audit: a mask0nocc.png of 0 and 1 read as no pixel non-occluded, its metrics left out unsaid."""
+    scene = tmp_path / "Teddy"
+    shutil.copytree(data_dir / "middlebury_eval3_Q" / "Teddy", scene)
+    mask = cv2.imread(str(scene / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE)
+    assert bool(load_stereo_pair(scene).disparity_nonoccluded.any())
+    cv2.imwrite(str(scene / "mask0nocc.png"), (mask == 255).astype(np.uint8))
+    with pytest.raises(InputError, match=r"^mask0nocc: expected MiddEval3's levels 255 \(non-occluded\), 128 "
+                                         r"\(occluded\) and 0 \(unknown\), got 0, 1: "):
+        load_stereo_pair(scene)
+
+
 def test_two_scenes_of_one_name_are_told_apart(tmp_path: Path, data_dir: Path) -> None:
     for folder, scene in (("a", "Teddy"), ("b", "Piano")):
         shutil.copytree(data_dir / "middlebury_eval3_Q" / scene, tmp_path / folder / "Teddy")
