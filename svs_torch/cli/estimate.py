@@ -208,6 +208,17 @@ def _write_outputs(args, batch, result, factors) -> None:
         print("; ".join(written), flush=True)
 
 
+def _say_what_is_no_pair(left: str | None) -> None:
+    """:class:`InputError` for a run given no pair: what the one path given holds, or that it is not there (a typo
+    was told "expected two image files, or a scene folder", the path unnamed: an audit)."""
+    from ..core.errors import InputError
+
+    if left and os.path.isdir(left):
+        _say_what_the_folder_holds(left)
+    missing = f"; no such file or folder: {left}" if left and not os.path.lexists(left) else ""
+    raise InputError(f"left, right: expected two image files, or a scene folder (or --pairs LIST.txt){missing}")
+
+
 def _say_what_the_folder_holds(folder: str) -> None:
     """:class:`InputError` for a folder that is no scene: it holds none, or several (an audit: both were told
     "expected two image files, or a scene folder")."""
@@ -338,9 +349,7 @@ def run(args: argparse.Namespace) -> int:
     scene = bool(args.left) and not args.right and (detect_stereo_layout(args.left) is not None
                                                     or is_kitti_left_image(args.left))
     if not (args.left and args.right) and not scene:
-        if args.left and not args.right and os.path.isdir(args.left):
-            _say_what_the_folder_holds(args.left)
-        raise InputError("left, right: expected two image files, or a scene folder (or --pairs LIST.txt)")
+        _say_what_is_no_pair(args.left if not args.right else None)
     if scene and (args.focal_px or args.baseline_m or args.doffs_px or args.calibration):
         raise InputError("--focal-px, --baseline-m, --doffs-px, --calibration: a scene folder brings its own "
                          "calibration")

@@ -1848,6 +1848,8 @@ def test_estimate_of_a_folder_that_is_no_scene_says_what_it_holds(capsys, data_d
     code, _, err = run_cli(capsys, "estimate", str(tmp_path))
     assert code == 2 and f"left: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in the " \
                          f"folder {tmp_path}" in err
+    code, _, err = run_cli(capsys, "estimate", str(tmp_path / "Gone"))  # (a typo: the path was not named)
+    assert code == 2 and err.endswith(f"scene folder (or --pairs LIST.txt); no such file or folder: {tmp_path / 'Gone'}\n")
     folder = data_dir / "middlebury_eval3_Q"
     code, _, err = run_cli(capsys, "estimate", str(folder))
     assert code == 2 and f"left: {folder} holds 10 scenes; estimate ranges one scene (e.g. {folder / 'ArtL'}), " \
