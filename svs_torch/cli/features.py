@@ -9,7 +9,7 @@ from ..features.limits import DEFAULT_MAX_KEYPOINTS, MAX_KEYPOINTS
 from ..geometry.match_ratios import LOWE_MAX_RATIO, MATLAB_MAX_RATIO
 from .common import (_number, add_figure_option, check_outputs_apart, dumps_strict, non_negative_float, options_named,
                      too_small_reason, unit_interval_float)
-from .segment import add_segmentation_options, refuse_unused_segmentation_options
+from .segment import add_segmentation_options, refuse_unused_segmentation_options, warn_if_one_image_twice
 
 HELP = "SURF keypoints of a stereo pair (on the segmented obstacles) and their matches"
 
@@ -314,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
 
     _check_before_work(args, check_output_path)
     batch, factors = load_pair(args.left, args.right, args)
+    warn_if_one_image_twice(batch)
     config = command_config(args, batch.size_hw)  # (--upsample on a large pair warned of)
     reason = too_small_reason(batch.size_hw)
     # What ran: refinement, masking (by which segmenter) and settings, in every JSON answer, TOO_SMALL's too.

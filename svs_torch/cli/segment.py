@@ -220,6 +220,19 @@ def check_segmenter_options(segmenter: str, dark_objects: bool = False, floor: s
                          f"disparity, and this run segments with {segmenter!r}; drop --floor or use {nearness}")
 
 
+def warn_if_one_image_twice(batch) -> None:
+    """A warning where a pair's two views are one image, pixel for pixel: segment and features answered a bare
+    NO_FOREGROUND (no disparity anywhere for the nearness segmenter to measure), where fundamental and estimate
+    say what it is (an audit)."""
+    from ..capture.frozen import one_image_twice
+
+    if one_image_twice(batch.left, batch.right):
+        import warnings
+
+        warnings.warn("left, right: the same image, pixel for pixel (one camera's frame given twice?): no disparity "
+                      "anywhere, so no obstacle stands nearer than the rest", stacklevel=3)
+
+
 def image_report(seg, index: int) -> dict:
     """JSON-ready summary of image ``index`` of a :class:`~svs_torch.core.types.Segmentation`."""
     from ..core.types import SegmentationStatus
@@ -253,7 +266,8 @@ def format_report(side: str, report: dict, segmenter: str = "otsu") -> list[str]
             else f"{segmenter} segmenter, obstacle probability above {report['threshold'] / 255:.2f}")
     if report["status"] == "UNIFORM_IMAGE":  # its threshold and its one "region" (the whole image) mean nothing
         return [f"{side}: status UNIFORM_IMAGE, one level everywhere: nothing to segment", "  no object kept"]
-    lines = [f"{side}: {rule}, {report['num_regions']} regions, status {report['status']}"]
+    count = report["num_regions"]
+    lines = [f"{side}: {rule}, {count} region{'' if count == 1 else 's'}, status {report['status']}"]
     if not report["objects"]:
         lines.append("  no object kept")
     for rank, obj in enumerate(report["objects"], start=1):
@@ -279,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
         check_outputs_apart([(args.figure_option, args.figure)],
                             [("left image", args.left), ("right image", args.right)])
     batch, _ = load_pair(args.left, args.right, args)  # resampled to --size; at most 16 megapixels
+    warn_if_one_image_twice(batch)
     started = time.perf_counter()
     reason = too_small_reason(batch.size_hw)  # as estimate and features: no segmentation of a 320x1 pair
     seg = segment_pair(batch, config) if reason is None else None

@@ -1876,6 +1876,17 @@ def test_estimate_ranges_a_scene_whose_truth_is_damaged_and_names_one_lacking_a_
     assert code == 2 and err.endswith(f"left: {damaged}: a MiddEval3 scene folder without im0.png\n")
 
 
+def test_segment_and_features_say_when_both_views_are_one_image(capsys, data_dir):
+    """Found by an audit: the same image twice answered a bare NO_FOREGROUND; fundamental and estimate said why."""
+    image = str(data_dir / TEDDY[0])
+    for command in ("segment", "features"):
+        code, _, err = run_cli(capsys, command, image, image, "--size", "160x120", "--json")
+        assert code == 0 and err.count("warning: left, right: the same image, pixel for pixel (one camera's frame "
+                                       "given twice?)") == 1
+        code, _, err = run_cli(capsys, command, *(str(data_dir / p) for p in TEDDY), "--size", "160x120", "--json")
+        assert code == 0 and "the same image" not in err
+
+
 def test_eval_of_pairs_without_ground_truth_says_why_none_was_scored(capsys, data_dir, tmp_path):
     """Found by an audit: "1 pairs, 0 failed, 0 scored against ground truth", and no word of why."""
     scene = data_dir / "middlebury_eval3_Q" / "Teddy"
