@@ -51,11 +51,11 @@ DEFAULT_TIMEOUT_S = 1.0  # LinkConfig.reply_timeout_s
 
 EPILOG = """\
 examples:
-  svs-depth capture --emulator --count 20 --out pairs/            try it without a device
-  svs-depth capture --emulator --emulator-noise 4 --quality 4 --out noisy/   the frames a real board sends
-  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --out pairs/
-  svs-depth capture --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002 --size 640x480 --out big/
-  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --calibration rig.json --out pairs/   (svs-depth calibrate)
+  svs-depth capture --emulator --count 20 --out-dir pairs/        try it without a device
+  svs-depth capture --emulator --emulator-noise 4 --quality 4 --out-dir noisy/   the frames a real board sends
+  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --out-dir pairs/
+  svs-depth capture --left socket://192.168.0.15:10001 --right socket://192.168.0.15:10002 --size 640x480 --out-dir big/
+  svs-depth capture --left /dev/ttyUSB0 --right /dev/ttyUSB1 --calibration rig.json --out-dir pairs/  (calibrate)
 then range what was saved (the command capture prints at the end):
   svs-depth estimate --pairs pairs/index.jsonl --camera-frames --json
 """

@@ -58,7 +58,7 @@ examples:
   svs-depth estimate ../shared/data/middlebury_eval3_Q/Teddy --size 320x267 --figure teddy.png   (with its truth)
   svs-depth estimate im0.png im1.png --focal-px 1500 --baseline-m 0.08 --doffs-px 52 --json
   svs-depth estimate --pairs list.txt --json > results.jsonl     (list.txt: one 'LEFT RIGHT' per line)
-  svs-depth estimate --pairs captured/index.jsonl --size 320x240
+  svs-depth estimate --pairs captured/index.jsonl --camera-frames   (capture's frames: JPEG, sensor noise)
   svs-depth estimate ../shared/data/middlebury_eval3_Q/Teddy --disparity-out maps   (maps/Teddy/disp0SVSTorch.pfm)
   svs-depth estimate --pairs list.txt --disparity-out maps --disparity-format kitti   (maps/<pair>.png: the
       left file's name, or its folder's for a generic one such as im0.png, left.png or L.png)
