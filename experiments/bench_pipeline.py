@@ -27,7 +27,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script, write_text_whole  # noqa: E402
+from run_metadata import add_data_option, output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 from bench_segmentation import load_pairs, opencv_segment, timed  # noqa: E402
 
 
@@ -47,8 +47,7 @@ def opencv_pipeline(left: np.ndarray, right: np.ndarray, kernel: np.ndarray, sif
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--repeats", type=positive_int, default=5,
                         help="timed runs of each; the median is reported (default: %(default)s)")

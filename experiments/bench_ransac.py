@@ -153,10 +153,19 @@ def bench_scenario(data: dict, confidence: float, repeats: int, seed: int) -> di
     return results
 
 
+def at_least_seven(text: str) -> int:
+    """argparse type of ``--matches``: 3 ended in OpenCV's assertion after the batched run (an audit)."""
+    value = positive_int(text)
+    if value < 7:
+        raise argparse.ArgumentTypeError(f"expected at least 7 matches (a 7-point sample), got {text!r}")
+    return value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pairs", type=positive_int, default=64, help="synthetic pairs (default: %(default)s)")
-    parser.add_argument("--matches", type=positive_int, default=500, help="matches per pair (default: %(default)s)")
+    parser.add_argument("--matches", type=at_least_seven, default=500, help="matches per pair, at least 7 "
+                        "(a 7-point sample; default: %(default)s)")
     parser.add_argument("--noise-px", type=non_negative_float, default=0.5,
                         help="Gaussian noise on the inliers, pixels (default: %(default)s)")
     parser.add_argument("--threads", type=positive_int, default=2, help="torch and OpenCV threads (default: 2)")

@@ -31,7 +31,7 @@ from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_ba
 from svs_torch.segmentation.segment import SegmentationConfig, segment_stereo
 
 from svs_torch.cli.common import positive_int
-from run_metadata import output_path, run_metadata, run_script, write_text_whole
+from run_metadata import add_data_option, output_path, run_metadata, run_script, write_text_whole
 
 SIZE_WH = (320, 240)
 
@@ -99,8 +99,7 @@ def bench(left: torch.Tensor, right: torch.Tensor, repeats: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--threads", type=positive_int, default=2, help="torch and OpenCV threads (default: 2)")
     parser.add_argument("--repeats", type=positive_int, default=7, help="timed runs per measurement (median reported)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="also write the results and metadata as JSON")

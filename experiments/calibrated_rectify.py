@@ -39,7 +39,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int, finite_float  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import add_data_option, output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 BOARD, SQUARE_M = (9, 6), 0.025
 
@@ -121,8 +121,7 @@ def loose_rig(num_scenes: int, turn_deg: tuple[float, float, float]) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data"),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--scenes", type=positive_int, default=8, help="synthetic scenes of the loose rig")
     parser.add_argument("--turn-deg", type=finite_float, nargs=3, default=(1.5, 0.7, -0.5),
                         metavar=("ROLL", "TILT", "PAN"),

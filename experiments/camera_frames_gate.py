@@ -32,7 +32,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import conditions, dimmed, load_scene, resample, run, scene_splits  # noqa: E402
 from svs_torch.cli.common import unit_interval_float  # noqa: E402
-from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+from run_metadata import (add_data_option, check_reports_apart, comma_list, command_line, output_path,  # noqa: E402
                           run_metadata, run_script, scene_limit, write_report)
 
 from svs_torch.depth.block_matching import block_match_sad_with_residual  # noqa: E402
@@ -92,10 +92,10 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, Path)
     parser.add_argument("--splits", default="tuned,synthetic",
-                        help="comma-separated: tuned, synthetic (rendered) (default: %(default)s)")
+                        help="comma-separated: held-out, tuned, or the rendered synthetic, synthetic-wall, "
+                             "synthetic-plain, synthetic-border, synthetic-slant (default: %(default)s)")
     parser.add_argument("--contrasts", default="1,0.5", type=comma_list(unit_interval_float, "factors"),
                         help="the shared splits at each contrast (rendered: 1)")
     parser.add_argument("--limit", type=scene_limit, help="first N scenes of each split")

@@ -27,7 +27,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, split_scenes  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_metadata, run_script  # noqa: E402
+from run_metadata import add_data_option, output_path, run_metadata, run_script  # noqa: E402
 
 QUANTILES = (0.5, 0.9, 0.95, 0.99, 1.0)
 
@@ -60,7 +60,7 @@ def summary(values: list[float]) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args()

@@ -66,7 +66,7 @@ from paper_table1 import load_scene, opencv_disparity, resample, split_scenes  #
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+from run_metadata import (add_data_option, check_reports_apart, command_line, output_path, run_metadata,  # noqa: E402
                           run_script, scene_limit, size_list, write_text_whole)
 
 
@@ -251,7 +251,7 @@ def header(argv: list[str], camera_frames: int | None = None) -> list[str]:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--weights", default=str(SHIPPED_WEIGHTS), help="the 'learned' method's weights file "
                         "(default: the shipped one)")
     parser.add_argument("--nearness", action="append", metavar="NAME=FILE",

@@ -34,7 +34,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import default_data_dir, output_path, run_metadata, run_script, scene_limit  # noqa: E402
+from run_metadata import add_data_option, output_path, run_metadata, run_script, scene_limit  # noqa: E402
 
 SPLITS = {"tuned": ("middlebury_eval3_Q",), "held-out": ("middlebury_2005_2006_third", "middlebury_2003_quarter")}
 #: The image files of each layout: (left, right).
@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--split", action="append", choices=tuple(SPLITS), help="default: both")
     parser.add_argument("--args", default="", help="extra options for the command, one shell-quoted string")
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--limit", type=scene_limit, help="first N pairs of each split (a quick look)")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write the report as JSON to FILE")
     args = parser.parse_args(argv)

@@ -59,7 +59,7 @@ from svs_torch.geometry.ransac import estimate_fundamental_ransac
 from svs_torch.core.types import FundamentalStatus  # noqa: E402
 
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import output_path, run_metadata, run_script, write_text_whole  # noqa: E402
+from run_metadata import add_data_option, output_path, run_metadata, run_script, write_text_whole  # noqa: E402
 from surf_vs_sift import PRESETS, FeatureSetup, setup_json, svs_matched_points  # noqa: E402
 
 BOARD = (9, 6)
@@ -467,8 +467,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", action="append", choices=sorted(PRESETS),
                         help="compare these svs_torch presets with SIFT + FM_RANSAC instead of the matrix")
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--features", choices=sorted(FEATURE_EXTRACTORS), default="sift",
                         help="the features both estimators share (default: %(default)s)")
     parser.add_argument("--size", default="320x240", help="Middlebury resampling size WxH (default: SVS 320x240)")

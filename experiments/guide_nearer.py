@@ -41,7 +41,7 @@ from guide_confirm import (PAIRS_PER_S, WALK_FROM_M, WALK_SPEED_M_S, WALL_M, ran
 from paper_table1 import split_scenes  # noqa: E402
 from real_rig import JPEG_NOISE, jpeg_digit  # noqa: E402
 from svs_torch.cli.common import positive_int, seed_int  # noqa: E402
-from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+from run_metadata import (add_data_option, check_reports_apart, comma_list, command_line, output_path,  # noqa: E402
                           run_metadata, run_script, write_report)
 
 STAND_M = 1.8  # the first box's distance where the walker stops, metres
@@ -146,7 +146,7 @@ def markdown(report: dict, command: str) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", default=str(default_data_dir()), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--streams", type=positive_int, default=12, help="step-in streams per digit")
     parser.add_argument("--walks", type=positive_int, default=24, help="walks toward one box per digit")
     parser.add_argument("--digits", default="4,6,8", type=comma_list(jpeg_digit, "JPEG digits"),

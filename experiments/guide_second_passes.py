@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_rig import JPEG_NOISE  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+from run_metadata import (add_data_option, command_line, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, write_text_whole)
 
 # real_rig.py sets PASSIVE again on import, after torch loaded OpenMP: the runtime keeps its policy, but the report's
@@ -87,8 +87,7 @@ def interleaved_latency(data: Path, configs: dict[str, PipelineConfig], repeats:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, Path)
     parser.add_argument("--digit", type=int, default=4, choices=sorted(NOISE_FOR_DIGIT),
                         help="the frames' JPEG quality digit (default: 4, the board's)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="calls a frame, their median kept (default: 3)")

@@ -30,7 +30,7 @@ from svs_torch.data import list_shared_pairs  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import run_script, size_list  # noqa: E402
+from run_metadata import add_data_option, run_script, size_list  # noqa: E402
 
 #: Fields that are measurements of the run, not results.
 TIMING = {"elapsed_s", "time_s", "ms", "elapsed_ms"}
@@ -123,8 +123,7 @@ def differences(a, b, path: str = "") -> list[tuple[str, object, object]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, Path)
     parser.add_argument("--size", default="320x240", type=size_wxh, help="pairs resized to WxH (default: %(default)s)")
     parser.add_argument("--workers", type=positive_int, default=1, help="processes (default: %(default)s)")
     parser.add_argument("--torch", default="", type=kernel_names,

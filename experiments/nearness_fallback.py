@@ -33,7 +33,7 @@ from svs_torch.segmentation.nearness import NearnessNetConfig, measure_nearness_
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from verify_views import SAME_SCENE  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
+from run_metadata import add_data_option, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
 
 # Steps of 0.025: with the denoised measurement (select_nearness_denoise.md) the gap between views of two scenes
 # and the worst camera frames is 0.04 wide.
@@ -46,7 +46,7 @@ def accepted_share(left: torch.Tensor, right: torch.Tensor) -> float:
 
 def main(argv: list[str] | None = None) -> float:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     use_two_threads()

@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 import torch
 
+from svs_torch.cli.common import positive_int  # (--threads 0 or -1: a RuntimeError traceback, an audit)
 from svs_torch.data import list_shared_pairs, load_stereo_pair, resize_stereo_batch
 from svs_torch.depth.sparse import estimate_depth
 from svs_torch.evaluation import (PairEstimate, accuracy_pct,
@@ -63,7 +64,7 @@ from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth, measured
 from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_metadata import (check_reports_apart, command_line, default_data_dir, output_path, run_metadata,  # noqa: E402
+from run_metadata import (add_data_option, check_reports_apart, command_line, output_path, run_metadata,  # noqa: E402
                           run_script, scene_limit, size_list, write_text_whole)
 
 #: The paper's own results (its Table 1, MATLAB on SVS images): the range it reports, for comparison.
@@ -408,12 +409,12 @@ def disparity_summary(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--sizes", type=size_list("width"), default="320,native",
                         help="comma-separated: a width in pixels, or native")
     parser.add_argument("--splits", default="tuned,held-out", help="comma-separated: tuned, held-out")
     parser.add_argument("--limit", type=scene_limit, help="only the first N scenes of each split (0: all)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default: %(default)s)")
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the tables as Markdown")
     parser.add_argument("--json", type=output_path, metavar="FILE", help="write rows and run metadata as JSON")
     args = parser.parse_args(argv)

@@ -13,6 +13,38 @@ def default_data_dir() -> str:
     return os.environ.get("SVS_TORCH_DATA", str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
+def shared_data_folder(text: str) -> str:
+    """An ``argparse`` type for ``--data``: a folder holding one of the shared data sets or more
+    (:data:`svs_torch.data.datasets.SHARED_DATA_FOLDERS`, MANIFEST §1). An empty folder, or one data set's own
+    folder (``shared/data/kitti``), ran to empty or partial tables, written, exit 0, and some scripts to a traceback
+    (an audit)."""
+    import argparse
+
+    from svs_torch.data.datasets import SHARED_DATA_FOLDERS
+
+    path = Path(text)
+    if not path.is_dir():
+        if text == default_data_dir():  # the default, not there: a run that reads no data runs, one that does says so
+            return text
+        raise argparse.ArgumentTypeError(f"expected the shared data folder, got {text!r}: no such folder")
+    if not any((path / name).is_dir() for name in SHARED_DATA_FOLDERS):
+        raise argparse.ArgumentTypeError(f"expected the shared data folder (holding {', '.join(SHARED_DATA_FOLDERS)}, "
+                                         f"or some of them), got {text!r}, which holds none")
+    return text
+
+
+def shared_data_path(text: str) -> Path:
+    """:func:`shared_data_folder`, as a :class:`Path`."""
+    return Path(shared_data_folder(text))
+
+
+def add_data_option(parser, kind=str) -> None:
+    """``--data``, the shared data folder (:func:`default_data_dir`), checked when parsed (:func:`shared_data_folder`),
+    as ``kind`` (``str`` or ``Path``)."""
+    parser.add_argument("--data", type=shared_data_path if kind is Path else shared_data_folder,
+                        default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+
+
 def output_path(text: str) -> Path:
     """An ``argparse`` type for a report file (``--json``, ``--markdown``): the checks every svs-depth output gets
     (:func:`svs_torch.core.files.check_output_file`: a file name, not a folder or device, in an existing folder a
@@ -129,8 +161,7 @@ def add_common_options(parser, *, data_type=str, threads: int | None = None, rep
     from svs_torch.cli.common import positive_int  # (--threads 0 was a RuntimeError traceback, --repeats 0 one after
     # the run's loading: an audit)
 
-    parser.add_argument("--data", type=data_type, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, data_type)
     if threads is not None:
         parser.add_argument("--threads", type=positive_int, default=threads,
                             help="torch threads (default: %(default)s)")

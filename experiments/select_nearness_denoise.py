@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 import real_rig  # noqa: E402
 from real_rig import conditions  # noqa: E402
-from run_metadata import command_line, default_data_dir, output_path, run_script, use_two_threads  # noqa: E402
+from run_metadata import add_data_option, command_line, output_path, run_script, use_two_threads  # noqa: E402
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
@@ -85,8 +85,7 @@ def views(data_dir: Path, limit: int | None = None) -> list[tuple[str, str, obje
 
 def main(argv: list[str] | None = None) -> tuple[float, dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, Path)
     parser.add_argument("--limit", type=positive_int, metavar="N",
                         help="only the first N train and N synthetic scenes (a quick look, not a selection)")
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")

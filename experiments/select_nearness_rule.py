@@ -29,7 +29,7 @@ from svs_torch.segmentation.segment import SegmentationConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
-from run_metadata import default_data_dir, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
+from run_metadata import add_data_option, output_path, run_script, use_two_threads, write_text_whole  # noqa: E402
 from train_segmentation import train_scenes  # noqa: E402
 
 GRID = {"working_width_px": (160, 240, 320), "window_size": (7, 9, 13)}
@@ -53,7 +53,7 @@ def segmentation_scores(batch: StereoBatch, truth: ObstacleTruth, config: Segmen
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--markdown", type=output_path, metavar="FILE", help="write the table as Markdown to FILE")
     args = parser.parse_args(argv)
     use_two_threads()

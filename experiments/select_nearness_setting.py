@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import eval_segmentation  # noqa: E402
 import real_rig  # noqa: E402
 from svs_torch.cli.common import unit_interval_float  # noqa: E402
-from run_metadata import (comma_list, command_line, default_data_dir, output_path, run_script,  # noqa: E402
+from run_metadata import (add_data_option, comma_list, command_line, output_path, run_script,  # noqa: E402
                           use_two_threads)
 
 SIZES = {"320": "320x240", "native": "native"}
@@ -135,8 +135,7 @@ def table(results: list[dict], best: dict, command: str, conditions: str | None)
 
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=default_data_dir(),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser, Path)
     parser.add_argument("--variants", nargs="+", required=True, metavar="NAME=VALUE[,NAME=VALUE]",
                         help="the settings compared, each NAME=VALUE[,NAME=VALUE] (--set keys)")
     parser.add_argument("--contrasts", default="1", type=comma_list(unit_interval_float, "factors"),

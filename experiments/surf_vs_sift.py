@@ -43,8 +43,8 @@ from svs_torch.geometry.matching import match_sad
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from svs_torch.cli.common import positive_int, unit_interval_float  # noqa: E402
-from run_metadata import (command_line, output_path, run_metadata, run_script, scene_limit,  # noqa: E402
-                          write_text_whole)
+from run_metadata import (add_data_option, command_line, output_path, run_metadata, run_script,  # noqa: E402
+                          scene_limit, write_text_whole)
 
 TOLERANCE_PX = 1.5
 SCALE_RATIO = 1.5
@@ -218,8 +218,7 @@ def setup_json(setup: FeatureSetup) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"),
-                        help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--config", action="append", choices=sorted(PRESETS),
                         help="svs_torch configuration(s) to evaluate (default: paper, product, recommended)")
     parser.add_argument("--max-keypoints", type=positive_int, default=512, help="keypoints per image, SURF and SIFT")

@@ -62,8 +62,8 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, refuse_unread_options,  # noqa: E402
-                          run_metadata, run_script)
+from run_metadata import (add_data_option, command_line, default_data_dir, output_path,  # noqa: E402
+                          refuse_unread_options, run_metadata, run_script)
 import train_segmentation  # noqa: E402
 from train_segmentation import (HELD_OUT_DUPLICATES, _uniform, adamw, add_config_options,  # noqa: E402
                                 check_not_diverged, fine_tune_through_pipeline, mask_loss, real_pairs, samples_per_run,
@@ -156,7 +156,7 @@ def train_masks(pool: Pool, net: NearnessNet, config: NearnessTrainConfig, gener
 
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the shipped "
                         "one, whose tensors the defaults rewrite bit for bit, its record of the run this one's; a run "
                         "with any other setting, --data or --threads needs one of its own)")

@@ -80,8 +80,8 @@ from svs_torch.core.types import StereoBatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import split_scenes  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, refuse_unread_options,  # noqa: E402
-                          run_metadata, run_script)
+from run_metadata import (add_data_option, command_line, default_data_dir, output_path,  # noqa: E402
+                          refuse_unread_options, run_metadata, run_script)
 
 #: Tuned-split scenes that are held-out scenes under another name (module docstring): never trained on.
 HELD_OUT_DUPLICATES = {"ArtL": "middlebury_2005_2006_third/Art", "Teddy": "middlebury_2003_quarter/Teddy"}
@@ -502,7 +502,7 @@ def size_text(text: str) -> str:
 
 def main(argv: list[str] | None = None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--out", type=output_path, help="weights file, checked before any work (default: the "
                         "shipped one, whose tensors the defaults reproduce, its record of the run this one's; any "
                         "other run, and --through-pipeline, needs one: it never replaces the shipped weights)")

@@ -56,7 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import load_scene, resample  # noqa: E402
 from svs_torch.cli.common import non_negative_int, positive_int  # noqa: E402
 from svs_torch.core.errors import InputError  # noqa: E402
-from run_metadata import (check_reports_apart, comma_list, command_line, default_data_dir, output_path,  # noqa: E402
+from run_metadata import (add_data_option, check_reports_apart, comma_list, command_line, output_path,  # noqa: E402
                           run_metadata, run_script, scene_limit, write_text_whole)
 from select_nearness_rule import segmentation_scores  # noqa: E402
 from train_nearness import SIZE_WH, NearnessTrainConfig, build_pool, synthetic_pairs, train_masks  # noqa: E402
@@ -164,7 +164,7 @@ def means_table(summary: dict[int, dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--folds", type=fold_count, default=2,
                         help="folds of the train scenes, a scene and its E/L variant in one (default: %(default)s)")
     parser.add_argument("--checkpoints", default="0,300,1200", type=comma_list(non_negative_int, "step counts"),

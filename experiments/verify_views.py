@@ -55,7 +55,7 @@ from svs_torch.core.types import StereoBatch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper_table1 import is_held_out  # noqa: E402
 from svs_torch.cli.common import positive_int  # noqa: E402
-from run_metadata import (command_line, default_data_dir, output_path, run_metadata, run_script,  # noqa: E402
+from run_metadata import (add_data_option, command_line, output_path, run_metadata, run_script,  # noqa: E402
                           scene_limit, write_text_whole)
 
 #: The rules compared: (verify_min_inliers, verify_min_inlier_share, verify_min_agreeing_inliers,
@@ -189,7 +189,7 @@ def report(sets: dict[str, list[dict]], config: PipelineConfig) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=default_data_dir(), help="the shared data folder (default: %(default)s)")
+    add_data_option(parser)
     parser.add_argument("--threads", type=positive_int, default=2, help="torch threads (default: %(default)s)")
     parser.add_argument("--limit", type=scene_limit, help="only the first N shared scenes (0: all)")
     parser.add_argument("--synthetic", type=positive_int, default=64,

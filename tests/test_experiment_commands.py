@@ -14,7 +14,7 @@ import re
 import shlex
 
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, find_shared_data
 
 SCRIPTS = {path.stem for path in (REPO_ROOT / "experiments").glob("*.py")}
 DOCS = [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "experiments").glob("*.md")),
@@ -25,7 +25,7 @@ WEIGHTS = str(REPO_ROOT / "svs_torch" / "segmentation" / "weights")
 # What a placeholder of the documents (N, FILE, D, ...) stands for, by the option it follows.
 VALUES = {"--noise-seed": "0", "--limit": "1", "--digit": "4", "--camera-frames": "4", "--loose-rig-digit": "4",
           "--repeats": "1", "--contrast": "0.5", "--brightness": "1.4", "--steps": "1", "--weights":
-          WEIGHTS + "/obstacle_net.pt", "--data": ".", "--pairs": "pairs.txt"}
+          WEIGHTS + "/obstacle_net.pt", "--data": str(find_shared_data() or "."), "--pairs": "pairs.txt"}
 OUTPUTS = ("--json", "--markdown", "--out")
 
 

@@ -69,7 +69,9 @@ def case_table(data_dir: Path, folder: Path) -> dict[str, list[tuple[str, list[s
              "thin_obstacles": ["--min-area", "1.5"], "walker_floor": bad_set, "walker_heaps": bad_set,
              "floor_distance": bad_set}
     weights, data = str(folder / "net.pt"), ["--data", str(data_dir), "--limit", "1"]
-    stop = {"counts": COUNTS, "lists": LISTS + LISTS_PARSED, "kernel_parity": KERNELS + KERNELS_PARSED,
+    not_data = [folder / "empty", data_dir / "kitti"]  # (an empty folder; one data set's own)
+    stop = {"data_folders": [(script, ["--data", str(path)]) for script in DATA_SCRIPTS for path in not_data],
+            "counts": COUNTS, "lists": LISTS + LISTS_PARSED, "kernel_parity": KERNELS + KERNELS_PARSED,
             "conditions": CONDITIONS + CONDITIONS_PARSED, "sizes": SIZES + SIZES_PARSED,
             "train_segmentation": [("train_segmentation", ["--init", "nearness"]),
                                    ("train_segmentation", ["--init", f"learned:{folder / 'cut_learned.pt'}"]),
@@ -109,6 +111,8 @@ COUNTS = [
     ("bench_features", ["--threads", "0"]),
     ("bench_pipeline", ["--threads", "-1"]), ("bench_pipeline", ["--repeats", "0"]),
     ("bench_ransac", ["--pairs", "0"]), ("bench_ransac", ["--matches", "0"]), ("bench_ransac", ["--noise-px", "nan"]),
+    ("bench_ransac", ["--matches", "6"]), ("paper_table1", ["--threads", "0"]),  # (an audit: an OpenCV assertion, a
+    # RuntimeError of set_num_threads, each after the run started)
     ("bench_ransac", ["--seed", "-1"]), ("bench_ransac", ["--threads", "0"]), ("bench_ransac", ["--repeats", "0"]),
     ("bench_segmentation", ["--threads", "0"]), ("bench_segmentation", ["--repeats", "0"]),
     ("calibrated_rectify", ["--scenes", "0"]), ("calibrated_rectify", ["--turn-deg", "nan", "0", "0"]),
@@ -181,12 +185,27 @@ def test_a_condition_no_prefix_names_is_refused_when_parsed(ended):
     assert ended["conditions"][len(CONDITIONS):] == [("parsed", "")] * len(CONDITIONS_PARSED)
 
 
+#: The experiments that read the shared data folder (``--data``).
+DATA_SCRIPTS = sorted(path.stem for path in (REPO_ROOT / "experiments").glob("*.py") if path.stem != "run_metadata"
+                      and ("add_data_option(" in path.read_text() or "add_common_options(" in path.read_text()))
+
+
+def test_every_data_option_refuses_a_folder_that_is_not_the_shared_data(ended):
+    """Found by an audit: an empty folder, or shared/data/kitti, ran to empty or partial tables, written, exit 0
+    (paper_table1, real_rig, eval_segmentation, ...), or to a traceback (the benchmarks: torch.cat of no tensors)."""
+    assert len(DATA_SCRIPTS) > 20
+    assert not [path.name for path in (REPO_ROOT / "experiments").glob("*.py")
+                if 'add_argument("--data"' in path.read_text() and path.stem != "run_metadata"]  # (all checked)
+    _assert_refused([(script, ["--data"]) for script in DATA_SCRIPTS for _ in range(2)], ended["data_folders"])
+    assert all("expected the shared data folder" in line for _, line in ended["data_folders"])
+
+
 def test_option_values_refused_after_the_parse_are_exit_status_2(ended):
     """Found by an audit: these refusals, one line and before any work, were exit status 1 (a SystemExit with the
     message) where every other bad option is 2; a caller telling a usage error from a failed run could not."""
     scripts = ["eval_segmentation", "real_rig", "camera_frames_gate", "select_nearness_setting", "guide_second_passes",
                "validate_nearness"]
-    options = ["--methods", "--splits", "--splits", "--variants", "--data", "--folds"]
+    options = ["--methods", "--splits", "--splits", "--variants", "argument --data", "--folds"]  # (--data: when parsed)
     for script, option, (code, line) in zip(scripts, options, ended["after_parse"], strict=True):
         assert code == 2 and line.startswith(f"{script}.py: error: {option}"), (script, code, line)
 

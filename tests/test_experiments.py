@@ -977,7 +977,7 @@ def test_an_experiment_stopped_by_ctrl_c_says_so_in_one_line(tmp_path, data_dir)
     (["--weights", "{copy}", "--methods", "default,otsu"], "--weights"),
     (["--nearness", "mine={copy}", "--methods", "default"], "--nearness mine={copy}"),
     (["--otsu-preset", "paper", "--methods", "default,learned"], "--otsu-preset")], ids=["weights", "nearness", "otsu"])
-def test_eval_segmentation_refuses_an_option_of_a_method_it_does_not_run(argv, option, tmp_path):
+def test_eval_segmentation_refuses_an_option_of_a_method_it_does_not_run(argv, option, data_dir, tmp_path):
     """Found by an audit of the learned segmenter: 'eval_segmentation.py --weights my_net.pt --methods default,otsu'
     scored no learned method, and the report named my_net.pt nowhere; so did a --nearness NAME missing from
     --methods, and --otsu-preset without otsu."""
@@ -991,4 +991,4 @@ def test_eval_segmentation_refuses_an_option_of_a_method_it_does_not_run(argv, o
     shutil.copy(NEARNESS_WEIGHTS if "--nearness" in argv else SHIPPED_WEIGHTS, copy)
     argv = [text.replace("{copy}", str(copy)) for text in argv]
     with pytest.raises(InputError, match=f"^{option.replace('{copy}', str(copy))}: its method is not in --methods"):
-        eval_segmentation.main([*argv, "--data", str(tmp_path / "no data")])
+        eval_segmentation.main([*argv, "--data", str(data_dir)])  # (refused before any work)

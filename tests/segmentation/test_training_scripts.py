@@ -89,15 +89,17 @@ def test_a_run_records_the_cpu_instructions_its_bits_depend_on() -> None:
     (train_segmentation, ["--size", "160x120", "--region-weight", "0"], "--size, --region-weight"),
     (train_segmentation, ["--through-pipeline", "--num-synthetic", "9", "--depth-weight", "2"],
      "--num-synthetic, --depth-weight"),
-    (train_segmentation, ["--through-pipeline", "--pairs", "mine.txt", "--data", "elsewhere"], "--data"),
+    (train_segmentation, ["--through-pipeline", "--pairs", "mine.txt", "--data", "{data}"], "--data"),
     (train_nearness, ["--batch-size", "4", "--num-synthetic", "9"], "--batch-size, --num-synthetic"),
     (train_nearness, ["--steps", "1", "--fine-tune-learning-rate", "0.1"], "--fine-tune-learning-rate"),
     (train_nearness, ["--weight-decay", "0.1"], "--weight-decay")],
     ids=["pairs", "size", "scratch-only", "data", "steps-0", "fine-tune-0", "no-step"])
-def test_an_option_the_run_would_not_read_is_refused(script, argv, options, tmp_path, monkeypatch, capsys) -> None:
+def test_an_option_the_run_would_not_read_is_refused(script, argv, options, data_dir, tmp_path, monkeypatch,
+                                                    capsys) -> None:
     # Taken and ignored: 'train_segmentation.py --pairs mine.txt' trained from scratch on the shared scenes,
     # 'train_nearness.py --num-synthetic 9 --out F' (no --steps) wrote the rule's weights, both without a word.
     monkeypatch.setenv("SVS_TORCH_DATA", str(tmp_path / "no data"))  # a run that starts stops at once
+    argv = [str(data_dir) if text == "{data}" else text for text in argv]  # (a --data given is checked when parsed)
     out = tmp_path / "net.pt"
     with pytest.raises(SystemExit) as exited:
         script.main([*argv, "--out", str(out)])
@@ -133,7 +135,7 @@ def test_a_data_folder_without_the_training_scenes_is_refused(script, argv, tmp_
 
     out, tiny = tmp_path / "net.pt", ["--crops-per-scene", "0", "--views-per-scene", "1", "--num-synthetic", "1"]
     tiny = tiny if "--steps" in argv and "--through-pipeline" not in argv else []
-    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "kitti").mkdir(parents=True)  # a data folder, without the training scenes
     with pytest.raises(InputError, match=f"^--data: no training scene \\(middlebury_eval3_Q/\\*\\) in "
                                          f"'{tmp_path / 'data'}'"):
         script.main([*argv, *tiny, "--data", str(tmp_path / "data"), "--out", str(out)])
