@@ -281,6 +281,11 @@ def _mean(values: list[float]) -> float | None:
     return statistics.fmean(values) if values else None
 
 
+#: The most names a summary's ``unscored`` lists: a run over thousands of a camera's pairs (no truth) is not a list of
+#: thousands of names in every summary.
+UNSCORED_NAMES = 100
+
+
 def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None) -> dict:
     """One summary of an evaluation.
 
@@ -294,8 +299,9 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
     ``pipeline_s_per_pair`` is the mean pipeline time of the pairs it ran on. The stereo metrics
     (:data:`~svs_torch.evaluation.stereo_metrics.STEREO_FIELDS`) are means over the pairs that have them;
     ``<scope>_pairs`` counts those pairs for each scope. ``unscored``: the pairs ranged (status OK) but not scored
-    (no ground truth, or none where they were ranged), their count and names: a scene whose truth had gone missing
-    (a KITTI folder without ``disp_occ``, a PFM of unknown values only) read as one more OK row (an audit).
+    (no ground truth, or none where they were ranged), their count and the first :data:`UNSCORED_NAMES` names: a
+    scene whose truth had gone missing (a KITTI folder without ``disp_occ``, a PFM of unknown values only) read as
+    one more OK row (an audit).
     """
     failures = [e for e in evaluations if not e.ok]
     with_truth = [e for e in evaluations if e.acc_r_min_pct is not None or (e.has_truth and not e.ok)]
@@ -320,7 +326,7 @@ def summarize(evaluations: Sequence[PairEvaluation], wall_s: float | None = None
         "nominal_calibration": {"scored": len(nominal), "names": sorted(e.name for e in nominal),
                                 **{key: acc(key, nominal) for key in ("acc_r_min_pct", "acc_r_max_pct",
                                                                       "acc_objects_pct")}},
-        "unscored": {"count": len(unscored), "names": unscored},
+        "unscored": {"count": len(unscored), "names": unscored[:UNSCORED_NAMES]},
         "dense_error_median_px": mean_of("dense_error_median_px"), "dense_within_1px": mean_of("dense_within_1px"),
         "dense_within_3px": mean_of("dense_within_3px"), "sparse_error_median_px": mean_of("sparse_error_median_px"),
         "sparse_within_1px": mean_of("sparse_within_1px"), "sparse_within_3px": mean_of("sparse_within_3px"),
