@@ -55,9 +55,9 @@ GOOD_STEREO_RMS_PX = 1.0
 GOOD_ROW_ERROR_PX = 0.5
 #: A fit whose focal length the board's poses pin down only to more than this, % (OpenCV's standard deviation of fx,
 #: :attr:`StereoCalibration.focal_sd_pct`), is warned of; over :data:`MAX_FOCAL_SD_PCT` refused. Measured: the shared
-#: set 0.2 %, any 3-5 of its pairs under 1.3 %; twelve synthetic poses tilted up to ±11° 1.8 % (focal within 1 %), up
-#: to ±6° 5.9 % (8 % off: 0.864 m for 0.80), up to ±3° 19 % (rectified focal 1707 px for 612: 1.65 m for 0.80, "OK",
-#: an audit), rows and RMS not telling the first at all.
+#: set 0.08 % (any 3-5 of its pairs, each camera alone, under 1.3 %); twelve synthetic poses tilted up to ±11° 1.3 %
+#: (focal within 1 %), up to ±6° 4.1 % (8 % off: 0.864 m for 0.80), up to ±3° 12 % (rectified focal 1707 px for
+#: 612: 1.65 m for 0.80, "OK", an audit), rows and RMS not telling the ±6° fit at all.
 GOOD_FOCAL_SD_PCT = 3.0
 MAX_FOCAL_SD_PCT = 10.0
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
