@@ -59,7 +59,6 @@ VERSION_PREFIX = b"##Version"
 QUALITY_PREFIX = b"##quality - "
 UPTIME_PREFIX = b"##time - millisecs:"
 BATTERY_PREFIX = b"##D - "
-LINE_END = b"\r\n"
 JPEG_START = b"\xff\xd8"  # SOI marker
 JPEG_END = b"\xff\xd9"  # EOI marker
 
@@ -275,14 +274,19 @@ def find_token(buffer: bytes, tokens: tuple[bytes, ...]) -> tuple[bytes, int] | 
 
 
 def find_line(buffer: bytes, prefix: bytes) -> tuple[bytes, int] | None:
-    """The first complete ``\\r\\n``-terminated line starting with ``prefix`` and the index just past it, or None."""
+    """The first complete line starting with ``prefix`` and the index just past it, or None. A line ends ``\\r\\n``
+    (§3), or ``\\n\\r`` as other public SRV-1 firmware trees end theirs (``##quality - 4\\n\\r``): §7 leaves the
+    firmware version open, and such a board's ``V`` failed three times, its version line unread (an audit)."""
     start = buffer.find(prefix)
     if start < 0:
         return None
-    end = buffer.find(LINE_END, start)
-    if end < 0:
+    newline = buffer.find(b"\n", start)
+    if newline < 0:
         return None
-    return bytes(buffer[start:end + len(LINE_END)]), end + len(LINE_END)
+    end = newline + 1
+    if buffer[newline - 1:newline] != b"\r" and buffer[end:end + 1] == b"\r":  # (\n\r; a \r still on the way is
+        end += 1  # a stray byte before the next reply, skipped as any other)
+    return bytes(buffer[start:end]), end
 
 
 class FrameParser:

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from svs_torch.capture.protocol import (BadFrame, FrameParser, ParsedFrame, ProtocolError, encode_frame, find_line,
-                                        find_token, max_jpeg_length, parse_battery_reply, parse_frame_header,
-                                        parse_quality_reply, parse_uptime_reply, parse_version_line, quality_command,
-                                        size_acks, size_code_for, size_command)
+from svs_torch.capture.protocol import (QUALITY_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, encode_frame,
+                                        find_line, find_token, max_jpeg_length, parse_battery_reply,
+                                        parse_frame_header, parse_quality_reply, parse_uptime_reply,
+                                        parse_version_line, quality_command, size_acks, size_code_for, size_command)
 from svs_torch.core.checks import InputError
 
 JPEG = b"\xff\xd8" + bytes(range(256)) * 3 + b"\xff\xd9"  # markers right, body arbitrary
@@ -86,6 +86,16 @@ def test_find_token_and_line_skip_stray_bytes():
     assert find_token(b"##", (b"#b",)) is None
     assert find_line(b"junk" + MASTER + b"more", b"##Version") == (MASTER, 4 + len(MASTER))
     assert find_line(MASTER[:-1], b"##Version") is None  # no line end yet
+
+
+def test_a_line_ended_the_other_way_round_is_read_as_a_line():
+    """Other public SRV-1 firmware trees end a line \\n\\r (``##quality - 4\\n\\r``); §7 leaves the version open.
+    Such a board's version line was never found: 'V' failed three times (an audit of the protocol)."""
+    reversed_master = MASTER[:-2] + b"\n\r"
+    assert find_line(reversed_master + b"#b", b"##Version") == (reversed_master, len(reversed_master))
+    assert parse_version_line(find_line(reversed_master, b"##Version")[0]).role == "master"
+    assert parse_quality_reply(find_line(b"##quality - 4\n\r", QUALITY_PREFIX)[0]) == 4
+    assert find_line(b"##quality - 4\n", QUALITY_PREFIX) == (b"##quality - 4\n", 14)  # its \r still on the way
 
 
 # ----------------------------------------------------------------------------------------------- header
