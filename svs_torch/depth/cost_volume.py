@@ -65,8 +65,9 @@ def prefilter_xsobel(image: torch.Tensor, cap: float) -> torch.Tensor:
 
 def quantize_levels(image: torch.Tensor) -> torch.Tensor:
     """``round(255 · image)``: values in whole 1/255 steps, as the 8-bit pre-filtered images ``StereoBM``
-    matches (the hard path; not differentiable). ``image`` float32 or float64: a uint8 one's ``255 · image``
-    wrapped around modulo 256."""
+    matches (the hard path; not differentiable: its gradient is round's, zero everywhere, with no error; the soft
+    path takes :func:`~svs_torch.pipeline.soft.quantize_straight_through`). ``image`` float32 or float64: a uint8
+    one's ``255 · image`` wrapped around modulo 256."""
     check_dtype(image, "image", "float")
     return torch.round(image * 255)
 
