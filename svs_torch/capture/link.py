@@ -24,7 +24,8 @@ from typing import Callable
 import serial
 
 from ..core.camera import SVS_RESOLUTIONS
-from .link_types import CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, check_link_url
+from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
+                         check_link_url, frame_timeout_reason)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
                        VERSION_PREFIX, BadFrame, FrameParser, ParsedFrame, ProtocolError, VersionInfo, describe_bytes,
                        find_line, find_token, parse_battery_reply, parse_quality_reply, parse_uptime_reply,
@@ -252,7 +253,7 @@ class CameraLink:
             if attempt >= attempts:
                 raise CaptureError(f"{self.where}: no valid frame after {attempts} attempt"
                                    f"{'s' if attempts > 1 else ''} of {CMD_GRAB!r} in {time.monotonic() - start:.2f} s;"
-                                   f" {_attempt_reasons(first_reason, outcome.reason)}")
+                                   f" {attempt_reasons(first_reason, outcome.reason)}")
             self.stats.retries += 1
             self._drain_quietly()
             if outcome.wrong_size:  # a board reset to its power-on settings: every one this link set
@@ -282,7 +283,8 @@ class CameraLink:
             if parser.header is not None and not had_header:
                 deadline = time.monotonic() + cfg.transfer_timeout_s(parser.header.length)
         self.stats.stray_bytes += parser.skipped_bytes
-        return _Attempt(self._timeout_reason(parser, bytes(received), time.monotonic() - last_data_s))
+        return _Attempt(frame_timeout_reason(cfg, self.size_code, parser, bytes(received),
+                                             time.monotonic() - last_data_s))
 
     def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int) -> RawFrame | _Attempt:
         now, wall = time.monotonic(), time.time()
@@ -301,26 +303,6 @@ class CameraLink:
         return RawFrame(header=header, jpeg=event.jpeg, request_monotonic_s=self._request_s,
                         arrival_monotonic_s=now, arrival_wall_s=wall, attempts=attempt,
                         skipped_bytes=event.skipped_bytes)
-
-    def _timeout_reason(self, parser: FrameParser, received: bytes, silent_s: float = 0.0) -> str:
-        """Why an attempt got no frame; ``silent_s``: how long nothing had come when it timed out."""
-        cfg = self.config
-        if parser.header is not None:
-            h = parser.header
-            window = cfg.transfer_timeout_s(h.length)
-            # A board whose UART is slower than the link assumes (a 115,200-baud build behind the WiFi module too)
-            # sends too slowly for the transfer timeout: say which speed was assumed. One that stopped sending
-            # (a frame cut on the link) is said so: a slower --baud would not help it.
-            why = (f"nothing came for the last {silent_s:.2f} s: the frame was cut short" if silent_s >= window / 2
-                   else f"the timeout assumes {cfg.bytes_per_s * 10:,.0f} baud: a slower board's --baud")
-            return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within {window:.2f} s of its "
-                    f"header, got {parser.buffered} ({why})")
-        size = f" of {'x'.join(map(str, SVS_RESOLUTIONS[self.size_code]))}" if self.size_code else ""
-        reason = (f"sent {CMD_GRAB!r}, expected a '##IMJ' frame{size} within {cfg.reply_timeout_s:g} s, "
-                  f"got {describe_bytes(received)}")
-        if parser.last_rejection:
-            reason += f" (rejected: {parser.last_rejection})"
-        return reason
 
     # ----------------------------------------------------------------------------------------- low level
 
@@ -389,10 +371,3 @@ class CameraLink:
 
     def _note_failure(self, reason: str) -> None:
         self.stats.failures = (self.stats.failures + [reason])[-8:]
-
-
-def _attempt_reasons(first: str, last: str) -> str:
-    """The failed attempts' reasons a link's error gives: the first one's too where the last differs. Why: a board
-    slower than --baud assumes timed out first with that hint, and its retries then met the rest of that frame's
-    JPEG bytes, so the error gave only "expected a '##IMJ' frame ..., got 64 bytes b'!..." (an audit)."""
-    return f"last attempt: {last}" if first == last else f"first attempt: {first}; last attempt: {last}"

@@ -1,5 +1,6 @@
 """What a link to one SVS board is configured with (:class:`LinkConfig`), counts (:class:`LinkStats`) and
-receives (:class:`RawFrame`), and how it fails (:class:`CaptureError`).
+receives (:class:`RawFrame`), and how it fails (:class:`CaptureError`, the words of :func:`frame_timeout_reason`
+and :func:`attempt_reasons`).
 """
 
 from __future__ import annotations
@@ -9,9 +10,10 @@ from dataclasses import dataclass, field, fields
 
 from ..core.camera import SVS_RESOLUTIONS
 from ..core.errors import InputError
-from .protocol import FrameHeader, max_jpeg_length
+from .protocol import CMD_GRAB, FrameHeader, FrameParser, describe_bytes, max_jpeg_length
 
-__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "check_link_url"]
+__all__ = ["CaptureError", "LinkConfig", "LinkStats", "RawFrame", "attempt_reasons", "check_link_url",
+           "frame_timeout_reason"]
 
 #: pyserial's URL handlers a board can be reached through (a plain path is a serial device).
 LINK_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110")
@@ -142,3 +144,32 @@ class _Attempt:
 
     reason: str
     wrong_size: bool = False
+
+
+def frame_timeout_reason(cfg: LinkConfig, size_code: str | None, parser: FrameParser, received: bytes,
+                         silent_s: float = 0.0) -> str:
+    """Why a frame attempt of a link (``cfg``, its ``size_code``) got no frame: ``parser`` fed what came, ``received``
+    its first bytes, ``silent_s`` how long nothing had come when it timed out."""
+    if parser.header is not None:
+        h = parser.header
+        window = cfg.transfer_timeout_s(h.length)
+        # A board whose UART is slower than the link assumes (a 115,200-baud build behind the WiFi module too)
+        # sends too slowly for the transfer timeout: say which speed was assumed. One that stopped sending
+        # (a frame cut on the link) is said so: a slower --baud would not help it.
+        why = (f"nothing came for the last {silent_s:.2f} s: the frame was cut short" if silent_s >= window / 2
+               else f"the timeout assumes {cfg.bytes_per_s * 10:,.0f} baud: a slower board's --baud")
+        return (f"expected {h.length} JPEG bytes of a {h.width}x{h.height} frame within {window:.2f} s of its "
+                f"header, got {parser.buffered} ({why})")
+    size = f" of {'x'.join(map(str, SVS_RESOLUTIONS[size_code]))}" if size_code else ""
+    reason = (f"sent {CMD_GRAB!r}, expected a '##IMJ' frame{size} within {cfg.reply_timeout_s:g} s, "
+              f"got {describe_bytes(received)}")
+    if parser.last_rejection:
+        reason += f" (rejected: {parser.last_rejection})"
+    return reason
+
+
+def attempt_reasons(first: str, last: str) -> str:
+    """The failed attempts' reasons a link's error gives: the first one's too where the last differs. Why: a board
+    slower than --baud assumes timed out first with that hint, and its retries then met the rest of that frame's
+    JPEG bytes, so the error gave only "expected a '##IMJ' frame ..., got 64 bytes b'!..." (an audit)."""
+    return f"last attempt: {last}" if first == last else f"first attempt: {first}; last attempt: {last}"

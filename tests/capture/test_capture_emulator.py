@@ -461,15 +461,14 @@ def test_persistent_fault_fails_clearly_in_time(emulator, camera, faults, messag
 def test_a_frame_cut_short_and_a_slow_board_are_told_apart():
     """A frame whose bytes stopped coming was told "the timeout assumes 2,304,000 baud: a slower board's --baud",
     which cannot help it; now the hint goes to a board that was still sending when its time ran out."""
-    from svs_torch.capture.link import CameraLink
+    from svs_torch.capture.link_types import frame_timeout_reason
     from svs_torch.capture.protocol import FrameParser, encode_frame
 
-    link = CameraLink("socket://127.0.0.1:1", "right", FAST)
     parser = FrameParser()
     parser.feed(encode_frame("5", b"\xff\xd8" + bytes(2000) + b"\xff\xd9")[:500])
     window = FAST.transfer_timeout_s(parser.header.length)
-    assert "the frame was cut short" in link._timeout_reason(parser, b"", silent_s=window)
-    assert "a slower board's --baud" in link._timeout_reason(parser, b"", silent_s=0.01)
+    assert "the frame was cut short" in frame_timeout_reason(FAST, "5", parser, b"", silent_s=window)
+    assert "a slower board's --baud" in frame_timeout_reason(FAST, "5", parser, b"", silent_s=0.01)
 
 
 def test_a_board_slower_than_the_baud_assumed_is_told_so_whatever_its_retries_met(emulator, camera):
