@@ -70,7 +70,8 @@ class LinkConfig:
     max_retries: int = 2  # extra attempts after a silent or broken reply (§3: I sometimes returns nothing)
     max_reconnects: int = 2  # reopenings of a dropped link per command
     reconnect_delay_s: float = 0.2  # pause before each reopening
-    command_gap_s: float = 0.002  # pause after a reply before the next command (§2: input discarded just after)
+    command_gap_s: float = 0.002  # pause after a reply before the next command (§2: input discarded just after;
+    # the link widens it where a board proves slower: link.HOLD_OFF_SUSPECT_S)
     drain_quiet_s: float = 0.05  # resync: discard input until nothing arrived for this long...
     drain_max_s: float = 0.5  # ...or for at most this long
     poll_s: float = 0.02  # pyserial read timeout; deadlines are honoured to within it
@@ -118,6 +119,7 @@ class LinkStats:
     reconnects: int = 0  # links reopened after a drop
     stray_bytes: int = 0  # bytes skipped or drained that belonged to no expected reply
     stale_inputs: int = 0  # grabs before which bytes already waiting (a late reply) were dropped
+    command_gap_s: float | None = None  # the pause before each command, where silences widened it (None: the config's)
     failures: list[str] = field(default_factory=list)  # the last few failure descriptions, newest last
 
 
@@ -144,6 +146,7 @@ class _Attempt:
 
     reason: str
     wrong_size: bool = False
+    silent: bool = False  # nothing at all came back
 
 
 def frame_timeout_reason(cfg: LinkConfig, size_code: str | None, parser: FrameParser, received: bytes,

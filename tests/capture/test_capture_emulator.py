@@ -1110,3 +1110,23 @@ def test_camera_refuses_a_url_pyserial_cannot_open(url, expected):
         SVSStereoCamera(url, "socket://127.0.0.1:10002")
     with pytest.raises(InputError, match=f"^right_url: {re.escape(expected)}"):
         SVSStereoCamera("socket://127.0.0.1:10001", url)
+
+
+def test_a_board_that_ignores_input_longer_after_a_reply_widens_the_pause_before_each_command():
+    """Found by an audit against SVS_PROTOCOL §2 (input discarded for a short time after a reply, its length not
+    given): with the emulator's hold-off at 30 ms, the first try of every command sent right after a reply was lost,
+    a reply_timeout_s each (opening 3.3 s, three pairs 3.6 s). The link now widens its pause after such a silence."""
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source, holdoff_s=0.03) as server:
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], quality=4, config=FAST,
+                             max_frame_gap_s=None) as cam:
+            for _ in range(6):
+                cam.grab_pair()
+            for link in cam.links.values():
+                assert link.stats.retries <= 1 and link.stats.command_gap_s == 0.05, link.stats
+    # A silence long after the last reply (a board busy grabbing, §3) is no hold-off: the pause stays as it was.
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source,
+                        faults={"left": Faults(silent_grabs=1)}) as server:
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
+            time.sleep(0.15)
+            cam.grab_pair()
+            assert cam.links["left"].stats.retries == 1 and cam.links["left"].stats.command_gap_s is None
