@@ -19,7 +19,8 @@ __all__ = [
 
 
 class ObstacleSide(enum.IntEnum):
-    """Which third of the image width an obstacle's centroid falls in; stored as int64 in tensors."""
+    """Which third of the image width an obstacle's centroid falls in, or the centre for one that reaches across the
+    middle column (in the walker's path); stored as int64 in tensors."""
 
     NONE = -1  # no obstacle (padding slot, or no valid object for the nearest)
     LEFT = 0

@@ -270,6 +270,23 @@ def test_centre_side_and_no_obstacle():
     assert nearest.side.tolist() == [ObstacleSide.CENTRE, ObstacleSide.NONE] and nearest.depth_m.tolist() == [2, 0]
 
 
+def test_an_obstacle_reaching_across_the_middle_is_ahead_whatever_its_centroid():
+    """Found by an audit of guide's words: a wall over the whole view, kept over columns 0-174 of 320 (its centroid
+    in the left third), was said "Stop. Obstacle on the left at 0.9 metres"; a walker told so steps right, into it.
+    A region wholly in the left third and a post in the right keep their thirds; a padded pair's middle is its own."""
+    labels = torch.zeros(2, 1, 24, 320, dtype=torch.int64)
+    labels[0, :, :, 0:175] = 1  # across the middle column (159.5): ahead
+    labels[0, :, :, 0:90] = 2  # wholly in the left third
+    labels[0, :, :, 230:240] = 3  # a post in the right third
+    labels[1, :, :, 0:85] = 1  # a pair 160 px wide in a 320 px batch: across its own middle (79.5)
+    region_labels = torch.tensor([[1, 2, 3], [1, -1, -1]])
+    points = torch.tensor([[[100.0, 5.0]], [[50.0, 5.0]]], dtype=F64)
+    depths = PointDepths(torch.tensor([[0.99], [0.99]], dtype=F64), torch.ones(2, 1, dtype=torch.bool))
+    objects = object_depths(labels, region_labels, points, depths, image_hw=torch.tensor([[24, 320], [24, 160]]))
+    assert objects.side.tolist() == [[ObstacleSide.CENTRE, ObstacleSide.LEFT, ObstacleSide.RIGHT],
+                                     [ObstacleSide.CENTRE, ObstacleSide.NONE, ObstacleSide.NONE]]
+
+
 def _sample_object_points(scenes, num_points: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
     """Exact correspondences on the obstacles: left pixel centres drawn on object pixels, right = x − d."""
     ids = scenes.object_ids.flatten(1)
