@@ -176,6 +176,15 @@ class CameraLink:
         if self.flip is not None:
             self.set_flip(self.flip, allow_reconnect=allow_reconnect)
 
+    def configure(self, size_code: str, quality: int | None = None, flip: bool | None = None) -> None:
+        """Set the size, the caption overlay off (``O``: a board keeps one an earlier session turned on, across
+        reconnects, burnt into its frames' top rows; an audit), and the quality and flip where given."""
+        self.set_size(size_code)
+        self.command_ack(b"O", (b"#O", b"#?"))  # (#?: a build without the overlay has none to turn off)
+        for value, setter in ((quality, self.set_quality), (flip, self.set_flip)):
+            if value is not None:
+                setter(value)
+
     def set_size(self, size_code: str, *, allow_reconnect: bool = True) -> None:
         """Select a frame size by its code (``'5'`` = 320×240) and remember it for checking frames."""
         self.command_ack(size_command(size_code), size_acks(size_code), allow_reconnect=allow_reconnect)

@@ -202,11 +202,7 @@ class SVSStereoCamera:
     def _setup(self, link: CameraLink, quality: int | None, flip: bool | None) -> None:
         link.open()
         self.versions[link.name] = link.identify()
-        link.set_size(self._size_code)
-        if quality is not None:
-            link.set_quality(quality)
-        if flip is not None:
-            link.set_flip(flip)
+        link.configure(self._size_code, quality, flip)
 
     def _check_roles(self, strict: bool) -> None:
         roles = {name: self.versions[name].role for name in STEREO_ROLES}

@@ -1130,3 +1130,13 @@ def test_a_board_that_ignores_input_longer_after_a_reply_widens_the_pause_before
             time.sleep(0.15)
             cam.grab_pair()
             assert cam.links["left"].stats.retries == 1 and cam.links["left"].stats.command_gap_s is None
+
+
+def test_opening_turns_off_a_caption_overlay_an_earlier_session_left_on():
+    """Found by an audit of the driver against SVS_PROTOCOL §3: a board keeps its caption overlay (``o``) across
+    reconnects, and the driver never sent ``O``: an earlier session's captions were burnt into every frame."""
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server:
+        server.cameras["left"].overlay = server.cameras["right"].overlay = True
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
+            cam.grab_pair()
+        assert not server.cameras["left"].overlay and not server.cameras["right"].overlay
