@@ -215,14 +215,21 @@ def detect_stereo_layout(path: str | Path) -> str | None:
     """The data-set layout of a scene folder, from its file names alone (nothing is read): ``"eval3"``,
     ``"2005_2006"``, ``"2003"``, ``"2001"``, ``"aloe"``, ``"kitti"``, or None for a folder (or file) that
     :func:`load_stereo_pair` cannot load as one pair."""
+    names = _folder_names(path)
+    return None if names is None else _layout_of(names)
+
+
+def _folder_names(path: str | Path) -> set[str] | None:
+    """The names in the folder ``path``; None for a file, or a name no folder can have."""
     try:
-        names = {entry.name for entry in Path(path).iterdir()}
-    except (OSError, ValueError):  # not a folder, or a name no folder can have
+        return {entry.name for entry in Path(path).iterdir()}
+    except (OSError, ValueError):
         return None
-    for layout, marker in _LAYOUT_MARKERS:
-        if any(set(files) <= names for files in marker):
-            return layout
-    return None
+
+
+def _layout_of(names: set[str]) -> str | None:
+    """The layout whose marker files ``names`` holds (:data:`_LAYOUT_MARKERS`, in order), or None."""
+    return next((layout for layout, marker in _LAYOUT_MARKERS if any(set(files) <= names for files in marker)), None)
 
 
 #: The data sets' names, as messages give them.
@@ -233,11 +240,8 @@ def partial_scene_reason(path: str | Path) -> str | None:
     """Why a folder that holds part of a scene's files is no scene (``a MiddEval3 scene folder without calib.txt``),
     or None where it is one, or holds none of them. A folder of scene folders left such a folder out of ``eval``
     without a word (an audit: three of five scenes dropped, "2 pairs, 1 failed")."""
-    if detect_stereo_layout(path) is not None:
-        return None
-    try:
-        names = {entry.name for entry in Path(path).iterdir()}
-    except (OSError, ValueError):
+    names = _folder_names(path)  # (listed once: a scene's layout and its missing files read the same names)
+    if names is None or _layout_of(names) is not None:
         return None
     by_lower = {name.lower(): name for name in names}
     for layout, marker in _LAYOUT_MARKERS:
