@@ -179,6 +179,11 @@ def keep_largest_regions(labels: torch.Tensor, regions: RegionProperties,
         has fewer than N regions; ``kept_mask`` ``(B, 1, H, W)`` bool. Not differentiable.
     """
     check_keep_arguments(labels, regions, num_keep)
+    return _keep_largest(labels, regions, num_keep)
+
+
+def _keep_largest(labels: torch.Tensor, regions: RegionProperties, num_keep: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`keep_largest_regions` of arguments already checked."""
     area = torch.where(regions.valid, regions.area_px, torch.full_like(regions.area_px, -1))
     order = torch.sort(area, dim=1, descending=True, stable=True).indices  # (B, L)
     return _keep_in_order(labels, regions, order, num_keep)
@@ -202,7 +207,7 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     check_keep_arguments(labels, regions, num_keep, keep, nearness, min_area_px, candidate_area_px,
                          near_min_area_px)
     if keep == "largest":
-        return keep_largest_regions(labels, regions, num_keep)
+        return _keep_largest(labels, regions, num_keep)  # (checked above: the labels' pass not made twice)
     if nearness is None:
         raise InputError("nearness: keep='nearest' needs a nearness per region, got none")
     area = regions.area_px if candidate_area_px is None else candidate_area_px.to(regions.area_px.dtype)
@@ -228,7 +233,7 @@ def keep_regions(labels: torch.Tensor, regions: RegionProperties, num_keep: int,
     kept, kept_mask = _keep_in_order(labels, filtered, torch.cat([first, rest[:, :-1]], 1), num_keep)
     if bool(has_candidate.all()):
         return kept, kept_mask
-    largest, largest_mask = keep_largest_regions(labels, regions, num_keep)
+    largest, largest_mask = _keep_largest(labels, regions, num_keep)
     return (torch.where(has_candidate, kept, largest),
             torch.where(has_candidate.view(-1, *([1] * (labels.dim() - 1))), kept_mask, largest_mask))
 
