@@ -25,7 +25,7 @@ WEIGHTS = str(REPO_ROOT / "svs_torch" / "segmentation" / "weights")
 # What a placeholder of the documents (N, FILE, D, ...) stands for, by the option it follows.
 VALUES = {"--noise-seed": "0", "--limit": "1", "--digit": "4", "--camera-frames": "4", "--loose-rig-digit": "4",
           "--repeats": "1", "--contrast": "0.5", "--brightness": "1.4", "--steps": "1", "--weights":
-          WEIGHTS + "/obstacle_net.pt", "--data": str(find_shared_data() or "."), "--pairs": "pairs.txt"}
+          WEIGHTS + "/obstacle_net.pt", "--data": str(find_shared_data() or "."), "--pairs": "pairs.txt", "--seed": "1"}
 OUTPUTS = ("--json", "--markdown", "--out")
 
 

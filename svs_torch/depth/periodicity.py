@@ -29,6 +29,15 @@ MAX_PERIOD_PX = DepthConfig.alias_check_max_period_px
 #: How far the correlation must rise again from its least value at a shorter lag to count as a period's peak: a
 #: grate's horizontal bars keep it above 0 at every lag (0.1 between its peaks of 0.99).
 MIN_RISE = 0.4
+#: Fewest pixel pairs at a period's lag for its peak to count. A small region of a blank, noisy view (a covered
+#: lens, a grey wall as the board's camera frames) has a few dozen pairs at a lag, over which its noise correlates to
+#: 0.5-1.0 by chance: guide said "Repeated pattern ahead" there, and never "Cannot see ahead" (an audit;
+#: experiments/blank_views.md, where twice this costs rendered panels their alias check).
+MIN_PERIOD_PAIRS = 64
+#: Least spread (standard deviation) of the image over the region, in its [0, 1] levels, for a pattern to be
+#: looked for: 4 of 255. JPEG smooths a blank view's noise into blocks that can correlate over more pairs than the
+#: floor above; it keeps them under this spread, which costs no rendered panel its alias check (the same experiment).
+MIN_PATTERN_SPREAD = 4 / 255
 
 
 def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int = MAX_PERIOD_PX) -> torch.Tensor:
@@ -44,6 +53,13 @@ def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
     check_shape(mask, "mask", list(image.shape))
     check_dtype(mask, "mask", "bool")
     check_count(max_lag_px, "max_lag_px", 1)
+    return _row_statistics(image, mask, max_lag_px)[0]
+
+
+def _row_statistics(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`row_autocorrelation` unchecked, with the pixel pairs at each lag ``(B, max_lag_px)`` and the image's
+    standard deviation over the mask ``(B,)`` (0 where the mask is empty)."""
     # In float32 (a fifth of float64's time; the correlations within 1e-5 of numpy's float64), each row's spectrum
     # taken once.
     x, inside = image.detach().to(torch.float32), mask.to(torch.float32)
@@ -63,25 +79,32 @@ def row_autocorrelation(image: torch.Tensor, mask: torch.Tensor, max_lag_px: int
     # of texture on mid grey: 6e-5); a lag's norm against the FFTs' rounding of that energy.
     energy = (centred * centred).sum((1, 2, 3)).to(torch.float64).view(-1, 1)
     textured = energy > 1e-8 * (x * x * inside).sum((1, 2, 3)).to(torch.float64).view(-1, 1)
-    paired = (correlated(weights, weights) >= 0.5) & (norm > 1e-6 * energy) & textured
-    return torch.where(paired, products / norm.clamp_min(1e-30), 0.0).clamp(-1.0, 1.0)
+    pairs = correlated(weights, weights)
+    paired = (pairs >= 0.5) & (norm > 1e-6 * energy) & textured
+    spread = (energy.view(-1) / count.view(-1).to(torch.float64)).sqrt()
+    return torch.where(paired, products / norm.clamp_min(1e-30), 0.0).clamp(-1.0, 1.0), pairs.round(), spread
 
 
 def period_along_rows(image: torch.Tensor, mask: torch.Tensor, min_peak: float, max_lag_px: int = MAX_PERIOD_PX
                       ) -> torch.Tensor:
     """``(B,)`` int64: the period, pixels, at which ``image`` ``(B, 1, H, W)`` repeats itself along the rows over
     ``mask``: the shortest lag of 3 pixels or more where its :func:`row_autocorrelation` rises again, by
-    :data:`MIN_RISE` or more from its least value at a shorter lag, to a local peak of at least ``min_peak``; 0
-    where it does not repeat. Not differentiable."""
+    :data:`MIN_RISE` or more from its least value at a shorter lag, to a local peak of at least ``min_peak`` over
+    :data:`MIN_PERIOD_PAIRS` pixel pairs or more; 0 where it does not repeat, or where the image spreads less than
+    :data:`MIN_PATTERN_SPREAD` over the mask (a blank view's noise). Not differentiable."""
     check_real(min_peak, "min_peak", 0.0, 1.0)
-    r = row_autocorrelation(image, mask, max_lag_px)
+    check_image(image, "image")
+    check_shape(mask, "mask", list(image.shape))
+    check_dtype(mask, "mask", "bool")
+    check_count(max_lag_px, "max_lag_px", 1)
+    r, pairs, spread = _row_statistics(image, mask, max_lag_px)
     if r.shape[1] < 4:
         return torch.zeros(r.shape[0], dtype=torch.int64, device=r.device)
     lowest = torch.cummin(r, dim=1).values  # the least correlation up to each lag
     peak = (r[:, 1:-1] >= r[:, :-2]) & (r[:, 1:-1] >= r[:, 2:]) & (r[:, 1:-1] >= min_peak)  # lags 2 … max − 1
     risen = r[:, 1:-1] - lowest[:, :-2] >= MIN_RISE
     lag = torch.arange(2, r.shape[1], device=r.device)
-    found = peak & risen & (lag >= 3)
+    found = peak & risen & (lag >= 3) & (pairs[:, 1:-1] >= MIN_PERIOD_PAIRS) & (spread >= MIN_PATTERN_SPREAD)[:, None]
     shortest = torch.where(found, lag, r.shape[1] + 1).amin(dim=1)
     return torch.where(found.any(dim=1), shortest, 0)
 

@@ -121,3 +121,34 @@ def test_a_mask_of_another_shape_or_dtype_and_settings_out_of_range_are_refused_
         object_periods(image, torch.ones(1, 2, 8, 8), 0.5)
     with pytest.raises(InputError, match="objects"):
         object_periods(image, torch.ones(2, 2, 8, 8, dtype=torch.bool), 0.5)
+
+
+def test_a_pattern_needs_enough_pixel_pairs_and_contrast_to_count():
+    """A peak over a few dozen pixel pairs is chance, and a region spreading under MIN_PATTERN_SPREAD is a blank
+    view's noise: neither is a pattern. The same bars over a 3 × 12 px patch (24 pairs at the 4 px lag), or at
+    2 levels of contrast, are not found; over 6 × 20 px (96 pairs) and at 10 levels they are."""
+    cols = np.mgrid[0:40, 0:60][1]
+    bars = 0.5 + 0.2 * ((cols // 2) % 2).astype(np.float32)  # a 4 px period
+    patch, wider = np.zeros((40, 60), bool), np.zeros((40, 60), bool)
+    patch[10:13, 10:22], wider[10:16, 10:30] = True, True
+    masks = torch.from_numpy(np.stack([patch, wider]))[:, None]
+    assert period_along_rows(as_batch(bars, bars), masks, 0.5).tolist() == [0, 4]
+    faint, clear = (0.5 + level / 255 * ((cols // 2) % 2).astype(np.float32) for level in (2, 10))
+    whole = torch.ones(2, 1, 40, 60, dtype=torch.bool)
+    assert period_along_rows(as_batch(faint, clear), whole, 0.5).tolist() == [0, 4]
+
+
+def test_a_blank_noisy_view_as_camera_frames_holds_no_repeated_pattern():
+    """A covered lens or a grey wall, as the board's frames (sensor noise, JPEG): its noise regions were taken for
+    repeated patterns 0.4-0.6 m away (15 of 216 such pairs, 0 now), and guide said "Repeated pattern ahead" in place of
+    "Cannot see ahead" (an audit)."""
+    from svs_torch.core.types import StereoBatch
+    from svs_torch.data import camera_frame_pairs
+    from svs_torch.pipeline import PipelineConfig, estimate_obstacle_depth
+
+    n = 4  # light grey, σ 2 at the default digit: two of these four were said to repeat
+    views = torch.full((n, 1, 240, 320), 200 / 255)
+    batch = StereoBatch(views, views.clone(), torch.full((n,), 276.0), torch.full((n,), 0.1075), torch.zeros(n),
+                        torch.ones(n, dtype=torch.bool), torch.tensor([[240, 320]] * n))
+    frames = camera_frame_pairs(batch, 4, 2.0, torch.Generator().manual_seed(202))
+    assert torch.isnan(estimate_obstacle_depth(frames, PipelineConfig()).nearest_unranged_alias_m).all()
