@@ -78,6 +78,8 @@ def check_dtype(tensor: torch.Tensor, name: str, kinds: str) -> None:
     """Check the dtype family: ``"float"`` (float32 or float64), ``"bool"``, ``"int"`` (any integer), or several
     joined by ``|``."""
     allowed = kinds.split("|")
+    if tensor.is_meta:  # shapes without values: every check that reads a value (bool(), item()) failed deep in torch
+        raise InputError(f"{name}: expected a tensor with values, got one on the meta device")
     dtype = tensor.dtype
     family = ("bool" if dtype == torch.bool else
               "float" if dtype in FLOAT_DTYPES else
@@ -102,9 +104,9 @@ def check_image(tensor: torch.Tensor, name: str, check_range: bool = True) -> di
     The range check costs one reduction and one host sync; it runs once per public call.
     """
     bindings = check_shape(tensor, name, ["B", 1, "H", "W"])
-    check_dtype(tensor, name, "float")
     if tensor.is_meta:  # shapes without values (a model traced on the meta device): nothing to range
         raise InputError(f"{name}: expected an image with values, got a tensor on the meta device")
+    check_dtype(tensor, name, "float")
     if tensor.layout != torch.strided:  # a sparse image: aminmax raised NotImplementedError from deep inside
         raise InputError(f"{name}: expected a dense image tensor, got layout {tensor.layout} (call .to_dense())")
     if check_range and tensor.numel() > 0:

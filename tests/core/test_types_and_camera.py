@@ -8,6 +8,10 @@ import torch
 from svs_torch import SVS_CAMERA, InputError, StereoBatch, SVSCamera
 from svs_torch.core.camera import parse_size
 from svs_torch.core.checks import check_shape
+from svs_torch.depth import estimate_range, labelled_quantile, masked_quantile, point_depths
+from svs_torch.features import extract_surf_features
+from svs_torch.geometry.matching import match_sad
+from svs_torch.geometry.ransac import estimate_fundamental_ransac
 
 
 @pytest.mark.parametrize("width, expected", [(160, 138), (320, 276), (640, 553), (1280, 1105)])
@@ -102,3 +106,29 @@ def test_select_and_to():
     # Nothing to move or cast: the batch itself, not a validated copy (collating a list pays for that per pair).
     assert batch.to(dtype=torch.float32) is batch and batch.to("cpu") is batch and double.to() is double
     assert batch.to("cpu", torch.float64).left.dtype == torch.float64
+
+
+def _meta(*shape, dtype=torch.float32):
+    return torch.ones(*shape, dtype=dtype, device="meta")
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: match_sad(_meta(1, 5, 64), _meta(1, 5, 64), torch.ones(1, 5, dtype=torch.bool),
+                       torch.ones(1, 5, dtype=torch.bool)), "desc_left"),
+    (lambda: estimate_fundamental_ransac(_meta(1, 20, 2), _meta(1, 20, 2), torch.ones(1, 20, dtype=torch.bool)),
+     "points_left"),
+    (lambda: estimate_fundamental_ransac(torch.rand(1, 20, 2), torch.rand(1, 20, 2), _meta(1, 20, dtype=torch.bool)),
+     "valid"),
+    (lambda: estimate_range(_meta(1, 5), _meta(1, 5, dtype=torch.bool), 276.0, 0.1), "disparity_px"),
+    (lambda: point_depths(_meta(1, 5), _meta(1, 5, dtype=torch.bool), 276.0, 0.1), "disparity_px"),
+    (lambda: masked_quantile(_meta(2, 5), _meta(2, 5, dtype=torch.bool), [0.5]), "values"),
+    (lambda: labelled_quantile(_meta(1, 6), _meta(1, 6, dtype=torch.int64), _meta(1, 2, dtype=torch.int64), [0.5]),
+     "values"),
+    (lambda: extract_surf_features(torch.rand(1, 1, 40, 40), mask=_meta(1, 1, 40, 40, dtype=torch.bool)), "mask"),
+])
+def test_a_meta_device_tensor_is_named_by_every_stage(call, name):
+    """Found by an audit: a meta-device tensor (shapes without values) given to a stage failed deep in torch, at
+    the first check that read a value ("Tensor.item() cannot be called on meta tensors", "Tensor on device meta is
+    not on the expected device cpu!"), naming no argument; check_dtype now refuses it by name."""
+    with pytest.raises(InputError, match=f"^{name}: expected a tensor with values, got one on the meta device$"):
+        call()

@@ -113,7 +113,7 @@ def test_bad_input_is_refused_by_name(costs, p1, p2, name):
 @pytest.mark.parametrize("p1, p2, name, expected", [
     (torch.ones(1, dtype=torch.complex64), torch.ones(1), "p1", "int or float tensor"),  # NotImplementedError (ge_cpu)
     (torch.ones(1), torch.ones(1, dtype=torch.bool), "p2", "int or float tensor"),  # True taken as 1 in silence
-    (torch.ones(1, device="meta"), torch.ones(1), "p1", "costs' device"),  # RuntimeError from a meta item()
+    (torch.ones(1, device="meta"), torch.ones(1), "p1", "a tensor with values"),  # RuntimeError from a meta item()
 ])
 def test_penalties_of_another_kind_or_device_are_refused_by_name(p1, p2, name, expected):
     with pytest.raises(InputError, match=f"^{name}: expected .*{expected}"):
