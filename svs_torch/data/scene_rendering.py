@@ -12,6 +12,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from ..core.camera import MAX_SIZE_PX
+from ..core.errors import InputError
 from .heap_rendering import HeapField, draw, heap_hits, rays_shape
 
 __all__ = []
@@ -249,6 +251,24 @@ def _shade(depth: torch.Tensor, slot: torch.Tensor, x_px: torch.Tensor, y_px: to
     top = torch.lerp(padded.take(corner), padded[1:].take(corner), fu)
     bottom = torch.lerp(padded[row:].take(corner), padded[row + 1:].take(corner), fu)
     return torch.lerp(top, bottom, fv)
+
+
+#: The most samples a batch's view is shaded at (B · W·s · H·s): 2^30, 4 GiB a float32 buffer, of which the ray caster
+#: holds several at once. 3,495 pairs of 320x240 at the default supersample 2; one pair of 8192x8192 (--size's
+#: largest side) at 2. Past it a request is refused by name, not an allocation failing deep in torch or, within what
+#: the kernel over-commits, a process the OOM killer ends.
+MAX_SHADED_SAMPLES = 2**30
+
+
+def _check_scene_size(size_wh: tuple, supersample: object, batch_size: int) -> None:
+    """InputError naming ``size_wh`` (sides from 1 to ``MAX_SIZE_PX``) or the request (``batch_size`` views of
+    ``size_wh`` shaded ``supersample`` times finer) past :data:`MAX_SHADED_SAMPLES`."""
+    if not (len(size_wh) == 2 and all(isinstance(n, int) and 0 < n <= MAX_SIZE_PX for n in size_wh)):
+        raise InputError(f"size_wh: expected a (width, height) in pixels from 1 to {MAX_SIZE_PX}, got {size_wh!r}")
+    if isinstance(supersample, int) and batch_size * size_wh[0] * size_wh[1] * supersample**2 > MAX_SHADED_SAMPLES:
+        raise InputError(f"batch_size, size_wh, supersample: {batch_size} views of {size_wh[0]}x{size_wh[1]} shaded "
+                         f"{supersample}x finer is more than the {MAX_SHADED_SAMPLES} samples rendered at once; "
+                         "render fewer scenes a call")
 
 
 def _render_view(camera_x_m: float, scene: _Scene, size_wh: tuple[int, int], supersample: int,

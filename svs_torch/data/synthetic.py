@@ -27,7 +27,7 @@ from ..core.camera import SVS_CAMERA, SVSCamera
 from ..core.checks import InputError, check_dtype, check_generator, check_shape
 from ..core.types import StereoBatch
 from .heap_rendering import draw, make_heap_field
-from .scene_rendering import _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
+from .scene_rendering import _check_scene_size, _Scene, _cast_rays, _render_view, _surface_tiles, _visible_bboxes
 
 __all__ = ["CAMERA_PITCH_RANGE_DEG", "WALL_DEPTH_M", "SyntheticScenes", "random_obstacle_scenes",
            "render_obstacle_scenes"]
@@ -126,11 +126,6 @@ def _check_heaps(heaps: torch.Tensor | None, batch_size: int, floor_height_m: fl
              and roughness_m >= 0, f"heap_roughness_m: expected a finite height >= 0 in metres, got {roughness_m!r}")
 
 
-def _check_size_wh(size_wh: tuple[int, int]) -> None:
-    _require(len(size_wh) == 2 and all(isinstance(n, int) and n > 0 for n in size_wh),
-             f"size_wh: expected a positive (width, height) in pixels, got {size_wh!r}")
-
-
 def _check_render_args(object_depth_m: torch.Tensor, object_center_xy_m: torch.Tensor,
                        object_size_m: torch.Tensor, object_valid: torch.Tensor | None,
                        size_wh: tuple[int, int], background_depth_m: float, supersample: int,
@@ -145,7 +140,7 @@ def _check_render_args(object_depth_m: torch.Tensor, object_center_xy_m: torch.T
         object_valid = torch.ones_like(object_depth_m, dtype=torch.bool)
     check_shape(object_valid, "object_valid", [dims["B"], dims["K"]])
     check_dtype(object_valid, "object_valid", "bool")
-    _check_size_wh(size_wh)
+    _check_scene_size(size_wh, supersample, dims["B"])
     _require(math.isfinite(background_depth_m) and background_depth_m > 0,
              f"background_depth_m: expected a positive finite depth, got {background_depth_m}")
     _require(isinstance(supersample, int) and supersample >= 1,
@@ -310,13 +305,14 @@ def _with_ground_truth(scene: _Scene, left: torch.Tensor, right: torch.Tensor,
 
 
 def _check_random_args(batch_size: int, num_objects: int, size_wh: tuple[int, int],
-                       depth_range_m: tuple[float, float], background_depth_m: float, camera: SVSCamera) -> None:
+                       depth_range_m: tuple[float, float], background_depth_m: float, camera: SVSCamera,
+                       supersample: object) -> None:
     """Validate :func:`random_obstacle_scenes`'s own arguments (the renderer checks the rest)."""
     _require(isinstance(batch_size, int) and batch_size >= 1,
              f"batch_size: expected an integer >= 1, got {batch_size!r}")
     _require(isinstance(num_objects, int) and num_objects >= 0,
              f"num_objects: expected an integer >= 0, got {num_objects!r}")
-    _check_size_wh(size_wh)
+    _check_scene_size(size_wh, supersample, batch_size)  # before the obstacles are drawn, B of them
     _require(len(depth_range_m) == 2 and all(math.isfinite(z) for z in depth_range_m),
              f"depth_range_m: expected (near, far) in metres, got {depth_range_m!r}")
     near, far = depth_range_m
@@ -391,7 +387,8 @@ def random_obstacle_scenes(
     """
     size_wh = tuple(size_wh)
     background_depth_m = render_kwargs.get("background_depth_m", WALL_DEPTH_M)
-    _check_random_args(batch_size, num_objects, size_wh, tuple(depth_range_m), background_depth_m, camera)
+    _check_random_args(batch_size, num_objects, size_wh, tuple(depth_range_m), background_depth_m, camera,
+                       render_kwargs.get("supersample", 2))
     generator = _resolve_generator(generator, torch.device("cpu"))
     depth, center, size = _place_obstacles(batch_size, num_objects, size_wh, tuple(depth_range_m), camera,
                                            generator, dtype)

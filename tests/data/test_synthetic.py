@@ -306,7 +306,12 @@ def test_wall_texture_contrast_scales_the_wall_only() -> None:
         ({"depth_range_m": (0.0, 2.0)}, r"depth_range_m: expected 0 < near <= far"),
         ({"depth_range_m": (2.0, 1.0)}, r"depth_range_m: expected 0 < near <= far"),
         ({"depth_range_m": (1.0, 5.0)}, r"depth_range_m: expected far < background_depth_m=4.0"),
-        ({"size_wh": (0, 120)}, r"size_wh: expected a positive \(width, height\)"),
+        ({"size_wh": (0, 120)}, r"size_wh: expected a \(width, height\) in pixels from 1 to 8192"),
+        # Found by an audit: these raised torch's "can't allocate memory" from deep inside (40 GB, 16 TB), and a
+        # request within what the kernel over-commits could have the process killed.
+        ({"size_wh": (10**6, 10**6)}, r"size_wh: expected a \(width, height\) in pixels from 1 to 8192"),
+        ({"batch_size": 10**9}, r"batch_size, size_wh, supersample: 1000000000 views of 160x120 shaded 2x finer"),
+        ({"supersample": 10**5}, r"batch_size, size_wh, supersample: 2 views of 160x120 shaded 100000x finer"),
         ({"supersample": 0}, "supersample: expected an integer >= 1"),
         ({"noise_std": -0.1}, "noise_std: expected a finite value >= 0"),
         ({"texture_contrast": -0.5}, "texture_contrast: expected a finite number >= 0"),
@@ -329,11 +334,13 @@ def test_random_scene_errors(kwargs: dict, message: str) -> None:
         ("size", torch.tensor([[[0.5, 0.5], [0.0, 0.5]]]), "object_size_m: expected positive finite"),
         ("center", torch.zeros(1, 2, 3), r"object_center_xy_m: expected \(1, 2, 2\), got \(1, 2, 3\)"),
         ("valid", torch.ones(1, 2), "object_valid: expected a bool tensor"),
+        ("depth", torch.ones(10**5, 2), "batch_size, size_wh, supersample: 100000 views of 160x120 shaded 2x finer"),
     ],
 )
 def test_render_errors(field: str, value: torch.Tensor, message: str) -> None:
-    args = {"depth": torch.tensor([[1.0, 1.5]]), "center": torch.zeros(1, 2, 2),
-            "size": torch.full((1, 2, 2), 0.5), "valid": None} | {field: value}
+    b = value.shape[0] if field == "depth" else 1
+    args = {"depth": torch.tensor([[1.0, 1.5]]), "center": torch.zeros(b, 2, 2),
+            "size": torch.full((b, 2, 2), 0.5), "valid": None} | {field: value}
     with pytest.raises(InputError, match=message):
         render_obstacle_scenes(args["depth"], args["center"], args["size"], args["valid"], size_wh=SMALL)
 
