@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_instance
+from ..core.checks import InputError, check_finite_where, check_instance
 from ..core.types import StereoBatch
 from ..depth.quantiles import masked_lower_median
 from ..pipeline import PipelineResult
@@ -61,8 +61,13 @@ def disparity_map_errors(disparity_px: torch.Tensor, valid: torch.Tensor, truth_
     the same shape). Only ``median_px`` carries gradients (to ``disparity_px`` and ``truth_px`` at the median
     pixel); the shares and counts are thresholds and sums of bools."""
     _check_inputs(disparity_px, valid, truth_px, truth_valid, mask, None)  # each argument by its own name
+    compared = mask & valid & truth_valid
+    # A NaN compared gave a NaN median and counted as wrong at every threshold, in silence (measure_stereo_metrics
+    # names it): named as there.
+    check_finite_where(disparity_px, "disparity_px", compared, "valid")
+    check_finite_where(truth_px, "truth_px", compared, "truth_valid")
     error = (disparity_px - truth_px.to(disparity_px.dtype)).abs()
-    return _errors(error.flatten(1), (mask & valid & truth_valid).flatten(1))
+    return _errors(error.flatten(1), compared.flatten(1))
 
 
 def map_in_left_pixels(result: PipelineResult) -> torch.Tensor:

@@ -124,6 +124,25 @@ def test_disparity_errors_by_hand():
     assert sparse.precision[0] == pytest.approx(0.0)  # the one within 1 px is off its row
 
 
+
+def test_disparity_map_errors_name_a_nan_where_both_maps_are_known():
+    """Found by an audit: a NaN in the map where it and the GT are known gave a NaN median and counted as wrong at
+    every threshold, in silence (19 of 20 pixels within 1 px said 0.95 of a map that is NaN there), where
+    measure_stereo_metrics names it. A NaN where either map is unknown is never read, as there."""
+    truth = torch.full((2, 1, 4, 5), 3.0)
+    known = torch.ones(2, 1, 4, 5, dtype=torch.bool)
+    estimate = truth.clone()
+    estimate[1, 0, 2, 2] = torch.nan
+    with pytest.raises(InputError, match=r"^disparity_px: expected finite values where valid holds, got NaN or inf "
+                                         r"for pair\(s\) \[1\] of 2$"):
+        disparity_map_errors(estimate, known, truth, known, known)
+    with pytest.raises(InputError, match=r"^truth_px: expected finite values where truth_valid holds"):
+        disparity_map_errors(truth, known, estimate, known, known)
+    unread = known.clone()
+    unread[1, 0, 2, 2] = False
+    errors = disparity_map_errors(estimate, unread, truth, known, known)
+    assert errors.count.tolist() == [20, 19] and errors.median_px.tolist() == [0.0, 0.0]
+
 def test_nominal_calibration_only_for_pairs_without_one(data_dir):
     cones = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Cones")
     teddy = load_stereo_pair(data_dir / "middlebury_2003_quarter" / "Teddy")
