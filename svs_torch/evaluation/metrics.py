@@ -143,7 +143,7 @@ def accuracy_pct(real: float, estimated: float | None) -> float:
 
     Raises:
         InputError: ``real`` is not a finite positive distance (0 divided by zero; a negative one scored above
-            100 %).
+            100 %), ``estimated`` neither None nor a real number.
     """
     try:
         number = math.nan if isinstance(real, bool) else float(real)
@@ -151,7 +151,13 @@ def accuracy_pct(real: float, estimated: float | None) -> float:
         number = math.nan
     if not 0 < number < math.inf:
         raise InputError(f"real: expected a finite positive distance, got {real!r}")
-    return 0.0 if estimated is None else max(0.0, (1 - abs(real - estimated) / real) * 100)
+    if estimated is None:
+        return 0.0
+    # The numbers, not the arguments: a string float() reads ('2.0'), or a one-element tensor, failed in the
+    # arithmetic below with a TypeError, and a bool estimate scored as 1 m.
+    if isinstance(estimated, (bool, str)) or not hasattr(estimated, "__float__"):
+        raise InputError(f"estimated: expected None or a distance, got {estimated!r}")
+    return max(0.0, (1 - abs(number - float(estimated)) / number) * 100)
 
 
 @dataclass(frozen=True)

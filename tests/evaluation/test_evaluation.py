@@ -44,6 +44,16 @@ def test_accuracy_is_equation_9_floored_at_zero():
     assert accuracy_pct(1.0, 3.5) == 0.0  # worse than 0 % is 0 %
 
 
+def test_accuracy_takes_numbers_and_names_what_is_not_one():
+    """Found by an audit: a real distance float() reads ('2.0', which the check took) failed in the arithmetic with a
+    TypeError, as did a string estimate, and a bool estimate scored as 1 m."""
+    assert accuracy_pct("2.0", 1.9) == pytest.approx(95.0)
+    assert accuracy_pct(torch.tensor(2.0), np.float64(1.9)) == pytest.approx(95.0)
+    for estimated in ("1.9", True, [1.9]):
+        with pytest.raises(InputError, match="^estimated: expected None or a distance, got "):
+            accuracy_pct(2.0, estimated)
+
+
 def test_score_pair_by_hand():
     # Truth: slot 0 at 2.0 m, slot 1 at 1.0 m; the estimate misses slot 1 and puts R_min at 1.1 m.
     score = score_pair([(0, 2.0), (1, 1.0)], PairEstimate("OK", 1.1, 2.0, [1.9, None]))
