@@ -555,6 +555,10 @@ def test_dense_object_depths(size, n, fill, data):
                              torch.ones(1, dtype=torch.bool), 0.0, None, 0.0, False)),
     ("usurf_describe", lambda: (torch.rand(1, 1, 8, 8), -1, torch.zeros(1, 2, 2), torch.ones(1, 2),
                                 torch.ones(1, 2, dtype=torch.bool), False)),
+    # An infinite position at an infinite scale: a NaN cast to an index in C (UBSan: "-nan is outside the range of
+    # representable values of type 'long int'", usurf_describe.c's locate); found by an audit
+    ("usurf_describe", lambda: (torch.rand(1, 1, 8, 8), 4, torch.tensor([[[math.inf, 5.0]]]),
+                                torch.tensor([[math.inf]]), torch.ones(1, 1, dtype=torch.bool), False)),
     ("sad_nearest", lambda: (torch.rand(1, 3, 8), torch.rand(1, 3, 4), torch.ones(1, 3, dtype=torch.bool),
                              torch.ones(1, 3, dtype=torch.bool))),
     ("labelled_select", lambda: (torch.rand(1, 9), torch.ones(1, 3, dtype=torch.int64),

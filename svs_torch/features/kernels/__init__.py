@@ -242,9 +242,12 @@ def usurf_describe(image: torch.Tensor, pad: int, xy: torch.Tensor, scale: torch
     check_border(pad, h, w)
     if not (on_cpu(torch.float32, image, xy, scale) and on_cpu(torch.bool, valid)):
         return None
-    # A NaN position would be cast to an index (undefined in C); ±inf and huge ones are clamped to the border.
+    # A NaN position would be cast to an index (undefined in C); ±inf and huge ones are clamped to the border. So
+    # would an infinite position at an infinite scale (inf − inf is NaN; a NaN scale reads as the least one).
     if bool((xy.isnan().any(-1) & valid).any()):
         raise InputError("xy: expected no NaN at valid keypoints")
+    if bool((scale.isinf() & valid).any()):
+        raise InputError("scale: expected finite scales at valid keypoints (describe_surf's are positive)")
     library = load("usurf_describe")
     if library is None:
         return None
