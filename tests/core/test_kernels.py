@@ -981,8 +981,23 @@ def test_dense_object_depths_refuses_a_box_far_outside_its_map(crop):
                                          r"16x8 map widened by its size on each side"):
         _dense_objects_call(crop)()
     _dense_objects_call([-16, -8, 48, 24])()  # past the frame by its size: the border repeats there
-    with pytest.raises(InputError, match=r"boxes: expected \(x0, y0, width, height\) within ±2\^31"):
-        depth_kernels._check_box_rows(torch.tensor([[-2**63, 0, 4, 4]]), "boxes", 1)
+    with pytest.raises(InputError, match=r"boxes: expected \(x0, y0, width, height\) within the 16x8 map widened"):
+        depth_kernels._check_box_rows(torch.tensor([[-2**63, 0, 4, 4]]), "boxes", 1, 8, 16)
+
+
+@pytest.mark.parametrize("box", [[0, 0, 100, 100], [-7, 0, 4, 4], [0, 0, 2**31 - 1, 2**31 - 1]])
+def test_object_depths_kernel_refuses_a_box_far_outside_its_map(box):
+    """Found by an audit: the wrapper itself bounded a box by ±2^31 only (dense_object_depths, its caller, by the
+    map widened by its size): a 20000-px box on a 6 x 6 map counted 4e8 members in 8 s and 3 GB, and one of 60000
+    would have asked for 36 GB."""
+    args = (torch.ones(1, 6, 6, dtype=torch.bool), torch.ones(1, 6, 6, dtype=torch.int64))
+    rest = (torch.ones(1, 1, dtype=torch.int64), torch.ones(1), torch.zeros(1), torch.zeros(1, 1, dtype=torch.int64),
+            True, torch.tensor([0.5]))
+    with pytest.raises(InputError, match=r"^boxes: expected \(x0, y0, width, height\) within the 6x6 map widened by "
+                                         r"its size on each side"):
+        depth_kernels.object_depths(torch.rand(1, 6, 6), *args, torch.tensor([box]), *rest)
+    whole = depth_kernels.object_depths(torch.rand(1, 6, 6), *args, torch.tensor([[-6, -6, 18, 18]]), *rest)
+    assert whole is None or whole[0].tolist() == [[18 * 18]]  # past the frame by its size: the border repeats
 
 
 def test_semi_global_columns_leaves_no_disparity_to_the_torch_path():
