@@ -338,3 +338,27 @@ def test_the_default_samples_are_kept_for_a_few_settings_only():
     assert len(ground_plane._DRAWS) <= 8
     again = fit_ground_plane(disparity, measured, baseline_m, GroundPlaneConfig(seed=12345))
     assert torch.equal(first.coefficients, again.coefficients) and torch.equal(first.mask, again.mask)
+
+
+
+@pytest.mark.parametrize("draw, setting, message", [
+    (math.nan, {}, r"^draws: expected uniforms in \[0, 1\]"),
+    (1e300, {}, r"^draws: expected uniforms in \[0, 1\]"),
+    (0.5, {"lower_row": 1e300}, r"^settings\['lower_row'\]: expected a value within ±2\^53, got 1e\+300$"),
+    (0.5, {"lower_row": -2.0**60}, r"^settings\['lower_row'\]: expected a value within ±2\^53"),
+    (0.5, {"stride": 2**40}, r"^settings\['stride'\]: expected a value within ±2\^31, got 1099511627776$"),
+])
+def test_the_kernel_wrapper_refuses_draws_and_settings_its_c_code_cannot_cast(draw, setting, message):
+    """Found by an audit under UBSan: the C code cast a draw times the candidates' count, and the lower row, to
+    integers, undefined for NaN or past 2^63 ("nan is outside the range of representable values of type 'long
+    int'"), and squared the stride in int64 (a signed overflow at 2^40); the wrapper took any float64 draws and any
+    finite setting."""
+    from svs_torch.segmentation import kernels
+
+    settings = dict(zip(kernels.GROUND_PLANE_SETTINGS, [4, 4, 0.05, 10, 0.3, 0.5, 3.0, 0.5, 0.1, 0.3, 10, 10]))
+    draws = torch.rand(8, 5, dtype=torch.float64)
+    draws[3, 0] = draw
+    with pytest.raises(InputError, match=message):
+        kernels.ground_plane_fit(torch.rand(1, 1, 40, 40) * 20, torch.ones(1, 1, 40, 40, dtype=torch.bool),
+                                 torch.ones(1), torch.ones(1), torch.full((1,), 300.0), draws, settings | setting,
+                                 torch.ones(1, dtype=torch.bool), 1)

@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from ...core.checks import check_count, check_instance, check_shape
+from ...core.checks import check_count, check_dtype, check_instance, check_shape
 from ...core.errors import InputError
 from ...core.kernels import FLOAT, INT, POINTER, available, declare, load, on_cpu, rows_of
 from ...core.kernels.checks import check_rows, settings_table
@@ -237,7 +237,15 @@ def ground_plane_fit(disparity: torch.Tensor, measured: torch.Tensor, baseline_m
         check_rows(cells, "cells", b, kinds="bool")
     check_count(cell_min_px, "cell_min_px")
     n = check_shape(draws, "draws", ["N", 5])["N"]
+    check_dtype(draws, "draws", "float")
     table = settings_table(settings, GROUND_PLANE_SETTINGS, {"stride": 1})
+    # The C code casts a draw times a count, and the lower row, to integers: undefined for NaN or past 2^63 (UBSan
+    # "nan is outside the range of representable values of type 'long int'"); it squares the stride in int64.
+    if not bool(((draws >= 0) & (draws <= 1)).all()):
+        raise InputError("draws: expected uniforms in [0, 1] (torch.rand's)")
+    for key, power in (("lower_row", 53), ("stride", 31)):
+        if abs(settings[key]) > 2**power:
+            raise InputError(f"settings[{key!r}]: expected a value within ±2^{power}, got {settings[key]!r}")
     floats = (disparity, baseline_m, tolerance_px) + (() if focal_px is None else (focal_px,))
     if (not (on_cpu(torch.float32, *floats) and on_cpu(torch.bool, measured) and on_cpu(torch.float64, draws))
             or focal_px is not None and bool(focal_px.isnan().any())
