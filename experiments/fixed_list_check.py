@@ -116,16 +116,36 @@ def _checked_record(parser: argparse.ArgumentParser, args: argparse.Namespace):
         parser.error(f"argument json: {error}")
 
 
+def _checked_workdir(parser: argparse.ArgumentParser, workdir: Path) -> None:
+    """``workdir`` made, with room for the list's synthetic pairs, before the run: an unwritable one (``/proc``, a
+    file, a read-only share) ended in a traceback from ``mkdir`` (an audit). A workdir already holding its list is
+    only read."""
+    import tempfile
+
+    if (workdir / "pairs.txt").is_file():
+        return
+    try:
+        (workdir / "synthetic").mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=workdir):  # a folder that exists may still refuse a new file
+            pass
+    except OSError as error:
+        # The path that failed is named: "/proc: No such file or directory" read as if /proc were missing.
+        failed = f"{error.filename}: " if error.filename and str(error.filename) != str(workdir) else ""
+        parser.error(f"argument --workdir: cannot write the pair list and its synthetic pairs in {workdir} "
+                     f"({failed}{error.strerror or error})")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("action", choices=("record", "compare"),
                         help="record the fixed list's results, or compare against a record")
     parser.add_argument("json", type=Path, help="the recorded results (written by record, read by compare)")
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/regroup_fixed"),
-                        help="where the record is kept (default: %(default)s)")
+                        help="where the pair list and its synthetic pairs are written, then reused (default: "
+                             "%(default)s)")
     args = parser.parse_args(argv)
     recorded = _checked_record(parser, args)
-    args.workdir.mkdir(parents=True, exist_ok=True)
+    _checked_workdir(parser, args.workdir)
     results = run_all(args.workdir)
     if args.action == "record":
         from run_metadata import write_text_whole  # (the path is set above)

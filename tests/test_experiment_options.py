@@ -238,6 +238,26 @@ def test_fixed_list_check_refuses_a_record_it_cannot_write_or_read_before_the_ru
         assert stop.value.code == 2 and "error: argument json: " in capsys.readouterr().err, argv
 
 
+def test_fixed_list_check_refuses_a_workdir_it_cannot_write_before_the_run(tmp_path, monkeypatch, capsys):
+    """Found by an audit: ``fixed_list_check.py record R.json --workdir /proc`` (or a file) ended in a traceback
+    from mkdir; now one line naming --workdir and the path that failed, exit status 2, before any pair runs."""
+    sys.path.insert(0, str(REPO_ROOT / "experiments"))
+    import fixed_list_check
+
+    def ran(workdir):
+        raise AssertionError("the list was run")
+
+    monkeypatch.setattr(fixed_list_check, "run_all", ran)
+    (tmp_path / "a_file").write_text("")
+    workdirs = [tmp_path / "a_file", *([Path("/proc")] if Path("/proc/self").is_dir() else [])]
+    for workdir in workdirs:
+        with pytest.raises(SystemExit) as stop:
+            fixed_list_check.main(["record", str(tmp_path / "r.json"), "--workdir", str(workdir)])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and "error: argument --workdir: cannot write" in err, err
+        assert f"{workdir}/synthetic" in err, err
+
+
 SIZES = [("paper_table1", ["--sizes", "0"]), ("paper_table1", ["--sizes", "320,99999"]),
          ("bench_capture", ["--sizes", "0x0"]), ("real_rig", ["--sizes", "320x240,320x0"]),
          ("kernel_parity", ["--size", "0x0"]), ("kernel_parity", ["--size", "native"])]
