@@ -108,10 +108,8 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: 
         print(f"note: {' = '.join(f'{c} ({labels[c]})' for c in group)}: the same results on every pair, times "
               f"aside: what differs between them changed nothing here (as a setting that the configuration in use "
               f"never reads does, e.g. one of another segmenter)")
-    for s in summaries:
-        if len(s["code_versions"]) > 1:
-            print(f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
-                  f"({', '.join(map(str, s['code_versions']))}): rerun into a new --db to compare like with like")
+    for note in _code_version_notes(summaries):
+        print(note)
     print("best by each metric:")
     for key, label, s in best:
         digits = 3 if key in ("dense_within_1px", "inlier_precision", "pipeline_s_per_pair") else 1
@@ -120,6 +118,25 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: 
         tied = sum(ranked_value(other, key) == ranked_value(s, key) for other in summaries) - 1
         print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}"
               + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
+
+
+def _code_version_notes(summaries: list[dict]) -> list[str]:
+    """A note of each configuration whose rows come from several code versions, and one where the configurations,
+    each of one version, are of different ones: a sweep resumed after a code change ranked the new configurations
+    against the old ones without a word (an audit), the difference between them perhaps the code's."""
+    notes = [f"note: {s['config_id']}'s rows come from {len(s['code_versions'])} code versions "
+             f"({', '.join(map(str, s['code_versions']))}): rerun into a new --db to compare like with like"
+             for s in summaries if len(s["code_versions"]) > 1]
+    by_version: dict[str, list[str]] = {}
+    for s in summaries:
+        if len(s["code_versions"]) == 1:
+            by_version.setdefault(str(s["code_versions"][0]), []).append(s["config_id"])
+    if not notes and len(by_version) > 1:
+        listed = "; ".join(f"{version}: {', '.join(ids[:3])}{f' and {len(ids) - 3} more' if len(ids) > 3 else ''}"
+                           for version, ids in by_version.items())
+        notes.append(f"note: the configurations were measured by {len(by_version)} code versions ({listed}): what "
+                     f"differs between them may be the code's; rerun into a new --db to compare like with like")
+    return notes
 
 
 def _common_settings(summaries: list[dict]) -> str:

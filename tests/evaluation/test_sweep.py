@@ -443,6 +443,22 @@ def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_p
     assert "code versions" not in capsys.readouterr().out
 
 
+def test_results_say_when_configurations_were_measured_by_different_code_versions(reference, tmp_path, capsys):
+    """Found by an audit: a sweep resumed after a code change (its new configurations run by the new code, the
+    stored ones kept from the old) ranked them side by side without a word, each configuration of one version."""
+    db = tmp_path / "two_versions.sqlite"
+    with edited_copy(reference, db) as connection:
+        connection.execute("INSERT INTO runs(started_unix_s, command, code_version, environment, sweep) "
+                           "VALUES (0, 'sweep', '0.0.1+git.old', '{}', '')")
+        old_run = connection.execute("SELECT max(run_id) FROM runs").fetchone()[0]
+        old_config = connection.execute("SELECT min(config_id) FROM results").fetchone()[0]
+        connection.execute("UPDATE results SET run_id = ? WHERE config_id = ?", (old_run, old_config))
+    assert main(["results", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert "rows come from" not in out  # no configuration mixes versions ...
+    assert "measured by 2 code versions (" in out and f"0.0.1+git.old: {old_config}" in out  # ... the store does
+
+
 def test_results_say_when_configurations_were_measured_on_different_pairs(reference, tmp_path, capsys):
     """Found by a review of the evaluation: after an interrupted sweep each configuration was summarised over the
     rows it had, and ranked against the others over different pairs without a word."""
