@@ -443,6 +443,23 @@ def test_rows_of_several_code_versions_are_never_mixed_silently(reference, tmp_p
     assert "code versions" not in capsys.readouterr().out
 
 
+def test_a_resumed_sweep_says_when_the_rows_it_keeps_are_of_another_code_version(reference, tmp_path):
+    """Found by an audit: a sweep run again after a code change said "N rows already in DB, 0 to run" and no more,
+    its whole table the old code's; now a warning counts the rows kept from other versions and names them."""
+    db = tmp_path / "old_code.sqlite"
+    with edited_copy(reference, db) as connection:
+        connection.execute("UPDATE runs SET code_version = '0.0.1+git.old'")
+    messages: list[str] = []
+    outcome = run_sweep(load_sweep(reference[0]), db, workers=0, warn=messages.append)
+    assert outcome.tasks == 0
+    assert [m for m in messages if f"{TOTAL_ROWS} of the {TOTAL_ROWS} rows this sweep keeps" in m
+            and "other code versions (0.0.1+git.old) and are not run again" in m], messages
+    messages.clear()
+    run_sweep(load_sweep(reference[0]), tmp_path / "copy.sqlite", workers=0, warn=messages.append)
+    run_sweep(load_sweep(reference[0]), tmp_path / "copy.sqlite", workers=0, warn=messages.append)
+    assert not [m for m in messages if "code version" in m], messages  # one version: nothing to say
+
+
 def test_results_say_when_configurations_were_measured_by_different_code_versions(reference, tmp_path, capsys):
     """Found by an audit: a sweep resumed after a code change (its new configurations run by the new code, the
     stored ones kept from the old) ranked them side by side without a word, each configuration of one version."""
