@@ -160,7 +160,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "band the block matcher adds around a near object); lossless: .png, .bmp or .tif")
     parser.add_argument("--json", action="store_true", help="one JSON object per pair (JSON lines), every key in "
                         "every row (null where a value does not exist); with --pairs a row's time_s is its batch's "
-                        "time over the batch's pairs")
+                        "time over the batch's pairs; pixels are the input image's, but num_valid_px, "
+                        "num_in_view_px and dense_box_xywh, of the image the pipeline ran on (--size)")
     add_disparity_export_options(parser)
     parser.set_defaults(func=run)
 

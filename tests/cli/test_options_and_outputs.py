@@ -54,6 +54,33 @@ def test_an_option_the_segmenter_would_ignore_is_refused(data_dir, capsys, argv,
     assert code == 2 and out == "" and message in err and err.count("\n") == 1
 
 
+def _pixel_keys(value, keys: set) -> set:
+    """Every key of a JSON report, nested, that holds pixels (``*_px``, ``*_xyxy``, ``*_xywh``)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if key.endswith(("_px", "_xyxy", "_xywh")):
+                keys.add(key)
+            _pixel_keys(item, keys)
+    elif isinstance(value, list):
+        for item in value:
+            _pixel_keys(item, keys)
+    return keys
+
+
+def test_the_readme_says_which_pixels_each_pixel_key_of_estimates_json_is_in(data_dir, capsys):
+    """Found by an audit: the README's list of which keys are input pixels and which the working image's (--size)
+    left out d_min_px, d_max_px and right_camera_shift_y_px (input pixels, though the list made them look like the
+    working ones), and never said bbox_xyxy's x1, y1 are exclusive."""
+    left, right = (str(data_dir / p) for p in TEDDY)
+    code, out, _ = run_cli(capsys, "estimate", left, right, "--size", "320x240", "--json")
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    paragraph = readme.split("In the JSON,\n", 1)[1].split("\nAn object whose region", 1)[0]
+    keys = _pixel_keys(json.loads(out), set()) - {"focal_px", "doffs_px"}  # the calibration's: "for the input size"
+    assert code == 0 and {"d_min_px", "bbox_xyxy", "dense_box_xywh", "right_camera_shift_y_px"} <= keys
+    assert [key for key in sorted(keys) if f"`{key}`" not in paragraph] == []
+    assert "x1 and y1\nexclusive" in paragraph or "x1 and y1 exclusive" in paragraph
+
+
 def test_the_options_work_with_the_otsu_segmenter(data_dir, capsys):
     left, right = (str(data_dir / p) for p in TEDDY)
     _, bright, _ = run_cli(capsys, "segment", left, right, "--segmenter", "otsu", "--json")
