@@ -23,10 +23,12 @@ dilation with an N x N square, connected regions, keep the N largest: the bright
 wall (--segmenter otsu is the same with the default's other settings).
 
 Prints, for the left and the right image, the threshold (Otsu's level, or the nearness segmenter's obstacle
-probability; in --json both as levels 0-255) and the kept objects in the order kept: area in pixels,
-bounding box (x0, y0 inclusive; x1, y1 exclusive) and centroid, in the pixels segmented: the input image's,
-or with --size the resampled pair's ("image_size_wh" in --json). The right view's regions are the left ones
-moved by their disparity under the nearness segmenter (its region count: those that land in the right view).
+probability; in --json "threshold", both as levels 0-255), the count of regions found, kept or not
+("num_regions"), and the kept objects in the order kept ("objects"): area in pixels ("area_px"), bounding box
+("bbox_xyxy": x0, y0 inclusive; x1, y1 exclusive) and centroid ("centroid_xy": the mean column and row of its
+pixels), in the pixels segmented: the input image's, or with --size the resampled pair's ("image_size_wh" in
+--json, width then height). The right view's regions are the left ones moved by their disparity under the
+nearness segmenter (its region count: those that land in the right view).
 """
 
 EPILOG = """\

@@ -1956,6 +1956,19 @@ def test_segment_help_says_which_pixels_its_boxes_are_in(capsys, monkeypatch):
     assert "with --size the resampled pair's" in text and "image_size_wh" in text
 
 
+def test_segment_help_names_every_key_of_its_json(data_dir, capsys, monkeypatch):
+    """Found by an audit: segment --json's "num_regions" (4, beside 2 "objects") was named nowhere, read as the kept
+    count, and "centroid_xy" / "image_size_wh" were described only in words; each view's keys are named now."""
+    text = " ".join(help_text(capsys, monkeypatch, "segment").split())
+    left, right = (str(data_dir / p) for p in PAIRS[1])
+    code, out, _ = run_cli(capsys, "segment", left, right, "--size", "320x240", "--json")
+    report = json.loads(out)
+    keys = {"image_size_wh", *report["left"], *(key for obj in report["left"]["objects"] for key in obj)}
+    assert code == 0 and "num_regions" in keys and "centroid_xy" in keys
+    assert sorted(key for key in keys - {"status", "label"} if f'"{key}"' not in text) == []
+    assert "kept or not" in text and "the mean column and row" in text
+
+
 def test_results_examples_list_the_summary_they_limit():
     """results --help's example 'results sweep.sqlite --figure sweep.png --top 5' wrote only the figure: the
     summary, which --top limits, is printed only by default (no --csv, no --figure) or with --summary / --json,
