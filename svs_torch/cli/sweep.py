@@ -15,7 +15,8 @@ Evaluate every configuration of a sweep file on every pair it lists (the metrics
 one row per (configuration, pair) in a SQLite file. The work is split into tasks of one configuration and a
 block of pairs, run by a local process pool (each worker's torch threads pinned to cores / workers) or, with
 --scheduler, a Dask cluster. Each task's rows are committed at once: kill the sweep at any moment (Ctrl-C, or
-even kill -9) and run the same command again, and it runs only what is missing.
+even kill -9) and run the same command again, and it runs only what is missing (a warning counts the rows
+it keeps that an older code version computed, or whose pair's files changed since: a new --db runs them).
 Sweeps of different configurations (other grids, a job array's parts) may write one --db at once; a sweep
 any of whose configurations another running sweep holds is refused at once (run it after: it resumes).
 

@@ -21,8 +21,7 @@ from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
 __all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "distinct_labels", "plot_results",
-           "ranked_group", "ranked_value", "parameter_value", "results_figure", "other_versions_notice",
-           "same_results", "swept_parameters"]
+           "ranked_group", "ranked_value", "parameter_value", "results_figure", "same_results", "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -351,26 +350,3 @@ def results_figure(store: ResultStore):
     figure.suptitle(f"{store.path.name}: {count} configuration{'' if count == 1 else 's'}", fontsize=11)
     figure.tight_layout()
     return figure
-
-
-def other_versions_notice(store, db, kept: set[tuple[str, str]], version: str, adding: bool) -> str | None:
-    """What a sweep of code ``version`` says of the rows of other code versions in the :class:`~.store.ResultStore`
-    ``db``: how many of the ``kept`` rows ((config_id, pair_id), pair ids canonical) they wrote, which it does not
-    run again (resumed after a code change, it said "0 to run" and no more: an audit), or, where it keeps none of
-    theirs but adds rows (``adding``), that the store holds some; None where it has nothing to say."""
-    from .store import _canonical_ids
-
-    previous = [v for v in store.code_versions() if v != version]
-    if not previous:
-        return None
-    canonical, counts = _canonical_ids(), {}
-    for config_id, pair_id, written_by in store.connection.execute(
-            "SELECT r.config_id, r.pair_id, u.code_version FROM results r LEFT JOIN runs u USING (run_id)"):
-        if written_by != version and (config_id, canonical(pair_id)) in kept:
-            counts[str(written_by)] = counts.get(str(written_by), 0) + 1
-    if counts:
-        return (f"{sum(counts.values())} of the {len(kept)} rows this sweep keeps in {db} were computed by other "
-                f"code versions ({', '.join(counts)}) and are not run again; this run is {version} (a new --db runs "
-                f"every row with it)")
-    return (f"{db} holds rows from other code versions ({', '.join(previous)}); this run is {version}" if adding
-            else None)

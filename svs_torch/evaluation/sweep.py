@@ -24,8 +24,8 @@ A configuration's id is a hash of everything that can change a result: the whole
 The batch size is not in it: a pair's result does not depend on its batch (pairs of different sizes run as groups
 of one size, :mod:`svs_torch.core.size_groups`; RANSAC is seeded per pair;
 ``tests/pipeline/test_batch_independence.py``). The code version is recorded per run: a store whose rows come from
-several versions says so when a sweep adds to it (or keeps rows of another version) and in every ``svs-depth
-results`` summary. Tasks are blocks of
+several versions says so when a sweep adds to it (or keeps rows of another version, or of files changed since:
+:mod:`.kept_rows`) and in every ``svs-depth results`` summary. Tasks are blocks of
 the pairs a configuration still lacks (stored pairs are never run again, whatever batch they ran in: a result
 does not depend on its batch), and a task's rows are written in one transaction with ``INSERT OR IGNORE``. So a
 sweep killed at any moment, or given a longer pair list, and started again runs only what is missing and ends
@@ -63,10 +63,10 @@ from ..segmentation.network_files import weights_path
 from .executors import available_cores, connect_dask, map_dask, map_process_pool
 from .inert_settings import warn_inert_overrides
 from .metrics import PairEvaluation
+from .kept_rows import kept_rows_notices
 from .overrides import (MAX_GRID_POINTS, PRESETS, apply_overrides, config_to_dict, describe_overrides, expand_grid,
                         flatten_table, merge_fixed, merge_labels, merge_overrides, parameter_types, preset_config,
                         read_toml)
-from .report import other_versions_notice
 from .runner import EvalSetup, _check_list, _expect, evaluate_block
 from .store import ResultStore, check_storable
 
@@ -364,8 +364,7 @@ def run_sweep(sweep: Sweep, db: str | Path, workers: int | None = None, schedule
         tasks = [dataclasses.replace(task, threads=threads) for task in tasks]
         client = connect_dask(scheduler, warn) if scheduler and tasks else None
         version = code_version()
-        notice = other_versions_notice(store, db, done, version, adding=bool(tasks))
-        if notice:
+        for notice in kept_rows_notices(store, db, done, version, adding=bool(tasks)):
             warn(notice)
         run_id = store.start_run(command, version, environment(executor, count, threads), sweep.text)
         if on_start is not None:

@@ -460,6 +460,26 @@ def test_a_resumed_sweep_says_when_the_rows_it_keeps_are_of_another_code_version
     assert not [m for m in messages if "code version" in m], messages  # one version: nothing to say
 
 
+def test_a_resumed_sweep_says_when_the_files_of_rows_it_keeps_changed_since(data_dir, tmp_path):
+    """Found by an audit: a scene's image overwritten in place (with another scene's) and the sweep run again said
+    "2 rows already in DB, 0 to run", its row the old image's; now a warning counts the rows whose files changed
+    after they were stored, and names the pair."""
+    for name in ("Teddy", "ArtL"):
+        shutil.copytree(data_dir / "middlebury_eval3_Q" / name, tmp_path / name)
+    sweep_file = tmp_path / "changed.toml"
+    sweep_file.write_text(f'paths = ["{tmp_path / "Teddy"}", "{tmp_path / "ArtL"}"]\nsize = "160x120"\n')
+    db, messages = tmp_path / "changed.sqlite", []
+    assert run_sweep(load_sweep(sweep_file), db, workers=0, warn=pytest.fail).rows_written == 2
+    run_sweep(load_sweep(sweep_file), db, workers=0, warn=pytest.fail)  # nothing changed: nothing to say
+    image = tmp_path / "Teddy" / "im1.png"
+    image.write_bytes(image.read_bytes())  # rewritten in place: the folder's own time stays
+    os.utime(image, (time.time() + 5, time.time() + 5))  # past any run's start, whatever the clock's grain
+    outcome = run_sweep(load_sweep(sweep_file), db, workers=0, warn=messages.append)
+    assert outcome.tasks == 0
+    assert [m for m in messages if "1 of the 2 rows this sweep keeps" in m and "files changed since" in m
+            and "/Teddy) and are not run again" in m], messages
+
+
 def test_results_say_when_configurations_were_measured_by_different_code_versions(reference, tmp_path, capsys):
     """Found by an audit: a sweep resumed after a code change (its new configurations run by the new code, the
     stored ones kept from the old) ranked them side by side without a word, each configuration of one version."""
