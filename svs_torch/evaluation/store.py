@@ -60,7 +60,8 @@ from .metrics import UNRUN_STATUSES, PairEvaluation
 from .overrides import merge_labels
 from . import store_access
 from .store_access import (SQLITE_CANTOPEN, SQLITE_READONLY, check_schema_version, check_store_path, claim_configs,
-                           raise_if_disk_failed, read_only_error, unreadable_beside_writer, while_locked)
+                           foreign_tables, raise_if_disk_failed, read_only_error, unreadable_beside_writer,
+                           while_locked)
 
 __all__ = ["RESULT_COLUMNS", "RETRIED_STATUSES", "SCHEMA_VERSION", "ResultStore", "check_storable"]
 
@@ -163,11 +164,11 @@ class ResultStore:
         anything is written to it (a mistyped --db added the store's tables beside its own)."""
         # isolation_level=None: transactions are explicit (BEGIN IMMEDIATE … COMMIT), one per task.
         connection = sqlite3.connect(self.path, timeout=store_access.BUSY_TIMEOUT_S, isolation_level=None)
-        tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-        if tables and "meta" not in tables:
+        foreign = foreign_tables(connection)
+        if foreign:
             connection.close()
-            raise InputError(f"db: {self.path} is another program's SQLite file (tables {', '.join(sorted(tables))}),"
-                             f" not a results store: name a new file")
+            raise InputError(f"db: {self.path} is another program's SQLite file ({foreign}), not a results store: "
+                             f"name a new file")
 
         def make() -> None:  # each statement changes nothing run twice (a wait on another's lock runs it again)
             connection.execute("PRAGMA journal_mode=WAL")

@@ -32,9 +32,9 @@ from typing import IO, TypeVar
 from ..core.errors import InputError
 from ..core.files import check_path_given, check_writable_folder, path_kind
 
-__all__ = ["BUSY_TIMEOUT_S", "SQLITE_CANTOPEN", "SQLITE_READONLY", "check_schema_version", "check_store_path",
-           "claim_configs", "raise_if_disk_failed", "read_only_error", "sweep_is_writing", "unreadable_beside_writer",
-           "while_locked"]
+__all__ = ["BUSY_TIMEOUT_S", "SQLITE_CANTOPEN", "SQLITE_READONLY", "STORE_TABLES", "check_schema_version",
+           "check_store_path", "claim_configs", "foreign_tables", "raise_if_disk_failed", "read_only_error",
+           "sweep_is_writing", "unreadable_beside_writer", "while_locked"]
 
 #: SQLite's primary result codes for a write to a file it opened read-only, and a file it cannot open (sqlite3.h).
 SQLITE_READONLY, SQLITE_CANTOPEN = 8, 14
@@ -153,6 +153,29 @@ def unreadable_beside_writer(path: Path) -> str:
     return (f"db: cannot read {path} from here yet: rows are still in {path.name}-wal (a sweep writing it, or one "
             "killed), and reading them needs a file made in its folder, which this user cannot write; read it once "
             "the writer has ended, or copy both files to a folder you can write")
+
+
+#: The tables of a results store (:mod:`.store`), beside SQLite's own (``sqlite_*``: the runs' AUTOINCREMENT
+#: counter, an ANALYZE's statistics).
+STORE_TABLES = frozenset({"meta", "configs", "pairs", "runs", "results"})
+
+
+def foreign_tables(connection: sqlite3.Connection) -> str | None:
+    """What makes an SQLite file another program's, in words, or None for a results store, whole or being made by
+    another sweep at this moment (its tables appear one by one, its meta row last): a table of another name, or a
+    meta table holding rows but no schema_version, or of other columns. Why: any file with a table named meta (a
+    common name) beside its own was taken for a store, and the store's tables were added to it (an audit)."""
+    tables = {row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if {table for table in tables - STORE_TABLES if not table.startswith("sqlite_")}:
+        return f"tables {', '.join(sorted(tables))}"
+    if "meta" in tables:
+        try:
+            keys = {str(row[0]) for row in connection.execute("SELECT key FROM meta")}
+        except sqlite3.OperationalError:
+            return "a meta table of other columns"
+        if keys and "schema_version" not in keys:
+            return f"a meta table of keys {', '.join(sorted(keys)[:5])}, no schema_version"
+    return None
 
 
 def check_schema_version(path: Path, version: str | None, expected: int) -> None:

@@ -362,6 +362,33 @@ def test_results_summary_csv_and_plot(reference, tmp_path, capsys):
         assert f"--csv: the table and {both} would both go to standard output" in capsys.readouterr().err
 
 
+def test_sweeps_refuse_another_programs_file_that_has_a_meta_table(data_dir, tmp_path, capsys):
+    """Found by an audit: a file of another program's with a table named meta (a common name) beside its own was
+    taken for a store: eval --db and sweep added the store's tables to it (and, where its meta had other columns,
+    failed only after, "no such column: value"). Each is refused now, the file left as it was; a store made by a
+    sweep, and one whose meta lost its row, are still written."""
+    import hashlib
+
+    teddy = str(data_dir / "middlebury_eval3_Q" / "Teddy")
+    files = {"users": "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT); CREATE TABLE users (id INTEGER)",
+             "columns": "CREATE TABLE meta (name TEXT, v INTEGER)",
+             "keys": "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT); INSERT INTO meta VALUES ('owner', 'x')"}
+    for name, script in files.items():
+        path = tmp_path / f"{name}.sqlite"
+        with contextlib.closing(sqlite3.connect(path)) as connection:
+            connection.executescript(script)
+        before = hashlib.sha256(path.read_bytes()).hexdigest()
+        assert main(["eval", teddy, "--size", "160x120", "--db", str(path)]) == 2, name
+        assert "is another program's SQLite file (" in capsys.readouterr().err, name
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == before, name
+    store = tmp_path / "store.sqlite"
+    assert main(["eval", teddy, "--size", "160x120", "--db", str(store)]) == 0
+    with contextlib.closing(sqlite3.connect(store)) as connection, connection:
+        connection.execute("DELETE FROM meta")
+    assert main(["eval", teddy, "--size", "160x120", "--db", str(store)]) == 0
+    capsys.readouterr()
+
+
 def test_results_leave_other_files_alone_and_sweeps_refuse_them(reference, data_dir, tmp_path, capsys):
     """Found by an audit of the results store: `results` (a read) turned another program's SQLite file into WAL
     mode and a 0-byte file into a 4 KB one while refusing them, and `sweep` / `eval --db` added the store's tables
