@@ -57,7 +57,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="the summary as one JSON object: configs (best first by --sort, --top of them), "
                              "sort, best (each metric's best configuration id over every stored configuration, "
                              "listed or not), same_results (groups of configuration ids whose rows are the same on "
-                             "every pair, times aside)")
+                             "every pair, times aside), configs_without_rows and pairs_without_rows (recorded, "
+                             "never run: a run stopped before them)")
     parser.set_defaults(func=run)
 
 
@@ -65,18 +66,15 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]], unrun: int = 0
-                   ) -> None:
+def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]],
+                   unrun: tuple[int, int] = (0, 0)) -> None:
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
     print(f"{len(summaries)} configuration{'s' * (len(summaries) != 1)}; ranked by {args.sort}"
           + (f", the best {len(shown)}" if len(shown) < len(summaries) else ""))
-    if unrun:  # an interrupted sweep's table read as a finished one (an audit: 40 of 1000 run, "best" of the 40)
-        many = unrun != 1
-        print(f"note: {unrun} more configuration{'s' * many} recorded in {args.db} {'have' if many else 'has'} no "
-              f"row yet (a sweep stopped before {'them' if many else 'it'}?): the ranking and the best are of the "
-              f"{len(summaries)} run; the sweep's command run again fills the rest")
+    for note in _unrun_notes(*unrun, args.db, len(summaries)):
+        print(note)
     common = _common_settings(summaries)
     if common:
         print(f"every configuration also ran with (not in its label): {common}")
@@ -118,6 +116,24 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: 
         tied = sum(ranked_value(other, key) == ranked_value(s, key) for other in summaries) - 1
         print(f"  {label:<18} {_number(ranked_value(s, key), digits):>7}  {s['config_id']}  {s['label']}"
               + (f"  (tied with {tied} other{'s' * (tied > 1)})" if tied else ""))
+
+
+def _unrun_notes(configs: int, pairs: int, db: str, run: int) -> list[str]:
+    """Notes of the ``configs`` configurations and the ``pairs`` pairs recorded in ``db`` that have no row: an
+    interrupted run's table read as a finished one (an audit: a sweep's 40 configurations of 1000 run, "best" of
+    the 40; and an eval --db stopped after 8 of its 45 pairs, summarised over the 8 without a word)."""
+    notes = []
+    if configs:
+        many = configs != 1
+        notes.append(f"note: {configs} more configuration{'s' * many} recorded in {db} {'have' if many else 'has'} no "
+                     f"row yet (a sweep stopped before {'them' if many else 'it'}?): the ranking and the best are of "
+                     f"the {run} run; the sweep's command run again fills the rest")
+    if pairs:
+        many = pairs != 1
+        notes.append(f"note: {pairs} more pair{'s' * many} recorded in {db} {'have' if many else 'has'} no row in any "
+                     f"configuration (a sweep or eval --db stopped before {'them' if many else 'it'}?): the means are "
+                     f"over the pairs run; the same command run again fills the rest")
+    return notes
 
 
 def _code_version_notes(summaries: list[dict]) -> list[str]:
@@ -195,6 +211,14 @@ def ranked_summaries(summaries: list[dict], args: argparse.Namespace) -> list[di
     return ranked[:top] if top else ranked
 
 
+def _unrun(store, summaries: list[dict]) -> tuple[set[str], tuple[int, int]]:
+    """The configurations recorded in ``store``, and how many of them and of its pairs have no row."""
+    from ..evaluation.report import pairs_without_rows
+
+    recorded = {c["config_id"] for c in store.configs()}
+    return recorded, (len(recorded - {s["config_id"] for s in summaries}), pairs_without_rows(store))
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
     from ..evaluation.store_access import check_store_path
@@ -239,15 +263,15 @@ def run(args: argparse.Namespace) -> int:
             rows = store.results()  # read once, for both
             summaries = config_summaries(store, rows)
             best = best_by_metric(summaries)
-            recorded = {c["config_id"] for c in store.configs()}
-            unrun = len(recorded - {s["config_id"] for s in summaries})
+            recorded, unrun = _unrun(store, summaries)
             if args.json:
                 # "best" over every configuration, as the text's: over the --top listed it named another (the best
                 # of two listed by R_min 99.408 % where a configuration left out read 99.411), and broke ties in
                 # the listing's order, not the text's.
                 print(dumps_strict({"configs": ranked_summaries(summaries, args), "sort": args.sort,
                                     "best": {key: s["config_id"] for key, _, s in best},
-                                    "same_results": same_results(store, rows), "configs_without_rows": unrun}))
+                                    "same_results": same_results(store, rows), "configs_without_rows": unrun[0],
+                                    "pairs_without_rows": unrun[1]}))
             elif not summaries:  # an empty table read as a result (an audit: the figure said "no results yet")
                 print(f"{args.db}: no results yet ({len(recorded)} configuration{'s' * (len(recorded) != 1)} recorded, "
                       f"no pair run); running the sweep's command again fills it")

@@ -21,7 +21,8 @@ from .runner import summarize
 from .store import RESULT_COLUMNS, ResultStore
 
 __all__ = ["METRICS", "best_by_metric", "config_summaries", "csv_table", "distinct_labels", "plot_results",
-           "ranked_group", "ranked_value", "parameter_value", "results_figure", "same_results", "swept_parameters"]
+           "pairs_without_rows", "ranked_group", "ranked_value", "parameter_value", "results_figure", "same_results",
+           "swept_parameters"]
 
 #: ``(key, label, higher is better)`` of the metrics a configuration is ranked by.
 METRICS: tuple[tuple[str, str, bool], ...] = (
@@ -350,3 +351,10 @@ def results_figure(store: ResultStore):
     figure.suptitle(f"{store.path.name}: {count} configuration{'' if count == 1 else 's'}", fontsize=11)
     figure.tight_layout()
     return figure
+
+
+def pairs_without_rows(store) -> int:
+    """How many pairs recorded in a :class:`~.store.ResultStore` (each run records its pairs before it runs them)
+    have no row in any configuration: the pairs an interrupted run never reached."""
+    return int(store.connection.execute("SELECT count(*) FROM pairs WHERE pair_id NOT IN (SELECT pair_id FROM "
+                                        "results)").fetchone()[0])

@@ -561,6 +561,29 @@ def test_results_say_the_configurations_a_stopped_sweep_never_ran(reference, tmp
     assert "no row yet" not in capsys.readouterr().out
 
 
+def test_results_say_the_pairs_a_stopped_run_never_reached(data_dir, reference, tmp_path, capsys):
+    """Found by an audit: an eval --db (or a sweep of one configuration) stopped after 8 of its 45 pairs read as a
+    finished table, "8 pairs" and their means, since no other configuration had the 37 others. The pairs recorded
+    without a row in any configuration are counted now, said and in JSON."""
+    db = tmp_path / "stopped.sqlite"
+    with edited_copy(reference, db) as connection:
+        pair_id = connection.execute("SELECT pair_id FROM results ORDER BY pair_id LIMIT 1").fetchone()[0]
+        connection.execute("DELETE FROM results WHERE pair_id = ?", (pair_id,))
+    assert main(["results", str(db)]) == 0
+    assert (f"note: 1 more pair recorded in {db} has no row in any configuration (a sweep or eval --db stopped "
+            "before it?)") in capsys.readouterr().out
+    assert main(["results", str(db), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["pairs_without_rows"] == 1
+    assert main(["results", str(reference[1]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["pairs_without_rows"] == 0
+    bad_lines = tmp_path / "bad_lines.txt"  # rows of lines that could not be read: each pair has its row
+    bad_lines.write_text(f"{data_dir / 'middlebury_eval3_Q' / 'Teddy'}\nnone/left.png none/right.png\n1 2 3\n")
+    assert main(["eval", str(bad_lines), "--size", "160x120", "--db", str(tmp_path / "bad.sqlite")]) == 0
+    capsys.readouterr()
+    assert main(["results", str(tmp_path / "bad.sqlite"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["pairs_without_rows"] == 0
+
+
 def test_csv_parameter_columns_hold_the_values_that_ran(data_dir, tmp_path, capsys):
     """Found by a review of the evaluation: a param: column held the override, so a configuration that kept its
     preset's value showed an empty cell (the default's max_ratio 0.8, the paper preset's 0.6)."""
