@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+from collections.abc import Sequence
 
 from .common import add_figure_option, check_outputs_apart, dumps_strict, non_negative_int, output_file
 
@@ -67,7 +68,7 @@ def _number(value, digits: int = 1) -> str:
 
 
 def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: list[list[str]],
-                   unrun: tuple[int, int] = (0, 0)) -> None:
+                   unrun: tuple[int, int] = (0, 0), changed: Sequence[str] = ()) -> None:
     from ..evaluation.report import ranked_group, ranked_value
 
     shown = ranked_summaries(summaries, args)
@@ -106,7 +107,7 @@ def _print_summary(summaries: list[dict], best, args: argparse.Namespace, same: 
         print(f"note: {' = '.join(f'{c} ({labels[c]})' for c in group)}: the same results on every pair, times "
               f"aside: what differs between them changed nothing here (as a setting that the configuration in use "
               f"never reads does, e.g. one of another segmenter)")
-    for note in _code_version_notes(summaries):
+    for note in [*_code_version_notes(summaries), *changed]:
         print(note)
     print("best by each metric:")
     for key, label, s in best:
@@ -153,6 +154,16 @@ def _code_version_notes(summaries: list[dict]) -> list[str]:
         notes.append(f"note: the configurations were measured by {len(by_version)} code versions ({listed}): what "
                      f"differs between them may be the code's; rerun into a new --db to compare like with like")
     return notes
+
+
+def _changed_files_notes(store, db: str) -> list[str]:
+    """A note of the rows whose pair's files changed after they were stored (:mod:`~svs_torch.evaluation.kept_rows`):
+    an eval --db after a mended image kept the old row, and the table read it without a word (an audit)."""
+    from ..evaluation.kept_rows import named, rows_of_changed_files
+
+    changed, seen, names = rows_of_changed_files(store)
+    return [f"note: {changed} of the {seen} rows in {db} are of pairs whose files changed since the row was stored "
+            f"({named(names)}): rerun into a new --db to measure them as they are now"] if changed else []
 
 
 def _common_settings(summaries: list[dict]) -> str:
@@ -276,5 +287,6 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{args.db}: no results yet ({len(recorded)} configuration{'s' * (len(recorded) != 1)} recorded, "
                       f"no pair run); running the sweep's command again fills it")
             else:
-                _print_summary(summaries, best, args, same_results(store, rows), unrun)
+                _print_summary(summaries, best, args, same_results(store, rows), unrun,
+                               _changed_files_notes(store, args.db))
     return 0

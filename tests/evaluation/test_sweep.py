@@ -487,10 +487,10 @@ def test_a_resumed_sweep_says_when_the_rows_it_keeps_are_of_another_code_version
     assert not [m for m in messages if "code version" in m], messages  # one version: nothing to say
 
 
-def test_a_resumed_sweep_says_when_the_files_of_rows_it_keeps_changed_since(data_dir, tmp_path):
+def test_a_resumed_sweep_says_when_the_files_of_rows_it_keeps_changed_since(data_dir, tmp_path, capsys):
     """Found by an audit: a scene's image overwritten in place (with another scene's) and the sweep run again said
-    "2 rows already in DB, 0 to run", its row the old image's; now a warning counts the rows whose files changed
-    after they were stored, and names the pair."""
+    "2 rows already in DB, 0 to run", its row the old image's, and results read it without a word; now a warning
+    and a note count the rows whose files changed after they were stored, and name the pair."""
     for name in ("Teddy", "ArtL"):
         shutil.copytree(data_dir / "middlebury_eval3_Q" / name, tmp_path / name)
     sweep_file = tmp_path / "changed.toml"
@@ -505,6 +505,10 @@ def test_a_resumed_sweep_says_when_the_files_of_rows_it_keeps_changed_since(data
     assert outcome.tasks == 0
     assert [m for m in messages if "1 of the 2 rows this sweep keeps" in m and "files changed since" in m
             and "/Teddy) and are not run again" in m], messages
+    capsys.readouterr()
+    assert main(["results", str(db)]) == 0  # and the table, read after an eval --db kept the old row, says so
+    assert f"note: 1 of the 2 rows in {db} are of pairs whose files changed since the row was stored (" in (
+        capsys.readouterr().out)
 
 
 def test_results_say_when_configurations_were_measured_by_different_code_versions(reference, tmp_path, capsys):
