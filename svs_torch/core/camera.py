@@ -25,10 +25,11 @@ MAX_FOCAL_PX = 1e6
 #: The shortest focal length, pixels: at 1 px even the smallest pair the pipeline ranges (5 px wide) spans 136°, and
 #: ``--focal-px 1e-30`` (or a list line's) put every object at 0.000 m with the status OK (an audit).
 MIN_FOCAL_PX = 1.0
-#: The longest baseline any rig may have, metres: one holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m);
-#: with the focal's bound f·B stays under 1e8, far inside float32 (``--focal-px 1e20 --baseline-m 1e20`` left
-#: every object without a depth, its disparity read as "noisy frames").
-MAX_BASELINE_M = 100.0
+#: The longest baseline any rig may have, metres: one holding both cameras (the SVS's 0.1075 m, KITTI's 0.54 m),
+#: as a calibration file's (``BASELINE_RANGE_M``). At 100 m, a rig's baseline in millimetres (a pair list's
+#: ``l.png r.png 276 50``) was taken as metres: every distance 1000 times too far, in silence (an audit); with the
+#: focal's bound f·B stays under 1e8, far inside float32 (``--baseline-m 1e20`` left every object without a depth).
+MAX_BASELINE_M = 2.0
 #: The shortest baseline, metres, as a calibration file's (``BASELINE_RANGE_M``): ``--baseline-m 1e-30`` put every
 #: object at 0.000 m with the status OK (an audit).
 MIN_BASELINE_M = 0.001
@@ -37,7 +38,7 @@ MIN_BASELINE_M = 0.001
 CALIBRATION_RANGES: dict[str, tuple[float, float, str]] = {
     "focal_px": (MIN_FOCAL_PX, MAX_FOCAL_PX, f"a focal length in pixels from {MIN_FOCAL_PX:g} to {MAX_FOCAL_PX:,.0f}"),
     "baseline_m": (MIN_BASELINE_M, MAX_BASELINE_M,
-                   f"a baseline in metres from {MIN_BASELINE_M:g} to {MAX_BASELINE_M:g}"),
+                   f"a baseline in metres from {MIN_BASELINE_M:g} to {MAX_BASELINE_M:g} (millimetres / 1000)"),
     "doffs_px": (-MAX_FOCAL_PX, MAX_FOCAL_PX, f"pixels from -{MAX_FOCAL_PX:,.0f} to {MAX_FOCAL_PX:,.0f}"),
 }
 

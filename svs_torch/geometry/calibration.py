@@ -25,7 +25,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.camera import CALIBRATION_RANGES, MAX_SIZE_PX, MIN_BASELINE_M, calibration_value_expected
+from ..core.camera import (CALIBRATION_RANGES, MAX_BASELINE_M, MAX_SIZE_PX, MIN_BASELINE_M,
+                           calibration_value_expected)
 from ..core.checks import InputError, check_instance
 from ..core.files import atomic_output, display_path, path_kind, write_errors_named
 from ..core.types import StereoBatch
@@ -41,7 +42,7 @@ FORMAT_VERSION = 1
 ASPECT_TOLERANCE = 0.01
 #: The baselines a calibration file may hold, metres. A file in millimetres (a square given as 25 for 0.025 to an
 #: older calibrate) read as an 83 m baseline: every distance 1000 times too far, in silence (an audit's find).
-BASELINE_RANGE_M = (MIN_BASELINE_M, 2.0)
+BASELINE_RANGE_M = (MIN_BASELINE_M, MAX_BASELINE_M)
 #: The least share of each rectified view read inside its raw image. calibrate's (``cv2.stereoRectify``, alpha 0):
 #: 100 %; hand edits, in silence (an audit): a doubled image_size_wh 68 % (0.31 m for 0.39), k1 = 2 49 % (0.94 m),
 #: a huge distortion 0 % (black views: NO_OBJECTS, a clear path to a walker).

@@ -21,10 +21,12 @@ def _refused(capsys, argv: list[str]) -> str:
     # 1e30 ranged Teddy at 3e27 m with the status OK; 1e39 overflowed float32 ("focal_px: ... got inf")
     ("--focal-px", "1e30", "a focal length in pixels from 1 to 1,000,000"),
     ("--focal-px", "1e39", "a focal length in pixels from 1 to 1,000,000"),
-    ("--baseline-m", "1e20", "a baseline in metres from 0.001 to 100"),
+    ("--baseline-m", "1e20", "a baseline in metres from 0.001 to 2 (millimetres / 1000)"),
+    # the SVS's baseline in millimetres: every distance 1000 times too far, status OK (an audit)
+    ("--baseline-m", "107", "a baseline in metres from 0.001 to 2 (millimetres / 1000)"),
     # every object at 0.000 m, status OK (an audit of numbers read from files, whose bounds these are too)
     ("--focal-px", "1e-30", "a focal length in pixels from 1 to 1,000,000"),
-    ("--baseline-m", "1e-30", "a baseline in metres from 0.001 to 100"),
+    ("--baseline-m", "1e-30", "a baseline in metres from 0.001 to 2 (millimetres / 1000)"),
     # every object at 0.000 m, status OK
     ("--doffs-px", "1e30", "pixels from -1,000,000 to 1,000,000"),
 ])
@@ -40,7 +42,7 @@ def test_calibration_options_of_real_rigs_are_taken():
     from svs_torch.cli.rig import baseline_m_value, doffs_px_value, focal_px_value
 
     assert focal_px_value("1e6") == 1e6 and focal_px_value("721.5") == 721.5 and focal_px_value("1") == 1
-    assert baseline_m_value("100") == 100 and baseline_m_value("0.54") == 0.54 and baseline_m_value("0.001") == 0.001
+    assert baseline_m_value("2") == 2 and baseline_m_value("0.54") == 0.54 and baseline_m_value("0.001") == 0.001
     assert doffs_px_value("-1e6") == -1e6 and doffs_px_value("131.111") == 131.111
 
 

@@ -267,7 +267,8 @@ FOCAL_RANGE = "a focal length in pixels from 1 to 1,000,000"
     ({"doffs_px": "3"}, "doffs_px: expected pixels from -1,000,000 to 1,000,000, got '3'"),
     # The options' ranges (CALIBRATION_RANGES): a focal of 1e30 from a script ranged Teddy at 3e27 m, status OK.
     ({"focal_px": 1e30, "baseline_m": 0.1}, rf"focal_px: expected {FOCAL_RANGE}, got 1e\+30"),
-    ({"baseline_m": 1e-30}, "baseline_m: expected a baseline in metres from 0.001 to 100, got 1e-30"),
+    ({"baseline_m": 1e-30},
+     r"baseline_m: expected a baseline in metres from 0.001 to 2 \(millimetres / 1000\), got 1e-30"),
 ])
 def test_load_image_pair_takes_numbers_only(tmp_path: Path, data_dir: Path, calibration, message) -> None:
     """Was: TypeError 'must be real number, not str' from math.isfinite, and True taken as a focal of 1 px. The

@@ -19,7 +19,7 @@ from svs_torch.data.middlebury import load_middlebury_eval3
 from svs_torch.data.pair_list import read_pair_list
 
 FOCAL = "a focal length in pixels from 1 to 1,000,000"
-BASELINE = "a baseline in metres from 0.001 to 100"
+BASELINE = "a baseline in metres from 0.001 to 2 (millimetres / 1000)"
 DOFFS = "pixels from -1,000,000 to 1,000,000"
 
 
@@ -65,9 +65,9 @@ def test_the_bounds_themselves_are_taken_from_a_list_as_from_the_options(tmp_pat
     listing.write_text(f"l.png r.png {MAX_FOCAL_PX:g} {MAX_BASELINE_M:g} {-MAX_FOCAL_PX:g}\n"
                        f"l.png r.png {MIN_FOCAL_PX:g} {MIN_BASELINE_M:g} {MAX_FOCAL_PX:g}\n")
     highest, lowest = read_pair_list(listing)
-    assert (highest.problem, highest.focal_px, highest.baseline_m, highest.doffs_px) == (None, 1e6, 100.0, -1e6)
+    assert (highest.problem, highest.focal_px, highest.baseline_m, highest.doffs_px) == (None, 1e6, 2.0, -1e6)
     assert (lowest.problem, lowest.focal_px, lowest.baseline_m, lowest.doffs_px) == (None, 1.0, 0.001, 1e6)
-    assert (focal_px_value("1e6"), baseline_m_value("100"), doffs_px_value("-1e6")) == (1e6, 100.0, -1e6)
+    assert (focal_px_value("1e6"), baseline_m_value("2"), doffs_px_value("-1e6")) == (1e6, 2.0, -1e6)
     assert CALIBRATION_RANGES["focal_px"][1] == MAX_FOCAL_PX
 
 

@@ -516,7 +516,7 @@ def test_pair_list_forms_each_keep_their_calibration(data_dir, tmp_path):
     assert "line 5" in problems[3] and "got 3 fields" in problems[3]
     assert "line 6" in problems[4] and "FOCAL_PX: expected a focal length in pixels from 1 to 1,000,000, got 'abc'" \
         in problems[4]
-    assert "BASELINE_M: expected a baseline in metres from 0.001 to 100, got '-1'" in problems[5]
+    assert "BASELINE_M: expected a baseline in metres from 0.001 to 2 (millimetres / 1000), got '-1'" in problems[5]
     scene, plain, calibrated = (load_pair_source(s) for s in sources[:3])
     assert scene.focal_px.tolist() == pytest.approx([1500.0]) and scene.disparity_px is not None
     assert not bool(plain.calibrated[0]) and plain.focal_px.tolist() != pytest.approx([1500.0])  # the SVS model
