@@ -232,7 +232,10 @@ def _kernel_settings(settings: dict, local_optimization: bool, preverification: 
     """The settings of :func:`svs_torch.geometry.kernels.ransac_fundamental`: the call's and this module's
     constants (one source for both paths)."""
     return {"threshold_px": settings["threshold_px"], "confidence": settings["confidence"],
-            "max_iterations": settings["max_iterations"], "chunk_size": settings["chunk_size"],
+            # A chunk past every iteration is the one chunk it would be: chunk_size=10**9 made the kernel ask for
+            # 27 doubles a sample per thread up front (216 GB), then fall back to the torch path (an audit).
+            "max_iterations": settings["max_iterations"],
+            "chunk_size": min(settings["chunk_size"], settings["max_iterations"]),
             "scoring": float(settings["scoring"] == "ransac"), "local_optimization": float(local_optimization),
             "preverification": float(preverification), "polish": float(polish), "lo_steps": LOCAL_OPTIMIZATION_STEPS,
             "lo_window": LOCAL_OPTIMIZATION_WINDOW, "lo_tolerance": LOCAL_OPTIMIZATION_TOLERANCE,

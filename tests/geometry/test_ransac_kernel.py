@@ -96,3 +96,21 @@ def test_the_wrapper_leaves_other_dtypes_to_torch():
     points = torch.zeros(1, 8, 2, dtype=torch.float32)
     assert geometry_kernels.ransac_fundamental(points, points, torch.ones(1, 8, dtype=torch.bool),
                                                torch.zeros(1, dtype=torch.int64), _settings()) is None
+
+
+def test_a_chunk_past_every_iteration_is_asked_of_the_kernel_as_one_chunk(monkeypatch, generator):
+    """chunk_size=10**9 made the kernel ask for 27 doubles a sample per thread up front (216 GB) and fall back to
+    the torch path (an audit); the samples are drawn by index, so one chunk of max_iterations is the same search."""
+    left, right, _, _, _ = noisy_matches(3, 80, 0.3, generator, noise_px=0.5)
+    valid, seeds = torch.ones(3, 80, dtype=torch.bool), torch.randint(0, 1 << 62, (3,), generator=generator)
+    asked, real = [], geometry_kernels.ransac_fundamental
+
+    def spy(*args):
+        asked.append(args[-1]["chunk_size"])
+        return real(*args)
+
+    monkeypatch.setattr(geometry_kernels, "ransac_fundamental", spy)
+    huge = estimate_fundamental_ransac(left, right, valid, max_iterations=300, chunk_size=10**9, pair_seeds=seeds)
+    whole = estimate_fundamental_ransac(left, right, valid, max_iterations=300, chunk_size=300, pair_seeds=seeds)
+    assert asked == [300, 300]
+    assert torch.equal(huge.inliers, whole.inliers) and torch.equal(huge.F, whole.F)
