@@ -27,9 +27,12 @@ def _quantile_levels(q: Sequence[float] | torch.Tensor, values: torch.Tensor) ->
     """``q`` as a flat tensor of ``values``' dtype and device, each in [0, 1] (InputError naming ``q`` otherwise: a
     string failed in a torch constructor, NaN fails the bounds)."""
     try:
-        levels = torch.as_tensor(q, dtype=values.dtype, device=values.device).flatten()
+        levels = torch.as_tensor(q, dtype=values.dtype, device=values.device)
     except (TypeError, ValueError, RuntimeError):
         raise InputError(f"q: expected quantiles in [0, 1] (a number, a sequence or a tensor), got {q!r}") from None
+    if levels.dim() > 1:  # flattened, a (2, 2) q gave 4 quantiles in a row, not the shape asked for (an audit)
+        raise InputError(f"q: expected a number or one sequence of quantiles, got shape {tuple(levels.shape)}")
+    levels = levels.flatten()
     if not bool(((levels >= 0) & (levels <= 1)).all()):  # written so that NaN fails too
         raise InputError(f"q: expected quantiles in [0, 1], got {levels.tolist()}")
     return levels
