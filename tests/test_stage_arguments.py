@@ -194,6 +194,24 @@ def test_keep_regions_refuses_areas_that_are_not_one_per_region(arguments, expec
         keep_regions(seg.labels, seg.regions, 2, "nearest", nearness=nearness, **({"min_area_px": 200.0} | arguments))
 
 
+def test_keep_regions_refuses_a_nan_nearness_of_a_region():
+    """A NaN nearness ranked as no number does: kept before every measured region or after, by where it sorted, in
+    silence (an audit)."""
+    seg = _three_regions()
+    with pytest.raises(InputError, match=r"nearness: expected finite values where regions.valid holds"):
+        keep_regions(seg.labels, seg.regions, 2, "nearest", nearness=torch.tensor([[2.0, float("nan"), 0.0]]))
+
+
+def test_masked_quantile_refuses_a_q_of_two_dimensions():
+    """A (2, 2) q gave 4 quantiles in a row, not the shape asked for, in silence (an audit)."""
+    from svs_torch.depth.quantiles import masked_quantile
+
+    values = torch.arange(10.0).view(1, 10)
+    assert masked_quantile(values, values >= 0, [0.5]).values.tolist() == [[4.5]]
+    with pytest.raises(InputError, match=r"q: expected a number or one sequence of quantiles, got shape \(2, 2\)"):
+        masked_quantile(values, values >= 0, [[0.1, 0.5], [0.9, 1.0]])
+
+
 @pytest.mark.parametrize("valid, expected", [(lambda v: v[:, :1], r"regions.valid: expected \(1, 3\), got \(1, 1\)"),
                                              (lambda v: v.float(), "regions.valid: expected a bool tensor")])
 def test_keep_functions_refuse_a_validity_that_is_not_one_bool_per_region(valid, expected):

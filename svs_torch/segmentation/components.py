@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..core.checks import InputError, check_count, check_dtype, check_instance, check_real, check_shape
+from ..core.checks import (InputError, check_count, check_dtype, check_finite_where, check_instance, check_real,
+                           check_shape)
 from ..core.kernels.checks import canonical_bool
 from ..core.types import RegionProperties
 from . import kernels
@@ -252,7 +253,7 @@ def check_keep_arguments(labels: torch.Tensor, regions: RegionProperties, num_ke
     """The arguments of :func:`~svs_torch.segmentation.keep_regions` and ``keep_largest_regions``. Audits found:
     ``keep="Largest"`` run as ``"nearest_first"``, ``num_keep=-1`` keep all but one region, float labels fail in a
     gather; a ``(B, 1)`` ``candidate_area_px`` broadcast, keeping a region under ``min_area_px``; ``min_area_px``
-    NaN keep nothing; a short ``regions.valid`` fail inside torch's gather."""
+    NaN keep nothing; a short ``regions.valid`` fail inside torch's gather; a NaN ``nearness`` ranked anywhere."""
     b = check_shape(labels, "labels", ["B", 1, "H", "W"])["B"]
     check_dtype(labels, "labels", "int")
     check_instance(regions, "regions", RegionProperties)
@@ -269,5 +270,7 @@ def check_keep_arguments(labels: torch.Tensor, regions: RegionProperties, num_ke
         if value is not None:
             check_shape(value, name, [b, slots])
             check_dtype(value, name, "float|int")
+            # A NaN ranked as no number does: kept before every measured region or after, by where it sorted.
+            check_finite_where(value, name, regions.valid, "regions.valid")
     check_real(min_area_px, "min_area_px", 0.0)
     check_real(near_min_area_px, "near_min_area_px", 0.0)
