@@ -10,12 +10,12 @@ import time
 from .common import (add_disparity_export_options, add_figure_option, check_outputs_apart, dumps_strict,
                      non_negative_int, output_file, positive_int, resolve_export_options, seed_int, too_small_reason)
 from .estimate_many import _load_source, _run_many, pipeline_config_from_args
-from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, unranged_report,
-                              with_calibration)
+from .estimate_report import (_calibration_source, _write_disparity, format_report, pair_report, rig_size,
+                              unranged_report, with_calibration)
 from .features import (add_feature_options, add_pair_options, checked_size, load_pair,
                        warn_if_upsampled_large)
-from .rig import (add_calibration_option, baseline_m_value, calibration_file_source, calibration_from_args,
-                  check_no_manual_calibration, doffs_px_value, focal_px_value)
+from .rig import (add_calibration_option, baseline_m_value, calibration_from_args, check_no_manual_calibration,
+                  doffs_px_value, focal_px_value)
 from .segment import add_segmentation_options, add_segmenter_option
 
 __all__ = []
@@ -380,7 +380,7 @@ def run(args: argparse.Namespace) -> int:
         report = pair_report(result, 0, factors, time.perf_counter() - started, tuple(batch.image_hw[0].tolist()))
     # A pair too small to range names its size and calibration too, as every result does (an audit: both null)
     report = with_calibration(report, batch, 0, factors, _calibration_source(source, args),
-                              calibration_file_source(args, source) is not None)
+                              rig_size(source, args))
     # The pair's files first, as --pairs rows name them (a script reads one schema either way).
     report = {"left": source.left, "right": source.right, **report}
     # The report first: an output that cannot be written (a full disk: exit 1, the option and the file named)

@@ -16,10 +16,10 @@ from pathlib import Path
 from .capture_marks import capture_fields, capture_warning, warn_capture_marks
 from .common import dumps_strict, too_small_reason
 from .estimate_report import (_calibration_source, _write_disparity, claim_export_names, forget_unrun_map,
-                              format_report, pair_report, unranged_report, with_calibration)
+                              format_report, pair_report, rig_size, unranged_report, with_calibration)
 from .features import check_native_pixels, checked_size, load_pair, warn_if_enlarged
 from .progress import Progress
-from .rig import (calibration_file_source, calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
+from .rig import (calibration_from_args, calibration_kept_beside, check_no_manual_calibration,
                   take_kept_calibration, warn_scenes_keep_their_own, with_calibrated_rectification)
 
 __all__ = []
@@ -109,7 +109,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
             source = chunk[position]
             report = pair_report(result, row, loaded[1], per_pair, tuple(batch.image_hw[row].tolist()))
             ranged[position] = with_calibration(report, batch, row, loaded[1], _calibration_source(source, args),
-                                                calibration_file_source(args, source) is not None)
+                                                rig_size(source, args))
         del batch, result  # before the next batch runs
     out = []
     for position, (source, (status, reason, loaded)) in enumerate(zip(chunk, entries)):
@@ -118,7 +118,7 @@ def _reports(chunk, entries: list, args: argparse.Namespace, config) -> list[tup
             forget_unrun_map(args, source, status)
             if loaded is not None:  # too small: its size and calibration, as estimate of one pair says (an audit)
                 report = with_calibration(report, loaded[0], 0, loaded[1], _calibration_source(source, args),
-                                          calibration_file_source(args, source) is not None)
+                                          rig_size(source, args))
         else:
             report, bad = ranged[position], None
         out.append(({"left": source.left, "right": source.right, **capture_fields(source), **report}, bad))

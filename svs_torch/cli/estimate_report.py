@@ -14,8 +14,8 @@ from .right_camera import RIGHT_CAMERA_KEYS, right_camera_line, right_camera_rep
 from .rig import calibration_file_source
 from .too_near import too_near_reason
 
-__all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "square_pixels", "unranged_report",
-           "with_calibration"]
+__all__ = ["ASPECT_CHANGED", "NO_DENSE_MAP", "format_report", "pair_report", "rig_size", "square_pixels",
+           "unranged_report", "with_calibration"]
 
 
 def unranged_report(status: str, reason: str, range_rule: str) -> dict:
@@ -41,20 +41,29 @@ def _calibration_source(source, args) -> str:
 
 
 def with_calibration(report: dict, batch, index: int, factors: tuple[float, float], source: str,
-                     rectified_by_file: bool = False) -> dict:
+                     rig_wh: tuple[int, int] | None = None) -> dict:
     """``report`` with the calibration its metres use, for the INPUT image size, and where it came from
     (:func:`svs_torch.data.calibration_record`); ``calibration_rectified``: the pair was rectified by
-    ``--calibration``'s file before the pipeline (whose own ``rectified`` says it rectified the pair from its F);
-    and the two sizes its pixel counts are in, ``[width, height]`` each: ``image_size_px`` the input's (``area_px``,
-    ``bbox_xyxy``), ``working_size_px`` the image the pipeline ran on (``--size``: ``num_valid_px``,
-    ``dense_box_xywh``)."""
+    ``--calibration``'s file, made at ``rig_wh`` (:func:`rig_size`), before the pipeline (whose own ``rectified``
+    says it rectified the pair from its F); and the two sizes its pixel counts are in, ``[width, height]`` each:
+    ``image_size_px`` the input's (``area_px``, ``bbox_xyxy``), ``working_size_px`` the image the pipeline ran on
+    (``--size``: ``num_valid_px``, ``dense_box_xywh``)."""
     from ..data import calibration_record
+    from ..data.calibration import rig_scaled_source
 
     height, width = (int(v) for v in batch.image_hw[index].tolist())
-    return {**report, "calibration_rectified": rectified_by_file,
+    input_wh = [int(round(width * factors[0])), int(round(height * factors[1]))]
+    source = source if rig_wh is None else rig_scaled_source(source, rig_wh, input_wh)
+    return {**report, "calibration_rectified": rig_wh is not None,
             "calibration": calibration_record(batch, index, source, factors[0]),
-            "image_size_px": [int(round(width * factors[0])), int(round(height * factors[1]))],
-            "working_size_px": [width, height]}
+            "image_size_px": input_wh, "working_size_px": [width, height]}
+
+
+def rig_size(source, args) -> tuple[int, int] | None:
+    """The image size ``--calibration``'s file was made at where it rectified pair ``source``, else None."""
+    from .rig import calibration_from_args
+
+    return tuple(calibration_from_args(args).image_wh) if calibration_file_source(args, source) else None
 
 
 #: What a pair resized to another aspect ratio (``--size``) says of its floor, once a run.

@@ -14,7 +14,7 @@ from .datasets import scene_calibration_source
 from .pair_list import PairSource
 
 __all__ = ["SVS_MODEL_ASSUMED", "calibration_fields", "calibration_record", "format_calibration",
-           "pair_calibration_source"]
+           "pair_calibration_source", "rig_scaled_source"]
 
 #: The source of a plain pair's calibration when neither its list line nor an option gives one.
 SVS_MODEL_ASSUMED = "the SVS model assumed"
@@ -43,6 +43,15 @@ def pair_calibration_source(source: PairSource, focal_px: float | None = None,
     if source.focal_px is not None:
         return f"the pair list, {source.listed_at}" if source.listed_at else "the pair list"
     return options_calibration_source(focal_px, baseline_m, doffs_px)
+
+
+def rig_scaled_source(source: str, rig_wh, pair_wh) -> str:
+    """``source`` (a rig file's, made at ``rig_wh``) with the size it was scaled to, where the pair's ``pair_wh``
+    differs. Why: a rig calibrated at 640x480 ranged a 320x240 pair with its focal length halved, and a 480x360 crop
+    of its frames with it scaled by 3/4 (0.30 m for 0.39 m), and the calibration line named only the file (an audit).
+    """
+    (w, h), (pw, ph) = (int(v) for v in rig_wh), (int(v) for v in pair_wh)
+    return source if (w, h) == (pw, ph) else f"{source}, made at {w}x{h} and scaled to this {pw}x{ph} pair"
 
 
 def calibration_record(batch: StereoBatch, index: int, source: str, width_scale: float = 1.0) -> dict:

@@ -25,6 +25,7 @@ from ..core.size_groups import same_size_indices
 from ..core.types import StereoBatch
 from ..data import (calibration_record, collate_stereo_batches, load_pair_source, pair_calibration_source,
                     resize_stereo_batch)
+from ..data.calibration import rig_scaled_source
 from ..data.pair_list import OWN_CALIBRATION_UNDER_RIG, PairSource
 from ..geometry.calibration import StereoCalibration, rectify_with_calibration
 from ..pipeline import PipelineConfig, PipelineResult, estimate_obstacle_depth
@@ -101,7 +102,8 @@ def _load_one(source: PairSource, setup: EvalSetup) -> LoadedPair:
             batch = rectify_with_calibration(batch, setup.calibration)
         except InputError as error:
             return LoadedPair(source, None, "BAD_INPUT", " ".join(str(error).split()))
-        origin = setup.calibration_source  # was "the SVS model assumed", beside the rig's own focal and baseline
+        # was "the SVS model assumed", beside the rig's own focal and baseline
+        origin = rig_scaled_source(setup.calibration_source, setup.calibration.image_wh, batch.size_hw[::-1])
     calibrated = bool(batch.calibrated[0])
     given = not source.scene and (setup.focal_px is not None or setup.baseline_m is not None)
     if not calibrated and batch.disparity_px is not None and not given:

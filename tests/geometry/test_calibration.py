@@ -592,6 +592,29 @@ def test_estimate_and_eval_take_the_calibration(capsys, rig, samples, tmp_path):
     assert row["calibration"]["source"] == f"--calibration {path} (the pair rectified by it)"
 
 
+def test_a_calibration_scaled_to_a_pair_of_another_size_says_so(capsys, rig, samples, tmp_path):
+    """Found by an audit: a rig calibrated at 640x480 ranged a 320x240 pair (and a 480x360 crop, 0.30 m for 0.39 m)
+    with its matrices scaled, and the calibration line named only the file."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    names = []
+    for side in ("left", "right"):
+        names.append(str(tmp_path / f"{side}_small.png"))
+        image = cv2.imread(str(samples / f"{side}01.jpg"), 0)
+        cv2.imwrite(names[-1], cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA))
+    code, stdout, _ = run_cli(capsys, "estimate", *names, "--calibration", str(path), "--json")
+    record = json.loads(stdout)["calibration"]
+    assert code == 0 and record["focal_px"] == pytest.approx(calibration.focal_px / 2, rel=1e-3)
+    assert record["source"] == (f"--calibration {path} (the pair rectified by it), made at 640x480 and scaled to "
+                                "this 320x240 pair")
+    code, stdout, _ = run_cli(capsys, "estimate", *names, "--calibration", str(path))
+    assert code == 0 and "made at 640x480 and scaled to this 320x240 pair)" in stdout
+    (tmp_path / "list.txt").write_text(" ".join(names) + "\n")
+    code, stdout, _ = run_cli(capsys, "eval", str(tmp_path / "list.txt"), "--calibration", str(path), "--json")
+    assert code == 0 and json.loads(stdout.splitlines()[0])["calibration"]["source"] == record["source"]
+
+
 @pytest.mark.parametrize("command", ["estimate", "eval"])
 def test_a_listed_pairs_calibration_that_is_no_file_is_named_by_its_option(capsys, samples, tmp_path, command):
     """Found by an audit: with a pair list, a missing --calibration said "error: No such file or directory" (no
@@ -689,7 +712,8 @@ def test_capture_keeps_the_calibration_and_guide_uses_it(capsys, rig, tmp_path):
     for command in (["estimate", "--pairs", str(out / "index.jsonl")], ["eval", str(out / "index.jsonl")]):
         code, stdout, err = run_cli(capsys, *command, "--json")
         line = json.loads(stdout.splitlines()[0])
-        assert line["calibration"]["source"] == f"--calibration {out / 'calibration.json'} (the pair rectified by it)"
+        assert line["calibration"]["source"] == (f"--calibration {out / 'calibration.json'} (the pair rectified by "
+                                                 "it), made at 640x480 and scaled to this 160x120 pair")
         assert f"rectified with {out / 'calibration.json'}" in err and line["calibration"]["measured"] is True
     # Another file named replaces the kept one, now said (an audit: it was used without a word); the same rig's
     # copy is not.
