@@ -21,7 +21,8 @@ from .errors import InputError
 from .files import STDERR_LOCK, check_path_given, display_path, path_kind
 
 __all__ = ["JPEG_GRAY_DECODE", "MAX_DECODED_PIXELS", "PRELOADED", "check_file", "damaged_jpeg", "declared_file_size",
-           "declared_pixels", "declared_size", "decode_collecting", "preload_key", "read_image_array"]
+           "declared_pixels", "declared_size", "decode_collecting", "preload_key", "read_image_array",
+           "turned_note"]
 
 #: Arrays decoded elsewhere by :func:`read_image_array`, by :func:`preload_key` of their file: each is returned for
 #: every read of that file until its owner clears the dict (an ``estimate --pairs`` worker, after each batch).
@@ -142,6 +143,17 @@ def declared_file_size(path: str | Path) -> tuple[int, int] | None:
             return declared_size(file.read(1 << 20))  # a JPEG's frame header follows its metadata, under 1 MB
     except OSError:
         return None
+
+
+def turned_note(path: str | Path, size_wh: tuple[int, int]) -> str:
+    """``", turned upright by its EXIF orientation from the 640x480 it stores"`` where the PNG or JPEG file ``path``
+    stores its pixels on their side and was read as ``size_wh``, else ``""``. Why: a pair whose left photo carries
+    an Orientation tag was refused as "expected the size of left 480x640", a size that neither file's header nor
+    an image tool's listing of it shows (an audit)."""
+    stored = declared_file_size(path)
+    if stored is None or stored[0] == stored[1] or stored != tuple(size_wh)[::-1]:
+        return ""
+    return f", turned upright by its EXIF orientation from the {stored[0]}x{stored[1]} it stores"
 
 
 def declared_pixels(data: bytes) -> tuple[int, str] | None:

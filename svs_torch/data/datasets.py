@@ -29,6 +29,7 @@ from ..core.camera import CALIBRATION_RANGES, SVS_CAMERA, calibration_value_expe
 from ..core.checks import InputError
 from ..core.dataset_files import KITTI_LAYOUTS, KITTI_LEFT_FOLDERS
 from ..core.files import check_path_given, display_path, path_kind
+from ..core.image_files import turned_note
 from ..core.types import StereoBatch
 from .formats import read_kitti_disparity, read_scaled_disparity
 from .middlebury import (MIDDLEBURY_2005_BASELINE_M, MIDDLEBURY_2005_DMIN_FULL_PX, MIDDLEBURY_2005_FOCAL_FULL_PX,
@@ -165,8 +166,9 @@ def load_image_pair(
     left, right = read_view_pair(Path(left_path), Path(right_path), dtype)
     if right.shape != left.shape:  # with the files: the pair's name is a folder's for a generic name (L.png)
         (h, w), (rh, rw) = left.shape[-2:], right.shape[-2:]
-        raise InputError(f"right: expected the size of left {w}x{h} (WxH, {display_path(left_path)}), got {rw}x{rh} "
-                         f"({display_path(right_path)})")
+        raise InputError(f"right: expected the size of left {w}x{h} (WxH, {display_path(left_path)}"
+                         f"{turned_note(left_path, (w, h))}), got {rw}x{rh} ({display_path(right_path)}"
+                         f"{turned_note(right_path, (rw, rh))})")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
     return make_scene_batch(left, right, pair_name(left_path),

@@ -379,6 +379,22 @@ def test_a_jpeg_is_read_turned_by_its_exif_orientation(tmp_path: Path, data_dir:
                           cv2.imread(str(turned), cv2.IMREAD_GRAYSCALE))
 
 
+def test_a_pair_of_sizes_an_exif_orientation_made_differ_names_the_turn(tmp_path: Path, data_dir: Path) -> None:
+    """An audit: a left photo with an Orientation tag beside a right one without was refused as "expected the size
+    of left 375x450", a size neither file's header nor an image tool's listing shows (both store 450x375)."""
+    upright = cv2.imread(str(data_dir / "middlebury_eval3_Q/Teddy/im0.png"))
+    encoded = cv2.imencode(".jpg", upright)[1].tobytes()
+    tagged, plain = tmp_path / "left.jpg", tmp_path / "right.jpg"
+    tagged.write_bytes(_with_exif_orientation(encoded, 6))
+    plain.write_bytes(encoded)
+    turned = ", turned upright by its EXIF orientation from the 450x375 it stores"
+    with pytest.raises(InputError, match=f"expected the size of left 375x450 \\(WxH, .*left.jpg{turned}\\), got "
+                                         f"450x375 \\(.*right.jpg\\)$"):
+        load_image_pair(tagged, plain)
+    with pytest.raises(InputError, match=f"left 450x375 \\(WxH, .*right.jpg\\), got 375x450 \\(.*left.jpg{turned}\\)$"):
+        load_image_pair(plain, tagged)
+
+
 @pytest.mark.parametrize("suffix", [".png", ".webp"])
 @pytest.mark.parametrize("tag, stored_as", [(6, cv2.ROTATE_90_COUNTERCLOCKWISE), (8, cv2.ROTATE_90_CLOCKWISE),
                                             (3, cv2.ROTATE_180), (2, None), (5, None), (7, None)])
