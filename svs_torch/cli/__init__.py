@@ -48,8 +48,8 @@ examples:
   svs-depth sweep sweep.toml --db sweep.sqlite      a resumable parameter sweep; then: svs-depth results
 
 Real data: any left/right image files work (gray or color; 8 or 16 bit; a JPEG, PNG or WebP turned by its EXIF
-orientation, as a viewer shows it). Without calibration the SVS model is assumed: 3.6 mm lens, 4.17 mm sensor,
-10.75 cm baseline (focal 276 px at 320x240).
+orientation, as a viewer shows it; not a phone's HEIC, which OpenCV does not decode). Without calibration the SVS
+model is assumed: 3.6 mm lens, 4.17 mm sensor, 10.75 cm baseline (focal 276 px at 320x240).
 """ + PROGRESS_HELP + """
 Run 'svs-depth COMMAND --help' for each command's options.
 """

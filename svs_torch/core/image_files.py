@@ -236,6 +236,12 @@ def _turned_upright(array: np.ndarray, raw: bytes) -> np.ndarray:
     return array if turn is None else np.ascontiguousarray(turn(array))
 
 
+def _heif(raw: bytes) -> bool:
+    """The file's bytes are a HEIF image's (an ISO media 'ftyp' box naming a HEIF brand)."""
+    return raw[4:8] == b"ftyp" and raw[8:12] in (b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"mif1",
+                                                 b"msf1")
+
+
 def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndarray:
     """Read an image unchanged (bit depth and channels kept) with OpenCV, or raise :class:`InputError`.
 
@@ -277,6 +283,9 @@ def read_image_array(path: str | Path, name: str, gray: bool = False) -> np.ndar
     reason = f": {' '.join(complaints[0].split())[:160]}" if complaints else ""
     if array is None:
         kind = "an empty file" if not data.size else "not a readable image file"
+        if _heif(raw):  # a phone's photo (an iPhone's default): its format named and what to do (an audit)
+            raise InputError(f"{name}: a HEIF/HEIC photo, which OpenCV does not decode: save it as JPEG or PNG: "
+                             f"{display_path(path)}")
         raise InputError(f"{name}: {kind} (OpenCV could not decode it{reason}): {display_path(path)}")
     damaged = damaged_jpeg(complaints)
     if damaged is not None:  # libjpeg decoded what it could and filled the rest: an image, but not the scene's

@@ -279,6 +279,15 @@ def test_load_image_pair_takes_numbers_only(tmp_path: Path, data_dir: Path, cali
     assert float(load_image_pair(left, right, focal_px=np.float32(500.0), baseline_m=0.1).focal_px) == 500.0
 
 
+def test_a_phones_heif_photo_is_named_with_what_to_do(tmp_path: Path) -> None:
+    """An audit: an iPhone's HEIC photo (OpenCV decodes no HEIF) was "not a readable image file", as if damaged."""
+    photo = tmp_path / "IMG_0001.HEIC"
+    photo.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + bytes(64))
+    with pytest.raises(InputError, match="^left: a HEIF/HEIC photo, which OpenCV does not decode: save it as JPEG or "
+                                         "PNG: .*IMG_0001.HEIC$"):
+        read_gray_image(photo, "left")
+
+
 def test_bad_inputs_raise_one_clear_error(tmp_path: Path, data_dir: Path) -> None:
     with pytest.raises(InputError, match="left: file not found"):
         read_gray_image(tmp_path / "missing.png", "left")
