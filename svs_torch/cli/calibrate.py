@@ -43,7 +43,8 @@ examples:
   svs-depth calibrate --pairs chessboards.txt --board 9x6 --square-m 0.025 --out rig.json --json
   svs-depth estimate left.jpg right.jpg --calibration rig.json
 LEFT: left image files or quoted patterns (*, ?); each right image is the file of the same name with 'left'
-replaced by 'right' (also Left/Right, LEFT/RIGHT). --pairs: a list file, one 'LEFT RIGHT' per line.
+replaced by 'right' (also Left/Right, LEFT/RIGHT), or where the name has none, its folder's ('calib/left/*.jpg'
+beside calib/right/). --pairs: a list file, one 'LEFT RIGHT' per line.
 exit status: 0 written; 2 bad arguments, unreadable images, or too few pairs with the board in both views (or
 in too few poses); 1 the file or the figure cannot be written (a full disk: the option and the file named).
 """
@@ -79,14 +80,18 @@ def parse_board(text: str) -> tuple[int, int]:
 
 
 def right_name(left: str) -> str | None:
-    """The right image's path of a left image: the last 'left' (Left, LEFT) of the file name as 'right'."""
+    """The right image's path of a left image: the last 'left' (Left, LEFT) of the file name as 'right', or where
+    the name has none, of the nearest folder's name that has one (left/01.jpg beside right/01.jpg: a rig's two
+    folders, which were refused for a file name without 'left', an audit)."""
     from pathlib import Path
 
-    path = Path(left)
-    for old, new in (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT")):
-        at = path.name.rfind(old)
-        if at >= 0:
-            return str(path.with_name(path.name[:at] + new + path.name[at + len(old):]))
+    parts = list(Path(left).parts)
+    for index in range(len(parts) - 1, -1, -1):
+        for old, new in (("left", "right"), ("Left", "Right"), ("LEFT", "RIGHT")):
+            at = parts[index].rfind(old)
+            if at >= 0:
+                parts[index] = parts[index][:at] + new + parts[index][at + len(old):]
+                return str(Path(*parts))
     return None
 
 
@@ -121,8 +126,9 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str, str]]:
         if not found and os.path.isfile(pattern):  # 'left[1].jpg': a file's own name, read as a pattern (an audit)
             found = [pattern]
         if os.path.isdir(pattern):
-            raise InputError(f"left: {pattern!r} is a folder: expected left images, e.g. "
-                             f"{os.path.join(pattern, 'left*.jpg')!r} (quoted), or --pairs LIST.txt")
+            example = os.path.join(pattern, "*.jpg" if right_name(os.path.join(pattern, "x")) else "left*.jpg")
+            raise InputError(f"left: {pattern!r} is a folder: expected left images, e.g. {example!r} (quoted), or "
+                             "--pairs LIST.txt")
         if not found:
             raise InputError(f"left: no file matches {pattern!r}")
         lefts += found
@@ -130,7 +136,8 @@ def pair_paths(args: argparse.Namespace) -> list[tuple[str, str, str]]:
     for left in lefts:
         right = right_name(left)
         if right is None:
-            raise InputError(f"left: {left!r} has no 'left' in its name to find its right image (use --pairs)")
+            raise InputError(f"left: {left!r} has no 'left' in its name or its folders' to find its right image "
+                             "(use --pairs)")
         pairs.append((left, right, "left"))
     return _once_each(pairs)
 

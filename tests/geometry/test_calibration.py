@@ -290,6 +290,21 @@ def test_calibrate_bad_input(capsys, samples, tmp_path, argv, message):
     assert not (tmp_path / "rig.json").exists()
 
 
+def test_calibrate_finds_the_right_images_in_a_right_folder(capsys, samples, tmp_path):
+    """Found by an audit: a rig's views kept as left/01.jpg and right/01.jpg (names without 'left') were refused,
+    'has no 'left' in its name', and the folder itself was answered with a pattern that matched none of them."""
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for number in ("01", "02", "03", "04"):
+            (tmp_path / side / f"{number}.jpg").write_bytes((samples / f"{side}{number}.jpg").read_bytes())
+    out = tmp_path / "rig.json"
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left" / "*.jpg"), "--square-m", "0.025", "--out",
+                              str(out))
+    assert code == 0 and read_calibration(out).pairs == tuple(str(tmp_path / "left" / f"0{n}.jpg") for n in "1234")
+    code, _, stderr = run_cli(capsys, "calibrate", str(tmp_path / "left"), "--square-m", "0.025", "--out", str(out))
+    assert code == 2 and f"e.g. '{tmp_path / 'left' / '*.jpg'}' (quoted)" in stderr
+
+
 def test_calibrate_counts_each_pair_once_and_refuses_listed_calibrations(capsys, samples, tmp_path):
     listed = tmp_path / "boards.txt"
     listed.write_text(f"{samples / 'left01.jpg'} {samples / 'right01.jpg'}\n" * 3)  # one view, not three
