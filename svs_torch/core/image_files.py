@@ -49,6 +49,8 @@ def check_file(path: str | Path, name: str) -> Path:
     """``path`` as a :class:`Path`; raises :class:`InputError` naming ``name`` when it is not an existing file."""
     check_path_given(path, name)
     kind = path_kind(path, name)
+    if kind == "missing" and os.fspath(path) == "-":  # the Unix habit; was "file not found: -" (an audit)
+        raise InputError(f"{name}: '-' (standard input) is not read: expected an image file name")
     if kind == "missing":
         raise InputError(f"{name}: file not found: {display_path(path)}")
     if kind != "file":

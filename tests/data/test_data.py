@@ -279,6 +279,13 @@ def test_load_image_pair_takes_numbers_only(tmp_path: Path, data_dir: Path, cali
     assert float(load_image_pair(left, right, focal_px=np.float32(500.0), baseline_m=0.1).focal_px) == 500.0
 
 
+def test_a_dash_for_standard_input_is_said_not_to_be_read(tmp_path: Path, monkeypatch) -> None:
+    """An audit: 'estimate - right.png' (the Unix habit for standard input) said "file not found: -"."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match="^right: '-' \\(standard input\\) is not read: expected an image file name$"):
+        read_gray_image("-", "right")
+
+
 def test_a_phones_heif_photo_is_named_with_what_to_do(tmp_path: Path) -> None:
     """An audit: an iPhone's HEIC photo (OpenCV decodes no HEIF) was "not a readable image file", as if damaged."""
     photo = tmp_path / "IMG_0001.HEIC"
