@@ -203,7 +203,7 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
     from ..core.image_files import MAX_DECODED_PIXELS, declared_file_size
     from ..data import load_image_pair, resize_stereo_batch
 
-    from .rig import calibration_from_args
+    from .rig import calibration_from_args, rectified_by_rig
 
     new_size = checked_size(args.size)
     # Refused before decoding where the left file's header says (a 25-megapixel PNG of 200 kB was decoded into 740 MB
@@ -215,9 +215,7 @@ def load_pair(left: str, right: str, args: argparse.Namespace):
                             baseline_m=getattr(args, "baseline_m", None), doffs_px=getattr(args, "doffs_px", 0.0))
     calibration = calibration_from_args(args)
     if calibration is not None:  # --calibration: rectified by the rig, its focal / baseline / doffs
-        from ..geometry.calibration import rectify_with_calibration
-
-        batch = rectify_with_calibration(batch, calibration)
+        batch = rectified_by_rig(batch, calibration, left)
     height, width = batch.size_hw
     if new_size is None:
         check_native_pixels(batch.size_hw)

@@ -13,7 +13,8 @@ CALIBRATED_BAND_PX = 2.0
 
 __all__ = ["add_calibration_option", "baseline_m_value", "calibration_file_source", "calibration_from_args",
            "calibration_kept_beside", "check_no_manual_calibration", "doffs_px_value", "focal_px_value",
-           "kept_calibrations", "rig_list_files", "take_kept_calibration", "with_calibrated_rectification"]
+           "kept_calibrations", "rectified_by_rig", "rig_list_files", "take_kept_calibration",
+           "with_calibrated_rectification"]
 
 
 def _calibration_path(text: str) -> str:
@@ -247,6 +248,21 @@ def eval_rig_calibration(args: argparse.Namespace, sources: list):
     take_kept_calibration(args, kept, "eval")
     warn_scenes_keep_their_own(args, [source.name for source in sources if source.scene and not source.problem])
     return calibration_from_args(args)
+
+
+def rectified_by_rig(batch, calibration, left: str):
+    """``batch`` (the pair of file ``left``) rectified by ``--calibration``'s ``calibration``; a refusal of its size
+    names the EXIF turn that made it: "the pair is 480x640" of files storing 640x480 left the user looking for a
+    size no image tool showed (an audit)."""
+    from ..core.errors import InputError
+    from ..core.image_files import turned_note
+    from ..geometry.calibration import rectify_with_calibration
+
+    try:
+        return rectify_with_calibration(batch, calibration)
+    except InputError as error:
+        turned = turned_note(left, batch.size_hw[::-1])
+        raise InputError(f"{error}; the left image is{turned[1:]}" if turned else str(error)) from None
 
 
 def rig_provenance(path: str) -> str:

@@ -630,6 +630,25 @@ def test_a_calibration_scaled_to_a_pair_of_another_size_says_so(capsys, rig, sam
     assert code == 0 and json.loads(stdout.splitlines()[0])["calibration"]["source"] == record["source"]
 
 
+def test_a_pair_an_exif_orientation_turned_off_the_rigs_aspect_names_the_turn(capsys, rig, samples, tmp_path):
+    """Found by an audit: the rig's own 640x480 frames tagged with a phone's portrait Orientation were refused as
+    "the pair is 480x640", a size neither file's header nor an image tool's listing shows."""
+    calibration, _ = rig
+    path = tmp_path / "rig.json"
+    write_calibration(path, calibration)
+    names = []
+    for side in ("left", "right"):
+        jpeg = (samples / f"{side}01.jpg").read_bytes()
+        entry = b"\x01\x12\x00\x03\x00\x00\x00\x01\x00\x06\x00\x00"  # Orientation 6: turn 90° clockwise
+        exif = b"Exif\x00\x00MM\x00\x2a\x00\x00\x00\x08\x00\x01" + entry + b"\x00\x00\x00\x00"
+        names.append(str(tmp_path / f"{side}.jpg"))
+        Path(names[-1]).write_bytes(jpeg[:2] + b"\xff\xe1" + (len(exif) + 2).to_bytes(2, "big") + exif + jpeg[2:])
+    code, _, stderr = run_cli(capsys, "estimate", *names, "--calibration", str(path))
+    assert code == 2 and stderr.rstrip().endswith(
+        "--calibration: made at 640x480, the pair is 480x640: expected the same aspect ratio (the same view at "
+        "another resolution); the left image is turned upright by its EXIF orientation from the 640x480 it stores")
+
+
 @pytest.mark.parametrize("command", ["estimate", "eval"])
 def test_a_listed_pairs_calibration_that_is_no_file_is_named_by_its_option(capsys, samples, tmp_path, command):
     """Found by an audit: with a pair list, a missing --calibration said "error: No such file or directory" (no
