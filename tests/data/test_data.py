@@ -258,6 +258,23 @@ def test_load_image_pair_calibration(data_dir: Path) -> None:
     assert bool(given.calibrated) and float(given.doffs_px) == 3.0
 
 
+def test_a_focal_or_baseline_in_millimetres_is_warned_of(data_dir: Path) -> None:
+    """An audit: --focal-px 3.6 (the SVS lens's 3.6 mm) ranged Teddy at 0.009 m, and --baseline-m 80 (80 mm) at
+    3593 m, each with the status OK and no word."""
+    import warnings
+
+    left, right = data_dir / "middlebury_2001/Venus/im2.ppm", data_dir / "middlebury_2001/Venus/im6.ppm"
+    with pytest.warns(UserWarning, match=r"^focal_px: 3.6 px across an image 434 px wide is a 178-degree view: "
+                                         r"millimetres\? .* \(the SVS's 3.6 mm lens: 375 px at this width\)$"):
+        load_image_pair(left, right, focal_px=3.6, baseline_m=0.08)
+    with pytest.warns(UserWarning, match=r"^baseline_m: 80 m: millimetres\? A baseline is given in metres"):
+        load_image_pair(left, right, focal_px=500.0, baseline_m=80.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a real rig's numbers, and the SVS model's, say nothing
+        load_image_pair(left, right, focal_px=40.0, baseline_m=0.54)
+        load_image_pair(left, right)
+
+
 FOCAL_RANGE = "a focal length in pixels from 1 to 1,000,000"
 
 
