@@ -30,10 +30,11 @@ the right camera's pose against the left's, what to remount a loose board by: it
 y and x axes (degrees, as estimate --json's right_camera_roll_deg and right_camera_turn_deg read them from a
 pair's rows) and where it sits (millimetres right, lower, ahead; --json: right_camera_offset_m).
 A pair whose two views do not fit the others (the same view twice, two moments of a moving board) is left
-out and named when the stereo fit is over 1 px and it alone spoils it; a fit still over 1 px, or whose poses pin
-the focal length down only to over ±3 % (OpenCV's standard deviation of fx), is written with a warning, and one
-that does not rectify its own chessboards or leaves the focal length loose by over ±10 % (a board never tilted,
-or tilted a few degrees) is refused: tilt the board 15-30 degrees toward and away from the cameras between pairs.
+out and named when the stereo fit is over 1 px (per 640 px of width) and it alone spoils it; a fit still over it,
+or whose poses pin the focal length down only to over ±3 % (OpenCV's standard deviation of fx), is written with a
+warning, and one that does not rectify its own chessboards or leaves the focal length loose by over ±10 % (a board
+never tilted, or tilted a few degrees) is refused: tilt the board 15-30 degrees toward and away from the cameras
+between pairs.
 The baseline is in the unit of --square-m: measure the printed squares.
 """
 
@@ -232,12 +233,12 @@ def _figure(calibration, views, images):
 def _warnings(calibration, views) -> list[str]:
     """What the calibration written may get wrong: a poor fit, rows of its boards left apart, a focal length the
     poses leave loose (:func:`~svs_torch.geometry.chessboard.fit_doubts`), few pairs."""
-    from ..geometry.chessboard import GOOD_STEREO_RMS_PX, fit_doubts
+    from ..geometry.chessboard import fit_doubts, good_stereo_rms_px
 
     warnings = []
     if doubts := fit_doubts(calibration):
         advice = ("no one pair explains it; check that each pair's two images were taken at the same moment, and "
-                  "--board") if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX else (
+                  "--board") if calibration.rms_stereo_px > good_stereo_rms_px(calibration.image_wh) else (
             "tilt the board toward and away from the cameras between pairs, not only move it")
         warnings.append(f"{'; '.join(doubts)}: distances from this file may be far off; {advice}")
     if len(views.names) < FEW_PAIRS:  # 3 of the shared pairs: focal 576 px, against 516 from all 13 (an audit)

@@ -31,7 +31,7 @@ from .calibration import StereoCalibration, _check_maps_in_view, check_baseline
 
 __all__ = ["BoardViews", "GOOD_FOCAL_SD_PCT", "GOOD_STEREO_RMS_PX", "MAX_FOCAL_SD_PCT", "MAX_SQUARE_M", "MIN_PAIRS",
            "board_image_u8", "calibrate_stereo_rig", "collect_board_views", "drop_misfit_pairs", "find_board_corners",
-           "fit_doubts", "good_row_error_px", "rectified_corners"]
+           "fit_doubts", "good_row_error_px", "good_stereo_rms_px", "rectified_corners"]
 
 #: Fewest pairs with the board found in both views: each view gives the intrinsics 2 constraints, and OpenCV
 #: warns below 3; a usable calibration wants 10–20 views across the field.
@@ -237,12 +237,12 @@ def calibrate_stereo_rig(views: BoardViews, square_m: float, board: tuple[int, i
         # A poor fit says as little of the cameras' order: two of five pairs of mismatched views were blamed on
         # swapped cameras (an audit).
         poor = (f" Or, the fit being poor (stereo RMS {rms_stereo:.1f} px), do some pairs' two views show the board "
-                f"at different moments?") if rms_stereo > GOOD_STEREO_RMS_PX else ""
+                f"at different moments?") if rms_stereo > good_stereo_rms_px(size) else ""
         other_rig = None if poor else _not_left_right(R, T)  # (a poor fit's pose says as little)
         raise InputError(f"{name}: {other_rig}" if other_rig else f"{name}: the right camera is to the left of the "
                          f"left one (P2[0][3] > 0): are LEFT and RIGHT swapped?{poor}")
     # Refused here, not by every later read of the file; a good fit's baseline is out of range by its --square-m.
-    check_baseline(calibration.baseline_m, "--square-m" if rms_stereo <= GOOD_STEREO_RMS_PX else name)
+    check_baseline(calibration.baseline_m, "--square-m" if rms_stereo <= good_stereo_rms_px(size) else name)
     rectified_left, rectified_right = rectified_corners(calibration, views)
     rows_apart = np.abs(np.concatenate(rectified_left)[:, 1] - np.concatenate(rectified_right)[:, 1])
     calibration = _rectifying(_with_row_error(calibration, rows_apart), name)
@@ -275,7 +275,8 @@ def _rectifying(calibration: StereoCalibration, name: str) -> StereoCalibration:
     try:
         _check_maps_in_view(calibration, name)
     except InputError:
-        poor = calibration.rms_stereo_px > GOOD_STEREO_RMS_PX  # (then written with a warning, yet read by nothing)
+        # (then written with a warning, yet read by nothing)
+        poor = calibration.rms_stereo_px > good_stereo_rms_px(calibration.image_wh)
         # (Poses never tilted fit poorly too: twelve tilted up to ±1° to 3.2 px, the advice blaming sync alone.)
         why = (f"the fit is poor (stereo RMS {calibration.rms_stereo_px:.1f} px): check that each pair's two images "
                "were taken at the same moment, --board, and that the board is tilted toward and away from the "
@@ -287,6 +288,13 @@ def _rectifying(calibration: StereoCalibration, name: str) -> StereoCalibration:
     return calibration
 
 
+def good_stereo_rms_px(image_wh: tuple[int, int]) -> float:
+    """:data:`GOOD_STEREO_RMS_PX` for an image ``image_wh`` wide (pixels per 640 of width, at least that), as the row
+    error's. Why: the shared pairs enlarged to a phone's 4000x3000 fit to 1.47 px (0.24 px per 640, where they fit
+    to 0.20 px at 640x480) and were written with "distances from this file may be far off" (an audit)."""
+    return GOOD_STEREO_RMS_PX * max(1.0, image_wh[0] / 640)
+
+
 def good_row_error_px(calibration: StereoCalibration) -> float:
     """:data:`GOOD_ROW_ERROR_PX` for the calibration's image width (pixels per 640 of width, at least that)."""
     return GOOD_ROW_ERROR_PX * max(1.0, calibration.image_wh[0] / 640)
@@ -294,12 +302,12 @@ def good_row_error_px(calibration: StereoCalibration) -> float:
 
 def fit_doubts(calibration: StereoCalibration) -> list[str]:
     """Why distances from ``calibration`` may be far off, each a clause naming its measure: a stereo reprojection
-    RMS over :data:`GOOD_STEREO_RMS_PX`, rectified rows apart over :func:`good_row_error_px`, a focal length pinned
+    RMS over :func:`good_stereo_rms_px`, rectified rows apart over :func:`good_row_error_px`, a focal length pinned
     down only to over :data:`GOOD_FOCAL_SD_PCT`. Empty for a good fit (and for a measure a file does not hold)."""
     doubts = []
-    if calibration.rms_stereo_px > GOOD_STEREO_RMS_PX:  # (NaN: not recorded, not doubted)
+    if calibration.rms_stereo_px > good_stereo_rms_px(calibration.image_wh):  # (NaN: not recorded, not doubted)
         doubts.append(f"the stereo reprojection RMS is {calibration.rms_stereo_px:.2f} px (a rig calibrates under "
-                      f"{GOOD_STEREO_RMS_PX:g} px)")
+                      f"{good_stereo_rms_px(calibration.image_wh):g} px)")
     if calibration.row_error_mean_px > good_row_error_px(calibration):
         doubts.append(f"the chessboards' rows lie {calibration.row_error_mean_px:.2f} px apart after rectification "
                       f"(a rig's within {good_row_error_px(calibration):g} px)")
@@ -338,14 +346,15 @@ def _fit(views: BoardViews, square_m: float, board: tuple[int, int]) -> tuple:
 
 def drop_misfit_pairs(views: BoardViews, square_m: float, board: tuple[int, int]) -> BoardViews:
     """``views`` without the pairs whose two views do not fit the others. While the stereo fit's RMS is above
-    :data:`GOOD_STEREO_RMS_PX`, the fit is made without each pair in turn; the pair whose absence at least halves
+    :func:`good_stereo_rms_px`, the fit is made without each pair in turn; the pair whose absence at least halves
     the RMS is left out (named in ``misfits`` with both RMS), and the rest looked at again, down to
     :data:`MIN_PAIRS`. Where no single pair does, the pairs whose own reprojection error in the fit is over twice
     the median are left out together if that halves it. A fit neither explains is left as it is (then the command
     warns). Costs one fit per pair, only when the fit is poor."""
     fit = _fit(views, square_m, board)
     rms, errors = fit[6], fit[9]
-    while rms > GOOD_STEREO_RMS_PX and len(views.names) > MIN_PAIRS:
+    good = good_stereo_rms_px(views.image_wh)
+    while rms > good and len(views.names) > MIN_PAIRS:
         trials = [_fit(views.without({i: ""}), square_m, board) for i in range(len(views.names))]
         index = int(np.argmin([trial[6] for trial in trials]))
         if trials[index][6] <= rms / 2:
@@ -355,7 +364,7 @@ def drop_misfit_pairs(views: BoardViews, square_m: float, board: tuple[int, int]
             continue
         # Two or more such pairs: none alone halves the RMS (two of 13 wrote a 0.23 m baseline for 0.083, an audit).
         # Each pair's own error in the fit singles them out: those over twice the median go together.
-        outliers = [i for i in range(len(views.names)) if errors[i] > max(2 * np.median(errors), GOOD_STEREO_RMS_PX)]
+        outliers = [i for i in range(len(views.names)) if errors[i] > max(2 * np.median(errors), good)]
         if not outliers or len(views.names) - len(outliers) < MIN_PAIRS:
             break
         fit = _fit(views.without(dict.fromkeys(outliers, "")), square_m, board)

@@ -17,7 +17,7 @@ from svs_torch import InputError
 from svs_torch.cli import main
 from svs_torch.data import load_image_pair, resize_stereo_batch
 from svs_torch.geometry.calibration import read_calibration, rectify_with_calibration, write_calibration
-from svs_torch.geometry.chessboard import (board_image_u8, calibrate_stereo_rig, collect_board_views,
+from svs_torch.geometry.chessboard import (board_image_u8, calibrate_stereo_rig, collect_board_views, fit_doubts,
                                           find_board_corners)
 from svs_torch.plotting.rectified import spread_rows
 from svs_torch.segmentation.segment import SegmentationConfig
@@ -1008,3 +1008,14 @@ def test_the_board_is_found_in_a_phone_sized_view(samples, name):
     large = cv2.resize(image, (4000, 3000), interpolation=cv2.INTER_CUBIC)
     found, expected = find_board_corners(large, BOARD), find_board_corners(image, BOARD)
     assert found is not None and np.abs(found - ((expected + 0.5) * 6.25 - 0.5)).max() < 2.0
+
+
+def test_a_fits_reprojection_error_is_judged_per_640_px_of_width(rig):
+    """Found by an audit: the shared pairs enlarged to a phone's 4000x3000 fit to 1.47 px (0.24 px per 640, as at
+    640x480) and were written, and read by every --calibration, with "distances from this file may be far off"."""
+    calibration, _ = rig
+    assert fit_doubts(replace(calibration.scaled_to((4000, 3000)), rms_stereo_px=1.47)) == []
+    assert fit_doubts(replace(calibration.scaled_to((4000, 3000)), rms_stereo_px=7.0)) == [
+        "the stereo reprojection RMS is 7.00 px (a rig calibrates under 6.25 px)"]
+    assert fit_doubts(replace(calibration, rms_stereo_px=1.47)) == [
+        "the stereo reprojection RMS is 1.47 px (a rig calibrates under 1 px)"]
