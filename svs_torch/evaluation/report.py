@@ -305,11 +305,14 @@ def plot_results(store: ResultStore, path: str | Path) -> Path:
     or a .txt was matplotlib's "Format '' is not supported", a missing folder a FileNotFoundError naming the
     temporary file, None a TypeError)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
 
     check_instance(store, "store", ResultStore)
     suffixes = tuple(f".{kind}" for kind in sorted(FigureCanvasAgg.get_supported_filetypes()))
     path = check_output_file(path, "path", suffixes, f"an image ({', '.join(suffixes)})")
     figure = results_figure(store)
+    for text in figure.findobj(Text):  # a scene folder's name with '$' drawn as written, as plotting.plain_texts
+        text.set_parse_math(False)
     with atomic_output(path) as stream:
         figure.savefig(stream, format=path.suffix.lstrip(".").lower(), dpi=110)
     return path

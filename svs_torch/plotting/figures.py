@@ -22,8 +22,8 @@ from ..core.types import Segmentation
 
 __all__ = [
     "FIGURE_SUFFIXES", "LOSSLESS_SUFFIXES", "PALETTE_BGR", "binary_title", "check_output_path", "compose_grid",
-    "floor_summary", "gray_to_bgr", "image_written_after", "labels_image", "objects_panel", "segmentation_panels",
-    "titled_panel", "write_image_atomic",
+    "floor_summary", "gray_to_bgr", "image_written_after", "labels_image", "objects_panel", "plain_texts", "render",
+    "segmentation_panels", "titled_panel", "write_image_atomic",
 ]
 
 #: Colours of kept objects, largest first (BGR).
@@ -33,6 +33,26 @@ PALETTE_BGR = [(0, 165, 255), (255, 128, 0), (0, 200, 0), (200, 0, 200), (0, 220
 FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 LOSSLESS_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def plain_texts(figure) -> None:
+    """Every text of the matplotlib ``figure`` drawn as written, not read as mathtext: a file or folder name holding
+    '$' (l$x_1$.png) was drawn as a formula, and one that is no formula (l$bad\\frac$.png) ended estimate --figure
+    in "internal error: ValueError" after the report (an audit)."""
+    from matplotlib.text import Text
+
+    for text in figure.findobj(Text):
+        text.set_parse_math(False)
+
+
+def render(figure) -> np.ndarray:
+    """A matplotlib figure as a uint8 BGR array, its texts as written (:func:`plain_texts`)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    plain_texts(figure)
+    canvas = FigureCanvasAgg(figure)
+    canvas.draw()
+    return cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)
 
 
 def gray_to_bgr(gray: torch.Tensor) -> np.ndarray:

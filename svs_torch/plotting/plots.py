@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..core.mask_reductions import share_of_smaller
-from .figures import LABEL_PAD_POINTS, floor_summary, objects_panel, place_depth_labels
+from .figures import LABEL_PAD_POINTS, floor_summary, objects_panel, place_depth_labels, render
 
 __all__ = ["NearestTruth", "estimate_figure", "matches_figure", "pipeline_figure", "render", "true_nearest_obstacle"]
 
@@ -52,15 +52,6 @@ class NearestTruth(NamedTuple):
 
     depth_m: float
     kept_slot: int | None = None
-
-
-def render(figure) -> np.ndarray:
-    """A matplotlib figure as a uint8 BGR array."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    canvas = FigureCanvasAgg(figure)
-    canvas.draw()
-    return cv2.cvtColor(np.asarray(canvas.buffer_rgba()), cv2.COLOR_RGBA2BGR)
 
 
 def _panel_size_in(height: int, width: int) -> tuple[float, float]:

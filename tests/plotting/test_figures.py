@@ -312,6 +312,17 @@ def test_cli_figures_follow_the_umask(tmp_path, mask):
         assert cv2.imread(str(tmp_path / name)) is not None
 
 
+def test_a_file_name_with_dollars_is_drawn_as_written(tmp_path, capsys):
+    """Found by an audit: a pair named l$bad\\frac$.png ended estimate --figure in "internal error: ValueError"
+    (matplotlib read the name in the title as a formula) after its report, and l$x_1$.png was drawn as x₁."""
+    left = tmp_path / "l$bad\\frac$.png"
+    scenes = random_obstacle_scenes(1, 2, size_wh=(64, 48), generator=torch.Generator().manual_seed(4))
+    cv2.imwrite(str(left), (scenes.batch.left[0, 0] * 255).round().byte().numpy())
+    cv2.imwrite(str(tmp_path / "right.png"), (scenes.batch.right[0, 0] * 255).round().byte().numpy())
+    assert main(["estimate", str(left), str(tmp_path / "right.png"), "--figure", str(tmp_path / "e.png")]) == 0
+    assert cv2.imread(str(tmp_path / "e.png")) is not None and "internal error" not in capsys.readouterr().err
+
+
 def test_atomic_output_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "out.bin"
     target.write_bytes(b"old")
