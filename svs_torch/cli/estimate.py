@@ -135,8 +135,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--focal-px", type=focal_px_value,
                         help="focal length of the input images in pixels (a lens's millimetres, under 0.09 x the "
                              "width, are warned of; default: the SVS model for the width)")
-    parser.add_argument("--baseline-m", type=baseline_m_value, help="stereo baseline in metres (10 or more, "
-                                                                    "millimetres?, is warned of; default: SVS 0.1075)")
+    parser.add_argument("--baseline-m", type=baseline_m_value,
+                        help="stereo baseline in metres, up to 2 (default: SVS 0.1075)")
     parser.add_argument("--doffs-px", type=doffs_px_value, default=0.0,
                         help="principal-point offset cx_right - cx_left, pixels (default: 0)")
     add_calibration_option(parser, "LEFT RIGHT (and listed pairs; a list line with its own FOCAL_PX BASELINE_M is "

@@ -171,24 +171,22 @@ def load_image_pair(
                          f"{turned_note(right_path, (rw, rh))})")
     calibrated = focal_px is not None and baseline_m is not None
     width = left.shape[-1]
-    _warn_of_millimetres(focal_px, baseline_m, width)
+    _warn_of_millimetres(focal_px, width)
     return make_scene_batch(left, right, pair_name(left_path),
                             focal_px=SVS_CAMERA.focal_px(width) if focal_px is None else float(focal_px),
                             baseline_m=SVS_CAMERA.baseline_m if baseline_m is None else float(baseline_m),
                             doffs_px=float(doffs_px), calibrated=calibrated)
 
 
-def _warn_of_millimetres(focal_px: float | None, baseline_m: float | None, width: int) -> None:
-    """Warn of a focal length or baseline that reads as millimetres. Why: '--focal-px 3.6' (the SVS lens's 3.6 mm)
-    ranged Teddy at 0.009 m and '--baseline-m 80' (80 mm) at 3593 m, each with the status OK (an audit)."""
+def _warn_of_millimetres(focal_px: float | None, width: int) -> None:
+    """Warn of a focal length that reads as millimetres. Why: '--focal-px 3.6' (the SVS lens's 3.6 mm) ranged Teddy
+    at 0.009 m with the status OK (an audit). A baseline in millimetres is refused: over 2 m
+    (:data:`~svs_torch.core.camera.MAX_BASELINE_M`)."""
     if focal_px is not None and focal_px < 0.09 * width:  # a field of view over 160 degrees: no rectified view
         field = math.degrees(2 * math.atan(width / 2 / focal_px))
         warnings.warn(f"focal_px: {focal_px:g} px across an image {width} px wide is a {field:.0f}-degree view: "
                       f"millimetres? In pixels it is mm x width / sensor width (the SVS's 3.6 mm lens: "
                       f"{SVS_CAMERA.focal_px(width):.0f} px at this width)", stacklevel=3)
-    if baseline_m is not None and baseline_m >= 10:  # a rig holding both cameras: KITTI's car is 0.54 m
-        warnings.warn(f"baseline_m: {baseline_m:g} m: millimetres? A baseline is given in metres (80 mm is 0.08)",
-                      stacklevel=3)
 
 
 # Left-image file names that say only "left" (im0.png, imL.png, view1.png, left.png, image_2.png, L.jpg): a pair

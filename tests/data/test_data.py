@@ -258,7 +258,7 @@ def test_load_image_pair_calibration(data_dir: Path) -> None:
     assert bool(given.calibrated) and float(given.doffs_px) == 3.0
 
 
-def test_a_focal_or_baseline_in_millimetres_is_warned_of(data_dir: Path) -> None:
+def test_a_focal_in_millimetres_is_warned_of_and_a_baseline_in_millimetres_refused(data_dir: Path) -> None:
     """An audit: --focal-px 3.6 (the SVS lens's 3.6 mm) ranged Teddy at 0.009 m, and --baseline-m 80 (80 mm) at
     3593 m, each with the status OK and no word."""
     import warnings
@@ -267,7 +267,7 @@ def test_a_focal_or_baseline_in_millimetres_is_warned_of(data_dir: Path) -> None
     with pytest.warns(UserWarning, match=r"^focal_px: 3.6 px across an image 434 px wide is a 178-degree view: "
                                          r"millimetres\? .* \(the SVS's 3.6 mm lens: 375 px at this width\)$"):
         load_image_pair(left, right, focal_px=3.6, baseline_m=0.08)
-    with pytest.warns(UserWarning, match=r"^baseline_m: 80 m: millimetres\? A baseline is given in metres"):
+    with pytest.raises(InputError, match=r"baseline_m: expected a baseline in metres from 0.001 to 2 \(millimetres"):
         load_image_pair(left, right, focal_px=500.0, baseline_m=80.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a real rig's numbers, and the SVS model's, say nothing
