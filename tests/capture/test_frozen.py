@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import SpokenLines, unmatched_pair_fields
 
-from svs_torch.capture.frozen import BOTH_FROZEN_S, FROZEN_PAIRS, FrozenCameraWatch
+from svs_torch.capture.frozen import BOTH_FROZEN_S, FROZEN_PAIRS, ONE_FROZEN_S, FrozenCameraWatch
 from svs_torch.core.types import StereoBatch
 
 
@@ -72,6 +72,25 @@ def test_a_scene_that_steps_between_the_two_boards_grabs_is_not_a_frozen_camera(
     steps = [pair(a_left, a_right), pair(a_left, b_right), pair(b_left, b_right), pair(b_left, b_right),
              pair(b_left, c_right), pair(c_left, c_right)]
     assert watched(steps) == [None] * 6
+
+
+@pytest.mark.parametrize("camera", ["left", "right"])
+def test_a_camera_frozen_beside_a_scene_that_steps_seldom_is_named_within_seconds(camera):
+    """Found by an audit: the emulator's left board frozen from the start, no noise: the right frames change at
+    each 0.5 s step of the scene only, both repeat between the steps, so no two pairs in a row showed the freeze;
+    guide ranged the old left frame with new right ones for good ("Stop" for boxes 1.6 m away). 10 pairs a second."""
+    stale, steps = frames(1, seed=1)[0], frames(12)
+    watch = FrozenCameraWatch()
+    judged = []
+    for index in range(60):
+        new = steps[index // 5]  # the scene steps every 5 pairs
+        judged.append(watch.update(pair(stale, new) if camera == "left" else pair(new, stale), index / 10))
+    first = judged.index(camera)
+    assert set(judged[:first]) == {None} and set(judged[first:]) == {camera}
+    assert ONE_FROZEN_S <= first / 10 <= ONE_FROZEN_S + 0.1  # its first repeat starts the clock (0.1 s)
+    # both still for as long, neither changing: the rule of both, not of one
+    left, right = frames(2, seed=4)
+    assert [watch.update(pair(left, right), t) for t in (10.0, 10.5, 10.5 + ONE_FROZEN_S - 0.1)] == [None] * 3
 
 
 def test_a_flat_frame_sent_again_is_not_a_frozen_camera():
