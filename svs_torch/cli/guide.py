@@ -224,23 +224,22 @@ def _metres_or_off(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected metres >= 0 or 'off', got {text!r}") from None
 
 
+#: Said when guide ends, whatever ends it: an error (a camera that never answered, one lost for --give-up-s), whose
+#: line is on a screen the walker does not see, --count, Ctrl-C or a service's stop, while it starts too. The silence
+#: after it read as a clear way (after "Camera lost. No warnings until it is back.", a promise of more). Here, not in
+#: guide_loop (which re-exports it): said when Ctrl-C comes while that module's imports (torch) are under way.
+GUIDE_STOPPED = "Guide stopped. No more warnings."
+
+
 def run(args: argparse.Namespace) -> int:
     from ..core.workers import imports_without_collection
 
     with imports_without_collection():  # see there: the imports' objects are frozen
         size = _checked_size(args)  # first: a missing board URL was said after torch's import (2.5 s)
-        from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy
-        from ..capture.link_types import CaptureError
+        from ..capture.guide import LiveGuide, Speaker, StatusLine, WarningPolicy  # (no torch: the speaker at once)
         from .pairs_folder import new_pairs_folder
-        from .guide_log import GuideLog
-        from .guide_loop import GuideSession
-        from .guide_warm_up import import_deferred_modules, warm_up
 
         record_dir = None if args.record is None else new_pairs_folder(args.record, "--record")
-        ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
-        import_deferred_modules()
-    # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
-    warm_up(ranged, size)
     policy = WarningPolicy(near_m=args.near_m, far_m=args.far_m, repeat_s=args.repeat_s,
                            confirm_frames=args.confirm_frames, nearer_elsewhere_m=args.nearer_elsewhere_m)
     status_line = StatusLine(sys.stderr)
@@ -251,9 +250,40 @@ def run(args: argparse.Namespace) -> int:
     words = status_line.lines_above(sys.stderr if args.json else sys.stdout)
     rate = SPEECH_WPM if args.words_per_minute is None else args.words_per_minute
     guide = LiveGuide(policy, Speaker(None if args.no_speech else "auto", words_per_minute=rate, stream=words))
+    with contextlib.closing(guide.speaker):
+        try:
+            session, log = _started(args, size, guide, status_line, record_dir)
+        except (KeyboardInterrupt, Terminated) as stop:
+            # Ctrl-C or a service's stop in the 1-3 s before the camera opens (torch's import, the warm-up): it
+            # ended in "svs-depth guide: interrupted" with nothing said, though every other end says it (an audit).
+            return _stopped(status_line, None, "guide stopped while starting, before the camera opened",
+                            130 if isinstance(stop, KeyboardInterrupt) else 143, guide.speaker)
+        return _walk(args, session, log, status_line, guide.speaker)
+
+
+def _started(args: argparse.Namespace, size: tuple[int, int], guide, status_line, record_dir):
+    """Everything a walk needs that takes seconds before the camera opens: the pipeline's imports (torch), its
+    ranger and warm-up (:mod:`.guide_warm_up`). Returns the :class:`~.guide_loop.GuideSession` and its log."""
+    from ..core.workers import imports_without_collection
+
+    with imports_without_collection():
+        from .guide_log import GuideLog
+        from .guide_loop import GuideSession
+        from .guide_warm_up import import_deferred_modules, warm_up
+
+        ranged = _pair_ranger(args, size)  # it imports torch and the pipeline: here, with the other imports
+        import_deferred_modules()
+    # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
+    warm_up(ranged, size)
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
                    calibration_from_args(args), args.second_passes, args.quality)
-    session = GuideSession(args, size, ranged, guide, status_line, log)
+    return GuideSession(args, size, ranged, guide, status_line, log), log
+
+
+def _walk(args: argparse.Namespace, session, log, status_line, speaker) -> int:
+    """Run ``session`` until it ends; the exit status, once :data:`GUIDE_STOPPED` is said (:func:`_stopped`)."""
+    from ..capture.link_types import CaptureError
+
     try:
         with contextlib.ExitStack() as stack:
             stack.enter_context(warnings.catch_warnings())
@@ -261,20 +291,17 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(log.close)  # the pairs recorded so far stay listed, whatever stops the loop
             stack.enter_context(terminated_on_sigterm())  # main's too: here the summary is said first
             session.run()
-        return _stopped(status_line, log, session.stopped_text(), 0, guide.speaker)  # (before the speaker closes)
+        return _stopped(status_line, log, session.stopped_text(), 0, speaker)  # (before the speaker closes)
     except Terminated:  # a service stopped (systemctl stop): the summary and the replay command, exit 143
-        return _stopped(status_line, log, session.stopped_text(), 143, guide.speaker)
+        return _stopped(status_line, log, session.stopped_text(), 143, speaker)
     except KeyboardInterrupt:
-        return _stopped(status_line, log, session.stopped_text(), 130, guide.speaker)
+        return _stopped(status_line, log, session.stopped_text(), 130, speaker)
     except BrokenPipeError:  # --json's reader went away (| head -1): exit 141, as every command does
         # With --json the words go to stderr and the speaker, both whole: the walker still hears that it stopped
-        _stopped(status_line, log, session.stopped_text(), 141, guide.speaker if args.json else None)
+        _stopped(status_line, log, session.stopped_text(), 141, speaker if args.json else None)
         raise
     except (CaptureError, OSError) as error:
-        return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1,
-                        guide.speaker)
-    finally:
-        guide.speaker.close()
+        return _stopped(status_line, log, f"svs-depth guide: error: {' '.join(str(error).split())}", 1, speaker)
 
 
 def _pair_ranger(args: argparse.Namespace, size: tuple[int, int]):
@@ -323,8 +350,8 @@ def camera_pitch_deg(text: str) -> float:
 
 
 def _stopped(status_line, log, text: str, code: int, speaker=None) -> int:
-    """End the status line, say :data:`~.guide_loop.GUIDE_STOPPED` with ``speaker``, then print ``text`` and what
-    was recorded on stderr; returns ``code``.
+    """End the status line, say :data:`GUIDE_STOPPED` with ``speaker``, then print ``text`` and what ``log`` (None:
+    none yet) recorded on stderr; returns ``code``.
 
     Spoken at every end, not only an error's: the walker does not read the screen, and the silence after a guide
     that ended (``--count`` reached, Ctrl-C, a service's stop: a battery running low, a system update) read as a
@@ -332,11 +359,9 @@ def _stopped(status_line, log, text: str, code: int, speaker=None) -> int:
     --json: the words' stream is what broke (with --json only the JSON lines' reader went away)."""
     status_line.close()  # (its last line before the words, in a log too)
     if speaker is not None:
-        from .guide_loop import GUIDE_STOPPED
-
         speaker.say(GUIDE_STOPPED)
     print(text, file=sys.stderr)
-    if (summary := log.summary()) is not None:
+    if log is not None and (summary := log.summary()) is not None:
         print(summary, file=sys.stderr)
     return code
 

@@ -35,6 +35,7 @@ from ..capture.stereo import STEREO_ROLES
 from ..depth.depth_types import ObstacleSide
 from ..pipeline import PipelineStatus
 from .capture import open_stereo_camera
+from .guide import GUIDE_STOPPED  # (said there, before this module's imports are done)
 from .guide_floor import DISTANCE_ALONG, FLOOR_MEMORY_S, FloorMemory
 from .guide_log import GuideLog
 from .guide_views import ViewsWatch
@@ -52,10 +53,6 @@ CAMERA_BACK = "Camera back."
 #: nothing was said after them, so the walker could not tell a guide that sees nothing near from one still starting
 #: (an audit of what a walker hears).
 GUIDE_READY = "Guide ready."
-#: Said when guide ends, whatever ends it: an error (a camera that never answered, one lost for --give-up-s), whose
-#: line is on a screen the walker does not see, --count, Ctrl-C or a service's stop. The silence after it read as a
-#: clear way (after "Camera lost. No warnings until it is back.", a promise of more).
-GUIDE_STOPPED = "Guide stopped. No more warnings."
 #: Said once when the boards answer in the wrong stereo roles (the left URL reaches the slave): every disparity,
 #: so every distance, is then wrong, and a printed warning is not read by a walker who cannot see the screen. Short:
 #: the 15 words it had take about 5 s at 170 words a minute, and with the URLs swapped "Cannot see ahead" comes

@@ -924,6 +924,25 @@ def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop,
     assert "guide stopped after 1 pair\n" in err  # (was "1 pairs")
 
 
+@pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143)])
+def test_guide_stopped_while_it_starts_says_that_it_stopped(capsys, monkeypatch, tmp_path, stop, code):
+    """Found by an audit of Ctrl-C: stopped in the 1-3 s before the camera opens (torch's import, the warm-up),
+    guide ended in "svs-depth guide: interrupted" with nothing said, though every other end says "Guide stopped"."""
+    from svs_torch.cli import guide_warm_up
+    from svs_torch.cli.common import Terminated
+    from svs_torch.cli.guide import GUIDE_STOPPED
+
+    def stopped(*_):
+        raise KeyboardInterrupt if stop is KeyboardInterrupt else Terminated()
+
+    monkeypatch.setattr(guide_warm_up, "warm_up", stopped)
+    record = tmp_path / "walk"
+    result, out, err = run_cli(capsys, "guide", "--emulator", "--no-speech", "--record", str(record))
+    assert result == code and out.splitlines() == [GUIDE_STOPPED]
+    assert "guide stopped while starting, before the camera opened" in err and "interrupted" not in err
+    assert not record.exists() or not any(record.iterdir())  # no camera opened: nothing recorded
+
+
 def test_guide_warns_on_a_noisy_emulator(capsys):
     """The emulator's boards with σ 8 sensor noise each, JPEG at the worst digit 8: the guide still ranges the
     obstacles and speaks; a negative σ is refused."""
