@@ -10,8 +10,8 @@ arrives while a command is handled is discarded, so never pipeline). Every wait 
   discarding input until the link has been quiet for ``drain_quiet_s`` (at most ``drain_max_s``);
 * a dropped link is reopened up to ``max_reconnects`` times per command, and the size, quality and flip are
   re-sent (to a board that sends a frame of another size, a reset one, too);
-* a command that got nothing, sent within :data:`HOLD_OFF_SUSPECT_S` of the last reply, widens the pause before
-  each command (``command_gap_s``; :meth:`CameraLink._after_silence`).
+* a command that got nothing, sent within :data:`~.command_gap.HOLD_OFF_SUSPECT_S` of the last reply, widens the
+  pause before each command, unless those sent as soon before it were answered (``command_gap_s``; :mod:`.command_gap`).
 
 pyserial's ``read(n)`` returns short on timeout without raising, so reads use a short fixed timeout
 (``poll_s``) in a loop that checks the deadline: a deadline is overshot by at most ``poll_s``. Opening a
@@ -26,6 +26,7 @@ from typing import Callable
 import serial
 
 from ..core.camera import SVS_RESOLUTIONS
+from .command_gap import HOLD_OFF_SUSPECT_S, CommandGap
 from .link_types import (CaptureError, LinkConfig, LinkStats, RawFrame, _Attempt, _Dropped, attempt_reasons,
                          check_link_url, frame_timeout_reason)
 from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VERSION, QUALITY_PREFIX, UPTIME_PREFIX,
@@ -34,12 +35,6 @@ from .protocol import (BATTERY_PREFIX, CMD_BATTERY, CMD_GRAB, CMD_UPTIME, CMD_VE
                        parse_version_line, quality_command, size_acks, size_command)
 
 __all__ = ["CameraLink", "CaptureError", "LinkConfig", "LinkStats", "RawFrame", "check_link_url"]
-
-#: A silent reply to a command sent within this long of the board's last reply is taken for its hold-off (§2:
-#: input is discarded for a short time after a reply, a time the page does not give) ...
-HOLD_OFF_SUSPECT_S = 0.1
-#: ... and widens the pause before each command to this at least, doubling up to :data:`MAX_COMMAND_GAP_S`.
-HOLD_OFF_STEP_S, MAX_COMMAND_GAP_S = 0.05, 0.2
 
 
 Matcher = Callable[[bytes], "tuple[bytes, int] | None"]
@@ -64,7 +59,8 @@ class CameraLink:
         self.flip: bool | None = None  # the image flip set on the board (y / Y), if any
         self._serial: serial.SerialBase | None = None
         self._last_reply_s = self._request_s = 0.0
-        self._gap_s = self.config.command_gap_s  # (widened by a board's hold-off: _after_silence)
+        self._gap = CommandGap(self.config.command_gap_s)  # (widened by a board's hold-off: _after_silence)
+        self._prompt = False  # the last command was sent within HOLD_OFF_SUSPECT_S of the reply before it
         self._pending_drop: str | None = None
 
     @property
@@ -307,7 +303,7 @@ class CameraLink:
 
     def _finish_frame(self, event: ParsedFrame | BadFrame, attempt: int) -> RawFrame | _Attempt:
         now, wall = time.monotonic(), time.time()
-        self._last_reply_s = now
+        self._replied(now)
         self.stats.stray_bytes += event.skipped_bytes
         header = event.header
         if isinstance(event, BadFrame):
@@ -329,16 +325,19 @@ class CameraLink:
         if self._serial is None:
             raise _Dropped("the link is not open")
 
+    def _replied(self, now_s: float) -> None:  # the next command's pause runs from a reply
+        self._last_reply_s = now_s
+        self._gap.answered(self._prompt)
+
     def _after_silence(self, silent: bool) -> None:
-        """Widen the pause before each command where a silent reply followed a command sent within
-        :data:`HOLD_OFF_SUSPECT_S` of the last reply: the board likely discarded it (§2). Why: a board ignoring input
-        for 30 ms lost the first try of every command, ``reply_timeout_s`` each (an audit against the emulator's
-        hold-off: opening took 3.3 s for 0.09, three pairs 3.6 s for 0.39)."""
-        if silent and self._request_s - self._last_reply_s < HOLD_OFF_SUSPECT_S and self._gap_s < MAX_COMMAND_GAP_S:
-            self._gap_s = self.stats.command_gap_s = min(max(2 * self._gap_s, HOLD_OFF_STEP_S), MAX_COMMAND_GAP_S)
+        """Widen the pause before each command where the board likely discarded one sent right after its last reply
+        (§2; :class:`~.command_gap.CommandGap`). Why: a board ignoring input for 30 ms lost the first try of every
+        command, ``reply_timeout_s`` each (an audit: opening took 3.3 s for 0.09, three pairs 3.6 s for 0.39)."""
+        if self._gap.silent(silent and self._prompt):
+            self.stats.command_gap_s = self._gap.gap_s
 
     def _send(self, command: bytes) -> None:
-        wait = self._last_reply_s + self._gap_s - time.monotonic()
+        wait = self._last_reply_s + self._gap.gap_s - time.monotonic()
         if wait > 0:
             time.sleep(wait)
         try:
@@ -346,6 +345,7 @@ class CameraLink:
         except (serial.SerialException, OSError) as err:
             raise _Dropped(f"write: {err}") from None
         self._request_s = time.monotonic()
+        self._prompt = self._request_s - self._last_reply_s < HOLD_OFF_SUSPECT_S
 
     def _read(self, count: int | None) -> bytes:
         """Read up to ``count`` bytes (None: what is waiting, at least 1) within ``poll_s``."""
@@ -371,7 +371,7 @@ class CameraLink:
             if found is not None:
                 reply, end = found
                 self.stats.stray_bytes += end - len(reply)
-                self._last_reply_s = time.monotonic()
+                self._replied(time.monotonic())
                 return reply, bytes(buffer)
         return None, bytes(buffer)
 

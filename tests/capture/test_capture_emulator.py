@@ -24,6 +24,7 @@ from hw.emulator_state import CameraState, Faults, version_line
 from hw.frames import ImageFolderSource, ObstacleTrack, SyntheticSource
 
 from svs_torch.capture import CaptureError, LinkConfig, SVSStereoCamera, to_stereo_batch
+from svs_torch.capture.command_gap import HOLD_OFF_STEP_S
 from svs_torch.capture.protocol import FrameParser, ParsedFrame
 from svs_torch.core.camera import SVS_CAMERA
 from svs_torch.core.checks import InputError
@@ -1130,6 +1131,27 @@ def test_a_board_that_ignores_input_longer_after_a_reply_widens_the_pause_before
             time.sleep(0.15)
             cam.grab_pair()
             assert cam.links["left"].stats.retries == 1 and cam.links["left"].stats.command_gap_s is None
+
+
+@pytest.mark.parametrize("stall", [{"silent_grabs": 1}, {"grab_delay_s": 0.3}])
+def test_one_grab_a_board_stalled_on_does_not_widen_the_pause_for_good(stall):
+    """Found by an audit of guide against the emulator: the right board stalled on one grab (1.2 s, past the reply
+    timeout; its late reply drained) in the middle of a walk, and its pause before each command went from 2 to 50 ms
+    for good: every later pair's right frame came 50 ms after the left one, 16 -> 9 pairs a second. Its prompt
+    commands had been answered all along: one silence among them is no hold-off (a second one is)."""
+    with EmulatorServer(left_port=0, right_port=0, source=flat_source) as server:
+        with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
+            for _ in range(3):
+                cam.grab_pair()
+            server.set_faults("right", **stall)
+            cam.grab_pair()
+            server.set_faults("right", grab_delay_s=0.0)
+            for _ in range(3):
+                cam.grab_pair()
+            assert cam.links["right"].stats.retries == 1 and cam.links["right"].stats.command_gap_s is None
+            server.set_faults("right", silent_grabs=1)  # a second silence among the last prompt commands: widened
+            cam.grab_pair()
+            assert cam.links["right"].stats.command_gap_s == HOLD_OFF_STEP_S
 
 
 def test_opening_turns_off_a_caption_overlay_an_earlier_session_left_on():
