@@ -1133,8 +1133,7 @@ def test_a_board_that_ignores_input_longer_after_a_reply_widens_the_pause_before
             assert cam.links["left"].stats.retries == 1 and cam.links["left"].stats.command_gap_s is None
 
 
-@pytest.mark.parametrize("stall", [{"silent_grabs": 1}, {"grab_delay_s": 0.3}])
-def test_one_grab_a_board_stalled_on_does_not_widen_the_pause_for_good(stall):
+def test_one_grab_a_board_stalled_on_does_not_widen_the_pause_for_good():
     """Found by an audit of guide against the emulator: the right board stalled on one grab (1.2 s, past the reply
     timeout; its late reply drained) in the middle of a walk, and its pause before each command went from 2 to 50 ms
     for good: every later pair's right frame came 50 ms after the left one, 16 -> 9 pairs a second. Its prompt
@@ -1143,10 +1142,8 @@ def test_one_grab_a_board_stalled_on_does_not_widen_the_pause_for_good(stall):
         with SVSStereoCamera(server.urls["left"], server.urls["right"], config=FAST, max_frame_gap_s=None) as cam:
             for _ in range(3):
                 cam.grab_pair()
-            server.set_faults("right", **stall)
-            cam.grab_pair()
-            server.set_faults("right", grab_delay_s=0.0)
-            for _ in range(3):
+            server.set_faults("right", silent_grabs=1)  # (the stall's late reply is drained: the same silence)
+            for _ in range(4):
                 cam.grab_pair()
             assert cam.links["right"].stats.retries == 1 and cam.links["right"].stats.command_gap_s is None
             server.set_faults("right", silent_grabs=1)  # a second silence among the last prompt commands: widened
