@@ -47,7 +47,10 @@ def check_link_url(url: object, name: str) -> None:
 
 
 class CaptureError(RuntimeError):
-    """A camera link failed; the message names the camera, its URL, and what was expected vs received."""
+    """A camera link failed; the message names the camera, its URL, and what was expected vs received. ``camera``:
+    ``"left"`` or ``"right"`` where one board of a stereo camera failed (``guide`` says which), else None."""
+
+    camera: str | None = None
 
 
 class DamagedFrameError(CaptureError):

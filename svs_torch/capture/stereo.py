@@ -341,6 +341,9 @@ class SVSStereoCamera:
         if len(failed) == 2 and all(isinstance(e, CaptureError) for e in failed):
             both_damaged = all(isinstance(e, DamagedFrameError) for e in failed)
             raise (DamagedFrameError if both_damaged else CaptureError)(f"{failed[0]}; and {failed[1]}") from failed[0]
+        for name, error in zip(STEREO_ROLES, errors):
+            if isinstance(error, CaptureError):
+                error.camera = name  # (guide says which camera is lost)
         if failed:
             raise failed[0]
         return tasks[0].result(), tasks[1].result()

@@ -41,13 +41,17 @@ from .guide_log import GuideLog
 from .guide_views import ViewsWatch
 
 __all__ = ["CAMERA_BACK", "CAMERA_LOST", "CHECK_CAMERA", "CHECK_CAMERAS", "DISTANCE_ALONG", "FLOOR_MEMORY_S",
-           "FloorMemory", "GUIDE_READY", "GUIDE_STOPPED", "GuideSession"]
+           "FloorMemory", "GUIDE_READY", "GUIDE_STOPPED", "GuideSession", "ONE_CAMERA_LOST"]
 
 #: What a camera raises when it stops answering: the driver's error, or a serial port's own (pyserial's
 #: SerialException is an OSError). A BrokenPipeError is stdout's reader gone, never the camera.
 _CAMERA_ERRORS = (CaptureError, OSError)
 
 CAMERA_LOST = "Camera lost. No warnings until it is back."
+#: :data:`CAMERA_LOST` where one board failed (``CaptureError.camera``): the walker, or whoever helps, knows which
+#: board to look at, as a frozen one is named (:data:`CHECK_CAMERA`). Was: "Camera lost" for the right board's
+#: silence or damaged frames alike, though the error named it (an audit of what a walker hears).
+ONE_CAMERA_LOST = "{} camera lost. No warnings until it is back."
 CAMERA_BACK = "Camera back."
 #: Said once, when the camera first answers: the warm-up and the camera's opening take seconds, and with a clear way
 #: nothing was said after them, so the walker could not tell a guide that sees nothing near from one still starting
@@ -181,10 +185,11 @@ class GuideSession:
         now = time.monotonic()
         if self.lost_at_s is None:
             self.lost_at_s = now
-            self.guide.speaker.say(CAMERA_LOST)
+            camera = getattr(error, "camera", None)  # (a serial port's own OSError names none)
+            self.guide.speaker.say(CAMERA_LOST if camera is None else ONE_CAMERA_LOST.format(camera.capitalize()))
             self.guide.policy.reset()  # an obstacle seen when it is back is warned of at once
             self.pattern.reset()
-            self.log.event("camera_lost", error=" ".join(str(error).split()))
+            self.log.event("camera_lost", camera=camera, error=" ".join(str(error).split()))
         lost_s = now - self.lost_at_s
         if self.args.give_up_s and lost_s >= self.args.give_up_s:
             raise CaptureError(f"camera lost for {lost_s:.0f} s (--give-up-s {self.args.give_up_s:g}): "
