@@ -88,7 +88,7 @@ class GuideSession:
                  log: GuideLog) -> None:
         self.args, self.size, self.ranged = args, size, ranged
         self.guide, self.status_line, self.log = guide, status_line, log
-        self.processed = self.torn = self.one_image = self.frozen_pairs = 0
+        self.processed = self.torn = self.one_image = self.frozen_pairs = self.both_frozen_pairs = 0
         self.frozen_watch = FrozenCameraWatch()  # compares each pair's frames with the previous pair's
         self.cameras_checked: set[str] = set()  # the cameras CHECK_CAMERA was said of
         self.opened = False  # the camera answered once: a later failure is a loss, not a wrong address
@@ -276,7 +276,10 @@ class GuideSession:
             said = CANNOT_SEE
         if said == CANNOT_SEE:
             self.cameras_checked.add(camera)
-        self.frozen_pairs += 1
+        if both:  # (the summary said "one camera sent its last frame again" of both boards' pairs: an audit)
+            self.both_frozen_pairs += 1
+        else:
+            self.frozen_pairs += 1
 
     def _not_ranged(self, item, status: str, detail: str, event: str, then: str | None = None,
                     **fields) -> str | None:
@@ -297,9 +300,11 @@ class GuideSession:
         text = f"guide stopped after {self.processed} pair{'' if self.processed == 1 else 's'}"  # (not "1 pairs")
         why = [f"{count} not: {reason}" for count, reason in (
             (self.torn, "their two frames came too far apart"), (self.one_image, "their two frames were one image"),
-            (self.frozen_pairs, "one camera sent its last frame again")) if count]
+            (self.frozen_pairs, "one camera sent its last frame again"),
+            (self.both_frozen_pairs, "both cameras sent their last frames again")) if count]
         if why:
-            text += f" ({self.processed - self.torn - self.one_image - self.frozen_pairs} ranged; {'; '.join(why)})"
+            ranged = self.processed - self.torn - self.one_image - self.frozen_pairs - self.both_frozen_pairs
+            text += f" ({ranged} ranged; {'; '.join(why)})"
         return text
 
     def _come_back(self, now: float) -> None:

@@ -226,6 +226,8 @@ def test_guide_does_not_range_the_pairs_of_two_frozen_boards_and_says_to_check_t
     session, said, events, ranged = run_guide(monkeypatch, [[(stale, 0.0)] * 40], count=40)
     assert len(ranged) == 1 and [camera for name, camera in events if name == "camera_frozen"] == ["both"] * 39
     assert said.count(f"{CANNOT_SEE} {guide_loop.CHECK_CAMERAS}") == 1
+    # found by an audit: the summary said "39 not: one camera sent its last frame again" of both boards' pairs
+    assert session.stopped_text().endswith("(1 ranged; 39 not: both cameras sent their last frames again)")
 
 
 @pytest.mark.parametrize("frozen_pairs", [0, -1, 1.5, True, None])
