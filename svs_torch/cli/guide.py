@@ -39,13 +39,14 @@ once, when the camera first answers): when no pair could be ranged for --blind-s
 a link that froze, pairs whose two frames came more than 0.25 s apart, which are not ranged: the walker moved
 between them, one image sent for both cameras, or one camera's frame sent again while the other's changed, a stalled
 board: not ranged either), "Cannot see ahead" is said, and "Seeing ahead again" when one is; after a stalled board's
-pairs, "Cannot see ahead" goes on "Check the left camera" (or right; with --blind-s 0, said alone), once a run. A
-camera that stops answering in the middle of a walk (a WiFi drop) is said to be lost, aloud, and opened again every
---reconnect-s seconds; its return is said too, and the warnings go on. One that never answered ends guide with its
-error (exit 1), as does one lost for --give-up-s seconds if that is set. Whatever ends it (an error, --count,
-Ctrl-C, a service's stop), "Guide stopped. No more warnings." is said. Boards that answer in the wrong stereo roles
-(--left reaches the slave: the URLs swapped) are said once, aloud ("Check the cameras"), as every distance is then
-wrong. SIGTERM (a service's stop) ends it as Ctrl-C does, exit 143.
+pairs (or a late one's, apart), "Cannot see ahead" goes on "Check the left camera" (or right; a stalled one's with
+--blind-s 0, said alone), once a run. A camera that stops answering in the middle of a walk (a WiFi drop) is said to
+be lost, aloud (the board named where one failed), and opened again every --reconnect-s seconds; its return is said
+too, and the warnings go on. One that never answered ends guide with its error (exit 1), as does one lost for
+--give-up-s seconds if that is set. Whatever ends it (an error, --count, Ctrl-C, a service's stop), "Guide stopped.
+No more warnings." is said. Boards that answer in the wrong stereo roles (--left reaches the slave: the URLs
+swapped) are said once, aloud ("Check the cameras"), as every distance is then wrong. SIGTERM (a service's stop)
+ends it as Ctrl-C does, exit 143.
 
 --json prints a JSON line per pair ranged, for another program to act on; --record DIR keeps the pairs
 ranged, and at the end prints the estimate command that ranges them again to the same distances, pair by pair

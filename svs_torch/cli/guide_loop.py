@@ -242,10 +242,16 @@ class GuideSession:
     def _torn(self, item) -> None:
         """A pair whose two frames came further apart than the camera's ``max_frame_gap_s`` after its own regrabs
         (one board kept missing its grab): not ranged, not seen. Why: the walker and the scene move between the
-        frames, and such pairs were ranged (a 0.8 m obstacle said "clear" at 2-3 m, a 2 m one "Stop" at 0.5 m)."""
+        frames, and such pairs were ranged (a 0.8 m obstacle said "clear" at 2-3 m, a 2 m one "Stop" at 0.5 m).
+        "Cannot see ahead" said for them goes on :data:`CHECK_CAMERA` of the later board, once a run for each: a right
+        board 0.4 s late on every grab had the walker hear "Cannot see ahead" alone, unlike a frozen one (an audit)."""
         gap_s = item.pairs[0].time_between_frames_s
-        self._not_ranged(item, "FRAMES_APART", f"frames {abs(gap_s):.2f} s apart: not ranged", "frames_apart",
-                         time_between_frames_s=round(gap_s, 3), num_dropped=item.num_dropped)
+        late = "right" if gap_s > 0 else "left"  # (right's arrival minus left's)
+        check = None if late in self.cameras_checked else CHECK_CAMERA.format(late)
+        said = self._not_ranged(item, "FRAMES_APART", f"frames {abs(gap_s):.2f} s apart: not ranged", "frames_apart",
+                                then=check, time_between_frames_s=round(gap_s, 3), num_dropped=item.num_dropped)
+        if said == CANNOT_SEE and check:
+            self.cameras_checked.add(late)
         self.torn += 1
 
     def _one_image(self, item) -> None:
