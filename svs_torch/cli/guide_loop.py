@@ -250,6 +250,9 @@ class GuideSession:
         check = None if late in self.cameras_checked else CHECK_CAMERA.format(late)
         said = self._not_ranged(item, "FRAMES_APART", f"frames {abs(gap_s):.2f} s apart: not ranged", "frames_apart",
                                 then=check, time_between_frames_s=round(gap_s, 3), num_dropped=item.num_dropped)
+        if said is None and check and self.sight.blind:  # blind already: the ticks while its regrabs took seconds
+            self.guide.speaker.say(f"{CANNOT_SEE} {check}")
+            said = CANNOT_SEE
         if said == CANNOT_SEE and check:
             self.cameras_checked.add(late)
         self.torn += 1
