@@ -226,13 +226,14 @@ def _say_what_the_folder_holds(folder: str) -> None:
     """:class:`InputError` for a folder that is no scene: it holds none, or several (an audit: both were told
     "expected two image files, or a scene folder")."""
     from ..core.errors import InputError
-    from ..data.pair_list import read_pair_sources
+    from ..data.pair_list import capture_folder_hint, read_pair_sources
 
     try:
         scenes = read_pair_sources([folder], "left")
     except InputError:
         raise InputError(f"left: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) in the folder "
-                         f"{folder}; expected a scene folder, or two image files") from None
+                         f"{folder}{capture_folder_hint(folder)}; expected a scene folder, or two image files"
+                         ) from None
     whole = [scene for scene in scenes if not scene.problem]  # (not the folders of part of a scene's files)
     if not whole:  # what the folder lacks, not "holds 1 scenes; estimate ranges one scene (e.g. itself)"
         raise InputError(f"left: {scenes[0].problem}")

@@ -42,7 +42,7 @@ from .datasets import KITTI_LEFT_FOLDERS, load_image_pair, load_stereo_pair, sce
 from .pair_names import pair_identity, unusable_name, with_distinct_names
 from .scene_folders import folder_scenes
 
-__all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "is_kitti_left_image", "read_pair_list",
+__all__ = ["OWN_CALIBRATION_UNDER_RIG", "PairSource", "capture_folder_hint", "is_kitti_left_image", "read_pair_list",
            "read_pair_sources", "load_pair_source", "unique_sources", "with_distinct_names"]
 
 #: An index.jsonl line's calibration fields, in a list line's order.
@@ -182,6 +182,14 @@ def is_kitti_left_image(path: str | Path) -> bool:
     return _kind(path) == "file" and path.parent.name in KITTI_LEFT_FOLDERS
 
 
+def capture_folder_hint(folder: str | Path) -> str:
+    """What a folder without a scene is where it holds capture's or guide --record's ``index.jsonl``, to end "no
+    stereo scene in the folder" with: the folder itself was refused so, naming no way to range its pairs (an audit).
+    "" for any other folder."""
+    index = Path(folder) / "index.jsonl"
+    return f" (a capture folder: give its index, {display_path(index)})" if _kind(index) == "file" else ""
+
+
 def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[PairSource]:
     """The pair (or scenes) of one list line."""
     paths = [str(p if Path(p).is_absolute() else base / p) for p in fields[:2]]
@@ -190,7 +198,7 @@ def _line_sources(fields: list[str], base: Path, where: str, text: str) -> list[
         if _kind(path) == "folder":
             scenes = _scenes_in(path)
             return scenes or [PairSource(left=text.strip(), problem=f"{where}: no stereo scene in the folder "
-                                                                    f"{path}")]
+                                                                    f"{path}{capture_folder_hint(path)}")]
         if is_kitti_left_image(path):
             return [PairSource(left=str(path), scene=True)]
         if _kind(path) == "missing":  # a scene folder not there: "expected 'LEFT RIGHT', ... got 1 field" (an audit)
@@ -342,7 +350,7 @@ def read_pair_sources(paths: Sequence[str | Path] | str | Path, name: str = "pat
             found = _scenes_in(path)
             if not found:
                 raise InputError(f"{name}: no stereo scene (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe) "
-                                 f"in the folder {path}")
+                                 f"in the folder {path}{capture_folder_hint(path)}")
             sources += found
         elif is_kitti_left_image(path):
             sources.append(PairSource(left=str(path), scene=True))

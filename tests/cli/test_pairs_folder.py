@@ -188,3 +188,22 @@ def test_index_and_guide_json_lines_are_strict_json(tmp_path):
     stream = io.StringIO()
     GuideLog(stream, None).event("camera_back", lost_s=float("-inf"))
     assert _strict_json(stream.getvalue())["lost_s"] is None
+
+
+def test_a_capture_folder_given_for_its_index_is_told_to_give_the_index(capsys, tmp_path):
+    """Found by an audit of recordings: ``estimate DIR``, ``estimate --pairs DIR`` and ``eval DIR`` of a capture's
+    (or guide --record's) folder said only "no stereo scene (MiddEval3, ...) in the folder DIR", naming no way to
+    range its pairs; now each says it is a capture folder and names its index.jsonl. A folder without one is told
+    as before."""
+    folder, plain = tmp_path / "walk", tmp_path / "plain"
+    folder.mkdir(), plain.mkdir()
+    (folder / "index.jsonl").write_text('{"index": 0, "left": "pair000000_left.jpg", "right": "x.jpg"}\n')
+    (tmp_path / "list.txt").write_text("walk\n")
+    hint = f"(a capture folder: give its index, {folder / 'index.jsonl'})"
+    for argv in (["estimate", str(folder)], ["estimate", "--pairs", str(folder)], ["eval", str(folder)],
+                 ["estimate", "--pairs", str(tmp_path / "list.txt"), "--workers", "1"]):
+        assert main(argv) == 2, argv
+        assert f"no stereo scene in the folder {folder} {hint}" in capsys.readouterr().err.replace(
+            " (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe)", ""), argv
+    assert main(["estimate", "--pairs", str(plain)]) == 2
+    assert capsys.readouterr().err.rstrip().endswith(f"in the folder {plain}")
