@@ -130,14 +130,16 @@ class GuideLog:
         rectifies them with, or the SVS model guide ranges them with."""
         if size_wh not in self._calibrations:
             from ..core.camera import SVS_CAMERA
-            from ..data.calibration import SVS_MODEL_ASSUMED, calibration_fields
+            from ..data.calibration import SVS_MODEL_ASSUMED, calibration_fields, rig_scaled_source
 
             if self.rig is None:
                 values = (SVS_MODEL_ASSUMED, False, SVS_CAMERA.focal_px(size_wh[0]), SVS_CAMERA.baseline_m, 0.0)
             else:
                 rig = self.rig.scaled_to(size_wh, "--calibration")
-                values = (f"--calibration {self.replay[1]} (the pair rectified by it)", True, rig.focal_px,
-                          rig.baseline_m, rig.doffs_px)
+                # With the size it was made at, as estimate's line of the same pair: guide's named the file alone
+                source = rig_scaled_source(f"--calibration {self.replay[1]} (the pair rectified by it)",
+                                           self.rig.image_wh, size_wh)
+                values = (source, True, rig.focal_px, rig.baseline_m, rig.doffs_px)
             self._calibrations[size_wh] = calibration_fields(*values)
         return self._calibrations[size_wh]
 

@@ -997,6 +997,25 @@ def test_guide_json_lines_and_a_record_that_estimate_ranges_alike(capsys, tmp_pa
     assert lines[0]["calibration"]["source"] == "the SVS model assumed"
 
 
+def test_guide_json_says_its_rig_was_scaled_as_the_replay_of_its_record_does(capsys, data_dir, tmp_path):
+    """Found by an audit of recordings: with a rig calibrated at 640x480 and 160x120 frames, guide's --json lines
+    named the rig's file alone, while estimate --pairs of the same record said of the same pairs 'made at 640x480
+    and scaled to this 160x120 pair' (the focal length a quarter of the file's); now both say it."""
+    rig, record = tmp_path / "rig.json", tmp_path / "walk"
+    code, _, err = run_cli(capsys, "calibrate", str(data_dir / "opencv_samples" / "left*.jpg"), "--square-m", "0.025",
+                           "--out", str(rig))
+    assert code == 0, err
+    code, out, err = run_cli(capsys, "guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120",
+                             "--json", "--calibration", str(rig), "--record", str(record))
+    assert code == 0, err
+    live = json.loads(out.splitlines()[0])["calibration"]
+    code, out, err = run_cli(capsys, "estimate", "--pairs", str(record / "index.jsonl"), "--floor", "on",
+                             "--camera-frames", "--json", "--workers", "1")
+    assert code == 0, err
+    assert live == json.loads(out.splitlines()[0])["calibration"]
+    assert live["source"].endswith("(the pair rectified by it), made at 640x480 and scaled to this 160x120 pair")
+
+
 def test_guide_record_says_the_jpeg_quality_as_capture_does(capsys, tmp_path):
     """capture's index records the --quality digit its frames were sent at (a board keeps a digit an earlier run
     set, and none can be read back); guide --record's did not."""
