@@ -12,7 +12,8 @@ Output, in ``--out-dir`` (alias ``--out``):
   without it: the board's own setting, 4 at power-up, which no command reads back) and ``frozen_camera``
   (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed, by
   ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else null; an older index has no such
-  key);
+  key) and ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
+  :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
   the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given), after
@@ -36,7 +37,7 @@ from ..core.errors import InputError
 from ..core.files import error_text
 from ..core.workers import signals_held
 from .common import Terminated, add_retries_option, pair_count, quality_digit, timeout_seconds
-from .link_options import add_emulator_frame_options, baud_rate
+from .link_options import add_emulator_frame_options, baud_rate, emulator_record
 from .pairs_folder import CALIBRATION_NAME, INDEX_NAME, drop_unused_pairs_folder, new_pairs_folder, open_pairs_index, \
     replay_command, save_pair
 from .progress import Progress
@@ -246,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
                     record = save_pair(out, pair, "--out-dir")
                     # Which JPEG quality the frames were sent at: a folder did not say, and a board keeps a digit set
                     # by an earlier run. None: --quality not given (the protocol has no command that reads it back).
-                    record.update(quality=args.quality, frozen_camera=frozen)
+                    record.update(quality=args.quality, emulator=emulator_record(args), frozen_camera=frozen)
                     index.append(record)
                     done += 1
                     checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted

@@ -12,7 +12,7 @@ from ..core.files import PROGRESS_HELP
 from .common import (Terminated, add_retries_option, finite_float, non_negative_float,
                      pair_count_or_zero, positive_float, positive_int, quality_digit, terminated_on_sigterm,
                      timeout_seconds)
-from .link_options import add_emulator_frame_options, baud_rate
+from .link_options import add_emulator_frame_options, baud_rate, emulator_record
 from .rig import add_calibration_option, calibration_from_args, with_calibrated_rectification
 from .segment import add_floor_option
 
@@ -79,7 +79,8 @@ SECOND_PASSES_HELP = ("'on': a pair whose first pass measured too little of its 
 JSON_HELP = ("a JSON line per pair ranged on stdout for another program: estimate --json's fields (with the "
              "calibration its metres use), the capture's times, 'warning' (the pair's and the confirmed distance, the "
              "class clear / warn / stop, or unseen: nothing measured; the words said), 'dropped_pairs', 'latency_s', "
-             "'quality' (--quality's digit); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
+             "'quality' (--quality's digit), 'emulator' (--emulator's noise, loose rig, floor and heap; null from "
+             "boards); a line {\"event\": ...} when the camera is lost or back, guide cannot see "
              "or sees again, a pair is not ranged (frames_apart, identical_views, camera_frozen with its 'camera'), "
              "the boards answer in the wrong roles (cameras_swapped), or a repeated pattern not ranged is said "
              "(repeated_pattern, with the nearest distance it may be at); the warnings' text goes to stderr")
@@ -277,7 +278,7 @@ def _started(args: argparse.Namespace, size: tuple[int, int], guide, status_line
     # Before the camera opens: the first frames' warnings then come as fast as the later ones (guide_warm_up).
     warm_up(ranged, size)
     log = GuideLog(sys.stdout if args.json else None, record_dir, args.floor, args.calibration,
-                   calibration_from_args(args), args.second_passes, args.quality)
+                   calibration_from_args(args), args.second_passes, args.quality, emulator_record(args))
     return GuideSession(args, size, ranged, guide, status_line, log), log
 
 

@@ -47,14 +47,16 @@ class GuideLog:
     :func:`~svs_torch.cli.capture.new_pairs_folder`; None: none) of one guide run, whose ``--floor`` and
     ``--calibration`` were ``floor`` and ``calibration``. :meth:`open` before the first pair, :meth:`close` after
     the last; :meth:`summary` then says what was recorded. ``second_passes`` is guide's ``--second-passes``,
-    ``quality`` its ``--quality`` (each line records it, as capture's index does)."""
+    ``quality`` its ``--quality`` and ``emulator`` :func:`~svs_torch.cli.link_options.emulator_record` (each line
+    records them, as capture's index does)."""
 
     def __init__(self, stream: TextIO | None, record_dir: Path | None, floor: str = "on",
-                 calibration: str | None = None, rig=None, second_passes: str = "on", quality: int | None = None
-                 ) -> None:
+                 calibration: str | None = None, rig=None, second_passes: str = "on", quality: int | None = None,
+                 emulator: dict | None = None) -> None:
         self.stream, self.record_dir = stream, record_dir
         # the --quality digit the frames were sent at, as capture records it (None: the board's own, unread)
         self.quality = quality
+        self.emulator = emulator  # the in-process emulator's scene, as capture records it (None: boards)
         # guide's settings that estimate needs to range the pairs alike (replay_command's)
         self.replay = (floor, calibration, second_passes)
         self.rig = rig  # the StereoCalibration read from ``calibration`` (None: the SVS model)
@@ -97,7 +99,7 @@ class GuideLog:
             record.update(report, calibration_rectified=self.rig is not None,
                           calibration=self._calibration(pair.left.size_wh), image_size_px=size, working_size_px=size)
             record.update(warning=warning, dropped_pairs=num_dropped, latency_s=round(latency_s, 6),
-                          quality=self.quality)
+                          quality=self.quality, emulator=self.emulator)
             if self._index is not None:  # after both images are in place (save_pair)
                 try:
                     self._index.append(record)

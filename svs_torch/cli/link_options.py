@@ -10,7 +10,7 @@ import argparse
 
 from .common import _number, noise_levels
 
-__all__ = ["MAX_BAUD", "MIN_BAUD", "add_emulator_frame_options", "baud_rate"]
+__all__ = ["MAX_BAUD", "MIN_BAUD", "add_emulator_frame_options", "baud_rate", "emulator_record"]
 
 #: The slowest ``--baud`` taken: 9600, the slowest standard rate a serial camera is run at, already allows a
 #: 320x240 frame up to 6 minutes (LinkConfig.frame_attempt_timeout_s). ``--baud 1`` was taken, and allowed each
@@ -39,3 +39,16 @@ def add_emulator_frame_options(parser: argparse.ArgumentParser) -> None:
                         help="with --emulator: its right camera mounted loosely, as experiments/real_rig.py's "
                              "'combined': rolled 1 degree, tilted 0.5 about x and -0.5 about y, 2 %% of the height "
                              "lower, 1 %% larger, 20 %% darker; python -m hw.emulator sets each on its own")
+
+
+def emulator_record(args: argparse.Namespace) -> dict | None:
+    """What ``capture``'s and ``guide --record``'s index lines (and guide's ``--json`` ones) say of the in-process
+    emulator that sent their frames (``--emulator``): its ``noise_sigma`` (8-bit levels), ``loose_rig``,
+    ``floor_m`` and ``heap_m`` (null: none); None for the boards at ``--left``/``--right`` (an emulator run on its
+    own is a board to them). Why: a folder of ``capture --emulator --emulator-noise 4`` frames, read later, could
+    not be told from a real board's, nor its noise from another run's (an audit of recordings)."""
+    if not getattr(args, "emulator", False):
+        return None
+    return {"noise_sigma": getattr(args, "emulator_noise", 0.0),
+            "loose_rig": getattr(args, "emulator_loose_rig", False),
+            "floor_m": getattr(args, "emulator_floor_m", None), "heap_m": getattr(args, "emulator_heap_m", None)}

@@ -207,3 +207,25 @@ def test_a_capture_folder_given_for_its_index_is_told_to_give_the_index(capsys, 
             " (MiddEval3, Middlebury 2001–2006, KITTI, OpenCV aloe)", ""), argv
     assert main(["estimate", "--pairs", str(plain)]) == 2
     assert capsys.readouterr().err.rstrip().endswith(f"in the folder {plain}")
+
+
+def test_a_recording_of_the_emulator_says_so_and_its_scene(capsys, tmp_path):
+    """Found by an audit of recordings: a folder of ``capture --emulator --emulator-noise 4`` frames (the help's "the
+    frames a real board sends") could not be told, read later, from a real board's, nor its noise from another
+    run's. Now each index line (capture's, guide --record's, and guide's --json lines) says the emulator's scene;
+    null from boards."""
+    def lines(folder):
+        return [json.loads(line) for line in (folder / "index.jsonl").read_text().splitlines()]
+
+    assert main(["capture", "--emulator", "--emulator-noise", "3.5", "--emulator-loose-rig", "--count", "2", "--size",
+                 "160x120", "--out-dir", str(tmp_path / "noisy")]) == 0
+    scene = {"noise_sigma": 3.5, "loose_rig": True, "floor_m": None, "heap_m": None}
+    assert [line["emulator"] for line in lines(tmp_path / "noisy")] == [scene, scene]
+    assert main(["guide", "--emulator", "--emulator-floor-m", "1.3", "--count", "1", "--no-speech", "--size",
+                 "160x120", "--json", "--record", str(tmp_path / "walk")]) == 0
+    scene = {"noise_sigma": 0.0, "loose_rig": False, "floor_m": 1.3, "heap_m": None}
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["emulator"] == scene
+    assert [line["emulator"] for line in lines(tmp_path / "walk")] == [scene]
+    from svs_torch.cli.link_options import emulator_record
+
+    assert emulator_record(SimpleNamespace(emulator=False, emulator_noise=0.0)) is None  # boards at --left/--right
