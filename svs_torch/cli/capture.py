@@ -78,7 +78,8 @@ def add_parser(subparsers: Any) -> None:
                         help="frame size: 160x120, 320x240, 640x480 or 1280x1024 (default: 320x240)")
     parser.add_argument("--count", type=pair_count, default=10, help="number of pairs to grab (default: 10)")
     parser.add_argument("--out-dir", "--out", dest="out", required=True, metavar="DIR",
-                        help="output folder, created if missing; it must not hold an index.jsonl (also --out)")
+                        help="output folder, created if missing; it must not hold another run's index.jsonl, "
+                             "calibration.json or pair images (also --out)")
     parser.add_argument("--quality", type=quality_digit, default=None, metavar="1-8",
                         help="JPEG quality digit, 1 best … 8 worst (default: leave the board's, 4 at power-up)")
     parser.add_argument("--baud", type=baud_rate, default=DEFAULT_BAUD,

@@ -229,3 +229,13 @@ def test_a_recording_of_the_emulator_says_so_and_its_scene(capsys, tmp_path):
     from svs_torch.cli.link_options import emulator_record
 
     assert emulator_record(SimpleNamespace(emulator=False, emulator_noise=0.0)) is None  # boards at --left/--right
+
+
+def test_capture_help_names_every_file_that_refuses_its_folder(capsys):
+    """Found by an audit of recordings: capture --help said the folder 'must not hold an index.jsonl', and a folder
+    with a calibration.json or pair images but no index was then refused (test_a_folder_holding_*); guide --help's
+    --record named all three. Now capture's names them too."""
+    with pytest.raises(SystemExit):
+        main(["capture", "--help"])
+    said = " ".join(capsys.readouterr().out.split())
+    assert "it must not hold another run's index.jsonl, calibration.json or pair images" in said
