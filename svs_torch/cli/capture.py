@@ -10,8 +10,9 @@ Output, in ``--out-dir`` (alias ``--out``):
   ``*_arrival_monotonic_s``, ``*_arrival_wall_s`` (Unix seconds), ``*_attempts``, ``time_between_frames_s``
   (right arrival − left arrival, seconds), ``quality`` (the ``--quality`` digit both boards were set to; null
   without it: the board's own setting, 4 at power-up, which no command reads back) and ``frozen_camera``
-  (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed, by
-  ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else null; an older index has no such
+  (``"left"``/``"right"``: that camera's frame came again, pixel for pixel, while the other's changed; ``"both"``:
+  both frames came again for 3 s; by ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else
+  null; an older index has no such
   key) and ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
   :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
@@ -292,13 +293,15 @@ class _PairChecks:
         from ..capture.frozen import FrozenCameraWatch
 
         self.max_frame_gap_s, self.watch = max_frame_gap_s, FrozenCameraWatch()
-        self.apart, self.frozen, self.one_image = 0, {"left": 0, "right": 0}, 0
+        self.apart, self.frozen, self.one_image = 0, {"left": 0, "right": 0, "both": 0}, 0
 
     def frozen_camera(self, pair) -> str | None:
         """The camera of ``pair`` (a :class:`~svs_torch.capture.stereo.StereoPair`) judged frozen, or None; each
         pair in the order grabbed (compared with the one before it)."""
         left, right = self._frames(pair)
-        return self.watch.update(SimpleNamespace(left=left, right=right))
+        # With the time, as guide judges it: both boards stalled (both frames the same again for BOTH_FROZEN_S) were
+        # not judged, and their one old pair was saved again and again, neither marked nor warned of (an audit)
+        return self.watch.update(SimpleNamespace(left=left, right=right), pair.left.arrival_monotonic_s)
 
     @staticmethod
     def _frames(pair) -> tuple:
@@ -326,8 +329,12 @@ class _PairChecks:
             said.append(f"{self.apart} of {done} pairs' frames came over {self.max_frame_gap_s:g} s apart after "
                         "their regrabs (time_between_frames_s in index.jsonl): not one stereo moment; guide does not "
                         "range such pairs")
+        if self.frozen["both"]:
+            said.append(f"{self.frozen['both']} of {done} pairs have both cameras' frames sent again, pixel for pixel, "
+                        "for 3 s or more (frozen_camera \"both\" in index.jsonl): both boards stalled, one old pair "
+                        "again and again; check the cameras; guide does not range such pairs")
         for camera, count in self.frozen.items():
-            if count:
+            if count and camera != "both":
                 other = "right" if camera == "left" else "left"
                 said.append(f"{count} of {done} pairs have the {camera} camera's frame sent again, pixel for pixel, "
                             f"while the {other} one's changed (frozen_camera in index.jsonl): a stalled board, an old "

@@ -1,11 +1,11 @@
 """What capture's ``index.jsonl`` marks of a listed pair, told by ``estimate --pairs`` and ``eval``.
 
 capture keeps every pair the boards sent and marks the ones guide refuses: ``frozen_camera`` (one board sent its
-last frame again while the other's changed) and ``time_between_frames_s`` over the camera's
-:data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S`; it warns of them at its end. ``estimate --pairs DIR/index.jsonl``
-and ``eval`` then ranged them without a word, as if each were one stereo moment (an audit). They are still ranged,
-their numbers unchanged (the index is what the boards sent); each such pair's line says so (estimate's text, and
-``--json`` lines), and the run's end counts them.
+last frame again while the other's changed; ``"both"``: both boards theirs, for 3 s) and ``time_between_frames_s``
+over the camera's :data:`~svs_torch.capture.stereo.MAX_FRAME_GAP_S`; it warns of them at its end. ``estimate --pairs
+DIR/index.jsonl`` and ``eval`` then ranged them without a word, as if each were one stereo moment (an audit). They
+are still ranged, their numbers unchanged (the index is what the boards sent); each such pair's line says so
+(estimate's text, and ``--json`` lines), and the run's end counts them.
 
 Only the standard library at import: the parent of ``estimate``'s workers never imports torch.
 """
@@ -39,11 +39,15 @@ def capture_warning(fields: dict) -> str | None:
     said = []
     if fields.get("frozen_camera"):
         camera = fields["frozen_camera"]
-        said.append(f"the {camera} camera's frame was sent again while the {_other(camera)} one's changed "
-                    "(frozen_camera in the index)")
+        said.append("both cameras' frames were sent again, an old pair (frozen_camera in the index)"
+                    if camera == "both" else f"the {camera} camera's frame was sent again while the {_other(camera)} "
+                    "one's changed (frozen_camera in the index)")
     if fields.get("frames_apart_s") is not None:
         said.append(f"its frames came {fields['frames_apart_s']:.2f} s apart (time_between_frames_s in the index)")
-    return f"warning: {'; '.join(said)}: not one stereo moment" if said else None
+    # (both boards stalled send one stereo moment, but an old one)
+    moment = "not the moment grabbed" if said == said[:1] and fields.get("frozen_camera") == "both" else \
+        "not one stereo moment"
+    return f"warning: {'; '.join(said)}: {moment}" if said else None
 
 
 def warn_capture_marks(lines: list[dict], total: int) -> None:
@@ -51,6 +55,10 @@ def warn_capture_marks(lines: list[dict], total: int) -> None:
     index marks, of the ``total`` listed."""
     frozen = {camera: sum(line.get("frozen_camera") == camera for line in lines) for camera in ("left", "right")}
     apart = [line["frames_apart_s"] for line in lines if line.get("frames_apart_s") is not None]
+    if both := sum(line.get("frozen_camera") == "both" for line in lines):
+        warnings.warn(f"{both} of {total} listed pairs have both cameras' frames sent again for 3 s or more "
+                      "(frozen_camera \"both\" in the index and in each --json line): ranged, but an old pair again "
+                      "and again, both boards stalled; guide does not range such pairs", RuntimeWarning, stacklevel=2)
     for camera, count in frozen.items():
         if count:
             warnings.warn(f"{count} of {total} listed pairs have the {camera} camera's frame sent again while the "

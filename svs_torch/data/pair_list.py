@@ -232,7 +232,7 @@ def _capture_marks(record: dict) -> dict:
     value): ``estimate --pairs`` and ``eval`` say which listed pairs are not one stereo moment, as capture did."""
     frozen, gap_s = record.get("frozen_camera"), record.get("time_between_frames_s")
     finite = isinstance(gap_s, (int, float)) and not isinstance(gap_s, bool) and math.isfinite(gap_s)
-    return {"frozen_camera": frozen if frozen in ("left", "right") else None,
+    return {"frozen_camera": frozen if frozen in ("left", "right", "both") else None,
             "time_between_frames_s": float(gap_s) if finite else None}
 
 

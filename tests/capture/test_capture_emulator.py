@@ -844,6 +844,33 @@ def test_cli_capture_warns_of_and_marks_the_pairs_of_a_board_that_sends_one_fram
         "\n") if line] == [None, None]
 
 
+def test_cli_capture_marks_and_warns_of_both_boards_sending_one_old_pair_again(tmp_path, capsys, monkeypatch):
+    """Found by an audit of recordings: with both boards' sensors stalled (the emulator's --freeze on both, noise
+    sigma 2) capture saved one old pair again and again, 40 pairs over 4 s, neither marked nor warned of: it judged
+    each camera against the other's change, never both by guide's rule (both frames the same again for
+    BOTH_FROZEN_S, here 0 so that the test takes a few pairs). Now such pairs are marked "both" and counted, and
+    estimate --pairs of the folder warns of them."""
+    import functools
+
+    import svs_torch.capture.frozen as frozen_module
+    from svs_torch.cli import main
+
+    monkeypatch.setattr(frozen_module, "FrozenCameraWatch",
+                        functools.partial(frozen_module.FrozenCameraWatch, both_frozen_s=0.0))
+    faults = {camera: Faults(frozen_grabs=10**6) for camera in ("left", "right")}
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
+                        faults=faults) as server:
+        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "4",
+                           "--size", "160x120", "--out", str(tmp_path / "run"))
+    err = capsys.readouterr().err
+    records = [json.loads(line) for line in (tmp_path / "run" / "index.jsonl").read_text().splitlines()]
+    assert code == 0 and [record["frozen_camera"] for record in records] == [None, "both", "both", "both"]
+    assert "warning: 3 of 4 pairs have both cameras' frames sent again, pixel for pixel, for 3 s or more" in err
+    assert main(["estimate", "--pairs", str(tmp_path / "run" / "index.jsonl"), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 3 of 4 listed pairs have both cameras' frames sent again for 3 s or more" in err
+
+
 @pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("Terminated", 143)])
 def test_a_capture_stopped_early_still_warns_of_the_pairs_it_kept(tmp_path, capsys, monkeypatch, stop, code):
     """Found by an audit of capture: a long capture is ended with Ctrl-C (or a service's SIGTERM), and then it said
