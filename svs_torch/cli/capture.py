@@ -14,7 +14,8 @@ Output, in ``--out-dir`` (alias ``--out``):
   both frames came again for 3 s; by ``guide``'s rule, :class:`~svs_torch.capture.frozen.FrozenCameraWatch`; else
   null; an older index has no such
   key) and ``emulator`` (``--emulator``'s noise, loose rig, floor and heap,
-  :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key);
+  :func:`~svs_torch.cli.link_options.emulator_record`; null from boards; an older index has no such key) and
+  ``rig_calibration`` (``"calibration.json"`` with ``--calibration``, else null);
 * ``calibration.json`` with ``--calibration``: a copy of the rig's calibration file (the frames stay as received;
   ``estimate --pairs OUT/index.jsonl --calibration OUT/calibration.json`` rectifies them). At the end capture prints
   the ``estimate`` command that ranges the pairs (as camera frames, with the calibration where one was given), after
@@ -249,7 +250,8 @@ def run(args: argparse.Namespace) -> int:
                     record = save_pair(out, pair, "--out-dir")
                     # Which JPEG quality the frames were sent at: a folder did not say, and a board keeps a digit set
                     # by an earlier run. None: --quality not given (the protocol has no command that reads it back).
-                    record.update(quality=args.quality, emulator=emulator_record(args), frozen_camera=frozen)
+                    record.update(quality=args.quality, emulator=emulator_record(args), frozen_camera=frozen,
+                                  rig_calibration=None if calibration is None else CALIBRATION_NAME)
                     index.append(record)
                     done += 1
                     checks.count(pair, frozen)  # kept (capture keeps what the boards sent), but counted

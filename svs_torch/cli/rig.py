@@ -128,6 +128,7 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
         _warn_if_another_rig(args, found)
         return None
+    _refuse_a_kept_calibration_gone([name for name, path in kept.items() if path is None])
     if not found:
         return None
     without = [str(name) for name, path in kept.items() if path is None]
@@ -137,6 +138,31 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
                          f"beside its index), and {others}: range them apart, or name the rig's file with "
                          "--calibration")
     return str(found[0])
+
+
+def _refuse_a_kept_calibration_gone(list_files: list[str | None]) -> None:
+    """Refuse an ``index.jsonl`` of ``list_files`` whose first line says its pairs were captured with a rig
+    calibration (capture's ``rig_calibration``, guide --record's ``calibration_rectified``) where none is kept
+    beside it: a folder copied without its calibration.json was ranged in the SVS model's metres, unrectified, the
+    baseline 29 % off for OpenCV's chessboard rig, and said only "the SVS model assumed" (an audit of recordings)."""
+    import json
+    from pathlib import Path
+
+    from ..core.errors import InputError
+    from .pairs_folder import CALIBRATION_NAME
+
+    for name in list_files:
+        if name is None or Path(name).suffix != ".jsonl":
+            continue
+        try:
+            with open(name, "rb") as index:
+                first = json.loads(index.readline(1 << 20))
+        except (OSError, ValueError, RecursionError):  # the list's reader names what is wrong with it
+            continue
+        if isinstance(first, dict) and (first.get("rig_calibration") or first.get("calibration_rectified") is True):
+            raise InputError(f"--calibration: {name} lists pairs captured with a rig calibration, and no "
+                             f"{CALIBRATION_NAME} is beside it: copy the rig's file there, or name it with "
+                             "--calibration")
 
 
 def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:

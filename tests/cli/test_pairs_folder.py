@@ -239,3 +239,36 @@ def test_capture_help_names_every_file_that_refuses_its_folder(capsys):
         main(["capture", "--help"])
     said = " ".join(capsys.readouterr().out.split())
     assert "it must not hold another run's index.jsonl, calibration.json or pair images" in said
+
+
+def test_a_recording_whose_kept_calibration_is_gone_is_refused_not_ranged_in_the_svs_model(capsys, data_dir,
+                                                                                             tmp_path):
+    """Found by an audit of recordings: a capture --calibration folder copied without its calibration.json (the
+    images and index.jsonl only) was ranged by estimate --pairs and eval in the SVS model's metres, unrectified (the
+    baseline 0.1075 m for the rig's 0.0832), said only as "the SVS model assumed". Now capture's index lines name
+    the kept copy (rig_calibration), and a folder without it is refused until it is back or --calibration names it;
+    a capture without --calibration is ranged as before."""
+    rig, out, plain = tmp_path / "rig.json", tmp_path / "pairs", tmp_path / "plain"
+    assert main(["calibrate", str(data_dir / "opencv_samples" / "left*.jpg"), "--square-m", "0.025", "--out",
+                 str(rig)]) == 0
+    for folder, calibration in ((out, ["--calibration", str(rig)]), (plain, [])):
+        assert main(["capture", "--emulator", "--count", "1", "--size", "160x120", "--out-dir", str(folder),
+                     *calibration]) == 0
+    assert json.loads((out / "index.jsonl").read_text())["rig_calibration"] == "calibration.json"
+    assert json.loads((plain / "index.jsonl").read_text())["rig_calibration"] is None
+    (out / "calibration.json").unlink()
+    capsys.readouterr()
+    for command in (["estimate", "--pairs"], ["eval"]):
+        assert main([*command, str(out / "index.jsonl")]) == 2, command
+        assert (f"--calibration: {out / 'index.jsonl'} lists pairs captured with a rig calibration, and no "
+                "calibration.json is beside it" in capsys.readouterr().err), command
+    assert main(["estimate", "--pairs", str(out / "index.jsonl"), "--calibration", str(rig), "--workers", "1"]) == 0
+    assert main(["estimate", "--pairs", str(plain / "index.jsonl"), "--workers", "1"]) == 0
+    # guide --record's lines say it as calibration_rectified
+    walk = tmp_path / "walk"
+    assert main(["guide", "--emulator", "--count", "1", "--no-speech", "--size", "160x120", "--calibration", str(rig),
+                 "--record", str(walk)]) == 0
+    (walk / "calibration.json").unlink()
+    capsys.readouterr()
+    assert main(["estimate", "--pairs", str(walk / "index.jsonl")]) == 2
+    assert "lists pairs captured with a rig calibration, and no calibration.json" in capsys.readouterr().err
