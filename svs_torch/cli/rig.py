@@ -13,7 +13,7 @@ CALIBRATED_BAND_PX = 2.0
 
 __all__ = ["add_calibration_option", "baseline_m_value", "calibration_file_source", "calibration_from_args",
            "calibration_kept_beside", "check_no_manual_calibration", "doffs_px_value", "focal_px_value",
-           "kept_calibrations", "rectified_by_rig", "rig_list_files", "take_kept_calibration",
+           "kept_calibration_gone", "kept_calibrations", "rectified_by_rig", "rig_list_files", "take_kept_calibration",
            "with_calibrated_rectification"]
 
 
@@ -128,7 +128,9 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     if getattr(args, "calibration", None) or any(manual) or getattr(args, "doffs_px", None):  # (doffs: 0 default)
         _warn_if_another_rig(args, found)
         return None
-    _refuse_a_kept_calibration_gone([name for name, path in kept.items() if path is None])
+    if gone := kept_calibration_gone([name for name, path in kept.items() if path is None]):
+        raise InputError(f"--calibration: {gone} lists pairs captured with a rig calibration, and no "
+                         "calibration.json is beside it: copy the rig's file there, or name it with --calibration")
     if not found:
         return None
     without = [str(name) for name, path in kept.items() if path is None]
@@ -140,16 +142,14 @@ def calibration_kept_beside(args: argparse.Namespace, list_files: list[str | Non
     return str(found[0])
 
 
-def _refuse_a_kept_calibration_gone(list_files: list[str | None]) -> None:
-    """Refuse an ``index.jsonl`` of ``list_files`` whose first line says its pairs were captured with a rig
-    calibration (capture's ``rig_calibration``, guide --record's ``calibration_rectified``) where none is kept
-    beside it: a folder copied without its calibration.json was ranged in the SVS model's metres, unrectified, the
-    baseline 29 % off for OpenCV's chessboard rig, and said only "the SVS model assumed" (an audit of recordings)."""
+def kept_calibration_gone(list_files: list[str | None]) -> str | None:
+    """The first ``index.jsonl`` of ``list_files`` (those without a kept calibration: :func:`kept_calibrations`)
+    whose first line says its pairs were captured with a rig calibration (capture's ``rig_calibration``, guide
+    --record's ``calibration_rectified``), or None. Why: a folder copied without its calibration.json was ranged in
+    the SVS model's metres, unrectified, the baseline 29 % off for OpenCV's chessboard rig, and said only "the SVS
+    model assumed" (an audit of recordings)."""
     import json
     from pathlib import Path
-
-    from ..core.errors import InputError
-    from .pairs_folder import CALIBRATION_NAME
 
     for name in list_files:
         if name is None or Path(name).suffix != ".jsonl":
@@ -160,9 +160,8 @@ def _refuse_a_kept_calibration_gone(list_files: list[str | None]) -> None:
         except (OSError, ValueError, RecursionError):  # the list's reader names what is wrong with it
             continue
         if isinstance(first, dict) and (first.get("rig_calibration") or first.get("calibration_rectified") is True):
-            raise InputError(f"--calibration: {name} lists pairs captured with a rig calibration, and no "
-                             f"{CALIBRATION_NAME} is beside it: copy the rig's file there, or name it with "
-                             "--calibration")
+            return name
+    return None
 
 
 def _warn_if_another_rig(args: argparse.Namespace, kept: list) -> None:

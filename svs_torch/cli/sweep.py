@@ -140,9 +140,15 @@ def _check_no_kept_calibration(sweep, sweep_file: str) -> None:
     pairs were stored ranged unrectified in the SVS model's metres without a word (an audit), where eval and
     estimate --pairs rectify them with that copy."""
     from ..core.errors import InputError
-    from .rig import kept_calibrations, rig_list_files
+    from .rig import kept_calibration_gone, kept_calibrations, rig_list_files
 
-    for listed, kept in kept_calibrations(rig_list_files(sweep.sources)).items():
+    kept_by_list = kept_calibrations(rig_list_files(sweep.sources))
+    # one whose copy is gone too: it was stored in the SVS model's metres as a folder without one (an audit)
+    if gone := kept_calibration_gone([listed for listed, kept in kept_by_list.items() if kept is None]):
+        raise InputError(f"{sweep_file}: paths: {gone} lists pairs captured with a rig calibration, which is no "
+                         "longer beside it and which a sweep does not apply; range those pairs with svs-depth eval or "
+                         "estimate --pairs and the rig's file")
+    for listed, kept in kept_by_list.items():
         if kept is not None:
             raise InputError(f"{sweep_file}: paths: {listed} was captured with a rig calibration ({kept}), which a "
                              "sweep does not apply and a results store does not record yet; range those pairs with "

@@ -703,6 +703,25 @@ def test_a_capture_folder_kept_with_its_rig_calibration_is_refused_not_ranged_in
     assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 0
 
 
+def test_a_capture_folder_whose_kept_rig_calibration_is_gone_is_refused(data_dir, tmp_path, capsys):
+    """Found by an audit of recordings: a capture --calibration folder copied without its calibration.json was swept
+    in the SVS model's metres as one captured without a rig; its index lines now name the copy (rig_calibration,
+    guide --record's calibration_rectified), and such a folder is refused as one with the copy is."""
+    teddy = data_dir / "middlebury_eval3_Q" / "Teddy"
+    captured = tmp_path / "walk"
+    captured.mkdir()
+    for key, value in (("rig_calibration", "calibration.json"), ("calibration_rectified", True)):
+        (captured / "index.jsonl").write_text(json.dumps({"left": str(teddy / "im0.png"),
+                                                          "right": str(teddy / "im1.png"), key: value}) + "\n")
+        sweep_file = tmp_path / "one.toml"
+        sweep_file.write_text('paths = ["walk/index.jsonl"]\nsize = "128x96"\n')
+        store = tmp_path / "s.sqlite"
+        assert main(["sweep", str(sweep_file), "--db", str(store), "--workers", "0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{sweep_file}: paths: {captured / 'index.jsonl'} lists pairs captured with a rig " \
+            "calibration, which is no longer beside it" in err[0] and not store.exists(), err
+
+
 def test_one_configuration_reached_by_two_descriptions_keeps_both_labels(tmp_path):
     """Found by an audit: a configuration stored by one sweep and reached again by another under another description
     (``max_ratio=0.8`` is the default's value) was summarised under the first sweep's label alone, so the second
