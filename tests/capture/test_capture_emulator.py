@@ -819,20 +819,26 @@ def test_cli_capture_warns_of_pairs_whose_frames_came_apart(tmp_path, capsys):
     assert record["time_between_frames_s"] > 0.25
 
 
+def _capture_frozen(tmp_path, capsys, cameras: tuple[str, ...], count: int) -> tuple[int, str, list[dict]]:
+    """capture of ``count`` pairs from the emulator with the ``cameras``' sensors stalled (--freeze) and noise
+    sigma 2 (the other board's frames change from grab to grab, as a real sensor's do) into tmp_path/run: its exit
+    status, stderr and index lines."""
+    faults = {camera: Faults(frozen_grabs=10**6) for camera in cameras}
+    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
+                        faults=faults) as server:
+        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", str(count),
+                           "--size", "160x120", "--out", str(tmp_path / "run"))
+    records = [json.loads(line) for line in (tmp_path / "run" / "index.jsonl").read_text().splitlines()]
+    return code, capsys.readouterr().err, records
+
+
 @pytest.mark.parametrize("camera", ["left", "right"])
 def test_cli_capture_warns_of_and_marks_the_pairs_of_a_board_that_sends_one_frame_again(tmp_path, capsys, camera):
     """Found by an audit of capture: with one board's sensor stalled (the emulator's --freeze: each grab answered
     with its last frame's bytes again) capture saved every pair, an old view beside a new one, without a word, into
     a researcher's data set. They are kept (capture records what the boards sent), each index line says which camera
     was frozen (guide's rule: from the second such pair in a row), and the last lines count them."""
-    faults = {camera: Faults(frozen_grabs=10**6)}
-    # noise: the other board's frames change from grab to grab, as a real sensor's do
-    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
-                        faults=faults) as server:
-        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "5",
-                           "--size", "160x120", "--out", str(tmp_path / "run"))
-    err = capsys.readouterr().err
-    records = [json.loads(line) for line in (tmp_path / "run" / "index.jsonl").read_text().splitlines()]
+    code, err, records = _capture_frozen(tmp_path, capsys, (camera,), 5)
     assert code == 0 and "saved 5 pairs" in err
     assert [record["frozen_camera"] for record in records] == [None, None, camera, camera, camera]
     assert f"warning: 3 of 5 pairs have the {camera} camera's frame sent again, pixel for pixel" in err
@@ -857,13 +863,7 @@ def test_cli_capture_marks_and_warns_of_both_boards_sending_one_old_pair_again(t
 
     monkeypatch.setattr(frozen_module, "FrozenCameraWatch",
                         functools.partial(frozen_module.FrozenCameraWatch, both_frozen_s=0.0))
-    faults = {camera: Faults(frozen_grabs=10**6) for camera in ("left", "right")}
-    with EmulatorServer(left_port=0, right_port=0, source=SyntheticSource(renderer="simple"), noise_sigma=2.0,
-                        faults=faults) as server:
-        code = run_capture("--left", server.urls["left"], "--right", server.urls["right"], "--count", "4",
-                           "--size", "160x120", "--out", str(tmp_path / "run"))
-    err = capsys.readouterr().err
-    records = [json.loads(line) for line in (tmp_path / "run" / "index.jsonl").read_text().splitlines()]
+    code, err, records = _capture_frozen(tmp_path, capsys, ("left", "right"), 4)
     assert code == 0 and [record["frozen_camera"] for record in records] == [None, "both", "both", "both"]
     assert "warning: 3 of 4 pairs have both cameras' frames sent again, pixel for pixel, for 3 s or more" in err
     assert main(["estimate", "--pairs", str(tmp_path / "run" / "index.jsonl"), "--workers", "1"]) == 0
