@@ -65,13 +65,22 @@ class Speaker:
         return self.executable is not None
 
     def say(self, text: str) -> None:
-        """Print ``text`` and, if a speech program is available, speak it (interrupting the previous message)."""
+        """If a speech program is available, speak ``text`` (interrupting the previous message); then print it.
+
+        Spoken first: a print that fails (a terminal closed under guide, whose writes then fail with EIO; a closed
+        pipe) raises after the words are on their way, not instead of them: "Guide stopped." went unsaid so."""
+        failed = self._speak(text)
         if self.stream is not None:
             print(text, file=self.stream, flush=True)
+        if failed is not None:  # (after the text: the notice is about it)
+            notice_once(failed, self.stream)
+
+    def _speak(self, text: str) -> str | None:
+        """Speak ``text``; None, or the notice that speech stopped (the program could not be run)."""
         if self.executable is None:
-            return
+            return None
         if text == self._spoken and self._process is not None and self._process.poll() is None:
-            return  # still being said
+            return None  # still being said
         self._stop_previous()
         try:
             self._process = subprocess.Popen([self.executable, "-s", str(self.words_per_minute), text],
@@ -79,8 +88,9 @@ class Speaker:
                                              stderr=subprocess.DEVNULL)
             self._spoken = text
         except OSError as err:
-            notice_once(f"speech disabled: cannot run {self.executable}: {err}", self.stream)
-            self.executable = None
+            failed, self.executable = f"speech disabled: cannot run {self.executable}: {err}", None
+            return failed
+        return None
 
     def _stop_previous(self) -> None:
         if self._process is not None and self._process.poll() is None:

@@ -359,9 +359,11 @@ def _stopped(status_line, log, text: str, code: int, speaker=None) -> int:
     that ended (``--count`` reached, Ctrl-C, a service's stop: a battery running low, a system update) read as a
     clear way, as after an error it did (an audit of what a walker hears). Not on a broken pipe of stdout without
     --json: the words' stream is what broke (with --json only the JSON lines' reader went away)."""
-    status_line.close()  # (its last line before the words, in a log too)
-    if speaker is not None:
-        speaker.say(GUIDE_STOPPED)
+    try:
+        status_line.close()  # (its last line before the words, in a log too)
+    finally:  # said even where that line failed: a terminal gone (EIO) without a SIGHUP (setsid, disown -h)
+        if speaker is not None:
+            speaker.say(GUIDE_STOPPED)
     print(text, file=sys.stderr)
     if log is not None and (summary := log.summary()) is not None:
         print(summary, file=sys.stderr)

@@ -249,6 +249,26 @@ def test_speaker_falls_back_to_text_when_program_fails(tmp_path):
     assert "speech disabled" in stream.getvalue() and stream.getvalue().startswith("hello\n")
 
 
+def test_speaker_says_the_words_when_their_print_fails(tmp_path):
+    """Found by an audit of a closed terminal: the words were printed first, and a print to a terminal that had
+    hung up (EIO) raised before "Guide stopped. No more warnings." was spoken. Now spoken first, then printed."""
+    import errno
+
+    class HungUpTerminal(io.StringIO):
+        def write(self, text: str) -> int:
+            raise OSError(errno.EIO, "Input/output error")
+
+    record = tmp_path / "spoken.txt"
+    fake = tmp_path / "fake-espeak"
+    fake.write_text(f"#!{sys.executable}\nimport sys\nopen({str(record)!r}, 'a').write(sys.argv[-1] + '\\n')\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    speaker = Speaker(str(fake), stream=HungUpTerminal())
+    with pytest.raises(OSError):
+        speaker.say("Guide stopped. No more warnings.")
+    speaker.close()
+    assert record.read_text() == "Guide stopped. No more warnings.\n"
+
+
 def test_speaker_auto_finds_espeak(monkeypatch):
     monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/espeak-ng" if name == "espeak-ng" else None)
     assert Speaker().executable == "/usr/bin/espeak-ng"

@@ -924,6 +924,29 @@ def test_guide_says_that_it_stopped_whatever_stops_it(capsys, monkeypatch, stop,
     assert "guide stopped after 1 pair\n" in err  # (was "1 pairs")
 
 
+def test_guide_says_that_it_stopped_when_its_terminal_fails_first():
+    """Found by an audit of a closed terminal: guide's end wrote its status line's last line first, and on a terminal
+    gone without a SIGHUP (started with setsid, or disown -h) that write failed (EIO) and "Guide stopped. No more
+    warnings." was never said. Now it is said whatever that write does; the failure still ends guide."""
+    import errno
+
+    from svs_torch.cli.guide import GUIDE_STOPPED, _stopped
+
+    class GoneTerminal:
+        def close(self) -> None:
+            raise OSError(errno.EIO, "Input/output error")
+
+    said: list[str] = []
+
+    class Speaker:
+        def say(self, text: str) -> None:
+            said.append(text)
+
+    with pytest.raises(OSError):
+        _stopped(GoneTerminal(), None, "guide stopped after 3 pairs", 1, Speaker())
+    assert said == [GUIDE_STOPPED]
+
+
 @pytest.mark.parametrize("stop, code", [(KeyboardInterrupt, 130), ("terminated", 143)])
 def test_guide_stopped_while_it_starts_says_that_it_stopped(capsys, monkeypatch, tmp_path, stop, code):
     """Found by an audit of Ctrl-C: stopped in the 1-3 s before the camera opens (torch's import, the warm-up),
